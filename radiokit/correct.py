@@ -1,0 +1,316 @@
+"""Apply a :class:`~radiokit.calibrate.Calibration` fast: fused, cache-blocked float32 on all cores.
+
+The work per frame is one pass over row blocks small enough to stay in cache (32 rows of a
+2240-wide frame is 280 kB of float32), split between threads: numpy's ufuncs release the GIL,
+so two threads use two cores. Everything that does not depend on the frame (``ln(flat - dark)``,
+``1 / (flat - dark)``, the defect fill plan) is computed once per calibration.
+"""
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from radiokit.calibrate import Calibration, PixelFlag
+
+__all__ = ["correct_frames", "correct_files", "CorrectionReport", "DOMAINS", "fill_plan"]
+
+DOMAINS = ("log", "linear", "counts")
+#: raw - dark at or below zero is clamped to this many counts before the log.
+FLOOR_COUNTS = 0.5
+_BLOCK_ROWS = 32
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _threads() -> int:
+    env = os.environ.get("RADIOKIT_THREADS")
+    if env:
+        return max(1, int(env))
+    return max(1, min(os.cpu_count() or 1, 8))
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(_threads(), thread_name_prefix="radiokit-correct")
+    return _POOL
+
+
+@dataclass
+class CorrectionReport:
+    """What correction had to repair, per frame.
+
+    Attributes
+    ----------
+    saturated, nonpositive : ndarray (n,) int
+        Pixels at the ADC's top; pixels with ``raw - dark <= 0`` (clamped and filled).
+    defects_filled : int
+        Pixels of the calibration's defect map filled in every frame.
+    flags : ndarray uint32, (rows, cols) or (n, rows, cols)
+        The calibration mask with the per-frame ``SATURATED`` and ``NONPOSITIVE`` bits.
+    """
+
+    saturated: np.ndarray
+    nonpositive: np.ndarray
+    defects_filled: int
+    flags: np.ndarray | None = None
+
+    def summary(self) -> str:
+        return (f"{len(self.saturated)} frame(s): {self.defects_filled} defect pixels filled per frame, "
+                f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive (filled)")
+
+
+# -- fill plans --------------------------------------------------------------------------------
+@dataclass
+class _Stage:
+    dst: np.ndarray  # (m,) flat indices
+    src: np.ndarray  # (m, k) flat indices
+    w: np.ndarray  # (m, k) float32 weights summing to 1
+
+    def apply(self, flat_image: np.ndarray):
+        if self.dst.size:
+            flat_image[self.dst] = np.einsum("ij,ij->i", flat_image[self.src], self.w)
+
+
+def _neighbour_stage(bad: np.ndarray, invalid: np.ndarray, max_radius=4) -> tuple[_Stage, np.ndarray]:
+    """Fill each ``bad`` pixel with the mean of the valid pixels in the smallest square ring
+    neighbourhood (radius 1, then 2, ...) that has any. Returns the stage and the pixels left
+    without a valid neighbour within ``max_radius``."""
+    rows, cols = bad.shape
+    todo = np.flatnonzero(bad)
+    dsts, srcs, ws = [], [], []
+    for radius in range(1, max_radius + 1):
+        if todo.size == 0:
+            break
+        r, c = np.divmod(todo, cols)
+        offs = [(dr, dc) for dr in range(-radius, radius + 1) for dc in range(-radius, radius + 1) if (dr, dc) != (0, 0)]
+        rr = r[:, None] + np.array([o[0] for o in offs])[None]
+        cc = c[:, None] + np.array([o[1] for o in offs])[None]
+        inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
+        idx = np.where(inside, rr.clip(0, rows - 1) * cols + cc.clip(0, cols - 1), 0)
+        ok = inside & ~invalid.ravel()[idx]
+        count = ok.sum(axis=1)
+        done = count > 0
+        w = np.where(ok, 1.0, 0.0)[done] / count[done, None]
+        dsts.append(todo[done])
+        srcs.append(idx[done])
+        ws.append(w.astype(np.float32))
+        todo = todo[~done]
+    if not dsts:
+        return _Stage(np.zeros(0, np.int64), np.zeros((0, 1), np.int64), np.zeros((0, 1), np.float32)), todo
+    k = max(s.shape[1] for s in srcs)
+    pad = lambda a, v: np.pad(a, ((0, 0), (0, k - a.shape[1])), constant_values=v)  # noqa: E731
+    return _Stage(np.concatenate(dsts), np.concatenate([pad(s, 0) for s in srcs]),
+                  np.concatenate([pad(w, 0) for w in ws])), todo
+
+
+def _line_stage(lines: np.ndarray, n_lines: int, n_along: int, axis: int, shape) -> _Stage:
+    """Fill whole rows (axis 0) or columns (axis 1) from the nearest valid lines on either side,
+    linearly weighted: the manual's ``(V(p-1) + V(p+1)) / 2`` when both neighbours are valid."""
+    bad = np.zeros(n_lines, bool)
+    bad[lines] = True
+    valid = np.flatnonzero(~bad)
+    if valid.size == 0:
+        raise ValueError("every line of the panel is a defect line: the calibration is unusable")
+    dst, src, w = [], [], []
+    along = np.arange(n_along)
+    cols = shape[1]
+    for p in np.flatnonzero(bad):
+        pos = np.searchsorted(valid, p)
+        lo = valid[pos - 1] if pos > 0 else None
+        hi = valid[pos] if pos < valid.size else None
+        if lo is None:
+            lo, wl, wh = hi, 1.0, 0.0
+        elif hi is None:
+            hi, wl, wh = lo, 1.0, 0.0
+        else:
+            wl, wh = (hi - p) / (hi - lo), (p - lo) / (hi - lo)
+        if axis == 0:
+            dst.append(p * cols + along)
+            src.append(np.stack([lo * cols + along, hi * cols + along], 1))
+        else:
+            dst.append(along * cols + p)
+            src.append(np.stack([along * cols + lo, along * cols + hi], 1))
+        w.append(np.tile(np.float32([wl, wh]), (n_along, 1)))
+    return _Stage(np.concatenate(dst), np.concatenate(src), np.concatenate(w))
+
+
+def fill_plan(cal: Calibration) -> list[_Stage]:
+    """The ordered fill stages of a calibration: isolated defect pixels from valid neighbours,
+    then defect columns, then defect rows (each line stage may read pixels an earlier one filled)."""
+    rows, cols = cal.shape
+    on_line = np.zeros(cal.shape, bool)
+    on_line[cal.defect_rows, :] = True
+    on_line[:, cal.defect_columns] = True
+    invalid = cal.mask != 0
+    isolated = invalid & ~on_line
+    stage, left = _neighbour_stage(isolated, invalid, max_radius=8)
+    stages = [stage]
+    if left.size:
+        # Huge clusters: better a finite, flagged value than a hole.
+        stages.append(_Stage(left, np.zeros((left.size, 1), np.int64), np.zeros((left.size, 1), np.float32)))
+    if cal.defect_columns.size:
+        stages.append(_line_stage(cal.defect_columns, cols, rows, 1, cal.shape))
+    if cal.defect_rows.size:
+        stages.append(_line_stage(cal.defect_rows, rows, cols, 0, cal.shape))
+    return stages
+
+
+@dataclass
+class _Kernel:
+    dark: np.ndarray
+    log_i0: np.ndarray  # ln(flat - dark), finite everywhere
+    inv_gain: np.ndarray  # 1 / (flat - dark), finite everywhere
+    stages: list = field(default_factory=list)
+    invalid: np.ndarray | None = None
+    n_defects: int = 0
+
+
+def _kernel(cal: Calibration) -> _Kernel:
+    if cal._kernel is None:
+        response = cal.flat - cal.dark
+        ok = (cal.mask == 0) & (response > cal.thresholds.eps)
+        safe = np.where(ok, response, 1.0).astype(np.float32)
+        cal._kernel = _Kernel(dark=cal.dark, log_i0=np.log(safe), inv_gain=(1.0 / safe).astype(np.float32),
+                              stages=fill_plan(cal), invalid=cal.mask != 0,
+                              n_defects=int(np.count_nonzero(cal.mask)))
+    return cal._kernel
+
+
+def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
+    """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
+    non-positive and saturated pixels met (rare, so collected only when present)."""
+    cols = raw.shape[1]
+    tmp = np.empty((_BLOCK_ROWS, cols), np.float32)
+    nonpos, sat = [], []
+    check_sat = saturation is not None
+    for a in range(r0, r1, _BLOCK_ROWS):
+        b = min(a + _BLOCK_ROWS, r1)
+        t = tmp[: b - a]
+        rb = raw[a:b]
+        np.subtract(rb, k.dark[a:b], out=t, dtype=np.float32, casting="unsafe")
+        if t.min() <= 0:
+            hit = np.flatnonzero(t <= 0)
+            nonpos.append(hit + a * cols)
+            np.maximum(t, FLOOR_COUNTS, out=t)
+        if check_sat and rb.max() >= saturation:
+            sat.append(np.flatnonzero(rb >= saturation) + a * cols)
+        if domain == "log":
+            np.log(t, out=t)
+            np.subtract(k.log_i0[a:b], t, out=out[a:b])
+        else:
+            np.multiply(t, k.inv_gain[a:b], out=out[a:b])
+            if scale != 1.0:
+                out[a:b] *= scale
+    return nonpos, sat
+
+
+def _correct_one(raw2d, k: _Kernel, out2d, domain, scale, saturation):
+    rows = raw2d.shape[0]
+    nt = min(_threads(), max(1, rows // _BLOCK_ROWS))
+    if nt == 1:
+        parts = [_correct_rows(raw2d, k, out2d, domain, scale, 0, rows, saturation)]
+    else:
+        # Split on block boundaries so threads never share a cache line of output.
+        edges = [(rows * i // nt) // _BLOCK_ROWS * _BLOCK_ROWS for i in range(nt)] + [rows]
+        parts = list(_pool().map(lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1],
+                                                         saturation), range(nt)))
+    nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
+    sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
+    flat_out = out2d.reshape(-1)
+    for stage in k.stages:
+        stage.apply(flat_out)
+    if nonpos.size:
+        bad = np.zeros(out2d.shape, bool)
+        bad.ravel()[nonpos] = True
+        bad &= ~k.invalid
+        stage, _ = _neighbour_stage(bad, bad | k.invalid, max_radius=2)
+        stage.apply(flat_out)
+    return nonpos, sat
+
+
+def _correct_checked(cal: Calibration, raw2d, out2d, domain):
+    k = _kernel(cal)
+    scale = cal.c if domain == "counts" else 1.0
+    saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" else None
+    return _correct_one(raw2d, k, out2d, domain, scale, saturation)
+
+
+def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_report=False):
+    """Correct one frame ``(rows, cols)`` or a stack ``(n, rows, cols)``; see :meth:`Calibration.correct`."""
+    if domain not in DOMAINS:
+        raise ValueError(f"domain={domain!r}: expected one of {DOMAINS}")
+    raw = np.asarray(raw)
+    if raw.ndim not in (2, 3) or raw.shape[-2:] != cal.shape:
+        raise ValueError(f"raw frames of shape {raw.shape} do not match the calibration's {cal.shape}")
+    if raw.dtype.kind not in "uif":
+        raise ValueError(f"raw frames must be numeric, got dtype {raw.dtype}")
+    if raw.dtype.kind == "f" and not np.isfinite(raw).all():
+        raise ValueError("raw frames contain NaN or inf")
+    if out is None:
+        out = np.empty(raw.shape, np.float32)
+    elif out.shape != raw.shape or out.dtype != np.float32:
+        raise ValueError(f"out must be float32 of shape {raw.shape}, got {out.dtype} {out.shape}")
+    stack = raw if raw.ndim == 3 else raw[None]
+    ostack = out if out.ndim == 3 else out[None]
+    n = stack.shape[0]
+    sat_counts = np.zeros(n, np.int64)
+    np_counts = np.zeros(n, np.int64)
+    flags = np.broadcast_to(cal.mask, stack.shape).copy() if return_report else None
+    for i in range(n):
+        nonpos, sat = _correct_checked(cal, stack[i], ostack[i], domain)
+        np_counts[i], sat_counts[i] = nonpos.size, sat.size
+        if return_report:
+            flags[i].ravel()[nonpos] |= np.uint32(PixelFlag.NONPOSITIVE)
+            flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
+    if not return_report:
+        return out
+    report = CorrectionReport(sat_counts, np_counts, _kernel(cal).n_defects, flags if raw.ndim == 3 else flags[0])
+    return out, report
+
+
+def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, **hints) -> dict:
+    """Stream frames from ``inputs`` through ``cal`` into ``output`` (``.h5`` or ``.tif``).
+
+    One raw frame and one corrected frame are in memory at a time, whatever the stack length.
+    The output records, per frame, the source file and index and the saturated and non-positive
+    counts. Returns a summary dict.
+    """
+    from tqdm.auto import tqdm
+
+    from radiokit.io import StackWriter, open_frames
+
+    inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
+    sources = [open_frames(p, **hints) for p in inputs]
+    try:
+        for src in sources:
+            if src.frame_shape != cal.shape:
+                raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
+        total = sum(len(s) for s in sources)
+        meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
+        t0 = time.perf_counter()
+        frame = np.empty(cal.shape, np.float32)
+        sat_total = np_total = 0
+        with StackWriter(output, cal.shape, np.float32, meta=meta) as writer, \
+                tqdm(total=total, unit="frame", desc="correct", disable=not progress) as bar:
+            for si, src in enumerate(sources):
+                for fi in range(len(src)):
+                    raw = src[fi]
+                    nonpos, sat = _correct_checked(cal, raw, frame, domain)
+                    nonpos, sat = nonpos.size, sat.size
+                    sat_total += sat
+                    np_total += nonpos
+                    writer.append(frame, source_index=np.int32(si), frame_index=np.int32(fi),
+                                  saturated=np.int64(sat), nonpositive=np.int64(nonpos))
+                    bar.update(1)
+        elapsed = time.perf_counter() - t0
+    finally:
+        for src in sources:
+            src.close()
+    return {"frames": total, "output": str(output), "domain": domain, "seconds": elapsed,
+            "frames_per_second": total / elapsed if elapsed else float("inf"),
+            "saturated": sat_total, "nonpositive": np_total, "defects_filled_per_frame": _kernel(cal).n_defects}

@@ -1,0 +1,249 @@
+"""The experiment file of DESIGN.md: NeXus-style HDF5, frames appended and flushed one by one."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from radiokit.errors import FormatError
+
+__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta"]
+
+DETECTOR = "entry/instrument/detector"
+COMPRESSION = "entry/sample/compression"
+CONTROL = "entry/control"
+
+
+class ImageKey:
+    """NXtomo ``image_key`` values."""
+
+    PROJECTION = 0
+    FLAT = 1
+    DARK = 2
+    INVALID = 3
+
+
+# Per-frame series: (group, name, dtype, fill value, units)
+_SERIES = (
+    (DETECTOR, "image_key", np.int8, ImageKey.INVALID, None),
+    (COMPRESSION, "step", np.int16, -1, None),
+    (COMPRESSION, "ratio", np.float64, np.nan, ""),
+    (COMPRESSION, "gap", np.float64, np.nan, "m"),
+    (CONTROL, "time", np.float64, np.nan, "s"),
+    (CONTROL, "voltage", np.float64, np.nan, "kV"),
+    (CONTROL, "current", np.float64, np.nan, "uA"),
+)
+
+
+def _set_class(group, nx_class):
+    group.attrs["NX_class"] = nx_class
+
+
+class ExperimentWriter:
+    """Append frames to an experiment file, flushing after each so a crash loses at most one.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.h5`` file. ``mode="w"`` creates it (refusing to overwrite unless ``overwrite=True``),
+        ``mode="a"`` reopens an existing file to append.
+    shape : (rows, cols)
+        Frame shape; required for a new file, checked when appending to an old one.
+    pixel_size_mm : float
+        Detector pixel pitch (written in metres as NeXus wants).
+    source : dict, optional
+        ``name``, ``voltage_kv``, ``current_ua`` of the X-ray source.
+    detector_name : str
+        Written to ``instrument/detector/description``.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from radiokit.io import ExperimentWriter, ImageKey, read
+    >>> path = os.path.join(tempfile.mkdtemp(), "exp.h5")
+    >>> with ExperimentWriter(path, shape=(4, 5)) as w:
+    ...     w.append(np.zeros((4, 5), np.uint16), image_key=ImageKey.DARK)
+    ...     w.append(np.full((4, 5), 1000, np.uint16), image_key=ImageKey.PROJECTION, step=1, ratio=0.15)
+    >>> f = read(path)
+    >>> f.data.shape, list(f.meta["image_key"])
+    ((2, 4, 5), [2, 0])
+    """
+
+    def __init__(self, path, shape=None, *, mode="w", overwrite=False, pixel_size_mm=0.05,
+                 source=None, detector_name="Hamamatsu C7942SK-02", title="radiokit experiment"):
+        self.path = Path(path)
+        if mode not in ("w", "a"):
+            raise ValueError(f"mode={mode!r}: expected 'w' (new file) or 'a' (append)")
+        if mode == "w" and self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path}: exists; raw data is never overwritten (use mode='a' to append)")
+        if mode == "a" and not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no experiment file to append to")
+        self._h5 = h5py.File(self.path, "w" if mode == "w" else "r+")
+        try:
+            if mode == "w":
+                if shape is None:
+                    raise ValueError("shape=(rows, cols) is required for a new experiment file")
+                self._create(tuple(int(s) for s in shape), pixel_size_mm, source or {}, detector_name, title)
+            else:
+                self._reopen(shape)
+        except Exception:
+            self._h5.close()
+            raise
+
+    # -- layout -------------------------------------------------------------------------------
+    def _create(self, shape, pixel_size_mm, source, detector_name, title):
+        h5 = self._h5
+        h5.attrs["default"] = "entry"
+        h5.attrs["creator"] = "radiokit"
+        entry = h5.create_group("entry")
+        _set_class(entry, "NXentry")
+        entry.attrs["default"] = "data"
+        entry["title"] = title
+        entry["start_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        entry["definition"] = "NXtomo"
+        inst = entry.create_group("instrument")
+        _set_class(inst, "NXinstrument")
+        src = inst.create_group("source")
+        _set_class(src, "NXsource")
+        src["type"] = "Fixed Tube X-ray"
+        src["name"] = source.get("name", "Hamamatsu L8121-01")
+        src["probe"] = "x-ray"
+        for key, unit in (("voltage", "kV"), ("current", "uA")):
+            value = source.get(f"{key}_{unit.lower()}")
+            ds = src.create_dataset(key, data=np.nan if value is None else float(value))
+            ds.attrs["units"] = unit
+        det = inst.create_group("detector")
+        _set_class(det, "NXdetector")
+        det["description"] = detector_name
+        rows, cols = shape
+        data = det.create_dataset("data", shape=(0, rows, cols), maxshape=(None, rows, cols),
+                                  chunks=(1, rows, cols), dtype=np.uint16)
+        data.attrs["interpretation"] = "image"
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            det.create_dataset(axis, data=pixel_size_mm * 1e-3).attrs["units"] = "m"
+        det.create_dataset("pixel_mask", data=np.zeros(shape, np.uint32), compression="gzip")
+        sample = entry.create_group("sample")
+        _set_class(sample, "NXsample")
+        comp = sample.create_group("compression")
+        _set_class(comp, "NXcollection")
+        ctrl = entry.create_group("control")
+        _set_class(ctrl, "NXcollection")
+        for group, name, dtype, _, units in _SERIES:
+            ds = h5[group].create_dataset(name, shape=(0,), maxshape=(None,), chunks=(256,), dtype=dtype)
+            if units:
+                ds.attrs["units"] = units
+        nxdata = entry.create_group("data")
+        _set_class(nxdata, "NXdata")
+        nxdata.attrs["signal"] = "data"
+        nxdata["data"] = h5py.SoftLink(f"/{DETECTOR}/data")
+        nxdata["image_key"] = h5py.SoftLink(f"/{DETECTOR}/image_key")
+        entry.attrs["frames_complete"] = 0
+        h5.flush()
+        self._n = 0
+
+    def _reopen(self, shape):
+        h5 = self._h5
+        if f"{DETECTOR}/data" not in h5:
+            raise FormatError(self.path, f"not an experiment file: /{DETECTOR}/data is missing")
+        data = h5[f"{DETECTOR}/data"]
+        if shape is not None and tuple(shape) != data.shape[1:]:
+            raise ValueError(f"{self.path}: frames are {data.shape[1:]}, not {tuple(shape)}")
+        # A crash between resizing and the counter update leaves a partial frame: drop it.
+        n = int(h5["entry"].attrs.get("frames_complete", data.shape[0]))
+        n = min([n, data.shape[0]] + [h5[g][name].shape[0] for g, name, *_ in _SERIES if name in h5[g]])
+        for ds in [data] + [h5[g][name] for g, name, *_ in _SERIES]:
+            if ds.shape[0] != n:
+                ds.resize(n, axis=0)
+        self._n = n
+
+    # -- writing ------------------------------------------------------------------------------
+    @property
+    def n_frames(self) -> int:
+        """Frames safely on disk."""
+        return self._n
+
+    @property
+    def h5(self) -> h5py.File:
+        """The open file, for extra groups (e.g. ``entry/simulation``)."""
+        return self._h5
+
+    def append(self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None,
+               voltage_kv=None, current_ua=None) -> int:
+        """Append one frame and its bookkeeping, then flush. Returns the frame's index."""
+        frame = np.asarray(frame)
+        data = self._h5[f"{DETECTOR}/data"]
+        if frame.shape != data.shape[1:]:
+            raise ValueError(f"{self.path}: frame shape {frame.shape} does not match the file's {data.shape[1:]}")
+        if frame.dtype != np.uint16:
+            if frame.dtype.kind not in "ui" or (frame.size and (frame.min() < 0 or frame.max() > 65535)):
+                raise ValueError(f"{self.path}: raw frames are stored as uint16; got {frame.dtype}")
+            frame = frame.astype(np.uint16)
+        if int(image_key) not in (0, 1, 2, 3):
+            raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
+        i = self._n
+        values = {"image_key": int(image_key), "step": int(step),
+                  "ratio": np.nan if ratio is None else float(ratio),
+                  "gap": np.nan if gap_mm is None else float(gap_mm) * 1e-3,
+                  "time": time.time() if time_s is None else float(time_s),
+                  "voltage": np.nan if voltage_kv is None else float(voltage_kv),
+                  "current": np.nan if current_ua is None else float(current_ua)}
+        data.resize(i + 1, axis=0)
+        data[i] = frame
+        for group, name, *_ in _SERIES:
+            ds = self._h5[group][name]
+            ds.resize(i + 1, axis=0)
+            ds[i] = values[name]
+        self._h5["entry"].attrs["frames_complete"] = i + 1
+        self._h5.flush()
+        self._n = i + 1
+        return i
+
+    def set_pixel_mask(self, mask):
+        mask = np.asarray(mask, dtype=np.uint32)
+        ds = self._h5[f"{DETECTOR}/pixel_mask"]
+        if mask.shape != ds.shape:
+            raise ValueError(f"pixel_mask shape {mask.shape} does not match frames {ds.shape}")
+        ds[...] = mask
+        self._h5.flush()
+
+    def close(self):
+        if self._h5.id.valid:
+            self._h5["entry"].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+            self._h5.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_experiment_meta(path, h5: h5py.File) -> tuple[h5py.Dataset, dict]:
+    """Find the frames of an experiment file and collect its per-frame metadata."""
+    if f"{DETECTOR}/data" not in h5:
+        raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/data: not a radiokit experiment file "
+                                "(pass dataset='/path/to/frames' to read another layout)")
+    data = h5[f"{DETECTOR}/data"]
+    if data.ndim != 3:
+        raise FormatError(path, f"/{DETECTOR}/data has shape {data.shape}; expected (n, rows, cols)")
+    n = min(int(h5["entry"].attrs.get("frames_complete", data.shape[0])), data.shape[0])
+    meta = {"format": "experiment"}
+    for group, name, *_ in _SERIES:
+        if name in h5.get(group, {}):
+            meta[name] = h5[group][name][:n]
+        elif name == "image_key":
+            raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/image_key")
+    for name in ("x_pixel_size", "y_pixel_size", "pixel_mask"):
+        if name in h5[DETECTOR]:
+            meta[name] = h5[DETECTOR][name][()]
+    if "x_pixel_size" in meta:
+        meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
+    src = h5.get("entry/instrument/source")
+    if src is not None:
+        meta["source"] = {k: (v[()].decode() if isinstance(v[()], bytes) else v[()]) for k, v in src.items()}
+    if "entry/simulation" in h5:
+        meta["simulated"] = True
+    meta["n_complete"] = n
+    return data, meta

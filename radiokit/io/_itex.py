@@ -1,0 +1,132 @@
+"""Hamamatsu ITEX / HiPic ``.img`` files (HPD-TA, HiPic, XVS-FPD).
+
+Layout (all little-endian): a 64-byte header, an ASCII comment of ``comment_length`` bytes, the
+pixels (unsigned, ``width * height`` per image, rows top first), then optional blocks such as the
+float32 axis arrays a ``[Scaling]`` section points at with ``"#<byte offset>,<count>"``.
+"""
+from __future__ import annotations
+
+import re
+import struct
+
+import numpy as np
+
+from radiokit.errors import FormatError
+
+__all__ = ["parse_itex_header", "parse_comment", "ITEX_TYPES"]
+
+HEADER = struct.Struct("<2shhhhhhihhd4s30s")
+HEADER_BYTES = 64
+assert HEADER.size == HEADER_BYTES
+#: file type -> pixel dtype; type 1 is a compressed format nobody documents.
+ITEX_TYPES = {0: np.dtype("<u1"), 2: np.dtype("<u2"), 3: np.dtype("<u4")}
+
+
+def parse_itex_header(path, head: bytes, size: int) -> dict:
+    """Validate the 64-byte header against the file size and return the geometry."""
+    if len(head) < HEADER_BYTES:
+        raise FormatError(path, f"ITEX header needs {HEADER_BYTES} bytes; the file has {len(head)}")
+    (magic, comment_len, width, height, x0, y0, ftype, n_images, n_channels, channel, stamp,
+     marker, info) = HEADER.unpack(head[:HEADER_BYTES])
+    if magic != b"IM":
+        raise FormatError(path, f"wrong magic {magic!r}: an ITEX .img starts with b'IM'")
+    if ftype == 1:
+        raise FormatError(path, "ITEX file type 1 (compressed) is not supported; save as 16-bit (type 2)")
+    if ftype not in ITEX_TYPES:
+        raise FormatError(path, f"unknown ITEX file type {ftype} (known: 0 8-bit, 2 16-bit, 3 32-bit)")
+    if comment_len < 0:
+        raise FormatError(path, f"negative comment length {comment_len} in the ITEX header")
+    if width <= 0 or height <= 0:
+        raise FormatError(path, f"ITEX header gives a {width}x{height} image")
+    if n_images < 0:
+        raise FormatError(path, f"negative image count {n_images} in the ITEX header")
+    n = max(int(n_images), 1)  # 0 is written for a single image
+    dt = ITEX_TYPES[ftype]
+    data_offset = HEADER_BYTES + comment_len
+    need = data_offset + n * width * height * dt.itemsize
+    if need > size:
+        raise FormatError(path, f"ITEX header promises {n} image(s) of {width}x{height} {dt.itemsize * 8}-bit "
+                                f"after a {comment_len}-byte comment ({need} bytes); the file has {size}")
+    return dict(format="itex", n=n, rows=int(height), cols=int(width), dtype=dt, offset=data_offset,
+                comment_length=int(comment_len), file_type=int(ftype), x_offset=int(x0), y_offset=int(y0),
+                channels=int(n_channels), channel=int(channel), time_stamp=float(stamp),
+                marker=marker.rstrip(b"\0").decode("latin-1"), info=info.rstrip(b"\0").decode("latin-1"),
+                file_size=size)
+
+
+# A section header, or one key=value item whose value may be quoted (and then hold commas).
+_TOKEN = re.compile(r'\s*(?:\[(?P<section>[^\]\r\n]*)\]|(?P<key>[^=,\r\n\[]+?)\s*=\s*'
+                    r'(?:"(?P<quoted>[^"]*)"|(?P<bare>[^,\r\n\[]*)))\s*,?', re.S)
+
+
+def _number(text: str):
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def parse_comment(text: str) -> dict:
+    """Parse ``[Section],key=value,key="quoted, value"`` into ``{section: {key: value}}``.
+
+    Sections are separated by CR LF in most files but may follow each other directly
+    (``...SubType=0[DisplayLUT],...``); unquoted numbers become int or float, the rest stays text.
+    Keys before any section go under ``""``. Text that is not a key=value item is kept under
+    ``"_unparsed"`` rather than dropped.
+    """
+    out: dict[str, dict] = {}
+    current = out.setdefault("", {})
+    pos, end = 0, len(text)
+    leftovers = []
+    while pos < end:
+        m = _TOKEN.match(text, pos)
+        if not m or m.end() == pos:
+            nxt = min((i for i in (text.find(",", pos + 1), text.find("\n", pos + 1), text.find("[", pos + 1))
+                       if i > 0), default=end)
+            piece = text[pos:nxt].strip(" ,\r\n\0")
+            if piece:
+                leftovers.append(piece)
+            pos = nxt
+            continue
+        if m.group("section") is not None:
+            current = out.setdefault(m.group("section").strip(), {})
+        else:
+            key = m.group("key").strip()
+            current[key] = m.group("quoted") if m.group("quoted") is not None else _number(m.group("bare").strip())
+        pos = m.end()
+    if not out[""]:
+        del out[""]
+    if leftovers:
+        out["_unparsed"] = leftovers
+    return out
+
+
+_POINTER = re.compile(r"^#\s*(\d+)\s*,\s*(\d+)\s*$")
+
+
+def read_scaling(path, fh, comment: dict, size: int) -> dict:
+    """Read the float32 axis arrays that ``[Scaling]`` points at; describe named scalings."""
+    sec = comment.get("Scaling", {})
+    axes = {}
+    for axis in ("X", "Y"):
+        ref = sec.get(f"Scaling{axis}ScalingFile")
+        if ref is None:
+            continue
+        entry = {"type": sec.get(f"Scaling{axis}Type"), "scale": sec.get(f"Scaling{axis}Scale"),
+                 "unit": sec.get(f"Scaling{axis}Unit", "")}
+        m = _POINTER.match(str(ref))
+        if m:
+            off, count = int(m.group(1)), int(m.group(2))
+            if off + 4 * count > size:
+                raise FormatError(path, f"[Scaling] {axis} axis points at {count} float32 values at byte {off}, "
+                                        f"beyond the end of the {size}-byte file")
+            fh.seek(off)
+            entry["values"] = np.frombuffer(fh.read(4 * count), "<f4").astype(np.float32)
+        else:
+            entry["name"] = str(ref)
+        axes[axis.lower()] = entry
+    return axes

@@ -1,0 +1,139 @@
+"""Headerless raw frames as the C7942's vendor software writes them (16-bit little-endian)."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from radiokit.errors import FormatError
+
+__all__ = ["RawPreset", "PRESETS", "DEFAULT_PRESET", "raw_geometry"]
+
+
+@dataclass(frozen=True)
+class RawPreset:
+    """A frame geometry of the C7942 family.
+
+    ``rows`` x ``cols`` as stored (the vendor's "width x height" is ``cols x rows``).
+    """
+
+    name: str
+    rows: int
+    cols: int
+    binning: int = 1
+    bits: int = 12
+    pixel_size_mm: float = 0.05
+
+    @property
+    def frame_bytes(self) -> int:
+        return self.rows * self.cols * 2
+
+
+def _family() -> dict[str, RawPreset]:
+    out = {}
+    # The paper's 2240 x 2240, and the two effective areas the manuals give (width 2240).
+    for name, rows in (("c7942", 2240), ("c7942-2344", 2344), ("c7942-2368", 2368)):
+        for b in (1, 2, 4):
+            key = name if b == 1 else f"{name}-{b}x{b}"
+            out[key] = RawPreset(key, rows // b, 2240 // b, binning=b, pixel_size_mm=0.05 * b)
+    return out
+
+
+PRESETS: dict[str, RawPreset] = _family()
+DEFAULT_PRESET = "c7942"
+
+
+def _parse_dtype(path, dtype, byteorder) -> np.dtype:
+    try:
+        dt = np.dtype(dtype)
+    except TypeError as exc:
+        raise FormatError(path, f"dtype={dtype!r} is not a numpy dtype") from exc
+    if byteorder is not None:
+        order = {"<": "<", "little": "<", ">": ">", "big": ">", "=": "=", "native": "="}.get(byteorder)
+        if order is None:
+            raise FormatError(path, f"byteorder={byteorder!r}: expected '<', '>', 'little' or 'big'")
+        dt = dt.newbyteorder(order)
+    return dt
+
+
+def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None,
+                 offset=0, n=None) -> dict:
+    """Decide the geometry of a headerless raw file of ``size`` bytes.
+
+    Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a file
+    holding exactly one frame of exactly one preset is that preset; a whole number of default-preset
+    (2240 x 2240) frames is a stack of those; a whole number of frames of exactly one preset is a
+    stack of that preset. Anything else is ambiguous and raises :class:`FormatError`.
+    """
+    dt = _parse_dtype(path, dtype, byteorder)
+    if offset < 0:
+        raise FormatError(path, f"offset={offset} is negative")
+    payload = size - offset
+    if size == 0:
+        raise FormatError(path, "file is empty")
+    if payload <= 0:
+        raise FormatError(path, f"offset={offset} is at or beyond the end of the {size}-byte file")
+    bits = None
+    pixel_size_mm = None
+    if shape is not None:
+        shape = tuple(int(s) for s in np.atleast_1d(shape))
+        if len(shape) not in (2, 3) or min(shape) <= 0:
+            raise FormatError(path, f"shape={shape}: expected (rows, cols) or (n, rows, cols), all > 0")
+        rows, cols = shape[-2:]
+        frame_bytes = rows * cols * dt.itemsize
+        if len(shape) == 3:
+            n = shape[0]
+        name = "custom"
+    else:
+        if dt.itemsize != 2:
+            raise FormatError(path, f"presets hold 16-bit words; dtype {dt} needs an explicit shape=")
+        if preset is not None:
+            if preset not in PRESETS:
+                raise FormatError(path, f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+            p = PRESETS[preset]
+        else:
+            single = [p for p in PRESETS.values() if p.frame_bytes == payload]
+            stack_default = PRESETS[DEFAULT_PRESET]
+            dividing = [p for p in PRESETS.values() if payload % p.frame_bytes == 0]
+            if len(single) == 1:
+                p = single[0]
+            elif payload % stack_default.frame_bytes == 0:
+                p = stack_default
+            elif len(dividing) == 1:
+                p = dividing[0]
+            elif not dividing:
+                raise FormatError(
+                    path, f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
+                    f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset=")
+            else:
+                opts = ", ".join(f"{p.name} x{payload // p.frame_bytes}" for p in dividing)
+                raise FormatError(path, f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape=")
+        name, rows, cols, bits, pixel_size_mm = p.name, p.rows, p.cols, p.bits, p.pixel_size_mm
+        frame_bytes = p.frame_bytes
+    if n is None:
+        if payload % frame_bytes:
+            raise FormatError(
+                path, f"size {payload} bytes is not a whole number of {rows}x{cols} {dt} frames "
+                f"({frame_bytes} bytes each): truncated or wrong geometry")
+        n = payload // frame_bytes
+    elif n * frame_bytes > payload:
+        raise FormatError(path, f"{n} frames of {rows}x{cols} {dt} need {n * frame_bytes} bytes "
+                                f"after offset {offset}; the file has {payload}: truncated")
+    if n == 0:
+        raise FormatError(path, f"file holds less than one {rows}x{cols} frame")
+    return dict(format="raw", preset=name, n=int(n), rows=int(rows), cols=int(cols), dtype=dt,
+                offset=int(offset), bits=bits, pixel_size_mm=pixel_size_mm, file_size=size)
+
+
+def read_raw_frame(fh, geo: dict, index: int) -> np.ndarray:
+    """Read one frame from an open file into a fresh native-order array."""
+    dt = geo["dtype"]
+    count = geo["rows"] * geo["cols"]
+    fh.seek(geo["offset"] + index * count * dt.itemsize, os.SEEK_SET)
+    buf = np.empty(count, dtype=dt)
+    got = fh.readinto(memoryview(buf).cast("B"))
+    if got != buf.nbytes:
+        raise FormatError(getattr(fh, "name", "?"), f"frame {index} is truncated ({got} of {buf.nbytes} bytes)")
+    out = buf.reshape(geo["rows"], geo["cols"])
+    return out if dt.isnative else out.astype(dt.newbyteorder("="))
