@@ -126,7 +126,8 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
     frames : array_like, shape (n, rows, cols)
     clip_sigma : float
     return_std : bool
-        Also return the per-pixel standard deviation of the kept samples (NaN with fewer than two).
+        Also return each pixel's temporal standard deviation without its single most deviant
+        sample (so a zinger does not count, but a noisy pixel does); NaN with fewer than 3 frames.
 
     Returns
     -------
@@ -154,11 +155,15 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
         with np.errstate(invalid="ignore", divide="ignore"):
             m = np.where(count > 0, total / np.maximum(count, 1), blk.min(axis=0))
         mean[r0:r0 + block_rows] = m
-        if return_std:
-            dev = np.where(keep, blk - m, 0)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                var = (dev * dev).sum(axis=0) / (count - 1)
-            std[r0:r0 + block_rows] = np.where(count > 1, np.sqrt(var), np.nan)
+        if return_std and n >= 3:
+            # Temporal noise for the noisy-pixel test: drop only each pixel's most deviant sample
+            # (a zinger), not everything outside the panel's window, which would hide noisy pixels.
+            dev = np.abs(blk - med)
+            worst = dev.argmax(axis=0)
+            keep_std = np.ones(blk.shape, bool)
+            np.put_along_axis(keep_std, worst[None], False, axis=0)
+            std[r0:r0 + block_rows] = np.std(blk, axis=0, ddof=1, where=keep_std) if n > 3 else \
+                np.sqrt(((blk - blk.mean(axis=0, where=keep_std)) ** 2).sum(axis=0, where=keep_std))
     return (mean, std) if return_std else mean
 
 
@@ -246,6 +251,11 @@ class Calibration:
         if not (self.dark.shape == self.flat.shape == self.mask.shape) or self.dark.ndim != 2:
             raise ValueError(f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
                              "must be the same (rows, cols) shape")
+        # A pixel without response cannot be corrected, whoever built the mask: always fill it.
+        unusable = ~((self.flat - self.dark) > self.thresholds.eps)
+        if unusable.any():
+            self.mask = self.mask.copy()
+            self.mask[unusable] |= np.uint32(PixelFlag.DEAD)
         self.defect_rows = np.asarray(self.defect_rows, np.int64)
         self.defect_columns = np.asarray(self.defect_columns, np.int64)
         if not np.isfinite(self.c):
@@ -298,7 +308,7 @@ class Calibration:
                               stacklevel=2)
         dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True)
         flat = robust_average(flats, clip_sigma=th.clip_sigma)
-        if darks.shape[0] < 2:
+        if darks.shape[0] < 3:
             dark_std = None
         mask = np.zeros(dark.shape, np.uint32)
         response = flat - dark
@@ -333,7 +343,8 @@ class Calibration:
             "averaging": "median-clipped mean",
             "dark_times": [float(t) for t in dark_times] if dark_times is not None else [],
             "flat_times": [float(t) for t in flat_times] if flat_times is not None else [],
-            "dark_noise_counts": float(np.nanmedian(dark_std)) if dark_std is not None else None,
+            "dark_noise_counts": float(np.median(np.std(darks[:, :: max(1, darks.shape[1] // 64)], axis=0, ddof=1)))
+            if darks.shape[0] > 1 else None,
             "n_flat_saturated": n_flat_saturated,
             "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in
                         (PixelFlag.DEAD, PixelFlag.UNDER_RESPONDING, PixelFlag.OVER_RESPONDING,

@@ -1,0 +1,198 @@
+"""Calibration: robust averaging, defect maps on a synthetic panel, persistence, and the
+calibrate-then-correct chain recovering a known line integral within the noise."""
+import warnings
+
+import numpy as np
+import pytest
+
+from radiokit.calibrate import Calibration, CalibrationWarning, PixelFlag, robust_average
+from radiokit.io import ExperimentWriter, ImageKey
+from sim.detector import PanelModel
+
+SHAPE = (256, 320)
+
+
+def _panel(**kw):
+    args = dict(rows=SHAPE[0], cols=SHAPE[1], defect_columns=(97,), n_dead=5, n_under=5, n_noisy=5)
+    args.update(kw)
+    return PanelModel(**args)
+
+
+def _calibrate(panel, n=10, i0=2500.0, seed=1, **th):
+    rng = np.random.default_rng(seed)
+    return Calibration.from_frames(panel.dark_frames(n, rng), panel.flat_frames(n, i0, rng), **th)
+
+
+def test_zinger_leaves_no_trace():
+    rng = np.random.default_rng(0)
+    frames = rng.normal(1000, 10, (7, 32, 32)).astype(np.float32)
+    clean = frames.mean(axis=0)
+    frames[3, 5, 6] = 4095  # a zinger
+    avg = robust_average(frames)
+    # the zinger's pixel is the mean of the six other frames: within noise of the clean mean
+    others = np.delete(frames[:, 5, 6], 3).mean()
+    assert avg[5, 6] == pytest.approx(others, abs=1e-3)
+    assert abs(avg[5, 6] - clean[5, 6]) < 4 * 10 / np.sqrt(6)
+    mask = np.ones((32, 32), bool)
+    mask[5, 6] = False
+    np.testing.assert_allclose(avg[mask], clean[mask], rtol=1e-5)
+
+
+def test_zinger_with_two_frames_takes_the_smaller():
+    rng = np.random.default_rng(5)
+    frames = rng.normal(1000, 3, (2, 16, 16)).astype(np.float32)
+    frames[1, 4, 4] = 3900
+    avg = robust_average(frames)
+    assert avg[4, 4] == pytest.approx(frames[0, 4, 4])
+    np.testing.assert_allclose(avg[5:], frames[:, 5:].mean(axis=0), rtol=1e-6)
+
+
+def test_robust_average_std_ignores_the_zinger_but_not_a_noisy_pixel():
+    rng = np.random.default_rng(1)
+    frames = rng.normal(100, 3, (12, 64, 64)).astype(np.float32)
+    frames[4, 10, 10] = 4000
+    frames[:, 20, 20] = rng.normal(100, 30, 12)
+    _, std = robust_average(frames, return_std=True)
+    typical = np.median(std)
+    assert std[10, 10] < 2 * typical  # a zinger kept would make it ~300 times larger
+    assert std[20, 20] > 5 * typical
+
+
+def test_clean_panel_with_smooth_gain_has_no_defects():
+    panel = _panel(n_dead=0, n_under=0, n_noisy=0, defect_columns=(), gain_variation=0.3)
+    cal = _calibrate(panel)
+    assert np.count_nonzero(cal.mask) == 0, cal
+    assert cal.defect_rows.size == 0 and cal.defect_columns.size == 0
+
+
+def test_planted_defects_found_without_false_positives():
+    panel = _panel()
+    panel.gain[180, :] *= 0.8  # and a defect row at 80 % response
+    cal = _calibrate(panel)
+    truth = panel.truth.mask(SHAPE)
+    truth[180, :] = True
+    found = cal.mask != 0
+    assert not (found & ~truth).any(), f"false positives at {np.argwhere(found & ~truth)[:10]}"
+    assert not (truth & ~found).any(), f"missed {np.argwhere(truth & ~found)[:10]}"
+    t = panel.truth
+    assert (cal.mask[t.dead[:, 0], t.dead[:, 1]] & PixelFlag.DEAD).all()
+    assert (cal.mask[t.under[:, 0], t.under[:, 1]] & PixelFlag.UNDER_RESPONDING).all()
+    assert (cal.mask[t.noisy[:, 0], t.noisy[:, 1]] & PixelFlag.NOISY).all()
+    assert cal.defect_columns.tolist() == [97]
+    assert cal.defect_rows.tolist() == [180]
+    assert (cal.mask[:, 97] & PixelFlag.CLUSTER).all()
+
+
+def test_zinger_in_flats_is_not_a_defect():
+    panel = _panel(n_dead=0, n_under=0, n_noisy=0, defect_columns=())
+    rng = np.random.default_rng(2)
+    darks, flats = panel.dark_frames(8, rng), panel.flat_frames(8, 2500, rng)
+    flats[2, 40, 40] = 4095
+    darks[5, 41, 41] = 4000
+    cal = Calibration.from_frames(darks, flats)
+    assert np.count_nonzero(cal.mask) == 0
+
+
+def test_correction_recovers_line_integral_within_noise():
+    panel = _panel()
+    i0 = 2500.0
+    cal = _calibrate(panel, n=16, i0=i0)
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    r2 = ((yy - 128) ** 2 + (xx - 160) ** 2) / 90.0 ** 2
+    truth = np.where(r2 < 1, 1.2 * np.sqrt(np.clip(1 - r2, 0, None)), 0.0).astype(np.float32) + 0.1
+    frames = panel.expose(truth, i0, n=4, rng=np.random.default_rng(9))
+    got = cal.correct(frames, domain="log").mean(axis=0)
+    err = got - truth
+    valid = ~panel.truth.mask(SHAPE)
+    # Expected noise of the 4-frame mean of -ln(I/I0): shot noise q/(g I0 e^-L) plus read noise,
+    # plus the calibration's own (16 flats): error propagation of the log.
+    g = panel.gain
+    signal = g * i0 * np.exp(-truth)
+    with np.errstate(divide="ignore", invalid="ignore"):  # dead pixels have no signal
+        var_frame = (panel.counts_per_quantum * g * signal + panel.read_noise ** 2) / signal ** 2
+        var_flat = (panel.counts_per_quantum * g * g * i0 + panel.read_noise ** 2) / (g * i0) ** 2
+        sigma = np.sqrt(var_frame / 4 + var_flat / 16)
+    z = err[valid] / sigma[valid]
+    assert abs(np.mean(err[valid])) < 0.05 * np.mean(sigma[valid])  # no bias beyond a tenth of noise
+    assert np.std(z) == pytest.approx(1.0, abs=0.1)  # the noise is what physics says, no more
+    # Filled defects are plausible too: within 5 noise sigmas of the truth
+    near = np.where(valid, sigma, np.nan)
+    local_sigma = np.nanmax([np.roll(near, s, axis=a) for s in (-1, 1) for a in (0, 1)], axis=0)
+    assert np.all(np.abs(err[~valid]) < 5 * local_sigma[~valid] + 0.02)
+
+
+def test_save_load_round_trip(tmp_path):
+    panel = _panel()
+    cal = _calibrate(panel, n=4, dead_below=0.15)
+    path = cal.save(tmp_path / "cal.h5")
+    back = Calibration.load(path)
+    for name in ("dark", "flat", "mask", "defect_rows", "defect_columns"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(cal, name))
+    assert back.c == cal.c
+    assert back.thresholds.dead_below == 0.15
+    assert back.provenance["n_darks"] == 4 and back.provenance["n_flats"] == 4
+    raw = panel.flat_frames(1, 1200, np.random.default_rng(5))[0]
+    np.testing.assert_array_equal(back.correct(raw), cal.correct(raw))
+
+
+def test_load_rejects_other_files(tmp_path):
+    from radiokit import FormatError
+    import h5py
+    with h5py.File(tmp_path / "x.h5", "w") as h5:
+        h5["foo"] = 1
+    with pytest.raises(FormatError, match="x.h5.*calibration"):
+        Calibration.load(tmp_path / "x.h5")
+    (tmp_path / "y.h5").write_bytes(b"not hdf5")
+    with pytest.raises(FormatError, match="y.h5"):
+        Calibration.load(tmp_path / "y.h5")
+
+
+def test_from_experiment_matches_from_frames(tmp_path):
+    panel = _panel(rows=64, cols=80, defect_columns=(20,), n_dead=1, n_under=1, n_noisy=1)
+    rng = np.random.default_rng(4)
+    darks, flats = panel.dark_frames(5, rng), panel.flat_frames(5, 2000, rng)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=panel.shape) as w:
+        for f in darks:
+            w.append(f, image_key=ImageKey.DARK)
+        for f in flats:
+            w.append(f, image_key=ImageKey.FLAT, voltage_kv=60, current_ua=250)
+        w.append(flats[0], image_key=ImageKey.PROJECTION, step=1, ratio=0.15)
+    a = Calibration.from_experiment(path)
+    b = Calibration.from_frames(darks, flats)
+    np.testing.assert_array_equal(a.dark, b.dark)
+    np.testing.assert_array_equal(a.mask, b.mask)
+    assert a.provenance["source"] == str(path)
+    assert len(a.provenance["dark_times"]) == 5
+
+
+def test_from_experiment_without_darks(tmp_path):
+    from radiokit import FormatError
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=(8, 8)) as w:
+        w.append(np.ones((8, 8), np.uint16), image_key=ImageKey.FLAT)
+    with pytest.raises(FormatError, match="no darks"):
+        Calibration.from_experiment(path)
+
+
+@pytest.mark.parametrize("darks, flats, match", [
+    (np.zeros((3, 8, 8)), np.zeros((3, 8, 9)), "darks are"),
+    (np.zeros((3, 8, 8)), np.zeros((3, 8, 8)), "not brighter"),
+    (np.full((3, 8, 8), np.nan), np.ones((3, 8, 8)), "NaN"),
+    (np.zeros((0, 8, 8)), np.ones((3, 8, 8)), "n >= 1"),
+])
+def test_bad_calibration_input(darks, flats, match):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)
+        with pytest.raises(ValueError, match=match):
+            Calibration.from_frames(darks, flats)
+
+
+def test_few_frames_warn():
+    with pytest.warns(CalibrationWarning, match="fewer than 3"):
+        Calibration.from_frames(np.zeros((2, 8, 8)), np.full((2, 8, 8), 1000.0))
+
+
+def test_unknown_threshold_is_a_typeerror():
+    with pytest.raises(TypeError, match="dead_belowx"):
+        Calibration.from_frames(np.zeros((3, 8, 8)), np.full((3, 8, 8), 1000.0), dead_belowx=0.1)

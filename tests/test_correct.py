@@ -1,0 +1,153 @@
+"""Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
+import numpy as np
+import pytest
+
+from radiokit.calibrate import Calibration, PixelFlag
+
+
+def _cal(rows=6, cols=7, dark=100.0, flat=1100.0, mask=None, **kw):
+    d = np.full((rows, cols), dark, np.float32)
+    f = np.full((rows, cols), flat, np.float32)
+    m = np.zeros((rows, cols), np.uint32) if mask is None else mask
+    return Calibration(d, f, m, **kw)
+
+
+@pytest.mark.parametrize("domain, expected", [
+    ("linear", 0.5),           # (600 - 100) / (1100 - 100)
+    ("log", np.log(2.0)),      # -ln(0.5)
+    ("counts", 500.0),         # c * 0.5 with c = mean(flat - dark) = 1000
+])
+def test_hand_values(domain, expected):
+    cal = _cal()
+    raw = np.full(cal.shape, 600, np.uint16)
+    out = cal.correct(raw, domain=domain)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+
+
+def test_matches_float64_reference_on_random_panel():
+    rng = np.random.default_rng(3)
+    shape = (101, 67)  # not a multiple of the block size
+    dark = rng.uniform(80, 120, shape).astype(np.float32)
+    flat = dark + rng.uniform(2000, 3000, shape).astype(np.float32)
+    cal = Calibration(dark, flat, np.zeros(shape, np.uint32))
+    raw = (dark + rng.uniform(50, 1900, shape)).astype(np.uint16)
+    ref = -np.log((raw - dark.astype(np.float64)) / (flat - dark.astype(np.float64)))
+    np.testing.assert_allclose(cal.correct(raw, domain="log"), ref, atol=2e-6, rtol=1e-5)
+    ref_lin = (raw - dark.astype(np.float64)) / (flat - dark)
+    np.testing.assert_allclose(cal.correct(raw, domain="linear"), ref_lin, rtol=1e-6)
+
+
+def test_flat_equal_dark_is_filled_and_flagged():
+    flat = np.full((5, 5), 1100.0, np.float32)
+    flat[2, 2] = 100.0  # no response at all
+    cal = Calibration(np.full((5, 5), 100.0, np.float32), flat, np.zeros((5, 5), np.uint32))
+    assert cal.mask[2, 2] & PixelFlag.DEAD
+    raw = np.full((5, 5), 600, np.uint16)
+    raw[1, 1:4] = 350  # neighbours above: transmission 0.25
+    out = cal.correct(raw, domain="linear")
+    # The 8 neighbours of (2, 2): three at 0.25, five at 0.5.
+    assert out[2, 2] == pytest.approx((3 * 0.25 + 5 * 0.5) / 8, rel=1e-6)
+    assert np.isfinite(out).all()
+
+
+def test_raw_below_dark_is_filled_flagged_and_counted():
+    cal = _cal()
+    raw = np.full(cal.shape, 600, np.uint16)
+    raw[3, 3] = 50  # below the dark of 100
+    out, report = cal.correct(raw, domain="log", return_report=True)
+    assert np.isfinite(out).all()
+    assert out[3, 3] == pytest.approx(np.log(2.0), rel=1e-6)
+    assert report.nonpositive.tolist() == [1]
+    assert report.flags[3, 3] & PixelFlag.NONPOSITIVE
+    assert np.count_nonzero(report.flags & PixelFlag.NONPOSITIVE) == 1
+
+
+def test_all_dark_frame_stays_finite():
+    cal = _cal()
+    raw = np.zeros(cal.shape, np.uint16)
+    out, report = cal.correct(raw, domain="log", return_report=True)
+    assert np.isfinite(out).all()
+    # No valid neighbour anywhere: clamped at half a count, i.e. -ln(0.5 / 1000).
+    np.testing.assert_allclose(out, -np.log(0.5 / 1000.0), rtol=1e-6)
+    assert report.nonpositive[0] == raw.size
+
+
+def test_saturated_pixels_flagged_and_counted():
+    cal = _cal()
+    raw = np.full(cal.shape, 600, np.uint16)
+    raw[0, :3] = 4095
+    out, report = cal.correct(raw, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [3]
+    assert (report.flags[0, :3] & PixelFlag.SATURATED).all()
+    assert out[0, 0] == pytest.approx((4095 - 100) / 1000)
+
+
+def test_defect_column_is_mean_of_neighbours():
+    mask = np.zeros((4, 9), np.uint32)
+    mask[:, 4] = PixelFlag.DEAD | PixelFlag.CLUSTER
+    cal = _cal(4, 9, mask=mask, defect_columns=[4])
+    raw = (100 + 100 * np.arange(9)[None, :] + 10 * np.arange(4)[:, None]).astype(np.uint16)
+    raw = np.broadcast_to(raw, (4, 9)).copy()
+    raw[:, 4] = 4000  # garbage in the defect column
+    out = cal.correct(raw, domain="linear")
+    np.testing.assert_allclose(out[:, 4], (out[:, 3] + out[:, 5]) / 2, rtol=1e-6)
+
+
+def test_adjacent_defect_columns_interpolate_linearly():
+    mask = np.zeros((3, 10), np.uint32)
+    mask[:, [4, 5]] = PixelFlag.DEAD
+    cal = _cal(3, 10, mask=mask, defect_columns=[4, 5])
+    raw = np.tile((100 + 90 * np.arange(10)).astype(np.uint16), (3, 1))
+    out = cal.correct(raw, domain="linear")
+    # columns 3 and 6 are valid; 4 and 5 lie a third and two thirds of the way between them.
+    np.testing.assert_allclose(out[:, 4], out[:, 3] + (out[:, 6] - out[:, 3]) / 3, rtol=1e-6)
+    np.testing.assert_allclose(out[:, 5], out[:, 3] + 2 * (out[:, 6] - out[:, 3]) / 3, rtol=1e-6)
+
+
+def test_defect_row_and_edge_column():
+    mask = np.zeros((6, 6), np.uint32)
+    mask[2, :] = PixelFlag.UNDER_RESPONDING
+    mask[:, 0] = PixelFlag.DEAD
+    cal = _cal(6, 6, mask=mask, defect_rows=[2], defect_columns=[0])
+    raw = (100 + 100 * np.arange(6)[:, None] + 5 * np.arange(6)[None, :]).astype(np.uint16)
+    out = cal.correct(raw, domain="linear")
+    np.testing.assert_allclose(out[:, 0], out[:, 1], rtol=1e-6)  # edge: copied from the one side
+    np.testing.assert_allclose(out[2, 1:], (out[1, 1:] + out[3, 1:]) / 2, rtol=1e-6)
+
+
+def test_stack_equals_frames_and_out_is_used():
+    rng = np.random.default_rng(0)
+    cal = _cal(40, 33)
+    stack = rng.integers(0, 4096, (3, 40, 33)).astype(np.uint16)
+    out = np.empty(stack.shape, np.float32)
+    got, report = cal.correct(stack, domain="log", out=out, return_report=True)
+    assert got is out
+    for i in range(3):
+        np.testing.assert_array_equal(got[i], cal.correct(stack[i], domain="log"))
+    assert np.isfinite(got).all()
+    assert report.flags.shape == stack.shape
+    assert report.saturated.tolist() == [int(np.count_nonzero(s >= 4095)) for s in stack]
+
+
+def test_input_is_not_modified():
+    cal = _cal()
+    raw = np.full(cal.shape, 50, np.uint16)
+    before = raw.copy()
+    cal.correct(raw)
+    np.testing.assert_array_equal(raw, before)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((3, 3), np.uint16), "do not match"),
+    (np.full((6, 7), np.nan, np.float32), "NaN"),
+    (np.zeros((6, 7), bool).astype(object), "numeric"),
+])
+def test_bad_input_raises_valueerror(bad, match):
+    with pytest.raises(ValueError, match=match):
+        _cal().correct(bad)
+
+
+def test_unknown_domain():
+    with pytest.raises(ValueError, match="domain"):
+        _cal().correct(np.zeros((6, 7), np.uint16), domain="ln")
