@@ -126,8 +126,9 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
     frames : array_like, shape (n, rows, cols)
     clip_sigma : float
     return_std : bool
-        Also return each pixel's temporal standard deviation without its single most deviant
-        sample (so a zinger does not count, but a noisy pixel does); NaN with fewer than 3 frames.
+        Also return each pixel's temporal standard deviation, leaving out its most deviant
+        sample when that one is an outlier against the others (a zinger does not count, a noisy
+        pixel does); NaN with fewer than 3 frames.
 
     Returns
     -------
@@ -156,14 +157,19 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
             m = np.where(count > 0, total / np.maximum(count, 1), blk.min(axis=0))
         mean[r0:r0 + block_rows] = m
         if return_std and n >= 3:
-            # Temporal noise for the noisy-pixel test: drop only each pixel's most deviant sample
-            # (a zinger), not everything outside the panel's window, which would hide noisy pixels.
+            # Temporal noise for the noisy-pixel test. A zinger must not count, but clipping at
+            # the panel's window would hide noisy pixels; so drop each pixel's most deviant
+            # sample only if it is an outlier against the pixel's other samples.
             dev = np.abs(blk - med)
             worst = dev.argmax(axis=0)
-            keep_std = np.ones(blk.shape, bool)
-            np.put_along_axis(keep_std, worst[None], False, axis=0)
-            std[r0:r0 + block_rows] = np.std(blk, axis=0, ddof=1, where=keep_std) if n > 3 else \
-                np.sqrt(((blk - blk.mean(axis=0, where=keep_std)) ** 2).sum(axis=0, where=keep_std))
+            others = np.ones(blk.shape, bool)
+            np.put_along_axis(others, worst[None], False, axis=0)
+            m_o = blk.mean(axis=0, where=others)
+            s_o = np.sqrt(((blk - m_o) ** 2).sum(axis=0, where=others) / max(n - 2, 1))
+            x_w = np.take_along_axis(blk, worst[None], axis=0)[0]
+            outlier = np.abs(x_w - m_o) > clip_sigma * np.maximum(s_o, sigma / 4)
+            s_all = blk.std(axis=0, ddof=1)
+            std[r0:r0 + block_rows] = np.where(outlier, s_o, s_all)
     return (mean, std) if return_std else mean
 
 
@@ -322,6 +328,9 @@ class Calibration:
         mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
         mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
         n_flat_saturated = int(np.count_nonzero(flat >= th.saturation))
+        if n_flat_saturated > flat.size // 2:
+            raise ValueError(f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
+                             f"{flat.size} pixels: lower the flat exposure (current or time)")
         mask[flat >= th.saturation] |= np.uint32(PixelFlag.OVER_RESPONDING)
         if dark_std is not None:
             ref = float(np.nanmedian(dark_std))

@@ -273,12 +273,14 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     return out, report
 
 
-def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, **hints) -> dict:
+def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), **hints) -> dict:
     """Stream frames from ``inputs`` through ``cal`` into ``output`` (``.h5`` or ``.tif``).
 
     One raw frame and one corrected frame are in memory at a time, whatever the stack length.
-    The output records, per frame, the source file and index and the saturated and non-positive
-    counts. Returns a summary dict.
+    From experiment files only frames whose ``image_key`` is in ``image_keys`` (projections by
+    default) are corrected; other formats have no keys and every frame is. The HDF5 output
+    records, per frame, the source file and frame index, the compression step where known, and
+    the saturated and non-positive counts. Returns a summary dict.
     """
     from tqdm.auto import tqdm
 
@@ -287,30 +289,34 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     sources = [open_frames(p, **hints) for p in inputs]
     try:
-        for src in sources:
+        plan = []
+        for si, src in enumerate(sources):
             if src.frame_shape != cal.shape:
                 raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
-        total = sum(len(s) for s in sources)
+            keys = src.meta.get("image_key")
+            steps = src.meta.get("step")
+            for fi in range(len(src)):
+                if keys is None or keys[fi] in image_keys:
+                    plan.append((si, fi, int(steps[fi]) if steps is not None else -1))
+        if not plan:
+            raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         frame = np.empty(cal.shape, np.float32)
         sat_total = np_total = 0
         with StackWriter(output, cal.shape, np.float32, meta=meta) as writer, \
-                tqdm(total=total, unit="frame", desc="correct", disable=not progress) as bar:
-            for si, src in enumerate(sources):
-                for fi in range(len(src)):
-                    raw = src[fi]
-                    nonpos, sat = _correct_checked(cal, raw, frame, domain)
-                    nonpos, sat = nonpos.size, sat.size
-                    sat_total += sat
-                    np_total += nonpos
-                    writer.append(frame, source_index=np.int32(si), frame_index=np.int32(fi),
-                                  saturated=np.int64(sat), nonpositive=np.int64(nonpos))
-                    bar.update(1)
+                tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar:
+            for si, fi, step in plan:
+                nonpos, sat = _correct_checked(cal, sources[si][fi], frame, domain)
+                sat_total += sat.size
+                np_total += nonpos.size
+                writer.append(frame, source_index=np.int32(si), frame_index=np.int32(fi), step=np.int16(step),
+                              saturated=np.int64(sat.size), nonpositive=np.int64(nonpos.size))
+                bar.update(1)
         elapsed = time.perf_counter() - t0
     finally:
         for src in sources:
             src.close()
-    return {"frames": total, "output": str(output), "domain": domain, "seconds": elapsed,
-            "frames_per_second": total / elapsed if elapsed else float("inf"),
+    return {"frames": len(plan), "output": str(output), "domain": domain, "seconds": elapsed,
+            "frames_per_second": len(plan) / elapsed if elapsed else float("inf"),
             "saturated": sat_total, "nonpositive": np_total, "defects_filled_per_frame": _kernel(cal).n_defects}

@@ -64,10 +64,10 @@ class ExperimentWriter:
     >>> from radiokit.io import ExperimentWriter, ImageKey, read
     >>> path = os.path.join(tempfile.mkdtemp(), "exp.h5")
     >>> with ExperimentWriter(path, shape=(4, 5)) as w:
-    ...     w.append(np.zeros((4, 5), np.uint16), image_key=ImageKey.DARK)
-    ...     w.append(np.full((4, 5), 1000, np.uint16), image_key=ImageKey.PROJECTION, step=1, ratio=0.15)
+    ...     _ = w.append(np.zeros((4, 5), np.uint16), image_key=ImageKey.DARK)
+    ...     _ = w.append(np.full((4, 5), 1000, np.uint16), image_key=ImageKey.PROJECTION, step=1, ratio=0.15)
     >>> f = read(path)
-    >>> f.data.shape, list(f.meta["image_key"])
+    >>> f.data.shape, f.meta["image_key"].tolist()
     ((2, 4, 5), [2, 0])
     """
 

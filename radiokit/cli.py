@@ -1,0 +1,240 @@
+"""The ``radiokit`` command: thin subcommands over the library.
+
+Subcommands of other packages (``sim``, ``acquisition``) register themselves through the
+``radiokit.commands`` entry-point group, so this module imports neither.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import numpy as np
+
+from radiokit import __version__
+from radiokit.errors import RadiokitError
+
+__all__ = ["main", "build_parser"]
+
+
+def _raw_hints(args) -> dict:
+    hints = {}
+    for name in ("preset", "byteorder", "offset", "format"):
+        value = getattr(args, name, None)
+        if value is not None:
+            hints[name] = value
+    if getattr(args, "shape", None):
+        hints["shape"] = tuple(args.shape)
+    return hints
+
+
+def _add_raw_hints(p):
+    g = p.add_argument_group("raw files (headerless)")
+    g.add_argument("--preset", help="geometry preset, e.g. c7942, c7942-2x2 (default: inferred from size)")
+    g.add_argument("--shape", type=int, nargs="+", metavar="N", help="ROWS COLS (or N ROWS COLS)")
+    g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
+    g.add_argument("--offset", type=int, help="bytes to skip at the start")
+    g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
+
+
+# -- info --------------------------------------------------------------------------------------
+def _summary(meta: dict) -> dict:
+    """The few metadata items a person wants to see first."""
+    fmt = meta.get("format")
+    out = {}
+    if fmt == "raw":
+        out = {k: meta[k] for k in ("preset", "offset", "pixel_size_mm") if meta.get(k) is not None}
+    elif fmt == "itex":
+        c = meta.get("comment", {})
+        app, cam, acq = c.get("Application", {}), c.get("Camera", {}), c.get("Acquisition", {})
+        out = {"software": f"{app.get('Software', '?')} {app.get('SoftwareVersion', '')}".strip(),
+               "date": f"{app.get('Date', '')} {app.get('Time', '')}".strip(),
+               "camera": cam.get("CameraName"), "exposure": acq.get("ExposureTime"),
+               "file_type": meta.get("file_type"),
+               "scaling": {k: (f"{len(v['values'])} values [{v.get('unit', '')}]" if "values" in v else v.get("name"))
+                           for k, v in meta.get("scaling", {}).items()}}
+    elif fmt == "experiment":
+        keys = np.asarray(meta.get("image_key", []))
+        steps = np.asarray(meta.get("step", []))
+        out = {"projections": int(np.sum(keys == 0)), "flats": int(np.sum(keys == 1)),
+               "darks": int(np.sum(keys == 2)), "invalid": int(np.sum(keys == 3)),
+               "steps": sorted(int(s) for s in set(steps[keys == 0].tolist())) if keys.size else [],
+               "simulated": bool(meta.get("simulated", False))}
+        src = meta.get("source", {})
+        out["source"] = " ".join(
+            f"{src[k]:g} {unit}" if isinstance(src.get(k), (int, float, np.number)) else str(src.get(k))
+            for k, unit in (("name", ""), ("voltage", "kV"), ("current", "uA"))
+            if k in src and not (isinstance(src[k], (float, np.floating)) and np.isnan(src[k]))).strip()
+    elif fmt == "tiff":
+        out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
+    return {k: v for k, v in out.items() if v not in (None, "", {})}
+
+
+def cmd_info(args) -> int:
+    from radiokit.io import open_frames
+
+    reports = []
+    for path in args.files:
+        with open_frames(path, **_raw_hints(args)) as src:
+            lo, hi, saturated = None, None, 0
+            top = (1 << src.bits) - 1 if src.bits else None
+            for frame in src:
+                fmin, fmax = frame.min(), frame.max()
+                lo = fmin if lo is None else min(lo, fmin)
+                hi = fmax if hi is None else max(hi, fmax)
+                if top is not None:
+                    saturated += int(np.count_nonzero(frame >= top))
+            rep = {"file": str(path), "format": src.meta.get("format", src.format), "frames": len(src),
+                   "shape": list(src.frame_shape), "dtype": str(src.dtype),
+                   "range": [lo.item(), hi.item()] if lo is not None else None,
+                   "saturated": saturated if top is not None else None,
+                   "metadata": _summary(src.meta)}
+        reports.append(rep)
+    if args.json:
+        print(json.dumps(reports, indent=2, default=str))
+        return 0
+    for rep in reports:
+        print(f"{rep['file']}")
+        print(f"  format     {rep['format']}")
+        print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}")
+        if rep["range"] is not None:
+            print(f"  range      {rep['range'][0]} .. {rep['range'][1]}")
+        if rep["saturated"] is not None:
+            print(f"  saturated  {rep['saturated']} pixel(s)")
+        for key, value in rep["metadata"].items():
+            print(f"  {key:<10} {value}")
+    return 0
+
+
+# -- calibrate ---------------------------------------------------------------------------------
+def _parse_thresholds(items) -> dict:
+    out = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--threshold {item!r}: expected NAME=VALUE")
+        out[key.strip()] = float(value) if key.strip() != "saturation" else int(value)
+    return out
+
+
+def _stack(paths, hints, key=None) -> np.ndarray:
+    from radiokit.io import open_frames
+
+    frames = []
+    for p in paths:
+        with open_frames(p, **hints) as src:
+            keys = src.meta.get("image_key")
+            for i in range(len(src)):
+                if key is None or keys is None or keys[i] == key:
+                    frames.append(src[i])
+    if not frames:
+        raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
+    return np.stack(frames)
+
+
+def cmd_calibrate(args) -> int:
+    from radiokit.calibrate import Calibration
+
+    th = _parse_thresholds(args.threshold)
+    if args.experiment:
+        cal = Calibration.from_experiment(args.experiment, **th)
+    else:
+        if not (args.dark and args.flat):
+            raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
+        hints = _raw_hints(args)
+        cal = Calibration.from_frames(_stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1), **th)
+        cal.provenance["dark_files"] = [str(p) for p in args.dark]
+        cal.provenance["flat_files"] = [str(p) for p in args.flat]
+    cal.save(args.output)
+    p = cal.provenance
+    print(f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats "
+          f"-> {args.output}")
+    print(f"  c = mean(flat - dark) = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts")
+    print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
+    if cal.defect_rows.size or cal.defect_columns.size:
+        print(f"  defect lines: rows {cal.defect_rows.tolist()}, columns {cal.defect_columns.tolist()}")
+    return 0
+
+
+# -- correct -----------------------------------------------------------------------------------
+def cmd_correct(args) -> int:
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_files
+
+    if args.cal:
+        cal = Calibration.load(args.cal)
+    elif len(args.frames) == 1:
+        cal = Calibration.from_experiment(args.frames[0])
+        print(f"calibrated from the darks and flats of {args.frames[0]}")
+    else:
+        raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
+    summary = correct_files(args.frames, cal, args.output, domain=args.domain, progress=not args.quiet,
+                            **_raw_hints(args))
+    print(f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
+          f"at {summary['frames_per_second']:.1f} frames/s")
+    print(f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
+          f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive (filled)")
+    return 0
+
+
+# -- parser ------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
+    parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
+    p.add_argument("files", nargs="+", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    _add_raw_hints(p)
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("calibrate", help="build a dark/flat/defect calibration")
+    p.add_argument("--dark", nargs="+", type=Path, help="dark frame files")
+    p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam) frame files")
+    p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
+    p.add_argument("--threshold", action="append", metavar="NAME=VALUE",
+                   help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable")
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
+    _add_raw_hints(p)
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("correct", help="dark/flat/defect-correct frames to transmission or line integral")
+    p.add_argument("frames", nargs="+", type=Path)
+    p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
+    p.add_argument("--domain", choices=["log", "linear", "counts"], default="log",
+                   help="log: -ln(I/I0) (default); linear: I/I0; counts: the manual's gain-corrected grey levels")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output .h5 or .tif")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_raw_hints(p)
+    p.set_defaults(func=cmd_correct)
+
+    for ep in sorted(entry_points(group="radiokit.commands"), key=lambda e: e.name):
+        ep.load()(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("radiokit: interrupted", file=sys.stderr)
+        return 130
+    except (RadiokitError, ValueError, OSError, TypeError) as exc:
+        if args.debug:
+            raise
+        print(f"radiokit {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

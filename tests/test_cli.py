@@ -1,0 +1,119 @@
+"""The radiokit command: real subprocess runs, checked on what they print and write."""
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from radiokit.io import ExperimentWriter, ImageKey, read
+from sim.detector import PanelModel
+
+ITEX = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hamamatsu_itex"
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("cli")
+    panel = PanelModel(rows=96, cols=128, defect_columns=(40,), n_dead=2, n_under=2, n_noisy=2)
+    rng = np.random.default_rng(0)
+    path = tmp / "exp.h5"
+    with ExperimentWriter(path, shape=panel.shape) as w:
+        for f in panel.dark_frames(6, rng):
+            w.append(f, image_key=ImageKey.DARK)
+        for f in panel.flat_frames(6, 2000, rng):
+            w.append(f, image_key=ImageKey.FLAT)
+        truth = np.full(panel.shape, 0.7, np.float32)
+        for step in (1, 2):
+            for f in panel.expose(truth, 2000, 2, rng):
+                w.append(f, image_key=ImageKey.PROJECTION, step=step, ratio=0.1 + 0.05 * step)
+    return path, panel
+
+
+@pytest.mark.skipif(not ITEX.is_dir(), reason="shared/data not beside the checkout")
+def test_info_itex_json():
+    res = run("info", "--json", ITEX / "photon_counting.img", ITEX / "shading_file.img")
+    assert res.returncode == 0, res.stderr
+    reps = json.loads(res.stdout)
+    assert [r["format"] for r in reps] == ["itex", "itex"]
+    assert reps[0]["shape"] == [512, 672] and reps[0]["dtype"] == "uint16"
+    data = read(ITEX / "photon_counting.img").data
+    assert reps[0]["range"] == [int(data.min()), int(data.max())]
+    assert reps[0]["metadata"]["camera"] == "Orca R2"
+    assert reps[1]["dtype"] == "uint32"
+
+
+def test_info_experiment_text(experiment):
+    path, _ = experiment
+    res = run("info", path)
+    assert res.returncode == 0, res.stderr
+    assert "experiment" in res.stdout
+    assert re.search(r"projections\s+4", res.stdout) and re.search(r"darks\s+6", res.stdout)
+    assert re.search(r"steps\s+\[1, 2\]", res.stdout)
+
+
+def test_calibrate_then_correct(experiment, tmp_path):
+    path, panel = experiment
+    res = run("calibrate", "--experiment", path, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "defect lines: rows [], columns [40]" in res.stdout
+    res = run("correct", path, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("4 frame(s)")
+    out = read(tmp_path / "out.h5", dataset="entry/data/data").data
+    assert out.shape == (4, 96, 128) and out.dtype == np.float32
+    assert abs(float(np.median(out)) - 0.7) < 0.01
+
+
+def test_calibrate_from_files_and_correct_to_tiff(experiment, tmp_path):
+    path, panel = experiment
+    frames = read(path)
+    keys = frames.meta["image_key"]
+    import tifffile
+    tifffile.imwrite(tmp_path / "darks.tif", frames.data[keys == 2])
+    tifffile.imwrite(tmp_path / "flats.tif", frames.data[keys == 1])
+    frames.data[keys == 0].tofile(tmp_path / "proj.raw")
+    res = run("calibrate", "--dark", tmp_path / "darks.tif", "--flat", tmp_path / "flats.tif", "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    res = run("correct", tmp_path / "proj.raw", "--shape", 96, 128, "--cal", tmp_path / "cal.h5",
+              "--domain", "linear", "-o", tmp_path / "out.tif", "-q")
+    assert res.returncode == 0, res.stderr
+    out = read(tmp_path / "out.tif").data
+    assert out.shape == (4, 96, 128)
+    assert abs(float(np.median(out)) - np.exp(-0.7)) < 0.01
+
+
+def test_correct_without_cal_uses_the_files_darks_and_flats(experiment, tmp_path):
+    path, _ = experiment
+    res = run("correct", path, "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 0, res.stderr
+    assert "calibrated from the darks and flats" in res.stdout
+
+
+@pytest.mark.parametrize("content, name, message", [
+    (b"", "empty.raw", "empty"),
+    (b"\x00" * 1001, "odd.raw", "matches no C7942 geometry"),
+    (b"GARBAGE!" * 20, "x.tif", "wrong magic"),
+])
+def test_bad_files_give_one_line_errors(tmp_path, content, name, message):
+    (tmp_path / name).write_bytes(content)
+    res = run("info", tmp_path / name)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    assert name in res.stderr and message in res.stderr
+
+
+def test_version_and_help():
+    res = run("--version")
+    assert res.returncode == 0 and res.stdout.startswith("radiokit ")
+    res = run("--help")
+    for cmd in ("info", "calibrate", "correct", "demo"):
+        assert cmd in res.stdout
