@@ -76,12 +76,12 @@ class _Stage:
             flat_image[self.dst] = np.einsum("ij,ij->i", flat_image[self.src], self.w)
 
 
-def _neighbour_stage(bad: np.ndarray, invalid: np.ndarray, max_radius=4) -> tuple[_Stage, np.ndarray]:
-    """Fill each ``bad`` pixel with the mean of the valid pixels in the smallest square ring
-    neighbourhood (radius 1, then 2, ...) that has any. Returns the stage and the pixels left
-    without a valid neighbour within ``max_radius``."""
-    rows, cols = bad.shape
-    todo = np.flatnonzero(bad)
+def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple[_Stage, np.ndarray]:
+    """Fill each pixel of ``todo`` (flat indices) with the mean of the valid pixels
+    (``is_invalid(flat_indices) -> bool array``) in the smallest square neighbourhood (radius 1,
+    then 2, ...) that has any. Returns the stage and the pixels left without a valid neighbour
+    within ``max_radius``."""
+    rows, cols = shape
     dsts, srcs, ws = [], [], []
     for radius in range(1, max_radius + 1):
         if todo.size == 0:
@@ -92,7 +92,7 @@ def _neighbour_stage(bad: np.ndarray, invalid: np.ndarray, max_radius=4) -> tupl
         cc = c[:, None] + np.array([o[1] for o in offs])[None]
         inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
         idx = np.where(inside, rr.clip(0, rows - 1) * cols + cc.clip(0, cols - 1), 0)
-        ok = inside & ~invalid.ravel()[idx]
+        ok = inside & ~is_invalid(idx)
         count = ok.sum(axis=1)
         done = count > 0
         w = np.where(ok, 1.0, 0.0)[done] / count[done, None]
@@ -148,7 +148,8 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     on_line[:, cal.defect_columns] = True
     invalid = cal.mask != 0
     isolated = invalid & ~on_line
-    stage, left = _neighbour_stage(isolated, invalid, max_radius=8)
+    flat_invalid = invalid.ravel()
+    stage, left = _neighbour_stage(np.flatnonzero(isolated), lambda i: flat_invalid[i], cal.shape, max_radius=8)
     stages = [stage]
     if left.size:
         # Huge clusters: better a finite, flagged value than a hole.
@@ -163,25 +164,41 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
 @dataclass
 class _Kernel:
     dark: np.ndarray
-    log_i0: np.ndarray  # ln(flat - dark), finite everywhere
-    inv_gain: np.ndarray  # 1 / (flat - dark), finite everywhere
+    response: np.ndarray  # flat - dark where usable, 1 elsewhere (defects are filled anyway)
     stages: list = field(default_factory=list)
     invalid: np.ndarray | None = None
     n_defects: int = 0
+    _log_i0: np.ndarray | None = None
+    _inv_gain: np.ndarray | None = None
+
+    @property
+    def log_i0(self) -> np.ndarray:
+        """ln(flat - dark): the log domain needs only this and the dark."""
+        if self._log_i0 is None:
+            self._log_i0 = np.log(self.response)
+        return self._log_i0
+
+    @property
+    def inv_gain(self) -> np.ndarray:
+        """1 / (flat - dark), for the linear and counts domains."""
+        if self._inv_gain is None:
+            self._inv_gain = np.reciprocal(self.response)
+        return self._inv_gain
 
 
 def _kernel(cal: Calibration) -> _Kernel:
     if cal._kernel is None:
         response = cal.flat - cal.dark
         ok = (cal.mask == 0) & (response > cal.thresholds.eps)
-        safe = np.where(ok, response, 1.0).astype(np.float32)
-        cal._kernel = _Kernel(dark=cal.dark, log_i0=np.log(safe), inv_gain=(1.0 / safe).astype(np.float32),
-                              stages=fill_plan(cal), invalid=cal.mask != 0,
+        response[~ok] = 1.0
+        cal._kernel = _Kernel(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
                               n_defects=int(np.count_nonzero(cal.mask)))
     return cal._kernel
 
 
 def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
+    log_i0 = k.log_i0 if domain == "log" else None
+    inv_gain = k.inv_gain if domain != "log" else None
     """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
     non-positive and saturated pixels met (rare, so collected only when present)."""
     cols = raw.shape[1]
@@ -192,7 +209,8 @@ def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
         b = min(a + _BLOCK_ROWS, r1)
         t = tmp[: b - a]
         rb = raw[a:b]
-        np.subtract(rb, k.dark[a:b], out=t, dtype=np.float32, casting="unsafe")
+        np.copyto(t, rb, casting="unsafe")  # a plain cast is faster than a mixed-type ufunc loop
+        np.subtract(t, k.dark[a:b], out=t)
         if t.min() <= 0:
             hit = np.flatnonzero(t <= 0)
             nonpos.append(hit + a * cols)
@@ -201,9 +219,9 @@ def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
             sat.append(np.flatnonzero(rb >= saturation) + a * cols)
         if domain == "log":
             np.log(t, out=t)
-            np.subtract(k.log_i0[a:b], t, out=out[a:b])
+            np.subtract(log_i0[a:b], t, out=out[a:b])
         else:
-            np.multiply(t, k.inv_gain[a:b], out=out[a:b])
+            np.multiply(t, inv_gain[a:b], out=out[a:b])
             if scale != 1.0:
                 out[a:b] *= scale
     return nonpos, sat
@@ -225,11 +243,14 @@ def _correct_one(raw2d, k: _Kernel, out2d, domain, scale, saturation):
     for stage in k.stages:
         stage.apply(flat_out)
     if nonpos.size:
-        bad = np.zeros(out2d.shape, bool)
-        bad.ravel()[nonpos] = True
-        bad &= ~k.invalid
-        stage, _ = _neighbour_stage(bad, bad | k.invalid, max_radius=2)
-        stage.apply(flat_out)
+        flat_invalid = k.invalid.ravel()
+        todo = nonpos[~flat_invalid[nonpos]]  # defect pixels were filled by the plan already
+        if todo.size:
+            def is_invalid(idx):  # nonpos is sorted: blocks and threads run in row order
+                pos = np.searchsorted(nonpos, idx).clip(max=nonpos.size - 1)
+                return flat_invalid[idx] | (nonpos[pos] == idx)
+            stage, _ = _neighbour_stage(todo, is_invalid, out2d.shape, max_radius=2)
+            stage.apply(flat_out)
     return nonpos, sat
 
 
@@ -273,6 +294,54 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     return out, report
 
 
+class _BackgroundWriter:
+    """Write frames on a second thread while the next one is corrected; errors (a full disk)
+    surface in the producer at the next ``put`` or at exit. Three rotating buffers: one being
+    corrected, one queued, one being written."""
+
+    def __init__(self, writer, depth=1):
+        import queue
+        import threading
+
+        self._writer = writer
+        self._queue = queue.Queue(maxsize=depth)
+        self._buffers = [np.empty(writer.frame_shape, writer.dtype) for _ in range(depth + 2)]
+        self._next = 0
+        self._error = None
+        self._thread = threading.Thread(target=self._run, name="radiokit-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is None:
+                try:
+                    self._writer.append(item[0], **item[1])
+                except BaseException as exc:  # handed to the producer
+                    self._error = exc
+
+    def buffer(self) -> np.ndarray:
+        buf = self._buffers[self._next]
+        self._next = (self._next + 1) % len(self._buffers)
+        return buf
+
+    def put(self, frame, **series):
+        if self._error is not None:
+            raise self._error
+        self._queue.put((frame, series))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        self._queue.put(None)
+        self._thread.join()
+        if self._error is not None and exc_type is None:
+            raise self._error
+
+
 def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), **hints) -> dict:
     """Stream frames from ``inputs`` through ``cal`` into ``output`` (``.h5`` or ``.tif``).
 
@@ -302,16 +371,17 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
             raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
-        frame = np.empty(cal.shape, np.float32)
         sat_total = np_total = 0
-        with StackWriter(output, cal.shape, np.float32, meta=meta) as writer, \
-                tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar:
+        with StackWriter(output, cal.shape, np.float32, meta=meta, n_frames=len(plan)) as writer, \
+                tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar, \
+                _BackgroundWriter(writer) as bg:
             for si, fi, step in plan:
+                frame = bg.buffer()
                 nonpos, sat = _correct_checked(cal, sources[si][fi], frame, domain)
                 sat_total += sat.size
                 np_total += nonpos.size
-                writer.append(frame, source_index=np.int32(si), frame_index=np.int32(fi), step=np.int16(step),
-                              saturated=np.int64(sat.size), nonpositive=np.int64(nonpos.size))
+                bg.put(frame, source_index=np.int32(si), frame_index=np.int32(fi), step=np.int16(step),
+                       saturated=np.int64(sat.size), nonpositive=np.int64(nonpos.size))
                 bar.update(1)
         elapsed = time.perf_counter() - t0
     finally:

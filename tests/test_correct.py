@@ -151,3 +151,30 @@ def test_bad_input_raises_valueerror(bad, match):
 def test_unknown_domain():
     with pytest.raises(ValueError, match="domain"):
         _cal().correct(np.zeros((6, 7), np.uint16), domain="ln")
+
+
+def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatch):
+    from radiokit.correct import correct_files
+    from radiokit.io import StackWriter, read
+
+    cal = _cal(16, 24)
+    rng = np.random.default_rng(1)
+    stack = rng.integers(300, 1000, (7, 16, 24)).astype("<u2")
+    stack.tofile(tmp_path / "s.raw")
+    summary = correct_files(tmp_path / "s.raw", cal, tmp_path / "out.h5", shape=(16, 24), progress=False)
+    assert summary["frames"] == 7
+    got = read(tmp_path / "out.h5", dataset="entry/data/data").data
+    np.testing.assert_array_equal(got, cal.correct(stack))
+
+    calls = {"n": 0}
+    real_append = StackWriter.append
+
+    def failing_append(self, frame, **series):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError(28, "No space left on device")
+        return real_append(self, frame, **series)
+
+    monkeypatch.setattr(StackWriter, "append", failing_append)  # a fake: a full disk cannot be caused here
+    with pytest.raises(OSError, match="No space left"):
+        correct_files(tmp_path / "s.raw", cal, tmp_path / "out2.h5", shape=(16, 24), progress=False)

@@ -35,9 +35,12 @@ class StackWriter:
     HDF5 output holds ``/entry/data/data`` (chunked one frame per chunk) and, from
     :meth:`append`'s keyword arguments, per-frame series under ``/entry/data/``; ``meta`` becomes
     attributes of ``/entry/data`` (nested dicts as JSON). Each frame is flushed as written.
+    ``n_frames``, when known, preallocates the HDF5 datasets (no resize per frame); a file closed
+    early is shrunk to the frames written.
     """
 
-    def __init__(self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True):
+    def __init__(self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True,
+                 n_frames=None):
         self.path = Path(path)
         self.frame_shape = tuple(int(s) for s in frame_shape)
         self.dtype = np.dtype(dtype)
@@ -56,7 +59,9 @@ class StackWriter:
             grp.attrs["signal"] = "data"
             for key, value in self.meta.items():
                 grp.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
-            self._ds = grp.create_dataset("data", shape=(0,) + self.frame_shape, maxshape=(None,) + self.frame_shape,
+            self._alloc = int(n_frames or 0)
+            self._ds = grp.create_dataset("data", shape=(self._alloc,) + self.frame_shape,
+                                          maxshape=(None,) + self.frame_shape,
                                           chunks=(1,) + self.frame_shape, dtype=self.dtype)
             self._series = {}
         elif suffix in (".tif", ".tiff"):
@@ -72,15 +77,17 @@ class StackWriter:
             raise ValueError(f"{self.path}: frame shape {frame.shape} != {self.frame_shape}")
         if self.kind == "hdf5":
             i = self.n
-            self._ds.resize(i + 1, axis=0)
+            if i >= self._ds.shape[0]:
+                self._ds.resize(i + 1, axis=0)
             self._ds[i] = frame
             for name, value in series.items():
                 ds = self._series.get(name)
                 if ds is None:
-                    ds = self._h5["entry/data"].create_dataset(name, shape=(0,), maxshape=(None,),
+                    ds = self._h5["entry/data"].create_dataset(name, shape=(max(self._alloc, i),), maxshape=(None,),
                                                                dtype=np.asarray(value).dtype, chunks=(256,))
                     self._series[name] = ds
-                ds.resize(i + 1, axis=0)
+                if i >= ds.shape[0]:
+                    ds.resize(i + 1, axis=0)
                 ds[i] = value
             self._h5.flush()
         else:
@@ -92,6 +99,9 @@ class StackWriter:
     def close(self):
         if self.kind == "hdf5":
             if self._h5.id.valid:
+                for ds in [self._ds, *self._series.values()]:
+                    if ds.shape[0] != self.n:
+                        ds.resize(self.n, axis=0)
                 self._h5.close()
         else:
             self._tif.close()
