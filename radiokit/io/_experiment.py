@@ -9,7 +9,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta"]
+__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta", "checked_dataset"]
 
 DETECTOR = "entry/instrument/detector"
 COMPRESSION = "entry/sample/compression"
@@ -107,9 +107,11 @@ class ExperimentWriter:
         _set_class(inst, "NXinstrument")
         src = inst.create_group("source")
         _set_class(src, "NXsource")
-        src["type"] = "Fixed Tube X-ray"
-        src["name"] = source.get("name", "Hamamatsu L8121-01")
-        src["probe"] = "x-ray"
+        # Fixed-length strings: read() reads these, and reading a variable-length string parses
+        # the global heap, which libhdf5 can hang or crash on when the file is corrupt.
+        for key, value in (("type", "Fixed Tube X-ray"), ("name", source.get("name", "Hamamatsu L8121-01")),
+                           ("probe", "x-ray")):
+            src[key] = np.bytes_(str(value).encode("utf-8"))
         for key, unit in (("voltage", "kV"), ("current", "uA")):
             value = source.get(f"{key}_{unit.lower()}")
             ds = src.create_dataset(key, data=np.nan if value is None else float(value))
@@ -220,29 +222,61 @@ class ExperimentWriter:
         self.close()
 
 
+def checked_dataset(path, h5, name, kinds, ndims) -> h5py.Dataset:
+    """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
+
+    Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely.
+    """
+    ds = h5.get(name)
+    if not isinstance(ds, h5py.Dataset):
+        raise FormatError(path, f"/{name} is not a dataset")
+    if not _plain_numbers(ds.dtype, kinds):
+        raise FormatError(path, f"/{name} has type {ds.dtype}; expected numbers")
+    if ds.ndim not in ndims:
+        raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
+    return ds
+
+
+def _plain_numbers(dtype, kinds="iuf") -> bool:
+    return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
+
+
 def read_experiment_meta(path, h5: h5py.File) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata."""
     if f"{DETECTOR}/data" not in h5:
         raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/data: not a radiokit experiment file "
                                 "(pass dataset='/path/to/frames' to read another layout)")
-    data = h5[f"{DETECTOR}/data"]
+    data = checked_dataset(path, h5, f"{DETECTOR}/data", "iuf", range(33))
     if data.ndim != 3:
         raise FormatError(path, f"/{DETECTOR}/data has shape {data.shape}; expected (n, rows, cols)")
-    n = min(int(h5["entry"].attrs.get("frames_complete", data.shape[0])), data.shape[0])
+    n = max(0, min(int(h5["entry"].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
     meta = {"format": "experiment"}
     for group, name, *_ in _SERIES:
         if name in h5.get(group, {}):
-            meta[name] = h5[group][name][:n]
+            values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,))[:n]
+            if len(values) != n:
+                raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
+            meta[name] = values
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/image_key")
-    for name in ("x_pixel_size", "y_pixel_size", "pixel_mask"):
-        if name in h5[DETECTOR]:
-            meta[name] = h5[DETECTOR][name][()]
+    for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2)):
+        ds = h5[DETECTOR].get(name)
+        # optional: left out unless plain numbers of the expected rank
+        if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
+            meta[name] = ds[()]
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
     src = h5.get("entry/instrument/source")
     if src is not None:
-        meta["source"] = {k: (v[()].decode() if isinstance(v[()], bytes) else v[()]) for k, v in src.items()}
+        meta["source"] = {}
+        for key in src:
+            # only scalar numbers and strings: libhdf5 can crash on a corrupt variable-length type
+            ds = src.get(key)
+            if not isinstance(ds, h5py.Dataset) or ds.shape != () or not (
+                    ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None):
+                continue
+            value = ds[()]
+            meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
     if "entry/simulation" in h5:
         meta["simulated"] = True
     meta["n_complete"] = n

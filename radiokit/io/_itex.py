@@ -59,15 +59,20 @@ _TOKEN = re.compile(r'\s*(?:\[(?P<section>[^\]\r\n]*)\]|(?P<key>[^=,\r\n\[]+?)\s
                     r'(?:"(?P<quoted>[^"]*)"|(?P<bare>[^,\r\n\[]*)))\s*,?', re.S)
 
 
+# Plain decimal literals only: int()/float() would also take "1_000", "nan", "Infinity", " 7 ".
+_INT = re.compile(r"[+-]?[0-9]+\Z")
+_FLOAT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?\Z")
+
+
 def _number(text: str):
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
+    if _INT.match(text):
+        try:
+            return int(text)
+        except ValueError:  # beyond sys.get_int_max_str_digits()
+            return text
+    if _FLOAT.match(text):
         return float(text)
-    except ValueError:
-        return text
+    return text
 
 
 def parse_comment(text: str) -> dict:
@@ -90,7 +95,8 @@ def parse_comment(text: str) -> dict:
             piece = text[pos:nxt].strip(" ,\r\n\0")
             if piece:
                 leftovers.append(piece)
-            pos = nxt
+            # step over the separating comma too, or the next item would be taken as leftover
+            pos = nxt + 1 if nxt < end and text[nxt] == "," else nxt
             continue
         if m.group("section") is not None:
             current = out.setdefault(m.group("section").strip(), {})

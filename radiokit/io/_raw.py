@@ -1,6 +1,7 @@
 """Headerless raw frames as the C7942's vendor software writes them (16-bit little-endian)."""
 from __future__ import annotations
 
+import operator
 import os
 from dataclasses import dataclass
 
@@ -57,6 +58,17 @@ def _parse_dtype(path, dtype, byteorder) -> np.dtype:
     return dt
 
 
+def _frame_count(path, n) -> int:
+    """Validate an ``n=`` hint: a whole number of frames, at least one."""
+    try:
+        n = operator.index(n)
+    except TypeError:
+        raise FormatError(path, f"n={n!r}: expected a whole number of frames") from None
+    if n < 1:
+        raise FormatError(path, f"n={n}: expected at least one frame")
+    return n
+
+
 def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None,
                  offset=0, n=None) -> dict:
     """Decide the geometry of a headerless raw file of ``size`` bytes.
@@ -69,6 +81,8 @@ def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteo
     dt = _parse_dtype(path, dtype, byteorder)
     if offset < 0:
         raise FormatError(path, f"offset={offset} is negative")
+    if n is not None:
+        n = _frame_count(path, n)
     payload = size - offset
     if size == 0:
         raise FormatError(path, "file is empty")

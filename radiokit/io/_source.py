@@ -3,18 +3,19 @@ from __future__ import annotations
 
 import json
 import os
+import stat
+import struct
 from pathlib import Path
-from struct import error as struct_error
 
 import h5py
 import numpy as np
 import tifffile
 
 from radiokit.errors import FormatError
-from radiokit.io._experiment import read_experiment_meta
+from radiokit.io._experiment import checked_dataset, read_experiment_meta
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
-from radiokit.io._raw import PRESETS, raw_geometry, read_raw_frame
+from radiokit.io._raw import PRESETS, _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
@@ -24,6 +25,22 @@ _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _EXTENSIONS = {".tif": "tiff", ".tiff": "tiff", ".img": "itex", ".h5": "hdf5", ".hdf5": "hdf5",
                ".hdf": "hdf5", ".nxs": "hdf5", ".nx": "hdf5", ".raw": "raw", ".bin": "raw", ".dat": "raw"}
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
+#: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
+_PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
+
+
+def _check_file(path) -> None:
+    """Raise FormatError for a missing path, a directory or an empty regular file."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise FormatError(path, "no such file") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise FormatError(path, "is a directory, not a frame file")
+    if stat.S_ISREG(st.st_mode) and st.st_size == 0:
+        raise FormatError(path, "file is empty")
 
 
 def sniff(path) -> str:
@@ -72,6 +89,7 @@ class FrameSource:
             raise TypeError(f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}")
         if format is not None and format not in FORMATS:
             raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
+        _check_file(self.path)
         self.format = format or ("hdf5" if dataset else sniff(self.path))
         if self.format != "raw" and hints.keys() - {"n"}:
             # Geometry hints only make sense for headerless data.
@@ -81,15 +99,26 @@ class FrameSource:
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
+            if self.format != "raw" and hints.get("n") is not None:
+                self._limit_frames(hints["n"])
         except FormatError:
             self.close()
             raise
-        except (OSError, ValueError, KeyError, IndexError, TypeError, struct_error, UnicodeError,
-                tifffile.TiffFileError, RuntimeError, MemoryError, OverflowError) as exc:
+        except Exception as exc:  # tifffile and h5py fail on corrupt files in many ways (even assert)
             self.close()
             raise FormatError(self.path, f"cannot be read as {self.format}: {exc}") from exc
         self.meta.setdefault("format", self.format)
         self.meta["path"] = str(self.path)
+
+    def _limit_frames(self, n):
+        """Apply an ``n=`` hint to a file that knows its own frame count."""
+        n = _frame_count(self.path, n)
+        if n > self.n:
+            raise FormatError(self.path, f"n={n}: the file holds {self.n} frame(s)")
+        for key, value in self.meta.items():
+            if key in _PER_FRAME and isinstance(value, np.ndarray) and value.shape[:1] == (self.n,):
+                self.meta[key] = value[:n]
+        self.n = self.meta["n"] = n
 
     # -- format openers -----------------------------------------------------------------------
     def _open_raw(self, dataset=None, **hints):
@@ -111,7 +140,6 @@ class FrameSource:
         geo = parse_itex_header(self.path, head, size)
         comment = self._fh.read(geo["comment_length"]).decode("latin-1").rstrip("\0")
         parsed = parse_comment(comment)
-        geo["n"] = hints.get("n", geo["n"])
         self._geo = geo
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"]
         self.bits = None
@@ -131,7 +159,11 @@ class FrameSource:
         shape = first.shape
         if len(shape) != 2:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
-        self._pages = [p for p in pages if p.shape == shape]
+        all_pages = list(pages)
+        self._pages = [p for p in all_pages if p.shape == shape]
+        self._check_ifd_chain(all_pages)
+        for i, page in enumerate(self._pages):
+            self._check_page_layout(i, page, shape)
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
         self.bits = None
         tags = {}
@@ -148,6 +180,71 @@ class FrameSource:
             except ValueError:
                 pass
 
+    def _check_ifd_chain(self, pages):
+        """Everything the IFDs point at must lie inside the file.
+
+        tifffile only logs an error and carries on when a next-IFD offset or a tag's value lies
+        beyond the end of the file; a multi-page file cut at a page boundary then reads as a
+        shorter stack. A truncated or corrupt file is an error here, not fewer pages.
+        """
+        tif = self._tif
+        if tif.is_lsm or tif.is_scanimage or tif.is_ndpi:  # page lists tifffile builds itself
+            return
+        t, fh = tif.tiff, tif.filehandle
+        size = fh.size
+
+        def broken(what):
+            return FormatError(self.path, f"TIFF {what} lies beyond the end of the {size}-byte file: "
+                                          "truncated or corrupt")
+
+        entries = b""
+        for index, page in enumerate(pages):
+            fh.seek(page.offset)
+            head = fh.read(t.tagnosize)
+            if len(head) != t.tagnosize:
+                raise broken(f"IFD of page {index}")
+            count = struct.unpack(t.tagnoformat, head)[0]
+            entries = fh.read(count * t.tagsize + t.offsetsize)
+            if len(entries) != count * t.tagsize + t.offsetsize:
+                raise broken(f"IFD of page {index}")
+            for k in range(count):
+                entry = entries[k * t.tagsize:(k + 1) * t.tagsize]
+                code, kind = struct.unpack(t.tagformat1, entry[:4])
+                n_values, value = struct.unpack(t.tagformat2, entry[4:])
+                fmt = tifffile.TIFF.DATA_FORMATS.get(kind)
+                if fmt is None:
+                    continue
+                nbytes = n_values * struct.calcsize(fmt)
+                if nbytes > t.tagoffsetthreshold:
+                    offset = struct.unpack(t.offsetformat, value)[0]
+                    if offset + nbytes > size:
+                        raise broken(f"value of tag {code} of page {index}")
+            for offset, nbytes in zip(page.dataoffsets, page.databytecounts):
+                if nbytes and offset + nbytes > size:
+                    raise broken(f"image data of page {index}")
+        # the last IFD must end the chain
+        if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize:])[0] != 0:
+            raise broken(f"IFD after page {len(pages) - 1}")
+
+    def _check_page_layout(self, i, page, shape):
+        """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
+        reader allocate, and tifffile zero-fill, gigabytes for a small file."""
+        rows, cols = shape
+        if page.is_tiled:
+            expected = -(-rows // page.tilelength) * -(-cols // page.tilewidth)
+        else:
+            per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+            expected = -(-rows // per_strip)
+        if len(page.dataoffsets) != expected:
+            raise FormatError(self.path, f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
+                                         f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}")
+        if page.compression == 1 and not page.is_tiled:
+            need = rows * ((cols * page.bitspersample + 7) // 8)
+            have = sum(page.databytecounts)
+            if have < need:
+                raise FormatError(self.path, f"TIFF page {i} holds {have} bytes of pixels; "
+                                             f"{rows}x{cols} {page.bitspersample}-bit needs {need}")
+
     def _read_tiff(self, i):
         frame = self._pages[i].asarray()
         if frame.shape != self.frame_shape:
@@ -162,6 +259,7 @@ class FrameSource:
             data = self._h5[dataset]
             if data.ndim not in (2, 3):
                 raise FormatError(self.path, f"{dataset} has shape {data.shape}; expected 2 or 3 dimensions")
+            checked_dataset(self.path, self._h5, dataset, "buif", (2, 3))
             meta = {"format": "hdf5", "dataset": dataset}
             n = 1 if data.ndim == 2 else data.shape[0]
         else:
@@ -189,8 +287,7 @@ class FrameSource:
             frame = getattr(self, f"_read_{self.format}")(i)
         except FormatError:
             raise
-        except (OSError, ValueError, KeyError, IndexError, TypeError, struct_error, RuntimeError,
-                tifffile.TiffFileError, MemoryError, OverflowError, ZeroDivisionError) as exc:
+        except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
             raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
         check_bit_depth(self.path, frame, self.bits)
         return frame
@@ -200,7 +297,12 @@ class FrameSource:
             yield self[i]
 
     def read_all(self) -> Frames:
-        out = np.empty((self.n,) + self.frame_shape, dtype=self.dtype)
+        try:
+            out = np.empty((self.n,) + self.frame_shape, dtype=self.dtype)
+        except MemoryError:
+            raise FormatError(self.path, f"{self.n} frame(s) of {self.frame_shape} {self.dtype} do not fit "
+                                         "in memory: a corrupt header, or read them one by one with "
+                                         "open_frames()") from None
         for i in range(self.n):
             out[i] = self[i]
         return Frames(out, dict(self.meta), self.path)

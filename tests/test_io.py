@@ -1,0 +1,1450 @@
+"""radiokit.io: the five real Hamamatsu ITEX files checked against an independent parse, synthetic
+ITEX files, raw round trips for every C7942 preset, TIFF, the experiment HDF5 (including a writer
+killed with SIGKILL), and properties: truncated, corrupted or random files raise FormatError and
+nothing else."""
+import json
+import os
+import re
+import signal
+import struct
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from radiokit.errors import FormatError
+from radiokit.io import (DEFAULT_PRESET, PRESETS, BitDepthWarning, ExperimentWriter, Frames, ImageKey,
+                         StackWriter, iter_frames, open_frames, read, sniff, write_tiff)
+from radiokit.io._itex import parse_comment
+
+ITEX_DIR = Path("/work/shared/data/hamamatsu_itex")
+PROPS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _raises_format(path, *fragments, **hints):
+    """read(path) must raise FormatError naming the file and containing every fragment."""
+    with pytest.raises(FormatError) as info:
+        read(path, **hints)
+    msg = str(info.value)
+    assert str(path) in msg, msg
+    for frag in fragments:
+        assert frag.lower() in msg.lower(), f"{frag!r} not in {msg!r}"
+    return info.value
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. The five real ITEX files, against an independent parse of the layout in C7942.md
+# ------------------------------------------------------------------------------------------------
+
+def _independent_itex(path):
+    """Parse an ITEX file with struct and numpy only, from the table in C7942.md."""
+    raw = Path(path).read_bytes()
+    assert raw[:2] == b"IM"
+    comment_len, width, height, x0, y0, ftype = (struct.unpack_from("<h", raw, off)[0]
+                                                 for off in (2, 4, 6, 8, 10, 12))
+    n_images = struct.unpack_from("<i", raw, 14)[0]
+    dtype = {0: "<u1", 2: "<u2", 3: "<u4"}[ftype]
+    offset = 64 + comment_len
+    n = max(n_images, 1)
+    pixels = np.frombuffer(raw, dtype=dtype, count=n * width * height, offset=offset)
+    comment = raw[64:offset].decode("latin-1")
+    return dict(raw=raw, width=width, height=height, ftype=ftype, n_images=n_images, offset=offset,
+                comment=comment, pixels=pixels.reshape(n, height, width))
+
+
+# name: (rows, cols, dtype, file type, comment length, min, max, sum)
+REAL_FILES = {
+    "focus_mode.img": (512, 672, np.uint32, 3, 3301, 0, 39173, 59743889),
+    "operate_mode.img": (512, 672, np.uint32, 3, 3311, 0, 2876657, 7061710453),
+    "photon_counting.img": (512, 672, np.uint16, 2, 2886, 0, 35, 110996),
+    "shading_file.img": (512, 672, np.uint32, 3, 2682, 5082, 699185, 182917341484),
+    "xaxis_other.img": (508, 672, np.uint16, 2, 4120, 346, 649, 137039886),
+}
+
+
+def test_all_real_files_are_covered():
+    assert sorted(p.name for p in ITEX_DIR.glob("*.img")) == sorted(REAL_FILES)
+
+
+@pytest.mark.parametrize("name", sorted(REAL_FILES))
+def test_real_itex_pixels_match_independent_parse(name):
+    rows, cols, dtype, ftype, comment_len, lo, hi, total = REAL_FILES[name]
+    path = ITEX_DIR / name
+    ref = _independent_itex(path)
+    assert (ref["height"], ref["width"], ref["ftype"]) == (rows, cols, ftype)
+    assert ref["offset"] == 64 + comment_len
+
+    f = read(path)
+    assert isinstance(f, Frames)
+    assert f.n == 1 and len(f) == 1
+    assert f.shape == (1, rows, cols)
+    assert f.data.dtype == dtype
+    assert f.path == path
+    np.testing.assert_array_equal(f.data[0], ref["pixels"][0])
+    # exact values, also computed from the independent parse
+    d = ref["pixels"][0]
+    assert (int(d.min()), int(d.max()), int(d.sum(dtype=np.uint64))) == (lo, hi, total)
+    assert (int(f.data.min()), int(f.data.max()), int(f.data.sum(dtype=np.uint64))) == (lo, hi, total)
+    # row 0 is the first row stored, column order as stored
+    first = np.frombuffer(ref["raw"], dtype=np.dtype(dtype).newbyteorder("<"), count=cols, offset=ref["offset"])
+    np.testing.assert_array_equal(f.data[0, 0], first)
+    last_px = np.frombuffer(ref["raw"], dtype=np.dtype(dtype).newbyteorder("<"), count=1,
+                            offset=ref["offset"] + (rows * cols - 1) * np.dtype(dtype).itemsize)[0]
+    assert f.data[0, -1, -1] == last_px
+
+    m = f.meta
+    assert m["format"] == "itex"
+    assert (m["rows"], m["cols"], m["n"], m["file_type"]) == (rows, cols, 1, ftype)
+    assert m["comment_length"] == comment_len
+    assert m["offset"] == ref["offset"]
+    assert m["file_size"] == len(ref["raw"])
+    assert m["comment_text"] == ref["comment"].rstrip("\0")
+    assert m["path"] == str(path)
+
+
+@pytest.mark.parametrize("name", sorted(REAL_FILES))
+def test_real_itex_lazy_access_matches_read(name):
+    path = ITEX_DIR / name
+    ref = _independent_itex(path)["pixels"]
+    with open_frames(path) as src:
+        assert len(src) == 1
+        np.testing.assert_array_equal(src[0], ref[0])
+        np.testing.assert_array_equal(src[-1], ref[0])
+        with pytest.raises(IndexError):
+            src[1]
+    frames = list(iter_frames(path))
+    assert len(frames) == 1
+    np.testing.assert_array_equal(frames[0], ref[0])
+    assert sniff(path) == "itex"
+
+
+def test_real_itex_sections_in_order():
+    for name in REAL_FILES:
+        f = read(ITEX_DIR / name)
+        text = _independent_itex(ITEX_DIR / name)["comment"]
+        sections = re.findall(r"\[([^\]\r\n]*)\]", text)
+        assert list(f.meta["comment"]) == sections, name
+        assert "_unparsed" not in f.meta["comment"], name
+        assert "" not in f.meta["comment"], name
+
+
+# (file, section, key, expected value) -- expected type matters: numbers come back as numbers
+COMMENT_VALUES = [
+    ("focus_mode.img", "Camera", "CameraName", "Orca R2"),
+    ("photon_counting.img", "Camera", "CameraName", "Orca R2"),
+    ("xaxis_other.img", "Camera", "CameraName", "C13440-20C"),
+    ("focus_mode.img", "Camera", "SerialNumber", "S/N: 891892"),
+    ("focus_mode.img", "Application", "Software", "HPD-TA"),
+    ("focus_mode.img", "Application", "ApplicationTitle", "High Performance Digital Temporal Analyzer"),
+    ("focus_mode.img", "Application", "Time", "11:28:55.083"),
+    ("operate_mode.img", "Application", "SoftwareVersion", "9.5 pf10"),
+    # quoted values holding commas stay whole
+    ("focus_mode.img", "Acquisition", "areSource", "0,0,672,512"),
+    ("xaxis_other.img", "Acquisition", "areSource", "0,0,672,508"),
+    ("xaxis_other.img", "Acquisition", "pntOrigCh", "352,516"),
+    ("operate_mode.img", "Acquisition", "pntBinning", "2,2"),
+    # bare integers and floats become numbers; quoted numbers stay text
+    ("focus_mode.img", "Camera", "Type", 37),
+    ("photon_counting.img", "Camera", "Type", 23),
+    ("focus_mode.img", "Camera", "Binning", "2"),
+    ("focus_mode.img", "Camera", "CoolerSwitch", "-1"),
+    ("focus_mode.img", "Camera", "Prop_TimingMinTriggerInterval", 0.117461),
+    ("focus_mode.img", "Camera", "Prop_OutputTriggerPeriod", 0.0001),
+    ("xaxis_other.img", "Camera", "Prop_InternalLineInterval", 0.00000974436),
+    ("xaxis_other.img", "Camera", "Prop_ConversionFactorOffset", 400),
+    ("focus_mode.img", "Acquisition", "NrExposure", 4),
+    ("operate_mode.img", "Acquisition", "NrExposure", 60),
+    ("photon_counting.img", "Acquisition", "NrExposure", 10000),
+    ("focus_mode.img", "Acquisition", "BytesPerPixel", 4),
+    ("photon_counting.img", "Acquisition", "BytesPerPixel", 2),
+    ("focus_mode.img", "Acquisition", "BacksubCorr", -1),
+    ("photon_counting.img", "Camera", "PCThreshold", 111),
+    # bare text (with a space) stays text
+    ("focus_mode.img", "Acquisition", "ExposureTime", "5 s"),
+    ("photon_counting.img", "Acquisition", "ExposureTime", "200 ms"),
+    ("focus_mode.img", "Acquisition", "ZAxisLabel", "Intensity"),
+    ("xaxis_other.img", "Streak camera", "InstalledOption0", "M16914-01"),
+    # keys with spaces and dots
+    ("focus_mode.img", "Streak camera", "Time Range", "5 ns"),
+    ("focus_mode.img", "Streak camera", "Trig. Mode", "Cont"),
+    ("focus_mode.img", "Delay box", "Delay Int.Trig", "-999999999900"),
+    ("focus_mode.img", "Delay box", "PluginName", ""),
+    ("focus_mode.img", "Delay2 box", "UseDevice", 0),
+    # [Grabber] and [DisplayLUT] follow each other without CRLF
+    ("focus_mode.img", "Grabber", "SubType", 0),
+    ("focus_mode.img", "DisplayLUT", "EntrySize", 9),
+    ("focus_mode.img", "DisplayLUT", "UpperValue", 1685),
+    ("operate_mode.img", "DisplayLUT", "Lut16xOvlVal", 3932100),
+    ("shading_file.img", "DisplayLUT", "BitRange", "16x bit"),
+    ("xaxis_other.img", "DisplayLUT", "UpperValueEx", 65535),
+    # [Scaling] and [Comment] likewise
+    ("focus_mode.img", "Scaling", "ScalingYScalingFile", "Focus mode"),
+    ("focus_mode.img", "Scaling", "ScalingXScalingFile", "#1379621,0672"),
+    ("focus_mode.img", "Comment", "UserComment", ""),
+    ("xaxis_other.img", "Comment", "UserComment", ""),
+]
+
+
+@pytest.mark.parametrize("name, section, key, expected", COMMENT_VALUES)
+def test_real_itex_comment_values(name, section, key, expected):
+    value = read(ITEX_DIR / name).meta["comment"][section][key]
+    assert type(value) is type(expected), (value, expected)
+    assert value == expected
+
+
+@pytest.mark.parametrize("name", sorted(REAL_FILES))
+def test_real_itex_grabber_section_ends_where_displaylut_begins(name):
+    c = read(ITEX_DIR / name).meta["comment"]
+    assert c["Grabber"] == {"Type": 5, "SubType": 0}
+    assert "DisplayLUT" in c and "EntrySize" in c["DisplayLUT"]
+    assert c["Comment"] == {"UserComment": ""}
+    assert set(c["Scaling"]) == {f"Scaling{a}{k}" for a in "XY" for k in ("Type", "Scale", "Unit", "ScalingFile")}
+
+
+# name: {axis: (type, unit, pointer count or scaling name)}
+REAL_SCALING = {
+    "focus_mode.img": {"x": (2, "nm", 672), "y": (1, "", "Focus mode")},
+    "operate_mode.img": {"x": (2, "nm", 672), "y": (2, "us", 512)},
+    "photon_counting.img": {"x": (2, "nm", 672), "y": (2, "ns", 512)},
+    "shading_file.img": {"x": (2, "nm", 672), "y": (2, "ps", 512)},
+    "xaxis_other.img": {"x": (1, "", "Other"), "y": (1, "", "Focus mode")},
+}
+
+
+@pytest.mark.parametrize("name", sorted(REAL_SCALING))
+def test_real_itex_scaling_axes(name):
+    ref = _independent_itex(ITEX_DIR / name)
+    scaling = read(ITEX_DIR / name).meta["scaling"]
+    assert set(scaling) == {"x", "y"}
+    ends = []
+    for axis, (stype, unit, what) in REAL_SCALING[name].items():
+        entry = scaling[axis]
+        assert entry["type"] == stype
+        assert entry["unit"] == unit
+        if isinstance(what, int):
+            m = re.search(rf'Scaling{axis.upper()}ScalingFile="#(\d+),(\d+)"', ref["comment"])
+            off, count = int(m.group(1)), int(m.group(2))
+            assert count == what
+            expected = np.frombuffer(ref["raw"], "<f4", count=count, offset=off)
+            assert entry["values"].dtype == np.float32
+            assert entry["values"].shape == (count,)
+            np.testing.assert_array_equal(entry["values"], expected)
+            assert np.all(np.isfinite(entry["values"]))
+            assert "name" not in entry
+            ends.append(off + 4 * count)
+            # the first axis block starts right after the pixels
+            if axis == "x":
+                assert off == ref["offset"] + ref["pixels"].nbytes
+        else:
+            assert entry["name"] == what
+            assert "values" not in entry
+    if ends:  # the last axis block ends the file
+        assert max(ends) == len(ref["raw"])
+
+
+def test_real_itex_axis_values_are_monotonic_wavelengths_and_times():
+    s = read(ITEX_DIR / "operate_mode.img").meta["scaling"]
+    x, y = s["x"]["values"], s["y"]["values"]
+    assert np.all(np.diff(x) < 0)      # a spectrograph axis, in nm, decreasing
+    assert 400 < x.min() < x.max() < 600
+    assert y[0] == 0 and np.all(np.diff(y) > 0)  # a streak time axis starting at 0
+    assert y[-1] == pytest.approx(16.009396, rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Synthetic ITEX files
+# ------------------------------------------------------------------------------------------------
+
+def _itex_bytes(pixels, ftype, comment=b"", n_images=None, tail=b"", width=None, height=None,
+                comment_len=None, magic=b"IM"):
+    """Build an ITEX file from the layout in C7942.md."""
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 2:
+        pixels = pixels[None]
+    n, rows, cols = pixels.shape
+    dtype = {0: "<u1", 1: "<u2", 2: "<u2", 3: "<u4"}[ftype]
+    head = bytearray(64)
+    head[0:2] = magic
+    struct.pack_into("<h", head, 2, len(comment) if comment_len is None else comment_len)
+    struct.pack_into("<h", head, 4, cols if width is None else width)
+    struct.pack_into("<h", head, 6, rows if height is None else height)
+    struct.pack_into("<h", head, 12, ftype)
+    struct.pack_into("<i", head, 14, (0 if n == 1 else n) if n_images is None else n_images)
+    struct.pack_into("<d", head, 22, 12.5)
+    return bytes(head) + comment + pixels.astype(dtype).tobytes() + tail
+
+
+def test_itex_8bit(tmp_path):
+    rng = np.random.default_rng(1)
+    pix = rng.integers(0, 256, (5, 7), dtype=np.uint8)
+    path = tmp_path / "eight.img"
+    path.write_bytes(_itex_bytes(pix, 0, b'[Camera],CameraName="X",Gain=3'))
+    f = read(path)
+    assert f.data.dtype == np.uint8
+    assert f.shape == (1, 5, 7)
+    np.testing.assert_array_equal(f.data[0], pix)
+    assert f.meta["file_type"] == 0
+    assert f.meta["comment"] == {"Camera": {"CameraName": "X", "Gain": 3}}
+    assert f.meta["time_stamp"] == 12.5
+    assert f.meta["scaling"] == {}
+
+
+def test_itex_comment_padded_with_nuls(tmp_path):
+    pix = np.arange(4, dtype=np.uint16).reshape(2, 2)
+    path = tmp_path / "padded.img"
+    path.write_bytes(_itex_bytes(pix, 2, b"[S],k=1,t=ab\x00\x00\x00\x00"))
+    f = read(path)
+    assert f.meta["comment"] == {"S": {"k": 1, "t": "ab"}}
+    assert f.meta["comment_text"] == "[S],k=1,t=ab"
+    np.testing.assert_array_equal(f.data[0], pix)
+
+
+def test_itex_32bit_values_above_16_bits_do_not_warn(tmp_path):
+    pix = np.array([[0, 70000, 2**32 - 1]], np.uint32)
+    path = tmp_path / "wide.img"
+    path.write_bytes(_itex_bytes(pix, 3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(path)
+    np.testing.assert_array_equal(f.data[0], pix)
+    assert f.data.dtype == np.uint32
+
+
+def test_itex_multi_image(tmp_path):
+    rng = np.random.default_rng(2)
+    pix = rng.integers(0, 65536, (3, 4, 6), dtype=np.uint16)
+    path = tmp_path / "three.img"
+    path.write_bytes(_itex_bytes(pix, 2, b"[A],k=1\r\n", n_images=3))
+    f = read(path)
+    assert f.n == 3
+    assert f.shape == (3, 4, 6)
+    np.testing.assert_array_equal(f.data, pix)
+    with open_frames(path) as src:
+        assert len(src) == 3
+        np.testing.assert_array_equal(src[2], pix[2])
+        np.testing.assert_array_equal(src[-3], pix[0])
+    # n= reads the first frames only
+    g = read(path, n=2)
+    assert g.n == 2
+    np.testing.assert_array_equal(g.data, pix[:2])
+
+
+@pytest.mark.parametrize("n", [0, -1, 4])
+def test_itex_n_hint_out_of_range(tmp_path, n):
+    path = tmp_path / "three.img"
+    path.write_bytes(_itex_bytes(np.zeros((3, 2, 2), np.uint16), 2, n_images=3))
+    _raises_format(path, "n=", n=n)
+
+
+def test_itex_scaling_pointer_synthetic(tmp_path):
+    pix = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    axis = np.linspace(-1, 1, 4).astype("<f4")
+    comment = (b'[Scaling],ScalingXType=2,ScalingXUnit="mm",ScalingXScalingFile="#OFFS,0004",'
+               b'ScalingYScalingFile="Focus mode"')
+    off = 64 + len(comment) + pix.nbytes
+    comment = comment.replace(b"OFFS", b"%04d" % off)
+    path = tmp_path / "scaled.img"
+    path.write_bytes(_itex_bytes(pix, 2, comment, tail=axis.tobytes()))
+    f = read(path)
+    np.testing.assert_array_equal(f.data[0], pix)
+    np.testing.assert_array_equal(f.meta["scaling"]["x"]["values"], axis)
+    assert f.meta["scaling"]["x"]["unit"] == "mm"
+    assert f.meta["scaling"]["y"]["name"] == "Focus mode"
+
+
+def test_itex_scaling_pointer_beyond_end(tmp_path):
+    comment = b'[Scaling],ScalingXScalingFile="#90,0100"'
+    path = tmp_path / "badscale.img"
+    path.write_bytes(_itex_bytes(np.zeros((2, 2), np.uint16), 2, comment))
+    _raises_format(path, "Scaling", "beyond the end")
+
+
+def test_itex_compressed_type_raises(tmp_path):
+    path = tmp_path / "packed.img"
+    path.write_bytes(_itex_bytes(np.zeros((4, 4), np.uint16), 1))
+    _raises_format(path, "compressed")
+
+
+@pytest.mark.parametrize("change", [
+    dict(width=9),                 # wider than the pixels present
+    dict(height=30000),
+    dict(n_images=5),
+    dict(comment_len=200),         # comment claimed longer than the file
+    dict(n_images=2**31 - 1),
+])
+def test_itex_header_promises_more_than_file(tmp_path, change):
+    path = tmp_path / "short.img"
+    path.write_bytes(_itex_bytes(np.ones((4, 8), np.uint16), 2, b"[A],b=1", **change))
+    _raises_format(path, "the file has")
+
+
+@pytest.mark.parametrize("change, fragment", [
+    (dict(width=0), "0x4"),
+    (dict(height=-4), "8x-4"),
+    (dict(n_images=-2), "negative image count"),
+    (dict(comment_len=-5), "negative comment length"),
+])
+def test_itex_header_nonsense(tmp_path, change, fragment):
+    path = tmp_path / "nonsense.img"
+    path.write_bytes(_itex_bytes(np.ones((4, 8), np.uint16), 2, **change))
+    _raises_format(path, fragment)
+
+
+def test_itex_unknown_type_and_wrong_magic(tmp_path):
+    data = bytearray(_itex_bytes(np.ones((2, 2), np.uint16), 2))
+    struct.pack_into("<h", data, 12, 7)
+    path = tmp_path / "seven.img"
+    path.write_bytes(bytes(data))
+    _raises_format(path, "type 7")
+    bad = tmp_path / "magic.img"
+    bad.write_bytes(b"XY" + bytes(_itex_bytes(np.ones((2, 2), np.uint16), 2))[2:])
+    _raises_format(bad, "magic")
+    short = tmp_path / "short.img"
+    short.write_bytes(b"IM" + bytes(20))
+    _raises_format(short, "64 bytes")
+
+
+def test_itex_magic_without_extension_is_itex(tmp_path):
+    pix = np.arange(6, dtype=np.uint16).reshape(2, 3)
+    path = tmp_path / "noext"
+    path.write_bytes(_itex_bytes(pix, 2))
+    assert sniff(path) == "itex"
+    np.testing.assert_array_equal(read(path).data[0], pix)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ('[A],k=1,s="x, y",f=2.5', {"A": {"k": 1, "s": "x, y", "f": 2.5}}),
+    ("[A],a=1[B],b=2", {"A": {"a": 1}, "B": {"b": 2}}),
+    ('[A],a="1,2"[B],b=x y\r\n[C],c=-3', {"A": {"a": "1,2"}, "B": {"b": "x y"}, "C": {"c": -3}}),
+    ("k=1,[S],v=1e-3", {"": {"k": 1}, "S": {"v": 1e-3}}),
+    ("[S],empty=,q=\"\"", {"S": {"empty": "", "q": ""}}),
+    ('[S],a="[not a section]"', {"S": {"a": "[not a section]"}}),
+    ("[S],a=b=c", {"S": {"a": "b=c"}}),
+    ("[S],stray,k=2", {"S": {"k": 2}, "_unparsed": ["stray"]}),
+    ("[S],stray,[T],k=2", {"S": {}, "T": {"k": 2}, "_unparsed": ["stray"]}),
+    ("[S],n=" + "9" * 5000, {"S": {"n": "9" * 5000}}),   # too long for int(): stays text
+    # only plain decimal literals become numbers
+    ("[S],a=1_000,b=nan,c=Infinity,d=+7,e=.5,f=0x10", {"S": {"a": "1_000", "b": "nan", "c": "Infinity",
+                                                            "d": 7, "e": 0.5, "f": "0x10"}}),
+    ("", {}),
+])
+def test_parse_comment_table(text, expected):
+    assert parse_comment(text) == expected
+
+
+@PROPS
+@given(st.text(alphabet=st.sampled_from(list('[]=,"\r\n \x00aZ09.-_#')) | st.characters(max_codepoint=255),
+               max_size=200))
+def test_parse_comment_never_raises(text):
+    out = parse_comment(text)
+    assert isinstance(out, dict)
+    for key, value in out.items():
+        assert isinstance(value, (dict, list))
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Raw C7942 files
+# ------------------------------------------------------------------------------------------------
+
+# name: (rows, cols, binning)
+PRESET_TABLE = {
+    "c7942": (2240, 2240, 1), "c7942-2x2": (1120, 1120, 2), "c7942-4x4": (560, 560, 4),
+    "c7942-2344": (2344, 2240, 1), "c7942-2344-2x2": (1172, 1120, 2), "c7942-2344-4x4": (586, 560, 4),
+    "c7942-2368": (2368, 2240, 1), "c7942-2368-2x2": (1184, 1120, 2), "c7942-2368-4x4": (592, 560, 4),
+}
+
+
+def test_preset_table():
+    assert sorted(PRESETS) == sorted(PRESET_TABLE)
+    assert DEFAULT_PRESET == "c7942"
+    for name, (rows, cols, b) in PRESET_TABLE.items():
+        p = PRESETS[name]
+        assert (p.name, p.rows, p.cols, p.binning, p.bits) == (name, rows, cols, b, 12)
+        assert p.frame_bytes == rows * cols * 2
+        assert p.pixel_size_mm == pytest.approx(0.05 * b)
+    # every preset's single frame has its own size
+    assert len({p.frame_bytes for p in PRESETS.values()}) == len(PRESETS)
+
+
+def _rand12(shape, seed=0):
+    return np.random.default_rng(seed).integers(0, 4096, shape, dtype=np.uint16)
+
+
+@pytest.mark.parametrize("name", sorted(PRESET_TABLE))
+def test_raw_round_trip_every_preset(tmp_path, name):
+    rows, cols, b = PRESET_TABLE[name]
+    data = _rand12((rows, cols), seed=len(name))
+    path = tmp_path / f"{name}.raw"
+    data.astype("<u2").tofile(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BitDepthWarning)
+        f = read(path)
+    assert f.meta["format"] == "raw"
+    assert f.meta["preset"] == name
+    assert (f.meta["rows"], f.meta["cols"], f.meta["n"]) == (rows, cols, 1)
+    assert f.meta["bits"] == 12
+    assert f.meta["pixel_size_mm"] == pytest.approx(0.05 * b)
+    assert f.shape == (1, rows, cols)
+    assert f.data.dtype == np.uint16 and f.data.dtype.isnative
+    np.testing.assert_array_equal(f.data[0], data)
+
+
+def test_raw_stack_of_full_frames(tmp_path):
+    data = _rand12((3, 2240, 2240), seed=5)
+    path = tmp_path / "stack.raw"
+    data.tofile(path)
+    f = read(path)
+    assert f.meta["preset"] == "c7942"
+    assert f.n == 3
+    np.testing.assert_array_equal(f.data, data)
+    with open_frames(path) as src:
+        assert len(src) == 3
+        np.testing.assert_array_equal(src[1], data[1])
+    assert [int(fr[0, 0]) for fr in iter_frames(path)] == [int(v) for v in data[:, 0, 0]]
+    g = read(path, n=2)
+    assert g.n == 2
+    np.testing.assert_array_equal(g.data, data[:2])
+
+
+@pytest.mark.parametrize("name, n", [("c7942-4x4", 5), ("c7942-2344-4x4", 2), ("c7942-2368-4x4", 3)])
+def test_raw_stack_of_binned_frames(tmp_path, name, n):
+    rows, cols, _ = PRESET_TABLE[name]
+    data = _rand12((n, rows, cols), seed=n)
+    path = tmp_path / "binned.raw"
+    data.tofile(path)
+    f = read(path)
+    assert f.meta["preset"] == name
+    assert f.n == n
+    np.testing.assert_array_equal(f.data, data)
+
+
+@pytest.mark.parametrize("name", ["c7942-2x2", "c7942-2344-2x2", "c7942-2368-2x2"])
+def test_raw_stack_of_2x2_frames_needs_preset(tmp_path, name):
+    """n 2x2-binned frames are as long as 4n 4x4-binned ones: the size cannot tell them apart."""
+    rows, cols, _ = PRESET_TABLE[name]
+    data = _rand12((3, rows, cols), seed=3)
+    path = tmp_path / "binned.raw"
+    data.tofile(path)
+    _raises_format(path, "ambiguous", f"{name} x3", f"{name.replace('2x2', '4x4')} x12", "preset=")
+    f = read(path, preset=name)
+    assert f.n == 3 and f.meta["preset"] == name
+    np.testing.assert_array_equal(f.data, data)
+
+
+def test_raw_single_frame_rule_wins_and_preset_overrides(tmp_path):
+    # four 4x4-binned frames are exactly one 2x2-binned frame: the single-frame reading wins
+    data = _rand12((4, 560, 560), seed=4)
+    path = tmp_path / "four.raw"
+    data.tofile(path)
+    assert read(path).meta["preset"] == "c7942-2x2"
+    f = read(path, preset="c7942-4x4")
+    assert f.n == 4
+    np.testing.assert_array_equal(f.data, data)
+
+
+def test_raw_ambiguous_size(tmp_path):
+    # two 2344-2x2 frames == eight 2344-4x4 frames
+    data = _rand12((2, 1172, 1120), seed=6)
+    path = tmp_path / "two.raw"
+    data.tofile(path)
+    err = _raises_format(path, "ambiguous", "preset=", "shape=", str(data.nbytes))
+    assert "c7942-2344-2x2 x2" in str(err) and "c7942-2344-4x4 x8" in str(err)
+    f = read(path, preset="c7942-2344-2x2")
+    assert f.n == 2
+    np.testing.assert_array_equal(f.data, data)
+    assert read(path, preset="c7942-2344-4x4").n == 8
+    g = read(path, shape=(2, 1172, 1120))
+    assert g.meta["preset"] == "custom"
+    np.testing.assert_array_equal(g.data, data)
+
+
+@pytest.mark.parametrize("size", [1, 2, 1000, 627200 - 2, 627200 + 2, 10035200 - 1000])
+def test_raw_size_matching_no_geometry(tmp_path, size):
+    path = tmp_path / "odd.raw"
+    path.write_bytes(bytes(size))
+    _raises_format(path, str(size), "matches no")
+
+
+def test_raw_preset_hint_with_partial_frame(tmp_path):
+    path = tmp_path / "partial.raw"
+    path.write_bytes(bytes(627200 * 2 + 10))
+    _raises_format(path, "not a whole number", preset="c7942-4x4")
+    path.write_bytes(bytes(1000))
+    _raises_format(path, preset="c7942")
+
+
+@pytest.mark.parametrize("dtype, values", [
+    ("<u2", [0, 1, 4095, 65535]),
+    ("<u4", [0, 1, 2**32 - 1, 7]),
+    ("<f4", [0.5, -1.0, 1e30, 3.0]),
+    ("<i2", [-32768, 0, 32767, 5]),
+    ("u1", [0, 255, 128, 1]),
+])
+def test_raw_explicit_shape_and_dtype(tmp_path, dtype, values):
+    data = np.resize(np.array(values, dtype=dtype), (3, 4, 6))
+    path = tmp_path / "custom.bin"
+    data.tofile(path)
+    f = read(path, shape=(4, 6), dtype=dtype)
+    assert f.meta["preset"] == "custom"
+    assert f.n == 3
+    assert f.data.dtype == np.dtype(dtype).newbyteorder("=")
+    np.testing.assert_array_equal(f.data, data)
+    g = read(path, shape=(3, 4, 6), dtype=dtype)
+    np.testing.assert_array_equal(g.data, data)
+
+
+@pytest.mark.parametrize("byteorder", [">", "big"])
+def test_raw_big_endian(tmp_path, byteorder):
+    data = _rand12((560, 560), seed=8)
+    path = tmp_path / "be.raw"
+    data.astype(">u2").tofile(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BitDepthWarning)
+        f = read(path, byteorder=byteorder)
+    assert f.meta["preset"] == "c7942-4x4"
+    assert f.data.dtype.isnative
+    np.testing.assert_array_equal(f.data[0], data)
+    g = read(path, shape=(560, 560), dtype="u2", byteorder=byteorder)
+    np.testing.assert_array_equal(g.data[0], data)
+
+
+def test_raw_offset_skips_junk_header(tmp_path):
+    data = _rand12((560, 560), seed=9)
+    path = tmp_path / "junk.raw"
+    path.write_bytes(b"J" * 100 + data.astype("<u2").tobytes())
+    _raises_format(path, "matches no")      # without the offset the size fits nothing
+    f = read(path, offset=100)
+    assert f.meta["preset"] == "c7942-4x4" and f.meta["offset"] == 100
+    np.testing.assert_array_equal(f.data[0], data)
+    g = read(path, offset=100, shape=(560, 560))
+    np.testing.assert_array_equal(g.data[0], data)
+    small = tmp_path / "small.raw"
+    small.write_bytes(b"H" * 100 + np.arange(12, dtype="<u2").tobytes())
+    np.testing.assert_array_equal(read(small, offset=100, shape=(3, 4)).data[0],
+                                  np.arange(12).reshape(3, 4))
+
+
+@pytest.mark.parametrize("hints, fragment", [
+    (dict(offset=-1), "negative"),
+    (dict(offset=48), "beyond the end"),
+    (dict(offset=100), "beyond the end"),
+    (dict(offset=24), "matches no"),
+    (dict(shape=(0, 3)), "shape="),
+    (dict(shape=(1, 2, 3, 4)), "shape="),
+    (dict(shape=(5, 4)), "not a whole number"),
+    (dict(shape=(3, 4), n=3), "truncated"),
+    (dict(shape=(9, 3, 4)), "truncated"),
+    (dict(shape=(3, 4), n=0), "n="),
+    (dict(shape=(3, 4), n=-1), "n="),
+    (dict(shape=(3, 4), n=1.5), "n="),
+    (dict(dtype="<u4"), "explicit shape"),
+    (dict(dtype="not-a-dtype", shape=(3, 4)), "dtype"),
+    (dict(byteorder="middle"), "byteorder"),
+    (dict(preset="c9999"), "unknown preset"),
+])
+def test_raw_bad_hints(tmp_path, hints, fragment):
+    path = tmp_path / "hints.raw"
+    np.arange(24, dtype="<u2").tofile(path)   # 48 bytes: two (3, 4) frames
+    _raises_format(path, fragment, **hints)
+
+
+def test_raw_n_hint_reads_leading_frames(tmp_path):
+    path = tmp_path / "hints.raw"
+    data = np.arange(24, dtype="<u2").reshape(2, 3, 4)
+    data.tofile(path)
+    np.testing.assert_array_equal(read(path, shape=(3, 4), n=1).data, data[:1])
+
+
+def test_unknown_hint_and_format(tmp_path):
+    path = tmp_path / "x.raw"
+    np.zeros(10, "<u2").tofile(path)
+    with pytest.raises(TypeError, match="unknown hints"):
+        read(path, shapes=(2, 5))
+    _raises_format(path, "format=", format="png")
+
+
+def test_geometry_hints_rejected_for_self_describing_formats(tmp_path):
+    path = tmp_path / "a.tif"
+    tifffile.imwrite(path, np.zeros((4, 5), np.uint16))
+    _raises_format(path, "raw files only", shape=(4, 5))
+    img = tmp_path / "b.img"
+    img.write_bytes(_itex_bytes(np.zeros((2, 2), np.uint16), 2))
+    _raises_format(img, "raw files only", offset=64)
+
+
+def test_format_hint_forces_raw(tmp_path):
+    # an ITEX-looking file read as raw on request
+    path = tmp_path / "x.img"
+    pix = np.arange(6, dtype=np.uint16).reshape(2, 3)
+    path.write_bytes(_itex_bytes(pix, 2))
+    f = read(path, format="raw", offset=64, shape=(2, 3))
+    np.testing.assert_array_equal(f.data[0], pix)
+
+
+def test_bit_depth_warning(tmp_path):
+    data = _rand12((560, 560), seed=10)
+    data[3, 4] = 5000
+    path = tmp_path / "hot.raw"
+    data.tofile(path)
+    with pytest.warns(BitDepthWarning, match="5000") as rec:
+        f = read(path)
+    assert str(path) in str(rec[0].message)
+    assert "12-bit" in str(rec[0].message)
+    np.testing.assert_array_equal(f.data[0], data)   # data still returned unchanged
+
+
+def test_bit_depth_warning_suggests_byteorder(tmp_path):
+    data = _rand12((560, 560), seed=11)
+    path = tmp_path / "swapped.raw"
+    data.astype(">u2").tofile(path)
+    with pytest.warns(BitDepthWarning, match="byteorder") as rec:
+        f = read(path)
+    assert "byte-swapped" in str(rec[0].message)
+    np.testing.assert_array_equal(f.data[0], data.byteswap())
+
+
+def test_bit_depth_warning_msb_aligned(tmp_path):
+    data = _rand12((560, 560), seed=12)
+    data[0, 0] = 4095
+    path = tmp_path / "shifted.raw"
+    (data << 4).astype("<u2").tofile(path)
+    with pytest.warns(BitDepthWarning, match="shifted left by 4"):
+        read(path)
+
+
+def test_no_bit_depth_warning_at_4095(tmp_path):
+    path = tmp_path / "full.raw"
+    np.full((560, 560), 4095, "<u2").tofile(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(path)
+    assert f.data.max() == 4095
+
+
+def test_no_bit_depth_warning_with_explicit_shape(tmp_path):
+    # a custom geometry is not a C7942 frame: no 12-bit promise
+    path = tmp_path / "other.raw"
+    np.full((4, 4), 60000, "<u2").tofile(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read(path, shape=(4, 4)).data.max() == 60000
+
+
+def test_raw_file_starting_with_magic_bytes_is_raw_by_extension(tmp_path):
+    data = _rand12((560, 560), seed=13)
+    data[0, 0] = int.from_bytes(b"IM", "little")   # 19785: the frame starts with b"IM"
+    path = tmp_path / "im.raw"
+    data.tofile(path)
+    assert sniff(path) == "raw"
+    with pytest.warns(BitDepthWarning):
+        f = read(path)
+    np.testing.assert_array_equal(f.data[0], data)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. TIFF
+# ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.uint8, np.float32, np.uint32])
+def test_tiff_single_page(tmp_path, dtype):
+    data = (np.random.default_rng(3).random((13, 17)) * 200).astype(dtype)
+    path = tmp_path / "one.tif"
+    tifffile.imwrite(path, data)
+    f = read(path)
+    assert f.meta["format"] == "tiff"
+    assert f.shape == (1, 13, 17)
+    assert f.data.dtype == dtype
+    np.testing.assert_array_equal(f.data[0], data)
+    assert (f.meta["rows"], f.meta["cols"], f.meta["n"]) == (13, 17, 1)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5])
+@pytest.mark.parametrize("kw", [{}, {"bigtiff": True}, {"byteorder": ">"}, {"compression": "zlib"}])
+def test_tiff_multi_page_tifffile(tmp_path, kw, n):
+    # photometric="minisblack": without it tifffile stores a (3|4, rows, cols) array as one RGB(A) page
+    data = _rand12((n, 9, 11), seed=14)
+    path = tmp_path / "stack.tiff"
+    tifffile.imwrite(path, data, photometric="minisblack", **kw)
+    f = read(path)
+    assert f.n == n
+    assert f.data.dtype.isnative
+    np.testing.assert_array_equal(f.data, data)
+    g = read(path, n=2)
+    assert g.n == 2 and g.meta["n"] == 2
+    np.testing.assert_array_equal(g.data, data[:2])
+    _raises_format(path, "n=", n=n + 1)
+
+
+def test_tiff_pages_written_one_by_one(tmp_path):
+    data = _rand12((3, 6, 5), seed=15)
+    path = tmp_path / "pages.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for frame in data:
+            tw.write(frame, contiguous=False)
+    f = read(path)
+    assert f.n == 3
+    np.testing.assert_array_equal(f.data, data)
+    with open_frames(path) as src:
+        np.testing.assert_array_equal(src[-1], data[2])
+
+
+@pytest.mark.parametrize("kw", [{"rowsperstrip": 3}, {"rowsperstrip": 1}, {"tile": (16, 16)},
+                                {"tile": (16, 32), "compression": "zlib"}, {"compression": "zlib", "rowsperstrip": 7}])
+def test_tiff_strip_and_tile_layouts(tmp_path, kw):
+    data = _rand12((2, 37, 50), seed=23)
+    path = tmp_path / "layout.tif"
+    tifffile.imwrite(path, data, photometric="minisblack", **kw)
+    f = read(path)
+    np.testing.assert_array_equal(f.data, data)
+
+
+def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
+    """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
+    out = bytearray(data)
+    ifd = struct.unpack_from("<I", out, 4)[0]
+    for k in range(struct.unpack_from("<H", out, ifd)[0]):
+        entry = ifd + 2 + 12 * k
+        tag, kind, _count, _value = struct.unpack_from("<HHII", out, entry)
+        if tag == code:
+            assert kind == 4
+            struct.pack_into("<I", out, entry + 8, value)
+            return bytes(out)
+    raise AssertionError(f"no tag {code}")
+
+
+@pytest.mark.parametrize("compression", [None, "zlib"])
+@pytest.mark.parametrize("tag, value", [(257, 1_000_000_000), (256, 500_000_000), (257, 8_000_005)])
+def test_tiff_corrupt_dimensions_fail_fast(tmp_path, compression, tag, value):
+    """A corrupt ImageLength/ImageWidth must not make the reader allocate and fill gigabytes."""
+    path = tmp_path / "dims.tif"
+    tifffile.imwrite(path, _rand12((5, 6), seed=24), compression=compression)
+    path.write_bytes(_patch_tiff_tag(path.read_bytes(), tag, value))
+    t0 = time.monotonic()
+    _raises_format(path)
+    assert time.monotonic() - t0 < 2
+
+
+def test_write_tiff_round_trip_with_meta(tmp_path):
+    data = _rand12((3, 8, 10), seed=16)
+    meta = {"step": 2, "ratio": 0.15, "nested": {"kv": 40.0, "names": ["a", "b"]}}
+    path = write_tiff(tmp_path / "rk.tif", data, meta=meta)
+    assert path == tmp_path / "rk.tif"
+    f = read(path)
+    assert f.n == 3
+    np.testing.assert_array_equal(f.data, data)
+    assert f.meta["description"] == meta
+    assert json.loads(f.meta["tags"]["ImageDescription"]) == meta
+
+
+def test_write_tiff_single_frame_float(tmp_path):
+    data = np.random.default_rng(17).normal(size=(7, 5)).astype(np.float32)
+    path = write_tiff(tmp_path / "one.tif", data)
+    f = read(path)
+    assert f.shape == (1, 7, 5) and f.data.dtype == np.float32
+    np.testing.assert_array_equal(f.data[0], data)
+    assert "description" not in f.meta
+    with pytest.raises(ValueError):
+        write_tiff(tmp_path / "bad.tif", np.zeros((2, 2, 2, 2)))
+
+
+@pytest.mark.parametrize("shape, kw", [
+    ((8, 9, 3), {"photometric": "rgb"}),
+    ((3, 8, 9), {"photometric": "rgb", "planarconfig": "separate"}),
+    ((8, 9, 4), {"photometric": "rgb", "extrasamples": ["unassalpha"]}),
+])
+def test_tiff_rgb_rejected(tmp_path, shape, kw):
+    path = tmp_path / "rgb.tif"
+    tifffile.imwrite(path, np.zeros(shape, np.uint8), **kw)
+    _raises_format(path, "greyscale")
+
+
+def test_tiff_truncated_at_page_boundary(tmp_path):
+    """A multi-page TIFF cut right after a page must not read as a shorter stack."""
+    data = _rand12((3, 6, 7), seed=18)
+    path = write_tiff(tmp_path / "cut.tif", data, meta={"a": 1})
+    whole = path.read_bytes()
+    with tifffile.TiffFile(path) as tif:
+        ends = [max(o + c for o, c in zip(p.dataoffsets, p.databytecounts)) for p in tif.pages]
+    for end in ends[:-1]:
+        path.write_bytes(whole[:end])
+        _raises_format(path)
+
+
+def test_tiff_with_wrong_magic(tmp_path):
+    path = tmp_path / "fake.tif"
+    path.write_bytes(b"GIF89a" + bytes(100))
+    _raises_format(path, "magic")
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. The experiment HDF5
+# ------------------------------------------------------------------------------------------------
+
+EXP_SHAPE = (6, 5)
+
+
+def _frame(i, shape=EXP_SHAPE):
+    return ((np.arange(shape[0] * shape[1]).reshape(shape) * 7 + i * 101) % 4096).astype(np.uint16)
+
+
+FRAME_META = [  # image_key, step, ratio, gap_mm, voltage_kv, current_ua
+    (ImageKey.DARK, -1, None, None, None, None),
+    (ImageKey.FLAT, -1, None, None, 40.0, 100.0),
+    (ImageKey.PROJECTION, 0, 0.0, 10.0, 40.1, 99.5),
+    (ImageKey.PROJECTION, 1, 0.075, 9.25, 39.9, 100.2),
+    (ImageKey.PROJECTION, 2, 0.15, 8.5, 40.0, 100.0),
+    (ImageKey.INVALID, 3, 0.2, 8.0, 40.0, 100.0),
+]
+
+
+def _write_experiment(path, rows=FRAME_META, start=0, **kw):
+    with ExperimentWriter(path, **kw) as w:
+        for j, (key, step, ratio, gap, kv, ua) in enumerate(rows):
+            i = w.append(_frame(start + j), image_key=key, step=step, ratio=ratio, gap_mm=gap,
+                         voltage_kv=kv, current_ua=ua, time_s=1000.0 + start + j)
+            assert i == start + j
+            assert w.n_frames == start + j + 1
+    return path
+
+
+def _nan(v):
+    return np.nan if v is None else v
+
+
+def _check_meta(meta, rows):
+    np.testing.assert_array_equal(meta["image_key"], [r[0] for r in rows])
+    assert meta["image_key"].dtype == np.int8
+    np.testing.assert_array_equal(meta["step"], [r[1] for r in rows])
+    assert meta["step"].dtype == np.int16
+    np.testing.assert_array_equal(meta["ratio"], [_nan(r[2]) for r in rows])
+    np.testing.assert_allclose(meta["gap"], [_nan(r[3]) if r[3] is None else r[3] * 1e-3 for r in rows],
+                               rtol=1e-12)
+    np.testing.assert_array_equal(meta["voltage"], [_nan(r[4]) for r in rows])
+    np.testing.assert_array_equal(meta["current"], [_nan(r[5]) for r in rows])
+    np.testing.assert_array_equal(meta["time"], 1000.0 + np.arange(len(rows)))
+
+
+def test_experiment_write_read(tmp_path):
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE, pixel_size_mm=0.1,
+                             source={"name": "L8121-01", "voltage_kv": 40, "current_ua": 100})
+    f = read(path)
+    assert f.meta["format"] == "experiment"
+    assert f.n == len(FRAME_META)
+    assert f.data.dtype == np.uint16
+    np.testing.assert_array_equal(f.data, np.stack([_frame(i) for i in range(len(FRAME_META))]))
+    _check_meta(f.meta, FRAME_META)
+    assert f.meta["pixel_size_mm"] == pytest.approx(0.1)
+    assert f.meta["x_pixel_size"] == pytest.approx(1e-4)
+    np.testing.assert_array_equal(f.meta["pixel_mask"], np.zeros(EXP_SHAPE, np.uint32))
+    assert f.meta["source"]["name"] == "L8121-01"
+    assert f.meta["source"]["type"] == "Fixed Tube X-ray"
+    assert f.meta["source"]["voltage"] == 40.0 and f.meta["source"]["current"] == 100.0
+    assert "simulated" not in f.meta
+    assert sniff(path) == "hdf5"
+    # n= keeps the first frames and their bookkeeping together
+    g = read(path, n=3)
+    assert g.n == 3 and g.meta["n"] == 3
+    np.testing.assert_array_equal(g.data, f.data[:3])
+    _check_meta(g.meta, FRAME_META[:3])
+    _raises_format(path, "n=", n=len(FRAME_META) + 1)
+    # the NeXus layout
+    with h5py.File(path, "r") as h5:
+        det = h5["entry/instrument/detector/data"]
+        assert det.chunks == (1,) + EXP_SHAPE
+        assert h5["entry"].attrs["NX_class"] == "NXentry"
+        assert h5["entry"].attrs["frames_complete"] == len(FRAME_META)
+        np.testing.assert_array_equal(h5["entry/data/data"][()], f.data)
+        assert h5["entry/sample/compression/gap"].attrs["units"] == "m"
+
+
+def test_experiment_lazy_and_empty(tmp_path):
+    path = tmp_path / "empty.h5"
+    ExperimentWriter(path, shape=EXP_SHAPE).close()
+    f = read(path)
+    assert f.n == 0 and f.shape == (0,) + EXP_SHAPE
+    _write_experiment(path, shape=EXP_SHAPE, overwrite=True)
+    with open_frames(path) as src:
+        assert len(src) == len(FRAME_META)
+        np.testing.assert_array_equal(src[3], _frame(3))
+
+
+def test_experiment_append_mode(tmp_path):
+    path = _write_experiment(tmp_path / "exp.h5", rows=FRAME_META[:3], shape=EXP_SHAPE)
+    _write_experiment(path, rows=FRAME_META[3:], start=3, mode="a")
+    f = read(path)
+    assert f.n == len(FRAME_META)
+    np.testing.assert_array_equal(f.data, np.stack([_frame(i) for i in range(len(FRAME_META))]))
+    _check_meta(f.meta, FRAME_META)
+    _write_experiment(path, rows=FRAME_META[:1], start=6, mode="a", shape=EXP_SHAPE)
+    assert read(path).n == len(FRAME_META) + 1
+    with pytest.raises(ValueError, match="frames are"):
+        ExperimentWriter(path, shape=(5, 6), mode="a")
+
+
+def test_experiment_refuses_to_overwrite(tmp_path):
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="never overwritten"):
+        ExperimentWriter(path, shape=EXP_SHAPE)
+    with pytest.raises(FileExistsError):
+        ExperimentWriter(path, shape=EXP_SHAPE, mode="w")
+    assert path.read_bytes() == before
+    assert read(path).n == len(FRAME_META)
+    with pytest.raises(FileNotFoundError):
+        ExperimentWriter(tmp_path / "missing.h5", mode="a")
+    with pytest.raises(ValueError, match="mode"):
+        ExperimentWriter(tmp_path / "new.h5", shape=EXP_SHAPE, mode="x")
+    with pytest.raises(ValueError, match="shape"):
+        ExperimentWriter(tmp_path / "noshape.h5")
+
+
+def test_experiment_append_validation(tmp_path):
+    with ExperimentWriter(tmp_path / "v.h5", shape=EXP_SHAPE) as w:
+        with pytest.raises(ValueError, match="shape"):
+            w.append(np.zeros((5, 6), np.uint16), image_key=0)
+        with pytest.raises(ValueError, match="image_key"):
+            w.append(np.zeros(EXP_SHAPE, np.uint16), image_key=7)
+        with pytest.raises(ValueError, match="uint16"):
+            w.append(np.full(EXP_SHAPE, -1, np.int32), image_key=0)
+        with pytest.raises(ValueError, match="uint16"):
+            w.append(np.zeros(EXP_SHAPE, np.float32), image_key=0)
+        assert w.n_frames == 0
+        w.append(np.full(EXP_SHAPE, 4000, np.int64), image_key=0)
+        w.set_pixel_mask(np.eye(*EXP_SHAPE, dtype=np.uint32) * 8)
+    f = read(tmp_path / "v.h5")
+    assert f.n == 1 and f.data.dtype == np.uint16 and int(f.data.max()) == 4000
+    np.testing.assert_array_equal(f.meta["pixel_mask"], np.eye(*EXP_SHAPE, dtype=np.uint32) * 8)
+
+
+def test_experiment_bit_depth_warning(tmp_path):
+    path = tmp_path / "hot.h5"
+    with ExperimentWriter(path, shape=EXP_SHAPE) as w:
+        w.append(np.full(EXP_SHAPE, 4096, np.uint16), image_key=0)
+    with pytest.warns(BitDepthWarning, match="4096"):
+        read(path)
+
+
+def test_experiment_partial_frame_dropped(tmp_path):
+    """A crash after resizing but before the counter update leaves a partial frame: not read."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    n = len(FRAME_META)
+    with h5py.File(path, "r+") as h5:
+        ds = h5["entry/instrument/detector/data"]
+        ds.resize(n + 1, axis=0)
+        ds[n] = 999
+        h5["entry/instrument/detector/image_key"].resize(n + 1, axis=0)
+    f = read(path)
+    assert f.n == n
+    assert len(f.meta["image_key"]) == n
+    with ExperimentWriter(path, mode="a") as w:
+        assert w.n_frames == n
+        w.append(_frame(n), image_key=0)
+    g = read(path)
+    assert g.n == n + 1
+    np.testing.assert_array_equal(g.data[n], _frame(n))
+
+
+def test_experiment_source_strings_are_fixed_length(tmp_path):
+    """read() must not parse the global heap (libhdf5 hangs on some corrupt heaps): the strings
+    it reads are stored inline."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE, source={"name": "Röntgen 50µA"})
+    with h5py.File(path, "r") as h5:
+        for key in ("name", "type", "probe"):
+            info = h5py.check_string_dtype(h5[f"entry/instrument/source/{key}"].dtype)
+            assert info is not None and info.length is not None, key
+    assert read(path).meta["source"]["name"] == "Röntgen 50µA"
+
+
+def test_experiment_odd_types_are_skipped_or_refused(tmp_path):
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    with h5py.File(path, "r+") as h5:
+        src = h5["entry/instrument/source"]
+        del src["type"]   # a corrupt byte once turned this string into a vlen sequence: segfault
+        src.create_dataset("type", shape=(), dtype=h5py.vlen_dtype(np.uint8))
+        src["array"] = np.arange(3)
+    f = read(path)
+    assert "type" not in f.meta["source"] and "array" not in f.meta["source"]
+    assert f.meta["source"]["probe"] == "x-ray"
+    with h5py.File(path, "r+") as h5:
+        del h5["entry/sample/compression/step"]
+        h5["entry/sample/compression/step"] = np.array([b"a"] * len(FRAME_META))
+    _raises_format(path, "step", "expected numbers")
+    with h5py.File(path, "r+") as h5:
+        del h5["entry/sample/compression/step"]
+        h5["entry/sample/compression/step"] = np.arange(2, dtype=np.int16)
+    _raises_format(path, "step", "holds 2 values")
+    with h5py.File(path, "r+") as h5:
+        h5["entry"].attrs["frames_complete"] = -4
+    assert read(path).n == 0
+
+
+def test_hdf5_without_experiment_datasets(tmp_path):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as h5:
+        h5["images"] = np.arange(60, dtype=np.uint16).reshape(3, 4, 5)
+        h5["flat"] = np.ones((4, 5), np.float32)
+        h5["line"] = np.arange(5)
+        h5["words"] = np.array([[b"ab", b"cd"]])
+        h5.create_group("grp")
+    _raises_format(path, "/entry/instrument/detector/data", "dataset=")
+    with pytest.raises(FormatError, match="not an experiment file"):
+        ExperimentWriter(path, mode="a")
+    f = read(path, dataset="images")
+    assert f.meta["format"] == "hdf5" and f.meta["dataset"] == "images"
+    np.testing.assert_array_equal(f.data, np.arange(60, dtype=np.uint16).reshape(3, 4, 5))
+    g = read(path, dataset="/flat")
+    assert g.shape == (1, 4, 5) and g.data.dtype == np.float32
+    np.testing.assert_array_equal(g.data[0], np.ones((4, 5)))
+    _raises_format(path, "no dataset", dataset="missing")
+    _raises_format(path, "no dataset", dataset="grp")
+    _raises_format(path, "dimensions", dataset="line")
+    _raises_format(path, "expected numbers", dataset="words")
+
+
+def test_hdf5_experiment_missing_image_key(tmp_path):
+    path = tmp_path / "nokey.h5"
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = np.zeros((2, 3, 4), np.uint16)
+    _raises_format(path, "image_key")
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = np.zeros((3, 4), np.uint16)
+    _raises_format(path, "(n, rows, cols)")
+
+
+def test_dataset_hint_on_non_hdf5(tmp_path):
+    path = tmp_path / "x.raw"
+    np.zeros(10, "<u2").tofile(path)
+    _raises_format(path, dataset="/data")
+
+
+def test_stackwriter_hdf5_read_back(tmp_path):
+    data = np.random.default_rng(19).random((3, 4, 5)).astype(np.float32)
+    with StackWriter(tmp_path / "out.h5", (4, 5), meta={"k": {"a": 1}}) as w:
+        for i, frame in enumerate(data):
+            w.append(frame, step=i)
+    f = read(tmp_path / "out.h5", dataset="entry/data/data")
+    np.testing.assert_array_equal(f.data, data)
+    np.testing.assert_array_equal(read(tmp_path / "out.h5", dataset="entry/data/data", n=2).data, data[:2])
+    _raises_format(tmp_path / "out.h5", "dimensions", dataset="entry/data/step")  # 1-D: not frames
+
+
+_CRASH_WRITER = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from radiokit.io import ExperimentWriter
+    rows, cols = 48, 40
+    base = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
+    w = ExperimentWriter(sys.argv[1], shape=(rows, cols))
+    i = 0
+    while True:
+        w.append(((base * 3 + i * 17) % 4096).astype(np.uint16), image_key=i % 3, step=i,
+                 ratio=i / 100, gap_mm=10 - i / 10, voltage_kv=40, current_ua=100, time_s=i)
+        print(i, flush=True)
+        i += 1
+""")
+
+
+def test_experiment_survives_sigkill(tmp_path):
+    path = tmp_path / "crash.h5"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-c", _CRASH_WRITER, str(path)], stdout=subprocess.PIPE,
+                            text=True, env=env)
+    last = -1
+    watchdog = threading.Timer(60, proc.kill)   # never hang the suite on a stuck writer
+    watchdog.start()
+    try:
+        for line in proc.stdout:
+            last = int(line)
+            if last >= 5:
+                break
+    finally:
+        watchdog.cancel()
+        proc.send_signal(signal.SIGKILL)   # kills it wherever it is, possibly mid-append
+        proc.wait()
+        proc.stdout.close()
+    assert last >= 5, "the writer never reported five frames"
+    assert proc.returncode == -signal.SIGKILL
+
+    rows, cols = 48, 40
+    base = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
+    f = read(path)
+    assert f.n >= last + 1        # every frame reported complete is there
+    for i in range(f.n):
+        np.testing.assert_array_equal(f.data[i], (base * 3 + i * 17) % 4096)
+    np.testing.assert_array_equal(f.meta["step"], np.arange(f.n))
+    np.testing.assert_array_equal(f.meta["image_key"], np.arange(f.n) % 3)
+    np.testing.assert_allclose(f.meta["gap"], (10 - np.arange(f.n) / 10) * 1e-3)
+    np.testing.assert_array_equal(f.meta["time"], np.arange(f.n))
+
+    with ExperimentWriter(path, mode="a") as w:
+        assert w.n_frames == f.n
+        w.append(np.full((rows, cols), 7, np.uint16), image_key=ImageKey.DARK)
+        w.append(np.full((rows, cols), 8, np.uint16), image_key=ImageKey.FLAT)
+    g = read(path)
+    assert g.n == f.n + 2
+    np.testing.assert_array_equal(g.data[:f.n], f.data)
+    assert int(g.data[-2].max()) == 7 and int(g.data[-1].min()) == 8
+    np.testing.assert_array_equal(g.meta["image_key"][-2:], [2, 1])
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. Properties: truncated and random files raise FormatError and nothing else
+# ------------------------------------------------------------------------------------------------
+
+def _valid_raw_custom(path):
+    np.arange(2 * 5 * 7, dtype="<u2").reshape(2, 5, 7).tofile(path)
+    return dict(shape=(2, 5, 7))
+
+
+def _valid_raw_custom_2d(path):
+    np.arange(35, dtype="<u2").tofile(path)
+    return dict(shape=(5, 7))
+
+
+def _valid_raw_preset(path):
+    _rand12((560, 560), seed=20).tofile(path)   # c7942-4x4, the smallest preset
+    return {}
+
+
+def _valid_itex(path):
+    pix = np.arange(2 * 4 * 6, dtype=np.uint16).reshape(2, 4, 6)
+    axis = np.arange(6, dtype="<f4")
+    comment = b'[Camera],CameraName="Orca R2",Type=37[Scaling],ScalingXScalingFile="#0000,0006"'
+    off = 64 + len(comment) + pix.nbytes
+    comment = comment.replace(b"#0000", f"#{off:04d}".encode())
+    path.write_bytes(_itex_bytes(pix, 2, comment, n_images=2, tail=axis.tobytes()))
+    return {}
+
+
+def _valid_itex_8bit(path):
+    path.write_bytes(_itex_bytes(np.arange(30, dtype=np.uint8).reshape(5, 6), 0, b"[A],a=1"))
+    return {}
+
+
+def _valid_tiff(path):
+    tifffile.imwrite(path, _rand12((3, 5, 6), seed=21), photometric="minisblack")
+    return {}
+
+
+def _valid_tiff_pages(path):
+    write_tiff(path, _rand12((3, 5, 6), seed=22), meta={"k": 1})
+    return {}
+
+
+def _valid_hdf5(path):
+    with ExperimentWriter(path, shape=(5, 6)) as w:
+        for i in range(3):
+            w.append(_frame(i, (5, 6)), image_key=0, step=i)
+    return {}
+
+
+VALID_MAKERS = {
+    "raw-shape3d": (".raw", _valid_raw_custom),
+    "raw-shape2d": (".raw", _valid_raw_custom_2d),
+    "raw-preset": (".raw", _valid_raw_preset),
+    "itex": (".img", _valid_itex),
+    "itex-8bit": (".img", _valid_itex_8bit),
+    "tiff": (".tif", _valid_tiff),
+    "tiff-pages": (".tif", _valid_tiff_pages),
+    "hdf5": (".h5", _valid_hdf5),
+}
+
+
+@pytest.fixture(scope="module")
+def valid_files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("valid")
+    out = {}
+    for kind, (ext, make) in VALID_MAKERS.items():
+        path = root / f"{kind}{ext}"
+        hints = make(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", BitDepthWarning)
+            read(path, **hints)  # valid as written
+        out[kind] = (ext, path.read_bytes(), hints)
+    return out
+
+
+def _tiff_referenced_end(data: bytes) -> int:
+    """The end of the last byte a little-endian classic TIFF refers to (IFDs, tag values, strips)."""
+    sizes = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4}
+    assert data[:4] == b"II*\x00"
+    end, ifd = 8, struct.unpack_from("<I", data, 4)[0]
+    while ifd:
+        count = struct.unpack_from("<H", data, ifd)[0]
+        end = max(end, ifd + 2 + 12 * count + 4)
+        tags = {}
+        for k in range(count):
+            code, kind, n, value = struct.unpack_from("<HHII", data, ifd + 2 + 12 * k)
+            nbytes = n * sizes[kind]
+            if nbytes > 4:
+                end = max(end, value + nbytes)
+            tags[code] = value
+        end = max(end, tags[273] + tags[279])   # one strip per page, as tifffile writes small pages
+        ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * count)[0]
+    return end
+
+
+@pytest.mark.parametrize("kind", sorted(VALID_MAKERS))
+def test_truncation_raises_format_error(kind, valid_files, tmp_path_factory):
+    ext, whole, hints = valid_files[kind]
+    path = tmp_path_factory.mktemp("trunc") / f"cut{ext}"
+    # tifffile leaves a few unreferenced padding bytes after the last IFD: cutting only those
+    # leaves a complete TIFF, which must then read exactly as the whole file
+    needed = _tiff_referenced_end(whole) if ext == ".tif" else len(whole)
+    assert len(whole) - needed < 64
+
+    path.write_bytes(whole)
+    full = read(path, **hints)
+
+    @PROPS
+    @given(st.integers(min_value=0, max_value=len(whole) - 1))
+    def check(length):
+        path.write_bytes(whole[:length])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", BitDepthWarning)
+            if length >= needed:
+                f = read(path, **hints)
+                np.testing.assert_array_equal(f.data, full.data)
+                return
+            with pytest.raises(FormatError) as info:
+                read(path, **hints)
+        assert str(path) in str(info.value)
+
+    check()
+
+
+def test_truncation_of_every_length_small_tiff(valid_files, tmp_path):
+    """Exhaustive for the page-by-page TIFF: every cut inside the referenced bytes is an error."""
+    _, whole, _ = valid_files["tiff-pages"]
+    needed = _tiff_referenced_end(whole)
+    path = tmp_path / "cut.tif"
+    for length in range(needed):
+        path.write_bytes(whole[:length])
+        with pytest.raises(FormatError):
+            read(path)
+
+
+@pytest.mark.parametrize("kind", ["itex", "itex-8bit", "tiff", "tiff-pages", "hdf5"])
+def test_corrupted_bytes_raise_format_error_or_read(kind, valid_files, tmp_path_factory):
+    """A valid file with a few bytes overwritten: FormatError or frames, never another exception."""
+    ext, whole, hints = valid_files[kind]
+    path = tmp_path_factory.mktemp("corrupt") / f"bad{ext}"
+
+    @PROPS
+    @given(st.lists(st.tuples(st.integers(0, len(whole) - 1), st.integers(0, 255)), min_size=1, max_size=4))
+    def check(edits):
+        data = bytearray(whole)
+        for where, value in edits:
+            data[where] = value
+        path.write_bytes(bytes(data))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", BitDepthWarning)
+            try:
+                f = read(path, **hints)
+            except FormatError as exc:
+                assert str(path) in str(exc)
+            else:
+                assert isinstance(f, Frames) and f.data.ndim == 3
+
+    check()
+
+
+PREFIXES = [b"", b"IM", b"II*\x00", b"MM\x00*", b"II+\x00", b"\x89HDF\r\n\x1a\n"]
+
+
+@pytest.mark.parametrize("ext", [".raw", ".img", ".tif", ".h5", ""])
+def test_random_bytes_raise_format_error_or_read(ext, tmp_path_factory):
+    path = tmp_path_factory.mktemp("rand") / f"random{ext}"
+
+    @PROPS
+    @given(st.sampled_from(PREFIXES), st.binary(max_size=400))
+    def check(prefix, body):
+        path.write_bytes(prefix + body)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", BitDepthWarning)
+            try:
+                f = read(path)
+            except FormatError as exc:
+                assert str(path) in str(exc)
+            else:
+                assert isinstance(f, Frames)
+                assert f.data.ndim == 3
+
+    check()
+
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory):
+    return tmp_path_factory.mktemp("scratch")
+
+
+@PROPS
+@given(data=st.data())
+def test_random_itex_headers(scratch, data):
+    """Headers with random fields around a plausible body: FormatError or a consistent read."""
+    path = scratch / "h.img"
+    head = bytearray(64)
+    head[0:2] = b"IM"
+    struct.pack_into("<hhhhhh", head, 2, *(data.draw(st.integers(-40, 300)) for _ in range(3)),
+                     0, 0, data.draw(st.integers(-1, 4)))
+    struct.pack_into("<i", head, 14, data.draw(st.integers(-2, 4)))
+    body = data.draw(st.binary(max_size=600))
+    path.write_bytes(bytes(head) + body)
+    try:
+        f = read(path)
+    except FormatError:
+        return
+    rows, cols = f.data.shape[1:]
+    need = 64 + f.meta["comment_length"] + f.data.nbytes
+    assert need <= 64 + len(body)
+    assert (f.meta["rows"], f.meta["cols"]) == (rows, cols)
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. Empty, missing, directories
+# ------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("ext", [".raw", ".img", ".tif", ".h5", ".bin", ""])
+@pytest.mark.parametrize("fmt", [None, "raw", "tiff", "itex", "hdf5"])
+def test_empty_file(tmp_path, ext, fmt):
+    path = tmp_path / f"empty{ext}"
+    path.write_bytes(b"")
+    hints = {} if fmt is None else {"format": fmt}
+    _raises_format(path, "empty", **hints)
+
+
+@pytest.mark.parametrize("fmt", [None, "raw", "tiff", "itex", "hdf5"])
+def test_directory(tmp_path, fmt):
+    d = tmp_path / "frames.tif"
+    d.mkdir()
+    hints = {} if fmt is None else {"format": fmt}
+    _raises_format(d, "directory", **hints)
+    _raises_format(tmp_path, "directory", **hints)
+
+
+@pytest.mark.parametrize("name", ["missing.raw", "missing.img", "missing.tif", "missing.h5", "missing"])
+@pytest.mark.parametrize("fmt", [None, "raw", "hdf5"])
+def test_missing_file(tmp_path, name, fmt):
+    hints = {} if fmt is None else {"format": fmt}
+    _raises_format(tmp_path / name, "no such file", **hints)
+    with pytest.raises(FormatError):
+        list(iter_frames(tmp_path / name, **hints))
+    with pytest.raises(FormatError):
+        open_frames(tmp_path / name, **hints)
+
+
+def test_format_error_is_value_error():
+    err = FormatError("/x/y.raw", "bad")
+    assert isinstance(err, ValueError)
+    assert err.path == "/x/y.raw" and err.problem == "bad"
+    assert str(err) == "/x/y.raw: bad"
