@@ -12,7 +12,7 @@ $(BIN)/python:
 
 # Reinstall when the project's dependencies change.
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e .
+	$(BIN)/python -m pip install -q -e '.[sim]'
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(BIN)/python

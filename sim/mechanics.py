@@ -1,0 +1,487 @@
+"""Large-deformation mechanics of the compressed phantom with scikit-fem.
+
+Materials
+---------
+Background (and optionally inclusions): FEBio's neo-Hookean energy
+
+    psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2.
+
+"Linear elastic" inclusions use Hooke's law on the Green-Lagrange strain E (St Venant-Kirchhoff),
+as a geometrically nonlinear FE code treats a linear material: psi = mu E:E + lambda/2 (tr E)^2.
+
+Near incompressibility (nu = 0.495, lambda / mu = 99) without locking: a mixed u-p formulation,
+quadratic (P2) displacement and an element-wise constant (P0) pressure conjugate to the volumetric
+measure g (ln J, or tr E), i.e. psi = W(F) + p g - p^2 / (2 lambda). P2-P0 is inf-sup stable in 3D
+as in 2D (the edge degrees of freedom control each face's flux). The pressure is condensed per
+element, p_e = lambda * mean_e(g), so the global system is displacement-only and symmetric:
+
+    Pi(u) = sum_e [ int_e W dV + lambda/2 V_e mean_e(g)^2 ].
+
+Plates
+------
+Rigid plates normal to y. Flat faces lying on a plate (cone, cylinder, box) stay on it: rollers
+(frictionless) or glued (bonded). Curved bodies (ellipsoids) touch the plate at a point first and
+the patch grows: frictionless penalty contact on the boundary, energy eps/2 <y + u_y - h>_+^2,
+with eps chosen so that the penetration is below 1e-3 of the element size at the contact pressure.
+
+Solver
+------
+Newton on Pi with an Armijo line search that also keeps J > 0, adaptive load steps (halved on
+failure, grown after easy steps), and a :class:`ConvergenceError` naming the compression at which
+it gave up; never NaN. Units: mm, N, MPa.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from sim.mesh import FEMesh, build_mesh, choose_model
+from sim.scene import Scene
+
+__all__ = ["State", "ConvergenceError", "Solver", "compress", "uniaxial_block_force"]
+
+_EYE = np.eye(3)
+
+
+class ConvergenceError(RuntimeError):
+    """The solver could not reach a requested compression."""
+
+
+@dataclass
+class State:
+    """One equilibrium state.
+
+    Attributes
+    ----------
+    ratio : float
+        Compression: the plates have closed by this fraction of the initial gap.
+    gap_mm : float
+        Plate gap.
+    plate_force_n : float
+        Force on one plate (whole body, symmetry accounted for), compressive positive.
+    volume_ratio : float
+        Deformed over initial volume of the whole body.
+    displacement : ndarray (dim, n_dofs)
+        Displacement of the P2 nodes (``Solver.dof_points``), mm.
+    """
+
+    ratio: float
+    gap_mm: float
+    plate_force_n: float
+    volume_ratio: float
+    displacement: np.ndarray = field(repr=False)
+    newton_iterations: int = 0
+    load_steps: int = 0
+    contact_area_mm2: float = 0.0
+    inclusion_strain: float = float("nan")
+    background_strain: float = float("nan")
+
+
+def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
+    """Closed form: plate force (N) and lateral stretch of a neo-Hookean block (FEBio's energy)
+    compressed by ``ratio`` between frictionless plates, sides traction-free.
+
+    With axial stretch s = 1 - ratio and lateral stretch t, F = diag(t, s, t), J = s t^2. The first
+    Piola stress is P = mu (F - F^-T) + lambda ln J F^-T, so the free sides need
+    mu (t^2 - 1) + lambda ln(s t^2) = 0 (solved for t by bisection; the left side increases with t),
+    and the plate force is |P_yy| A = |mu (s - 1/s) + lambda ln(J) / s| A.
+    """
+    mu = E_kpa / (2 * (1 + nu)) * 1e-3
+    lam = E_kpa * nu / ((1 + nu) * (1 - 2 * nu)) * 1e-3
+    s = 1.0 - ratio
+    f = lambda t: mu * (t * t - 1) + lam * math.log(s * t * t)  # noqa: E731
+    lo, hi = 1e-3, 10.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if f(mid) > 0:
+            hi = mid
+        else:
+            lo = mid
+    t = 0.5 * (lo + hi)
+    p_yy = mu * (s - 1 / s) + lam * math.log(s * t * t) / s
+    return abs(p_yy) * area_mm2, t
+
+
+class Solver:
+    """Equilibrium of one meshed scene under prescribed plate positions."""
+
+    def __init__(self, scene: Scene, fem: FEMesh | None = None, *, intorder=2, penalty_factor=1e3):
+        from skfem import Basis, ElementTetP2, ElementTriP2, FacetBasis
+
+        self.scene = scene
+        self.fem = fem if fem is not None else build_mesh(scene)
+        self.model = self.fem.model
+        mesh = self.fem.skfem()
+        self.mesh = mesh
+        elem = ElementTetP2() if self.model == "3d" else ElementTriP2()
+        basis = Basis(mesh, elem, intorder=intorder)
+        self.basis = basis
+        self.dim = 3 if self.model == "3d" else 2
+        dim = self.dim
+        self.dof_points = basis.doflocs.copy()  # (dim, N): vertices first, then edge midpoints
+        self.n_nodes = basis.N
+        nloc = len(basis.basis)
+        nel, nq = basis.dx.shape
+        # Gradient operator: Bop[e, q, d] is the 3x3 displacement gradient of a unit local dof d.
+        grads = np.stack([basis.basis[a][0].grad for a in range(nloc)])  # (nloc, dim, nel, nq)
+        grads = grads.transpose(2, 3, 0, 1)  # (nel, nq, nloc, dim)
+        B = np.zeros((nel, nq, nloc * dim, 3, 3))
+        for a in range(nloc):
+            for i in range(dim):
+                B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
+        w = basis.dx.copy()
+        if self.model == "axisymmetric":
+            R = basis.global_coordinates().value[0]  # (nel, nq), quadrature points are interior: R > 0
+            vals = np.stack([basis.basis[a][0].value for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
+            for a in range(nloc):
+                B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
+            w = w * 2 * np.pi * R
+        elif self.model == "plane-strain":
+            w = w * scene.body.size_mm[2]
+        self.B = B
+        self.w = w
+        self.Ve = w.sum(axis=1)
+        edofs = basis.element_dofs.T  # (nel, nloc) scalar node indices
+        self.edofs = (edofs[:, :, None] * dim + np.arange(dim)[None, None, :]).reshape(nel, nloc * dim)
+        self.ndof = self.n_nodes * dim
+        rows = np.repeat(self.edofs, nloc * dim, axis=1).ravel()
+        cols = np.tile(self.edofs, (1, nloc * dim)).ravel()
+        self._pattern = (rows, cols)
+        # Materials per element
+        mats = [scene.body.material] + [inc.material for inc in scene.inclusions]
+        region = self.fem.region
+        self.mu = np.array([mats[r].shear_kpa for r in region]) * 1e-3
+        self.lam = np.array([mats[r].lame_kpa for r in region]) * 1e-3
+        self.svk = np.array([mats[r].model == "linear" for r in region])
+        self.region = region
+        # Copies of the model side by side on one plate: symmetry planes other than y (which
+        # mirrors the model onto the other plate). Axisymmetric weights already hold the 2 pi r.
+        self.force_multiplicity = 2 ** len([p for p in self.fem.symmetry if p != "y"]) if self.model == "3d" else 1
+        self._setup_boundary(FacetBasis, elem, penalty_factor)
+
+    # -- boundary conditions ------------------------------------------------------------------
+    def _setup_boundary(self, FacetBasis, elem, penalty_factor):
+        sc = self.scene
+        dim = self.dim
+        X = self.dof_points
+        H = sc.body.half_height_mm
+        size = float(np.max(self.dof_points.max(axis=1) - self.dof_points.min(axis=1)))
+        tol = 1e-6 * size
+        fixed = {}  # global dof -> kind: value function of top-plate displacement
+        sym = set(self.fem.symmetry)
+        if self.model == "3d":
+            axes = {"x": 0, "y": 1, "z": 2}
+            for ax in sym:
+                k = axes[ax]
+                for n in np.flatnonzero(np.abs(X[k]) < tol):
+                    fixed[n * 3 + k] = 0.0
+            if sc.fixed_wall:
+                for n in np.flatnonzero(np.abs(X[0]) < tol):
+                    for k in range(3):
+                        fixed[n * 3 + k] = 0.0
+        else:
+            # axis r = 0 (axisymmetric) or the x = 0 symmetry plane of a slab
+            for n in np.flatnonzero(np.abs(X[0]) < tol):
+                fixed[n * 2 + 0] = 0.0
+            if "y" in sym:
+                for n in np.flatnonzero(np.abs(X[1]) < tol):
+                    fixed[n * 2 + 1] = 0.0
+        y_sym = "y" in sym
+        self.top_nodes = np.zeros(0, np.int64)
+        self.contact = None
+        flat = sc.body.geometry in ("truncated-cone", "cylinder", "box")
+        lateral = [k for k in range(dim) if k != 1]
+        bonded = sc.compression.contact == "bonded"
+        if flat:
+            top = np.flatnonzero(np.abs(X[1] - H) < tol)
+            self.top_nodes = top
+            self.moving = top * dim + 1  # u_y = -delta
+            for n in top:
+                if bonded:
+                    for k in lateral:
+                        fixed[n * dim + k] = 0.0
+            if not y_sym:
+                bottom = np.flatnonzero(np.abs(X[1] + H) < tol)
+                for n in bottom:
+                    fixed[n * dim + 1] = 0.0
+                    if bonded:
+                        for k in lateral:
+                            fixed[n * dim + k] = 0.0
+        else:
+            if bonded:
+                raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
+                                 f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
+            if not y_sym:
+                raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
+            self.moving = np.zeros(0, np.int64)
+            # penalty contact on boundary facets that can reach the plate (upper half, off the planes)
+            m = self.mesh
+            bf = m.boundary_facets()
+            mid = m.p[:, m.facets[:, bf]].mean(axis=1)
+            on_plane = np.zeros(bf.size, bool)
+            for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
+                if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
+                    on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
+            if self.model == "3d" and sc.fixed_wall:
+                on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
+            cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
+            fb = FacetBasis(m, elem, facets=cand, intorder=4)
+            nloc = len(fb.basis)
+            N = np.stack([fb.basis[a][0].value for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
+            fw = fb.dx.copy()
+            Xq = fb.global_coordinates().value
+            if self.model == "axisymmetric":
+                fw = fw * 2 * np.pi * Xq[0]
+            ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
+            E_max = max(m_.E_kpa or 3 * m_.shear_kpa for m_ in [sc.body.material] + [i.material for i in sc.inclusions])
+            h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
+            eps = penalty_factor * E_max * 1e-3 / h_min
+            self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
+        self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
+        self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
+        moving = set(self.moving.tolist())
+        self.fixed_dofs_all = np.array(sorted(set(self.fixed_dofs.tolist()) | moving), dtype=np.int64)
+        free = np.ones(self.ndof, bool)
+        free[self.fixed_dofs_all] = False
+        self.free = np.flatnonzero(free)
+        self.H = H
+        self.gap0 = 2 * H
+
+    # -- energy and derivatives ---------------------------------------------------------------
+    def _kinematics(self, u):
+        ue = u[self.edofs]  # (nel, ndl)
+        Hg = np.einsum("ed,eqdij->eqij", ue, self.B)
+        return _EYE + Hg
+
+    def _material(self, F, need_tangent):
+        """Per quadrature point: energy W, volumetric measure g, P = dW + p dg, and the tangent."""
+        nel, nq = F.shape[:2]
+        mu = self.mu[:, None]
+        lam = self.lam
+        J = np.linalg.det(F)
+        ok = J > 0
+        if not np.all(ok[~self.svk]):
+            return None
+        svk = self.svk[:, None] & np.ones((1, nq), bool)
+        Jc = np.where(ok, J, 1.0)
+        Finv = np.linalg.inv(np.where(ok[..., None, None], F, _EYE))
+        FiT = np.swapaxes(Finv, -1, -2)
+        C = np.einsum("eqki,eqkj->eqij", F, F)
+        I1 = np.trace(C, axis1=-2, axis2=-1)
+        Egl = 0.5 * (C - _EYE)
+        lnJ = np.log(Jc)
+        W = np.where(svk, mu * np.einsum("eqij,eqij->eq", Egl, Egl), mu / 2 * (I1 - 3) - mu * lnJ)
+        g = np.where(svk, np.trace(Egl, axis1=-2, axis2=-1), lnJ)
+        gbar = (g * self.w).sum(axis=1) / self.Ve
+        p = (lam * gbar)[:, None]
+        dW = np.where(svk[..., None, None], 2 * mu[..., None, None] * np.einsum("eqik,eqkj->eqij", F, Egl),
+                      mu[..., None, None] * (F - FiT))
+        dg = np.where(svk[..., None, None], F, FiT)
+        P = dW + p[..., None, None] * dg
+        energy = float((W * self.w).sum() + 0.5 * (lam * self.Ve * gbar ** 2).sum())
+        out = dict(P=P, dg=dg, energy=energy, J=J, gbar=gbar)
+        if need_tangent:
+            # A_ijkl = d P_ij / d F_kl at fixed p
+            d = np.einsum("ik,jl->ijkl", _EYE, _EYE)
+            nh = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * np.einsum("eqil,eqkj->eqijkl", FiT, FiT)
+            S = 2 * mu[..., None, None] * Egl + p[..., None, None] * _EYE
+            FFt = np.einsum("eqim,eqkm->eqik", F, F)
+            sv = (np.einsum("ik,eqlj->eqijkl", _EYE, S) + mu[..., None, None, None, None]
+                  * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", F, F)))
+            out["A"] = np.where(svk[..., None, None, None, None], sv, nh)
+        return out
+
+    def _contact_terms(self, u, h, need_tangent):
+        c = self.contact
+        if c is None:
+            return 0.0, None, None, 0.0, 0.0
+        uy = u[c["dofs"]]  # (nf, nloc)
+        y = c["y"] + np.einsum("fqa,fa->fq", c["N"], uy)
+        gap = y - h
+        act = gap > 0
+        gp = np.where(act, gap, 0.0)
+        eps = c["eps"]
+        energy = 0.5 * eps * float((gp * gp * c["w"]).sum())
+        r = np.einsum("fq,fqa->fa", eps * gp * c["w"], c["N"])
+        K = None
+        if need_tangent:
+            K = np.einsum("fq,fqa,fqb->fab", eps * act * c["w"], c["N"], c["N"])
+        force = float((eps * gp * c["w"]).sum())
+        area = float((act * c["w"]).sum())
+        return energy, r, K, force, area
+
+    def evaluate(self, u, h, need_tangent=True):
+        """Energy, residual (dPi/du) and tangent at displacement ``u`` with the top plate at ``h``."""
+        F = self._kinematics(u)
+        m = self._material(F, need_tangent)
+        if m is None:
+            return None
+        re = np.einsum("eq,eqij,eqdij->ed", self.w, m["P"], self.B)
+        R = np.bincount(self.edofs.ravel(), re.ravel(), minlength=self.ndof)
+        ce, cr, cK, cforce, carea = self._contact_terms(u, h, need_tangent)
+        if cr is not None:
+            R += np.bincount(self.contact["dofs"].ravel(), cr.ravel(), minlength=self.ndof)
+        out = dict(energy=m["energy"] + ce, R=R, J=m["J"], contact_force=cforce, contact_area=carea, F=F)
+        if need_tangent:
+            T = np.einsum("eqijkl,eqfkl->eqijf", m["A"], self.B)
+            Ke = np.einsum("eq,eqdij,eqijf->edf", self.w, self.B, T)
+            G = np.einsum("eq,eqij,eqdij->ed", self.w, m["dg"], self.B)
+            Ke += (self.lam / self.Ve)[:, None, None] * G[:, :, None] * G[:, None, :]
+            K = sp.csr_matrix((Ke.ravel(), self._pattern), shape=(self.ndof, self.ndof))
+            if cK is not None:
+                d = self.contact["dofs"]
+                nl = d.shape[1]
+                K = K + sp.csr_matrix((cK.ravel(), (np.repeat(d, nl, axis=1).ravel(), np.tile(d, (1, nl)).ravel())),
+                                      shape=(self.ndof, self.ndof))
+            out["K"] = K
+        return out
+
+    # -- solving ------------------------------------------------------------------------------
+    def _apply_bc(self, u, delta):
+        u = u.copy()
+        u[self.fixed_dofs] = self.fixed_vals
+        if self.moving.size:
+            u[self.moving] = -delta
+        return u
+
+    def _newton(self, u, delta, max_iter=30):
+        h = self.H - delta if self.contact is not None else None
+        target = self._apply_bc(u, delta)
+        du_d = target - u  # non-zero only on the prescribed dofs
+        if np.any(du_d):
+            # Consistent predictor from the previous equilibrium: spread the plate's motion into the
+            # body (K_ff du_f = -(R_f + K_fd du_d)) instead of starting from a sheared top layer.
+            ev0 = self.evaluate(u, h)
+            if ev0 is None:
+                raise ConvergenceError("inverted elements at the start of the step")
+            K = ev0["K"].tocsr()
+            rhs = -(ev0["R"] + K @ du_d)[self.free]
+            du_f = self._linsolve(K[self.free][:, self.free], rhs)
+            u = target.copy()
+            u[self.free] += du_f
+        else:
+            u = target
+        ev = self.evaluate(u, h)
+        if ev is None:
+            raise ConvergenceError("the predictor inverts elements: step too large")
+        scale = max(float(np.max(self.mu)) * self.H ** 2, 1e-12)
+        res = float(np.max(np.abs(ev["R"][self.free]))) if self.free.size else 0.0
+        if res < 1e-9 * scale:
+            return u, ev, 0
+        for it in range(1, max_iter + 1):
+            Rf = ev["R"][self.free]
+            du_f = self._linsolve(ev["K"][self.free][:, self.free], -Rf)
+            slope = float(Rf @ du_f)
+            alpha = 1.0
+            for _ in range(12):
+                trial = u.copy()
+                trial[self.free] += alpha * du_f
+                ev_t = self.evaluate(trial, h)
+                if ev_t is not None:
+                    res_t = float(np.max(np.abs(ev_t["R"][self.free])))
+                    # Armijo on the energy; near convergence the energy stalls at round-off, so a
+                    # full step that reduces the residual is accepted too.
+                    if (ev_t["energy"] <= ev["energy"] + 1e-4 * alpha * min(slope, 0.0)
+                            or (alpha == 1.0 and res_t < 0.5 * res)):
+                        break
+                alpha *= 0.5
+            else:
+                raise ConvergenceError("line search failed (no decrease of the energy keeping J > 0)")
+            u, ev, res = trial, ev_t, res_t
+            step = alpha * float(np.max(np.abs(du_f))) if du_f.size else 0.0
+            if res < 1e-9 * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
+                return u, ev, it
+        raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {res:.3g} N)")
+
+    @staticmethod
+    def _linsolve(K, rhs):
+        try:
+            x = spla.spsolve(K.tocsc(), rhs)
+        except (RuntimeError, ValueError) as exc:
+            raise ConvergenceError(f"linear solve failed: {exc}") from exc
+        if not np.all(np.isfinite(x)):
+            raise ConvergenceError("the tangent is singular (non-finite update)")
+        return x
+
+    def _state(self, u, ev, ratio, delta, iterations, steps) -> State:
+        if self.contact is not None:
+            force = ev["contact_force"]
+            area = ev["contact_area"]
+        else:
+            force = float(np.sum(ev["R"][self.moving] - 0.0))  # internal force at the plate's dofs
+            force = abs(force)
+            area = float("nan")
+        vol = float((np.linalg.det(ev["F"]) * self.w).sum() / self.w.sum())
+        gap = self.gap0 - 2 * delta if "y" in self.fem.symmetry else self.gap0 - delta
+        inc_strain, bg_strain = self._strains(ev["F"])
+        return State(ratio=ratio, gap_mm=gap, plate_force_n=force * self.force_multiplicity, volume_ratio=vol,
+                     displacement=u.reshape(self.n_nodes, self.dim).T.copy(), newton_iterations=iterations,
+                     load_steps=steps, contact_area_mm2=area * self.force_multiplicity, inclusion_strain=inc_strain,
+                     background_strain=bg_strain)
+
+    def _strains(self, F):
+        """Volume-averaged compressive strain 1 - F_yy of the inclusions and of the background."""
+        eyy = 1.0 - F[:, :, 1, 1]
+        out = []
+        for sel in (self.region > 0, self.region == 0):
+            if sel.any():
+                out.append(float((eyy[sel] * self.w[sel]).sum() / self.w[sel].sum()))
+            else:
+                out.append(float("nan"))
+        return tuple(out)
+
+    def solve(self, ratios, progress=False, min_step=1e-4) -> list[State]:
+        """March the plates to each ratio in turn (sorted), adapting the load step."""
+        from tqdm.auto import tqdm
+
+        ratios = sorted(float(r) for r in ratios)
+        per_plate = 0.5 if "y" in self.fem.symmetry else 1.0  # each plate moves half the closure
+        u = np.zeros(self.ndof)
+        states = []
+        r_now = 0.0
+        step = min(0.05, ratios[-1] / 3) if ratios else 0.05
+        total_steps = 0
+        bar = tqdm(total=len(ratios), desc=f"compress {self.scene.name}", unit="state", disable=not progress)
+        for target in ratios:
+            iters_total = 0
+            while r_now < target - 1e-12:
+                r_try = min(target, r_now + step)
+                delta = r_try * self.gap0 * per_plate
+                try:
+                    u_new, ev, its = self._newton(u, delta)
+                except ConvergenceError as exc:
+                    step /= 2
+                    if step < min_step:
+                        bar.close()
+                        raise ConvergenceError(f"scene {self.scene.name!r}: cannot reach compression "
+                                               f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %): {exc}") from exc
+                    continue
+                u, r_now = u_new, r_try
+                total_steps += 1
+                iters_total += its
+                if its <= 5:
+                    step *= 1.5
+            if not states or states[-1].ratio != target:
+                if r_now == 0.0:
+                    u, ev, its = self._newton(u, 0.0)
+                delta = target * self.gap0 * per_plate
+                states.append(self._state(u, ev, target, delta, iters_total, total_steps))
+            bar.update(1)
+        bar.close()
+        return states
+
+
+def compress(scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=False) -> list[State]:
+    """Compress ``scene`` to each of ``ratios`` (default: the scene's) and return the states."""
+    t0 = time.perf_counter()
+    solver = Solver(scene, fem)
+    states = solver.solve(scene.compression.ratios if ratios is None else ratios, progress=progress)
+    for s in states:
+        s.solver = solver  # noqa: B010 - keep the mesh and dof layout with the state
+    solver.seconds = time.perf_counter() - t0
+    return states

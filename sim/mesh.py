@@ -1,0 +1,359 @@
+"""Meshing scenes with gmsh: conforming inclusion interfaces, graded sizes, symmetry cuts.
+
+Three kinds of model (``MeshSpec.model``):
+
+- ``3d`` — linear tetrahedra (the mechanics puts P2 fields on them). With ``symmetry`` the body
+  is cut by the planes it is symmetric about: ``z = 0`` always (every scene here is symmetric in
+  z), ``y = 0`` when the body and its inclusions are symmetric in y (plates close symmetrically),
+  ``x = 0`` when the body is symmetric in x and not a hemi-ellipsoid (whose ``x = 0`` face is the
+  chest wall). ``seed-breast`` thus becomes a quarter of the hemi-ellipsoid.
+- ``axisymmetric`` — triangles in the (r, y) half plane, r >= 0, for bodies of revolution about y
+  with inclusions centred on the axis (a box inclusion becomes the cylinder of equal cross-section
+  area and height).
+- ``plane-strain`` — triangles in the (x, y) plane, for slabs (a box body).
+
+Element sizes grow linearly with distance from the inclusion surfaces, from
+``size_inclusion_mm`` to ``size_far_mm`` over ``grading_mm`` (default: 4 inclusion radii).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sim.scene import Scene
+
+__all__ = ["FEMesh", "build_mesh", "choose_model"]
+
+
+@dataclass
+class FEMesh:
+    """A mesh with what the mechanics and projection need to know about it.
+
+    Attributes
+    ----------
+    points : (dim, n) float
+        Vertex coordinates, mm (dim 3, or 2 for the (r, y) / (x, y) reduced models).
+    cells : (dim + 1, m) int
+        Tetrahedra or triangles.
+    region : (m,) int
+        0 for the body, ``i + 1`` for inclusion ``i``.
+    model : str
+        ``3d``, ``axisymmetric`` or ``plane-strain``.
+    symmetry : tuple of str
+        The planes the model was cut by, e.g. ``("y", "z")``: fields are mirrored across them.
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    region: np.ndarray
+    model: str
+    symmetry: tuple = ()
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def multiplicity(self) -> int:
+        """How many copies of the model make the whole body (forces and volumes scale by it)."""
+        return 2 ** len(self.symmetry)
+
+    def skfem(self):
+        from skfem import MeshTet, MeshTri
+
+        return (MeshTet if self.model == "3d" else MeshTri)(self.points.copy(), self.cells.copy())
+
+    def __repr__(self):
+        return (f"FEMesh({self.model}, {self.points.shape[1]} vertices, {self.cells.shape[1]} cells, "
+                f"symmetry={self.symmetry}, regions={np.bincount(self.region).tolist()})")
+
+
+def choose_model(scene: Scene) -> str:
+    """The cheapest model that represents the scene: axisymmetric for bodies of revolution about
+    the compression axis with inclusions on the axis, else 3D (plane strain only on request)."""
+    if scene.mesh.model != "auto":
+        return scene.mesh.model
+    if scene.body.axisymmetric and not scene.fixed_wall and all(
+            abs(inc.centre_mm[0]) < 1e-9 and abs(inc.centre_mm[2]) < 1e-9 for inc in scene.inclusions):
+        return "axisymmetric"
+    return "3d"
+
+
+def _symmetry_planes(scene: Scene) -> tuple:
+    if not scene.mesh.symmetry:
+        return ()
+    planes = []
+    b = scene.body
+    if b.geometry != "hemi-ellipsoid" and all(abs(i.centre_mm[0]) < 1e-9 for i in scene.inclusions):
+        planes.append("x")
+    y_sym = b.geometry in ("hemi-ellipsoid", "ellipsoid", "cylinder", "box") and all(
+        abs(i.centre_mm[1]) < 1e-9 for i in scene.inclusions)
+    if y_sym:
+        planes.append("y")
+    if all(abs(i.centre_mm[2]) < 1e-9 for i in scene.inclusions):
+        planes.append("z")
+    return tuple(planes)
+
+
+def _gmsh():
+    import gmsh
+
+    if not gmsh.isInitialized():
+        gmsh.initialize(interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.option.setNumber("General.Verbosity", 1)
+    gmsh.clear()
+    return gmsh
+
+
+def _size_field(gmsh, inclusion_entities, dim, spec, grading_mm):
+    f = gmsh.model.mesh.field
+    if inclusion_entities:
+        dist = f.add("Distance")
+        f.setNumbers(dist, "SurfacesList" if dim == 3 else "CurvesList", inclusion_entities)
+        thr = f.add("Threshold")
+        f.setNumber(thr, "InField", dist)
+        f.setNumber(thr, "SizeMin", spec.size_inclusion_mm)
+        f.setNumber(thr, "SizeMax", spec.size_far_mm)
+        f.setNumber(thr, "DistMin", 0.0)
+        f.setNumber(thr, "DistMax", grading_mm)
+        f.setAsBackgroundMesh(thr)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", spec.size_far_mm)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", spec.size_inclusion_mm if inclusion_entities else spec.size_far_mm)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+
+
+def _extract(gmsh, dim, volumes_by_region):
+    """Vertices and cells per region, renumbered compactly."""
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    coords = coords.reshape(-1, 3)
+    index = np.full(int(tags.max()) + 1, -1, np.int64)
+    index[tags.astype(np.int64)] = np.arange(tags.size)
+    etype = 4 if dim == 3 else 2
+    cells, region = [], []
+    for reg, entities in volumes_by_region.items():
+        for ent in entities:
+            et, _, nodes = gmsh.model.mesh.getElements(dim, ent)
+            for t, n in zip(et, nodes):
+                if t != etype:
+                    continue
+                c = index[n.astype(np.int64)].reshape(-1, dim + 1)
+                cells.append(c)
+                region.append(np.full(len(c), reg, np.int64))
+    cells = np.concatenate(cells)
+    region = np.concatenate(region)
+    used = np.unique(cells)
+    remap = np.full(coords.shape[0], -1, np.int64)
+    remap[used] = np.arange(used.size)
+    pts = coords[used, :dim].T.copy()
+    return pts, remap[cells].T.copy(), region
+
+
+def build_mesh(scene: Scene, model: str | None = None, *, size_inclusion_mm=None, size_far_mm=None,
+               grading_mm=None) -> FEMesh:
+    """Mesh ``scene`` with gmsh (see the module docstring for the models and symmetry use)."""
+    import dataclasses
+
+    model = model or choose_model(scene)
+    spec = dataclasses.replace(scene.mesh, **{k: v for k, v in (("size_inclusion_mm", size_inclusion_mm),
+                                                                  ("size_far_mm", size_far_mm)) if v is not None})
+    if scene.inclusions:
+        r_inc = min((i.diameter_mm / 2 if i.shape == "sphere" else min(i.size_mm) / 2) for i in scene.inclusions)
+    else:
+        r_inc = spec.size_far_mm
+    grading = grading_mm if grading_mm is not None else 4 * r_inc
+    if model == "3d":
+        return _build_3d(scene, spec, grading)
+    if model == "axisymmetric":
+        return _build_axisymmetric(scene, spec, grading)
+    if model == "plane-strain":
+        return _build_plane_strain(scene, spec, grading)
+    raise ValueError(f"unknown model {model!r}")
+
+
+def _body_3d(occ, b):
+    g = b.geometry
+    if g in ("ellipsoid", "hemi-ellipsoid"):
+        a, bb, c = b.semi_axes_mm
+        s = occ.addSphere(0, 0, 0, 1.0)
+        occ.dilate([(3, s)], 0, 0, 0, a, bb, c)
+        if g == "hemi-ellipsoid":
+            cut = occ.addBox(-2 * a, -2 * bb, -2 * c, 2 * a, 4 * bb, 4 * c)
+            occ.cut([(3, s)], [(3, cut)])
+        return s
+    if g == "truncated-cone":
+        h = b.height_mm
+        return occ.addCone(0, -h / 2, 0, 0, h, 0, b.bottom_diameter_mm / 2, b.top_diameter_mm / 2)
+    if g == "cylinder":
+        h = b.height_mm
+        return occ.addCylinder(0, -h / 2, 0, 0, h, 0, b.diameter_mm / 2)
+    sx, sy, sz = b.size_mm
+    return occ.addBox(-sx / 2, -sy / 2, -sz / 2, sx, sy, sz)
+
+
+def _inclusion_3d(occ, inc):
+    cx, cy, cz = inc.centre_mm
+    if inc.shape == "sphere":
+        return occ.addSphere(cx, cy, cz, inc.diameter_mm / 2)
+    sx, sy, sz = inc.size_mm
+    return occ.addBox(cx - sx / 2, cy - sy / 2, cz - sz / 2, sx, sy, sz)
+
+
+def _keep_positive(occ, tags, planes, big):
+    """Intersect every volume with the half-spaces {axis >= 0} of the symmetry planes."""
+    if not planes:
+        return tags
+    lo = [-big if ax not in planes else 0.0 for ax in "xyz"]
+    box = occ.addBox(lo[0], lo[1], lo[2], big - lo[0], big - lo[1], big - lo[2])
+    out = []
+    for t in tags:
+        res, _ = occ.intersect([(3, t)], [(3, box)], removeTool=False)
+        out.append([e[1] for e in res])
+    occ.remove([(3, box)], recursive=True)
+    return out
+
+
+def _build_3d(scene, spec, grading):
+    gmsh = _gmsh()
+    occ = gmsh.model.occ
+    planes = _symmetry_planes(scene)
+    big = 10 * max(scene.body.semi_axes_mm + scene.body.size_mm + (scene.body.height_mm, scene.body.diameter_mm,
+                                                                    scene.body.top_diameter_mm))
+    body = _body_3d(occ, scene.body)
+    incs = [_inclusion_3d(occ, i) for i in scene.inclusions]
+    parts = _keep_positive(occ, [body] + incs, planes, big) if planes else [[body]] + [[i] for i in incs]
+    flat = [(3, t) for group in parts for t in group]
+    out, out_map = occ.fragment(flat[:1], flat[1:]) if len(flat) > 1 else (flat, [flat])
+    occ.synchronize()
+    # Regions: a fragment piece belongs to the last inclusion that produced it, else the body.
+    owner = {}
+    k = 0
+    for gi, group in enumerate(parts):
+        for _ in group:
+            for dim, tag in out_map[k]:
+                owner[tag] = gi  # later groups (inclusions) overwrite the body
+            k += 1
+    volumes = {}
+    for tag, reg in owner.items():
+        volumes.setdefault(reg, []).append(tag)
+    inc_surfaces = []
+    for reg, tags in volumes.items():
+        if reg > 0:
+            for t in tags:
+                inc_surfaces += [s[1] for s in gmsh.model.getBoundary([(3, t)], oriented=False)]
+    _size_field(gmsh, inc_surfaces, 3, spec, grading)
+    gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+    gmsh.option.setNumber("Mesh.Optimize", 1)
+    gmsh.model.mesh.generate(3)
+    pts, cells, region = _extract(gmsh, 3, volumes)
+    gmsh.clear()
+    cells = _orient_tets(pts, cells)
+    return FEMesh(pts, cells, region, "3d", planes,
+                  meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm,
+                        "grading_mm": grading})
+
+
+def _orient_tets(p, t):
+    """Positive-volume vertex order (gmsh's is, but make it a guarantee)."""
+    a, b, c, d = (p[:, t[i]] for i in range(4))
+    vol = np.einsum("ij,ij->j", np.cross(b - a, c - a, axis=0), d - a)
+    t = t.copy()
+    neg = vol < 0
+    t[1, neg], t[2, neg] = t[2, neg].copy(), t[1, neg].copy()
+    return t
+
+
+def _profile_2d(scene):
+    """The (r, y) outline of a body of revolution, as a closed polygon or an ellipse quarter."""
+    b = scene.body
+    if b.geometry == "truncated-cone":
+        h = b.height_mm
+        return [(0, -h / 2), (b.bottom_diameter_mm / 2, -h / 2), (b.top_diameter_mm / 2, h / 2), (0, h / 2)]
+    if b.geometry == "cylinder":
+        h, r = b.height_mm, b.diameter_mm / 2
+        return [(0, -h / 2), (r, -h / 2), (r, h / 2), (0, h / 2)]
+    if b.geometry == "box":
+        sx, sy, _ = b.size_mm
+        return [(0, -sy / 2), (sx / 2, -sy / 2), (sx / 2, sy / 2), (0, sy / 2)]
+    return None
+
+
+def _build_2d(scene, spec, grading, model):
+    gmsh = _gmsh()
+    occ = gmsh.model.occ
+    b = scene.body
+    y_sym = scene.mesh.symmetry and "y" in _symmetry_planes(scene)
+    prof = _profile_2d(scene)
+    if prof is not None:
+        pts = [occ.addPoint(x, y, 0) for x, y in prof]
+        lines = [occ.addLine(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+        body = occ.addPlaneSurface([occ.addCurveLoop(lines)])
+    elif b.geometry == "ellipsoid":
+        a, bb, _ = b.semi_axes_mm
+        body = occ.addDisk(0, 0, 0, a, bb) if a >= bb else occ.addDisk(0, 0, 0, bb, a, zAxis=[0, 0, 1], xAxis=[0, 1, 0])
+    else:
+        raise ValueError(f"{b.geometry} has no axisymmetric or plane-strain section")
+    incs = []
+    for inc in scene.inclusions:
+        cx, cy, _ = inc.centre_mm
+        if inc.shape == "sphere":
+            incs.append(occ.addDisk(cx, cy, 0, inc.diameter_mm / 2, inc.diameter_mm / 2))
+        else:
+            sx, sy, sz = inc.size_mm
+            # a box about the axis becomes the cylinder of equal cross-section area
+            w = 2 * math.sqrt(sx * sz / math.pi) if model == "axisymmetric" else sx
+            incs.append(occ.addRectangle(cx - w / 2, cy - sy / 2, 0, w, sy))
+    big = 1e4
+    box = occ.addRectangle(0, -big if not y_sym else 0, 0, big, 2 * big if not y_sym else big)
+    parts = []
+    for t in [body] + incs:
+        res, _ = occ.intersect([(2, t)], [(2, box)], removeTool=False)
+        parts.append([e[1] for e in res])
+    occ.remove([(2, box)], recursive=True)
+    flat = [(2, t) for g in parts for t in g]
+    out, out_map = occ.fragment(flat[:1], flat[1:]) if len(flat) > 1 else (flat, [flat])
+    occ.synchronize()
+    owner = {}
+    k = 0
+    for gi, group in enumerate(parts):
+        for _ in group:
+            for _, tag in out_map[k]:
+                owner[tag] = gi
+            k += 1
+    surfaces = {}
+    for tag, reg in owner.items():
+        surfaces.setdefault(reg, []).append(tag)
+    inc_curves = []
+    for reg, tags in surfaces.items():
+        if reg > 0:
+            for t in tags:
+                inc_curves += [c[1] for c in gmsh.model.getBoundary([(2, t)], oriented=False)]
+    _size_field(gmsh, inc_curves, 2, spec, grading)
+    gmsh.option.setNumber("Mesh.Algorithm", 6)
+    gmsh.model.mesh.generate(2)
+    pts, cells, region = _extract(gmsh, 2, surfaces)
+    gmsh.clear()
+    a, b2, c = (pts[:, cells[i]] for i in range(3))
+    area = (b2[0] - a[0]) * (c[1] - a[1]) - (b2[1] - a[1]) * (c[0] - a[0])
+    neg = area < 0
+    cells[1, neg], cells[2, neg] = cells[2, neg].copy(), cells[1, neg].copy()
+    planes = ("y",) if y_sym else ()
+    return FEMesh(pts, cells, region, model, planes,
+                  meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm,
+                        "grading_mm": grading})
+
+
+def _build_axisymmetric(scene, spec, grading):
+    if not scene.body.axisymmetric:
+        raise ValueError(f"scene {scene.name!r}: a {scene.body.geometry} is not a body of revolution about y")
+    for inc in scene.inclusions:
+        if abs(inc.centre_mm[0]) > 1e-9 or abs(inc.centre_mm[2]) > 1e-9:
+            raise ValueError(f"scene {scene.name!r}: inclusion at {inc.centre_mm} is off the axis")
+    return _build_2d(scene, spec, grading, "axisymmetric")
+
+
+def _build_plane_strain(scene, spec, grading):
+    if scene.body.geometry not in ("box",):
+        raise ValueError(f"scene {scene.name!r}: plane strain needs a slab (box body)")
+    return _build_2d(scene, spec, grading, "plane-strain")

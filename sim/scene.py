@@ -1,0 +1,414 @@
+"""Scenes as data: what is compressed, how, and how it is imaged. TOML in, TOML out.
+
+Coordinates are millimetres, the compression axis is ``y`` and the plates are normal to it.
+``seed-breast``: the hemi-ellipsoid's flat face is the chest wall ``x = 0`` (fixed), the body
+extends to ``x = a``; the beam is parallel along ``y`` (through the plates, as in mammography).
+``pva-phantom``: the cone's axis is ``y`` (bottom face at ``y = -h/2``), compressed axially, and
+imaged from the side along ``z`` by a cone beam.
+
+Units in names: ``_mm``, ``_kpa``, ``_per_cm``, ``_kv``, ``_ua``. Internally the mechanics works in
+mm, N and MPa (N/mm^2).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["Material", "Body", "Inclusion", "Compression", "Beam", "Detector", "Exposure", "MeshSpec",
+           "Scene", "load_scene", "block_scene", "PRESETS"]
+
+GEOMETRIES = ("hemi-ellipsoid", "ellipsoid", "truncated-cone", "cylinder", "box")
+
+
+@dataclass
+class Material:
+    """A hyperelastic (neo-Hookean, FEBio's form) or linear elastic solid with an attenuation.
+
+    Give either ``E_kpa`` and ``nu`` or ``mu_kpa`` and ``kappa_kpa`` (shear and bulk moduli).
+    ``psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``; ``"linear"`` is small-strain Hooke.
+    """
+
+    name: str = "material"
+    model: str = "neo-hookean"
+    E_kpa: float | None = None
+    nu: float | None = None
+    mu_kpa: float | None = None
+    kappa_kpa: float | None = None
+    attenuation_per_cm: float = 0.5
+
+    def __post_init__(self):
+        if self.model not in ("neo-hookean", "linear"):
+            raise ValueError(f"material {self.name!r}: model {self.model!r} is not 'neo-hookean' or 'linear'")
+        if self.E_kpa is not None and self.nu is not None:
+            if not (self.E_kpa > 0 and -1 < self.nu < 0.5):
+                raise ValueError(f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu}")
+        elif self.mu_kpa is not None and self.kappa_kpa is not None:
+            if not (self.mu_kpa > 0 and self.kappa_kpa > 0):
+                raise ValueError(f"material {self.name!r}: need mu, kappa > 0")
+        else:
+            raise ValueError(f"material {self.name!r}: give E_kpa and nu, or mu_kpa and kappa_kpa")
+        if self.attenuation_per_cm < 0:
+            raise ValueError(f"material {self.name!r}: attenuation must be >= 0")
+
+    @property
+    def shear_kpa(self) -> float:
+        if self.mu_kpa is not None:
+            return float(self.mu_kpa)
+        return self.E_kpa / (2 * (1 + self.nu))
+
+    @property
+    def lame_kpa(self) -> float:
+        """First Lamé parameter lambda = kappa - 2 mu / 3."""
+        if self.mu_kpa is not None:
+            return self.kappa_kpa - 2 * self.mu_kpa / 3
+        return self.E_kpa * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
+
+    @property
+    def attenuation_per_mm(self) -> float:
+        return self.attenuation_per_cm / 10.0
+
+
+@dataclass
+class Body:
+    """The bulk of the phantom.
+
+    ``hemi-ellipsoid``/``ellipsoid``: ``semi_axes_mm`` (a along x, b along y, c along z); the
+    hemi-ellipsoid is the half ``x >= 0``. ``truncated-cone``: ``height_mm``,
+    ``bottom_diameter_mm`` (at ``y = -h/2``), ``top_diameter_mm``. ``cylinder``: ``height_mm``,
+    ``diameter_mm``. ``box``: ``size_mm`` (x, y, z). All centred on the origin (the
+    hemi-ellipsoid's flat face on ``x = 0``).
+    """
+
+    geometry: str = "box"
+    semi_axes_mm: tuple = (25.0, 25.0, 25.0)
+    height_mm: float = 60.0
+    bottom_diameter_mm: float = 40.0
+    top_diameter_mm: float = 50.0
+    diameter_mm: float = 50.0
+    size_mm: tuple = (10.0, 10.0, 10.0)
+    material: Material = field(default_factory=Material)
+
+    def __post_init__(self):
+        if self.geometry not in GEOMETRIES:
+            raise ValueError(f"body geometry {self.geometry!r}: expected one of {GEOMETRIES}")
+
+    @property
+    def half_height_mm(self) -> float:
+        """Half the initial plate gap: the body's extent along y."""
+        g = self.geometry
+        if g in ("hemi-ellipsoid", "ellipsoid"):
+            return float(self.semi_axes_mm[1])
+        if g in ("truncated-cone", "cylinder"):
+            return self.height_mm / 2
+        return self.size_mm[1] / 2
+
+    @property
+    def axisymmetric(self) -> bool:
+        """Rotationally symmetric about y."""
+        g = self.geometry
+        return g in ("truncated-cone", "cylinder") or (g == "ellipsoid" and self.semi_axes_mm[0] == self.semi_axes_mm[2])
+
+    def volume_mm3(self) -> float:
+        g = self.geometry
+        if g == "ellipsoid":
+            a, b, c = self.semi_axes_mm
+            return 4 / 3 * math.pi * a * b * c
+        if g == "hemi-ellipsoid":
+            a, b, c = self.semi_axes_mm
+            return 2 / 3 * math.pi * a * b * c
+        if g == "truncated-cone":
+            r1, r2 = self.bottom_diameter_mm / 2, self.top_diameter_mm / 2
+            return math.pi * self.height_mm / 3 * (r1 * r1 + r1 * r2 + r2 * r2)
+        if g == "cylinder":
+            return math.pi * (self.diameter_mm / 2) ** 2 * self.height_mm
+        return float(self.size_mm[0] * self.size_mm[1] * self.size_mm[2])
+
+
+@dataclass
+class Inclusion:
+    """A stiffer region inside the body: ``sphere`` (``diameter_mm``) or ``box`` (``size_mm``)."""
+
+    shape: str = "sphere"
+    centre_mm: tuple = (0.0, 0.0, 0.0)
+    diameter_mm: float = 8.0
+    size_mm: tuple = (8.0, 10.0, 8.0)
+    material: Material = field(default_factory=lambda: Material("inclusion", "linear", E_kpa=30, nu=0.495,
+                                                                attenuation_per_cm=1.0))
+
+    def __post_init__(self):
+        if self.shape not in ("sphere", "box"):
+            raise ValueError(f"inclusion shape {self.shape!r}: expected 'sphere' or 'box'")
+
+    def volume_mm3(self) -> float:
+        if self.shape == "sphere":
+            return math.pi / 6 * self.diameter_mm ** 3
+        return float(self.size_mm[0] * self.size_mm[1] * self.size_mm[2])
+
+
+@dataclass
+class Compression:
+    """Rigid plates normal to y, closing symmetrically to ``1 - ratio`` of the initial gap."""
+
+    ratios: tuple = (0.15, 0.20, 0.25)
+    contact: str = "frictionless"
+
+    def __post_init__(self):
+        if self.contact not in ("frictionless", "bonded"):
+            raise ValueError(f"contact {self.contact!r}: expected 'frictionless' or 'bonded'")
+        if not all(0 <= r < 0.9 for r in self.ratios):
+            raise ValueError(f"compression ratios {self.ratios} must lie in [0, 0.9)")
+
+
+@dataclass
+class Beam:
+    """``parallel`` or ``cone`` beam along ``direction`` (``"y"`` or ``"z"``). Cone beams have the
+    source ``source_distance_mm`` before the body's centre and the detector
+    ``detector_distance_mm`` behind it (magnification (s + d) / s)."""
+
+    kind: str = "parallel"
+    direction: str = "y"
+    source_distance_mm: float = 500.0
+    detector_distance_mm: float = 100.0
+
+    def __post_init__(self):
+        if self.kind not in ("parallel", "cone"):
+            raise ValueError(f"beam kind {self.kind!r}: expected 'parallel' or 'cone'")
+        if self.direction not in ("y", "z"):
+            raise ValueError(f"beam direction {self.direction!r}: expected 'y' or 'z'")
+
+    @property
+    def magnification(self) -> float:
+        if self.kind == "parallel":
+            return 1.0
+        return (self.source_distance_mm + self.detector_distance_mm) / self.source_distance_mm
+
+
+@dataclass
+class Detector:
+    """A C7942 preset (``radiokit.io.PRESETS``) at ``binning`` 1, 2 or 4."""
+
+    preset: str = "c7942"
+    binning: int = 1
+
+    def __post_init__(self):
+        from radiokit.io import PRESETS
+
+        if self.preset not in PRESETS or PRESETS[self.preset].binning != 1:
+            raise ValueError(f"detector preset {self.preset!r}: expected an unbinned preset "
+                             f"({', '.join(k for k, v in PRESETS.items() if v.binning == 1)}); set binning separately")
+        if self.binning not in (1, 2, 4):
+            raise ValueError(f"binning {self.binning}: expected 1, 2 or 4")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        from radiokit.io import PRESETS
+
+        p = PRESETS[self.preset]
+        return (p.rows // self.binning, p.cols // self.binning)
+
+    @property
+    def pixel_size_mm(self) -> float:
+        return 0.05 * self.binning
+
+
+@dataclass
+class Exposure:
+    """Open-beam counts per (unbinned) pixel; kV and µA are recorded as metadata."""
+
+    i0_counts: float = 2500.0
+    voltage_kv: float = 60.0
+    current_ua: float = 250.0
+
+
+@dataclass
+class MeshSpec:
+    """Element sizes (graded from ``size_inclusion_mm`` at the inclusion to ``size_far_mm``),
+    the model (``auto`` picks axisymmetric where the scene allows it) and symmetry use."""
+
+    size_inclusion_mm: float = 1.0
+    size_far_mm: float = 5.0
+    model: str = "auto"
+    symmetry: bool = True
+
+    def __post_init__(self):
+        if self.model not in ("auto", "3d", "axisymmetric", "plane-strain"):
+            raise ValueError(f"mesh model {self.model!r}: expected auto, 3d, axisymmetric or plane-strain")
+        if not (0 < self.size_inclusion_mm <= self.size_far_mm):
+            raise ValueError("mesh sizes: need 0 < size_inclusion_mm <= size_far_mm")
+
+
+@dataclass
+class Scene:
+    """Everything that defines one virtual experiment. ``Scene.from_toml(text)`` /
+    ``scene.to_toml()`` round-trip exactly, so a result can name what produced it."""
+
+    name: str = "scene"
+    body: Body = field(default_factory=Body)
+    inclusions: list = field(default_factory=list)
+    compression: Compression = field(default_factory=Compression)
+    beam: Beam = field(default_factory=Beam)
+    detector: Detector = field(default_factory=Detector)
+    exposure: Exposure = field(default_factory=Exposure)
+    mesh: MeshSpec = field(default_factory=MeshSpec)
+    fixed_wall: bool = False  #: the face x = 0 does not move (the chest wall)
+
+    # -- TOML ---------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return _strip_none(dataclasses.asdict(self))
+
+    def to_toml(self) -> str:
+        return _dump_toml(self.to_dict())
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.write_text(self.to_toml())
+        return path
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Scene":
+        d = dict(d)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"scene: unknown keys {sorted(unknown)}; known: {sorted(known)}")
+        kw = {}
+        for name, typ in (("body", Body), ("compression", Compression), ("beam", Beam), ("detector", Detector),
+                          ("exposure", Exposure), ("mesh", MeshSpec)):
+            if name in d:
+                kw[name] = _build(typ, d.pop(name), name)
+        if "inclusions" in d:
+            kw["inclusions"] = [_build(Inclusion, x, f"inclusions[{i}]") for i, x in enumerate(d.pop("inclusions"))]
+        return cls(**kw, **d)
+
+    @classmethod
+    def from_toml(cls, text: str) -> "Scene":
+        try:
+            return cls.from_dict(tomllib.loads(text))
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"scene TOML: {exc}") from exc
+
+
+def _build(typ, d, where):
+    if not isinstance(d, dict):
+        raise ValueError(f"scene {where}: expected a table, got {d!r}")
+    d = dict(d)
+    names = {f.name for f in dataclasses.fields(typ)}
+    unknown = set(d) - names
+    if unknown:
+        raise ValueError(f"scene {where}: unknown keys {sorted(unknown)}; known: {sorted(names)}")
+    if "material" in d:
+        d["material"] = _build(Material, d["material"], f"{where}.material")
+    for k, v in d.items():
+        if isinstance(v, list):
+            d[k] = tuple(v)
+    return typ(**d)
+
+
+def _strip_none(obj):
+    if isinstance(obj, dict):
+        return {k: _strip_none(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, (list, tuple)):
+        return [_strip_none(v) for v in obj]
+    return obj
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def _dump_toml(d: dict, prefix="") -> str:
+    """A small TOML writer for scene dictionaries (scalars, arrays, tables, arrays of tables)."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            tables.append((k, v, False))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            tables.append((k, v, True))
+        elif isinstance(v, list) and not v:
+            lines.append(f"{k} = []")
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v, many in tables:
+        name = f"{prefix}{k}"
+        for item in (v if many else [v]):
+            out += f"\n[{'[' if many else ''}{name}{']' if many else ''}]\n" + _dump_toml(item, prefix=f"{name}.")
+    return out
+
+
+# -- presets -----------------------------------------------------------------------------------
+def _seed_breast() -> Scene:
+    background = Material("breast tissue", "neo-hookean", E_kpa=5.0, nu=0.495, attenuation_per_cm=0.5)
+    tumour = Material("tumour", "linear", E_kpa=30.0, nu=0.495, attenuation_per_cm=1.0)
+    return Scene(
+        name="seed-breast",
+        body=Body("hemi-ellipsoid", semi_axes_mm=(50.0, 25.0, 25.0), material=background),
+        inclusions=[Inclusion("sphere", centre_mm=(25.0, 0.0, 0.0), diameter_mm=8.0, material=tumour)],
+        compression=Compression((0.15, 0.20, 0.25)),
+        beam=Beam("parallel", "y"),
+        detector=Detector("c7942", 1),
+        exposure=Exposure(2500.0, 28.0, 250.0),
+        mesh=MeshSpec(1.0, 6.0, "3d", True),
+        fixed_wall=True,
+    )
+
+
+# PVA gels stiffen with strain: E rises from ~20 to ~30 kPa (10 % w/v) and ~100 to ~250 kPa
+# (20 % w/v) over 0-20 % strain. A neo-Hookean solid's tangent modulus in uniaxial compression
+# rises only mildly, so the initial moduli are chosen so that the secant modulus over 0-20 %
+# sits mid-range: 25 kPa and 170 kPa (see sim/README or the issue note for the fit).
+def _pva_phantom() -> Scene:
+    gel = Material("PVA 10 % w/v", "neo-hookean", E_kpa=25.0, nu=0.495, attenuation_per_cm=0.77)
+    stiff = Material("PVA 20 % w/v", "neo-hookean", E_kpa=170.0, nu=0.495, attenuation_per_cm=0.85)
+    return Scene(
+        name="pva-phantom",
+        body=Body("truncated-cone", height_mm=60.0, bottom_diameter_mm=40.0, top_diameter_mm=50.0, material=gel),
+        inclusions=[Inclusion("box", centre_mm=(0.0, 0.0, 0.0), size_mm=(8.0, 10.0, 8.0), material=stiff)],
+        compression=Compression((0.15, 0.20, 0.25)),
+        beam=Beam("cone", "z", source_distance_mm=400.0, detector_distance_mm=100.0),
+        detector=Detector("c7942", 1),
+        exposure=Exposure(2500.0, 60.0, 250.0),
+        mesh=MeshSpec(1.0, 5.0, "3d", True),
+    )
+
+
+PRESETS = {"seed-breast": _seed_breast, "pva-phantom": _pva_phantom}
+
+
+def load_scene(name_or_toml) -> Scene:
+    """A preset by name (``seed-breast``, ``pva-phantom``), a TOML file, or TOML text."""
+    if isinstance(name_or_toml, Scene):
+        return name_or_toml
+    text = str(name_or_toml)
+    if text in PRESETS:
+        return PRESETS[text]()
+    path = Path(text)
+    if "\n" not in text and path.suffix == ".toml":
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such scene file (presets: {', '.join(PRESETS)})")
+        try:
+            return Scene.from_toml(path.read_text())
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+    if "=" in text or "[" in text:
+        return Scene.from_toml(text)
+    raise ValueError(f"unknown scene {text!r}: a preset ({', '.join(PRESETS)}), a .toml file or TOML text")
+
+
+def block_scene(size_mm=10.0, E_kpa=5.0, nu=0.45, ratios=(0.15, 0.20, 0.25)) -> Scene:
+    """A cube between frictionless plates, no inclusion: the validation scene with a closed form."""
+    return Scene(name="block", body=Body("box", size_mm=(size_mm, size_mm, size_mm),
+                                         material=Material("block", "neo-hookean", E_kpa=E_kpa, nu=nu)),
+                 compression=Compression(tuple(ratios)), beam=Beam("parallel", "y"), detector=Detector("c7942", 4),
+                 mesh=MeshSpec(size_mm / 4, size_mm / 4, "3d", True))
