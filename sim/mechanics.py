@@ -110,7 +110,7 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
 class Solver:
     """Equilibrium of one meshed scene under prescribed plate positions."""
 
-    def __init__(self, scene: Scene, fem: FEMesh | None = None, *, intorder=2, penalty_factor=1e3):
+    def __init__(self, scene: Scene, fem: FEMesh | None = None, *, intorder=2, penalty_factor=1e2):
         from skfem import Basis, ElementTetP2, ElementTriP2, FacetBasis
 
         self.scene = scene
@@ -381,7 +381,7 @@ class Solver:
             for _ in range(12):
                 trial = u.copy()
                 trial[self.free] += alpha * du_f
-                ev_t = self.evaluate(trial, h)
+                ev_t = self.evaluate(trial, h, need_tangent=False)  # the tangent only where accepted
                 if ev_t is not None:
                     res_t = float(np.max(np.abs(ev_t["R"][self.free])))
                     # Armijo on the energy; near convergence the energy stalls at round-off, so a
@@ -396,6 +396,7 @@ class Solver:
             step = alpha * float(np.max(np.abs(du_f))) if du_f.size else 0.0
             if res < 1e-9 * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
                 return u, ev, it
+            ev = self.evaluate(u, h)
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {res:.3g} N)")
 
     @staticmethod
