@@ -414,8 +414,7 @@ class Solver:
             force = ev["contact_force"]
             area = ev["contact_area"]
         else:
-            force = float(np.sum(ev["R"][self.moving] - 0.0))  # internal force at the plate's dofs
-            force = abs(force)
+            force = abs(float(np.sum(ev["R"][self.moving])))  # internal force at the plate's dofs
             area = float("nan")
         vol = float((np.linalg.det(ev["F"]) * self.w).sum() / self.w.sum())
         gap = self.gap0 - 2 * delta if "y" in self.fem.symmetry else self.gap0 - delta

@@ -150,6 +150,32 @@ def _extract(gmsh, dim, volumes_by_region):
     return pts, remap[cells].T.copy(), region
 
 
+def _fragment_regions(gmsh, parts, dim):
+    """Fragment the body and inclusion pieces into one conforming geometry.
+
+    ``parts[0]`` holds the body's entities, ``parts[i]`` inclusion i's. A fragment belongs to the
+    last group that produced it (inclusions overwrite the body). Returns the entities per region
+    and the boundary entities of the inclusions (where the mesh is finest).
+    """
+    occ = gmsh.model.occ
+    flat = [(dim, t) for group in parts for t in group]
+    _, out_map = occ.fragment(flat[:1], flat[1:]) if len(flat) > 1 else (flat, [flat])
+    occ.synchronize()
+    owner = {}
+    k = 0
+    for gi, group in enumerate(parts):
+        for _ in group:
+            for _, tag in out_map[k]:
+                owner[tag] = gi
+            k += 1
+    regions = {}
+    for tag, reg in owner.items():
+        regions.setdefault(reg, []).append(tag)
+    interfaces = [b[1] for reg, tags in regions.items() if reg > 0 for t in tags
+                  for b in gmsh.model.getBoundary([(dim, t)], oriented=False)]
+    return regions, interfaces
+
+
 def build_mesh(scene: Scene, model: str | None = None, *, size_inclusion_mm=None, size_far_mm=None,
                grading_mm=None) -> FEMesh:
     """Mesh ``scene`` with gmsh (see the module docstring for the models and symmetry use)."""
@@ -223,25 +249,7 @@ def _build_3d(scene, spec, grading):
     body = _body_3d(occ, scene.body)
     incs = [_inclusion_3d(occ, i) for i in scene.inclusions]
     parts = _keep_positive(occ, [body] + incs, planes, big) if planes else [[body]] + [[i] for i in incs]
-    flat = [(3, t) for group in parts for t in group]
-    out, out_map = occ.fragment(flat[:1], flat[1:]) if len(flat) > 1 else (flat, [flat])
-    occ.synchronize()
-    # Regions: a fragment piece belongs to the last inclusion that produced it, else the body.
-    owner = {}
-    k = 0
-    for gi, group in enumerate(parts):
-        for _ in group:
-            for dim, tag in out_map[k]:
-                owner[tag] = gi  # later groups (inclusions) overwrite the body
-            k += 1
-    volumes = {}
-    for tag, reg in owner.items():
-        volumes.setdefault(reg, []).append(tag)
-    inc_surfaces = []
-    for reg, tags in volumes.items():
-        if reg > 0:
-            for t in tags:
-                inc_surfaces += [s[1] for s in gmsh.model.getBoundary([(3, t)], oriented=False)]
+    volumes, inc_surfaces = _fragment_regions(gmsh, parts, 3)
     _size_field(gmsh, inc_surfaces, 3, spec, grading)
     gmsh.option.setNumber("Mesh.Algorithm3D", 1)
     gmsh.option.setNumber("Mesh.Optimize", 1)
@@ -311,24 +319,7 @@ def _build_2d(scene, spec, grading, model):
         res, _ = occ.intersect([(2, t)], [(2, box)], removeTool=False)
         parts.append([e[1] for e in res])
     occ.remove([(2, box)], recursive=True)
-    flat = [(2, t) for g in parts for t in g]
-    out, out_map = occ.fragment(flat[:1], flat[1:]) if len(flat) > 1 else (flat, [flat])
-    occ.synchronize()
-    owner = {}
-    k = 0
-    for gi, group in enumerate(parts):
-        for _ in group:
-            for _, tag in out_map[k]:
-                owner[tag] = gi
-            k += 1
-    surfaces = {}
-    for tag, reg in owner.items():
-        surfaces.setdefault(reg, []).append(tag)
-    inc_curves = []
-    for reg, tags in surfaces.items():
-        if reg > 0:
-            for t in tags:
-                inc_curves += [c[1] for c in gmsh.model.getBoundary([(2, t)], oriented=False)]
+    surfaces, inc_curves = _fragment_regions(gmsh, parts, 2)
     _size_field(gmsh, inc_curves, 2, spec, grading)
     gmsh.option.setNumber("Mesh.Algorithm", 6)
     gmsh.model.mesh.generate(2)
