@@ -1138,6 +1138,27 @@ def test_stackwriter_hdf5_read_back(tmp_path):
     _raises_format(tmp_path / "out.h5", "dimensions", dataset="entry/data/step")  # 1-D: not frames
 
 
+
+@pytest.mark.parametrize("direct", [True, False], ids=["o_direct", "page_cache"])
+def test_stackwriter_preallocated_direct_and_buffered_agree(tmp_path, monkeypatch, direct):
+    """With n_frames known, frames (4 KiB multiples here) go straight to their chunks with
+    O_DIRECT where the filesystem allows; the file must read back identically either way, and a
+    writer closed early shrinks to the frames written."""
+    if not direct:
+        monkeypatch.setenv("RADIOKIT_NO_DIRECT_IO", "1")
+    data = np.random.default_rng(23).random((3, 64, 32)).astype(np.float32)  # 8 KiB frames
+    path = tmp_path / "pre.h5"
+    with StackWriter(path, (64, 32), n_frames=5) as w:
+        if not direct:
+            assert not w._direct
+        for i, frame in enumerate(data):
+            w.append(frame, step=np.int32(i))
+    f = read(path, dataset="entry/data/data")
+    np.testing.assert_array_equal(f.data, data)
+    with h5py.File(path) as h5:
+        np.testing.assert_array_equal(h5["entry/data/step"][()], [0, 1, 2])
+
+
 _CRASH_WRITER = textwrap.dedent("""
     import sys
     import numpy as np

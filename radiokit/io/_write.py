@@ -51,7 +51,8 @@ class StackWriter:
             raise FileExistsError(f"{self.path}: exists")
         if suffix in (".h5", ".hdf5", ".nxs"):
             self.kind = "hdf5"
-            self._h5 = h5py.File(self.path, "w")
+            # Chunks on 4 KiB boundaries so frames can bypass the page cache (see _DirectFrames).
+            self._h5 = h5py.File(self.path, "w", alignment_threshold=1 << 20, alignment_interval=4096)
             entry = self._h5.create_group("entry")
             entry.attrs["NX_class"] = "NXentry"
             grp = entry.create_group("data")
@@ -60,10 +61,16 @@ class StackWriter:
             for key, value in self.meta.items():
                 grp.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
             self._alloc = int(n_frames or 0)
+            dcpl = None
+            if self._alloc:  # all chunks allocated now, never filled: frames can be written in place
+                dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+                dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+                dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
             self._ds = grp.create_dataset("data", shape=(self._alloc,) + self.frame_shape,
                                           maxshape=(None,) + self.frame_shape,
-                                          chunks=(1,) + self.frame_shape, dtype=self.dtype)
+                                          chunks=(1,) + self.frame_shape, dtype=self.dtype, dcpl=dcpl)
             self._series = {}
+            self._direct = _DirectFrames.open(self.path, self._ds) if self._alloc else None
         elif suffix in (".tif", ".tiff"):
             self.kind = "tiff"
             frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
@@ -79,7 +86,8 @@ class StackWriter:
             i = self.n
             if i >= self._ds.shape[0]:
                 self._ds.resize(i + 1, axis=0)
-            self._ds[i] = frame
+            if not (self._direct and self._direct.write(i, frame)):
+                self._ds[i] = frame
             for name, value in series.items():
                 ds = self._series.get(name)
                 if ds is None:
@@ -98,6 +106,9 @@ class StackWriter:
 
     def close(self):
         if self.kind == "hdf5":
+            if self._direct:
+                self._direct.close()
+                self._direct = None
             if self._h5.id.valid:
                 for ds in [self._ds, *self._series.values()]:
                     if ds.shape[0] != self.n:
@@ -111,3 +122,72 @@ class StackWriter:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class _DirectFrames:
+    """Write whole preallocated chunks straight to disk with ``O_DIRECT``, past the page cache.
+
+    Streaming 19 MiB float32 frames through the page cache costs a fresh page allocation per
+    4 KiB; on virtual machines whose host reclaims idle guest memory that costs about 3 ms/MiB
+    (measured: 17 frames/s buffered against 125 frames/s direct to the same disk), and in any
+    case it fills the cache with frames nobody will read soon. HDF5 still owns the file layout
+    and metadata; this only fills the bytes of chunks HDF5 allocated early and never writes
+    itself (fill time "never"). Where the filesystem refuses ``O_DIRECT`` (tmpfs) or a chunk
+    is not 4 KiB aligned, :meth:`write` returns False and h5py writes the frame as usual.
+    """
+
+    ALIGN = 4096
+
+    def __init__(self, fd, ds, nbytes):
+        import mmap
+
+        self._fd, self._ds, self._nbytes = fd, ds, nbytes
+        self._staging = mmap.mmap(-1, nbytes)  # page-aligned, as O_DIRECT requires
+        self._view = np.frombuffer(self._staging, ds.dtype).reshape(ds.shape[1:])
+
+    @classmethod
+    def open(cls, path, ds):
+        import os
+
+        nbytes = int(np.prod(ds.shape[1:])) * ds.dtype.itemsize
+        flag = getattr(os, "O_DIRECT", 0)
+        if not flag or nbytes % cls.ALIGN or os.environ.get("RADIOKIT_NO_DIRECT_IO"):
+            return None
+        try:
+            fd = os.open(path, os.O_WRONLY | flag)
+        except OSError:
+            return None
+        return cls(fd, ds, nbytes)
+
+    def write(self, i, frame) -> bool:
+        import os
+
+        if self._fd is None:
+            return False
+        info = self._ds.id.get_chunk_info_by_coord((i,) + (0,) * (self._ds.ndim - 1))
+        offset = info.byte_offset
+        if offset is None or offset % self.ALIGN or info.size != self._nbytes:
+            return False
+        self._view[...] = frame
+        try:
+            written = os.pwrite(self._fd, self._staging, offset)
+        except OSError as exc:
+            if exc.errno == 22:  # EINVAL: this filesystem takes no O_DIRECT; fall back for good
+                self.close()
+                return False
+            raise OSError(exc.errno, f"writing frame {i}: {exc.strerror}") from exc
+        if written != self._nbytes:
+            raise OSError(f"writing frame {i}: short write ({written} of {self._nbytes} bytes)")
+        return True
+
+    def close(self):
+        import os
+
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+            self._view = None
+            self._staging.close()
+
+    def __bool__(self):
+        return self._fd is not None
