@@ -107,6 +107,32 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
     return abs(p_yy) * area_mm2, t
 
 
+class _Pattern:
+    """The sparsity of the global matrix, found once: element entries are summed into CSR storage
+    with one ``bincount`` per assembly instead of a COO -> CSR conversion."""
+
+    def __init__(self, rows, cols, n):
+        self.n = n
+        keys = rows.astype(np.int64) * n + cols
+        uniq, self.inverse = np.unique(keys, return_inverse=True)
+        self.keys = uniq
+        self.indices = (uniq % n).astype(np.int32)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // n, minlength=n))]).astype(np.int32)
+
+    def positions(self, rows, cols):
+        keys = rows.astype(np.int64) * self.n + cols
+        pos = np.searchsorted(self.keys, keys)
+        if not np.array_equal(self.keys[np.minimum(pos, self.keys.size - 1)], keys):
+            raise ValueError("entries outside the element sparsity pattern")
+        return pos
+
+    def assemble(self, values, extra=None):
+        data = np.bincount(self.inverse, values.ravel(), minlength=self.keys.size)
+        if extra is not None:
+            data += np.bincount(extra[0], extra[1], minlength=self.keys.size)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+
 class Solver:
     """Equilibrium of one meshed scene under prescribed plate positions."""
 
@@ -151,7 +177,7 @@ class Solver:
         self.ndof = self.n_nodes * dim
         rows = np.repeat(self.edofs, nloc * dim, axis=1).ravel()
         cols = np.tile(self.edofs, (1, nloc * dim)).ravel()
-        self._pattern = (rows, cols)
+        self._pattern = _Pattern(rows, cols, self.ndof)
         # Materials per element
         mats = [scene.body.material] + [inc.material for inc in scene.inclusions]
         region = self.fem.region
@@ -163,6 +189,9 @@ class Solver:
         # mirrors the model onto the other plate). Axisymmetric weights already hold the 2 pi r.
         self.force_multiplicity = 2 ** len([p for p in self.fem.symmetry if p != "y"]) if self.model == "3d" else 1
         self._setup_boundary(FacetBasis, elem, penalty_factor)
+        self._lu = None
+        self.factorisations = 0
+        self.krylov_iterations = 0
 
     # -- boundary conditions ------------------------------------------------------------------
     def _setup_boundary(self, FacetBasis, elem, penalty_factor):
@@ -180,9 +209,9 @@ class Solver:
                 k = axes[ax]
                 for n in np.flatnonzero(np.abs(X[k]) < tol):
                     fixed[n * 3 + k] = 0.0
-            if sc.fixed_wall:
+            if sc.wall != "none":
                 for n in np.flatnonzero(np.abs(X[0]) < tol):
-                    for k in range(3):
+                    for k in (range(3) if sc.wall == "fixed" else (0,)):
                         fixed[n * 3 + k] = 0.0
         else:
             # axis r = 0 (axisymmetric) or the x = 0 symmetry plane of a slab
@@ -227,7 +256,7 @@ class Solver:
             for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
                 if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
                     on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
-            if self.model == "3d" and sc.fixed_wall:
+            if self.model == "3d" and sc.wall != "none":
                 on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
             cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
             fb = FacetBasis(m, elem, facets=cand, intorder=4)
@@ -315,6 +344,16 @@ class Solver:
         area = float((act * c["w"]).sum())
         return energy, r, K, force, area
 
+    def _contact_pattern_values(self, cK):
+        """The contact tangent's entries as (pattern positions, values)."""
+        if cK is None:
+            return None
+        if not hasattr(self, "_contact_pos"):
+            d = self.contact["dofs"]
+            nl = d.shape[1]
+            self._contact_pos = self._pattern.positions(np.repeat(d, nl, axis=1).ravel(), np.tile(d, (1, nl)).ravel())
+        return self._contact_pos, cK.ravel()
+
     def evaluate(self, u, h, need_tangent=True):
         """Energy, residual (dPi/du) and tangent at displacement ``u`` with the top plate at ``h``."""
         F = self._kinematics(u)
@@ -328,17 +367,15 @@ class Solver:
             R += np.bincount(self.contact["dofs"].ravel(), cr.ravel(), minlength=self.ndof)
         out = dict(energy=m["energy"] + ce, R=R, J=m["J"], contact_force=cforce, contact_area=carea, F=F)
         if need_tangent:
-            T = np.einsum("eqijkl,eqfkl->eqijf", m["A"], self.B)
-            Ke = np.einsum("eq,eqdij,eqijf->edf", self.w, self.B, T)
+            nel, nq, nd = self.B.shape[:3]
+            Bf = self.B.reshape(nel, nq, nd, 9)
+            # T[e,q,d,:] = A[e,q] : B[e,q,d] and K_e = sum_q w B T^T, as batched matrix products
+            T = np.matmul(Bf, m["A"].reshape(nel, nq, 9, 9).transpose(0, 1, 3, 2))
+            wB = (Bf * self.w[:, :, None, None]).transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9)
+            Ke = np.matmul(wB, T.transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9).transpose(0, 2, 1))
             G = np.einsum("eq,eqij,eqdij->ed", self.w, m["dg"], self.B)
             Ke += (self.lam / self.Ve)[:, None, None] * G[:, :, None] * G[:, None, :]
-            K = sp.csr_matrix((Ke.ravel(), self._pattern), shape=(self.ndof, self.ndof))
-            if cK is not None:
-                d = self.contact["dofs"]
-                nl = d.shape[1]
-                K = K + sp.csr_matrix((cK.ravel(), (np.repeat(d, nl, axis=1).ravel(), np.tile(d, (1, nl)).ravel())),
-                                      shape=(self.ndof, self.ndof))
-            out["K"] = K
+            out["K"] = self._pattern.assemble(Ke, self._contact_pattern_values(cK))
         return out
 
     # -- solving ------------------------------------------------------------------------------
@@ -349,8 +386,29 @@ class Solver:
             u[self.moving] = -delta
         return u
 
-    def _newton(self, u, delta, max_iter=30):
+    def _homogeneous(self, delta):
+        """Displacement of an incompressible homogeneous compression bringing the top plate down
+        by ``delta`` (about the centre plane y = 0): the first guess for curved bodies."""
+        e = delta / self.H
+        t = 1.0 / math.sqrt(1.0 - e) - 1.0
+        X = self.dof_points
+        U = np.empty_like(X)
+        U[1] = -e * X[1]
+        for k in range(self.dim):
+            if k != 1:
+                U[k] = t * X[k]
+        return U.T.ravel()
+
+    def _newton(self, u, delta, max_iter=30, guess=None):
         h = self.H - delta if self.contact is not None else None
+        if guess is not None and h is not None:
+            # Contact: start from the better (lower energy) of the last state and the guess;
+            # starting Newton with the plate deep inside the body makes the active set bounce.
+            g = self._apply_bc(guess, delta)
+            e_g = self.evaluate(g, h, need_tangent=False)
+            e_u = self.evaluate(self._apply_bc(u, delta), h, need_tangent=False)
+            if e_g is not None and (e_u is None or e_g["energy"] < e_u["energy"]):
+                u = g
         target = self._apply_bc(u, delta)
         du_d = target - u  # non-zero only on the prescribed dofs
         if np.any(du_d):
@@ -399,15 +457,53 @@ class Solver:
             ev = self.evaluate(u, h)
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {res:.3g} N)")
 
-    @staticmethod
-    def _linsolve(K, rhs):
-        try:
-            x = spla.spsolve(K.tocsc(), rhs)
-        except (RuntimeError, ValueError) as exc:
-            raise ConvergenceError(f"linear solve failed: {exc}") from exc
+    def _linsolve(self, K, rhs):
+        """Solve the tangent system. A sparse LU costs seconds in 3D (fill of tens of millions),
+        while the tangent changes little from one Newton iteration or load step to the next; so
+        the last factorisation preconditions GMRES on the current tangent (a handful of
+        iterations, tens of ms each), and K is factorised anew only when that stalls.
+        ``self.factorisations`` and ``self.krylov_iterations`` count the work."""
+        K = K.tocsc()
+        nrhs = float(np.linalg.norm(rhs))
+        if nrhs == 0.0:
+            return np.zeros_like(rhs)
+        if self._lu is not None and self._lu.shape == K.shape:
+            its = [0]
+
+            def count(_):
+                its[0] += 1
+
+            x, _info = spla.gmres(K, rhs, rtol=1e-9, atol=0.0, restart=30, maxiter=1,
+                                 M=spla.LinearOperator(K.shape, self._lu.solve), callback=count,
+                                 callback_type="pr_norm")
+            self.krylov_iterations += its[0]
+            # judged by the true residual: scipy flags info=1 on stagnation at 1e-9 that is good enough
+            if np.all(np.isfinite(x)) and np.linalg.norm(K @ x - rhs) <= 1e-7 * nrhs:
+                return x
+        self._lu = self._factorise(K)
+        self.factorisations += 1
+        x = self._lu.solve(rhs)
         if not np.all(np.isfinite(x)):
             raise ConvergenceError("the tangent is singular (non-finite update)")
         return x
+
+    @staticmethod
+    def _factorise(K):
+        """Sparse LU with a symmetric ordering (minimum degree on K + K^T, diagonal pivots
+        preferred): half the fill and time of SuperLU's default COLAMD on these tangents; if that
+        fails or is inaccurate (an indefinite tangent far from equilibrium), partial pivoting."""
+        try:
+            lu = spla.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True})
+            probe = np.random.default_rng(0).standard_normal(K.shape[0])
+            y = lu.solve(K @ probe)
+            if np.all(np.isfinite(y)) and np.linalg.norm(y - probe) <= 1e-6 * np.linalg.norm(probe):
+                return lu
+        except RuntimeError:
+            pass
+        try:
+            return spla.splu(K)
+        except (RuntimeError, ValueError) as exc:
+            raise ConvergenceError(f"linear solve failed: {exc}") from exc
 
     def _state(self, u, ev, ratio, delta, iterations, steps) -> State:
         if self.contact is not None:
@@ -447,13 +543,20 @@ class Solver:
         step = min(0.05, ratios[-1] / 3) if ratios else 0.05
         total_steps = 0
         bar = tqdm(total=len(ratios), desc=f"compress {self.scene.name}", unit="state", disable=not progress)
+        history = [(0.0, u)]  # converged (delta, u): the next guess extrapolates the last two
         for target in ratios:
             iters_total = 0
             while r_now < target - 1e-12:
                 r_try = min(target, r_now + step)
                 delta = r_try * self.gap0 * per_plate
+                (d1, u1) = history[-1]
+                if len(history) > 1:
+                    d0, u0 = history[-2]
+                    guess = u1 + (delta - d1) / (d1 - d0) * (u1 - u0)
+                else:
+                    guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 try:
-                    u_new, ev, its = self._newton(u, delta)
+                    u_new, ev, its = self._newton(u, delta, guess=guess)
                 except ConvergenceError as exc:
                     step /= 2
                     if step < min_step:
@@ -462,6 +565,7 @@ class Solver:
                                                f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %): {exc}") from exc
                     continue
                 u, r_now = u_new, r_try
+                history = [history[-1], (delta, u)]
                 total_steps += 1
                 iters_total += its
                 if its <= 5:

@@ -72,7 +72,7 @@ def choose_model(scene: Scene) -> str:
     the compression axis with inclusions on the axis, else 3D (plane strain only on request)."""
     if scene.mesh.model != "auto":
         return scene.mesh.model
-    if scene.body.axisymmetric and not scene.fixed_wall and all(
+    if scene.body.axisymmetric and scene.wall == "none" and all(
             abs(inc.centre_mm[0]) < 1e-9 and abs(inc.centre_mm[2]) < 1e-9 for inc in scene.inclusions):
         return "axisymmetric"
     return "3d"

@@ -253,7 +253,14 @@ class Scene:
     detector: Detector = field(default_factory=Detector)
     exposure: Exposure = field(default_factory=Exposure)
     mesh: MeshSpec = field(default_factory=MeshSpec)
-    fixed_wall: bool = False  #: the face x = 0 does not move (the chest wall)
+    #: The flat face x = 0 of a hemi-ellipsoid (the chest wall): ``none`` (free), ``sliding`` (held
+    #: in x only, frictionless; the default for seed-breast) or ``fixed`` (no displacement: the
+    #: paper's condition, singular where the plates pass the wall's rim; see sim.mechanics).
+    wall: str = "none"
+
+    def __post_init__(self):
+        if self.wall not in ("none", "sliding", "fixed"):
+            raise ValueError(f"wall {self.wall!r}: expected 'none', 'sliding' or 'fixed'")
 
     # -- TOML ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -360,7 +367,7 @@ def _seed_breast() -> Scene:
         detector=Detector("c7942", 1),
         exposure=Exposure(2500.0, 28.0, 250.0),
         mesh=MeshSpec(1.0, 6.0, "3d", True),
-        fixed_wall=True,
+        wall="sliding",
     )
 
 
