@@ -30,3 +30,68 @@ def _run_demo(args) -> int:
           f"total {t['total_s']:.1f} s")
     print(f"figure            {res['figure']}")
     return 0
+
+
+def add_sim(subparsers):
+    p = subparsers.add_parser("sim", help="virtual experiments: compress a scene and write simulated C7942 frames")
+    sub = p.add_subparsers(dest="sim_command", metavar="{run}", required=True)
+    r = sub.add_parser("run", help="compress, project and expose a scene into an experiment file with its truth",
+                       description="Compress a scene (a TOML file or a preset), project each state, expose it on a "
+                                   "model C7942 and write an experiment file with /entry/simulation (the truth).")
+    src = r.add_mutually_exclusive_group(required=True)
+    src.add_argument("scene", nargs="?", type=Path, help="scene TOML file")
+    src.add_argument("--preset", help="a built-in scene: seed-breast or pva-phantom")
+    r.add_argument("--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25")
+    r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
+    r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
+    r.add_argument("--darks", type=int, default=10, help="dark frames (default 10)")
+    r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
+    r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
+    r.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    r.add_argument("--save-scene", type=Path, help="also write the scene as TOML here")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    r.set_defaults(func=_run_sim)
+
+
+def _run_sim(args) -> int:
+    import time
+
+    from sim.lab import simulate_experiment
+    from sim.scene import PRESETS, load_scene
+
+    if args.preset is not None and args.preset not in PRESETS:
+        raise ValueError(f"--preset {args.preset!r}: expected one of {', '.join(PRESETS)}")
+    scene = load_scene(args.preset if args.preset is not None else str(args.scene))
+    if args.binning:
+        scene.detector.binning = args.binning
+    if args.save_scene:
+        scene.save(args.save_scene)
+    if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
+        raise ValueError(f"{args.output}: the experiment file must end in .h5")
+    t0 = time.perf_counter()
+    say = (lambda *a, **k: None) if args.quiet else print
+
+    def on_step(ratio, iterations, seconds):
+        say(f"  load step to {100 * ratio:6.2f} %: {iterations:2d} Newton iterations, {seconds:5.1f} s", flush=True)
+
+    def on_state(s):
+        say(f"state {100 * s.ratio:5.1f} %: gap {s.gap_mm:7.3f} mm, plate force {s.plate_force_n:9.4f} N, "
+            f"volume ratio {s.volume_ratio:.5f}, inclusion/background strain "
+            f"{s.inclusion_strain / s.background_strain if s.background_strain else float('nan'):.3f}", flush=True)
+
+    say(f"scene {scene.name}: {scene.body.geometry}, {len(scene.inclusions)} inclusion(s), "
+        f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})")
+    res = simulate_experiment(scene, args.output, ratios=args.ratios, n_darks=args.darks, n_flats=args.flats,
+                              frames_per_step=args.frames, seed=args.seed, overwrite=args.overwrite,
+                              progress=not args.quiet, on_state=on_state, on_step=on_step)
+    sec = res["seconds"]
+    print(f"\n{'step':>4} {'ratio':>6} {'gap mm':>8} {'force N':>10} {'volume':>8} {'incl/bg strain':>15}")
+    for s in res["states"]:
+        ratio = s["inclusion_strain"] / s["background_strain"] if s["background_strain"] else float("nan")
+        print(f"{s['step']:>4} {s['ratio']:>6.3f} {s['gap_mm']:>8.3f} {s['plate_force_n']:>10.4f} "
+              f"{s['volume_ratio']:>8.5f} {ratio:>15.3f}")
+    print(f"\nwrote {res['file']} ({res['frame_shape'][0]}x{res['frame_shape'][1]}); time: mechanics "
+          f"{sec['mechanics']:.1f} s, projection {sec['projection']:.1f} s, truth {sec['truth']:.1f} s, "
+          f"frames {sec['frames']:.1f} s, total {time.perf_counter() - t0:.1f} s")
+    return 0

@@ -40,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from radiokit.errors import RadiokitError
 from sim.mesh import FEMesh, build_mesh, choose_model
 from sim.scene import Scene
 
@@ -48,8 +49,8 @@ __all__ = ["State", "ConvergenceError", "Solver", "compress", "uniaxial_block_fo
 _EYE = np.eye(3)
 
 
-class ConvergenceError(RuntimeError):
-    """The solver could not reach a requested compression."""
+class ConvergenceError(RadiokitError, RuntimeError):
+    """The solver could not reach a requested compression (the message names it)."""
 
 
 @dataclass
@@ -67,7 +68,15 @@ class State:
     volume_ratio : float
         Deformed over initial volume of the whole body.
     displacement : ndarray (dim, n_dofs)
-        Displacement of the P2 nodes (``Solver.dof_points``), mm.
+        Displacement of the P2 nodes (``Solver.dof_points``), mm; the first ``n_vertices``
+        columns are the mesh vertices.
+    newton_iterations, load_steps : int
+        Work done to reach this state (since the previous one; load steps in total).
+    contact_area_mm2 : float
+        Plate contact patch (curved bodies; NaN where a flat face is held on the plate).
+    inclusion_strain, background_strain : float
+        Volume-averaged compressive strain ``1 - F_yy`` of the inclusions and of the background:
+        their ratio is the elasticity contrast the method relies on.
     """
 
     ratio: float
@@ -80,6 +89,7 @@ class State:
     contact_area_mm2: float = 0.0
     inclusion_strain: float = float("nan")
     background_strain: float = float("nan")
+    solver: "Solver" = field(default=None, repr=False, compare=False)  #: mesh and dof layout
 
 
 def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
@@ -162,8 +172,8 @@ class Solver:
                 B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
         w = basis.dx.copy()
         if self.model == "axisymmetric":
-            R = basis.global_coordinates().value[0]  # (nel, nq), quadrature points are interior: R > 0
-            vals = np.stack([basis.basis[a][0].value for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
+            R = np.asarray(basis.global_coordinates())[0]  # (nel, nq), quadrature points are interior: R > 0
+            vals = np.stack([np.asarray(basis.basis[a][0]) for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
             for a in range(nloc):
                 B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
             w = w * 2 * np.pi * R
@@ -261,15 +271,18 @@ class Solver:
             cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
             fb = FacetBasis(m, elem, facets=cand, intorder=4)
             nloc = len(fb.basis)
-            N = np.stack([fb.basis[a][0].value for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
+            N = np.stack([np.asarray(fb.basis[a][0]) for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
             fw = fb.dx.copy()
-            Xq = fb.global_coordinates().value
+            Xq = np.asarray(fb.global_coordinates())
             if self.model == "axisymmetric":
                 fw = fw * 2 * np.pi * Xq[0]
             ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
-            E_max = max(m_.E_kpa or 3 * m_.shear_kpa for m_ in [sc.body.material] + [i.material for i in sc.inclusions])
+            # The plates touch the background: its stiffness over the finest element size sets the
+            # penalty, so the penetration stays ~1e-2 of the contact strain times that size.
+            bg = sc.body.material
+            E_bg = bg.E_kpa if bg.E_kpa is not None else 3 * bg.shear_kpa
             h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
-            eps = penalty_factor * E_max * 1e-3 / h_min
+            eps = penalty_factor * E_bg * 1e-3 / h_min
             self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
         self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
         self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
@@ -473,7 +486,7 @@ class Solver:
             def count(_):
                 its[0] += 1
 
-            x, _info = spla.gmres(K, rhs, rtol=1e-9, atol=0.0, restart=30, maxiter=1,
+            x, _info = spla.gmres(K, rhs, rtol=1e-9, atol=0.0, restart=40, maxiter=2,
                                  M=spla.LinearOperator(K.shape, self._lu.solve), callback=count,
                                  callback_type="pr_norm")
             self.krylov_iterations += its[0]
@@ -531,8 +544,11 @@ class Solver:
                 out.append(float("nan"))
         return tuple(out)
 
-    def solve(self, ratios, progress=False, min_step=1e-4) -> list[State]:
-        """March the plates to each ratio in turn (sorted), adapting the load step."""
+    def solve(self, ratios, progress=False, min_step=1e-4, on_step=None, on_state=None) -> list[State]:
+        """March the plates to each ratio in turn (sorted), adapting the load step.
+
+        ``on_step(ratio, newton_iterations, seconds)`` is called after each converged load step,
+        ``on_state(state)`` as each requested ratio is reached."""
         from tqdm.auto import tqdm
 
         ratios = sorted(float(r) for r in ratios)
@@ -555,6 +571,7 @@ class Solver:
                     guess = u1 + (delta - d1) / (d1 - d0) * (u1 - u0)
                 else:
                     guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
+                t_step = time.perf_counter()
                 try:
                     u_new, ev, its = self._newton(u, delta, guess=guess)
                 except ConvergenceError as exc:
@@ -567,6 +584,8 @@ class Solver:
                 u, r_now = u_new, r_try
                 history = [history[-1], (delta, u)]
                 total_steps += 1
+                if on_step is not None:
+                    on_step(r_now, its, time.perf_counter() - t_step)
                 iters_total += its
                 if its <= 5:
                     step *= 1.5
@@ -575,17 +594,27 @@ class Solver:
                     u, ev, its = self._newton(u, 0.0)
                 delta = target * self.gap0 * per_plate
                 states.append(self._state(u, ev, target, delta, iters_total, total_steps))
+                states[-1].solver = self
+                if on_state is not None:
+                    on_state(states[-1])
             bar.update(1)
         bar.close()
         return states
 
 
-def compress(scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=False) -> list[State]:
-    """Compress ``scene`` to each of ``ratios`` (default: the scene's) and return the states."""
+def compress(scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=False, on_step=None,
+             on_state=None) -> list[State]:
+    """Compress ``scene`` to each of ``ratios`` (default: the scene's) and return the states.
+
+    Each state keeps its :class:`Solver` as ``state.solver`` (mesh, dof layout, timings in
+    ``solver.seconds``); see :meth:`Solver.solve` for the callbacks.
+    """
+    from sim.scene import load_scene
+
     t0 = time.perf_counter()
+    scene = load_scene(scene)
     solver = Solver(scene, fem)
-    states = solver.solve(scene.compression.ratios if ratios is None else ratios, progress=progress)
-    for s in states:
-        s.solver = solver  # noqa: B010 - keep the mesh and dof layout with the state
+    states = solver.solve(scene.compression.ratios if ratios is None else ratios, progress=progress,
+                          on_step=on_step, on_state=on_state)
     solver.seconds = time.perf_counter() - t0
     return states

@@ -1,0 +1,155 @@
+"""The virtual experiment: a scene compressed, projected and exposed into an experiment file.
+
+The file is the one the lab writes (``radiokit.io.ExperimentWriter``: darks, flats, then the
+projections of each compression step as raw uint16 C7942 frames), plus ``/entry/simulation``
+holding what produced it and the truth the processing chain is checked against:
+
+``/entry/simulation``
+    ``@scene`` (TOML text), ``@seconds_*`` timings;
+    ``ratio``, ``gap_mm``, ``plate_force_n``, ``volume_ratio``, ``inclusion_strain``,
+    ``background_strain`` (n_steps,): the force-compression curve;
+    ``line_integral`` (n_steps, rows, cols) float32: noise-free ``-ln(I/I0)``;
+    ``inclusion_mask`` (n_steps, rows, cols) uint8: rays that cross an inclusion;
+    ``displacement/step{a}_to_step{b}`` (2, rows, cols) float32: the pull field, in pixels,
+    (row, col) order, that registers step ``a`` (moving) onto step ``b`` (fixed), for every
+    ``a < b`` (see :func:`sim.truth.truth_displacement` for how a 3D motion becomes 2D);
+    ``defects/{dead,under,noisy}`` (k, 2) and ``defects/columns``: the panel's planted defects.
+
+Steps are numbered from 1 in the file, in increasing compression, as the lab numbers them.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim.detector import PanelModel
+from sim.scene import Scene, load_scene
+
+__all__ = ["simulate_experiment"]
+
+
+def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, frames_per_step=1, seed=0,
+                        overwrite=False, progress=True, on_state=None, on_step=None) -> dict:
+    """Compress ``scene`` (a :class:`Scene`, preset name or TOML) to ``ratios`` (default the
+    scene's), project each state, expose it on a model C7942 and write ``output``.
+
+    ``on_state(state)`` and ``on_step(ratio, iterations, seconds)`` report progress (see
+    :meth:`sim.mechanics.Solver.solve`). Returns a summary dict:
+    the states' ratio, gap, plate force and volume ratio, the file, and timings.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> from sim.scene import block_scene
+    >>> scene = block_scene(size_mm=10, ratios=(0.1,))
+    >>> scene.detector.binning = 4
+    >>> out = os.path.join(tempfile.mkdtemp(), "sim.h5")
+    >>> res = simulate_experiment(scene, out, n_darks=2, n_flats=2, progress=False)
+    >>> res["states"][0]["ratio"], round(res["states"][0]["gap_mm"], 3)
+    (0.1, 9.0)
+    """
+    from tqdm.auto import tqdm
+
+    from radiokit.io import ExperimentWriter, ImageKey
+    from sim.mechanics import compress
+    from sim.project import Geometry, path_lengths
+    from sim.truth import truth_displacement
+
+    scene = load_scene(scene)
+    output = Path(output)
+    if output.exists() and not overwrite:
+        raise FileExistsError(f"{output}: exists (pass overwrite=True, or --overwrite on the command line)")
+    ratios = tuple(sorted(float(r) for r in (scene.compression.ratios if ratios is None else ratios)))
+    if not ratios:
+        raise ValueError("no compression ratios to simulate")
+    t0 = time.perf_counter()
+    states = compress(scene, ratios, progress=progress, on_state=on_state, on_step=on_step)
+    t_mech = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
+    line_integrals, masks = [], []
+    geom = Geometry.from_scene(scene)
+    fem = states[0].solver.fem
+    thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
+    for s in tqdm(states, desc="project", unit="state", disable=not progress):
+        lengths = path_lengths(fem, geom, s.displacement, thickness_mm=thickness)  # (n_regions, rows, cols) mm
+        line_integrals.append(np.tensordot(np.asarray(mus[:len(lengths)], np.float64), lengths, axes=1).astype(np.float32))
+        masks.append((lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1
+                     else np.zeros(lengths.shape[1:], np.uint8))
+    t_proj = time.perf_counter() - t
+
+    t = time.perf_counter()
+    fields = {}
+    for b in range(len(states)):
+        for a in range(b):
+            fields[(a + 1, b + 1)] = truth_displacement(scene, states[b], states[a])
+    t_truth = time.perf_counter() - t
+
+    t = time.perf_counter()
+    det = scene.detector
+    panel = PanelModel(rows=det.shape[0], cols=det.shape[1], binning=det.binning, seed=seed + 7)
+    # i0_counts is the open-beam signal of one read-out pixel; binning sums charge, so the
+    # exposure per unbinned pixel is divided to keep the ADC where the scene puts it.
+    i0 = scene.exposure.i0_counts / det.binning ** 2
+    rng = np.random.default_rng(seed)
+    ex = scene.exposure
+    src = {"name": "Hamamatsu L8121-01 (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
+    gap0 = states[0].gap_mm / (1 - states[0].ratio) if states[0].ratio < 1 else float("nan")
+    n_frames = n_darks + n_flats + frames_per_step * len(states)
+    with ExperimentWriter(output, shape=panel.shape, overwrite=overwrite, pixel_size_mm=det.pixel_size_mm,
+                          source=src, title=f"radiokit simulation: {scene.name}") as w, \
+            tqdm(total=n_frames, desc="expose", unit="frame", disable=not progress) as bar:
+        w.set_pixel_mask(np.zeros(panel.shape, np.uint32))
+        for frame in panel.dark_frames(n_darks, rng):
+            w.append(frame, image_key=ImageKey.DARK)
+            bar.update()
+        for frame in panel.flat_frames(n_flats, i0, rng):
+            w.append(frame, image_key=ImageKey.FLAT, voltage_kv=ex.voltage_kv, current_ua=ex.current_ua)
+            bar.update()
+        for step, (s, li) in enumerate(zip(states, line_integrals), start=1):
+            for frame in panel.expose(li, i0, frames_per_step, rng):
+                w.append(frame, image_key=ImageKey.PROJECTION, step=step, ratio=s.ratio, gap_mm=s.gap_mm,
+                         voltage_kv=ex.voltage_kv, current_ua=ex.current_ua)
+                bar.update()
+        t_frames = time.perf_counter() - t
+        _write_truth(w.h5, scene, states, line_integrals, masks, fields, panel,
+                     dict(mechanics=t_mech, projection=t_proj, truth=t_truth, frames=t_frames), gap0)
+    return {"file": str(output), "scene": scene.name, "frame_shape": list(panel.shape),
+            "states": [{"step": i + 1, "ratio": s.ratio, "gap_mm": s.gap_mm, "plate_force_n": s.plate_force_n,
+                        "volume_ratio": s.volume_ratio, "inclusion_strain": s.inclusion_strain,
+                        "background_strain": s.background_strain, "newton_iterations": s.newton_iterations}
+                       for i, s in enumerate(states)],
+            "seconds": {"mechanics": t_mech, "projection": t_proj, "truth": t_truth, "frames": t_frames,
+                        "total": time.perf_counter() - t0}}
+
+
+def _write_truth(h5, scene: Scene, states, line_integrals, masks, fields, panel, seconds, gap0):
+    g = h5.require_group("entry/simulation")
+    g.attrs["NX_class"] = "NXcollection"
+    g.attrs["scene"] = scene.to_toml()
+    g.attrs["initial_gap_mm"] = gap0
+    for k, v in seconds.items():
+        g.attrs[f"seconds_{k}"] = v
+    for name in ("ratio", "gap_mm", "plate_force_n", "volume_ratio", "inclusion_strain", "background_strain"):
+        g[name] = np.array([getattr(s, name) for s in states], np.float64)
+    g["plate_force_n"].attrs["units"] = "N"
+    opts = dict(chunks=(1,) + line_integrals[0].shape, compression="lzf")
+    g.create_dataset("line_integral", data=np.stack(line_integrals), **opts)
+    g["line_integral"].attrs["definition"] = "-ln(I/I0), noise-free, on the detector grid"
+    g.create_dataset("inclusion_mask", data=np.stack(masks), **opts)
+    d = g.create_group("displacement")
+    d.attrs["convention"] = ("pull, pixels, (row, col): moving(x + d(x)) matches fixed(x); "
+                             "attenuation-weighted mean along each ray of the fixed state; 0 off the body")
+    for (a, b), field in fields.items():
+        ds = d.create_dataset(f"step{a}_to_step{b}", data=field.astype(np.float32), chunks=(1,) + field.shape[1:],
+                              compression="lzf")
+        ds.attrs["moving_step"], ds.attrs["fixed_step"] = a, b
+    t = panel.truth
+    dg = g.create_group("defects")
+    for name in ("dead", "under", "noisy"):
+        dg[name] = np.asarray(getattr(t, name), np.int64).reshape(-1, 2)
+    dg["columns"] = np.asarray(t.columns, np.int64)
+    h5.flush()

@@ -1,0 +1,188 @@
+"""The virtual experiment: truth displacement, the simulated experiment file, and the CLI."""
+import dataclasses
+
+import h5py
+import numpy as np
+import pytest
+
+from sim.mechanics import compress, uniaxial_block_force
+from sim.scene import Beam, Detector, block_scene
+from sim.truth import truth_displacement
+
+
+def _block(direction, ratios=(0.1, 0.2)):
+    scene = block_scene(size_mm=10, E_kpa=5, nu=0.45, ratios=ratios)
+    scene.beam = Beam("parallel", direction)
+    scene.detector = Detector("c7942", 4)  # 560 x 560 pixels of 0.2 mm
+    return scene
+
+
+@pytest.mark.parametrize("direction", ["y", "z"])
+def test_truth_is_exact_for_homogeneous_compression(direction):
+    """A block between frictionless plates deforms affinely: axial stretch s = 1 - ratio, lateral
+    t from the closed form. The pull field from state a (moving) to b (fixed) is then linear in
+    the fixed image: d = (stretch_a / stretch_b - 1) * (position in b), in pixels, and the
+    ray integration is exact for fields linear on each element, so it must match to rounding."""
+    scene = _block(direction)
+    a, b = compress(scene)
+    field = truth_displacement(scene, b, a)
+    assert field.shape == (2, 560, 560) and field.dtype == np.float32
+    p = scene.detector.pixel_size_mm
+    ta = uniaxial_block_force(a.ratio, 5, 0.45, 100.0)[1]
+    tb = uniaxial_block_force(b.ratio, 5, 0.45, 100.0)[1]
+    sa, sb = 1 - a.ratio, 1 - b.ratio
+    rows = ((560 - 1) / 2 - np.arange(560)) * p  # world coordinate along e_v at each row
+    cols = (np.arange(560) - (560 - 1) / 2) * p  # world x at each column
+    col_expected = (ta / tb - 1) * cols / p  # x grows with the column
+    # rows follow z (beam along y: lateral, stretch t) or y (beam along z: compression, stretch s)
+    ka, kb = (ta, tb) if direction == "y" else (sa, sb)
+    row_expected = -(ka / kb - 1) * rows / p  # row index grows as the coordinate falls
+    half_x = 5 * tb  # the fixed state's footprint
+    half_v = 5 * (tb if direction == "y" else sb)
+    inside = (np.abs(cols)[None, :] < half_x - 2 * p) & (np.abs(rows)[:, None] < half_v - 2 * p)
+    outside = (np.abs(cols)[None, :] > half_x + p) | (np.abs(rows)[:, None] > half_v + p)
+    assert inside.sum() > 1000
+    np.testing.assert_allclose(field[1][inside], np.broadcast_to(col_expected[None, :], field[1].shape)[inside],
+                               atol=1e-4)
+    np.testing.assert_allclose(field[0][inside], np.broadcast_to(row_expected[:, None], field[0].shape)[inside],
+                               atol=1e-4)
+    assert np.all(field[:, outside] == 0)
+    # non-trivial: the field reaches a fraction of a pixel to several pixels at the edges
+    assert np.abs(field[1][inside]).max() > 0.5
+
+
+def test_truth_pulls_the_moving_silhouette_onto_the_fixed_one():
+    """Warping the moving state's projection by the truth field (pull: moving(x + d(x))) must put
+    its silhouette where the fixed state's is: the mismatching pixels drop from the whole band
+    the body moved through to the one-pixel rounding of the edge."""
+    from scipy import ndimage
+
+    from sim.project import project
+
+    scene = _block("z", ratios=(0.05, 0.25))
+    a, b = compress(scene)
+    moving, fixed = project(scene, a) > 0, project(scene, b) > 0
+    d = truth_displacement(scene, b, a)
+    # extend the field past the fixed silhouette (it is 0 off the body) before sampling
+    idx = ndimage.distance_transform_edt(~fixed, return_distances=False, return_indices=True)
+    d = d[:, idx[0], idx[1]]
+    r, c = np.meshgrid(np.arange(560), np.arange(560), indexing="ij")
+    warped = ndimage.map_coordinates(moving.astype(float), [r + d[0], c + d[1]], order=1, mode="constant") > 0.5
+    before = int((moving != fixed).sum())
+    after = int((warped != fixed).sum())
+    perimeter = int((fixed & ~ndimage.binary_erosion(fixed)).sum())
+    assert before > 3 * perimeter  # the body moved by several pixels
+    assert after <= perimeter and after < 0.15 * before, (before, after, perimeter)  # measured 76 of 672
+
+
+def test_axisymmetric_truth_agrees_with_3d():
+    """The revolved axisymmetric field against the 3D eighth model's mirrored one, cylinder seen
+    from the side: they must agree to the models' own difference (about 1 % of the motion)."""
+    from tests.test_sim_mechanics import _cylinder
+
+    fields = []
+    for model in ("axisymmetric", "3d"):
+        scene = _cylinder(model, size=(2.0, 5.0))
+        scene.beam = Beam("parallel", "z")
+        scene.detector = Detector("c7942", 4)
+        s15, s25 = compress(scene, ratios=(0.15, 0.25))
+        fields.append(truth_displacement(scene, s25, s15))
+    ax, full = fields
+    both = (np.abs(ax).sum(axis=0) > 0) & (np.abs(full).sum(axis=0) > 0)
+    scale = np.abs(full[:, both]).max()
+    assert scale > 5  # pixels: a real motion
+    diff = np.abs(ax[:, both] - full[:, both])
+    assert np.percentile(diff, 99) < 0.03 * scale
+    # mirror symmetry of the axisymmetric field about the axis (the centre column)
+    np.testing.assert_allclose(ax[1], -ax[1][:, ::-1], atol=1e-3 * scale)
+    np.testing.assert_allclose(ax[0], ax[0][:, ::-1], atol=1e-3 * scale)
+
+
+def test_truth_needs_states_of_one_mesh():
+    scene = _block("y", ratios=(0.1,))
+    (a,) = compress(scene)
+    (b,) = compress(scene)
+    with pytest.raises(ValueError, match="same compress"):
+        truth_displacement(scene, a, b)
+
+
+# -- the simulated experiment file -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sim_file(tmp_path_factory):
+    from sim.lab import simulate_experiment
+
+    scene = _block("z", ratios=(0.15, 0.25))
+    scene.exposure.i0_counts = 3000.0
+    path = tmp_path_factory.mktemp("sim") / "block.h5"
+    res = simulate_experiment(scene, path, n_darks=6, n_flats=8, frames_per_step=4, progress=False)
+    return scene, path, res
+
+
+def test_simulated_file_layout(sim_file):
+    from radiokit.io import read
+    from sim.scene import Scene
+
+    scene, path, res = sim_file
+    f = read(path)
+    assert f.data.dtype == np.uint16 and f.data.shape == (6 + 8 + 2 * 4, 560, 560)
+    assert f.data.max() <= 4095
+    keys = f.meta["image_key"]
+    assert (keys == 2).sum() == 6 and (keys == 1).sum() == 8 and (keys == 0).sum() == 8
+    with h5py.File(path) as h5:
+        g = h5["entry/simulation"]
+        assert Scene.from_toml(g.attrs["scene"]) == scene
+        np.testing.assert_allclose(g["ratio"][()], [0.15, 0.25])
+        np.testing.assert_allclose(g["gap_mm"][()], [8.5, 7.5])
+        force = [uniaxial_block_force(r, 5, 0.45, 100.0)[0] for r in (0.15, 0.25)]
+        np.testing.assert_allclose(g["plate_force_n"][()], force, rtol=1e-6)
+        assert g["line_integral"].shape == (2, 560, 560)
+        assert g["displacement/step1_to_step2"].shape == (2, 560, 560)
+        assert g["displacement/step1_to_step2"].attrs["moving_step"] == 1
+        assert "pull" in g["displacement"].attrs["convention"]
+        planted = g["defects/dead"][()]
+        assert planted.shape[1] == 2 and len(planted) > 0
+    assert [s["step"] for s in res["states"]] == [1, 2]
+
+
+def test_radiokit_recovers_the_simulated_line_integral_within_the_noise(sim_file):
+    """Calibrate from the file's own darks and flats, correct the projections, and compare the
+    mean of each step's frames with the noise-free truth: no bias beyond the noise, and an rms
+    error matching Poisson statistics (variance ~ 1/(g N) per frame, plus the flats' share)."""
+    from radiokit.calibrate import Calibration
+    from radiokit.io import read
+
+    scene, path, _ = sim_file
+    cal = Calibration.from_experiment(path)
+    f = read(path)
+    keys, steps = f.meta["image_key"], f.meta["step"]
+    with h5py.File(path) as h5:
+        truth = h5["entry/simulation/line_integral"][()]
+    for k, step in enumerate((1, 2)):
+        frames = f.data[(keys == 0) & (steps == step)]
+        corrected = cal.correct(frames, domain="log").mean(axis=0)
+        ok = (cal.mask == 0) & (truth[k] > 0.2)
+        err = corrected[ok] - truth[k][ok]
+        n0 = scene.exposure.i0_counts / 16  # per unbinned pixel; binning 4 sums 16 of them
+        counts = 16 * n0 * np.exp(-truth[k][ok])
+        expected = np.sqrt(np.mean(1 / counts / 4 + 1 / (16 * n0) / 8))
+        assert abs(err.mean()) < 0.1 * expected
+        assert np.sqrt(np.mean(err ** 2)) == pytest.approx(expected, rel=0.25)
+
+
+def test_cli_sim_run(tmp_path, capsys):
+    from radiokit.cli import main
+
+    toml = tmp_path / "block.toml"
+    _block("y", ratios=(0.2,)).save(toml)
+    out = tmp_path / "run.h5"
+    assert main(["sim", "run", str(toml), "--ratios", "0.1", "0.2", "-o", str(out), "--darks", "2", "--flats", "2",
+                 "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "0.100" in text and "0.200" in text and "wrote" in text
+    with h5py.File(out) as h5:
+        np.testing.assert_allclose(h5["entry/simulation/ratio"][()], [0.1, 0.2])
+    # refuses to overwrite, with a one-line error
+    assert main(["sim", "run", str(toml), "-o", str(out), "-q"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["sim", "run", "--preset", "no-such", "-o", str(tmp_path / "x.h5"), "-q"]) == 2
+    assert "no-such" in capsys.readouterr().err
