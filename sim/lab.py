@@ -65,14 +65,14 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
     if not ratios:
         raise ValueError("no compression ratios to simulate")
     t0 = time.perf_counter()
-    states = compress(scene, ratios, progress=progress, on_state=on_state, on_step=on_step)
+    states = compress(scene, ratios, progress=progress and on_step is None, on_state=on_state, on_step=on_step)
     t_mech = time.perf_counter() - t0
 
     t = time.perf_counter()
     mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
     line_integrals, masks = [], []
     geom = Geometry.from_scene(scene)
-    fem = states[0].solver.fem
+    fem = getattr(states[0].solver, "projection_mesh", None) or states[0].solver.fem
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     for s in tqdm(states, desc="project", unit="state", disable=not progress):
         lengths = path_lengths(fem, geom, s.displacement, thickness_mm=thickness)  # (n_regions, rows, cols) mm

@@ -41,7 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from radiokit.errors import RadiokitError
-from sim.mesh import FEMesh, build_mesh, choose_model
+from sim.mesh import FEMesh, build_mesh, choose_model, curved_skfem_mesh, p2_submesh
 from sim.scene import Scene
 
 __all__ = ["State", "ConvergenceError", "Solver", "compress", "uniaxial_block_force"]
@@ -152,7 +152,10 @@ class Solver:
         self.scene = scene
         self.fem = fem if fem is not None else build_mesh(scene)
         self.model = self.fem.model
-        mesh = self.fem.skfem()
+        if scene.mesh.curved:
+            mesh = curved_skfem_mesh(self.fem, scene)  # isoparametric: edge nodes on curved surfaces
+        else:
+            mesh = self.fem.skfem()
         self.mesh = mesh
         elem = ElementTetP2() if self.model == "3d" else ElementTriP2()
         basis = Basis(mesh, elem, intorder=intorder)
@@ -160,6 +163,8 @@ class Solver:
         self.dim = 3 if self.model == "3d" else 2
         dim = self.dim
         self.dof_points = basis.doflocs.copy()  # (dim, N): vertices first, then edge midpoints
+        #: the P2 nodes as a linear mesh (8 tets per tet), for projections of the solved geometry
+        self.projection_mesh = p2_submesh(self.fem, self.fem.skfem(), self.dof_points)
         self.n_nodes = basis.N
         nloc = len(basis.basis)
         nel, nq = basis.dx.shape

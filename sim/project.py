@@ -737,8 +737,8 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
     ((560, 560), dtype('float32'), 0.5, 2500)
     """
     solver = getattr(state, "solver", None) if state is not None else None
-    if fem is None:
-        fem = getattr(solver, "fem", None)
+    if fem is None:  # the P2 nodes as a linear mesh where the solver has it, else its vertices
+        fem = getattr(solver, "projection_mesh", None) or getattr(solver, "fem", None)
     if fem is None:
         if state is not None:
             raise ValueError("state has no solver.fem: pass the mesh it was computed on as fem=")

@@ -226,12 +226,14 @@ class Exposure:
 @dataclass
 class MeshSpec:
     """Element sizes (graded from ``size_inclusion_mm`` at the inclusion to ``size_far_mm``),
-    the model (``auto`` picks axisymmetric where the scene allows it) and symmetry use."""
+    the model (``auto`` picks axisymmetric where the scene allows it), symmetry use, and curved
+    (isoparametric) quadratic elements."""
 
     size_inclusion_mm: float = 1.0
     size_far_mm: float = 5.0
     model: str = "auto"
     symmetry: bool = True
+    curved: bool = True  #: quadratic elements follow curved surfaces (edge nodes on them)
 
     def __post_init__(self):
         if self.model not in ("auto", "3d", "axisymmetric", "plane-strain"):

@@ -156,7 +156,7 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
     solver = getattr(fixed, "solver", None)
     if solver is None or getattr(moving, "solver", None) is not solver:
         raise ValueError("truth_displacement: both states must come from the same compress() call (one mesh)")
-    fem = solver.fem
+    fem = getattr(solver, "projection_mesh", None) or solver.fem
     geom = Geometry.from_scene(scene)
     rows, cols = geom.shape
     if factor is None:

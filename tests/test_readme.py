@@ -20,3 +20,13 @@ def test_calibrate_and_correct_example(tmp_path, monkeypatch):
     assert abs(float(np.median(ns["mu_l"])) - np.log(2)) < 0.01
     assert abs(float(np.median(ns["t"])) - 0.5) < 0.005
     assert (tmp_path / "cal.h5").exists()
+
+
+def test_simulation_example():
+    ns = {}
+    exec(compile(_block("### Simulate the experiment"), "README.md", "exec"), ns)
+    from sim.mechanics import uniaxial_block_force
+
+    force, _ = uniaxial_block_force(0.25, 5, 0.495, 100.0)
+    assert abs(ns["s25"].plate_force_n / force - 1) < 1e-6
+    assert ns["line_integral"].shape == (560, 560) and ns["d"].shape == (2, 560, 560)

@@ -82,7 +82,7 @@ def _cylinder(model, size=(1.5, 5.0)):
     gel = Material("gel", "neo-hookean", E_kpa=20.0, nu=0.495, attenuation_per_cm=0.77)
     stiff = Material("inclusion", "neo-hookean", E_kpa=134.0, nu=0.495, attenuation_per_cm=0.85)
     return Scene(name=f"cylinder-{model}",
-                 body=Body("cylinder", height_mm=40.0, bottom_diameter_mm=40.0, top_diameter_mm=40.0, material=gel),
+                 body=Body("cylinder", height_mm=40.0, diameter_mm=40.0, material=gel),
                  inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=10.0, material=stiff)],
                  mesh=MeshSpec(size[0], size[1], model, True))
 
