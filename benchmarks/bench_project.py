@@ -1,4 +1,4 @@
-"""Benchmark: one 2240 x 2240 projection (``sim.project.project``) of the preset meshes.
+"""Benchmark: one 2240 x 2240 projection (``sim.xray.project``) of the preset meshes.
 
 Run (about 20 s on a 2-core machine)::
 
@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from sim.mesh import build_mesh
-from sim.project import _cached_surface, project
+from sim.xray import _cached_surface, project
 from sim.scene import load_scene
 
 

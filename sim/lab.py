@@ -54,7 +54,7 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
 
     from radiokit.io import ExperimentWriter, ImageKey
     from sim.mechanics import compress
-    from sim.project import Geometry, path_lengths
+    from sim.xray import Geometry, path_lengths
     from sim.truth import truth_displacement
 
     scene = load_scene(scene)

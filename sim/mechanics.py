@@ -202,7 +202,10 @@ class Solver:
         self.region = region
         # Copies of the model side by side on one plate: symmetry planes other than y (which
         # mirrors the model onto the other plate). Axisymmetric weights already hold the 2 pi r.
-        self.force_multiplicity = 2 ** len([p for p in self.fem.symmetry if p != "y"]) if self.model == "3d" else 1
+        if self.model == "3d":
+            self.force_multiplicity = 2 ** len([p for p in self.fem.symmetry if p != "y"])
+        else:  # axisymmetric weights hold 2 pi r; a plane-strain section is the half x >= 0
+            self.force_multiplicity = 2 if self.model == "plane-strain" else 1
         self._setup_boundary(FacetBasis, elem, penalty_factor)
         self._lu = None
         self.factorisations = 0

@@ -27,7 +27,7 @@ with ``t_f`` where the ray crosses face ``f`` and ``s_f = +1`` leaving, ``-1`` e
 and ``a . w`` are affine in the pixel's detector coordinates ``(u, v)`` (divided by the ray length
 for cone beams), so the integral is a handful of signed-depth renders (powers 1 and 2 of ``t``)
 of every tetrahedron's faces with per-face weights, combined per pixel
-(:func:`sim.project.render`). Models reduced by symmetry are mirrored, axisymmetric sections
+(:func:`sim.xray.render`). Models reduced by symmetry are mirrored, axisymmetric sections
 revolved (``revolve_segments`` wedges, each three tetrahedra) and plane-strain sections extruded
 into the 3D body first. The integral is computed on a grid ``factor`` times coarser than the
 detector (the field is smooth on the scale of the elements, 1-6 mm = 20-120 pixels) and
@@ -151,7 +151,7 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
     """
     from scipy import ndimage
 
-    from sim.project import Geometry, _render, path_lengths
+    from sim.xray import Geometry, _render, path_lengths
 
     solver = getattr(fixed, "solver", None)
     if solver is None or getattr(moving, "solver", None) is not solver:

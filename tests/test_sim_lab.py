@@ -57,7 +57,7 @@ def test_truth_pulls_the_moving_silhouette_onto_the_fixed_one():
     the body moved through to the one-pixel rounding of the edge."""
     from scipy import ndimage
 
-    from sim.project import project
+    from sim.xray import project
 
     scene = _block("z", ratios=(0.05, 0.25))
     a, b = compress(scene)

@@ -138,3 +138,35 @@ def test_convergence_failure_names_the_compression(monkeypatch):
     monkeypatch.setattr(Solver, "_newton", never)
     with pytest.raises(ConvergenceError, match=r"block.*cannot reach compression \d+\.\d+ % \(from 0\.00 %\)"):
         compress(block_scene(), ratios=[0.2])
+
+
+def test_plane_strain_block_matches_closed_form():
+    """Plane strain (F = diag(t, s, 1)): traction-free sides need mu (t^2 - 1) + lambda ln(s t) = 0,
+    and the plate force is |mu (s - 1/s) + lambda ln(s t) / s| times the loaded area. Homogeneous,
+    so the P2 solution must reproduce it to solver tolerance."""
+    from scipy.optimize import brentq
+
+    from sim.scene import MeshSpec
+
+    scene = block_scene(size_mm=10, E_kpa=5, nu=0.495)
+    scene.mesh = MeshSpec(2.5, 2.5, "plane-strain", True)
+    E, nu = 5e-3, 0.495
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    for state in compress(scene):
+        s = 1 - state.ratio
+        t = brentq(lambda t: mu * (t * t - 1) + lam * np.log(s * t), 1.0, 2.0)
+        force = abs(mu * (s - 1 / s) + lam * np.log(s * t) / s) * 100.0
+        assert state.plate_force_n == pytest.approx(force, rel=1e-6)
+        assert state.volume_ratio == pytest.approx(s * t, rel=1e-6)
+    assert state.solver.fem.model == "plane-strain"
+
+
+def test_public_api_from_the_package():
+    import sim
+
+    scene = sim.load_scene("seed-breast")
+    assert isinstance(scene, sim.Scene) and scene.name == "seed-breast"
+    states = sim.compress(sim.block_scene(size_mm=10, E_kpa=5, nu=0.45, ratios=(0.2,)))
+    img = sim.project(sim.block_scene(), states[0])
+    assert img.dtype == np.float32 and img.shape == (560, 560)
+    assert isinstance(states[0], sim.State)

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 import sim.analytic
-import sim.project
+import sim.xray
 from sim.analytic import ellipsoid_chord, ray_ellipsoid_chord, ray_sphere_chord, sphere_chord
 from sim.mesh import FEMesh
-from sim.project import Geometry, line_integral, path_lengths, project, render, surface_of
+from sim.xray import Geometry, line_integral, path_lengths, project, render, surface_of
 
 KUHN = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
 
@@ -491,5 +491,5 @@ def test_cone_source_inside_the_mesh_is_refused():
 
 
 def test_module_examples():
-    for mod in (sim.project, sim.analytic):
+    for mod in (sim.xray, sim.analytic):
         assert doctest.testmod(mod).failed == 0
