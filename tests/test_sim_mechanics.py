@@ -170,3 +170,28 @@ def test_public_api_from_the_package():
     img = sim.project(sim.block_scene(), states[0])
     assert img.dtype == np.float32 and img.shape == (560, 560)
     assert isinstance(states[0], sim.State)
+
+
+def test_mesh_convergence_axisymmetric():
+    """Plate force and the inclusion's chord change (15 -> 25 %, along the axis, from the
+    projection) at the default sizes must be within 2 % of a mesh refined twice over. (The 3D
+    seed-breast study, minutes long, is in benchmarks/bench_sim.py --full.)"""
+    from dataclasses import replace
+
+    from sim.xray import Geometry, path_lengths
+
+    def run(size):
+        scene = _cylinder("axisymmetric", size=size)
+        scene.beam = replace(scene.beam, direction="y")
+        s15, s25 = compress(scene, ratios=(0.15, 0.25))
+        geom = Geometry("parallel", "y", shape=(3, 3), pixel_size_mm=0.5)
+        fem = s15.solver.projection_mesh
+        chord = [path_lengths(fem, geom, s.displacement)[1][1, 1] for s in (s15, s25)]
+        return s25.plate_force_n, chord[0] - chord[1], s25.solver.ndof
+
+    f1, dc1, n1 = run((1.0, 4.0))
+    f2, dc2, n2 = run((0.5, 2.0))
+    assert n2 > 3 * n1
+    assert dc1 > 0.1  # mm: the inclusion does shorten along the axis
+    assert f1 == pytest.approx(f2, rel=0.02)
+    assert dc1 == pytest.approx(dc2, rel=0.02)
