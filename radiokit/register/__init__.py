@@ -1,0 +1,162 @@
+"""Non-rigid registration of radiographs: residual complexity B-spline (the paper's) and peers.
+
+``register(fixed, moving, method="rc")`` returns a :class:`Registration` whose ``displacement``
+is a ``(2, rows, cols)`` float32 field in pixels, (row, col) order, that *pulls*:
+``moving(x + d(x))`` matches ``fixed(x)`` (DESIGN.md). ``Registration.quality`` says whether to
+trust it: similarity before and after (residual complexity, the same yardstick for every method,
+and normalised cross-correlation), folding (det J <= 0) and the smallest det J, iterations,
+time, and ``ok`` with a ``reason`` when not.
+
+Methods: ``rc`` (cubic B-spline free-form deformation, residual complexity, Myronenko & Song
+2010), the same transform with ``ssd``, ``ncc`` and ``mi``; peers under the same API: ``tvl1``,
+``ilk`` (scikit-image), ``dis``, ``farneback`` (OpenCV), and, when installed, ``sitk-bspline``,
+``sitk-demons`` (SimpleITK) and ``elastix`` (itk-elastix).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from radiokit.register._common import (jacobian_determinant, ncc, residual_complexity, warp)
+
+__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant"]
+
+
+@dataclass
+class Quality:
+    """How far to trust a registration.
+
+    ``rc_before``/``rc_after``: residual complexity of ``moving - fixed`` and ``warped - fixed``
+    (lower is better; insensitive to slow intensity change). ``ncc_before``/``ncc_after``:
+    normalised cross-correlation (higher is better). ``folds``: pixels with det J <= 0;
+    ``min_det_j``. ``ok`` is False, with a ``reason``, on folding, divergence (similarity worse
+    than not registering) or non-convergence.
+    """
+
+    rc_before: float = float("nan")
+    rc_after: float = float("nan")
+    ncc_before: float = float("nan")
+    ncc_after: float = float("nan")
+    folds: int = 0
+    min_det_j: float = float("nan")
+    iterations: int = 0
+    seconds: float = 0.0
+    converged: bool = True
+    ok: bool = True
+    reason: str = ""
+
+
+@dataclass
+class Registration:
+    displacement: np.ndarray
+    method: str
+    quality: Quality
+    options: dict = field(default_factory=dict)
+
+    def warp(self, image, order=1) -> np.ndarray:
+        """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid."""
+        return warp(image, self.displacement, order=order)
+
+
+METHODS: dict = {}  # name -> function(fixed, moving, mask, **options) -> (displacement, info dict)
+
+
+def _method(name):
+    def deco(fn):
+        METHODS[name] = fn
+        return fn
+    return deco
+
+
+def _load_methods():
+    import importlib
+
+    for name in ("_bspline", "_peers"):  # they fill METHODS
+        try:
+            importlib.import_module(f"radiokit.register.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"radiokit.register.{name}":
+                raise
+
+
+def _check(fixed, moving, mask):
+    f = np.asarray(fixed)
+    m = np.asarray(moving)
+    for name, a in (("fixed", f), ("moving", m)):
+        if a.ndim != 2:
+            raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}")
+        if a.dtype.kind not in "uif":
+            raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
+        if min(a.shape) < 8:
+            raise ValueError(f"{name} image is too small to register: {a.shape}")
+    if f.shape != m.shape:
+        raise ValueError(f"fixed {f.shape} and moving {m.shape} images differ in shape")
+    f = f.astype(np.float32, copy=False)
+    m = m.astype(np.float32, copy=False)
+    for name, a in (("fixed", f), ("moving", m)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} image contains NaN or inf ({int(np.sum(~np.isfinite(a)))} pixels)")
+        if float(a.max()) == float(a.min()):
+            raise ValueError(f"{name} image is constant: nothing to register")
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != f.shape:
+            raise ValueError(f"mask {mask.shape} does not match the images {f.shape}")
+        if not mask.any():
+            raise ValueError("mask selects no pixel")
+    return f, m, mask
+
+
+def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
+    """Register ``moving`` onto ``fixed`` (2-D arrays of one shape; line-integral images are the
+    natural input). ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a
+    failed ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation.
+    ``options`` go to the method (see ``radiokit.register.METHODS[name].__doc__``)."""
+    _load_methods()
+
+    if method not in METHODS:
+        _load_methods()
+    if method not in METHODS:
+        raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
+    f, m, mask = _check(fixed, moving, mask)
+    t0 = time.perf_counter()
+    disp, info = METHODS[method](f, m, mask, **options)
+    seconds = time.perf_counter() - t0
+    reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
+    _assess(reg, f, m, mask, info, seconds)
+    if retry and not reg.quality.ok and "regularisation" in info:
+        opts = dict(options, regularisation=10 * info["regularisation"])
+        again = register(f, m, method, mask, retry=False, **opts)
+        again.quality.seconds += seconds
+        return again
+    return reg
+
+
+def _assess(reg, f, m, mask, info, seconds):
+    q = reg.quality
+    w = reg.warp(m)
+    sel = mask if mask is not None else np.ones(f.shape, bool)
+    q.rc_before = residual_complexity(m - f, sel)
+    q.rc_after = residual_complexity(w - f, sel)
+    q.ncc_before = ncc(m, f, sel)
+    q.ncc_after = ncc(w, f, sel)
+    det = jacobian_determinant(reg.displacement)
+    q.folds = int(np.sum(det[sel] <= 0))
+    q.min_det_j = float(det[sel].min())
+    q.iterations = int(info.get("iterations", 0))
+    q.converged = bool(info.get("converged", True))
+    q.seconds = seconds
+    reasons = []
+    if not np.all(np.isfinite(reg.displacement)):
+        reasons.append("non-finite displacement")
+        reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
+    if q.folds:
+        reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
+    if q.rc_after > q.rc_before:
+        reasons.append(f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before")
+    if not q.converged:
+        reasons.append(info.get("message", "did not converge"))
+    q.ok = not reasons
+    q.reason = "; ".join(reasons)

@@ -1,0 +1,52 @@
+"""Pieces every registration method shares: warping, det J, similarity measures."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+
+
+def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
+    """``image(x + d(x))`` on the displacement's grid; ``order`` 1 (bilinear, OpenCV) or 3.
+    Samples outside ``image`` repeat its border."""
+    import cv2
+
+    image = np.asarray(image, np.float32)
+    d = np.asarray(displacement, np.float32)
+    rows, cols = d.shape[1:]
+    rr, cc = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    if order == 1:
+        return cv2.remap(image, cc + d[1], rr + d[0], interpolation=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+    from scipy import ndimage
+
+    return ndimage.map_coordinates(image, [rr + d[0], cc + d[1]], order=order, mode="nearest").astype(np.float32)
+
+
+def jacobian_determinant(displacement) -> np.ndarray:
+    """det of the Jacobian of x -> x + d(x) per pixel (central differences); <= 0 is a fold."""
+    d = np.asarray(displacement, np.float64)
+    drr, drc = np.gradient(d[0])
+    dcr, dcc = np.gradient(d[1])
+    return (1 + drr) * (1 + dcc) - drc * dcr
+
+
+def residual_complexity(residual, mask=None, alpha=0.05) -> float:
+    """Myronenko & Song's residual complexity ``1/2 sum log(1 + (DCT r)^2 / alpha)`` of a
+    residual image (outside ``mask`` set to 0), per pixel; ``alpha`` relative to the residual's
+    mean square so that the number does not depend on the image's scale."""
+    r = np.asarray(residual, np.float64)
+    if mask is not None:
+        r = np.where(mask, r, 0.0)
+    q = sfft.dctn(r, norm="ortho", workers=-1)
+    return float(0.5 * np.mean(np.log1p(q * q / alpha)))
+
+
+def ncc(a, b, mask=None) -> float:
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    a = a - a.mean()
+    b = b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
