@@ -44,7 +44,7 @@ def _epe(d, truth, mask):
     return float(np.median(e)), float(np.percentile(e, 95))
 
 
-@pytest.mark.parametrize("similarity", ["rc", "ssd", "ncc"])
+@pytest.mark.parametrize("similarity", ["rc", "ssd", "ncc", "mi"])
 @pytest.mark.parametrize("factor", [1, 2])
 def test_gradient_matches_finite_differences(similarity, factor):
     """The analytic gradient (through the exact derivative of the bilinear interpolant and the
