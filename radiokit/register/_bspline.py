@@ -56,6 +56,75 @@ PRESETS = {
 }
 
 
+def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> np.ndarray:
+    """(n_pixels, n_ctrl) cubic B-spline weights: pixel ``k`` of a grid ``factor`` times coarser
+    than full resolution sits at full-resolution coordinate ``factor k + (factor - 1) / 2``;
+    control point ``j`` at ``(j - 1) spacing``."""
+    y = factor * np.arange(n_pixels) + (factor - 1) / 2
+    t = y / spacing + 1.0
+    i = np.floor(t).astype(np.int64)
+    u = t - i
+    w = np.stack([(1 - u) ** 3 / 6, (3 * u ** 3 - 6 * u ** 2 + 4) / 6, (-3 * u ** 3 + 3 * u ** 2 + 3 * u + 1) / 6,
+                  u ** 3 / 6], axis=1)
+    B = np.zeros((n_pixels, n_ctrl), dtype)
+    for k in range(4):
+        j = np.clip(i - 1 + k, 0, n_ctrl - 1)
+        np.add.at(B, (np.arange(n_pixels), j), w[:, k])
+    return B
+
+
+def _laplacian(nr, nc):
+    def lap1(n):
+        main = -2.0 * np.ones(n)
+        main[0] = main[-1] = -1.0
+        return sp.diags([np.ones(n - 1), main, np.ones(n - 1)], [-1, 0, 1])
+
+    return (sp.kron(lap1(nr), sp.identity(nc)) + sp.kron(sp.identity(nr), lap1(nc))).tocsr()
+
+
+class BSplineField:
+    """The control lattice of a ``shape`` image with control points ``spacing`` pixels apart."""
+
+    def __init__(self, shape, spacing, dtype=np.float32):
+        self.dtype = np.dtype(dtype)
+        self.shape = tuple(shape)
+        self.spacing = float(spacing)
+        self.nr = int(math.ceil((shape[0] - 1) / spacing)) + 3
+        self.nc = int(math.ceil((shape[1] - 1) / spacing)) + 3
+        self.L = _laplacian(self.nr, self.nc)
+        self._cache = {}
+
+    @property
+    def n_params(self):
+        return 2 * self.nr * self.nc
+
+    def matrices(self, factor):
+        if factor not in self._cache:
+            rows = -(-self.shape[0] // factor)
+            cols = -(-self.shape[1] // factor)
+            self._cache[factor] = (bspline_basis_matrix(rows, self.nr, self.spacing, factor, self.dtype),
+                                   bspline_basis_matrix(cols, self.nc, self.spacing, factor, self.dtype))
+        return self._cache[factor]
+
+    def field(self, c, factor=1, shape=None):
+        """Displacement (2, rows, cols) float32 at a grid ``factor`` times coarser, in *its* pixels."""
+        Br, Bc = self.matrices(factor)
+        C = c.reshape(2, self.nr, self.nc).astype(self.dtype)
+        d = np.stack([Br @ C[k] @ Bc.T for k in range(2)]) / factor
+        if shape is not None:
+            d = d[:, :shape[0], :shape[1]]
+        return d
+
+    def adjoint(self, g, factor=1):
+        """Gradient with respect to the coefficients of a gradient ``g`` (2, rows, cols) with
+        respect to the field (in the grid's pixels)."""
+        Br, Bc = self.matrices(factor)
+        g = g.astype(self.dtype, copy=False)
+        full = np.zeros((2, Br.shape[0], Bc.shape[0]), self.dtype)
+        full[:, :g.shape[1], :g.shape[2]] = g
+        return np.stack([Br.T @ full[k] @ Bc for k in range(2)]).ravel().astype(np.float64) / factor
+
+
 _POOL = None
 
 
