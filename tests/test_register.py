@@ -159,3 +159,27 @@ def test_unknown_method_lists_the_available_ones():
     f, _ = _phantom(32)
     with pytest.raises(ValueError, match="rc"):
         register(f, f, method="nope")
+
+
+def test_cli_register(tmp_path, capsys):
+    import h5py
+
+    from radiokit.cli import main
+    from radiokit.io import write_tiff
+
+    fixed, moving, d, inside = _pair(160)
+    write_tiff(tmp_path / "fixed.tif", fixed)
+    write_tiff(tmp_path / "moving.tif", moving)
+    out = tmp_path / "reg.h5"
+    code = main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(out),
+                 "--png", str(tmp_path / "reg.png")])
+    text = capsys.readouterr().out
+    assert code == 0 and "residual complexity" in text and (tmp_path / "reg.png").stat().st_size > 10000
+    with h5py.File(out) as h5:
+        field = h5["entry/registration/displacement"][()]
+        assert h5["entry/registration"].attrs["quality_ok"]
+    med, _ = _epe(field, d, inside)
+    assert med < 0.3
+    assert main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(out),
+                 "--roi", "0", "999", "0", "10"]) == 2
+    assert "--roi" in capsys.readouterr().err
