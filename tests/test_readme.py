@@ -1,5 +1,7 @@
 """The README's self-contained examples run as written."""
 import re
+
+import numpy as np
 from pathlib import Path
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -30,3 +32,12 @@ def test_simulation_example():
     force, _ = uniaxial_block_force(0.25, 5, 0.495, 100.0)
     assert abs(ns["s25"].plate_force_n / force - 1) < 1e-6
     assert ns["line_integral"].shape == (560, 560) and ns["d"].shape == (2, 560, 560)
+
+
+def test_register_example():
+    ns = {}
+    exec(compile(_block("### Register"), "README.md", "exec"), ns)
+    reg = ns["reg"]
+    assert reg.quality.ok
+    inner = (slice(20, -20), slice(20, -20))
+    assert np.abs(reg.displacement[(slice(None),) + inner] - 1.5).max() < 0.1
