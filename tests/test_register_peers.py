@@ -43,3 +43,23 @@ def test_highpass_prefilter_option_is_validated():
     f = _textured(32)
     with pytest.raises(ValueError, match="prefilter"):
         register(f, f, "farneback", prefilter="lowpass")
+
+
+def test_regdata_pairs_satisfy_their_truth():
+    """The benchmark's analytic pairs: warping moving by the truth gives fixed up to the planted
+    intensity change and noise, far closer than without warping (so the scores mean something)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from regdata import analytic_pair, score
+
+    for kind in ("thinning", "gain"):
+        fixed, moving, truth, mask = analytic_pair(256, 0.02, 0.0, 0.0, seed=3, kind=kind)
+        warped = warp(moving, truth, order=3)
+        assert np.abs(warped - fixed)[mask].max() < 1e-4
+        assert np.abs(moving - fixed)[mask].mean() > 100 * np.abs(warped - fixed)[mask].mean()
+        assert score(truth, truth, mask)["epe_median"] == 0.0
+    fixed, moving, truth, mask = analytic_pair(256, 0.01, 0.2, 0.0, seed=3, kind="thinning")
+    ratio = fixed[mask] / np.maximum(warp(moving, truth, order=3)[mask], 1e-6)
+    assert 0.75 < ratio.min() and ratio.max() < 1.25  # the 20 % intensity change, no more

@@ -1,0 +1,171 @@
+"""Registration: speed against accuracy of rc and its peers, and where each one breaks.
+
+Run::
+
+    python benchmarks/bench_register.py [--size 1120] [--quick] [--out out/bench_register]
+
+Part 1, speed/accuracy: every method (rc default and fast, ssd, ncc, mi, tvl1, ilk, dis,
+farneback, and sitk-* / elastix when installed), each with its defaults and "tuned" (peers:
+``prefilter="highpass"``, removing slow intensity change by hand), on analytic pairs
+(``regdata.analytic_pair``: 1 % displacement, 10 % intensity change of both kinds, 1 % noise).
+End-point error median and p95 inside the object, folds and time; the chart marks the Pareto
+front (no method both faster and more accurate).
+
+Part 2, stability map: EPE median of rc and the tuned peers against displacement (1-4 % of the
+frame) x intensity change (0-20 %), at the benchmark size; a cell where a method is worse than
+not registering at all is marked.
+
+Writes ``bench_register.png``, ``stability.png`` and ``bench_register.json``. Size 1120 takes
+several minutes on two cores (``--quick``: 512 and fewer cells).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from regdata import analytic_pair, score  # noqa: E402
+
+
+def configs():
+    from radiokit.register import METHODS, register  # noqa: F401 - fills METHODS
+    from radiokit.register import _load_methods
+
+    _load_methods()
+    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
+    import importlib.util
+
+    peers = ["tvl1", "ilk", "dis", "farneback"]
+    if importlib.util.find_spec("SimpleITK"):
+        peers += ["sitk-bspline", "sitk-demons"]
+    if importlib.util.find_spec("itk"):
+        peers += ["elastix"]
+    for p in peers:
+        out += [(p, {}), (p + "+hp", {"prefilter": "highpass"})]
+    return out
+
+
+def run_one(name, opts, fixed, moving, truth, mask):
+    from radiokit.register import register
+
+    method = name.split("+")[0].replace("rc-fast", "rc")
+    t = time.perf_counter()
+    try:
+        reg = register(fixed, moving, method, **opts)
+    except Exception as exc:  # a peer that cannot run on this pair is reported, not fatal
+        return {"method": name, "error": repr(exc)}
+    return dict(score(reg.displacement, truth, mask), method=name, seconds=time.perf_counter() - t,
+                ok=bool(reg.quality.ok))
+
+
+def pareto(rows):
+    pts = sorted((r for r in rows if "error" not in r), key=lambda r: r["seconds"])
+    front, best = [], np.inf
+    for r in pts:
+        if r["epe_median"] < best:
+            front.append(r["method"])
+            best = r["epe_median"]
+    return front
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", type=int, default=1120)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_register"))
+    args = ap.parse_args(argv)
+    size = 512 if args.quick else args.size
+    args.out.mkdir(parents=True, exist_ok=True)
+    cfgs = configs()
+    results = {}
+    for kind in ("thinning", "gain"):
+        fixed, moving, truth, mask = analytic_pair(size, 0.01, 0.10, 0.01, seed=1, kind=kind)
+        base = score(np.zeros_like(truth), truth, mask)
+        rows = [run_one(n, o, fixed, moving, truth, mask) for n, o in cfgs]
+        results[kind] = {"identity": base, "rows": rows, "pareto": pareto(rows)}
+        print(f"\n{kind} pair {size}x{size}: 1 % displacement, 10 % intensity change; identity EPE median "
+              f"{base['epe_median']:.3f} px")
+        print(f"  {'method':<16} {'time s':>8} {'EPE med':>8} {'EPE p95':>8} {'folds':>6}  ok")
+        for r in rows:
+            if "error" in r:
+                print(f"  {r['method']:<16} error: {r['error'][:80]}")
+                continue
+            mark = " *" if r["method"] in results[kind]["pareto"] else ""
+            print(f"  {r['method']:<16} {r['seconds']:8.2f} {r['epe_median']:8.3f} {r['epe_p95']:8.3f} "
+                  f"{r['folds']:6d}  {r['ok']}{mark}")
+        print("  (* on the Pareto front: nothing both faster and more accurate)")
+
+    # stability map
+    disp = [0.01, 0.02, 0.04]
+    inten = [0.0, 0.1, 0.2]
+    stab_methods = [("rc", {})] + [(n, o) for n, o in cfgs if n.endswith("+hp")][:4]
+    smap = {n: np.zeros((len(disp), len(inten))) for n, _ in stab_methods}
+    worse = {n: np.zeros((len(disp), len(inten)), bool) for n, _ in stab_methods}
+    ssize = 384 if args.quick else min(size, 768)
+    for i, dfrac in enumerate(disp):
+        for j, ic in enumerate(inten):
+            fixed, moving, truth, mask = analytic_pair(ssize, dfrac, ic, 0.01, seed=2 + i + 10 * j)
+            base = score(np.zeros_like(truth), truth, mask)["epe_median"]
+            for n, o in stab_methods:
+                r = run_one(n, o, fixed, moving, truth, mask)
+                smap[n][i, j] = r.get("epe_median", np.nan)
+                worse[n][i, j] = r.get("epe_median", np.inf) >= base
+    print(f"\nstability ({ssize}x{ssize}): EPE median (px); rows displacement {disp} of the frame, "
+          f"columns intensity change {inten}; '!' = worse than not registering")
+    for n, _ in stab_methods:
+        print(f"  {n}")
+        for i in range(len(disp)):
+            print("    " + "  ".join(f"{smap[n][i, j]:7.3f}{'!' if worse[n][i, j] else ' '}" for j in range(len(inten))))
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, 2, figsize=(13, 5))
+    for ax, kind in zip(axs, results):
+        rows = [r for r in results[kind]["rows"] if "error" not in r]
+        for r in rows:
+            on = r["method"] in results[kind]["pareto"]
+            ax.scatter(r["seconds"], max(r["epe_median"], 1e-3), marker="o" if on else "x", color="C3" if on else "C0")
+            ax.annotate(r["method"], (r["seconds"], max(r["epe_median"], 1e-3)), fontsize=7)
+        front = sorted((r for r in rows if r["method"] in results[kind]["pareto"]), key=lambda r: r["seconds"])
+        ax.plot([r["seconds"] for r in front], [r["epe_median"] for r in front], "C3-", lw=0.8)
+        ax.axhline(results[kind]["identity"]["epe_median"], color="grey", ls="--", lw=0.8, label="no registration")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("time per pair (s)")
+        ax.set_ylabel("end-point error, median (px)")
+        ax.set_title(f"{kind}: {size}x{size}, 1 % motion, 10 % intensity change")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out / "bench_register.png", dpi=110)
+    fig, axs = plt.subplots(1, len(stab_methods), figsize=(3.2 * len(stab_methods), 3.2))
+    for ax, (n, _) in zip(np.atleast_1d(axs), stab_methods):
+        im = ax.imshow(np.log10(np.maximum(smap[n], 1e-3)), cmap="viridis", vmin=-1.5, vmax=1.5, origin="lower")
+        for i in range(len(disp)):
+            for j in range(len(inten)):
+                ax.text(j, i, f"{smap[n][i, j]:.2f}{'!' if worse[n][i, j] else ''}", ha="center", va="center",
+                        color="w", fontsize=8)
+        ax.set_xticks(range(len(inten)), [f"{100 * v:.0f}%" for v in inten])
+        ax.set_yticks(range(len(disp)), [f"{100 * v:.0f}%" for v in disp])
+        ax.set_xlabel("intensity change")
+        ax.set_ylabel("displacement")
+        ax.set_title(n, fontsize=9)
+    fig.colorbar(im, ax=axs, fraction=0.02, label="log10 EPE median (px)")
+    fig.savefig(args.out / "stability.png", dpi=110)
+    (args.out / "bench_register.json").write_text(json.dumps(
+        {"size": size, "pairs": results, "stability": {"displacement": disp, "intensity": inten,
+                                                      "epe_median": {n: smap[n].tolist() for n in smap}}},
+        indent=1, default=float))
+    print(f"charts {args.out / 'bench_register.png'}, {args.out / 'stability.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
