@@ -183,3 +183,10 @@ def test_cli_register(tmp_path, capsys):
     assert main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(out),
                  "--roi", "0", "999", "0", "10"]) == 2
     assert "--roi" in capsys.readouterr().err
+
+
+def test_iteration_budget_too_small_is_reported_as_not_converged():
+    fixed, moving, d, inside = _pair(128)
+    reg = register(fixed, moving, "rc", iterations=(3,))
+    assert not reg.quality.converged and not reg.quality.ok
+    assert "iterations" in reg.quality.reason

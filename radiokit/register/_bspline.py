@@ -436,13 +436,11 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         if factor == run[-1]:
             message = str(res.message)
             # L-BFGS stops on its tolerances (0), at the precision limit of the line search (2), or
-            # at the iteration budget (1): the last is "not converged" only if the energy was still
-            # falling fast (more than 1e-3 of its value per iteration over the last 5)
+            # at the iteration budget (1): the last is "not converged" only if the last 5
+            # iterations still gained more than 5 % of what the whole level gained
             converged = res.status in (0, 2)
-            if res.status == 1:
-                tail = trace[-6:]
-                rate = (tail[0] - tail[-1]) / max(len(tail) - 1, 1) if len(tail) > 1 else 0.0
-                converged = rate <= 1e-3 * abs(tail[-1] if tail else res.fun)
+            if res.status == 1 and len(trace) > 6:
+                converged = (trace[-6] - trace[-1]) <= 0.05 * max(trace[0] - trace[-1], 0.0)
                 if not converged:
                     message = f"still improving after {res.nit} iterations at full resolution (raise iterations)"
     d = np.zeros((2,) + f.shape, np.float32)
