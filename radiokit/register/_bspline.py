@@ -441,8 +441,8 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
             converged = res.status in (0, 2)
             if res.status == 1 and len(trace) > 6:
                 converged = (trace[-6] - trace[-1]) <= 0.05 * max(trace[0] - trace[-1], 0.0)
-                if not converged:
-                    message = f"still improving after {res.nit} iterations at full resolution (raise iterations)"
+            if res.status == 1 and not converged:
+                message = f"still improving after {res.nit} iterations at the finest level run (raise iterations)"
     d = np.zeros((2,) + f.shape, np.float32)
     for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
         d += g_.field(c_, 1, f.shape)
