@@ -63,6 +63,14 @@ def run_one(name, opts, fixed, moving, truth, mask):
                 ok=bool(reg.quality.ok))
 
 
+def warm_up(cfgs):
+    """One small registration per method first, so imports (ITK's take 15 s) and first-call
+    set-up are not charged to the timed runs."""
+    fixed, moving, truth, mask = analytic_pair(96, 0.01, 0.1, 0.01, seed=99)
+    for n, o in cfgs:
+        run_one(n, o, fixed, moving, truth, mask)
+
+
 def pareto(rows):
     pts = sorted((r for r in rows if "error" not in r), key=lambda r: r["seconds"])
     front, best = [], np.inf
@@ -78,22 +86,29 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=1120)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench_register"))
-    ap.add_argument("--sim", type=Path, help="also a simulated experiment file (radiokit sim run): its last two steps")
+    ap.add_argument("--sim", help="also a simulated experiment: a file (radiokit sim run) or a scene preset "
+                                   "(e.g. seed-breast; simulated once, cached in out/regdata_cache); the last two "
+                                   "steps, noise-free line integrals and corrected noisy frames")
+    ap.add_argument("--skip", default="", help="methods to leave out, comma-separated (e.g. mi: 26 s at 512)")
     args = ap.parse_args(argv)
     size = 512 if args.quick else args.size
     args.out.mkdir(parents=True, exist_ok=True)
-    cfgs = configs()
+    skip = {x.strip() for x in args.skip.split(",") if x.strip()}
+    cfgs = [(n, o) for n, o in configs() if n not in skip and n.split("+")[0] not in skip]
+    warm_up(cfgs)
     results = {}
-    kinds = ["thinning", "gain"] + (["sim"] if args.sim else [])
+    kinds = ["thinning", "gain"] + (["sim", "sim-noisy"] if args.sim else [])
     for kind in kinds:
-        if kind == "sim":
-            fixed, moving, truth, mask = sim_pair(args.sim)
+        if kind.startswith("sim"):
+            fixed, moving, truth, mask = sim_pair(args.sim, moving_step=-1, noisy=kind == "sim-noisy",
+                                                  size=None if args.size >= 2240 else size)
         else:
             fixed, moving, truth, mask = analytic_pair(size, 0.01, 0.10, 0.01, seed=1, kind=kind)
         base = score(np.zeros_like(truth), truth, mask)
         rows = [run_one(n, o, fixed, moving, truth, mask) for n, o in cfgs]
         results[kind] = {"identity": base, "rows": rows, "pareto": pareto(rows)}
-        what = (f"{args.sim} (last two steps, noise-free)" if kind == "sim"
+        what = (f"{args.sim} {fixed.shape[0]}x{fixed.shape[1]} (last two steps, "
+                f"{'corrected noisy frames' if kind == 'sim-noisy' else 'noise-free line integrals'})" if kind.startswith("sim")
                 else f"{size}x{size}: 1 % displacement, 10 % intensity change")
         print(f"\n{kind} pair {what}; identity EPE median {base['epe_median']:.3f} px")
         print(f"  {'method':<16} {'time s':>8} {'EPE med':>8} {'EPE p95':>8} {'folds':>6}  ok")
@@ -106,27 +121,38 @@ def main(argv=None):
                   f"{r['folds']:6d}  {r['ok']}{mark}")
         print("  (* on the Pareto front: nothing both faster and more accurate)")
 
-    # stability map
+    # stability map: displacement x intensity change x noise
     disp = [0.01, 0.02, 0.04]
     inten = [0.0, 0.1, 0.2]
-    stab_methods = [("rc", {})] + [(n, o) for n, o in cfgs if n.endswith("+hp")][:4]
-    smap = {n: np.zeros((len(disp), len(inten))) for n, _ in stab_methods}
-    worse = {n: np.zeros((len(disp), len(inten)), bool) for n, _ in stab_methods}
+    noises = [0.01, 0.03]
+    names = [n for n, _ in cfgs]
+    stab_names = ["rc", "rc-fast"] + [n for n in ("dis+hp", "elastix+hp", "sitk-demons+hp", "tvl1+hp", "farneback+hp")
+                                      if n in names]
+    if args.quick:
+        stab_names = stab_names[:4]
+        noises = noises[:1]
+    stab_methods = [(n, dict(cfgs)[n]) for n in stab_names]
+    shape = (len(noises), len(disp), len(inten))
+    smap = {n: np.full(shape, np.nan) for n, _ in stab_methods}
+    worse = {n: np.zeros(shape, bool) for n, _ in stab_methods}
     ssize = 384 if args.quick else min(size, 768)
-    for i, dfrac in enumerate(disp):
-        for j, ic in enumerate(inten):
-            fixed, moving, truth, mask = analytic_pair(ssize, dfrac, ic, 0.01, seed=2 + i + 10 * j)
-            base = score(np.zeros_like(truth), truth, mask)["epe_median"]
-            for n, o in stab_methods:
-                r = run_one(n, o, fixed, moving, truth, mask)
-                smap[n][i, j] = r.get("epe_median", np.nan)
-                worse[n][i, j] = r.get("epe_median", np.inf) >= base
-    print(f"\nstability ({ssize}x{ssize}): EPE median (px); rows displacement {disp} of the frame, "
-          f"columns intensity change {inten}; '!' = worse than not registering")
-    for n, _ in stab_methods:
-        print(f"  {n}")
-        for i in range(len(disp)):
-            print("    " + "  ".join(f"{smap[n][i, j]:7.3f}{'!' if worse[n][i, j] else ' '}" for j in range(len(inten))))
+    for h, noise in enumerate(noises):
+        for i, dfrac in enumerate(disp):
+            for j, ic in enumerate(inten):
+                fixed, moving, truth, mask = analytic_pair(ssize, dfrac, ic, noise, seed=2 + i + 10 * j + 100 * h)
+                base = score(np.zeros_like(truth), truth, mask)["epe_median"]
+                for n, o in stab_methods:
+                    r = run_one(n, o, fixed, moving, truth, mask)
+                    smap[n][h, i, j] = r.get("epe_median", np.nan)
+                    worse[n][h, i, j] = r.get("epe_median", np.inf) >= base
+    print(f"\nstability ({ssize}x{ssize}, thinning): EPE median (px); rows displacement {disp} of the frame, "
+          f"columns intensity change {inten}; '!' = no better than not registering")
+    for h, noise in enumerate(noises):
+        print(f" noise {noise}")
+        for n, _ in stab_methods:
+            cells = ["  ".join(f"{smap[n][h, i, j]:7.3f}{'!' if worse[n][h, i, j] else ' '}" for j in range(len(inten)))
+                     for i in range(len(disp))]
+            print(f"  {n:<16}" + "  |  ".join(cells))
 
     import matplotlib
 
@@ -147,28 +173,33 @@ def main(argv=None):
         ax.set_yscale("log")
         ax.set_xlabel("time per pair (s)")
         ax.set_ylabel("end-point error, median (px)")
-        ax.set_title("simulated seed-breast, 20 -> 25 %" if kind == "sim"
+        ax.set_title(f"simulated {args.sim}, last two steps{', noisy' if kind == 'sim-noisy' else ''}"
+                     if kind.startswith("sim")
                      else f"{kind}: {size}x{size}, 1 % motion, 10 % intensity change")
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out / "bench_register.png", dpi=110)
-    fig, axs = plt.subplots(1, len(stab_methods), figsize=(3.2 * len(stab_methods), 3.2))
-    for ax, (n, _) in zip(np.atleast_1d(axs), stab_methods):
-        im = ax.imshow(np.log10(np.maximum(smap[n], 1e-3)), cmap="viridis", vmin=-1.5, vmax=1.5, origin="lower")
-        for i in range(len(disp)):
-            for j in range(len(inten)):
-                ax.text(j, i, f"{smap[n][i, j]:.2f}{'!' if worse[n][i, j] else ''}", ha="center", va="center",
-                        color="w", fontsize=8)
-        ax.set_xticks(range(len(inten)), [f"{100 * v:.0f}%" for v in inten])
-        ax.set_yticks(range(len(disp)), [f"{100 * v:.0f}%" for v in disp])
-        ax.set_xlabel("intensity change")
-        ax.set_ylabel("displacement")
-        ax.set_title(n, fontsize=9)
-    fig.colorbar(im, ax=axs, fraction=0.02, label="log10 EPE median (px)")
+    fig, axs = plt.subplots(len(noises), len(stab_methods), figsize=(2.9 * len(stab_methods), 2.9 * len(noises)),
+                            squeeze=False)
+    for h, noise in enumerate(noises):
+        for ax, (n, _) in zip(axs[h], stab_methods):
+            im = ax.imshow(np.log10(np.maximum(smap[n][h], 1e-3)), cmap="viridis", vmin=-1.5, vmax=1.5, origin="lower")
+            for i in range(len(disp)):
+                for j in range(len(inten)):
+                    ax.text(j, i, f"{smap[n][h, i, j]:.2f}{'!' if worse[n][h, i, j] else ''}", ha="center",
+                            va="center", color="w", fontsize=8)
+            ax.set_xticks(range(len(inten)), [f"{100 * v:.0f}%" for v in inten])
+            ax.set_yticks(range(len(disp)), [f"{100 * v:.0f}%" for v in disp])
+            ax.set_xlabel("intensity change")
+            ax.set_ylabel("displacement")
+            ax.set_title(f"{n}, noise {noise}", fontsize=9)
+    fig.colorbar(im, ax=axs, fraction=0.02, label="log10 EPE median (px); '!' no better than identity")
     fig.savefig(args.out / "stability.png", dpi=110)
     (args.out / "bench_register.json").write_text(json.dumps(
-        {"size": size, "pairs": results, "stability": {"displacement": disp, "intensity": inten,
-                                                      "epe_median": {n: smap[n].tolist() for n in smap}}},
+        {"size": size, "pairs": results, "stability": {"size": ssize, "noise": noises, "displacement": disp,
+                                                      "intensity": inten,
+                                                      "epe_median": {n: smap[n].tolist() for n in smap},
+                                                      "no_better_than_identity": {n: worse[n].tolist() for n in worse}}},
         indent=1, default=float))
     print(f"charts {args.out / 'bench_register.png'}, {args.out / 'stability.png'}")
     return 0

@@ -185,7 +185,8 @@ def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size
     sim run``), or a scene (a :class:`sim.scene.Scene`, preset name such as ``"seed-breast"``,
     or TOML) to simulate first (cached in ``cache_dir``; a full-size scene takes about a minute).
     ``fixed_step``: default the last (most compressed); ``moving_step``: default 1, the least
-    compressed (the largest motion). Steps are 1-based as in the file.
+    compressed (the largest motion), or negative counting back from ``fixed_step`` (-1: the step
+    before, the paper's pair). Steps are 1-based as in the file.
     ``noisy``: use the raw frames corrected with the file's darks and flats (photon noise,
     detector defects filled) instead of the noise-free line integrals.
     ``size``: block-average images and field by the integer factor ``rows // size`` (the field
@@ -205,7 +206,7 @@ def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size
         g = h5["entry/simulation"]
         n_steps = g["line_integral"].shape[0]
         b = n_steps if fixed_step is None else int(fixed_step)
-        a = int(moving_step)
+        a = int(moving_step) if int(moving_step) > 0 else b + int(moving_step)  # -1: the step before
         if not 1 <= a < b <= n_steps:
             raise ValueError(f"steps moving={a}, fixed={b}: expected 1 <= moving < fixed <= {n_steps}")
         truth = g[f"displacement/step{a}_to_step{b}"][()].astype(np.float32)

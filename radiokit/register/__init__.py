@@ -30,8 +30,10 @@ class Quality:
 
     ``rc_before``/``rc_after``: residual complexity of ``moving - fixed`` and ``warped - fixed``
     (lower is better; insensitive to slow intensity change). ``ncc_before``/``ncc_after``:
-    normalised cross-correlation (higher is better). ``folds``: pixels with det J <= 0;
-    ``min_det_j``. ``ok`` is False, with a ``reason``, on folding, divergence (similarity worse
+    normalised cross-correlation (higher is better); all four measured on the pair area-averaged
+    to at most ~1.3 Mpx (by 2 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
+    resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
+    time (without this assessment). ``ok`` is False, with a ``reason``, on folding, divergence (similarity worse
     than not registering) or non-convergence.
     """
 
@@ -134,17 +136,44 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     return reg
 
 
+_ASSESS_PIXELS = 1_300_000
+
+
+def _bin(a, k):
+    """``a`` area-averaged by ``k`` (cropped to a multiple of k)."""
+    if k == 1:
+        return a
+    import cv2
+
+    a = np.asarray(a, np.float32)
+    if a.ndim == 3:
+        return np.stack([_bin(x, k) for x in a])
+    r, c = a.shape[0] // k, a.shape[1] // k
+    return cv2.resize(a[:r * k, :c * k], (c, r), interpolation=cv2.INTER_AREA)  # exact k x k means
+
+
 def _assess(reg, f, m, mask, info, seconds):
+    """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
+    to at most ~1.3 Mpx (2240 x 2240 by 2: 0.1 s instead of 0.5 s); det J at full resolution."""
     q = reg.quality
-    w = reg.warp(m)
-    sel = mask if mask is not None else np.ones(f.shape, bool)
-    q.rc_before = residual_complexity(m - f, sel)
-    q.rc_after = residual_complexity(w - f, sel)
-    q.ncc_before = ncc(m, f, sel)
-    q.ncc_after = ncc(w, f, sel)
+    k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
+    if k > 1:
+        fb, mb = _bin(f, k), _bin(m, k)
+        w = warp(mb, _bin(reg.displacement, k) / np.float32(k))
+        maskb = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
+        f, m, mask_s = fb, mb, maskb
+    else:
+        w = reg.warp(m)
+        mask_s = mask
+    q.rc_before = residual_complexity(m - f, mask_s)
+    q.rc_after = residual_complexity(w - f, mask_s)
+    q.ncc_before = ncc(m, f, mask_s)
+    q.ncc_after = ncc(w, f, mask_s)
     det = jacobian_determinant(reg.displacement)
-    q.folds = int(np.sum(det[sel] <= 0))
-    q.min_det_j = float(det[sel].min())
+    if mask is not None:
+        det = det[mask]
+    q.folds = int(np.count_nonzero(det <= 0))
+    q.min_det_j = float(det.min())
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds

@@ -21,7 +21,7 @@ misalignment (broadband residual) costs a lot. Its gradient is
 ``ssd`` (1/2 mean r^2), ``ncc`` (1 - normalised cross-correlation) and ``mi`` (negative Mattes
 mutual information, 32 bins, cubic B-spline Parzen window) use the same transform.
 Images are normalised by the fixed image's 1st-99th percentile range, so ``alpha`` is in those
-units (MIRT's default 0.05 for images in [0, 1]).
+units (MIRT's default is 0.05 for images in [0, 1]; ours 0.005, see PRESETS).
 
 Regularisation: ``regularisation * sum((L c)^2) / n_control``, ``L`` the discrete bending energy
 of the control lattice (second differences; affine fields are free), added at every level.
@@ -30,11 +30,14 @@ Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart: a few parameters
 where the images are coarse (fast convergence of large, smooth motion, e.g. the expansion of a
-textureless compressed body), fine ones only at full resolution. ``levels_skip`` stops before
-the finest levels (the B-spline field is still evaluated at full resolution): the fast preset.
+textureless compressed body), fine ones only at the finest level. Levels of more than
+``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier still
+(the B-spline field is evaluated at full resolution all the same): the default preset works
+up to about 1400 x 1400 pixels, the fast one up to about 300 x 300.
 """
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
@@ -47,18 +50,29 @@ from radiokit.register import _method
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
 PRESETS = {
-    # Measured on two cores, 2240^2 (this session; the issue note has the table):
-    # - analytic pair (1 % displacement, 10 % smooth intensity change, noise; the generator of
-    #   tests/test_register.py::_pair): default 8.3 s, end-point error median 0.19 / p95 0.61 px;
-    #   fast 0.7 s, 0.57 / 2.2 px.
-    # - seed-breast simulated projections 20 % -> 25 % (noise-free, textureless; truth 13 px):
-    #   default 1.6 px median. Textureless interiors leave the motion to the regulariser; more
-    #   coarse iterations helped most (80 -> 200 at the coarsest level: 2.4 -> 1.6 px).
-    # spacing 24 px with regularisation 1e-3 beat 32 px / 1e-2 (0.7 px: too stiff). Each level's
-    # lattice is spacing x max(1, factor / 2) apart (see bspline_register).
-    "default": dict(spacing=24, alpha=0.05, regularisation=1e-3, iterations=(200, 80, 30, 15), min_size=160,
-                    levels_skip=0),
-    "fast": dict(spacing=12, alpha=0.05, regularisation=1e-3, iterations=(80,), min_size=160, levels_skip=3),
+    # Chosen by benchmark (benchmarks/bench_register.py; regdata.analytic_pair at 2240 x 2240,
+    # 1 % displacement, 10 % intensity change, 1 % noise, two cores; the issue note has the
+    # tables). End-point error median / p95 inside the body, thinning pair then gain pair:
+    # - alpha 0.005 (was MIRT's 0.05): the energy comes closer to counting DCT coefficients, so a
+    #   smooth intensity change near the body's steep edge costs less than shifting the edge to
+    #   explain it -- where the remaining error is (0.04 px in the body's core, 0.3-0.6 px at its
+    #   edge). At 1120: 0.077 / 0.31 against 0.106 / 0.58 px.
+    # - levels of more than max_pixels are not run (the field is still evaluated at full
+    #   resolution): the 24 px lattice is 12 pixels of the half-resolution image, and at 2240
+    #   the full-resolution level cost 4 s for 0.005 px of median; that time goes into coarse
+    #   iterations instead (p95 0.85 -> 0.56 px).
+    # - regularisation 3e-3: 0.082 / 0.62 and 0.041 / 0.21 px, against 1e-2: 0.093 / 0.56 and
+    #   0.054 / 0.37, and 1e-3: 0.105 / 0.69 and 0.047 / 0.19.
+    # - spacing 24 px beat 16 px and 32 px (too coarse: 0.30 / 1.4 px at 1120).
+    # - converge_px: the finest level is "converged" when its last 5 iterations moved the field
+    #   by less than 0.25 px (99th percentile); on these pairs they move 0.1 px.
+    "default": dict(spacing=24, alpha=0.005, regularisation=3e-3, iterations=(300, 150, 80), min_size=160,
+                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25),
+    # levels of up to 100 kpx (at 2240: 140 and 280 px): 0.9 s at 2240, 0.21 / 0.94 and
+    # 0.09 / 0.48 px; regularisation 1e-3 against 1e-2: 0.60 / 3.6 px (the coarse lattice
+    # needs the freedom); spacing 16 against 12: 0.21 / 0.94 against 0.16 / 1.2 px, 30 % faster.
+    "fast": dict(spacing=16, alpha=0.005, regularisation=1e-3, iterations=(80, 40), min_size=96,
+                 max_pixels=100_000, levels_skip=0, converge_px=0.5),
 }
 
 
@@ -115,15 +129,18 @@ class BSplineField:
         if factor not in self._cache:
             rows = -(-self.shape[0] // factor)
             cols = -(-self.shape[1] // factor)
-            self._cache[factor] = (bspline_basis_matrix(rows, self.nr, self.spacing, factor, self.dtype),
-                                   bspline_basis_matrix(cols, self.nc, self.spacing, factor, self.dtype))
+            Br = sp.csr_matrix(bspline_basis_matrix(rows, self.nr, self.spacing, factor, self.dtype))
+            Bc = sp.csr_matrix(bspline_basis_matrix(cols, self.nc, self.spacing, factor, self.dtype))
+            self._cache[factor] = (Br, Bc, Br.T.tocsr(), Bc.T.tocsr())
         return self._cache[factor]
 
     def field(self, c, factor=1, shape=None):
         """Displacement (2, rows, cols) float32 at a grid ``factor`` times coarser, in *its* pixels."""
-        Br, Bc = self.matrices(factor)
+        Br, Bc, _, _ = self.matrices(factor)
         C = c.reshape(2, self.nr, self.nc).astype(self.dtype)
-        d = np.stack([Br @ C[k] @ Bc.T for k in range(2)]) / factor
+        # D = Br C Bc^T with the sparse (4 per row) basis: 3-5x faster than dense BLAS at 2240
+        d = np.stack([Br @ np.ascontiguousarray((Bc @ C[k].T).T) for k in range(2)])
+        d *= np.float32(1.0 / factor)
         if shape is not None:
             d = d[:, :shape[0], :shape[1]]
         return d
@@ -131,11 +148,13 @@ class BSplineField:
     def adjoint(self, g, factor=1):
         """Gradient with respect to the coefficients of a gradient ``g`` (2, rows, cols) with
         respect to the field (in the grid's pixels)."""
-        Br, Bc = self.matrices(factor)
+        _, _, BrT, BcT = self.matrices(factor)
         g = g.astype(self.dtype, copy=False)
-        full = np.zeros((2, Br.shape[0], Bc.shape[0]), self.dtype)
-        full[:, :g.shape[1], :g.shape[2]] = g
-        return np.stack([Br.T @ full[k] @ Bc for k in range(2)]).ravel().astype(np.float64) / factor
+        rows, cols = g.shape[1:]
+        # Br^T G Bc = (Bc^T (Br^T G)^T)^T, over the rows and columns the image has (a cropped
+        # grid's missing pixels contribute nothing)
+        out = np.stack([(BcT[:, :cols] @ (BrT[:, :rows] @ g[k]).T).T for k in range(2)])
+        return out.ravel().astype(np.float64) / factor
 
 
 _POOL = None
@@ -194,8 +213,17 @@ class _Level:
 
     def _bands(self):
         rows = self.shape[0]
+        if rows * self.shape[1] < 200_000 or _threads() == 1:  # threads cost more than they gain
+            return [slice(0, rows)]
         step = max(16, min(128, -(-rows // (4 * _threads()))))
         return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
+
+    def _map(self, fn):
+        """``fn(band)`` over the row bands, on the thread pool when there are several."""
+        bands = self._bands()
+        if len(bands) == 1:
+            return [fn(bands[0])]
+        return list(_pool().map(fn, bands))
 
     def _sample_band(self, d, sl, w, dy, dx):
         """Bilinear ``moving(x + d)`` and its exact derivatives along rows and columns on rows
@@ -241,7 +269,7 @@ class _Level:
         all cores (numpy releases the GIL); ``self._r`` gets the masked residual."""
         if not hasattr(self, "_w"):
             self._w, self._dy, self._dx, self._r = (np.empty(self.shape, self.fixed.dtype) for _ in range(4))
-        list(_pool().map(lambda sl: self._sample_band(d, sl, self._w, self._dy, self._dx), self._bands()))
+        self._map(lambda sl: self._sample_band(d, sl, self._w, self._dy, self._dx))
         return self._w, self._dy, self._dx
 
     def energy(self, d):
@@ -260,7 +288,7 @@ class _Level:
                 qs /= q2
                 return e
 
-            e = 0.5 * sum(_pool().map(band, self._bands())) / self.n
+            e = 0.5 * sum(self._map(band)) / self.n
             dr = sfft.idctn(q, norm="ortho", workers=-1, overwrite_x=True)
             dr *= 1.0 / self.n
         elif self.similarity == "ssd":
@@ -288,7 +316,7 @@ class _Level:
             np.multiply(g, gy[sl], out=out[0, sl])
             np.multiply(g, gx[sl], out=out[1, sl])
 
-        list(_pool().map(band, self._bands()))
+        self._map(band)
         return e, out
 
 
@@ -351,7 +379,8 @@ _Level._mutual_information = _mutual_information
 
 
 def _normalise(fixed, moving):
-    lo, hi = np.percentile(fixed, [1, 99])
+    step = max(1, int(np.sqrt(fixed.size / 250_000)))  # percentiles from ~250k samples
+    lo, hi = np.percentile(fixed[::step, ::step], [1, 99])
     if hi <= lo:
         lo, hi = float(fixed.min()), float(fixed.max())
     scale = 1.0 / (hi - lo)
@@ -371,12 +400,14 @@ def bspline_register(fixed, moving, mask=None, **options):
 
 
 def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", spacing=None, alpha=None,
-                      regularisation=None, iterations=None, min_size=None, levels_skip=None, callback=None):
+                      regularisation=None, iterations=None, min_size=None, max_pixels=None, levels_skip=None, converge_px=None,
+                      callback=None):
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: expected one of {', '.join(PRESETS)}")
     o = dict(PRESETS[preset])
     for k, v in dict(spacing=spacing, alpha=alpha, regularisation=regularisation, iterations=iterations,
-                     min_size=min_size, levels_skip=levels_skip).items():
+                     min_size=min_size, max_pixels=max_pixels, levels_skip=levels_skip,
+                     converge_px=converge_px).items():
         if v is not None:
             o[k] = v
     if o["spacing"] < 4:
@@ -386,8 +417,11 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     while min(f.shape) / (factors[-1] * 2) >= o["min_size"]:
         factors.append(factors[-1] * 2)
     factors = factors[::-1]  # coarse to fine
-    skip = min(int(o["levels_skip"]), len(factors) - 1)
-    run = factors[:len(factors) - skip]
+    # levels with more than max_pixels pixels are not run (at least the coarsest is)
+    size = f.shape[0] * f.shape[1]
+    run = [k for k in factors if size / (k * k) <= o["max_pixels"]] or factors[:1]
+    skip = min(int(o["levels_skip"]), len(run) - 1)
+    run = run[:len(run) - skip]
     its = list(o["iterations"])
     its = (its + [its[-1]] * len(run))[:len(run)]  # coarse to fine; a small image runs the coarse budgets
     lam = float(o["regularisation"])
@@ -416,10 +450,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
             grad += (2 * lam / npts) * np.concatenate([L.T @ LX[0], L.T @ LX[1]])
             return e, grad
 
-        trace = []
+        last = collections.deque(maxlen=6)  # the last iterates, for the convergence test
 
         def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
-            trace.append(float(intermediate_result.fun))
+            last.append(intermediate_result.x.copy())
 
         res = minimize(fun, np.zeros(grid.n_params), jac=True, method="L-BFGS-B", callback=track,
                        options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10))
@@ -429,20 +463,26 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
                                                               regularisation=lam)
         grids.append((grid, res.x))
         total_its += int(res.nit)
+        # how far the last 5 iterations moved the field: 99th percentile of |change|, full-
+        # resolution pixels (evaluated on the coarsest grid: the field is smooth on it)
+        move = float("inf")
+        if len(last) == last.maxlen:
+            k = run[0]
+            change = grid.field(last[-1] - last[0], k) * k
+            move = float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
         history.append(dict(factor=factor, spacing=grid.spacing, iterations=int(res.nit), energy=float(res.fun),
-                            status=int(res.status)))
+                            status=int(res.status), last_move_px=move))
         if callback is not None:
             callback(factor, res)
         if factor == run[-1]:
             message = str(res.message)
             # L-BFGS stops on its tolerances (0), at the precision limit of the line search (2), or
-            # at the iteration budget (1): the last is "not converged" only if the last 5
-            # iterations still gained more than 5 % of what the whole level gained
-            converged = res.status in (0, 2)
-            if res.status == 1 and len(trace) > 6:
-                converged = (trace[-6] - trace[-1]) <= 0.05 * max(trace[0] - trace[-1], 0.0)
-            if res.status == 1 and not converged:
-                message = f"still improving after {res.nit} iterations at the finest level run (raise iterations)"
+            # at the iteration budget (1): the last is "not converged" if the last 5 iterations
+            # still moved the field by more than converge_px (99th percentile)
+            converged = res.status in (0, 2) or move <= o["converge_px"]
+            if not converged:
+                message = (f"still moving: {move:.2g} px in the last 5 of {res.nit} iterations at the finest level "
+                           f"run (more than converge_px={o['converge_px']}; raise iterations)")
     d = np.zeros((2,) + f.shape, np.float32)
     for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
         d += g_.field(c_, 1, f.shape)
@@ -453,8 +493,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
 @_method("rc")
 def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast'),
-    spacing (px), alpha, regularisation, iterations (per level, coarse to fine), min_size,
-    levels_skip."""
+    spacing (px), alpha, regularisation, iterations (per level, coarse to fine), min_size (px,
+    the coarsest level's smaller side), max_pixels (finer levels are not run), levels_skip, converge_px (the
+    finest level run is converged when its last 5 iterations moved the field less than this, in
+    pixels, 99th percentile)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 

@@ -23,30 +23,40 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
 
 
 def jacobian_determinant(displacement) -> np.ndarray:
-    """det of the Jacobian of x -> x + d(x) per pixel (central differences); <= 0 is a fold."""
-    d = np.asarray(displacement, np.float64)
+    """det of the Jacobian of x -> x + d(x) per pixel (central differences, one-sided at the
+    border; float32); <= 0 is a fold."""
+    d = np.asarray(displacement, np.float32)
     drr, drc = np.gradient(d[0])
     dcr, dcc = np.gradient(d[1])
-    return (1 + drr) * (1 + dcc) - drc * dcr
+    drr += 1
+    dcc += 1
+    drr *= dcc
+    drc *= dcr
+    drr -= drc
+    return drr
 
 
 def residual_complexity(residual, mask=None, alpha=0.05) -> float:
-    """Myronenko & Song's residual complexity ``1/2 sum log(1 + (DCT r)^2 / alpha)`` of a
-    residual image (outside ``mask`` set to 0), per pixel; ``alpha`` relative to the residual's
-    mean square so that the number does not depend on the image's scale."""
-    r = np.asarray(residual, np.float64)
+    """Myronenko & Song's residual complexity ``1/2 mean log(1 + (DCT r)^2 / alpha)`` of a
+    residual image (outside ``mask`` set to 0), per pixel, with the orthonormal 2-D DCT (float32
+    transform, float64 sum)."""
+    r = np.asarray(residual, np.float32)
     if mask is not None:
-        r = np.where(mask, r, 0.0)
+        r = np.where(mask, r, np.float32(0))
     q = sfft.dctn(r, norm="ortho", workers=-1)
-    return float(0.5 * np.mean(np.log1p(q * q / alpha)))
+    q *= q
+    q *= np.float32(1.0 / alpha)
+    np.log1p(q, out=q)
+    return float(0.5 * np.mean(q, dtype=np.float64))
 
 
 def ncc(a, b, mask=None) -> float:
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
+    """Normalised cross-correlation of two images (inside ``mask``); 0 if either is constant."""
+    a = np.asarray(a, np.float32)
+    b = np.asarray(b, np.float32)
     if mask is not None:
         a, b = a[mask], b[mask]
-    a = a - a.mean()
-    b = b - b.mean()
-    den = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / den) if den > 0 else 0.0
+    a = (a - np.float32(a.mean(dtype=np.float64))).ravel().astype(np.float64)
+    b = (b - np.float32(b.mean(dtype=np.float64))).ravel().astype(np.float64)
+    den = np.sqrt(np.dot(a, a) * np.dot(b, b))
+    return float(np.dot(a, b) / den) if den > 0 else 0.0
