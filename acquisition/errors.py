@@ -1,0 +1,17 @@
+"""The exceptions acquisition raises on purpose. Every message names the device (its port, folder
+or model) and what went wrong."""
+from radiokit.errors import RadiokitError
+
+
+class DeviceError(RadiokitError):
+    """An instrument did not do what was asked: no reply, an unparseable or refused reply, a lost
+    link, a detector that delivered no frame in time."""
+
+
+class SourceFault(DeviceError):
+    """The X-ray source reported a fault while in use (interlock open, overload, beam dropped).
+    The driver has already switched the tube off when this is raised."""
+
+
+class DetectorTimeout(DeviceError):
+    """A detector delivered fewer frames than asked within its time-out."""
