@@ -27,7 +27,56 @@ import numpy as np
 from sim.detector import PanelModel
 from sim.scene import Scene, load_scene
 
-__all__ = ["simulate_experiment"]
+__all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts"]
+
+
+def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, np.ndarray]:
+    """The noise-free line integral of one state of ``solver``'s mesh, and its inclusion mask.
+
+    Parameters
+    ----------
+    scene : Scene
+        Beam, detector grid and attenuations (the body's, then each inclusion's).
+    solver : sim.mechanics.Solver
+        The mesh: its ``projection_mesh`` (the P2 nodes as a linear mesh) where it has one.
+    displacement : (dim, n_dofs) array, optional
+        ``State.displacement``; ``None`` projects the undeformed mesh (zero displacement).
+
+    Returns
+    -------
+    line_integral : (rows, cols) float32
+        ``-ln(I/I0) = sum_m mu_m L_m`` on the scene's detector grid.
+    inclusion_mask : (rows, cols) uint8
+        1 where the ray crosses an inclusion (all 0 for a scene without one).
+    """
+    from sim.xray import Geometry, path_lengths
+
+    mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
+    fem = getattr(solver, "projection_mesh", None) or solver.fem
+    thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
+    # (n_regions, rows, cols) mm
+    lengths = path_lengths(fem, Geometry.from_scene(scene), displacement, thickness_mm=thickness)
+    line_integral = np.tensordot(np.asarray(mus[:len(lengths)], np.float64), lengths, axes=1).astype(np.float32)
+    mask = ((lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1
+            else np.zeros(lengths.shape[1:], np.uint8))
+    return line_integral, mask
+
+
+def make_panel(scene: Scene, seed: int = 0) -> PanelModel:
+    """The model C7942 of ``scene.detector`` (its binned geometry); the panel's fixed pattern
+    (gain, offsets, defects) comes from ``seed + 7``."""
+    det = scene.detector
+    return PanelModel(rows=det.shape[0], cols=det.shape[1], binning=det.binning, seed=seed + 7)
+
+
+def open_beam_counts(scene: Scene) -> float:
+    """Open-beam counts per *unbinned* pixel, the ``i0`` of :class:`PanelModel`.
+
+    ``exposure.i0_counts`` is the open-beam signal of one read-out pixel; binning sums charge, so
+    the exposure per unbinned pixel is divided by ``binning**2`` to keep the ADC where the scene
+    puts it.
+    """
+    return scene.exposure.i0_counts / scene.detector.binning ** 2
 
 
 def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, frames_per_step=1, seed=0,
@@ -54,7 +103,6 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
 
     from radiokit.io import ExperimentWriter, ImageKey
     from sim.mechanics import compress
-    from sim.xray import Geometry, path_lengths
     from sim.truth import truth_displacement
 
     scene = load_scene(scene)
@@ -69,16 +117,11 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
     t_mech = time.perf_counter() - t0
 
     t = time.perf_counter()
-    mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
     line_integrals, masks = [], []
-    geom = Geometry.from_scene(scene)
-    fem = getattr(states[0].solver, "projection_mesh", None) or states[0].solver.fem
-    thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     for s in tqdm(states, desc="project", unit="state", disable=not progress):
-        lengths = path_lengths(fem, geom, s.displacement, thickness_mm=thickness)  # (n_regions, rows, cols) mm
-        line_integrals.append(np.tensordot(np.asarray(mus[:len(lengths)], np.float64), lengths, axes=1).astype(np.float32))
-        masks.append((lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1
-                     else np.zeros(lengths.shape[1:], np.uint8))
+        line_integral, mask = project_state(scene, states[0].solver, s.displacement)
+        line_integrals.append(line_integral)
+        masks.append(mask)
     t_proj = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -90,10 +133,8 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
 
     t = time.perf_counter()
     det = scene.detector
-    panel = PanelModel(rows=det.shape[0], cols=det.shape[1], binning=det.binning, seed=seed + 7)
-    # i0_counts is the open-beam signal of one read-out pixel; binning sums charge, so the
-    # exposure per unbinned pixel is divided to keep the ADC where the scene puts it.
-    i0 = scene.exposure.i0_counts / det.binning ** 2
+    panel = make_panel(scene, seed)
+    i0 = open_beam_counts(scene)
     rng = np.random.default_rng(seed)
     ex = scene.exposure
     src = {"name": "Hamamatsu L8121-01 (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}

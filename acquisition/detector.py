@@ -1,0 +1,476 @@
+"""Frame sources: the files the C7942's vendor software writes, or the virtual bench's panel.
+
+The C7942 reaches the computer through a frame grabber that only the vendor software (HiPic,
+XVS-FPD) drives; that software saves one file per frame (raw 16-bit little-endian, TIFF, or
+ITEX ``.img``) into a folder. :class:`FolderWatcher` is the detector as radiokit sees it in the
+lab: it waits for each new file to be complete, reads and checks it, and hands it over.
+:class:`SimDetector` renders the same frames from :class:`sim.bench.VirtualBench`.
+
+Both follow :class:`Detector`: ``arm()``, then ``acquire(n)`` yields :class:`Frame` objects as
+they arrive, raising :class:`~acquisition.errors.DetectorTimeout` when the next one does not come
+in time and :class:`~acquisition.errors.DeviceError` for a frame that is not a C7942 frame.
+
+Examples
+--------
+>>> import tempfile, threading, numpy as np, tifffile
+>>> folder = tempfile.mkdtemp()
+>>> watcher = FolderWatcher(folder, "*.tif", shape=(4, 6), settle_s=0.05, timeout_s=5)
+>>> watcher.arm()
+>>> for k in range(2):
+...     tifffile.imwrite(f"{folder}/frame_{k}.tif", np.full((4, 6), 100 + k, np.uint16))
+>>> [int(f.data[0, 0]) for f in watcher.acquire(2)]
+[100, 101]
+"""
+from __future__ import annotations
+
+import fnmatch
+import logging
+import math
+import operator
+import os
+import time
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from acquisition.errors import DetectorTimeout, DeviceError
+from radiokit.errors import FormatError
+from radiokit.io import PRESETS, read, sniff
+
+__all__ = ["Frame", "Detector", "FolderWatcher", "SimDetector"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Frame:
+    """One frame as it arrives.
+
+    Attributes
+    ----------
+    data : ndarray, (rows, cols) uint16
+        The raw frame, row 0 at the top as the vendor writes it.
+    time_s : float
+        ``time.time()`` when it arrived (was found complete and read, or was read out).
+    origin : str
+        The file it came from, or ``"sim"``.
+    """
+
+    data: np.ndarray
+    time_s: float
+    origin: str
+
+
+@typing.runtime_checkable
+class Detector(typing.Protocol):
+    """What the protocols need of a detector."""
+
+    shape: tuple[int, int]
+    pixel_size_mm: float
+
+    def arm(self) -> None:
+        """Get ready for a series."""
+
+    def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
+        """Yield ``n`` frames, each as soon as it is complete."""
+
+    def describe(self) -> dict:
+        """JSON-able: kind, folder or scene, shape, settings."""
+
+    def close(self) -> None:
+        """Release the detector."""
+
+
+def _count(n) -> int:
+    try:
+        n = operator.index(n)
+    except TypeError:
+        raise ValueError(f"acquire(n={n!r}): expected a whole number of frames") from None
+    if n < 0:
+        raise ValueError(f"acquire(n={n}): expected n >= 0")
+    return n
+
+
+# -- the vendor software's folder ---------------------------------------------------------------
+class FolderWatcher:
+    """The C7942 through the files its vendor software writes into ``folder``.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Where HiPic / XVS-FPD saves frames, one file per frame. Must exist.
+    pattern : str
+        Glob for the frame files' names, matched case-insensitively (the vendor software runs on
+        Windows, where ``*.tif`` also matches ``FRAME.TIF``).
+    shape : (rows, cols), optional
+        Every frame must have this shape. Default: the preset's, else whatever the first frame
+        has (then every later frame must match it).
+    preset : str, optional
+        A :data:`radiokit.io.PRESETS` geometry (e.g. ``"c7942-2x2"``): the shape of raw files and
+        the pixel size.
+    timeout_s : float
+        How long to wait for the next frame before :class:`DetectorTimeout`.
+    settle_s : float
+        A file is complete once its size and time stamp have not changed for this long and it
+        reads as a whole frame.
+    poll_s : float
+        How often the folder is listed.
+    discard_first : bool
+        Drop the first frame after each :meth:`arm` (the C7942's first frame after an
+        external-trigger start is invalid): it is waited for, read, logged, never yielded.
+    bits : int or None
+        ADC depth: a value above ``2**bits - 1`` is an error (12 for the C7942; None: no check).
+    pixel_size_mm : float, optional
+        Default: the preset's, else 0.05 times the binning implied by a 2240 / 1120 / 560 column
+        width, else 0.05.
+
+    Notes
+    -----
+    :meth:`arm` records the matching files already in the folder; they are never taken, however
+    often they change. New files are taken in order of modification time, then name. A file that
+    has settled but does not read as a frame (still being written with pauses, or truncated) is
+    retried until it does, until a later file has settled too (the writer has moved on), or until
+    the time-out; the last two raise :class:`DeviceError` naming the file. Files are never
+    deleted or modified.
+    """
+
+    kind = "folder"
+
+    def __init__(self, folder, pattern: str = "*.tif", *, shape=None, preset=None, timeout_s: float = 30.0,
+                 settle_s: float = 0.2, poll_s: float = 0.05, discard_first: bool = False, bits: int | None = 12,
+                 pixel_size_mm: float | None = None):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise DeviceError(f"detector folder {self.folder}: no such folder (where does the vendor software "
+                              "save frames?)")
+        self.pattern = str(pattern)
+        if preset is not None and preset not in PRESETS:
+            raise ValueError(f"detector folder {self.folder}: unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+        self.preset = preset
+        if shape is not None:
+            shape = tuple(int(v) for v in shape)
+            if len(shape) != 2 or min(shape) <= 0:
+                raise ValueError(f"detector folder {self.folder}: shape {shape}: expected (rows, cols), both > 0")
+        if preset is not None:
+            p = PRESETS[preset]
+            if shape is not None and shape != (p.rows, p.cols):
+                raise ValueError(f"detector folder {self.folder}: shape {shape} contradicts preset {preset} "
+                                 f"({p.rows}, {p.cols})")
+            shape = (p.rows, p.cols)
+        self.shape = shape
+        self._shape_given = shape is not None
+        for name, v in (("timeout_s", timeout_s), ("settle_s", settle_s), ("poll_s", poll_s)):
+            if not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"detector folder {self.folder}: {name}={v!r}: expected a time >= 0")
+        self.timeout_s, self.settle_s, self.poll_s = float(timeout_s), float(settle_s), max(float(poll_s), 1e-3)
+        self.discard_first = bool(discard_first)
+        self.bits = bits
+        self._pixel_size_given = pixel_size_mm is not None
+        self.pixel_size_mm = float(pixel_size_mm) if pixel_size_mm is not None else self._pixel_size()
+        self._armed = False
+        self._known: set[str] = set()
+        self._taken: set[str] = set()
+        self._discard_pending = False
+        self._seen: dict[str, tuple] = {}  # name -> ((size, mtime_ns), monotonic time first seen so)
+
+    def _pixel_size(self) -> float:
+        if self.preset is not None:
+            return PRESETS[self.preset].pixel_size_mm
+        if self.shape is not None and self.shape[1] in (2240, 1120, 560):
+            return 0.05 * (2240 // self.shape[1])
+        return 0.05
+
+    # -- the Detector interface ------------------------------------------------------------------
+    def arm(self) -> None:
+        """Record the files already there (never taken) and re-arm the discard of the first frame."""
+        self._known = {name for name, _ in self._listing()}
+        self._taken = set()
+        self._seen = {}
+        self._discard_pending = self.discard_first
+        self._armed = True
+        log.info("detector folder %s: armed, %d existing file(s) matching %r ignored%s", self.folder, len(self._known),
+                 self.pattern, "; the first new frame will be discarded" if self.discard_first else "")
+
+    def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
+        """Yield the next ``n`` new frame files in arrival order, each once it is complete.
+
+        Raises
+        ------
+        DetectorTimeout
+            The next file did not arrive (or complete) within ``timeout_s`` (default: the
+            watcher's); the message names the folder, the pattern and how many of ``n`` arrived.
+        DeviceError
+            A file is not a valid frame (unreadable, not 2-D uint16, values beyond the ADC, wrong
+            shape); the message names the file. The file counts as taken.
+        """
+        n = _count(n)
+        timeout = self.timeout_s if timeout_s is None else float(timeout_s)
+        if not self._armed:
+            log.warning("detector folder %s: acquire() before arm(); arming now", self.folder)
+            self.arm()
+        got = 0
+        while got < n:
+            path, data = self._next(time.monotonic() + timeout, timeout, got, n)
+            if self._discard_pending:
+                self._discard_pending = False
+                log.info("detector folder %s: discarded %s, the invalid first frame after the trigger start",
+                         self.folder, path.name)
+                continue
+            got += 1
+            yield Frame(data, time.time(), str(path))
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "folder": str(self.folder.resolve()), "pattern": self.pattern,
+                "shape": list(self.shape) if self.shape is not None else None, "preset": self.preset,
+                "pixel_size_mm": self.pixel_size_mm, "bits": self.bits, "timeout_s": self.timeout_s,
+                "settle_s": self.settle_s, "poll_s": self.poll_s, "discard_first": self.discard_first}
+
+    def close(self) -> None:
+        self._armed = False
+
+    def __repr__(self):
+        return f"FolderWatcher({str(self.folder)!r}, {self.pattern!r}, shape={self.shape})"
+
+    # -- the folder ----------------------------------------------------------------------------
+    def _listing(self) -> list[tuple[str, os.stat_result]]:
+        pat = self.pattern.lower()
+        out = []
+        try:
+            entries = list(os.scandir(self.folder))
+        except OSError as exc:
+            raise DeviceError(f"detector folder {self.folder}: cannot be listed: {exc.strerror or exc}") from exc
+        for e in entries:
+            if not fnmatch.fnmatchcase(e.name.lower(), pat):
+                continue
+            try:
+                if e.is_file():
+                    out.append((e.name, e.stat()))
+            except FileNotFoundError:  # removed between listing and stat
+                continue
+        return out
+
+    def _next(self, deadline: float, timeout: float, got: int, n: int) -> tuple[Path, np.ndarray]:
+        """Wait for the earliest new file to be complete; read and check it."""
+        failure = None  # (name, message) of a settled file that does not read
+        while True:
+            now = time.monotonic()
+            new = sorted(((st.st_mtime_ns, name, st) for name, st in self._listing()
+                          if name not in self._known and name not in self._taken), key=lambda t: t[:2])
+            settled = []
+            for _, name, st in new:
+                sig = (st.st_size, st.st_mtime_ns)
+                seen = self._seen.get(name)
+                if seen is None or seen[0] != sig:
+                    self._seen[name] = (sig, now)
+                    if failure is not None and failure[0] == name:
+                        failure = None  # it changed: still being written
+                elif now - seen[1] >= self.settle_s and st.st_size > 0:
+                    settled.append(name)
+            if new and new[0][1] in settled:
+                name = new[0][1]
+                path = self.folder / name
+                try:
+                    data = self._read(path)
+                except _NotYet as exc:
+                    failure = (name, str(exc))
+                    if len(settled) > 1:  # a later file is complete: this one will not be
+                        self._taken.add(name)
+                        raise DeviceError(f"{path}: not a readable frame file ({exc}); a later file "
+                                          f"({settled[1]}) is already complete") from None
+                else:
+                    self._taken.add(name)
+                    self._seen.pop(name, None)
+                    return path, data
+            if now >= deadline:
+                if failure is not None:
+                    self._taken.add(failure[0])
+                    raise DeviceError(f"{self.folder / failure[0]}: not a readable frame file after "
+                                      f"{timeout:g} s: {failure[1]}")
+                growing = f"; {new[0][1]} is still being written" if new else ""
+                raise DetectorTimeout(f"detector folder {self.folder}: {got} of {n} frames arrived "
+                                      f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{growing}")
+            time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
+
+    def _read(self, path: Path) -> np.ndarray:
+        """Read one frame file and check it; :class:`_NotYet` if it does not read (yet)."""
+        try:
+            fmt = sniff(path)
+            if fmt == "hdf5":
+                self._taken.add(path.name)
+                raise DeviceError(f"{path}: an HDF5 file, not a frame file the vendor software writes "
+                                  "(raw, TIFF or ITEX .img)")
+            hints = {}
+            if fmt == "raw":
+                hints["shape"] = self._raw_shape(path)
+            frames = read(path, **hints)
+        except FormatError as exc:
+            raise _NotYet(exc.problem) from None
+        except OSError as exc:  # e.g. still locked by the writer on a network share
+            raise _NotYet(exc.strerror or str(exc)) from None
+        data = frames.data
+        if data.shape[0] != 1:
+            self._taken.add(path.name)
+            raise DeviceError(f"{path}: holds {data.shape[0]} frames; the detector folder expects one frame per file")
+        frame = data[0]
+        self._check(path, frame)
+        return frame
+
+    def _raw_shape(self, path: Path) -> tuple[int, int]:
+        if self.shape is not None:
+            return self.shape
+        size = path.stat().st_size
+        match = [p for p in PRESETS.values() if p.frame_bytes == size]
+        if len(match) != 1:
+            raise _NotYet(f"{size} bytes is no single C7942 frame ({PRESETS['c7942'].frame_bytes} bytes at "
+                          "2240x2240); give the watcher shape= or preset=")
+        return (match[0].rows, match[0].cols)
+
+    def _check(self, path: Path, frame: np.ndarray) -> None:
+        def bad(problem):
+            self._taken.add(path.name)
+            return DeviceError(f"{path}: {problem}")
+
+        if frame.ndim != 2:
+            raise bad(f"frame has shape {frame.shape}; expected (rows, cols)")
+        if frame.dtype != np.uint16:
+            raise bad(f"pixels are {frame.dtype}; the C7942 delivers 16-bit words (uint16): save frames as "
+                      "16-bit in the vendor software")
+        if self.bits is not None and frame.size:
+            top = (1 << self.bits) - 1
+            peak = int(frame.max())
+            if peak > top:
+                hint = ""
+                if int(frame.byteswap().max()) <= top:
+                    hint = " The byte-swapped values fit: the file is big-endian."
+                elif not np.any(frame & 0xF):
+                    hint = " The low 4 bits are all 0: MSB-aligned 12-bit data (shift right by 4)."
+                raise bad(f"pixel values up to {peak} exceed the {self.bits}-bit range 0..{top} of the C7942: wrong "
+                          f"bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}")
+        if self.shape is not None and frame.shape != self.shape:
+            why = "given" if self._shape_given else "of the first frame"
+            raise bad(f"frame is {frame.shape[0]}x{frame.shape[1]} (rows x cols); expected "
+                      f"{self.shape[0]}x{self.shape[1]} ({why})")
+        if self.shape is None:
+            self.shape = tuple(frame.shape)
+            if not self._pixel_size_given:
+                self.pixel_size_mm = self._pixel_size()
+
+
+class _NotYet(Exception):
+    """A settled file does not read as a frame (yet)."""
+
+
+# -- the virtual bench ---------------------------------------------------------------------------
+class SimDetector:
+    """The C7942 of the virtual bench (:class:`sim.bench.VirtualBench`).
+
+    Each frame is rendered through the bench's panel model at the bench's current state when it
+    is read out: X-rays off (per ``beam``) gives dark frames; on with the phantom out, flat frames;
+    on with it in, exposures of the current line integral. The open-beam signal scales with the
+    current relative to the scene's ``exposure.current_ua`` and with the square of the voltage
+    relative to ``exposure.voltage_kv`` (a tube's output ~ I kV^2; attenuation does not change
+    with kV in this monoenergetic model): see :meth:`sim.bench.VirtualBench.open_beam`.
+
+    Parameters
+    ----------
+    bench : VirtualBench, or a scene (Scene, preset name or TOML)
+        A scene gets a bench of its own (``VirtualBench(scene, seed=seed)``).
+    beam : callable, optional
+        ``beam() -> (xray_on, kv, ua)``, read at each frame's read-out (the protocols pass one
+        that reads the emulated source). None: always on at the scene's exposure.
+    frame_time_s : float
+        Sleep per frame, to emulate the panel's rate (0.5 s at 1x1, 0.25 at 2x2, 0.11 at 4x4).
+    seed : int
+        The frames' noise.
+
+    Examples
+    --------
+    >>> from sim.scene import block_scene
+    >>> det = SimDetector(block_scene(size_mm=10), beam=lambda: (False, 0.0, 0.0))
+    >>> det.arm()
+    >>> [f.origin for f in det.acquire(2)], det.shape
+    (['sim', 'sim'], (560, 560))
+    """
+
+    kind = "sim"
+
+    def __init__(self, bench, beam=None, *, frame_time_s: float = 0.0, seed: int = 0):
+        if not hasattr(bench, "expose"):
+            from sim.bench import VirtualBench
+
+            bench = VirtualBench(bench, seed=seed)
+        self.bench = bench
+        self.beam = beam
+        self.frame_time_s = float(frame_time_s)
+        if not (math.isfinite(self.frame_time_s) and self.frame_time_s >= 0):
+            raise ValueError(f"frame_time_s={frame_time_s!r}: expected a time >= 0")
+        self.seed = int(seed)
+        self.shape = tuple(bench.panel.shape)
+        self.pixel_size_mm = float(bench.scene.detector.pixel_size_mm)
+        self._rng = np.random.default_rng(self.seed)
+        self._remaining = None  # frames left before the simulated loss (fail_after)
+        self._closed = False
+        self.frames_delivered = 0
+
+    def _name(self) -> str:
+        return f"simulated detector ({self.bench.scene.name})"
+
+    def fail_after(self, k: int | None) -> None:
+        """Fault injection: deliver ``k`` more frames, then none (a lost detector): ``acquire``
+        raises :class:`DetectorTimeout` at the next frame, and in every later call. ``None``
+        restores the detector."""
+        self._remaining = None if k is None else operator.index(k)
+
+    def arm(self) -> None:
+        if self._closed:
+            raise DeviceError(f"{self._name()}: closed")
+
+    def _beam(self) -> tuple[bool, float | None, float | None]:
+        if self.beam is None:
+            return True, None, None
+        on, kv, ua = self.beam()
+        return bool(on), float(kv), float(ua)
+
+    def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
+        """Yield ``n`` frames rendered from the bench, one per ``frame_time_s``.
+
+        A lost detector (:meth:`fail_after`) raises :class:`DetectorTimeout` at once, without
+        waiting out ``timeout_s``: the simulation knows the frame will not come. A
+        ``frame_time_s`` longer than ``timeout_s`` times out after ``timeout_s``.
+        """
+        n = _count(n)
+        for k in range(n):
+            if self._closed:
+                raise DeviceError(f"{self._name()}: closed")
+            if self._remaining is not None and self._remaining <= 0:
+                raise DetectorTimeout(f"{self._name()}: {k} of {n} frames arrived; the detector stopped "
+                                      "delivering (lost: fail_after)")
+            if timeout_s is not None and self.frame_time_s > timeout_s:
+                time.sleep(max(float(timeout_s), 0.0))
+                raise DetectorTimeout(f"{self._name()}: {k} of {n} frames arrived; a frame takes "
+                                      f"{self.frame_time_s:g} s, longer than the time-out of {timeout_s:g} s")
+            if self.frame_time_s:
+                time.sleep(self.frame_time_s)
+            on, kv, ua = self._beam()
+            data = self.bench.expose(1, xray_on=on, kv=kv, ua=ua, rng=self._rng)[0]
+            if self._remaining is not None:
+                self._remaining -= 1
+            self.frames_delivered += 1
+            yield Frame(data, time.time(), "sim")
+
+    def describe(self) -> dict:
+        d = {"kind": self.kind, "shape": list(self.shape), "pixel_size_mm": self.pixel_size_mm,
+             "frame_time_s": self.frame_time_s, "seed": self.seed}
+        bench = self.bench.describe() if hasattr(self.bench, "describe") else {}
+        d["scene"] = bench.pop("scene", getattr(self.bench.scene, "name", None))
+        d["bench"] = bench
+        return d
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __repr__(self):
+        return f"SimDetector({self.bench!r})"
