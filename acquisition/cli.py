@@ -1,0 +1,130 @@
+"""``radiokit acquire``: run a protocol on the lab's bench or the virtual one, and bench-top source
+commands (entry-point group ``radiokit.commands``)."""
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+SOURCE_ACTIONS = ("status", "warm-up", "on", "off")
+
+
+def add_acquire(subparsers):
+    p = subparsers.add_parser(
+        "acquire", help="run a compression-series protocol (or: acquire source status|warm-up|on|off --port URL)",
+        description="Run a compression-series protocol (TOML) on the lab's devices, or with --sim on the virtual "
+                    "bench (L8121 emulator on a pseudo-terminal, simulated panel and frame). Every frame is written "
+                    "and flushed as it arrives; the tube is switched off on every exit path. "
+                    "`radiokit acquire source ACTION --port URL` talks to the source alone.")
+    p.add_argument("protocol", help="protocol TOML file, or the word 'source' for source commands")
+    p.add_argument("action", nargs="?", choices=SOURCE_ACTIONS, help="with 'source': what to do")
+    p.add_argument("--sim", action="store_true", help="run on the virtual bench (emulated devices)")
+    p.add_argument("--resume", action="store_true", help="complete an interrupted experiment file")
+    p.add_argument("--dry-run", action="store_true", help="print the plan, its duration and beam-on time; touch nothing")
+    p.add_argument("-o", "--output", type=Path, help="experiment file (default: the protocol's output)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing experiment file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-v", "--verbose", action="store_true", help="log every serial exchange")
+    s = p.add_argument_group("source commands")
+    s.add_argument("--port", help="serial port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port")
+    s.add_argument("--baudrate", type=int, default=38400)
+    s.add_argument("--kv", type=float, help="tube voltage for 'on' (kV)")
+    s.add_argument("--ua", type=float, help="tube current for 'on' (uA)")
+    s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if args.protocol == "source":
+        return _source(args)
+    if args.action:
+        print(f"error: {args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)",
+              file=sys.stderr)
+        return 2
+    from acquisition.errors import DeviceError
+    from acquisition.protocols.compression_series import _existing, load_protocol, plan, run
+
+    try:
+        p = load_protocol(args.protocol)
+    except DeviceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.output:
+        p.output = str(args.output)
+    if args.dry_run:
+        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
+        pl = plan(p, done)
+        where = "the virtual bench" if args.sim else f"source {p.source.port or '(port not set)'}"
+        print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
+        print(pl.table())
+        print(f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
+              f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+              f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})")
+        return 0
+    try:
+        res = run(p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
+    except KeyboardInterrupt as exc:
+        r = getattr(exc, "result", None)
+        saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+        print(f"\ninterrupted{' in phase ' + r.phase if r else ''}: the tube is off; {saved}; "
+              f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume` completes it", file=sys.stderr)
+        return 130
+    except (DeviceError, OSError, ValueError) as exc:
+        r = getattr(exc, "result", None)
+        print(f"error: {exc}", file=sys.stderr)
+        if r is not None:
+            print(f"stopped in phase {r.phase}: the tube is off; {r.frames_total} frames saved in {r.output}; "
+                  f"--resume completes the series", file=sys.stderr)
+        return 1
+    oh = sorted(res.per_frame_overhead_s)
+    med = oh[len(oh) // 2] * 1000 if oh else float("nan")
+    print(f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
+          f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)")
+    return 0
+
+
+def _source(args) -> int:
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    if not args.action:
+        print("error: radiokit acquire source needs an action: status, warm-up, on or off", file=sys.stderr)
+        return 2
+    if not args.port:
+        print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
+        return 2
+    try:
+        src = L8121(args.port, baudrate=args.baudrate)
+        try:
+            if args.action == "status":
+                kv, ua = src.measured()
+                print(f"{args.port}: state {src.status().name}, measured {kv:g} kV {ua:g} uA, interlock "
+                      f"{'closed' if src.interlock_closed() else 'OPEN'}")
+            elif args.action == "warm-up":
+                src.warm_up(timeout_s=args.timeout, progress=True)
+                print(f"{args.port}: warmed up, state {src.status().name}")
+            elif args.action == "on":
+                if args.kv is None or args.ua is None:
+                    print("error: 'on' needs --kv and --ua", file=sys.stderr)
+                    return 2
+                reading = src.on(args.kv, args.ua)
+                print(f"{args.port}: X-rays ON, {reading}. They stay on: `radiokit acquire source off --port "
+                      f"{args.port}` switches them off.")
+                return 0
+            else:
+                src.off()
+                print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
+        except BaseException:
+            src.close()  # a failed or interrupted command leaves the tube off
+            raise
+        else:
+            if args.action == "on":
+                src.detach()  # bench work: on until `acquire source off`
+            else:
+                src.close()
+    except (DeviceError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,248 @@
+"""Serial links to instruments: one locked command–reply exchange at a time.
+
+:class:`SerialTransport` wraps :func:`serial.serial_for_url`, so the same driver talks to a device
+path (``/dev/ttyUSB0``, ``COM3``), a terminal server (``socket://host:port``, ``rfc2217://host:port``),
+a pseudo-terminal of an emulator or pyserial's ``loop://``. It knows nothing about any instrument:
+it sends a line, reads a line, times the exchange and logs it.
+
+Every exchange is logged on the ``acquisition.transport`` logger at DEBUG level, as
+``<port> > <command>`` and ``<port> < <reply> (<ms> ms)``, so a lab notebook that sets that logger
+to DEBUG records the whole conversation with the instrument. Reconnections are logged at WARNING.
+
+Examples
+--------
+pyserial's ``loop://`` sends every byte back, so a query returns the command itself:
+
+>>> with SerialTransport("loop://", min_interval_s=0) as link:
+...     link.query("TYP")
+'TYP'
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import serial
+
+from acquisition.errors import DeviceError
+
+__all__ = ["SerialTransport"]
+
+logger = logging.getLogger(__name__)
+
+try:  # pyserial's posix backend lets termios.error escape from tcflush on a vanished pty
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - Windows
+    class _TermiosError(Exception):
+        pass
+
+# What a lost link raises: close, reopen, retry.
+_LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
+
+# How long one low-level read may block before the exchange's own deadline is checked again.
+_READ_SLICE_S = 0.05
+_LINE_ENDS = (b"\r", b"\n")
+
+
+class SerialTransport:
+    """A line-oriented serial link with explicit time-outs and one exchange at a time.
+
+    Parameters
+    ----------
+    url : str
+        Anything :func:`serial.serial_for_url` opens: a device path, ``socket://host:port``,
+        ``rfc2217://host:port``, ``loop://``.
+    baudrate : int
+        Bits per second; the frame is always 8 data bits, no parity, 1 stop bit (8N1).
+    timeout_s : float
+        Longest wait for a complete reply, from the moment the command was written. A silent device
+        raises :class:`~acquisition.errors.DeviceError` after this, never hangs.
+    write_timeout_s : float
+        Longest wait for the command to leave the output buffer.
+    min_interval_s : float
+        Shortest time between the end of one exchange and the next command (controllers that need a
+        pause between commands).
+    terminator : str
+        Appended to every command. Replies may end in CR, LF or CR LF; all are accepted and
+        stripped, and empty lines (the LF of a CR LF) are skipped.
+    retries : int
+        How often an exchange is repeated after the link was lost (``SerialException`` or
+        ``OSError``), each time after closing and reopening the port. Time-outs are not retried:
+        a silent device is an error.
+    log : logging.Logger
+        Where exchanges are logged (DEBUG) and reconnections (WARNING).
+    open : bool
+        Open the port now (default); otherwise call :meth:`open` later.
+
+    Raises
+    ------
+    DeviceError
+        The port cannot be opened (message names the port and pyserial's reason).
+
+    Notes
+    -----
+    DTR and RTS are asserted when the port opens (links where they mean nothing, such as
+    ``socket://`` or a pseudo-terminal, ignore them).
+    """
+
+    def __init__(self, url: str, *, baudrate: int = 38400, timeout_s: float = 1.0,
+                 write_timeout_s: float = 1.0, min_interval_s: float = 0.05, terminator: str = "\r",
+                 retries: int = 1, log: logging.Logger = logger, open: bool = True):
+        if timeout_s <= 0 or write_timeout_s <= 0:
+            raise ValueError(f"{url}: time-outs must be positive (timeout_s={timeout_s}, "
+                             f"write_timeout_s={write_timeout_s}); a link without a time-out can hang")
+        if min_interval_s < 0 or retries < 0:
+            raise ValueError(f"{url}: min_interval_s ({min_interval_s}) and retries ({retries}) must be >= 0")
+        if not terminator:
+            raise ValueError(f"{url}: empty terminator")
+        self.url = str(url)
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.write_timeout_s = float(write_timeout_s)
+        self.min_interval_s = float(min_interval_s)
+        self.terminator = terminator
+        self.retries = int(retries)
+        self.log = log
+        self._serial: serial.SerialBase | None = None
+        self._lock = threading.Lock()
+        self._last_exchange = float("-inf")
+        if open:
+            self.open()
+
+    # -- life cycle -------------------------------------------------------------------------------
+    @property
+    def port(self) -> str:
+        """The url this transport was opened with (used in every message)."""
+        return self.url
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the port is open."""
+        return self._serial is not None and self._serial.is_open
+
+    def open(self) -> None:
+        """Open the port (8N1, DTR and RTS asserted); a no-op when it is open."""
+        if self.is_open:
+            return
+        try:
+            ser = serial.serial_for_url(self.url, do_not_open=True)
+            ser.baudrate = self.baudrate
+            ser.bytesize = serial.EIGHTBITS
+            ser.parity = serial.PARITY_NONE
+            ser.stopbits = serial.STOPBITS_ONE
+            ser.timeout = min(_READ_SLICE_S, self.timeout_s)
+            ser.write_timeout = self.write_timeout_s
+            ser.xonxoff = ser.rtscts = ser.dsrdtr = False
+            ser.dtr = True  # applied by open()
+            ser.rts = True
+            ser.open()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"{self.url}: cannot open the port ({exc})") from exc
+        self._serial = ser
+        self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
+
+    def close(self) -> None:
+        """Close the port; safe to call more than once."""
+        ser, self._serial = self._serial, None
+        if ser is not None:
+            try:
+                ser.close()
+            except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
+                pass
+            self.log.info("%s closed", self.url)
+
+    def __enter__(self) -> SerialTransport:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"SerialTransport({self.url!r}, baudrate={self.baudrate}, {'open' if self.is_open else 'closed'})"
+
+    # -- exchanges --------------------------------------------------------------------------------
+    def query(self, command: str) -> str:
+        """Send ``command`` and return the reply line, stripped of its terminator.
+
+        The exchange holds the transport's lock from the pause before sending to the end of the
+        reply, so threads sharing a transport never interleave or pipeline commands.
+
+        Parameters
+        ----------
+        command : str
+            The command without its terminator, e.g. ``"STS"``.
+
+        Returns
+        -------
+        str
+            The reply without CR/LF and surrounding blanks.
+
+        Raises
+        ------
+        DeviceError
+            No complete reply within ``timeout_s`` (message names port, command and any partial
+            reply), or the link was lost and could not be re-established within ``retries``.
+        """
+        if any(end.decode() in command for end in _LINE_ENDS):
+            raise ValueError(f"{self.url}: command {command!r} contains a line end")
+        payload = (command + self.terminator).encode("ascii")
+        with self._lock:
+            attempt = 0
+            while True:
+                try:
+                    if not self.is_open:
+                        self.open()
+                    return self._exchange(command, payload)
+                except _LINK_ERRORS as exc:
+                    # Write time-outs are a device that does not take data, not a lost link.
+                    if isinstance(exc, serial.SerialTimeoutException):
+                        raise DeviceError(f"{self.url}: {command}: write timed out after "
+                                          f"{self.write_timeout_s:g} s") from exc
+                    attempt += 1
+                    self.close()
+                    if attempt > self.retries:
+                        raise DeviceError(f"{self.url}: {command}: link lost ({exc}); "
+                                          f"gave up after {self.retries} reconnect(s)") from exc
+                    self.log.warning("%s: link lost during %s (%s); reconnecting (%d/%d)",
+                                     self.url, command, exc, attempt, self.retries)
+                    try:
+                        self.open()
+                    except DeviceError as reopen:
+                        raise DeviceError(f"{self.url}: {command}: link lost ({exc}) and reconnecting "
+                                          f"failed ({reopen})") from exc
+
+    def _exchange(self, command: str, payload: bytes) -> str:
+        ser = self._serial
+        wait = self._last_exchange + self.min_interval_s - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        ser.reset_input_buffer()  # a late reply to an earlier, timed-out command
+        t0 = time.monotonic()
+        self.log.debug("%s > %s", self.url, command)
+        try:
+            ser.write(payload)
+            ser.flush()
+            reply = self._read_line(command, t0 + self.timeout_s)
+        finally:
+            self._last_exchange = time.monotonic()
+        self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
+        return reply
+
+    def _read_line(self, command: str, deadline: float) -> str:
+        ser = self._serial
+        buf = bytearray()
+        while True:
+            cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
+            if cut >= 0:
+                line, buf = bytes(buf[:cut]), buf[cut + 1:]
+                if line.strip():  # skip the empty line between the CR and LF of a CR LF
+                    return line.decode("ascii", errors="replace").strip()
+                continue
+            left = deadline - time.monotonic()
+            if left <= 0:
+                got = f"; partial reply {bytes(buf)!r}" if buf else ""
+                self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
+                raise DeviceError(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
+            # the port's read time-out is one slice, so the deadline is overshot by at most a slice
+            buf += ser.read(max(1, ser.in_waiting))

@@ -1,0 +1,285 @@
+"""The compression-series protocol (acquisition/protocols/compression_series.py) on the virtual bench:
+the L8121 emulator on a pseudo-terminal through the real pyserial stack, SimDetector and SimFrame.
+
+The fault matrix: for each fault -- the interlock opening mid-step, an overload, a silent
+controller, a garbage reply, the detector timing out, the disk filling (a writer whose append
+raises ``OSError(ENOSPC)``: the one fake here, a full disk cannot be caused safely), Ctrl-C in
+each phase -- the tube is off within 1 s of the fault being detectable (the emulator's own state,
+watched every 5 ms), the file opens and holds every frame completed before the fault with its
+metadata (frames the beam monitor could not vouch for -- taken after its last good reading, at
+most a poll period before the fault -- are kept, labelled image_key 3, invalid), the error names the fault, and ``resume=True`` finishes the series. The matrix is
+printed at the end of the module's run.
+
+Bounds: a fault the controller reports (interlock, overload, garbage) is seen at the next poll of
+the beam monitor (``poll_s`` 0.1 s) plus one exchange (<= 0.1 s); a silent controller needs the
+reply time-out (``timeout_s``, 0.5 s here) first, so its bound is poll + time-out + 0.5 s;
+everything else switches off on the way out of ``run``.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import re
+import signal
+import threading
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
+from acquisition.protocols import load_protocol, plan, run, sim_devices
+from radiokit.io import ExperimentWriter, ImageKey
+
+DARKS, FLATS, PER_STEP = 2, 2, 3
+STEPS = (0.15, 0.20, 0.25)
+TOTAL = DARKS + FLATS + PER_STEP * len(STEPS)
+POLL_S = 0.1
+TIMEOUT_S = 0.5  # the driver's reply time-out (1 s by default; shorter keeps the silent case quick)
+MATRIX = []
+
+
+@pytest.fixture(scope="module")
+def scene_toml():
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=STEPS)
+    scene.detector.binning = 4
+    return scene.to_toml()
+
+
+@pytest.fixture(scope="module")
+def bench(scene_toml):
+    """One virtual bench for the module: its finite-element states are solved once."""
+    from sim.bench import VirtualBench
+    from sim.scene import load_scene
+
+    b = VirtualBench(load_scene(scene_toml), seed=0)
+    b.prepare(STEPS)
+    return b
+
+
+def protocol(tmp_path, scene_toml, **series):
+    return load_protocol({
+        "output": str(tmp_path / "series.h5"), "name": "test",
+        "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": POLL_S, "timeout_s": TIMEOUT_S,
+                   "off_attempts": 1},
+        "detector": {"kind": "sim", "timeout_s": 2.0},
+        "frame": {"kind": "sim", "initial_height_mm": 10.0},
+        "series": dict(dict(darks=DARKS, flats=FLATS, frames_per_step=PER_STEP, steps=list(STEPS), settle_s=0.0),
+                       **series),
+        "sim": {"scene": scene_toml, "warmup_s": 0.3, "ramp_s": 0.1, "warmed_up": True},
+    })
+
+
+def contents(path):
+    with h5py.File(path, "r") as h5:
+        n = int(h5["entry"].attrs["frames_complete"])
+        return {"key": h5["entry/instrument/detector/image_key"][:n], "step": h5["entry/sample/compression/step"][:n],
+                "kv": h5["entry/control/voltage"][:n], "ua": h5["entry/control/current"][:n],
+                "time": h5["entry/control/time"][:n], "gap": h5["entry/sample/compression/gap"][:n],
+                "ratio": h5["entry/sample/compression/ratio"][:n],
+                "data": h5["entry/instrument/detector/data"][:n]}
+
+
+def assert_complete(path):
+    """A finished series: every frame there, each with the metadata its kind must carry."""
+    c = contents(path)
+    assert np.sum(c["key"] == ImageKey.DARK) == DARKS
+    assert np.sum(c["key"] == ImageKey.FLAT) == FLATS
+    for i, r in enumerate(STEPS, start=1):
+        sel = (c["key"] == ImageKey.PROJECTION) & (c["step"] == i)
+        assert sel.sum() == PER_STEP, f"step {i}: {sel.sum()} projections"
+        np.testing.assert_allclose(c["ratio"][sel], r, atol=1e-6)
+        np.testing.assert_allclose(c["gap"][sel], 10.0 * (1 - r) * 1e-3, rtol=1e-6)  # metres
+    beam = np.isin(c["key"], [ImageKey.FLAT, ImageKey.PROJECTION])
+    # measured values within the driver's tolerances (1 kV, 5 uA) of 60 kV / 250 uA
+    np.testing.assert_allclose(c["kv"][beam], 60, atol=1.0)
+    np.testing.assert_allclose(c["ua"][beam], 250, atol=5.0)
+    assert np.all(c["kv"][c["key"] == ImageKey.DARK] == 0)
+    assert np.all(np.diff(c["time"]) >= 0)
+    return c
+
+
+def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path, scene_toml, bench):
+    p = protocol(tmp_path, scene_toml)
+    dev = sim_devices(p, bench=bench)
+    res = run(p, devices=dev, progress=False)
+    assert (res.frames_written, res.frames_total, res.phase) == (TOTAL, TOTAL, "done")
+    assert not dev.emulator.xray_on
+    c = assert_complete(p.output)
+    dark = c["data"][c["key"] == ImageKey.DARK].mean()
+    flat = c["data"][c["key"] == ImageKey.FLAT].mean()
+    panel = bench.panel
+    # darks: the panel's offset; flats: offset + gain * i0 (gain averages 1), within a few counts
+    assert abs(dark - panel.offset.mean()) < 1.0
+    assert abs(flat - (panel.offset.mean() + panel.gain.mean() * bench.i0 * panel.binning ** 2)) < 0.01 * flat
+    # projections attenuate where the body is: the mean of each is below the flats'
+    for i in range(1, 4):
+        proj = c["data"][(c["key"] == ImageKey.PROJECTION) & (c["step"] == i)].mean()
+        assert proj < flat - 1
+    with h5py.File(p.output, "r") as h5:
+        assert load_protocol(h5["entry"].attrs["protocol"]) == p  # the file names what produced it
+
+
+def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
+    p = protocol(tmp_path, scene_toml, settle_s=30.0)
+    pl = plan(p, warm=True)
+    assert pl.n_frames == TOTAL
+    period = p.detector.frame_period_s
+    # beam on: flats and steps, each frame one period, plus the 5 s ramp estimate per beam period
+    assert pl.beam_on_s == pytest.approx((FLATS + PER_STEP * 3) * period + 4 * 5.0)
+    assert pl.duration_s >= pl.beam_on_s + 3 * 30.0
+    done = {"darks": DARKS, "flats": FLATS, "steps": {1: PER_STEP, 2: 1}}
+    left = plan(p, done, warm=True)
+    assert left.n_frames == PER_STEP - 1 + PER_STEP
+
+
+def test_protocol_errors_are_clear(tmp_path, scene_toml):
+    with pytest.raises(DeviceError, match=r"unknown key\(s\) in \[series\]: fames"):
+        load_protocol({"series": {"fames": 3}})
+    with pytest.raises(DeviceError, match="increasing compression ratios"):
+        load_protocol({"series": {"steps": [0.25, 0.15]}})
+    p = protocol(tmp_path, scene_toml)
+    (tmp_path / "series.h5").write_bytes(b"")
+    with pytest.raises(FileExistsError, match="never overwritten"):
+        run(p, progress=False, sim=True)
+
+
+# -- the fault matrix ---------------------------------------------------------------------------
+
+class FullDisk(ExperimentWriter):
+    """A writer whose disk fills after ``limit`` frames (the only fake in this module: a full disk
+    cannot be caused safely on a shared machine)."""
+    limit = 7
+
+    def append(self, frame, **kw):
+        if self.n_frames >= self.limit:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
+        return super().append(frame, **kw)
+
+
+def _watch_off(model, since, box):
+    """Record when the emulated tube is first seen off after ``since`` (5 ms polls)."""
+    def loop():
+        end = time.monotonic() + 20
+        while time.monotonic() < end:
+            if not model.xray_on:
+                box["off_at"] = time.monotonic()
+                return
+            time.sleep(0.005)
+    t = threading.Thread(target=loop, daemon=True)
+    t.start()
+    return t
+
+
+# (name, when to inject: phase and frame within it, injection, expected exception, message pattern, bound s)
+FAULTS = [
+    ("interlock opens mid-step", ("step 2", 1), lambda d: d.emulator.open_interlock(), SourceFault, r"interlock", 0.5),
+    ("overload mid-step", ("step 2", 1), lambda d: d.emulator.overload(), SourceFault, r"overload", 0.5),
+    ("beam drops mid-step", ("step 3", 2), lambda d: d.emulator.drop_beam(), SourceFault, r"beam|current", 0.5),
+    ("silent controller", ("step 2", 1), lambda d: d.emulator.silence(True, execute=True), DeviceError,
+     r"no reply|silent|timed? ?out", POLL_S + TIMEOUT_S + 0.5),
+    ("garbage reply", ("step 2", 1), lambda d: d.emulator.garbage(True), DeviceError,
+     r"unparseable|cannot parse|garbage|unexpected|not understood|reply", 0.5),
+    ("detector time-out", ("step 2", 1), lambda d: d.detector.fail_after(0), DetectorTimeout, r"detector|frame", 0.5),
+    ("disk full", None, None, OSError, r"No space left", 0.5),
+] + [(f"Ctrl-C in {ph}", (ph, 0), "sigint", KeyboardInterrupt, r"", 0.5)
+     for ph in ("connect", "warm-up", "darks", "flats", "step 1", "step 3")] + [
+    ("Ctrl-C with X-rays on", ("step 2", 1), "sigint", KeyboardInterrupt, r"", 0.5),
+]
+
+
+@pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
+def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound):
+    p = protocol(tmp_path, scene_toml)
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    state = {"phase": None, "in_phase": 0, "frames": 0, "box": {}}
+
+    def hook(phase, info):
+        if phase == "frame":
+            state["frames"] += 1
+            state["in_phase"] += 1
+        else:
+            state["phase"], state["in_phase"] = phase, 0
+        if when is None or state.get("t_fault") is not None:
+            return
+        ph, k = when
+        if state["phase"] == ph and state["in_phase"] == k and (k == 0) == (phase != "frame"):
+            state["t_fault"] = time.monotonic()
+            state["wall_fault"] = time.time()
+            state["before"] = state["frames"]
+            state["xray_at_fault"] = model.xray_on
+            _watch_off(model, state["t_fault"], state["box"])
+            if inject == "sigint":
+                signal.raise_signal(signal.SIGINT)
+            else:
+                inject(dev)
+
+    kw = {"writer_factory": FullDisk} if name == "disk full" else {}
+    with pytest.raises(exc_type) as info:
+        run(p, devices=dev, progress=False, on_phase=hook, **kw)
+    t_end = time.monotonic()
+    if name == "disk full":
+        state["t_fault"], state["before"], state["wall_fault"] = t_end, FullDisk.limit, time.time()
+        state["xray_at_fault"] = True
+    # the tube is off, on the emulator's own state
+    assert not model.xray_on
+    off_at = state["box"].get("off_at", t_end if not state["xray_at_fault"] else None)
+    if state["xray_at_fault"] and name != "disk full":
+        assert off_at is not None, "tube never seen off"
+        off_s = off_at - state["t_fault"]
+        assert off_s <= bound, f"{name}: tube off {off_s:.2f} s after the fault (bound {bound} s)"
+    else:
+        off_s = 0.0
+    # the error names the fault
+    text = " ".join([str(info.value)] + getattr(info.value, "__notes__", []))
+    if pattern:
+        assert re.search(pattern, text, re.I), text
+    res = getattr(info.value, "result", None)
+    assert res is not None and res.frames_total >= state["before"]
+    # every frame completed before the fault is in the file, with its metadata
+    n_before = state["before"]
+    if n_before == 0 and not os.path.exists(p.output):  # stopped before the file was made
+        c = {"key": np.zeros(0, np.int8), "kv": np.zeros(0), "time": np.zeros(0)}
+    else:
+        c = contents(p.output)
+    assert len(c["key"]) >= n_before
+    expected = [ImageKey.DARK] * DARKS + [ImageKey.FLAT] * FLATS + [ImageKey.PROJECTION] * (PER_STEP * 3)
+    # frames taken after the monitor's last good reading cannot be vouched for once the beam has
+    # failed: they stay in the file, labelled invalid; that window is at most one poll period
+    # plus one exchange (0.1 + 0.1 s) before the fault
+    keys = c["key"][:n_before]
+    confirmed = c["time"][:n_before] < state["wall_fault"] - (POLL_S + 0.1 + 0.1)
+    assert list(keys[confirmed]) == list(np.array(expected[:n_before])[confirmed])
+    assert np.all((keys == np.array(expected[:n_before])) | (keys == ImageKey.INVALID))
+    valid = c["key"] != ImageKey.INVALID
+    beam = np.isin(c["key"], [ImageKey.FLAT, ImageKey.PROJECTION])
+    np.testing.assert_allclose(c["kv"][beam & valid], 60, atol=1.0)
+    n_invalid = int(np.sum(~valid))
+    # resume with fresh devices finishes the series
+    dev2 = sim_devices(p, bench=bench)
+    res2 = run(p, devices=dev2, resume=True, progress=False)
+    assert res2.phase == "done" and not dev2.emulator.xray_on
+    final = assert_complete(p.output)
+    assert len(final["key"]) == TOTAL + n_invalid
+    MATRIX.append((name, type(info.value).__name__, res.phase, n_before, res.frames_total, n_invalid, off_s,
+                   res2.frames_written, text.split("\n")[0][:60]))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def print_matrix(request):
+    yield
+    if not MATRIX:
+        return
+    capman = request.config.pluginmanager.getplugin("capturemanager")
+    lines = ["", "fault matrix (emulated L8121 on a pty + SimDetector + SimFrame; 13 frames per series):",
+             f"{'fault':<26} {'raised':<16} {'phase':<8} {'before':>6} {'saved':>5} {'invalid':>7} {'off s':>6} "
+             f"{'resumed':>7}  message"]
+    for row in MATRIX:
+        lines.append(f"{row[0]:<26} {row[1]:<16} {row[2]:<8} {row[3]:>6} {row[4]:>5} {row[5]:>7} {row[6]:>6.2f} "
+                     f"{row[7]:>7}  {row[8]}")
+    with capman.global_and_fixture_disabled():  # the matrix belongs in the test output, not in captured logs
+        print("\n".join(lines))
