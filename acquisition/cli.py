@@ -103,15 +103,16 @@ def _source(args) -> int:
                 print(f"{args.port}: state {src.status().name}, measured {kv:g} kV {ua:g} uA, interlock "
                       f"{'closed' if src.interlock_closed() else 'OPEN'}")
             elif args.action == "warm-up":
-                src.warm_up(timeout_s=args.timeout, progress=True)
+                src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
                 print(f"{args.port}: warmed up, state {src.status().name}")
             elif args.action == "on":
                 if args.kv is None or args.ua is None:
                     print("error: 'on' needs --kv and --ua", file=sys.stderr)
                     return 2
-                reading = src.on(args.kv, args.ua)
-                print(f"{args.port}: X-rays ON, {reading}. They stay on: `radiokit acquire source off --port "
-                      f"{args.port}` switches them off.")
+                r = src.on(args.kv, args.ua)
+                print(f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
+                      f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
+                      f"--port {args.port}` switches them off.")
                 return 0
             else:
                 src.off()

@@ -283,3 +283,63 @@ def print_matrix(request):
                      f"{row[7]:>7}  {row[8]}")
     with capman.global_and_fixture_disabled():  # the matrix belongs in the test output, not in captured logs
         print("\n".join(lines))
+
+
+# -- the command line -------------------------------------------------------------------------------
+
+def _cli(*args):
+    from radiokit.cli import main
+
+    return main(list(args))
+
+
+def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, capsys):
+    p = protocol(tmp_path, scene_toml, settle_s=60.0)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    assert _cli("acquire", str(path), "--dry-run", "--sim") == 0
+    out = capsys.readouterr().out
+    assert "virtual bench" in out and re.search(rf"total\s+{TOTAL}\b", out)
+    assert "gap 8.500 mm" in out and "X-rays on about" in out
+    assert not os.path.exists(p.output)
+
+
+def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
+    p = protocol(tmp_path, scene_toml, frames_per_step=1)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    assert _cli("acquire", str(path), "--sim", "-q") == 0
+    out = capsys.readouterr().out
+    assert f"{DARKS + FLATS + 3} frames written" in out
+    # a second run refuses to overwrite; --resume on a complete file takes nothing more
+    assert _cli("acquire", str(path), "--sim", "-q") == 1
+    assert "never overwritten" in capsys.readouterr().err
+    assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0
+    assert "0 frames written" in capsys.readouterr().out
+
+
+def test_cli_bad_protocol_is_a_clear_error(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text("[series]\nsteps = [0.2, 0.1]\n")
+    assert _cli("acquire", str(path), "--dry-run") == 2
+    assert "increasing compression ratios" in capsys.readouterr().err
+
+
+def test_cli_source_commands_on_the_emulator(capsys):
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmup_s=0.2, ramp_s=0.1)
+    with PtyServer(model) as server:
+        assert _cli("acquire", "source", "status", "--port", server.url) == 0
+        assert "WARMUP_NEEDED" in capsys.readouterr().out
+        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 1
+        assert "warm-up" in capsys.readouterr().err and not model.xray_on
+        assert _cli("acquire", "source", "warm-up", "--port", server.url, "-q") == 0
+        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 0
+        assert model.xray_on  # bench work: on until told otherwise
+        kv, ua = model.measured()
+        assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
+        assert _cli("acquire", "source", "off", "--port", server.url) == 0
+        assert not model.xray_on
+        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "200", "--ua", "250") == 1
+        assert "kV" in capsys.readouterr().err and not model.xray_on

@@ -41,3 +41,15 @@ def test_register_example():
     assert reg.quality.ok
     inner = (slice(20, -20), slice(20, -20))
     assert np.abs(reg.displacement[(slice(None),) + inner] - 1.5).max() < 0.1
+
+
+def test_acquire_example(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    exec(compile(_block("### Acquire"), "README.md", "exec"), ns)
+    from radiokit.io import ImageKey, read
+
+    f = read(tmp_path / "series.h5")
+    assert ns["result"].frames_written == 10 == f.data.shape[0]
+    keys = f.meta["image_key"]
+    assert (keys == ImageKey.PROJECTION).sum() == 6 and (keys == ImageKey.DARK).sum() == 2
