@@ -1,0 +1,436 @@
+"""Enhancement and contrast measurements against hand-computed values and a column model.
+
+Every expected number below is computed by hand in the test (or in the comment beside it), not
+by the code under test.
+"""
+import doctest
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from skimage.measure import profile_line
+
+import radiokit.enhance
+import radiokit.measure
+from radiokit.enhance import compression_contrast, difference, to_domain
+from radiokit.measure import (ROI, change_ratio, cnr, contrast, find_rois, improvement_factor, profile,
+                              summary, weber)
+
+
+# -- contrast, CNR, Weber on a 6x6 image ---------------------------------------------------------
+def _six(inclusion_values, background_values):
+    img = np.full((6, 6), 9.0)  # everything outside the two ROIs is ignored
+    img[1:3, 1:3] = inclusion_values
+    img[3:5, 3:5] = background_values
+    return img
+
+
+INC, BG = ROI(1, 3, 1, 3), ROI(3, 5, 3, 5)
+
+
+@pytest.mark.parametrize("inc_vals, bg_vals, c, c_nr, w", [
+    # incl mean 5, bg mean 2.5, bg std sqrt(((1.5)^2 + .5^2 + .5^2 + 1.5^2) / 4) = sqrt(1.25)
+    (5.0, [[1, 2], [3, 4]], 2.5, 2.5 / math.sqrt(1.25), 1.0),
+    # the paper's negative intensities: incl -0.2, bg mean -0.4, std 0.1 -> 0.2, 2, 0.5
+    (-0.2, [[-0.5, -0.3], [-0.3, -0.5]], 0.2, 2.0, 0.5),
+    # an inclusion darker than the background: negative contrast, |mean bg| = 4
+    ([[1, 1], [1, 3]], [[4, 6], [2, 4]], 1.5 - 4.0, -2.5 / math.sqrt(2.0), -2.5 / 4),
+])
+def test_contrast_cnr_weber_hand_values(inc_vals, bg_vals, c, c_nr, w):
+    img = _six(inc_vals, bg_vals)
+    assert contrast(img, INC, BG) == pytest.approx(c, rel=1e-12)
+    assert cnr(img, INC, BG) == pytest.approx(c_nr, rel=1e-12)
+    assert weber(img, INC, BG) == pytest.approx(w, rel=1e-12)
+    # the same with boolean masks, and float32 input
+    assert contrast(img.astype(np.float32), INC.mask(img.shape), BG.mask(img.shape)) == pytest.approx(c, rel=1e-6)
+
+
+def test_noiseless_background_gives_infinite_cnr_and_zero_mean_infinite_weber():
+    img = _six(3.0, 0.0)
+    assert cnr(img, INC, BG) == math.inf
+    assert weber(img, INC, BG) == math.inf
+    assert math.isnan(cnr(np.zeros((6, 6)), INC, BG))
+
+
+# -- enhancement -------------------------------------------------------------------------------
+# Values are multiples of 1/4 so float32 holds every intermediate exactly and equality is exact.
+REF = np.array([[4.0, 4.0, 4.0, 4.0],
+                [4.0, 6.0, 6.0, 4.0],
+                [4.0, 6.0, 6.0, 4.0],
+                [4.0, 4.0, 4.0, 4.0]])
+D = np.array([[-1.0, -1.0, -1.0, -1.0],
+              [-1.0, -0.5, -0.5, -1.0],
+              [-1.0, -0.5, -0.5, -1.0],
+              [-1.0, -1.0, -1.0, -1.0]])   # mean D = (12 * -1 + 4 * -0.5) / 16 = -0.875
+# D - mean D: -0.125 outside, +0.375 at the inclusion
+
+
+@pytest.mark.parametrize("k, outside, inside", [
+    (1.0, 4.0 - 0.125, 6.0 + 0.375),
+    (2.0, 4.0 - 0.25, 6.0 + 0.75),
+    (0.0, 4.0, 6.0),
+    (-1.0, 4.0 + 0.125, 6.0 - 0.375),
+])
+def test_enhanced_equals_reference_plus_k_centred_difference(k, outside, inside):
+    registered = REF - D
+    out = compression_contrast(REF.astype(np.float32), registered.astype(np.float32), k)
+    expected = np.full((4, 4), outside)
+    expected[1:3, 1:3] = inside
+    assert out.dtype == np.float32 and out.shape == (4, 4)
+    np.testing.assert_array_equal(out, expected)
+    np.testing.assert_array_equal(difference(REF, registered), D)
+
+
+@pytest.mark.parametrize("k", [1.0, 2.0])
+def test_linear_domain_same_formula(k):
+    # negative intensities: background -0.5, inclusion -0.25 (brighter); D / 8: mean -0.109375,
+    # D / 8 - mean = -0.015625 outside, +0.046875 at the inclusion
+    ref = (REF - 8) / 8
+    out = compression_contrast(ref, ref - D / 8, k, domain="linear")
+    expected = np.full((4, 4), -0.5 - k * 0.015625)
+    expected[1:3, 1:3] = -0.25 + k * 0.046875
+    np.testing.assert_array_equal(out, expected)
+
+
+@pytest.mark.parametrize("make_mask", [lambda: ROI(0, 1, 0, 4), lambda: ROI(0, 1, 0, 4).mask((4, 4))])
+def test_mean_of_difference_taken_over_the_mask(make_mask):
+    # mean D over the top row is -1: D - mean D = 0 outside, +0.5 at the inclusion
+    out = compression_contrast(REF, REF - D, 1.0, mask=make_mask())
+    expected = REF.copy()
+    expected[1:3, 1:3] += 0.5
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_inputs_are_not_modified():
+    ref, reg = REF.copy(), REF - D
+    reg0 = reg.copy()
+    compression_contrast(ref, reg, 2.0, mask=np.ones((4, 4), bool))
+    np.testing.assert_array_equal(ref, REF)
+    np.testing.assert_array_equal(reg, reg0)
+
+
+def test_to_domain():
+    L = np.array([[0.0, np.log(2.0), np.log(4.0)]])
+    np.testing.assert_allclose(to_domain(L, "linear"), [[-1.0, -0.5, -0.25]], rtol=1e-7)
+    np.testing.assert_array_equal(to_domain(L, "log"), L.astype(np.float32))
+    assert to_domain(L, "linear").dtype == np.float32
+
+
+# -- improvement factor and change ratio -------------------------------------------------------
+@pytest.mark.parametrize("c_ref, dd, k", [(2.0, 0.5, 1.0), (2.0, 0.5, 2.0), (0.3, -0.1, 1.0), (-1.0, 0.25, 2.0)])
+def test_improvement_factor_closed_form(c_ref, dd, k):
+    """improvement = 1 + k (D_incl - D_bg) / C_ref; the mean of D and any offset drop out."""
+    ref = np.full((8, 8), 1.0)
+    ref[2:5, 2:5] += c_ref
+    d = np.full((8, 8), -0.7)
+    d[2:5, 2:5] += dd
+    d[7, :] = 5.0  # shifts mean D, outside both ROIs: must not matter
+    inc, bg = ROI(2, 5, 2, 5), ROI(2, 5, 5, 8)
+    enh = compression_contrast(ref, ref - d, k)
+    assert improvement_factor(enh, ref, inc, bg) == pytest.approx(1 + k * dd / c_ref, rel=1e-6)
+
+
+@pytest.mark.parametrize("rho", [0.66, 0.75, 0.84, 1.0, 1.3])
+@pytest.mark.parametrize("bg_change", [-0.2, 0.05])
+def test_change_ratio_recovers_the_planted_ratio(rho, bg_change):
+    rng = np.random.default_rng(5)
+    before = rng.uniform(1.0, 2.0, (10, 12))
+    after = before + bg_change
+    after[2:6, 1:5] = before[2:6, 1:5] + rho * bg_change  # inclusion changes rho times as much
+    assert change_ratio(before, after, ROI(2, 6, 1, 5), ROI(2, 6, 7, 11)) == pytest.approx(rho, rel=1e-9)
+
+
+# -- the column model: what compression does to an inclusion in each domain --------------------
+MU_BG, MU_INC, T, C, R = 0.05, 0.10, 40.0, 8.0, 0.05 / 0.80  # per mm, mm, mm; 20 % -> 25 %
+
+
+def _column_pair(r_inc, *, thinning=R, mu_bg=MU_BG):
+    """Line integrals before (already registered) and after a compression step, parallel beam,
+    rigid plates: every column thins by ``thinning * T``; the inclusion's chord by ``r_inc``."""
+    inside = np.zeros((12, 12), bool)
+    inside[4:8, 2:6] = True
+    before = np.full((12, 12), mu_bg * T)
+    before[inside] += (MU_INC - mu_bg) * C
+    after = np.full((12, 12), mu_bg * T * (1 - thinning))
+    after[inside] += (MU_INC - mu_bg) * C * (1 - r_inc)
+    return before, after, ROI(4, 8, 2, 6), ROI(4, 8, 7, 11)
+
+
+def _improvement(r_inc, k, domain, **kw):
+    before, after, inc, bg = _column_pair(r_inc, **kw)
+    ref, reg = to_domain(after, domain), to_domain(before, domain)
+    return improvement_factor(compression_contrast(ref, reg, k, domain=domain), ref, inc, bg)
+
+
+@pytest.mark.parametrize("r_inc", [0.0, R / 4, R / 2, R])
+@pytest.mark.parametrize("k", [1.0, 2.0])
+def test_log_domain_column_model_closed_form(r_inc, k):
+    """Line integrals: D_incl - D_bg = -dmu c r_inc and C_ref = dmu c (1 - r_inc), so the
+    improvement is 1 - k r_inc / (1 - r_inc): 1 for a rigid inclusion, below 1 otherwise."""
+    assert _improvement(r_inc, k, "log") == pytest.approx(1 - k * r_inc / (1 - r_inc), rel=1e-5)
+
+
+@pytest.mark.parametrize("r_inc", [0.0, R / 4, R / 2, R])
+@pytest.mark.parametrize("k", [1.0, 2.0])
+def test_linear_domain_column_model_closed_form(r_inc, k):
+    """-I/I0: C = I_bg - I_incl; improvement = 1 + k (1 - C_before / C_after), by hand."""
+    lb, li = MU_BG * T, MU_BG * T + (MU_INC - MU_BG) * C
+    lb2, li2 = MU_BG * T * (1 - R), MU_BG * T * (1 - R) + (MU_INC - MU_BG) * C * (1 - r_inc)
+    c_before, c_after = math.exp(-lb) - math.exp(-li), math.exp(-lb2) - math.exp(-li2)
+    assert _improvement(r_inc, k, "linear") == pytest.approx(1 + k * (1 - c_before / c_after), rel=1e-4)
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+def test_stiffer_inclusion_improves_more_and_the_gain_scales_with_k(domain):
+    """Elasticity's share: a stiff inclusion (thins a fifth as much as the tissue) against a
+    control as soft as the background. Stiffer is better in both domains; the gain doubles
+    from k = 1 to k = 2."""
+    stiff = {k: _improvement(R / 5, k, domain) for k in (1.0, 2.0)}
+    soft = {k: _improvement(R, k, domain) for k in (1.0, 2.0)}
+    assert stiff[1.0] > soft[1.0] and stiff[2.0] > soft[2.0]
+    assert stiff[2.0] - soft[2.0] == pytest.approx(2 * (stiff[1.0] - soft[1.0]), rel=1e-4)
+
+
+def test_linear_domain_gains_without_any_stiffness_log_domain_does_not():
+    """Intensity is exponential in the line integral: thinning the background raises the
+    inclusion-background intensity difference by exp(mu t r) whatever the stiffness. With
+    mu t = 2 an inclusion as soft as the background already improves (1.07 at k = 1 by the
+    closed form); in line integrals the same control loses contrast."""
+    soft_lin = {k: _improvement(R, k, "linear") for k in (1.0, 2.0)}
+    assert 1.0 < soft_lin[1.0] < soft_lin[2.0]
+    assert soft_lin[1.0] == pytest.approx(1.069, abs=0.001)
+    soft_log = {k: _improvement(R, k, "log") for k in (1.0, 2.0)}
+    assert soft_log[2.0] < soft_log[1.0] < 1.0
+    # with a thin background (mu t < 1) the linear domain loses contrast too: exp is then no help
+    assert _improvement(R, 1.0, "linear", mu_bg=0.01) < 1.0
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+def test_sign_convention_inclusion_that_loses_less_attenuation_gets_brighter(domain):
+    """Where the inclusion's column loses less attenuation than the background's (its D is
+    less negative), D - mean D is positive there: improvement > 1 at k = 1, larger at k = 2."""
+    before, after, inc, bg = _column_pair(0.0)
+    after[inc.slices] += 0.5 * MU_BG * T * R  # the inclusion column thins half as much
+    ref, reg = to_domain(after, domain), to_domain(before, domain)
+    d = difference(ref, reg)
+    assert d[inc.slices].mean() > d[bg.slices].mean() and d.max() < 0
+    f1, f2 = (improvement_factor(compression_contrast(ref, reg, k, domain=domain), ref, inc, bg)
+              for k in (1.0, 2.0))
+    assert 1.0 < f1 < f2
+    assert f2 - 1 == pytest.approx(2 * (f1 - 1), rel=1e-4)
+
+
+# -- summary -----------------------------------------------------------------------------------
+def test_summary_keys_and_values():
+    ref = _six(5.0, [[1, 2], [3, 4]])
+    enh = {1: ref * 1.5, 2.0: ref * 2}
+    s = summary(ref, enh, INC, BG)
+    assert set(s["enhanced"]) == {"1", "2"} and set(s["improvement_factor"]) == {"1", "2"}
+    assert s["reference"]["contrast"] == pytest.approx(2.5)
+    assert s["enhanced"]["1"]["contrast"] == pytest.approx(3.75)
+    assert s["enhanced"]["2"]["cnr"] == pytest.approx(5.0 / math.sqrt(5.0))  # std doubles too
+    assert s["improvement_factor"] == pytest.approx({"1": 1.5, "2": 2.0})
+    assert s["inclusion"] == {"row0": 1, "row1": 3, "col0": 1, "col1": 3}
+    with pytest.raises(ValueError, match="two entries for k = 1"):
+        summary(ref, {1: ref, 1.0: ref, "1": ref}, INC, BG)
+
+
+# -- ROI -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("pixel_mm", [0.05, 0.2, (0.1, 0.15)])
+@pytest.mark.parametrize("origin_rc", [(0, 0), (120.5, -3.0)])
+@pytest.mark.parametrize("roi", [ROI(10, 30, 40, 45), ROI(0, 1, 0, 1), ROI(-5, 6, 7, 1000)])
+def test_roi_mm_round_trip(roi, pixel_mm, origin_rc):
+    center_mm, size_mm = roi.to_mm(pixel_mm, origin_rc)
+    assert ROI.from_mm(center_mm, size_mm, pixel_mm, origin_rc) == roi
+
+
+def test_roi_from_mm_hand_values():
+    # 0.1 mm pixels, origin at pixel (100, 200): centre (1 mm, -2 mm) -> pixel (110, 180);
+    # 0.5 x 0.3 mm -> 5 x 3 pixels centred there
+    assert ROI.from_mm((1.0, -2.0), (0.5, 0.3), 0.1, origin_rc=(100, 200)) == ROI(108, 113, 179, 182)
+    center_mm, size_mm = ROI(108, 113, 179, 182).to_mm(0.1, (100, 200))
+    assert center_mm == pytest.approx((1.0, -2.0)) and size_mm == pytest.approx((0.5, 0.3))
+
+
+def test_roi_geometry():
+    roi = ROI(2, 6, 10, 13)
+    assert roi.shape == (4, 3) and roi.center == (3.5, 11.0)
+    assert roi.slices == (slice(2, 6), slice(10, 13))
+    assert roi.contains((2, 10)) and roi.contains((5, 12)) and not roi.contains((6, 12))
+    assert roi.contains(ROI(3, 5, 10, 11)) and not roi.contains(ROI(3, 7, 10, 11))
+    assert roi.shifted(-2, 1) == ROI(0, 4, 11, 14)
+    assert roi.clip((4, 12)) == ROI(2, 4, 10, 12)
+    assert ROI.from_dict(roi.to_dict()) == roi
+    assert ROI.from_center((3.5, 11.0), (4, 3)) == roi
+    assert ROI.from_center((3, 11), 3) == ROI(2, 5, 10, 13)
+    assert ROI.from_center((3, 11), 2) == ROI(3, 5, 11, 13)  # ties: half a pixel down/right
+    assert ROI.from_center((2.5, 10.5), (3, 5)) == ROI(2, 5, 9, 14)  # 1.0 and 8.5 -> 9
+    m = roi.mask((8, 14))
+    assert m.sum() == 12 and m[2:6, 10:13].all()
+    assert ROI(np.int64(1), np.int32(2), 0, 1).row0 == 1 and type(ROI(np.int64(1), 2, 0, 1).row0) is int
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: ROI(3, 3, 0, 2), "empty"),
+    (lambda: ROI(0, 2, 5, 4), "empty"),
+    (lambda: ROI(0, 2.5, 0, 2), "integer"),
+    (lambda: ROI.from_center((3, 3), 0.2), "empty"),
+    (lambda: ROI.from_mm((1, 1), 1.0, 0.0), "pixel_mm"),
+    (lambda: ROI.from_dict({"row0": 1, "row1": 2}), "missing col0, col1"),
+    (lambda: ROI(0, 2, 0, 2).shifted(10, 10).clip((5, 5)), "outside"),
+    (lambda: ROI(-1, 2, 0, 2).mask((5, 5)), "outside the 5x5 image"),
+])
+def test_roi_errors(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+# -- bad inputs --------------------------------------------------------------------------------
+def _nan_ref():
+    ref = REF.copy()
+    ref[0, 0] = np.nan
+    return ref
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: compression_contrast(REF, np.zeros((4, 5))), "reference has shape .* registered has"),
+    (lambda: compression_contrast(_nan_ref(), REF), "reference has 1 non-finite"),
+    (lambda: compression_contrast(REF, np.full((4, 4), np.inf)), "registered has 16 non-finite"),
+    (lambda: compression_contrast(REF, REF, np.nan), "k must be a finite"),
+    (lambda: compression_contrast(REF, REF, "2"), "k must be a finite"),
+    (lambda: compression_contrast(REF, REF, domain="counts"), "domain must be one of"),
+    (lambda: compression_contrast(REF, REF, domain="linear"), "negative intensities"),
+    (lambda: compression_contrast(REF, REF, mask=np.zeros((4, 4), bool)), "mask is empty"),
+    (lambda: compression_contrast(REF, REF, mask=np.ones((4, 4))), "boolean"),
+    (lambda: compression_contrast(REF, REF, mask=np.ones((3, 4), bool)), "mask has shape"),
+    (lambda: compression_contrast(REF, REF, mask=ROI(0, 5, 0, 1)), "mask ROI.* outside"),
+    (lambda: compression_contrast(REF[0], REF[0]), "2-D"),
+    (lambda: to_domain(REF, "exp"), "domain must be one of"),
+    (lambda: contrast(REF, ROI(0, 2, 0, 2), ROI(3, 5, 0, 2)), "background ROI.* outside the 4x4"),
+    (lambda: contrast(REF, ROI(-1, 2, 0, 2), ROI(0, 2, 0, 2)), "inclusion ROI.* outside"),
+    (lambda: contrast(_nan_ref(), ROI(0, 2, 0, 2), ROI(2, 4, 2, 4)), "non-finite .* inside inclusion"),
+    (lambda: contrast(REF, np.zeros((4, 4), bool), ROI(0, 2, 0, 2)), "inclusion mask is empty"),
+    (lambda: contrast(REF, [[1, 2]], ROI(0, 2, 0, 2)), "inclusion must be an ROI or a boolean mask"),
+    (lambda: improvement_factor(REF, np.ones((4, 4)), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)), "reference contrast is zero"),
+    (lambda: improvement_factor(REF, REF[:3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)), "enhanced has shape"),
+    (lambda: change_ratio(REF, REF + 1.0 * (REF > 5), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)),
+     "background .* does not change"),
+    (lambda: change_ratio(REF, REF[:, :3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 3)), "before has shape"),
+    (lambda: profile(REF, (0, 0), (4, 0)), "end_rc .* outside"),
+    (lambda: profile(REF, (0, 0), (3, 0), width=0), "width must be >= 1"),
+    (lambda: profile(REF, (0, 0), (3, 0), num=1), "num must be >= 2"),
+])
+def test_bad_inputs_raise_clear_errors(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+# -- profiles ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("width", [1, 3, 4])
+@pytest.mark.parametrize("start, end", [((5, 3), (30, 40)), ((20, 2), (20, 45)), ((35, 10), (4, 12.5))])
+def test_profile_matches_scikit_image(start, end, width):
+    img = np.random.default_rng(2).normal(size=(40, 50))
+    d, v = profile(img, start, end, width=width)
+    np.testing.assert_allclose(v, profile_line(img, start, end, linewidth=width, mode="nearest"), atol=1e-12)
+    assert d[0] == 0 and d[-1] == pytest.approx(math.hypot(end[0] - start[0], end[1] - start[1]))
+
+
+def test_profile_through_a_ramp_with_num_samples():
+    img = np.tile(np.arange(11.0) * 2, (5, 1))  # value = 2 * col
+    d, v = profile(img, (2, 0), (2, 10), width=3, num=6)
+    np.testing.assert_allclose(d, [0, 2, 4, 6, 8, 10])
+    np.testing.assert_allclose(v, [0, 4, 8, 12, 16, 20])
+
+
+# -- automatic ROIs ------------------------------------------------------------------------------
+def _dome_with_blob(domain="log", noise=0.005, centre=(70, 96), radius=12.0, seed=0):
+    """A compressed-breast-like dome in line integrals with a spherical inclusion, air around."""
+    rows, cols = 150, 180
+    yy, xx = np.mgrid[:rows, :cols].astype(float)
+    q = 1 - ((yy - 75) / 65) ** 2 - ((xx - 90) / 80) ** 2
+    thickness = 50 * np.sqrt(np.clip(q, 0, None))
+    r = np.hypot(yy - centre[0], xx - centre[1])
+    chord = 2 * np.sqrt(np.clip(radius ** 2 - r ** 2, 0, None)) * 0.4  # 0.4 mm pixels
+    L = 0.05 * thickness + 0.05 * chord
+    L = L + np.random.default_rng(seed).normal(0, noise, L.shape)
+    return to_domain(L, domain), r < radius, thickness > 0
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+@pytest.mark.parametrize("pixel_mm", [None, 0.4])
+@pytest.mark.parametrize("centre", [(70, 96), (60, 40), (80, 140)])
+def test_find_rois_on_a_blob(domain, pixel_mm, centre):
+    img, blob, body = _dome_with_blob(domain, centre=centre)
+    inc, bg = find_rois(img, pixel_mm=pixel_mm)
+    assert blob[inc.slices].all(), "inclusion ROI must lie inside the blob"
+    assert inc.shape[0] >= 6, "and be a useful size (the blob is 24 px across)"
+    assert not blob[bg.slices].any() and body[bg.slices].all(), "background outside the blob, inside the body"
+    assert bg.shape == inc.shape
+    assert abs(bg.center[0] - inc.center[0]) <= 0.5  # level with it, beside it
+    # default gap: half the width of the half-maximum extent (0.87 of the sphere's), from its edge
+    gap = max(bg.col0 - (centre[1] + 12), centre[1] - 12 - bg.col1)
+    assert 6 <= gap <= 12
+
+
+def test_find_rois_goes_right_when_left_leaves_the_body():
+    img, blob, body = _dome_with_blob(centre=(75, 40))
+    inc, bg = find_rois(img)
+    assert bg.col0 > 40 and body[bg.slices].all() and not blob[bg.slices].any()
+
+
+@pytest.mark.parametrize("mask_kind", ["disk", "rectangle"])
+def test_find_rois_with_an_inclusion_mask(mask_kind):
+    img, blob, body = _dome_with_blob()
+    if mask_kind == "rectangle":
+        blob = np.zeros_like(blob)
+        blob[60:80, 86:116] = True  # 20 x 30: the largest square is 20, shrunk to 70 % -> 13 or 15
+    inc, bg = find_rois(img, inclusion_mask=blob)
+    assert blob[inc.slices].all() and not blob[bg.slices].any() and body[bg.slices].all()
+    if mask_kind == "rectangle":
+        assert inc.shape in ((13, 13), (15, 15))
+
+
+@pytest.mark.parametrize("use_mask", [True, False])
+def test_find_rois_sizes_and_gap_in_mm(use_mask):
+    img, blob, body = _dome_with_blob()
+    inc, bg = find_rois(img, pixel_mm=0.4, inclusion_size=2.0, gap=4.0, background_size=(2.0, 4.0),
+                        inclusion_mask=blob if use_mask else None)
+    assert inc.shape == (5, 5) and bg.shape == (5, 10)  # 2 mm = 5 px, 4 mm = 10 px
+    assert blob[inc.slices].all() and inc.contains((70, 96))
+    # 4 mm = 10 px from the blob's bounding box, cols [85, 108) (the mask), or from the
+    # detected half-maximum extent, up to 2 px inside it
+    gap = max(bg.col0 - 108, 85 - bg.col1)
+    assert (gap == 10) if use_mask else (8 <= gap <= 10)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(inclusion_mask=np.zeros((150, 180), bool)), "inclusion_mask is empty"),
+    (dict(inclusion_mask=np.ones((10, 10), bool)), "inclusion_mask must be a bool array"),
+    (dict(gap=200), "no .* background ROI fits"),
+])
+def test_find_rois_errors(kw, match):
+    img, _, _ = _dome_with_blob()
+    with pytest.raises(ValueError, match=match):
+        find_rois(img, **kw)
+
+
+def test_find_rois_featureless_image_says_no_inclusion():
+    with pytest.raises(ValueError, match="no inclusion found"):
+        find_rois(np.random.default_rng(0).normal(2.0, 0.01, (80, 80)))
+
+
+# -- the examples in the docstrings run, and the core does not reach into sim/acquisition -------
+@pytest.mark.parametrize("module", [radiokit.enhance, radiokit.measure])
+def test_docstring_examples(module):
+    result = doctest.testmod(module, extraglobs={"np": np}, optionflags=doctest.ELLIPSIS)
+    assert result.attempted >= 4 and result.failed == 0
+
+
+def test_core_imports_neither_sim_nor_acquisition():
+    code = ("import sys, radiokit.enhance, radiokit.measure; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
+            "print(bad); sys.exit(1 if bad else 0)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
