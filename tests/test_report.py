@@ -1,0 +1,293 @@
+"""The HTML report: it renders, its images load, its numbers and sentences are the ones given."""
+import re
+import subprocess
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib import image as mpimg
+
+from radiokit import report as R
+from radiokit.report import MAX_PNG_BYTES, stiffness_share, write_report
+
+SOURCE = "/data/run<1>&co/exp.h5"
+
+
+def _synthetic(n=64, *, control=False, truth=False, ks=("1", "2"), noise=0.01, seed=0):
+    """Three steps of a body with a denser blob that thins less than the background."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    blob = np.exp(-((yy - n / 2) ** 2 + (xx - n / 2) ** 2) / (2 * (n / 10) ** 2)).astype(np.float32)
+    ramp = 0.1 * xx / n
+
+    def step(thickness, incl):
+        img = thickness * (1.0 + ramp) + incl * blob
+        return (img + noise * rng.standard_normal((n, n))).astype(np.float32)
+
+    steps = np.stack([step(1.00, 0.30), step(0.95, 0.29), step(0.90, 0.28)])
+    ref, moving = steps[-1], steps[-2]
+    registered = moving.copy()
+    d = np.stack([0.5 * np.sin(xx / n * np.pi), 0.3 * np.cos(yy / n * np.pi)]).astype(np.float32)
+    det_j = (1 + 0.01 * np.sin(xx / 7) * np.cos(yy / 5)).astype(np.float32)
+    diff_log = ref - registered
+    lin_ref = -np.exp(-ref)
+    diff_lin = lin_ref - (-np.exp(-registered))
+    enh = {dom: {k: (r + float(k) * (D - D.mean())).astype(np.float32) for k in ks}
+           for dom, r, D in (("log", ref, diff_log), ("linear", lin_ref, diff_lin))}
+    arrays = {
+        "steps": steps, "step_numbers": [1, 2, 3], "ratios": [0.15, 0.20, 0.25],
+        "reference": ref, "registered": registered, "moving": np.roll(moving, 1, axis=1),
+        "displacement": d, "det_j": det_j, "enhanced": enh,
+        "reference_by_domain": {"log": ref, "linear": lin_ref.astype(np.float32)},
+        "difference": {"log": diff_log, "linear": diff_lin.astype(np.float32)},
+    }
+    if truth:
+        arrays["truth_displacement"] = d + np.float32(0.05)
+    q = {"method": "rc", "ok": True, "reason": "", "rc_before": 12.5, "rc_after": 3.25,
+         "ncc_before": 0.9, "ncc_after": 0.998, "folds": 0, "min_det_j": 0.97, "seconds": 1.5,
+         "iterations": 40}
+    if truth:
+        q.update(epe_median=0.071, epe_p95=0.183)
+    factors = {"1": 1.374, "2": 2.046, "0.5": 1.187, "3": 3.1}
+    factors = {k: factors[k] for k in ks}
+    results = {
+        "source": SOURCE, "scene": "block <stiff> & soft", "pixel_mm": 0.05, "domain": "log",
+        "ks": [float(k) for k in ks],
+        "rois": {"crop": [100, 164, 200, 264], "inclusion": [28, 36, 28, 36],
+                 "background": [28, 36, 4, 12]},
+        "improvement_factor": factors,
+        "domains": {
+            "log": {"contrast_reference": 0.2512, "cnr_reference": 25.1, "weber_reference": 0.27,
+                    "contrast": {k: 0.2512 * f for k, f in factors.items()},
+                    "cnr": {k: 20.0 * f for k, f in factors.items()},
+                    "weber": {k: 0.27 * f for k, f in factors.items()},
+                    "improvement_factor": factors},
+            "linear": {"contrast_reference": 0.0915, "cnr_reference": 9.2, "weber_reference": 0.2,
+                       "contrast": {k: 0.0915 * 1.2 for k in ks}, "cnr": {k: 9.0 for k in ks},
+                       "weber": {k: 0.24 for k in ks},
+                       "improvement_factor": {k: 1 + 0.2 * float(k) for k in ks}},
+        },
+        "change_ratio": {"2->3": {"log": 0.743, "linear": 0.812}, "1->3": {"log": 0.751, "linear": 0.8},
+                         "1->2": {"log": 0.76, "linear": 0.81}},
+        "registration": {"2->3": q, "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0",
+                                             "folds": 3}},
+        "timings": {"calibrate_s": 0.5, "correct_s": 1.25, "register_s": 12.0, "enhance_s": 0.01,
+                    "measure_s": 0.02, "total_s": 14.37},
+        "paper": {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]},
+    }
+    if control:
+        cf = {"1": 1.113, "2": 1.226}
+        results["control"] = {
+            "improvement_factor": {k: cf.get(k, 1.1) for k in ks},
+            "domains": {
+                "log": {"contrast_reference": 0.2491, "improvement_factor": {k: cf.get(k, 1.1) for k in ks}},
+                "linear": {"contrast_reference": 0.09, "improvement_factor": {k: 1.09 * float(k) for k in ks}},
+            },
+            "change_ratio": {"2->3": {"log": 0.95, "linear": 0.97}},
+        }
+    return results, arrays
+
+
+class _Parser(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.imgs, self.tags, self.text = [], [], []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        if tag == "img":
+            self.imgs.append(dict(attrs)["src"])
+
+    def handle_data(self, data):
+        if self.lasttag not in ("style", "title"):  # what a reader sees on the page
+            self.text.append(data)
+
+
+def _parse(path):
+    p = _Parser()
+    raw = Path(path).read_text(encoding="utf-8")
+    p.feed(raw)
+    return raw, p, " ".join(" ".join(p.text).split())
+
+
+@pytest.fixture(scope="module")
+def full_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    results, arrays = _synthetic(control=True, truth=True, ks=("0.5", "1", "2", "3"))
+    return write_report(out, results, arrays), results
+
+
+@pytest.fixture(scope="module")
+def bare_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bare")
+    results, arrays = _synthetic()
+    # and numerics that break naive code: a masked-out band (NaN), a constant difference image
+    arrays["difference"]["linear"] = np.zeros((64, 64), np.float32)
+    for img in (arrays["steps"][0], arrays["reference_by_domain"]["log"], arrays["enhanced"]["log"]["1"]):
+        img[30:34] = np.nan
+    results["registration"]["2->3"] = {"method": "rc", "ok": False, "reason": "diverged <badly>"}
+    results["scene"] = '[scene]\nname = "block"\nnote = "E_inclusion > E_background & dense"\n'
+    return write_report(out, results, arrays), results  # RuntimeWarnings are errors here
+
+
+def _check_images(html_path, expected_min):
+    _, parser, _ = _parse(html_path)
+    assert len(parser.imgs) >= expected_min
+    for src in parser.imgs:
+        assert not src.startswith(("/", "http:", "https:", "data:"))
+        f = html_path.parent / src
+        assert f.is_file(), src
+        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", src
+        assert f.stat().st_size < MAX_PNG_BYTES, src
+        img = mpimg.imread(f)
+        assert img.shape[0] >= 150 and img.shape[1] >= 250, (src, img.shape)
+        assert float(np.std(img)) > 0.02, src
+    return parser.imgs
+
+
+def test_html_written_and_every_image_loads(full_report):
+    path, _ = full_report
+    assert path == path.parent / "report.html" and path.is_file()
+    srcs = _check_images(path, 5)
+    assert {Path(s).name for s in srcs} == {"projections.png", "profiles.png", "difference.png",
+                                             "rois.png", "registration.png"}
+
+
+def test_page_is_self_contained(full_report):
+    raw, parser, _ = _parse(full_report[0])
+    assert "script" not in parser.tags and "link" not in parser.tags
+    assert "<script" not in raw.lower()
+    assert not re.search(r"(src|href)\s*=\s*\"(https?:)?//", raw)
+    assert "<style>" in raw
+
+
+def test_headline_numbers_appear_formatted(full_report):
+    _, _, text = _parse(full_report[0])
+    for s in ("1.37", "2.05", "0.74", "0.2512", "0.66\u20130.84", "14.37 s", "12.00 s", "0.071 / 0.183"):
+        assert s in text, s
+    assert "1.374" not in text  # the improvement factors are shown to 2 decimals
+    summary = text.split("What the numbers show.")[1]
+    assert "1.37 at k=1" in summary and "2.05 at k=2" in summary and "0.74 times" in summary
+    # the text speaks of k = 1 (the paper's direct addition) even when a smaller k comes first
+    assert "contrast-to-noise ratio changes by a factor of 1.09 at k=1" in summary
+    assert "improves the contrast by 1.11 at k=1: the share of the gain that needs the inclusion's " \
+           "stiffness is 70 %" in summary
+
+
+def test_text_is_escaped(full_report):
+    raw, _, text = _parse(full_report[0])
+    assert "/data/run&lt;1&gt;&amp;co/exp.h5" in raw
+    assert SOURCE not in raw and "<stiff>" not in raw and "<1>" not in raw
+    assert SOURCE in text and "block <stiff> & soft" in text  # and it reads back as written
+    assert "folding: 3 pixels with det J &lt;= 0" in raw
+
+
+def _sentences(text):
+    pat = (r"In the (log|linear) domain, the control's improvement at k=1 is ([\d.]+) vs ([\d.]+): "
+           r"(-?\d+) % of the compression-induced contrast")
+    return {m[0]: (float(m[1]), float(m[2]), int(m[3])) for m in re.findall(pat, text)}
+
+
+def test_control_sentence_percentage_is_the_formula(full_report):
+    path, results = full_report
+    _, _, text = _parse(path)
+    assert "Stiff inclusion vs control (inclusion as soft as the background)" in text
+    found = _sentences(text)
+    assert set(found) == {"log", "linear"}
+    for dom, (ctrl, stiff, pct) in found.items():
+        if_s = results["domains"][dom]["improvement_factor"]["1"]
+        if_c = results["control"]["domains"][dom]["improvement_factor"]["1"]
+        assert (ctrl, stiff) == (round(if_c, 2), round(if_s, 2))
+        assert pct == round(100 * (if_s - if_c) / (if_s - 1))
+    assert found["log"][2] == 70  # (1.374 - 1.113) / 0.374 = 0.698
+    linear = text.split("In the linear domain, the control's")[1]
+    assert "exponential in the line integral" in linear
+
+
+def test_no_control_no_truth_still_renders(bare_report):
+    path, _ = bare_report
+    _, _, text = _parse(path)
+    assert "as soft as the background" not in text and "control" not in text.lower()
+    assert "end-point error" not in text and "EPE" not in text
+    _check_images(path, 5)
+    assert "1.37" in text and "Timings" in text
+    assert "Caution: the registration of 2->3 was flagged (diverged <badly>)" in text
+    raw = path.read_text(encoding="utf-8")  # a simulation's TOML scene is folded away, escaped
+    assert re.search(r"<details><summary>scene configuration</summary><pre>\[scene\]\nname = &quot;block&quot;"
+                     r"\nnote = &quot;E_inclusion &gt; E_background &amp; dense&quot;", raw)
+
+
+def test_bare_minimum_renders(tmp_path):
+    path = write_report(tmp_path / "new" / "dir", {"source": "x.h5"}, {})
+    raw, parser, text = _parse(path)
+    assert path.is_file() and parser.imgs == [] and "x.h5" in text
+    # no steps, no measurements, no enhancement: what there is still gets drawn
+    results, arrays = _synthetic()
+    arrays = {k: arrays[k] for k in ("reference", "registered", "moving", "difference")}
+    path = write_report(tmp_path / "partial", {"rois": results["rois"]}, arrays)
+    assert [Path(s).name for s in _check_images(path, 2)] == ["difference.png", "registration.png"]
+
+
+def test_every_k_is_reported(full_report):
+    _, _, text = _parse(full_report[0])
+    for k in ("k=0.5", "k=1", "k=2", "k=3"):
+        assert f"enhanced, {k}" in text and f"improvement factor, {k}" in text
+    assert "3.10" in text and "1.19" in text
+
+
+def test_noisy_figures_are_kept_under_the_size_limit(tmp_path):
+    """Noise compresses badly: the PNG is palette-quantised, then drawn smaller, until it fits."""
+    rng = np.random.default_rng(0)
+    fig = R._new_figure(8, 4)
+    for ax in fig.subplots(1, 2):
+        ax.imshow(rng.standard_normal((300, 300)), cmap="viridis")
+    R._save(fig, tmp_path / "noise.png", max_bytes=60_000)
+    data = (tmp_path / "noise.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) <= 60_000
+    img = mpimg.imread(tmp_path / "noise.png")
+    assert img.shape[1] >= 200 and float(np.std(img)) > 0.05
+
+
+@pytest.mark.parametrize("domain, if_stiff, if_control, expected", [
+    ("log", 1.4, 1.1, "75 % of the compression-induced contrast needs the inclusion's stiffness; the rest "
+                      "comes from attenuation alone"),
+    ("log", 1.004, 1.1, "is not measurable"),
+    ("log", 1.4, 0.9, "125 % of the compression-induced contrast needs the inclusion's stiffness; "
+                      "attenuation alone (the thinning of a denser inclusion) would lower the contrast"),
+    ("log", 1.2, 1.3, "-50 % of the compression-induced contrast needs the inclusion's stiffness: the "
+                      "control gains more"),
+    ("linear", 1.4, 1.1, "exponential in the line integral"),
+    ("log", None, 1.1, "not measurable"),
+])
+def test_control_sentence_wording(domain, if_stiff, if_control, expected):
+    sentence = R._control_sentence(domain, "1", if_stiff, if_control)
+    assert sentence.startswith(f"In the {domain} domain, the control's improvement at k=1 is ")
+    assert expected in sentence
+    assert ("exponential" in sentence) == (domain == "linear")
+
+
+def test_headline_pair():
+    arrays = {"step_numbers": [1, 2, 3]}
+    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}, "2->3": {}}}) == "2->3"
+    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}, "2->3": {}}, "main_pair": "1->3"}) == "1->3"
+    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}}}) == "1->3"
+    assert R._headline_pair({}, {}) is None
+
+
+@pytest.mark.parametrize("if_stiff, if_control, expected", [
+    (1.4, 1.1, 0.75), (2.0, 1.0, 1.0), (2.0, 0.5, 1.5), (1.2, 1.3, -0.5), (1.4, 1.4, 0.0),
+    (1.0, 1.2, None), (1.005, 1.0, None), (0.995, 1.0, None), (float("nan"), 1.1, None),
+    (1.4, None, None), ("1.4", "1.1", 0.75),
+])
+def test_stiffness_share(if_stiff, if_control, expected):
+    got = stiffness_share(if_stiff, if_control)
+    assert got == pytest.approx(expected) if expected is not None else got is None
+
+
+def test_report_imports_neither_sim_nor_acquisition():
+    code = ("import sys, radiokit.report; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)
