@@ -67,12 +67,12 @@ PRESETS = {
     # - converge_px: the finest level is "converged" when its last 5 iterations moved the field
     #   by less than 0.25 px (99th percentile); on these pairs they move 0.1 px.
     "default": dict(spacing=24, alpha=0.005, regularisation=3e-3, iterations=(300, 150, 80), min_size=160,
-                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25),
+                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25, min_levels=3),
     # levels of up to 100 kpx (at 2240: 140 and 280 px): 0.9 s at 2240, 0.21 / 0.94 and
     # 0.09 / 0.48 px; regularisation 1e-3 against 1e-2: 0.60 / 3.6 px (the coarse lattice
     # needs the freedom); spacing 16 against 12: 0.21 / 0.94 against 0.16 / 1.2 px, 30 % faster.
     "fast": dict(spacing=16, alpha=0.005, regularisation=1e-3, iterations=(80, 40), min_size=96,
-                 max_pixels=100_000, levels_skip=0, converge_px=0.5),
+                 max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1),
 }
 
 
@@ -401,13 +401,14 @@ def bspline_register(fixed, moving, mask=None, **options):
 
 def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", spacing=None, alpha=None,
                       regularisation=None, iterations=None, min_size=None, max_pixels=None, levels_skip=None, converge_px=None,
+                      min_levels=None,
                       callback=None):
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: expected one of {', '.join(PRESETS)}")
     o = dict(PRESETS[preset])
     for k, v in dict(spacing=spacing, alpha=alpha, regularisation=regularisation, iterations=iterations,
                      min_size=min_size, max_pixels=max_pixels, levels_skip=levels_skip,
-                     converge_px=converge_px).items():
+                     converge_px=converge_px, min_levels=min_levels).items():
         if v is not None:
             o[k] = v
     if o["spacing"] < 4:
@@ -415,6 +416,11 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     f, m = _normalise(fixed, moving)
     factors = [1]
     while min(f.shape) / (factors[-1] * 2) >= o["min_size"]:
+        factors.append(factors[-1] * 2)
+    # small images: at least min_levels levels while the coarsest keeps 128 pixels (a 560 px
+    # frame with a few pixels of motion needs its 140 px level: EPE 2.0 -> 0.3 px on a
+    # simulated cube, tests/test_pipeline.py)
+    while len(factors) < o["min_levels"] and min(f.shape) / (factors[-1] * 2) >= 128:
         factors.append(factors[-1] * 2)
     factors = factors[::-1]  # coarse to fine
     # levels with more than max_pixels pixels are not run (at least the coarsest is)
@@ -494,7 +500,8 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
 def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast'),
     spacing (px), alpha, regularisation, iterations (per level, coarse to fine), min_size (px,
-    the coarsest level's smaller side), max_pixels (finer levels are not run), levels_skip, converge_px (the
+    the coarsest level's smaller side), min_levels (at least this many levels while the coarsest
+    keeps 128 px), max_pixels (finer levels are not run), levels_skip, converge_px (the
     finest level run is converged when its last 5 iterations moved the field less than this, in
     pixels, 99th percentile)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
