@@ -141,3 +141,44 @@ def test_bad_input_is_a_clear_error(tmp_path):
         process(path)
     with pytest.raises(FileNotFoundError, match="no such experiment file"):
         process(tmp_path / "missing.h5")
+
+
+def _synthetic(path, scale=1.0):
+    """A slab thinned by compression with a denser square (the doctest's experiment)."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rr, cc = np.mgrid[0:160, 0:160]
+    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
+    with ExperimentWriter(path, shape=(160, 160)) as w:
+        for _ in range(3):
+            w.append(np.full((160, 160), 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full((160, 160), 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
+            L = scale * (0.08 * tb + 0.03 * ti * sq)
+            w.append((100 + 3000 * np.exp(-L)).astype(np.uint16), image_key=ImageKey.PROJECTION, step=step,
+                     ratio=0.1 * step)
+
+
+def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest(tmp_path, capsys):
+    from radiokit.cli import main
+    from radiokit.pipeline import Config, process, process_many
+
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5", tmp_path / "broken.h5"]
+    _synthetic(paths[0])
+    _synthetic(paths[1], scale=1.2)
+    paths[2].write_bytes(b"not an experiment")
+    cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
+    res = process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
+    assert [r["source"] for r in res] == [str(p) for p in paths]
+    assert "error" in res[2] and "broken.h5" in res[2]["error"]
+    single = process(paths[0], cfg, out_dir=tmp_path / "single").results
+    # the parallel run computes what a single run does
+    np.testing.assert_allclose(res[0]["improvement_factor"]["1"], single["improvement_factor"]["1"], rtol=1e-6)
+    assert res[1]["improvement_factor"]["1"] != res[0]["improvement_factor"]["1"]
+    assert (tmp_path / "out" / "b" / "results.json").exists()
+    # the command line: one line per file, exit 1 because one failed
+    code = main(["process", str(paths[0]), str(paths[2]), "-o", str(tmp_path / "cli"), "--no-report", "-q",
+                 "--workers", "2", "--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51",
+                 "--crop-mm", "0"])
+    captured = capsys.readouterr()
+    assert code == 1 and "broken.h5: error" in captured.err and "improvement factor (linear)" in captured.out
