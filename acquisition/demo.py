@@ -53,7 +53,7 @@ def control_scene(scene):
 
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=True, progress=True) -> dict:
+             coarse=True, method="rc", progress=True) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
@@ -91,7 +91,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     t = time.perf_counter()
     # the fast preset: on this scene's pairs it is the more accurate one as well (the register
     # benchmark's simulated pairs: 1.1-1.2 px against 1.6-1.9 px median end-point error)
-    cfg = Config(control=files["control"], progress=progress, register_options={"preset": "fast"})
+    cfg = Config(control=files["control"], progress=progress, method=method, register_options={"preset": "fast"})
     result = process(files["experiment"], cfg, out_dir=out / "results")
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
@@ -142,13 +142,14 @@ def add_demo(subparsers):
                    help="detector binning (default 2: 1120 x 1120, 100 um pixels, the panel's 4 fps mode)")
     p.add_argument("--fine", action="store_true", help="the scene's own finite-element mesh (slower), not the demo's")
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
+    p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=not args.fine, progress=not args.quiet)
+                       coarse=not args.fine, method=args.method, progress=not args.quiet)
     print()
     print(headline(summary))
     return 0

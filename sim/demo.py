@@ -1,4 +1,4 @@
-"""The end-to-end demo until the virtual experiment lands: a synthetic panel through the real chain.
+"""A calibration check on a synthetic panel (the first demo; `radiokit demo` is now acquisition.demo).
 
 An analytic side view of the paper's PVA phantom (truncated cone, cube inclusion) is squeezed
 uniformly (incompressibly, no elasticity contrast yet: that needs the FEM model) at three

@@ -67,12 +67,12 @@ PRESETS = {
     # - converge_px: the finest level is "converged" when its last 5 iterations moved the field
     #   by less than 0.25 px (99th percentile); on these pairs they move 0.1 px.
     "default": dict(spacing=24, alpha=0.005, regularisation=3e-3, iterations=(300, 150, 80), min_size=160,
-                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25, min_levels=3),
+                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25, min_levels=3, coarse_alpha=1.0),
     # levels of up to 100 kpx (at 2240: 140 and 280 px): 0.9 s at 2240, 0.21 / 0.94 and
     # 0.09 / 0.48 px; regularisation 1e-3 against 1e-2: 0.60 / 3.6 px (the coarse lattice
     # needs the freedom); spacing 16 against 12: 0.21 / 0.94 against 0.16 / 1.2 px, 30 % faster.
     "fast": dict(spacing=16, alpha=0.005, regularisation=1e-3, iterations=(80, 40), min_size=96,
-                 max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1),
+                 max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1, coarse_alpha=1.0),
 }
 
 
@@ -401,14 +401,14 @@ def bspline_register(fixed, moving, mask=None, **options):
 
 def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", spacing=None, alpha=None,
                       regularisation=None, iterations=None, min_size=None, max_pixels=None, levels_skip=None, converge_px=None,
-                      min_levels=None,
+                      min_levels=None, coarse_alpha=None,
                       callback=None):
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: expected one of {', '.join(PRESETS)}")
     o = dict(PRESETS[preset])
     for k, v in dict(spacing=spacing, alpha=alpha, regularisation=regularisation, iterations=iterations,
                      min_size=min_size, max_pixels=max_pixels, levels_skip=levels_skip,
-                     converge_px=converge_px, min_levels=min_levels).items():
+                     converge_px=converge_px, min_levels=min_levels, coarse_alpha=coarse_alpha).items():
         if v is not None:
             o[k] = v
     if o["spacing"] < 4:
@@ -437,7 +437,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     history = []
     grids = []  # (BSplineField, coefficients): one lattice per level, spacing halving with the pixels
     for factor, n_it in zip(run, its):
-        level = _Level(f, m, mask, factor, similarity, o["alpha"])
+        # coarse levels with a larger alpha (closer to SSD: a large coherent shift of smooth
+        # structure is not explained away as intensity change), the finest with alpha itself
+        alpha = o["alpha"] * (o["coarse_alpha"] if factor != run[-1] else 1.0)
+        level = _Level(f, m, mask, factor, similarity, alpha)
         base = np.zeros((2,) + level.shape, np.float32)
         for g_, c_ in grids:  # the coarser lattices' field, fixed at this level
             base += g_.field(c_, factor, level.shape)
@@ -501,7 +504,8 @@ def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast'),
     spacing (px), alpha, regularisation, iterations (per level, coarse to fine), min_size (px,
     the coarsest level's smaller side), min_levels (at least this many levels while the coarsest
-    keeps 128 px), max_pixels (finer levels are not run), levels_skip, converge_px (the
+    keeps 128 px), max_pixels (finer levels are not run), coarse_alpha (alpha x this at every
+    level but the finest: closer to SSD there; 1 by default), levels_skip, converge_px (the
     finest level run is converged when its last 5 iterations moved the field less than this, in
     pixels, 99th percentile)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
