@@ -128,6 +128,7 @@ def test_results_files_and_report(processed):
     assert f"{r['improvement_factor']['1']:.2f}" in html
 
 
+@pytest.mark.filterwarnings("ignore::radiokit.calibrate.CalibrationWarning")  # one dark, one flat: on purpose
 def test_bad_input_is_a_clear_error(tmp_path):
     from radiokit.io import ExperimentWriter, ImageKey
     from radiokit.pipeline import process
