@@ -37,6 +37,8 @@ def add_acquire(subparsers):
 def _run(args) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    for h in logging.getLogger().handlers:  # the notebook file gets DEBUG; the console what was asked
+        h.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     if args.protocol == "source":
         return _source(args)
     if args.action:

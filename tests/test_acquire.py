@@ -121,6 +121,9 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
         assert proj < flat - 1
     with h5py.File(p.output, "r") as h5:
         assert load_protocol(h5["entry"].attrs["protocol"]) == p  # the file names what produced it
+    notebook = (tmp_path / "series.log").read_text()  # every exchange, for the lab notebook
+    for cmd in ("> HIV 60", "> CUR 250", "> XON", "> XOF", "> SAR"):
+        assert cmd in notebook, cmd
 
 
 def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
@@ -311,6 +314,7 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     assert _cli("acquire", str(path), "--sim", "-q") == 0
     out = capsys.readouterr().out
     assert f"{DARKS + FLATS + 3} frames written" in out
+    assert "> TYP" in (tmp_path / "series.log").read_text()  # devices made by run: the connect is logged
     # a second run refuses to overwrite; --resume on a complete file takes nothing more
     assert _cli("acquire", str(path), "--sim", "-q") == 1
     assert "never overwritten" in capsys.readouterr().err

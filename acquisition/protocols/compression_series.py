@@ -16,6 +16,8 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
   person (moving the screws, taking the phantom out);
 - while X-rays are on a monitor thread polls the source (``SAR``/``SIN`` every ``poll_s``) and on
   overload, interlock or a dropped beam switches the tube off at once and stops the series;
+- every serial exchange, phase and fault is logged to ``<output>.log`` beside the file (the lab
+  notebook);
 - every frame is appended and flushed to the experiment file as it arrives, with image_key,
   step, ratio, measured gap, the measured kV and uA at that moment and its time stamp; a crash
   loses at most the frame in flight;
@@ -538,6 +540,16 @@ def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, pr
     elif out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
     writer_factory = writer_factory or ExperimentWriter
+    # the lab notebook: every serial exchange, phase and fault, beside the experiment file
+    notebook = logging.FileHandler(out.with_suffix(".log"), encoding="utf-8")
+    notebook.setLevel(logging.DEBUG)
+    notebook.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s",
+                                            "%Y-%m-%d %H:%M:%S"))
+    acq_log = logging.getLogger("acquisition")
+    acq_log.addHandler(notebook)
+    old_level = acq_log.level
+    if acq_log.getEffectiveLevel() > logging.DEBUG:
+        acq_log.setLevel(logging.DEBUG)
     user_notify = on_phase or (lambda phase, info=None: None)
 
     def notify(phase_name, info=None):
@@ -685,6 +697,9 @@ def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, pr
         raise
     finally:
         bar.close()
+        acq_log.removeHandler(notebook)
+        acq_log.setLevel(old_level)
+        notebook.close()
         if writer is not None:
             try:
                 writer.close()
