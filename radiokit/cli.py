@@ -261,7 +261,8 @@ def cmd_process(args) -> int:
     cfg = Config(ks=tuple(args.k), domain=args.domain, method=args.method, register_options=opts,
                  crop_mm=args.crop_mm or None, inclusion=args.inclusion, background=args.background,
                  roi_units="mm" if args.mm else "px", report=not args.no_report, progress=not args.quiet,
-                 control=str(args.control) if args.control else None)
+                 control=str(args.control) if args.control else None,
+                 cross_check=None if args.cross_check in ("none", "") else args.cross_check)
     if len(args.files) == 1 and not args.scheduler:
         res = process(args.files[0], cfg, out_dir=args.output)
         _print_headline(res.results, res.files)
@@ -357,6 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mm", action="store_true", help="rectangles in mm from the frame's top-left corner, not pixels")
     p.add_argument("--control", type=Path, help="a control experiment (inclusion as soft as the background)")
     p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
+    p.add_argument("--cross-check", default="ncc", help="register the main pair again with this method and flag "
+                                                        "a disagreement (default ncc; 'none' to skip)")
     p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
     p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

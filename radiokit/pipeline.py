@@ -75,6 +75,7 @@ class Config:
     report: bool = True
     progress: bool = True
     control: str | None = None        # a control experiment (inclusion as soft as the background)
+    cross_check: str | None = "ncc"   # register the main pair again with this similarity and flag disagreement
 
     def __post_init__(self):
         if self.domain not in ("log", "linear"):
@@ -192,6 +193,22 @@ def _body_mask(image):
     return image > 0.2 * float(np.percentile(image, 99.5))
 
 
+def cross_check(field, other, body, method):
+    """How far two registrations of one pair disagree inside ``body``: median and 95th percentile
+    of ``|field - other|`` (px), and whether they agree: median disagreement under
+    max(2 px, half the larger field's median magnitude).
+
+    Why: a similarity can have its minimum away from the truth and still report success (its own
+    energy dropped). Measured on the virtual experiment: seed-breast, rc against ncc 1.6 px
+    apart with fields of 7 px (both within 1-4 px of the truth); the pva-phantom side view,
+    22 px apart (rc 21 px off the truth, ncc 1.8 px)."""
+    d = np.hypot(*(np.asarray(field) - np.asarray(other)))[body]
+    mag = max(float(np.median(np.hypot(*field)[body])), float(np.median(np.hypot(*other)[body])))
+    med = float(np.median(d))
+    return {"method": method, "median_px": med, "p95_px": float(np.percentile(d, 95)),
+            "agree": bool(med <= max(2.0, 0.5 * mag))}
+
+
 def _epe(displacement, truth, mask):
     e = np.sqrt(((displacement - truth) ** 2).sum(axis=0))
     e = e[mask] if mask is not None and mask.any() else e.ravel()
@@ -245,11 +262,15 @@ def process(path, config: Config | None = None, *, out_dir=None) -> Result:
     t = time.perf_counter()
     n = len(numbers)
     pairs = [(i, n - 1) for i in range(n - 1)] + [(i, i + 1) for i in range(n - 2)]
-    regs, warped = {}, {}
+    regs, warped, cross = {}, {}, {}
     from tqdm.auto import tqdm
 
+    body_full = _body_mask(steps[-1])
     for i, j in tqdm(pairs, desc=f"register {path.name}", unit="pair", disable=not cfg.progress):
         reg = register(steps[j], steps[i], cfg.method, **cfg.register_options)
+        if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
+            other = register(steps[j], steps[i], cfg.cross_check, **cfg.register_options)
+            cross[(i, j)] = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
         warped[(i, j)] = reg.warp(steps[i])[r0:r1, c0:c1]  # warped whole, then cropped: no border effects
         reg.displacement = np.ascontiguousarray(reg.displacement[:, r0:r1, c0:c1])
         regs[(i, j)] = reg
@@ -295,6 +316,13 @@ def process(path, config: Config | None = None, *, out_dir=None) -> Result:
         q = dataclasses.asdict(reg.quality)
         q = {k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in q.items()}
         q["method"] = reg.method
+        if (i, j) in cross:
+            q["cross_check"] = cross[(i, j)]
+            if not cross[(i, j)]["agree"]:
+                q["ok"] = False
+                why = (f"disagrees with {cross[(i, j)]['method']} by {cross[(i, j)]['median_px']:.1f} px (median over "
+                       f"the body): at least one of the two is wrong")
+                q["reason"] = f"{q['reason']}; {why}" if q.get("reason") else why
         if truth and (numbers[i], numbers[j]) in truth["fields"]:
             tf = truth["fields"][(numbers[i], numbers[j])][:, r0:r1, c0:c1]
             q["epe_median"], q["epe_p95"] = _epe(reg.displacement, tf, body)

@@ -183,3 +183,24 @@ def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest
                  "--crop-mm", "0"])
     captured = capsys.readouterr()
     assert code == 1 and "broken.h5: error" in captured.err and "improvement factor (linear)" in captured.out
+
+
+def test_cross_check_flags_two_registrations_that_disagree():
+    from radiokit.pipeline import cross_check
+
+    body = np.ones((50, 50), bool)
+    a = np.zeros((2, 50, 50), np.float32)
+    a[0] = 7.0  # a 7 px field
+    near = a + np.float32(1.5)  # 2.1 px apart: under max(2, 0.5 x 8.6) -> agree
+    far = -a  # 14 px apart -> disagree
+    ok = cross_check(a, near, body, "ncc")
+    bad = cross_check(a, far, body, "ncc")
+    assert ok["agree"] and not bad["agree"]
+    np.testing.assert_allclose(ok["median_px"], np.hypot(1.5, 1.5), rtol=1e-5)
+    np.testing.assert_allclose(bad["median_px"], 14.0, rtol=1e-6)
+
+
+def test_the_main_pair_is_cross_checked(processed):
+    res, _ = processed
+    q = res.results["registration"][res.results["main_pair"]]
+    assert q["cross_check"]["method"] == "ncc" and q["cross_check"]["agree"], q["cross_check"]
