@@ -27,7 +27,7 @@ def _exposure(scene, kv_min=40.0):
     return kv, round(ua)
 
 
-def _protocol(scene, output, *, frames_per_step, darks, flats, warm):
+def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats, warm):
     from acquisition.protocols import load_protocol
 
     kv, ua = _exposure(scene)
@@ -35,7 +35,7 @@ def _protocol(scene, output, *, frames_per_step, darks, flats, warm):
         "output": str(output), "name": "demo",
         "source": {"voltage_kv": kv, "current_ua": ua, "poll_s": 0.25},
         "detector": {"kind": "sim"},
-        "frame": {"kind": "sim", "initial_height_mm": 1.0},  # replaced by the scene's below
+        "frame": {"kind": "sim", "initial_height_mm": initial_height_mm},
         "series": {"darks": darks, "flats": flats, "frames_per_step": frames_per_step, "steps": [0.15, 0.20, 0.25],
                    "settle_s": 0.0},
         "sim": {"scene": scene.to_toml(), "warmup_s": 2.0, "ramp_s": 0.3, "warmed_up": warm},
@@ -75,8 +75,8 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
             path.unlink()
         t = time.perf_counter()
         bench = VirtualBench(sc, progress=progress)
-        p = _protocol(sc, path, frames_per_step=frames_per_step, darks=darks, flats=flats, warm=label == "control")
-        p.frame.initial_height_mm = bench.initial_height_mm
+        p = _protocol(sc, path, initial_height_mm=bench.initial_height_mm, frames_per_step=frames_per_step,
+                      darks=darks, flats=flats, warm=label == "control")
         dev = sim_devices(p, bench=bench, progress=progress)
         res = run(p, devices=dev, progress=progress)
         timings[f"acquire_{label}_s"] = time.perf_counter() - t

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from regdata import analytic_pair, score, sim_pair  # noqa: E402
+from regdata import analytic_pair, evaluate, score, sim_pair  # noqa: E402
 
 
 def configs():
@@ -51,16 +51,13 @@ def configs():
 
 
 def run_one(name, opts, fixed, moving, truth, mask):
-    from radiokit.register import register
-
     method = name.split("+")[0].replace("rc-fast", "rc")
-    t = time.perf_counter()
     try:
-        reg = register(fixed, moving, method, **opts)
+        row = evaluate(method, (fixed, moving, truth, mask), **opts)
     except Exception as exc:  # a peer that cannot run on this pair is reported, not fatal
         return {"method": name, "error": repr(exc)}
-    return dict(score(reg.displacement, truth, mask), method=name, seconds=time.perf_counter() - t,
-                ok=bool(reg.quality.ok))
+    row["method"] = name
+    return row
 
 
 def warm_up(cfgs):

@@ -96,6 +96,7 @@ class VirtualBench:
         self._solver = None
         self._states = {}  # ratio -> State
         self._line_integrals = {}  # ratio (0.0 for the undeformed body) -> float32 (rows, cols)
+        self._masks = {}  # ratio -> uint8 (rows, cols): rays that cross an inclusion
         self._ratio = 0.0
         self._gap_mm = self.initial_height_mm
         self._rng = np.random.default_rng(self.seed)
@@ -200,16 +201,20 @@ class VirtualBench:
     def line_integral(self) -> np.ndarray:
         """The noise-free ``-ln(I/I0)`` of the current state on the panel grid, float32 (rows,
         cols); cached per ratio. Uncompressed: the undeformed mesh (zero displacement)."""
+        return self._projection(self._ratio if self._ratio > 0 else 0.0)[0]
+
+    def _projection(self, key):
+        """(line integral, inclusion mask) of the state at ratio ``key``, projected once."""
         with self._lock:
-            key = self._ratio if self._ratio > 0 else 0.0
             if key not in self._line_integrals:
                 state = self._states.get(key)
                 t = time.perf_counter()
-                li, _ = project_state(self.scene, self.solver, None if state is None else state.displacement)
+                li, mask = project_state(self.scene, self.solver, None if state is None else state.displacement)
                 li.setflags(write=False)
                 self._line_integrals[key] = li
+                self._masks[key] = mask
                 log.debug("bench %s: projected ratio %.4g in %.2f s", self.scene.name, key, time.perf_counter() - t)
-            return self._line_integrals[key]
+            return self._line_integrals[key], self._masks[key]
 
     def open_beam(self, kv=None, ua=None) -> float:
         """Open-beam counts per unbinned pixel at ``kv`` and ``ua`` (default: the scene's).
@@ -264,11 +269,7 @@ class VirtualBench:
         n = len(states)
         pairs = [(n - 1, n)] if pairs is None and n >= 2 else list(pairs or [])
         t = time.perf_counter()
-        lis, masks = [], []
-        for st in states:
-            li, mask = project_state(self.scene, self.solver, st.displacement)
-            lis.append(li)
-            masks.append(mask)
+        lis, masks = zip(*(self._projection(r) for r in ratios))  # the frames' own projections, cached
         t_proj = time.perf_counter() - t
         t = time.perf_counter()
         fields = {(a, b): truth_displacement(self.scene, states[b - 1], states[a - 1]) for a, b in pairs}

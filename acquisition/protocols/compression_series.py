@@ -225,23 +225,15 @@ def _to_toml(d: dict) -> str:
             return "[" + ", ".join(val(x) for x in v) + "]"
         raise TypeError(v)
 
-    lines, tables = [], []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            tables.append((k, v))
-        elif v is not None:
-            lines.append(f"{k} = {val(v)}")
-    for name, t in tables:
-        lines.append(f"\n[{name}]")
-        sub = []
+    def table(prefix, t):  # a table's values, then its sub-tables
+        lines = [f"{k} = {val(v)}" for k, v in t.items() if not isinstance(v, dict) and v is not None]
         for k, v in t.items():
             if isinstance(v, dict):
-                sub.append((k, v))
-            elif v is not None:
-                lines.append(f"{k} = {val(v)}")
-        for k, v in sub:
-            lines.append(f"\n[{name}.{k}]")
-            lines.extend(f"{kk} = {val(vv)}" for kk, vv in v.items() if vv is not None)
+                name = f"{prefix}.{k}" if prefix else k
+                lines += [f"\n[{name}]"] + table(name, v)
+        return lines
+
+    lines = table("", d)
     return "\n".join(lines) + "\n"
 
 
