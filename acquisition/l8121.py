@@ -1,40 +1,80 @@
 """The Hamamatsu L8121 microfocus X-ray source, driven over RS-232 (protocol: ``L8121.md``).
 
-The driver is mostly its command table: every controller command is declared once, with its
-command string, the validator of its argument and the parser of its reply (:class:`Query`,
-:class:`Command`, :class:`Setting`, in the manner of PyMeasure's ``Instrument.control``). On top
-sit the few operations an experiment needs, each keeping the safety rules of the protocol:
+The controller is documented in two command dialects (``../shared/hardware/L8121.md``): dialect A,
+the one public drivers use for Hamamatsu microfocus controllers of the same generation (L9181,
+L9191, L9421, C8033: numeric ``STS n``, ``SAR``, ``SVI``, ``SIN 0/1``, ``WUP``, ``TYP``), and
+dialect B, what a public Windows driver for the L8121-02 speaks (``STS`` answered by a word,
+``INTER LOCK ON``, values with units, ``PHV``/``PCU`` presets, warm-up started by ``XON``, ``DAG``,
+``SRL``/``SRB``, no ``TYP``). The dialect is configuration, not code:
+``SourceConfig(dialect="A" | "B" | "auto", baudrate=..., voltage_scale=...)``.
 
-- :meth:`L8121.warm_up` starts the warm-up sequence and waits for standby;
-- :meth:`L8121.on` validates voltage, current and power *before sending anything*, requires
-  standby and a closed interlock, sets the values, switches on and waits for a stable beam;
-- :meth:`L8121.check` polls once while the beam is on and, on overload, an open interlock or a
-  dropped beam, switches off and raises :class:`~acquisition.errors.SourceFault`;
+The driver is mostly its command tables: :data:`DIALECT_A` and :data:`DIALECT_B` declare, for each
+reading and each setting, the command string, the validator of its argument and the parser of its
+reply (:class:`Query`, :class:`Command`, :class:`Choice`, in the manner of PyMeasure's
+``Instrument.control``). On top sit the operations an experiment needs, the same in both dialects,
+each keeping the safety rules of the hardware notes:
+
+- :meth:`L8121.warm_up` starts the warm-up (A: ``WUP``; B: ``XON`` while ``DAG`` says ``YET``) only
+  when it is needed and the interlock is closed, and waits for standby;
+- :meth:`L8121.on` checks voltage, current and power against :meth:`SourceConfig.check_exposure`
+  *before sending anything*, requires standby (B: ``STS STANDBY`` and ``DAG ... END``) and a closed
+  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``), switches on and
+  waits for a stable beam;
+- :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
+  ``SCU``, ``SIN``) and, on overload, an open interlock or a dropped beam, switches off and raises
+  :class:`~acquisition.errors.SourceFault`;
 - :meth:`L8121.off` switches off and confirms it with ``STS``; :meth:`L8121.close` and the context
   manager switch off on every exit path (exception, Ctrl-C), and so does any reply that cannot be
   parsed while the beam may be on.
 
+Warm-up emits X-rays: ``STS 1`` (A) and ``AGING`` (B) count as X-rays on for every rule (switched
+off on exit, never taken as "off" after ``XOF``). In dialect B the same ``XON`` starts either a
+warm-up or an exposure, depending on the controller's warm-up state; the driver never sends an
+``XON`` meant as an exposure unless ``DAG`` has just said ``END``, never sends the warm-up ``XON``
+unless it has just said ``YET``, and if the controller does the other thing all the same (``AGING``
+after an exposure's ``XON``, ``XON`` after a warm-up's) it switches off and says so.
+
+``dialect="auto"`` runs :func:`probe` at connect: harmless queries only (``STS``, ``SIN``, ``TYP``,
+``SRL``, ``DAG``; never ``XON``, ``HIV``, ``CUR``, ``PHV``, ``PCU``, ``WUP`` or ``RST``) at each
+configured baud rate, and refuses to go on when the replies fit neither dialect.
+
 The driver never sends ``RST`` by itself (:meth:`L8121.reset` is for a person who has looked at the
-tube). Every reply is checked: a command must be echoed, a query's reply must start with the
-query and hold numbers where numbers belong; anything else raises
-:class:`~acquisition.errors.DeviceError` naming the port, the command and the reply.
+tube). Every reply is checked: a command must be echoed, a query's reply must have the dialect's
+shape; anything else raises :class:`~acquisition.errors.DeviceError` naming the port, the command
+and the reply. The hardware ratings (:data:`RATINGS`: 40-150 kV, <= 500 µA, <= 75 W) are a ceiling
+no configuration can raise: a :class:`SourceConfig` may only tighten them.
+
+Why not PyMeasure: PyMeasure (``Instrument.control``, validators, ``expected_protocol``) is the
+shape this module copies, but building on it would not make the driver simpler to read or to test.
+Its properties bind one command string per class, so two dialects would be two instrument classes
+(or dynamic properties for every command), while here one driver reads its commands from a table
+chosen at connect -- which ``dialect="auto"`` needs, since the dialect is known only after the
+probe. The safety rules need a hook around every exchange (switch off before reporting an
+unparseable or refused reply while the beam may be on; accept ``ERROR`` as a value of dialect B's
+``STS``), which PyMeasure's ``check_get_errors`` can express only per instrument, not per exchange.
+And it would add pyvisa, pint and pandas to a lab PC for one serial instrument. What we take from
+it instead: declarations (:class:`Query`, :class:`Command`), a swappable transport (the driver
+accepts any object with ``query``), and expected-protocol tests (``tests/test_l8121_protocol.py``:
+exact (sent, reply) pairs, no pseudo-terminal).
 
 Examples
 --------
 >>> from acquisition.emulators.l8121 import L8121Model, PtyServer
->>> with PtyServer(L8121Model(warmup_s=0.2, ramp_s=0.2)) as server:
-...     with L8121(server.url, poll_s=0.05) as source:
-...         _ = source.warm_up(timeout_s=10, progress=False)
-...         beam = source.on(60, 250)          # kV, µA: returns once the beam is stable
-...         print(source.check()["state"].name, beam["set_voltage_kv"], beam["set_current_ua"])
-...     server.model.xray_on                   # leaving the block switched the tube off
-XRAY_ON 60 250
+>>> for dialect in ("A", "B"):
+...     with PtyServer(L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.2)) as server:
+...         with L8121(server.url, dialect=dialect, poll_s=0.05) as source:
+...             _ = source.warm_up(timeout_s=10, progress=False)
+...             beam = source.on(60, 250)          # kV, µA: returns once the beam is stable
+...             print(dialect, source.check()["state"].name, beam["set_voltage_kv"], beam["set_current_ua"])
+...         print(server.model.xray_on)            # leaving the block switched the tube off
+A XRAY_ON 60 250
+False
+B XRAY_ON 60 250
 False
 """
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import math
 import re
@@ -49,13 +89,22 @@ from typing import Any
 from acquisition.errors import DeviceError, SourceFault
 from acquisition.transport import SerialTransport
 
-__all__ = ["L8121", "SourceConfig", "SourceState", "WarmupState", "Query", "Command", "Setting"]
+__all__ = ["L8121", "SourceConfig", "SourceState", "WarmupState", "Aging", "Ratings", "RATINGS", "Dialect",
+           "DIALECT_A", "DIALECT_B", "DIALECTS", "ProbeResult", "ProbeExchange", "probe", "Query", "Command",
+           "Choice"]
 
 logger = logging.getLogger(__name__)
 
 
 class SourceState(IntEnum):
-    """The controller's state, as ``STS`` (and the first field of ``SAR``) reports it."""
+    """The controller's state, the same in both dialects.
+
+    Dialect A's ``STS n`` gives 0-6 directly. Dialect B's ``STS`` word maps as: ``STANDBY`` to
+    STANDBY (or WARMUP_NEEDED when ``DAG`` says ``YET``), ``XON`` to XRAY_ON, ``AGING`` to
+    WARMING_UP, ``OVER`` to OVERLOAD, ``NOT READY`` to NOT_READY and ``ERROR`` to PREHEATING (the
+    hardware notes read it as pre-heating; as it is also what a refused query looks like, it is
+    never taken as confirmation that X-rays are off).
+    """
     WARMUP_NEEDED = 0
     WARMING_UP = 1
     STANDBY = 2
@@ -63,39 +112,87 @@ class SourceState(IntEnum):
     OVERLOAD = 4
     NOT_READY = 5
     SELF_TEST = 6
+    PREHEATING = 7
+
+    @property
+    def emitting(self) -> bool:
+        """Whether the tube may emit in this state: X-rays on, or warming up (B: ``AGING``)."""
+        return self in (SourceState.XRAY_ON, SourceState.WARMING_UP)
+
+
+# States that confirm X-rays are off after an XOF.
+_OFF_STATES = frozenset({SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.OVERLOAD,
+                         SourceState.NOT_READY, SourceState.SELF_TEST})
 
 
 class WarmupState(IntEnum):
-    """The warm-up sequence, as ``SWE`` reports it."""
+    """The warm-up sequence (A: ``SWE``; B: derived from ``DAG`` and ``STS``)."""
     DONE = 0
     RUNNING = 1
     NOT_STARTED = 2
 
 
+@dataclasses.dataclass(frozen=True)
+class Aging:
+    """Dialect B's ``DAG`` reply, ``AGING m s END|YET``: warm-up mode (0 none, 1 after 8 h idle,
+    2 one month, 3 three months), step, and whether the warm-up is done."""
+    mode: int
+    step: int
+    done: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Ratings:
+    """The L8121's ratings (``L8121.md``): the ceiling every configuration stays under."""
+    kv_min: float = 40.0
+    kv_max: float = 150.0
+    ua_max: float = 500.0
+    watts_max: float = 75.0
+
+
+RATINGS = Ratings()
+
+
 # -- configuration --------------------------------------------------------------------------------
 @dataclasses.dataclass
 class SourceConfig:
-    """Ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``, confirm on the unit).
+    """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
 
-    Tolerances are absolute (kV, µA) when numbers, relative to the set value when strings such as
-    ``"2%"``. ``model`` is what ``TYP`` must answer at connect; ``None`` (or ``""`` in TOML, which
-    has no null) accepts any model.
+    ``dialect`` is ``"A"``, ``"B"`` or ``"auto"`` (probe at connect, :func:`probe`). ``baudrate``
+    ``None`` means the dialect's (A 38400, B 9600; ``auto`` tries ``baudrate`` if set, then
+    ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
+    argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV).
+
+    ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
+    :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
+    when numbers, relative to the set value when strings such as ``"2%"``. ``model`` is what
+    dialect A's ``TYP`` must answer at connect; ``None`` (or ``""`` in TOML, which has no null)
+    accepts any model. Dialect B has no identity query.
 
     Examples
     --------
     >>> SourceConfig.from_toml('[source]\\nkv_max = 90\\nua_tolerance = "2%"').tolerance_ua(250)
     5.0
+    >>> SourceConfig(kv_max=1000)
+    Traceback (most recent call last):
+    ...
+    ValueError: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
     """
+    dialect: str = "A"
+    baudrate: int | None = None
+    probe_baudrates: tuple[int, ...] = (9600, 38400, 115200)
+    voltage_scale: float | None = None
     model: str | None = "L8121-01"
-    kv_min: float = 40.0
-    kv_max: float = 150.0
+    kv_min: float = RATINGS.kv_min
+    kv_max: float = RATINGS.kv_max
     ua_min: float = 0.0
-    ua_max: float = 500.0
-    watts_max: float = 75.0
+    ua_max: float = RATINGS.ua_max
+    watts_max: float = RATINGS.watts_max
     kv_tolerance: float | str = 1.0
     ua_tolerance: float | str = 5.0
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float = 1.0
+    probe_timeout_s: float = 0.5
     min_interval_s: float = 0.05
     stable_timeout_s: float = 15.0
     poll_s: float = 0.2
@@ -106,20 +203,70 @@ class SourceConfig:
     def __post_init__(self):
         if self.model == "":
             self.model = None
+        dialect = str(self.dialect)
+        self.dialect = dialect.upper() if dialect.upper() in ("A", "B") else dialect.lower()
+        if self.dialect not in ("A", "B", "auto"):
+            raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
         self.focus_modes = tuple(int(m) for m in self.focus_modes)
-        for name in ("kv_min", "kv_max", "ua_min", "ua_max", "watts_max", "timeout_s", "min_interval_s",
-                     "stable_timeout_s", "poll_s", "warmup_timeout_s", "beam_drop_fraction"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value) or value < 0:
-                raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
+        self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
+        if not self.probe_baudrates:
+            raise ValueError("L8121 configuration: probe_baudrates is empty")
+        if self.baudrate is not None:
+            self.baudrate = _baud(self.baudrate, "baudrate")
+        for name in ("kv_min", "kv_max", "ua_min", "ua_max", "watts_max", "timeout_s", "probe_timeout_s",
+                     "min_interval_s", "stable_timeout_s", "poll_s", "warmup_timeout_s", "beam_drop_fraction"):
+            _finite(getattr(self, name), name)
+        if self.voltage_scale is not None and (_finite(self.voltage_scale, "voltage_scale") == 0):
+            raise ValueError("L8121 configuration: voltage_scale must be > 0")
+        self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
             raise ValueError(f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} "
                              f"or ua {self.ua_min}..{self.ua_max}")
-        if self.timeout_s == 0 or self.poll_s == 0:
-            raise ValueError("L8121 configuration: timeout_s and poll_s must be > 0")
-        if int(self.off_attempts) < 1:
+        if self.timeout_s == 0 or self.poll_s == 0 or self.probe_timeout_s == 0:
+            raise ValueError("L8121 configuration: timeout_s, probe_timeout_s and poll_s must be > 0")
+        if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
             raise ValueError(f"L8121 configuration: off_attempts must be >= 1, got {self.off_attempts}")
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
+
+    def _check_ceiling(self) -> None:
+        r = RATINGS
+        for name, value, rating, unit, above in (("kv_min", self.kv_min, r.kv_min, "kV", False),
+                                                  ("kv_max", self.kv_max, r.kv_max, "kV", True),
+                                                  ("ua_max", self.ua_max, r.ua_max, "µA", True),
+                                                  ("watts_max", self.watts_max, r.watts_max, "W", True)):
+            if (value > rating) if above else (value < rating):
+                raise ValueError(f"L8121 configuration: {name} = {value:g} {unit} "
+                                 f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
+                                 f"a configuration may only tighten the ratings")
+
+    def check_exposure(self, voltage_kv: float, current_ua: float) -> None:
+        """Refuse an exposure outside this configuration or the ratings; nothing is sent.
+
+        The limits are this configuration's, each capped by :data:`RATINGS` (so even a
+        configuration changed after construction cannot raise them).
+
+        Raises
+        ------
+        ValueError
+            Not a finite number, outside ``kv_min..kv_max`` or ``ua_min..ua_max``, or
+            ``voltage_kv * current_ua / 1000`` above ``watts_max``; the message names the
+            parameter and the limit.
+        """
+        for name, value, unit in (("voltage_kv", voltage_kv, "kV"), ("current_ua", current_ua, "µA")):
+            if isinstance(value, bool) or not isinstance(value, Real):
+                raise ValueError(f"L8121: {name} must be a number of {unit}, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"L8121: {name} must be finite, got {value!r} {unit}")
+        r = RATINGS
+        kv_lo, kv_hi = max(self.kv_min, r.kv_min), min(self.kv_max, r.kv_max)
+        ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
+        if not kv_lo <= voltage_kv <= kv_hi:
+            raise ValueError(f"L8121: voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV")
+        if not ua_lo <= current_ua <= ua_hi:
+            raise ValueError(f"L8121: current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA")
+        watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
+        if watts > w_hi:
+            raise ValueError(f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W")
 
     def tolerance_kv(self, set_kv: float) -> float:
         """The kV tolerance, absolute, around ``set_kv``."""
@@ -142,18 +289,32 @@ class SourceConfig:
     def from_toml(cls, source: str | Path, section: str = "source") -> SourceConfig:
         """Read the ``[section]`` table (dotted for nested tables) of a TOML file or TOML text.
 
-        The link settings ``url`` and ``baudrate`` may sit in the same table; they are ignored
-        here (see :meth:`L8121.from_config`).
+        The link's ``url`` may sit in the same table; it is ignored here (see
+        :meth:`L8121.from_config`).
         """
         table = _toml_section(source, section)
-        return cls.from_dict({k: v for k, v in table.items() if k not in ("url", "baudrate")})
+        return cls.from_dict({k: v for k, v in table.items() if k != "url"})
 
     def to_dict(self) -> dict[str, Any]:
-        """The configuration as a TOML-friendly dict (``model=None`` becomes ``""``)."""
+        """The configuration as a TOML-friendly dict (``model=None`` becomes ``""``; unset
+        ``baudrate`` and ``voltage_scale`` are left out)."""
         d = dataclasses.asdict(self)
         d["model"] = d["model"] or ""
         d["focus_modes"] = list(d["focus_modes"])
-        return d
+        d["probe_baudrates"] = list(d["probe_baudrates"])
+        return {k: v for k, v in d.items() if v is not None}
+
+
+def _finite(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
+    return value
+
+
+def _baud(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"L8121 configuration: {name} must hold positive whole baud rates, got {value!r}")
+    return value
 
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:
@@ -194,15 +355,24 @@ def _number(text: str) -> float:
     return value
 
 
+def _closed_if_zero(text: str) -> bool:
+    """Dialect A's ``SIN``: 0 closed (True), 1 open (False)."""
+    if text not in ("0", "1"):
+        raise ValueError(f"{text!r} is neither 0 nor 1")
+    return text == "0"
+
+
 def _flag(text: str) -> bool:
     if text not in ("0", "1"):
         raise ValueError(f"{text!r} is neither 0 nor 1")
     return text == "1"
 
 
-def _enum(enum: type[IntEnum]) -> Callable[[str], IntEnum]:
+def _enum(enum: type[IntEnum], allowed: range | None = None) -> Callable[[str], IntEnum]:
     def parse(text: str) -> IntEnum:
         value = _integer(text)
+        if allowed is not None and value not in allowed:
+            raise ValueError(f"{value} is not a known {enum.__name__}")
         try:
             return enum(value)
         except ValueError:
@@ -211,59 +381,88 @@ def _enum(enum: type[IntEnum]) -> Callable[[str], IntEnum]:
     return parse
 
 
+def _words(mapping: Mapping[str, Any]) -> Callable[[str], Any]:
+    """A reply that is one of a few words (dialect B: ``STANDBY``, ``INTER LOCK ON``, ``REMOTE``)."""
+    def parse(text: str) -> Any:
+        key = " ".join(text.split())
+        if key not in mapping:
+            raise ValueError(f"{text!r} is none of {', '.join(mapping)}")
+        return mapping[key]
+    return parse
+
+
+def _with_unit(unit: str) -> Callable[[str], float]:
+    """Dialect B's measured values: ``60.0kV``, ``250uA`` (``µA`` and a space before the unit accepted)."""
+    units = {"uA": "(?:uA|µA)"}.get(unit, re.escape(unit))
+    pattern = re.compile(rf"([+-]?\d+(?:\.\d*)?)\s*{units}")
+
+    def parse(text: str) -> float:
+        m = pattern.fullmatch(text.strip())
+        if not m:
+            raise ValueError(f"{text!r} is not a number of {unit}")
+        return float(m.group(1))
+    return parse
+
+
+def _aging(text: str) -> Aging:
+    m = re.fullmatch(r"AGING\s+(\d+)\s+(\d+)\s+(END|YET)", text.strip())
+    if not m:
+        raise ValueError(f"{text!r} is not 'AGING <mode> <step> END|YET'")
+    return Aging(int(m.group(1)), int(m.group(2)), m.group(3) == "END")
+
+
 # -- the declarations -----------------------------------------------------------------------------
 class Query:
-    """A read-only property that sends ``command`` and parses the reply ``<command> <fields...>``.
+    """A query: ``command`` and the parser of its reply.
 
     Parameters
     ----------
     command : str
-        The query, e.g. ``"SAR"``; the reply must start with it.
+        The query, e.g. ``"SAR"``.
     *fields : callable
         One parser per reply field (``str -> value``, raising ``ValueError`` on bad text). A single
         field gives a value, several a tuple.
+    echo : bool
+        The reply starts with the command (``SAR 3 60 250 ...``); dialect B's ``STS``, ``SIN``,
+        ``DAG``, ``SRL`` do not echo (``STANDBY``, ``INTER LOCK ON``).
     extra : bool
         Accept (and drop) further fields after the declared ones (``SAR``'s trailing zeros).
     rest : bool
-        The last field takes the rest of the reply, spaces included (``TYP``'s model name).
+        The last field takes the rest of the reply, spaces included (``TYP``'s model name,
+        ``NOT READY``).
+    error_is_value : bool
+        ``ERROR`` is an answer, not a refusal (dialect B's ``STS``).
     doc : str
-        The property's docstring.
+        What the reading is.
     """
 
-    def __init__(self, command: str, *fields: Callable[[str], Any], extra: bool = False, rest: bool = False,
-                 doc: str | None = None):
-        self.command, self.fields, self.extra, self.rest = command, fields, extra, rest
-        self.name = command
+    def __init__(self, command: str, *fields: Callable[[str], Any], echo: bool = True, extra: bool = False,
+                 rest: bool = False, error_is_value: bool = False, doc: str | None = None):
+        self.command, self.fields, self.echo, self.extra, self.rest = command, fields, echo, extra, rest
+        self.error_is_value = error_is_value
         self.__doc__ = doc
-
-    def __set_name__(self, owner, name):
-        self.name = name
-
-    def __get__(self, driver, owner=None):
-        if driver is None:
-            return self
-        return driver._ask(self)
-
-    def __set__(self, driver, value):
-        raise AttributeError(f"{self.name} ({self.command}) is read-only")
 
     def parse(self, reply: str) -> Any:
         """The value(s) in ``reply``; ``ValueError`` says why ``reply`` is not a valid answer."""
         words = reply.split()
-        if not words or words[0] != self.command:
-            raise ValueError(f"the reply does not start with {self.command}")
-        values, n = words[1:], len(self.fields)
+        if self.echo:
+            if not words or words[0] != self.command:
+                raise ValueError(f"the reply does not start with {self.command}")
+            words = words[1:]
+        values, n = words, len(self.fields)
         if self.rest and len(values) >= n:
             values = values[:n - 1] + [" ".join(values[n - 1:])]
         if len(values) < n or (len(values) > n and not self.extra):
-            raise ValueError(f"expected {n} field(s) after {self.command}, got {len(values)}")
+            raise ValueError(f"expected {n} field(s){' after ' + self.command if self.echo else ''}, got {len(values)}")
         out = tuple(parse(v) for parse, v in zip(self.fields, values))
         return out[0] if n == 1 else out
 
+    def __repr__(self) -> str:
+        return f"Query({self.command!r})"
+
 
 class Command:
-    """A command the controller echoes, e.g. ``XON`` or ``HIV 60``; reading the attribute gives a
-    function that sends it.
+    """A command the controller echoes, e.g. ``XON`` or ``HIV 60``.
 
     Parameters
     ----------
@@ -273,20 +472,12 @@ class Command:
         ``argument(driver, value) -> int``: validates the value (``ValueError`` naming the limit)
         and returns what is sent. ``None``: the command takes no argument.
     doc : str
-        Docstring.
+        What it does.
     """
 
     def __init__(self, command: str, argument: Callable[[Any, Any], int] | None = None, doc: str | None = None):
         self.command, self.argument = command, argument
         self.__doc__ = doc
-
-    def __set_name__(self, owner, name):
-        self.name = name
-
-    def __get__(self, driver, owner=None):
-        if driver is None:
-            return self
-        return functools.partial(driver._send, self)
 
     def line(self, driver, value=None) -> str:
         """The line to send, after validating ``value``."""
@@ -310,52 +501,44 @@ class Command:
                 return False
         return True
 
+    def __repr__(self) -> str:
+        return f"Command({self.command!r})"
 
-class Setting:
-    """A read-write property: reading sends ``query``, assigning sends ``command``."""
 
-    def __init__(self, query: Query, command: Command, doc: str | None = None):
-        self.query, self.command = query, command
-        self.__doc__ = doc
+class Choice(Command):
+    """A setting sent as one of several argument-less commands (dialect B's focus: ``CFS``,
+    ``CFM``, ``CFL``), chosen by value."""
 
-    def __set_name__(self, owner, name):
-        self.name = self.query.name = self.command.name = name
+    def __init__(self, choices: Mapping[int, str], doc: str | None = None):
+        super().__init__("/".join(choices.values()), None, doc)
+        self.choices = dict(choices)
 
-    def __get__(self, driver, owner=None):
-        if driver is None:
-            return self
-        return driver._ask(self.query)
-
-    def __set__(self, driver, value):
-        driver._send(self.command, value)
+    def line(self, driver, value=None) -> str:
+        if isinstance(value, bool) or value not in self.choices or value not in driver.config.focus_modes:
+            allowed = tuple(v for v in self.choices if v in driver.config.focus_modes)
+            raise ValueError(f"focus mode must be one of {allowed} (focus_modes, and {self.command}), got {value!r}")
+        return self.choices[value]
 
 
 def _whole(value: Any, what: str, unit: str) -> int:
     """The controller takes whole kV and µA: round half up, and say so in the log."""
-    if isinstance(value, bool) or not isinstance(value, Real):
-        raise TypeError(f"{what} must be a number of {unit}, got {value!r}")
-    if not math.isfinite(value):
-        raise ValueError(f"{what} must be finite, got {value!r} {unit}")
     whole = math.floor(value + 0.5)
     if whole != value:
         logger.warning("%s %g %s rounded to %d %s: the L8121 takes whole %s", what, value, unit, whole, unit, unit)
     return whole
 
 
-def _in_range(value: int, lo: float, hi: float, what: str, unit: str, names: str) -> int:
-    if not lo <= value <= hi:
-        raise ValueError(f"{what} {value} {unit} is outside {names} = {lo:g}..{hi:g} {unit}")
-    return value
-
-
 def _kv_argument(driver: L8121, value) -> int:
-    c = driver.config
-    return _in_range(_whole(value, "tube voltage", "kV"), c.kv_min, c.kv_max, "tube voltage", "kV", "kv_min..kv_max")
+    """Whole kV within the limits, times the voltage scale (A 1: ``HIV 60``; B 10: ``PHV 600``)."""
+    kv = _whole(value, "tube voltage", "kV")
+    driver.config.check_exposure(kv, driver.config.ua_min)
+    return round(kv * driver.voltage_scale)
 
 
 def _ua_argument(driver: L8121, value) -> int:
-    c = driver.config
-    return _in_range(_whole(value, "tube current", "µA"), c.ua_min, c.ua_max, "tube current", "µA", "ua_min..ua_max")
+    ua = _whole(value, "tube current", "µA")
+    driver.config.check_exposure(max(driver.config.kv_min, RATINGS.kv_min), ua)
+    return ua
 
 
 def _focus_argument(driver: L8121, value) -> int:
@@ -364,9 +547,261 @@ def _focus_argument(driver: L8121, value) -> int:
     return value
 
 
+# -- the two dialects -----------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Dialect:
+    """One command dialect of the controller: the same readings and settings, other commands.
+
+    ``readings`` and ``settings`` map the driver's names to declarations; a name a dialect lacks
+    is simply absent. ``poll`` is what :meth:`L8121.check` reads while X-rays are on.
+    """
+    name: str
+    baudrate: int
+    voltage_scale: float
+    readings: Mapping[str, Query]
+    settings: Mapping[str, Command]
+    poll: tuple[str, ...]
+    evidence: str
+
+    def __repr__(self) -> str:
+        return f"Dialect({self.name!r})"
+
+
+_STATES_A = _enum(SourceState, range(7))
+_STATES_B = _words({"STANDBY": SourceState.STANDBY, "XON": SourceState.XRAY_ON, "AGING": SourceState.WARMING_UP,
+                    "OVER": SourceState.OVERLOAD, "NOT READY": SourceState.NOT_READY,
+                    "ERROR": SourceState.PREHEATING})
+_FOCUS_B = {0: "SMALL", 1: "MIDDLE", 2: "LARGE"}
+
+DIALECT_A = Dialect(
+    name="A", baudrate=38400, voltage_scale=1,
+    evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
+    readings={
+        "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
+        "state": Query("STS", _STATES_A, doc="STS n: 0 warm-up needed ... 6 self-test."),
+        "beam": Query("SAR", _STATES_A, _number, _number, extra=True,
+                      doc="State, measured kV and µA in one exchange (SAR n kV uA 0 0 0 0)."),
+        "setpoint": Query("SVI", _number, _number, doc="Set kV and µA (SVI kV uA)."),
+        "voltage_kv": Query("SHV", _number, doc="Measured tube voltage, kV (SHV 60)."),
+        "current_ua": Query("SCU", _number, doc="Measured tube current, µA (SCU 250)."),
+        "interlock_closed": Query("SIN", _closed_if_zero, doc="Interlock: SIN 0 closed, SIN 1 open."),
+        "warmup": Query("SWE", _enum(WarmupState), doc="Warm-up: SWE 0 done, 1 running, 2 not started."),
+        "preheating": Query("SPH", _flag, doc="SPH 1 while pre-heating."),
+        "error": Query("SER", _integer, doc="Controller error code (SER n), 0 none."),
+        "focus": Query("SFC", _integer, doc="Focus mode in use (SFC n)."),
+    },
+    settings={
+        "voltage": Command("HIV", _kv_argument, doc="Tube voltage, whole kV (HIV 60)."),
+        "current": Command("CUR", _ua_argument, doc="Tube current, whole µA (CUR 250)."),
+        "preset_voltage": Command("HIV", _kv_argument, doc="Dialect A has no presets: HIV while off too."),
+        "preset_current": Command("CUR", _ua_argument, doc="Dialect A has no presets: CUR while off too."),
+        "xray_on": Command("XON", doc="X-rays on; refused unless standby with the interlock closed."),
+        "xray_off": Command("XOF", doc="X-rays off; always accepted."),
+        "warm_up": Command("WUP", doc="Start the warm-up sequence."),
+        "reset": Command("RST", doc="Reset after an overload (never sent automatically)."),
+        "focus": Command("CFS", _focus_argument, doc="Focus mode (CFS n)."),
+    },
+    poll=("beam", "interlock_closed"),
+)
+
+DIALECT_B = Dialect(
+    name="B", baudrate=9600, voltage_scale=10,
+    evidence="a public Windows driver for the L8121-02 controller",
+    readings={
+        "state": Query("STS", _STATES_B, echo=False, rest=True, error_is_value=True,
+                       doc="STS: STANDBY, XON, AGING (warming up: X-rays on), OVER, NOT READY, ERROR (pre-heating)."),
+        "voltage_kv": Query("SHV", _with_unit("kV"), rest=True, doc="Measured tube voltage (SHV 60.0kV)."),
+        "current_ua": Query("SCU", _with_unit("uA"), rest=True, doc="Measured tube current (SCU 250uA)."),
+        "set_voltage_kv": Query("SPV", _with_unit("kV"), rest=True, doc="Preset voltage (SPV 60.0kV)."),
+        "set_current_ua": Query("SPC", _with_unit("uA"), rest=True, doc="Preset current (SPC 250uA)."),
+        "interlock_closed": Query("SIN", _words({"INTER LOCK ON": True, "INTER LOCK OFF": False}), echo=False,
+                                  rest=True, doc="INTER LOCK ON (closed, safe) or INTER LOCK OFF (open)."),
+        "warmup": Query("DAG", _aging, echo=False, rest=True, doc="AGING m s END|YET: warm-up mode, step, done."),
+        "error": Query("SER", _integer, doc="Control-board error (SER n): 0 none, 1-4 relay or internal faults."),
+        "focus": Query("SFS", _words({v: k for k, v in _FOCUS_B.items()}), echo=False,
+                       doc="SMALL, MIDDLE or LARGE (read as 0, 1, 2)."),
+        "operate_switch": Query("SRL", _words({w: w for w in ("OFF", "REMOTE", "LOCAL")}), echo=False,
+                                doc="Operate switch: OFF, REMOTE or LOCAL; remote control needs REMOTE."),
+        "remote_state": Query("SRB", _words({w: w for w in ("READY", "BUSY")}), echo=False,
+                              doc="Remote operation: READY or BUSY."),
+    },
+    settings={
+        "voltage": Command("HIV", _kv_argument, doc="Tube voltage while X-rays are on, kV x voltage_scale."),
+        "current": Command("CUR", _ua_argument, doc="Tube current while X-rays are on, µA."),
+        "preset_voltage": Command("PHV", _kv_argument, doc="Preset voltage while X-rays are off (PHV 600: 60 kV)."),
+        "preset_current": Command("PCU", _ua_argument, doc="Preset current while X-rays are off, µA."),
+        "xray_on": Command("XON", doc="X-rays on -- or the warm-up, when DAG says YET."),
+        "xray_off": Command("XOF", doc="X-rays off."),
+        "warm_up": Command("XON", doc="Dialect B has no WUP: XON starts the warm-up while DAG says YET."),
+        "reset": Command("RST", doc="Reset after an overload (never sent automatically)."),
+        "focus": Choice({k: "CF" + v[0] for k, v in _FOCUS_B.items()}, doc="Focus small/middle/large: CFS, CFM, CFL."),
+    },
+    poll=("state", "voltage_kv", "current_ua", "interlock_closed"),
+)
+
+DIALECTS = {"A": DIALECT_A, "B": DIALECT_B}
+
+
+# -- the probe ------------------------------------------------------------------------------------
+# Harmless queries only: the probe must never change the tube (no XON, HIV, CUR, PHV, PCU, WUP, RST).
+PROBE_QUERIES = frozenset({"STS", "SIN", "TYP", "SWE", "SRL", "DAG", "SER"})
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeExchange:
+    """One query the probe sent: the baud rate, the query, the reply (None: none) and the error."""
+    baudrate: int | None
+    sent: str
+    reply: str | None
+    error: str = ""
+
+    def __str__(self) -> str:
+        got = repr(self.reply) if self.reply is not None else f"(no reply: {self.error})"
+        return f"{self.baudrate or '-':>6} baud  > {self.sent:<4} < {got}"
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeResult:
+    """What :func:`probe` found: the dialect and baud rate (None when nothing fits), the identity
+    where the dialect has one (A's ``TYP``), what else the unit said, and the raw exchange."""
+    port: str
+    dialect: str | None
+    baudrate: int | None
+    identity: str | None
+    details: tuple[tuple[str, str], ...]
+    exchange: tuple[ProbeExchange, ...]
+    notes: tuple[str, ...]
+
+    @property
+    def found(self) -> bool:
+        """Whether the replies fit one dialect."""
+        return self.dialect is not None
+
+    def summary(self) -> str:
+        """One line: what the unit speaks, or why the probe refuses."""
+        if not self.found:
+            why = "; ".join(self.notes) or "no reply"
+            return (f"{self.port}: the replies fit neither dialect A nor B at "
+                    f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})")
+        ident = f", identity {self.identity!r}" if self.identity else ", no identity query in this dialect"
+        more = "".join(f", {k} {v}" for k, v in self.details)
+        return f"{self.port}: dialect {self.dialect} at {self.baudrate} baud{ident}{more}"
+
+    def report(self) -> str:
+        """The summary, then the raw exchange (for the lab notebook)."""
+        lines = [self.summary(), "raw exchange:"] + [f"  {e}" for e in self.exchange]
+        return "\n".join(lines + [f"note: {n}" for n in self.notes if self.found])
+
+
+def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5,
+          min_interval_s: float = 0.05) -> ProbeResult:
+    """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
+
+    At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too
+    (a unit that answers ``STS 2`` and ``INTER LOCK ON`` fits neither), then the identity or state
+    queries of that dialect (A: ``TYP``, ``SWE``; B: ``SRL``, ``DAG``). Stops at the first baud
+    rate where the replies fit a dialect. Only queries in :data:`PROBE_QUERIES` are sent.
+
+    Parameters
+    ----------
+    url : str or transport
+        A port for :class:`SerialTransport`, or an open transport (then only its own baud rate,
+        ``getattr(url, "baudrate", None)``, is tried).
+    baudrates : sequence of int
+        The rates to try, in order.
+    timeout_s, min_interval_s : float
+        Reply time-out per query and the pause between queries.
+
+    Returns
+    -------
+    ProbeResult
+        ``dialect`` None when the replies fit neither dialect at any rate.
+    """
+    exchange: list[ProbeExchange] = []
+    notes: list[str] = []
+    rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
+    port = url if isinstance(url, str) else getattr(url, "port", str(url))
+    for baud in rates:
+        try:
+            link = (SerialTransport(url, baudrate=baud, timeout_s=timeout_s, min_interval_s=min_interval_s, retries=0)
+                    if isinstance(url, str) else url)
+        except DeviceError as exc:
+            exchange.append(ProbeExchange(baud, "(open)", None, str(exc)))
+            notes.append(f"cannot open the port at {baud} baud")
+            continue
+        try:
+            found = _probe_at(link, baud, exchange, notes)
+        finally:
+            if isinstance(url, str):
+                link.close()
+        if found is not None:
+            dialect, identity, details = found
+            return ProbeResult(port, dialect, baud, identity, details, tuple(exchange), tuple(notes))
+    return ProbeResult(port, None, None, None, (), tuple(exchange), tuple(notes))
+
+
+def _probe_at(link, baud, exchange: list, notes: list):
+    def ask(command: str) -> str | None:
+        assert command in PROBE_QUERIES, command  # never anything that changes the tube
+        try:
+            reply = link.query(command)
+        except DeviceError as exc:
+            exchange.append(ProbeExchange(baud, command, None, str(exc).split(": ", 1)[-1]))
+            return None
+        exchange.append(ProbeExchange(baud, command, reply))
+        return reply
+
+    def fits(dialect: Dialect, name: str, reply: str | None) -> bool:
+        if reply is None:
+            return False
+        try:
+            dialect.readings[name].parse(reply)
+            return True
+        except ValueError:
+            return False
+
+    sts = ask("STS")
+    if sts is None:
+        return None
+    candidates = [d for d in (DIALECT_A, DIALECT_B) if fits(d, "state", sts)]
+    if not candidates:
+        notes.append(f"STS answered {sts!r} at {baud} baud")
+        return None
+    dialect = candidates[0]
+    sin = ask("SIN")
+    if not fits(dialect, "interlock_closed", sin):
+        other = [d.name for d in DIALECTS.values() if d is not dialect and fits(d, "interlock_closed", sin)]
+        mix = f" (dialect {other[0]}'s shape: a mix of dialects)" if other else ""
+        notes.append(f"STS {sts!r} fits dialect {dialect.name} but SIN answered {sin!r}{mix} at {baud} baud")
+        return None
+    closed = dialect.readings["interlock_closed"].parse(sin)
+    details = [("interlock", "closed" if closed else "OPEN")]
+    details.append(("state", dialect.readings["state"].parse(sts).name))
+    identity = None
+    if dialect is DIALECT_A:
+        typ = ask("TYP")
+        if fits(dialect, "identity", typ):
+            identity = dialect.readings["identity"].parse(typ)
+        else:
+            notes.append(f"TYP answered {typ!r}: identity unknown")
+        swe = ask("SWE")
+        if fits(dialect, "warmup", swe):
+            details.append(("warm-up", dialect.readings["warmup"].parse(swe).name))
+    else:
+        srl = ask("SRL")
+        if fits(dialect, "operate_switch", srl):
+            details.append(("operate switch", srl))
+            if srl != "REMOTE":
+                notes.append(f"the operate switch is {srl}: remote control needs REMOTE")
+        dag = ask("DAG")
+        if fits(dialect, "warmup", dag):
+            details.append(("warm-up", "done" if dialect.readings["warmup"].parse(dag).done else "needed (YET)"))
+    return dialect.name, identity, tuple(details)
+
+
 # -- the driver -----------------------------------------------------------------------------------
 class L8121:
-    """A Hamamatsu L8121 X-ray source on a serial link.
+    """A Hamamatsu L8121 X-ray source on a serial link, in either dialect.
 
     Parameters
     ----------
@@ -374,82 +809,77 @@ class L8121:
         The controller's port for :func:`serial.serial_for_url` (``/dev/ttyUSB0``,
         ``socket://host:port``, an emulator's pty), or an object with ``query(str) -> str``,
         ``close()``, ``is_open`` and ``port`` (e.g. a configured :class:`SerialTransport`).
-    baudrate : int
-        9600, 38400 (default) or 115200, as set on the controller.
+    baudrate : int, optional
+        As set on the controller; overrides ``config.baudrate`` (default: the dialect's).
     connect : bool
-        Open the link and check ``TYP`` now (default).
+        Open the link and check the controller now (default).
     config : SourceConfig or mapping, optional
-        Ratings, tolerances and timing; keyword arguments override single fields
-        (``L8121(url, kv_max=90, poll_s=0.1)``).
+        Dialect, ratings, tolerances and timing; keyword arguments override single fields
+        (``L8121(url, dialect="B", kv_max=90, poll_s=0.1)``).
 
     Raises
     ------
     DeviceError
-        The port cannot be opened, the controller does not answer, or ``TYP`` names another model.
+        The port cannot be opened, the controller does not answer, ``TYP`` names another model
+        (A), the operate switch is not on REMOTE (B), or the probe found neither dialect (auto).
 
     Notes
     -----
-    Attributes declared as :class:`Query` (``state``, ``interlock_open``, ``warmup``,
-    ``preheating``, ``error``, ``voltage_kv``, ``current_ua``, ``model_name``) send their query on
-    every read. ``focus`` is a :class:`Setting` (``SFC`` / ``CFS``). The commands that change the
-    tube (``HIV``, ``CUR``, ``XON``, ``XOF``, ``WUP``, ``RST``) are private: use :meth:`on`,
+    Readings, one name each and the same in both dialects: :meth:`status`, :meth:`measured`,
+    :meth:`setpoint`, :meth:`interlock_closed`, :meth:`warmup_state`, :meth:`error_code`,
+    :attr:`focus` (read-write), :attr:`identity` (A's ``TYP`` at connect; None in B) and, in B only,
+    :meth:`operate_switch`. The commands that change the tube are private: use :meth:`on`,
     :meth:`set_values`, :meth:`off`, :meth:`warm_up` and :meth:`reset`, which keep the safety rules.
 
     The transport serialises exchanges, so :meth:`off` may be called from another thread (a
     watchdog) at any time, also while :meth:`on` waits for a stable beam.
     """
 
-    # ---- the command table (L8121.md) ----
-    model_name = Query("TYP", str, rest=True, doc="The controller's model (``TYP``).")
-    state = Query("STS", _enum(SourceState), doc="The controller's state (``STS``), a :class:`SourceState`.")
-    interlock_open = Query("SIN", _flag, doc="Whether the interlock is open (``SIN 1``).")
-    warmup = Query("SWE", _enum(WarmupState), doc="The warm-up sequence (``SWE``), a :class:`WarmupState`.")
-    preheating = Query("SPH", _flag, doc="Whether the tube is pre-heating (``SPH 1``).")
-    error = Query("SER", _integer, doc="The controller's error code (``SER``), 0 for none.")
-    voltage_kv = Query("SHV", _number, doc="Measured tube voltage, kV (``SHV``).")
-    current_ua = Query("SCU", _number, doc="Measured tube current, µA (``SCU``).")
-    _sar = Query("SAR", _enum(SourceState), _number, _number, extra=True,
-                 doc="State, measured kV and µA in one exchange (``SAR n kV uA 0 0 0 0``).")
-    _svi = Query("SVI", _number, _number, doc="Set kV and µA (``SVI kV uA``).")
-    focus = Setting(Query("SFC", _integer), Command("CFS", _focus_argument),
-                    doc="Focus mode: reading sends ``SFC``, assigning ``CFS n`` (one of ``focus_modes``).")
-    _hiv = Command("HIV", _kv_argument, doc="Set the tube voltage, whole kV (``HIV 60``).")
-    _cur = Command("CUR", _ua_argument, doc="Set the tube current, whole µA (``CUR 250``).")
-    _xon = Command("XON", doc="X-rays on; the controller refuses unless standby with the interlock closed.")
-    _xof = Command("XOF", doc="X-rays off; always accepted.")
-    _wup = Command("WUP", doc="Start the warm-up sequence.")
-    _rst = Command("RST", doc="Reset after an overload.")
-
-    def __init__(self, url, baudrate: int = 38400, *, connect: bool = True,
+    def __init__(self, url, baudrate: int | None = None, *, connect: bool = True,
                  config: SourceConfig | Mapping[str, Any] | None = None, **overrides):
+        if baudrate is not None:
+            overrides["baudrate"] = baudrate
         base = config if isinstance(config, SourceConfig) else SourceConfig.from_dict(dict(config or {}))
         self.config = SourceConfig.from_dict({**dataclasses.asdict(base), **overrides}) if overrides else base
         self.url = url
-        self.baudrate = int(baudrate)
         self.identity: str | None = None
+        self.probe_result: ProbeResult | None = None
+        self.dialect: Dialect | None = None
+        self.baudrate: int | None = self.config.baudrate
+        if self.config.dialect != "auto":
+            self._use(DIALECTS[self.config.dialect], self.config.baudrate)
         self._transport = None
-        self._may_be_on = False  # True from before XON until off() has confirmed
+        self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
         self._in_off = False
         if connect:
             self.connect()
 
+    def _use(self, dialect: Dialect, baudrate: int | None) -> None:
+        self.dialect = dialect
+        self.baudrate = int(baudrate or dialect.baudrate)
+
+    @property
+    def voltage_scale(self) -> float:
+        """kV are multiplied by this in a command argument (configuration, else the dialect's)."""
+        return self.config.voltage_scale or self.dialect.voltage_scale
+
     @classmethod
     def from_config(cls, source: Mapping[str, Any] | str | Path, *, section: str = "source",
                     connect: bool = True) -> L8121:
-        """A driver from a TOML table (file, text, or an already parsed mapping) holding ``url``,
-        optionally ``baudrate``, and :class:`SourceConfig` keys."""
+        """A driver from a TOML table (file, text, or an already parsed mapping) holding ``url``
+        and :class:`SourceConfig` keys (``dialect``, ``baudrate``, limits, ...)."""
         table = dict(source) if isinstance(source, Mapping) else _toml_section(source, section)
         if "url" not in table:
             raise ValueError(f"L8121 configuration: no 'url' in [{section}]")
-        url, baudrate = table.pop("url"), table.pop("baudrate", 38400)
-        return cls(url, baudrate, connect=connect, config=SourceConfig.from_dict(table))
+        url = table.pop("url")
+        return cls(url, connect=connect, config=SourceConfig.from_dict(table))
 
     # ---- link ----
     @property
     def port(self) -> str:
         """The port, as messages name it."""
-        return getattr(self._transport, "port", None) or str(self.url)
+        return getattr(self._transport, "port", None) or str(getattr(self.url, "port", self.url))
 
     @property
     def is_connected(self) -> bool:
@@ -457,31 +887,62 @@ class L8121:
         return self._transport is not None and self._transport.is_open
 
     def connect(self) -> L8121:
-        """Open the link and check the controller's model (``TYP``); returns self.
+        """Open the link and check the controller; returns self.
 
+        ``dialect="auto"``: :func:`probe` first (refused when nothing fits). Dialect A: ``TYP``
+        must name ``config.model``. Dialect B: the operate switch (``SRL``) must be ``REMOTE``.
         If the tube is found emitting, it is noted (a warning) and :meth:`close` will switch it off.
         """
         if self.is_connected:
             return self
+        if self.dialect is None:
+            self._probe()
         if isinstance(self.url, str):
             self._transport = SerialTransport(self.url, baudrate=self.baudrate, timeout_s=self.config.timeout_s,
                                               min_interval_s=self.config.min_interval_s)
         else:
             self._transport = self.url
         try:
-            self.identity = self.model_name
-            if self.config.model is not None and self.identity != self.config.model:
-                raise DeviceError(f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
-                                  f"(configure model=None to accept any model)")
-            if self.state == SourceState.XRAY_ON:
+            self._check_identity()
+            if self._read("state").emitting:
                 logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
                 self._may_be_on = True
         except BaseException:
             self._transport.close()
             self._transport = None
             raise
-        logger.info("%s: %s connected", self.port, self.identity)
+        logger.info("%s: %s connected (dialect %s, %d baud)", self.port, self.identity or "L8121", self.dialect.name,
+                    self.baudrate)
         return self
+
+    def _probe(self) -> None:
+        c = self.config
+        rates = ((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates
+        result = probe(self.url, baudrates=rates, timeout_s=c.probe_timeout_s, min_interval_s=c.min_interval_s)
+        self.probe_result = result
+        for e in result.exchange:
+            logger.debug("%s probe: %s", result.port, e)
+        if not result.found:
+            raise DeviceError(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
+                              f"{result.port}` prints the exchange)")
+        logger.info("%s", result.summary())
+        self._use(DIALECTS[result.dialect], result.baudrate)
+
+    def _check_identity(self) -> None:
+        if "identity" in self.dialect.readings:
+            try:
+                self.identity = self._read("identity")
+            except DeviceError as exc:
+                raise DeviceError(f"{exc}; if this unit speaks dialect B (no TYP), set dialect = \"B\" or \"auto\" "
+                                  f"(`radiokit acquire source probe --port {self.port}` tells)") from None
+            if self.config.model is not None and self.identity != self.config.model:
+                raise DeviceError(f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
+                                  f"(configure model=None to accept any model)")
+        if "operate_switch" in self.dialect.readings:
+            switch = self.operate_switch()
+            if switch != "REMOTE":
+                raise DeviceError(f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
+                                  f"commands; turn it to REMOTE at the controller")
 
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
@@ -523,10 +984,17 @@ class L8121:
             logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
 
     def __repr__(self) -> str:
-        return f"L8121({self.port!r}, {'connected' if self.is_connected else 'not connected'})"
+        dialect = self.dialect.name if self.dialect else "auto"
+        return f"L8121({self.port!r}, dialect {dialect}, {'connected' if self.is_connected else 'not connected'})"
+
+    def describe(self) -> dict[str, Any]:
+        """What the experiment file records about the source link."""
+        return {"port": self.port, "dialect": self.dialect.name if self.dialect else None, "baudrate": self.baudrate,
+                "identity": self.identity, "voltage_scale": self.voltage_scale if self.dialect else None,
+                "probe": self.probe_result.summary() if self.probe_result else None}
 
     # ---- exchanges ----
-    def _exchange(self, line: str, *, query: bool = False) -> str:
+    def _exchange(self, line: str, *, query: Query | None = None) -> str:
         if self._transport is None:
             raise DeviceError(f"{self.port}: not connected (call connect())")
         try:
@@ -534,23 +1002,30 @@ class L8121:
         except DeviceError as exc:
             self._fail_safe(exc)
             raise
-        if reply in ("ERR", "ERROR"):
+        if reply in ("ERR", "ERROR") and not (query is not None and query.error_is_value):
             err = DeviceError(f"{self.port}: {line} refused by the controller ({reply})")
-            if query:  # a query is never refused by a working controller: as bad as garbage
+            if query is not None:  # a query is never refused by a working controller: as bad as garbage
                 self._fail_safe(err)
             raise err
         return reply
 
-    def _ask(self, query: Query) -> Any:
-        reply = self._exchange(query.command, query=True)
+    def _read(self, name: str) -> Any:
+        """Send the dialect's query for the reading ``name`` and parse its reply."""
+        query = self.dialect.readings.get(name)
+        if query is None:
+            raise DeviceError(f"{self.port}: dialect {self.dialect.name} has no {name} reading")
+        reply = self._exchange(query.command, query=query)
         try:
             return query.parse(reply)
         except ValueError as why:
-            err = DeviceError(f"{self.port}: unparseable reply to {query.command}: {reply!r} ({why})")
+            err = DeviceError(f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): "
+                              f"{reply!r} ({why})")
             self._fail_safe(err)
             raise err from None
 
-    def _send(self, command: Command, value=None) -> None:
+    def _do(self, name: str, value=None) -> None:
+        """Send the dialect's command for the setting or action ``name`` (validated first)."""
+        command = self.dialect.settings[name]
         line = command.line(self, value)  # validates before anything is sent
         reply = self._exchange(line)
         if not Command.is_echo(line, reply):
@@ -570,54 +1045,81 @@ class L8121:
 
     # ---- readings ----
     def status(self) -> SourceState:
-        """The controller's state (``STS``)."""
-        return self.state
+        """The controller's state (A: ``STS``; B: ``STS``, and ``DAG`` when it says ``STANDBY``, so
+        that a warm-up that is needed reads WARMUP_NEEDED in both dialects)."""
+        state = self._read("state")
+        if state == SourceState.STANDBY and self.dialect is DIALECT_B and not self._read("warmup").done:
+            return SourceState.WARMUP_NEEDED
+        return state
+
+    def _beam_reading(self) -> tuple[SourceState, float, float]:
+        """State, measured kV and µA (A: one ``SAR``; B: ``STS``, ``SHV``, ``SCU``)."""
+        if "beam" in self.dialect.readings:
+            return self._read("beam")[:3]
+        return self._read("state"), self._read("voltage_kv"), self._read("current_ua")
 
     def measured(self) -> tuple[float, float]:
-        """Measured tube voltage (kV) and current (µA), from one ``SAR``."""
-        _, kv, ua = self._sar[:3]
-        return kv, ua
+        """Measured tube voltage (kV) and current (µA) (A: ``SAR``; B: ``SHV``, ``SCU``)."""
+        if "beam" in self.dialect.readings:
+            return tuple(self._read("beam")[1:3])
+        return self._read("voltage_kv"), self._read("current_ua")
 
     def setpoint(self) -> tuple[float, float]:
-        """Set tube voltage (kV) and current (µA), from ``SVI``."""
-        return self._svi
+        """Set tube voltage (kV) and current (µA) (A: ``SVI``; B: ``SPV``, ``SPC``)."""
+        if "setpoint" in self.dialect.readings:
+            return self._read("setpoint")
+        return self._read("set_voltage_kv"), self._read("set_current_ua")
 
     def interlock_closed(self) -> bool:
-        """Whether the interlock is closed (``SIN 0``)."""
-        return not self.interlock_open
+        """Whether the interlock is closed (A: ``SIN 0``; B: ``INTER LOCK ON``)."""
+        return self._read("interlock_closed")
 
     def warmup_state(self) -> WarmupState:
-        """The warm-up sequence (``SWE``): DONE, RUNNING or NOT_STARTED."""
-        return self.warmup
+        """The warm-up: DONE, RUNNING or NOT_STARTED (A: ``SWE``; B: ``DAG``, with ``STS AGING`` for
+        RUNNING)."""
+        value = self._read("warmup")
+        if isinstance(value, WarmupState):
+            return value
+        if value.done:
+            return WarmupState.DONE
+        return WarmupState.RUNNING if self._read("state") == SourceState.WARMING_UP else WarmupState.NOT_STARTED
 
     def error_code(self) -> int:
         """The controller's error code (``SER``), 0 for none."""
-        return self.error
+        return self._read("error")
+
+    def operate_switch(self) -> str:
+        """Dialect B's operate switch (``SRL``): ``REMOTE``, ``LOCAL`` or ``OFF``."""
+        return self._read("operate_switch")
+
+    @property
+    def focus(self) -> int:
+        """Focus mode (A: ``SFC n`` / ``CFS n``; B: ``SFS`` / ``CFS``, ``CFM``, ``CFL`` as 0, 1, 2)."""
+        return self._read("focus")
+
+    @focus.setter
+    def focus(self, value: int) -> None:
+        self._do("focus", value)
 
     # ---- operations ----
     def validate(self, kv: float, ua: float) -> tuple[int, int]:
-        """Check a voltage and current against the configured ratings; nothing is sent.
+        """Check a voltage and current against the configuration and the ratings; nothing is sent.
 
         Returns the whole numbers that would be sent (rounded half up, with a logged warning when
-        rounding changed a value).
-
-        Raises
-        ------
-        ValueError
-            Out of ``kv_min..kv_max`` or ``ua_min..ua_max``, or kV × µA / 1000 above ``watts_max``;
-            the message names the limit.
+        rounding changed a value). Raises ``ValueError`` naming the parameter and the limit
+        (:meth:`SourceConfig.check_exposure`).
         """
-        kv_i, ua_i = _kv_argument(self, kv), _ua_argument(self, ua)
-        watts = kv_i * ua_i / 1000
-        if watts > self.config.watts_max:
-            raise ValueError(f"{kv_i} kV x {ua_i} µA = {watts:g} W exceeds watts_max = {self.config.watts_max:g} W")
+        self.config.check_exposure(kv, ua)
+        kv_i, ua_i = _whole(kv, "tube voltage", "kV"), _whole(ua, "tube current", "µA")
+        self.config.check_exposure(kv_i, ua_i)
         return kv_i, ua_i
 
     def set_values(self, kv: float, ua: float) -> tuple[int, int]:
         """Set tube voltage (kV) and current (µA), whole numbers (rounded half up, with a warning).
 
-        Validated first (:meth:`validate`). The order of ``HIV`` and ``CUR`` is chosen so that no
-        intermediate pair exceeds ``watts_max``. Returns the values sent.
+        Validated first (:meth:`validate`). While X-rays are off dialect B sets the presets
+        (``PHV``, ``PCU``), while on ``HIV``, ``CUR``; dialect A always ``HIV``, ``CUR``. The order is
+        chosen so that no intermediate pair exceeds ``watts_max``. Returns the values sent.
 
         While this driver keeps the beam on, it then waits (as :meth:`on` does) until the measured
         values are within tolerance of the new ones, so that :meth:`check` judges the beam against
@@ -625,14 +1127,15 @@ class L8121:
         """
         kv_i, ua_i = self.validate(kv, ua)
         beam_on = self._beam is not None
+        voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
             _, old_ua = self.setpoint()
-            if kv_i * old_ua / 1000 <= self.config.watts_max:
-                self._hiv(kv_i)
-                self._cur(ua_i)
+            if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
+                self._do(voltage, kv_i)
+                self._do(current, ua_i)
             else:
-                self._cur(ua_i)
-                self._hiv(kv_i)
+                self._do(current, ua_i)
+                self._do(voltage, kv_i)
             if beam_on:
                 self._beam = (kv_i, ua_i)
                 self._wait_stable(kv_i, ua_i, time.monotonic())
@@ -644,7 +1147,13 @@ class L8121:
 
     def warm_up(self, timeout_s: float | None = None, progress: bool | Callable[[float, SourceState], Any] = True,
                 *, force: bool = False) -> float:
-        """Run the controller's warm-up sequence (``WUP``) and wait until it reports standby.
+        """Run the controller's warm-up sequence and wait until it reports standby.
+
+        Warm-up emits X-rays: it is started only when needed (or ``force``), with the interlock
+        closed, and an interrupted or failed warm-up is switched off like an exposure. Dialect A
+        sends ``WUP``; dialect B sends ``XON`` only while ``DAG`` says ``YET`` (an ``XON`` with the
+        warm-up done would be an exposure), and switches off if the controller answers it with
+        X-rays on instead of ``AGING``.
 
         Parameters
         ----------
@@ -654,7 +1163,7 @@ class L8121:
             ``True``: a tqdm bar of elapsed seconds; a callable gets ``(elapsed_s, state)`` at every
             poll; ``False``: quiet.
         force : bool
-            Send ``WUP`` even when the warm-up is already done.
+            Dialect A: send ``WUP`` even when the warm-up is done. Refused in dialect B.
 
         Returns
         -------
@@ -664,17 +1173,14 @@ class L8121:
         Raises
         ------
         DeviceError
-            Not in standby within ``timeout_s``, or the sequence stopped; ``XOF`` has been sent.
+            Not ready, not in standby within ``timeout_s``, the sequence stopped, or X-rays came on
+            as an exposure; X-rays have been switched off.
         SourceFault
-            Overload (not reset automatically).
+            Overload (not reset automatically), or the interlock is open.
         """
         timeout_s = self.config.warmup_timeout_s if timeout_s is None else float(timeout_s)
-        state = self.state
-        if state == SourceState.XRAY_ON:
-            raise DeviceError(f"{self.port}: X-rays are on; call off() before warm_up()")
-        if state == SourceState.OVERLOAD:
-            raise SourceFault(f"{self.port}: overload (state 4); inspect the tube, then reset() by hand")
-        if not force and state == SourceState.STANDBY and self.warmup == WarmupState.DONE:
+        state = self.status()
+        if not self._warm_up_needed(state, force):
             return 0.0
         bar = None
         if progress is True:
@@ -683,30 +1189,11 @@ class L8121:
         t0 = time.monotonic()
         self._may_be_on = True  # the warm-up sequence runs the tube
         try:
-            self._wup()
-            logger.info("%s: warm-up started (timeout %g s)", self.port, timeout_s)
-            seen_running = False
-            while True:
-                elapsed = time.monotonic() - t0
-                state = self.state
-                seen_running |= state == SourceState.WARMING_UP
-                if bar is not None:
-                    bar.n = min(round(elapsed), bar.total)
-                    bar.set_postfix_str(state.name, refresh=True)
-                elif callable(progress):
-                    progress(elapsed, state)
-                if state == SourceState.STANDBY and self.warmup == WarmupState.DONE:
-                    break
-                if state == SourceState.OVERLOAD:
-                    raise SourceFault(f"{self.port}: overload (state 4) during warm-up; inspect the tube, "
-                                      f"then reset() by hand")
-                if seen_running and state == SourceState.WARMUP_NEEDED:
-                    raise DeviceError(f"{self.port}: warm-up stopped after {elapsed:.1f} s (state WARMUP_NEEDED, "
-                                      f"error code {self.error})")
-                if elapsed > timeout_s:
-                    raise DeviceError(f"{self.port}: warm-up not done within {timeout_s:g} s "
-                                      f"(state {state.name}); X-rays switched off")
-                time.sleep(self.config.poll_s)
+            if state != SourceState.WARMING_UP:
+                self._do("warm_up")
+                logger.info("%s: warm-up started with %s (timeout %g s)", self.port,
+                            self.dialect.settings["warm_up"].command, timeout_s)
+            self._wait_warm(t0, timeout_s, bar, progress)
         except BaseException:
             self._off_quietly()
             raise
@@ -718,13 +1205,59 @@ class L8121:
         logger.info("%s: warm-up done in %.1f s", self.port, elapsed)
         return elapsed
 
+    def _warm_up_needed(self, state: SourceState, force: bool) -> bool:
+        """Whether to start (or wait for) a warm-up; raises when one must not start now."""
+        if state == SourceState.XRAY_ON:
+            raise DeviceError(f"{self.port}: X-rays are on; call off() before warm_up()")
+        if state == SourceState.OVERLOAD:
+            raise SourceFault(f"{self.port}: overload; inspect the tube, then reset() by hand")
+        if state not in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP, SourceState.STANDBY):
+            raise DeviceError(f"{self.port}: warm-up not started: controller not ready (state {state.name})")
+        if state == SourceState.STANDBY:
+            if not force:
+                return False
+            if self.dialect is DIALECT_B:
+                raise DeviceError(f"{self.port}: warm-up not started: dialect B starts it with XON, and with the "
+                                  f"warm-up done (DAG ... END) that XON would be an exposure")
+        if state != SourceState.WARMING_UP and not self.interlock_closed():
+            raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
+        return True
+
+    def _wait_warm(self, t0: float, timeout_s: float, bar, progress) -> None:
+        seen_running = False
+        while True:
+            elapsed = time.monotonic() - t0
+            state = self.status()
+            seen_running |= state == SourceState.WARMING_UP
+            if bar is not None:
+                bar.n = min(round(elapsed), bar.total)
+                bar.set_postfix_str(state.name, refresh=True)
+            elif callable(progress):
+                progress(elapsed, state)
+            if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
+                return
+            if state == SourceState.XRAY_ON:
+                self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
+            if state == SourceState.OVERLOAD:
+                raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
+            if seen_running and state == SourceState.WARMUP_NEEDED:
+                raise DeviceError(f"{self.port}: warm-up stopped after {elapsed:.1f} s (state WARMUP_NEEDED, "
+                                  f"error code {self.error_code()})")
+            if elapsed > timeout_s:
+                raise DeviceError(f"{self.port}: warm-up not done within {timeout_s:g} s "
+                                  f"(state {state.name}); X-rays switched off")
+            time.sleep(self.config.poll_s)
+
     def on(self, kv: float, ua: float) -> dict[str, Any]:
         """Switch X-rays on at ``kv`` kV and ``ua`` µA and wait for a stable beam.
 
-        Order: validate the values (nothing sent yet); require standby and a closed interlock
-        (queries only); ``HIV``, ``CUR``, ``XON``; poll ``SAR`` every ``poll_s`` until the measured
-        values are within ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or
-        interruption after ``XON`` switches off before the exception propagates.
+        Order: validate the values (:meth:`SourceConfig.check_exposure`; nothing sent yet); require
+        standby with the warm-up done (B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
+        and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
+        B: ``PHV``, ``PCU``); ``XON``; poll every ``poll_s`` until the measured values are within
+        ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or interruption after
+        ``XON`` switches off before the exception propagates, and so does a controller that
+        answers the ``XON`` with a warm-up (``AGING``).
 
         Returns
         -------
@@ -740,15 +1273,15 @@ class L8121:
             Not in standby (warm-up needed, not ready), refused, or not stable within
             ``stable_timeout_s`` (X-rays switched off).
         SourceFault
-            Interlock open or overload before switching on; overload, interlock or dropped beam
-            while waiting (X-rays switched off).
+            Interlock open or overload before switching on; overload, interlock, dropped beam or a
+            warm-up instead of the exposure while waiting (X-rays switched off).
         """
         kv_i, ua_i = self.validate(kv, ua)
         self._require_ready()
         try:
-            self.set_values(kv_i, ua_i)  # the beam is off: no waiting
+            self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
             self._may_be_on = True
-            self._xon()
+            self._do("xray_on")
             t0 = time.monotonic()
             self._beam = (kv_i, ua_i)
             reading = self._wait_stable(kv_i, ua_i, t0)
@@ -760,27 +1293,29 @@ class L8121:
         return reading
 
     def _require_ready(self) -> None:
-        state = self.state
+        state = self.status()
         reasons = {
             SourceState.WARMUP_NEEDED: "warm-up needed (call warm_up())",
             SourceState.WARMING_UP: "warm-up still running",
             SourceState.XRAY_ON: "X-rays are already on (use set_values() or off())",
             SourceState.NOT_READY: "controller not ready",
             SourceState.SELF_TEST: "controller in self-test",
+            SourceState.PREHEATING: "controller pre-heating (STS ERROR)",
         }
         if state == SourceState.OVERLOAD:
-            raise SourceFault(f"{self.port}: overload (state 4); X-rays not switched on. Inspect the tube, "
-                              f"then reset() by hand")
+            raise SourceFault(f"{self.port}: overload; X-rays not switched on. Inspect the tube, then reset() by hand")
         if state != SourceState.STANDBY:
             raise DeviceError(f"{self.port}: X-rays not switched on: {reasons[state]} (state {state.name})")
-        if self.interlock_open:
-            raise SourceFault(f"{self.port}: X-rays not switched on: interlock open (SIN 1)")
+        if not self.interlock_closed():
+            raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+        if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
+            raise DeviceError(f"{self.port}: X-rays not switched on: the operate switch is {switch}, not REMOTE")
 
     def _wait_stable(self, kv: int, ua: int, t0: float) -> dict[str, Any]:
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         while True:
-            state, m_kv, m_ua = self._sar[:3]
+            state, m_kv, m_ua = self._beam_reading()
             seconds = time.monotonic() - t0
             if state != SourceState.XRAY_ON:
                 self._trip(self._fault_reason(state, m_kv, m_ua, ramping=True))
@@ -794,14 +1329,16 @@ class L8121:
             time.sleep(c.poll_s)
 
     def _fault_reason(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False,
-                      interlock_open: bool | None = None) -> str | None:
+                      interlock_closed: bool | None = None) -> str | None:
         """Why the beam is not what this driver switched on, or None when it is."""
         if state == SourceState.OVERLOAD:
-            return "overload (state 4)"
-        if interlock_open is None:
-            interlock_open = self.interlock_open
-        if interlock_open:
-            return "interlock open (SIN 1)"
+            return "overload"
+        if state == SourceState.WARMING_UP:
+            return "the controller is warming up (AGING) instead of emitting the exposure"
+        if interlock_closed is None:
+            interlock_closed = self.interlock_closed()
+        if not interlock_closed:
+            return "interlock open"
         if state != SourceState.XRAY_ON:
             return f"beam dropped: state {state.name} instead of XRAY_ON"
         if not ramping and self._beam is not None:
@@ -821,7 +1358,7 @@ class L8121:
         except DeviceError as exc:
             note = f"switching X-rays off could not be confirmed ({exc})"
         try:
-            code = self.error
+            code = self.error_code()
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
@@ -829,7 +1366,7 @@ class L8121:
         raise SourceFault(f"{self.port}: {reason}; {note}")
 
     def check(self) -> dict[str, Any]:
-        """Poll once (``SAR``, ``SIN``) and stop on a fault.
+        """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.
 
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
         state other than X-rays on, or a measured current (or voltage) below
@@ -842,22 +1379,22 @@ class L8121:
             ``state`` (:class:`SourceState`), ``voltage_kv``, ``current_ua`` (measured),
             ``interlock_closed``, ``time`` (``time.time()``), for the frame's metadata.
         """
-        state, kv, ua = self._sar[:3]
-        interlock_open = self.interlock_open
+        state, kv, ua = self._beam_reading()
+        closed = self.interlock_closed()
         if self._beam is not None:
-            reason = self._fault_reason(state, kv, ua, interlock_open=interlock_open)
+            reason = self._fault_reason(state, kv, ua, interlock_closed=closed)
         else:
-            reason = "overload (state 4)" if state == SourceState.OVERLOAD else None
+            reason = "overload" if state == SourceState.OVERLOAD else None
         if reason:
             self._trip(reason)
-        return {"state": state, "voltage_kv": kv, "current_ua": ua, "interlock_closed": not interlock_open,
-                "time": time.time()}
+        return {"state": state, "voltage_kv": kv, "current_ua": ua, "interlock_closed": closed, "time": time.time()}
 
     def off(self) -> SourceState:
-        """Switch X-rays off (``XOF``) and confirm with ``STS`` that the state is no longer 3.
+        """Switch X-rays off (``XOF``) and confirm with ``STS`` that the tube no longer emits.
 
-        Tries ``off_attempts`` times (``XOF`` then ``STS``, ``poll_s`` apart). Returns the state
-        read after switching off.
+        Confirmed by a state that cannot emit (not X-rays on, not warming up / ``AGING``, not dialect
+        B's ambiguous ``ERROR``). Tries ``off_attempts`` times (``XOF`` then ``STS``, ``poll_s``
+        apart). Returns the state read after switching off.
 
         Raises
         ------
@@ -871,23 +1408,33 @@ class L8121:
                 if attempt:
                     time.sleep(self.config.poll_s)
                 try:
-                    self._xof()
+                    self._do("xray_off")
                 except DeviceError as exc:
                     last = exc  # still ask: the XOF may have arrived
                 try:
-                    state = self.state
+                    state = self._read("state")
                 except DeviceError as exc:
                     last = exc
                     continue
-                if state != SourceState.XRAY_ON:
+                if state in _OFF_STATES:
                     self._may_be_on, self._beam = False, None
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     return state
-                last = DeviceError(f"{self.port}: STS still 3 (X-rays on) after XOF")
+                last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
         finally:
             self._in_off = False
         raise DeviceError(f"{self.port}: could not confirm X-rays off after {attempts} attempt(s) "
-                          f"(last: {last}); switch the source off at the controller") from last
+                          f"(last: {last}){self._why_not_remote()}; switch the source off at the controller") from last
+
+    def _why_not_remote(self) -> str:
+        """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""
+        if self.dialect is None or "operate_switch" not in self.dialect.readings:
+            return ""
+        try:
+            switch = self.operate_switch()
+        except DeviceError:
+            return ""
+        return f"; the operate switch is {switch}" if switch != "REMOTE" else ""
 
     def _off_quietly(self) -> None:
         """Best-effort off on an error path: log, never raise over the original exception."""
@@ -902,5 +1449,5 @@ class L8121:
         """Send ``RST`` (clears an overload) and return the new state. Never called automatically:
         an overload needs a person to look at the tube first."""
         logger.warning("%s: RST sent by the user", self.port)
-        self._rst()
-        return self.state
+        self._do("reset")
+        return self.status()

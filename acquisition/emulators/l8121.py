@@ -1,21 +1,38 @@
-"""An emulated Hamamatsu L8121 controller, answering the protocol of ``L8121.md`` on a
+"""An emulated Hamamatsu L8121 controller, answering either dialect of ``L8121.md`` on a
 pseudo-terminal, a TCP socket or in process.
 
-:class:`L8121Model` is the controller: its states, the warm-up sequence, tube voltage and current
-that ramp towards the set values after ``XON``, the interlock, overload and error codes, and
-``ERR``/``ERROR`` for refused commands. It runs on an injectable clock and records every command it
-receives. Faults are injected from any thread, now or at a given model time: :meth:`~L8121Model.open_interlock`,
-:meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`, :meth:`~L8121Model.stuck_on`,
-:meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`, :meth:`~L8121Model.slow`.
+:class:`L8121Model` is one controller -- its states, the warm-up sequence, tube voltage and
+current that ramp towards the set values after ``XON``, the interlock, overload and error codes --
+behind one of two front ends, ``dialect="A"`` (numeric ``STS n``, ``SAR``, ``WUP``, ``TYP``; refused
+commands ``ERR``/``ERROR``) or ``dialect="B"`` (``STS`` words, ``INTER LOCK ON``, values with units,
+``PHV``/``PCU`` presets while off and ``HIV``/``CUR`` while on, warm-up started by ``XON`` while
+``DAG`` says ``YET`` and reported as ``AGING``, ``SRL``/``SRB``, no ``TYP`` or ``WUP``; every refusal
+``ERROR``). It runs on an injectable clock and records every line it receives.
+
+Faults, injected from any thread, now or at a given model time, in both dialects:
+:meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
+:meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
+:meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
+due, as B's 8-hour idle rule does), :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
+control commands refused with ``ERROR``; B reports it with ``SRL``) and
+:meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
+
+The baud rate. A pseudo-terminal moves bytes at any speed, so a wrong baud rate would go unnoticed.
+The model is configured with the controller's ``baudrate`` (default: the dialect's, A 38400, B
+9600) and :class:`PtyServer` reads the rate the client set on the terminal (``termios``): when they
+differ, the line is taken as what a UART would make of it -- not understood, not executed -- and
+the reply as what the client's UART would make of the controller's ``ERROR``: a few bytes of junk
+with no line end. This is a model of a baud mismatch, not a measurement of one.
 
 :class:`PtyServer` serves a model on a pseudo-terminal whose slave path pyserial opens like a
-serial port; :class:`SocketServer` on ``socket://127.0.0.1:PORT``. From a shell::
+serial port; :class:`SocketServer` on ``socket://127.0.0.1:PORT`` (no baud rate there). From a
+shell::
 
-    python -m acquisition.emulators.l8121 --pty --warmup-s 2     # prints /dev/pts/N, Ctrl-C ends
+    python -m acquisition.emulators.l8121 --pty --dialect B --warmup-s 2   # prints /dev/pts/N
 
 Error codes (``SER``) are this emulator's own; the real controller's are not documented:
 0 none, 1 interlock open, 2 warm-up needed, 3 overload, 4 value out of range, 5 unknown command,
-6 wrong state.
+6 wrong state, 7 operate switch not on REMOTE.
 
 Examples
 --------
@@ -26,6 +43,11 @@ Examples
 ('WUP', 'STS 2', 'HIV 60', 'CUR 250', 'XON')
 >>> m.handle("SAR"), m.xray_on
 ('SAR 3 60 250 0 0 0 0', True)
+>>> b = L8121Model(dialect="B", warmup_s=0, ramp_s=0)
+>>> b.handle("STS"), b.handle("DAG"), b.handle("XON"), b.handle("STS"), b.handle("DAG")
+('STANDBY', 'AGING 1 0 YET', 'XON', 'STANDBY', 'AGING 0 0 END')
+>>> b.handle("PHV 600"), b.handle("PCU 250"), b.handle("XON"), b.handle("SHV"), b.handle("SIN")
+('PHV 600', 'PCU 250', 'XON', 'SHV 60.0kV', 'INTER LOCK ON')
 """
 from __future__ import annotations
 
@@ -37,32 +59,42 @@ import random
 import select
 import socket
 import sys
+import termios
 import threading
 import time
 import tty
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["L8121Model", "PtyServer", "SocketServer", "Exchange", "main"]
+__all__ = ["L8121Model", "PtyServer", "SocketServer", "Exchange", "main", "DEFAULT_BAUD"]
 
 logger = logging.getLogger(__name__)
 
-# STS states
+# STS states (dialect A's numbers)
 WARMUP_NEEDED, WARMING_UP, STANDBY, XRAY_ON, OVERLOAD, NOT_READY, SELF_TEST = range(7)
 # SWE values
 WARMUP_DONE, WARMUP_RUNNING, WARMUP_NOT_STARTED = range(3)
 # SER codes (this emulator's own)
-E_NONE, E_INTERLOCK, E_WARMUP, E_OVERLOAD, E_RANGE, E_UNKNOWN, E_STATE = range(7)
+E_NONE, E_INTERLOCK, E_WARMUP, E_OVERLOAD, E_RANGE, E_UNKNOWN, E_STATE, E_LOCAL = range(8)
 
+DEFAULT_BAUD = {"A": 38400, "B": 9600}
+_B_STATES = {WARMUP_NEEDED: "STANDBY", WARMING_UP: "AGING", STANDBY: "STANDBY", XRAY_ON: "XON",
+             OVERLOAD: "OVER", NOT_READY: "NOT READY", SELF_TEST: "NOT READY"}
+_B_FOCUS = ("SMALL", "MIDDLE", "LARGE")
+# What a remote operate switch other than REMOTE refuses: everything that acts on the tube.
+_CONTROL = {"HIV", "CUR", "PHV", "PCU", "XON", "XOF", "WUP", "RST", "CFS", "CFM", "CFL"}
+_AGING_STEPS = 4
 _JUNK = "#%&*?!~^@$+=<>0123456789abcdefxyz"
 
 
 @dataclass(frozen=True)
 class Exchange:
-    """One command the model received: model time (s), the line, and its reply (None: none sent)."""
+    """One line the model received: model time (s), the line, its reply (None: none sent), and
+    whether it was understood (False: it arrived at the wrong baud rate)."""
     t: float
     command: str
     reply: str | None
+    understood: bool = True
 
 
 class L8121Model:
@@ -70,35 +102,52 @@ class L8121Model:
 
     Parameters
     ----------
+    dialect : {"A", "B"}
+        The command dialect it speaks (``L8121.md``).
     model : str
-        What ``TYP`` answers.
+        What dialect A's ``TYP`` answers.
     warmup_s : float
-        Duration of the warm-up sequence started by ``WUP``.
+        Duration of the warm-up sequence (A: started by ``WUP``; B: by ``XON`` while a warm-up is
+        due).
     ramp_s : float
         Time for the measured voltage and current to ramp (linearly) from where they are to the set
         values, after ``XON`` or a change of setting while on.
     clock : callable
         Seconds, monotonic; model time is ``clock()`` minus its value at construction.
     kv_min, kv_max, ua_max, watts_max : float
-        The ranges ``HIV`` and ``CUR`` accept (``ERR`` otherwise), and the power limit a pair of
-        settings may not exceed.
+        The ranges the voltage and current settings accept (refused otherwise), and the power limit
+        a pair of settings may not exceed.
     warmed_up : bool
         Start in standby (warm-up done) instead of "warm-up needed".
+    baudrate : int, optional
+        The controller's baud rate (default: the dialect's); see the module docstring.
+    voltage_scale : float, optional
+        kV per unit of a voltage argument is ``1 / voltage_scale`` (default A 1, B 10:
+        ``PHV 600`` is 60 kV).
     seed : int
-        Seed of the junk :meth:`garbage` replies with.
+        Seed of the junk :meth:`garbage` and a baud mismatch reply with.
 
     Notes
     -----
-    Measured values are reported as whole kV and µA. While X-rays are off they are 0.
+    Measured values are reported as whole kV and µA in A, with one decimal and units in B. While
+    X-rays are off they are 0. ``XOF`` also stops a running warm-up (it emits X-rays): the warm-up
+    is then needed again.
     """
 
-    def __init__(self, *, model: str = "L8121-01", warmup_s: float = 3.0, ramp_s: float = 1.0,
+    def __init__(self, *, dialect: str = "A", model: str = "L8121-01", warmup_s: float = 3.0, ramp_s: float = 1.0,
                  clock: Callable[[], float] = time.monotonic, kv_min: float = 40, kv_max: float = 150,
-                 ua_max: float = 500, watts_max: float = 75, warmed_up: bool = False, seed: int = 0):
+                 ua_max: float = 500, watts_max: float = 75, warmed_up: bool = False, baudrate: int | None = None,
+                 voltage_scale: float | None = None, seed: int = 0):
+        dialect = str(dialect).upper()
+        if dialect not in DEFAULT_BAUD:
+            raise ValueError(f"L8121 emulator: dialect {dialect!r}: expected 'A' or 'B'")
+        self.dialect = dialect
         self.model = model
         self.warmup_s = float(warmup_s)
         self.ramp_s = float(ramp_s)
         self.kv_min, self.kv_max, self.ua_max, self.watts_max = kv_min, kv_max, ua_max, watts_max
+        self.baudrate = int(baudrate or DEFAULT_BAUD[dialect])
+        self.voltage_scale = float(voltage_scale or (10 if dialect == "B" else 1))
         self._clock = clock
         self._t0 = clock()
         self._lock = threading.RLock()
@@ -107,18 +156,24 @@ class L8121Model:
         self._rng = random.Random(seed)
         self._state = STANDBY if warmed_up else WARMUP_NEEDED
         self._warmup = WARMUP_DONE if warmed_up else WARMUP_NOT_STARTED
+        self._warmup_t0 = 0.0
         self._set_kv, self._set_ua = int(kv_min), 0
         self._ramp_t0, self._ramp_from = 0.0, (0.0, 0.0)
         self._beam_dropped = False
         self._interlock_open = False
         self._focus = 0
         self._error = E_NONE
-        self._silent = self._garbage = self._stuck = False
+        self._switch = "REMOTE"
+        self._silent = self._garbage = self._stuck = self._foreign = False
         self._silent_executes = False
         self._delay_s = 0.0
         self._log: list[Exchange] = []
-        self._commands = {
-            "HIV": self._hiv, "CUR": self._cur, "XON": self._xon, "XOF": self._xof, "WUP": self._wup,
+        self._commands, self._takes_argument = self._front_end_a() if dialect == "A" else self._front_end_b()
+
+    # -- the two front ends -----------------------------------------------------------------------
+    def _front_end_a(self):
+        commands = {
+            "HIV": self._hiv, "CUR": self._cur, "XON": self._xon_a, "XOF": self._xof, "WUP": self._wup,
             "RST": self._rst, "CFS": self._cfs,
             "STS": lambda t: f"STS {self._state}",
             "SAR": lambda t: "SAR {} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
@@ -132,7 +187,31 @@ class L8121Model:
             "SER": lambda t: f"SER {self._error}",
             "TYP": lambda t: f"TYP {self.model}",
         }
-        self._takes_argument = {"HIV", "CUR", "CFS"}
+        return commands, {"HIV", "CUR", "CFS"}
+
+    def _front_end_b(self):
+        on_only = lambda fn: lambda t, arg: fn(t, arg) if self._state == XRAY_ON else self._refuse(E_STATE)  # noqa: E731
+        off_only = lambda fn: lambda t, arg: (  # noqa: E731
+            fn(t, arg) if self._state not in (XRAY_ON, WARMING_UP) else self._refuse(E_STATE))
+        commands = {
+            "HIV": on_only(self._hiv), "CUR": on_only(self._cur),
+            "PHV": off_only(lambda t, arg: self._hiv(t, arg, "PHV")),
+            "PCU": off_only(lambda t, arg: self._cur(t, arg, "PCU")), "XON": self._xon_b, "XOF": self._xof, "RST": self._rst,
+            "CFS": lambda t: self._cf(0, "CFS"), "CFM": lambda t: self._cf(1, "CFM"),
+            "CFL": lambda t: self._cf(2, "CFL"),
+            "STS": lambda t: _B_STATES[self._state],
+            "SHV": lambda t: "SHV {:.1f}kV".format(self._measured(t)[0]),
+            "SCU": lambda t: "SCU {:.0f}uA".format(self._measured(t)[1]),
+            "SPV": lambda t: f"SPV {self._set_kv:.1f}kV",
+            "SPC": lambda t: f"SPC {self._set_ua}uA",
+            "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",
+            "DAG": self._dag,
+            "SFS": lambda t: _B_FOCUS[self._focus],
+            "SER": lambda t: f"SER {self._error}",
+            "SRL": lambda t: self._switch,
+            "SRB": lambda t: "BUSY" if self._state == WARMING_UP else "READY",
+        }
+        return commands, {"HIV", "CUR", "PHV", "PCU"}
 
     # -- read-only state for tests ----------------------------------------------------------------
     @property
@@ -142,15 +221,15 @@ class L8121Model:
 
     @property
     def state(self) -> int:
-        """The ``STS`` state now (0 warm-up needed … 6 self-test)."""
+        """The state now, as dialect A's ``STS`` numbers it (0 warm-up needed ... 6 self-test)."""
         with self._lock:
             self._advance()
             return self._state
 
     @property
     def xray_on(self) -> bool:
-        """Whether the tube emits now (state 3)."""
-        return self.state == XRAY_ON
+        """Whether the tube emits now: X-rays on (state 3) or warming up (state 1; B's ``AGING``)."""
+        return self.state in (XRAY_ON, WARMING_UP)
 
     @property
     def set_kv(self) -> int:
@@ -177,13 +256,13 @@ class L8121Model:
 
     @property
     def log(self) -> list[Exchange]:
-        """Every command received so far, with model time and reply (a copy)."""
+        """Every line received so far, with model time and reply (a copy)."""
         with self._lock:
             return list(self._log)
 
     @property
     def commands(self) -> list[str]:
-        """The command lines received so far, in order."""
+        """The lines received so far, in order (understood or not)."""
         return [e.command for e in self.log]
 
     @property
@@ -195,12 +274,15 @@ class L8121Model:
     def open_interlock(self, at_s: float | None = None) -> None:
         """Open the interlock chain now, or at model time ``at_s``.
 
-        With X-rays on, the controller drops the beam: state 2 (standby), ``SIN 1``, error code 1.
+        With X-rays on, the controller drops the beam: standby, interlock open, error code 1. A
+        running warm-up stops (warm-up needed again).
         """
         def fault(t):
             self._interlock_open = True
             if self._state == XRAY_ON:
                 self._state, self._error = STANDBY, E_INTERLOCK
+            elif self._state == WARMING_UP:
+                self._state, self._warmup, self._error = WARMUP_NEEDED, WARMUP_NOT_STARTED, E_INTERLOCK
         self._at(at_s, fault)
 
     def close_interlock(self, at_s: float | None = None) -> None:
@@ -210,19 +292,37 @@ class L8121Model:
         self._at(at_s, fix)
 
     def overload(self, at_s: float | None = None) -> None:
-        """Trip the overload protection now, or at model time ``at_s``: state 4, beam off, error 3.
-        Only ``RST`` leaves the overload state."""
+        """Trip the overload protection now, or at model time ``at_s``: state 4 (B ``OVER``), beam
+        off, error 3. Only ``RST`` leaves the overload state."""
         def fault(t):
             self._state, self._error = OVERLOAD, E_OVERLOAD
         self._at(at_s, fault)
 
     def drop_beam(self, at_s: float | None = None) -> None:
         """Let the emitter fail now, or at model time ``at_s``: the measured current collapses to
-        0 while the state stays 3 (until ``XOF``)."""
+        0 while the state stays X-rays on (until ``XOF``)."""
         def fault(t):
             if self._state == XRAY_ON:
                 self._beam_dropped = True
         self._at(at_s, fault)
+
+    def require_warm_up(self, at_s: float | None = None) -> None:
+        """Decide that a warm-up is due (B: the 8-hour idle rule, ``DAG`` says ``YET``): from
+        standby the state becomes warm-up needed, so B's next ``XON`` starts a warm-up."""
+        def fault(t):
+            self._warmup = WARMUP_NOT_STARTED
+            if self._state == STANDBY:
+                self._state = WARMUP_NEEDED
+        self._at(at_s, fault)
+
+    def set_operate_switch(self, position: str = "LOCAL") -> None:
+        """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
+        command that acts on the tube (``XOF`` included) is refused with ``ERROR``; queries are
+        answered. Dialect B reports the position with ``SRL``."""
+        if position not in ("REMOTE", "LOCAL", "OFF"):
+            raise ValueError(f"operate switch {position!r}: expected REMOTE, LOCAL or OFF")
+        with self._lock:
+            self._switch = position
 
     def stuck_on(self, on: bool = True) -> None:
         """Acknowledge ``XOF`` but keep emitting (a failed high-voltage relay)."""
@@ -243,6 +343,12 @@ class L8121Model:
         with self._lock:
             self._garbage = bool(on)
 
+    def foreign(self, on: bool = True) -> None:
+        """Answer every line with ``OK`` and execute nothing: another instrument on the port, which
+        speaks neither dialect."""
+        with self._lock:
+            self._foreign = bool(on)
+
     def slow(self, delay_s: float) -> None:
         """Delay every reply by ``delay_s`` seconds (in the servers; 0 restores)."""
         if delay_s < 0:
@@ -251,88 +357,142 @@ class L8121Model:
             self._delay_s = float(delay_s)
 
     # -- the protocol -----------------------------------------------------------------------------
-    def handle(self, line: str) -> str | None:
+    def handle(self, line: str, baudrate: int | None = None) -> str | None:
         """Execute one command line and return its reply (no terminator), or None for no reply.
+
+        ``baudrate`` is the rate the line was sent at, when the link knows it (a pty); at a rate
+        other than :attr:`baudrate` the line is not understood and the reply is junk (see the
+        module docstring).
 
         Examples
         --------
         >>> L8121Model().handle("HIV 200")
         'ERR'
+        >>> L8121Model(dialect="B").handle("STS", baudrate=38400) == "STANDBY"
+        False
         """
+        exchange = self.receive(line, baudrate)
+        return None if exchange is None else exchange.reply
+
+    def receive(self, line: str, baudrate: int | None = None) -> Exchange | None:
+        """As :meth:`handle`, returning the whole :class:`Exchange` (None for an empty line)."""
         line = line.strip()
         if not line:
             return None
         with self._lock:
             self._advance()
             t = self.time
-            if self._silent:
+            understood = baudrate is None or baudrate == self.baudrate
+            if not understood:
+                reply = "".join(chr(self._rng.randint(0x80, 0xFE)) for _ in range(self._rng.randint(2, 6)))
+            elif self._silent:
                 reply = None
                 if self._silent_executes:
                     self._execute(line, t)
+            elif self._foreign:
+                reply = "OK"
             else:
                 reply = self._execute(line, t)
                 if self._garbage:
                     reply = "".join(self._rng.choice(_JUNK) for _ in range(self._rng.randint(1, 12)))
-            self._log.append(Exchange(t, line, reply))
+            exchange = Exchange(t, line, reply, understood)
+            self._log.append(exchange)
         logger.debug("L8121 emulator %.3f s: %s -> %s", t, line, reply)
-        return reply
+        return exchange
 
     def _execute(self, line: str, t: float) -> str:
         word, *args = line.split()
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
-            self._error = E_UNKNOWN
-            return "ERR"
+            return self._refuse(E_UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
+        if word in _CONTROL and self._switch != "REMOTE":
+            return self._refuse(E_LOCAL)
         return action(t, *args)
 
-    def _hiv(self, t, arg):
-        kv = _whole(arg)
-        if kv is None or not self.kv_min <= kv <= self.kv_max or kv * self._set_ua / 1000 > self.watts_max:
-            self._error = E_RANGE
-            return "ERR"
-        self._retarget(t)
-        self._set_kv = kv
-        return f"HIV {kv}"
+    def _refuse(self, code: int, reply: str = "ERROR") -> str:
+        self._error = code
+        return reply
 
-    def _cur(self, t, arg):
+    def _range_error(self) -> str:
+        return self._refuse(E_RANGE, "ERR" if self.dialect == "A" else "ERROR")
+
+    def _hiv(self, t, arg, word="HIV"):
+        raw = _whole(arg)
+        kv = None if raw is None else raw / self.voltage_scale
+        if kv is None or not self.kv_min <= kv <= self.kv_max or kv * self._set_ua / 1000 > self.watts_max:
+            return self._range_error()
+        self._retarget(t)
+        self._set_kv = kv if kv != int(kv) else int(kv)
+        return f"{word} {raw}"
+
+    def _cur(self, t, arg, word="CUR"):
         ua = _whole(arg)
         if ua is None or not 0 <= ua <= self.ua_max or self._set_kv * ua / 1000 > self.watts_max:
-            self._error = E_RANGE
-            return "ERR"
+            return self._range_error()
         self._retarget(t)
         self._set_ua = ua
-        return f"CUR {ua}"
+        return f"{word} {ua}"
 
-    def _xon(self, t):
+    def _why_not_on(self) -> int:
+        return (E_INTERLOCK if self._interlock_open and self._state in (STANDBY, WARMUP_NEEDED) else
+                E_WARMUP if self._state in (WARMUP_NEEDED, WARMING_UP) else
+                E_OVERLOAD if self._state == OVERLOAD else E_STATE)
+
+    def _xon_a(self, t):
         if self._state != STANDBY or self._interlock_open:
-            self._error = (E_INTERLOCK if self._interlock_open and self._state == STANDBY else
-                           E_WARMUP if self._state in (WARMUP_NEEDED, WARMING_UP) else
-                           E_OVERLOAD if self._state == OVERLOAD else E_STATE)
-            return "ERROR"
+            return self._refuse(self._why_not_on())
+        self._switch_on(t)
+        return "XON"
+
+    def _xon_b(self, t):
+        """Dialect B: ``XON`` starts the warm-up when one is due, the exposure otherwise."""
+        if self._interlock_open or self._state not in (STANDBY, WARMUP_NEEDED):
+            return self._refuse(self._why_not_on())
+        if self._state == WARMUP_NEEDED:
+            self._start_warm_up(t)
+        else:
+            self._switch_on(t)
+        return "XON"
+
+    def _switch_on(self, t):
         self._state, self._beam_dropped = XRAY_ON, False
         self._ramp_t0, self._ramp_from = t, (0.0, 0.0)
-        return "XON"
 
     def _xof(self, t):
         if self._stuck:
             return "XOF"
         if self._state == XRAY_ON:
             self._state = STANDBY
+        elif self._state == WARMING_UP:  # an interrupted warm-up must be run again
+            self._state, self._warmup = WARMUP_NEEDED, WARMUP_NOT_STARTED
         self._beam_dropped = False
         return "XOF"
 
     def _wup(self, t):
         if self._state not in (WARMUP_NEEDED, STANDBY, WARMING_UP):
-            self._error = E_STATE
-            return "ERROR"
+            return self._refuse(E_STATE)
+        if self._interlock_open:
+            return self._refuse(E_INTERLOCK)
         if self._state != WARMING_UP:
-            self._state, self._warmup = WARMING_UP, WARMUP_RUNNING
-
-            def done(t_done):
-                if self._state == WARMING_UP:
-                    self._state, self._warmup = STANDBY, WARMUP_DONE
-            self._schedule(t + self.warmup_s, done)
+            self._start_warm_up(t)
         return "WUP"
+
+    def _start_warm_up(self, t):
+        self._state, self._warmup, self._warmup_t0 = WARMING_UP, WARMUP_RUNNING, t
+        started = self._warmup_t0
+
+        def done(t_done):
+            if self._state == WARMING_UP and self._warmup_t0 == started:
+                self._state, self._warmup = STANDBY, WARMUP_DONE
+        self._schedule(t + self.warmup_s, done)
+
+    def _dag(self, t):
+        if self._warmup == WARMUP_DONE:
+            return "AGING 0 0 END"
+        step = 0
+        if self._state == WARMING_UP and self.warmup_s > 0:
+            step = 1 + min(_AGING_STEPS - 1, int(_AGING_STEPS * (t - self._warmup_t0) / self.warmup_s))
+        return f"AGING 1 {step} YET"
 
     def _rst(self, t):
         if self._state == OVERLOAD:
@@ -343,10 +503,13 @@ class L8121Model:
     def _cfs(self, t, arg):
         mode = _whole(arg)
         if mode is None or not 0 <= mode <= 3:
-            self._error = E_RANGE
-            return "ERR"
+            return self._range_error()
         self._focus = mode
         return f"CFS {mode}"
+
+    def _cf(self, mode: int, word: str) -> str:
+        self._focus = mode
+        return word
 
     def _measured(self, t: float) -> tuple[float, float]:
         if self._state != XRAY_ON:
@@ -380,11 +543,16 @@ class L8121Model:
             fn(t)
 
     def __repr__(self) -> str:
-        return f"L8121Model({self.model!r}, state={self.state}, set {self._set_kv} kV {self._set_ua} µA)"
+        return (f"L8121Model(dialect {self.dialect}, {self.baudrate} baud, state={self.state}, "
+                f"set {self._set_kv} kV {self._set_ua} µA)")
 
 
 def _whole(text: str) -> int | None:
     return int(text) if text.isdigit() else None
+
+
+_SPEEDS = {getattr(termios, f"B{b}"): b for b in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400)
+           if hasattr(termios, f"B{b}")}
 
 
 # -- servers --------------------------------------------------------------------------------------
@@ -406,13 +574,19 @@ class _LineServer:
             if not cuts:
                 return
             line, buf[:] = bytes(buf[:min(cuts)]), buf[min(cuts) + 1:]
-            reply = self.model.handle(line.decode("ascii", errors="replace"))
-            if reply is None:
+            exchange = self.model.receive(line.decode("ascii", errors="replace"), self._baudrate())
+            if exchange is None or exchange.reply is None:
                 continue
             delay = self.model.reply_delay_s
             if delay > 0 and self._stop.wait(delay):
                 return
-            write((reply + self.reply_terminator).encode("ascii", errors="replace"))
+            # a reply garbled by a baud mismatch has no recognisable line end
+            end = self.reply_terminator if exchange.understood else ""
+            write((exchange.reply + end).encode("latin-1", errors="replace"))
+
+    def _baudrate(self) -> int | None:
+        """The baud rate the client set, where the link has one (a pty); None otherwise."""
+        return None
 
     def start(self):
         """Start serving in a daemon thread; returns self."""
@@ -450,11 +624,18 @@ class PtyServer(_LineServer):
     --------
     >>> import serial
     >>> with PtyServer(L8121Model()) as server:
-    ...     with serial.serial_for_url(server.url, timeout=1) as port:
+    ...     with serial.serial_for_url(server.url, baudrate=38400, timeout=1) as port:
     ...         _ = port.write(b"TYP\\r")
     ...         port.read_until(b"\\r")
     b'TYP L8121-01\\r'
     """
+
+    def _baudrate(self) -> int | None:
+        """The output speed the client set on the terminal (pyserial sets it when it opens the port)."""
+        try:
+            return _SPEEDS.get(termios.tcgetattr(self._slave)[5])
+        except (termios.error, TypeError):
+            return None
 
     def _open(self) -> None:
         self._master, self._slave = os.openpty()
@@ -543,20 +724,30 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import signal
 
-    parser = argparse.ArgumentParser(prog="python -m acquisition.emulators.l8121", description="Serve an emulated Hamamatsu L8121 controller until Ctrl-C; "
+    parser = argparse.ArgumentParser(prog="python -m acquisition.emulators.l8121",
+                                     description="Serve an emulated Hamamatsu L8121 controller until Ctrl-C; "
                                      "the first line on stdout is the url to open.")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
     where.add_argument("--socket", type=int, metavar="PORT", help="serve on TCP 127.0.0.1:PORT (0: any free port)")
-    parser.add_argument("--model", default="L8121-01", help="what TYP answers (default %(default)s)")
+    parser.add_argument("--dialect", choices=("A", "B"), default="A", help="command dialect (default %(default)s)")
+    parser.add_argument("--baudrate", type=int, help="the controller's baud rate (default: A 38400, B 9600)")
+    parser.add_argument("--model", default="L8121-01", help="what TYP answers in dialect A (default %(default)s)")
     parser.add_argument("--warmup-s", type=float, default=3.0, help="warm-up duration, s (default %(default)s)")
     parser.add_argument("--ramp-s", type=float, default=1.0, help="kV/µA ramp after XON, s (default %(default)s)")
     parser.add_argument("--warmed-up", action="store_true", help="start in standby, warm-up done")
+    parser.add_argument("--local", action="store_true", help="operate switch on LOCAL: remote commands refused")
+    parser.add_argument("--foreign", action="store_true", help="answer OK to everything (speaks neither dialect)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log every exchange on stderr")
     args = parser.parse_args(argv)
     if args.verbose:
         logging.basicConfig(level=logging.DEBUG, stream=sys.stderr, format="%(asctime)s %(message)s")
-    model = L8121Model(model=args.model, warmup_s=args.warmup_s, ramp_s=args.ramp_s, warmed_up=args.warmed_up)
+    model = L8121Model(dialect=args.dialect, model=args.model, warmup_s=args.warmup_s, ramp_s=args.ramp_s,
+                       warmed_up=args.warmed_up, baudrate=args.baudrate)
+    if args.local:
+        model.set_operate_switch("LOCAL")
+    if args.foreign:
+        model.foreign()
     server = PtyServer(model) if args.socket is None else SocketServer(model, port=args.socket)
 
     def terminate(signum, frame):
