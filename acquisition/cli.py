@@ -6,16 +6,18 @@ import logging
 import sys
 from pathlib import Path
 
-SOURCE_ACTIONS = ("status", "warm-up", "on", "off")
+SOURCE_ACTIONS = ("probe", "status", "warm-up", "on", "off")
 
 
 def add_acquire(subparsers):
     p = subparsers.add_parser(
-        "acquire", help="run a compression-series protocol (or: acquire source status|warm-up|on|off --port URL)",
+        "acquire", help="run a compression-series protocol (or: acquire source probe|status|warm-up|on|off --port URL)",
         description="Run a compression-series protocol (TOML) on the lab's devices, or with --sim on the virtual "
                     "bench (L8121 emulator on a pseudo-terminal, simulated panel and frame). Every frame is written "
                     "and flushed as it arrives; the tube is switched off on every exit path. "
-                    "`radiokit acquire source ACTION --port URL` talks to the source alone.")
+                    "`radiokit acquire source ACTION --port URL` talks to the source alone; `source probe` finds which "
+                    "command dialect and baud rate the controller speaks, with harmless queries only, and prints the "
+                    "raw exchange.")
     p.add_argument("protocol", help="protocol TOML file, or the word 'source' for source commands")
     p.add_argument("action", nargs="?", choices=SOURCE_ACTIONS, help="with 'source': what to do")
     p.add_argument("--sim", action="store_true", help="run on the virtual bench (emulated devices)")
@@ -25,9 +27,14 @@ def add_acquire(subparsers):
     p.add_argument("--overwrite", action="store_true", help="replace an existing experiment file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="log every serial exchange")
+    p.add_argument("--dialect", choices=("A", "B", "auto"),
+                   help="the L8121 controller's command dialect (see README). With a protocol it replaces [source] "
+                        "dialect, and with --sim the virtual bench's emulator speaks it (A or B); source commands "
+                        "default to auto (probe first)")
     s = p.add_argument_group("source commands")
     s.add_argument("--port", help="serial port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port")
-    s.add_argument("--baudrate", type=int, default=38400)
+    s.add_argument("--baudrate", type=int, help="the controller's baud rate (default: the dialect's; auto tries "
+                                                 "this one first, then 9600, 38400, 115200)")
     s.add_argument("--kv", type=float, help="tube voltage for 'on' (kV)")
     s.add_argument("--ua", type=float, help="tube current for 'on' (uA)")
     s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
@@ -55,6 +62,8 @@ def _run(args) -> int:
         return 2
     if args.output:
         p.output = str(args.output)
+    if args.dialect:
+        p.source.limits["dialect"] = args.dialect
     if args.dry_run:
         done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
         pl = plan(p, done)
@@ -89,21 +98,27 @@ def _run(args) -> int:
 
 def _source(args) -> int:
     from acquisition.errors import DeviceError
-    from acquisition.l8121 import L8121
+    from acquisition.l8121 import L8121, SourceConfig, probe
 
     if not args.action:
-        print("error: radiokit acquire source needs an action: status, warm-up, on or off", file=sys.stderr)
+        print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
         return 2
     if not args.port:
         print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
         return 2
+    if args.action == "probe":
+        c = SourceConfig(baudrate=args.baudrate)
+        result = probe(args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates,
+                       timeout_s=c.probe_timeout_s)
+        print(result.report())
+        return 0 if result.found else 1
     try:
-        src = L8121(args.port, baudrate=args.baudrate)
+        src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
         try:
             if args.action == "status":
                 kv, ua = src.measured()
-                print(f"{args.port}: state {src.status().name}, measured {kv:g} kV {ua:g} uA, interlock "
-                      f"{'closed' if src.interlock_closed() else 'OPEN'}")
+                print(f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
+                      f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}")
             elif args.action == "warm-up":
                 src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
                 print(f"{args.port}: warmed up, state {src.status().name}")

@@ -1052,11 +1052,16 @@ class L8121:
             return SourceState.WARMUP_NEEDED
         return state
 
-    def _beam_reading(self) -> tuple[SourceState, float, float]:
-        """State, measured kV and µA (A: one ``SAR``; B: ``STS``, ``SHV``, ``SCU``)."""
+    def _beam_reading(self, *, stop_early: bool = False) -> tuple[SourceState, float, float]:
+        """State, measured kV and µA (A: one ``SAR``; B: ``STS``, ``SHV``, ``SCU``). ``stop_early``:
+        in B, when ``STS`` already says the beam is not on, do not spend two more exchanges before
+        switching off (the values are then NaN)."""
         if "beam" in self.dialect.readings:
             return self._read("beam")[:3]
-        return self._read("state"), self._read("voltage_kv"), self._read("current_ua")
+        state = self._read("state")
+        if stop_early and state != SourceState.XRAY_ON:
+            return state, math.nan, math.nan
+        return state, self._read("voltage_kv"), self._read("current_ua")
 
     def measured(self) -> tuple[float, float]:
         """Measured tube voltage (kV) and current (µA) (A: ``SAR``; B: ``SHV``, ``SCU``)."""
@@ -1315,7 +1320,7 @@ class L8121:
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         while True:
-            state, m_kv, m_ua = self._beam_reading()
+            state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
             if state != SourceState.XRAY_ON:
                 self._trip(self._fault_reason(state, m_kv, m_ua, ramping=True))
@@ -1379,7 +1384,7 @@ class L8121:
             ``state`` (:class:`SourceState`), ``voltage_kv``, ``current_ua`` (measured),
             ``interlock_closed``, ``time`` (``time.time()``), for the frame's metadata.
         """
-        state, kv, ua = self._beam_reading()
+        state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
         closed = self.interlock_closed()
         if self._beam is not None:
             reason = self._fault_reason(state, kv, ua, interlock_closed=closed)
@@ -1421,10 +1426,11 @@ class L8121:
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     return state
                 last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
+            why = self._why_not_remote()  # still inside: a failed query here must not call off() again
         finally:
             self._in_off = False
         raise DeviceError(f"{self.port}: could not confirm X-rays off after {attempts} attempt(s) "
-                          f"(last: {last}){self._why_not_remote()}; switch the source off at the controller") from last
+                          f"(last: {last}){why}; switch the source off at the controller") from last
 
     def _why_not_remote(self) -> str:
         """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""

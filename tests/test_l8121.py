@@ -1,12 +1,17 @@
 """The L8121 source: transport, driver and emulator, through real pyserial on a real pseudo-terminal.
 
-Read like the controller's manual: a driver call, the command the emulator received, the reply.
-Fault tests inject a fault into the emulator (interlock, overload, dropped beam, silence, junk,
-slow replies) and check that the driver stops with the right error and the tube ends up off.
+Read like the controller's manual: a driver call, the commands the emulator received, the reply.
+Every driver test runs in both dialects of ``L8121.md`` (the ``dialect`` fixture): the driver's
+calls are the same, the commands on the wire differ. Fault tests inject a fault into the emulator
+(interlock, overload, dropped beam, silence, junk, slow replies, a stuck relay, the operate switch)
+and check that the driver stops with the right error and the tube ends up off. The probe tests
+serve each dialect at each baud rate and check that ``dialect="auto"`` finds it with harmless
+queries only, and refuses a device that speaks neither.
 """
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import signal
@@ -19,9 +24,10 @@ from pathlib import Path
 import pytest
 import serial
 
-from acquisition.emulators.l8121 import L8121Model, PtyServer, SocketServer
+from acquisition.emulators.l8121 import DEFAULT_BAUD, L8121Model, PtyServer, SocketServer
 from acquisition.errors import DeviceError, SourceFault
-from acquisition.l8121 import Command, L8121, Query, SourceConfig, SourceState, WarmupState
+from acquisition.l8121 import (DIALECT_A, DIALECT_B, PROBE_QUERIES, RATINGS, Aging, Command, L8121, SourceConfig,
+                               SourceState, WarmupState, probe)
 from acquisition.transport import SerialTransport
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -30,28 +36,54 @@ REPO = Path(__file__).resolve().parents[1]
 WARMUP_S = 0.3
 RAMP_S = 0.2
 FAST = dict(poll_s=0.05, min_interval_s=0.02)  # driver timing for tests; the link stays real
+BAUDS = (9600, 38400, 115200)
+
+# What each dialect puts on the wire for the same driver call.
+WIRE = {
+    "A": dict(set_60_250=["HIV 60", "CUR 250"], warm="WUP", last_beam_read="SAR", status=["STS"],
+              measured=["SAR"], setpoint=["SVI"], warmup=["SWE"], focus_get=["SFC"], focus_2="CFS 2",
+              interlock_open_reply="SIN 1", connect_last="TYP"),
+    "B": dict(set_60_250=["PHV 600", "PCU 250"], warm="XON", last_beam_read="SCU", status=["STS", "DAG"],
+              measured=["SHV", "SCU"], setpoint=["SPV", "SPC"], warmup=["DAG"], focus_get=["SFS"], focus_2="CFL",
+              interlock_open_reply="INTER LOCK OFF", connect_last="SRL"),
+}
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    """The controller's command dialect: every test that takes it runs in both."""
+    return request.param
 
 
 @pytest.fixture
-def cold():
+def wire(dialect):
+    return WIRE[dialect]
+
+
+@pytest.fixture
+def cold(dialect):
     """An emulator that needs warming up, served on a pty."""
-    model = L8121Model(warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S)
     with PtyServer(model) as server:
         yield model, server
 
 
 @pytest.fixture
-def warm():
+def warm(dialect):
     """An emulator in standby (warm-up done), served on a pty."""
-    model = L8121Model(warmup_s=WARMUP_S, ramp_s=RAMP_S, warmed_up=True)
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S, warmed_up=True)
     with PtyServer(model) as server:
         yield model, server
 
 
+def driver(server, dialect, **kw):
+    return L8121(server.url, dialect=dialect, **{**FAST, **kw})
+
+
 @pytest.fixture
-def source(warm):
+def source(warm, dialect):
     model, server = warm
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         yield src, model
 
 
@@ -62,37 +94,42 @@ def commands_after(model: L8121Model, command: str) -> list[str]:
     return cmds[len(cmds) - cmds[::-1].index(command):]
 
 
+def link(server, dialect, **kw):
+    """A raw transport at the dialect's baud rate, to talk to the emulator by hand."""
+    return SerialTransport(server.url, baudrate=DEFAULT_BAUD[dialect], **kw)
+
+
 # -- the link -------------------------------------------------------------------------------------
 @pytest.mark.parametrize("ending", ["\r", "\r\n"])
 def test_transport_reads_cr_and_crlf_replies(ending):
     model = L8121Model(warmed_up=True)
-    with PtyServer(model, reply_terminator=ending) as server, SerialTransport(server.url) as link:
-        assert link.is_open
-        replies = [link.query(c) for c in ("TYP", "STS", "HIV 60", "SVI")]
+    with PtyServer(model, reply_terminator=ending) as server, SerialTransport(server.url) as lnk:
+        assert lnk.is_open
+        replies = [lnk.query(c) for c in ("TYP", "STS", "HIV 60", "SVI")]
     assert replies == ["TYP L8121-01", "STS 2", "HIV 60", "SVI 60 0"]
     assert model.commands == ["TYP", "STS", "HIV 60", "SVI"]
-    assert not link.is_open
+    assert not lnk.is_open
 
 
-def test_transport_logs_every_exchange(warm, caplog):
-    model, server = warm
+def test_transport_logs_every_exchange(caplog):
+    model = L8121Model(warmed_up=True)
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
-    with SerialTransport(server.url) as link:
-        link.query("TYP")
+    with PtyServer(model) as server, SerialTransport(server.url) as lnk:
+        lnk.query("TYP")
     messages = [r.getMessage() for r in caplog.records if r.name == "acquisition.transport"]
     assert f"{server.url} > TYP" in messages
     assert any(m.startswith(f"{server.url} < TYP L8121-01 (") and m.endswith(" ms)") for m in messages), messages
 
 
-def test_transport_keeps_min_interval_and_never_interleaves(warm):
+def test_transport_keeps_min_interval_and_never_interleaves():
     """Two threads share a link: every reply matches its own command, and commands are spaced."""
-    model, server = warm
+    model = L8121Model(warmed_up=True)
     interval = 0.03
     replies: dict[str, list[tuple[str, str]]] = {"HIV": [], "CUR": []}
-    with SerialTransport(server.url, min_interval_s=interval) as link:
+    with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=interval) as lnk:
         def worker(word, values):
             for v in values:
-                replies[word].append((f"{word} {v}", link.query(f"{word} {v}")))
+                replies[word].append((f"{word} {v}", lnk.query(f"{word} {v}")))
         threads = [threading.Thread(target=worker, args=("HIV", range(50, 58))),
                    threading.Thread(target=worker, args=("CUR", range(100, 108)))]
         for t in threads:
@@ -109,37 +146,38 @@ def test_transport_keeps_min_interval_and_never_interleaves(warm):
 def test_transport_reconnects_after_a_lost_link(caplog):
     model = L8121Model(warmed_up=True)
     caplog.set_level(logging.WARNING, logger="acquisition.transport")
-    with SocketServer(model) as server, SerialTransport(server.url, retries=1) as link:
-        assert link.query("STS") == "STS 2"
+    with SocketServer(model) as server, SerialTransport(server.url, retries=1) as lnk:
+        assert lnk.query("STS") == "STS 2"
         server.drop_connection()
         time.sleep(0.3)  # the server notices within its 0.05 s poll
-        assert link.query("SIN") == "SIN 0"
+        assert lnk.query("SIN") == "SIN 0"
     assert any("reconnecting" in r.getMessage() for r in caplog.records), caplog.text
 
 
-def test_transport_gives_up_when_the_device_is_gone(warm):
-    model, server = warm
-    link = SerialTransport(server.url)
-    assert link.query("STS") == "STS 2"
+def test_transport_gives_up_when_the_device_is_gone():
+    model = L8121Model(warmed_up=True)
+    server = PtyServer(model).start()
+    lnk = SerialTransport(server.url)
+    assert lnk.query("STS") == "STS 2"
     server.stop()
     t0 = time.monotonic()
     with pytest.raises(DeviceError, match=rf"{server.url}: (no reply to SER|SER: link lost)"):
-        link.query("SER")
+        lnk.query("SER")
     assert time.monotonic() - t0 < 3
-    link.close()
+    lnk.close()
 
 
-def test_transport_discards_a_late_reply(warm):
+def test_transport_discards_a_late_reply():
     """A reply that arrives after its command timed out must not be taken for the next one's."""
-    model, server = warm
+    model = L8121Model(warmed_up=True)
     model.slow(0.6)
-    with SerialTransport(server.url, timeout_s=0.3) as link:
+    with PtyServer(model) as server, SerialTransport(server.url, timeout_s=0.3) as lnk:
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match="no reply to STS within 0.3 s"):
-            link.query("STS")
+            lnk.query("STS")
         model.slow(0)
         time.sleep(max(0.0, t0 + 0.9 - time.monotonic()))  # the late "STS 2" is now in our buffer
-        assert link.query("SIN") == "SIN 0"
+        assert lnk.query("SIN") == "SIN 0"
 
 
 def test_transport_rejects_a_missing_port():
@@ -147,83 +185,140 @@ def test_transport_rejects_a_missing_port():
         SerialTransport("/dev/nonexistent-l8121")
 
 
+def test_the_pty_models_a_baud_mismatch(warm, dialect):
+    """At another baud rate than the controller's, nothing is understood or executed, and what
+    comes back is junk without a line end (the emulator's model of a UART at the wrong rate)."""
+    model, server = warm
+    wrong = next(b for b in BAUDS if b != DEFAULT_BAUD[dialect])
+    with SerialTransport(server.url, baudrate=wrong, timeout_s=0.3) as lnk:
+        for command in ("STS", "XON"):
+            with pytest.raises(DeviceError, match=rf"no reply to {command} within 0.3 s; partial reply b'"):
+                lnk.query(command)
+    assert [(e.command, e.understood) for e in model.log] == [("STS", False), ("XON", False)]
+    assert not model.xray_on and model.state == 2
+    with link(server, dialect) as lnk:
+        assert lnk.query("STS") == {"A": "STS 2", "B": "STANDBY"}[dialect]
+
+
 # -- reading like the manual ----------------------------------------------------------------------
-@pytest.mark.parametrize("call, sent, expected", [
-    (lambda s: s.status(), "STS", SourceState.STANDBY),
-    (lambda s: s.measured(), "SAR", (0.0, 0.0)),
-    (lambda s: s.setpoint(), "SVI", (40.0, 0.0)),
-    (lambda s: s.interlock_closed(), "SIN", True),
-    (lambda s: s.warmup_state(), "SWE", WarmupState.DONE),
-    (lambda s: s.error_code(), "SER", 0),
-    (lambda s: s.focus, "SFC", 0),
-    (lambda s: s.voltage_kv, "SHV", 0.0),
-    (lambda s: s.current_ua, "SCU", 0.0),
-    (lambda s: s.preheating, "SPH", False),
-    (lambda s: s.model_name, "TYP", "L8121-01"),
+@pytest.mark.parametrize("call, sent_key, expected", [
+    (lambda s: s.status(), "status", SourceState.STANDBY),
+    (lambda s: s.measured(), "measured", (0.0, 0.0)),
+    (lambda s: s.setpoint(), "setpoint", (40.0, 0.0)),
+    (lambda s: s.interlock_closed(), ["SIN"], True),
+    (lambda s: s.warmup_state(), "warmup", WarmupState.DONE),
+    (lambda s: s.error_code(), ["SER"], 0),
+    (lambda s: s.focus, "focus_get", 0),
 ])
-def test_queries_read_like_the_manual(source, call, sent, expected):
+def test_readings_are_the_same_calls_in_both_dialects(source, wire, call, sent_key, expected):
     src, model = source
     value = call(src)
     assert value == expected and type(value) is type(expected)
-    assert model.commands[-1] == sent
+    sent = sent_key if isinstance(sent_key, list) else wire[sent_key]
+    assert model.commands[-len(sent):] == sent
 
 
-def test_settings_read_like_the_manual(source):
+def test_identity_and_operate_switch(source, dialect):
+    src, model = source
+    if dialect == "A":
+        assert src.identity == "L8121-01"
+        with pytest.raises(DeviceError, match="dialect A has no operate_switch reading"):
+            src.operate_switch()
+    else:
+        assert src.identity is None  # dialect B has no TYP
+        assert src.operate_switch() == "REMOTE" and model.commands[-1] == "SRL"
+    assert src.describe()["dialect"] == dialect and src.describe()["baudrate"] == DEFAULT_BAUD[dialect]
+
+
+def test_settings_read_like_the_manual(source, wire):
     src, model = source
     src.focus = 2
-    assert model.commands[-1] == "CFS 2" and src.focus == 2
+    assert model.commands[-1] == wire["focus_2"] and src.focus == 2
     assert src.set_values(60, 250) == (60, 250)
-    assert model.commands[-3:] == ["SVI", "HIV 60", "CUR 250"]
+    assert model.commands[-2:] == wire["set_60_250"]
     assert src.setpoint() == (60.0, 250.0) and (model.set_kv, model.set_ua) == (60, 250)
     with pytest.raises(ValueError, match="focus_modes"):
         src.focus = 7
-    with pytest.raises(AttributeError, match="read-only"):
-        src.state = 3
 
 
-def test_set_values_orders_hiv_and_cur_to_stay_within_power(source):
-    """From 60 kV 500 µA (30 W) to 150 kV 400 µA (60 W): HIV 150 first would ask for 75 W with the
-    old current — fine — but from 60 kV 500 µA to 150 kV 100 µA, HIV first would be 75 W; at
-    watts_max 40 the driver must send CUR first."""
+def test_set_values_orders_voltage_and_current_to_stay_within_power(source, dialect):
+    """From 60 kV 500 µA (30 W) to 150 kV 100 µA (15 W): voltage first would ask for 75 W with
+    the old current; at watts_max 40 the driver must send the current first."""
     src, model = source
     src.config.watts_max = model.watts_max = 40
     src.set_values(60, 500)
     src.set_values(150, 100)
-    assert model.commands[-2:] == ["CUR 100", "HIV 150"]
+    assert model.commands[-2:] == {"A": ["CUR 100", "HIV 150"], "B": ["PCU 100", "PHV 1500"]}[dialect]
     assert (model.set_kv, model.set_ua) == (150, 100)
 
 
-def test_typ_is_checked_at_connect(warm):
+def test_connect_checks_the_identity_or_the_operate_switch(warm, dialect):
     model, server = warm
-    model.model = "L8121-02"
-    with pytest.raises(DeviceError, match=r"TYP answered 'L8121-02', expected 'L8121-01'"):
-        L8121(server.url)
-    with L8121(server.url, model=None) as src:
-        assert src.identity == "L8121-02"
-    with L8121(server.url, model="L8121-02") as src:
-        assert src.status() == SourceState.STANDBY
+    if dialect == "A":
+        model.model = "L8121-02"
+        with pytest.raises(DeviceError, match=r"TYP answered 'L8121-02', expected 'L8121-01'"):
+            driver(server, dialect)
+        with driver(server, dialect, model=None) as src:
+            assert src.identity == "L8121-02"
+    else:
+        for position in ("LOCAL", "OFF"):
+            model.set_operate_switch(position)
+            with pytest.raises(DeviceError, match=rf"operate switch is {position} \(SRL\): it refuses remote "
+                                                  r"commands; turn it to REMOTE"):
+                driver(server, dialect)
+        model.set_operate_switch("REMOTE")
+        with driver(server, dialect) as src:
+            assert src.status() == SourceState.STANDBY
 
 
-def test_unparseable_replies_raise(source):
+def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
+    """A unit of one dialect, configured as the other (at its own baud rate): refused at connect,
+    before anything but a query was sent."""
+    other = {"A": "B", "B": "A"}[dialect]
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    with PtyServer(model) as server:
+        with pytest.raises(DeviceError, match={"A": "SRL refused by the controller",
+                                               "B": r"TYP refused .*set dialect = \"B\" or \"auto\""}[dialect]):
+            L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
+    assert set(model.commands) <= PROBE_QUERIES | {"SRL"}
+
+
+def test_unparseable_replies_raise(source, dialect):
     src, model = source
     model.garbage()
-    for call, command in [(L8121.status, "STS"), (L8121.measured, "SAR"), (L8121.setpoint, "SVI"),
-                          (L8121.interlock_closed, "SIN"), (L8121.error_code, "SER")]:
-        with pytest.raises(DeviceError, match=rf"reply to {command}: '[^']*'"):
+    for call, command in [(L8121.status, "STS"), (L8121.measured, WIRE[dialect]["measured"][0]),
+                          (L8121.setpoint, WIRE[dialect]["setpoint"][0]), (L8121.interlock_closed, "SIN"),
+                          (L8121.error_code, "SER")]:
+        with pytest.raises(DeviceError, match=rf"unparseable reply to {command} \(dialect {dialect}\): '[^']*'"):
             call(src)
-    with pytest.raises(DeviceError, match=r"unexpected reply to CFS 1: '[^']*' \(expected the echo 'CFS 1'\)"):
+    focus = WIRE[dialect]["focus_2"].replace("CFS 2", "CFS 1").replace("CFL", "CFM")
+    with pytest.raises(DeviceError, match=rf"unexpected reply to {focus}: '[^']*' \(expected the echo '{focus}'\)"):
         src.focus = 1
 
 
 @pytest.mark.parametrize("query, reply", [
-    (Query("STS", int), "SVI 2"),                      # wrong echo
-    (Query("STS", int), "STS"),                        # no value
-    (Query("STS", int), "STS 2 2"),                    # one field too many
-    (L8121.state, "STS 9"),                            # no such state
-    (L8121.state, "STS 2.5"),
-    (L8121._sar, "SAR 3 60 nan 0 0 0 0"),
-    (L8121._sar, "SAR 3 6O 250 0 0 0 0"),              # letter O for zero
-    (L8121.interlock_open, "SIN 2"),
+    (DIALECT_A.readings["state"], "SVI 2"),            # wrong echo
+    (DIALECT_A.readings["state"], "STS"),              # no value
+    (DIALECT_A.readings["state"], "STS 2 2"),          # one field too many
+    (DIALECT_A.readings["state"], "STS 9"),            # no such state
+    (DIALECT_A.readings["state"], "STS 7"),            # B's pre-heating has no number in A
+    (DIALECT_A.readings["state"], "STS 2.5"),
+    (DIALECT_A.readings["state"], "STANDBY"),          # dialect B's answer
+    (DIALECT_A.readings["beam"], "SAR 3 60 nan 0 0 0 0"),
+    (DIALECT_A.readings["beam"], "SAR 3 6O 250 0 0 0 0"),  # letter O for zero
+    (DIALECT_A.readings["interlock_closed"], "SIN 2"),
+    (DIALECT_A.readings["interlock_closed"], "INTER LOCK ON"),
+    (DIALECT_B.readings["state"], "STS 2"),            # dialect A's answer
+    (DIALECT_B.readings["state"], "STANDBYE"),
+    (DIALECT_B.readings["voltage_kv"], "SHV 60.0"),    # no unit
+    (DIALECT_B.readings["voltage_kv"], "SHV 6O.0kV"),
+    (DIALECT_B.readings["voltage_kv"], "SHV 60.0uA"),  # wrong unit
+    (DIALECT_B.readings["current_ua"], "SCV 250uA"),
+    (DIALECT_B.readings["interlock_closed"], "INTER LOCK"),
+    (DIALECT_B.readings["interlock_closed"], "SIN 0"),
+    (DIALECT_B.readings["warmup"], "AGING 1 YET"),
+    (DIALECT_B.readings["warmup"], "AGING 1 2 DONE"),
+    (DIALECT_B.readings["operate_switch"], "REMOT"),
 ])
 def test_query_parse_rejects(query, reply):
     with pytest.raises(ValueError):
@@ -231,32 +326,48 @@ def test_query_parse_rejects(query, reply):
 
 
 def test_parse_and_echo_accept():
-    assert L8121._sar.parse("SAR 3 60 250 0 0 0 0") == (SourceState.XRAY_ON, 60.0, 250.0)
-    assert L8121.model_name.parse("TYP L8121 01") == "L8121 01"
+    a, b = DIALECT_A.readings, DIALECT_B.readings
+    assert a["beam"].parse("SAR 3 60 250 0 0 0 0") == (SourceState.XRAY_ON, 60.0, 250.0)
+    assert a["identity"].parse("TYP L8121 01") == "L8121 01"
+    assert a["interlock_closed"].parse("SIN 0") is True and a["interlock_closed"].parse("SIN 1") is False
+    assert [b["state"].parse(w) for w in ("STANDBY", "XON", "AGING", "OVER", "NOT READY", "ERROR")] == [
+        SourceState.STANDBY, SourceState.XRAY_ON, SourceState.WARMING_UP, SourceState.OVERLOAD,
+        SourceState.NOT_READY, SourceState.PREHEATING]
+    assert b["voltage_kv"].parse("SHV 60.0kV") == 60.0 and b["voltage_kv"].parse("SHV 60.5 kV") == 60.5
+    assert b["current_ua"].parse("SCU 250uA") == 250.0 and b["current_ua"].parse("SCU 250µA") == 250.0
+    assert b["interlock_closed"].parse("INTER LOCK ON") is True and b["interlock_closed"].parse("INTER LOCK OFF") is False
+    assert b["warmup"].parse("AGING 1 2 YET") == Aging(1, 2, False) and b["warmup"].parse("AGING 0 0 END").done
+    assert [b["focus"].parse(w) for w in ("SMALL", "MIDDLE", "LARGE")] == [0, 1, 2]
+    assert SourceState.WARMING_UP.emitting and SourceState.XRAY_ON.emitting and not SourceState.STANDBY.emitting
     assert Command.is_echo("HIV 60", "HIV 060") and Command.is_echo("XON", "XON")
     assert not Command.is_echo("HIV 60", "HIV 61") and not Command.is_echo("XON", "XOF")
 
 
 def test_refused_command_raises(source):
     src, model = source
+    model.open_interlock()
     with pytest.raises(DeviceError, match=r"XON refused by the controller \(ERROR\)"):
-        model.open_interlock()
-        src._xon()  # bypassing on()'s own checks, as a manual XON from a script would
+        src._do("xray_on")  # bypassing on()'s own checks, as a manual XON from a script would
     assert not model.xray_on
 
 
 # -- on(): limits first, then state ---------------------------------------------------------------
 @pytest.mark.parametrize("kv, ua, limit", [
-    (200, 100, "kv_min..kv_max"),
+    (200, 100, "voltage_kv = 200 kV is outside kv_min..kv_max = 40..150 kV"),
+    (900, 100, "kv_min..kv_max"),
     (30, 100, "kv_min..kv_max"),
-    (60, 600, "ua_min..ua_max"),
+    (-60, 100, "kv_min..kv_max"),
+    (60, 600, "current_ua = 600 µA is outside ua_min..ua_max = 0..500 µA"),
     (60, -1, "ua_min..ua_max"),
     (100, 400, "watts_max = 30 W"),
-    (float("nan"), 100, "finite"),
+    (float("nan"), 100, "voltage_kv must be finite"),
+    (60, float("inf"), "current_ua must be finite"),
+    ("60", 100, "voltage_kv must be a number of kV"),
+    (True, 100, "voltage_kv must be a number"),
 ])
-def test_on_validates_before_sending(warm, kv, ua, limit):
+def test_on_validates_before_sending(warm, dialect, kv, ua, limit):
     model, server = warm
-    with L8121(server.url, watts_max=30, **FAST) as src:
+    with driver(server, dialect, watts_max=30) as src:
         n = len(model.log)
         with pytest.raises(ValueError, match=limit):
             src.on(kv, ua)
@@ -264,41 +375,43 @@ def test_on_validates_before_sending(warm, kv, ua, limit):
     assert not model.xray_on
 
 
-def test_on_rounds_to_whole_numbers_and_says_so(source, caplog):
+def test_on_rounds_to_whole_numbers_and_says_so(source, wire, caplog):
     src, model = source
     with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
         beam = src.on(60.4, 249.6)
     assert (beam["set_voltage_kv"], beam["set_current_ua"]) == (60, 250)
-    assert ["HIV 60", "CUR 250"] == [c for c in model.commands if c[:3] in ("HIV", "CUR")]
+    assert [c for c in model.commands if c[:3] in ("HIV", "CUR", "PHV", "PCU")] == wire["set_60_250"]
     assert "rounded to 60 kV" in caplog.text and "rounded to 250 µA" in caplog.text
 
 
-def test_xon_refused_before_warmup(cold):
+def test_xon_refused_before_warmup(cold, dialect):
     model, server = cold
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         with pytest.raises(DeviceError, match="warm-up needed"):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
-    # the emulator itself refuses too, and says why
-    with SerialTransport(server.url) as link:
-        assert [link.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 2", "STS 0"]
+    with link(server, dialect) as lnk:
+        if dialect == "A":  # the emulator itself refuses too, and says why
+            assert [lnk.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 2", "STS 0"]
+        else:  # B: STS alone looks ready; DAG says the warm-up is due (an XON now would start it)
+            assert [lnk.query(c) for c in ("STS", "DAG")] == ["STANDBY", "AGING 1 0 YET"]
 
 
-def test_xon_refused_with_interlock_open(warm):
+def test_xon_refused_with_interlock_open(warm, dialect, wire):
     model, server = warm
     model.open_interlock()
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         with pytest.raises(SourceFault, match="interlock open"):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
-    with SerialTransport(server.url) as link:
-        assert [link.query(c) for c in ("SIN", "XON", "SER")] == ["SIN 1", "ERROR", "SER 1"]
+    with link(server, dialect) as lnk:
+        assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 1"]
 
 
-def test_xon_refused_in_overload(warm):
+def test_xon_refused_in_overload(warm, dialect):
     model, server = warm
     model.overload()
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         with pytest.raises(SourceFault, match="overload"):
             src.on(60, 250)
         with pytest.raises(SourceFault, match="overload"):
@@ -310,39 +423,101 @@ def test_xon_refused_in_overload(warm):
 
 
 # -- warm-up --------------------------------------------------------------------------------------
-def test_warm_up_completes(cold):
+def test_warm_up_completes(cold, dialect, wire):
     model, server = cold
     seen = []
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         assert src.warmup_state() == WarmupState.NOT_STARTED
+        assert src.status() == SourceState.WARMUP_NEEDED
         seconds = src.warm_up(timeout_s=10, progress=lambda t, state: seen.append(state))
         assert src.status() == SourceState.STANDBY and src.warmup_state() == WarmupState.DONE
-        assert src.warm_up(progress=False) == 0.0  # done already: no second WUP
-    assert model.commands.count("WUP") == 1
+        assert src.warm_up(progress=False) == 0.0  # done already: no second warm-up command
+    assert model.commands.count(wire["warm"]) == 1
     assert seconds >= 0.9 * WARMUP_S
     assert SourceState.WARMING_UP in seen and not model.xray_on
 
 
-def test_warm_up_with_a_progress_bar(cold, capsys):
+def test_warm_up_with_a_progress_bar(cold, dialect, capsys):
     model, server = cold
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         assert src.warm_up(timeout_s=10, progress=True) >= 0.9 * WARMUP_S
     assert "warm-up" in capsys.readouterr().err
 
 
-def test_warm_up_times_out(cold):
+def test_warm_up_needs_a_closed_interlock(cold, dialect, wire):
+    """Warm-up emits X-rays: never started with the interlock open."""
+    model, server = cold
+    model.open_interlock()
+    with driver(server, dialect) as src:
+        with pytest.raises(SourceFault, match="warm-up not started: it emits X-rays and the interlock is open"):
+            src.warm_up(progress=False)
+    assert wire["warm"] not in model.commands and not model.xray_on
+
+
+def test_warm_up_times_out_and_switches_off(cold, dialect, wire):
     model, server = cold
     model.warmup_s = 30
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match="warm-up not done within 0.3 s"):
             src.warm_up(timeout_s=0.3, progress=False)
         assert time.monotonic() - t0 < 3
-    assert "XOF" in commands_after(model, "WUP") and not model.xray_on
+        assert src.status() == SourceState.WARMUP_NEEDED  # an interrupted warm-up must run again
+    assert "XOF" in commands_after(model, wire["warm"]) and not model.xray_on
+
+
+def test_ctrl_c_during_warm_up_switches_off(cold, dialect):
+    model, server = cold
+    model.warmup_s = 30
+    calls = []
+
+    def interrupt(elapsed, state):
+        calls.append(state)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+    with driver(server, dialect) as src:
+        with pytest.raises(KeyboardInterrupt):
+            src.warm_up(progress=interrupt)
+        assert not model.xray_on
+    assert calls == [SourceState.WARMING_UP] * 2
+
+
+def test_b_never_forces_a_warm_up_with_xon():
+    """In B the warm-up's XON with the warm-up done would be an exposure: refused."""
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(DeviceError, match="that XON would be an exposure"):
+            src.warm_up(force=True, progress=False)
+    assert "XON" not in model.commands
+
+
+def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
+    """The controller decides a warm-up is due between the driver's DAG and its XON: the XON
+    meant as an exposure starts AGING; the driver switches off at its first poll."""
+    model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
+    model.inject_after("PCU", model.require_warm_up)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(SourceFault, match=r"warming up \(AGING\) instead of emitting the exposure; "
+                                              r"X-rays switched off"):
+            src.on(60, 250)
+        assert not model.xray_on
+    assert commands_after(model, "XON")[:3] == ["STS", "XOF", "STS"]
+
+
+def test_b_a_warm_up_xon_that_starts_an_exposure_is_switched_off():
+    """The reverse: someone finishes the warm-up at the controller between the driver's DAG and
+    its XON; the warm-up's XON starts an exposure; the driver switches off."""
+    model = L8121Model(dialect="B", warmup_s=30, ramp_s=RAMP_S)
+    model.inject_after("SIN", model.warm)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(SourceFault, match="X-rays came on as an exposure instead of a warm-up"):
+            src.warm_up(progress=False)
+        assert not model.xray_on
+    assert "XOF" in commands_after(model, "XON")
 
 
 # -- on, off --------------------------------------------------------------------------------------
-def test_on_returns_when_measured_within_tolerance(source):
+def test_on_returns_when_measured_within_tolerance(source, wire):
     src, model = source
     kv, ua = 60, 250
     tol_kv, tol_ua = src.config.tolerance_kv(kv), src.config.tolerance_ua(ua)
@@ -350,20 +525,22 @@ def test_on_returns_when_measured_within_tolerance(source):
     assert abs(beam["voltage_kv"] - kv) <= tol_kv and abs(beam["current_ua"] - ua) <= tol_ua
     assert model.xray_on
     cmds = model.commands
-    assert cmds.index("HIV 60") < cmds.index("CUR 250") < cmds.index("XON")
-    # the emulator ramps linearly over RAMP_S and reports whole numbers: "within tolerance" cannot
-    # come before this fraction of the ramp (model time, so CPU load does not matter)
+    set_kv, set_ua = wire["set_60_250"]
+    assert cmds.index(set_kv) < cmds.index(set_ua) < cmds.index("XON")
+    # the emulator ramps linearly over RAMP_S and reports rounded values: "within tolerance"
+    # cannot come before this fraction of the ramp (model time, so CPU load does not matter)
     t_xon = next(e.t for e in model.log if e.command == "XON")
-    t_stable = [e.t for e in model.log if e.command == "SAR"][-1]
+    t_stable = [e.t for e in model.log if e.command == wire["last_beam_read"]][-1]
     earliest = RAMP_S * (1 - min((tol_kv + 0.5) / kv, (tol_ua + 0.5) / ua))
     assert t_stable - t_xon >= earliest
     assert src.check()["state"] == SourceState.XRAY_ON
 
 
-def test_set_values_while_on_waits_for_the_new_beam(source):
+def test_set_values_while_on_waits_for_the_new_beam(source, dialect):
     src, model = source
     src.on(60, 100)
     assert src.set_values(60, 400) == (60, 400)
+    assert "CUR 400" in model.commands  # B: HIV/CUR while on, not the presets
     kv, ua = src.measured()
     assert abs(ua - 400) <= src.config.tolerance_ua(400) and model.xray_on
     assert src.check()["current_ua"] >= 0.9 * 400  # judged against the new current: no false "dropped"
@@ -382,10 +559,10 @@ def test_on_refuses_when_already_on(source):
     assert model.xray_on and model.set_kv == 60
 
 
-def test_on_switches_off_when_not_stable(warm):
+def test_on_switches_off_when_not_stable(warm, dialect):
     model, server = warm
     model.ramp_s = 30
-    with L8121(server.url, stable_timeout_s=0.3, **FAST) as src:
+    with driver(server, dialect, stable_timeout_s=0.3) as src:
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match="not stable within stable_timeout_s = 0.3 s"):
             src.on(60, 250)
@@ -397,7 +574,7 @@ def test_off_is_confirmed(source):
     src, model = source
     src.on(60, 250)
     assert src.off() == SourceState.STANDBY
-    assert commands_after(model, "XON") [-2:] == ["XOF", "STS"]
+    assert commands_after(model, "XON")[-2:] == ["XOF", "STS"]
     assert not model.xray_on and model.measured() == (0.0, 0.0)
 
 
@@ -405,7 +582,7 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
     src, model = source
     src.on(60, 250)
     model.stuck_on()
-    with pytest.raises(DeviceError, match=r"could not confirm X-rays off after 3 attempt.*STS still 3"):
+    with pytest.raises(DeviceError, match=r"could not confirm X-rays off after 3 attempt.*STS still XRAY_ON"):
         src.off()
     assert commands_after(model, "XON").count("XOF") == 3
     model.stuck_on(False)
@@ -420,6 +597,30 @@ def test_off_raises_when_it_cannot_confirm(source):
     with pytest.raises(DeviceError, match="could not confirm X-rays off after 3 attempt"):
         src.off()
     model.silence(False)
+
+
+def test_operate_switch_turned_to_local_while_on(source, dialect):
+    """Someone turns the operate switch to LOCAL while X-rays are on: XOF is refused, off() says
+    it could not confirm -- naming the switch where the dialect can read it -- and succeeds once
+    the switch is back on REMOTE."""
+    src, model = source
+    src.on(60, 250)
+    model.set_operate_switch("LOCAL")
+    with pytest.raises(DeviceError, match="could not confirm X-rays off" + (
+            ".*the operate switch is LOCAL" if dialect == "B" else "")):
+        src.off()
+    assert model.xray_on
+    model.set_operate_switch("REMOTE")
+    assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
+def test_b_on_refused_when_the_switch_is_local_after_connect():
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        model.set_operate_switch("LOCAL")
+        with pytest.raises(DeviceError, match="X-rays not switched on: the operate switch is LOCAL, not REMOTE"):
+            src.on(60, 250)
+    assert not [c for c in model.commands if c.split()[0] in ("PHV", "PCU", "XON")]
 
 
 # -- faults while on ------------------------------------------------------------------------------
@@ -447,20 +648,20 @@ def test_check_stops_on_a_fault(source, inject, reason):
     assert "RST" not in model.commands
 
 
-def test_garbage_while_on_switches_off(source):
+def test_garbage_while_on_switches_off(source, wire):
     src, model = source
     src.on(60, 250)
     model.garbage()
-    with pytest.raises(DeviceError, match="unparseable reply to SAR"):
+    with pytest.raises(DeviceError, match=f"unparseable reply to {wire['measured'][0]}"):
         src.measured()
     model.garbage(False)
     assert not model.xray_on  # the XOF was executed even though its reply was junk
 
 
 # -- a controller that misbehaves -----------------------------------------------------------------
-def test_silent_controller_times_out(warm):
+def test_silent_controller_times_out(warm, dialect, wire):
     model, server = warm
-    with L8121(server.url, **FAST) as src:
+    with driver(server, dialect) as src:
         model.silence()
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match=rf"{server.url}: no reply to STS within 1 s"):
@@ -468,30 +669,30 @@ def test_silent_controller_times_out(warm):
         elapsed = time.monotonic() - t0
     assert 0.9 <= elapsed < 3
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match="no reply to TYP"):
-        L8121(server.url, timeout_s=0.5)
+    with pytest.raises(DeviceError, match=f"no reply to {wire['connect_last']}"):
+        driver(server, dialect, timeout_s=0.5)
     assert time.monotonic() - t0 < 3
 
 
-def test_slow_replies(warm):
+def test_slow_replies(warm, dialect, wire):
     model, server = warm
     model.slow(0.3)
-    with L8121(server.url, timeout_s=1.0, **FAST) as src:
+    with driver(server, dialect, timeout_s=1.0) as src:
         assert src.status() == SourceState.STANDBY
     model.slow(1.0)
-    with L8121(server.url, timeout_s=0.4, connect=False, **FAST) as src:
+    with driver(server, dialect, timeout_s=0.4, connect=False) as src:
         t0 = time.monotonic()
-        with pytest.raises(DeviceError, match="no reply to TYP within 0.4 s"):
+        with pytest.raises(DeviceError, match=f"no reply to {wire['connect_last']} within 0.4 s"):
             src.connect()
         assert time.monotonic() - t0 < 3
     model.slow(0)
 
 
 # -- every exit path leaves the tube off ----------------------------------------------------------
-def test_context_manager_switches_off_on_an_exception(warm):
+def test_context_manager_switches_off_on_an_exception(warm, dialect):
     model, server = warm
     with pytest.raises(RuntimeError, match="detector lost"):
-        with L8121(server.url, **FAST) as src:
+        with driver(server, dialect) as src:
             src.on(60, 250)
             assert model.xray_on
             raise RuntimeError("detector lost")
@@ -499,17 +700,28 @@ def test_context_manager_switches_off_on_an_exception(warm):
     assert not src.is_connected
 
 
-def test_context_manager_switches_off_on_keyboard_interrupt(warm):
+def test_context_manager_switches_off_on_keyboard_interrupt(warm, dialect):
     model, server = warm
     with pytest.raises(KeyboardInterrupt):
-        with L8121(server.url, **FAST) as src:
+        with driver(server, dialect) as src:
             src.on(60, 250)
             raise KeyboardInterrupt
     assert not model.xray_on and "XOF" in commands_after(model, "XON")
 
 
+def test_connect_finds_the_tube_emitting_and_close_switches_it_off(warm, dialect):
+    model, server = warm
+    with link(server, dialect) as lnk:  # someone else switched on
+        for c in WIRE[dialect]["set_60_250"] + ["XON"]:
+            lnk.query(c)
+    assert model.xray_on
+    with driver(server, dialect):
+        pass
+    assert not model.xray_on
+
+
 @pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals")
-def test_ctrl_c_while_waiting_for_the_beam_switches_off(warm):
+def test_ctrl_c_while_waiting_for_the_beam_switches_off(warm, dialect):
     model, server = warm
     model.ramp_s = 30
 
@@ -517,8 +729,8 @@ def test_ctrl_c_while_waiting_for_the_beam_switches_off(warm):
         raise KeyboardInterrupt
     previous = signal.signal(signal.SIGALRM, interrupt)
     try:
-        with L8121(server.url, **FAST) as src:
-            signal.setitimer(signal.ITIMER_REAL, 0.4)
+        with driver(server, dialect) as src:
+            signal.setitimer(signal.ITIMER_REAL, 0.6)
             with pytest.raises(KeyboardInterrupt):
                 src.on(60, 250)
             assert not model.xray_on
@@ -528,32 +740,174 @@ def test_ctrl_c_while_waiting_for_the_beam_switches_off(warm):
     assert "XOF" in commands_after(model, "XON")
 
 
-def test_exit_does_not_mask_the_original_exception(warm):
+def test_exit_does_not_mask_the_original_exception(warm, dialect):
     model, server = warm
     with pytest.raises(RuntimeError, match="original"):
-        with L8121(server.url, timeout_s=0.2, off_attempts=1, **FAST) as src:
+        with driver(server, dialect, timeout_s=0.2, off_attempts=1) as src:
             src.on(60, 250)
             model.silence()
             raise RuntimeError("original")
     model.silence(False)
 
 
-# -- configuration --------------------------------------------------------------------------------
+# -- the probe: which dialect, which baud rate ----------------------------------------------------
+@pytest.mark.parametrize("baud", BAUDS)
+def test_probe_identifies_each_dialect_at_each_baud_rate(dialect, baud):
+    model = L8121Model(dialect=dialect, baudrate=baud)  # cold: an XON would start the warm-up in B
+    with PtyServer(model) as server:
+        result = probe(server.url, baudrates=BAUDS, timeout_s=0.2, min_interval_s=0.01)
+    assert (result.dialect, result.baudrate) == (dialect, baud), result.report()
+    assert result.identity == ("L8121-01" if dialect == "A" else None)
+    assert dict(result.details)["interlock"] == "closed"
+    # harmless queries only, and the tube untouched; lines at the wrong rates not even understood
+    assert set(model.commands) <= PROBE_QUERIES
+    assert model.state == 0 and not model.xray_on
+    wrong = [e for e in model.log if not e.understood]
+    assert len(wrong) == BAUDS.index(baud)  # one STS at each rate tried before
+    assert [e.baudrate for e in result.exchange if e.reply is None] == list(BAUDS[:BAUDS.index(baud)])
+    assert result.report().splitlines()[0] == result.summary()
+    assert all(f"> {e.sent}" in result.report() for e in result.exchange)
+
+
+@pytest.mark.parametrize("misbehave, why", [
+    (L8121Model.foreign, "STS answered 'OK'"),
+    (L8121Model.garbage, "STS answered"),
+    (L8121Model.silence, "no reply"),
+])
+def test_probe_refuses_a_controller_that_speaks_neither(misbehave, why):
+    model = L8121Model(warmed_up=True)
+    misbehave(model)
+    with PtyServer(model) as server:
+        result = probe(server.url, baudrates=BAUDS, timeout_s=0.2, min_interval_s=0.01)
+        assert not result.found and result.dialect is None
+        assert "fit neither dialect A nor B at 9600, 38400, 115200 baud" in result.summary()
+        assert why in result.summary()
+        with pytest.raises(DeviceError, match="fit neither dialect A nor B.*refusing to go on"):
+            L8121(server.url, dialect="auto", probe_timeout_s=0.2, **FAST)
+    assert set(model.commands) <= PROBE_QUERIES
+
+
+def test_probe_refuses_a_mix_of_dialects():
+    """STS in A's shape but SIN in B's: a unit the tables do not describe -- refused, not guessed."""
+    class Mixed(L8121Model):
+        def receive(self, line, baudrate=None):
+            ex = super().receive(line, baudrate)
+            if line == "SIN" and ex.understood:  # the one fake here: no emulator mode speaks a mix
+                return type(ex)(ex.t, ex.command, "INTER LOCK ON", True)
+            return ex
+    with PtyServer(Mixed(warmed_up=True)) as server:
+        result = probe(server.url, baudrates=(38400,), timeout_s=0.2, min_interval_s=0.01)
+    assert not result.found
+    assert "STS 'STS 2' fits dialect A but SIN answered 'INTER LOCK ON' (dialect B's shape: a mix" in result.summary()
+
+
+def test_auto_connects_in_either_dialect_and_works(dialect):
+    baud = 115200
+    model = L8121Model(dialect=dialect, baudrate=baud, warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        with L8121(server.url, dialect="auto", probe_timeout_s=0.2, **FAST) as src:
+            assert (src.dialect.name, src.baudrate) == (dialect, baud)
+            assert src.probe_result.found and src.describe()["probe"].startswith(server.url)
+            src.on(60, 250)
+            assert model.xray_on
+        assert not model.xray_on
+
+
+def test_auto_says_so_when_the_operate_switch_is_local():
+    model = L8121Model(dialect="B", warmed_up=True)
+    model.set_operate_switch("LOCAL")
+    with PtyServer(model) as server:
+        result = probe(server.url, baudrates=BAUDS, timeout_s=0.2, min_interval_s=0.01)
+        assert result.dialect == "B" and "the operate switch is LOCAL" in result.report()
+        with pytest.raises(DeviceError, match="operate switch is LOCAL"):
+            L8121(server.url, dialect="auto", probe_timeout_s=0.2, **FAST)
+    assert not model.xray_on
+
+
+def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, baudrate=38400)
+    with PtyServer(model) as server:
+        assert main(["acquire", "source", "probe", "--port", server.url]) == 0
+        out = capsys.readouterr().out
+        assert f"dialect {dialect} at 38400 baud" in out.splitlines()[0]
+        assert "raw exchange:" in out and "38400 baud  > STS" in out and "9600 baud  > STS" in out
+        model.foreign()
+        assert main(["acquire", "source", "probe", "--port", server.url]) == 1
+        captured = capsys.readouterr()
+        assert "fit neither dialect" in captured.out and "raw exchange:" in captured.out
+    assert set(model.commands) <= PROBE_QUERIES
+
+
+def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        assert main(["acquire", "source", "status", "--port", server.url, "--dialect", dialect]) == 0
+        assert "STANDBY" in capsys.readouterr().out
+        assert main(["acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250",
+                     "--dialect", dialect]) == 0
+        assert model.xray_on
+        assert main(["acquire", "source", "off", "--port", server.url]) == 0  # auto: probes first
+        assert not model.xray_on
+
+
+# -- configuration: the ratings are a ceiling ----------------------------------------------------
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
-    path.write_text('[source]\nurl = "/dev/ttyUSB0"\nbaudrate = 9600\nkv_max = 90\nua_tolerance = "2%"\n'
-                    'model = ""\n')
+    path.write_text('[source]\nurl = "/dev/ttyUSB0"\nbaudrate = 9600\ndialect = "B"\nkv_max = 90\n'
+                    'ua_tolerance = "2%"\nmodel = ""\n')
     config = SourceConfig.from_toml(path)
     assert (config.kv_max, config.model, config.tolerance_ua(250), config.tolerance_kv(60)) == (90, None, 5.0, 1.0)
     assert SourceConfig.from_dict(config.to_dict()) == config
     src = L8121.from_config(path, connect=False)
-    assert (src.url, src.baudrate, src.config.kv_max) == ("/dev/ttyUSB0", 9600, 90)
+    assert (src.url, src.baudrate, src.config.kv_max, src.dialect.name, src.voltage_scale) == \
+        ("/dev/ttyUSB0", 9600, 90, "B", 10)
+    assert L8121("loop://", connect=False).baudrate == 38400  # dialect A's default
+    assert L8121("loop://", connect=False, dialect="B", voltage_scale=1).voltage_scale == 1
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['kv_maximum'\]"):
         SourceConfig.from_dict({"kv_maximum": 90})
     with pytest.raises(ValueError, match="kv_tolerance"):
         SourceConfig(kv_tolerance="two")
-    with pytest.raises(ValueError, match="tube voltage 100 kV is outside kv_min..kv_max = 40..90 kV"):
+    with pytest.raises(ValueError, match=r"dialect 'C': expected 'A', 'B' or 'auto'"):
+        SourceConfig(dialect="C")
+    with pytest.raises(ValueError, match="voltage_kv = 100 kV is outside kv_min..kv_max = 40..90 kV"):
         src.validate(100, 100)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("kv_max", 1000, "kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten"),
+    ("kv_min", 30, "kv_min = 30 kV is below the L8121 rating of 40 kV"),
+    ("ua_max", 600, "ua_max = 600 µA exceeds the L8121 rating of 500 µA"),
+    ("watts_max", 80, "watts_max = 80 W exceeds the L8121 rating of 75 W"),
+    ("kv_max", float("nan"), "kv_max must be a finite number"),
+    ("dialect", "auto ", "dialect 'auto ': expected"),
+])
+def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
+    with pytest.raises(ValueError, match=message):
+        SourceConfig(**{key: value})
+    with pytest.raises(ValueError, match=message):
+        L8121("loop://", connect=False, **{key: value})
+
+
+def test_check_exposure_is_the_ceiling_even_after_a_config_is_changed():
+    config = SourceConfig(kv_max=90, watts_max=50)
+    assert config.check_exposure(60, 250) is None
+    assert config.check_exposure(RATINGS.kv_min, 0) is None
+    with pytest.raises(ValueError, match="voltage_kv = 100 kV is outside kv_min..kv_max = 40..90 kV"):
+        config.check_exposure(100, 100)
+    with pytest.raises(ValueError, match=r"90 kV x 600 µA|current_ua = 600"):
+        config.check_exposure(90, 600)
+    with pytest.raises(ValueError, match=r"90 kV x 500 µA = 45 W exceeds watts_max = 40 W"):
+        SourceConfig(kv_max=90, watts_max=40).check_exposure(90, 500)
+    config.kv_max, config.watts_max = 1000, 1000  # mutated past the checks of the constructor
+    with pytest.raises(ValueError, match="kv_min..kv_max = 40..150 kV"):
+        config.check_exposure(900, 10)
+    with pytest.raises(ValueError, match="watts_max = 75 W"):
+        config.check_exposure(150, 500)
+    assert math.isclose(150 * 500 / 1000, RATINGS.watts_max * 1.0)
 
 
 # -- the emulator in process ----------------------------------------------------------------------
@@ -565,11 +919,12 @@ class Clock:
         return self.t
 
 
-def test_emulator_ramps_and_warms_up_on_its_clock():
+def test_emulator_a_ramps_and_warms_up_on_its_clock():
     clock = Clock()
     m = L8121Model(warmup_s=2, ramp_s=1, clock=clock)
     assert [m.handle(c) for c in ("STS", "SWE", "WUP", "STS", "SWE", "SPH")] == \
         ["STS 0", "SWE 2", "WUP", "STS 1", "SWE 1", "SPH 1"]
+    assert m.xray_on  # the warm-up emits
     clock.t += 2
     assert [m.handle(c) for c in ("STS", "SWE", "HIV 60", "CUR 250", "XON")] == \
         ["STS 2", "SWE 0", "HIV 60", "CUR 250", "XON"]
@@ -581,42 +936,95 @@ def test_emulator_ramps_and_warms_up_on_its_clock():
     assert [e.t for e in m.log][:3] == [0.0, 0.0, 0.0]
 
 
+def test_emulator_b_ramps_and_warms_up_on_its_clock():
+    clock = Clock()
+    m = L8121Model(dialect="B", warmup_s=2, ramp_s=1, clock=clock)
+    assert [m.handle(c) for c in ("STS", "DAG", "SRL", "XON", "STS", "DAG", "SRB")] == \
+        ["STANDBY", "AGING 1 0 YET", "REMOTE", "XON", "AGING", "AGING 1 1 YET", "BUSY"]
+    assert m.xray_on  # AGING emits
+    clock.t += 1.0
+    assert m.handle("DAG") == "AGING 1 3 YET"
+    clock.t += 1.0
+    assert [m.handle(c) for c in ("STS", "DAG", "SRB", "PHV 600", "PCU 250", "XON")] == \
+        ["STANDBY", "AGING 0 0 END", "READY", "PHV 600", "PCU 250", "XON"]
+    clock.t += 0.5
+    assert (m.handle("SHV"), m.handle("SCU")) == ("SHV 30.0kV", "SCU 125uA")
+    clock.t += 0.5
+    assert [m.handle(c) for c in ("SHV", "SCU", "SPV", "SPC", "PHV 700", "HIV 700", "SPV")] == \
+        ["SHV 60.0kV", "SCU 250uA", "SPV 60.0kV", "SPC 250uA", "ERROR", "HIV 700", "SPV 70.0kV"]
+    assert m.handle("XOF") == "XOF" and m.handle("STS") == "STANDBY" and not m.xray_on
+    assert [m.handle(c) for c in ("CFM", "SFS", "CFL", "SFS")] == ["CFM", "MIDDLE", "CFL", "LARGE"]
+
+
+def test_emulator_xof_interrupts_the_warm_up(dialect):
+    clock = Clock()
+    m = L8121Model(dialect=dialect, warmup_s=2, clock=clock)
+    m.handle({"A": "WUP", "B": "XON"}[dialect])
+    clock.t += 1
+    assert m.xray_on and m.handle("XOF") == "XOF" and not m.xray_on
+    clock.t += 2  # the warm-up's end was due now: it must not complete after an XOF
+    assert m.state == 0
+
+
 def test_emulator_refuses():
     m = L8121Model(warmed_up=True, watts_max=30)
-    assert [m.handle(c) for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1")] == \
-        ["ERR"] * 8
+    assert [m.handle(c) for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1",
+                                  "PHV 600", "DAG")] == ["ERR"] * 10
     assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 4")  # 40 W
     assert m.handle("") is None and m.set_ua == 0
+    b = L8121Model(dialect="B", warmed_up=True)
+    assert [b.handle(c) for c in ("HIV 600", "CUR 250", "PHV 1510", "PHV 390", "PCU 501", "TYP", "WUP", "SAR",
+                                  "SWE", "CFS 1", "Enter", "FOO")] == ["ERROR"] * 12
+    assert b.set_ua == 0 and not b.xray_on
 
 
-def test_emulator_scheduled_faults():
+def test_emulator_scheduled_faults(dialect):
     clock = Clock()
-    m = L8121Model(ramp_s=0, warmed_up=True, clock=clock)
-    m.handle("HIV 60"), m.handle("CUR 250"), m.handle("XON")
+    m = L8121Model(dialect=dialect, ramp_s=0, warmed_up=True, clock=clock)
+    sts = (lambda: m.handle("STS")) if dialect == "A" else (lambda: {"STANDBY": "STS 2", "XON": "STS 3",
+                                                                      "OVER": "STS 4"}[m.handle("STS")])
+    closed, opened = {"A": ("SIN 0", "SIN 1"), "B": ("INTER LOCK ON", "INTER LOCK OFF")}[dialect]
+    for c in WIRE[dialect]["set_60_250"] + ["XON"]:
+        m.handle(c)
     m.open_interlock(at_s=1.0)
     clock.t += 0.9
-    assert m.xray_on and m.handle("SIN") == "SIN 0"
+    assert m.xray_on and m.handle("SIN") == closed
     clock.t += 0.2
-    assert (m.handle("STS"), m.handle("SIN"), m.handle("XON")) == ("STS 2", "SIN 1", "ERROR")
+    assert (sts(), m.handle("SIN"), m.handle("XON")) == ("STS 2", opened, "ERROR")
     m.close_interlock()
     m.handle("XON")
     m.drop_beam()
-    assert m.handle("SAR") == "SAR 3 60 0 0 0 0 0"
+    assert m.measured() == (60, 0) and sts() == "STS 3"
     m.overload(at_s=m.time + 1)
     clock.t += 1
-    assert (m.handle("STS"), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 3")
-    assert (m.handle("RST"), m.handle("STS")) == ("RST", "STS 2")
+    assert (sts(), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 3")
+    assert (m.handle("RST"), sts()) == ("RST", "STS 2")
+    m.require_warm_up()
+    assert m.state == 0
+    m.warm()
+    assert m.state == 2
+    m.set_operate_switch("LOCAL")
+    assert (m.handle("XON"), m.handle("SER"), sts()) == ("ERROR", "SER 7", "STS 2")
+    m.set_operate_switch("REMOTE")
     m.silence()
     assert m.handle("STS") is None and m.log[-1].reply is None
     m.silence(False)
     m.garbage()
     junk = {m.handle("STS") for _ in range(20)}
-    assert all(j and not j.startswith("STS") and "\r" not in j for j in junk)
+    assert all(j and j not in ("STS 2", "STANDBY") and "\r" not in j for j in junk)
+    m.garbage(False)
+    m.foreign()
+    assert {m.handle(c) for c in ("STS", "XON", "SIN")} == {"OK"} and not m.xray_on
 
 
 # -- the command line -----------------------------------------------------------------------------
-def test_command_line_serves_a_pty():
-    proc = subprocess.Popen([sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "0.1"],
+@pytest.mark.parametrize("argv, baud, exchange", [
+    ([], 38400, [("TYP", "TYP L8121-01"), ("WUP", "WUP")]),
+    (["--dialect", "B"], 9600, [("SRL", "REMOTE"), ("STS", "STANDBY"), ("XON", "XON"), ("STS", "AGING")]),
+    (["--dialect", "B", "--local"], 9600, [("SRL", "LOCAL"), ("XON", "ERROR")]),
+])
+def test_command_line_serves_a_pty(argv, baud, exchange):
+    proc = subprocess.Popen([sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "0.1", *argv],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 10)
@@ -625,9 +1033,8 @@ def test_command_line_serves_a_pty():
         assert url.startswith("/dev/"), url
         with serial.serial_for_url(url, timeout=1):
             pass  # pyserial opens it as a serial port
-        with SerialTransport(url) as link:
-            assert link.query("TYP") == "TYP L8121-01"
-            assert link.query("WUP") == "WUP"
+        with SerialTransport(url, baudrate=baud) as lnk:
+            assert [(c, lnk.query(c)) for c, _ in exchange] == exchange
     finally:
         proc.terminate()
         try:

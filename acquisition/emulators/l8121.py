@@ -13,7 +13,8 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
 :meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
-due, as B's 8-hour idle rule does), :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
+due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
+:meth:`~L8121Model.inject_after` (any of these right after a given command), :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
 control commands refused with ``ERROR``; B reports it with ``SRL``) and
 :meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
 
@@ -168,6 +169,7 @@ class L8121Model:
         self._silent_executes = False
         self._delay_s = 0.0
         self._log: list[Exchange] = []
+        self._after: dict[str, Callable[[], object]] = {}
         self._commands, self._takes_argument = self._front_end_a() if dialect == "A" else self._front_end_b()
 
     # -- the two front ends -----------------------------------------------------------------------
@@ -315,6 +317,21 @@ class L8121Model:
                 self._state = WARMUP_NEEDED
         self._at(at_s, fault)
 
+    def warm(self, at_s: float | None = None) -> None:
+        """Mark the warm-up done now, or at model time ``at_s`` (someone ran it at the controller):
+        from warm-up needed the state becomes standby, so B's next ``XON`` is an exposure."""
+        def fix(t):
+            self._warmup = WARMUP_DONE
+            if self._state == WARMUP_NEEDED:
+                self._state = STANDBY
+        self._at(at_s, fix)
+
+    def inject_after(self, command: str, fault: Callable[[], object]) -> None:
+        """Call ``fault()`` once, right after the controller next executes ``command`` (a command
+        word such as ``"PCU"``): a state change that lands between two of the driver's commands."""
+        with self._lock:
+            self._after[command] = fault
+
     def set_operate_switch(self, position: str = "LOCAL") -> None:
         """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
         command that acts on the tube (``XOF`` included) is refused with ``ERROR``; queries are
@@ -407,7 +424,11 @@ class L8121Model:
             return self._refuse(E_UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
         if word in _CONTROL and self._switch != "REMOTE":
             return self._refuse(E_LOCAL)
-        return action(t, *args)
+        reply = action(t, *args)
+        fault = self._after.pop(word, None)
+        if fault is not None:
+            fault()
+        return reply
 
     def _refuse(self, code: int, reply: str = "ERROR") -> str:
         self._error = code
