@@ -77,7 +77,7 @@ class ProtocolError(DeviceError):
 class SourceSettings:
     """The X-ray source: link, exposure and limits (``acquisition.l8121.L8121`` configuration)."""
     port: str = ""                  # device path, socket://host:port or rfc2217://...; --sim ignores it
-    baudrate: int = 38400
+    baudrate: int | None = None     # None: the dialect's (A 38400, B 9600); [source] dialect = "A" | "B" | "auto"
     voltage_kv: float = 60.0        # the paper: 60 kV, 250 uA
     current_ua: float = 250.0
     focus: int | None = None        # CFS mode, None = leave as is
@@ -358,7 +358,9 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
         scene = load_scene(p.sim.scene)
         bench = VirtualBench(scene, binning=p.sim.binning, seed=p.sim.seed, progress=progress)
     bench.prepare(p.series.steps)  # one incremental solve for all steps (cached: a no-op when done)
-    model = L8121Model(warmup_s=p.sim.warmup_s, ramp_s=p.sim.ramp_s, warmed_up=p.sim.warmed_up)
+    dialect = str(p.source.limits.get("dialect", "A")).upper()  # the emulator speaks the configured dialect
+    model = L8121Model(dialect=dialect if dialect == "B" else "A", baudrate=p.source.baudrate,
+                       warmup_s=p.sim.warmup_s, ramp_s=p.sim.ramp_s, warmed_up=p.sim.warmed_up)
     server = PtyServer(model)
     server.start()
     closers = [server.stop]
