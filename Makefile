@@ -1,8 +1,10 @@
 # The two commands: `make demo` and `make test`. Both create .venv and install what they need.
+# `make demo DIALECT=B`: the emulated L8121 speaks command dialect B (README, "The L8121's two dialects").
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 DEMO_OUT ?= out/demo
+DIALECT ?= A
 
 .PHONY: demo test bench clean
 
@@ -20,7 +22,7 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	$(BIN)/radiokit demo -o $(DEMO_OUT)
+	$(BIN)/radiokit demo -o $(DEMO_OUT) --dialect $(DIALECT)
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest

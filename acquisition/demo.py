@@ -27,13 +27,13 @@ def _exposure(scene, kv_min=40.0):
     return kv, round(ua)
 
 
-def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats, warm):
+def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats, warm, dialect="A"):
     from acquisition.protocols import load_protocol
 
     kv, ua = _exposure(scene)
     return load_protocol({
         "output": str(output), "name": "demo",
-        "source": {"voltage_kv": kv, "current_ua": ua, "poll_s": 0.25},
+        "source": {"voltage_kv": kv, "current_ua": ua, "poll_s": 0.25, "dialect": dialect},
         "detector": {"kind": "sim"},
         "frame": {"kind": "sim", "initial_height_mm": initial_height_mm},
         "series": {"darks": darks, "flats": flats, "frames_per_step": frames_per_step, "steps": [0.15, 0.20, 0.25],
@@ -53,8 +53,10 @@ def control_scene(scene):
 
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=True, method="rc", progress=True) -> dict:
-    """Run the demo (see the module docstring); returns the headline numbers and paths."""
+             coarse=True, method="rc", progress=True, dialect="A") -> dict:
+    """Run the demo (see the module docstring); returns the headline numbers and paths.
+
+    ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and the driver speak."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
     from sim.bench import VirtualBench
@@ -76,7 +78,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
         t = time.perf_counter()
         bench = VirtualBench(sc, progress=progress)
         p = _protocol(sc, path, initial_height_mm=bench.initial_height_mm, frames_per_step=frames_per_step,
-                      darks=darks, flats=flats, warm=label == "control")
+                      darks=darks, flats=flats, warm=label == "control", dialect=dialect)
         dev = sim_devices(p, bench=bench, progress=progress)
         res = run(p, devices=dev, progress=progress)
         timings[f"acquire_{label}_s"] = time.perf_counter() - t
@@ -96,7 +98,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     r = result.results
-    return {"scene": scene.name, "files": files, "results": r, "report": result.files.get("report"),
+    return {"scene": scene.name, "dialect": dialect, "files": files, "results": r, "report": result.files.get("report"),
             "results_json": result.files["results_json"], "timings": timings}
 
 
@@ -106,6 +108,7 @@ def headline(summary) -> str:
     ctrl = r.get("control") or {}
     main = r["main_pair"]
     lines = [f"scene {summary['scene']}: {summary['files']['frames']} frames acquired through the emulated L8121 "
+             f"(dialect {summary.get('dialect', 'A')}) "
              f"(write + bookkeeping {summary['files']['per_frame_overhead_ms']:.1f} ms per frame)",
              "",
              f"{'':<30} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper"]
@@ -143,13 +146,15 @@ def add_demo(subparsers):
     p.add_argument("--fine", action="store_true", help="the scene's own finite-element mesh (slower), not the demo's")
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
+    p.add_argument("--dialect", choices=("A", "B"), default="A",
+                   help="the L8121 command dialect the emulated controller speaks (default A)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=not args.fine, method=args.method, progress=not args.quiet)
+                       coarse=not args.fine, method=args.method, progress=not args.quiet, dialect=args.dialect)
     print()
     print(headline(summary))
     return 0
