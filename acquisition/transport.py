@@ -232,6 +232,7 @@ class SerialTransport:
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
         buf = bytearray()
+        drained = False
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
@@ -240,6 +241,12 @@ class SerialTransport:
                     return line.decode("ascii", errors="replace").strip()
                 continue
             left = deadline - time.monotonic()
+            if left <= 0 and not drained and ser.in_waiting:
+                # this thread may have been starved (a busy process) while the reply arrived: take
+                # what is already here once before calling the device silent
+                drained = True
+                buf += ser.read(ser.in_waiting)
+                continue
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
