@@ -929,17 +929,21 @@ class L8121:
         self._use(DIALECTS[result.dialect], result.baudrate)
 
     def _check_identity(self) -> None:
-        if "identity" in self.dialect.readings:
-            try:
-                self.identity = self._read("identity")
-            except DeviceError as exc:
-                raise DeviceError(f"{exc}; if this unit speaks dialect B (no TYP), set dialect = \"B\" or \"auto\" "
-                                  f"(`radiokit acquire source probe --port {self.port}` tells)") from None
+        first = "identity" if "identity" in self.dialect.readings else "operate_switch"
+        try:
+            value = self._read(first)
+        except DeviceError as exc:
+            other = "B" if self.dialect is DIALECT_A else "A"
+            raise DeviceError(f"{exc}; is this unit on {self.baudrate} baud and speaking dialect {self.dialect.name}? "
+                              f"If it speaks dialect {other}, set dialect = \"{other}\" or \"auto\" "
+                              f"(`radiokit acquire source probe --port {self.port}` tells)") from None
+        if first == "identity":
+            self.identity = value
             if self.config.model is not None and self.identity != self.config.model:
                 raise DeviceError(f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
                                   f"(configure model=None to accept any model)")
-        if "operate_switch" in self.dialect.readings:
-            switch = self.operate_switch()
+        else:
+            switch = value
             if switch != "REMOTE":
                 raise DeviceError(f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                                   f"commands; turn it to REMOTE at the controller")

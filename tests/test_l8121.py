@@ -276,8 +276,11 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
     other = {"A": "B", "B": "A"}[dialect]
     model = L8121Model(dialect=dialect, warmed_up=True)
     with PtyServer(model) as server:
-        with pytest.raises(DeviceError, match={"A": "SRL refused by the controller",
-                                               "B": r"TYP refused .*set dialect = \"B\" or \"auto\""}[dialect]):
+        with pytest.raises(DeviceError, match={"A": r"SRL refused by the controller \(ERR\); is this unit on 38400 "
+                                                    r"baud and speaking dialect B\? If it speaks dialect A, set "
+                                                    r"dialect = \"A\" or \"auto\"",
+                                               "B": r"TYP refused .*If it speaks dialect B, set dialect = \"B\" or "
+                                                    r"\"auto\""}[dialect]):
             L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
     assert set(model.commands) <= PROBE_QUERIES | {"SRL"}
 

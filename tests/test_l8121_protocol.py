@@ -76,7 +76,7 @@ def test_connect(dialect):
 
 @pytest.mark.parametrize("dialect, pairs, message", [
     ("A", [("TYP", "TYP L8121-02")], "TYP answered 'L8121-02', expected 'L8121-01'"),
-    ("A", [("TYP", "ERROR")], r"TYP refused by the controller \(ERROR\); if this unit speaks dialect B"),
+    ("A", [("TYP", "ERROR")], r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and speaking dialect A\? If it speaks dialect B"),
     ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
     ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
     ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
