@@ -644,7 +644,7 @@ DIALECTS = {"A": DIALECT_A, "B": DIALECT_B}
 
 # -- the probe ------------------------------------------------------------------------------------
 # Harmless queries only: the probe must never change the tube (no XON, HIV, CUR, PHV, PCU, WUP, RST).
-PROBE_QUERIES = frozenset({"STS", "SIN", "TYP", "SWE", "SRL", "DAG", "SER"})
+PROBE_QUERIES = frozenset({"STS", "SIN", "TYP", "SWE", "SRL", "DAG"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -680,7 +680,8 @@ class ProbeResult:
     def summary(self) -> str:
         """One line: what the unit speaks, or why the probe refuses."""
         if not self.found:
-            why = "; ".join(self.notes) or "no reply"
+            silent = [str(e.baudrate) for e in self.exchange if e.sent == "STS" and e.reply is None]
+            why = "; ".join(([f"no reply (or junk) at {', '.join(silent)} baud"] if silent else []) + list(self.notes))
             return (f"{self.port}: the replies fit neither dialect A nor B at "
                     f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})")
         ident = f", identity {self.identity!r}" if self.identity else ", no identity query in this dialect"
@@ -990,6 +991,15 @@ class L8121:
     def __repr__(self) -> str:
         dialect = self.dialect.name if self.dialect else "auto"
         return f"L8121({self.port!r}, dialect {dialect}, {'connected' if self.is_connected else 'not connected'})"
+
+    def resolved_config(self) -> SourceConfig:
+        """This configuration with the dialect and baud rate in use (after ``auto``, what the probe
+        found): what a second process talking to the same unit (a guardian) should use, so that it
+        connects without probing again."""
+        if self.dialect is None:
+            raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
+        return dataclasses.replace(self.config, dialect=self.dialect.name, baudrate=self.baudrate,
+                                   voltage_scale=self.voltage_scale)
 
     def describe(self) -> dict[str, Any]:
         """What the experiment file records about the source link."""

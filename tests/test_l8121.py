@@ -810,6 +810,13 @@ def test_auto_connects_in_either_dialect_and_works(dialect):
         with L8121(server.url, dialect="auto", probe_timeout_s=0.2, **FAST) as src:
             assert (src.dialect.name, src.baudrate) == (dialect, baud)
             assert src.probe_result.found and src.describe()["probe"].startswith(server.url)
+            resolved = src.resolved_config()
+            assert (resolved.dialect, resolved.baudrate) == (dialect, baud)
+            n = len(model.log)
+            with L8121(server.url, config=resolved, connect=False) as second:  # e.g. a guardian process
+                second.connect()
+                assert second.status() == SourceState.STANDBY
+            assert [e.command for e in model.log[n:]][:1] == [WIRE[dialect]["connect_last"]]  # no probe
             src.on(60, 250)
             assert model.xray_on
         assert not model.xray_on
