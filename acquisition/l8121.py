@@ -161,7 +161,9 @@ class SourceConfig:
     ``dialect`` is ``"A"``, ``"B"`` or ``"auto"`` (probe at connect, :func:`probe`). ``baudrate``
     ``None`` means the dialect's (A 38400, B 9600; ``auto`` tries ``baudrate`` if set, then
     ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
-    argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV).
+    argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV). ``min_interval_s``,
+    the pause between two commands, ``None`` means the dialect's (A 0.05 s, ``L8121.md``; B 0.02 s,
+    the L8121-02 driver's polling pace).
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -193,7 +195,7 @@ class SourceConfig:
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float = 1.0
     probe_timeout_s: float = 0.5
-    min_interval_s: float = 0.05
+    min_interval_s: float | None = None
     stable_timeout_s: float = 15.0
     poll_s: float = 0.2
     warmup_timeout_s: float = 1800.0
@@ -214,8 +216,10 @@ class SourceConfig:
         if self.baudrate is not None:
             self.baudrate = _baud(self.baudrate, "baudrate")
         for name in ("kv_min", "kv_max", "ua_min", "ua_max", "watts_max", "timeout_s", "probe_timeout_s",
-                     "min_interval_s", "stable_timeout_s", "poll_s", "warmup_timeout_s", "beam_drop_fraction"):
+                     "stable_timeout_s", "poll_s", "warmup_timeout_s", "beam_drop_fraction"):
             _finite(getattr(self, name), name)
+        if self.min_interval_s is not None:
+            _finite(self.min_interval_s, "min_interval_s")
         if self.voltage_scale is not None and (_finite(self.voltage_scale, "voltage_scale") == 0):
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
         self._check_ceiling()
@@ -558,6 +562,7 @@ class Dialect:
     name: str
     baudrate: int
     voltage_scale: float
+    min_interval_s: float
     readings: Mapping[str, Query]
     settings: Mapping[str, Command]
     poll: tuple[str, ...]
@@ -574,7 +579,7 @@ _STATES_B = _words({"STANDBY": SourceState.STANDBY, "XON": SourceState.XRAY_ON, 
 _FOCUS_B = {0: "SMALL", 1: "MIDDLE", 2: "LARGE"}
 
 DIALECT_A = Dialect(
-    name="A", baudrate=38400, voltage_scale=1,
+    name="A", baudrate=38400, voltage_scale=1, min_interval_s=0.05,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
@@ -605,7 +610,7 @@ DIALECT_A = Dialect(
 )
 
 DIALECT_B = Dialect(
-    name="B", baudrate=9600, voltage_scale=10,
+    name="B", baudrate=9600, voltage_scale=10, min_interval_s=0.02,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
         "state": Query("STS", _STATES_B, echo=False, rest=True, error_is_value=True,
@@ -861,6 +866,11 @@ class L8121:
         self.baudrate = int(baudrate or dialect.baudrate)
 
     @property
+    def min_interval_s(self) -> float:
+        """The pause between two commands (configuration, else the dialect's)."""
+        return self.dialect.min_interval_s if self.config.min_interval_s is None else self.config.min_interval_s
+
+    @property
     def voltage_scale(self) -> float:
         """kV are multiplied by this in a command argument (configuration, else the dialect's)."""
         return self.config.voltage_scale or self.dialect.voltage_scale
@@ -900,7 +910,7 @@ class L8121:
             self._probe()
         if isinstance(self.url, str):
             self._transport = SerialTransport(self.url, baudrate=self.baudrate, timeout_s=self.config.timeout_s,
-                                              min_interval_s=self.config.min_interval_s)
+                                              min_interval_s=self.min_interval_s)
         else:
             self._transport = self.url
         try:
@@ -919,7 +929,8 @@ class L8121:
     def _probe(self) -> None:
         c = self.config
         rates = ((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates
-        result = probe(self.url, baudrates=rates, timeout_s=c.probe_timeout_s, min_interval_s=c.min_interval_s)
+        result = probe(self.url, baudrates=rates, timeout_s=c.probe_timeout_s,
+                       min_interval_s=DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s)
         self.probe_result = result
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
@@ -999,7 +1010,7 @@ class L8121:
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
         return dataclasses.replace(self.config, dialect=self.dialect.name, baudrate=self.baudrate,
-                                   voltage_scale=self.voltage_scale)
+                                   voltage_scale=self.voltage_scale, min_interval_s=self.min_interval_s)
 
     def describe(self) -> dict[str, Any]:
         """What the experiment file records about the source link."""
