@@ -1384,7 +1384,10 @@ class L8121:
         """Switch off and raise :class:`SourceFault` naming ``reason``."""
         note = "X-rays switched off"
         try:
-            self.off()
+            if self.off() == SourceState.OVERLOAD and not reason.startswith("overload"):
+                # B reads state and current in separate exchanges: an overload between them looks
+                # like a dropped beam until the STS after XOF says what it was
+                reason = f"overload ({reason})"
         except DeviceError as exc:
             note = f"switching X-rays off could not be confirmed ({exc})"
         try:

@@ -60,11 +60,11 @@ def bench(scene_toml):
     return b
 
 
-def protocol(tmp_path, scene_toml, **series):
+def protocol(tmp_path, scene_toml, dialect="A", **series):
     return load_protocol({
         "output": str(tmp_path / "series.h5"), "name": "test",
         "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": POLL_S, "timeout_s": TIMEOUT_S,
-                   "off_attempts": 1},
+                   "off_attempts": 1, "dialect": dialect},
         "detector": {"kind": "sim", "timeout_s": 2.0},
         "frame": {"kind": "sim", "initial_height_mm": 10.0},
         "series": dict(dict(darks=DARKS, flats=FLATS, frames_per_step=PER_STEP, steps=list(STEPS), settle_s=0.0),
@@ -194,9 +194,10 @@ FAULTS = [
 ]
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound):
-    p = protocol(tmp_path, scene_toml)
+def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect):
+    p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
     state = {"phase": None, "in_phase": 0, "frames": 0, "box": {}}
@@ -265,10 +266,10 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
     # resume with fresh devices finishes the series
     dev2 = sim_devices(p, bench=bench)
     res2 = run(p, devices=dev2, resume=True, progress=False)
-    assert res2.phase == "done" and not dev2.emulator.xray_on
+    assert res2.phase == "done" and not dev2.emulator.xray_on and dev2.emulator.dialect == dialect
     final = assert_complete(p.output)
     assert len(final["key"]) == TOTAL + n_invalid
-    MATRIX.append((name, type(info.value).__name__, res.phase, n_before, res.frames_total, n_invalid, off_s,
+    MATRIX.append((f"{name} [{dialect}]", type(info.value).__name__, res.phase, n_before, res.frames_total, n_invalid, off_s,
                    res2.frames_written, text.split("\n")[0][:60]))
 
 
@@ -279,10 +280,10 @@ def print_matrix(request):
         return
     capman = request.config.pluginmanager.getplugin("capturemanager")
     lines = ["", "fault matrix (emulated L8121 on a pty + SimDetector + SimFrame; 13 frames per series):",
-             f"{'fault':<26} {'raised':<16} {'phase':<8} {'before':>6} {'saved':>5} {'invalid':>7} {'off s':>6} "
+             f"{'fault':<30} {'raised':<16} {'phase':<8} {'before':>6} {'saved':>5} {'invalid':>7} {'off s':>6} "
              f"{'resumed':>7}  message"]
     for row in MATRIX:
-        lines.append(f"{row[0]:<26} {row[1]:<16} {row[2]:<8} {row[3]:>6} {row[4]:>5} {row[5]:>7} {row[6]:>6.2f} "
+        lines.append(f"{row[0]:<30} {row[1]:<16} {row[2]:<8} {row[3]:>6} {row[4]:>5} {row[5]:>7} {row[6]:>6.2f} "
                      f"{row[7]:>7}  {row[8]}")
     with capman.global_and_fixture_disabled():  # the matrix belongs in the test output, not in captured logs
         print("\n".join(lines))

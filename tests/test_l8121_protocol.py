@@ -216,6 +216,9 @@ def test_off_not_confirmed(dialect, pairs, message):
     ("B", [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")], "SER 0",
      "beam dropped: measured current 0 µA"),
     ("B", [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
+    # an overload between B's STS and its SCU: named by the STS after the XOF
+    ("B", [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")], "SER 3",
+     r"overload \(beam dropped: measured current 0 µA"),
 ])
 def test_check_switches_off_on_a_fault(dialect, poll, code, message):
     off = OFF[dialect] if "overload" not in message else [("XOF", "XOF"), ("STS", {"A": "STS 4", "B": "OVER"}[dialect])]
