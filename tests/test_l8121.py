@@ -337,7 +337,8 @@ def test_parse_and_echo_accept():
         SourceState.NOT_READY, SourceState.PREHEATING]
     assert b["voltage_kv"].parse("SHV 60.0kV") == 60.0 and b["voltage_kv"].parse("SHV 60.5 kV") == 60.5
     assert b["current_ua"].parse("SCU 250uA") == 250.0 and b["current_ua"].parse("SCU 250µA") == 250.0
-    assert b["interlock_closed"].parse("INTER LOCK ON") is True and b["interlock_closed"].parse("INTER LOCK OFF") is False
+    assert b["interlock_closed"].parse("INTER LOCK ON") is True
+    assert b["interlock_closed"].parse("INTER LOCK OFF") is False
     assert b["warmup"].parse("AGING 1 2 YET") == Aging(1, 2, False) and b["warmup"].parse("AGING 0 0 END").done
     assert [b["focus"].parse(w) for w in ("SMALL", "MIDDLE", "LARGE")] == [0, 1, 2]
     assert SourceState.WARMING_UP.emitting and SourceState.XRAY_ON.emitting and not SourceState.STANDBY.emitting

@@ -14,7 +14,7 @@ import contextlib
 import pytest
 
 from acquisition.errors import DeviceError, SourceFault
-from acquisition.l8121 import L8121, PROBE_QUERIES, SourceState, WarmupState, probe
+from acquisition.l8121 import L8121, PROBE_QUERIES, SourceState, probe
 
 
 class ScriptedTransport:
@@ -76,7 +76,8 @@ def test_connect(dialect):
 
 @pytest.mark.parametrize("dialect, pairs, message", [
     ("A", [("TYP", "TYP L8121-02")], "TYP answered 'L8121-02', expected 'L8121-01'"),
-    ("A", [("TYP", "ERROR")], r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and speaking dialect A\? If it speaks dialect B"),
+    ("A", [("TYP", "ERROR")], r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and "
+                              r"speaking dialect A\? If it speaks dialect B"),
     ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
     ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
     ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
@@ -128,7 +129,8 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("STS", "XON"),                                   # an exposure, not AGING
         ("XOF", "XOF"), ("STS", "STANDBY"), ("SER", "SER 0")]
     with expected_protocol("B", pairs) as src:
-        with pytest.raises(SourceFault, match=r"X-rays came on as an exposure instead of a warm-up \(STS says X-rays on\); X-rays switched off"):
+        with pytest.raises(SourceFault, match=r"X-rays came on as an exposure instead of a warm-up "
+                                              r"\(STS says X-rays on\); X-rays switched off"):
             src.warm_up(progress=False)
 
 

@@ -14,7 +14,8 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
 :meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
-:meth:`~L8121Model.inject_after` (any of these right after a given command), :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
+:meth:`~L8121Model.inject_after` (any of these right after a given command),
+:meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
 control commands refused with ``ERROR``; B reports it with ``SRL``) and
 :meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
 
@@ -192,13 +193,17 @@ class L8121Model:
         return commands, {"HIV", "CUR", "CFS"}
 
     def _front_end_b(self):
-        on_only = lambda fn: lambda t, arg: fn(t, arg) if self._state == XRAY_ON else self._refuse(E_STATE)  # noqa: E731
-        off_only = lambda fn: lambda t, arg: (  # noqa: E731
-            fn(t, arg) if self._state not in (XRAY_ON, WARMING_UP) else self._refuse(E_STATE))
+        def on_only(fn):  # HIV, CUR: while X-rays are on
+            return lambda t, arg: fn(t, arg) if self._state == XRAY_ON else self._refuse(E_STATE)
+
+        def off_only(fn):  # the presets PHV, PCU: while the tube does not emit
+            return lambda t, arg: fn(t, arg) if self._state not in (XRAY_ON, WARMING_UP) else self._refuse(E_STATE)
+
         commands = {
             "HIV": on_only(self._hiv), "CUR": on_only(self._cur),
             "PHV": off_only(lambda t, arg: self._hiv(t, arg, "PHV")),
-            "PCU": off_only(lambda t, arg: self._cur(t, arg, "PCU")), "XON": self._xon_b, "XOF": self._xof, "RST": self._rst,
+            "PCU": off_only(lambda t, arg: self._cur(t, arg, "PCU")),
+            "XON": self._xon_b, "XOF": self._xof, "RST": self._rst,
             "CFS": lambda t: self._cf(0, "CFS"), "CFM": lambda t: self._cf(1, "CFM"),
             "CFL": lambda t: self._cf(2, "CFL"),
             "STS": lambda t: _B_STATES[self._state],
