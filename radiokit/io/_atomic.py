@@ -1,0 +1,192 @@
+"""Outputs that appear whole or not at all, and never replace what radiokit did not make.
+
+Every file radiokit writes goes to a temporary name beside its destination and is renamed into
+place (``os.replace``, atomic within one filesystem) only once complete; a results folder is
+assembled in a temporary sibling folder and swapped in. An interrupted run therefore leaves the
+previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
+-9 can leave the hidden temporary (``.NAME.tmp-XXXXXX``) behind; it is never mistaken for output.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import secrets
+import shutil
+from pathlib import Path
+
+from radiokit.errors import RadiokitError
+
+__all__ = ["atomic_path", "atomic_dir", "check_output", "OutputError", "OutputExistsError", "RESULTS_MARKER",
+           "DiskFullError", "is_disk_full"]
+
+#: written into every results folder radiokit assembles: only such folders may be replaced
+RESULTS_MARKER = ".radiokit-output"
+
+
+class OutputError(RadiokitError, OSError):
+    """An output cannot be written where asked (it is an input, or not radiokit's to replace)."""
+
+    def __init__(self, path, problem, err=errno.EINVAL):
+        self.path, self.problem = str(path), problem
+        OSError.__init__(self, err, problem)
+
+    def __str__(self):
+        return f"{self.path}: {self.problem}"
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output exists and ``overwrite`` was not given."""
+
+    def __init__(self, path):
+        super().__init__(path, "exists; pass --overwrite (overwrite=True) to replace it", errno.EEXIST)
+
+
+class DiskFullError(OutputError):
+    """The disk (or quota) filled while writing; the partial output was removed."""
+
+    def __init__(self, path):
+        super().__init__(path, "no space left on the device; nothing was written (the partial output "
+                               "was removed)", errno.ENOSPC)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """``exc`` (or what caused it) is a full disk or quota; h5py reports the errno only in its text."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(exc) or "errno = 28" in str(exc):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _same(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` name the same file: same path after resolving links, or same inode (hard link)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _inside(inner: Path, outer: Path) -> bool:
+    inner, outer = inner.resolve(), outer.resolve()
+    return inner == outer or outer in inner.parents
+
+
+def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
+    """Refuse an output that is an input (even with ``overwrite``), or exists without ``overwrite``.
+
+    Parameters
+    ----------
+    path : path-like
+        The file (or, with ``folder=True``, the results folder) to be written.
+    overwrite : bool
+        Allow replacing an existing output radiokit made.
+    inputs : iterable of path-like
+        Files the run reads. An output that is one of them (the same path, a symlink to it or a
+        hard link), or a folder holding one, is refused.
+    folder : bool
+        ``path`` is a results folder: it may be replaced only if it is empty or radiokit made it
+        (it holds :data:`RESULTS_MARKER`).
+
+    Raises
+    ------
+    OutputError, OutputExistsError
+    """
+    path = Path(path)
+    for src in inputs:
+        src = Path(src)
+        if (folder and _inside(src, path)) or (not folder and src.exists() and path.exists() and _same(src, path)) \
+                or src.resolve() == path.resolve():
+            raise OutputError(path, f"is (or holds) the input {src}: an input is never overwritten; "
+                                    "choose another output")
+    if not (path.exists() or path.is_symlink()):
+        return path
+    if folder:
+        if not path.is_dir() or path.is_symlink():
+            raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
+        if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
+            raise OutputError(path, "exists, is not empty and was not made by radiokit; it is never "
+                                    "replaced: choose a new folder")
+        if not any(path.iterdir()):
+            return path  # an empty folder holds nothing to lose
+    elif path.is_dir():
+        raise OutputError(path, "is a folder; expected a file name")
+    if not overwrite:
+        raise OutputExistsError(path)
+    return path
+
+
+def _temporary_name(path: Path) -> Path:
+    # Keep the suffix last: writers choose the format from it (StackWriter, matplotlib).
+    return path.with_name(f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
+
+
+def _remove(path: Path) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink()
+
+
+@contextlib.contextmanager
+def atomic_path(path, *, overwrite=False, inputs=()):
+    """Yield a temporary name beside ``path``; on success rename it to ``path``, else remove it.
+
+    >>> import os, tempfile
+    >>> from radiokit.io import atomic_path
+    >>> out = os.path.join(tempfile.mkdtemp(), "a.txt")
+    >>> with atomic_path(out) as tmp:
+    ...     _ = tmp.write_text("complete")
+    >>> open(out).read()
+    'complete'
+
+    The checks of :func:`check_output` run first. A full disk (``ENOSPC``/``EDQUOT``) becomes a
+    :class:`DiskFullError` that says so and that nothing was written.
+    """
+    path = check_output(path, overwrite=overwrite, inputs=inputs)
+    tmp = _temporary_name(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield tmp
+        if not (tmp.exists() or tmp.is_symlink()):
+            raise OutputError(path, "the writer produced no file")
+        os.replace(tmp, path)
+    except BaseException as exc:
+        _remove(tmp)
+        if is_disk_full(exc):
+            raise DiskFullError(path) from exc
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path, *, overwrite=False, inputs=()):
+    """Yield a temporary sibling folder; on success swap it in for ``path``, else remove it.
+
+    The previous folder (only replaced with ``overwrite``, and only if radiokit made it) is
+    renamed aside, the new one renamed into place, then the old one removed: at every instant
+    ``path`` is the previous complete output, the new complete output, or absent.
+    """
+    path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
+    try:
+        tmp.mkdir()
+        yield tmp
+        (tmp / RESULTS_MARKER).write_text("made by radiokit; may be replaced by a run with --overwrite\n")
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{secrets.token_hex(4)}")
+            os.rename(path, old)
+        os.rename(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException as exc:
+        _remove(tmp)
+        if is_disk_full(exc):
+            raise DiskFullError(path) from exc
+        raise
