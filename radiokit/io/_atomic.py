@@ -101,8 +101,8 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
         src = Path(src)
         if (folder and _inside(src, path)) or (not folder and src.exists() and path.exists() and _same(src, path)) \
                 or src.resolve() == path.resolve():
-            raise OutputError(path, f"is (or holds) the input {src}: an input is never overwritten; "
-                                    "choose another output")
+            raise OutputError(path, f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
+                                    f"input {src}: an input is never overwritten; choose another output")
     if not (path.exists() or path.is_symlink()):
         return path
     if folder:
@@ -118,6 +118,22 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
     if not overwrite:
         raise OutputExistsError(path)
     return path
+
+
+def _files(folder: Path) -> set[str]:
+    """Every file under ``folder`` (relative, "/"-separated), the marker left out."""
+    out = set()
+    for root, _, names in os.walk(folder):
+        for name in names:
+            out.add(Path(root, name).relative_to(folder).as_posix())
+    out.discard(RESULTS_MARKER)
+    return out
+
+
+def _manifest(folder: Path) -> set[str]:
+    """The files the marker says radiokit wrote (its lines after the first)."""
+    lines = (folder / RESULTS_MARKER).read_text(errors="replace").splitlines()
+    return {line for line in lines[1:] if line}
 
 
 def _temporary_name(path: Path) -> Path:
@@ -172,12 +188,17 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
     ``path`` is the previous complete output, the new complete output, or absent.
     """
     path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True)
+    strangers = sorted(_files(path) - _manifest(path)) if (path / RESULTS_MARKER).exists() else []
+    if strangers:
+        raise OutputError(path, f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
+                                "it is never replaced: move them or choose a new folder")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
     try:
         tmp.mkdir()
         yield tmp
-        (tmp / RESULTS_MARKER).write_text("made by radiokit; may be replaced by a run with --overwrite\n")
+        (tmp / RESULTS_MARKER).write_text("made by radiokit; may be replaced by a run with --overwrite. Files:\n"
+                                          + "".join(f"{name}\n" for name in sorted(_files(tmp))))
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{secrets.token_hex(4)}")
