@@ -172,7 +172,9 @@ def cmd_calibrate(args) -> int:
         cal = Calibration.from_frames(_stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1), **th)
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs) as tmp:
+    # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs,
+                     size_hint=12 * cal.dark.size + 2**20) as tmp:
         cal.save(tmp)
     p = cal.provenance
     print(f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats "
@@ -219,9 +221,7 @@ def _one_image(path, index, dataset):
 
 
 def cmd_register(args) -> int:
-    import h5py
-
-    from radiokit.io import atomic_path, check_output
+    from radiokit.io import atomic_h5, atomic_path, check_output
     from radiokit.register import register
 
     inputs = [args.fixed, args.moving]
@@ -243,7 +243,7 @@ def cmd_register(args) -> int:
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
     registered = reg.warp(moving)
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs) as tmp, h5py.File(tmp, "w") as h5:
+    with atomic_h5(args.output, overwrite=args.overwrite, inputs=inputs) as h5:
         g = h5.create_group("entry/registration")
         g.attrs["method"] = reg.method
         g.attrs["fixed"], g.attrs["moving"] = str(args.fixed), str(args.moving)

@@ -384,11 +384,11 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
 
 
 def _write(out_dir, results, arrays, cfg, t0):
-    import h5py
-
     files = {}
+    from radiokit.io import atomic_h5
+
     h5path = out_dir / "results.h5"
-    with h5py.File(h5path, "w") as h5:
+    with atomic_h5(h5path) as h5:  # built in memory, one plain write: a full disk is a clean error
         h5.attrs["source"] = results["source"]
         h5.attrs["results_json"] = json.dumps(results, default=_jsonable)
         g = h5.create_group("steps")

@@ -6,7 +6,7 @@
 """
 from radiokit.errors import FormatError
 from radiokit.io._atomic import (RESULTS_MARKER, DiskFullError, OutputError, OutputExistsError, atomic_dir,
-                                 atomic_path, check_output)
+                                 atomic_h5, atomic_path, check_free_space, check_output)
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
 from radiokit.io._experiment import ExperimentWriter, ImageKey
 from radiokit.io._frames import BitDepthWarning, Frames
@@ -16,6 +16,6 @@ from radiokit.io._write import StackWriter, write_tiff
 
 __all__ = ["read", "open_frames", "iter_frames", "sniff", "Frames", "FrameSource", "FORMATS",
            "PRESETS", "DEFAULT_PRESET", "RawPreset", "ExperimentWriter", "ImageKey", "StackWriter",
-           "write_tiff", "FormatError", "BitDepthWarning", "atomic_path", "atomic_dir", "check_output",
+           "write_tiff", "FormatError", "BitDepthWarning", "atomic_path", "atomic_dir", "atomic_h5", "check_output", "check_free_space",
            "OutputError", "OutputExistsError", "DiskFullError", "RESULTS_MARKER", "memory_budget", "check_budget",
            "parse_size", "BUDGET_ENV"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import secrets
 import shutil
 from pathlib import Path
@@ -18,7 +19,8 @@ from pathlib import Path
 from radiokit.errors import RadiokitError
 
 __all__ = ["atomic_path", "atomic_dir", "check_output", "OutputError", "OutputExistsError", "RESULTS_MARKER",
-           "DiskFullError", "is_disk_full"]
+           "DiskFullError", "is_disk_full",
+           "atomic_h5", "check_free_space"]
 
 #: written into every results folder radiokit assembles: only such folders may be replaced
 RESULTS_MARKER = ".radiokit-output"
@@ -43,11 +45,29 @@ class OutputExistsError(OutputError, FileExistsError):
 
 
 class DiskFullError(OutputError):
-    """The disk (or quota) filled while writing; the partial output was removed."""
+    """The disk (or quota) is, or filled while writing, too full; the partial output was removed."""
 
-    def __init__(self, path):
-        super().__init__(path, "no space left on the device; nothing was written (the partial output "
-                               "was removed)", errno.ENOSPC)
+    def __init__(self, path, detail=""):
+        super().__init__(path, f"no space left on the device{detail}; nothing was written (the partial "
+                               "output was removed)", errno.ENOSPC)
+
+
+def _human(n) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def check_free_space(path, nbytes) -> None:
+    """Refuse, before writing, an output of about ``nbytes`` that cannot fit beside ``path``.
+
+    Failing before the first byte is the clean way: libhdf5 reports a full disk in the middle of
+    a write through destructors, and has crashed the interpreter afterwards.
+    """
+    folder = Path(path).parent
+    while not folder.exists():
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    if nbytes > free:
+        raise DiskFullError(path, f" (needs about {_human(nbytes)}, {_human(free)} free)")
 
 
 def is_disk_full(exc: BaseException) -> bool:
@@ -56,6 +76,11 @@ def is_disk_full(exc: BaseException) -> bool:
         if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
             return True
         if "No space left on device" in str(exc) or "errno = 28" in str(exc):
+            return True
+        # numpy's tofile (tifffile's writer) reports a short write without an errno; on a
+        # regular file that is a full disk or quota
+        if isinstance(exc, OSError) and exc.errno is None and re.fullmatch(r"\d+ requested and \d+ written",
+                                                                           str(exc)):
             return True
         exc = exc.__cause__ or exc.__context__
     return False
@@ -150,7 +175,7 @@ def _remove(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path, *, overwrite=False, inputs=()):
+def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
     """Yield a temporary name beside ``path``; on success rename it to ``path``, else remove it.
 
     >>> import os, tempfile
@@ -161,10 +186,12 @@ def atomic_path(path, *, overwrite=False, inputs=()):
     >>> open(out).read()
     'complete'
 
-    The checks of :func:`check_output` run first. A full disk (``ENOSPC``/``EDQUOT``) becomes a
+    The checks of :func:`check_output` run first, and with ``size_hint`` (bytes) the free space. A full disk (``ENOSPC``/``EDQUOT``) becomes a
     :class:`DiskFullError` that says so and that nothing was written.
     """
     path = check_output(path, overwrite=overwrite, inputs=inputs)
+    if size_hint:
+        check_free_space(path, size_hint)
     tmp = _temporary_name(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -177,6 +204,27 @@ def atomic_path(path, *, overwrite=False, inputs=()):
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
         raise
+
+
+@contextlib.contextmanager
+def atomic_h5(path, *, overwrite=False, inputs=()):
+    """Yield a new HDF5 file built in memory; on success write it out with :func:`atomic_path`.
+
+    For outputs small enough to hold in memory (results, fields, calibrations): the bytes reach
+    the disk through one ordinary write, so a full disk is a clean :class:`DiskFullError`.
+    """
+    import h5py
+
+    check_output(path, overwrite=overwrite, inputs=inputs)
+    with h5py.File(f"{path}-in-memory", "w", driver="core", backing_store=False) as h5:
+        yield h5
+        h5.flush()
+        image = h5.id.get_file_image()
+    with atomic_path(path, overwrite=overwrite, inputs=inputs, size_hint=len(image)) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(image)
+            fh.flush()
+            os.fsync(fh.fileno())
 
 
 @contextlib.contextmanager

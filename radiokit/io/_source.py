@@ -169,6 +169,12 @@ class FrameSource:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
         all_pages = list(pages)
         self._pages = [p for p in all_pages if p.shape == shape]
+        for i, page in enumerate(all_pages):
+            # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
+            # another shape is a corrupt frame, never a silently shorter stack
+            if page.shape != shape and not (getattr(page, "subfiletype", 0) & 0b101):
+                raise FormatError(self.path, f"TIFF page {i} is {page.shape}, page 0 is {shape}: "
+                                             "a corrupt page, or not one stack of frames")
         self._check_ifd_chain(all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)

@@ -57,7 +57,9 @@ class StackWriter:
         suffix = self.path.suffix.lower()
         if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
             raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
-        self._atomic = atomic_path(self.path, overwrite=overwrite, inputs=inputs)
+        frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
+        self._atomic = atomic_path(self.path, overwrite=overwrite, inputs=inputs,
+                                   size_hint=(int(n_frames) * frame_bytes + 2**20) if n_frames else None)
         tmp = self._atomic.__enter__()
         try:
             self._open(tmp, suffix, n_frames, bigtiff)
