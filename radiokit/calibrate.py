@@ -453,6 +453,12 @@ class Calibration:
                 missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
                 if missing:
                     raise FormatError(path, f"/{group} lacks {', '.join(missing)}")
+                from radiokit.io._budget import check_budget
+                from radiokit.io._experiment import checked_dataset
+
+                for name in ("dark", "flat", "pixel_mask"):  # local plain numbers within the memory budget
+                    ds = checked_dataset(path, h5, f"{group}/{name}", "iuf", (2,))
+                    check_budget(path, ds.size * ds.dtype.itemsize, f"/{group}/{name} {ds.shape}")
                 return cls(g["dark"][()], g["flat"][()], g["pixel_mask"][()],
                            g["defect_rows"][()] if "defect_rows" in g else (),
                            g["defect_columns"][()] if "defect_columns" in g else (),

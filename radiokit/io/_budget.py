@@ -36,15 +36,26 @@ def parse_size(text: str) -> int:
 
 
 def _available_bytes() -> int:
+    """Available physical memory, or the process's address-space limit if that is lower."""
     try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):  # not POSIX: no better figure than a modest one
-        return 4 * 2**30
+        avail = 4 * 2**30
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            avail = min(avail, soft)
+    except (ImportError, ValueError, OSError):
+        pass
+    return avail
 
 
 def memory_budget(budget=None) -> int:
     """The budget in bytes: ``budget`` if given (bytes or a size string), else the environment
-    variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available physical memory."""
+    variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available physical memory
+    (or of the address-space limit, ``ulimit -v``, where that is lower)."""
     if budget is None:
         budget = os.environ.get(BUDGET_ENV) or None
     if budget is None:
