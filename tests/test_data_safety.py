@@ -364,3 +364,18 @@ def _cal(experiment, tmp_path):
     cal = tmp_path / "cal.h5"
     assert run("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
     return cal
+
+
+def test_sim_run_refuses_before_the_mechanics(tmp_path):
+    from sim.scene import load_scene
+
+    scene = load_scene("seed-breast").save(tmp_path / "scene.toml")
+    old = tmp_path / "old.h5"
+    old.write_bytes(b"a previous simulation")
+    before = sha(scene)
+    one_line_error(run("sim", "run", "--preset", "seed-breast", "-o", old, "-q"), "old.h5", "--overwrite")
+    assert old.read_bytes() == b"a previous simulation"
+    # the scene file is an input: neither the experiment nor --save-scene may replace it
+    one_line_error(run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
+                   "scene.toml", "input")
+    assert sha(scene) == before and not (tmp_path / "new.h5").exists()
