@@ -20,7 +20,7 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	$(BIN)/radiokit demo -o $(DEMO_OUT)
+	$(BIN)/radiokit demo -o $(DEMO_OUT) --overwrite
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest
