@@ -9,6 +9,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -78,6 +79,8 @@ def _summary(meta: dict) -> dict:
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
+    if args.sample < 1:
+        raise ValueError(f"--sample {args.sample}: expected at least one frame")
     reports = []
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
@@ -425,6 +428,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminated(signum, frame):
+    """SIGTERM/SIGHUP (a closed terminal, ``kill``): unwind like Ctrl-C, so that every output being
+    written is removed rather than left half-written under its temporary name.
+
+    Python drops an exception raised while a finalizer runs; should this one land there, the
+    interrupt is repeated a second later (a daemon timer: it dies with the process)."""
+    import _thread
+    import threading
+
+    timer = threading.Timer(1.0, _thread.interrupt_main)
+    timer.daemon = True
+    timer.start()
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _interrupted(exc) -> bool:
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _user_error(exc) -> bool:
+    """Errors a user causes (a file, a parameter, the disk, the memory), or an interrupt some
+    library re-raised as its own error; anything else is a bug and keeps its traceback."""
+    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
+
+
 def _debug(args) -> bool:
     return bool(getattr(args, "debug", False) or os.environ.get("RADIOKIT_DEBUG", "") not in ("", "0"))
 
@@ -440,14 +472,20 @@ def main(argv=None) -> int:
         return 2
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, _terminated)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print("radiokit: interrupted", file=sys.stderr)
+        print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
         return 130
-    except (RadiokitError, ValueError, OSError, MemoryError) as exc:
-        if _debug(args):
+    except Exception as exc:
+        if not _user_error(exc) or _debug(args):
             raise
+        if _interrupted(exc):  # a C extension turned the interrupt into its own error
+            print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+            return 130
         message = str(exc) or type(exc).__name__
         if isinstance(exc, MemoryError):
             message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"

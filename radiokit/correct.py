@@ -344,8 +344,23 @@ class _BackgroundWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        self._queue.put(None)
-        self._thread.join()
+        if exc_type is not None:
+            self._error = self._error or exc  # the writer skips what is still queued
+        # The writer thread must have stopped before its file is closed and removed: a second
+        # Ctrl-C or SIGTERM arriving here waits for it too, then is raised.
+        interrupt, sent = None, False
+        while True:
+            try:
+                if not sent:
+                    self._queue.put(None)
+                    sent = True
+                self._thread.join()
+                break
+            except KeyboardInterrupt as again:
+                interrupt = again
+                self._error = self._error or again
+        if interrupt is not None:
+            raise interrupt
         if self._error is not None and exc_type is None:
             raise self._error
 

@@ -230,12 +230,12 @@ def test_demo_replaces_only_its_own_outputs(tmp_path):
 
 
 # -- interrupted writes ------------------------------------------------------------------------
-def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0):
-    """SIGKILL ``proc`` as soon as a path matching ``glob`` appears in ``pattern_dir``."""
+def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIGKILL):
+    """Send ``sig`` to ``proc`` as soon as a path matching ``glob`` appears in ``pattern_dir``."""
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         if list(pattern_dir.glob(glob)):
-            proc.send_signal(signal.SIGKILL)
+            proc.send_signal(sig)
             proc.wait()
             return True
         if proc.poll() is not None:
@@ -265,6 +265,25 @@ def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
     proc = _popen("correct", exp, "-o", out, "-q")
     assert _kill_when(proc, tmp_path, ".out.tmp-*")
     assert not out.exists() and sha(exp) == inputs
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
+    """A catchable signal (a closed terminal, ``kill``, Ctrl-C) unwinds: the previous output
+    stays, and no temporary file is left either. (Python drops an exception raised while a
+    finalizer runs; a signal landing there is lost and the run completes: then the output is the
+    new complete one. Both are whole outputs, never a mix.)"""
+    exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
+    out = tmp_path / "out.h5"
+    assert run("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    previous, inputs = sha(out), sha(exp)
+    proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
+    assert _kill_when(proc, tmp_path, ".out.tmp-*", sig=sig)
+    assert proc.returncode in (130, 0)
+    if proc.returncode == 130:
+        assert sha(out) == previous
+    assert read(out, dataset="entry/data/data").n == 60 and sha(exp) == inputs
+    no_temporaries(tmp_path)
 
 
 def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):

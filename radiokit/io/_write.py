@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 import tifffile
 
-from radiokit.io._atomic import atomic_path
+from radiokit.io._atomic import OutputError, atomic_path
 
 __all__ = ["write_tiff", "StackWriter"]
 
@@ -65,6 +66,8 @@ class StackWriter:
             self._open(tmp, suffix, n_frames, bigtiff)
         except BaseException as exc:
             self._abort(exc)
+            if isinstance(exc, OSError) and exc.errno:  # h5py's text names the temporary file
+                raise OutputError(self.path, f"cannot be written: {os.strerror(exc.errno)}", exc.errno) from exc
             raise
 
     def _open(self, tmp, suffix, n_frames, bigtiff):
