@@ -43,7 +43,7 @@ def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats
 
 
 #: the files and folders a demo makes in its folder, and nothing else
-_DEMO_OUTPUTS = ("experiment.h5", "control.h5", "results")
+_DEMO_OUTPUTS = ("experiment.h5", "experiment.log", "control.h5", "control.log", "results")
 
 
 def _demo_folder(out_dir, overwrite) -> Path:
