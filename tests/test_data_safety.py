@@ -398,3 +398,26 @@ def test_sim_run_refuses_before_the_mechanics(tmp_path):
     one_line_error(run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
                    "scene.toml", "input")
     assert sha(scene) == before and not (tmp_path / "new.h5").exists()
+
+
+def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path):
+    import socket
+
+    from radiokit.io import atomic_path
+
+    out = tmp_path / "cal.h5"
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()  # a process that has ended
+    stale = tmp_path / f".cal.tmp-{host}-{dead}-0123abcd.h5"
+    stale.write_bytes(b"half a calibration")
+    alive = tmp_path / f".cal.tmp-{host}-{os.getpid()}-0123abcd.h5"  # a live writer's: kept
+    alive.write_bytes(b"being written")
+    mine = tmp_path / ".cal.tmp-notes.h5"  # not a name radiokit makes: kept
+    mine.write_bytes(b"the user's")
+    assert run("calibrate", "--experiment", experiment, "-o", out).returncode == 0
+    assert not stale.exists() and alive.exists() and mine.exists() and h5py.is_hdf5(out)
+    with atomic_path(tmp_path / "x.txt") as tmp:
+        assert tmp.name.startswith(f".x.tmp-{host}-{os.getpid()}-") and tmp.suffix == ".txt"
+        tmp.write_text("whole")
+    assert (tmp_path / "x.txt").read_text() == "whole"

@@ -4,7 +4,9 @@ Every file radiokit writes goes to a temporary name beside its destination and i
 place (``os.replace``, atomic within one filesystem) only once complete; a results folder is
 assembled in a temporary sibling folder and swapped in. An interrupted run therefore leaves the
 previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
--9 can leave the hidden temporary (``.NAME.tmp-XXXXXX``) behind; it is never mistaken for output.
+-9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
+for output, and the next run writing the same output on that host removes it once its process is
+gone.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
@@ -162,9 +165,45 @@ def _manifest(folder: Path) -> set[str]:
     return {line for line in lines[1:] if line}
 
 
-def _temporary_name(path: Path) -> Path:
-    # Keep the suffix last: writers choose the format from it (StackWriter, matplotlib).
-    return path.with_name(f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
+def _owner_tag() -> str:
+    return f"{socket.gethostname().split('.')[0]}-{os.getpid()}"
+
+
+def _temporary_name(path: Path, folder=False) -> Path:
+    """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path``; a file keeps its suffix last, since writers
+    choose the format from it (StackWriter, matplotlib)."""
+    tag = f"tmp-{_owner_tag()}-{secrets.token_hex(4)}"
+    return path.with_name(f".{path.name}.{tag}" if folder else f".{path.stem}.{tag}{path.suffix}")
+
+
+def _remove_stale(path: Path, folder=False) -> None:
+    """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
+    gone): only names radiokit makes, never anything else."""
+    host = socket.gethostname().split(".")[0]
+    pattern = f".{path.name}.tmp-{host}-*" if folder else f".{path.stem}.tmp-{host}-*{path.suffix}"
+    for old in path.parent.glob(pattern):
+        m = re.search(rf"\.tmp-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
+        if not m or int(m.group(1)) == os.getpid():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+        except ProcessLookupError:
+            _remove(old)
+        except OSError:  # alive, another user's: not ours to judge
+            pass
+
+
+def _fsync(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some filesystems (and directories on some systems) refuse: best effort
+        pass
+    finally:
+        os.close(fd)
 
 
 def _remove(path: Path) -> None:
@@ -193,13 +232,16 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
     path = check_output(path, overwrite=overwrite, inputs=inputs)
     if size_hint:
         check_free_space(path, size_hint)
-    tmp = _temporary_name(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale(path)
+    tmp = _temporary_name(path)
     try:
         yield tmp
         if not (tmp.exists() or tmp.is_symlink()):
             raise OutputError(path, "the writer produced no file")
+        _fsync(tmp)  # the bytes are on disk before the name is: a power cut leaves old or new
         os.replace(tmp, path)
+        _fsync(path.parent)
     except BaseException as exc:
         _remove(tmp)
         if is_disk_full(exc):
@@ -224,8 +266,6 @@ def atomic_h5(path, *, overwrite=False, inputs=()):
     with atomic_path(path, overwrite=overwrite, inputs=inputs, size_hint=len(image)) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(image)
-            fh.flush()
-            os.fsync(fh.fileno())
 
 
 @contextlib.contextmanager
@@ -242,7 +282,8 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
         raise OutputError(path, f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
                                 "it is never replaced: move them or choose a new folder")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
+    _remove_stale(path, folder=True)
+    tmp = _temporary_name(path, folder=True)
     try:
         tmp.mkdir()
         yield tmp
