@@ -112,6 +112,16 @@ def test_tiff_decompression_bomb_is_refused(tiff_bomb):
     one_line_error(res, "bomb.tif", "60000x60000", "decompression bomb")
 
 
+def test_a_tiff_tile_larger_than_the_budget_is_refused(tmp_path):
+    path = tmp_path / "tiles.tif"
+    tifffile.imwrite(path, np.zeros((32, 32), np.uint16), tile=(16, 16), compression="zlib")
+    with tifffile.TiffFile(path, mode="r+b") as tif:  # a 32 x 32 image in 32768 x 32768 tiles
+        tif.pages[0].tags["TileWidth"].overwrite(32768)
+        tif.pages[0].tags["TileLength"].overwrite(32768)
+    res = run("info", path, limit=AS_LIMIT, env={"RADIOKIT_MEMORY_BUDGET": "256MiB"})
+    one_line_error(res, "tiles.tif", "32768x32768 tile", "memory budget")
+
+
 def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
     path = tmp_path / "big.tif"
     tifffile.imwrite(path, np.zeros((4, 1024, 1024), np.uint16), photometric="minisblack")  # 2 MiB a frame, 8 MiB in all

@@ -245,6 +245,9 @@ class FrameSource:
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
         if page.is_tiled:
+            # a tile is decoded whole, whatever the image: a corrupt tile size is a bomb of its own
+            check_budget(self.path, int(page.tilelength) * int(page.tilewidth) * max(page.bitspersample // 8, 1),
+                         f"one {page.tilelength}x{page.tilewidth} tile of TIFF page {i}", self._budget)
             expected = -(-rows // page.tilelength) * -(-cols // page.tilewidth)
         else:
             per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
