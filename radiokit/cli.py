@@ -160,7 +160,6 @@ def _stack(paths, hints, key=None) -> np.ndarray:
 
 def cmd_calibrate(args) -> int:
     from radiokit.calibrate import Calibration
-
     from radiokit.io import atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -294,7 +293,8 @@ def _register_png(path, fixed, moving, registered, reg):
 
 
 def cmd_process(args) -> int:
-    from radiokit.pipeline import Config, process, process_many
+    from radiokit.io import check_output
+    from radiokit.pipeline import Config, output_folders, process, process_many
 
     opts = {"preset": args.preset} if args.preset else {}
     cfg = Config(ks=tuple(args.k), domain=args.domain, method=args.method, register_options=opts,
@@ -302,9 +302,6 @@ def cmd_process(args) -> int:
                  roi_units="mm" if args.mm else "px", report=not args.no_report, progress=not args.quiet,
                  control=str(args.control) if args.control else None,
                  cross_check=None if args.cross_check in ("none", "") else args.cross_check)
-    from radiokit.io import check_output
-    from radiokit.pipeline import output_folders
-
     inputs = [*args.files, *([args.control] if args.control else [])]
     single = len(args.files) == 1 and not args.scheduler
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
