@@ -87,8 +87,8 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     from sim.scene import load_scene
 
     t0 = time.perf_counter()
+    scene = load_scene(preset)  # a bad preset is refused before the folder is claimed
     out = _demo_folder(out_dir, overwrite)
-    scene = load_scene(preset)
     scene.detector.binning = int(binning) if binning else 2
     if coarse:  # the demo's mesh: about 2.5x faster to solve (see benchmarks/bench_sim.py for what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)

@@ -38,6 +38,12 @@ def _run_sim(args) -> int:
     scene = load_scene(args.preset if args.preset is not None else str(args.scene))
     if args.binning:
         scene.detector.binning = args.binning
+    if args.ratios and not all(0 < r < 1 for r in args.ratios):  # also refuses nan
+        raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: compression ratios lie between 0 and 1")
+    for name in ("darks", "flats", "frames"):
+        if getattr(args, name) < (1 if name == "frames" else 0):
+            raise ValueError(f"--{name} {getattr(args, name)}: expected a count of at least "
+                             f"{1 if name == 'frames' else 0}")
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []

@@ -334,3 +334,19 @@ def test_register_bad_arguments(args, words, tmp_path):
 def test_debug_shows_the_traceback(tmp_path):
     res = run("info", tmp_path / "missing.h5", env={"RADIOKIT_DEBUG": "1"})
     assert res.returncode != 0 and "Traceback" in res.stderr
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--ratios", "nan"], "--ratios nan"),
+    (["--ratios", "0.15", "2"], "between 0 and 1"),
+    (["--darks", "-1"], "--darks -1"),
+    (["--frames", "0"], "--frames 0"),
+])
+def test_sim_run_refuses_bad_counts_and_ratios_before_simulating(args, words, tmp_path):
+    one_line_error(run("sim", "run", "--preset", "seed-breast", *args, "-o", tmp_path / "sim.h5", "-q"), words)
+    assert not any(tmp_path.iterdir())
+
+
+def test_demo_refuses_an_unknown_scene_before_claiming_its_folder(tmp_path):
+    one_line_error(run("demo", "-o", tmp_path / "demo", "--preset", "nosuch", "-q"), "nosuch")
+    assert not (tmp_path / "demo").exists()
