@@ -381,6 +381,10 @@ class Calibration:
             for k, what in ((ImageKey.DARK, "darks (image_key 2)"), (ImageKey.FLAT, "flats (image_key 1)")):
                 if sel[k].size == 0:
                     raise FormatError(path, f"holds no {what}: cannot calibrate")
+            from radiokit.io import check_budget
+
+            n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
+            check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
         cal = cls.from_frames(darks, flats, dark_times=times[sel[ImageKey.DARK]],

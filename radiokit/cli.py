@@ -144,11 +144,13 @@ def _parse_thresholds(items) -> dict:
 
 
 def _stack(paths, hints, key=None) -> np.ndarray:
-    from radiokit.io import open_frames
+    from radiokit.io import check_budget, open_frames
 
-    frames = []
+    frames, total = [], 0
     for p in paths:
         with open_frames(p, **hints) as src:
+            total += len(src) * src.frame_bytes
+            check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
             keys = src.meta.get("image_key")
             for i in range(len(src)):
                 if key is None or keys is None or keys[i] == key:
