@@ -421,3 +421,18 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
         assert tmp.name.startswith(f".x.tmp-{host}-{os.getpid()}-") and tmp.suffix == ".txt"
         tmp.write_text("whole")
     assert (tmp_path / "x.txt").read_text() == "whole"
+
+
+def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, tmp_path):
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    stale = [tmp_path / f".res.{kind}-{host}-{dead}-0123abcd" for kind in ("tmp", "old")]
+    for folder in stale:
+        folder.mkdir()
+        (folder / "results.h5").write_bytes(b"half")
+    assert run("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
+    assert not any(folder.exists() for folder in stale)
+    no_temporaries(tmp_path)

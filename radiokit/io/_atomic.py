@@ -169,10 +169,10 @@ def _owner_tag() -> str:
     return f"{socket.gethostname().split('.')[0]}-{os.getpid()}"
 
 
-def _temporary_name(path: Path, folder=False) -> Path:
-    """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path``; a file keeps its suffix last, since writers
-    choose the format from it (StackWriter, matplotlib)."""
-    tag = f"tmp-{_owner_tag()}-{secrets.token_hex(4)}"
+def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
+    """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path`` (``old`` for a folder being replaced); a file
+    keeps its suffix last, since writers choose the format from it (StackWriter, matplotlib)."""
+    tag = f"{kind}-{_owner_tag()}-{secrets.token_hex(4)}"
     return path.with_name(f".{path.name}.{tag}" if folder else f".{path.stem}.{tag}{path.suffix}")
 
 
@@ -180,17 +180,22 @@ def _remove_stale(path: Path, folder=False) -> None:
     """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
-    pattern = f".{path.name}.tmp-{host}-*" if folder else f".{path.stem}.tmp-{host}-*{path.suffix}"
-    for old in path.parent.glob(pattern):
-        m = re.search(rf"\.tmp-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
-        if not m or int(m.group(1)) == os.getpid():
-            continue
-        try:
-            os.kill(int(m.group(1)), 0)
-        except ProcessLookupError:
-            _remove(old)
-        except OSError:  # alive, another user's: not ours to judge
-            pass
+    for kind in ("tmp", "old") if folder else ("tmp",):
+        pattern = f".{path.name}.{kind}-{host}-*" if folder else f".{path.stem}.{kind}-{host}-*{path.suffix}"
+        for old in path.parent.glob(pattern):
+            m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
+            if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+                _remove(old)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # alive, another user's
+        return True
+    return True
 
 
 def _fsync(path: Path) -> None:
@@ -291,7 +296,7 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
                                           + "".join(f"{name}\n" for name in sorted(_files(tmp))))
         old = None
         if path.exists():
-            old = path.with_name(f".{path.name}.old-{secrets.token_hex(4)}")
+            old = _temporary_name(path, folder=True, kind="old")
             os.rename(path, old)
         os.rename(tmp, path)
         if old is not None:
