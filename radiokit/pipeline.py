@@ -37,7 +37,7 @@ Example (a small synthetic experiment written here; real files come from ``radio
     ...     for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
     ...         _ = w.append(frame(tb, ti), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     >>> res = process(os.path.join(d, "exp.h5"), Config(crop_mm=None, report=False,
-    ...               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=d)
+    ...               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=os.path.join(d, "results"))
     >>> res.results["improvement_factor"]["1"] > 1, res.results["improvement_factor"]["2"] > res.results["improvement_factor"]["1"]
     (True, True)
 """
