@@ -228,12 +228,6 @@ def cmd_register(args) -> int:
     from radiokit.io import atomic_h5, atomic_path, check_output
     from radiokit.register import register
 
-    inputs = [args.fixed, args.moving]
-    for out in (args.output, args.png):
-        if out is not None:
-            check_output(out, overwrite=args.overwrite, inputs=inputs)
-    if args.png is not None and args.png.resolve() == args.output.resolve():
-        raise ValueError(f"--png {args.png}: the same file as -o")
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
     moving = _one_image(args.moving, args.moving_frame, args.dataset)
     mask = None
@@ -243,6 +237,12 @@ def cmd_register(args) -> int:
             raise ValueError(f"--roi {args.roi}: must lie inside the {fixed.shape[0]}x{fixed.shape[1]} image")
         mask = np.zeros(fixed.shape, bool)
         mask[r0:r1, c0:c1] = True
+    inputs = [args.fixed, args.moving]
+    for out in (args.output, args.png):  # refused before the registration, not after
+        if out is not None:
+            check_output(out, overwrite=args.overwrite, inputs=inputs)
+    if args.png is not None and args.png.resolve() == args.output.resolve():
+        raise ValueError(f"--png {args.png}: the same file as -o")
     options = {"preset": args.preset} if args.preset and args.method in ("rc", "ssd", "ncc", "mi") else {}
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
