@@ -22,7 +22,7 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	$(BIN)/radiokit demo -o $(DEMO_OUT) --dialect $(DIALECT)
+	$(BIN)/radiokit demo -o $(DEMO_OUT) --overwrite --dialect $(DIALECT)
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest

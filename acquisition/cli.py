@@ -64,6 +64,14 @@ def _run(args) -> int:
         p.output = str(args.output)
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
+    if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
+        from radiokit.io import check_output
+
+        try:
+            check_output(p.output, overwrite=True, inputs=[Path(args.protocol)])
+        except OSError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     if args.dry_run:
         done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
         pl = plan(p, done)

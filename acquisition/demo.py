@@ -42,6 +42,29 @@ def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats
     })
 
 
+#: the files and folders a demo makes in its folder, and nothing else
+_DEMO_OUTPUTS = ("experiment.h5", "experiment.log", "control.h5", "control.log", "results")
+
+
+def _demo_folder(out_dir, overwrite) -> Path:
+    """Claim ``out_dir`` for the demo: refuse a folder radiokit did not make; with ``overwrite``
+    remove a previous demo's own outputs (and only those)."""
+    import shutil
+
+    from radiokit.io import RESULTS_MARKER, check_output
+
+    out = check_output(out_dir, overwrite=overwrite, folder=True)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in _DEMO_OUTPUTS:
+        old = out / name
+        if old.is_dir() and not old.is_symlink():
+            shutil.rmtree(old)
+        elif old.exists() or old.is_symlink():
+            old.unlink()
+    (out / RESULTS_MARKER).write_text("made by radiokit demo; may be replaced by `radiokit demo --overwrite`\n")
+    return out
+
+
 def control_scene(scene):
     """The same scene with every inclusion's stiffness set to the background's (attenuation kept)."""
     body_mat = scene.body.material
@@ -53,19 +76,20 @@ def control_scene(scene):
 
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=True, method="rc", progress=True, dialect="A") -> dict:
+             coarse=True, method="rc", progress=True, dialect="A", overwrite=False) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
-    ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and the driver speak."""
+    ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and the driver speak.
+    ``out_dir`` must be new, empty, or a previous demo's folder (replaced only with
+    ``overwrite=True``): the demo never deletes a file it did not make."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
     from sim.bench import VirtualBench
     from sim.scene import load_scene
 
     t0 = time.perf_counter()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    scene = load_scene(preset)
+    scene = load_scene(preset)  # a bad preset is refused before the folder is claimed
+    out = _demo_folder(out_dir, overwrite)
     scene.detector.binning = int(binning) if binning else 2
     if coarse:  # the demo's mesh: about 2.5x faster to solve (see benchmarks/bench_sim.py for what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
@@ -73,8 +97,6 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     files, timings = {}, {}
     for label, sc in (("experiment", scene), ("control", control_scene(scene))):
         path = out / f"{label}.h5"
-        if path.exists():
-            path.unlink()
         t = time.perf_counter()
         bench = VirtualBench(sc, progress=progress)
         p = _protocol(sc, path, initial_height_mm=bench.initial_height_mm, frames_per_step=frames_per_step,
@@ -94,7 +116,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     # the fast preset: on this scene's pairs it is the more accurate one as well (the register
     # benchmark's simulated pairs: 1.1-1.2 px against 1.6-1.9 px median end-point error)
     cfg = Config(control=files["control"], progress=progress, method=method, register_options={"preset": "fast"})
-    result = process(files["experiment"], cfg, out_dir=out / "results")
+    result = process(files["experiment"], cfg, out_dir=out / "results", overwrite=overwrite)
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     r = result.results
@@ -148,13 +170,15 @@ def add_demo(subparsers):
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
     p.add_argument("--dialect", choices=("A", "B"), default="A",
                    help="the L8121 command dialect the emulated controller speaks (default A)")
+    p.add_argument("--overwrite", action="store_true", help="replace a previous demo's folder (never other files)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=not args.fine, method=args.method, progress=not args.quiet, dialect=args.dialect)
+                       coarse=not args.fine, method=args.method, progress=not args.quiet, dialect=args.dialect,
+                       overwrite=args.overwrite)
     print()
     print(headline(summary))
     return 0

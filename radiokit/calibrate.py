@@ -381,6 +381,10 @@ class Calibration:
             for k, what in ((ImageKey.DARK, "darks (image_key 2)"), (ImageKey.FLAT, "flats (image_key 1)")):
                 if sel[k].size == 0:
                     raise FormatError(path, f"holds no {what}: cannot calibrate")
+            from radiokit.io import check_budget
+
+            n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
+            check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
         cal = cls.from_frames(darks, flats, dark_times=times[sel[ImageKey.DARK]],
@@ -453,6 +457,12 @@ class Calibration:
                 missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
                 if missing:
                     raise FormatError(path, f"/{group} lacks {', '.join(missing)}")
+                from radiokit.io._budget import check_budget
+                from radiokit.io._experiment import checked_dataset
+
+                for name in ("dark", "flat", "pixel_mask"):  # local plain numbers within the memory budget
+                    ds = checked_dataset(path, h5, f"{group}/{name}", "iuf", (2,))
+                    check_budget(path, ds.size * ds.dtype.itemsize, f"/{group}/{name} {ds.shape}")
                 return cls(g["dark"][()], g["flat"][()], g["pixel_mask"][()],
                            g["defect_rows"][()] if "defect_rows" in g else (),
                            g["defect_columns"][()] if "defect_columns" in g else (),

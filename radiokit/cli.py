@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
+import signal
 import sys
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -57,10 +60,11 @@ def _summary(meta: dict) -> dict:
                            for k, v in meta.get("scaling", {}).items()}}
     elif fmt == "experiment":
         keys = np.asarray(meta.get("image_key", []))
-        steps = np.asarray(meta.get("step", []))
+        steps = np.asarray(meta.get("step", np.full(keys.shape, -1)))  # optional in the file
+        steps = steps if steps.shape == keys.shape else np.full(keys.shape, -1)
         out = {"projections": int(np.sum(keys == 0)), "flats": int(np.sum(keys == 1)),
                "darks": int(np.sum(keys == 2)), "invalid": int(np.sum(keys == 3)),
-               "steps": sorted(int(s) for s in set(steps[keys == 0].tolist())) if keys.size else [],
+               "steps": sorted(int(s) for s in set(steps[(keys == 0) & (steps >= 0)].tolist())),
                "simulated": bool(meta.get("simulated", False))}
         src = meta.get("source", {})
         out["source"] = " ".join(
@@ -75,12 +79,18 @@ def _summary(meta: dict) -> dict:
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
+    if args.sample < 1:
+        raise ValueError(f"--sample {args.sample}: expected at least one frame")
     reports = []
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
             lo, hi, saturated = None, None, 0
             top = (1 << src.bits) - 1 if src.bits else None
-            for frame in src:
+            # a summary reads a few evenly spaced frames, not the whole file (--all reads every one)
+            n_read = len(src) if args.all else min(len(src), args.sample)
+            picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
+            for i in picks:
+                frame = src[i]
                 fmin, fmax = frame.min(), frame.max()
                 lo = fmin if lo is None else min(lo, fmin)
                 hi = fmax if hi is None else max(hi, fmax)
@@ -88,7 +98,7 @@ def cmd_info(args) -> int:
                     saturated += int(np.count_nonzero(frame >= top))
             rep = {"file": str(path), "format": src.meta.get("format", src.format), "frames": len(src),
                    "shape": list(src.frame_shape), "dtype": str(src.dtype),
-                   "range": [lo.item(), hi.item()] if lo is not None else None,
+                   "range": [lo.item(), hi.item()] if lo is not None else None, "frames_read": len(picks),
                    "saturated": saturated if top is not None else None,
                    "metadata": _summary(src.meta)}
         reports.append(rep)
@@ -99,10 +109,11 @@ def cmd_info(args) -> int:
         print(f"{rep['file']}")
         print(f"  format     {rep['format']}")
         print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}")
+        of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
         if rep["range"] is not None:
-            print(f"  range      {rep['range'][0]} .. {rep['range'][1]}")
+            print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
         if rep["saturated"] is not None:
-            print(f"  saturated  {rep['saturated']} pixel(s)")
+            print(f"  saturated  {rep['saturated']} pixel(s){of}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {value}")
     return 0
@@ -110,21 +121,36 @@ def cmd_info(args) -> int:
 
 # -- calibrate ---------------------------------------------------------------------------------
 def _parse_thresholds(items) -> dict:
+    from dataclasses import fields
+
+    from radiokit.calibrate import Thresholds
+
+    known = [f.name for f in fields(Thresholds)]
     out = {}
     for item in items or ():
         key, sep, value = item.partition("=")
         if not sep:
             raise ValueError(f"--threshold {item!r}: expected NAME=VALUE")
-        out[key.strip()] = float(value) if key.strip() != "saturation" else int(value)
+        if key.strip() not in known:
+            raise ValueError(f"--threshold {item!r}: unknown name {key.strip()!r}; known: {', '.join(known)}")
+        try:
+            number = float(value) if key.strip() != "saturation" else int(value)
+        except ValueError:
+            raise ValueError(f"--threshold {item!r}: {value!r} is not a number") from None
+        if not np.isfinite(number):
+            raise ValueError(f"--threshold {item!r}: a threshold must be a finite number")
+        out[key.strip()] = number
     return out
 
 
 def _stack(paths, hints, key=None) -> np.ndarray:
-    from radiokit.io import open_frames
+    from radiokit.io import check_budget, open_frames
 
-    frames = []
+    frames, total = [], 0
     for p in paths:
         with open_frames(p, **hints) as src:
+            total += len(src) * src.frame_bytes
+            check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
             keys = src.meta.get("image_key")
             for i in range(len(src)):
                 if key is None or keys is None or keys[i] == key:
@@ -136,8 +162,11 @@ def _stack(paths, hints, key=None) -> np.ndarray:
 
 def cmd_calibrate(args) -> int:
     from radiokit.calibrate import Calibration
+    from radiokit.io import atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
+    inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
+    check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
     if args.experiment:
         cal = Calibration.from_experiment(args.experiment, **th)
     else:
@@ -147,7 +176,10 @@ def cmd_calibrate(args) -> int:
         cal = Calibration.from_frames(_stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1), **th)
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
-    cal.save(args.output)
+    # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs,
+                     size_hint=12 * cal.dark.size + 2**20) as tmp:
+        cal.save(tmp)
     p = cal.provenance
     print(f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats "
           f"-> {args.output}")
@@ -162,7 +194,9 @@ def cmd_calibrate(args) -> int:
 def cmd_correct(args) -> int:
     from radiokit.calibrate import Calibration
     from radiokit.correct import correct_files
+    from radiokit.io import check_output
 
+    check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
@@ -171,7 +205,7 @@ def cmd_correct(args) -> int:
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
     summary = correct_files(args.frames, cal, args.output, domain=args.domain, progress=not args.quiet,
-                            **_raw_hints(args))
+                            overwrite=args.overwrite, **_raw_hints(args))
     print(f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
           f"at {summary['frames_per_second']:.1f} frames/s")
     print(f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
@@ -181,18 +215,17 @@ def cmd_correct(args) -> int:
 
 # -- register ----------------------------------------------------------------------------------
 def _one_image(path, index, dataset):
-    from radiokit.io import read
+    from radiokit.io import open_frames
 
     hints = {"dataset": dataset} if dataset else {}
-    frames = read(path, **hints).data
-    if not -frames.shape[0] <= index < frames.shape[0]:
-        raise ValueError(f"{path}: frame {index} requested, the file holds {frames.shape[0]}")
-    return np.asarray(frames[index], np.float32)
+    with open_frames(path, **hints) as src:  # one frame read, not the whole file
+        if not -len(src) <= index < len(src):
+            raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
+        return np.asarray(src[index], np.float32)
 
 
 def cmd_register(args) -> int:
-    import h5py
-
+    from radiokit.io import atomic_h5, atomic_path, check_output
     from radiokit.register import register
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
@@ -204,11 +237,17 @@ def cmd_register(args) -> int:
             raise ValueError(f"--roi {args.roi}: must lie inside the {fixed.shape[0]}x{fixed.shape[1]} image")
         mask = np.zeros(fixed.shape, bool)
         mask[r0:r1, c0:c1] = True
+    inputs = [args.fixed, args.moving]
+    for out in (args.output, args.png):  # refused before the registration, not after
+        if out is not None:
+            check_output(out, overwrite=args.overwrite, inputs=inputs)
+    if args.png is not None and args.png.resolve() == args.output.resolve():
+        raise ValueError(f"--png {args.png}: the same file as -o")
     options = {"preset": args.preset} if args.preset and args.method in ("rc", "ssd", "ncc", "mi") else {}
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
     registered = reg.warp(moving)
-    with h5py.File(args.output, "w") as h5:
+    with atomic_h5(args.output, overwrite=args.overwrite, inputs=inputs) as h5:
         g = h5.create_group("entry/registration")
         g.attrs["method"] = reg.method
         g.attrs["fixed"], g.attrs["moving"] = str(args.fixed), str(args.moving)
@@ -222,7 +261,8 @@ def cmd_register(args) -> int:
           f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px")
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
-        _register_png(args.png, fixed, moving, registered, reg)
+        with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:
+            _register_png(tmp, fixed, moving, registered, reg)
         print(f"figure {args.png}")
     return 0 if q.ok else 1
 
@@ -255,7 +295,8 @@ def _register_png(path, fixed, moving, registered, reg):
 
 
 def cmd_process(args) -> int:
-    from radiokit.pipeline import Config, process, process_many
+    from radiokit.io import check_output
+    from radiokit.pipeline import Config, output_folders, process, process_many
 
     opts = {"preset": args.preset} if args.preset else {}
     cfg = Config(ks=tuple(args.k), domain=args.domain, method=args.method, register_options=opts,
@@ -263,18 +304,24 @@ def cmd_process(args) -> int:
                  roi_units="mm" if args.mm else "px", report=not args.no_report, progress=not args.quiet,
                  control=str(args.control) if args.control else None,
                  cross_check=None if args.cross_check in ("none", "") else args.cross_check)
-    if len(args.files) == 1 and not args.scheduler:
-        res = process(args.files[0], cfg, out_dir=args.output)
+    inputs = [*args.files, *([args.control] if args.control else [])]
+    single = len(args.files) == 1 and not args.scheduler
+    outs = [args.output] if single and args.output else output_folders(args.files, args.output)
+    for out in outs:  # refuse before any work, not after the first file
+        check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
+    if single:
+        res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         _print_headline(res.results, res.files)
         return 0 if all(q.get("ok") for q in res.results["registration"].values()) else 1
-    results = process_many(args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers)
+    results = process_many(args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers,
+                           overwrite=args.overwrite)
     failed = 0
     for r in results:
         if "error" in r:
             failed += 1
             print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
         else:
-            _print_headline(r, {})
+            _print_headline(r, {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {})
     return 1 if failed else 0
 
 
@@ -301,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
     p.add_argument("files", nargs="+", type=Path)
     p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--sample", type=int, default=8, metavar="N",
+                   help="frames read for the range and saturation, evenly spaced (default 8)")
+    p.add_argument("--all", action="store_true", help="read every frame for the range and saturation")
     _add_raw_hints(p)
     p.set_defaults(func=cmd_info)
 
@@ -311,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", action="append", metavar="NAME=VALUE",
                    help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable")
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     _add_raw_hints(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -320,6 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--domain", choices=["log", "linear", "counts"], default="log",
                    help="log: -ln(I/I0) (default); linear: I/I0; counts: the manual's gain-corrected grey levels")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .h5 or .tif")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_raw_hints(p)
     p.set_defaults(func=cmd_correct)
@@ -337,6 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
     p.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality")
     p.add_argument("--png", type=Path, help="also write an overlay and det J figure")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.set_defaults(func=cmd_register)
 
     p = sub.add_parser("process", help="experiment file(s) -> registered steps, compression-induced contrast, "
@@ -344,7 +397,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Calibrate, correct, register every step onto the most compressed, enhance "
                                    "(k = 1, 2), measure and report. Several files run in parallel on Dask.")
     p.add_argument("files", nargs="+", type=Path, help="experiment files (.h5)")
-    p.add_argument("-o", "--output", type=Path, help="output folder (default: beside each file, named after it)")
+    p.add_argument("-o", "--output", type=Path,
+                   help="results folder of one file; with several files, the folder holding one per file, named "
+                        "after it (STEM, then STEM-2 ... when names repeat); default: beside each file")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing results folder radiokit made (never one holding an input)")
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors (default 1 2)")
     p.add_argument("--domain", choices=["log", "linear"], default="linear", help="headline domain: linear (the paper's -I/I0, default) or log (both are computed)")
     p.add_argument("--method", default="rc", help="registration method (default rc)")
@@ -370,21 +427,68 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminated(signum, frame):
+    """SIGTERM/SIGHUP (a closed terminal, ``kill``): unwind like Ctrl-C, so that every output being
+    written is removed rather than left half-written under its temporary name.
+
+    Python drops an exception raised while a finalizer runs; should this one land there, the
+    interrupt is repeated a second later (a daemon timer: it dies with the process)."""
+    import _thread
+    import threading
+
+    timer = threading.Timer(1.0, _thread.interrupt_main)
+    timer.daemon = True
+    timer.start()
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _interrupted(exc) -> bool:
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _user_error(exc) -> bool:
+    """Errors a user causes (a file, a parameter, the disk, the memory), or an interrupt some
+    library re-raised as its own error; anything else is a bug and keeps its traceback."""
+    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
+
+
+def _debug(args) -> bool:
+    return bool(getattr(args, "debug", False) or os.environ.get("RADIOKIT_DEBUG", "") not in ("", "0"))
+
+
 def main(argv=None) -> int:
+    """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
+    one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
+    and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
+        logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, _terminated)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print("radiokit: interrupted", file=sys.stderr)
+        print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
         return 130
-    except (RadiokitError, ValueError, OSError, TypeError) as exc:
-        if args.debug:
+    except Exception as exc:
+        if not _user_error(exc) or _debug(args):
             raise
-        print(f"radiokit {args.command}: error: {exc}", file=sys.stderr)
+        if _interrupted(exc):  # a C extension turned the interrupt into its own error
+            print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+            return 130
+        message = str(exc) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
+        print(f"radiokit {args.command}: {' '.join(message.split())}", file=sys.stderr)
         return 2
 
 

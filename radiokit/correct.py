@@ -22,6 +22,8 @@ __all__ = ["correct_frames", "correct_files", "CorrectionReport", "DOMAINS", "fi
 DOMAINS = ("log", "linear", "counts")
 #: raw - dark at or below zero is clamped to this many counts before the log.
 FLOOR_COUNTS = 0.5
+#: what a non-finite raw value becomes: below any dark, so it is filled as non-positive
+_NONFINITE = -1e30
 _BLOCK_ROWS = 128  # 128 x 2240 float32 = 1.1 MB: measured fastest on 2240-wide frames (32: +30 %)
 _POOL: ThreadPoolExecutor | None = None
 
@@ -47,7 +49,8 @@ class CorrectionReport:
     Attributes
     ----------
     saturated, nonpositive : ndarray (n,) int
-        Pixels at the ADC's top; pixels with ``raw - dark <= 0`` (clamped and filled).
+        Pixels at the ADC's top; pixels with ``raw - dark <= 0`` or a non-finite raw value
+        (clamped and filled).
     defects_filled : int
         Pixels of the calibration's defect map filled in every frame.
     flags : ndarray uint32, (rows, cols) or (n, rows, cols)
@@ -210,6 +213,10 @@ def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
         t = tmp[: b - a]
         rb = raw[a:b]
         np.copyto(t, rb, casting="unsafe")  # a plain cast is faster than a mixed-type ufunc loop
+        if rb.dtype.kind == "f" and not np.isfinite(t).all():
+            # NaN/inf raw values are defects of this frame: sent below zero so that the
+            # non-positive path clamps, fills and counts them (the output is never NaN or inf)
+            np.nan_to_num(t, copy=False, nan=_NONFINITE, posinf=_NONFINITE, neginf=_NONFINITE)
         np.subtract(t, k.dark[a:b], out=t)
         if t.min() <= 0:
             hit = np.flatnonzero(t <= 0)
@@ -259,6 +266,8 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain):
     k = _kernel(cal)
     scale = cal.c if domain == "counts" else 1.0
     saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" else None
+    if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
+        raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)
 
 
@@ -271,8 +280,6 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
         raise ValueError(f"raw frames of shape {raw.shape} do not match the calibration's {cal.shape}")
     if raw.dtype.kind not in "uif":
         raise ValueError(f"raw frames must be numeric, got dtype {raw.dtype}")
-    if raw.dtype.kind == "f" and not np.isfinite(raw).all():
-        raise ValueError("raw frames contain NaN or inf")
     if out is None:
         out = np.empty(raw.shape, np.float32)
     elif out.shape != raw.shape or out.dtype != np.float32:
@@ -337,13 +344,29 @@ class _BackgroundWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        self._queue.put(None)
-        self._thread.join()
+        if exc_type is not None:
+            self._error = self._error or exc  # the writer skips what is still queued
+        # The writer thread must have stopped before its file is closed and removed: a second
+        # Ctrl-C or SIGTERM arriving here waits for it too, then is raised.
+        interrupt, sent = None, False
+        while True:
+            try:
+                if not sent:
+                    self._queue.put(None)
+                    sent = True
+                self._thread.join()
+                break
+            except KeyboardInterrupt as again:
+                interrupt = again
+                self._error = self._error or again
+        if interrupt is not None:
+            raise interrupt
         if self._error is not None and exc_type is None:
             raise self._error
 
 
-def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), **hints) -> dict:
+def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False,
+                  **hints) -> dict:
     """Stream frames from ``inputs`` through ``cal`` into ``output`` (``.h5`` or ``.tif``).
 
     One raw frame and one corrected frame are in memory at a time, whatever the stack length.
@@ -351,6 +374,9 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
     default) are corrected; other formats have no keys and every frame is. The HDF5 output
     records, per frame, the source file and frame index, the compression step where known, and
     the saturated and non-positive counts. Returns a summary dict.
+
+    ``output`` is written atomically (a temporary file renamed into place when complete); an
+    existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
     """
     from tqdm.auto import tqdm
 
@@ -373,7 +399,8 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = 0
-        with StackWriter(output, cal.shape, np.float32, meta=meta, n_frames=len(plan)) as writer, \
+        with StackWriter(output, cal.shape, np.float32, meta=meta, n_frames=len(plan), overwrite=overwrite,
+                         inputs=inputs) as writer, \
                 tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar, \
                 _BackgroundWriter(writer) as bg:
             for si, fi, step in plan:

@@ -37,7 +37,7 @@ Example (a small synthetic experiment written here; real files come from ``radio
     ...     for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
     ...         _ = w.append(frame(tb, ti), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     >>> res = process(os.path.join(d, "exp.h5"), Config(crop_mm=None, report=False,
-    ...               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=d)
+    ...               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=os.path.join(d, "results"))
     >>> res.results["improvement_factor"]["1"] > 1, res.results["improvement_factor"]["2"] > res.results["improvement_factor"]["1"]
     (True, True)
 """
@@ -53,7 +53,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["Config", "Result", "process", "process_many", "PAPER"]
+__all__ = ["Config", "Result", "process", "process_many", "output_folders", "PAPER"]
 
 PAPER = {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]}
 
@@ -215,19 +215,35 @@ def _epe(displacement, truth, mask):
     return float(np.median(e)), float(np.percentile(e, 95))
 
 
-def process(path, config: Config | None = None, *, out_dir=None) -> Result:
+def process(path, config: Config | None = None, *, out_dir=None, overwrite=False) -> Result:
     """Run the chain on one experiment file; write results into ``out_dir`` (default: a folder
-    named after the file, beside it). See the module docstring."""
-    from radiokit.enhance import compression_contrast, to_domain
-    from radiokit.measure import ROI, change_ratio, cnr, contrast, find_rois, profile, weber
-    from radiokit.register import jacobian_determinant, register
+    named after the file, beside it). See the module docstring.
+
+    The folder is assembled under a temporary name beside ``out_dir`` and swapped in when
+    complete (:func:`radiokit.io.atomic_dir`): an interrupted run leaves the previous results or
+    none. An existing ``out_dir`` is replaced only with ``overwrite=True`` and only if radiokit
+    made it; one holding the input is always refused.
+    """
+    from radiokit.io import atomic_dir
 
     cfg = config or Config()
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such experiment file")
     out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
+    with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
+        res = _process(path, cfg, stage)
+    res.files = {k: str(out_dir / Path(v).relative_to(stage)) for k, v in res.files.items()}
+    return res
+
+
+def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
+    """:func:`process` writing into ``out_dir``, a fresh folder."""
+    from radiokit.enhance import compression_contrast, to_domain
+    from radiokit.measure import ROI, change_ratio, cnr, contrast, find_rois, profile, weber
+    from radiokit.register import jacobian_determinant, register
+
     t0 = time.perf_counter()
     steps, numbers, ratios, pixel_mm, timings = _load_steps(path, cfg.progress)
     truth = _sim_truth(path, numbers)
@@ -368,11 +384,11 @@ def process(path, config: Config | None = None, *, out_dir=None) -> Result:
 
 
 def _write(out_dir, results, arrays, cfg, t0):
-    import h5py
-
     files = {}
+    from radiokit.io import atomic_h5
+
     h5path = out_dir / "results.h5"
-    with h5py.File(h5path, "w") as h5:
+    with atomic_h5(h5path) as h5:  # built in memory, one plain write: a full disk is a clean error
         h5.attrs["source"] = results["source"]
         h5.attrs["results_json"] = json.dumps(results, default=_jsonable)
         g = h5.create_group("steps")
@@ -420,13 +436,30 @@ def _jsonable(o):
     raise TypeError(f"not JSON-able: {type(o)}")
 
 
-def process_many(paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None) -> list:
+def output_folders(paths, out_root=None) -> list[Path]:
+    """One distinct results folder per input: ``out_root/STEM`` (default: beside each file, named
+    after it); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ... in the order given,
+    so no run ever merges into or replaces another's folder."""
+    outs, taken = [], set()
+    for p in map(Path, paths):
+        base = (Path(out_root) / p.stem) if out_root is not None else p.with_suffix("")
+        out, k = base, 1
+        while out.resolve() in taken:
+            k += 1
+            out = base.with_name(f"{base.name}-{k}")
+        taken.add(out.resolve())
+        outs.append(out)
+    return outs
+
+
+def process_many(paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None,
+                 overwrite=False) -> list:
     """Process many experiment files in parallel on Dask, one progress bar over all.
 
     ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default the
     cores), an address (``tcp://host:8786``) connects to a running one. Returns, per file, its
     results dict, or ``{"source": path, "error": message}`` for a file that failed (the others go
-    on)."""
+    on). Output folders are :func:`output_folders`; each is written as :func:`process` writes."""
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
@@ -435,7 +468,7 @@ def process_many(paths, config: Config | None = None, *, out_root=None, schedule
 
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
-    outs = [(Path(out_root) / p.stem if out_root else None) for p in paths]
+    outs = output_folders(paths, out_root)
     cluster = None
     if scheduler is None:
         import os
@@ -446,7 +479,7 @@ def process_many(paths, config: Config | None = None, *, out_root=None, schedule
     else:
         client = Client(scheduler)
     try:
-        futures = {client.submit(_process_one, str(p), cfg, None if o is None else str(o), pure=False): i
+        futures = {client.submit(_process_one, str(p), cfg, str(o), overwrite, pure=False): i
                    for i, (p, o) in enumerate(zip(paths, outs))}
         results = [None] * len(paths)
         with tqdm(total=len(paths), desc="process", unit="file", disable=not (config or Config()).progress) as bar:
@@ -460,8 +493,9 @@ def process_many(paths, config: Config | None = None, *, out_root=None, schedule
             cluster.close()
 
 
-def _process_one(path, cfg, out_dir):
+def _process_one(path, cfg, out_dir, overwrite=False):
     try:
-        return process(path, cfg, out_dir=out_dir).results
+        res = process(path, cfg, out_dir=out_dir, overwrite=overwrite)
+        return dict(res.results, output=str(out_dir))
     except Exception as exc:  # one bad file must not stop the others: reported in its slot
         return {"source": path, "error": f"{type(exc).__name__}: {exc}"}

@@ -20,7 +20,7 @@ def add_sim(subparsers):
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
     r.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    r.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing output file (never an input)")
     r.add_argument("--save-scene", type=Path, help="also write the scene as TOML here")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     r.set_defaults(func=_run_sim)
@@ -29,6 +29,7 @@ def add_sim(subparsers):
 def _run_sim(args) -> int:
     import time
 
+    from radiokit.io import atomic_path, check_output
     from sim.lab import simulate_experiment
     from sim.scene import PRESETS, load_scene
 
@@ -37,10 +38,19 @@ def _run_sim(args) -> int:
     scene = load_scene(args.preset if args.preset is not None else str(args.scene))
     if args.binning:
         scene.detector.binning = args.binning
-    if args.save_scene:
-        scene.save(args.save_scene)
+    if args.ratios and not all(0 < r < 1 for r in args.ratios):  # also refuses nan
+        raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: compression ratios lie between 0 and 1")
+    for name in ("darks", "flats", "frames"):
+        if getattr(args, name) < (1 if name == "frames" else 0):
+            raise ValueError(f"--{name} {getattr(args, name)}: expected a count of at least "
+                             f"{1 if name == 'frames' else 0}")
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
+    inputs = [args.scene] if args.scene is not None else []
+    check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before minutes of mechanics
+    if args.save_scene:
+        with atomic_path(args.save_scene, overwrite=args.overwrite, inputs=[*inputs, args.output]) as tmp:
+            scene.save(tmp)
     t0 = time.perf_counter()
     say = (lambda *a, **k: None) if args.quiet else print
 
@@ -54,9 +64,12 @@ def _run_sim(args) -> int:
 
     say(f"scene {scene.name}: {scene.body.geometry}, {len(scene.inclusions)} inclusion(s), "
         f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})")
-    res = simulate_experiment(scene, args.output, ratios=args.ratios, n_darks=args.darks, n_flats=args.flats,
-                              frames_per_step=args.frames, seed=args.seed, overwrite=args.overwrite,
-                              progress=not args.quiet, on_state=on_state, on_step=on_step)
+    # written under a temporary name and renamed when complete: never a half-simulated file
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs) as tmp:
+        res = simulate_experiment(scene, tmp, ratios=args.ratios, n_darks=args.darks, n_flats=args.flats,
+                                  frames_per_step=args.frames, seed=args.seed, overwrite=True,
+                                  progress=not args.quiet, on_state=on_state, on_step=on_step)
+    res["file"] = str(args.output)
     sec = res["seconds"]
     print(f"\n{'step':>4} {'ratio':>6} {'gap mm':>8} {'force N':>10} {'volume':>8} {'incl/bg strain':>15}")
     for s in res["states"]:

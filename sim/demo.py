@@ -87,7 +87,7 @@ def run_demo(out_dir="out/demo", *, binning=1, n_darks=10, n_flats=10, frames_pe
     cal = Calibration.from_experiment(exp_path)
     cal.save(out / "calibration.h5")
     timings["calibrate_s"] = time.perf_counter() - t
-    summary = correct_files(exp_path, cal, out / "corrected.h5", domain="log", progress=progress)
+    summary = correct_files(exp_path, cal, out / "corrected.h5", domain="log", progress=progress, overwrite=True)
     timings["correct_s"] = summary["seconds"]
     corrected = read(out / "corrected.h5", dataset="entry/data/data").data
     import h5py

@@ -120,3 +120,17 @@ def test_version_and_help():
     res = run("--help")
     for cmd in ("info", "calibrate", "correct", "demo"):
         assert cmd in res.stdout
+
+
+def test_every_command_that_writes_takes_overwrite():
+    for cmd in (["calibrate"], ["correct"], ["register"], ["process"], ["sim", "run"], ["demo"], ["acquire"]):
+        res = run(*cmd, "--help")
+        assert res.returncode == 0 and "--overwrite" in res.stdout, cmd
+
+
+def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):
+    res = run("correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert res.stderr.startswith("radiokit correct: ") and "missing.raw" in res.stderr
+    res = run("--debug", "correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
+    assert res.returncode != 0 and "Traceback" in res.stderr

@@ -9,7 +9,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta", "checked_dataset"]
+__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta", "checked_dataset", "check_local", "check_links"]
 
 DETECTOR = "entry/instrument/detector"
 COMPRESSION = "entry/sample/compression"
@@ -222,14 +222,51 @@ class ExperimentWriter:
         self.close()
 
 
-def checked_dataset(path, h5, name, kinds, ndims) -> h5py.Dataset:
+def _refuse_external(path, what):
+    raise FormatError(path, f"{what}: data outside this file is not read unless asked for "
+                            "(allow_external=True)")
+
+
+def check_links(path, h5, name, allow_external, depth=0):
+    """Refuse an external link anywhere on the way to ``name`` (checked before it is followed)."""
+    if allow_external:
+        return
+    parts = [p for p in name.strip("/").split("/") if p]
+    for i in range(1, len(parts) + 1):
+        prefix = "/" + "/".join(parts[:i])
+        link = h5.get(prefix, getlink=True)
+        if link is None:
+            return
+        if isinstance(link, h5py.ExternalLink):
+            _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+        if isinstance(link, h5py.SoftLink) and depth < 8:
+            target = link.path if link.path.startswith("/") else prefix.rsplit("/", 1)[0] + "/" + link.path
+            check_links(path, h5, target, allow_external, depth + 1)
+
+
+def check_local(path, h5, ds, allow_external=False) -> None:
+    """Refuse a dataset whose bytes live outside ``h5``: external raw storage or a virtual dataset."""
+    if allow_external:
+        return
+    if ds.file.filename != h5.filename:
+        _refuse_external(path, f"{ds.name} lives in another file ({ds.file.filename})")
+    if ds.is_virtual:
+        _refuse_external(path, f"{ds.name} is a virtual dataset (its data are in other files)")
+    if ds.id.get_create_plist().get_external_count():
+        _refuse_external(path, f"{ds.name} is stored in external raw files")
+
+
+def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
-    Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely.
+    Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely,
+    and a dataset can point at other files (refused unless ``allow_external``).
     """
+    check_links(path, h5, name, allow_external)
     ds = h5.get(name)
     if not isinstance(ds, h5py.Dataset):
         raise FormatError(path, f"/{name} is not a dataset")
+    check_local(path, h5, ds, allow_external)
     if not _plain_numbers(ds.dtype, kinds):
         raise FormatError(path, f"/{name} has type {ds.dtype}; expected numbers")
     if ds.ndim not in ndims:
@@ -241,40 +278,54 @@ def _plain_numbers(dtype, kinds="iuf") -> bool:
     return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
 
 
-def read_experiment_meta(path, h5: h5py.File) -> tuple[h5py.Dataset, dict]:
-    """Find the frames of an experiment file and collect its per-frame metadata."""
+def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
+    """Find the frames of an experiment file and collect its per-frame metadata.
+
+    Declared sizes are checked against the memory budget (:func:`radiokit.io.memory_budget`)
+    before anything is read; data stored outside the file is refused unless ``allow_external``.
+    """
+    from radiokit.io._budget import check_budget
+
+    check_links(path, h5, f"{DETECTOR}/data", allow_external)
     if f"{DETECTOR}/data" not in h5:
         raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/data: not a radiokit experiment file "
                                 "(pass dataset='/path/to/frames' to read another layout)")
-    data = checked_dataset(path, h5, f"{DETECTOR}/data", "iuf", range(33))
+    data = checked_dataset(path, h5, f"{DETECTOR}/data", "iuf", range(33), allow_external)
     if data.ndim != 3:
         raise FormatError(path, f"/{DETECTOR}/data has shape {data.shape}; expected (n, rows, cols)")
     n = max(0, min(int(h5["entry"].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
+    check_budget(path, len(_SERIES) * 8 * n, f"the per-frame records of {n} frames", budget)
     meta = {"format": "experiment"}
     for group, name, *_ in _SERIES:
         if name in h5.get(group, {}):
-            values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,))[:n]
+            values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,), allow_external)[:n]
             if len(values) != n:
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
             meta[name] = values
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/image_key")
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2)):
+        check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
         # optional: left out unless plain numbers of the expected rank
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
+            check_local(path, h5, ds, allow_external)
+            check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
             meta[name] = ds[()]
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
+    check_links(path, h5, "entry/instrument/source", allow_external)
     src = h5.get("entry/instrument/source")
     if src is not None:
         meta["source"] = {}
         for key in src:
             # only scalar numbers and strings: libhdf5 can crash on a corrupt variable-length type
+            check_links(path, h5, f"{src.name}/{key}", allow_external)
             ds = src.get(key)
             if not isinstance(ds, h5py.Dataset) or ds.shape != () or not (
                     ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None):
                 continue
+            check_local(path, h5, ds, allow_external)
             value = ds[()]
             meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
     if "entry/simulation" in h5:

@@ -55,8 +55,12 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
 
 
 # A section header, or one key=value item whose value may be quoted (and then hold commas).
-_TOKEN = re.compile(r'\s*(?:\[(?P<section>[^\]\r\n]*)\]|(?P<key>[^=,\r\n\[]+?)\s*=\s*'
-                    r'(?:"(?P<quoted>[^"]*)"|(?P<bare>[^,\r\n\[]*)))\s*,?', re.S)
+# Possessive quantifiers and a section name without "[" keep every attempt from backtracking,
+# so parsing is linear in the comment (lazy keys followed by \s* made 32 KB take seconds).
+_TOKEN = re.compile(r'(?:\[(?P<section>[^\]\r\n\[]*+)\]|(?P<key>[^=,\r\n\[]++)='
+                    r'\s*+(?:"(?P<quoted>[^"]*+)"|(?P<bare>[^,\r\n\[]*+)))\s*+,?')
+_SEPARATOR = re.compile(r"[,\n\[]")
+_SPACE = re.compile(r"\s*")
 
 
 # Plain decimal literals only: int()/float() would also take "1_000", "nan", "Infinity", " 7 ".
@@ -88,10 +92,13 @@ def parse_comment(text: str) -> dict:
     pos, end = 0, len(text)
     leftovers = []
     while pos < end:
+        pos = _SPACE.match(text, pos).end()  # skipped once here, never rescanned by a failed match
+        if pos == end:
+            break
         m = _TOKEN.match(text, pos)
         if not m or m.end() == pos:
-            nxt = min((i for i in (text.find(",", pos + 1), text.find("\n", pos + 1), text.find("[", pos + 1))
-                       if i > 0), default=end)
+            sep = _SEPARATOR.search(text, pos + 1)
+            nxt = sep.start() if sep else end
             piece = text[pos:nxt].strip(" ,\r\n\0")
             if piece:
                 leftovers.append(piece)
@@ -102,6 +109,10 @@ def parse_comment(text: str) -> dict:
             current = out.setdefault(m.group("section").strip(), {})
         else:
             key = m.group("key").strip()
+            if not key:  # "=value" with no name: keep it, as any text that is not an item
+                leftovers.append(text[pos:m.end()].strip(" ,\r\n\0"))
+                pos = m.end()
+                continue
             current[key] = m.group("quoted") if m.group("quoted") is not None else _number(m.group("bare").strip())
         pos = m.end()
     if not out[""]:

@@ -12,7 +12,8 @@ import numpy as np
 import tifffile
 
 from radiokit.errors import FormatError
-from radiokit.io._experiment import checked_dataset, read_experiment_meta
+from radiokit.io._budget import check_budget
+from radiokit.io._experiment import check_links, checked_dataset, read_experiment_meta
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
 from radiokit.io._raw import PRESETS, _frame_count, raw_geometry, read_raw_frame
@@ -26,6 +27,9 @@ _EXTENSIONS = {".tif": "tiff", ".tiff": "tiff", ".img": "itex", ".h5": "hdf5", "
                ".hdf": "hdf5", ".nxs": "hdf5", ".nx": "hdf5", ".raw": "raw", ".bin": "raw", ".dat": "raw"}
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
 #: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
+#: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
+#: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
+_MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
 
 
@@ -82,8 +86,10 @@ class FrameSource:
     so iterating over a long stack holds one frame in memory at a time.
     """
 
-    def __init__(self, path, *, format=None, dataset=None, **hints):
+    def __init__(self, path, *, format=None, dataset=None, allow_external=False, budget=None, **hints):
         self.path = Path(path)
+        self._allow_external = bool(allow_external)
+        self._budget = budget
         unknown = set(hints) - _RAW_HINTS
         if unknown:
             raise TypeError(f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}")
@@ -101,6 +107,8 @@ class FrameSource:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
             if self.format != "raw" and hints.get("n") is not None:
                 self._limit_frames(hints["n"])
+            check_budget(self.path, self.frame_bytes, f"one {self.frame_shape[0]}x{self.frame_shape[1]} "
+                                                      f"{np.dtype(self.dtype)} frame", self._budget)
         except FormatError:
             self.close()
             raise
@@ -161,6 +169,12 @@ class FrameSource:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
         all_pages = list(pages)
         self._pages = [p for p in all_pages if p.shape == shape]
+        for i, page in enumerate(all_pages):
+            # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
+            # another shape is a corrupt frame, never a silently shorter stack
+            if page.shape != shape and not (getattr(page, "subfiletype", 0) & 0b101):
+                raise FormatError(self.path, f"TIFF page {i} is {page.shape}, page 0 is {shape}: "
+                                             "a corrupt page, or not one stack of frames")
         self._check_ifd_chain(all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
@@ -231,6 +245,9 @@ class FrameSource:
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
         if page.is_tiled:
+            # a tile is decoded whole, whatever the image: a corrupt tile size is a bomb of its own
+            check_budget(self.path, int(page.tilelength) * int(page.tilewidth) * max(page.bitspersample // 8, 1),
+                         f"one {page.tilelength}x{page.tilewidth} tile of TIFF page {i}", self._budget)
             expected = -(-rows // page.tilelength) * -(-cols // page.tilewidth)
         else:
             per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
@@ -238,6 +255,13 @@ class FrameSource:
         if len(page.dataoffsets) != expected:
             raise FormatError(self.path, f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
                                          f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}")
+        ratio = _MAX_RATIO.get(int(page.compression))
+        need = rows * cols * page.bitspersample // 8
+        if ratio and need > ratio * sum(page.databytecounts) + 4096:
+            raise FormatError(self.path, f"TIFF page {i} declares {rows}x{cols} pixels ({need} bytes) from "
+                                         f"{sum(page.databytecounts)} compressed bytes, beyond what "
+                                         f"{page.compression.name} can expand to (1:{ratio}): corrupt or a "
+                                         "decompression bomb")
         if page.compression == 1 and not page.is_tiled:
             need = rows * ((cols * page.bitspersample + 7) // 8)
             have = sum(page.databytecounts)
@@ -254,17 +278,20 @@ class FrameSource:
     def _open_hdf5(self, dataset=None, **hints):
         self._h5 = h5py.File(self.path, "r")
         if dataset:
+            check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
                 raise FormatError(self.path, f"no dataset {dataset!r}")
-            data = self._h5[dataset]
-            if data.ndim not in (2, 3):
-                raise FormatError(self.path, f"{dataset} has shape {data.shape}; expected 2 or 3 dimensions")
-            checked_dataset(self.path, self._h5, dataset, "buif", (2, 3))
+            if self._h5[dataset].ndim not in (2, 3):
+                raise FormatError(self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions")
+            data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
             meta = {"format": "hdf5", "dataset": dataset}
             n = 1 if data.ndim == 2 else data.shape[0]
         else:
-            data, meta = read_experiment_meta(self.path, self._h5)
+            data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
+        if data.chunks is not None:  # a frame is read by decompressing the whole chunks it lies in
+            chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
+            check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
         self._ds = data
         self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype
         self.bits = 12 if meta.get("format") == "experiment" else None
@@ -296,7 +323,15 @@ class FrameSource:
         for i in range(self.n):
             yield self[i]
 
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes one decoded frame takes (Python ints: a corrupt header cannot overflow them)."""
+        rows, cols = (int(v) for v in self.frame_shape)
+        return rows * cols * np.dtype(self.dtype).itemsize
+
     def read_all(self) -> Frames:
+        check_budget(self.path, self.n * self.frame_bytes, f"{self.n} frame(s) of {self.frame_shape} {self.dtype}",
+                     self._budget)
         try:
             out = np.empty((self.n,) + self.frame_shape, dtype=self.dtype)
         except MemoryError:
@@ -344,7 +379,11 @@ def read(path, /, **hints) -> Frames:
         ``format`` ("raw", "tiff", "itex", "hdf5") to skip detection; ``dataset`` to read one
         dataset of an arbitrary HDF5 file; for raw files ``preset`` (one of :data:`PRESETS`),
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
-        ``byteorder`` ("<" or ">"), ``offset`` (bytes to skip) and ``n`` (frames to read).
+        ``byteorder`` ("<" or ">"), ``offset`` (bytes to skip) and ``n`` (frames to read);
+        ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
+        datasets (refused by default: they make a file read other files); ``budget`` (bytes or
+        "2GiB") to override the memory budget (default ``RADIOKIT_MEMORY_BUDGET``, else half the
+        available memory), which declared sizes are checked against before any allocation.
 
     Returns
     -------
@@ -356,7 +395,8 @@ def read(path, /, **hints) -> Frames:
     ------
     FormatError
         The file is empty, truncated, of no known geometry, has a wrong magic, a header that
-        promises more than the file holds, or lacks the expected datasets.
+        promises more than the file holds, declares more than the memory budget, points at other
+        files, or lacks the expected datasets.
 
     Warns
     -----

@@ -2,16 +2,19 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 import tifffile
 
+from radiokit.io._atomic import OutputError, atomic_path
+
 __all__ = ["write_tiff", "StackWriter"]
 
 
-def write_tiff(path, image, /, *, meta=None, bigtiff=None) -> Path:
+def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=True, inputs=()) -> Path:
     """Write a frame or a stack ``(n, rows, cols)`` as a multi-page TIFF.
 
     ``meta`` (JSON-serialisable) goes into the ImageDescription so :func:`radiokit.io.read`
@@ -23,7 +26,8 @@ def write_tiff(path, image, /, *, meta=None, bigtiff=None) -> Path:
         image = image[None]
     if image.ndim != 3:
         raise ValueError(f"write_tiff: expected (rows, cols) or (n, rows, cols), got shape {image.shape}")
-    with StackWriter(path, image.shape[1:], image.dtype, meta=meta, bigtiff=bigtiff) as w:
+    with StackWriter(path, image.shape[1:], image.dtype, meta=meta, bigtiff=bigtiff, overwrite=overwrite,
+                     inputs=inputs) as w:
         for frame in image:
             w.append(frame)
     return path
@@ -37,22 +41,42 @@ class StackWriter:
     attributes of ``/entry/data`` (nested dicts as JSON). Each frame is flushed as written.
     ``n_frames``, when known, preallocates the HDF5 datasets (no resize per frame); a file closed
     early is shrunk to the frames written.
+
+    The file is written under a temporary name beside ``path`` and renamed into place by
+    :meth:`close` (see :func:`radiokit.io.atomic_path`); leaving the ``with`` block on an
+    exception removes it, so ``path`` is never a partial stack. ``overwrite=False`` refuses an
+    existing ``path``; ``inputs`` are files ``path`` must not be.
     """
 
     def __init__(self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True,
-                 n_frames=None):
+                 n_frames=None, inputs=()):
         self.path = Path(path)
         self.frame_shape = tuple(int(s) for s in frame_shape)
         self.dtype = np.dtype(dtype)
         self.meta = dict(meta or {})
         self.n = 0
         suffix = self.path.suffix.lower()
-        if not overwrite and self.path.exists():
-            raise FileExistsError(f"{self.path}: exists")
-        if suffix in (".h5", ".hdf5", ".nxs"):
-            self.kind = "hdf5"
+        if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
+            raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+        frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
+        self._atomic = atomic_path(self.path, overwrite=overwrite, inputs=inputs,
+                                   size_hint=(int(n_frames) * frame_bytes + 2**20) if n_frames else None)
+        tmp = self._atomic.__enter__()
+        try:
+            self._open(tmp, suffix, n_frames, bigtiff)
+        except BaseException as exc:
+            self._abort(exc)
+            if isinstance(exc, OSError) and exc.errno:  # h5py's text names the temporary file
+                raise OutputError(self.path, f"cannot be written: {os.strerror(exc.errno)}", exc.errno) from exc
+            raise
+
+    def _open(self, tmp, suffix, n_frames, bigtiff):
+        self.kind = "hdf5" if suffix in (".h5", ".hdf5", ".nxs") else "tiff"
+        self._h5 = self._tif = self._direct = self._ds = None
+        self._series = {}
+        if self.kind == "hdf5":
             # Chunks on 4 KiB boundaries so frames can bypass the page cache (see _DirectFrames).
-            self._h5 = h5py.File(self.path, "w", alignment_threshold=1 << 20, alignment_interval=4096)
+            self._h5 = h5py.File(tmp, "w", alignment_threshold=1 << 20, alignment_interval=4096)
             entry = self._h5.create_group("entry")
             entry.attrs["NX_class"] = "NXentry"
             grp = entry.create_group("data")
@@ -69,14 +93,10 @@ class StackWriter:
             self._ds = grp.create_dataset("data", shape=(self._alloc,) + self.frame_shape,
                                           maxshape=(None,) + self.frame_shape,
                                           chunks=(1,) + self.frame_shape, dtype=self.dtype, dcpl=dcpl)
-            self._series = {}
-            self._direct = _DirectFrames.open(self.path, self._ds) if self._alloc else None
-        elif suffix in (".tif", ".tiff"):
-            self.kind = "tiff"
-            frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
-            self._tif = tifffile.TiffWriter(self.path, bigtiff=True if bigtiff is None and frame_bytes > 2**28 else bool(bigtiff))
+            self._direct = _DirectFrames.open(tmp, self._ds) if self._alloc else None
         else:
-            raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+            frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
+            self._tif = tifffile.TiffWriter(tmp, bigtiff=True if bigtiff is None and frame_bytes > 2**28 else bool(bigtiff))
 
     def append(self, frame, **series):
         frame = np.asarray(frame)
@@ -104,24 +124,49 @@ class StackWriter:
                             description=desc, metadata=None)
         self.n += 1
 
-    def close(self):
-        if self.kind == "hdf5":
-            if self._direct:
-                self._direct.close()
-                self._direct = None
-            if self._h5.id.valid:
-                for ds in [self._ds, *self._series.values()]:
-                    if ds.shape[0] != self.n:
-                        ds.resize(self.n, axis=0)
-                self._h5.close()
-        else:
+    def _close_files(self):
+        if self._direct:
+            self._direct.close()
+            self._direct = None
+        if self._h5 is not None and self._h5.id.valid:
+            for ds in [self._ds, *self._series.values()]:
+                if ds is not None and ds.shape[0] != self.n:
+                    ds.resize(self.n, axis=0)
+            self._h5.close()
+        if self._tif is not None:
             self._tif.close()
+            self._tif = None
+
+    def _abort(self, exc):
+        """Drop the temporary file; a full disk is re-raised as :class:`DiskFullError`."""
+        try:
+            self._close_files()
+        except Exception:  # the file is discarded anyway; the first error is the one to report
+            pass
+        if self._atomic is not None:
+            atomic, self._atomic = self._atomic, None
+            atomic.__exit__(type(exc), exc, exc.__traceback__)
+
+    def close(self):
+        """Finish the file and rename it into place."""
+        if self._atomic is None:
+            return
+        try:
+            self._close_files()
+        except BaseException as exc:
+            self._abort(exc)
+            raise
+        atomic, self._atomic = self._atomic, None
+        atomic.__exit__(None, None, None)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, exc_type, exc, tb):
+        if exc is None:
+            self.close()
+        else:
+            self._abort(exc)
 
 
 class _DirectFrames:

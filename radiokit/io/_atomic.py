@@ -1,0 +1,308 @@
+"""Outputs that appear whole or not at all, and never replace what radiokit did not make.
+
+Every file radiokit writes goes to a temporary name beside its destination and is renamed into
+place (``os.replace``, atomic within one filesystem) only once complete; a results folder is
+assembled in a temporary sibling folder and swapped in. An interrupted run therefore leaves the
+previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
+-9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
+for output, and the next run writing the same output on that host removes it once its process is
+gone.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import re
+import secrets
+import shutil
+import socket
+from pathlib import Path
+
+from radiokit.errors import RadiokitError
+
+__all__ = ["atomic_path", "atomic_dir", "check_output", "OutputError", "OutputExistsError", "RESULTS_MARKER",
+           "DiskFullError", "is_disk_full",
+           "atomic_h5", "check_free_space"]
+
+#: written into every results folder radiokit assembles: only such folders may be replaced
+RESULTS_MARKER = ".radiokit-output"
+
+
+class OutputError(RadiokitError, OSError):
+    """An output cannot be written where asked (it is an input, or not radiokit's to replace)."""
+
+    def __init__(self, path, problem, err=errno.EINVAL):
+        self.path, self.problem = str(path), problem
+        OSError.__init__(self, err, problem)
+
+    def __str__(self):
+        return f"{self.path}: {self.problem}"
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output exists and ``overwrite`` was not given."""
+
+    def __init__(self, path):
+        super().__init__(path, "exists; pass --overwrite (overwrite=True) to replace it", errno.EEXIST)
+
+
+class DiskFullError(OutputError):
+    """The disk (or quota) is, or filled while writing, too full; the partial output was removed."""
+
+    def __init__(self, path, detail=""):
+        super().__init__(path, f"no space left on the device{detail}; nothing was written (the partial "
+                               "output was removed)", errno.ENOSPC)
+
+
+def _human(n) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def check_free_space(path, nbytes) -> None:
+    """Refuse, before writing, an output of about ``nbytes`` that cannot fit beside ``path``.
+
+    Failing before the first byte is the clean way: libhdf5 reports a full disk in the middle of
+    a write through destructors, and has crashed the interpreter afterwards.
+    """
+    folder = Path(path).parent
+    while not folder.exists():
+        folder = folder.parent
+    usage = shutil.disk_usage(folder)
+    free = usage.free
+    if usage.total and nbytes > free:  # total 0: a pseudo filesystem; let the write say what is wrong
+        raise DiskFullError(path, f" (needs about {_human(nbytes)}, {_human(free)} free)")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """``exc`` (or what caused it) is a full disk or quota; h5py reports the errno only in its text."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(exc) or "errno = 28" in str(exc):
+            return True
+        # numpy's tofile (tifffile's writer) reports a short write without an errno; on a
+        # regular file that is a full disk or quota
+        if isinstance(exc, OSError) and exc.errno is None and re.fullmatch(r"\d+ requested and \d+ written",
+                                                                           str(exc)):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _same(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` name the same file: same path after resolving links, or same inode (hard link)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _inside(inner: Path, outer: Path) -> bool:
+    inner, outer = inner.resolve(), outer.resolve()
+    return inner == outer or outer in inner.parents
+
+
+def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
+    """Refuse an output that is an input (even with ``overwrite``), or exists without ``overwrite``.
+
+    Parameters
+    ----------
+    path : path-like
+        The file (or, with ``folder=True``, the results folder) to be written.
+    overwrite : bool
+        Allow replacing an existing output radiokit made.
+    inputs : iterable of path-like
+        Files the run reads. An output that is one of them (the same path, a symlink to it or a
+        hard link), or a folder holding one, is refused.
+    folder : bool
+        ``path`` is a results folder: it may be replaced only if it is empty or radiokit made it
+        (it holds :data:`RESULTS_MARKER`).
+
+    Raises
+    ------
+    OutputError, OutputExistsError
+    """
+    path = Path(path)
+    for src in inputs:
+        src = Path(src)
+        if (folder and _inside(src, path)) or (not folder and src.exists() and path.exists() and _same(src, path)) \
+                or src.resolve() == path.resolve():
+            raise OutputError(path, f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
+                                    f"input {src}: an input is never overwritten; choose another output")
+    if not (path.exists() or path.is_symlink()):
+        return path
+    if folder:
+        if not path.is_dir() or path.is_symlink():
+            raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
+        if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
+            raise OutputError(path, "exists, is not empty and was not made by radiokit; it is never "
+                                    "replaced: choose a new folder")
+        if not any(path.iterdir()):
+            return path  # an empty folder holds nothing to lose
+    elif path.is_dir():
+        raise OutputError(path, "is a folder; expected a file name")
+    if not overwrite:
+        raise OutputExistsError(path)
+    return path
+
+
+def _files(folder: Path) -> set[str]:
+    """Every file under ``folder`` (relative, "/"-separated), the marker left out."""
+    out = set()
+    for root, _, names in os.walk(folder):
+        for name in names:
+            out.add(Path(root, name).relative_to(folder).as_posix())
+    out.discard(RESULTS_MARKER)
+    return out
+
+
+def _manifest(folder: Path) -> set[str]:
+    """The files the marker says radiokit wrote (its lines after the first)."""
+    lines = (folder / RESULTS_MARKER).read_text(errors="replace").splitlines()
+    return {line for line in lines[1:] if line}
+
+
+def _owner_tag() -> str:
+    return f"{socket.gethostname().split('.')[0]}-{os.getpid()}"
+
+
+def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
+    """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path`` (``old`` for a folder being replaced); a file
+    keeps its suffix last, since writers choose the format from it (StackWriter, matplotlib)."""
+    tag = f"{kind}-{_owner_tag()}-{secrets.token_hex(4)}"
+    return path.with_name(f".{path.name}.{tag}" if folder else f".{path.stem}.{tag}{path.suffix}")
+
+
+def _remove_stale(path: Path, folder=False) -> None:
+    """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
+    gone): only names radiokit makes, never anything else."""
+    host = socket.gethostname().split(".")[0]
+    for kind in ("tmp", "old") if folder else ("tmp",):
+        pattern = f".{path.name}.{kind}-{host}-*" if folder else f".{path.stem}.{kind}-{host}-*{path.suffix}"
+        for old in path.parent.glob(pattern):
+            m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
+            if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+                _remove(old)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # alive, another user's
+        return True
+    return True
+
+
+def _fsync(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some filesystems (and directories on some systems) refuse: best effort
+        pass
+    finally:
+        os.close(fd)
+
+
+def _remove(path: Path) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink()
+
+
+@contextlib.contextmanager
+def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
+    """Yield a temporary name beside ``path``; on success rename it to ``path``, else remove it.
+
+    >>> import os, tempfile
+    >>> from radiokit.io import atomic_path
+    >>> out = os.path.join(tempfile.mkdtemp(), "a.txt")
+    >>> with atomic_path(out) as tmp:
+    ...     _ = tmp.write_text("complete")
+    >>> open(out).read()
+    'complete'
+
+    The checks of :func:`check_output` run first, and with ``size_hint`` (bytes) the free space. A full disk (``ENOSPC``/``EDQUOT``) becomes a
+    :class:`DiskFullError` that says so and that nothing was written.
+    """
+    path = check_output(path, overwrite=overwrite, inputs=inputs)
+    if size_hint:
+        check_free_space(path, size_hint)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale(path)
+    tmp = _temporary_name(path)
+    try:
+        yield tmp
+        if not (tmp.exists() or tmp.is_symlink()):
+            raise OutputError(path, "the writer produced no file")
+        _fsync(tmp)  # the bytes are on disk before the name is: a power cut leaves old or new
+        os.replace(tmp, path)
+        _fsync(path.parent)
+    except BaseException as exc:
+        _remove(tmp)
+        if is_disk_full(exc):
+            raise DiskFullError(path) from exc
+        raise
+
+
+@contextlib.contextmanager
+def atomic_h5(path, *, overwrite=False, inputs=()):
+    """Yield a new HDF5 file built in memory; on success write it out with :func:`atomic_path`.
+
+    For outputs small enough to hold in memory (results, fields, calibrations): the bytes reach
+    the disk through one ordinary write, so a full disk is a clean :class:`DiskFullError`.
+    """
+    import h5py
+
+    check_output(path, overwrite=overwrite, inputs=inputs)
+    with h5py.File(f"{path}-in-memory", "w", driver="core", backing_store=False) as h5:
+        yield h5
+        h5.flush()
+        image = h5.id.get_file_image()
+    with atomic_path(path, overwrite=overwrite, inputs=inputs, size_hint=len(image)) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(image)
+
+
+@contextlib.contextmanager
+def atomic_dir(path, *, overwrite=False, inputs=()):
+    """Yield a temporary sibling folder; on success swap it in for ``path``, else remove it.
+
+    The previous folder (only replaced with ``overwrite``, and only if radiokit made it) is
+    renamed aside, the new one renamed into place, then the old one removed: at every instant
+    ``path`` is the previous complete output, the new complete output, or absent.
+    """
+    path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True)
+    strangers = sorted(_files(path) - _manifest(path)) if (path / RESULTS_MARKER).exists() else []
+    if strangers:
+        raise OutputError(path, f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
+                                "it is never replaced: move them or choose a new folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale(path, folder=True)
+    tmp = _temporary_name(path, folder=True)
+    try:
+        tmp.mkdir()
+        yield tmp
+        (tmp / RESULTS_MARKER).write_text("made by radiokit; may be replaced by a run with --overwrite. Files:\n"
+                                          + "".join(f"{name}\n" for name in sorted(_files(tmp))))
+        old = None
+        if path.exists():
+            old = _temporary_name(path, folder=True, kind="old")
+            os.rename(path, old)
+        os.rename(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException as exc:
+        _remove(tmp)
+        if is_disk_full(exc):
+            raise DiskFullError(path) from exc
+        raise

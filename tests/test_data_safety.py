@@ -1,0 +1,438 @@
+"""Nothing radiokit did not make is overwritten or deleted; outputs are complete or absent.
+
+Every case runs the real ``radiokit`` command in a subprocess on real files, then checks that the
+inputs' SHA-256 are unchanged and that each output is either the previous complete one, a new
+complete one, or absent (no temporary file left beside it either, except after a kill -9).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, read
+
+ROOT = Path(__file__).resolve().parents[1]
+ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
+
+
+def run(*args, cwd=None, env=None):
+    return subprocess.run([sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})})
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def tree_sha(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): sha(p) for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def one_line_error(res, *needles):
+    """Exit code 2, no traceback, one line on stderr naming every needle."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, res.stderr
+    for needle in needles:
+        assert str(needle) in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def no_temporaries(folder: Path):
+    left = [p.name for p in Path(folder).iterdir() if ".tmp-" in p.name or ".old-" in p.name]
+    assert not left, left
+
+
+def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
+    """A slab thinned by compression with a denser square (pipeline's test experiment); with
+    ``noise`` counts of Gaussian noise, so that outputs do not compress to nothing."""
+    rng = np.random.default_rng(0)
+    rows, cols = shape
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
+    with ExperimentWriter(path, shape=shape) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
+            L = scale * (0.08 * tb + 0.03 * ti * sq)
+            for _ in range(n_per_step):
+                counts = 100 + 3000 * np.exp(-L) + rng.normal(0, noise, shape)
+                w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step,
+                         ratio=0.1 * step)
+    return path
+
+
+@pytest.fixture
+def experiment(tmp_path):
+    return synthetic(tmp_path / "exp.h5")
+
+
+@pytest.fixture
+def images(tmp_path):
+    rr, cc = np.mgrid[0:64, 0:64]
+    fixed, moving = tmp_path / "fixed.tif", tmp_path / "moving.tif"
+    tifffile.imwrite(fixed, np.exp(-((rr - 32) ** 2 + (cc - 30) ** 2) / 200.0).astype(np.float32))
+    tifffile.imwrite(moving, np.exp(-((rr - 33) ** 2 + (cc - 31) ** 2) / 200.0).astype(np.float32))
+    return fixed, moving
+
+
+def _commands(exp, images, out):
+    """Each output-writing subcommand, writing ``out`` (whose suffix it gets)."""
+    fixed, moving = images
+    return {
+        "calibrate": ["calibrate", "--experiment", exp, "-o", out.with_suffix(".h5")],
+        "correct": ["correct", exp, "-q", "-o", out.with_suffix(".h5")],
+        "correct-tiff": ["correct", exp, "-q", "-o", out.with_suffix(".tif")],
+        "register": ["register", fixed, moving, "-o", out.with_suffix(".h5")],
+        "register-png": ["register", fixed, moving, "-o", out.parent / "reg-field.h5", "--png", out.with_suffix(".png")],
+    }
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
+def test_an_existing_output_needs_overwrite(cmd, experiment, images, tmp_path):
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    out.write_bytes(b"a file the user cares about")
+    before = {p: sha(p) for p in (experiment, *images)}
+    res = run(*args)
+    one_line_error(res, out.name, "exists", "--overwrite")
+    assert out.read_bytes() == b"a file the user cares about"
+    res = run(*args, "--overwrite")
+    assert res.returncode in (0, 1), res.stderr  # register exits 1 for an untrustworthy field
+    assert out.read_bytes() != b"a file the user cares about"
+    if out.suffix == ".png":
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    elif out.suffix == ".tif":
+        assert read(out).n == 3  # the three projections
+    elif cmd == "correct":
+        assert read(out, dataset="entry/data/data").n == 3
+    else:
+        assert h5py.is_hdf5(out)
+    assert {p: sha(p) for p in before} == before
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("how", ["same", "symlink", "hardlink"])
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "register"])
+def test_an_output_that_is_an_input_is_refused_even_with_overwrite(cmd, how, experiment, images, tmp_path):
+    fixed, moving = images
+    target = fixed if cmd == "register" else experiment
+    if how == "same":
+        out = target
+    elif how == "symlink":
+        out = tmp_path / f"link{target.suffix}"
+        out.symlink_to(target)
+    else:
+        out = tmp_path / "sub" / f"hard{target.suffix}"
+        out.parent.mkdir()
+        os.link(target, out)
+    args = {"calibrate": ["calibrate", "--experiment", experiment],
+            "correct": ["correct", experiment, "-q"],
+            "register": ["register", fixed, moving]}[cmd]
+    before = {p: sha(p) for p in (experiment, fixed, moving)}
+    res = run(*args, "-o", out, "--overwrite")
+    one_line_error(res, out.name, "input", target.name)
+    assert {p: sha(p) for p in before} == before
+
+
+def test_correct_refuses_to_write_over_its_calibration(experiment, tmp_path):
+    cal = tmp_path / "cal.h5"
+    assert run("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    before = sha(cal)
+    one_line_error(run("correct", experiment, "--cal", cal, "-o", cal, "--overwrite", "-q"), "cal.h5", "input")
+    assert sha(cal) == before
+
+
+def test_process_gives_inputs_with_the_same_name_distinct_folders(tmp_path):
+    a, b = tmp_path / "a" / "run.h5", tmp_path / "b" / "run.h5"
+    for p, scale in ((a, 1.0), (b, 1.3)):
+        p.parent.mkdir()
+        synthetic(p, scale)
+    before = {p: sha(p) for p in (a, b)}
+    res = run("process", a, b, "-o", tmp_path / "out", "--no-report", "-q", "--workers", "1", *ROI)
+    assert res.returncode == 0, res.stderr
+    sources = {d.name: json.loads((tmp_path / "out" / d.name / "results.json").read_text())["source"]
+               for d in (tmp_path / "out").iterdir()}
+    assert sources == {"run": str(a), "run-2": str(b)}
+    assert {p: sha(p) for p in before} == before
+
+
+def test_process_never_writes_over_its_input_named_results_h5(tmp_path):
+    folder = tmp_path / "data"
+    folder.mkdir()
+    exp = synthetic(folder / "results.h5")
+    before = sha(exp)
+    # into its own folder: that folder holds the input, refused even with --overwrite
+    one_line_error(run("process", exp, "-o", folder, "--overwrite", "--no-report", "-q", *ROI), "data", "input")
+    assert sha(exp) == before and sorted(p.name for p in folder.iterdir()) == ["results.h5"]
+    # the default, a folder beside it named after it, leaves it alone
+    res = run("process", exp, "--no-report", "-q", *ROI)
+    assert res.returncode == 0, res.stderr
+    assert sha(exp) == before and (folder / "results" / "results.h5").is_file()
+
+
+def test_process_replaces_only_its_own_results_folder(experiment, tmp_path):
+    out = tmp_path / "res"
+    assert run("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode == 0
+    first = tree_sha(out)
+    assert set(first) == {RESULTS_MARKER, "results.h5", "results.json"}
+    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", *ROI), "res", "--overwrite")
+    assert tree_sha(out) == first
+    assert run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI).returncode == 0
+    assert set(tree_sha(out)) == set(first)
+    # a file radiokit did not write there: never deleted, so the folder is not replaced
+    (out / "notes.txt").write_text("mine")
+    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI),
+                   "res", "notes.txt")
+    assert (out / "notes.txt").read_text() == "mine"
+    # a folder radiokit did not make: refused even with --overwrite
+    other = tmp_path / "theirs"
+    other.mkdir()
+    (other / "data.csv").write_text("1,2,3")
+    one_line_error(run("process", experiment, "-o", other, "--no-report", "-q", "--overwrite", *ROI), "theirs")
+    assert (other / "data.csv").read_text() == "1,2,3"
+    no_temporaries(tmp_path)
+
+
+def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
+    (tmp_path / "experiment.h5").write_bytes(b"the user's own experiment")
+    for extra in ([], ["--overwrite"]):
+        res = run("demo", "-o", ".", "-q", *extra, cwd=tmp_path)
+        one_line_error(res, "not made by radiokit")
+    assert (tmp_path / "experiment.h5").read_bytes() == b"the user's own experiment"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["experiment.h5"]
+
+
+def test_demo_replaces_only_its_own_outputs(tmp_path):
+    from acquisition.demo import _demo_folder
+
+    out = _demo_folder(tmp_path / "demo", overwrite=False)  # a new folder: claimed
+    (out / "experiment.h5").write_bytes(b"old demo run")
+    (out / "results").mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        _demo_folder(out, overwrite=False)
+    _demo_folder(out, overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == sorted([RESULTS_MARKER, "notes.txt"])
+
+
+# -- interrupted writes ------------------------------------------------------------------------
+def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIGKILL):
+    """Send ``sig`` to ``proc`` as soon as a path matching ``glob`` appears in ``pattern_dir``."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if list(pattern_dir.glob(glob)):
+            proc.send_signal(sig)
+            proc.wait()
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.002)
+    proc.kill()
+    proc.wait()
+    return False
+
+
+def _popen(*args):
+    return subprocess.Popen([sys.executable, "-m", "radiokit.cli", *map(str, args)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
+    exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
+    out = tmp_path / "out.h5"
+    assert run("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    previous, inputs = sha(out), sha(exp)
+    proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
+    assert _kill_when(proc, tmp_path, ".out.tmp-*"), "the run ended before its temporary file was seen"
+    assert sha(out) == previous and sha(exp) == inputs
+    assert read(out, dataset="entry/data/data").n == 60
+    # with no previous output: none afterwards either (only the hidden temporary may remain)
+    out.unlink()
+    proc = _popen("correct", exp, "-o", out, "-q")
+    assert _kill_when(proc, tmp_path, ".out.tmp-*")
+    assert not out.exists() and sha(exp) == inputs
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
+    """A catchable signal (a closed terminal, ``kill``, Ctrl-C) unwinds: the previous output
+    stays, and no temporary file is left either. (Python drops an exception raised while a
+    finalizer runs; a signal landing there is lost and the run completes: then the output is the
+    new complete one. Both are whole outputs, never a mix.)"""
+    exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
+    out = tmp_path / "out.h5"
+    assert run("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    previous, inputs = sha(out), sha(exp)
+    proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
+    assert _kill_when(proc, tmp_path, ".out.tmp-*", sig=sig)
+    assert proc.returncode in (130, 0)
+    if proc.returncode == 130:
+        assert sha(out) == previous
+    assert read(out, dataset="entry/data/data").n == 60 and sha(exp) == inputs
+    no_temporaries(tmp_path)
+
+
+def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    out = tmp_path / "res"
+    assert run("process", exp, "-o", out, "-q", *ROI).returncode == 0  # with the report: many files
+    previous, inputs = tree_sha(out), sha(exp)
+    assert "report.html" in previous
+    proc = _popen("process", exp, "-o", out, "-q", "--overwrite", *ROI)
+    assert _kill_when(proc, tmp_path, ".res.tmp-*/results.h5")
+    assert tree_sha(out) == previous and sha(exp) == inputs
+
+
+# -- full disk ---------------------------------------------------------------------------------
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MiB tmpfs (needs root); None where mounting is not permitted."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True)
+    if ok.returncode != 0:
+        yield None
+        return
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
+
+
+def _full_disk_run(small_disk, *args):
+    """Run the command writing onto the small disk, or, where no tmpfs can be mounted, with
+    ``shutil.disk_usage`` faked to report 1000 bytes free (an injected ENOSPC: the only way to
+    fill a disk without privileges)."""
+    if small_disk is not None:
+        return run(*args)
+    code = ("import shutil, sys; from collections import namedtuple; from radiokit.cli import main; "
+            "shutil.disk_usage = lambda p: namedtuple('u', 'total used free')(10**6, 10**6 - 1000, 1000); "
+            "sys.exit(main(sys.argv[1:]))")
+    return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_correct_on_a_full_disk(small_disk, suffix, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), n_per_step=2)  # 6 x 256 KiB out: > 1 MiB
+    disk = small_disk or (tmp_path / "fake-disk")
+    disk.mkdir(exist_ok=True)
+    before = sha(exp)
+    res = _full_disk_run(small_disk, "correct", exp, "-q", "-o", disk / f"out{suffix}")
+    one_line_error(res, f"out{suffix}", "no space left")
+    assert list(disk.iterdir()) == [] and sha(exp) == before
+
+
+def test_process_on_a_full_disk(small_disk, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), noise=30.0)  # results.h5 > 1 MiB
+    disk = small_disk or (tmp_path / "fake-disk")
+    disk.mkdir(exist_ok=True)
+    before = sha(exp)
+    res = _full_disk_run(small_disk, "process", exp, "-q", "-o", disk / "res", *ROI)
+    one_line_error(res, "res", "no space left")
+    assert list(disk.iterdir()) == [] and sha(exp) == before
+
+
+def test_a_stack_that_fills_the_disk_mid_write_is_removed(small_disk, tmp_path):
+    """No size known in advance (no free-space check first): the disk fills inside libhdf5 or
+    tifffile, and the error is still one clean exception with no file left behind."""
+    if small_disk is None:
+        pytest.skip("needs a real full disk (a tmpfs mount, as root): the failure is inside libhdf5")
+    for suffix in (".h5", ".tif"):
+        code = ("import numpy as np; from radiokit.io import StackWriter\n"
+                f"with StackWriter({str(small_disk / ('s' + suffix))!r}, (256, 256)) as w:\n"
+                "    for i in range(12): w.append(np.full((256, 256), i, np.float32))\n")
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        assert res.returncode == 1 and "DiskFullError" in res.stderr and "no space left" in res.stderr
+        assert list(small_disk.iterdir()) == []
+
+
+def test_a_tiff_with_a_corrupt_fifth_page_is_an_error_not_a_shorter_stack(experiment, tmp_path):
+    frames = read(experiment)
+    proj = frames.data[frames.meta["image_key"] == 0]
+    stack = np.concatenate([proj, proj, proj[:2]])  # 8 pages
+    good = tmp_path / "good.tif"
+    tifffile.imwrite(good, stack, compression="zlib")
+    with tifffile.TiffFile(good) as tif:
+        ifd = tif.pages[4].offset
+    data = bytearray(good.read_bytes())
+    data[ifd + 2:ifd + 40] = b"\xff" * 38  # the 5th page's first tag entries
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(bytes(data))
+    before = sha(bad)
+    res = run("correct", bad, "--cal", _cal(experiment, tmp_path), "-q", "-o", tmp_path / "out.h5")
+    one_line_error(res, "bad.tif", "page 4")
+    assert not (tmp_path / "out.h5").exists() and sha(bad) == before
+
+
+def _cal(experiment, tmp_path):
+    cal = tmp_path / "cal.h5"
+    assert run("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    return cal
+
+
+def test_sim_run_refuses_before_the_mechanics(tmp_path):
+    from sim.scene import load_scene
+
+    scene = load_scene("seed-breast").save(tmp_path / "scene.toml")
+    old = tmp_path / "old.h5"
+    old.write_bytes(b"a previous simulation")
+    before = sha(scene)
+    one_line_error(run("sim", "run", "--preset", "seed-breast", "-o", old, "-q"), "old.h5", "--overwrite")
+    assert old.read_bytes() == b"a previous simulation"
+    # the scene file is an input: neither the experiment nor --save-scene may replace it
+    one_line_error(run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
+                   "scene.toml", "input")
+    assert sha(scene) == before and not (tmp_path / "new.h5").exists()
+
+
+def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path):
+    import socket
+
+    from radiokit.io import atomic_path
+
+    out = tmp_path / "cal.h5"
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()  # a process that has ended
+    stale = tmp_path / f".cal.tmp-{host}-{dead}-0123abcd.h5"
+    stale.write_bytes(b"half a calibration")
+    alive = tmp_path / f".cal.tmp-{host}-{os.getpid()}-0123abcd.h5"  # a live writer's: kept
+    alive.write_bytes(b"being written")
+    mine = tmp_path / ".cal.tmp-notes.h5"  # not a name radiokit makes: kept
+    mine.write_bytes(b"the user's")
+    assert run("calibrate", "--experiment", experiment, "-o", out).returncode == 0
+    assert not stale.exists() and alive.exists() and mine.exists() and h5py.is_hdf5(out)
+    with atomic_path(tmp_path / "x.txt") as tmp:
+        assert tmp.name.startswith(f".x.tmp-{host}-{os.getpid()}-") and tmp.suffix == ".txt"
+        tmp.write_text("whole")
+    assert (tmp_path / "x.txt").read_text() == "whole"
+
+
+def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, tmp_path):
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    stale = [tmp_path / f".res.{kind}-{host}-{dead}-0123abcd" for kind in ("tmp", "old")]
+    for folder in stale:
+        folder.mkdir()
+        (folder / "results.h5").write_bytes(b"half")
+    assert run("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
+    assert not any(folder.exists() for folder in stale)
+    no_temporaries(tmp_path)
