@@ -1,0 +1,223 @@
+"""The paper's headline numbers measured on a simulated pair, with the truth where it helps.
+
+A study of the method (not of the processing chain) needs the headline numbers -- change ratio,
+improvement factor IF(k), contrast-to-noise ratio, and the bound IF cannot exceed
+(:func:`radiokit.measure.improvement_bound`) -- for a scene and a modelling choice, quickly and
+without the registration's error unless that error is the point. :func:`image_pair` projects the
+two most compressed states on a small detector, registers the moving one with the truth field
+(or the truth plus a known error, :func:`degraded_field`), and :func:`headline` measures it the
+way ``radiokit.pipeline`` measures a file: ROIs from :func:`radiokit.measure.find_rois` on the
+inclusion's shadow, both domains, every k.
+
+Example (an axisymmetric cylinder through the plates, about a second)::
+
+    >>> from sim.mechanics import compress
+    >>> from sim.scene import Body, Inclusion, Material, MeshSpec, Compression, Scene
+    >>> gel = Material("gel", E_kpa=5.0, nu=0.495, attenuation_per_cm=0.5)
+    >>> hard = Material("hard", E_kpa=5000.0, nu=0.495, attenuation_per_cm=1.0)
+    >>> sc = Scene(body=Body("cylinder", height_mm=50.0, diameter_mm=50.0, material=gel),
+    ...            inclusions=[Inclusion("sphere", diameter_mm=8.0, material=hard)],
+    ...            compression=Compression((0.20, 0.25)), mesh=MeshSpec(1.0, 5.0))
+    >>> h = headline(image_pair(sc, compress(sc), pixel_mm=0.25))
+    >>> round(h.improvement["linear"]["1"], 3), round(h.bound["linear"]["1"], 3)
+    (1.114, 1.118)
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["ImagePair", "Headline", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
+           "bound_exponent", "with_field", "replace_materials"]
+
+
+@dataclass
+class ImagePair:
+    """The paper's pair on one detector grid: line integrals ``-ln(I/I0)``.
+
+    Attributes
+    ----------
+    reference, moving : (rows, cols) float64
+        The most compressed step and the step before it.
+    registered : (rows, cols) float64
+        ``moving`` pulled onto the reference (``moving(x + d(x))``).
+    field : (2, rows, cols) float32
+        The pull field used, pixels.
+    truth : (2, rows, cols) float32
+        The truth field (:func:`sim.truth.truth_displacement`).
+    inclusion_mask : (rows, cols) bool
+        Rays through the inclusion in the reference.
+    pixel_mm : float
+    mu_dg : float or None
+        ``mu_b * delta_g`` of :func:`bound_exponent`; None when the beam is not through the plates.
+    view : str
+        ``through_plates`` or ``side``.
+    """
+
+    reference: np.ndarray
+    moving: np.ndarray
+    registered: np.ndarray
+    field: np.ndarray
+    truth: np.ndarray
+    inclusion_mask: np.ndarray
+    pixel_mm: float
+    mu_dg: float | None
+    view: str
+
+
+@dataclass
+class Headline:
+    """The numbers of one pair. Dictionaries are keyed by domain (``log``, ``linear``), then by
+    k as a string (``"1"``, ``"2"``), as in ``results.json``."""
+
+    change_ratio: dict
+    improvement: dict
+    contrast_reference: dict
+    cnr_reference: dict = field(default_factory=dict)
+    cnr: dict = field(default_factory=dict)
+    bound: dict = field(default_factory=dict)
+    inclusion: object = None
+    background: object = None
+
+
+def study_geometry(scene, pixel_mm=0.25, margin=1.35):
+    """A square detector of ``pixel_mm`` pixels covering the body (expanded by ``margin`` for the
+    lateral bulge and magnified for cone beams): the scene's beam, a small grid."""
+    from sim.xray import Geometry, body_centre
+
+    b = scene.body
+    if b.geometry in ("hemi-ellipsoid", "ellipsoid"):
+        extent = 2 * max(b.semi_axes_mm)
+    elif b.geometry in ("truncated-cone", "cylinder"):
+        extent = max(b.height_mm, b.bottom_diameter_mm, b.top_diameter_mm, b.diameter_mm)
+    else:
+        extent = max(b.size_mm)
+    beam = scene.beam
+    mag = 1.0 if beam.kind == "parallel" else (beam.source_distance_mm + beam.detector_distance_mm) / beam.source_distance_mm
+    n = int(math.ceil(extent * margin * mag / pixel_mm))
+    return Geometry(beam.kind, beam.direction, (n, n), pixel_mm, body_centre(scene), beam.source_distance_mm,
+                    beam.detector_distance_mm)
+
+
+def bound_exponent(scene, moving, reference) -> float | None:
+    """``mu_b * delta_g``: the background's attenuation times how much the gap closed between two
+    states; None when the beam does not run through the plates (the bound does not hold)."""
+    if scene.beam.direction != "y":
+        return None
+    return scene.body.material.attenuation_per_mm * (moving.gap_mm - reference.gap_mm)
+
+
+def degraded_field(truth, error_px, *, kind="smooth", seed=0, scale_px=None):
+    """The truth field plus a known error of root-mean-square magnitude ``error_px`` (over the
+    whole grid), for the registration's share of the headline.
+
+    ``smooth``: a random field low-pass filtered on ``scale_px`` (default a tenth of the grid), the
+    error a smooth registration makes; ``scale``: the truth times ``1 + error`` (a registration
+    that under- or over-estimates the motion), ``error_px`` then being the relative error.
+    """
+    from scipy import ndimage
+
+    truth = np.asarray(truth, np.float64)
+    if kind == "scale":
+        return (truth * (1.0 + error_px)).astype(np.float32)
+    if kind != "smooth":
+        raise ValueError(f"kind {kind!r}: expected 'smooth' or 'scale'")
+    rng = np.random.default_rng(seed)
+    s = scale_px if scale_px is not None else max(2.0, truth.shape[1] / 10)
+    noise = np.stack([ndimage.gaussian_filter(rng.standard_normal(truth.shape[1:]), s, mode="wrap") for _ in range(2)])
+    rms = float(np.sqrt((noise ** 2).sum(axis=0).mean()))
+    return (truth + noise * (error_px / rms if rms > 0 else 0.0)).astype(np.float32)
+
+
+def add_noise(line_integral, counts, rng):
+    """Poisson noise of ``counts`` open-beam quanta per pixel: ``-ln(Poisson(counts e^-L) / counts)``
+    (a zero count is kept at one quantum: no infinite line integral)."""
+    q = rng.poisson(counts * np.exp(-np.asarray(line_integral, np.float64)))
+    return -np.log(np.maximum(q, 1) / counts)
+
+
+def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image_transform=None,
+               truth_factor=4) -> ImagePair:
+    """Project the last two states of ``states`` (one ``compress`` call) and register the moving
+    one with ``field`` (default: the truth).
+
+    ``image_transform(L) -> L`` (optional) is applied to both noise-free line integrals before
+    registration: beam hardening, scatter, blur or noise models of an ablation study.
+    ``truth_factor``: the truth field's coarsening (:func:`sim.truth.truth_displacement`; the
+    field is smooth on the elements' scale, and the full grid costs ten times more).
+    """
+    from radiokit.register import warp
+    from sim.truth import truth_displacement
+    from sim.xray import path_lengths
+
+    moving, reference = states[-2], states[-1]
+    solver = reference.solver
+    geom = geometry if geometry is not None else study_geometry(scene, pixel_mm)
+    fem = getattr(solver, "projection_mesh", None) or solver.fem
+    thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
+    mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
+    images, mask = [], None
+    for s in (moving, reference):
+        lengths = path_lengths(fem, geom, s.displacement, thickness_mm=thickness)
+        images.append(np.tensordot(mus[:len(lengths)], lengths, axes=1))
+        mask = lengths[1:].sum(axis=0) > 0
+    if image_transform is not None:
+        images = [np.asarray(image_transform(im), np.float64) for im in images]
+    truth = truth_displacement(scene, reference, moving, geometry=geom, factor=truth_factor)
+    used = truth if field is None else np.asarray(field, np.float32)
+    registered = warp(images[0].astype(np.float32), used).astype(np.float64)
+    view = "through_plates" if geom.direction == "y" else "side"
+    return ImagePair(images[1], images[0], registered, used, truth, mask, float(geom.pixel_size_mm),
+                     bound_exponent(scene, moving, reference), view)
+
+
+def with_field(pair: ImagePair, field) -> ImagePair:
+    """The same pair registered with another pull ``field`` (e.g. :func:`degraded_field`)."""
+    from radiokit.register import warp
+
+    field = np.asarray(field, np.float32)
+    registered = warp(pair.moving.astype(np.float32), field).astype(np.float64)
+    return dataclasses.replace(pair, registered=registered, field=field)
+
+
+def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
+    """Change ratio, IF(k), contrast and CNR (where the background has noise) in both domains,
+    and the bound where the beam runs through the plates. ``rois``: (inclusion, background)
+    ROIs, default :func:`radiokit.measure.find_rois` on the reference and its inclusion mask."""
+    from radiokit.enhance import compression_contrast, to_domain
+    from radiokit.measure import change_ratio, cnr, contrast, find_rois, improvement_bound, improvement_factor
+
+    if rois is None:
+        rois = find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)
+    inc, bg = rois
+    out = Headline({}, {}, {}, inclusion=inc, background=bg)
+    for dom in ("log", "linear"):
+        ref, reg = to_domain(pair.reference, dom), to_domain(pair.registered, dom)
+        out.change_ratio[dom] = change_ratio(reg, ref, inc, bg)
+        out.contrast_reference[dom] = contrast(ref, inc, bg)
+        noisy = float(np.std(ref[bg.slices])) > 0
+        out.cnr_reference[dom] = cnr(ref, inc, bg) if noisy else math.nan
+        out.improvement[dom], out.cnr[dom], out.bound[dom] = {}, {}, {}
+        for k in ks:
+            key = f"{float(k):g}"
+            enh = compression_contrast(ref, reg, float(k), domain=dom)
+            out.improvement[dom][key] = improvement_factor(enh, ref, inc, bg)
+            out.cnr[dom][key] = cnr(enh, inc, bg) if noisy else math.nan
+            out.bound[dom][key] = (improvement_bound(float(k), 1.0, pair.mu_dg, dom) if pair.mu_dg is not None
+                                   else None)
+    return out
+
+
+def replace_materials(scene, *, body=None, inclusion=None):
+    """A copy of ``scene`` with the body's and/or every inclusion's material fields replaced
+    (``dict`` of :class:`sim.scene.Material` fields)."""
+    sc = dataclasses.replace(scene)
+    if body:
+        sc.body = dataclasses.replace(scene.body, material=dataclasses.replace(scene.body.material, **body))
+    if inclusion:
+        sc.inclusions = [dataclasses.replace(i, material=dataclasses.replace(i.material, **inclusion))
+                         for i in scene.inclusions]
+    return sc
