@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["ImagePair", "Headline", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
-           "bound_exponent", "with_field", "replace_materials"]
+           "bound_exponent", "with_field", "replace_materials",
+           "find_inclusion_roi"]
 
 
 @dataclass
@@ -181,6 +182,13 @@ def with_field(pair: ImagePair, field) -> ImagePair:
     field = np.asarray(field, np.float32)
     registered = warp(pair.moving.astype(np.float32), field).astype(np.float64)
     return dataclasses.replace(pair, registered=registered, field=field)
+
+
+def find_inclusion_roi(pair: ImagePair):
+    """The inclusion ROI :func:`headline` uses by default."""
+    from radiokit.measure import find_rois
+
+    return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)[0]
 
 
 def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
