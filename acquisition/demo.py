@@ -120,6 +120,10 @@ def headline(summary) -> str:
     for k in ("1", "2"):
         row(f"improvement factor, k = {k}", lambda x, d, k=k: x["domains"][d]["improvement_factor"].get(k),
             {"1": "about 1.4", "2": "about 2"}[k])
+        row(f"  bound (rigid inclusion), k = {k}", lambda x, d, k=k: (x["domains"][d].get("bound") or {}).get(k))
+    row("CNR reference", lambda x, d: x["domains"][d].get("cnr_reference"))
+    for k in ("1", "2"):
+        row(f"CNR enhanced, k = {k}", lambda x, d, k=k: (x["domains"][d].get("cnr") or {}).get(k))
     for pair in r["change_ratio"]:
         row(f"change ratio incl/bg, {pair}", lambda x, d, p=pair: x["change_ratio"].get(p, {}).get(d),
             "0.66-0.84" if pair == main else "")
