@@ -32,7 +32,7 @@ import numpy as np
 
 __all__ = ["ImagePair", "Headline", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
            "bound_exponent", "with_field", "replace_materials",
-           "find_inclusion_roi"]
+           "find_inclusion_roi", "Signs", "step_images", "paper_signs"]
 
 
 @dataclass
@@ -173,6 +173,58 @@ def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image
     view = "through_plates" if geom.direction == "y" else "side"
     return ImagePair(images[1], images[0], registered, used, truth, mask, float(geom.pixel_size_mm),
                      bound_exponent(scene, moving, reference), view)
+
+
+@dataclass
+class Signs:
+    """The paper's two qualitative observations on its experimental (negative, ``-I/I0``) images,
+    measured per compression step (increasing): the mean negative intensity of a background
+    rectangle beside the inclusion (``brightness``) and the contrast (inclusion minus
+    background rectangle means), rectangles found on each step's own image."""
+
+    ratios: list
+    brightness: list
+    contrast: list
+
+    @property
+    def least_compressed_brightest(self) -> bool:
+        """"the least compressed phantom image shows most brightness"."""
+        return int(np.argmax(self.brightness)) == 0
+
+    @property
+    def most_compressed_most_contrast(self) -> bool:
+        """"the most compressed phantom image shows most contrast"."""
+        return int(np.argmax(self.contrast)) == len(self.contrast) - 1
+
+
+def step_images(scene, states, geometry):
+    """Line integrals and inclusion masks of every state on ``geometry``."""
+    from sim.xray import path_lengths
+
+    solver = states[0].solver
+    fem = getattr(solver, "projection_mesh", None) or solver.fem
+    thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
+    mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
+    out = []
+    for s in states:
+        lengths = path_lengths(fem, geometry, s.displacement, thickness_mm=thickness)
+        out.append((np.tensordot(mus[:len(lengths)], lengths, axes=1), lengths[1:].sum(axis=0) > 0))
+    return out
+
+
+def paper_signs(scene, states, *, pixel_mm=0.25, geometry=None) -> Signs:
+    """Measure the paper's two qualitative signs (:class:`Signs`) on ``states``, noise-free."""
+    from radiokit.enhance import to_domain
+    from radiokit.measure import contrast, find_rois
+
+    geom = geometry if geometry is not None else study_geometry(scene, pixel_mm)
+    bright, con = [], []
+    for L, mask in step_images(scene, states, geom):
+        neg = to_domain(L, "linear").astype(np.float64)
+        inc, bg = find_rois(L, inclusion_mask=mask, pixel_mm=geom.pixel_size_mm)
+        bright.append(float(neg[bg.slices].mean()))
+        con.append(contrast(neg, inc, bg))
+    return Signs([s.ratio for s in states], bright, con)
 
 
 def with_field(pair: ImagePair, field) -> ImagePair:
