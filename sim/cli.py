@@ -16,6 +16,7 @@ def add_sim(subparsers):
     r.add_argument("--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25")
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
+    r.add_argument("--view", choices=["through_plates", "side"], help="beam direction (default: the scene's)")
     r.add_argument("--darks", type=int, default=10, help="dark frames (default 10)")
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
@@ -37,6 +38,10 @@ def _run_sim(args) -> int:
     scene = load_scene(args.preset if args.preset is not None else str(args.scene))
     if args.binning:
         scene.detector.binning = args.binning
+    if args.view:
+        from sim.scene import with_view
+
+        scene = with_view(scene, args.view)
     if args.save_scene:
         scene.save(args.save_scene)
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
