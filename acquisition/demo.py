@@ -53,7 +53,7 @@ def control_scene(scene):
 
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=True, method="rc", progress=True) -> dict:
+             coarse=True, method="rc", progress=True, view=None) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
@@ -64,6 +64,10 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(preset)
+    if view:
+        from sim.scene import with_view
+
+        scene = with_view(scene, view)
     scene.detector.binning = int(binning) if binning else 2
     if coarse:  # the demo's mesh: about 2.5x faster to solve (see benchmarks/bench_sim.py for what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
@@ -144,6 +148,8 @@ def add_demo(subparsers):
     p.add_argument("--preset", default="seed-breast", help="scene preset: seed-breast (default) or pva-phantom")
     p.add_argument("--binning", type=int, choices=[1, 2, 4], default=2,
                    help="detector binning (default 2: 1120 x 1120, 100 um pixels, the panel's 4 fps mode)")
+    p.add_argument("--view", choices=["through_plates", "side"],
+                   help="beam direction (default: the preset's; pva-phantom is imaged from the side)")
     p.add_argument("--fine", action="store_true", help="the scene's own finite-element mesh (slower), not the demo's")
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
@@ -153,7 +159,7 @@ def add_demo(subparsers):
 
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=not args.fine, method=args.method, progress=not args.quiet)
+                       coarse=not args.fine, method=args.method, progress=not args.quiet, view=args.view)
     print()
     print(headline(summary))
     return 0
