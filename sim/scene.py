@@ -26,6 +26,12 @@ __all__ = ["Material", "Body", "Inclusion", "Compression", "Beam", "Detector", "
 GEOMETRIES = ("hemi-ellipsoid", "ellipsoid", "truncated-cone", "cylinder", "box")
 
 
+#: ``neo-hookean``: FEBio's coupled form; ``neo-hookean-uncoupled``: ANSYS's (the paper's package),
+#: mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2; ``linear``: Hooke on the Green-Lagrange strain (St
+#: Venant-Kirchhoff), as a geometrically nonlinear code treats a linear material.
+MATERIAL_MODELS = ("neo-hookean", "neo-hookean-uncoupled", "linear")
+
+
 @dataclass
 class Material:
     """A hyperelastic (neo-Hookean, FEBio's form) or linear elastic solid with an attenuation.
@@ -43,8 +49,8 @@ class Material:
     attenuation_per_cm: float = 0.5
 
     def __post_init__(self):
-        if self.model not in ("neo-hookean", "linear"):
-            raise ValueError(f"material {self.name!r}: model {self.model!r} is not 'neo-hookean' or 'linear'")
+        if self.model not in MATERIAL_MODELS:
+            raise ValueError(f"material {self.name!r}: model {self.model!r} is not one of {', '.join(MATERIAL_MODELS)}")
         if self.E_kpa is not None and self.nu is not None:
             if not (self.E_kpa > 0 and -1 < self.nu < 0.5):
                 raise ValueError(f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu}")
