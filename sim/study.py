@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ImagePair", "Headline", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
+__all__ = ["ImagePair", "Headline", "Projected", "project_pair", "images", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
            "bound_exponent", "with_field", "replace_materials",
-           "find_inclusion_roi", "Signs", "step_images", "paper_signs"]
+           "find_inclusion_roi", "Signs", "step_images", "paper_signs",
+           "predicted_cnr"]
 
 
 @dataclass
@@ -140,17 +141,25 @@ def add_noise(line_integral, counts, rng):
     return -np.log(np.maximum(q, 1) / counts)
 
 
-def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image_transform=None,
-               truth_factor=4) -> ImagePair:
-    """Project the last two states of ``states`` (one ``compress`` call) and register the moving
-    one with ``field`` (default: the truth).
+@dataclass
+class Projected:
+    """Both states' path lengths per region on one geometry, and the truth field between them:
+    what every image model of an ablation shares (:func:`project_pair`)."""
 
-    ``image_transform(L) -> L`` (optional) is applied to both noise-free line integrals before
-    registration: beam hardening, scatter, blur or noise models of an ablation study.
-    ``truth_factor``: the truth field's coarsening (:func:`sim.truth.truth_displacement`; the
-    field is smooth on the elements' scale, and the full grid costs ten times more).
-    """
-    from radiokit.register import warp
+    lengths: tuple  # (moving, reference), each (n_regions, rows, cols) mm
+    mu_per_mm: np.ndarray
+    truth: np.ndarray
+    inclusion_mask: np.ndarray
+    pixel_mm: float
+    mu_dg: float | None
+    view: str
+
+
+def project_pair(scene, states, *, pixel_mm=0.25, geometry=None, truth_factor=4) -> Projected:
+    """Path lengths of the last two states of ``states`` (one ``compress`` call) and the truth
+    field (moving onto reference). ``truth_factor``: the truth's coarsening
+    (:func:`sim.truth.truth_displacement`; smooth on the elements' scale, the full grid costs ten
+    times more)."""
     from sim.truth import truth_displacement
     from sim.xray import path_lengths
 
@@ -160,19 +169,33 @@ def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image
     fem = getattr(solver, "projection_mesh", None) or solver.fem
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
-    images, mask = [], None
-    for s in (moving, reference):
-        lengths = path_lengths(fem, geom, s.displacement, thickness_mm=thickness)
-        images.append(np.tensordot(mus[:len(lengths)], lengths, axes=1))
-        mask = lengths[1:].sum(axis=0) > 0
-    if image_transform is not None:
-        images = [np.asarray(image_transform(im), np.float64) for im in images]
+    lengths = tuple(path_lengths(fem, geom, s.displacement, thickness_mm=thickness) for s in (moving, reference))
     truth = truth_displacement(scene, reference, moving, geometry=geom, factor=truth_factor)
-    used = truth if field is None else np.asarray(field, np.float32)
-    registered = warp(images[0].astype(np.float32), used).astype(np.float64)
     view = "through_plates" if geom.direction == "y" else "side"
-    return ImagePair(images[1], images[0], registered, used, truth, mask, float(geom.pixel_size_mm),
-                     bound_exponent(scene, moving, reference), view)
+    return Projected(lengths, mus[:len(lengths[0])], truth, lengths[1][1:].sum(axis=0) > 0,
+                     float(geom.pixel_size_mm), bound_exponent(scene, moving, reference), view)
+
+
+def images(projected: Projected, image_model=None, field=None) -> ImagePair:
+    """The pair seen through ``image_model(lengths, mu_per_mm) -> -ln(I/I0)`` (default the
+    monochromatic ``sum_m mu_m L_m``; see :mod:`sim.imaging`), registered with ``field``
+    (default the truth)."""
+    from radiokit.register import warp
+
+    p = projected
+    model = image_model or (lambda lengths, mu: np.tensordot(mu, lengths, axes=1))
+    mov, ref = (np.asarray(model(ln, p.mu_per_mm), np.float64) for ln in p.lengths)
+    used = p.truth if field is None else np.asarray(field, np.float32)
+    registered = warp(mov.astype(np.float32), used).astype(np.float64)
+    return ImagePair(ref, mov, registered, used, p.truth, p.inclusion_mask, p.pixel_mm, p.mu_dg, p.view)
+
+
+def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image_model=None,
+               truth_factor=4) -> ImagePair:
+    """:func:`project_pair` then :func:`images`: the last two states of ``states`` projected,
+    seen through ``image_model`` and registered with ``field`` (default: the truth)."""
+    return images(project_pair(scene, states, pixel_mm=pixel_mm, geometry=geometry, truth_factor=truth_factor),
+                  image_model, field)
 
 
 @dataclass
@@ -241,6 +264,28 @@ def find_inclusion_roi(pair: ImagePair):
     from radiokit.measure import find_rois
 
     return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)[0]
+
+
+def predicted_cnr(pair: ImagePair, h: "Headline", counts: float, domain: str = "linear") -> dict:
+    """CNR of the reference and of each enhanced image with Poisson noise of ``counts`` open-beam
+    quanta per pixel, predicted rather than sampled (so noise-free studies have a CNR that
+    responds to the model): the background ROI's per-pixel standard deviation of one exposure is
+    ``sqrt(e^L / N)`` (log) or ``sqrt(e^-L / N)`` (linear), independent between the two exposures,
+    and ``E = R + k (R - M - mean D)`` has ``sigma_E^2 = (1 + k)^2 sigma_R^2 + k^2 sigma_M^2``.
+    Returns ``{"reference": CNR_R, "1": CNR_E(1), ...}``."""
+    from radiokit.enhance import to_domain
+    from radiokit.measure import contrast
+
+    bg = h.background
+    L_r, L_m = (float(np.mean(im[bg.slices])) for im in (pair.reference, pair.registered))
+    sign = 1.0 if domain == "log" else -1.0
+    var_r, var_m = math.exp(sign * L_r) / counts, math.exp(sign * L_m) / counts
+    c_ref = contrast(to_domain(pair.reference, domain), h.inclusion, bg)
+    out = {"reference": c_ref / math.sqrt(var_r)}
+    for key, f in h.improvement[domain].items():
+        k = float(key)
+        out[key] = f * c_ref / math.sqrt((1 + k) ** 2 * var_r + k * k * var_m)
+    return out
 
 
 def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
