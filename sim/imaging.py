@@ -22,9 +22,9 @@ detector integrates energy (a CsI scintillator absorbing everything: weight ``E 
 
 Image side
 ----------
-Scatter: an additive, smooth fraction of the primary, ``I = P + SPR * G_s * P`` with a wide
-Gaussian ``G_s`` (object scatter is smooth on the scale of centimetres); the flat field has no
-object and so no scatter. Blur: the scintillator's point spread, a Gaussian on the intensity.
+Scatter: an additive, smooth fraction of the primary behind the object, ``I = P + SPR * G_s *
+(P m)`` with a wide Gaussian ``G_s`` (object scatter is smooth on the scale of centimetres) and
+``m`` the object's shadow; the flat field has no object and so no scatter. Blur: the scintillator's point spread, a Gaussian on the intensity.
 Noise: Poisson quanta, :func:`sim.study.add_noise`.
 """
 from __future__ import annotations
@@ -119,9 +119,12 @@ def _gauss(image, sigma_px):
 
 
 def scatter(line_integral, fraction, sigma_mm, pixel_mm):
-    """``-ln(P + fraction * G * P)``: scatter, a smooth additive fraction of the primary ``P``."""
-    P = np.exp(-np.asarray(line_integral, float))
-    return -np.log(P + fraction * _gauss(P, sigma_mm / pixel_mm))
+    """``-ln(P + fraction * G * (P m))``: scatter, a smooth additive fraction of the primary ``P``
+    transmitted by the object (``m``: rays that cross it; air scatters nothing), so that deep in a
+    large uniform object the scatter-to-primary ratio is ``fraction``."""
+    L = np.asarray(line_integral, float)
+    P = np.exp(-L)
+    return -np.log(P + fraction * _gauss(P * (L > 1e-9), sigma_mm / pixel_mm))
 
 
 def blur(line_integral, sigma_mm, pixel_mm):

@@ -269,22 +269,26 @@ def find_inclusion_roi(pair: ImagePair):
 def predicted_cnr(pair: ImagePair, h: "Headline", counts: float, domain: str = "linear") -> dict:
     """CNR of the reference and of each enhanced image with Poisson noise of ``counts`` open-beam
     quanta per pixel, predicted rather than sampled (so noise-free studies have a CNR that
-    responds to the model): the background ROI's per-pixel standard deviation of one exposure is
-    ``sqrt(e^L / N)`` (log) or ``sqrt(e^-L / N)`` (linear), independent between the two exposures,
-    and ``E = R + k (R - M - mean D)`` has ``sigma_E^2 = (1 + k)^2 sigma_R^2 + k^2 sigma_M^2``.
+    responds to the model). As :func:`radiokit.measure.cnr`, the denominator is the background
+    ROI's standard deviation: the noise-free image's own variation there (a side view's
+    background is not flat) and the noise, added in quadrature. One exposure's per-pixel noise
+    is ``sqrt(e^L / N)`` (log) or ``sqrt(e^-L / N)`` (linear), independent between the two
+    exposures, and ``E = R + k (R - M - mean D)`` has ``var_E = (1 + k)^2 var_R + k^2 var_M``.
     Returns ``{"reference": CNR_R, "1": CNR_E(1), ...}``."""
-    from radiokit.enhance import to_domain
+    from radiokit.enhance import compression_contrast, to_domain
     from radiokit.measure import contrast
 
     bg = h.background
     L_r, L_m = (float(np.mean(im[bg.slices])) for im in (pair.reference, pair.registered))
     sign = 1.0 if domain == "log" else -1.0
     var_r, var_m = math.exp(sign * L_r) / counts, math.exp(sign * L_m) / counts
-    c_ref = contrast(to_domain(pair.reference, domain), h.inclusion, bg)
-    out = {"reference": c_ref / math.sqrt(var_r)}
-    for key, f in h.improvement[domain].items():
+    ref, reg = to_domain(pair.reference, domain), to_domain(pair.registered, domain)
+    out = {"reference": contrast(ref, h.inclusion, bg) / math.sqrt(var_r + float(np.var(ref[bg.slices], dtype=np.float64)))}
+    for key in h.improvement[domain]:
         k = float(key)
-        out[key] = f * c_ref / math.sqrt((1 + k) ** 2 * var_r + k * k * var_m)
+        enh = compression_contrast(ref, reg, k, domain=domain)
+        structure = float(np.var(enh[bg.slices], dtype=np.float64))
+        out[key] = contrast(enh, h.inclusion, bg) / math.sqrt((1 + k) ** 2 * var_r + k * k * var_m + structure)
     return out
 
 
