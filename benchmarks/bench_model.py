@@ -33,8 +33,8 @@ scatter, an ideal detector. The choices:
   seed-breast 28 kV molybdenum with 30 um Mo, the scene's mammography label; pva-phantom the
   L8121-01's 60 kV tungsten with 150 um Be; both through 500 mm of air), matched to the scene's
   coefficients at the body's thickness;
-- **scatter**: a smooth additive fraction, scatter-to-primary 0.3 (a 5-6 cm object without a grid),
-  Gaussian of 10 mm;
+- **scatter**: a smooth additive term (``sim.imaging.scatter``), scatter-to-primary 0.3 (a 5-6 cm
+  object without a grid) through the body's thickness, Gaussian of 10 mm;
 - **blur**: the CsI scintillator's point spread, Gaussian sigma 0.1 mm;
 - **noise**: Poisson at the scene's exposure (2500 quanta per 50 um pixel, i.e. 90 000 per 0.3 mm
   pixel), mean and standard deviation over 5 seeds.
@@ -148,9 +148,10 @@ def _beam(name, base):
 
 def _image_rows(scene, label, proj, counts, t_proj, beam):
     rows = []
+    l_ref = scene.body.material.attenuation_per_mm * 2 * scene.body.half_height_mm
     mono = imaging.monochromatic
     cases = [("polychromatic beam", imaging.chain(beam)),
-             ("scatter SPR 0.3", imaging.chain(mono, lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM))),
+             ("scatter SPR 0.3", imaging.chain(mono, lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref))),
              ("blur 0.1 mm", imaging.chain(mono, lambda L: imaging.blur(L, 0.1, PIXEL_MM)))]
     for choice, model in cases:
         t = time.perf_counter()

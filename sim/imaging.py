@@ -22,9 +22,11 @@ detector integrates energy (a CsI scintillator absorbing everything: weight ``E 
 
 Image side
 ----------
-Scatter: an additive, smooth fraction of the primary behind the object, ``I = P + SPR * G_s *
-(P m)`` with a wide Gaussian ``G_s`` (object scatter is smooth on the scale of centimetres) and
-``m`` the object's shadow; the flat field has no object and so no scatter. Blur: the scintillator's point spread, a Gaussian on the intensity.
+Scatter: an additive, smooth term, ``I = P + SPR * G_s * (P L) / L_ref`` with a wide Gaussian
+``G_s`` (object scatter is smooth on the scale of centimetres): made in proportion to the
+interactions (``P L`` to first order), so it vanishes in air, and scaled so that the
+scatter-to-primary ratio is ``SPR`` in a uniform slab of line integral ``L_ref``. The flat field
+has no object and so no scatter. Blur: the scintillator's point spread, a Gaussian on the intensity.
 Noise: Poisson quanta, :func:`sim.study.add_noise`.
 """
 from __future__ import annotations
@@ -118,13 +120,17 @@ def _gauss(image, sigma_px):
     return ndimage.gaussian_filter(image, sigma_px, mode="nearest") if sigma_px > 0 else image
 
 
-def scatter(line_integral, fraction, sigma_mm, pixel_mm):
-    """``-ln(P + fraction * G * (P m))``: scatter, a smooth additive fraction of the primary ``P``
-    transmitted by the object (``m``: rays that cross it; air scatters nothing), so that deep in a
-    large uniform object the scatter-to-primary ratio is ``fraction``."""
+def scatter(line_integral, fraction, sigma_mm, pixel_mm, reference_line_integral):
+    """``-ln(P + fraction * G * (P L) / L_ref)``: scatter, a smooth additive term.
+
+    Scatter is made where photons interact, in proportion to the primary times the line
+    integral (``P L``, the first-order single-scatter amplitude of the scatter-kernel models;
+    zero in air), and spread by a wide Gaussian ``G`` (``sigma_mm``). ``fraction`` is the
+    scatter-to-primary ratio deep inside a large uniform slab of line integral
+    ``reference_line_integral``; thinner parts scatter less."""
     L = np.asarray(line_integral, float)
     P = np.exp(-L)
-    return -np.log(P + fraction * _gauss(P * (L > 1e-9), sigma_mm / pixel_mm))
+    return -np.log(P + fraction / reference_line_integral * _gauss(P * L, sigma_mm / pixel_mm))
 
 
 def blur(line_integral, sigma_mm, pixel_mm):

@@ -33,8 +33,9 @@ def test_polychromatic_keeps_the_ratio_of_coefficients(poly60):
 def test_scatter_and_blur():
     L = np.zeros((61, 61))
     L[5:56, 5:56] = 2.0
-    s = imaging.scatter(L, 0.3, 1.0, 0.5)
+    s = imaging.scatter(L, 0.3, 1.0, 0.5, 2.0)
     assert np.all(s <= L + 1e-12)  # scatter only adds light
+    assert s[0, 0] == pytest.approx(0.0, abs=1e-4)  # and air 2.5 sigma from the object almost none
     # deep inside a large uniform object the scatter-to-primary ratio is the fraction
     assert s[30, 30] == pytest.approx(2.0 - np.log(1.3), abs=1e-6)
     b = imaging.blur(L, 0.5, 0.5)
