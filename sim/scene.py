@@ -255,12 +255,17 @@ class MeshSpec:
     model: str = "auto"
     symmetry: bool = True
     curved: bool = True  #: quadratic elements follow curved surfaces (edge nodes on them)
+    #: at most this size next to the plates (None: the graded sizes): where a curved body's
+    #: contact patch ends, the column between the plates is only as exact as the surface there
+    size_contact_mm: float | None = None
 
     def __post_init__(self):
         if self.model not in ("auto", "3d", "axisymmetric", "plane-strain"):
             raise ValueError(f"mesh model {self.model!r}: expected auto, 3d, axisymmetric or plane-strain")
         if not (0 < self.size_inclusion_mm <= self.size_far_mm):
             raise ValueError("mesh sizes: need 0 < size_inclusion_mm <= size_far_mm")
+        if self.size_contact_mm is not None and not 0 < self.size_contact_mm <= self.size_far_mm:
+            raise ValueError("mesh sizes: need 0 < size_contact_mm <= size_far_mm")
 
 
 @dataclass

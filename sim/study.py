@@ -159,7 +159,7 @@ def project_pair(scene, states, *, pixel_mm=0.25, geometry=None, truth_factor=4)
     """Path lengths of the last two states of ``states`` (one ``compress`` call) and the truth
     field (moving onto reference). ``truth_factor``: the truth's coarsening
     (:func:`sim.truth.truth_displacement`; smooth on the elements' scale, the full grid costs ten
-    times more)."""
+    times more); ``None`` skips the truth (zeros: the identity registration)."""
     from sim.truth import truth_displacement
     from sim.xray import path_lengths
 
@@ -170,7 +170,10 @@ def project_pair(scene, states, *, pixel_mm=0.25, geometry=None, truth_factor=4)
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
     lengths = tuple(path_lengths(fem, geom, s.displacement, thickness_mm=thickness) for s in (moving, reference))
-    truth = truth_displacement(scene, reference, moving, geometry=geom, factor=truth_factor)
+    if truth_factor is None:  # no truth wanted: the identity stands in for it
+        truth = np.zeros((2,) + tuple(geom.shape), np.float32)
+    else:
+        truth = truth_displacement(scene, reference, moving, geometry=geom, factor=truth_factor)
     view = "through_plates" if geom.direction == "y" else "side"
     return Projected(lengths, mus[:len(lengths[0])], truth, lengths[1][1:].sum(axis=0) > 0,
                      float(geom.pixel_size_mm), bound_exponent(scene, moving, reference), view)
