@@ -6,6 +6,7 @@ Run (from the repository root)::
     python benchmarks/bench_model.py --quick         # pva-phantom only, no 3-D default mesh: ~3 minutes
     python benchmarks/bench_model.py --full          # adds the refined meshes (seed-breast 0.7/4.2 mm): much longer
     python benchmarks/bench_model.py --out DIR       # where the JSON goes (default out/bench_model)
+    python benchmarks/bench_model.py --convergence   # the 3-D seed-breast mesh study instead (~40 min)
 
 Needs the ``study`` extra (SpekPy, XrayDB) for the polychromatic beam.
 
@@ -232,15 +233,48 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
+#: (at the inclusion, far, at the plates or None) in mm: the README's convergence table
+CONVERGENCE = [(2.8, 16.0, None), (2.0, 12.0, None), (1.4, 8.0, None), (1.0, 6.0, None), (0.7, 6.0, None),
+               (0.5, 6.0, None), (1.0, 12.0, None), (2.0, 12.0, 2.0), (1.4, 8.0, 1.4), (1.0, 6.0, 1.0)]
+
+
+def convergence(out) -> str:
+    """seed-breast (3-D, through the plates) at every mesh of :data:`CONVERGENCE`: unknowns,
+    seconds, force, inclusion strain, change ratio and IF (linear), truth-registered."""
+    lines = ["| mesh at inclusion / far / plates (mm) | unknowns | s | force (N) | inclusion strain | "
+             "change ratio (lin) | IF(1) | IF(2) |", "|---|---|---|---|---|---|---|---|"]
+    for a, b, c in CONVERGENCE:
+        sc = _base("seed-breast")
+        sc.mesh.size_inclusion_mm, sc.mesh.size_far_mm, sc.mesh.size_contact_mm = a, b, c
+        t = time.perf_counter()
+        st = compress(sc, RATIOS)
+        secs = time.perf_counter() - t
+        h = study.headline(study.image_pair(sc, st, pixel_mm=PIXEL_MM))
+        s = st[-1]
+        mesh = f"{a:g} / {b:g}" + (f" / {c:g}" if c else "")
+        lines.append(f"| {mesh} | {s.solver.ndof} | {secs:.0f} | {s.plate_force_n:.4f} | {s.inclusion_strain:.4f} | "
+                     f"{h.change_ratio['linear']:.3f} | {h.improvement['linear']['1']:.3f} | "
+                     f"{h.improvement['linear']['2']:.3f} |")
+        print(lines[-1], flush=True)
+    text = "\n".join(lines)
+    (out / "convergence.md").write_text(text + "\n")
+    return text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="pva-phantom only, no default-mesh rows")
     mode.add_argument("--full", action="store_true", help="add the refined meshes")
+    mode.add_argument("--convergence", action="store_true", help="the 3-D seed-breast mesh study instead")
     ap.add_argument("--out", type=Path, default=Path("out/bench_model"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()}", flush=True)
+    if args.convergence:
+        convergence(args.out)
+        print(f"load average after: {os.getloadavg()}")
+        return 0
 
     def log(r):
         print(f"  {r.scene:<34} {r.choice:<40} CR {r.cr:.4f} IF1 {r.if1:.4f} IF2 {r.if2:.4f} "
