@@ -115,14 +115,20 @@ def chart(points, path):
     scenes = list(dict.fromkeys(p.scene for p in points))
     fig, axes = plt.subplots(2, len(scenes), figsize=(4.6 * len(scenes), 7.5), squeeze=False, constrained_layout=True)
     marks = {"rc": "s", "ncc": "D", "tvl1": "^", "dis": "v"}
+    limits = {"if1": (0.5, 1.8), "cr": (-0.5, 1.5)}  # values beyond are drawn on the edge, as x
     for j, sc in enumerate(scenes):
         ps = [p for p in points if p.scene == sc]
         for i, (attr, label) in enumerate((("if1", "IF(1), linear"), ("cr", "change ratio, linear"))):
             ax = axes[i, j]
+            lo, hi = limits[attr]
             for kind, color in (("shift", "tab:red"), ("smooth", "tab:blue")):
                 q = sorted((p for p in ps if p.kind == kind), key=lambda p: p.epe_mm)
-                ax.plot([p.epe_mm for p in q], [getattr(p, attr) for p in q], "o", ms=3.5, color=color, alpha=0.7,
-                        label=f"truth + {kind} error")
+                x = np.array([p.epe_mm for p in q])
+                y = np.array([getattr(p, attr) for p in q])
+                inside = (y >= lo) & (y <= hi)
+                ax.plot(x[inside], y[inside], "o", ms=3.5, color=color, alpha=0.7, label=f"truth + {kind} error")
+                ax.plot(x[~inside], np.clip(y[~inside], lo, hi), "x", ms=5, color=color)
+            ax.set_ylim(lo - 0.02 * (hi - lo), hi + 0.02 * (hi - lo))
             t = [p for p in ps if p.kind == "truth"][0]
             ax.plot([t.epe_mm], [getattr(t, attr)], "k*", ms=12, label="truth")
             for p in ps:
@@ -137,7 +143,7 @@ def chart(points, path):
             ax.set_xscale("symlog", linthresh=0.1)
             ax.set_xlabel("registration error, median over the body (mm)")
             ax.set_ylabel(label)
-            ax.set_title(sc, fontsize=10)
+            ax.set_title(f"{sc} (x: beyond the axis)", fontsize=10)
             if j == 0:
                 ax.legend(fontsize=7, loc="best")
     fig.savefig(path, dpi=90)
