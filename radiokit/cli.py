@@ -332,6 +332,11 @@ def _print_headline(r, files):
     q = r["registration"][main]
     print(f"{r['source']}: improvement factor ({r['domain']}) {ifs}; change ratio {main} {cr:.3f}; "
           f"registration {'ok' if q['ok'] else 'NOT ok: ' + q['reason']}")
+    for dom, m in r.get("domains", {}).items():  # every k and domain: IF (bound), CNR
+        bound = m.get("bound") or {}
+        parts = [f"k={k}: IF {v:.3f}" + (f" (bound {bound[k]:.3f})" if bound.get(k) is not None else "")
+                 + f", CNR {m.get('cnr', {}).get(k, float('nan')):.3g}" for k, v in m["improvement_factor"].items()]
+        print(f"  {dom:<6}: CNR reference {m.get('cnr_reference', float('nan')):.3g}; " + "; ".join(parts))
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {files[name]}")

@@ -172,6 +172,7 @@ def _sim_truth(path, numbers):
         scene = g.attrs.get("scene")
         if scene is not None:
             text = scene.decode() if isinstance(scene, bytes) else str(scene)
+            out["scene_toml"] = text
             for line in text.splitlines():
                 if line.startswith("name"):
                     out["scene"] = line.split("=", 1)[1].strip().strip('"')
@@ -207,6 +208,61 @@ def cross_check(field, other, body, method):
     med = float(np.median(d))
     return {"method": method, "median_px": med, "p95_px": float(np.percentile(d, 95)),
             "agree": bool(med <= max(2.0, 0.5 * mag))}
+
+
+def _step_gaps_mm(path, numbers):
+    """Mean plate gap (mm) of each step's projections, NaN where the file does not record it."""
+    from radiokit.io import ImageKey, open_frames
+
+    with open_frames(path) as src:
+        meta = src.meta
+        keys = np.asarray(meta["image_key"])
+        steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
+        gap = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float) * 1e3
+    out = []
+    for s in numbers:
+        g = gap[(keys == ImageKey.PROJECTION) & (steps == s)]
+        out.append(float(np.nanmean(g)) if np.isfinite(g).any() else float("nan"))
+    return out
+
+
+def _bound(path, numbers, truth, bg_log_mean, ks):
+    """The improvement factor's bound (:func:`radiokit.measure.improvement_bound`) for the main
+    pair: ``mu_b`` from a simulated file's scene, else from the reference's background ROI
+    (``mean L_bg / gap``: through the plates a background column spans the gap); None where the
+    gaps are not recorded or the simulated beam runs from the side (no bound holds there)."""
+    import tomllib
+
+    from radiokit.measure import improvement_bound
+
+    gaps = _step_gaps_mm(path, numbers)
+    dg = gaps[-2] - gaps[-1]
+    out = {"mu_dg": None, "basis": "", "domains": {}}
+    view, mu_b = None, None
+    scene_text = truth.get("scene_toml") if truth else None
+    if scene_text:
+        try:
+            sc = tomllib.loads(scene_text)
+            view = "side" if sc.get("beam", {}).get("direction", "y") in ("z", "side") else "through_plates"
+            mu_b = float(sc["body"]["material"]["attenuation_per_cm"]) / 10
+        except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError):
+            pass
+    if view == "side":
+        out["basis"] = "beam from the side: columns lengthen as the body expands, no bound holds"
+        return out
+    if not (np.isfinite(dg) and dg >= 0 and np.isfinite(gaps[-1]) and gaps[-1] > 0):
+        out["basis"] = "plate gaps not recorded: no bound"
+        return out
+    if mu_b is not None:
+        out["basis"] = "through the plates; mu_b from the simulated scene, gaps from the file"
+    else:
+        mu_b = max(bg_log_mean, 0.0) / gaps[-1]
+        out["basis"] = ("assumes the beam through the plates; mu_b = background line integral of the reference "
+                        "/ its gap, gaps from the file")
+    out["mu_dg"] = mu_b * dg
+    out["domains"] = {dom: {_key(k): improvement_bound(k, mu_b, dg, dom) if k >= 0 else None for k in ks}
+                      for dom in ("log", "linear")}
+    return out
 
 
 def _epe(displacement, truth, mask):
@@ -324,6 +380,9 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
             d["weber"][k] = weber(img, inc_c, bg_c)
             d["improvement_factor"][k] = d["contrast"][k] / c_ref if c_ref != 0 else float("nan")
         domains[dom] = d
+    bound = _bound(path, numbers, truth, float(np.mean(ref_dom["log"][bg_c.slices], dtype=np.float64)), cfg.ks)
+    for dom in ("log", "linear"):
+        domains[dom]["bound"] = bound["domains"].get(dom, {})
     changes, quality = {}, {}
     for (i, j), reg in regs.items():
         name = f"{numbers[i]}->{numbers[j]}"
@@ -361,6 +420,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         "improvement_factor": dict(domains[cfg.domain]["improvement_factor"]),
         "domains": domains, "change_ratio": changes, "registration": quality, "main_pair": main_name,
         "profiles_row": mid, "paper": PAPER, "timings": timings,
+        "bound": {k: v for k, v in bound.items() if k != "domains"},
     }
     arrays = {"steps": steps, "step_numbers": numbers, "ratios": ratios, "reference": reference,
               "registered": registered, "moving": steps[n - 2], "displacement": main.displacement,

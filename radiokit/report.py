@@ -662,6 +662,7 @@ def _headline_rows(arrays, results, paper):
         rows.append((f"improvement factor, {_k_label(k)}", _fmt(_kget(factors, k)),
                      _fmt(_kget(paper.get("improvement_factor"), k), ".1f", ""),
                      _fmt(ctrl) if control else ""))
+    rows += _bound_cnr_rows(results, control)
     pair = _headline_pair(arrays, results)
     cr = _get(results, "change_ratio", pair, dom) if pair else None
     if pair:
@@ -681,6 +682,31 @@ def _headline_rows(arrays, results, paper):
     header = ["quantity", "this run", "paper"] + (["control (soft inclusion)"] if control else [])
     rows = [r if control else r[:3] for r in rows]
     return header, rows
+
+
+def _bound_cnr_rows(results, control):
+    """Per domain and k: the improvement factor beside its bound (what compression alone allows
+    through rigid plates, :func:`radiokit.measure.improvement_bound`), and the CNR beside the
+    reference's (the enhanced image carries the noise of both exposures)."""
+    rows = []
+    basis = _get(results, "bound", "basis") or ""
+    for dom in ("log", "linear"):
+        m = _get(results, "domains", dom, default={}) or {}
+        cm = _get(control, "domains", dom, default={}) if control else {}
+        for k in _k_keys(m.get("improvement_factor")):
+            b = _kget(m.get("bound"), k)
+            rows.append((f"{dom}: improvement factor (bound), {_k_label(k)}",
+                         f"{_fmt(_kget(m.get('improvement_factor'), k))} ({_fmt(b, '.3f')})",
+                         "", _fmt(_kget((cm or {}).get("improvement_factor"), k)) if control else ""))
+        rows.append((f"{dom}: CNR reference → " + ", ".join(_k_label(k) for k in _k_keys(m.get("cnr"))),
+                     " → ".join([_fmt(m.get("cnr_reference"), ".3g")]
+                                     + [_fmt(_kget(m.get("cnr"), k), ".3g") for k in _k_keys(m.get("cnr"))]),
+                     "", " → ".join([_fmt((cm or {}).get("cnr_reference"), ".3g")]
+                                         + [_fmt(_kget((cm or {}).get("cnr"), k), ".3g")
+                                            for k in _k_keys((cm or {}).get("cnr"))]) if control else ""))
+    if basis:
+        rows.append(("bound basis", basis, "", ""))
+    return rows
 
 
 def _plain_language(arrays, results, paper):

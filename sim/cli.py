@@ -16,6 +16,7 @@ def add_sim(subparsers):
     r.add_argument("--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25")
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
+    r.add_argument("--view", choices=["through_plates", "side"], help="beam direction (default: the scene's)")
     r.add_argument("--darks", type=int, default=10, help="dark frames (default 10)")
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
@@ -44,6 +45,10 @@ def _run_sim(args) -> int:
         if getattr(args, name) < (1 if name == "frames" else 0):
             raise ValueError(f"--{name} {getattr(args, name)}: expected a count of at least "
                              f"{1 if name == 'frames' else 0}")
+    if args.view:
+        from sim.scene import with_view
+
+        scene = with_view(scene, args.view)
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []

@@ -4,7 +4,10 @@ Materials
 ---------
 Background (and optionally inclusions): FEBio's neo-Hookean energy
 
-    psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2.
+    psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2,
+
+or (``model = "neo-hookean-uncoupled"``) ANSYS's, the paper's package: deviatoric and volumetric
+parts uncoupled, psi = mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2 (C10 = mu/2, d = 2/kappa).
 
 "Linear elastic" inclusions use Hooke's law on the Green-Lagrange strain E (St Venant-Kirchhoff),
 as a geometrically nonlinear FE code treats a linear material: psi = mu E:E + lambda/2 (tr E)^2.
@@ -197,8 +200,12 @@ class Solver:
         mats = [scene.body.material] + [inc.material for inc in scene.inclusions]
         region = self.fem.region
         self.mu = np.array([mats[r].shear_kpa for r in region]) * 1e-3
-        self.lam = np.array([mats[r].lame_kpa for r in region]) * 1e-3
         self.svk = np.array([mats[r].model == "linear" for r in region])
+        self.unc = np.array([mats[r].model == "neo-hookean-uncoupled" for r in region])
+        # the modulus of the volumetric measure g: lambda for g = ln J and tr E, the bulk modulus
+        # kappa = lambda + 2 mu / 3 for the uncoupled form's g = J - 1
+        self.lam = np.array([mats[r].lame_kpa + (2 * mats[r].shear_kpa / 3 if self.unc[i] else 0.0)
+                             for i, r in enumerate(region)]) * 1e-3
         self.region = region
         # Copies of the model side by side on one plate: symmetry planes other than y (which
         # mirrors the model onto the other plate). Axisymmetric weights already hold the 2 pi r.
@@ -327,23 +334,39 @@ class Solver:
         lnJ = np.log(Jc)
         W = np.where(svk, mu * np.einsum("eqij,eqij->eq", Egl, Egl), mu / 2 * (I1 - 3) - mu * lnJ)
         g = np.where(svk, np.trace(Egl, axis1=-2, axis2=-1), lnJ)
-        gbar = (g * self.w).sum(axis=1) / self.Ve
-        p = (lam * gbar)[:, None]
         dW = np.where(svk[..., None, None], 2 * mu[..., None, None] * np.einsum("eqik,eqkj->eqij", F, Egl),
                       mu[..., None, None] * (F - FiT))
         dg = np.where(svk[..., None, None], F, FiT)
+        unc = self.unc[:, None] & np.ones((1, nq), bool) if self.unc.any() else None
+        if unc is not None:  # ANSYS's form: mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2
+            a = Jc ** (-2.0 / 3.0)
+            W = np.where(unc, mu / 2 * (a * I1 - 3), W)
+            g = np.where(unc, Jc - 1.0, g)
+            dW = np.where(unc[..., None, None], (mu * a)[..., None, None] * (F - (I1 / 3)[..., None, None] * FiT), dW)
+            dg = np.where(unc[..., None, None], Jc[..., None, None] * FiT, dg)
+        gbar = (g * self.w).sum(axis=1) / self.Ve
+        p = (lam * gbar)[:, None]
         P = dW + p[..., None, None] * dg
         energy = float((W * self.w).sum() + 0.5 * (lam * self.Ve * gbar ** 2).sum())
         out = dict(P=P, dg=dg, energy=energy, J=J, gbar=gbar)
         if need_tangent:
             # A_ijkl = d P_ij / d F_kl at fixed p
             d = np.einsum("ik,jl->ijkl", _EYE, _EYE)
-            nh = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * np.einsum("eqil,eqkj->eqijkl", FiT, FiT)
+            X = np.einsum("eqil,eqkj->eqijkl", FiT, FiT)
+            nh = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * X
             S = 2 * mu[..., None, None] * Egl + p[..., None, None] * _EYE
             FFt = np.einsum("eqim,eqkm->eqik", F, F)
             sv = (np.einsum("ik,eqlj->eqijkl", _EYE, S) + mu[..., None, None, None, None]
                   * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", F, F)))
-            out["A"] = np.where(svk[..., None, None, None, None], sv, nh)
+            A = np.where(svk[..., None, None, None, None], sv, nh)
+            if unc is not None:
+                Y = np.einsum("eqij,eqkl->eqijkl", FiT, FiT)
+                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", FiT, F) + np.einsum("eqkl,eqij->eqijkl", F, FiT))
+                       + (2 / 9 * I1)[..., None, None, None, None] * Y + (I1 / 3)[..., None, None, None, None] * X)
+                ua = ((mu * a)[..., None, None, None, None] * iso
+                      + (p * Jc)[..., None, None, None, None] * (Y - X))
+                A = np.where(unc[..., None, None, None, None], ua, A)
+            out["A"] = A
         return out
 
     def _contact_terms(self, u, h, need_tangent):

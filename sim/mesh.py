@@ -105,8 +105,11 @@ def _gmsh():
     return gmsh
 
 
-def _size_field(gmsh, inclusion_entities, dim, spec, grading_mm):
+def _size_field(gmsh, inclusion_entities, dim, spec, grading_mm, contact_band=None):
+    """Sizes graded from the inclusion surfaces, and (``spec.size_contact_mm``) at most that size
+    within ``contact_band = (y0, y1)`` of the plates, where the body meets them."""
     f = gmsh.model.mesh.field
+    fields = []
     if inclusion_entities:
         dist = f.add("Distance")
         f.setNumbers(dist, "SurfacesList" if dim == 3 else "CurvesList", inclusion_entities)
@@ -116,12 +119,37 @@ def _size_field(gmsh, inclusion_entities, dim, spec, grading_mm):
         f.setNumber(thr, "SizeMax", spec.size_far_mm)
         f.setNumber(thr, "DistMin", 0.0)
         f.setNumber(thr, "DistMax", grading_mm)
-        f.setAsBackgroundMesh(thr)
+        fields.append(thr)
+    if spec.size_contact_mm is not None and contact_band is not None:
+        for y0, y1 in contact_band:
+            box = f.add("Box")
+            f.setNumber(box, "VIn", spec.size_contact_mm)
+            f.setNumber(box, "VOut", spec.size_far_mm)
+            for k, v in (("XMin", -1e4), ("XMax", 1e4), ("YMin", y0), ("YMax", y1), ("ZMin", -1e4), ("ZMax", 1e4)):
+                f.setNumber(box, k, v)
+            fields.append(box)
+    if fields:
+        if len(fields) > 1:
+            m = f.add("Min")
+            f.setNumbers(m, "FieldsList", fields)
+            f.setAsBackgroundMesh(m)
+        else:
+            f.setAsBackgroundMesh(fields[0])
+    small = min([spec.size_far_mm] + ([spec.size_inclusion_mm] if inclusion_entities else [])
+                + ([spec.size_contact_mm] if spec.size_contact_mm is not None and contact_band else []))
     gmsh.option.setNumber("Mesh.MeshSizeMax", spec.size_far_mm)
-    gmsh.option.setNumber("Mesh.MeshSizeMin", spec.size_inclusion_mm if inclusion_entities else spec.size_far_mm)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", small)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+
+
+def _contact_band(scene):
+    """The slabs next to the plates (the top ``max(10 %, 2 size_contact)`` of the half height, both
+    plates), where curved bodies meet them."""
+    H = scene.body.half_height_mm
+    band = max(0.1 * H, 2 * (scene.mesh.size_contact_mm or 0.0))
+    return ((H - band, H + 1.0), (-H - 1.0, -H + band))
 
 
 def _extract(gmsh, dim, volumes_by_region):
@@ -250,7 +278,7 @@ def _build_3d(scene, spec, grading):
     incs = [_inclusion_3d(occ, i) for i in scene.inclusions]
     parts = _keep_positive(occ, [body] + incs, planes, big) if planes else [[body]] + [[i] for i in incs]
     volumes, inc_surfaces = _fragment_regions(gmsh, parts, 3)
-    _size_field(gmsh, inc_surfaces, 3, spec, grading)
+    _size_field(gmsh, inc_surfaces, 3, spec, grading, _contact_band(scene))
     gmsh.option.setNumber("Mesh.Algorithm3D", 1)
     gmsh.option.setNumber("Mesh.Optimize", 1)
     gmsh.model.mesh.generate(3)
@@ -320,7 +348,7 @@ def _build_2d(scene, spec, grading, model):
         parts.append([e[1] for e in res])
     occ.remove([(2, box)], recursive=True)
     surfaces, inc_curves = _fragment_regions(gmsh, parts, 2)
-    _size_field(gmsh, inc_curves, 2, spec, grading)
+    _size_field(gmsh, inc_curves, 2, spec, grading, _contact_band(scene))
     gmsh.option.setNumber("Mesh.Algorithm", 6)
     gmsh.model.mesh.generate(2)
     pts, cells, region = _extract(gmsh, 2, surfaces)

@@ -4,7 +4,10 @@ Coordinates are millimetres, the compression axis is ``y`` and the plates are no
 ``seed-breast``: the hemi-ellipsoid's flat face is the chest wall ``x = 0`` (fixed), the body
 extends to ``x = a``; the beam is parallel along ``y`` (through the plates, as in mammography).
 ``pva-phantom``: the cone's axis is ``y`` (bottom face at ``y = -h/2``), compressed axially, and
-imaged from the side along ``z`` by a cone beam.
+imaged by a cone beam from the side along ``z`` by default. The paper does not state the beam
+direction for its phantom (it says "x-ray mammogram setup", and its figures show the least
+compressed image brightest and the most compressed with the most contrast): :func:`with_view`
+(or ``[beam] direction = "through_plates"``) images any scene through the plates instead.
 
 Units in names: ``_mm``, ``_kpa``, ``_per_cm``, ``_kv``, ``_ua``. Internally the mechanics works in
 mm, N and MPa (N/mm^2).
@@ -18,9 +21,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 __all__ = ["Material", "Body", "Inclusion", "Compression", "Beam", "Detector", "Exposure", "MeshSpec",
-           "Scene", "load_scene", "block_scene", "PRESETS"]
+           "Scene", "load_scene", "block_scene", "with_view", "PRESETS", "VIEWS"]
 
 GEOMETRIES = ("hemi-ellipsoid", "ellipsoid", "truncated-cone", "cylinder", "box")
+
+
+#: ``neo-hookean``: FEBio's coupled form; ``neo-hookean-uncoupled``: ANSYS's (the paper's package),
+#: mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2; ``linear``: Hooke on the Green-Lagrange strain (St
+#: Venant-Kirchhoff), as a geometrically nonlinear code treats a linear material.
+MATERIAL_MODELS = ("neo-hookean", "neo-hookean-uncoupled", "linear")
 
 
 @dataclass
@@ -40,8 +49,8 @@ class Material:
     attenuation_per_cm: float = 0.5
 
     def __post_init__(self):
-        if self.model not in ("neo-hookean", "linear"):
-            raise ValueError(f"material {self.name!r}: model {self.model!r} is not 'neo-hookean' or 'linear'")
+        if self.model not in MATERIAL_MODELS:
+            raise ValueError(f"material {self.name!r}: model {self.model!r} is not one of {', '.join(MATERIAL_MODELS)}")
         if self.E_kpa is not None and self.nu is not None:
             if not (self.E_kpa > 0 and -1 < self.nu < 0.5):
                 raise ValueError(f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu}")
@@ -162,11 +171,17 @@ class Compression:
             raise ValueError(f"compression ratios {self.ratios} must lie in [0, 0.9)")
 
 
+#: The two imaging geometries, by the beam direction: through the plates (along the compression
+#: axis y, as in mammography) or from the side (along z, across the compression axis).
+VIEWS = {"through_plates": "y", "side": "z"}
+
+
 @dataclass
 class Beam:
-    """``parallel`` or ``cone`` beam along ``direction`` (``"y"`` or ``"z"``). Cone beams have the
-    source ``source_distance_mm`` before the body's centre and the detector
-    ``detector_distance_mm`` behind it (magnification (s + d) / s)."""
+    """``parallel`` or ``cone`` beam along ``direction``: ``"y"`` (alias ``"through_plates"``)
+    or ``"z"`` (alias ``"side"``); aliases are stored as the axis. Cone beams have the source
+    ``source_distance_mm`` before the body's centre and the detector ``detector_distance_mm``
+    behind it (magnification (s + d) / s)."""
 
     kind: str = "parallel"
     direction: str = "y"
@@ -176,8 +191,14 @@ class Beam:
     def __post_init__(self):
         if self.kind not in ("parallel", "cone"):
             raise ValueError(f"beam kind {self.kind!r}: expected 'parallel' or 'cone'")
+        self.direction = VIEWS.get(self.direction, self.direction)
         if self.direction not in ("y", "z"):
-            raise ValueError(f"beam direction {self.direction!r}: expected 'y' or 'z'")
+            raise ValueError(f"beam direction {self.direction!r}: expected 'y' (through_plates) or 'z' (side)")
+
+    @property
+    def view(self) -> str:
+        """``through_plates`` (beam along y) or ``side`` (along z)."""
+        return "through_plates" if self.direction == "y" else "side"
 
     @property
     def magnification(self) -> float:
@@ -234,12 +255,17 @@ class MeshSpec:
     model: str = "auto"
     symmetry: bool = True
     curved: bool = True  #: quadratic elements follow curved surfaces (edge nodes on them)
+    #: at most this size next to the plates (None: the graded sizes): where a curved body's
+    #: contact patch ends, the column between the plates is only as exact as the surface there
+    size_contact_mm: float | None = None
 
     def __post_init__(self):
         if self.model not in ("auto", "3d", "axisymmetric", "plane-strain"):
             raise ValueError(f"mesh model {self.model!r}: expected auto, 3d, axisymmetric or plane-strain")
         if not (0 < self.size_inclusion_mm <= self.size_far_mm):
             raise ValueError("mesh sizes: need 0 < size_inclusion_mm <= size_far_mm")
+        if self.size_contact_mm is not None and not 0 < self.size_contact_mm <= self.size_far_mm:
+            raise ValueError("mesh sizes: need 0 < size_contact_mm <= size_far_mm")
 
 
 @dataclass
@@ -413,6 +439,16 @@ def load_scene(name_or_toml) -> Scene:
     if "=" in text or "[" in text:
         return Scene.from_toml(text)
     raise ValueError(f"unknown scene {text!r}: a preset ({', '.join(PRESETS)}), a .toml file or TOML text")
+
+
+def with_view(scene: Scene, view: str) -> Scene:
+    """A copy of ``scene`` imaged ``through_plates`` (beam along y) or from the ``side`` (along z),
+    everything else (beam kind, distances, detector) kept; the name gains the view."""
+    if view not in VIEWS:
+        raise ValueError(f"view {view!r}: expected one of {', '.join(VIEWS)}")
+    beam = dataclasses.replace(scene.beam, direction=VIEWS[view])
+    name = scene.name if scene.beam.direction == beam.direction else f"{scene.name}-{view.replace('_', '-')}"
+    return dataclasses.replace(scene, name=name, beam=beam)
 
 
 def block_scene(size_mm=10.0, E_kpa=5.0, nu=0.45, ratios=(0.15, 0.20, 0.25)) -> Scene:

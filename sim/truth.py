@@ -142,10 +142,11 @@ def _linear_fields(x, tets, values):
     return a, b
 
 
-def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64) -> np.ndarray:
+def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64, geometry=None) -> np.ndarray:
     """Pull displacement (2, rows, cols) float32, pixels, registering ``moving`` onto ``fixed``.
 
     ``fixed`` and ``moving`` are :class:`sim.mechanics.State` from one ``compress`` call (one mesh).
+    ``geometry`` (a :class:`sim.xray.Geometry`) replaces the scene's beam and detector.
     ``factor`` (default 4, or 1 for detectors of at most 600 pixels) is the coarsening of the grid
     the ray integrals are computed on. See the module docstring for the definition.
     """
@@ -157,7 +158,7 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
     if solver is None or getattr(moving, "solver", None) is not solver:
         raise ValueError("truth_displacement: both states must come from the same compress() call (one mesh)")
     fem = getattr(solver, "projection_mesh", None) or solver.fem
-    geom = Geometry.from_scene(scene)
+    geom = geometry if geometry is not None else Geometry.from_scene(scene)
     rows, cols = geom.shape
     if factor is None:
         factor = 1 if max(rows, cols) <= 600 else 4

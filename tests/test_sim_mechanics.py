@@ -195,3 +195,48 @@ def test_mesh_convergence_axisymmetric():
     assert dc1 > 0.1  # mm: the inclusion does shorten along the axis
     assert f1 == pytest.approx(f2, rel=0.02)
     assert dc1 == pytest.approx(dc2, rel=0.02)
+
+
+@pytest.mark.parametrize("model", ["neo-hookean", "neo-hookean-uncoupled", "linear"])
+def test_residual_and_tangent_are_the_energy_derivatives(model):
+    """Central differences of the energy (and of the residual) along a random direction must
+    match the residual (and the tangent) for every material model, at a random deformed state."""
+    from sim.mechanics import Solver
+    from sim.scene import Material
+
+    scene = block_scene(size_mm=10, E_kpa=5, nu=0.45)
+    scene.body.material = Material("b", model, E_kpa=5.0, nu=0.45)
+    s = Solver(scene)
+    rng = np.random.default_rng(0)
+    u = 0.05 * rng.standard_normal(s.ndof)
+    du = 1e-6 * rng.standard_normal(s.ndof)
+    ev, e1, e0 = s.evaluate(u, None), s.evaluate(u + du, None), s.evaluate(u - du, None)
+    assert (e1["energy"] - e0["energy"]) / (2 * ev["R"] @ du) == pytest.approx(1.0, abs=1e-6)
+    dR = e1["R"] - e0["R"]
+    assert np.linalg.norm(dR - 2 * ev["K"] @ du) < 1e-6 * np.linalg.norm(dR)
+
+
+def test_uncoupled_block_force_matches_closed_form():
+    """ANSYS's uncoupled neo-Hookean, psi = mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2, in uniaxial
+    compression F = diag(t, s, t): the free sides make dpsi/dt = 0 (t by minimising psi), and the
+    plate force is |dpsi/ds| times the area (nominal stress)."""
+    from scipy.optimize import minimize_scalar
+
+    from sim.scene import Material
+
+    E, nu = 5e-3, 0.45
+    mu, kappa = E / (2 * (1 + nu)), E / (3 * (1 - 2 * nu))
+
+    def psi(s, t):
+        J = s * t * t
+        return mu / 2 * (J ** (-2 / 3) * (s * s + 2 * t * t) - 3) + kappa / 2 * (J - 1) ** 2
+
+    scene = block_scene(size_mm=10, E_kpa=5, nu=nu)
+    scene.body.material = Material("block", "neo-hookean-uncoupled", E_kpa=5.0, nu=nu)
+    for state in compress(scene):
+        s = 1 - state.ratio
+        t = minimize_scalar(lambda t: psi(s, t), bounds=(1.0, 1.5), method="bounded", options={"xatol": 1e-12}).x
+        h = 1e-6
+        force = abs(psi(s + h, t) - psi(s - h, t)) / (2 * h) * 100.0
+        assert state.plate_force_n == pytest.approx(force, rel=1e-5)
+        assert state.volume_ratio == pytest.approx(s * t * t, rel=1e-6)
