@@ -177,7 +177,7 @@ def test_pipeline_reports_the_bound_and_cnr_per_domain_and_k(tmp_path):
         for step, (gap, ti) in enumerate([(20.0, 8.0), (18.0, 7.9), (16.0, 7.8)], start=1):
             w.append(frame(gap, ti), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step, gap_mm=gap)
     res = process(path, Config(crop_mm=None, report=False, progress=False, cross_check=None, method="ncc",
-                               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=tmp_path)
+                               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=tmp_path / "results")
     r = res.results
     assert r["bound"]["mu_dg"] == pytest.approx(0.16, rel=0.02)
     for dom in ("log", "linear"):
