@@ -106,6 +106,14 @@ class SignalGuard:
                 signal.signal(sig, old)
             self._old.clear()
 
+    def reinstall(self) -> None:
+        """Install the handlers again. C libraries may replace them behind Python's back (gmsh,
+        building the virtual bench, resets SIGTERM to the default, which would kill the run
+        with the tube on): the protocol calls this after building devices and at every phase."""
+        if self._old and threading.current_thread() is threading.main_thread():
+            for sig in self._old:
+                signal.signal(sig, self._handle)
+
     def cleanup(self) -> SignalGuard:
         """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
         self.stopping = True
@@ -212,7 +220,11 @@ def _switch_off(link, config: dict, note) -> bool:
     except DeviceError as exc:
         note("CRITICAL", f"{link.port}: {exc}")
         return False
-    note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {getattr(state, 'name', state)})")
+    name = getattr(state, "name", str(state))
+    if name in ("XRAY_ON", "WARMING_UP", "AGING"):  # a warm-up still running emits X-rays too
+        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {name}")
+        return False
+    note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {name})")
     return True
 
 

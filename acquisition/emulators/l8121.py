@@ -318,6 +318,8 @@ class L8121Model:
             return "XOF"
         if self._state == XRAY_ON:
             self._state = STANDBY
+        if self._state == WARMING_UP:  # the warm-up runs the tube: XOF ends it (L8121.md, Safety)
+            self._state, self._warmup = WARMUP_NEEDED, WARMUP_NOT_STARTED
         self._beam_dropped = False
         return "XOF"
 

@@ -407,10 +407,16 @@ def _guarded_source(url: str, p: Protocol):
     from acquisition.l8121 import L8121, SourceConfig
 
     cfg = _source_config(p)
-    link = start_guardian(url, baudrate=p.source.baudrate, config=cfg, notebook=Path(p.output).with_suffix(".log"))
+    try:
+        link = start_guardian(url, baudrate=p.source.baudrate, config=cfg,
+                              notebook=Path(p.output).with_suffix(".log"))
+    except BaseException as exc:
+        exc.source_unreached = True  # the source's state is unknown: the run must say so
+        raise
     try:
         return L8121(link, baudrate=p.source.baudrate, config=SourceConfig.from_dict(cfg))
-    except BaseException:
+    except BaseException as exc:
+        exc.source_unreached = True
         link.close()
         raise
 
@@ -629,6 +635,7 @@ class _Run:
     t0: float = field(default_factory=time.perf_counter)
 
     def enter(self, phase, info=None):
+        self.guard.reinstall()
         self.phase = phase
         log.info("phase %s", phase)  # the notebook says where a run was when it stopped
         self.bar.set_description(phase)
@@ -640,10 +647,9 @@ class _Run:
 
 
 def _emitting(state) -> bool:
-    """X-rays on, for every safety rule (dialect B's AGING warm-up emits too)."""
-    from acquisition.l8121 import SourceState
-
-    return state == SourceState.XRAY_ON or getattr(state, "name", "") == "AGING"
+    """X-rays on, for every safety rule: the beam, and the warm-up sequence, which runs the tube
+    (dialect A's WARMING_UP, dialect B's AGING)."""
+    return getattr(state, "name", "") in ("XRAY_ON", "WARMING_UP", "AGING")
 
 
 def _phase_connect(r: _Run):
@@ -652,6 +658,7 @@ def _phase_connect(r: _Run):
     to do anything."""
     if r.devices is None:
         r.devices = sim_devices(r.p, progress=r.progress) if r.sim else lab_devices(r.p)
+    r.guard.reinstall()  # building the devices may have loaded a C library that took the signals
     src = r.source
     r.monitor = _BeamMonitor(src, r.p.source.poll_s)
     state = src.status()
@@ -880,7 +887,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)
-    if res.tube_off is None and r.devices is None and not isinstance(exc, ProtocolError):
+    if res.tube_off is None and getattr(exc, "source_unreached", False):
         res.tube_off = False  # the source could not be reached: nobody knows its state
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
@@ -893,7 +900,8 @@ def _stop(r: _Run, exc: BaseException):
     what = (f"stopped by {exc.name}" if hasattr(exc, "signum") else "interrupted (Ctrl-C)"
             if isinstance(exc, KeyboardInterrupt) else f"stopped by {type(exc).__name__}")
     tube = {True: "tube off", False: "tube NOT confirmed off", None: "source not contacted"}[res.tube_off]
-    log.error("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
+    # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
+    log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
     if hasattr(exc, "add_note"):
         exc.add_note(f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
@@ -939,7 +947,13 @@ def _tube_off(r: _Run) -> bool | None:
         r.res.tube_off = False
         log.error("could not confirm the tube is off: %s", exc)
         return False
-    r.res.tube_off, r.res.tube_state = True, getattr(state, "name", str(state))
+    name = getattr(state, "name", str(state))
+    if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
+        dev.off_failed = True
+        r.res.tube_off, r.res.tube_state = False, name
+        log.error("XOF sent, but the controller reports %s: the tube still emits", name)
+        return False
+    r.res.tube_off, r.res.tube_state = True, name
     return True
 
 
