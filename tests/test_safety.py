@@ -253,6 +253,8 @@ def test_signal_in_phase_leaves_the_tube_off(tmp_path, scene_file, controller, s
         assert CONFIRMED.search(acq.last_line), acq.output
         assert f"stopped by {sig}" in acq.output
         assert "Traceback" not in acq.output
+        # the guardian outlived the signal (SIGINT went to the whole process group) and was released
+        assert "released by the acquiring process" in (tmp_path / "series.log").read_text()
     # the guardian has exited: nothing holds the port any more
     assert not any("X-ray guardian" in ln and "did not exit" in ln for ln in acq.lines)
 

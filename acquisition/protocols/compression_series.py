@@ -9,20 +9,32 @@ order of work is fixed::
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
 
+Each phase is a small function over one ``_Run`` state; :func:`run` drives them in one loop,
+and that loop owns the tube-off guarantee.
+
 Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
 
+- the protocol is checked at load: every number finite, the exposure within the protocol's limits
+  and the L8121's ratings (which a protocol may only tighten), no unknown key -- so a dry run
+  refuses what a run would;
+- the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on;
 - the tube is switched off (``XOF``, confirmed by ``STS``) on every exit path -- normal end,
-  exception, Ctrl-C, lost detector, full disk, unparseable reply -- and before every wait for a
-  person (moving the screws, taking the phantom out);
+  exception, Ctrl-C, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
+  every wait for a person (moving the screws, taking the phantom out). No signal interrupts the
+  switch-off (:class:`acquisition.guardian.SignalGuard`). ``Result.tube_off`` says whether it was
+  confirmed. On the lab's port (and ``[sim] source_port``), a guardian process holds the link and
+  switches off if this process is killed outright (:mod:`acquisition.guardian`);
 - while X-rays are on a monitor thread polls the source (``SAR``/``SIN`` every ``poll_s``) and on
   overload, interlock or a dropped beam switches the tube off at once and stops the series;
 - every serial exchange, phase and fault is logged to ``<output>.log`` beside the file (the lab
   notebook);
 - every frame is appended and flushed to the experiment file as it arrives, with image_key,
-  step, ratio, measured gap, the measured kV and uA at that moment and its time stamp; a crash
-  loses at most the frame in flight;
-- ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol,
-  and takes only what is missing.
+  step, ratio, measured gap, the measured kV and uA at that moment and its time stamp. It is
+  labelled invalid until its pixels are on disk, so a crash or a full disk leaves at most one
+  invalid frame, never a blank one labelled complete;
+- ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol
+  (the stored TOML, never read as a path), and takes only what is missing: frames labelled
+  invalid are taken again.
 
 Example (the virtual bench, seconds; a dry run needs no devices)::
 
