@@ -412,12 +412,13 @@ def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file
 
 # -- frames and a full disk ------------------------------------------------------------------------
 
-_KILLED_MID_WRITE = """
-import os, sys
+_FILLED_INSIDE_HDF5 = """
+import sys
 import numpy as np
 from radiokit.io import ExperimentWriter, ImageKey
-# the one fake here: the writer is told the disk has room, so the frame's pixels meet the full
-# disk inside libhdf5 (its own pre-write check would otherwise refuse the frame whole)
+# the one fake here: the writer is told the disk has room, so a frame meets the full disk inside
+# libhdf5 -- as when another program (the vendor software) fills the disk between the writer's
+# space check and its write
 ExperimentWriter._free_bytes = lambda self: 1 << 40
 w = ExperimentWriter(sys.argv[1], shape=(64, 64))
 i = 0
@@ -427,42 +428,47 @@ try:
         i += 1
 except OSError as exc:
     print("failed at", i, exc.errno, flush=True)
-os._exit(0)  # killed right there: no close, no flush
+w.close()
 """
 
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 2.7 MB tmpfs: room for the file, the writer's 1 MiB reserve and two or three of the
-    virtual panel's 560 x 560 frames (627 KB each), so the disk fills in the flats, X-rays on."""
+    """A 4.9 MB tmpfs: room for the file, the writer's ballast and reserve (a frame plus 1 MiB
+    each) and two or three of the virtual panel's 560 x 560 frames (627 KB each), so the disk
+    fills in the flats, X-rays on. Mounting needs root; elsewhere test_acquire.py's FullDisk
+    writer covers the protocol side."""
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2700k", "tmpfs", str(mnt)], capture_output=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4900k", "tmpfs", str(mnt)], capture_output=True)
     if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip()}); "
-                    "test_acquire.py's FullDisk writer covers the protocol side")
+        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip()})")
     yield mnt
     subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def test_a_frame_cut_short_by_the_disk_stays_invalid(small_disk):
-    """The disk fills inside libhdf5 and the process dies there: the file opens, every frame before
-    is intact, and the cut frame is labelled invalid -- never a zero-filled frame labelled complete."""
+    """The disk fills inside libhdf5: no crash (the writer releases its ballast so libhdf5 can
+    finish), the file opens, every frame before is intact, and the cut frame is labelled invalid
+    -- never a zero-filled frame labelled complete."""
     path = small_disk / "exp.h5"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-c", _KILLED_MID_WRITE, str(path)], capture_output=True, env=env, timeout=60)
+    r = subprocess.run([sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path)], capture_output=True, env=env,
+                       timeout=120)
     assert r.returncode == 0 and b"failed at" in r.stdout, r.stderr.decode()[-2000:]
     failed_at = int(r.stdout.split()[2])
+    assert int(r.stdout.split()[3]) == 28  # ENOSPC, named as such
     with h5py.File(path, "r") as h5:
         n = int(h5["entry"].attrs["frames_complete"])
         keys = h5["entry/instrument/detector/image_key"][:n]
         data = h5["entry/instrument/detector/data"]
-        assert n in (failed_at, failed_at + 1)
+        assert failed_at > 10 and n in (failed_at, failed_at + 1)
         assert np.all(keys[:failed_at] == ImageKey.FLAT)
         for i in range(failed_at):
             assert np.all(data[i] == 1000 + i)
         if n > failed_at:
             assert keys[failed_at] == ImageKey.INVALID
+    assert sorted(os.listdir(small_disk)) == ["exp.h5"]  # the ballast is gone
 
 
 def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, controller, small_disk):
@@ -473,14 +479,15 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     proto = write_protocol(tmp_path, scene_file, server.url, output=out, series={"settle_s": 0.0})
     acq = Acquire(proto, "--sim", "-q")
     code = acq.wait(timeout=60)
-    record("disk full (tmpfs 2.7 MB)", model, acq, None, code)
+    record("disk full (tmpfs 4.9 MB)", model, acq, None, code)
     assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
     errors = [ln for ln in acq.lines if ln.startswith("error:")]
     assert len(errors) == 1 and "disk full" in errors[0] and str(out) in errors[0], acq.output
     assert "Traceback" not in acq.output and not model.xray_on
+    assert "stopped in phase flats" in acq.output, acq.output  # X-rays were on when the disk filled
     with h5py.File(out, "r") as h5:
         n = int(h5["entry"].attrs["frames_complete"])
-        assert 0 < n < TOTAL
+        assert DARKS <= n < DARKS + FLATS
         keys = h5["entry/instrument/detector/image_key"][:n]
         assert np.all(h5["entry/instrument/detector/data"][:n][keys != ImageKey.INVALID].max(axis=(1, 2)) > 0)
     r = subprocess.run(["mount", "-o", "remount,size=8m", str(small_disk)], capture_output=True)

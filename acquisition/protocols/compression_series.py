@@ -213,10 +213,13 @@ def _source_limits(s: SourceSettings):
     if unknown:
         names = sorted(known | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
         raise ProtocolError(f"unknown key(s) in [source]: {', '.join(unknown)}; expected some of {', '.join(names)}")
+    for key, value in s.limits.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ProtocolError(f"[source] {key} = {value!r}: expected a finite number")
     try:
         cfg = SourceConfig.from_dict({**s.limits, "poll_s": s.limits.get("poll_s", min(0.2, s.poll_s)),
                                       "warmup_timeout_s": s.limits.get("warmup_timeout_s", s.warmup_timeout_s)})
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"[source]: {exc}") from None
     for name, value, ceiling, unit in (("kv_max", cfg.kv_max, RATED_KV[1], "kV"), ("ua_max", cfg.ua_max, RATED_UA_MAX, "uA"),
                                        ("watts_max", cfg.watts_max, RATED_WATTS_MAX, "W")):

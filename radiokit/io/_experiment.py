@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import errno
+import os
 import shutil
 import time
 from pathlib import Path
@@ -177,6 +178,11 @@ class ExperimentWriter:
     #: cannot survive a write that fails half-way -- the file it leaves does not open, and closing
     #: it crashes the process -- so a frame that might not fit is refused while the file is whole.
     reserve_bytes = 1 << 20
+    #: Space held beside the file (``.<name>.reserve``) while frames are written, one frame plus
+    #: :attr:`reserve_bytes`: if another program fills the disk between the check and the write
+    #: (the vendor software writes its frames to the same disk), it is released so libhdf5 can
+    #: finish what it started and the file stays whole.
+    ballast = True
 
     def append(self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None,
                voltage_kv=None, current_ua=None) -> int:
@@ -208,10 +214,11 @@ class ExperimentWriter:
         i = self._n
         if getattr(self, "_failed", None):
             raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
+        self._hold_ballast(frame.nbytes + self.reserve_bytes)
         free = self._free_bytes()
         if free < frame.nbytes + self.reserve_bytes:
             raise OSError(errno.ENOSPC, f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
-                                        f"plus {self.reserve_bytes} in reserve; frames 0..{i - 1} are complete")
+                                        f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete")
         values = {"image_key": ImageKey.INVALID, "step": int(step),
                   "ratio": np.nan if ratio is None else float(ratio),
                   "gap": np.nan if gap_mm is None else float(gap_mm) * 1e-3,
@@ -233,6 +240,11 @@ class ExperimentWriter:
             self._h5.flush()          # only now is the frame what it claims to be
         except Exception as exc:  # noqa: BLE001 - h5py reports a full disk as RuntimeError or OSError
             self._failed = " ".join(str(exc).split())[:200]
+            self._drop_ballast()
+            try:  # with the ballast's room, libhdf5 writes what it holds: the file is whole again
+                self._h5.flush()
+            except Exception:  # noqa: BLE001 - nothing more can be done; the message says what happened
+                pass
             code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC \
                 else errno.EIO
             raise OSError(code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays "
@@ -242,6 +254,40 @@ class ExperimentWriter:
     def _free_bytes(self) -> int:
         """Bytes free for this file on its file system."""
         return shutil.disk_usage(self.path.parent).free
+
+    @property
+    def _ballast_path(self) -> Path:
+        return self.path.with_name(f".{self.path.name}.reserve")
+
+    def _hold_ballast(self, nbytes: int) -> int:
+        """Hold ``nbytes`` of disk in the ballast file (allocated, not sparse); returns the bytes
+        held. Growing it on a full disk holds what it can: the space check that follows refuses
+        the frame."""
+        if not self.ballast:
+            return 0
+        path = self._ballast_path
+        try:
+            held = path.stat().st_size
+        except OSError:
+            held = 0
+        if held >= nbytes:
+            return held
+        try:
+            with open(path, "ab") as fh:
+                os.posix_fallocate(fh.fileno(), 0, nbytes)
+            return nbytes
+        except OSError:  # a full disk, or a file system without fallocate: no ballast then
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            return 0
+
+    def _drop_ballast(self) -> None:
+        try:
+            self._ballast_path.unlink()
+        except OSError:
+            pass
 
     def set_pixel_mask(self, mask):
         mask = np.asarray(mask, dtype=np.uint32)
@@ -258,6 +304,7 @@ class ExperimentWriter:
                     self._h5["entry"].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
             finally:
                 self._h5.close()
+                self._drop_ballast()
 
     def __enter__(self):
         return self
