@@ -114,7 +114,7 @@ def _run_series(args, p) -> int:
             r = getattr(exc, "result", None)
             known = isinstance(exc, (DeviceError, OSError, ValueError))
             _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
-            if r is not None:
+            if r is not None and r.phase != "connect":
                 _say(f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; "
                      f"{again} completes the series")
             return _finish(r, 1)
@@ -136,7 +136,7 @@ def _finish(res, code: int, err: bool = True) -> int:
     if res is None or res.tube_off is None:
         return code
     line, ok = _tube_line(res)
-    _say(line, err=err and ok or not ok)
+    _say(line, err=err or not ok)
     return code if ok else 3
 
 
