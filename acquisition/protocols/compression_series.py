@@ -890,8 +890,11 @@ def _stop(r: _Run, exc: BaseException):
     res, monitor = r.res, r.monitor
     res.phase = r.phase
     beam_period = r.beam_since is not None
+    if monitor is not None:
+        # wait for a poll in flight (and the switch-off a fault makes it do): nothing may race the
+        # switch-off below for the link, or print after the command's last line
+        monitor.stop()
     if beam_period and monitor is not None:
-        monitor._stop.set()
         if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
             # stopped for another reason (a signal, the disk, the detector): vouch for the frames
             # taken since the last poll with one more, before switching off
@@ -946,7 +949,7 @@ def _tube_off(r: _Run) -> bool | None:
     usually tried already). Records the outcome in ``r.res.tube_off``."""
     monitor, dev = r.monitor, r.devices
     if monitor is not None:
-        monitor._stop.set()
+        monitor.stop()
     if dev is None or dev.off_done:
         return r.res.tube_off
     dev.off_done = True
