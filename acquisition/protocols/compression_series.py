@@ -69,7 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
+from acquisition.errors import DetectorTimeout, DeviceError
 
 __all__ = ["Protocol", "SourceSettings", "DetectorSettings", "FrameSettings", "SeriesSettings", "SimSettings",
            "load_protocol", "plan", "Plan", "run", "Result", "Devices", "lab_devices", "sim_devices",
