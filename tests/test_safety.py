@@ -501,6 +501,28 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
 
 
+def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small_disk):
+    """A disk already full: one line naming the file, the tube confirmed off, and no empty file
+    left behind to block the next run."""
+    with open(small_disk / "filler", "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+    model, server = controller()
+    out = small_disk / "series.h5"
+    acq = Acquire(write_protocol(tmp_path, scene_file, server.url, output=out), "--sim", "-q")
+    code = acq.wait(timeout=60)
+    record("disk full before the first frame", model, acq, None, code)
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
+    assert "Traceback" not in acq.output and "Logging error" not in acq.output
+    assert not out.exists() and not model.xray_on
+
+
 @pytest.fixture(scope="module", autouse=True)
 def print_matrix(request):
     yield

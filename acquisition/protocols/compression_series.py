@@ -58,9 +58,11 @@ Example (the virtual bench, seconds; a dry run needs no devices)::
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import math
+import os
 import threading
 import time
 import tomllib
@@ -698,7 +700,15 @@ def _phase_warm_up(r: _Run):
               source={"name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
                       "voltage_kv": p.source.voltage_kv, "current_ua": p.source.current_ua},
               title=f"radiokit compression series: {p.name}")
-    r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite, **kw)
+    existed = r.out.exists()
+    try:
+        r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite,
+                                    **kw)
+    except OSError as exc:
+        if not existed:  # a file this run began and could not finish: it would block the next run
+            r.out.unlink(missing_ok=True)
+        code = exc.errno or errno.EIO
+        raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
         r.writer.h5["entry"].attrs["protocol"] = p.to_toml()
         r.writer.h5["entry"].attrs["devices"] = json.dumps(
@@ -869,9 +879,35 @@ def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, pr
     return res
 
 
+class _Notebook(logging.FileHandler):
+    """The lab notebook's file. On a full disk it falls silent rather than print a traceback per
+    record or replace the error that ends the run with its own."""
+
+    broken = False
+
+    def emit(self, record):
+        if not self.broken:
+            super().emit(record)
+
+    def handleError(self, record):  # noqa: N802 - logging's name
+        self.broken = True
+
+    def flush(self):
+        try:
+            super().flush()
+        except OSError:
+            self.broken = True
+
+    def close(self):
+        try:
+            super().close()
+        except OSError:
+            self.broken = True
+
+
 def _open_notebook(out: Path) -> logging.Handler:
     """The lab notebook: every serial exchange, phase and fault, beside the experiment file."""
-    notebook = logging.FileHandler(out.with_suffix(".log"), encoding="utf-8")
+    notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
     notebook.setLevel(logging.DEBUG)
     notebook.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s",
                                             "%Y-%m-%d %H:%M:%S"))
