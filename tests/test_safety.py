@@ -16,8 +16,8 @@ a terminal's Ctrl-C does, SIGTERM, SIGHUP, SIGKILL) or a controller fault -- and
 - the time from the fault to the tube being off (emulator state watched every 5 ms; for a phase
   with the tube already off, to the first ``XOF`` it received after the fault): within 2 s.
 
-The matrix is printed at the end of the module (``pytest -rA`` or ``-s`` is not needed: it goes
-to the terminal through the capture manager).
+The matrix is printed at the end of the module, with or without ``-s`` (it goes to the terminal
+through the capture manager).
 
 Later the matrix runs over the controller's two dialects: ``controller`` is the one fixture that
 builds the emulator, and its ``params`` the one line to extend.
@@ -67,7 +67,8 @@ def scene_file(tmp_path_factory):
 @pytest.fixture(params=["A"])
 def controller(request):
     """``make(warmed_up=True) -> (model, server)``: an emulated L8121 served on a pty in this
-    process (the dialect parameter goes here)."""
+    process. The one place for the controller's dialect: extend ``params`` and pass
+    ``request.param`` to the model (and to ``write_protocol``'s ``[source]``)."""
     servers = []
 
     def make(warmed_up=True):
