@@ -107,7 +107,7 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
     dev = sim_devices(p, bench=bench)
     res = run(p, devices=dev, progress=False)
     assert (res.frames_written, res.frames_total, res.phase) == (TOTAL, TOTAL, "done")
-    assert not dev.emulator.xray_on
+    assert not dev.emulator.xray_on and res.tube_off is True and res.tube_state == "STANDBY"
     c = assert_complete(p.output)
     dark = c["data"][c["key"] == ImageKey.DARK].mean()
     flat = c["data"][c["key"] == ImageKey.FLAT].mean()
@@ -244,6 +244,9 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
         assert re.search(pattern, text, re.I), text
     res = getattr(info.value, "result", None)
     assert res is not None and res.frames_total >= state["before"]
+    # "tube off" is claimed only when STS confirmed it: a silent or garbling controller cannot
+    # confirm anything (even though the emulator did execute the XOF)
+    assert res.tube_off is (name not in ("silent controller", "garbage reply")), (name, res.tube_off)
     # every frame completed before the fault is in the file, with its metadata
     n_before = state["before"]
     if n_before == 0 and not os.path.exists(p.output):  # stopped before the file was made
