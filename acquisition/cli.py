@@ -139,9 +139,18 @@ def _one_line(exc) -> str:
     return " ".join(str(text).split()) or type(exc).__name__
 
 
+#: The last line when the source's port could not be opened (a mistyped port, a cable not in).
+NEVER_REACHED = ("radiokit never reached the X-ray controller (its port could not be opened), so it sent no "
+                 "command and could not have switched X-rays on; check the controller's state at the unit")
+
+
 def _finish(res, code: int, err: bool = True) -> int:
-    """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed.
-    No line when the source was never contacted (the run stopped before connecting)."""
+    """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed,
+    or -- the port never opened -- that radiokit never reached the controller. No line when the
+    run stopped before trying to connect."""
+    if res is not None and res.port_never_opened:
+        _say(NEVER_REACHED)
+        return code or 1
     if res is None or res.tube_off is None:
         return code
     line, ok = _tube_line(res)

@@ -22,6 +22,7 @@ The line protocol on the pipe (ASCII, one line each way; ``SEQ`` ties a reply to
 a reply that arrives after its requester was interrupted is discarded)::
 
     Q SEQ COMMAND   ->  R SEQ REPLY  |  E SEQ MESSAGE     one exchange with the controller
+                    |  N SEQ MESSAGE                      (N: the controller did not reply)
     X               ->  (exit)                            orderly release: close the port, no XOF
 """
 from __future__ import annotations
@@ -130,8 +131,7 @@ class SignalGuard:
 
 # -- the client side --------------------------------------------------------------------------------
 
-def start_guardian(url: str, *, baudrate: int, config: dict, notebook: str | Path | None = None,
-                   startup_timeout_s: float = 20.0):
+def start_guardian(url: str, config, *, notebook: str | Path | None = None, startup_timeout_s: float = 20.0):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
 
@@ -139,25 +139,30 @@ def start_guardian(url: str, *, baudrate: int, config: dict, notebook: str | Pat
     ----------
     url : str
         The controller's port, as :class:`~acquisition.transport.SerialTransport` opens it.
-    baudrate : int
-        Bits per second.
-    config : dict
-        The driver's configuration (``SourceConfig.to_dict()``): the guardian's ``off()`` uses the
-        same time-outs and attempts as the acquiring process.
+    config : SourceConfig
+        The driver's configuration with the dialect, baud rate and command spacing resolved
+        (:meth:`acquisition.l8121.L8121.resolved_config`, after any probe): the guardian opens the
+        port at that rate and switches off in that dialect, with the same time-outs and attempts
+        as the acquiring process, and never probes.
     notebook : path, optional
         The lab notebook (``<output>.log``) the guardian appends to when it has to act.
 
     Raises
     ------
+    PortUnavailable
+        The guardian could not open the port (the message is the port's own): nothing was sent.
     DeviceError
-        The guardian could not open the port (the message is the port's own) or did not start.
+        The guardian did not start.
+    ValueError
+        ``config`` leaves the dialect or the baud rate open.
     """
     from acquisition.errors import DeviceError
     from acquisition.transport import PipeTransport
 
-    timeout_s = float(config.get("timeout_s", 1.0))
-    cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--baudrate", str(int(baudrate)),
-           "--config", json.dumps(config, default=str)]
+    if config.dialect not in ("A", "B") or config.baudrate is None or config.min_interval_s is None:
+        raise ValueError(f"{url}: the guardian needs a resolved configuration (dialect {config.dialect!r}, "
+                         f"baudrate {config.baudrate!r}); pass driver.resolved_config()")
+    cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
     env = dict(os.environ)
@@ -171,7 +176,7 @@ def start_guardian(url: str, *, baudrate: int, config: dict, notebook: str | Pat
                                 start_new_session=True, close_fds=True)
     except OSError as exc:
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
-    link = PipeTransport(url, proc, timeout_s=timeout_s, baudrate=baudrate)
+    link = PipeTransport(url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate)
     link.wait_ready(startup_timeout_s)
     return link
 
@@ -196,41 +201,30 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config: dict, note) -> bool:
-    """The acquiring process is gone: the driver's ``off()`` on the port this process holds.
-    Returns whether ``STS`` confirmed it."""
+def _switch_off(link, config, note) -> bool:
+    """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
+    dialect the acquiring process resolved (``config``; no probe, no identity check: only what
+    switching off needs). Returns whether ``STS`` confirmed it."""
     from acquisition.errors import DeviceError
-    from acquisition.l8121 import L8121, SourceConfig
+    from acquisition.l8121 import L8121
 
-    cfg = SourceConfig.from_dict(config)
-    try:
-        # TODO(dialects): pass the configured dialect here if it is not part of SourceConfig
-        driver = L8121(link, config=cfg)
-    except DeviceError as exc:
-        # no driver without a connect (TYP): still send the word both dialects switch off with,
-        # in case only the controller's replies are lost
-        note("ERROR", f"{link.port}: controller did not answer at connect ({exc}); sending XOF blind")
-        try:
-            link.query("XOF")
-        except Exception:  # noqa: BLE001, S110 - blind by design: the warning that follows says it all
-            pass
-        return False
+    driver = L8121(link, config=config, connect=False)
+    driver.attach(link)
     try:
         state = driver.off()
     except DeviceError as exc:
         note("CRITICAL", f"{link.port}: {exc}")
         return False
-    name = getattr(state, "name", str(state))
-    if name in ("XRAY_ON", "WARMING_UP", "AGING"):  # a warm-up still running emits X-rays too
-        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {name}")
+    if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
+        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
         return False
-    note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {name})")
+    note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
     return True
 
 
-def _serve(link, config: dict, note) -> int:
+def _serve(link, config, note) -> int:
     """Answer the acquiring process until it releases the port (0) or disappears (switch off)."""
-    from acquisition.errors import DeviceError
+    from acquisition.errors import DeviceError, NoReply
 
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
@@ -261,7 +255,8 @@ def _serve(link, config: dict, note) -> int:
         try:
             out = f"R {seq} {link.query(command)}"
         except (DeviceError, ValueError) as exc:
-            out = f"E {seq} {' '.join(str(exc).split())}"
+            kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
+            out = f"{kind} {seq} {' '.join(str(exc).split())}"
         try:
             os.write(wfd, (out + "\n").encode("ascii", "replace"))
         except OSError:
@@ -269,7 +264,8 @@ def _serve(link, config: dict, note) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m acquisition.guardian URL --baudrate N --config JSON [--notebook PATH]``."""
+    """``python -m acquisition.guardian URL --config JSON [--notebook PATH]`` (JSON: a resolved
+    ``SourceConfig``, see :func:`start_guardian`)."""
     import argparse
 
     from acquisition.errors import DeviceError
@@ -283,11 +279,12 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, terminated)
     ap = argparse.ArgumentParser(prog="python -m acquisition.guardian")
     ap.add_argument("url")
-    ap.add_argument("--baudrate", type=int, default=38400)
-    ap.add_argument("--config", default="{}")
+    ap.add_argument("--config", required=True)
     ap.add_argument("--notebook")
     args = ap.parse_args(argv)
-    config = json.loads(args.config)
+    from acquisition.l8121 import SourceConfig
+
+    config = SourceConfig.from_dict(json.loads(args.config))
     note = _Notebook(args.notebook)
     import logging
 
@@ -304,8 +301,8 @@ def main(argv: list[str] | None = None) -> int:
             logging.getLogger("acquisition.l8121").addHandler(fh)
             logging.getLogger("acquisition.l8121").setLevel(logging.INFO)
     try:
-        link = SerialTransport(args.url, baudrate=args.baudrate, timeout_s=float(config.get("timeout_s", 1.0)),
-                               min_interval_s=float(config.get("min_interval_s", 0.05)))
+        link = SerialTransport(args.url, baudrate=config.baudrate, timeout_s=config.timeout_s,
+                               min_interval_s=config.min_interval_s)
     except (DeviceError, ValueError) as exc:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1

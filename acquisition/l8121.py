@@ -86,7 +86,7 @@ from numbers import Real
 from pathlib import Path
 from typing import Any
 
-from acquisition.errors import DeviceError, SourceFault
+from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
 
 __all__ = ["L8121", "SourceConfig", "SourceState", "WarmupState", "Aging", "Ratings", "RATINGS", "Dialect",
@@ -858,6 +858,11 @@ class L8121:
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
         self._in_off = False
+        #: The last :meth:`off` that could not be confirmed (None once one confirms). While set, a
+        #: failed exchange does not start another switch-off by itself: the one that failed has
+        #: said to switch off at the controller, and asking a silent controller again only delays
+        #: that message.
+        self.off_failed: DeviceError | None = None
         if connect:
             self.connect()
 
@@ -935,8 +940,10 @@ class L8121:
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
-            raise DeviceError(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
-                              f"{result.port}` prints the exchange)")
+            never_opened = all(e.command == "(open)" for e in result.exchange)
+            error = PortUnavailable if never_opened else DeviceError
+            raise error(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
+                        f"{result.port}` prints the exchange)")
         logger.info("%s", result.summary())
         self._use(DIALECTS[result.dialect], result.baudrate)
 
@@ -1012,6 +1019,30 @@ class L8121:
         return dataclasses.replace(self.config, dialect=self.dialect.name, baudrate=self.baudrate,
                                    voltage_scale=self.voltage_scale, min_interval_s=self.min_interval_s)
 
+    def resolve(self) -> SourceConfig:
+        """The dialect and baud rate before connecting: ``dialect="auto"`` runs :func:`probe` on
+        the port (harmless queries only, the port closed again); returns :meth:`resolved_config`.
+        For a port that another process will hold (the guardian), so that nobody probes twice.
+
+        Raises
+        ------
+        DeviceError
+            The replies fit neither dialect (:class:`~acquisition.errors.PortUnavailable` when the
+            port could not be opened at any rate).
+        """
+        if self.dialect is None:
+            self._probe()
+        return self.resolved_config()
+
+    def attach(self, transport) -> L8121:
+        """Use an open ``transport`` as this driver's link, without the connect checks (identity,
+        operate switch, state): for switching off a unit whose dialect is already known, when one
+        more exchange with a silent controller would only delay that (the guardian)."""
+        if self.dialect is None:
+            raise DeviceError(f"{self.port}: attach() needs a known dialect (resolve() first)")
+        self._transport = transport
+        return self
+
     def describe(self) -> dict[str, Any]:
         """What the experiment file records about the source link."""
         return {"port": self.port, "dialect": self.dialect.name if self.dialect else None, "baudrate": self.baudrate,
@@ -1061,6 +1092,9 @@ class L8121:
     def _fail_safe(self, cause: Exception) -> None:
         """A failed exchange while the beam may be on: switch off before reporting it."""
         if not self._may_be_on or self._in_off:
+            return
+        if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
+            logger.error("%s: %s; X-rays were not confirmed off before (%s)", self.port, cause, self.off_failed)
             return
         logger.error("%s: %s; switching X-rays off", self.port, cause)
         try:
@@ -1391,7 +1425,7 @@ class L8121:
         except DeviceError as exc:
             note = f"switching X-rays off could not be confirmed ({exc})"
         try:
-            code = self.error_code()
+            code = None if self.off_failed else self.error_code()  # (not asked of a controller that failed)
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
@@ -1427,14 +1461,17 @@ class L8121:
 
         Confirmed by a state that cannot emit (not X-rays on, not warming up / ``AGING``, not dialect
         B's ambiguous ``ERROR``). Tries ``off_attempts`` times (``XOF`` then ``STS``, ``poll_s``
-        apart). Returns the state read after switching off.
+        apart), but not again after an attempt that got no reply to either (a silent controller:
+        each further attempt would cost two reply time-outs before the operator is told). Returns
+        the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
+        :attr:`off_failed`.
 
         Raises
         ------
         DeviceError
             Not confirmed after ``off_attempts`` attempts: switch off at the controller.
         """
-        attempts, last = int(self.config.off_attempts), None
+        attempts, last, silent = int(self.config.off_attempts), None, False
         self._in_off = True
         try:
             for attempt in range(attempts):
@@ -1442,23 +1479,33 @@ class L8121:
                     time.sleep(self.config.poll_s)
                 try:
                     self._do("xray_off")
+                    silent = False
                 except DeviceError as exc:
-                    last = exc  # still ask: the XOF may have arrived
+                    last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
                 try:
                     state = self._read("state")
                 except DeviceError as exc:
                     last = exc
+                    if silent and isinstance(exc, NoReply):
+                        # no reply to XOF nor STS: another attempt costs two more time-outs and
+                        # reaches nobody; the operator must hear it now
+                        break
+                    silent = False
                     continue
+                silent = False
                 if state in _OFF_STATES:
-                    self._may_be_on, self._beam = False, None
+                    self._may_be_on, self._beam, self.off_failed = False, None, None
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     return state
                 last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
-            why = self._why_not_remote()  # still inside: a failed query here must not call off() again
+            # still inside: a failed query here must not call off() again; a silent one is not asked
+            why = "; the controller does not answer" if silent else self._why_not_remote()
         finally:
             self._in_off = False
-        raise DeviceError(f"{self.port}: could not confirm X-rays off after {attempts} attempt(s) "
-                          f"(last: {last}){why}; switch the source off at the controller") from last
+        tried = f"{attempt + 1} attempt(s)"
+        self.off_failed = DeviceError(f"{self.port}: could not confirm X-rays off after {tried} "
+                                      f"(last: {last}){why}; switch the source off at the controller")
+        raise self.off_failed from last
 
     def _why_not_remote(self) -> str:
         """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""

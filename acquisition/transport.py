@@ -27,7 +27,7 @@ import time
 
 import serial
 
-from acquisition.errors import DeviceError
+from acquisition.errors import DeviceError, NoReply, PortUnavailable
 
 __all__ = ["SerialTransport", "PipeTransport"]
 
@@ -140,7 +140,7 @@ class SerialTransport:
             ser.rts = True
             ser.open()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"{self.url}: cannot open the port ({exc})") from exc
+            raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
@@ -252,7 +252,7 @@ class SerialTransport:
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
-                raise DeviceError(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
+                raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most a slice
             buf += ser.read(max(1, ser.in_waiting))
 
@@ -317,8 +317,10 @@ class PipeTransport:
         line = self._read_line(time.monotonic() + timeout_s, "start")
         if line != "READY":
             self._finish()
-            why = line[4:] if line.startswith("E 0 ") else repr(line)
-            raise DeviceError(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
+            opened = not line.startswith("E 0 ")  # E 0: the guardian could not open the port at all
+            why = repr(line) if opened else line[4:]
+            error = DeviceError if opened else PortUnavailable
+            raise error(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
         self._open = True
         self.log.info("%s opened through the X-ray guardian (pid %d)", self.url, self._process.pid)
 
@@ -385,13 +387,13 @@ class PipeTransport:
             self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))
             if kind == "R":
                 return text
-            raise DeviceError(text)
+            raise NoReply(text) if kind == "N" else DeviceError(text)
 
     def _read_line(self, deadline: float, command: str) -> str:
         while b"\n" not in self._buf:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise DeviceError(f"{self.url}: {command}: no answer from the X-ray guardian "
+                raise NoReply(f"{self.url}: {command}: no answer from the X-ray guardian "
                                   f"(pid {self._process.pid}) within {self._reply_wait_s:g} s")
             ready, _, _ = select.select([self._rfd], [], [], left)
             if not ready:

@@ -352,16 +352,17 @@ def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_f
 
 # -- limits before the first byte ------------------------------------------------------------------
 
-LIMITS = [
-    ({"voltage_kv": 900}, r"voltage_kv = 900: outside 40\.\.150 kV"),
+LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceiling), run at load
+    ({"voltage_kv": 900}, r"voltage_kv = 900 kV is outside kv_min\.\.kv_max = 40\.\.150 kV"),
     ({"voltage_kv": -60}, r"voltage_kv = -60"),
     ({"voltage_kv": float("nan")}, r"voltage_kv = nan"),
-    ({"current_ua": 600}, r"current_ua = 600: outside 0\.\.500 uA"),
-    ({"watts_max": 10}, r"60 kV x 250 uA = 15 W exceeds 10 W"),  # (the ratings allow 150 kV x 500 uA = 75 W)
-    ({"voltage_kv": 60, "kv_max": 1000}, r"kv_max = 1000 would raise the L8121's rating of 150 kV"),
-    ({"watts_max": 100}, r"watts_max = 100 would raise"),
-    ({"voltage_kv": 60, "kv_max": 50}, r"voltage_kv = 60: outside 40\.\.50 kV"),  # a protocol may tighten
+    ({"current_ua": 600}, r"current_ua = 600 µA is outside ua_min\.\.ua_max = 0\.\.500 µA"),
+    ({"watts_max": 10}, r"60 kV x 250 µA = 15 W exceeds watts_max = 10 W"),  # (the ratings allow 75 W)
+    ({"voltage_kv": 60, "kv_max": 1000}, r"kv_max = 1000 kV exceeds the L8121 rating of 150 kV"),
+    ({"watts_max": 100}, r"watts_max = 100 W exceeds the L8121 rating of 75 W"),
+    ({"voltage_kv": 60, "kv_max": 50}, r"voltage_kv = 60 kV is outside kv_min\.\.kv_max = 40\.\.50 kV"),  # tighten
     ({"voltge_kv": 60}, r"unknown key\(s\) in \[source\]: voltge_kv"),
+    ({"dialect": "C"}, r"dialect 'C': expected 'A', 'B' or 'auto'"),
     ({"focus": -1}, r"focus = -1"),
     ({"poll_s": float("inf")}, r"poll_s = inf"),
 ]

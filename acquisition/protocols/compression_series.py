@@ -184,12 +184,6 @@ class Protocol:
         return _to_toml(dataclasses.asdict(self))
 
 
-# The L8121's ratings (../shared/hardware/L8121.md): a ceiling no protocol can raise, only tighten.
-RATED_KV = (40.0, 150.0)
-RATED_UA_MAX = 500.0
-RATED_WATTS_MAX = 75.0
-
-
 def _check_numbers(section: str, settings) -> None:
     """Every number of a settings section: the right type, finite, and >= 0 (no setting of a
     protocol is negative; ``inf`` would overflow a timer or a duration estimate)."""
@@ -207,7 +201,8 @@ def _check_numbers(section: str, settings) -> None:
 
 def _source_limits(s: SourceSettings):
     """The driver configuration a protocol's ``[source]`` asks for (``SourceConfig``), checked:
-    known keys only, and limits that stay within the L8121's ratings."""
+    known keys only, and limits that stay within the L8121's ratings (``SourceConfig`` refuses a
+    limit beyond :data:`acquisition.l8121.RATINGS`: a protocol may only tighten them)."""
     from acquisition.l8121 import SourceConfig
 
     known = {f.name for f in dataclasses.fields(SourceConfig)}
@@ -223,14 +218,6 @@ def _source_limits(s: SourceSettings):
                                       "warmup_timeout_s": s.limits.get("warmup_timeout_s", s.warmup_timeout_s)})
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"[source]: {exc}") from None
-    for name, value, ceiling, unit in (("kv_max", cfg.kv_max, RATED_KV[1], "kV"), ("ua_max", cfg.ua_max, RATED_UA_MAX, "uA"),
-                                       ("watts_max", cfg.watts_max, RATED_WATTS_MAX, "W")):
-        if value > ceiling:
-            raise ProtocolError(f"[source] {name} = {value:g} would raise the L8121's rating of {ceiling:g} {unit}; "
-                                f"a protocol may only tighten the limits")
-    if cfg.kv_min < RATED_KV[0]:
-        raise ProtocolError(f"[source] kv_min = {cfg.kv_min:g} is below the L8121's rating of {RATED_KV[0]:g} kV; "
-                            f"a protocol may only tighten the limits")
     return cfg
 
 
@@ -238,17 +225,10 @@ def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
     cfg = _source_limits(s)
-    # TODO(merge): call SourceConfig.check_exposure(voltage_kv, current_ua) (acquisition/l8121.py,
-    # from the dialects branch) here instead of the three comparisons below.
-    kv, ua = float(s.voltage_kv), float(s.current_ua)
-    lo_kv, hi_kv = max(cfg.kv_min, RATED_KV[0]), min(cfg.kv_max, RATED_KV[1])
-    hi_ua, hi_w = min(cfg.ua_max, RATED_UA_MAX), min(cfg.watts_max, RATED_WATTS_MAX)
-    if not lo_kv <= kv <= hi_kv:
-        raise ProtocolError(f"[source] voltage_kv = {kv:g}: outside {lo_kv:g}..{hi_kv:g} kV")
-    if not cfg.ua_min <= ua <= hi_ua:
-        raise ProtocolError(f"[source] current_ua = {ua:g}: outside {cfg.ua_min:g}..{hi_ua:g} uA")
-    if kv * ua / 1000 > hi_w:
-        raise ProtocolError(f"[source] {kv:g} kV x {ua:g} uA = {kv * ua / 1000:g} W exceeds {hi_w:g} W")
+    try:  # the driver's own check (the one implementation of the ratings), before anything is sent
+        cfg.check_exposure(s.voltage_kv, s.current_ua)
+    except ValueError as exc:
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
     if s.focus is not None and (isinstance(s.focus, bool) or not isinstance(s.focus, int)
                                 or s.focus not in cfg.focus_modes):
         raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(cfg.focus_modes)}")
@@ -419,23 +399,34 @@ def _source_config(p: Protocol) -> dict:
 
 def _guarded_source(url: str, p: Protocol):
     """The L8121 on ``url``, its port held by a guardian process (:mod:`acquisition.guardian`)
-    that switches the tube off if this process dies without releasing it."""
-    from acquisition.guardian import start_guardian
-    from acquisition.l8121 import L8121, SourceConfig
+    that switches the tube off if this process dies without releasing it.
 
-    cfg = _source_config(p)
+    The dialect and baud rate are resolved first (``dialect = "auto"`` probes the port with
+    harmless queries), and the guardian gets that resolved configuration: it opens the port at
+    the right rate and switches off in the right dialect without probing again.
+
+    An error carries ``source_unreached`` (the source's state is unknown: the run must say so),
+    or ``port_never_opened`` when the port could not be opened at all (nothing was sent)."""
+    from acquisition.errors import PortUnavailable
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+
+    driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
     try:
-        link = start_guardian(url, baudrate=p.source.baudrate, config=cfg,
-                              notebook=Path(p.output).with_suffix(".log"))
+        resolved = driver.resolve()
+        link = start_guardian(url, resolved, notebook=Path(p.output).with_suffix(".log"))
     except BaseException as exc:
-        exc.source_unreached = True  # the source's state is unknown: the run must say so
+        exc.source_unreached = True
+        exc.port_never_opened = isinstance(exc, PortUnavailable)
         raise
     try:
-        return L8121(link, baudrate=p.source.baudrate, config=SourceConfig.from_dict(cfg))
+        source = L8121(link, config=resolved)
     except BaseException as exc:
         exc.source_unreached = True
         link.close()
         raise
+    source.probe_result = driver.probe_result  # what "auto" found, for the file's record
+    return source
 
 
 def lab_devices(p: Protocol) -> Devices:
@@ -543,6 +534,11 @@ class _BeamMonitor:
                 self.last_ok = t
             except BaseException as exc:  # a fault, a silent controller, garbage: stop the series
                 self.error = exc
+                if getattr(self.source, "off_failed", None) is not None:
+                    # the driver's own switch-off (its fail-safe) failed and said so: one owner
+                    # retries, so the operator's warning is not delayed by a second full budget
+                    self.off_failed = True
+                    return
                 try:
                     self.source.off()
                 except Exception as off_exc:
@@ -597,6 +593,7 @@ class Result:
     resumed: bool = False
     tube_off: bool | None = None
     tube_state: str = ""
+    port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
@@ -667,8 +664,8 @@ class _Run:
 
 def _emitting(state) -> bool:
     """X-rays on, for every safety rule: the beam, and the warm-up sequence, which runs the tube
-    (dialect A's WARMING_UP, dialect B's AGING)."""
-    return getattr(state, "name", "") in ("XRAY_ON", "WARMING_UP", "AGING")
+    (dialect A's ``STS 1``, dialect B's ``AGING``: both WARMING_UP, ``SourceState.emitting``)."""
+    return bool(getattr(state, "emitting", False))
 
 
 def _phase_connect(r: _Run):
@@ -943,8 +940,10 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)
-    if res.tube_off is None and getattr(exc, "source_unreached", False):
-        res.tube_off = False  # the source could not be reached: nobody knows its state
+    if res.tube_off is None and getattr(exc, "port_never_opened", False):
+        res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
+    elif res.tube_off is None and getattr(exc, "source_unreached", False):
+        res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
     if monitor is not None and monitor.error is not None and r.writer is not None:
@@ -982,19 +981,21 @@ def _release(r: _Run, notebook):
 
 
 def _tube_off(r: _Run) -> bool | None:
-    """Tube off, confirmed by ``STS``; once per run (a controller that cannot confirm it -- silent,
-    dead, stuck on -- costs the driver's full retry budget each time, and the beam monitor has
-    usually tried already). Records the outcome in ``r.res.tube_off``."""
+    """Tube off, confirmed by ``STS``; once per run, and not at all when a switch-off already failed
+    (the driver's fail-safe or the beam monitor's): one owner retries, as a controller that cannot
+    confirm -- silent, dead, stuck on -- costs the retry budget each time, and the operator's
+    warning would wait for every layer's. Records the outcome in ``r.res.tube_off``."""
     monitor, dev = r.monitor, r.devices
     if monitor is not None:
         monitor.stop()
     if dev is None or dev.off_done:
         return r.res.tube_off
     dev.off_done = True
-    if monitor is not None and monitor.off_failed:
+    if monitor is not None and monitor.off_failed or getattr(dev.source, "off_failed", None) is not None:
         dev.off_failed = True
         r.res.tube_off = False
-        log.error("not switching off again: the beam monitor's XOF could not be confirmed either")
+        log.error("not switching off again: the last XOF could not be confirmed (%s)",
+                  getattr(dev.source, "off_failed", None) or "beam monitor")
         return False
     try:
         state = dev.source.off()
