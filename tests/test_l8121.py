@@ -592,14 +592,23 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
 
 
 def test_off_raises_when_it_cannot_confirm(source):
+    """A silent controller: one attempt (XOF and STS both unanswered), not three -- more would only
+    delay the message -- which says the controller does not answer; and no other exchange is sent
+    until an off() confirms (each would wait out its time-out again)."""
     src, model = source
     src.on(60, 250)
     model.silence()
     src.config.timeout_s = 0.2
     src._transport.timeout_s = 0.2
-    with pytest.raises(DeviceError, match="could not confirm X-rays off after 3 attempt"):
+    n0 = len(model.log)
+    with pytest.raises(DeviceError, match="could not confirm X-rays off after 1 attempt.*does not answer"):
         src.off()
+    assert [e.command for e in model.log[n0:]] == ["XOF", "STS"]
+    with pytest.raises(DeviceError, match="SAR not sent|SHV not sent|STS not sent"):
+        src.measured()
+    assert len(model.log) == n0 + 2
     model.silence(False)
+    assert src.off() == SourceState.STANDBY and src.off_failed is None
 
 
 def test_operate_switch_turned_to_local_while_on(source, dialect):

@@ -19,8 +19,12 @@ a terminal's Ctrl-C does, SIGTERM, SIGHUP, SIGKILL) or a controller fault -- and
 The matrix is printed at the end of the module, with or without ``-s`` (it goes to the terminal
 through the capture manager).
 
-Later the matrix runs over the controller's two dialects: ``controller`` is the one fixture that
-builds the emulator, and its ``params`` the one line to extend.
+The matrix runs in both of the controller's command dialects (``controller``'s ``params``): the
+protocol names the dialect (``[source] dialect``), the command resolves it and hands it to the
+guardian, so a kill -9 is switched off in the dialect the unit speaks.
+
+A test that sends a signal expects the process that receives it to install its own handlers: the
+command is started with SIGINT ignored in some rows, as ``make test &`` starts it.
 """
 from __future__ import annotations
 
@@ -64,15 +68,15 @@ def scene_file(tmp_path_factory):
     return path
 
 
-@pytest.fixture(params=["A"])
+@pytest.fixture(params=["A", "B"])
 def controller(request):
     """``make(warmed_up=True) -> (model, server)``: an emulated L8121 served on a pty in this
-    process. The one place for the controller's dialect: extend ``params`` and pass
-    ``request.param`` to the model (and to ``write_protocol``'s ``[source]``)."""
+    process, in the dialect ``request.param`` (``write_protocol(..., server)`` names it in
+    ``[source]``)."""
     servers = []
 
     def make(warmed_up=True):
-        model = L8121Model(warmup_s=WARMUP_S, ramp_s=0.05, warmed_up=warmed_up)
+        model = L8121Model(dialect=request.param, warmup_s=WARMUP_S, ramp_s=0.05, warmed_up=warmed_up)
         server = PtyServer(model).start()
         servers.append(server)
         return model, server
@@ -82,9 +86,14 @@ def controller(request):
         server.stop()
 
 
-def write_protocol(tmp_path, scene_file, port, *, source=None, series=None, output=None):
+def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, output=None):
+    """The protocol for ``server`` (a PtyServer, whose model's dialect goes into ``[source]``, or a
+    port name)."""
+    port = getattr(server, "url", server)
+    dialect = getattr(getattr(server, "model", None), "dialect", "A")
     src = {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "off_attempts": 2,
-           "min_interval_s": 0.01, **(source or {})}
+           "min_interval_s": 0.01, "dialect": dialect, **(source or {})}
+    src = {k: v for k, v in src.items() if v is not None}  # None: the driver's default
     ser = {"darks": DARKS, "flats": FLATS, "frames_per_step": PER_STEP, "steps": list(STEPS), "settle_s": 0.3,
            **(series or {})}
 
@@ -111,18 +120,25 @@ class Acquire:
     """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
     the guardian's included) collected line by line."""
 
-    def __init__(self, *args):
+    def __init__(self, *args, sigint_ignored=False):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+        # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
+        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        if sigint_ignored:  # the disposition survives exec, as a shell's does
+            code = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                    f"os.execv(sys.executable, [sys.executable, '-c', {code!r}, *sys.argv[1:]])")
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "import sys; from radiokit.cli import main; sys.exit(main())", "acquire", *map(str, args)],
+            [sys.executable, "-c", code, "acquire", *map(str, args)],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
             start_new_session=True)
         self.lines = []
+        self.times = []  # time.monotonic() at which each line arrived
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
     def _read(self):
         for raw in self.proc.stdout:
+            self.times.append(time.monotonic())
             self.lines.append(raw.decode("utf-8", "replace").rstrip("\n"))
 
     def signal(self, sig):
@@ -228,9 +244,14 @@ def reach(phase, model, tmp_path, acq):
         raise AssertionError(f"{exc}; the command printed:\n{acq.output}") from None
 
 
-def record(row, model, acq, off_s, code):
+def record(row, model, acq, off_s, code, warn_s=None):
     final = "ON" if model.xray_on else "WARM" if model.state == 1 else "off"
-    MATRIX.append((row, final, code, off_s, acq.last_line))
+    MATRIX.append((model.dialect, row, final, code, off_s, warn_s, acq.last_line))
+
+
+def warning_after(acq, t0):
+    """Seconds from ``t0`` to the warning line, or None."""
+    return next((t - t0 for t, ln in zip(acq.times, acq.lines) if ln.strip().startswith(WARNING)), None)
 
 
 @pytest.mark.parametrize("phase", list(PHASES))
@@ -238,7 +259,7 @@ def record(row, model, acq, off_s, code):
 def test_signal_in_phase_leaves_the_tube_off(tmp_path, scene_file, controller, sig, phase):
     model, server = controller(warmed_up=phase != "warm-up")
     series = {"settle_s": SETTLE_ROW_S} if phase.startswith("settle") else None
-    proto = write_protocol(tmp_path, scene_file, server.url, series=series)
+    proto = write_protocol(tmp_path, scene_file, server, series=series)
     acq = Acquire(proto, "--sim", "-q")
     reach(phase, model, tmp_path, acq)
     watch = OffWatch(model)
@@ -267,7 +288,7 @@ def test_three_ctrl_c_during_a_frame_and_the_switch_off(tmp_path, scene_file, co
     """One Ctrl-C during a projection, two while XOF is being sent (the controller slowed to 0.3 s
     per reply so the switch-off lasts): the switch-off finishes, the tube is off and confirmed."""
     model, server = controller()
-    acq = Acquire(write_protocol(tmp_path, scene_file, server.url), "--sim", "-q")
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
     reach("projection (beam on)", model, tmp_path, acq)
     watch = OffWatch(model)
     model.slow(0.3)
@@ -295,32 +316,73 @@ CONTROLLER_FAULTS = [
 ]
 
 
+# The driver's defaults (SourceConfig: 1 s reply time-out, 3 XOF attempts, the dialect's command
+# spacing; SourceSettings: the beam monitor polls every 0.25 s): what a lab runs with.
+DRIVER_DEFAULTS = {"poll_s": 0.25, "timeout_s": None, "off_attempts": None, "min_interval_s": None}
+# The longest a silent controller may keep the operator from the warning, at those defaults: the
+# monitor's poll (0.25 s) and the time-out (1 s) of the first query that meets the silence, then
+# one switch-off attempt (XOF and STS, 1 s each), not repeated, which goes before any other
+# thread's queued query -- 3.25 s; plus 1.5 s for a loaded machine. (Each layer retrying with the
+# full budget -- driver fail-safe, beam monitor, the panel's beam query -- took ~15 s.)
+WARNING_BOUND_S = 0.25 + 1.0 + 2 * 1.0 + 1.5
+# ... and the XOF reaches a controller that executes but cannot reply after the poll, its
+# query's time-out and perhaps the panel's query's time-out: 2.25 s, plus 1 s for a loaded machine
+SILENT_OFF_BOUND_S = 0.25 + 1.0 + 1.0 + 1.0
+
+
 @pytest.mark.parametrize("name, inject, can_switch_off", CONTROLLER_FAULTS, ids=[f[0] for f in CONTROLLER_FAULTS])
 def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, name, inject, can_switch_off):
     """No confirmation, no "tube off": the last line is the warning and the exit code 3, whatever
-    the tube really did (the emulator's state says which)."""
+    the tube really did (the emulator's state says which); and the warning comes within one
+    switch-off budget, not one per layer (driver fail-safe, beam monitor, the run's switch-off)."""
     model, server = controller()
-    # one XOF attempt: a controller that cannot confirm costs every attempt its reply time-out,
-    # at every layer that tries (beam monitor, driver fail-safe, the run's own switch-off)
-    proto = write_protocol(tmp_path, scene_file, server.url, source={"off_attempts": 1})
+    proto = write_protocol(tmp_path, scene_file, server, source=DRIVER_DEFAULTS)
     acq = Acquire(proto, "--sim", "-q")
     reach("projection (beam on)", model, tmp_path, acq)
     watch = OffWatch(model)
     t0 = time.monotonic()
     inject(model, server)
     code = acq.wait(timeout=60)
-    took = time.monotonic() - t0
     off_s = watch.seconds()
-    record(name, model, acq, off_s, code)
-    assert took < 15, f"{name}: the command took {took:.1f} s to give up"  # short time-outs, no hang
+    warn_s = warning_after(acq, t0)
+    record(name, model, acq, off_s, code, warn_s)
     assert code == 3, acq.output
     assert acq.last_line.startswith(WARNING), acq.output
+    assert warn_s is not None and warn_s <= WARNING_BOUND_S, f"{name}: warning after {warn_s} s"
     assert "tube off (confirmed" not in acq.output
     assert "Traceback" not in acq.output
     # the emulator's own state: off when commands still act, on when nothing could reach it
     assert model.xray_on is (not can_switch_off)
     if can_switch_off:
-        assert off_s is not None and off_s <= OFF_BOUND_S
+        assert off_s is not None and off_s <= SILENT_OFF_BOUND_S
+
+
+@pytest.mark.parametrize("dialect", ["A", "auto"])
+def test_unreachable_port_says_the_controller_was_never_reached(tmp_path, scene_file, dialect):
+    """A mistyped port: nothing was ever sent, so no loud X-ray warning -- the last line says radiokit
+    never reached the controller (and could not have switched X-rays on) and to check the unit."""
+    port = str(tmp_path / "ttyUSB-mistyped")
+    acq = Acquire(write_protocol(tmp_path, scene_file, port, source={"dialect": dialect}), "--sim", "-q")
+    code = acq.wait()
+    assert code == 1, acq.output
+    assert "never reached the X-ray controller" in acq.last_line and "check the controller" in acq.last_line
+    assert WARNING not in acq.output and "Traceback" not in acq.output
+    assert any(ln.startswith("error:") and port in ln for ln in acq.lines), acq.output
+
+
+def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, controller):
+    """Started as ``make test &`` starts it (SIGINT ignored): the command installs its own handlers,
+    so a Ctrl-C still stops the series with the tube switched off and confirmed."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q", sigint_ignored=True)
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    acq.signal(signal.SIGINT)
+    code = acq.wait()
+    off_s = watch.seconds()
+    record("SIGINT (inherited ignored) in projection", model, acq, off_s, code)
+    assert code == 130 and CONFIRMED.search(acq.last_line), acq.output
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
 
 
 def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):
@@ -328,20 +390,21 @@ def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_f
     switches off, confirmed, before any other command and before asking anyone for anything;
     then it runs the whole series and ends with the confirmed tube-off line."""
     model, server = controller()
-    for cmd in ("HIV 60", "CUR 250", "XON"):
+    for cmd in ("HIV 60", "CUR 250", "XON") if model.dialect == "A" else ("PHV 600", "PCU 250", "XON"):
         assert model.handle(cmd) == cmd
     assert model.xray_on
     n0 = len(model.log)
     watch = OffWatch(model)
-    acq = Acquire(write_protocol(tmp_path, scene_file, server.url, series={"settle_s": 0.0}), "--sim", "-q")
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, series={"settle_s": 0.0}), "--sim", "-q")
     code = acq.wait(timeout=60)
     off_s = watch.seconds()
     record("X-rays on at start, then a full series", model, acq, off_s, code)
     assert code == 0 and CONFIRMED.search(acq.last_line), acq.output
     commands = [e.command for e in model.log[n0:]]
     first_xof = commands.index("XOF")
-    # nothing but identification and state queries before the XOF
-    assert set(commands[:first_xof]) <= {"TYP", "STS"} and "STS" in commands[:first_xof], commands[:first_xof + 1]
+    # nothing but identification (A: TYP; B: the operate switch, SRL) and state queries before the XOF
+    assert set(commands[:first_xof]) <= {"TYP", "SRL", "STS", "DAG"} and "STS" in commands[:first_xof], \
+        commands[:first_xof + 1]
     assert commands[first_xof + 1] == "STS"  # ... confirmed
     assert not model.xray_on
     with h5py.File(tmp_path / "series.h5", "r") as h5:
@@ -394,7 +457,7 @@ def test_dry_run_refuses_bad_timing(tmp_path, scene_file, capsys, series, messag
 def test_refused_exposure_sends_nothing(tmp_path, scene_file, controller):
     """The run itself refuses before its first byte: the controller hears nothing."""
     model, server = controller()
-    acq = Acquire(write_protocol(tmp_path, scene_file, server.url, source={"voltage_kv": 900}), "--sim", "-q")
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, source={"voltage_kv": 900}), "--sim", "-q")
     code = acq.wait()
     record("voltage_kv = 900 (run)", model, acq, None, code)
     assert code == 2 and "voltage_kv = 900" in acq.last_line and "Traceback" not in acq.output
@@ -481,7 +544,7 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     holding the frames that fit; with room again, --resume completes it."""
     model, server = controller()
     out = small_disk / "series.h5"
-    proto = write_protocol(tmp_path, scene_file, server.url, output=out, series={"settle_s": 0.0})
+    proto = write_protocol(tmp_path, scene_file, server, output=out, series={"settle_s": 0.0})
     acq = Acquire(proto, "--sim", "-q")
     code = acq.wait(timeout=60)
     record("disk full (tmpfs 4.9 MB)", model, acq, None, code)
@@ -517,7 +580,7 @@ def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small
             pass
     model, server = controller()
     out = small_disk / "series.h5"
-    acq = Acquire(write_protocol(tmp_path, scene_file, server.url, output=out), "--sim", "-q")
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, output=out), "--sim", "-q")
     code = acq.wait(timeout=60)
     record("disk full before the first frame", model, acq, None, code)
     errors = [ln for ln in acq.lines if ln.startswith("error:")]
@@ -533,10 +596,11 @@ def print_matrix(request):
     if not MATRIX:
         return
     lines = ["", "X-ray safety matrix (radiokit acquire in a subprocess, guardian, emulated L8121 on a pty):",
-             f"{'row':<48} {'final':<5} {'exit':>5} {'to off':>7}  last line"]
-    for row, final, code, off_s, last in MATRIX:
+             f"{'':2}{'row':<48} {'final':<5} {'exit':>5} {'to off':>7} {'warning':>7}  last line"]
+    for dialect, row, final, code, off_s, warn_s, last in sorted(MATRIX, key=lambda m: m[0]):
         t = "-" if off_s is None else f"{off_s:.2f} s"
-        lines.append(f"{row:<48} {final:<5} {code:>5} {t:>7}  {last[:90]}")
+        w = "-" if warn_s is None else f"{warn_s:.2f} s"
+        lines.append(f"{dialect:<2}{row:<48} {final:<5} {code:>5} {t:>7} {w:>7}  {last[:80]}")
     capman = request.config.pluginmanager.getplugin("capturemanager")
     with capman.global_and_fixture_disabled():
         print("\n".join(lines))
