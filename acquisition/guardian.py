@@ -71,7 +71,9 @@ class SignalGuard:
     """SIGINT, SIGTERM, SIGHUP: the first raises :class:`StopSignal`; the rest are deferred.
 
     Use as a context manager around a run (handlers are installed only in the main thread, where
-    Python delivers signals; elsewhere the guard does nothing). Set :attr:`stopping` (or enter
+    Python delivers signals; elsewhere the guard does nothing). They are installed whatever the
+    inherited disposition: a run started as a background job (``cmd &`` in a script) inherits
+    SIGINT ignored, and a Ctrl-C sent to it must still stop the series with the tube off. Set :attr:`stopping` (or enter
     :meth:`cleanup`) before a switch-off sequence: from then on a signal only prints that the
     tube is being switched off. Once a signal has raised, the guard stays stopping, so the
     cleanup that follows it cannot be interrupted either.

@@ -60,6 +60,16 @@ def bench(scene_toml):
     return b
 
 
+@pytest.fixture
+def sigint_default():
+    """Python's own Ctrl-C handler while the test sends SIGINT to this process: under ``make test &``
+    the process inherits SIGINT ignored, and the signal would otherwise go nowhere before the run
+    installs its guard. Restored afterwards."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 def protocol(tmp_path, scene_toml, dialect="A", **series):
     return load_protocol({
         "output": str(tmp_path / "series.h5"), "name": "test",
@@ -196,7 +206,8 @@ FAULTS = [
 
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect):
+def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect,
+                      sigint_default):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
