@@ -611,6 +611,38 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert src.off() == SourceState.STANDBY and src.off_failed is None
 
 
+def test_a_silent_controller_costs_one_switch_off_not_one_per_caller(source):
+    """A watchdog thread and the main thread both meet the silence while the beam is on: one
+    switch-off (XOF, STS) is sent, its failure is what both report, and the other thread's query is
+    not sent after it -- each repetition would delay the operator's warning by its time-outs."""
+    src, model = source
+    src.on(60, 250)
+    src.config.timeout_s = 0.2
+    src._transport.timeout_s = 0.2
+    model.silence()
+    n0 = len(model.log)
+    errors = []
+
+    def poll():
+        try:
+            src.check()
+        except DeviceError as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=poll) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    sent = [e.command for e in model.log[n0:]]
+    assert sent.count("XOF") == 1 and len(sent) == 3, sent  # one query met the silence, then XOF and STS
+    assert len(errors) == 2 and src.off_failed is not None
+    with pytest.raises(DeviceError, match="could not confirm X-rays off after 1 attempt"):
+        src.off()  # an explicit call still tries (and is the one owner now)
+    model.silence(False)
+    assert src.off() == SourceState.STANDBY
+
+
 def test_operate_switch_turned_to_local_while_on(source, dialect):
     """Someone turns the operate switch to LOCAL while X-rays are on: XOF is refused, off() says
     it could not confirm -- naming the switch where the dialect can read it -- and succeeds once
