@@ -99,7 +99,9 @@ def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, ou
     port name)."""
     port = getattr(server, "url", server)
     dialect = getattr(getattr(server, "model", None), "dialect", "A")
-    src = {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "off_attempts": 2,
+    # timeout_s: the driver's default; shorter ones made a loaded machine's late reply (the
+    # emulator runs in this process) look like a silent controller
+    src = {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "off_attempts": 2,
            "min_interval_s": 0.01, "dialect": dialect, **(source or {})}
     src = {k: v for k, v in src.items() if v is not None}  # None: the driver's default
     ser = {"darks": DARKS, "flats": FLATS, "frames_per_step": PER_STEP, "steps": list(STEPS), "settle_s": 0.3,
@@ -171,12 +173,14 @@ class Acquire:
         return "\n".join(self.lines)
 
 
-def wait_until(cond, timeout=20.0, what="condition"):
+def wait_until(cond, timeout=20.0, what="condition", period=0.02):
+    """Poll ``cond`` (every 20 ms: the notebook is read whole each time, in the process that also
+    serves the emulator, so a faster poll would slow the controller's replies)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if cond():
             return
-        time.sleep(0.005)
+        time.sleep(period)
     raise AssertionError(f"timed out waiting for {what}")
 
 
