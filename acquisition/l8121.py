@@ -949,10 +949,10 @@ class L8121:
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
-            never_opened = all(e.sent == "(open)" for e in result.exchange)
-            error = PortUnavailable if never_opened else DeviceError
-            raise error(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
-                        f"{result.port}` prints the exchange)")
+            if result.exchange and all(e.sent == "(open)" for e in result.exchange):
+                raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
+            raise DeviceError(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
+                              f"{result.port}` prints the exchange)")
         logger.info("%s", result.summary())
         self._use(DIALECTS[result.dialect], result.baudrate)
 
