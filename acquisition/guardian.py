@@ -12,9 +12,11 @@ accept. Two mechanisms cover the two ways a process ends:
   owned by a small guardian process (``python -m acquisition.guardian``), started before the first
   command is sent. The acquiring process talks to the controller through a pipe
   (:class:`acquisition.transport.PipeTransport`, the interface of ``SerialTransport``). When that
-  pipe closes without an orderly release, the guardian builds the driver with the same
-  configuration on the port it holds and calls ``off()`` (``XOF``, confirmed by ``STS``), writes
-  the outcome to stderr and the lab notebook, and exits. It runs in its own session and ignores
+  pipe closes without an orderly release, the guardian builds the driver on the port it holds
+  with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
+  baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
+  (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
+  notebook, and exits. It runs in its own session and ignores
   SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
