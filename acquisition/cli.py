@@ -53,7 +53,7 @@ def _run(args) -> int:
               file=sys.stderr)
         return 2
     from acquisition.errors import DeviceError
-    from acquisition.protocols.compression_series import _existing, load_protocol, plan, run
+    from acquisition.protocols.compression_series import _existing, load_protocol, plan
 
     try:
         p = load_protocol(args.protocol)
@@ -73,7 +73,11 @@ def _run(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     if args.dry_run:
-        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
+        try:
+            done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
+        except DeviceError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         pl = plan(p, done)
         where = "the virtual bench" if args.sim else f"source {p.source.port or '(port not set)'}"
         print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
@@ -82,26 +86,84 @@ def _run(args) -> int:
               f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
               f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})")
         return 0
-    try:
-        res = run(p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
-    except KeyboardInterrupt as exc:
-        r = getattr(exc, "result", None)
-        saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-        print(f"\ninterrupted{' in phase ' + r.phase if r else ''}: the tube is off; {saved}; "
-              f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume` completes it", file=sys.stderr)
-        return 130
-    except (DeviceError, OSError, ValueError) as exc:
-        r = getattr(exc, "result", None)
-        print(f"error: {exc}", file=sys.stderr)
-        if r is not None:
-            print(f"stopped in phase {r.phase}: the tube is off; {r.frames_total} frames saved in {r.output}; "
-                  f"--resume completes the series", file=sys.stderr)
-        return 1
-    oh = sorted(res.per_frame_overhead_s)
-    med = oh[len(oh) // 2] * 1000 if oh else float("nan")
-    print(f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
-          f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)")
-    return 0
+    return _run_series(args, p)
+
+
+def _say(*lines, err=True) -> None:
+    """Print, surviving a closed terminal (SIGHUP): the tube has been dealt with already."""
+    for line in lines:
+        try:
+            print(line, file=sys.stderr if err else sys.stdout, flush=True)
+        except (OSError, ValueError):
+            pass
+
+
+def _tube_line(res) -> tuple[str, bool]:
+    """The operator's last line: "tube off" only when STS confirmed it."""
+    if res is not None and res.tube_off:
+        return f"tube off (confirmed by STS: {res.tube_state})", True
+    from acquisition.guardian import TUBE_WARNING
+
+    return TUBE_WARNING, False
+
+
+def _run_series(args, p) -> int:
+    """Run the series under one signal guard, kept until the last line is printed: no signal can
+    interrupt the switch-off or the report of it. Exit codes: 0 done, 1 error, 128 + signal
+    number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP), 3 whenever the tube
+    could not be confirmed off (the last line then says to switch off at the controller)."""
+    from acquisition.errors import DeviceError
+    from acquisition.guardian import SignalGuard, StopSignal
+    from acquisition.protocols.compression_series import run
+
+    again = f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume`"
+    with SignalGuard() as guard:
+        try:
+            res = run(p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite,
+                      guard=guard)
+        except KeyboardInterrupt as exc:
+            r = getattr(exc, "result", None)
+            name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+            saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+            _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
+            return _finish(r, 128 + getattr(exc, "signum", 2))
+        except Exception as exc:  # noqa: BLE001 - whatever stopped the run, the tube's line comes last
+            r = getattr(exc, "result", None)
+            known = isinstance(exc, (DeviceError, OSError, ValueError))
+            _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
+            if r is not None and r.phase != "connect":
+                _say(f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; "
+                     f"{again} completes the series")
+            return _finish(r, 1)
+        oh = sorted(res.per_frame_overhead_s)
+        med = oh[len(oh) // 2] * 1000 if oh else float("nan")
+        _say(f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
+             f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)", err=False)
+        return _finish(res, 0, err=False)
+
+
+def _one_line(exc) -> str:
+    text = exc.strerror if isinstance(exc, OSError) and exc.strerror and exc.filename is None else str(exc)
+    return " ".join(str(text).split()) or type(exc).__name__
+
+
+#: The last line when the source's port could not be opened (a mistyped port, a cable not in).
+NEVER_REACHED = ("radiokit never reached the X-ray controller (its port could not be opened), so it sent no "
+                 "command and could not have switched X-rays on; check the controller's state at the unit")
+
+
+def _finish(res, code: int, err: bool = True) -> int:
+    """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed,
+    or -- the port never opened -- that radiokit never reached the controller. No line when the
+    run stopped before trying to connect."""
+    if res is not None and res.port_never_opened:
+        _say(NEVER_REACHED)
+        return code or 1
+    if res is None or res.tube_off is None:
+        return code
+    line, ok = _tube_line(res)
+    _say(line, err=err or not ok)
+    return code if ok else 3
 
 
 def _source(args) -> int:

@@ -15,3 +15,14 @@ class SourceFault(DeviceError):
 
 class DetectorTimeout(DeviceError):
     """A detector delivered fewer frames than asked within its time-out."""
+
+
+class NoReply(DeviceError):
+    """The device said nothing within its reply time-out (silent, or its reply path lost).
+    Asking again costs another time-out: whoever switches a source off retries only a device
+    that answers."""
+
+
+class PortUnavailable(DeviceError):
+    """The port could not be opened at all (a mistyped name, a cable not plugged in): no byte
+    was sent, so nothing was switched on or off through it."""

@@ -78,6 +78,7 @@ import dataclasses
 import logging
 import math
 import re
+import threading
 import time
 import tomllib
 from collections.abc import Callable, Mapping
@@ -86,7 +87,7 @@ from numbers import Real
 from pathlib import Path
 from typing import Any
 
-from acquisition.errors import DeviceError, SourceFault
+from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
 
 __all__ = ["L8121", "SourceConfig", "SourceState", "WarmupState", "Aging", "Ratings", "RATINGS", "Dialect",
@@ -857,7 +858,20 @@ class L8121:
         self._transport = None
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
-        self._in_off = False
+        # One switch-off at a time, and it goes first: the thread that owns it (_off_thread) sends
+        # its XOF/STS before any other thread's queued exchange, and a second caller of off()
+        # waits for its outcome instead of repeating it (a silent controller would cost each
+        # repetition its time-outs before the operator hears anything).
+        self._turns = threading.Condition()
+        self._busy = False
+        self._off_thread: int | None = None
+        self._off_running = False
+        self._off_state: SourceState | None = None
+        #: The last :meth:`off` that could not be confirmed (None once one confirms). While set, a
+        #: failed exchange does not start another switch-off by itself: the one that failed has
+        #: said to switch off at the controller, and asking a silent controller again only delays
+        #: that message.
+        self.off_failed: DeviceError | None = None
         if connect:
             self.connect()
 
@@ -935,6 +949,8 @@ class L8121:
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
+            if result.exchange and all(e.sent == "(open)" for e in result.exchange):
+                raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
             raise DeviceError(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
                               f"{result.port}` prints the exchange)")
         logger.info("%s", result.summary())
@@ -1012,6 +1028,30 @@ class L8121:
         return dataclasses.replace(self.config, dialect=self.dialect.name, baudrate=self.baudrate,
                                    voltage_scale=self.voltage_scale, min_interval_s=self.min_interval_s)
 
+    def resolve(self) -> SourceConfig:
+        """The dialect and baud rate before connecting: ``dialect="auto"`` runs :func:`probe` on
+        the port (harmless queries only, the port closed again); returns :meth:`resolved_config`.
+        For a port that another process will hold (the guardian), so that nobody probes twice.
+
+        Raises
+        ------
+        DeviceError
+            The replies fit neither dialect (:class:`~acquisition.errors.PortUnavailable` when the
+            port could not be opened at any rate).
+        """
+        if self.dialect is None:
+            self._probe()
+        return self.resolved_config()
+
+    def attach(self, transport) -> L8121:
+        """Use an open ``transport`` as this driver's link, without the connect checks (identity,
+        operate switch, state): for switching off a unit whose dialect is already known, when one
+        more exchange with a silent controller would only delay that (the guardian)."""
+        if self.dialect is None:
+            raise DeviceError(f"{self.port}: attach() needs a known dialect (resolve() first)")
+        self._transport = transport
+        return self
+
     def describe(self) -> dict[str, Any]:
         """What the experiment file records about the source link."""
         return {"port": self.port, "dialect": self.dialect.name if self.dialect else None, "baudrate": self.baudrate,
@@ -1022,11 +1062,21 @@ class L8121:
     def _exchange(self, line: str, *, query: Query | None = None) -> str:
         if self._transport is None:
             raise DeviceError(f"{self.port}: not connected (call connect())")
+        me = threading.get_ident()
+        self._take_turn(me, line)
+        error = None
         try:
             reply = self._transport.query(line)
         except DeviceError as exc:
-            self._fail_safe(exc)
-            raise
+            error = exc
+            self._claim_off(me)  # before another thread's queued exchange gets the link
+        finally:
+            with self._turns:
+                self._busy = False
+                self._turns.notify_all()
+        if error is not None:
+            self._fail_safe(error)
+            raise error
         if reply in ("ERR", "ERROR") and not (query is not None and query.error_is_value):
             err = DeviceError(f"{self.port}: {line} refused by the controller ({reply})")
             if query is not None:  # a query is never refused by a working controller: as bad as garbage
@@ -1058,9 +1108,43 @@ class L8121:
             self._fail_safe(err)
             raise err
 
+    def _take_turn(self, me: int, line: str) -> None:
+        """Wait for the link, and for another thread's switch-off to finish. After a switch-off
+        that met a silent controller, other threads' exchanges are not sent (each would wait out
+        its time-out again before the run can report)."""
+        with self._turns:
+            while self._busy or self._off_thread not in (None, me):
+                self._turns.wait()
+            if self._off_thread != me and self.off_failed is not None and isinstance(self.off_failed.__cause__, NoReply):
+                raise NoReply(f"{self.port}: {line} not sent: the controller did not answer the switch-off")
+            self._busy = True
+
+    def _claim_off(self, me: int) -> None:
+        """An exchange failed while the beam may be on: this thread will switch off (in
+        :meth:`_fail_safe`), so it takes the switch-off before releasing the link."""
+        with self._turns:
+            if self._may_be_on and self.off_failed is None and self._off_thread is None:
+                self._off_thread = me
+
+    def _release_off(self, me: int) -> None:
+        with self._turns:
+            if self._off_thread == me and not self._off_running:
+                self._off_thread = None
+                self._turns.notify_all()
+
     def _fail_safe(self, cause: Exception) -> None:
-        """A failed exchange while the beam may be on: switch off before reporting it."""
-        if not self._may_be_on or self._in_off:
+        """A failed exchange while the beam may be on: switch off before reporting it -- unless
+        this is inside a switch-off, another thread is switching off (it reports), or a
+        switch-off has failed already and said so (one owner retries)."""
+        me = threading.get_ident()
+        if self._off_thread == me and self._off_running or self._off_thread not in (None, me):
+            return
+        if not self._may_be_on:
+            self._release_off(me)
+            return
+        if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
+            self._release_off(me)
+            logger.error("%s: %s; X-rays were not confirmed off before (%s)", self.port, cause, self.off_failed)
             return
         logger.error("%s: %s; switching X-rays off", self.port, cause)
         try:
@@ -1391,7 +1475,7 @@ class L8121:
         except DeviceError as exc:
             note = f"switching X-rays off could not be confirmed ({exc})"
         try:
-            code = self.error_code()
+            code = None if self.off_failed else self.error_code()  # (not asked of a controller that failed)
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
@@ -1427,38 +1511,64 @@ class L8121:
 
         Confirmed by a state that cannot emit (not X-rays on, not warming up / ``AGING``, not dialect
         B's ambiguous ``ERROR``). Tries ``off_attempts`` times (``XOF`` then ``STS``, ``poll_s``
-        apart). Returns the state read after switching off.
+        apart), but not again after an attempt that got no reply to either (a silent controller:
+        each further attempt would cost two reply time-outs before the operator is told). Returns
+        the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
+        :attr:`off_failed`.
 
         Raises
         ------
         DeviceError
             Not confirmed after ``off_attempts`` attempts: switch off at the controller.
         """
-        attempts, last = int(self.config.off_attempts), None
-        self._in_off = True
+        me = threading.get_ident()
+        with self._turns:
+            waited = False
+            while self._off_thread not in (None, me):  # another thread is switching off: its outcome
+                waited = True
+                self._turns.wait()
+            if waited:
+                if self.off_failed is not None:
+                    raise self.off_failed
+                return self._off_state
+            self._off_thread, self._off_running = me, True
+        attempts, last, silent = int(self.config.off_attempts), None, False
         try:
             for attempt in range(attempts):
                 if attempt:
                     time.sleep(self.config.poll_s)
                 try:
                     self._do("xray_off")
+                    silent = False
                 except DeviceError as exc:
-                    last = exc  # still ask: the XOF may have arrived
+                    last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
                 try:
                     state = self._read("state")
                 except DeviceError as exc:
                     last = exc
+                    if silent and isinstance(exc, NoReply):
+                        # no reply to XOF nor STS: another attempt costs two more time-outs and
+                        # reaches nobody; the operator must hear it now
+                        break
+                    silent = False
                     continue
+                silent = False
                 if state in _OFF_STATES:
-                    self._may_be_on, self._beam = False, None
+                    self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     return state
                 last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
-            why = self._why_not_remote()  # still inside: a failed query here must not call off() again
+            # still inside: a failed query here must not call off() again; a silent one is not asked
+            why = "; the controller does not answer" if silent else self._why_not_remote()
+            tried = f"{attempt + 1} attempt(s)"
+            self.off_failed = DeviceError(f"{self.port}: could not confirm X-rays off after {tried} "
+                                          f"(last: {last}){why}; switch the source off at the controller")
+            self.off_failed.__cause__ = last
         finally:
-            self._in_off = False
-        raise DeviceError(f"{self.port}: could not confirm X-rays off after {attempts} attempt(s) "
-                          f"(last: {last}){why}; switch the source off at the controller") from last
+            with self._turns:
+                self._off_thread, self._off_running = None, False
+                self._turns.notify_all()
+        raise self.off_failed from last
 
     def _why_not_remote(self) -> str:
         """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""

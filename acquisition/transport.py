@@ -20,14 +20,16 @@ pyserial's ``loop://`` sends every byte back, so a query returns the command its
 from __future__ import annotations
 
 import logging
+import os
+import select
 import threading
 import time
 
 import serial
 
-from acquisition.errors import DeviceError
+from acquisition.errors import DeviceError, NoReply, PortUnavailable
 
-__all__ = ["SerialTransport"]
+__all__ = ["SerialTransport", "PipeTransport"]
 
 logger = logging.getLogger(__name__)
 
@@ -138,7 +140,7 @@ class SerialTransport:
             ser.rts = True
             ser.open()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"{self.url}: cannot open the port ({exc})") from exc
+            raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
@@ -250,6 +252,157 @@ class SerialTransport:
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
-                raise DeviceError(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
+                raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most a slice
             buf += ser.read(max(1, ser.in_waiting))
+
+
+class PipeTransport:
+    """The :class:`SerialTransport` interface over a pipe to the process that owns the port.
+
+    The acquiring process talks to the X-ray source through the guardian process of
+    :mod:`acquisition.guardian` (which started it and holds the real :class:`SerialTransport`):
+    each :meth:`query` is one line down the pipe and one line back. :meth:`close` is the orderly
+    release -- the guardian closes the port and exits without touching the source -- so a driver's
+    ``close()`` (``off()`` first, then the transport's ``close()``) ends the session as over a
+    serial port. If this process dies instead, the pipe closes without a release and the guardian
+    switches the tube off.
+
+    Parameters
+    ----------
+    url : str
+        The port the guardian holds (named in every message).
+    process : subprocess.Popen
+        The guardian, with ``stdin`` and ``stdout`` pipes.
+    timeout_s : float
+        The guardian's reply time-out per exchange; this side waits for it plus the guardian's
+        reconnect and a margin before calling the guardian lost.
+    baudrate : int
+        For :func:`repr` and messages only (the guardian opened the port).
+    """
+
+    def __init__(self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 38400,
+                 log: logging.Logger = logger):
+        self.url = str(url)
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.log = log
+        self._process = process
+        self._rfd = process.stdout.fileno()
+        self._wfd = process.stdin.fileno()
+        self._buf = b""
+        self._seq = 0
+        self._open = False
+        self._lock = threading.Lock()
+        # the guardian's SerialTransport: write (1 s) + reply per attempt, one reconnect, and slack
+        self._reply_wait_s = 2 * (self.timeout_s + 1.0) + 2.0
+
+    @property
+    def port(self) -> str:
+        """The url the guardian holds (used in every message)."""
+        return self.url
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the guardian is serving this process."""
+        return self._open
+
+    @property
+    def pid(self) -> int:
+        """The guardian's process id."""
+        return self._process.pid
+
+    def wait_ready(self, timeout_s: float) -> None:
+        """Wait for the guardian to report the port open (``READY``) or why not."""
+        line = self._read_line(time.monotonic() + timeout_s, "start")
+        if line != "READY":
+            self._finish()
+            opened = not line.startswith("E 0 ")  # E 0: the guardian could not open the port at all
+            why = repr(line) if opened else line[4:]
+            error = DeviceError if opened else PortUnavailable
+            raise error(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
+        self._open = True
+        self.log.info("%s opened through the X-ray guardian (pid %d)", self.url, self._process.pid)
+
+    def open(self) -> None:
+        """A no-op while the guardian serves; after :meth:`close` a new guardian is needed."""
+        if not self._open:
+            raise DeviceError(f"{self.url}: released; the X-ray guardian has exited")
+
+    def close(self) -> None:
+        """Release the port: the guardian closes it and exits, leaving the source as it is."""
+        if not self._open:
+            return
+        self._open = False
+        with self._lock:
+            try:
+                os.write(self._wfd, b"X\n")
+            except OSError:
+                pass
+            self._finish()
+        self.log.info("%s released by this process (X-ray guardian exited)", self.url)
+
+    def _finish(self) -> None:
+        for f in (self._process.stdin, self._process.stdout):
+            try:
+                f.close()
+            except OSError:
+                pass
+        try:
+            self._process.wait(timeout=5.0)
+        except Exception:  # noqa: BLE001 - a guardian that does not exit is left to finish alone
+            self.log.warning("%s: the X-ray guardian (pid %d) did not exit", self.url, self._process.pid)
+
+    def __enter__(self) -> PipeTransport:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"PipeTransport({self.url!r}, guardian pid {self._process.pid}, {'open' if self._open else 'closed'})"
+
+    def query(self, command: str) -> str:
+        """Send ``command`` through the guardian and return the reply line (as
+        :meth:`SerialTransport.query`, whose errors the guardian passes back as ``DeviceError``)."""
+        if any(end.decode() in command for end in _LINE_ENDS) or "\n" in command:
+            raise ValueError(f"{self.url}: command {command!r} contains a line end")
+        with self._lock:
+            if not self._open:
+                raise DeviceError(f"{self.url}: {command}: the port has been released")
+            self._seq += 1
+            seq = str(self._seq)
+            self.log.debug("%s > %s (via guardian)", self.url, command)
+            t0 = time.monotonic()
+            try:
+                os.write(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
+            except OSError as exc:
+                raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
+            deadline = t0 + self._reply_wait_s
+            while True:  # replies to requests that were interrupted earlier carry older numbers
+                kind, _, rest = self._read_line(deadline, command).partition(" ")
+                got, _, text = rest.partition(" ")
+                if got == seq:
+                    break
+            self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))
+            if kind == "R":
+                return text
+            raise NoReply(text) if kind == "N" else DeviceError(text)
+
+    def _read_line(self, deadline: float, command: str) -> str:
+        while b"\n" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise NoReply(f"{self.url}: {command}: no answer from the X-ray guardian "
+                                  f"(pid {self._process.pid}) within {self._reply_wait_s:g} s")
+            ready, _, _ = select.select([self._rfd], [], [], left)
+            if not ready:
+                continue
+            data = os.read(self._rfd, 4096)
+            if not data:
+                self._open = False
+                raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited "
+                                  f"(code {self._process.poll()})")
+            self._buf += data
+        line, self._buf = self._buf.split(b"\n", 1)
+        return line.decode("ascii", "replace")

@@ -60,6 +60,16 @@ def bench(scene_toml):
     return b
 
 
+@pytest.fixture
+def sigint_default():
+    """Python's own Ctrl-C handler while the test sends SIGINT to this process: under ``make test &``
+    the process inherits SIGINT ignored, and the signal would otherwise go nowhere before the run
+    installs its guard. Restored afterwards."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 def protocol(tmp_path, scene_toml, dialect="A", **series):
     return load_protocol({
         "output": str(tmp_path / "series.h5"), "name": "test",
@@ -107,7 +117,7 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
     dev = sim_devices(p, bench=bench)
     res = run(p, devices=dev, progress=False)
     assert (res.frames_written, res.frames_total, res.phase) == (TOTAL, TOTAL, "done")
-    assert not dev.emulator.xray_on
+    assert not dev.emulator.xray_on and res.tube_off is True and res.tube_state == "STANDBY"
     c = assert_complete(p.output)
     dark = c["data"][c["key"] == ImageKey.DARK].mean()
     flat = c["data"][c["key"] == ImageKey.FLAT].mean()
@@ -196,7 +206,8 @@ FAULTS = [
 
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect):
+def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect,
+                      sigint_default):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
@@ -244,6 +255,9 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
         assert re.search(pattern, text, re.I), text
     res = getattr(info.value, "result", None)
     assert res is not None and res.frames_total >= state["before"]
+    # "tube off" is claimed only when STS confirmed it: a silent or garbling controller cannot
+    # confirm anything (even though the emulator did execute the XOF)
+    assert res.tube_off is (name not in ("silent controller", "garbage reply")), (name, res.tube_off)
     # every frame completed before the fault is in the file, with its metadata
     n_before = state["before"]
     if n_before == 0 and not os.path.exists(p.output):  # stopped before the file was made

@@ -592,14 +592,55 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
 
 
 def test_off_raises_when_it_cannot_confirm(source):
+    """A silent controller: one attempt (XOF and STS both unanswered), not three -- more would only
+    delay the message -- which says the controller does not answer; and no other exchange is sent
+    until an off() confirms (each would wait out its time-out again)."""
     src, model = source
     src.on(60, 250)
     model.silence()
     src.config.timeout_s = 0.2
     src._transport.timeout_s = 0.2
-    with pytest.raises(DeviceError, match="could not confirm X-rays off after 3 attempt"):
+    n0 = len(model.log)
+    with pytest.raises(DeviceError, match="could not confirm X-rays off after 1 attempt.*does not answer"):
         src.off()
+    assert [e.command for e in model.log[n0:]] == ["XOF", "STS"]
+    with pytest.raises(DeviceError, match="SAR not sent|SHV not sent|STS not sent"):
+        src.measured()
+    assert len(model.log) == n0 + 2
     model.silence(False)
+    assert src.off() == SourceState.STANDBY and src.off_failed is None
+
+
+def test_a_silent_controller_costs_one_switch_off_not_one_per_caller(source):
+    """A watchdog thread and the main thread both meet the silence while the beam is on: one
+    switch-off (XOF, STS) is sent, its failure is what both report, and the other thread's query is
+    not sent after it -- each repetition would delay the operator's warning by its time-outs."""
+    src, model = source
+    src.on(60, 250)
+    src.config.timeout_s = 0.2
+    src._transport.timeout_s = 0.2
+    model.silence()
+    n0 = len(model.log)
+    errors = []
+
+    def poll():
+        try:
+            src.check()
+        except DeviceError as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=poll) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    sent = [e.command for e in model.log[n0:]]
+    assert sent.count("XOF") == 1 and len(sent) == 3, sent  # one query met the silence, then XOF and STS
+    assert len(errors) == 2 and src.off_failed is not None
+    with pytest.raises(DeviceError, match="could not confirm X-rays off after 1 attempt"):
+        src.off()  # an explicit call still tries (and is the one owner now)
+    model.silence(False)
+    assert src.off() == SourceState.STANDBY
 
 
 def test_operate_switch_turned_to_local_while_on(source, dialect):

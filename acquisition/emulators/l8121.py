@@ -489,7 +489,7 @@ class L8121Model:
             return "XOF"
         if self._state == XRAY_ON:
             self._state = STANDBY
-        elif self._state == WARMING_UP:  # an interrupted warm-up must be run again
+        elif self._state == WARMING_UP:  # the warm-up runs the tube: XOF ends it, and must be run again
             self._state, self._warmup = WARMUP_NEEDED, WARMUP_NOT_STARTED
         self._beam_dropped = False
         return "XOF"

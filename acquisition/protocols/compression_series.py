@@ -9,20 +9,32 @@ order of work is fixed::
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
 
+Each phase is a small function over one ``_Run`` state; :func:`run` drives them in one loop,
+and that loop owns the tube-off guarantee.
+
 Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
 
+- the protocol is checked at load: every number finite, the exposure within the protocol's limits
+  and the L8121's ratings (which a protocol may only tighten), no unknown key -- so a dry run
+  refuses what a run would;
+- the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on;
 - the tube is switched off (``XOF``, confirmed by ``STS``) on every exit path -- normal end,
-  exception, Ctrl-C, lost detector, full disk, unparseable reply -- and before every wait for a
-  person (moving the screws, taking the phantom out);
+  exception, Ctrl-C, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
+  every wait for a person (moving the screws, taking the phantom out). No signal interrupts the
+  switch-off (:class:`acquisition.guardian.SignalGuard`). ``Result.tube_off`` says whether it was
+  confirmed. On the lab's port (and ``[sim] source_port``), a guardian process holds the link and
+  switches off if this process is killed outright (:mod:`acquisition.guardian`);
 - while X-rays are on a monitor thread polls the source (``SAR``/``SIN`` every ``poll_s``) and on
   overload, interlock or a dropped beam switches the tube off at once and stops the series;
 - every serial exchange, phase and fault is logged to ``<output>.log`` beside the file (the lab
   notebook);
 - every frame is appended and flushed to the experiment file as it arrives, with image_key,
-  step, ratio, measured gap, the measured kV and uA at that moment and its time stamp; a crash
-  loses at most the frame in flight;
-- ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol,
-  and takes only what is missing.
+  step, ratio, measured gap, the measured kV and uA at that moment and its time stamp. It is
+  labelled invalid until its pixels are on disk, so a crash or a full disk leaves at most one
+  invalid frame, never a blank one labelled complete;
+- ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol
+  (the stored TOML, never read as a path), and takes only what is missing: frames labelled
+  invalid are taken again.
 
 Example (the virtual bench, seconds; a dry run needs no devices)::
 
@@ -46,8 +58,11 @@ Example (the virtual bench, seconds; a dry run needs no devices)::
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
+import math
+import os
 import threading
 import time
 import tomllib
@@ -56,7 +71,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
+from acquisition.errors import DetectorTimeout, DeviceError
 
 __all__ = ["Protocol", "SourceSettings", "DetectorSettings", "FrameSettings", "SeriesSettings", "SimSettings",
            "load_protocol", "plan", "Plan", "run", "Result", "Devices", "lab_devices", "sim_devices",
@@ -129,6 +144,7 @@ class SimSettings:
     ramp_s: float = 0.3             # its kV / uA ramp after XON
     warmed_up: bool = False         # start the emulator already warm
     frame_period_s: float = 0.0     # SimDetector's pace (0: as fast as it renders)
+    source_port: str = ""           # drive the emulator already serving here (tests), through the guardian
 
 
 @dataclass
@@ -142,6 +158,9 @@ class Protocol:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self):
+        for name, section in (("source", self.source), ("detector", self.detector), ("frame", self.frame),
+                              ("series", self.series), ("sim", self.sim)):
+            _check_numbers(name, section)
         s = self.series
         if s.darks < 0 or s.flats < 0 or s.frames_per_step < 1:
             raise ProtocolError(f"series: darks {s.darks} and flats {s.flats} must be >= 0, "
@@ -150,8 +169,6 @@ class Protocol:
         if not steps or any(not 0 <= r < 0.9 for r in steps) or list(steps) != sorted(set(steps)):
             raise ProtocolError(f"series.steps {list(s.steps)}: expected increasing compression ratios in [0, 0.9)")
         s.steps = steps
-        if s.settle_s < 0:
-            raise ProtocolError(f"series.settle_s {s.settle_s}: expected >= 0")
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
         if self.frame.kind not in ("manual", "sim"):
@@ -160,32 +177,89 @@ class Protocol:
             raise ProtocolError(f"frame.initial_height_mm {self.frame.initial_height_mm}: expected > 0")
         if self.detector.shape is not None:
             self.detector.shape = tuple(int(v) for v in self.detector.shape)
+        _check_source(self.source)
 
     def to_toml(self) -> str:
         """The protocol as TOML (what the experiment file stores, and what ``--resume`` checks)."""
         return _to_toml(dataclasses.asdict(self))
 
 
+def _check_numbers(section: str, settings) -> None:
+    """Every number of a settings section: the right type, finite, and >= 0 (no setting of a
+    protocol is negative; ``inf`` would overflow a timer or a duration estimate)."""
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        kind = str(f.type).replace(" | None", "")
+        if value is None and "None" in str(f.type) or kind not in ("float", "int"):
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                kind == "int" and not isinstance(value, int)):
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected {'an integer' if kind == 'int' else 'a number'}")
+        if not math.isfinite(value) or value < 0:
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a finite number >= 0")
+
+
+def _source_limits(s: SourceSettings):
+    """The driver configuration a protocol's ``[source]`` asks for (``SourceConfig``), checked:
+    known keys only, and limits that stay within the L8121's ratings (``SourceConfig`` refuses a
+    limit beyond :data:`acquisition.l8121.RATINGS`: a protocol may only tighten them)."""
+    from acquisition.l8121 import SourceConfig
+
+    known = {f.name for f in dataclasses.fields(SourceConfig)}
+    unknown = sorted(set(s.limits) - known)
+    if unknown:
+        names = sorted(known | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
+        raise ProtocolError(f"unknown key(s) in [source]: {', '.join(unknown)}; expected some of {', '.join(names)}")
+    for key, value in s.limits.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ProtocolError(f"[source] {key} = {value!r}: expected a finite number")
+    try:
+        cfg = SourceConfig.from_dict({**s.limits, "poll_s": s.limits.get("poll_s", min(0.2, s.poll_s)),
+                                      "warmup_timeout_s": s.limits.get("warmup_timeout_s", s.warmup_timeout_s)})
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ProtocolError(f"[source]: {exc}") from None
+    return cfg
+
+
+def _check_source(s: SourceSettings) -> None:
+    """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
+    before anything is sent: the dry run refuses what the run would refuse."""
+    cfg = _source_limits(s)
+    try:  # the driver's own check (the one implementation of the ratings), before anything is sent
+        cfg.check_exposure(s.voltage_kv, s.current_ua)
+    except ValueError as exc:
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+    if s.focus is not None and (isinstance(s.focus, bool) or not isinstance(s.focus, int)
+                                or s.focus not in cfg.focus_modes):
+        raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(cfg.focus_modes)}")
+    if not isinstance(s.port, str):
+        raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
+    if s.poll_s <= 0:
+        raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
+
+
 _SECTIONS = {"source": SourceSettings, "detector": DetectorSettings, "frame": FrameSettings,
              "series": SeriesSettings, "sim": SimSettings}
 
 
-def load_protocol(source) -> Protocol:
+def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Protocol:
     """A :class:`Protocol` from a TOML file path, TOML text, or a dict. Unknown keys are errors
-    (a typo must not silently fall back to a default exposure)."""
-    where = "protocol"
+    (a typo must not silently fall back to a default exposure), and so is every setting the run
+    would refuse (exposure outside the limits or the L8121's ratings, non-finite times), so a dry
+    run refuses it too. ``text=True``: ``source`` is TOML text, never a path (a protocol stored in
+    a file is not a name of another file to open)."""
     if isinstance(source, dict):
         data = source
     else:
-        text = str(source)
-        if "\n" not in text and "=" not in text:
-            where = text
+        text_ = str(source)
+        if not text and "\n" not in text_ and "=" not in text_:
+            where = text_
             try:
-                text = Path(text).read_text()
-            except OSError as exc:
-                raise ProtocolError(f"{where}: cannot read the protocol ({exc.strerror or exc})") from None
+                text_ = Path(text_).read_text()
+            except (OSError, UnicodeDecodeError) as exc:
+                raise ProtocolError(f"{where}: cannot read the protocol ({getattr(exc, 'strerror', None) or exc})") from None
         try:
-            data = tomllib.loads(text)
+            data = tomllib.loads(text_)
         except tomllib.TOMLDecodeError as exc:
             raise ProtocolError(f"{where}: not valid TOML: {exc}") from None
     top = {}
@@ -193,6 +267,8 @@ def load_protocol(source) -> Protocol:
         if key in _SECTIONS:
             cls = _SECTIONS[key]
             names = {f.name for f in dataclasses.fields(cls)}
+            if not isinstance(value, dict):
+                raise ProtocolError(f"{where}: [{key}] must be a table")
             if key == "source":  # driver limits may sit in the section itself
                 limits = {k: v for k, v in value.items() if k not in names}
                 value = {k: v for k, v in value.items() if k in names}
@@ -209,7 +285,7 @@ def load_protocol(source) -> Protocol:
                                 f"[{'], ['.join(_SECTIONS)}]")
     try:
         return Protocol(**top)
-    except TypeError as exc:
+    except (TypeError, ProtocolError) as exc:
         raise ProtocolError(f"{where}: {exc}") from None
 
 
@@ -317,18 +393,47 @@ class Devices:
 
 
 def _source_config(p: Protocol) -> dict:
-    cfg = dict(p.source.limits)
-    cfg.setdefault("poll_s", min(0.2, p.source.poll_s))
-    cfg.setdefault("warmup_timeout_s", p.source.warmup_timeout_s)
-    return cfg
+    """The driver's configuration (``SourceConfig`` keys): checked against the ratings at load."""
+    return _source_limits(p.source).to_dict()
+
+
+def _guarded_source(url: str, p: Protocol):
+    """The L8121 on ``url``, its port held by a guardian process (:mod:`acquisition.guardian`)
+    that switches the tube off if this process dies without releasing it.
+
+    The dialect and baud rate are resolved first (``dialect = "auto"`` probes the port with
+    harmless queries), and the guardian gets that resolved configuration: it opens the port at
+    the right rate and switches off in the right dialect without probing again.
+
+    An error carries ``source_unreached`` (the source's state is unknown: the run must say so),
+    or ``port_never_opened`` when the port could not be opened at all (nothing was sent)."""
+    from acquisition.errors import PortUnavailable
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+
+    driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
+    try:
+        resolved = driver.resolve()
+        link = start_guardian(url, resolved, notebook=Path(p.output).with_suffix(".log"))
+    except BaseException as exc:
+        exc.source_unreached = True
+        exc.port_never_opened = isinstance(exc, PortUnavailable)
+        raise
+    try:
+        source = L8121(link, config=resolved)
+    except BaseException as exc:
+        exc.source_unreached = True
+        link.close()
+        raise
+    source.probe_result = driver.probe_result  # what "auto" found, for the file's record
+    return source
 
 
 def lab_devices(p: Protocol) -> Devices:
-    """The real bench: the L8121 on ``source.port``, the folder the vendor software writes, the
-    manual frame."""
+    """The real bench: the L8121 on ``source.port`` (through the guardian), the folder the vendor
+    software writes, the manual frame."""
     from acquisition.detector import FolderWatcher
     from acquisition.frame import ManualFrame
-    from acquisition.l8121 import L8121
 
     if not p.source.port:
         raise ProtocolError("source.port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
@@ -339,16 +444,20 @@ def lab_devices(p: Protocol) -> Devices:
     detector = FolderWatcher(p.detector.folder, p.detector.pattern, shape=p.detector.shape, preset=p.detector.preset,
                              timeout_s=p.detector.timeout_s, discard_first=p.detector.discard_first)
     frame = ManualFrame(p.frame.initial_height_mm, interactive=p.frame.interactive)
-    source = L8121(p.source.port, baudrate=p.source.baudrate, **_source_config(p))
+    source = _guarded_source(p.source.port, p)
     return Devices(source, detector, frame)
 
 
 def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
     """The virtual bench: the L8121 emulator served on a pseudo-terminal and driven through the
     real serial stack, a :class:`sim.bench.VirtualBench` of ``sim.scene`` (or ``bench``, reused)
-    behind a ``SimDetector`` (which sees the emulated tube's state) and a ``SimFrame``."""
+    behind a ``SimDetector`` (which sees the emulated tube's state) and a ``SimFrame``.
+
+    With ``[sim] source_port`` set, the source is the emulator (or controller) already serving on
+    that port, driven through the guardian as in the lab, and the simulated panel sees the beam
+    the source measures (``SAR``) -- how tests kill the acquiring process and read the
+    emulator's state afterwards."""
     from acquisition.detector import SimDetector
-    from acquisition.emulators.l8121 import L8121Model, PtyServer
     from acquisition.frame import SimFrame
     from acquisition.l8121 import L8121
     from sim.bench import VirtualBench
@@ -358,21 +467,31 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
         scene = load_scene(p.sim.scene)
         bench = VirtualBench(scene, binning=p.sim.binning, seed=p.sim.seed, progress=progress)
     bench.prepare(p.series.steps)  # one incremental solve for all steps (cached: a no-op when done)
-    dialect = str(p.source.limits.get("dialect", "A")).upper()  # the emulator speaks the configured dialect
-    model = L8121Model(dialect=dialect if dialect == "B" else "A", baudrate=p.source.baudrate,
-                       warmup_s=p.sim.warmup_s, ramp_s=p.sim.ramp_s, warmed_up=p.sim.warmed_up)
-    server = PtyServer(model)
-    server.start()
-    closers = [server.stop]
-    try:
-        source = L8121(server.url, baudrate=p.source.baudrate, **_source_config(p))
-    except Exception:
-        server.stop()
-        raise
+    model, closers = None, []
+    if p.sim.source_port:
+        source = _guarded_source(p.sim.source_port, p)
 
-    def beam():
-        kv, ua = model.measured()
-        return bool(model.xray_on), float(kv), float(ua)
+        def beam():
+            kv, ua = source.measured()
+            return kv > 0 and ua > 0, float(kv), float(ua)
+    else:
+        from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+        dialect = str(p.source.limits.get("dialect", "A")).upper()  # the emulator speaks the configured dialect
+        model = L8121Model(dialect=dialect if dialect == "B" else "A", baudrate=p.source.baudrate,
+                           warmup_s=p.sim.warmup_s, ramp_s=p.sim.ramp_s, warmed_up=p.sim.warmed_up)
+        server = PtyServer(model)
+        server.start()
+        closers = [server.stop]
+        try:  # the emulator lives and dies with this process: no guardian
+            source = L8121(server.url, baudrate=p.source.baudrate, **_source_config(p))
+        except Exception:
+            server.stop()
+            raise
+
+        def beam():
+            kv, ua = model.measured()
+            return bool(model.xray_on), float(kv), float(ua)
 
     detector = SimDetector(bench, beam, frame_time_s=p.sim.frame_period_s, seed=p.sim.seed)
     frame = SimFrame(bench)
@@ -415,6 +534,11 @@ class _BeamMonitor:
                 self.last_ok = t
             except BaseException as exc:  # a fault, a silent controller, garbage: stop the series
                 self.error = exc
+                if getattr(self.source, "off_failed", None) is not None:
+                    # the driver's own switch-off (its fail-safe) failed and said so: one owner
+                    # retries, so the operator's warning is not delayed by a second full budget
+                    self.off_failed = True
+                    return
                 try:
                     self.source.off()
                 except Exception as off_exc:
@@ -457,7 +581,8 @@ class _BeamMonitor:
 
 @dataclass
 class Result:
-    """What a run did: the file, frames written this run and in all, timings, the phase reached."""
+    """What a run did: the file, frames written this run and in all, timings, the phase reached,
+    and whether ``STS`` confirmed the tube off at the end (``None``: the source was never reached)."""
     output: str
     frames_written: int
     frames_total: int
@@ -466,36 +591,227 @@ class Result:
     phase: str
     per_frame_overhead_s: list = field(default_factory=list)
     resumed: bool = False
+    tube_off: bool | None = None
+    tube_state: str = ""
+    port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
     """What an interrupted file already holds: {'darks': n, 'flats': n, 'steps': {i: n}}; checks
-    it was written by the same protocol."""
+    it was written by the same protocol. Frames labelled invalid (cut short by a full disk, or
+    taken after the beam monitor's last good reading) do not count: they are taken again."""
     import h5py
 
-    with h5py.File(path, "r") as h5:
-        stored = h5["entry"].attrs.get("protocol") if "entry" in h5 else None
-        if stored is None:
-            raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
-        stored = stored.decode() if isinstance(stored, bytes) else str(stored)
-        a, b = load_protocol(stored), protocol
-        if (a.series != b.series or a.frame.initial_height_mm != b.frame.initial_height_mm
-                or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)):
-            raise ProtocolError(f"{path}: written by a different protocol (series, frame height or exposure differ); "
-                                f"resume with the protocol stored in the file")
-        n = int(h5["entry"].attrs.get("frames_complete", 0))
-        keys = h5["entry/instrument/detector/image_key"][:n]
-        steps = h5["entry/sample/compression/step"][:n]
     from radiokit.io import ImageKey
 
+    try:
+        with h5py.File(path, "r") as h5:
+            stored = h5["entry"].attrs.get("protocol") if "entry" in h5 else None
+            if stored is None:
+                raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
+            stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
+            # the stored text is a protocol, never the name of a file to open
+            a, b = load_protocol(stored, text=True, where=f"{path} (its stored protocol)"), protocol
+            if (a.series != b.series or a.frame.initial_height_mm != b.frame.initial_height_mm
+                    or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)):
+                raise ProtocolError(f"{path}: written by a different protocol (series, frame height or exposure "
+                                    f"differ); resume with the protocol stored in the file")
+            n = int(h5["entry"].attrs.get("frames_complete", 0))
+            keys = np.asarray(h5["entry/instrument/detector/image_key"][:n])
+            steps = np.asarray(h5["entry/sample/compression/step"][:n])
+    except (OSError, KeyError, TypeError, ValueError) as exc:
+        raise ProtocolError(f"{path}: cannot resume from this file ({exc})") from None
     done = {"darks": int(np.sum(keys == ImageKey.DARK)), "flats": int(np.sum(keys == ImageKey.FLAT)), "steps": {}}
     for i in range(1, len(protocol.series.steps) + 1):
         done["steps"][i] = int(np.sum((keys == ImageKey.PROJECTION) & (steps == i)))
     return done
 
 
+@dataclass
+class _Run:
+    """One run's state, handed from phase to phase."""
+    p: Protocol
+    out: Path
+    sim: bool
+    resume: bool
+    overwrite: bool
+    progress: bool
+    guard: object
+    res: Result
+    bar: object
+    user_notify: object
+    writer_factory: object
+    devices: Devices | None = None
+    writer: object = None
+    monitor: _BeamMonitor | None = None
+    done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
+    phase: str = "connect"
+    beam_since: float | None = None  # perf_counter at XON of the beam period in progress
+    beam_on_s: float = 0.0
+    t0: float = field(default_factory=time.perf_counter)
+
+    def enter(self, phase, info=None):
+        self.guard.reinstall()
+        self.phase = phase
+        log.info("phase %s", phase)  # the notebook says where a run was when it stopped
+        self.bar.set_description(phase)
+        self.user_notify(phase, info)
+
+    @property
+    def source(self):
+        return self.devices.source
+
+
+def _emitting(state) -> bool:
+    """X-rays on, for every safety rule: the beam, and the warm-up sequence, which runs the tube
+    (dialect A's ``STS 1``, dialect B's ``AGING``: both WARMING_UP, ``SourceState.emitting``)."""
+    return bool(getattr(state, "emitting", False))
+
+
+def _phase_connect(r: _Run):
+    """Devices, then the source's state first of all: X-rays left on (by a run that was killed, or
+    by hand) are switched off, and confirmed, before anything else and before any person is asked
+    to do anything."""
+    if r.devices is None:
+        r.devices = sim_devices(r.p, progress=r.progress) if r.sim else lab_devices(r.p)
+    r.guard.reinstall()  # building the devices may have loaded a C library that took the signals
+    src = r.source
+    r.monitor = _BeamMonitor(src, r.p.source.poll_s)
+    state = src.status()
+    log.info("source state %s", getattr(state, "name", state))
+    if _emitting(state):
+        log.warning("X-rays were on at the start (state %s): switching off before anything else",
+                    getattr(state, "name", state))
+        src.off()
+    if not src.interlock_closed():
+        log.warning("interlock open: close the cabinet before X-rays are needed")
+
+
+def _phase_warm_up(r: _Run):
+    """Warm up if the source needs it, set the focus, open the experiment file, arm the panel."""
+    src, p = r.source, r.p
+    if _needs_warm_up(src):
+        src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+    if p.source.focus is not None:
+        src.focus = int(p.source.focus)
+    det = r.devices.detector
+    kw = dict(pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
+              source={"name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
+                      "voltage_kv": p.source.voltage_kv, "current_ua": p.source.current_ua},
+              title=f"radiokit compression series: {p.name}")
+    existed = r.out.exists()
+    try:
+        r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite,
+                                    **kw)
+    except OSError as exc:
+        if not existed:  # a file this run began and could not finish: it would block the next run
+            r.out.unlink(missing_ok=True)
+        code = exc.errno or errno.EIO
+        raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
+    if not r.resume:
+        r.writer.h5["entry"].attrs["protocol"] = p.to_toml()
+        r.writer.h5["entry"].attrs["devices"] = json.dumps(
+            {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()}, default=str)
+        r.writer.h5.flush()
+    det.arm()
+
+
+def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
+    """``n`` frames from the panel, each appended (and flushed) as it arrives."""
+    monitor, writer = r.monitor, r.writer
+    for frame in r.devices.detector.acquire(n, timeout_s=r.p.detector.timeout_s):
+        t = time.perf_counter()
+        if beam:
+            monitor.raise_if_failed()
+        index = writer.append(frame.data, image_key=image_key, step=step, ratio=ratio, gap_mm=gap,
+                              time_s=frame.time_s, voltage_kv=monitor.kv if beam else 0.0,
+                              current_ua=monitor.ua if beam else 0.0)
+        log.debug("frame %d written (image_key %d, step %d)", index, int(image_key), step)
+        if beam:
+            monitor.written.append((index, frame.time_s))
+        r.res.frames_written += 1
+        r.bar.update()
+        r.res.per_frame_overhead_s.append(time.perf_counter() - t)
+        r.user_notify("frame", writer.n_frames - 1)
+        if beam:
+            monitor.raise_if_failed()
+
+
+def _beam_on(r: _Run):
+    r.beam_since = time.perf_counter()
+    reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
+    r.monitor.start(*_kv_ua(reading, r.p.source.voltage_kv, r.p.source.current_ua))
+
+
+def _beam_off(r: _Run):
+    r.monitor.stop()
+    r.monitor.raise_if_failed()  # the fault itself, not what switching off then ran into
+    r.monitor.confirm()          # the beam was good up to the last frame (faults latch)
+    r.source.off()
+    r.beam_on_s += time.perf_counter() - r.beam_since
+    r.beam_since = None
+
+
+def _phase_darks(r: _Run):
+    """Darks, the tube off (confirmed)."""
+    from radiokit.io import ImageKey
+
+    n = r.p.series.darks - r.done["darks"]
+    if n > 0:
+        r.source.off()
+        _take(r, n, ImageKey.DARK)
+
+
+def _phase_flats(r: _Run):
+    """Flats: phantom out, beam on, frames, beam off, phantom back in (the tube off while a person
+    handles the phantom)."""
+    from radiokit.io import ImageKey
+
+    n = r.p.series.flats - r.done["flats"]
+    if n > 0:
+        frm = r.devices.frame
+        frm.sample_out()
+        _beam_on(r)
+        _take(r, n, ImageKey.FLAT, beam=True)
+        _beam_off(r)
+        frm.sample_in()
+
+
+def _phase_steps(r: _Run):
+    """Each compression step: compress and settle with the tube off, beam on, frames, beam off."""
+    from radiokit.io import ImageKey
+
+    p, frm = r.p, r.devices.frame
+    h0 = frm.initial_height_mm
+    for i, ratio in enumerate(p.series.steps, start=1):
+        n = p.series.frames_per_step - r.done["steps"].get(i, 0)
+        if n <= 0:
+            continue
+        r.enter(f"step {i}", ratio)
+        gap = frm.move_to(h0 * (1 - ratio))
+        _settle(p.series.settle_s, r.bar, r.progress)
+        _beam_on(r)
+        _take(r, n, ImageKey.PROJECTION, step=i, ratio=1 - gap / h0, gap=gap, beam=True)
+        _beam_off(r)
+
+
+def _phase_close(r: _Run):
+    """The frame released, the tube off and confirmed (a tube that cannot be confirmed off ends
+    the run in an error even when every frame is in)."""
+    r.devices.frame.stop()
+    r.guard.cleanup()
+    if not _tube_off(r):
+        raise DeviceError(f"{r.source.port if hasattr(r.source, 'port') else 'source'}: the series is complete "
+                          f"but switching X-rays off could not be confirmed")
+
+
+# The order of work; "steps" enters one phase per compression step itself.
+_PHASES = (("connect", _phase_connect), ("warm-up", _phase_warm_up), ("darks", _phase_darks),
+           ("flats", _phase_flats), ("steps", _phase_steps), ("close", _phase_close))
+
+
 def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, progress=True, on_phase=None,
-        writer_factory=None, overwrite=False) -> Result:
+        writer_factory=None, overwrite=False, guard=None) -> Result:
     """Run a compression series (see the module docstring).
 
     Parameters
@@ -512,211 +828,202 @@ def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, pr
         ``"step 1"``, ..., ``"close"``) and after every frame (``"frame"``, with the index).
     writer_factory : callable(path, shape, mode, **kw) -> ExperimentWriter, optional
         How the experiment file is opened (tests pass one whose disk fills).
+    guard : acquisition.guardian.SignalGuard, optional
+        The signal guard to run under (the command line keeps one until its last line is
+        printed); by default the run installs its own: SIGINT, SIGTERM and SIGHUP stop the series
+        with :class:`~acquisition.guardian.StopSignal`, and none interrupts the switch-off.
 
     Raises
     ------
-    SourceFault, DeviceError, DetectorTimeout, OSError, KeyboardInterrupt
+    SourceFault, DeviceError, DetectorTimeout, OSError, KeyboardInterrupt (StopSignal)
         After the tube is off and the file is closed with every completed frame in it; the message
-        names the fault, and the exception carries ``.result`` (what was saved).
+        names the fault, and the exception carries ``.result`` (what was saved, and whether the
+        tube was confirmed off: ``result.tube_off``).
     """
     from tqdm.auto import tqdm
 
-    from radiokit.io import ExperimentWriter, ImageKey
+    from acquisition.guardian import SignalGuard
+    from radiokit.io import ExperimentWriter
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)
-    done = None
     if resume and not out.exists():
         log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
         resume = False
-    if resume:
-        done = _existing(out, p)
-    elif out.exists() and not overwrite:
+    done = _existing(out, p) if resume else None
+    if not resume and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
-    writer_factory = writer_factory or ExperimentWriter
-    # the lab notebook: every serial exchange, phase and fault, beside the experiment file
-    notebook = logging.FileHandler(out.with_suffix(".log"), encoding="utf-8")
+    notebook = _open_notebook(out)
+    res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
+    bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
+    r = _Run(p, out, sim, resume, overwrite, progress, guard or SignalGuard(), res, bar,
+             on_phase or (lambda phase, info=None: None), writer_factory or ExperimentWriter, devices=devices)
+    if done:
+        r.done = done
+    with r.guard:
+        try:
+            for name, phase in _PHASES:
+                if name != "steps":
+                    r.enter(name)
+                phase(r)
+        except BaseException as exc:
+            _stop(r, exc)
+            raise
+        finally:
+            _release(r, notebook)
+    res.phase = "done"
+    res.frames_total = r.writer.n_frames if r.writer is not None else 0
+    res.seconds = time.perf_counter() - r.t0
+    res.beam_on_s = r.beam_on_s
+    return res
+
+
+class _Notebook(logging.FileHandler):
+    """The lab notebook's file. On a full disk it falls silent rather than print a traceback per
+    record or replace the error that ends the run with its own."""
+
+    broken = False
+
+    def emit(self, record):
+        if not self.broken:
+            super().emit(record)
+
+    def handleError(self, record):  # noqa: N802 - logging's name
+        self.broken = True
+
+    def flush(self):
+        try:
+            super().flush()
+        except OSError:
+            self.broken = True
+
+    def close(self):
+        try:
+            super().close()
+        except OSError:
+            self.broken = True
+
+
+def _open_notebook(out: Path) -> logging.Handler:
+    """The lab notebook: every serial exchange, phase and fault, beside the experiment file."""
+    notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
     notebook.setLevel(logging.DEBUG)
     notebook.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s",
                                             "%Y-%m-%d %H:%M:%S"))
     acq_log = logging.getLogger("acquisition")
+    notebook.old_level = acq_log.level
     acq_log.addHandler(notebook)
-    old_level = acq_log.level
     if acq_log.getEffectiveLevel() > logging.DEBUG:
         acq_log.setLevel(logging.DEBUG)
-    user_notify = on_phase or (lambda phase, info=None: None)
+    return notebook
 
-    def notify(phase_name, info=None):
-        if phase_name != "frame":
-            bar.set_description(phase_name)
-        user_notify(phase_name, info)
 
-    t0 = time.perf_counter()
-    beam_on = 0.0
-    phase = "connect"
-    writer = None
-    res = Result(str(out), 0, 0, 0.0, 0.0, phase, resumed=bool(resume))
-    pending = plan(p, done, warm=True)
-    bar = tqdm(total=pending.n_frames, desc="acquire", unit="frame", disable=not progress)
-    monitor = None
-    t_on_ref = None
-    try:
-        notify("connect", None)
-        if devices is None:
-            devices = sim_devices(p, progress=progress) if sim else lab_devices(p)
-        src, det, frm = devices.source, devices.detector, devices.frame
-        monitor = _BeamMonitor(src, p.source.poll_s)
-        # checks
-        state = src.status()
-        log.info("source state %s", state)
-        if not src.interlock_closed():
-            log.warning("interlock open: close the cabinet before X-rays are needed")
-        phase = "warm-up"
-        notify(phase, None)
-        if _needs_warm_up(src):
-            src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=progress)
-        if p.source.focus is not None:
-            src.focus = int(p.source.focus)
-        shape = tuple(det.shape)
-        kw = dict(pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
-                  source={"name": "Hamamatsu L8121-01" + (" (emulated)" if sim else ""),
-                          "voltage_kv": p.source.voltage_kv, "current_ua": p.source.current_ua},
-                  title=f"radiokit compression series: {p.name}")
-        writer = writer_factory(out, shape, mode="a" if resume else "w", overwrite=overwrite, **kw)
-        if not resume:
-            writer.h5["entry"].attrs["protocol"] = p.to_toml()
-            writer.h5["entry"].attrs["devices"] = json.dumps(
-                {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()}, default=str)
-            writer.h5.flush()
-        done = done or {"darks": 0, "flats": 0, "steps": {}}
-        h0 = frm.initial_height_mm
-        det.arm()
-
-        def take(n, image_key, step=-1, ratio=None, gap=None, beam=False):
-            for frame in det.acquire(n, timeout_s=p.detector.timeout_s):
-                t = time.perf_counter()
-                if beam:
-                    monitor.raise_if_failed()
-                index = writer.append(frame.data, image_key=image_key, step=step, ratio=ratio, gap_mm=gap,
-                                      time_s=frame.time_s, voltage_kv=monitor.kv if beam else 0.0,
-                                      current_ua=monitor.ua if beam else 0.0)
-                if beam:
-                    monitor.written.append((index, frame.time_s))
-                res.frames_written += 1
-                bar.update()
-                res.per_frame_overhead_s.append(time.perf_counter() - t)
-                notify("frame", writer.n_frames - 1)
-                if beam:
-                    monitor.raise_if_failed()
-
-        t_on = t_on_ref = [None]
-
-        def beam_on_(kv, ua):
-            t_on[0] = time.perf_counter()
-            reading = src.on(kv, ua)
-            kv_m, ua_m = _kv_ua(reading, kv, ua)
-            monitor.start(kv_m, ua_m)
-
-        def beam_off():
-            nonlocal beam_on
-            monitor.stop()
-            monitor.raise_if_failed()  # the fault itself, not what switching off then ran into
-            monitor.confirm()          # the beam was good up to the last frame (faults latch)
-            src.off()
-            beam_on += time.perf_counter() - t_on[0]
-            t_on[0] = None
-
-        # darks, tube off
-        phase = "darks"
-        notify(phase, None)
-        n = p.series.darks - done["darks"]
-        if n > 0:
-            src.off()
-            take(n, ImageKey.DARK)
-        # flats: phantom out, beam on, phantom back in with the tube off
-        phase = "flats"
-        notify(phase, None)
-        n = p.series.flats - done["flats"]
-        if n > 0:
-            frm.sample_out()
-            beam_on_(p.source.voltage_kv, p.source.current_ua)
-            take(n, ImageKey.FLAT, beam=True)
-            beam_off()
-            frm.sample_in()
-        # the compression steps
-        for i, ratio in enumerate(p.series.steps, start=1):
-            n = p.series.frames_per_step - done["steps"].get(i, 0)
-            if n <= 0:
-                continue
-            phase = f"step {i}"
-            notify(phase, ratio)
-            gap = frm.move_to(h0 * (1 - ratio))
-            measured_ratio = 1 - gap / h0
-            _settle(p.series.settle_s, bar, progress)
-            beam_on_(p.source.voltage_kv, p.source.current_ua)
-            take(n, ImageKey.PROJECTION, step=i, ratio=measured_ratio, gap=gap, beam=True)
-            beam_off()
-        phase = "close"
-        notify(phase, None)
-        frm.stop()
-    except BaseException as exc:
-        res.phase = phase
-        beam_period = t_on_ref is not None and t_on_ref[0] is not None
-        if beam_period and monitor is not None:
-            monitor._stop.set()
-            if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
-                # stopped for another reason (Ctrl-C, the disk, the detector): vouch for the
-                # frames taken since the last poll with one more, before switching off
-                try:
-                    monitor.confirm()
-                except BaseException as confirm_exc:
-                    log.error("the source failed too: %s", confirm_exc)
-            elif monitor.error is None:
-                monitor.error = exc  # a source error raised in this thread (on(), check())
-        _safe_off(devices, monitor)
-        if beam_period:
-            beam_on += time.perf_counter() - t_on_ref[0]
-        if monitor is not None and monitor.error is not None and writer is not None:
-            _mark_invalid(writer, monitor.suspect())
-        if writer is not None:
-            res.frames_total = writer.n_frames
-        res.seconds = time.perf_counter() - t0
-        res.beam_on_s = beam_on
-        what = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else f"stopped by {type(exc).__name__}"
-        log.error("%s in phase %s: %s; tube off; %d frames in %s", what, phase, exc, res.frames_total, out)
-        exc.result = res
-        if hasattr(exc, "add_note"):
-            exc.add_note(f"{what} in phase '{phase}': the tube is off; {res.frames_total} frames are saved in {out}; "
-                         f"`radiokit acquire PROTOCOL --resume` completes the series")
-        raise
-    finally:
-        bar.close()
-        acq_log.removeHandler(notebook)
-        acq_log.setLevel(old_level)
-        notebook.close()
-        if writer is not None:
+def _stop(r: _Run, exc: BaseException):
+    """The series stopped (fault, error, signal): tube off first, then the bookkeeping of what was
+    saved; the exception gets ``.result`` and a note saying what the operator can do next."""
+    r.guard.cleanup()  # nothing may interrupt what follows
+    res, monitor = r.res, r.monitor
+    res.phase = r.phase
+    beam_period = r.beam_since is not None
+    if monitor is not None:
+        # wait for a poll in flight (and the switch-off a fault makes it do): nothing may race the
+        # switch-off below for the link, or print after the command's last line
+        monitor.stop()
+    if beam_period and monitor is not None:
+        if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
+            # stopped for another reason (a signal, the disk, the detector): vouch for the frames
+            # taken since the last poll with one more, before switching off
             try:
-                writer.close()
-            except Exception as exc:
-                log.error("closing %s: %s", out, exc)
-        if devices is not None:
-            _safe_off(devices, monitor)
-            devices.close()
-    res.phase = "done"
-    res.frames_total = writer.n_frames if writer is not None else 0
-    res.seconds = time.perf_counter() - t0
-    res.beam_on_s = beam_on
-    return res
+                monitor.confirm()
+            except BaseException as confirm_exc:
+                log.error("the source failed too: %s", confirm_exc)
+        elif monitor.error is None:
+            monitor.error = exc  # a source error raised in this thread (on(), check())
+    _tube_off(r)
+    if res.tube_off is None and getattr(exc, "port_never_opened", False):
+        res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
+    elif res.tube_off is None and getattr(exc, "source_unreached", False):
+        res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
+    if beam_period:
+        r.beam_on_s += time.perf_counter() - r.beam_since
+    if monitor is not None and monitor.error is not None and r.writer is not None:
+        _mark_invalid(r.writer, monitor.suspect())
+    if r.writer is not None:
+        res.frames_total = r.writer.n_frames
+    res.seconds = time.perf_counter() - r.t0
+    res.beam_on_s = r.beam_on_s
+    what = (f"stopped by {exc.name}" if hasattr(exc, "signum") else "interrupted (Ctrl-C)"
+            if isinstance(exc, KeyboardInterrupt) else f"stopped by {type(exc).__name__}")
+    tube = {True: "tube off", False: "tube NOT confirmed off", None: "source not contacted"}[res.tube_off]
+    # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
+    log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
+    exc.result = res
+    if hasattr(exc, "add_note"):
+        exc.add_note(f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
+                     f"`radiokit acquire PROTOCOL --resume` completes the series")
+
+
+def _release(r: _Run, notebook):
+    """Close everything, whatever happened: the file, the tube (if not done yet), the devices."""
+    r.bar.close()
+    if r.writer is not None:
+        try:
+            r.writer.close()
+        except Exception as exc:
+            log.error("closing %s: %s", r.out, exc)
+    if r.devices is not None:
+        _tube_off(r)
+        r.devices.close()
+    acq_log = logging.getLogger("acquisition")
+    acq_log.removeHandler(notebook)
+    acq_log.setLevel(notebook.old_level)
+    notebook.close()
+
+
+def _tube_off(r: _Run) -> bool | None:
+    """Tube off, confirmed by ``STS``; once per run, and not at all when a switch-off already failed
+    (the driver's fail-safe or the beam monitor's): one owner retries, as a controller that cannot
+    confirm -- silent, dead, stuck on -- costs the retry budget each time, and the operator's
+    warning would wait for every layer's. Records the outcome in ``r.res.tube_off``."""
+    monitor, dev = r.monitor, r.devices
+    if monitor is not None:
+        monitor.stop()
+    if dev is None or dev.off_done:
+        return r.res.tube_off
+    dev.off_done = True
+    if monitor is not None and monitor.off_failed or getattr(dev.source, "off_failed", None) is not None:
+        dev.off_failed = True
+        r.res.tube_off = False
+        log.error("not switching off again: the last XOF could not be confirmed (%s)",
+                  getattr(dev.source, "off_failed", None) or "beam monitor")
+        return False
+    try:
+        state = dev.source.off()
+    except Exception as exc:
+        dev.off_failed = True
+        r.res.tube_off = False
+        log.error("could not confirm the tube is off: %s", exc)
+        return False
+    name = getattr(state, "name", str(state))
+    if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
+        dev.off_failed = True
+        r.res.tube_off, r.res.tube_state = False, name
+        log.error("XOF sent, but the controller reports %s: the tube still emits", name)
+        return False
+    r.res.tube_off, r.res.tube_state = True, name
+    return True
 
 
 def _mark_invalid(writer, indices):
-    """Label frames image_key 3 (invalid): kept, never taken for a projection or a flat."""
+    """Label frames invalid (image_key 3): kept, never taken for a projection or a flat."""
+    from radiokit.io import ImageKey
+
     if not indices:
         return
     try:
         ds = writer.h5["entry/instrument/detector/image_key"]
         for i in indices:
-            ds[i] = 3
+            ds[i] = ImageKey.INVALID
         writer.h5.flush()
         log.warning("frames %s taken after the last good beam reading: kept as image_key 3 (invalid)", indices)
     except Exception as exc:
@@ -732,8 +1039,9 @@ def _kv_ua(reading, kv, ua):
 
 
 def _needs_warm_up(src) -> bool:
-    state = int(src.status())
-    return state in (0, 1)  # warm-up needed, warming up
+    from acquisition.l8121 import SourceState
+
+    return src.status() in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
 
 
 def _settle(seconds, bar, progress):
@@ -748,23 +1056,3 @@ def _settle(seconds, bar, progress):
         time.sleep(min(0.5, left))
     if progress:
         bar.set_postfix_str("")
-
-
-def _safe_off(devices, monitor):
-    """Tube off, whatever happened: stop the monitor, send XOF (the driver confirms with STS).
-    Once per run: a controller that could not confirm it (silent, dead) costs the driver's full
-    retry budget each time, and the monitor has usually tried already."""
-    if monitor is not None:
-        monitor._stop.set()
-    if devices is None or devices.off_done:
-        return
-    devices.off_done = True
-    if monitor is not None and monitor.off_failed:
-        devices.off_failed = True
-        log.error("not switching off again: the monitor's XOF could not be confirmed either")
-        return
-    try:
-        devices.source.off()
-    except Exception as exc:
-        devices.off_failed = True
-        log.error("could not confirm the tube is off: %s", exc)

@@ -1,6 +1,9 @@
 """The experiment file of DESIGN.md: NeXus-style HDF5, frames appended and flushed one by one."""
 from __future__ import annotations
 
+import errno
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -171,9 +174,33 @@ class ExperimentWriter:
         """The open file, for extra groups (e.g. ``entry/simulation``)."""
         return self._h5
 
+    #: Free space (bytes) a frame must leave on the disk before any of it is written. libhdf5
+    #: cannot survive a write that fails half-way -- the file it leaves does not open, and closing
+    #: it crashes the process -- so a frame that might not fit is refused while the file is whole.
+    reserve_bytes = 1 << 20
+    #: Space held beside the file (``.<name>.reserve``) while frames are written, one frame plus
+    #: :attr:`reserve_bytes`: if another program fills the disk between the check and the write
+    #: (the vendor software writes its frames to the same disk), it is released so libhdf5 can
+    #: finish what it started and the file stays whole.
+    ballast = True
+
     def append(self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None,
                voltage_kv=None, current_ua=None) -> int:
-        """Append one frame and its bookkeeping, then flush. Returns the frame's index."""
+        """Append one frame and its bookkeeping, then flush. Returns the frame's index.
+
+        The frame is recorded in three flushed steps: its row, labelled ``INVALID`` (3) and
+        counted in ``frames_complete``; its pixels; its real ``image_key``. A process killed in
+        between leaves a frame labelled invalid -- never a frame of zeros labelled complete -- and
+        ``--resume`` takes it again.
+
+        Raises
+        ------
+        OSError
+            ``ENOSPC`` when the disk has no room for the frame and :attr:`reserve_bytes` (nothing
+            written: the file stays complete up to the previous frame), or any error writing it
+            (the frame stays labelled invalid and the file takes no more frames). The message
+            names the file and the frame.
+        """
         frame = np.asarray(frame)
         data = self._h5[f"{DETECTOR}/data"]
         if frame.shape != data.shape[1:]:
@@ -185,22 +212,82 @@ class ExperimentWriter:
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
         i = self._n
-        values = {"image_key": int(image_key), "step": int(step),
+        if getattr(self, "_failed", None):
+            raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
+        self._hold_ballast(frame.nbytes + self.reserve_bytes)
+        free = self._free_bytes()
+        if free < frame.nbytes + self.reserve_bytes:
+            raise OSError(errno.ENOSPC, f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
+                                        f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete")
+        values = {"image_key": ImageKey.INVALID, "step": int(step),
                   "ratio": np.nan if ratio is None else float(ratio),
                   "gap": np.nan if gap_mm is None else float(gap_mm) * 1e-3,
                   "time": time.time() if time_s is None else float(time_s),
                   "voltage": np.nan if voltage_kv is None else float(voltage_kv),
                   "current": np.nan if current_ua is None else float(current_ua)}
-        data.resize(i + 1, axis=0)
-        data[i] = frame
-        for group, name, *_ in _SERIES:
-            ds = self._h5[group][name]
-            ds.resize(i + 1, axis=0)
-            ds[i] = values[name]
-        self._h5["entry"].attrs["frames_complete"] = i + 1
-        self._h5.flush()
-        self._n = i + 1
+        try:
+            data.resize(i + 1, axis=0)
+            for group, name, *_ in _SERIES:
+                ds = self._h5[group][name]
+                ds.resize(i + 1, axis=0)
+                ds[i] = values[name]
+            self._h5["entry"].attrs["frames_complete"] = i + 1
+            self._h5.flush()
+            self._n = i + 1           # counted, labelled invalid
+            data[i] = frame
+            self._h5.flush()          # the pixels are on disk
+            self._h5[DETECTOR]["image_key"][i] = int(image_key)
+            self._h5.flush()          # only now is the frame what it claims to be
+        except Exception as exc:  # noqa: BLE001 - h5py reports a full disk as RuntimeError or OSError
+            self._failed = " ".join(str(exc).split())[:200]
+            self._drop_ballast()
+            try:  # with the ballast's room, libhdf5 writes what it holds: the file is whole again
+                self._h5.flush()
+            except Exception:  # noqa: BLE001 - nothing more can be done; the message says what happened
+                pass
+            code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC \
+                else errno.EIO
+            raise OSError(code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays "
+                                f"labelled invalid") from None
         return i
+
+    def _free_bytes(self) -> int:
+        """Bytes free for this file on its file system."""
+        return shutil.disk_usage(self.path.parent).free
+
+    @property
+    def _ballast_path(self) -> Path:
+        return self.path.with_name(f".{self.path.name}.reserve")
+
+    def _hold_ballast(self, nbytes: int) -> int:
+        """Hold ``nbytes`` of disk in the ballast file (allocated, not sparse); returns the bytes
+        held. Growing it on a full disk holds what it can: the space check that follows refuses
+        the frame."""
+        if not self.ballast:
+            return 0
+        path = self._ballast_path
+        try:
+            held = path.stat().st_size
+        except OSError:
+            held = 0
+        if held >= nbytes:
+            return held
+        try:
+            with open(path, "ab") as fh:
+                os.posix_fallocate(fh.fileno(), 0, nbytes)
+            return nbytes
+        except OSError:  # a full disk, or a file system without fallocate: no ballast then
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            return 0
+
+    def _drop_ballast(self) -> None:
+        try:
+            self._ballast_path.unlink()
+        except OSError:
+            pass
 
     def set_pixel_mask(self, mask):
         mask = np.asarray(mask, dtype=np.uint32)
@@ -212,8 +299,12 @@ class ExperimentWriter:
 
     def close(self):
         if self._h5.id.valid:
-            self._h5["entry"].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-            self._h5.close()
+            try:
+                if not getattr(self, "_failed", None):
+                    self._h5["entry"].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+            finally:
+                self._h5.close()
+                self._drop_ballast()
 
     def __enter__(self):
         return self

@@ -1,0 +1,318 @@
+"""The tube-off guarantee: a guardian process that owns the source's port, and a signal guard.
+
+A protocol that leaves X-rays on because its process died is the one failure the lab cannot
+accept. Two mechanisms cover the two ways a process ends:
+
+- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session:
+  SIGINT, SIGTERM, SIGHUP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
+  (a ``KeyboardInterrupt``), so the protocol's own exit path switches the tube off and confirms
+  it; every further signal, and any signal during that switch-off, is only acknowledged on
+  stderr -- the switch-off sequence is never interrupted.
+- **Deaths it cannot handle** (``kill -9``, the OOM killer, a crash in a C library): the port is
+  owned by a small guardian process (``python -m acquisition.guardian``), started before the first
+  command is sent. The acquiring process talks to the controller through a pipe
+  (:class:`acquisition.transport.PipeTransport`, the interface of ``SerialTransport``). When that
+  pipe closes without an orderly release, the guardian builds the driver on the port it holds
+  with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
+  baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
+  (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
+  notebook, and exits. It runs in its own session and ignores
+  SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
+  does not take it down with the acquiring process.
+
+The line protocol on the pipe (ASCII, one line each way; ``SEQ`` ties a reply to its request, so
+a reply that arrives after its requester was interrupted is discarded)::
+
+    Q SEQ COMMAND   ->  R SEQ REPLY  |  E SEQ MESSAGE     one exchange with the controller
+                    |  N SEQ MESSAGE                      (N: the controller did not reply)
+    X               ->  (exit)                            orderly release: close the port, no XOF
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+__all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
+
+#: The last line the operator reads when switching off could not be confirmed.
+TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller (key switch) now"
+
+_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class StopSignal(KeyboardInterrupt):
+    """A signal asked the run to stop (SIGINT, SIGTERM or SIGHUP); ``signum`` says which.
+
+    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles all three alike."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+def _say(text: str) -> None:
+    """Write to stderr from a signal handler: os.write, not print (print may be mid-call on the
+    same buffered stream, and a closed terminal must not raise here)."""
+    try:
+        os.write(2, (text + "\n").encode("utf-8", "replace"))
+    except OSError:
+        pass
+
+
+class SignalGuard:
+    """SIGINT, SIGTERM, SIGHUP: the first raises :class:`StopSignal`; the rest are deferred.
+
+    Use as a context manager around a run (handlers are installed only in the main thread, where
+    Python delivers signals; elsewhere the guard does nothing). They are installed whatever the
+    inherited disposition: a run started as a background job (``cmd &`` in a script) inherits
+    SIGINT ignored, and a Ctrl-C sent to it must still stop the series with the tube off. Set :attr:`stopping` (or enter
+    :meth:`cleanup`) before a switch-off sequence: from then on a signal only prints that the
+    tube is being switched off. Once a signal has raised, the guard stays stopping, so the
+    cleanup that follows it cannot be interrupted either.
+
+    Examples
+    --------
+    >>> import signal
+    >>> with SignalGuard() as guard:
+    ...     try:
+    ...         signal.raise_signal(signal.SIGTERM)
+    ...     except StopSignal as exc:
+    ...         print(exc.name, guard.stopping)
+    SIGTERM True
+    """
+
+    def __init__(self):
+        self.stopping = False
+        self.received: list[int] = []
+        self._old: dict[int, object] = {}
+        self._depth = 0
+
+    def __enter__(self) -> SignalGuard:
+        self._depth += 1
+        if self._depth == 1 and threading.current_thread() is threading.main_thread():
+            for sig in _SIGNALS:
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._depth -= 1
+        if self._depth == 0:
+            for sig, old in self._old.items():
+                signal.signal(sig, old)
+            self._old.clear()
+
+    def reinstall(self) -> None:
+        """Install the handlers again. C libraries may replace them behind Python's back (gmsh,
+        building the virtual bench, resets SIGTERM to the default, which would kill the run
+        with the tube on): the protocol calls this after building devices and at every phase."""
+        if self._old and threading.current_thread() is threading.main_thread():
+            for sig in self._old:
+                signal.signal(sig, self._handle)
+
+    def cleanup(self) -> SignalGuard:
+        """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
+        self.stopping = True
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.received.append(signum)
+        if self.stopping:
+            _say(f"\n{signal.Signals(signum).name} received: switching the X-ray tube off first, please wait")
+            return
+        self.stopping = True  # before raising: a second signal must not interrupt the cleanup
+        raise StopSignal(signum)
+
+
+# -- the client side --------------------------------------------------------------------------------
+
+def start_guardian(url: str, config, *, notebook: str | Path | None = None, startup_timeout_s: float = 20.0):
+    """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
+    to talk through it.
+
+    Parameters
+    ----------
+    url : str
+        The controller's port, as :class:`~acquisition.transport.SerialTransport` opens it.
+    config : SourceConfig
+        The driver's configuration with the dialect, baud rate and command spacing resolved
+        (:meth:`acquisition.l8121.L8121.resolved_config`, after any probe): the guardian opens the
+        port at that rate and switches off in that dialect, with the same time-outs and attempts
+        as the acquiring process, and never probes.
+    notebook : path, optional
+        The lab notebook (``<output>.log``) the guardian appends to when it has to act.
+
+    Raises
+    ------
+    PortUnavailable
+        The guardian could not open the port (the message is the port's own): nothing was sent.
+    DeviceError
+        The guardian did not start.
+    ValueError
+        ``config`` leaves the dialect or the baud rate open.
+    """
+    from acquisition.errors import DeviceError
+    from acquisition.transport import PipeTransport
+
+    if config.dialect not in ("A", "B") or config.baudrate is None or config.min_interval_s is None:
+        raise ValueError(f"{url}: the guardian needs a resolved configuration (dialect {config.dialect!r}, "
+                         f"baudrate {config.baudrate!r}); pass driver.resolved_config()")
+    cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
+    if notebook is not None:
+        cmd += ["--notebook", str(notebook)]
+    env = dict(os.environ)
+    # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    try:
+        # its own session: the terminal's Ctrl-C (sent to the foreground process group) and its
+        # hang-up do not reach it; stdin/stdout are the pipe, stderr the operator's terminal
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
+                                start_new_session=True, close_fds=True)
+    except OSError as exc:
+        raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
+    link = PipeTransport(url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate)
+    link.wait_ready(startup_timeout_s)
+    return link
+
+
+# -- the guardian process ---------------------------------------------------------------------------
+
+class _Notebook:
+    """stderr and the lab notebook, best effort (a closed terminal must not stop the guardian)."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __call__(self, level: str, text: str) -> None:
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        if level in ("WARNING", "ERROR", "CRITICAL"):
+            _say(f"X-ray guardian: {text}")
+        if self.path:
+            try:
+                with open(self.path, "a", encoding="utf-8") as fh:
+                    fh.write(f"{stamp} acquisition.guardian {level} {text}\n")
+            except OSError:
+                pass
+
+
+def _switch_off(link, config, note) -> bool:
+    """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
+    dialect the acquiring process resolved (``config``; no probe, no identity check: only what
+    switching off needs). Returns whether ``STS`` confirmed it."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    driver = L8121(link, config=config, connect=False)
+    driver.attach(link)
+    try:
+        state = driver.off()
+    except DeviceError as exc:
+        note("CRITICAL", f"{link.port}: {exc}")
+        return False
+    if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
+        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
+        return False
+    note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
+    return True
+
+
+def _serve(link, config, note) -> int:
+    """Answer the acquiring process until it releases the port (0) or disappears (switch off)."""
+    from acquisition.errors import DeviceError, NoReply
+
+    rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
+    buf = b""
+    while True:
+        while b"\n" not in buf:
+            try:
+                data = os.read(rfd, 4096)
+            except OSError:
+                data = b""
+            if not data:  # the pipe closed without a release: the acquiring process is gone
+                note("WARNING", f"{link.port}: the acquiring process ended without releasing the port; "
+                                f"switching X-rays off")
+                ok = _switch_off(link, config, note)
+                link.close()
+                if not ok:
+                    _say(TUBE_WARNING)
+                return 0 if ok else 3
+            buf += data
+        line, buf = buf.split(b"\n", 1)
+        words = line.decode("ascii", "replace").split(" ", 2)
+        if words[0] == "X":
+            link.close()
+            note("INFO", f"{link.port}: released by the acquiring process")
+            return 0
+        if words[0] != "Q" or len(words) < 3:
+            continue
+        seq, command = words[1], words[2]
+        try:
+            out = f"R {seq} {link.query(command)}"
+        except (DeviceError, ValueError) as exc:
+            kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
+            out = f"{kind} {seq} {' '.join(str(exc).split())}"
+        try:
+            os.write(wfd, (out + "\n").encode("ascii", "replace"))
+        except OSError:
+            pass  # the reader is gone: the next read sees the end of the pipe
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m acquisition.guardian URL --config JSON [--notebook PATH]`` (JSON: a resolved
+    ``SourceConfig``, see :func:`start_guardian`)."""
+    import argparse
+
+    from acquisition.errors import DeviceError
+    from acquisition.transport import SerialTransport
+
+    for sig in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+
+    def terminated(signum, frame):  # someone stops the guardian itself: behave as if orphaned
+        os.close(0)
+    signal.signal(signal.SIGTERM, terminated)
+    ap = argparse.ArgumentParser(prog="python -m acquisition.guardian")
+    ap.add_argument("url")
+    ap.add_argument("--config", required=True)
+    ap.add_argument("--notebook")
+    args = ap.parse_args(argv)
+    from acquisition.l8121 import SourceConfig
+
+    config = SourceConfig.from_dict(json.loads(args.config))
+    note = _Notebook(args.notebook)
+    import logging
+
+    # the driver's own log goes to the notebook only: the guardian speaks to the operator via note()
+    root = logging.getLogger()
+    root.addHandler(logging.NullHandler())
+    if args.notebook:
+        try:
+            fh = logging.FileHandler(args.notebook, encoding="utf-8")
+        except OSError:
+            fh = None
+        if fh is not None:
+            fh.setFormatter(logging.Formatter("%(asctime)s guardian %(name)s %(levelname)s %(message)s"))
+            logging.getLogger("acquisition.l8121").addHandler(fh)
+            logging.getLogger("acquisition.l8121").setLevel(logging.INFO)
+    try:
+        link = SerialTransport(args.url, baudrate=config.baudrate, timeout_s=config.timeout_s,
+                               min_interval_s=config.min_interval_s)
+    except (DeviceError, ValueError) as exc:
+        os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
+        return 1
+    os.write(1, b"READY\n")
+    return _serve(link, config, note)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,626 @@
+"""X-ray safety and acquisition data integrity: the fault matrix of issue 12.
+
+The real ``radiokit acquire`` command runs in a subprocess (its own process group, as a shell job
+is) against the L8121 emulator, which this process serves on a pseudo-terminal (``[sim]
+source_port``): the command drives it through the guardian process exactly as it drives the lab's
+controller, and the test reads the emulator's state when the command has ended. Simulated panel
+and frame (``SimDetector``, ``SimFrame``) come from the same protocol.
+
+Each row of the matrix injects one fault in one phase -- a signal (SIGINT to the process group as
+a terminal's Ctrl-C does, SIGTERM, SIGHUP, SIGKILL) or a controller fault -- and asserts
+
+- the emulator's final state (X-rays off; where nothing the software sends can switch it off --
+  a dead or unplugged controller, a stuck relay -- X-rays on *and* the warning),
+- the last line printed: ``tube off (confirmed by STS: ...)`` only when the controller confirmed it,
+  otherwise the ``WARNING: X-RAYS MAY STILL BE ON`` line, with a non-zero exit code,
+- the time from the fault to the tube being off (emulator state watched every 5 ms; for a phase
+  with the tube already off, to the first ``XOF`` it received after the fault): within 2 s.
+
+The matrix is printed at the end of the module, with or without ``-s`` (it goes to the terminal
+through the capture manager).
+
+The matrix runs in both of the controller's command dialects (``controller``'s ``params``): the
+protocol names the dialect (``[source] dialect``), the command resolves it and hands it to the
+guardian, so a kill -9 is switched off in the dialect the unit speaks.
+
+A test that sends a signal expects the process that receives it to install its own handlers: the
+command is started with SIGINT ignored in some rows, as ``make test &`` starts it.
+"""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from radiokit.io import ExperimentWriter, ImageKey
+
+ROOT = Path(__file__).resolve().parents[1]
+DARKS, FLATS, PER_STEP, STEPS = 2, 3, 3, (0.15, 0.25)
+TOTAL = DARKS + FLATS + PER_STEP * len(STEPS)
+WARMUP_S = 3.0
+OFF_BOUND_S = 2.0
+CONFIRMED = re.compile(r"tube off \(confirmed by STS: \w+\)$")
+WARNING = "WARNING: X-RAYS MAY STILL BE ON"
+MATRIX = []
+
+
+# -- the bench --------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=STEPS)
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0  # a coarse mesh: each subprocess solves it again (0.1 s instead of ~1 s)
+    path = tmp_path_factory.mktemp("scene") / "scene.toml"
+    path.write_text(scene.to_toml())
+    return path
+
+
+@pytest.fixture(params=["A", "B"])
+def controller(request):
+    """``make(warmed_up=True) -> (model, server)``: an emulated L8121 served on a pty in this
+    process, in the dialect ``request.param`` (``write_protocol(..., server)`` names it in
+    ``[source]``)."""
+    servers = []
+
+    def make(warmed_up=True):
+        model = L8121Model(dialect=request.param, warmup_s=WARMUP_S, ramp_s=0.05, warmed_up=warmed_up)
+        server = PtyServer(model).start()
+        servers.append(server)
+        return model, server
+
+    yield make
+    for server in servers:
+        server.stop()
+
+
+# Rows whose outcome does not depend on the dialect (the command line's signal handlers, the
+# writer and the disk, a refusal before the first byte, a port that vanishes under the transport)
+# run in dialect A only, to keep the module's run time within a few minutes on two cores; every
+# signal in every phase, kill -9 included, and every controller answer that differs by dialect
+# run in both.
+ONE_DIALECT = pytest.mark.parametrize("controller", ["A"], indirect=True)
+
+
+def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, output=None):
+    """The protocol for ``server`` (a PtyServer, whose model's dialect goes into ``[source]``, or a
+    port name)."""
+    port = getattr(server, "url", server)
+    dialect = getattr(getattr(server, "model", None), "dialect", "A")
+    # timeout_s: the driver's default; shorter ones made a loaded machine's late reply (the
+    # emulator runs in this process) look like a silent controller
+    src = {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "off_attempts": 2,
+           "min_interval_s": 0.01, "dialect": dialect, **(source or {})}
+    src = {k: v for k, v in src.items() if v is not None}  # None: the driver's default
+    ser = {"darks": DARKS, "flats": FLATS, "frames_per_step": PER_STEP, "steps": list(STEPS), "settle_s": 0.3,
+           **(series or {})}
+
+    def table(d):
+        return "\n".join(f"{k} = {_toml(v)}" for k, v in d.items())
+    text = (f'output = {_toml(str(output or tmp_path / "series.h5"))}\nname = "safety"\n'
+            f"[source]\n{table(src)}\n[detector]\nkind = \"sim\"\ntimeout_s = 2.0\n"
+            f"[frame]\nkind = \"sim\"\ninitial_height_mm = 10.0\n[series]\n{table(ser)}\n"
+            f"[sim]\nscene = {_toml(str(scene_file))}\nframe_period_s = 0.1\nsource_port = {_toml(port)}\n")
+    path = tmp_path / "protocol.toml"
+    path.write_text(text)
+    return path
+
+
+def _toml(v):
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    return repr(v)
+
+
+class Acquire:
+    """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
+    the guardian's included) collected line by line."""
+
+    def __init__(self, *args, sigint_ignored=False):
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+        # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
+        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        if sigint_ignored:  # the disposition survives exec, as a shell's does
+            code = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                    f"os.execv(sys.executable, [sys.executable, '-c', {code!r}, *sys.argv[1:]])")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code, "acquire", *map(str, args)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+            start_new_session=True)
+        self.lines = []
+        self.times = []  # time.monotonic() at which each line arrived
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self):
+        for raw in self.proc.stdout:
+            self.times.append(time.monotonic())
+            self.lines.append(raw.decode("utf-8", "replace").rstrip("\n"))
+
+    def signal(self, sig):
+        """SIGINT goes to the process group, as a terminal's Ctrl-C; the others to the process."""
+        if sig == signal.SIGINT:
+            os.killpg(self.proc.pid, sig)
+        else:
+            os.kill(self.proc.pid, sig)
+
+    def wait(self, timeout=30):
+        code = self.proc.wait(timeout=timeout)
+        self._reader.join(timeout=10)  # until every writer of the pipe (the guardian too) has closed it
+        return code
+
+    @property
+    def last_line(self):
+        text = [ln for ln in self.lines if ln.strip()]
+        return text[-1].strip() if text else ""
+
+    @property
+    def output(self):
+        return "\n".join(self.lines)
+
+
+def wait_until(cond, timeout=20.0, what="condition", period=0.02):
+    """Poll ``cond`` (every 20 ms: the notebook is read whole each time, in the process that also
+    serves the emulator, so a faster poll would slow the controller's replies)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return
+        time.sleep(period)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def notebook_has(tmp_path, pattern):
+    path = tmp_path / "series.log"
+    return lambda: path.exists() and re.search(pattern, path.read_text(errors="replace")) is not None
+
+
+class OffWatch:
+    """When the emulated tube is off after a fault: the first moment (5 ms polls) the state is not
+    X-rays on and an XOF has arrived since the fault (a tube that was off at the fault: its XOF)."""
+
+    def __init__(self, model):
+        self.model, self.t_fault, self.off_at = model, time.monotonic(), None
+        self.model_t_fault = model.time
+        self.on_at_fault = model.xray_on
+        self._done = threading.Event()
+        threading.Thread(target=self._loop, daemon=True).start()
+
+    def _loop(self):
+        while not self._done.is_set() and time.monotonic() - self.t_fault < 30:
+            xof = any(e.command == "XOF" and e.t >= self.model_t_fault for e in self.model.log)
+            if xof and not self.model.xray_on:
+                self.off_at = time.monotonic()
+                return
+            time.sleep(0.005)
+
+    def seconds(self):
+        self._done.set()
+        return None if self.off_at is None else self.off_at - self.t_fault
+
+
+# -- where each phase is reached --------------------------------------------------------------------
+
+def _in_warm_up(model, tmp_path):
+    wait_until(lambda: model.state == 1, what="warm-up")  # WARMING_UP
+
+
+def _in_darks(model, tmp_path):
+    wait_until(notebook_has(tmp_path, r"frame 0 written"), what="the first dark")
+
+
+def _in_flats(model, tmp_path):
+    wait_until(notebook_has(tmp_path, rf"frame {DARKS} written"), what="the first flat")
+    assert model.xray_on
+
+
+def _in_projection(model, tmp_path):
+    wait_until(notebook_has(tmp_path, rf"frame {DARKS + FLATS} written"), what="the first projection")
+    assert model.xray_on
+
+
+def _in_settle(model, tmp_path):
+    # step 1 compresses and settles (SETTLE_ROW_S) with the tube off; the virtual frame moves at once
+    wait_until(notebook_has(tmp_path, r"phase step 1"), what="step 1")
+    time.sleep(0.1)
+    assert not model.xray_on
+
+
+SETTLE_ROW_S = 1.0  # the settle row's wait: long enough to signal inside it on a loaded machine
+PHASES = {"warm-up": _in_warm_up, "darks (beam off)": _in_darks, "flats (beam on)": _in_flats,
+          "projection (beam on)": _in_projection, "settle (operator/compression wait)": _in_settle}
+SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP, "SIGKILL": signal.SIGKILL}
+
+
+def reach(phase, model, tmp_path, acq):
+    """Wait until the command is in ``phase`` (failing with what it printed if it never gets there)."""
+    try:
+        PHASES[phase](model, tmp_path)
+    except AssertionError as exc:
+        acq.proc.kill()
+        acq.wait()
+        raise AssertionError(f"{exc}; the command printed:\n{acq.output}") from None
+
+
+def record(row, model, acq, off_s, code, warn_s=None):
+    final = "ON" if model.xray_on else "WARM" if model.state == 1 else "off"
+    MATRIX.append((model.dialect, row, final, code, off_s, warn_s, acq.last_line))
+
+
+def warning_after(acq, t0):
+    """Seconds from ``t0`` to the warning line, or None."""
+    return next((t - t0 for t, ln in zip(acq.times, acq.lines) if ln.strip().startswith(WARNING)), None)
+
+
+@pytest.mark.parametrize("phase", list(PHASES))
+@pytest.mark.parametrize("sig", list(SIGNALS))
+def test_signal_in_phase_leaves_the_tube_off(tmp_path, scene_file, controller, sig, phase):
+    model, server = controller(warmed_up=phase != "warm-up")
+    series = {"settle_s": SETTLE_ROW_S} if phase.startswith("settle") else None
+    proto = write_protocol(tmp_path, scene_file, server, series=series)
+    acq = Acquire(proto, "--sim", "-q")
+    reach(phase, model, tmp_path, acq)
+    watch = OffWatch(model)
+    acq.signal(SIGNALS[sig])
+    code = acq.wait()
+    off_s = watch.seconds()
+    record(f"{sig} in {phase}", model, acq, off_s, code)
+    assert not model.xray_on and model.state != 1  # neither the beam nor the warm-up emits
+    assert off_s is not None and off_s <= OFF_BOUND_S, f"tube off {off_s} s after {sig}"
+    if sig == "SIGKILL":
+        # the guardian switched off and said so; nobody else was left to speak
+        assert code == -signal.SIGKILL
+        assert acq.last_line.startswith("X-ray guardian:") and "X-rays off (confirmed by STS" in acq.last_line
+    else:
+        assert code == 128 + SIGNALS[sig], acq.output
+        assert CONFIRMED.search(acq.last_line), acq.output
+        assert f"stopped by {sig}" in acq.output
+        assert "Traceback" not in acq.output
+        # the guardian outlived the signal (SIGINT went to the whole process group) and was released
+        assert "released by the acquiring process" in (tmp_path / "series.log").read_text()
+    # the guardian has exited: nothing holds the port any more
+    assert not any("X-ray guardian" in ln and "did not exit" in ln for ln in acq.lines)
+
+
+def test_three_ctrl_c_during_a_frame_and_the_switch_off(tmp_path, scene_file, controller):
+    """One Ctrl-C during a projection, two while XOF is being sent (the controller slowed to 0.3 s
+    per reply so the switch-off lasts): the switch-off finishes, the tube is off and confirmed."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    model.slow(0.3)
+    acq.signal(signal.SIGINT)
+    wait_until(lambda: any(e.command == "XOF" and e.t >= watch.model_t_fault for e in model.log) or
+               acq.proc.poll() is not None, what="the switch-off")
+    for _ in range(2):
+        acq.signal(signal.SIGINT)
+        time.sleep(0.1)
+    code = acq.wait()
+    off_s = watch.seconds()
+    record("3 x Ctrl-C (frame, XOF, XOF)", model, acq, off_s, code)
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    assert code == 130 and CONFIRMED.search(acq.last_line), acq.output
+    assert acq.output.count("switching the X-ray tube off first") >= 1, acq.output
+    assert "Traceback" not in acq.output
+
+
+# (name, fault injected mid-projection, whether the software can still switch off)
+CONTROLLER_FAULTS = [
+    ("silent controller (reply path lost)", lambda m, s: m.silence(True, execute=True), True),
+    ("dead controller (silent, executes nothing)", lambda m, s: m.silence(True), False),
+    ("unplugged controller (emulator closed)", lambda m, s: s.stop(), False),
+    ("XOF ignored (stuck on)", lambda m, s: m.stuck_on(), False),
+]
+
+
+# The driver's defaults (SourceConfig: 1 s reply time-out, 3 XOF attempts, the dialect's command
+# spacing; SourceSettings: the beam monitor polls every 0.25 s): what a lab runs with.
+DRIVER_DEFAULTS = {"poll_s": 0.25, "timeout_s": None, "off_attempts": None, "min_interval_s": None}
+# The longest a silent controller may keep the operator from the warning, at those defaults: the
+# monitor's poll (0.25 s) and the time-out (1 s) of the first query that meets the silence, then
+# one switch-off attempt (XOF and STS, 1 s each), not repeated, which goes before any other
+# thread's queued query -- 3.25 s; plus 1.5 s for a loaded machine. (Each layer retrying with the
+# full budget -- driver fail-safe, beam monitor, the panel's beam query -- took ~15 s.)
+WARNING_BOUND_S = 0.25 + 1.0 + 2 * 1.0 + 1.5
+# ... and the XOF reaches a controller that executes but cannot reply after the poll, its
+# query's time-out and perhaps the panel's query's time-out: 2.25 s, plus 1 s for a loaded machine
+SILENT_OFF_BOUND_S = 0.25 + 1.0 + 1.0 + 1.0
+
+
+_FAULT_ROWS = [pytest.param(d, *f, id=f"{d}-{f[0]}") for f in CONTROLLER_FAULTS
+               for d in (("A",) if f[0].startswith("unplugged") else ("A", "B"))]
+
+
+@pytest.mark.parametrize("controller, name, inject, can_switch_off", _FAULT_ROWS, indirect=["controller"])
+def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, name, inject, can_switch_off):
+    """No confirmation, no "tube off": the last line is the warning and the exit code 3, whatever
+    the tube really did (the emulator's state says which); and the warning comes within one
+    switch-off budget, not one per layer (driver fail-safe, beam monitor, the run's switch-off)."""
+    model, server = controller()
+    proto = write_protocol(tmp_path, scene_file, server, source=DRIVER_DEFAULTS)
+    acq = Acquire(proto, "--sim", "-q")
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    t0 = time.monotonic()
+    inject(model, server)
+    code = acq.wait(timeout=60)
+    off_s = watch.seconds()
+    warn_s = warning_after(acq, t0)
+    record(name, model, acq, off_s, code, warn_s)
+    assert code == 3, acq.output
+    assert acq.last_line.startswith(WARNING), acq.output
+    assert warn_s is not None and warn_s <= WARNING_BOUND_S, f"{name}: warning after {warn_s} s"
+    assert "tube off (confirmed" not in acq.output
+    assert "Traceback" not in acq.output
+    # the emulator's own state: off when commands still act, on when nothing could reach it
+    assert model.xray_on is (not can_switch_off)
+    if can_switch_off:
+        assert off_s is not None and off_s <= SILENT_OFF_BOUND_S
+
+
+@pytest.mark.parametrize("dialect", ["A", "auto"])
+def test_unreachable_port_says_the_controller_was_never_reached(tmp_path, scene_file, dialect):
+    """A mistyped port: nothing was ever sent, so no loud X-ray warning -- the last line says radiokit
+    never reached the controller (and could not have switched X-rays on) and to check the unit."""
+    port = str(tmp_path / "ttyUSB-mistyped")
+    acq = Acquire(write_protocol(tmp_path, scene_file, port, source={"dialect": dialect}), "--sim", "-q")
+    code = acq.wait()
+    assert code == 1, acq.output
+    assert "never reached the X-ray controller" in acq.last_line and "check the controller" in acq.last_line
+    assert WARNING not in acq.output and "Traceback" not in acq.output
+    assert any(ln.startswith("error:") and port in ln and "cannot open the port" in ln for ln in acq.lines), acq.output
+
+
+@ONE_DIALECT
+def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, controller):
+    """Started as ``make test &`` starts it (SIGINT ignored): the command installs its own handlers,
+    so a Ctrl-C still stops the series with the tube switched off and confirmed."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q", sigint_ignored=True)
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    acq.signal(signal.SIGINT)
+    code = acq.wait()
+    off_s = watch.seconds()
+    record("SIGINT (inherited ignored) in projection", model, acq, off_s, code)
+    assert code == 130 and CONFIRMED.search(acq.last_line), acq.output
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+
+
+def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):
+    """A previous run killed with the beam on (or a hand left it on): the next run asks STS and
+    switches off, confirmed, before any other command and before asking anyone for anything;
+    then it runs the whole series and ends with the confirmed tube-off line."""
+    model, server = controller()
+    for cmd in ("HIV 60", "CUR 250", "XON") if model.dialect == "A" else ("PHV 600", "PCU 250", "XON"):
+        assert model.handle(cmd) == cmd
+    assert model.xray_on
+    n0 = len(model.log)
+    watch = OffWatch(model)
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, series={"settle_s": 0.0}), "--sim", "-q")
+    code = acq.wait(timeout=60)
+    off_s = watch.seconds()
+    record("X-rays on at start, then a full series", model, acq, off_s, code)
+    assert code == 0 and CONFIRMED.search(acq.last_line), acq.output
+    commands = [e.command for e in model.log[n0:]]
+    first_xof = commands.index("XOF")
+    # nothing but identification (A: TYP; B: the operate switch, SRL) and state queries before the XOF
+    assert set(commands[:first_xof]) <= {"TYP", "SRL", "STS", "DAG"} and "STS" in commands[:first_xof], \
+        commands[:first_xof + 1]
+    assert commands[first_xof + 1] == "STS"  # ... confirmed
+    assert not model.xray_on
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        keys = h5["entry/instrument/detector/image_key"][:]
+    assert sorted(keys.tolist()) == sorted([ImageKey.DARK] * DARKS + [ImageKey.FLAT] * FLATS
+                                           + [ImageKey.PROJECTION] * PER_STEP * len(STEPS))
+
+
+# -- limits before the first byte ------------------------------------------------------------------
+
+LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceiling), run at load
+    ({"voltage_kv": 900}, r"voltage_kv = 900 kV is outside kv_min\.\.kv_max = 40\.\.150 kV"),
+    ({"voltage_kv": -60}, r"voltage_kv = -60"),
+    ({"voltage_kv": float("nan")}, r"voltage_kv = nan"),
+    ({"current_ua": 600}, r"current_ua = 600 µA is outside ua_min\.\.ua_max = 0\.\.500 µA"),
+    ({"watts_max": 10}, r"60 kV x 250 µA = 15 W exceeds watts_max = 10 W"),  # (the ratings allow 75 W)
+    ({"voltage_kv": 60, "kv_max": 1000}, r"kv_max = 1000 kV exceeds the L8121 rating of 150 kV"),
+    ({"watts_max": 100}, r"watts_max = 100 W exceeds the L8121 rating of 75 W"),
+    ({"voltage_kv": 60, "kv_max": 50}, r"voltage_kv = 60 kV is outside kv_min\.\.kv_max = 40\.\.50 kV"),  # tighten
+    ({"voltge_kv": 60}, r"unknown key\(s\) in \[source\]: voltge_kv"),
+    ({"dialect": "C"}, r"dialect 'C': expected 'A', 'B' or 'auto'"),
+    ({"focus": -1}, r"focus = -1"),
+    ({"poll_s": float("inf")}, r"poll_s = inf"),
+]
+
+
+@pytest.mark.parametrize("source, message", LIMITS, ids=[str(s) for s, _ in LIMITS])
+def test_dry_run_refuses_what_the_run_would_refuse(tmp_path, scene_file, capsys, source, message):
+    from radiokit.cli import main
+
+    proto = write_protocol(tmp_path, scene_file, "/dev/null", source=source)
+    assert main(["acquire", str(proto), "--dry-run", "--sim"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(message, err), err
+    assert str(proto) in err  # names the file
+
+
+@pytest.mark.parametrize("series, message", [({"settle_s": float("inf")}, r"settle_s = inf"),
+                                             ({"settle_s": -1.0}, r"settle_s = -1"),
+                                             ({"darks": 2.5}, r"darks = 2\.5: expected an integer")])
+def test_dry_run_refuses_bad_timing(tmp_path, scene_file, capsys, series, message):
+    from radiokit.cli import main
+
+    proto = write_protocol(tmp_path, scene_file, "/dev/null", series=series)
+    assert main(["acquire", str(proto), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(message, err), err
+
+
+@ONE_DIALECT
+def test_refused_exposure_sends_nothing(tmp_path, scene_file, controller):
+    """The run itself refuses before its first byte: the controller hears nothing."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, source={"voltage_kv": 900}), "--sim", "-q")
+    code = acq.wait()
+    record("voltage_kv = 900 (run)", model, acq, None, code)
+    assert code == 2 and "voltage_kv = 900" in acq.last_line and "Traceback" not in acq.output
+    assert model.commands == []
+
+
+def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file, capsys):
+    """A file whose stored protocol is a path string: --resume reads it as TOML, never opens it."""
+    from radiokit.cli import main
+
+    secret = tmp_path / "secret.toml"
+    secret.write_text((write_protocol(tmp_path, scene_file, "/dev/null")).read_text())
+    proto = write_protocol(tmp_path, scene_file, "/dev/null")
+    with ExperimentWriter(tmp_path / "series.h5", shape=(4, 4)) as w:
+        w.h5["entry"].attrs["protocol"] = str(secret)
+    assert main(["acquire", str(proto), "--dry-run", "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "stored protocol" in err and len(err.splitlines()) == 1, err
+
+
+# -- frames and a full disk ------------------------------------------------------------------------
+
+_FILLED_INSIDE_HDF5 = """
+import sys
+import numpy as np
+from radiokit.io import ExperimentWriter, ImageKey
+# the one fake here: the writer is told the disk has room, so a frame meets the full disk inside
+# libhdf5 -- as when another program (the vendor software) fills the disk between the writer's
+# space check and its write
+ExperimentWriter._free_bytes = lambda self: 1 << 40
+w = ExperimentWriter(sys.argv[1], shape=(64, 64))
+i = 0
+try:
+    while True:
+        w.append(np.full((64, 64), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
+        i += 1
+except OSError as exc:
+    print("failed at", i, exc.errno, flush=True)
+w.close()
+"""
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 4.9 MB tmpfs: room for the file, the writer's ballast and reserve (a frame plus 1 MiB
+    each) and two or three of the virtual panel's 560 x 560 frames (627 KB each), so the disk
+    fills in the flats, X-rays on. Mounting needs root; elsewhere test_acquire.py's FullDisk
+    writer covers the protocol side."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4900k", "tmpfs", str(mnt)], check=False, capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip()})")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], check=False, capture_output=True)
+
+
+def test_a_frame_cut_short_by_the_disk_stays_invalid(small_disk):
+    """The disk fills inside libhdf5: no crash (the writer releases its ballast so libhdf5 can
+    finish), the file opens, every frame before is intact, and the cut frame is labelled invalid
+    -- never a zero-filled frame labelled complete."""
+    path = small_disk / "exp.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path)], check=False, capture_output=True, env=env,
+                       timeout=120)
+    assert r.returncode == 0 and b"failed at" in r.stdout, r.stderr.decode()[-2000:]
+    failed_at = int(r.stdout.split()[2])
+    assert int(r.stdout.split()[3]) == 28  # ENOSPC, named as such
+    with h5py.File(path, "r") as h5:
+        n = int(h5["entry"].attrs["frames_complete"])
+        keys = h5["entry/instrument/detector/image_key"][:n]
+        data = h5["entry/instrument/detector/data"]
+        assert failed_at > 10 and n in (failed_at, failed_at + 1)
+        assert np.all(keys[:failed_at] == ImageKey.FLAT)
+        for i in range(failed_at):
+            assert np.all(data[i] == 1000 + i)
+        if n > failed_at:
+            assert keys[failed_at] == ImageKey.INVALID
+    assert sorted(os.listdir(small_disk)) == ["exp.h5"]  # the ballast is gone
+
+
+@ONE_DIALECT
+def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, controller, small_disk):
+    """The series fills a real (tmpfs) disk: one clear line, the tube off first, a consistent file
+    holding the frames that fit; with room again, --resume completes it."""
+    model, server = controller()
+    out = small_disk / "series.h5"
+    proto = write_protocol(tmp_path, scene_file, server, output=out, series={"settle_s": 0.0})
+    acq = Acquire(proto, "--sim", "-q")
+    code = acq.wait(timeout=60)
+    record("disk full (tmpfs 4.9 MB)", model, acq, None, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert len(errors) == 1 and "disk full" in errors[0] and str(out) in errors[0], acq.output
+    assert "Traceback" not in acq.output and not model.xray_on
+    assert "stopped in phase flats" in acq.output, acq.output  # X-rays were on when the disk filled
+    with h5py.File(out, "r") as h5:
+        n = int(h5["entry"].attrs["frames_complete"])
+        assert DARKS <= n < DARKS + FLATS
+        keys = h5["entry/instrument/detector/image_key"][:n]
+        assert np.all(h5["entry/instrument/detector/data"][:n][keys != ImageKey.INVALID].max(axis=(1, 2)) > 0)
+    r = subprocess.run(["mount", "-o", "remount,size=16m", str(small_disk)], check=False, capture_output=True)
+    assert r.returncode == 0, r.stderr
+    acq = Acquire(proto, "--sim", "-q", "--resume")
+    assert acq.wait(timeout=60) == 0, acq.output
+    with h5py.File(out, "r") as h5:
+        keys = h5["entry/instrument/detector/image_key"][:int(h5["entry"].attrs["frames_complete"])]
+    assert np.sum(keys == ImageKey.DARK) == DARKS and np.sum(keys == ImageKey.FLAT) == FLATS
+    assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
+
+
+@ONE_DIALECT
+def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small_disk):
+    """A disk already full: one line naming the file, the tube confirmed off, and no empty file
+    left behind to block the next run."""
+    with open(small_disk / "filler", "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+    model, server = controller()
+    out = small_disk / "series.h5"
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, output=out), "--sim", "-q")
+    code = acq.wait(timeout=60)
+    record("disk full before the first frame", model, acq, None, code)
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
+    assert "Traceback" not in acq.output and "Logging error" not in acq.output
+    assert not out.exists() and not model.xray_on
+
+
+@pytest.fixture(scope="module", autouse=True)
+def print_matrix(request):
+    yield
+    if not MATRIX:
+        return
+    lines = ["", "X-ray safety matrix (radiokit acquire in a subprocess, guardian, emulated L8121 on a pty):",
+             f"{'':2}{'row':<48} {'final':<5} {'exit':>5} {'to off':>7} {'warning':>7}  last line"]
+    for dialect, row, final, code, off_s, warn_s, last in sorted(MATRIX, key=lambda m: m[0]):
+        t = "-" if off_s is None else f"{off_s:.2f} s"
+        w = "-" if warn_s is None else f"{warn_s:.2f} s"
+        lines.append(f"{dialect:<2}{row:<48} {final:<5} {code:>5} {t:>7} {w:>7}  {last[:80]}")
+    capman = request.config.pluginmanager.getplugin("capturemanager")
+    with capman.global_and_fixture_disabled():
+        print("\n".join(lines))
