@@ -21,7 +21,9 @@ import numpy as np
 
 from radiokit.register._common import (jacobian_determinant, ncc, residual_complexity, warp)
 
-__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant"]
+from radiokit.register._confidence import roi_observed  # noqa: E402
+
+__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant", "roi_observed"]
 
 
 @dataclass
@@ -33,8 +35,15 @@ class Quality:
     normalised cross-correlation (higher is better); all four measured on the pair area-averaged
     to at most ~0.4 Mpx (by 4 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
-    time (without this assessment). ``ok`` is False, with a ``reason``, on folding, divergence (similarity worse
-    than not registering) or non-convergence.
+    time (without this assessment). ``observed_fraction``: the share of the object (the mask, or
+    the pixels that differ from the frame's border level) where the motion is observable
+    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``);
+    ``misaligned_fraction``: the share of its observed part where the high-passed residual is
+    more than twice the noise's (structure left misaligned); ``noise``: the noise level
+    estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding,
+    divergence (similarity worse than not registering), non-convergence, too little of the
+    object observed (under half: the field there is the regulariser's guess, whatever the
+    similarity says), or too much of the observed part misaligned (over a fifth).
     """
 
     rc_before: float = float("nan")
@@ -46,6 +55,9 @@ class Quality:
     iterations: int = 0
     seconds: float = 0.0
     converged: bool = True
+    observed_fraction: float = float("nan")
+    misaligned_fraction: float = float("nan")
+    noise: float = float("nan")
     ok: bool = True
     reason: str = ""
 
@@ -56,6 +68,7 @@ class Registration:
     method: str
     quality: Quality
     options: dict = field(default_factory=dict)
+    confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
 
     def warp(self, image, order=1) -> np.ndarray:
         """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid."""
@@ -178,7 +191,7 @@ def _assess(reg, f, m, mask, info, seconds):
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
-    reasons = []
+    reasons = _observed(reg, f, m, np.nan_to_num(w), mask_s)
     if not np.all(np.isfinite(reg.displacement)):
         reasons.append("non-finite displacement")
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
@@ -190,3 +203,51 @@ def _assess(reg, f, m, mask, info, seconds):
         reasons.append(info.get("message", "did not converge"))
     q.ok = not reasons
     q.reason = "; ".join(reasons)
+
+
+# The confidence map and the consistency check are computed on the pair binned to ~0.4 Mpx
+# with a window of _WINDOW binned pixels (the default lattice spacing at that size, 1/23 of a
+# 560 px frame). _BOUND_SCALE: the Cramer-Rao bound is what an ideal estimator reaches with the
+# intensity change known; residual complexity must also explain that change away, and on the
+# training seeds of benchmarks/regdata.family its error where the bound said 0.06 px was about
+# 0.5 px, so the map charges the bound x _BOUND_SCALE (benchmarks/README.md has the table).
+_WINDOW = 24.0
+_BOUND_SCALE = 8.0
+_MIN_OBSERVED = 0.5
+_MAX_MISALIGNED = 0.2
+
+
+def _observed(reg, f, m, w, mask):
+    """Fill ``reg.confidence`` (full resolution) and the quality's observability fields from
+    the binned fixed, moving and warped moving images ``f``, ``m``, ``w``; the reasons for not
+    ok."""
+    import cv2
+
+    from radiokit.register import _confidence as C
+
+    q = reg.quality
+    ob = C.observability(f, _WINDOW, mask, bound_scale=_BOUND_SCALE)
+    rows, cols = reg.displacement.shape[1:]
+    conf = ob.confidence
+    if conf.shape != (rows, cols):
+        conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
+    obs = (ob.confidence >= 0.5) & ob.object
+    n_obj = int(ob.object.sum())
+    q.noise = ob.sigma
+    q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
+    # misaligned: the residual above twice the noise's and above a quarter of what it was
+    # before registering (the latter keeps interpolation error on noise-free data from counting)
+    sig = C.noise_map(f, _WINDOW)
+    after = C.consistency(f, w, _WINDOW, sig)
+    before = C.consistency(f, m, _WINDOW, sig)
+    bad = (after > 2.0) & (after > 0.25 * before)
+    q.misaligned_fraction = float(np.mean(bad[obs])) if obs.any() else float("nan")
+    reasons = []
+    if q.observed_fraction < _MIN_OBSERVED:
+        reasons.append(f"motion observable in only {100 * q.observed_fraction:.0f} % of the object (confidence map; "
+                       f"noise {q.noise:.3g}): elsewhere the field is the regulariser's guess")
+    if obs.any() and q.misaligned_fraction > _MAX_MISALIGNED:
+        reasons.append(f"structure left misaligned in {100 * q.misaligned_fraction:.0f} % of the observed object "
+                       f"(residual above twice the noise)")
+    return reasons
