@@ -41,6 +41,11 @@ import numpy as np
 __all__ = ["observability", "Observability", "roi_observed", "consistency", "OBSERVED_PX"]
 
 OBSERVED_PX = 0.5  # the bound (px) at which confidence is 0.5: "observed"
+# A floor under the noise, as a fraction of the image's 1st-99th percentile range: the part of
+# the residual no similarity models exactly (interpolation, an intensity change that is not
+# exactly slow at a body's curved edge). Without it a noise-free image of a smooth body calls
+# its curvature alone "observed".
+MODEL_FLOOR = 3e-4
 _NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise
 
 
@@ -95,18 +100,25 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
+    step = max(1, int(np.sqrt(f.size / 250_000)))
+    lo, hi = np.percentile(f[::step, ::step], [1, 99])
+    floor2 = (MODEL_FLOOR * float(hi - lo)) ** 2  # see MODEL_FLOOR
     hp = f - _gauss(f, highpass * spacing)
     g = _gauss(hp, 1.0)
     gy, gx = np.gradient(g)
     sig2 = sig_map * sig_map
     bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
-    jyy = _gauss(gy * gy, spacing) - bias
-    jxx = _gauss(gx * gx, spacing) - bias
-    jxy = _gauss(gy * gx, spacing)
+    # the gradient's local covariance, not its mean square: a gradient that is the same across
+    # the window (a smooth body's slope) moves the window's residual by a constant, which an
+    # intensity change explains as well as motion does
+    my, mx = _gauss(gy, spacing), _gauss(gx, spacing)
+    jyy = _gauss(gy * gy, spacing) - my * my - bias
+    jxx = _gauss(gx * gx, spacing) - mx * mx - bias
+    jxy = _gauss(gy * gx, spacing) - my * mx
     tr, det = jxx + jyy, jxx * jyy - jxy * jxy
     lmin = np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
     area = 2 * np.pi * spacing * spacing  # the Gaussian window's area (weights peak 1)
-    info = area * lmin / (2 * sig2)
+    info = area * lmin / (2 * (sig2 + floor2))
     bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
     conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
     obj = _object(f, float(np.median(sig_map)))
@@ -117,13 +129,20 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
 
 
 def consistency(fixed, warped, spacing, sigma_map=None):
-    """Local mean square of the high-passed residual ``warped - fixed`` over ``2 sigma^2`` (1 for
-    noise alone), Gaussian window of ``spacing`` px."""
+    """Local mean square of the residual ``warped - fixed`` that a slow intensity change cannot
+    explain, over ``2 sigma^2`` (about 1 for noise alone): both high-passed at ``spacing`` px,
+    then, in a Gaussian window of ``spacing`` px, the part proportional to the high-passed fixed
+    image removed (a thinning or gain change locally scales the image's structure; a
+    misalignment ``d . grad f`` is not proportional to it)."""
     f = np.asarray(fixed, np.float32)
     r = np.asarray(warped, np.float32) - f
     r = r - _gauss(r, spacing)
+    fh = f - _gauss(f, spacing)
     s = noise_map(f, spacing) if sigma_map is None else sigma_map
-    return _gauss(r * r, spacing) / (2 * s * s)
+    rf = _gauss(r * fh, spacing)
+    ff = _gauss(fh * fh, spacing) + 1e-30
+    left = np.maximum(_gauss(r * r, spacing) - rf * rf / ff, 0)
+    return left / (2 * s * s)
 
 
 def roi_observed(confidence, roi) -> float:
