@@ -173,11 +173,13 @@ def _assess(reg, f, m, mask, info, seconds):
     k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
     if k > 1:
         fb, mb = _bin(f, k), _bin(m, k)
-        w = warp(mb, _bin(reg.displacement, k) / np.float32(k))
+        db = _bin(reg.displacement, k) / np.float32(k)
+        w = warp(mb, db)
         maskb = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
         f, m, mask_s = fb, mb, maskb
     else:
         w = reg.warp(m)
+        db = reg.displacement
         mask_s = mask
     q.rc_before = residual_complexity(m - f, mask_s)
     q.rc_after = residual_complexity(w - f, mask_s)
@@ -191,7 +193,7 @@ def _assess(reg, f, m, mask, info, seconds):
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
-    reasons = _observed(reg, f, m, np.nan_to_num(w), mask_s)
+    reasons = _observed(reg, f, m, np.nan_to_num(w), np.nan_to_num(db), mask_s)
     if not np.all(np.isfinite(reg.displacement)):
         reasons.append("non-finite displacement")
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
@@ -207,17 +209,30 @@ def _assess(reg, f, m, mask, info, seconds):
 
 # The confidence map and the consistency check are computed on the pair binned to ~0.4 Mpx
 # with a window of _WINDOW binned pixels (the default lattice spacing at that size, 1/23 of a
-# 560 px frame). _BOUND_SCALE: the Cramer-Rao bound is what an ideal estimator reaches with the
-# intensity change known; residual complexity must also explain that change away, and on the
-# training seeds of benchmarks/regdata.family its error where the bound said 0.06 px was about
-# 0.5 px, so the map charges the bound x _BOUND_SCALE (benchmarks/README.md has the table).
+# 560 px frame). The Cramer-Rao bound is what an ideal estimator reaches from one window with
+# the intensity change known; residual complexity must also explain that change away, and a
+# field that varies over a length L is pinned by windows of that size, so the map charges the
+# bound x _BOUND_SCALE x _WINDOW / L, L the field's own correlation length (from the estimate,
+# clipped to 0.5-4 windows). _BOUND_SCALE 6 was chosen on the training seeds of
+# benchmarks/regdata.family at 560 px (rc's default, 2 seeds, 45 pairs): 27/28 failed results
+# flagged and 8/9 good ones trusted; 4: 24/28 and 8/9; 8: 28/28 and 7/9.
 _WINDOW = 24.0
-_BOUND_SCALE = 8.0
+_BOUND_SCALE = 6.0
 _MIN_OBSERVED = 0.5
 _MAX_MISALIGNED = 0.2
 
 
-def _observed(reg, f, m, w, mask):
+def _correlation_length(d, obj):
+    """``sqrt(var d / (2 var grad d))`` over ``obj`` (px): the Gaussian width of a smooth random
+    field; a uniform field's is infinite."""
+    if not obj.any():
+        return float("inf")
+    v = sum(float(c[obj].var()) for c in d)
+    g = sum(float((a * a)[obj].mean()) for c in d for a in np.gradient(c))
+    return float(np.sqrt(v / (2 * g))) if g > 0 else float("inf")
+
+
+def _observed(reg, f, m, w, d, mask):
     """Fill ``reg.confidence`` (full resolution) and the quality's observability fields from
     the binned fixed, moving and warped moving images ``f``, ``m``, ``w``; the reasons for not
     ok."""
@@ -226,7 +241,10 @@ def _observed(reg, f, m, w, mask):
     from radiokit.register import _confidence as C
 
     q = reg.quality
-    ob = C.observability(f, _WINDOW, mask, bound_scale=_BOUND_SCALE)
+    ob = C.observability(f, _WINDOW, mask)
+    length = np.clip(_correlation_length(d, ob.object), _WINDOW / 2, 4 * _WINDOW)
+    ob.bound_px *= np.float32(_BOUND_SCALE * _WINDOW / length)
+    ob.confidence = (1.0 / (1.0 + (ob.bound_px / C.OBSERVED_PX) ** 2)).astype(np.float32)
     rows, cols = reg.displacement.shape[1:]
     conf = ob.confidence
     if conf.shape != (rows, cols):
