@@ -2,10 +2,13 @@
 
 ``register(fixed, moving, method="rc")`` returns a :class:`Registration` whose ``displacement``
 is a ``(2, rows, cols)`` float32 field in pixels, (row, col) order, that *pulls*:
-``moving(x + d(x))`` matches ``fixed(x)`` (DESIGN.md). ``Registration.quality`` says whether to
-trust it: similarity before and after (residual complexity, the same yardstick for every method,
-and normalised cross-correlation), folding (det J <= 0) and the smallest det J, iterations,
-time, and ``ok`` with a ``reason`` when not.
+``moving(x + d(x))`` matches ``fixed(x)`` (DESIGN.md). ``Registration.confidence`` maps where
+the images observe the motion (a homogeneous phantom's smooth interior does not: there the field
+is the regulariser's guess). ``Registration.quality`` says whether to trust it: similarity
+before and after (residual complexity, the same yardstick for every method, and normalised
+cross-correlation), folding (det J <= 0) and the smallest det J, iterations, time, the share of
+the object observed and of its observed part left misaligned, and ``ok`` with a ``reason`` when
+not.
 
 Methods: ``rc`` (cubic B-spline free-form deformation, residual complexity, Myronenko & Song
 2010), the same transform with ``ssd``, ``ncc`` and ``mi``; peers under the same API: ``tvl1``,
@@ -125,10 +128,21 @@ def _check(fixed, moving, mask):
 
 
 def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
-    """Register ``moving`` onto ``fixed`` (2-D arrays of one shape; line-integral images are the
-    natural input). ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a
-    failed ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation.
-    ``options`` go to the method (see ``radiokit.register.METHODS[name].__doc__``)."""
+    """Register ``moving`` onto ``fixed`` (2-D arrays of one shape).
+
+    Input domain: line integrals (``-ln(I / I0)``, ``radiokit.calibrate``'s ``domain="log"``),
+    which is what ``radiokit.pipeline`` feeds. There a thickness change is a scale of the image
+    (residual complexity's smooth residual) and the noise is nearly uniform over the body;
+    transmission images (``domain="linear"``) register too, worse on nearly textureless
+    phantoms (``benchmarks/README.md``, the family's intensity-domain rows).
+
+    ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
+    ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``options`` go
+    to the method (see ``radiokit.register.METHODS[name].__doc__``).
+
+    The result carries ``confidence`` (where the motion is observable from these images, see
+    ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
+    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed."""
     _load_methods()
 
     if method not in METHODS:
