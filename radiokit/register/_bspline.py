@@ -79,8 +79,10 @@ PRESETS = {
     #   560 px, texture = noise to 10x noise, 2 seeds: EPE / identity geometric mean 0.40 -> 0.29
     #   (0.25 with 3e-4, which loses rich texture: 0.11 px at 2240); 1120: tex 3x noise 1.61
     #   -> 0.78 px; analytic_pair 2240 (rich): 0.077 / 0.060 px median (thinning / gain).
+    #   converge_px 0.35 (was 0.25): the weaker bending energy converges more slowly; the
+    #   1120 analytic thinning pair (0.073 px median) still moved 0.27 px in its last 5 steps.
     "default": dict(spacing=24, alpha=0.005, regularisation=1e-3, iterations=(250, 120, 60), min_size=160,
-                    max_pixels=2_000_000, levels_skip=0, converge_px=0.25, min_levels=3, coarse_alpha=1.0,
+                    max_pixels=2_000_000, levels_skip=0, converge_px=0.35, min_levels=3, coarse_alpha=1.0,
                     highpass=0.02),
     # levels of up to 100 kpx (at 2240: 140 and 280 px): 0.83-0.97 s at 2240, 0.20 / 0.96 and
     # 0.09 / 0.56 px (iterations (80, 40): 0.9-1.0 s, 0.21 / 0.94 and 0.09 / 0.48); regularisation 1e-3 against 1e-2: 0.60 / 3.6 px (the coarse lattice
