@@ -102,6 +102,8 @@ def main(argv=None):
                     help="scene presets whose simulated pairs join the family (comma-separated; '' for none)")
     args = ap.parse_args(argv)
     args.family_sim = [x.strip() for x in args.family_sim.split(",") if x.strip()]
+    if args.quick:  # the family at 384 px without the simulated pairs (about 3 minutes)
+        args.family_size, args.family_sim = min(args.family_size, 384), []
     size = 512 if args.quick else args.size
     args.out.mkdir(parents=True, exist_ok=True)
     skip = {x.strip() for x in args.skip.split(",") if x.strip()}
@@ -338,7 +340,8 @@ def family_charts(rows, out_dir):
     t2ns = sorted({r["t2n"] for r in rows if not r.get("spread")})
     corrs = sorted({r["corr"] for r in rows if not r.get("spread")}, reverse=True)
     names = list(dict.fromkeys(r["method"] for r in rows))
-    fig, axs = plt.subplots(1, len(names), figsize=(3.0 * len(names), 3.2), squeeze=False)
+    fig, axs = plt.subplots(1, len(names), figsize=(2.9 * len(names) + 1.0, 3.6), squeeze=False,
+                            layout="constrained")
     for ax, name in zip(axs[0], names):
         m = _map(rows, name, t2ns, corrs)
         im = ax.imshow(np.log10(np.maximum(m, 1e-2)), cmap="viridis", vmin=-1.5, vmax=1.0, origin="lower")
@@ -347,7 +350,7 @@ def family_charts(rows, out_dir):
                 ax.text(j, i, f"{m[i, j]:.2f}", ha="center", va="center", color="w", fontsize=8)
         ax.set_xticks(range(len(corrs)), [f"1/{round(1 / c)}" for c in corrs])
         ax.set_yticks(range(len(t2ns)), [f"{t:g}" for t in t2ns])
-        ax.set_xlabel("motion correlation length (frame)")
+        ax.set_xlabel("correlation length / frame")
         ax.set_ylabel("texture / noise")
         ax.set_title(name, fontsize=9)
     fig.colorbar(im, ax=axs, fraction=0.02, label="log10 median EPE (px)")
