@@ -28,6 +28,11 @@ fixed = the most compressed step, moving = an earlier step, truth = the stored f
 noise-free line integrals, or with ``noisy=True`` the raw frames corrected with the file's own
 darks and flats (``radiokit.calibrate.Calibration``); optionally block-averaged to a smaller size.
 
+``family`` / ``family_pair`` (issue 11): nearly textureless gel phantoms -- a smooth body with a
+denser disc, texture stated against the noise, motion by correlation length and amplitude or
+physically shaped, both intensity changes, Gaussian or Poisson-like noise, line-integral or
+transmission domain -- on disjoint ``TRAIN_SEEDS`` (choose presets) and ``TEST_SEEDS`` (report).
+
 ``score`` gives the end-point error median, 95th percentile and mean inside the mask, and the
 folds (pixels of the mask where ``det J <= 0``); ``evaluate`` runs a method on a pair, timed.
 """
