@@ -15,7 +15,15 @@ Part 2, stability map: EPE median of rc and the tuned peers against displacement
 frame) x intensity change (0-20 %), at the benchmark size; a cell where a method is worse than
 not registering at all is marked.
 
-Writes ``bench_register.png``, ``stability.png`` and ``bench_register.json``. Size 1120 takes
+Part 3, the textureless-phantom family (``regdata.family``, issue 11), on TEST seeds: rc, rc-fast and
+the tuned peers (elastix+hp, dis+hp) over texture-to-noise {0, 0.3, 1, 3, 10} x motion correlation
+length {1/4, 1/10, 1/20} of the frame (maps of median EPE, the identity's beside), the spread cases
+(amplitude, physical motion, 20 % intensity change of both kinds, Poisson-like noise, the intensity
+domain) and the simulated pairs of both scene presets; then the confusion table of ``quality.ok``
+against the truth (failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px).
+``--family-only`` runs just this part (``--family-size``, ``--family-seeds``).
+
+Writes ``bench_register.png``, ``stability.png``, ``family_maps.png`` and ``bench_register.json``. Size 1120 takes
 several minutes on two cores (``--quick``: 512 and fewer cells).
 """
 from __future__ import annotations
@@ -87,12 +95,27 @@ def main(argv=None):
                                    "(e.g. seed-breast; simulated once, cached in out/regdata_cache); the last two "
                                    "steps, noise-free line integrals and corrected noisy frames")
     ap.add_argument("--skip", default="", help="methods to leave out, comma-separated (e.g. mi: 26 s at 512)")
+    ap.add_argument("--family-only", action="store_true", help="only part 3, the textureless-phantom family")
+    ap.add_argument("--family-size", type=int, default=560, help="the family's frame size (560-2240)")
+    ap.add_argument("--family-seeds", type=int, default=1, help="test seeds per family cell")
+    ap.add_argument("--family-sim", default="seed-breast,pva-phantom",
+                    help="scene presets whose simulated pairs join the family (comma-separated; '' for none)")
     args = ap.parse_args(argv)
+    args.family_sim = [x.strip() for x in args.family_sim.split(",") if x.strip()]
+    if args.quick:  # the family at 384 px without the simulated pairs (about 3 minutes)
+        args.family_size, args.family_sim = min(args.family_size, 384), []
     size = 512 if args.quick else args.size
     args.out.mkdir(parents=True, exist_ok=True)
     skip = {x.strip() for x in args.skip.split(",") if x.strip()}
     cfgs = [(n, o) for n, o in configs() if n not in skip and n.split("+")[0] not in skip]
-    warm_up(cfgs)
+    warm_up([(n, o) for n, o in cfgs if n in FAMILY_METHODS] if args.family_only else cfgs)
+    fam = family_part(args, cfgs)
+    family_charts(fam, args.out)
+    if args.family_only:
+        (args.out / "bench_family.json").write_text(json.dumps({"size": args.family_size, "rows": fam,
+                                                                 "confusion": confusion(fam)}, indent=1, default=float))
+        print(f"chart {args.out / 'family_maps.png'}")
+        return 0
     results = {}
     kinds = ["thinning", "gain"] + (["sim", "sim-noisy"] if args.sim else [])
     for kind in kinds:
@@ -193,13 +216,145 @@ def main(argv=None):
     fig.colorbar(im, ax=axs, fraction=0.02, label="log10 EPE median (px); '!' no better than identity")
     fig.savefig(args.out / "stability.png", dpi=110)
     (args.out / "bench_register.json").write_text(json.dumps(
-        {"size": size, "pairs": results, "stability": {"size": ssize, "noise": noises, "displacement": disp,
+        {"size": size, "pairs": results, "family": {"size": args.family_size, "rows": fam, "confusion": confusion(fam)},
+         "stability": {"size": ssize, "noise": noises, "displacement": disp,
                                                       "intensity": inten,
                                                       "epe_median": {n: smap[n].tolist() for n in smap},
                                                       "no_better_than_identity": {n: worse[n].tolist() for n in worse}}},
         indent=1, default=float))
     print(f"charts {args.out / 'bench_register.png'}, {args.out / 'stability.png'}")
     return 0
+
+
+# -- part 3: the textureless-phantom family (issue 11) -----------------------------------------
+
+FAMILY_METHODS = ("rc", "rc-fast", "elastix+hp", "dis+hp")
+
+
+def family_part(args, cfgs):
+    """Every method of FAMILY_METHODS on the family's test seeds: maps of median EPE over
+    texture-to-noise x correlation length (identity beside), the spread cases, the simulated
+    pairs of both presets, and the confusion table of ``quality.ok`` against the truth."""
+    from regdata import family, family_pair
+
+    names = dict(cfgs)
+    methods = [(n, names[n]) for n in FAMILY_METHODS if n in names]
+    rows = []
+    cases = family("test", args.family_size, grid="all", n_seeds=args.family_seeds)
+    for c in cases:
+        pair = family_pair(c)
+        rows += _family_rows(pair, methods, dict(case=c.label(), t2n=c.t2n, corr=c.corr, motion=c.motion,
+                                                 domain=c.domain, texture=c.texture, noise=c.noise,
+                                                 spread=not (c.amplitude == 0.01 and c.motion == "random"
+                                                             and c.noise == 0.01 and c.domain == "log"
+                                                             and c.noise_kind == "gaussian"
+                                                             and c.intensity == 0.1 and c.kind == "thinning")))
+    for preset in args.family_sim:
+        pair = sim_pair(preset, moving_step=-1, noisy=True, size=args.family_size)
+        rows += _family_rows(pair, methods, dict(case=f"sim {preset} {pair[0].shape[0]} noisy", t2n=None, corr=None,
+                                                 motion="sim", domain="log", spread=True))
+    _print_family(rows, methods, args)
+    return rows
+
+
+def _family_rows(pair, methods, meta):
+    fixed, moving, truth, mask = pair
+    ident = score(np.zeros_like(truth), truth, mask)
+    out = [dict(meta, method="identity", epe_median=ident["epe_median"], epe_p95=ident["epe_p95"], seconds=0.0,
+                ok=None, identity=ident["epe_median"])]
+    from radiokit.register import register
+
+    for name, opts in methods:
+        method = name.split("+")[0].replace("rc-fast", "rc")
+        t = time.perf_counter()
+        try:
+            reg = register(fixed, moving, method, **opts)
+        except Exception as exc:  # a peer that cannot run is reported, not fatal
+            out.append(dict(meta, method=name, error=repr(exc)))
+            continue
+        sec = time.perf_counter() - t
+        s = score(reg.displacement, truth, mask)
+        obs = (reg.confidence >= 0.5) & mask if reg.confidence is not None else np.zeros_like(mask)
+        e = np.hypot(*(reg.displacement - truth))
+        out.append(dict(meta, method=name, seconds=sec, epe_median=s["epe_median"], epe_p95=s["epe_p95"],
+                        ok=bool(reg.quality.ok), reason=reg.quality.reason, identity=ident["epe_median"],
+                        observed=float(obs.sum() / mask.sum()),
+                        epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None))
+    line = " ".join(f"{r['method']} {r.get('epe_median', float('nan')):.2f}{'' if r.get('ok') in (None, True) else '!'}"
+                    for r in out)
+    print(f"  {meta['case']:<62} {line}", flush=True)
+    return out
+
+
+def confusion(rows):
+    """``quality.ok`` against the truth: failed = median EPE > max(1 px, half the identity's),
+    good = median EPE <= 0.5 px."""
+    res = [r for r in rows if r["method"] != "identity" and "error" not in r]
+    failed = [r for r in res if r["epe_median"] > max(1.0, 0.5 * r["identity"])]
+    good = [r for r in res if r["epe_median"] <= 0.5]
+    return dict(failed=len(failed), failed_flagged=sum(not r["ok"] for r in failed), good=len(good),
+                good_ok=sum(bool(r["ok"]) for r in good), n=len(res))
+
+
+def _map(rows, method, t2ns, corrs):
+    m = np.full((len(t2ns), len(corrs)), np.nan)
+    for i, t in enumerate(t2ns):
+        for j, c in enumerate(corrs):
+            v = [r["epe_median"] for r in rows if r["method"] == method and not r.get("spread") and "error" not in r
+                 and r["t2n"] == t and r["corr"] == c]
+            m[i, j] = np.median(v) if v else np.nan
+    return m
+
+
+def _print_family(rows, methods, args):
+    t2ns = sorted({r["t2n"] for r in rows if not r.get("spread")})
+    corrs = sorted({r["corr"] for r in rows if not r.get("spread")}, reverse=True)
+    print(f"\nfamily maps ({args.family_size} px, test seeds, {args.family_seeds} per cell): median EPE (px); rows "
+          f"texture/noise {t2ns}, columns correlation length {['1/%d' % round(1 / c) for c in corrs]} of the frame")
+    for name in ["identity"] + [n for n, _ in methods]:
+        m = _map(rows, name, t2ns, corrs)
+        print(f"  {name:<12} " + "  |  ".join(" ".join(f"{v:6.2f}" for v in m[i]) for i in range(len(t2ns))))
+    print("\nspread and simulated cases (median EPE px, p95, time s, ok):")
+    for case in dict.fromkeys(r["case"] for r in rows if r.get("spread")):
+        rs = [r for r in rows if r["case"] == case]
+        print(f"  {case:<58} " + " | ".join(
+            f"{r['method']} " + (f"{r['epe_median']:.2f}/{r['epe_p95']:.2f} {r['seconds']:.1f}s"
+                                 f"{'' if r.get('ok') in (None, True) else ' !'}" if "error" not in r else "error")
+            for r in rs))
+    c = confusion(rows)
+    print(f"\nquality.ok against the truth, all methods, {c['n']} results: failed (median EPE > max(1 px, half the "
+          f"identity's)) {c['failed']}, flagged not ok {c['failed_flagged']} "
+          f"({100 * c['failed_flagged'] / max(c['failed'], 1):.0f} %); good (<= 0.5 px) {c['good']}, ok "
+          f"{c['good_ok']} ({100 * c['good_ok'] / max(c['good'], 1):.0f} %)")
+    for name, _ in methods:
+        cm = confusion([r for r in rows if r["method"] == name])
+        print(f"  {name:<12} failed {cm['failed']} flagged {cm['failed_flagged']}; good {cm['good']} ok {cm['good_ok']}")
+
+
+def family_charts(rows, out_dir):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t2ns = sorted({r["t2n"] for r in rows if not r.get("spread")})
+    corrs = sorted({r["corr"] for r in rows if not r.get("spread")}, reverse=True)
+    names = list(dict.fromkeys(r["method"] for r in rows))
+    fig, axs = plt.subplots(1, len(names), figsize=(2.9 * len(names) + 1.0, 3.6), squeeze=False,
+                            layout="constrained")
+    for ax, name in zip(axs[0], names):
+        m = _map(rows, name, t2ns, corrs)
+        im = ax.imshow(np.log10(np.maximum(m, 1e-2)), cmap="viridis", vmin=-1.5, vmax=1.0, origin="lower")
+        for i in range(len(t2ns)):
+            for j in range(len(corrs)):
+                ax.text(j, i, f"{m[i, j]:.2f}", ha="center", va="center", color="w", fontsize=8)
+        ax.set_xticks(range(len(corrs)), [f"1/{round(1 / c)}" for c in corrs])
+        ax.set_yticks(range(len(t2ns)), [f"{t:g}" for t in t2ns])
+        ax.set_xlabel("correlation length / frame")
+        ax.set_ylabel("texture / noise")
+        ax.set_title(name, fontsize=9)
+    fig.colorbar(im, ax=axs, fraction=0.02, label="log10 median EPE (px)")
+    fig.savefig(out_dir / "family_maps.png", dpi=110)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,11 @@ fixed = the most compressed step, moving = an earlier step, truth = the stored f
 noise-free line integrals, or with ``noisy=True`` the raw frames corrected with the file's own
 darks and flats (``radiokit.calibrate.Calibration``); optionally block-averaged to a smaller size.
 
+``family`` / ``family_pair`` (issue 11): nearly textureless gel phantoms -- a smooth body with a
+denser disc, texture stated against the noise, motion by correlation length and amplitude or
+physically shaped, both intensity changes, Gaussian or Poisson-like noise, line-integral or
+transmission domain -- on disjoint ``TRAIN_SEEDS`` (choose presets) and ``TEST_SEEDS`` (report).
+
 ``score`` gives the end-point error median, 95th percentile and mean inside the mask, and the
 folds (pixels of the mask where ``det J <= 0``); ``evaluate`` runs a method on a pair, timed.
 """
@@ -36,12 +41,14 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["analytic_pair", "sim_pair", "score", "evaluate", "smooth_field", "phantom"]
+__all__ = ["analytic_pair", "sim_pair", "score", "evaluate", "smooth_field", "phantom", "Case", "family",
+           "family_pair", "gel_phantom", "TRAIN_SEEDS", "TEST_SEEDS"]
 
 # the body: an ellipse centred in the frame, semi-axes as fractions of the frame (cols, rows)
 _BODY = (0.40, 0.346)
@@ -250,3 +257,174 @@ def evaluate(method, pair, **options) -> dict:
     reg = register(fixed, moving, method, **options)
     seconds = time.perf_counter() - t
     return dict(score(reg.displacement, truth, mask), method=method, seconds=seconds, ok=bool(reg.quality.ok))
+
+
+# -- the textureless-phantom family (issue 11) --------------------------------------------------
+#
+# A homogeneous gel phantom in X-rays is a smooth body with a denser inclusion and almost no
+# texture: the motion is observable at the body's edge, at the inclusion and through whatever
+# texture (and noise) there is. The family spans that regime with texture from none to rich,
+# stated against the noise; motion of several correlation lengths and amplitudes and a
+# physically shaped case; both kinds of intensity change; Gaussian and Poisson-like noise; the
+# line-integral ("log") and transmission ("intensity") domains. Training seeds (presets are
+# chosen on them) and test seeds (every table is reported on them) never overlap.
+
+TRAIN_SEEDS = tuple(range(0, 100))
+TEST_SEEDS = tuple(range(1000, 1100))
+
+
+@dataclass(frozen=True)
+class Case:
+    """One pair of the family. ``texture``: the texture's standard deviation in line-integral
+    units (the body peaks at 2.0, so 0.01 is 0.5 % of it); ``noise``: the noise's (Gaussian:
+    uniform; ``poisson``: proportional to ``1 / sqrt(transmission)``, the same mean over the
+    body); ``corr``: the motion's correlation length as a fraction of the frame (``0`` with
+    ``motion="physical"``); ``amplitude``: the largest ``|d|`` as a fraction of the frame;
+    ``intensity``: amplitude of the slow intensity change (``kind`` thinning or gain, sign
+    alternating with the seed); ``domain``: ``log`` (line integral) or ``intensity``
+    (transmission ``exp(-p)``)."""
+
+    size: int = 1120
+    texture: float = 0.01
+    noise: float = 0.01
+    corr: float = 0.1
+    amplitude: float = 0.01
+    motion: str = "random"  # or "physical"
+    intensity: float = 0.10
+    kind: str = "thinning"
+    noise_kind: str = "gaussian"
+    domain: str = "log"
+    seed: int = 1000
+
+    @property
+    def t2n(self) -> float:
+        return self.texture / self.noise if self.noise else float("inf")
+
+    def label(self) -> str:
+        mot = "phys" if self.motion == "physical" else f"L1/{round(1 / self.corr)}"
+        return (f"{self.size} tex{self.texture:g}/noise{self.noise:g}({self.noise_kind[0]}) {mot} "
+                f"a{100 * self.amplitude:g}% {self.kind[0]}{100 * self.intensity:+g}% {self.domain} s{self.seed}")
+
+
+def gel_phantom(size, rng, texture=0.0, inclusion=0.3):
+    """``(image, body, disc)``: a smooth body (an ellipse's chord, peak 2.0) with a denser,
+    soft-edged disc inclusion (``inclusion`` x the chord: a 12 %-of-frame disc), plus a band-
+    limited texture of standard deviation ``texture`` (line-integral units, scale frame/150)
+    inside the body; blurred by 1 px like a detector. ``disc``: (row, col, radius) in pixels."""
+    n = int(size)
+    r2 = _ellipse_r2(n)
+    body = r2 < 1
+    chord = np.sqrt(np.clip(1 - r2, 0, None))
+    img = 2.0 * chord
+    y = (np.arange(n)[:, None] + 0.5) / n
+    x = (np.arange(n)[None, :] + 0.5) / n
+    rr, aa = 0.45 * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+    cx, cy = 0.5 + rr * _BODY[0] * np.cos(aa), 0.5 + rr * _BODY[1] * np.sin(aa)
+    rad = rng.uniform(0.05, 0.07)
+    dist = np.sqrt((x - cx) ** 2 + (y - cy) ** 2)
+    disc_profile = np.sqrt(np.clip(1 - (dist / rad) ** 2, 0, None))  # a sphere's chord
+    img += inclusion * 2.0 * rad / (_BODY[1]) * disc_profile * body
+    if texture:
+        t = ndimage.gaussian_filter(rng.standard_normal((n, n)).astype(np.float32), n / 150)
+        img += (texture / t.std()) * t * chord  # fades to 0 at the body's edge, like a gel's thickness
+    img = ndimage.gaussian_filter(img.astype(np.float32), 1.0)
+    return img, body, (cy * n, cx * n, rad * n)
+
+
+def random_motion(shape, rng, corr, amplitude):
+    """A smooth random pull field: white noise filtered by a Gaussian of sigma ``corr`` x the
+    frame / 2 (``corr`` the correlation length), each component, scaled so the largest ``|d|`` is
+    ``amplitude`` x the frame. Filtered on a coarse grid and upsampled (cheap at 2240)."""
+    import cv2
+
+    n = shape[0]
+    k = max(1, int(corr * n / 8))  # the coarse grid resolves the field (sigma >= 4 coarse px)
+    m = -(-n // k)
+    d = np.stack([ndimage.gaussian_filter(rng.standard_normal((m, m)), corr * m / 2, mode="wrap") for _ in range(2)])
+    d = np.stack([cv2.resize(c.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC) for c in d])
+    d *= amplitude * n / np.sqrt((d * d).sum(axis=0)).max()
+    return d.astype(np.float32)
+
+
+def physical_motion(shape, rng, disc, amplitude):
+    """A compressed body's in-plane motion: uniform expansion about the frame's centre (the
+    largest ``|d|`` over the body ``amplitude`` x the frame) plus a local lag around a stiffer
+    disc: the disc expands 3-5x less and moves with its centre, the lag fading over about one
+    radius outside it. A pull field: ``moving(x + d(x)) = fixed(x)`` where the expanded body
+    is the fixed image, so ``d = -e (x - c)`` (e > 0)."""
+    rows, cols = shape
+    n = rows
+    yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    cy, cx = (rows - 1) / 2, (cols - 1) / 2
+    e = amplitude / _BODY[0]  # |d| = e r reaches amplitude x n at the tip of the body's long axis
+    dr, dc, rad = disc
+    soft = rng.uniform(0.2, 0.33)
+    # the disc's own field: its centre's motion plus a smaller strain about it
+    d_disc = np.stack([-e * (dr - cy) - soft * e * (yy - dr), -e * (dc - cx) - soft * e * (xx - dc)])
+    d_free = np.stack([-e * (yy - cy), -e * (xx - cx)])
+    dist = np.hypot(yy - dr, xx - dc) / rad
+    w = np.clip(2.0 - dist, 0, 1)  # 1 inside the disc, fading to 0 one radius outside
+    w = w * w * (3 - 2 * w)
+    return (w * d_disc + (1 - w) * d_free).astype(np.float32)
+
+
+def family_pair(case: Case):
+    """``(fixed, moving, truth, mask)`` for a :class:`Case` (see the module's family comment).
+    ``fixed(x) = moving(x + truth(x))``, changed in intensity, plus noise; both in ``case.domain``.
+    The mask is the body shrunk by 3 % of the frame."""
+    if case.kind not in ("thinning", "gain"):
+        raise ValueError(f"kind={case.kind!r}: expected 'thinning' or 'gain'")
+    n = int(case.size)
+    rng = np.random.default_rng(case.seed)
+    moving, body, disc = gel_phantom(n, rng, case.texture)
+    if case.motion == "physical":
+        d = physical_motion((n, n), rng, disc, case.amplitude)
+    else:
+        d = random_motion((n, n), rng, case.corr, case.amplitude)
+    rr, cc = np.mgrid[0:n, 0:n].astype(np.float32)
+    fixed = ndimage.map_coordinates(moving, [rr + d[0], cc + d[1]], order=3, mode="nearest").astype(np.float32)
+    del rr, cc
+    s = smooth_field((n, n), rng, cycles=1.0, n_modes=4).astype(np.float32)
+    change = case.intensity * (1 if case.seed % 2 else -1)  # both signs over the seeds
+    if case.kind == "thinning":
+        fixed *= 1 + change * s
+    else:
+        fixed -= np.log1p(change * s)
+    pair = []
+    for img in (fixed, moving):
+        if case.noise:
+            z = rng.standard_normal((n, n), dtype=np.float32)
+            if case.noise_kind == "poisson":  # photon noise: std of -ln(I) ~ 1/sqrt(counts) ~ exp(p/2)
+                z *= np.exp((img - float(img[body].mean())) / 2)
+            img = img + case.noise * z
+        pair.append(np.exp(-img).astype(np.float32) if case.domain == "intensity" else img.astype(np.float32))
+    mask = _ellipse_r2(n, ax=_BODY[0] - 0.03, ay=_BODY[1] - 0.03) < 1
+    return pair[0], pair[1], d, mask
+
+
+def family(split="test", size=1120, *, n_seeds=1, grid="map"):
+    """The family's cases on ``split`` ("train" or "test") seeds.
+
+    ``grid="map"``: texture-to-noise {0, 0.3, 1, 3, 10} x correlation length {1/4, 1/10, 1/20}
+    (1 % amplitude, +-10 % change, Gaussian noise 0.01, log domain) -- the maps' cells;
+    ``grid="spread"``: the other axes one at a time around the weak-texture case (texture 0.01 =
+    noise): amplitude 0.5-4 %, the physical motion, gain/thinning at 20 %, Poisson-like noise,
+    the intensity domain; ``grid="all"``: both."""
+    seeds = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+    if split not in ("train", "test"):
+        raise ValueError(f"split={split!r}: expected 'train' or 'test'")
+    out = []
+    for s in seeds[:n_seeds]:
+        if grid in ("map", "all"):
+            for t2n in (0.0, 0.3, 1.0, 3.0, 10.0):
+                for corr in (1 / 4, 1 / 10, 1 / 20):
+                    out.append(Case(size=size, texture=0.01 * t2n, noise=0.01, corr=corr, seed=s))
+        if grid in ("spread", "all"):
+            base = Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=s)
+            out += [replace(base, amplitude=0.005), replace(base, amplitude=0.04, corr=0.25),
+                    replace(base, motion="physical", corr=0.0, amplitude=0.01),
+                    replace(base, motion="physical", corr=0.0, amplitude=0.01, texture=0.0),
+                    replace(base, intensity=0.2, kind="gain"), replace(base, intensity=0.2),
+                    replace(base, noise_kind="poisson"), replace(base, domain="intensity"),
+                    replace(base, texture=0.02, noise=0.02), replace(base, texture=0.1)]
+    return out

@@ -298,7 +298,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     """:func:`process` writing into ``out_dir``, a fresh folder."""
     from radiokit.enhance import compression_contrast, to_domain
     from radiokit.measure import ROI, change_ratio, cnr, contrast, find_rois, profile, weber
-    from radiokit.register import jacobian_determinant, register
+    from radiokit.register import jacobian_determinant, register, roi_observed
 
     t0 = time.perf_counter()
     steps, numbers, ratios, pixel_mm, timings = _load_steps(path, cfg.progress)
@@ -345,6 +345,8 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
             cross[(i, j)] = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
         warped[(i, j)] = reg.warp(steps[i])[r0:r1, c0:c1]  # warped whole, then cropped: no border effects
         reg.displacement = np.ascontiguousarray(reg.displacement[:, r0:r1, c0:c1])
+        if reg.confidence is not None:
+            reg.confidence = np.ascontiguousarray(reg.confidence[r0:r1, c0:c1])
         regs[(i, j)] = reg
     timings["register_s"] = time.perf_counter() - t
     steps = np.ascontiguousarray(steps[:, r0:r1, c0:c1])
@@ -391,6 +393,9 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         q = dataclasses.asdict(reg.quality)
         q = {k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in q.items()}
         q["method"] = reg.method
+        if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
+            q["rois_observed"] = {"inclusion": roi_observed(reg.confidence, inc_c),
+                                  "background": roi_observed(reg.confidence, bg_c)}
         if (i, j) in cross:
             q["cross_check"] = cross[(i, j)]
             if not cross[(i, j)]["agree"]:
@@ -424,7 +429,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     }
     arrays = {"steps": steps, "step_numbers": numbers, "ratios": ratios, "reference": reference,
               "registered": registered, "moving": steps[n - 2], "displacement": main.displacement,
-              "det_j": jacobian_determinant(main.displacement), "enhanced": enhanced,
+              "det_j": jacobian_determinant(main.displacement), "confidence": main.confidence, "enhanced": enhanced,
               "reference_by_domain": ref_dom, "difference": diff, "profiles": prof}
     if truth and (numbers[-2], numbers[-1]) in truth["fields"]:
         tf = truth["fields"][(numbers[-2], numbers[-1])][:, r0:r1, c0:c1].astype(np.float32)
@@ -457,8 +462,9 @@ def _write(out_dir, results, arrays, cfg, t0):
         g.attrs["ratio"] = np.asarray(arrays["ratios"], float)
         g.attrs["crop"] = np.asarray(results["rois"]["crop"])
         r = h5.create_group("registration")
-        for name in ("registered", "moving", "displacement", "det_j"):
-            r.create_dataset(name, data=arrays[name], compression="gzip", shuffle=True)
+        for name in ("registered", "moving", "displacement", "det_j", "confidence"):
+            if arrays.get(name) is not None:  # confidence: where the motion was observed (>= 0.5)
+                r.create_dataset(name, data=arrays[name], compression="gzip", shuffle=True)
         r.attrs["pair"] = results["main_pair"]
         if "truth_displacement" in arrays:
             r.create_dataset("truth_displacement", data=arrays["truth_displacement"], compression="gzip")

@@ -673,6 +673,11 @@ def _headline_rows(arrays, results, paper):
     if isinstance(q, dict):
         status = "passed" if q.get("ok") else f"FLAGGED: {q.get('reason') or 'no reason given'}"
         rows.append((f"registration {_pair_label(pair)} ({q.get('method', '?')})", status, "", ""))
+        obs = q.get("rois_observed")
+        if isinstance(obs, dict) and obs:
+            rows.append(("motion observed in the ROIs (inclusion / background)",
+                         " / ".join(f"{_fmt(100 * obs[k], '.0f')} %" if _num(obs.get(k)) is not None else "\u2013"
+                                    for k in ("inclusion", "background")), "", ""))
         if _num(q.get("epe_median")) is not None:
             rows.append(("registration end-point error vs truth, median / p95 (px)",
                          f"{_fmt(q.get('epe_median'), '.3f')} / {_fmt(q.get('epe_p95'), '.3f')}", "", ""))
@@ -771,6 +776,14 @@ def _plain_language(arrays, results, paper):
         else:
             out.append(f"Caution: the registration of {pair} was flagged ({q.get('reason') or 'no reason given'}); "
                        "every number derived from D depends on it.")
+        obs = q.get("rois_observed")
+        if isinstance(obs, dict) and obs:
+            parts = [f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items() if _num(v) is not None]
+            unseen = [k for k, v in obs.items() if _num(v) is not None and v < 0.5]
+            s = "The motion was observed (registration confidence map) in " + " and ".join(parts)
+            s += (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess." if unseen
+                  else ".")
+            out.append(s)
     control = results.get("control")
     if isinstance(control, dict) and ks:
         k0 = _main_k(ks)

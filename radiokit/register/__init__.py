@@ -2,10 +2,13 @@
 
 ``register(fixed, moving, method="rc")`` returns a :class:`Registration` whose ``displacement``
 is a ``(2, rows, cols)`` float32 field in pixels, (row, col) order, that *pulls*:
-``moving(x + d(x))`` matches ``fixed(x)`` (DESIGN.md). ``Registration.quality`` says whether to
-trust it: similarity before and after (residual complexity, the same yardstick for every method,
-and normalised cross-correlation), folding (det J <= 0) and the smallest det J, iterations,
-time, and ``ok`` with a ``reason`` when not.
+``moving(x + d(x))`` matches ``fixed(x)`` (DESIGN.md). ``Registration.confidence`` maps where
+the images observe the motion (a homogeneous phantom's smooth interior does not: there the field
+is the regulariser's guess). ``Registration.quality`` says whether to trust it: similarity
+before and after (residual complexity, the same yardstick for every method, and normalised
+cross-correlation), folding (det J <= 0) and the smallest det J, iterations, time, the share of
+the object observed and of its observed part left misaligned, and ``ok`` with a ``reason`` when
+not.
 
 Methods: ``rc`` (cubic B-spline free-form deformation, residual complexity, Myronenko & Song
 2010), the same transform with ``ssd``, ``ncc`` and ``mi``; peers under the same API: ``tvl1``,
@@ -21,7 +24,9 @@ import numpy as np
 
 from radiokit.register._common import (jacobian_determinant, ncc, residual_complexity, warp)
 
-__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant"]
+from radiokit.register._confidence import roi_observed  # noqa: E402
+
+__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant", "roi_observed"]
 
 
 @dataclass
@@ -33,8 +38,15 @@ class Quality:
     normalised cross-correlation (higher is better); all four measured on the pair area-averaged
     to at most ~0.4 Mpx (by 4 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
-    time (without this assessment). ``ok`` is False, with a ``reason``, on folding, divergence (similarity worse
-    than not registering) or non-convergence.
+    time (without this assessment). ``observed_fraction``: the share of the object (the mask, or
+    the pixels that differ from the frame's border level) where the motion is observable
+    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``);
+    ``misaligned_fraction``: the share of its observed part where the high-passed residual is
+    more than twice the noise's (structure left misaligned); ``noise``: the noise level
+    estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding,
+    divergence (similarity worse than not registering), non-convergence, too little of the
+    object observed (under half: the field there is the regulariser's guess, whatever the
+    similarity says), or too much of the observed part misaligned (over a tenth).
     """
 
     rc_before: float = float("nan")
@@ -46,6 +58,9 @@ class Quality:
     iterations: int = 0
     seconds: float = 0.0
     converged: bool = True
+    observed_fraction: float = float("nan")
+    misaligned_fraction: float = float("nan")
+    noise: float = float("nan")
     ok: bool = True
     reason: str = ""
 
@@ -56,6 +71,7 @@ class Registration:
     method: str
     quality: Quality
     options: dict = field(default_factory=dict)
+    confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
 
     def warp(self, image, order=1) -> np.ndarray:
         """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid."""
@@ -112,10 +128,21 @@ def _check(fixed, moving, mask):
 
 
 def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
-    """Register ``moving`` onto ``fixed`` (2-D arrays of one shape; line-integral images are the
-    natural input). ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a
-    failed ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation.
-    ``options`` go to the method (see ``radiokit.register.METHODS[name].__doc__``)."""
+    """Register ``moving`` onto ``fixed`` (2-D arrays of one shape).
+
+    Input domain: line integrals (``-ln(I / I0)``, ``radiokit.calibrate``'s ``domain="log"``),
+    which is what ``radiokit.pipeline`` feeds. There a thickness change is a scale of the image
+    (residual complexity's smooth residual) and the noise is nearly uniform over the body;
+    transmission images (``domain="linear"``) register too, worse on nearly textureless
+    phantoms (``benchmarks/README.md``, the family's intensity-domain rows).
+
+    ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
+    ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``options`` go
+    to the method (see ``radiokit.register.METHODS[name].__doc__``).
+
+    The result carries ``confidence`` (where the motion is observable from these images, see
+    ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
+    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed."""
     _load_methods()
 
     if method not in METHODS:
@@ -160,11 +187,13 @@ def _assess(reg, f, m, mask, info, seconds):
     k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
     if k > 1:
         fb, mb = _bin(f, k), _bin(m, k)
-        w = warp(mb, _bin(reg.displacement, k) / np.float32(k))
+        db = _bin(reg.displacement, k) / np.float32(k)
+        w = warp(mb, db)
         maskb = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
         f, m, mask_s = fb, mb, maskb
     else:
         w = reg.warp(m)
+        db = reg.displacement
         mask_s = mask
     q.rc_before = residual_complexity(m - f, mask_s)
     q.rc_after = residual_complexity(w - f, mask_s)
@@ -178,7 +207,7 @@ def _assess(reg, f, m, mask, info, seconds):
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
-    reasons = []
+    reasons = _observed(reg, f, m, np.nan_to_num(w), np.nan_to_num(db), mask_s)
     if not np.all(np.isfinite(reg.displacement)):
         reasons.append("non-finite displacement")
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
@@ -190,3 +219,69 @@ def _assess(reg, f, m, mask, info, seconds):
         reasons.append(info.get("message", "did not converge"))
     q.ok = not reasons
     q.reason = "; ".join(reasons)
+
+
+# The confidence map and the consistency check are computed on the pair binned to ~0.4 Mpx
+# with a window of _WINDOW binned pixels (the default lattice spacing at that size, 1/23 of a
+# 560 px frame). The Cramer-Rao bound is what an ideal estimator reaches from one window with
+# the intensity change known; residual complexity must also explain that change away, and a
+# field that varies over a length L is pinned by windows of that size, so the map charges the
+# bound x _BOUND_SCALE x _WINDOW / L, L the field's own correlation length (from the estimate,
+# clipped to 0.5-4 windows). _BOUND_SCALE 6 was chosen on the training seeds of
+# benchmarks/regdata.family at 560 px (rc's default, 2 seeds, 45 pairs): 27/28 failed results
+# flagged and 8/9 good ones trusted; 4: 24/28 and 8/9; 8: 28/28 and 7/9.
+# _MAX_MISALIGNED: good results (560-2240, analytic and family pairs) leave 0 % misaligned,
+# rc's failures at 2240 on weak texture 21-45 %.
+_WINDOW = 24.0
+_BOUND_SCALE = 6.0
+_MIN_OBSERVED = 0.5
+_MAX_MISALIGNED = 0.1
+
+
+def _correlation_length(d, obj):
+    """``sqrt(var d / (2 var grad d))`` over ``obj`` (px): the Gaussian width of a smooth random
+    field; a uniform field's is infinite."""
+    if not obj.any():
+        return float("inf")
+    v = sum(float(c[obj].var()) for c in d)
+    g = sum(float((a * a)[obj].mean()) for c in d for a in np.gradient(c))
+    return float(np.sqrt(v / (2 * g))) if g > 0 else float("inf")
+
+
+def _observed(reg, f, m, w, d, mask):
+    """Fill ``reg.confidence`` (full resolution) and the quality's observability fields from
+    the binned fixed, moving and warped moving images ``f``, ``m``, ``w``; the reasons for not
+    ok."""
+    import cv2
+
+    from radiokit.register import _confidence as C
+
+    q = reg.quality
+    ob = C.observability(f, _WINDOW, mask)
+    length = np.clip(_correlation_length(d, ob.object), _WINDOW / 2, 4 * _WINDOW)
+    ob.bound_px *= np.float32(_BOUND_SCALE * _WINDOW / length)
+    ob.confidence = (1.0 / (1.0 + (ob.bound_px / C.OBSERVED_PX) ** 2)).astype(np.float32)
+    rows, cols = reg.displacement.shape[1:]
+    conf = ob.confidence
+    if conf.shape != (rows, cols):
+        conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
+    obs = (ob.confidence >= 0.5) & ob.object
+    n_obj = int(ob.object.sum())
+    q.noise = ob.sigma
+    q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
+    # misaligned: the residual above twice the noise's and above a quarter of what it was
+    # before registering (the latter keeps interpolation error on noise-free data from counting)
+    sig = C.noise_map(f, _WINDOW)
+    after = C.consistency(f, w, _WINDOW, sig)
+    before = C.consistency(f, m, _WINDOW, sig)
+    bad = (after > 2.0) & (after > 0.25 * before)
+    q.misaligned_fraction = float(np.mean(bad[obs])) if obs.any() else float("nan")
+    reasons = []
+    if q.observed_fraction < _MIN_OBSERVED:
+        reasons.append(f"motion observable in only {100 * q.observed_fraction:.0f} % of the object (confidence map; "
+                       f"noise {q.noise:.3g}): elsewhere the field is the regulariser's guess")
+    if obs.any() and q.misaligned_fraction > _MAX_MISALIGNED:
+        reasons.append(f"structure left misaligned in {100 * q.misaligned_fraction:.0f} % of the observed object "
+                       f"(residual above twice the noise)")
+    return reasons

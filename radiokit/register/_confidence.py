@@ -1,0 +1,162 @@
+"""Where the motion is observable, and whether a registration is consistent with its images.
+
+Observability (the confidence map)
+----------------------------------
+A pair observes a displacement at ``x`` through the fixed image's gradient there: for a
+residual ``m(x + d) - f(x)`` with independent noise of standard deviation ``sigma`` in both
+images, the Fisher information of ``d`` from a window ``W`` is
+``F = sum_W grad t grad t^T / (2 sigma^2)`` (``t`` the noise-free image), and no unbiased
+estimate of ``d`` does better than ``1 / sqrt(lambda_min(F))`` (the Cramer-Rao bound; the
+smaller eigenvalue, because an edge observes only its normal component). We estimate it from
+the data alone:
+
+- ``t``'s gradient from the fixed image high-passed at the lattice scale (residual complexity,
+  like any similarity that tolerates a slow intensity change, cannot tell a slow residual from
+  motion, so the slow part of the image observes nothing) and smoothed by 1 px, with the noise's
+  own contribution to ``grad f grad f^T`` subtracted;
+- ``sigma`` per pixel from the diagonal second difference ``(f00 - f01 - f10 + f11) / 2``, whose
+  standard deviation is ``sigma`` for white noise and which a texture coarser than ~2 px hardly
+  reaches; its square averaged over the window, so Poisson-like noise gives a local level;
+- ``W`` a Gaussian window of the lattice spacing (the scale at which the B-spline field is free).
+
+``confidence = 1 / (1 + (s / 0.5 px)^2)``, ``s`` the bound: 0.5 where the bound is 0.5 px,
+near 1 where the motion is pinned, near 0 where the image is silent (a textureless interior).
+``observed`` means confidence >= 0.5. All of it on the pair binned to about 0.4 Mpx (the bound
+is per area, so binning changes it little for structure coarser than the bin), then upsampled.
+
+Consistency (no truth)
+----------------------
+After registration the residual ``warped - fixed``, high-passed like the image, should be noise
+where the motion is observed: its local mean square against ``2 sigma^2``. Where it is several
+times larger, structure the pair carries is left misaligned. ``quality.ok`` is False when too
+little of the object is observed (the field there is the regulariser's guess, whatever the
+similarity says) or when too much of the observed part is left misaligned.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["observability", "Observability", "roi_observed", "consistency", "OBSERVED_PX"]
+
+OBSERVED_PX = 0.5  # the bound (px) at which confidence is 0.5: "observed"
+# A floor under the noise, as a fraction of the image's 1st-99th percentile range: the part of
+# the residual no similarity models exactly (interpolation, an intensity change that is not
+# exactly slow at a body's curved edge). Without it a noise-free image of a smooth body calls
+# its curvature alone "observed".
+MODEL_FLOOR = 3e-4
+_NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise
+
+
+@dataclass
+class Observability:
+    """``confidence`` (rows, cols) float32 in [0, 1]; ``bound_px`` the Cramer-Rao bound (px);
+    ``sigma`` the noise level estimated from the data (image units, median over the object);
+    ``object`` the pixels that are not background (bool)."""
+
+    confidence: np.ndarray
+    bound_px: np.ndarray
+    sigma: float
+    object: np.ndarray
+
+
+def _gauss(a, s):
+    import cv2
+
+    return cv2.GaussianBlur(np.asarray(a, np.float32), (0, 0), float(s), borderType=cv2.BORDER_REFLECT)
+
+
+def _deriv_noise_var(s):
+    """Variance of ``d/dx`` (central difference after a Gaussian of ``s`` px) of unit white
+    noise: measured once on a noise image (exact enough, and it stays true to the filters used)."""
+    if s not in _NOISE_DERIV:
+        z = np.random.default_rng(0).standard_normal((256, 256)).astype(np.float32)
+        g = _gauss(z, s) if s > 0 else z
+        _NOISE_DERIV[s] = float(np.var(np.gradient(g, axis=1)[16:-16, 16:-16]))
+    return _NOISE_DERIV[s]
+
+
+def noise_map(f, window):
+    """Local noise standard deviation from the diagonal second difference, averaged over
+    ``window`` (Gaussian sigma, px)."""
+    h = 0.5 * (f[:-1, :-1] - f[:-1, 1:] - f[1:, :-1] + f[1:, 1:])
+    h = np.pad(h, ((0, 1), (0, 1)), mode="edge")
+    return np.sqrt(np.maximum(_gauss(h * h, window), 1e-30))
+
+
+def _object(f, sigma):
+    """Pixels that differ from the frame's border level by more than 5 noise levels after a
+    4 px blur (the body; the empty beam outside it observes nothing and is not scored)."""
+    border = np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])
+    level = float(np.median(border))
+    return np.abs(_gauss(f, 4.0) - level) > 5 * sigma / 4.0 + 1e-12
+
+
+def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> Observability:
+    """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
+    (see the module docstring); ``bound_scale`` multiplies the bound (the method's error is
+    larger than the ideal estimator's)."""
+    f = np.asarray(fixed, np.float32)
+    spacing = max(2.0, float(spacing))
+    sig_map = noise_map(f, spacing)
+    step = max(1, int(np.sqrt(f.size / 250_000)))
+    lo, hi = np.percentile(f[::step, ::step], [1, 99])
+    floor2 = (MODEL_FLOOR * float(hi - lo)) ** 2  # see MODEL_FLOOR
+    hp = f - _gauss(f, highpass * spacing)
+    g = _gauss(hp, 1.0)
+    gy, gx = np.gradient(g)
+    sig2 = sig_map * sig_map
+    bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
+    # the gradient's local covariance, not its mean square: a gradient that is the same across
+    # the window (a smooth body's slope) moves the window's residual by a constant, which an
+    # intensity change explains as well as motion does
+    my, mx = _gauss(gy, spacing), _gauss(gx, spacing)
+    jyy = _gauss(gy * gy, spacing) - my * my - bias
+    jxx = _gauss(gx * gx, spacing) - mx * mx - bias
+    jxy = _gauss(gy * gx, spacing) - my * mx
+    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
+    lmin = np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+    area = 2 * np.pi * spacing * spacing  # the Gaussian window's area (weights peak 1)
+    info = area * lmin / (2 * (sig2 + floor2))
+    bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
+    conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
+    obj = _object(f, float(np.median(sig_map)))
+    if mask is not None:
+        obj &= np.asarray(mask, bool)
+    sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
+    return Observability(conf.astype(np.float32), bound.astype(np.float32), sigma, obj)
+
+
+def consistency(fixed, warped, spacing, sigma_map=None):
+    """Local mean square of the residual ``warped - fixed`` that a slow intensity change cannot
+    explain, over ``2 sigma^2`` (about 1 for noise alone): both high-passed at ``spacing`` px,
+    then, in a Gaussian window of ``spacing`` px, the part proportional to the high-passed fixed
+    image removed (a thinning or gain change locally scales the image's structure; a
+    misalignment ``d . grad f`` is not proportional to it)."""
+    f = np.asarray(fixed, np.float32)
+    r = np.asarray(warped, np.float32) - f
+    r = r - _gauss(r, spacing)
+    fh = f - _gauss(f, spacing)
+    s = noise_map(f, spacing) if sigma_map is None else sigma_map
+    rf = _gauss(r * fh, spacing)
+    ff = _gauss(fh * fh, spacing) + 1e-30
+    left = np.maximum(_gauss(r * r, spacing) - rf * rf / ff, 0)
+    return left / (2 * s * s)
+
+
+def roi_observed(confidence, roi) -> float:
+    """Fraction of ``roi`` where the motion was observed (confidence >= 0.5). ``roi``: an object
+    with ``row0, row1, col0, col1`` (``radiokit.measure.ROI``), a (row0, row1, col0, col1)
+    tuple, or a bool mask of the confidence map's shape."""
+    c = np.asarray(confidence)
+    if isinstance(roi, np.ndarray) and roi.dtype == bool:
+        if roi.shape != c.shape:
+            raise ValueError(f"ROI mask {roi.shape} does not match the confidence map {c.shape}")
+        sel = c[roi]
+    else:
+        r0, r1, c0, c1 = (roi.row0, roi.row1, roi.col0, roi.col1) if hasattr(roi, "row0") else roi
+        if not (0 <= r0 < r1 <= c.shape[0] and 0 <= c0 < c1 <= c.shape[1]):
+            raise ValueError(f"ROI {(r0, r1, c0, c1)} lies outside the {c.shape} confidence map")
+        sel = c[r0:r1, c0:c1]
+    return float(np.mean(sel >= 0.5)) if sel.size else 0.0
