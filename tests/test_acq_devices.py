@@ -22,9 +22,7 @@ from acquisition.errors import DetectorTimeout, DeviceError
 from acquisition.frame import CompressionFrame, ManualFrame, MotorisedStage, SimFrame
 from radiokit.io import read
 
-ITEX = next((p for p in (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hamamatsu_itex",
-                         Path("/work/shared/data/hamamatsu_itex")) if p.is_dir()),
-            Path("/work/shared/data/hamamatsu_itex"))
+from conftest import ITEX_DIR as ITEX, needs_itex
 FAST = dict(settle_s=0.1, poll_s=0.02)
 SHAPE = (48, 64)
 
@@ -281,6 +279,7 @@ def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
         FolderWatcher(tmp_path / "missing")
 
 
+@needs_itex
 def test_folder_reads_real_itex_files(tmp_path):
     """The real HPD-TA files copied in as the vendor software would save them: 16-bit ones come
     through equal to radiokit.io.read; a different shape, or 32-bit pixels, are errors naming

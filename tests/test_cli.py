@@ -13,9 +13,7 @@ from radiokit.io import ExperimentWriter, ImageKey, read
 from sim.detector import PanelModel
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
-ITEX = next((p for p in (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hamamatsu_itex",
-                         Path("/work/shared/data/hamamatsu_itex")) if p.is_dir()),
-            Path("/work/shared/data/hamamatsu_itex"))
+from conftest import ITEX_DIR as ITEX, needs_itex
 
 
 def run(*args, cwd=None):
@@ -41,7 +39,7 @@ def experiment(tmp_path_factory):
     return path, panel
 
 
-@pytest.mark.skipif(not ITEX.is_dir(), reason="shared/data not beside the checkout")
+@needs_itex
 def test_info_itex_json():
     res = run("info", "--json", ITEX / "photon_counting.img", ITEX / "shading_file.img")
     assert res.returncode == 0, res.stderr

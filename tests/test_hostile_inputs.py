@@ -21,7 +21,7 @@ from radiokit.errors import FormatError
 from radiokit.io import ExperimentWriter, ImageKey, memory_budget, parse_size, read
 from radiokit.io._itex import parse_comment
 
-ITEX = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hamamatsu_itex"
+from conftest import ITEX_DIR as ITEX, needs_itex
 AS_LIMIT = 1 << 30  # 1 GiB of address space: python, numpy, h5py and scipy fit; the bombs do not
 
 
@@ -148,6 +148,7 @@ def test_a_bad_budget_is_one_line(text, tmp_path):
     one_line_error(run("info", path, env={"RADIOKIT_MEMORY_BUDGET": text}), "RADIOKIT_MEMORY_BUDGET", text)
 
 
+@needs_itex
 def test_raw_and_itex_headers_are_checked_against_the_budget(tmp_path):
     raw = tmp_path / "frames.raw"
     np.zeros((3, 512, 512), "<u2").tofile(raw)
@@ -227,6 +228,7 @@ def test_itex_comment_parsing_handles_hostile_comments(name, text):
         assert "_unparsed" in out and sum(map(len, out["_unparsed"])) == len(text)
 
 
+@needs_itex
 def test_itex_vendor_files_still_parse():
     img = ITEX / "photon_counting.img"
     c = read(img).meta["comment"]

@@ -27,7 +27,7 @@ from radiokit.io import (DEFAULT_PRESET, PRESETS, BitDepthWarning, ExperimentWri
                          StackWriter, iter_frames, open_frames, read, sniff, write_tiff)
 from radiokit.io._itex import parse_comment
 
-ITEX_DIR = Path("/work/shared/data/hamamatsu_itex")
+from conftest import ITEX_DIR, needs_itex
 PROPS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
@@ -72,10 +72,12 @@ REAL_FILES = {
 }
 
 
+@needs_itex
 def test_all_real_files_are_covered():
     assert sorted(p.name for p in ITEX_DIR.glob("*.img")) == sorted(REAL_FILES)
 
 
+@needs_itex
 @pytest.mark.parametrize("name", sorted(REAL_FILES))
 def test_real_itex_pixels_match_independent_parse(name):
     rows, cols, dtype, ftype, comment_len, lo, hi, total = REAL_FILES[name]
@@ -112,6 +114,7 @@ def test_real_itex_pixels_match_independent_parse(name):
     assert m["path"] == str(path)
 
 
+@needs_itex
 @pytest.mark.parametrize("name", sorted(REAL_FILES))
 def test_real_itex_lazy_access_matches_read(name):
     path = ITEX_DIR / name
@@ -128,6 +131,7 @@ def test_real_itex_lazy_access_matches_read(name):
     assert sniff(path) == "itex"
 
 
+@needs_itex
 def test_real_itex_sections_in_order():
     for name in REAL_FILES:
         f = read(ITEX_DIR / name)
@@ -195,6 +199,7 @@ COMMENT_VALUES = [
 ]
 
 
+@needs_itex
 @pytest.mark.parametrize("name, section, key, expected", COMMENT_VALUES)
 def test_real_itex_comment_values(name, section, key, expected):
     value = read(ITEX_DIR / name).meta["comment"][section][key]
@@ -202,6 +207,7 @@ def test_real_itex_comment_values(name, section, key, expected):
     assert value == expected
 
 
+@needs_itex
 @pytest.mark.parametrize("name", sorted(REAL_FILES))
 def test_real_itex_grabber_section_ends_where_displaylut_begins(name):
     c = read(ITEX_DIR / name).meta["comment"]
@@ -221,6 +227,7 @@ REAL_SCALING = {
 }
 
 
+@needs_itex
 @pytest.mark.parametrize("name", sorted(REAL_SCALING))
 def test_real_itex_scaling_axes(name):
     ref = _independent_itex(ITEX_DIR / name)
@@ -252,6 +259,7 @@ def test_real_itex_scaling_axes(name):
         assert max(ends) == len(ref["raw"])
 
 
+@needs_itex
 def test_real_itex_axis_values_are_monotonic_wavelengths_and_times():
     s = read(ITEX_DIR / "operate_mode.img").meta["scaling"]
     x, y = s["x"]["values"], s["y"]["values"]
@@ -682,6 +690,7 @@ def test_geometry_hints_rejected_for_self_describing_formats(tmp_path):
     _raises_format(img, "raw files only", offset=64)
 
 
+@needs_itex
 def test_format_hint_forces_raw(tmp_path):
     # an ITEX-looking file read as raw on request
     path = tmp_path / "x.img"
