@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 DEMO_OUT ?= out/demo
 DIALECT ?= A
 
-.PHONY: demo test bench clean
+.PHONY: demo test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,7 +24,12 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 demo: $(VENV)/.installed
 	$(BIN)/radiokit demo -o $(DEMO_OUT) --overwrite --dialect $(DIALECT)
 
-test: $(VENV)/.installed-test
+# The linter and the import contract (radiokit never imports sim or acquisition) run before the suite.
+lint: $(VENV)/.installed-test
+	$(BIN)/ruff check .
+	$(BIN)/lint-imports
+
+test: lint
 	$(BIN)/python -m pytest
 
 bench: $(VENV)/.installed-test

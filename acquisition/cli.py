@@ -127,7 +127,7 @@ def _run_series(args, p) -> int:
             saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
             return _finish(r, 128 + getattr(exc, "signum", 2))
-        except Exception as exc:  # noqa: BLE001 - whatever stopped the run, the tube's line comes last
+        except Exception as exc:
             r = getattr(exc, "result", None)
             known = isinstance(exc, (DeviceError, OSError, ValueError))
             _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")

@@ -143,7 +143,7 @@ def headline(summary) -> str:
     def row(label, get, paper=""):
         vals = [get(r, d) for d in ("log", "linear")]
         cvals = [get(ctrl, d) if ctrl else None for d in ("log", "linear")]
-        fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "-"  # noqa: E731
+        fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "-"
         lines.append(f"{label:<30} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   "
                      f"{paper}")
 

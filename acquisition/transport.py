@@ -350,7 +350,7 @@ class PipeTransport:
                 pass
         try:
             self._process.wait(timeout=5.0)
-        except Exception:  # noqa: BLE001 - a guardian that does not exit is left to finish alone
+        except Exception:
             self.log.warning("%s: the X-ray guardian (pid %d) did not exit", self.url, self._process.pid)
 
     def __enter__(self) -> PipeTransport:

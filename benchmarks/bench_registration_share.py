@@ -36,9 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sim import imaging, study  # noqa: E402
-from sim.mechanics import compress  # noqa: E402
-from sim.scene import load_scene, with_view  # noqa: E402
+from sim import imaging, study
+from sim.mechanics import compress
+from sim.scene import load_scene, with_view
 
 PIXEL_MM = 0.3
 ERRORS_MM = (0.1, 0.3, 0.6, 1.0, 1.5, 2.0, 3.0)

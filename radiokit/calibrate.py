@@ -90,7 +90,7 @@ class Thresholds:
     smooth_block: int = 32
 
     @classmethod
-    def from_kwargs(cls, **kwargs) -> "Thresholds":
+    def from_kwargs(cls, **kwargs) -> Thresholds:
         known = {f.name for f in fields(cls)}
         unknown = set(kwargs) - known
         if unknown:
@@ -281,7 +281,7 @@ class Calibration:
 
     # -- building -----------------------------------------------------------------------------
     @classmethod
-    def from_frames(cls, darks, flats, *, dark_times=None, flat_times=None, **thresholds) -> "Calibration":
+    def from_frames(cls, darks, flats, *, dark_times=None, flat_times=None, **thresholds) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
 
         Parameters
@@ -370,7 +370,7 @@ class Calibration:
                    thresholds=th, provenance=provenance)
 
     @classmethod
-    def from_experiment(cls, path, **thresholds) -> "Calibration":
+    def from_experiment(cls, path, **thresholds) -> Calibration:
         """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file."""
         from radiokit.io import ImageKey, open_frames
 
@@ -447,7 +447,7 @@ class Calibration:
         return path
 
     @classmethod
-    def load(cls, path, group="calibration") -> "Calibration":
+    def load(cls, path, group="calibration") -> Calibration:
         """Read a calibration written by :meth:`save`."""
         try:
             with h5py.File(path, "r") as h5:

@@ -117,12 +117,12 @@ class ROI:
         r, c = _pair(item, "point")
         return self.row0 - 0.5 <= r < self.row1 - 0.5 and self.col0 - 0.5 <= c < self.col1 - 0.5
 
-    def shifted(self, drow: int, dcol: int) -> "ROI":
+    def shifted(self, drow: int, dcol: int) -> ROI:
         """The same rectangle moved by ``(drow, dcol)`` pixels."""
         drow, dcol = operator.index(drow), operator.index(dcol)
         return ROI(self.row0 + drow, self.row1 + drow, self.col0 + dcol, self.col1 + dcol)
 
-    def clip(self, shape) -> "ROI":
+    def clip(self, shape) -> ROI:
         """The part of the rectangle inside an image of ``shape``; ValueError if nothing is."""
         rows, cols = _shape2(shape)
         r0, r1 = max(self.row0, 0), min(self.row1, rows)
@@ -131,7 +131,7 @@ class ROI:
             raise ValueError(f"{self} lies entirely outside the {rows}x{cols} image")
         return ROI(r0, r1, c0, c1)
 
-    def check(self, shape, name: str = "roi") -> "ROI":
+    def check(self, shape, name: str = "roi") -> ROI:
         """Return self if it lies inside an image of ``shape``, else raise ValueError naming ``name``."""
         rows, cols = _shape2(shape)
         if self.row0 < 0 or self.col0 < 0 or self.row1 > rows or self.col1 > cols:
@@ -151,7 +151,7 @@ class ROI:
         return {"row0": self.row0, "row1": self.row1, "col0": self.col0, "col1": self.col1}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ROI":
+    def from_dict(cls, d: dict) -> ROI:
         """Inverse of :meth:`to_dict`."""
         missing = [k for k in ("row0", "row1", "col0", "col1") if k not in d]
         if missing:
@@ -159,7 +159,7 @@ class ROI:
         return cls(d["row0"], d["row1"], d["col0"], d["col1"])
 
     @classmethod
-    def from_center(cls, center_rc, size_rc) -> "ROI":
+    def from_center(cls, center_rc, size_rc) -> ROI:
         """The ``size_rc`` rectangle (pixels; a number for a square) centred on ``center_rc``.
 
         Bounds are rounded so that an integer centre with an odd size, or a half-integer centre
@@ -176,7 +176,7 @@ class ROI:
         return cls(r0, r0 + h, c0, c0 + w)
 
     @classmethod
-    def from_mm(cls, center_mm, size_mm, pixel_mm, origin_rc=(0.0, 0.0)) -> "ROI":
+    def from_mm(cls, center_mm, size_mm, pixel_mm, origin_rc=(0.0, 0.0)) -> ROI:
         """A rectangle given in millimetres.
 
         Parameters
@@ -679,7 +679,7 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     if idx.size < 24:
         return -np.inf, None
     idx = idx[:: max(1, idx.size // 20000)]
-    basis = lambda v, u: np.stack([np.ones_like(v), v, u, v * v, v * u, u * u], axis=-1)  # noqa: E731
+    basis = lambda v, u: np.stack([np.ones_like(v), v, u, v * v, v * u, u * u], axis=-1)
     win = img[r0:r1, c0:c1]
     coef, *_ = np.linalg.lstsq(basis(v.flat[idx], u.flat[idx]), win.flat[idx], rcond=None)
     resid = win - basis(v, u) @ coef

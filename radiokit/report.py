@@ -33,7 +33,7 @@ import html
 import io
 import math
 import time
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 from pathlib import Path
 
 import numpy as np
@@ -362,10 +362,10 @@ def _fig_projections(arrays, results, fig_dir):
     name = "projections.png"
     _save(fig, fig_dir / name)
     px = _num(results.get("pixel_mm"))
-    caption = (f"Projections of every compression step (line integrals \u2212ln(I/I\u2080), least compressed "
-               f"first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
-               f"compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
-               f"ROI (where contrast is measured). Axes in pixels of the cropped image"
+    caption = ("Projections of every compression step (line integrals \u2212ln(I/I\u2080), least compressed "
+               "first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
+               "compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
+               "ROI (where contrast is measured). Axes in pixels of the cropped image"
                + (f" ({px:g} mm per pixel)." if px else ".") + " After the paper's Figs. 4\u20135.")
     return name, caption
 
@@ -1015,7 +1015,7 @@ def write_report(out_dir, results: dict, arrays: dict) -> Path:
         f"<style>{_CSS}</style></head><body>",
         "<h1>Compression-induced contrast</h1>",
         f"<p>radiokit {_e(__version__)} report for <code>{_e(source)}</code>, written "
-        f"{_e(datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC'))}.</p>",
+        f"{_e(datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC'))}.</p>",
         _table(["", ""], _meta_rows(results), cls="meta"),
         _scene_details(results.get("scene")),
         "<h2>Headline</h2>",

@@ -303,7 +303,7 @@ class Scene:
         return path
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Scene":
+    def from_dict(cls, d: dict) -> Scene:
         d = dict(d)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - known
@@ -319,7 +319,7 @@ class Scene:
         return cls(**kw, **d)
 
     @classmethod
-    def from_toml(cls, text: str) -> "Scene":
+    def from_toml(cls, text: str) -> Scene:
         try:
             return cls.from_dict(tomllib.loads(text))
         except tomllib.TOMLDecodeError as exc:

@@ -269,7 +269,7 @@ def find_inclusion_roi(pair: ImagePair):
     return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)[0]
 
 
-def predicted_cnr(pair: ImagePair, h: "Headline", counts: float, domain: str = "linear") -> dict:
+def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "linear") -> dict:
     """CNR of the reference and of each enhanced image with Poisson noise of ``counts`` open-beam
     quanta per pixel, predicted rather than sampled (so noise-free studies have a CNR that
     responds to the model). As :func:`radiokit.measure.cnr`, the denominator is the background

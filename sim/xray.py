@@ -167,7 +167,7 @@ class Geometry:
         object.__setattr__(self, "centre_mm", tuple(float(c) for c in self.centre_mm))
 
     @classmethod
-    def from_scene(cls, scene) -> "Geometry":
+    def from_scene(cls, scene) -> Geometry:
         """The scene's beam and detector, centred on :func:`body_centre`."""
         b = scene.beam
         return cls(b.kind, b.direction, tuple(scene.detector.shape), float(scene.detector.pixel_size_mm),

@@ -234,7 +234,7 @@ def test_summary_keys_and_values():
     assert s["improvement_factor"] == pytest.approx({"1": 1.5, "2": 2.0})
     assert s["inclusion"] == {"row0": 1, "row1": 3, "col0": 1, "col1": 3}
     with pytest.raises(ValueError, match="two entries for k = 1"):
-        summary(ref, {1: ref, 1.0: ref, "1": ref}, INC, BG)
+        summary(ref, {1: ref, 1.0: ref, "1": ref}, INC, BG)  # noqa: F601 (the duplicate key is the point)
 
 
 # -- ROI -------------------------------------------------------------------------------------------

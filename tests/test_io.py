@@ -456,7 +456,7 @@ def test_parse_comment_table(text, expected):
 def test_parse_comment_never_raises(text):
     out = parse_comment(text)
     assert isinstance(out, dict)
-    for key, value in out.items():
+    for value in out.values():
         assert isinstance(value, (dict, list))
 
 

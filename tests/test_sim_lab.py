@@ -1,5 +1,4 @@
 """The virtual experiment: truth displacement, the simulated experiment file, and the CLI."""
-import dataclasses
 
 import h5py
 import numpy as np

@@ -154,7 +154,7 @@ def test_plane_strain_block_matches_closed_form():
     mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
     for state in compress(scene):
         s = 1 - state.ratio
-        t = brentq(lambda t: mu * (t * t - 1) + lam * np.log(s * t), 1.0, 2.0)
+        t = brentq(lambda t: mu * (t * t - 1) + lam * np.log(s * t), 1.0, 2.0)  # noqa: B023 (solved in this iteration)
         force = abs(mu * (s - 1 / s) + lam * np.log(s * t) / s) * 100.0
         assert state.plate_force_n == pytest.approx(force, rel=1e-6)
         assert state.volume_ratio == pytest.approx(s * t, rel=1e-6)
@@ -235,7 +235,7 @@ def test_uncoupled_block_force_matches_closed_form():
     scene.body.material = Material("block", "neo-hookean-uncoupled", E_kpa=5.0, nu=nu)
     for state in compress(scene):
         s = 1 - state.ratio
-        t = minimize_scalar(lambda t: psi(s, t), bounds=(1.0, 1.5), method="bounded", options={"xatol": 1e-12}).x
+        t = minimize_scalar(lambda t: psi(s, t), bounds=(1.0, 1.5), method="bounded", options={"xatol": 1e-12}).x  # noqa: B023
         h = 1e-6
         force = abs(psi(s + h, t) - psi(s - h, t)) / (2 * h) * 100.0
         assert state.plate_force_n == pytest.approx(force, rel=1e-5)

@@ -177,7 +177,7 @@ def test_box_chords_are_exact_with_pixel_centres_on_edges(direction):
 def test_two_regions_split_the_depth_and_weight_the_line_integral():
     """Box with a box inclusion: L_incl is the inner depth on its footprint, L_body + L_incl the
     outer depth, and the line integral mu0 L0 + mu1 L1 (interfaces carry mu1 - mu0)."""
-    inner = lambda c: (np.abs(c[0]) < 2) & (np.abs(c[1]) < 1.5) & (np.abs(c[2] - 1) < 1)  # noqa: E731
+    inner = lambda c: (np.abs(c[0]) < 2) & (np.abs(c[1]) < 1.5) & (np.abs(c[2] - 1) < 1)
     fem = grid_mesh((-4, -3, -3), (4, 3, 3), (8, 12, 6), region_of=inner)
     assert set(np.unique(fem.region)) == {0, 1}
     surf = surface_of(fem)
@@ -331,7 +331,7 @@ def test_ray_chords_agree_with_parallel_ones():
 # -- symmetry and reduced models -----------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["parallel", "cone"])
 def test_mirrored_quarter_and_eighth_equal_the_full_mesh(kind):
-    incl = lambda c: (c[0] ** 2 + 2 * (c[1] - 0.25) ** 2 + c[2] ** 2) < 6.0  # noqa: E731  (staircase)
+    incl = lambda c: (c[0] ** 2 + 2 * (c[1] - 0.25) ** 2 + c[2] ** 2) < 6.0
     full = grid_mesh((-4, -3, -3), (4, 3, 3), (16, 12, 12), region_of=incl)
     quarter = grid_mesh((0, -3, 0), (4, 3, 3), (8, 12, 6), region_of=incl, symmetry=("x", "z"))
     for direction in ("y", "z"):
@@ -340,7 +340,7 @@ def test_mirrored_quarter_and_eighth_equal_the_full_mesh(kind):
         ref = path_lengths(full, g)
         assert (ref[1] > 0).sum() > 50
         np.testing.assert_allclose(path_lengths(quarter, g), ref, rtol=0, atol=1e-11)
-    sym = lambda c: (c[0] ** 2 + 2 * c[1] ** 2 + c[2] ** 2) < 6.0  # noqa: E731
+    sym = lambda c: (c[0] ** 2 + 2 * c[1] ** 2 + c[2] ** 2) < 6.0
     full = grid_mesh((-4, -3, -3), (4, 3, 3), (8, 6, 6), region_of=sym)
     eighth = grid_mesh((0, 0, 0), (4, 3, 3), (4, 3, 3), region_of=sym, symmetry=("x", "y", "z"))
     assert_closed(surface_of(eighth))

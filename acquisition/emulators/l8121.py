@@ -66,7 +66,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 __all__ = ["L8121Model", "PtyServer", "SocketServer", "Exchange", "main", "DEFAULT_BAUD"]
 
@@ -181,8 +181,8 @@ class L8121Model:
             "STS": lambda t: f"STS {self._state}",
             "SAR": lambda t: "SAR {} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
             "SVI": lambda t: f"SVI {self._set_kv} {self._set_ua}",
-            "SHV": lambda t: "SHV {:.0f}".format(self._measured(t)[0]),
-            "SCU": lambda t: "SCU {:.0f}".format(self._measured(t)[1]),
+            "SHV": lambda t: f"SHV {self._measured(t)[0]:.0f}",
+            "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}",
             "SIN": lambda t: f"SIN {int(self._interlock_open)}",
             "SWE": lambda t: f"SWE {self._warmup}",
             "SPH": lambda t: f"SPH {int(self._state == WARMING_UP)}",
@@ -207,8 +207,8 @@ class L8121Model:
             "CFS": lambda t: self._cf(0, "CFS"), "CFM": lambda t: self._cf(1, "CFM"),
             "CFL": lambda t: self._cf(2, "CFL"),
             "STS": lambda t: _B_STATES[self._state],
-            "SHV": lambda t: "SHV {:.1f}kV".format(self._measured(t)[0]),
-            "SCU": lambda t: "SCU {:.0f}uA".format(self._measured(t)[1]),
+            "SHV": lambda t: f"SHV {self._measured(t)[0]:.1f}kV",
+            "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}uA",
             "SPV": lambda t: f"SPV {self._set_kv:.1f}kV",
             "SPC": lambda t: f"SPC {self._set_ua}uA",
             "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",

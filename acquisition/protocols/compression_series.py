@@ -888,7 +888,7 @@ class _Notebook(logging.FileHandler):
         if not self.broken:
             super().emit(record)
 
-    def handleError(self, record):  # noqa: N802 - logging's name
+    def handleError(self, record):
         self.broken = True
 
     def flush(self):

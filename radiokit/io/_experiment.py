@@ -238,12 +238,12 @@ class ExperimentWriter:
             self._h5.flush()          # the pixels are on disk
             self._h5[DETECTOR]["image_key"][i] = int(image_key)
             self._h5.flush()          # only now is the frame what it claims to be
-        except Exception as exc:  # noqa: BLE001 - h5py reports a full disk as RuntimeError or OSError
+        except Exception as exc:
             self._failed = " ".join(str(exc).split())[:200]
             self._drop_ballast()
             try:  # with the ballast's room, libhdf5 writes what it holds: the file is whole again
                 self._h5.flush()
-            except Exception:  # noqa: BLE001 - nothing more can be done; the message says what happened
+            except Exception:
                 pass
             code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC \
                 else errno.EIO

@@ -16,7 +16,7 @@ from radiokit.io._budget import check_budget
 from radiokit.io._experiment import check_links, checked_dataset, read_experiment_meta
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
-from radiokit.io._raw import PRESETS, _frame_count, raw_geometry, read_raw_frame
+from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
