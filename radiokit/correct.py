@@ -27,16 +27,19 @@ _POOL: ThreadPoolExecutor | None = None
 
 
 def _threads() -> int:
-    env = os.environ.get("RADIOKIT_THREADS")
-    if env:
-        return max(1, int(env))
-    return max(1, min(os.cpu_count() or 1, 8))
+    from radiokit._threads import threads
+
+    return threads()
 
 
 def _pool() -> ThreadPoolExecutor:
+    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
     global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(_threads(), thread_name_prefix="radiokit-correct")
+    n = _threads()
+    if _POOL is None or _POOL._max_workers != n:
+        if _POOL is not None:
+            _POOL.shutdown(wait=False)
+        _POOL = ThreadPoolExecutor(n, thread_name_prefix="radiokit-correct")
     return _POOL
 
 
