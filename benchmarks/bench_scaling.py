@@ -25,6 +25,8 @@ frame   the stages against the frame size (560, 1120, 2240 from the seed-breast 
 mesh    mechanics (3 states) against the mesh's dofs: seed-breast's element sizes scaled by
         1.6, 1.25, 1 and 0.8; the plate force of each against the finest, the mesh's convergence.
 steps   mechanics against the number of compression states (2, 3, 5, 8 up to 25 %).
+truth   the truth of seed-breast's three pairs at 2240 x 2240: the fast path against the reference
+        evaluation (``truth_displacement(..., _reference=True)``), interleaved; the largest difference.
 memory  peak memory of ``radiokit process`` on a 10-frame and a 100-frame experiment file
         (1120 x 1120 synthetic frames: 10 darks, 10 flats, 80 projections against 2, 2, 6).
         Target: the 100-frame peak within 20 % of the 10-frame one.
@@ -144,6 +146,37 @@ def child_mechanics(scale: float, n_states: int) -> dict:
     return {"seconds": time.perf_counter() - t, "peak_bytes": _vmhwm(), "dofs": int(s.ndof),
             "factorisations": s.factorisations, "krylov_iterations": s.krylov_iterations,
             "plate_force_n": [st.plate_force_n for st in states], "ratios": [st.ratio for st in states]}
+
+
+def child_truth(repeats: int) -> dict:
+    """Truth for seed-breast's three pairs at 2240 x 2240: the fast path against the reference
+    evaluation, interleaved; and their largest difference."""
+    from sim.lab import _body, project_state
+    from sim.mechanics import compress
+    from sim.scene import load_scene
+    from sim.truth import truth_displacement
+
+    scene = load_scene("seed-breast")
+    scene.detector.binning = 1
+    states = compress(scene)
+    bodies = [_body(scene, project_state(scene, states[0].solver, s.displacement)[0]) for s in states]
+    pairs = [(a, b) for b in range(len(states)) for a in range(b)]
+    times = {"fast": [], "reference": []}
+    diff = 0.0
+    for _ in range(repeats):
+        for name in random.sample(list(times), 2):
+            t = time.perf_counter()
+            fields = [truth_displacement(scene, states[b], states[a], body=bodies[b], _reference=name == "reference")
+                      for a, b in pairs]
+            times[name].append(time.perf_counter() - t)
+            if name == "fast":
+                fast = fields
+            else:
+                ref = fields
+        diff = max(float(np.abs(f - r).max()) for f, r in zip(fast, ref))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {"seconds": med, "runs": times, "ratio": med["fast"] / med["reference"], "max_diff_px": diff,
+            "pairs": len(pairs)}
 
 
 def child_files(mode: str, paths: list, out_root: str, scheduler: str | None) -> dict:
@@ -424,7 +457,7 @@ def chart(result, path: Path):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--sections", default="files,frame,mesh,steps,memory")
+    p.add_argument("--sections", default="files,frame,mesh,steps,memory,truth")
     p.add_argument("--quick", action="store_true", help="smaller sweeps (frames 560 and 1120, two meshes)")
     p.add_argument("--repeats", type=int, default=2, help="interleaved repetitions where set-ups are compared")
     p.add_argument("--files", type=int, default=4, help="experiment files in the files section (default 4)")
@@ -434,7 +467,7 @@ def main(argv=None):
     if args._child:
         kind, rest = args._child[0], json.loads(args._child[1])
         fn = {"sim": child_sim, "process": child_process, "mechanics": child_mechanics, "files": child_files,
-              "memory": child_memory}[kind]
+              "memory": child_memory, "truth": child_truth}[kind]
         print(json.dumps(fn(*rest)))
         return 0
 
@@ -461,6 +494,10 @@ def main(argv=None):
             result["steps"] = section_steps((2, 3, 5) if args.quick else (2, 3, 5, 8), 1.6)
         if "memory" in sections:
             result["memory"] = section_memory(base, 1 if args.quick else args.repeats)
+        if "truth" in sections:
+            t = result["truth"] = run_child("truth", max(args.repeats, 1))
+            print(f"  truth, {t['pairs']} pairs at 2240 x 2240: fast {t['seconds']['fast']:.1f} s, reference "
+                  f"{t['seconds']['reference']:.1f} s -> {t['ratio']:.2f}x; largest difference {t['max_diff_px']:.2g} px")
     finally:
         shutil.rmtree(base, ignore_errors=True)
     result["exponents"] = fit(result)

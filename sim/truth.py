@@ -32,6 +32,11 @@ revolved (``revolve_segments`` wedges, each three tetrahedra) and plane-strain s
 into the 3D body first. The integral is computed on a grid ``factor`` times coarser than the
 detector (the field is smooth on the scale of the elements, 1-6 mm = 20-120 pixels) and
 interpolated bilinearly, the body's silhouette taken from the full-resolution projection.
+
+All the renders share their faces and geometry, so they are rasterised together: once for the
+powers 1 of ``t`` and once for the powers 2, every weight at once, each face two tetrahedra
+share rendered once with the difference of their weights. ``_reference=True`` keeps the
+original one-render-per-image evaluation; the two agree to rounding (tests/test_sim_lab.py).
 """
 from __future__ import annotations
 
