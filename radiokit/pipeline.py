@@ -432,15 +432,19 @@ _MALLOC_TRIM_THRESHOLD = 256 * 2 ** 20
 @dataclass(frozen=True)
 class WorkerThreads:
     """How one Dask worker uses its share of the cores: ``tasks`` files at a time (the worker's
-    Dask threads), each with ``threads`` threads in radiokit's pools, BLAS, OpenCV and the FFTs."""
+    Dask threads), each with ``threads`` threads in radiokit's pools, OpenCV and the FFTs.
+
+    BLAS stays at one thread in a worker: radiokit's heavy loops are its own pools and OpenCV's,
+    and OpenBLAS's threads spin when called from a worker's task thread (measured: a one-worker
+    cluster with two BLAS threads used 2.1x the CPU time of the same files processed in turn;
+    with one, the same time; benchmarks/README.md)."""
     tasks: int
     threads: int
 
     def environ(self) -> dict:
         """Environment for a worker process started for this share (read by the libraries at load)."""
-        n = str(self.threads)
-        return {"RADIOKIT_THREADS": n, "OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "MKL_NUM_THREADS": n,
-                "MALLOC_MMAP_THRESHOLD_": str(_MALLOC_MMAP_THRESHOLD),
+        return {"RADIOKIT_THREADS": str(self.threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                "MKL_NUM_THREADS": "1", "MALLOC_MMAP_THRESHOLD_": str(_MALLOC_MMAP_THRESHOLD),
                 "MALLOC_TRIM_THRESHOLD_": str(_MALLOC_TRIM_THRESHOLD)}
 
 
@@ -483,8 +487,9 @@ def _all_workers(client) -> dict:
 
 def _limit_this_process(share: WorkerThreads):
     """Hold this (worker) process to ``share``: radiokit's pools (through ``RADIOKIT_THREADS``),
-    OpenCV, BLAS/OpenMP (threadpoolctl, on the libraries loaded by then), and glibc's malloc
-    thresholds (for workers started without :meth:`WorkerThreads.environ`)."""
+    OpenCV, BLAS to one thread (threadpoolctl, on the libraries loaded by then; see
+    :class:`WorkerThreads`), and glibc's malloc thresholds (for workers started without
+    :meth:`WorkerThreads.environ`)."""
     import ctypes
     import os
 
@@ -494,7 +499,7 @@ def _limit_this_process(share: WorkerThreads):
 
     os.environ["RADIOKIT_THREADS"] = str(share.threads)
     cv2.setNumThreads(share.threads)
-    threadpool_limits(limits=share.threads)
+    threadpool_limits(limits=1, user_api="blas")
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, _MALLOC_MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
