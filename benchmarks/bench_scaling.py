@@ -112,10 +112,9 @@ def child_process(path: str, out_dir: str) -> dict:
     from radiokit.register import register
 
     st = _Stages()
-    with st("read"):
-        with open_frames(path) as src:
-            for i in range(len(src)):
-                src[i]
+    with st("read"), open_frames(path) as src:
+        for i in range(len(src)):
+            src[i]
     with st("calibrate"):
         Calibration.from_experiment(path)
     with st("correct"):  # calibrates again (its own time is subtracted below)

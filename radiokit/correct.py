@@ -8,7 +8,6 @@ so two threads use two cores. Everything that does not depend on the frame (``ln
 from __future__ import annotations
 
 import functools
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field

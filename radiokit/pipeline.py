@@ -464,13 +464,14 @@ def _scheduler_shares(client) -> dict:
 
     info = _all_workers(client)
     if not info:
-        raise RuntimeError(f"Dask scheduler {client.scheduler.address}: no workers connected")
+        raise ValueError(f"Dask scheduler {client.scheduler.address}: no workers connected "
+                         "(start some with `dask worker ADDRESS`)")
     host_cores = client.run(cores)
     per_host: dict = {}
     for addr, w in info.items():
         per_host.setdefault(w["host"], []).append(addr)
     shares = {}
-    for host, addrs in per_host.items():
+    for addrs in per_host.values():
         tasks_on_host = sum(int(info[a]["nthreads"]) for a in addrs)
         n_cores = min(host_cores.get(a, 1) for a in addrs)
         for a in addrs:

@@ -181,7 +181,8 @@ def _upsample(field, factor, shape, general=False):
     R, C = field.shape[1:]
     if R * factor == rows and C * factor == cols and not general:
         return np.stack([cv2.resize(f, (cols, rows), interpolation=cv2.INTER_LINEAR) for f in field])
-    from scipy import ndimage  # a detector not a multiple of the factor, or the reference
+    # a detector not a multiple of the factor, or the reference: the general mapping
+    from scipy import ndimage
 
     i = (np.arange(rows) - (factor - 1) / 2) / factor
     j = (np.arange(cols) - (factor - 1) / 2) / factor

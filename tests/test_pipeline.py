@@ -271,3 +271,16 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
     for state in after.values():
         assert state["radiokit"] == state["pool"] == state["cv2"] == expect
         assert state["blas"] == [1]  # BLAS spins in a worker's task thread: one thread
+
+
+def test_a_scheduler_without_workers_is_one_clear_error(tmp_path):
+    """A scheduler reached by address but with no worker: named in one line, not a hang."""
+    from dask.distributed import LocalCluster
+
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=None) as cluster:
+        with pytest.raises(ValueError, match="no workers connected"):
+            process_many([path], Config(progress=False), scheduler=cluster.scheduler_address)
