@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import time
 from pathlib import Path
@@ -76,12 +77,15 @@ def control_scene(scene):
 
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=True, method="rc", progress=True, dialect="A", overwrite=False, view=None) -> dict:
+             coarse=False, method="rc", register_preset="default", progress=True, dialect="A", overwrite=False,
+             view=None) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
-    ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and the driver speak.
-    ``out_dir`` must be new, empty, or a previous demo's folder (replaced only with
-    ``overwrite=True``): the demo never deletes a file it did not make. ``view`` is the beam
+    The lab's settings by default: the full panel (``binning`` 1), the scene's own mesh, the
+    default registration preset; ``binning=2``, ``coarse=True`` and ``register_preset="fast"``
+    are the cheaper ones. ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and
+    the driver speak. ``out_dir`` must be new, empty, or a previous demo's folder (replaced only
+    with ``overwrite=True``): the demo never deletes a file it did not make. ``view`` is the beam
     direction (``"through_plates"`` or ``"side"``; default: the preset's own)."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
@@ -95,7 +99,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
         from sim.scene import with_view
 
         scene = with_view(scene, view)
-    scene.detector.binning = int(binning) if binning else 2
+    scene.detector.binning = int(binning) if binning else 1
     if coarse:  # the demo's mesh: about 2.5x faster to solve (see benchmarks/bench_sim.py for what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
         scene.mesh.size_far_mm = max(scene.mesh.size_far_mm, 8.0)
@@ -118,9 +122,8 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
             files["frames"] = res.frames_total
             files["per_frame_overhead_ms"] = 1000 * sorted(res.per_frame_overhead_s)[len(res.per_frame_overhead_s) // 2]
     t = time.perf_counter()
-    # the fast preset: on this scene's pairs it is the more accurate one as well (the register
-    # benchmark's simulated pairs: 1.1-1.2 px against 1.6-1.9 px median end-point error)
-    cfg = Config(control=files["control"], progress=progress, method=method, register_options={"preset": "fast"})
+    cfg = Config(control=files["control"], progress=progress, method=method,
+                 register_options={"preset": register_preset})
     result = process(files["experiment"], cfg, out_dir=out / "results", overwrite=overwrite)
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
@@ -172,11 +175,13 @@ def add_demo(subparsers):
                                            "report")
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     p.add_argument("--preset", default="seed-breast", help="scene preset: seed-breast (default) or pva-phantom")
-    p.add_argument("--binning", type=int, choices=[1, 2, 4], default=2,
-                   help="detector binning (default 2: 1120 x 1120, 100 um pixels, the panel's 4 fps mode)")
+    p.add_argument("--binning", type=int, choices=[1, 2, 4], default=1,
+                   help="detector binning (default 1: the full 2240 x 2240 panel; 2: 1120 x 1120, the 4 fps mode)")
+    p.add_argument("--coarse", action="store_true", help="a coarser finite-element mesh than the scene's (faster)")
+    p.add_argument("--fine", action="store_true", help=argparse.SUPPRESS)  # the default now; kept for old scripts
+    p.add_argument("--fast", action="store_true", help="the fast registration preset, not the default one")
     p.add_argument("--view", choices=["through_plates", "side"],
                    help="beam direction (default: the preset's; pva-phantom is imaged from the side)")
-    p.add_argument("--fine", action="store_true", help="the scene's own finite-element mesh (slower), not the demo's")
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
     p.add_argument("--dialect", choices=("A", "B"), default="A",
@@ -188,8 +193,8 @@ def add_demo(subparsers):
 
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=not args.fine, method=args.method, progress=not args.quiet, dialect=args.dialect,
-                       overwrite=args.overwrite, view=args.view)
+                       coarse=args.coarse, method=args.method, register_preset="fast" if args.fast else "default",
+                       progress=not args.quiet, dialect=args.dialect, overwrite=args.overwrite, view=args.view)
     print()
     print(headline(summary))
     return 0

@@ -7,7 +7,7 @@ so two threads use two cores. Everything that does not depend on the frame (``ln
 """
 from __future__ import annotations
 
-import os
+import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -29,16 +29,19 @@ _POOL: ThreadPoolExecutor | None = None
 
 
 def _threads() -> int:
-    env = os.environ.get("RADIOKIT_THREADS")
-    if env:
-        return max(1, int(env))
-    return max(1, min(os.cpu_count() or 1, 8))
+    from radiokit._threads import threads
+
+    return threads()
 
 
 def _pool() -> ThreadPoolExecutor:
+    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
     global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(_threads(), thread_name_prefix="radiokit-correct")
+    n = _threads()
+    if _POOL is None or _POOL._max_workers != n:
+        if _POOL is not None:
+            _POOL.shutdown(wait=False)
+        _POOL = ThreadPoolExecutor(n, thread_name_prefix="radiokit-correct")
     return _POOL
 
 
@@ -79,6 +82,15 @@ class _Stage:
             flat_image[self.dst] = np.einsum("ij,ij->i", flat_image[self.src], self.w)
 
 
+@functools.lru_cache(maxsize=16)
+def _offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets ``(1, n)`` of the square ring-and-inside of ``radius``, centre excluded."""
+    d = np.arange(-radius, radius + 1)
+    dr, dc = np.meshgrid(d, d, indexing="ij")
+    keep = (dr != 0) | (dc != 0)
+    return dr[keep][None], dc[keep][None]
+
+
 def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple[_Stage, np.ndarray]:
     """Fill each pixel of ``todo`` (flat indices) with the mean of the valid pixels
     (``is_invalid(flat_indices) -> bool array``) in the smallest square neighbourhood (radius 1,
@@ -90,9 +102,9 @@ def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple
         if todo.size == 0:
             break
         r, c = np.divmod(todo, cols)
-        offs = [(dr, dc) for dr in range(-radius, radius + 1) for dc in range(-radius, radius + 1) if (dr, dc) != (0, 0)]
-        rr = r[:, None] + np.array([o[0] for o in offs])[None]
-        cc = c[:, None] + np.array([o[1] for o in offs])[None]
+        dr, dc = _offsets(radius)
+        rr = r[:, None] + dr
+        cc = c[:, None] + dc
         inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
         idx = np.where(inside, rr.clip(0, rows - 1) * cols + cc.clip(0, cols - 1), 0)
         ok = inside & ~is_invalid(idx)
@@ -105,8 +117,10 @@ def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple
         todo = todo[~done]
     if not dsts:
         return _Stage(np.zeros(0, np.int64), np.zeros((0, 1), np.int64), np.zeros((0, 1), np.float32)), todo
+    if len(dsts) == 1:  # the usual case: every pixel had a valid neighbour at radius 1
+        return _Stage(dsts[0], srcs[0], ws[0]), todo
     k = max(s.shape[1] for s in srcs)
-    pad = lambda a, v: np.pad(a, ((0, 0), (0, k - a.shape[1])), constant_values=v)  # noqa: E731
+    pad = lambda a, v: np.pad(a, ((0, 0), (0, k - a.shape[1])), constant_values=v)
     return _Stage(np.concatenate(dsts), np.concatenate([pad(s, 0) for s in srcs]),
                   np.concatenate([pad(w, 0) for w in ws])), todo
 
@@ -173,6 +187,7 @@ class _Kernel:
     n_defects: int = 0
     _log_i0: np.ndarray | None = None
     _inv_gain: np.ndarray | None = None
+    _dark_max: dict | None = None
 
     @property
     def log_i0(self) -> np.ndarray:
@@ -180,6 +195,15 @@ class _Kernel:
         if self._log_i0 is None:
             self._log_i0 = np.log(self.response)
         return self._log_i0
+
+    def dark_max(self, r0: int, r1: int) -> float:
+        """The largest dark value in rows r0..r1 (cached per block)."""
+        if self._dark_max is None:
+            self._dark_max = {}
+        v = self._dark_max.get((r0, r1))
+        if v is None:
+            v = self._dark_max[(r0, r1)] = float(self.dark[r0:r1].max())
+        return v
 
     @property
     def inv_gain(self) -> np.ndarray:
@@ -199,38 +223,80 @@ def _kernel(cal: Calibration) -> _Kernel:
     return cal._kernel
 
 
+_CV_DEPTHS = {np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32)}
+
+
+def _at_most(block, limit) -> np.ndarray | None:
+    """Flat indices (in ``block``) of the pixels ``<= limit``, or None. The hits are a few
+    hundred pixels of millions: the column minima (one vectorised pass over the block, in cache)
+    name the few columns that hold them, and only those are searched."""
+    cols = np.flatnonzero(block.min(axis=0) <= limit)
+    if cols.size == 0:
+        return None
+    r, j = np.nonzero(block[:, cols] <= limit)
+    return r * block.shape[1] + cols[j]
+
+
+def _at_least(block, limit) -> np.ndarray | None:
+    """Flat indices (in ``block``) of the pixels ``>= limit``, or None (as :func:`_at_most`;
+    OpenCV's column maxima: numpy's are slow on uint16)."""
+    import cv2
+
+    col_max = cv2.reduce(block, 0, cv2.REDUCE_MAX).ravel() if block.dtype in _CV_DEPTHS else block.max(axis=0)
+    cols = np.flatnonzero(col_max >= limit)
+    if cols.size == 0:
+        return None
+    r, j = np.nonzero(block[:, cols] >= limit)
+    return r * block.shape[1] + cols[j]
+
+
 def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
+    """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
+    non-positive and saturated pixels met (rare: found by a min/max per block, then searched
+    only in the rows that hold them, and clamped on that index list).
+
+    Each block is one fused pass, as OpenCV's subtract-log-subtract would do: ``raw - dark``
+    converted on the fly (``cv2.subtract`` into float32), ``ln``, ``ln(flat - dark) - ln``."""
+    import cv2
+
     log_i0 = k.log_i0 if domain == "log" else None
     inv_gain = k.inv_gain if domain != "log" else None
-    """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
-    non-positive and saturated pixels met (rare, so collected only when present)."""
     cols = raw.shape[1]
     tmp = np.empty((_BLOCK_ROWS, cols), np.float32)
     nonpos, sat = [], []
-    check_sat = saturation is not None
+    fused = raw.dtype in _CV_DEPTHS
     for a in range(r0, r1, _BLOCK_ROWS):
         b = min(a + _BLOCK_ROWS, r1)
         t = tmp[: b - a]
         rb = raw[a:b]
-        np.copyto(t, rb, casting="unsafe")  # a plain cast is faster than a mixed-type ufunc loop
+        if fused:
+            cv2.subtract(rb, k.dark[a:b], t, dtype=cv2.CV_32F)
+        else:  # dtypes OpenCV lacks (int32, float64, ...): a plain cast, then the subtraction
+            np.copyto(t, rb, casting="unsafe")
+            np.subtract(t, k.dark[a:b], out=t)
         if rb.dtype.kind == "f" and not np.isfinite(t).all():
             # NaN/inf raw values are defects of this frame: sent below zero so that the
             # non-positive path clamps, fills and counts them (the output is never NaN or inf)
             np.nan_to_num(t, copy=False, nan=_NONFINITE, posinf=_NONFINITE, neginf=_NONFINITE)
-        np.subtract(t, k.dark[a:b], out=t)
-        if t.min() <= 0:
-            hit = np.flatnonzero(t <= 0)
-            nonpos.append(hit + a * cols)
-            np.maximum(t, FLOOR_COUNTS, out=t)
-        if check_sat and rb.max() >= saturation:
-            sat.append(np.flatnonzero(rb >= saturation) + a * cols)
-        if domain == "log":
-            np.log(t, out=t)
-            np.subtract(log_i0[a:b], t, out=out[a:b])
+        # one min (or min/max) pass says whether anything needs looking at; raw - dark <= 0
+        # needs raw <= the block's largest dark
+        if saturation is None:
+            lo, hi = t.min(), 0
+            hit = _at_most(t, 0) if lo <= 0 else None
         else:
-            np.multiply(t, inv_gain[a:b], out=out[a:b])
-            if scale != 1.0:
-                out[a:b] *= scale
+            lo, hi = cv2.minMaxLoc(rb)[:2] if fused else (rb.min(), rb.max())
+            hit = _at_most(t, 0) if lo <= k.dark_max(a, b) else None
+        if hit is not None:
+            t.ravel()[hit] = FLOOR_COUNTS
+            nonpos.append(hit + a * cols)
+        hit = _at_least(rb, saturation) if saturation is not None and hi >= saturation else None
+        if hit is not None:
+            sat.append(hit + a * cols)
+        if domain == "log":
+            cv2.log(t, t)
+            cv2.subtract(log_i0[a:b], t, out[a:b])
+        else:
+            cv2.multiply(t, inv_gain[a:b], out[a:b], scale=float(scale))
     return nonpos, sat
 
 
@@ -262,10 +328,12 @@ def _correct_one(raw2d, k: _Kernel, out2d, domain, scale, saturation):
     return nonpos, sat
 
 
-def _correct_checked(cal: Calibration, raw2d, out2d, domain):
+def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
+    """Correct one frame; the non-positive pixels met and, if ``count_saturated``, the saturated
+    ones (only reported, never repaired: a caller that reports nothing does not pay for them)."""
     k = _kernel(cal)
     scale = cal.c if domain == "counts" else 1.0
-    saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" else None
+    saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" and count_saturated else None
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
         raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)
@@ -291,7 +359,7 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     np_counts = np.zeros(n, np.int64)
     flags = np.broadcast_to(cal.mask, stack.shape).copy() if return_report else None
     for i in range(n):
-        nonpos, sat = _correct_checked(cal, stack[i], ostack[i], domain)
+        nonpos, sat = _correct_checked(cal, stack[i], ostack[i], domain, count_saturated=return_report)
         np_counts[i], sat_counts[i] = nonpos.size, sat.size
         if return_report:
             flags[i].ravel()[nonpos] |= np.uint32(PixelFlag.NONPOSITIVE)

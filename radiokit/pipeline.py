@@ -518,34 +518,124 @@ def output_folders(paths, out_root=None) -> list[Path]:
     return outs
 
 
+# Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 (its pre-spawn-environ).
+# Setting any malloc threshold turns off glibc's sliding mmap threshold, so every array over 128 kB
+# is mmapped and unmapped on each allocation and its pages faulted in again: on a 560 x 560
+# experiment the kernel time equalled the user time (benchmarks/README.md, "Dask"). Fixed
+# thresholds above a 2240 x 2240 float32 frame keep frame-sized buffers in the heap for reuse.
+_MALLOC_MMAP_THRESHOLD = 32 * 2 ** 20  # glibc's largest allowed value on 64-bit
+_MALLOC_TRIM_THRESHOLD = 256 * 2 ** 20
+
+
+@dataclass(frozen=True)
+class WorkerThreads:
+    """How one Dask worker uses its share of the cores: ``tasks`` files at a time (the worker's
+    Dask threads), each with ``threads`` threads in radiokit's pools, OpenCV and the FFTs.
+
+    BLAS stays at one thread in a worker: radiokit's heavy loops are its own pools and OpenCV's,
+    and OpenBLAS's threads spin when called from a worker's task thread (measured: a one-worker
+    cluster with two BLAS threads used 2.1x the CPU time of the same files processed in turn;
+    with one, the same time; benchmarks/README.md)."""
+    tasks: int
+    threads: int
+
+    def environ(self) -> dict:
+        """Environment for a worker process started for this share (read by the libraries at load)."""
+        return {"RADIOKIT_THREADS": str(self.threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                "MKL_NUM_THREADS": "1", "MALLOC_MMAP_THRESHOLD_": str(_MALLOC_MMAP_THRESHOLD),
+                "MALLOC_TRIM_THRESHOLD_": str(_MALLOC_TRIM_THRESHOLD)}
+
+
+def worker_threads(cores: int, workers: int, tasks_per_worker: int = 1) -> WorkerThreads:
+    """Split ``cores`` between ``workers`` workers on one machine running ``tasks_per_worker`` files
+    each: at least one thread per file, never more threads in all than cores (when there are
+    more files at a time than cores, one each)."""
+    if cores < 1 or workers < 1 or tasks_per_worker < 1:
+        raise ValueError(f"cores={cores}, workers={workers}, tasks_per_worker={tasks_per_worker}: expected >= 1")
+    return WorkerThreads(tasks_per_worker, max(1, cores // (workers * tasks_per_worker)))
+
+
+def _scheduler_shares(client) -> dict:
+    """Each connected worker's share, from the scheduler's view: the workers of one host split the
+    cores that host reports (its CPU affinity)."""
+    from radiokit._threads import cores
+
+    info = _all_workers(client)
+    if not info:
+        raise ValueError(f"Dask scheduler {client.scheduler.address}: no workers connected "
+                         "(start some with `dask worker ADDRESS`)")
+    host_cores = client.run(cores)
+    per_host: dict = {}
+    for addr, w in info.items():
+        per_host.setdefault(w["host"], []).append(addr)
+    shares = {}
+    for addrs in per_host.values():
+        tasks_on_host = sum(int(info[a]["nthreads"]) for a in addrs)
+        n_cores = min(host_cores.get(a, 1) for a in addrs)
+        for a in addrs:
+            shares[a] = WorkerThreads(int(info[a]["nthreads"]), max(1, n_cores // tasks_on_host))
+    return shares
+
+
+def _all_workers(client) -> dict:
+    try:
+        return client.scheduler_info(n_workers=-1)["workers"]  # recent Dask lists 5 by default
+    except TypeError:  # older Dask: no n_workers, lists them all
+        return client.scheduler_info()["workers"]
+
+
+def _limit_this_process(share: WorkerThreads):
+    """Hold this (worker) process to ``share``: radiokit's pools (through ``RADIOKIT_THREADS``),
+    OpenCV, BLAS to one thread (threadpoolctl, on the libraries loaded by then; see
+    :class:`WorkerThreads`), and glibc's malloc thresholds (for workers started without
+    :meth:`WorkerThreads.environ`)."""
+    import ctypes
+    import os
+
+    import cv2
+    import scipy.linalg  # noqa: F401  (loads scipy's BLAS, so that threadpoolctl can limit it)
+    from threadpoolctl import threadpool_limits
+
+    os.environ["RADIOKIT_THREADS"] = str(share.threads)
+    cv2.setNumThreads(share.threads)
+    threadpool_limits(limits=1, user_api="blas")
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, _MALLOC_MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, _MALLOC_TRIM_THRESHOLD)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):  # not glibc: its defaults, nothing set by Dask to undo
+        pass
+
+
 def process_many(paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None,
                  overwrite=False) -> list:
     """Process many experiment files in parallel on Dask, one progress bar over all.
 
-    ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default the
-    cores), an address (``tcp://host:8786``) connects to a running one. Returns, per file, its
-    results dict, or ``{"source": path, "error": message}`` for a file that failed (the others go
-    on). Output folders are :func:`output_folders`; each is written as :func:`process` writes."""
+    ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default one per
+    core up to the number of files, one file at a time each), an address (``tcp://host:8786``)
+    connects to a running one. Each worker's threads are sized to its share of the cores
+    (:func:`worker_threads`; for a scheduler, from the workers' hosts and Dask threads), so that
+    the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
+    Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
+    failed (the others go on). Output folders are :func:`output_folders`; each is written as
+    :func:`process` writes."""
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, as_completed
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
     from tqdm.auto import tqdm
 
+    from radiokit._threads import cores
+
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
-    cluster = None
-    if scheduler is None:
-        import os
-
-        cluster = LocalCluster(n_workers=workers or min(len(paths), os.cpu_count() or 1), threads_per_worker=1,
-                               processes=True, dashboard_address=None)
-        client = Client(cluster)
-    else:
-        client = Client(scheduler)
+    cluster = _local_cluster(workers or max(1, min(len(paths), cores()))) if scheduler is None else None
+    client = Client(cluster if cluster is not None else scheduler)
     try:
-        futures = {client.submit(_process_one, str(p), cfg, str(o), overwrite, pure=False): i
+        shares = _scheduler_shares(client)
+        client.run(_limit_worker, shares)
+        futures = {client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i
                    for i, (p, o) in enumerate(zip(paths, outs))}
         results = [None] * len(paths)
         with tqdm(total=len(paths), desc="process", unit="file", disable=not (config or Config()).progress) as bar:
@@ -559,7 +649,31 @@ def process_many(paths, config: Config | None = None, *, out_root=None, schedule
             cluster.close()
 
 
-def _process_one(path, cfg, out_dir, overwrite=False):
+def _local_cluster(n_workers: int):
+    """A local cluster of ``n_workers`` single-threaded worker processes, each started with its
+    share of this machine's cores in its environment."""
+    from dask.distributed import LocalCluster
+
+    from radiokit._threads import cores
+
+    share = worker_threads(cores(), n_workers)
+    return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                        env=share.environ())
+
+
+def _limit_worker(shares, dask_worker=None):
+    """Run in each worker by ``client.run``: apply its share (a worker that joined later: one
+    thread per Dask thread is the safe guess)."""
+    share = shares.get(dask_worker.address) if dask_worker is not None else None
+    _limit_this_process(share or WorkerThreads(1, 1))
+    return share.threads if share else 1
+
+
+def _process_one(path, cfg, out_dir, overwrite=False, shares=None):
+    if shares is not None:  # a worker that joined after client.run, or whose limits were reset
+        from distributed import get_worker
+
+        _limit_worker(shares, get_worker())
     try:
         res = process(path, cfg, out_dir=out_dir, overwrite=overwrite)
         return dict(res.results, output=str(out_dir))

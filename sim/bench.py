@@ -259,7 +259,7 @@ class VirtualBench:
         resolution). Returns the timings."""
         import h5py
 
-        from sim.lab import _write_truth
+        from sim.lab import _body, _write_truth
         from sim.truth import truth_displacement
 
         ratios = self.prepared_ratios
@@ -272,7 +272,8 @@ class VirtualBench:
         lis, masks = zip(*(self._projection(r) for r in ratios))  # the frames' own projections, cached
         t_proj = time.perf_counter() - t
         t = time.perf_counter()
-        fields = {(a, b): truth_displacement(self.scene, states[b - 1], states[a - 1]) for a, b in pairs}
+        fields = {(a, b): truth_displacement(self.scene, states[b - 1], states[a - 1], body=_body(self.scene, lis[b - 1]))
+                  for a, b in pairs}
         t_truth = time.perf_counter() - t
         gap0 = self.initial_height_mm
         with h5py.File(path, "r+") as h5:

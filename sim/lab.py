@@ -62,6 +62,13 @@ def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, 
     return line_integral, mask
 
 
+def _body(scene: Scene, line_integral):
+    """Where the body covers the detector, from a state's projection (None, to be rendered,
+    when some material does not attenuate)."""
+    mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
+    return line_integral > 0 if min(mus) > 0 else None
+
+
 def make_panel(scene: Scene, seed: int = 0) -> PanelModel:
     """The model C7942 of ``scene.detector`` (its binned geometry); the panel's fixed pattern
     (gain, offsets, defects) comes from ``seed + 7``."""
@@ -128,7 +135,7 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
     fields = {}
     for b in range(len(states)):
         for a in range(b):
-            fields[(a + 1, b + 1)] = truth_displacement(scene, states[b], states[a])
+            fields[(a + 1, b + 1)] = truth_displacement(scene, states[b], states[a], body=_body(scene, line_integrals[b]))
     t_truth = time.perf_counter() - t
 
     t = time.perf_counter()

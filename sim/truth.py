@@ -32,6 +32,11 @@ revolved (``revolve_segments`` wedges, each three tetrahedra) and plane-strain s
 into the 3D body first. The integral is computed on a grid ``factor`` times coarser than the
 detector (the field is smooth on the scale of the elements, 1-6 mm = 20-120 pixels) and
 interpolated bilinearly, the body's silhouette taken from the full-resolution projection.
+
+All the renders share their faces and geometry, so they are rasterised together: once for the
+powers 1 of ``t`` and once for the powers 2, every weight at once, each face two tetrahedra
+share rendered once with the difference of their weights. ``_reference=True`` keeps the
+original one-render-per-image evaluation; the two agree to rounding (tests/test_sim_lab.py).
 """
 from __future__ import annotations
 
@@ -142,17 +147,130 @@ def _linear_fields(x, tets, values):
     return a, b
 
 
-def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64, geometry=None) -> np.ndarray:
+STEEP_SLOPE = 1e3  # sim.xray.render's: gentle faces by difference arrays (the reference: all per pixel)
+
+
+def _shared_faces(faces):
+    """Each triangle once: a face two tetrahedra share is rendered once, carrying the difference
+    of their weights (its two copies have opposite orientations and the same ``t``), which
+    halves the rasterisation. Returns the unique faces and ``merge``, mapping per-tetrahedron
+    weights ``(n, m)`` to per-face weights ``(n, faces)``."""
+    key = np.sort(faces, axis=1)
+    # the orientation of each copy relative to its sorted vertices: the permutation's parity
+    order = np.argsort(faces, axis=1, kind="stable")
+    parity = ((order[:, 0] > order[:, 1]).astype(int) + (order[:, 0] > order[:, 2]) + (order[:, 1] > order[:, 2])) % 2
+    sign = np.where(parity == 0, 1.0, -1.0)
+    uniq, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    n_faces = len(uniq)
+
+    def merge(per_tet):
+        w = np.repeat(per_tet, 4, axis=1) * sign  # (n, 4 m), in the order of ``faces``
+        return np.stack([np.bincount(inverse, wk, minlength=n_faces) for wk in w])
+
+    return uniq, merge
+
+
+def _upsample(field, factor, shape, general=False):
+    """Bilinear interpolation of the coarse grid's ``(n, R, C)`` images onto the detector: pixel
+    ``i`` of the detector sits at ``(i - (factor - 1) / 2) / factor`` on the coarse grid, the
+    border repeated (``cv2.resize``'s half-pixel alignment is exactly this mapping)."""
+    import cv2
+
+    rows, cols = shape
+    R, C = field.shape[1:]
+    if R * factor == rows and C * factor == cols and not general:
+        return np.stack([cv2.resize(f, (cols, rows), interpolation=cv2.INTER_LINEAR) for f in field])
+    # a detector not a multiple of the factor, or the reference: the general mapping
+    from scipy import ndimage
+
+    i = (np.arange(rows) - (factor - 1) / 2) / factor
+    j = (np.arange(cols) - (factor - 1) / 2) / factor
+    ii, jj = np.meshgrid(i, j, indexing="ij")
+    return np.stack([ndimage.map_coordinates(f, [ii, jj], order=1, mode="nearest") for f in field])
+
+
+def _ray_integrals(geom, coarse, xb, tets, mu, a, b, *, reference=False):
+    """On the coarse grid: ``int mu dl`` and, per component, ``int mu f dl`` (module docstring).
+
+    Every image is a weighted render of the same faces, so the fast path rasterises them once
+    per power of ``t`` with all the weights (:func:`sim.xray._render` takes ``(K, m)``), each
+    shared face once (:func:`_shared_faces`)."""
+    from sim.xray import _render
+
+    w_dir, e_u, e_v = coarse.frame()
+    c = np.array(coarse.centre_mm)
+    pitch = coarse.pixel_size_mm
+    R, C = coarse.shape
+    u = ((np.arange(C) - (C - 1) / 2) * pitch)[None, :]
+    v = (((R - 1) / 2 - np.arange(R)) * pitch)[:, None]
+    cone = geom.kind != "parallel"
+    s_, D = geom.source_distance_mm, geom.source_distance_mm + geom.detector_distance_mm
+    lam_c = s_ / D if cone else 0.0
+    w1, w2 = [mu], []  # per-tetrahedron weights of the renders of t and of t^2
+    for k in range(2):
+        ak, bk = a[:, k], b[:, k]
+        au, av, aw = ak @ e_u, ak @ e_v, ak @ w_dir
+        if not cone:
+            w1 += [mu * (ak @ c + bk), mu * au, mu * av]
+            w2 += [mu * aw]
+        else:
+            w1 += [mu * (ak @ (c - s_ * w_dir) + lam_c * D * aw + bk), mu * au, mu * av]
+            w2 += [mu * D * aw, mu * au, mu * av]
+    faces = tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)  # outward, 4 per tet
+    if reference:
+        r1 = np.stack([_render(coarse, xb, faces, np.repeat(w, 4), 1, 0.0, power=1) for w in w1])
+        r2 = np.stack([_render(coarse, xb, faces, np.repeat(w, 4), 1, 0.0, power=2) for w in w2])
+    else:
+        faces, merge = _shared_faces(faces)
+        r1 = _render(coarse, xb, faces, merge(np.stack(w1)), 1, STEEP_SLOPE, power=1)
+        r2 = _render(coarse, xb, faces, merge(np.stack(w2)), 1, STEEP_SLOPE, power=2)
+    num = []
+    for k in range(2):
+        const, ru, rv = r1[1 + 3 * k:4 + 3 * k]
+        if not cone:
+            num.append(const + u * ru + v * rv + r2[k] / 2)
+        else:
+            length = np.sqrt(D * D + u * u + v * v)
+            q_w, q_u, q_v = r2[3 * k:3 * k + 3]
+            num.append(const + lam_c * (u * ru + v * rv) + (q_w + u * q_u + v * q_v) / (2 * length))
+    return r1[0], num
+
+
+_SILHOUETTE: list = []  # [(fem, geometry, displacement, body)]: the last fixed state's, reused
+
+
+def _silhouette(fem, geom, displacement, thickness):
+    """Where the fixed state's body covers the full-resolution detector. The pairs of one
+    experiment share their fixed states (1->3, 2->3), so the last one is kept."""
+    from sim.xray import path_lengths
+
+    for f, g, d, body in _SILHOUETTE:
+        if f is fem and g == geom and d is displacement:
+            return body
+    body = path_lengths(fem, geom, displacement, thickness_mm=thickness).sum(axis=0) > 0
+    _SILHOUETTE[:] = [(fem, geom, displacement, body)]
+    return body
+
+
+def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64, geometry=None, body=None,
+                       _reference=False) -> np.ndarray:
     """Pull displacement (2, rows, cols) float32, pixels, registering ``moving`` onto ``fixed``.
 
     ``fixed`` and ``moving`` are :class:`sim.mechanics.State` from one ``compress`` call (one mesh).
     ``geometry`` (a :class:`sim.xray.Geometry`) replaces the scene's beam and detector.
     ``factor`` (default 4, or 1 for detectors of at most 600 pixels) is the coarsening of the grid
-    the ray integrals are computed on. See the module docstring for the definition.
+    the ray integrals are computed on. ``body``, optional: where the fixed state's body covers the
+    detector (rows, cols) bool, if the caller has it (its line integral > 0, when every material
+    attenuates); otherwise it is rendered. See the module docstring for the definition.
+
+    ``_reference=True`` runs the original, slower evaluation (one rasterisation per image, every
+    tetrahedron's four faces, each face per pixel, ``scipy.ndimage`` interpolation, the silhouette
+    rendered): the tests check the fast path against it.
     """
     from scipy import ndimage
 
-    from sim.xray import Geometry, _render, path_lengths
+    from sim.xray import Geometry
 
     solver = getattr(fixed, "solver", None)
     if solver is None or getattr(moving, "solver", None) is not solver:
@@ -177,32 +295,7 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
     R, C = -(-rows // factor), -(-cols // factor)
     coarse = Geometry(geom.kind, geom.direction, (R, C), geom.pixel_size_mm * factor, geom.centre_mm,
                       geom.source_distance_mm, geom.detector_distance_mm)
-    faces = tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)  # outward, 4 per tet
-
-    def render(w, power):
-        return _render(coarse, xb, faces, np.repeat(w, 4), 1, 0.0, power=power)
-
-    w_dir, e_u, e_v = coarse.frame()
-    c = np.array(coarse.centre_mm)
-    pitch = coarse.pixel_size_mm
-    u = ((np.arange(C) - (C - 1) / 2) * pitch)[None, :]
-    v = (((R - 1) / 2 - np.arange(R)) * pitch)[:, None]
-    denominator = render(mu, 1)
-    num = []
-    for k in range(2):
-        ak, bk = a[:, k], b[:, k]
-        au, av, aw = ak @ e_u, ak @ e_v, ak @ w_dir
-        if geom.kind == "parallel":
-            I = (render(mu * (ak @ c + bk), 1) + u * render(mu * au, 1) + v * render(mu * av, 1)
-                 + render(mu * aw, 2) / 2)
-        else:
-            s_, D = geom.source_distance_mm, geom.source_distance_mm + geom.detector_distance_mm
-            lam_c = s_ / D
-            S = c - s_ * w_dir
-            length = np.sqrt(D * D + u * u + v * v)
-            I = (render(mu * (ak @ S + lam_c * D * aw + bk), 1) + lam_c * (u * render(mu * au, 1) + v * render(mu * av, 1))
-                 + (render(mu * D * aw, 2) + u * render(mu * au, 2) + v * render(mu * av, 2)) / (2 * length))
-        num.append(I)
+    denominator, num = _ray_integrals(geom, coarse, xb, tets, mu, a, b, reference=_reference)
     on = denominator > 1e-9 * max(float(denominator.max()), 1e-300)
     field = np.zeros((2, R, C))
     for k in range(2):
@@ -211,12 +304,11 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
         if on.any() and not on.all():  # extend the field past the silhouette before interpolating
             idx = ndimage.distance_transform_edt(~on, return_distances=False, return_indices=True)
             field = field[:, idx[0], idx[1]]
-        i = (np.arange(rows) - (factor - 1) / 2) / factor
-        j = (np.arange(cols) - (factor - 1) / 2) / factor
-        ii, jj = np.meshgrid(i, j, indexing="ij")
-        field = np.stack([ndimage.map_coordinates(f, [ii, jj], order=1, mode="nearest") for f in field])
-        lengths = path_lengths(fem, geom, fixed.displacement, thickness_mm=thickness)
-        body = lengths.sum(axis=0) > 0
+        field = _upsample(field, factor, (rows, cols), general=_reference)
+        if body is None or _reference:
+            body = _silhouette(fem, geom, fixed.displacement, thickness)
+        elif np.shape(body) != (rows, cols):
+            raise ValueError(f"body: shape {np.shape(body)}, expected the detector's {(rows, cols)}")
     else:
         body = on
     field[:, ~body] = 0.0

@@ -501,14 +501,20 @@ def render(geometry: Geometry, vertices, faces, weights=None, *, supersample: in
 
 def _render(geom, X, faces, weights, s, steep_slope, power=1):
     """The rasteriser behind :func:`render`; ``power`` 2 sums ``s_f w_f t_f^2`` instead (used by
-    :mod:`sim.truth` to integrate fields linear along a ray), evaluated per pixel."""
+    :mod:`sim.truth` to integrate fields linear along a ray), evaluated per pixel.
+
+    ``weights`` may be ``(K, m)``: K images of the same faces at the cost of one rasterisation
+    (returns ``(K, rows, cols)``)."""
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {s}")
     rows, cols = geom.shape
     R, C, pitch = geom._grid(s)
-    out = np.zeros((rows, cols))
+    single = np.ndim(weights) == 1
+    weights = np.atleast_2d(weights)
+    K = weights.shape[0]
+    out = np.zeros((K, rows, cols))
     if len(faces) == 0:
-        return out
+        return out[0] if single else out
     x, y, a = geom._project(X, s)
     w, eu, ev = geom.frame()
     H = float(np.sign(-np.cross(eu, ev) @ w))  # det * H > 0 <=> the ray leaves through the face
@@ -532,14 +538,14 @@ def _render(geom, X, faces, weights, s, steep_slope, power=1):
         s_ab = (xb - xa) / (yb - ya)
         s_bc = (xc - xb) / (yc - yb)
         s_ac = (xc - xa) / (yc - ya)
-    ok = (det != 0) & np.isfinite(gx) & np.isfinite(gy) & (weights != 0)
+    ok = (det != 0) & np.isfinite(gx) & np.isfinite(gy) & np.any(weights != 0, axis=0)
     ok &= (yc > -1) & (ya < R) & (np.maximum(np.maximum(xa, xb), xc) > -1) & (np.minimum(np.minimum(xa, xb), xc) < C)
     # orientation from the faces' own vertex order (the sort above may permute it)
     x0, x1, x2 = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
     y0, y1, y2 = y[faces[:, 0]], y[faces[:, 1]], y[faces[:, 2]]
     orient = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
     ok &= orient != 0
-    wt = np.where(orient > 0, H, -H) * weights
+    wt = np.where(orient > 0, H, -H) * weights  # (K, m)
     amin = np.minimum(np.minimum(aa, ab), ac)
     amax = np.maximum(np.maximum(aa, ab), ac)
     if cone:
@@ -558,7 +564,7 @@ def _render(geom, X, faces, weights, s, steep_slope, power=1):
     for b0 in range(0, R, band):
         b1 = min(R, b0 + band)
         nb = b1 - b0
-        acc = np.zeros((nb, C))
+        acc = np.zeros((K, nb, C))
         hits = np.zeros((nb, C), np.int64)
         for sel, pixelwise in ((spanned, False), (per_pixel, True)):
             idx = np.flatnonzero(sel & (r1 > b0) & (r0 < b1))
@@ -584,45 +590,50 @@ def _render(geom, X, faces, weights, s, steep_slope, power=1):
             a0 = aa[tri] + gx[tri] * (c0 - xa[tri]) + gy[tri] * (yr - ya[tri])
             lrow = row - b0
             if not pixelwise:
-                _accumulate_spans(acc, hits, lrow, c0, c1, a0, gx[tri], wt[tri], nb, C, jc)
+                _accumulate_spans(acc, hits, lrow, c0, c1, a0, gx[tri], wt[:, tri], nb, C, jc)
             else:
-                _accumulate_pixels(acc, hits, lrow, c0, c1, a0, gx[tri], wt[tri], amin[tri], amax[tri],
+                _accumulate_pixels(acc, hits, lrow, c0, c1, a0, gx[tri], wt[:, tri], amin[tri], amax[tri],
                                    cone, lam_c if cone else 0.0, nb, C, power)
         if cone:  # sum of s (lambda - lambda_c) -> length along the ray
             du = (np.arange(C) - jc) * pitch
             dv = (np.arange(b0, b1) - ic) * pitch
             D = geom.source_distance_mm + geom.detector_distance_mm
             acc *= np.sqrt(D * D + du[None, :] ** 2 + dv[:, None] ** 2) ** power
-        acc[hits == 0] = 0.0
+        acc[:, hits == 0] = 0.0
         if s == 1:
-            out[b0:b1] = acc
+            out[:, b0:b1] = acc
         else:
-            out[b0 // s:b1 // s] = acc.reshape(nb // s, s, cols, s).mean(axis=(1, 3))
-    return out
+            out[:, b0 // s:b1 // s] = acc.reshape(K, nb // s, s, cols, s).mean(axis=(2, 4))
+    return out[0] if single else out
 
 
 def _accumulate_spans(acc, hits, row, c0, c1, a0, gx, wt, nb, C, jc):
-    """Difference arrays along rows: value(j) = K + G (j - jc) on c0 <= j < c1."""
+    """Difference arrays along rows: value(j) = K + G (j - jc) on c0 <= j < c1; ``wt`` (n, spans)
+    and ``acc`` (n, nb, C), one image per row of weights."""
     W = C + 1
     i0 = row * W + c0
     i1 = row * W + c1
-    K = wt * (a0 - gx * (c0 - jc))
-    G = wt * gx
+    K0 = a0 - gx * (c0 - jc)
     idx = np.concatenate([i0, i1])
     size = nb * W
-    k = np.bincount(idx, np.concatenate([K, -K]), minlength=size).reshape(nb, W)
-    g = np.bincount(idx, np.concatenate([G, -G]), minlength=size).reshape(nb, W)
+    ramp = np.arange(C) - jc
+    for acc_n, wt_n in zip(acc, wt):
+        K = wt_n * K0
+        G = wt_n * gx
+        k = np.bincount(idx, np.concatenate([K, -K]), minlength=size).reshape(nb, W)
+        g = np.bincount(idx, np.concatenate([G, -G]), minlength=size).reshape(nb, W)
+        np.cumsum(k, axis=1, out=k)
+        np.cumsum(g, axis=1, out=g)
+        acc_n += k[:, :C]
+        acc_n += g[:, :C] * ramp
     h = (np.bincount(i0, minlength=size) - np.bincount(i1, minlength=size)).reshape(nb, W)
-    np.cumsum(k, axis=1, out=k)
-    np.cumsum(g, axis=1, out=g)
     np.cumsum(h, axis=1, out=h)
-    acc += k[:, :C]
-    acc += g[:, :C] * (np.arange(C) - jc)
     hits += h[:, :C]
 
 
 def _accumulate_pixels(acc, hits, row, c0, c1, a0, gx, wt, amin, amax, cone, lam_c, nb, C, power=1):
-    """Evaluate every covered pixel exactly (clamped to the face's range), in chunks."""
+    """Evaluate every covered pixel exactly (clamped to the face's range), in chunks; ``wt``
+    (n, spans) and ``acc`` (n, nb, C), one image per row of weights."""
     L = c1 - c0
     ends = np.cumsum(L)
     start = 0
@@ -644,9 +655,9 @@ def _accumulate_pixels(acc, hits, row, c0, c1, a0, gx, wt, amin, amax, cone, lam
             np.clip(val, np.repeat(amin[sl], Ls), np.repeat(amax[sl], Ls), out=val)
         if power != 1:
             val **= power
-        val *= np.repeat(wt[sl], Ls)
         pix = np.repeat(row[sl] * C + c0[sl], Ls) + k
-        acc.ravel()[:] += np.bincount(pix, val, minlength=nb * C)  # acc, hits are contiguous (nb, C)
+        for acc_n, wt_n in zip(acc, wt):
+            acc_n.ravel()[:] += np.bincount(pix, val * np.repeat(wt_n[sl], Ls), minlength=nb * C)  # contiguous
         hits.ravel()[:] += np.bincount(pix, minlength=nb * C)
         start = stop
 

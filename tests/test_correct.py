@@ -180,3 +180,35 @@ def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatc
         correct_files(tmp_path / "s.raw", cal, tmp_path / "out2.h5", shape=(16, 24), progress=False)
     # the partial output was removed, temporary file included: nothing that looks complete
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5", "s.raw"]
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.int32, np.float32])
+@pytest.mark.parametrize("domain", ["log", "linear", "counts"])
+def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain):
+    """The kernel finds below-dark and saturated pixels by block and column extremes and repairs
+    them on index lists: it must find exactly the pixels a whole-frame mask finds, in blocks
+    split across threads (300 rows: three 128-row blocks), and leave every other pixel as the
+    float64 formula has it (float32 rounding)."""
+    rng = np.random.default_rng(11)
+    shape = (300, 257)
+    dark = rng.uniform(90, 110, shape).astype(np.float32)
+    flat = dark + rng.uniform(2000, 3000, shape).astype(np.float32)
+    cal = Calibration(dark, flat, np.zeros(shape, np.uint32))
+    raw = np.rint(dark + rng.uniform(50, 1900, shape)).astype(np.float64)
+    idx = rng.choice(raw.size, 160, replace=False)
+    raw.ravel()[idx[:60]] = np.floor(dark.ravel()[idx[:60]]) - rng.integers(0, 20, 60)  # at or below the dark
+    raw.ravel()[idx[60:100]] = 4095  # saturated
+    raw[:, 200] = 0  # a whole column below the dark
+    raw = raw.astype(dtype)
+    out, report = cal.correct(raw, domain=domain, return_report=True)
+    assert np.isfinite(out).all()
+    below = raw.astype(np.float64) - dark <= 0
+    assert report.nonpositive.tolist() == [int(below.sum())]
+    np.testing.assert_array_equal((report.flags & PixelFlag.NONPOSITIVE) != 0, below)
+    if dtype != np.float32:  # saturation is counted for integer frames
+        np.testing.assert_array_equal((report.flags & PixelFlag.SATURATED) != 0, raw >= 4095)
+    ratio = (raw - dark.astype(np.float64)) / (flat - dark.astype(np.float64))
+    ref = {"log": -np.log(np.where(below, 1, ratio)), "linear": ratio, "counts": cal.c * ratio}[domain]
+    np.testing.assert_allclose(out[~below], ref[~below], rtol=2e-6, atol=2e-6)
+    # the same frame without a report: the same image
+    np.testing.assert_array_equal(cal.correct(raw, domain=domain), out)

@@ -24,6 +24,7 @@ enhanced contrast is C + k (D_i - D_b), so IF(k) - 1 is exactly proportional to 
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -204,3 +205,82 @@ def test_the_main_pair_is_cross_checked(processed):
     res, _ = processed
     q = res.results["registration"][res.results["main_pair"]]
     assert q["cross_check"]["method"] == "ncc" and q["cross_check"]["agree"], q["cross_check"]
+
+
+@pytest.mark.parametrize("cores, workers, tasks, threads", [
+    (2, 2, 1, 1), (8, 2, 1, 4), (2, 4, 1, 1), (16, 2, 2, 4), (1, 1, 1, 1), (7, 2, 1, 3)])
+def test_each_worker_gets_its_share_of_the_cores(cores, workers, tasks, threads):
+    from radiokit.pipeline import worker_threads
+
+    share = worker_threads(cores, workers, tasks)
+    assert share.threads == threads
+    # never more threads in all than cores, unless there are more files at a time than cores
+    assert workers * tasks * share.threads <= max(cores, workers * tasks)
+    env = share.environ()
+    assert env["RADIOKIT_THREADS"] == str(threads) and env["OPENBLAS_NUM_THREADS"] == "1"
+
+
+def test_worker_share_rejects_nonsense():
+    from radiokit.pipeline import worker_threads
+
+    with pytest.raises(ValueError, match="workers=0"):
+        worker_threads(2, 0)
+
+
+def _worker_state():
+    """What a worker's libraries were told (run in the worker by client.run)."""
+    import os
+
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    from radiokit._threads import threads
+    from radiokit.correct import _pool
+
+    return {"radiokit": threads(), "pool": _pool()._max_workers, "cv2": cv2.getNumThreads(),
+            "blas": sorted({p["num_threads"] for p in threadpool_info()}),
+            "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_")}
+
+
+def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
+    """A local cluster's workers start with their share in their environment; the workers of a
+    scheduler reached by address (here a second local cluster, which Dask runs exactly as
+    `dask scheduler` + `dask worker`) are sized from the scheduler's view when a run starts."""
+    from dask.distributed import Client, LocalCluster
+
+    from radiokit._threads import cores
+    from radiokit.pipeline import Config, _local_cluster, process_many
+
+    expect = max(1, cores() // 2)
+    with _local_cluster(2) as cluster, Client(cluster) as client:
+        for state in client.run(_worker_state).values():
+            assert state["radiokit"] == state["pool"] == expect and state["malloc"] is not None
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
+    # workers as a user starts them by hand: two threads each, nothing in their environment
+    with LocalCluster(n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        before = client.run(_worker_state)
+        res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+        assert "error" not in res[0]
+        after = client.run(_worker_state)
+    expect = max(1, cores() // 4)  # two workers of two Dask threads on one host
+    if "RADIOKIT_THREADS" not in os.environ:  # the workers started with the library's default
+        assert all(s["radiokit"] == min(cores(), 8) for s in before.values())
+    for state in after.values():
+        assert state["radiokit"] == state["pool"] == state["cv2"] == expect
+        assert state["blas"] == [1]  # BLAS spins in a worker's task thread: one thread
+
+
+def test_a_scheduler_without_workers_is_one_clear_error(tmp_path):
+    """A scheduler reached by address but with no worker: named in one line, not a hang."""
+    from dask.distributed import LocalCluster
+
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=None) as cluster:
+        with pytest.raises(ValueError, match="no workers connected"):
+            process_many([path], Config(progress=False), scheduler=cluster.scheduler_address)

@@ -97,6 +97,28 @@ def test_axisymmetric_truth_agrees_with_3d():
     np.testing.assert_allclose(ax[0], ax[0][:, ::-1], atol=1e-3 * scale)
 
 
+@pytest.mark.parametrize("model, kind, factor", [("3d", "parallel", 4), ("3d", "cone", 4),
+                                                  ("axisymmetric", "cone", 4), ("3d", "parallel", 1)])
+def test_fast_truth_equals_the_reference_evaluation(model, kind, factor):
+    """The fast path (one rasterisation for all the images, shared faces once, OpenCV's
+    interpolation, the silhouette from the projection) computes the same sums as the original
+    evaluation kept as the reference: equal to 0.01 px (the acceptance), measured 1e-7 px."""
+    from sim.lab import _body, project_state
+    from tests.test_sim_mechanics import _cylinder
+
+    scene = _cylinder(model, size=(3.0, 8.0))
+    scene.beam = Beam(kind, "z")
+    scene.detector = Detector("c7942", 4)
+    s15, s25 = compress(scene, ratios=(0.15, 0.25))
+    body = _body(scene, project_state(scene, s25.solver, s25.displacement)[0])
+    fast = truth_displacement(scene, s25, s15, factor=factor, body=body)
+    ref = truth_displacement(scene, s25, s15, factor=factor, _reference=True)
+    assert np.abs(ref).max() > 3  # pixels: a real motion
+    assert np.array_equal(fast == 0, ref == 0)  # the same silhouette
+    np.testing.assert_allclose(fast, ref, atol=0.01)
+    assert np.abs(fast - ref).max() < 1e-4  # the same sums in another order: rounding only
+
+
 def test_truth_needs_states_of_one_mesh():
     scene = _block("y", ratios=(0.1,))
     (a,) = compress(scene)

@@ -187,17 +187,21 @@ _POOL = None
 
 
 def _threads():
-    import os
+    from radiokit._threads import threads
 
-    return max(1, int(os.environ.get("RADIOKIT_THREADS", os.cpu_count() or 1)))
+    return threads()
 
 
 def _pool():
+    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
     global _POOL
-    if _POOL is None:
+    n = _threads()
+    if _POOL is None or _POOL._max_workers != n:
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL = ThreadPoolExecutor(max_workers=_threads(), thread_name_prefix="radiokit-register")
+        if _POOL is not None:
+            _POOL.shutdown(wait=False)
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="radiokit-register")
     return _POOL
 
 
@@ -303,7 +307,7 @@ class _Level:
         w, gy, gx = self.sample(d)
         r = self._r
         if self.similarity == "rc":
-            q = sfft.dctn(r, norm="ortho", workers=-1)
+            q = sfft.dctn(r, norm="ortho", workers=_threads())
             alpha = self.alpha
 
             def band(sl):  # in place: q -> q / (q^2 + alpha); returns the band's energy
@@ -315,7 +319,7 @@ class _Level:
                 return e
 
             e = 0.5 * sum(self._map(band)) / self.n
-            dr = sfft.idctn(q, norm="ortho", workers=-1, overwrite_x=True)
+            dr = sfft.idctn(q, norm="ortho", workers=_threads(), overwrite_x=True)
             dr *= 1.0 / self.n
         elif self.similarity == "ssd":
             e = 0.5 * float(np.sum(r * r, dtype=np.float64)) / self.n

@@ -43,7 +43,9 @@ def residual_complexity(residual, mask=None, alpha=0.05) -> float:
     r = np.asarray(residual, np.float32)
     if mask is not None:
         r = np.where(mask, r, np.float32(0))
-    q = sfft.dctn(r, norm="ortho", workers=-1)
+    from radiokit._threads import threads
+
+    q = sfft.dctn(r, norm="ortho", workers=threads())
     q *= q
     q *= np.float32(1.0 / alpha)
     np.log1p(q, out=q)

@@ -1,0 +1,27 @@
+"""How many threads radiokit's own pools (correction, registration, FFTs) may use in this process.
+
+``RADIOKIT_THREADS`` when set (``radiokit process`` sets it in each Dask worker to the worker's
+share of the cores), else the cores this process may run on, at most 8.
+"""
+from __future__ import annotations
+
+import os
+
+
+def cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def threads() -> int:
+    """The thread budget of radiokit's pools in this process (see the module docstring)."""
+    env = os.environ.get("RADIOKIT_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise ValueError(f"RADIOKIT_THREADS={env!r}: expected a whole number of threads") from None
+    return min(cores(), 8)
