@@ -141,13 +141,13 @@ def headline(summary) -> str:
              f"(dialect {summary.get('dialect', 'A')}) "
              f"(write + bookkeeping {summary['files']['per_frame_overhead_ms']:.1f} ms per frame)",
              "",
-             f"{'':<30} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper"]
+             f"{'':<34} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper"]
 
     def row(label, get, paper=""):
         vals = [get(r, d) for d in ("log", "linear")]
         cvals = [get(ctrl, d) if ctrl else None for d in ("log", "linear")]
         fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "-"
-        lines.append(f"{label:<30} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   "
+        lines.append(f"{label:<34} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   "
                      f"{paper}")
 
     for k in ("1", "2"):
