@@ -86,6 +86,50 @@ def pareto(rows):
     return front
 
 
+def _binned(a, k):
+    import cv2
+
+    if a.ndim == 3:
+        return np.stack([_binned(x, k) for x in a])
+    return cv2.resize(a.astype(np.float32), (a.shape[1] // k, a.shape[0] // k), interpolation=cv2.INTER_AREA)
+
+
+def levels_part(size, seed, opts):
+    """rc's median / p95 EPE inside the body after each pyramid level (the field of the levels so
+    far, evaluated on a grid 4x coarser), on the training pair at ``size`` and the same pair
+    binned by 2 (its EPE also in the full size's pixels): where the pyramid stalls."""
+    from radiokit.register import _bspline as B
+    from radiokit.register import register
+    from regdata import Case, family_pair
+
+    f, m, d, mask = family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed))
+    pairs = [(str(size), f, m, d, mask, 1),
+             (f"{size // 2} (binned)", _binned(f, 2), _binned(m, 2), _binned(d, 2) / 2,
+              _binned(mask.astype(np.float32), 2) > 0.5, 2)]
+    print(f"{Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed).label()}: identity "
+          f"{score(0 * d, d, mask)['epe_median']:.2f} px; rc {opts}", flush=True)
+    for tag, f, m, d, mask, scale in pairs:
+        k = 4
+        db, mb = _binned(d, k) / k, _binned(mask.astype(np.float32), k) > 0.5
+        acc = np.zeros_like(db)
+        lines = []
+
+        def cb(factor, res, f=f, db=db, mb=mb, lines=lines):
+            nonlocal acc
+            spacing = B.PRESETS[opts.get("preset", "default")]["spacing"] if "spacing" not in opts else opts["spacing"]
+            acc = acc + B.BSplineField(f.shape, spacing * max(1, factor // 2)).field(res.x, k, db.shape[1:])
+            e = k * np.hypot(*(acc - db))[mb]
+            lines.append(f"    level 1/{factor} ({f.shape[0] // factor} px), {res.nit} iterations: "
+                         f"{np.median(e):.2f} / {np.percentile(e, 95):.2f} px (x{scale}: {scale * np.median(e):.2f})")
+
+        t = time.perf_counter()
+        r = register(f, m, "rc", callback=cb, **opts)
+        sc = score(r.displacement, d, mask)
+        print(f"  {tag}: {sc['epe_median']:.2f} / {sc['epe_p95']:.2f} px, {time.perf_counter() - t:.1f} s, "
+              f"ok={r.quality.ok}", flush=True)
+        print("\n".join(lines), flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -100,7 +144,16 @@ def main(argv=None):
     ap.add_argument("--family-seeds", type=int, default=1, help="test seeds per family cell")
     ap.add_argument("--family-sim", default="seed-breast,pva-phantom",
                     help="scene presets whose simulated pairs join the family (comma-separated; '' for none)")
+    ap.add_argument("--levels", metavar="JSON", nargs="*",
+                    help="only the per-level diagnosis: rc's EPE after each pyramid level on one TRAINING pair "
+                         "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
+                         "(e.g. '{}' '{\"coarse_adapt\": true}')")
+    ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
     args = ap.parse_args(argv)
+    if args.levels is not None:
+        for opts in args.levels or ["{}"]:
+            levels_part(args.size, args.seed, json.loads(opts))
+        return 0
     args.family_sim = [x.strip() for x in args.family_sim.split(",") if x.strip()]
     if args.quick:  # the family at 384 px without the simulated pairs (about 3 minutes)
         args.family_size, args.family_sim = min(args.family_size, 384), []

@@ -229,7 +229,10 @@ def _assess(reg, f, m, mask, info, seconds):
 # bound x _BOUND_SCALE x _WINDOW / L, L the field's own correlation length (from the estimate,
 # clipped to 0.5-4 windows). _BOUND_SCALE 6 was chosen on the training seeds of
 # benchmarks/regdata.family at 560 px (rc's default, 2 seeds, 45 pairs): 27/28 failed results
-# flagged and 8/9 good ones trusted; 4: 24/28 and 8/9; 8: 28/28 and 7/9.
+# flagged and 8/9 good ones trusted; 4: 24/28 and 8/9; 8: 28/28 and 7/9. With rc's
+# coarse_adapt=True (more good results on weak texture) 3 fits better (training seeds, rc and rc
+# fast, 50 pairs: failed flagged / good trusted 33/34 and 20/22 at 3, 34/34 and 14/22 at 6), but
+# that is not the default.
 # _MAX_MISALIGNED: good results (560-2240, analytic and family pairs) leave 0 % misaligned,
 # rc's failures at 2240 on weak texture 21-45 %.
 _WINDOW = 24.0
