@@ -467,7 +467,7 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
             t_write += d - c
             t_plain += e - d
     plain_path.unlink()
-    ms = lambda t: 1e3 * t / n  # noqa: E731
+    ms = lambda t: 1e3 * t / n
     total = t_read + t_corr + t_write
     return {"frames": n, "ms_per_frame": {"read": ms(t_read), "correct": ms(t_corr), "write_hdf5": ms(t_write),
                                           "total": ms(total), "plain_write_baseline": ms(t_plain)},

@@ -353,7 +353,6 @@ def physical_motion(shape, rng, disc, amplitude):
     radius outside it. A pull field: ``moving(x + d(x)) = fixed(x)`` where the expanded body
     is the fixed image, so ``d = -e (x - c)`` (e > 0)."""
     rows, cols = shape
-    n = rows
     yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float32)
     cy, cx = (rows - 1) / 2, (cols - 1) / 2
     e = amplitude / _BODY[0]  # |d| = e r reaches amplitude x n at the tip of the body's long axis

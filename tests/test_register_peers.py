@@ -23,7 +23,7 @@ from radiokit.errors import RadiokitError
 from radiokit.register import METHODS, register, warp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from regdata import analytic_pair, score, sim_pair, smooth_field  # noqa: E402
+from regdata import analytic_pair, score, sim_pair, smooth_field
 
 # SimpleITK's and ITK's SWIG wrappers warn on import (Python 3.12+ style); not ours to fix
 pytestmark = pytest.mark.filterwarnings("ignore:builtin type .* has no __module__ attribute:DeprecationWarning")
@@ -76,7 +76,7 @@ def test_built_in_peer_recovers_a_shift_and_a_smooth_warp_in_the_pull_convention
 def test_optional_peer_recovers_a_shift_and_a_smooth_warp_in_the_pull_convention(method):
     pytest.importorskip(OPTIONAL[method])
     if method == "elastix":
-        pytest.importorskip("itk").elastix_registration_method  # itk-elastix, not only itk
+        pytest.importorskip("itk").elastix_registration_method  # noqa: B018 (itk-elastix, not only itk)
     _check_peer(method)
     if method != "sitk-demons":  # the B-spline peers limit their metric to the mask
         y, x = np.mgrid[0:N, 0:N] - N / 2

@@ -24,7 +24,7 @@ import numpy as np
 
 from radiokit.register._common import (jacobian_determinant, ncc, residual_complexity, warp)
 
-from radiokit.register._confidence import roi_observed  # noqa: E402
+from radiokit.register._confidence import roi_observed
 
 __all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant", "roi_observed"]
 

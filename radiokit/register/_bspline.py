@@ -572,7 +572,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         L = grid.L
         npts = grid.nr * grid.nc
 
-        def fun(x, level=level, grid=grid, L=L, npts=npts, base=base, lam=lam):
+        def fun(x, level=level, grid=grid, L=L, npts=npts, base=base, lam=lam, factor=factor):
             d = grid.field(x, factor, level.shape)
             d += base
             e, g = level.energy(d)
@@ -586,7 +586,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         last = collections.deque(maxlen=6)  # the last iterates, for the convergence test
 
         def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
-            last.append(intermediate_result.x.copy())
+            last.append(intermediate_result.x.copy())  # noqa: B023 (this level's deque, used before the next)
 
         res = minimize(fun, np.zeros(grid.n_params), jac=True, method="L-BFGS-B", callback=track,
                        options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10))
