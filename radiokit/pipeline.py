@@ -52,10 +52,10 @@ from pathlib import Path
 import numpy as np
 
 from radiokit.errors import FormatError
+from radiokit.measure import PAPER
 
 __all__ = ["Config", "Result", "process", "process_many", "output_folders", "PAPER"]
 
-PAPER = {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]}
 
 
 @dataclass

@@ -39,13 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from radiokit._version import __version__
+from radiokit.measure import PAPER  # used when results["paper"] does not give them
 
 __all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
-#: The paper's numbers, used when ``results["paper"]`` does not give them: contrast improvement
-#: of about 1.4 (k = 1) and 2 (k = 2), and the inclusion/background intensity-change ratio of the
-#: authors' earlier study, 0.66-0.84.
-PAPER = {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]}
 #: Upper bound on the size of one figure file.
 MAX_PNG_BYTES = 300_000
 #: An improvement factor within this of 1 has no measurable compression-induced contrast to share.
