@@ -1478,3 +1478,31 @@ def test_format_error_is_value_error():
     assert isinstance(err, ValueError)
     assert err.path == "/x/y.raw" and err.problem == "bad"
     assert str(err) == "/x/y.raw: bad"
+
+
+def test_read_follows_the_nexus_default_of_a_corrected_stack(tmp_path):
+    """``read()`` opens radiokit's own outputs: a corrected stack is an NXentry/NXdata whose
+    ``@signal`` names the frames, as silx would find them; a file that names none keeps the
+    clear error."""
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_files
+
+    rng = np.random.default_rng(3)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=(32, 40)) as w:
+        for _ in range(3):
+            w.append(rng.integers(95, 105, (32, 40)).astype(np.uint16), image_key=ImageKey.DARK)
+        for _ in range(3):
+            w.append(rng.integers(2900, 3100, (32, 40)).astype(np.uint16), image_key=ImageKey.FLAT)
+        for step in (1, 2):
+            w.append(rng.integers(1000, 2000, (32, 40)).astype(np.uint16), image_key=ImageKey.PROJECTION, step=step)
+    cal = Calibration.from_experiment(path)
+    correct_files(path, cal, tmp_path / "corr.h5", progress=False)
+    stack = read(tmp_path / "corr.h5")
+    expected = cal.correct(read(path).data[-2:], domain="log")
+    assert stack.meta["dataset"] == "/entry/data/data"
+    np.testing.assert_allclose(stack.data, expected, rtol=1e-6, atol=1e-6)
+    with h5py.File(tmp_path / "plain.h5", "w") as f:
+        f["entry/data/data"] = np.zeros((2, 4, 4), np.float32)  # no NX_class, no @signal
+    with pytest.raises(FormatError, match="not a radiokit experiment file"):
+        read(tmp_path / "plain.h5")

@@ -277,6 +277,10 @@ class FrameSource:
 
     def _open_hdf5(self, dataset=None, **hints):
         self._h5 = h5py.File(self.path, "r")
+        if not dataset:
+            check_links(self.path, self._h5, "entry/instrument/detector/data", self._allow_external)
+            if "entry/instrument/detector/data" not in self._h5:
+                dataset = _nexus_signal(self._h5)  # another NeXus file (radiokit correct's stacks)
         if dataset:
             check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
@@ -422,3 +426,32 @@ def iter_frames(path, /, **hints):
     with FrameSource(path, **hints) as src:
         yield from src
 
+
+def _nexus_signal(h5: h5py.File) -> str | None:
+    """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
+    an NXentry and on to an NXdata, else take the only NXentry and its only NXdata; the
+    NXdata's ``@signal`` names the dataset. ``None`` when the file does not say."""
+
+    def child(group, nx_class):  # only hard links: nothing outside the file is ever followed
+        local = [k for k in group if isinstance(group.get(k, getlink=True), h5py.HardLink)]
+        name = group.attrs.get("default")
+        if isinstance(name, bytes):
+            name = name.decode()
+        if name in local and isinstance(group[name], h5py.Group):
+            return group[name]
+        found = [group[k] for k in local if isinstance(group[k], h5py.Group) and _nx_class(group[k]) == nx_class]
+        return found[0] if len(found) == 1 else None
+
+    entry = child(h5, "NXentry")
+    data = child(entry, "NXdata") if entry is not None else None
+    signal = data.attrs.get("signal") if data is not None else None
+    if isinstance(signal, bytes):
+        signal = signal.decode()
+    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), h5py.HardLink):
+        return None
+    return f"{data.name}/{signal}"
+
+
+def _nx_class(group) -> str:
+    value = group.attrs.get("NX_class", "")
+    return value.decode() if isinstance(value, bytes) else str(value)
