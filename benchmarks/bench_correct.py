@@ -140,6 +140,21 @@ def simulate(panel, rng, transmission=None, beam=True) -> np.ndarray:
 
 
 # -- part 1: one frame -------------------------------------------------------------------------
+def _interleaved(variants, reps, seed) -> dict:
+    """Seconds per call of each variant over ``reps`` rounds, each round in a fresh shuffled order
+    (the machine is shared: a slow moment falls on all variants alike, not on one)."""
+    times = {name: [] for name in variants}
+    order = list(variants)
+    shuffler = random.Random(seed)
+    for _ in range(reps):
+        shuffler.shuffle(order)
+        for name in order:
+            t = time.perf_counter()
+            variants[name]()
+            times[name].append(time.perf_counter() - t)
+    return times
+
+
 def _median_ms(ts):
     return 1e3 * statistics.median(ts)
 
@@ -209,17 +224,7 @@ def bench_frame(reps: int, seed: int = 1):
     for name, fn in variants.items():  # warm-up: page-faults, numexpr compile cache, radiokit kernel
         outputs[name] = fn()
         fn()
-    times = {name: [] for name in variants}
-    order = list(variants)
-    shuffler = random.Random(seed)
-    for _ in range(reps):
-        shuffler.shuffle(order)
-        for name in order:
-            fn = variants[name]
-            t = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t)
-
+    times = _interleaved(variants, reps, seed)
     ms = {name: _median_ms(ts) for name, ts in times.items()}
     spread = {name: (1e3 * float(np.percentile(ts, 25)), 1e3 * float(np.percentile(ts, 75)))
               for name, ts in times.items()}
@@ -340,15 +345,7 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     for fn in variants.values():
         fn()
         fn()
-    times = {name: [] for name in variants}
-    order = list(variants)
-    shuffler = random.Random(seed)
-    for _ in range(reps):
-        shuffler.shuffle(order)
-        for name in order:
-            t = time.perf_counter()
-            variants[name]()
-            times[name].append(time.perf_counter() - t)
+    times = _interleaved(variants, reps, seed)
     ms = {name: _median_ms(ts) for name, ts in times.items()}
     cal, raw = cases["realistic"][:2]
     _, report = cal.correct(raw, domain="log", return_report=True)
