@@ -144,8 +144,8 @@ def headline(summary) -> str:
              f"{'':<34} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper"]
 
     def row(label, get, paper=""):
-        vals = [get(r, d) for d in ("log", "linear")]
-        cvals = [get(ctrl, d) if ctrl else None for d in ("log", "linear")]
+        vals = [get(r, d) for d in ("log", "negative")]  # "negative": -I/I0, the paper's linear images
+        cvals = [get(ctrl, d) if ctrl else None for d in ("log", "negative")]
         fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "-"
         lines.append(f"{label:<34} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   "
                      f"{paper}")

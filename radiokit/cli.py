@@ -297,6 +297,7 @@ def _register_png(path, fixed, moving, registered, reg):
 def cmd_process(args) -> int:
     from radiokit.io import check_output
     from radiokit.pipeline import Config, output_folders, process, process_many
+    from radiokit.results import Results
 
     opts = {"preset": args.preset} if args.preset else {}
     cfg = Config(ks=tuple(args.k), domain=args.domain, method=args.method, register_options=opts,
@@ -311,8 +312,8 @@ def cmd_process(args) -> int:
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
     if single:
         res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
-        _print_headline(res.results, res.files)
-        return 0 if all(q.get("ok") for q in res.results["registration"].values()) else 1
+        _print_headline(res.record, res.files)
+        return 0 if all(p.ok for p in res.record.pairs) else 1
     results = process_many(args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers,
                            overwrite=args.overwrite)
     failed = 0
@@ -321,22 +322,24 @@ def cmd_process(args) -> int:
             failed += 1
             print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
         else:
-            _print_headline(r, {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {})
+            files = {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {}
+            _print_headline(Results.from_json(r, r["source"]), files)
     return 1 if failed else 0
 
 
-def _print_headline(r, files):
-    ifs = ", ".join(f"k={k}: {v:.2f}" for k, v in r["improvement_factor"].items())
-    main = r["main_pair"]
-    cr = r["change_ratio"][main][r["domain"]]
-    q = r["registration"][main]
-    print(f"{r['source']}: improvement factor ({r['domain']}) {ifs}; change ratio {main} {cr:.3f}; "
-          f"registration {'ok' if q['ok'] else 'NOT ok: ' + q['reason']}")
-    for dom, m in r.get("domains", {}).items():  # every k and domain: IF (bound), CNR
-        bound = m.get("bound") or {}
-        parts = [f"k={k}: IF {v:.3f}" + (f" (bound {bound[k]:.3f})" if bound.get(k) is not None else "")
-                 + f", CNR {m.get('cnr', {}).get(k, float('nan')):.3g}" for k, v in m["improvement_factor"].items()]
-        print(f"  {dom:<6}: CNR reference {m.get('cnr_reference', float('nan')):.3g}; " + "; ".join(parts))
+def _print_headline(record, files):
+    """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`);
+    the negative domain under the paper's name for it, "linear"."""
+    from radiokit.results import k_label
+
+    ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
+    main = record.pair(record.main_pair)
+    print(f"{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
+          f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}")
+    for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
+        parts = [f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
+                 + (f" (bound {x.bound:.3f})" if x.bound is not None else "") + f", CNR {x.cnr:.3g}" for x in m.per_k]
+        print(f"  {dom.paper_name:<6}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {files[name]}")
@@ -408,7 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing results folder radiokit made (never one holding an input)")
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors (default 1 2)")
-    p.add_argument("--domain", choices=["log", "linear"], default="linear", help="headline domain: linear (the paper's -I/I0, default) or log (both are computed)")
+    p.add_argument("--domain", choices=["negative", "log"], default="negative",
+                   help="headline domain: negative (-I/I0, the paper's 'linear' images; default) or log "
+                        "(-ln(I/I0)); both are computed")
     p.add_argument("--method", default="rc", help="registration method (default rc)")
     p.add_argument("--preset", choices=["default", "fast"], help="registration preset")
     p.add_argument("--crop-mm", type=float, default=30.0, help="side of the registered square around the inclusion, "

@@ -3,29 +3,60 @@
 The paper registers the second compression step onto the third (the most compressed, the
 *reference*), takes the difference ``D = reference - registered``, subtracts its mean and adds it,
 times a factor ``k``, to the reference. :func:`compression_contrast` does exactly that;
-:func:`difference` gives ``D`` alone and :func:`to_domain` turns line integrals into the paper's
-negative intensities.
+:func:`difference` gives ``D`` alone and :func:`to_domain` turns line integrals into the other
+pixel conventions.
 
-Two pixel conventions ("domains") are supported; in both more attenuation is brighter:
+Three pixel conventions (:class:`Domain`) are supported; the formula is the same in all:
 
-``"log"``
-    Line integrals ``L = -ln(I / I0)`` (``radiokit.correct`` with ``domain="log"``).
-``"linear"``
-    The paper's experimental images: the *negative* of the detected intensity, ``-I / I0`` or
-    ``-counts``. Note that ``radiokit.correct`` with ``domain="linear"`` gives ``+I / I0``:
-    negate it first (``to_domain(L, "linear")`` gives ``-exp(-L)``).
+``Domain.LOG`` (``"log"``)
+    Line integrals ``L = -ln(I / I0)``, more attenuation brighter (``radiokit.correct`` with
+    ``domain="log"``).
+``Domain.LINEAR`` (``"linear"``)
+    Flat-field-corrected transmission ``I / I0``, more attenuation darker (``radiokit.correct``
+    with ``domain="linear"``).
+``Domain.NEGATIVE`` (``"negative"``)
+    The paper's experimental images, which the paper calls its linear images: the *negative*
+    transmission ``-I / I0`` (or ``-counts``), more attenuation brighter.
+    ``to_domain(L, "negative")`` gives ``-exp(-L)``.
+
+``NEGATIVE`` is ``-LINEAR``, so contrasts, CNRs and Weber contrasts change sign between the two
+while improvement factors and change ratios (ratios of contrasts) do not.
 """
 from __future__ import annotations
 
+import enum
 import numbers
 
 import numpy as np
 
 from radiokit.measure import ROI
 
-__all__ = ["compression_contrast", "difference", "to_domain", "DOMAINS"]
+__all__ = ["Domain", "compression_contrast", "difference", "to_domain", "DOMAINS"]
 
-DOMAINS = ("log", "linear")
+
+class Domain(enum.StrEnum):
+    """A pixel convention: what a pixel value means (see the module docstring)."""
+
+    LOG = "log"  #: line integral -ln(I/I0)
+    LINEAR = "linear"  #: transmission I/I0
+    NEGATIVE = "negative"  #: negative transmission -I/I0, the paper's experimental images
+
+    @classmethod
+    def parse(cls, value, name: str = "domain") -> Domain:
+        """``value`` as a :class:`Domain`; ValueError naming ``name`` and the choices otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"{name} must be one of {DOMAINS}, got {value!r}") from None
+
+    @property
+    def paper_name(self) -> str:
+        """What the paper and the printed tables call it: its negative images are its "linear" ones."""
+        return "linear" if self is Domain.NEGATIVE else self.value
+
+
+#: Every domain's name, for messages and argument choices.
+DOMAINS = tuple(d.value for d in Domain)
 
 
 def _image(image, name) -> np.ndarray:
@@ -50,18 +81,19 @@ def _pair(reference, registered):
     return ref, reg
 
 
-def _check_domain(domain):
-    if domain not in DOMAINS:
-        raise ValueError(f"domain must be one of {DOMAINS}, got {domain!r}")
-
-
-def _check_linear_sign(image, name):
-    # The formula is the same in both conventions, but +I/I0 instead of -I/I0 turns every
-    # brightness and contrast upside down. Most pixels of a real "linear" image are < 0.
-    if np.median(image) > 0:
-        raise ValueError(f"{name}: domain='linear' expects the paper's negative intensities "
+def _check_sign(image, name, domain: Domain):
+    # The formula is the same in every convention, but +I/I0 given as -I/I0 (or the reverse)
+    # turns every brightness and contrast upside down: transmission is positive, its negative not.
+    med = np.median(image)
+    if domain is Domain.NEGATIVE and med > 0:
+        raise ValueError(f"{name}: domain='negative' expects the paper's negative intensities "
                          "(pixel = -I/I0 or -counts, more attenuation brighter), but most pixels "
-                         "are positive; pass the negated image (radiokit.correct's 'linear' is +I/I0)")
+                         "are positive; for transmission I/I0 (radiokit.correct's 'linear') pass "
+                         "domain='linear'")
+    if domain is Domain.LINEAR and med < 0:
+        raise ValueError(f"{name}: domain='linear' expects transmission I/I0 (positive), but most "
+                         "pixels are negative; for the paper's negative intensities -I/I0 pass "
+                         "domain='negative'")
 
 
 def difference(reference, registered) -> np.ndarray:
@@ -92,23 +124,29 @@ def difference(reference, registered) -> np.ndarray:
     return (np.asarray(ref, np.float64) - reg).astype(np.float32)
 
 
-def to_domain(line_integral, domain: str) -> np.ndarray:
-    """A line-integral image in ``domain``: unchanged for ``"log"``, ``-exp(-L)`` for ``"linear"``.
+def to_domain(line_integral, domain: Domain | str) -> np.ndarray:
+    """A line-integral image ``L = -ln(I/I0)`` in ``domain`` (float32).
 
-    ``-exp(-L)`` is ``-I / I0``, the paper's experimental convention (negative detected
-    intensity, more attenuation brighter).
+    ``"log"``: unchanged; ``"linear"``: ``I/I0 = exp(-L)``; ``"negative"``: ``-I/I0 = -exp(-L)``,
+    the paper's experimental convention (more attenuation brighter).
 
     Examples
     --------
-    >>> to_domain([[0.0, np.log(2.0)]], "linear")
+    >>> to_domain([[0.0, np.log(2.0)]], "negative")
     array([[-1. , -0.5]], dtype=float32)
+    >>> to_domain([[0.0, np.log(2.0)]], Domain.LINEAR)
+    array([[1. , 0.5]], dtype=float32)
     """
-    _check_domain(domain)
+    domain = Domain.parse(domain)
     L = np.asarray(_image(line_integral, "line_integral"), np.float64)
-    return (L if domain == "log" else -np.exp(-L)).astype(np.float32)
+    if domain is Domain.LOG:
+        return L.astype(np.float32)
+    t = np.exp(-L)
+    return (t if domain is Domain.LINEAR else -t).astype(np.float32)
 
 
-def compression_contrast(reference, registered, k: float = 1.0, *, domain: str = "log", mask=None) -> np.ndarray:
+def compression_contrast(reference, registered, k: float = 1.0, *, domain: Domain | str = "log",
+                         mask=None) -> np.ndarray:
     """The paper's enhanced image: ``reference + k (D - mean D)`` with ``D = reference - registered``.
 
     Parameters
@@ -119,9 +157,10 @@ def compression_contrast(reference, registered, k: float = 1.0, *, domain: str =
         A less compressed step registered onto ``reference`` (``moving(x + d(x))``), same domain.
     k : float
         Multiplying factor of the compression-induced contrast (the paper: 1 and 2).
-    domain : {"log", "linear"}
-        ``"log"``: line integrals ``-ln(I/I0)``. ``"linear"``: negative intensities ``-I/I0``
-        or ``-counts``. Both are "more attenuation brighter"; the formula is the same.
+    domain : Domain or {"log", "linear", "negative"}
+        ``"log"``: line integrals ``-ln(I/I0)``. ``"linear"``: transmission ``I/I0``.
+        ``"negative"``: the paper's negative intensities ``-I/I0`` or ``-counts``. The formula
+        is the same in all three; the domain is checked against the image's sign.
     mask : (rows, cols) bool array or ROI, optional
         Where ``mean D`` is taken; default the whole image (the paper: "mean intensity of
         difference image").
@@ -134,17 +173,19 @@ def compression_contrast(reference, registered, k: float = 1.0, *, domain: str =
     ------
     ValueError
         If the shapes differ, a value or ``k`` is not finite, ``domain`` is unknown, the mask is
-        empty, of another shape or outside the image, or a ``"linear"`` image is mostly positive
-        (``+I/I0`` given where ``-I/I0`` is expected).
+        empty, of another shape or outside the image, or the image's sign contradicts the domain
+        (a mostly positive ``"negative"`` image, a mostly negative ``"linear"`` one).
 
     Notes
     -----
-    **Sign conventions.** In both domains a brighter pixel means more attenuation, so an
+    **Sign conventions.** In ``"log"`` and ``"negative"`` a brighter pixel means more
+    attenuation (``"linear"`` is ``"negative"`` upside down: every contrast changes sign, every
+    ratio of contrasts stays), so an
     attenuating inclusion has a positive contrast (inclusion minus background) and
     ``D = reference - registered`` is the change of brightness from the less compressed step to
     the most compressed one. Compression thins every column, so ``D < 0`` nearly everywhere:
     ``D = L_ref - L_reg`` in ``"log"``, ``D = I_reg - I_ref`` (in units of ``I0``) in
-    ``"linear"``. Subtracting ``mean D`` keeps the overall level (``D - mean D`` is positive
+    ``"negative"``. Subtracting ``mean D`` keeps the overall level (``D - mean D`` is positive
     where the image darkened less than on average and negative where it darkened more) and does
     not change any contrast: for ROI means,
 
@@ -169,7 +210,8 @@ def compression_contrast(reference, registered, k: float = 1.0, *, domain: str =
       improvement is ``1 - k r_i / (1 - r_i)``: 1 for a rigid inclusion, ``1 - k r / (1 - r)``
       for one as soft as the background. The elasticity signal is the difference between the
       two; in this model the factor itself does not exceed 1.
-    - ``"linear"``: the intensity is exponential in the line integral, ``I = I0 exp(-L)``, so
+    - ``"negative"`` (and ``"linear"``): the intensity is exponential in the line integral,
+      ``I = I0 exp(-L)``, so
       part of ``D`` needs no stiffness at all. Thinning the background by ``r t`` multiplies the
       transmitted intensity, and with it the inclusion-background intensity difference, by
       ``exp(mu_bg r t)`` whatever the inclusion's stiffness; to first order in ``dmu c`` the
@@ -196,13 +238,12 @@ def compression_contrast(reference, registered, k: float = 1.0, *, domain: str =
     array([[3.75, 3.75],
            [6.75, 3.75]], dtype=float32)
     """
-    _check_domain(domain)
+    domain = Domain.parse(domain)
     ref, reg = _pair(reference, registered)
     if isinstance(k, bool) or not isinstance(k, numbers.Real) or not np.isfinite(k):
         raise ValueError(f"k must be a finite real number, got {k!r}")
-    if domain == "linear":
-        _check_linear_sign(ref, "reference")
-        _check_linear_sign(reg, "registered")
+    _check_sign(ref, "reference", domain)
+    _check_sign(reg, "registered", domain)
     ref64 = np.asarray(ref, np.float64)
     d = ref64 - reg
     if mask is None:

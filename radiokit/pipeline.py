@@ -1,22 +1,26 @@
 """From an experiment file to compression-induced contrast, measurements and a report.
 
 ``process(path, config) -> Result`` runs the paper's chain on one experiment file (the lab's or a
-simulated one; DESIGN.md's layout):
+simulated one; DESIGN.md's layout) as a few public steps, each returning a typed record:
 
-1. calibrate from the file's own darks and flats, correct every projection to line integrals
-   (``-ln(I/I0)``), average the frames of each step;
-2. find the inclusion and a background rectangle beside it on the reference (the most
-   compressed step), or take them from the configuration, and crop around them;
-3. register every step onto the reference, and each step onto the next (residual complexity by
-   default);
-4. enhance the reference with the step before it, for every k, in both domains: ``log`` (line
-   integrals) and ``linear`` (the paper's experimental images: the negative of the detected
-   intensity, ``-I/I0``);
-5. measure contrast, CNR, Weber contrast, the improvement factor per k, and the inclusion /
-   background intensity-change ratio of every registered pair; for a simulated file, the
-   registration's end-point error against the stored truth;
-6. write ``results.h5`` (corrected steps, registered images, fields, differences, enhanced
-   images), ``results.json`` and ``report.html`` with its figures.
+1. :func:`load_steps` -> :class:`Steps`: calibrate from the file's own darks and flats, correct
+   every projection to line integrals (``-ln(I/I0)``), average the frames of each step;
+2. :func:`choose_rois` -> :class:`RoiChoice`: the inclusion and a background rectangle beside it
+   on the reference (the most compressed step), or the configuration's, and the crop around them;
+3. :func:`register_pairs` -> :class:`RegisteredPair` per pair: every step onto the reference and
+   each step onto the next (residual complexity by default);
+4. :func:`enhance_pair` -> :class:`Enhancement` per domain: the reference enhanced with the step
+   before it, for every k, in the log domain (line integrals) and the paper's negative domain
+   (``-I/I0``, :class:`radiokit.enhance.Domain`; the paper's "linear" images);
+5. :func:`measure_domains` -> :class:`radiokit.results.DomainMeasures` per domain: contrast, CNR,
+   Weber contrast and the improvement factor per k (:func:`radiokit.measure.summary`);
+6. :func:`check_pairs` -> :class:`radiokit.results.PairResult` per pair: the intensity-change
+   ratio and the registration's checks; for a simulated file, its end-point error against the
+   stored truth.
+
+``process`` then writes ``results.h5`` (corrected steps, registered images, fields, differences,
+enhanced images), ``results.json`` (:meth:`radiokit.results.Results.to_json`, read back with
+:func:`radiokit.results.load_results`) and ``report.html`` with its figures.
 
 ``process_many(paths, config, scheduler=None)`` runs many files in parallel on Dask (a local
 cluster by default, or the scheduler at an address), with one progress bar over all of them.
@@ -38,7 +42,8 @@ Example (a small synthetic experiment written here; real files come from ``radio
     ...         _ = w.append(frame(tb, ti), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     >>> res = process(os.path.join(d, "exp.h5"), Config(crop_mm=None, report=False,
     ...               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=os.path.join(d, "results"))
-    >>> res.results["improvement_factor"]["1"] > 1, res.results["improvement_factor"]["2"] > res.results["improvement_factor"]["1"]
+    >>> factor = res.record.improvement_factor
+    >>> factor[1.0] > 1, factor[2.0] > factor[1.0]
     (True, True)
 """
 from __future__ import annotations
@@ -51,20 +56,27 @@ from pathlib import Path
 
 import numpy as np
 
+from radiokit.enhance import Domain
 from radiokit.errors import FormatError
-from radiokit.measure import PAPER
+from radiokit.measure import PAPER, ROI
+from radiokit.results import Bound, DomainMeasures, KMeasure, PairResult, Results, Rois, k_label
 
-__all__ = ["Config", "Result", "process", "process_many", "output_folders", "PAPER"]
+__all__ = ["Config", "Result", "Steps", "RoiChoice", "RegisteredPair", "Enhancement", "Images", "process",
+           "load_steps", "choose_rois", "register_pairs", "enhance_pair", "measure_domains", "check_pairs",
+           "process_many", "output_folders", "PAPER", "DOMAINS"]
 
+#: The domains every run computes: line integrals, and the paper's negative transmission -I/I0.
+DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 
 
 @dataclass
 class Config:
     """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in pixels of
     the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
-    (``"mm"``); ``None`` finds them automatically."""
+    (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
+    (the paper's ``-I/I0``, default) or ``"log"``; both are computed."""
     ks: tuple = (1.0, 2.0)
-    domain: str = "linear"            # the headline domain (the paper's: -I/I0); both are computed
+    domain: Domain = Domain.NEGATIVE
     method: str = "rc"
     register_options: dict = field(default_factory=dict)
     crop_mm: float | None = 30.0      # side of the square around the inclusion kept in the outputs; None: all
@@ -78,30 +90,116 @@ class Config:
     cross_check: str | None = "ncc"   # register the main pair again with this similarity and flag disagreement
 
     def __post_init__(self):
-        if self.domain not in ("log", "linear"):
-            raise ValueError(f"domain={self.domain!r}: expected 'log' or 'linear'")
+        self.domain = Domain.parse(self.domain, "domain")
+        if self.domain not in DOMAINS:
+            raise ValueError(f"domain={self.domain.value!r}: the pipeline computes "
+                             f"{' and '.join(repr(d.value) for d in DOMAINS)}")
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
         self.ks = tuple(float(k) for k in self.ks)
         if not self.ks or not all(np.isfinite(self.ks)):
             raise ValueError(f"ks={self.ks}: expected finite enhancement factors")
+        if len(set(self.ks)) != len(self.ks):
+            raise ValueError(f"ks={self.ks}: each enhancement factor once")
+
+
+@dataclass(frozen=True)
+class Steps:
+    """The corrected line integral of each compression step (mean of its frames), least
+    compressed first, with the step numbers, compression ratios, pixel size and the seconds spent."""
+    images: np.ndarray
+    numbers: tuple[int, ...]
+    ratios: tuple[float, ...]
+    pixel_mm: float
+    timings: dict
+
+
+@dataclass(frozen=True)
+class RoiChoice:
+    """The inclusion and background ROIs and the crop, all in full-frame pixels."""
+    inclusion: ROI
+    background: ROI
+    crop: tuple[int, int, int, int]
+
+    def cropped(self) -> tuple[ROI, ROI]:
+        """The two ROIs in the cropped image's pixels."""
+        r0, c0 = self.crop[0], self.crop[2]
+        return self.inclusion.shifted(-r0, -c0), self.background.shifted(-r0, -c0)
+
+    def slices(self) -> tuple[slice, slice]:
+        return slice(self.crop[0], self.crop[1]), slice(self.crop[2], self.crop[3])
+
+
+@dataclass(frozen=True)
+class RegisteredPair:
+    """Step ``moving`` (an index into :attr:`Steps.images`) registered onto step ``reference``:
+    the registration with its field and confidence cropped, the warped moving step (warped whole,
+    then cropped: no border effects) and, for the cross-checked pair, :func:`cross_check`."""
+    moving: int
+    reference: int
+    registration: object
+    warped: np.ndarray
+    cross_check: dict | None = None
+
+
+@dataclass(frozen=True)
+class Enhancement:
+    """The main pair in one domain: reference, registered step, ``D = reference - registered``
+    (:func:`radiokit.enhance.difference`) and the enhanced image per k, in the order of the ks."""
+    domain: Domain
+    reference: np.ndarray
+    registered: np.ndarray
+    difference: np.ndarray
+    images: tuple[tuple[float, np.ndarray], ...]
+
+
+@dataclass(frozen=True)
+class Images:
+    """The images of a run (cropped): what ``results.h5`` and the report show."""
+    steps: np.ndarray
+    reference: np.ndarray
+    registered: np.ndarray
+    moving: np.ndarray
+    displacement: np.ndarray
+    det_j: np.ndarray
+    confidence: np.ndarray | None
+    enhanced: dict  #: Domain -> Enhancement
+    profiles: dict
+    truth_displacement: np.ndarray | None = None
+    epe_map: np.ndarray | None = None
+
+    def as_dict(self, record: Results) -> dict:
+        """The arrays keyed by name (the report's and ``Result.arrays``' form)."""
+        out = {"steps": self.steps, "step_numbers": list(record.steps), "ratios": list(record.ratios),
+               "reference": self.reference, "registered": self.registered, "moving": self.moving,
+               "displacement": self.displacement, "det_j": self.det_j, "confidence": self.confidence,
+               "enhanced": {d.value: {k_label(k): img for k, img in e.images} for d, e in self.enhanced.items()},
+               "reference_by_domain": {d.value: e.reference for d, e in self.enhanced.items()},
+               "difference": {d.value: e.difference for d, e in self.enhanced.items()}, "profiles": self.profiles}
+        if self.truth_displacement is not None:
+            out["truth_displacement"], out["epe_map"] = self.truth_displacement, self.epe_map
+        return out
 
 
 @dataclass
 class Result:
-    """The numbers (``results``, as in results.json), the images (``arrays``), the files."""
-    results: dict
-    arrays: dict
+    """One run: the numbers (``record``, :class:`radiokit.results.Results`), the images, the files."""
+    record: Results
+    images: Images
     files: dict
 
+    @property
+    def results(self) -> dict:
+        """The numbers as in ``results.json`` (:meth:`radiokit.results.Results.to_json`)."""
+        return self.record.to_json()
 
-def _key(k) -> str:
-    return f"{k:g}"
+    @property
+    def arrays(self) -> dict:
+        """The images by name (:meth:`Images.as_dict`)."""
+        return self.images.as_dict(self.record)
 
 
 def _roi(value, units, pixel_mm):
-    from radiokit.measure import ROI
-
     if value is None:
         return None
     if isinstance(value, ROI):
@@ -114,9 +212,9 @@ def _roi(value, units, pixel_mm):
     return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
 
 
-def _load_steps(path, progress):
+def load_steps(path, progress: bool = False) -> Steps:
     """Calibrate from the file's darks and flats; the corrected line integral of each step (mean
-    of its frames), step numbers, ratios, pixel size."""
+    of its frames), step numbers, ratios, pixel size (:class:`Steps`)."""
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration
@@ -148,7 +246,8 @@ def _load_steps(path, progress):
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
         pixel_mm = float(meta.get("pixel_size_mm", 0.05))
-    return np.stack(images), numbers, ratios, pixel_mm, dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t)
+    return Steps(np.stack(images), tuple(numbers), tuple(ratios), pixel_mm,
+                 dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t))
 
 
 def _sim_truth(path, numbers):
@@ -226,18 +325,18 @@ def _step_gaps_mm(path, numbers):
     return out
 
 
-def _bound(path, numbers, truth, bg_log_mean, ks):
+def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
     """The improvement factor's bound (:func:`radiokit.measure.improvement_bound`) for the main
     pair: ``mu_b`` from a simulated file's scene, else from the reference's background ROI
-    (``mean L_bg / gap``: through the plates a background column spans the gap); None where the
-    gaps are not recorded or the simulated beam runs from the side (no bound holds there)."""
+    (``mean L_bg / gap``: through the plates a background column spans the gap). Returns the
+    :class:`Bound` and ``{Domain: {k: bound}}``, empty where the gaps are not recorded or the
+    simulated beam runs from the side (no bound holds there)."""
     import tomllib
 
     from radiokit.measure import improvement_bound
 
     gaps = _step_gaps_mm(path, numbers)
     dg = gaps[-2] - gaps[-1]
-    out = {"mu_dg": None, "basis": "", "domains": {}}
     view, mu_b = None, None
     scene_text = truth.get("scene_toml") if truth else None
     if scene_text:
@@ -248,27 +347,163 @@ def _bound(path, numbers, truth, bg_log_mean, ks):
         except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError):
             pass
     if view == "side":
-        out["basis"] = "beam from the side: columns lengthen as the body expands, no bound holds"
-        return out
+        return Bound(None, "beam from the side: columns lengthen as the body expands, no bound holds"), {}
     if not (np.isfinite(dg) and dg >= 0 and np.isfinite(gaps[-1]) and gaps[-1] > 0):
-        out["basis"] = "plate gaps not recorded: no bound"
-        return out
+        return Bound(None, "plate gaps not recorded: no bound"), {}
     if mu_b is not None:
-        out["basis"] = "through the plates; mu_b from the simulated scene, gaps from the file"
+        basis = "through the plates; mu_b from the simulated scene, gaps from the file"
     else:
         mu_b = max(bg_log_mean, 0.0) / gaps[-1]
-        out["basis"] = ("assumes the beam through the plates; mu_b = background line integral of the reference "
-                        "/ its gap, gaps from the file")
-    out["mu_dg"] = mu_b * dg
-    out["domains"] = {dom: {_key(k): improvement_bound(k, mu_b, dg, dom) if k >= 0 else None for k in ks}
-                      for dom in ("log", "linear")}
-    return out
+        basis = ("assumes the beam through the plates; mu_b = background line integral of the reference "
+                 "/ its gap, gaps from the file")
+    # improvement_bound's "linear" holds for -I/I0 as for I/I0: a ratio of contrasts ignores their sign
+    name = {Domain.LOG: "log", Domain.NEGATIVE: "linear"}
+    return Bound(mu_b * dg, basis), {dom: {k: improvement_bound(k, mu_b, dg, name[dom]) if k >= 0 else None
+                                           for k in ks} for dom in DOMAINS}
 
 
 def _epe(displacement, truth, mask):
     e = np.sqrt(((displacement - truth) ** 2).sum(axis=0))
     e = e[mask] if mask is not None and mask.any() else e.ravel()
     return float(np.median(e)), float(np.percentile(e, 95))
+
+
+def _bounds(roi: ROI) -> tuple[int, int, int, int]:
+    return roi.row0, roi.row1, roi.col0, roi.col1
+
+
+def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
+    """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
+    on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
+    a square of ``crop_mm`` around the inclusion, grown to hold the background (whole frame
+    without ``crop_mm``)."""
+    from radiokit.measure import find_rois
+
+    ref = steps.images[-1]
+    inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_mm)
+    bg = _roi(cfg.background, cfg.roi_units, steps.pixel_mm)
+    if inc is None or bg is None:
+        mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
+        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_mm=steps.pixel_mm)
+        inc = inc or auto_inc
+        bg = bg or auto_bg
+    for name, roi in (("inclusion", inc), ("background", bg)):
+        if not (0 <= roi.row0 < roi.row1 <= ref.shape[0] and 0 <= roi.col0 < roi.col1 <= ref.shape[1]):
+            raise ValueError(f"{name} ROI {roi} lies outside the {ref.shape} frame")
+    if not cfg.crop_mm:
+        return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
+    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_mm)))
+    # keep the background rectangle inside the crop
+    r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
+    c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
+    return RoiChoice(inc, bg, (r0, r1, c0, c1))
+
+
+def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") -> tuple[RegisteredPair, ...]:
+    """Register every step onto the reference and each onto the next, on the whole frame (the
+    body's outline carries most of the motion of a smooth phantom: a crop inside the body leaves
+    little but the inclusion to register on); fields, confidence and warped steps are then
+    cropped. The main pair (the step before the reference) is registered again with
+    ``cfg.cross_check`` and the two compared (:func:`cross_check`)."""
+    from tqdm.auto import tqdm
+
+    from radiokit.register import register
+
+    images, n = steps.images, len(steps.numbers)
+    pairs = [(i, n - 1) for i in range(n - 1)] + [(i, i + 1) for i in range(n - 2)]
+    body_full = _body_mask(images[-1])
+    win = rois.slices()
+    out = []
+    for i, j in tqdm(pairs, desc=f"register {label}", unit="pair", disable=not cfg.progress):
+        reg = register(images[j], images[i], cfg.method, **cfg.register_options)
+        check = None
+        if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
+            other = register(images[j], images[i], cfg.cross_check, **cfg.register_options)
+            check = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
+        warped = reg.warp(images[i])[win]  # warped whole, then cropped: no border effects
+        reg.displacement = np.ascontiguousarray(reg.displacement[(slice(None), *win)])
+        if reg.confidence is not None:
+            reg.confidence = np.ascontiguousarray(reg.confidence[win])
+        out.append(RegisteredPair(i, j, reg, warped, check))
+    return tuple(out)
+
+
+def enhance_pair(reference, registered, ks, domains=DOMAINS) -> dict:
+    """The main pair in each domain (:class:`Enhancement`): both line-integral images converted
+    (:func:`radiokit.enhance.to_domain`), their difference and the enhanced image per k
+    (:func:`radiokit.enhance.compression_contrast`)."""
+    from radiokit.enhance import compression_contrast, difference, to_domain
+
+    out = {}
+    for dom in domains:
+        ref_d, reg_d = to_domain(reference, dom), to_domain(registered, dom)
+        images = tuple((k, compression_contrast(ref_d, reg_d, k, domain=dom)) for k in ks)
+        out[dom] = Enhancement(dom, ref_d, reg_d, difference(ref_d, reg_d), images)
+    return out
+
+
+def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None, source="") -> dict:
+    """Contrast, CNR and Weber contrast of the reference and each enhanced image, and the
+    improvement factor per k, per domain (:func:`radiokit.measure.summary`), with each k's bound
+    from ``bounds`` (``{Domain: {k: bound}}``).
+
+    Raises
+    ------
+    ValueError
+        If the reference contrast is zero in a domain (the improvement factor is undefined; see
+        :func:`radiokit.measure.improvement_factor`), naming ``source`` and the domain.
+    """
+    from radiokit.measure import summary
+
+    out = {}
+    for dom, e in enhanced.items():
+        try:
+            s = summary(e.reference, dict(e.images), inclusion, background)
+        except ValueError as exc:
+            raise ValueError(f"{source}: {dom.value} domain: {exc}") from None
+        per_k = tuple(KMeasure(k, m["contrast"], m["cnr"], m["weber"], s["improvement_factor"][key],
+                               ((bounds or {}).get(dom) or {}).get(k))
+                      for (k, _), (key, m) in zip(e.images, s["enhanced"].items()))
+        r = s["reference"]
+        out[dom] = DomainMeasures(dom, r["contrast"], r["cnr"], r["weber"], per_k)
+    return out
+
+
+def check_pairs(pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background: ROI, truth=None,
+                crop=None) -> tuple[PairResult, ...]:
+    """Per registered pair (:class:`radiokit.results.PairResult`): the intensity-change ratio in
+    each domain, the registration's quality, whether the motion was observed in the ROIs, the
+    cross-check (a disagreement flags the pair), and for a simulated file the end-point error
+    against the truth (over the body, and over the two ROIs where the images carry the motion)."""
+    from radiokit.enhance import to_domain
+    from radiokit.measure import change_ratio
+    from radiokit.register import roi_observed
+
+    body = _body_mask(steps_c[-1])
+    rois_mask = inclusion.mask(body.shape) | background.mask(body.shape)
+    out = []
+    for p in pairs:
+        a, b = numbers[p.moving], numbers[p.reference]
+        reg = p.registration
+        ratios = {dom: change_ratio(to_domain(p.warped, dom), to_domain(steps_c[p.reference], dom), inclusion,
+                                    background) for dom in DOMAINS}
+        q = dataclasses.asdict(reg.quality)
+        observed = None
+        if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
+            observed = {"inclusion": roi_observed(reg.confidence, inclusion),
+                        "background": roi_observed(reg.confidence, background)}
+        if p.cross_check is not None and not p.cross_check["agree"]:
+            why = (f"disagrees with {p.cross_check['method']} by {p.cross_check['median_px']:.1f} px (median over "
+                   f"the body): at least one of the two is wrong")
+            q["ok"], q["reason"] = False, f"{q['reason']}; {why}" if q.get("reason") else why
+        epe = None
+        if truth and (a, b) in truth["fields"]:
+            tf = truth["fields"][(a, b)][(slice(None), *crop)]
+            epe = dict(zip(("epe_median", "epe_p95"), _epe(reg.displacement, tf, body)))
+            # a uniform slab's interior moves unseen: there the field is the regulariser's guess
+            epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
+        out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe))
+    return tuple(out)
 
 
 def process(path, config: Config | None = None, *, out_dir=None, overwrite=False) -> Result:
@@ -294,212 +529,109 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     return res
 
 
+def _timed(timings, name, fn, *args, **kwargs):
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    timings[name] = time.perf_counter() - t
+    return out
+
+
 def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
-    """:func:`process` writing into ``out_dir``, a fresh folder."""
-    from radiokit.enhance import compression_contrast, to_domain
-    from radiokit.measure import ROI, change_ratio, cnr, contrast, find_rois, profile, weber
-    from radiokit.register import jacobian_determinant, register, roi_observed
-
+    """:func:`process` writing into ``out_dir``, a fresh folder: the steps composed."""
     t0 = time.perf_counter()
-    steps, numbers, ratios, pixel_mm, timings = _load_steps(path, cfg.progress)
-    truth = _sim_truth(path, numbers)
-    ref_full = steps[-1]
-
-    # ROIs and the crop (full-frame pixels first)
-    inc = _roi(cfg.inclusion, cfg.roi_units, pixel_mm)
-    bg = _roi(cfg.background, cfg.roi_units, pixel_mm)
-    if inc is None or bg is None:
-        mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
-        auto_inc, auto_bg = find_rois(ref_full, inclusion_mask=mask, pixel_mm=pixel_mm)
-        inc = inc or auto_inc
-        bg = bg or auto_bg
-    for name, roi in (("inclusion", inc), ("background", bg)):
-        if not (0 <= roi.row0 < roi.row1 <= ref_full.shape[0] and 0 <= roi.col0 < roi.col1 <= ref_full.shape[1]):
-            raise ValueError(f"{name} ROI {roi} lies outside the {ref_full.shape} frame")
-    if cfg.crop_mm:
-        crop = _crop_box(inc, ref_full.shape, int(round(cfg.crop_mm / pixel_mm)))
-        # keep the background rectangle inside the crop
-        r0, r1, c0, c1 = crop
-        if not (r0 <= bg.row0 and bg.row1 <= r1 and c0 <= bg.col0 and bg.col1 <= c1):
-            r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
-            c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
-            crop = (r0, r1, c0, c1)
-    else:
-        crop = (0, ref_full.shape[0], 0, ref_full.shape[1])
-    r0, r1, c0, c1 = crop
-
-    # registrations on the whole frame (the body's outline carries most of the motion of a
-    # smooth phantom: a crop inside the body leaves little but the inclusion to register on),
-    # every step onto the reference and each onto the next; the outputs are cropped
+    steps = load_steps(path, cfg.progress)
+    timings = dict(steps.timings)
+    truth = _sim_truth(path, list(steps.numbers))
+    rois = choose_rois(steps, cfg, truth)
+    pairs = _timed(timings, "register_s", register_pairs, steps, rois, cfg, path.name)
+    steps_c = np.ascontiguousarray(steps.images[(slice(None), *rois.slices())])
+    inc_c, bg_c = rois.cropped()
+    main = pairs[len(steps.numbers) - 2]  # the step before the reference, onto it: the paper's pair
+    enhanced = _timed(timings, "enhance_s", enhance_pair, steps_c[-1], main.warped, cfg.ks)
     t = time.perf_counter()
-    n = len(numbers)
-    pairs = [(i, n - 1) for i in range(n - 1)] + [(i, i + 1) for i in range(n - 2)]
-    regs, warped, cross = {}, {}, {}
-    from tqdm.auto import tqdm
-
-    body_full = _body_mask(steps[-1])
-    for i, j in tqdm(pairs, desc=f"register {path.name}", unit="pair", disable=not cfg.progress):
-        reg = register(steps[j], steps[i], cfg.method, **cfg.register_options)
-        if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
-            other = register(steps[j], steps[i], cfg.cross_check, **cfg.register_options)
-            cross[(i, j)] = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
-        warped[(i, j)] = reg.warp(steps[i])[r0:r1, c0:c1]  # warped whole, then cropped: no border effects
-        reg.displacement = np.ascontiguousarray(reg.displacement[:, r0:r1, c0:c1])
-        if reg.confidence is not None:
-            reg.confidence = np.ascontiguousarray(reg.confidence[r0:r1, c0:c1])
-        regs[(i, j)] = reg
-    timings["register_s"] = time.perf_counter() - t
-    steps = np.ascontiguousarray(steps[:, r0:r1, c0:c1])
-    inc_c = ROI(inc.row0 - r0, inc.row1 - r0, inc.col0 - c0, inc.col1 - c0)
-    bg_c = ROI(bg.row0 - r0, bg.row1 - r0, bg.col0 - c0, bg.col1 - c0)
-    reference = steps[-1]
-    body = _body_mask(reference)
-
-    # enhancement with the step before the reference (the paper's pair), both domains
-    t = time.perf_counter()
-    main = regs[(n - 2, n - 1)]
-    registered = warped[(n - 2, n - 1)]
-    enhanced, ref_dom, diff = {}, {}, {}
-    for dom in ("log", "linear"):
-        ref_d = to_domain(reference, dom)
-        reg_d = to_domain(registered, dom)
-        ref_dom[dom] = ref_d
-        diff[dom] = (ref_d - reg_d).astype(np.float32)
-        enhanced[dom] = {_key(k): compression_contrast(ref_d, reg_d, k, domain=dom) for k in cfg.ks}
-    timings["enhance_s"] = time.perf_counter() - t
-
-    # measurements
-    t = time.perf_counter()
-    domains = {}
-    for dom in ("log", "linear"):
-        c_ref = contrast(ref_dom[dom], inc_c, bg_c)
-        d = {"contrast_reference": c_ref, "cnr_reference": cnr(ref_dom[dom], inc_c, bg_c),
-             "weber_reference": weber(ref_dom[dom], inc_c, bg_c), "contrast": {}, "cnr": {}, "weber": {},
-             "improvement_factor": {}}
-        for k, img in enhanced[dom].items():
-            d["contrast"][k] = contrast(img, inc_c, bg_c)
-            d["cnr"][k] = cnr(img, inc_c, bg_c)
-            d["weber"][k] = weber(img, inc_c, bg_c)
-            d["improvement_factor"][k] = d["contrast"][k] / c_ref if c_ref != 0 else float("nan")
-        domains[dom] = d
-    bound = _bound(path, numbers, truth, float(np.mean(ref_dom["log"][bg_c.slices], dtype=np.float64)), cfg.ks)
-    for dom in ("log", "linear"):
-        domains[dom]["bound"] = bound["domains"].get(dom, {})
-    changes, quality = {}, {}
-    for (i, j), reg in regs.items():
-        name = f"{numbers[i]}->{numbers[j]}"
-        changes[name] = {dom: change_ratio(to_domain(warped[(i, j)], dom), to_domain(steps[j], dom), inc_c, bg_c)
-                         for dom in ("log", "linear")}
-        q = dataclasses.asdict(reg.quality)
-        q = {k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in q.items()}
-        q["method"] = reg.method
-        if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
-            q["rois_observed"] = {"inclusion": roi_observed(reg.confidence, inc_c),
-                                  "background": roi_observed(reg.confidence, bg_c)}
-        if (i, j) in cross:
-            q["cross_check"] = cross[(i, j)]
-            if not cross[(i, j)]["agree"]:
-                q["ok"] = False
-                why = (f"disagrees with {cross[(i, j)]['method']} by {cross[(i, j)]['median_px']:.1f} px (median over "
-                       f"the body): at least one of the two is wrong")
-                q["reason"] = f"{q['reason']}; {why}" if q.get("reason") else why
-        if truth and (numbers[i], numbers[j]) in truth["fields"]:
-            tf = truth["fields"][(numbers[i], numbers[j])][:, r0:r1, c0:c1]
-            q["epe_median"], q["epe_p95"] = _epe(reg.displacement, tf, body)
-            # where the images carry the motion: the inclusion and background rectangles (a
-            # uniform slab's interior moves unseen: there the field is the regulariser's guess)
-            q["epe_roi_median"], q["epe_roi_p95"] = _epe(reg.displacement, tf, inc_c.mask(body.shape) | bg_c.mask(body.shape))
-        quality[name] = q
+    bound, bounds = _bound(path, list(steps.numbers), truth,
+                           float(np.mean(enhanced[Domain.LOG].reference[bg_c.slices], dtype=np.float64)), cfg.ks)
+    domains = measure_domains(enhanced, inc_c, bg_c, bounds, str(path))
+    checked = check_pairs(pairs, steps_c, steps.numbers, inc_c, bg_c, truth, rois.slices())
     mid = (inc_c.row0 + inc_c.row1) // 2
-    prof = {f"step {s}": profile(steps[k], (mid, 0), (mid, steps.shape[2] - 1))[1].tolist()
-            for k, s in enumerate(numbers)}
+    images = _images(steps_c, steps.numbers, main, enhanced, truth, rois, mid)
     timings["measure_s"] = time.perf_counter() - t
-
-    main_name = f"{numbers[-2]}->{numbers[-1]}"
-    results = {
-        "source": str(path), "scene": truth.get("scene") if truth else None, "simulated": truth is not None,
-        "pixel_mm": pixel_mm, "domain": cfg.domain, "ks": list(cfg.ks), "method": cfg.method,
-        "steps": numbers, "ratios": ratios,
-        "rois": {"crop": list(crop), "inclusion": [inc_c.row0, inc_c.row1, inc_c.col0, inc_c.col1],
-                 "background": [bg_c.row0, bg_c.row1, bg_c.col0, bg_c.col1]},
-        "improvement_factor": dict(domains[cfg.domain]["improvement_factor"]),
-        "domains": domains, "change_ratio": changes, "registration": quality, "main_pair": main_name,
-        "profiles_row": mid, "paper": PAPER, "timings": timings,
-        "bound": {k: v for k, v in bound.items() if k != "domains"},
-    }
-    arrays = {"steps": steps, "step_numbers": numbers, "ratios": ratios, "reference": reference,
-              "registered": registered, "moving": steps[n - 2], "displacement": main.displacement,
-              "det_j": jacobian_determinant(main.displacement), "confidence": main.confidence, "enhanced": enhanced,
-              "reference_by_domain": ref_dom, "difference": diff, "profiles": prof}
-    if truth and (numbers[-2], numbers[-1]) in truth["fields"]:
-        tf = truth["fields"][(numbers[-2], numbers[-1])][:, r0:r1, c0:c1].astype(np.float32)
-        arrays["truth_displacement"] = tf
-        arrays["epe_map"] = np.sqrt(((main.displacement - tf) ** 2).sum(axis=0)).astype(np.float32)
-
-    if cfg.control:
-        ctrl_cfg = dataclasses.replace(cfg, control=None, report=False, progress=False,
-                                       inclusion=(inc.row0, inc.row1, inc.col0, inc.col1),
-                                       background=(bg.row0, bg.row1, bg.col0, bg.col1), roi_units="px")
-        ctrl = process(cfg.control, ctrl_cfg, out_dir=out_dir / "control")
-        results["control"] = {k: ctrl.results[k] for k in ("improvement_factor", "domains", "change_ratio",
-                                                            "registration", "source")}
-
-    files = _write(out_dir, results, arrays, cfg, t0)
-    return Result(results, arrays, files)
+    record = Results(
+        source=str(path), scene=truth.get("scene") if truth else None, simulated=truth is not None,
+        pixel_mm=steps.pixel_mm, domain=cfg.domain, ks=cfg.ks, method=cfg.method, steps=steps.numbers,
+        ratios=steps.ratios, rois=Rois(rois.crop, _bounds(inc_c), _bounds(bg_c)), domains=domains, pairs=checked,
+        main_pair=checked[len(steps.numbers) - 2].name, profiles_row=mid, bound=bound, paper=PAPER, timings=timings,
+        control=_control(cfg, rois, out_dir))
+    files = _write(out_dir, record, images, cfg, t0)
+    return Result(record, images, files)
 
 
-def _write(out_dir, results, arrays, cfg, t0):
-    files = {}
+def _images(steps_c, numbers, main: RegisteredPair, enhanced, truth, rois: RoiChoice, mid) -> Images:
+    from radiokit.measure import profile
+    from radiokit.register import jacobian_determinant
+
+    disp = main.registration.displacement
+    prof = {f"step {s}": profile(steps_c[k], (mid, 0), (mid, steps_c.shape[2] - 1))[1].tolist()
+            for k, s in enumerate(numbers)}
+    tf = epe = None
+    key = (numbers[main.moving], numbers[main.reference])
+    if truth and key in truth["fields"]:
+        tf = truth["fields"][key][(slice(None), *rois.slices())].astype(np.float32)
+        epe = np.sqrt(((disp - tf) ** 2).sum(axis=0)).astype(np.float32)
+    return Images(steps_c, steps_c[-1], main.warped, steps_c[main.moving], disp, jacobian_determinant(disp),
+                  main.registration.confidence, enhanced, prof, tf, epe)
+
+
+def _control(cfg: Config, rois: RoiChoice, out_dir: Path) -> Results | None:
+    """The control experiment processed with the same ROIs (full-frame pixels)."""
+    if not cfg.control:
+        return None
+    ctrl_cfg = dataclasses.replace(cfg, control=None, report=False, progress=False,
+                                   inclusion=_bounds(rois.inclusion), background=_bounds(rois.background),
+                                   roi_units="px")
+    return process(cfg.control, ctrl_cfg, out_dir=out_dir / "control").record
+
+
+def _write(out_dir, record: Results, images: Images, cfg, t0):
     from radiokit.io import atomic_h5
 
+    files = {}
     h5path = out_dir / "results.h5"
     with atomic_h5(h5path) as h5:  # built in memory, one plain write: a full disk is a clean error
-        h5.attrs["source"] = results["source"]
-        h5.attrs["results_json"] = json.dumps(results, default=_jsonable)
+        h5.attrs["source"] = record.source
+        h5.attrs["results_json"] = json.dumps(record.to_json())
         g = h5.create_group("steps")
-        g.create_dataset("line_integral", data=arrays["steps"], compression="gzip", shuffle=True)
-        g.attrs["step"] = np.asarray(arrays["step_numbers"])
-        g.attrs["ratio"] = np.asarray(arrays["ratios"], float)
-        g.attrs["crop"] = np.asarray(results["rois"]["crop"])
+        g.create_dataset("line_integral", data=images.steps, compression="gzip", shuffle=True)
+        g.attrs["step"] = np.asarray(record.steps)
+        g.attrs["ratio"] = np.asarray(record.ratios, float)
+        g.attrs["crop"] = np.asarray(record.rois.crop)
         r = h5.create_group("registration")
         for name in ("registered", "moving", "displacement", "det_j", "confidence"):
-            if arrays.get(name) is not None:  # confidence: where the motion was observed (>= 0.5)
-                r.create_dataset(name, data=arrays[name], compression="gzip", shuffle=True)
-        r.attrs["pair"] = results["main_pair"]
-        if "truth_displacement" in arrays:
-            r.create_dataset("truth_displacement", data=arrays["truth_displacement"], compression="gzip")
-        for dom in ("log", "linear"):
-            e = h5.create_group(f"enhanced/{dom}")
-            e.create_dataset("reference", data=arrays["reference_by_domain"][dom], compression="gzip")
-            e.create_dataset("difference", data=arrays["difference"][dom], compression="gzip")
-            for k, img in arrays["enhanced"][dom].items():
-                e.create_dataset(f"k{k}", data=img, compression="gzip")
+            if getattr(images, name) is not None:  # confidence: where the motion was observed (>= 0.5)
+                r.create_dataset(name, data=getattr(images, name), compression="gzip", shuffle=True)
+        r.attrs["pair"] = record.main_pair
+        if images.truth_displacement is not None:
+            r.create_dataset("truth_displacement", data=images.truth_displacement, compression="gzip")
+        for dom, e in images.enhanced.items():
+            g = h5.create_group(f"enhanced/{dom.value}")
+            g.create_dataset("reference", data=e.reference, compression="gzip")
+            g.create_dataset("difference", data=e.difference, compression="gzip")
+            for k, img in e.images:
+                g.create_dataset(f"k{k_label(k)}", data=img, compression="gzip")
         m = h5.create_group("measurements")
-        for key, roi in results["rois"].items():
+        for key, roi in record.rois.to_json().items():
             m.attrs[key] = np.asarray(roi)
     files["results_h5"] = str(h5path)
-    results["timings"]["total_s"] = time.perf_counter() - t0
+    record.timings["total_s"] = time.perf_counter() - t0
     if cfg.report:
         from radiokit.report import write_report
 
         t = time.perf_counter()
-        files["report"] = str(write_report(out_dir, results, arrays))
-        results["timings"]["report_s"] = time.perf_counter() - t
-        results["timings"]["total_s"] = time.perf_counter() - t0
-    jpath = out_dir / "results.json"
-    jpath.write_text(json.dumps(results, indent=1, default=_jsonable))
-    files["results_json"] = str(jpath)
+        files["report"] = str(write_report(out_dir, record, images))
+        record.timings["report_s"] = time.perf_counter() - t
+        record.timings["total_s"] = time.perf_counter() - t0
+    files["results_json"] = str(record.write_json(out_dir / "results.json"))
     return files
-
-
-def _jsonable(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON-able: {type(o)}")
 
 
 def output_folders(paths, out_root=None) -> list[Path]:

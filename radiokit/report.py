@@ -50,7 +50,8 @@ MIN_EFFECT = 0.01
 
 _DPI = 100
 _MAX_WIDTH_IN = 12.0
-_DOMAIN_ORDER = ("log", "linear")
+_DOMAIN_ORDER = ("log", "negative", "linear")
+_TRANSMISSION = ("negative", "linear")  # intensity domains: -I/I0 (the paper's), I/I0
 _INCLUSION_COLOUR = "#ff3b30"
 _BACKGROUND_COLOUR = "#00c8ff"
 _PROFILE_HALF_ROWS = 1  # profiles average 2 * 1 + 1 rows: one detector row is too noisy to read
@@ -176,18 +177,9 @@ def _ratio_label(ratio):
     return f"{100 * r:.0f} % compression" if 0 <= r <= 1 else f"ratio {r:g}"
 
 
-def _linear_label(img):
-    """The linear images follow either the paper's sign (pixel = -I/I0) or plain I/I0."""
-    v = _finite(img)
-    return "\u2212I/I\u2080" if v.size and np.median(v) < 0 else "I/I\u2080"
-
-
-def _domain_unit(domain, img=None):
-    if domain == "log":
-        return "\u2212ln(I/I\u2080)"
-    if domain == "linear":
-        return _linear_label(img) if img is not None else "linear"
-    return str(domain)
+def _domain_unit(domain):
+    """The pixel's meaning in ``domain`` (radiokit.enhance.Domain's names)."""
+    return {"log": "\u2212ln(I/I\u2080)", "negative": "\u2212I/I\u2080", "linear": "I/I\u2080"}.get(domain, str(domain))
 
 
 # -- the share of the improvement that needs stiffness -------------------------------------------
@@ -252,8 +244,8 @@ def _control_sentence(domain, k, if_stiff, if_control):
     else:
         body = (f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness; "
                 "the rest comes from attenuation alone (the thinning of a denser inclusion).")
-    if domain == "linear":
-        body += (" In the linear domain the detected intensity is exponential in the line integral "
+    if domain in _TRANSMISSION:
+        body += (" In the intensity domain the detected intensity is exponential in the line integral "
                  "(I = I\u2080\u00b7exp(\u2212\u222b\u03bc dl)), so the same thinning changes the intensity "
                  "behind the inclusion and behind the background by different amounts: part of the "
                  "effect needs no stiffness at all.")
@@ -436,7 +428,7 @@ def _fig_profiles(arrays, results, fig_dir):
             ax.plot(x, _row_mean(img, a, b), lw=1.1, label=f"enhanced, {_k_label(k)}")
         shade(ax)
         ax.set_title(f"reference vs enhanced ({dom} domain)", fontsize=9)
-        ax.set_ylabel(_domain_unit(dom, ref), fontsize=8)
+        ax.set_ylabel(_domain_unit(dom), fontsize=8)
     for ax in axes:
         ax.set_xlabel(xlabel, fontsize=8)
         ax.tick_params(labelsize=7)
@@ -692,7 +684,7 @@ def _bound_cnr_rows(results, control):
     reference's (the enhanced image carries the noise of both exposures)."""
     rows = []
     basis = _get(results, "bound", "basis") or ""
-    for dom in ("log", "linear"):
+    for dom in _DOMAIN_ORDER:
         m = _get(results, "domains", dom, default={}) or {}
         cm = _get(control, "domains", dom, default={}) if control else {}
         for k in _k_keys(m.get("improvement_factor")):
@@ -757,8 +749,8 @@ def _plain_language(arrays, results, paper):
         s += ("below 1, the inclusion changed less than the background, as a stiffer inclusion that "
               "deforms less would" if cr < 1 else
               "not below 1: no sign here that the inclusion changed less than the background")
-        if cr < 1 and dom == "linear":
-            s += (", though in the linear domain attenuation alone can also give a ratio below 1 (the "
+        if cr < 1 and dom in _TRANSMISSION:
+            s += (", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
                   "detected intensity is exponential in the line integral)")
         s += "."
         out.append(s)
@@ -979,6 +971,9 @@ def write_report(out_dir, results: dict, arrays: dict) -> Path:
     ``results`` (paths, scene names, registration reasons) is HTML-escaped.
     """
     t0 = time.perf_counter()
+    if hasattr(results, "to_json"):  # the pipeline's records (radiokit.results.Results, pipeline.Images)
+        arrays = arrays.as_dict(results) if hasattr(arrays, "as_dict") else arrays
+        results = results.to_json()
     out_dir = Path(out_dir)
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)

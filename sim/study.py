@@ -246,7 +246,7 @@ def paper_signs(scene, states, *, pixel_mm=0.25, geometry=None) -> Signs:
     geom = geometry if geometry is not None else study_geometry(scene, pixel_mm)
     bright, con = [], []
     for L, mask in step_images(scene, states, geom):
-        neg = to_domain(L, "linear").astype(np.float64)
+        neg = to_domain(L, "negative").astype(np.float64)
         inc, bg = find_rois(L, inclusion_mask=mask, pixel_mm=geom.pixel_size_mm)
         bright.append(float(neg[bg.slices].mean()))
         con.append(contrast(neg, inc, bg))
@@ -269,6 +269,11 @@ def find_inclusion_roi(pair: ImagePair):
     return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)[0]
 
 
+#: This module's domain names -> radiokit.enhance.Domain: its "linear" is the paper's negative
+#: transmission -I/I0 (radiokit's "negative"; radiokit's "linear" is +I/I0).
+_PIXELS = {"log": "log", "linear": "negative"}
+
+
 def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "linear") -> dict:
     """CNR of the reference and of each enhanced image with Poisson noise of ``counts`` open-beam
     quanta per pixel, predicted rather than sampled (so noise-free studies have a CNR that
@@ -285,11 +290,11 @@ def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "li
     L_r, L_m = (float(np.mean(im[bg.slices])) for im in (pair.reference, pair.registered))
     sign = 1.0 if domain == "log" else -1.0
     var_r, var_m = math.exp(sign * L_r) / counts, math.exp(sign * L_m) / counts
-    ref, reg = to_domain(pair.reference, domain), to_domain(pair.registered, domain)
+    ref, reg = to_domain(pair.reference, _PIXELS[domain]), to_domain(pair.registered, _PIXELS[domain])
     out = {"reference": contrast(ref, h.inclusion, bg) / math.sqrt(var_r + float(np.var(ref[bg.slices], dtype=np.float64)))}
     for key in h.improvement[domain]:
         k = float(key)
-        enh = compression_contrast(ref, reg, k, domain=domain)
+        enh = compression_contrast(ref, reg, k, domain=_PIXELS[domain])
         structure = float(np.var(enh[bg.slices], dtype=np.float64))
         out[key] = contrast(enh, h.inclusion, bg) / math.sqrt((1 + k) ** 2 * var_r + k * k * var_m + structure)
     return out
@@ -307,7 +312,7 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
     inc, bg = rois
     out = Headline({}, {}, {}, inclusion=inc, background=bg)
     for dom in ("log", "linear"):
-        ref, reg = to_domain(pair.reference, dom), to_domain(pair.registered, dom)
+        ref, reg = to_domain(pair.reference, _PIXELS[dom]), to_domain(pair.registered, _PIXELS[dom])
         out.change_ratio[dom] = change_ratio(reg, ref, inc, bg)
         out.contrast_reference[dom] = contrast(ref, inc, bg)
         noisy = float(np.std(ref[bg.slices])) > 0
@@ -315,7 +320,7 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
         out.improvement[dom], out.cnr[dom], out.bound[dom] = {}, {}, {}
         for k in ks:
             key = f"{float(k):g}"
-            enh = compression_contrast(ref, reg, float(k), domain=dom)
+            enh = compression_contrast(ref, reg, float(k), domain=_PIXELS[dom])
             out.improvement[dom][key] = improvement_factor(enh, ref, inc, bg)
             out.cnr[dom][key] = cnr(enh, inc, bg) if noisy else math.nan
             out.bound[dom][key] = (improvement_bound(float(k), 1.0, pair.mu_dg, dom) if pair.mu_dg is not None

@@ -180,7 +180,7 @@ def test_pipeline_reports_the_bound_and_cnr_per_domain_and_k(tmp_path):
                                inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=tmp_path / "results")
     r = res.results
     assert r["bound"]["mu_dg"] == pytest.approx(0.16, rel=0.02)
-    for dom in ("log", "linear"):
+    for dom in ("log", "negative"):  # the pipeline's domains: -ln(I/I0), -I/I0
         m = r["domains"][dom]
         for k in ("1", "2"):
             expected = 1.0 if dom == "log" else 1 + float(k) * (1 - math.exp(-r["bound"]["mu_dg"]))

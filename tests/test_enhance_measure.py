@@ -14,7 +14,7 @@ from skimage.measure import profile_line
 
 import radiokit.enhance
 import radiokit.measure
-from radiokit.enhance import compression_contrast, difference, to_domain
+from radiokit.enhance import Domain, compression_contrast, difference, to_domain
 from radiokit.measure import (ROI, change_ratio, cnr, contrast, find_rois, improvement_factor, profile,
                               summary, weber)
 
@@ -84,14 +84,17 @@ def test_enhanced_equals_reference_plus_k_centred_difference(k, outside, inside)
 
 
 @pytest.mark.parametrize("k", [1.0, 2.0])
-def test_linear_domain_same_formula(k):
+def test_negative_domain_same_formula(k):
     # negative intensities: background -0.5, inclusion -0.25 (brighter); D / 8: mean -0.109375,
     # D / 8 - mean = -0.015625 outside, +0.046875 at the inclusion
     ref = (REF - 8) / 8
-    out = compression_contrast(ref, ref - D / 8, k, domain="linear")
+    out = compression_contrast(ref, ref - D / 8, k, domain="negative")
     expected = np.full((4, 4), -0.5 - k * 0.015625)
     expected[1:3, 1:3] = -0.25 + k * 0.046875
     np.testing.assert_array_equal(out, expected)
+    # transmission I/I0 is the same image upside down: the enhanced image is too
+    lin = compression_contrast(-ref, -(ref - D / 8), k, domain=Domain.LINEAR)
+    np.testing.assert_array_equal(lin, -expected)
 
 
 @pytest.mark.parametrize("make_mask", [lambda: ROI(0, 1, 0, 4), lambda: ROI(0, 1, 0, 4).mask((4, 4))])
@@ -113,9 +116,10 @@ def test_inputs_are_not_modified():
 
 def test_to_domain():
     L = np.array([[0.0, np.log(2.0), np.log(4.0)]])
-    np.testing.assert_allclose(to_domain(L, "linear"), [[-1.0, -0.5, -0.25]], rtol=1e-7)
+    np.testing.assert_allclose(to_domain(L, "negative"), [[-1.0, -0.5, -0.25]], rtol=1e-7)
+    np.testing.assert_allclose(to_domain(L, "linear"), [[1.0, 0.5, 0.25]], rtol=1e-7)  # I/I0, as in correct
     np.testing.assert_array_equal(to_domain(L, "log"), L.astype(np.float32))
-    assert to_domain(L, "linear").dtype == np.float32
+    assert all(to_domain(L, d).dtype == np.float32 for d in Domain)
 
 
 # -- improvement factor and change ratio -------------------------------------------------------
@@ -179,10 +183,12 @@ def test_linear_domain_column_model_closed_form(r_inc, k):
     lb, li = MU_BG * T, MU_BG * T + (MU_INC - MU_BG) * C
     lb2, li2 = MU_BG * T * (1 - R), MU_BG * T * (1 - R) + (MU_INC - MU_BG) * C * (1 - r_inc)
     c_before, c_after = math.exp(-lb) - math.exp(-li), math.exp(-lb2) - math.exp(-li2)
-    assert _improvement(r_inc, k, "linear") == pytest.approx(1 + k * (1 - c_before / c_after), rel=1e-4)
+    assert _improvement(r_inc, k, "negative") == pytest.approx(1 + k * (1 - c_before / c_after), rel=1e-4)
+    # I/I0 is -(-I/I0): every contrast changes sign, their ratios do not
+    assert _improvement(r_inc, k, "linear") == pytest.approx(_improvement(r_inc, k, "negative"), rel=1e-6)
 
 
-@pytest.mark.parametrize("domain", ["log", "linear"])
+@pytest.mark.parametrize("domain", ["log", "negative"])
 def test_stiffer_inclusion_improves_more_and_the_gain_scales_with_k(domain):
     """Elasticity's share: a stiff inclusion (thins a fifth as much as the tissue) against a
     control as soft as the background. Stiffer is better in both domains; the gain doubles
@@ -198,16 +204,16 @@ def test_linear_domain_gains_without_any_stiffness_log_domain_does_not():
     inclusion-background intensity difference by exp(mu t r) whatever the stiffness. With
     mu t = 2 an inclusion as soft as the background already improves (1.07 at k = 1 by the
     closed form); in line integrals the same control loses contrast."""
-    soft_lin = {k: _improvement(R, k, "linear") for k in (1.0, 2.0)}
+    soft_lin = {k: _improvement(R, k, "negative") for k in (1.0, 2.0)}
     assert 1.0 < soft_lin[1.0] < soft_lin[2.0]
     assert soft_lin[1.0] == pytest.approx(1.069, abs=0.001)
     soft_log = {k: _improvement(R, k, "log") for k in (1.0, 2.0)}
     assert soft_log[2.0] < soft_log[1.0] < 1.0
     # with a thin background (mu t < 1) the linear domain loses contrast too: exp is then no help
-    assert _improvement(R, 1.0, "linear", mu_bg=0.01) < 1.0
+    assert _improvement(R, 1.0, "negative", mu_bg=0.01) < 1.0
 
 
-@pytest.mark.parametrize("domain", ["log", "linear"])
+@pytest.mark.parametrize("domain", ["log", "negative"])
 def test_sign_convention_inclusion_that_loses_less_attenuation_gets_brighter(domain):
     """Where the inclusion's column loses less attenuation than the background's (its D is
     less negative), D - mean D is positive there: improvement > 1 at k = 1, larger at k = 2."""
@@ -301,7 +307,8 @@ def _nan_ref():
     (lambda: compression_contrast(REF, REF, np.nan), "k must be a finite"),
     (lambda: compression_contrast(REF, REF, "2"), "k must be a finite"),
     (lambda: compression_contrast(REF, REF, domain="counts"), "domain must be one of"),
-    (lambda: compression_contrast(REF, REF, domain="linear"), "negative intensities"),
+    (lambda: compression_contrast(REF, REF, domain="negative"), "negative intensities"),
+    (lambda: compression_contrast(-REF, -REF, domain="linear"), "expects transmission I/I0"),
     (lambda: compression_contrast(REF, REF, mask=np.zeros((4, 4), bool)), "mask is empty"),
     (lambda: compression_contrast(REF, REF, mask=np.ones((4, 4))), "boolean"),
     (lambda: compression_contrast(REF, REF, mask=np.ones((3, 4), bool)), "mask has shape"),
@@ -358,7 +365,7 @@ def _dome_with_blob(domain="log", noise=0.005, centre=(70, 96), radius=12.0, see
     return to_domain(L, domain), r < radius, thickness > 0
 
 
-@pytest.mark.parametrize("domain", ["log", "linear"])
+@pytest.mark.parametrize("domain", ["log", "negative"])
 @pytest.mark.parametrize("pixel_mm", [None, 0.4])
 @pytest.mark.parametrize("centre", [(70, 96), (60, 40), (80, 140)])
 def test_find_rois_on_a_blob(domain, pixel_mm, centre):

@@ -60,7 +60,7 @@ def processed(experiment):
 def test_improvement_and_change_ratio_follow_the_physics(processed):
     res, out = processed
     r = res.results
-    lin, log = r["domains"]["linear"], r["domains"]["log"]
+    lin, log = r["domains"]["negative"], r["domains"]["log"]
     # the paper's domain: improvement above 1 at k = 1, larger at k = 2, IF - 1 proportional to k
     assert lin["improvement_factor"]["1"] > 1.0
     assert lin["improvement_factor"]["2"] > lin["improvement_factor"]["1"]
@@ -82,7 +82,7 @@ def test_improvement_and_change_ratio_follow_the_physics(processed):
         b = int(pair.split("->")[1]) - 1
         dl = float(steps[b][inc.slices].mean() - steps[b][bg.slices].mean())
         assert 0 < dl < (MU_I - MU_B) * 8.0 + 0.02
-        np.testing.assert_allclose(cr["linear"], np.exp(-dl) * cr["log"], rtol=0.06)
+        np.testing.assert_allclose(cr["negative"], np.exp(-dl) * cr["log"], rtol=0.06)
 
 
 def test_registration_is_checked_against_the_truth(processed):
@@ -111,7 +111,11 @@ def test_results_files_and_report(processed):
     with h5py.File(out / "results.h5", "r") as h5:
         assert h5["steps/line_integral"].shape[0] == 3
         assert h5["registration/displacement"].shape[0] == 2
-        np.testing.assert_allclose(h5["enhanced/linear/k1"][()], res.arrays["enhanced"]["linear"]["1"])
+        np.testing.assert_allclose(h5["enhanced/negative/k1"][()], res.arrays["enhanced"]["negative"]["1"])
+    # results.json reads back into the same records
+    from radiokit.results import load_results
+
+    assert load_results(out / "results.json").to_json() == r
     # the report renders: every image it links exists and decodes as a non-blank PNG
     srcs = []
 

@@ -1,0 +1,239 @@
+"""The numbers of one processed experiment as typed records, and their one serialisation.
+
+:func:`radiokit.pipeline.process` builds a :class:`Results`; ``results.json`` is
+:meth:`Results.to_json` with a ``schema_version``, and :func:`load_results` reads it back into
+the same records (refusing a file of an unknown major version). The layout of the JSON is the
+one radiokit has always written: per domain, per k keyed by :func:`k_label` (``"1"``, ``"2"``),
+per step pair keyed ``"a->b"``.
+
+k values are floats everywhere in memory; :func:`k_label` is the only place they become text
+(JSON keys, HDF5 dataset names).
+
+A zero reference contrast makes the improvement factor undefined: the pipeline refuses it with
+a ValueError naming the file and the domain (as :func:`radiokit.measure.improvement_factor`
+does), so no NaN improvement factor is ever written.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from radiokit.enhance import Domain
+from radiokit.errors import FormatError
+
+__all__ = ["SCHEMA_VERSION", "k_label", "KMeasure", "DomainMeasures", "PairResult", "Bound", "Rois", "Results",
+           "load_results"]
+
+#: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
+SCHEMA_VERSION = "1.0"
+
+
+def k_label(k) -> str:
+    """The text form of an enhancement factor (``1.0 -> "1"``, ``1.5 -> "1.5"``)."""
+    return f"{float(k):g}"
+
+
+def _finite_or_none(v):
+    return v if not isinstance(v, float) or math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class KMeasure:
+    """The enhanced image's measurements at one k (``bound``: None where no bound holds)."""
+
+    k: float
+    contrast: float
+    cnr: float
+    weber: float
+    improvement_factor: float
+    bound: float | None = None
+
+
+@dataclass(frozen=True)
+class DomainMeasures:
+    """The reference's contrast, CNR and Weber contrast in one domain, and each k's."""
+
+    domain: Domain
+    contrast_reference: float
+    cnr_reference: float
+    weber_reference: float
+    per_k: tuple[KMeasure, ...]
+
+    def at(self, k) -> KMeasure:
+        """The measurements at ``k``; KeyError if it was not computed."""
+        for m in self.per_k:
+            if m.k == float(k):
+                return m
+        raise KeyError(f"k = {k_label(k)} was not computed (ks: {', '.join(k_label(m.k) for m in self.per_k)})")
+
+    def to_json(self) -> dict:
+        by_k = {name: {k_label(m.k): getattr(m, name) for m in self.per_k}
+                for name in ("contrast", "cnr", "weber", "improvement_factor")}
+        bounds = {k_label(m.k): m.bound for m in self.per_k}
+        return {"contrast_reference": self.contrast_reference, "cnr_reference": self.cnr_reference,
+                "weber_reference": self.weber_reference, **by_k,
+                "bound": bounds if any(b is not None for b in bounds.values()) else {}}
+
+    @classmethod
+    def from_json(cls, domain, d: dict) -> DomainMeasures:
+        per_k = tuple(KMeasure(float(key), d["contrast"][key], d["cnr"][key], d["weber"][key], v,
+                               (d.get("bound") or {}).get(key)) for key, v in d["improvement_factor"].items())
+        return cls(Domain(domain), d["contrast_reference"], d["cnr_reference"], d["weber_reference"], per_k)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """One registered pair (``moving -> reference`` step numbers): its registration's quality,
+    the pipeline's checks of it, and the intensity-change ratio per domain."""
+
+    moving: int
+    reference: int
+    method: str
+    quality: dict  #: the registration's own numbers (radiokit.register.Quality, ok and reason included)
+    change_ratio: dict  #: Domain -> ratio
+    rois_observed: dict | None = None  #: "inclusion"/"background" -> fraction of the ROI observed
+    cross_check: dict | None = None  #: see radiokit.pipeline.cross_check
+    epe: dict | None = None  #: simulated files: median/p95 end-point error (px), body and ROIs
+
+    @property
+    def name(self) -> str:
+        return f"{self.moving}->{self.reference}"
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.quality.get("ok"))
+
+    @property
+    def reason(self) -> str:
+        return self.quality.get("reason") or ""
+
+    def registration_json(self) -> dict:
+        q = {k: _finite_or_none(v) for k, v in self.quality.items()}
+        q["method"] = self.method
+        if self.rois_observed is not None:
+            q["rois_observed"] = dict(self.rois_observed)
+        if self.cross_check is not None:
+            q["cross_check"] = dict(self.cross_check)
+        q.update(self.epe or {})
+        return q
+
+    @classmethod
+    def from_json(cls, name: str, registration: dict, change_ratio: dict) -> PairResult:
+        q = dict(registration)
+        a, _, b = name.partition("->")
+        extras = {key: q.pop(key, None) for key in ("method", "rois_observed", "cross_check")}
+        epe = {key: q.pop(key) for key in ("epe_median", "epe_p95", "epe_roi_median", "epe_roi_p95") if key in q}
+        return cls(int(a), int(b), extras["method"], q, {Domain(d): v for d, v in change_ratio.items()},
+                   extras["rois_observed"], extras["cross_check"], epe or None)
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The improvement factor's bound for the main pair: ``mu_b * delta_gap`` and how it was had."""
+
+    mu_dg: float | None
+    basis: str
+
+
+@dataclass(frozen=True)
+class Rois:
+    """``crop``: the kept rectangle of the full frame; ``inclusion``/``background``: the ROIs in
+    the cropped image. All ``(row0, row1, col0, col1)``, half-open pixels."""
+
+    crop: tuple[int, int, int, int]
+    inclusion: tuple[int, int, int, int]
+    background: tuple[int, int, int, int]
+
+    def to_json(self) -> dict:
+        return {"crop": list(self.crop), "inclusion": list(self.inclusion), "background": list(self.background)}
+
+
+@dataclass(frozen=True)
+class Results:
+    """What :func:`radiokit.pipeline.process` measured on one experiment file."""
+
+    source: str
+    scene: str | None
+    simulated: bool
+    pixel_mm: float
+    domain: Domain  #: the headline domain
+    ks: tuple[float, ...]
+    method: str
+    steps: tuple[int, ...]
+    ratios: tuple[float, ...]
+    rois: Rois
+    domains: dict  #: Domain -> DomainMeasures
+    pairs: tuple[PairResult, ...]
+    main_pair: str
+    profiles_row: int
+    bound: Bound
+    paper: dict
+    timings: dict = field(default_factory=dict)  #: seconds per stage (filled in as the run goes)
+    control: Results | None = None
+
+    def pair(self, name: str) -> PairResult:
+        return next(p for p in self.pairs if p.name == name)
+
+    @property
+    def improvement_factor(self) -> dict:
+        """The headline domain's improvement factor per k (float keys)."""
+        return {m.k: m.improvement_factor for m in self.domains[self.domain].per_k}
+
+    def to_json(self) -> dict:
+        """The JSON-able form written to ``results.json`` (numbers as Python floats and ints)."""
+        out = {"schema_version": SCHEMA_VERSION, "source": self.source, "scene": self.scene,
+               "simulated": self.simulated, "pixel_mm": self.pixel_mm, "domain": self.domain.value,
+               "ks": list(self.ks), "method": self.method, "steps": list(self.steps), "ratios": list(self.ratios),
+               "rois": self.rois.to_json(),
+               "improvement_factor": {k_label(k): v for k, v in self.improvement_factor.items()},
+               "domains": {d.value: m.to_json() for d, m in self.domains.items()},
+               "change_ratio": {p.name: {d.value: v for d, v in p.change_ratio.items()} for p in self.pairs},
+               "registration": {p.name: p.registration_json() for p in self.pairs},
+               "main_pair": self.main_pair, "profiles_row": self.profiles_row, "paper": self.paper,
+               "timings": dict(self.timings), "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis}}
+        if self.control is not None:
+            out["control"] = self.control.to_json()
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict, where="results") -> Results:
+        """The records of :meth:`to_json`'s output; FormatError naming ``where`` for another major version."""
+        version = str(d.get("schema_version", "0"))
+        if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
+            raise FormatError(where, f"results schema version {version}, this radiokit reads {SCHEMA_VERSION} "
+                                     "(re-run `radiokit process` to rewrite it)")
+        pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
+        r = d["rois"]
+        return cls(d["source"], d.get("scene"), bool(d["simulated"]), d["pixel_mm"], Domain(d["domain"]),
+                   tuple(d["ks"]), d["method"], tuple(d["steps"]), tuple(d["ratios"]),
+                   Rois(tuple(r["crop"]), tuple(r["inclusion"]), tuple(r["background"])),
+                   {Domain(k): DomainMeasures.from_json(k, v) for k, v in d["domains"].items()}, pairs,
+                   d["main_pair"], d["profiles_row"], Bound(d["bound"]["mu_dg"], d["bound"]["basis"]),
+                   d.get("paper") or {}, dict(d.get("timings") or {}),
+                   cls.from_json(d["control"], f"{where} (control)") if d.get("control") else None)
+
+    def write_json(self, path) -> Path:
+        path = Path(path)
+        path.write_text(json.dumps(self.to_json(), indent=1))
+        return path
+
+
+def load_results(path) -> Results:
+    """Read a ``results.json`` written by :func:`radiokit.pipeline.process` into :class:`Results`.
+
+    Raises
+    ------
+    FormatError
+        If the file is not JSON, lacks a field, or has another major schema version.
+    """
+    path = Path(path)
+    try:
+        return Results.from_json(json.loads(path.read_text()), str(path))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise FormatError(path, f"not a results.json ({exc})") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, FormatError):
+            raise
+        raise FormatError(path, f"not a radiokit results.json: {type(exc).__name__} {exc}") from None
