@@ -346,13 +346,7 @@ def _print_headline(record, files):
 
 
 # -- parser ------------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
-    parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
+def _add_info(sub):
     p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
     p.add_argument("files", nargs="+", type=Path)
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -362,6 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_raw_hints(p)
     p.set_defaults(func=cmd_info)
 
+
+def _add_calibrate(sub):
     p = sub.add_parser("calibrate", help="build a dark/flat/defect calibration")
     p.add_argument("--dark", nargs="+", type=Path, help="dark frame files")
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam) frame files")
@@ -373,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_raw_hints(p)
     p.set_defaults(func=cmd_calibrate)
 
+
+def _add_correct(sub):
     p = sub.add_parser("correct", help="dark/flat/defect-correct frames to transmission or line integral")
     p.add_argument("frames", nargs="+", type=Path)
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
@@ -384,6 +382,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_raw_hints(p)
     p.set_defaults(func=cmd_correct)
 
+
+def _add_register(sub):
     p = sub.add_parser("register", help="non-rigid registration of MOVING onto FIXED (residual complexity by default)")
     p.add_argument("fixed", type=Path, help="fixed image file (e.g. a corrected line-integral frame)")
     p.add_argument("moving", type=Path, help="moving image file")
@@ -400,6 +400,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.set_defaults(func=cmd_register)
 
+
+def _add_process(sub):
     p = sub.add_parser("process", help="experiment file(s) -> registered steps, compression-induced contrast, "
                                        "measurements, report",
                        description="Calibrate, correct, register every step onto the most compressed, enhance "
@@ -432,6 +434,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_process)
 
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
+    parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_info, _add_calibrate, _add_correct, _add_register, _add_process):
+        add(sub)
     for ep in sorted(entry_points(group="radiokit.commands"), key=lambda e: e.name):
         ep.load()(sub)
     return parser

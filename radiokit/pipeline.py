@@ -9,7 +9,7 @@ simulated one; DESIGN.md's layout) as a few public steps, each returning a typed
    on the reference (the most compressed step), or the configuration's, and the crop around them;
 3. :func:`register_pairs` -> :class:`RegisteredPair` per pair: every step onto the reference and
    each step onto the next (residual complexity by default);
-4. :func:`enhance_pair` -> :class:`Enhancement` per domain: the reference enhanced with the step
+4. :func:`enhance_pair` -> :class:`radiokit.results.Enhancement` per domain: the reference enhanced with the step
    before it, for every k, in the log domain (line integrals) and the paper's negative domain
    (``-I/I0``, :class:`radiokit.enhance.Domain`; the paper's "linear" images);
 5. :func:`measure_domains` -> :class:`radiokit.results.DomainMeasures` per domain: contrast, CNR,
@@ -53,17 +53,22 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.measure import PAPER, ROI
-from radiokit.results import Bound, DomainMeasures, KMeasure, PairResult, Results, Rois, k_label
+from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, \
+    k_label
 
 __all__ = ["Config", "Result", "Steps", "RoiChoice", "RegisteredPair", "Enhancement", "Images", "process",
            "load_steps", "choose_rois", "register_pairs", "enhance_pair", "measure_domains", "check_pairs",
            "process_many", "output_folders", "PAPER", "DOMAINS"]
+
+if TYPE_CHECKING:
+    from radiokit.register import Registration
 
 #: The domains every run computes: line integrals, and the paper's negative transmission -I/I0.
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
@@ -137,48 +142,9 @@ class RegisteredPair:
     then cropped: no border effects) and, for the cross-checked pair, :func:`cross_check`."""
     moving: int
     reference: int
-    registration: object
+    registration: Registration
     warped: np.ndarray
     cross_check: dict | None = None
-
-
-@dataclass(frozen=True)
-class Enhancement:
-    """The main pair in one domain: reference, registered step, ``D = reference - registered``
-    (:func:`radiokit.enhance.difference`) and the enhanced image per k, in the order of the ks."""
-    domain: Domain
-    reference: np.ndarray
-    registered: np.ndarray
-    difference: np.ndarray
-    images: tuple[tuple[float, np.ndarray], ...]
-
-
-@dataclass(frozen=True)
-class Images:
-    """The images of a run (cropped): what ``results.h5`` and the report show."""
-    steps: np.ndarray
-    reference: np.ndarray
-    registered: np.ndarray
-    moving: np.ndarray
-    displacement: np.ndarray
-    det_j: np.ndarray
-    confidence: np.ndarray | None
-    enhanced: dict  #: Domain -> Enhancement
-    profiles: dict
-    truth_displacement: np.ndarray | None = None
-    epe_map: np.ndarray | None = None
-
-    def as_dict(self, record: Results) -> dict:
-        """The arrays keyed by name (the report's and ``Result.arrays``' form)."""
-        out = {"steps": self.steps, "step_numbers": list(record.steps), "ratios": list(record.ratios),
-               "reference": self.reference, "registered": self.registered, "moving": self.moving,
-               "displacement": self.displacement, "det_j": self.det_j, "confidence": self.confidence,
-               "enhanced": {d.value: {k_label(k): img for k, img in e.images} for d, e in self.enhanced.items()},
-               "reference_by_domain": {d.value: e.reference for d, e in self.enhanced.items()},
-               "difference": {d.value: e.difference for d, e in self.enhanced.items()}, "profiles": self.profiles}
-        if self.truth_displacement is not None:
-            out["truth_displacement"], out["epe_map"] = self.truth_displacement, self.epe_map
-        return out
 
 
 @dataclass
@@ -195,7 +161,7 @@ class Result:
 
     @property
     def arrays(self) -> dict:
-        """The images by name (:meth:`Images.as_dict`)."""
+        """The images by name (:meth:`radiokit.results.Images.as_dict`)."""
         return self.images.as_dict(self.record)
 
 
@@ -429,7 +395,7 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
 
 
 def enhance_pair(reference, registered, ks, domains=DOMAINS) -> dict:
-    """The main pair in each domain (:class:`Enhancement`): both line-integral images converted
+    """The main pair in each domain (:class:`radiokit.results.Enhancement`): both line-integral images converted
     (:func:`radiokit.enhance.to_domain`), their difference and the enhanced image per k
     (:func:`radiokit.enhance.compression_contrast`)."""
     from radiokit.enhance import compression_contrast, difference, to_domain
@@ -546,7 +512,8 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     pairs = _timed(timings, "register_s", register_pairs, steps, rois, cfg, path.name)
     steps_c = np.ascontiguousarray(steps.images[(slice(None), *rois.slices())])
     inc_c, bg_c = rois.cropped()
-    main = pairs[len(steps.numbers) - 2]  # the step before the reference, onto it: the paper's pair
+    n = len(steps.numbers)  # the paper's pair: the step before the reference, onto it
+    main = next(p for p in pairs if (p.moving, p.reference) == (n - 2, n - 1))
     enhanced = _timed(timings, "enhance_s", enhance_pair, steps_c[-1], main.warped, cfg.ks)
     t = time.perf_counter()
     bound, bounds = _bound(path, list(steps.numbers), truth,
@@ -560,7 +527,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         source=str(path), scene=truth.get("scene") if truth else None, simulated=truth is not None,
         pixel_mm=steps.pixel_mm, domain=cfg.domain, ks=cfg.ks, method=cfg.method, steps=steps.numbers,
         ratios=steps.ratios, rois=Rois(rois.crop, _bounds(inc_c), _bounds(bg_c)), domains=domains, pairs=checked,
-        main_pair=checked[len(steps.numbers) - 2].name, profiles_row=mid, bound=bound, paper=PAPER, timings=timings,
+        main_pair=f"{steps.numbers[-2]}->{steps.numbers[-1]}", profiles_row=mid, bound=bound, paper=PAPER, timings=timings,
         control=_control(cfg, rois, out_dir))
     files = _write(out_dir, record, images, cfg, t0)
     return Result(record, images, files)

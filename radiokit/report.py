@@ -1,8 +1,9 @@
 """The processing report: one self-contained HTML page with PNG figures, after the paper's Figs. 4-8.
 
-``write_report(out_dir, results, arrays)`` writes ``out_dir/report.html`` and its figures in
-``out_dir/figures/`` (linked relatively, so the folder can be moved or zipped) and returns the
-HTML path. The page has inline CSS, no JavaScript and no network references; every piece of text
+``write_report(out_dir, results, images)`` (:class:`radiokit.results.Results` and
+:class:`radiokit.results.Images`, as :func:`radiokit.pipeline.process` makes them) writes
+``out_dir/report.html`` and its figures in ``out_dir/figures/`` (linked relatively, so the folder
+can be moved or zipped) and returns the HTML path. The page has inline CSS, no JavaScript and no network references; every piece of text
 that comes from the data is escaped.
 
 What a reader finds, in order:
@@ -39,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from radiokit._version import __version__
-from radiokit.measure import PAPER  # used when results["paper"] does not give them
+from radiokit.measure import PAPER  # used where results.paper does not give them
+from radiokit.results import Images, Results, k_label
 
 __all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
@@ -66,9 +68,9 @@ _TIMING_LABELS = {
 }
 
 
-# -- small, defensive accessors ------------------------------------------------------------------
+# -- formatting ----------------------------------------------------------------------------------
 def _num(x):
-    """``float(x)`` when it is a finite number, else None."""
+    """``float(x)`` when it is a finite number, else None (NaN and inf print as a dash)."""
     try:
         v = float(x)
     except (TypeError, ValueError):
@@ -81,49 +83,13 @@ def _fmt(x, spec=".2f", missing="\u2014"):
     return missing if v is None else format(v, spec)
 
 
-def _get(d, *keys, default=None):
-    """Nested ``.get`` that tolerates missing levels and non-dict values."""
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return default
-        d = d[k]
-    return d
-
-
-def _kget(d, k):
-    """The value for k in a dict keyed by k as a string ("1", "1.0" or "1.5")."""
-    if not isinstance(d, dict):
-        return None
-    if k in d:
-        return d[k]
-    kf = _num(k)
-    if kf is None:
-        return None
-    for key in d:
-        if _num(key) == kf:
-            return d[key]
-    return None
-
-
-def _k_keys(*dicts):
-    """Every k key present in the given dicts, as strings, sorted by value."""
-    keys = {}
-    for d in dicts:
-        if isinstance(d, dict):
-            for key in d:
-                v = _num(key)
-                if v is not None:
-                    keys.setdefault(v, str(key))
-    return [keys[v] for v in sorted(keys)]
-
-
 def _main_k(ks):
-    """The k the text talks about: 1 (the paper's direct addition) when present, else the smallest."""
-    return next((k for k in ks if _num(k) == 1.0), ks[0])
+    """The k the text talks about: 1 (the paper's direct addition) when present, else the first."""
+    return next((k for k in ks if k == 1.0), ks[0])
 
 
 def _k_label(k):
-    return f"k={float(k):g}"
+    return f"k={k_label(k)}"
 
 
 def _pair_label(pair) -> str:
@@ -159,17 +125,6 @@ def _normalise(a, lo=1.0, hi=99.0):
     return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
 
 
-def _rect(rois, name):
-    r = rois.get(name) if isinstance(rois, dict) else None
-    if r is None or len(r) != 4:
-        return None
-    try:
-        r0, r1, c0, c1 = (int(x) for x in r)
-    except (TypeError, ValueError):
-        return None
-    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
-
-
 def _ratio_label(ratio):
     r = _num(ratio)
     if r is None:
@@ -178,8 +133,14 @@ def _ratio_label(ratio):
 
 
 def _domain_unit(domain):
-    """The pixel's meaning in ``domain`` (radiokit.enhance.Domain's names)."""
-    return {"log": "\u2212ln(I/I\u2080)", "negative": "\u2212I/I\u2080", "linear": "I/I\u2080"}.get(domain, str(domain))
+    """The pixel's meaning in ``domain`` (:class:`radiokit.enhance.Domain`)."""
+    return {"log": "\u2212ln(I/I\u2080)", "negative": "\u2212I/I\u2080", "linear": "I/I\u2080"}.get(str(domain),
+                                                                                                  str(domain))
+
+
+def _in_order(domains):
+    """The domains of a mapping, log first."""
+    return sorted(domains, key=lambda d: _DOMAIN_ORDER.index(str(d)) if str(d) in _DOMAIN_ORDER else 9)
 
 
 # -- the share of the improvement that needs stiffness -------------------------------------------
@@ -302,10 +263,7 @@ def _draw_rois(ax, rois, legend=False):
     from matplotlib.patches import Rectangle
 
     for name, colour in (("inclusion", _INCLUSION_COLOUR), ("background", _BACKGROUND_COLOUR)):
-        r = _rect(rois, name)
-        if r is None:
-            continue
-        r0, r1, c0, c1 = r
+        r0, r1, c0, c1 = getattr(rois, name)
         ax.add_patch(Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False,
                                edgecolor=colour, linewidth=1.2, label=name))
     if legend and ax.patches:
@@ -320,15 +278,9 @@ def _style_image_axes(ax, ticks=True):
         ax.set_yticks([])
 
 
-def _fig_projections(arrays, results, fig_dir):
-    steps = arrays.get("steps")
-    if steps is None or np.ndim(steps) != 3 or len(steps) == 0:
-        return None
-    steps = np.asarray(steps)
+def _fig_projections(images, results, fig_dir):
+    steps = images.steps
     n = len(steps)
-    numbers = list(arrays.get("step_numbers") or range(1, n + 1))
-    ratios = list(arrays.get("ratios") or [None] * n)
-    rois = results.get("rois") or {}
     ncols = min(n, 4)
     nrows = -(-n // ncols)
     w, h = _panel_size(steps.shape[1:])
@@ -341,32 +293,25 @@ def _fig_projections(arrays, results, fig_dir):
             ax.set_axis_off()
             continue
         im = ax.imshow(steps[i], cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
-        _draw_rois(ax, rois, legend=(i == 0))
-        number = numbers[i] if i < len(numbers) else i + 1
-        label = _ratio_label(ratios[i] if i < len(ratios) else None)
-        ax.set_title(f"step {number}" + (f" \u2014 {label}" if label else ""), fontsize=9)
+        _draw_rois(ax, results.rois, legend=(i == 0))
+        label = _ratio_label(results.ratios[i])
+        ax.set_title(f"step {results.steps[i]}" + (f" \u2014 {label}" if label else ""), fontsize=9)
         _style_image_axes(ax)
     cb = fig.colorbar(im, ax=list(axes[:n]), shrink=0.85)
     cb.set_label("line integral \u2212ln(I/I\u2080)", fontsize=8)
     name = "projections.png"
     _save(fig, fig_dir / name)
-    px = _num(results.get("pixel_mm"))
     caption = ("Projections of every compression step (line integrals \u2212ln(I/I\u2080), least compressed "
                "first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
                "compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
                "ROI (where contrast is measured). Axes in pixels of the cropped image"
-               + (f" ({px:g} mm per pixel)." if px else ".") + " After the paper's Figs. 4\u20135.")
+               f" ({results.pixel_mm:g} mm per pixel). After the paper's Figs. 4\u20135.")
     return name, caption
 
 
-def _profile_rows(shape, rois, row=None):
-    rows = shape[0]
-    r = _rect(rois, "inclusion")
-    centre = (r[0] + r[1]) // 2 if r else rows // 2
-    if _num(row) is not None:
-        centre = int(row)
-    centre = int(np.clip(centre, 0, rows - 1))
-    return centre, max(0, centre - _PROFILE_HALF_ROWS), min(rows, centre + _PROFILE_HALF_ROWS + 1)
+def _profile_rows(shape, row):
+    centre = int(np.clip(row, 0, shape[0] - 1))
+    return centre, max(0, centre - _PROFILE_HALF_ROWS), min(shape[0], centre + _PROFILE_HALF_ROWS + 1)
 
 
 def _row_mean(img, a, b):
@@ -378,90 +323,55 @@ def _row_mean(img, a, b):
     return np.divide(total, n, out=np.full(band.shape[1], np.nan), where=n > 0)
 
 
-def _fig_profiles(arrays, results, fig_dir):
-    steps = arrays.get("steps")
-    enhanced = arrays.get("enhanced") or {}
-    refs = arrays.get("reference_by_domain") or {}
-    domains = [d for d in _DOMAIN_ORDER if d in enhanced and d in refs] + \
-              [d for d in enhanced if d in refs and d not in _DOMAIN_ORDER]
-    has_steps = steps is not None and np.ndim(steps) == 3 and len(steps) > 0
-    if not has_steps and not domains:
-        return None
-    shape = np.shape(steps)[1:] if has_steps else np.shape(refs[domains[0]])
-    rois = results.get("rois") or {}
-    centre, a, b = _profile_rows(shape, rois, results.get("profiles_row"))
-    px = _num(results.get("pixel_mm"))
-    x = np.arange(shape[1]) * (px or 1.0)
-    xlabel = "column (mm, cropped image)" if px else "column (px, cropped image)"
-    inc = _rect(rois, "inclusion")
-    npanels = int(has_steps) + len(domains)
-    fig = _new_figure(4.2 * npanels, 3.4)
-    axes = np.atleast_1d(fig.subplots(1, npanels, squeeze=False)).ravel()
-
-    def shade(ax):
-        if inc:
-            s = px or 1.0
-            ax.axvspan((inc[2] - 0.5) * s, (inc[3] - 0.5) * s, color=_INCLUSION_COLOUR, alpha=0.12,
-                       label="inclusion ROI columns")
-
-    i = 0
-    if has_steps:
-        ax = axes[i]
-        i += 1
-        steps = np.asarray(steps)
-        numbers = list(arrays.get("step_numbers") or range(1, len(steps) + 1))
-        ratios = list(arrays.get("ratios") or [None] * len(steps))
-        for j, img in enumerate(steps):
-            label = f"step {numbers[j] if j < len(numbers) else j + 1}"
-            rl = _ratio_label(ratios[j] if j < len(ratios) else None)
-            ax.plot(x, _row_mean(img, a, b), lw=1.1, label=label + (f" ({rl})" if rl else ""))
-        shade(ax)
-        ax.set_title("every step (log domain)", fontsize=9)
-        ax.set_ylabel("\u2212ln(I/I\u2080)", fontsize=8)
-    for dom in domains:
-        ax = axes[i]
-        i += 1
-        ref = np.asarray(refs[dom])
-        ax.plot(x, _row_mean(ref, a, b), color="black", lw=1.4, label="reference")
-        for k in _k_keys(enhanced[dom]):
-            img = np.asarray(_kget(enhanced[dom], k))
+def _fig_profiles(images, results, fig_dir):
+    steps = images.steps
+    centre, a, b = _profile_rows(steps.shape[1:], results.profiles_row)
+    x = np.arange(steps.shape[2]) * results.pixel_mm
+    domains = _in_order(images.enhanced)
+    fig = _new_figure(4.2 * (1 + len(domains)), 3.4)
+    axes = np.atleast_1d(fig.subplots(1, 1 + len(domains), squeeze=False)).ravel()
+    for j, img in enumerate(steps):
+        rl = _ratio_label(results.ratios[j])
+        axes[0].plot(x, _row_mean(img, a, b), lw=1.1, label=f"step {results.steps[j]}" + (f" ({rl})" if rl else ""))
+    axes[0].set_title("every step (log domain)", fontsize=9)
+    axes[0].set_ylabel("\u2212ln(I/I\u2080)", fontsize=8)
+    for ax, dom in zip(axes[1:], domains):
+        e = images.enhanced[dom]
+        ax.plot(x, _row_mean(e.reference, a, b), color="black", lw=1.4, label="reference")
+        for k, img in e.images:
             ax.plot(x, _row_mean(img, a, b), lw=1.1, label=f"enhanced, {_k_label(k)}")
-        shade(ax)
         ax.set_title(f"reference vs enhanced ({dom} domain)", fontsize=9)
         ax.set_ylabel(_domain_unit(dom), fontsize=8)
+    c0, c1 = results.rois.inclusion[2:]
     for ax in axes:
-        ax.set_xlabel(xlabel, fontsize=8)
+        ax.axvspan((c0 - 0.5) * results.pixel_mm, (c1 - 0.5) * results.pixel_mm, color=_INCLUSION_COLOUR,
+                   alpha=0.12, label="inclusion ROI columns")
+        ax.set_xlabel("column (mm, cropped image)", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     name = "profiles.png"
     _save(fig, fig_dir / name)
     caption = (f"Profiles along the row through the inclusion's centre (row {centre} of the cropped image, "
-               f"mean of rows {a}\u2013{b - 1}); the shaded band is the inclusion ROI's columns. "
-               + ("Left: every compression step. " if has_steps else "")
-               + ("Then, per domain: the reference (most compressed step) and the enhanced images "
-                  "reference + k\u00b7(D \u2212 mean D). " if domains else "")
-               + "After the paper's Fig. 6.")
+               f"mean of rows {a}\u2013{b - 1}); the shaded band is the inclusion ROI's columns. Left: every "
+               "compression step. Then, per domain: the reference (most compressed step) and the enhanced "
+               "images reference + k\u00b7(D \u2212 mean D). After the paper's Fig. 6.")
     return name, caption
 
 
-def _fig_difference(arrays, results, fig_dir):
-    diff = arrays.get("difference") or {}
-    domains = [d for d in _DOMAIN_ORDER if d in diff] + [d for d in diff if d not in _DOMAIN_ORDER]
-    if not domains:
-        return None
-    rois = results.get("rois") or {}
-    w, h = _panel_size(np.shape(diff[domains[0]]), 3.4)
+def _fig_difference(images, results, fig_dir):
+    domains = _in_order(images.enhanced)
+    w, h = _panel_size(images.reference.shape, 3.4)
     fig = _new_figure((w + 0.9) * len(domains), h + 0.6)
     axes = np.atleast_1d(fig.subplots(1, len(domains), squeeze=False)).ravel()
     for ax, dom in zip(axes, domains):
-        d = np.asarray(diff[dom], np.float64)
+        d = np.asarray(images.enhanced[dom].difference, np.float64)
         v = _finite(d)
         mean = float(v.mean()) if v.size else 0.0
         half = float(np.percentile(np.abs(v - mean), 99)) if v.size else 1.0
         half = half if half > 0 else 1e-6
         im = ax.imshow(d, cmap="RdBu_r", vmin=mean - half, vmax=mean + half, interpolation="nearest")
-        _draw_rois(ax, rois, legend=(dom == domains[0]))
+        _draw_rois(ax, results.rois, legend=(dom == domains[0]))
         ax.set_title(f"D = reference \u2212 registered ({dom})", fontsize=9)
         _style_image_axes(ax, ticks=False)
         cb = fig.colorbar(im, ax=ax, shrink=0.85)
@@ -476,33 +386,20 @@ def _fig_difference(arrays, results, fig_dir):
     return name, caption
 
 
-def _fig_rois(arrays, results, fig_dir):
-    enhanced = arrays.get("enhanced") or {}
-    refs = arrays.get("reference_by_domain") or {}
-    domains = [d for d in _DOMAIN_ORDER if d in enhanced and d in refs] + \
-              [d for d in enhanced if d in refs and d not in _DOMAIN_ORDER]
-    if not domains:
-        return None
-    ks = _k_keys(*(enhanced[d] for d in domains))
-    rois = results.get("rois") or {}
-    ncols = 1 + len(ks)
-    w, h = _panel_size(np.shape(refs[domains[0]]), 2.8)
+def _fig_rois(images, results, fig_dir):
+    domains = _in_order(images.enhanced)
+    ncols = 1 + len(results.ks)
+    w, h = _panel_size(images.reference.shape, 2.8)
     fig = _new_figure((w + 0.2) * ncols, (h + 0.6) * len(domains))
     axes = fig.subplots(len(domains), ncols, squeeze=False)
     for row, dom in enumerate(domains):
-        meas = _get(results, "domains", dom, default={}) or {}
-        panels = [("reference", refs[dom], meas.get("contrast_reference"), None)]
-        for k in ks:
-            panels.append((_k_label(k), _kget(enhanced[dom], k), _kget(meas.get("contrast"), k),
-                           _kget(meas.get("improvement_factor"), k)))
-        for col, (label, img, contrast, factor) in enumerate(panels):
-            ax = axes[row, col]
-            if img is None:
-                ax.set_axis_off()
-                continue
+        e, meas = images.enhanced[dom], results.domains[dom]
+        panels = [("reference", e.reference, meas.contrast_reference, None)]
+        panels += [(_k_label(k), img, meas.at(k).contrast, meas.at(k).improvement_factor) for k, img in e.images]
+        for ax, (label, img, contrast, factor) in zip(axes[row], panels):
             vmin, vmax = _limits(img, 1, 99)
             ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
-            _draw_rois(ax, rois)
+            _draw_rois(ax, results.rois)
             title = f"{dom}: {label}\nC = {_fmt(contrast, '.4g')}"
             if factor is not None:
                 title += f" (\u00d7{_fmt(factor)})"
@@ -524,103 +421,75 @@ def _overlay(fixed, moving):
     return np.dstack([f, m, f])  # reference magenta (R + B), moving green: grey where they agree
 
 
-def _fig_registration(arrays, results, fig_dir):
-    ref, mov, reg = arrays.get("reference"), arrays.get("moving"), arrays.get("registered")
-    disp, det = arrays.get("displacement"), arrays.get("det_j")
-    truth, epe = arrays.get("truth_displacement"), arrays.get("epe_map")
-    if epe is None and truth is not None and disp is not None and np.shape(truth) == np.shape(disp):
-        epe = np.hypot(*(np.asarray(disp, np.float64) - np.asarray(truth, np.float64)))
-    panels = []
-    if ref is not None and mov is not None:
-        panels.append("before")
-    if ref is not None and reg is not None:
-        panels.append("after")
-    if disp is not None and np.ndim(disp) == 3 and len(disp) == 2:
-        panels.append("disp")
-    if det is not None:
-        panels.append("det")
-    if epe is not None:
-        panels.append("epe")
-    if not panels:
-        return None
-    shape = np.shape(ref if ref is not None else det if det is not None else epe)[-2:]
-    w, h = _panel_size(shape, 3.0)
+def _panel_displacement(fig, ax, disp):
+    d = np.asarray(disp, np.float64)
+    mag = np.hypot(d[0], d[1])
+    im = ax.imshow(mag, cmap="viridis", interpolation="nearest")
+    step = max(1, max(mag.shape) // 14)
+    rr, cc = np.mgrid[step // 2:mag.shape[0]:step, step // 2:mag.shape[1]:step]
+    # pull field: the registered pixel at x came from x + d(x), so the arrow points there
+    ax.quiver(cc, rr, d[1][rr, cc], -d[0][rr, cc], color="white", angles="xy", scale_units="xy", scale=None,
+              width=0.004)
+    ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}", fontsize=9)
+    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+
+
+def _panel_det_j(fig, ax, det):
+    jd = np.asarray(det, np.float64)
+    v = _finite(jd)
+    half = max(float(np.percentile(np.abs(v - 1.0), 99.5)) if v.size else 0.0, 1e-3)
+    im = ax.imshow(jd, cmap="RdBu_r", vmin=1 - half, vmax=1 + half, interpolation="nearest")
+    if v.size and v.min() <= 0:
+        ax.contour(jd, levels=[0.0], colors="black", linewidths=0.8)
+    folds = int((v <= 0).sum()) if v.size else 0
+    ax.set_title(f"det J (min {_fmt(v.min() if v.size else None, '.3g')}, {folds} folds)", fontsize=9)
+    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+
+
+def _panel_epe(fig, ax, epe):
+    e = np.asarray(epe, np.float64)
+    v = _finite(e)
+    im = ax.imshow(e, cmap="magma", vmin=0, vmax=_limits(e, 0, 99)[1], interpolation="nearest")
+    ax.set_title(f"EPE (px): median {_fmt(np.median(v) if v.size else None, '.3f')}", fontsize=9)
+    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+
+
+_REGISTRATION_CAPTIONS = {
+    "overlay": "Overlays of the reference (most compressed step, magenta) and the step before it (green), "
+               "before and after registration, each image scaled to its own 1st\u201399th percentiles: grey "
+               "where they agree, colour where they do not.",
+    "disp": "The displacement magnitude |d| in pixels; arrows show d (pull convention: the registered pixel "
+            "at x is the moving image at x + d(x)).",
+    "det": "The Jacobian determinant det J of x \u21a6 x + d(x) on a diverging scale centred at 1: red (> 1) "
+           "where a reference pixel draws on more than a pixel of the moving image, i.e. the material looks "
+           "smaller at the more compressed step; blue (< 1) where it looks larger; \u2264 0 (outlined black) "
+           "would be folding.",
+    "epe": "The end-point error |d \u2212 d_true| against the simulation's truth, in pixels.",
+}
+
+
+def _fig_registration(images, results, fig_dir):
+    q = results.pair(results.main_pair).quality
+    panels = ["before", "after", "disp", "det"] + (["epe"] if images.epe_map is not None else [])
+    w, h = _panel_size(images.reference.shape, 3.0)
     fig = _new_figure((w + 0.6) * len(panels), h + 0.7)
     axes = np.atleast_1d(fig.subplots(1, len(panels), squeeze=False)).ravel()
-    pair = _headline_pair(arrays, results)
-    q = _get(results, "registration", pair, default={}) or {}
-    for ax, kind in zip(axes, panels):
+    for ax in axes:
         _style_image_axes(ax, ticks=False)
-        if kind == "before":
-            ax.imshow(_overlay(ref, mov), interpolation="nearest")
-            ax.set_title(f"before: NCC {_fmt(q.get('ncc_before'), '.3f')}", fontsize=9)
-        elif kind == "after":
-            ax.imshow(_overlay(ref, reg), interpolation="nearest")
-            ax.set_title(f"after: NCC {_fmt(q.get('ncc_after'), '.3f')}", fontsize=9)
-        elif kind == "disp":
-            d = np.asarray(disp, np.float64)
-            mag = np.hypot(d[0], d[1])
-            im = ax.imshow(mag, cmap="viridis", interpolation="nearest")
-            step = max(1, max(mag.shape) // 14)
-            rr, cc = np.mgrid[step // 2:mag.shape[0]:step, step // 2:mag.shape[1]:step]
-            # pull field: the registered pixel at x came from x + d(x), so the arrow points there
-            ax.quiver(cc, rr, d[1][rr, cc], -d[0][rr, cc], color="white", angles="xy",
-                      scale_units="xy", scale=None, width=0.004)
-            ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}",
-                         fontsize=9)
-            fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
-        elif kind == "det":
-            jd = np.asarray(det, np.float64)
-            v = _finite(jd)
-            half = float(np.percentile(np.abs(v - 1.0), 99.5)) if v.size else 0.0
-            half = max(half, 1e-3)
-            im = ax.imshow(jd, cmap="RdBu_r", vmin=1 - half, vmax=1 + half, interpolation="nearest")
-            if v.size and v.min() <= 0:
-                ax.contour(jd, levels=[0.0], colors="black", linewidths=0.8)
-            folds = int((v <= 0).sum()) if v.size else 0
-            ax.set_title(f"det J (min {_fmt(v.min() if v.size else None, '.3g')}, {folds} folds)",
-                         fontsize=9)
-            fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
-        elif kind == "epe":
-            e = np.asarray(epe, np.float64)
-            v = _finite(e)
-            im = ax.imshow(e, cmap="magma", vmin=0, vmax=_limits(e, 0, 99)[1], interpolation="nearest")
-            ax.set_title(f"EPE (px): median {_fmt(np.median(v) if v.size else None, '.3f')}", fontsize=9)
-            fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+    for ax, (when, img) in zip(axes, (("before", images.moving), ("after", images.registered))):
+        ax.imshow(_overlay(images.reference, img), interpolation="nearest")
+        ax.set_title(f"{when}: NCC {_fmt(q.get(f'ncc_{when}'), '.3f')}", fontsize=9)
+    _panel_displacement(fig, axes[2], images.displacement)
+    _panel_det_j(fig, axes[3], images.det_j)
+    if images.epe_map is not None:
+        _panel_epe(fig, axes[4], images.epe_map)
     name = "registration.png"
     _save(fig, fig_dir / name)
-    parts = []
-    if "before" in panels or "after" in panels:
-        parts.append("Overlays of the reference (most compressed step, magenta) and the step before it "
-                     "(green), before and after registration, each image scaled to its own 1st\u201399th "
-                     "percentiles: grey where they agree, colour where they do not.")
-    if "disp" in panels:
-        parts.append("The displacement magnitude |d| in pixels; arrows show d (pull convention: the "
-                     "registered pixel at x is the moving image at x + d(x)).")
-    if "det" in panels:
-        parts.append("The Jacobian determinant det J of x \u21a6 x + d(x) on a diverging scale centred "
-                     "at 1: red (> 1) where a reference pixel draws on more than a pixel of the moving image, "
-                     "i.e. the material looks smaller at the more compressed step; blue (< 1) where it looks "
-                     "larger; \u2264 0 (outlined black) would be folding.")
-    if "epe" in panels:
-        parts.append("The end-point error |d \u2212 d_true| against the simulation's truth, in pixels.")
-    return name, " ".join(parts)
+    captions = ["overlay", "disp", "det"] + (["epe"] if images.epe_map is not None else [])
+    return name, " ".join(_REGISTRATION_CAPTIONS[c] for c in captions)
 
 
 # -- tables and text -----------------------------------------------------------------------------
-def _headline_pair(arrays, results):
-    """The pair the headline speaks of: the step before the most compressed one, registered onto it."""
-    numbers = list(arrays.get("step_numbers") or [])
-    keys = list((results.get("change_ratio") or {}).keys()) + list((results.get("registration") or {}).keys())
-    if results.get("main_pair") in keys:
-        return results["main_pair"]
-    if len(numbers) >= 2:
-        pair = f"{numbers[-2]}->{numbers[-1]}"
-        if pair in keys or not keys:
-            return pair
-    return keys[0] if keys else None
-
-
 def _table(header, rows, cls=""):
     out = [f'<table class="{_e(cls)}">' if cls else "<table>", "<thead><tr>"]
     out += [f"<th>{_e(h)}</th>" for h in header]
@@ -638,234 +507,199 @@ def _paper_range(paper):
     return _fmt(cr)
 
 
-def _headline_rows(arrays, results, paper):
-    dom = results.get("domain") or "log"
-    meas = _get(results, "domains", dom, default={}) or {}
-    factors = results.get("improvement_factor") or meas.get("improvement_factor") or {}
-    control = results.get("control") if isinstance(results.get("control"), dict) else None
-    rows = [(f"contrast of the reference ({dom} domain)", _fmt(meas.get("contrast_reference"), ".4g"), "", "")]
-    for k in _k_keys(factors, meas.get("contrast")):
-        rows.append((f"contrast enhanced, {_k_label(k)}", _fmt(_kget(meas.get("contrast"), k), ".4g"), "", ""))
-    for k in _k_keys(factors):
-        ctrl = _kget(_get(control, "improvement_factor"), k) if control else None
-        rows.append((f"improvement factor, {_k_label(k)}", _fmt(_kget(factors, k)),
-                     _fmt(_kget(paper.get("improvement_factor"), k), ".1f", ""),
-                     _fmt(ctrl) if control else ""))
-    rows += _bound_cnr_rows(results, control)
-    pair = _headline_pair(arrays, results)
-    cr = _get(results, "change_ratio", pair, dom) if pair else None
-    if pair:
-        ctrl = _get(control, "change_ratio", pair, dom) if control else None
-        rows.append((f"intensity-change ratio inclusion/background, steps {_pair_label(pair)}",
-                     _fmt(cr), _paper_range(paper), _fmt(ctrl) if control else ""))
-    q = _get(results, "registration", pair, default=None) if pair else None
-    if isinstance(q, dict):
-        status = "passed" if q.get("ok") else f"FLAGGED: {q.get('reason') or 'no reason given'}"
-        rows.append((f"registration {_pair_label(pair)} ({q.get('method', '?')})", status, "", ""))
-        obs = q.get("rois_observed")
-        if isinstance(obs, dict) and obs:
-            rows.append(("motion observed in the ROIs (inclusion / background)",
-                         " / ".join(f"{_fmt(100 * obs[k], '.0f')} %" if _num(obs.get(k)) is not None else "\u2013"
-                                    for k in ("inclusion", "background")), "", ""))
-        if _num(q.get("epe_median")) is not None:
-            rows.append(("registration end-point error vs truth, median / p95 (px)",
-                         f"{_fmt(q.get('epe_median'), '.3f')} / {_fmt(q.get('epe_p95'), '.3f')}", "", ""))
-    total = _get(results, "timings", "total_s")
-    if _num(total) is not None:
-        rows.append(("total processing time", f"{_fmt(total)} s", "", ""))
+def _paper_if(paper, k):
+    return (paper.get("improvement_factor") or {}).get(k_label(k))
+
+
+def _headline_rows(results, paper):
+    dom, control = results.domain, results.control
+    meas, main = results.domains[dom], results.pair(results.main_pair)
+    rows = [(f"contrast of the reference ({dom} domain)", _fmt(meas.contrast_reference, ".4g"), "", "")]
+    rows += [(f"contrast enhanced, {_k_label(m.k)}", _fmt(m.contrast, ".4g"), "", "") for m in meas.per_k]
+    for m in meas.per_k:
+        ctrl = _fmt(control.domains[dom].at(m.k).improvement_factor) if control else ""
+        rows.append((f"improvement factor, {_k_label(m.k)}", _fmt(m.improvement_factor),
+                     _fmt(_paper_if(paper, m.k), ".1f", ""), ctrl))
+    rows += _bound_cnr_rows(results)
+    ctrl = _fmt(control.pair(main.name).change_ratio.get(dom)) if control and _has_pair(control, main.name) else ""
+    rows.append((f"intensity-change ratio inclusion/background, steps {_pair_label(main.name)}",
+                 _fmt(main.change_ratio[dom]), _paper_range(paper), ctrl))
+    status = "passed" if main.ok else f"FLAGGED: {main.reason or 'no reason given'}"
+    rows.append((f"registration {_pair_label(main.name)} ({main.method})", status, "", ""))
+    if main.rois_observed:
+        rows.append(("motion observed in the ROIs (inclusion / background)",
+                     " / ".join(f"{_fmt(100 * main.rois_observed[k], '.0f')} %" for k in ("inclusion", "background")),
+                     "", ""))
+    if main.epe:
+        rows.append(("registration end-point error vs truth, median / p95 (px)",
+                     f"{_fmt(main.epe['epe_median'], '.3f')} / {_fmt(main.epe['epe_p95'], '.3f')}", "", ""))
+    if _num(results.timings.get("total_s")) is not None:
+        rows.append(("total processing time", f"{_fmt(results.timings['total_s'])} s", "", ""))
     header = ["quantity", "this run", "paper"] + (["control (soft inclusion)"] if control else [])
-    rows = [r if control else r[:3] for r in rows]
-    return header, rows
+    return header, [r if control else r[:3] for r in rows]
 
 
-def _bound_cnr_rows(results, control):
+def _has_pair(results, name):
+    return any(p.name == name for p in results.pairs)
+
+
+def _bound_cnr_rows(results):
     """Per domain and k: the improvement factor beside its bound (what compression alone allows
     through rigid plates, :func:`radiokit.measure.improvement_bound`), and the CNR beside the
     reference's (the enhanced image carries the noise of both exposures)."""
-    rows = []
-    basis = _get(results, "bound", "basis") or ""
-    for dom in _DOMAIN_ORDER:
-        m = _get(results, "domains", dom, default={}) or {}
-        cm = _get(control, "domains", dom, default={}) if control else {}
-        for k in _k_keys(m.get("improvement_factor")):
-            b = _kget(m.get("bound"), k)
-            rows.append((f"{dom}: improvement factor (bound), {_k_label(k)}",
-                         f"{_fmt(_kget(m.get('improvement_factor'), k))} ({_fmt(b, '.3f')})",
-                         "", _fmt(_kget((cm or {}).get("improvement_factor"), k)) if control else ""))
-        rows.append((f"{dom}: CNR reference → " + ", ".join(_k_label(k) for k in _k_keys(m.get("cnr"))),
-                     " → ".join([_fmt(m.get("cnr_reference"), ".3g")]
-                                     + [_fmt(_kget(m.get("cnr"), k), ".3g") for k in _k_keys(m.get("cnr"))]),
-                     "", " → ".join([_fmt((cm or {}).get("cnr_reference"), ".3g")]
-                                         + [_fmt(_kget((cm or {}).get("cnr"), k), ".3g")
-                                            for k in _k_keys((cm or {}).get("cnr"))]) if control else ""))
-    if basis:
-        rows.append(("bound basis", basis, "", ""))
+    rows, control = [], results.control
+    for dom in _in_order(results.domains):
+        m = results.domains[dom]
+        cm = control.domains.get(dom) if control else None
+        for x in m.per_k:
+            rows.append((f"{dom}: improvement factor (bound), {_k_label(x.k)}",
+                         f"{_fmt(x.improvement_factor)} ({_fmt(x.bound, '.3f')})", "",
+                         _fmt(cm.at(x.k).improvement_factor) if cm else ""))
+        rows.append((f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
+                     " \u2192 ".join(_fmt(v, ".3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]), "",
+                     " \u2192 ".join(_fmt(v, ".3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)])
+                     if cm else ""))
+    if results.bound.basis:
+        rows.append(("bound basis", results.bound.basis, "", ""))
     return rows
 
 
-def _plain_language(arrays, results, paper):
-    dom = results.get("domain") or "log"
-    meas = _get(results, "domains", dom, default={}) or {}
-    factors = results.get("improvement_factor") or meas.get("improvement_factor") or {}
-    numbers = list(arrays.get("step_numbers") or [])
-    ref_step = f"step {numbers[-1]}" if numbers else "the most compressed step"
+def _contrast_sentences(results, paper):
+    """What the reference's contrast is and what the enhancement does to it and to the CNR."""
+    dom = results.domain
+    meas = results.domains[dom]
+    out = [f"In the {dom} domain the inclusion stands out of the nearby background by "
+           f"{_fmt(meas.contrast_reference, '.4g')} (inclusion ROI mean minus background ROI mean) in the most "
+           f"compressed image (step {results.steps[-1]}), the reference."]
+    parts = [f"{_fmt(m.improvement_factor)} at {_k_label(m.k)}" for m in meas.per_k]
+    paper_parts = [f"{_fmt(_paper_if(paper, m.k), '.1f')} at {_k_label(m.k)}" for m in meas.per_k
+                   if _num(_paper_if(paper, m.k)) is not None]
+    sentence = ("Adding the compression-induced difference, k\u00b7(D \u2212 mean D), multiplies that contrast by "
+                + ", ".join(parts))
+    if paper_parts:
+        sentence += " (the paper: about " + ", ".join(paper_parts) + ")"
+    out.append(sentence + ".")
+    m0 = meas.at(_main_k(results.ks))
+    f0 = _num(m0.improvement_factor)
+    if f0 is not None and f0 <= 1:
+        out.append(f"At {_k_label(m0.k)} the enhancement does not raise the contrast: the difference "
+                   "image carries no inclusion signal of the helpful sign here.")
+    if _num(meas.cnr_reference) and _num(m0.cnr) is not None and f0 is not None:
+        g = m0.cnr / meas.cnr_reference
+        s = f"The contrast-to-noise ratio changes by a factor of {g:.2f} at {_k_label(m0.k)}"
+        if g < f0 - 0.01:
+            s += (", less than the contrast, because D also carries the noise of both exposures "
+                  "and the registration's residual errors")
+        out.append(s + ".")
+    return out
+
+
+def _pair_sentences(results, paper):
+    """What the change ratio and the registration of the main pair say."""
+    dom, main = results.domain, results.pair(results.main_pair)
     out = []
-    c_ref = _num(meas.get("contrast_reference"))
-    if c_ref is not None:
-        out.append(f"In the {dom} domain the inclusion stands out of the nearby background by "
-                   f"{c_ref:.4g} (inclusion ROI mean minus background ROI mean) in the most compressed "
-                   f"image ({ref_step}), the reference.")
-    ks = _k_keys(factors)
-    if ks:
-        parts = [f"{_fmt(_kget(factors, k))} at {_k_label(k)}" for k in ks]
-        paper_if = paper.get("improvement_factor") or {}
-        paper_parts = [f"{_fmt(_kget(paper_if, k), '.1f')} at {_k_label(k)}" for k in ks
-                       if _num(_kget(paper_if, k)) is not None]
-        sentence = ("Adding the compression-induced difference, k\u00b7(D \u2212 mean D), multiplies that "
-                    "contrast by " + ", ".join(parts))
-        if paper_parts:
-            sentence += " (the paper: about " + ", ".join(paper_parts) + ")"
-        out.append(sentence + ".")
-        k0 = _main_k(ks)
-        f0 = _num(_kget(factors, k0))
-        if f0 is not None and f0 <= 1:
-            out.append(f"At {_k_label(k0)} the enhancement does not raise the contrast: the difference "
-                       "image carries no inclusion signal of the helpful sign here.")
-        cnr_ref = _num(meas.get("cnr_reference"))
-        cnr_k = _num(_kget(meas.get("cnr"), k0))
-        if cnr_ref and cnr_k is not None and f0 is not None:
-            g = cnr_k / cnr_ref
-            s = f"The contrast-to-noise ratio changes by a factor of {g:.2f} at {_k_label(k0)}"
-            if g < f0 - 0.01:
-                s += (", less than the contrast, because D also carries the noise of both exposures "
-                      "and the registration's residual errors")
-            out.append(s + ".")
-    pair = _headline_pair(arrays, results)
-    cr = _num(_get(results, "change_ratio", pair, dom)) if pair else None
+    cr = _num(main.change_ratio.get(dom))
     if cr is not None:
-        a, _, b = pair.partition("->")
-        s = (f"Between steps {a} and {b}, the inclusion's intensity changed {cr:.2f} times as much as the "
-             f"background's (the paper's earlier study: {_paper_range(paper)}); ")
+        s = (f"Between steps {main.moving} and {main.reference}, the inclusion's intensity changed {cr:.2f} times "
+             f"as much as the background's (the paper's earlier study: {_paper_range(paper)}); ")
         s += ("below 1, the inclusion changed less than the background, as a stiffer inclusion that "
               "deforms less would" if cr < 1 else
               "not below 1: no sign here that the inclusion changed less than the background")
         if cr < 1 and dom in _TRANSMISSION:
             s += (", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
                   "detected intensity is exponential in the line integral)")
-        s += "."
-        out.append(s)
-    q = _get(results, "registration", pair, default=None) if pair else None
-    if isinstance(q, dict):
-        if q.get("ok"):
-            s = (f"The registration of step {pair.partition('->')[0]} onto step {pair.partition('->')[2]} "
-                 "passed its checks (similarity improved, no folding, converged)")
-            if _num(q.get("epe_median")) is not None:
-                s += f"; its median end-point error against the simulation's truth is {_fmt(q['epe_median'], '.3f')} px"
-            out.append(s + ".")
-        else:
-            out.append(f"Caution: the registration of {pair} was flagged ({q.get('reason') or 'no reason given'}); "
-                       "every number derived from D depends on it.")
-        obs = q.get("rois_observed")
-        if isinstance(obs, dict) and obs:
-            parts = [f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items() if _num(v) is not None]
-            unseen = [k for k, v in obs.items() if _num(v) is not None and v < 0.5]
-            s = "The motion was observed (registration confidence map) in " + " and ".join(parts)
-            s += (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess." if unseen
-                  else ".")
-            out.append(s)
-    control = results.get("control")
-    if isinstance(control, dict) and ks:
-        k0 = _main_k(ks)
-        z = stiffness_share(_kget(factors, k0), _kget(control.get("improvement_factor"), k0))
+        out.append(s + ".")
+    if main.ok:
+        s = (f"The registration of step {main.moving} onto step {main.reference} passed its checks (similarity "
+             "improved, no folding, converged)")
+        if main.epe:
+            s += f"; its median end-point error against the simulation's truth is {_fmt(main.epe['epe_median'], '.3f')} px"
+        out.append(s + ".")
+    else:
+        out.append(f"Caution: the registration of {main.name} was flagged ({main.reason or 'no reason given'}); "
+                   "every number derived from D depends on it.")
+    if main.rois_observed:
+        obs = main.rois_observed
+        unseen = [k for k, v in obs.items() if v < 0.5]
+        s = "The motion was observed (registration confidence map) in " + " and ".join(
+            f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items())
+        out.append(s + (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess."
+                        if unseen else "."))
+    return out
+
+
+def _plain_language(results, paper):
+    out = _contrast_sentences(results, paper) + _pair_sentences(results, paper)
+    if results.control is not None:
+        k0 = _main_k(results.ks)
+        if_s = results.domains[results.domain].at(k0).improvement_factor
+        if_c = results.control.domains[results.domain].at(k0).improvement_factor
         out.append(f"A control run of the same scene with the inclusion as soft as the background "
-                   f"improves the contrast by {_fmt(_kget(control.get('improvement_factor'), k0))} at "
-                   f"{_k_label(k0)}: the share of the gain that needs the inclusion's stiffness is "
-                   f"{_share_text(z)} (details below).")
-    return " ".join(out) if out else "The results carry no measurements to summarise."
+                   f"improves the contrast by {_fmt(if_c)} at {_k_label(k0)}: the share of the gain that "
+                   f"needs the inclusion's stiffness is {_share_text(stiffness_share(if_s, if_c))} (details below).")
+    return " ".join(out)
 
 
 def _measurement_table(results, paper):
     header = ["domain", "image", "contrast", "CNR", "Weber", "improvement factor", "paper"]
     rows = []
-    domains = results.get("domains") or {}
-    for dom in [d for d in _DOMAIN_ORDER if d in domains] + [d for d in domains if d not in _DOMAIN_ORDER]:
-        m = domains[dom] or {}
-        rows.append((dom, "reference", _fmt(m.get("contrast_reference"), ".4g"),
-                     _fmt(m.get("cnr_reference"), ".3g"), _fmt(m.get("weber_reference"), ".4g"), "1", ""))
-        for k in _k_keys(m.get("contrast"), m.get("improvement_factor")):
-            rows.append((dom, f"enhanced, {_k_label(k)}", _fmt(_kget(m.get("contrast"), k), ".4g"),
-                         _fmt(_kget(m.get("cnr"), k), ".3g"), _fmt(_kget(m.get("weber"), k), ".4g"),
-                         _fmt(_kget(m.get("improvement_factor"), k)),
-                         _fmt(_kget(paper.get("improvement_factor"), k), ".1f", "")))
-    return (_table(header, rows) if rows else "")
+    for dom in _in_order(results.domains):
+        m = results.domains[dom]
+        rows.append((dom, "reference", _fmt(m.contrast_reference, ".4g"), _fmt(m.cnr_reference, ".3g"),
+                     _fmt(m.weber_reference, ".4g"), "1", ""))
+        rows += [(dom, f"enhanced, {_k_label(x.k)}", _fmt(x.contrast, ".4g"), _fmt(x.cnr, ".3g"),
+                  _fmt(x.weber, ".4g"), _fmt(x.improvement_factor), _fmt(_paper_if(paper, x.k), ".1f", ""))
+                 for x in m.per_k]
+    return _table(header, rows)
 
 
 def _change_ratio_table(results, paper):
-    cr = results.get("change_ratio") or {}
-    if not cr:
-        return ""
-    domains = sorted({d for v in cr.values() if isinstance(v, dict) for d in v},
-                     key=lambda d: (_DOMAIN_ORDER.index(d) if d in _DOMAIN_ORDER else 9, d))
+    domains = _in_order(results.domains)
     header = ["steps (moving\u2192reference)"] + [f"{d} domain" for d in domains] + ["paper (earlier study)"]
-    rows = []
-    for pair, v in cr.items():
-        rows.append([_pair_label(pair)] + [_fmt(_get(v, d)) for d in domains]
-                    + [_paper_range(paper)])
+    rows = [[_pair_label(p.name)] + [_fmt(p.change_ratio.get(d)) for d in domains] + [_paper_range(paper)]
+            for p in results.pairs]
     return _table(header, rows)
 
 
 def _registration_table(results):
-    reg = results.get("registration") or {}
-    if not reg:
-        return ""
-    has_epe = any(_num(_get(q, "epe_median")) is not None for q in reg.values())
+    has_epe = any(p.epe for p in results.pairs)
     header = ["pair", "method", "ok", "RC before\u2192after", "NCC before\u2192after", "folds", "min det J",
               "iterations", "time (s)"] + (["EPE median / p95 (px)"] if has_epe else []) + ["reason"]
     rows = []
-    for pair, q in reg.items():
-        q = q if isinstance(q, dict) else {}
-        ok = q.get("ok")
-        row = [_pair_label(pair), q.get("method", "\u2014"),
-               "yes" if ok else ("NO" if ok is not None else "\u2014"),
+    for p in results.pairs:
+        q = p.quality
+        row = [_pair_label(p.name), p.method, "yes" if p.ok else "NO",
                f"{_fmt(q.get('rc_before'), '.5g')} \u2192 {_fmt(q.get('rc_after'), '.5g')}",
                f"{_fmt(q.get('ncc_before'), '.4f')} \u2192 {_fmt(q.get('ncc_after'), '.4f')}",
                _fmt(q.get("folds"), ".0f"), _fmt(q.get("min_det_j"), ".3g"), _fmt(q.get("iterations"), ".0f"),
                _fmt(q.get("seconds"))]
         if has_epe:
-            row.append(f"{_fmt(q.get('epe_median'), '.3f')} / {_fmt(q.get('epe_p95'), '.3f')}")
-        row.append(q.get("reason") or "")
-        rows.append(row)
+            epe = p.epe or {}
+            row.append(f"{_fmt(epe.get('epe_median'), '.3f')} / {_fmt(epe.get('epe_p95'), '.3f')}")
+        rows.append(row + [p.reason])
     return _table(header, rows)
 
 
 def _control_section(results):
-    control = results.get("control")
-    if not isinstance(control, dict):
+    control = results.control
+    if control is None:
         return ""
-    stiff_dom = results.get("domains") or {}
-    ctrl_dom = control.get("domains") or {}
-    domains = [d for d in _DOMAIN_ORDER if d in stiff_dom or d in ctrl_dom]
-    headline = results.get("domain") or "log"
     rows, sentences = [], []
+    domains = _in_order(d for d in results.domains if d in control.domains)
     for dom in domains:
-        s_if = _get(stiff_dom, dom, "improvement_factor") or \
-            (results.get("improvement_factor") if dom == headline else None) or {}
-        c_if = _get(ctrl_dom, dom, "improvement_factor") or \
-            (control.get("improvement_factor") if dom == headline else None) or {}
-        rows.append((dom, "contrast of the reference", _fmt(_get(stiff_dom, dom, "contrast_reference"), ".4g"),
-                     _fmt(_get(ctrl_dom, dom, "contrast_reference"), ".4g"), ""))
-        ks = _k_keys(s_if, c_if)
-        for k in ks:
-            z = stiffness_share(_kget(s_if, k), _kget(c_if, k))
-            rows.append((dom, f"improvement factor, {_k_label(k)}", _fmt(_kget(s_if, k)),
-                         _fmt(_kget(c_if, k)), _share_text(z)))
-        if ks:
-            k0 = _main_k(ks)
-            sentences.append(_control_sentence(dom, k0, _kget(s_if, k0), _kget(c_if, k0)))
-    for pair, v in (results.get("change_ratio") or {}).items():
-        for dom in domains:
-            rows.append((dom, f"intensity-change ratio, steps {_pair_label(pair)}",
-                         _fmt(_get(v, dom)), _fmt(_get(control, "change_ratio", pair, dom)), ""))
+        s, c = results.domains[dom], control.domains[dom]
+        rows.append((dom, "contrast of the reference", _fmt(s.contrast_reference, ".4g"),
+                     _fmt(c.contrast_reference, ".4g"), ""))
+        for x in s.per_k:
+            if_c = c.at(x.k).improvement_factor
+            rows.append((dom, f"improvement factor, {_k_label(x.k)}", _fmt(x.improvement_factor), _fmt(if_c),
+                         _share_text(stiffness_share(x.improvement_factor, if_c))))
+        k0 = _main_k(results.ks)
+        sentences.append(_control_sentence(dom, k0, s.at(k0).improvement_factor, c.at(k0).improvement_factor))
+    for p in results.pairs:
+        ctrl = control.pair(p.name).change_ratio if _has_pair(control, p.name) else {}
+        rows += [(dom, f"intensity-change ratio, steps {_pair_label(p.name)}", _fmt(p.change_ratio.get(dom)),
+                  _fmt(ctrl.get(dom)), "") for dom in domains]
     header = ["domain", "quantity", "stiff inclusion", "control (inclusion as soft as the background)",
               "share needing stiffness"]
     return ("<section id=\"control\"><h2>Stiff inclusion vs control (inclusion as soft as the background)</h2>"
@@ -903,28 +737,20 @@ pre{background:#f6f6f6;padding:.6em;overflow-x:auto;font-size:.85em}
 
 
 def _meta_rows(results):
-    rows = [("source file", results.get("source") or "\u2014")]
-    scene = results.get("scene")
-    if scene:
-        scene = str(scene)
+    rows = [("source file", results.source or "\u2014")]
+    if results.scene:
+        scene = str(results.scene)
         long = "\n" in scene.strip() or len(scene) > 120
         rows.append(("scene", f"{len(scene.splitlines())} lines of configuration, shown below" if long else scene))
-    px = _num(results.get("pixel_mm"))
-    if px:
-        rows.append(("pixel size", f"{px:g} mm"))
-    rows.append(("headline domain", results.get("domain") or "log"))
-    rois = results.get("rois") or {}
-    crop = _rect(rois, "crop")
-    if crop:
-        rows.append(("crop (full-frame px, rows \u00d7 cols, half-open)",
-                     f"[{crop[0]}, {crop[1]}) \u00d7 [{crop[2]}, {crop[3]})"))
+    px = results.pixel_mm
+    rows.append(("pixel size", f"{px:g} mm"))
+    rows.append(("headline domain", f"{results.domain} ({_domain_unit(results.domain)})"))
+    r0, r1, c0, c1 = results.rois.crop
+    rows.append(("crop (full-frame px, rows \u00d7 cols, half-open)", f"[{r0}, {r1}) \u00d7 [{c0}, {c1})"))
     for name in ("inclusion", "background"):
-        r = _rect(rois, name)
-        if r:
-            text = f"[{r[0]}, {r[1]}) \u00d7 [{r[2]}, {r[3]}) px"
-            if px:
-                text += f" ({(r[1] - r[0]) * px:.3g} \u00d7 {(r[3] - r[2]) * px:.3g} mm)"
-            rows.append((f"{name} ROI (cropped image)", text))
+        r0, r1, c0, c1 = getattr(results.rois, name)
+        rows.append((f"{name} ROI (cropped image)", f"[{r0}, {r1}) \u00d7 [{c0}, {c1}) px "
+                     f"({(r1 - r0) * px:.3g} \u00d7 {(c1 - c0) * px:.3g} mm)"))
     return rows
 
 
@@ -935,30 +761,65 @@ def _scene_details(scene):
     return f"<details><summary>scene configuration</summary><pre>{_e(scene)}</pre></details>"
 
 
-# -- the page ------------------------------------------------------------------------------------
-def write_report(out_dir, results: dict, arrays: dict) -> Path:
+def _figures(images, results, fig_dir) -> dict:
+    """Every figure drawn and saved: ``{file name: HTML <figure>}``, numbered in drawing order."""
+    figures = [make(images, results, fig_dir)
+               for make in (_fig_projections, _fig_profiles, _fig_difference, _fig_rois, _fig_registration)]
+    return {name: (f'<figure id="fig-{_e(name[:-4])}"><img src="figures/{_e(name)}" alt="{_e(caption[:120])}">'
+                   f"<figcaption><b>Figure {i}.</b> {_e(caption)}</figcaption></figure>")
+            for i, (name, caption) in enumerate(figures, 1)}
+
+
+def _head(results, paper) -> list:
+    """The page from its head to the headline table and summary."""
+    header, rows = _headline_rows(results, paper)
+    return [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>radiokit report \u2014 {_e(results.source)}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>Compression-induced contrast</h1>",
+        f"<p>radiokit {_e(__version__)} report for <code>{_e(results.source)}</code>, written "
+        f"{_e(datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC'))}.</p>",
+        _table(["", ""], _meta_rows(results), cls="meta"),
+        _scene_details(results.scene),
+        "<h2>Headline</h2>",
+        _table(header, rows),
+        f'<p class="summary"><b>What the numbers show.</b> {_e(_plain_language(results, paper))}</p>',
+    ]
+
+
+def _measurements(results, paper) -> list:
+    return [
+        "<h2>Contrast measurements</h2>",
+        "<p>Contrast: mean of the inclusion ROI \u2212 mean of the background ROI; CNR: contrast over "
+        "the background ROI's standard deviation; Weber: contrast over the background mean; "
+        "improvement factor: enhanced contrast over the reference's. Domains: log is \u2212ln(I/I\u2080); "
+        "negative is \u2212I/I\u2080, the paper's \u201clinear\u201d images. The paper's improvement "
+        "factors (about 1.4 and 2) and intensity-change ratios (0.66\u20130.84, the authors' "
+        "earlier study) are beside them.</p>",
+        _measurement_table(results, paper),
+        "<p>Intensity-change ratio: the change of the inclusion ROI's mean between two steps "
+        "over the change of the background ROI's (the moving step registered onto the "
+        "other); below 1 the inclusion changed less.</p>" + _change_ratio_table(results, paper),
+        _control_section(results),
+    ]
+
+
+def write_report(out_dir, results: Results, images: Images) -> Path:
     """Write the processing report: ``out_dir/report.html`` and PNG figures in ``out_dir/figures/``.
 
     Parameters
     ----------
     out_dir : str or Path
         Created if missing; ``report.html`` and ``figures/*.png`` in it are overwritten.
-    results : dict
-        The JSON-able measurements (the pipeline's ``results.json``): ``source``, ``scene``,
-        ``pixel_mm``, ``domain`` (the headline domain), ``ks``, ``rois``, ``improvement_factor``,
-        ``domains`` (per domain: ``contrast_reference``, ``cnr_reference``, ``weber_reference`` and
-        ``contrast``/``cnr``/``weber``/``improvement_factor`` keyed by k as a string),
-        ``change_ratio`` (per step pair ``"a->b"`` and domain), ``registration`` (per pair: quality),
-        optional ``control`` (the same structure for a run whose inclusion is as soft as the
-        background), ``timings`` (seconds per stage), ``paper`` (defaults to :data:`PAPER`).
-        Every key is optional; missing parts are left out of the page.
-    arrays : dict
-        float32 images, all of the same cropped shape ``(rows, cols)``: ``steps`` (n, rows, cols)
-        line integrals, least compressed first, with ``step_numbers`` and ``ratios``;
-        ``reference``, ``registered``, ``moving`` (log domain); ``displacement`` (2, rows, cols),
-        pixels, pull convention; ``det_j``; ``enhanced`` ({domain: {k: image}});
-        ``reference_by_domain`` and ``difference`` ({domain: image}); optional
-        ``truth_displacement`` and ``epe_map``.
+    results : radiokit.results.Results
+        The run's numbers (``results.json``'s records), with its control run if any.
+    images : radiokit.results.Images
+        The run's images, all of the cropped shape: the steps (line integrals), the main pair
+        (reference, moving, registered, field, det J), the enhancement per domain, and for a
+        simulated file the truth field and the end-point error map.
 
     Returns
     -------
@@ -970,74 +831,25 @@ def write_report(out_dir, results: dict, arrays: dict) -> Path:
     The page is self-contained: inline CSS, no scripts, no network references. All text taken from
     ``results`` (paths, scene names, registration reasons) is HTML-escaped.
     """
+    if not isinstance(results, Results) or not isinstance(images, Images):
+        raise TypeError("write_report takes radiokit.results.Results and Images (load_results reads a "
+                        f"results.json), got {type(results).__name__} and {type(images).__name__}")
     t0 = time.perf_counter()
-    if hasattr(results, "to_json"):  # the pipeline's records (radiokit.results.Results, pipeline.Images)
-        arrays = arrays.as_dict(results) if hasattr(arrays, "as_dict") else arrays
-        results = results.to_json()
     out_dir = Path(out_dir)
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
-    results = results if isinstance(results, dict) else {}
-    arrays = arrays if isinstance(arrays, dict) else {}
-    paper = {**PAPER, **(results.get("paper") or {})}
-
-    figures = []
-    for make in (_fig_projections, _fig_profiles, _fig_difference, _fig_rois, _fig_registration):
-        fig = make(arrays, results, fig_dir)
-        if fig is not None:
-            figures.append(fig)
-
-    timings = dict(results.get("timings") or {})
-    if "report_s" not in timings:
-        timings["report_s"] = time.perf_counter() - t0
-        own_report_time = True
-    else:
-        own_report_time = False
-
-    header, rows = _headline_rows(arrays, results, paper)
-    fig_html = {name: (f'<figure id="fig-{_e(name[:-4])}"><img src="figures/{_e(name)}" alt="{_e(caption[:120])}">'
-                       f"<figcaption><b>Figure {i}.</b> {_e(caption)}</figcaption></figure>")
-                for i, (name, caption) in enumerate(figures, 1)}
-    source = results.get("source") or "unknown source"
-    parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>radiokit report \u2014 {_e(source)}</title>",
-        f"<style>{_CSS}</style></head><body>",
-        "<h1>Compression-induced contrast</h1>",
-        f"<p>radiokit {_e(__version__)} report for <code>{_e(source)}</code>, written "
-        f"{_e(datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC'))}.</p>",
-        _table(["", ""], _meta_rows(results), cls="meta"),
-        _scene_details(results.get("scene")),
-        "<h2>Headline</h2>",
-        _table(header, rows),
-        f'<p class="summary"><b>What the numbers show.</b> {_e(_plain_language(arrays, results, paper))}</p>',
-        "<h2>Images</h2>",
-    ]
-    parts += [fig_html[n] for n in ("projections.png", "profiles.png", "difference.png", "rois.png")
-              if n in fig_html]
-    parts.append("<h2>Contrast measurements</h2>")
-    parts.append("<p>Contrast: mean of the inclusion ROI \u2212 mean of the background ROI; CNR: contrast over "
-                 "the background ROI's standard deviation; Weber: contrast over the background mean; "
-                 "improvement factor: enhanced contrast over the reference's. The paper's improvement "
-                 "factors (about 1.4 and 2) and intensity-change ratios (0.66\u20130.84, the authors' "
-                 "earlier study) are beside them.</p>")
-    parts.append(_measurement_table(results, paper) or "<p>No contrast measurements.</p>")
-    cr_table = _change_ratio_table(results, paper)
-    if cr_table:
-        parts.append("<p>Intensity-change ratio: the change of the inclusion ROI's mean between two steps "
-                     "over the change of the background ROI's (the moving step registered onto the "
-                     "other); below 1 the inclusion changed less.</p>" + cr_table)
-    parts.append(_control_section(results))
-    parts.append("<h2>Registration quality</h2>")
-    if "registration.png" in fig_html:
-        parts.append(fig_html["registration.png"])
-    parts.append(_registration_table(results) or "<p>No registration quality recorded.</p>")
-    parts.append("<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
-                 "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>")
-    parts.append("<h2>Timings</h2>")
-    parts.append(_timings_table(timings) or "<p>No timings recorded.</p>")
+    paper = {**PAPER, **(results.paper or {})}
+    fig_html = _figures(images, results, fig_dir)
+    timings = dict(results.timings)
+    own_report_time = "report_s" not in timings
+    timings.setdefault("report_s", time.perf_counter() - t0)
+    parts = _head(results, paper) + ["<h2>Images</h2>"]
+    parts += [fig_html[n] for n in ("projections.png", "profiles.png", "difference.png", "rois.png")]
+    parts += _measurements(results, paper)
+    parts += ["<h2>Registration quality</h2>", fig_html["registration.png"], _registration_table(results),
+              "<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
+              "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>",
+              "<h2>Timings</h2>", _timings_table(timings) or "<p>No timings recorded.</p>"]
     if own_report_time:
         parts.append("<p>The report's time is its own figure drawing, measured while writing this page.</p>")
     parts.append("</body></html>")

@@ -1,4 +1,4 @@
-"""The numbers of one processed experiment as typed records, and their one serialisation.
+"""The numbers and images of one processed experiment as typed records, and their one serialisation.
 
 :func:`radiokit.pipeline.process` builds a :class:`Results`; ``results.json`` is
 :meth:`Results.to_json` with a ``schema_version``, and :func:`load_results` reads it back into
@@ -20,11 +20,13 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 
 __all__ = ["SCHEMA_VERSION", "k_label", "KMeasure", "DomainMeasures", "PairResult", "Bound", "Rois", "Results",
-           "load_results"]
+           "Enhancement", "Images", "load_results"]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
 SCHEMA_VERSION = "1.0"
@@ -218,6 +220,45 @@ class Results:
         path = Path(path)
         path.write_text(json.dumps(self.to_json(), indent=1))
         return path
+
+
+@dataclass(frozen=True)
+class Enhancement:
+    """The main pair in one domain: reference, registered step, ``D = reference - registered``
+    (:func:`radiokit.enhance.difference`) and the enhanced image per k, in the order of the ks."""
+    domain: Domain
+    reference: np.ndarray
+    registered: np.ndarray
+    difference: np.ndarray
+    images: tuple[tuple[float, np.ndarray], ...]
+
+
+@dataclass(frozen=True)
+class Images:
+    """The images of a run (cropped): what ``results.h5`` and the report show."""
+    steps: np.ndarray
+    reference: np.ndarray
+    registered: np.ndarray
+    moving: np.ndarray
+    displacement: np.ndarray
+    det_j: np.ndarray
+    confidence: np.ndarray | None
+    enhanced: dict  #: Domain -> Enhancement
+    profiles: dict
+    truth_displacement: np.ndarray | None = None
+    epe_map: np.ndarray | None = None
+
+    def as_dict(self, record: Results) -> dict:
+        """The arrays keyed by name (the report's and ``Result.arrays``' form)."""
+        out = {"steps": self.steps, "step_numbers": list(record.steps), "ratios": list(record.ratios),
+               "reference": self.reference, "registered": self.registered, "moving": self.moving,
+               "displacement": self.displacement, "det_j": self.det_j, "confidence": self.confidence,
+               "enhanced": {d.value: {k_label(k): img for k, img in e.images} for d, e in self.enhanced.items()},
+               "reference_by_domain": {d.value: e.reference for d, e in self.enhanced.items()},
+               "difference": {d.value: e.difference for d, e in self.enhanced.items()}, "profiles": self.profiles}
+        if self.truth_displacement is not None:
+            out["truth_displacement"], out["epe_map"] = self.truth_displacement, self.epe_map
+        return out
 
 
 def load_results(path) -> Results:

@@ -5,14 +5,56 @@ import sys
 from html.parser import HTMLParser
 from pathlib import Path
 
+import dataclasses
+
 import numpy as np
 import pytest
 from matplotlib import image as mpimg
 
 from radiokit import report as R
+from radiokit.enhance import Domain, to_domain
+from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois
 from radiokit.report import MAX_PNG_BYTES, stiffness_share, write_report
 
 SOURCE = "/data/run<1>&co/exp.h5"
+
+
+def _domain(dom, c_ref, cnr_ref, weber_ref, per_k):
+    """DomainMeasures from ``{k: (contrast, cnr, weber, improvement factor)}``."""
+    return DomainMeasures(Domain(dom), c_ref, cnr_ref, weber_ref,
+                          tuple(KMeasure(float(k), *v) for k, v in per_k.items()))
+
+
+def _record(ks, factors, *, truth, scene="block <stiff> & soft", control=None):
+    q = {"ok": True, "reason": "", "rc_before": 12.5, "rc_after": 3.25, "ncc_before": 0.9, "ncc_after": 0.998,
+         "folds": 0, "min_det_j": 0.97, "seconds": 1.5, "iterations": 40}
+    epe = {"epe_median": 0.071, "epe_p95": 0.183} if truth else None
+    cr = {"2->3": (0.743, 0.812), "1->3": (0.751, 0.8), "1->2": (0.76, 0.81)}
+    quality = {"2->3": q, "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0", "folds": 3},
+               "1->2": q}
+    pairs = tuple(PairResult(int(n[0]), int(n[-1]), "rc", quality[n], {Domain.LOG: v[0], Domain.NEGATIVE: v[1]},
+                             None, None, epe) for n, v in cr.items())
+    domains = {Domain.LOG: _domain("log", 0.2512, 25.1, 0.27,
+                                   {k: (0.2512 * f, 20.0 * f, 0.27 * f, f) for k, f in factors.items()}),
+               Domain.NEGATIVE: _domain("negative", 0.0915, 9.2, 0.2,
+                                        {k: (0.0915 * 1.2, 9.0, 0.24, 1 + 0.2 * float(k)) for k in ks})}
+    return Results(SOURCE, scene, truth, 0.05, Domain.LOG, tuple(float(k) for k in ks), "rc", (1, 2, 3),
+                   (0.15, 0.20, 0.25), Rois((100, 164, 200, 264), (28, 36, 28, 36), (28, 36, 4, 12)), domains,
+                   pairs, "2->3", 32, Bound(None, ""), {"improvement_factor": {"1": 1.4, "2": 2.0},
+                                                        "change_ratio": [0.66, 0.84]},
+                   {"calibrate_s": 0.5, "correct_s": 1.25, "register_s": 12.0, "enhance_s": 0.01,
+                    "measure_s": 0.02, "total_s": 14.37}, control)
+
+
+def _control(ks):
+    """A control run: the inclusion as soft as the background."""
+    cf = {"1": 1.113, "2": 1.226}
+    ctrl = _record(ks, {k: cf.get(k, 1.1) for k in ks}, truth=False)
+    neg = _domain("negative", 0.09, 9.0, 0.2, {k: (0.1, 9.0, 0.2, 1.09 * float(k)) for k in ks})
+    log = _domain("log", 0.2491, 25.0, 0.27, {k: (0.25, 20.0, 0.27, cf.get(k, 1.1)) for k in ks})
+    pairs = tuple(dataclasses.replace(p, change_ratio={Domain.LOG: 0.95, Domain.NEGATIVE: 0.97}) for p in ctrl.pairs
+                  if p.name == "2->3")
+    return dataclasses.replace(ctrl, domains={Domain.LOG: log, Domain.NEGATIVE: neg}, pairs=pairs)
 
 
 def _synthetic(n=64, *, control=False, truth=False, ks=("1", "2"), noise=0.01, seed=0):
@@ -31,63 +73,19 @@ def _synthetic(n=64, *, control=False, truth=False, ks=("1", "2"), noise=0.01, s
     registered = moving.copy()
     d = np.stack([0.5 * np.sin(xx / n * np.pi), 0.3 * np.cos(yy / n * np.pi)]).astype(np.float32)
     det_j = (1 + 0.01 * np.sin(xx / 7) * np.cos(yy / 5)).astype(np.float32)
-    diff_log = ref - registered
-    lin_ref = -np.exp(-ref)
-    diff_lin = lin_ref - (-np.exp(-registered))
-    enh = {dom: {k: (r + float(k) * (D - D.mean())).astype(np.float32) for k in ks}
-           for dom, r, D in (("log", ref, diff_log), ("linear", lin_ref, diff_lin))}
-    arrays = {
-        "steps": steps, "step_numbers": [1, 2, 3], "ratios": [0.15, 0.20, 0.25],
-        "reference": ref, "registered": registered, "moving": np.roll(moving, 1, axis=1),
-        "displacement": d, "det_j": det_j, "enhanced": enh,
-        "reference_by_domain": {"log": ref, "linear": lin_ref.astype(np.float32)},
-        "difference": {"log": diff_log, "linear": diff_lin.astype(np.float32)},
-    }
-    if truth:
-        arrays["truth_displacement"] = d + np.float32(0.05)
-    q = {"method": "rc", "ok": True, "reason": "", "rc_before": 12.5, "rc_after": 3.25,
-         "ncc_before": 0.9, "ncc_after": 0.998, "folds": 0, "min_det_j": 0.97, "seconds": 1.5,
-         "iterations": 40}
-    if truth:
-        q.update(epe_median=0.071, epe_p95=0.183)
+    enhanced = {}
+    for dom in (Domain.LOG, Domain.NEGATIVE):
+        r, g = to_domain(ref, dom), to_domain(registered, dom)
+        D = r - g
+        enhanced[dom] = Enhancement(dom, r, g, D, tuple((float(k), (r + float(k) * (D - D.mean())).astype(np.float32))
+                                                        for k in ks))
+    tf = d + np.float32(0.05) if truth else None
+    images = Images(steps, ref, registered, np.roll(moving, 1, axis=1), d, det_j, None, enhanced, {}, tf,
+                    np.hypot(*(d - tf)) if truth else None)
     factors = {"1": 1.374, "2": 2.046, "0.5": 1.187, "3": 3.1}
     factors = {k: factors[k] for k in ks}
-    results = {
-        "source": SOURCE, "scene": "block <stiff> & soft", "pixel_mm": 0.05, "domain": "log",
-        "ks": [float(k) for k in ks],
-        "rois": {"crop": [100, 164, 200, 264], "inclusion": [28, 36, 28, 36],
-                 "background": [28, 36, 4, 12]},
-        "improvement_factor": factors,
-        "domains": {
-            "log": {"contrast_reference": 0.2512, "cnr_reference": 25.1, "weber_reference": 0.27,
-                    "contrast": {k: 0.2512 * f for k, f in factors.items()},
-                    "cnr": {k: 20.0 * f for k, f in factors.items()},
-                    "weber": {k: 0.27 * f for k, f in factors.items()},
-                    "improvement_factor": factors},
-            "linear": {"contrast_reference": 0.0915, "cnr_reference": 9.2, "weber_reference": 0.2,
-                       "contrast": {k: 0.0915 * 1.2 for k in ks}, "cnr": {k: 9.0 for k in ks},
-                       "weber": {k: 0.24 for k in ks},
-                       "improvement_factor": {k: 1 + 0.2 * float(k) for k in ks}},
-        },
-        "change_ratio": {"2->3": {"log": 0.743, "linear": 0.812}, "1->3": {"log": 0.751, "linear": 0.8},
-                         "1->2": {"log": 0.76, "linear": 0.81}},
-        "registration": {"2->3": q, "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0",
-                                             "folds": 3}},
-        "timings": {"calibrate_s": 0.5, "correct_s": 1.25, "register_s": 12.0, "enhance_s": 0.01,
-                    "measure_s": 0.02, "total_s": 14.37},
-        "paper": {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]},
-    }
-    if control:
-        cf = {"1": 1.113, "2": 1.226}
-        results["control"] = {
-            "improvement_factor": {k: cf.get(k, 1.1) for k in ks},
-            "domains": {
-                "log": {"contrast_reference": 0.2491, "improvement_factor": {k: cf.get(k, 1.1) for k in ks}},
-                "linear": {"contrast_reference": 0.09, "improvement_factor": {k: 1.09 * float(k) for k in ks}},
-            },
-            "change_ratio": {"2->3": {"log": 0.95, "linear": 0.97}},
-        }
-    return results, arrays
+    results = _record(ks, factors, truth=truth, control=_control(ks) if control else None)
+    return results, images
 
 
 class _Parser(HTMLParser):
@@ -122,14 +120,16 @@ def full_report(tmp_path_factory):
 @pytest.fixture(scope="module")
 def bare_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("bare")
-    results, arrays = _synthetic()
+    results, images = _synthetic()
     # and numerics that break naive code: a masked-out band (NaN), a constant difference image
-    arrays["difference"]["linear"] = np.zeros((64, 64), np.float32)
-    for img in (arrays["steps"][0], arrays["reference_by_domain"]["log"], arrays["enhanced"]["log"]["1"]):
+    neg = images.enhanced[Domain.NEGATIVE]
+    images.enhanced[Domain.NEGATIVE] = dataclasses.replace(neg, difference=np.zeros((64, 64), np.float32))
+    for img in (images.steps[0], images.enhanced[Domain.LOG].reference, images.enhanced[Domain.LOG].images[0][1]):
         img[30:34] = np.nan
-    results["registration"]["2->3"] = {"method": "rc", "ok": False, "reason": "diverged <badly>"}
-    results["scene"] = '[scene]\nname = "block"\nnote = "E_inclusion > E_background & dense"\n'
-    return write_report(out, results, arrays), results  # RuntimeWarnings are errors here
+    main = dataclasses.replace(results.pair("2->3"), quality={"ok": False, "reason": "diverged <badly>"})
+    results = dataclasses.replace(results, pairs=tuple(main if p.name == "2->3" else p for p in results.pairs),
+                                  scene='[scene]\nname = "block"\nnote = "E_inclusion > E_background & dense"\n')
+    return write_report(out, results, images), results  # RuntimeWarnings are errors here
 
 
 def _check_images(html_path, expected_min):
@@ -185,7 +185,7 @@ def test_text_is_escaped(full_report):
 
 
 def _sentences(text):
-    pat = (r"In the (log|linear) domain, the control's improvement at k=1 is ([\d.]+) vs ([\d.]+): "
+    pat = (r"In the (log|negative) domain, the control's improvement at k=1 is ([\d.]+) vs ([\d.]+): "
            r"(-?\d+) % of the compression-induced contrast")
     return {m[0]: (float(m[1]), float(m[2]), int(m[3])) for m in re.findall(pat, text)}
 
@@ -195,15 +195,15 @@ def test_control_sentence_percentage_is_the_formula(full_report):
     _, _, text = _parse(path)
     assert "Stiff inclusion vs control (inclusion as soft as the background)" in text
     found = _sentences(text)
-    assert set(found) == {"log", "linear"}
+    assert set(found) == {"log", "negative"}
     for dom, (ctrl, stiff, pct) in found.items():
-        if_s = results["domains"][dom]["improvement_factor"]["1"]
-        if_c = results["control"]["domains"][dom]["improvement_factor"]["1"]
+        if_s = results.domains[Domain(dom)].at(1).improvement_factor
+        if_c = results.control.domains[Domain(dom)].at(1).improvement_factor
         assert (ctrl, stiff) == (round(if_c, 2), round(if_s, 2))
         assert pct == round(100 * (if_s - if_c) / (if_s - 1))
     assert found["log"][2] == 70  # (1.374 - 1.113) / 0.374 = 0.698
-    linear = text.split("In the linear domain, the control's")[1]
-    assert "exponential in the line integral" in linear
+    negative = text.split("In the negative domain, the control's")[1]
+    assert "exponential in the line integral" in negative
 
 
 def test_no_control_no_truth_still_renders(bare_report):
@@ -219,15 +219,10 @@ def test_no_control_no_truth_still_renders(bare_report):
                      r"\nnote = &quot;E_inclusion &gt; E_background &amp; dense&quot;", raw)
 
 
-def test_bare_minimum_renders(tmp_path):
-    path = write_report(tmp_path / "new" / "dir", {"source": "x.h5"}, {})
-    raw, parser, text = _parse(path)
-    assert path.is_file() and parser.imgs == [] and "x.h5" in text
-    # no steps, no measurements, no enhancement: what there is still gets drawn
-    results, arrays = _synthetic()
-    arrays = {k: arrays[k] for k in ("reference", "registered", "moving", "difference")}
-    path = write_report(tmp_path / "partial", {"rois": results["rois"]}, arrays)
-    assert [Path(s).name for s in _check_images(path, 2)] == ["difference.png", "registration.png"]
+def test_only_the_typed_records_are_taken(tmp_path):
+    results, images = _synthetic()
+    with pytest.raises(TypeError, match="write_report takes radiokit.results.Results and Images"):
+        write_report(tmp_path / "new", results.to_json(), images)
 
 
 def test_every_k_is_reported(full_report):
@@ -258,22 +253,14 @@ def test_noisy_figures_are_kept_under_the_size_limit(tmp_path):
                       "attenuation alone (the thinning of a denser inclusion) would lower the contrast"),
     ("log", 1.2, 1.3, "-50 % of the compression-induced contrast needs the inclusion's stiffness: the "
                       "control gains more"),
-    ("linear", 1.4, 1.1, "exponential in the line integral"),
+    ("negative", 1.4, 1.1, "exponential in the line integral"),
     ("log", None, 1.1, "not measurable"),
 ])
 def test_control_sentence_wording(domain, if_stiff, if_control, expected):
-    sentence = R._control_sentence(domain, "1", if_stiff, if_control)
+    sentence = R._control_sentence(domain, 1.0, if_stiff, if_control)
     assert sentence.startswith(f"In the {domain} domain, the control's improvement at k=1 is ")
     assert expected in sentence
-    assert ("exponential" in sentence) == (domain == "linear")
-
-
-def test_headline_pair():
-    arrays = {"step_numbers": [1, 2, 3]}
-    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}, "2->3": {}}}) == "2->3"
-    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}, "2->3": {}}, "main_pair": "1->3"}) == "1->3"
-    assert R._headline_pair(arrays, {"change_ratio": {"1->3": {}}}) == "1->3"
-    assert R._headline_pair({}, {}) is None
+    assert ("exponential" in sentence) == (domain == "negative")
 
 
 @pytest.mark.parametrize("if_stiff, if_control, expected", [
