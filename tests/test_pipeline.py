@@ -288,3 +288,43 @@ def test_a_scheduler_without_workers_is_one_clear_error(tmp_path):
     with LocalCluster(n_workers=0, processes=True, dashboard_address=None) as cluster:
         with pytest.raises(ValueError, match="no workers connected"):
             process_many([path], Config(progress=False), scheduler=cluster.scheduler_address)
+
+
+def test_the_steps_compose_and_a_zero_reference_contrast_is_an_error(tmp_path):
+    """The public steps run one by one give what process gives; a reference without contrast
+    between the ROIs is refused (the improvement factor is undefined), naming file and domain."""
+    from radiokit.enhance import Domain
+    from radiokit.measure import ROI, improvement_factor
+    from radiokit.pipeline import (Config, check_pairs, choose_rois, enhance_pair, load_steps, measure_domains,
+                                   register_pairs)
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    cfg = Config(crop_mm=None, progress=False, method="ncc", cross_check=None, inclusion=(75, 86, 75, 86),
+                 background=(75, 86, 40, 51))
+    steps = load_steps(path)
+    assert steps.numbers == (1, 2, 3) and steps.images.shape == (3, 160, 160)
+    rois = choose_rois(steps, cfg)
+    pairs = register_pairs(steps, rois, cfg)
+    assert [(p.moving, p.reference) for p in pairs] == [(0, 2), (1, 2), (0, 1)]
+    inc, bg = rois.cropped()
+    enhanced = enhance_pair(steps.images[-1], pairs[1].warped, cfg.ks)
+    measured = measure_domains(enhanced, inc, bg)
+    for dom in (Domain.LOG, Domain.NEGATIVE):
+        e = enhanced[dom]
+        for k, img in e.images:
+            assert measured[dom].at(k).improvement_factor == improvement_factor(img, e.reference, inc, bg)
+    checked = check_pairs(pairs, steps.images, steps.numbers, inc, bg)
+    assert [p.name for p in checked] == ["1->3", "2->3", "1->2"] and all(p.epe is None for p in checked)
+    flat = enhance_pair(np.ones((160, 160), np.float32), np.ones((160, 160), np.float32), (1.0,))
+    with pytest.raises(ValueError, match=r"a\.h5: log domain: the reference contrast is zero"):
+        measure_domains(flat, ROI(0, 10, 0, 10), ROI(20, 30, 20, 30), source=str(path))
+
+
+@pytest.mark.parametrize("domain, match", [("linear", "the pipeline computes 'log' and 'negative'"),
+                                           ("lin", "domain must be one of")])
+def test_config_names_its_domains(domain, match):
+    from radiokit.pipeline import Config
+
+    with pytest.raises(ValueError, match=match):
+        Config(domain=domain)
