@@ -156,7 +156,7 @@ class Result:
 
     @property
     def results(self) -> dict:
-        """The numbers as in ``results.json`` (:meth:`radiokit.results.Results.to_json`)."""
+        """The numbers as in ``results.json`` (:meth:`radiokit.results.Results.to_json`; a new dict each call)."""
         return self.record.to_json()
 
     @property
