@@ -153,31 +153,14 @@ def _load_steps(path, progress):
 
 def _sim_truth(path, numbers):
     """Simulated files: the inclusion mask of the last step and the truth fields, or None."""
-    import h5py
+    from radiokit.io import read_simulation
 
-    with h5py.File(path, "r") as h5:
-        if "entry/simulation" not in h5:
-            return None
-        g = h5["entry/simulation"]
-        out = {"fields": {}, "scene": None}
-        if "inclusion_mask" in g:
-            out["inclusion_mask"] = g["inclusion_mask"][-1].astype(bool)
-        if "line_integral" in g:
-            out["line_integral"] = g["line_integral"][-1]
-        for a in numbers:
-            for b in numbers:
-                name = f"displacement/step{a}_to_step{b}"
-                if a < b and name in g:
-                    out["fields"][(a, b)] = g[name][()]
-        scene = g.attrs.get("scene")
-        if scene is not None:
-            text = scene.decode() if isinstance(scene, bytes) else str(scene)
-            out["scene_toml"] = text
-            for line in text.splitlines():
-                if line.startswith("name"):
-                    out["scene"] = line.split("=", 1)[1].strip().strip('"')
-                    break
-    return out
+    pairs = [(a, b) for a in numbers for b in numbers if a < b]
+    sim = read_simulation(path, steps=[-1], pairs=pairs)
+    if sim is None:
+        return None
+    return {"fields": dict(sim.displacement), "scene": sim.scene_name, "scene_toml": sim.scene_toml,
+            "inclusion_mask": sim.inclusion_mask[-1].astype(bool), "line_integral": sim.line_integral[-1]}
 
 
 def _crop_box(inclusion, shape, side_px):
