@@ -5,20 +5,18 @@ import json
 import h5py
 import numpy as np
 import pytest
+import silx.io
+import silx.io.nxdata
 
 from radiokit.cli import main
 from radiokit.io import (EnhancedImages, ExperimentWriter, ImageKey, ResultsRecord, read, read_progress,
                          read_registration, read_results, read_simulation, read_stack, write_results)
 
-silx_nxdata = pytest.importorskip("silx.io.nxdata", reason="silx (the test extra) is the NeXus reader checked")
-
 
 def nexus_plot(path):
     """The signal silx plots for ``path`` by default (following ``@default``): (shape, dtype, values)."""
-    import silx.io
-
     with silx.io.open(str(path)) as f:
-        nx = silx_nxdata.get_default(f)
+        nx = silx.io.nxdata.get_default(f)
         assert nx is not None and nx.is_valid, f"{path}: silx finds no valid default NXdata"
         assert nx.interpretation == "image"
         return nx.signal[()]
@@ -199,3 +197,18 @@ def test_write_simulation_refuses_a_second_truth(tmp_path):
         write_simulation(path, record)
     write_simulation(path, record, replace=True)
     assert read_simulation(path).scene_name == "x"
+
+
+def test_radiokit_calibrate(experiment):
+    """A calibration is no NeXus stack (``Calibration.load`` reads it), but read() still opens it: its
+    dark and flat as two frames, labelled as an experiment labels them."""
+    from radiokit.calibrate import Calibration
+
+    out = experiment.with_name("cal.h5")
+    assert main(["calibrate", "--experiment", str(experiment), "-o", str(out), "--overwrite"]) == 0
+    cal = Calibration.load(out)
+    f = read(out)
+    assert f.meta["format"] == "calibration" and f.meta["image_key"].tolist() == [ImageKey.DARK, ImageKey.FLAT]
+    np.testing.assert_array_equal(f.data, np.stack([cal.dark, cal.flat]))
+    # the dark near the panel's offset, the flat well above it
+    assert f.data[0].mean() < f.data[1].mean() - 500
