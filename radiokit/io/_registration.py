@@ -58,6 +58,16 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
     """Write ``record`` to ``path`` atomically (see :func:`radiokit.io.atomic_h5`).
 
     ``overwrite=False`` refuses an existing ``path``; ``inputs`` are files it must not be.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from radiokit.io import RegistrationRecord, read, read_registration, write_registration
+    >>> path = os.path.join(tempfile.mkdtemp(), "reg.h5")
+    >>> image = np.ones((4, 5), np.float32)
+    >>> write_registration(path, RegistrationRecord("rc", "a.h5", "b.h5", np.zeros((2, 4, 5)), image, {"ok": True}))
+    >>> read(path).shape, read_registration(path).quality
+    ((1, 4, 5), {'ok': True})
     """
     displacement = np.asarray(record.displacement, np.float32)
     registered = np.asarray(record.registered, np.float32)

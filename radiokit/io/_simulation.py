@@ -182,6 +182,21 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
     ------
     FormatError
         ``/entry/simulation`` is there but not of this layout.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from radiokit.io import ExperimentWriter, SimulationRecord, read_simulation
+    >>> path = os.path.join(tempfile.mkdtemp(), "sim.h5")
+    >>> curve = np.array([0.1, 0.2])
+    >>> record = SimulationRecord('name = "block"', curve, curve, curve, curve, curve, curve,
+    ...                           np.zeros((2, 4, 5), np.float32), np.zeros((2, 4, 5), np.uint8),
+    ...                           displacement={(1, 2): np.zeros((2, 4, 5), np.float32)})
+    >>> with ExperimentWriter(path, shape=(4, 5)) as w:
+    ...     w.write_simulation(record)
+    >>> sim = read_simulation(path, steps=[-1])
+    >>> sim.scene_name, sim.steps, sorted(sim.displacement)
+    ('block', (2,), [(1, 2)])
     """
     with h5py.File(path, "r") as h5:
         check_links(path, h5, SIMULATION, allow_external)
