@@ -703,7 +703,8 @@ def _phase_warm_up(r: _Run):
         code = exc.errno or errno.EIO
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
-        r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
+        r.writer.record_run(p.to_toml(), {"detector": det.describe(),
+                                          "source": getattr(src, "describe", lambda: {})()})
     det.arm()
 
 

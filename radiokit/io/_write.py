@@ -131,7 +131,7 @@ class StackWriter:
                 ds = self._series.get(name)
                 if ds is None:
                     ds = self._h5[STACK].create_dataset(name, shape=(max(self._alloc, i),), maxshape=(None,),
-                                                               dtype=np.asarray(value).dtype, chunks=(256,))
+                                                        dtype=np.asarray(value).dtype, chunks=(256,))
                     self._series[name] = ds
                 if i >= ds.shape[0]:
                     ds.resize(i + 1, axis=0)
