@@ -225,7 +225,7 @@ def _one_image(path, index, dataset):
 
 
 def cmd_register(args) -> int:
-    from radiokit.io import atomic_h5, atomic_path, check_output
+    from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
     from radiokit.register import register
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
@@ -247,15 +247,9 @@ def cmd_register(args) -> int:
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
     registered = reg.warp(moving)
-    with atomic_h5(args.output, overwrite=args.overwrite, inputs=inputs) as h5:
-        g = h5.create_group("entry/registration")
-        g.attrs["method"] = reg.method
-        g.attrs["fixed"], g.attrs["moving"] = str(args.fixed), str(args.moving)
-        g.attrs["convention"] = "pull, pixels, (row, col): moving(x + d(x)) matches fixed(x)"
-        g.create_dataset("displacement", data=reg.displacement, compression="lzf")
-        g.create_dataset("registered", data=registered, compression="lzf")
-        for k, v in vars(q).items():
-            g.attrs[f"quality_{k}"] = v
+    write_registration(args.output, RegistrationRecord(reg.method, str(args.fixed), str(args.moving),
+                                                       reg.displacement, registered, vars(q)),
+                       overwrite=args.overwrite, inputs=inputs)
     print(f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
           f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
           f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px")

@@ -218,31 +218,14 @@ def load_steps(path, progress: bool = False) -> Steps:
 
 def _sim_truth(path, numbers):
     """Simulated files: the inclusion mask of the last step and the truth fields, or None."""
-    import h5py
+    from radiokit.io import read_simulation
 
-    with h5py.File(path, "r") as h5:
-        if "entry/simulation" not in h5:
-            return None
-        g = h5["entry/simulation"]
-        out = {"fields": {}, "scene": None}
-        if "inclusion_mask" in g:
-            out["inclusion_mask"] = g["inclusion_mask"][-1].astype(bool)
-        if "line_integral" in g:
-            out["line_integral"] = g["line_integral"][-1]
-        for a in numbers:
-            for b in numbers:
-                name = f"displacement/step{a}_to_step{b}"
-                if a < b and name in g:
-                    out["fields"][(a, b)] = g[name][()]
-        scene = g.attrs.get("scene")
-        if scene is not None:
-            text = scene.decode() if isinstance(scene, bytes) else str(scene)
-            out["scene_toml"] = text
-            for line in text.splitlines():
-                if line.startswith("name"):
-                    out["scene"] = line.split("=", 1)[1].strip().strip('"')
-                    break
-    return out
+    pairs = [(a, b) for a in numbers for b in numbers if a < b]
+    sim = read_simulation(path, steps=[-1], pairs=pairs)
+    if sim is None:
+        return None
+    return {"fields": dict(sim.displacement), "scene": sim.scene_name, "scene_toml": sim.scene_toml,
+            "inclusion_mask": sim.inclusion_mask[-1].astype(bool), "line_integral": sim.line_integral[-1]}
 
 
 def _crop_box(inclusion, shape, side_px):
@@ -560,34 +543,20 @@ def _control(cfg: Config, rois: RoiChoice, out_dir: Path) -> Results | None:
 
 
 def _write(out_dir, record: Results, images: Images, cfg, t0):
-    from radiokit.io import atomic_h5
+    from radiokit.io import EnhancedImages, ResultsRecord, write_results
 
     files = {}
     h5path = out_dir / "results.h5"
-    with atomic_h5(h5path) as h5:  # built in memory, one plain write: a full disk is a clean error
-        h5.attrs["source"] = record.source
-        h5.attrs["results_json"] = json.dumps(record.to_json())
-        g = h5.create_group("steps")
-        g.create_dataset("line_integral", data=images.steps, compression="gzip", shuffle=True)
-        g.attrs["step"] = np.asarray(record.steps)
-        g.attrs["ratio"] = np.asarray(record.ratios, float)
-        g.attrs["crop"] = np.asarray(record.rois.crop)
-        r = h5.create_group("registration")
-        for name in ("registered", "moving", "displacement", "det_j", "confidence"):
-            if getattr(images, name) is not None:  # confidence: where the motion was observed (>= 0.5)
-                r.create_dataset(name, data=getattr(images, name), compression="gzip", shuffle=True)
-        r.attrs["pair"] = record.main_pair
-        if images.truth_displacement is not None:
-            r.create_dataset("truth_displacement", data=images.truth_displacement, compression="gzip")
-        for dom, e in images.enhanced.items():
-            g = h5.create_group(f"enhanced/{dom.value}")
-            g.create_dataset("reference", data=e.reference, compression="gzip")
-            g.create_dataset("difference", data=e.difference, compression="gzip")
-            for k, img in e.images:
-                g.create_dataset(f"k{k_label(k)}", data=img, compression="gzip")
-        m = h5.create_group("measurements")
-        for key, roi in record.rois.to_json().items():
-            m.attrs[key] = np.asarray(roi)
+    names = ("registered", "moving", "displacement", "det_j", "confidence", "truth_displacement")
+    # confidence: where the motion was observed (>= 0.5); truth_displacement only in simulated files
+    write_results(h5path, ResultsRecord(
+        source=record.source, results_json=json.dumps(record.to_json()), line_integral=images.steps,
+        step=np.asarray(record.steps), ratio=np.asarray(record.ratios, float), crop=np.asarray(record.rois.crop),
+        pair=tuple(int(s) for s in record.main_pair.split("->")),
+        registration={n: getattr(images, n) for n in names if getattr(images, n) is not None},
+        enhanced={dom.value: EnhancedImages(e.reference, e.difference, {k_label(k): img for k, img in e.images})
+                  for dom, e in images.enhanced.items()},
+        rois={key: np.asarray(roi) for key, roi in record.rois.to_json().items()}))
     files["results_h5"] = str(h5path)
     record.timings["total_s"] = time.perf_counter() - t0
     if cfg.report:

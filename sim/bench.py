@@ -257,9 +257,8 @@ class VirtualBench:
         displacement of each ``(a, b)`` step pair (1-based, ``a`` moving onto ``b``; default: the
         step before the last onto the last, the paper's pair -- each pair costs seconds at full
         resolution). Returns the timings."""
-        import h5py
-
-        from sim.lab import _body, _write_truth
+        from radiokit.io import write_simulation
+        from sim.lab import _body, truth_record
         from sim.truth import truth_displacement
 
         ratios = self.prepared_ratios
@@ -276,11 +275,8 @@ class VirtualBench:
                   for a, b in pairs}
         t_truth = time.perf_counter() - t
         gap0 = self.initial_height_mm
-        with h5py.File(path, "r+") as h5:
-            if "entry/simulation" in h5:
-                del h5["entry/simulation"]
-            _write_truth(h5, self.scene, states, lis, masks, fields, self.panel,
-                         dict(projection=t_proj, truth=t_truth), gap0)
+        write_simulation(path, truth_record(self.scene, states, lis, masks, fields, self.panel,
+                                            dict(projection=t_proj, truth=t_truth), gap0), replace=True)
         return {"projection_s": t_proj, "truth_s": t_truth}
 
     def describe(self) -> dict:

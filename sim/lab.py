@@ -2,18 +2,10 @@
 
 The file is the one the lab writes (``radiokit.io.ExperimentWriter``: darks, flats, then the
 projections of each compression step as raw uint16 C7942 frames), plus ``/entry/simulation``
-holding what produced it and the truth the processing chain is checked against:
-
-``/entry/simulation``
-    ``@scene`` (TOML text), ``@seconds_*`` timings;
-    ``ratio``, ``gap_mm``, ``plate_force_n``, ``volume_ratio``, ``inclusion_strain``,
-    ``background_strain`` (n_steps,): the force-compression curve;
-    ``line_integral`` (n_steps, rows, cols) float32: noise-free ``-ln(I/I0)``;
-    ``inclusion_mask`` (n_steps, rows, cols) uint8: rays that cross an inclusion;
-    ``displacement/step{a}_to_step{b}`` (2, rows, cols) float32: the pull field, in pixels,
-    (row, col) order, that registers step ``a`` (moving) onto step ``b`` (fixed), for every
-    ``a < b`` (see :func:`sim.truth.truth_displacement` for how a 3D motion becomes 2D);
-    ``defects/{dead,under,noisy}`` (k, 2) and ``defects/columns``: the panel's planted defects.
+holding what produced it and the truth the processing chain is checked against: a
+:class:`radiokit.io.SimulationRecord` (see ``radiokit/io/_simulation.py`` for the layout),
+written through :func:`radiokit.io.write_simulation`. The displacement fields are
+:func:`sim.truth.truth_displacement`'s (how a 3D motion becomes a 2D pull field).
 
 Steps are numbered from 1 in the file, in increasing compression, as the lab numbers them.
 """
@@ -27,7 +19,7 @@ import numpy as np
 from sim.detector import PanelModel
 from sim.scene import Scene, load_scene
 
-__all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts"]
+__all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts", "truth_record"]
 
 
 def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, np.ndarray]:
@@ -163,8 +155,9 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
                          voltage_kv=ex.voltage_kv, current_ua=ex.current_ua)
                 bar.update()
         t_frames = time.perf_counter() - t
-        _write_truth(w.h5, scene, states, line_integrals, masks, fields, panel,
-                     dict(mechanics=t_mech, projection=t_proj, truth=t_truth, frames=t_frames), gap0)
+        w.write_simulation(truth_record(scene, states, line_integrals, masks, fields, panel,
+                                        dict(mechanics=t_mech, projection=t_proj, truth=t_truth, frames=t_frames),
+                                        gap0))
     return {"file": str(output), "scene": scene.name, "frame_shape": list(panel.shape),
             "states": [{"step": i + 1, "ratio": s.ratio, "gap_mm": s.gap_mm, "plate_force_n": s.plate_force_n,
                         "volume_ratio": s.volume_ratio, "inclusion_strain": s.inclusion_strain,
@@ -174,30 +167,16 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
                         "total": time.perf_counter() - t0}}
 
 
-def _write_truth(h5, scene: Scene, states, line_integrals, masks, fields, panel, seconds, gap0):
-    g = h5.require_group("entry/simulation")
-    g.attrs["NX_class"] = "NXcollection"
-    g.attrs["scene"] = scene.to_toml()
-    g.attrs["initial_gap_mm"] = gap0
-    for k, v in seconds.items():
-        g.attrs[f"seconds_{k}"] = v
-    for name in ("ratio", "gap_mm", "plate_force_n", "volume_ratio", "inclusion_strain", "background_strain"):
-        g[name] = np.array([getattr(s, name) for s in states], np.float64)
-    g["plate_force_n"].attrs["units"] = "N"
-    opts = dict(chunks=(1,) + line_integrals[0].shape, compression="lzf")
-    g.create_dataset("line_integral", data=np.stack(line_integrals), **opts)
-    g["line_integral"].attrs["definition"] = "-ln(I/I0), noise-free, on the detector grid"
-    g.create_dataset("inclusion_mask", data=np.stack(masks), **opts)
-    d = g.create_group("displacement")
-    d.attrs["convention"] = ("pull, pixels, (row, col): moving(x + d(x)) matches fixed(x); "
-                             "attenuation-weighted mean along each ray of the fixed state; 0 off the body")
-    for (a, b), field in fields.items():
-        ds = d.create_dataset(f"step{a}_to_step{b}", data=field.astype(np.float32), chunks=(1,) + field.shape[1:],
-                              compression="lzf")
-        ds.attrs["moving_step"], ds.attrs["fixed_step"] = a, b
+def truth_record(scene: Scene, states, line_integrals, masks, fields, panel, seconds, gap0):
+    """The :class:`radiokit.io.SimulationRecord` of simulated ``states``: the scene, the
+    force-compression curve, the noise-free projections, the truth fields ``{(a, b): field}``
+    (1-based steps) and ``panel``'s planted defects."""
+    from radiokit.io import PlantedDefects, SimulationRecord
+
     t = panel.truth
-    dg = g.create_group("defects")
-    for name in ("dead", "under", "noisy"):
-        dg[name] = np.asarray(getattr(t, name), np.int64).reshape(-1, 2)
-    dg["columns"] = np.asarray(t.columns, np.int64)
-    h5.flush()
+    curve = {name: np.array([getattr(s, name) for s in states], np.float64)
+             for name in ("ratio", "gap_mm", "plate_force_n", "volume_ratio", "inclusion_strain", "background_strain")}
+    return SimulationRecord(scene_toml=scene.to_toml(), line_integral=np.stack(line_integrals),
+                            inclusion_mask=np.stack(masks), steps=tuple(range(1, len(states) + 1)),
+                            displacement=dict(fields), defects=PlantedDefects(t.dead, t.under, t.noisy, t.columns),
+                            initial_gap_mm=gap0, seconds=dict(seconds), **curve)

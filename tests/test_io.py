@@ -1506,3 +1506,22 @@ def test_read_follows_the_nexus_default_of_a_corrected_stack(tmp_path):
         f["entry/data/data"] = np.zeros((2, 4, 4), np.float32)  # no NX_class, no @signal
     with pytest.raises(FormatError, match="not a radiokit experiment file"):
         read(tmp_path / "plain.h5")
+
+
+def test_read_gives_a_calibration_as_its_dark_and_flat(tmp_path):
+    """A calibration file opens with ``read()`` as two frames (dark, flat); one whose dark and flat
+    differ in shape is a clear error naming the group, not a stack of mismatched frames."""
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(4)
+    cal = Calibration.from_frames(rng.normal(100, 2, (5, 16, 24)).astype(np.uint16),
+                                  rng.normal(3000, 30, (5, 16, 24)).astype(np.uint16))
+    cal.save(tmp_path / "cal.h5")
+    f = read(tmp_path / "cal.h5")
+    assert f.shape == (2, 16, 24) and f.meta["image_key"].tolist() == [ImageKey.DARK, ImageKey.FLAT]
+    np.testing.assert_array_equal(f.data[1], cal.flat)
+    with h5py.File(tmp_path / "cal.h5", "r+") as h5:
+        del h5["calibration/flat"]
+        h5["calibration/flat"] = np.ones((16, 25), np.float32)
+    with pytest.raises(FormatError, match="dark .* and flat .* differ"):
+        read(tmp_path / "cal.h5")

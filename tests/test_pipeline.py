@@ -109,9 +109,14 @@ def test_results_files_and_report(processed):
     assert set(r["change_ratio"]) == {"1->3", "2->3", "1->2"}
     assert r["timings"]["total_s"] > 0
     with h5py.File(out / "results.h5", "r") as h5:
-        assert h5["steps/line_integral"].shape[0] == 3
-        assert h5["registration/displacement"].shape[0] == 2
-        np.testing.assert_allclose(h5["enhanced/negative/k1"][()], res.arrays["enhanced"]["negative"]["1"])
+        assert h5["entry/steps/line_integral"].shape[0] == 3
+        assert h5["entry/registration/displacement"].shape[0] == 2
+        np.testing.assert_allclose(h5["entry/enhanced/negative/k1"][()], res.arrays["enhanced"]["negative"]["1"])
+    # a plain read() opens the results file (its NeXus default is the steps' stack)
+    from radiokit.io import read, read_results
+
+    np.testing.assert_array_equal(read(out / "results.h5").data, res.arrays["steps"])
+    assert read_results(out / "results.h5").pair == (2, 3)
     # results.json reads back into the same records
     from radiokit.results import load_results
 

@@ -140,7 +140,8 @@ def sim_file(tmp_path_factory):
 
 
 def test_simulated_file_layout(sim_file):
-    from radiokit.io import read
+    from radiokit.io import read, read_simulation
+    from radiokit.io._simulation import SIMULATION, displacement_name
     from sim.scene import Scene
 
     scene, path, res = sim_file
@@ -149,19 +150,26 @@ def test_simulated_file_layout(sim_file):
     assert f.data.max() <= 4095
     keys = f.meta["image_key"]
     assert (keys == 2).sum() == 6 and (keys == 1).sum() == 8 and (keys == 0).sum() == 8
-    with h5py.File(path) as h5:
-        g = h5["entry/simulation"]
-        assert Scene.from_toml(g.attrs["scene"]) == scene
-        np.testing.assert_allclose(g["ratio"][()], [0.15, 0.25])
-        np.testing.assert_allclose(g["gap_mm"][()], [8.5, 7.5])
-        force = [uniaxial_block_force(r, 5, 0.45, 100.0)[0] for r in (0.15, 0.25)]
-        np.testing.assert_allclose(g["plate_force_n"][()], force, rtol=1e-6)
-        assert g["line_integral"].shape == (2, 560, 560)
-        assert g["displacement/step1_to_step2"].shape == (2, 560, 560)
-        assert g["displacement/step1_to_step2"].attrs["moving_step"] == 1
+    sim = read_simulation(path)
+    assert Scene.from_toml(sim.scene_toml) == scene and sim.scene_name == scene.name
+    np.testing.assert_allclose(sim.ratio, [0.15, 0.25])
+    np.testing.assert_allclose(sim.gap_mm, [8.5, 7.5])
+    assert sim.initial_gap_mm == pytest.approx(10.0)
+    force = [uniaxial_block_force(r, 5, 0.45, 100.0)[0] for r in (0.15, 0.25)]
+    np.testing.assert_allclose(sim.plate_force_n, force, rtol=1e-6)
+    assert sim.line_integral.shape == sim.inclusion_mask.shape == (2, 560, 560) and sim.steps == (1, 2)
+    assert set(sim.displacement) == {(1, 2)} and sim.displacement[1, 2].shape == (2, 560, 560)
+    assert sim.defects.dead.shape[1] == 2 and len(sim.defects.dead) > 0
+    assert set(sim.seconds) == {"mechanics", "projection", "truth", "frames"}
+    with h5py.File(path) as h5:  # the attributes a reader of the raw file relies on
+        g = h5[SIMULATION]
+        assert g[f"displacement/{displacement_name(1, 2)}"].attrs["moving_step"] == 1
         assert "pull" in g["displacement"].attrs["convention"]
-        planted = g["defects/dead"][()]
-        assert planted.shape[1] == 2 and len(planted) > 0
+    # one step, one pair: what the pipeline asks for
+    last = read_simulation(path, steps=[-1], pairs=[(1, 2), (2, 3)])
+    assert last.steps == (2,) and set(last.displacement) == {(1, 2)}
+    np.testing.assert_array_equal(last.line_integral[0], sim.line_integral[1])
+    assert last.step_index(2) == 0
     assert [s["step"] for s in res["states"]] == [1, 2]
 
 
@@ -170,14 +178,13 @@ def test_radiokit_recovers_the_simulated_line_integral_within_the_noise(sim_file
     mean of each step's frames with the noise-free truth: no bias beyond the noise, and an rms
     error matching Poisson statistics (variance ~ 1/(g N) per frame, plus the flats' share)."""
     from radiokit.calibrate import Calibration
-    from radiokit.io import read
+    from radiokit.io import read, read_simulation
 
     scene, path, _ = sim_file
     cal = Calibration.from_experiment(path)
     f = read(path)
     keys, steps = f.meta["image_key"], f.meta["step"]
-    with h5py.File(path) as h5:
-        truth = h5["entry/simulation/line_integral"][()]
+    truth = read_simulation(path).line_integral
     for k, step in enumerate((1, 2)):
         frames = f.data[(keys == 0) & (steps == step)]
         corrected = cal.correct(frames, domain="log").mean(axis=0)
@@ -192,6 +199,7 @@ def test_radiokit_recovers_the_simulated_line_integral_within_the_noise(sim_file
 
 def test_cli_sim_run(tmp_path, capsys):
     from radiokit.cli import main
+    from radiokit.io import read_simulation
 
     toml = tmp_path / "block.toml"
     _block("y", ratios=(0.2,)).save(toml)
@@ -200,8 +208,7 @@ def test_cli_sim_run(tmp_path, capsys):
                  "-q"]) == 0
     text = capsys.readouterr().out
     assert "0.100" in text and "0.200" in text and "wrote" in text
-    with h5py.File(out) as h5:
-        np.testing.assert_allclose(h5["entry/simulation/ratio"][()], [0.1, 0.2])
+    np.testing.assert_allclose(read_simulation(out).ratio, [0.1, 0.2])
     # refuses to overwrite, with a one-line error
     assert main(["sim", "run", str(toml), "-o", str(out), "-q"]) == 2
     assert "exists" in capsys.readouterr().err

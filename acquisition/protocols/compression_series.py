@@ -600,25 +600,19 @@ def _existing(path: Path, protocol: Protocol) -> dict:
     """What an interrupted file already holds: {'darks': n, 'flats': n, 'steps': {i: n}}; checks
     it was written by the same protocol. Frames labelled invalid (cut short by a full disk, or
     taken after the beam monitor's last good reading) do not count: they are taken again."""
-    import h5py
-
-    from radiokit.io import ImageKey
+    from radiokit.io import ImageKey, read_progress
 
     try:
-        with h5py.File(path, "r") as h5:
-            stored = h5["entry"].attrs.get("protocol") if "entry" in h5 else None
-            if stored is None:
-                raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
-            stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
-            # the stored text is a protocol, never the name of a file to open
-            a, b = load_protocol(stored, text=True, where=f"{path} (its stored protocol)"), protocol
-            if (a.series != b.series or a.frame.initial_height_mm != b.frame.initial_height_mm
-                    or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)):
-                raise ProtocolError(f"{path}: written by a different protocol (series, frame height or exposure "
-                                    f"differ); resume with the protocol stored in the file")
-            n = int(h5["entry"].attrs.get("frames_complete", 0))
-            keys = np.asarray(h5["entry/instrument/detector/image_key"][:n])
-            steps = np.asarray(h5["entry/sample/compression/step"][:n])
+        progress = read_progress(path)
+        if progress.protocol is None:
+            raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
+        # the stored text is a protocol, never the name of a file to open
+        a, b = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)"), protocol
+        if (a.series != b.series or a.frame.initial_height_mm != b.frame.initial_height_mm
+                or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)):
+            raise ProtocolError(f"{path}: written by a different protocol (series, frame height or exposure "
+                                f"differ); resume with the protocol stored in the file")
+        keys, steps = progress.image_key, progress.step
     except (OSError, KeyError, TypeError, ValueError) as exc:
         raise ProtocolError(f"{path}: cannot resume from this file ({exc})") from None
     done = {"darks": int(np.sum(keys == ImageKey.DARK)), "flats": int(np.sum(keys == ImageKey.FLAT)), "steps": {}}
@@ -709,10 +703,8 @@ def _phase_warm_up(r: _Run):
         code = exc.errno or errno.EIO
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
-        r.writer.h5["entry"].attrs["protocol"] = p.to_toml()
-        r.writer.h5["entry"].attrs["devices"] = json.dumps(
-            {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()}, default=str)
-        r.writer.h5.flush()
+        r.writer.record_run(p.to_toml(), {"detector": det.describe(),
+                                          "source": getattr(src, "describe", lambda: {})()})
     det.arm()
 
 
@@ -1016,15 +1008,10 @@ def _tube_off(r: _Run) -> bool | None:
 
 def _mark_invalid(writer, indices):
     """Label frames invalid (image_key 3): kept, never taken for a projection or a flat."""
-    from radiokit.io import ImageKey
-
     if not indices:
         return
     try:
-        ds = writer.h5["entry/instrument/detector/image_key"]
-        for i in indices:
-            ds[i] = ImageKey.INVALID
-        writer.h5.flush()
+        writer.mark_invalid(indices)
         log.warning("frames %s taken after the last good beam reading: kept as image_key 3 (invalid)", indices)
     except Exception as exc:
         log.error("could not mark frames %s invalid: %s", indices, exc)

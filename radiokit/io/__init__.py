@@ -1,4 +1,11 @@
-"""Reading and writing frames: raw C7942 files, TIFF, ITEX ``.img`` and the experiment HDF5.
+"""Reading and writing frames: raw C7942 files, TIFF, ITEX ``.img``, and every file radiokit writes.
+
+Each file layout radiokit writes has one module here, with its HDF5 paths, a typed record and
+its writer and reader: the experiment (``_experiment``: :class:`ExperimentWriter`,
+:func:`read_progress`), the simulation truth (``_simulation``), processed stacks (``_write``:
+:class:`StackWriter`, :func:`read_stack`), registrations (``_registration``) and results
+(``_results``). All follow NeXus (NXentry, NXdata, ``@default``, ``@signal``), so
+:func:`read` and NeXus viewers (silx) open each at its frames.
 
 >>> from radiokit.io import read, PRESETS
 >>> sorted(PRESETS)[:3]
@@ -8,14 +15,20 @@ from radiokit.errors import FormatError
 from radiokit.io._atomic import (RESULTS_MARKER, DiskFullError, OutputError, OutputExistsError, atomic_dir,
                                  atomic_h5, atomic_path, check_free_space, check_output)
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
-from radiokit.io._experiment import ExperimentWriter, ImageKey
+from radiokit.io._experiment import ExperimentProgress, ExperimentWriter, ImageKey, read_progress
 from radiokit.io._frames import BitDepthWarning, Frames
 from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._source import FORMATS, FrameSource, iter_frames, open_frames, read, sniff
-from radiokit.io._write import StackWriter, write_tiff
+from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
+from radiokit.io._results import EnhancedImages, ResultsRecord, read_results, write_results
+from radiokit.io._simulation import PlantedDefects, SimulationRecord, read_simulation, write_simulation
+from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = ["read", "open_frames", "iter_frames", "sniff", "Frames", "FrameSource", "FORMATS",
            "PRESETS", "DEFAULT_PRESET", "RawPreset", "ExperimentWriter", "ImageKey", "StackWriter",
            "write_tiff", "FormatError", "BitDepthWarning", "atomic_path", "atomic_dir", "atomic_h5", "check_output", "check_free_space",
            "OutputError", "OutputExistsError", "DiskFullError", "RESULTS_MARKER", "memory_budget", "check_budget",
-           "parse_size", "BUDGET_ENV"]
+           "parse_size", "BUDGET_ENV", "ExperimentProgress", "read_progress", "SimulationRecord", "PlantedDefects",
+           "read_simulation", "write_simulation", "StackRecord", "read_stack", "RegistrationRecord",
+           "read_registration", "write_registration", "ResultsRecord", "EnhancedImages", "read_results",
+           "write_results"]

@@ -1,10 +1,21 @@
-"""The experiment file of DESIGN.md: NeXus-style HDF5, frames appended and flushed one by one."""
+"""The experiment file of DESIGN.md: NeXus-style HDF5, frames appended and flushed one by one.
+
+``/entry`` (NXentry, ``@default = "data"``; the root's ``@default = "entry"``)
+    ``@frames_complete``; ``@protocol`` (TOML) and ``@devices`` (JSON) of the run that wrote it;
+    ``instrument/source`` (NXsource), ``instrument/detector`` (NXdetector: ``data`` (n, rows,
+    cols) uint16, ``image_key`` (n,) int8, pixel sizes, ``pixel_mask``),
+    ``sample/compression`` (``step``, ``ratio``, ``gap``), ``control`` (``time``, ``voltage``,
+    ``current``), ``data`` (NXdata, ``@signal = "data"``: links to the frames and their keys),
+    and, in simulated files only, ``simulation`` (see :mod:`radiokit.io._simulation`).
+"""
 from __future__ import annotations
 
 import errno
+import json
 import os
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -12,11 +23,18 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["ExperimentWriter", "ImageKey", "DETECTOR", "read_experiment_meta", "checked_dataset", "check_local", "check_links"]
+__all__ = ["ExperimentWriter", "ImageKey", "ExperimentProgress", "read_progress", "DETECTOR", "FRAMES",
+           "IMAGE_KEY", "STEP", "read_experiment_meta", "checked_dataset", "check_local", "check_links"]
 
+ENTRY = "entry"
 DETECTOR = "entry/instrument/detector"
 COMPRESSION = "entry/sample/compression"
 CONTROL = "entry/control"
+SOURCE = "entry/instrument/source"
+NXDATA = "entry/data"
+FRAMES = f"{DETECTOR}/data"
+IMAGE_KEY = f"{DETECTOR}/image_key"
+STEP = f"{COMPRESSION}/step"
 
 
 class ImageKey:
@@ -98,9 +116,9 @@ class ExperimentWriter:
     # -- layout -------------------------------------------------------------------------------
     def _create(self, shape, pixel_size_mm, source, detector_name, title):
         h5 = self._h5
-        h5.attrs["default"] = "entry"
+        h5.attrs["default"] = ENTRY
         h5.attrs["creator"] = "radiokit"
-        entry = h5.create_group("entry")
+        entry = h5.create_group(ENTRY)
         _set_class(entry, "NXentry")
         entry.attrs["default"] = "data"
         entry["title"] = title
@@ -142,21 +160,21 @@ class ExperimentWriter:
         nxdata = entry.create_group("data")
         _set_class(nxdata, "NXdata")
         nxdata.attrs["signal"] = "data"
-        nxdata["data"] = h5py.SoftLink(f"/{DETECTOR}/data")
-        nxdata["image_key"] = h5py.SoftLink(f"/{DETECTOR}/image_key")
+        nxdata["data"] = h5py.SoftLink(f"/{FRAMES}")
+        nxdata["image_key"] = h5py.SoftLink(f"/{IMAGE_KEY}")
         entry.attrs["frames_complete"] = 0
         h5.flush()
         self._n = 0
 
     def _reopen(self, shape):
         h5 = self._h5
-        if f"{DETECTOR}/data" not in h5:
-            raise FormatError(self.path, f"not an experiment file: /{DETECTOR}/data is missing")
-        data = h5[f"{DETECTOR}/data"]
+        if FRAMES not in h5:
+            raise FormatError(self.path, f"not an experiment file: /{FRAMES} is missing")
+        data = h5[FRAMES]
         if shape is not None and tuple(shape) != data.shape[1:]:
             raise ValueError(f"{self.path}: frames are {data.shape[1:]}, not {tuple(shape)}")
         # A crash between resizing and the counter update leaves a partial frame: drop it.
-        n = int(h5["entry"].attrs.get("frames_complete", data.shape[0]))
+        n = int(h5[ENTRY].attrs.get("frames_complete", data.shape[0]))
         n = min([n, data.shape[0]] + [h5[g][name].shape[0] for g, name, *_ in _SERIES if name in h5[g]])
         for ds in [data] + [h5[g][name] for g, name, *_ in _SERIES]:
             if ds.shape[0] != n:
@@ -171,7 +189,7 @@ class ExperimentWriter:
 
     @property
     def h5(self) -> h5py.File:
-        """The open file, for extra groups (e.g. ``entry/simulation``)."""
+        """The open file (read-only use: the layout's writers are this class's methods)."""
         return self._h5
 
     #: Free space (bytes) a frame must leave on the disk before any of it is written. libhdf5
@@ -202,7 +220,7 @@ class ExperimentWriter:
             names the file and the frame.
         """
         frame = np.asarray(frame)
-        data = self._h5[f"{DETECTOR}/data"]
+        data = self._h5[FRAMES]
         if frame.shape != data.shape[1:]:
             raise ValueError(f"{self.path}: frame shape {frame.shape} does not match the file's {data.shape[1:]}")
         if frame.dtype != np.uint16:
@@ -231,7 +249,7 @@ class ExperimentWriter:
                 ds = self._h5[group][name]
                 ds.resize(i + 1, axis=0)
                 ds[i] = values[name]
-            self._h5["entry"].attrs["frames_complete"] = i + 1
+            self._h5[ENTRY].attrs["frames_complete"] = i + 1
             self._h5.flush()
             self._n = i + 1           # counted, labelled invalid
             data[i] = frame
@@ -297,11 +315,33 @@ class ExperimentWriter:
         ds[...] = mask
         self._h5.flush()
 
+    def record_run(self, protocol_toml: str, devices: dict) -> None:
+        """Record what wrote the file: the protocol (TOML text, so ``--resume`` can check it) and
+        the devices (JSON)."""
+        self._h5[ENTRY].attrs["protocol"] = protocol_toml
+        self._h5[ENTRY].attrs["devices"] = json.dumps(devices, default=str)
+        self._h5.flush()
+
+    def mark_invalid(self, indices) -> None:
+        """Label frames ``indices`` ``ImageKey.INVALID``: kept, never taken for a projection or a flat."""
+        ds = self._h5[IMAGE_KEY]
+        for i in indices:
+            if not 0 <= int(i) < self._n:
+                raise IndexError(f"{self.path}: frame {i} out of range (0..{self._n - 1})")
+            ds[int(i)] = ImageKey.INVALID
+        self._h5.flush()
+
+    def write_simulation(self, record) -> None:
+        """Add ``/entry/simulation`` (a :class:`radiokit.io.SimulationRecord`) to a simulated file."""
+        from radiokit.io._simulation import write_simulation
+
+        write_simulation(self._h5, record)
+
     def close(self):
         if self._h5.id.valid:
             try:
                 if not getattr(self, "_failed", None):
-                    self._h5["entry"].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+                    self._h5[ENTRY].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
             finally:
                 self._h5.close()
                 self._drop_ballast()
@@ -316,6 +356,49 @@ class ExperimentWriter:
 def _refuse_external(path, what):
     raise FormatError(path, f"{what}: data outside this file is not read unless asked for "
                             "(allow_external=True)")
+
+
+@dataclass(frozen=True)
+class ExperimentProgress:
+    """How far an experiment file got, for ``radiokit acquire --resume``.
+
+    Attributes
+    ----------
+    frames_complete : int
+    image_key, step : (frames_complete,) arrays
+    protocol : str or None
+        The TOML text of the protocol that wrote the file.
+    devices : str or None
+        The JSON description of its devices.
+    """
+
+    frames_complete: int
+    image_key: np.ndarray
+    step: np.ndarray
+    protocol: str | None = None
+    devices: str | None = None
+
+
+def read_progress(path, allow_external=False) -> ExperimentProgress:
+    """The bookkeeping of an experiment file: its complete frames' keys and steps, and what wrote it.
+
+    Raises
+    ------
+    FormatError
+        The file lacks the experiment layout.
+    """
+    with h5py.File(path, "r") as h5:
+        if ENTRY not in h5 or IMAGE_KEY not in h5:
+            raise FormatError(path, f"lacks /{IMAGE_KEY}: not a radiokit experiment file")
+        attrs = h5[ENTRY].attrs
+        n = int(attrs.get("frames_complete", 0))
+        keys = checked_dataset(path, h5, IMAGE_KEY, "iu", (1,), allow_external)[:n]
+        steps = checked_dataset(path, h5, STEP, "iu", (1,), allow_external)[:n] if STEP in h5 \
+            else np.full(n, -1, np.int16)
+        text = {k: attrs.get(k) for k in ("protocol", "devices")}
+        text = {k: v.decode("utf-8", "replace") if isinstance(v, bytes) else (None if v is None else str(v))
+                for k, v in text.items()}
+    return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **text)
 
 
 def check_links(path, h5, name, allow_external, depth=0):
@@ -377,14 +460,14 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     """
     from radiokit.io._budget import check_budget
 
-    check_links(path, h5, f"{DETECTOR}/data", allow_external)
-    if f"{DETECTOR}/data" not in h5:
-        raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/data: not a radiokit experiment file "
+    check_links(path, h5, FRAMES, allow_external)
+    if FRAMES not in h5:
+        raise FormatError(path, f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
                                 "(pass dataset='/path/to/frames' to read another layout)")
-    data = checked_dataset(path, h5, f"{DETECTOR}/data", "iuf", range(33), allow_external)
+    data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:
-        raise FormatError(path, f"/{DETECTOR}/data has shape {data.shape}; expected (n, rows, cols)")
-    n = max(0, min(int(h5["entry"].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
+        raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
+    n = max(0, min(int(h5[ENTRY].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
     check_budget(path, len(_SERIES) * 8 * n, f"the per-frame records of {n} frames", budget)
     meta = {"format": "experiment"}
     for group, name, *_ in _SERIES:
@@ -394,7 +477,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
             meta[name] = values
         elif name == "image_key":
-            raise FormatError(path, f"HDF5 file lacks /{DETECTOR}/image_key")
+            raise FormatError(path, f"HDF5 file lacks /{IMAGE_KEY}")
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
@@ -405,8 +488,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             meta[name] = ds[()]
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
-    check_links(path, h5, "entry/instrument/source", allow_external)
-    src = h5.get("entry/instrument/source")
+    check_links(path, h5, SOURCE, allow_external)
+    src = h5.get(SOURCE)
     if src is not None:
         meta["source"] = {}
         for key in src:
@@ -419,7 +502,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             check_local(path, h5, ds, allow_external)
             value = ds[()]
             meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
-    if "entry/simulation" in h5:
+    from radiokit.io._simulation import SIMULATION
+
+    if SIMULATION in h5:
         meta["simulated"] = True
     meta["n_complete"] = n
     return data, meta

@@ -13,7 +13,7 @@ import tifffile
 
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._experiment import check_links, checked_dataset, read_experiment_meta
+from radiokit.io._experiment import FRAMES, ImageKey, check_links, checked_dataset, read_experiment_meta
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
@@ -21,6 +21,8 @@ from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
 FORMATS = ("raw", "tiff", "itex", "hdf5")
+#: the group ``radiokit.calibrate.Calibration.save`` writes by default
+CALIBRATION = "calibration"
 _TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _EXTENSIONS = {".tif": "tiff", ".tiff": "tiff", ".img": "itex", ".h5": "hdf5", ".hdf5": "hdf5",
@@ -278,9 +280,11 @@ class FrameSource:
     def _open_hdf5(self, dataset=None, **hints):
         self._h5 = h5py.File(self.path, "r")
         if not dataset:
-            check_links(self.path, self._h5, "entry/instrument/detector/data", self._allow_external)
-            if "entry/instrument/detector/data" not in self._h5:
-                dataset = _nexus_signal(self._h5)  # another NeXus file (radiokit correct's stacks)
+            check_links(self.path, self._h5, FRAMES, self._allow_external)
+            if FRAMES not in self._h5:
+                dataset = _nexus_signal(self._h5)  # another NeXus file (radiokit's other outputs)
+                if dataset is None and CALIBRATION in self._h5:
+                    return self._open_calibration()
         if dataset:
             check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
@@ -300,6 +304,18 @@ class FrameSource:
         self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype
         self.bits = 12 if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
+
+    def _open_calibration(self):
+        """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
+        ``ImageKey.DARK`` and ``ImageKey.FLAT``."""
+        pair = [checked_dataset(self.path, self._h5, f"{CALIBRATION}/{name}", "iuf", (2,), self._allow_external)
+                for name in ("dark", "flat")]
+        if pair[0].shape != pair[1].shape:
+            raise FormatError(self.path, f"/{CALIBRATION}: dark {pair[0].shape} and flat {pair[1].shape} differ")
+        self._ds = _DatasetStack(pair)
+        self.n, self.frame_shape, self.dtype, self.bits = 2, pair[0].shape, self._ds.dtype, None
+        self.meta.update(format="calibration", image_key=np.array([ImageKey.DARK, ImageKey.FLAT], np.int8), n=2,
+                         rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(self.dtype))
 
     def _read_hdf5(self, i):
         return self._ds[()] if self._ds.ndim == 2 else self._ds[i]
@@ -425,6 +441,19 @@ def iter_frames(path, /, **hints):
     """Yield the frames of ``path`` one at a time, holding one in memory."""
     with FrameSource(path, **hints) as src:
         yield from src
+
+
+class _DatasetStack:
+    """Equal-shaped 2D datasets read as one (n, rows, cols) stack, a frame at a time."""
+
+    ndim = 3
+
+    def __init__(self, datasets):
+        self._datasets = datasets
+        self.dtype = np.result_type(*(ds.dtype for ds in datasets))
+
+    def __getitem__(self, i):
+        return self._datasets[i][()].astype(self.dtype, copy=False)
 
 
 def _nexus_signal(h5: h5py.File) -> str | None:

@@ -1,17 +1,32 @@
-"""Writers for processed stacks: HDF5 or TIFF, one frame at a time."""
+"""Processed (corrected) stacks: HDF5 or TIFF, written one frame at a time.
+
+The HDF5 layout (``radiokit correct``'s output):
+
+``/`` (``@default = "entry"``)
+``/entry`` (NXentry, ``@default = "data"``)
+``/entry/data`` (NXdata, ``@signal = "data"``; the writer's ``meta`` as attributes, dicts as JSON)
+    ``data`` (n, rows, cols), one frame per chunk (the plot);
+    per-frame series (n,) named by :meth:`StackWriter.append`'s keywords (e.g. ``step``).
+"""
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 import tifffile
 
+from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
 
-__all__ = ["write_tiff", "StackWriter"]
+__all__ = ["write_tiff", "StackWriter", "StackRecord", "read_stack", "STACK", "STACK_FRAMES"]
+
+STACK = "entry/data"
+STACK_FRAMES = f"{STACK}/data"
 
 
 def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=True, inputs=()) -> Path:
@@ -77,11 +92,14 @@ class StackWriter:
         if self.kind == "hdf5":
             # Chunks on 4 KiB boundaries so frames can bypass the page cache (see _DirectFrames).
             self._h5 = h5py.File(tmp, "w", alignment_threshold=1 << 20, alignment_interval=4096)
-            entry = self._h5.create_group("entry")
+            entry_name, data_name = STACK.split("/")
+            self._h5.attrs["default"] = entry_name
+            entry = self._h5.create_group(entry_name)
             entry.attrs["NX_class"] = "NXentry"
-            grp = entry.create_group("data")
+            entry.attrs["default"] = data_name
+            grp = entry.create_group(data_name)
             grp.attrs["NX_class"] = "NXdata"
-            grp.attrs["signal"] = "data"
+            grp.attrs["signal"] = STACK_FRAMES.rsplit("/", 1)[1]
             for key, value in self.meta.items():
                 grp.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
             self._alloc = int(n_frames or 0)
@@ -93,6 +111,7 @@ class StackWriter:
             self._ds = grp.create_dataset("data", shape=(self._alloc,) + self.frame_shape,
                                           maxshape=(None,) + self.frame_shape,
                                           chunks=(1,) + self.frame_shape, dtype=self.dtype, dcpl=dcpl)
+            self._ds.attrs["interpretation"] = "image"
             self._direct = _DirectFrames.open(tmp, self._ds) if self._alloc else None
         else:
             frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
@@ -111,8 +130,8 @@ class StackWriter:
             for name, value in series.items():
                 ds = self._series.get(name)
                 if ds is None:
-                    ds = self._h5["entry/data"].create_dataset(name, shape=(max(self._alloc, i),), maxshape=(None,),
-                                                               dtype=np.asarray(value).dtype, chunks=(256,))
+                    ds = self._h5[STACK].create_dataset(name, shape=(max(self._alloc, i),), maxshape=(None,),
+                                                        dtype=np.asarray(value).dtype, chunks=(256,))
                     self._series[name] = ds
                 if i >= ds.shape[0]:
                     ds.resize(i + 1, axis=0)
@@ -167,6 +186,60 @@ class StackWriter:
             self.close()
         else:
             self._abort(exc)
+
+
+@dataclass(frozen=True)
+class StackRecord:
+    """A processed stack :class:`StackWriter` wrote to HDF5.
+
+    Attributes
+    ----------
+    data : (n, rows, cols) array
+    series : mapping name -> (n,) array
+        The per-frame series (e.g. ``step``, ``nonpositive``).
+    meta : mapping
+        The writer's ``meta`` (JSON text parsed back into dicts and lists).
+    """
+
+    data: np.ndarray
+    series: Mapping = field(default_factory=dict)
+    meta: Mapping = field(default_factory=dict)
+
+
+def read_stack(path, *, allow_external=False) -> StackRecord:
+    """Read an HDF5 stack :class:`StackWriter` wrote, with its per-frame series and metadata.
+
+    The frames alone are also what :func:`radiokit.io.read` gives for this file.
+
+    Raises
+    ------
+    FormatError
+        The file lacks the stack layout.
+    """
+    from radiokit.io._budget import check_budget
+    from radiokit.io._experiment import checked_dataset
+
+    with h5py.File(path, "r") as h5:
+        if STACK_FRAMES not in h5:
+            raise FormatError(path, f"lacks /{STACK_FRAMES}: not a radiokit stack")
+        ds = checked_dataset(path, h5, STACK_FRAMES, "buif", (3,), allow_external)
+        check_budget(path, ds.size * ds.dtype.itemsize, f"/{STACK_FRAMES} {ds.shape}")
+        series = {name: checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)[()]
+                  for name in h5[STACK] if name != ds.name.rsplit("/", 1)[1]}
+        meta = {k: _attr(v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
+        return StackRecord(ds[()], series, meta)
+
+
+def _attr(value):
+    """An attribute as the writer's ``meta`` gave it: JSON text of a dict or list parsed back."""
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    if isinstance(value, str) and value[:1] in "[{":
+        try:
+            return json.loads(value)
+        except ValueError:
+            pass
+    return value.item() if isinstance(value, np.generic) else value
 
 
 class _DirectFrames:

@@ -1,0 +1,118 @@
+"""The registration file ``radiokit register`` writes: one pull field and the image it makes.
+
+``/`` (``@default = "entry"``)
+``/entry`` (NXentry, ``@default = "registration"``)
+``/entry/registration`` (NXdata, ``@signal = "registered"``)
+    ``registered`` (rows, cols) float32: the moving image warped onto the fixed one (the plot);
+    ``displacement`` (2, rows, cols) float32: the pull field, pixels, (row, col);
+    ``@method``, ``@fixed``, ``@moving`` (the input files), ``@convention``,
+    ``@quality_*``: :class:`radiokit.register.Quality`'s fields.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import h5py
+import numpy as np
+
+from radiokit.errors import FormatError
+from radiokit.io._atomic import atomic_h5
+from radiokit.io._experiment import ENTRY, checked_dataset
+
+__all__ = ["REGISTRATION", "RegistrationRecord", "write_registration", "read_registration"]
+
+REGISTRATION = f"{ENTRY}/registration"
+REGISTERED = f"{REGISTRATION}/registered"
+DISPLACEMENT = f"{REGISTRATION}/displacement"
+CONVENTION = "pull, pixels, (row, col): moving(x + d(x)) matches fixed(x)"
+
+
+@dataclass(frozen=True)
+class RegistrationRecord:
+    """One registration of a moving image onto a fixed one.
+
+    Attributes
+    ----------
+    method : str
+        The registration method (``radiokit.register``'s name for it).
+    fixed, moving : str
+        Where the two images came from.
+    displacement : (2, rows, cols) float32
+        The pull field, pixels, (row, col): ``moving(x + d(x))`` matches ``fixed(x)``.
+    registered : (rows, cols) float32
+        The moving image warped by ``displacement``.
+    quality : mapping str -> number, bool or str
+        The registration's quality figures (``radiokit.register.Quality``'s fields).
+    """
+
+    method: str
+    fixed: str
+    moving: str
+    displacement: np.ndarray
+    registered: np.ndarray
+    quality: Mapping = field(default_factory=dict)
+
+
+def write_registration(path, record: RegistrationRecord, *, overwrite=False, inputs=()) -> None:
+    """Write ``record`` to ``path`` atomically (see :func:`radiokit.io.atomic_h5`).
+
+    ``overwrite=False`` refuses an existing ``path``; ``inputs`` are files it must not be.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, os
+    >>> from radiokit.io import RegistrationRecord, read, read_registration, write_registration
+    >>> path = os.path.join(tempfile.mkdtemp(), "reg.h5")
+    >>> image = np.ones((4, 5), np.float32)
+    >>> write_registration(path, RegistrationRecord("rc", "a.h5", "b.h5", np.zeros((2, 4, 5)), image, {"ok": True}))
+    >>> read(path).shape, read_registration(path).quality
+    ((1, 4, 5), {'ok': True})
+    """
+    displacement = np.asarray(record.displacement, np.float32)
+    registered = np.asarray(record.registered, np.float32)
+    if displacement.shape != (2,) + registered.shape:
+        raise ValueError(f"{path}: displacement {displacement.shape} does not match the registered image "
+                         f"{registered.shape}; expected (2, rows, cols)")
+    with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
+        h5.attrs["default"] = ENTRY
+        entry = h5.create_group(ENTRY)
+        entry.attrs["NX_class"] = "NXentry"
+        entry.attrs["default"] = REGISTRATION.rsplit("/", 1)[1]
+        g = h5.create_group(REGISTRATION)
+        g.attrs["NX_class"] = "NXdata"
+        g.attrs["signal"] = REGISTERED.rsplit("/", 1)[1]
+        g.attrs["method"] = record.method
+        g.attrs["fixed"], g.attrs["moving"] = str(record.fixed), str(record.moving)
+        g.attrs["convention"] = CONVENTION
+        h5.create_dataset(DISPLACEMENT, data=displacement, compression="lzf")
+        h5.create_dataset(REGISTERED, data=registered, compression="lzf").attrs["interpretation"] = "image"
+        for k, v in record.quality.items():
+            g.attrs[f"quality_{k}"] = v
+
+
+def read_registration(path, *, allow_external=False) -> RegistrationRecord:
+    """Read a file :func:`write_registration` wrote.
+
+    Raises
+    ------
+    FormatError
+        The file lacks the registration layout.
+    """
+    with h5py.File(path, "r") as h5:
+        if REGISTRATION not in h5:
+            raise FormatError(path, f"lacks /{REGISTRATION}: not a radiokit registration file")
+        g = h5[REGISTRATION]
+        displacement = checked_dataset(path, h5, DISPLACEMENT, "f", (3,), allow_external)[()]
+        registered = checked_dataset(path, h5, REGISTERED, "f", (2,), allow_external)[()]
+        quality = {k[len("quality_"):]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
+        return RegistrationRecord(method=_plain(g.attrs.get("method", "")), fixed=_plain(g.attrs.get("fixed", "")),
+                                  moving=_plain(g.attrs.get("moving", "")), displacement=displacement,
+                                  registered=registered, quality=quality)
+
+
+def _plain(value):
+    """An attribute as a Python value: str for text, int/float/bool for numpy scalars."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    return value.item() if isinstance(value, np.generic) else value

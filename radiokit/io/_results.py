@@ -1,0 +1,163 @@
+"""The results file ``radiokit process`` writes into its results folder (``results.h5``).
+
+``/`` (``@default = "entry"``)
+``/entry`` (NXentry, ``@default = "steps"``; ``@source``: the experiment file;
+``@results_json``: the numbers, as ``results.json`` holds them)
+``/entry/steps`` (NXdata, ``@signal = "line_integral"``)
+    ``line_integral`` (n_steps, rows, cols) float32: each step's mean corrected frame, cropped
+    (the plot); ``step`` (n_steps,) the lab's step numbers; ``ratio`` (n_steps,); ``@crop``
+    (row0, row1, col0, col1) of the crop in the detector frame.
+``/entry/registration`` (NXcollection, ``@pair``: the (moving, fixed) steps)
+    ``registered``, ``moving``, ``displacement``, ``det_j``, ``confidence``, and in simulated
+    files ``truth_displacement``: whichever the run made.
+``/entry/enhanced/{domain}`` (NXcollection, one per domain: ``log``, ``negative``)
+    ``reference``, ``difference`` and ``k{k}``: the enhanced image for each factor ``k``.
+``/entry/measurements`` (NXcollection): one attribute per region of interest.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import h5py
+import numpy as np
+
+from radiokit.errors import FormatError
+from radiokit.io._atomic import atomic_h5
+from radiokit.io._experiment import ENTRY, checked_dataset
+
+__all__ = ["RESULTS_STEPS", "ResultsRecord", "EnhancedImages", "write_results", "read_results"]
+
+RESULTS_STEPS = f"{ENTRY}/steps"
+RESULTS_REGISTRATION = f"{ENTRY}/registration"
+RESULTS_ENHANCED = f"{ENTRY}/enhanced"
+RESULTS_MEASUREMENTS = f"{ENTRY}/measurements"
+_SIGNAL = "line_integral"
+_OPTS = dict(compression="gzip", shuffle=True)
+
+
+@dataclass(frozen=True)
+class EnhancedImages:
+    """One domain's enhancement: the reference, the difference and ``{k: enhanced image}``."""
+
+    reference: np.ndarray
+    difference: np.ndarray
+    enhanced: Mapping = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ResultsRecord:
+    """The arrays of one processed experiment, and its numbers as JSON text.
+
+    Attributes
+    ----------
+    source : str
+        The experiment file processed.
+    results_json : str
+        The numbers (``results.json``'s text).
+    line_integral : (n_steps, rows, cols) float32
+        Each step's mean corrected frame, cropped.
+    step : (n_steps,) int
+        The lab's step numbers.
+    ratio : (n_steps,) float
+        Each step's compression ratio (NaN where the file did not record it).
+    crop : (4,) int
+        ``(row0, row1, col0, col1)`` of the crop in the detector frame.
+    pair : (2,) int
+        The (moving, fixed) steps of ``registration``.
+    registration : mapping name -> array
+        ``registered``, ``moving``, ``displacement``, ``det_j``, ``confidence``,
+        ``truth_displacement``: whichever the run made.
+    enhanced : mapping domain -> EnhancedImages
+    rois : mapping name -> array
+        The regions of interest measured, in pixels of the crop.
+    """
+
+    source: str
+    results_json: str
+    line_integral: np.ndarray
+    step: np.ndarray
+    ratio: np.ndarray
+    crop: np.ndarray
+    pair: tuple = ()
+    registration: Mapping = field(default_factory=dict)
+    enhanced: Mapping = field(default_factory=dict)
+    rois: Mapping = field(default_factory=dict)
+
+
+def write_results(path, record: ResultsRecord, *, overwrite=True, inputs=()) -> None:
+    """Write ``record`` to ``path`` atomically (see :func:`radiokit.io.atomic_h5`).
+
+    ``path`` is normally inside a results folder :func:`radiokit.io.atomic_dir` is assembling,
+    hence ``overwrite=True`` by default.
+    """
+    with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
+        h5.attrs["default"] = ENTRY
+        entry = h5.create_group(ENTRY)
+        entry.attrs["NX_class"] = "NXentry"
+        entry.attrs["default"] = RESULTS_STEPS.rsplit("/", 1)[1]
+        entry.attrs["source"] = str(record.source)
+        entry.attrs["results_json"] = record.results_json
+        steps = _group(h5, RESULTS_STEPS, "NXdata")
+        steps.attrs["signal"] = _SIGNAL
+        steps.create_dataset(_SIGNAL, data=np.asarray(record.line_integral, np.float32), **_OPTS)
+        steps[_SIGNAL].attrs["interpretation"] = "image"
+        steps["step"] = np.asarray(record.step, np.int64)
+        steps["ratio"] = np.asarray(record.ratio, np.float64)
+        steps.attrs["crop"] = np.asarray(record.crop, np.int64)
+        reg = _group(h5, RESULTS_REGISTRATION, "NXcollection")
+        reg.attrs["pair"] = np.asarray(record.pair, np.int64)
+        for name, values in record.registration.items():
+            reg.create_dataset(name, data=np.asarray(values), **_OPTS)
+        for domain, images in record.enhanced.items():
+            g = _group(h5, f"{RESULTS_ENHANCED}/{domain}", "NXcollection")
+            g.create_dataset("reference", data=np.asarray(images.reference), **_OPTS)
+            g.create_dataset("difference", data=np.asarray(images.difference), **_OPTS)
+            for k, image in images.enhanced.items():
+                g.create_dataset(f"k{k}", data=np.asarray(image), **_OPTS)
+        m = _group(h5, RESULTS_MEASUREMENTS, "NXcollection")
+        for name, roi in record.rois.items():
+            m.attrs[name] = np.asarray(roi)
+
+
+def _group(h5, name, nx_class):
+    g = h5.require_group(name)
+    g.attrs["NX_class"] = nx_class
+    return g
+
+
+def read_results(path, *, allow_external=False) -> ResultsRecord:
+    """Read a file :func:`write_results` wrote.
+
+    Raises
+    ------
+    FormatError
+        The file lacks the results layout.
+    """
+    with h5py.File(path, "r") as h5:
+        if f"{RESULTS_STEPS}/{_SIGNAL}" not in h5:
+            raise FormatError(path, f"lacks /{RESULTS_STEPS}/{_SIGNAL}: not a radiokit results file")
+
+        def array(name, ndims=range(5)):
+            return checked_dataset(path, h5, name, "buif", ndims, allow_external)[()]
+
+        steps = h5[RESULTS_STEPS]
+        reg = h5.get(RESULTS_REGISTRATION)
+        meas = h5.get(RESULTS_MEASUREMENTS)
+        enhanced = {}
+        for domain, g in h5.get(RESULTS_ENHANCED, {}).items():
+            ks = {name[1:]: array(f"{g.name}/{name}") for name in g if name.startswith("k")}
+            enhanced[domain] = EnhancedImages(array(f"{g.name}/reference"), array(f"{g.name}/difference"), ks)
+        attrs = h5[ENTRY].attrs
+        return ResultsRecord(
+            source=_text(attrs.get("source", "")), results_json=_text(attrs.get("results_json", "")),
+            line_integral=array(f"{RESULTS_STEPS}/{_SIGNAL}", (3,)), step=array(f"{RESULTS_STEPS}/step", (1,)),
+            ratio=array(f"{RESULTS_STEPS}/ratio", (1,)), crop=np.asarray(steps.attrs.get("crop", ())),
+            pair=tuple(int(v) for v in np.asarray(reg.attrs.get("pair", ()))) if reg is not None else (),
+            registration={name: array(f"{RESULTS_REGISTRATION}/{name}") for name in (reg or {})},
+            enhanced=enhanced,
+            rois={k: np.asarray(v) for k, v in meas.attrs.items() if k != "NX_class"} if meas is not None else {})
+
+
+def _text(value) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
