@@ -351,3 +351,38 @@ def test_sim_run_refuses_bad_counts_and_ratios_before_simulating(args, words, tm
 def test_demo_refuses_an_unknown_scene_before_claiming_its_folder(tmp_path):
     one_line_error(run("demo", "-o", tmp_path / "demo", "--preset", "nosuch", "-q"), "nosuch")
     assert not (tmp_path / "demo").exists()
+
+
+HOSTILE_TEXT = ['plain', 'say "cheese"', "back\\slash C:\\new", "two\nlines", "tab\there", "''' and \"\"\"",
+                "ünïcode µA", "# not a comment", "[not.a.table]", "key = value"]
+
+
+@pytest.mark.parametrize("text", HOSTILE_TEXT)
+def test_a_scene_with_any_name_round_trips_through_toml(text):
+    import tomllib
+
+    from sim.scene import load_scene
+
+    scene = load_scene("seed-breast")
+    scene.name = text
+    written = scene.to_toml()
+    assert tomllib.loads(written) == scene.to_dict()
+    assert type(scene).from_toml(written) == scene
+
+
+@pytest.mark.parametrize("text", HOSTILE_TEXT)
+def test_a_protocol_with_any_strings_round_trips_through_toml(text):
+    import dataclasses
+    import tomllib
+
+    from acquisition.protocols.compression_series import load_protocol
+
+    p = load_protocol({"name": text, "detector": {"folder": text, "pattern": text, "shape": [8, 16]},
+                       "source": {"port": text, "kv_max": 80.0}, "sim": {"scene": text}})
+    written = p.to_toml()
+    data = tomllib.loads(written)
+    assert data["name"] == data["detector"]["folder"] == data["source"]["port"] == data["sim"]["scene"] == text
+    assert data["source"]["limits"] == {"kv_max": 80.0}
+    assert "preset" not in data["detector"] and "baudrate" not in data["source"]  # None: left out
+    assert load_protocol(written, text=True) == p
+    assert dataclasses.asdict(load_protocol(written, text=True)) == dataclasses.asdict(p)
