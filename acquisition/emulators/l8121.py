@@ -258,13 +258,6 @@ class L8121Model:
         """The set tube current, µA."""
         return self._set_ua
 
-    @property
-    def interlock_is_open(self) -> bool:
-        """Whether the interlock chain is open now."""
-        with self._lock:
-            self._advance()
-            return self._interlock_open
-
     def measured(self) -> tuple[float, float]:
         """The measured (kV, µA) now, unrounded."""
         with self._lock:
