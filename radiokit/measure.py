@@ -690,6 +690,10 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
     extent is the connected region above half its height. Negative images (the paper's
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
+
+    Not :func:`skimage.feature.blob_log`: it filters every scale at full resolution, with no
+    per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
+    demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
     from skimage.feature import peak_local_max
 
