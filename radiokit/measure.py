@@ -696,6 +696,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
     demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
     from skimage.feature import peak_local_max
+    from skimage.measure import block_reduce
 
     if img.max() < 0:  # negative intensities (-I/I0, -counts): detect on line integrals + const
         img = -np.log(-img)
@@ -715,7 +716,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
 
     def depth(f, h, w):
         if f not in depths:
-            b = body[:h, :w].reshape(h // f, f, w // f, f).all(axis=(1, 3)) if f > 1 else body
+            b = block_reduce(body[:h, :w], f, np.all) if f > 1 else body
             depths[f] = ndi.distance_transform_edt(np.pad(b, 1))[1:-1, 1:-1] * f
         return depths[f]
 
@@ -724,7 +725,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
         sigma = radius / np.sqrt(2)
         f = max(1, int(sigma // 3))  # work on a block-averaged image: sigma >= 3 px there
         h, w = rows // f * f, cols // f * f
-        im = img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3)) if f > 1 else img
+        im = block_reduce(img[:h, :w], f, np.mean) if f > 1 else img
         dp = depth(f, h, w)
         resp = -(sigma / f) ** 2 * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body
