@@ -285,17 +285,15 @@ def test_a_frame_of_only_nan_is_refused(tmp_path):
 
 
 # -- errors instead of tracebacks --------------------------------------------------------------
-def test_info_on_an_experiment_without_steps(tmp_path):
-    path = _experiment(tmp_path / "exp.h5", step=False)
-    res = run("info", path)
+@pytest.mark.parametrize("steps, args, printed", [
+    (False, [], ["projections 3", "steps      []"]),  # an experiment without steps
+    (True, ["--sample", "3"], ["(in 3 of 9 frames)"]),  # a sample of frames, not the whole file
+])
+def test_info_prints_what_it_read(steps, args, printed, tmp_path):
+    path = _experiment(tmp_path / "exp.h5", step=steps)
+    res = run("info", path, *args)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
-    assert "projections 3" in res.stdout and "steps      []" in res.stdout
-
-
-def test_info_reads_a_sample_of_frames_not_the_whole_file(tmp_path):
-    path = _experiment(tmp_path / "exp.h5")
-    res = run("info", path, "--sample", "3")
-    assert res.returncode == 0 and "(in 3 of 9 frames)" in res.stdout
+    assert all(p in res.stdout for p in printed), res.stdout
 
 
 @pytest.mark.parametrize("case", ["no projections", "one step", "no darks", "not hdf5", "missing", "a folder"])
@@ -338,19 +336,15 @@ def test_debug_shows_the_traceback(tmp_path):
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--ratios", "nan"], "--ratios nan"),
-    (["--ratios", "0.15", "2"], "between 0 and 1"),
-    (["--darks", "-1"], "--darks -1"),
-    (["--frames", "0"], "--frames 0"),
+    (["sim", "run", "--preset", "seed-breast", "--ratios", "nan", "-o", "sim.h5"], "--ratios nan"),
+    (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
+    (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
+    (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+    (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
 ])
-def test_sim_run_refuses_bad_counts_and_ratios_before_simulating(args, words, tmp_path):
-    one_line_error(run("sim", "run", "--preset", "seed-breast", *args, "-o", tmp_path / "sim.h5", "-q"), words)
+def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):
+    one_line_error(run(*args, "-q", cwd=tmp_path), words)
     assert not any(tmp_path.iterdir())
-
-
-def test_demo_refuses_an_unknown_scene_before_claiming_its_folder(tmp_path):
-    one_line_error(run("demo", "-o", tmp_path / "demo", "--preset", "nosuch", "-q"), "nosuch")
-    assert not (tmp_path / "demo").exists()
 
 
 HOSTILE_TEXT = ['plain', 'say "cheese"', "back\\slash C:\\new", "two\nlines", "tab\there", "''' and \"\"\"",
