@@ -159,3 +159,30 @@ def test_the_enum_check_can_fail(tmp_path):
         "import enum\nA, B = range(2)\nclass Key:\n    '''Doc.'''\n    X = 0\n    Y = 1\n"
         "class Fine(enum.IntEnum):\n    X = 0\n    Y = 1\nclass Mixed:\n    X = 0\n    name = 'm'\n")
     assert _bare_int_constants(tmp_path, ("pkg",)) == ["pkg/m.py:2", "pkg/m.py:Key"]
+
+
+# -- a docstring is the first statement ------------------------------------------------------------
+def _misplaced_docstrings(root: Path, packages=PACKAGES) -> list[str]:
+    """A bare string statement after the first in a function: a docstring placed after code,
+    which Python does not take as the docstring (``help()`` and numpydoc never see it)."""
+    found = []
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    found += [f"{path.relative_to(root).as_posix()}:{s.lineno}" for s in node.body[1:]
+                              if isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant)
+                              and isinstance(s.value.value, str)]
+    return found
+
+
+def test_docstrings_come_first():
+    found = _misplaced_docstrings(REPO)
+    assert not found, "a string statement after code (move it up to be the docstring):\n" + "\n".join(found)
+
+
+def test_the_docstring_check_can_fail(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "m.py").write_text("def f():\n    x = 1\n    '''Late.'''\n    return x\n"
+                                           "def g():\n    '''Fine.'''\n    return 1\n")
+    assert _misplaced_docstrings(tmp_path, ("pkg",)) == ["pkg/m.py:3"]
