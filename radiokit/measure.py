@@ -610,10 +610,7 @@ def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:
     top = att.max()
     if top <= 0:
         return np.zeros(img.shape, bool)
-    body = ndi.binary_fill_holes(att > fraction * top)
-    labels, n = ndi.label(body)
-    if n > 1:
-        body = labels == (np.argmax(np.bincount(labels.ravel())[1:]) + 1)
+    body = _largest_component(ndi.binary_fill_holes(att > fraction * top))
     if erode_px > 0 and not body.all():
         body = ndi.binary_erosion(body, iterations=int(erode_px), border_value=1)
     return body
