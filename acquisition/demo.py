@@ -100,7 +100,7 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
 
         scene = with_view(scene, view)
     scene.detector.binning = int(binning) if binning else 1
-    if coarse:  # the demo's mesh: about 2.5x faster to solve (see benchmarks/bench_sim.py for what it costs)
+    if coarse:  # the demo's mesh: faster to solve (benchmarks/bench_sim.py measures what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
         scene.mesh.size_far_mm = max(scene.mesh.size_far_mm, 8.0)
     files, timings = {}, {}

@@ -150,7 +150,7 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
     sigma = max(float(np.sqrt(var.mean())) if var.size else 0.0, 0.5)
     for r0 in range(0, rows, block_rows):
         blk = data[:, r0:r0 + block_rows].astype(np.float32)
-        if n <= 32:  # sorting the few samples is 2x faster than np.median's strided partitions, same value
+        if n <= 32:  # sorting a few samples beats np.median's strided partitions, same value
             srt = np.sort(blk, axis=0)
             med = srt[n // 2] if n % 2 else 0.5 * (srt[n // 2 - 1] + srt[n // 2])
             del srt

@@ -525,12 +525,12 @@ def summary(reference, enhanced_by_k: dict, inclusion, background) -> dict:
 
 
 # -- profiles ----------------------------------------------------------------------------------
-def profile(image, start_rc, end_rc, *, width: int = 1, num: int | None = None):
+def profile(image, start_rc, end_rc, *, width: int = 1):
     """Intensity along a line, e.g. through the inclusion (the paper's Fig. 6).
 
-    Same sampling as :func:`skimage.measure.profile_line` (both end points included, bilinear
-    interpolation, ``width`` samples one pixel apart across the line averaged), with the number
-    of samples settable.
+    :func:`skimage.measure.profile_line` with the arguments checked and the distances returned:
+    both end points included, ``ceil(length + 1)`` samples, bilinear interpolation, ``width``
+    samples one pixel apart across the line averaged.
 
     Parameters
     ----------
@@ -539,14 +539,12 @@ def profile(image, start_rc, end_rc, *, width: int = 1, num: int | None = None):
         End points in pixel coordinates; they must lie inside the image.
     width : int
         Pixels averaged perpendicular to the line (odd keeps the line centred).
-    num : int, optional
-        Number of samples; default ``ceil(length + 1)`` as scikit-image.
 
     Returns
     -------
-    distance_px : (num,) float64 array
+    distance_px : (n,) float64 array
         Distance of each sample from ``start_rc``, in pixels.
-    values : (num,) float64 array
+    values : (n,) float64 array
 
     Notes
     -----
@@ -559,9 +557,9 @@ def profile(image, start_rc, end_rc, *, width: int = 1, num: int | None = None):
     >>> d, v = profile(img, (1, 0), (1, 4))
     >>> d.tolist(), v.tolist()
     ([0.0, 1.0, 2.0, 3.0, 4.0], [0.0, 1.0, 2.0, 3.0, 4.0])
-    >>> profile(img, (1, 0), (1, 4), num=3)[1].tolist()
-    [0.0, 2.0, 4.0]
     """
+    from skimage.measure import profile_line
+
     img = _image(image)
     rows, cols = img.shape
     src, dst = np.array(_pair(start_rc, "start_rc")), np.array(_pair(end_rc, "end_rc"))
@@ -574,25 +572,9 @@ def profile(image, start_rc, end_rc, *, width: int = 1, num: int | None = None):
         raise ValueError(f"width must be an integer number of pixels, got {width!r}") from None
     if width < 1:
         raise ValueError(f"width must be >= 1, got {width}")
-    length = float(np.hypot(*(dst - src)))
-    if num is None:
-        num = int(np.ceil(length + 1))
-    else:
-        try:
-            num = operator.index(num)
-        except TypeError:
-            raise ValueError(f"num must be an integer, got {num!r}") from None
-        if num < 2:
-            raise ValueError(f"num must be >= 2, got {num}")
-    t = np.linspace(0.0, 1.0, num)
-    line = src[:, None] + (dst - src)[:, None] * t[None]  # (2, num)
-    theta = np.arctan2(*(dst - src))
-    # unit normal as scikit-image: (cos theta, -sin theta) in (row, col)
-    across = np.linspace(-(width - 1) / 2, (width - 1) / 2, width)
-    coords = np.stack([line[0][:, None] + np.cos(theta) * across[None],
-                       line[1][:, None] - np.sin(theta) * across[None]])
-    samples = ndi.map_coordinates(np.asarray(img, np.float64), coords, order=1, mode="nearest")
-    return t * length, samples.mean(axis=1)
+    # float64 in: profile_line keeps a float32 image's precision, and measurements here are float64
+    values = profile_line(np.asarray(img, np.float64), src, dst, linewidth=width, order=1, mode="nearest")
+    return np.linspace(0.0, float(np.hypot(*(dst - src))), values.size), values
 
 
 # -- automatic ROIs ----------------------------------------------------------------------------
@@ -628,10 +610,7 @@ def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:
     top = att.max()
     if top <= 0:
         return np.zeros(img.shape, bool)
-    body = ndi.binary_fill_holes(att > fraction * top)
-    labels, n = ndi.label(body)
-    if n > 1:
-        body = labels == (np.argmax(np.bincount(labels.ravel())[1:]) + 1)
+    body = _largest_component(ndi.binary_fill_holes(att > fraction * top))
     if erode_px > 0 and not body.all():
         body = ndi.binary_erosion(body, iterations=int(erode_px), border_value=1)
     return body
@@ -645,9 +624,9 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 def _bbox(mask: np.ndarray) -> ROI:
-    r = np.flatnonzero(mask.any(axis=1))
-    c = np.flatnonzero(mask.any(axis=0))
-    return ROI(int(r[0]), int(r[-1]) + 1, int(c[0]), int(c[-1]) + 1)
+    """The bounding box of a non-empty boolean mask."""
+    rows, cols = ndi.find_objects(mask.astype(np.uint8))[0]
+    return ROI(rows.start, rows.stop, cols.start, cols.stop)
 
 
 def _inscribed_square(region: np.ndarray, shrink: float) -> ROI:
@@ -708,8 +687,13 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
     extent is the connected region above half its height. Negative images (the paper's
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
+
+    Not :func:`skimage.feature.blob_log`: it filters every scale at full resolution, with no
+    per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
+    demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
     from skimage.feature import peak_local_max
+    from skimage.measure import block_reduce
 
     if img.max() < 0:  # negative intensities (-I/I0, -counts): detect on line integrals + const
         img = -np.log(-img)
@@ -729,7 +713,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
 
     def depth(f, h, w):
         if f not in depths:
-            b = body[:h, :w].reshape(h // f, f, w // f, f).all(axis=(1, 3)) if f > 1 else body
+            b = block_reduce(body[:h, :w], f, np.all) if f > 1 else body
             depths[f] = ndi.distance_transform_edt(np.pad(b, 1))[1:-1, 1:-1] * f
         return depths[f]
 
@@ -738,7 +722,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
         sigma = radius / np.sqrt(2)
         f = max(1, int(sigma // 3))  # work on a block-averaged image: sigma >= 3 px there
         h, w = rows // f * f, cols // f * f
-        im = img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3)) if f > 1 else img
+        im = block_reduce(img[:h, :w], f, np.mean) if f > 1 else img
         dp = depth(f, h, w)
         resp = -(sigma / f) ** 2 * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body

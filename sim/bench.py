@@ -154,13 +154,6 @@ class VirtualBench:
             log.info("bench %s: solved ratios %s in %.1f s", self.scene.name, ", ".join(f"{r:.4g}" for r in todo), dt)
 
     # -- plates and phantom -----------------------------------------------------------------------
-    def set_ratio(self, ratio: float) -> None:
-        """Close the plates to ``ratio`` of the initial height (solving it if not prepared)."""
-        ratio = float(ratio)
-        if not math.isfinite(ratio) or ratio >= 0.9:
-            raise ValueError(f"bench {self.scene.name}: compression ratio {ratio!r} must be finite and below 0.9")
-        self.set_gap(self.initial_height_mm * (1.0 - ratio))
-
     def set_gap(self, gap_mm: float) -> None:
         """Move the plates to ``gap_mm``; a gap at or above :attr:`initial_height_mm` leaves the
         body uncompressed."""

@@ -20,6 +20,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import tomli_w
+
 __all__ = ["Material", "Body", "Inclusion", "Compression", "Beam", "Detector", "Exposure", "MeshSpec",
            "Scene", "load_scene", "block_scene", "with_view", "PRESETS", "VIEWS"]
 
@@ -295,7 +297,7 @@ class Scene:
         return _strip_none(dataclasses.asdict(self))
 
     def to_toml(self) -> str:
-        return _dump_toml(self.to_dict())
+        return tomli_w.dumps(self.to_dict())
 
     def save(self, path) -> Path:
         path = Path(path)
@@ -348,38 +350,6 @@ def _strip_none(obj):
     if isinstance(obj, (list, tuple)):
         return [_strip_none(v) for v in obj]
     return obj
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {v!r} to TOML")
-
-
-def _dump_toml(d: dict, prefix="") -> str:
-    """A small TOML writer for scene dictionaries (scalars, arrays, tables, arrays of tables)."""
-    lines, tables = [], []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            tables.append((k, v, False))
-        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
-            tables.append((k, v, True))
-        elif isinstance(v, list) and not v:
-            lines.append(f"{k} = []")
-        else:
-            lines.append(f"{k} = {_toml_value(v)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for k, v, many in tables:
-        name = f"{prefix}{k}"
-        for item in (v if many else [v]):
-            out += f"\n[{'[' if many else ''}{name}{']' if many else ''}]\n" + _dump_toml(item, prefix=f"{name}.")
-    return out
 
 
 # -- presets -----------------------------------------------------------------------------------

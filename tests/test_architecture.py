@@ -3,7 +3,8 @@
 import-linter (``make lint``) forbids ``radiokit`` importing ``sim`` or ``acquisition``; this test
 forbids any of the three packages importing a private name (a module or attribute whose name starts
 with ``_``) of another: a private name may change without notice, so crossing a package boundary
-through one is a contract nobody wrote down.
+through one is a contract nobody wrote down. It also keeps functions short (or explained) and
+named int constants enums.
 """
 import ast
 from pathlib import Path
@@ -51,3 +52,137 @@ def test_the_check_can_fail(tmp_path):
         assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
     finally:
         REPO = saved
+
+
+# -- functions stay short ------------------------------------------------------------------------
+MAX_CODE_LINES = 60
+LONG_REASON = "Long because"
+CHECKED = ("radiokit", "acquisition")
+# Functions long today that other changes of issue 14 are shortening. The lead empties this list
+# after merging them; the test fails for an entry that is no longer long, so it cannot go stale.
+ALLOWED_LONG = {
+    "radiokit/pipeline.py:_process",
+    "radiokit/register/_bspline.py:_bspline_register",
+    "radiokit/cli.py:build_parser",
+    "radiokit/report.py:_fig_profiles",
+    "radiokit/report.py:_fig_registration",
+    "radiokit/report.py:_plain_language",
+    "radiokit/report.py:write_report",
+}
+
+
+def _code_lines(node: ast.FunctionDef | ast.AsyncFunctionDef, lines: list[str]) -> int:
+    """Lines of the function's body that hold code: not blank, not only a comment, not the
+    docstring (the signature and decorators do not count; nested functions do)."""
+    body = node.body
+    start = body[0].lineno
+    if ast.get_docstring(node, clean=False) is not None:
+        start = body[0].end_lineno + 1
+    return sum(1 for text in lines[start - 1:node.end_lineno]
+               if text.strip() and not text.strip().startswith("#"))
+
+
+def _long_functions(root: Path, packages=CHECKED) -> dict[str, tuple[int, bool]]:
+    """``{"pkg/module.py:name": (code lines, has a "Long because" line in its docstring)}`` for
+    every function over :data:`MAX_CODE_LINES`."""
+    found = {}
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            text = path.read_text(encoding="utf-8")
+            lines = text.splitlines()
+            for node in ast.walk(ast.parse(text, filename=str(path))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = _code_lines(node, lines)
+                    if n > MAX_CODE_LINES:
+                        doc = ast.get_docstring(node) or ""
+                        reason = any(line.strip().startswith(LONG_REASON) for line in doc.splitlines())
+                        found[f"{path.relative_to(root).as_posix()}:{node.name}"] = (n, reason)
+    return found
+
+
+def test_functions_are_short_or_say_why():
+    found = _long_functions(REPO)
+    unexplained = sorted(f"{name} ({n} code lines)" for name, (n, reason) in found.items()
+                         if not reason and name not in ALLOWED_LONG)
+    assert not unexplained, (f"functions over {MAX_CODE_LINES} code lines without a '{LONG_REASON} ...' line in "
+                             "their docstring (docs/architecture.md):\n" + "\n".join(unexplained))
+    stale = sorted(ALLOWED_LONG - {name for name, (_, reason) in found.items() if not reason})
+    assert not stale, "no longer long (or now explained): remove from ALLOWED_LONG:\n" + "\n".join(stale)
+
+
+def test_the_length_check_can_fail(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    body = "".join(f"    x{i} = {i}  # a comment after code counts\n\n    # a comment line does not\n"
+                   for i in range(MAX_CODE_LINES))
+    (tmp_path / "pkg" / "m.py").write_text(
+        "def short():\n    '''Docstring lines\n\n    do not count.\n    '''\n" + body
+        + "def long(\n    a,\n):\n    x = 0\n" + body
+        + f"def explained():\n    '''Why.\n\n    {LONG_REASON} it is a table.\n    '''\n    x = 0\n" + body)
+    assert _long_functions(tmp_path, ("pkg",)) == {"pkg/m.py:long": (61, False),
+                                                   "pkg/m.py:explained": (61, True)}
+
+
+# -- named constants are enums ---------------------------------------------------------------------
+# Plain classes of int constants today; the lead empties this after merging issue 14's io changes.
+ALLOWED_INT_CLASSES = {"radiokit/io/_experiment.py:ImageKey"}
+
+
+def _bare_int_constants(root: Path, packages=CHECKED) -> list[str]:
+    """Module-level ``A, B, C = range(n)`` and classes (not enums) whose body is only int
+    constants: both are what :class:`enum.IntEnum` is for."""
+    found = []
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            where = path.relative_to(root).as_posix()
+            tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+            for node in tree.body:
+                if (isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Tuple)
+                        and isinstance(node.value, ast.Call) and getattr(node.value.func, "id", "") == "range"):
+                    found.append(f"{where}:{node.lineno}")
+                elif isinstance(node, ast.ClassDef) and not node.bases:
+                    values = [s.value for s in node.body if isinstance(s, ast.Assign)]
+                    if len(values) >= 2 and all(isinstance(v, ast.Constant) and type(v.value) is int
+                                                for v in values):
+                        found.append(f"{where}:{node.name}")
+    return found
+
+
+def test_named_int_constants_are_enums():
+    found = set(_bare_int_constants(REPO))
+    assert not found - ALLOWED_INT_CLASSES, "use enum.IntEnum for:\n" + "\n".join(sorted(found - ALLOWED_INT_CLASSES))
+    assert not ALLOWED_INT_CLASSES - found, f"now an enum: remove from ALLOWED_INT_CLASSES: {ALLOWED_INT_CLASSES - found}"
+
+
+def test_the_enum_check_can_fail(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "m.py").write_text(
+        "import enum\nA, B = range(2)\nclass Key:\n    '''Doc.'''\n    X = 0\n    Y = 1\n"
+        "class Fine(enum.IntEnum):\n    X = 0\n    Y = 1\nclass Mixed:\n    X = 0\n    name = 'm'\n")
+    assert _bare_int_constants(tmp_path, ("pkg",)) == ["pkg/m.py:2", "pkg/m.py:Key"]
+
+
+# -- a docstring is the first statement ------------------------------------------------------------
+def _misplaced_docstrings(root: Path, packages=PACKAGES) -> list[str]:
+    """A bare string statement after the first in a function: a docstring placed after code,
+    which Python does not take as the docstring (``help()`` and numpydoc never see it)."""
+    found = []
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    found += [f"{path.relative_to(root).as_posix()}:{s.lineno}" for s in node.body[1:]
+                              if isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant)
+                              and isinstance(s.value.value, str)]
+    return found
+
+
+def test_docstrings_come_first():
+    found = _misplaced_docstrings(REPO)
+    assert not found, "a string statement after code (move it up to be the docstring):\n" + "\n".join(found)
+
+
+def test_the_docstring_check_can_fail(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "m.py").write_text("def f():\n    x = 1\n    '''Late.'''\n    return x\n"
+                                           "def g():\n    '''Fine.'''\n    return 1\n")
+    assert _misplaced_docstrings(tmp_path, ("pkg",)) == ["pkg/m.py:3"]

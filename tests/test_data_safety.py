@@ -326,24 +326,18 @@ def _full_disk_run(small_disk, *args):
                           env={**os.environ, "PYTHONWARNINGS": "ignore"})
 
 
-@pytest.mark.parametrize("suffix", [".h5", ".tif"])
-def test_correct_on_a_full_disk(small_disk, suffix, tmp_path):
-    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), n_per_step=2)  # 6 x 256 KiB out: > 1 MiB
+@pytest.mark.parametrize("cmd, experiment_kw, output, args", [
+    ("correct", {"n_per_step": 2}, "out.h5", []),  # 6 x 256 KiB out: > 1 MiB
+    ("correct", {"n_per_step": 2}, "out.tif", []),
+    ("process", {"noise": 30.0}, "res", ROI),  # results.h5 > 1 MiB
+])
+def test_a_full_disk_is_one_line_and_leaves_nothing(small_disk, cmd, experiment_kw, output, args, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), **experiment_kw)
     disk = small_disk or (tmp_path / "fake-disk")
     disk.mkdir(exist_ok=True)
     before = sha(exp)
-    res = _full_disk_run(small_disk, "correct", exp, "-q", "-o", disk / f"out{suffix}")
-    one_line_error(res, f"out{suffix}", "no space left")
-    assert list(disk.iterdir()) == [] and sha(exp) == before
-
-
-def test_process_on_a_full_disk(small_disk, tmp_path):
-    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), noise=30.0)  # results.h5 > 1 MiB
-    disk = small_disk or (tmp_path / "fake-disk")
-    disk.mkdir(exist_ok=True)
-    before = sha(exp)
-    res = _full_disk_run(small_disk, "process", exp, "-q", "-o", disk / "res", *ROI)
-    one_line_error(res, "res", "no space left")
+    res = _full_disk_run(small_disk, cmd, exp, "-q", "-o", disk / output, *args)
+    one_line_error(res, output, "no space left")
     assert list(disk.iterdir()) == [] and sha(exp) == before
 
 

@@ -327,7 +327,6 @@ def _nan_ref():
     (lambda: change_ratio(REF, REF[:, :3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 3)), "before has shape"),
     (lambda: profile(REF, (0, 0), (4, 0)), "end_rc .* outside"),
     (lambda: profile(REF, (0, 0), (3, 0), width=0), "width must be >= 1"),
-    (lambda: profile(REF, (0, 0), (3, 0), num=1), "num must be >= 2"),
 ])
 def test_bad_inputs_raise_clear_errors(call, match):
     with pytest.raises(ValueError, match=match):
@@ -344,11 +343,13 @@ def test_profile_matches_scikit_image(start, end, width):
     assert d[0] == 0 and d[-1] == pytest.approx(math.hypot(end[0] - start[0], end[1] - start[1]))
 
 
-def test_profile_through_a_ramp_with_num_samples():
-    img = np.tile(np.arange(11.0) * 2, (5, 1))  # value = 2 * col
-    d, v = profile(img, (2, 0), (2, 10), width=3, num=6)
-    np.testing.assert_allclose(d, [0, 2, 4, 6, 8, 10])
-    np.testing.assert_allclose(v, [0, 4, 8, 12, 16, 20])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.uint16, np.int32])
+def test_profile_through_a_ramp_interpolates_in_float(dtype):
+    img = np.tile(np.arange(11) * 2, (5, 1)).astype(dtype)  # value = 2 * col
+    d, v = profile(img, (2, 0.5), (2, 9.5), width=3)  # samples between pixels: odd values
+    assert v.dtype == np.float64
+    np.testing.assert_allclose(d, np.arange(10.0))
+    np.testing.assert_allclose(v, 1 + 2 * np.arange(10.0), atol=1e-6)
 
 
 # -- automatic ROIs ------------------------------------------------------------------------------

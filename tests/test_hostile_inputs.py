@@ -285,17 +285,15 @@ def test_a_frame_of_only_nan_is_refused(tmp_path):
 
 
 # -- errors instead of tracebacks --------------------------------------------------------------
-def test_info_on_an_experiment_without_steps(tmp_path):
-    path = _experiment(tmp_path / "exp.h5", step=False)
-    res = run("info", path)
+@pytest.mark.parametrize("steps, args, printed", [
+    (False, [], ["projections 3", "steps      []"]),  # an experiment without steps
+    (True, ["--sample", "3"], ["(in 3 of 9 frames)"]),  # a sample of frames, not the whole file
+])
+def test_info_prints_what_it_read(steps, args, printed, tmp_path):
+    path = _experiment(tmp_path / "exp.h5", step=steps)
+    res = run("info", path, *args)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
-    assert "projections 3" in res.stdout and "steps      []" in res.stdout
-
-
-def test_info_reads_a_sample_of_frames_not_the_whole_file(tmp_path):
-    path = _experiment(tmp_path / "exp.h5")
-    res = run("info", path, "--sample", "3")
-    assert res.returncode == 0 and "(in 3 of 9 frames)" in res.stdout
+    assert all(p in res.stdout for p in printed), res.stdout
 
 
 @pytest.mark.parametrize("case", ["no projections", "one step", "no darks", "not hdf5", "missing", "a folder"])
@@ -338,16 +336,47 @@ def test_debug_shows_the_traceback(tmp_path):
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--ratios", "nan"], "--ratios nan"),
-    (["--ratios", "0.15", "2"], "between 0 and 1"),
-    (["--darks", "-1"], "--darks -1"),
-    (["--frames", "0"], "--frames 0"),
+    (["sim", "run", "--preset", "seed-breast", "--ratios", "nan", "-o", "sim.h5"], "--ratios nan"),
+    (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
+    (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
+    (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+    (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
 ])
-def test_sim_run_refuses_bad_counts_and_ratios_before_simulating(args, words, tmp_path):
-    one_line_error(run("sim", "run", "--preset", "seed-breast", *args, "-o", tmp_path / "sim.h5", "-q"), words)
+def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):
+    one_line_error(run(*args, "-q", cwd=tmp_path), words)
     assert not any(tmp_path.iterdir())
 
 
-def test_demo_refuses_an_unknown_scene_before_claiming_its_folder(tmp_path):
-    one_line_error(run("demo", "-o", tmp_path / "demo", "--preset", "nosuch", "-q"), "nosuch")
-    assert not (tmp_path / "demo").exists()
+HOSTILE_TEXT = ['plain', 'say "cheese"', "back\\slash C:\\new", "two\nlines", "tab\there", "''' and \"\"\"",
+                "ünïcode µA", "# not a comment", "[not.a.table]", "key = value"]
+
+
+@pytest.mark.parametrize("text", HOSTILE_TEXT)
+def test_a_scene_with_any_name_round_trips_through_toml(text):
+    import tomllib
+
+    from sim.scene import load_scene
+
+    scene = load_scene("seed-breast")
+    scene.name = text
+    written = scene.to_toml()
+    assert tomllib.loads(written) == scene.to_dict()
+    assert type(scene).from_toml(written) == scene
+
+
+@pytest.mark.parametrize("text", HOSTILE_TEXT)
+def test_a_protocol_with_any_strings_round_trips_through_toml(text):
+    import dataclasses
+    import tomllib
+
+    from acquisition.protocols.compression_series import load_protocol
+
+    p = load_protocol({"name": text, "detector": {"folder": text, "pattern": text, "shape": [8, 16]},
+                       "source": {"port": text, "kv_max": 80.0}, "sim": {"scene": text}})
+    written = p.to_toml()
+    data = tomllib.loads(written)
+    assert data["name"] == data["detector"]["folder"] == data["source"]["port"] == data["sim"]["scene"] == text
+    assert data["source"]["limits"] == {"kv_max": 80.0}
+    assert "preset" not in data["detector"] and "baudrate" not in data["source"]  # None: left out
+    assert load_protocol(written, text=True) == p
+    assert dataclasses.asdict(load_protocol(written, text=True)) == dataclasses.asdict(p)

@@ -65,23 +65,33 @@ import termios
 import threading
 import time
 import tty
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+
+from acquisition.l8121 import SourceState, WarmupState
 
 __all__ = ["L8121Model", "PtyServer", "SocketServer", "Exchange", "main", "DEFAULT_BAUD"]
 
 logger = logging.getLogger(__name__)
 
-# STS states (dialect A's numbers)
-WARMUP_NEEDED, WARMING_UP, STANDBY, XRAY_ON, OVERLOAD, NOT_READY, SELF_TEST = range(7)
-# SWE values
-WARMUP_DONE, WARMUP_RUNNING, WARMUP_NOT_STARTED = range(3)
-# SER codes (this emulator's own)
-E_NONE, E_INTERLOCK, E_WARMUP, E_OVERLOAD, E_RANGE, E_UNKNOWN, E_STATE, E_LOCAL = range(8)
+
+class ErrorCode(IntEnum):
+    """What ``SER`` answers: this emulator's own codes (the real controller's are not documented)."""
+    NONE = 0
+    INTERLOCK = 1
+    WARMUP = 2
+    OVERLOAD = 3
+    RANGE = 4
+    UNKNOWN = 5
+    STATE = 6
+    LOCAL = 7
+
 
 DEFAULT_BAUD = {"A": 38400, "B": 9600}
-_B_STATES = {WARMUP_NEEDED: "STANDBY", WARMING_UP: "AGING", STANDBY: "STANDBY", XRAY_ON: "XON",
-             OVERLOAD: "OVER", NOT_READY: "NOT READY", SELF_TEST: "NOT READY"}
+_B_STATES = {SourceState.WARMUP_NEEDED: "STANDBY", SourceState.WARMING_UP: "AGING", SourceState.STANDBY: "STANDBY",
+             SourceState.XRAY_ON: "XON", SourceState.OVERLOAD: "OVER", SourceState.NOT_READY: "NOT READY",
+             SourceState.SELF_TEST: "NOT READY"}
 _B_FOCUS = ("SMALL", "MIDDLE", "LARGE")
 # What a remote operate switch other than REMOTE refuses: everything that acts on the tube.
 _CONTROL = {"HIV", "CUR", "PHV", "PCU", "XON", "XOF", "WUP", "RST", "CFS", "CFM", "CFL"}
@@ -156,15 +166,15 @@ class L8121Model:
         self._events: list[tuple[float, int, Callable[[float], None]]] = []
         self._seq = itertools.count()
         self._rng = random.Random(seed)
-        self._state = STANDBY if warmed_up else WARMUP_NEEDED
-        self._warmup = WARMUP_DONE if warmed_up else WARMUP_NOT_STARTED
+        self._state = SourceState.STANDBY if warmed_up else SourceState.WARMUP_NEEDED
+        self._warmup = WarmupState.DONE if warmed_up else WarmupState.NOT_STARTED
         self._warmup_t0 = 0.0
         self._set_kv, self._set_ua = int(kv_min), 0
         self._ramp_t0, self._ramp_from = 0.0, (0.0, 0.0)
         self._beam_dropped = False
         self._interlock_open = False
         self._focus = 0
-        self._error = E_NONE
+        self._error = ErrorCode.NONE
         self._switch = "REMOTE"
         self._silent = self._garbage = self._stuck = self._foreign = False
         self._silent_executes = False
@@ -178,26 +188,26 @@ class L8121Model:
         commands = {
             "HIV": self._hiv, "CUR": self._cur, "XON": self._xon_a, "XOF": self._xof, "WUP": self._wup,
             "RST": self._rst, "CFS": self._cfs,
-            "STS": lambda t: f"STS {self._state}",
-            "SAR": lambda t: "SAR {} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
+            "STS": lambda t: f"STS {self._state:d}",
+            "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
             "SVI": lambda t: f"SVI {self._set_kv} {self._set_ua}",
             "SHV": lambda t: f"SHV {self._measured(t)[0]:.0f}",
             "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}",
             "SIN": lambda t: f"SIN {int(self._interlock_open)}",
-            "SWE": lambda t: f"SWE {self._warmup}",
-            "SPH": lambda t: f"SPH {int(self._state == WARMING_UP)}",
+            "SWE": lambda t: f"SWE {self._warmup:d}",
+            "SPH": lambda t: f"SPH {int(self._state == SourceState.WARMING_UP)}",
             "SFC": lambda t: f"SFC {self._focus}",
-            "SER": lambda t: f"SER {self._error}",
+            "SER": lambda t: f"SER {self._error:d}",
             "TYP": lambda t: f"TYP {self.model}",
         }
         return commands, {"HIV", "CUR", "CFS"}
 
     def _front_end_b(self):
         def on_only(fn):  # HIV, CUR: while X-rays are on
-            return lambda t, arg: fn(t, arg) if self._state == XRAY_ON else self._refuse(E_STATE)
+            return lambda t, arg: fn(t, arg) if self._state == SourceState.XRAY_ON else self._refuse(ErrorCode.STATE)
 
         def off_only(fn):  # the presets PHV, PCU: while the tube does not emit
-            return lambda t, arg: fn(t, arg) if self._state not in (XRAY_ON, WARMING_UP) else self._refuse(E_STATE)
+            return lambda t, arg: fn(t, arg) if not self._state.emitting else self._refuse(ErrorCode.STATE)
 
         commands = {
             "HIV": on_only(self._hiv), "CUR": on_only(self._cur),
@@ -214,9 +224,9 @@ class L8121Model:
             "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",
             "DAG": self._dag,
             "SFS": lambda t: _B_FOCUS[self._focus],
-            "SER": lambda t: f"SER {self._error}",
+            "SER": lambda t: f"SER {self._error:d}",
             "SRL": lambda t: self._switch,
-            "SRB": lambda t: "BUSY" if self._state == WARMING_UP else "READY",
+            "SRB": lambda t: "BUSY" if self._state == SourceState.WARMING_UP else "READY",
         }
         return commands, {"HIV", "CUR", "PHV", "PCU"}
 
@@ -227,7 +237,7 @@ class L8121Model:
         return self._clock() - self._t0
 
     @property
-    def state(self) -> int:
+    def state(self) -> SourceState:
         """The state now, as dialect A's ``STS`` numbers it (0 warm-up needed ... 6 self-test)."""
         with self._lock:
             self._advance()
@@ -236,7 +246,7 @@ class L8121Model:
     @property
     def xray_on(self) -> bool:
         """Whether the tube emits now: X-rays on (state 3) or warming up (state 1; B's ``AGING``)."""
-        return self.state in (XRAY_ON, WARMING_UP)
+        return self.state.emitting
 
     @property
     def set_kv(self) -> int:
@@ -247,13 +257,6 @@ class L8121Model:
     def set_ua(self) -> int:
         """The set tube current, µA."""
         return self._set_ua
-
-    @property
-    def interlock_is_open(self) -> bool:
-        """Whether the interlock chain is open now."""
-        with self._lock:
-            self._advance()
-            return self._interlock_open
 
     def measured(self) -> tuple[float, float]:
         """The measured (kV, µA) now, unrounded."""
@@ -286,10 +289,11 @@ class L8121Model:
         """
         def fault(t):
             self._interlock_open = True
-            if self._state == XRAY_ON:
-                self._state, self._error = STANDBY, E_INTERLOCK
-            elif self._state == WARMING_UP:
-                self._state, self._warmup, self._error = WARMUP_NEEDED, WARMUP_NOT_STARTED, E_INTERLOCK
+            if self._state == SourceState.XRAY_ON:
+                self._state, self._error = SourceState.STANDBY, ErrorCode.INTERLOCK
+            elif self._state == SourceState.WARMING_UP:
+                self._state, self._warmup = SourceState.WARMUP_NEEDED, WarmupState.NOT_STARTED
+                self._error = ErrorCode.INTERLOCK
         self._at(at_s, fault)
 
     def close_interlock(self, at_s: float | None = None) -> None:
@@ -302,14 +306,14 @@ class L8121Model:
         """Trip the overload protection now, or at model time ``at_s``: state 4 (B ``OVER``), beam
         off, error 3. Only ``RST`` leaves the overload state."""
         def fault(t):
-            self._state, self._error = OVERLOAD, E_OVERLOAD
+            self._state, self._error = SourceState.OVERLOAD, ErrorCode.OVERLOAD
         self._at(at_s, fault)
 
     def drop_beam(self, at_s: float | None = None) -> None:
         """Let the emitter fail now, or at model time ``at_s``: the measured current collapses to
         0 while the state stays X-rays on (until ``XOF``)."""
         def fault(t):
-            if self._state == XRAY_ON:
+            if self._state == SourceState.XRAY_ON:
                 self._beam_dropped = True
         self._at(at_s, fault)
 
@@ -317,18 +321,18 @@ class L8121Model:
         """Decide that a warm-up is due (B: the 8-hour idle rule, ``DAG`` says ``YET``): from
         standby the state becomes warm-up needed, so B's next ``XON`` starts a warm-up."""
         def fault(t):
-            self._warmup = WARMUP_NOT_STARTED
-            if self._state == STANDBY:
-                self._state = WARMUP_NEEDED
+            self._warmup = WarmupState.NOT_STARTED
+            if self._state == SourceState.STANDBY:
+                self._state = SourceState.WARMUP_NEEDED
         self._at(at_s, fault)
 
     def warm(self, at_s: float | None = None) -> None:
         """Mark the warm-up done now, or at model time ``at_s`` (someone ran it at the controller):
         from warm-up needed the state becomes standby, so B's next ``XON`` is an exposure."""
         def fix(t):
-            self._warmup = WARMUP_DONE
-            if self._state == WARMUP_NEEDED:
-                self._state = STANDBY
+            self._warmup = WarmupState.DONE
+            if self._state == SourceState.WARMUP_NEEDED:
+                self._state = SourceState.STANDBY
         self._at(at_s, fix)
 
     def inject_after(self, command: str, fault: Callable[[], object]) -> None:
@@ -426,21 +430,21 @@ class L8121Model:
         word, *args = line.split()
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
-            return self._refuse(E_UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
+            return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
         if word in _CONTROL and self._switch != "REMOTE":
-            return self._refuse(E_LOCAL)
+            return self._refuse(ErrorCode.LOCAL)
         reply = action(t, *args)
         fault = self._after.pop(word, None)
         if fault is not None:
             fault()
         return reply
 
-    def _refuse(self, code: int, reply: str = "ERROR") -> str:
+    def _refuse(self, code: ErrorCode, reply: str = "ERROR") -> str:
         self._error = code
         return reply
 
     def _range_error(self) -> str:
-        return self._refuse(E_RANGE, "ERR" if self.dialect == "A" else "ERROR")
+        return self._refuse(ErrorCode.RANGE, "ERR" if self.dialect == "A" else "ERROR")
 
     def _hiv(self, t, arg, word="HIV"):
         raw = _whole(arg)
@@ -459,71 +463,72 @@ class L8121Model:
         self._set_ua = ua
         return f"{word} {ua}"
 
-    def _why_not_on(self) -> int:
-        return (E_INTERLOCK if self._interlock_open and self._state in (STANDBY, WARMUP_NEEDED) else
-                E_WARMUP if self._state in (WARMUP_NEEDED, WARMING_UP) else
-                E_OVERLOAD if self._state == OVERLOAD else E_STATE)
+    def _why_not_on(self) -> ErrorCode:
+        off = (SourceState.STANDBY, SourceState.WARMUP_NEEDED)
+        return (ErrorCode.INTERLOCK if self._interlock_open and self._state in off else
+                ErrorCode.WARMUP if self._state in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP) else
+                ErrorCode.OVERLOAD if self._state == SourceState.OVERLOAD else ErrorCode.STATE)
 
     def _xon_a(self, t):
-        if self._state != STANDBY or self._interlock_open:
+        if self._state != SourceState.STANDBY or self._interlock_open:
             return self._refuse(self._why_not_on())
         self._switch_on(t)
         return "XON"
 
     def _xon_b(self, t):
         """Dialect B: ``XON`` starts the warm-up when one is due, the exposure otherwise."""
-        if self._interlock_open or self._state not in (STANDBY, WARMUP_NEEDED):
+        if self._interlock_open or self._state not in (SourceState.STANDBY, SourceState.WARMUP_NEEDED):
             return self._refuse(self._why_not_on())
-        if self._state == WARMUP_NEEDED:
+        if self._state == SourceState.WARMUP_NEEDED:
             self._start_warm_up(t)
         else:
             self._switch_on(t)
         return "XON"
 
     def _switch_on(self, t):
-        self._state, self._beam_dropped = XRAY_ON, False
+        self._state, self._beam_dropped = SourceState.XRAY_ON, False
         self._ramp_t0, self._ramp_from = t, (0.0, 0.0)
 
     def _xof(self, t):
         if self._stuck:
             return "XOF"
-        if self._state == XRAY_ON:
-            self._state = STANDBY
-        elif self._state == WARMING_UP:  # the warm-up runs the tube: XOF ends it, and must be run again
-            self._state, self._warmup = WARMUP_NEEDED, WARMUP_NOT_STARTED
+        if self._state == SourceState.XRAY_ON:
+            self._state = SourceState.STANDBY
+        elif self._state == SourceState.WARMING_UP:  # the warm-up runs the tube: XOF ends it, and must be run again
+            self._state, self._warmup = SourceState.WARMUP_NEEDED, WarmupState.NOT_STARTED
         self._beam_dropped = False
         return "XOF"
 
     def _wup(self, t):
-        if self._state not in (WARMUP_NEEDED, STANDBY, WARMING_UP):
-            return self._refuse(E_STATE)
+        if self._state not in (SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.WARMING_UP):
+            return self._refuse(ErrorCode.STATE)
         if self._interlock_open:
-            return self._refuse(E_INTERLOCK)
-        if self._state != WARMING_UP:
+            return self._refuse(ErrorCode.INTERLOCK)
+        if self._state != SourceState.WARMING_UP:
             self._start_warm_up(t)
         return "WUP"
 
     def _start_warm_up(self, t):
-        self._state, self._warmup, self._warmup_t0 = WARMING_UP, WARMUP_RUNNING, t
+        self._state, self._warmup, self._warmup_t0 = SourceState.WARMING_UP, WarmupState.RUNNING, t
         started = self._warmup_t0
 
         def done(t_done):
-            if self._state == WARMING_UP and self._warmup_t0 == started:
-                self._state, self._warmup = STANDBY, WARMUP_DONE
+            if self._state == SourceState.WARMING_UP and self._warmup_t0 == started:
+                self._state, self._warmup = SourceState.STANDBY, WarmupState.DONE
         self._schedule(t + self.warmup_s, done)
 
     def _dag(self, t):
-        if self._warmup == WARMUP_DONE:
+        if self._warmup == WarmupState.DONE:
             return "AGING 0 0 END"
         step = 0
-        if self._state == WARMING_UP and self.warmup_s > 0:
+        if self._state == SourceState.WARMING_UP and self.warmup_s > 0:
             step = 1 + min(_AGING_STEPS - 1, int(_AGING_STEPS * (t - self._warmup_t0) / self.warmup_s))
         return f"AGING 1 {step} YET"
 
     def _rst(self, t):
-        if self._state == OVERLOAD:
-            self._state = STANDBY if self._warmup == WARMUP_DONE else WARMUP_NEEDED
-        self._error = E_NONE
+        if self._state == SourceState.OVERLOAD:
+            self._state = SourceState.STANDBY if self._warmup == WarmupState.DONE else SourceState.WARMUP_NEEDED
+        self._error = ErrorCode.NONE
         return "RST"
 
     def _cfs(self, t, arg):
@@ -538,7 +543,7 @@ class L8121Model:
         return word
 
     def _measured(self, t: float) -> tuple[float, float]:
-        if self._state != XRAY_ON:
+        if self._state != SourceState.XRAY_ON:
             return 0.0, 0.0
         f = 1.0 if self.ramp_s <= 0 else min(1.0, max(0.0, (t - self._ramp_t0) / self.ramp_s))
         kv0, ua0 = self._ramp_from

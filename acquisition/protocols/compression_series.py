@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
 
@@ -181,7 +182,12 @@ class Protocol:
 
     def to_toml(self) -> str:
         """The protocol as TOML (what the experiment file stores, and what ``--resume`` checks)."""
-        return _to_toml(dataclasses.asdict(self))
+        return tomli_w.dumps(dataclasses.asdict(self, dict_factory=_without_none))
+
+
+def _without_none(items) -> dict:
+    """A dataclass's fields as a dict, unset (``None``) ones left out: TOML has no null."""
+    return {k: v for k, v in items if v is not None}
 
 
 def _check_numbers(section: str, settings) -> None:
@@ -287,30 +293,6 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
         return Protocol(**top)
     except (TypeError, ProtocolError) as exc:
         raise ProtocolError(f"{where}: {exc}") from None
-
-
-def _to_toml(d: dict) -> str:
-    def val(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, float)):
-            return repr(v)
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(val(x) for x in v) + "]"
-        raise TypeError(v)
-
-    def table(prefix, t):  # a table's values, then its sub-tables
-        lines = [f"{k} = {val(v)}" for k, v in t.items() if not isinstance(v, dict) and v is not None]
-        for k, v in t.items():
-            if isinstance(v, dict):
-                name = f"{prefix}.{k}" if prefix else k
-                lines += [f"\n[{name}]"] + table(name, v)
-        return lines
-
-    lines = table("", d)
-    return "\n".join(lines) + "\n"
 
 
 # -- the plan (and the dry run) ------------------------------------------------------------------

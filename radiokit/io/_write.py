@@ -246,9 +246,9 @@ class _DirectFrames:
     """Write whole preallocated chunks straight to disk with ``O_DIRECT``, past the page cache.
 
     Streaming 19 MiB float32 frames through the page cache costs a fresh page allocation per
-    4 KiB; on virtual machines whose host reclaims idle guest memory that costs about 3 ms/MiB
-    (measured: 17 frames/s buffered against 125 frames/s direct to the same disk), and in any
-    case it fills the cache with frames nobody will read soon. HDF5 still owns the file layout
+    4 KiB; on virtual machines whose host reclaims idle guest memory that is several times slower
+    than writing direct (``benchmarks/README.md``, ``bench_correct.py`` part 2), and in any case
+    it fills the cache with frames nobody will read soon. HDF5 still owns the file layout
     and metadata; this only fills the bytes of chunks HDF5 allocated early and never writes
     itself (fill time "never"). Where the filesystem refuses ``O_DIRECT`` (tmpfs) or a chunk
     is not 4 KiB aligned, :meth:`write` returns False and h5py writes the frame as usual.

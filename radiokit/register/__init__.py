@@ -181,8 +181,8 @@ def _bin(a, k):
 
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
-    to at most ~0.4 Mpx (2240 x 2240 by 4: 0.08 s instead of 0.5 s at full resolution; these are
-    diagnostics, the field itself is not binned); det J at full resolution."""
+    to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
+    field itself is not binned); det J at full resolution."""
     q = reg.quality
     k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
     if k > 1:
@@ -227,14 +227,11 @@ def _assess(reg, f, m, mask, info, seconds):
 # the intensity change known; residual complexity must also explain that change away, and a
 # field that varies over a length L is pinned by windows of that size, so the map charges the
 # bound x _BOUND_SCALE x _WINDOW / L, L the field's own correlation length (from the estimate,
-# clipped to 0.5-4 windows). _BOUND_SCALE 6 was chosen on the training seeds of
-# benchmarks/regdata.family at 560 px (rc's default, 2 seeds, 45 pairs): 27/28 failed results
-# flagged and 8/9 good ones trusted; 4: 24/28 and 8/9; 8: 28/28 and 7/9. With rc's
-# coarse_adapt=True (more good results on weak texture) 3 fits better (training seeds, rc and rc
-# fast, 50 pairs: failed flagged / good trusted 33/34 and 20/22 at 3, 34/34 and 14/22 at 6), but
-# that is not the default.
-# _MAX_MISALIGNED: good results (560-2240, analytic and family pairs) leave 0 % misaligned,
-# rc's failures at 2240 on weak texture 21-45 %.
+# clipped to 0.5-4 windows). _BOUND_SCALE was chosen on the training seeds of
+# benchmarks/regdata.family (benchmarks/README.md, "The flag": the candidates and their counts);
+# it flags failed results first, since a flag that errs costs a re-run, not a wrong paper number.
+# _MAX_MISALIGNED sits between what good results leave misaligned and what rc's failures on weak
+# texture leave (same section).
 _WINDOW = 24.0
 _BOUND_SCALE = 6.0
 _MIN_OBSERVED = 0.5

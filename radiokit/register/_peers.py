@@ -27,10 +27,9 @@ integrals (log images) this removes slow intensity change by hand -- a stale fla
 an additive slow term there; a body thinning under compression scales the line integral, whose
 slow part goes, leaving a change of a few % in the texture's contrast: the "tuned"
 configuration that lets these intensity-blind peers compete on compressed phantoms. The default
-is ``"none"``: the peers as a user would first call them (and how they fail: on
-``benchmarks/regdata.analytic_pair`` at 1 % displacement and 10 % intensity change, TV-L1, ILK
-and demons end worse than not registering, elastix and SimpleITK's B-spline keep 0.1-4 px of
-error; with the prefilter all reach 0.04-0.14 px median at 512 x 512).
+is ``"none"``: the peers as a user would first call them, and how they fail under an
+intensity change (``benchmarks/README.md``, "The peers' defaults", has the errors with and
+without the prefilter).
 
 Intensity scaling: every peer sees the pair scaled together, ``(a - lo) / (hi - lo)`` with
 ``lo, hi`` the 0.5 and 99.5 percentiles of both images (after the prefilter), so its parameters
@@ -43,7 +42,9 @@ same scaling as float32 (no quantisation).
 ``k = round(larger side / working_size)`` and interpolate the field back (times ``k``), or
 ``None`` for full resolution. These flows were made for video: their windows and polynomial
 fits see a few pixels, too few for the smooth texture of a 2240 x 2240 radiograph; averaging
-is also 4-16x faster. Defaults per method from the benchmark (see each one).
+is also faster. Each method's defaults were chosen with ``benchmarks/bench_register.py``
+(highpass prefilter, 1 % displacement, 10 % intensity change); the errors that chose them are in
+``benchmarks/README.md``, "The peers' defaults".
 
 ``mask``: SimpleITK's B-spline and elastix limit their metric to it; the optical flows and
 demons (dense, local) ignore it.
@@ -83,8 +84,8 @@ def _require(module, method, package, attr=None):
 def highpass(image, sigma):
     """``image - G_sigma * image`` (float32; borders reflected). A wide blur is computed on the
     image area-averaged by ``k ~ sigma / 8`` and interpolated back (the blur is smooth at that
-    scale; the box adds ``k^2 / 12`` to its variance, under 0.2 %): 2240 x 2240 with sigma 112
-    in 0.1 s instead of 3 s."""
+    scale; the box adds ``k^2 / 12`` to its variance, under 0.2 %), a small fraction of the cost
+    of blurring at full resolution."""
     import cv2
 
     image = np.asarray(image, np.float32)
@@ -166,12 +167,10 @@ def _tvl1(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working
           tightness=0.3, num_warp=5, num_iter=10, tol=1e-4):
     """scikit-image TV-L1 optical flow (``optical_flow_tvl1``) on the pair scaled to [0, 1].
 
-    ``attachment`` 5 (scikit-image's default is 15): smoother, chosen by benchmark (with the
-    highpass prefilter, 1 % displacement, 10 % intensity change: EPE median 0.11 px at 512 and
-    0.19 px at 1120 against 0.18 / 0.27 px with 15; 3 and 8 no better). ``tightness``,
-    ``num_warp``, ``num_iter``, ``tol``: scikit-image's. ``working_size`` 512 (see the module
-    docstring): at 1120 as accurate as full resolution (0.20 against 0.19 px) in a quarter of
-    the time (2.5 s against 10 s); at 2240, 4 s. ``mask`` is ignored."""
+    ``attachment`` 5 (scikit-image's default is 15): a smoother field, more accurate on
+    radiographs' smooth texture. ``tightness``, ``num_warp``, ``num_iter``, ``tol``:
+    scikit-image's. ``working_size`` 512 (see the module docstring): as accurate as full
+    resolution at a fraction of the time. ``mask`` is ignored."""
     from skimage.registration import optical_flow_tvl1
 
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
@@ -187,11 +186,9 @@ def _ilk(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_
     ``gaussian=True`` Gaussian) window of ``radius`` pixels, ``num_warp`` warps per pyramid level.
 
     ``radius=None``: 1/40 of the image's larger side, at least 7 (scikit-image's fixed 7): the
-    window must span the texture and stay below the warp's scale at every binning; by benchmark
-    (highpass, 1 %, 10 %) 13 px at 512 and 28 px at 1120 give EPE median 0.12 / 0.22 px against
-    0.20 / 0.55 px with 7. ``working_size`` ``None`` (full resolution): at 2240, 512 is ten
-    times faster (3 s against 30 s) but less accurate (0.40 against 0.32 px). ``mask`` is
-    ignored."""
+    window must span the texture and stay below the warp's scale at every binning.
+    ``working_size`` ``None`` (full resolution): averaging is much faster but less accurate for
+    this method. ``mask`` is ignored."""
     from skimage.registration import optical_flow_ilk
 
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
@@ -216,12 +213,10 @@ def _dis(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_
     ``preset`` 'medium' (of 'ultrafast', 'fast', 'medium'); ``None`` options keep the preset's
     value (medium: finest_scale 1, patch_size 8, patch_stride 3, 5 variational refinement
     iterations). ``refinement_alpha`` (smoothness of the variational refinement) 80, not
-    OpenCV's 20: by benchmark (1 %, 10 %) EPE median 0.06 / 0.10 px at 512 / 1120 with the
-    highpass prefilter and 0.08 / 0.15 px without, against 0.08 / 0.16 and 0.12 / 0.30 px with
-    20 (160 is no better at 512). ``mean_normalization``: OpenCV's patch-mean normalisation
-    (on), which already absorbs part of a slow intensity change. ``working_size`` 768: full
-    resolution up to 1152 px; at 2240 (averaged by 3) EPE median 0.17 px against 0.28 px at full
-    resolution and 0.19 px at 512. ``mask`` is ignored."""
+    OpenCV's 20: radiographs' texture is smooth, and a smoother field is more accurate on it.
+    ``mean_normalization``: OpenCV's patch-mean normalisation (on), which already absorbs part
+    of a slow intensity change. ``working_size`` 768: full resolution up to 1152 px; a 2240 image
+    averaged by 3, more accurate than at full resolution or at 512. ``mask`` is ignored."""
     import cv2
 
     if preset not in _DIS_PRESETS:
@@ -247,13 +242,12 @@ def _farneback(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, wo
     fit's regularisation assumes 8-bit grey levels: on [0, 1] it returns zero flow).
 
     ``working_size`` 512 (see the module docstring): the polynomial expansion sees a few pixels
-    only, and at full resolution the texture of a 1120 or 2240 image is too smooth for it: EPE
-    median (highpass, 1 %, 10 %) 0.12 px at 1120 and 0.26 px at 2240 against 0.33 and 9.9 px
-    (a failure) at full resolution. ``levels=None``: halve the working image until its smaller
-    side is about 32 pixels. ``winsize=None``: 1/12 of the working image's larger side (odd, at
-    least 15), a Gaussian window (``gaussian``): at 512, 0.07 px against 0.18 px with OpenCV's
-    usual 15; 1/8 no better. ``iterations``, ``poly_n``, ``poly_sigma``: OpenCV's documented
-    choice (5, 5, 1.1; 7 / 1.5 no better). ``mask`` is ignored."""
+    only, and at full resolution the texture of a 1120 or 2240 image is too smooth for it (at
+    2240 it fails). ``levels=None``: halve the working image until its smaller side is about 32
+    pixels. ``winsize=None``: 1/12 of the working image's larger side (odd, at least 15), a
+    Gaussian window (``gaussian``), wider than OpenCV's usual 15 for the same reason.
+    ``iterations``, ``poly_n``, ``poly_sigma``: OpenCV's documented choice (5, 5, 1.1).
+    ``mask`` is ignored."""
     import cv2
 
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
@@ -279,11 +273,10 @@ def _sitk_bspline(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05,
     Control points ``spacing`` pixels apart at the finest level (``None``: 1/24 of the image's
     larger side, at least 16), the mesh halved at each coarser level of ``shrink`` (``None``:
     factors 2^k down to about 128 px; images shrunk and smoothed with sigma = factor / 2);
-    ``metric`` 'correlation' (normalised correlation; 'meansquares' was 5-10x worse under a
-    10 % intensity change), or 'mattes' (mutual information); ``iterations`` per level;
-    ``sampling`` a fraction of the pixels for the metric (random, ``seed``) or ``None`` for all.
-    By benchmark (highpass, 1 %, 10 %): spacing 1/24 gives EPE median 0.14 / 0.30 px at
-    512 / 1120 (1/16: 0.07 / 0.55; 1/32: 0.11 / 0.53). ``mask`` limits the metric."""
+    ``metric`` 'correlation' (normalised correlation: 'meansquares' is not invariant to an
+    intensity change), 'meansquares', or 'mattes' (mutual information); ``iterations`` per
+    level; ``sampling`` a fraction of the pixels for the metric (random, ``seed``) or ``None``
+    for all. ``mask`` limits the metric."""
     sitk = _require("SimpleITK", "sitk-bspline", "SimpleITK")
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
     F, M = _sitk_image(sitk, f), _sitk_image(sitk, m)
@@ -335,13 +328,12 @@ def _sitk_demons(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, 
     """SimpleITK demons, optional extra, coarse to fine: the pair area-averaged by 2^k
     (``levels=None``: down to about 64 pixels), each level's field upsampled to start the next.
 
-    ``variant`` 'fast-symmetric' (default), 'symmetric', 'diffeomorphic' (2x slower, no more
-    accurate) or 'classic'; ``iterations`` per level (100 no better than 50); ``smoothing``:
-    Gaussian sigma (pixels of each level) of the field after each update, ``None``: 1/85 of the
-    image's larger side, at most 1/16 of the level's smaller side (a wider kernel erases a
-    coarse level's field); ``max_step``: largest update per iteration, pixels. By benchmark
-    (highpass, 1 %, 10 %): EPE median 0.14 / 0.18 px at 512 / 1120, against 0.37 / 0.58 px
-    with sigma 2-3 px. ``mask`` is ignored."""
+    ``variant`` 'fast-symmetric' (default), 'symmetric', 'diffeomorphic' (slower, no more
+    accurate) or 'classic'; ``iterations`` per level; ``smoothing``: Gaussian sigma (pixels of
+    each level) of the field after each update, ``None``: 1/85 of the image's larger side (it
+    scales with the binning, unlike a fixed few pixels), at most 1/16 of the level's smaller side
+    (a wider kernel erases a coarse level's field); ``max_step``: largest update per iteration,
+    pixels. ``mask`` is ignored."""
     import cv2
 
     sitk = _require("SimpleITK", "sitk-demons", "SimpleITK")
@@ -382,12 +374,11 @@ def _elastix(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, spac
     (adaptive stochastic gradient descent, random samples, grid halved per resolution) with:
 
     ``spacing``: final control-point spacing, pixels; ``None``: 1/16 of the image's larger side,
-    at least 16 (elastix's default is 10 px) -- by benchmark (highpass, 1 %, 10 %) EPE median
-    0.04 / 0.12 px at 512 / 1120, against 0.06 / 0.19 px with 1/24 and 0.03 / 0.10 px (but a
-    worse p95) with 1/11. ``metric``: ``AdvancedNormalizedCorrelation`` (elastix's default,
+    at least 16 (elastix's default is 10 px; relative, so it scales with the binning).
+    ``metric``: ``AdvancedNormalizedCorrelation`` (elastix's default,
     ``AdvancedMattesMutualInformation``, is the "default B-spline" that fails under intensity
-    change). ``iterations`` per resolution (elastix's 256; 1000 no better), ``samples`` per
-    iteration (4096; 16384 no better), ``resolutions`` (``None``: halve down to ~64 px, at most
+    change). ``iterations`` per resolution (elastix's 256), ``samples`` per iteration (4096),
+    ``resolutions`` (``None``: halve down to ~64 px, at most
     5), ``bending_weight`` (the bending-energy penalty; 0 = off), ``seed``; ``parameters``: a
     dict of further elastix parameters (values: strings or lists) that override all of these.
     ``mask`` limits the metric (elastix's fixed mask)."""
