@@ -16,6 +16,7 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
+from enum import IntEnum
 from pathlib import Path
 
 import h5py
@@ -37,7 +38,7 @@ IMAGE_KEY = f"{DETECTOR}/image_key"
 STEP = f"{COMPRESSION}/step"
 
 
-class ImageKey:
+class ImageKey(IntEnum):
     """NXtomo ``image_key`` values."""
 
     PROJECTION = 0
