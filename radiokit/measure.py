@@ -360,7 +360,9 @@ def improvement_factor(enhanced, reference, inclusion, background) -> float:
 def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
     r"""The largest improvement factor compression alone allows through rigid plates.
 
-    ``linear``: ``1 + k (1 - exp(-mu_b delta_g))``; ``log``: ``1``.
+    Intensity domains (``"linear"``, ``I/I0``, and ``"negative"``, the paper's ``-I/I0``):
+    ``1 + k (1 - exp(-mu_b delta_g))``; ``"log"``: ``1``. The two intensity domains share one
+    bound because the improvement factor is a ratio of contrasts, blind to their common sign.
 
     Parameters
     ----------
@@ -371,8 +373,10 @@ def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
     delta_gap_mm : float
         How much the plate gap closes from the moving (less compressed) step to the reference
         (the most compressed one), mm (>= 0).
-    domain : {"log", "linear"}
-        ``"log"``: line integrals ``-ln(I/I0)``; ``"linear"``: negative intensities ``-I/I0``.
+    domain : {"log", "linear", "negative"}
+        ``"log"``: line integrals ``-ln(I/I0)``; ``"linear"``: intensities ``I/I0``;
+        ``"negative"``: the paper's negative intensities ``-I/I0`` (see
+        :class:`radiokit.enhance.Domain`).
 
     Returns
     -------
@@ -405,7 +409,8 @@ def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
 
     *log domain*: ``C = dmu c``, so ``C_M / C_R = c_mov / c_ref >= 1`` and ``IF <= 1``.
 
-    *linear domain* (``-I/I0``, more attenuation brighter):
+    *intensity domains* (here ``-I/I0``, more attenuation brighter; ``I/I0`` flips both
+    contrasts' sign and leaves their ratio):
     ``C = exp(-mu_b g) (1 - exp(-dmu c))``, so
 
     .. math:: \frac{C_M}{C_R} = e^{-\mu_b \Delta g}\,
@@ -424,13 +429,13 @@ def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
     --------
     The seed-breast scene, 20 % -> 25 % of a 50 mm gap (dg = 2.5 mm), mu_b = 0.05 /mm:
 
-    >>> round(improvement_bound(1, 0.05, 2.5, "linear"), 4), round(improvement_bound(2, 0.05, 2.5, "linear"), 4)
+    >>> round(improvement_bound(1, 0.05, 2.5, "negative"), 4), round(improvement_bound(2, 0.05, 2.5, "negative"), 4)
     (1.1175, 1.235)
     >>> improvement_bound(2, 0.05, 2.5, "log")
     1.0
     """
-    if domain not in ("log", "linear"):
-        raise ValueError(f"domain must be 'log' or 'linear', got {domain!r}")
+    if domain not in ("log", "linear", "negative"):
+        raise ValueError(f"domain must be 'log', 'linear' or 'negative', got {domain!r}")
     for name, v in (("k", k), ("mu_b_per_mm", mu_b_per_mm), ("delta_gap_mm", delta_gap_mm)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v) \
                 or v < 0:

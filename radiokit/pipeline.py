@@ -305,9 +305,7 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
         mu_b = max(bg_log_mean, 0.0) / gaps[-1]
         basis = ("assumes the beam through the plates; mu_b = background line integral of the reference "
                  "/ its gap, gaps from the file")
-    # improvement_bound's "linear" holds for -I/I0 as for I/I0: a ratio of contrasts ignores their sign
-    name = {Domain.LOG: "log", Domain.NEGATIVE: "linear"}
-    return Bound(mu_b * dg, basis), {dom: {k: improvement_bound(k, mu_b, dg, name[dom]) if k >= 0 else None
+    return Bound(mu_b * dg, basis), {dom: {k: improvement_bound(k, mu_b, dg, dom.value) if k >= 0 else None
                                            for k in ks} for dom in DOMAINS}
 
 
