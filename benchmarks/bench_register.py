@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from regdata import analytic_pair, evaluate, score, sim_pair
+from regdata import analytic_pair, block_mean, evaluate, score, sim_pair
 
 
 def configs():
@@ -86,14 +86,6 @@ def pareto(rows):
     return front
 
 
-def _binned(a, k):
-    import cv2
-
-    if a.ndim == 3:
-        return np.stack([_binned(x, k) for x in a])
-    return cv2.resize(a.astype(np.float32), (a.shape[1] // k, a.shape[0] // k), interpolation=cv2.INTER_AREA)
-
-
 def levels_part(size, seed, opts):
     """rc's median / p95 EPE inside the body after each pyramid level (the field of the levels so
     far, evaluated on a grid 4x coarser), on the training pair at ``size`` and the same pair
@@ -104,13 +96,13 @@ def levels_part(size, seed, opts):
 
     f, m, d, mask = family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed))
     pairs = [(str(size), f, m, d, mask, 1),
-             (f"{size // 2} (binned)", _binned(f, 2), _binned(m, 2), _binned(d, 2) / 2,
-              _binned(mask.astype(np.float32), 2) > 0.5, 2)]
+             (f"{size // 2} (binned)", block_mean(f, 2), block_mean(m, 2), block_mean(d, 2) / 2,
+              block_mean(mask.astype(np.float32), 2) > 0.5, 2)]
     print(f"{Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed).label()}: identity "
           f"{score(0 * d, d, mask)['epe_median']:.2f} px; rc {opts}", flush=True)
     for tag, f, m, d, mask, scale in pairs:
         k = 4
-        db, mb = _binned(d, k) / k, _binned(mask.astype(np.float32), k) > 0.5
+        db, mb = block_mean(d, k) / k, block_mean(mask.astype(np.float32), k) > 0.5
         acc = np.zeros_like(db)
         lines = []
 
