@@ -15,7 +15,7 @@ Part 2, stability map: EPE median of rc and the tuned peers against displacement
 frame) x intensity change (0-20 %), at the benchmark size; a cell where a method is worse than
 not registering at all is marked.
 
-Part 3, the textureless-phantom family (``regdata.family``, issue 11), on TEST seeds: rc, rc-fast and
+Part 3, the textureless-phantom family (``regdata.family``, issue 11), on TEST seeds: rc (presets default, fast, weak, weak-fast) and
 the tuned peers (elastix+hp, dis+hp) over texture-to-noise {0, 0.3, 1, 3, 10} x motion correlation
 length {1/4, 1/10, 1/20} of the frame (maps of median EPE, the identity's beside), the spread cases
 (amplitude, physical motion, 20 % intensity change of both kinds, Poisson-like noise, the intensity
@@ -45,7 +45,8 @@ def configs():
     from radiokit.register import _load_methods
 
     _load_methods()
-    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
+    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("rc-weak", {"preset": "weak"}),
+           ("rc-weak-fast", {"preset": "weak-fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
     import importlib.util
 
     peers = ["tvl1", "ilk", "dis", "farneback"]
@@ -58,8 +59,14 @@ def configs():
     return out
 
 
+def _method_of(name):
+    """The registration method of a configuration's name ("rc-weak-fast" -> "rc", "dis+hp" -> "dis")."""
+    base = name.split("+")[0]
+    return "rc" if base.startswith("rc-") else base
+
+
 def run_one(name, opts, fixed, moving, truth, mask):
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     try:
         row = evaluate(method, (fixed, moving, truth, mask), **opts)
     except Exception as exc:  # a peer that cannot run on this pair is reported, not fatal
@@ -139,7 +146,7 @@ def main(argv=None):
     ap.add_argument("--levels", metavar="JSON", nargs="*",
                     help="only the per-level diagnosis: rc's EPE after each pyramid level on one TRAINING pair "
                          "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
-                         "(e.g. '{}' '{\"coarse_adapt\": true}')")
+                         "(e.g. '{}' '{\"preset\": \"weak\"}')")
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
     args = ap.parse_args(argv)
     if args.levels is not None:
@@ -273,7 +280,7 @@ def main(argv=None):
 
 # -- part 3: the textureless-phantom family (issue 11) -----------------------------------------
 
-FAMILY_METHODS = ("rc", "rc-fast", "elastix+hp", "dis+hp")
+FAMILY_METHODS = ("rc", "rc-fast", "rc-weak", "rc-weak-fast", "elastix+hp", "dis+hp")
 
 
 def family_part(args, cfgs):
@@ -310,7 +317,7 @@ def _family_rows(pair, methods, meta):
     from radiokit.register import register
 
     for name, opts in methods:
-        method = name.split("+")[0].replace("rc-fast", "rc")
+        method = _method_of(name)
         t = time.perf_counter()
         try:
             reg = register(fixed, moving, method, **opts)
