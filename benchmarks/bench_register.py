@@ -129,6 +129,49 @@ def levels_part(size, seed, opts):
         print("\n".join(lines), flush=True)
 
 
+RC_PRESETS = {"default": {}, "weak": {"preset": "weak"}, "fast": {"preset": "fast"},
+              "weak-fast": {"preset": "weak-fast"}}
+
+
+def _presets_row(tag, pair, presets):
+    """One line: the identity's median EPE, then each preset's median / p95 EPE, time and ``ok``."""
+    from radiokit.register import register
+
+    f, m, d, mask = pair
+    cells = []
+    for p in presets:
+        t = time.perf_counter()
+        r = register(f, m, "rc", **RC_PRESETS[p])
+        sec = time.perf_counter() - t
+        s = score(r.displacement, d, mask)
+        cells.append(f"{p} {s['epe_median']:.2f}/{s['epe_p95']:.2f} {sec:.1f}s {'ok' if r.quality.ok else '!'}")
+    print(f"{tag:<52} id {score(0 * d, d, mask)['epe_median']:.2f} | " + " | ".join(cells), flush=True)
+
+
+def presets_part(which, split):
+    """rc's presets side by side on ``split`` seeds (benchmarks/README.md, issue 11, third session)."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
+
+    seeds = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+    if which == "weak":
+        for tex, s in [(0.01, seeds[0]), (0.01, seeds[1]), (0.02, seeds[2]), (0.0, seeds[0])]:
+            c = Case(size=2240, texture=tex, noise=0.01, corr=0.1, seed=s)
+            _presets_row(c.label(), family_pair(c), list(RC_PRESETS))
+    elif which == "rich":
+        for kind in ("thinning", "gain"):
+            _presets_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind),
+                         list(RC_PRESETS))
+        for s in seeds[:2]:
+            c = Case(size=2240, texture=0.1, noise=0.01, corr=0.1, seed=s)
+            _presets_row(c.label(), family_pair(c), ["default", "weak"])
+    else:
+        for c in family(split, 560, n_seeds=1, grid="map"):
+            if c.texture > 0 or c.corr == 0.25:
+                _presets_row(c.label(), family_pair(c), ["default", "weak"])
+        for pre in ("seed-breast", "pva-phantom"):
+            _presets_row(f"sim {pre} 560 noisy", sim_pair(pre, moving_step=-1, noisy=True, size=560), list(RC_PRESETS))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -148,7 +191,15 @@ def main(argv=None):
                          "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
                          "(e.g. '{}' '{\"preset\": \"weak\"}')")
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
+    ap.add_argument("--presets", choices=["weak", "rich", "map"],
+                    help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
+                         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
+                         "simulated pairs")
+    ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
     args = ap.parse_args(argv)
+    if args.presets:
+        presets_part(args.presets, args.split)
+        return 0
     if args.levels is not None:
         for opts in args.levels or ["{}"]:
             levels_part(args.size, args.seed, json.loads(opts))
