@@ -15,7 +15,7 @@ Part 2, stability map: EPE median of rc and the tuned peers against displacement
 frame) x intensity change (0-20 %), at the benchmark size; a cell where a method is worse than
 not registering at all is marked.
 
-Part 3, the textureless-phantom family (``regdata.family``, issue 11), on TEST seeds: rc, rc-fast and
+Part 3, the textureless-phantom family (``regdata.family``, issue 11), on TEST seeds: rc (presets default, fast, weak, weak-fast) and
 the tuned peers (elastix+hp, dis+hp) over texture-to-noise {0, 0.3, 1, 3, 10} x motion correlation
 length {1/4, 1/10, 1/20} of the frame (maps of median EPE, the identity's beside), the spread cases
 (amplitude, physical motion, 20 % intensity change of both kinds, Poisson-like noise, the intensity
@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from regdata import analytic_pair, evaluate, score, sim_pair
+from regdata import analytic_pair, block_mean, evaluate, score, sim_pair
 
 
 def configs():
@@ -45,7 +45,8 @@ def configs():
     from radiokit.register import _load_methods
 
     _load_methods()
-    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
+    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("rc-weak", {"preset": "weak"}),
+           ("rc-weak-fast", {"preset": "weak-fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
     import importlib.util
 
     peers = ["tvl1", "ilk", "dis", "farneback"]
@@ -58,8 +59,14 @@ def configs():
     return out
 
 
+def _method_of(name):
+    """The registration method of a configuration's name ("rc-weak-fast" -> "rc", "dis+hp" -> "dis")."""
+    base = name.split("+")[0]
+    return "rc" if base.startswith("rc-") else base
+
+
 def run_one(name, opts, fixed, moving, truth, mask):
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     try:
         row = evaluate(method, (fixed, moving, truth, mask), **opts)
     except Exception as exc:  # a peer that cannot run on this pair is reported, not fatal
@@ -86,14 +93,6 @@ def pareto(rows):
     return front
 
 
-def _binned(a, k):
-    import cv2
-
-    if a.ndim == 3:
-        return np.stack([_binned(x, k) for x in a])
-    return cv2.resize(a.astype(np.float32), (a.shape[1] // k, a.shape[0] // k), interpolation=cv2.INTER_AREA)
-
-
 def levels_part(size, seed, opts):
     """rc's median / p95 EPE inside the body after each pyramid level (the field of the levels so
     far, evaluated on a grid 4x coarser), on the training pair at ``size`` and the same pair
@@ -104,13 +103,13 @@ def levels_part(size, seed, opts):
 
     f, m, d, mask = family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed))
     pairs = [(str(size), f, m, d, mask, 1),
-             (f"{size // 2} (binned)", _binned(f, 2), _binned(m, 2), _binned(d, 2) / 2,
-              _binned(mask.astype(np.float32), 2) > 0.5, 2)]
+             (f"{size // 2} (binned)", block_mean(f, 2), block_mean(m, 2), block_mean(d, 2) / 2,
+              block_mean(mask.astype(np.float32), 2) > 0.5, 2)]
     print(f"{Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed).label()}: identity "
           f"{score(0 * d, d, mask)['epe_median']:.2f} px; rc {opts}", flush=True)
     for tag, f, m, d, mask, scale in pairs:
         k = 4
-        db, mb = _binned(d, k) / k, _binned(mask.astype(np.float32), k) > 0.5
+        db, mb = block_mean(d, k) / k, block_mean(mask.astype(np.float32), k) > 0.5
         acc = np.zeros_like(db)
         lines = []
 
@@ -130,6 +129,49 @@ def levels_part(size, seed, opts):
         print("\n".join(lines), flush=True)
 
 
+RC_PRESETS = {"default": {}, "weak": {"preset": "weak"}, "fast": {"preset": "fast"},
+              "weak-fast": {"preset": "weak-fast"}}
+
+
+def _presets_row(tag, pair, presets):
+    """One line: the identity's median EPE, then each preset's median / p95 EPE, time and ``ok``."""
+    from radiokit.register import register
+
+    f, m, d, mask = pair
+    cells = []
+    for p in presets:
+        t = time.perf_counter()
+        r = register(f, m, "rc", **RC_PRESETS[p])
+        sec = time.perf_counter() - t
+        s = score(r.displacement, d, mask)
+        cells.append(f"{p} {s['epe_median']:.2f}/{s['epe_p95']:.2f} {sec:.1f}s {'ok' if r.quality.ok else '!'}")
+    print(f"{tag:<52} id {score(0 * d, d, mask)['epe_median']:.2f} | " + " | ".join(cells), flush=True)
+
+
+def presets_part(which, split):
+    """rc's presets side by side on ``split`` seeds (benchmarks/README.md, issue 11, third session)."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
+
+    seeds = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+    if which == "weak":
+        for tex, s in [(0.01, seeds[0]), (0.01, seeds[1]), (0.02, seeds[2]), (0.0, seeds[0])]:
+            c = Case(size=2240, texture=tex, noise=0.01, corr=0.1, seed=s)
+            _presets_row(c.label(), family_pair(c), list(RC_PRESETS))
+    elif which == "rich":
+        for kind in ("thinning", "gain"):
+            _presets_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind),
+                         list(RC_PRESETS))
+        for s in seeds[:2]:
+            c = Case(size=2240, texture=0.1, noise=0.01, corr=0.1, seed=s)
+            _presets_row(c.label(), family_pair(c), ["default", "weak"])
+    else:
+        for c in family(split, 560, n_seeds=1, grid="map"):
+            if c.texture > 0 or c.corr == 0.25:
+                _presets_row(c.label(), family_pair(c), ["default", "weak"])
+        for pre in ("seed-breast", "pva-phantom"):
+            _presets_row(f"sim {pre} 560 noisy", sim_pair(pre, moving_step=-1, noisy=True, size=560), list(RC_PRESETS))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -147,9 +189,17 @@ def main(argv=None):
     ap.add_argument("--levels", metavar="JSON", nargs="*",
                     help="only the per-level diagnosis: rc's EPE after each pyramid level on one TRAINING pair "
                          "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
-                         "(e.g. '{}' '{\"coarse_adapt\": true}')")
+                         "(e.g. '{}' '{\"preset\": \"weak\"}')")
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
+    ap.add_argument("--presets", choices=["weak", "rich", "map"],
+                    help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
+                         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
+                         "simulated pairs")
+    ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
     args = ap.parse_args(argv)
+    if args.presets:
+        presets_part(args.presets, args.split)
+        return 0
     if args.levels is not None:
         for opts in args.levels or ["{}"]:
             levels_part(args.size, args.seed, json.loads(opts))
@@ -281,7 +331,7 @@ def main(argv=None):
 
 # -- part 3: the textureless-phantom family (issue 11) -----------------------------------------
 
-FAMILY_METHODS = ("rc", "rc-fast", "elastix+hp", "dis+hp")
+FAMILY_METHODS = ("rc", "rc-fast", "rc-weak", "rc-weak-fast", "elastix+hp", "dis+hp")
 
 
 def family_part(args, cfgs):
@@ -318,7 +368,7 @@ def _family_rows(pair, methods, meta):
     from radiokit.register import register
 
     for name, opts in methods:
-        method = name.split("+")[0].replace("rc-fast", "rc")
+        method = _method_of(name)
         t = time.perf_counter()
         try:
             reg = register(fixed, moving, method, **opts)

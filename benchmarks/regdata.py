@@ -48,7 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 __all__ = ["analytic_pair", "sim_pair", "score", "evaluate", "smooth_field", "phantom", "Case", "family",
-           "family_pair", "gel_phantom", "TRAIN_SEEDS", "TEST_SEEDS"]
+           "family_pair", "gel_phantom", "block_mean", "TRAIN_SEEDS", "TEST_SEEDS"]
 
 # the body: an ellipse centred in the frame, semi-axes as fractions of the frame (cols, rows)
 _BODY = (0.40, 0.346)
@@ -157,12 +157,16 @@ def _simulated_file(scene, cache_dir):
     return path
 
 
-def _block_mean(a, k):
+def block_mean(a, k):
+    """Mean over ``k`` x ``k`` blocks of the last two axes (trailing rows and columns that do not
+    fill a block dropped); float32."""
+    from skimage.measure import block_reduce
+
     if k == 1:
         return a
     r, c = (a.shape[-2] // k) * k, (a.shape[-1] // k) * k
-    a = a[..., :r, :c]
-    return a.reshape(a.shape[:-2] + (r // k, k, c // k, k)).mean(axis=(-3, -1), dtype=np.float64).astype(np.float32)
+    a = np.asarray(a)[..., :r, :c]
+    return block_reduce(a, (1,) * (a.ndim - 2) + (k, k), np.mean, func_kwargs={"dtype": np.float64}).astype(np.float32)
 
 
 def _corrected(path, steps):
@@ -225,8 +229,8 @@ def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size
             moving = g["line_integral"][a - 1].astype(np.float32)
         clean = g["line_integral"][b - 1]
     k = 1 if size is None else max(1, fixed.shape[0] // int(size))
-    fixed, moving, clean = (_block_mean(x, k) for x in (fixed, moving, clean))
-    truth = _block_mean(truth, k) / k
+    fixed, moving, clean = (block_mean(x, k) for x in (fixed, moving, clean))
+    truth = block_mean(truth, k) / k
     body = (clean > 0.05 * clean.max()).astype(np.uint8)
     r = max(1, int(round(erode * max(body.shape))))
     mask = cv2.erode(body, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))).astype(bool)

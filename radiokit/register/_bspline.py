@@ -5,7 +5,7 @@ The transform
 Control points on a regular lattice ``spacing`` pixels apart (full resolution) carry a
 displacement each; the field at pixel ``(y, x)`` is the tensor-product cubic B-spline
 ``d(y, x) = sum_ij B_i(y / s) B_j(x / s) c_ij``. It is evaluated as two matrix products,
-``D = B_r C B_c^T`` (dense ``B_r``: rows x control rows), which BLAS runs on every core, and its
+``D = B_r C B_c^T`` (sparse ``B_r``: rows x control rows, 4 weights a row), and its
 adjoint ``B_r^T G B_c`` gives the gradient with respect to the control points. The coefficients
 are in full-resolution pixels at every pyramid level, so one parameter vector runs through the
 whole pyramid.
@@ -26,20 +26,27 @@ units (MIRT's default is 0.05 for images in [0, 1]; ours 0.005, see PRESETS), th
 body's smooth thickness and the intensity change, which observe no motion residual complexity
 can tell from an intensity change.
 
-Regularisation: ``regularisation * sum((L c)^2) / n_control``, ``L`` the discrete bending energy
-of the control lattice (second differences; affine fields are free), added at every level.
+Energy balance. ``balance="lattice"`` (presets ``default``, ``fast``): the similarity's mean
+over the level's pixels plus ``regularisation * sum((L c)^2) / n_control``, ``L`` the lattice's
+second differences (affine fields are free), c in full-resolution pixels. For the same motion
+this charges a coarse lattice ``(spacing ratio)^4`` more than a fine one, and a 2240 frame 4x
+more than the same images at 1120: tuned on rich texture, it pins weak texture's motion at the
+coarse levels. ``balance="frame"`` (presets ``weak``, ``weak-fast``) is scale-invariant: the
+similarity *summed* over the level's pixels per million full-resolution pixels, rc's alpha
+divided by the level's factor^2 (area averaging by f divides the noise variance by f^2, so a
+structure resolved at two levels costs the same at both), and ``regularisation`` x the mean
+squared second derivative of the field in frame fractions against position in frame
+fractions, ``sum((L c)^2) / n_control * frame^2 / spacing^4``; the same motion then costs the
+same at every lattice, level and image size, and the prior weighs less as the image carries
+more information. The coarsest level runs ``regularisation`` itself, finer ones
+``x (coarsest factor / factor)^stiffen``: on weak texture the coarse level pins the motion the
+data observe, and the fine lattices, pinned by little data, would refit the noise.
 
 Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by area averaging
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
-coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart: a few parameters
-where the images are coarse (fast convergence of large, smooth motion, e.g. the expansion of a
-textureless compressed body), fine ones only at the finest level. Where the structure is weak but there (texture near the
-noise level), ``coarse_adapt=True`` runs the levels before the finest with a smaller alpha and a
-much weaker bending energy (see PRESETS): they must capture the motion that the finest lattice,
-pinned by little data, cannot (an option: it fails on simulated textureless bodies). Levels of more than
-``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier still
-(the B-spline field is evaluated at full resolution all the same): the default preset works
-up to about 1400 x 1400 pixels, the fast one up to about 300 x 300.
+coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
+than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
+still (the B-spline field is evaluated at full resolution all the same).
 """
 from __future__ import annotations
 
@@ -55,94 +62,38 @@ from radiokit.register import _method
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
+# Chosen on benchmarks (analytic_pair and regdata.family TRAINING seeds); the measurements and
+# the history of every value are in benchmarks/README.md ("Registration on nearly textureless
+# phantoms (issue 11)" and "rc presets").
 PRESETS = {
-    # Chosen by benchmark (benchmarks/bench_register.py; regdata.analytic_pair at 2240 x 2240,
-    # 1 % displacement, 10 % intensity change, 1 % noise, two cores; the issue note has the
-    # tables). End-point error median / p95 inside the body, thinning pair then gain pair:
-    # - alpha 0.005 (was MIRT's 0.05): the energy comes closer to counting DCT coefficients, so a
-    #   smooth intensity change near the body's steep edge costs less than shifting the edge to
-    #   explain it -- where the remaining error is (0.04 px in the body's core, 0.3-0.6 px at its
-    #   edge). At 1120: 0.077 / 0.31 against 0.106 / 0.58 px.
-    # - levels of more than max_pixels are not run (the field is still evaluated at full
-    #   resolution): the 24 px lattice is 12 pixels of the half-resolution image, and at 2240
-    #   the full-resolution level cost 4 s for 0.005 px of median; that time goes into coarse
-    #   iterations instead (p95 0.85 -> 0.56 px).
-    # - regularisation 3e-3: 0.082 / 0.62 and 0.041 / 0.21 px, against 1e-2: 0.093 / 0.56 and
-    #   0.054 / 0.37, and 1e-3: 0.105 / 0.69 and 0.047 / 0.19.
-    # - spacing 24 px beat 16 px and 32 px (too coarse: 0.30 / 1.4 px at 1120).
-    # - converge_px: the finest level is "converged" when its last 5 iterations moved the field
-    #   by less than 0.25 px (99th percentile); on these pairs they move 0.1 px.
-    # - iterations (250, 120, 60): 8.7 s at 2240, the same error as (300, 150, 80) in 10.7 s.
-    # - highpass 0.02 (issue 11; benchmarks/regdata.family, training seeds): both images minus
-    #   their Gaussian blur of 2 % of the frame before the similarity, and regularisation 1e-3
-    #   (was 3e-3 without it). On a nearly textureless gel phantom the body's smooth chord and
-    #   the slow intensity change dominate the residual and the texture's pull on the field is
-    #   tiny against a bending energy tuned on rich texture; removing the slow part leaves rc
-    #   the structure that observes the motion (texture, the inclusion's and the body's edges).
-    #   560 px, texture = noise to 10x noise, 2 seeds: EPE / identity geometric mean 0.40 -> 0.29
-    #   (0.25 with 3e-4, which loses rich texture: 0.11 px at 2240); 1120: tex 3x noise 1.61
-    #   -> 0.78 px; analytic_pair 2240 (rich): 0.077 / 0.060 px median (thinning / gain).
-    # - adapt=True (an option, off by default; issue 11): alpha and regularisation divided by
-    #   the image's "weakness", (median Cramer-Rao bound of the lattice windows / 0.02 px)^2
-    #   clipped to 1-10 (_weakness): 1 on rich texture (analytic_pair 1120/2240: unchanged by
-    #   construction), up to 10 where the texture is at the noise level. 560 family, training
-    #   seeds 0-1: geometric mean 0.285 -> 0.24 (texture 3x noise, 1/10: 0.93 -> 0.38 px; no
-    #   texture: worse); 2240, texture = noise: 4.77 -> 2.38 px (training seed 1), test seeds
-    #   1000-1002: 4.94/5.87/3.70 -> 2.33/2.18/1.99 px. Not the default: on the textureless
-    #   simulated cube of tests/test_pipeline.py it doubles the ROI error (0.62 px) -- a silent
-    #   body wants the strong bending energy that weak texture does not.
-    #   converge_px 0.35 (was 0.25): the weaker bending energy converges more slowly; the
-    #   1120 analytic thinning pair (0.073 px median) still moved 0.27 px in its last 5 steps.
-    #   finest level 80 iterations (was 60): at 60, the textureless cube of tests/test_pipeline.py
-    #   sat on the converge_px boundary, so float32 rounding in the correction flipped its flag;
-    #   costs about 0.8 s at 2240 (benchmarks/README.md), accuracy unchanged.
-    # - coarse_adapt=True (issue 11, session 2): every level but the finest runs with alpha /
-    #   relax^1.5 and the regularisation / relax^2.5, relax the image's weakness clipped to 1-10,
-    #   gated (_coarse_relax): none for rich texture (unchanged by construction), for the
-    #   noise-free textureless cube of tests/test_pipeline.py, or where nothing is observed.
-    #   Why: at 2240 on weak texture the coarsest level (280 px) stalled (training seed 1:
-    #   identity 6.69 -> 5.43 px after it, 4.77 final) and the finer lattices added little;
-    #   with the coarse levels relaxed it alone reaches 1.0-1.4 px. The coefficients are in
-    #   full-resolution pixels, so a 2240 frame's coarse levels carry 4x the bending energy of
-    #   the same images at 1120. Exponents (training seed 1, 2240): 1.5/2.5 1.27 px, 1/2 1.60,
-    #   1/1 2.40. 2240 training seeds, texture = noise / 2x noise: 4.77 -> 1.27, 3.48 -> 0.98 px;
-    #   test seeds 1000-1002: 4.94/5.87/3.70 -> 1.30/1.40/1.10 px. 560 family training seeds
-    #   (texture > 0, 2 seeds): EPE/identity geometric mean 0.43 -> 0.35 (texture 3x noise,
-    #   correlation 1/10: 0.93 -> 0.38 px; correlation 1/4 loses: 0.20 -> 0.35 px).
-    #   An option, not the default: on the simulated seed-breast pair (sim_pair, noisy; no
-    #   texture, photon noise, weakness 27 on the binned pair) it wanders: 560 px 0.60 -> 1.84 px
-    #   (bench_register's family run), 1120 px 2.88 -> 17.7 px; the weakness does not tell the
-    #   family's weak texture from a simulated body's silence.
     "default": dict(spacing=24, alpha=0.005, regularisation=1e-3, iterations=(250, 120, 80), min_size=160,
                     max_pixels=2_000_000, levels_skip=0, converge_px=0.35, min_levels=3, coarse_alpha=1.0,
-                    highpass=0.02, adapt=False, coarse_adapt=False),
-    # levels of up to 100 kpx (at 2240: 140 and 280 px): 0.83-0.97 s at 2240, 0.20 / 0.96 and
-    # 0.09 / 0.56 px (iterations (80, 40): 0.9-1.0 s, 0.21 / 0.94 and 0.09 / 0.48); regularisation 1e-3 against 1e-2: 0.60 / 3.6 px (the coarse lattice
-    # needs the freedom); spacing 16 against 12: 0.21 / 0.94 against 0.16 / 1.2 px, 30 % faster.
-    # coarse_adapt=True (its coarse level at 2240 is 140 px): 2240 training seeds, texture = noise /
-    # 2x noise: 5.71 -> 2.87, 7.25 -> 5.23 px; 560 family training seeds (texture > 0, 2 seeds):
-    # geomean EPE/identity 0.355 -> 0.299; analytic_pair 2240 unchanged (0.095 / 0.102 px).
+                    coarse_regularisation=1.0, highpass=0.02, balance="lattice", stiffen=0.0),
     "fast": dict(spacing=16, alpha=0.005, regularisation=1e-3, iterations=(60, 40), min_size=96,
                  max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1, coarse_alpha=1.0,
-                 highpass=0.02, adapt=False, coarse_adapt=False),
+                 coarse_regularisation=1.0, highpass=0.02, balance="lattice", stiffen=0.0),
+    # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free
+    # coarse levels, stiff fine ones (module docstring); not the default: a simulated silent
+    # body's edges carry thickness change that free coarse levels follow (benchmarks/README.md)
+    "weak": dict(spacing=24, alpha=0.005, regularisation=1e-6, iterations=(250, 120, 80), min_size=160,
+                 max_pixels=2_000_000, levels_skip=0, converge_px=0.35, min_levels=3, coarse_alpha=1.0,
+                 coarse_regularisation=1.0, highpass=0.02, balance="frame", stiffen=6.0),
+    "weak-fast": dict(spacing=16, alpha=0.005, regularisation=1e-6, iterations=(60, 40), min_size=96,
+                      max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1, coarse_alpha=1.0,
+                      coarse_regularisation=1.0, highpass=0.02, balance="frame", stiffen=6.0),
 }
 
 
-def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> np.ndarray:
-    """(n_pixels, n_ctrl) cubic B-spline weights: pixel ``k`` of a grid ``factor`` times coarser
-    than full resolution sits at full-resolution coordinate ``factor k + (factor - 1) / 2``;
-    control point ``j`` at ``(j - 1) spacing``."""
+def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> sp.csr_matrix:
+    """(n_pixels, n_ctrl) sparse cubic B-spline weights (4 per row): pixel ``k`` of a grid
+    ``factor`` times coarser than full resolution sits at full-resolution coordinate
+    ``factor k + (factor - 1) / 2``; control point ``j`` at ``(j - 1) spacing``. A padded last
+    row of a coarse grid beyond the lattice's span gets the end polynomials extrapolated."""
+    from scipy.interpolate import BSpline
+
     y = factor * np.arange(n_pixels) + (factor - 1) / 2
-    t = y / spacing + 1.0
-    i = np.floor(t).astype(np.int64)
-    u = t - i
-    w = np.stack([(1 - u) ** 3 / 6, (3 * u ** 3 - 6 * u ** 2 + 4) / 6, (-3 * u ** 3 + 3 * u ** 2 + 3 * u + 1) / 6,
-                  u ** 3 / 6], axis=1)
-    B = np.zeros((n_pixels, n_ctrl), dtype)
-    for k in range(4):
-        j = np.clip(i - 1 + k, 0, n_ctrl - 1)
-        np.add.at(B, (np.arange(n_pixels), j), w[:, k])
-    return B
+    knots = (np.arange(n_ctrl + 4) - 3.0) * spacing  # control point j is the B-spline on knots j..j+4
+    return BSpline.design_matrix(y, knots, 3, extrapolate=True).astype(dtype).tocsr()
 
 
 def _laplacian(nr, nc):
@@ -181,8 +132,8 @@ class BSplineField:
         if factor not in self._cache:
             rows = -(-self.shape[0] // factor)
             cols = -(-self.shape[1] // factor)
-            Br = sp.csr_matrix(bspline_basis_matrix(rows, self.nr, self.spacing, factor, self.dtype))
-            Bc = sp.csr_matrix(bspline_basis_matrix(cols, self.nc, self.spacing, factor, self.dtype))
+            Br = bspline_basis_matrix(rows, self.nr, self.spacing, factor, self.dtype)
+            Bc = bspline_basis_matrix(cols, self.nc, self.spacing, factor, self.dtype)
             self._cache[factor] = (Br, Bc, Br.T.tocsr(), Bc.T.tocsr())
         return self._cache[factor]
 
@@ -240,16 +191,6 @@ def _downsample(img, f):
     R, C = -(-rows // f), -(-cols // f)
     pad = np.pad(img, ((0, R * f - rows), (0, C * f - cols)), mode="edge")
     return cv2.resize(pad, (C, R), interpolation=cv2.INTER_AREA)
-
-
-def _gradient(img):
-    gy = np.empty_like(img)
-    gx = np.empty_like(img)
-    gy[1:-1] = (img[2:] - img[:-2]) * 0.5
-    gy[0], gy[-1] = img[1] - img[0], img[-1] - img[-2]
-    gx[:, 1:-1] = (img[:, 2:] - img[:, :-2]) * 0.5
-    gx[:, 0], gx[:, -1] = img[:, 1] - img[:, 0], img[:, -1] - img[:, -2]
-    return gy, gx
 
 
 class _Level:
@@ -456,47 +397,6 @@ def _highpass(img, sigma):
     return (img - blur).astype(np.float32)
 
 
-def _weakness(fixed, mask, adapt, ref_px=0.02, most=10.0):
-    """How much weaker than rich texture the fixed image's structure is: ``(b / ref_px)^2``
-    clipped to [1, ``most``], ``b`` the median Cramer-Rao bound of the lattice-scale windows over
-    the object (``radiokit.register._confidence``; on the pair binned to ~0.4 Mpx). alpha and the
-    regularisation are divided by it, so the similarity keeps its pull against the bending
-    energy where the texture is at the noise level; 1 (no change) for rich texture."""
-    if not adapt:
-        return 1.0
-    from radiokit.register import _bin
-    from radiokit.register._confidence import observability
-
-    k = max(1, int(np.ceil(np.sqrt(fixed.size / 400_000))))
-    mk = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
-    ob = observability(_bin(fixed, k), 24.0, mk)
-    if not ob.object.any():
-        return 1.0
-    b = float(np.median(ob.bound_px[ob.object]))
-    return float(np.clip((b / ref_px) ** 2, 1.0, most))
-
-
-_RELAX_ALPHA, _RELAX_REG = 1.5, 2.5
-
-
-def _fade(x, lo, hi):
-    """0 below ``lo``, 1 above ``hi``, log-linear between."""
-    return float(np.clip(np.log(x / lo) / np.log(hi / lo), 0.0, 1.0))
-
-
-def _coarse_relax(raw, per_pixel, most=10.0, weak=(3.0, 6.0), silent=(150.0, 450.0)):
-    """How much to relax the coarse levels: ``min(raw, most)``, ``raw`` the weakness
-    (``_weakness`` unclipped, on the pair binned to ~0.4 Mpx), where the structure is weak but
-    there. The gates use ``per_pixel``, the same weakness at full resolution: faded (log-
-    linearly) to 1 below ``weak[0]`` (richer structure, and the noise-free textureless cube of
-    tests/test_pipeline.py, 2.2, whose silent interior wants the strong bending energy: ROI EPE
-    0.33 -> 0.88 px relaxed) and above ``silent[1]``, where the windows observe nothing (no
-    texture: a free coarse field wanders; 560 family training seeds: EPE 2.7 -> 3.7 px against
-    an identity of 2.5)."""
-    r = min(max(raw, 1.0), most)
-    return float(r ** (_fade(per_pixel, *weak) * (1.0 - _fade(per_pixel, *silent))))
-
-
 def bspline_register(fixed, moving, mask=None, **options):
     """B-spline registration; see the module docstring. Options default to ``PRESETS[preset]``.
 
@@ -509,137 +409,162 @@ def bspline_register(fixed, moving, mask=None, **options):
         return _bspline_register(fixed, moving, mask, **options)
 
 
-def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", spacing=None, alpha=None,
-                      regularisation=None, iterations=None, min_size=None, max_pixels=None, levels_skip=None, converge_px=None,
-                      min_levels=None, coarse_alpha=None, coarse_regularisation=None, highpass=None,
-                      adapt=None, coarse_adapt=None, callback=None):
+# the data term is a sum over pixels per this many full-resolution pixels, so the bending
+# energy's weight against it is fixed by the image's information, not its size
+_N_REF = 1_000_000
+
+
+def _options(preset, overrides) -> dict:
+    """``PRESETS[preset]`` with the overrides that are not None; validated."""
     if preset not in PRESETS:
         raise ValueError(f"preset {preset!r}: expected one of {', '.join(PRESETS)}")
     o = dict(PRESETS[preset])
-    for k, v in dict(spacing=spacing, alpha=alpha, regularisation=regularisation, iterations=iterations,
-                     min_size=min_size, max_pixels=max_pixels, levels_skip=levels_skip,
-                     converge_px=converge_px, min_levels=min_levels, coarse_alpha=coarse_alpha,
-                     coarse_regularisation=coarse_regularisation, highpass=highpass, adapt=adapt,
-                     coarse_adapt=coarse_adapt).items():
-        if v is not None:
-            o[k] = v
+    o.update({k: v for k, v in overrides.items() if v is not None})
+    if o["balance"] not in ("lattice", "frame"):
+        raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
     if o["spacing"] < 4:
         raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
-    raw = _weakness(fixed, mask, o.get("adapt") or o.get("coarse_adapt"), most=np.inf)
-    weak = float(np.clip(raw, 1.0, 10.0))
-    if o.get("adapt"):
-        o["alpha"] /= weak
-        o["regularisation"] /= weak
-    if o.get("coarse_adapt"):
-        # the gates in full-resolution terms: the bound was measured on the pair binned by k
-        # (noise variance / k^2), so a pixel's own weakness is raw k^2
-        k = max(1, int(np.ceil(np.sqrt(fixed.size / 400_000))))
-        relax = _coarse_relax(raw, raw * k * k)
-        o["coarse_alpha"] = o.get("coarse_alpha", 1.0) * relax ** -_RELAX_ALPHA
-        o["coarse_regularisation"] = o.get("coarse_regularisation", 1.0) * relax ** -_RELAX_REG
+    return o
+
+
+def _pyramid(shape, o) -> list:
+    """``(factor, iterations)`` of the levels run, coarse to fine: images halved until the
+    smaller side is below ``min_size``; at least ``min_levels`` levels while the coarsest keeps
+    128 px (a 560 px frame with a few pixels of motion needs its 140 px level); levels of more
+    than ``max_pixels`` pixels not run (at least the coarsest is), ``levels_skip`` fewer still."""
+    factors = [1]
+    while min(shape) / (factors[-1] * 2) >= o["min_size"]:
+        factors.append(factors[-1] * 2)
+    while len(factors) < o["min_levels"] and min(shape) / (factors[-1] * 2) >= 128:
+        factors.append(factors[-1] * 2)
+    factors = factors[::-1]
+    size = shape[0] * shape[1]
+    run = [k for k in factors if size / (k * k) <= o["max_pixels"]] or factors[:1]
+    run = run[:len(run) - min(int(o["levels_skip"]), len(run) - 1)]
+    its = list(o["iterations"])
+    its = (its + [its[-1]] * len(run))[:len(run)]  # a small image runs the coarse budgets
+    return list(zip(run, its))
+
+
+def _objective(level, grid, base, lam, factor, balance):
+    """``fun(c) -> (energy, gradient)`` of one level's lattice on top of the coarser ``base``.
+
+    ``balance="frame"``: data: the similarity summed over the level's pixels per ``_N_REF`` full-resolution pixels
+    (rc's alpha divided by factor^2 by the caller: area averaging divides the noise variance
+    by it, so a structure costs the same at every level). Bending energy: the mean squared
+    second derivative of the field in frame fractions over the frame in frame fractions,
+    ``lam * sum((L c)^2) / n_control * frame^2 / spacing^4`` (c in full-resolution pixels),
+    the same for a given motion at every lattice, level and image size. ``"lattice"``: the
+    mean similarity and ``lam * sum((L c)^2) / n_control``."""
+    if balance == "frame":
+        frame = float(min(grid.shape))
+        data_w = level.n * (1.0 if level.similarity == "rc" else factor * factor) / _N_REF
+        w_bend = lam * frame ** 2 / (grid.spacing ** 4 * grid.nr * grid.nc)
+    else:  # "lattice": the mean similarity; the bending energy per control point, in pixels
+        data_w, w_bend = 1.0, lam / (grid.nr * grid.nc)
+    L = grid.L
+
+    def fun(x):
+        d = grid.field(x, factor, level.shape)
+        d += base
+        e, g = level.energy(d)
+        grad = grid.adjoint(g, factor) * data_w
+        X = x.reshape(2, -1)
+        LX = np.stack([L @ X[0], L @ X[1]])
+        e = e * data_w + w_bend * float(np.sum(LX * LX))
+        grad += (2 * w_bend) * np.concatenate([L.T @ LX[0], L.T @ LX[1]])
+        return e, grad
+
+    return fun
+
+
+def _fit_level(fun, grid, n_it, coarsest):
+    """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
+    field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
+    level's grid: the field is smooth on it)."""
+    last = collections.deque(maxlen=6)
+
+    def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
+        last.append(intermediate_result.x.copy())
+
+    res = minimize(fun, np.zeros(grid.n_params), jac=True, method="L-BFGS-B", callback=track,
+                   options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10))
+    move = float("inf")
+    if len(last) == last.maxlen:
+        change = grid.field(last[-1] - last[0], coarsest) * coarsest
+        move = float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
+    return res, move
+
+
+def _prepare(fixed, moving, o):
+    """Both images normalised by the fixed one's 1-99 % range, high-passed if asked."""
     f, m = _normalise(fixed, moving)
     if o.get("highpass"):
-        f, m = _highpass(f, o["highpass"] * min(f.shape)), _highpass(m, o["highpass"] * min(f.shape))
-    factors = [1]
-    while min(f.shape) / (factors[-1] * 2) >= o["min_size"]:
-        factors.append(factors[-1] * 2)
-    # small images: at least min_levels levels while the coarsest keeps 128 pixels (a 560 px
-    # frame with a few pixels of motion needs its 140 px level: EPE 2.0 -> 0.3 px on a
-    # simulated cube, tests/test_pipeline.py)
-    while len(factors) < o["min_levels"] and min(f.shape) / (factors[-1] * 2) >= 128:
-        factors.append(factors[-1] * 2)
-    factors = factors[::-1]  # coarse to fine
-    # levels with more than max_pixels pixels are not run (at least the coarsest is)
-    size = f.shape[0] * f.shape[1]
-    run = [k for k in factors if size / (k * k) <= o["max_pixels"]] or factors[:1]
-    skip = min(int(o["levels_skip"]), len(run) - 1)
-    run = run[:len(run) - skip]
-    its = list(o["iterations"])
-    its = (its + [its[-1]] * len(run))[:len(run)]  # coarse to fine; a small image runs the coarse budgets
-    lam = lam_fine = float(o["regularisation"])
-    total_its = 0
-    converged = True
-    message = ""
-    history = []
-    grids = []  # (BSplineField, coefficients): one lattice per level, spacing halving with the pixels
-    for factor, n_it in zip(run, its):
-        # coarse levels with a larger alpha (closer to SSD: a large coherent shift of smooth
-        # structure is not explained away as intensity change), the finest with alpha itself
-        alpha = o["alpha"] * (o["coarse_alpha"] if factor != run[-1] else 1.0)
-        lam = lam_fine * (o.get("coarse_regularisation", 1.0) if factor != run[-1] else 1.0)
+        sigma = o["highpass"] * min(f.shape)
+        f, m = _highpass(f, sigma), _highpass(m, sigma)
+    return f, m
+
+
+def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", callback=None, **overrides):
+    o = _options(preset, overrides)
+    f, m = _prepare(fixed, moving, o)
+    levels = _pyramid(f.shape, o)
+    coarsest, finest = levels[0][0], levels[-1][0]
+    grids, history = [], []  # one lattice per level, spacing halving with the pixels
+    total_its, converged, message = 0, True, ""
+    for factor, n_it in levels:
+        fine = factor == finest
+        # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
+        # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
+        alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor ** 2 if o["balance"] == "frame" else 1)
+        lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
         level = _Level(f, m, mask, factor, similarity, alpha)
         base = np.zeros((2,) + level.shape, np.float32)
         for g_, c_ in grids:  # the coarser lattices' field, fixed at this level
             base += g_.field(c_, factor, level.shape)
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
-        L = grid.L
-        npts = grid.nr * grid.nc
-
-        def fun(x, level=level, grid=grid, L=L, npts=npts, base=base, lam=lam, factor=factor):
-            d = grid.field(x, factor, level.shape)
-            d += base
-            e, g = level.energy(d)
-            grad = grid.adjoint(g, factor)
-            X = x.reshape(2, -1)
-            LX = np.stack([L @ X[0], L @ X[1]])
-            e += lam * float(np.sum(LX * LX)) / npts
-            grad += (2 * lam / npts) * np.concatenate([L.T @ LX[0], L.T @ LX[1]])
-            return e, grad
-
-        last = collections.deque(maxlen=6)  # the last iterates, for the convergence test
-
-        def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
-            last.append(intermediate_result.x.copy())  # noqa: B023 (this level's deque, used before the next)
-
-        res = minimize(fun, np.zeros(grid.n_params), jac=True, method="L-BFGS-B", callback=track,
-                       options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10))
+        res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
         if not np.all(np.isfinite(res.x)):
-            return np.zeros((2,) + f.shape, np.float32), dict(iterations=total_its, converged=False,
-                                                              message="optimiser produced non-finite values",
-                                                              regularisation=lam_fine)
+            return np.zeros((2,) + f.shape, np.float32), dict(iterations=total_its, converged=False, options=o,
+                                                              message="optimiser produced non-finite values")
         grids.append((grid, res.x))
         total_its += int(res.nit)
-        # how far the last 5 iterations moved the field: 99th percentile of |change|, full-
-        # resolution pixels (evaluated on the coarsest grid: the field is smooth on it)
-        move = float("inf")
-        if len(last) == last.maxlen:
-            k = run[0]
-            change = grid.field(last[-1] - last[0], k) * k
-            move = float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
         history.append(dict(factor=factor, spacing=grid.spacing, iterations=int(res.nit), energy=float(res.fun),
                             status=int(res.status), last_move_px=move))
         if callback is not None:
             callback(factor, res)
-        if factor == run[-1]:
-            message = str(res.message)
-            # L-BFGS stops on its tolerances (0), at the precision limit of the line search (2), or
-            # at the iteration budget (1): the last is "not converged" if the last 5 iterations
-            # still moved the field by more than converge_px (99th percentile)
-            converged = res.status in (0, 2) or move <= o["converge_px"]
-            if not converged:
-                message = (f"still moving: {move:.2g} px in the last 5 of {res.nit} iterations at the finest level "
-                           f"run (more than converge_px={o['converge_px']}; raise iterations)")
+        if fine:
+            converged, message = _converged(res, move, o["converge_px"])
     d = np.zeros((2,) + f.shape, np.float32)
     for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
         d += g_.field(c_, 1, f.shape)
-    return d, dict(iterations=total_its, converged=converged, message=message, regularisation=lam_fine,
+    return d, dict(iterations=total_its, converged=converged, message=message, regularisation=o["regularisation"],
                    levels=history, options=o)
+
+
+def _converged(res, move, converge_px):
+    """L-BFGS stops on its tolerances (0), at the precision limit of the line search (2), or at
+    the iteration budget (1): the last is "not converged" if the last 5 iterations still moved
+    the field by more than ``converge_px`` (99th percentile)."""
+    if res.status in (0, 2) or move <= converge_px:
+        return True, str(res.message)
+    return False, (f"still moving: {move:.2g} px in the last 5 of {res.nit} iterations at the finest level run "
+                   f"(more than converge_px={converge_px}; raise iterations)")
 
 
 @_method("rc")
 def _rc(fixed, moving, mask, **options):
-    """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast'),
-    spacing (px), alpha, regularisation, iterations (per level, coarse to fine), min_size (px,
-    the coarsest level's smaller side), min_levels (at least this many levels while the coarsest
-    keeps 128 px), max_pixels (finer levels are not run), coarse_alpha (alpha x this at every
-    level but the finest: closer to SSD there; 1 by default), levels_skip, converge_px (the
-    finest level run is converged when its last 5 iterations moved the field less than this, in
-    pixels, 99th percentile), highpass (fraction of the smaller side: both images minus their
-    Gaussian blur of that width before the similarity; 0 or None: off), adapt (divide alpha and
-    the regularisation by how much weaker than rich texture the image's structure is),
-    coarse_regularisation (the regularisation x this at every level but the finest),
-    coarse_adapt (relax alpha and the regularisation of every level but the finest by the
-    image's weakness where the structure is weak but there; off by default)."""
+    """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast';
+    'weak', 'weak-fast' for texture near the noise level), spacing (px), alpha, regularisation,
+    balance ('lattice' or 'frame': see the module docstring), stiffen (balance 'frame': level
+    ``k`` halvings finer than the coarsest is 2^(k stiffen) times stiffer), iterations (per
+    level, coarse to fine), min_size (px, the coarsest level's smaller side), min_levels (at
+    least this many levels while the coarsest keeps 128 px), max_pixels (finer levels are not
+    run), coarse_alpha and coarse_regularisation (alpha and the regularisation x these at every
+    level but the finest; 1 by default), levels_skip,
+    converge_px (the finest level run is converged when its last 5 iterations moved the field
+    less than this, in pixels, 99th percentile), highpass (fraction of the smaller side: both
+    images minus their Gaussian blur of that width before the similarity; 0 or None: off)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
