@@ -19,6 +19,10 @@ import numpy as np
 from radiokit import __version__
 from radiokit.errors import RadiokitError
 
+#: radiokit.register's B-spline presets; a literal so that --help does not import scipy
+#: (tests/test_cli.py checks it against the registry)
+PRESET_NAMES = ("default", "fast", "weak", "weak-fast")
+
 __all__ = ["main", "build_parser"]
 
 
@@ -382,7 +386,8 @@ def _add_register(sub):
     p.add_argument("fixed", type=Path, help="fixed image file (e.g. a corrected line-integral frame)")
     p.add_argument("moving", type=Path, help="moving image file")
     p.add_argument("--method", default="rc", help="rc (default), ssd, ncc, mi, or a peer: tvl1, ilk, dis, farneback, ...")
-    p.add_argument("--preset", choices=["default", "fast"], help="B-spline methods: default or fast")
+    p.add_argument("--preset", choices=PRESET_NAMES,
+                   help="B-spline methods: default, fast, or weak / weak-fast (opt-in, nearly textureless pairs)")
     p.add_argument("--roi", type=int, nargs=4, metavar=("R0", "R1", "C0", "C1"),
                    help="score the similarity only inside rows R0:R1, columns C0:C1")
     p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
@@ -411,7 +416,7 @@ def _add_process(sub):
                    help="headline domain: negative (-I/I0, the paper's 'linear' images; default) or log "
                         "(-ln(I/I0)); both are computed")
     p.add_argument("--method", default="rc", help="registration method (default rc)")
-    p.add_argument("--preset", choices=["default", "fast"], help="registration preset")
+    p.add_argument("--preset", choices=PRESET_NAMES, help="registration preset (see `radiokit register --help`)")
     p.add_argument("--crop-mm", type=float, default=30.0, help="side of the registered square around the inclusion, "
                                                               "mm (0: the whole frame)")
     p.add_argument("--inclusion", type=float, nargs=4, metavar=("R0", "R1", "C0", "C1"),

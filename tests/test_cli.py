@@ -131,3 +131,10 @@ def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):
     assert res.stderr.startswith("radiokit correct: ") and "missing.raw" in res.stderr
     res = run("--debug", "correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
     assert res.returncode != 0 and "Traceback" in res.stderr
+
+
+def test_cli_preset_choices_are_the_registrys_presets():
+    from radiokit.cli import PRESET_NAMES
+    from radiokit.register._bspline import PRESETS
+
+    assert set(PRESET_NAMES) == set(PRESETS)
