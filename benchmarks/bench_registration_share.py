@@ -43,6 +43,9 @@ from sim.scene import load_scene, with_view
 PIXEL_MM = 0.3
 ERRORS_MM = (0.1, 0.3, 0.6, 1.0, 1.5, 2.0, 3.0)
 METHODS = (("rc", {"preset": "fast"}), ("ncc", {"preset": "fast"}), ("tvl1", {}), ("dis", {}))
+# issue 11's acceptance: each method against the moving image warped by the stored truth
+AGAINST_TRUTH = (("rc", "rc", {}), ("rc fast", "rc", {"preset": "fast"}),
+                 ("elastix+hp", "elastix", {"prefilter": "highpass"}), ("dis+hp", "dis", {"prefilter": "highpass"}))
 
 
 @dataclasses.dataclass
@@ -104,6 +107,70 @@ def run_scene(name, view, log):
             continue
         add(method, float("nan"), reg.displacement, time.perf_counter() - t)
     return pts
+
+
+def shadow_centroid(image, inclusion_mask, radius_px):
+    """The inclusion shadow's centroid (row, col): the image high-passed at 3 inclusion radii,
+    its positive part weighted over the reference's inclusion rays dilated by half a radius."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    hp = img - cv2.GaussianBlur(img, (0, 0), 3 * radius_px)
+    k = max(1, int(radius_px / 2))
+    near = cv2.dilate(inclusion_mask.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)).astype(bool)
+    w = np.where(near, np.maximum(hp, 0), 0).astype(np.float64)
+    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    return float((w * rr).sum() / w.sum()), float((w * cc).sum() / w.sum())
+
+
+def against_truth(name, view, log):
+    """Each method of AGAINST_TRUTH on the scene's noisy pair: IF(1) and the change ratio (linear)
+    with its registered image minus those with the moving image warped by the stored truth, and
+    the inclusion shadow's centroid offset (px); the EPE median over the body (px) and ``ok``."""
+    from radiokit.register import register
+
+    scene = load_scene(name)
+    scene.mesh.model = "3d"
+    scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm = 1.4, 8.0
+    if view:
+        scene = with_view(scene, view)
+    states = compress(scene, (0.20, 0.25))
+    proj = study.project_pair(scene, states, pixel_mm=PIXEL_MM)
+    counts = scene.exposure.i0_counts * (PIXEL_MM / 0.05) ** 2
+    noisy = study.images(proj, imaging.chain(imaging.monochromatic,
+                                             lambda L: study.add_noise(L, counts, np.random.default_rng(0))))
+    truth = study.with_field(noisy, proj.truth)
+    ht = study.headline(truth)
+    rois = (ht.inclusion, ht.background)
+    radius = max(2.0, float(np.sqrt(noisy.inclusion_mask.sum() / np.pi)))
+    ct = shadow_centroid(truth.registered, noisy.inclusion_mask, radius)
+    body = noisy.reference > 0.2 * np.percentile(noisy.reference, 99.5)
+    rows = []
+    for label, method, opts in AGAINST_TRUTH:
+        t = time.perf_counter()
+        reg = register(noisy.reference.astype(np.float32), noisy.moving.astype(np.float32), method, **opts)
+        sec = time.perf_counter() - t
+        h = study.headline(study.with_field(noisy, reg.displacement), rois=rois)
+        c = shadow_centroid(study.with_field(noisy, reg.displacement).registered, noisy.inclusion_mask, radius)
+        row = dict(scene=scene.name, method=label, d_if1=h.improvement["linear"]["1"] - ht.improvement["linear"]["1"],
+                   d_cr=h.change_ratio["linear"] - ht.change_ratio["linear"], centroid_px=float(np.hypot(c[0] - ct[0], c[1] - ct[1])),
+                   epe_px=_epe_mm(reg.displacement, proj.truth, body) / PIXEL_MM, ok=bool(reg.quality.ok),
+                   identity_px=_epe_mm(np.zeros_like(proj.truth), proj.truth, body) / PIXEL_MM,
+                   seconds=sec, if1_truth=ht.improvement["linear"]["1"], cr_truth=ht.change_ratio["linear"])
+        rows.append(row)
+        log(row)
+    return rows
+
+
+def truth_table(rows) -> str:
+    """Markdown: per scene and method, |dIF(1)| <= 0.01, |dCR| <= 0.02, centroid <= 0.5 px."""
+    lines = ["| scene | method | EPE px (identity) | dIF(1) | dCR | shadow centroid px | within (0.01 / 0.02 / 0.5 px) "
+             "| ok |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        within = abs(r["d_if1"]) <= 0.01 and abs(r["d_cr"]) <= 0.02 and r["centroid_px"] <= 0.5
+        lines.append(f"| {r['scene']} | {r['method']} | {r['epe_px']:.2f} ({r['identity_px']:.2f}) | {r['d_if1']:+.4f} | {r['d_cr']:+.4f} | "
+                     f"{r['centroid_px']:.2f} | {'yes' if within else 'no'} | {r['ok']} |")
+    return "\n".join(lines)
 
 
 def chart(points, path):
@@ -168,9 +235,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench_registration_share"))
     ap.add_argument("--png", type=Path, default=None, help="also copy the chart here")
+    ap.add_argument("--against-truth", action="store_true",
+                    help="only issue 11's check: rc, rc fast, elastix+hp, dis+hp on both presets against the "
+                         "truth-warped moving image (IF(1), change ratio, inclusion shadow centroid)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()}", flush=True)
+    if args.against_truth:
+        rows = []
+        for name in ("seed-breast", "pva-phantom"):
+            rows += against_truth(name, None, lambda r: print(f"  {r}", flush=True))
+        print(truth_table(rows))
+        print(f"load average after: {os.getloadavg()}")
+        (args.out / "against_truth.json").write_text(json.dumps(rows, indent=1))
+        return 0
 
     def log(p):
         print(f"  {p.scene:<28} {p.kind:<7} error {p.error_mm:5.2f} mm  EPE {p.epe_mm:6.3f} mm  CR {p.cr:.3f}  "

@@ -17,7 +17,10 @@ the data alone:
 - ``sigma`` per pixel from the diagonal second difference ``(f00 - f01 - f10 + f11) / 2``, whose
   standard deviation is ``sigma`` for white noise and which a texture coarser than ~2 px hardly
   reaches; its square averaged over the window, so Poisson-like noise gives a local level;
-- ``W`` a Gaussian window of the lattice spacing (the scale at which the B-spline field is free).
+- ``W`` a Gaussian window of the lattice spacing (the scale at which the B-spline field is free);
+- less a noise-only floor: a window's gradient covariance of pure noise fluctuates by about
+  ``1 / sqrt(window area)`` of the noise's share, and what pure noise of the estimated level
+  shows as structure 99 % of the time (measured once on a white-noise image) is not information.
 
 ``confidence = 1 / (1 + (s / 0.5 px)^2)``, ``s`` the bound: 0.5 where the bound is 0.5 px,
 near 1 where the motion is pinned, near 0 where the image is silent (a textureless interior).
@@ -26,11 +29,17 @@ is per area, so binning changes it little for structure coarser than the bin), t
 
 Consistency (no truth)
 ----------------------
-After registration the residual ``warped - fixed``, high-passed like the image, should be noise
-where the motion is observed: its local mean square against ``2 sigma^2``. Where it is several
-times larger, structure the pair carries is left misaligned. ``quality.ok`` is False when too
-little of the object is observed (the field there is the regulariser's guess, whatever the
-similarity says) or when too much of the observed part is left misaligned.
+After registration the residual ``warped - fixed``, high-passed like the image and less the
+part a local thinning or gain explains, should be noise where the motion is observed: its local
+mean square against the noise's expected share, ``sigma^2 (1 + v)``, ``v`` the variance that
+bilinear interpolation leaves of the moving image's noise (``interpolation_variance``: 1 on
+whole-pixel shifts, 1/4 at half a pixel in both directions; without it a perfect registration
+looks better than noise). A window's mean square of pure noise scatters by ``sqrt(2 / N)``
+around its expectation, ``N = 4 pi window^2`` the Gaussian window's effective number of pixels
+(about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
+deviations) is structure the pair carries left misaligned, not noise. ``quality.ok`` is False
+when too little of the object is observed (the field there is the regulariser's guess,
+whatever the similarity says) or when too much of the observed part is left misaligned.
 """
 from __future__ import annotations
 
@@ -38,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["observability", "Observability", "roi_observed", "consistency", "OBSERVED_PX"]
+__all__ = ["observability", "Observability", "roi_observed", "consistency", "interpolation_variance", "OBSERVED_PX"]
 
 OBSERVED_PX = 0.5  # the bound (px) at which confidence is 0.5: "observed"
 # A floor under the noise, as a fraction of the image's 1st-99th percentile range: the part of
@@ -46,7 +55,7 @@ OBSERVED_PX = 0.5  # the bound (px) at which confidence is 0.5: "observed"
 # exactly slow at a body's curved edge). Without it a noise-free image of a smooth body calls
 # its curvature alone "observed".
 MODEL_FLOOR = 3e-4
-_NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise
+_NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise; and _noise_lmin's
 
 
 @dataclass
@@ -93,6 +102,38 @@ def _object(f, sigma):
     return np.abs(_gauss(f, 4.0) - level) > 5 * sigma / 4.0 + 1e-12
 
 
+def _lmin(f, spacing, highpass, sig2):
+    """The smaller eigenvalue of the window's gradient covariance of ``f`` high-passed at
+    ``highpass x spacing`` and smoothed by 1 px, less the noise's own share (``sig2`` its
+    variance per pixel)."""
+    hp = f - _gauss(f, highpass * spacing)
+    gy, gx = np.gradient(_gauss(hp, 1.0))
+    bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
+    # the gradient's local covariance, not its mean square: a gradient that is the same across
+    # the window (a smooth body's slope) moves the window's residual by a constant, which an
+    # intensity change explains as well as motion does
+    my, mx = _gauss(gy, spacing), _gauss(gx, spacing)
+    jyy = _gauss(gy * gy, spacing) - my * my - bias
+    jxx = _gauss(gx * gx, spacing) - mx * mx - bias
+    jxy = _gauss(gy * gx, spacing) - my * mx
+    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
+    return np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+
+
+def _noise_lmin(spacing, highpass):
+    """The 99th percentile of :func:`_lmin` on unit white noise (a window's gradient covariance
+    fluctuates by about ``1 / sqrt(window area)`` of the noise's share): measured once per
+    window, like :func:`_deriv_noise_var`."""
+    key = ("lmin", float(spacing), float(highpass))
+    if key not in _NOISE_DERIV:
+        n = int(max(256, 16 * spacing))
+        z = np.random.default_rng(0).standard_normal((n, n)).astype(np.float32)
+        lm = _lmin(z, spacing, highpass, np.ones_like(z))
+        m = int(3 * spacing)
+        _NOISE_DERIV[key] = float(np.percentile(lm[m:-m, m:-m], 99))
+    return _NOISE_DERIV[key]
+
+
 def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
     (see the module docstring); ``bound_scale`` multiplies the bound (the method's error is
@@ -103,20 +144,9 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     step = max(1, int(np.sqrt(f.size / 250_000)))
     lo, hi = np.percentile(f[::step, ::step], [1, 99])
     floor2 = (MODEL_FLOOR * float(hi - lo)) ** 2  # see MODEL_FLOOR
-    hp = f - _gauss(f, highpass * spacing)
-    g = _gauss(hp, 1.0)
-    gy, gx = np.gradient(g)
     sig2 = sig_map * sig_map
-    bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
-    # the gradient's local covariance, not its mean square: a gradient that is the same across
-    # the window (a smooth body's slope) moves the window's residual by a constant, which an
-    # intensity change explains as well as motion does
-    my, mx = _gauss(gy, spacing), _gauss(gx, spacing)
-    jyy = _gauss(gy * gy, spacing) - my * my - bias
-    jxx = _gauss(gx * gx, spacing) - mx * mx - bias
-    jxy = _gauss(gy * gx, spacing) - my * mx
-    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
-    lmin = np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+    # what pure noise of this level shows as structure 99 % of the time is not information
+    lmin = np.maximum(_lmin(f, spacing, highpass, sig2) - _noise_lmin(spacing, highpass) * sig2, 0)
     area = 2 * np.pi * spacing * spacing  # the Gaussian window's area (weights peak 1)
     info = area * lmin / (2 * (sig2 + floor2))
     bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
@@ -128,12 +158,23 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     return Observability(conf.astype(np.float32), bound.astype(np.float32), sigma, obj)
 
 
-def consistency(fixed, warped, spacing, sigma_map=None):
+def interpolation_variance(displacement, spacing):
+    """``v``: the share of white noise's variance that bilinear interpolation at ``x + d(x)``
+    keeps, ``((1 - a)^2 + a^2) ((1 - b)^2 + b^2)`` with ``a``, ``b`` the fractional parts of
+    ``d``, averaged over a Gaussian window of ``spacing`` px."""
+    d = np.asarray(displacement, np.float32)
+    a, b = d[0] - np.floor(d[0]), d[1] - np.floor(d[1])
+    return _gauss(((1 - a) ** 2 + a * a) * ((1 - b) ** 2 + b * b), spacing)
+
+
+def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0):
     """Local mean square of the residual ``warped - fixed`` that a slow intensity change cannot
-    explain, over ``2 sigma^2`` (about 1 for noise alone): both high-passed at ``spacing`` px,
-    then, in a Gaussian window of ``spacing`` px, the part proportional to the high-passed fixed
-    image removed (a thinning or gain change locally scales the image's structure; a
-    misalignment ``d . grad f`` is not proportional to it)."""
+    explain, over the noise's expected share ``noise_factor x sigma^2`` (about 1 for noise
+    alone; ``noise_factor`` 2 for two independent noisy images, ``1 + interpolation_variance``
+    for a warped one): both high-passed at ``spacing`` px, then, in a Gaussian window of
+    ``spacing`` px, the part proportional to the high-passed fixed image removed (a thinning or
+    gain change locally scales the image's structure; a misalignment ``d . grad f`` is not
+    proportional to it)."""
     f = np.asarray(fixed, np.float32)
     r = np.asarray(warped, np.float32) - f
     r = r - _gauss(r, spacing)
@@ -142,7 +183,7 @@ def consistency(fixed, warped, spacing, sigma_map=None):
     rf = _gauss(r * fh, spacing)
     ff = _gauss(fh * fh, spacing) + 1e-30
     left = np.maximum(_gauss(r * r, spacing) - rf * rf / ff, 0)
-    return left / (2 * s * s)
+    return left / (noise_factor * s * s)
 
 
 def roi_observed(confidence, roi) -> float:

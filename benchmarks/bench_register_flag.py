@@ -1,0 +1,212 @@
+"""Can ``quality.ok`` be trusted without the truth? The flag's confusion table over the family.
+
+Run (from the repository root)::
+
+    python benchmarks/bench_register_flag.py --split test --size 560 --seeds 2
+    python benchmarks/bench_register_flag.py --split train --size 560 --seeds 2   # to choose thresholds
+
+Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, elastix and DIS on high-passed
+images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
+simulated pairs of both scene presets, noisy, as in ``bench_register``'s part 3). Each result is
+cached (``--out``, the field and the method's ``info``), so the flag can be re-assessed
+(``radiokit.register._assess``) as its rule changes without registering again (``--reassess``
+is the default once a result is cached; ``--fresh`` registers again).
+
+Prints, per method and over all: failed = median EPE inside the body > max(1 px, half the
+identity's), flagged = ``ok`` False (the issue wants >= 95 %); good = median EPE <= 0.5 px,
+trusted = ``ok`` True (>= 90 %); and the reasons given for the good results that were flagged
+and the failed ones that were trusted. With ``--textureless`` also the truly textureless pairs'
+median EPE where the confidence map says observed.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_register import FAMILY_METHODS, confusion, configs
+from regdata import family, family_pair, score, sim_pair
+
+
+def pairs(split, size, n_seeds, sim_presets):
+    """``(label, meta, thunk)`` for every pair of the split (the simulated pairs only on test)."""
+    for c in family(split, size, grid="all", n_seeds=n_seeds):
+        yield c.label(), dict(t2n=c.t2n, texture=c.texture), (lambda c=c: family_pair(c))
+    if split == "test":
+        for p in sim_presets:
+            yield (f"sim {p} {size} noisy", dict(t2n=None, texture=None),
+                   (lambda p=p: sim_pair(p, moving_step=-1, noisy=True, size=size)))
+
+
+def _cache_path(out, label, name):
+    return out / (hashlib.sha1(f"{label}|{name}".encode()).hexdigest()[:16] + ".npz")
+
+
+def registered(out, label, name, opts, fixed, moving, fresh=False):
+    """The method's ``(displacement, info, seconds)``, from the cache or registered now."""
+    from radiokit.register import METHODS, _check
+
+    path = _cache_path(out, label, name)
+    if path.exists() and not fresh:
+        z = np.load(path, allow_pickle=False)
+        return z["d"], json.loads(str(z["info"])), float(z["seconds"])
+    method = name.split("+")[0].replace("rc-fast", "rc")
+    f, m, _ = _check(fixed, moving, None)
+    t = time.perf_counter()
+    d, info = METHODS[method](f, m, None, **opts)
+    seconds = time.perf_counter() - t
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, d=np.asarray(d, np.float32), info=json.dumps(info), seconds=seconds)
+    tmp.replace(path)
+    return np.asarray(d, np.float32), info, seconds
+
+
+def assess(name, opts, fixed, moving, d, info, seconds):
+    """``register()``'s assessment of a cached field: the :class:`Registration` with its quality
+    and confidence map, exactly as ``register()`` would return it."""
+    from radiokit.register import Quality, Registration, _assess, _check
+
+    method = name.split("+")[0].replace("rc-fast", "rc")
+    f, m, _ = _check(fixed, moving, None)
+    reg = Registration(np.ascontiguousarray(d, np.float32), method, Quality(), dict(opts))
+    _assess(reg, f, m, None, info, seconds)
+    return reg
+
+
+def run(args):
+    from radiokit.register import _load_methods
+
+    _load_methods()
+    cfgs = dict(configs())
+    methods = [(n, cfgs[n]) for n in FAMILY_METHODS if n in cfgs and n.split("+")[0] not in args.skip]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for label, meta, thunk in pairs(args.split, args.size, args.seeds, args.sim):
+        fixed, moving, truth, mask = thunk()
+        ident = score(np.zeros_like(truth), truth, mask)["epe_median"]
+        rows.append(dict(meta, case=label, method="identity", epe_median=ident, identity=ident, ok=None))
+        for name, opts in methods:
+            d, info, sec = registered(args.out, label, name, opts, fixed, moving, args.fresh)
+            reg = assess(name, opts, fixed, moving, d, info, sec)
+            e = np.hypot(*(reg.displacement - truth))
+            obs = (reg.confidence >= 0.5) & mask
+            rows.append(dict(meta, case=label, method=name, epe_median=float(np.median(e[mask])), identity=ident,
+                             ok=bool(reg.quality.ok), reason=reg.quality.reason, seconds=sec,
+                             observed=float(obs.sum() / mask.sum()),
+                             misaligned=reg.quality.misaligned_fraction,
+                             epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None))
+        print(f"  {label:<62} " + " ".join(
+            f"{r['method']} {r['epe_median']:.2f}{'' if r['ok'] in (None, True) else '!'}"
+            for r in rows[-1 - len(methods):]), flush=True)
+    return rows, methods
+
+
+def _pct(a, b):
+    return f"{100 * a / b:.0f} %" if b else "-"
+
+
+def table(rows, methods) -> str:
+    """The confusion table (markdown): all methods, then each one."""
+    lines = ["| results | failed | flagged (ok False) | good | trusted (ok True) |", "|---|---|---|---|---|"]
+    for tag, sel in [("all methods", rows)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
+        c = confusion(sel)
+        lines.append(f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} "
+                     f"({_pct(c['failed_flagged'], c['failed'])}) | {c['good']} | {c['good_ok']} "
+                     f"({_pct(c['good_ok'], c['good'])}) |")
+    return "\n".join(lines)
+
+
+def misses(rows) -> list[str]:
+    """The good results flagged and the failed ones trusted, with the reason or the numbers."""
+    out = []
+    for r in rows:
+        if r["method"] == "identity":
+            continue
+        failed = r["epe_median"] > max(1.0, 0.5 * r["identity"])
+        if r["epe_median"] <= 0.5 and not r["ok"]:
+            out.append(f"  good, flagged: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px: {r['reason']}")
+        elif failed and r["ok"]:
+            out.append(f"  failed, trusted: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px "
+                       f"(identity {r['identity']:.2f}; observed {r['observed']:.2f}, "
+                       f"misaligned {r['misaligned']:.2f})")
+    return out
+
+
+def textureless(rows) -> list[str]:
+    """Truly textureless pairs: the observed share of the body and the median EPE there."""
+    out = []
+    for r in rows:
+        if r["method"] != "identity" and r.get("texture") == 0.0:
+            eo = "-" if r["epe_observed"] is None else f"{r['epe_observed']:.2f}"
+            out.append(f"  {r['method']:<11} {r['case']:<58} body {r['epe_median']:.2f} px, observed "
+                       f"{100 * r['observed']:.0f} % of the body, EPE there {eo} px, ok {r['ok']}")
+    return out
+
+
+def textureless_check(size, seed=1000):
+    """A truly textureless test pair (correlation 1/10): the truth and the identity planted as
+    results (does the map's observed region carry the motion?), then rc and rc fast: the observed
+    share of the body, the median EPE there, the misaligned share and ``ok``."""
+    from radiokit.register import register
+    from regdata import Case
+
+    fixed, moving, truth, mask = family_pair(Case(size=size, texture=0.0, noise=0.01, corr=0.1, seed=seed))
+    print(f"textureless {size} px, test seed {seed}: identity {score(0 * truth, truth, mask)['epe_median']:.2f} px")
+    for tag, name, opts, field in (("truth planted", "planted", {}, truth), ("identity planted", "planted", {}, 0 * truth),
+                                   ("rc", "rc", {}, None), ("rc fast", "rc", {"preset": "fast"}, None)):
+        t = time.perf_counter()
+        if field is None:
+            reg = register(fixed, moving, name, **opts)
+        else:
+            reg = assess(name, opts, fixed, moving, field, {}, 0.0)
+        obs = (reg.confidence >= 0.5) & mask
+        e = np.hypot(*(reg.displacement - truth))
+        there = float(np.median(e[obs])) if obs.any() else float("nan")
+        print(f"  {tag:<17} body {np.median(e[mask]):.2f} px; observed {100 * obs.sum() / mask.sum():.0f} % of the body, "
+              f"EPE there {there:.2f} px; misaligned {reg.quality.misaligned_fraction:.2f}; ok {reg.quality.ok}; "
+              f"{time.perf_counter() - t:.1f} s", flush=True)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--split", choices=("train", "test"), default="test")
+    ap.add_argument("--size", type=int, default=560)
+    ap.add_argument("--seeds", type=int, default=2, help="seeds per family case")
+    ap.add_argument("--sim", default="seed-breast,pva-phantom", help="simulated presets on the test split ('' none)")
+    ap.add_argument("--skip", default="", help="methods to leave out, comma-separated (e.g. elastix)")
+    ap.add_argument("--out", type=Path, default=None, help="cache (default out/bench_register_flag/SPLIT-SIZE)")
+    ap.add_argument("--fresh", action="store_true", help="register again even when a result is cached")
+    ap.add_argument("--textureless", action="store_true", help="also the textureless pairs' observed EPE")
+    ap.add_argument("--textureless-check", type=int, metavar="SIZE",
+                    help="only the planted-field check of a textureless test pair at SIZE (e.g. 2240)")
+    args = ap.parse_args(argv)
+    if args.textureless_check:
+        textureless_check(args.textureless_check)
+        return 0
+    args.sim = [x.strip() for x in args.sim.split(",") if x.strip()]
+    args.skip = {x.strip() for x in args.skip.split(",") if x.strip()}
+    args.out = args.out or Path(f"out/bench_register_flag/{args.split}-{args.size}")
+    print(f"load average before: {os.getloadavg()}", flush=True)
+    t0 = time.perf_counter()
+    rows, methods = run(args)
+    print(f"\nquality.ok against the truth, {args.split} seeds ({args.seeds} per case), {args.size} px "
+          f"(failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px):\n")
+    print(table(rows, methods))
+    print("\n".join(["", "misses:"] + misses(rows)))
+    if args.textureless:
+        print("\n".join(["", "textureless pairs:"] + textureless(rows)))
+    print(f"\n{time.perf_counter() - t0:.0f} s; load average after: {os.getloadavg()}")
+    (args.out / "rows.json").write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
