@@ -53,6 +53,8 @@ _EYE = np.eye(3)
 
 #: relative accuracy of each Newton update's linear solve (see Solver._linsolve)
 LINEAR_RTOL = 1e-4
+FIRST_STEP = 0.05
+EASY_STEP = 5
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
@@ -104,21 +106,18 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
 
     With axial stretch s = 1 - ratio and lateral stretch t, F = diag(t, s, t), J = s t^2. The first
     Piola stress is P = mu (F - F^-T) + lambda ln J F^-T, so the free sides need
-    mu (t^2 - 1) + lambda ln(s t^2) = 0 (solved for t by bisection; the left side increases with t),
-    and the plate force is |P_yy| A = |mu (s - 1/s) + lambda ln(J) / s| A.
+    mu (t^2 - 1) + lambda ln(s t^2) = 0 (the left side increases with t: one root, bracketed by
+    t = 1, where it is lambda ln s < 0, and t = 1/s, where it is positive), and the plate force is
+    |P_yy| A = |mu (s - 1/s) + lambda ln(J) / s| A.
     """
+    from scipy.optimize import brentq
+
     mu = E_kpa / (2 * (1 + nu)) * 1e-3
     lam = E_kpa * nu / ((1 + nu) * (1 - 2 * nu)) * 1e-3
     s = 1.0 - ratio
-    f = lambda t: mu * (t * t - 1) + lam * math.log(s * t * t)
-    lo, hi = 1e-3, 10.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if f(mid) > 0:
-            hi = mid
-        else:
-            lo = mid
-    t = 0.5 * (lo + hi)
+    if s == 1.0:
+        return 0.0, 1.0
+    t = brentq(lambda t: mu * (t * t - 1) + lam * math.log(s * t * t), 1.0, 1.0 / s, xtol=1e-15, rtol=1e-15)
     p_yy = mu * (s - 1 / s) + lam * math.log(s * t * t) / s
     return abs(p_yy) * area_mm2, t
 
@@ -173,26 +172,9 @@ class Solver:
         self.projection_mesh = p2_submesh(self.fem, self.fem.skfem(), self.dof_points)
         self.n_nodes = basis.N
         nloc = len(basis.basis)
-        nel, nq = basis.dx.shape
-        # Gradient operator: Bop[e, q, d] is the 3x3 displacement gradient of a unit local dof d.
-        grads = np.stack([basis.basis[a][0].grad for a in range(nloc)])  # (nloc, dim, nel, nq)
-        grads = grads.transpose(2, 3, 0, 1)  # (nel, nq, nloc, dim)
-        B = np.zeros((nel, nq, nloc * dim, 3, 3))
-        for a in range(nloc):
-            for i in range(dim):
-                B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
-        w = basis.dx.copy()
-        if self.model == "axisymmetric":
-            R = np.asarray(basis.global_coordinates())[0]  # (nel, nq), quadrature points are interior: R > 0
-            vals = np.stack([np.asarray(basis.basis[a][0]) for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
-            for a in range(nloc):
-                B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
-            w = w * 2 * np.pi * R
-        elif self.model == "plane-strain":
-            w = w * scene.body.size_mm[2]
-        self.B = B
-        self.w = w
-        self.Ve = w.sum(axis=1)
+        nel = basis.dx.shape[0]
+        self.B, self.w = self._gradient_operator(basis)
+        self.Ve = self.w.sum(axis=1)
         edofs = basis.element_dofs.T  # (nel, nloc) scalar node indices
         self.edofs = (edofs[:, :, None] * dim + np.arange(dim)[None, None, :]).reshape(nel, nloc * dim)
         self.ndof = self.n_nodes * dim
@@ -220,18 +202,61 @@ class Solver:
         self._lu = None
         self._lu_seconds = 0.0  # what the last factorisation cost
         self._krylov_seconds = 0.0  # GMRES time spent on it since
+        self._krylov_it_seconds = 0.0  # one preconditioned GMRES iteration, as last measured
         self.factorisations = 0
         self.krylov_iterations = 0
+
+    def _gradient_operator(self, basis):
+        """``B[e, q, d]``: the 3x3 displacement gradient of a unit local dof d (the hoop strain
+        u_r / r in the (2, 2) entry for axisymmetry), and the quadrature weights (times 2 pi r,
+        or the slab's thickness)."""
+        dim, nloc = self.dim, len(basis.basis)
+        nel, nq = basis.dx.shape
+        grads = np.stack([basis.basis[a][0].grad for a in range(nloc)])  # (nloc, dim, nel, nq)
+        grads = grads.transpose(2, 3, 0, 1)  # (nel, nq, nloc, dim)
+        B = np.zeros((nel, nq, nloc * dim, 3, 3))
+        for a in range(nloc):
+            for i in range(dim):
+                B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
+        w = basis.dx.copy()
+        if self.model == "axisymmetric":
+            R = np.asarray(basis.global_coordinates())[0]  # (nel, nq), quadrature points are interior: R > 0
+            vals = np.stack([np.asarray(basis.basis[a][0]) for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
+            for a in range(nloc):
+                B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
+            w = w * 2 * np.pi * R
+        elif self.model == "plane-strain":
+            w = w * self.scene.body.size_mm[2]
+        return B, w
 
     # -- boundary conditions ------------------------------------------------------------------
     def _setup_boundary(self, FacetBasis, elem, penalty_factor):
         sc = self.scene
-        dim = self.dim
-        X = self.dof_points
-        H = sc.body.half_height_mm
+        self.H = sc.body.half_height_mm
+        self.gap0 = 2 * self.H
         size = float(np.max(self.dof_points.max(axis=1) - self.dof_points.min(axis=1)))
-        tol = 1e-6 * size
-        fixed = {}  # global dof -> kind: value function of top-plate displacement
+        self._tol = 1e-6 * size
+        fixed = self._symmetry_and_wall()  # global dof -> prescribed value
+        self.top_nodes = np.zeros(0, np.int64)
+        self.moving = np.zeros(0, np.int64)
+        self.contact = None
+        if sc.body.geometry in ("truncated-cone", "cylinder", "box"):
+            self._flat_plates(fixed)
+        else:
+            self._contact_setup(FacetBasis, elem, penalty_factor)
+        self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
+        self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
+        moving = set(self.moving.tolist())
+        self.fixed_dofs_all = np.array(sorted(set(self.fixed_dofs.tolist()) | moving), dtype=np.int64)
+        free = np.ones(self.ndof, bool)
+        free[self.fixed_dofs_all] = False
+        self.free = np.flatnonzero(free)
+
+    def _symmetry_and_wall(self) -> dict:
+        """Zero displacement normal to the symmetry planes and at the chest wall (all components
+        where it is fixed, x where it slides); for 2-D models the axis or the x = 0 plane."""
+        sc, X, tol = self.scene, self.dof_points, self._tol
+        fixed = {}
         sym = set(self.fem.symmetry)
         if self.model == "3d":
             axes = {"x": 0, "y": 1, "z": 2}
@@ -250,69 +275,63 @@ class Solver:
             if "y" in sym:
                 for n in np.flatnonzero(np.abs(X[1]) < tol):
                     fixed[n * 2 + 1] = 0.0
-        y_sym = "y" in sym
-        self.top_nodes = np.zeros(0, np.int64)
-        self.contact = None
-        flat = sc.body.geometry in ("truncated-cone", "cylinder", "box")
+        return fixed
+
+    def _flat_plates(self, fixed):
+        """Faces on the plates: the top moves down (``self.moving``), the bottom (without a y
+        symmetry plane) stays; bonded plates also hold the lateral displacement."""
+        dim, X, H, tol = self.dim, self.dof_points, self.H, self._tol
         lateral = [k for k in range(dim) if k != 1]
-        bonded = sc.compression.contact == "bonded"
-        if flat:
-            top = np.flatnonzero(np.abs(X[1] - H) < tol)
-            self.top_nodes = top
-            self.moving = top * dim + 1  # u_y = -delta
-            for n in top:
+        bonded = self.scene.compression.contact == "bonded"
+        top = np.flatnonzero(np.abs(X[1] - H) < tol)
+        self.top_nodes = top
+        self.moving = top * dim + 1  # u_y = -delta
+        for n in top:
+            if bonded:
+                for k in lateral:
+                    fixed[n * dim + k] = 0.0
+        if "y" not in self.fem.symmetry:
+            for n in np.flatnonzero(np.abs(X[1] + H) < tol):
+                fixed[n * dim + 1] = 0.0
                 if bonded:
                     for k in lateral:
                         fixed[n * dim + k] = 0.0
-            if not y_sym:
-                bottom = np.flatnonzero(np.abs(X[1] + H) < tol)
-                for n in bottom:
-                    fixed[n * dim + 1] = 0.0
-                    if bonded:
-                        for k in lateral:
-                            fixed[n * dim + k] = 0.0
-        else:
-            if bonded:
-                raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
-                                 f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
-            if not y_sym:
-                raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
-            self.moving = np.zeros(0, np.int64)
-            # penalty contact on boundary facets that can reach the plate (upper half, off the planes)
-            m = self.mesh
-            bf = m.boundary_facets()
-            mid = m.p[:, m.facets[:, bf]].mean(axis=1)
-            on_plane = np.zeros(bf.size, bool)
-            for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
-                if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
-                    on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
-            if self.model == "3d" and sc.wall != "none":
-                on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
-            cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
-            fb = FacetBasis(m, elem, facets=cand, intorder=4)
-            nloc = len(fb.basis)
-            N = np.stack([np.asarray(fb.basis[a][0]) for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
-            fw = fb.dx.copy()
-            Xq = np.asarray(fb.global_coordinates())
-            if self.model == "axisymmetric":
-                fw = fw * 2 * np.pi * Xq[0]
-            ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
-            # The plates touch the background: its stiffness over the finest element size sets the
-            # penalty, so the penetration stays ~1e-2 of the contact strain times that size.
-            bg = sc.body.material
-            E_bg = bg.E_kpa if bg.E_kpa is not None else 3 * bg.shear_kpa
-            h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
-            eps = penalty_factor * E_bg * 1e-3 / h_min
-            self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
-        self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
-        self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
-        moving = set(self.moving.tolist())
-        self.fixed_dofs_all = np.array(sorted(set(self.fixed_dofs.tolist()) | moving), dtype=np.int64)
-        free = np.ones(self.ndof, bool)
-        free[self.fixed_dofs_all] = False
-        self.free = np.flatnonzero(free)
-        self.H = H
-        self.gap0 = 2 * H
+
+    def _contact_setup(self, FacetBasis, elem, penalty_factor):
+        """Penalty contact of a curved body with the plate, on the boundary facets that can reach
+        it (upper half, off the symmetry planes and the wall)."""
+        sc, dim, H, tol = self.scene, self.dim, self.H, self._tol
+        if sc.compression.contact == "bonded":
+            raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
+                             f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
+        sym = set(self.fem.symmetry)
+        if "y" not in sym:
+            raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
+        m = self.mesh
+        bf = m.boundary_facets()
+        mid = m.p[:, m.facets[:, bf]].mean(axis=1)
+        on_plane = np.zeros(bf.size, bool)
+        for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
+            if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
+                on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
+        if self.model == "3d" and sc.wall != "none":
+            on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
+        cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
+        fb = FacetBasis(m, elem, facets=cand, intorder=4)
+        nloc = len(fb.basis)
+        N = np.stack([np.asarray(fb.basis[a][0]) for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
+        fw = fb.dx.copy()
+        Xq = np.asarray(fb.global_coordinates())
+        if self.model == "axisymmetric":
+            fw = fw * 2 * np.pi * Xq[0]
+        ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
+        # The plates touch the background: its stiffness over the finest element size sets the
+        # penalty, so the penetration stays ~1e-2 of the contact strain times that size.
+        bg = sc.body.material
+        E_bg = bg.E_kpa if bg.E_kpa is not None else 3 * bg.shear_kpa
+        h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
+        eps = penalty_factor * E_bg * 1e-3 / h_min
+        self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
 
     # -- energy and derivatives ---------------------------------------------------------------
     def _kinematics(self, u):
@@ -526,12 +545,17 @@ class Solver:
             def count(_):
                 its[0] += 1
 
+            # never spend more on one GMRES solve than a factorisation costs: a tangent that has
+            # moved far (the contact patch's edge jumping) is cheaper to factorise than to iterate
+            budget = int(np.clip(self._lu_seconds / max(self._krylov_it_seconds, 1e-6), 10, 80))
             t = time.perf_counter()
-            x, _info = spla.gmres(K, rhs, rtol=LINEAR_RTOL, atol=0.0, restart=40, maxiter=2,
+            x, _info = spla.gmres(K, rhs, rtol=LINEAR_RTOL, atol=0.0, restart=budget, maxiter=1,
                                  M=spla.LinearOperator(K.shape, self._lu.solve), callback=count,
                                  callback_type="pr_norm")
             self.krylov_iterations += its[0]
-            self._krylov_seconds += time.perf_counter() - t
+            dt = time.perf_counter() - t
+            self._krylov_seconds += dt
+            self._krylov_it_seconds = dt / max(its[0], 1)
             # judged by the true residual: scipy flags info=1 on stagnation that is good enough
             if np.all(np.isfinite(x)) and np.linalg.norm(K @ x - rhs) <= 100 * LINEAR_RTOL * nrhs:
                 if self._krylov_seconds > self._lu_seconds:
@@ -604,7 +628,7 @@ class Solver:
         u = np.zeros(self.ndof)
         states = []
         r_now = 0.0
-        step = min(0.05, ratios[-1] / 3) if ratios else 0.05
+        step = min(FIRST_STEP, ratios[-1] / 3) if ratios else FIRST_STEP
         total_steps = 0
         bar = tqdm(total=len(ratios), desc=f"compress {self.scene.name}", unit="state", disable=not progress)
         history = [(0.0, u)]  # converged (delta, u): the next guess extrapolates the last two
@@ -635,7 +659,7 @@ class Solver:
                 if on_step is not None:
                     on_step(r_now, its, time.perf_counter() - t_step)
                 iters_total += its
-                if its <= 5:
+                if its <= EASY_STEP:
                     step *= 1.5
             if not states or states[-1].ratio != target:
                 if r_now == 0.0:
