@@ -108,7 +108,9 @@ class Polychromatic:
         target = mu_b_per_mm * self.match_mm
         if target <= 0:
             return 1.0
-        return float(brentq(lambda a: -np.log(self._transmission(target, a)) - target, 1e-6, 1e3, xtol=1e-12))
+        # the upper end of the bracket transmits nothing: clipped, not log(0)
+        return float(brentq(lambda a: -np.log(max(float(self._transmission(target, a)), 1e-300)) - target,
+                            1e-6, 1e3, xtol=1e-12))
 
     def __call__(self, lengths, mu_per_mm):
         mono = monochromatic(lengths, mu_per_mm)
