@@ -55,6 +55,8 @@ _EYE = np.eye(3)
 LINEAR_RTOL = 1e-4
 FIRST_STEP = 0.05
 EASY_STEP = 5
+PREDICTOR = True
+TRACE = False
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
@@ -467,16 +469,44 @@ class Solver:
                 U[k] = t * X[k]
         return U.T.ravel()
 
-    def _newton(self, u, delta, max_iter=30, guess=None):
+    def _contact_predictor(self, u, h_old, h):
+        """The tangent predictor of a contact step from the equilibrium ``u`` at ``h_old``: the
+        plate moved to ``h`` acting on the old contact patch only, K du = -dR/dh (h - h_old).
+        Newton's own first step sees every point the plate has passed as in contact, pushes the
+        patch's rim down with it and then spends iterations releasing it ring by ring."""
+        ev0 = self.evaluate(u, h_old)
+        if ev0 is None:
+            return None
+        c = self.contact
+        y = c["y"] + np.einsum("fqa,fa->fq", c["N"], u[c["dofs"]])
+        load = c["eps"] * (y > h_old) * c["w"] * (h_old - h)  # the penalty force's change, old patch
+        dR = np.bincount(c["dofs"].ravel(), np.einsum("fq,fqa->fa", load, c["N"]).ravel(), minlength=self.ndof)
+        out = u.copy()
+        out[self.free] += self._linsolve(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
+        return out
+
+    def _contact_start(self, u, delta, guess, delta_prev):
+        """Contact: the lowest-energy start among the last state, the extrapolated guess and the
+        tangent predictor; starting Newton with the plate deep inside the body makes the active
+        set bounce."""
+        h = self.H - delta
+        starts = [self._apply_bc(u, delta), self._apply_bc(guess, delta)]
+        if PREDICTOR and delta_prev is not None:
+            p = self._contact_predictor(u, self.H - delta_prev, h)
+            if p is not None:
+                starts.append(self._apply_bc(p, delta))
+        energies = []
+        for x in starts:
+            e = self.evaluate(x, h, need_tangent=False)
+            energies.append(np.inf if e is None else e["energy"])
+        if TRACE:
+            print("    start energies", energies)
+        return starts[int(np.argmin(energies))]
+
+    def _newton(self, u, delta, max_iter=30, guess=None, delta_prev=None):
         h = self.H - delta if self.contact is not None else None
         if guess is not None and h is not None:
-            # Contact: start from the better (lower energy) of the last state and the guess;
-            # starting Newton with the plate deep inside the body makes the active set bounce.
-            g = self._apply_bc(guess, delta)
-            e_g = self.evaluate(g, h, need_tangent=False)
-            e_u = self.evaluate(self._apply_bc(u, delta), h, need_tangent=False)
-            if e_g is not None and (e_u is None or e_g["energy"] < e_u["energy"]):
-                u = g
+            u = self._contact_start(u, delta, guess, delta_prev)
         target = self._apply_bc(u, delta)
         du_d = target - u  # non-zero only on the prescribed dofs
         if np.any(du_d):
@@ -518,6 +548,8 @@ class Solver:
                 alpha *= 0.5
             else:
                 raise ConvergenceError("line search failed (no decrease of the energy keeping J > 0)")
+            if TRACE:
+                print(f"    it {it} alpha {alpha} res {res_t:.2e} area {ev_t['contact_area']:.3f}")
             u, ev, res = trial, ev_t, res_t
             step = alpha * float(np.max(np.abs(du_f))) if du_f.size else 0.0
             if res < 1e-9 * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
@@ -645,7 +677,7 @@ class Solver:
                     guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 t_step = time.perf_counter()
                 try:
-                    u_new, ev, its = self._newton(u, delta, guess=guess)
+                    u_new, ev, its = self._newton(u, delta, guess=guess, delta_prev=d1)
                 except ConvergenceError as exc:
                     step /= 2
                     if step < min_step:
