@@ -103,9 +103,11 @@ def _row(scene, name, choice, pair, seconds, counts):
 def _variants(name, quick, full):
     """(label, scene mutator) of the mechanical choices for a preset."""
     out = []
-    default = (1.0, 6.0) if name == "seed-breast" else (1.0, 5.0)
+    m = load_scene(name).mesh
+    default = (m.size_inclusion_mm, m.size_far_mm, m.size_contact_mm)
     if not quick:
-        out.append((f"mesh {default[0]}/{default[1]} mm", lambda s: _mesh(s, *default)))
+        label = "/".join(f"{x:g}" for x in default if x is not None)
+        out.append((f"mesh {label} mm (the preset's)", lambda s: _mesh(s, *default)))
     if full:
         out.append(("mesh 0.7/4.2 mm", lambda s: _mesh(s, 0.7, 4.2)))
     if name == "pva-phantom":
@@ -118,8 +120,8 @@ def _variants(name, quick, full):
     return out
 
 
-def _mesh(s, a, b):
-    s.mesh.size_inclusion_mm, s.mesh.size_far_mm = a, b
+def _mesh(s, a, b, c=None):
+    s.mesh.size_inclusion_mm, s.mesh.size_far_mm, s.mesh.size_contact_mm = a, b, c
 
 
 def _inclusion_model(s, model):
@@ -137,23 +139,27 @@ def _base(name):
     s = load_scene(name)
     s.mesh.model = "3d"
     _mesh(s, *COARSE)
+    s.mesh.size_contact_mm = None
     return s
 
 
 def _beam(name, base):
-    if name == "seed-breast":
-        return imaging.Polychromatic(28.0, "Mo", filters=(("Be", 0.15), ("Mo", 0.03), ("Air", 500.0)),
-                                     match_mm=2 * base.body.half_height_mm)
-    return imaging.Polychromatic(60.0, "W", filters=(("Be", 0.15), ("Air", 500.0)), match_mm=2 * base.body.half_height_mm)
+    """The scene's tube (sim.imaging.tube: 28 kV Mo/Mo for seed-breast, 60 kV W/Be for the pva-phantom)."""
+    return imaging.tube(base.exposure.voltage_kv, "auto", 2 * base.body.half_height_mm)
 
 
 def _image_rows(scene, label, proj, counts, t_proj, beam):
     rows = []
     l_ref = scene.body.material.attenuation_per_mm * 2 * scene.body.half_height_mm
     mono = imaging.monochromatic
+    sc = lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref)
+    bl = lambda L: imaging.blur(L, 0.1, PIXEL_MM)
     cases = [("polychromatic beam", imaging.chain(beam)),
-             ("scatter SPR 0.3", imaging.chain(mono, lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref))),
-             ("blur 0.1 mm", imaging.chain(mono, lambda L: imaging.blur(L, 0.1, PIXEL_MM)))]
+             ("scatter SPR 0.3", imaging.chain(mono, sc)),
+             ("blur 0.1 mm", imaging.chain(mono, bl)),
+             # the presets' imaging (sim.scene.Imaging "experiment"), and the richest imaging
+             ("polychromatic + scatter (the presets')", imaging.chain(beam, sc)),
+             ("polychromatic + scatter + blur", imaging.chain(beam, sc, bl))]
     for choice, model in cases:
         t = time.perf_counter()
         pair = study.images(proj, model)
@@ -175,7 +181,7 @@ def _image_rows(scene, label, proj, counts, t_proj, beam):
     return rows
 
 
-def run_scene(name, view, quick, full, log):
+def run_scene(name, view, quick, full, log, imaging_only=False):
     label = name if view is None else f"{name} ({view.replace('_', ' ')})"
     base = _base(name)
     if view:
@@ -194,7 +200,7 @@ def run_scene(name, view, quick, full, log):
     for r in _image_rows(base, label, proj, counts, t_proj, _beam(name, base)):
         rows.append(r)
         log(r)
-    for choice, mutate in _variants(name, quick, full):
+    for choice, mutate in ([] if imaging_only else _variants(name, quick, full)):
         sc = dataclasses.replace(base)
         sc.mesh = dataclasses.replace(base.mesh)
         mutate(sc)
@@ -304,6 +310,7 @@ def main(argv=None) -> int:
     mode.add_argument("--quick", action="store_true", help="pva-phantom only, no default-mesh rows")
     mode.add_argument("--full", action="store_true", help="add the refined meshes")
     mode.add_argument("--convergence", action="store_true", help="the 3-D seed-breast mesh study instead")
+    mode.add_argument("--imaging-only", action="store_true", help="the base and the imaging rows only (minutes)")
     ap.add_argument("--meshes", nargs="+", type=_parse_mesh, help="with --convergence: these meshes only "
                     "(inclusion/far[/plates] mm, e.g. 2/12/2)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_model"))
@@ -325,7 +332,7 @@ def main(argv=None) -> int:
         cases.insert(0, ("seed-breast", None))
     t0 = time.perf_counter()
     for name, view in cases:
-        rows += run_scene(name, view, args.quick, args.full, log)
+        rows += run_scene(name, view, args.quick, args.full, log, args.imaging_only)
     text = table(rows)
     print()
     print(text)
