@@ -6,7 +6,9 @@ Run (from the repository root)::
     python benchmarks/bench_model.py --quick         # pva-phantom only, no 3-D default mesh: ~3 minutes
     python benchmarks/bench_model.py --full          # adds the refined meshes (seed-breast 0.7/4.2 mm): much longer
     python benchmarks/bench_model.py --out DIR       # where the JSON goes (default out/bench_model)
-    python benchmarks/bench_model.py --convergence   # the 3-D seed-breast mesh study instead (~40 min)
+    python benchmarks/bench_model.py --imaging-only  # the base and the imaging rows only (~2 minutes)
+    python benchmarks/bench_model.py --convergence   # the 3-D seed-breast mesh study instead (long)
+    python benchmarks/bench_model.py --convergence --meshes 1.4/12/2 0.7/6/1   # the preset and its double
 
 Needs the ``study`` extra (SpekPy, XrayDB) for the polychromatic beam.
 
@@ -37,6 +39,8 @@ scatter, an ideal detector. The choices:
 - **scatter**: a smooth additive term (``sim.imaging.scatter``), scatter-to-primary 0.3 (a 5-6 cm
   object without a grid) through the body's thickness, Gaussian of 10 mm;
 - **blur**: the CsI scintillator's point spread, Gaussian sigma 0.1 mm;
+- **the presets' imaging** (``sim.scene.Imaging`` "experiment": polychromatic + scatter) and the
+  richest imaging (+ blur): the defaults rule's check;
 - **noise**: Poisson at the scene's exposure (2500 quanta per 50 um pixel, i.e. 90 000 per 0.3 mm
   pixel), mean and standard deviation over 5 seeds.
 
