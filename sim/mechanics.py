@@ -56,6 +56,8 @@ LINEAR_RTOL = 1e-4
 FIRST_STEP = 0.05
 EASY_STEP = 5
 PREDICTOR = True
+#: Newton's relative residual on load steps between requested states (see Solver._newton)
+STEP_RTOL = 1e-5
 TRACE = False
 
 
@@ -503,7 +505,10 @@ class Solver:
             print("    start energies", energies)
         return starts[int(np.argmin(energies))]
 
-    def _newton(self, u, delta, max_iter=30, guess=None, delta_prev=None):
+    def _newton(self, u, delta, max_iter=30, guess=None, delta_prev=None, rtol=1e-9):
+        """Equilibrium with the plate at ``delta``: Newton from ``u`` until the largest residual
+        is below ``rtol`` times ``max(mu) H^2`` (1e-9: the requested states; a load step on the
+        way there needs only a start for the next, ``STEP_RTOL``)."""
         h = self.H - delta if self.contact is not None else None
         if guess is not None and h is not None:
             u = self._contact_start(u, delta, guess, delta_prev)
@@ -527,7 +532,7 @@ class Solver:
             raise ConvergenceError("the predictor inverts elements: step too large")
         scale = max(float(np.max(self.mu)) * self.H ** 2, 1e-12)
         res = float(np.max(np.abs(ev["R"][self.free]))) if self.free.size else 0.0
-        if res < 1e-9 * scale:
+        if res < rtol * scale:
             return u, ev, 0
         for it in range(1, max_iter + 1):
             Rf = ev["R"][self.free]
@@ -552,7 +557,7 @@ class Solver:
                 print(f"    it {it} alpha {alpha} res {res_t:.2e} area {ev_t['contact_area']:.3f}")
             u, ev, res = trial, ev_t, res_t
             step = alpha * float(np.max(np.abs(du_f))) if du_f.size else 0.0
-            if res < 1e-9 * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
+            if res < rtol * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
                 return u, ev, it
             ev = self.evaluate(u, h)
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {res:.3g} N)")
@@ -677,7 +682,8 @@ class Solver:
                     guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 t_step = time.perf_counter()
                 try:
-                    u_new, ev, its = self._newton(u, delta, guess=guess, delta_prev=d1)
+                    u_new, ev, its = self._newton(u, delta, guess=guess, delta_prev=d1,
+                                                  rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL)
                 except ConvergenceError as exc:
                     step /= 2
                     if step < min_step:
