@@ -58,6 +58,8 @@ EASY_STEP = 5
 PREDICTOR = True
 #: Newton's relative residual on load steps between requested states (see Solver._newton)
 STEP_RTOL = 1e-5
+#: a contact step takes the plates at most this factor further than the last equilibrium
+CONTACT_GROWTH = 1.5
 TRACE = False
 
 
@@ -673,6 +675,10 @@ class Solver:
             iters_total = 0
             while r_now < target - 1e-12:
                 r_try = min(target, r_now + step)
+                if self.contact is not None and r_now > 0:
+                    # a patch growing by more than half its approach per step outruns the
+                    # predictor (the rim penetrates deep and the line search crawls)
+                    r_try = min(r_try, CONTACT_GROWTH * r_now)
                 delta = r_try * self.gap0 * per_plate
                 (d1, u1) = history[-1]
                 if len(history) > 1:
