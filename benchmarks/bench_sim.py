@@ -382,7 +382,15 @@ def run(args) -> int:
                                  proj_case["_state25"])
     load_after = os.getloadavg()
 
-    # -- report ---------------------------------------------------------------------------------------
+    _report(axi, cyl3d, seed, reference, seed_reference, projection, proj_case, args)
+    checks, skipped = _targets(args, axi, projection, proj_case, seed_default, load_before, load_after)
+    total = time.perf_counter() - t_start
+    return _write(args, axi, cyl3d, seed, reference, seed_reference, projection, proj_case, checks, skipped,
+                  load_before, load_after, total)
+
+
+def _report(axi, cyl3d, seed, reference, seed_reference, projection, proj_case, args):
+    """Print the tables of :func:`run`."""
     ref_name = f"{reference['size_inclusion_mm']:g}/{reference['size_far_mm']:g}"
     print_table(f"1-2. cylinder 40 x 40 mm, 10 mm sphere, 20/134 kPa; errors against axisymmetric {ref_name} mm",
                 axi + cyl3d, reference)
@@ -426,6 +434,11 @@ def run(args) -> int:
         print(f"  {kind:<9} first call {p['first_s']:.3f} s ({note}), then median {p['median_s']:.3f} s "
               f"of {len(p['runs_s'])}")
 
+
+
+def _targets(args, axi, projection, proj_case, seed_default, load_before, load_after):
+    """The pass/fail lines of :func:`run`: (checks, skipped)."""
+    pm = f"{proj_case['size_inclusion_mm']:g}/{proj_case['size_far_mm']:g}"
     checks = []
     if seed_default is not None:
         checks.append(("seed-breast 15/20/25 % at the default mesh <= 60 s", seed_default["wall_s"] <= SEED_LIMIT_S,
@@ -454,8 +467,15 @@ def run(args) -> int:
         print(f"  {'PASS' if ok else 'FAIL'}  {name}: {value}")
     for name in skipped:
         print(f"  SKIP  {name}")
-    total = time.perf_counter() - t_start
 
+    return checks, skipped
+
+
+def _write(args, axi, cyl3d, seed, reference, seed_reference, projection, proj_case, checks, skipped,
+           load_before, load_after, total):
+    """The chart and the JSON of :func:`run`; the exit status."""
+    speedups = equal_error_speedups(axi, cyl3d, reference)
+    mode_name = "quick" if args.quick else "full" if args.full else "default"
     png, js = args.out / "bench_sim.png", args.out / "bench_sim.json"
     limits = [(AXI_LIMIT_S, "5 s: axisymmetric target"), (SEED_LIMIT_S, "60 s: seed-breast target")]
     chart(png, axi, cyl3d, seed, reference, seed_reference, limits)
@@ -475,6 +495,7 @@ def run(args) -> int:
     }, indent=1))
     print(f"\n{total:.0f} s in all; chart {png}, numbers {js}")
     return 0 if all(ok for _, ok, _ in checks) else 1
+
 
 
 if __name__ == "__main__":
