@@ -180,6 +180,10 @@ class Solver:
         nloc = len(basis.basis)
         nel = basis.dx.shape[0]
         self.B, self.w = self._gradient_operator(basis)
+        nq, nd = self.B.shape[1:3]
+        # the same operator as (element, dof, quadrature point x 9): residuals and strains are then
+        # batched matrix products instead of three-operand einsums
+        self.Bt = np.ascontiguousarray(self.B.reshape(nel, nq, nd, 9).transpose(0, 2, 1, 3)).reshape(nel, nd, nq * 9)
         self.Ve = self.w.sum(axis=1)
         edofs = basis.element_dofs.T  # (nel, nloc) scalar node indices
         self.edofs = (edofs[:, :, None] * dim + np.arange(dim)[None, None, :]).reshape(nel, nloc * dim)
@@ -342,8 +346,8 @@ class Solver:
     # -- energy and derivatives ---------------------------------------------------------------
     def _kinematics(self, u):
         ue = u[self.edofs]  # (nel, ndl)
-        Hg = np.einsum("ed,eqdij->eqij", ue, self.B)
-        return _EYE + Hg
+        nel, nq = self.w.shape
+        return _EYE + np.matmul(ue[:, None, :], self.Bt).reshape(nel, nq, 3, 3)
 
     def _material(self, F, need_tangent):
         """Per quadrature point: energy W, volumetric measure g, P = dW + p dg, and the tangent."""
@@ -383,19 +387,23 @@ class Solver:
             # A_ijkl = d P_ij / d F_kl at fixed p
             d = np.einsum("ik,jl->ijkl", _EYE, _EYE)
             X = np.einsum("eqil,eqkj->eqijkl", FiT, FiT)
-            nh = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * X
-            S = 2 * mu[..., None, None] * Egl + p[..., None, None] * _EYE
-            FFt = np.einsum("eqim,eqkm->eqik", F, F)
-            sv = (np.einsum("ik,eqlj->eqijkl", _EYE, S) + mu[..., None, None, None, None]
-                  * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", F, F)))
-            A = np.where(svk[..., None, None, None, None], sv, nh)
-            if unc is not None:
-                Y = np.einsum("eqij,eqkl->eqijkl", FiT, FiT)
-                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", FiT, F) + np.einsum("eqkl,eqij->eqijkl", F, FiT))
-                       + (2 / 9 * I1)[..., None, None, None, None] * Y + (I1 / 3)[..., None, None, None, None] * X)
-                ua = ((mu * a)[..., None, None, None, None] * iso
-                      + (p * Jc)[..., None, None, None, None] * (Y - X))
-                A = np.where(unc[..., None, None, None, None], ua, A)
+            A = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * X
+            # the other models' tangents only on their own elements (the inclusion, a few %)
+            e = np.flatnonzero(self.svk)
+            if e.size:
+                Fe, m_e = F[e], mu[e][..., None, None, None, None]
+                S = 2 * mu[e][..., None, None] * Egl[e] + p[e][..., None, None] * _EYE
+                FFt = np.einsum("eqim,eqkm->eqik", Fe, Fe)
+                A[e] = (np.einsum("ik,eqlj->eqijkl", _EYE, S)
+                        + m_e * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", Fe, Fe)))
+            e = np.flatnonzero(self.unc)
+            if e.size:
+                Fe, Ge, Ie = F[e], FiT[e], I1[e][..., None, None, None, None]
+                Y = np.einsum("eqij,eqkl->eqijkl", Ge, Ge)
+                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", Ge, Fe) + np.einsum("eqkl,eqij->eqijkl", Fe, Ge))
+                       + 2 / 9 * Ie * Y + Ie / 3 * X[e])
+                A[e] = ((mu[e] * a[e])[..., None, None, None, None] * iso
+                        + (p[e] * Jc[e])[..., None, None, None, None] * (Y - X[e]))
             out["A"] = A
         return out
 
@@ -434,20 +442,24 @@ class Solver:
         m = self._material(F, need_tangent)
         if m is None:
             return None
-        re = np.einsum("eq,eqij,eqdij->ed", self.w, m["P"], self.B)
+        nel, nq = self.w.shape
+        re = np.matmul(self.Bt, (self.w[:, :, None] * m["P"].reshape(nel, nq, 9)).reshape(nel, nq * 9, 1))[..., 0]
         R = np.bincount(self.edofs.ravel(), re.ravel(), minlength=self.ndof)
         ce, cr, cK, cforce, carea = self._contact_terms(u, h, need_tangent)
         if cr is not None:
             R += np.bincount(self.contact["dofs"].ravel(), cr.ravel(), minlength=self.ndof)
         out = dict(energy=m["energy"] + ce, R=R, J=m["J"], contact_force=cforce, contact_area=carea, F=F)
         if need_tangent:
-            nel, nq, nd = self.B.shape[:3]
-            Bf = self.B.reshape(nel, nq, nd, 9)
-            # T[e,q,d,:] = A[e,q] : B[e,q,d] and K_e = sum_q w B T^T, as batched matrix products
-            T = np.matmul(Bf, m["A"].reshape(nel, nq, 9, 9).transpose(0, 1, 3, 2))
-            wB = (Bf * self.w[:, :, None, None]).transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9)
-            Ke = np.matmul(wB, T.transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9).transpose(0, 2, 1))
-            G = np.einsum("eq,eqij,eqdij->ed", self.w, m["dg"], self.B)
+            nd = self.Bt.shape[1]
+            Bt4 = self.Bt.reshape(nel, nd, nq, 9)
+            A = m["A"].reshape(nel, nq, 9, 9)
+            # T[e,d,q,:] = A[e,q] : B[e,q,d] and K_e = sum_q w B T^T, as batched matrix products
+            T = np.empty((nel, nd, nq, 9))
+            for q in range(nq):
+                T[:, :, q, :] = np.matmul(Bt4[:, :, q, :], A[:, q].transpose(0, 2, 1))
+            wB = self.Bt * np.repeat(self.w, 9, axis=1)[:, None, :]
+            Ke = np.matmul(wB, T.reshape(nel, nd, nq * 9).transpose(0, 2, 1))
+            G = np.matmul(self.Bt, (self.w[:, :, None] * m["dg"].reshape(nel, nq, 9)).reshape(nel, nq * 9, 1))[..., 0]
             Ke += (self.lam / self.Ve)[:, None, None] * G[:, :, None] * G[:, None, :]
             out["K"] = self._pattern.assemble(Ke, self._contact_pattern_values(cK))
         return out
