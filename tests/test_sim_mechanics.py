@@ -135,7 +135,7 @@ def test_convergence_failure_names_the_compression(monkeypatch):
     configuration costs minutes to reach."""
     from sim.mechanics import ConvergenceError, Solver
 
-    def never(self, u, delta, max_iter=30, guess=None):
+    def never(self, u, delta, **options):
         raise ConvergenceError("fake: no convergence")
 
     monkeypatch.setattr(Solver, "_newton", never)
