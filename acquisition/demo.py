@@ -78,7 +78,7 @@ def control_scene(scene):
 
 def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
              coarse=False, method="rc", register_preset="default", progress=True, dialect="A", overwrite=False,
-             view=None) -> dict:
+             view=None, imaging=None) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
     The lab's settings by default: the full panel (``binning`` 1), the scene's own mesh, the
@@ -86,7 +86,8 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
     are the cheaper ones. ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and
     the driver speak. ``out_dir`` must be new, empty, or a previous demo's folder (replaced only
     with ``overwrite=True``): the demo never deletes a file it did not make. ``view`` is the beam
-    direction (``"through_plates"`` or ``"side"``; default: the preset's own)."""
+    direction (``"through_plates"`` or ``"side"``; default: the preset's own), ``imaging`` the
+    imaging model (``"paper"`` or ``"experiment"``; default: the preset's, ``sim.scene.Imaging``)."""
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import Config, process
     from sim.bench import VirtualBench
@@ -99,6 +100,10 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
         from sim.scene import with_view
 
         scene = with_view(scene, view)
+    if imaging:
+        from sim.scene import with_imaging
+
+        scene = with_imaging(scene, imaging)
     scene.detector.binning = int(binning) if binning else 1
     if coarse:  # the demo's mesh: faster to solve (benchmarks/bench_sim.py measures what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
@@ -182,6 +187,8 @@ def add_demo(subparsers):
     p.add_argument("--fast", action="store_true", help="the fast registration preset, not the default one")
     p.add_argument("--view", choices=["through_plates", "side"],
                    help="beam direction (default: the preset's; pva-phantom is imaged from the side)")
+    p.add_argument("--imaging", choices=["paper", "experiment"],
+                   help="paper: monochromatic beam, no scatter; experiment (the presets'): tube spectrum and scatter")
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
     p.add_argument("--dialect", choices=("A", "B"), default="A",
@@ -194,7 +201,8 @@ def add_demo(subparsers):
 def _run(args) -> int:
     summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
                        coarse=args.coarse, method=args.method, register_preset="fast" if args.fast else "default",
-                       progress=not args.quiet, dialect=args.dialect, overwrite=args.overwrite, view=args.view)
+                       progress=not args.quiet, dialect=args.dialect, overwrite=args.overwrite, view=args.view,
+                       imaging=args.imaging)
     print()
     print(headline(summary))
     return 0

@@ -6,7 +6,9 @@ Run (from the repository root)::
     python benchmarks/bench_model.py --quick         # pva-phantom only, no 3-D default mesh: ~3 minutes
     python benchmarks/bench_model.py --full          # adds the refined meshes (seed-breast 0.7/4.2 mm): much longer
     python benchmarks/bench_model.py --out DIR       # where the JSON goes (default out/bench_model)
-    python benchmarks/bench_model.py --convergence   # the 3-D seed-breast mesh study instead (~40 min)
+    python benchmarks/bench_model.py --imaging-only  # the base and the imaging rows only (~2 minutes)
+    python benchmarks/bench_model.py --convergence   # the 3-D seed-breast mesh study instead (long)
+    python benchmarks/bench_model.py --convergence --meshes 1.4/12/2 0.7/6/1   # the preset and its double
 
 Needs the ``study`` extra (SpekPy, XrayDB) for the polychromatic beam.
 
@@ -37,6 +39,8 @@ scatter, an ideal detector. The choices:
 - **scatter**: a smooth additive term (``sim.imaging.scatter``), scatter-to-primary 0.3 (a 5-6 cm
   object without a grid) through the body's thickness, Gaussian of 10 mm;
 - **blur**: the CsI scintillator's point spread, Gaussian sigma 0.1 mm;
+- **the presets' imaging** (``sim.scene.Imaging`` "experiment": polychromatic + scatter) and the
+  richest imaging (+ blur): the defaults rule's check;
 - **noise**: Poisson at the scene's exposure (2500 quanta per 50 um pixel, i.e. 90 000 per 0.3 mm
   pixel), mean and standard deviation over 5 seeds.
 
@@ -103,9 +107,11 @@ def _row(scene, name, choice, pair, seconds, counts):
 def _variants(name, quick, full):
     """(label, scene mutator) of the mechanical choices for a preset."""
     out = []
-    default = (1.0, 6.0) if name == "seed-breast" else (1.0, 5.0)
+    m = load_scene(name).mesh
+    default = (m.size_inclusion_mm, m.size_far_mm, m.size_contact_mm)
     if not quick:
-        out.append((f"mesh {default[0]}/{default[1]} mm", lambda s: _mesh(s, *default)))
+        label = "/".join(f"{x:g}" for x in default if x is not None)
+        out.append((f"mesh {label} mm (the preset's)", lambda s: _mesh(s, *default)))
     if full:
         out.append(("mesh 0.7/4.2 mm", lambda s: _mesh(s, 0.7, 4.2)))
     if name == "pva-phantom":
@@ -118,8 +124,8 @@ def _variants(name, quick, full):
     return out
 
 
-def _mesh(s, a, b):
-    s.mesh.size_inclusion_mm, s.mesh.size_far_mm = a, b
+def _mesh(s, a, b, c=None):
+    s.mesh.size_inclusion_mm, s.mesh.size_far_mm, s.mesh.size_contact_mm = a, b, c
 
 
 def _inclusion_model(s, model):
@@ -137,23 +143,27 @@ def _base(name):
     s = load_scene(name)
     s.mesh.model = "3d"
     _mesh(s, *COARSE)
+    s.mesh.size_contact_mm = None
     return s
 
 
 def _beam(name, base):
-    if name == "seed-breast":
-        return imaging.Polychromatic(28.0, "Mo", filters=(("Be", 0.15), ("Mo", 0.03), ("Air", 500.0)),
-                                     match_mm=2 * base.body.half_height_mm)
-    return imaging.Polychromatic(60.0, "W", filters=(("Be", 0.15), ("Air", 500.0)), match_mm=2 * base.body.half_height_mm)
+    """The scene's tube (sim.imaging.tube: 28 kV Mo/Mo for seed-breast, 60 kV W/Be for the pva-phantom)."""
+    return imaging.tube(base.exposure.voltage_kv, "auto", 2 * base.body.half_height_mm)
 
 
 def _image_rows(scene, label, proj, counts, t_proj, beam):
     rows = []
     l_ref = scene.body.material.attenuation_per_mm * 2 * scene.body.half_height_mm
     mono = imaging.monochromatic
+    sc = lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref)
+    bl = lambda L: imaging.blur(L, 0.1, PIXEL_MM)
     cases = [("polychromatic beam", imaging.chain(beam)),
-             ("scatter SPR 0.3", imaging.chain(mono, lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref))),
-             ("blur 0.1 mm", imaging.chain(mono, lambda L: imaging.blur(L, 0.1, PIXEL_MM)))]
+             ("scatter SPR 0.3", imaging.chain(mono, sc)),
+             ("blur 0.1 mm", imaging.chain(mono, bl)),
+             # the presets' imaging (sim.scene.Imaging "experiment"), and the richest imaging
+             ("polychromatic + scatter (the presets')", imaging.chain(beam, sc)),
+             ("polychromatic + scatter + blur", imaging.chain(beam, sc, bl))]
     for choice, model in cases:
         t = time.perf_counter()
         pair = study.images(proj, model)
@@ -175,7 +185,7 @@ def _image_rows(scene, label, proj, counts, t_proj, beam):
     return rows
 
 
-def run_scene(name, view, quick, full, log):
+def run_scene(name, view, quick, full, log, imaging_only=False):
     label = name if view is None else f"{name} ({view.replace('_', ' ')})"
     base = _base(name)
     if view:
@@ -194,7 +204,7 @@ def run_scene(name, view, quick, full, log):
     for r in _image_rows(base, label, proj, counts, t_proj, _beam(name, base)):
         rows.append(r)
         log(r)
-    for choice, mutate in _variants(name, quick, full):
+    for choice, mutate in ([] if imaging_only else _variants(name, quick, full)):
         sc = dataclasses.replace(base)
         sc.mesh = dataclasses.replace(base.mesh)
         mutate(sc)
@@ -233,30 +243,67 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
-#: (at the inclusion, far, at the plates or None) in mm: the README's convergence table
+#: (at the inclusion, far, at the plates or None) in mm: the README's convergence table. Each
+#: banded mesh is followed by its double (every size halved), the preset's (sim.scene) first.
 CONVERGENCE = [(2.8, 16.0, None), (2.0, 12.0, None), (1.4, 8.0, None), (1.0, 6.0, None), (0.7, 6.0, None),
-               (0.5, 6.0, None), (1.0, 12.0, None), (2.0, 12.0, 2.0), (1.4, 8.0, 1.4), (1.0, 6.0, 1.0)]
+               (2.0, 12.0, 2.0), (1.0, 6.0, 1.0), (1.4, 12.0, 2.0), (0.7, 6.0, 1.0)]
 
 
-def convergence(out) -> str:
-    """seed-breast (3-D, through the plates) at every mesh of :data:`CONVERGENCE`: unknowns,
-    seconds, force, inclusion strain, change ratio and IF (linear), truth-registered."""
-    lines = ["| mesh at inclusion / far / plates (mm) | unknowns | s | force (N) | inclusion strain | "
-             "change ratio (lin) | IF(1) | IF(2) |", "|---|---|---|---|---|---|---|---|"]
-    for a, b, c in CONVERGENCE:
-        sc = _base("seed-breast")
-        sc.mesh.size_inclusion_mm, sc.mesh.size_far_mm, sc.mesh.size_contact_mm = a, b, c
-        t = time.perf_counter()
-        st = compress(sc, RATIOS)
-        secs = time.perf_counter() - t
-        h = study.headline(study.image_pair(sc, st, pixel_mm=PIXEL_MM))
-        s = st[-1]
+def _parse_mesh(text):
+    """``"1.4/12/2"`` -> (1.4, 12.0, 2.0); a missing third size is no contact band."""
+    parts = [float(x) for x in text.split("/")]
+    return tuple(parts) if len(parts) == 3 else (parts[0], parts[1], None)
+
+
+def convergence_row(a, b, c) -> dict:
+    """seed-breast (3-D, through the plates, its own three states) at one mesh: unknowns, seconds
+    and the solver's work, the 25 % state's force and inclusion strain, and the 20 -> 25 % pair's
+    change ratio and IF (linear), truth-registered."""
+    sc = load_scene("seed-breast")
+    sc.mesh.size_inclusion_mm, sc.mesh.size_far_mm, sc.mesh.size_contact_mm = a, b, c
+    t = time.perf_counter()
+    st = compress(sc)
+    secs = time.perf_counter() - t
+    pair = [s for s in st if s.ratio in RATIOS]
+    h = study.headline(study.image_pair(sc, pair, pixel_mm=PIXEL_MM))
+    s, sv = st[-1], st[-1].solver
+    return dict(mesh=[a, b, c], dofs=int(sv.ndof), seconds=secs, newton=sum(x.newton_iterations for x in st),
+                load_steps=s.load_steps, factorisations=sv.factorisations, gmres=sv.krylov_iterations,
+                force=s.plate_force_n, strain=s.inclusion_strain, cr=h.change_ratio["linear"],
+                if1=h.improvement["linear"]["1"], if2=h.improvement["linear"]["2"], load=os.getloadavg()[0])
+
+
+def convergence_table(rows) -> str:
+    """The rows as markdown; a mesh whose double is also in ``rows`` gets the largest relative
+    change of force, inclusion strain, change ratio, IF(1) and IF(2) on doubling."""
+    lines = ["| mesh at inclusion / far / plates (mm) | unknowns | s (3 states) | Newton / factorisations / GMRES | "
+             "force (N) | inclusion strain | change ratio (lin) | IF(1) | IF(2) | doubling changes |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    keys = ("force", "strain", "cr", "if1", "if2")
+    by_mesh = {tuple(r["mesh"]): r for r in rows}
+    for r in rows:
+        a, b, c = r["mesh"]
+        fine = by_mesh.get((a / 2, b / 2, c / 2 if c else None))
+        d = (f"{100 * max(abs(r[k] / fine[k] - 1) for k in keys):.1f} %" if fine else "")
         mesh = f"{a:g} / {b:g}" + (f" / {c:g}" if c else "")
-        lines.append(f"| {mesh} | {s.solver.ndof} | {secs:.0f} | {s.plate_force_n:.4f} | {s.inclusion_strain:.4f} | "
-                     f"{h.change_ratio['linear']:.3f} | {h.improvement['linear']['1']:.3f} | "
-                     f"{h.improvement['linear']['2']:.3f} |")
-        print(lines[-1], flush=True)
-    text = "\n".join(lines)
+        lines.append(f"| {mesh} | {r['dofs']} | {r['seconds']:.0f} | {r['newton']} / {r['factorisations']} / "
+                     f"{r['gmres']} | {r['force']:.4f} | {r['strain']:.4f} | {r['cr']:.3f} | {r['if1']:.3f} | "
+                     f"{r['if2']:.3f} | {d} |")
+    return "\n".join(lines)
+
+
+def convergence(out, meshes=None) -> str:
+    """Every mesh of ``meshes`` (default :data:`CONVERGENCE`), one JSON line each in
+    ``out/convergence.jsonl`` as it finishes, then the table (``out/convergence.md``)."""
+    rows = []
+    with open(out / "convergence.jsonl", "a") as log:
+        for mesh in meshes or CONVERGENCE:
+            rows.append(convergence_row(*mesh))
+            log.write(json.dumps(rows[-1]) + "\n")
+            log.flush()
+            print(rows[-1], flush=True)
+    text = convergence_table(rows)
+    print(text)
     (out / "convergence.md").write_text(text + "\n")
     return text
 
@@ -267,12 +314,15 @@ def main(argv=None) -> int:
     mode.add_argument("--quick", action="store_true", help="pva-phantom only, no default-mesh rows")
     mode.add_argument("--full", action="store_true", help="add the refined meshes")
     mode.add_argument("--convergence", action="store_true", help="the 3-D seed-breast mesh study instead")
+    mode.add_argument("--imaging-only", action="store_true", help="the base and the imaging rows only (minutes)")
+    ap.add_argument("--meshes", nargs="+", type=_parse_mesh, help="with --convergence: these meshes only "
+                    "(inclusion/far[/plates] mm, e.g. 2/12/2)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_model"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()}", flush=True)
     if args.convergence:
-        convergence(args.out)
+        convergence(args.out, args.meshes)
         print(f"load average after: {os.getloadavg()}")
         return 0
 
@@ -286,7 +336,7 @@ def main(argv=None) -> int:
         cases.insert(0, ("seed-breast", None))
     t0 = time.perf_counter()
     for name, view in cases:
-        rows += run_scene(name, view, args.quick, args.full, log)
+        rows += run_scene(name, view, args.quick, args.full, log, args.imaging_only)
     text = table(rows)
     print()
     print(text)

@@ -17,6 +17,8 @@ def add_sim(subparsers):
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
     r.add_argument("--view", choices=["through_plates", "side"], help="beam direction (default: the scene's)")
+    r.add_argument("--imaging", choices=["paper", "experiment"],
+                   help="paper: monochromatic, no scatter; experiment: tube spectrum and scatter (default: the scene's)")
     r.add_argument("--darks", type=int, default=10, help="dark frames (default 10)")
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
@@ -49,6 +51,10 @@ def _run_sim(args) -> int:
         from sim.scene import with_view
 
         scene = with_view(scene, args.view)
+    if args.imaging:
+        from sim.scene import with_imaging
+
+        scene = with_imaging(scene, args.imaging)
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []

@@ -41,14 +41,18 @@ def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, 
     inclusion_mask : (rows, cols) uint8
         1 where the ray crosses an inclusion (all 0 for a scene without one).
     """
+    from sim import imaging
     from sim.xray import Geometry, path_lengths
 
     mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
     fem = getattr(solver, "projection_mesh", None) or solver.fem
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     # (n_regions, rows, cols) mm
-    lengths = path_lengths(fem, Geometry.from_scene(scene), displacement, thickness_mm=thickness)
-    line_integral = np.tensordot(np.asarray(mus[:len(lengths)], np.float64), lengths, axes=1).astype(np.float32)
+    geometry = Geometry.from_scene(scene)
+    lengths = path_lengths(fem, geometry, displacement, thickness_mm=thickness)
+    # the scene's imaging model (sim.imaging): tube spectrum and scatter, or the paper's line integral
+    model = imaging.for_scene(scene, geometry.pixel_size_mm)
+    line_integral = model(lengths, np.asarray(mus[:len(lengths)], np.float64)).astype(np.float32)
     mask = ((lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1
             else np.zeros(lengths.shape[1:], np.uint8))
     return line_integral, mask

@@ -53,6 +53,18 @@ _EYE = np.eye(3)
 
 #: relative accuracy of each Newton update's linear solve (see Solver._linsolve)
 LINEAR_RTOL = 1e-4
+#: a factorisation's cost in preconditioned GMRES iterations: the ratio of their times on
+#: seed-breast's mesh (benchmarks/README.md, "Mechanics regression"); a count, not a measured
+#: time, keeps the work independent of the machine's load
+LU_PRICE = 40
+FIRST_STEP = 0.05
+EASY_STEP = 5
+PREDICTOR = True
+#: Newton's relative residual on load steps between requested states (see Solver._newton)
+STEP_RTOL = 1e-5
+#: a contact step takes the plates at most this factor further than the last equilibrium
+CONTACT_GROWTH = 1.5
+TRACE = False
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
@@ -104,21 +116,18 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
 
     With axial stretch s = 1 - ratio and lateral stretch t, F = diag(t, s, t), J = s t^2. The first
     Piola stress is P = mu (F - F^-T) + lambda ln J F^-T, so the free sides need
-    mu (t^2 - 1) + lambda ln(s t^2) = 0 (solved for t by bisection; the left side increases with t),
-    and the plate force is |P_yy| A = |mu (s - 1/s) + lambda ln(J) / s| A.
+    mu (t^2 - 1) + lambda ln(s t^2) = 0 (the left side increases with t: one root, bracketed by
+    t = 1, where it is lambda ln s < 0, and t = 1/s, where it is positive), and the plate force is
+    |P_yy| A = |mu (s - 1/s) + lambda ln(J) / s| A.
     """
+    from scipy.optimize import brentq
+
     mu = E_kpa / (2 * (1 + nu)) * 1e-3
     lam = E_kpa * nu / ((1 + nu) * (1 - 2 * nu)) * 1e-3
     s = 1.0 - ratio
-    f = lambda t: mu * (t * t - 1) + lam * math.log(s * t * t)
-    lo, hi = 1e-3, 10.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if f(mid) > 0:
-            hi = mid
-        else:
-            lo = mid
-    t = 0.5 * (lo + hi)
+    if s == 1.0:
+        return 0.0, 1.0
+    t = brentq(lambda t: mu * (t * t - 1) + lam * math.log(s * t * t), 1.0, 1.0 / s, xtol=1e-15, rtol=1e-15)
     p_yy = mu * (s - 1 / s) + lam * math.log(s * t * t) / s
     return abs(p_yy) * area_mm2, t
 
@@ -173,26 +182,13 @@ class Solver:
         self.projection_mesh = p2_submesh(self.fem, self.fem.skfem(), self.dof_points)
         self.n_nodes = basis.N
         nloc = len(basis.basis)
-        nel, nq = basis.dx.shape
-        # Gradient operator: Bop[e, q, d] is the 3x3 displacement gradient of a unit local dof d.
-        grads = np.stack([basis.basis[a][0].grad for a in range(nloc)])  # (nloc, dim, nel, nq)
-        grads = grads.transpose(2, 3, 0, 1)  # (nel, nq, nloc, dim)
-        B = np.zeros((nel, nq, nloc * dim, 3, 3))
-        for a in range(nloc):
-            for i in range(dim):
-                B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
-        w = basis.dx.copy()
-        if self.model == "axisymmetric":
-            R = np.asarray(basis.global_coordinates())[0]  # (nel, nq), quadrature points are interior: R > 0
-            vals = np.stack([np.asarray(basis.basis[a][0]) for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
-            for a in range(nloc):
-                B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
-            w = w * 2 * np.pi * R
-        elif self.model == "plane-strain":
-            w = w * scene.body.size_mm[2]
-        self.B = B
-        self.w = w
-        self.Ve = w.sum(axis=1)
+        nel = basis.dx.shape[0]
+        self.B, self.w = self._gradient_operator(basis)
+        nq, nd = self.B.shape[1:3]
+        # the same operator as (element, dof, quadrature point x 9): residuals and strains are then
+        # batched matrix products instead of three-operand einsums
+        self.Bt = np.ascontiguousarray(self.B.reshape(nel, nq, nd, 9).transpose(0, 2, 1, 3)).reshape(nel, nd, nq * 9)
+        self.Ve = self.w.sum(axis=1)
         edofs = basis.element_dofs.T  # (nel, nloc) scalar node indices
         self.edofs = (edofs[:, :, None] * dim + np.arange(dim)[None, None, :]).reshape(nel, nloc * dim)
         self.ndof = self.n_nodes * dim
@@ -218,20 +214,61 @@ class Solver:
             self.force_multiplicity = 2 if self.model == "plane-strain" else 1
         self._setup_boundary(FacetBasis, elem, penalty_factor)
         self._lu = None
-        self._lu_seconds = 0.0  # what the last factorisation cost
-        self._krylov_seconds = 0.0  # GMRES time spent on it since
+        self._krylov_spent = 0  # GMRES iterations preconditioned by the current factorisation
         self.factorisations = 0
         self.krylov_iterations = 0
+
+    def _gradient_operator(self, basis):
+        """``B[e, q, d]``: the 3x3 displacement gradient of a unit local dof d (the hoop strain
+        u_r / r in the (2, 2) entry for axisymmetry), and the quadrature weights (times 2 pi r,
+        or the slab's thickness)."""
+        dim, nloc = self.dim, len(basis.basis)
+        nel, nq = basis.dx.shape
+        grads = np.stack([basis.basis[a][0].grad for a in range(nloc)])  # (nloc, dim, nel, nq)
+        grads = grads.transpose(2, 3, 0, 1)  # (nel, nq, nloc, dim)
+        B = np.zeros((nel, nq, nloc * dim, 3, 3))
+        for a in range(nloc):
+            for i in range(dim):
+                B[:, :, a * dim + i, i, :dim] = grads[:, :, a, :]
+        w = basis.dx.copy()
+        if self.model == "axisymmetric":
+            R = np.asarray(basis.global_coordinates())[0]  # (nel, nq), quadrature points are interior: R > 0
+            vals = np.stack([np.asarray(basis.basis[a][0]) for a in range(nloc)], axis=-1)  # (nel, nq, nloc)
+            for a in range(nloc):
+                B[:, :, a * dim + 0, 2, 2] = vals[:, :, a] / R
+            w = w * 2 * np.pi * R
+        elif self.model == "plane-strain":
+            w = w * self.scene.body.size_mm[2]
+        return B, w
 
     # -- boundary conditions ------------------------------------------------------------------
     def _setup_boundary(self, FacetBasis, elem, penalty_factor):
         sc = self.scene
-        dim = self.dim
-        X = self.dof_points
-        H = sc.body.half_height_mm
+        self.H = sc.body.half_height_mm
+        self.gap0 = 2 * self.H
         size = float(np.max(self.dof_points.max(axis=1) - self.dof_points.min(axis=1)))
-        tol = 1e-6 * size
-        fixed = {}  # global dof -> kind: value function of top-plate displacement
+        self._tol = 1e-6 * size
+        fixed = self._symmetry_and_wall()  # global dof -> prescribed value
+        self.top_nodes = np.zeros(0, np.int64)
+        self.moving = np.zeros(0, np.int64)
+        self.contact = None
+        if sc.body.geometry in ("truncated-cone", "cylinder", "box"):
+            self._flat_plates(fixed)
+        else:
+            self._contact_setup(FacetBasis, elem, penalty_factor)
+        self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
+        self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
+        moving = set(self.moving.tolist())
+        self.fixed_dofs_all = np.array(sorted(set(self.fixed_dofs.tolist()) | moving), dtype=np.int64)
+        free = np.ones(self.ndof, bool)
+        free[self.fixed_dofs_all] = False
+        self.free = np.flatnonzero(free)
+
+    def _symmetry_and_wall(self) -> dict:
+        """Zero displacement normal to the symmetry planes and at the chest wall (all components
+        where it is fixed, x where it slides); for 2-D models the axis or the x = 0 plane."""
+        sc, X, tol = self.scene, self.dof_points, self._tol
+        fixed = {}
         sym = set(self.fem.symmetry)
         if self.model == "3d":
             axes = {"x": 0, "y": 1, "z": 2}
@@ -250,75 +287,69 @@ class Solver:
             if "y" in sym:
                 for n in np.flatnonzero(np.abs(X[1]) < tol):
                     fixed[n * 2 + 1] = 0.0
-        y_sym = "y" in sym
-        self.top_nodes = np.zeros(0, np.int64)
-        self.contact = None
-        flat = sc.body.geometry in ("truncated-cone", "cylinder", "box")
+        return fixed
+
+    def _flat_plates(self, fixed):
+        """Faces on the plates: the top moves down (``self.moving``), the bottom (without a y
+        symmetry plane) stays; bonded plates also hold the lateral displacement."""
+        dim, X, H, tol = self.dim, self.dof_points, self.H, self._tol
         lateral = [k for k in range(dim) if k != 1]
-        bonded = sc.compression.contact == "bonded"
-        if flat:
-            top = np.flatnonzero(np.abs(X[1] - H) < tol)
-            self.top_nodes = top
-            self.moving = top * dim + 1  # u_y = -delta
-            for n in top:
+        bonded = self.scene.compression.contact == "bonded"
+        top = np.flatnonzero(np.abs(X[1] - H) < tol)
+        self.top_nodes = top
+        self.moving = top * dim + 1  # u_y = -delta
+        for n in top:
+            if bonded:
+                for k in lateral:
+                    fixed[n * dim + k] = 0.0
+        if "y" not in self.fem.symmetry:
+            for n in np.flatnonzero(np.abs(X[1] + H) < tol):
+                fixed[n * dim + 1] = 0.0
                 if bonded:
                     for k in lateral:
                         fixed[n * dim + k] = 0.0
-            if not y_sym:
-                bottom = np.flatnonzero(np.abs(X[1] + H) < tol)
-                for n in bottom:
-                    fixed[n * dim + 1] = 0.0
-                    if bonded:
-                        for k in lateral:
-                            fixed[n * dim + k] = 0.0
-        else:
-            if bonded:
-                raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
-                                 f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
-            if not y_sym:
-                raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
-            self.moving = np.zeros(0, np.int64)
-            # penalty contact on boundary facets that can reach the plate (upper half, off the planes)
-            m = self.mesh
-            bf = m.boundary_facets()
-            mid = m.p[:, m.facets[:, bf]].mean(axis=1)
-            on_plane = np.zeros(bf.size, bool)
-            for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
-                if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
-                    on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
-            if self.model == "3d" and sc.wall != "none":
-                on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
-            cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
-            fb = FacetBasis(m, elem, facets=cand, intorder=4)
-            nloc = len(fb.basis)
-            N = np.stack([np.asarray(fb.basis[a][0]) for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
-            fw = fb.dx.copy()
-            Xq = np.asarray(fb.global_coordinates())
-            if self.model == "axisymmetric":
-                fw = fw * 2 * np.pi * Xq[0]
-            ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
-            # The plates touch the background: its stiffness over the finest element size sets the
-            # penalty, so the penetration stays ~1e-2 of the contact strain times that size.
-            bg = sc.body.material
-            E_bg = bg.E_kpa if bg.E_kpa is not None else 3 * bg.shear_kpa
-            h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
-            eps = penalty_factor * E_bg * 1e-3 / h_min
-            self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
-        self.fixed_dofs = np.array(sorted(fixed), dtype=np.int64)
-        self.fixed_vals = np.array([fixed[d] for d in self.fixed_dofs])
-        moving = set(self.moving.tolist())
-        self.fixed_dofs_all = np.array(sorted(set(self.fixed_dofs.tolist()) | moving), dtype=np.int64)
-        free = np.ones(self.ndof, bool)
-        free[self.fixed_dofs_all] = False
-        self.free = np.flatnonzero(free)
-        self.H = H
-        self.gap0 = 2 * H
+
+    def _contact_setup(self, FacetBasis, elem, penalty_factor):
+        """Penalty contact of a curved body with the plate, on the boundary facets that can reach
+        it (upper half, off the symmetry planes and the wall)."""
+        sc, dim, H, tol = self.scene, self.dim, self.H, self._tol
+        if sc.compression.contact == "bonded":
+            raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
+                             f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
+        sym = set(self.fem.symmetry)
+        if "y" not in sym:
+            raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
+        m = self.mesh
+        bf = m.boundary_facets()
+        mid = m.p[:, m.facets[:, bf]].mean(axis=1)
+        on_plane = np.zeros(bf.size, bool)
+        for k, ax in enumerate("xyz"[:dim] if self.model == "3d" else "ry"):
+            if (self.model == "3d" and ax in sym) or (self.model != "3d" and k == 0):
+                on_plane |= np.all(np.abs(m.p[k, m.facets[:, bf]]) < tol, axis=0)
+        if self.model == "3d" and sc.wall != "none":
+            on_plane |= np.all(np.abs(m.p[0, m.facets[:, bf]]) < tol, axis=0)
+        cand = bf[(~on_plane) & (mid[1] > 0.25 * H)]
+        fb = FacetBasis(m, elem, facets=cand, intorder=4)
+        nloc = len(fb.basis)
+        N = np.stack([np.asarray(fb.basis[a][0]) for a in range(nloc)], axis=-1)  # (nf, nq, nloc)
+        fw = fb.dx.copy()
+        Xq = np.asarray(fb.global_coordinates())
+        if self.model == "axisymmetric":
+            fw = fw * 2 * np.pi * Xq[0]
+        ydofs = fb.element_dofs.T * dim + 1  # (nf, nloc)
+        # The plates touch the background: its stiffness over the finest element size sets the
+        # penalty, so the penetration stays ~1e-2 of the contact strain times that size.
+        bg = sc.body.material
+        E_bg = bg.E_kpa if bg.E_kpa is not None else 3 * bg.shear_kpa
+        h_min = self.fem.meta.get("size_inclusion_mm", 1.0)
+        eps = penalty_factor * E_bg * 1e-3 / h_min
+        self.contact = dict(N=N, w=fw, y=Xq[1], dofs=ydofs, eps=eps)
 
     # -- energy and derivatives ---------------------------------------------------------------
     def _kinematics(self, u):
         ue = u[self.edofs]  # (nel, ndl)
-        Hg = np.einsum("ed,eqdij->eqij", ue, self.B)
-        return _EYE + Hg
+        nel, nq = self.w.shape
+        return _EYE + np.matmul(ue[:, None, :], self.Bt).reshape(nel, nq, 3, 3)
 
     def _material(self, F, need_tangent):
         """Per quadrature point: energy W, volumetric measure g, P = dW + p dg, and the tangent."""
@@ -358,19 +389,23 @@ class Solver:
             # A_ijkl = d P_ij / d F_kl at fixed p
             d = np.einsum("ik,jl->ijkl", _EYE, _EYE)
             X = np.einsum("eqil,eqkj->eqijkl", FiT, FiT)
-            nh = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * X
-            S = 2 * mu[..., None, None] * Egl + p[..., None, None] * _EYE
-            FFt = np.einsum("eqim,eqkm->eqik", F, F)
-            sv = (np.einsum("ik,eqlj->eqijkl", _EYE, S) + mu[..., None, None, None, None]
-                  * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", F, F)))
-            A = np.where(svk[..., None, None, None, None], sv, nh)
-            if unc is not None:
-                Y = np.einsum("eqij,eqkl->eqijkl", FiT, FiT)
-                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", FiT, F) + np.einsum("eqkl,eqij->eqijkl", F, FiT))
-                       + (2 / 9 * I1)[..., None, None, None, None] * Y + (I1 / 3)[..., None, None, None, None] * X)
-                ua = ((mu * a)[..., None, None, None, None] * iso
-                      + (p * Jc)[..., None, None, None, None] * (Y - X))
-                A = np.where(unc[..., None, None, None, None], ua, A)
+            A = mu[..., None, None, None, None] * d + (mu - p)[..., None, None, None, None] * X
+            # the other models' tangents only on their own elements (the inclusion, a few %)
+            e = np.flatnonzero(self.svk)
+            if e.size:
+                Fe, m_e = F[e], mu[e][..., None, None, None, None]
+                S = 2 * mu[e][..., None, None] * Egl[e] + p[e][..., None, None] * _EYE
+                FFt = np.einsum("eqim,eqkm->eqik", Fe, Fe)
+                A[e] = (np.einsum("ik,eqlj->eqijkl", _EYE, S)
+                        + m_e * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", Fe, Fe)))
+            e = np.flatnonzero(self.unc)
+            if e.size:
+                Fe, Ge, Ie = F[e], FiT[e], I1[e][..., None, None, None, None]
+                Y = np.einsum("eqij,eqkl->eqijkl", Ge, Ge)
+                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", Ge, Fe) + np.einsum("eqkl,eqij->eqijkl", Fe, Ge))
+                       + 2 / 9 * Ie * Y + Ie / 3 * X[e])
+                A[e] = ((mu[e] * a[e])[..., None, None, None, None] * iso
+                        + (p[e] * Jc[e])[..., None, None, None, None] * (Y - X[e]))
             out["A"] = A
         return out
 
@@ -409,20 +444,24 @@ class Solver:
         m = self._material(F, need_tangent)
         if m is None:
             return None
-        re = np.einsum("eq,eqij,eqdij->ed", self.w, m["P"], self.B)
+        nel, nq = self.w.shape
+        re = np.matmul(self.Bt, (self.w[:, :, None] * m["P"].reshape(nel, nq, 9)).reshape(nel, nq * 9, 1))[..., 0]
         R = np.bincount(self.edofs.ravel(), re.ravel(), minlength=self.ndof)
         ce, cr, cK, cforce, carea = self._contact_terms(u, h, need_tangent)
         if cr is not None:
             R += np.bincount(self.contact["dofs"].ravel(), cr.ravel(), minlength=self.ndof)
         out = dict(energy=m["energy"] + ce, R=R, J=m["J"], contact_force=cforce, contact_area=carea, F=F)
         if need_tangent:
-            nel, nq, nd = self.B.shape[:3]
-            Bf = self.B.reshape(nel, nq, nd, 9)
-            # T[e,q,d,:] = A[e,q] : B[e,q,d] and K_e = sum_q w B T^T, as batched matrix products
-            T = np.matmul(Bf, m["A"].reshape(nel, nq, 9, 9).transpose(0, 1, 3, 2))
-            wB = (Bf * self.w[:, :, None, None]).transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9)
-            Ke = np.matmul(wB, T.transpose(0, 2, 1, 3).reshape(nel, nd, nq * 9).transpose(0, 2, 1))
-            G = np.einsum("eq,eqij,eqdij->ed", self.w, m["dg"], self.B)
+            nd = self.Bt.shape[1]
+            Bt4 = self.Bt.reshape(nel, nd, nq, 9)
+            A = m["A"].reshape(nel, nq, 9, 9)
+            # T[e,d,q,:] = A[e,q] : B[e,q,d] and K_e = sum_q w B T^T, as batched matrix products
+            T = np.empty((nel, nd, nq, 9))
+            for q in range(nq):
+                T[:, :, q, :] = np.matmul(Bt4[:, :, q, :], A[:, q].transpose(0, 2, 1))
+            wB = self.Bt * np.repeat(self.w, 9, axis=1)[:, None, :]
+            Ke = np.matmul(wB, T.reshape(nel, nd, nq * 9).transpose(0, 2, 1))
+            G = np.matmul(self.Bt, (self.w[:, :, None] * m["dg"].reshape(nel, nq, 9)).reshape(nel, nq * 9, 1))[..., 0]
             Ke += (self.lam / self.Ve)[:, None, None] * G[:, :, None] * G[:, None, :]
             out["K"] = self._pattern.assemble(Ke, self._contact_pattern_values(cK))
         return out
@@ -448,16 +487,47 @@ class Solver:
                 U[k] = t * X[k]
         return U.T.ravel()
 
-    def _newton(self, u, delta, max_iter=30, guess=None):
+    def _contact_predictor(self, u, h_old, h):
+        """The tangent predictor of a contact step from the equilibrium ``u`` at ``h_old``: the
+        plate moved to ``h`` acting on the old contact patch only, K du = -dR/dh (h - h_old).
+        Newton's own first step sees every point the plate has passed as in contact, pushes the
+        patch's rim down with it and then spends iterations releasing it ring by ring."""
+        ev0 = self.evaluate(u, h_old)
+        if ev0 is None:
+            return None
+        c = self.contact
+        y = c["y"] + np.einsum("fqa,fa->fq", c["N"], u[c["dofs"]])
+        load = c["eps"] * (y > h_old) * c["w"] * (h_old - h)  # the penalty force's change, old patch
+        dR = np.bincount(c["dofs"].ravel(), np.einsum("fq,fqa->fa", load, c["N"]).ravel(), minlength=self.ndof)
+        out = u.copy()
+        out[self.free] += self._linsolve(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
+        return out
+
+    def _contact_start(self, u, delta, guess, delta_prev):
+        """Contact: the lowest-energy start among the last state, the extrapolated guess and the
+        tangent predictor; starting Newton with the plate deep inside the body makes the active
+        set bounce."""
+        h = self.H - delta
+        starts = [self._apply_bc(u, delta), self._apply_bc(guess, delta)]
+        if PREDICTOR and delta_prev is not None:
+            p = self._contact_predictor(u, self.H - delta_prev, h)
+            if p is not None:
+                starts.append(self._apply_bc(p, delta))
+        energies = []
+        for x in starts:
+            e = self.evaluate(x, h, need_tangent=False)
+            energies.append(np.inf if e is None else e["energy"])
+        if TRACE:
+            print("    start energies", energies)
+        return starts[int(np.argmin(energies))]
+
+    def _newton(self, u, delta, max_iter=30, guess=None, delta_prev=None, rtol=1e-9):
+        """Equilibrium with the plate at ``delta``: Newton from ``u`` until the largest residual
+        is below ``rtol`` times ``max(mu) H^2`` (1e-9: the requested states; a load step on the
+        way there needs only a start for the next, ``STEP_RTOL``)."""
         h = self.H - delta if self.contact is not None else None
         if guess is not None and h is not None:
-            # Contact: start from the better (lower energy) of the last state and the guess;
-            # starting Newton with the plate deep inside the body makes the active set bounce.
-            g = self._apply_bc(guess, delta)
-            e_g = self.evaluate(g, h, need_tangent=False)
-            e_u = self.evaluate(self._apply_bc(u, delta), h, need_tangent=False)
-            if e_g is not None and (e_u is None or e_g["energy"] < e_u["energy"]):
-                u = g
+            u = self._contact_start(u, delta, guess, delta_prev)
         target = self._apply_bc(u, delta)
         du_d = target - u  # non-zero only on the prescribed dofs
         if np.any(du_d):
@@ -478,7 +548,7 @@ class Solver:
             raise ConvergenceError("the predictor inverts elements: step too large")
         scale = max(float(np.max(self.mu)) * self.H ** 2, 1e-12)
         res = float(np.max(np.abs(ev["R"][self.free]))) if self.free.size else 0.0
-        if res < 1e-9 * scale:
+        if res < rtol * scale:
             return u, ev, 0
         for it in range(1, max_iter + 1):
             Rf = ev["R"][self.free]
@@ -499,9 +569,11 @@ class Solver:
                 alpha *= 0.5
             else:
                 raise ConvergenceError("line search failed (no decrease of the energy keeping J > 0)")
+            if TRACE:
+                print(f"    it {it} alpha {alpha} res {res_t:.2e} area {ev_t['contact_area']:.3f}")
             u, ev, res = trial, ev_t, res_t
             step = alpha * float(np.max(np.abs(du_f))) if du_f.size else 0.0
-            if res < 1e-9 * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
+            if res < rtol * scale or (step < 1e-11 * self.H and res < 1e-6 * scale):
                 return u, ev, it
             ev = self.evaluate(u, h)
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {res:.3g} N)")
@@ -514,7 +586,9 @@ class Solver:
 
         The Newton update needs only ``LINEAR_RTOL`` relative accuracy (an inexact Newton
         method: the converged state is set by the residual test in :meth:`_newton`, not by the
-        linear solves). The factorisation is renewed once GMRES has spent on it as long as it took.
+        linear solves). The factorisation is renewed once GMRES has spent on it as much as it
+        cost (rent or buy), counted in iterations (``LU_PRICE``) rather than measured seconds, so
+        that the work, and with it the Newton path, does not depend on the machine's load.
         ``self.factorisations`` and ``self.krylov_iterations`` count the work."""
         K = K.tocsc()
         nrhs = float(np.linalg.norm(rhs))
@@ -526,22 +600,22 @@ class Solver:
             def count(_):
                 its[0] += 1
 
-            t = time.perf_counter()
-            x, _info = spla.gmres(K, rhs, rtol=LINEAR_RTOL, atol=0.0, restart=40, maxiter=2,
+            # never spend more on one GMRES solve than a factorisation costs: a tangent that has
+            # moved far (the contact patch's edge jumping) is cheaper to factorise than to iterate
+            x, _info = spla.gmres(K, rhs, rtol=LINEAR_RTOL, atol=0.0, restart=LU_PRICE, maxiter=1,
                                  M=spla.LinearOperator(K.shape, self._lu.solve), callback=count,
                                  callback_type="pr_norm")
             self.krylov_iterations += its[0]
-            self._krylov_seconds += time.perf_counter() - t
+            self._krylov_spent += its[0]
             # judged by the true residual: scipy flags info=1 on stagnation that is good enough
             if np.all(np.isfinite(x)) and np.linalg.norm(K @ x - rhs) <= 100 * LINEAR_RTOL * nrhs:
-                if self._krylov_seconds > self._lu_seconds:
+                if self._krylov_spent > LU_PRICE:
                     # the preconditioner has aged: it has cost in iterations what a new one costs
                     # (rent or buy: never more than twice the best choice in hindsight)
                     self._lu = None
                 return x
-        t = time.perf_counter()
         self._lu = self._factorise(K)
-        self._lu_seconds, self._krylov_seconds = time.perf_counter() - t, 0.0
+        self._krylov_spent = 0
         self.factorisations += 1
         x = self._lu.solve(rhs)
         if not np.all(np.isfinite(x)):
@@ -604,7 +678,7 @@ class Solver:
         u = np.zeros(self.ndof)
         states = []
         r_now = 0.0
-        step = min(0.05, ratios[-1] / 3) if ratios else 0.05
+        step = min(FIRST_STEP, ratios[-1] / 3) if ratios else FIRST_STEP
         total_steps = 0
         bar = tqdm(total=len(ratios), desc=f"compress {self.scene.name}", unit="state", disable=not progress)
         history = [(0.0, u)]  # converged (delta, u): the next guess extrapolates the last two
@@ -612,6 +686,10 @@ class Solver:
             iters_total = 0
             while r_now < target - 1e-12:
                 r_try = min(target, r_now + step)
+                if self.contact is not None and r_now > 0:
+                    # a patch growing by more than half its approach per step outruns the
+                    # predictor (the rim penetrates deep and the line search crawls)
+                    r_try = min(r_try, CONTACT_GROWTH * r_now)
                 delta = r_try * self.gap0 * per_plate
                 (d1, u1) = history[-1]
                 if len(history) > 1:
@@ -621,7 +699,8 @@ class Solver:
                     guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 t_step = time.perf_counter()
                 try:
-                    u_new, ev, its = self._newton(u, delta, guess=guess)
+                    u_new, ev, its = self._newton(u, delta, guess=guess, delta_prev=d1,
+                                                  rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL)
                 except ConvergenceError as exc:
                     step /= 2
                     if step < min_step:
@@ -635,7 +714,7 @@ class Solver:
                 if on_step is not None:
                     on_step(r_now, its, time.perf_counter() - t_step)
                 iters_total += its
-                if its <= 5:
+                if its <= EASY_STEP:
                     step *= 1.5
             if not states or states[-1].ratio != target:
                 if r_now == 0.0:

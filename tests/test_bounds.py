@@ -106,6 +106,7 @@ def test_preset_scenes_stay_under_the_bound(name, model):
     axisymmetric, its box inclusion the cylinder of equal section), truth-warped, no noise."""
     scene = with_view(load_scene(name), "through_plates")
     scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm, scene.mesh.model = 1.4, 8.0, model
+    scene.mesh.size_contact_mm = None  # coarse: without the preset's band at the plates
     states = compress(scene, (0.20, 0.25))
     h = study.headline(study.image_pair(scene, states, pixel_mm=0.3))
     for dom in ("log", "linear"):

@@ -27,13 +27,16 @@ def test_seed_breast_mesh_is_a_quarter_with_a_conforming_inclusion():
     assert fem.symmetry == ("y", "z")
     assert fem.points.min(axis=1) == pytest.approx([0, 0, 0], abs=1e-9)
     assert fem.points.max(axis=1) == pytest.approx([50, 25, 25], rel=1e-6)
-    # volume of the meshed inclusion: a quarter of the 8 mm sphere, to the faceting error
+    # volume of the meshed inclusion: a quarter of the 8 mm sphere, to the faceting error of
+    # straight edges (the solver's curved elements do not have it): a chord h on a radius r
+    # cuts at most its sagitta h^2 / (8 r), i.e. at most 3 h^2 / (8 r^2) of the volume
+    h, r = load_scene("seed-breast").mesh.size_inclusion_mm, 4.0
     p, t = fem.points, fem.cells
     a, b, c, d = (p[:, t[i]] for i in range(4))
     vol = np.einsum("ij,ij->j", np.cross(b - a, c - a, axis=0), d - a) / 6
     assert (vol > 0).all()
     v_inc = vol[fem.region == 1].sum()
-    assert v_inc == pytest.approx(np.pi / 6 * 8 ** 3 / 4, rel=0.03)
+    assert np.pi / 6 * 8 ** 3 / 4 * (1 - 3 * h ** 2 / (8 * r ** 2)) < v_inc < np.pi / 6 * 8 ** 3 / 4
     v_all = vol.sum()
     assert v_all == pytest.approx(2 / 3 * np.pi * 50 * 25 * 25 / 4, rel=0.03)
 
@@ -132,7 +135,7 @@ def test_convergence_failure_names_the_compression(monkeypatch):
     configuration costs minutes to reach."""
     from sim.mechanics import ConvergenceError, Solver
 
-    def never(self, u, delta, max_iter=30, guess=None):
+    def never(self, u, delta, **options):
         raise ConvergenceError("fake: no convergence")
 
     monkeypatch.setattr(Solver, "_newton", never)
