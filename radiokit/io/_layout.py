@@ -1,0 +1,76 @@
+"""What every typed-layout reader shares: opening a file it did not write, and reading from it safely.
+
+A results, registration, stack or simulation file may come from anywhere: cut short by a full
+disk, edited by hand, or made to hurt. libhdf5 reports such files with OSError, RuntimeError
+("too many links" for soft links in a circle), KeyError or TypeError, none of which name the
+file; :func:`open_layout` turns each into one :class:`FormatError` line that does.
+"""
+from __future__ import annotations
+
+import math
+import os
+from contextlib import contextmanager
+
+import h5py
+import numpy as np
+
+from radiokit.errors import FormatError
+from radiokit.io._budget import check_budget
+
+__all__ = ["open_layout", "read_dataset", "text", "check_finite"]
+
+#: what libhdf5 and h5py raise on a corrupt file (RecursionError: links nested past Python's limit)
+_H5_ERRORS = (OSError, RuntimeError, KeyError, TypeError, ValueError, RecursionError)
+
+
+@contextmanager
+def open_layout(path, what: str):
+    """Open ``path`` read-only; any h5py failure inside the block is a FormatError naming ``path``.
+
+    ``what`` names the layout in the message ("a radiokit results file").
+    """
+    if os.path.isdir(path):
+        raise FormatError(path, f"is a directory, not {what}")
+    try:
+        h5 = h5py.File(path, "r")
+    except FileNotFoundError:
+        raise FormatError(path, "no such file") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be opened as HDF5, so not {what} (truncated or another "
+                                f"format): {_one_line(exc)}") from None
+    try:
+        with h5:
+            yield h5
+    except FormatError:
+        raise
+    except _H5_ERRORS as exc:
+        raise FormatError(path, f"corrupt, not {what}: {type(exc).__name__}: {_one_line(exc)}") from exc
+
+
+def read_dataset(path, ds: h5py.Dataset, budget=None) -> np.ndarray:
+    """All of ``ds``, once its declared size has been checked against the memory budget."""
+    check_budget(path, math.prod(int(s) for s in ds.shape) * ds.dtype.itemsize, f"/{ds.name.lstrip('/')} {ds.shape}",
+                 budget)
+    return ds[()]
+
+
+def text(value) -> str:
+    """A text attribute as printable str: bytes that are not UTF-8 become U+FFFD (h5py hands
+    them over as lone surrogates, which cannot be printed or written)."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, str):
+        return value.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    return str(value)
+
+
+def check_finite(path, name: str, values: np.ndarray, *, nan_ok: bool = False) -> None:
+    """Refuse inf (and NaN unless ``nan_ok``) in ``values``, the dataset ``name``."""
+    bad = np.isinf(values) if nan_ok else ~np.isfinite(values)
+    if np.any(bad):
+        raise FormatError(path, f"/{name} holds {'inf' if nan_ok else 'NaN or inf'} "
+                                f"(at index {int(np.flatnonzero(bad.ravel())[0])})")
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
