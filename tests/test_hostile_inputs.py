@@ -856,3 +856,21 @@ def test_load_results_on_no_file_is_one_line(case, tmp_path):
     if case == "a folder":
         path.mkdir()
     _refused(path, lambda: load_results(path))
+
+
+@pytest.mark.parametrize("kind", ["bytes", "vlen"])
+@pytest.mark.parametrize("where, key", [("/", "default"), ("entry", "default"), ("entry/steps", "signal")])
+def test_read_with_nexus_names_that_are_not_utf8_reads_or_refuses_in_one_line(where, key, kind, tmp_path):
+    path = tmp_path / "results.h5"
+    _results_file(path)
+    with h5py.File(path, "a") as h5:
+        if kind == "bytes":
+            h5[where].attrs[key] = np.bytes_(b"\xff\xfe")
+        else:
+            h5[where].attrs.create(key, b"\xff\xfe", dtype=h5py.string_dtype("utf-8"))
+    try:
+        frames = read(path)
+    except FormatError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc), exc
+    else:  # a broken @default falls back to the only NXentry and NXdata
+        assert frames.data.shape == (2, 4, 5)
