@@ -282,16 +282,15 @@ def load_results(path) -> Results:
         Python's recursion limit), lacks a field or holds one of the wrong type, or has another
         major schema version.
     """
+    from radiokit.io._layout import check_regular_file
+
     path = Path(path)
+    check_regular_file(path, "a results.json")
     try:
         size = path.stat().st_size
-        if path.is_dir():
-            raise FormatError(path, "is a directory, not a results.json")
         if size > MAX_JSON_BYTES:
             raise FormatError(path, f"is {size / 1e9:.1f} GB; a results.json is at most {MAX_JSON_BYTES >> 20} MiB")
         data = json.loads(path.read_bytes().decode("utf-8"))
-    except FileNotFoundError:
-        raise FormatError(path, "no such file") from None
     except OSError as exc:
         raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
     except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
@@ -301,7 +300,7 @@ def load_results(path) -> Results:
         raise FormatError(path, f"not a results.json: not UTF-8 JSON ({what})") from None
     try:
         return Results.from_json(data, str(path))
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError, RecursionError) as exc:
         if isinstance(exc, FormatError):
             raise
         raise FormatError(path, f"not a radiokit results.json: {type(exc).__name__} {exc}") from None

@@ -874,3 +874,21 @@ def test_read_with_nexus_names_that_are_not_utf8_reads_or_refuses_in_one_line(wh
         assert str(path) in str(exc) and "\n" not in str(exc), exc
     else:  # a broken @default falls back to the only NXentry and NXdata
         assert frames.data.shape == (2, 4, 5)
+
+
+READERS = {"load_results": load_results, "read": read, "read_results": read_results, "read_stack": read_stack,
+           "read_registration": read_registration, "read_simulation": read_simulation, "read_progress": read_progress}
+
+
+@pytest.mark.parametrize("reader", sorted(READERS))
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
+    """A FIFO blocks the reader until someone writes to it, /dev/zero never ends: both must be
+    refused from their type (a regression shows as this test hanging)."""
+    if kind == "fifo":
+        path = tmp_path / "results.json"
+        os.mkfifo(path)
+    else:
+        path = "/dev/zero"
+    _refused(path, lambda: READERS[reader](path), "not a regular file")
+

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 from contextlib import contextmanager
 
 import h5py
@@ -17,7 +18,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
 
-__all__ = ["open_layout", "read_dataset", "text", "check_finite"]
+__all__ = ["open_layout", "check_regular_file", "read_dataset", "text", "check_finite"]
 
 #: what libhdf5 and h5py raise on a corrupt file (RecursionError: links nested past Python's limit)
 _H5_ERRORS = (OSError, RuntimeError, KeyError, TypeError, ValueError, RecursionError)
@@ -29,12 +30,9 @@ def open_layout(path, what: str):
 
     ``what`` names the layout in the message ("a radiokit results file").
     """
-    if os.path.isdir(path):
-        raise FormatError(path, f"is a directory, not {what}")
+    check_regular_file(path, what)
     try:
         h5 = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise FormatError(path, "no such file") from None
     except OSError as exc:
         raise FormatError(path, f"cannot be opened as HDF5, so not {what} (truncated or another "
                                 f"format): {_one_line(exc)}") from None
@@ -45,6 +43,21 @@ def open_layout(path, what: str):
         raise
     except _H5_ERRORS as exc:
         raise FormatError(path, f"corrupt, not {what}: {type(exc).__name__}: {_one_line(exc)}") from exc
+
+
+def check_regular_file(path, what: str) -> None:
+    """Refuse a missing path, a directory, and a FIFO, socket or device: opening a FIFO waits for a
+    writer forever, and ``/dev/zero`` never ends."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise FormatError(path, "no such file") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(mode):
+        raise FormatError(path, f"is a directory, not {what}")
+    if not stat.S_ISREG(mode):
+        raise FormatError(path, f"is not a regular file (a FIFO, socket or device), so not {what}")
 
 
 def read_dataset(path, ds: h5py.Dataset, budget=None) -> np.ndarray:
