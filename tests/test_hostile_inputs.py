@@ -892,3 +892,24 @@ def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
         path = "/dev/zero"
     _refused(path, lambda: READERS[reader](path), "not a regular file")
 
+
+
+def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tmp_path):
+    """300 results.json with a few bytes changed: each reads, or is one FormatError line."""
+    import random
+
+    base = json.dumps(_results_json()).encode()
+    path = tmp_path / "results.json"
+    refused = 0
+    for seed in range(300):
+        rng = random.Random(seed)
+        data = bytearray(base)
+        for _ in range(rng.choice([1, 2, 5])):
+            data[rng.randrange(len(data))] = rng.choice(b'0123456789[]{}",:-.eEnul ' + bytes([rng.randrange(256)]))
+        path.write_bytes(bytes(data))
+        try:
+            load_results(path)
+        except FormatError as exc:
+            assert str(path) in str(exc) and "\n" not in str(exc), exc
+            refused += 1
+    assert refused > 200  # most such edits break the JSON or a field: the checks are not idle
