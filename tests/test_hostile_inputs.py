@@ -604,6 +604,31 @@ def test_huge_consistent_shapes_are_refused_by_the_budget(layout, tmp_path, monk
         _refused(path, lambda: reader(path), "over the memory budget of 64.0 MiB")
 
 
+ROWS_COLS = (250, 400)  # 400 KB of float32 a frame: each array fits a 1 MiB budget, three do not
+# three frame-sized arrays, each within the budget, together over it
+OVER_IN_SUM = {
+    "registration": lambda h5: (_data("entry/registration/registered", np.zeros(ROWS_COLS, "f4"))(h5),
+                                _data("entry/registration/displacement", np.zeros((2,) + ROWS_COLS, "f4"))(h5)),
+    "results": lambda h5: [h5.create_dataset(f"entry/registration/{name}", data=np.zeros(ROWS_COLS, "f4"))
+                           for name in ("moving", "det_j", "confidence")],
+    "simulation": lambda h5: [_data(f"entry/simulation/{name}", np.zeros((2,) + ROWS_COLS, dtype))(h5) for name, dtype
+                              in (("line_integral", "f4"), ("inclusion_mask", "u1"), ("displacement/step1_to_step2", "f4"))],
+}
+
+
+@pytest.mark.parametrize("layout", sorted(OVER_IN_SUM))
+def test_a_record_is_read_within_one_budget_not_one_per_array(layout, tmp_path, monkeypatch):
+    make, reader, *_ = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    with h5py.File(path, "a") as h5:
+        OVER_IN_SUM[layout](h5)
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "1MiB")
+    _refused(path, lambda: reader(path), "over the memory budget of 1.0 MiB", "after")
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "4MiB")
+    reader(path)
+
+
 def _attrs(name, **values):
     def edit(h5):
         for key, value in values.items():

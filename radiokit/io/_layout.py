@@ -18,7 +18,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
 
-__all__ = ["open_layout", "check_regular_file", "read_dataset", "text", "check_finite"]
+__all__ = ["open_layout", "check_regular_file", "ReadBudget", "text", "check_finite"]
 
 #: what libhdf5 and h5py raise on a corrupt file (RecursionError: links nested past Python's limit)
 _H5_ERRORS = (OSError, RuntimeError, KeyError, TypeError, ValueError, RecursionError)
@@ -60,11 +60,23 @@ def check_regular_file(path, what: str) -> None:
         raise FormatError(path, f"is not a regular file (a FIFO, socket or device), so not {what}")
 
 
-def read_dataset(path, ds: h5py.Dataset, budget=None) -> np.ndarray:
-    """All of ``ds``, once its declared size has been checked against the memory budget."""
-    check_budget(path, math.prod(int(s) for s in ds.shape) * ds.dtype.itemsize, f"/{ds.name.lstrip('/')} {ds.shape}",
-                 budget)
-    return ds[()]
+class ReadBudget:
+    """The memory budget one record is read within: every array read counts against it, so a
+    file of many arrays each under the budget cannot add up to more than it."""
+
+    def __init__(self, path, budget=None):
+        self.path, self.budget, self.spent = path, budget, 0
+
+    def reserve(self, nbytes: int, what: str) -> None:
+        """Count ``nbytes`` (what ``what`` will allocate), or raise FormatError if over the budget."""
+        before = f" after {self.spent} bytes read" if self.spent else ""
+        check_budget(self.path, self.spent + int(nbytes), what + before, self.budget)
+        self.spent += int(nbytes)
+
+    def read(self, ds: h5py.Dataset) -> np.ndarray:
+        """All of ``ds``, once its declared size has been counted."""
+        self.reserve(math.prod(int(s) for s in ds.shape) * ds.dtype.itemsize, f"/{ds.name.lstrip('/')} {ds.shape}")
+        return ds[()]
 
 
 def text(value) -> str:

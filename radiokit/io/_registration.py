@@ -19,7 +19,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
-from radiokit.io._layout import open_layout, read_dataset, text
+from radiokit.io._layout import ReadBudget, open_layout, text
 
 __all__ = ["REGISTRATION", "RegistrationRecord", "write_registration", "read_registration"]
 
@@ -111,10 +111,11 @@ def read_registration(path, *, allow_external=False) -> RegistrationRecord:
             raise FormatError(path, f"/{DISPLACEMENT} is {displacement.shape}; the registered image "
                                     f"{registered.shape} needs (2, rows, cols)")
         quality = {k[len("quality_"):]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
+        budget = ReadBudget(path)
         return RegistrationRecord(method=_plain(g.attrs.get("method", "")), fixed=_plain(g.attrs.get("fixed", "")),
                                   moving=_plain(g.attrs.get("moving", "")),
-                                  displacement=read_dataset(path, displacement),
-                                  registered=read_dataset(path, registered), quality=quality)
+                                  displacement=budget.read(displacement), registered=budget.read(registered),
+                                  quality=quality)
 
 
 def _plain(value):

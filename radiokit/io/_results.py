@@ -25,7 +25,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
-from radiokit.io._layout import check_finite, open_layout, read_dataset, text
+from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
 
 __all__ = ["RESULTS_STEPS", "ResultsRecord", "EnhancedImages", "write_results", "read_results"]
 
@@ -137,9 +137,10 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
         type, rank or length, a ``crop`` or ``pair`` that is not integers, inf in ``ratio``,
         sizes over the memory budget, or data outside the file (unless ``allow_external``).
     """
+    budget = ReadBudget(path)
     with open_layout(path, "a radiokit results file") as h5:
         def array(name, ndims=range(1, 5), kinds="buif"):
-            return read_dataset(path, checked_dataset(path, h5, name, kinds, ndims, allow_external))
+            return budget.read(checked_dataset(path, h5, name, kinds, ndims, allow_external))
 
         check_links(path, h5, f"{RESULTS_STEPS}/{_SIGNAL}", allow_external)
         if f"{RESULTS_STEPS}/{_SIGNAL}" not in h5:

@@ -28,9 +28,8 @@ import h5py
 import numpy as np
 
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
 from radiokit.io._experiment import check_links, checked_dataset
-from radiokit.io._layout import check_finite, open_layout, read_dataset, text
+from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
 
 __all__ = ["SIMULATION", "SimulationRecord", "PlantedDefects", "write_simulation", "read_simulation",
            "displacement_name"]
@@ -211,13 +210,14 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
         def numbers(name, ndims):
             return checked_dataset(path, h5, f"{SIMULATION}/{name}", "iuf", ndims, allow_external)
 
-        curve = _read_curve(path, numbers)
+        budget = ReadBudget(path)
+        curve = _read_curve(path, numbers, budget)
         n_steps = len(curve["ratio"])
         chosen = tuple(range(1, n_steps + 1)) if steps is None else tuple(
             int(s) if s > 0 else n_steps + 1 + int(s) for s in steps)
         if any(not 1 <= s <= n_steps for s in chosen):
             raise FormatError(path, f"steps {list(steps)}: /{SIMULATION} holds steps 1..{n_steps}")
-        images = _read_images(path, numbers, n_steps, chosen)
+        images = _read_images(path, numbers, n_steps, chosen, budget)
         frame = images[LINE_INTEGRAL].shape[1:]
         fields = {}
         for name in g.get(DISPLACEMENT, {}):
@@ -228,11 +228,11 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
                 if ds.shape != (2,) + frame or not 1 <= pair[0] <= n_steps or not 1 <= pair[1] <= n_steps:
                     raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}: expected (2,) + {frame}, "
                                             f"between steps 1..{n_steps}")
-                fields[pair] = read_dataset(path, ds)
+                fields[pair] = budget.read(ds)
         defects = None
         if DEFECTS in g:
-            defects = PlantedDefects(*(read_dataset(path, numbers(f"{DEFECTS}/{k}", (2,))) for k in DEFECT_KINDS),
-                                     read_dataset(path, numbers(f"{DEFECTS}/columns", (1,))))
+            defects = PlantedDefects(*(budget.read(numbers(f"{DEFECTS}/{k}", (2,))) for k in DEFECT_KINDS),
+                                     budget.read(numbers(f"{DEFECTS}/columns", (1,))))
             if any(d.shape[1] != 2 for d in (defects.dead, defects.under, defects.noisy)):
                 raise FormatError(path, f"/{SIMULATION}/{DEFECTS}/dead, under and noisy must be (k, 2) pixels")
         return SimulationRecord(
@@ -243,12 +243,12 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
             **curve)
 
 
-def _read_curve(path, numbers) -> dict:
+def _read_curve(path, numbers, budget) -> dict:
     """The force-compression curve: one value per step in each series, ratio and gap finite."""
     curve = {}
     for name in CURVE:
         ds = numbers(name, (1,))
-        curve[name] = read_dataset(path, ds)
+        curve[name] = budget.read(ds)
         if len(curve[name]) != len(curve[CURVE[0]]):
             raise FormatError(path, f"/{SIMULATION}/{name} holds {len(curve[name])} values, "
                                     f"/{SIMULATION}/{CURVE[0]} {len(curve[CURVE[0]])}: one per step in each")
@@ -257,7 +257,7 @@ def _read_curve(path, numbers) -> dict:
     return curve
 
 
-def _read_images(path, numbers, n_steps, chosen) -> dict:
+def _read_images(path, numbers, n_steps, chosen, budget) -> dict:
     """The line integral and inclusion mask of the ``chosen`` steps (one image per step, same shape)."""
     images, first = {}, None
     for name in (LINE_INTEGRAL, INCLUSION_MASK):
@@ -266,8 +266,8 @@ def _read_images(path, numbers, n_steps, chosen) -> dict:
             raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}; expected one image per step of the "
                                     f"curve ({n_steps})" + (f", as /{SIMULATION}/{LINE_INTEGRAL} {first}" if first else ""))
         shape = first = ds.shape
-        check_budget(path, len(chosen) * math.prod(shape[1:]) * ds.dtype.itemsize,
-                     f"{len(chosen)} step(s) of /{ds.name.lstrip('/')} {shape}")
+        budget.reserve(len(chosen) * math.prod(shape[1:]) * ds.dtype.itemsize,
+                       f"{len(chosen)} step(s) of /{ds.name.lstrip('/')} {shape}")
         images[name] = np.stack([ds[s - 1] for s in chosen]) if chosen else ds[:0]
     return images
 

@@ -11,6 +11,7 @@ The HDF5 layout (``radiokit correct``'s output):
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ import tifffile
 
 from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
-from radiokit.io._layout import open_layout, read_dataset, text
+from radiokit.io._layout import ReadBudget, open_layout, text
 
 __all__ = ["write_tiff", "StackWriter", "StackRecord", "read_stack", "STACK", "STACK_FRAMES"]
 
@@ -224,15 +225,16 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
         if STACK_FRAMES not in h5:
             raise FormatError(path, f"lacks /{STACK_FRAMES}: not a radiokit stack")
         ds = checked_dataset(path, h5, STACK_FRAMES, "buif", (3,), allow_external)
-        series = {}
+        budget, series = ReadBudget(path), {}
+        budget.reserve(math.prod(ds.shape) * ds.dtype.itemsize, f"/{STACK_FRAMES} {ds.shape}")
         for name in h5[STACK]:
             if name != ds.name.rsplit("/", 1)[1]:
                 s = checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
                     raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
-                series[name] = s[()]
+                series[name] = budget.read(s)
         meta = {k: _attr(v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
-        return StackRecord(read_dataset(path, ds), series, meta)
+        return StackRecord(ds[()], series, meta)  # its bytes were counted first
 
 
 def _attr(value):
