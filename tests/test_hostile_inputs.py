@@ -683,6 +683,7 @@ BAD_CONTENT = [
                                                        for k, shape in (("dead", (2, 3)), ("under", (0, 2)),
                                                                         ("noisy", (0, 2)), ("columns", (0,)))],
      "dead"),
+    ("simulation", "displacement a dataset", _data(f"{S}/displacement", np.zeros((2, 4, 5), "f4")), "displacement"),
     ("simulation", "gap as text", _attrs(S, initial_gap_mm="wide"), "initial_gap_mm"),
     ("simulation", "timing as text", _attrs(S, seconds_render="slow"), "seconds_render"),
     ("progress", "frames_complete as text", _attrs("entry", frames_complete="two"), "frames_complete"),

@@ -219,14 +219,16 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
             raise FormatError(path, f"steps {list(steps)}: /{SIMULATION} holds steps 1..{n_steps}")
         images = _read_images(path, numbers, n_steps, chosen, budget)
         frame = images[LINE_INTEGRAL].shape[1:]
-        fields = {}
-        for name in g.get(DISPLACEMENT, {}):
+        fields, group = {}, g.get(DISPLACEMENT, {})
+        if not isinstance(group, (h5py.Group, dict)):
+            raise FormatError(path, f"/{SIMULATION}/{DISPLACEMENT} is not a group")
+        for name in group:
             match = _PAIR.match(name)
             pair = (int(match[1]), int(match[2])) if match else None
             if pair and (pairs is None or pair in set(map(tuple, pairs))):
                 ds = numbers(f"{DISPLACEMENT}/{name}", (3,))
                 if ds.shape != (2,) + frame or not 1 <= pair[0] <= n_steps or not 1 <= pair[1] <= n_steps:
-                    raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}: expected (2,) + {frame}, "
+                    raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}: expected {(2, *frame)}, "
                                             f"between steps 1..{n_steps}")
                 fields[pair] = budget.read(ds)
         defects = None
