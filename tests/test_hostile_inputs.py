@@ -664,6 +664,7 @@ BAD_CONTENT = [
     ("results", "NaN step", _data("entry/steps/step", np.array([1, np.nan])), "step"),
     ("results", "inf ratio", _data("entry/steps/ratio", np.array([0.1, np.inf])), "ratio"),
     ("results", "3 steps for 2 images", _data("entry/steps/step", np.array([1, 2, 3])), "step"),
+    ("results", "a domain that is a dataset", _data("entry/enhanced/log", np.zeros((2, 4, 5), "f4")), "enhanced/log"),
     ("registration", "field of another shape", _data("entry/registration/displacement", np.zeros((2, 3, 3), "f4")),
      "displacement"),
     ("registration", "field of 3 components", _data("entry/registration/displacement", np.zeros((3, 4, 5), "f4")),

@@ -163,6 +163,8 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
         enhanced = {}
         for domain in groups[RESULTS_ENHANCED] or {}:
             g = f"{RESULTS_ENHANCED}/{domain}"
+            if not isinstance(h5[g], h5py.Group):
+                raise FormatError(path, f"/{g} is not a group")
             ks = {name[1:]: array(f"{g}/{name}") for name in h5[g] if name.startswith("k")}
             enhanced[domain] = EnhancedImages(array(f"{g}/reference"), array(f"{g}/difference"), ks)
         attrs = h5[ENTRY].attrs
