@@ -202,10 +202,14 @@ class Results:
     @classmethod
     def from_json(cls, d: dict, where="results") -> Results:
         """The records of :meth:`to_json`'s output; FormatError naming ``where`` for another major version."""
-        version = str(d.get("schema_version", "0"))
-        if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
-            raise FormatError(where, f"results schema version {version}, this radiokit reads {SCHEMA_VERSION} "
+        if not isinstance(d, dict):
+            raise FormatError(where, f"holds a JSON {type(d).__name__}, not the object of a results.json")
+        version = d.get("schema_version", "0")
+        if not isinstance(version, str) or version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
+            shown = version if isinstance(version, str) else json.dumps(version)
+            raise FormatError(where, f"results schema version {shown}, this radiokit reads {SCHEMA_VERSION} "
                                      "(re-run `radiokit process` to rewrite it)")
+        _check_fields(d, where)
         pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
         r = d["rois"]
         return cls(d["source"], d.get("scene"), bool(d["simulated"]), d["pixel_mm"], Domain(d["domain"]),
@@ -261,20 +265,109 @@ class Images:
         return out
 
 
+#: a results.json holds numbers for a few steps and ks: kilobytes. A file this size is not one,
+#: and is refused before it is read into memory.
+MAX_JSON_BYTES = 64 * 2**20
+
+
 def load_results(path) -> Results:
     """Read a ``results.json`` written by :func:`radiokit.pipeline.process` into :class:`Results`.
+
+    A newer minor schema version (``1.x``) reads: it only adds keys, which are ignored.
 
     Raises
     ------
     FormatError
-        If the file is not JSON, lacks a field, or has another major schema version.
+        If the file is missing, larger than :data:`MAX_JSON_BYTES`, not UTF-8 JSON (or nested past
+        Python's recursion limit), lacks a field or holds one of the wrong type, or has another
+        major schema version.
     """
+    from radiokit.io._layout import check_regular_file
+
     path = Path(path)
+    check_regular_file(path, "a results.json")
     try:
-        return Results.from_json(json.loads(path.read_text()), str(path))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"not a results.json ({exc})") from None
-    except (KeyError, TypeError, ValueError) as exc:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise FormatError(path, f"is {size / 1e9:.1f} GB; a results.json is at most {MAX_JSON_BYTES >> 20} MiB")
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        if isinstance(exc, FormatError):
+            raise
+        what = "nested too deeply" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
+        raise FormatError(path, f"not a results.json: not UTF-8 JSON ({what})") from None
+    try:
+        return Results.from_json(data, str(path))
+    except (KeyError, TypeError, ValueError, AttributeError, RecursionError) as exc:
         if isinstance(exc, FormatError):
             raise
         raise FormatError(path, f"not a radiokit results.json: {type(exc).__name__} {exc}") from None
+
+
+def _number(v) -> bool:  # numpy scalars too: process_many hands over to_json()'s dict unserialised
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _maybe_number(v) -> bool:
+    return v is None or _number(v)
+
+
+def _list_of(check, n=None):
+    return lambda v: isinstance(v, list) and (n is None or len(v) == n) and all(map(check, v))
+
+
+def _dict_of(check):
+    return lambda v: isinstance(v, dict) and all(map(check, v.values()))
+
+
+def _k_keyed(v) -> bool:
+    """``{k label: number or None}``, every key a number (k_label's text)."""
+    if not _dict_of(_maybe_number)(v):
+        return False
+    try:
+        return all(math.isfinite(float(k)) for k in v)
+    except ValueError:
+        return False
+
+
+def _int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+_BOX = _list_of(_int, 4)
+_DOMAIN_FIELDS = {"contrast_reference": _maybe_number, "cnr_reference": _maybe_number,
+                  "weber_reference": _maybe_number, "contrast": _k_keyed, "cnr": _k_keyed, "weber": _k_keyed,
+                  "improvement_factor": _k_keyed}
+#: what :meth:`Results.from_json` reads, and what each must be (None: optional)
+_FIELDS = {"source": (str,), "scene": (str, None), "simulated": (bool, np.bool_), "pixel_mm": _number,
+           "domain": (str,), "ks": _list_of(_number), "method": (str,), "steps": _list_of(_int),
+           "ratios": _list_of(_maybe_number), "rois": lambda v: isinstance(v, dict) and all(
+               _BOX(v.get(k)) for k in ("crop", "inclusion", "background")),
+           "domains": _dict_of(lambda m: isinstance(m, dict) and all(c(m.get(k)) for k, c in _DOMAIN_FIELDS.items())),
+           "change_ratio": _dict_of(_dict_of(_maybe_number)), "registration": _dict_of(lambda q: isinstance(q, dict)),
+           "main_pair": (str,), "profiles_row": _int, "paper": (dict, None), "timings": (dict, None),
+           "bound": lambda v: isinstance(v, dict) and _maybe_number(v.get("mu_dg")) and isinstance(v.get("basis"), str),
+           "control": (dict, None)}
+
+
+def _check_fields(d: dict, where) -> None:
+    """Refuse, naming the key, a field :meth:`Results.from_json` would misread (a string where a
+    list of numbers belongs iterates into characters; a missing one is a KeyError)."""
+    for key, check in _FIELDS.items():
+        value = d.get(key)
+        if isinstance(check, tuple):
+            ok = (None in check and value is None) or isinstance(value, tuple(t for t in check if t is not None))
+        else:
+            ok = check(value)
+        if not ok:
+            got = "missing" if key not in d else f"{type(value).__name__} {json.dumps(value)[:60]}"
+            raise FormatError(where, f"results.json field {key!r} is {got}: not what radiokit writes there")
+    for name in d["registration"]:
+        a, arrow, b = name.partition("->")
+        if not (arrow and a.isdigit() and b.isdigit()) or name not in d["change_ratio"]:
+            raise FormatError(where, f"results.json registration {name!r}: expected a 'moving->fixed' pair of steps "
+                                     "with a change_ratio")
+    if d["main_pair"] not in d["registration"]:
+        raise FormatError(where, f"results.json main_pair {d['main_pair']!r} is none of the registered pairs")

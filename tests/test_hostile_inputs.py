@@ -6,6 +6,8 @@ budget check must refuse first, naming the file.
 """
 from __future__ import annotations
 
+import json
+import math
 import os
 import resource
 import subprocess
@@ -380,3 +382,561 @@ def test_a_protocol_with_any_strings_round_trips_through_toml(text):
     assert "preset" not in data["detector"] and "baudrate" not in data["source"]  # None: left out
     assert load_protocol(written, text=True) == p
     assert dataclasses.asdict(load_protocol(written, text=True)) == dataclasses.asdict(p)
+
+
+# -- the typed layouts fed files radiokit never wrote --------------------------------------------
+# Each layout is built valid by radiokit's own writer, then one thing is broken with h5py. Every
+# reader must answer with one FormatError line naming the file: never another exception (a
+# KeyError, a RuntimeError from libhdf5, a MemoryError), never a silently wrong record.
+from radiokit.io import (EnhancedImages, RegistrationRecord, ResultsRecord, SimulationRecord, StackWriter,  # noqa: E402
+                         read_progress, read_registration, read_results, read_simulation, read_stack,
+                         write_registration, write_results)
+from radiokit.results import Results, load_results  # noqa: E402
+
+SMALL_BUDGET = "64MiB"  # the huge shapes below declare terabytes: refused whatever the machine has
+
+
+def _registration_file(path):
+    write_registration(path, RegistrationRecord("rc", "a.h5", "b.h5", np.zeros((2, 4, 5), np.float32),
+                                                np.ones((4, 5), np.float32), {"ok": True}))
+
+
+def _results_file(path):
+    steps = np.ones((2, 4, 5), np.float32)
+    write_results(path, ResultsRecord(
+        source="exp.h5", results_json="{}", line_integral=steps, step=np.array([1, 2]), ratio=np.array([0.1, 0.2]),
+        crop=np.array([0, 4, 0, 5]), pair=(2, 1), registration={"registered": steps[0]},
+        enhanced={"log": EnhancedImages(steps[0], steps[1], {"1": steps[0]})}, rois={"inclusion": np.array([0, 2, 0, 2])}))
+
+
+def _stack_file(path):
+    with StackWriter(path, (4, 5), meta={"source": "exp.h5", "cal": {"c": 1}}) as w:
+        for i in range(2):
+            w.append(np.full((4, 5), i, np.float32), step=i + 1)
+
+
+def _simulation_file(path):
+    curve = np.array([0.1, 0.2])
+    record = SimulationRecord('name = "block"', curve, curve, curve, curve, curve, curve,
+                              np.zeros((2, 4, 5), np.float32), np.zeros((2, 4, 5), np.uint8),
+                              displacement={(1, 2): np.zeros((2, 4, 5), np.float32)})
+    with ExperimentWriter(path, shape=(4, 5)) as w:
+        for key in (ImageKey.DARK, ImageKey.FLAT):
+            w.append(np.full((4, 5), 100 * (key + 1), np.uint16), image_key=key)
+        w.write_simulation(record)
+
+
+def _calibration_file(path):
+    with h5py.File(path, "w") as h5:
+        h5["calibration/dark"] = np.full((4, 5), 100.0)
+        h5["calibration/flat"] = np.full((4, 5), 3000.0)
+
+
+# layout -> (make a valid file, its reader, the dataset broken by the generic cases, its rank, dtype)
+LAYOUTS = {
+    "registration": (_registration_file, read_registration, "entry/registration/registered", 2, "f4"),
+    "results": (_results_file, read_results, "entry/steps/line_integral", 3, "f4"),
+    "stack": (_stack_file, read_stack, "entry/data/data", 3, "f4"),
+    "simulation": (_simulation_file, read_simulation, "entry/simulation/line_integral", 3, "f4"),
+    "progress": (_simulation_file, read_progress, "entry/instrument/detector/image_key", 1, "i1"),
+    "calibration": (_calibration_file, read, "calibration/dark", 2, "f8"),
+}
+
+
+def _replace(h5, name, *args, **kwargs):
+    """Put another dataset (or link) at ``name``."""
+    del h5[name]
+    if args and not kwargs and not isinstance(args[0], (tuple, np.ndarray)):
+        h5[name] = args[0]
+    else:
+        h5.create_dataset(name, *args, **kwargs)
+
+
+def _elsewhere(path, name, data):
+    """A file beside ``path`` holding ``data`` at ``name``: what the links below point at."""
+    other = path.with_name("other.h5")
+    with h5py.File(other, "w") as h5:
+        h5[name] = data
+    return other
+
+
+def _break(path, name, rank, dtype, case):
+    """Break dataset ``name`` of the layout file ``path`` in the way ``case`` says."""
+    if case == "truncated":
+        data = path.read_bytes()
+        path.write_bytes(data[:len(data) // 2])
+        return
+    if case == "not hdf5":
+        path.write_bytes(b"this is a text file, whatever its name says\n" * 20)
+        return
+    valid_shape = (2, 4, 5)[-rank:] if rank > 1 else (8,)
+    with h5py.File(path, "a") as h5:
+        if case == "missing":
+            del h5[name]
+        elif case == "strings":
+            _replace(h5, name, data=np.full(valid_shape, "abc", dtype=h5py.string_dtype()))
+        elif case == "compound":
+            _replace(h5, name, data=np.zeros(valid_shape, dtype=[("a", "f4"), ("b", "i2")]))
+        elif case == "vlen":
+            _replace(h5, name, shape=valid_shape[:1], dtype=h5py.vlen_dtype(np.float32))
+        elif case == "wrong rank":
+            _replace(h5, name, data=np.zeros((2,) * (rank + 2), dtype))
+        elif case == "huge":  # a few KB declaring terabytes
+            shape = {1: (10**12,), 2: (10**6, 10**6), 3: (10, 10**6, 10**6)}[rank]
+            _replace(h5, name, shape=shape, dtype=dtype, chunks=(1,) * (rank - 1) + (1000,))
+            if "frames_complete" in h5["entry"].attrs if "entry" in h5 else False:
+                h5["entry"].attrs["frames_complete"] = shape[0]  # the progress file promises them all
+        elif case == "a group":
+            del h5[name]
+            h5.create_group(name)
+        elif case == "external link":
+            _replace(h5, name, h5py.ExternalLink(str(_elsewhere(path, name, np.ones(valid_shape, dtype))), name))
+        elif case == "external storage":
+            raw = path.with_name("raw.bin")
+            np.ones(valid_shape, dtype).tofile(raw)
+            _replace(h5, name, shape=valid_shape, dtype=dtype, external=[(str(raw), 0, raw.stat().st_size)])
+        elif case == "virtual":
+            other = _elsewhere(path, name, np.ones(valid_shape, dtype))
+            layout = h5py.VirtualLayout(valid_shape, dtype)
+            layout[...] = h5py.VirtualSource(str(other), name, valid_shape)
+            del h5[name]
+            h5.create_virtual_dataset(name, layout)
+        elif case == "soft link circle":
+            _replace(h5, name, h5py.SoftLink("/" + name + "_twin"))
+            h5[name + "_twin"] = h5py.SoftLink("/" + name)
+        elif case == "group in a circle":  # the layout's own group is a soft link to itself
+            group = name.rsplit("/", 1)[0]
+            del h5[group]
+            h5[group] = h5py.SoftLink("/" + group)
+        else:
+            raise AssertionError(case)
+
+
+GENERIC = ["truncated", "not hdf5", "missing", "strings", "compound", "vlen", "wrong rank", "huge", "a group",
+           "external link", "external storage", "virtual", "soft link circle", "group in a circle"]
+
+
+def _refused(path, call, *needles):
+    """``call()`` must raise one FormatError line naming ``path`` (and ``needles``)."""
+    with pytest.raises(FormatError) as info:
+        call()
+    message = str(info.value)
+    assert str(path) in message and "\n" not in message, message
+    for needle in needles:
+        assert needle in message, (needle, message)
+    return message
+
+
+@pytest.mark.parametrize("case", GENERIC)
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_each_layout_reader_refuses_a_broken_file_in_one_line(layout, case, tmp_path, monkeypatch):
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", SMALL_BUDGET)
+    make, reader, name, rank, dtype = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    reader(path)  # the valid file reads
+    _break(path, name, rank, dtype, case)
+    message = _refused(path, lambda: reader(path))
+    if "external" in case or case == "virtual":
+        assert "allow_external" in message, message
+
+
+@pytest.mark.parametrize("case", ["external link", "external storage", "virtual"])
+@pytest.mark.parametrize("layout", ["registration", "results", "stack", "simulation", "progress"])
+def test_each_layout_reader_follows_outside_data_when_allowed(layout, case, tmp_path):
+    make, reader, name, rank, dtype = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    _break(path, name, rank, dtype, case)
+    reader(path, allow_external=True)
+
+
+@pytest.mark.parametrize("case", ["truncated", "strings", "compound", "wrong rank", "huge", "external link",
+                                  "virtual", "soft link circle", "group in a circle"])
+@pytest.mark.parametrize("layout", ["registration", "results", "stack", "calibration", "progress"])
+def test_read_refuses_each_broken_layout_in_one_line(layout, case, tmp_path, monkeypatch):
+    """``radiokit.io.read`` (and so ``radiokit info``) opens each layout at its plot."""
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", SMALL_BUDGET)
+    make, _, name, rank, dtype = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    read(path)
+    _break(path, name, rank, dtype, case)
+    if (layout, case) == ("progress", "huge"):  # read() takes the keys of the frames there are, no more
+        assert read(path).data.shape == (2, 4, 5)
+        return
+    _refused(path, lambda: read(path))
+
+
+def _huge(h5, name, shape, dtype="f4"):
+    """A dataset declaring ``shape`` (terabytes) in a file of a few KB."""
+    if name in h5:
+        del h5[name]
+    h5.create_dataset(name, shape=shape, dtype=dtype, chunks=(1,) * (len(shape) - 1) + (1000,))
+
+
+FRAME = (10**6, 10**6)  # 4 TB of float32
+# every dataset of the layout huge and consistent with the others: only the budget can refuse it
+HUGE_CONSISTENT = {
+    "registration": lambda h5: (_huge(h5, "entry/registration/registered", FRAME),
+                                _huge(h5, "entry/registration/displacement", (2,) + FRAME)),
+    "results": lambda h5: _huge(h5, "entry/steps/line_integral", (2,) + FRAME),
+    "stack": lambda h5: _huge(h5, "entry/data/data", (2,) + FRAME),
+    "simulation": lambda h5: [_huge(h5, f"entry/simulation/{name}", (2,) + FRAME, dtype)
+                              for name, dtype in (("line_integral", "f4"), ("inclusion_mask", "u1"))],
+    "simulation field": lambda h5: [_huge(h5, f"entry/simulation/{name}", (2,) + FRAME, "u1") for name in
+                                    ("line_integral", "inclusion_mask", "displacement/step1_to_step2")],
+    "calibration": lambda h5: [_huge(h5, f"calibration/{name}", FRAME) for name in ("dark", "flat")],
+}
+
+
+@pytest.mark.parametrize("layout", sorted(HUGE_CONSISTENT))
+def test_huge_consistent_shapes_are_refused_by_the_budget(layout, tmp_path, monkeypatch):
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", SMALL_BUDGET)
+    make, reader, *_ = LAYOUTS[layout.split()[0]]
+    path = tmp_path / "huge.h5"
+    make(path)
+    with h5py.File(path, "a") as h5:
+        HUGE_CONSISTENT[layout](h5)
+    if layout == "simulation field":  # no images asked for: only the field is read
+        _refused(path, lambda: reader(path, steps=[]), "over the memory budget of 64.0 MiB", "step1_to_step2")
+    else:
+        _refused(path, lambda: reader(path), "over the memory budget of 64.0 MiB")
+
+
+ROWS_COLS = (250, 400)  # 400 KB of float32 a frame: each array fits a 1 MiB budget, three do not
+# three frame-sized arrays, each within the budget, together over it
+OVER_IN_SUM = {
+    "registration": lambda h5: (_data("entry/registration/registered", np.zeros(ROWS_COLS, "f4"))(h5),
+                                _data("entry/registration/displacement", np.zeros((2,) + ROWS_COLS, "f4"))(h5)),
+    "results": lambda h5: [h5.create_dataset(f"entry/registration/{name}", data=np.zeros(ROWS_COLS, "f4"))
+                           for name in ("moving", "det_j", "confidence")],
+    "simulation": lambda h5: [_data(f"entry/simulation/{name}", np.zeros((2,) + ROWS_COLS, dtype))(h5) for name, dtype
+                              in (("line_integral", "f4"), ("inclusion_mask", "u1"), ("displacement/step1_to_step2", "f4"))],
+}
+
+
+@pytest.mark.parametrize("layout", sorted(OVER_IN_SUM))
+def test_a_record_is_read_within_one_budget_not_one_per_array(layout, tmp_path, monkeypatch):
+    make, reader, *_ = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    with h5py.File(path, "a") as h5:
+        OVER_IN_SUM[layout](h5)
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "1MiB")
+    _refused(path, lambda: reader(path), "over the memory budget of 1.0 MiB", "after")
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "4MiB")
+    reader(path)
+
+
+def _attrs(name, **values):
+    def edit(h5):
+        for key, value in values.items():
+            if value is None:
+                del h5[name].attrs[key]
+            else:
+                h5[name].attrs[key] = value
+    return edit
+
+
+def _data(name, values):
+    def edit(h5):
+        del h5[name]
+        h5[name] = values
+    return edit
+
+
+def _non_utf8(name, key):
+    def edit(h5):
+        h5[name].attrs.create(key, b"\xff\xfe caf\xe9", dtype=h5py.string_dtype("utf-8"))
+    return edit
+
+
+S = "entry/simulation"
+# (layout, what is wrong, the edit, words the error must hold)
+BAD_CONTENT = [
+    ("results", "pair as a string", _attrs("entry/registration", pair="2,1"), "pair"),
+    ("results", "pair of 3", _attrs("entry/registration", pair=np.array([1, 2, 3])), "pair"),
+    ("results", "crop of 3", _attrs("entry/steps", crop=np.array([0, 4, 0])), "crop"),
+    ("results", "crop as a string", _attrs("entry/steps", crop="0 4 0 5"), "crop"),
+    ("results", "crop missing", _attrs("entry/steps", crop=None), "crop"),
+    ("results", "crop of floats", _attrs("entry/steps", crop=np.array([0, 4.5, 0, 5])), "crop"),
+    ("results", "NaN step", _data("entry/steps/step", np.array([1, np.nan])), "step"),
+    ("results", "inf ratio", _data("entry/steps/ratio", np.array([0.1, np.inf])), "ratio"),
+    ("results", "3 steps for 2 images", _data("entry/steps/step", np.array([1, 2, 3])), "step"),
+    ("results", "a domain that is a dataset", _data("entry/enhanced/log", np.zeros((2, 4, 5), "f4")), "enhanced/log"),
+    ("registration", "field of another shape", _data("entry/registration/displacement", np.zeros((2, 3, 3), "f4")),
+     "displacement"),
+    ("registration", "field of 3 components", _data("entry/registration/displacement", np.zeros((3, 4, 5), "f4")),
+     "displacement"),
+    ("stack", "series longer than the stack", _data("entry/data/step", np.arange(5)), "step"),
+    ("stack", "series of text", _data("entry/data/step", np.array([b"a", b"b"])), "step"),
+    ("simulation", "NaN ratio", _data(f"{S}/ratio", np.array([0.1, np.nan])), "ratio"),
+    ("simulation", "inf gap", _data(f"{S}/gap_mm", np.array([np.inf, 1.0])), "gap_mm"),
+    ("simulation", "curves of two lengths", _data(f"{S}/gap_mm", np.array([1.0, 2.0, 3.0])), "gap_mm"),
+    ("simulation", "fewer images than steps", _data(f"{S}/line_integral", np.zeros((1, 4, 5), "f4")), "line_integral"),
+    ("simulation", "mask of another shape", _data(f"{S}/inclusion_mask", np.zeros((2, 4, 6), "u1")), "inclusion_mask"),
+    ("simulation", "field of another shape", _data(f"{S}/displacement/step1_to_step2", np.zeros((3, 4, 5), "f4")),
+     "step1_to_step2"),
+    ("simulation", "field of an unknown step",
+     lambda h5: h5.create_dataset(f"{S}/displacement/step1_to_step9", data=np.zeros((2, 4, 5), "f4")), "step1_to_step9"),
+    ("simulation", "defects of 3 columns", lambda h5: [h5.create_dataset(f"{S}/defects/{k}", data=np.zeros(shape))
+                                                       for k, shape in (("dead", (2, 3)), ("under", (0, 2)),
+                                                                        ("noisy", (0, 2)), ("columns", (0,)))],
+     "dead"),
+    ("simulation", "displacement a dataset", _data(f"{S}/displacement", np.zeros((2, 4, 5), "f4")), "displacement"),
+    ("simulation", "gap as text", _attrs(S, initial_gap_mm="wide"), "initial_gap_mm"),
+    ("simulation", "timing as text", _attrs(S, seconds_render="slow"), "seconds_render"),
+    ("progress", "frames_complete as text", _attrs("entry", frames_complete="two"), "frames_complete"),
+    ("progress", "frames_complete negative", _attrs("entry", frames_complete=-3), "frames_complete"),
+    ("progress", "frames_complete NaN", _attrs("entry", frames_complete=np.nan), "frames_complete"),
+    ("progress", "frames_complete past the keys", _attrs("entry", frames_complete=50), "frames_complete"),
+    ("progress", "float steps", _data("entry/sample/compression/step", np.array([np.nan, 1.0])), "step"),
+    ("calibration", "flat missing", lambda h5: h5.__delitem__("calibration/flat"), "flat"),
+    ("calibration", "flat of another shape", _data("calibration/flat", np.ones((4, 6))), "flat"),
+]
+
+
+@pytest.mark.parametrize("layout, case, edit, words", BAD_CONTENT, ids=[c[1] for c in BAD_CONTENT])
+def test_each_layout_reader_refuses_bad_content_in_one_line(layout, case, edit, words, tmp_path):
+    make, reader, *_ = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    reader(path)
+    with h5py.File(path, "a") as h5:
+        edit(h5)
+    _refused(path, lambda: reader(path), words)
+
+
+# text attributes are provenance (who wrote what): bytes that are not UTF-8 are shown replaced, as
+# U+FFFD, never raised on and never passed on as lone surrogates that cannot be printed
+NON_UTF8 = [("registration", "entry/registration", "method", lambda r: r.method),
+            ("registration", "entry/registration", "quality_reason", lambda r: r.quality["reason"]),
+            ("results", "entry", "source", lambda r: r.source),
+            ("stack", "entry/data", "source", lambda r: r.meta["source"]),
+            ("simulation", S, "scene", lambda r: r.scene_toml),
+            ("progress", "entry", "protocol", lambda r: r.protocol)]
+
+
+@pytest.mark.parametrize("layout, group, key, get", NON_UTF8, ids=[f"{c[0]}-{c[2]}" for c in NON_UTF8])
+def test_text_attributes_that_are_not_utf8_are_read_replaced(layout, group, key, get, tmp_path):
+    make, reader, *_ = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    with h5py.File(path, "a") as h5:
+        _non_utf8(group, key)(h5)
+    text = get(reader(path))
+    assert "\ufffd" in text and text.endswith(" caf\ufffd"), repr(text)
+    text.encode("utf-8")  # printable: no lone surrogates
+
+
+def test_a_stack_attribute_nested_past_the_recursion_limit_stays_text(tmp_path):
+    path = tmp_path / "stack.h5"
+    _stack_file(path)
+    bomb = "[" * 100_000 + "]" * 100_000
+    with h5py.File(path, "a") as h5:
+        h5["entry/data"].attrs["cal"] = bomb
+    assert read_stack(path).meta["cal"] == bomb
+
+
+@pytest.mark.parametrize("layout, case", [("registration", "soft link circle"), ("results", "huge"),
+                                          ("stack", "truncated"), ("calibration", "strings"),
+                                          ("results", "group in a circle")])
+def test_info_on_a_broken_layout_is_one_line(layout, case, tmp_path):
+    make, _, name, rank, dtype = LAYOUTS[layout]
+    path = tmp_path / f"{layout}.h5"
+    make(path)
+    _break(path, name, rank, dtype, case)
+    one_line_error(run("info", path, env={"RADIOKIT_MEMORY_BUDGET": SMALL_BUDGET}), "radiokit info: ", path)
+
+
+@pytest.mark.parametrize("case", ["NaN ratio", "soft link circle", "fewer images than steps"])
+def test_process_on_a_broken_simulation_truth_is_one_line(case, tmp_path):
+    path = tmp_path / "sim.h5"
+    _experiment(path)
+    _simulation_group_into(path)
+    with h5py.File(path, "a") as h5:
+        if case == "NaN ratio":
+            _data(f"{S}/ratio", np.array([0.1, np.nan, 0.3]))(h5)
+        elif case == "soft link circle":
+            _replace(h5, f"{S}/line_integral", h5py.SoftLink(f"/{S}/line_integral"))
+        else:
+            _data(f"{S}/line_integral", np.zeros((1, 32, 40), "f4"))(h5)
+    res = run("process", path, "-q", "--no-report", "-o", tmp_path / "res")
+    one_line_error(res, "radiokit process: ", path)
+    assert not (tmp_path / "res").exists()
+
+
+def _simulation_group_into(path):
+    """A valid 3-step truth for ``_experiment``'s (32, 40) frames."""
+    from radiokit.io import write_simulation
+
+    curve = np.array([0.1, 0.2, 0.3])
+    record = SimulationRecord('name = "block"', curve, curve, curve, curve, curve, curve,
+                              np.zeros((3, 32, 40), np.float32), np.zeros((3, 32, 40), np.uint8),
+                              displacement={(2, 3): np.zeros((2, 32, 40), np.float32)})
+    write_simulation(path, record, replace=True)
+
+
+# -- results.json --------------------------------------------------------------------------------
+def _results_json():
+    """A valid results.json (as a dict), written by radiokit's own serialiser."""
+    from radiokit.enhance import Domain
+    from radiokit.results import Bound, DomainMeasures, KMeasure, PairResult, Rois
+
+    per_k = (KMeasure(1.0, 0.1, 2.0, 0.05, 1.5, 1.8), KMeasure(2.0, 0.2, 3.0, 0.1, 2.5))
+    record = Results(
+        source="exp.h5", scene="block", simulated=True, pixel_mm=0.1, domain=Domain.LOG, ks=(1.0, 2.0),
+        method="rc", steps=(1, 2, 3), ratios=(0.1, 0.2, float("nan")), rois=Rois((0, 40, 0, 50), (1, 5, 1, 5), (6, 9, 6, 9)),
+        domains={Domain.LOG: DomainMeasures(Domain.LOG, 0.05, 1.0, 0.02, per_k)},
+        pairs=(PairResult(3, 1, "rc", {"ok": True, "reason": "", "ncc": 0.9}, {Domain.LOG: 1.2}),),
+        main_pair="3->1", profiles_row=20, bound=Bound(0.3, "truth"), paper={}, timings={"total_s": 1.0})
+    return record.to_json()
+
+
+def _json_case(case):
+    d = _results_json()
+    if case == "missing domains":
+        del d["domains"]
+    elif case == "missing schema_version":
+        del d["schema_version"]
+    elif case == "major version 2":
+        d["schema_version"] = "2.0"
+    elif case == "version as a list":
+        d["schema_version"] = [1, 0]
+    elif case == "ks as text":
+        d["ks"] = "1,2"
+    elif case == "steps of text":
+        d["steps"] = ["one", "two", "three"]
+    elif case == "pixel_mm as text":
+        d["pixel_mm"] = "0.1 mm"
+    elif case == "unknown domain":
+        d["domain"] = "purple"
+    elif case == "domains as a list":
+        d["domains"] = [1, 2]
+    elif case == "crop of 3":
+        d["rois"]["crop"] = [0, 40, 0]
+    elif case == "registration not a dict":
+        d["registration"]["3->1"] = "fine"
+    elif case == "pair name without arrow":
+        d["registration"] = {"three": d["registration"]["3->1"]}
+        d["change_ratio"] = {"three": d["change_ratio"]["3->1"]}
+    elif case == "main pair unknown":
+        d["main_pair"] = "9->1"
+    elif case == "contrast as text":
+        d["domains"]["log"]["contrast"]["1"] = "high"
+    elif case == "k key not a number":
+        d["domains"]["log"]["improvement_factor"]["one"] = 1.0
+    elif case == "bound missing basis":
+        del d["bound"]["basis"]
+    elif case == "profiles_row as float":
+        d["profiles_row"] = 20.5
+    elif case == "control not a dict":
+        d["control"] = [1]
+    else:
+        raise AssertionError(case)
+    return json.dumps(d)
+
+
+JSON_BAD = ["missing domains", "missing schema_version", "major version 2", "version as a list", "ks as text",
+            "steps of text", "pixel_mm as text", "unknown domain", "domains as a list", "crop of 3",
+            "registration not a dict", "pair name without arrow", "main pair unknown", "contrast as text",
+            "k key not a number", "bound missing basis", "profiles_row as float", "control not a dict"]
+JSON_GARBAGE = {"not json": b"<html>results</html>", "empty": b" ", "not utf-8": b'{"source": "\xff\xfe"}',
+                "a list": b"[1, 2, 3]", "a number": b"42", "null": b"null",
+                "nested past the recursion limit": b"[" * 200_000 + b"]" * 200_000,
+                "deep object": b'{"a":' * 50_000 + b"1" + b"}" * 50_000}
+
+
+@pytest.mark.parametrize("case", JSON_BAD + sorted(JSON_GARBAGE))
+def test_load_results_refuses_a_bad_results_json_in_one_line(case, tmp_path):
+    path = tmp_path / "results.json"
+    if case in JSON_GARBAGE:
+        path.write_bytes(JSON_GARBAGE[case])
+    else:
+        path.write_text(_json_case(case))
+    _refused(path, lambda: load_results(path))
+
+
+def test_load_results_reads_a_future_minor_version_and_ignores_keys_it_does_not_know(tmp_path):
+    d = _results_json()
+    d["schema_version"] = "1.7"
+    d["new_in_1_7"] = {"anything": [1, 2]}
+    d["domains"]["log"]["new_measure"] = {"1": 0.5}
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(d))
+    back = load_results(path)
+    assert back.improvement_factor == {1.0: 1.5, 2.0: 2.5}
+    assert back.to_json()["schema_version"] == "1.0" and math.isnan(back.ratios[2])
+
+
+def test_load_results_refuses_a_huge_file_by_its_size(tmp_path):
+    path = tmp_path / "results.json"
+    with open(path, "wb") as fh:  # sparse: 2 GB declared, nothing written
+        fh.truncate(2 * 10**9)
+    _refused(path, lambda: load_results(path), "2.0 GB")
+
+
+@pytest.mark.parametrize("case", ["missing", "a folder"])
+def test_load_results_on_no_file_is_one_line(case, tmp_path):
+    path = tmp_path / "results.json"
+    if case == "a folder":
+        path.mkdir()
+    _refused(path, lambda: load_results(path))
+
+
+@pytest.mark.parametrize("kind", ["bytes", "vlen"])
+@pytest.mark.parametrize("where, key", [("/", "default"), ("entry", "default"), ("entry/steps", "signal")])
+def test_read_with_nexus_names_that_are_not_utf8_reads_or_refuses_in_one_line(where, key, kind, tmp_path):
+    path = tmp_path / "results.h5"
+    _results_file(path)
+    with h5py.File(path, "a") as h5:
+        if kind == "bytes":
+            h5[where].attrs[key] = np.bytes_(b"\xff\xfe")
+        else:
+            h5[where].attrs.create(key, b"\xff\xfe", dtype=h5py.string_dtype("utf-8"))
+    try:
+        frames = read(path)
+    except FormatError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc), exc
+    else:  # a broken @default falls back to the only NXentry and NXdata
+        assert frames.data.shape == (2, 4, 5)
+
+
+READERS = {"load_results": load_results, "read": read, "read_results": read_results, "read_stack": read_stack,
+           "read_registration": read_registration, "read_simulation": read_simulation, "read_progress": read_progress}
+
+
+@pytest.mark.parametrize("reader", sorted(READERS))
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
+    """A FIFO blocks the reader until someone writes to it, /dev/zero never ends: both must be
+    refused from their type (a regression shows as this test hanging)."""
+    if kind == "fifo":
+        path = tmp_path / "results.json"
+        os.mkfifo(path)
+    else:
+        path = "/dev/zero"
+    _refused(path, lambda: READERS[reader](path), "not a regular file")
+
+
+
+def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tmp_path):
+    """300 results.json with a few bytes changed: each reads, or is one FormatError line."""
+    import random
+
+    base = json.dumps(_results_json()).encode()
+    path = tmp_path / "results.json"
+    refused = 0
+    for seed in range(300):
+        rng = random.Random(seed)
+        data = bytearray(base)
+        for _ in range(rng.choice([1, 2, 5])):
+            data[rng.randrange(len(data))] = rng.choice(b'0123456789[]{}",:-.eEnul ' + bytes([rng.randrange(256)]))
+        path.write_bytes(bytes(data))
+        try:
+            load_results(path)
+        except FormatError as exc:
+            assert str(path) in str(exc) and "\n" not in str(exc), exc
+            refused += 1
+    assert refused > 200  # most such edits break the JSON or a field: the checks are not idle

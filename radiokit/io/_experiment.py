@@ -388,18 +388,27 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
     FormatError
         The file lacks the experiment layout.
     """
-    with h5py.File(path, "r") as h5:
+    from radiokit.io._budget import check_budget
+    from radiokit.io._layout import open_layout, text
+
+    with open_layout(path, "a radiokit experiment file") as h5:
+        check_links(path, h5, IMAGE_KEY, allow_external)
         if ENTRY not in h5 or IMAGE_KEY not in h5:
             raise FormatError(path, f"lacks /{IMAGE_KEY}: not a radiokit experiment file")
         attrs = h5[ENTRY].attrs
-        n = int(attrs.get("frames_complete", 0))
+        n = attrs.get("frames_complete", 0)
+        if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
+            raise FormatError(path, f"/{ENTRY}@frames_complete is {n!r}; expected a count of frames")
+        n = int(n)
+        check_budget(path, 16 * n, f"the keys and steps of {n} frames")
         keys = checked_dataset(path, h5, IMAGE_KEY, "iu", (1,), allow_external)[:n]
         steps = checked_dataset(path, h5, STEP, "iu", (1,), allow_external)[:n] if STEP in h5 \
             else np.full(n, -1, np.int16)
-        text = {k: attrs.get(k) for k in ("protocol", "devices")}
-        text = {k: v.decode("utf-8", "replace") if isinstance(v, bytes) else (None if v is None else str(v))
-                for k, v in text.items()}
-    return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **text)
+        if len(keys) != n or len(steps) != n:
+            raise FormatError(path, f"/{ENTRY}@frames_complete is {n}, but /{IMAGE_KEY} holds {len(keys)} keys "
+                                    f"and /{STEP} {len(steps)} steps")
+        notes = {k: None if attrs.get(k) is None else text(attrs[k]) for k in ("protocol", "devices")}
+    return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
 
 
 def check_links(path, h5, name, allow_external, depth=0):
@@ -443,7 +452,7 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
         raise FormatError(path, f"/{name} is not a dataset")
     check_local(path, h5, ds, allow_external)
     if not _plain_numbers(ds.dtype, kinds):
-        raise FormatError(path, f"/{name} has type {ds.dtype}; expected numbers")
+        raise FormatError(path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}")
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
     return ds

@@ -18,7 +18,8 @@ import numpy as np
 
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
-from radiokit.io._experiment import ENTRY, checked_dataset
+from radiokit.io._experiment import ENTRY, check_links, checked_dataset
+from radiokit.io._layout import ReadBudget, open_layout, text
 
 __all__ = ["REGISTRATION", "RegistrationRecord", "write_registration", "read_registration"]
 
@@ -99,20 +100,26 @@ def read_registration(path, *, allow_external=False) -> RegistrationRecord:
     FormatError
         The file lacks the registration layout.
     """
-    with h5py.File(path, "r") as h5:
-        if REGISTRATION not in h5:
+    with open_layout(path, "a radiokit registration file") as h5:
+        check_links(path, h5, REGISTRATION, allow_external)
+        if not isinstance(h5.get(REGISTRATION), h5py.Group):
             raise FormatError(path, f"lacks /{REGISTRATION}: not a radiokit registration file")
         g = h5[REGISTRATION]
-        displacement = checked_dataset(path, h5, DISPLACEMENT, "f", (3,), allow_external)[()]
-        registered = checked_dataset(path, h5, REGISTERED, "f", (2,), allow_external)[()]
+        registered = checked_dataset(path, h5, REGISTERED, "f", (2,), allow_external)
+        displacement = checked_dataset(path, h5, DISPLACEMENT, "f", (3,), allow_external)
+        if displacement.shape != (2,) + registered.shape:
+            raise FormatError(path, f"/{DISPLACEMENT} is {displacement.shape}; the registered image "
+                                    f"{registered.shape} needs (2, rows, cols)")
         quality = {k[len("quality_"):]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
+        budget = ReadBudget(path)
         return RegistrationRecord(method=_plain(g.attrs.get("method", "")), fixed=_plain(g.attrs.get("fixed", "")),
-                                  moving=_plain(g.attrs.get("moving", "")), displacement=displacement,
-                                  registered=registered, quality=quality)
+                                  moving=_plain(g.attrs.get("moving", "")),
+                                  displacement=budget.read(displacement), registered=budget.read(registered),
+                                  quality=quality)
 
 
 def _plain(value):
     """An attribute as a Python value: str for text, int/float/bool for numpy scalars."""
-    if isinstance(value, bytes):
-        return value.decode("utf-8", "replace")
+    if isinstance(value, (bytes, str)):
+        return text(value)
     return value.item() if isinstance(value, np.generic) else value

@@ -24,7 +24,8 @@ import numpy as np
 
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
-from radiokit.io._experiment import ENTRY, checked_dataset
+from radiokit.io._experiment import ENTRY, check_links, checked_dataset
+from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
 
 __all__ = ["RESULTS_STEPS", "ResultsRecord", "EnhancedImages", "write_results", "read_results"]
 
@@ -132,32 +133,62 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
     Raises
     ------
     FormatError
-        The file lacks the results layout.
+        The file lacks the results layout, or holds what that layout cannot: arrays of another
+        type, rank or length, a ``crop`` or ``pair`` that is not integers, inf in ``ratio``,
+        sizes over the memory budget, or data outside the file (unless ``allow_external``).
     """
-    with h5py.File(path, "r") as h5:
+    budget = ReadBudget(path)
+    with open_layout(path, "a radiokit results file") as h5:
+        def array(name, ndims=range(1, 5), kinds="buif"):
+            return budget.read(checked_dataset(path, h5, name, kinds, ndims, allow_external))
+
+        check_links(path, h5, f"{RESULTS_STEPS}/{_SIGNAL}", allow_external)
         if f"{RESULTS_STEPS}/{_SIGNAL}" not in h5:
             raise FormatError(path, f"lacks /{RESULTS_STEPS}/{_SIGNAL}: not a radiokit results file")
-
-        def array(name, ndims=range(5)):
-            return checked_dataset(path, h5, name, "buif", ndims, allow_external)[()]
-
-        steps = h5[RESULTS_STEPS]
-        reg = h5.get(RESULTS_REGISTRATION)
-        meas = h5.get(RESULTS_MEASUREMENTS)
+        line_integral = array(f"{RESULTS_STEPS}/{_SIGNAL}", (3,), "f")
+        step, ratio = array(f"{RESULTS_STEPS}/step", (1,), "iu"), array(f"{RESULTS_STEPS}/ratio", (1,), "f")
+        for name, values in (("step", step), ("ratio", ratio)):
+            if len(values) != len(line_integral):
+                raise FormatError(path, f"/{RESULTS_STEPS}/{name} holds {len(values)} values for "
+                                        f"{len(line_integral)} step images")
+        check_finite(path, f"{RESULTS_STEPS}/ratio", ratio, nan_ok=True)  # NaN: a step without a ratio
+        crop = _integers(path, h5[RESULTS_STEPS], "crop", 4)
+        groups = {}
+        for name in (RESULTS_REGISTRATION, RESULTS_ENHANCED, RESULTS_MEASUREMENTS):
+            check_links(path, h5, name, allow_external)
+            groups[name] = h5.get(name)
+            if groups[name] is not None and not isinstance(groups[name], h5py.Group):
+                raise FormatError(path, f"/{name} is not a group")
+        reg, meas = groups[RESULTS_REGISTRATION], groups[RESULTS_MEASUREMENTS]
         enhanced = {}
-        for domain, g in h5.get(RESULTS_ENHANCED, {}).items():
-            ks = {name[1:]: array(f"{g.name}/{name}") for name in g if name.startswith("k")}
-            enhanced[domain] = EnhancedImages(array(f"{g.name}/reference"), array(f"{g.name}/difference"), ks)
+        for domain in groups[RESULTS_ENHANCED] or {}:
+            g = f"{RESULTS_ENHANCED}/{domain}"
+            if not isinstance(h5[g], h5py.Group):
+                raise FormatError(path, f"/{g} is not a group")
+            ks = {name[1:]: array(f"{g}/{name}") for name in h5[g] if name.startswith("k")}
+            enhanced[domain] = EnhancedImages(array(f"{g}/reference"), array(f"{g}/difference"), ks)
         attrs = h5[ENTRY].attrs
         return ResultsRecord(
-            source=_text(attrs.get("source", "")), results_json=_text(attrs.get("results_json", "")),
-            line_integral=array(f"{RESULTS_STEPS}/{_SIGNAL}", (3,)), step=array(f"{RESULTS_STEPS}/step", (1,)),
-            ratio=array(f"{RESULTS_STEPS}/ratio", (1,)), crop=np.asarray(steps.attrs.get("crop", ())),
-            pair=tuple(int(v) for v in np.asarray(reg.attrs.get("pair", ()))) if reg is not None else (),
+            source=text(attrs.get("source", "")), results_json=text(attrs.get("results_json", "")),
+            line_integral=line_integral, step=step, ratio=ratio, crop=crop,
+            pair=_pair(path, reg),
             registration={name: array(f"{RESULTS_REGISTRATION}/{name}") for name in (reg or {})},
             enhanced=enhanced,
             rois={k: np.asarray(v) for k, v in meas.attrs.items() if k != "NX_class"} if meas is not None else {})
 
 
-def _text(value) -> str:
-    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+def _pair(path, reg) -> tuple:
+    """``@pair`` of the registration group: (moving, fixed), or () where the run registered none."""
+    if reg is None or np.size(reg.attrs.get("pair", ())) == 0:
+        return ()
+    return tuple(_integers(path, reg, "pair", 2).tolist())
+
+
+def _integers(path, group, key, n) -> np.ndarray:
+    """The attribute ``key`` of ``group``: exactly ``n`` integers."""
+    if key not in group.attrs:
+        raise FormatError(path, f"{group.name} lacks @{key}: expected {n} integers")
+    value = np.asarray(group.attrs[key])
+    if value.dtype.kind not in "iu" or value.shape != (n,):
+        raise FormatError(path, f"{group.name}@{key} is {value.tolist()!r} ({value.dtype}); expected {n} integers")
+    return value

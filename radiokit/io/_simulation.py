@@ -29,6 +29,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 from radiokit.io._experiment import check_links, checked_dataset
+from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
 
 __all__ = ["SIMULATION", "SimulationRecord", "PlantedDefects", "write_simulation", "read_simulation",
            "displacement_name"]
@@ -198,39 +199,84 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
     >>> sim.scene_name, sim.steps, sorted(sim.displacement)
     ('block', (2,), [(1, 2)])
     """
-    with h5py.File(path, "r") as h5:
+    with open_layout(path, "an experiment file") as h5:
         check_links(path, h5, SIMULATION, allow_external)
         if SIMULATION not in h5:
             return None
         g = h5[SIMULATION]
+        if not isinstance(g, h5py.Group):
+            raise FormatError(path, f"/{SIMULATION} is not a group")
 
         def numbers(name, ndims):
             return checked_dataset(path, h5, f"{SIMULATION}/{name}", "iuf", ndims, allow_external)
 
-        curve = {name: numbers(name, (1,))[()] for name in CURVE}
+        budget = ReadBudget(path)
+        curve = _read_curve(path, numbers, budget)
         n_steps = len(curve["ratio"])
         chosen = tuple(range(1, n_steps + 1)) if steps is None else tuple(
             int(s) if s > 0 else n_steps + 1 + int(s) for s in steps)
         if any(not 1 <= s <= n_steps for s in chosen):
             raise FormatError(path, f"steps {list(steps)}: /{SIMULATION} holds steps 1..{n_steps}")
-        images = {}
-        for name in (LINE_INTEGRAL, INCLUSION_MASK):
-            ds = numbers(name, (3,))
-            images[name] = np.stack([ds[s - 1] for s in chosen]) if chosen else ds[:0]
-        fields = {}
-        if DISPLACEMENT in g:
-            for name in g[DISPLACEMENT]:
-                match = _PAIR.match(name)
-                pair = (int(match[1]), int(match[2])) if match else None
-                if pair and (pairs is None or pair in set(map(tuple, pairs))):
-                    fields[pair] = numbers(f"{DISPLACEMENT}/{name}", (3,))[()]
+        images = _read_images(path, numbers, n_steps, chosen, budget)
+        frame = images[LINE_INTEGRAL].shape[1:]
+        fields, group = {}, g.get(DISPLACEMENT, {})
+        if not isinstance(group, (h5py.Group, dict)):
+            raise FormatError(path, f"/{SIMULATION}/{DISPLACEMENT} is not a group")
+        for name in group:
+            match = _PAIR.match(name)
+            pair = (int(match[1]), int(match[2])) if match else None
+            if pair and (pairs is None or pair in set(map(tuple, pairs))):
+                ds = numbers(f"{DISPLACEMENT}/{name}", (3,))
+                if ds.shape != (2,) + frame or not 1 <= pair[0] <= n_steps or not 1 <= pair[1] <= n_steps:
+                    raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}: expected {(2, *frame)}, "
+                                            f"between steps 1..{n_steps}")
+                fields[pair] = budget.read(ds)
         defects = None
         if DEFECTS in g:
-            defects = PlantedDefects(*(numbers(f"{DEFECTS}/{k}", (1, 2))[()] for k in (*DEFECT_KINDS, "columns")))
-        scene = g.attrs.get("scene", "")
+            defects = PlantedDefects(*(budget.read(numbers(f"{DEFECTS}/{k}", (2,))) for k in DEFECT_KINDS),
+                                     budget.read(numbers(f"{DEFECTS}/columns", (1,))))
+            if any(d.shape[1] != 2 for d in (defects.dead, defects.under, defects.noisy)):
+                raise FormatError(path, f"/{SIMULATION}/{DEFECTS}/dead, under and noisy must be (k, 2) pixels")
         return SimulationRecord(
-            scene_toml=scene.decode("utf-8", "replace") if isinstance(scene, bytes) else str(scene),
-            line_integral=images[LINE_INTEGRAL], inclusion_mask=images[INCLUSION_MASK], steps=chosen,
-            displacement=fields, defects=defects, initial_gap_mm=float(g.attrs.get("initial_gap_mm", math.nan)),
-            seconds={k[len("seconds_"):]: float(v) for k, v in g.attrs.items() if k.startswith("seconds_")},
+            scene_toml=text(g.attrs.get("scene", "")), line_integral=images[LINE_INTEGRAL],
+            inclusion_mask=images[INCLUSION_MASK], steps=chosen, displacement=fields, defects=defects,
+            initial_gap_mm=_number(path, g, "initial_gap_mm"),
+            seconds={k[len("seconds_"):]: _number(path, g, k) for k in g.attrs if k.startswith("seconds_")},
             **curve)
+
+
+def _read_curve(path, numbers, budget) -> dict:
+    """The force-compression curve: one value per step in each series, ratio and gap finite."""
+    curve = {}
+    for name in CURVE:
+        ds = numbers(name, (1,))
+        curve[name] = budget.read(ds)
+        if len(curve[name]) != len(curve[CURVE[0]]):
+            raise FormatError(path, f"/{SIMULATION}/{name} holds {len(curve[name])} values, "
+                                    f"/{SIMULATION}/{CURVE[0]} {len(curve[CURVE[0]])}: one per step in each")
+        if name in ("ratio", "gap_mm"):
+            check_finite(path, ds.name.lstrip("/"), curve[name])
+    return curve
+
+
+def _read_images(path, numbers, n_steps, chosen, budget) -> dict:
+    """The line integral and inclusion mask of the ``chosen`` steps (one image per step, same shape)."""
+    images, first = {}, None
+    for name in (LINE_INTEGRAL, INCLUSION_MASK):
+        ds = numbers(name, (3,))
+        if ds.shape[0] != n_steps or first not in (None, ds.shape):
+            raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}; expected one image per step of the "
+                                    f"curve ({n_steps})" + (f", as /{SIMULATION}/{LINE_INTEGRAL} {first}" if first else ""))
+        shape = first = ds.shape
+        budget.reserve(len(chosen) * math.prod(shape[1:]) * ds.dtype.itemsize,
+                       f"{len(chosen)} step(s) of /{ds.name.lstrip('/')} {shape}")
+        images[name] = np.stack([ds[s - 1] for s in chosen]) if chosen else ds[:0]
+    return images
+
+
+def _number(path, group, key) -> float:
+    """A number attribute (NaN where absent)."""
+    value = group.attrs.get(key, math.nan)
+    if np.ndim(value) != 0 or np.asarray(value).dtype.kind not in "iuf":
+        raise FormatError(path, f"{group.name}@{key} is {value!r}; expected a number")
+    return float(value)

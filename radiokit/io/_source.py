@@ -45,7 +45,9 @@ def _check_file(path) -> None:
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     if stat.S_ISDIR(st.st_mode):
         raise FormatError(path, "is a directory, not a frame file")
-    if stat.S_ISREG(st.st_mode) and st.st_size == 0:
+    if not stat.S_ISREG(st.st_mode):  # a FIFO would wait for a writer forever, /dev/zero never end
+        raise FormatError(path, "is not a regular file (a FIFO, socket or device), not a frame file")
+    if st.st_size == 0:
         raise FormatError(path, "file is empty")
 
 

@@ -11,6 +11,7 @@ The HDF5 layout (``radiokit correct``'s output):
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ import tifffile
 
 from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
+from radiokit.io._layout import ReadBudget, open_layout, text
 
 __all__ = ["write_tiff", "StackWriter", "StackRecord", "read_stack", "STACK", "STACK_FRAMES"]
 
@@ -216,28 +218,34 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
     FormatError
         The file lacks the stack layout.
     """
-    from radiokit.io._budget import check_budget
-    from radiokit.io._experiment import checked_dataset
+    from radiokit.io._experiment import check_links, checked_dataset
 
-    with h5py.File(path, "r") as h5:
+    with open_layout(path, "a radiokit stack") as h5:
+        check_links(path, h5, STACK_FRAMES, allow_external)
         if STACK_FRAMES not in h5:
             raise FormatError(path, f"lacks /{STACK_FRAMES}: not a radiokit stack")
         ds = checked_dataset(path, h5, STACK_FRAMES, "buif", (3,), allow_external)
-        check_budget(path, ds.size * ds.dtype.itemsize, f"/{STACK_FRAMES} {ds.shape}")
-        series = {name: checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)[()]
-                  for name in h5[STACK] if name != ds.name.rsplit("/", 1)[1]}
+        budget, series = ReadBudget(path), {}
+        budget.reserve(math.prod(ds.shape) * ds.dtype.itemsize, f"/{STACK_FRAMES} {ds.shape}")
+        for name in h5[STACK]:
+            if name != ds.name.rsplit("/", 1)[1]:
+                s = checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)
+                if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
+                    raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
+                series[name] = budget.read(s)
         meta = {k: _attr(v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
-        return StackRecord(ds[()], series, meta)
+        return StackRecord(ds[()], series, meta)  # its bytes were counted first
 
 
 def _attr(value):
-    """An attribute as the writer's ``meta`` gave it: JSON text of a dict or list parsed back."""
-    if isinstance(value, bytes):
-        value = value.decode("utf-8", "replace")
+    """An attribute as the writer's ``meta`` gave it: JSON text of a dict or list parsed back
+    (text that does not parse, nested past Python's recursion limit included, stays text)."""
+    if isinstance(value, (bytes, str)):
+        value = text(value)
     if isinstance(value, str) and value[:1] in "[{":
         try:
             return json.loads(value)
-        except ValueError:
+        except (ValueError, RecursionError):
             pass
     return value.item() if isinstance(value, np.generic) else value
 

@@ -1,0 +1,101 @@
+"""What every typed-layout reader shares: opening a file it did not write, and reading from it safely.
+
+A results, registration, stack or simulation file may come from anywhere: cut short by a full
+disk, edited by hand, or made to hurt. libhdf5 reports such files with OSError, RuntimeError
+("too many links" for soft links in a circle), KeyError or TypeError, none of which name the
+file; :func:`open_layout` turns each into one :class:`FormatError` line that does.
+"""
+from __future__ import annotations
+
+import math
+import os
+import stat
+from contextlib import contextmanager
+
+import h5py
+import numpy as np
+
+from radiokit.errors import FormatError
+from radiokit.io._budget import check_budget
+
+__all__ = ["open_layout", "check_regular_file", "ReadBudget", "text", "check_finite"]
+
+#: what libhdf5 and h5py raise on a corrupt file (RecursionError: links nested past Python's limit)
+_H5_ERRORS = (OSError, RuntimeError, KeyError, TypeError, ValueError, RecursionError)
+
+
+@contextmanager
+def open_layout(path, what: str):
+    """Open ``path`` read-only; any h5py failure inside the block is a FormatError naming ``path``.
+
+    ``what`` names the layout in the message ("a radiokit results file").
+    """
+    check_regular_file(path, what)
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as exc:
+        raise FormatError(path, f"cannot be opened as HDF5, so not {what} (truncated or another "
+                                f"format): {_one_line(exc)}") from None
+    try:
+        with h5:
+            yield h5
+    except FormatError:
+        raise
+    except _H5_ERRORS as exc:
+        raise FormatError(path, f"corrupt, not {what}: {type(exc).__name__}: {_one_line(exc)}") from exc
+
+
+def check_regular_file(path, what: str) -> None:
+    """Refuse a missing path, a directory, and a FIFO, socket or device: opening a FIFO waits for a
+    writer forever, and ``/dev/zero`` never ends."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise FormatError(path, "no such file") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(mode):
+        raise FormatError(path, f"is a directory, not {what}")
+    if not stat.S_ISREG(mode):
+        raise FormatError(path, f"is not a regular file (a FIFO, socket or device), so not {what}")
+
+
+class ReadBudget:
+    """The memory budget one record is read within: every array read counts against it, so a
+    file of many arrays each under the budget cannot add up to more than it."""
+
+    def __init__(self, path, budget=None):
+        self.path, self.budget, self.spent = path, budget, 0
+
+    def reserve(self, nbytes: int, what: str) -> None:
+        """Count ``nbytes`` (what ``what`` will allocate), or raise FormatError if over the budget."""
+        before = f" after {self.spent} bytes read" if self.spent else ""
+        check_budget(self.path, self.spent + int(nbytes), what + before, self.budget)
+        self.spent += int(nbytes)
+
+    def read(self, ds: h5py.Dataset) -> np.ndarray:
+        """All of ``ds``, once its declared size has been counted."""
+        self.reserve(math.prod(int(s) for s in ds.shape) * ds.dtype.itemsize, f"/{ds.name.lstrip('/')} {ds.shape}")
+        return ds[()]
+
+
+def text(value) -> str:
+    """A text attribute as printable str: bytes that are not UTF-8 become U+FFFD (h5py hands
+    them over as lone surrogates, which cannot be printed or written)."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, str):
+        return value.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    return str(value)
+
+
+def check_finite(path, name: str, values: np.ndarray, *, nan_ok: bool = False) -> None:
+    """Refuse inf (and NaN unless ``nan_ok``) in ``values``, the dataset ``name``."""
+    bad = np.isinf(values) if nan_ok else ~np.isfinite(values)
+    if np.any(bad):
+        raise FormatError(path, f"/{name} holds {'inf' if nan_ok else 'NaN or inf'} "
+                                f"(at index {int(np.flatnonzero(bad.ravel())[0])})")
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
