@@ -120,6 +120,7 @@ def _load_steps(path, progress):
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
     from radiokit.io import ImageKey, open_frames
 
     t = time.perf_counter()
@@ -141,7 +142,7 @@ def _load_steps(path, progress):
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             acc = None
             for i in idx:
-                li = cal.correct(src[i], domain="log")
+                li = correct_frames(cal, src[i], domain="log")
                 acc = li.astype(np.float64) if acc is None else acc + li
                 bar.update()
             images.append((acc / len(idx)).astype(np.float32))

@@ -209,9 +209,6 @@ class BSplineField:
         return out.ravel().astype(np.float64) / factor
 
 
-_POOL = None
-
-
 def _threads():
     from radiokit._threads import threads
 
@@ -219,16 +216,9 @@ def _threads():
 
 
 def _pool():
-    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
-    global _POOL
-    n = _threads()
-    if _POOL is None or _POOL._max_workers != n:
-        from concurrent.futures import ThreadPoolExecutor
+    from radiokit._threads import pool  # the one pool of radiokit's parallel loops
 
-        if _POOL is not None:
-            _POOL.shutdown(wait=False)
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="radiokit-register")
-    return _POOL
+    return pool()
 
 
 def _downsample(img, f):
