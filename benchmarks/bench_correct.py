@@ -140,18 +140,25 @@ def simulate(panel, rng, transmission=None, beam=True) -> np.ndarray:
 
 
 # -- part 1: one frame -------------------------------------------------------------------------
-def _interleaved(variants, reps, seed) -> dict:
+def _interleaved(variants, reps, seed, cpu=None) -> dict:
     """Seconds per call of each variant over ``reps`` rounds, each round in a fresh shuffled order
-    (the machine is shared: a slow moment falls on all variants alike, not on one)."""
+    (the machine is shared: a slow moment falls on all variants alike, not on one). ``cpu``, a
+    dict, also receives each call's CPU time of this process (all its threads): on a loaded
+    machine wall time counts the moments a thread waited for a core, CPU time only the work."""
     times = {name: [] for name in variants}
+    if cpu is not None:
+        cpu.update({name: [] for name in variants})
     order = list(variants)
     shuffler = random.Random(seed)
     for _ in range(reps):
         shuffler.shuffle(order)
         for name in order:
+            c = time.process_time()
             t = time.perf_counter()
             variants[name]()
             times[name].append(time.perf_counter() - t)
+            if cpu is not None:
+                cpu[name].append(time.process_time() - c)
     return times
 
 
@@ -348,14 +355,18 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     for fn in variants.values():
         fn()
         fn()
-    times = _interleaved(variants, reps, seed)
+    cpu = {}
+    times = _interleaved(variants, reps, seed, cpu)
     ms = {name: _median_ms(ts) for name, ts in times.items()}
+    cpu_ms = {name: _median_ms(ts) for name, ts in cpu.items()}
     cal, raw = cases["realistic"][:2]
     _, report = correct_frames(cal, raw, domain="log", return_report=True)
     ratio = {name: ms[f"radiokit {name}"] / ms[f"opencv {name}"] for name in cases}
     paired = {name: statistics.median(a / b for a, b in zip(times[f"radiokit {name}"], times[f"opencv {name}"]))
               for name in cases}
+    cpu_ratio = {name: cpu_ms[f"radiokit {name}"] / cpu_ms[f"opencv {name}"] for name in cases}
     return {"ms_median": ms, "radiokit_over_opencv": ratio, "paired": paired, "reps": reps,
+            "cpu_ms_median": cpu_ms, "cpu_ratio": cpu_ratio, "load_average": os.getloadavg(),
             "repairs": {"defects_filled": int(report.defects_filled), "saturated": int(report.saturated.sum()),
                         "nonpositive": int(report.nonpositive.sum())},
             "target": "realistic frame: radiokit within 10 % of the fused OpenCV pass",
@@ -369,7 +380,10 @@ def print_realistic(r):
           f"radiokit against a fused OpenCV subtract-log-subtract pass (median of {r['reps']} interleaved repetitions)")
     for name in ("clean", "realistic"):
         print(f"  {name:9s} radiokit {r['ms_median'][f'radiokit {name}']:6.2f} ms, OpenCV {r['ms_median'][f'opencv {name}']:6.2f} ms"
-              f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}]")
+              f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}];"
+              f" CPU time {r['cpu_ms_median'][f'radiokit {name}']:6.2f} / {r['cpu_ms_median'][f'opencv {name}']:6.2f} ms"
+              f" -> {r['cpu_ratio'][name]:.3f}")
+    print(f"  load average {r['load_average'][0]:.1f} at the end (2 CPUs)")
     print(f"  target: {r['target']} -> {'PASS' if r['pass'] else 'FAIL'}")
 
 
