@@ -11,7 +11,7 @@ import functools
 import threading
 import time
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -169,6 +169,23 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     return stages
 
 
+def _spans(stages, cols) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per stage, the first and last row each entry depends on: its own pixel, the pixels it reads
+    and, through them, what earlier stages read to fill those. An entry whose span lies inside
+    one thread's rows can be filled by that thread as soon as its rows are corrected."""
+    n = max((int(max(st.dst.max(initial=0), st.src.max(initial=0))) for st in stages), default=0) + 1
+    dep_first = np.full(n, np.iinfo(np.int64).max)  # per filled pixel: the rows its value depends on
+    dep_last = np.full(n, -1)
+    spans = []
+    for st in stages:
+        rows = np.concatenate([st.dst[:, None], st.src], axis=1) // cols
+        first = np.minimum(rows.min(axis=1), dep_first[st.src].min(axis=1, initial=np.iinfo(np.int64).max))
+        last = np.maximum(rows.max(axis=1), dep_last[st.src].max(axis=1, initial=-1))
+        dep_first[st.dst], dep_last[st.dst] = first, last
+        spans.append((first, last))
+    return spans
+
+
 @dataclass(eq=False)
 class CorrectionKernel:
     """What correcting frames with one calibration needs that no frame changes, built once.
@@ -186,6 +203,8 @@ class CorrectionKernel:
     invalid : ndarray (rows, cols) bool
         The calibration's defect pixels.
     n_defects : int
+    spans : list
+        Per stage, the rows each fill depends on (:func:`_spans`).
     """
 
     dark: np.ndarray
@@ -193,8 +212,10 @@ class CorrectionKernel:
     stages: list
     invalid: np.ndarray
     n_defects: int
+    spans: list
     _log_i0: np.ndarray | None = None
     _inv_gain: np.ndarray | None = None
+    _fills: dict = field(default_factory=dict)
 
     @classmethod
     def build(cls, cal: Calibration) -> CorrectionKernel:
@@ -202,8 +223,29 @@ class CorrectionKernel:
         response = cal.flat - cal.dark
         ok = (cal.mask == 0) & (response > cal.thresholds.eps)
         response[~ok] = 1.0
-        return cls(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
-                   n_defects=int(np.count_nonzero(cal.mask)))
+        stages = fill_plan(cal)
+        return cls(dark=cal.dark, response=response, stages=stages, invalid=cal.mask != 0,
+                   n_defects=int(np.count_nonzero(cal.mask)), spans=_spans(stages, cal.shape[1]))
+
+    def fills(self, r0: int, r1: int, edges: tuple = ()) -> list:
+        """The fill stages restricted to the entries whose rows lie in r0..r1 (a thread's share,
+        filled by that thread) or, with ``edges``, to those that cross one of them (filled after
+        the threads). Cached per call signature."""
+        key = (r0, r1, edges)
+        got = self._fills.get(key)
+        if got is None:
+            got = []
+            for st, (first, last) in zip(self.stages, self.spans):
+                if edges:
+                    sel = np.zeros(first.shape, bool)
+                    for e in edges:
+                        sel |= (first < e) & (last >= e)
+                else:
+                    sel = (first >= r0) & (last < r1)
+                if sel.any():
+                    got.append(_Stage(st.dst[sel], st.src[sel], st.w[sel]))
+            self._fills[key] = got
+        return got
 
     @classmethod
     def of(cls, cal: Calibration) -> CorrectionKernel:
@@ -336,6 +378,9 @@ def _correct_rows(raw, k: CorrectionKernel, out, domain, scale, r0, r1, saturati
             out[rows, cols] = cv2.multiply(np.full((1, rows.size), FLOOR_COUNTS, np.float32),
                                            inv_gain[rows, cols][None], scale=float(scale))[0]
         nonpos.append(rows * out.shape[1] + cols)
+    flat_out = out.reshape(-1)
+    for stage in k.fills(r0, r1):  # the defect fills this thread's rows hold, while it has them
+        stage.apply(flat_out)
     return nonpos, sat
 
 
@@ -352,7 +397,7 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
     sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
     flat_out = out2d.reshape(-1)
-    for stage in k.stages:
+    for stage in k.fills(0, rows, tuple(edges[1:-1])) if nt > 1 else ():  # the fills across threads
         stage.apply(flat_out)
     if nonpos.size:
         flat_invalid = k.invalid.ravel()

@@ -258,3 +258,29 @@ def test_one_pool_per_thread_budget(monkeypatch):
     one = pool()
     assert one is not two and one._max_workers == 1
     assert list(two.map(abs, [-1, -2])) == [1, 2]
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+def test_fills_near_the_thread_edge_equal_one_thread(domain, monkeypatch):
+    """Each thread fills the defects whose neighbourhood lies in its rows, the rest are filled
+    after the threads: the image must be exactly the one-thread image, defect lines, clusters and
+    isolated pixels on either side of the edge (row 128 for 300 rows on two threads) included."""
+    rng = np.random.default_rng(5)
+    shape = (300, 90)
+    dark = rng.uniform(90, 110, shape).astype(np.float32)
+    flat = dark + rng.uniform(2000, 3000, shape).astype(np.float32)
+    mask = np.zeros(shape, np.uint32)
+    for r, c in [(127, 10), (128, 11), (126, 40), (129, 40), (130, 60), (5, 5), (299, 89)]:
+        mask[r, c] = PixelFlag.DEAD
+    mask[120:136, 70:74] = PixelFlag.DEAD  # a cluster across the edge
+    mask[128, :] |= np.uint32(PixelFlag.CLUSTER)
+    mask[:, 30] |= np.uint32(PixelFlag.CLUSTER)
+    cal = Calibration(dark, flat, mask, defect_rows=[128], defect_columns=[30])
+    raw = np.rint(dark + rng.uniform(50, 1900, shape)).astype(np.uint16)
+    raw[[127, 129, 131], [12, 41, 61]] = 0  # below the dark beside the defects
+    monkeypatch.setenv("RADIOKIT_THREADS", "1")
+    one = correct_frames(cal, raw, domain=domain)
+    monkeypatch.setenv("RADIOKIT_THREADS", "2")
+    two = correct_frames(cal, raw, domain=domain)
+    assert np.isfinite(one).all()
+    np.testing.assert_array_equal(two, one)
