@@ -259,7 +259,7 @@ class _Level:
 
     def _bands(self):
         rows = self.shape[0]
-        if rows * self.shape[1] < 200_000 or _threads() == 1:  # threads cost more than they gain
+        if rows * self.shape[1] < 200_000:  # threads cost more than they gain
             return [slice(0, rows)]
         step = max(16, min(128, -(-rows // (4 * _threads()))))
         return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
@@ -267,8 +267,8 @@ class _Level:
     def _map(self, fn):
         """``fn(band)`` over the row bands, on the thread pool when there are several."""
         bands = self._bands()
-        if len(bands) == 1:
-            return [fn(bands[0])]
+        if len(bands) == 1 or _threads() == 1:  # one thread (a Dask worker): the bands in turn, in
+            return [fn(b) for b in bands]  # cache (whole-frame temporaries: more CPU, page faults)
         return list(_pool().map(fn, bands))
 
     def _sample_band(self, d, sl, w, dy, dx):
