@@ -14,7 +14,6 @@ import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from radiokit._threads import pool, threads
@@ -27,13 +26,7 @@ DOMAINS = ("log", "linear", "counts")
 FLOOR_COUNTS = 0.5
 #: what a non-finite raw value becomes: below any dark, so it is filled as non-positive
 _NONFINITE = -1e30
-#: OpenCV's ln(FLOOR_COUNTS), the value the pass gives a clamped pixel (numpy's may differ in the last bit)
-_LOG_FLOOR = np.float32(cv2.log(np.full((1, 16), FLOOR_COUNTS, np.float32))[0, 0])
 _BLOCK_ROWS = 128  # 128 x 2240 float32 = 1.1 MB: measured fastest on 2240-wide frames (32: +30 %)
-#: rows of the bands in which non-positive pixels are looked for (divides _BLOCK_ROWS): band
-#: minima cost no more than column minima, and a band holding a hit is a 16-pixel search
-#: (its 16 rows are 16 cache lines read again)
-_SUB_ROWS = 16
 
 
 @dataclass
@@ -169,23 +162,6 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     return stages
 
 
-def _spans(stages, cols) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per stage, the first and last row each entry depends on: its own pixel, the pixels it reads
-    and, through them, what earlier stages read to fill those. An entry whose span lies inside
-    one thread's rows can be filled by that thread as soon as its rows are corrected."""
-    n = max((int(max(st.dst.max(initial=0), st.src.max(initial=0))) for st in stages), default=0) + 1
-    dep_first = np.full(n, np.iinfo(np.int64).max)  # per filled pixel: the rows its value depends on
-    dep_last = np.full(n, -1)
-    spans = []
-    for st in stages:
-        rows = np.concatenate([st.dst[:, None], st.src], axis=1) // cols
-        first = np.minimum(rows.min(axis=1), dep_first[st.src].min(axis=1, initial=np.iinfo(np.int64).max))
-        last = np.maximum(rows.max(axis=1), dep_last[st.src].max(axis=1, initial=-1))
-        dep_first[st.dst], dep_last[st.dst] = first, last
-        spans.append((first, last))
-    return spans
-
-
 @dataclass(eq=False)
 class CorrectionKernel:
     """What correcting frames with one calibration needs that no frame changes, built once.
@@ -203,8 +179,6 @@ class CorrectionKernel:
     invalid : ndarray (rows, cols) bool
         The calibration's defect pixels.
     n_defects : int
-    spans : list
-        Per stage, the rows each fill depends on (:func:`_spans`).
     """
 
     dark: np.ndarray
@@ -212,10 +186,9 @@ class CorrectionKernel:
     stages: list
     invalid: np.ndarray
     n_defects: int
-    spans: list
     _log_i0: np.ndarray | None = None
     _inv_gain: np.ndarray | None = None
-    _fills: dict = field(default_factory=dict)
+    _dark_max: dict = field(default_factory=dict)
 
     @classmethod
     def build(cls, cal: Calibration) -> CorrectionKernel:
@@ -223,29 +196,15 @@ class CorrectionKernel:
         response = cal.flat - cal.dark
         ok = (cal.mask == 0) & (response > cal.thresholds.eps)
         response[~ok] = 1.0
-        stages = fill_plan(cal)
-        return cls(dark=cal.dark, response=response, stages=stages, invalid=cal.mask != 0,
-                   n_defects=int(np.count_nonzero(cal.mask)), spans=_spans(stages, cal.shape[1]))
+        return cls(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
+                   n_defects=int(np.count_nonzero(cal.mask)))
 
-    def fills(self, r0: int, r1: int, edges: tuple = ()) -> list:
-        """The fill stages restricted to the entries whose rows lie in r0..r1 (a thread's share,
-        filled by that thread) or, with ``edges``, to those that cross one of them (filled after
-        the threads). Cached per call signature."""
-        key = (r0, r1, edges)
-        got = self._fills.get(key)
-        if got is None:
-            got = []
-            for st, (first, last) in zip(self.stages, self.spans):
-                if edges:
-                    sel = np.zeros(first.shape, bool)
-                    for e in edges:
-                        sel |= (first < e) & (last >= e)
-                else:
-                    sel = (first >= r0) & (last < r1)
-                if sel.any():
-                    got.append(_Stage(st.dst[sel], st.src[sel], st.w[sel]))
-            self._fills[key] = got
-        return got
+    def dark_max(self, r0: int, r1: int) -> float:
+        """The largest dark value in rows r0..r1 (cached per block)."""
+        v = self._dark_max.get((r0, r1))
+        if v is None:
+            v = self._dark_max[(r0, r1)] = float(self.dark[r0:r1].max())
+        return v
 
     @classmethod
     def of(cls, cal: Calibration) -> CorrectionKernel:
@@ -285,31 +244,15 @@ _KERNELS_LOCK = threading.Lock()
 _CV_DEPTHS = {np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32)}
 
 
-def _band_minima(t, mins):
-    """``mins[j]``: each column's smallest value of ``t`` over rows ``16 j .. 16 j + 15``."""
-    h, w = t.shape
-    n = h // _SUB_ROWS
-    if n:
-        np.minimum.reduce(t[: n * _SUB_ROWS].reshape(n, _SUB_ROWS, w), axis=1, out=mins[:n])
-    if n * _SUB_ROWS != h:  # the frame's last rows: their own, shorter band
-        np.minimum.reduce(t[n * _SUB_ROWS:], axis=0, out=mins[n])
-
-
-def _nonpositive(raw, dark, mins, r0, r1) -> np.ndarray:
-    """Rows and columns of the pixels of rows r0..r1 where ``raw - dark <= 0`` (or raw is not
-    finite), sorted, from the band minima ``mins`` of ``raw - dark``: only the 16-pixel runs of
-    the few bands whose minimum is <= 0 are read again (a few thousand pixels of millions)."""
-    w = raw.shape[1]
-    band, col = np.divmod(np.flatnonzero(mins <= 0), w)
-    rows = (r0 + band * _SUB_ROWS)[:, None] + np.arange(_SUB_ROWS)
-    cols = np.broadcast_to(col[:, None], rows.shape)
-    inside = rows < r1
-    rows, cols = rows[inside], cols[inside]
-    t = raw[rows, cols].astype(np.float32)  # as _offset computes it: float32(raw) - dark, in float32
-    t -= dark[rows, cols]
-    hit = (t <= 0) | ~np.isfinite(t) if raw.dtype.kind == "f" else t <= 0
-    order = np.argsort(rows[hit] * w + cols[hit])
-    return rows[hit][order], cols[hit][order]
+def _at_most(block, limit) -> np.ndarray | None:
+    """Flat indices (in ``block``) of the pixels ``<= limit``, or None. The hits are a few
+    hundred pixels of millions: the column minima (one vectorised pass over the block, in cache)
+    name the few columns that hold them, and only those are searched."""
+    cols = np.flatnonzero(block.min(axis=0) <= limit)
+    if cols.size == 0:
+        return None
+    r, j = np.nonzero(block[:, cols] <= limit)
+    return r * block.shape[1] + cols[j]
 
 
 def _at_least(block, limit) -> np.ndarray | None:
@@ -325,29 +268,13 @@ def _at_least(block, limit) -> np.ndarray | None:
     return r * block.shape[1] + cols[j]
 
 
-def _offset(rb, dark, t):
-    """``t = raw - dark`` in float32; non-finite raw values sent below zero."""
-    import cv2
-
-    if rb.dtype in _CV_DEPTHS:
-        cv2.subtract(rb, dark, t, dtype=cv2.CV_32F)
-    else:  # dtypes OpenCV lacks (int32, float64, ...): a plain cast, then the subtraction
-        np.copyto(t, rb, casting="unsafe")
-        np.subtract(t, dark, out=t)
-    if rb.dtype.kind == "f" and not np.isfinite(t).all():
-        # NaN/inf raw values are defects of this frame: sent below zero so that the
-        # non-positive path clamps, fills and counts them (the output is never NaN or inf)
-        np.nan_to_num(t, copy=False, nan=_NONFINITE, posinf=_NONFINITE, neginf=_NONFINITE)
-
-
 def _correct_rows(raw, k: CorrectionKernel, out, domain, scale, r0, r1, saturation):
-    """One thread's share: rows r0..r1 in cache-sized blocks, each one fused pass as OpenCV's
-    subtract-log-subtract would do it, plus the minima of ``raw - dark`` per 16-row band while
-    the block is in cache. Returns flat indices of the non-positive and saturated pixels met.
+    """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
+    non-positive and saturated pixels met (rare: found by a min/max per block, then searched
+    only in the rows that hold them, and clamped on that index list).
 
-    A non-positive pixel goes through the pass as it is (NaN or inf); afterwards it is given, on
-    the index list, the value ``raw - dark`` clamped to ``FLOOR_COUNTS`` gives (bit for bit:
-    ``_LOG_FLOOR`` is OpenCV's own log, ``cv2.multiply`` its own product)."""
+    Each block is one fused pass, as OpenCV's subtract-log-subtract would do: ``raw - dark``
+    converted on the fly (``cv2.subtract`` into float32), ``ln``, ``ln(flat - dark) - ln``."""
     import cv2
 
     log_i0 = k.log_i0 if domain == "log" else None
@@ -355,32 +282,39 @@ def _correct_rows(raw, k: CorrectionKernel, out, domain, scale, r0, r1, saturati
     cols = raw.shape[1]
     tmp = np.empty((_BLOCK_ROWS, cols), np.float32)
     nonpos, sat = [], []
-    mins = np.empty((-(-(r1 - r0) // _SUB_ROWS), cols), np.float32)  # r0 is a multiple of _SUB_ROWS
+    fused = raw.dtype in _CV_DEPTHS
     for a in range(r0, r1, _BLOCK_ROWS):
         b = min(a + _BLOCK_ROWS, r1)
-        t, rb = tmp[: b - a], raw[a:b]
-        _offset(rb, k.dark[a:b], t)
-        _band_minima(t, mins[(a - r0) // _SUB_ROWS:])
-        if saturation is not None and (cv2.minMaxLoc(rb)[1] if raw.dtype in _CV_DEPTHS else rb.max()) >= saturation:
-            hit = _at_least(rb, saturation)
-            if hit is not None:
-                sat.append(hit + a * cols)
+        t = tmp[: b - a]
+        rb = raw[a:b]
+        if fused:
+            cv2.subtract(rb, k.dark[a:b], t, dtype=cv2.CV_32F)
+        else:  # dtypes OpenCV lacks (int32, float64, ...): a plain cast, then the subtraction
+            np.copyto(t, rb, casting="unsafe")
+            np.subtract(t, k.dark[a:b], out=t)
+        if rb.dtype.kind == "f" and not np.isfinite(t).all():
+            # NaN/inf raw values are defects of this frame: sent below zero so that the
+            # non-positive path clamps, fills and counts them (the output is never NaN or inf)
+            np.nan_to_num(t, copy=False, nan=_NONFINITE, posinf=_NONFINITE, neginf=_NONFINITE)
+        # one min (or min/max) pass says whether anything needs looking at; raw - dark <= 0
+        # needs raw <= the block's largest dark
+        if saturation is None:
+            lo, hi = t.min(), 0
+            hit = _at_most(t, 0) if lo <= 0 else None
+        else:
+            lo, hi = cv2.minMaxLoc(rb)[:2] if fused else (rb.min(), rb.max())
+            hit = _at_most(t, 0) if lo <= k.dark_max(a, b) else None
+        if hit is not None:
+            t.ravel()[hit] = FLOOR_COUNTS
+            nonpos.append(hit + a * cols)
+        hit = _at_least(rb, saturation) if saturation is not None and hi >= saturation else None
+        if hit is not None:
+            sat.append(hit + a * cols)
         if domain == "log":
             cv2.log(t, t)
             cv2.subtract(log_i0[a:b], t, out[a:b])
         else:
             cv2.multiply(t, inv_gain[a:b], out[a:b], scale=float(scale))
-    rows, cols = _nonpositive(raw, k.dark, mins, r0, r1)
-    if rows.size:  # what the pass would have given for raw - dark clamped to FLOOR_COUNTS
-        if domain == "log":
-            out[rows, cols] = log_i0[rows, cols] - _LOG_FLOOR
-        else:
-            out[rows, cols] = cv2.multiply(np.full((1, rows.size), FLOOR_COUNTS, np.float32),
-                                           inv_gain[rows, cols][None], scale=float(scale))[0]
-        nonpos.append(rows * out.shape[1] + cols)
-    flat_out = out.reshape(-1)
-    for stage in k.fills(r0, r1):  # the defect fills this thread's rows hold, while it has them
-        stage.apply(flat_out)
     return nonpos, sat
 
 
@@ -397,7 +331,7 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
     sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
     flat_out = out2d.reshape(-1)
-    for stage in k.fills(0, rows, tuple(edges[1:-1])) if nt > 1 else ():  # the fills across threads
+    for stage in k.stages:
         stage.apply(flat_out)
     if nonpos.size:
         flat_invalid = k.invalid.ravel()
