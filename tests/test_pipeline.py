@@ -234,10 +234,9 @@ def _worker_state():
     import cv2
     from threadpoolctl import threadpool_info
 
-    from radiokit._threads import threads
-    from radiokit.correct import _pool
+    from radiokit._threads import pool, threads
 
-    return {"radiokit": threads(), "pool": _pool()._max_workers, "cv2": cv2.getNumThreads(),
+    return {"radiokit": threads(), "pool": pool()._max_workers, "cv2": cv2.getNumThreads(),
             "blas": sorted({p["num_threads"] for p in threadpool_info()}),
             "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_")}
 
