@@ -26,7 +26,7 @@ them alike; "paired" ratios are the median of the per-repetition ratios, a secon
       clamp at 1e-6, ``-log(x)``. (The raw frame is fed to numexpr as uint16, saving tomopy's
       ``as_float32`` copy: slightly kinder to (ii) than tomopy itself. numexpr built without
       Intel VML, as from PyPI, computes ``log`` with scalar libm: that is most of its time.)
-(iii) ``Calibration.correct(raw, domain="log")`` of radiokit, with the calibration built once by
+(iii) ``correct_frames(cal, raw, domain="log")`` of radiokit, with the calibration built once by
       ``Calibration.from_frames`` and the per-calibration kernel warmed up before timing. It does
       more than the others: it fills the defect pixels and the defect column, clamps and fills
       non-positive pixels, counts saturated ones, and never returns NaN or inf.
@@ -55,7 +55,7 @@ of the short-stack peak, i.e. memory independent of stack length. Every output i
 frames, finite, last frame equal to correcting the same raw frame in memory.
 
 A last child (``--_split N``) runs the same loop ``correct_files`` runs from its public pieces
-(``open_frames``, ``Calibration.correct(out=...)``, ``StackWriter.append``) with a timer around
+(``open_frames``, ``correct_frames(cal, raw, out=...)``, ``StackWriter.append``) with a timer around
 each stage, and writes each corrected frame a second time to a plain file as a baseline: if the
 HDF5 write is slow and the plain write is as slow, the time is the machine's page cache or disk,
 not radiokit's.
@@ -140,18 +140,25 @@ def simulate(panel, rng, transmission=None, beam=True) -> np.ndarray:
 
 
 # -- part 1: one frame -------------------------------------------------------------------------
-def _interleaved(variants, reps, seed) -> dict:
+def _interleaved(variants, reps, seed, cpu=None) -> dict:
     """Seconds per call of each variant over ``reps`` rounds, each round in a fresh shuffled order
-    (the machine is shared: a slow moment falls on all variants alike, not on one)."""
+    (the machine is shared: a slow moment falls on all variants alike, not on one). ``cpu``, a
+    dict, also receives each call's CPU time of this process (all its threads): on a loaded
+    machine wall time counts the moments a thread waited for a core, CPU time only the work."""
     times = {name: [] for name in variants}
+    if cpu is not None:
+        cpu.update({name: [] for name in variants})
     order = list(variants)
     shuffler = random.Random(seed)
     for _ in range(reps):
         shuffler.shuffle(order)
         for name in order:
+            c = time.process_time()
             t = time.perf_counter()
             variants[name]()
             times[name].append(time.perf_counter() - t)
+            if cpu is not None:
+                cpu[name].append(time.process_time() - c)
     return times
 
 
@@ -163,6 +170,7 @@ def bench_frame(reps: int, seed: int = 1):
     import numexpr as ne
 
     from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
 
     panel = make_panel(seed)
     rng = np.random.default_rng(seed + 1)
@@ -198,13 +206,13 @@ def bench_frame(reps: int, seed: int = 1):
         return ne.evaluate("-log(x)", local_dict={"x": x}, out=x)
 
     def radiokit_correct():
-        return cal.correct(raw, domain="log")
+        return correct_frames(cal, raw, domain="log")
 
     def radiokit_one_thread():  # informative: how much radiokit's threads buy on this machine
         old = os.environ.get("RADIOKIT_THREADS")
         os.environ["RADIOKIT_THREADS"] = "1"
         try:
-            return cal.correct(raw, domain="log")
+            return correct_frames(cal, raw, domain="log")
         finally:
             if old is None:
                 del os.environ["RADIOKIT_THREADS"]
@@ -217,7 +225,7 @@ def bench_frame(reps: int, seed: int = 1):
         "(i)": "numpy one-liner, float64 dark/flat (np.mean)",
         "(ia)": "numpy one-liner, float32 dark/flat",
         "(ii)": "tomopy-style numexpr chain, 2 threads, float32",
-        "(iii)": "radiokit Calibration.correct(raw, 'log')",
+        "(iii)": "radiokit correct_frames(cal, raw, 'log')",
         "(iii-1t)": "the same with RADIOKIT_THREADS=1 (informative)",
     }
     outputs = {}
@@ -291,7 +299,8 @@ def opencv_fused(raw, dark, log_i0, out, threads):
     them; no clamping, no repairs."""
     import cv2
 
-    from radiokit.correct import _BLOCK_ROWS, _pool
+    from radiokit._threads import pool as _pool
+    from radiokit.correct import _BLOCK_ROWS
 
     rows, cols = raw.shape
 
@@ -319,7 +328,8 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     import cv2
 
     from radiokit.calibrate import Calibration
-    from radiokit.correct import _kernel, _threads
+    from radiokit._threads import threads as _threads
+    from radiokit.correct import CorrectionKernel, correct_frames
 
     cv2.setNumThreads(1)  # the blocks are split over radiokit's threads, as radiokit's are
     panel = make_panel(seed)
@@ -335,24 +345,28 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cal = Calibration.from_frames(darks, flats)
-        k = _kernel(cal)
+        k = CorrectionKernel.of(cal)
         cases[name] = (cal, raw, np.ascontiguousarray(k.dark, np.float32), k.log_i0.astype(np.float32))
     out = np.empty(SHAPE, np.float32)
     variants = {}
     for name, (cal, raw, dark, log_i0) in cases.items():
-        variants[f"radiokit {name}"] = (lambda c=cal, r=raw: c.correct(r, domain="log", out=out))
+        variants[f"radiokit {name}"] = (lambda c=cal, r=raw: correct_frames(c, r, domain="log", out=out))
         variants[f"opencv {name}"] = (lambda r=raw, d=dark, li=log_i0: opencv_fused(r, d, li, out, _threads()))
     for fn in variants.values():
         fn()
         fn()
-    times = _interleaved(variants, reps, seed)
+    cpu = {}
+    times = _interleaved(variants, reps, seed, cpu)
     ms = {name: _median_ms(ts) for name, ts in times.items()}
+    cpu_ms = {name: _median_ms(ts) for name, ts in cpu.items()}
     cal, raw = cases["realistic"][:2]
-    _, report = cal.correct(raw, domain="log", return_report=True)
+    _, report = correct_frames(cal, raw, domain="log", return_report=True)
     ratio = {name: ms[f"radiokit {name}"] / ms[f"opencv {name}"] for name in cases}
     paired = {name: statistics.median(a / b for a, b in zip(times[f"radiokit {name}"], times[f"opencv {name}"]))
               for name in cases}
+    cpu_ratio = {name: cpu_ms[f"radiokit {name}"] / cpu_ms[f"opencv {name}"] for name in cases}
     return {"ms_median": ms, "radiokit_over_opencv": ratio, "paired": paired, "reps": reps,
+            "cpu_ms_median": cpu_ms, "cpu_ratio": cpu_ratio, "load_average": os.getloadavg(),
             "repairs": {"defects_filled": int(report.defects_filled), "saturated": int(report.saturated.sum()),
                         "nonpositive": int(report.nonpositive.sum())},
             "target": "realistic frame: radiokit within 10 % of the fused OpenCV pass",
@@ -366,7 +380,10 @@ def print_realistic(r):
           f"radiokit against a fused OpenCV subtract-log-subtract pass (median of {r['reps']} interleaved repetitions)")
     for name in ("clean", "realistic"):
         print(f"  {name:9s} radiokit {r['ms_median'][f'radiokit {name}']:6.2f} ms, OpenCV {r['ms_median'][f'opencv {name}']:6.2f} ms"
-              f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}]")
+              f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}];"
+              f" CPU time {r['cpu_ms_median'][f'radiokit {name}']:6.2f} / {r['cpu_ms_median'][f'opencv {name}']:6.2f} ms"
+              f" -> {r['cpu_ratio'][name]:.3f}")
+    print(f"  load average {r['load_average'][0]:.1f} at the end (2 CPUs)")
     print(f"  target: {r['target']} -> {'PASS' if r['pass'] else 'FAIL'}")
 
 
@@ -438,6 +455,7 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     """Internal mode: the correct_files loop with a timer around each stage, and as a baseline
     for the HDF5 write the same frame written to a plain file right after it."""
     from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
     from radiokit.io import StackWriter, open_frames
 
     cal = Calibration.load(cal_path)
@@ -447,12 +465,12 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     with open_frames(raw_path, n=n) as src, open(plain_path, "wb") as plain, \
             StackWriter(out_path, cal.shape, np.float32, meta={"domain": "log"}, n_frames=n) as w:
         direct = bool(w._direct)
-        cal.correct(src[0], domain="log", out=frame)  # build the kernel outside the timers
+        correct_frames(cal, src[0], domain="log", out=frame)  # build the kernel outside the timers
         for i in range(n):
             a = time.perf_counter()
             raw = src[i]
             b = time.perf_counter()
-            cal.correct(raw, domain="log", out=frame)
+            correct_frames(cal, raw, domain="log", out=frame)
             c = time.perf_counter()
             w.append(frame, source_index=np.int32(0), frame_index=np.int32(i),
                      saturated=np.int64(0), nonpositive=np.int64(0))
@@ -484,6 +502,7 @@ def check_output(h5_path: Path, n: int, cal, raw_path: Path) -> dict:
     """The streamed file holds n frames, finite, equal to correcting the same raw frame in memory."""
     import h5py
 
+    from radiokit.correct import correct_frames
     from radiokit.io import open_frames
 
     with h5py.File(h5_path, "r") as h5:
@@ -491,7 +510,7 @@ def check_output(h5_path: Path, n: int, cal, raw_path: Path) -> dict:
         shape = ds.shape
         last = ds[n - 1]
     with open_frames(raw_path) as src:
-        expect = cal.correct(src[n - 1], domain="log")
+        expect = correct_frames(cal, src[n - 1], domain="log")
     return {"shape": list(shape), "ok": shape == (n,) + cal.shape and bool(np.isfinite(last).all())
             and bool(np.array_equal(last, expect))}
 
@@ -601,7 +620,7 @@ def main(argv=None):
     import numexpr
 
     from radiokit._version import __version__
-    from radiokit.correct import _threads
+    from radiokit._threads import threads as _threads
 
     t_start = time.perf_counter()
     env = {"python": platform.python_version(), "numpy": np.__version__, "numexpr": numexpr.__version__,

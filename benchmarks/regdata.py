@@ -173,6 +173,7 @@ def _corrected(path, steps):
     """Noisy line integrals of ``steps`` (1-based): each step's raw projections corrected with
     the file's darks and flats, averaged over the step's frames."""
     from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
     from radiokit.io import ImageKey, open_frames
 
     cal = Calibration.from_experiment(path)
@@ -184,7 +185,7 @@ def _corrected(path, steps):
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (step == s))
             if idx.size == 0:
                 raise ValueError(f"{path}: no projection of step {s}")
-            out[s] = np.mean([cal.correct(src[i], domain="log") for i in idx], axis=0).astype(np.float32)
+            out[s] = np.mean([correct_frames(cal, src[i], domain="log") for i in idx], axis=0).astype(np.float32)
     return out
 
 

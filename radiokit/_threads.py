@@ -1,4 +1,5 @@
-"""How many threads radiokit's own pools (correction, registration, FFTs) may use in this process.
+"""How many threads radiokit's own pools (correction, registration, FFTs) may use in this process,
+and the one pool they share.
 
 ``RADIOKIT_THREADS`` when set (``radiokit process`` sets it in each Dask worker to the worker's
 share of the cores), else the cores this process may run on, at most 8.
@@ -6,6 +7,8 @@ share of the cores), else the cores this process may run on, at most 8.
 from __future__ import annotations
 
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 
 def cores() -> int:
@@ -25,3 +28,18 @@ def threads() -> int:
         except ValueError:
             raise ValueError(f"RADIOKIT_THREADS={env!r}: expected a whole number of threads") from None
     return min(cores(), 8)
+
+
+_POOLS: dict = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def pool() -> ThreadPoolExecutor:
+    """The thread pool of radiokit's parallel loops (correction, registration), of
+    :func:`threads` threads. One pool per size, kept: a Dask worker changes ``RADIOKIT_THREADS``
+    between tasks, and a pool shut down under a loop that is still using it would fail."""
+    n = threads()
+    with _POOLS_LOCK:
+        if n not in _POOLS:
+            _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix=f"radiokit-{n}")
+        return _POOLS[n]

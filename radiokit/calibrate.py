@@ -3,8 +3,8 @@
 The manual's corrections (Hamamatsu KR1-I50006): offset ``Ic1 = Ir - Id``; gain
 ``Ic2 = c * Ic1 / (If - Id)`` with ``c = mean(If - Id)``; defect lines replaced by the mean of the
 two neighbouring lines and isolated defect pixels by their valid neighbours.
-:class:`Calibration` holds the averaged dark and flat and a NeXus ``pixel_mask``;
-:meth:`Calibration.correct` applies it (see :mod:`radiokit.correct`).
+:class:`Calibration` holds the averaged dark and flat and a NeXus ``pixel_mask``: plain data, built
+here, kept with :meth:`Calibration.save`; :func:`radiokit.correct.correct_frames` applies it.
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ class PixelFlag(enum.IntFlag):
     """Bits of the NeXus ``pixel_mask`` (NXdetector), plus two per-frame bits of radiokit's.
 
     Bits 0-6 are NeXus's meaning; bits 9 and 10 lie in NeXus's detector-specific range and are
-    only ever set in per-frame flags returned by :meth:`Calibration.correct`, never in the
+    only ever set in per-frame flags returned by :func:`radiokit.correct.correct_frames`, never in the
     calibration's static mask.
     """
 
@@ -217,7 +217,7 @@ class Calibration:
     """Averaged dark and flat of one panel set-up, with its defect map.
 
     Build one with :meth:`from_frames` (or :meth:`from_experiment`), apply it with
-    :meth:`correct`, keep it with :meth:`save` / :meth:`load`.
+    :func:`radiokit.correct.correct_frames`, keep it with :meth:`save` / :meth:`load`.
 
     Attributes
     ----------
@@ -237,12 +237,13 @@ class Calibration:
     --------
     >>> import numpy as np
     >>> from radiokit.calibrate import Calibration
+    >>> from radiokit.correct import correct_frames
     >>> rng = np.random.default_rng(0)
     >>> darks = rng.normal(100, 2, (5, 64, 64)).astype(np.uint16)
     >>> flats = rng.normal(3000, 20, (5, 64, 64)).astype(np.uint16)
     >>> cal = Calibration.from_frames(darks, flats)
     >>> raw = np.full((64, 64), 100 + 2900 // 2, np.uint16)  # half the flat's signal
-    >>> line_integral = cal.correct(raw, domain="log")
+    >>> line_integral = correct_frames(cal, raw, domain="log")
     >>> bool(abs(float(np.median(line_integral)) - np.log(2)) < 0.02)
     True
     """
@@ -273,7 +274,6 @@ class Calibration:
         if not np.isfinite(self.c):
             good = self.mask == 0
             self.c = float(np.mean((self.flat - self.dark)[good])) if good.any() else 1.0
-        self._kernel = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -391,40 +391,6 @@ class Calibration:
                               flat_times=times[sel[ImageKey.FLAT]], **thresholds)
         cal.provenance["source"] = str(path)
         return cal
-
-    # -- correction ---------------------------------------------------------------------------
-    def correct(self, raw, domain="log", out=None, return_report=False):
-        """Correct a raw frame or stack: offset, gain, defects, then transmission or line integral.
-
-        Parameters
-        ----------
-        raw : array_like (rows, cols) or (n, rows, cols)
-            Raw counts (any integer or float dtype).
-        domain : {"log", "linear", "counts"}
-            ``"log"``: line integral ``-ln(I / I0)``, more attenuation brighter. ``"linear"``:
-            transmission ``I / I0 = (raw - dark) / (flat - dark)``. ``"counts"``: the manual's
-            gain-corrected grey levels ``c * (raw - dark) / (flat - dark)``.
-        out : ndarray float32, optional
-            Where to write the result (same shape as ``raw``).
-        return_report : bool
-            Also return a :class:`radiokit.correct.CorrectionReport` with per-frame counts of
-            saturated and non-positive pixels and the per-pixel flags.
-
-        Returns
-        -------
-        ndarray float32, and the report if asked.
-
-        Notes
-        -----
-        Never NaN or inf: pixels of the defect map are filled from valid neighbours (lines from
-        the two neighbouring valid lines, linearly weighted); pixels whose ``raw - dark <= 0``
-        are clamped to half a count, filled from valid neighbours where they have any, flagged
-        ``NONPOSITIVE`` and counted. Raw values at or above ``thresholds.saturation`` are
-        flagged ``SATURATED`` and counted. Filling happens in the output domain.
-        """
-        from radiokit.correct import correct_frames
-
-        return correct_frames(self, raw, domain=domain, out=out, return_report=return_report)
 
     # -- persistence --------------------------------------------------------------------------
     def save(self, path, group="calibration") -> Path:

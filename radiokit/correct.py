@@ -8,16 +8,18 @@ so two threads use two cores. Everything that does not depend on the frame (``ln
 from __future__ import annotations
 
 import functools
+import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from radiokit._threads import pool, threads
 from radiokit.calibrate import Calibration, PixelFlag
 
-__all__ = ["correct_frames", "correct_files", "CorrectionReport", "DOMAINS", "fill_plan"]
+__all__ = ["correct_frames", "correct_files", "CorrectionReport", "CorrectionKernel", "DOMAINS", "fill_plan"]
 
 DOMAINS = ("log", "linear", "counts")
 #: raw - dark at or below zero is clamped to this many counts before the log.
@@ -25,24 +27,6 @@ FLOOR_COUNTS = 0.5
 #: what a non-finite raw value becomes: below any dark, so it is filled as non-positive
 _NONFINITE = -1e30
 _BLOCK_ROWS = 128  # 128 x 2240 float32 = 1.1 MB: measured fastest on 2240-wide frames (32: +30 %)
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _threads() -> int:
-    from radiokit._threads import threads
-
-    return threads()
-
-
-def _pool() -> ThreadPoolExecutor:
-    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
-    global _POOL
-    n = _threads()
-    if _POOL is None or _POOL._max_workers != n:
-        if _POOL is not None:
-            _POOL.shutdown(wait=False)
-        _POOL = ThreadPoolExecutor(n, thread_name_prefix="radiokit-correct")
-    return _POOL
 
 
 @dataclass
@@ -178,16 +162,65 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     return stages
 
 
-@dataclass
-class _Kernel:
+@dataclass(eq=False)
+class CorrectionKernel:
+    """What correcting frames with one calibration needs that no frame changes, built once.
+
+    Use :meth:`of`, which keeps one kernel per live :class:`~radiokit.calibrate.Calibration`
+    (the calibration itself stays plain data).
+
+    Attributes
+    ----------
+    dark : ndarray (rows, cols) float32
+    response : ndarray (rows, cols) float32
+        ``flat - dark`` where usable, 1 elsewhere (those pixels are filled anyway).
+    stages : list
+        The defect fill plan (:func:`fill_plan`).
+    invalid : ndarray (rows, cols) bool
+        The calibration's defect pixels.
+    n_defects : int
+    """
+
     dark: np.ndarray
-    response: np.ndarray  # flat - dark where usable, 1 elsewhere (defects are filled anyway)
-    stages: list = field(default_factory=list)
-    invalid: np.ndarray | None = None
-    n_defects: int = 0
+    response: np.ndarray
+    stages: list
+    invalid: np.ndarray
+    n_defects: int
     _log_i0: np.ndarray | None = None
     _inv_gain: np.ndarray | None = None
-    _dark_max: dict | None = None
+    _dark_max: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, cal: Calibration) -> CorrectionKernel:
+        """A new kernel for ``cal`` (uncached: see :meth:`of`)."""
+        response = cal.flat - cal.dark
+        ok = (cal.mask == 0) & (response > cal.thresholds.eps)
+        response[~ok] = 1.0
+        return cls(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
+                   n_defects=int(np.count_nonzero(cal.mask)))
+
+    def dark_max(self, r0: int, r1: int) -> float:
+        """The largest dark value in rows r0..r1 (cached per block)."""
+        v = self._dark_max.get((r0, r1))
+        if v is None:
+            v = self._dark_max[(r0, r1)] = float(self.dark[r0:r1].max())
+        return v
+
+    @classmethod
+    def of(cls, cal: Calibration) -> CorrectionKernel:
+        """The kernel of ``cal``: built on first use, kept while ``cal`` lives, rebuilt when one of
+        its arrays (or ``thresholds``) is replaced by another object. Arrays changed in place
+        are not noticed: build a new :class:`~radiokit.calibrate.Calibration` instead."""
+        key = id(cal)
+        parts = (cal.dark, cal.flat, cal.mask, cal.defect_rows, cal.defect_columns, cal.thresholds)
+        with _KERNELS_LOCK:
+            held = _KERNELS.get(key)
+        if held is not None and held[0]() is cal and all(a is b for a, b in zip(held[1], parts)):
+            return held[2]
+        kernel = cls.build(cal)
+        with _KERNELS_LOCK:  # the entry goes when the calibration does
+            _KERNELS[key] = (weakref.ref(cal, lambda _ref, key=key: _KERNELS.pop(key, None)), parts, kernel)
+        return kernel
 
     @property
     def log_i0(self) -> np.ndarray:
@@ -195,15 +228,6 @@ class _Kernel:
         if self._log_i0 is None:
             self._log_i0 = np.log(self.response)
         return self._log_i0
-
-    def dark_max(self, r0: int, r1: int) -> float:
-        """The largest dark value in rows r0..r1 (cached per block)."""
-        if self._dark_max is None:
-            self._dark_max = {}
-        v = self._dark_max.get((r0, r1))
-        if v is None:
-            v = self._dark_max[(r0, r1)] = float(self.dark[r0:r1].max())
-        return v
 
     @property
     def inv_gain(self) -> np.ndarray:
@@ -213,15 +237,9 @@ class _Kernel:
         return self._inv_gain
 
 
-def _kernel(cal: Calibration) -> _Kernel:
-    if cal._kernel is None:
-        response = cal.flat - cal.dark
-        ok = (cal.mask == 0) & (response > cal.thresholds.eps)
-        response[~ok] = 1.0
-        cal._kernel = _Kernel(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
-                              n_defects=int(np.count_nonzero(cal.mask)))
-    return cal._kernel
-
+#: id(calibration) -> (weak reference to it, the objects the kernel was built from, the kernel)
+_KERNELS: dict[int, tuple] = {}
+_KERNELS_LOCK = threading.Lock()
 
 _CV_DEPTHS = {np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32)}
 
@@ -250,7 +268,7 @@ def _at_least(block, limit) -> np.ndarray | None:
     return r * block.shape[1] + cols[j]
 
 
-def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
+def _correct_rows(raw, k: CorrectionKernel, out, domain, scale, r0, r1, saturation):
     """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
     non-positive and saturated pixels met (rare: found by a min/max per block, then searched
     only in the rows that hold them, and clamped on that index list).
@@ -300,15 +318,15 @@ def _correct_rows(raw, k: _Kernel, out, domain, scale, r0, r1, saturation):
     return nonpos, sat
 
 
-def _correct_one(raw2d, k: _Kernel, out2d, domain, scale, saturation):
+def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     rows = raw2d.shape[0]
-    nt = min(_threads(), max(1, rows // _BLOCK_ROWS))
+    nt = min(threads(), max(1, rows // _BLOCK_ROWS))
     if nt == 1:
         parts = [_correct_rows(raw2d, k, out2d, domain, scale, 0, rows, saturation)]
     else:
         # Split on block boundaries so threads never share a cache line of output.
         edges = [(rows * i // nt) // _BLOCK_ROWS * _BLOCK_ROWS for i in range(nt)] + [rows]
-        parts = list(_pool().map(lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1],
+        parts = list(pool().map(lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1],
                                                          saturation), range(nt)))
     nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
     sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
@@ -331,7 +349,7 @@ def _correct_one(raw2d, k: _Kernel, out2d, domain, scale, saturation):
 def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
     """Correct one frame; the non-positive pixels met and, if ``count_saturated``, the saturated
     ones (only reported, never repaired: a caller that reports nothing does not pay for them)."""
-    k = _kernel(cal)
+    k = CorrectionKernel.of(cal)
     scale = cal.c if domain == "counts" else 1.0
     saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" and count_saturated else None
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
@@ -340,7 +358,36 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
 
 
 def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_report=False):
-    """Correct one frame ``(rows, cols)`` or a stack ``(n, rows, cols)``; see :meth:`Calibration.correct`."""
+    """Correct a raw frame or stack with ``cal``: offset, gain, defects, then transmission or line integral.
+
+    Parameters
+    ----------
+    cal : Calibration
+    raw : array_like (rows, cols) or (n, rows, cols)
+        Raw counts (any integer or float dtype).
+    domain : {"log", "linear", "counts"}
+        ``"log"``: line integral ``-ln(I / I0)``, more attenuation brighter. ``"linear"``:
+        transmission ``I / I0 = (raw - dark) / (flat - dark)``. ``"counts"``: the manual's
+        gain-corrected grey levels ``c * (raw - dark) / (flat - dark)``.
+    out : ndarray float32, optional
+        Where to write the result (same shape as ``raw``).
+    return_report : bool
+        Also return a :class:`CorrectionReport` with per-frame counts of saturated and
+        non-positive pixels and the per-pixel flags.
+
+    Returns
+    -------
+    ndarray float32, and the report if asked.
+
+    Notes
+    -----
+    Never NaN or inf: pixels of the defect map are filled from valid neighbours (lines from
+    the two neighbouring valid lines, linearly weighted); pixels whose ``raw - dark <= 0``
+    are clamped to half a count, filled from valid neighbours where they have any, flagged
+    ``NONPOSITIVE`` and counted. Raw values at or above ``thresholds.saturation`` are
+    flagged ``SATURATED`` and counted. Filling happens in the output domain. What does not
+    depend on the frame is computed once per calibration (:class:`CorrectionKernel`).
+    """
     if domain not in DOMAINS:
         raise ValueError(f"domain={domain!r}: expected one of {DOMAINS}")
     raw = np.asarray(raw)
@@ -366,7 +413,7 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
             flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
     if not return_report:
         return out
-    report = CorrectionReport(sat_counts, np_counts, _kernel(cal).n_defects, flags if raw.ndim == 3 else flags[0])
+    report = CorrectionReport(sat_counts, np_counts, CorrectionKernel.of(cal).n_defects, flags if raw.ndim == 3 else flags[0])
     return out, report
 
 
@@ -485,4 +532,4 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
             src.close()
     return {"frames": len(plan), "output": str(output), "domain": domain, "seconds": elapsed,
             "frames_per_second": len(plan) / elapsed if elapsed else float("inf"),
-            "saturated": sat_total, "nonpositive": np_total, "defects_filled_per_frame": _kernel(cal).n_defects}
+            "saturated": sat_total, "nonpositive": np_total, "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects}

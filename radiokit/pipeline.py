@@ -184,6 +184,7 @@ def load_steps(path, progress: bool = False) -> Steps:
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
     from radiokit.io import ImageKey, open_frames
 
     t = time.perf_counter()
@@ -205,7 +206,7 @@ def load_steps(path, progress: bool = False) -> Steps:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             acc = None
             for i in idx:
-                li = cal.correct(src[i], domain="log")
+                li = correct_frames(cal, src[i], domain="log")
                 acc = li.astype(np.float64) if acc is None else acc + li
                 bar.update()
             images.append((acc / len(idx)).astype(np.float32))
@@ -729,9 +730,15 @@ def _local_cluster(n_workers: int):
 
 def _limit_worker(shares, dask_worker=None):
     """Run in each worker by ``client.run``: apply its share (a worker that joined later: one
-    thread per Dask thread is the safe guess)."""
+    thread per Dask thread is the safe guess), and stop the worker's statistical profiler, which
+    samples every thread's stack 100 times a second on cores the files need (it shows in Dask's
+    dashboard only; benchmarks/README.md, "Dask, second pass")."""
     share = shares.get(dask_worker.address) if dask_worker is not None else None
     _limit_this_process(share or WorkerThreads(1, 1))
+    for name in ("profile", "profile-cycle"):
+        callback = getattr(dask_worker, "periodic_callbacks", {}).get(name)
+        if callback is not None:
+            callback.stop()
     return share.threads if share else 1
 
 

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from radiokit.calibrate import Calibration, PixelFlag
+from radiokit.correct import correct_frames
 
 
 def _cal(rows=6, cols=7, dark=100.0, flat=1100.0, mask=None, **kw):
@@ -20,7 +21,7 @@ def _cal(rows=6, cols=7, dark=100.0, flat=1100.0, mask=None, **kw):
 def test_hand_values(domain, expected):
     cal = _cal()
     raw = np.full(cal.shape, 600, np.uint16)
-    out = cal.correct(raw, domain=domain)
+    out = correct_frames(cal, raw, domain=domain)
     assert out.dtype == np.float32
     np.testing.assert_allclose(out, expected, rtol=1e-6)
 
@@ -33,9 +34,9 @@ def test_matches_float64_reference_on_random_panel():
     cal = Calibration(dark, flat, np.zeros(shape, np.uint32))
     raw = (dark + rng.uniform(50, 1900, shape)).astype(np.uint16)
     ref = -np.log((raw - dark.astype(np.float64)) / (flat - dark.astype(np.float64)))
-    np.testing.assert_allclose(cal.correct(raw, domain="log"), ref, atol=2e-6, rtol=1e-5)
+    np.testing.assert_allclose(correct_frames(cal, raw, domain="log"), ref, atol=2e-6, rtol=1e-5)
     ref_lin = (raw - dark.astype(np.float64)) / (flat - dark)
-    np.testing.assert_allclose(cal.correct(raw, domain="linear"), ref_lin, rtol=1e-6)
+    np.testing.assert_allclose(correct_frames(cal, raw, domain="linear"), ref_lin, rtol=1e-6)
 
 
 def test_flat_equal_dark_is_filled_and_flagged():
@@ -45,7 +46,7 @@ def test_flat_equal_dark_is_filled_and_flagged():
     assert cal.mask[2, 2] & PixelFlag.DEAD
     raw = np.full((5, 5), 600, np.uint16)
     raw[1, 1:4] = 350  # neighbours above: transmission 0.25
-    out = cal.correct(raw, domain="linear")
+    out = correct_frames(cal, raw, domain="linear")
     # The 8 neighbours of (2, 2): three at 0.25, five at 0.5.
     assert out[2, 2] == pytest.approx((3 * 0.25 + 5 * 0.5) / 8, rel=1e-6)
     assert np.isfinite(out).all()
@@ -55,7 +56,7 @@ def test_raw_below_dark_is_filled_flagged_and_counted():
     cal = _cal()
     raw = np.full(cal.shape, 600, np.uint16)
     raw[3, 3] = 50  # below the dark of 100
-    out, report = cal.correct(raw, domain="log", return_report=True)
+    out, report = correct_frames(cal, raw, domain="log", return_report=True)
     assert np.isfinite(out).all()
     assert out[3, 3] == pytest.approx(np.log(2.0), rel=1e-6)
     assert report.nonpositive.tolist() == [1]
@@ -66,7 +67,7 @@ def test_raw_below_dark_is_filled_flagged_and_counted():
 def test_all_dark_frame_stays_finite():
     cal = _cal()
     raw = np.zeros(cal.shape, np.uint16)
-    out, report = cal.correct(raw, domain="log", return_report=True)
+    out, report = correct_frames(cal, raw, domain="log", return_report=True)
     assert np.isfinite(out).all()
     # No valid neighbour anywhere: clamped at half a count, i.e. -ln(0.5 / 1000).
     np.testing.assert_allclose(out, -np.log(0.5 / 1000.0), rtol=1e-6)
@@ -77,7 +78,7 @@ def test_saturated_pixels_flagged_and_counted():
     cal = _cal()
     raw = np.full(cal.shape, 600, np.uint16)
     raw[0, :3] = 4095
-    out, report = cal.correct(raw, domain="linear", return_report=True)
+    out, report = correct_frames(cal, raw, domain="linear", return_report=True)
     assert report.saturated.tolist() == [3]
     assert (report.flags[0, :3] & PixelFlag.SATURATED).all()
     assert out[0, 0] == pytest.approx((4095 - 100) / 1000)
@@ -90,7 +91,7 @@ def test_defect_column_is_mean_of_neighbours():
     raw = (100 + 100 * np.arange(9)[None, :] + 10 * np.arange(4)[:, None]).astype(np.uint16)
     raw = np.broadcast_to(raw, (4, 9)).copy()
     raw[:, 4] = 4000  # garbage in the defect column
-    out = cal.correct(raw, domain="linear")
+    out = correct_frames(cal, raw, domain="linear")
     np.testing.assert_allclose(out[:, 4], (out[:, 3] + out[:, 5]) / 2, rtol=1e-6)
 
 
@@ -99,7 +100,7 @@ def test_adjacent_defect_columns_interpolate_linearly():
     mask[:, [4, 5]] = PixelFlag.DEAD
     cal = _cal(3, 10, mask=mask, defect_columns=[4, 5])
     raw = np.tile((100 + 90 * np.arange(10)).astype(np.uint16), (3, 1))
-    out = cal.correct(raw, domain="linear")
+    out = correct_frames(cal, raw, domain="linear")
     # columns 3 and 6 are valid; 4 and 5 lie a third and two thirds of the way between them.
     np.testing.assert_allclose(out[:, 4], out[:, 3] + (out[:, 6] - out[:, 3]) / 3, rtol=1e-6)
     np.testing.assert_allclose(out[:, 5], out[:, 3] + 2 * (out[:, 6] - out[:, 3]) / 3, rtol=1e-6)
@@ -111,7 +112,7 @@ def test_defect_row_and_edge_column():
     mask[:, 0] = PixelFlag.DEAD
     cal = _cal(6, 6, mask=mask, defect_rows=[2], defect_columns=[0])
     raw = (100 + 100 * np.arange(6)[:, None] + 5 * np.arange(6)[None, :]).astype(np.uint16)
-    out = cal.correct(raw, domain="linear")
+    out = correct_frames(cal, raw, domain="linear")
     np.testing.assert_allclose(out[:, 0], out[:, 1], rtol=1e-6)  # edge: copied from the one side
     np.testing.assert_allclose(out[2, 1:], (out[1, 1:] + out[3, 1:]) / 2, rtol=1e-6)
 
@@ -121,10 +122,10 @@ def test_stack_equals_frames_and_out_is_used():
     cal = _cal(40, 33)
     stack = rng.integers(0, 4096, (3, 40, 33)).astype(np.uint16)
     out = np.empty(stack.shape, np.float32)
-    got, report = cal.correct(stack, domain="log", out=out, return_report=True)
+    got, report = correct_frames(cal, stack, domain="log", out=out, return_report=True)
     assert got is out
     for i in range(3):
-        np.testing.assert_array_equal(got[i], cal.correct(stack[i], domain="log"))
+        np.testing.assert_array_equal(got[i], correct_frames(cal, stack[i], domain="log"))
     assert np.isfinite(got).all()
     assert report.flags.shape == stack.shape
     assert report.saturated.tolist() == [int(np.count_nonzero(s >= 4095)) for s in stack]
@@ -134,7 +135,7 @@ def test_input_is_not_modified():
     cal = _cal()
     raw = np.full(cal.shape, 50, np.uint16)
     before = raw.copy()
-    cal.correct(raw)
+    correct_frames(cal, raw)
     np.testing.assert_array_equal(raw, before)
 
 
@@ -145,12 +146,12 @@ def test_input_is_not_modified():
 ])
 def test_bad_input_raises_valueerror(bad, match):
     with pytest.raises(ValueError, match=match):
-        _cal().correct(bad)
+        correct_frames(_cal(), bad)
 
 
 def test_unknown_domain():
     with pytest.raises(ValueError, match="domain"):
-        _cal().correct(np.zeros((6, 7), np.uint16), domain="ln")
+        correct_frames(_cal(), np.zeros((6, 7), np.uint16), domain="ln")
 
 
 def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatch):
@@ -164,7 +165,7 @@ def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatc
     summary = correct_files(tmp_path / "s.raw", cal, tmp_path / "out.h5", shape=(16, 24), progress=False)
     assert summary["frames"] == 7
     got = read(tmp_path / "out.h5", dataset="entry/data/data").data
-    np.testing.assert_array_equal(got, cal.correct(stack))
+    np.testing.assert_array_equal(got, correct_frames(cal, stack))
 
     calls = {"n": 0}
     real_append = StackWriter.append
@@ -182,13 +183,16 @@ def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatc
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5", "s.raw"]
 
 
-@pytest.mark.parametrize("dtype", [np.uint16, np.int32, np.float32])
+@pytest.mark.parametrize("threads", ["1", "2"])
+@pytest.mark.parametrize("dtype", [np.uint16, np.int16, np.int32, np.float32])
 @pytest.mark.parametrize("domain", ["log", "linear", "counts"])
-def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain):
-    """The kernel finds below-dark and saturated pixels by block and column extremes and repairs
-    them on index lists: it must find exactly the pixels a whole-frame mask finds, in blocks
-    split across threads (300 rows: three 128-row blocks), and leave every other pixel as the
-    float64 formula has it (float32 rounding)."""
+def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain, threads, monkeypatch):
+    """The kernel finds below-dark pixels by the minima of 16-row bands and saturated ones by
+    block and column maxima, and repairs them on index lists: it must find exactly the pixels a
+    whole-frame mask finds, on band and block edges, in blocks split across threads (300 rows:
+    three 128-row blocks, the last band 12 rows), and leave every other pixel as the float64
+    formula has it (float32 rounding)."""
+    monkeypatch.setenv("RADIOKIT_THREADS", threads)
     rng = np.random.default_rng(11)
     shape = (300, 257)
     dark = rng.uniform(90, 110, shape).astype(np.float32)
@@ -199,8 +203,11 @@ def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain):
     raw.ravel()[idx[:60]] = np.floor(dark.ravel()[idx[:60]]) - rng.integers(0, 20, 60)  # at or below the dark
     raw.ravel()[idx[60:100]] = 4095  # saturated
     raw[:, 200] = 0  # a whole column below the dark
+    for r in (0, 15, 16, 127, 128, 287, 288, 299):  # band and block edges, the last (short) band
+        raw[r, 3 + r % 50] = 0
+    raw[16:32, 150] = 0  # a whole band of one column
     raw = raw.astype(dtype)
-    out, report = cal.correct(raw, domain=domain, return_report=True)
+    out, report = correct_frames(cal, raw, domain=domain, return_report=True)
     assert np.isfinite(out).all()
     below = raw.astype(np.float64) - dark <= 0
     assert report.nonpositive.tolist() == [int(below.sum())]
@@ -211,4 +218,69 @@ def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain):
     ref = {"log": -np.log(np.where(below, 1, ratio)), "linear": ratio, "counts": cal.c * ratio}[domain]
     np.testing.assert_allclose(out[~below], ref[~below], rtol=2e-6, atol=2e-6)
     # the same frame without a report: the same image
-    np.testing.assert_array_equal(cal.correct(raw, domain=domain), out)
+    np.testing.assert_array_equal(correct_frames(cal, raw, domain=domain), out)
+
+
+def test_the_kernel_is_cached_per_calibration_and_dropped_with_it():
+    """Calibration is plain data: the kernel lives in radiokit.correct, one per live calibration,
+    rebuilt when an array is replaced, gone when the calibration is."""
+    import gc
+    import pickle
+
+    from radiokit.correct import _KERNELS, CorrectionKernel
+
+    cal = _cal(20, 30)
+    k = CorrectionKernel.of(cal)
+    assert CorrectionKernel.of(cal) is k
+    assert not hasattr(cal, "_kernel") and not hasattr(cal, "correct")
+    assert "_kernel" not in pickle.dumps(cal).decode("latin-1")
+    raw = np.full(cal.shape, 600, np.uint16)
+    before = correct_frames(cal, raw, domain="linear")
+    cal.flat = np.full(cal.shape, 2100.0, np.float32)  # a new array: a new kernel, a new result
+    assert CorrectionKernel.of(cal) is not k
+    np.testing.assert_allclose(correct_frames(cal, raw, domain="linear"), 0.25, rtol=1e-6)
+    np.testing.assert_allclose(before, 0.5, rtol=1e-6)
+    key = id(cal)
+    del cal
+    gc.collect()
+    assert key not in _KERNELS
+
+
+def test_one_pool_per_thread_budget(monkeypatch):
+    """Correction and registration share one pool; a changed budget gets its own pool and the
+    old one keeps working (a loop may still be using it)."""
+    from radiokit._threads import pool
+
+    monkeypatch.setenv("RADIOKIT_THREADS", "2")
+    two = pool()
+    assert pool() is two and two._max_workers == 2
+    monkeypatch.setenv("RADIOKIT_THREADS", "1")
+    one = pool()
+    assert one is not two and one._max_workers == 1
+    assert list(two.map(abs, [-1, -2])) == [1, 2]
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+def test_fills_near_the_thread_edge_equal_one_thread(domain, monkeypatch):
+    """Each thread fills the defects whose neighbourhood lies in its rows, the rest are filled
+    after the threads: the image must be exactly the one-thread image, defect lines, clusters and
+    isolated pixels on either side of the edge (row 128 for 300 rows on two threads) included."""
+    rng = np.random.default_rng(5)
+    shape = (300, 90)
+    dark = rng.uniform(90, 110, shape).astype(np.float32)
+    flat = dark + rng.uniform(2000, 3000, shape).astype(np.float32)
+    mask = np.zeros(shape, np.uint32)
+    for r, c in [(127, 10), (128, 11), (126, 40), (129, 40), (130, 60), (5, 5), (299, 89)]:
+        mask[r, c] = PixelFlag.DEAD
+    mask[120:136, 70:74] = PixelFlag.DEAD  # a cluster across the edge
+    mask[128, :] |= np.uint32(PixelFlag.CLUSTER)
+    mask[:, 30] |= np.uint32(PixelFlag.CLUSTER)
+    cal = Calibration(dark, flat, mask, defect_rows=[128], defect_columns=[30])
+    raw = np.rint(dark + rng.uniform(50, 1900, shape)).astype(np.uint16)
+    raw[[127, 129, 131], [12, 41, 61]] = 0  # below the dark beside the defects
+    monkeypatch.setenv("RADIOKIT_THREADS", "1")
+    one = correct_frames(cal, raw, domain=domain)
+    monkeypatch.setenv("RADIOKIT_THREADS", "2")
+    two = correct_frames(cal, raw, domain=domain)
+    assert np.isfinite(one).all()
+    np.testing.assert_array_equal(two, one)

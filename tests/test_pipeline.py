@@ -236,19 +236,20 @@ def test_worker_share_rejects_nonsense():
         worker_threads(2, 0)
 
 
-def _worker_state():
+def _worker_state(dask_worker=None):
     """What a worker's libraries were told (run in the worker by client.run)."""
     import os
 
     import cv2
     from threadpoolctl import threadpool_info
 
-    from radiokit._threads import threads
-    from radiokit.correct import _pool
+    from radiokit._threads import pool, threads
 
-    return {"radiokit": threads(), "pool": _pool()._max_workers, "cv2": cv2.getNumThreads(),
+    return {"radiokit": threads(), "pool": pool()._max_workers, "cv2": cv2.getNumThreads(),
             "blas": sorted({p["num_threads"] for p in threadpool_info()}),
-            "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_")}
+            "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+            "profiling": dask_worker.periodic_callbacks["profile"].is_running()
+            if "profile" in dask_worker.periodic_callbacks else False}
 
 
 def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
@@ -277,9 +278,11 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
     expect = max(1, cores() // 4)  # two workers of two Dask threads on one host
     if "RADIOKIT_THREADS" not in os.environ:  # the workers started with the library's default
         assert all(s["radiokit"] == min(cores(), 8) for s in before.values())
+    assert all(s["profiling"] for s in before.values())  # Dask's default, until a run starts
     for state in after.values():
         assert state["radiokit"] == state["pool"] == state["cv2"] == expect
         assert state["blas"] == [1]  # BLAS spins in a worker's task thread: one thread
+        assert not state["profiling"]  # Dask's statistical profiler: stopped for the run
 
 
 def test_a_scheduler_without_workers_is_one_clear_error(tmp_path):

@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import json
 import logging
 import math
 import os

@@ -160,9 +160,6 @@ class BSplineField:
         return out.ravel().astype(np.float64) / factor
 
 
-_POOL = None
-
-
 def _threads():
     from radiokit._threads import threads
 
@@ -170,16 +167,9 @@ def _threads():
 
 
 def _pool():
-    """The pool, rebuilt when ``RADIOKIT_THREADS`` changed (a Dask worker sizes it per task)."""
-    global _POOL
-    n = _threads()
-    if _POOL is None or _POOL._max_workers != n:
-        from concurrent.futures import ThreadPoolExecutor
+    from radiokit._threads import pool  # the one pool of radiokit's parallel loops
 
-        if _POOL is not None:
-            _POOL.shutdown(wait=False)
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="radiokit-register")
-    return _POOL
+    return pool()
 
 
 def _downsample(img, f):
@@ -210,7 +200,7 @@ class _Level:
 
     def _bands(self):
         rows = self.shape[0]
-        if rows * self.shape[1] < 200_000 or _threads() == 1:  # threads cost more than they gain
+        if rows * self.shape[1] < 200_000:  # threads cost more than they gain
             return [slice(0, rows)]
         step = max(16, min(128, -(-rows // (4 * _threads()))))
         return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
@@ -218,8 +208,8 @@ class _Level:
     def _map(self, fn):
         """``fn(band)`` over the row bands, on the thread pool when there are several."""
         bands = self._bands()
-        if len(bands) == 1:
-            return [fn(bands[0])]
+        if len(bands) == 1 or _threads() == 1:  # one thread (a Dask worker): the bands in turn, in
+            return [fn(b) for b in bands]  # cache (whole-frame temporaries: more CPU, page faults)
         return list(_pool().map(fn, bands))
 
     def _sample_band(self, d, sl, w, dy, dx):
