@@ -414,31 +414,50 @@ class Calibration:
 
     @classmethod
     def load(cls, path, group="calibration") -> Calibration:
-        """Read a calibration written by :meth:`save`."""
-        try:
-            with h5py.File(path, "r") as h5:
-                if group not in h5:
-                    raise FormatError(path, f"no /{group} group: not a radiokit calibration file")
-                g = h5[group]
-                missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
-                if missing:
-                    raise FormatError(path, f"/{group} lacks {', '.join(missing)}")
-                from radiokit.io._budget import check_budget
-                from radiokit.io._experiment import checked_dataset
+        """Read a calibration written by :meth:`save`.
 
-                for name in ("dark", "flat", "pixel_mask"):  # local plain numbers within the memory budget
-                    ds = checked_dataset(path, h5, f"{group}/{name}", "iuf", (2,))
-                    check_budget(path, ds.size * ds.dtype.itemsize, f"/{group}/{name} {ds.shape}")
-                return cls(g["dark"][()], g["flat"][()], g["pixel_mask"][()],
-                           g["defect_rows"][()] if "defect_rows" in g else (),
-                           g["defect_columns"][()] if "defect_columns" in g else (),
-                           c=float(g.attrs.get("c", np.nan)),
-                           thresholds=Thresholds.from_kwargs(**json.loads(g.attrs.get("thresholds", "{}"))),
-                           provenance=json.loads(g.attrs.get("provenance", "{}")))
-        except OSError as exc:
-            raise FormatError(path, f"cannot be read as HDF5: {exc}") from exc
+        Raises
+        ------
+        FormatError
+            The file is not a calibration, is corrupt, or holds values out of its contract.
+        """
+        from radiokit.io._budget import check_budget
+        from radiokit.io._experiment import checked_dataset
+        from radiokit.io._layout import open_layout
+
+        with open_layout(path, "a radiokit calibration file") as h5:
+            if group not in h5:
+                raise FormatError(path, f"no /{group} group: not a radiokit calibration file")
+            g = h5[group]
+            missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
+            if missing:
+                raise FormatError(path, f"/{group} lacks {', '.join(missing)}")
+            for name in ("dark", "flat", "pixel_mask"):  # local plain numbers within the memory budget
+                ds = checked_dataset(path, h5, f"{group}/{name}", "iuf", (2,))
+                check_budget(path, ds.size * ds.dtype.itemsize, f"/{group}/{name} {ds.shape}")
+            try:
+                thresholds = Thresholds.from_kwargs(**_json_attr(path, g, "thresholds"))
+            except (TypeError, ValueError) as exc:
+                raise FormatError(path, f"/{group}@thresholds: {exc}") from None
+            return cls(g["dark"][()], g["flat"][()], g["pixel_mask"][()],
+                       g["defect_rows"][()] if "defect_rows" in g else (),
+                       g["defect_columns"][()] if "defect_columns" in g else (),
+                       c=float(g.attrs.get("c", np.nan)), thresholds=thresholds,
+                       provenance=_json_attr(path, g, "provenance"))
 
     def __repr__(self) -> str:
         d = self.provenance.get("defects", {})
         return (f"Calibration(shape={self.shape}, c={self.c:.1f}, defect pixels={int(np.count_nonzero(self.mask))}, "
                 f"rows={self.defect_rows.tolist()}, columns={self.defect_columns.tolist()}, {d})")
+
+
+def _json_attr(path, group, name) -> dict:
+    """A JSON object stored as the text attribute ``name`` (``{}`` when absent)."""
+    raw = group.attrs.get(name, "{}")
+    try:
+        value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
+    except (TypeError, ValueError, RecursionError) as exc:
+        raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
+    if not isinstance(value, dict):
+        raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
+    return value

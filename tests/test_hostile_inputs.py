@@ -941,3 +941,56 @@ def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tm
             assert str(path) in str(exc) and "\n" not in str(exc), exc
             refused += 1
     assert refused > 200  # most such edits break the JSON or a field: the checks are not idle
+
+
+# -- a calibration file ----------------------------------------------------------------------------
+def _calibration(path, **attrs):
+    from radiokit.calibrate import Calibration
+
+    n = 8
+    cal = Calibration(np.full((n, n), 100.0, np.float32), np.full((n, n), 3000.0, np.float32),
+                      np.zeros((n, n), np.uint8))
+    cal.save(path)
+    with h5py.File(path, "a") as h5:
+        for name, value in attrs.items():
+            if value is None:
+                del h5["calibration"].attrs[name]
+            else:
+                h5["calibration"].attrs[name] = value
+    return path
+
+
+@pytest.mark.parametrize("attrs, words", [
+    (dict(thresholds="{not json"), ("thresholds", "not JSON")),
+    (dict(thresholds="[1, 2]"), ("thresholds", "JSON object")),
+    (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
+    (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
+    (dict(provenance=b"\xff\xfe"), ("provenance",)),
+])
+def test_a_calibration_with_bad_attributes_is_one_line(tmp_path, attrs, words):
+    from radiokit.calibrate import Calibration
+
+    path = _calibration(tmp_path / "cal.h5", **attrs)
+    with pytest.raises(FormatError) as err:
+        Calibration.load(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and all(w in message for w in words)
+
+
+def test_a_calibration_with_links_in_a_circle_is_one_line_from_the_cli(tmp_path):
+    path = _calibration(tmp_path / "cal.h5")
+    with h5py.File(path, "a") as h5:
+        del h5["calibration/dark"]
+        h5["calibration/dark"] = h5py.SoftLink("/calibration/loop")
+        h5["calibration/loop"] = h5py.SoftLink("/calibration/dark")
+    exp = _experiment(tmp_path / "exp.h5")
+    res = run("correct", str(exp), "--cal", str(path), "-o", str(tmp_path / "out.h5"))
+    one_line_error(res, str(path))
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_a_good_calibration_still_loads(tmp_path):
+    from radiokit.calibrate import Calibration
+
+    cal = Calibration.load(_calibration(tmp_path / "cal.h5"))
+    assert cal.shape == (8, 8) and float(cal.flat[0, 0]) == 3000.0
