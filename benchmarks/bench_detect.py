@@ -31,26 +31,26 @@ from scipy import ndimage as ndi
 from radiokit import measure as M
 
 
-def _dome(n: int, pixel_mm: float, seed: int = 0) -> np.ndarray:
-    yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel_mm
-    q = 1 - (yy / (0.43 * n * pixel_mm)) ** 2 - (xx / (0.45 * n * pixel_mm)) ** 2
+def _dome(n: int, pixel_size_mm: float, seed: int = 0) -> np.ndarray:
+    yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel_size_mm
+    q = 1 - (yy / (0.43 * n * pixel_size_mm)) ** 2 - (xx / (0.45 * n * pixel_size_mm)) ** 2
     thickness = 50 * np.sqrt(np.clip(q, 0, None))
     chord = 2 * np.sqrt(np.clip(4.8 ** 2 - (yy ** 2 + (xx - 6.0) ** 2), 0, None))
     return 0.05 * thickness + 0.05 * chord + np.random.default_rng(seed).normal(0, 0.005, (n, n))
 
 
-def _radii(shape, pixel_mm):
+def _radii(shape, pixel_size_mm):
     small = min(shape)
-    r_lo, r_hi = 1.5 / pixel_mm, min(12.0 / pixel_mm, small / 6)
+    r_lo, r_hi = 1.5 / pixel_size_mm, min(12.0 / pixel_size_mm, small / 6)
     return np.geomspace(r_lo, r_hi, max(2, int(np.ceil(np.log2(r_hi / r_lo) * 3)) + 1))
 
 
-def _blob_log_avg(img, body, pixel_mm):
+def _blob_log_avg(img, body, pixel_size_mm):
     """blob_log once on the averaged image; the best candidate's half-maximum region, as radiokit."""
     from skimage.feature import blob_log
     from skimage.measure import block_reduce
 
-    radii = _radii(img.shape, pixel_mm)
+    radii = _radii(img.shape, pixel_size_mm)
     f = max(1, int(radii[0] / np.sqrt(2) // 3))
     h, w = img.shape[0] // f * f, img.shape[1] // f * f
     im = block_reduce(img[:h, :w], f, np.mean) if f > 1 else img
@@ -76,18 +76,18 @@ def _blob_log_avg(img, body, pixel_mm):
     return region, len(blobs), inside
 
 
-def _case(name, img, pixel_mm):
+def _case(name, img, pixel_size_mm):
     from skimage.feature import blob_log
 
     body = M._body(img, 0.2, 2)
     t = time.perf_counter()
-    own = M._inscribed_square(M._detect_inclusion(img, body, (pixel_mm, pixel_mm)), 0.7)
+    own = M._inscribed_square(M._detect_inclusion(img, body, (pixel_size_mm, pixel_size_mm)), 0.7)
     t_own = time.perf_counter() - t
     t = time.perf_counter()
-    region, n_avg, inside = _blob_log_avg(img, body, pixel_mm)
+    region, n_avg, inside = _blob_log_avg(img, body, pixel_size_mm)
     t_avg = time.perf_counter() - t
     avg = M._inscribed_square(region, 0.7)
-    radii = _radii(img.shape, pixel_mm)
+    radii = _radii(img.shape, pixel_size_mm)
     t = time.perf_counter()
     n_full = len(blob_log(img, min_sigma=radii[0] / np.sqrt(2), max_sigma=radii[-1] / np.sqrt(2),
                           num_sigma=len(radii), log_scale=True, threshold=0.0, overlap=1.0))
@@ -107,8 +107,8 @@ def main(argv=None):
     if args.experiment:
         from radiokit.pipeline import _load_steps
 
-        steps, _, _, pixel_mm, _ = _load_steps(args.experiment, False)
-        _case(f"{args.experiment} step {len(steps)}", np.asarray(steps[-1], np.float64), float(pixel_mm))
+        steps, _, _, pixel_size_mm, _ = _load_steps(args.experiment, False)
+        _case(f"{args.experiment} step {len(steps)}", np.asarray(steps[-1], np.float64), float(pixel_size_mm))
 
 
 if __name__ == "__main__":

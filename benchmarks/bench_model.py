@@ -196,7 +196,7 @@ def run_scene(name, view, quick, full, log, imaging_only=False):
     states = compress(base, RATIOS)
     t_mech = time.perf_counter() - t
     t = time.perf_counter()
-    proj = study.project_pair(base, states, pixel_mm=PIXEL_MM)
+    proj = study.project_pair(base, states, pixel_size_mm=PIXEL_MM)
     t_proj = time.perf_counter() - t
     rows.append(_row(base, label, f"base (coarse {COARSE[0]}/{COARSE[1]} mm, mechanics)", study.images(proj),
                      t_mech, counts))
@@ -211,7 +211,7 @@ def run_scene(name, view, quick, full, log, imaging_only=False):
         t = time.perf_counter()
         st = compress(sc, RATIOS)
         secs = time.perf_counter() - t
-        rows.append(_row(sc, label, choice, study.image_pair(sc, st, pixel_mm=PIXEL_MM), secs, counts))
+        rows.append(_row(sc, label, choice, study.image_pair(sc, st, pixel_size_mm=PIXEL_MM), secs, counts))
         log(rows[-1])
     return rows
 
@@ -265,7 +265,7 @@ def convergence_row(a, b, c) -> dict:
     st = compress(sc)
     secs = time.perf_counter() - t
     pair = [s for s in st if s.ratio in RATIOS]
-    h = study.headline(study.image_pair(sc, pair, pixel_mm=PIXEL_MM))
+    h = study.headline(study.image_pair(sc, pair, pixel_size_mm=PIXEL_MM))
     s, sv = st[-1], st[-1].solver
     return dict(mesh=[a, b, c], dofs=int(sv.ndof), seconds=secs, newton=sum(x.newton_iterations for x in st),
                 load_steps=s.load_steps, factorisations=sv.factorisations, gmres=sv.krylov_iterations,

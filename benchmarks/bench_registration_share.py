@@ -73,7 +73,7 @@ def run_scene(name, view, log):
         scene = with_view(scene, view)
     label = scene.name
     states = compress(scene, (0.20, 0.25))
-    proj = study.project_pair(scene, states, pixel_mm=PIXEL_MM)
+    proj = study.project_pair(scene, states, pixel_size_mm=PIXEL_MM)
     counts = scene.exposure.i0_counts * (PIXEL_MM / 0.05) ** 2
     rng = np.random.default_rng(0)
     noisy = study.images(proj, imaging.chain(imaging.monochromatic, lambda L: study.add_noise(L, counts, rng)))
@@ -135,7 +135,7 @@ def against_truth(name, view, log):
     if view:
         scene = with_view(scene, view)
     states = compress(scene, (0.20, 0.25))
-    proj = study.project_pair(scene, states, pixel_mm=PIXEL_MM)
+    proj = study.project_pair(scene, states, pixel_size_mm=PIXEL_MM)
     counts = scene.exposure.i0_counts * (PIXEL_MM / 0.05) ** 2
     noisy = study.images(proj, imaging.chain(imaging.monochromatic,
                                              lambda L: study.add_noise(L, counts, np.random.default_rng(0))))

@@ -75,7 +75,7 @@ class ROI:
     ((4, 4), (3.5, 11.5))
     >>> ROI.from_center((3.5, 11.5), 4) == roi
     True
-    >>> ROI.from_mm((0.35, 1.15), 0.4, pixel_mm=0.1) == roi
+    >>> ROI.from_mm((0.35, 1.15), 0.4, pixel_size_mm=0.1) == roi
     True
     """
 
@@ -181,7 +181,7 @@ class ROI:
         return cls(r0, r0 + h, c0, c0 + w)
 
     @classmethod
-    def from_mm(cls, center_mm, size_mm, pixel_mm, origin_rc=(0.0, 0.0)) -> ROI:
+    def from_mm(cls, center_mm, size_mm, pixel_size_mm, origin_rc=(0.0, 0.0)) -> ROI:
         """A rectangle given in millimetres.
 
         Parameters
@@ -190,20 +190,20 @@ class ROI:
             Centre (row direction, col direction) in mm from ``origin_rc``; rows grow downwards.
         size_mm : float or (float, float)
             Height and width in mm.
-        pixel_mm : float or (float, float)
+        pixel_size_mm : float or (float, float)
             Pixel pitch (row, col) in mm.
         origin_rc : (float, float)
             Pixel coordinates of the mm origin (default: the centre of pixel (0, 0)).
         """
-        pr, pc = _pair(pixel_mm, "pixel_mm", positive=True)
+        pr, pc = _pair(pixel_size_mm, "pixel_size_mm", positive=True)
         cr, cc = _pair(center_mm, "center_mm")
         sr, sc = _pair(size_mm, "size_mm", positive=True)
         orr, occ = _pair(origin_rc, "origin_rc")
         return cls.from_center((orr + cr / pr, occ + cc / pc), (sr / pr, sc / pc))
 
-    def to_mm(self, pixel_mm, origin_rc=(0.0, 0.0)) -> tuple[tuple[float, float], tuple[float, float]]:
+    def to_mm(self, pixel_size_mm, origin_rc=(0.0, 0.0)) -> tuple[tuple[float, float], tuple[float, float]]:
         """``(center_mm, size_mm)`` such that ``ROI.from_mm(*roi.to_mm(p, o), p, o) == roi``."""
-        pr, pc = _pair(pixel_mm, "pixel_mm", positive=True)
+        pr, pc = _pair(pixel_size_mm, "pixel_size_mm", positive=True)
         orr, occ = _pair(origin_rc, "origin_rc")
         r, c = self.center
         return ((r - orr) * pr, (c - occ) * pc), (self.shape[0] * pr, self.shape[1] * pc)
@@ -682,7 +682,7 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     return float(score), (resid, (r0, c0), dist)
 
 
-def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray:
+def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.ndarray:
     """The brightest compact blob inside the body, as a boolean mask (its half-maximum extent).
 
     Candidates: local maxima of the scale-normalised Laplacian of Gaussian over radii of
@@ -704,8 +704,8 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
         img = -np.log(-img)
     rows, cols = img.shape
     small = min(rows, cols)
-    if pixel_mm is not None:
-        p = float(np.mean(pixel_mm))
+    if pixel_size_mm is not None:
+        p = float(np.mean(pixel_size_mm))
         r_lo, r_hi = 1.5 / p, 12.0 / p
     else:
         r_lo, r_hi = 3.0, small / 6
@@ -753,17 +753,17 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_mm) -> np.ndarray
     return out
 
 
-def _length_px(value, name, pixel_mm):
-    """A length given in mm (when pixel_mm is known) or pixels, as pixels (row, col)."""
+def _length_px(value, name, pixel_size_mm):
+    """A length given in mm (when pixel_size_mm is known) or pixels, as pixels (row, col)."""
     if value is None:
         return None
     vr, vc = _pair(value, name, positive=True)
-    if pixel_mm is not None:
-        vr, vc = vr / pixel_mm[0], vc / pixel_mm[1]
+    if pixel_size_mm is not None:
+        vr, vc = vr / pixel_size_mm[0], vc / pixel_size_mm[1]
     return vr, vc
 
 
-def find_rois(image, *, inclusion_mask=None, pixel_mm=None, inclusion_size=None, gap=None,
+def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=None, gap=None,
               background_size=None, body_mask=None) -> tuple[ROI, ROI]:
     """Automatic inclusion and background rectangles, after the paper's Figs. 7-8.
 
@@ -774,7 +774,7 @@ def find_rois(image, *, inclusion_mask=None, pixel_mm=None, inclusion_size=None,
     inclusion_mask : (rows, cols) bool array, optional
         Where the inclusion is (e.g. a simulation's truth). Without it the inclusion is
         detected: the strongest compact blob brighter than its surroundings inside the body.
-    pixel_mm : float or (float, float), optional
+    pixel_size_mm : float or (float, float), optional
         Pixel pitch. When given, ``inclusion_size``, ``gap`` and ``background_size`` are in mm and
         detection looks for blobs of 1.5-12 mm radius; otherwise they are in pixels.
     inclusion_size : float or (float, float), optional
@@ -817,7 +817,7 @@ def find_rois(image, *, inclusion_mask=None, pixel_mm=None, inclusion_size=None,
     img = np.asarray(_image(image), np.float64)
     if not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite values (NaN or inf)")
-    px = None if pixel_mm is None else _pair(pixel_mm, "pixel_mm", positive=True)
+    px = None if pixel_size_mm is None else _pair(pixel_size_mm, "pixel_size_mm", positive=True)
     if body_mask is None:
         body = _body(img, 0.2, 2)
     else:

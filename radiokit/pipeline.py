@@ -115,7 +115,7 @@ class Steps:
     images: np.ndarray
     numbers: tuple[int, ...]
     ratios: tuple[float, ...]
-    pixel_mm: float
+    pixel_size_mm: float
     timings: dict
 
 
@@ -165,7 +165,7 @@ class Result:
         return self.images.as_dict(self.record)
 
 
-def _roi(value, units, pixel_mm):
+def _roi(value, units, pixel_size_mm):
     if value is None:
         return None
     if isinstance(value, ROI):
@@ -174,7 +174,7 @@ def _roi(value, units, pixel_mm):
         value = (value["row0"], value["row1"], value["col0"], value["col1"])
     r0, r1, c0, c1 = (float(v) for v in value)
     if units == "mm":
-        r0, r1, c0, c1 = (v / pixel_mm for v in (r0, r1, c0, c1))
+        r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
     return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
 
 
@@ -212,8 +212,8 @@ def load_steps(path, progress: bool = False) -> Steps:
             images.append((acc / len(idx)).astype(np.float32))
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
-        pixel_mm = float(meta.get("pixel_size_mm", 0.05))
-    return Steps(np.stack(images), tuple(numbers), tuple(ratios), pixel_mm,
+        pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
+    return Steps(np.stack(images), tuple(numbers), tuple(ratios), pixel_size_mm,
                  dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t))
 
 
@@ -328,11 +328,11 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     from radiokit.measure import find_rois
 
     ref = steps.images[-1]
-    inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_mm)
-    bg = _roi(cfg.background, cfg.roi_units, steps.pixel_mm)
+    inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm)
+    bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm)
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
-        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_mm=steps.pixel_mm)
+        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
         inc = inc or auto_inc
         bg = bg or auto_bg
     for name, roi in (("inclusion", inc), ("background", bg)):
@@ -340,7 +340,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
             raise ValueError(f"{name} ROI {roi} lies outside the {ref.shape} frame")
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
-    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_mm)))
+    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))
     # keep the background rectangle inside the crop
     r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
     c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
@@ -507,7 +507,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     timings["measure_s"] = time.perf_counter() - t
     record = Results(
         source=str(path), scene=truth.get("scene") if truth else None, simulated=truth is not None,
-        pixel_mm=steps.pixel_mm, domain=cfg.domain, ks=cfg.ks, method=cfg.method, steps=steps.numbers,
+        pixel_size_mm=steps.pixel_size_mm, domain=cfg.domain, ks=cfg.ks, method=cfg.method, steps=steps.numbers,
         ratios=steps.ratios, rois=Rois(rois.crop, _bounds(inc_c), _bounds(bg_c)), domains=domains, pairs=checked,
         main_pair=f"{steps.numbers[-2]}->{steps.numbers[-1]}", profiles_row=mid, bound=bound, paper=PAPER, timings=timings,
         control=_control(cfg, rois, out_dir))

@@ -305,7 +305,7 @@ def _fig_projections(images, results, fig_dir):
                "first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
                "compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
                "ROI (where contrast is measured). Axes in pixels of the cropped image"
-               f" ({results.pixel_mm:g} mm per pixel). After the paper's Figs. 4\u20135.")
+               f" ({results.pixel_size_mm:g} mm per pixel). After the paper's Figs. 4\u20135.")
     return name, caption
 
 
@@ -326,7 +326,7 @@ def _row_mean(img, a, b):
 def _fig_profiles(images, results, fig_dir):
     steps = images.steps
     centre, a, b = _profile_rows(steps.shape[1:], results.profiles_row)
-    x = np.arange(steps.shape[2]) * results.pixel_mm
+    x = np.arange(steps.shape[2]) * results.pixel_size_mm
     domains = _in_order(images.enhanced)
     fig = _new_figure(4.2 * (1 + len(domains)), 3.4)
     axes = np.atleast_1d(fig.subplots(1, 1 + len(domains), squeeze=False)).ravel()
@@ -344,7 +344,7 @@ def _fig_profiles(images, results, fig_dir):
         ax.set_ylabel(_domain_unit(dom), fontsize=8)
     c0, c1 = results.rois.inclusion[2:]
     for ax in axes:
-        ax.axvspan((c0 - 0.5) * results.pixel_mm, (c1 - 0.5) * results.pixel_mm, color=_INCLUSION_COLOUR,
+        ax.axvspan((c0 - 0.5) * results.pixel_size_mm, (c1 - 0.5) * results.pixel_size_mm, color=_INCLUSION_COLOUR,
                    alpha=0.12, label="inclusion ROI columns")
         ax.set_xlabel("column (mm, cropped image)", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -742,7 +742,7 @@ def _meta_rows(results):
         scene = str(results.scene)
         long = "\n" in scene.strip() or len(scene) > 120
         rows.append(("scene", f"{len(scene.splitlines())} lines of configuration, shown below" if long else scene))
-    px = results.pixel_mm
+    px = results.pixel_size_mm
     rows.append(("pixel size", f"{px:g} mm"))
     rows.append(("headline domain", f"{results.domain} ({_domain_unit(results.domain)})"))
     r0, r1, c0, c1 = results.rois.crop

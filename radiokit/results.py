@@ -159,7 +159,7 @@ class Results:
     source: str
     scene: str | None
     simulated: bool
-    pixel_mm: float
+    pixel_size_mm: float
     domain: Domain  #: the headline domain
     ks: tuple[float, ...]
     method: str
@@ -186,7 +186,7 @@ class Results:
     def to_json(self) -> dict:
         """The JSON-able form written to ``results.json`` (numbers as Python floats and ints)."""
         out = {"schema_version": SCHEMA_VERSION, "source": self.source, "scene": self.scene,
-               "simulated": self.simulated, "pixel_mm": self.pixel_mm, "domain": self.domain.value,
+               "simulated": self.simulated, "pixel_size_mm": self.pixel_size_mm, "domain": self.domain.value,
                "ks": list(self.ks), "method": self.method, "steps": list(self.steps), "ratios": list(self.ratios),
                "rois": self.rois.to_json(),
                "improvement_factor": {k_label(k): v for k, v in self.improvement_factor.items()},
@@ -212,7 +212,7 @@ class Results:
         _check_fields(d, where)
         pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
         r = d["rois"]
-        return cls(d["source"], d.get("scene"), bool(d["simulated"]), d["pixel_mm"], Domain(d["domain"]),
+        return cls(d["source"], d.get("scene"), bool(d["simulated"]), d["pixel_size_mm"], Domain(d["domain"]),
                    tuple(d["ks"]), d["method"], tuple(d["steps"]), tuple(d["ratios"]),
                    Rois(tuple(r["crop"]), tuple(r["inclusion"]), tuple(r["background"])),
                    {Domain(k): DomainMeasures.from_json(k, v) for k, v in d["domains"].items()}, pairs,
@@ -341,7 +341,7 @@ _DOMAIN_FIELDS = {"contrast_reference": _maybe_number, "cnr_reference": _maybe_n
                   "weber_reference": _maybe_number, "contrast": _k_keyed, "cnr": _k_keyed, "weber": _k_keyed,
                   "improvement_factor": _k_keyed}
 #: what :meth:`Results.from_json` reads, and what each must be (None: optional)
-_FIELDS = {"source": (str,), "scene": (str, None), "simulated": (bool, np.bool_), "pixel_mm": _number,
+_FIELDS = {"source": (str,), "scene": (str, None), "simulated": (bool, np.bool_), "pixel_size_mm": _number,
            "domain": (str,), "ks": _list_of(_number), "method": (str,), "steps": _list_of(_int),
            "ratios": _list_of(_maybe_number), "rois": lambda v: isinstance(v, dict) and all(
                _BOX(v.get(k)) for k in ("crop", "inclusion", "background")),

@@ -159,7 +159,7 @@ def _interp_matrix(n, f, m):
     return W
 
 
-def scatter(line_integral, fraction, sigma_mm, pixel_mm, reference_line_integral):
+def scatter(line_integral, fraction, sigma_mm, pixel_size_mm, reference_line_integral):
     """``-ln(P + fraction * G * (P L) / L_ref)``: scatter, a smooth additive term.
 
     Scatter is made where photons interact, in proportion to the primary times the line
@@ -169,13 +169,13 @@ def scatter(line_integral, fraction, sigma_mm, pixel_mm, reference_line_integral
     ``reference_line_integral``; thinner parts scatter less."""
     L = np.asarray(line_integral, float)
     P = np.exp(-L)
-    return -np.log(P + fraction / reference_line_integral * _gauss(P * L, sigma_mm / pixel_mm))
+    return -np.log(P + fraction / reference_line_integral * _gauss(P * L, sigma_mm / pixel_size_mm))
 
 
-def blur(line_integral, sigma_mm, pixel_mm):
+def blur(line_integral, sigma_mm, pixel_size_mm):
     """The detector's point spread (Gaussian, ``sigma_mm``) applied to the intensity."""
     P = np.exp(-np.asarray(line_integral, float))
-    return -np.log(_gauss(P, sigma_mm / pixel_mm))
+    return -np.log(_gauss(P, sigma_mm / pixel_size_mm))
 
 
 def chain(beam=monochromatic, *effects):
@@ -204,16 +204,16 @@ def _tube(kv, anode, match_mm):
     return Polychromatic(kv, anode, filters=filters, match_mm=match_mm)
 
 
-def for_scene(scene, pixel_mm: float):
+def for_scene(scene, pixel_size_mm: float):
     """The image model ``model(lengths, mu) -> -ln(I/I0)`` of ``scene.imaging`` on pixels of
-    ``pixel_mm`` (see :class:`sim.scene.Imaging`): the beam, then scatter, then blur."""
+    ``pixel_size_mm`` (see :class:`sim.scene.Imaging`): the beam, then scatter, then blur."""
     im = scene.imaging
     thickness = 2 * scene.body.half_height_mm
     beam = monochromatic if im.beam == "monochromatic" else tube(scene.exposure.voltage_kv, im.anode, thickness)
     effects = []
     if im.scatter_fraction > 0:
         l_ref = scene.body.material.attenuation_per_mm * thickness
-        effects.append(lambda L: scatter(L, im.scatter_fraction, im.scatter_sigma_mm, pixel_mm, l_ref))
+        effects.append(lambda L: scatter(L, im.scatter_fraction, im.scatter_sigma_mm, pixel_size_mm, l_ref))
     if im.blur_sigma_mm > 0:
-        effects.append(lambda L: blur(L, im.blur_sigma_mm, pixel_mm))
+        effects.append(lambda L: blur(L, im.blur_sigma_mm, pixel_size_mm))
     return chain(beam, *effects)

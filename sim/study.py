@@ -18,7 +18,7 @@ Example (an axisymmetric cylinder through the plates, about a second)::
     >>> sc = Scene(body=Body("cylinder", height_mm=50.0, diameter_mm=50.0, material=gel),
     ...            inclusions=[Inclusion("sphere", diameter_mm=8.0, material=hard)],
     ...            compression=Compression((0.20, 0.25)), mesh=MeshSpec(1.0, 5.0))
-    >>> h = headline(image_pair(sc, compress(sc), pixel_mm=0.25))
+    >>> h = headline(image_pair(sc, compress(sc), pixel_size_mm=0.25))
     >>> round(h.improvement["linear"]["1"], 3), round(h.bound["linear"]["1"], 3)
     (1.114, 1.118)
 """
@@ -52,7 +52,7 @@ class ImagePair:
         The truth field (:func:`sim.truth.truth_displacement`).
     inclusion_mask : (rows, cols) bool
         Rays through the inclusion in the reference.
-    pixel_mm : float
+    pixel_size_mm : float
     mu_dg : float or None
         ``mu_b * delta_g`` of :func:`bound_exponent`; None when the beam is not through the plates.
     view : str
@@ -65,7 +65,7 @@ class ImagePair:
     field: np.ndarray
     truth: np.ndarray
     inclusion_mask: np.ndarray
-    pixel_mm: float
+    pixel_size_mm: float
     mu_dg: float | None
     view: str
 
@@ -85,8 +85,8 @@ class Headline:
     background: object = None
 
 
-def study_geometry(scene, pixel_mm=0.25, margin=1.35):
-    """A square detector of ``pixel_mm`` pixels covering the body (expanded by ``margin`` for the
+def study_geometry(scene, pixel_size_mm=0.25, margin=1.35):
+    """A square detector of ``pixel_size_mm`` pixels covering the body (expanded by ``margin`` for the
     lateral bulge and magnified for cone beams): the scene's beam, a small grid."""
     from sim.xray import Geometry, body_centre
 
@@ -99,8 +99,8 @@ def study_geometry(scene, pixel_mm=0.25, margin=1.35):
         extent = max(b.size_mm)
     beam = scene.beam
     mag = 1.0 if beam.kind == "parallel" else (beam.source_distance_mm + beam.detector_distance_mm) / beam.source_distance_mm
-    n = int(math.ceil(extent * margin * mag / pixel_mm))
-    return Geometry(beam.kind, beam.direction, (n, n), pixel_mm, body_centre(scene), beam.source_distance_mm,
+    n = int(math.ceil(extent * margin * mag / pixel_size_mm))
+    return Geometry(beam.kind, beam.direction, (n, n), pixel_size_mm, body_centre(scene), beam.source_distance_mm,
                     beam.detector_distance_mm)
 
 
@@ -150,12 +150,12 @@ class Projected:
     mu_per_mm: np.ndarray
     truth: np.ndarray
     inclusion_mask: np.ndarray
-    pixel_mm: float
+    pixel_size_mm: float
     mu_dg: float | None
     view: str
 
 
-def project_pair(scene, states, *, pixel_mm=0.25, geometry=None, truth_factor=4) -> Projected:
+def project_pair(scene, states, *, pixel_size_mm=0.25, geometry=None, truth_factor=4) -> Projected:
     """Path lengths of the last two states of ``states`` (one ``compress`` call) and the truth
     field (moving onto reference). ``truth_factor``: the truth's coarsening
     (:func:`sim.truth.truth_displacement`; smooth on the elements' scale, the full grid costs ten
@@ -165,7 +165,7 @@ def project_pair(scene, states, *, pixel_mm=0.25, geometry=None, truth_factor=4)
 
     moving, reference = states[-2], states[-1]
     solver = reference.solver
-    geom = geometry if geometry is not None else study_geometry(scene, pixel_mm)
+    geom = geometry if geometry is not None else study_geometry(scene, pixel_size_mm)
     fem = getattr(solver, "projection_mesh", None) or solver.fem
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
     mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
@@ -190,14 +190,14 @@ def images(projected: Projected, image_model=None, field=None) -> ImagePair:
     mov, ref = (np.asarray(model(ln, p.mu_per_mm), np.float64) for ln in p.lengths)
     used = p.truth if field is None else np.asarray(field, np.float32)
     registered = warp(mov.astype(np.float32), used).astype(np.float64)
-    return ImagePair(ref, mov, registered, used, p.truth, p.inclusion_mask, p.pixel_mm, p.mu_dg, p.view)
+    return ImagePair(ref, mov, registered, used, p.truth, p.inclusion_mask, p.pixel_size_mm, p.mu_dg, p.view)
 
 
-def image_pair(scene, states, *, pixel_mm=0.25, geometry=None, field=None, image_model=None,
+def image_pair(scene, states, *, pixel_size_mm=0.25, geometry=None, field=None, image_model=None,
                truth_factor=4) -> ImagePair:
     """:func:`project_pair` then :func:`images`: the last two states of ``states`` projected,
     seen through ``image_model`` and registered with ``field`` (default: the truth)."""
-    return images(project_pair(scene, states, pixel_mm=pixel_mm, geometry=geometry, truth_factor=truth_factor),
+    return images(project_pair(scene, states, pixel_size_mm=pixel_size_mm, geometry=geometry, truth_factor=truth_factor),
                   image_model, field)
 
 
@@ -238,16 +238,16 @@ def step_images(scene, states, geometry):
     return out
 
 
-def paper_signs(scene, states, *, pixel_mm=0.25, geometry=None) -> Signs:
+def paper_signs(scene, states, *, pixel_size_mm=0.25, geometry=None) -> Signs:
     """Measure the paper's two qualitative signs (:class:`Signs`) on ``states``, noise-free."""
     from radiokit.enhance import to_domain
     from radiokit.measure import contrast, find_rois
 
-    geom = geometry if geometry is not None else study_geometry(scene, pixel_mm)
+    geom = geometry if geometry is not None else study_geometry(scene, pixel_size_mm)
     bright, con = [], []
     for L, mask in step_images(scene, states, geom):
         neg = to_domain(L, "negative").astype(np.float64)
-        inc, bg = find_rois(L, inclusion_mask=mask, pixel_mm=geom.pixel_size_mm)
+        inc, bg = find_rois(L, inclusion_mask=mask, pixel_size_mm=geom.pixel_size_mm)
         bright.append(float(neg[bg.slices].mean()))
         con.append(contrast(neg, inc, bg))
     return Signs([s.ratio for s in states], bright, con)
@@ -266,7 +266,7 @@ def find_inclusion_roi(pair: ImagePair):
     """The inclusion ROI :func:`headline` uses by default."""
     from radiokit.measure import find_rois
 
-    return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)[0]
+    return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_size_mm=pair.pixel_size_mm)[0]
 
 
 #: This module's domain names -> radiokit.enhance.Domain: its "linear" is the paper's negative
@@ -308,7 +308,7 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
     from radiokit.measure import change_ratio, cnr, contrast, find_rois, improvement_bound, improvement_factor
 
     if rois is None:
-        rois = find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_mm=pair.pixel_mm)
+        rois = find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_size_mm=pair.pixel_size_mm)
     inc, bg = rois
     out = Headline({}, {}, {}, inclusion=inc, background=bg)
     for dom in ("log", "linear"):

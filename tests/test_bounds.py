@@ -65,7 +65,7 @@ def rigid_pair():
     assert states[0].solver.model == "axisymmetric"
     # E_i = 1000 E_m: the inclusion's strain is below 1e-3 while the gel's is 25 %
     assert states[-1].inclusion_strain < 1e-3 < 0.2 < states[-1].background_strain
-    return scene, states, study.image_pair(scene, states, pixel_mm=0.25)
+    return scene, states, study.image_pair(scene, states, pixel_size_mm=0.25)
 
 
 def test_rigid_inclusion_reaches_the_bound(rigid_pair):
@@ -94,7 +94,7 @@ def test_softer_inclusion_stays_below_the_bound():
     """A stiff but deformable inclusion (6x the gel) loses part of its chord: strictly under.
     (Identity registration: on the axis, through the plates, the ROI means need none.)"""
     scene = _rigid_cylinder(E_inclusion_kpa=30.0)
-    h = study.headline(study.images(study.project_pair(scene, compress(scene), pixel_mm=0.25, truth_factor=None)))
+    h = study.headline(study.images(study.project_pair(scene, compress(scene), pixel_size_mm=0.25, truth_factor=None)))
     for k in ("1", "2"):
         assert 1.0 < h.improvement["linear"][k] < h.bound["linear"][k] - 0.005
         assert h.improvement["log"][k] < 1.0
@@ -108,7 +108,7 @@ def test_preset_scenes_stay_under_the_bound(name, model):
     scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm, scene.mesh.model = 1.4, 8.0, model
     scene.mesh.size_contact_mm = None  # coarse: without the preset's band at the plates
     states = compress(scene, (0.20, 0.25))
-    h = study.headline(study.image_pair(scene, states, pixel_mm=0.3))
+    h = study.headline(study.image_pair(scene, states, pixel_size_mm=0.3))
     for dom in ("log", "linear"):
         for k in ("1", "2"):
             assert h.improvement[dom][k] <= h.bound[dom][k] + 0.01, (dom, k, h.improvement, h.bound)
@@ -119,7 +119,7 @@ def test_side_view_has_no_bound():
     scene = with_view(_rigid_cylinder(), "side")
     assert scene.beam.direction == "z" and scene.beam.view == "side"
     states = compress(scene)
-    pair = study.images(study.project_pair(scene, states, pixel_mm=0.5, truth_factor=None))
+    pair = study.images(study.project_pair(scene, states, pixel_size_mm=0.5, truth_factor=None))
     assert pair.mu_dg is None and pair.view == "side"
     assert study.headline(pair).bound["linear"]["1"] is None
 

@@ -244,12 +244,12 @@ def test_summary_keys_and_values():
 
 
 # -- ROI -------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("pixel_mm", [0.05, 0.2, (0.1, 0.15)])
+@pytest.mark.parametrize("pixel_size_mm", [0.05, 0.2, (0.1, 0.15)])
 @pytest.mark.parametrize("origin_rc", [(0, 0), (120.5, -3.0)])
 @pytest.mark.parametrize("roi", [ROI(10, 30, 40, 45), ROI(0, 1, 0, 1), ROI(-5, 6, 7, 1000)])
-def test_roi_mm_round_trip(roi, pixel_mm, origin_rc):
-    center_mm, size_mm = roi.to_mm(pixel_mm, origin_rc)
-    assert ROI.from_mm(center_mm, size_mm, pixel_mm, origin_rc) == roi
+def test_roi_mm_round_trip(roi, pixel_size_mm, origin_rc):
+    center_mm, size_mm = roi.to_mm(pixel_size_mm, origin_rc)
+    assert ROI.from_mm(center_mm, size_mm, pixel_size_mm, origin_rc) == roi
 
 
 def test_roi_from_mm_hand_values():
@@ -283,7 +283,7 @@ def test_roi_geometry():
     (lambda: ROI(0, 2, 5, 4), "empty"),
     (lambda: ROI(0, 2.5, 0, 2), "integer"),
     (lambda: ROI.from_center((3, 3), 0.2), "empty"),
-    (lambda: ROI.from_mm((1, 1), 1.0, 0.0), "pixel_mm"),
+    (lambda: ROI.from_mm((1, 1), 1.0, 0.0), "pixel_size_mm"),
     (lambda: ROI.from_dict({"row0": 1, "row1": 2}), "missing col0, col1"),
     (lambda: ROI(0, 2, 0, 2).shifted(10, 10).clip((5, 5)), "outside"),
     (lambda: ROI(-1, 2, 0, 2).mask((5, 5)), "outside the 5x5 image"),
@@ -367,11 +367,11 @@ def _dome_with_blob(domain="log", noise=0.005, centre=(70, 96), radius=12.0, see
 
 
 @pytest.mark.parametrize("domain", ["log", "negative"])
-@pytest.mark.parametrize("pixel_mm", [None, 0.4])
+@pytest.mark.parametrize("pixel_size_mm", [None, 0.4])
 @pytest.mark.parametrize("centre", [(70, 96), (60, 40), (80, 140)])
-def test_find_rois_on_a_blob(domain, pixel_mm, centre):
+def test_find_rois_on_a_blob(domain, pixel_size_mm, centre):
     img, blob, body = _dome_with_blob(domain, centre=centre)
-    inc, bg = find_rois(img, pixel_mm=pixel_mm)
+    inc, bg = find_rois(img, pixel_size_mm=pixel_size_mm)
     assert blob[inc.slices].all(), "inclusion ROI must lie inside the blob"
     assert inc.shape[0] >= 6, "and be a useful size (the blob is 24 px across)"
     assert not blob[bg.slices].any() and body[bg.slices].all(), "background outside the blob, inside the body"
@@ -403,7 +403,7 @@ def test_find_rois_with_an_inclusion_mask(mask_kind):
 @pytest.mark.parametrize("use_mask", [True, False])
 def test_find_rois_sizes_and_gap_in_mm(use_mask):
     img, blob, body = _dome_with_blob()
-    inc, bg = find_rois(img, pixel_mm=0.4, inclusion_size=2.0, gap=4.0, background_size=(2.0, 4.0),
+    inc, bg = find_rois(img, pixel_size_mm=0.4, inclusion_size=2.0, gap=4.0, background_size=(2.0, 4.0),
                         inclusion_mask=blob if use_mask else None)
     assert inc.shape == (5, 5) and bg.shape == (5, 10)  # 2 mm = 5 px, 4 mm = 10 px
     assert blob[inc.slices].all() and inc.contains((70, 96))

@@ -787,7 +787,7 @@ def _results_json():
 
     per_k = (KMeasure(1.0, 0.1, 2.0, 0.05, 1.5, 1.8), KMeasure(2.0, 0.2, 3.0, 0.1, 2.5))
     record = Results(
-        source="exp.h5", scene="block", simulated=True, pixel_mm=0.1, domain=Domain.LOG, ks=(1.0, 2.0),
+        source="exp.h5", scene="block", simulated=True, pixel_size_mm=0.1, domain=Domain.LOG, ks=(1.0, 2.0),
         method="rc", steps=(1, 2, 3), ratios=(0.1, 0.2, float("nan")), rois=Rois((0, 40, 0, 50), (1, 5, 1, 5), (6, 9, 6, 9)),
         domains={Domain.LOG: DomainMeasures(Domain.LOG, 0.05, 1.0, 0.02, per_k)},
         pairs=(PairResult(3, 1, "rc", {"ok": True, "reason": "", "ncc": 0.9}, {Domain.LOG: 1.2}),),
@@ -809,8 +809,8 @@ def _json_case(case):
         d["ks"] = "1,2"
     elif case == "steps of text":
         d["steps"] = ["one", "two", "three"]
-    elif case == "pixel_mm as text":
-        d["pixel_mm"] = "0.1 mm"
+    elif case == "pixel_size_mm as text":
+        d["pixel_size_mm"] = "0.1 mm"
     elif case == "unknown domain":
         d["domain"] = "purple"
     elif case == "domains as a list":
@@ -840,7 +840,7 @@ def _json_case(case):
 
 
 JSON_BAD = ["missing domains", "missing schema_version", "major version 2", "version as a list", "ks as text",
-            "steps of text", "pixel_mm as text", "unknown domain", "domains as a list", "crop of 3",
+            "steps of text", "pixel_size_mm as text", "unknown domain", "domains as a list", "crop of 3",
             "registration not a dict", "pair name without arrow", "main pair unknown", "contrast as text",
             "k key not a number", "bound missing basis", "profiles_row as float", "control not a dict"]
 JSON_GARBAGE = {"not json": b"<html>results</html>", "empty": b" ", "not utf-8": b'{"source": "\xff\xfe"}',

@@ -108,7 +108,7 @@ def test_mesh_convergence_of_the_headline_through_the_plates():
                       mesh=MeshSpec(h_inc, h_far, "auto", True, True, h_contact))
         states = compress(scene)
         assert states[0].solver.model == "axisymmetric"
-        h = study.headline(study.images(study.project_pair(scene, states, pixel_mm=0.3, truth_factor=None)))
+        h = study.headline(study.images(study.project_pair(scene, states, pixel_size_mm=0.3, truth_factor=None)))
         s = states[-1]
         return np.array([s.plate_force_n, s.inclusion_strain, h.change_ratio["linear"], h.improvement["linear"]["1"],
                          h.improvement["linear"]["2"]]), s.solver.ndof

@@ -41,7 +41,7 @@ PRINTED = (
 PINNED = {
     "scene": "golden-cube",
     "simulated": True,
-    "pixel_mm": 0.2,
+    "pixel_size_mm": 0.2,
     "domain": "negative",
     "ks": [1.0, 2.0],
     "method": "tvl1",

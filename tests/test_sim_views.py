@@ -44,7 +44,7 @@ def test_view_is_a_scene_option_that_round_trips():
 
 def test_through_the_plates_both_of_the_papers_signs_hold(pva_states):
     scene, states = pva_states
-    signs = study.paper_signs(with_view(scene, "through_plates"), states, pixel_mm=0.3)
+    signs = study.paper_signs(with_view(scene, "through_plates"), states, pixel_size_mm=0.3)
     assert signs.ratios == [0.15, 0.20, 0.25]
     assert np.all(np.diff(signs.brightness) < 0)  # each step darker than the one before
     assert np.all(np.diff(signs.contrast) > 0)  # and with more contrast
@@ -53,7 +53,7 @@ def test_through_the_plates_both_of_the_papers_signs_hold(pva_states):
 
 def test_from_the_side_both_signs_are_reversed(pva_states):
     scene, states = pva_states
-    signs = study.paper_signs(with_view(scene, "side"), states, pixel_mm=0.3)
+    signs = study.paper_signs(with_view(scene, "side"), states, pixel_size_mm=0.3)
     assert np.all(np.diff(signs.brightness) > 0)  # columns lengthen: the most compressed is brightest
     assert np.all(np.diff(signs.contrast) < 0)
     assert not signs.least_compressed_brightest and not signs.most_compressed_most_contrast
@@ -63,9 +63,9 @@ def test_through_the_plates_the_stiff_inclusion_gains_in_the_linear_domain_only(
     """And the headline in each view: through the plates IF_linear > 1 under its bound, IF_log <
     1; from the side no bound, and the linear gain is lost."""
     scene, states = pva_states
-    top = study.headline(study.image_pair(with_view(scene, "through_plates"), states, pixel_mm=0.3))
+    top = study.headline(study.image_pair(with_view(scene, "through_plates"), states, pixel_size_mm=0.3))
     assert 1.0 < top.improvement["linear"]["1"] <= top.bound["linear"]["1"] + 0.01
     assert top.improvement["log"]["1"] < 1.0
-    side = study.headline(study.image_pair(with_view(scene, "side"), states, pixel_mm=0.3))
+    side = study.headline(study.image_pair(with_view(scene, "side"), states, pixel_size_mm=0.3))
     assert side.bound["linear"]["1"] is None
     assert side.improvement["linear"]["1"] < 1.0
