@@ -24,9 +24,11 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 demo: $(VENV)/.installed
 	$(BIN)/radiokit demo -o $(DEMO_OUT) --overwrite --dialect $(DIALECT)
 
-# The linter and the import contract (radiokit never imports sim or acquisition) run before the suite.
+# The linter, the formatter's check and the import contracts (radiokit never imports sim or acquisition)
+# run before the suite. `ruff format .` applies the format.
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
 
 test: lint

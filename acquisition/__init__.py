@@ -9,6 +9,7 @@
 
 Errors: :class:`DeviceError`, its subclasses :class:`SourceFault` and :class:`DetectorTimeout`.
 """
+
 from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
 
 __all__ = ["DeviceError", "SourceFault", "DetectorTimeout"]

@@ -1,5 +1,6 @@
 """``radiokit acquire``: run a protocol on the lab's bench or the virtual one, and bench-top source
 commands (entry-point group ``radiokit.commands``)."""
+
 from __future__ import annotations
 
 import logging
@@ -11,30 +12,40 @@ SOURCE_ACTIONS = ("probe", "status", "warm-up", "on", "off")
 
 def add_acquire(subparsers):
     p = subparsers.add_parser(
-        "acquire", help="run a compression-series protocol (or: acquire source probe|status|warm-up|on|off --port URL)",
+        "acquire",
+        help="run a compression-series protocol (or: acquire source probe|status|warm-up|on|off --port URL)",
         description="Run a compression-series protocol (TOML) on the lab's devices, or with --sim on the virtual "
-                    "bench (L8121 emulator on a pseudo-terminal, simulated panel and frame). Every frame is written "
-                    "and flushed as it arrives; the tube is switched off on every exit path. "
-                    "`radiokit acquire source ACTION --port URL` talks to the source alone; `source probe` finds which "
-                    "command dialect and baud rate the controller speaks, with harmless queries only, and prints the "
-                    "raw exchange.")
+        "bench (L8121 emulator on a pseudo-terminal, simulated panel and frame). Every frame is written "
+        "and flushed as it arrives; the tube is switched off on every exit path. "
+        "`radiokit acquire source ACTION --port URL` talks to the source alone; `source probe` finds which "
+        "command dialect and baud rate the controller speaks, with harmless queries only, and prints the "
+        "raw exchange.",
+    )
     p.add_argument("protocol", help="protocol TOML file, or the word 'source' for source commands")
     p.add_argument("action", nargs="?", choices=SOURCE_ACTIONS, help="with 'source': what to do")
     p.add_argument("--sim", action="store_true", help="run on the virtual bench (emulated devices)")
     p.add_argument("--resume", action="store_true", help="complete an interrupted experiment file")
-    p.add_argument("--dry-run", action="store_true", help="print the plan, its duration and beam-on time; touch nothing")
+    p.add_argument(
+        "--dry-run", action="store_true", help="print the plan, its duration and beam-on time; touch nothing"
+    )
     p.add_argument("-o", "--output", type=Path, help="experiment file (default: the protocol's output)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing experiment file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="log every serial exchange")
-    p.add_argument("--dialect", choices=("A", "B", "auto"),
-                   help="the L8121 controller's command dialect (see README). With a protocol it replaces [source] "
-                        "dialect, and with --sim the virtual bench's emulator speaks it (A or B); source commands "
-                        "default to auto (probe first)")
+    p.add_argument(
+        "--dialect",
+        choices=("A", "B", "auto"),
+        help="the L8121 controller's command dialect (see README). With a protocol it replaces [source] "
+        "dialect, and with --sim the virtual bench's emulator speaks it (A or B); source commands "
+        "default to auto (probe first)",
+    )
     s = p.add_argument_group("source commands")
     s.add_argument("--port", help="serial port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port")
-    s.add_argument("--baudrate", type=int, help="the controller's baud rate (default: the dialect's; auto tries "
-                                                 "this one first, then 9600, 38400, 115200)")
+    s.add_argument(
+        "--baudrate",
+        type=int,
+        help="the controller's baud rate (default: the dialect's; auto tries this one first, then 9600, 38400, 115200)",
+    )
     s.add_argument("--kv", type=float, help="tube voltage for 'on' (kV)")
     s.add_argument("--ua", type=float, help="tube current for 'on' (uA)")
     s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
@@ -42,15 +53,19 @@ def add_acquire(subparsers):
 
 
 def _run(args) -> int:
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
     for h in logging.getLogger().handlers:  # the notebook file gets DEBUG; the console what was asked
         h.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     if args.protocol == "source":
         return _source(args)
     if args.action:
-        print(f"error: {args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)",
-              file=sys.stderr)
+        print(
+            f"error: {args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)",
+            file=sys.stderr,
+        )
         return 2
     from acquisition.errors import DeviceError
     from acquisition.protocols.compression_series import _existing, load_protocol, plan
@@ -82,9 +97,11 @@ def _run(args) -> int:
         where = "the virtual bench" if args.sim else f"source {p.source.port or '(port not set)'}"
         print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
         print(pl.table())
-        print(f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
-              f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
-              f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})")
+        print(
+            f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
+            f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+            f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
+        )
         return 0
     return _run_series(args, p)
 
@@ -119,8 +136,9 @@ def _run_series(args, p) -> int:
     again = f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume`"
     with SignalGuard() as guard:
         try:
-            res = run(p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite,
-                      guard=guard)
+            res = run(
+                p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite, guard=guard
+            )
         except KeyboardInterrupt as exc:
             r = getattr(exc, "result", None)
             name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
@@ -132,13 +150,18 @@ def _run_series(args, p) -> int:
             known = isinstance(exc, (DeviceError, OSError, ValueError))
             _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
             if r is not None and r.phase != "connect":
-                _say(f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; "
-                     f"{again} completes the series")
+                _say(
+                    f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; "
+                    f"{again} completes the series"
+                )
             return _finish(r, 1)
         oh = sorted(res.per_frame_overhead_s)
         med = oh[len(oh) // 2] * 1000 if oh else float("nan")
-        _say(f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
-             f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)", err=False)
+        _say(
+            f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
+            f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
+            err=False,
+        )
         return _finish(res, 0, err=False)
 
 
@@ -148,8 +171,10 @@ def _one_line(exc) -> str:
 
 
 #: The last line when the source's port could not be opened (a mistyped port, a cable not in).
-NEVER_REACHED = ("radiokit never reached the X-ray controller (its port could not be opened), so it sent no "
-                 "command and could not have switched X-rays on; check the controller's state at the unit")
+NEVER_REACHED = (
+    "radiokit never reached the X-ray controller (its port could not be opened), so it sent no "
+    "command and could not have switched X-rays on; check the controller's state at the unit"
+)
 
 
 def _finish(res, code: int, err: bool = True) -> int:
@@ -178,8 +203,9 @@ def _source(args) -> int:
         return 2
     if args.action == "probe":
         c = SourceConfig(baudrate=args.baudrate)
-        result = probe(args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates,
-                       timeout_s=c.probe_timeout_s)
+        result = probe(
+            args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
+        )
         print(result.report())
         return 0 if result.found else 1
     try:
@@ -187,8 +213,10 @@ def _source(args) -> int:
         try:
             if args.action == "status":
                 kv, ua = src.measured()
-                print(f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
-                      f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}")
+                print(
+                    f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
+                    f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
+                )
             elif args.action == "warm-up":
                 src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
                 print(f"{args.port}: warmed up, state {src.status().name}")
@@ -197,9 +225,11 @@ def _source(args) -> int:
                     print("error: 'on' needs --kv and --ua", file=sys.stderr)
                     return 2
                 r = src.on(args.kv, args.ua)
-                print(f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
-                      f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
-                      f"--port {args.port}` switches them off.")
+                print(
+                    f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
+                    f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
+                    f"--port {args.port}` switches them off."
+                )
                 return 0
             else:
                 src.off()

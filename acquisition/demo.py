@@ -9,6 +9,7 @@
    both, compares with the truth the simulation stored, and writes the report.
 4. The headline table is printed with the report's path.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,15 +33,23 @@ def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats
     from acquisition.protocols import load_protocol
 
     kv, ua = _exposure(scene)
-    return load_protocol({
-        "output": str(output), "name": "demo",
-        "source": {"voltage_kv": kv, "current_ua": ua, "poll_s": 0.25, "dialect": dialect},
-        "detector": {"kind": "sim"},
-        "frame": {"kind": "sim", "initial_height_mm": initial_height_mm},
-        "series": {"darks": darks, "flats": flats, "frames_per_step": frames_per_step, "steps": [0.15, 0.20, 0.25],
-                   "settle_s": 0.0},
-        "sim": {"scene": scene.to_toml(), "warmup_s": 2.0, "ramp_s": 0.3, "warmed_up": warm},
-    })
+    return load_protocol(
+        {
+            "output": str(output),
+            "name": "demo",
+            "source": {"voltage_kv": kv, "current_ua": ua, "poll_s": 0.25, "dialect": dialect},
+            "detector": {"kind": "sim"},
+            "frame": {"kind": "sim", "initial_height_mm": initial_height_mm},
+            "series": {
+                "darks": darks,
+                "flats": flats,
+                "frames_per_step": frames_per_step,
+                "steps": [0.15, 0.20, 0.25],
+                "settle_s": 0.0,
+            },
+            "sim": {"scene": scene.to_toml(), "warmup_s": 2.0, "ramp_s": 0.3, "warmed_up": warm},
+        }
+    )
 
 
 #: the files and folders a demo makes in its folder, and nothing else
@@ -69,16 +78,37 @@ def _demo_folder(out_dir, overwrite) -> Path:
 def control_scene(scene):
     """The same scene with every inclusion's stiffness set to the background's (attenuation kept)."""
     body_mat = scene.body.material
-    incs = [dataclasses.replace(inc, material=dataclasses.replace(
-                body_mat, name=f"{inc.material.name} as soft as the background",
-                attenuation_per_cm=inc.material.attenuation_per_cm))
-            for inc in scene.inclusions]
+    incs = [
+        dataclasses.replace(
+            inc,
+            material=dataclasses.replace(
+                body_mat,
+                name=f"{inc.material.name} as soft as the background",
+                attenuation_per_cm=inc.material.attenuation_per_cm,
+            ),
+        )
+        for inc in scene.inclusions
+    ]
     return dataclasses.replace(scene, name=f"{scene.name}-control", inclusions=incs)
 
 
-def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_per_step=2, darks=10, flats=10,
-             coarse=False, method="rc", register_preset="default", progress=True, dialect="A", overwrite=False,
-             view=None, imaging=None) -> dict:
+def run_demo(
+    out_dir="out/demo",
+    *,
+    preset="seed-breast",
+    binning=None,
+    frames_per_step=2,
+    darks=10,
+    flats=10,
+    coarse=False,
+    method="rc",
+    register_preset="default",
+    progress=True,
+    dialect="A",
+    overwrite=False,
+    view=None,
+    imaging=None,
+) -> dict:
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
     The lab's settings by default: the full panel (``binning`` 1), the scene's own mesh, the
@@ -113,8 +143,16 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
         path = out / f"{label}.h5"
         t = time.perf_counter()
         bench = VirtualBench(sc, progress=progress)
-        p = _protocol(sc, path, initial_height_mm=bench.initial_height_mm, frames_per_step=frames_per_step,
-                      darks=darks, flats=flats, warm=label == "control", dialect=dialect)
+        p = _protocol(
+            sc,
+            path,
+            initial_height_mm=bench.initial_height_mm,
+            frames_per_step=frames_per_step,
+            darks=darks,
+            flats=flats,
+            warm=label == "control",
+            dialect=dialect,
+        )
         dev = sim_devices(p, bench=bench, progress=progress)
         res = run(p, devices=dev, progress=progress)
         timings[f"acquire_{label}_s"] = time.perf_counter() - t
@@ -127,14 +165,22 @@ def run_demo(out_dir="out/demo", *, preset="seed-breast", binning=None, frames_p
             files["frames"] = res.frames_total
             files["per_frame_overhead_ms"] = 1000 * sorted(res.per_frame_overhead_s)[len(res.per_frame_overhead_s) // 2]
     t = time.perf_counter()
-    cfg = Config(control=files["control"], progress=progress, method=method,
-                 register_options={"preset": register_preset})
+    cfg = Config(
+        control=files["control"], progress=progress, method=method, register_options={"preset": register_preset}
+    )
     result = process(files["experiment"], cfg, out_dir=out / "results", overwrite=overwrite)
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     r = result.results
-    return {"scene": scene.name, "dialect": dialect, "files": files, "results": r, "report": result.files.get("report"),
-            "results_json": result.files["results_json"], "timings": timings}
+    return {
+        "scene": scene.name,
+        "dialect": dialect,
+        "files": files,
+        "results": r,
+        "report": result.files.get("report"),
+        "results_json": result.files["results_json"],
+        "timings": timings,
+    }
 
 
 def headline(summary) -> str:
@@ -142,67 +188,104 @@ def headline(summary) -> str:
     r = summary["results"]
     ctrl = r.get("control") or {}
     main = r["main_pair"]
-    lines = [f"scene {summary['scene']}: {summary['files']['frames']} frames acquired through the emulated L8121 "
-             f"(dialect {summary.get('dialect', 'A')}) "
-             f"(write + bookkeeping {summary['files']['per_frame_overhead_ms']:.1f} ms per frame)",
-             "",
-             f"{'':<34} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper"]
+    lines = [
+        f"scene {summary['scene']}: {summary['files']['frames']} frames acquired through the emulated L8121 "
+        f"(dialect {summary.get('dialect', 'A')}) "
+        f"(write + bookkeeping {summary['files']['per_frame_overhead_ms']:.1f} ms per frame)",
+        "",
+        f"{'':<34} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper",
+    ]
 
     def row(label, get, paper=""):
         vals = [get(r, d) for d in ("log", "negative")]  # "negative": -I/I0, the paper's linear images
         cvals = [get(ctrl, d) if ctrl else None for d in ("log", "negative")]
         fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "-"
-        lines.append(f"{label:<34} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   "
-                     f"{paper}")
+        lines.append(
+            f"{label:<34} {fmt(vals[0]):>12} {fmt(vals[1]):>10}   {fmt(cvals[0]):>12} {fmt(cvals[1]):>12}   {paper}"
+        )
 
     for k in ("1", "2"):
-        row(f"improvement factor, k = {k}", lambda x, d, k=k: x["domains"][d]["improvement_factor"].get(k),
-            {"1": "about 1.4", "2": "about 2"}[k])
+        row(
+            f"improvement factor, k = {k}",
+            lambda x, d, k=k: x["domains"][d]["improvement_factor"].get(k),
+            {"1": "about 1.4", "2": "about 2"}[k],
+        )
         row(f"  bound (rigid inclusion), k = {k}", lambda x, d, k=k: (x["domains"][d].get("bound") or {}).get(k))
     row("CNR reference", lambda x, d: x["domains"][d].get("cnr_reference"))
     for k in ("1", "2"):
         row(f"CNR enhanced, k = {k}", lambda x, d, k=k: (x["domains"][d].get("cnr") or {}).get(k))
     for pair in r["change_ratio"]:
-        row(f"change ratio incl/bg, {pair}", lambda x, d, p=pair: x["change_ratio"].get(p, {}).get(d),
-            "0.66-0.84" if pair == main else "")
+        row(
+            f"change ratio incl/bg, {pair}",
+            lambda x, d, p=pair: x["change_ratio"].get(p, {}).get(d),
+            "0.66-0.84" if pair == main else "",
+        )
     q = r["registration"][main]
     epe = f", EPE vs truth {q['epe_median']:.2f} / {q['epe_p95']:.2f} px (median / p95)" if "epe_median" in q else ""
     lines += ["", f"registration {main} ({q['method']}): ok {q['ok']}, {q['seconds']:.1f} s, folds {q['folds']}{epe}"]
     t = summary["timings"]
-    lines.append(f"time: acquire {t['acquire_experiment_s']:.0f} s + control {t['acquire_control_s']:.0f} s, "
-                 f"process {t['process_s']:.0f} s, total {t['total_s']:.0f} s")
+    lines.append(
+        f"time: acquire {t['acquire_experiment_s']:.0f} s + control {t['acquire_control_s']:.0f} s, "
+        f"process {t['process_s']:.0f} s, total {t['total_s']:.0f} s"
+    )
     lines.append(f"report: {summary['report']}")
     return "\n".join(lines)
 
 
 def add_demo(subparsers):
-    p = subparsers.add_parser("demo", help="the whole system on the virtual bench: acquire (emulated L8121), process, "
-                                           "report")
+    p = subparsers.add_parser(
+        "demo", help="the whole system on the virtual bench: acquire (emulated L8121), process, report"
+    )
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     p.add_argument("--preset", default="seed-breast", help="scene preset: seed-breast (default) or pva-phantom")
-    p.add_argument("--binning", type=int, choices=[1, 2, 4], default=1,
-                   help="detector binning (default 1: the full 2240 x 2240 panel; 2: 1120 x 1120, the 4 fps mode)")
+    p.add_argument(
+        "--binning",
+        type=int,
+        choices=[1, 2, 4],
+        default=1,
+        help="detector binning (default 1: the full 2240 x 2240 panel; 2: 1120 x 1120, the 4 fps mode)",
+    )
     p.add_argument("--coarse", action="store_true", help="a coarser finite-element mesh than the scene's (faster)")
     p.add_argument("--fine", action="store_true", help=argparse.SUPPRESS)  # the default now; kept for old scripts
     p.add_argument("--fast", action="store_true", help="the fast registration preset, not the default one")
-    p.add_argument("--view", choices=["through_plates", "side"],
-                   help="beam direction (default: the preset's; pva-phantom is imaged from the side)")
-    p.add_argument("--imaging", choices=["paper", "experiment"],
-                   help="paper: monochromatic beam, no scatter; experiment (the presets'): tube spectrum and scatter")
+    p.add_argument(
+        "--view",
+        choices=["through_plates", "side"],
+        help="beam direction (default: the preset's; pva-phantom is imaged from the side)",
+    )
+    p.add_argument(
+        "--imaging",
+        choices=["paper", "experiment"],
+        help="paper: monochromatic beam, no scatter; experiment (the presets'): tube spectrum and scatter",
+    )
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
     p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
-    p.add_argument("--dialect", choices=("A", "B"), default="A",
-                   help="the L8121 command dialect the emulated controller speaks (default A)")
+    p.add_argument(
+        "--dialect",
+        choices=("A", "B"),
+        default="A",
+        help="the L8121 command dialect the emulated controller speaks (default A)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace a previous demo's folder (never other files)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
-    summary = run_demo(args.output, preset=args.preset, binning=args.binning, frames_per_step=args.frames,
-                       coarse=args.coarse, method=args.method, register_preset="fast" if args.fast else "default",
-                       progress=not args.quiet, dialect=args.dialect, overwrite=args.overwrite, view=args.view,
-                       imaging=args.imaging)
+    summary = run_demo(
+        args.output,
+        preset=args.preset,
+        binning=args.binning,
+        frames_per_step=args.frames,
+        coarse=args.coarse,
+        method=args.method,
+        register_preset="fast" if args.fast else "default",
+        progress=not args.quiet,
+        dialect=args.dialect,
+        overwrite=args.overwrite,
+        view=args.view,
+        imaging=args.imaging,
+    )
     print()
     print(headline(summary))
     return 0

@@ -21,6 +21,7 @@ Examples
 >>> [int(f.data[0, 0]) for f in watcher.acquire(2)]
 [100, 101]
 """
+
 from __future__ import annotations
 
 import fnmatch
@@ -30,9 +31,9 @@ import operator
 import os
 import time
 import typing
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Iterator
 
 import numpy as np
 
@@ -139,13 +140,25 @@ class FolderWatcher:
 
     kind = "folder"
 
-    def __init__(self, folder, pattern: str = "*.tif", *, shape=None, preset=None, timeout_s: float = 30.0,
-                 settle_s: float = 0.2, poll_s: float = 0.05, discard_first: bool = False, bits: int | None = 12,
-                 pixel_size_mm: float | None = None):
+    def __init__(
+        self,
+        folder,
+        pattern: str = "*.tif",
+        *,
+        shape=None,
+        preset=None,
+        timeout_s: float = 30.0,
+        settle_s: float = 0.2,
+        poll_s: float = 0.05,
+        discard_first: bool = False,
+        bits: int | None = 12,
+        pixel_size_mm: float | None = None,
+    ):
         self.folder = Path(folder)
         if not self.folder.is_dir():
-            raise DeviceError(f"detector folder {self.folder}: no such folder (where does the vendor software "
-                              "save frames?)")
+            raise DeviceError(
+                f"detector folder {self.folder}: no such folder (where does the vendor software save frames?)"
+            )
         self.pattern = str(pattern)
         if preset is not None and preset not in PRESETS:
             raise ValueError(f"detector folder {self.folder}: unknown preset {preset!r}; known: {', '.join(PRESETS)}")
@@ -157,8 +170,9 @@ class FolderWatcher:
         if preset is not None:
             p = PRESETS[preset]
             if shape is not None and shape != (p.rows, p.cols):
-                raise ValueError(f"detector folder {self.folder}: shape {shape} contradicts preset {preset} "
-                                 f"({p.rows}, {p.cols})")
+                raise ValueError(
+                    f"detector folder {self.folder}: shape {shape} contradicts preset {preset} ({p.rows}, {p.cols})"
+                )
             shape = (p.rows, p.cols)
         self.shape = shape
         self._shape_given = shape is not None
@@ -191,8 +205,13 @@ class FolderWatcher:
         self._seen = {}
         self._discard_pending = self.discard_first
         self._armed = True
-        log.info("detector folder %s: armed, %d existing file(s) matching %r ignored%s", self.folder, len(self._known),
-                 self.pattern, "; the first new frame will be discarded" if self.discard_first else "")
+        log.info(
+            "detector folder %s: armed, %d existing file(s) matching %r ignored%s",
+            self.folder,
+            len(self._known),
+            self.pattern,
+            "; the first new frame will be discarded" if self.discard_first else "",
+        )
 
     def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
         """Yield the next ``n`` new frame files in arrival order, each once it is complete.
@@ -216,17 +235,29 @@ class FolderWatcher:
             path, data = self._next(time.monotonic() + timeout, timeout, got, n)
             if self._discard_pending:
                 self._discard_pending = False
-                log.info("detector folder %s: discarded %s, the invalid first frame after the trigger start",
-                         self.folder, path.name)
+                log.info(
+                    "detector folder %s: discarded %s, the invalid first frame after the trigger start",
+                    self.folder,
+                    path.name,
+                )
                 continue
             got += 1
             yield Frame(data, time.time(), str(path))
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "folder": str(self.folder.resolve()), "pattern": self.pattern,
-                "shape": list(self.shape) if self.shape is not None else None, "preset": self.preset,
-                "pixel_size_mm": self.pixel_size_mm, "bits": self.bits, "timeout_s": self.timeout_s,
-                "settle_s": self.settle_s, "poll_s": self.poll_s, "discard_first": self.discard_first}
+        return {
+            "kind": self.kind,
+            "folder": str(self.folder.resolve()),
+            "pattern": self.pattern,
+            "shape": list(self.shape) if self.shape is not None else None,
+            "preset": self.preset,
+            "pixel_size_mm": self.pixel_size_mm,
+            "bits": self.bits,
+            "timeout_s": self.timeout_s,
+            "settle_s": self.settle_s,
+            "poll_s": self.poll_s,
+            "discard_first": self.discard_first,
+        }
 
     def close(self) -> None:
         self._armed = False
@@ -257,8 +288,14 @@ class FolderWatcher:
         failure = None  # (name, message) of a settled file that does not read
         while True:
             now = time.monotonic()
-            new = sorted(((st.st_mtime_ns, name, st) for name, st in self._listing()
-                          if name not in self._known and name not in self._taken), key=lambda t: t[:2])
+            new = sorted(
+                (
+                    (st.st_mtime_ns, name, st)
+                    for name, st in self._listing()
+                    if name not in self._known and name not in self._taken
+                ),
+                key=lambda t: t[:2],
+            )
             settled = []
             for _, name, st in new:
                 sig = (st.st_size, st.st_mtime_ns)
@@ -278,8 +315,10 @@ class FolderWatcher:
                     failure = (name, str(exc))
                     if len(settled) > 1:  # a later file is complete: this one will not be
                         self._taken.add(name)
-                        raise DeviceError(f"{path}: not a readable frame file ({exc}); a later file "
-                                          f"({settled[1]}) is already complete") from None
+                        raise DeviceError(
+                            f"{path}: not a readable frame file ({exc}); a later file "
+                            f"({settled[1]}) is already complete"
+                        ) from None
                 else:
                     self._taken.add(name)
                     self._seen.pop(name, None)
@@ -287,11 +326,14 @@ class FolderWatcher:
             if now >= deadline:
                 if failure is not None:
                     self._taken.add(failure[0])
-                    raise DeviceError(f"{self.folder / failure[0]}: not a readable frame file after "
-                                      f"{timeout:g} s: {failure[1]}")
+                    raise DeviceError(
+                        f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: {failure[1]}"
+                    )
                 growing = f"; {new[0][1]} is still being written" if new else ""
-                raise DetectorTimeout(f"detector folder {self.folder}: {got} of {n} frames arrived "
-                                      f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{growing}")
+                raise DetectorTimeout(
+                    f"detector folder {self.folder}: {got} of {n} frames arrived "
+                    f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{growing}"
+                )
             time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
 
     def _read(self, path: Path) -> np.ndarray:
@@ -300,8 +342,9 @@ class FolderWatcher:
             fmt = sniff(path)
             if fmt == "hdf5":
                 self._taken.add(path.name)
-                raise DeviceError(f"{path}: an HDF5 file, not a frame file the vendor software writes "
-                                  "(raw, TIFF or ITEX .img)")
+                raise DeviceError(
+                    f"{path}: an HDF5 file, not a frame file the vendor software writes (raw, TIFF or ITEX .img)"
+                )
             hints = {}
             if fmt == "raw":
                 hints["shape"] = self._raw_shape(path)
@@ -324,8 +367,10 @@ class FolderWatcher:
         size = path.stat().st_size
         match = [p for p in PRESETS.values() if p.frame_bytes == size]
         if len(match) != 1:
-            raise _NotYet(f"{size} bytes is no single C7942 frame ({PRESETS['c7942'].frame_bytes} bytes at "
-                          "2240x2240); give the watcher shape= or preset=")
+            raise _NotYet(
+                f"{size} bytes is no single C7942 frame ({PRESETS['c7942'].frame_bytes} bytes at "
+                "2240x2240); give the watcher shape= or preset="
+            )
         return (match[0].rows, match[0].cols)
 
     def _check(self, path: Path, frame: np.ndarray) -> None:
@@ -336,8 +381,10 @@ class FolderWatcher:
         if frame.ndim != 2:
             raise bad(f"frame has shape {frame.shape}; expected (rows, cols)")
         if frame.dtype != np.uint16:
-            raise bad(f"pixels are {frame.dtype}; the C7942 delivers 16-bit words (uint16): save frames as "
-                      "16-bit in the vendor software")
+            raise bad(
+                f"pixels are {frame.dtype}; the C7942 delivers 16-bit words (uint16): save frames as "
+                "16-bit in the vendor software"
+            )
         if self.bits is not None and frame.size:
             top = (1 << self.bits) - 1
             peak = int(frame.max())
@@ -347,12 +394,16 @@ class FolderWatcher:
                     hint = " The byte-swapped values fit: the file is big-endian."
                 elif not np.any(frame & 0xF):
                     hint = " The low 4 bits are all 0: MSB-aligned 12-bit data (shift right by 4)."
-                raise bad(f"pixel values up to {peak} exceed the {self.bits}-bit range 0..{top} of the C7942: wrong "
-                          f"bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}")
+                raise bad(
+                    f"pixel values up to {peak} exceed the {self.bits}-bit range 0..{top} of the C7942: wrong "
+                    f"bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}"
+                )
         if self.shape is not None and frame.shape != self.shape:
             why = "given" if self._shape_given else "of the first frame"
-            raise bad(f"frame is {frame.shape[0]}x{frame.shape[1]} (rows x cols); expected "
-                      f"{self.shape[0]}x{self.shape[1]} ({why})")
+            raise bad(
+                f"frame is {frame.shape[0]}x{frame.shape[1]} (rows x cols); expected "
+                f"{self.shape[0]}x{self.shape[1]} ({why})"
+            )
         if self.shape is None:
             self.shape = tuple(frame.shape)
             if not self._pixel_size_given:
@@ -446,12 +497,15 @@ class SimDetector:
             if self._closed:
                 raise DeviceError(f"{self._name()}: closed")
             if self._remaining is not None and self._remaining <= 0:
-                raise DetectorTimeout(f"{self._name()}: {k} of {n} frames arrived; the detector stopped "
-                                      "delivering (lost: fail_after)")
+                raise DetectorTimeout(
+                    f"{self._name()}: {k} of {n} frames arrived; the detector stopped delivering (lost: fail_after)"
+                )
             if timeout_s is not None and self.frame_time_s > timeout_s:
                 time.sleep(max(float(timeout_s), 0.0))
-                raise DetectorTimeout(f"{self._name()}: {k} of {n} frames arrived; a frame takes "
-                                      f"{self.frame_time_s:g} s, longer than the time-out of {timeout_s:g} s")
+                raise DetectorTimeout(
+                    f"{self._name()}: {k} of {n} frames arrived; a frame takes "
+                    f"{self.frame_time_s:g} s, longer than the time-out of {timeout_s:g} s"
+                )
             if self.frame_time_s:
                 time.sleep(self.frame_time_s)
             on, kv, ua = self._beam()
@@ -462,8 +516,13 @@ class SimDetector:
             yield Frame(data, time.time(), "sim")
 
     def describe(self) -> dict:
-        d = {"kind": self.kind, "shape": list(self.shape), "pixel_size_mm": self.pixel_size_mm,
-             "frame_time_s": self.frame_time_s, "seed": self.seed}
+        d = {
+            "kind": self.kind,
+            "shape": list(self.shape),
+            "pixel_size_mm": self.pixel_size_mm,
+            "frame_time_s": self.frame_time_s,
+            "seed": self.seed,
+        }
         bench = self.bench.describe() if hasattr(self.bench, "describe") else {}
         d["scene"] = bench.pop("scene", getattr(self.bench.scene, "name", None))
         d["bench"] = bench

@@ -1,5 +1,6 @@
 """The exceptions acquisition raises on purpose. Every message names the device (its port, folder
 or model) and what went wrong."""
+
 from radiokit.errors import RadiokitError
 
 

@@ -15,6 +15,7 @@ Examples
 >>> frame.move_to(32.0), frame.move_to(30.0), frame.position()
 (32.0, 29.95, 29.95)
 """
+
 from __future__ import annotations
 
 import abc
@@ -118,19 +119,24 @@ class ManualFrame(_Gaps):
         try:
             return str(self.ask(prompt))
         except EOFError:
-            raise DeviceError("manual compression frame: no operator input (end of input); run with "
-                              "interactive = false to take targets as reached") from None
+            raise DeviceError(
+                "manual compression frame: no operator input (end of input); run with "
+                "interactive = false to take targets as reached"
+            ) from None
 
     def move_to(self, gap_mm: float) -> float:
         """Have the operator set the plates to ``gap_mm``; return the gap they measured."""
         target = self._check_gap(gap_mm)
         if not self.interactive:
-            log.info("manual frame: gap %.3f mm (ratio %.4f) taken as set (non-interactive)", target,
-                     self.ratio(target))
+            log.info(
+                "manual frame: gap %.3f mm (ratio %.4f) taken as set (non-interactive)", target, self.ratio(target)
+            )
             self._gap = target
             return target
-        self.say(f"Turn the screws to a plate gap of {target:.3f} mm "
-                 f"(compression {100 * self.ratio(target):.1f} % of {self.initial_height_mm:.3f} mm).")
+        self.say(
+            f"Turn the screws to a plate gap of {target:.3f} mm "
+            f"(compression {100 * self.ratio(target):.1f} % of {self.initial_height_mm:.3f} mm)."
+        )
         while True:
             text = self._reply(f"Measured gap in mm [Enter = {target:.3f}]: ").strip()
             if not text:
@@ -142,8 +148,9 @@ class ManualFrame(_Gaps):
                 measured = float("nan")
             if math.isfinite(measured) and measured > 0:
                 break
-            self.say(f"{text!r} is not a gap: type the measured gap in mm (e.g. {target:.3f}), or Enter if "
-                     "it is the target.")
+            self.say(
+                f"{text!r} is not a gap: type the measured gap in mm (e.g. {target:.3f}), or Enter if it is the target."
+            )
         log.info("manual frame: target %.3f mm, measured %.3f mm (ratio %.4f)", target, measured, self.ratio(measured))
         self._gap = measured
         return measured
@@ -172,8 +179,12 @@ class ManualFrame(_Gaps):
         self._confirm("Put the phantom back in the beam, between the plates.")
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "initial_height_mm": self.initial_height_mm, "interactive": self.interactive,
-                "gap_mm": self._gap}
+        return {
+            "kind": self.kind,
+            "initial_height_mm": self.initial_height_mm,
+            "interactive": self.interactive,
+            "gap_mm": self._gap,
+        }
 
 
 class MotorisedStage(_Gaps, abc.ABC):
@@ -258,5 +269,9 @@ class SimFrame(_Gaps):
         self.bench.sample_in = True
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "initial_height_mm": self.initial_height_mm, "gap_mm": self.position(),
-                "sample_in": bool(self.bench.sample_in)}
+        return {
+            "kind": self.kind,
+            "initial_height_mm": self.initial_height_mm,
+            "gap_mm": self.position(),
+            "sample_in": bool(self.bench.sample_in),
+        }

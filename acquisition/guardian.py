@@ -27,6 +27,7 @@ a reply that arrives after its requester was interrupted is discarded)::
                     |  N SEQ MESSAGE                      (N: the controller did not reply)
     X               ->  (exit)                            orderly release: close the port, no XOF
 """
+
 from __future__ import annotations
 
 import json
@@ -135,6 +136,7 @@ class SignalGuard:
 
 # -- the client side --------------------------------------------------------------------------------
 
+
 def start_guardian(url: str, config, *, notebook: str | Path | None = None, startup_timeout_s: float = 20.0):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
@@ -164,8 +166,10 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
     from acquisition.transport import PipeTransport
 
     if config.dialect not in ("A", "B") or config.baudrate is None or config.min_interval_s is None:
-        raise ValueError(f"{url}: the guardian needs a resolved configuration (dialect {config.dialect!r}, "
-                         f"baudrate {config.baudrate!r}); pass driver.resolved_config()")
+        raise ValueError(
+            f"{url}: the guardian needs a resolved configuration (dialect {config.dialect!r}, "
+            f"baudrate {config.baudrate!r}); pass driver.resolved_config()"
+        )
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
@@ -176,8 +180,9 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
     try:
         # its own session: the terminal's Ctrl-C (sent to the foreground process group) and its
         # hang-up do not reach it; stdin/stdout are the pipe, stderr the operator's terminal
-        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
-                                start_new_session=True, close_fds=True)
+        proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True, close_fds=True
+        )
     except OSError as exc:
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
     link = PipeTransport(url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate)
@@ -186,6 +191,7 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
 
 
 # -- the guardian process ---------------------------------------------------------------------------
+
 
 class _Notebook:
     """stderr and the lab notebook, best effort (a closed terminal must not stop the guardian)."""
@@ -239,8 +245,10 @@ def _serve(link, config, note) -> int:
             except OSError:
                 data = b""
             if not data:  # the pipe closed without a release: the acquiring process is gone
-                note("WARNING", f"{link.port}: the acquiring process ended without releasing the port; "
-                                f"switching X-rays off")
+                note(
+                    "WARNING",
+                    f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
+                )
                 ok = _switch_off(link, config, note)
                 link.close()
                 if not ok:
@@ -280,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def terminated(signum, frame):  # someone stops the guardian itself: behave as if orphaned
         os.close(0)
+
     signal.signal(signal.SIGTERM, terminated)
     ap = argparse.ArgumentParser(prog="python -m acquisition.guardian")
     ap.add_argument("url")
@@ -305,8 +314,9 @@ def main(argv: list[str] | None = None) -> int:
             logging.getLogger("acquisition.l8121").addHandler(fh)
             logging.getLogger("acquisition.l8121").setLevel(logging.INFO)
     try:
-        link = SerialTransport(args.url, baudrate=config.baudrate, timeout_s=config.timeout_s,
-                               min_interval_s=config.min_interval_s)
+        link = SerialTransport(
+            args.url, baudrate=config.baudrate, timeout_s=config.timeout_s, min_interval_s=config.min_interval_s
+        )
     except (DeviceError, ValueError) as exc:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1

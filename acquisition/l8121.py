@@ -72,6 +72,7 @@ False
 B XRAY_ON 60 250
 False
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -90,9 +91,25 @@ from typing import Any
 from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
 
-__all__ = ["L8121", "SourceConfig", "SourceState", "WarmupState", "Aging", "Ratings", "RATINGS", "Dialect",
-           "DIALECT_A", "DIALECT_B", "DIALECTS", "ProbeResult", "ProbeExchange", "probe", "Query", "Command",
-           "Choice"]
+__all__ = [
+    "L8121",
+    "SourceConfig",
+    "SourceState",
+    "WarmupState",
+    "Aging",
+    "Ratings",
+    "RATINGS",
+    "Dialect",
+    "DIALECT_A",
+    "DIALECT_B",
+    "DIALECTS",
+    "ProbeResult",
+    "ProbeExchange",
+    "probe",
+    "Query",
+    "Command",
+    "Choice",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +123,7 @@ class SourceState(IntEnum):
     hardware notes read it as pre-heating; as it is also what a refused query looks like, it is
     never taken as confirmation that X-rays are off).
     """
+
     WARMUP_NEEDED = 0
     WARMING_UP = 1
     STANDBY = 2
@@ -122,12 +140,14 @@ class SourceState(IntEnum):
 
 
 # States that confirm X-rays are off after an XOF.
-_OFF_STATES = frozenset({SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.OVERLOAD,
-                         SourceState.NOT_READY, SourceState.SELF_TEST})
+_OFF_STATES = frozenset(
+    {SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.OVERLOAD, SourceState.NOT_READY, SourceState.SELF_TEST}
+)
 
 
 class WarmupState(IntEnum):
     """The warm-up sequence (A: ``SWE``; B: derived from ``DAG`` and ``STS``)."""
+
     DONE = 0
     RUNNING = 1
     NOT_STARTED = 2
@@ -137,6 +157,7 @@ class WarmupState(IntEnum):
 class Aging:
     """Dialect B's ``DAG`` reply, ``AGING m s END|YET``: warm-up mode (0 none, 1 after 8 h idle,
     2 one month, 3 three months), step, and whether the warm-up is done."""
+
     mode: int
     step: int
     done: bool
@@ -145,6 +166,7 @@ class Aging:
 @dataclasses.dataclass(frozen=True)
 class Ratings:
     """The L8121's ratings (``L8121.md``): the ceiling every configuration stays under."""
+
     kv_min: float = 40.0
     kv_max: float = 150.0
     ua_max: float = 500.0
@@ -181,6 +203,7 @@ class SourceConfig:
     ...
     ValueError: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
     """
+
     dialect: str = "A"
     baudrate: int | None = None
     probe_baudrates: tuple[int, ...] = (9600, 38400, 115200)
@@ -216,8 +239,19 @@ class SourceConfig:
             raise ValueError("L8121 configuration: probe_baudrates is empty")
         if self.baudrate is not None:
             self.baudrate = _baud(self.baudrate, "baudrate")
-        for name in ("kv_min", "kv_max", "ua_min", "ua_max", "watts_max", "timeout_s", "probe_timeout_s",
-                     "stable_timeout_s", "poll_s", "warmup_timeout_s", "beam_drop_fraction"):
+        for name in (
+            "kv_min",
+            "kv_max",
+            "ua_min",
+            "ua_max",
+            "watts_max",
+            "timeout_s",
+            "probe_timeout_s",
+            "stable_timeout_s",
+            "poll_s",
+            "warmup_timeout_s",
+            "beam_drop_fraction",
+        ):
             _finite(getattr(self, name), name)
         if self.min_interval_s is not None:
             _finite(self.min_interval_s, "min_interval_s")
@@ -225,8 +259,9 @@ class SourceConfig:
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
-            raise ValueError(f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} "
-                             f"or ua {self.ua_min}..{self.ua_max}")
+            raise ValueError(
+                f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
+            )
         if self.timeout_s == 0 or self.poll_s == 0 or self.probe_timeout_s == 0:
             raise ValueError("L8121 configuration: timeout_s, probe_timeout_s and poll_s must be > 0")
         if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
@@ -235,14 +270,18 @@ class SourceConfig:
 
     def _check_ceiling(self) -> None:
         r = RATINGS
-        for name, value, rating, unit, above in (("kv_min", self.kv_min, r.kv_min, "kV", False),
-                                                  ("kv_max", self.kv_max, r.kv_max, "kV", True),
-                                                  ("ua_max", self.ua_max, r.ua_max, "µA", True),
-                                                  ("watts_max", self.watts_max, r.watts_max, "W", True)):
+        for name, value, rating, unit, above in (
+            ("kv_min", self.kv_min, r.kv_min, "kV", False),
+            ("kv_max", self.kv_max, r.kv_max, "kV", True),
+            ("ua_max", self.ua_max, r.ua_max, "µA", True),
+            ("watts_max", self.watts_max, r.watts_max, "W", True),
+        ):
             if (value > rating) if above else (value < rating):
-                raise ValueError(f"L8121 configuration: {name} = {value:g} {unit} "
-                                 f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
-                                 f"a configuration may only tighten the ratings")
+                raise ValueError(
+                    f"L8121 configuration: {name} = {value:g} {unit} "
+                    f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
+                    f"a configuration may only tighten the ratings"
+                )
 
     def check_exposure(self, voltage_kv: float, current_ua: float) -> None:
         """Refuse an exposure outside this configuration or the ratings; nothing is sent.
@@ -266,12 +305,18 @@ class SourceConfig:
         kv_lo, kv_hi = max(self.kv_min, r.kv_min), min(self.kv_max, r.kv_max)
         ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
         if not kv_lo <= voltage_kv <= kv_hi:
-            raise ValueError(f"L8121: voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV")
+            raise ValueError(
+                f"L8121: voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV"
+            )
         if not ua_lo <= current_ua <= ua_hi:
-            raise ValueError(f"L8121: current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA")
+            raise ValueError(
+                f"L8121: current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA"
+            )
         watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
         if watts > w_hi:
-            raise ValueError(f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W")
+            raise ValueError(
+                f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W"
+            )
 
     def tolerance_kv(self, set_kv: float) -> float:
         """The kV tolerance, absolute, around ``set_kv``."""
@@ -340,8 +385,9 @@ def _toml_section(source: str | Path, section: str) -> dict:
     table: Any = tomllib.loads(text)
     for part in section.split(".") if section else ():
         if not isinstance(table, dict) or part not in table:
-            raise ValueError(f"{source if isinstance(source, Path) or '=' not in source else 'TOML text'}: "
-                             f"no [{section}] table")
+            raise ValueError(
+                f"{source if isinstance(source, Path) or '=' not in source else 'TOML text'}: no [{section}] table"
+            )
         table = table[part]
     return dict(table)
 
@@ -382,17 +428,20 @@ def _enum(enum: type[IntEnum], allowed: range | None = None) -> Callable[[str], 
             return enum(value)
         except ValueError:
             raise ValueError(f"{value} is not a known {enum.__name__}") from None
+
     parse.__name__ = enum.__name__
     return parse
 
 
 def _words(mapping: Mapping[str, Any]) -> Callable[[str], Any]:
     """A reply that is one of a few words (dialect B: ``STANDBY``, ``INTER LOCK ON``, ``REMOTE``)."""
+
     def parse(text: str) -> Any:
         key = " ".join(text.split())
         if key not in mapping:
             raise ValueError(f"{text!r} is none of {', '.join(mapping)}")
         return mapping[key]
+
     return parse
 
 
@@ -406,6 +455,7 @@ def _with_unit(unit: str) -> Callable[[str], float]:
         if not m:
             raise ValueError(f"{text!r} is not a number of {unit}")
         return float(m.group(1))
+
     return parse
 
 
@@ -441,8 +491,16 @@ class Query:
         What the reading is.
     """
 
-    def __init__(self, command: str, *fields: Callable[[str], Any], echo: bool = True, extra: bool = False,
-                 rest: bool = False, error_is_value: bool = False, doc: str | None = None):
+    def __init__(
+        self,
+        command: str,
+        *fields: Callable[[str], Any],
+        echo: bool = True,
+        extra: bool = False,
+        rest: bool = False,
+        error_is_value: bool = False,
+        doc: str | None = None,
+    ):
         self.command, self.fields, self.echo, self.extra, self.rest = command, fields, echo, extra, rest
         self.error_is_value = error_is_value
         self.__doc__ = doc
@@ -456,7 +514,7 @@ class Query:
             words = words[1:]
         values, n = words, len(self.fields)
         if self.rest and len(values) >= n:
-            values = values[:n - 1] + [" ".join(values[n - 1:])]
+            values = values[: n - 1] + [" ".join(values[n - 1 :])]
         if len(values) < n or (len(values) > n and not self.extra):
             raise ValueError(f"expected {n} field(s){' after ' + self.command if self.echo else ''}, got {len(values)}")
         out = tuple(parse(v) for parse, v in zip(self.fields, values))
@@ -560,6 +618,7 @@ class Dialect:
     ``readings`` and ``settings`` map the driver's names to declarations; a name a dialect lacks
     is simply absent. ``poll`` is what :meth:`L8121.check` reads while X-rays are on.
     """
+
     name: str
     baudrate: int
     voltage_scale: float
@@ -574,19 +633,35 @@ class Dialect:
 
 
 _STATES_A = _enum(SourceState, range(7))
-_STATES_B = _words({"STANDBY": SourceState.STANDBY, "XON": SourceState.XRAY_ON, "AGING": SourceState.WARMING_UP,
-                    "OVER": SourceState.OVERLOAD, "NOT READY": SourceState.NOT_READY,
-                    "ERROR": SourceState.PREHEATING})
+_STATES_B = _words(
+    {
+        "STANDBY": SourceState.STANDBY,
+        "XON": SourceState.XRAY_ON,
+        "AGING": SourceState.WARMING_UP,
+        "OVER": SourceState.OVERLOAD,
+        "NOT READY": SourceState.NOT_READY,
+        "ERROR": SourceState.PREHEATING,
+    }
+)
 _FOCUS_B = {0: "SMALL", 1: "MIDDLE", 2: "LARGE"}
 
 DIALECT_A = Dialect(
-    name="A", baudrate=38400, voltage_scale=1, min_interval_s=0.05,
+    name="A",
+    baudrate=38400,
+    voltage_scale=1,
+    min_interval_s=0.05,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
         "state": Query("STS", _STATES_A, doc="STS n: 0 warm-up needed ... 6 self-test."),
-        "beam": Query("SAR", _STATES_A, _number, _number, extra=True,
-                      doc="State, measured kV and µA in one exchange (SAR n kV uA 0 0 0 0)."),
+        "beam": Query(
+            "SAR",
+            _STATES_A,
+            _number,
+            _number,
+            extra=True,
+            doc="State, measured kV and µA in one exchange (SAR n kV uA 0 0 0 0).",
+        ),
         "setpoint": Query("SVI", _number, _number, doc="Set kV and µA (SVI kV uA)."),
         "voltage_kv": Query("SHV", _number, doc="Measured tube voltage, kV (SHV 60)."),
         "current_ua": Query("SCU", _number, doc="Measured tube current, µA (SCU 250)."),
@@ -611,25 +686,48 @@ DIALECT_A = Dialect(
 )
 
 DIALECT_B = Dialect(
-    name="B", baudrate=9600, voltage_scale=10, min_interval_s=0.02,
+    name="B",
+    baudrate=9600,
+    voltage_scale=10,
+    min_interval_s=0.02,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
-        "state": Query("STS", _STATES_B, echo=False, rest=True, error_is_value=True,
-                       doc="STS: STANDBY, XON, AGING (warming up: X-rays on), OVER, NOT READY, ERROR (pre-heating)."),
+        "state": Query(
+            "STS",
+            _STATES_B,
+            echo=False,
+            rest=True,
+            error_is_value=True,
+            doc="STS: STANDBY, XON, AGING (warming up: X-rays on), OVER, NOT READY, ERROR (pre-heating).",
+        ),
         "voltage_kv": Query("SHV", _with_unit("kV"), rest=True, doc="Measured tube voltage (SHV 60.0kV)."),
         "current_ua": Query("SCU", _with_unit("uA"), rest=True, doc="Measured tube current (SCU 250uA)."),
         "set_voltage_kv": Query("SPV", _with_unit("kV"), rest=True, doc="Preset voltage (SPV 60.0kV)."),
         "set_current_ua": Query("SPC", _with_unit("uA"), rest=True, doc="Preset current (SPC 250uA)."),
-        "interlock_closed": Query("SIN", _words({"INTER LOCK ON": True, "INTER LOCK OFF": False}), echo=False,
-                                  rest=True, doc="INTER LOCK ON (closed, safe) or INTER LOCK OFF (open)."),
+        "interlock_closed": Query(
+            "SIN",
+            _words({"INTER LOCK ON": True, "INTER LOCK OFF": False}),
+            echo=False,
+            rest=True,
+            doc="INTER LOCK ON (closed, safe) or INTER LOCK OFF (open).",
+        ),
         "warmup": Query("DAG", _aging, echo=False, rest=True, doc="AGING m s END|YET: warm-up mode, step, done."),
         "error": Query("SER", _integer, doc="Control-board error (SER n): 0 none, 1-4 relay or internal faults."),
-        "focus": Query("SFS", _words({v: k for k, v in _FOCUS_B.items()}), echo=False,
-                       doc="SMALL, MIDDLE or LARGE (read as 0, 1, 2)."),
-        "operate_switch": Query("SRL", _words({w: w for w in ("OFF", "REMOTE", "LOCAL")}), echo=False,
-                                doc="Operate switch: OFF, REMOTE or LOCAL; remote control needs REMOTE."),
-        "remote_state": Query("SRB", _words({w: w for w in ("READY", "BUSY")}), echo=False,
-                              doc="Remote operation: READY or BUSY."),
+        "focus": Query(
+            "SFS",
+            _words({v: k for k, v in _FOCUS_B.items()}),
+            echo=False,
+            doc="SMALL, MIDDLE or LARGE (read as 0, 1, 2).",
+        ),
+        "operate_switch": Query(
+            "SRL",
+            _words({w: w for w in ("OFF", "REMOTE", "LOCAL")}),
+            echo=False,
+            doc="Operate switch: OFF, REMOTE or LOCAL; remote control needs REMOTE.",
+        ),
+        "remote_state": Query(
+            "SRB", _words({w: w for w in ("READY", "BUSY")}), echo=False, doc="Remote operation: READY or BUSY."
+        ),
     },
     settings={
         "voltage": Command("HIV", _kv_argument, doc="Tube voltage while X-rays are on, kV x voltage_scale."),
@@ -656,6 +754,7 @@ PROBE_QUERIES = frozenset({"STS", "SIN", "TYP", "SWE", "SRL", "DAG"})
 @dataclasses.dataclass(frozen=True)
 class ProbeExchange:
     """One query the probe sent: the baud rate, the query, the reply (None: none) and the error."""
+
     baudrate: int | None
     sent: str
     reply: str | None
@@ -670,6 +769,7 @@ class ProbeExchange:
 class ProbeResult:
     """What :func:`probe` found: the dialect and baud rate (None when nothing fits), the identity
     where the dialect has one (A's ``TYP``), what else the unit said, and the raw exchange."""
+
     port: str
     dialect: str | None
     baudrate: int | None
@@ -688,8 +788,10 @@ class ProbeResult:
         if not self.found:
             silent = [str(e.baudrate) for e in self.exchange if e.sent == "STS" and e.reply is None]
             why = "; ".join(([f"no reply (or junk) at {', '.join(silent)} baud"] if silent else []) + list(self.notes))
-            return (f"{self.port}: the replies fit neither dialect A nor B at "
-                    f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})")
+            return (
+                f"{self.port}: the replies fit neither dialect A nor B at "
+                f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})"
+            )
         ident = f", identity {self.identity!r}" if self.identity else ", no identity query in this dialect"
         more = "".join(f", {k} {v}" for k, v in self.details)
         return f"{self.port}: dialect {self.dialect} at {self.baudrate} baud{ident}{more}"
@@ -700,8 +802,7 @@ class ProbeResult:
         return "\n".join(lines + [f"note: {n}" for n in self.notes if self.found])
 
 
-def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5,
-          min_interval_s: float = 0.05) -> ProbeResult:
+def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_interval_s: float = 0.05) -> ProbeResult:
     """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
 
     At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too
@@ -730,8 +831,11 @@ def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5,
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
     for baud in rates:
         try:
-            link = (SerialTransport(url, baudrate=baud, timeout_s=timeout_s, min_interval_s=min_interval_s, retries=0)
-                    if isinstance(url, str) else url)
+            link = (
+                SerialTransport(url, baudrate=baud, timeout_s=timeout_s, min_interval_s=min_interval_s, retries=0)
+                if isinstance(url, str)
+                else url
+            )
         except DeviceError as exc:
             exchange.append(ProbeExchange(baud, "(open)", None, str(exc)))
             notes.append(f"cannot open the port at {baud} baud")
@@ -842,8 +946,15 @@ class L8121:
     watchdog) at any time, also while :meth:`on` waits for a stable beam.
     """
 
-    def __init__(self, url, baudrate: int | None = None, *, connect: bool = True,
-                 config: SourceConfig | Mapping[str, Any] | None = None, **overrides):
+    def __init__(
+        self,
+        url,
+        baudrate: int | None = None,
+        *,
+        connect: bool = True,
+        config: SourceConfig | Mapping[str, Any] | None = None,
+        **overrides,
+    ):
         if baudrate is not None:
             overrides["baudrate"] = baudrate
         base = config if isinstance(config, SourceConfig) else SourceConfig.from_dict(dict(config or {}))
@@ -890,8 +1001,9 @@ class L8121:
         return self.config.voltage_scale or self.dialect.voltage_scale
 
     @classmethod
-    def from_config(cls, source: Mapping[str, Any] | str | Path, *, section: str = "source",
-                    connect: bool = True) -> L8121:
+    def from_config(
+        cls, source: Mapping[str, Any] | str | Path, *, section: str = "source", connect: bool = True
+    ) -> L8121:
         """A driver from a TOML table (file, text, or an already parsed mapping) holding ``url``
         and :class:`SourceConfig` keys (``dialect``, ``baudrate``, limits, ...)."""
         table = dict(source) if isinstance(source, Mapping) else _toml_section(source, section)
@@ -923,8 +1035,9 @@ class L8121:
         if self.dialect is None:
             self._probe()
         if isinstance(self.url, str):
-            self._transport = SerialTransport(self.url, baudrate=self.baudrate, timeout_s=self.config.timeout_s,
-                                              min_interval_s=self.min_interval_s)
+            self._transport = SerialTransport(
+                self.url, baudrate=self.baudrate, timeout_s=self.config.timeout_s, min_interval_s=self.min_interval_s
+            )
         else:
             self._transport = self.url
         try:
@@ -936,23 +1049,34 @@ class L8121:
             self._transport.close()
             self._transport = None
             raise
-        logger.info("%s: %s connected (dialect %s, %d baud)", self.port, self.identity or "L8121", self.dialect.name,
-                    self.baudrate)
+        logger.info(
+            "%s: %s connected (dialect %s, %d baud)",
+            self.port,
+            self.identity or "L8121",
+            self.dialect.name,
+            self.baudrate,
+        )
         return self
 
     def _probe(self) -> None:
         c = self.config
         rates = ((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates
-        result = probe(self.url, baudrates=rates, timeout_s=c.probe_timeout_s,
-                       min_interval_s=DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s)
+        result = probe(
+            self.url,
+            baudrates=rates,
+            timeout_s=c.probe_timeout_s,
+            min_interval_s=DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s,
+        )
         self.probe_result = result
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
             if result.exchange and all(e.sent == "(open)" for e in result.exchange):
                 raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
-            raise DeviceError(f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
-                              f"{result.port}` prints the exchange)")
+            raise DeviceError(
+                f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "
+                f"{result.port}` prints the exchange)"
+            )
         logger.info("%s", result.summary())
         self._use(DIALECTS[result.dialect], result.baudrate)
 
@@ -962,19 +1086,25 @@ class L8121:
             value = self._read(first)
         except DeviceError as exc:
             other = "B" if self.dialect is DIALECT_A else "A"
-            raise DeviceError(f"{exc}; is this unit on {self.baudrate} baud and speaking dialect {self.dialect.name}? "
-                              f"If it speaks dialect {other}, set dialect = \"{other}\" or \"auto\" "
-                              f"(`radiokit acquire source probe --port {self.port}` tells)") from None
+            raise DeviceError(
+                f"{exc}; is this unit on {self.baudrate} baud and speaking dialect {self.dialect.name}? "
+                f'If it speaks dialect {other}, set dialect = "{other}" or "auto" '
+                f"(`radiokit acquire source probe --port {self.port}` tells)"
+            ) from None
         if first == "identity":
             self.identity = value
             if self.config.model is not None and self.identity != self.config.model:
-                raise DeviceError(f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
-                                  f"(configure model=None to accept any model)")
+                raise DeviceError(
+                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
+                    f"(configure model=None to accept any model)"
+                )
         else:
             switch = value
             if switch != "REMOTE":
-                raise DeviceError(f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
-                                  f"commands; turn it to REMOTE at the controller")
+                raise DeviceError(
+                    f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
+                    f"commands; turn it to REMOTE at the controller"
+                )
 
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
@@ -1025,8 +1155,13 @@ class L8121:
         connects without probing again."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
-        return dataclasses.replace(self.config, dialect=self.dialect.name, baudrate=self.baudrate,
-                                   voltage_scale=self.voltage_scale, min_interval_s=self.min_interval_s)
+        return dataclasses.replace(
+            self.config,
+            dialect=self.dialect.name,
+            baudrate=self.baudrate,
+            voltage_scale=self.voltage_scale,
+            min_interval_s=self.min_interval_s,
+        )
 
     def resolve(self) -> SourceConfig:
         """The dialect and baud rate before connecting: ``dialect="auto"`` runs :func:`probe` on
@@ -1054,9 +1189,14 @@ class L8121:
 
     def describe(self) -> dict[str, Any]:
         """What the experiment file records about the source link."""
-        return {"port": self.port, "dialect": self.dialect.name if self.dialect else None, "baudrate": self.baudrate,
-                "identity": self.identity, "voltage_scale": self.voltage_scale if self.dialect else None,
-                "probe": self.probe_result.summary() if self.probe_result else None}
+        return {
+            "port": self.port,
+            "dialect": self.dialect.name if self.dialect else None,
+            "baudrate": self.baudrate,
+            "identity": self.identity,
+            "voltage_scale": self.voltage_scale if self.dialect else None,
+            "probe": self.probe_result.summary() if self.probe_result else None,
+        }
 
     # ---- exchanges ----
     def _exchange(self, line: str, *, query: Query | None = None) -> str:
@@ -1093,8 +1233,9 @@ class L8121:
         try:
             return query.parse(reply)
         except ValueError as why:
-            err = DeviceError(f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): "
-                              f"{reply!r} ({why})")
+            err = DeviceError(
+                f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
+            )
             self._fail_safe(err)
             raise err from None
 
@@ -1115,7 +1256,11 @@ class L8121:
         with self._turns:
             while self._busy or self._off_thread not in (None, me):
                 self._turns.wait()
-            if self._off_thread != me and self.off_failed is not None and isinstance(self.off_failed.__cause__, NoReply):
+            if (
+                self._off_thread != me
+                and self.off_failed is not None
+                and isinstance(self.off_failed.__cause__, NoReply)
+            ):
                 raise NoReply(f"{self.port}: {line} not sent: the controller did not answer the switch-off")
             self._busy = True
 
@@ -1259,8 +1404,13 @@ class L8121:
             raise
         return kv_i, ua_i
 
-    def warm_up(self, timeout_s: float | None = None, progress: bool | Callable[[float, SourceState], Any] = True,
-                *, force: bool = False) -> float:
+    def warm_up(
+        self,
+        timeout_s: float | None = None,
+        progress: bool | Callable[[float, SourceState], Any] = True,
+        *,
+        force: bool = False,
+    ) -> float:
         """Run the controller's warm-up sequence and wait until it reports standby.
 
         Warm-up emits X-rays: it is started only when needed (or ``force``), with the interlock
@@ -1299,14 +1449,19 @@ class L8121:
         bar = None
         if progress is True:
             from tqdm.auto import tqdm
+
             bar = tqdm(total=round(timeout_s), desc=f"L8121 warm-up ({self.port})", unit="s", leave=False)
         t0 = time.monotonic()
         self._may_be_on = True  # the warm-up sequence runs the tube
         try:
             if state != SourceState.WARMING_UP:
                 self._do("warm_up")
-                logger.info("%s: warm-up started with %s (timeout %g s)", self.port,
-                            self.dialect.settings["warm_up"].command, timeout_s)
+                logger.info(
+                    "%s: warm-up started with %s (timeout %g s)",
+                    self.port,
+                    self.dialect.settings["warm_up"].command,
+                    timeout_s,
+                )
             self._wait_warm(t0, timeout_s, bar, progress)
         except BaseException:
             self._off_quietly()
@@ -1331,8 +1486,10 @@ class L8121:
             if not force:
                 return False
             if self.dialect is DIALECT_B:
-                raise DeviceError(f"{self.port}: warm-up not started: dialect B starts it with XON, and with the "
-                                  f"warm-up done (DAG ... END) that XON would be an exposure")
+                raise DeviceError(
+                    f"{self.port}: warm-up not started: dialect B starts it with XON, and with the "
+                    f"warm-up done (DAG ... END) that XON would be an exposure"
+                )
         if state != SourceState.WARMING_UP and not self.interlock_closed():
             raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
         return True
@@ -1355,11 +1512,14 @@ class L8121:
             if state == SourceState.OVERLOAD:
                 raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
             if seen_running and state == SourceState.WARMUP_NEEDED:
-                raise DeviceError(f"{self.port}: warm-up stopped after {elapsed:.1f} s (state WARMUP_NEEDED, "
-                                  f"error code {self.error_code()})")
+                raise DeviceError(
+                    f"{self.port}: warm-up stopped after {elapsed:.1f} s (state WARMUP_NEEDED, "
+                    f"error code {self.error_code()})"
+                )
             if elapsed > timeout_s:
-                raise DeviceError(f"{self.port}: warm-up not done within {timeout_s:g} s "
-                                  f"(state {state.name}); X-rays switched off")
+                raise DeviceError(
+                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
+                )
             time.sleep(self.config.poll_s)
 
     def on(self, kv: float, ua: float) -> dict[str, Any]:
@@ -1402,8 +1562,15 @@ class L8121:
         except BaseException:
             self._off_quietly()
             raise
-        logger.info("%s: X-rays on at %d kV %d µA: measured %g kV %g µA after %.2f s", self.port, kv_i, ua_i,
-                    reading["voltage_kv"], reading["current_ua"], reading["seconds"])
+        logger.info(
+            "%s: X-rays on at %d kV %d µA: measured %g kV %g µA after %.2f s",
+            self.port,
+            kv_i,
+            ua_i,
+            reading["voltage_kv"],
+            reading["current_ua"],
+            reading["seconds"],
+        )
         return reading
 
     def _require_ready(self) -> None:
@@ -1434,16 +1601,24 @@ class L8121:
             if state != SourceState.XRAY_ON:
                 self._trip(self._fault_reason(state, m_kv, m_ua, ramping=True))
             if abs(m_kv - kv) <= tol_kv and abs(m_ua - ua) <= tol_ua:
-                return {"voltage_kv": m_kv, "current_ua": m_ua, "set_voltage_kv": kv, "set_current_ua": ua,
-                        "seconds": seconds}
+                return {
+                    "voltage_kv": m_kv,
+                    "current_ua": m_ua,
+                    "set_voltage_kv": kv,
+                    "set_current_ua": ua,
+                    "seconds": seconds,
+                }
             if seconds > c.stable_timeout_s:
-                raise DeviceError(f"{self.port}: beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: "
-                                  f"measured {m_kv:g} kV {m_ua:g} µA, set {kv} kV {ua} µA "
-                                  f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); X-rays switched off")
+                raise DeviceError(
+                    f"{self.port}: beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: "
+                    f"measured {m_kv:g} kV {m_ua:g} µA, set {kv} kV {ua} µA "
+                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); X-rays switched off"
+                )
             time.sleep(c.poll_s)
 
-    def _fault_reason(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False,
-                      interlock_closed: bool | None = None) -> str | None:
+    def _fault_reason(
+        self, state: SourceState, kv: float, ua: float, *, ramping: bool = False, interlock_closed: bool | None = None
+    ) -> str | None:
         """Why the beam is not what this driver switched on, or None when it is."""
         if state == SourceState.OVERLOAD:
             return "overload"
@@ -1561,8 +1736,10 @@ class L8121:
             # still inside: a failed query here must not call off() again; a silent one is not asked
             why = "; the controller does not answer" if silent else self._why_not_remote()
             tried = f"{attempt + 1} attempt(s)"
-            self.off_failed = DeviceError(f"{self.port}: could not confirm X-rays off after {tried} "
-                                          f"(last: {last}){why}; switch the source off at the controller")
+            self.off_failed = DeviceError(
+                f"{self.port}: could not confirm X-rays off after {tried} "
+                f"(last: {last}){why}; switch the source off at the controller"
+            )
             self.off_failed.__cause__ = last
         finally:
             with self._turns:

@@ -17,6 +17,7 @@ pyserial's ``loop://`` sends every byte back, so a query returns the command its
 ...     link.query("TYP")
 'TYP'
 """
+
 from __future__ import annotations
 
 import logging
@@ -36,8 +37,10 @@ logger = logging.getLogger(__name__)
 try:  # pyserial's posix backend lets termios.error escape from tcflush on a vanished pty
     from termios import error as _TermiosError
 except ImportError:  # pragma: no cover - Windows
+
     class _TermiosError(Exception):
         pass
+
 
 # What a lost link raises: close, reopen, retry.
 _LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
@@ -88,12 +91,24 @@ class SerialTransport:
     ``socket://`` or a pseudo-terminal, ignore them).
     """
 
-    def __init__(self, url: str, *, baudrate: int = 38400, timeout_s: float = 1.0,
-                 write_timeout_s: float = 1.0, min_interval_s: float = 0.05, terminator: str = "\r",
-                 retries: int = 1, log: logging.Logger = logger, open: bool = True):
+    def __init__(
+        self,
+        url: str,
+        *,
+        baudrate: int = 38400,
+        timeout_s: float = 1.0,
+        write_timeout_s: float = 1.0,
+        min_interval_s: float = 0.05,
+        terminator: str = "\r",
+        retries: int = 1,
+        log: logging.Logger = logger,
+        open: bool = True,
+    ):
         if timeout_s <= 0 or write_timeout_s <= 0:
-            raise ValueError(f"{url}: time-outs must be positive (timeout_s={timeout_s}, "
-                             f"write_timeout_s={write_timeout_s}); a link without a time-out can hang")
+            raise ValueError(
+                f"{url}: time-outs must be positive (timeout_s={timeout_s}, "
+                f"write_timeout_s={write_timeout_s}); a link without a time-out can hang"
+            )
         if min_interval_s < 0 or retries < 0:
             raise ValueError(f"{url}: min_interval_s ({min_interval_s}) and retries ({retries}) must be >= 0")
         if not terminator:
@@ -199,20 +214,29 @@ class SerialTransport:
                 except _LINK_ERRORS as exc:
                     # Write time-outs are a device that does not take data, not a lost link.
                     if isinstance(exc, serial.SerialTimeoutException):
-                        raise DeviceError(f"{self.url}: {command}: write timed out after "
-                                          f"{self.write_timeout_s:g} s") from exc
+                        raise DeviceError(
+                            f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
+                        ) from exc
                     attempt += 1
                     self.close()
                     if attempt > self.retries:
-                        raise DeviceError(f"{self.url}: {command}: link lost ({exc}); "
-                                          f"gave up after {self.retries} reconnect(s)") from exc
-                    self.log.warning("%s: link lost during %s (%s); reconnecting (%d/%d)",
-                                     self.url, command, exc, attempt, self.retries)
+                        raise DeviceError(
+                            f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
+                        ) from exc
+                    self.log.warning(
+                        "%s: link lost during %s (%s); reconnecting (%d/%d)",
+                        self.url,
+                        command,
+                        exc,
+                        attempt,
+                        self.retries,
+                    )
                     try:
                         self.open()
                     except DeviceError as reopen:
-                        raise DeviceError(f"{self.url}: {command}: link lost ({exc}) and reconnecting "
-                                          f"failed ({reopen})") from exc
+                        raise DeviceError(
+                            f"{self.url}: {command}: link lost ({exc}) and reconnecting failed ({reopen})"
+                        ) from exc
 
     def _exchange(self, command: str, payload: bytes) -> str:
         ser = self._serial
@@ -238,7 +262,7 @@ class SerialTransport:
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
-                line, buf = bytes(buf[:cut]), buf[cut + 1:]
+                line, buf = bytes(buf[:cut]), buf[cut + 1 :]
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     return line.decode("ascii", errors="replace").strip()
                 continue
@@ -281,8 +305,9 @@ class PipeTransport:
         For :func:`repr` and messages only (the guardian opened the port).
     """
 
-    def __init__(self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 38400,
-                 log: logging.Logger = logger):
+    def __init__(
+        self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 38400, log: logging.Logger = logger
+    ):
         self.url = str(url)
         self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
@@ -393,16 +418,17 @@ class PipeTransport:
         while b"\n" not in self._buf:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise NoReply(f"{self.url}: {command}: no answer from the X-ray guardian "
-                                  f"(pid {self._process.pid}) within {self._reply_wait_s:g} s")
+                raise NoReply(
+                    f"{self.url}: {command}: no answer from the X-ray guardian "
+                    f"(pid {self._process.pid}) within {self._reply_wait_s:g} s"
+                )
             ready, _, _ = select.select([self._rfd], [], [], left)
             if not ready:
                 continue
             data = os.read(self._rfd, 4096)
             if not data:
                 self._open = False
-                raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited "
-                                  f"(code {self._process.poll()})")
+                raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited (code {self._process.poll()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("ascii", "replace")

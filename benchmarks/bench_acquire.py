@@ -15,6 +15,7 @@ written with plain h5py into a chunked dataset, one flush per frame.
 Target (issue 5): median per-frame overhead <= 50 ms. Ratios against the bare write are what
 to compare across machines; this one is shared and noisy.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,8 +33,13 @@ def bare_h5(frames, path):
 
     times = []
     with h5py.File(path, "w") as h5:
-        ds = h5.create_dataset("data", shape=(0,) + frames[0].shape, maxshape=(None,) + frames[0].shape,
-                               chunks=(1,) + frames[0].shape, dtype=np.uint16)
+        ds = h5.create_dataset(
+            "data",
+            shape=(0,) + frames[0].shape,
+            maxshape=(None,) + frames[0].shape,
+            chunks=(1,) + frames[0].shape,
+            dtype=np.uint16,
+        )
         for i, f in enumerate(frames):
             t = time.perf_counter()
             ds.resize(i + 1, axis=0)
@@ -56,15 +62,23 @@ def main(argv=None):
     scene = block_scene(size_mm=10.0)
     scene.detector.binning = args.binning
     tmp = Path(tempfile.mkdtemp(prefix="bench-acquire-", dir=args.out))
-    p = load_protocol({
-        "output": str(tmp / "series.h5"), "name": "bench",
-        "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.25},
-        "detector": {"kind": "sim"},
-        "frame": {"kind": "sim", "initial_height_mm": 10.0},
-        "series": {"darks": args.frames, "flats": args.frames, "frames_per_step": args.frames,
-                   "steps": [0.15, 0.20, 0.25], "settle_s": 0.0},
-        "sim": {"scene": scene.to_toml(), "warmup_s": 0.5, "ramp_s": 0.2, "binning": args.binning},
-    })
+    p = load_protocol(
+        {
+            "output": str(tmp / "series.h5"),
+            "name": "bench",
+            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.25},
+            "detector": {"kind": "sim"},
+            "frame": {"kind": "sim", "initial_height_mm": 10.0},
+            "series": {
+                "darks": args.frames,
+                "flats": args.frames,
+                "frames_per_step": args.frames,
+                "steps": [0.15, 0.20, 0.25],
+                "settle_s": 0.0,
+            },
+            "sim": {"scene": scene.to_toml(), "warmup_s": 0.5, "ramp_s": 0.2, "binning": args.binning},
+        }
+    )
     t = time.perf_counter()
     res = run(p, sim=True, progress=False)
     wall = time.perf_counter() - t
@@ -74,19 +88,37 @@ def main(argv=None):
     with h5py.File(res.output, "r") as h5:
         frames = [h5["entry/instrument/detector/data"][i] for i in range(min(len(oh), 10))]
         shape = h5["entry/instrument/detector/data"].shape
-    base = np.array(bare_h5(frames * (len(oh) // len(frames) + 1), tmp / "bare.h5")[:len(oh)]) * 1000
+    base = np.array(bare_h5(frames * (len(oh) // len(frames) + 1), tmp / "bare.h5")[: len(oh)]) * 1000
     med, p95, bmed = float(np.median(oh)), float(np.percentile(oh, 95)), float(np.median(base))
-    print(f"series: {shape[0]} frames of {shape[1]} x {shape[2]} in {wall:.1f} s "
-          f"(X-rays on {res.beam_on_s:.1f} s, rendering and the source's ramps included)")
-    print(f"  per-frame overhead (append + metadata + flush + bookkeeping): median {med:.1f} ms, p95 {p95:.1f} ms, "
-          f"max {oh.max():.1f} ms")
-    print(f"  bare h5py write + flush of the same frames:                     median {bmed:.1f} ms "
-          f"(protocol / bare = {med / bmed:.2f})")
+    print(
+        f"series: {shape[0]} frames of {shape[1]} x {shape[2]} in {wall:.1f} s "
+        f"(X-rays on {res.beam_on_s:.1f} s, rendering and the source's ramps included)"
+    )
+    print(
+        f"  per-frame overhead (append + metadata + flush + bookkeeping): median {med:.1f} ms, p95 {p95:.1f} ms, "
+        f"max {oh.max():.1f} ms"
+    )
+    print(
+        f"  bare h5py write + flush of the same frames:                     median {bmed:.1f} ms "
+        f"(protocol / bare = {med / bmed:.2f})"
+    )
     ok = med <= 50.0
     print(f"{'PASS' if ok else 'FAIL'}  median per-frame overhead <= 50 ms: {med:.1f} ms")
-    (args.out / "bench_acquire.json").write_text(json.dumps(
-        {"frames": int(shape[0]), "shape": list(shape[1:]), "wall_s": wall, "overhead_ms": oh.tolist(),
-         "bare_ms": base.tolist(), "median_ms": med, "p95_ms": p95, "bare_median_ms": bmed}, indent=1))
+    (args.out / "bench_acquire.json").write_text(
+        json.dumps(
+            {
+                "frames": int(shape[0]),
+                "shape": list(shape[1:]),
+                "wall_s": wall,
+                "overhead_ms": oh.tolist(),
+                "bare_ms": base.tolist(),
+                "median_ms": med,
+                "p95_ms": p95,
+                "bare_median_ms": bmed,
+            },
+            indent=1,
+        )
+    )
     import shutil
 
     shutil.rmtree(tmp, ignore_errors=True)

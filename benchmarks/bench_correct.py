@@ -70,6 +70,7 @@ raw stack cycles through four independently simulated projections (simulating 10
 would take longer than the whole benchmark); the content does not change the work done.
 Temporary files go to a fresh directory (under ``--out`` if given) that is removed at the end.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -113,8 +114,11 @@ def make_panel(seed=0):
     rows, cols = SHAPE
     y = np.linspace(-1, 1, rows, dtype=np.float32)[:, None]
     x = np.linspace(-1, 1, cols, dtype=np.float32)[None, :]
-    smooth = (0.5 * np.cos(1.3 * np.pi * x + 0.4) * np.cos(0.9 * np.pi * y - 0.2)
-              + 0.5 * np.exp(-((x - 0.3) ** 2 + (y + 0.2) ** 2) / 0.5) - 0.25)
+    smooth = (
+        0.5 * np.cos(1.3 * np.pi * x + 0.4) * np.cos(0.9 * np.pi * y - 0.2)
+        + 0.5 * np.exp(-((x - 0.3) ** 2 + (y + 0.2) ** 2) / 0.5)
+        - 0.25
+    )
     gain = (1 + 0.08 * smooth / np.abs(smooth).max()) * (1 + 0.01 * rng.standard_normal(SHAPE, np.float32))
     for r, c in DEAD_PIXELS:
         gain[r, c] = 0.0
@@ -123,7 +127,7 @@ def make_panel(seed=0):
     gain[:, DEFECT_COLUMN] = 0.02
     dark = (DARK_LEVEL + DARK_SPREAD * rng.standard_normal(SHAPE, np.float32)).astype(np.float32)
     # An attenuating sphere seen as a disc: transmission exp(-mu * chord), 0.15 at the centre.
-    r2 = ((x - 0.05) ** 2 + (y + 0.03) ** 2) / 0.6 ** 2
+    r2 = ((x - 0.05) ** 2 + (y + 0.03) ** 2) / 0.6**2
     transmission = np.exp(-1.9 * np.sqrt(np.clip(1 - r2, 0, None))).astype(np.float32)
     return {"gain": gain.astype(np.float32), "dark": dark, "transmission": transmission}
 
@@ -219,8 +223,13 @@ def bench_frame(reps: int, seed: int = 1):
             else:
                 os.environ["RADIOKIT_THREADS"] = old
 
-    variants = {"(i)": naive64, "(ia)": naive32, "(ii)": tomopy_ne, "(iii)": radiokit_correct,
-                "(iii-1t)": radiokit_one_thread}
+    variants = {
+        "(i)": naive64,
+        "(ia)": naive32,
+        "(ii)": tomopy_ne,
+        "(iii)": radiokit_correct,
+        "(iii-1t)": radiokit_one_thread,
+    }
     labels = {
         "(i)": "numpy one-liner, float64 dark/flat (np.mean)",
         "(ia)": "numpy one-liner, float32 dark/flat",
@@ -234,8 +243,9 @@ def bench_frame(reps: int, seed: int = 1):
         fn()
     times = _interleaved(variants, reps, seed)
     ms = {name: _median_ms(ts) for name, ts in times.items()}
-    spread = {name: (1e3 * float(np.percentile(ts, 25)), 1e3 * float(np.percentile(ts, 75)))
-              for name, ts in times.items()}
+    spread = {
+        name: (1e3 * float(np.percentile(ts, 25)), 1e3 * float(np.percentile(ts, 75))) for name, ts in times.items()
+    }
     others = ("(i)", "(ia)", "(ii)", "(iii-1t)")
     ratios = {name: ms[name] / ms["(iii)"] for name in others}
     paired = {name: statistics.median(a / b for a, b in zip(times[name], times["(iii)"])) for name in others}
@@ -261,12 +271,17 @@ def bench_frame(reps: int, seed: int = 1):
     }
     agree["pass"] = agree["max_abs_diff_strict"] < AGREE_ATOL and agree["output_finite"]
     result = {
-        "labels": labels, "ms_median": ms, "ms_iqr": spread, "reps": reps,
-        "ratio_of_medians": ratios, "median_of_paired_ratios": paired,
+        "labels": labels,
+        "ms_median": ms,
+        "ms_iqr": spread,
+        "reps": reps,
+        "ratio_of_medians": ratios,
+        "median_of_paired_ratios": paired,
         "target": f"(iii) at least {SPEED_TARGET:g}x faster than (i)",
         "speed_pass": ratios["(i)"] >= SPEED_TARGET,
         "agreement": agree,
-        "simulate_seconds": t_sim, "from_frames_seconds": t_cal,
+        "simulate_seconds": t_sim,
+        "from_frames_seconds": t_cal,
         "calibration": repr(cal),
     }
     return result, cal, panel
@@ -287,8 +302,8 @@ def realistic(panel, rng):
     darks = np.stack([simulate(hot, rng, beam=False) for _ in range(N_CAL)])
     flats = np.stack([simulate(hot, rng) for _ in range(N_CAL)])
     raw = simulate(hot, rng, hot["transmission"])
-    raw.ravel()[idx[N_HOT:N_HOT + N_SATURATED]] = 4095
-    below = idx[N_HOT + N_SATURATED:]
+    raw.ravel()[idx[N_HOT : N_HOT + N_SATURATED]] = 4095
+    below = idx[N_HOT + N_SATURATED :]
     raw.ravel()[below] = np.clip(hot["dark"].ravel()[below] - 5, 0, None).astype(np.uint16)
     return darks, flats, raw
 
@@ -327,8 +342,8 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     each, interleaved in one run (median ms); the repairs should cost almost nothing."""
     import cv2
 
-    from radiokit.calibrate import Calibration
     from radiokit._threads import threads as _threads
+    from radiokit.calibrate import Calibration
     from radiokit.correct import CorrectionKernel, correct_frames
 
     cv2.setNumThreads(1)  # the blocks are split over radiokit's threads, as radiokit's are
@@ -350,8 +365,8 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     out = np.empty(SHAPE, np.float32)
     variants = {}
     for name, (cal, raw, dark, log_i0) in cases.items():
-        variants[f"radiokit {name}"] = (lambda c=cal, r=raw: correct_frames(c, r, domain="log", out=out))
-        variants[f"opencv {name}"] = (lambda r=raw, d=dark, li=log_i0: opencv_fused(r, d, li, out, _threads()))
+        variants[f"radiokit {name}"] = lambda c=cal, r=raw: correct_frames(c, r, domain="log", out=out)
+        variants[f"opencv {name}"] = lambda r=raw, d=dark, li=log_i0: opencv_fused(r, d, li, out, _threads())
     for fn in variants.values():
         fn()
         fn()
@@ -362,27 +377,43 @@ def bench_realistic(reps: int, seed: int = 3) -> dict:
     cal, raw = cases["realistic"][:2]
     _, report = correct_frames(cal, raw, domain="log", return_report=True)
     ratio = {name: ms[f"radiokit {name}"] / ms[f"opencv {name}"] for name in cases}
-    paired = {name: statistics.median(a / b for a, b in zip(times[f"radiokit {name}"], times[f"opencv {name}"]))
-              for name in cases}
+    paired = {
+        name: statistics.median(a / b for a, b in zip(times[f"radiokit {name}"], times[f"opencv {name}"]))
+        for name in cases
+    }
     cpu_ratio = {name: cpu_ms[f"radiokit {name}"] / cpu_ms[f"opencv {name}"] for name in cases}
-    return {"ms_median": ms, "radiokit_over_opencv": ratio, "paired": paired, "reps": reps,
-            "cpu_ms_median": cpu_ms, "cpu_ratio": cpu_ratio, "load_average": os.getloadavg(),
-            "repairs": {"defects_filled": int(report.defects_filled), "saturated": int(report.saturated.sum()),
-                        "nonpositive": int(report.nonpositive.sum())},
-            "target": "realistic frame: radiokit within 10 % of the fused OpenCV pass",
-            "pass": ratio["realistic"] <= 1.10}
+    return {
+        "ms_median": ms,
+        "radiokit_over_opencv": ratio,
+        "paired": paired,
+        "reps": reps,
+        "cpu_ms_median": cpu_ms,
+        "cpu_ratio": cpu_ratio,
+        "load_average": os.getloadavg(),
+        "repairs": {
+            "defects_filled": int(report.defects_filled),
+            "saturated": int(report.saturated.sum()),
+            "nonpositive": int(report.nonpositive.sum()),
+        },
+        "target": "realistic frame: radiokit within 10 % of the fused OpenCV pass",
+        "pass": ratio["realistic"] <= 1.10,
+    }
 
 
 def print_realistic(r):
     rep = r["repairs"]
-    print(f"Part 1b: the realistic frame ({rep['defects_filled']} defect pixels filled: a dead column and "
-          f"{N_HOT} hot pixels; {rep['saturated']} saturated, {rep['nonpositive']} below the dark) and the clean one, "
-          f"radiokit against a fused OpenCV subtract-log-subtract pass (median of {r['reps']} interleaved repetitions)")
+    print(
+        f"Part 1b: the realistic frame ({rep['defects_filled']} defect pixels filled: a dead column and "
+        f"{N_HOT} hot pixels; {rep['saturated']} saturated, {rep['nonpositive']} below the dark) and the clean one, "
+        f"radiokit against a fused OpenCV subtract-log-subtract pass (median of {r['reps']} interleaved repetitions)"
+    )
     for name in ("clean", "realistic"):
-        print(f"  {name:9s} radiokit {r['ms_median'][f'radiokit {name}']:6.2f} ms, OpenCV {r['ms_median'][f'opencv {name}']:6.2f} ms"
-              f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}];"
-              f" CPU time {r['cpu_ms_median'][f'radiokit {name}']:6.2f} / {r['cpu_ms_median'][f'opencv {name}']:6.2f} ms"
-              f" -> {r['cpu_ratio'][name]:.3f}")
+        print(
+            f"  {name:9s} radiokit {r['ms_median'][f'radiokit {name}']:6.2f} ms, OpenCV {r['ms_median'][f'opencv {name}']:6.2f} ms"
+            f" -> ratio {r['radiokit_over_opencv'][name]:.3f} [paired {r['paired'][name]:.3f}];"
+            f" CPU time {r['cpu_ms_median'][f'radiokit {name}']:6.2f} / {r['cpu_ms_median'][f'opencv {name}']:6.2f} ms"
+            f" -> {r['cpu_ratio'][name]:.3f}"
+        )
     print(f"  load average {r['load_average'][0]:.1f} at the end (2 CPUs)")
     print(f"  target: {r['target']} -> {'PASS' if r['pass'] else 'FAIL'}")
 
@@ -444,11 +475,19 @@ def child_stream(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     summary = correct_files([raw_path], cal, out_path, domain="log", progress=False, **hints)
     wall = time.perf_counter() - t0
     after = memory_now()
-    return {"frames": summary["frames"], "seconds": summary["seconds"], "wall_seconds": wall,
-            "fps": summary["frames_per_second"], "peak_rss_bytes": after["peak"],
-            "ru_maxrss_bytes": after["ru_maxrss"], "rss_before_stream_bytes": before["rss"],
-            "peak_rss_before_stream_bytes": before["peak"], "nonpositive": summary["nonpositive"],
-            "saturated": summary["saturated"], "defects_filled_per_frame": summary["defects_filled_per_frame"]}
+    return {
+        "frames": summary["frames"],
+        "seconds": summary["seconds"],
+        "wall_seconds": wall,
+        "fps": summary["frames_per_second"],
+        "peak_rss_bytes": after["peak"],
+        "ru_maxrss_bytes": after["ru_maxrss"],
+        "rss_before_stream_bytes": before["rss"],
+        "peak_rss_before_stream_bytes": before["peak"],
+        "nonpositive": summary["nonpositive"],
+        "saturated": summary["saturated"],
+        "defects_filled_per_frame": summary["defects_filled_per_frame"],
+    }
 
 
 def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
@@ -462,8 +501,11 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     frame = np.empty(cal.shape, np.float32)
     t_read = t_corr = t_write = t_plain = 0.0
     plain_path = Path(out_path).with_suffix(".bin")
-    with open_frames(raw_path, n=n) as src, open(plain_path, "wb") as plain, \
-            StackWriter(out_path, cal.shape, np.float32, meta={"domain": "log"}, n_frames=n) as w:
+    with (
+        open_frames(raw_path, n=n) as src,
+        open(plain_path, "wb") as plain,
+        StackWriter(out_path, cal.shape, np.float32, meta={"domain": "log"}, n_frames=n) as w,
+    ):
         direct = bool(w._direct)
         correct_frames(cal, src[0], domain="log", out=frame)  # build the kernel outside the timers
         for i in range(n):
@@ -472,8 +514,9 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
             b = time.perf_counter()
             correct_frames(cal, raw, domain="log", out=frame)
             c = time.perf_counter()
-            w.append(frame, source_index=np.int32(0), frame_index=np.int32(i),
-                     saturated=np.int64(0), nonpositive=np.int64(0))
+            w.append(
+                frame, source_index=np.int32(0), frame_index=np.int32(i), saturated=np.int64(0), nonpositive=np.int64(0)
+            )
             d = time.perf_counter()
             plain.write(memoryview(frame).cast("B"))
             e = time.perf_counter()
@@ -484,14 +527,34 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     plain_path.unlink()
     ms = lambda t: 1e3 * t / n
     total = t_read + t_corr + t_write
-    return {"frames": n, "ms_per_frame": {"read": ms(t_read), "correct": ms(t_corr), "write_hdf5": ms(t_write),
-                                          "total": ms(total), "plain_write_baseline": ms(t_plain)},
-            "fps": n / total, "fps_without_write": n / (t_read + t_corr), "direct_io": direct}
+    return {
+        "frames": n,
+        "ms_per_frame": {
+            "read": ms(t_read),
+            "correct": ms(t_corr),
+            "write_hdf5": ms(t_write),
+            "total": ms(total),
+            "plain_write_baseline": ms(t_plain),
+        },
+        "fps": n / total,
+        "fps_without_write": n / (t_read + t_corr),
+        "direct_io": direct,
+    }
 
 
 def run_child(mode: str, n: int, raw: Path, cal: Path, out: Path) -> dict:
-    cmd = [sys.executable, os.path.abspath(__file__), f"--_{mode}", str(n), "--_raw", str(raw), "--_cal", str(cal),
-           "--_h5", str(out)]
+    cmd = [
+        sys.executable,
+        os.path.abspath(__file__),
+        f"--_{mode}",
+        str(n),
+        "--_raw",
+        str(raw),
+        "--_cal",
+        str(cal),
+        "--_h5",
+        str(out),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode:
         raise RuntimeError(f"child {mode} {n} failed ({proc.returncode}):\n{proc.stderr}")
@@ -511,8 +574,10 @@ def check_output(h5_path: Path, n: int, cal, raw_path: Path) -> dict:
         last = ds[n - 1]
     with open_frames(raw_path) as src:
         expect = correct_frames(cal, src[n - 1], domain="log")
-    return {"shape": list(shape), "ok": shape == (n,) + cal.shape and bool(np.isfinite(last).all())
-            and bool(np.array_equal(last, expect))}
+    return {
+        "shape": list(shape),
+        "ok": shape == (n,) + cal.shape and bool(np.isfinite(last).all()) and bool(np.array_equal(last, expect)),
+    }
 
 
 def bench_stream(cal, panel, frames: int, short: int, rounds: int, base: Path) -> dict:
@@ -520,8 +585,13 @@ def bench_stream(cal, panel, frames: int, short: int, rounds: int, base: Path) -
     cal_path = base / "calibration.h5"
     cal.save(cal_path)
     t_write = write_raw_stack(raw_path, panel, frames)
-    res = {"raw_file_bytes": raw_path.stat().st_size, "write_raw_seconds": t_write, "rounds": rounds,
-           "parent_ru_maxrss_bytes": _ru_maxrss_bytes(), "runs": {str(short): [], str(frames): []}}
+    res = {
+        "raw_file_bytes": raw_path.stat().st_size,
+        "write_raw_seconds": t_write,
+        "rounds": rounds,
+        "parent_ru_maxrss_bytes": _ru_maxrss_bytes(),
+        "runs": {str(short): [], str(frames): []},
+    }
     for _ in range(rounds):  # short and long alternate, so that machine noise hits both
         for n in (short, frames):
             out = base / f"corrected_{n}.h5"
@@ -547,49 +617,73 @@ def bench_stream(cal, panel, frames: int, short: int, rounds: int, base: Path) -
 
 # -- report ------------------------------------------------------------------------------------
 def print_frame(r):
-    print(f"Part 1: one {SHAPE[0]}x{SHAPE[1]} uint16 frame, log domain "
-          f"(median of {r['reps']} interleaved repetitions; IQR in brackets)")
+    print(
+        f"Part 1: one {SHAPE[0]}x{SHAPE[1]} uint16 frame, log domain "
+        f"(median of {r['reps']} interleaved repetitions; IQR in brackets)"
+    )
     for name, label in r["labels"].items():
         lo, hi = r["ms_iqr"][name]
         ratio = r["ratio_of_medians"].get(name)
         pr = r["median_of_paired_ratios"].get(name)
-        extra = "" if ratio is None else (
-            f"   (iii) is {ratio:5.2f}x faster [paired {pr:.2f}x]" if name != "(iii-1t)" else
-            f"   2 threads vs 1: {ratio:.2f}x [paired {pr:.2f}x]")
+        extra = (
+            ""
+            if ratio is None
+            else (
+                f"   (iii) is {ratio:5.2f}x faster [paired {pr:.2f}x]"
+                if name != "(iii-1t)"
+                else f"   2 threads vs 1: {ratio:.2f}x [paired {pr:.2f}x]"
+            )
+        )
         print(f"  {name:8s} {label:48s} {r['ms_median'][name]:8.2f} ms  [{lo:6.2f}-{hi:6.2f}]{extra}")
     verdict = "PASS" if r["speed_pass"] else "FAIL"
     print(f"  target: {r['target']}: (i)/(iii) = {r['ratio_of_medians']['(i)']:.2f}x -> {verdict}")
     a = r["agreement"]
-    print(f"  agreement (iii) vs (i) on {a['valid_pixels']} valid pixels ({a['defect_pixels_excluded']} defect "
-          f"pixels excluded; (i) is NaN/inf at {a['naive_nonfinite_pixels']} pixels, (iii) at none: {a['output_finite']}):")
-    print(f"    max |diff| = {a['max_abs_diff_strict']:.3g} where dark/flat equal np.mean's "
-          f"(robust average dropped a sample at {a['robust_average_differs_pixels']} pixels; with them: "
-          f"max {a['max_abs_diff_valid']:.3g}, {a['pixels_over_atol_valid']} pixels >= {a['atol']:g}) "
-          f"-> {'PASS' if a['pass'] else 'FAIL'} (< {a['atol']:g})")
+    print(
+        f"  agreement (iii) vs (i) on {a['valid_pixels']} valid pixels ({a['defect_pixels_excluded']} defect "
+        f"pixels excluded; (i) is NaN/inf at {a['naive_nonfinite_pixels']} pixels, (iii) at none: {a['output_finite']}):"
+    )
+    print(
+        f"    max |diff| = {a['max_abs_diff_strict']:.3g} where dark/flat equal np.mean's "
+        f"(robust average dropped a sample at {a['robust_average_differs_pixels']} pixels; with them: "
+        f"max {a['max_abs_diff_valid']:.3g}, {a['pixels_over_atol_valid']} pixels >= {a['atol']:g}) "
+        f"-> {'PASS' if a['pass'] else 'FAIL'} (< {a['atol']:g})"
+    )
 
 
 def print_stream(s, frames, short):
-    print(f"Part 2: streaming a headerless raw stack ({s['raw_file_bytes'] / 1e9:.2f} GB for {frames} frames, "
-          f"written in {s['write_raw_seconds']:.1f} s) through correct_files(..., domain='log') into HDF5, "
-          f"in fresh subprocesses, {s['rounds']} round(s) alternating {short} and {frames} frames")
+    print(
+        f"Part 2: streaming a headerless raw stack ({s['raw_file_bytes'] / 1e9:.2f} GB for {frames} frames, "
+        f"written in {s['write_raw_seconds']:.1f} s) through correct_files(..., domain='log') into HDF5, "
+        f"in fresh subprocesses, {s['rounds']} round(s) alternating {short} and {frames} frames"
+    )
     for n in (short, frames):
         for i, r in enumerate(s["runs"][str(n)]):
-            print(f"  {n:4d} frames, round {i + 1}: {r['fps']:6.1f} frames/s ({r['seconds']:5.2f} s), peak RSS "
-                  f"{r['peak_rss_bytes'] / MiB:6.1f} MiB (RSS before streaming {r['rss_before_stream_bytes'] / MiB:.1f} "
-                  f"MiB; ru_maxrss {r['ru_maxrss_bytes'] / MiB:.1f} MiB), output {'ok' if r['output_check']['ok'] else 'WRONG'}")
-    print(f"  (ru_maxrss is not used: exec hands the parent's peak, {s['parent_ru_maxrss_bytes'] / MiB:.0f} MiB here, "
-          "to the child's ru_maxrss on Linux; peak RSS is the child's own VmHWM)")
-    print(f"  throughput target >= {FPS_TARGET:g} frames/s: median {s['fps']:.1f} frames/s over {frames}-frame runs -> "
-          f"{'PASS' if s['fps_pass'] else 'FAIL'}")
+            print(
+                f"  {n:4d} frames, round {i + 1}: {r['fps']:6.1f} frames/s ({r['seconds']:5.2f} s), peak RSS "
+                f"{r['peak_rss_bytes'] / MiB:6.1f} MiB (RSS before streaming {r['rss_before_stream_bytes'] / MiB:.1f} "
+                f"MiB; ru_maxrss {r['ru_maxrss_bytes'] / MiB:.1f} MiB), output {'ok' if r['output_check']['ok'] else 'WRONG'}"
+            )
+    print(
+        f"  (ru_maxrss is not used: exec hands the parent's peak, {s['parent_ru_maxrss_bytes'] / MiB:.0f} MiB here, "
+        "to the child's ru_maxrss on Linux; peak RSS is the child's own VmHWM)"
+    )
+    print(
+        f"  throughput target >= {FPS_TARGET:g} frames/s: median {s['fps']:.1f} frames/s over {frames}-frame runs -> "
+        f"{'PASS' if s['fps_pass'] else 'FAIL'}"
+    )
     pk = s["peak_rss_bytes"]
-    print(f"  peak RSS {frames} frames {pk[str(frames)] / MiB:.1f} MiB - {short} frames {pk[str(short)] / MiB:.1f} MiB "
-          f"= {s['rss_difference_bytes'] / MiB:+.1f} MiB (tolerance {RSS_TOLERANCE / MiB:.0f} MiB; one float32 frame "
-          f"is {SHAPE[0] * SHAPE[1] * 4 / MiB:.1f} MiB) -> {'PASS' if s['rss_pass'] else 'FAIL'}")
+    print(
+        f"  peak RSS {frames} frames {pk[str(frames)] / MiB:.1f} MiB - {short} frames {pk[str(short)] / MiB:.1f} MiB "
+        f"= {s['rss_difference_bytes'] / MiB:+.1f} MiB (tolerance {RSS_TOLERANCE / MiB:.0f} MiB; one float32 frame "
+        f"is {SHAPE[0] * SHAPE[1] * 4 / MiB:.1f} MiB) -> {'PASS' if s['rss_pass'] else 'FAIL'}"
+    )
     sp = s["split"]["ms_per_frame"]
-    print(f"  where the time goes ({s['split']['frames']} frames, same loop with timers): read {sp['read']:.1f} ms, "
-          f"correct {sp['correct']:.1f} ms, write HDF5 {sp['write_hdf5']:.1f} ms ({'O_DIRECT' if s['split'].get('direct_io') else 'page cache'}) = {sp['total']:.1f} ms/frame "
-          f"({s['split']['fps']:.1f} frames/s; {s['split']['fps_without_write']:.0f} frames/s without the write). "
-          f"Baseline: the same 19 MiB written to a plain file through the page cache took {sp['plain_write_baseline']:.1f} ms/frame")
+    print(
+        f"  where the time goes ({s['split']['frames']} frames, same loop with timers): read {sp['read']:.1f} ms, "
+        f"correct {sp['correct']:.1f} ms, write HDF5 {sp['write_hdf5']:.1f} ms ({'O_DIRECT' if s['split'].get('direct_io') else 'page cache'}) = {sp['total']:.1f} ms/frame "
+        f"({s['split']['fps']:.1f} frames/s; {s['split']['fps_without_write']:.0f} frames/s without the write). "
+        f"Baseline: the same 19 MiB written to a plain file through the page cache took {sp['plain_write_baseline']:.1f} ms/frame"
+    )
 
 
 def main(argv=None):
@@ -619,15 +713,23 @@ def main(argv=None):
 
     import numexpr
 
-    from radiokit._version import __version__
     from radiokit._threads import threads as _threads
+    from radiokit._version import __version__
 
     t_start = time.perf_counter()
-    env = {"python": platform.python_version(), "numpy": np.__version__, "numexpr": numexpr.__version__,
-           "radiokit": __version__, "cpu_count": os.cpu_count(), "radiokit_threads": _threads(),
-           "machine": platform.machine()}
-    print(f"radiokit {env['radiokit']}, numpy {env['numpy']}, numexpr {env['numexpr']}, "
-          f"{env['cpu_count']} CPUs, radiokit threads {env['radiokit_threads']}")
+    env = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numexpr": numexpr.__version__,
+        "radiokit": __version__,
+        "cpu_count": os.cpu_count(),
+        "radiokit_threads": _threads(),
+        "machine": platform.machine(),
+    }
+    print(
+        f"radiokit {env['radiokit']}, numpy {env['numpy']}, numexpr {env['numexpr']}, "
+        f"{env['cpu_count']} CPUs, radiokit threads {env['radiokit_threads']}"
+    )
     if args.realistic_only:
         real = bench_realistic(args.reps)
         print_realistic(real)
@@ -635,8 +737,10 @@ def main(argv=None):
             args.json.write_text(json.dumps({"environment": env, "realistic": real}, indent=1))
         return 0 if real["pass"] else 1
     frame, cal, panel = bench_frame(args.reps)
-    print(f"  (simulated {2 * N_CAL + 1} frames in {frame['simulate_seconds']:.1f} s; "
-          f"Calibration.from_frames({N_CAL} darks, {N_CAL} flats) took {frame['from_frames_seconds']:.1f} s; {frame['calibration']})")
+    print(
+        f"  (simulated {2 * N_CAL + 1} frames in {frame['simulate_seconds']:.1f} s; "
+        f"Calibration.from_frames({N_CAL} darks, {N_CAL} flats) took {frame['from_frames_seconds']:.1f} s; {frame['calibration']})"
+    )
     print_frame(frame)
     real = bench_realistic(args.reps)
     print_realistic(real)
@@ -656,8 +760,10 @@ def main(argv=None):
     if "stream" in result:
         passes += [result["stream"]["fps_pass"], result["stream"]["rss_pass"], result["stream"]["outputs_ok"]]
     result["all_pass"] = all(passes)
-    print(f"Overall: {'PASS' if result['all_pass'] else 'FAIL'} ({sum(passes)}/{len(passes)} targets met) "
-          f"in {result['total_seconds']:.0f} s")
+    print(
+        f"Overall: {'PASS' if result['all_pass'] else 'FAIL'} ({sum(passes)}/{len(passes)} targets met) "
+        f"in {result['total_seconds']:.0f} s"
+    )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2, default=str))

@@ -20,6 +20,7 @@ candidate blobs, each scored by radiokit's quadratic-surround fit:
 
 Prints seconds, candidate counts and whether the inclusion ROI (``find_rois``'s) is radiokit's.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,7 +36,7 @@ def _dome(n: int, pixel_size_mm: float, seed: int = 0) -> np.ndarray:
     yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel_size_mm
     q = 1 - (yy / (0.43 * n * pixel_size_mm)) ** 2 - (xx / (0.45 * n * pixel_size_mm)) ** 2
     thickness = 50 * np.sqrt(np.clip(q, 0, None))
-    chord = 2 * np.sqrt(np.clip(4.8 ** 2 - (yy ** 2 + (xx - 6.0) ** 2), 0, None))
+    chord = 2 * np.sqrt(np.clip(4.8**2 - (yy**2 + (xx - 6.0) ** 2), 0, None))
     return 0.05 * thickness + 0.05 * chord + np.random.default_rng(seed).normal(0, 0.005, (n, n))
 
 
@@ -54,14 +55,24 @@ def _blob_log_avg(img, body, pixel_size_mm):
     f = max(1, int(radii[0] / np.sqrt(2) // 3))
     h, w = img.shape[0] // f * f, img.shape[1] // f * f
     im = block_reduce(img[:h, :w], f, np.mean) if f > 1 else img
-    blobs = blob_log(im, min_sigma=radii[0] / np.sqrt(2) / f, max_sigma=radii[-1] / np.sqrt(2) / f,
-                     num_sigma=len(radii), log_scale=True, threshold=0.0, overlap=1.0, exclude_border=False)
+    blobs = blob_log(
+        im,
+        min_sigma=radii[0] / np.sqrt(2) / f,
+        max_sigma=radii[-1] / np.sqrt(2) / f,
+        num_sigma=len(radii),
+        log_scale=True,
+        threshold=0.0,
+        overlap=1.0,
+        exclude_border=False,
+    )
     depth = ndi.distance_transform_edt(np.pad(body, 1))[1:-1, 1:-1]
     best, inside = (-np.inf, None, None), 0
     for rr, cc, s in blobs:
         centre, radius = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2), s * f * np.sqrt(2)
-        if depth[min(int(round(centre[0])), img.shape[0] - 1), min(int(round(centre[1])), img.shape[1] - 1)] \
-                <= 3 * radius:
+        if (
+            depth[min(int(round(centre[0])), img.shape[0] - 1), min(int(round(centre[1])), img.shape[1] - 1)]
+            <= 3 * radius
+        ):
             continue
         inside += 1
         score, fit = M._blob_fit(img, body, centre, radius)
@@ -72,7 +83,7 @@ def _blob_log_avg(img, body, pixel_size_mm):
     peak = int(np.argmax(np.where(dist <= max(0.5, 1.0 / radius), resid, -np.inf)))
     labels, _ = ndi.label((resid >= resid.flat[peak] / 2) & (dist <= 1.5))
     region = np.zeros(img.shape, bool)
-    region[r0:r0 + resid.shape[0], c0:c0 + resid.shape[1]] = labels == labels.flat[peak]
+    region[r0 : r0 + resid.shape[0], c0 : c0 + resid.shape[1]] = labels == labels.flat[peak]
     return region, len(blobs), inside
 
 
@@ -89,12 +100,23 @@ def _case(name, img, pixel_size_mm):
     avg = M._inscribed_square(region, 0.7)
     radii = _radii(img.shape, pixel_size_mm)
     t = time.perf_counter()
-    n_full = len(blob_log(img, min_sigma=radii[0] / np.sqrt(2), max_sigma=radii[-1] / np.sqrt(2),
-                          num_sigma=len(radii), log_scale=True, threshold=0.0, overlap=1.0))
+    n_full = len(
+        blob_log(
+            img,
+            min_sigma=radii[0] / np.sqrt(2),
+            max_sigma=radii[-1] / np.sqrt(2),
+            num_sigma=len(radii),
+            log_scale=True,
+            threshold=0.0,
+            overlap=1.0,
+        )
+    )
     t_full = time.perf_counter() - t
-    print(f"{name:<28} own {t_own:6.2f} s | blob_log full {t_full:6.2f} s ({n_full} candidates, not scored) | "
-          f"blob_log avg {t_avg:6.2f} s ({n_avg} candidates, {inside} in the body) | "
-          f"ROI {'same' if avg == own else f'differs: {avg} against {own}'}")
+    print(
+        f"{name:<28} own {t_own:6.2f} s | blob_log full {t_full:6.2f} s ({n_full} candidates, not scored) | "
+        f"blob_log avg {t_avg:6.2f} s ({n_avg} candidates, {inside} in the body) | "
+        f"ROI {'same' if avg == own else f'differs: {avg} against {own}'}"
+    )
 
 
 def main(argv=None):

@@ -7,6 +7,7 @@ parsing gives a ratio near 8; quadratic near 64.
 
     python benchmarks/bench_itex_parse.py [--n 32000] [--reps 5]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,7 +21,7 @@ SHAPES = {
     "unclosed [": lambda n: "[" * n,
     "bracketed text": lambda n: "[abc" * (n // 4),
     "lines of blanks": lambda n: (" " * 100 + "\n") * (n // 101),
-    "vendor-like": lambda n: "[Camera],CameraName=\"Orca R2\",Exposure=10 ms,Gain=3\r\n" * (n // 52),
+    "vendor-like": lambda n: '[Camera],CameraName="Orca R2",Exposure=10 ms,Gain=3\r\n' * (n // 52),
 }
 
 

@@ -54,6 +54,7 @@ the imaging otherwise (the base's mechanics is printed on its own row).
 The machine is shared (the load average is printed); times vary by tens of percent, the numbers
 are deterministic.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -100,8 +101,18 @@ def _counts(scene):
 def _row(scene, name, choice, pair, seconds, counts):
     h = study.headline(pair)
     c = study.predicted_cnr(pair, h, counts, "linear")
-    return Row(name, choice, h.change_ratio["linear"], h.improvement["linear"]["1"], h.improvement["linear"]["2"],
-               h.improvement["log"]["1"], h.bound["linear"]["1"], c["1"], c["reference"], seconds)
+    return Row(
+        name,
+        choice,
+        h.change_ratio["linear"],
+        h.improvement["linear"]["1"],
+        h.improvement["linear"]["2"],
+        h.improvement["log"]["1"],
+        h.bound["linear"]["1"],
+        c["1"],
+        c["reference"],
+        seconds,
+    )
 
 
 def _variants(name, quick, full):
@@ -134,9 +145,15 @@ def _inclusion_model(s, model):
 
 def _uncoupled(s):
     if s.body.material.model == "neo-hookean":
-        s.body = dataclasses.replace(s.body, material=dataclasses.replace(s.body.material, model="neo-hookean-uncoupled"))
-    s.inclusions = [dataclasses.replace(i, material=dataclasses.replace(i.material, model="neo-hookean-uncoupled"))
-                    if i.material.model == "neo-hookean" else i for i in s.inclusions]
+        s.body = dataclasses.replace(
+            s.body, material=dataclasses.replace(s.body.material, model="neo-hookean-uncoupled")
+        )
+    s.inclusions = [
+        dataclasses.replace(i, material=dataclasses.replace(i.material, model="neo-hookean-uncoupled"))
+        if i.material.model == "neo-hookean"
+        else i
+        for i in s.inclusions
+    ]
 
 
 def _base(name):
@@ -158,12 +175,14 @@ def _image_rows(scene, label, proj, counts, t_proj, beam):
     mono = imaging.monochromatic
     sc = lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref)
     bl = lambda L: imaging.blur(L, 0.1, PIXEL_MM)
-    cases = [("polychromatic beam", imaging.chain(beam)),
-             ("scatter SPR 0.3", imaging.chain(mono, sc)),
-             ("blur 0.1 mm", imaging.chain(mono, bl)),
-             # the presets' imaging (sim.scene.Imaging "experiment"), and the richest imaging
-             ("polychromatic + scatter (the presets')", imaging.chain(beam, sc)),
-             ("polychromatic + scatter + blur", imaging.chain(beam, sc, bl))]
+    cases = [
+        ("polychromatic beam", imaging.chain(beam)),
+        ("scatter SPR 0.3", imaging.chain(mono, sc)),
+        ("blur 0.1 mm", imaging.chain(mono, bl)),
+        # the presets' imaging (sim.scene.Imaging "experiment"), and the richest imaging
+        ("polychromatic + scatter (the presets')", imaging.chain(beam, sc)),
+        ("polychromatic + scatter + blur", imaging.chain(beam, sc, bl)),
+    ]
     for choice, model in cases:
         t = time.perf_counter()
         pair = study.images(proj, model)
@@ -174,13 +193,31 @@ def _image_rows(scene, label, proj, counts, t_proj, beam):
         rng = np.random.default_rng(seed)
         pair = study.images(proj, imaging.chain(mono, lambda L, rng=rng: study.add_noise(L, counts, rng)))
         h = study.headline(pair)
-        samples.append((h.change_ratio["linear"], h.improvement["linear"]["1"], h.improvement["linear"]["2"],
-                        h.improvement["log"]["1"], h.cnr["linear"]["1"], h.cnr_reference["linear"]))
+        samples.append(
+            (
+                h.change_ratio["linear"],
+                h.improvement["linear"]["1"],
+                h.improvement["linear"]["2"],
+                h.improvement["log"]["1"],
+                h.cnr["linear"]["1"],
+                h.cnr_reference["linear"],
+            )
+        )
     a = np.array(samples)
     m, sd = a.mean(axis=0), a.std(axis=0, ddof=1)
-    r = Row(label, "noise (5 seeds)", m[0], m[1], m[2], m[3], rows[0].bound1, m[4], m[5],
-            (t_proj + time.perf_counter() - t) / 5,
-            spread={"cr": sd[0], "if1": sd[1], "if2": sd[2], "if1_log": sd[3], "cnr1": sd[4]})
+    r = Row(
+        label,
+        "noise (5 seeds)",
+        m[0],
+        m[1],
+        m[2],
+        m[3],
+        rows[0].bound1,
+        m[4],
+        m[5],
+        (t_proj + time.perf_counter() - t) / 5,
+        spread={"cr": sd[0], "if1": sd[1], "if2": sd[2], "if1_log": sd[3], "cnr1": sd[4]},
+    )
     rows.append(r)
     return rows
 
@@ -198,13 +235,14 @@ def run_scene(name, view, quick, full, log, imaging_only=False):
     t = time.perf_counter()
     proj = study.project_pair(base, states, pixel_size_mm=PIXEL_MM)
     t_proj = time.perf_counter() - t
-    rows.append(_row(base, label, f"base (coarse {COARSE[0]}/{COARSE[1]} mm, mechanics)", study.images(proj),
-                     t_mech, counts))
+    rows.append(
+        _row(base, label, f"base (coarse {COARSE[0]}/{COARSE[1]} mm, mechanics)", study.images(proj), t_mech, counts)
+    )
     log(rows[-1])
     for r in _image_rows(base, label, proj, counts, t_proj, _beam(name, base)):
         rows.append(r)
         log(r)
-    for choice, mutate in ([] if imaging_only else _variants(name, quick, full)):
+    for choice, mutate in [] if imaging_only else _variants(name, quick, full):
         sc = dataclasses.replace(base)
         sc.mesh = dataclasses.replace(base.mesh)
         mutate(sc)
@@ -221,14 +259,19 @@ def _fmt(x, spec=".3f"):
 
 
 def _delta(r, base):
-    ch = [abs(getattr(r, k) / getattr(base, k) - 1) for k in ("cr", "if1", "if2", "cnr1")
-          if getattr(base, k) and math.isfinite(getattr(r, k))]
+    ch = [
+        abs(getattr(r, k) / getattr(base, k) - 1)
+        for k in ("cr", "if1", "if2", "cnr1")
+        if getattr(base, k) and math.isfinite(getattr(r, k))
+    ]
     return 100 * max(ch) if ch else float("nan")
 
 
 def table(rows) -> str:
-    head = ("| scene | choice | change ratio | IF(1) | IF(2) | IF(1) log | bound k=1 | CNR k=1 (ref) | d% | matters | s |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|")
+    head = (
+        "| scene | choice | change ratio | IF(1) | IF(2) | IF(1) log | bound k=1 | CNR k=1 (ref) | d% | matters | s |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|"
+    )
     out = [head]
     base = None
     for r in rows:
@@ -237,16 +280,27 @@ def table(rows) -> str:
         d = _delta(r, base) if r is not base else 0.0
         sd = r.spread
         pm = (lambda k, v: f"{_fmt(v)} ± {_fmt(sd[k])}") if sd else (lambda k, v: _fmt(v))  # noqa: B023 (called in this iteration)
-        out.append(f"| {r.scene} | {r.choice} | {pm('cr', r.cr)} | {pm('if1', r.if1)} | {pm('if2', r.if2)} | "
-                   f"{pm('if1_log', r.if1_log)} | {_fmt(r.bound1)} | {_fmt(r.cnr1, '.2f')} ({_fmt(r.cnr_ref, '.2f')}) | "
-                   f"{_fmt(d, '.1f')} | {'' if r is base else ('yes' if d > 1 else 'no')} | {_fmt(r.seconds, '.1f')} |")
+        out.append(
+            f"| {r.scene} | {r.choice} | {pm('cr', r.cr)} | {pm('if1', r.if1)} | {pm('if2', r.if2)} | "
+            f"{pm('if1_log', r.if1_log)} | {_fmt(r.bound1)} | {_fmt(r.cnr1, '.2f')} ({_fmt(r.cnr_ref, '.2f')}) | "
+            f"{_fmt(d, '.1f')} | {'' if r is base else ('yes' if d > 1 else 'no')} | {_fmt(r.seconds, '.1f')} |"
+        )
     return "\n".join(out)
 
 
 #: (at the inclusion, far, at the plates or None) in mm: the README's convergence table. Each
 #: banded mesh is followed by its double (every size halved), the preset's (sim.scene) first.
-CONVERGENCE = [(2.8, 16.0, None), (2.0, 12.0, None), (1.4, 8.0, None), (1.0, 6.0, None), (0.7, 6.0, None),
-               (2.0, 12.0, 2.0), (1.0, 6.0, 1.0), (1.4, 12.0, 2.0), (0.7, 6.0, 1.0)]
+CONVERGENCE = [
+    (2.8, 16.0, None),
+    (2.0, 12.0, None),
+    (1.4, 8.0, None),
+    (1.0, 6.0, None),
+    (0.7, 6.0, None),
+    (2.0, 12.0, 2.0),
+    (1.0, 6.0, 1.0),
+    (1.4, 12.0, 2.0),
+    (0.7, 6.0, 1.0),
+]
 
 
 def _parse_mesh(text):
@@ -267,28 +321,43 @@ def convergence_row(a, b, c) -> dict:
     pair = [s for s in st if s.ratio in RATIOS]
     h = study.headline(study.image_pair(sc, pair, pixel_size_mm=PIXEL_MM))
     s, sv = st[-1], st[-1].solver
-    return dict(mesh=[a, b, c], dofs=int(sv.ndof), seconds=secs, newton=sum(x.newton_iterations for x in st),
-                load_steps=s.load_steps, factorisations=sv.factorisations, gmres=sv.krylov_iterations,
-                force=s.plate_force_n, strain=s.inclusion_strain, cr=h.change_ratio["linear"],
-                if1=h.improvement["linear"]["1"], if2=h.improvement["linear"]["2"], load=os.getloadavg()[0])
+    return dict(
+        mesh=[a, b, c],
+        dofs=int(sv.ndof),
+        seconds=secs,
+        newton=sum(x.newton_iterations for x in st),
+        load_steps=s.load_steps,
+        factorisations=sv.factorisations,
+        gmres=sv.krylov_iterations,
+        force=s.plate_force_n,
+        strain=s.inclusion_strain,
+        cr=h.change_ratio["linear"],
+        if1=h.improvement["linear"]["1"],
+        if2=h.improvement["linear"]["2"],
+        load=os.getloadavg()[0],
+    )
 
 
 def convergence_table(rows) -> str:
     """The rows as markdown; a mesh whose double is also in ``rows`` gets the largest relative
     change of force, inclusion strain, change ratio, IF(1) and IF(2) on doubling."""
-    lines = ["| mesh at inclusion / far / plates (mm) | unknowns | s (3 states) | Newton / factorisations / GMRES | "
-             "force (N) | inclusion strain | change ratio (lin) | IF(1) | IF(2) | doubling changes |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| mesh at inclusion / far / plates (mm) | unknowns | s (3 states) | Newton / factorisations / GMRES | "
+        "force (N) | inclusion strain | change ratio (lin) | IF(1) | IF(2) | doubling changes |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     keys = ("force", "strain", "cr", "if1", "if2")
     by_mesh = {tuple(r["mesh"]): r for r in rows}
     for r in rows:
         a, b, c = r["mesh"]
         fine = by_mesh.get((a / 2, b / 2, c / 2 if c else None))
-        d = (f"{100 * max(abs(r[k] / fine[k] - 1) for k in keys):.1f} %" if fine else "")
+        d = f"{100 * max(abs(r[k] / fine[k] - 1) for k in keys):.1f} %" if fine else ""
         mesh = f"{a:g} / {b:g}" + (f" / {c:g}" if c else "")
-        lines.append(f"| {mesh} | {r['dofs']} | {r['seconds']:.0f} | {r['newton']} / {r['factorisations']} / "
-                     f"{r['gmres']} | {r['force']:.4f} | {r['strain']:.4f} | {r['cr']:.3f} | {r['if1']:.3f} | "
-                     f"{r['if2']:.3f} | {d} |")
+        lines.append(
+            f"| {mesh} | {r['dofs']} | {r['seconds']:.0f} | {r['newton']} / {r['factorisations']} / "
+            f"{r['gmres']} | {r['force']:.4f} | {r['strain']:.4f} | {r['cr']:.3f} | {r['if1']:.3f} | "
+            f"{r['if2']:.3f} | {d} |"
+        )
     return "\n".join(lines)
 
 
@@ -315,8 +384,12 @@ def main(argv=None) -> int:
     mode.add_argument("--full", action="store_true", help="add the refined meshes")
     mode.add_argument("--convergence", action="store_true", help="the 3-D seed-breast mesh study instead")
     mode.add_argument("--imaging-only", action="store_true", help="the base and the imaging rows only (minutes)")
-    ap.add_argument("--meshes", nargs="+", type=_parse_mesh, help="with --convergence: these meshes only "
-                    "(inclusion/far[/plates] mm, e.g. 2/12/2)")
+    ap.add_argument(
+        "--meshes",
+        nargs="+",
+        type=_parse_mesh,
+        help="with --convergence: these meshes only (inclusion/far[/plates] mm, e.g. 2/12/2)",
+    )
     ap.add_argument("--out", type=Path, default=Path("out/bench_model"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -327,8 +400,11 @@ def main(argv=None) -> int:
         return 0
 
     def log(r):
-        print(f"  {r.scene:<34} {r.choice:<40} CR {r.cr:.4f} IF1 {r.if1:.4f} IF2 {r.if2:.4f} "
-              f"IFlog {r.if1_log:.4f} CNR1 {r.cnr1:.3g} ({r.seconds:.1f} s)", flush=True)
+        print(
+            f"  {r.scene:<34} {r.choice:<40} CR {r.cr:.4f} IF1 {r.if1:.4f} IF2 {r.if2:.4f} "
+            f"IFlog {r.if1_log:.4f} CNR1 {r.cnr1:.3g} ({r.seconds:.1f} s)",
+            flush=True,
+        )
 
     rows = []
     cases = [("pva-phantom", None), ("pva-phantom", "through_plates")]

@@ -12,6 +12,7 @@ boundaries; cached per mesh afterwards) and the median over ``--reps`` further c
 Target: <= 2000 ms per projection. The numbers of covered pixels and the maximum line integral
 are printed as a sanity check; every image is checked to be finite and float32.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,8 +23,8 @@ import time
 import numpy as np
 
 from sim.mesh import build_mesh
-from sim.xray import _cached_surface, project
 from sim.scene import load_scene
+from sim.xray import _cached_surface, project
 
 
 def _cases():
@@ -40,8 +41,10 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5, help="timed repetitions after the first call")
     ap.add_argument("--supersample", type=int, default=1)
     args = ap.parse_args(argv)
-    print(f"{'mesh':28s} {'beam':9s} {'triangles':>9s} {'first ms':>9s} {'median ms':>9s} "
-          f"{'covered px':>10s} {'max mu L':>8s}")
+    print(
+        f"{'mesh':28s} {'beam':9s} {'triangles':>9s} {'first ms':>9s} {'median ms':>9s} "
+        f"{'covered px':>10s} {'max mu L':>8s}"
+    )
     worst = 0.0
     for name, scene, fem in _cases():
         for kind in ("parallel", "cone"):
@@ -58,10 +61,13 @@ def main(argv=None):
             assert np.isfinite(img).all()
             med = statistics.median(times)
             worst = max(worst, med)
-            n_tri = len(_cached_surface(fem, None if fem.model != "plane-strain" else scene.body.size_mm[2],
-                                        1e-5).faces)
-            print(f"{name:28s} {kind:9s} {n_tri:9d} {1e3 * first:9.0f} {1e3 * med:9.0f} "
-                  f"{int((img > 0).sum()):10d} {float(img.max()):8.4f}")
+            n_tri = len(
+                _cached_surface(fem, None if fem.model != "plane-strain" else scene.body.size_mm[2], 1e-5).faces
+            )
+            print(
+                f"{name:28s} {kind:9s} {n_tri:9d} {1e3 * first:9.0f} {1e3 * med:9.0f} "
+                f"{int((img > 0).sum()):10d} {float(img.max()):8.4f}"
+            )
     print(f"slowest median: {1e3 * worst:.0f} ms (target <= 2000 ms): {'OK' if worst <= 2.0 else 'MISSED'}")
 
 

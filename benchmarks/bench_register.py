@@ -26,6 +26,7 @@ against the truth (failed: median EPE > max(1 px, half the identity's); good: <=
 Writes ``bench_register.png``, ``stability.png``, ``family_maps.png`` and ``bench_register.json``. Size 1120 takes
 several minutes on two cores (``--quick``: 512 and fewer cells).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,12 +42,18 @@ from regdata import analytic_pair, block_mean, evaluate, score, sim_pair
 
 
 def configs():
-    from radiokit.register import METHODS, register  # noqa: F401 - fills METHODS
-    from radiokit.register import _load_methods
+    from radiokit.register import METHODS, _load_methods, register  # noqa: F401 - fills METHODS
 
     _load_methods()
-    out = [("rc", {}), ("rc-fast", {"preset": "fast"}), ("rc-weak", {"preset": "weak"}),
-           ("rc-weak-fast", {"preset": "weak-fast"}), ("ssd", {}), ("ncc", {}), ("mi", {})]
+    out = [
+        ("rc", {}),
+        ("rc-fast", {"preset": "fast"}),
+        ("rc-weak", {"preset": "weak"}),
+        ("rc-weak-fast", {"preset": "weak-fast"}),
+        ("ssd", {}),
+        ("ncc", {}),
+        ("mi", {}),
+    ]
     import importlib.util
 
     peers = ["tvl1", "ilk", "dis", "farneback"]
@@ -97,40 +104,61 @@ def levels_part(size, seed, opts):
     """rc's median / p95 EPE inside the body after each pyramid level (the field of the levels so
     far, evaluated on a grid 4x coarser), on the training pair at ``size`` and the same pair
     binned by 2 (its EPE also in the full size's pixels): where the pyramid stalls."""
-    from radiokit.register import _bspline as B
-    from radiokit.register import register
     from regdata import Case, family_pair
 
+    from radiokit.register import _bspline as B
+    from radiokit.register import register
+
     f, m, d, mask = family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed))
-    pairs = [(str(size), f, m, d, mask, 1),
-             (f"{size // 2} (binned)", block_mean(f, 2), block_mean(m, 2), block_mean(d, 2) / 2,
-              block_mean(mask.astype(np.float32), 2) > 0.5, 2)]
-    print(f"{Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed).label()}: identity "
-          f"{score(0 * d, d, mask)['epe_median']:.2f} px; rc {opts}", flush=True)
+    pairs = [
+        (str(size), f, m, d, mask, 1),
+        (
+            f"{size // 2} (binned)",
+            block_mean(f, 2),
+            block_mean(m, 2),
+            block_mean(d, 2) / 2,
+            block_mean(mask.astype(np.float32), 2) > 0.5,
+            2,
+        ),
+    ]
+    print(
+        f"{Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed).label()}: identity "
+        f"{score(0 * d, d, mask)['epe_median']:.2f} px; rc {opts}",
+        flush=True,
+    )
     for tag, f, m, d, mask, scale in pairs:
         k = 4
         db, mb = block_mean(d, k) / k, block_mean(mask.astype(np.float32), k) > 0.5
         acc = np.zeros_like(db)
         lines = []
 
-        def cb(factor, res, f=f, db=db, mb=mb, lines=lines):
+        def cb(factor, res, f=f, db=db, mb=mb, lines=lines, scale=scale):
             nonlocal acc
             spacing = B.PRESETS[opts.get("preset", "default")]["spacing"] if "spacing" not in opts else opts["spacing"]
             acc = acc + B.BSplineField(f.shape, spacing * max(1, factor // 2)).field(res.x, k, db.shape[1:])  # noqa: B023
             e = k * np.hypot(*(acc - db))[mb]  # noqa: B023
-            lines.append(f"    level 1/{factor} ({f.shape[0] // factor} px), {res.nit} iterations: "
-                         f"{np.median(e):.2f} / {np.percentile(e, 95):.2f} px (x{scale}: {scale * np.median(e):.2f})")  # noqa: B023 (called in this iteration)
+            lines.append(
+                f"    level 1/{factor} ({f.shape[0] // factor} px), {res.nit} iterations: "
+                f"{np.median(e):.2f} / {np.percentile(e, 95):.2f} px (x{scale}: {scale * np.median(e):.2f})"
+            )
 
         t = time.perf_counter()
         r = register(f, m, "rc", callback=cb, **opts)
         sc = score(r.displacement, d, mask)
-        print(f"  {tag}: {sc['epe_median']:.2f} / {sc['epe_p95']:.2f} px, {time.perf_counter() - t:.1f} s, "
-              f"ok={r.quality.ok}", flush=True)
+        print(
+            f"  {tag}: {sc['epe_median']:.2f} / {sc['epe_p95']:.2f} px, {time.perf_counter() - t:.1f} s, "
+            f"ok={r.quality.ok}",
+            flush=True,
+        )
         print("\n".join(lines), flush=True)
 
 
-RC_PRESETS = {"default": {}, "weak": {"preset": "weak"}, "fast": {"preset": "fast"},
-              "weak-fast": {"preset": "weak-fast"}}
+RC_PRESETS = {
+    "default": {},
+    "weak": {"preset": "weak"},
+    "fast": {"preset": "fast"},
+    "weak-fast": {"preset": "weak-fast"},
+}
 
 
 def _presets_row(tag, pair, presets):
@@ -159,8 +187,11 @@ def presets_part(which, split):
             _presets_row(c.label(), family_pair(c), list(RC_PRESETS))
     elif which == "rich":
         for kind in ("thinning", "gain"):
-            _presets_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind),
-                         list(RC_PRESETS))
+            _presets_row(
+                f"analytic_pair 2240 {kind} seed 1",
+                analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind),
+                list(RC_PRESETS),
+            )
         for s in seeds[:2]:
             c = Case(size=2240, texture=0.1, noise=0.01, corr=0.1, seed=s)
             _presets_row(c.label(), family_pair(c), ["default", "weak"])
@@ -177,24 +208,37 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=1120)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench_register"))
-    ap.add_argument("--sim", help="also a simulated experiment: a file (radiokit sim run) or a scene preset "
-                                   "(e.g. seed-breast; simulated once, cached in out/regdata_cache); the last two "
-                                   "steps, noise-free line integrals and corrected noisy frames")
+    ap.add_argument(
+        "--sim",
+        help="also a simulated experiment: a file (radiokit sim run) or a scene preset "
+        "(e.g. seed-breast; simulated once, cached in out/regdata_cache); the last two "
+        "steps, noise-free line integrals and corrected noisy frames",
+    )
     ap.add_argument("--skip", default="", help="methods to leave out, comma-separated (e.g. mi: 26 s at 512)")
     ap.add_argument("--family-only", action="store_true", help="only part 3, the textureless-phantom family")
     ap.add_argument("--family-size", type=int, default=560, help="the family's frame size (560-2240)")
     ap.add_argument("--family-seeds", type=int, default=1, help="test seeds per family cell")
-    ap.add_argument("--family-sim", default="seed-breast,pva-phantom",
-                    help="scene presets whose simulated pairs join the family (comma-separated; '' for none)")
-    ap.add_argument("--levels", metavar="JSON", nargs="*",
-                    help="only the per-level diagnosis: rc's EPE after each pyramid level on one TRAINING pair "
-                         "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
-                         "(e.g. '{}' '{\"preset\": \"weak\"}')")
+    ap.add_argument(
+        "--family-sim",
+        default="seed-breast,pva-phantom",
+        help="scene presets whose simulated pairs join the family (comma-separated; '' for none)",
+    )
+    ap.add_argument(
+        "--levels",
+        metavar="JSON",
+        nargs="*",
+        help="only the per-level diagnosis: rc's EPE after each pyramid level on one TRAINING pair "
+        "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
+        "(e.g. '{}' '{\"preset\": \"weak\"}')",
+    )
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
-    ap.add_argument("--presets", choices=["weak", "rich", "map"],
-                    help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
-                         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
-                         "simulated pairs")
+    ap.add_argument(
+        "--presets",
+        choices=["weak", "rich", "map"],
+        help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
+        "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
+        "simulated pairs",
+    )
     ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
     args = ap.parse_args(argv)
     if args.presets:
@@ -215,24 +259,29 @@ def main(argv=None):
     fam = family_part(args, cfgs)
     family_charts(fam, args.out)
     if args.family_only:
-        (args.out / "bench_family.json").write_text(json.dumps({"size": args.family_size, "rows": fam,
-                                                                 "confusion": confusion(fam)}, indent=1, default=float))
+        (args.out / "bench_family.json").write_text(
+            json.dumps({"size": args.family_size, "rows": fam, "confusion": confusion(fam)}, indent=1, default=float)
+        )
         print(f"chart {args.out / 'family_maps.png'}")
         return 0
     results = {}
     kinds = ["thinning", "gain"] + (["sim", "sim-noisy"] if args.sim else [])
     for kind in kinds:
         if kind.startswith("sim"):
-            fixed, moving, truth, mask = sim_pair(args.sim, moving_step=-1, noisy=kind == "sim-noisy",
-                                                  size=None if args.size >= 2240 else size)
+            fixed, moving, truth, mask = sim_pair(
+                args.sim, moving_step=-1, noisy=kind == "sim-noisy", size=None if args.size >= 2240 else size
+            )
         else:
             fixed, moving, truth, mask = analytic_pair(size, 0.01, 0.10, 0.01, seed=1, kind=kind)
         base = score(np.zeros_like(truth), truth, mask)
         rows = [run_one(n, o, fixed, moving, truth, mask) for n, o in cfgs]
         results[kind] = {"identity": base, "rows": rows, "pareto": pareto(rows)}
-        what = (f"{args.sim} {fixed.shape[0]}x{fixed.shape[1]} (last two steps, "
-                f"{'corrected noisy frames' if kind == 'sim-noisy' else 'noise-free line integrals'})" if kind.startswith("sim")
-                else f"{size}x{size}: 1 % displacement, 10 % intensity change")
+        what = (
+            f"{args.sim} {fixed.shape[0]}x{fixed.shape[1]} (last two steps, "
+            f"{'corrected noisy frames' if kind == 'sim-noisy' else 'noise-free line integrals'})"
+            if kind.startswith("sim")
+            else f"{size}x{size}: 1 % displacement, 10 % intensity change"
+        )
         print(f"\n{kind} pair {what}; identity EPE median {base['epe_median']:.3f} px")
         print(f"  {'method':<16} {'time s':>8} {'EPE med':>8} {'EPE p95':>8} {'folds':>6}  ok")
         for r in rows:
@@ -240,8 +289,10 @@ def main(argv=None):
                 print(f"  {r['method']:<16} error: {r['error'][:80]}")
                 continue
             mark = " *" if r["method"] in results[kind]["pareto"] else ""
-            print(f"  {r['method']:<16} {r['seconds']:8.2f} {r['epe_median']:8.3f} {r['epe_p95']:8.3f} "
-                  f"{r['folds']:6d}  {r['ok']}{mark}")
+            print(
+                f"  {r['method']:<16} {r['seconds']:8.2f} {r['epe_median']:8.3f} {r['epe_p95']:8.3f} "
+                f"{r['folds']:6d}  {r['ok']}{mark}"
+            )
         print("  (* on the Pareto front: nothing both faster and more accurate)")
 
     # stability map: displacement x intensity change x noise
@@ -249,8 +300,9 @@ def main(argv=None):
     inten = [0.0, 0.1, 0.2]
     noises = [0.01, 0.03]
     names = [n for n, _ in cfgs]
-    stab_names = ["rc", "rc-fast"] + [n for n in ("dis+hp", "elastix+hp", "sitk-demons+hp", "tvl1+hp", "farneback+hp")
-                                      if n in names]
+    stab_names = ["rc", "rc-fast"] + [
+        n for n in ("dis+hp", "elastix+hp", "sitk-demons+hp", "tvl1+hp", "farneback+hp") if n in names
+    ]
     if args.quick:
         stab_names = stab_names[:4]
         noises = noises[:1]
@@ -268,13 +320,17 @@ def main(argv=None):
                     r = run_one(n, o, fixed, moving, truth, mask)
                     smap[n][h, i, j] = r.get("epe_median", np.nan)
                     worse[n][h, i, j] = r.get("epe_median", np.inf) >= base
-    print(f"\nstability ({ssize}x{ssize}, thinning): EPE median (px); rows displacement {disp} of the frame, "
-          f"columns intensity change {inten}; '!' = no better than not registering")
+    print(
+        f"\nstability ({ssize}x{ssize}, thinning): EPE median (px); rows displacement {disp} of the frame, "
+        f"columns intensity change {inten}; '!' = no better than not registering"
+    )
     for h, noise in enumerate(noises):
         print(f" noise {noise}")
         for n, _ in stab_methods:
-            cells = ["  ".join(f"{smap[n][h, i, j]:7.3f}{'!' if worse[n][h, i, j] else ' '}" for j in range(len(inten)))
-                     for i in range(len(disp))]
+            cells = [
+                "  ".join(f"{smap[n][h, i, j]:7.3f}{'!' if worse[n][h, i, j] else ' '}" for j in range(len(inten)))
+                for i in range(len(disp))
+            ]
             print(f"  {n:<16}" + "  |  ".join(cells))
 
     import matplotlib
@@ -296,21 +352,31 @@ def main(argv=None):
         ax.set_yscale("log")
         ax.set_xlabel("time per pair (s)")
         ax.set_ylabel("end-point error, median (px)")
-        ax.set_title(f"simulated {args.sim}, last two steps{', noisy' if kind == 'sim-noisy' else ''}"
-                     if kind.startswith("sim")
-                     else f"{kind}: {size}x{size}, 1 % motion, 10 % intensity change")
+        ax.set_title(
+            f"simulated {args.sim}, last two steps{', noisy' if kind == 'sim-noisy' else ''}"
+            if kind.startswith("sim")
+            else f"{kind}: {size}x{size}, 1 % motion, 10 % intensity change"
+        )
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out / "bench_register.png", dpi=110)
-    fig, axs = plt.subplots(len(noises), len(stab_methods), figsize=(2.9 * len(stab_methods), 2.9 * len(noises)),
-                            squeeze=False)
+    fig, axs = plt.subplots(
+        len(noises), len(stab_methods), figsize=(2.9 * len(stab_methods), 2.9 * len(noises)), squeeze=False
+    )
     for h, noise in enumerate(noises):
         for ax, (n, _) in zip(axs[h], stab_methods):
             im = ax.imshow(np.log10(np.maximum(smap[n][h], 1e-3)), cmap="viridis", vmin=-1.5, vmax=1.5, origin="lower")
             for i in range(len(disp)):
                 for j in range(len(inten)):
-                    ax.text(j, i, f"{smap[n][h, i, j]:.2f}{'!' if worse[n][h, i, j] else ''}", ha="center",
-                            va="center", color="w", fontsize=8)
+                    ax.text(
+                        j,
+                        i,
+                        f"{smap[n][h, i, j]:.2f}{'!' if worse[n][h, i, j] else ''}",
+                        ha="center",
+                        va="center",
+                        color="w",
+                        fontsize=8,
+                    )
             ax.set_xticks(range(len(inten)), [f"{100 * v:.0f}%" for v in inten])
             ax.set_yticks(range(len(disp)), [f"{100 * v:.0f}%" for v in disp])
             ax.set_xlabel("intensity change")
@@ -318,13 +384,25 @@ def main(argv=None):
             ax.set_title(f"{n}, noise {noise}", fontsize=9)
     fig.colorbar(im, ax=axs, fraction=0.02, label="log10 EPE median (px); '!' no better than identity")
     fig.savefig(args.out / "stability.png", dpi=110)
-    (args.out / "bench_register.json").write_text(json.dumps(
-        {"size": size, "pairs": results, "family": {"size": args.family_size, "rows": fam, "confusion": confusion(fam)},
-         "stability": {"size": ssize, "noise": noises, "displacement": disp,
-                                                      "intensity": inten,
-                                                      "epe_median": {n: smap[n].tolist() for n in smap},
-                                                      "no_better_than_identity": {n: worse[n].tolist() for n in worse}}},
-        indent=1, default=float))
+    (args.out / "bench_register.json").write_text(
+        json.dumps(
+            {
+                "size": size,
+                "pairs": results,
+                "family": {"size": args.family_size, "rows": fam, "confusion": confusion(fam)},
+                "stability": {
+                    "size": ssize,
+                    "noise": noises,
+                    "displacement": disp,
+                    "intensity": inten,
+                    "epe_median": {n: smap[n].tolist() for n in smap},
+                    "no_better_than_identity": {n: worse[n].tolist() for n in worse},
+                },
+            },
+            indent=1,
+            default=float,
+        )
+    )
     print(f"charts {args.out / 'bench_register.png'}, {args.out / 'stability.png'}")
     return 0
 
@@ -346,16 +424,42 @@ def family_part(args, cfgs):
     cases = family("test", args.family_size, grid="all", n_seeds=args.family_seeds)
     for c in cases:
         pair = family_pair(c)
-        rows += _family_rows(pair, methods, dict(case=c.label(), t2n=c.t2n, corr=c.corr, motion=c.motion,
-                                                 domain=c.domain, texture=c.texture, noise=c.noise,
-                                                 spread=not (c.amplitude == 0.01 and c.motion == "random"
-                                                             and c.noise == 0.01 and c.domain == "log"
-                                                             and c.noise_kind == "gaussian"
-                                                             and c.intensity == 0.1 and c.kind == "thinning")))
+        rows += _family_rows(
+            pair,
+            methods,
+            dict(
+                case=c.label(),
+                t2n=c.t2n,
+                corr=c.corr,
+                motion=c.motion,
+                domain=c.domain,
+                texture=c.texture,
+                noise=c.noise,
+                spread=not (
+                    c.amplitude == 0.01
+                    and c.motion == "random"
+                    and c.noise == 0.01
+                    and c.domain == "log"
+                    and c.noise_kind == "gaussian"
+                    and c.intensity == 0.1
+                    and c.kind == "thinning"
+                ),
+            ),
+        )
     for preset in args.family_sim:
         pair = sim_pair(preset, moving_step=-1, noisy=True, size=args.family_size)
-        rows += _family_rows(pair, methods, dict(case=f"sim {preset} {pair[0].shape[0]} noisy", t2n=None, corr=None,
-                                                 motion="sim", domain="log", spread=True))
+        rows += _family_rows(
+            pair,
+            methods,
+            dict(
+                case=f"sim {preset} {pair[0].shape[0]} noisy",
+                t2n=None,
+                corr=None,
+                motion="sim",
+                domain="log",
+                spread=True,
+            ),
+        )
     _print_family(rows, methods, args)
     return rows
 
@@ -363,8 +467,17 @@ def family_part(args, cfgs):
 def _family_rows(pair, methods, meta):
     fixed, moving, truth, mask = pair
     ident = score(np.zeros_like(truth), truth, mask)
-    out = [dict(meta, method="identity", epe_median=ident["epe_median"], epe_p95=ident["epe_p95"], seconds=0.0,
-                ok=None, identity=ident["epe_median"])]
+    out = [
+        dict(
+            meta,
+            method="identity",
+            epe_median=ident["epe_median"],
+            epe_p95=ident["epe_p95"],
+            seconds=0.0,
+            ok=None,
+            identity=ident["epe_median"],
+        )
+    ]
     from radiokit.register import register
 
     for name, opts in methods:
@@ -379,12 +492,24 @@ def _family_rows(pair, methods, meta):
         s = score(reg.displacement, truth, mask)
         obs = (reg.confidence >= 0.5) & mask if reg.confidence is not None else np.zeros_like(mask)
         e = np.hypot(*(reg.displacement - truth))
-        out.append(dict(meta, method=name, seconds=sec, epe_median=s["epe_median"], epe_p95=s["epe_p95"],
-                        ok=bool(reg.quality.ok), reason=reg.quality.reason, identity=ident["epe_median"],
-                        observed=float(obs.sum() / mask.sum()),
-                        epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None))
-    line = " ".join(f"{r['method']} {r.get('epe_median', float('nan')):.2f}{'' if r.get('ok') in (None, True) else '!'}"
-                    for r in out)
+        out.append(
+            dict(
+                meta,
+                method=name,
+                seconds=sec,
+                epe_median=s["epe_median"],
+                epe_p95=s["epe_p95"],
+                ok=bool(reg.quality.ok),
+                reason=reg.quality.reason,
+                identity=ident["epe_median"],
+                observed=float(obs.sum() / mask.sum()),
+                epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
+            )
+        )
+    line = " ".join(
+        f"{r['method']} {r.get('epe_median', float('nan')):.2f}{'' if r.get('ok') in (None, True) else '!'}"
+        for r in out
+    )
     print(f"  {meta['case']:<62} {line}", flush=True)
     return out
 
@@ -395,16 +520,28 @@ def confusion(rows):
     res = [r for r in rows if r["method"] != "identity" and "error" not in r]
     failed = [r for r in res if r["epe_median"] > max(1.0, 0.5 * r["identity"])]
     good = [r for r in res if r["epe_median"] <= 0.5]
-    return dict(failed=len(failed), failed_flagged=sum(not r["ok"] for r in failed), good=len(good),
-                good_ok=sum(bool(r["ok"]) for r in good), n=len(res))
+    return dict(
+        failed=len(failed),
+        failed_flagged=sum(not r["ok"] for r in failed),
+        good=len(good),
+        good_ok=sum(bool(r["ok"]) for r in good),
+        n=len(res),
+    )
 
 
 def _map(rows, method, t2ns, corrs):
     m = np.full((len(t2ns), len(corrs)), np.nan)
     for i, t in enumerate(t2ns):
         for j, c in enumerate(corrs):
-            v = [r["epe_median"] for r in rows if r["method"] == method and not r.get("spread") and "error" not in r
-                 and r["t2n"] == t and r["corr"] == c]
+            v = [
+                r["epe_median"]
+                for r in rows
+                if r["method"] == method
+                and not r.get("spread")
+                and "error" not in r
+                and r["t2n"] == t
+                and r["corr"] == c
+            ]
             m[i, j] = np.median(v) if v else np.nan
     return m
 
@@ -412,26 +549,41 @@ def _map(rows, method, t2ns, corrs):
 def _print_family(rows, methods, args):
     t2ns = sorted({r["t2n"] for r in rows if not r.get("spread")})
     corrs = sorted({r["corr"] for r in rows if not r.get("spread")}, reverse=True)
-    print(f"\nfamily maps ({args.family_size} px, test seeds, {args.family_seeds} per cell): median EPE (px); rows "
-          f"texture/noise {t2ns}, columns correlation length {[f'1/{round(1 / c)}' for c in corrs]} of the frame")
+    print(
+        f"\nfamily maps ({args.family_size} px, test seeds, {args.family_seeds} per cell): median EPE (px); rows "
+        f"texture/noise {t2ns}, columns correlation length {[f'1/{round(1 / c)}' for c in corrs]} of the frame"
+    )
     for name in ["identity"] + [n for n, _ in methods]:
         m = _map(rows, name, t2ns, corrs)
         print(f"  {name:<12} " + "  |  ".join(" ".join(f"{v:6.2f}" for v in m[i]) for i in range(len(t2ns))))
     print("\nspread and simulated cases (median EPE px, p95, time s, ok):")
     for case in dict.fromkeys(r["case"] for r in rows if r.get("spread")):
         rs = [r for r in rows if r["case"] == case]
-        print(f"  {case:<58} " + " | ".join(
-            f"{r['method']} " + (f"{r['epe_median']:.2f}/{r['epe_p95']:.2f} {r['seconds']:.1f}s"
-                                 f"{'' if r.get('ok') in (None, True) else ' !'}" if "error" not in r else "error")
-            for r in rs))
+        print(
+            f"  {case:<58} "
+            + " | ".join(
+                f"{r['method']} "
+                + (
+                    f"{r['epe_median']:.2f}/{r['epe_p95']:.2f} {r['seconds']:.1f}s"
+                    f"{'' if r.get('ok') in (None, True) else ' !'}"
+                    if "error" not in r
+                    else "error"
+                )
+                for r in rs
+            )
+        )
     c = confusion(rows)
-    print(f"\nquality.ok against the truth, all methods, {c['n']} results: failed (median EPE > max(1 px, half the "
-          f"identity's)) {c['failed']}, flagged not ok {c['failed_flagged']} "
-          f"({100 * c['failed_flagged'] / max(c['failed'], 1):.0f} %); good (<= 0.5 px) {c['good']}, ok "
-          f"{c['good_ok']} ({100 * c['good_ok'] / max(c['good'], 1):.0f} %)")
+    print(
+        f"\nquality.ok against the truth, all methods, {c['n']} results: failed (median EPE > max(1 px, half the "
+        f"identity's)) {c['failed']}, flagged not ok {c['failed_flagged']} "
+        f"({100 * c['failed_flagged'] / max(c['failed'], 1):.0f} %); good (<= 0.5 px) {c['good']}, ok "
+        f"{c['good_ok']} ({100 * c['good_ok'] / max(c['good'], 1):.0f} %)"
+    )
     for name, _ in methods:
         cm = confusion([r for r in rows if r["method"] == name])
-        print(f"  {name:<12} failed {cm['failed']} flagged {cm['failed_flagged']}; good {cm['good']} ok {cm['good_ok']}")
+        print(
+            f"  {name:<12} failed {cm['failed']} flagged {cm['failed_flagged']}; good {cm['good']} ok {cm['good_ok']}"
+        )
 
 
 def family_charts(rows, out_dir):
@@ -443,8 +595,7 @@ def family_charts(rows, out_dir):
     t2ns = sorted({r["t2n"] for r in rows if not r.get("spread")})
     corrs = sorted({r["corr"] for r in rows if not r.get("spread")}, reverse=True)
     names = list(dict.fromkeys(r["method"] for r in rows))
-    fig, axs = plt.subplots(1, len(names), figsize=(2.9 * len(names) + 1.0, 3.6), squeeze=False,
-                            layout="constrained")
+    fig, axs = plt.subplots(1, len(names), figsize=(2.9 * len(names) + 1.0, 3.6), squeeze=False, layout="constrained")
     for ax, name in zip(axs[0], names):
         m = _map(rows, name, t2ns, corrs)
         im = ax.imshow(np.log10(np.maximum(m, 1e-2)), cmap="viridis", vmin=-1.5, vmax=1.0, origin="lower")

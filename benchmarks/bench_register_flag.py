@@ -18,6 +18,7 @@ trusted = ``ok`` True (>= 90 %); and the reasons given for the good results that
 and the failed ones that were trusted. With ``--textureless`` also the truly textureless pairs'
 median EPE where the confidence map says observed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_register import FAMILY_METHODS, confusion, configs
+from bench_register import FAMILY_METHODS, configs, confusion
 from regdata import family, family_pair, score, sim_pair
 
 
@@ -41,8 +42,11 @@ def pairs(split, size, n_seeds, sim_presets):
         yield c.label(), dict(t2n=c.t2n, texture=c.texture), (lambda c=c: family_pair(c))
     if split == "test":
         for p in sim_presets:
-            yield (f"sim {p} {size} noisy", dict(t2n=None, texture=None),
-                   (lambda p=p: sim_pair(p, moving_step=-1, noisy=True, size=size)))
+            yield (
+                f"sim {p} {size} noisy",
+                dict(t2n=None, texture=None),
+                (lambda p=p: sim_pair(p, moving_step=-1, noisy=True, size=size)),
+            )
 
 
 def _cache_path(out, label, name):
@@ -98,14 +102,29 @@ def run(args):
             reg = assess(name, opts, fixed, moving, d, info, sec)
             e = np.hypot(*(reg.displacement - truth))
             obs = (reg.confidence >= 0.5) & mask
-            rows.append(dict(meta, case=label, method=name, epe_median=float(np.median(e[mask])), identity=ident,
-                             ok=bool(reg.quality.ok), reason=reg.quality.reason, seconds=sec,
-                             observed=float(obs.sum() / mask.sum()),
-                             misaligned=reg.quality.misaligned_fraction,
-                             epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None))
-        print(f"  {label:<62} " + " ".join(
-            f"{r['method']} {r['epe_median']:.2f}{'' if r['ok'] in (None, True) else '!'}"
-            for r in rows[-1 - len(methods):]), flush=True)
+            rows.append(
+                dict(
+                    meta,
+                    case=label,
+                    method=name,
+                    epe_median=float(np.median(e[mask])),
+                    identity=ident,
+                    ok=bool(reg.quality.ok),
+                    reason=reg.quality.reason,
+                    seconds=sec,
+                    observed=float(obs.sum() / mask.sum()),
+                    misaligned=reg.quality.misaligned_fraction,
+                    epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
+                )
+            )
+        print(
+            f"  {label:<62} "
+            + " ".join(
+                f"{r['method']} {r['epe_median']:.2f}{'' if r['ok'] in (None, True) else '!'}"
+                for r in rows[-1 - len(methods) :]
+            ),
+            flush=True,
+        )
     return rows, methods
 
 
@@ -118,9 +137,11 @@ def table(rows, methods) -> str:
     lines = ["| results | failed | flagged (ok False) | good | trusted (ok True) |", "|---|---|---|---|---|"]
     for tag, sel in [("all methods", rows)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
         c = confusion(sel)
-        lines.append(f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} "
-                     f"({_pct(c['failed_flagged'], c['failed'])}) | {c['good']} | {c['good_ok']} "
-                     f"({_pct(c['good_ok'], c['good'])}) |")
+        lines.append(
+            f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} "
+            f"({_pct(c['failed_flagged'], c['failed'])}) | {c['good']} | {c['good_ok']} "
+            f"({_pct(c['good_ok'], c['good'])}) |"
+        )
     return "\n".join(lines)
 
 
@@ -134,9 +155,11 @@ def misses(rows) -> list[str]:
         if r["epe_median"] <= 0.5 and not r["ok"]:
             out.append(f"  good, flagged: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px: {r['reason']}")
         elif failed and r["ok"]:
-            out.append(f"  failed, trusted: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px "
-                       f"(identity {r['identity']:.2f}; observed {r['observed']:.2f}, "
-                       f"misaligned {r['misaligned']:.2f})")
+            out.append(
+                f"  failed, trusted: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px "
+                f"(identity {r['identity']:.2f}; observed {r['observed']:.2f}, "
+                f"misaligned {r['misaligned']:.2f})"
+            )
     return out
 
 
@@ -146,8 +169,10 @@ def textureless(rows) -> list[str]:
     for r in rows:
         if r["method"] != "identity" and r.get("texture") == 0.0:
             eo = "-" if r["epe_observed"] is None else f"{r['epe_observed']:.2f}"
-            out.append(f"  {r['method']:<11} {r['case']:<58} body {r['epe_median']:.2f} px, observed "
-                       f"{100 * r['observed']:.0f} % of the body, EPE there {eo} px, ok {r['ok']}")
+            out.append(
+                f"  {r['method']:<11} {r['case']:<58} body {r['epe_median']:.2f} px, observed "
+                f"{100 * r['observed']:.0f} % of the body, EPE there {eo} px, ok {r['ok']}"
+            )
     return out
 
 
@@ -155,13 +180,18 @@ def textureless_check(size, seed=1000):
     """A truly textureless test pair (correlation 1/10): the truth and the identity planted as
     results (does the map's observed region carry the motion?), then rc and rc fast: the observed
     share of the body, the median EPE there, the misaligned share and ``ok``."""
-    from radiokit.register import register
     from regdata import Case
+
+    from radiokit.register import register
 
     fixed, moving, truth, mask = family_pair(Case(size=size, texture=0.0, noise=0.01, corr=0.1, seed=seed))
     print(f"textureless {size} px, test seed {seed}: identity {score(0 * truth, truth, mask)['epe_median']:.2f} px")
-    for tag, name, opts, field in (("truth planted", "planted", {}, truth), ("identity planted", "planted", {}, 0 * truth),
-                                   ("rc", "rc", {}, None), ("rc fast", "rc", {"preset": "fast"}, None)):
+    for tag, name, opts, field in (
+        ("truth planted", "planted", {}, truth),
+        ("identity planted", "planted", {}, 0 * truth),
+        ("rc", "rc", {}, None),
+        ("rc fast", "rc", {"preset": "fast"}, None),
+    ):
         t = time.perf_counter()
         if field is None:
             reg = register(fixed, moving, name, **opts)
@@ -170,9 +200,12 @@ def textureless_check(size, seed=1000):
         obs = (reg.confidence >= 0.5) & mask
         e = np.hypot(*(reg.displacement - truth))
         there = float(np.median(e[obs])) if obs.any() else float("nan")
-        print(f"  {tag:<17} body {np.median(e[mask]):.2f} px; observed {100 * obs.sum() / mask.sum():.0f} % of the body, "
-              f"EPE there {there:.2f} px; misaligned {reg.quality.misaligned_fraction:.2f}; ok {reg.quality.ok}; "
-              f"{time.perf_counter() - t:.1f} s", flush=True)
+        print(
+            f"  {tag:<17} body {np.median(e[mask]):.2f} px; observed {100 * obs.sum() / mask.sum():.0f} % of the body, "
+            f"EPE there {there:.2f} px; misaligned {reg.quality.misaligned_fraction:.2f}; ok {reg.quality.ok}; "
+            f"{time.perf_counter() - t:.1f} s",
+            flush=True,
+        )
 
 
 def main(argv=None) -> int:
@@ -185,8 +218,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="cache (default out/bench_register_flag/SPLIT-SIZE)")
     ap.add_argument("--fresh", action="store_true", help="register again even when a result is cached")
     ap.add_argument("--textureless", action="store_true", help="also the textureless pairs' observed EPE")
-    ap.add_argument("--textureless-check", type=int, metavar="SIZE",
-                    help="only the planted-field check of a textureless test pair at SIZE (e.g. 2240)")
+    ap.add_argument(
+        "--textureless-check",
+        type=int,
+        metavar="SIZE",
+        help="only the planted-field check of a textureless test pair at SIZE (e.g. 2240)",
+    )
     args = ap.parse_args(argv)
     if args.textureless_check:
         textureless_check(args.textureless_check)
@@ -197,8 +234,10 @@ def main(argv=None) -> int:
     print(f"load average before: {os.getloadavg()}", flush=True)
     t0 = time.perf_counter()
     rows, methods = run(args)
-    print(f"\nquality.ok against the truth, {args.split} seeds ({args.seeds} per case), {args.size} px "
-          f"(failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px):\n")
+    print(
+        f"\nquality.ok against the truth, {args.split} seeds ({args.seeds} per case), {args.size} px "
+        f"(failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px):\n"
+    )
     print(table(rows, methods))
     print("\n".join(["", "misses:"] + misses(rows)))
     if args.textureless:

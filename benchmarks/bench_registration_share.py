@@ -22,6 +22,7 @@ the change ratio and IF(1), IF(2) (linear domain, the paper's ``-I/I0``), and th
 1.4 and 0.66-0.84 and the bound; the table says, per scene, the smallest error at which the
 improvement factor reached 1.4 (if any).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,8 +45,12 @@ PIXEL_MM = 0.3
 ERRORS_MM = (0.1, 0.3, 0.6, 1.0, 1.5, 2.0, 3.0)
 METHODS = (("rc", {"preset": "fast"}), ("ncc", {"preset": "fast"}), ("tvl1", {}), ("dis", {}))
 # issue 11's acceptance: each method against the moving image warped by the stored truth
-AGAINST_TRUTH = (("rc", "rc", {}), ("rc fast", "rc", {"preset": "fast"}),
-                 ("elastix+hp", "elastix", {"prefilter": "highpass"}), ("dis+hp", "dis", {"prefilter": "highpass"}))
+AGAINST_TRUTH = (
+    ("rc", "rc", {}),
+    ("rc fast", "rc", {"preset": "fast"}),
+    ("elastix+hp", "elastix", {"prefilter": "highpass"}),
+    ("dis+hp", "dis", {"prefilter": "highpass"}),
+)
 
 
 @dataclasses.dataclass
@@ -84,8 +89,17 @@ def run_scene(name, view, log):
 
     def add(kind, err, field, seconds=0.0):
         h = study.headline(study.with_field(noisy, field), rois=rois)
-        p = Point(label, kind, err, _epe_mm(field, proj.truth, body), h.change_ratio["linear"],
-                  h.improvement["linear"]["1"], h.improvement["linear"]["2"], h.bound["linear"]["1"], seconds)
+        p = Point(
+            label,
+            kind,
+            err,
+            _epe_mm(field, proj.truth, body),
+            h.change_ratio["linear"],
+            h.improvement["linear"]["1"],
+            h.improvement["linear"]["2"],
+            h.bound["linear"]["1"],
+            seconds,
+        )
         pts.append(p)
         log(p)
 
@@ -119,7 +133,7 @@ def shadow_centroid(image, inclusion_mask, radius_px):
     k = max(1, int(radius_px / 2))
     near = cv2.dilate(inclusion_mask.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)).astype(bool)
     w = np.where(near, np.maximum(hp, 0), 0).astype(np.float64)
-    rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    rr, cc = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
     return float((w * rr).sum() / w.sum()), float((w * cc).sum() / w.sum())
 
 
@@ -137,8 +151,9 @@ def against_truth(name, view, log):
     states = compress(scene, (0.20, 0.25))
     proj = study.project_pair(scene, states, pixel_size_mm=PIXEL_MM)
     counts = scene.exposure.i0_counts * (PIXEL_MM / 0.05) ** 2
-    noisy = study.images(proj, imaging.chain(imaging.monochromatic,
-                                             lambda L: study.add_noise(L, counts, np.random.default_rng(0))))
+    noisy = study.images(
+        proj, imaging.chain(imaging.monochromatic, lambda L: study.add_noise(L, counts, np.random.default_rng(0)))
+    )
     truth = study.with_field(noisy, proj.truth)
     ht = study.headline(truth)
     rois = (ht.inclusion, ht.background)
@@ -152,11 +167,19 @@ def against_truth(name, view, log):
         sec = time.perf_counter() - t
         h = study.headline(study.with_field(noisy, reg.displacement), rois=rois)
         c = shadow_centroid(study.with_field(noisy, reg.displacement).registered, noisy.inclusion_mask, radius)
-        row = dict(scene=scene.name, method=label, d_if1=h.improvement["linear"]["1"] - ht.improvement["linear"]["1"],
-                   d_cr=h.change_ratio["linear"] - ht.change_ratio["linear"], centroid_px=float(np.hypot(c[0] - ct[0], c[1] - ct[1])),
-                   epe_px=_epe_mm(reg.displacement, proj.truth, body) / PIXEL_MM, ok=bool(reg.quality.ok),
-                   identity_px=_epe_mm(np.zeros_like(proj.truth), proj.truth, body) / PIXEL_MM,
-                   seconds=sec, if1_truth=ht.improvement["linear"]["1"], cr_truth=ht.change_ratio["linear"])
+        row = dict(
+            scene=scene.name,
+            method=label,
+            d_if1=h.improvement["linear"]["1"] - ht.improvement["linear"]["1"],
+            d_cr=h.change_ratio["linear"] - ht.change_ratio["linear"],
+            centroid_px=float(np.hypot(c[0] - ct[0], c[1] - ct[1])),
+            epe_px=_epe_mm(reg.displacement, proj.truth, body) / PIXEL_MM,
+            ok=bool(reg.quality.ok),
+            identity_px=_epe_mm(np.zeros_like(proj.truth), proj.truth, body) / PIXEL_MM,
+            seconds=sec,
+            if1_truth=ht.improvement["linear"]["1"],
+            cr_truth=ht.change_ratio["linear"],
+        )
         rows.append(row)
         log(row)
     return rows
@@ -164,12 +187,17 @@ def against_truth(name, view, log):
 
 def truth_table(rows) -> str:
     """Markdown: per scene and method, |dIF(1)| <= 0.01, |dCR| <= 0.02, centroid <= 0.5 px."""
-    lines = ["| scene | method | EPE px (identity) | dIF(1) | dCR | shadow centroid px | within (0.01 / 0.02 / 0.5 px) "
-             "| ok |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| scene | method | EPE px (identity) | dIF(1) | dCR | shadow centroid px | within (0.01 / 0.02 / 0.5 px) "
+        "| ok |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         within = abs(r["d_if1"]) <= 0.01 and abs(r["d_cr"]) <= 0.02 and r["centroid_px"] <= 0.5
-        lines.append(f"| {r['scene']} | {r['method']} | {r['epe_px']:.2f} ({r['identity_px']:.2f}) | {r['d_if1']:+.4f} | {r['d_cr']:+.4f} | "
-                     f"{r['centroid_px']:.2f} | {'yes' if within else 'no'} | {r['ok']} |")
+        lines.append(
+            f"| {r['scene']} | {r['method']} | {r['epe_px']:.2f} ({r['identity_px']:.2f}) | {r['d_if1']:+.4f} | {r['d_cr']:+.4f} | "
+            f"{r['centroid_px']:.2f} | {'yes' if within else 'no'} | {r['ok']} |"
+        )
     return "\n".join(lines)
 
 
@@ -218,8 +246,10 @@ def chart(points, path):
 
 
 def summary(points) -> str:
-    lines = ["| scene | truth: CR / IF(1) / bound | smallest error reaching IF(1) >= 1.4 | methods: error mm -> IF(1) |",
-             "|---|---|---|---|"]
+    lines = [
+        "| scene | truth: CR / IF(1) / bound | smallest error reaching IF(1) >= 1.4 | methods: error mm -> IF(1) |",
+        "|---|---|---|---|",
+    ]
     for sc in dict.fromkeys(p.scene for p in points):
         ps = [p for p in points if p.scene == sc]
         t = [p for p in ps if p.kind == "truth"][0]
@@ -235,9 +265,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("out/bench_registration_share"))
     ap.add_argument("--png", type=Path, default=None, help="also copy the chart here")
-    ap.add_argument("--against-truth", action="store_true",
-                    help="only issue 11's check: rc, rc fast, elastix+hp, dis+hp on both presets against the "
-                         "truth-warped moving image (IF(1), change ratio, inclusion shadow centroid)")
+    ap.add_argument(
+        "--against-truth",
+        action="store_true",
+        help="only issue 11's check: rc, rc fast, elastix+hp, dis+hp on both presets against the "
+        "truth-warped moving image (IF(1), change ratio, inclusion shadow centroid)",
+    )
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()}", flush=True)
@@ -251,8 +284,11 @@ def main(argv=None) -> int:
         return 0
 
     def log(p):
-        print(f"  {p.scene:<28} {p.kind:<7} error {p.error_mm:5.2f} mm  EPE {p.epe_mm:6.3f} mm  CR {p.cr:.3f}  "
-              f"IF1 {p.if1:.3f}  IF2 {p.if2:.3f}", flush=True)
+        print(
+            f"  {p.scene:<28} {p.kind:<7} error {p.error_mm:5.2f} mm  EPE {p.epe_mm:6.3f} mm  CR {p.cr:.3f}  "
+            f"IF1 {p.if1:.3f}  IF2 {p.if2:.3f}",
+            flush=True,
+        )
 
     t0 = time.perf_counter()
     points = []

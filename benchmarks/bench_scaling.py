@@ -34,6 +34,7 @@ memory  peak memory of ``radiokit process`` on a 10-frame and a 100-frame experi
 Exponents: a least-squares line through log(time) against log(size) per stage. Writes
 ``scaling.json`` and ``scaling.png`` into ``--out``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -52,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-MiB = 2 ** 20
+MiB = 2**20
 
 
 # -- measuring inside a child ------------------------------------------------------------------
@@ -142,9 +143,15 @@ def child_mechanics(scale: float, n_states: int) -> dict:
     t = time.perf_counter()
     states = compress(scene, ratios)
     s = states[0].solver
-    return {"seconds": time.perf_counter() - t, "peak_bytes": _vmhwm(), "dofs": int(s.ndof),
-            "factorisations": s.factorisations, "krylov_iterations": s.krylov_iterations,
-            "plate_force_n": [st.plate_force_n for st in states], "ratios": [st.ratio for st in states]}
+    return {
+        "seconds": time.perf_counter() - t,
+        "peak_bytes": _vmhwm(),
+        "dofs": int(s.ndof),
+        "factorisations": s.factorisations,
+        "krylov_iterations": s.krylov_iterations,
+        "plate_force_n": [st.plate_force_n for st in states],
+        "ratios": [st.ratio for st in states],
+    }
 
 
 def child_truth(repeats: int) -> dict:
@@ -165,8 +172,10 @@ def child_truth(repeats: int) -> dict:
     for _ in range(repeats):
         for name in random.sample(list(times), 2):
             t = time.perf_counter()
-            fields = [truth_displacement(scene, states[b], states[a], body=bodies[b], _reference=name == "reference")
-                      for a, b in pairs]
+            fields = [
+                truth_displacement(scene, states[b], states[a], body=bodies[b], _reference=name == "reference")
+                for a, b in pairs
+            ]
             times[name].append(time.perf_counter() - t)
             if name == "fast":
                 fast = fields
@@ -174,8 +183,13 @@ def child_truth(repeats: int) -> dict:
                 ref = fields
         diff = max(float(np.abs(f - r).max()) for f, r in zip(fast, ref))
     med = {k: statistics.median(v) for k, v in times.items()}
-    return {"seconds": med, "runs": times, "ratio": med["fast"] / med["reference"], "max_diff_px": diff,
-            "pairs": len(pairs)}
+    return {
+        "seconds": med,
+        "runs": times,
+        "ratio": med["fast"] / med["reference"],
+        "max_diff_px": diff,
+        "pairs": len(pairs),
+    }
 
 
 def child_files(mode: str, paths: list, out_root: str, scheduler: str | None) -> dict:
@@ -201,8 +215,22 @@ def child_memory(path: str, out_dir: str) -> dict:
     from radiokit.cli import main
 
     _reset_peak()
-    code = main(["process", path, "-o", out_dir, "-q", "--no-report", "--inclusion", *map(str, _SYN_INC),
-                 "--background", *map(str, _SYN_BG), "--crop-mm", "0"])
+    code = main(
+        [
+            "process",
+            path,
+            "-o",
+            out_dir,
+            "-q",
+            "--no-report",
+            "--inclusion",
+            *map(str, _SYN_INC),
+            "--background",
+            *map(str, _SYN_BG),
+            "--crop-mm",
+            "0",
+        ]
+    )
     return {"code": code, "peak_bytes": _vmhwm()}
 
 
@@ -241,14 +269,32 @@ def run_files_on_scheduler(paths, out_root, tmp) -> dict:
     sched_file.unlink(missing_ok=True)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     logs = open(Path(tmp) / "dask.log", "w")
-    sched = subprocess.Popen([str(bin_dir / "dask"), "scheduler", "--scheduler-file", str(sched_file), "--port", "0",
-                              "--no-dashboard"], stdout=logs, stderr=logs, env=env)
+    sched = subprocess.Popen(
+        [str(bin_dir / "dask"), "scheduler", "--scheduler-file", str(sched_file), "--port", "0", "--no-dashboard"],
+        stdout=logs,
+        stderr=logs,
+        env=env,
+    )
     for _ in range(300):
         if sched_file.exists():
             break
         time.sleep(0.1)
-    workers = subprocess.Popen([str(bin_dir / "dask"), "worker", "--scheduler-file", str(sched_file), "--nworkers", "2",
-                                "--nthreads", "1", "--no-dashboard"], stdout=logs, stderr=logs, env=env)
+    workers = subprocess.Popen(
+        [
+            str(bin_dir / "dask"),
+            "worker",
+            "--scheduler-file",
+            str(sched_file),
+            "--nworkers",
+            "2",
+            "--nthreads",
+            "1",
+            "--no-dashboard",
+        ],
+        stdout=logs,
+        stderr=logs,
+        env=env,
+    )
     procs = [psutil.Process(sched.pid), psutil.Process(workers.pid)]
     try:
         address = json.loads(sched_file.read_text())["address"]
@@ -286,18 +332,28 @@ def section_files(base: Path, n_files: int, repeats: int, source: Path) -> dict:
         for m in order:
             out_root = base / f"out-{m}"
             shutil.rmtree(out_root, ignore_errors=True)
-            r = (run_files_on_scheduler(paths, str(out_root), str(base)) if m.startswith("scheduler")
-                 else run_child("files", m, paths, str(out_root), None))
+            r = (
+                run_files_on_scheduler(paths, str(out_root), str(base))
+                if m.startswith("scheduler")
+                else run_child("files", m, paths, str(out_root), None)
+            )
             runs[m].append(r)
-            print(f"  files: {m:12s} wall {r['wall_s']:6.1f} s, user {r['user_s']:6.1f} s, sys {r['sys_s']:5.1f} s",
-                  flush=True)
+            print(
+                f"  files: {m:12s} wall {r['wall_s']:6.1f} s, user {r['user_s']:6.1f} s, sys {r['sys_s']:5.1f} s",
+                flush=True,
+            )
     med = {m: {k: statistics.median(r[k] for r in rs) for k in ("wall_s", "user_s", "sys_s")} for m, rs in runs.items()}
     seq = med["sequential"]["wall_s"]
     ratio = {m: med[m]["wall_s"] / seq for m in modes}
     sys_share = {m: med[m]["sys_s"] / med[m]["user_s"] for m in modes}
-    return {"n_files": n_files, "runs": runs, "median": med, "wall_over_sequential": ratio,
-            "sys_over_user": sys_share,
-            "pass": all(ratio[m] <= 0.6 for m in ("local-2", "scheduler-2")) and all(v < 0.1 for v in sys_share.values())}
+    return {
+        "n_files": n_files,
+        "runs": runs,
+        "median": med,
+        "wall_over_sequential": ratio,
+        "sys_over_user": sys_share,
+        "pass": all(ratio[m] <= 0.6 for m in ("local-2", "scheduler-2")) and all(v < 0.1 for v in sys_share.values()),
+    }
 
 
 def section_frame(base: Path, binnings) -> dict:
@@ -318,8 +374,11 @@ def section_mesh(scales) -> dict:
     for s in scales:
         r = run_child("mechanics", s, 3)
         out[s] = r
-        print(f"  mesh x{s}: {r['dofs']} dofs, {r['seconds']:.1f} s, peak {r['peak_bytes'] / MiB:.0f} MiB, "
-              f"force {r['plate_force_n'][-1]:.4f} N", flush=True)
+        print(
+            f"  mesh x{s}: {r['dofs']} dofs, {r['seconds']:.1f} s, peak {r['peak_bytes'] / MiB:.0f} MiB, "
+            f"force {r['plate_force_n'][-1]:.4f} N",
+            flush=True,
+        )
     finest = out[min(scales)]["plate_force_n"]
     for r in out.values():
         r["force_error_vs_finest"] = max(abs(a / b - 1) for a, b in zip(r["plate_force_n"], finest))
@@ -357,8 +416,12 @@ def write_synthetic(path: Path, n_cal: int, per_step: int):
             L = 0.08 * tb + 0.03 * ti * sq
             clean = 100 + 3000 * np.exp(-L)
             for _ in range(per_step[step - 1] if isinstance(per_step, tuple) else per_step):
-                w.append((clean + rng.normal(0, 20, (n, n))).astype(np.uint16), image_key=ImageKey.PROJECTION,
-                         step=step, ratio=0.1 * step)
+                w.append(
+                    (clean + rng.normal(0, 20, (n, n))).astype(np.uint16),
+                    image_key=ImageKey.PROJECTION,
+                    step=step,
+                    ratio=0.1 * step,
+                )
 
 
 def section_memory(base: Path, repeats: int) -> dict:
@@ -372,8 +435,13 @@ def section_memory(base: Path, repeats: int) -> dict:
             runs[k].append(r["peak_bytes"])
             print(f"  memory: {k:3d}-frame file, peak {r['peak_bytes'] / MiB:.0f} MiB", flush=True)
     peak = {k: statistics.median(v) for k, v in runs.items()}
-    return {"side": _SYN_SIDE, "peak_bytes": peak, "runs": runs, "ratio": peak[100] / peak[10],
-            "pass": peak[100] <= 1.2 * peak[10]}
+    return {
+        "side": _SYN_SIDE,
+        "peak_bytes": peak,
+        "runs": runs,
+        "ratio": peak[100] / peak[10],
+        "pass": peak[100] <= 1.2 * peak[10],
+    }
 
 
 # -- exponents and the chart -------------------------------------------------------------------
@@ -391,16 +459,22 @@ def fit(result) -> dict:
     if fr:
         sides = sorted(fr, key=float)
         px = [float(s) ** 2 for s in sides]
-        stages = {**{k: [fr[s]["sim"]["seconds"][k] for s in sides] for k in ("projection", "truth", "frames")},
-                  **{k: [fr[s]["process"]["seconds"][k] for s in sides]
-                     for k in ("read", "calibrate", "correct", "register", "enhance_measure", "report")}}
+        stages = {
+            **{k: [fr[s]["sim"]["seconds"][k] for s in sides] for k in ("projection", "truth", "frames")},
+            **{
+                k: [fr[s]["process"]["seconds"][k] for s in sides]
+                for k in ("read", "calibrate", "correct", "register", "enhance_measure", "report")
+            },
+        }
         ex["time_vs_pixels"] = {k: exponent(px, v) for k, v in stages.items()}
         peaks = {k: [fr[s]["process"]["peak_bytes"][k] for s in sides] for k in fr[sides[0]]["process"]["peak_bytes"]}
         ex["peak_memory_vs_pixels"] = {k: exponent(px, v) for k, v in peaks.items()}
     if result.get("mesh"):
         m = result["mesh"]
         ex["mechanics_time_vs_dofs"] = exponent([r["dofs"] for r in m.values()], [r["seconds"] for r in m.values()])
-        ex["mechanics_memory_vs_dofs"] = exponent([r["dofs"] for r in m.values()], [r["peak_bytes"] for r in m.values()])
+        ex["mechanics_memory_vs_dofs"] = exponent(
+            [r["dofs"] for r in m.values()], [r["peak_bytes"] for r in m.values()]
+        )
     if result.get("steps"):
         s = result["steps"]
         ex["mechanics_time_vs_states"] = exponent([float(k) for k in s], [r["seconds"] for r in s.values()])
@@ -465,8 +539,14 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args._child:
         kind, rest = args._child[0], json.loads(args._child[1])
-        fn = {"sim": child_sim, "process": child_process, "mechanics": child_mechanics, "files": child_files,
-              "memory": child_memory, "truth": child_truth}[kind]
+        fn = {
+            "sim": child_sim,
+            "process": child_process,
+            "mechanics": child_mechanics,
+            "files": child_files,
+            "memory": child_memory,
+            "truth": child_truth,
+        }[kind]
         print(json.dumps(fn(*rest)))
         return 0
 
@@ -475,8 +555,10 @@ def main(argv=None):
     base = Path(tempfile.mkdtemp(prefix="radiokit-scaling-"))
     load = os.getloadavg()
     result = {"cpus": os.cpu_count(), "load_average_before": load, "quick": args.quick}
-    print(f"{os.cpu_count()} CPUs, load average {load[0]:.2f} before the run (a shared machine inflates every "
-          "absolute number; ratios are measured side by side)")
+    print(
+        f"{os.cpu_count()} CPUs, load average {load[0]:.2f} before the run (a shared machine inflates every "
+        "absolute number; ratios are measured side by side)"
+    )
     t0 = time.perf_counter()
     try:
         if "files" in sections or "frame" in sections:
@@ -495,8 +577,10 @@ def main(argv=None):
             result["memory"] = section_memory(base, 1 if args.quick else args.repeats)
         if "truth" in sections:
             t = result["truth"] = run_child("truth", max(args.repeats, 1))
-            print(f"  truth, {t['pairs']} pairs at 2240 x 2240: fast {t['seconds']['fast']:.1f} s, reference "
-                  f"{t['seconds']['reference']:.1f} s -> {t['ratio']:.2f}x; largest difference {t['max_diff_px']:.2g} px")
+            print(
+                f"  truth, {t['pairs']} pairs at 2240 x 2240: fast {t['seconds']['fast']:.1f} s, reference "
+                f"{t['seconds']['reference']:.1f} s -> {t['ratio']:.2f}x; largest difference {t['max_diff_px']:.2g} px"
+            )
     finally:
         shutil.rmtree(base, ignore_errors=True)
     result["exponents"] = fit(result)
@@ -506,8 +590,14 @@ def main(argv=None):
     print(json.dumps(result["exponents"], indent=1))
     if "files" in result:
         f = result["files"]
-        print("files: " + ", ".join(f"{m} {r:.2f}x sequential (sys/user {f['sys_over_user'][m]:.3f})"
-                                    for m, r in f["wall_over_sequential"].items()) + f" -> {'PASS' if f['pass'] else 'FAIL'}")
+        print(
+            "files: "
+            + ", ".join(
+                f"{m} {r:.2f}x sequential (sys/user {f['sys_over_user'][m]:.3f})"
+                for m, r in f["wall_over_sequential"].items()
+            )
+            + f" -> {'PASS' if f['pass'] else 'FAIL'}"
+        )
     if "memory" in result:
         m = result["memory"]
         print(f"memory: 100-frame peak / 10-frame peak = {m['ratio']:.3f} -> {'PASS' if m['pass'] else 'FAIL'}")

@@ -66,6 +66,7 @@ time (log-log), force solid and chord change dashed, the 2 % line dotted: the lo
 better, and the horizontal distance between the two cylinder curves at equal error is the
 reduced model's speed-up. ``bench_sim.json`` holds every number printed and more.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -106,11 +107,13 @@ def cylinder(model: str, size_inclusion: float, size_far: float):
 
     gel = Material("gel", "neo-hookean", E_kpa=20.0, nu=0.495, attenuation_per_cm=0.77)
     stiff = Material("inclusion", "neo-hookean", E_kpa=134.0, nu=0.495, attenuation_per_cm=0.85)
-    return Scene(name=f"cylinder-{model}",
-                 body=Body("cylinder", height_mm=40.0, diameter_mm=40.0, material=gel),
-                 inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=10.0, material=stiff)],
-                 beam=Beam("parallel", "y"),
-                 mesh=MeshSpec(size_inclusion, size_far, model, True))
+    return Scene(
+        name=f"cylinder-{model}",
+        body=Body("cylinder", height_mm=40.0, diameter_mm=40.0, material=gel),
+        inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=10.0, material=stiff)],
+        beam=Beam("parallel", "y"),
+        mesh=MeshSpec(size_inclusion, size_far, model, True),
+    )
 
 
 def seed_breast(size_inclusion: float, size_far: float):
@@ -118,8 +121,9 @@ def seed_breast(size_inclusion: float, size_far: float):
 
     scene = load_scene("seed-breast")
     band = scene.mesh.size_contact_mm * size_inclusion / scene.mesh.size_inclusion_mm  # refined with the rest
-    scene.mesh = dataclasses.replace(scene.mesh, size_inclusion_mm=size_inclusion, size_far_mm=size_far,
-                                     size_contact_mm=min(band, size_far))
+    scene.mesh = dataclasses.replace(
+        scene.mesh, size_inclusion_mm=size_inclusion, size_far_mm=size_far, size_contact_mm=min(band, size_far)
+    )
     return scene
 
 
@@ -173,16 +177,27 @@ def measure(scene, centre_xz, repeats: int | None = None) -> dict:
     surface = surface_of(fem)  # passed explicitly: keeps project()'s surface cache cold for step 4
     chord15, chord25 = (inclusion_chord(fem, surface, s.displacement, centre_xz) for s in (s15, s25))
     return {
-        "model": solver.fem.model, "symmetry": list(solver.fem.symmetry),
-        "size_inclusion_mm": scene.mesh.size_inclusion_mm, "size_far_mm": scene.mesh.size_far_mm,
-        "elements": int(solver.fem.cells.shape[1]), "dofs": int(solver.ndof),
-        "wall_s": statistics.median(walls), "cpu_s": statistics.median(cpus), "wall_runs_s": walls,
-        "load_steps": int(s25.load_steps), "newton_iterations": int(sum(s.newton_iterations for s in states)),
-        "factorisations": int(solver.factorisations), "krylov_iterations": int(solver.krylov_iterations),
-        "force_n": float(s25.plate_force_n), "inclusion_strain": float(s25.inclusion_strain),
-        "background_strain": float(s25.background_strain), "volume_ratio": float(s25.volume_ratio),
+        "model": solver.fem.model,
+        "symmetry": list(solver.fem.symmetry),
+        "size_inclusion_mm": scene.mesh.size_inclusion_mm,
+        "size_far_mm": scene.mesh.size_far_mm,
+        "elements": int(solver.fem.cells.shape[1]),
+        "dofs": int(solver.ndof),
+        "wall_s": statistics.median(walls),
+        "cpu_s": statistics.median(cpus),
+        "wall_runs_s": walls,
+        "load_steps": int(s25.load_steps),
+        "newton_iterations": int(sum(s.newton_iterations for s in states)),
+        "factorisations": int(solver.factorisations),
+        "krylov_iterations": int(solver.krylov_iterations),
+        "force_n": float(s25.plate_force_n),
+        "inclusion_strain": float(s25.inclusion_strain),
+        "background_strain": float(s25.background_strain),
+        "volume_ratio": float(s25.volume_ratio),
         "forces_n": [float(s.plate_force_n) for s in states],
-        "chord15_mm": chord15, "chord25_mm": chord25, "chord_change_mm": chord15 - chord25,
+        "chord15_mm": chord15,
+        "chord25_mm": chord25,
+        "chord_change_mm": chord15 - chord25,
         "_state25": s25,  # kept for the projection timing, dropped from the JSON
     }
 
@@ -206,8 +221,10 @@ def time_projection(scene, state, reps: int = 5) -> dict:
     from sim.xray import project
 
     out = {}
-    for kind, sc in (("parallel", scene),
-                     ("cone", dataclasses.replace(scene, beam=Beam("cone", scene.beam.direction, 500.0, 100.0)))):
+    for kind, sc in (
+        ("parallel", scene),
+        ("cone", dataclasses.replace(scene, beam=Beam("cone", scene.beam.direction, 500.0, 100.0))),
+    ):
         t0 = time.perf_counter()
         image = project(sc, state)
         first = time.perf_counter() - t0
@@ -218,8 +235,13 @@ def time_projection(scene, state, reps: int = 5) -> dict:
             warm.append(time.perf_counter() - t0)
         if not (image.shape == tuple(sc.detector.shape) and np.isfinite(image).all()):
             raise RuntimeError(f"projection of {sc.name} ({kind}): bad image {image.shape}")
-        out[kind] = {"shape": list(image.shape), "first_s": first, "median_s": statistics.median(warm),
-                     "runs_s": warm, "max_line_integral": float(image.max())}
+        out[kind] = {
+            "shape": list(image.shape),
+            "first_s": first,
+            "median_s": statistics.median(warm),
+            "runs_s": warm,
+            "max_line_integral": float(image.max()),
+        }
     return out
 
 
@@ -231,14 +253,18 @@ def _pct(r, name):
 
 def print_table(title, rows, reference=None):
     print(f"\n{title}")
-    print(f"  {'model':<13}{'mesh mm':>9}{'elems':>8}{'dofs':>8}{'wall s':>8}{'cpu s':>7}{'LU/GMRES':>10}"
-          f"{'F25 N':>10}{'e_F':>9}{'strain25':>9}{'e_strain':>9}{'chord d mm':>11}{'e_chord':>9}")
+    print(
+        f"  {'model':<13}{'mesh mm':>9}{'elems':>8}{'dofs':>8}{'wall s':>8}{'cpu s':>7}{'LU/GMRES':>10}"
+        f"{'F25 N':>10}{'e_F':>9}{'strain25':>9}{'e_strain':>9}{'chord d mm':>11}{'e_chord':>9}"
+    )
     for r in rows:
         mesh = f"{r['size_inclusion_mm']:g}/{r['size_far_mm']:g}"
         ref = " (ref)" if r is reference else ""
-        print(f"  {r['model']:<13}{mesh:>9}{r['elements']:>8}{r['dofs']:>8}{r['wall_s']:8.2f}{r['cpu_s']:7.1f}"
-              f"{r['factorisations']:>5}/{r['krylov_iterations']:<4}{r['force_n']:10.5f}{_pct(r, 'force')}"
-              f"{r['inclusion_strain']:9.5f}{_pct(r, 'strain')}{r['chord_change_mm']:11.5f}{_pct(r, 'chord')}{ref}")
+        print(
+            f"  {r['model']:<13}{mesh:>9}{r['elements']:>8}{r['dofs']:>8}{r['wall_s']:8.2f}{r['cpu_s']:7.1f}"
+            f"{r['factorisations']:>5}/{r['krylov_iterations']:<4}{r['force_n']:10.5f}{_pct(r, 'force')}"
+            f"{r['inclusion_strain']:9.5f}{_pct(r, 'strain')}{r['chord_change_mm']:11.5f}{_pct(r, 'chord')}{ref}"
+        )
 
 
 def equal_error_speedups(axi, cyl3d, reference):
@@ -248,11 +274,17 @@ def equal_error_speedups(axi, cyl3d, reference):
     for r in cyl3d:
         better = [a for a in axi if a is not reference and a["error"] <= r["error"]]
         a = min(better, key=lambda a: a["wall_s"]) if better else None
-        out.append({"3d_mesh": [r["size_inclusion_mm"], r["size_far_mm"]], "3d_error": r["error"],
-                    "3d_wall_s": r["wall_s"],
-                    "axi_mesh": None if a is None else [a["size_inclusion_mm"], a["size_far_mm"]],
-                    "axi_error": None if a is None else a["error"], "axi_wall_s": None if a is None else a["wall_s"],
-                    "speedup": None if a is None else r["wall_s"] / a["wall_s"]})
+        out.append(
+            {
+                "3d_mesh": [r["size_inclusion_mm"], r["size_far_mm"]],
+                "3d_error": r["error"],
+                "3d_wall_s": r["wall_s"],
+                "axi_mesh": None if a is None else [a["size_inclusion_mm"], a["size_far_mm"]],
+                "axi_error": None if a is None else a["error"],
+                "axi_wall_s": None if a is None else a["wall_s"],
+                "speedup": None if a is None else r["wall_s"] / a["wall_s"],
+            }
+        )
     return out
 
 
@@ -263,16 +295,25 @@ def chart(path, axi, cyl3d, seed, reference, seed_reference, limits_shown):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    series = [("cylinder, axisymmetric", axi, "o", "C0"), ("cylinder, 3D eighth", cyl3d, "s", "C1"),
-              ("seed-breast, 3D quarter", seed, "^", "C2")]
+    series = [
+        ("cylinder, axisymmetric", axi, "o", "C0"),
+        ("cylinder, 3D eighth", cyl3d, "s", "C1"),
+        ("seed-breast, 3D quarter", seed, "^", "C2"),
+    ]
     fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(13, 5))
     for label, rows, marker, colour in series:
         if not rows:
             continue
         ax_t.loglog([r["dofs"] for r in rows], [r["wall_s"] for r in rows], marker + "-", color=colour, label=label)
         for r in rows:
-            ax_t.annotate(f"{r['size_inclusion_mm']:g}/{r['size_far_mm']:g}", (r["dofs"], r["wall_s"]),
-                          textcoords="offset points", xytext=(4, -10), fontsize=7, color=colour)
+            ax_t.annotate(
+                f"{r['size_inclusion_mm']:g}/{r['size_far_mm']:g}",
+                (r["dofs"], r["wall_s"]),
+                textcoords="offset points",
+                xytext=(4, -10),
+                fontsize=7,
+                color=colour,
+            )
     for limit, text in limits_shown:
         ax_t.axhline(limit, color="grey", lw=0.8, ls=":")
         ax_t.text(0.01, limit, text, transform=ax_t.get_yaxis_transform(), fontsize=7, va="bottom", color="grey")
@@ -287,10 +328,17 @@ def chart(path, axi, cyl3d, seed, reference, seed_reference, limits_shown):
             continue
         t = [r["wall_s"] for r in pts]
         floor = 1e-7  # a log axis cannot show an exact zero
-        ax_e.loglog(t, [max(r["force_error"], floor) for r in pts], marker + "-", color=colour,
-                    label=f"{label}: plate force")
-        ax_e.loglog(t, [max(r["chord_error"], floor) for r in pts], marker + "--", color=colour, mfc="none",
-                    label=f"{label}: chord change")
+        ax_e.loglog(
+            t, [max(r["force_error"], floor) for r in pts], marker + "-", color=colour, label=f"{label}: plate force"
+        )
+        ax_e.loglog(
+            t,
+            [max(r["chord_error"], floor) for r in pts],
+            marker + "--",
+            color=colour,
+            mfc="none",
+            label=f"{label}: chord change",
+        )
     ax_e.axhline(CONVERGENCE, color="grey", lw=0.8, ls=":")
     ax_e.text(0.01, CONVERGENCE, "2 %", transform=ax_e.get_yaxis_transform(), fontsize=7, va="bottom", color="grey")
     ax_e.set_xlabel("wall time, states 15/20/25 % (s)")
@@ -314,12 +362,23 @@ def _blas_threads() -> str:
 
 def _environment():
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, check=False).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).resolve().parent,
+            check=False,
+        ).stdout.strip()
     except OSError:
         commit = ""
-    return {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
-            "machine": platform.machine(), "commit": commit, "blas_threads": _blas_threads()}
+    return {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "cpus": os.cpu_count(),
+        "machine": platform.machine(),
+        "commit": commit,
+        "blas_threads": _blas_threads(),
+    }
 
 
 def main(argv=None) -> int:
@@ -328,13 +387,19 @@ def main(argv=None) -> int:
     mode.add_argument("--full", action="store_true", help="add the refined seed-breast mesh (0.7/4.0 mm, minutes)")
     mode.add_argument("--quick", action="store_true", help="smallest meshes only: a smoke run under a minute")
     ap.add_argument("--out", type=Path, default=Path("out/bench_sim"), help="directory for the PNG and JSON")
-    ap.add_argument("--blas-threads", type=int, default=None, metavar="N",
-                    help="limit BLAS to N threads for the whole run (default: the library's own)")
+    ap.add_argument(
+        "--blas-threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="limit BLAS to N threads for the whole run (default: the library's own)",
+    )
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     # load every BLAS the run will use (numpy's and scipy's own OpenBLAS) before limiting:
     # threadpoolctl only acts on libraries already loaded
     import scipy.sparse.linalg  # noqa: F401
+
     import sim.mechanics  # noqa: F401
 
     if args.blas_threads is None:
@@ -355,12 +420,17 @@ def run(args) -> int:
     seed_sizes = QUICK["seed"] if args.quick else SEED_SIZES + ([SEED_REFINED] if args.full else [])
     load_before = os.getloadavg()
     mode_name = "quick" if args.quick else "full" if args.full else "default"
-    print(f"bench_sim ({mode_name}): states {'/'.join(f'{100 * r:g}' for r in RATIOS)} %, "
-          f"load average {load_before[0]:.2f} on {os.cpu_count()} CPUs, BLAS threads: {_blas_threads()}")
+    print(
+        f"bench_sim ({mode_name}): states {'/'.join(f'{100 * r:g}' for r in RATIOS)} %, "
+        f"load average {load_before[0]:.2f} on {os.cpu_count()} CPUs, BLAS threads: {_blas_threads()}"
+    )
     print("  axisymmetric cylinder:", ", ".join(f"{a:g}/{b:g}" for a, b in axi_sizes))
     print("  3D eighth cylinder:   ", ", ".join(f"{a:g}/{b:g}" for a, b in cyl3d_sizes))
-    print("  seed-breast quarter:  ", ", ".join(f"{a:g}/{b:g}" for a, b in seed_sizes),
-          "" if args.full else "(no refined reference: --full)")
+    print(
+        "  seed-breast quarter:  ",
+        ", ".join(f"{a:g}/{b:g}" for a, b in seed_sizes),
+        "" if args.full else "(no refined reference: --full)",
+    )
     t_start = time.perf_counter()
 
     # warm-up: imports, gmsh initialisation and first-call costs stay out of the timings
@@ -380,62 +450,95 @@ def run(args) -> int:
 
     seed_default = next((r for r in seed if (r["size_inclusion_mm"], r["size_far_mm"]) == SEED_DEFAULT), None)
     proj_case = seed_default or seed[0]
-    projection = time_projection(seed_breast(proj_case["size_inclusion_mm"], proj_case["size_far_mm"]),
-                                 proj_case["_state25"])
+    projection = time_projection(
+        seed_breast(proj_case["size_inclusion_mm"], proj_case["size_far_mm"]), proj_case["_state25"]
+    )
     load_after = os.getloadavg()
 
     _report(axi, cyl3d, seed, reference, seed_reference, projection, proj_case, args)
     checks, skipped = _targets(args, axi, projection, proj_case, seed_default, load_before, load_after)
     total = time.perf_counter() - t_start
-    return _write(args, axi, cyl3d, seed, reference, seed_reference, projection, proj_case, checks, skipped,
-                  load_before, load_after, total)
+    return _write(
+        args,
+        axi,
+        cyl3d,
+        seed,
+        reference,
+        seed_reference,
+        projection,
+        proj_case,
+        checks,
+        skipped,
+        load_before,
+        load_after,
+        total,
+    )
 
 
 def _report(axi, cyl3d, seed, reference, seed_reference, projection, proj_case, args):
     """Print the tables of :func:`run`."""
     ref_name = f"{reference['size_inclusion_mm']:g}/{reference['size_far_mm']:g}"
-    print_table(f"1-2. cylinder 40 x 40 mm, 10 mm sphere, 20/134 kPa; errors against axisymmetric {ref_name} mm",
-                axi + cyl3d, reference)
+    print_table(
+        f"1-2. cylinder 40 x 40 mm, 10 mm sphere, 20/134 kPa; errors against axisymmetric {ref_name} mm",
+        axi + cyl3d,
+        reference,
+    )
     finer = sorted(axi, key=lambda r: r["size_inclusion_mm"])
     if len(finer) > 1:
         nxt = finer[1]
-        print(f"  reference uncertainty (axisymmetric {nxt['size_inclusion_mm']:g}/{nxt['size_far_mm']:g} against "
-              f"{ref_name}): force {100 * nxt['force_error']:.4f} %, strain {100 * nxt['strain_error']:.4f} %, "
-              f"chord change {100 * nxt['chord_error']:.4f} %")
+        print(
+            f"  reference uncertainty (axisymmetric {nxt['size_inclusion_mm']:g}/{nxt['size_far_mm']:g} against "
+            f"{ref_name}): force {100 * nxt['force_error']:.4f} %, strain {100 * nxt['strain_error']:.4f} %, "
+            f"chord change {100 * nxt['chord_error']:.4f} %"
+        )
     speedups = equal_error_speedups(axi, cyl3d, reference)
     for s in speedups:
         m3 = "/".join(f"{v:g}" for v in s["3d_mesh"])
         if s["axi_mesh"] is None:
-            print(f"  equal error: 3D {m3} (error {100 * s['3d_error']:.3f} %, {s['3d_wall_s']:.2f} s): "
-                  f"no axisymmetric run as accurate besides the reference")
+            print(
+                f"  equal error: 3D {m3} (error {100 * s['3d_error']:.3f} %, {s['3d_wall_s']:.2f} s): "
+                f"no axisymmetric run as accurate besides the reference"
+            )
         else:
             ma = "/".join(f"{v:g}" for v in s["axi_mesh"])
-            print(f"  equal error: 3D {m3} (error {100 * s['3d_error']:.3f} %, {s['3d_wall_s']:.2f} s) vs axisymmetric "
-                  f"{ma} ({100 * s['axi_error']:.3f} %, {s['axi_wall_s']:.2f} s): {s['speedup']:.0f}x faster")
+            print(
+                f"  equal error: 3D {m3} (error {100 * s['3d_error']:.3f} %, {s['3d_wall_s']:.2f} s) vs axisymmetric "
+                f"{ma} ({100 * s['axi_error']:.3f} %, {s['axi_wall_s']:.2f} s): {s['speedup']:.0f}x faster"
+            )
     print("  (error = the larger of the force and chord-change errors)")
 
-    seed_title = ("3. seed-breast, quarter model" + (f"; errors against {SEED_REFINED[0]:g}/{SEED_REFINED[1]:g} mm"
-                                                     if args.full else "; no reference run (use --full)"))
+    seed_title = "3. seed-breast, quarter model" + (
+        f"; errors against {SEED_REFINED[0]:g}/{SEED_REFINED[1]:g} mm"
+        if args.full
+        else "; no reference run (use --full)"
+    )
     print_table(seed_title, seed, seed_reference)
     for r in seed:
-        print(f"  {r['size_inclusion_mm']:g}/{r['size_far_mm']:g}: forces "
-              + ", ".join(f"{f:.4f}" for f in r["forces_n"]) + " N at 15/20/25 %; inclusion chord "
-              f"{r['chord15_mm']:.4f} -> {r['chord25_mm']:.4f} mm; {r['load_steps']} load steps, "
-              f"{r['newton_iterations']} Newton iterations")
+        print(
+            f"  {r['size_inclusion_mm']:g}/{r['size_far_mm']:g}: forces "
+            + ", ".join(f"{f:.4f}" for f in r["forces_n"])
+            + " N at 15/20/25 %; inclusion chord "
+            f"{r['chord15_mm']:.4f} -> {r['chord25_mm']:.4f} mm; {r['load_steps']} load steps, "
+            f"{r['newton_iterations']} Newton iterations"
+        )
 
     if len(seed) >= 3:
         steps = sorted(seed, key=lambda r: -r["size_inclusion_mm"])
         for name, key in (("force", "force_n"), ("chord change", "chord_change_mm")):
             diffs = [b[key] - a[key] for a, b in zip(steps, steps[1:])]
-            print(f"  {name}: change per refinement " + ", ".join(f"{d:+.5f}" for d in diffs)
-                  + " (shrinking: the finest mesh is a fair reference; not shrinking: it is not yet converged)")
+            print(
+                f"  {name}: change per refinement "
+                + ", ".join(f"{d:+.5f}" for d in diffs)
+                + " (shrinking: the finest mesh is a fair reference; not shrinking: it is not yet converged)"
+            )
     pm = f"{proj_case['size_inclusion_mm']:g}/{proj_case['size_far_mm']:g}"
     print(f"\n4. one 2240 x 2240 projection of seed-breast at 25 % ({pm} mm mesh)")
     for n, (kind, p) in enumerate(projection.items()):
         note = "cold: surfaces extracted, buffers first used" if n == 0 else "surfaces cached"
-        print(f"  {kind:<9} first call {p['first_s']:.3f} s ({note}), then median {p['median_s']:.3f} s "
-              f"of {len(p['runs_s'])}")
-
+        print(
+            f"  {kind:<9} first call {p['first_s']:.3f} s ({note}), then median {p['median_s']:.3f} s "
+            f"of {len(p['runs_s'])}"
+        )
 
 
 def _targets(args, axi, projection, proj_case, seed_default, load_before, load_after):
@@ -443,28 +546,50 @@ def _targets(args, axi, projection, proj_case, seed_default, load_before, load_a
     pm = f"{proj_case['size_inclusion_mm']:g}/{proj_case['size_far_mm']:g}"
     checks = []
     if seed_default is not None:
-        checks.append(("seed-breast 15/20/25 % at the default mesh <= 15 s", seed_default["wall_s"] <= SEED_LIMIT_S,
-                       f"{seed_default['wall_s']:.1f} s (cpu {seed_default['cpu_s']:.1f} s)"))
+        checks.append(
+            (
+                "seed-breast 15/20/25 % at the default mesh <= 15 s",
+                seed_default["wall_s"] <= SEED_LIMIT_S,
+                f"{seed_default['wall_s']:.1f} s (cpu {seed_default['cpu_s']:.1f} s)",
+            )
+        )
     axi_target = next((r for r in axi if (r["size_inclusion_mm"], r["size_far_mm"]) == AXI_TARGET_SIZE), None)
     if axi_target is not None:
-        checks.append(("axisymmetric scene (cylinder, 1.0/4.0 mm) <= 5 s", axi_target["wall_s"] <= AXI_LIMIT_S,
-                       f"{axi_target['wall_s']:.2f} s"))
+        checks.append(
+            (
+                "axisymmetric scene (cylinder, 1.0/4.0 mm) <= 5 s",
+                axi_target["wall_s"] <= AXI_LIMIT_S,
+                f"{axi_target['wall_s']:.2f} s",
+            )
+        )
     par = projection["parallel"]
-    checks.append((f"one 2240 x 2240 projection <= 2 s (parallel, first call, {pm} mm)",
-                   par["first_s"] <= PROJECTION_LIMIT_S, f"{par['first_s']:.3f} s"))
+    checks.append(
+        (
+            f"one 2240 x 2240 projection <= 2 s (parallel, first call, {pm} mm)",
+            par["first_s"] <= PROJECTION_LIMIT_S,
+            f"{par['first_s']:.3f} s",
+        )
+    )
     if args.full and seed_default is not None:
         ok = seed_default["force_error"] <= CONVERGENCE and seed_default["chord_error"] <= CONVERGENCE
-        checks.append(("seed-breast default within 2 % of the refined mesh (force, chord change)", ok,
-                       f"force {100 * seed_default['force_error']:.2f} %, "
-                       f"chord change {100 * seed_default['chord_error']:.2f} %"))
+        checks.append(
+            (
+                "seed-breast default within 2 % of the refined mesh (force, chord change)",
+                ok,
+                f"force {100 * seed_default['force_error']:.2f} %, "
+                f"chord change {100 * seed_default['chord_error']:.2f} %",
+            )
+        )
     skipped = []
     if seed_default is None:
         skipped.append("seed-breast <= 15 s (default mesh not run)")
     if not args.full:
         skipped.append("convergence within 2 % (needs --full)")
 
-    print(f"\ntargets (wall times on a shared machine; load average {load_before[0]:.2f} before, "
-          f"{load_after[0]:.2f} after):")
+    print(
+        f"\ntargets (wall times on a shared machine; load average {load_before[0]:.2f} before, "
+        f"{load_after[0]:.2f} after):"
+    )
     for name, ok, value in checks:
         print(f"  {'PASS' if ok else 'FAIL'}  {name}: {value}")
     for name in skipped:
@@ -473,8 +598,21 @@ def _targets(args, axi, projection, proj_case, seed_default, load_before, load_a
     return checks, skipped
 
 
-def _write(args, axi, cyl3d, seed, reference, seed_reference, projection, proj_case, checks, skipped,
-           load_before, load_after, total):
+def _write(
+    args,
+    axi,
+    cyl3d,
+    seed,
+    reference,
+    seed_reference,
+    projection,
+    proj_case,
+    checks,
+    skipped,
+    load_before,
+    load_after,
+    total,
+):
     """The chart and the JSON of :func:`run`; the exit status."""
     speedups = equal_error_speedups(axi, cyl3d, reference)
     mode_name = "quick" if args.quick else "full" if args.full else "default"
@@ -483,21 +621,31 @@ def _write(args, axi, cyl3d, seed, reference, seed_reference, projection, proj_c
     chart(png, axi, cyl3d, seed, reference, seed_reference, limits)
     clean = [{k: v for k, v in r.items() if not k.startswith("_")} for r in axi + cyl3d + seed]
     n_axi, n_3d = len(axi), len(cyl3d)
-    js.write_text(json.dumps({
-        "mode": mode_name, "ratios": list(RATIOS), "blas_threads_limit": args.blas_threads,
-        "environment": _environment(),
-        "load_average_before": list(load_before), "load_average_after": list(load_after), "total_s": total,
-        "cylinder_axisymmetric": clean[:n_axi], "cylinder_3d": clean[n_axi:n_axi + n_3d],
-        "seed_breast": clean[n_axi + n_3d:],
-        "cylinder_reference_mesh": [reference["size_inclusion_mm"], reference["size_far_mm"]],
-        "seed_breast_reference_mesh": list(SEED_REFINED) if args.full else None,
-        "equal_error_speedups": speedups, "projection": {"mesh": [proj_case["size_inclusion_mm"],
-                                                                  proj_case["size_far_mm"]], **projection},
-        "checks": [{"name": n, "pass": bool(ok), "value": v} for n, ok, v in checks], "skipped": skipped,
-    }, indent=1))
+    js.write_text(
+        json.dumps(
+            {
+                "mode": mode_name,
+                "ratios": list(RATIOS),
+                "blas_threads_limit": args.blas_threads,
+                "environment": _environment(),
+                "load_average_before": list(load_before),
+                "load_average_after": list(load_after),
+                "total_s": total,
+                "cylinder_axisymmetric": clean[:n_axi],
+                "cylinder_3d": clean[n_axi : n_axi + n_3d],
+                "seed_breast": clean[n_axi + n_3d :],
+                "cylinder_reference_mesh": [reference["size_inclusion_mm"], reference["size_far_mm"]],
+                "seed_breast_reference_mesh": list(SEED_REFINED) if args.full else None,
+                "equal_error_speedups": speedups,
+                "projection": {"mesh": [proj_case["size_inclusion_mm"], proj_case["size_far_mm"]], **projection},
+                "checks": [{"name": n, "pass": bool(ok), "value": v} for n, ok, v in checks],
+                "skipped": skipped,
+            },
+            indent=1,
+        )
+    )
     print(f"\n{total:.0f} s in all; chart {png}, numbers {js}")
     return 0 if all(ok for _, ok, _ in checks) else 1
-
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ transmission domain -- on disjoint ``TRAIN_SEEDS`` (choose presets) and ``TEST_S
 ``score`` gives the end-point error median, 95th percentile and mean inside the mask, and the
 folds (pixels of the mask where ``det J <= 0``); ``evaluate`` runs a method on a pair, timed.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -47,8 +48,21 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["analytic_pair", "sim_pair", "score", "evaluate", "smooth_field", "phantom", "Case", "family",
-           "family_pair", "gel_phantom", "block_mean", "TRAIN_SEEDS", "TEST_SEEDS"]
+__all__ = [
+    "analytic_pair",
+    "sim_pair",
+    "score",
+    "evaluate",
+    "smooth_field",
+    "phantom",
+    "Case",
+    "family",
+    "family_pair",
+    "gel_phantom",
+    "block_mean",
+    "TRAIN_SEEDS",
+    "TEST_SEEDS",
+]
 
 # the body: an ellipse centred in the frame, semi-axes as fractions of the frame (cols, rows)
 _BODY = (0.40, 0.346)
@@ -105,8 +119,9 @@ def phantom(size, rng, texture=0.08, n_inclusions=3):
     return img, body
 
 
-def analytic_pair(size=1120, displacement_frac=0.01, intensity_change=0.10, noise=0.01, seed=0, kind="thinning",
-                  texture=0.08):
+def analytic_pair(
+    size=1120, displacement_frac=0.01, intensity_change=0.10, noise=0.01, seed=0, kind="thinning", texture=0.08
+):
     """``(fixed, moving, truth, mask)`` at ``size`` x ``size`` (see the module docstring).
 
     ``displacement_frac``: the largest ``|truth|`` over the frame, as a fraction of ``size``.
@@ -139,6 +154,7 @@ def analytic_pair(size=1120, displacement_frac=0.01, intensity_change=0.10, nois
 
 
 # -- simulated experiments ---------------------------------------------------------------------
+
 
 def _simulated_file(scene, cache_dir):
     """An experiment file for ``scene`` (Scene, preset name or TOML), simulated once and cached
@@ -189,8 +205,9 @@ def _corrected(path, steps):
     return out
 
 
-def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size=None, erode=0.01,
-             cache_dir="out/regdata_cache"):
+def sim_pair(
+    path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size=None, erode=0.01, cache_dir="out/regdata_cache"
+):
     """``(fixed, moving, truth, mask)`` from a simulated experiment.
 
     ``path_or_scene``: an experiment file written by ``sim.lab.simulate_experiment`` (``radiokit
@@ -209,8 +226,9 @@ def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size
     import h5py
 
     x = path_or_scene
-    if isinstance(x, Path) or (isinstance(x, str) and "\n" not in x
-                                and (x.endswith((".h5", ".hdf5", ".nxs")) or os.path.exists(x))):
+    if isinstance(x, Path) or (
+        isinstance(x, str) and "\n" not in x and (x.endswith((".h5", ".hdf5", ".nxs")) or os.path.exists(x))
+    ):
         p = Path(x)
     else:
         p = _simulated_file(x, cache_dir)
@@ -240,6 +258,7 @@ def sim_pair(path_or_scene, *, fixed_step=None, moving_step=1, noisy=False, size
 
 # -- scoring ------------------------------------------------------------------------------------
 
+
 def score(displacement, truth, mask) -> dict:
     """End-point error ``|d - truth|`` (pixels) inside ``mask``: median, 95th percentile, mean;
     and folds, the pixels of ``mask`` where ``det J <= 0``."""
@@ -248,8 +267,12 @@ def score(displacement, truth, mask) -> dict:
     d = np.asarray(displacement, np.float32)
     mask = np.asarray(mask, bool)
     e = np.sqrt(((d - truth) ** 2).sum(axis=0))[mask]
-    return {"epe_median": float(np.median(e)), "epe_p95": float(np.percentile(e, 95)), "epe_mean": float(e.mean()),
-            "folds": int((jacobian_determinant(d)[mask] <= 0).sum())}
+    return {
+        "epe_median": float(np.median(e)),
+        "epe_p95": float(np.percentile(e, 95)),
+        "epe_mean": float(e.mean()),
+        "folds": int((jacobian_determinant(d)[mask] <= 0).sum()),
+    }
 
 
 def evaluate(method, pair, **options) -> dict:
@@ -307,8 +330,10 @@ class Case:
 
     def label(self) -> str:
         mot = "phys" if self.motion == "physical" else f"L1/{round(1 / self.corr)}"
-        return (f"{self.size} tex{self.texture:g}/noise{self.noise:g}({self.noise_kind[0]}) {mot} "
-                f"a{100 * self.amplitude:g}% {self.kind[0]}{100 * self.intensity:+g}% {self.domain} s{self.seed}")
+        return (
+            f"{self.size} tex{self.texture:g}/noise{self.noise:g}({self.noise_kind[0]}) {mot} "
+            f"a{100 * self.amplitude:g}% {self.kind[0]}{100 * self.intensity:+g}% {self.domain} s{self.seed}"
+        )
 
 
 def gel_phantom(size, rng, texture=0.0, inclusion=0.3):
@@ -425,10 +450,16 @@ def family(split="test", size=1120, *, n_seeds=1, grid="map"):
                     out.append(Case(size=size, texture=0.01 * t2n, noise=0.01, corr=corr, seed=s))
         if grid in ("spread", "all"):
             base = Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=s)
-            out += [replace(base, amplitude=0.005), replace(base, amplitude=0.04, corr=0.25),
-                    replace(base, motion="physical", corr=0.0, amplitude=0.01),
-                    replace(base, motion="physical", corr=0.0, amplitude=0.01, texture=0.0),
-                    replace(base, intensity=0.2, kind="gain"), replace(base, intensity=0.2),
-                    replace(base, noise_kind="poisson"), replace(base, domain="intensity"),
-                    replace(base, texture=0.02, noise=0.02), replace(base, texture=0.1)]
+            out += [
+                replace(base, amplitude=0.005),
+                replace(base, amplitude=0.04, corr=0.25),
+                replace(base, motion="physical", corr=0.0, amplitude=0.01),
+                replace(base, motion="physical", corr=0.0, amplitude=0.01, texture=0.0),
+                replace(base, intensity=0.2, kind="gain"),
+                replace(base, intensity=0.2),
+                replace(base, noise_kind="poisson"),
+                replace(base, domain="intensity"),
+                replace(base, texture=0.02, noise=0.02),
+                replace(base, texture=0.1),
+            ]
     return out

@@ -1,4 +1,5 @@
 """radiokit: experimental X-ray radiography for elasticity-contrast studies."""
+
 from radiokit._version import __version__
 from radiokit.errors import FormatError, RadiokitError
 

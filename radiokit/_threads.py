@@ -4,6 +4,7 @@ and the one pool they share.
 ``RADIOKIT_THREADS`` when set (``radiokit process`` sets it in each Dask worker to the worker's
 share of the cores), else the cores this process may run on, at most 8.
 """
+
 from __future__ import annotations
 
 import os

@@ -6,6 +6,7 @@ two neighbouring lines and isolated defect pixels by their valid neighbours.
 :class:`Calibration` holds the averaged dark and flat and a NeXus ``pixel_mask``: plain data, built
 here, kept with :meth:`Calibration.save`; :func:`radiokit.correct.correct_frames` applies it.
 """
+
 from __future__ import annotations
 
 import enum
@@ -149,7 +150,7 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
     var = var[var <= np.quantile(var, 0.99)]
     sigma = max(float(np.sqrt(var.mean())) if var.size else 0.0, 0.5)
     for r0 in range(0, rows, block_rows):
-        blk = data[:, r0:r0 + block_rows].astype(np.float32)
+        blk = data[:, r0 : r0 + block_rows].astype(np.float32)
         if n <= 32:  # sorting a few samples beats np.median's strided partitions, same value
             srt = np.sort(blk, axis=0)
             med = srt[n // 2] if n % 2 else 0.5 * (srt[n // 2 - 1] + srt[n // 2])
@@ -161,7 +162,7 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
         total = np.where(keep, blk, 0).sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             m = np.where(count > 0, total / np.maximum(count, 1), blk.min(axis=0))
-        mean[r0:r0 + block_rows] = m
+        mean[r0 : r0 + block_rows] = m
         if return_std and n >= 3:
             # Temporal noise for the noisy-pixel test. A zinger must not count, but clipping at
             # the panel's window would hide noisy pixels; so drop each pixel's most deviant
@@ -175,7 +176,7 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
             x_w = np.take_along_axis(blk, worst[None], axis=0)[0]
             outlier = np.abs(x_w - m_o) > clip_sigma * np.maximum(s_o, sigma / 4)
             s_all = blk.std(axis=0, ddof=1)
-            std[r0:r0 + block_rows] = np.where(outlier, s_o, s_all)
+            std[r0 : r0 + block_rows] = np.where(outlier, s_o, s_all)
     return (mean, std) if return_std else mean
 
 
@@ -262,8 +263,10 @@ class Calibration:
         self.flat = np.ascontiguousarray(self.flat, np.float32)
         self.mask = np.ascontiguousarray(self.mask, np.uint32)
         if not (self.dark.shape == self.flat.shape == self.mask.shape) or self.dark.ndim != 2:
-            raise ValueError(f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
-                             "must be the same (rows, cols) shape")
+            raise ValueError(
+                f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
+                "must be the same (rows, cols) shape"
+            )
         # A pixel without response cannot be corrected, whoever built the mask: always fill it.
         unusable = ~((self.flat - self.dark) > self.thresholds.eps)
         if unusable.any():
@@ -309,65 +312,29 @@ class Calibration:
         ``line_fraction`` of their pixels are flagged.
         """
         th = Thresholds.from_kwargs(**thresholds)
-        darks = _as_stack(darks, "darks")
-        flats = _as_stack(flats, "flats")
-        if darks.shape[1:] != flats.shape[1:]:
-            raise ValueError(f"darks are {darks.shape[1:]} but flats are {flats.shape[1:]}")
-        for name, stack in (("darks", darks), ("flats", flats)):
-            if stack.shape[0] < 3:
-                warnings.warn(f"only {stack.shape[0]} {name}: with fewer than 3 frames a zinger can be "
-                              "rejected only by taking the smaller value; take 10 or more", CalibrationWarning,
-                              stacklevel=2)
+        darks, flats = _check_stacks(darks, flats)
         dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True)
         flat = robust_average(flats, clip_sigma=th.clip_sigma)
         if darks.shape[0] < 3:
             dark_std = None
-        mask = np.zeros(dark.shape, np.uint32)
         response = flat - dark
-        local = _local_median(response, th.smooth_block)
         if float(np.median(response)) <= th.eps:
-            raise ValueError(f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
-                             "counts): was the beam on for the flats?")
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rel = np.where(local > th.eps, response / local, 0).astype(np.float32)
-        mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
-        mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
-        mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
-        n_flat_saturated = int(np.count_nonzero(flat >= th.saturation))
-        if n_flat_saturated > flat.size // 2:
-            raise ValueError(f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
-                             f"{flat.size} pixels: lower the flat exposure (current or time)")
-        mask[flat >= th.saturation] |= np.uint32(PixelFlag.OVER_RESPONDING)
-        if dark_std is not None:
-            ref = float(np.nanmedian(dark_std))
-            if ref > 0:
-                mask[np.nan_to_num(dark_std, nan=0) > th.noisy_factor * ref] |= np.uint32(PixelFlag.NOISY)
-        flagged = mask != 0
-        rows_idx, rows_bits = _line_flags(rel, dark_std, flagged, th, axis=0)
-        cols_idx, cols_bits = _line_flags(rel, dark_std, flagged, th, axis=1)
-        mask[rows_idx, :] |= rows_bits[:, None]
-        mask[:, cols_idx] |= cols_bits[None, :]
-        if n_flat_saturated:
-            warnings.warn(f"{n_flat_saturated} pixels of the averaged flat are saturated (>= {th.saturation}); "
-                          "they are flagged, but lower the flat exposure", CalibrationWarning, stacklevel=2)
+            raise ValueError(
+                f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
+                "counts): was the beam on for the flats?"
+            )
+        mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
         good = mask == 0
-        provenance = {
-            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "software": f"radiokit {__version__}",
-            "n_darks": int(darks.shape[0]), "n_flats": int(flats.shape[0]),
-            "averaging": "median-clipped mean",
-            "dark_times": [float(t) for t in dark_times] if dark_times is not None else [],
-            "flat_times": [float(t) for t in flat_times] if flat_times is not None else [],
-            "dark_noise_counts": float(np.median(np.std(darks[:, :: max(1, darks.shape[1] // 64)], axis=0, ddof=1)))
-            if darks.shape[0] > 1 else None,
-            "n_flat_saturated": n_flat_saturated,
-            "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in
-                        (PixelFlag.DEAD, PixelFlag.UNDER_RESPONDING, PixelFlag.OVER_RESPONDING,
-                         PixelFlag.NOISY, PixelFlag.CLUSTER)},
-        }
-        return cls(dark, flat, mask, rows_idx, cols_idx,
-                   c=float(np.mean(response[good])) if good.any() else float(np.mean(response)),
-                   thresholds=th, provenance=provenance)
+        return cls(
+            dark,
+            flat,
+            mask,
+            rows_idx,
+            cols_idx,
+            c=float(np.mean(response[good])) if good.any() else float(np.mean(response)),
+            thresholds=th,
+            provenance=_provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated),
+        )
 
     @classmethod
     def from_experiment(cls, path, **thresholds) -> Calibration:
@@ -387,8 +354,9 @@ class Calibration:
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
-        cal = cls.from_frames(darks, flats, dark_times=times[sel[ImageKey.DARK]],
-                              flat_times=times[sel[ImageKey.FLAT]], **thresholds)
+        cal = cls.from_frames(
+            darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
+        )
         cal.provenance["source"] = str(path)
         return cal
 
@@ -402,7 +370,9 @@ class Calibration:
             g = h5.create_group(group)
             g.attrs["NX_class"] = "NXcollection"
             for name in ("dark", "flat"):
-                g.create_dataset(name, data=getattr(self, name), compression="gzip", shuffle=True).attrs["units"] = "counts"
+                g.create_dataset(name, data=getattr(self, name), compression="gzip", shuffle=True).attrs["units"] = (
+                    "counts"
+                )
             g.create_dataset("pixel_mask", data=self.mask, compression="gzip")
             g["defect_rows"] = self.defect_rows
             g["defect_columns"] = self.defect_columns
@@ -439,16 +409,23 @@ class Calibration:
                 thresholds = Thresholds.from_kwargs(**_json_attr(path, g, "thresholds"))
             except (TypeError, ValueError) as exc:
                 raise FormatError(path, f"/{group}@thresholds: {exc}") from None
-            return cls(g["dark"][()], g["flat"][()], g["pixel_mask"][()],
-                       g["defect_rows"][()] if "defect_rows" in g else (),
-                       g["defect_columns"][()] if "defect_columns" in g else (),
-                       c=float(g.attrs.get("c", np.nan)), thresholds=thresholds,
-                       provenance=_json_attr(path, g, "provenance"))
+            return cls(
+                g["dark"][()],
+                g["flat"][()],
+                g["pixel_mask"][()],
+                g["defect_rows"][()] if "defect_rows" in g else (),
+                g["defect_columns"][()] if "defect_columns" in g else (),
+                c=float(g.attrs.get("c", np.nan)),
+                thresholds=thresholds,
+                provenance=_json_attr(path, g, "provenance"),
+            )
 
     def __repr__(self) -> str:
         d = self.provenance.get("defects", {})
-        return (f"Calibration(shape={self.shape}, c={self.c:.1f}, defect pixels={int(np.count_nonzero(self.mask))}, "
-                f"rows={self.defect_rows.tolist()}, columns={self.defect_columns.tolist()}, {d})")
+        return (
+            f"Calibration(shape={self.shape}, c={self.c:.1f}, defect pixels={int(np.count_nonzero(self.mask))}, "
+            f"rows={self.defect_rows.tolist()}, columns={self.defect_columns.tolist()}, {d})"
+        )
 
 
 def _json_attr(path, group, name) -> dict:
@@ -461,3 +438,74 @@ def _json_attr(path, group, name) -> dict:
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
     return value
+
+
+def _check_stacks(darks, flats):
+    """Both stacks as 3-D arrays of one frame shape; a warning for fewer than 3 frames."""
+    darks = _as_stack(darks, "darks")
+    flats = _as_stack(flats, "flats")
+    if darks.shape[1:] != flats.shape[1:]:
+        raise ValueError(f"darks are {darks.shape[1:]} but flats are {flats.shape[1:]}")
+    for name, stack in (("darks", darks), ("flats", flats)):
+        if stack.shape[0] < 3:
+            warnings.warn(
+                f"only {stack.shape[0]} {name}: with fewer than 3 frames a zinger can be "
+                "rejected only by taking the smaller value; take 10 or more",
+                CalibrationWarning,
+                stacklevel=3,
+            )
+    return darks, flats
+
+
+def _defect_map(flat, dark_std, response, th):
+    """The pixel mask (:class:`PixelFlag` bits), the defect rows and columns, and how many pixels
+    of the flat are saturated (see :meth:`Calibration.from_frames`' notes)."""
+    mask = np.zeros(flat.shape, np.uint32)
+    local = _local_median(response, th.smooth_block)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(local > th.eps, response / local, 0).astype(np.float32)
+    mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
+    mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
+    mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    n_flat_saturated = int(np.count_nonzero(flat >= th.saturation))
+    if n_flat_saturated > flat.size // 2:
+        raise ValueError(
+            f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
+            f"{flat.size} pixels: lower the flat exposure (current or time)"
+        )
+    mask[flat >= th.saturation] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    if dark_std is not None:
+        ref = float(np.nanmedian(dark_std))
+        if ref > 0:
+            mask[np.nan_to_num(dark_std, nan=0) > th.noisy_factor * ref] |= np.uint32(PixelFlag.NOISY)
+    flagged = mask != 0
+    rows_idx, rows_bits = _line_flags(rel, dark_std, flagged, th, axis=0)
+    cols_idx, cols_bits = _line_flags(rel, dark_std, flagged, th, axis=1)
+    mask[rows_idx, :] |= rows_bits[:, None]
+    mask[:, cols_idx] |= cols_bits[None, :]
+    if n_flat_saturated:
+        warnings.warn(
+            f"{n_flat_saturated} pixels of the averaged flat are saturated (>= {th.saturation}); "
+            "they are flagged, but lower the flat exposure",
+            CalibrationWarning,
+            stacklevel=3,
+        )
+    return mask, rows_idx, cols_idx, n_flat_saturated
+
+
+def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) -> dict:
+    """What a calibration was made from, and how many pixels of each defect it found."""
+    sample = darks[:, :: max(1, darks.shape[1] // 64)]
+    flags = (PixelFlag.DEAD, PixelFlag.UNDER_RESPONDING, PixelFlag.OVER_RESPONDING, PixelFlag.NOISY, PixelFlag.CLUSTER)
+    return {
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "software": f"radiokit {__version__}",
+        "n_darks": int(darks.shape[0]),
+        "n_flats": int(flats.shape[0]),
+        "averaging": "median-clipped mean",
+        "dark_times": [float(t) for t in dark_times] if dark_times is not None else [],
+        "flat_times": [float(t) for t in flat_times] if flat_times is not None else [],
+        "dark_noise_counts": float(np.median(np.std(sample, axis=0, ddof=1))) if darks.shape[0] > 1 else None,
+        "n_flat_saturated": n_flat_saturated,
+        "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in flags},
+    }

@@ -3,6 +3,7 @@
 Subcommands of other packages (``sim``, ``acquisition``) register themselves through the
 ``radiokit.commands`` entry-point group, so this module imports neither.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -56,25 +57,35 @@ def _summary(meta: dict) -> dict:
     elif fmt == "itex":
         c = meta.get("comment", {})
         app, cam, acq = c.get("Application", {}), c.get("Camera", {}), c.get("Acquisition", {})
-        out = {"software": f"{app.get('Software', '?')} {app.get('SoftwareVersion', '')}".strip(),
-               "date": f"{app.get('Date', '')} {app.get('Time', '')}".strip(),
-               "camera": cam.get("CameraName"), "exposure": acq.get("ExposureTime"),
-               "file_type": meta.get("file_type"),
-               "scaling": {k: (f"{len(v['values'])} values [{v.get('unit', '')}]" if "values" in v else v.get("name"))
-                           for k, v in meta.get("scaling", {}).items()}}
+        out = {
+            "software": f"{app.get('Software', '?')} {app.get('SoftwareVersion', '')}".strip(),
+            "date": f"{app.get('Date', '')} {app.get('Time', '')}".strip(),
+            "camera": cam.get("CameraName"),
+            "exposure": acq.get("ExposureTime"),
+            "file_type": meta.get("file_type"),
+            "scaling": {
+                k: (f"{len(v['values'])} values [{v.get('unit', '')}]" if "values" in v else v.get("name"))
+                for k, v in meta.get("scaling", {}).items()
+            },
+        }
     elif fmt == "experiment":
         keys = np.asarray(meta.get("image_key", []))
         steps = np.asarray(meta.get("step", np.full(keys.shape, -1)))  # optional in the file
         steps = steps if steps.shape == keys.shape else np.full(keys.shape, -1)
-        out = {"projections": int(np.sum(keys == 0)), "flats": int(np.sum(keys == 1)),
-               "darks": int(np.sum(keys == 2)), "invalid": int(np.sum(keys == 3)),
-               "steps": sorted(int(s) for s in set(steps[(keys == 0) & (steps >= 0)].tolist())),
-               "simulated": bool(meta.get("simulated", False))}
+        out = {
+            "projections": int(np.sum(keys == 0)),
+            "flats": int(np.sum(keys == 1)),
+            "darks": int(np.sum(keys == 2)),
+            "invalid": int(np.sum(keys == 3)),
+            "steps": sorted(int(s) for s in set(steps[(keys == 0) & (steps >= 0)].tolist())),
+            "simulated": bool(meta.get("simulated", False)),
+        }
         src = meta.get("source", {})
         out["source"] = " ".join(
             f"{src[k]:g} {unit}" if isinstance(src.get(k), (int, float, np.number)) else str(src.get(k))
             for k, unit in (("name", ""), ("voltage", "kV"), ("current", "uA"))
-            if k in src and not (isinstance(src[k], (float, np.floating)) and np.isnan(src[k]))).strip()
+            if k in src and not (isinstance(src[k], (float, np.floating)) and np.isnan(src[k]))
+        ).strip()
     elif fmt == "tiff":
         out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
     return {k: v for k, v in out.items() if v not in (None, "", {})}
@@ -100,11 +111,17 @@ def cmd_info(args) -> int:
                 hi = fmax if hi is None else max(hi, fmax)
                 if top is not None:
                     saturated += int(np.count_nonzero(frame >= top))
-            rep = {"file": str(path), "format": src.meta.get("format", src.format), "frames": len(src),
-                   "shape": list(src.frame_shape), "dtype": str(src.dtype),
-                   "range": [lo.item(), hi.item()] if lo is not None else None, "frames_read": len(picks),
-                   "saturated": saturated if top is not None else None,
-                   "metadata": _summary(src.meta)}
+            rep = {
+                "file": str(path),
+                "format": src.meta.get("format", src.format),
+                "frames": len(src),
+                "shape": list(src.frame_shape),
+                "dtype": str(src.dtype),
+                "range": [lo.item(), hi.item()] if lo is not None else None,
+                "frames_read": len(picks),
+                "saturated": saturated if top is not None else None,
+                "metadata": _summary(src.meta),
+            }
         reports.append(rep)
     if args.json:
         print(json.dumps(reports, indent=2, default=str))
@@ -181,13 +198,15 @@ def cmd_calibrate(args) -> int:
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
     # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs,
-                     size_hint=12 * cal.dark.size + 2**20) as tmp:
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=12 * cal.dark.size + 2**20) as tmp:
         cal.save(tmp)
     p = cal.provenance
-    print(f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats "
-          f"-> {args.output}")
-    print(f"  c = mean(flat - dark) = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts")
+    print(
+        f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
+    )
+    print(
+        f"  c = mean(flat - dark) = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts"
+    )
     print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
     if cal.defect_rows.size or cal.defect_columns.size:
         print(f"  defect lines: rows {cal.defect_rows.tolist()}, columns {cal.defect_columns.tolist()}")
@@ -208,12 +227,23 @@ def cmd_correct(args) -> int:
         print(f"calibrated from the darks and flats of {args.frames[0]}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
-    summary = correct_files(args.frames, cal, args.output, domain=args.domain, progress=not args.quiet,
-                            overwrite=args.overwrite, **_raw_hints(args))
-    print(f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
-          f"at {summary['frames_per_second']:.1f} frames/s")
-    print(f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
-          f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive (filled)")
+    summary = correct_files(
+        args.frames,
+        cal,
+        args.output,
+        domain=args.domain,
+        progress=not args.quiet,
+        overwrite=args.overwrite,
+        **_raw_hints(args),
+    )
+    print(
+        f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
+        f"at {summary['frames_per_second']:.1f} frames/s"
+    )
+    print(
+        f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
+        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive (filled)"
+    )
     return 0
 
 
@@ -251,12 +281,17 @@ def cmd_register(args) -> int:
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
     registered = reg.warp(moving)
-    write_registration(args.output, RegistrationRecord(reg.method, str(args.fixed), str(args.moving),
-                                                       reg.displacement, registered, vars(q)),
-                       overwrite=args.overwrite, inputs=inputs)
-    print(f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
-          f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
-          f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px")
+    write_registration(
+        args.output,
+        RegistrationRecord(reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, vars(q)),
+        overwrite=args.overwrite,
+        inputs=inputs,
+    )
+    print(
+        f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
+        f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
+        f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px"
+    )
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
         with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:
@@ -298,11 +333,20 @@ def cmd_process(args) -> int:
     from radiokit.results import Results
 
     opts = {"preset": args.preset} if args.preset else {}
-    cfg = Config(ks=tuple(args.k), domain=args.domain, method=args.method, register_options=opts,
-                 crop_mm=args.crop_mm or None, inclusion=args.inclusion, background=args.background,
-                 roi_units="mm" if args.mm else "px", report=not args.no_report, progress=not args.quiet,
-                 control=str(args.control) if args.control else None,
-                 cross_check=None if args.cross_check in ("none", "") else args.cross_check)
+    cfg = Config(
+        ks=tuple(args.k),
+        domain=args.domain,
+        method=args.method,
+        register_options=opts,
+        crop_mm=args.crop_mm or None,
+        inclusion=args.inclusion,
+        background=args.background,
+        roi_units="mm" if args.mm else "px",
+        report=not args.no_report,
+        progress=not args.quiet,
+        control=str(args.control) if args.control else None,
+        cross_check=None if args.cross_check in ("none", "") else args.cross_check,
+    )
     inputs = [*args.files, *([args.control] if args.control else [])]
     single = len(args.files) == 1 and not args.scheduler
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
@@ -312,8 +356,9 @@ def cmd_process(args) -> int:
         res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         _print_headline(res.record, res.files)
         return 0 if all(p.ok for p in res.record.pairs) else 1
-    results = process_many(args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers,
-                           overwrite=args.overwrite)
+    results = process_many(
+        args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers, overwrite=args.overwrite
+    )
     failed = 0
     for r in results:
         if "error" in r:
@@ -332,11 +377,17 @@ def _print_headline(record, files):
 
     ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
     main = record.pair(record.main_pair)
-    print(f"{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
-          f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}")
+    print(
+        f"{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
+        f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
+    )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
-        parts = [f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
-                 + (f" (bound {x.bound:.3f})" if x.bound is not None else "") + f", CNR {x.cnr:.3g}" for x in m.per_k]
+        parts = [
+            f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
+            + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
+            + f", CNR {x.cnr:.3g}"
+            for x in m.per_k
+        ]
         print(f"  {dom.paper_name:<6}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
     for name in ("report", "results_json"):
         if name in files:
@@ -348,8 +399,13 @@ def _add_info(sub):
     p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
     p.add_argument("files", nargs="+", type=Path)
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--sample", type=int, default=8, metavar="N",
-                   help="frames read for the range and saturation, evenly spaced (default 8)")
+    p.add_argument(
+        "--sample",
+        type=int,
+        default=8,
+        metavar="N",
+        help="frames read for the range and saturation, evenly spaced (default 8)",
+    )
     p.add_argument("--all", action="store_true", help="read every frame for the range and saturation")
     _add_raw_hints(p)
     p.set_defaults(func=cmd_info)
@@ -360,8 +416,12 @@ def _add_calibrate(sub):
     p.add_argument("--dark", nargs="+", type=Path, help="dark frame files")
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam) frame files")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
-    p.add_argument("--threshold", action="append", metavar="NAME=VALUE",
-                   help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable")
+    p.add_argument(
+        "--threshold",
+        action="append",
+        metavar="NAME=VALUE",
+        help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable",
+    )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     _add_raw_hints(p)
@@ -372,8 +432,12 @@ def _add_correct(sub):
     p = sub.add_parser("correct", help="dark/flat/defect-correct frames to transmission or line integral")
     p.add_argument("frames", nargs="+", type=Path)
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
-    p.add_argument("--domain", choices=["log", "linear", "counts"], default="log",
-                   help="log: -ln(I/I0) (default); linear: I/I0; counts: the manual's gain-corrected grey levels")
+    p.add_argument(
+        "--domain",
+        choices=["log", "linear", "counts"],
+        default="log",
+        help="log: -ln(I/I0) (default); linear: I/I0; counts: the manual's gain-corrected grey levels",
+    )
     p.add_argument("-o", "--output", type=Path, required=True, help="output .h5 or .tif")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -385,58 +449,104 @@ def _add_register(sub):
     p = sub.add_parser("register", help="non-rigid registration of MOVING onto FIXED (residual complexity by default)")
     p.add_argument("fixed", type=Path, help="fixed image file (e.g. a corrected line-integral frame)")
     p.add_argument("moving", type=Path, help="moving image file")
-    p.add_argument("--method", default="rc", help="rc (default), ssd, ncc, mi, or a peer: tvl1, ilk, dis, farneback, ...")
-    p.add_argument("--preset", choices=PRESET_NAMES,
-                   help="B-spline methods: default, fast, or weak / weak-fast (opt-in, nearly textureless pairs)")
-    p.add_argument("--roi", type=int, nargs=4, metavar=("R0", "R1", "C0", "C1"),
-                   help="score the similarity only inside rows R0:R1, columns C0:C1")
+    p.add_argument(
+        "--method", default="rc", help="rc (default), ssd, ncc, mi, or a peer: tvl1, ilk, dis, farneback, ..."
+    )
+    p.add_argument(
+        "--preset",
+        choices=PRESET_NAMES,
+        help="B-spline methods: default, fast, or weak / weak-fast (opt-in, nearly textureless pairs)",
+    )
+    p.add_argument(
+        "--roi",
+        type=int,
+        nargs=4,
+        metavar=("R0", "R1", "C0", "C1"),
+        help="score the similarity only inside rows R0:R1, columns C0:C1",
+    )
     p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
     p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
-    p.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality")
+    p.add_argument(
+        "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"
+    )
     p.add_argument("--png", type=Path, help="also write an overlay and det J figure")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.set_defaults(func=cmd_register)
 
 
 def _add_process(sub):
-    p = sub.add_parser("process", help="experiment file(s) -> registered steps, compression-induced contrast, "
-                                       "measurements, report",
-                       description="Calibrate, correct, register every step onto the most compressed, enhance "
-                                   "(k = 1, 2), measure and report. Several files run in parallel on Dask.")
+    p = sub.add_parser(
+        "process",
+        help="experiment file(s) -> registered steps, compression-induced contrast, measurements, report",
+        description="Calibrate, correct, register every step onto the most compressed, enhance "
+        "(k = 1, 2), measure and report. Several files run in parallel on Dask.",
+    )
     p.add_argument("files", nargs="+", type=Path, help="experiment files (.h5)")
-    p.add_argument("-o", "--output", type=Path,
-                   help="results folder of one file; with several files, the folder holding one per file, named "
-                        "after it (STEM, then STEM-2 ... when names repeat); default: beside each file")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing results folder radiokit made (never one holding an input)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        help="results folder of one file; with several files, the folder holding one per file, named "
+        "after it (STEM, then STEM-2 ... when names repeat); default: beside each file",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing results folder radiokit made (never one holding an input)",
+    )
     p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors (default 1 2)")
-    p.add_argument("--domain", choices=["negative", "log"], default="negative",
-                   help="headline domain: negative (-I/I0, the paper's 'linear' images; default) or log "
-                        "(-ln(I/I0)); both are computed")
+    p.add_argument(
+        "--domain",
+        choices=["negative", "log"],
+        default="negative",
+        help="headline domain: negative (-I/I0, the paper's 'linear' images; default) or log "
+        "(-ln(I/I0)); both are computed",
+    )
     p.add_argument("--method", default="rc", help="registration method (default rc)")
     p.add_argument("--preset", choices=PRESET_NAMES, help="registration preset (see `radiokit register --help`)")
-    p.add_argument("--crop-mm", type=float, default=30.0, help="side of the registered square around the inclusion, "
-                                                              "mm (0: the whole frame)")
-    p.add_argument("--inclusion", type=float, nargs=4, metavar=("R0", "R1", "C0", "C1"),
-                   help="inclusion rectangle (default: found automatically)")
-    p.add_argument("--background", type=float, nargs=4, metavar=("R0", "R1", "C0", "C1"),
-                   help="background rectangle (default: beside the inclusion)")
-    p.add_argument("--mm", action="store_true", help="rectangles in mm from the frame's top-left corner, not pixels")
-    p.add_argument("--control", type=Path, help="a control experiment (inclusion as soft as the background)")
-    p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
-    p.add_argument("--cross-check", default="ncc", help="register the main pair again with this method and flag "
-                                                        "a disagreement (default ncc; 'none' to skip)")
-    p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
-    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--crop-mm",
+        type=float,
+        default=30.0,
+        help="side of the registered square around the inclusion, mm (0: the whole frame)",
+    )
+    p.add_argument(
+        "--inclusion",
+        type=float,
+        nargs=4,
+        metavar=("R0", "R1", "C0", "C1"),
+        help="inclusion rectangle (default: found automatically)",
+    )
+    p.add_argument(
+        "--background",
+        type=float,
+        nargs=4,
+        metavar=("R0", "R1", "C0", "C1"),
+        help="background rectangle (default: beside the inclusion)",
+    )
+    _add_process_options(p)
     p.set_defaults(func=cmd_process)
 
 
+def _add_process_options(p):
+    """The process options beyond the science: ROI units, control, report, cross-check, Dask."""
+    p.add_argument("--mm", action="store_true", help="rectangles in mm from the frame's top-left corner, not pixels")
+    p.add_argument("--control", type=Path, help="a control experiment (inclusion as soft as the background)")
+    p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
+    p.add_argument(
+        "--cross-check",
+        default="ncc",
+        help="register the main pair again with this method and flag a disagreement (default ncc; 'none' to skip)",
+    )
+    p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
+    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
+    parser = argparse.ArgumentParser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
     parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

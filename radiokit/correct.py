@@ -5,6 +5,7 @@ The work per frame is one pass over row blocks small enough to stay in cache (12
 so two threads use two cores. Everything that does not depend on the frame (``ln(flat - dark)``,
 ``1 / (flat - dark)``, the defect fill plan) is computed once per calibration.
 """
+
 from __future__ import annotations
 
 import functools
@@ -50,8 +51,10 @@ class CorrectionReport:
     flags: np.ndarray | None = None
 
     def summary(self) -> str:
-        return (f"{len(self.saturated)} frame(s): {self.defects_filled} defect pixels filled per frame, "
-                f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive (filled)")
+        return (
+            f"{len(self.saturated)} frame(s): {self.defects_filled} defect pixels filled per frame, "
+            f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive (filled)"
+        )
 
 
 # -- fill plans --------------------------------------------------------------------------------
@@ -105,8 +108,9 @@ def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple
         return _Stage(dsts[0], srcs[0], ws[0]), todo
     k = max(s.shape[1] for s in srcs)
     pad = lambda a, v: np.pad(a, ((0, 0), (0, k - a.shape[1])), constant_values=v)
-    return _Stage(np.concatenate(dsts), np.concatenate([pad(s, 0) for s in srcs]),
-                  np.concatenate([pad(w, 0) for w in ws])), todo
+    return _Stage(
+        np.concatenate(dsts), np.concatenate([pad(s, 0) for s in srcs]), np.concatenate([pad(w, 0) for w in ws])
+    ), todo
 
 
 def _line_stage(lines: np.ndarray, n_lines: int, n_along: int, axis: int, shape) -> _Stage:
@@ -196,8 +200,13 @@ class CorrectionKernel:
         response = cal.flat - cal.dark
         ok = (cal.mask == 0) & (response > cal.thresholds.eps)
         response[~ok] = 1.0
-        return cls(dark=cal.dark, response=response, stages=fill_plan(cal), invalid=cal.mask != 0,
-                   n_defects=int(np.count_nonzero(cal.mask)))
+        return cls(
+            dark=cal.dark,
+            response=response,
+            stages=fill_plan(cal),
+            invalid=cal.mask != 0,
+            n_defects=int(np.count_nonzero(cal.mask)),
+        )
 
     def dark_max(self, r0: int, r1: int) -> float:
         """The largest dark value in rows r0..r1 (cached per block)."""
@@ -326,8 +335,11 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     else:
         # Split on block boundaries so threads never share a cache line of output.
         edges = [(rows * i // nt) // _BLOCK_ROWS * _BLOCK_ROWS for i in range(nt)] + [rows]
-        parts = list(pool().map(lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1],
-                                                         saturation), range(nt)))
+        parts = list(
+            pool().map(
+                lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1], saturation), range(nt)
+            )
+        )
     nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
     sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
     flat_out = out2d.reshape(-1)
@@ -338,9 +350,11 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
         nonpos = nonpos[~flat_invalid[nonpos]]  # defect pixels: filled by the plan, counted as defects
         todo = nonpos
         if todo.size:
+
             def is_invalid(idx):  # nonpos is sorted: blocks and threads run in row order
                 pos = np.searchsorted(nonpos, idx).clip(max=nonpos.size - 1)
                 return flat_invalid[idx] | (nonpos[pos] == idx)
+
             stage, _ = _neighbour_stage(todo, is_invalid, out2d.shape, max_radius=2)
             stage.apply(flat_out)
     return nonpos, sat
@@ -413,7 +427,9 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
             flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
     if not return_report:
         return out
-    report = CorrectionReport(sat_counts, np_counts, CorrectionKernel.of(cal).n_defects, flags if raw.ndim == 3 else flags[0])
+    report = CorrectionReport(
+        sat_counts, np_counts, CorrectionKernel.of(cal).n_defects, flags if raw.ndim == 3 else flags[0]
+    )
     return out, report
 
 
@@ -480,8 +496,9 @@ class _BackgroundWriter:
             raise self._error
 
 
-def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False,
-                  **hints) -> dict:
+def correct_files(
+    inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
+) -> dict:
     """Stream frames from ``inputs`` through ``cal`` into ``output`` (``.h5`` or ``.tif``).
 
     One raw frame and one corrected frame are in memory at a time, whatever the stack length.
@@ -514,22 +531,38 @@ def correct_files(inputs, cal: Calibration, output, *, domain="log", progress=Tr
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = 0
-        with StackWriter(output, cal.shape, np.float32, meta=meta, n_frames=len(plan), overwrite=overwrite,
-                         inputs=inputs) as writer, \
-                tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar, \
-                _BackgroundWriter(writer) as bg:
+        with (
+            StackWriter(
+                output, cal.shape, np.float32, meta=meta, n_frames=len(plan), overwrite=overwrite, inputs=inputs
+            ) as writer,
+            tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar,
+            _BackgroundWriter(writer) as bg,
+        ):
             for si, fi, step in plan:
                 frame = bg.buffer()
                 nonpos, sat = _correct_checked(cal, sources[si][fi], frame, domain)
                 sat_total += sat.size
                 np_total += nonpos.size
-                bg.put(frame, source_index=np.int32(si), frame_index=np.int32(fi), step=np.int16(step),
-                       saturated=np.int64(sat.size), nonpositive=np.int64(nonpos.size))
+                bg.put(
+                    frame,
+                    source_index=np.int32(si),
+                    frame_index=np.int32(fi),
+                    step=np.int16(step),
+                    saturated=np.int64(sat.size),
+                    nonpositive=np.int64(nonpos.size),
+                )
                 bar.update(1)
         elapsed = time.perf_counter() - t0
     finally:
         for src in sources:
             src.close()
-    return {"frames": len(plan), "output": str(output), "domain": domain, "seconds": elapsed,
-            "frames_per_second": len(plan) / elapsed if elapsed else float("inf"),
-            "saturated": sat_total, "nonpositive": np_total, "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects}
+    return {
+        "frames": len(plan),
+        "output": str(output),
+        "domain": domain,
+        "seconds": elapsed,
+        "frames_per_second": len(plan) / elapsed if elapsed else float("inf"),
+        "saturated": sat_total,
+        "nonpositive": np_total,
+        "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects,
+    }

@@ -22,6 +22,7 @@ Three pixel conventions (:class:`Domain`) are supported; the formula is the same
 ``NEGATIVE`` is ``-LINEAR``, so contrasts, CNRs and Weber contrasts change sign between the two
 while improvement factors and change ratios (ratios of contrasts) do not.
 """
+
 from __future__ import annotations
 
 import enum
@@ -76,8 +77,10 @@ def _pair(reference, registered):
     ref = _image(reference, "reference")
     reg = _image(registered, "registered")
     if ref.shape != reg.shape:
-        raise ValueError(f"reference has shape {ref.shape}, registered has {reg.shape}: "
-                         "register the moving image onto the reference grid first")
+        raise ValueError(
+            f"reference has shape {ref.shape}, registered has {reg.shape}: "
+            "register the moving image onto the reference grid first"
+        )
     return ref, reg
 
 
@@ -86,14 +89,18 @@ def _check_sign(image, name, domain: Domain):
     # turns every brightness and contrast upside down: transmission is positive, its negative not.
     med = np.median(image)
     if domain is Domain.NEGATIVE and med > 0:
-        raise ValueError(f"{name}: domain='negative' expects the paper's negative intensities "
-                         "(pixel = -I/I0 or -counts, more attenuation brighter), but most pixels "
-                         "are positive; for transmission I/I0 (radiokit.correct's 'linear') pass "
-                         "domain='linear'")
+        raise ValueError(
+            f"{name}: domain='negative' expects the paper's negative intensities "
+            "(pixel = -I/I0 or -counts, more attenuation brighter), but most pixels "
+            "are positive; for transmission I/I0 (radiokit.correct's 'linear') pass "
+            "domain='linear'"
+        )
     if domain is Domain.LINEAR and med < 0:
-        raise ValueError(f"{name}: domain='linear' expects transmission I/I0 (positive), but most "
-                         "pixels are negative; for the paper's negative intensities -I/I0 pass "
-                         "domain='negative'")
+        raise ValueError(
+            f"{name}: domain='linear' expects transmission I/I0 (positive), but most "
+            "pixels are negative; for the paper's negative intensities -I/I0 pass "
+            "domain='negative'"
+        )
 
 
 def difference(reference, registered) -> np.ndarray:
@@ -145,8 +152,9 @@ def to_domain(line_integral, domain: Domain | str) -> np.ndarray:
     return (t if domain is Domain.LINEAR else -t).astype(np.float32)
 
 
-def compression_contrast(reference, registered, k: float = 1.0, *, domain: Domain | str = "log",
-                         mask=None) -> np.ndarray:
+def compression_contrast(
+    reference, registered, k: float = 1.0, *, domain: Domain | str = "log", mask=None
+) -> np.ndarray:
     """The paper's enhanced image: ``reference + k (D - mean D)`` with ``D = reference - registered``.
 
     Parameters

@@ -13,6 +13,7 @@ boolean mask of the image's shape. Manual ROIs override the automatic ones simpl
 passed; ROIs given in millimetres are built with :meth:`ROI.from_mm`. Means are taken in float64
 and returned as Python floats.
 """
+
 from __future__ import annotations
 
 import math
@@ -22,8 +23,20 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-__all__ = ["ROI", "contrast", "cnr", "weber", "improvement_factor", "improvement_bound", "change_ratio", "profile",
-           "find_rois", "summary", "body_mask", "PAPER"]
+__all__ = [
+    "ROI",
+    "contrast",
+    "cnr",
+    "weber",
+    "improvement_factor",
+    "improvement_bound",
+    "change_ratio",
+    "profile",
+    "find_rois",
+    "summary",
+    "body_mask",
+    "PAPER",
+]
 
 #: The paper's numbers, what every table compares with: contrast improvement of about 1.4
 #: (k = 1) and 2 (k = 2), and the inclusion/background intensity-change ratio of the authors'
@@ -92,8 +105,10 @@ class ROI:
             except TypeError:
                 raise ValueError(f"ROI {name} must be an integer pixel index, got {value!r}") from None
         if self.row1 <= self.row0 or self.col1 <= self.col0:
-            raise ValueError(f"ROI is empty: rows [{self.row0}, {self.row1}) x cols [{self.col0}, {self.col1}) "
-                             "(need row1 > row0 and col1 > col0)")
+            raise ValueError(
+                f"ROI is empty: rows [{self.row0}, {self.row1}) x cols [{self.col0}, {self.col1}) "
+                "(need row1 > row0 and col1 > col0)"
+            )
 
     # geometry
     @property
@@ -117,8 +132,9 @@ class ROI:
         A point belongs to pixel ``i`` when ``i - 0.5 <= x < i + 0.5``.
         """
         if isinstance(item, ROI):
-            return (self.row0 <= item.row0 and item.row1 <= self.row1
-                    and self.col0 <= item.col0 and item.col1 <= self.col1)
+            return (
+                self.row0 <= item.row0 and item.row1 <= self.row1 and self.col0 <= item.col0 and item.col1 <= self.col1
+            )
         r, c = _pair(item, "point")
         return self.row0 - 0.5 <= r < self.row1 - 0.5 and self.col0 - 0.5 <= c < self.col1 - 0.5
 
@@ -236,8 +252,10 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
     else:
         m = np.asarray(region)
         if m.dtype != bool:
-            raise ValueError(f"{name} must be an ROI or a boolean mask, got {type(region).__name__} "
-                             f"of dtype {getattr(m, 'dtype', None)}")
+            raise ValueError(
+                f"{name} must be an ROI or a boolean mask, got {type(region).__name__} "
+                f"of dtype {getattr(m, 'dtype', None)}"
+            )
         if m.shape != image.shape:
             raise ValueError(f"{name} mask has shape {m.shape}, {image_name} has {image.shape}")
         if not m.any():
@@ -352,8 +370,10 @@ def improvement_factor(enhanced, reference, inclusion, background) -> float:
         raise ValueError(f"enhanced has shape {enh.shape}, reference has {ref.shape}")
     c_ref = contrast(ref, inclusion, background)
     if c_ref == 0:
-        raise ValueError("the reference contrast is zero: the improvement factor is undefined "
-                         "(is the inclusion ROI on the inclusion?)")
+        raise ValueError(
+            "the reference contrast is zero: the improvement factor is undefined "
+            "(is the inclusion ROI on the inclusion?)"
+        )
     return float(contrast(enh, inclusion, background) / c_ref)
 
 
@@ -437,8 +457,12 @@ def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
     if domain not in ("log", "linear", "negative"):
         raise ValueError(f"domain must be 'log', 'linear' or 'negative', got {domain!r}")
     for name, v in (("k", k), ("mu_b_per_mm", mu_b_per_mm), ("delta_gap_mm", delta_gap_mm)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v) \
-                or v < 0:
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float, np.floating, np.integer))
+            or not math.isfinite(v)
+            or v < 0
+        ):
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
     if domain == "log":
         return 1.0
@@ -472,8 +496,9 @@ def change_ratio(before, after, inclusion, background) -> float:
     d_in = _region(a, inclusion, "inclusion", "after").mean() - _region(b, inclusion, "inclusion", "before").mean()
     d_bg = _region(a, background, "background", "after").mean() - _region(b, background, "background", "before").mean()
     if d_bg == 0:
-        raise ValueError("the background intensity does not change between before and after: "
-                         "the change ratio is undefined")
+        raise ValueError(
+            "the background intensity does not change between before and after: the change ratio is undefined"
+        )
     return float(d_in / d_bg)
 
 
@@ -511,12 +536,19 @@ def summary(reference, enhanced_by_k: dict, inclusion, background) -> dict:
     ref = _image(reference, "reference")
 
     def three(img):
-        return {"contrast": contrast(img, inclusion, background), "cnr": cnr(img, inclusion, background),
-                "weber": weber(img, inclusion, background)}
+        return {
+            "contrast": contrast(img, inclusion, background),
+            "cnr": cnr(img, inclusion, background),
+            "weber": weber(img, inclusion, background),
+        }
 
-    out = {"reference": three(ref), "enhanced": {}, "improvement_factor": {},
-           "inclusion": inclusion.to_dict() if isinstance(inclusion, ROI) else None,
-           "background": background.to_dict() if isinstance(background, ROI) else None}
+    out = {
+        "reference": three(ref),
+        "enhanced": {},
+        "improvement_factor": {},
+        "inclusion": inclusion.to_dict() if isinstance(inclusion, ROI) else None,
+        "background": background.to_dict() if isinstance(background, ROI) else None,
+    }
     for k, enh in enhanced_by_k.items():
         key = _k_key(k)
         if key in out["enhanced"]:
@@ -729,10 +761,11 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
         h, w = rows // f * f, cols // f * f
         im = block_reduce(img[:h, :w], f, np.mean) if f > 1 else img
         dp = depth(f, h, w)
-        resp = -(sigma / f) ** 2 * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
+        resp = -((sigma / f) ** 2) * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body
-        peaks = peak_local_max(resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0,
-                               num_peaks=3, exclude_border=False)
+        peaks = peak_local_max(
+            resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0, num_peaks=3, exclude_border=False
+        )
         for rr, cc in peaks:
             centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
             score, fit = _blob_fit(img, body, centre, radius)
@@ -740,8 +773,10 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
                 best = (score, fit, radius)
     score, fit, radius = best
     if fit is None:
-        raise ValueError("no inclusion found: no blob inside the body is brighter than its surroundings; "
-                         "pass inclusion_mask or the ROIs yourself")
+        raise ValueError(
+            "no inclusion found: no blob inside the body is brighter than its surroundings; "
+            "pass inclusion_mask or the ROIs yourself"
+        )
     resid, (r0, c0), dist = fit
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")
     core = dist <= max(0.5, 1.0 / radius)
@@ -749,7 +784,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     above = (resid >= resid.flat[peak_idx] / 2) & (dist <= 1.5)
     labels, _ = ndi.label(above)
     out = np.zeros(img.shape, bool)
-    out[r0:r0 + resid.shape[0], c0:c0 + resid.shape[1]] = labels == labels.flat[peak_idx]
+    out[r0 : r0 + resid.shape[0], c0 : c0 + resid.shape[1]] = labels == labels.flat[peak_idx]
     return out
 
 
@@ -763,8 +798,16 @@ def _length_px(value, name, pixel_size_mm):
     return vr, vc
 
 
-def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=None, gap=None,
-              background_size=None, body_mask=None) -> tuple[ROI, ROI]:
+def find_rois(
+    image,
+    *,
+    inclusion_mask=None,
+    pixel_size_mm=None,
+    inclusion_size=None,
+    gap=None,
+    background_size=None,
+    body_mask=None,
+) -> tuple[ROI, ROI]:
     """Automatic inclusion and background rectangles, after the paper's Figs. 7-8.
 
     Parameters
@@ -818,18 +861,9 @@ def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=
     if not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite values (NaN or inf)")
     px = None if pixel_size_mm is None else _pair(pixel_size_mm, "pixel_size_mm", positive=True)
-    if body_mask is None:
-        body = _body(img, 0.2, 2)
-    else:
-        body = np.asarray(body_mask)
-        if body.dtype != bool or body.shape != img.shape:
-            raise ValueError(f"body_mask must be a bool array of shape {img.shape}, "
-                             f"got {body.dtype} {body.shape}")
+    body = _body(img, 0.2, 2) if body_mask is None else _bool_mask(body_mask, img.shape, "body_mask")
     if inclusion_mask is not None:
-        region = np.asarray(inclusion_mask)
-        if region.dtype != bool or region.shape != img.shape:
-            raise ValueError(f"inclusion_mask must be a bool array of shape {img.shape}, "
-                             f"got {region.dtype} {region.shape}")
+        region = _bool_mask(inclusion_mask, img.shape, "inclusion_mask")
         if not region.any():
             raise ValueError("inclusion_mask is empty (no True pixel)")
         region = _largest_component(region)
@@ -846,8 +880,11 @@ def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=
 
     extent = _bbox(region)
     g = _length_px(gap, "gap", px)
-    g_r, g_c = (max(2, _round_half_up(extent.shape[0] / 2)), max(2, _round_half_up(extent.shape[1] / 2))) \
-        if g is None else (_round_half_up(g[0]), _round_half_up(g[1]))
+    g_r, g_c = (
+        (max(2, _round_half_up(extent.shape[0] / 2)), max(2, _round_half_up(extent.shape[1] / 2)))
+        if g is None
+        else (_round_half_up(g[0]), _round_half_up(g[1]))
+    )
     bs = _length_px(background_size, "background_size", px)
     h, w = inclusion.shape if bs is None else (_round_half_up(bs[0]), _round_half_up(bs[1]))
     if h < 1 or w < 1:
@@ -861,7 +898,19 @@ def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=
         "above": ROI(extent.row0 - g_r - h, extent.row0 - g_r, c0, c0 + w),
         "below": ROI(extent.row1 + g_r, extent.row1 + g_r + h, c0, c0 + w),
     }
-    rows, cols = img.shape
+    return inclusion, _first_fitting(candidates, img.shape, body, region, f"{h}x{w}", f"{g_c} px", extent)
+
+
+def _bool_mask(mask, shape, name) -> np.ndarray:
+    arr = np.asarray(mask)
+    if arr.dtype != bool or arr.shape != shape:
+        raise ValueError(f"{name} must be a bool array of shape {shape}, got {arr.dtype} {arr.shape}")
+    return arr
+
+
+def _first_fitting(candidates: dict, shape, body, region, size: str, gap: str, extent) -> ROI:
+    """The first candidate background ROI inside the image and the body, clear of the inclusion."""
+    rows, cols = shape
     tried = []
     for side, roi in candidates.items():
         if roi.row0 < 0 or roi.col0 < 0 or roi.row1 > rows or roi.col1 > cols:
@@ -871,6 +920,8 @@ def find_rois(image, *, inclusion_mask=None, pixel_size_mm=None, inclusion_size=
         elif region[roi.slices].any():
             tried.append(f"{side}: overlaps the inclusion")
         else:
-            return inclusion, roi
-    raise ValueError(f"no {h}x{w} background ROI fits {g_c} px beside the inclusion {extent} "
-                     f"({'; '.join(tried)}); pass a smaller gap or background_size, body_mask, or the ROIs")
+            return roi
+    raise ValueError(
+        f"no {size} background ROI fits {gap} beside the inclusion {extent} "
+        f"({'; '.join(tried)}); pass a smaller gap or background_size, body_mask, or the ROIs"
+    )

@@ -46,6 +46,7 @@ Example (a small synthetic experiment written here; real files come from ``radio
     >>> factor[1.0] > 1, factor[2.0] > factor[1.0]
     (True, True)
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -60,12 +61,28 @@ import numpy as np
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.measure import PAPER, ROI
-from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, \
-    k_label
+from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
-__all__ = ["Config", "Result", "Steps", "RoiChoice", "RegisteredPair", "Enhancement", "Images", "process",
-           "load_steps", "choose_rois", "register_pairs", "enhance_pair", "measure_domains", "check_pairs",
-           "process_many", "output_folders", "PAPER", "DOMAINS"]
+__all__ = [
+    "Config",
+    "Result",
+    "Steps",
+    "RoiChoice",
+    "RegisteredPair",
+    "Enhancement",
+    "Images",
+    "process",
+    "load_steps",
+    "choose_rois",
+    "register_pairs",
+    "enhance_pair",
+    "measure_domains",
+    "check_pairs",
+    "process_many",
+    "output_folders",
+    "PAPER",
+    "DOMAINS",
+]
 
 if TYPE_CHECKING:
     from radiokit.register import Registration
@@ -80,25 +97,27 @@ class Config:
     the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
     (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
     (the paper's ``-I/I0``, default) or ``"log"``; both are computed."""
+
     ks: tuple = (1.0, 2.0)
     domain: Domain = Domain.NEGATIVE
     method: str = "rc"
     register_options: dict = field(default_factory=dict)
-    crop_mm: float | None = 30.0      # side of the square around the inclusion kept in the outputs; None: all
+    crop_mm: float | None = 30.0  # side of the square around the inclusion kept in the outputs; None: all
     inclusion: tuple | None = None
     background: tuple | None = None
     roi_units: str = "px"
-    use_truth_rois: bool = False      # simulated files: place the ROIs on the stored inclusion mask
+    use_truth_rois: bool = False  # simulated files: place the ROIs on the stored inclusion mask
     report: bool = True
     progress: bool = True
-    control: str | None = None        # a control experiment (inclusion as soft as the background)
-    cross_check: str | None = "ncc"   # register the main pair again with this similarity and flag disagreement
+    control: str | None = None  # a control experiment (inclusion as soft as the background)
+    cross_check: str | None = "ncc"  # register the main pair again with this similarity and flag disagreement
 
     def __post_init__(self):
         self.domain = Domain.parse(self.domain, "domain")
         if self.domain not in DOMAINS:
-            raise ValueError(f"domain={self.domain.value!r}: the pipeline computes "
-                             f"{' and '.join(repr(d.value) for d in DOMAINS)}")
+            raise ValueError(
+                f"domain={self.domain.value!r}: the pipeline computes {' and '.join(repr(d.value) for d in DOMAINS)}"
+            )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
         self.ks = tuple(float(k) for k in self.ks)
@@ -112,6 +131,7 @@ class Config:
 class Steps:
     """The corrected line integral of each compression step (mean of its frames), least
     compressed first, with the step numbers, compression ratios, pixel size and the seconds spent."""
+
     images: np.ndarray
     numbers: tuple[int, ...]
     ratios: tuple[float, ...]
@@ -122,6 +142,7 @@ class Steps:
 @dataclass(frozen=True)
 class RoiChoice:
     """The inclusion and background ROIs and the crop, all in full-frame pixels."""
+
     inclusion: ROI
     background: ROI
     crop: tuple[int, int, int, int]
@@ -140,6 +161,7 @@ class RegisteredPair:
     """Step ``moving`` (an index into :attr:`Steps.images`) registered onto step ``reference``:
     the registration with its field and confidence cropped, the warped moving step (warped whole,
     then cropped: no border effects) and, for the cross-checked pair, :func:`cross_check`."""
+
     moving: int
     reference: int
     registration: Registration
@@ -150,6 +172,7 @@ class RegisteredPair:
 @dataclass
 class Result:
     """One run: the numbers (``record``, :class:`radiokit.results.Results`), the images, the files."""
+
     record: Results
     images: Images
     files: dict
@@ -213,8 +236,13 @@ def load_steps(path, progress: bool = False) -> Steps:
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
         pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
-    return Steps(np.stack(images), tuple(numbers), tuple(ratios), pixel_size_mm,
-                 dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t))
+    return Steps(
+        np.stack(images),
+        tuple(numbers),
+        tuple(ratios),
+        pixel_size_mm,
+        dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
+    )
 
 
 def _sim_truth(path, numbers):
@@ -225,8 +253,13 @@ def _sim_truth(path, numbers):
     sim = read_simulation(path, steps=[-1], pairs=pairs)
     if sim is None:
         return None
-    return {"fields": dict(sim.displacement), "scene": sim.scene_name, "scene_toml": sim.scene_toml,
-            "inclusion_mask": sim.inclusion_mask[-1].astype(bool), "line_integral": sim.line_integral[-1]}
+    return {
+        "fields": dict(sim.displacement),
+        "scene": sim.scene_name,
+        "scene_toml": sim.scene_toml,
+        "inclusion_mask": sim.inclusion_mask[-1].astype(bool),
+        "line_integral": sim.line_integral[-1],
+    }
 
 
 def _crop_box(inclusion, shape, side_px):
@@ -255,8 +288,12 @@ def cross_check(field, other, body, method):
     d = np.hypot(*(np.asarray(field) - np.asarray(other)))[body]
     mag = max(float(np.median(np.hypot(*field)[body])), float(np.median(np.hypot(*other)[body])))
     med = float(np.median(d))
-    return {"method": method, "median_px": med, "p95_px": float(np.percentile(d, 95)),
-            "agree": bool(med <= max(2.0, 0.5 * mag))}
+    return {
+        "method": method,
+        "median_px": med,
+        "p95_px": float(np.percentile(d, 95)),
+        "agree": bool(med <= max(2.0, 0.5 * mag)),
+    }
 
 
 def _step_gaps_mm(path, numbers):
@@ -304,10 +341,13 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
         basis = "through the plates; mu_b from the simulated scene, gaps from the file"
     else:
         mu_b = max(bg_log_mean, 0.0) / gaps[-1]
-        basis = ("assumes the beam through the plates; mu_b = background line integral of the reference "
-                 "/ its gap, gaps from the file")
-    return Bound(mu_b * dg, basis), {dom: {k: improvement_bound(k, mu_b, dg, dom.value) if k >= 0 else None
-                                           for k in ks} for dom in DOMAINS}
+        basis = (
+            "assumes the beam through the plates; mu_b = background line integral of the reference "
+            "/ its gap, gaps from the file"
+        )
+    return Bound(mu_b * dg, basis), {
+        dom: {k: improvement_bound(k, mu_b, dg, dom.value) if k >= 0 else None for k in ks} for dom in DOMAINS
+    }
 
 
 def _epe(displacement, truth, mask):
@@ -409,16 +449,25 @@ def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None
             s = summary(e.reference, dict(e.images), inclusion, background)
         except ValueError as exc:
             raise ValueError(f"{source}: {dom.value} domain: {exc}") from None
-        per_k = tuple(KMeasure(k, m["contrast"], m["cnr"], m["weber"], s["improvement_factor"][key],
-                               ((bounds or {}).get(dom) or {}).get(k))
-                      for (k, _), (key, m) in zip(e.images, s["enhanced"].items()))
+        per_k = tuple(
+            KMeasure(
+                k,
+                m["contrast"],
+                m["cnr"],
+                m["weber"],
+                s["improvement_factor"][key],
+                ((bounds or {}).get(dom) or {}).get(k),
+            )
+            for (k, _), (key, m) in zip(e.images, s["enhanced"].items())
+        )
         r = s["reference"]
         out[dom] = DomainMeasures(dom, r["contrast"], r["cnr"], r["weber"], per_k)
     return out
 
 
-def check_pairs(pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background: ROI, truth=None,
-                crop=None) -> tuple[PairResult, ...]:
+def check_pairs(
+    pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background: ROI, truth=None, crop=None
+) -> tuple[PairResult, ...]:
     """Per registered pair (:class:`radiokit.results.PairResult`): the intensity-change ratio in
     each domain, the registration's quality, whether the motion was observed in the ROIs, the
     cross-check (a disagreement flags the pair), and for a simulated file the end-point error
@@ -433,16 +482,22 @@ def check_pairs(pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background:
     for p in pairs:
         a, b = numbers[p.moving], numbers[p.reference]
         reg = p.registration
-        ratios = {dom: change_ratio(to_domain(p.warped, dom), to_domain(steps_c[p.reference], dom), inclusion,
-                                    background) for dom in DOMAINS}
+        ratios = {
+            dom: change_ratio(to_domain(p.warped, dom), to_domain(steps_c[p.reference], dom), inclusion, background)
+            for dom in DOMAINS
+        }
         q = dataclasses.asdict(reg.quality)
         observed = None
         if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
-            observed = {"inclusion": roi_observed(reg.confidence, inclusion),
-                        "background": roi_observed(reg.confidence, background)}
+            observed = {
+                "inclusion": roi_observed(reg.confidence, inclusion),
+                "background": roi_observed(reg.confidence, background),
+            }
         if p.cross_check is not None and not p.cross_check["agree"]:
-            why = (f"disagrees with {p.cross_check['method']} by {p.cross_check['median_px']:.1f} px (median over "
-                   f"the body): at least one of the two is wrong")
+            why = (
+                f"disagrees with {p.cross_check['method']} by {p.cross_check['median_px']:.1f} px (median over "
+                f"the body): at least one of the two is wrong"
+            )
             q["ok"], q["reason"] = False, f"{q['reason']}; {why}" if q.get("reason") else why
         epe = None
         if truth and (a, b) in truth["fields"]:
@@ -498,19 +553,38 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     main = next(p for p in pairs if (p.moving, p.reference) == (n - 2, n - 1))
     enhanced = _timed(timings, "enhance_s", enhance_pair, steps_c[-1], main.warped, cfg.ks)
     t = time.perf_counter()
-    bound, bounds = _bound(path, list(steps.numbers), truth,
-                           float(np.mean(enhanced[Domain.LOG].reference[bg_c.slices], dtype=np.float64)), cfg.ks)
+    bound, bounds = _bound(
+        path,
+        list(steps.numbers),
+        truth,
+        float(np.mean(enhanced[Domain.LOG].reference[bg_c.slices], dtype=np.float64)),
+        cfg.ks,
+    )
     domains = measure_domains(enhanced, inc_c, bg_c, bounds, str(path))
     checked = check_pairs(pairs, steps_c, steps.numbers, inc_c, bg_c, truth, rois.slices())
     mid = (inc_c.row0 + inc_c.row1) // 2
     images = _images(steps_c, steps.numbers, main, enhanced, truth, rois, mid)
     timings["measure_s"] = time.perf_counter() - t
     record = Results(
-        source=str(path), scene=truth.get("scene") if truth else None, simulated=truth is not None,
-        pixel_size_mm=steps.pixel_size_mm, domain=cfg.domain, ks=cfg.ks, method=cfg.method, steps=steps.numbers,
-        ratios=steps.ratios, rois=Rois(rois.crop, _bounds(inc_c), _bounds(bg_c)), domains=domains, pairs=checked,
-        main_pair=f"{steps.numbers[-2]}->{steps.numbers[-1]}", profiles_row=mid, bound=bound, paper=PAPER, timings=timings,
-        control=_control(cfg, rois, out_dir))
+        source=str(path),
+        scene=truth.get("scene") if truth else None,
+        simulated=truth is not None,
+        pixel_size_mm=steps.pixel_size_mm,
+        domain=cfg.domain,
+        ks=cfg.ks,
+        method=cfg.method,
+        steps=steps.numbers,
+        ratios=steps.ratios,
+        rois=Rois(rois.crop, _bounds(inc_c), _bounds(bg_c)),
+        domains=domains,
+        pairs=checked,
+        main_pair=f"{steps.numbers[-2]}->{steps.numbers[-1]}",
+        profiles_row=mid,
+        bound=bound,
+        paper=PAPER,
+        timings=timings,
+        control=_control(cfg, rois, out_dir),
+    )
     files = _write(out_dir, record, images, cfg, t0)
     return Result(record, images, files)
 
@@ -520,24 +594,43 @@ def _images(steps_c, numbers, main: RegisteredPair, enhanced, truth, rois: RoiCh
     from radiokit.register import jacobian_determinant
 
     disp = main.registration.displacement
-    prof = {f"step {s}": profile(steps_c[k], (mid, 0), (mid, steps_c.shape[2] - 1))[1].tolist()
-            for k, s in enumerate(numbers)}
+    prof = {
+        f"step {s}": profile(steps_c[k], (mid, 0), (mid, steps_c.shape[2] - 1))[1].tolist()
+        for k, s in enumerate(numbers)
+    }
     tf = epe = None
     key = (numbers[main.moving], numbers[main.reference])
     if truth and key in truth["fields"]:
         tf = truth["fields"][key][(slice(None), *rois.slices())].astype(np.float32)
         epe = np.sqrt(((disp - tf) ** 2).sum(axis=0)).astype(np.float32)
-    return Images(steps_c, steps_c[-1], main.warped, steps_c[main.moving], disp, jacobian_determinant(disp),
-                  main.registration.confidence, enhanced, prof, tf, epe)
+    return Images(
+        steps_c,
+        steps_c[-1],
+        main.warped,
+        steps_c[main.moving],
+        disp,
+        jacobian_determinant(disp),
+        main.registration.confidence,
+        enhanced,
+        prof,
+        tf,
+        epe,
+    )
 
 
 def _control(cfg: Config, rois: RoiChoice, out_dir: Path) -> Results | None:
     """The control experiment processed with the same ROIs (full-frame pixels)."""
     if not cfg.control:
         return None
-    ctrl_cfg = dataclasses.replace(cfg, control=None, report=False, progress=False,
-                                   inclusion=_bounds(rois.inclusion), background=_bounds(rois.background),
-                                   roi_units="px")
+    ctrl_cfg = dataclasses.replace(
+        cfg,
+        control=None,
+        report=False,
+        progress=False,
+        inclusion=_bounds(rois.inclusion),
+        background=_bounds(rois.background),
+        roi_units="px",
+    )
     return process(cfg.control, ctrl_cfg, out_dir=out_dir / "control").record
 
 
@@ -548,14 +641,24 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
     h5path = out_dir / "results.h5"
     names = ("registered", "moving", "displacement", "det_j", "confidence", "truth_displacement")
     # confidence: where the motion was observed (>= 0.5); truth_displacement only in simulated files
-    write_results(h5path, ResultsRecord(
-        source=record.source, results_json=json.dumps(record.to_json()), line_integral=images.steps,
-        step=np.asarray(record.steps), ratio=np.asarray(record.ratios, float), crop=np.asarray(record.rois.crop),
-        pair=tuple(int(s) for s in record.main_pair.split("->")),
-        registration={n: getattr(images, n) for n in names if getattr(images, n) is not None},
-        enhanced={dom.value: EnhancedImages(e.reference, e.difference, {k_label(k): img for k, img in e.images})
-                  for dom, e in images.enhanced.items()},
-        rois={key: np.asarray(roi) for key, roi in record.rois.to_json().items()}))
+    write_results(
+        h5path,
+        ResultsRecord(
+            source=record.source,
+            results_json=json.dumps(record.to_json()),
+            line_integral=images.steps,
+            step=np.asarray(record.steps),
+            ratio=np.asarray(record.ratios, float),
+            crop=np.asarray(record.rois.crop),
+            pair=tuple(int(s) for s in record.main_pair.split("->")),
+            registration={n: getattr(images, n) for n in names if getattr(images, n) is not None},
+            enhanced={
+                dom.value: EnhancedImages(e.reference, e.difference, {k_label(k): img for k, img in e.images})
+                for dom, e in images.enhanced.items()
+            },
+            rois={key: np.asarray(roi) for key, roi in record.rois.to_json().items()},
+        ),
+    )
     files["results_h5"] = str(h5path)
     record.timings["total_s"] = time.perf_counter() - t0
     if cfg.report:
@@ -590,8 +693,8 @@ def output_folders(paths, out_root=None) -> list[Path]:
 # is mmapped and unmapped on each allocation and its pages faulted in again: on a 560 x 560
 # experiment the kernel time equalled the user time (benchmarks/README.md, "Dask"). Fixed
 # thresholds above a 2240 x 2240 float32 frame keep frame-sized buffers in the heap for reuse.
-_MALLOC_MMAP_THRESHOLD = 32 * 2 ** 20  # glibc's largest allowed value on 64-bit
-_MALLOC_TRIM_THRESHOLD = 256 * 2 ** 20
+_MALLOC_MMAP_THRESHOLD = 32 * 2**20  # glibc's largest allowed value on 64-bit
+_MALLOC_TRIM_THRESHOLD = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -603,14 +706,20 @@ class WorkerThreads:
     and OpenBLAS's threads spin when called from a worker's task thread (measured: a one-worker
     cluster with two BLAS threads used 2.1x the CPU time of the same files processed in turn;
     with one, the same time; benchmarks/README.md)."""
+
     tasks: int
     threads: int
 
     def environ(self) -> dict:
         """Environment for a worker process started for this share (read by the libraries at load)."""
-        return {"RADIOKIT_THREADS": str(self.threads), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-                "MKL_NUM_THREADS": "1", "MALLOC_MMAP_THRESHOLD_": str(_MALLOC_MMAP_THRESHOLD),
-                "MALLOC_TRIM_THRESHOLD_": str(_MALLOC_TRIM_THRESHOLD)}
+        return {
+            "RADIOKIT_THREADS": str(self.threads),
+            "OMP_NUM_THREADS": "1",
+            "OPENBLAS_NUM_THREADS": "1",
+            "MKL_NUM_THREADS": "1",
+            "MALLOC_MMAP_THRESHOLD_": str(_MALLOC_MMAP_THRESHOLD),
+            "MALLOC_TRIM_THRESHOLD_": str(_MALLOC_TRIM_THRESHOLD),
+        }
 
 
 def worker_threads(cores: int, workers: int, tasks_per_worker: int = 1) -> WorkerThreads:
@@ -629,8 +738,9 @@ def _scheduler_shares(client) -> dict:
 
     info = _all_workers(client)
     if not info:
-        raise ValueError(f"Dask scheduler {client.scheduler.address}: no workers connected "
-                         "(start some with `dask worker ADDRESS`)")
+        raise ValueError(
+            f"Dask scheduler {client.scheduler.address}: no workers connected (start some with `dask worker ADDRESS`)"
+        )
     host_cores = client.run(cores)
     per_host: dict = {}
     for addr, w in info.items():
@@ -674,8 +784,9 @@ def _limit_this_process(share: WorkerThreads):
         pass
 
 
-def process_many(paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None,
-                 overwrite=False) -> list:
+def process_many(
+    paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None, overwrite=False
+) -> list:
     """Process many experiment files in parallel on Dask, one progress bar over all.
 
     ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default one per
@@ -702,8 +813,10 @@ def process_many(paths, config: Config | None = None, *, out_root=None, schedule
     try:
         shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)
-        futures = {client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i
-                   for i, (p, o) in enumerate(zip(paths, outs))}
+        futures = {
+            client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i
+            for i, (p, o) in enumerate(zip(paths, outs))
+        }
         results = [None] * len(paths)
         with tqdm(total=len(paths), desc="process", unit="file", disable=not (config or Config()).progress) as bar:
             for fut in as_completed(futures):
@@ -724,8 +837,9 @@ def _local_cluster(n_workers: int):
     from radiokit._threads import cores
 
     share = worker_threads(cores(), n_workers)
-    return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                        env=share.environ())
+    return LocalCluster(
+        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
+    )
 
 
 def _limit_worker(shares, dask_worker=None):

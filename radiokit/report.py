@@ -28,13 +28,14 @@ Figures are drawn on :class:`matplotlib.figure.Figure` objects with the Agg canv
 nothing left open after saving. Each PNG is kept under ``MAX_PNG_BYTES`` (palette-quantised, then
 drawn at a lower dpi, if needed).
 """
+
 from __future__ import annotations
 
 import html
 import io
 import math
 import time
-from datetime import datetime, UTC
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -134,8 +135,9 @@ def _ratio_label(ratio):
 
 def _domain_unit(domain):
     """The pixel's meaning in ``domain`` (:class:`radiokit.enhance.Domain`)."""
-    return {"log": "\u2212ln(I/I\u2080)", "negative": "\u2212I/I\u2080", "linear": "I/I\u2080"}.get(str(domain),
-                                                                                                  str(domain))
+    return {"log": "\u2212ln(I/I\u2080)", "negative": "\u2212I/I\u2080", "linear": "I/I\u2080"}.get(
+        str(domain), str(domain)
+    )
 
 
 def _in_order(domains):
@@ -188,28 +190,40 @@ def _share_text(z):
 
 def _control_sentence(domain, k, if_stiff, if_control):
     z = stiffness_share(if_stiff, if_control)
-    head = (f"In the {domain} domain, the control's improvement at {_k_label(k)} is "
-            f"{_fmt(if_control)} vs {_fmt(if_stiff)}: ")
+    head = (
+        f"In the {domain} domain, the control's improvement at {_k_label(k)} is "
+        f"{_fmt(if_control)} vs {_fmt(if_stiff)}: "
+    )
     if z is None:
-        body = ("the share of the compression-induced contrast that needs the inclusion's stiffness is "
-                f"not measurable (the stiff inclusion's improvement is within {MIN_EFFECT:g} of 1, "
-                "or missing).")
+        body = (
+            "the share of the compression-induced contrast that needs the inclusion's stiffness is "
+            f"not measurable (the stiff inclusion's improvement is within {MIN_EFFECT:g} of 1, "
+            "or missing)."
+        )
     elif z > 1:
-        body = (f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness; "
-                "attenuation alone (the thinning of a denser inclusion) would lower the contrast, "
-                "since the control's improvement is below 1.")
+        body = (
+            f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness; "
+            "attenuation alone (the thinning of a denser inclusion) would lower the contrast, "
+            "since the control's improvement is below 1."
+        )
     elif z < 0:
-        body = (f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness: "
-                "the control gains more than the stiff inclusion, so none of the gain can be credited "
-                "to elasticity.")
+        body = (
+            f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness: "
+            "the control gains more than the stiff inclusion, so none of the gain can be credited "
+            "to elasticity."
+        )
     else:
-        body = (f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness; "
-                "the rest comes from attenuation alone (the thinning of a denser inclusion).")
+        body = (
+            f"{_share_text(z)} of the compression-induced contrast needs the inclusion's stiffness; "
+            "the rest comes from attenuation alone (the thinning of a denser inclusion)."
+        )
     if domain in _TRANSMISSION:
-        body += (" In the intensity domain the detected intensity is exponential in the line integral "
-                 "(I = I\u2080\u00b7exp(\u2212\u222b\u03bc dl)), so the same thinning changes the intensity "
-                 "behind the inclusion and behind the background by different amounts: part of the "
-                 "effect needs no stiffness at all.")
+        body += (
+            " In the intensity domain the detected intensity is exponential in the line integral "
+            "(I = I\u2080\u00b7exp(\u2212\u222b\u03bc dl)), so the same thinning changes the intensity "
+            "behind the inclusion and behind the background by different amounts: part of the "
+            "effect needs no stiffness at all."
+        )
     return head + body
 
 
@@ -264,8 +278,9 @@ def _draw_rois(ax, rois, legend=False):
 
     for name, colour in (("inclusion", _INCLUSION_COLOUR), ("background", _BACKGROUND_COLOUR)):
         r0, r1, c0, c1 = getattr(rois, name)
-        ax.add_patch(Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False,
-                               edgecolor=colour, linewidth=1.2, label=name))
+        ax.add_patch(
+            Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False, edgecolor=colour, linewidth=1.2, label=name)
+        )
     if legend and ax.patches:
         ax.legend(loc="lower right", fontsize=7, framealpha=0.7)
 
@@ -301,11 +316,13 @@ def _fig_projections(images, results, fig_dir):
     cb.set_label("line integral \u2212ln(I/I\u2080)", fontsize=8)
     name = "projections.png"
     _save(fig, fig_dir / name)
-    caption = ("Projections of every compression step (line integrals \u2212ln(I/I\u2080), least compressed "
-               "first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
-               "compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
-               "ROI (where contrast is measured). Axes in pixels of the cropped image"
-               f" ({results.pixel_size_mm:g} mm per pixel). After the paper's Figs. 4\u20135.")
+    caption = (
+        "Projections of every compression step (line integrals \u2212ln(I/I\u2080), least compressed "
+        "first), on one shared grey scale (0.5\u201399.5 percentiles of all steps), so brightness "
+        "compares across steps; brighter is more attenuation. Red: inclusion ROI; cyan: background "
+        "ROI (where contrast is measured). Axes in pixels of the cropped image"
+        f" ({results.pixel_size_mm:g} mm per pixel). After the paper's Figs. 4\u20135."
+    )
     return name, caption
 
 
@@ -344,18 +361,25 @@ def _fig_profiles(images, results, fig_dir):
         ax.set_ylabel(_domain_unit(dom), fontsize=8)
     c0, c1 = results.rois.inclusion[2:]
     for ax in axes:
-        ax.axvspan((c0 - 0.5) * results.pixel_size_mm, (c1 - 0.5) * results.pixel_size_mm, color=_INCLUSION_COLOUR,
-                   alpha=0.12, label="inclusion ROI columns")
+        ax.axvspan(
+            (c0 - 0.5) * results.pixel_size_mm,
+            (c1 - 0.5) * results.pixel_size_mm,
+            color=_INCLUSION_COLOUR,
+            alpha=0.12,
+            label="inclusion ROI columns",
+        )
         ax.set_xlabel("column (mm, cropped image)", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     name = "profiles.png"
     _save(fig, fig_dir / name)
-    caption = (f"Profiles along the row through the inclusion's centre (row {centre} of the cropped image, "
-               f"mean of rows {a}\u2013{b - 1}); the shaded band is the inclusion ROI's columns. Left: every "
-               "compression step. Then, per domain: the reference (most compressed step) and the enhanced "
-               "images reference + k\u00b7(D \u2212 mean D). After the paper's Fig. 6.")
+    caption = (
+        f"Profiles along the row through the inclusion's centre (row {centre} of the cropped image, "
+        f"mean of rows {a}\u2013{b - 1}); the shaded band is the inclusion ROI's columns. Left: every "
+        "compression step. Then, per domain: the reference (most compressed step) and the enhanced "
+        "images reference + k\u00b7(D \u2212 mean D). After the paper's Fig. 6."
+    )
     return name, caption
 
 
@@ -378,11 +402,13 @@ def _fig_difference(images, results, fig_dir):
         cb.ax.tick_params(labelsize=7)
     name = "difference.png"
     _save(fig, fig_dir / name)
-    caption = ("The compression-induced difference D = reference \u2212 registered (the step before, "
-               "registered onto the most compressed step), per domain, on a diverging scale centred on "
-               "the image's mean of D (what the enhancement subtracts before adding k\u00b7D): where the "
-               "inclusion changed less than the background it stands out of the mean. Red: inclusion ROI; "
-               "cyan: background ROI.")
+    caption = (
+        "The compression-induced difference D = reference \u2212 registered (the step before, "
+        "registered onto the most compressed step), per domain, on a diverging scale centred on "
+        "the image's mean of D (what the enhancement subtracts before adding k\u00b7D): where the "
+        "inclusion changed less than the background it stands out of the mean. Red: inclusion ROI; "
+        "cyan: background ROI."
+    )
     return name, caption
 
 
@@ -407,12 +433,14 @@ def _fig_rois(images, results, fig_dir):
             _style_image_axes(ax, ticks=False)
     name = "rois.png"
     _save(fig, fig_dir / name)
-    caption = ("Reference (most compressed step) and enhanced images, reference + k\u00b7(D \u2212 mean D), "
-               "for each k; one row per domain. Each panel has its own grey scale (its 1st\u201399th "
-               "percentiles): the enhanced images span wider ranges than the reference, so a shared scale "
-               "would hide their structure; compare the contrasts C in the titles (inclusion ROI mean "
-               "\u2212 background ROI mean, with the improvement factor over the reference), not the grey "
-               "levels. Red: inclusion ROI; cyan: background ROI. After the paper's Figs. 7\u20138.")
+    caption = (
+        "Reference (most compressed step) and enhanced images, reference + k\u00b7(D \u2212 mean D), "
+        "for each k; one row per domain. Each panel has its own grey scale (its 1st\u201399th "
+        "percentiles): the enhanced images span wider ranges than the reference, so a shared scale "
+        "would hide their structure; compare the contrasts C in the titles (inclusion ROI mean "
+        "\u2212 background ROI mean, with the improvement factor over the reference), not the grey "
+        "levels. Red: inclusion ROI; cyan: background ROI. After the paper's Figs. 7\u20138."
+    )
     return name, caption
 
 
@@ -426,10 +454,11 @@ def _panel_displacement(fig, ax, disp):
     mag = np.hypot(d[0], d[1])
     im = ax.imshow(mag, cmap="viridis", interpolation="nearest")
     step = max(1, max(mag.shape) // 14)
-    rr, cc = np.mgrid[step // 2:mag.shape[0]:step, step // 2:mag.shape[1]:step]
+    rr, cc = np.mgrid[step // 2 : mag.shape[0] : step, step // 2 : mag.shape[1] : step]
     # pull field: the registered pixel at x came from x + d(x), so the arrow points there
-    ax.quiver(cc, rr, d[1][rr, cc], -d[0][rr, cc], color="white", angles="xy", scale_units="xy", scale=None,
-              width=0.004)
+    ax.quiver(
+        cc, rr, d[1][rr, cc], -d[0][rr, cc], color="white", angles="xy", scale_units="xy", scale=None, width=0.004
+    )
     ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}", fontsize=9)
     fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
 
@@ -456,14 +485,14 @@ def _panel_epe(fig, ax, epe):
 
 _REGISTRATION_CAPTIONS = {
     "overlay": "Overlays of the reference (most compressed step, magenta) and the step before it (green), "
-               "before and after registration, each image scaled to its own 1st\u201399th percentiles: grey "
-               "where they agree, colour where they do not.",
+    "before and after registration, each image scaled to its own 1st\u201399th percentiles: grey "
+    "where they agree, colour where they do not.",
     "disp": "The displacement magnitude |d| in pixels; arrows show d (pull convention: the registered pixel "
-            "at x is the moving image at x + d(x)).",
+    "at x is the moving image at x + d(x)).",
     "det": "The Jacobian determinant det J of x \u21a6 x + d(x) on a diverging scale centred at 1: red (> 1) "
-           "where a reference pixel draws on more than a pixel of the moving image, i.e. the material looks "
-           "smaller at the more compressed step; blue (< 1) where it looks larger; \u2264 0 (outlined black) "
-           "would be folding.",
+    "where a reference pixel draws on more than a pixel of the moving image, i.e. the material looks "
+    "smaller at the more compressed step; blue (< 1) where it looks larger; \u2264 0 (outlined black) "
+    "would be folding.",
     "epe": "The end-point error |d \u2212 d_true| against the simulation's truth, in pixels.",
 }
 
@@ -518,21 +547,44 @@ def _headline_rows(results, paper):
     rows += [(f"contrast enhanced, {_k_label(m.k)}", _fmt(m.contrast, ".4g"), "", "") for m in meas.per_k]
     for m in meas.per_k:
         ctrl = _fmt(control.domains[dom].at(m.k).improvement_factor) if control else ""
-        rows.append((f"improvement factor, {_k_label(m.k)}", _fmt(m.improvement_factor),
-                     _fmt(_paper_if(paper, m.k), ".1f", ""), ctrl))
+        rows.append(
+            (
+                f"improvement factor, {_k_label(m.k)}",
+                _fmt(m.improvement_factor),
+                _fmt(_paper_if(paper, m.k), ".1f", ""),
+                ctrl,
+            )
+        )
     rows += _bound_cnr_rows(results)
     ctrl = _fmt(control.pair(main.name).change_ratio.get(dom)) if control and _has_pair(control, main.name) else ""
-    rows.append((f"intensity-change ratio inclusion/background, steps {_pair_label(main.name)}",
-                 _fmt(main.change_ratio[dom]), _paper_range(paper), ctrl))
+    rows.append(
+        (
+            f"intensity-change ratio inclusion/background, steps {_pair_label(main.name)}",
+            _fmt(main.change_ratio[dom]),
+            _paper_range(paper),
+            ctrl,
+        )
+    )
     status = "passed" if main.ok else f"FLAGGED: {main.reason or 'no reason given'}"
     rows.append((f"registration {_pair_label(main.name)} ({main.method})", status, "", ""))
     if main.rois_observed:
-        rows.append(("motion observed in the ROIs (inclusion / background)",
-                     " / ".join(f"{_fmt(100 * main.rois_observed[k], '.0f')} %" for k in ("inclusion", "background")),
-                     "", ""))
+        rows.append(
+            (
+                "motion observed in the ROIs (inclusion / background)",
+                " / ".join(f"{_fmt(100 * main.rois_observed[k], '.0f')} %" for k in ("inclusion", "background")),
+                "",
+                "",
+            )
+        )
     if main.epe:
-        rows.append(("registration end-point error vs truth, median / p95 (px)",
-                     f"{_fmt(main.epe['epe_median'], '.3f')} / {_fmt(main.epe['epe_p95'], '.3f')}", "", ""))
+        rows.append(
+            (
+                "registration end-point error vs truth, median / p95 (px)",
+                f"{_fmt(main.epe['epe_median'], '.3f')} / {_fmt(main.epe['epe_p95'], '.3f')}",
+                "",
+                "",
+            )
+        )
     if _num(results.timings.get("total_s")) is not None:
         rows.append(("total processing time", f"{_fmt(results.timings['total_s'])} s", "", ""))
     header = ["quantity", "this run", "paper"] + (["control (soft inclusion)"] if control else [])
@@ -552,13 +604,22 @@ def _bound_cnr_rows(results):
         m = results.domains[dom]
         cm = control.domains.get(dom) if control else None
         for x in m.per_k:
-            rows.append((f"{dom}: improvement factor (bound), {_k_label(x.k)}",
-                         f"{_fmt(x.improvement_factor)} ({_fmt(x.bound, '.3f')})", "",
-                         _fmt(cm.at(x.k).improvement_factor) if cm else ""))
-        rows.append((f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
-                     " \u2192 ".join(_fmt(v, ".3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]), "",
-                     " \u2192 ".join(_fmt(v, ".3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)])
-                     if cm else ""))
+            rows.append(
+                (
+                    f"{dom}: improvement factor (bound), {_k_label(x.k)}",
+                    f"{_fmt(x.improvement_factor)} ({_fmt(x.bound, '.3f')})",
+                    "",
+                    _fmt(cm.at(x.k).improvement_factor) if cm else "",
+                )
+            )
+        rows.append(
+            (
+                f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
+                " \u2192 ".join(_fmt(v, ".3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
+                "",
+                " \u2192 ".join(_fmt(v, ".3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
+            )
+        )
     if results.bound.basis:
         rows.append(("bound basis", results.bound.basis, "", ""))
     return rows
@@ -568,28 +629,39 @@ def _contrast_sentences(results, paper):
     """What the reference's contrast is and what the enhancement does to it and to the CNR."""
     dom = results.domain
     meas = results.domains[dom]
-    out = [f"In the {dom} domain the inclusion stands out of the nearby background by "
-           f"{_fmt(meas.contrast_reference, '.4g')} (inclusion ROI mean minus background ROI mean) in the most "
-           f"compressed image (step {results.steps[-1]}), the reference."]
+    out = [
+        f"In the {dom} domain the inclusion stands out of the nearby background by "
+        f"{_fmt(meas.contrast_reference, '.4g')} (inclusion ROI mean minus background ROI mean) in the most "
+        f"compressed image (step {results.steps[-1]}), the reference."
+    ]
     parts = [f"{_fmt(m.improvement_factor)} at {_k_label(m.k)}" for m in meas.per_k]
-    paper_parts = [f"{_fmt(_paper_if(paper, m.k), '.1f')} at {_k_label(m.k)}" for m in meas.per_k
-                   if _num(_paper_if(paper, m.k)) is not None]
-    sentence = ("Adding the compression-induced difference, k\u00b7(D \u2212 mean D), multiplies that contrast by "
-                + ", ".join(parts))
+    paper_parts = [
+        f"{_fmt(_paper_if(paper, m.k), '.1f')} at {_k_label(m.k)}"
+        for m in meas.per_k
+        if _num(_paper_if(paper, m.k)) is not None
+    ]
+    sentence = (
+        "Adding the compression-induced difference, k\u00b7(D \u2212 mean D), multiplies that contrast by "
+        + ", ".join(parts)
+    )
     if paper_parts:
         sentence += " (the paper: about " + ", ".join(paper_parts) + ")"
     out.append(sentence + ".")
     m0 = meas.at(_main_k(results.ks))
     f0 = _num(m0.improvement_factor)
     if f0 is not None and f0 <= 1:
-        out.append(f"At {_k_label(m0.k)} the enhancement does not raise the contrast: the difference "
-                   "image carries no inclusion signal of the helpful sign here.")
+        out.append(
+            f"At {_k_label(m0.k)} the enhancement does not raise the contrast: the difference "
+            "image carries no inclusion signal of the helpful sign here."
+        )
     if _num(meas.cnr_reference) and _num(m0.cnr) is not None and f0 is not None:
         g = m0.cnr / meas.cnr_reference
         s = f"The contrast-to-noise ratio changes by a factor of {g:.2f} at {_k_label(m0.k)}"
         if g < f0 - 0.01:
-            s += (", less than the contrast, because D also carries the noise of both exposures "
-                  "and the registration's residual errors")
+            s += (
+                ", less than the contrast, because D also carries the noise of both exposures "
+                "and the registration's residual errors"
+            )
         out.append(s + ".")
     return out
 
@@ -600,31 +672,43 @@ def _pair_sentences(results, paper):
     out = []
     cr = _num(main.change_ratio.get(dom))
     if cr is not None:
-        s = (f"Between steps {main.moving} and {main.reference}, the inclusion's intensity changed {cr:.2f} times "
-             f"as much as the background's (the paper's earlier study: {_paper_range(paper)}); ")
-        s += ("below 1, the inclusion changed less than the background, as a stiffer inclusion that "
-              "deforms less would" if cr < 1 else
-              "not below 1: no sign here that the inclusion changed less than the background")
+        s = (
+            f"Between steps {main.moving} and {main.reference}, the inclusion's intensity changed {cr:.2f} times "
+            f"as much as the background's (the paper's earlier study: {_paper_range(paper)}); "
+        )
+        s += (
+            "below 1, the inclusion changed less than the background, as a stiffer inclusion that deforms less would"
+            if cr < 1
+            else "not below 1: no sign here that the inclusion changed less than the background"
+        )
         if cr < 1 and dom in _TRANSMISSION:
-            s += (", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
-                  "detected intensity is exponential in the line integral)")
+            s += (
+                ", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
+                "detected intensity is exponential in the line integral)"
+            )
         out.append(s + ".")
     if main.ok:
-        s = (f"The registration of step {main.moving} onto step {main.reference} passed its checks (similarity "
-             "improved, no folding, converged)")
+        s = (
+            f"The registration of step {main.moving} onto step {main.reference} passed its checks (similarity "
+            "improved, no folding, converged)"
+        )
         if main.epe:
             s += f"; its median end-point error against the simulation's truth is {_fmt(main.epe['epe_median'], '.3f')} px"
         out.append(s + ".")
     else:
-        out.append(f"Caution: the registration of {main.name} was flagged ({main.reason or 'no reason given'}); "
-                   "every number derived from D depends on it.")
+        out.append(
+            f"Caution: the registration of {main.name} was flagged ({main.reason or 'no reason given'}); "
+            "every number derived from D depends on it."
+        )
     if main.rois_observed:
         obs = main.rois_observed
         unseen = [k for k, v in obs.items() if v < 0.5]
         s = "The motion was observed (registration confidence map) in " + " and ".join(
-            f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items())
-        out.append(s + (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess."
-                        if unseen else "."))
+            f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items()
+        )
+        out.append(
+            s + (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess." if unseen else ".")
+        )
     return out
 
 
@@ -634,9 +718,11 @@ def _plain_language(results, paper):
         k0 = _main_k(results.ks)
         if_s = results.domains[results.domain].at(k0).improvement_factor
         if_c = results.control.domains[results.domain].at(k0).improvement_factor
-        out.append(f"A control run of the same scene with the inclusion as soft as the background "
-                   f"improves the contrast by {_fmt(if_c)} at {_k_label(k0)}: the share of the gain that "
-                   f"needs the inclusion's stiffness is {_share_text(stiffness_share(if_s, if_c))} (details below).")
+        out.append(
+            f"A control run of the same scene with the inclusion as soft as the background "
+            f"improves the contrast by {_fmt(if_c)} at {_k_label(k0)}: the share of the gain that "
+            f"needs the inclusion's stiffness is {_share_text(stiffness_share(if_s, if_c))} (details below)."
+        )
     return " ".join(out)
 
 
@@ -645,34 +731,73 @@ def _measurement_table(results, paper):
     rows = []
     for dom in _in_order(results.domains):
         m = results.domains[dom]
-        rows.append((dom, "reference", _fmt(m.contrast_reference, ".4g"), _fmt(m.cnr_reference, ".3g"),
-                     _fmt(m.weber_reference, ".4g"), "1", ""))
-        rows += [(dom, f"enhanced, {_k_label(x.k)}", _fmt(x.contrast, ".4g"), _fmt(x.cnr, ".3g"),
-                  _fmt(x.weber, ".4g"), _fmt(x.improvement_factor), _fmt(_paper_if(paper, x.k), ".1f", ""))
-                 for x in m.per_k]
+        rows.append(
+            (
+                dom,
+                "reference",
+                _fmt(m.contrast_reference, ".4g"),
+                _fmt(m.cnr_reference, ".3g"),
+                _fmt(m.weber_reference, ".4g"),
+                "1",
+                "",
+            )
+        )
+        rows += [
+            (
+                dom,
+                f"enhanced, {_k_label(x.k)}",
+                _fmt(x.contrast, ".4g"),
+                _fmt(x.cnr, ".3g"),
+                _fmt(x.weber, ".4g"),
+                _fmt(x.improvement_factor),
+                _fmt(_paper_if(paper, x.k), ".1f", ""),
+            )
+            for x in m.per_k
+        ]
     return _table(header, rows)
 
 
 def _change_ratio_table(results, paper):
     domains = _in_order(results.domains)
     header = ["steps (moving\u2192reference)"] + [f"{d} domain" for d in domains] + ["paper (earlier study)"]
-    rows = [[_pair_label(p.name)] + [_fmt(p.change_ratio.get(d)) for d in domains] + [_paper_range(paper)]
-            for p in results.pairs]
+    rows = [
+        [_pair_label(p.name)] + [_fmt(p.change_ratio.get(d)) for d in domains] + [_paper_range(paper)]
+        for p in results.pairs
+    ]
     return _table(header, rows)
 
 
 def _registration_table(results):
     has_epe = any(p.epe for p in results.pairs)
-    header = ["pair", "method", "ok", "RC before\u2192after", "NCC before\u2192after", "folds", "min det J",
-              "iterations", "time (s)"] + (["EPE median / p95 (px)"] if has_epe else []) + ["reason"]
+    header = (
+        [
+            "pair",
+            "method",
+            "ok",
+            "RC before\u2192after",
+            "NCC before\u2192after",
+            "folds",
+            "min det J",
+            "iterations",
+            "time (s)",
+        ]
+        + (["EPE median / p95 (px)"] if has_epe else [])
+        + ["reason"]
+    )
     rows = []
     for p in results.pairs:
         q = p.quality
-        row = [_pair_label(p.name), p.method, "yes" if p.ok else "NO",
-               f"{_fmt(q.get('rc_before'), '.5g')} \u2192 {_fmt(q.get('rc_after'), '.5g')}",
-               f"{_fmt(q.get('ncc_before'), '.4f')} \u2192 {_fmt(q.get('ncc_after'), '.4f')}",
-               _fmt(q.get("folds"), ".0f"), _fmt(q.get("min_det_j"), ".3g"), _fmt(q.get("iterations"), ".0f"),
-               _fmt(q.get("seconds"))]
+        row = [
+            _pair_label(p.name),
+            p.method,
+            "yes" if p.ok else "NO",
+            f"{_fmt(q.get('rc_before'), '.5g')} \u2192 {_fmt(q.get('rc_after'), '.5g')}",
+            f"{_fmt(q.get('ncc_before'), '.4f')} \u2192 {_fmt(q.get('ncc_after'), '.4f')}",
+            _fmt(q.get("folds"), ".0f"),
+            _fmt(q.get("min_det_j"), ".3g"),
+            _fmt(q.get("iterations"), ".0f"),
+            _fmt(q.get("seconds")),
+        ]
         if has_epe:
             epe = p.epe or {}
             row.append(f"{_fmt(epe.get('epe_median'), '.3f')} / {_fmt(epe.get('epe_p95'), '.3f')}")
@@ -688,29 +813,52 @@ def _control_section(results):
     domains = _in_order(d for d in results.domains if d in control.domains)
     for dom in domains:
         s, c = results.domains[dom], control.domains[dom]
-        rows.append((dom, "contrast of the reference", _fmt(s.contrast_reference, ".4g"),
-                     _fmt(c.contrast_reference, ".4g"), ""))
+        rows.append(
+            (dom, "contrast of the reference", _fmt(s.contrast_reference, ".4g"), _fmt(c.contrast_reference, ".4g"), "")
+        )
         for x in s.per_k:
             if_c = c.at(x.k).improvement_factor
-            rows.append((dom, f"improvement factor, {_k_label(x.k)}", _fmt(x.improvement_factor), _fmt(if_c),
-                         _share_text(stiffness_share(x.improvement_factor, if_c))))
+            rows.append(
+                (
+                    dom,
+                    f"improvement factor, {_k_label(x.k)}",
+                    _fmt(x.improvement_factor),
+                    _fmt(if_c),
+                    _share_text(stiffness_share(x.improvement_factor, if_c)),
+                )
+            )
         k0 = _main_k(results.ks)
         sentences.append(_control_sentence(dom, k0, s.at(k0).improvement_factor, c.at(k0).improvement_factor))
     for p in results.pairs:
         ctrl = control.pair(p.name).change_ratio if _has_pair(control, p.name) else {}
-        rows += [(dom, f"intensity-change ratio, steps {_pair_label(p.name)}", _fmt(p.change_ratio.get(dom)),
-                  _fmt(ctrl.get(dom)), "") for dom in domains]
-    header = ["domain", "quantity", "stiff inclusion", "control (inclusion as soft as the background)",
-              "share needing stiffness"]
-    return ("<section id=\"control\"><h2>Stiff inclusion vs control (inclusion as soft as the background)</h2>"
-            "<p>The control is a run of the same simulated scene whose inclusion has the background's "
-            "stiffness but keeps its attenuation: whatever contrast compression induces there comes from "
-            "attenuation alone. The share of the gain that needs stiffness is Z = (IF<sub>stiff</sub> "
-            "\u2212 IF<sub>control</sub>) / (IF<sub>stiff</sub> \u2212 1), \u201cnot measurable\u201d when "
-            f"IF<sub>stiff</sub> is within {MIN_EFFECT:g} of 1.</p>"
-            + _table(header, rows)
-            + "".join(f'<p class="control-sentence">{_e(s)}</p>' for s in sentences)
-            + "</section>")
+        rows += [
+            (
+                dom,
+                f"intensity-change ratio, steps {_pair_label(p.name)}",
+                _fmt(p.change_ratio.get(dom)),
+                _fmt(ctrl.get(dom)),
+                "",
+            )
+            for dom in domains
+        ]
+    header = [
+        "domain",
+        "quantity",
+        "stiff inclusion",
+        "control (inclusion as soft as the background)",
+        "share needing stiffness",
+    ]
+    return (
+        '<section id="control"><h2>Stiff inclusion vs control (inclusion as soft as the background)</h2>'
+        "<p>The control is a run of the same simulated scene whose inclusion has the background's "
+        "stiffness but keeps its attenuation: whatever contrast compression induces there comes from "
+        "attenuation alone. The share of the gain that needs stiffness is Z = (IF<sub>stiff</sub> "
+        "\u2212 IF<sub>control</sub>) / (IF<sub>stiff</sub> \u2212 1), \u201cnot measurable\u201d when "
+        f"IF<sub>stiff</sub> is within {MIN_EFFECT:g} of 1.</p>"
+        + _table(header, rows)
+        + "".join(f'<p class="control-sentence">{_e(s)}</p>' for s in sentences)
+        + "</section>"
+    )
 
 
 def _timings_table(timings):
@@ -749,8 +897,12 @@ def _meta_rows(results):
     rows.append(("crop (full-frame px, rows \u00d7 cols, half-open)", f"[{r0}, {r1}) \u00d7 [{c0}, {c1})"))
     for name in ("inclusion", "background"):
         r0, r1, c0, c1 = getattr(results.rois, name)
-        rows.append((f"{name} ROI (cropped image)", f"[{r0}, {r1}) \u00d7 [{c0}, {c1}) px "
-                     f"({(r1 - r0) * px:.3g} \u00d7 {(c1 - c0) * px:.3g} mm)"))
+        rows.append(
+            (
+                f"{name} ROI (cropped image)",
+                f"[{r0}, {r1}) \u00d7 [{c0}, {c1}) px ({(r1 - r0) * px:.3g} \u00d7 {(c1 - c0) * px:.3g} mm)",
+            )
+        )
     return rows
 
 
@@ -763,11 +915,17 @@ def _scene_details(scene):
 
 def _figures(images, results, fig_dir) -> dict:
     """Every figure drawn and saved: ``{file name: HTML <figure>}``, numbered in drawing order."""
-    figures = [make(images, results, fig_dir)
-               for make in (_fig_projections, _fig_profiles, _fig_difference, _fig_rois, _fig_registration)]
-    return {name: (f'<figure id="fig-{_e(name[:-4])}"><img src="figures/{_e(name)}" alt="{_e(caption[:120])}">'
-                   f"<figcaption><b>Figure {i}.</b> {_e(caption)}</figcaption></figure>")
-            for i, (name, caption) in enumerate(figures, 1)}
+    figures = [
+        make(images, results, fig_dir)
+        for make in (_fig_projections, _fig_profiles, _fig_difference, _fig_rois, _fig_registration)
+    ]
+    return {
+        name: (
+            f'<figure id="fig-{_e(name[:-4])}"><img src="figures/{_e(name)}" alt="{_e(caption[:120])}">'
+            f"<figcaption><b>Figure {i}.</b> {_e(caption)}</figcaption></figure>"
+        )
+        for i, (name, caption) in enumerate(figures, 1)
+    }
 
 
 def _head(results, paper) -> list:
@@ -832,8 +990,10 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
     ``results`` (paths, scene names, registration reasons) is HTML-escaped.
     """
     if not isinstance(results, Results) or not isinstance(images, Images):
-        raise TypeError("write_report takes radiokit.results.Results and Images (load_results reads a "
-                        f"results.json), got {type(results).__name__} and {type(images).__name__}")
+        raise TypeError(
+            "write_report takes radiokit.results.Results and Images (load_results reads a "
+            f"results.json), got {type(results).__name__} and {type(images).__name__}"
+        )
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     fig_dir = out_dir / "figures"
@@ -846,10 +1006,15 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
     parts = _head(results, paper) + ["<h2>Images</h2>"]
     parts += [fig_html[n] for n in ("projections.png", "profiles.png", "difference.png", "rois.png")]
     parts += _measurements(results, paper)
-    parts += ["<h2>Registration quality</h2>", fig_html["registration.png"], _registration_table(results),
-              "<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
-              "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>",
-              "<h2>Timings</h2>", _timings_table(timings) or "<p>No timings recorded.</p>"]
+    parts += [
+        "<h2>Registration quality</h2>",
+        fig_html["registration.png"],
+        _registration_table(results),
+        "<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
+        "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>",
+        "<h2>Timings</h2>",
+        _timings_table(timings) or "<p>No timings recorded.</p>",
+    ]
     if own_report_time:
         parts.append("<p>The report's time is its own figure drawing, measured while writing this page.</p>")
     parts.append("</body></html>")

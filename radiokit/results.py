@@ -13,6 +13,7 @@ A zero reference contrast makes the improvement factor undefined: the pipeline r
 a ValueError naming the file and the domain (as :func:`radiokit.measure.improvement_factor`
 does), so no NaN improvement factor is ever written.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,19 @@ import numpy as np
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 
-__all__ = ["SCHEMA_VERSION", "k_label", "KMeasure", "DomainMeasures", "PairResult", "Bound", "Rois", "Results",
-           "Enhancement", "Images", "load_results"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "k_label",
+    "KMeasure",
+    "DomainMeasures",
+    "PairResult",
+    "Bound",
+    "Rois",
+    "Results",
+    "Enhancement",
+    "Images",
+    "load_results",
+]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
 SCHEMA_VERSION = "1.0"
@@ -71,17 +83,25 @@ class DomainMeasures:
         raise KeyError(f"k = {k_label(k)} was not computed (ks: {', '.join(k_label(m.k) for m in self.per_k)})")
 
     def to_json(self) -> dict:
-        by_k = {name: {k_label(m.k): getattr(m, name) for m in self.per_k}
-                for name in ("contrast", "cnr", "weber", "improvement_factor")}
+        by_k = {
+            name: {k_label(m.k): getattr(m, name) for m in self.per_k}
+            for name in ("contrast", "cnr", "weber", "improvement_factor")
+        }
         bounds = {k_label(m.k): m.bound for m in self.per_k}
-        return {"contrast_reference": self.contrast_reference, "cnr_reference": self.cnr_reference,
-                "weber_reference": self.weber_reference, **by_k,
-                "bound": bounds if any(b is not None for b in bounds.values()) else {}}
+        return {
+            "contrast_reference": self.contrast_reference,
+            "cnr_reference": self.cnr_reference,
+            "weber_reference": self.weber_reference,
+            **by_k,
+            "bound": bounds if any(b is not None for b in bounds.values()) else {},
+        }
 
     @classmethod
     def from_json(cls, domain, d: dict) -> DomainMeasures:
-        per_k = tuple(KMeasure(float(key), d["contrast"][key], d["cnr"][key], d["weber"][key], v,
-                               (d.get("bound") or {}).get(key)) for key, v in d["improvement_factor"].items())
+        per_k = tuple(
+            KMeasure(float(key), d["contrast"][key], d["cnr"][key], d["weber"][key], v, (d.get("bound") or {}).get(key))
+            for key, v in d["improvement_factor"].items()
+        )
         return cls(Domain(domain), d["contrast_reference"], d["cnr_reference"], d["weber_reference"], per_k)
 
 
@@ -127,8 +147,16 @@ class PairResult:
         a, _, b = name.partition("->")
         extras = {key: q.pop(key, None) for key in ("method", "rois_observed", "cross_check")}
         epe = {key: q.pop(key) for key in ("epe_median", "epe_p95", "epe_roi_median", "epe_roi_p95") if key in q}
-        return cls(int(a), int(b), extras["method"], q, {Domain(d): v for d, v in change_ratio.items()},
-                   extras["rois_observed"], extras["cross_check"], epe or None)
+        return cls(
+            int(a),
+            int(b),
+            extras["method"],
+            q,
+            {Domain(d): v for d, v in change_ratio.items()},
+            extras["rois_observed"],
+            extras["cross_check"],
+            epe or None,
+        )
 
 
 @dataclass(frozen=True)
@@ -185,16 +213,28 @@ class Results:
 
     def to_json(self) -> dict:
         """The JSON-able form written to ``results.json`` (numbers as Python floats and ints)."""
-        out = {"schema_version": SCHEMA_VERSION, "source": self.source, "scene": self.scene,
-               "simulated": self.simulated, "pixel_size_mm": self.pixel_size_mm, "domain": self.domain.value,
-               "ks": list(self.ks), "method": self.method, "steps": list(self.steps), "ratios": list(self.ratios),
-               "rois": self.rois.to_json(),
-               "improvement_factor": {k_label(k): v for k, v in self.improvement_factor.items()},
-               "domains": {d.value: m.to_json() for d, m in self.domains.items()},
-               "change_ratio": {p.name: {d.value: v for d, v in p.change_ratio.items()} for p in self.pairs},
-               "registration": {p.name: p.registration_json() for p in self.pairs},
-               "main_pair": self.main_pair, "profiles_row": self.profiles_row, "paper": self.paper,
-               "timings": dict(self.timings), "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis}}
+        out = {
+            "schema_version": SCHEMA_VERSION,
+            "source": self.source,
+            "scene": self.scene,
+            "simulated": self.simulated,
+            "pixel_size_mm": self.pixel_size_mm,
+            "domain": self.domain.value,
+            "ks": list(self.ks),
+            "method": self.method,
+            "steps": list(self.steps),
+            "ratios": list(self.ratios),
+            "rois": self.rois.to_json(),
+            "improvement_factor": {k_label(k): v for k, v in self.improvement_factor.items()},
+            "domains": {d.value: m.to_json() for d, m in self.domains.items()},
+            "change_ratio": {p.name: {d.value: v for d, v in p.change_ratio.items()} for p in self.pairs},
+            "registration": {p.name: p.registration_json() for p in self.pairs},
+            "main_pair": self.main_pair,
+            "profiles_row": self.profiles_row,
+            "paper": self.paper,
+            "timings": dict(self.timings),
+            "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis},
+        }
         if self.control is not None:
             out["control"] = self.control.to_json()
         return out
@@ -207,18 +247,34 @@ class Results:
         version = d.get("schema_version", "0")
         if not isinstance(version, str) or version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
             shown = version if isinstance(version, str) else json.dumps(version)
-            raise FormatError(where, f"results schema version {shown}, this radiokit reads {SCHEMA_VERSION} "
-                                     "(re-run `radiokit process` to rewrite it)")
+            raise FormatError(
+                where,
+                f"results schema version {shown}, this radiokit reads {SCHEMA_VERSION} "
+                "(re-run `radiokit process` to rewrite it)",
+            )
         _check_fields(d, where)
         pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
         r = d["rois"]
-        return cls(d["source"], d.get("scene"), bool(d["simulated"]), d["pixel_size_mm"], Domain(d["domain"]),
-                   tuple(d["ks"]), d["method"], tuple(d["steps"]), tuple(d["ratios"]),
-                   Rois(tuple(r["crop"]), tuple(r["inclusion"]), tuple(r["background"])),
-                   {Domain(k): DomainMeasures.from_json(k, v) for k, v in d["domains"].items()}, pairs,
-                   d["main_pair"], d["profiles_row"], Bound(d["bound"]["mu_dg"], d["bound"]["basis"]),
-                   d.get("paper") or {}, dict(d.get("timings") or {}),
-                   cls.from_json(d["control"], f"{where} (control)") if d.get("control") else None)
+        return cls(
+            d["source"],
+            d.get("scene"),
+            bool(d["simulated"]),
+            d["pixel_size_mm"],
+            Domain(d["domain"]),
+            tuple(d["ks"]),
+            d["method"],
+            tuple(d["steps"]),
+            tuple(d["ratios"]),
+            Rois(tuple(r["crop"]), tuple(r["inclusion"]), tuple(r["background"])),
+            {Domain(k): DomainMeasures.from_json(k, v) for k, v in d["domains"].items()},
+            pairs,
+            d["main_pair"],
+            d["profiles_row"],
+            Bound(d["bound"]["mu_dg"], d["bound"]["basis"]),
+            d.get("paper") or {},
+            dict(d.get("timings") or {}),
+            cls.from_json(d["control"], f"{where} (control)") if d.get("control") else None,
+        )
 
     def write_json(self, path) -> Path:
         path = Path(path)
@@ -230,6 +286,7 @@ class Results:
 class Enhancement:
     """The main pair in one domain: reference, registered step, ``D = reference - registered``
     (:func:`radiokit.enhance.difference`) and the enhanced image per k, in the order of the ks."""
+
     domain: Domain
     reference: np.ndarray
     registered: np.ndarray
@@ -240,6 +297,7 @@ class Enhancement:
 @dataclass(frozen=True)
 class Images:
     """The images of a run (cropped): what ``results.h5`` and the report show."""
+
     steps: np.ndarray
     reference: np.ndarray
     registered: np.ndarray
@@ -254,12 +312,21 @@ class Images:
 
     def as_dict(self, record: Results) -> dict:
         """The arrays keyed by name (the report's and ``Result.arrays``' form)."""
-        out = {"steps": self.steps, "step_numbers": list(record.steps), "ratios": list(record.ratios),
-               "reference": self.reference, "registered": self.registered, "moving": self.moving,
-               "displacement": self.displacement, "det_j": self.det_j, "confidence": self.confidence,
-               "enhanced": {d.value: {k_label(k): img for k, img in e.images} for d, e in self.enhanced.items()},
-               "reference_by_domain": {d.value: e.reference for d, e in self.enhanced.items()},
-               "difference": {d.value: e.difference for d, e in self.enhanced.items()}, "profiles": self.profiles}
+        out = {
+            "steps": self.steps,
+            "step_numbers": list(record.steps),
+            "ratios": list(record.ratios),
+            "reference": self.reference,
+            "registered": self.registered,
+            "moving": self.moving,
+            "displacement": self.displacement,
+            "det_j": self.det_j,
+            "confidence": self.confidence,
+            "enhanced": {d.value: {k_label(k): img for k, img in e.images} for d, e in self.enhanced.items()},
+            "reference_by_domain": {d.value: e.reference for d, e in self.enhanced.items()},
+            "difference": {d.value: e.difference for d, e in self.enhanced.items()},
+            "profiles": self.profiles,
+        }
         if self.truth_displacement is not None:
             out["truth_displacement"], out["epe_map"] = self.truth_displacement, self.epe_map
         return out
@@ -337,19 +404,37 @@ def _int(v) -> bool:
 
 
 _BOX = _list_of(_int, 4)
-_DOMAIN_FIELDS = {"contrast_reference": _maybe_number, "cnr_reference": _maybe_number,
-                  "weber_reference": _maybe_number, "contrast": _k_keyed, "cnr": _k_keyed, "weber": _k_keyed,
-                  "improvement_factor": _k_keyed}
+_DOMAIN_FIELDS = {
+    "contrast_reference": _maybe_number,
+    "cnr_reference": _maybe_number,
+    "weber_reference": _maybe_number,
+    "contrast": _k_keyed,
+    "cnr": _k_keyed,
+    "weber": _k_keyed,
+    "improvement_factor": _k_keyed,
+}
 #: what :meth:`Results.from_json` reads, and what each must be (None: optional)
-_FIELDS = {"source": (str,), "scene": (str, None), "simulated": (bool, np.bool_), "pixel_size_mm": _number,
-           "domain": (str,), "ks": _list_of(_number), "method": (str,), "steps": _list_of(_int),
-           "ratios": _list_of(_maybe_number), "rois": lambda v: isinstance(v, dict) and all(
-               _BOX(v.get(k)) for k in ("crop", "inclusion", "background")),
-           "domains": _dict_of(lambda m: isinstance(m, dict) and all(c(m.get(k)) for k, c in _DOMAIN_FIELDS.items())),
-           "change_ratio": _dict_of(_dict_of(_maybe_number)), "registration": _dict_of(lambda q: isinstance(q, dict)),
-           "main_pair": (str,), "profiles_row": _int, "paper": (dict, None), "timings": (dict, None),
-           "bound": lambda v: isinstance(v, dict) and _maybe_number(v.get("mu_dg")) and isinstance(v.get("basis"), str),
-           "control": (dict, None)}
+_FIELDS = {
+    "source": (str,),
+    "scene": (str, None),
+    "simulated": (bool, np.bool_),
+    "pixel_size_mm": _number,
+    "domain": (str,),
+    "ks": _list_of(_number),
+    "method": (str,),
+    "steps": _list_of(_int),
+    "ratios": _list_of(_maybe_number),
+    "rois": lambda v: isinstance(v, dict) and all(_BOX(v.get(k)) for k in ("crop", "inclusion", "background")),
+    "domains": _dict_of(lambda m: isinstance(m, dict) and all(c(m.get(k)) for k, c in _DOMAIN_FIELDS.items())),
+    "change_ratio": _dict_of(_dict_of(_maybe_number)),
+    "registration": _dict_of(lambda q: isinstance(q, dict)),
+    "main_pair": (str,),
+    "profiles_row": _int,
+    "paper": (dict, None),
+    "timings": (dict, None),
+    "bound": lambda v: isinstance(v, dict) and _maybe_number(v.get("mu_dg")) and isinstance(v.get("basis"), str),
+    "control": (dict, None),
+}
 
 
 def _check_fields(d: dict, where) -> None:
@@ -367,7 +452,9 @@ def _check_fields(d: dict, where) -> None:
     for name in d["registration"]:
         a, arrow, b = name.partition("->")
         if not (arrow and a.isdigit() and b.isdigit()) or name not in d["change_ratio"]:
-            raise FormatError(where, f"results.json registration {name!r}: expected a 'moving->fixed' pair of steps "
-                                     "with a change_ratio")
+            raise FormatError(
+                where,
+                f"results.json registration {name!r}: expected a 'moving->fixed' pair of steps with a change_ratio",
+            )
     if d["main_pair"] not in d["registration"]:
         raise FormatError(where, f"results.json main_pair {d['main_pair']!r} is none of the registered pairs")

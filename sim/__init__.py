@@ -12,16 +12,34 @@ The public API, importable from ``sim`` directly::
 
 Submodules are imported on first use, so ``import sim`` stays cheap.
 """
+
 from __future__ import annotations
 
 import importlib
 
-__all__ = ["load_scene", "block_scene", "Scene", "compress", "State", "ConvergenceError", "project",
-           "truth_displacement", "simulate_experiment"]
+__all__ = [
+    "load_scene",
+    "block_scene",
+    "Scene",
+    "compress",
+    "State",
+    "ConvergenceError",
+    "project",
+    "truth_displacement",
+    "simulate_experiment",
+]
 
-_WHERE = {"load_scene": "sim.scene", "block_scene": "sim.scene", "Scene": "sim.scene",
-          "compress": "sim.mechanics", "State": "sim.mechanics", "ConvergenceError": "sim.mechanics",
-          "project": "sim.xray", "truth_displacement": "sim.truth", "simulate_experiment": "sim.lab"}
+_WHERE = {
+    "load_scene": "sim.scene",
+    "block_scene": "sim.scene",
+    "Scene": "sim.scene",
+    "compress": "sim.mechanics",
+    "State": "sim.mechanics",
+    "ConvergenceError": "sim.mechanics",
+    "project": "sim.xray",
+    "truth_displacement": "sim.truth",
+    "simulate_experiment": "sim.lab",
+}
 
 
 def __getattr__(name):

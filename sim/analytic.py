@@ -5,12 +5,12 @@ axis and take the two coordinates perpendicular to it; the ``ray_*`` functions t
 lines (origin and direction, e.g. the rays of a cone beam) and return the length of the line's
 intersection with the solid.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["sphere_chord", "ellipsoid_chord", "cone_side_chord", "box_chord", "ray_sphere_chord",
-           "ray_ellipsoid_chord"]
+__all__ = ["sphere_chord", "ellipsoid_chord", "cone_side_chord", "box_chord", "ray_sphere_chord", "ray_ellipsoid_chord"]
 
 
 def sphere_chord(u, v, radius, centre=(0.0, 0.0)):

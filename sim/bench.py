@@ -26,6 +26,7 @@ Examples
 >>> bench.expose(2, xray_on=False).shape
 (2, 560, 560)
 """
+
 from __future__ import annotations
 
 import copy
@@ -162,8 +163,10 @@ class VirtualBench:
             raise ValueError(f"bench {self.scene.name}: plate gap {gap_mm!r} mm must be a positive number")
         ratio = 1.0 - gap_mm / self.initial_height_mm
         if ratio >= 0.9:
-            raise ValueError(f"bench {self.scene.name}: a gap of {gap_mm:.3f} mm is a compression of "
-                             f"{100 * ratio:.1f} % of {self.initial_height_mm:.3f} mm; the model goes to 90 %")
+            raise ValueError(
+                f"bench {self.scene.name}: a gap of {gap_mm:.3f} mm is a compression of "
+                f"{100 * ratio:.1f} % of {self.initial_height_mm:.3f} mm; the model goes to 90 %"
+            )
         if 0 < ratio <= SNAP:  # the plates just touch
             ratio, gap_mm = 0.0, self.initial_height_mm
         with self._lock:
@@ -264,26 +267,44 @@ class VirtualBench:
         lis, masks = zip(*(self._projection(r) for r in ratios))  # the frames' own projections, cached
         t_proj = time.perf_counter() - t
         t = time.perf_counter()
-        fields = {(a, b): truth_displacement(self.scene, states[b - 1], states[a - 1], body=_body(self.scene, lis[b - 1]))
-                  for a, b in pairs}
+        fields = {
+            (a, b): truth_displacement(self.scene, states[b - 1], states[a - 1], body=_body(self.scene, lis[b - 1]))
+            for a, b in pairs
+        }
         t_truth = time.perf_counter() - t
         gap0 = self.initial_height_mm
-        write_simulation(path, truth_record(self.scene, states, lis, masks, fields, self.panel,
-                                            dict(projection=t_proj, truth=t_truth), gap0), replace=True)
+        write_simulation(
+            path,
+            truth_record(
+                self.scene, states, lis, masks, fields, self.panel, dict(projection=t_proj, truth=t_truth), gap0
+            ),
+            replace=True,
+        )
         return {"projection_s": t_proj, "truth_s": t_truth}
 
     def describe(self) -> dict:
         """What the bench is, JSON-able."""
-        return {"kind": "virtual-bench", "scene": self.scene.name, "scene_toml": self.scene.to_toml(),
-                "shape": list(self.panel.shape), "binning": self.scene.detector.binning,
-                "pixel_size_mm": self.scene.detector.pixel_size_mm, "initial_height_mm": self.initial_height_mm,
-                "i0_counts_per_unbinned_pixel": self.i0, "seed": self.seed,
-                "prepared_ratios": list(self.prepared_ratios), "ratio": self.ratio, "gap_mm": self.gap_mm,
-                "sample_in": self.sample_in}
+        return {
+            "kind": "virtual-bench",
+            "scene": self.scene.name,
+            "scene_toml": self.scene.to_toml(),
+            "shape": list(self.panel.shape),
+            "binning": self.scene.detector.binning,
+            "pixel_size_mm": self.scene.detector.pixel_size_mm,
+            "initial_height_mm": self.initial_height_mm,
+            "i0_counts_per_unbinned_pixel": self.i0,
+            "seed": self.seed,
+            "prepared_ratios": list(self.prepared_ratios),
+            "ratio": self.ratio,
+            "gap_mm": self.gap_mm,
+            "sample_in": self.sample_in,
+        }
 
     def __repr__(self):
-        return (f"VirtualBench({self.scene.name!r}, shape={self.panel.shape}, h0={self.initial_height_mm:g} mm, "
-                f"ratio={self.ratio:.4g}, sample_in={self.sample_in})")
+        return (
+            f"VirtualBench({self.scene.name!r}, shape={self.panel.shape}, h0={self.initial_height_mm:g} mm, "
+            f"ratio={self.ratio:.4g}, sample_in={self.sample_in})"
+        )
 
 
 def _check_ratio(r) -> float:

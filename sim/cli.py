@@ -1,4 +1,5 @@
 """Subcommands ``sim`` contributes to the ``radiokit`` command (entry-point group radiokit.commands)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,18 +8,26 @@ from pathlib import Path
 def add_sim(subparsers):
     p = subparsers.add_parser("sim", help="virtual experiments: compress a scene and write simulated C7942 frames")
     sub = p.add_subparsers(dest="sim_command", metavar="{run}", required=True)
-    r = sub.add_parser("run", help="compress, project and expose a scene into an experiment file with its truth",
-                       description="Compress a scene (a TOML file or a preset), project each state, expose it on a "
-                                   "model C7942 and write an experiment file with /entry/simulation (the truth).")
+    r = sub.add_parser(
+        "run",
+        help="compress, project and expose a scene into an experiment file with its truth",
+        description="Compress a scene (a TOML file or a preset), project each state, expose it on a "
+        "model C7942 and write an experiment file with /entry/simulation (the truth).",
+    )
     src = r.add_mutually_exclusive_group(required=True)
     src.add_argument("scene", nargs="?", type=Path, help="scene TOML file")
     src.add_argument("--preset", help="a built-in scene: seed-breast or pva-phantom")
-    r.add_argument("--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25")
+    r.add_argument(
+        "--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25"
+    )
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
     r.add_argument("--view", choices=["through_plates", "side"], help="beam direction (default: the scene's)")
-    r.add_argument("--imaging", choices=["paper", "experiment"],
-                   help="paper: monochromatic, no scatter; experiment: tube spectrum and scatter (default: the scene's)")
+    r.add_argument(
+        "--imaging",
+        choices=["paper", "experiment"],
+        help="paper: monochromatic, no scatter; experiment: tube spectrum and scatter (default: the scene's)",
+    )
     r.add_argument("--darks", type=int, default=10, help="dark frames (default 10)")
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
@@ -45,8 +54,9 @@ def _run_sim(args) -> int:
         raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: compression ratios lie between 0 and 1")
     for name in ("darks", "flats", "frames"):
         if getattr(args, name) < (1 if name == "frames" else 0):
-            raise ValueError(f"--{name} {getattr(args, name)}: expected a count of at least "
-                             f"{1 if name == 'frames' else 0}")
+            raise ValueError(
+                f"--{name} {getattr(args, name)}: expected a count of at least {1 if name == 'frames' else 0}"
+            )
     if args.view:
         from sim.scene import with_view
 
@@ -69,25 +79,44 @@ def _run_sim(args) -> int:
         say(f"  load step to {100 * ratio:6.2f} %: {iterations:2d} Newton iterations, {seconds:5.1f} s", flush=True)
 
     def on_state(s):
-        say(f"state {100 * s.ratio:5.1f} %: gap {s.gap_mm:7.3f} mm, plate force {s.plate_force_n:9.4f} N, "
+        say(
+            f"state {100 * s.ratio:5.1f} %: gap {s.gap_mm:7.3f} mm, plate force {s.plate_force_n:9.4f} N, "
             f"volume ratio {s.volume_ratio:.5f}, inclusion/background strain "
-            f"{s.inclusion_strain / s.background_strain if s.background_strain else float('nan'):.3f}", flush=True)
+            f"{s.inclusion_strain / s.background_strain if s.background_strain else float('nan'):.3f}",
+            flush=True,
+        )
 
-    say(f"scene {scene.name}: {scene.body.geometry}, {len(scene.inclusions)} inclusion(s), "
-        f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})")
+    say(
+        f"scene {scene.name}: {scene.body.geometry}, {len(scene.inclusions)} inclusion(s), "
+        f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})"
+    )
     # written under a temporary name and renamed when complete: never a half-simulated file
     with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs) as tmp:
-        res = simulate_experiment(scene, tmp, ratios=args.ratios, n_darks=args.darks, n_flats=args.flats,
-                                  frames_per_step=args.frames, seed=args.seed, overwrite=True,
-                                  progress=not args.quiet, on_state=on_state, on_step=on_step)
+        res = simulate_experiment(
+            scene,
+            tmp,
+            ratios=args.ratios,
+            n_darks=args.darks,
+            n_flats=args.flats,
+            frames_per_step=args.frames,
+            seed=args.seed,
+            overwrite=True,
+            progress=not args.quiet,
+            on_state=on_state,
+            on_step=on_step,
+        )
     res["file"] = str(args.output)
     sec = res["seconds"]
     print(f"\n{'step':>4} {'ratio':>6} {'gap mm':>8} {'force N':>10} {'volume':>8} {'incl/bg strain':>15}")
     for s in res["states"]:
         ratio = s["inclusion_strain"] / s["background_strain"] if s["background_strain"] else float("nan")
-        print(f"{s['step']:>4} {s['ratio']:>6.3f} {s['gap_mm']:>8.3f} {s['plate_force_n']:>10.4f} "
-              f"{s['volume_ratio']:>8.5f} {ratio:>15.3f}")
-    print(f"\nwrote {res['file']} ({res['frame_shape'][0]}x{res['frame_shape'][1]}); time: mechanics "
-          f"{sec['mechanics']:.1f} s, projection {sec['projection']:.1f} s, truth {sec['truth']:.1f} s, "
-          f"frames {sec['frames']:.1f} s, total {time.perf_counter() - t0:.1f} s")
+        print(
+            f"{s['step']:>4} {s['ratio']:>6.3f} {s['gap_mm']:>8.3f} {s['plate_force_n']:>10.4f} "
+            f"{s['volume_ratio']:>8.5f} {ratio:>15.3f}"
+        )
+    print(
+        f"\nwrote {res['file']} ({res['frame_shape'][0]}x{res['frame_shape'][1]}); time: mechanics "
+        f"{sec['mechanics']:.1f} s, projection {sec['projection']:.1f} s, truth {sec['truth']:.1f} s, "
+        f"frames {sec['frames']:.1f} s, total {time.perf_counter() - t0:.1f} s"
+    )
     return 0

@@ -10,6 +10,7 @@ pixel collects four pixels' signal and is read once.
 Defaults follow the C7942 facts (../shared/hardware/C7942.md): 12-bit ADC, about 1100 e- read
 noise against a 2.2 Me- full well (so ~2 counts rms), a dark offset of a hundred-odd counts.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -141,7 +142,7 @@ class PanelModel:
         rng = rng if rng is not None else np.random.default_rng()
         out = np.empty((n,) + self.shape, np.uint16)
         q = self.counts_per_quantum
-        lam = np.maximum(signal, 0) * (self.binning ** 2) / q
+        lam = np.maximum(signal, 0) * (self.binning**2) / q
         for i in range(n):
             quanta = rng.poisson(lam) if np.any(lam) else np.zeros(self.shape)
             value = self.offset + self.gain * (q * quanta) + self.noise * rng.standard_normal(self.shape, np.float32)
@@ -168,4 +169,4 @@ class PanelModel:
 
     def expected(self, line_integral, i0=2500.0) -> np.ndarray:
         """The noise-free mean raw signal (float), before clipping."""
-        return self.offset + self.gain * i0 * self.binning ** 2 * np.exp(-np.asarray(line_integral, np.float32))
+        return self.offset + self.gain * i0 * self.binning**2 * np.exp(-np.asarray(line_integral, np.float32))

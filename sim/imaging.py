@@ -29,6 +29,7 @@ scatter-to-primary ratio is ``SPR`` in a uniform slab of line integral ``L_ref``
 has no object and so no scatter. Blur: the scintillator's point spread, a Gaussian on the intensity.
 Noise: Poisson quanta, :func:`sim.study.add_noise`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -109,8 +110,9 @@ class Polychromatic:
         if target <= 0:
             return 1.0
         # the upper end of the bracket transmits nothing: clipped, not log(0)
-        return float(brentq(lambda a: -np.log(max(float(self._transmission(target, a)), 1e-300)) - target,
-                            1e-6, 1e3, xtol=1e-12))
+        return float(
+            brentq(lambda a: -np.log(max(float(self._transmission(target, a)), 1e-300)) - target, 1e-6, 1e3, xtol=1e-12)
+        )
 
     def __call__(self, lengths, mu_per_mm):
         mono = monochromatic(lengths, mu_per_mm)
@@ -181,11 +183,13 @@ def blur(line_integral, sigma_mm, pixel_size_mm):
 def chain(beam=monochromatic, *effects):
     """An ``image_model(lengths, mu)`` for :func:`sim.study.image_pair`: the beam, then each
     ``effect(line_integral) -> line_integral`` in turn."""
+
     def model(lengths, mu):
         L = beam(lengths, mu)
         for f in effects:
             L = f(L)
         return L
+
     return model
 
 

@@ -9,6 +9,7 @@ written through :func:`radiokit.io.write_simulation`. The displacement fields ar
 
 Steps are numbered from 1 in the file, in increasing compression, as the lab numbers them.
 """
+
 from __future__ import annotations
 
 import time
@@ -52,9 +53,8 @@ def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, 
     lengths = path_lengths(fem, geometry, displacement, thickness_mm=thickness)
     # the scene's imaging model (sim.imaging): tube spectrum and scatter, or the paper's line integral
     model = imaging.for_scene(scene, geometry.pixel_size_mm)
-    line_integral = model(lengths, np.asarray(mus[:len(lengths)], np.float64)).astype(np.float32)
-    mask = ((lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1
-            else np.zeros(lengths.shape[1:], np.uint8))
+    line_integral = model(lengths, np.asarray(mus[: len(lengths)], np.float64)).astype(np.float32)
+    mask = (lengths[1:].sum(axis=0) > 0).astype(np.uint8) if len(mus) > 1 else np.zeros(lengths.shape[1:], np.uint8)
     return line_integral, mask
 
 
@@ -79,11 +79,23 @@ def open_beam_counts(scene: Scene) -> float:
     the exposure per unbinned pixel is divided by ``binning**2`` to keep the ADC where the scene
     puts it.
     """
-    return scene.exposure.i0_counts / scene.detector.binning ** 2
+    return scene.exposure.i0_counts / scene.detector.binning**2
 
 
-def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, frames_per_step=1, seed=0,
-                        overwrite=False, progress=True, on_state=None, on_step=None) -> dict:
+def simulate_experiment(
+    scene,
+    output,
+    *,
+    ratios=None,
+    n_darks=10,
+    n_flats=10,
+    frames_per_step=1,
+    seed=0,
+    overwrite=False,
+    progress=True,
+    on_state=None,
+    on_step=None,
+) -> dict:
     """Compress ``scene`` (a :class:`Scene`, preset name or TOML) to ``ratios`` (default the
     scene's), project each state, expose it on a model C7942 and write ``output``.
 
@@ -131,7 +143,9 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
     fields = {}
     for b in range(len(states)):
         for a in range(b):
-            fields[(a + 1, b + 1)] = truth_displacement(scene, states[b], states[a], body=_body(scene, line_integrals[b]))
+            fields[(a + 1, b + 1)] = truth_displacement(
+                scene, states[b], states[a], body=_body(scene, line_integrals[b])
+            )
     t_truth = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -143,9 +157,17 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
     src = {"name": "Hamamatsu L8121-01 (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
     gap0 = states[0].gap_mm / (1 - states[0].ratio) if states[0].ratio < 1 else float("nan")
     n_frames = n_darks + n_flats + frames_per_step * len(states)
-    with ExperimentWriter(output, shape=panel.shape, overwrite=overwrite, pixel_size_mm=det.pixel_size_mm,
-                          source=src, title=f"radiokit simulation: {scene.name}") as w, \
-            tqdm(total=n_frames, desc="expose", unit="frame", disable=not progress) as bar:
+    with (
+        ExperimentWriter(
+            output,
+            shape=panel.shape,
+            overwrite=overwrite,
+            pixel_size_mm=det.pixel_size_mm,
+            source=src,
+            title=f"radiokit simulation: {scene.name}",
+        ) as w,
+        tqdm(total=n_frames, desc="expose", unit="frame", disable=not progress) as bar,
+    ):
         w.set_pixel_mask(np.zeros(panel.shape, np.uint32))
         for frame in panel.dark_frames(n_darks, rng):
             w.append(frame, image_key=ImageKey.DARK)
@@ -155,20 +177,54 @@ def simulate_experiment(scene, output, *, ratios=None, n_darks=10, n_flats=10, f
             bar.update()
         for step, (s, li) in enumerate(zip(states, line_integrals), start=1):
             for frame in panel.expose(li, i0, frames_per_step, rng):
-                w.append(frame, image_key=ImageKey.PROJECTION, step=step, ratio=s.ratio, gap_mm=s.gap_mm,
-                         voltage_kv=ex.voltage_kv, current_ua=ex.current_ua)
+                w.append(
+                    frame,
+                    image_key=ImageKey.PROJECTION,
+                    step=step,
+                    ratio=s.ratio,
+                    gap_mm=s.gap_mm,
+                    voltage_kv=ex.voltage_kv,
+                    current_ua=ex.current_ua,
+                )
                 bar.update()
         t_frames = time.perf_counter() - t
-        w.write_simulation(truth_record(scene, states, line_integrals, masks, fields, panel,
-                                        dict(mechanics=t_mech, projection=t_proj, truth=t_truth, frames=t_frames),
-                                        gap0))
-    return {"file": str(output), "scene": scene.name, "frame_shape": list(panel.shape),
-            "states": [{"step": i + 1, "ratio": s.ratio, "gap_mm": s.gap_mm, "plate_force_n": s.plate_force_n,
-                        "volume_ratio": s.volume_ratio, "inclusion_strain": s.inclusion_strain,
-                        "background_strain": s.background_strain, "newton_iterations": s.newton_iterations}
-                       for i, s in enumerate(states)],
-            "seconds": {"mechanics": t_mech, "projection": t_proj, "truth": t_truth, "frames": t_frames,
-                        "total": time.perf_counter() - t0}}
+        w.write_simulation(
+            truth_record(
+                scene,
+                states,
+                line_integrals,
+                masks,
+                fields,
+                panel,
+                dict(mechanics=t_mech, projection=t_proj, truth=t_truth, frames=t_frames),
+                gap0,
+            )
+        )
+    return {
+        "file": str(output),
+        "scene": scene.name,
+        "frame_shape": list(panel.shape),
+        "states": [
+            {
+                "step": i + 1,
+                "ratio": s.ratio,
+                "gap_mm": s.gap_mm,
+                "plate_force_n": s.plate_force_n,
+                "volume_ratio": s.volume_ratio,
+                "inclusion_strain": s.inclusion_strain,
+                "background_strain": s.background_strain,
+                "newton_iterations": s.newton_iterations,
+            }
+            for i, s in enumerate(states)
+        ],
+        "seconds": {
+            "mechanics": t_mech,
+            "projection": t_proj,
+            "truth": t_truth,
+            "frames": t_frames,
+            "total": time.perf_counter() - t0,
+        },
+    }
 
 
 def truth_record(scene: Scene, states, line_integrals, masks, fields, panel, seconds, gap0):
@@ -178,9 +234,18 @@ def truth_record(scene: Scene, states, line_integrals, masks, fields, panel, sec
     from radiokit.io import PlantedDefects, SimulationRecord
 
     t = panel.truth
-    curve = {name: np.array([getattr(s, name) for s in states], np.float64)
-             for name in ("ratio", "gap_mm", "plate_force_n", "volume_ratio", "inclusion_strain", "background_strain")}
-    return SimulationRecord(scene_toml=scene.to_toml(), line_integral=np.stack(line_integrals),
-                            inclusion_mask=np.stack(masks), steps=tuple(range(1, len(states) + 1)),
-                            displacement=dict(fields), defects=PlantedDefects(t.dead, t.under, t.noisy, t.columns),
-                            initial_gap_mm=gap0, seconds=dict(seconds), **curve)
+    curve = {
+        name: np.array([getattr(s, name) for s in states], np.float64)
+        for name in ("ratio", "gap_mm", "plate_force_n", "volume_ratio", "inclusion_strain", "background_strain")
+    }
+    return SimulationRecord(
+        scene_toml=scene.to_toml(),
+        line_integral=np.stack(line_integrals),
+        inclusion_mask=np.stack(masks),
+        steps=tuple(range(1, len(states) + 1)),
+        displacement=dict(fields),
+        defects=PlantedDefects(t.dead, t.under, t.noisy, t.columns),
+        initial_gap_mm=gap0,
+        seconds=dict(seconds),
+        **curve,
+    )

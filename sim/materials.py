@@ -19,6 +19,7 @@ where the fit's misfit is what :func:`fit_neo_hookean` reports.
 >>> round(E0, 1), round(misfit, 3)
 (19.7, 0.075)
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,7 +33,7 @@ def neo_hookean_tangent_modulus(E0_kpa, strain):
     s = 1.0 - np.asarray(strain, dtype=float)
     if np.any(s <= 0):
         raise ValueError("strain must be below 1")
-    return E0_kpa * (1.0 + 2.0 * s ** -3) / 3.0
+    return E0_kpa * (1.0 + 2.0 * s**-3) / 3.0
 
 
 def fit_neo_hookean(strain_range, modulus_range_kpa, n=41) -> tuple[float, float]:
@@ -45,8 +46,10 @@ def fit_neo_hookean(strain_range, modulus_range_kpa, n=41) -> tuple[float, float
     """
     (e0, e1), (m0, m1) = strain_range, modulus_range_kpa
     if not (0 <= e0 < e1 < 1) or m0 <= 0 or m1 <= 0:
-        raise ValueError(f"need 0 <= strain_range[0] < strain_range[1] < 1 and positive moduli, "
-                         f"got {strain_range}, {modulus_range_kpa}")
+        raise ValueError(
+            f"need 0 <= strain_range[0] < strain_range[1] < 1 and positive moduli, "
+            f"got {strain_range}, {modulus_range_kpa}"
+        )
     strain = np.linspace(e0, e1, n)
     target = m0 + (m1 - m0) * (strain - e0) / (e1 - e0)
     shape = neo_hookean_tangent_modulus(1.0, strain)

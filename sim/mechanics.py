@@ -33,6 +33,7 @@ Newton on Pi with an Armijo line search that also keeps J > 0, adaptive load ste
 failure, grown after easy steps), and a :class:`ConvergenceError` naming the compression at which
 it gave up; never NaN. Units: mm, N, MPa.
 """
+
 from __future__ import annotations
 
 import math
@@ -203,8 +204,12 @@ class Solver:
         self.unc = np.array([mats[r].model == "neo-hookean-uncoupled" for r in region])
         # the modulus of the volumetric measure g: lambda for g = ln J and tr E, the bulk modulus
         # kappa = lambda + 2 mu / 3 for the uncoupled form's g = J - 1
-        self.lam = np.array([mats[r].lame_kpa + (2 * mats[r].shear_kpa / 3 if self.unc[i] else 0.0)
-                             for i, r in enumerate(region)]) * 1e-3
+        self.lam = (
+            np.array(
+                [mats[r].lame_kpa + (2 * mats[r].shear_kpa / 3 if self.unc[i] else 0.0) for i, r in enumerate(region)]
+            )
+            * 1e-3
+        )
         self.region = region
         # Copies of the model side by side on one plate: symmetry planes other than y (which
         # mirrors the model onto the other plate). Axisymmetric weights already hold the 2 pi r.
@@ -278,7 +283,7 @@ class Solver:
                     fixed[n * 3 + k] = 0.0
             if sc.wall != "none":
                 for n in np.flatnonzero(np.abs(X[0]) < tol):
-                    for k in (range(3) if sc.wall == "fixed" else (0,)):
+                    for k in range(3) if sc.wall == "fixed" else (0,):
                         fixed[n * 3 + k] = 0.0
         else:
             # axis r = 0 (axisymmetric) or the x = 0 symmetry plane of a slab
@@ -314,8 +319,10 @@ class Solver:
         it (upper half, off the symmetry planes and the wall)."""
         sc, dim, H, tol = self.scene, self.dim, self.H, self._tol
         if sc.compression.contact == "bonded":
-            raise ValueError(f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
-                             f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')")
+            raise ValueError(
+                f"scene {sc.name!r}: bonded plates need flat faces on the plates; a "
+                f"{sc.body.geometry} touches them at a point (use contact = 'frictionless')"
+            )
         sym = set(self.fem.symmetry)
         if "y" not in sym:
             raise ValueError(f"scene {sc.name!r}: a curved body must be symmetric in y (set mesh.symmetry)")
@@ -370,8 +377,11 @@ class Solver:
         lnJ = np.log(Jc)
         W = np.where(svk, mu * np.einsum("eqij,eqij->eq", Egl, Egl), mu / 2 * (I1 - 3) - mu * lnJ)
         g = np.where(svk, np.trace(Egl, axis1=-2, axis2=-1), lnJ)
-        dW = np.where(svk[..., None, None], 2 * mu[..., None, None] * np.einsum("eqik,eqkj->eqij", F, Egl),
-                      mu[..., None, None] * (F - FiT))
+        dW = np.where(
+            svk[..., None, None],
+            2 * mu[..., None, None] * np.einsum("eqik,eqkj->eqij", F, Egl),
+            mu[..., None, None] * (F - FiT),
+        )
         dg = np.where(svk[..., None, None], F, FiT)
         unc = self.unc[:, None] & np.ones((1, nq), bool) if self.unc.any() else None
         if unc is not None:  # ANSYS's form: mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2
@@ -383,7 +393,7 @@ class Solver:
         gbar = (g * self.w).sum(axis=1) / self.Ve
         p = (lam * gbar)[:, None]
         P = dW + p[..., None, None] * dg
-        energy = float((W * self.w).sum() + 0.5 * (lam * self.Ve * gbar ** 2).sum())
+        energy = float((W * self.w).sum() + 0.5 * (lam * self.Ve * gbar**2).sum())
         out = dict(P=P, dg=dg, energy=energy, J=J, gbar=gbar)
         if need_tangent:
             # A_ijkl = d P_ij / d F_kl at fixed p
@@ -396,16 +406,22 @@ class Solver:
                 Fe, m_e = F[e], mu[e][..., None, None, None, None]
                 S = 2 * mu[e][..., None, None] * Egl[e] + p[e][..., None, None] * _EYE
                 FFt = np.einsum("eqim,eqkm->eqik", Fe, Fe)
-                A[e] = (np.einsum("ik,eqlj->eqijkl", _EYE, S)
-                        + m_e * (np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", Fe, Fe)))
+                A[e] = np.einsum("ik,eqlj->eqijkl", _EYE, S) + m_e * (
+                    np.einsum("eqik,jl->eqijkl", FFt, _EYE) + np.einsum("eqil,eqkj->eqijkl", Fe, Fe)
+                )
             e = np.flatnonzero(self.unc)
             if e.size:
                 Fe, Ge, Ie = F[e], FiT[e], I1[e][..., None, None, None, None]
                 Y = np.einsum("eqij,eqkl->eqijkl", Ge, Ge)
-                iso = (d - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", Ge, Fe) + np.einsum("eqkl,eqij->eqijkl", Fe, Ge))
-                       + 2 / 9 * Ie * Y + Ie / 3 * X[e])
-                A[e] = ((mu[e] * a[e])[..., None, None, None, None] * iso
-                        + (p[e] * Jc[e])[..., None, None, None, None] * (Y - X[e]))
+                iso = (
+                    d
+                    - 2 / 3 * (np.einsum("eqkl,eqij->eqijkl", Ge, Fe) + np.einsum("eqkl,eqij->eqijkl", Fe, Ge))
+                    + 2 / 9 * Ie * Y
+                    + Ie / 3 * X[e]
+                )
+                A[e] = (mu[e] * a[e])[..., None, None, None, None] * iso + (p[e] * Jc[e])[
+                    ..., None, None, None, None
+                ] * (Y - X[e])
             out["A"] = A
         return out
 
@@ -546,7 +562,7 @@ class Solver:
         ev = self.evaluate(u, h)
         if ev is None:
             raise ConvergenceError("the predictor inverts elements: step too large")
-        scale = max(float(np.max(self.mu)) * self.H ** 2, 1e-12)
+        scale = max(float(np.max(self.mu)) * self.H**2, 1e-12)
         res = float(np.max(np.abs(ev["R"][self.free]))) if self.free.size else 0.0
         if res < rtol * scale:
             return u, ev, 0
@@ -563,8 +579,9 @@ class Solver:
                     res_t = float(np.max(np.abs(ev_t["R"][self.free])))
                     # Armijo on the energy; near convergence the energy stalls at round-off, so a
                     # full step that reduces the residual is accepted too.
-                    if (ev_t["energy"] <= ev["energy"] + 1e-4 * alpha * min(slope, 0.0)
-                            or (alpha == 1.0 and res_t < 0.5 * res)):
+                    if ev_t["energy"] <= ev["energy"] + 1e-4 * alpha * min(slope, 0.0) or (
+                        alpha == 1.0 and res_t < 0.5 * res
+                    ):
                         break
                 alpha *= 0.5
             else:
@@ -602,9 +619,17 @@ class Solver:
 
             # never spend more on one GMRES solve than a factorisation costs: a tangent that has
             # moved far (the contact patch's edge jumping) is cheaper to factorise than to iterate
-            x, _info = spla.gmres(K, rhs, rtol=LINEAR_RTOL, atol=0.0, restart=LU_PRICE, maxiter=1,
-                                 M=spla.LinearOperator(K.shape, self._lu.solve), callback=count,
-                                 callback_type="pr_norm")
+            x, _info = spla.gmres(
+                K,
+                rhs,
+                rtol=LINEAR_RTOL,
+                atol=0.0,
+                restart=LU_PRICE,
+                maxiter=1,
+                M=spla.LinearOperator(K.shape, self._lu.solve),
+                callback=count,
+                callback_type="pr_norm",
+            )
             self.krylov_iterations += its[0]
             self._krylov_spent += its[0]
             # judged by the true residual: scipy flags info=1 on stagnation that is good enough
@@ -650,10 +675,18 @@ class Solver:
         vol = float((np.linalg.det(ev["F"]) * self.w).sum() / self.w.sum())
         gap = self.gap0 - 2 * delta if "y" in self.fem.symmetry else self.gap0 - delta
         inc_strain, bg_strain = self._strains(ev["F"])
-        return State(ratio=ratio, gap_mm=gap, plate_force_n=force * self.force_multiplicity, volume_ratio=vol,
-                     displacement=u.reshape(self.n_nodes, self.dim).T.copy(), newton_iterations=iterations,
-                     load_steps=steps, contact_area_mm2=area * self.force_multiplicity, inclusion_strain=inc_strain,
-                     background_strain=bg_strain)
+        return State(
+            ratio=ratio,
+            gap_mm=gap,
+            plate_force_n=force * self.force_multiplicity,
+            volume_ratio=vol,
+            displacement=u.reshape(self.n_nodes, self.dim).T.copy(),
+            newton_iterations=iterations,
+            load_steps=steps,
+            contact_area_mm2=area * self.force_multiplicity,
+            inclusion_strain=inc_strain,
+            background_strain=bg_strain,
+        )
 
     def _strains(self, F):
         """Volume-averaged compressive strain 1 - F_yy of the inclusions and of the background."""
@@ -699,14 +732,17 @@ class Solver:
                     guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 t_step = time.perf_counter()
                 try:
-                    u_new, ev, its = self._newton(u, delta, guess=guess, delta_prev=d1,
-                                                  rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL)
+                    u_new, ev, its = self._newton(
+                        u, delta, guess=guess, delta_prev=d1, rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL
+                    )
                 except ConvergenceError as exc:
                     step /= 2
                     if step < min_step:
                         bar.close()
-                        raise ConvergenceError(f"scene {self.scene.name!r}: cannot reach compression "
-                                               f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %): {exc}") from exc
+                        raise ConvergenceError(
+                            f"scene {self.scene.name!r}: cannot reach compression "
+                            f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %): {exc}"
+                        ) from exc
                     continue
                 u, r_now = u_new, r_try
                 history = [history[-1], (delta, u)]
@@ -729,8 +765,9 @@ class Solver:
         return states
 
 
-def compress(scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=False, on_step=None,
-             on_state=None) -> list[State]:
+def compress(
+    scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=False, on_step=None, on_state=None
+) -> list[State]:
     """Compress ``scene`` to each of ``ratios`` (default: the scene's) and return the states.
 
     Each state keeps its :class:`Solver` as ``state.solver`` (mesh, dof layout, timings in
@@ -741,7 +778,8 @@ def compress(scene: Scene, ratios=None, *, fem: FEMesh | None = None, progress=F
     t0 = time.perf_counter()
     scene = load_scene(scene)
     solver = Solver(scene, fem)
-    states = solver.solve(scene.compression.ratios if ratios is None else ratios, progress=progress,
-                          on_step=on_step, on_state=on_state)
+    states = solver.solve(
+        scene.compression.ratios if ratios is None else ratios, progress=progress, on_step=on_step, on_state=on_state
+    )
     solver.seconds = time.perf_counter() - t0
     return states

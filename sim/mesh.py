@@ -15,6 +15,7 @@ Three kinds of model (``MeshSpec.model``):
 Element sizes grow linearly with distance from the inclusion surfaces, from
 ``size_inclusion_mm`` to ``size_far_mm`` over ``grading_mm`` (default: 4 inclusion radii).
 """
+
 from __future__ import annotations
 
 import math
@@ -63,8 +64,10 @@ class FEMesh:
         return (MeshTet if self.model == "3d" else MeshTri)(self.points.copy(), self.cells.copy())
 
     def __repr__(self):
-        return (f"FEMesh({self.model}, {self.points.shape[1]} vertices, {self.cells.shape[1]} cells, "
-                f"symmetry={self.symmetry}, regions={np.bincount(self.region).tolist()})")
+        return (
+            f"FEMesh({self.model}, {self.points.shape[1]} vertices, {self.cells.shape[1]} cells, "
+            f"symmetry={self.symmetry}, regions={np.bincount(self.region).tolist()})"
+        )
 
 
 def choose_model(scene: Scene) -> str:
@@ -72,8 +75,11 @@ def choose_model(scene: Scene) -> str:
     the compression axis with inclusions on the axis, else 3D (plane strain only on request)."""
     if scene.mesh.model != "auto":
         return scene.mesh.model
-    if scene.body.axisymmetric and scene.wall == "none" and all(
-            abs(inc.centre_mm[0]) < 1e-9 and abs(inc.centre_mm[2]) < 1e-9 for inc in scene.inclusions):
+    if (
+        scene.body.axisymmetric
+        and scene.wall == "none"
+        and all(abs(inc.centre_mm[0]) < 1e-9 and abs(inc.centre_mm[2]) < 1e-9 for inc in scene.inclusions)
+    ):
         return "axisymmetric"
     return "3d"
 
@@ -86,7 +92,8 @@ def _symmetry_planes(scene: Scene) -> tuple:
     if b.geometry != "hemi-ellipsoid" and all(abs(i.centre_mm[0]) < 1e-9 for i in scene.inclusions):
         planes.append("x")
     y_sym = b.geometry in ("hemi-ellipsoid", "ellipsoid", "cylinder", "box") and all(
-        abs(i.centre_mm[1]) < 1e-9 for i in scene.inclusions)
+        abs(i.centre_mm[1]) < 1e-9 for i in scene.inclusions
+    )
     if y_sym:
         planes.append("y")
     if all(abs(i.centre_mm[2]) < 1e-9 for i in scene.inclusions):
@@ -135,8 +142,11 @@ def _size_field(gmsh, inclusion_entities, dim, spec, grading_mm, contact_band=No
             f.setAsBackgroundMesh(m)
         else:
             f.setAsBackgroundMesh(fields[0])
-    small = min([spec.size_far_mm] + ([spec.size_inclusion_mm] if inclusion_entities else [])
-                + ([spec.size_contact_mm] if spec.size_contact_mm is not None and contact_band else []))
+    small = min(
+        [spec.size_far_mm]
+        + ([spec.size_inclusion_mm] if inclusion_entities else [])
+        + ([spec.size_contact_mm] if spec.size_contact_mm is not None and contact_band else [])
+    )
     gmsh.option.setNumber("Mesh.MeshSizeMax", spec.size_far_mm)
     gmsh.option.setNumber("Mesh.MeshSizeMin", small)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
@@ -199,19 +209,27 @@ def _fragment_regions(gmsh, parts, dim):
     regions = {}
     for tag, reg in owner.items():
         regions.setdefault(reg, []).append(tag)
-    interfaces = [b[1] for reg, tags in regions.items() if reg > 0 for t in tags
-                  for b in gmsh.model.getBoundary([(dim, t)], oriented=False)]
+    interfaces = [
+        b[1]
+        for reg, tags in regions.items()
+        if reg > 0
+        for t in tags
+        for b in gmsh.model.getBoundary([(dim, t)], oriented=False)
+    ]
     return regions, interfaces
 
 
-def build_mesh(scene: Scene, model: str | None = None, *, size_inclusion_mm=None, size_far_mm=None,
-               grading_mm=None) -> FEMesh:
+def build_mesh(
+    scene: Scene, model: str | None = None, *, size_inclusion_mm=None, size_far_mm=None, grading_mm=None
+) -> FEMesh:
     """Mesh ``scene`` with gmsh (see the module docstring for the models and symmetry use)."""
     import dataclasses
 
     model = model or choose_model(scene)
-    spec = dataclasses.replace(scene.mesh, **{k: v for k, v in (("size_inclusion_mm", size_inclusion_mm),
-                                                                  ("size_far_mm", size_far_mm)) if v is not None})
+    spec = dataclasses.replace(
+        scene.mesh,
+        **{k: v for k, v in (("size_inclusion_mm", size_inclusion_mm), ("size_far_mm", size_far_mm)) if v is not None},
+    )
     if scene.inclusions:
         r_inc = min((i.diameter_mm / 2 if i.shape == "sphere" else min(i.size_mm) / 2) for i in scene.inclusions)
     else:
@@ -272,8 +290,11 @@ def _build_3d(scene, spec, grading):
     gmsh = _gmsh()
     occ = gmsh.model.occ
     planes = _symmetry_planes(scene)
-    big = 10 * max(scene.body.semi_axes_mm + scene.body.size_mm + (scene.body.height_mm, scene.body.diameter_mm,
-                                                                    scene.body.top_diameter_mm))
+    big = 10 * max(
+        scene.body.semi_axes_mm
+        + scene.body.size_mm
+        + (scene.body.height_mm, scene.body.diameter_mm, scene.body.top_diameter_mm)
+    )
     body = _body_3d(occ, scene.body)
     incs = [_inclusion_3d(occ, i) for i in scene.inclusions]
     parts = _keep_positive(occ, [body] + incs, planes, big) if planes else [[body]] + [[i] for i in incs]
@@ -285,9 +306,14 @@ def _build_3d(scene, spec, grading):
     pts, cells, region = _extract(gmsh, 3, volumes)
     gmsh.clear()
     cells = _orient_tets(pts, cells)
-    return FEMesh(pts, cells, region, "3d", planes,
-                  meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm,
-                        "grading_mm": grading})
+    return FEMesh(
+        pts,
+        cells,
+        region,
+        "3d",
+        planes,
+        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
+    )
 
 
 def _orient_tets(p, t):
@@ -358,9 +384,14 @@ def _build_2d(scene, spec, grading, model):
     neg = area < 0
     cells[1, neg], cells[2, neg] = cells[2, neg].copy(), cells[1, neg].copy()
     planes = ("y",) if y_sym else ()
-    return FEMesh(pts, cells, region, model, planes,
-                  meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm,
-                        "grading_mm": grading})
+    return FEMesh(
+        pts,
+        cells,
+        region,
+        model,
+        planes,
+        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
+    )
 
 
 def _build_axisymmetric(scene, spec, grading):
@@ -397,8 +428,11 @@ def _curved_surfaces(scene: Scene, model: str):
         out.append((lambda X: np.abs(q(X) - 1) < tol / size, lambda X: X / q(X)))
     elif body.geometry in ("truncated-cone", "cylinder") and model == "3d":
         h = body.height_mm
-        r0, r1 = ((body.bottom_diameter_mm / 2, body.top_diameter_mm / 2) if body.geometry == "truncated-cone"
-                  else (body.diameter_mm / 2,) * 2)
+        r0, r1 = (
+            (body.bottom_diameter_mm / 2, body.top_diameter_mm / 2)
+            if body.geometry == "truncated-cone"
+            else (body.diameter_mm / 2,) * 2
+        )
 
         def radius(X):
             return r0 + (r1 - r0) * (X[1] + h / 2) / h
@@ -424,8 +458,12 @@ def _curved_surfaces(scene: Scene, model: str):
         def dist(X, c=c):
             return np.sqrt(np.sum((X - c) ** 2, axis=0))
 
-        out.append((lambda X, c=c, R=R: np.abs(dist(X, c) - R) < tol,
-                    lambda X, c=c, R=R: c + (X - c) * (R / np.maximum(dist(X, c), 1e-300))))
+        out.append(
+            (
+                lambda X, c=c, R=R: np.abs(dist(X, c) - R) < tol,
+                lambda X, c=c, R=R: c + (X - c) * (R / np.maximum(dist(X, c), 1e-300)),
+            )
+        )
     return out
 
 
@@ -467,7 +505,7 @@ def curved_skfem_mesh(fem: FEMesh, scene: Scene):
         k = order[np.searchsorted(key, a.astype(np.int64) * n + b, sorter=order)]
         k = np.unique(k)
         mid[:, k] = snap(mid[:, k])
-    doflocs = np.hstack([p, mid[:p.shape[0]]])
+    doflocs = np.hstack([p, mid[: p.shape[0]]])
     curved = (MeshTet2 if fem.model == "3d" else MeshTri2)(doflocs, m.t)
     # keep the orientation of every element at its quadrature points (no inversion by snapping)
     from skfem import Basis, ElementTetP1, ElementTriP1
@@ -500,13 +538,27 @@ def p2_submesh(fem: FEMesh, linear_mesh, dof_points) -> FEMesh:
     if t.shape[0] == 4:
         v0, v1, v2, v3 = t
         m01, m02, m03, m12, m13, m23 = mid(v0, v1), mid(v0, v2), mid(v0, v3), mid(v1, v2), mid(v1, v3), mid(v2, v3)
-        sub = [(v0, m01, m02, m03), (m01, v1, m12, m13), (m02, m12, v2, m23), (m03, m13, m23, v3),
-               (m01, m02, m03, m13), (m01, m02, m12, m13), (m02, m03, m13, m23), (m02, m12, m13, m23)]
+        sub = [
+            (v0, m01, m02, m03),
+            (m01, v1, m12, m13),
+            (m02, m12, v2, m23),
+            (m03, m13, m23, v3),
+            (m01, m02, m03, m13),
+            (m01, m02, m12, m13),
+            (m02, m03, m13, m23),
+            (m02, m12, m13, m23),
+        ]
     else:
         v0, v1, v2 = t
         m01, m02, m12 = mid(v0, v1), mid(v0, v2), mid(v1, v2)
         sub = [(v0, m01, m02), (m01, v1, m12), (m02, m12, v2), (m01, m12, m02)]
     cells = np.concatenate([np.stack(c) for c in sub], axis=1)
     region = np.tile(np.asarray(fem.region), len(sub))
-    return FEMesh(np.asarray(dof_points, float).copy(), cells, region, fem.model, tuple(fem.symmetry),
-                  dict(fem.meta, p2_submesh=True))
+    return FEMesh(
+        np.asarray(dof_points, float).copy(),
+        cells,
+        region,
+        fem.model,
+        tuple(fem.symmetry),
+        dict(fem.meta, p2_submesh=True),
+    )

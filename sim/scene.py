@@ -12,6 +12,7 @@ compressed image brightest and the most compressed with the most contrast): :fun
 Units in names: ``_mm``, ``_kpa``, ``_per_cm``, ``_kv``, ``_ua``. Internally the mechanics works in
 mm, N and MPa (N/mm^2).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -22,8 +23,25 @@ from pathlib import Path
 
 import tomli_w
 
-__all__ = ["Material", "Body", "Inclusion", "Compression", "Beam", "Detector", "Exposure", "MeshSpec", "Imaging",
-           "Scene", "load_scene", "block_scene", "with_view", "with_imaging", "PRESETS", "VIEWS", "IMAGING_MODELS"]
+__all__ = [
+    "Material",
+    "Body",
+    "Inclusion",
+    "Compression",
+    "Beam",
+    "Detector",
+    "Exposure",
+    "MeshSpec",
+    "Imaging",
+    "Scene",
+    "load_scene",
+    "block_scene",
+    "with_view",
+    "with_imaging",
+    "PRESETS",
+    "VIEWS",
+    "IMAGING_MODELS",
+]
 
 GEOMETRIES = ("hemi-ellipsoid", "ellipsoid", "truncated-cone", "cylinder", "box")
 
@@ -120,7 +138,9 @@ class Body:
     def axisymmetric(self) -> bool:
         """Rotationally symmetric about y."""
         g = self.geometry
-        return g in ("truncated-cone", "cylinder") or (g == "ellipsoid" and self.semi_axes_mm[0] == self.semi_axes_mm[2])
+        return g in ("truncated-cone", "cylinder") or (
+            g == "ellipsoid" and self.semi_axes_mm[0] == self.semi_axes_mm[2]
+        )
 
     def volume_mm3(self) -> float:
         g = self.geometry
@@ -146,8 +166,9 @@ class Inclusion:
     centre_mm: tuple = (0.0, 0.0, 0.0)
     diameter_mm: float = 8.0
     size_mm: tuple = (8.0, 10.0, 8.0)
-    material: Material = field(default_factory=lambda: Material("inclusion", "linear", E_kpa=30, nu=0.495,
-                                                                attenuation_per_cm=1.0))
+    material: Material = field(
+        default_factory=lambda: Material("inclusion", "linear", E_kpa=30, nu=0.495, attenuation_per_cm=1.0)
+    )
 
     def __post_init__(self):
         if self.shape not in ("sphere", "box"):
@@ -155,7 +176,7 @@ class Inclusion:
 
     def volume_mm3(self) -> float:
         if self.shape == "sphere":
-            return math.pi / 6 * self.diameter_mm ** 3
+            return math.pi / 6 * self.diameter_mm**3
         return float(self.size_mm[0] * self.size_mm[1] * self.size_mm[2])
 
 
@@ -220,8 +241,10 @@ class Detector:
         from radiokit.io import PRESETS
 
         if self.preset not in PRESETS or PRESETS[self.preset].binning != 1:
-            raise ValueError(f"detector preset {self.preset!r}: expected an unbinned preset "
-                             f"({', '.join(k for k, v in PRESETS.items() if v.binning == 1)}); set binning separately")
+            raise ValueError(
+                f"detector preset {self.preset!r}: expected an unbinned preset "
+                f"({', '.join(k for k, v in PRESETS.items() if v.binning == 1)}); set binning separately"
+            )
         if self.binning not in (1, 2, 4):
             raise ValueError(f"binning {self.binning}: expected 1, 2 or 4")
 
@@ -362,8 +385,15 @@ class Scene:
         if unknown:
             raise ValueError(f"scene: unknown keys {sorted(unknown)}; known: {sorted(known)}")
         kw = {}
-        for name, typ in (("body", Body), ("compression", Compression), ("beam", Beam), ("detector", Detector),
-                          ("exposure", Exposure), ("mesh", MeshSpec), ("imaging", Imaging)):
+        for name, typ in (
+            ("body", Body),
+            ("compression", Compression),
+            ("beam", Beam),
+            ("detector", Detector),
+            ("exposure", Exposure),
+            ("mesh", MeshSpec),
+            ("imaging", Imaging),
+        ):
             if name in d:
                 kw[name] = _build(typ, d.pop(name), name)
         if "inclusions" in d:
@@ -483,7 +513,13 @@ def with_imaging(scene: Scene, model: str) -> Scene:
 
 def block_scene(size_mm=10.0, E_kpa=5.0, nu=0.45, ratios=(0.15, 0.20, 0.25)) -> Scene:
     """A cube between frictionless plates, no inclusion: the validation scene with a closed form."""
-    return Scene(name="block", body=Body("box", size_mm=(size_mm, size_mm, size_mm),
-                                         material=Material("block", "neo-hookean", E_kpa=E_kpa, nu=nu)),
-                 compression=Compression(tuple(ratios)), beam=Beam("parallel", "y"), detector=Detector("c7942", 4),
-                 mesh=MeshSpec(size_mm / 4, size_mm / 4, "3d", True))
+    return Scene(
+        name="block",
+        body=Body(
+            "box", size_mm=(size_mm, size_mm, size_mm), material=Material("block", "neo-hookean", E_kpa=E_kpa, nu=nu)
+        ),
+        compression=Compression(tuple(ratios)),
+        beam=Beam("parallel", "y"),
+        detector=Detector("c7942", 4),
+        mesh=MeshSpec(size_mm / 4, size_mm / 4, "3d", True),
+    )

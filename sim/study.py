@@ -22,6 +22,7 @@ Example (an axisymmetric cylinder through the plates, about a second)::
     >>> round(h.improvement["linear"]["1"], 3), round(h.bound["linear"]["1"], 3)
     (1.114, 1.118)
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -30,10 +31,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ImagePair", "Headline", "Projected", "project_pair", "images", "study_geometry", "image_pair", "headline", "degraded_field", "add_noise",
-           "bound_exponent", "with_field", "replace_materials",
-           "find_inclusion_roi", "Signs", "step_images", "paper_signs",
-           "predicted_cnr"]
+__all__ = [
+    "ImagePair",
+    "Headline",
+    "Projected",
+    "project_pair",
+    "images",
+    "study_geometry",
+    "image_pair",
+    "headline",
+    "degraded_field",
+    "add_noise",
+    "bound_exponent",
+    "with_field",
+    "replace_materials",
+    "find_inclusion_roi",
+    "Signs",
+    "step_images",
+    "paper_signs",
+    "predicted_cnr",
+]
 
 
 @dataclass
@@ -98,10 +115,21 @@ def study_geometry(scene, pixel_size_mm=0.25, margin=1.35):
     else:
         extent = max(b.size_mm)
     beam = scene.beam
-    mag = 1.0 if beam.kind == "parallel" else (beam.source_distance_mm + beam.detector_distance_mm) / beam.source_distance_mm
+    mag = (
+        1.0
+        if beam.kind == "parallel"
+        else (beam.source_distance_mm + beam.detector_distance_mm) / beam.source_distance_mm
+    )
     n = int(math.ceil(extent * margin * mag / pixel_size_mm))
-    return Geometry(beam.kind, beam.direction, (n, n), pixel_size_mm, body_centre(scene), beam.source_distance_mm,
-                    beam.detector_distance_mm)
+    return Geometry(
+        beam.kind,
+        beam.direction,
+        (n, n),
+        pixel_size_mm,
+        body_centre(scene),
+        beam.source_distance_mm,
+        beam.detector_distance_mm,
+    )
 
 
 def bound_exponent(scene, moving, reference) -> float | None:
@@ -130,7 +158,7 @@ def degraded_field(truth, error_px, *, kind="smooth", seed=0, scale_px=None):
     rng = np.random.default_rng(seed)
     s = scale_px if scale_px is not None else max(2.0, truth.shape[1] / 10)
     noise = np.stack([ndimage.gaussian_filter(rng.standard_normal(truth.shape[1:]), s, mode="wrap") for _ in range(2)])
-    rms = float(np.sqrt((noise ** 2).sum(axis=0).mean()))
+    rms = float(np.sqrt((noise**2).sum(axis=0).mean()))
     return (truth + noise * (error_px / rms if rms > 0 else 0.0)).astype(np.float32)
 
 
@@ -175,8 +203,15 @@ def project_pair(scene, states, *, pixel_size_mm=0.25, geometry=None, truth_fact
     else:
         truth = truth_displacement(scene, reference, moving, geometry=geom, factor=truth_factor)
     view = "through_plates" if geom.direction == "y" else "side"
-    return Projected(lengths, mus[:len(lengths[0])], truth, lengths[1][1:].sum(axis=0) > 0,
-                     float(geom.pixel_size_mm), bound_exponent(scene, moving, reference), view)
+    return Projected(
+        lengths,
+        mus[: len(lengths[0])],
+        truth,
+        lengths[1][1:].sum(axis=0) > 0,
+        float(geom.pixel_size_mm),
+        bound_exponent(scene, moving, reference),
+        view,
+    )
 
 
 def images(projected: Projected, image_model=None, field=None) -> ImagePair:
@@ -193,12 +228,16 @@ def images(projected: Projected, image_model=None, field=None) -> ImagePair:
     return ImagePair(ref, mov, registered, used, p.truth, p.inclusion_mask, p.pixel_size_mm, p.mu_dg, p.view)
 
 
-def image_pair(scene, states, *, pixel_size_mm=0.25, geometry=None, field=None, image_model=None,
-               truth_factor=4) -> ImagePair:
+def image_pair(
+    scene, states, *, pixel_size_mm=0.25, geometry=None, field=None, image_model=None, truth_factor=4
+) -> ImagePair:
     """:func:`project_pair` then :func:`images`: the last two states of ``states`` projected,
     seen through ``image_model`` and registered with ``field`` (default: the truth)."""
-    return images(project_pair(scene, states, pixel_size_mm=pixel_size_mm, geometry=geometry, truth_factor=truth_factor),
-                  image_model, field)
+    return images(
+        project_pair(scene, states, pixel_size_mm=pixel_size_mm, geometry=geometry, truth_factor=truth_factor),
+        image_model,
+        field,
+    )
 
 
 @dataclass
@@ -214,12 +253,12 @@ class Signs:
 
     @property
     def least_compressed_brightest(self) -> bool:
-        """"the least compressed phantom image shows most brightness"."""
+        """ "the least compressed phantom image shows most brightness"."""
         return int(np.argmax(self.brightness)) == 0
 
     @property
     def most_compressed_most_contrast(self) -> bool:
-        """"the most compressed phantom image shows most contrast"."""
+        """ "the most compressed phantom image shows most contrast"."""
         return int(np.argmax(self.contrast)) == len(self.contrast) - 1
 
 
@@ -234,7 +273,7 @@ def step_images(scene, states, geometry):
     out = []
     for s in states:
         lengths = path_lengths(fem, geometry, s.displacement, thickness_mm=thickness)
-        out.append((np.tensordot(mus[:len(lengths)], lengths, axes=1), lengths[1:].sum(axis=0) > 0))
+        out.append((np.tensordot(mus[: len(lengths)], lengths, axes=1), lengths[1:].sum(axis=0) > 0))
     return out
 
 
@@ -291,7 +330,9 @@ def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "li
     sign = 1.0 if domain == "log" else -1.0
     var_r, var_m = math.exp(sign * L_r) / counts, math.exp(sign * L_m) / counts
     ref, reg = to_domain(pair.reference, _PIXELS[domain]), to_domain(pair.registered, _PIXELS[domain])
-    out = {"reference": contrast(ref, h.inclusion, bg) / math.sqrt(var_r + float(np.var(ref[bg.slices], dtype=np.float64)))}
+    out = {
+        "reference": contrast(ref, h.inclusion, bg) / math.sqrt(var_r + float(np.var(ref[bg.slices], dtype=np.float64)))
+    }
     for key in h.improvement[domain]:
         k = float(key)
         enh = compression_contrast(ref, reg, k, domain=_PIXELS[domain])
@@ -323,8 +364,7 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
             enh = compression_contrast(ref, reg, float(k), domain=_PIXELS[dom])
             out.improvement[dom][key] = improvement_factor(enh, ref, inc, bg)
             out.cnr[dom][key] = cnr(enh, inc, bg) if noisy else math.nan
-            out.bound[dom][key] = (improvement_bound(float(k), 1.0, pair.mu_dg, dom) if pair.mu_dg is not None
-                                   else None)
+            out.bound[dom][key] = improvement_bound(float(k), 1.0, pair.mu_dg, dom) if pair.mu_dg is not None else None
     return out
 
 
@@ -335,6 +375,7 @@ def replace_materials(scene, *, body=None, inclusion=None):
     if body:
         sc.body = dataclasses.replace(scene.body, material=dataclasses.replace(scene.body.material, **body))
     if inclusion:
-        sc.inclusions = [dataclasses.replace(i, material=dataclasses.replace(i.material, **inclusion))
-                         for i in scene.inclusions]
+        sc.inclusions = [
+            dataclasses.replace(i, material=dataclasses.replace(i.material, **inclusion)) for i in scene.inclusions
+        ]
     return sc

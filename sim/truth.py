@@ -38,6 +38,7 @@ powers 1 of ``t`` and once for the powers 2, every weight at once, each face two
 share rendered once with the difference of their weights. ``_reference=True`` keeps the
 original one-render-per-image evaluation; the two agree to rounding (tests/test_sim_lab.py).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -79,8 +80,7 @@ def body_tetrahedra(fem, displacements, *, revolve_segments=64, thickness_mm=Non
         phi = 2 * np.pi * np.arange(N) / N
         c, s = np.cos(phi), np.sin(phi)
         # (r, y) -> (r cos phi, y, r sin phi); vertex (i, k) has index k * n + i
-        pos = [np.concatenate([np.stack([x[0] * ck, x[1], x[0] * sk]) for ck, sk in zip(c, s)], axis=1)
-               for x in states]
+        pos = [np.concatenate([np.stack([x[0] * ck, x[1], x[0] * sk]) for ck, sk in zip(c, s)], axis=1) for x in states]
         tets, region = _sweep(cells, region, n, N, closed=True)
         if "y" in fem.symmetry:
             pos, tets, region = _mirror_y(pos, tets, region)
@@ -112,8 +112,11 @@ def body_tetrahedra(fem, displacements, *, revolve_segments=64, thickness_mm=Non
 def _mirror_y(pos, tets, region):
     flip = np.array([[1.0], [-1.0], [1.0]])
     m = pos[0].shape[1]
-    return ([np.concatenate([x, x * flip], axis=1) for x in pos], np.concatenate([tets, tets + m]),
-            np.concatenate([region, region]))
+    return (
+        [np.concatenate([x, x * flip], axis=1) for x in pos],
+        np.concatenate([tets, tets + m]),
+        np.concatenate([region, region]),
+    )
 
 
 def _sweep(tris, region, n, layers, closed):
@@ -227,12 +230,12 @@ def _ray_integrals(geom, coarse, xb, tets, mu, a, b, *, reference=False):
         r2 = _render(coarse, xb, faces, merge(np.stack(w2)), 1, STEEP_SLOPE, power=2)
     num = []
     for k in range(2):
-        const, ru, rv = r1[1 + 3 * k:4 + 3 * k]
+        const, ru, rv = r1[1 + 3 * k : 4 + 3 * k]
         if not cone:
             num.append(const + u * ru + v * rv + r2[k] / 2)
         else:
             length = np.sqrt(D * D + u * u + v * v)
-            q_w, q_u, q_v = r2[3 * k:3 * k + 3]
+            q_w, q_u, q_v = r2[3 * k : 3 * k + 3]
             num.append(const + lam_c * (u * ru + v * rv) + (q_w + u * q_u + v * q_v) / (2 * length))
     return r1[0], num
 
@@ -253,8 +256,9 @@ def _silhouette(fem, geom, displacement, thickness):
     return body
 
 
-def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64, geometry=None, body=None,
-                       _reference=False) -> np.ndarray:
+def truth_displacement(
+    scene, fixed, moving, *, factor=None, revolve_segments=64, geometry=None, body=None, _reference=False
+) -> np.ndarray:
     """Pull displacement (2, rows, cols) float32, pixels, registering ``moving`` onto ``fixed``.
 
     ``fixed`` and ``moving`` are :class:`sim.mechanics.State` from one ``compress`` call (one mesh).
@@ -282,8 +286,9 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
         factor = 1 if max(rows, cols) <= 600 else 4
     factor = int(factor)
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
-    (xb, xa), tets, region = body_tetrahedra(fem, [fixed.displacement, moving.displacement],
-                                             revolve_segments=revolve_segments, thickness_mm=thickness)
+    (xb, xa), tets, region = body_tetrahedra(
+        fem, [fixed.displacement, moving.displacement], revolve_segments=revolve_segments, thickness_mm=thickness
+    )
     mus = np.array([scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions])
     mu = mus[region]
     # projected motion in detector pixels at every vertex
@@ -293,8 +298,15 @@ def truth_displacement(scene, fixed, moving, *, factor=None, revolve_segments=64
     a, b = _linear_fields(xb, tets, values)  # (m, 2, 3), (m, 2)
 
     R, C = -(-rows // factor), -(-cols // factor)
-    coarse = Geometry(geom.kind, geom.direction, (R, C), geom.pixel_size_mm * factor, geom.centre_mm,
-                      geom.source_distance_mm, geom.detector_distance_mm)
+    coarse = Geometry(
+        geom.kind,
+        geom.direction,
+        (R, C),
+        geom.pixel_size_mm * factor,
+        geom.centre_mm,
+        geom.source_distance_mm,
+        geom.detector_distance_mm,
+    )
     denominator, num = _ray_integrals(geom, coarse, xb, tets, mu, a, b, reference=_reference)
     on = denominator > 1e-9 * max(float(denominator.max()), 1e-300)
     field = np.zeros((2, R, C))

@@ -102,6 +102,7 @@ array([[ 0.,  0.,  0.],
        [ 0., 10.,  0.],
        [ 0.,  0.,  0.]])
 """
+
 from __future__ import annotations
 
 import math
@@ -110,13 +111,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Geometry", "Surface", "body_centre", "surface_of", "render", "path_lengths", "line_integral",
-           "project"]
+__all__ = ["Geometry", "Surface", "body_centre", "surface_of", "render", "path_lengths", "line_integral", "project"]
 
 _AXIS = {"x": 0, "y": 1, "z": 2}
 # beam direction -> (w, e_u (columns), e_v (rows, pointing to row 0))
-_FRAMES = {"y": ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
-           "z": ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))}
+_FRAMES = {
+    "y": ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    "z": ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+}
 # the 6 tetrahedra of a cube with vertices numbered 4 x + 2 y + z (x, y, z in {0, 1}), around the
 # main diagonal 0-7 (used in examples and tests)
 _CUBE_TETS = np.array([[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]])
@@ -170,8 +172,15 @@ class Geometry:
     def from_scene(cls, scene) -> Geometry:
         """The scene's beam and detector, centred on :func:`body_centre`."""
         b = scene.beam
-        return cls(b.kind, b.direction, tuple(scene.detector.shape), float(scene.detector.pixel_size_mm),
-                   body_centre(scene), float(b.source_distance_mm), float(b.detector_distance_mm))
+        return cls(
+            b.kind,
+            b.direction,
+            tuple(scene.detector.shape),
+            float(scene.detector.pixel_size_mm),
+            body_centre(scene),
+            float(b.source_distance_mm),
+            float(b.detector_distance_mm),
+        )
 
     @property
     def magnification(self) -> float:
@@ -286,7 +295,7 @@ def _unique_facets(facets, region):
     """
     key = np.sort(facets, axis=1).astype(np.int64)
     n = int(facets.max()) + 1
-    if float(n) ** key.shape[1] < 2.0 ** 62:
+    if float(n) ** key.shape[1] < 2.0**62:
         code = key[:, 0]
         for c in range(1, key.shape[1]):
             code = code * n + key[:, c]
@@ -364,19 +373,28 @@ def surface_of(fem, *, thickness_mm=None, revolve_tol=1e-5) -> Surface:
         edges = np.concatenate([np.stack(e, axis=1) for e in ((a, b), (b, c), (c, a))])
         edges, inside, outside = _unique_facets(edges, np.tile(region, 3))
         if fem.model == "axisymmetric":
-            faces, inside, outside, src, coef, offset = _revolve(p, edges, inside, outside, tol,
-                                                                 _revolutions(revolve_tol))
+            faces, inside, outside, src, coef, offset = _revolve(
+                p, edges, inside, outside, tol, _revolutions(revolve_tol)
+            )
         else:
             if thickness_mm is None or not thickness_mm > 0:
                 raise ValueError("plane-strain model: give the slab thickness_mm (> 0)")
-            faces, inside, outside, src, coef, offset = _extrude(p, cells, region, edges, inside, outside,
-                                                                 float(thickness_mm))
+            faces, inside, outside, src, coef, offset = _extrude(
+                p, cells, region, edges, inside, outside, float(thickness_mm)
+            )
             if p[0].min() >= -tol and 0 not in planes:
                 planes = [0] + planes  # build_mesh's plane-strain sections are the half x >= 0
     else:
         raise ValueError(f"unknown model {fem.model!r}")
-    surf = Surface(faces.astype(np.int64), inside.astype(np.int64), outside.astype(np.int64), src.astype(np.int64),
-                   coef, offset, n_regions)
+    surf = Surface(
+        faces.astype(np.int64),
+        inside.astype(np.int64),
+        outside.astype(np.int64),
+        src.astype(np.int64),
+        coef,
+        offset,
+        n_regions,
+    )
     for ax in planes:
         surf = _mirror(surf, p, ax, tol)
     return surf
@@ -446,8 +464,15 @@ def _mirror(surf: Surface, p, ax, tol) -> Surface:
     coef = np.concatenate([surf.coef, surf.coef[:, :, off] * flip], axis=2)
     offset = np.concatenate([surf.offset, surf.offset[:, off] * flip[:, 0]], axis=1)
     faces = np.concatenate([faces, image[faces][:, ::-1]])
-    return Surface(faces, np.tile(ins, 2), np.tile(outs, 2), np.concatenate([surf.src, surf.src[off]]), coef,
-                   offset, surf.n_regions)
+    return Surface(
+        faces,
+        np.tile(ins, 2),
+        np.tile(outs, 2),
+        np.concatenate([surf.src, surf.src[off]]),
+        coef,
+        offset,
+        surf.n_regions,
+    )
 
 
 _SURFACES: dict = {}
@@ -469,8 +494,9 @@ def _cached_surface(fem, thickness_mm, revolve_tol) -> Surface:
 
 
 # -- rasterisation ----------------------------------------------------------------------------------
-def render(geometry: Geometry, vertices, faces, weights=None, *, supersample: int = 1,
-           steep_slope: float = 1e3) -> np.ndarray:
+def render(
+    geometry: Geometry, vertices, faces, weights=None, *, supersample: int = 1, steep_slope: float = 1e3
+) -> np.ndarray:
     """``sum_f weight_f s_f t_f`` per pixel for oriented triangles: for closed outward-oriented
     surfaces with unit weights, the chord length of each pixel's ray (see the module docstring).
 
@@ -494,9 +520,14 @@ def render(geometry: Geometry, vertices, faces, weights=None, *, supersample: in
     -------
     (rows, cols) float64, exactly 0 on pixels no face covers.
     """
-    return _render(geometry, np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64),
-                   np.ones(len(faces)) if weights is None else np.asarray(weights, dtype=float),
-                   int(supersample), float(steep_slope))
+    return _render(
+        geometry,
+        np.asarray(vertices, dtype=float),
+        np.asarray(faces, dtype=np.int64),
+        np.ones(len(faces)) if weights is None else np.asarray(weights, dtype=float),
+        int(supersample),
+        float(steep_slope),
+    )
 
 
 def _render(geom, X, faces, weights, s, steep_slope, power=1):
@@ -592,8 +623,23 @@ def _render(geom, X, faces, weights, s, steep_slope, power=1):
             if not pixelwise:
                 _accumulate_spans(acc, hits, lrow, c0, c1, a0, gx[tri], wt[:, tri], nb, C, jc)
             else:
-                _accumulate_pixels(acc, hits, lrow, c0, c1, a0, gx[tri], wt[:, tri], amin[tri], amax[tri],
-                                   cone, lam_c if cone else 0.0, nb, C, power)
+                _accumulate_pixels(
+                    acc,
+                    hits,
+                    lrow,
+                    c0,
+                    c1,
+                    a0,
+                    gx[tri],
+                    wt[:, tri],
+                    amin[tri],
+                    amax[tri],
+                    cone,
+                    lam_c if cone else 0.0,
+                    nb,
+                    C,
+                    power,
+                )
         if cone:  # sum of s (lambda - lambda_c) -> length along the ray
             du = (np.arange(C) - jc) * pitch
             dv = (np.arange(b0, b1) - ic) * pitch
@@ -603,7 +649,7 @@ def _render(geom, X, faces, weights, s, steep_slope, power=1):
         if s == 1:
             out[:, b0:b1] = acc
         else:
-            out[:, b0 // s:b1 // s] = acc.reshape(K, nb // s, s, cols, s).mean(axis=(2, 4))
+            out[:, b0 // s : b1 // s] = acc.reshape(K, nb // s, s, cols, s).mean(axis=(2, 4))
     return out[0] if single else out
 
 
@@ -669,13 +715,22 @@ def _deformed(fem, displacement):
         return p
     u = np.asarray(displacement, dtype=float)
     if u.ndim != 2 or u.shape[0] != p.shape[0] or u.shape[1] < p.shape[1]:
-        raise ValueError(f"displacement of shape {u.shape}: expected ({p.shape[0]}, >= {p.shape[1]}) "
-                         "with the mesh vertices first")
-    return p + u[:, :p.shape[1]]
+        raise ValueError(
+            f"displacement of shape {u.shape}: expected ({p.shape[0]}, >= {p.shape[1]}) with the mesh vertices first"
+        )
+    return p + u[:, : p.shape[1]]
 
 
-def path_lengths(fem, geometry: Geometry, displacement=None, *, supersample: int = 1, thickness_mm=None,
-                 revolve_tol: float = 1e-5, surface: Surface | None = None) -> np.ndarray:
+def path_lengths(
+    fem,
+    geometry: Geometry,
+    displacement=None,
+    *,
+    supersample: int = 1,
+    thickness_mm=None,
+    revolve_tol: float = 1e-5,
+    surface: Surface | None = None,
+) -> np.ndarray:
     """Length of each pixel's ray inside each region of the (deformed) mesh.
 
     Parameters
@@ -706,8 +761,17 @@ def path_lengths(fem, geometry: Geometry, displacement=None, *, supersample: int
     return out
 
 
-def line_integral(fem, geometry: Geometry, mu_per_mm, displacement=None, *, supersample: int = 1,
-                  thickness_mm=None, revolve_tol: float = 1e-5, surface: Surface | None = None) -> np.ndarray:
+def line_integral(
+    fem,
+    geometry: Geometry,
+    mu_per_mm,
+    displacement=None,
+    *,
+    supersample: int = 1,
+    thickness_mm=None,
+    revolve_tol: float = 1e-5,
+    surface: Surface | None = None,
+) -> np.ndarray:
     """``sum_m mu_m L_m`` per pixel (float64), in one pass: each face carries
     ``mu[inside] - mu[outside]`` (interfaces between equal materials vanish). Arguments as for
     :func:`path_lengths`; ``mu_per_mm`` has one non-negative value per region."""
@@ -762,8 +826,11 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
         dof_points = getattr(solver, "dof_points", None)
         n = fem.points.shape[1]
         tol = 1e-9 * max(1.0, float(np.abs(fem.points).max()))
-        if dof_points is not None and (dof_points.shape[1] < n or dof_points.shape[0] != fem.points.shape[0]
-                                       or not np.allclose(dof_points[:, :n], fem.points, rtol=0, atol=tol)):
+        if dof_points is not None and (
+            dof_points.shape[1] < n
+            or dof_points.shape[0] != fem.points.shape[0]
+            or not np.allclose(dof_points[:, :n], fem.points, rtol=0, atol=tol)
+        ):
             raise ValueError("the state's dofs do not start with this mesh's vertices")
     mu = [scene.body.material.attenuation_per_mm] + [i.material.attenuation_per_mm for i in scene.inclusions]
     n_regions = int(np.max(fem.region)) + 1
@@ -771,6 +838,13 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
         raise ValueError(f"mesh has {n_regions} regions, scene has {len(mu)} materials")
     mu = mu[:n_regions]
     thickness = float(scene.body.size_mm[2]) if fem.model == "plane-strain" else None
-    img = line_integral(fem, Geometry.from_scene(scene), mu, displacement, supersample=supersample,
-                        thickness_mm=thickness, revolve_tol=revolve_tol)
+    img = line_integral(
+        fem,
+        Geometry.from_scene(scene),
+        mu,
+        displacement,
+        supersample=supersample,
+        thickness_mm=thickness,
+        revolve_tol=revolve_tol,
+    )
     return img.astype(np.float32)

@@ -3,6 +3,7 @@
 The vendor files live in ``../shared`` beside the repository (the only place they are promised);
 tests that need them are marked ``needs_itex`` and skip with a message naming the missing folder.
 """
+
 from pathlib import Path
 
 import pytest
@@ -12,7 +13,8 @@ SHARED = REPO.parent / "shared"
 ITEX_DIR = SHARED / "data" / "hamamatsu_itex"
 
 needs_itex = pytest.mark.skipif(
-    not ITEX_DIR.is_dir(), reason=f"{ITEX_DIR}: the shared vendor files are not beside the checkout (../shared)")
+    not ITEX_DIR.is_dir(), reason=f"{ITEX_DIR}: the shared vendor files are not beside the checkout (../shared)"
+)
 
 
 def pytest_report_header(config):

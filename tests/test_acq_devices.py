@@ -1,6 +1,7 @@
 """acquisition devices: the folder the vendor software writes (real TIFF, raw and ITEX files written
 while the watcher waits), the manual and simulated compression frames, and the virtual bench's
 panel checked against the panel model's noise and the projection's geometry."""
+
 import io
 import json
 import logging
@@ -16,13 +17,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+from conftest import ITEX_DIR as ITEX
+from conftest import needs_itex
 
 from acquisition.detector import Detector, FolderWatcher, Frame, SimDetector
 from acquisition.errors import DetectorTimeout, DeviceError
 from acquisition.frame import CompressionFrame, ManualFrame, MotorisedStage, SimFrame
 from radiokit.io import read
 
-from conftest import ITEX_DIR as ITEX, needs_itex
 FAST = dict(settle_s=0.1, poll_s=0.02)
 SHAPE = (48, 64)
 
@@ -89,10 +91,12 @@ def test_folder_yields_new_complete_files_in_order(tmp_path):
     assert isinstance(watcher, Detector) and watcher.pixel_size_mm == 0.05
     watcher.arm()
     data = _frames(4)
-    items = [("frame_001.tif", _tiff(data[0]), 0.35),  # pauses longer than settle_s: must not be taken half
-             ("frame_002.raw", _raw(data[1]), 0.01),
-             ("frame_003.tif", _tiff(data[2]), 0.3),
-             ("frame_004.raw", _raw(data[3]), 0.3)]
+    items = [
+        ("frame_001.tif", _tiff(data[0]), 0.35),  # pauses longer than settle_s: must not be taken half
+        ("frame_002.raw", _raw(data[1]), 0.01),
+        ("frame_003.tif", _tiff(data[2]), 0.3),
+        ("frame_004.raw", _raw(data[3]), 0.3),
+    ]
     writer = Writer(tmp_path, items)
     writer.start()
     got = []
@@ -126,7 +130,7 @@ def test_folder_waits_for_a_preallocated_file_to_settle(tmp_path):
         with open(path, "r+b") as fh:
             for k in range(8):
                 time.sleep(0.08)
-                fh.write(payload[k * len(payload) // 8:(k + 1) * len(payload) // 8])
+                fh.write(payload[k * len(payload) // 8 : (k + 1) * len(payload) // 8])
                 fh.flush()
 
     thread = threading.Thread(target=fill)
@@ -200,14 +204,17 @@ def test_folder_times_out_naming_folder_pattern_and_count(tmp_path):
     assert time.monotonic() - t < 0.2 + 1.5
 
 
-@pytest.mark.parametrize("case, fragments", [
-    ("over-range", ["5000", "4095", "12-bit"]),
-    ("big-endian", ["byte-swapped"]),
-    ("msb-aligned", ["low 4 bits"]),
-    ("wrong-shape", ["64x48", "expected 48x64"]),
-    ("float", ["float32", "uint16"]),
-    ("two-frames", ["2 frames"]),
-])
+@pytest.mark.parametrize(
+    "case, fragments",
+    [
+        ("over-range", ["5000", "4095", "12-bit"]),
+        ("big-endian", ["byte-swapped"]),
+        ("msb-aligned", ["low 4 bits"]),
+        ("wrong-shape", ["64x48", "expected 48x64"]),
+        ("float", ["float32", "uint16"]),
+        ("two-frames", ["2 frames"]),
+    ],
+)
 def test_folder_rejects_bad_frames_naming_the_file(tmp_path, case, fragments):
     good = _frames(1)[0] % 2048
     name, payload = "bad.tif", None
@@ -359,8 +366,10 @@ def test_motorised_stage_is_an_interface():
 
 
 def test_acquisition_does_not_import_sim():
-    code = ("import sys, acquisition, acquisition.detector, acquisition.frame; "
-            "sys.exit(any(m == 'sim' or m.startswith('sim.') for m in sys.modules))")
+    code = (
+        "import sys, acquisition, acquisition.detector, acquisition.frame; "
+        "sys.exit(any(m == 'sim' or m.startswith('sim.') for m in sys.modules))"
+    )
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
@@ -384,7 +393,7 @@ def _beam(on=True, kv=60.0, ua=250.0):
 def _variance(panel, signal):
     """Per-pixel variance of one raw frame of mean ``signal`` counts per unbinned pixel (before
     gain): shot noise gain^2 q (signal b^2), read noise, and the ADC's rounding (1/12)."""
-    q, b2 = panel.counts_per_quantum, panel.binning ** 2
+    q, b2 = panel.counts_per_quantum, panel.binning**2
     return panel.gain.astype(float) ** 2 * q * signal * b2 + panel.noise.astype(float) ** 2 + 1 / 12
 
 
@@ -488,8 +497,8 @@ def test_bench_projection_follows_the_compression(bench):
     w = 10 * t
     x = (np.arange(bench.panel.shape[1]) - (bench.panel.shape[1] - 1) / 2) * p
     n_side = int((np.abs(x) < w / 2).sum())
-    assert (l2 > 0).sum() == n_side ** 2 and n_side > 50  # the footprint grew
-    assert l2.sum() == pytest.approx(mu * h0 * s * n_side ** 2, rel=1e-4)  # law 2, sampled exactly
+    assert (l2 > 0).sum() == n_side**2 and n_side > 50  # the footprint grew
+    assert l2.sum() == pytest.approx(mu * h0 * s * n_side**2, rel=1e-4)  # law 2, sampled exactly
     ratio = l2.sum() / l0.sum()
     assert ratio == pytest.approx(J, abs=2 * p / w + (p / w) ** 2)  # law 2 against the FE volume
     assert ratio - s > 0.1  # volume (nearly) conserved: not the gap's ratio

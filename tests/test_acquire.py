@@ -15,6 +15,7 @@ the beam monitor (``poll_s`` 0.1 s) plus one exchange (<= 0.1 s); a silent contr
 reply time-out (``timeout_s``, 0.5 s here) first, so its bound is poll + time-out + 0.5 s;
 everything else switches off on the way out of ``run``.
 """
+
 from __future__ import annotations
 
 import errno
@@ -71,26 +72,41 @@ def sigint_default():
 
 
 def protocol(tmp_path, scene_toml, dialect="A", **series):
-    return load_protocol({
-        "output": str(tmp_path / "series.h5"), "name": "test",
-        "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": POLL_S, "timeout_s": TIMEOUT_S,
-                   "off_attempts": 1, "dialect": dialect},
-        "detector": {"kind": "sim", "timeout_s": 2.0},
-        "frame": {"kind": "sim", "initial_height_mm": 10.0},
-        "series": dict(dict(darks=DARKS, flats=FLATS, frames_per_step=PER_STEP, steps=list(STEPS), settle_s=0.0),
-                       **series),
-        "sim": {"scene": scene_toml, "warmup_s": 0.3, "ramp_s": 0.1, "warmed_up": True},
-    })
+    return load_protocol(
+        {
+            "output": str(tmp_path / "series.h5"),
+            "name": "test",
+            "source": {
+                "voltage_kv": 60,
+                "current_ua": 250,
+                "poll_s": POLL_S,
+                "timeout_s": TIMEOUT_S,
+                "off_attempts": 1,
+                "dialect": dialect,
+            },
+            "detector": {"kind": "sim", "timeout_s": 2.0},
+            "frame": {"kind": "sim", "initial_height_mm": 10.0},
+            "series": dict(
+                dict(darks=DARKS, flats=FLATS, frames_per_step=PER_STEP, steps=list(STEPS), settle_s=0.0), **series
+            ),
+            "sim": {"scene": scene_toml, "warmup_s": 0.3, "ramp_s": 0.1, "warmed_up": True},
+        }
+    )
 
 
 def contents(path):
     with h5py.File(path, "r") as h5:
         n = int(h5["entry"].attrs["frames_complete"])
-        return {"key": h5["entry/instrument/detector/image_key"][:n], "step": h5["entry/sample/compression/step"][:n],
-                "kv": h5["entry/control/voltage"][:n], "ua": h5["entry/control/current"][:n],
-                "time": h5["entry/control/time"][:n], "gap": h5["entry/sample/compression/gap"][:n],
-                "ratio": h5["entry/sample/compression/ratio"][:n],
-                "data": h5["entry/instrument/detector/data"][:n]}
+        return {
+            "key": h5["entry/instrument/detector/image_key"][:n],
+            "step": h5["entry/sample/compression/step"][:n],
+            "kv": h5["entry/control/voltage"][:n],
+            "ua": h5["entry/control/current"][:n],
+            "time": h5["entry/control/time"][:n],
+            "gap": h5["entry/sample/compression/gap"][:n],
+            "ratio": h5["entry/sample/compression/ratio"][:n],
+            "data": h5["entry/instrument/detector/data"][:n],
+        }
 
 
 def assert_complete(path):
@@ -124,7 +140,7 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
     panel = bench.panel
     # darks: the panel's offset; flats: offset + gain * i0 (gain averages 1), within a few counts
     assert abs(dark - panel.offset.mean()) < 1.0
-    assert abs(flat - (panel.offset.mean() + panel.gain.mean() * bench.i0 * panel.binning ** 2)) < 0.01 * flat
+    assert abs(flat - (panel.offset.mean() + panel.gain.mean() * bench.i0 * panel.binning**2)) < 0.01 * flat
     # projections attenuate where the body is: the mean of each is below the flats'
     for i in range(1, 4):
         proj = c["data"][(c["key"] == ImageKey.PROJECTION) & (c["step"] == i)].mean()
@@ -162,9 +178,11 @@ def test_protocol_errors_are_clear(tmp_path, scene_toml):
 
 # -- the fault matrix ---------------------------------------------------------------------------
 
+
 class FullDisk(ExperimentWriter):
     """A writer whose disk fills after ``limit`` frames (the only fake in this module: a full disk
     cannot be caused safely on a shared machine)."""
+
     limit = 7
 
     def append(self, frame, **kw):
@@ -175,6 +193,7 @@ class FullDisk(ExperimentWriter):
 
 def _watch_off(model, since, box):
     """Record when the emulated tube is first seen off after ``since`` (5 ms polls)."""
+
     def loop():
         end = time.monotonic() + 20
         while time.monotonic() < end:
@@ -182,32 +201,66 @@ def _watch_off(model, since, box):
                 box["off_at"] = time.monotonic()
                 return
             time.sleep(0.005)
+
     t = threading.Thread(target=loop, daemon=True)
     t.start()
     return t
 
 
 # (name, when to inject: phase and frame within it, injection, expected exception, message pattern, bound s)
-FAULTS = [
-    ("interlock opens mid-step", ("step 2", 1), lambda d: d.emulator.open_interlock(), SourceFault, r"interlock", 0.5),
-    ("overload mid-step", ("step 2", 1), lambda d: d.emulator.overload(), SourceFault, r"overload", 0.5),
-    ("beam drops mid-step", ("step 3", 2), lambda d: d.emulator.drop_beam(), SourceFault, r"beam|current", 0.5),
-    ("silent controller", ("step 2", 1), lambda d: d.emulator.silence(True, execute=True), DeviceError,
-     r"no reply|silent|timed? ?out", POLL_S + TIMEOUT_S + 0.5),
-    ("garbage reply", ("step 2", 1), lambda d: d.emulator.garbage(True), DeviceError,
-     r"unparseable|cannot parse|garbage|unexpected|not understood|reply", 0.5),
-    ("detector time-out", ("step 2", 1), lambda d: d.detector.fail_after(0), DetectorTimeout, r"detector|frame", 0.5),
-    ("disk full", None, None, OSError, r"No space left", 0.5),
-] + [(f"Ctrl-C in {ph}", (ph, 0), "sigint", KeyboardInterrupt, r"", 0.5)
-     for ph in ("connect", "warm-up", "darks", "flats", "step 1", "step 3")] + [
-    ("Ctrl-C with X-rays on", ("step 2", 1), "sigint", KeyboardInterrupt, r"", 0.5),
-]
+FAULTS = (
+    [
+        (
+            "interlock opens mid-step",
+            ("step 2", 1),
+            lambda d: d.emulator.open_interlock(),
+            SourceFault,
+            r"interlock",
+            0.5,
+        ),
+        ("overload mid-step", ("step 2", 1), lambda d: d.emulator.overload(), SourceFault, r"overload", 0.5),
+        ("beam drops mid-step", ("step 3", 2), lambda d: d.emulator.drop_beam(), SourceFault, r"beam|current", 0.5),
+        (
+            "silent controller",
+            ("step 2", 1),
+            lambda d: d.emulator.silence(True, execute=True),
+            DeviceError,
+            r"no reply|silent|timed? ?out",
+            POLL_S + TIMEOUT_S + 0.5,
+        ),
+        (
+            "garbage reply",
+            ("step 2", 1),
+            lambda d: d.emulator.garbage(True),
+            DeviceError,
+            r"unparseable|cannot parse|garbage|unexpected|not understood|reply",
+            0.5,
+        ),
+        (
+            "detector time-out",
+            ("step 2", 1),
+            lambda d: d.detector.fail_after(0),
+            DetectorTimeout,
+            r"detector|frame",
+            0.5,
+        ),
+        ("disk full", None, None, OSError, r"No space left", 0.5),
+    ]
+    + [
+        (f"Ctrl-C in {ph}", (ph, 0), "sigint", KeyboardInterrupt, r"", 0.5)
+        for ph in ("connect", "warm-up", "darks", "flats", "step 1", "step 3")
+    ]
+    + [
+        ("Ctrl-C with X-rays on", ("step 2", 1), "sigint", KeyboardInterrupt, r"", 0.5),
+    ]
+)
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect,
-                      sigint_default):
+def test_fault_matrix(
+    tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect, sigint_default
+):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
@@ -283,8 +336,19 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
     assert res2.phase == "done" and not dev2.emulator.xray_on and dev2.emulator.dialect == dialect
     final = assert_complete(p.output)
     assert len(final["key"]) == TOTAL + n_invalid
-    MATRIX.append((f"{name} [{dialect}]", type(info.value).__name__, res.phase, n_before, res.frames_total, n_invalid, off_s,
-                   res2.frames_written, text.split("\n")[0][:60]))
+    MATRIX.append(
+        (
+            f"{name} [{dialect}]",
+            type(info.value).__name__,
+            res.phase,
+            n_before,
+            res.frames_total,
+            n_invalid,
+            off_s,
+            res2.frames_written,
+            text.split("\n")[0][:60],
+        )
+    )
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -293,17 +357,23 @@ def print_matrix(request):
     if not MATRIX:
         return
     capman = request.config.pluginmanager.getplugin("capturemanager")
-    lines = ["", "fault matrix (emulated L8121 on a pty + SimDetector + SimFrame; 13 frames per series):",
-             f"{'fault':<30} {'raised':<16} {'phase':<8} {'before':>6} {'saved':>5} {'invalid':>7} {'off s':>6} "
-             f"{'resumed':>7}  message"]
+    lines = [
+        "",
+        "fault matrix (emulated L8121 on a pty + SimDetector + SimFrame; 13 frames per series):",
+        f"{'fault':<30} {'raised':<16} {'phase':<8} {'before':>6} {'saved':>5} {'invalid':>7} {'off s':>6} "
+        f"{'resumed':>7}  message",
+    ]
     for row in MATRIX:
-        lines.append(f"{row[0]:<30} {row[1]:<16} {row[2]:<8} {row[3]:>6} {row[4]:>5} {row[5]:>7} {row[6]:>6.2f} "
-                     f"{row[7]:>7}  {row[8]}")
+        lines.append(
+            f"{row[0]:<30} {row[1]:<16} {row[2]:<8} {row[3]:>6} {row[4]:>5} {row[5]:>7} {row[6]:>6.2f} "
+            f"{row[7]:>7}  {row[8]}"
+        )
     with capman.global_and_fixture_disabled():  # the matrix belongs in the test output, not in captured logs
         print("\n".join(lines))
 
 
 # -- the command line -------------------------------------------------------------------------------
+
 
 def _cli(*args):
     from radiokit.cli import main

@@ -6,6 +6,7 @@ with ``_``) of another: a private name may change without notice, so crossing a 
 through one is a contract nobody wrote down. It also keeps functions short (or explained) and
 named int constants enums.
 """
+
 import ast
 from pathlib import Path
 
@@ -27,7 +28,9 @@ def _cross_package_private_imports(path: Path, package: str) -> list[str]:
             if parts[0] in PACKAGES and parts[0] != package:
                 names = [a.name for a in node.names]
                 if any(map(_private, parts[1:])) or any(map(_private, names)):
-                    found.append(f"{path.relative_to(REPO)}:{node.lineno}: from {node.module} import {', '.join(names)}")
+                    found.append(
+                        f"{path.relative_to(REPO)}:{node.lineno}: from {node.module} import {', '.join(names)}"
+                    )
         elif isinstance(node, ast.Import):
             for alias in node.names:
                 parts = alias.name.split(".")
@@ -38,8 +41,9 @@ def _cross_package_private_imports(path: Path, package: str) -> list[str]:
 
 @pytest.mark.parametrize("package", PACKAGES)
 def test_no_private_name_is_imported_across_packages(package):
-    found = [hit for path in sorted((REPO / package).rglob("*.py"))
-             for hit in _cross_package_private_imports(path, package)]
+    found = [
+        hit for path in sorted((REPO / package).rglob("*.py")) for hit in _cross_package_private_imports(path, package)
+    ]
     assert not found, "private names imported across packages:\n" + "\n".join(found)
 
 
@@ -70,8 +74,7 @@ def _code_lines(node: ast.FunctionDef | ast.AsyncFunctionDef, lines: list[str]) 
     start = body[0].lineno
     if ast.get_docstring(node, clean=False) is not None:
         start = body[0].end_lineno + 1
-    return sum(1 for text in lines[start - 1:node.end_lineno]
-               if text.strip() and not text.strip().startswith("#"))
+    return sum(1 for text in lines[start - 1 : node.end_lineno] if text.strip() and not text.strip().startswith("#"))
 
 
 def _long_functions(root: Path, packages=CHECKED) -> dict[str, tuple[int, bool]]:
@@ -94,24 +97,32 @@ def _long_functions(root: Path, packages=CHECKED) -> dict[str, tuple[int, bool]]
 
 def test_functions_are_short_or_say_why():
     found = _long_functions(REPO)
-    unexplained = sorted(f"{name} ({n} code lines)" for name, (n, reason) in found.items()
-                         if not reason and name not in ALLOWED_LONG)
-    assert not unexplained, (f"functions over {MAX_CODE_LINES} code lines without a '{LONG_REASON} ...' line in "
-                             "their docstring (docs/architecture.md):\n" + "\n".join(unexplained))
+    unexplained = sorted(
+        f"{name} ({n} code lines)" for name, (n, reason) in found.items() if not reason and name not in ALLOWED_LONG
+    )
+    assert not unexplained, (
+        f"functions over {MAX_CODE_LINES} code lines without a '{LONG_REASON} ...' line in "
+        "their docstring (docs/architecture.md):\n" + "\n".join(unexplained)
+    )
     stale = sorted(ALLOWED_LONG - {name for name, (_, reason) in found.items() if not reason})
     assert not stale, "no longer long (or now explained): remove from ALLOWED_LONG:\n" + "\n".join(stale)
 
 
 def test_the_length_check_can_fail(tmp_path):
     (tmp_path / "pkg").mkdir()
-    body = "".join(f"    x{i} = {i}  # a comment after code counts\n\n    # a comment line does not\n"
-                   for i in range(MAX_CODE_LINES))
+    body = "".join(
+        f"    x{i} = {i}  # a comment after code counts\n\n    # a comment line does not\n"
+        for i in range(MAX_CODE_LINES)
+    )
     (tmp_path / "pkg" / "m.py").write_text(
-        "def short():\n    '''Docstring lines\n\n    do not count.\n    '''\n" + body
-        + "def long(\n    a,\n):\n    x = 0\n" + body
-        + f"def explained():\n    '''Why.\n\n    {LONG_REASON} it is a table.\n    '''\n    x = 0\n" + body)
-    assert _long_functions(tmp_path, ("pkg",)) == {"pkg/m.py:long": (61, False),
-                                                   "pkg/m.py:explained": (61, True)}
+        "def short():\n    '''Docstring lines\n\n    do not count.\n    '''\n"
+        + body
+        + "def long(\n    a,\n):\n    x = 0\n"
+        + body
+        + f"def explained():\n    '''Why.\n\n    {LONG_REASON} it is a table.\n    '''\n    x = 0\n"
+        + body
+    )
+    assert _long_functions(tmp_path, ("pkg",)) == {"pkg/m.py:long": (61, False), "pkg/m.py:explained": (61, True)}
 
 
 # -- named constants are enums ---------------------------------------------------------------------
@@ -128,13 +139,16 @@ def _bare_int_constants(root: Path, packages=CHECKED) -> list[str]:
             where = path.relative_to(root).as_posix()
             tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
             for node in tree.body:
-                if (isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Tuple)
-                        and isinstance(node.value, ast.Call) and getattr(node.value.func, "id", "") == "range"):
+                if (
+                    isinstance(node, ast.Assign)
+                    and isinstance(node.targets[0], ast.Tuple)
+                    and isinstance(node.value, ast.Call)
+                    and getattr(node.value.func, "id", "") == "range"
+                ):
                     found.append(f"{where}:{node.lineno}")
                 elif isinstance(node, ast.ClassDef) and not node.bases:
                     values = [s.value for s in node.body if isinstance(s, ast.Assign)]
-                    if len(values) >= 2 and all(isinstance(v, ast.Constant) and type(v.value) is int
-                                                for v in values):
+                    if len(values) >= 2 and all(isinstance(v, ast.Constant) and type(v.value) is int for v in values):
                         found.append(f"{where}:{node.name}")
     return found
 
@@ -142,14 +156,17 @@ def _bare_int_constants(root: Path, packages=CHECKED) -> list[str]:
 def test_named_int_constants_are_enums():
     found = set(_bare_int_constants(REPO))
     assert not found - ALLOWED_INT_CLASSES, "use enum.IntEnum for:\n" + "\n".join(sorted(found - ALLOWED_INT_CLASSES))
-    assert not ALLOWED_INT_CLASSES - found, f"now an enum: remove from ALLOWED_INT_CLASSES: {ALLOWED_INT_CLASSES - found}"
+    assert not ALLOWED_INT_CLASSES - found, (
+        f"now an enum: remove from ALLOWED_INT_CLASSES: {ALLOWED_INT_CLASSES - found}"
+    )
 
 
 def test_the_enum_check_can_fail(tmp_path):
     (tmp_path / "pkg").mkdir()
     (tmp_path / "pkg" / "m.py").write_text(
         "import enum\nA, B = range(2)\nclass Key:\n    '''Doc.'''\n    X = 0\n    Y = 1\n"
-        "class Fine(enum.IntEnum):\n    X = 0\n    Y = 1\nclass Mixed:\n    X = 0\n    name = 'm'\n")
+        "class Fine(enum.IntEnum):\n    X = 0\n    Y = 1\nclass Mixed:\n    X = 0\n    name = 'm'\n"
+    )
     assert _bare_int_constants(tmp_path, ("pkg",)) == ["pkg/m.py:2", "pkg/m.py:Key"]
 
 
@@ -162,9 +179,13 @@ def _misplaced_docstrings(root: Path, packages=PACKAGES) -> list[str]:
         for path in sorted((root / package).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
                 if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                    found += [f"{path.relative_to(root).as_posix()}:{s.lineno}" for s in node.body[1:]
-                              if isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant)
-                              and isinstance(s.value.value, str)]
+                    found += [
+                        f"{path.relative_to(root).as_posix()}:{s.lineno}"
+                        for s in node.body[1:]
+                        if isinstance(s, ast.Expr)
+                        and isinstance(s.value, ast.Constant)
+                        and isinstance(s.value.value, str)
+                    ]
     return found
 
 
@@ -175,6 +196,7 @@ def test_docstrings_come_first():
 
 def test_the_docstring_check_can_fail(tmp_path):
     (tmp_path / "pkg").mkdir()
-    (tmp_path / "pkg" / "m.py").write_text("def f():\n    x = 1\n    '''Late.'''\n    return x\n"
-                                           "def g():\n    '''Fine.'''\n    return 1\n")
+    (tmp_path / "pkg" / "m.py").write_text(
+        "def f():\n    x = 1\n    '''Late.'''\n    return x\ndef g():\n    '''Fine.'''\n    return 1\n"
+    )
     assert _misplaced_docstrings(tmp_path, ("pkg",)) == ["pkg/m.py:3"]

@@ -5,6 +5,7 @@ inclusion's chord can only shrink, so IF_linear(k) <= 1 + k (1 - exp(-mu_b dg)) 
 (radiokit.measure.improvement_bound, derivation in its Notes). A rigid inclusion's chord does not
 shrink at all: it reaches the bound.
 """
+
 import math
 
 import numpy as np
@@ -16,13 +17,16 @@ from sim.mechanics import compress
 from sim.scene import Body, Compression, Inclusion, Material, MeshSpec, Scene, load_scene, with_view
 
 
-@pytest.mark.parametrize("k, mu, dg, expected", [
-    (1, 0.05, 2.5, 1 + (1 - math.exp(-0.125))),   # seed-breast 20 -> 25 %: 1.1175
-    (2, 0.05, 2.5, 1 + 2 * (1 - math.exp(-0.125))),  # 1.2350
-    (1, 0.077, 3.0, 1 + (1 - math.exp(-0.231))),   # pva-phantom through the plates, 60 mm, 5 % step
-    (0, 0.05, 2.5, 1.0),
-    (3, 0.0, 2.5, 1.0),
-])
+@pytest.mark.parametrize(
+    "k, mu, dg, expected",
+    [
+        (1, 0.05, 2.5, 1 + (1 - math.exp(-0.125))),  # seed-breast 20 -> 25 %: 1.1175
+        (2, 0.05, 2.5, 1 + 2 * (1 - math.exp(-0.125))),  # 1.2350
+        (1, 0.077, 3.0, 1 + (1 - math.exp(-0.231))),  # pva-phantom through the plates, 60 mm, 5 % step
+        (0, 0.05, 2.5, 1.0),
+        (3, 0.0, 2.5, 1.0),
+    ],
+)
 def test_bound_closed_form(k, mu, dg, expected):
     assert improvement_bound(k, mu, dg, "negative") == pytest.approx(expected, rel=1e-12)
     # I/I0 and -I/I0 share the bound: the factor is a ratio of contrasts
@@ -36,12 +40,15 @@ def test_bound_is_linear_in_k_so_the_papers_pair_breaks_it():
     assert b2 - 1 == pytest.approx(2 * (b1 - 1), rel=1e-12)
 
 
-@pytest.mark.parametrize("args, match", [
-    ((1, 0.05, 2.5, "counts"), "domain"),
-    ((-1, 0.05, 2.5, "linear"), "k must"),
-    ((1, float("nan"), 2.5, "linear"), "mu_b_per_mm"),
-    ((1, 0.05, -2.5, "linear"), "delta_gap_mm"),
-])
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        ((1, 0.05, 2.5, "counts"), "domain"),
+        ((-1, 0.05, 2.5, "linear"), "k must"),
+        ((1, float("nan"), 2.5, "linear"), "mu_b_per_mm"),
+        ((1, 0.05, -2.5, "linear"), "delta_gap_mm"),
+    ],
+)
 def test_bound_errors(args, match):
     with pytest.raises(ValueError, match=match):
         improvement_bound(*args)
@@ -53,9 +60,13 @@ def _rigid_cylinder(E_inclusion_kpa=5000.0):
     axis, axisymmetric (about a second to solve), 50 mm gap closing 20 -> 25 % (dg = 2.5 mm)."""
     gel = Material("gel", "neo-hookean", E_kpa=5.0, nu=0.495, attenuation_per_cm=0.5)
     hard = Material("rigid", "neo-hookean", E_kpa=E_inclusion_kpa, nu=0.495, attenuation_per_cm=1.0)
-    return Scene(name="rigid-cylinder", body=Body("cylinder", height_mm=50.0, diameter_mm=50.0, material=gel),
-                 inclusions=[Inclusion("sphere", diameter_mm=8.0, material=hard)],
-                 compression=Compression((0.20, 0.25)), mesh=MeshSpec(1.0, 5.0, "auto", True))
+    return Scene(
+        name="rigid-cylinder",
+        body=Body("cylinder", height_mm=50.0, diameter_mm=50.0, material=gel),
+        inclusions=[Inclusion("sphere", diameter_mm=8.0, material=hard)],
+        compression=Compression((0.20, 0.25)),
+        mesh=MeshSpec(1.0, 5.0, "auto", True),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -136,8 +147,11 @@ def test_cnr_ratio_is_the_improvement_over_the_noise_growth(rigid_pair, domain):
     _, _, clean = rigid_pair
     counts = 2e5
     rng = np.random.default_rng(3)
-    noisy = study.dataclasses.replace(clean, reference=study.add_noise(clean.reference, counts, rng),
-                                      moving=study.add_noise(clean.moving, counts, rng))
+    noisy = study.dataclasses.replace(
+        clean,
+        reference=study.add_noise(clean.reference, counts, rng),
+        moving=study.add_noise(clean.moving, counts, rng),
+    )
     noisy = study.with_field(noisy, np.zeros_like(clean.truth))
     inc = study.find_inclusion_roi(clean)
     bg = ROI(40, 100, 105, 165)  # 60 x 60 px, 9-24 mm from the axis: gel in contact with both plates
@@ -147,7 +161,7 @@ def test_cnr_ratio_is_the_improvement_over_the_noise_growth(rigid_pair, domain):
     var = (lambda L: math.exp(L) / counts) if domain == "log" else (lambda L: math.exp(-L) / counts)
     for k in ("1", "2"):
         kk = float(k)
-        sigma_ratio = math.sqrt(var(L_r)) / math.sqrt((1 + kk) ** 2 * var(L_r) + kk ** 2 * var(L_m))
+        sigma_ratio = math.sqrt(var(L_r)) / math.sqrt((1 + kk) ** 2 * var(L_r) + kk**2 * var(L_m))
         expected = h.improvement[domain][k] * sigma_ratio
         assert h.cnr[domain][k] / h.cnr_reference[domain] == pytest.approx(expected, rel=0.05)
     # and the CNR falls although the contrast rises: at k = 1 by about IF / sqrt(5)
@@ -179,8 +193,19 @@ def test_pipeline_reports_the_bound_and_cnr_per_domain_and_k(tmp_path):
             w.append(np.full((160, 160), 3100, np.uint16), image_key=ImageKey.FLAT)
         for step, (gap, ti) in enumerate([(20.0, 8.0), (18.0, 7.9), (16.0, 7.8)], start=1):
             w.append(frame(gap, ti), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step, gap_mm=gap)
-    res = process(path, Config(crop_mm=None, report=False, progress=False, cross_check=None, method="ncc",
-                               inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51)), out_dir=tmp_path / "results")
+    res = process(
+        path,
+        Config(
+            crop_mm=None,
+            report=False,
+            progress=False,
+            cross_check=None,
+            method="ncc",
+            inclusion=(75, 86, 75, 86),
+            background=(75, 86, 40, 51),
+        ),
+        out_dir=tmp_path / "results",
+    )
     r = res.results
     assert r["bound"]["mu_dg"] == pytest.approx(0.16, rel=0.02)
     for dom in ("log", "negative"):  # the pipeline's domains: -ln(I/I0), -I/I0
@@ -192,4 +217,6 @@ def test_pipeline_reports_the_bound_and_cnr_per_domain_and_k(tmp_path):
             bg = (slice(75, 86), slice(40, 51))
             s_ref = float(np.std(res.arrays["reference_by_domain"][dom][bg], dtype=np.float64))
             s_enh = float(np.std(res.arrays["enhanced"][dom][k][bg], dtype=np.float64))
-            assert m["cnr"][k] / m["cnr_reference"] == pytest.approx(m["improvement_factor"][k] * s_ref / s_enh, rel=0.05)
+            assert m["cnr"][k] / m["cnr_reference"] == pytest.approx(
+                m["improvement_factor"][k] * s_ref / s_enh, rel=0.05
+            )

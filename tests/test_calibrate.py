@@ -1,5 +1,6 @@
 """Calibration: robust averaging, defect maps on a synthetic panel, persistence, and the
 calibrate-then-correct chain recovering a known line integral within the noise."""
+
 import warnings
 
 import numpy as np
@@ -98,8 +99,8 @@ def test_correction_recovers_line_integral_within_noise():
     panel = _panel()
     i0 = 2500.0
     cal = _calibrate(panel, n=16, i0=i0)
-    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
-    r2 = ((yy - 128) ** 2 + (xx - 160) ** 2) / 90.0 ** 2
+    yy, xx = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    r2 = ((yy - 128) ** 2 + (xx - 160) ** 2) / 90.0**2
     truth = np.where(r2 < 1, 1.2 * np.sqrt(np.clip(1 - r2, 0, None)), 0.0).astype(np.float32) + 0.1
     frames = panel.expose(truth, i0, n=4, rng=np.random.default_rng(9))
     got = correct_frames(cal, frames, domain="log").mean(axis=0)
@@ -110,8 +111,8 @@ def test_correction_recovers_line_integral_within_noise():
     g = panel.gain
     signal = g * i0 * np.exp(-truth)
     with np.errstate(divide="ignore", invalid="ignore"):  # dead pixels have no signal
-        var_frame = (panel.counts_per_quantum * g * signal + panel.read_noise ** 2) / signal ** 2
-        var_flat = (panel.counts_per_quantum * g * g * i0 + panel.read_noise ** 2) / (g * i0) ** 2
+        var_frame = (panel.counts_per_quantum * g * signal + panel.read_noise**2) / signal**2
+        var_flat = (panel.counts_per_quantum * g * g * i0 + panel.read_noise**2) / (g * i0) ** 2
         sigma = np.sqrt(var_frame / 4 + var_flat / 16)
     z = err[valid] / sigma[valid]
     assert abs(np.mean(err[valid])) < 0.05 * np.mean(sigma[valid])  # no bias beyond a tenth of noise
@@ -137,8 +138,10 @@ def test_save_load_round_trip(tmp_path):
 
 
 def test_load_rejects_other_files(tmp_path):
-    from radiokit import FormatError
     import h5py
+
+    from radiokit import FormatError
+
     with h5py.File(tmp_path / "x.h5", "w") as h5:
         h5["foo"] = 1
     with pytest.raises(FormatError, match="x.h5.*calibration"):
@@ -169,6 +172,7 @@ def test_from_experiment_matches_from_frames(tmp_path):
 
 def test_from_experiment_without_darks(tmp_path):
     from radiokit import FormatError
+
     path = tmp_path / "exp.h5"
     with ExperimentWriter(path, shape=(8, 8)) as w:
         w.append(np.ones((8, 8), np.uint16), image_key=ImageKey.FLAT)
@@ -176,12 +180,15 @@ def test_from_experiment_without_darks(tmp_path):
         Calibration.from_experiment(path)
 
 
-@pytest.mark.parametrize("darks, flats, match", [
-    (np.zeros((3, 8, 8)), np.zeros((3, 8, 9)), "darks are"),
-    (np.zeros((3, 8, 8)), np.zeros((3, 8, 8)), "not brighter"),
-    (np.full((3, 8, 8), np.nan), np.ones((3, 8, 8)), "NaN"),
-    (np.zeros((0, 8, 8)), np.ones((3, 8, 8)), "n >= 1"),
-])
+@pytest.mark.parametrize(
+    "darks, flats, match",
+    [
+        (np.zeros((3, 8, 8)), np.zeros((3, 8, 9)), "darks are"),
+        (np.zeros((3, 8, 8)), np.zeros((3, 8, 8)), "not brighter"),
+        (np.full((3, 8, 8), np.nan), np.ones((3, 8, 8)), "NaN"),
+        (np.zeros((0, 8, 8)), np.ones((3, 8, 8)), "n >= 1"),
+    ],
+)
 def test_bad_calibration_input(darks, flats, match):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CalibrationWarning)

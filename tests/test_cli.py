@@ -1,4 +1,5 @@
 """The radiokit command: real subprocess runs, checked on what they print and write."""
+
 import json
 import os
 import re
@@ -8,16 +9,22 @@ import sys
 import numpy as np
 import pytest
 
+# the real vendor files: beside the checkout, or where test_io.py finds them
+from conftest import ITEX_DIR as ITEX
+from conftest import needs_itex
+
 from radiokit.io import ExperimentWriter, ImageKey, read
 from sim.detector import PanelModel
 
-# the real vendor files: beside the checkout, or where test_io.py finds them
-from conftest import ITEX_DIR as ITEX, needs_itex
-
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -78,13 +85,28 @@ def test_calibrate_from_files_and_correct_to_tiff(experiment, tmp_path):
     frames = read(path)
     keys = frames.meta["image_key"]
     import tifffile
+
     tifffile.imwrite(tmp_path / "darks.tif", frames.data[keys == 2])
     tifffile.imwrite(tmp_path / "flats.tif", frames.data[keys == 1])
     frames.data[keys == 0].tofile(tmp_path / "proj.raw")
-    res = run("calibrate", "--dark", tmp_path / "darks.tif", "--flat", tmp_path / "flats.tif", "-o", tmp_path / "cal.h5")
+    res = run(
+        "calibrate", "--dark", tmp_path / "darks.tif", "--flat", tmp_path / "flats.tif", "-o", tmp_path / "cal.h5"
+    )
     assert res.returncode == 0, res.stderr
-    res = run("correct", tmp_path / "proj.raw", "--shape", 96, 128, "--cal", tmp_path / "cal.h5",
-              "--domain", "linear", "-o", tmp_path / "out.tif", "-q")
+    res = run(
+        "correct",
+        tmp_path / "proj.raw",
+        "--shape",
+        96,
+        128,
+        "--cal",
+        tmp_path / "cal.h5",
+        "--domain",
+        "linear",
+        "-o",
+        tmp_path / "out.tif",
+        "-q",
+    )
     assert res.returncode == 0, res.stderr
     out = read(tmp_path / "out.tif").data
     assert out.shape == (4, 96, 128)
@@ -98,11 +120,14 @@ def test_correct_without_cal_uses_the_files_darks_and_flats(experiment, tmp_path
     assert "calibrated from the darks and flats" in res.stdout
 
 
-@pytest.mark.parametrize("content, name, message", [
-    (b"", "empty.raw", "empty"),
-    (b"\x00" * 1001, "odd.raw", "matches no C7942 geometry"),
-    (b"GARBAGE!" * 20, "x.tif", "wrong magic"),
-])
+@pytest.mark.parametrize(
+    "content, name, message",
+    [
+        (b"", "empty.raw", "empty"),
+        (b"\x00" * 1001, "odd.raw", "matches no C7942 geometry"),
+        (b"GARBAGE!" * 20, "x.tif", "wrong magic"),
+    ],
+)
 def test_bad_files_give_one_line_errors(tmp_path, content, name, message):
     (tmp_path / name).write_bytes(content)
     res = run("info", tmp_path / name)

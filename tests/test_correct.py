@@ -1,4 +1,5 @@
 """Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
+
 import numpy as np
 import pytest
 
@@ -13,11 +14,14 @@ def _cal(rows=6, cols=7, dark=100.0, flat=1100.0, mask=None, **kw):
     return Calibration(d, f, m, **kw)
 
 
-@pytest.mark.parametrize("domain, expected", [
-    ("linear", 0.5),           # (600 - 100) / (1100 - 100)
-    ("log", np.log(2.0)),      # -ln(0.5)
-    ("counts", 500.0),         # c * 0.5 with c = mean(flat - dark) = 1000
-])
+@pytest.mark.parametrize(
+    "domain, expected",
+    [
+        ("linear", 0.5),  # (600 - 100) / (1100 - 100)
+        ("log", np.log(2.0)),  # -ln(0.5)
+        ("counts", 500.0),  # c * 0.5 with c = mean(flat - dark) = 1000
+    ],
+)
 def test_hand_values(domain, expected):
     cal = _cal()
     raw = np.full(cal.shape, 600, np.uint16)
@@ -139,11 +143,14 @@ def test_input_is_not_modified():
     np.testing.assert_array_equal(raw, before)
 
 
-@pytest.mark.parametrize("bad, match", [
-    (np.zeros((3, 3), np.uint16), "do not match"),
-    (np.full((6, 7), np.nan, np.float32), "NaN"),
-    (np.zeros((6, 7), bool).astype(object), "numeric"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.zeros((3, 3), np.uint16), "do not match"),
+        (np.full((6, 7), np.nan, np.float32), "NaN"),
+        (np.zeros((6, 7), bool).astype(object), "numeric"),
+    ],
+)
 def test_bad_input_raises_valueerror(bad, match):
     with pytest.raises(ValueError, match=match):
         correct_frames(_cal(), bad)

@@ -4,6 +4,7 @@ Every case runs the real ``radiokit`` command in a subprocess on real files, the
 inputs' SHA-256 are unchanged and that each output is either the previous complete one, a new
 complete one, or absent (no temporary file left beside it either, except after a kill -9).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -27,8 +28,13 @@ ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", 
 
 
 def run(*args, cwd=None, env=None):
-    return subprocess.run([sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, env={**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})},
+    )
 
 
 def sha(path: Path) -> str:
@@ -70,8 +76,7 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
             L = scale * (0.08 * tb + 0.03 * ti * sq)
             for _ in range(n_per_step):
                 counts = 100 + 3000 * np.exp(-L) + rng.normal(0, noise, shape)
-                w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step,
-                         ratio=0.1 * step)
+                w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     return path
 
 
@@ -97,7 +102,15 @@ def _commands(exp, images, out):
         "correct": ["correct", exp, "-q", "-o", out.with_suffix(".h5")],
         "correct-tiff": ["correct", exp, "-q", "-o", out.with_suffix(".tif")],
         "register": ["register", fixed, moving, "-o", out.with_suffix(".h5")],
-        "register-png": ["register", fixed, moving, "-o", out.parent / "reg-field.h5", "--png", out.with_suffix(".png")],
+        "register-png": [
+            "register",
+            fixed,
+            moving,
+            "-o",
+            out.parent / "reg-field.h5",
+            "--png",
+            out.with_suffix(".png"),
+        ],
     }
 
 
@@ -139,9 +152,11 @@ def test_an_output_that_is_an_input_is_refused_even_with_overwrite(cmd, how, exp
         out = tmp_path / "sub" / f"hard{target.suffix}"
         out.parent.mkdir()
         os.link(target, out)
-    args = {"calibrate": ["calibrate", "--experiment", experiment],
-            "correct": ["correct", experiment, "-q"],
-            "register": ["register", fixed, moving]}[cmd]
+    args = {
+        "calibrate": ["calibrate", "--experiment", experiment],
+        "correct": ["correct", experiment, "-q"],
+        "register": ["register", fixed, moving],
+    }[cmd]
     before = {p: sha(p) for p in (experiment, fixed, moving)}
     res = run(*args, "-o", out, "--overwrite")
     one_line_error(res, out.name, "input", target.name)
@@ -164,8 +179,10 @@ def test_process_gives_inputs_with_the_same_name_distinct_folders(tmp_path):
     before = {p: sha(p) for p in (a, b)}
     res = run("process", a, b, "-o", tmp_path / "out", "--no-report", "-q", "--workers", "1", *ROI)
     assert res.returncode == 0, res.stderr
-    sources = {d.name: json.loads((tmp_path / "out" / d.name / "results.json").read_text())["source"]
-               for d in (tmp_path / "out").iterdir()}
+    sources = {
+        d.name: json.loads((tmp_path / "out" / d.name / "results.json").read_text())["source"]
+        for d in (tmp_path / "out").iterdir()
+    }
     assert sources == {"run": str(a), "run-2": str(b)}
     assert {p: sha(p) for p in before} == before
 
@@ -195,8 +212,7 @@ def test_process_replaces_only_its_own_results_folder(experiment, tmp_path):
     assert set(tree_sha(out)) == set(first)
     # a file radiokit did not write there: never deleted, so the folder is not replaced
     (out / "notes.txt").write_text("mine")
-    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI),
-                   "res", "notes.txt")
+    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI), "res", "notes.txt")
     assert (out / "notes.txt").read_text() == "mine"
     # a folder radiokit did not make: refused even with --overwrite
     other = tmp_path / "theirs"
@@ -247,8 +263,12 @@ def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIG
 
 
 def _popen(*args):
-    return subprocess.Popen([sys.executable, "-m", "radiokit.cli", *map(str, args)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
@@ -319,18 +339,27 @@ def _full_disk_run(small_disk, *args):
     fill a disk without privileges)."""
     if small_disk is not None:
         return run(*args)
-    code = ("import shutil, sys; from collections import namedtuple; from radiokit.cli import main; "
-            "shutil.disk_usage = lambda p: namedtuple('u', 'total used free')(10**6, 10**6 - 1000, 1000); "
-            "sys.exit(main(sys.argv[1:]))")
-    return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    code = (
+        "import shutil, sys; from collections import namedtuple; from radiokit.cli import main; "
+        "shutil.disk_usage = lambda p: namedtuple('u', 'total used free')(10**6, 10**6 - 1000, 1000); "
+        "sys.exit(main(sys.argv[1:]))"
+    )
+    return subprocess.run(
+        [sys.executable, "-c", code, *map(str, args)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
-@pytest.mark.parametrize("cmd, experiment_kw, output, args", [
-    ("correct", {"n_per_step": 2}, "out.h5", []),  # 6 x 256 KiB out: > 1 MiB
-    ("correct", {"n_per_step": 2}, "out.tif", []),
-    ("process", {"noise": 30.0}, "res", ROI),  # results.h5 > 1 MiB
-])
+@pytest.mark.parametrize(
+    "cmd, experiment_kw, output, args",
+    [
+        ("correct", {"n_per_step": 2}, "out.h5", []),  # 6 x 256 KiB out: > 1 MiB
+        ("correct", {"n_per_step": 2}, "out.tif", []),
+        ("process", {"noise": 30.0}, "res", ROI),  # results.h5 > 1 MiB
+    ],
+)
 def test_a_full_disk_is_one_line_and_leaves_nothing(small_disk, cmd, experiment_kw, output, args, tmp_path):
     exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), **experiment_kw)
     disk = small_disk or (tmp_path / "fake-disk")
@@ -347,9 +376,11 @@ def test_a_stack_that_fills_the_disk_mid_write_is_removed(small_disk, tmp_path):
     if small_disk is None:
         pytest.skip("needs a real full disk (a tmpfs mount, as root): the failure is inside libhdf5")
     for suffix in (".h5", ".tif"):
-        code = ("import numpy as np; from radiokit.io import StackWriter\n"
-                f"with StackWriter({str(small_disk / ('s' + suffix))!r}, (256, 256)) as w:\n"
-                "    for i in range(12): w.append(np.full((256, 256), i, np.float32))\n")
+        code = (
+            "import numpy as np; from radiokit.io import StackWriter\n"
+            f"with StackWriter({str(small_disk / ('s' + suffix))!r}, (256, 256)) as w:\n"
+            "    for i in range(12): w.append(np.full((256, 256), i, np.float32))\n"
+        )
         res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
         assert res.returncode == 1 and "DiskFullError" in res.stderr and "no space left" in res.stderr
         assert list(small_disk.iterdir()) == []
@@ -364,7 +395,7 @@ def test_a_tiff_with_a_corrupt_fifth_page_is_an_error_not_a_shorter_stack(experi
     with tifffile.TiffFile(good) as tif:
         ifd = tif.pages[4].offset
     data = bytearray(good.read_bytes())
-    data[ifd + 2:ifd + 40] = b"\xff" * 38  # the 5th page's first tag entries
+    data[ifd + 2 : ifd + 40] = b"\xff" * 38  # the 5th page's first tag entries
     bad = tmp_path / "bad.tif"
     bad.write_bytes(bytes(data))
     before = sha(bad)
@@ -389,8 +420,11 @@ def test_sim_run_refuses_before_the_mechanics(tmp_path):
     one_line_error(run("sim", "run", "--preset", "seed-breast", "-o", old, "-q"), "old.h5", "--overwrite")
     assert old.read_bytes() == b"a previous simulation"
     # the scene file is an input: neither the experiment nor --save-scene may replace it
-    one_line_error(run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
-                   "scene.toml", "input")
+    one_line_error(
+        run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
+        "scene.toml",
+        "input",
+    )
     assert sha(scene) == before and not (tmp_path / "new.h5").exists()
 
 
@@ -401,8 +435,9 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
 
     out = tmp_path / "cal.h5"
     host = socket.gethostname().split(".")[0]
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True).stdout.strip()  # a process that has ended
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()  # a process that has ended
     stale = tmp_path / f".cal.tmp-{host}-{dead}-0123abcd.h5"
     stale.write_bytes(b"half a calibration")
     alive = tmp_path / f".cal.tmp-{host}-{os.getpid()}-0123abcd.h5"  # a live writer's: kept
@@ -421,8 +456,9 @@ def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, t
     import socket
 
     host = socket.gethostname().split(".")[0]
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True).stdout.strip()
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
     stale = [tmp_path / f".res.{kind}-{host}-{dead}-0123abcd" for kind in ("tmp", "old")]
     for folder in stale:
         folder.mkdir()

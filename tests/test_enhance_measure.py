@@ -3,6 +3,7 @@
 Every expected number below is computed by hand in the test (or in the comment beside it), not
 by the code under test.
 """
+
 import doctest
 import math
 import subprocess
@@ -15,8 +16,7 @@ from skimage.measure import profile_line
 import radiokit.enhance
 import radiokit.measure
 from radiokit.enhance import Domain, compression_contrast, difference, to_domain
-from radiokit.measure import (ROI, change_ratio, cnr, contrast, find_rois, improvement_factor, profile,
-                              summary, weber)
+from radiokit.measure import ROI, change_ratio, cnr, contrast, find_rois, improvement_factor, profile, summary, weber
 
 
 # -- contrast, CNR, Weber on a 6x6 image ---------------------------------------------------------
@@ -30,14 +30,17 @@ def _six(inclusion_values, background_values):
 INC, BG = ROI(1, 3, 1, 3), ROI(3, 5, 3, 5)
 
 
-@pytest.mark.parametrize("inc_vals, bg_vals, c, c_nr, w", [
-    # incl mean 5, bg mean 2.5, bg std sqrt(((1.5)^2 + .5^2 + .5^2 + 1.5^2) / 4) = sqrt(1.25)
-    (5.0, [[1, 2], [3, 4]], 2.5, 2.5 / math.sqrt(1.25), 1.0),
-    # the paper's negative intensities: incl -0.2, bg mean -0.4, std 0.1 -> 0.2, 2, 0.5
-    (-0.2, [[-0.5, -0.3], [-0.3, -0.5]], 0.2, 2.0, 0.5),
-    # an inclusion darker than the background: negative contrast, |mean bg| = 4
-    ([[1, 1], [1, 3]], [[4, 6], [2, 4]], 1.5 - 4.0, -2.5 / math.sqrt(2.0), -2.5 / 4),
-])
+@pytest.mark.parametrize(
+    "inc_vals, bg_vals, c, c_nr, w",
+    [
+        # incl mean 5, bg mean 2.5, bg std sqrt(((1.5)^2 + .5^2 + .5^2 + 1.5^2) / 4) = sqrt(1.25)
+        (5.0, [[1, 2], [3, 4]], 2.5, 2.5 / math.sqrt(1.25), 1.0),
+        # the paper's negative intensities: incl -0.2, bg mean -0.4, std 0.1 -> 0.2, 2, 0.5
+        (-0.2, [[-0.5, -0.3], [-0.3, -0.5]], 0.2, 2.0, 0.5),
+        # an inclusion darker than the background: negative contrast, |mean bg| = 4
+        ([[1, 1], [1, 3]], [[4, 6], [2, 4]], 1.5 - 4.0, -2.5 / math.sqrt(2.0), -2.5 / 4),
+    ],
+)
 def test_contrast_cnr_weber_hand_values(inc_vals, bg_vals, c, c_nr, w):
     img = _six(inc_vals, bg_vals)
     assert contrast(img, INC, BG) == pytest.approx(c, rel=1e-12)
@@ -56,23 +59,22 @@ def test_noiseless_background_gives_infinite_cnr_and_zero_mean_infinite_weber():
 
 # -- enhancement -------------------------------------------------------------------------------
 # Values are multiples of 1/4 so float32 holds every intermediate exactly and equality is exact.
-REF = np.array([[4.0, 4.0, 4.0, 4.0],
-                [4.0, 6.0, 6.0, 4.0],
-                [4.0, 6.0, 6.0, 4.0],
-                [4.0, 4.0, 4.0, 4.0]])
-D = np.array([[-1.0, -1.0, -1.0, -1.0],
-              [-1.0, -0.5, -0.5, -1.0],
-              [-1.0, -0.5, -0.5, -1.0],
-              [-1.0, -1.0, -1.0, -1.0]])   # mean D = (12 * -1 + 4 * -0.5) / 16 = -0.875
+REF = np.array([[4.0, 4.0, 4.0, 4.0], [4.0, 6.0, 6.0, 4.0], [4.0, 6.0, 6.0, 4.0], [4.0, 4.0, 4.0, 4.0]])
+D = np.array(
+    [[-1.0, -1.0, -1.0, -1.0], [-1.0, -0.5, -0.5, -1.0], [-1.0, -0.5, -0.5, -1.0], [-1.0, -1.0, -1.0, -1.0]]
+)  # mean D = (12 * -1 + 4 * -0.5) / 16 = -0.875
 # D - mean D: -0.125 outside, +0.375 at the inclusion
 
 
-@pytest.mark.parametrize("k, outside, inside", [
-    (1.0, 4.0 - 0.125, 6.0 + 0.375),
-    (2.0, 4.0 - 0.25, 6.0 + 0.75),
-    (0.0, 4.0, 6.0),
-    (-1.0, 4.0 + 0.125, 6.0 - 0.375),
-])
+@pytest.mark.parametrize(
+    "k, outside, inside",
+    [
+        (1.0, 4.0 - 0.125, 6.0 + 0.375),
+        (2.0, 4.0 - 0.25, 6.0 + 0.75),
+        (0.0, 4.0, 6.0),
+        (-1.0, 4.0 + 0.125, 6.0 - 0.375),
+    ],
+)
 def test_enhanced_equals_reference_plus_k_centred_difference(k, outside, inside):
     registered = REF - D
     out = compression_contrast(REF.astype(np.float32), registered.astype(np.float32), k)
@@ -222,8 +224,7 @@ def test_sign_convention_inclusion_that_loses_less_attenuation_gets_brighter(dom
     ref, reg = to_domain(after, domain), to_domain(before, domain)
     d = difference(ref, reg)
     assert d[inc.slices].mean() > d[bg.slices].mean() and d.max() < 0
-    f1, f2 = (improvement_factor(compression_contrast(ref, reg, k, domain=domain), ref, inc, bg)
-              for k in (1.0, 2.0))
+    f1, f2 = (improvement_factor(compression_contrast(ref, reg, k, domain=domain), ref, inc, bg) for k in (1.0, 2.0))
     assert 1.0 < f1 < f2
     assert f2 - 1 == pytest.approx(2 * (f1 - 1), rel=1e-4)
 
@@ -278,16 +279,19 @@ def test_roi_geometry():
     assert ROI(np.int64(1), np.int32(2), 0, 1).row0 == 1 and type(ROI(np.int64(1), 2, 0, 1).row0) is int
 
 
-@pytest.mark.parametrize("make, match", [
-    (lambda: ROI(3, 3, 0, 2), "empty"),
-    (lambda: ROI(0, 2, 5, 4), "empty"),
-    (lambda: ROI(0, 2.5, 0, 2), "integer"),
-    (lambda: ROI.from_center((3, 3), 0.2), "empty"),
-    (lambda: ROI.from_mm((1, 1), 1.0, 0.0), "pixel_size_mm"),
-    (lambda: ROI.from_dict({"row0": 1, "row1": 2}), "missing col0, col1"),
-    (lambda: ROI(0, 2, 0, 2).shifted(10, 10).clip((5, 5)), "outside"),
-    (lambda: ROI(-1, 2, 0, 2).mask((5, 5)), "outside the 5x5 image"),
-])
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: ROI(3, 3, 0, 2), "empty"),
+        (lambda: ROI(0, 2, 5, 4), "empty"),
+        (lambda: ROI(0, 2.5, 0, 2), "integer"),
+        (lambda: ROI.from_center((3, 3), 0.2), "empty"),
+        (lambda: ROI.from_mm((1, 1), 1.0, 0.0), "pixel_size_mm"),
+        (lambda: ROI.from_dict({"row0": 1, "row1": 2}), "missing col0, col1"),
+        (lambda: ROI(0, 2, 0, 2).shifted(10, 10).clip((5, 5)), "outside"),
+        (lambda: ROI(-1, 2, 0, 2).mask((5, 5)), "outside the 5x5 image"),
+    ],
+)
 def test_roi_errors(make, match):
     with pytest.raises(ValueError, match=match):
         make()
@@ -300,34 +304,42 @@ def _nan_ref():
     return ref
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: compression_contrast(REF, np.zeros((4, 5))), "reference has shape .* registered has"),
-    (lambda: compression_contrast(_nan_ref(), REF), "reference has 1 non-finite"),
-    (lambda: compression_contrast(REF, np.full((4, 4), np.inf)), "registered has 16 non-finite"),
-    (lambda: compression_contrast(REF, REF, np.nan), "k must be a finite"),
-    (lambda: compression_contrast(REF, REF, "2"), "k must be a finite"),
-    (lambda: compression_contrast(REF, REF, domain="counts"), "domain must be one of"),
-    (lambda: compression_contrast(REF, REF, domain="negative"), "negative intensities"),
-    (lambda: compression_contrast(-REF, -REF, domain="linear"), "expects transmission I/I0"),
-    (lambda: compression_contrast(REF, REF, mask=np.zeros((4, 4), bool)), "mask is empty"),
-    (lambda: compression_contrast(REF, REF, mask=np.ones((4, 4))), "boolean"),
-    (lambda: compression_contrast(REF, REF, mask=np.ones((3, 4), bool)), "mask has shape"),
-    (lambda: compression_contrast(REF, REF, mask=ROI(0, 5, 0, 1)), "mask ROI.* outside"),
-    (lambda: compression_contrast(REF[0], REF[0]), "2-D"),
-    (lambda: to_domain(REF, "exp"), "domain must be one of"),
-    (lambda: contrast(REF, ROI(0, 2, 0, 2), ROI(3, 5, 0, 2)), "background ROI.* outside the 4x4"),
-    (lambda: contrast(REF, ROI(-1, 2, 0, 2), ROI(0, 2, 0, 2)), "inclusion ROI.* outside"),
-    (lambda: contrast(_nan_ref(), ROI(0, 2, 0, 2), ROI(2, 4, 2, 4)), "non-finite .* inside inclusion"),
-    (lambda: contrast(REF, np.zeros((4, 4), bool), ROI(0, 2, 0, 2)), "inclusion mask is empty"),
-    (lambda: contrast(REF, [[1, 2]], ROI(0, 2, 0, 2)), "inclusion must be an ROI or a boolean mask"),
-    (lambda: improvement_factor(REF, np.ones((4, 4)), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)), "reference contrast is zero"),
-    (lambda: improvement_factor(REF, REF[:3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)), "enhanced has shape"),
-    (lambda: change_ratio(REF, REF + 1.0 * (REF > 5), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)),
-     "background .* does not change"),
-    (lambda: change_ratio(REF, REF[:, :3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 3)), "before has shape"),
-    (lambda: profile(REF, (0, 0), (4, 0)), "end_rc .* outside"),
-    (lambda: profile(REF, (0, 0), (3, 0), width=0), "width must be >= 1"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: compression_contrast(REF, np.zeros((4, 5))), "reference has shape .* registered has"),
+        (lambda: compression_contrast(_nan_ref(), REF), "reference has 1 non-finite"),
+        (lambda: compression_contrast(REF, np.full((4, 4), np.inf)), "registered has 16 non-finite"),
+        (lambda: compression_contrast(REF, REF, np.nan), "k must be a finite"),
+        (lambda: compression_contrast(REF, REF, "2"), "k must be a finite"),
+        (lambda: compression_contrast(REF, REF, domain="counts"), "domain must be one of"),
+        (lambda: compression_contrast(REF, REF, domain="negative"), "negative intensities"),
+        (lambda: compression_contrast(-REF, -REF, domain="linear"), "expects transmission I/I0"),
+        (lambda: compression_contrast(REF, REF, mask=np.zeros((4, 4), bool)), "mask is empty"),
+        (lambda: compression_contrast(REF, REF, mask=np.ones((4, 4))), "boolean"),
+        (lambda: compression_contrast(REF, REF, mask=np.ones((3, 4), bool)), "mask has shape"),
+        (lambda: compression_contrast(REF, REF, mask=ROI(0, 5, 0, 1)), "mask ROI.* outside"),
+        (lambda: compression_contrast(REF[0], REF[0]), "2-D"),
+        (lambda: to_domain(REF, "exp"), "domain must be one of"),
+        (lambda: contrast(REF, ROI(0, 2, 0, 2), ROI(3, 5, 0, 2)), "background ROI.* outside the 4x4"),
+        (lambda: contrast(REF, ROI(-1, 2, 0, 2), ROI(0, 2, 0, 2)), "inclusion ROI.* outside"),
+        (lambda: contrast(_nan_ref(), ROI(0, 2, 0, 2), ROI(2, 4, 2, 4)), "non-finite .* inside inclusion"),
+        (lambda: contrast(REF, np.zeros((4, 4), bool), ROI(0, 2, 0, 2)), "inclusion mask is empty"),
+        (lambda: contrast(REF, [[1, 2]], ROI(0, 2, 0, 2)), "inclusion must be an ROI or a boolean mask"),
+        (
+            lambda: improvement_factor(REF, np.ones((4, 4)), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)),
+            "reference contrast is zero",
+        ),
+        (lambda: improvement_factor(REF, REF[:3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)), "enhanced has shape"),
+        (
+            lambda: change_ratio(REF, REF + 1.0 * (REF > 5), ROI(1, 3, 1, 3), ROI(0, 1, 0, 4)),
+            "background .* does not change",
+        ),
+        (lambda: change_ratio(REF, REF[:, :3], ROI(1, 3, 1, 3), ROI(0, 1, 0, 3)), "before has shape"),
+        (lambda: profile(REF, (0, 0), (4, 0)), "end_rc .* outside"),
+        (lambda: profile(REF, (0, 0), (3, 0), width=0), "width must be >= 1"),
+    ],
+)
 def test_bad_inputs_raise_clear_errors(call, match):
     with pytest.raises(ValueError, match=match):
         call()
@@ -360,7 +372,7 @@ def _dome_with_blob(domain="log", noise=0.005, centre=(70, 96), radius=12.0, see
     q = 1 - ((yy - 75) / 65) ** 2 - ((xx - 90) / 80) ** 2
     thickness = 50 * np.sqrt(np.clip(q, 0, None))
     r = np.hypot(yy - centre[0], xx - centre[1])
-    chord = 2 * np.sqrt(np.clip(radius ** 2 - r ** 2, 0, None)) * 0.4  # 0.4 mm pixels
+    chord = 2 * np.sqrt(np.clip(radius**2 - r**2, 0, None)) * 0.4  # 0.4 mm pixels
     L = 0.05 * thickness + 0.05 * chord
     L = L + np.random.default_rng(seed).normal(0, noise, L.shape)
     return to_domain(L, domain), r < radius, thickness > 0
@@ -403,8 +415,14 @@ def test_find_rois_with_an_inclusion_mask(mask_kind):
 @pytest.mark.parametrize("use_mask", [True, False])
 def test_find_rois_sizes_and_gap_in_mm(use_mask):
     img, blob, body = _dome_with_blob()
-    inc, bg = find_rois(img, pixel_size_mm=0.4, inclusion_size=2.0, gap=4.0, background_size=(2.0, 4.0),
-                        inclusion_mask=blob if use_mask else None)
+    inc, bg = find_rois(
+        img,
+        pixel_size_mm=0.4,
+        inclusion_size=2.0,
+        gap=4.0,
+        background_size=(2.0, 4.0),
+        inclusion_mask=blob if use_mask else None,
+    )
     assert inc.shape == (5, 5) and bg.shape == (5, 10)  # 2 mm = 5 px, 4 mm = 10 px
     assert blob[inc.slices].all() and inc.contains((70, 96))
     # 4 mm = 10 px from the blob's bounding box, cols [85, 108) (the mask), or from the
@@ -413,11 +431,14 @@ def test_find_rois_sizes_and_gap_in_mm(use_mask):
     assert (gap == 10) if use_mask else (8 <= gap <= 10)
 
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(inclusion_mask=np.zeros((150, 180), bool)), "inclusion_mask is empty"),
-    (dict(inclusion_mask=np.ones((10, 10), bool)), "inclusion_mask must be a bool array"),
-    (dict(gap=200), "no .* background ROI fits"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(inclusion_mask=np.zeros((150, 180), bool)), "inclusion_mask is empty"),
+        (dict(inclusion_mask=np.ones((10, 10), bool)), "inclusion_mask must be a bool array"),
+        (dict(gap=200), "no .* background ROI fits"),
+    ],
+)
 def test_find_rois_errors(kw, match):
     img, _, _ = _dome_with_blob()
     with pytest.raises(ValueError, match=match):
@@ -437,8 +458,10 @@ def test_docstring_examples(module):
 
 
 def test_core_imports_neither_sim_nor_acquisition():
-    code = ("import sys, radiokit.enhance, radiokit.measure; "
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
-            "print(bad); sys.exit(1 if bad else 0)")
+    code = (
+        "import sys, radiokit.enhance, radiokit.measure; "
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr

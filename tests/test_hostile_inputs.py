@@ -4,6 +4,7 @@ Memory cases run the command in a subprocess limited by ``resource.setrlimit(RLI
 reader that allocated what the header declares would die with MemoryError (or be killed); the
 budget check must refuse first, naming the file.
 """
+
 from __future__ import annotations
 
 import json
@@ -17,12 +18,13 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
+from conftest import ITEX_DIR as ITEX
+from conftest import needs_itex
 
 from radiokit.errors import FormatError
 from radiokit.io import ExperimentWriter, ImageKey, memory_budget, parse_size, read
 from radiokit.io._itex import parse_comment
 
-from conftest import ITEX_DIR as ITEX, needs_itex
 AS_LIMIT = 1 << 30  # 1 GiB of address space: python, numpy, h5py and scipy fit; the bombs do not
 
 
@@ -31,10 +33,20 @@ def run(*args, limit=None, env=None, cwd=None):
         if limit:
             resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
-    return subprocess.run([sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True,
-                          preexec_fn=preexec, cwd=cwd,
-                          env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1",
-                               "OPENBLAS_NUM_THREADS": "1", **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        preexec_fn=preexec,
+        cwd=cwd,
+        env={
+            **os.environ,
+            "PYTHONWARNINGS": "ignore",
+            "OMP_NUM_THREADS": "1",
+            "OPENBLAS_NUM_THREADS": "1",
+            **(env or {}),
+        },
+    )
 
 
 def one_line_error(res, *needles):
@@ -69,8 +81,13 @@ def hdf5_bomb(tmp_path):
     """A few KB declaring (10, 100000, 100000) uint16 frames: 186 GiB."""
     path = tmp_path / "bomb.h5"
     with h5py.File(path, "w") as h5:
-        h5.create_dataset("entry/instrument/detector/data", shape=(10, 100_000, 100_000), dtype="u2",
-                          chunks=(1, 1000, 1000), compression="gzip")
+        h5.create_dataset(
+            "entry/instrument/detector/data",
+            shape=(10, 100_000, 100_000),
+            dtype="u2",
+            chunks=(1, 1000, 1000),
+            compression="gzip",
+        )
         h5["entry/instrument/detector/image_key"] = np.array([2, 2, 1, 1, 0, 0, 0, 0, 0, 0], np.int8)
         h5["entry/sample/compression/step"] = np.array([-1] * 4 + [1, 1, 2, 2, 3, 3], np.int16)
     assert path.stat().st_size < 20_000
@@ -90,11 +107,20 @@ def tiff_bomb(tmp_path):
 
 @pytest.mark.parametrize("cmd", ["info", "correct", "process", "register"])
 def test_hdf5_memory_bomb_is_refused_within_the_budget(cmd, hdf5_bomb, tmp_path):
-    args = {"info": ["info", hdf5_bomb],
-            "correct": ["correct", hdf5_bomb, "-q", "-o", tmp_path / "out.h5"],
-            "process": ["process", hdf5_bomb, "-q", "-o", tmp_path / "res"],
-            "register": ["register", hdf5_bomb, hdf5_bomb, "--dataset", "entry/instrument/detector/data",
-                         "-o", tmp_path / "reg.h5"]}[cmd]
+    args = {
+        "info": ["info", hdf5_bomb],
+        "correct": ["correct", hdf5_bomb, "-q", "-o", tmp_path / "out.h5"],
+        "process": ["process", hdf5_bomb, "-q", "-o", tmp_path / "res"],
+        "register": [
+            "register",
+            hdf5_bomb,
+            hdf5_bomb,
+            "--dataset",
+            "entry/instrument/detector/data",
+            "-o",
+            tmp_path / "reg.h5",
+        ],
+    }[cmd]
     res = run(*args, limit=AS_LIMIT, env={"RADIOKIT_MEMORY_BUDGET": "256MiB"})
     one_line_error(res, f"radiokit {cmd}: ", "bomb.h5", "memory budget")
     assert not any(p.name not in ("bomb.h5",) for p in tmp_path.iterdir())
@@ -103,8 +129,13 @@ def test_hdf5_memory_bomb_is_refused_within_the_budget(cmd, hdf5_bomb, tmp_path)
 def test_hdf5_memory_bomb_is_refused_by_the_default_budget(hdf5_bomb):
     # no variable: half the available memory (or of the address-space limit, here 1 GiB)
     env = {k: v for k, v in os.environ.items() if k != "RADIOKIT_MEMORY_BUDGET"}
-    res = subprocess.run([sys.executable, "-m", "radiokit.cli", "info", hdf5_bomb], capture_output=True, text=True,
-                         env=env, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT)))
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", hdf5_bomb],
+        capture_output=True,
+        text=True,
+        env=env,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT)),
+    )
     one_line_error(res, "bomb.h5", "over the memory budget of 512.0 MiB")
 
 
@@ -125,7 +156,9 @@ def test_a_tiff_tile_larger_than_the_budget_is_refused(tmp_path):
 
 def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
     path = tmp_path / "big.tif"
-    tifffile.imwrite(path, np.zeros((4, 1024, 1024), np.uint16), photometric="minisblack")  # 2 MiB a frame, 8 MiB in all
+    tifffile.imwrite(
+        path, np.zeros((4, 1024, 1024), np.uint16), photometric="minisblack"
+    )  # 2 MiB a frame, 8 MiB in all
     with pytest.raises(FormatError, match=r"big.tif: one 1024x1024 uint16 frame would need 2.0 MiB"):
         read(path, budget="1MiB")
     with pytest.raises(FormatError, match=r"4 frame\(s\).* would need 8.0 MiB"):
@@ -136,8 +169,9 @@ def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
     assert res.returncode == 0, res.stderr
 
 
-@pytest.mark.parametrize("text, expected", [("2GiB", 2 * 2**30), ("500M", 500 * 10**6), ("1e9", 10**9),
-                                            ("64 kib", 64 * 1024), ("123", 123)])
+@pytest.mark.parametrize(
+    "text, expected", [("2GiB", 2 * 2**30), ("500M", 500 * 10**6), ("1e9", 10**9), ("64 kib", 64 * 1024), ("123", 123)]
+)
 def test_budget_sizes(text, expected):
     assert parse_size(text) == expected
     assert memory_budget(text) == expected
@@ -188,10 +222,15 @@ def outside(tmp_path):
     return files, secret
 
 
-@pytest.mark.parametrize("kind, words", [("external raw storage", "external raw files"),
-                                         ("external link", "external link"),
-                                         ("virtual dataset", "virtual dataset"),
-                                         ("linked experiment", "external link")])
+@pytest.mark.parametrize(
+    "kind, words",
+    [
+        ("external raw storage", "external raw files"),
+        ("external link", "external link"),
+        ("virtual dataset", "virtual dataset"),
+        ("linked experiment", "external link"),
+    ],
+)
 def test_data_outside_the_file_is_refused_unless_allowed(kind, words, outside):
     files, secret = outside
     path = files[kind]
@@ -208,13 +247,16 @@ def test_data_outside_the_file_is_refused_unless_allowed(kind, words, outside):
 
 
 # -- parsing -----------------------------------------------------------------------------------
-@pytest.mark.parametrize("name, text", [
-    ("spaces before =", "a" + " " * 300_000 + "b=1"),
-    ("unclosed brackets", "[" * 300_000),
-    ("bracketed text", "[abc" * 75_000),
-    ("lines of blanks", (" " * 100 + "\n") * 3000),
-    ("unclosed quote", 'a="' + "x" * 300_000),
-])
+@pytest.mark.parametrize(
+    "name, text",
+    [
+        ("spaces before =", "a" + " " * 300_000 + "b=1"),
+        ("unclosed brackets", "[" * 300_000),
+        ("bracketed text", "[abc" * 75_000),
+        ("lines of blanks", (" " * 100 + "\n") * 3000),
+        ("unclosed quote", 'a="' + "x" * 300_000),
+    ],
+)
 def test_itex_comment_parsing_handles_hostile_comments(name, text):
     """Linear parsing (benchmarks/bench_itex_parse.py measures it); here: every hostile comment
     parses to what it says, and nothing is lost."""
@@ -288,10 +330,13 @@ def test_a_frame_of_only_nan_is_refused(tmp_path):
 
 
 # -- errors instead of tracebacks --------------------------------------------------------------
-@pytest.mark.parametrize("steps, args, printed", [
-    (False, [], ["projections 3", "steps      []"]),  # an experiment without steps
-    (True, ["--sample", "3"], ["(in 3 of 9 frames)"]),  # a sample of frames, not the whole file
-])
+@pytest.mark.parametrize(
+    "steps, args, printed",
+    [
+        (False, [], ["projections 3", "steps      []"]),  # an experiment without steps
+        (True, ["--sample", "3"], ["(in 3 of 9 frames)"]),  # a sample of frames, not the whole file
+    ],
+)
 def test_info_prints_what_it_read(steps, args, printed, tmp_path):
     path = _experiment(tmp_path / "exp.h5", step=steps)
     res = run("info", path, *args)
@@ -321,11 +366,14 @@ def test_process_on_unusable_files(case, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
-@pytest.mark.parametrize("args, words", [
-    (["--fixed-frame", "7"], "frame 7"),
-    (["--roi", "0", "500", "0", "10"], "--roi"),
-    (["--method", "nosuch"], "nosuch"),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--fixed-frame", "7"], "frame 7"),
+        (["--roi", "0", "500", "0", "10"], "--roi"),
+        (["--method", "nosuch"], "nosuch"),
+    ],
+)
 def test_register_bad_arguments(args, words, tmp_path):
     img = tmp_path / "img.tif"
     tifffile.imwrite(img, np.random.default_rng(0).random((32, 32), np.float32))
@@ -338,20 +386,33 @@ def test_debug_shows_the_traceback(tmp_path):
     assert res.returncode != 0 and "Traceback" in res.stderr
 
 
-@pytest.mark.parametrize("args, words", [
-    (["sim", "run", "--preset", "seed-breast", "--ratios", "nan", "-o", "sim.h5"], "--ratios nan"),
-    (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
-    (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
-    (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
-    (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["sim", "run", "--preset", "seed-breast", "--ratios", "nan", "-o", "sim.h5"], "--ratios nan"),
+        (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
+        (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
+        (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+        (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
+    ],
+)
 def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):
     one_line_error(run(*args, "-q", cwd=tmp_path), words)
     assert not any(tmp_path.iterdir())
 
 
-HOSTILE_TEXT = ['plain', 'say "cheese"', "back\\slash C:\\new", "two\nlines", "tab\there", "''' and \"\"\"",
-                "ünïcode µA", "# not a comment", "[not.a.table]", "key = value"]
+HOSTILE_TEXT = [
+    "plain",
+    'say "cheese"',
+    "back\\slash C:\\new",
+    "two\nlines",
+    "tab\there",
+    "''' and \"\"\"",
+    "ünïcode µA",
+    "# not a comment",
+    "[not.a.table]",
+    "key = value",
+]
 
 
 @pytest.mark.parametrize("text", HOSTILE_TEXT)
@@ -374,8 +435,14 @@ def test_a_protocol_with_any_strings_round_trips_through_toml(text):
 
     from acquisition.protocols.compression_series import load_protocol
 
-    p = load_protocol({"name": text, "detector": {"folder": text, "pattern": text, "shape": [8, 16]},
-                       "source": {"port": text, "kv_max": 80.0}, "sim": {"scene": text}})
+    p = load_protocol(
+        {
+            "name": text,
+            "detector": {"folder": text, "pattern": text, "shape": [8, 16]},
+            "source": {"port": text, "kv_max": 80.0},
+            "sim": {"scene": text},
+        }
+    )
     written = p.to_toml()
     data = tomllib.loads(written)
     assert data["name"] == data["detector"]["folder"] == data["source"]["port"] == data["sim"]["scene"] == text
@@ -389,25 +456,51 @@ def test_a_protocol_with_any_strings_round_trips_through_toml(text):
 # Each layout is built valid by radiokit's own writer, then one thing is broken with h5py. Every
 # reader must answer with one FormatError line naming the file: never another exception (a
 # KeyError, a RuntimeError from libhdf5, a MemoryError), never a silently wrong record.
-from radiokit.io import (EnhancedImages, RegistrationRecord, ResultsRecord, SimulationRecord, StackWriter,  # noqa: E402
-                         read_progress, read_registration, read_results, read_simulation, read_stack,
-                         write_registration, write_results)
+from radiokit.io import (  # noqa: E402
+    EnhancedImages,
+    RegistrationRecord,
+    ResultsRecord,
+    SimulationRecord,
+    StackWriter,
+    read_progress,
+    read_registration,
+    read_results,
+    read_simulation,
+    read_stack,
+    write_registration,
+    write_results,
+)
 from radiokit.results import Results, load_results  # noqa: E402
 
 SMALL_BUDGET = "64MiB"  # the huge shapes below declare terabytes: refused whatever the machine has
 
 
 def _registration_file(path):
-    write_registration(path, RegistrationRecord("rc", "a.h5", "b.h5", np.zeros((2, 4, 5), np.float32),
-                                                np.ones((4, 5), np.float32), {"ok": True}))
+    write_registration(
+        path,
+        RegistrationRecord(
+            "rc", "a.h5", "b.h5", np.zeros((2, 4, 5), np.float32), np.ones((4, 5), np.float32), {"ok": True}
+        ),
+    )
 
 
 def _results_file(path):
     steps = np.ones((2, 4, 5), np.float32)
-    write_results(path, ResultsRecord(
-        source="exp.h5", results_json="{}", line_integral=steps, step=np.array([1, 2]), ratio=np.array([0.1, 0.2]),
-        crop=np.array([0, 4, 0, 5]), pair=(2, 1), registration={"registered": steps[0]},
-        enhanced={"log": EnhancedImages(steps[0], steps[1], {"1": steps[0]})}, rois={"inclusion": np.array([0, 2, 0, 2])}))
+    write_results(
+        path,
+        ResultsRecord(
+            source="exp.h5",
+            results_json="{}",
+            line_integral=steps,
+            step=np.array([1, 2]),
+            ratio=np.array([0.1, 0.2]),
+            crop=np.array([0, 4, 0, 5]),
+            pair=(2, 1),
+            registration={"registered": steps[0]},
+            enhanced={"log": EnhancedImages(steps[0], steps[1], {"1": steps[0]})},
+            rois={"inclusion": np.array([0, 2, 0, 2])},
+        ),
+    )
 
 
 def _stack_file(path):
@@ -418,9 +511,18 @@ def _stack_file(path):
 
 def _simulation_file(path):
     curve = np.array([0.1, 0.2])
-    record = SimulationRecord('name = "block"', curve, curve, curve, curve, curve, curve,
-                              np.zeros((2, 4, 5), np.float32), np.zeros((2, 4, 5), np.uint8),
-                              displacement={(1, 2): np.zeros((2, 4, 5), np.float32)})
+    record = SimulationRecord(
+        'name = "block"',
+        curve,
+        curve,
+        curve,
+        curve,
+        curve,
+        curve,
+        np.zeros((2, 4, 5), np.float32),
+        np.zeros((2, 4, 5), np.uint8),
+        displacement={(1, 2): np.zeros((2, 4, 5), np.float32)},
+    )
     with ExperimentWriter(path, shape=(4, 5)) as w:
         for key in (ImageKey.DARK, ImageKey.FLAT):
             w.append(np.full((4, 5), 100 * (key + 1), np.uint16), image_key=key)
@@ -465,7 +567,7 @@ def _break(path, name, rank, dtype, case):
     """Break dataset ``name`` of the layout file ``path`` in the way ``case`` says."""
     if case == "truncated":
         data = path.read_bytes()
-        path.write_bytes(data[:len(data) // 2])
+        path.write_bytes(data[: len(data) // 2])
         return
     if case == "not hdf5":
         path.write_bytes(b"this is a text file, whatever its name says\n" * 20)
@@ -513,8 +615,22 @@ def _break(path, name, rank, dtype, case):
             raise AssertionError(case)
 
 
-GENERIC = ["truncated", "not hdf5", "missing", "strings", "compound", "vlen", "wrong rank", "huge", "a group",
-           "external link", "external storage", "virtual", "soft link circle", "group in a circle"]
+GENERIC = [
+    "truncated",
+    "not hdf5",
+    "missing",
+    "strings",
+    "compound",
+    "vlen",
+    "wrong rank",
+    "huge",
+    "a group",
+    "external link",
+    "external storage",
+    "virtual",
+    "soft link circle",
+    "group in a circle",
+]
 
 
 def _refused(path, call, *needles):
@@ -552,8 +668,20 @@ def test_each_layout_reader_follows_outside_data_when_allowed(layout, case, tmp_
     reader(path, allow_external=True)
 
 
-@pytest.mark.parametrize("case", ["truncated", "strings", "compound", "wrong rank", "huge", "external link",
-                                  "virtual", "soft link circle", "group in a circle"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "truncated",
+        "strings",
+        "compound",
+        "wrong rank",
+        "huge",
+        "external link",
+        "virtual",
+        "soft link circle",
+        "group in a circle",
+    ],
+)
 @pytest.mark.parametrize("layout", ["registration", "results", "stack", "calibration", "progress"])
 def test_read_refuses_each_broken_layout_in_one_line(layout, case, tmp_path, monkeypatch):
     """``radiokit.io.read`` (and so ``radiokit info``) opens each layout at its plot."""
@@ -579,14 +707,20 @@ def _huge(h5, name, shape, dtype="f4"):
 FRAME = (10**6, 10**6)  # 4 TB of float32
 # every dataset of the layout huge and consistent with the others: only the budget can refuse it
 HUGE_CONSISTENT = {
-    "registration": lambda h5: (_huge(h5, "entry/registration/registered", FRAME),
-                                _huge(h5, "entry/registration/displacement", (2,) + FRAME)),
+    "registration": lambda h5: (
+        _huge(h5, "entry/registration/registered", FRAME),
+        _huge(h5, "entry/registration/displacement", (2,) + FRAME),
+    ),
     "results": lambda h5: _huge(h5, "entry/steps/line_integral", (2,) + FRAME),
     "stack": lambda h5: _huge(h5, "entry/data/data", (2,) + FRAME),
-    "simulation": lambda h5: [_huge(h5, f"entry/simulation/{name}", (2,) + FRAME, dtype)
-                              for name, dtype in (("line_integral", "f4"), ("inclusion_mask", "u1"))],
-    "simulation field": lambda h5: [_huge(h5, f"entry/simulation/{name}", (2,) + FRAME, "u1") for name in
-                                    ("line_integral", "inclusion_mask", "displacement/step1_to_step2")],
+    "simulation": lambda h5: [
+        _huge(h5, f"entry/simulation/{name}", (2,) + FRAME, dtype)
+        for name, dtype in (("line_integral", "f4"), ("inclusion_mask", "u1"))
+    ],
+    "simulation field": lambda h5: [
+        _huge(h5, f"entry/simulation/{name}", (2,) + FRAME, "u1")
+        for name in ("line_integral", "inclusion_mask", "displacement/step1_to_step2")
+    ],
     "calibration": lambda h5: [_huge(h5, f"calibration/{name}", FRAME) for name in ("dark", "flat")],
 }
 
@@ -608,12 +742,18 @@ def test_huge_consistent_shapes_are_refused_by_the_budget(layout, tmp_path, monk
 ROWS_COLS = (250, 400)  # 400 KB of float32 a frame: each array fits a 1 MiB budget, three do not
 # three frame-sized arrays, each within the budget, together over it
 OVER_IN_SUM = {
-    "registration": lambda h5: (_data("entry/registration/registered", np.zeros(ROWS_COLS, "f4"))(h5),
-                                _data("entry/registration/displacement", np.zeros((2,) + ROWS_COLS, "f4"))(h5)),
-    "results": lambda h5: [h5.create_dataset(f"entry/registration/{name}", data=np.zeros(ROWS_COLS, "f4"))
-                           for name in ("moving", "det_j", "confidence")],
-    "simulation": lambda h5: [_data(f"entry/simulation/{name}", np.zeros((2,) + ROWS_COLS, dtype))(h5) for name, dtype
-                              in (("line_integral", "f4"), ("inclusion_mask", "u1"), ("displacement/step1_to_step2", "f4"))],
+    "registration": lambda h5: (
+        _data("entry/registration/registered", np.zeros(ROWS_COLS, "f4"))(h5),
+        _data("entry/registration/displacement", np.zeros((2,) + ROWS_COLS, "f4"))(h5),
+    ),
+    "results": lambda h5: [
+        h5.create_dataset(f"entry/registration/{name}", data=np.zeros(ROWS_COLS, "f4"))
+        for name in ("moving", "det_j", "confidence")
+    ],
+    "simulation": lambda h5: [
+        _data(f"entry/simulation/{name}", np.zeros((2,) + ROWS_COLS, dtype))(h5)
+        for name, dtype in (("line_integral", "f4"), ("inclusion_mask", "u1"), ("displacement/step1_to_step2", "f4"))
+    ],
 }
 
 
@@ -637,6 +777,7 @@ def _attrs(name, **values):
                 del h5[name].attrs[key]
             else:
                 h5[name].attrs[key] = value
+
     return edit
 
 
@@ -644,12 +785,14 @@ def _data(name, values):
     def edit(h5):
         del h5[name]
         h5[name] = values
+
     return edit
 
 
 def _non_utf8(name, key):
     def edit(h5):
         h5[name].attrs.create(key, b"\xff\xfe caf\xe9", dtype=h5py.string_dtype("utf-8"))
+
     return edit
 
 
@@ -666,10 +809,18 @@ BAD_CONTENT = [
     ("results", "inf ratio", _data("entry/steps/ratio", np.array([0.1, np.inf])), "ratio"),
     ("results", "3 steps for 2 images", _data("entry/steps/step", np.array([1, 2, 3])), "step"),
     ("results", "a domain that is a dataset", _data("entry/enhanced/log", np.zeros((2, 4, 5), "f4")), "enhanced/log"),
-    ("registration", "field of another shape", _data("entry/registration/displacement", np.zeros((2, 3, 3), "f4")),
-     "displacement"),
-    ("registration", "field of 3 components", _data("entry/registration/displacement", np.zeros((3, 4, 5), "f4")),
-     "displacement"),
+    (
+        "registration",
+        "field of another shape",
+        _data("entry/registration/displacement", np.zeros((2, 3, 3), "f4")),
+        "displacement",
+    ),
+    (
+        "registration",
+        "field of 3 components",
+        _data("entry/registration/displacement", np.zeros((3, 4, 5), "f4")),
+        "displacement",
+    ),
     ("stack", "series longer than the stack", _data("entry/data/step", np.arange(5)), "step"),
     ("stack", "series of text", _data("entry/data/step", np.array([b"a", b"b"])), "step"),
     ("simulation", "NaN ratio", _data(f"{S}/ratio", np.array([0.1, np.nan])), "ratio"),
@@ -677,14 +828,27 @@ BAD_CONTENT = [
     ("simulation", "curves of two lengths", _data(f"{S}/gap_mm", np.array([1.0, 2.0, 3.0])), "gap_mm"),
     ("simulation", "fewer images than steps", _data(f"{S}/line_integral", np.zeros((1, 4, 5), "f4")), "line_integral"),
     ("simulation", "mask of another shape", _data(f"{S}/inclusion_mask", np.zeros((2, 4, 6), "u1")), "inclusion_mask"),
-    ("simulation", "field of another shape", _data(f"{S}/displacement/step1_to_step2", np.zeros((3, 4, 5), "f4")),
-     "step1_to_step2"),
-    ("simulation", "field of an unknown step",
-     lambda h5: h5.create_dataset(f"{S}/displacement/step1_to_step9", data=np.zeros((2, 4, 5), "f4")), "step1_to_step9"),
-    ("simulation", "defects of 3 columns", lambda h5: [h5.create_dataset(f"{S}/defects/{k}", data=np.zeros(shape))
-                                                       for k, shape in (("dead", (2, 3)), ("under", (0, 2)),
-                                                                        ("noisy", (0, 2)), ("columns", (0,)))],
-     "dead"),
+    (
+        "simulation",
+        "field of another shape",
+        _data(f"{S}/displacement/step1_to_step2", np.zeros((3, 4, 5), "f4")),
+        "step1_to_step2",
+    ),
+    (
+        "simulation",
+        "field of an unknown step",
+        lambda h5: h5.create_dataset(f"{S}/displacement/step1_to_step9", data=np.zeros((2, 4, 5), "f4")),
+        "step1_to_step9",
+    ),
+    (
+        "simulation",
+        "defects of 3 columns",
+        lambda h5: [
+            h5.create_dataset(f"{S}/defects/{k}", data=np.zeros(shape))
+            for k, shape in (("dead", (2, 3)), ("under", (0, 2)), ("noisy", (0, 2)), ("columns", (0,)))
+        ],
+        "dead",
+    ),
     ("simulation", "displacement a dataset", _data(f"{S}/displacement", np.zeros((2, 4, 5), "f4")), "displacement"),
     ("simulation", "gap as text", _attrs(S, initial_gap_mm="wide"), "initial_gap_mm"),
     ("simulation", "timing as text", _attrs(S, seconds_render="slow"), "seconds_render"),
@@ -711,12 +875,14 @@ def test_each_layout_reader_refuses_bad_content_in_one_line(layout, case, edit, 
 
 # text attributes are provenance (who wrote what): bytes that are not UTF-8 are shown replaced, as
 # U+FFFD, never raised on and never passed on as lone surrogates that cannot be printed
-NON_UTF8 = [("registration", "entry/registration", "method", lambda r: r.method),
-            ("registration", "entry/registration", "quality_reason", lambda r: r.quality["reason"]),
-            ("results", "entry", "source", lambda r: r.source),
-            ("stack", "entry/data", "source", lambda r: r.meta["source"]),
-            ("simulation", S, "scene", lambda r: r.scene_toml),
-            ("progress", "entry", "protocol", lambda r: r.protocol)]
+NON_UTF8 = [
+    ("registration", "entry/registration", "method", lambda r: r.method),
+    ("registration", "entry/registration", "quality_reason", lambda r: r.quality["reason"]),
+    ("results", "entry", "source", lambda r: r.source),
+    ("stack", "entry/data", "source", lambda r: r.meta["source"]),
+    ("simulation", S, "scene", lambda r: r.scene_toml),
+    ("progress", "entry", "protocol", lambda r: r.protocol),
+]
 
 
 @pytest.mark.parametrize("layout, group, key, get", NON_UTF8, ids=[f"{c[0]}-{c[2]}" for c in NON_UTF8])
@@ -740,9 +906,16 @@ def test_a_stack_attribute_nested_past_the_recursion_limit_stays_text(tmp_path):
     assert read_stack(path).meta["cal"] == bomb
 
 
-@pytest.mark.parametrize("layout, case", [("registration", "soft link circle"), ("results", "huge"),
-                                          ("stack", "truncated"), ("calibration", "strings"),
-                                          ("results", "group in a circle")])
+@pytest.mark.parametrize(
+    "layout, case",
+    [
+        ("registration", "soft link circle"),
+        ("results", "huge"),
+        ("stack", "truncated"),
+        ("calibration", "strings"),
+        ("results", "group in a circle"),
+    ],
+)
 def test_info_on_a_broken_layout_is_one_line(layout, case, tmp_path):
     make, _, name, rank, dtype = LAYOUTS[layout]
     path = tmp_path / f"{layout}.h5"
@@ -773,9 +946,18 @@ def _simulation_group_into(path):
     from radiokit.io import write_simulation
 
     curve = np.array([0.1, 0.2, 0.3])
-    record = SimulationRecord('name = "block"', curve, curve, curve, curve, curve, curve,
-                              np.zeros((3, 32, 40), np.float32), np.zeros((3, 32, 40), np.uint8),
-                              displacement={(2, 3): np.zeros((2, 32, 40), np.float32)})
+    record = SimulationRecord(
+        'name = "block"',
+        curve,
+        curve,
+        curve,
+        curve,
+        curve,
+        curve,
+        np.zeros((3, 32, 40), np.float32),
+        np.zeros((3, 32, 40), np.uint8),
+        displacement={(2, 3): np.zeros((2, 32, 40), np.float32)},
+    )
     write_simulation(path, record, replace=True)
 
 
@@ -787,11 +969,24 @@ def _results_json():
 
     per_k = (KMeasure(1.0, 0.1, 2.0, 0.05, 1.5, 1.8), KMeasure(2.0, 0.2, 3.0, 0.1, 2.5))
     record = Results(
-        source="exp.h5", scene="block", simulated=True, pixel_size_mm=0.1, domain=Domain.LOG, ks=(1.0, 2.0),
-        method="rc", steps=(1, 2, 3), ratios=(0.1, 0.2, float("nan")), rois=Rois((0, 40, 0, 50), (1, 5, 1, 5), (6, 9, 6, 9)),
+        source="exp.h5",
+        scene="block",
+        simulated=True,
+        pixel_size_mm=0.1,
+        domain=Domain.LOG,
+        ks=(1.0, 2.0),
+        method="rc",
+        steps=(1, 2, 3),
+        ratios=(0.1, 0.2, float("nan")),
+        rois=Rois((0, 40, 0, 50), (1, 5, 1, 5), (6, 9, 6, 9)),
         domains={Domain.LOG: DomainMeasures(Domain.LOG, 0.05, 1.0, 0.02, per_k)},
         pairs=(PairResult(3, 1, "rc", {"ok": True, "reason": "", "ncc": 0.9}, {Domain.LOG: 1.2}),),
-        main_pair="3->1", profiles_row=20, bound=Bound(0.3, "truth"), paper={}, timings={"total_s": 1.0})
+        main_pair="3->1",
+        profiles_row=20,
+        bound=Bound(0.3, "truth"),
+        paper={},
+        timings={"total_s": 1.0},
+    )
     return record.to_json()
 
 
@@ -839,14 +1034,36 @@ def _json_case(case):
     return json.dumps(d)
 
 
-JSON_BAD = ["missing domains", "missing schema_version", "major version 2", "version as a list", "ks as text",
-            "steps of text", "pixel_size_mm as text", "unknown domain", "domains as a list", "crop of 3",
-            "registration not a dict", "pair name without arrow", "main pair unknown", "contrast as text",
-            "k key not a number", "bound missing basis", "profiles_row as float", "control not a dict"]
-JSON_GARBAGE = {"not json": b"<html>results</html>", "empty": b" ", "not utf-8": b'{"source": "\xff\xfe"}',
-                "a list": b"[1, 2, 3]", "a number": b"42", "null": b"null",
-                "nested past the recursion limit": b"[" * 200_000 + b"]" * 200_000,
-                "deep object": b'{"a":' * 50_000 + b"1" + b"}" * 50_000}
+JSON_BAD = [
+    "missing domains",
+    "missing schema_version",
+    "major version 2",
+    "version as a list",
+    "ks as text",
+    "steps of text",
+    "pixel_size_mm as text",
+    "unknown domain",
+    "domains as a list",
+    "crop of 3",
+    "registration not a dict",
+    "pair name without arrow",
+    "main pair unknown",
+    "contrast as text",
+    "k key not a number",
+    "bound missing basis",
+    "profiles_row as float",
+    "control not a dict",
+]
+JSON_GARBAGE = {
+    "not json": b"<html>results</html>",
+    "empty": b" ",
+    "not utf-8": b'{"source": "\xff\xfe"}',
+    "a list": b"[1, 2, 3]",
+    "a number": b"42",
+    "null": b"null",
+    "nested past the recursion limit": b"[" * 200_000 + b"]" * 200_000,
+    "deep object": b'{"a":' * 50_000 + b"1" + b"}" * 50_000,
+}
 
 
 @pytest.mark.parametrize("case", JSON_BAD + sorted(JSON_GARBAGE))
@@ -904,8 +1121,15 @@ def test_read_with_nexus_names_that_are_not_utf8_reads_or_refuses_in_one_line(wh
         assert frames.data.shape == (2, 4, 5)
 
 
-READERS = {"load_results": load_results, "read": read, "read_results": read_results, "read_stack": read_stack,
-           "read_registration": read_registration, "read_simulation": read_simulation, "read_progress": read_progress}
+READERS = {
+    "load_results": load_results,
+    "read": read,
+    "read_results": read_results,
+    "read_stack": read_stack,
+    "read_registration": read_registration,
+    "read_simulation": read_simulation,
+    "read_progress": read_progress,
+}
 
 
 @pytest.mark.parametrize("reader", sorted(READERS))
@@ -919,7 +1143,6 @@ def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
     else:
         path = "/dev/zero"
     _refused(path, lambda: READERS[reader](path), "not a regular file")
-
 
 
 def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tmp_path):
@@ -948,8 +1171,9 @@ def _calibration(path, **attrs):
     from radiokit.calibrate import Calibration
 
     n = 8
-    cal = Calibration(np.full((n, n), 100.0, np.float32), np.full((n, n), 3000.0, np.float32),
-                      np.zeros((n, n), np.uint8))
+    cal = Calibration(
+        np.full((n, n), 100.0, np.float32), np.full((n, n), 3000.0, np.float32), np.zeros((n, n), np.uint8)
+    )
     cal.save(path)
     with h5py.File(path, "a") as h5:
         for name, value in attrs.items():
@@ -960,13 +1184,16 @@ def _calibration(path, **attrs):
     return path
 
 
-@pytest.mark.parametrize("attrs, words", [
-    (dict(thresholds="{not json"), ("thresholds", "not JSON")),
-    (dict(thresholds="[1, 2]"), ("thresholds", "JSON object")),
-    (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
-    (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
-    (dict(provenance=b"\xff\xfe"), ("provenance",)),
-])
+@pytest.mark.parametrize(
+    "attrs, words",
+    [
+        (dict(thresholds="{not json"), ("thresholds", "not JSON")),
+        (dict(thresholds="[1, 2]"), ("thresholds", "JSON object")),
+        (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
+        (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
+        (dict(provenance=b"\xff\xfe"), ("provenance",)),
+    ],
+)
 def test_a_calibration_with_bad_attributes_is_one_line(tmp_path, attrs, words):
     from radiokit.calibrate import Calibration
 

@@ -2,6 +2,7 @@
 ITEX files, raw round trips for every C7942 preset, TIFF, the experiment HDF5 (including a writer
 killed with SIGKILL), and properties: truncated, corrupted or random files raise FormatError and
 nothing else."""
+
 import json
 import os
 import re
@@ -19,15 +20,27 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
+from conftest import ITEX_DIR, needs_itex
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from radiokit.errors import FormatError
-from radiokit.io import (DEFAULT_PRESET, PRESETS, BitDepthWarning, ExperimentWriter, Frames, ImageKey,
-                         StackWriter, iter_frames, open_frames, read, sniff, write_tiff)
+from radiokit.io import (
+    DEFAULT_PRESET,
+    PRESETS,
+    BitDepthWarning,
+    ExperimentWriter,
+    Frames,
+    ImageKey,
+    StackWriter,
+    iter_frames,
+    open_frames,
+    read,
+    sniff,
+    write_tiff,
+)
 from radiokit.io._itex import parse_comment
 
-from conftest import ITEX_DIR, needs_itex
 PROPS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
@@ -46,20 +59,28 @@ def _raises_format(path, *fragments, **hints):
 # 1. The five real ITEX files, against an independent parse of the layout in C7942.md
 # ------------------------------------------------------------------------------------------------
 
+
 def _independent_itex(path):
     """Parse an ITEX file with struct and numpy only, from the table in C7942.md."""
     raw = Path(path).read_bytes()
     assert raw[:2] == b"IM"
-    comment_len, width, height, x0, y0, ftype = (struct.unpack_from("<h", raw, off)[0]
-                                                 for off in (2, 4, 6, 8, 10, 12))
+    comment_len, width, height, x0, y0, ftype = (struct.unpack_from("<h", raw, off)[0] for off in (2, 4, 6, 8, 10, 12))
     n_images = struct.unpack_from("<i", raw, 14)[0]
     dtype = {0: "<u1", 2: "<u2", 3: "<u4"}[ftype]
     offset = 64 + comment_len
     n = max(n_images, 1)
     pixels = np.frombuffer(raw, dtype=dtype, count=n * width * height, offset=offset)
     comment = raw[64:offset].decode("latin-1")
-    return dict(raw=raw, width=width, height=height, ftype=ftype, n_images=n_images, offset=offset,
-                comment=comment, pixels=pixels.reshape(n, height, width))
+    return dict(
+        raw=raw,
+        width=width,
+        height=height,
+        ftype=ftype,
+        n_images=n_images,
+        offset=offset,
+        comment=comment,
+        pixels=pixels.reshape(n, height, width),
+    )
 
 
 # name: (rows, cols, dtype, file type, comment length, min, max, sum)
@@ -100,8 +121,12 @@ def test_real_itex_pixels_match_independent_parse(name):
     # row 0 is the first row stored, column order as stored
     first = np.frombuffer(ref["raw"], dtype=np.dtype(dtype).newbyteorder("<"), count=cols, offset=ref["offset"])
     np.testing.assert_array_equal(f.data[0, 0], first)
-    last_px = np.frombuffer(ref["raw"], dtype=np.dtype(dtype).newbyteorder("<"), count=1,
-                            offset=ref["offset"] + (rows * cols - 1) * np.dtype(dtype).itemsize)[0]
+    last_px = np.frombuffer(
+        ref["raw"],
+        dtype=np.dtype(dtype).newbyteorder("<"),
+        count=1,
+        offset=ref["offset"] + (rows * cols - 1) * np.dtype(dtype).itemsize,
+    )[0]
     assert f.data[0, -1, -1] == last_px
 
     m = f.meta
@@ -263,7 +288,7 @@ def test_real_itex_scaling_axes(name):
 def test_real_itex_axis_values_are_monotonic_wavelengths_and_times():
     s = read(ITEX_DIR / "operate_mode.img").meta["scaling"]
     x, y = s["x"]["values"], s["y"]["values"]
-    assert np.all(np.diff(x) < 0)      # a spectrograph axis, in nm, decreasing
+    assert np.all(np.diff(x) < 0)  # a spectrograph axis, in nm, decreasing
     assert 400 < x.min() < x.max() < 600
     assert y[0] == 0 and np.all(np.diff(y) > 0)  # a streak time axis starting at 0
     assert y[-1] == pytest.approx(16.009396, rel=1e-6)
@@ -273,8 +298,10 @@ def test_real_itex_axis_values_are_monotonic_wavelengths_and_times():
 # 2. Synthetic ITEX files
 # ------------------------------------------------------------------------------------------------
 
-def _itex_bytes(pixels, ftype, comment=b"", n_images=None, tail=b"", width=None, height=None,
-                comment_len=None, magic=b"IM"):
+
+def _itex_bytes(
+    pixels, ftype, comment=b"", n_images=None, tail=b"", width=None, height=None, comment_len=None, magic=b"IM"
+):
     """Build an ITEX file from the layout in C7942.md."""
     pixels = np.asarray(pixels)
     if pixels.ndim == 2:
@@ -357,8 +384,9 @@ def test_itex_n_hint_out_of_range(tmp_path, n):
 def test_itex_scaling_pointer_synthetic(tmp_path):
     pix = np.arange(12, dtype=np.uint16).reshape(3, 4)
     axis = np.linspace(-1, 1, 4).astype("<f4")
-    comment = (b'[Scaling],ScalingXType=2,ScalingXUnit="mm",ScalingXScalingFile="#OFFS,0004",'
-               b'ScalingYScalingFile="Focus mode"')
+    comment = (
+        b'[Scaling],ScalingXType=2,ScalingXUnit="mm",ScalingXScalingFile="#OFFS,0004",ScalingYScalingFile="Focus mode"'
+    )
     off = 64 + len(comment) + pix.nbytes
     comment = comment.replace(b"OFFS", b"%04d" % off)
     path = tmp_path / "scaled.img"
@@ -383,25 +411,31 @@ def test_itex_compressed_type_raises(tmp_path):
     _raises_format(path, "compressed")
 
 
-@pytest.mark.parametrize("change", [
-    dict(width=9),                 # wider than the pixels present
-    dict(height=30000),
-    dict(n_images=5),
-    dict(comment_len=200),         # comment claimed longer than the file
-    dict(n_images=2**31 - 1),
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        dict(width=9),  # wider than the pixels present
+        dict(height=30000),
+        dict(n_images=5),
+        dict(comment_len=200),  # comment claimed longer than the file
+        dict(n_images=2**31 - 1),
+    ],
+)
 def test_itex_header_promises_more_than_file(tmp_path, change):
     path = tmp_path / "short.img"
     path.write_bytes(_itex_bytes(np.ones((4, 8), np.uint16), 2, b"[A],b=1", **change))
     _raises_format(path, "the file has")
 
 
-@pytest.mark.parametrize("change, fragment", [
-    (dict(width=0), "0x4"),
-    (dict(height=-4), "8x-4"),
-    (dict(n_images=-2), "negative image count"),
-    (dict(comment_len=-5), "negative comment length"),
-])
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        (dict(width=0), "0x4"),
+        (dict(height=-4), "8x-4"),
+        (dict(n_images=-2), "negative image count"),
+        (dict(comment_len=-5), "negative comment length"),
+    ],
+)
 def test_itex_header_nonsense(tmp_path, change, fragment):
     path = tmp_path / "nonsense.img"
     path.write_bytes(_itex_bytes(np.ones((4, 8), np.uint16), 2, **change))
@@ -430,29 +464,35 @@ def test_itex_magic_without_extension_is_itex(tmp_path):
     np.testing.assert_array_equal(read(path).data[0], pix)
 
 
-@pytest.mark.parametrize("text, expected", [
-    ('[A],k=1,s="x, y",f=2.5', {"A": {"k": 1, "s": "x, y", "f": 2.5}}),
-    ("[A],a=1[B],b=2", {"A": {"a": 1}, "B": {"b": 2}}),
-    ('[A],a="1,2"[B],b=x y\r\n[C],c=-3', {"A": {"a": "1,2"}, "B": {"b": "x y"}, "C": {"c": -3}}),
-    ("k=1,[S],v=1e-3", {"": {"k": 1}, "S": {"v": 1e-3}}),
-    ("[S],empty=,q=\"\"", {"S": {"empty": "", "q": ""}}),
-    ('[S],a="[not a section]"', {"S": {"a": "[not a section]"}}),
-    ("[S],a=b=c", {"S": {"a": "b=c"}}),
-    ("[S],stray,k=2", {"S": {"k": 2}, "_unparsed": ["stray"]}),
-    ("[S],stray,[T],k=2", {"S": {}, "T": {"k": 2}, "_unparsed": ["stray"]}),
-    ("[S],n=" + "9" * 5000, {"S": {"n": "9" * 5000}}),   # too long for int(): stays text
-    # only plain decimal literals become numbers
-    ("[S],a=1_000,b=nan,c=Infinity,d=+7,e=.5,f=0x10", {"S": {"a": "1_000", "b": "nan", "c": "Infinity",
-                                                            "d": 7, "e": 0.5, "f": "0x10"}}),
-    ("", {}),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ('[A],k=1,s="x, y",f=2.5', {"A": {"k": 1, "s": "x, y", "f": 2.5}}),
+        ("[A],a=1[B],b=2", {"A": {"a": 1}, "B": {"b": 2}}),
+        ('[A],a="1,2"[B],b=x y\r\n[C],c=-3', {"A": {"a": "1,2"}, "B": {"b": "x y"}, "C": {"c": -3}}),
+        ("k=1,[S],v=1e-3", {"": {"k": 1}, "S": {"v": 1e-3}}),
+        ('[S],empty=,q=""', {"S": {"empty": "", "q": ""}}),
+        ('[S],a="[not a section]"', {"S": {"a": "[not a section]"}}),
+        ("[S],a=b=c", {"S": {"a": "b=c"}}),
+        ("[S],stray,k=2", {"S": {"k": 2}, "_unparsed": ["stray"]}),
+        ("[S],stray,[T],k=2", {"S": {}, "T": {"k": 2}, "_unparsed": ["stray"]}),
+        ("[S],n=" + "9" * 5000, {"S": {"n": "9" * 5000}}),  # too long for int(): stays text
+        # only plain decimal literals become numbers
+        (
+            "[S],a=1_000,b=nan,c=Infinity,d=+7,e=.5,f=0x10",
+            {"S": {"a": "1_000", "b": "nan", "c": "Infinity", "d": 7, "e": 0.5, "f": "0x10"}},
+        ),
+        ("", {}),
+    ],
+)
 def test_parse_comment_table(text, expected):
     assert parse_comment(text) == expected
 
 
 @PROPS
-@given(st.text(alphabet=st.sampled_from(list('[]=,"\r\n \x00aZ09.-_#')) | st.characters(max_codepoint=255),
-               max_size=200))
+@given(
+    st.text(alphabet=st.sampled_from(list('[]=,"\r\n \x00aZ09.-_#')) | st.characters(max_codepoint=255), max_size=200)
+)
 def test_parse_comment_never_raises(text):
     out = parse_comment(text)
     assert isinstance(out, dict)
@@ -466,9 +506,15 @@ def test_parse_comment_never_raises(text):
 
 # name: (rows, cols, binning)
 PRESET_TABLE = {
-    "c7942": (2240, 2240, 1), "c7942-2x2": (1120, 1120, 2), "c7942-4x4": (560, 560, 4),
-    "c7942-2344": (2344, 2240, 1), "c7942-2344-2x2": (1172, 1120, 2), "c7942-2344-4x4": (586, 560, 4),
-    "c7942-2368": (2368, 2240, 1), "c7942-2368-2x2": (1184, 1120, 2), "c7942-2368-4x4": (592, 560, 4),
+    "c7942": (2240, 2240, 1),
+    "c7942-2x2": (1120, 1120, 2),
+    "c7942-4x4": (560, 560, 4),
+    "c7942-2344": (2344, 2240, 1),
+    "c7942-2344-2x2": (1172, 1120, 2),
+    "c7942-2344-4x4": (586, 560, 4),
+    "c7942-2368": (2368, 2240, 1),
+    "c7942-2368-2x2": (1184, 1120, 2),
+    "c7942-2368-4x4": (592, 560, 4),
 }
 
 
@@ -591,13 +637,16 @@ def test_raw_preset_hint_with_partial_frame(tmp_path):
     _raises_format(path, preset="c7942")
 
 
-@pytest.mark.parametrize("dtype, values", [
-    ("<u2", [0, 1, 4095, 65535]),
-    ("<u4", [0, 1, 2**32 - 1, 7]),
-    ("<f4", [0.5, -1.0, 1e30, 3.0]),
-    ("<i2", [-32768, 0, 32767, 5]),
-    ("u1", [0, 255, 128, 1]),
-])
+@pytest.mark.parametrize(
+    "dtype, values",
+    [
+        ("<u2", [0, 1, 4095, 65535]),
+        ("<u4", [0, 1, 2**32 - 1, 7]),
+        ("<f4", [0.5, -1.0, 1e30, 3.0]),
+        ("<i2", [-32768, 0, 32767, 5]),
+        ("u1", [0, 255, 128, 1]),
+    ],
+)
 def test_raw_explicit_shape_and_dtype(tmp_path, dtype, values):
     data = np.resize(np.array(values, dtype=dtype), (3, 4, 6))
     path = tmp_path / "custom.bin"
@@ -630,7 +679,7 @@ def test_raw_offset_skips_junk_header(tmp_path):
     data = _rand12((560, 560), seed=9)
     path = tmp_path / "junk.raw"
     path.write_bytes(b"J" * 100 + data.astype("<u2").tobytes())
-    _raises_format(path, "matches no")      # without the offset the size fits nothing
+    _raises_format(path, "matches no")  # without the offset the size fits nothing
     f = read(path, offset=100)
     assert f.meta["preset"] == "c7942-4x4" and f.meta["offset"] == 100
     np.testing.assert_array_equal(f.data[0], data)
@@ -638,31 +687,33 @@ def test_raw_offset_skips_junk_header(tmp_path):
     np.testing.assert_array_equal(g.data[0], data)
     small = tmp_path / "small.raw"
     small.write_bytes(b"H" * 100 + np.arange(12, dtype="<u2").tobytes())
-    np.testing.assert_array_equal(read(small, offset=100, shape=(3, 4)).data[0],
-                                  np.arange(12).reshape(3, 4))
+    np.testing.assert_array_equal(read(small, offset=100, shape=(3, 4)).data[0], np.arange(12).reshape(3, 4))
 
 
-@pytest.mark.parametrize("hints, fragment", [
-    (dict(offset=-1), "negative"),
-    (dict(offset=48), "beyond the end"),
-    (dict(offset=100), "beyond the end"),
-    (dict(offset=24), "matches no"),
-    (dict(shape=(0, 3)), "shape="),
-    (dict(shape=(1, 2, 3, 4)), "shape="),
-    (dict(shape=(5, 4)), "not a whole number"),
-    (dict(shape=(3, 4), n=3), "truncated"),
-    (dict(shape=(9, 3, 4)), "truncated"),
-    (dict(shape=(3, 4), n=0), "n="),
-    (dict(shape=(3, 4), n=-1), "n="),
-    (dict(shape=(3, 4), n=1.5), "n="),
-    (dict(dtype="<u4"), "explicit shape"),
-    (dict(dtype="not-a-dtype", shape=(3, 4)), "dtype"),
-    (dict(byteorder="middle"), "byteorder"),
-    (dict(preset="c9999"), "unknown preset"),
-])
+@pytest.mark.parametrize(
+    "hints, fragment",
+    [
+        (dict(offset=-1), "negative"),
+        (dict(offset=48), "beyond the end"),
+        (dict(offset=100), "beyond the end"),
+        (dict(offset=24), "matches no"),
+        (dict(shape=(0, 3)), "shape="),
+        (dict(shape=(1, 2, 3, 4)), "shape="),
+        (dict(shape=(5, 4)), "not a whole number"),
+        (dict(shape=(3, 4), n=3), "truncated"),
+        (dict(shape=(9, 3, 4)), "truncated"),
+        (dict(shape=(3, 4), n=0), "n="),
+        (dict(shape=(3, 4), n=-1), "n="),
+        (dict(shape=(3, 4), n=1.5), "n="),
+        (dict(dtype="<u4"), "explicit shape"),
+        (dict(dtype="not-a-dtype", shape=(3, 4)), "dtype"),
+        (dict(byteorder="middle"), "byteorder"),
+        (dict(preset="c9999"), "unknown preset"),
+    ],
+)
 def test_raw_bad_hints(tmp_path, hints, fragment):
     path = tmp_path / "hints.raw"
-    np.arange(24, dtype="<u2").tofile(path)   # 48 bytes: two (3, 4) frames
+    np.arange(24, dtype="<u2").tofile(path)  # 48 bytes: two (3, 4) frames
     _raises_format(path, fragment, **hints)
 
 
@@ -709,7 +760,7 @@ def test_bit_depth_warning(tmp_path):
         f = read(path)
     assert str(path) in str(rec[0].message)
     assert "12-bit" in str(rec[0].message)
-    np.testing.assert_array_equal(f.data[0], data)   # data still returned unchanged
+    np.testing.assert_array_equal(f.data[0], data)  # data still returned unchanged
 
 
 def test_bit_depth_warning_suggests_byteorder(tmp_path):
@@ -751,7 +802,7 @@ def test_no_bit_depth_warning_with_explicit_shape(tmp_path):
 
 def test_raw_file_starting_with_magic_bytes_is_raw_by_extension(tmp_path):
     data = _rand12((560, 560), seed=13)
-    data[0, 0] = int.from_bytes(b"IM", "little")   # 19785: the frame starts with b"IM"
+    data[0, 0] = int.from_bytes(b"IM", "little")  # 19785: the frame starts with b"IM"
     path = tmp_path / "im.raw"
     data.tofile(path)
     assert sniff(path) == "raw"
@@ -763,6 +814,7 @@ def test_raw_file_starting_with_magic_bytes_is_raw_by_extension(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # 4. TIFF
 # ------------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("dtype", [np.uint16, np.uint8, np.float32, np.uint32])
 def test_tiff_single_page(tmp_path, dtype):
@@ -807,8 +859,16 @@ def test_tiff_pages_written_one_by_one(tmp_path):
         np.testing.assert_array_equal(src[-1], data[2])
 
 
-@pytest.mark.parametrize("kw", [{"rowsperstrip": 3}, {"rowsperstrip": 1}, {"tile": (16, 16)},
-                                {"tile": (16, 32), "compression": "zlib"}, {"compression": "zlib", "rowsperstrip": 7}])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"rowsperstrip": 3},
+        {"rowsperstrip": 1},
+        {"tile": (16, 16)},
+        {"tile": (16, 32), "compression": "zlib"},
+        {"compression": "zlib", "rowsperstrip": 7},
+    ],
+)
 def test_tiff_strip_and_tile_layouts(tmp_path, kw):
     data = _rand12((2, 37, 50), seed=23)
     path = tmp_path / "layout.tif"
@@ -866,11 +926,14 @@ def test_write_tiff_single_frame_float(tmp_path):
         write_tiff(tmp_path / "bad.tif", np.zeros((2, 2, 2, 2)))
 
 
-@pytest.mark.parametrize("shape, kw", [
-    ((8, 9, 3), {"photometric": "rgb"}),
-    ((3, 8, 9), {"photometric": "rgb", "planarconfig": "separate"}),
-    ((8, 9, 4), {"photometric": "rgb", "extrasamples": ["unassalpha"]}),
-])
+@pytest.mark.parametrize(
+    "shape, kw",
+    [
+        ((8, 9, 3), {"photometric": "rgb"}),
+        ((3, 8, 9), {"photometric": "rgb", "planarconfig": "separate"}),
+        ((8, 9, 4), {"photometric": "rgb", "extrasamples": ["unassalpha"]}),
+    ],
+)
 def test_tiff_rgb_rejected(tmp_path, shape, kw):
     path = tmp_path / "rgb.tif"
     tifffile.imwrite(path, np.zeros(shape, np.uint8), **kw)
@@ -919,8 +982,16 @@ FRAME_META = [  # image_key, step, ratio, gap_mm, voltage_kv, current_ua
 def _write_experiment(path, rows=FRAME_META, start=0, **kw):
     with ExperimentWriter(path, **kw) as w:
         for j, (key, step, ratio, gap, kv, ua) in enumerate(rows):
-            i = w.append(_frame(start + j), image_key=key, step=step, ratio=ratio, gap_mm=gap,
-                         voltage_kv=kv, current_ua=ua, time_s=1000.0 + start + j)
+            i = w.append(
+                _frame(start + j),
+                image_key=key,
+                step=step,
+                ratio=ratio,
+                gap_mm=gap,
+                voltage_kv=kv,
+                current_ua=ua,
+                time_s=1000.0 + start + j,
+            )
             assert i == start + j
             assert w.n_frames == start + j + 1
     return path
@@ -936,16 +1007,19 @@ def _check_meta(meta, rows):
     np.testing.assert_array_equal(meta["step"], [r[1] for r in rows])
     assert meta["step"].dtype == np.int16
     np.testing.assert_array_equal(meta["ratio"], [_nan(r[2]) for r in rows])
-    np.testing.assert_allclose(meta["gap"], [_nan(r[3]) if r[3] is None else r[3] * 1e-3 for r in rows],
-                               rtol=1e-12)
+    np.testing.assert_allclose(meta["gap"], [_nan(r[3]) if r[3] is None else r[3] * 1e-3 for r in rows], rtol=1e-12)
     np.testing.assert_array_equal(meta["voltage"], [_nan(r[4]) for r in rows])
     np.testing.assert_array_equal(meta["current"], [_nan(r[5]) for r in rows])
     np.testing.assert_array_equal(meta["time"], 1000.0 + np.arange(len(rows)))
 
 
 def test_experiment_write_read(tmp_path):
-    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE, pixel_size_mm=0.1,
-                             source={"name": "L8121-01", "voltage_kv": 40, "current_ua": 100})
+    path = _write_experiment(
+        tmp_path / "exp.h5",
+        shape=EXP_SHAPE,
+        pixel_size_mm=0.1,
+        source={"name": "L8121-01", "voltage_kv": 40, "current_ua": 100},
+    )
     f = read(path)
     assert f.meta["format"] == "experiment"
     assert f.n == len(FRAME_META)
@@ -1078,7 +1152,7 @@ def test_experiment_odd_types_are_skipped_or_refused(tmp_path):
     path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
     with h5py.File(path, "r+") as h5:
         src = h5["entry/instrument/source"]
-        del src["type"]   # a corrupt byte once turned this string into a vlen sequence: segfault
+        del src["type"]  # a corrupt byte once turned this string into a vlen sequence: segfault
         src.create_dataset("type", shape=(), dtype=h5py.vlen_dtype(np.uint8))
         src["array"] = np.arange(3)
     f = read(path)
@@ -1147,7 +1221,6 @@ def test_stackwriter_hdf5_read_back(tmp_path):
     _raises_format(tmp_path / "out.h5", "dimensions", dataset="entry/data/step")  # 1-D: not frames
 
 
-
 @pytest.mark.parametrize("direct", [True, False], ids=["o_direct", "page_cache"])
 def test_stackwriter_preallocated_direct_and_buffered_agree(tmp_path, monkeypatch, direct):
     """With n_frames known, frames (4 KiB multiples here) go straight to their chunks with
@@ -1187,10 +1260,11 @@ _CRASH_WRITER = textwrap.dedent("""
 def test_experiment_survives_sigkill(tmp_path):
     path = tmp_path / "crash.h5"
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    proc = subprocess.Popen([sys.executable, "-c", _CRASH_WRITER, str(path)], stdout=subprocess.PIPE,
-                            text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CRASH_WRITER, str(path)], stdout=subprocess.PIPE, text=True, env=env
+    )
     last = -1
-    watchdog = threading.Timer(60, proc.kill)   # never hang the suite on a stuck writer
+    watchdog = threading.Timer(60, proc.kill)  # never hang the suite on a stuck writer
     watchdog.start()
     try:
         for line in proc.stdout:
@@ -1199,7 +1273,7 @@ def test_experiment_survives_sigkill(tmp_path):
                 break
     finally:
         watchdog.cancel()
-        proc.send_signal(signal.SIGKILL)   # kills it wherever it is, possibly mid-append
+        proc.send_signal(signal.SIGKILL)  # kills it wherever it is, possibly mid-append
         proc.wait()
         proc.stdout.close()
     assert last >= 5, "the writer never reported five frames"
@@ -1208,7 +1282,7 @@ def test_experiment_survives_sigkill(tmp_path):
     rows, cols = 48, 40
     base = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
     f = read(path)
-    assert f.n >= last + 1        # every frame reported complete is there
+    assert f.n >= last + 1  # every frame reported complete is there
     for i in range(f.n):
         np.testing.assert_array_equal(f.data[i], (base * 3 + i * 17) % 4096)
     np.testing.assert_array_equal(f.meta["step"], np.arange(f.n))
@@ -1222,7 +1296,7 @@ def test_experiment_survives_sigkill(tmp_path):
         w.append(np.full((rows, cols), 8, np.uint16), image_key=ImageKey.FLAT)
     g = read(path)
     assert g.n == f.n + 2
-    np.testing.assert_array_equal(g.data[:f.n], f.data)
+    np.testing.assert_array_equal(g.data[: f.n], f.data)
     assert int(g.data[-2].max()) == 7 and int(g.data[-1].min()) == 8
     np.testing.assert_array_equal(g.meta["image_key"][-2:], [2, 1])
 
@@ -1230,6 +1304,7 @@ def test_experiment_survives_sigkill(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # 6. Properties: truncated and random files raise FormatError and nothing else
 # ------------------------------------------------------------------------------------------------
+
 
 def _valid_raw_custom(path):
     np.arange(2 * 5 * 7, dtype="<u2").reshape(2, 5, 7).tofile(path)
@@ -1242,7 +1317,7 @@ def _valid_raw_custom_2d(path):
 
 
 def _valid_raw_preset(path):
-    _rand12((560, 560), seed=20).tofile(path)   # c7942-4x4, the smallest preset
+    _rand12((560, 560), seed=20).tofile(path)  # c7942-4x4, the smallest preset
     return {}
 
 
@@ -1319,7 +1394,7 @@ def _tiff_referenced_end(data: bytes) -> int:
             if nbytes > 4:
                 end = max(end, value + nbytes)
             tags[code] = value
-        end = max(end, tags[273] + tags[279])   # one strip per page, as tifffile writes small pages
+        end = max(end, tags[273] + tags[279])  # one strip per page, as tifffile writes small pages
         ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * count)[0]
     return end
 
@@ -1425,8 +1500,9 @@ def test_random_itex_headers(scratch, data):
     path = scratch / "h.img"
     head = bytearray(64)
     head[0:2] = b"IM"
-    struct.pack_into("<hhhhhh", head, 2, *(data.draw(st.integers(-40, 300)) for _ in range(3)),
-                     0, 0, data.draw(st.integers(-1, 4)))
+    struct.pack_into(
+        "<hhhhhh", head, 2, *(data.draw(st.integers(-40, 300)) for _ in range(3)), 0, 0, data.draw(st.integers(-1, 4))
+    )
     struct.pack_into("<i", head, 14, data.draw(st.integers(-2, 4)))
     body = data.draw(st.binary(max_size=600))
     path.write_bytes(bytes(head) + body)
@@ -1443,6 +1519,7 @@ def test_random_itex_headers(scratch, data):
 # ------------------------------------------------------------------------------------------------
 # 7. Empty, missing, directories
 # ------------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("ext", [".raw", ".img", ".tif", ".h5", ".bin", ""])
 @pytest.mark.parametrize("fmt", [None, "raw", "tiff", "itex", "hdf5"])
@@ -1514,8 +1591,9 @@ def test_read_gives_a_calibration_as_its_dark_and_flat(tmp_path):
     from radiokit.calibrate import Calibration
 
     rng = np.random.default_rng(4)
-    cal = Calibration.from_frames(rng.normal(100, 2, (5, 16, 24)).astype(np.uint16),
-                                  rng.normal(3000, 30, (5, 16, 24)).astype(np.uint16))
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (5, 16, 24)).astype(np.uint16), rng.normal(3000, 30, (5, 16, 24)).astype(np.uint16)
+    )
     cal.save(tmp_path / "cal.h5")
     f = read(tmp_path / "cal.h5")
     assert f.shape == (2, 16, 24) and f.meta["image_key"].tolist() == [ImageKey.DARK, ImageKey.FLAT]

@@ -8,6 +8,7 @@ and check that the driver stops with the right error and the tube ends up off. T
 serve each dialect at each baud rate and check that ``dialect="auto"`` finds it with harmless
 queries only, and refuses a device that speaks neither.
 """
+
 from __future__ import annotations
 
 import logging
@@ -25,8 +26,19 @@ import serial
 
 from acquisition.emulators.l8121 import DEFAULT_BAUD, L8121Model, PtyServer, SocketServer
 from acquisition.errors import DeviceError, SourceFault
-from acquisition.l8121 import (DIALECT_A, DIALECT_B, PROBE_QUERIES, RATINGS, Aging, Command, L8121, SourceConfig,
-                               SourceState, WarmupState, probe)
+from acquisition.l8121 import (
+    DIALECT_A,
+    DIALECT_B,
+    L8121,
+    PROBE_QUERIES,
+    RATINGS,
+    Aging,
+    Command,
+    SourceConfig,
+    SourceState,
+    WarmupState,
+    probe,
+)
 from acquisition.transport import SerialTransport
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -39,12 +51,32 @@ BAUDS = (9600, 38400, 115200)
 
 # What each dialect puts on the wire for the same driver call.
 WIRE = {
-    "A": dict(set_60_250=["HIV 60", "CUR 250"], warm="WUP", last_beam_read="SAR", status=["STS"],
-              measured=["SAR"], setpoint=["SVI"], warmup=["SWE"], focus_get=["SFC"], focus_2="CFS 2",
-              interlock_open_reply="SIN 1", connect_last="TYP"),
-    "B": dict(set_60_250=["PHV 600", "PCU 250"], warm="XON", last_beam_read="SCU", status=["STS", "DAG"],
-              measured=["SHV", "SCU"], setpoint=["SPV", "SPC"], warmup=["DAG"], focus_get=["SFS"], focus_2="CFL",
-              interlock_open_reply="INTER LOCK OFF", connect_last="SRL"),
+    "A": dict(
+        set_60_250=["HIV 60", "CUR 250"],
+        warm="WUP",
+        last_beam_read="SAR",
+        status=["STS"],
+        measured=["SAR"],
+        setpoint=["SVI"],
+        warmup=["SWE"],
+        focus_get=["SFC"],
+        focus_2="CFS 2",
+        interlock_open_reply="SIN 1",
+        connect_last="TYP",
+    ),
+    "B": dict(
+        set_60_250=["PHV 600", "PCU 250"],
+        warm="XON",
+        last_beam_read="SCU",
+        status=["STS", "DAG"],
+        measured=["SHV", "SCU"],
+        setpoint=["SPV", "SPC"],
+        warmup=["DAG"],
+        focus_get=["SFS"],
+        focus_2="CFL",
+        interlock_open_reply="INTER LOCK OFF",
+        connect_last="SRL",
+    ),
 }
 
 
@@ -90,7 +122,7 @@ def commands_after(model: L8121Model, command: str) -> list[str]:
     """The commands the model received after the last ``command``."""
     cmds = model.commands
     assert command in cmds, f"{command} never sent: {cmds}"
-    return cmds[len(cmds) - cmds[::-1].index(command):]
+    return cmds[len(cmds) - cmds[::-1].index(command) :]
 
 
 def link(server, dialect, **kw):
@@ -126,11 +158,15 @@ def test_transport_keeps_min_interval_and_never_interleaves():
     interval = 0.03
     replies: dict[str, list[tuple[str, str]]] = {"HIV": [], "CUR": []}
     with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=interval) as lnk:
+
         def worker(word, values):
             for v in values:
                 replies[word].append((f"{word} {v}", lnk.query(f"{word} {v}")))
-        threads = [threading.Thread(target=worker, args=("HIV", range(50, 58))),
-                   threading.Thread(target=worker, args=("CUR", range(100, 108)))]
+
+        threads = [
+            threading.Thread(target=worker, args=("HIV", range(50, 58))),
+            threading.Thread(target=worker, args=("CUR", range(100, 108))),
+        ]
         for t in threads:
             t.start()
         for t in threads:
@@ -200,21 +236,24 @@ def test_the_pty_models_a_baud_mismatch(warm, dialect):
 
 
 # -- reading like the manual ----------------------------------------------------------------------
-@pytest.mark.parametrize("call, sent_key, expected", [
-    (lambda s: s.status(), "status", SourceState.STANDBY),
-    (lambda s: s.measured(), "measured", (0.0, 0.0)),
-    (lambda s: s.setpoint(), "setpoint", (40.0, 0.0)),
-    (lambda s: s.interlock_closed(), ["SIN"], True),
-    (lambda s: s.warmup_state(), "warmup", WarmupState.DONE),
-    (lambda s: s.error_code(), ["SER"], 0),
-    (lambda s: s.focus, "focus_get", 0),
-])
+@pytest.mark.parametrize(
+    "call, sent_key, expected",
+    [
+        (lambda s: s.status(), "status", SourceState.STANDBY),
+        (lambda s: s.measured(), "measured", (0.0, 0.0)),
+        (lambda s: s.setpoint(), "setpoint", (40.0, 0.0)),
+        (lambda s: s.interlock_closed(), ["SIN"], True),
+        (lambda s: s.warmup_state(), "warmup", WarmupState.DONE),
+        (lambda s: s.error_code(), ["SER"], 0),
+        (lambda s: s.focus, "focus_get", 0),
+    ],
+)
 def test_readings_are_the_same_calls_in_both_dialects(source, wire, call, sent_key, expected):
     src, model = source
     value = call(src)
     assert value == expected and type(value) is type(expected)
     sent = sent_key if isinstance(sent_key, list) else wire[sent_key]
-    assert model.commands[-len(sent):] == sent
+    assert model.commands[-len(sent) :] == sent
 
 
 def test_identity_and_operate_switch(source, dialect):
@@ -262,8 +301,11 @@ def test_connect_checks_the_identity_or_the_operate_switch(warm, dialect):
     else:
         for position in ("LOCAL", "OFF"):
             model.set_operate_switch(position)
-            with pytest.raises(DeviceError, match=rf"operate switch is {position} \(SRL\): it refuses remote "
-                                                  r"commands; turn it to REMOTE"):
+            with pytest.raises(
+                DeviceError,
+                match=rf"operate switch is {position} \(SRL\): it refuses remote "
+                r"commands; turn it to REMOTE",
+            ):
                 driver(server, dialect)
         model.set_operate_switch("REMOTE")
         with driver(server, dialect) as src:
@@ -276,11 +318,16 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
     other = {"A": "B", "B": "A"}[dialect]
     model = L8121Model(dialect=dialect, warmed_up=True)
     with PtyServer(model) as server:
-        with pytest.raises(DeviceError, match={"A": r"SRL refused by the controller \(ERR\); is this unit on 38400 "
-                                                    r"baud and speaking dialect B\? If it speaks dialect A, set "
-                                                    r"dialect = \"A\" or \"auto\"",
-                                               "B": r"TYP refused .*If it speaks dialect B, set dialect = \"B\" or "
-                                                    r"\"auto\""}[dialect]):
+        with pytest.raises(
+            DeviceError,
+            match={
+                "A": r"SRL refused by the controller \(ERR\); is this unit on 38400 "
+                r"baud and speaking dialect B\? If it speaks dialect A, set "
+                r"dialect = \"A\" or \"auto\"",
+                "B": r"TYP refused .*If it speaks dialect B, set dialect = \"B\" or "
+                r"\"auto\"",
+            }[dialect],
+        ):
             L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
     assert set(model.commands) <= PROBE_QUERIES | {"SRL"}
 
@@ -288,9 +335,13 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
 def test_unparseable_replies_raise(source, dialect):
     src, model = source
     model.garbage()
-    for call, command in [(L8121.status, "STS"), (L8121.measured, WIRE[dialect]["measured"][0]),
-                          (L8121.setpoint, WIRE[dialect]["setpoint"][0]), (L8121.interlock_closed, "SIN"),
-                          (L8121.error_code, "SER")]:
+    for call, command in [
+        (L8121.status, "STS"),
+        (L8121.measured, WIRE[dialect]["measured"][0]),
+        (L8121.setpoint, WIRE[dialect]["setpoint"][0]),
+        (L8121.interlock_closed, "SIN"),
+        (L8121.error_code, "SER"),
+    ]:
         with pytest.raises(DeviceError, match=rf"unparseable reply to {command} \(dialect {dialect}\): '[^']*'"):
             call(src)
     focus = WIRE[dialect]["focus_2"].replace("CFS 2", "CFS 1").replace("CFL", "CFM")
@@ -298,30 +349,33 @@ def test_unparseable_replies_raise(source, dialect):
         src.focus = 1
 
 
-@pytest.mark.parametrize("query, reply", [
-    (DIALECT_A.readings["state"], "SVI 2"),            # wrong echo
-    (DIALECT_A.readings["state"], "STS"),              # no value
-    (DIALECT_A.readings["state"], "STS 2 2"),          # one field too many
-    (DIALECT_A.readings["state"], "STS 9"),            # no such state
-    (DIALECT_A.readings["state"], "STS 7"),            # B's pre-heating has no number in A
-    (DIALECT_A.readings["state"], "STS 2.5"),
-    (DIALECT_A.readings["state"], "STANDBY"),          # dialect B's answer
-    (DIALECT_A.readings["beam"], "SAR 3 60 nan 0 0 0 0"),
-    (DIALECT_A.readings["beam"], "SAR 3 6O 250 0 0 0 0"),  # letter O for zero
-    (DIALECT_A.readings["interlock_closed"], "SIN 2"),
-    (DIALECT_A.readings["interlock_closed"], "INTER LOCK ON"),
-    (DIALECT_B.readings["state"], "STS 2"),            # dialect A's answer
-    (DIALECT_B.readings["state"], "STANDBYE"),
-    (DIALECT_B.readings["voltage_kv"], "SHV 60.0"),    # no unit
-    (DIALECT_B.readings["voltage_kv"], "SHV 6O.0kV"),
-    (DIALECT_B.readings["voltage_kv"], "SHV 60.0uA"),  # wrong unit
-    (DIALECT_B.readings["current_ua"], "SCV 250uA"),
-    (DIALECT_B.readings["interlock_closed"], "INTER LOCK"),
-    (DIALECT_B.readings["interlock_closed"], "SIN 0"),
-    (DIALECT_B.readings["warmup"], "AGING 1 YET"),
-    (DIALECT_B.readings["warmup"], "AGING 1 2 DONE"),
-    (DIALECT_B.readings["operate_switch"], "REMOT"),
-])
+@pytest.mark.parametrize(
+    "query, reply",
+    [
+        (DIALECT_A.readings["state"], "SVI 2"),  # wrong echo
+        (DIALECT_A.readings["state"], "STS"),  # no value
+        (DIALECT_A.readings["state"], "STS 2 2"),  # one field too many
+        (DIALECT_A.readings["state"], "STS 9"),  # no such state
+        (DIALECT_A.readings["state"], "STS 7"),  # B's pre-heating has no number in A
+        (DIALECT_A.readings["state"], "STS 2.5"),
+        (DIALECT_A.readings["state"], "STANDBY"),  # dialect B's answer
+        (DIALECT_A.readings["beam"], "SAR 3 60 nan 0 0 0 0"),
+        (DIALECT_A.readings["beam"], "SAR 3 6O 250 0 0 0 0"),  # letter O for zero
+        (DIALECT_A.readings["interlock_closed"], "SIN 2"),
+        (DIALECT_A.readings["interlock_closed"], "INTER LOCK ON"),
+        (DIALECT_B.readings["state"], "STS 2"),  # dialect A's answer
+        (DIALECT_B.readings["state"], "STANDBYE"),
+        (DIALECT_B.readings["voltage_kv"], "SHV 60.0"),  # no unit
+        (DIALECT_B.readings["voltage_kv"], "SHV 6O.0kV"),
+        (DIALECT_B.readings["voltage_kv"], "SHV 60.0uA"),  # wrong unit
+        (DIALECT_B.readings["current_ua"], "SCV 250uA"),
+        (DIALECT_B.readings["interlock_closed"], "INTER LOCK"),
+        (DIALECT_B.readings["interlock_closed"], "SIN 0"),
+        (DIALECT_B.readings["warmup"], "AGING 1 YET"),
+        (DIALECT_B.readings["warmup"], "AGING 1 2 DONE"),
+        (DIALECT_B.readings["operate_switch"], "REMOT"),
+    ],
+)
 def test_query_parse_rejects(query, reply):
     with pytest.raises(ValueError):
         query.parse(reply)
@@ -333,8 +387,13 @@ def test_parse_and_echo_accept():
     assert a["identity"].parse("TYP L8121 01") == "L8121 01"
     assert a["interlock_closed"].parse("SIN 0") is True and a["interlock_closed"].parse("SIN 1") is False
     assert [b["state"].parse(w) for w in ("STANDBY", "XON", "AGING", "OVER", "NOT READY", "ERROR")] == [
-        SourceState.STANDBY, SourceState.XRAY_ON, SourceState.WARMING_UP, SourceState.OVERLOAD,
-        SourceState.NOT_READY, SourceState.PREHEATING]
+        SourceState.STANDBY,
+        SourceState.XRAY_ON,
+        SourceState.WARMING_UP,
+        SourceState.OVERLOAD,
+        SourceState.NOT_READY,
+        SourceState.PREHEATING,
+    ]
     assert b["voltage_kv"].parse("SHV 60.0kV") == 60.0 and b["voltage_kv"].parse("SHV 60.5 kV") == 60.5
     assert b["current_ua"].parse("SCU 250uA") == 250.0 and b["current_ua"].parse("SCU 250µA") == 250.0
     assert b["interlock_closed"].parse("INTER LOCK ON") is True
@@ -355,19 +414,22 @@ def test_refused_command_raises(source):
 
 
 # -- on(): limits first, then state ---------------------------------------------------------------
-@pytest.mark.parametrize("kv, ua, limit", [
-    (200, 100, "voltage_kv = 200 kV is outside kv_min..kv_max = 40..150 kV"),
-    (900, 100, "kv_min..kv_max"),
-    (30, 100, "kv_min..kv_max"),
-    (-60, 100, "kv_min..kv_max"),
-    (60, 600, "current_ua = 600 µA is outside ua_min..ua_max = 0..500 µA"),
-    (60, -1, "ua_min..ua_max"),
-    (100, 400, "watts_max = 30 W"),
-    (float("nan"), 100, "voltage_kv must be finite"),
-    (60, float("inf"), "current_ua must be finite"),
-    ("60", 100, "voltage_kv must be a number of kV"),
-    (True, 100, "voltage_kv must be a number"),
-])
+@pytest.mark.parametrize(
+    "kv, ua, limit",
+    [
+        (200, 100, "voltage_kv = 200 kV is outside kv_min..kv_max = 40..150 kV"),
+        (900, 100, "kv_min..kv_max"),
+        (30, 100, "kv_min..kv_max"),
+        (-60, 100, "kv_min..kv_max"),
+        (60, 600, "current_ua = 600 µA is outside ua_min..ua_max = 0..500 µA"),
+        (60, -1, "ua_min..ua_max"),
+        (100, 400, "watts_max = 30 W"),
+        (float("nan"), 100, "voltage_kv must be finite"),
+        (60, float("inf"), "current_ua must be finite"),
+        ("60", 100, "voltage_kv must be a number of kV"),
+        (True, 100, "voltage_kv must be a number"),
+    ],
+)
 def test_on_validates_before_sending(warm, dialect, kv, ua, limit):
     model, server = warm
     with driver(server, dialect, watts_max=30) as src:
@@ -478,6 +540,7 @@ def test_ctrl_c_during_warm_up_switches_off(cold, dialect):
         calls.append(state)
         if len(calls) == 2:
             raise KeyboardInterrupt
+
     with driver(server, dialect) as src:
         with pytest.raises(KeyboardInterrupt):
             src.warm_up(progress=interrupt)
@@ -500,8 +563,11 @@ def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
     model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
     model.inject_after("PCU", model.require_warm_up)
     with PtyServer(model) as server, driver(server, "B") as src:
-        with pytest.raises(SourceFault, match=r"warming up \(AGING\) instead of emitting the exposure; "
-                                              r"X-rays switched off"):
+        with pytest.raises(
+            SourceFault,
+            match=r"warming up \(AGING\) instead of emitting the exposure; "
+            r"X-rays switched off",
+        ):
             src.on(60, 250)
         assert not model.xray_on
     assert commands_after(model, "XON")[:3] == ["STS", "XOF", "STS"]
@@ -650,8 +716,9 @@ def test_operate_switch_turned_to_local_while_on(source, dialect):
     src, model = source
     src.on(60, 250)
     model.set_operate_switch("LOCAL")
-    with pytest.raises(DeviceError, match="could not confirm X-rays off" + (
-            ".*the operate switch is LOCAL" if dialect == "B" else "")):
+    with pytest.raises(
+        DeviceError, match="could not confirm X-rays off" + (".*the operate switch is LOCAL" if dialect == "B" else "")
+    ):
         src.off()
     assert model.xray_on
     model.set_operate_switch("REMOTE")
@@ -668,11 +735,14 @@ def test_b_on_refused_when_the_switch_is_local_after_connect():
 
 
 # -- faults while on ------------------------------------------------------------------------------
-@pytest.mark.parametrize("inject, reason", [
-    (L8121Model.open_interlock, "interlock open"),
-    (L8121Model.overload, "overload"),
-    (L8121Model.drop_beam, "beam dropped: measured current 0 µA"),
-])
+@pytest.mark.parametrize(
+    "inject, reason",
+    [
+        (L8121Model.open_interlock, "interlock open"),
+        (L8121Model.overload, "overload"),
+        (L8121Model.drop_beam, "beam dropped: measured current 0 µA"),
+    ],
+)
 def test_check_stops_on_a_fault(source, inject, reason):
     src, model = source
     src.on(60, 250)
@@ -771,6 +841,7 @@ def test_ctrl_c_while_waiting_for_the_beam_switches_off(warm, dialect):
 
     def interrupt(signum, frame):
         raise KeyboardInterrupt
+
     previous = signal.signal(signal.SIGALRM, interrupt)
     try:
         with driver(server, dialect) as src:
@@ -808,16 +879,19 @@ def test_probe_identifies_each_dialect_at_each_baud_rate(dialect, baud):
     assert model.state == 0 and not model.xray_on
     wrong = [e for e in model.log if not e.understood]
     assert len(wrong) == BAUDS.index(baud)  # one STS at each rate tried before
-    assert [e.baudrate for e in result.exchange if e.reply is None] == list(BAUDS[:BAUDS.index(baud)])
+    assert [e.baudrate for e in result.exchange if e.reply is None] == list(BAUDS[: BAUDS.index(baud)])
     assert result.report().splitlines()[0] == result.summary()
     assert all(f"> {e.sent}" in result.report() for e in result.exchange)
 
 
-@pytest.mark.parametrize("misbehave, why", [
-    (L8121Model.foreign, "STS answered 'OK'"),
-    (L8121Model.garbage, "STS answered"),
-    (L8121Model.silence, "no reply"),
-])
+@pytest.mark.parametrize(
+    "misbehave, why",
+    [
+        (L8121Model.foreign, "STS answered 'OK'"),
+        (L8121Model.garbage, "STS answered"),
+        (L8121Model.silence, "no reply"),
+    ],
+)
 def test_probe_refuses_a_controller_that_speaks_neither(misbehave, why):
     model = L8121Model(warmed_up=True)
     misbehave(model)
@@ -833,12 +907,14 @@ def test_probe_refuses_a_controller_that_speaks_neither(misbehave, why):
 
 def test_probe_refuses_a_mix_of_dialects():
     """STS in A's shape but SIN in B's: a unit the tables do not describe -- refused, not guessed."""
+
     class Mixed(L8121Model):
         def receive(self, line, baudrate=None):
             ex = super().receive(line, baudrate)
             if line == "SIN" and ex.understood:  # the one fake here: no emulator mode speaks a mix
                 return type(ex)(ex.t, ex.command, "INTER LOCK ON", True)
             return ex
+
     with PtyServer(Mixed(warmed_up=True)) as server:
         result = probe(server.url, baudrates=(38400,), timeout_s=0.2, min_interval_s=0.01)
     assert not result.found
@@ -898,8 +974,10 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     with PtyServer(model) as server:
         assert main(["acquire", "source", "status", "--port", server.url, "--dialect", dialect]) == 0
         assert "STANDBY" in capsys.readouterr().out
-        assert main(["acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250",
-                     "--dialect", dialect]) == 0
+        assert (
+            main(["acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250", "--dialect", dialect])
+            == 0
+        )
         assert model.xray_on
         assert main(["acquire", "source", "off", "--port", server.url]) == 0  # auto: probes first
         assert not model.xray_on
@@ -908,14 +986,20 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
-    path.write_text('[source]\nurl = "/dev/ttyUSB0"\nbaudrate = 9600\ndialect = "B"\nkv_max = 90\n'
-                    'ua_tolerance = "2%"\nmodel = ""\n')
+    path.write_text(
+        '[source]\nurl = "/dev/ttyUSB0"\nbaudrate = 9600\ndialect = "B"\nkv_max = 90\nua_tolerance = "2%"\nmodel = ""\n'
+    )
     config = SourceConfig.from_toml(path)
     assert (config.kv_max, config.model, config.tolerance_ua(250), config.tolerance_kv(60)) == (90, None, 5.0, 1.0)
     assert SourceConfig.from_dict(config.to_dict()) == config
     src = L8121.from_config(path, connect=False)
-    assert (src.url, src.baudrate, src.config.kv_max, src.dialect.name, src.voltage_scale) == \
-        ("/dev/ttyUSB0", 9600, 90, "B", 10)
+    assert (src.url, src.baudrate, src.config.kv_max, src.dialect.name, src.voltage_scale) == (
+        "/dev/ttyUSB0",
+        9600,
+        90,
+        "B",
+        10,
+    )
     assert L8121("loop://", connect=False).baudrate == 38400  # dialect A's default
     assert L8121("loop://", connect=False, dialect="B", voltage_scale=1).voltage_scale == 1
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['kv_maximum'\]"):
@@ -928,14 +1012,17 @@ def test_config_from_toml_and_dict(tmp_path):
         src.validate(100, 100)
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("kv_max", 1000, "kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten"),
-    ("kv_min", 30, "kv_min = 30 kV is below the L8121 rating of 40 kV"),
-    ("ua_max", 600, "ua_max = 600 µA exceeds the L8121 rating of 500 µA"),
-    ("watts_max", 80, "watts_max = 80 W exceeds the L8121 rating of 75 W"),
-    ("kv_max", float("nan"), "kv_max must be a finite number"),
-    ("dialect", "auto ", "dialect 'auto ': expected"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("kv_max", 1000, "kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten"),
+        ("kv_min", 30, "kv_min = 30 kV is below the L8121 rating of 40 kV"),
+        ("ua_max", 600, "ua_max = 600 µA exceeds the L8121 rating of 500 µA"),
+        ("watts_max", 80, "watts_max = 80 W exceeds the L8121 rating of 75 W"),
+        ("kv_max", float("nan"), "kv_max must be a finite number"),
+        ("dialect", "auto ", "dialect 'auto ': expected"),
+    ],
+)
 def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
     with pytest.raises(ValueError, match=message):
         SourceConfig(**{key: value})
@@ -975,12 +1062,23 @@ class Clock:
 def test_emulator_a_ramps_and_warms_up_on_its_clock():
     clock = Clock()
     m = L8121Model(warmup_s=2, ramp_s=1, clock=clock)
-    assert [m.handle(c) for c in ("STS", "SWE", "WUP", "STS", "SWE", "SPH")] == \
-        ["STS 0", "SWE 2", "WUP", "STS 1", "SWE 1", "SPH 1"]
+    assert [m.handle(c) for c in ("STS", "SWE", "WUP", "STS", "SWE", "SPH")] == [
+        "STS 0",
+        "SWE 2",
+        "WUP",
+        "STS 1",
+        "SWE 1",
+        "SPH 1",
+    ]
     assert m.xray_on  # the warm-up emits
     clock.t += 2
-    assert [m.handle(c) for c in ("STS", "SWE", "HIV 60", "CUR 250", "XON")] == \
-        ["STS 2", "SWE 0", "HIV 60", "CUR 250", "XON"]
+    assert [m.handle(c) for c in ("STS", "SWE", "HIV 60", "CUR 250", "XON")] == [
+        "STS 2",
+        "SWE 0",
+        "HIV 60",
+        "CUR 250",
+        "XON",
+    ]
     clock.t += 0.5
     assert m.handle("SAR") == "SAR 3 30 125 0 0 0 0"
     clock.t += 0.5
@@ -992,19 +1090,39 @@ def test_emulator_a_ramps_and_warms_up_on_its_clock():
 def test_emulator_b_ramps_and_warms_up_on_its_clock():
     clock = Clock()
     m = L8121Model(dialect="B", warmup_s=2, ramp_s=1, clock=clock)
-    assert [m.handle(c) for c in ("STS", "DAG", "SRL", "XON", "STS", "DAG", "SRB")] == \
-        ["STANDBY", "AGING 1 0 YET", "REMOTE", "XON", "AGING", "AGING 1 1 YET", "BUSY"]
+    assert [m.handle(c) for c in ("STS", "DAG", "SRL", "XON", "STS", "DAG", "SRB")] == [
+        "STANDBY",
+        "AGING 1 0 YET",
+        "REMOTE",
+        "XON",
+        "AGING",
+        "AGING 1 1 YET",
+        "BUSY",
+    ]
     assert m.xray_on  # AGING emits
     clock.t += 1.0
     assert m.handle("DAG") == "AGING 1 3 YET"
     clock.t += 1.0
-    assert [m.handle(c) for c in ("STS", "DAG", "SRB", "PHV 600", "PCU 250", "XON")] == \
-        ["STANDBY", "AGING 0 0 END", "READY", "PHV 600", "PCU 250", "XON"]
+    assert [m.handle(c) for c in ("STS", "DAG", "SRB", "PHV 600", "PCU 250", "XON")] == [
+        "STANDBY",
+        "AGING 0 0 END",
+        "READY",
+        "PHV 600",
+        "PCU 250",
+        "XON",
+    ]
     clock.t += 0.5
     assert (m.handle("SHV"), m.handle("SCU")) == ("SHV 30.0kV", "SCU 125uA")
     clock.t += 0.5
-    assert [m.handle(c) for c in ("SHV", "SCU", "SPV", "SPC", "PHV 700", "HIV 700", "SPV")] == \
-        ["SHV 60.0kV", "SCU 250uA", "SPV 60.0kV", "SPC 250uA", "ERROR", "HIV 700", "SPV 70.0kV"]
+    assert [m.handle(c) for c in ("SHV", "SCU", "SPV", "SPC", "PHV 700", "HIV 700", "SPV")] == [
+        "SHV 60.0kV",
+        "SCU 250uA",
+        "SPV 60.0kV",
+        "SPC 250uA",
+        "ERROR",
+        "HIV 700",
+        "SPV 70.0kV",
+    ]
     assert m.handle("XOF") == "XOF" and m.handle("STS") == "STANDBY" and not m.xray_on
     assert [m.handle(c) for c in ("CFM", "SFS", "CFL", "SFS")] == ["CFM", "MIDDLE", "CFL", "LARGE"]
 
@@ -1021,21 +1139,41 @@ def test_emulator_xof_interrupts_the_warm_up(dialect):
 
 def test_emulator_refuses():
     m = L8121Model(warmed_up=True, watts_max=30)
-    assert [m.handle(c) for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1",
-                                  "PHV 600", "DAG")] == ["ERR"] * 10
+    assert [
+        m.handle(c)
+        for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1", "PHV 600", "DAG")
+    ] == ["ERR"] * 10
     assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 4")  # 40 W
     assert m.handle("") is None and m.set_ua == 0
     b = L8121Model(dialect="B", warmed_up=True)
-    assert [b.handle(c) for c in ("HIV 600", "CUR 250", "PHV 1510", "PHV 390", "PCU 501", "TYP", "WUP", "SAR",
-                                  "SWE", "CFS 1", "Enter", "FOO")] == ["ERROR"] * 12
+    assert [
+        b.handle(c)
+        for c in (
+            "HIV 600",
+            "CUR 250",
+            "PHV 1510",
+            "PHV 390",
+            "PCU 501",
+            "TYP",
+            "WUP",
+            "SAR",
+            "SWE",
+            "CFS 1",
+            "Enter",
+            "FOO",
+        )
+    ] == ["ERROR"] * 12
     assert b.set_ua == 0 and not b.xray_on
 
 
 def test_emulator_scheduled_faults(dialect):
     clock = Clock()
     m = L8121Model(dialect=dialect, ramp_s=0, warmed_up=True, clock=clock)
-    sts = (lambda: m.handle("STS")) if dialect == "A" else (lambda: {"STANDBY": "STS 2", "XON": "STS 3",
-                                                                      "OVER": "STS 4"}[m.handle("STS")])
+    sts = (
+        (lambda: m.handle("STS"))
+        if dialect == "A"
+        else (lambda: {"STANDBY": "STS 2", "XON": "STS 3", "OVER": "STS 4"}[m.handle("STS")])
+    )
     closed, opened = {"A": ("SIN 0", "SIN 1"), "B": ("INTER LOCK ON", "INTER LOCK OFF")}[dialect]
     for c in WIRE[dialect]["set_60_250"] + ["XON"]:
         m.handle(c)
@@ -1071,14 +1209,22 @@ def test_emulator_scheduled_faults(dialect):
 
 
 # -- the command line -----------------------------------------------------------------------------
-@pytest.mark.parametrize("argv, baud, exchange", [
-    ([], 38400, [("TYP", "TYP L8121-01"), ("WUP", "WUP")]),
-    (["--dialect", "B"], 9600, [("SRL", "REMOTE"), ("STS", "STANDBY"), ("XON", "XON"), ("STS", "AGING")]),
-    (["--dialect", "B", "--local"], 9600, [("SRL", "LOCAL"), ("XON", "ERROR")]),
-])
+@pytest.mark.parametrize(
+    "argv, baud, exchange",
+    [
+        ([], 38400, [("TYP", "TYP L8121-01"), ("WUP", "WUP")]),
+        (["--dialect", "B"], 9600, [("SRL", "REMOTE"), ("STS", "STANDBY"), ("XON", "XON"), ("STS", "AGING")]),
+        (["--dialect", "B", "--local"], 9600, [("SRL", "LOCAL"), ("XON", "ERROR")]),
+    ],
+)
 def test_command_line_serves_a_pty(argv, baud, exchange):
-    proc = subprocess.Popen([sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "0.1", *argv],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "0.1", *argv],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 10)
         assert ready, "the emulator printed no path within 10 s"
@@ -1110,11 +1256,32 @@ def test_acquire_sim_runs_in_either_dialect(dialect, tmp_path, capsys):
     scene = block_scene(size_mm=10.0, ratios=(0.15, 0.2))
     scene.detector.binning = 4
     protocol = tmp_path / "p.toml"
-    protocol.write_text("\n".join([
-        f'output = "{tmp_path / "series.h5"}"', "[source]", "voltage_kv = 60", "current_ua = 250", "poll_s = 0.1",
-        "[detector]", 'kind = "sim"', "[frame]", 'kind = "sim"', "initial_height_mm = 10.0",
-        "[series]", "darks = 1", "flats = 1", "frames_per_step = 1", "steps = [0.15, 0.2]", "settle_s = 0.0",
-        "[sim]", "warmup_s = 0.2", "ramp_s = 0.1", f"scene = '''{scene.to_toml()}'''"]))
+    protocol.write_text(
+        "\n".join(
+            [
+                f'output = "{tmp_path / "series.h5"}"',
+                "[source]",
+                "voltage_kv = 60",
+                "current_ua = 250",
+                "poll_s = 0.1",
+                "[detector]",
+                'kind = "sim"',
+                "[frame]",
+                'kind = "sim"',
+                "initial_height_mm = 10.0",
+                "[series]",
+                "darks = 1",
+                "flats = 1",
+                "frames_per_step = 1",
+                "steps = [0.15, 0.2]",
+                "settle_s = 0.0",
+                "[sim]",
+                "warmup_s = 0.2",
+                "ramp_s = 0.1",
+                f"scene = '''{scene.to_toml()}'''",
+            ]
+        )
+    )
     assert main(["acquire", str(protocol), "--sim", "-q", "--dialect", dialect]) == 0, capsys.readouterr().err
     assert "4 frames written" in capsys.readouterr().out
     with h5py.File(tmp_path / "series.h5", "r") as h5:
@@ -1139,8 +1306,9 @@ def test_demo_takes_the_dialect(dialect):
     assert parser.parse_args(["demo", "--dialect", dialect]).dialect == dialect
     scene = block_scene(size_mm=10.0, ratios=(0.15,))
     scene.detector.binning = 4
-    p = _protocol(scene, "unused.h5", initial_height_mm=10.0, frames_per_step=1, darks=1, flats=1, warm=True,
-                  dialect=dialect)
+    p = _protocol(
+        scene, "unused.h5", initial_height_mm=10.0, frames_per_step=1, darks=1, flats=1, warm=True, dialect=dialect
+    )
     devices = sim_devices(p)
     try:
         assert devices.emulator.dialect == dialect and devices.source.dialect.name == dialect

@@ -7,6 +7,7 @@ a pair left over fails the test. Each test reads like a page of the controller's
 warm-up, on, off and the faults, in dialect A and in dialect B. A reply of ``None`` is a
 controller that does not answer (the transport raises the time-out the serial link would).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -51,18 +52,34 @@ def expected_protocol(dialect, pairs, **config):
     link = ScriptedTransport(pairs)
     src = L8121(link, dialect=dialect, poll_s=0.001, **config)
     yield src
-    assert link.done(), f"left in the script: {link.pairs[len(link.sent):]}"
+    assert link.done(), f"left in the script: {link.pairs[len(link.sent) :]}"
 
 
-CONNECT = {"A": [("TYP", "TYP L8121-01"), ("STS", "STS 2")],
-           "B": [("SRL", "REMOTE"), ("STS", "STANDBY")]}
+CONNECT = {"A": [("TYP", "TYP L8121-01"), ("STS", "STS 2")], "B": [("SRL", "REMOTE"), ("STS", "STANDBY")]}
 ON_60_250 = {
-    "A": [("STS", "STS 2"), ("SIN", "SIN 0"),
-          ("SVI", "SVI 40 0"), ("HIV 60", "HIV 60"), ("CUR 250", "CUR 250"),
-          ("XON", "XON"), ("SAR", "SAR 3 60 250 0 0 0 0")],
-    "B": [("STS", "STANDBY"), ("DAG", "AGING 0 0 END"), ("SIN", "INTER LOCK ON"), ("SRL", "REMOTE"),
-          ("SPV", "SPV 40.0kV"), ("SPC", "SPC 0uA"), ("PHV 600", "PHV 600"), ("PCU 250", "PCU 250"),
-          ("XON", "XON"), ("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA")],
+    "A": [
+        ("STS", "STS 2"),
+        ("SIN", "SIN 0"),
+        ("SVI", "SVI 40 0"),
+        ("HIV 60", "HIV 60"),
+        ("CUR 250", "CUR 250"),
+        ("XON", "XON"),
+        ("SAR", "SAR 3 60 250 0 0 0 0"),
+    ],
+    "B": [
+        ("STS", "STANDBY"),
+        ("DAG", "AGING 0 0 END"),
+        ("SIN", "INTER LOCK ON"),
+        ("SRL", "REMOTE"),
+        ("SPV", "SPV 40.0kV"),
+        ("SPC", "SPC 0uA"),
+        ("PHV 600", "PHV 600"),
+        ("PCU 250", "PCU 250"),
+        ("XON", "XON"),
+        ("STS", "XON"),
+        ("SHV", "SHV 60.0kV"),
+        ("SCU", "SCU 250uA"),
+    ],
 }
 OFF = {"A": [("XOF", "XOF"), ("STS", "STS 2")], "B": [("XOF", "XOF"), ("STS", "STANDBY")]}
 
@@ -74,50 +91,86 @@ def test_connect(dialect):
         assert src.identity == {"A": "L8121-01", "B": None}[dialect]
 
 
-@pytest.mark.parametrize("dialect, pairs, message", [
-    ("A", [("TYP", "TYP L8121-02")], "TYP answered 'L8121-02', expected 'L8121-01'"),
-    ("A", [("TYP", "ERROR")], r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and "
-                              r"speaking dialect A\? If it speaks dialect B"),
-    ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
-    ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
-    ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
-    ("A", [("TYP", "TYP L8121-01"), ("STS", "STANDBY")], r"unparseable reply to STS \(dialect A\): 'STANDBY'"),
-])
+@pytest.mark.parametrize(
+    "dialect, pairs, message",
+    [
+        ("A", [("TYP", "TYP L8121-02")], "TYP answered 'L8121-02', expected 'L8121-01'"),
+        (
+            "A",
+            [("TYP", "ERROR")],
+            r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and "
+            r"speaking dialect A\? If it speaks dialect B",
+        ),
+        ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
+        ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
+        ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
+        ("A", [("TYP", "TYP L8121-01"), ("STS", "STANDBY")], r"unparseable reply to STS \(dialect A\): 'STANDBY'"),
+    ],
+)
 def test_connect_refuses(dialect, pairs, message):
     with pytest.raises(DeviceError, match=message):
         with expected_protocol(dialect, pairs):
             pass
 
 
-@pytest.mark.parametrize("dialect, pairs", [
-    ("A", [("TYP", "TYP L8121-01"), ("STS", "STS 3")]),
-    ("B", [("SRL", "REMOTE"), ("STS", "AGING")]),       # a warm-up someone started: X-rays on
-])
+@pytest.mark.parametrize(
+    "dialect, pairs",
+    [
+        ("A", [("TYP", "TYP L8121-01"), ("STS", "STS 3")]),
+        ("B", [("SRL", "REMOTE"), ("STS", "AGING")]),  # a warm-up someone started: X-rays on
+    ],
+)
 def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
     with expected_protocol(dialect, pairs + OFF[dialect]) as src:
         src.close()
 
 
 # -- warm-up --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("dialect, pairs", [
-    ("A", [("TYP", "TYP L8121-01"), ("STS", "STS 0"),
-           ("STS", "STS 0"), ("SIN", "SIN 0"), ("WUP", "WUP"),
-           ("STS", "STS 1"),
-           ("STS", "STS 2"), ("SWE", "SWE 0")]),
-    ("B", [("SRL", "REMOTE"), ("STS", "STANDBY"),
-           ("STS", "STANDBY"), ("DAG", "AGING 1 0 YET"), ("SIN", "INTER LOCK ON"), ("XON", "XON"),
-           ("STS", "AGING"),
-           ("STS", "STANDBY"), ("DAG", "AGING 0 0 END"), ("DAG", "AGING 0 0 END")]),
-])
+@pytest.mark.parametrize(
+    "dialect, pairs",
+    [
+        (
+            "A",
+            [
+                ("TYP", "TYP L8121-01"),
+                ("STS", "STS 0"),
+                ("STS", "STS 0"),
+                ("SIN", "SIN 0"),
+                ("WUP", "WUP"),
+                ("STS", "STS 1"),
+                ("STS", "STS 2"),
+                ("SWE", "SWE 0"),
+            ],
+        ),
+        (
+            "B",
+            [
+                ("SRL", "REMOTE"),
+                ("STS", "STANDBY"),
+                ("STS", "STANDBY"),
+                ("DAG", "AGING 1 0 YET"),
+                ("SIN", "INTER LOCK ON"),
+                ("XON", "XON"),
+                ("STS", "AGING"),
+                ("STS", "STANDBY"),
+                ("DAG", "AGING 0 0 END"),
+                ("DAG", "AGING 0 0 END"),
+            ],
+        ),
+    ],
+)
 def test_warm_up(dialect, pairs):
     with expected_protocol(dialect, pairs) as src:
         assert src.warm_up(progress=False) > 0
 
 
-@pytest.mark.parametrize("dialect, pairs", [
-    ("A", CONNECT["A"] + [("STS", "STS 2")]),
-    ("B", CONNECT["B"] + [("STS", "STANDBY"), ("DAG", "AGING 0 0 END")]),
-])
+@pytest.mark.parametrize(
+    "dialect, pairs",
+    [
+        ("A", CONNECT["A"] + [("STS", "STS 2")]),
+        ("B", CONNECT["B"] + [("STS", "STANDBY"), ("DAG", "AGING 0 0 END")]),
+    ],
+)
 def test_warm_up_when_done_only_asks(dialect, pairs):
     with expected_protocol(dialect, pairs) as src:
         assert src.warm_up(progress=False) == 0.0
@@ -125,12 +178,21 @@ def test_warm_up_when_done_only_asks(dialect, pairs):
 
 def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
     pairs = CONNECT["B"] + [
-        ("STS", "STANDBY"), ("DAG", "AGING 1 0 YET"), ("SIN", "INTER LOCK ON"), ("XON", "XON"),
-        ("STS", "XON"),                                   # an exposure, not AGING
-        ("XOF", "XOF"), ("STS", "STANDBY"), ("SER", "SER 0")]
+        ("STS", "STANDBY"),
+        ("DAG", "AGING 1 0 YET"),
+        ("SIN", "INTER LOCK ON"),
+        ("XON", "XON"),
+        ("STS", "XON"),  # an exposure, not AGING
+        ("XOF", "XOF"),
+        ("STS", "STANDBY"),
+        ("SER", "SER 0"),
+    ]
     with expected_protocol("B", pairs) as src:
-        with pytest.raises(SourceFault, match=r"X-rays came on as an exposure instead of a warm-up "
-                                              r"\(STS says X-rays on\); X-rays switched off"):
+        with pytest.raises(
+            SourceFault,
+            match=r"X-rays came on as an exposure instead of a warm-up "
+            r"\(STS says X-rays on\); X-rays switched off",
+        ):
             src.warm_up(progress=False)
 
 
@@ -140,11 +202,17 @@ def test_b_force_warm_up_is_refused_before_any_xon():
             src.warm_up(force=True, progress=False)
 
 
-@pytest.mark.parametrize("dialect, pairs", [
-    ("A", CONNECT["A"][:1] + [("STS", "STS 0"), ("STS", "STS 0"), ("SIN", "SIN 1")]),
-    ("B", CONNECT["B"][:1] + [("STS", "STANDBY"), ("STS", "STANDBY"), ("DAG", "AGING 1 0 YET"),
-                              ("SIN", "INTER LOCK OFF")]),
-])
+@pytest.mark.parametrize(
+    "dialect, pairs",
+    [
+        ("A", CONNECT["A"][:1] + [("STS", "STS 0"), ("STS", "STS 0"), ("SIN", "SIN 1")]),
+        (
+            "B",
+            CONNECT["B"][:1]
+            + [("STS", "STANDBY"), ("STS", "STANDBY"), ("DAG", "AGING 1 0 YET"), ("SIN", "INTER LOCK OFF")],
+        ),
+    ],
+)
 def test_warm_up_with_the_interlock_open_sends_no_command(dialect, pairs):
     with expected_protocol(dialect, pairs) as src:
         with pytest.raises(SourceFault, match="interlock is open"):
@@ -167,15 +235,21 @@ def test_on_refuses_900_kv_before_any_byte(dialect):
             src.on(900, 250)
 
 
-@pytest.mark.parametrize("dialect, ready, message", [
-    ("A", [("STS", "STS 0")], "warm-up needed"),
-    ("B", [("STS", "STANDBY"), ("DAG", "AGING 1 0 YET")], "warm-up needed"),   # STS alone looks ready
-    ("B", [("STS", "ERROR")], r"pre-heating \(STS ERROR\)"),
-    ("B", [("STS", "STANDBY"), ("DAG", "AGING 0 0 END"), ("SIN", "INTER LOCK ON"), ("SRL", "LOCAL")],
-     "operate switch is LOCAL"),
-    ("A", [("STS", "STS 4")], "overload"),
-    ("B", [("STS", "OVER")], "overload"),
-])
+@pytest.mark.parametrize(
+    "dialect, ready, message",
+    [
+        ("A", [("STS", "STS 0")], "warm-up needed"),
+        ("B", [("STS", "STANDBY"), ("DAG", "AGING 1 0 YET")], "warm-up needed"),  # STS alone looks ready
+        ("B", [("STS", "ERROR")], r"pre-heating \(STS ERROR\)"),
+        (
+            "B",
+            [("STS", "STANDBY"), ("DAG", "AGING 0 0 END"), ("SIN", "INTER LOCK ON"), ("SRL", "LOCAL")],
+            "operate switch is LOCAL",
+        ),
+        ("A", [("STS", "STS 4")], "overload"),
+        ("B", [("STS", "OVER")], "overload"),
+    ],
+)
 def test_on_refused_by_queries_alone(dialect, ready, message):
     with expected_protocol(dialect, CONNECT[dialect] + ready) as src:
         with pytest.raises(DeviceError, match=message):
@@ -183,22 +257,32 @@ def test_on_refused_by_queries_alone(dialect, ready, message):
 
 
 def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
-    pairs = CONNECT["B"] + ON_60_250["B"][:9] + [
-        ("STS", "AGING"),                                 # the controller started a warm-up instead
-        ("XOF", "XOF"), ("STS", "STANDBY"), ("SER", "SER 0")]
+    pairs = (
+        CONNECT["B"]
+        + ON_60_250["B"][:9]
+        + [
+            ("STS", "AGING"),  # the controller started a warm-up instead
+            ("XOF", "XOF"),
+            ("STS", "STANDBY"),
+            ("SER", "SER 0"),
+        ]
+    )
     with expected_protocol("B", pairs) as src:
         with pytest.raises(SourceFault, match=r"warming up \(AGING\) instead of emitting the exposure"):
             src.on(60, 250)
 
 
-@pytest.mark.parametrize("dialect, pairs, message", [
-    ("A", [("XOF", "XOF"), ("STS", "STS 3")] * 3, "STS still XRAY_ON after XOF"),
-    ("A", [("XOF", "XOF"), ("STS", "STS 1")] * 3, "STS still WARMING_UP after XOF"),
-    ("B", [("XOF", "XOF"), ("STS", "AGING")] * 3 + [("SRL", "REMOTE")], "STS still WARMING_UP after XOF"),
-    ("B", [("XOF", "XOF"), ("STS", "ERROR")] * 3 + [("SRL", "REMOTE")], "STS still PREHEATING after XOF"),
-    ("B", [("XOF", "ERROR"), ("STS", "XON")] * 3 + [("SRL", "LOCAL")], "the operate switch is LOCAL"),
-    ("B", [("XOF", None), ("STS", None)] * 3 + [("SRL", None)], "no reply to STS"),
-])
+@pytest.mark.parametrize(
+    "dialect, pairs, message",
+    [
+        ("A", [("XOF", "XOF"), ("STS", "STS 3")] * 3, "STS still XRAY_ON after XOF"),
+        ("A", [("XOF", "XOF"), ("STS", "STS 1")] * 3, "STS still WARMING_UP after XOF"),
+        ("B", [("XOF", "XOF"), ("STS", "AGING")] * 3 + [("SRL", "REMOTE")], "STS still WARMING_UP after XOF"),
+        ("B", [("XOF", "XOF"), ("STS", "ERROR")] * 3 + [("SRL", "REMOTE")], "STS still PREHEATING after XOF"),
+        ("B", [("XOF", "ERROR"), ("STS", "XON")] * 3 + [("SRL", "LOCAL")], "the operate switch is LOCAL"),
+        ("B", [("XOF", None), ("STS", None)] * 3 + [("SRL", None)], "no reply to STS"),
+    ],
+)
 def test_off_not_confirmed(dialect, pairs, message):
     """Only a state that cannot emit confirms ``off``; B's ``ERROR`` (pre-heating, or a refusal)
     is not one."""
@@ -208,20 +292,35 @@ def test_off_not_confirmed(dialect, pairs, message):
 
 
 # -- faults while on ------------------------------------------------------------------------------
-@pytest.mark.parametrize("dialect, poll, code, message", [
-    ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], "SER 1", "interlock open"),
-    ("B", [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA"), ("SIN", "INTER LOCK OFF")], "SER 1",
-     "interlock open"),
-    ("A", [("SAR", "SAR 4 0 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 3", "overload"),
-    ("B", [("STS", "OVER"), ("SIN", "INTER LOCK ON")], "SER 3", "overload"),       # no SHV/SCU: off at once
-    ("A", [("SAR", "SAR 3 60 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
-    ("B", [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")], "SER 0",
-     "beam dropped: measured current 0 µA"),
-    ("B", [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
-    # an overload between B's STS and its SCU: named by the STS after the XOF
-    ("B", [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")], "SER 3",
-     r"overload \(beam dropped: measured current 0 µA"),
-])
+@pytest.mark.parametrize(
+    "dialect, poll, code, message",
+    [
+        ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], "SER 1", "interlock open"),
+        (
+            "B",
+            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA"), ("SIN", "INTER LOCK OFF")],
+            "SER 1",
+            "interlock open",
+        ),
+        ("A", [("SAR", "SAR 4 0 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 3", "overload"),
+        ("B", [("STS", "OVER"), ("SIN", "INTER LOCK ON")], "SER 3", "overload"),  # no SHV/SCU: off at once
+        ("A", [("SAR", "SAR 3 60 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
+        (
+            "B",
+            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")],
+            "SER 0",
+            "beam dropped: measured current 0 µA",
+        ),
+        ("B", [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
+        # an overload between B's STS and its SCU: named by the STS after the XOF
+        (
+            "B",
+            [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")],
+            "SER 3",
+            r"overload \(beam dropped: measured current 0 µA",
+        ),
+    ],
+)
 def test_check_switches_off_on_a_fault(dialect, poll, code, message):
     off = OFF[dialect] if "overload" not in message else [("XOF", "XOF"), ("STS", {"A": "STS 4", "B": "OVER"}[dialect])]
     pairs = CONNECT[dialect] + ON_60_250[dialect] + poll + off + [("SER", code)]
@@ -231,11 +330,14 @@ def test_check_switches_off_on_a_fault(dialect, poll, code, message):
             src.check()
 
 
-@pytest.mark.parametrize("dialect, bad", [
-    ("A", [("SAR", "SAR 3 6O 250 0 0 0 0")]),
-    ("B", [("STS", "XON"), ("SHV", "SHV 60.0")]),
-    ("B", [("STS", "STS 3")]),
-])
+@pytest.mark.parametrize(
+    "dialect, bad",
+    [
+        ("A", [("SAR", "SAR 3 6O 250 0 0 0 0")]),
+        ("B", [("STS", "XON"), ("SHV", "SHV 60.0")]),
+        ("B", [("STS", "STS 3")]),
+    ],
+)
 def test_an_unparseable_reply_while_on_switches_off_first(dialect, bad):
     pairs = CONNECT[dialect] + ON_60_250[dialect] + bad + OFF[dialect]
     with expected_protocol(dialect, pairs) as src:
@@ -245,15 +347,18 @@ def test_an_unparseable_reply_while_on_switches_off_first(dialect, bad):
 
 
 # -- the probe ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("pairs, dialect, identity", [
-    ([("STS", "STS 2"), ("SIN", "SIN 0"), ("TYP", "TYP L8121-01"), ("SWE", "SWE 0")], "A", "L8121-01"),
-    ([("STS", "STANDBY"), ("SIN", "INTER LOCK ON"), ("SRL", "REMOTE"), ("DAG", "AGING 1 0 YET")], "B", None),
-    ([("STS", "ERROR"), ("SIN", "INTER LOCK OFF"), ("SRL", "LOCAL"), ("DAG", "AGING 0 0 END")], "B", None),
-    ([("STS", "STS 2"), ("SIN", "INTER LOCK ON")], None, None),       # a mix: refused
-    ([("STS", "OK")], None, None),                                     # another instrument
-    ([("STS", "ERROR"), ("SIN", "ERROR")], None, None),                # refuses everything
-    ([("STS", None)], None, None),                                     # silent
-])
+@pytest.mark.parametrize(
+    "pairs, dialect, identity",
+    [
+        ([("STS", "STS 2"), ("SIN", "SIN 0"), ("TYP", "TYP L8121-01"), ("SWE", "SWE 0")], "A", "L8121-01"),
+        ([("STS", "STANDBY"), ("SIN", "INTER LOCK ON"), ("SRL", "REMOTE"), ("DAG", "AGING 1 0 YET")], "B", None),
+        ([("STS", "ERROR"), ("SIN", "INTER LOCK OFF"), ("SRL", "LOCAL"), ("DAG", "AGING 0 0 END")], "B", None),
+        ([("STS", "STS 2"), ("SIN", "INTER LOCK ON")], None, None),  # a mix: refused
+        ([("STS", "OK")], None, None),  # another instrument
+        ([("STS", "ERROR"), ("SIN", "ERROR")], None, None),  # refuses everything
+        ([("STS", None)], None, None),  # silent
+    ],
+)
 def test_probe_sends_harmless_queries_only(pairs, dialect, identity):
     link = ScriptedTransport(pairs, baudrate=9600)
     result = probe(link)

@@ -1,5 +1,6 @@
 """Every file radiokit writes, written the way a user writes it, opens with ``radiokit.io.read`` and
 with a NeXus reader (silx) at its frames; each layout's typed reader gives back what was written."""
+
 import json
 
 import h5py
@@ -9,8 +10,19 @@ import silx.io
 import silx.io.nxdata
 
 from radiokit.cli import main
-from radiokit.io import (EnhancedImages, ExperimentWriter, ImageKey, ResultsRecord, read, read_progress,
-                         read_registration, read_results, read_simulation, read_stack, write_results)
+from radiokit.io import (
+    EnhancedImages,
+    ExperimentWriter,
+    ImageKey,
+    ResultsRecord,
+    read,
+    read_progress,
+    read_registration,
+    read_results,
+    read_simulation,
+    read_stack,
+    write_results,
+)
 
 
 def nexus_plot(path):
@@ -97,8 +109,22 @@ def test_radiokit_register(experiment):
     if not stack.exists():
         assert main(["correct", str(experiment), "-o", str(stack), "-q"]) == 0
     out = experiment.with_name("reg.h5")
-    code = main(["register", str(stack), str(stack), "--fixed-frame", "3", "--moving-frame", "1",
-                 "--method", "ncc", "-o", str(out), "--overwrite"])
+    code = main(
+        [
+            "register",
+            str(stack),
+            str(stack),
+            "--fixed-frame",
+            "3",
+            "--moving-frame",
+            "1",
+            "--method",
+            "ncc",
+            "-o",
+            str(out),
+            "--overwrite",
+        ]
+    )
     assert code in (0, 1)  # 1: registered, but judged not trustworthy; the file is written either way
     reg = read_registration(out)
     assert reg.registered.shape == (48, 64) and reg.displacement.shape == (2, 48, 64)
@@ -109,12 +135,22 @@ def test_radiokit_register(experiment):
 def test_results_layout_round_trip(tmp_path):
     rng = np.random.default_rng(0)
     steps = rng.random((3, 20, 30), dtype=np.float32)
-    enhanced = {d: EnhancedImages(steps[2], steps[2] - steps[1], {"1": steps[2] + 1, "2": steps[2] + 2})
-                for d in ("log", "linear")}
-    record = ResultsRecord(source="exp.h5", results_json='{"a": 1}', line_integral=steps, step=np.array([1, 2, 3]),
-                           ratio=np.array([0.15, 0.2, 0.25]), crop=np.array([0, 20, 5, 35]), pair=(2, 3),
-                           registration={"registered": steps[1], "displacement": np.zeros((2, 20, 30), np.float32)},
-                           enhanced=enhanced, rois={"inclusion": np.array([1, 5, 2, 9])})
+    enhanced = {
+        d: EnhancedImages(steps[2], steps[2] - steps[1], {"1": steps[2] + 1, "2": steps[2] + 2})
+        for d in ("log", "linear")
+    }
+    record = ResultsRecord(
+        source="exp.h5",
+        results_json='{"a": 1}',
+        line_integral=steps,
+        step=np.array([1, 2, 3]),
+        ratio=np.array([0.15, 0.2, 0.25]),
+        crop=np.array([0, 20, 5, 35]),
+        pair=(2, 3),
+        registration={"registered": steps[1], "displacement": np.zeros((2, 20, 30), np.float32)},
+        enhanced=enhanced,
+        rois={"inclusion": np.array([1, 5, 2, 9])},
+    )
     path = tmp_path / "results.h5"
     write_results(path, record)
     assert_opens(path, steps)
@@ -159,13 +195,17 @@ def test_radiokit_acquire_sim_and_the_bench_truth(tmp_path):
 
     scene = block_scene(size_mm=10.0, ratios=(0.15, 0.25))
     scene.detector.binning = 4
-    p = load_protocol({
-        "output": str(tmp_path / "series.h5"), "name": "layouts",
-        "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "off_attempts": 1},
-        "detector": {"kind": "sim", "timeout_s": 2.0},
-        "frame": {"kind": "sim", "initial_height_mm": 10.0},
-        "series": {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": [0.15, 0.25], "settle_s": 0.0},
-        "sim": {"scene": scene.to_toml(), "warmup_s": 0.3, "ramp_s": 0.1, "warmed_up": True}})
+    p = load_protocol(
+        {
+            "output": str(tmp_path / "series.h5"),
+            "name": "layouts",
+            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "off_attempts": 1},
+            "detector": {"kind": "sim", "timeout_s": 2.0},
+            "frame": {"kind": "sim", "initial_height_mm": 10.0},
+            "series": {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": [0.15, 0.25], "settle_s": 0.0},
+            "sim": {"scene": scene.to_toml(), "warmup_s": 0.3, "ramp_s": 0.1, "warmed_up": True},
+        }
+    )
     protocol = tmp_path / "protocol.toml"
     protocol.write_text(p.to_toml())
     assert main(["acquire", str(protocol), "--sim", "-q"]) == 0
@@ -188,8 +228,9 @@ def test_write_simulation_refuses_a_second_truth(tmp_path):
     from radiokit.io import SimulationRecord, write_simulation
 
     one = np.zeros(1)
-    record = SimulationRecord("name = 'x'", one, one, one, one, one, one, np.zeros((1, 2, 3), np.float32),
-                              np.zeros((1, 2, 3), np.uint8))
+    record = SimulationRecord(
+        "name = 'x'", one, one, one, one, one, one, np.zeros((1, 2, 3), np.float32), np.zeros((1, 2, 3), np.uint8)
+    )
     path = tmp_path / "exp.h5"
     with ExperimentWriter(path, shape=(2, 3)) as w:
         w.write_simulation(record)

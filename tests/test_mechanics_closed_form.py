@@ -4,10 +4,10 @@ contact (Hertz) and the 3-D mesh convergence of the paper's scene.
 Each runs at the coarsest mesh that meets its tolerance (measured sizes in each docstring), so
 the file stays within tens of seconds on two cores.
 """
+
 import math
 
 import numpy as np
-
 import pytest
 
 from sim.mechanics import compress
@@ -49,10 +49,14 @@ def test_eshelby_sphere_in_a_large_body(E_ratio):
     0.1 s; measured 0.3298, 0.3306, 0.3313 at 0.25, 0.15, 0.1 mm for E_ratio 6)."""
     m = Material("matrix", "neo-hookean", E_kpa=5.0, nu=0.495)
     i = Material("inclusion", "neo-hookean", E_kpa=5.0 * E_ratio, nu=0.495)
-    scene = Scene(name="eshelby", body=Body("cylinder", height_mm=20.0, diameter_mm=20.0, material=m),
-                  inclusions=[Inclusion("sphere", diameter_mm=2.0, material=i)], compression=Compression((0.01,)),
-                  mesh=MeshSpec(0.25, 2.0, "auto", True))
-    state, = compress(scene)
+    scene = Scene(
+        name="eshelby",
+        body=Body("cylinder", height_mm=20.0, diameter_mm=20.0, material=m),
+        inclusions=[Inclusion("sphere", diameter_mm=2.0, material=i)],
+        compression=Compression((0.01,)),
+        mesh=MeshSpec(0.25, 2.0, "auto", True),
+    )
+    (state,) = compress(scene)
     assert state.solver.model == "axisymmetric"
     ratio = state.inclusion_strain / 0.01
     assert ratio == pytest.approx(5 / (3 + 2 * E_ratio), rel=0.03)
@@ -73,15 +77,18 @@ def test_hertz_sphere_between_plates():
     1.5 within 0.05."""
     R, E, nu = 10.0, 5.0, 0.495
     ratios = (0.0025, 0.005, 0.01)
-    scene = Scene(name="hertz", body=Body("ellipsoid", semi_axes_mm=(R, R, R),
-                                          material=Material("ball", "neo-hookean", E_kpa=E, nu=nu)),
-                  compression=Compression(ratios), mesh=MeshSpec(0.2, 1.0, "auto", True, True, size_contact_mm=0.2))
+    scene = Scene(
+        name="hertz",
+        body=Body("ellipsoid", semi_axes_mm=(R, R, R), material=Material("ball", "neo-hookean", E_kpa=E, nu=nu)),
+        compression=Compression(ratios),
+        mesh=MeshSpec(0.2, 1.0, "auto", True, True, size_contact_mm=0.2),
+    )
     states = compress(scene)
     assert states[0].solver.model == "axisymmetric"
-    E_star = E * 1e-3 / (1 - nu ** 2)  # MPa
+    E_star = E * 1e-3 / (1 - nu**2)  # MPa
     for s in states:
         half = s.ratio * 2 * R / 2  # each plate's approach
-        assert s.plate_force_n == pytest.approx(4 / 3 * E_star * math.sqrt(R) * half ** 1.5, rel=0.05)
+        assert s.plate_force_n == pytest.approx(4 / 3 * E_star * math.sqrt(R) * half**1.5, rel=0.05)
         assert s.contact_area_mm2 == pytest.approx(math.pi * R * half, rel=0.1)
     slope = math.log(states[-1].plate_force_n / states[0].plate_force_n) / math.log(ratios[-1] / ratios[0])
     assert slope == pytest.approx(1.5, abs=0.05)
@@ -102,16 +109,26 @@ def test_mesh_convergence_of_the_headline_through_the_plates():
     def run(h_inc, h_far, h_contact):
         gel = Material("breast tissue", "neo-hookean", E_kpa=5.0, nu=0.495, attenuation_per_cm=0.5)
         tumour = Material("tumour", "linear", E_kpa=30.0, nu=0.495, attenuation_per_cm=1.0)
-        scene = Scene(name="spheroid", body=Body("ellipsoid", semi_axes_mm=(40.0, 25.0, 40.0), material=gel),
-                      inclusions=[Inclusion("sphere", diameter_mm=8.0, material=tumour)],
-                      compression=Compression((0.20, 0.25)),
-                      mesh=MeshSpec(h_inc, h_far, "auto", True, True, h_contact))
+        scene = Scene(
+            name="spheroid",
+            body=Body("ellipsoid", semi_axes_mm=(40.0, 25.0, 40.0), material=gel),
+            inclusions=[Inclusion("sphere", diameter_mm=8.0, material=tumour)],
+            compression=Compression((0.20, 0.25)),
+            mesh=MeshSpec(h_inc, h_far, "auto", True, True, h_contact),
+        )
         states = compress(scene)
         assert states[0].solver.model == "axisymmetric"
         h = study.headline(study.images(study.project_pair(scene, states, pixel_size_mm=0.3, truth_factor=None)))
         s = states[-1]
-        return np.array([s.plate_force_n, s.inclusion_strain, h.change_ratio["linear"], h.improvement["linear"]["1"],
-                         h.improvement["linear"]["2"]]), s.solver.ndof
+        return np.array(
+            [
+                s.plate_force_n,
+                s.inclusion_strain,
+                h.change_ratio["linear"],
+                h.improvement["linear"]["1"],
+                h.improvement["linear"]["2"],
+            ]
+        ), s.solver.ndof
 
     coarse, n1 = run(2.0, 8.0, 2.0)
     fine, n2 = run(1.0, 4.0, 1.0)

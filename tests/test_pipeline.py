@@ -21,6 +21,7 @@ paper's linear domain (-I/I0) the change of each pixel is I dL to first order, s
 the background's transmission grows more than the inclusion's. Whatever the domain, the
 enhanced contrast is C + k (D_i - D_b), so IF(k) - 1 is exactly proportional to k.
 """
+
 from __future__ import annotations
 
 import json
@@ -38,11 +39,19 @@ def experiment(tmp_path_factory):
     from sim.scene import Body, Inclusion, Material, block_scene
 
     scene = block_scene(size_mm=20.0, E_kpa=5.0, nu=0.495, ratios=(0.15, 0.20, 0.25))
-    scene.body = Body("box", size_mm=(20.0, 20.0, 20.0),
-                      material=Material("gel", "neo-hookean", E_kpa=5.0, nu=0.495, attenuation_per_cm=10 * MU_B))
-    scene.inclusions = [Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=8.0,
-                                  material=Material("stiff", "linear", E_kpa=30.0, nu=0.495,
-                                                    attenuation_per_cm=10 * MU_I))]
+    scene.body = Body(
+        "box",
+        size_mm=(20.0, 20.0, 20.0),
+        material=Material("gel", "neo-hookean", E_kpa=5.0, nu=0.495, attenuation_per_cm=10 * MU_B),
+    )
+    scene.inclusions = [
+        Inclusion(
+            "sphere",
+            centre_mm=(0.0, 0.0, 0.0),
+            diameter_mm=8.0,
+            material=Material("stiff", "linear", E_kpa=30.0, nu=0.495, attenuation_per_cm=10 * MU_I),
+        )
+    ]
     scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm = 1.5, 4.0
     path = tmp_path_factory.mktemp("pipeline") / "exp.h5"
     simulate_experiment(scene, path, n_darks=6, n_flats=6, frames_per_step=2, progress=False)
@@ -65,8 +74,9 @@ def test_improvement_and_change_ratio_follow_the_physics(processed):
     assert lin["improvement_factor"]["1"] > 1.0
     assert lin["improvement_factor"]["2"] > lin["improvement_factor"]["1"]
     for d in (lin, log):
-        np.testing.assert_allclose(d["improvement_factor"]["2"] - 1, 2 * (d["improvement_factor"]["1"] - 1),
-                                   rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(
+            d["improvement_factor"]["2"] - 1, 2 * (d["improvement_factor"]["1"] - 1), rtol=1e-4, atol=1e-6
+        )
     # log domain: a denser inclusion thins, so compression takes contrast away (<= 1, within the
     # registration's noise)
     assert log["improvement_factor"]["1"] <= 1.0 + 0.01
@@ -166,8 +176,9 @@ def _synthetic(path, scale=1.0):
             w.append(np.full((160, 160), 3100, np.uint16), image_key=ImageKey.FLAT)
         for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
             L = scale * (0.08 * tb + 0.03 * ti * sq)
-            w.append((100 + 3000 * np.exp(-L)).astype(np.uint16), image_key=ImageKey.PROJECTION, step=step,
-                     ratio=0.1 * step)
+            w.append(
+                (100 + 3000 * np.exp(-L)).astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step
+            )
 
 
 def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest(tmp_path, capsys):
@@ -188,9 +199,31 @@ def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest
     assert res[1]["improvement_factor"]["1"] != res[0]["improvement_factor"]["1"]
     assert (tmp_path / "out" / "b" / "results.json").exists()
     # the command line: one line per file, exit 1 because one failed
-    code = main(["process", str(paths[0]), str(paths[2]), "-o", str(tmp_path / "cli"), "--no-report", "-q",
-                 "--workers", "2", "--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51",
-                 "--crop-mm", "0"])
+    code = main(
+        [
+            "process",
+            str(paths[0]),
+            str(paths[2]),
+            "-o",
+            str(tmp_path / "cli"),
+            "--no-report",
+            "-q",
+            "--workers",
+            "2",
+            "--inclusion",
+            "75",
+            "86",
+            "75",
+            "86",
+            "--background",
+            "75",
+            "86",
+            "40",
+            "51",
+            "--crop-mm",
+            "0",
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 1 and "broken.h5: error" in captured.err and "improvement factor (linear)" in captured.out
 
@@ -216,8 +249,10 @@ def test_the_main_pair_is_cross_checked(processed):
     assert q["cross_check"]["method"] == "ncc" and q["cross_check"]["agree"], q["cross_check"]
 
 
-@pytest.mark.parametrize("cores, workers, tasks, threads", [
-    (2, 2, 1, 1), (8, 2, 1, 4), (2, 4, 1, 1), (16, 2, 2, 4), (1, 1, 1, 1), (7, 2, 1, 3)])
+@pytest.mark.parametrize(
+    "cores, workers, tasks, threads",
+    [(2, 2, 1, 1), (8, 2, 1, 4), (2, 4, 1, 1), (16, 2, 2, 4), (1, 1, 1, 1), (7, 2, 1, 3)],
+)
 def test_each_worker_gets_its_share_of_the_cores(cores, workers, tasks, threads):
     from radiokit.pipeline import worker_threads
 
@@ -245,11 +280,16 @@ def _worker_state(dask_worker=None):
 
     from radiokit._threads import pool, threads
 
-    return {"radiokit": threads(), "pool": pool()._max_workers, "cv2": cv2.getNumThreads(),
-            "blas": sorted({p["num_threads"] for p in threadpool_info()}),
-            "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
-            "profiling": dask_worker.periodic_callbacks["profile"].is_running()
-            if "profile" in dask_worker.periodic_callbacks else False}
+    return {
+        "radiokit": threads(),
+        "pool": pool()._max_workers,
+        "cv2": cv2.getNumThreads(),
+        "blas": sorted({p["num_threads"] for p in threadpool_info()}),
+        "malloc": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+        "profiling": dask_worker.periodic_callbacks["profile"].is_running()
+        if "profile" in dask_worker.periodic_callbacks
+        else False,
+    }
 
 
 def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
@@ -269,8 +309,10 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
     _synthetic(path)
     cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
     # workers as a user starts them by hand: two threads each, nothing in their environment
-    with LocalCluster(n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         before = client.run(_worker_state)
         res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
         assert "error" not in res[0]
@@ -303,13 +345,26 @@ def test_the_steps_compose_and_a_zero_reference_contrast_is_an_error(tmp_path):
     between the ROIs is refused (the improvement factor is undefined), naming file and domain."""
     from radiokit.enhance import Domain
     from radiokit.measure import ROI, improvement_factor
-    from radiokit.pipeline import (Config, check_pairs, choose_rois, enhance_pair, load_steps, measure_domains,
-                                   register_pairs)
+    from radiokit.pipeline import (
+        Config,
+        check_pairs,
+        choose_rois,
+        enhance_pair,
+        load_steps,
+        measure_domains,
+        register_pairs,
+    )
 
     path = tmp_path / "a.h5"
     _synthetic(path)
-    cfg = Config(crop_mm=None, progress=False, method="ncc", cross_check=None, inclusion=(75, 86, 75, 86),
-                 background=(75, 86, 40, 51))
+    cfg = Config(
+        crop_mm=None,
+        progress=False,
+        method="ncc",
+        cross_check=None,
+        inclusion=(75, 86, 75, 86),
+        background=(75, 86, 40, 51),
+    )
     steps = load_steps(path)
     assert steps.numbers == (1, 2, 3) and steps.images.shape == (3, 160, 160)
     rois = choose_rois(steps, cfg)
@@ -329,8 +384,9 @@ def test_the_steps_compose_and_a_zero_reference_contrast_is_an_error(tmp_path):
         measure_domains(flat, ROI(0, 10, 0, 10), ROI(20, 30, 20, 30), source=str(path))
 
 
-@pytest.mark.parametrize("domain, match", [("linear", "the pipeline computes 'log' and 'negative'"),
-                                           ("lin", "domain must be one of")])
+@pytest.mark.parametrize(
+    "domain, match", [("linear", "the pipeline computes 'log' and 'negative'"), ("lin", "domain must be one of")]
+)
 def test_config_names_its_domains(domain, match):
     from radiokit.pipeline import Config
 

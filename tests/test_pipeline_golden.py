@@ -19,6 +19,7 @@ still says "linear", the paper's word) and carries a ``schema_version``; the num
 A deliberate change of the simulator's physics or of TV-L1 moves these numbers: re-pin then, and
 say so in the commit.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -35,7 +36,8 @@ PRINTED = (
     "{path}: improvement factor (linear) k=1: 1.04, k=2: 1.08; change ratio 2->3 0.767; registration ok\n"
     "  log   : CNR reference 5.91; k=1: IF 1.013 (bound 1.000), CNR 3.1; k=2: IF 1.027 (bound 1.000), CNR 2.06\n"
     "  linear: CNR reference 5.42; k=1: IF 1.038 (bound 1.025), CNR 2.92; k=2: IF 1.075 (bound 1.049), CNR 1.98\n"
-    "  results.json: {out}/results.json\n")
+    "  results.json: {out}/results.json\n"
+)
 
 #: ``results.json`` numbers as written before the refactor (path into the JSON: value).
 PINNED = {
@@ -115,16 +117,27 @@ def golden_scene():
 
     return Scene(
         name="golden-cube",
-        body=Body("box", size_mm=(10.0, 10.0, 10.0),
-                  material=Material("gel", "neo-hookean", E_kpa=5.0, nu=0.45, attenuation_per_cm=0.5)),
-        inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=4.0,
-                              material=Material("stiff", "linear", E_kpa=30.0, nu=0.45, attenuation_per_cm=1.0))],
+        body=Body(
+            "box",
+            size_mm=(10.0, 10.0, 10.0),
+            material=Material("gel", "neo-hookean", E_kpa=5.0, nu=0.45, attenuation_per_cm=0.5),
+        ),
+        inclusions=[
+            Inclusion(
+                "sphere",
+                centre_mm=(0.0, 0.0, 0.0),
+                diameter_mm=4.0,
+                material=Material("stiff", "linear", E_kpa=30.0, nu=0.45, attenuation_per_cm=1.0),
+            )
+        ],
         compression=Compression((0.10, 0.15, 0.20), "frictionless"),
         beam=Beam("parallel", "y", source_distance_mm=500.0, detector_distance_mm=100.0),
         detector=Detector("c7942", 4),
         exposure=Exposure(i0_counts=2500.0, voltage_kv=60.0, current_ua=250.0),
-        mesh=MeshSpec(size_inclusion_mm=1.5, size_far_mm=3.0, model="auto", symmetry=True, curved=True,
-                      size_contact_mm=None))
+        mesh=MeshSpec(
+            size_inclusion_mm=1.5, size_far_mm=3.0, model="auto", symmetry=True, curved=True, size_contact_mm=None
+        ),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -135,8 +148,31 @@ def golden(tmp_path_factory):
     d = tmp_path_factory.mktemp("golden")
     path, out = d / "golden.h5", d / "results"
     simulate_experiment(golden_scene(), path, n_darks=3, n_flats=3, frames_per_step=1, seed=0, progress=False)
-    argv = ["process", str(path), "-o", str(out), "-q", "--no-report", "--method", "tvl1", "--cross-check", "none",
-            "--inclusion", "276", "283", "276", "283", "--background", "276", "283", "255", "262", "--k", "1", "2"]
+    argv = [
+        "process",
+        str(path),
+        "-o",
+        str(out),
+        "-q",
+        "--no-report",
+        "--method",
+        "tvl1",
+        "--cross-check",
+        "none",
+        "--inclusion",
+        "276",
+        "283",
+        "276",
+        "283",
+        "--background",
+        "276",
+        "283",
+        "255",
+        "262",
+        "--k",
+        "1",
+        "2",
+    ]
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         code = main(argv)
@@ -185,8 +221,11 @@ def test_results_json_reads_back_into_the_records(golden, tmp_path):
     assert record.pair("2->3").epe["epe_median"] == PINNED["registration/2->3/epe_median"]
     # another major version, or a file from before the schema: one clear line naming the file
     for version in ("2.0", None):
-        old = dict(results, schema_version=version) if version else {k: v for k, v in results.items()
-                                                                      if k != "schema_version"}
+        old = (
+            dict(results, schema_version=version)
+            if version
+            else {k: v for k, v in results.items() if k != "schema_version"}
+        )
         path.write_text(json.dumps(old))
         with pytest.raises(FormatError, match=rf"{path.name}: results schema version {version or 0}"):
             load_results(path)

@@ -1,15 +1,16 @@
 """The README's self-contained examples run as written."""
+
 import re
+from pathlib import Path
 
 import numpy as np
-from pathlib import Path
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def _block(heading):
     text = README.read_text()
-    section = text[text.index(heading):]
+    section = text[text.index(heading) :]
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
@@ -18,6 +19,7 @@ def test_calibrate_and_correct_example(tmp_path, monkeypatch):
     ns = {}
     exec(compile(_block("### Calibrate and correct"), "README.md", "exec"), ns)
     import numpy as np
+
     # 1550 counts with dark 100 and flat 3000: I/I0 = 0.5
     assert abs(float(np.median(ns["mu_l"])) - np.log(2)) < 0.01
     assert abs(float(np.median(ns["t"])) - 0.5) < 0.005

@@ -1,4 +1,5 @@
 """Residual-complexity B-spline registration: gradients, known warps, intensity change, failures."""
+
 import types
 
 import numpy as np
@@ -144,12 +145,15 @@ def test_divergence_is_reported():
     assert not reg.quality.ok and "diverged" in reg.quality.reason
 
 
-@pytest.mark.parametrize("bad, match", [
-    (lambda f: (f, f[:-1]), "differ in shape"),
-    (lambda f: (f, np.where(f > 0.5, np.nan, f)), "NaN"),
-    (lambda f: (np.ones_like(f), f), "constant"),
-    (lambda f: (f[None], f[None]), "2-D"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (lambda f: (f, f[:-1]), "differ in shape"),
+        (lambda f: (f, np.where(f > 0.5, np.nan, f)), "NaN"),
+        (lambda f: (np.ones_like(f), f), "constant"),
+        (lambda f: (f[None], f[None]), "2-D"),
+    ],
+)
 def test_bad_inputs_are_refused_clearly(bad, match):
     f, _ = _phantom(32)
     a, b = bad(f)
@@ -173,8 +177,17 @@ def test_cli_register(tmp_path, capsys):
     write_tiff(tmp_path / "fixed.tif", fixed)
     write_tiff(tmp_path / "moving.tif", moving)
     out = tmp_path / "reg.h5"
-    code = main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(out),
-                 "--png", str(tmp_path / "reg.png")])
+    code = main(
+        [
+            "register",
+            str(tmp_path / "fixed.tif"),
+            str(tmp_path / "moving.tif"),
+            "-o",
+            str(out),
+            "--png",
+            str(tmp_path / "reg.png"),
+        ]
+    )
     text = capsys.readouterr().out
     assert code == 0 and "residual complexity" in text and (tmp_path / "reg.png").stat().st_size > 10000
     with h5py.File(out) as h5:
@@ -182,8 +195,23 @@ def test_cli_register(tmp_path, capsys):
         assert h5["entry/registration"].attrs["quality_ok"]
     med, _ = _epe(field, d, inside)
     assert med < 0.3
-    assert main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(out),
-                 "--roi", "0", "999", "0", "10"]) == 2
+    assert (
+        main(
+            [
+                "register",
+                str(tmp_path / "fixed.tif"),
+                str(tmp_path / "moving.tif"),
+                "-o",
+                str(out),
+                "--roi",
+                "0",
+                "999",
+                "0",
+                "10",
+            ]
+        )
+        == 2
+    )
     assert "--roi" in capsys.readouterr().err
 
 
@@ -195,6 +223,7 @@ def test_iteration_budget_too_small_is_reported_as_not_converged():
 
 
 # -- nearly textureless phantoms (issue 11) ----------------------------------------------------
+
 
 def _family_pair(**case):
     """A pair of benchmarks/regdata.py's gel-phantom family (a smooth body with a denser disc,
@@ -244,12 +273,14 @@ def test_frame_balance_bending_energy_is_scale_invariant():
     """The bending energy in frame fractions: the same motion (a smooth field scaled with the
     frame) on a lattice of the same frame fraction costs the same at 300 and 600 px, and the
     same on a lattice twice as fine; affine motion is free."""
+
     def bending(n, spacing, field):
         grid = B.BSplineField((n, n), spacing)
-        yy, xx = np.mgrid[0:grid.nr, 0:grid.nc] * spacing / n  # control points in frame fractions
+        yy, xx = np.mgrid[0 : grid.nr, 0 : grid.nc] * spacing / n  # control points in frame fractions
         c = np.stack([n * field(yy, xx), n * field(xx, yy)]).ravel()
-        level = types.SimpleNamespace(n=float(n * n), similarity="rc", shape=(n, n),
-                                      energy=lambda d: (0.0, np.zeros_like(d)))
+        level = types.SimpleNamespace(
+            n=float(n * n), similarity="rc", shape=(n, n), energy=lambda d: (0.0, np.zeros_like(d))
+        )
         fun = B._objective(level, grid, np.zeros((2, n, n), np.float32), 1.0, 1, "frame")
         return fun(c)[0]
 
@@ -340,6 +371,7 @@ def test_roi_observed():
 
 
 # -- the flag is method-aware (issue 11): judged by what the data observe and by the residual --
+
 
 def _planted(fixed, moving, d):
     from radiokit.register import Quality, _assess

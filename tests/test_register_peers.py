@@ -10,6 +10,7 @@ control-point spacing, the flows by their windows). The tests allow 0.1 px on th
 0.2 / 0.5 px on the warp: two to five times the measured error, and still ten times below what a
 convention error costs (a sign error on the shift is 2.8 / 4.4 px, swapped axes 3.6 px). The
 outer 20 pixels are left out (flows extrapolate there)."""
+
 import importlib.util
 import sys
 from pathlib import Path
@@ -143,7 +144,9 @@ def test_missing_optional_peer_is_refused_clearly(monkeypatch, method):
     or not it is installed), which is what the peer checks before importing it."""
     real = importlib.util.find_spec
     absent = OPTIONAL[method]
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a, **k: None if name == absent else real(name, *a, **k))
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a, **k: None if name == absent else real(name, *a, **k)
+    )
     f = _textured(32)
     with pytest.raises(RadiokitError) as info:
         register(f, f, method)
@@ -153,6 +156,7 @@ def test_missing_optional_peer_is_refused_clearly(monkeypatch, method):
 
 
 # -- the benchmark data -------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("kind", ["thinning", "gain"])
 def test_analytic_pair_satisfies_its_truth(kind):

@@ -1,11 +1,11 @@
 """The HTML report: it renders, its images load, its numbers and sentences are the ones given."""
+
+import dataclasses
 import re
 import subprocess
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
-
-import dataclasses
 
 import numpy as np
 import pytest
@@ -13,37 +13,78 @@ from matplotlib import image as mpimg
 
 from radiokit import report as R
 from radiokit.enhance import Domain, to_domain
-from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois
 from radiokit.report import MAX_PNG_BYTES, stiffness_share, write_report
+from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois
 
 SOURCE = "/data/run<1>&co/exp.h5"
 
 
 def _domain(dom, c_ref, cnr_ref, weber_ref, per_k):
     """DomainMeasures from ``{k: (contrast, cnr, weber, improvement factor)}``."""
-    return DomainMeasures(Domain(dom), c_ref, cnr_ref, weber_ref,
-                          tuple(KMeasure(float(k), *v) for k, v in per_k.items()))
+    return DomainMeasures(
+        Domain(dom), c_ref, cnr_ref, weber_ref, tuple(KMeasure(float(k), *v) for k, v in per_k.items())
+    )
 
 
 def _record(ks, factors, *, truth, scene="block <stiff> & soft", control=None):
-    q = {"ok": True, "reason": "", "rc_before": 12.5, "rc_after": 3.25, "ncc_before": 0.9, "ncc_after": 0.998,
-         "folds": 0, "min_det_j": 0.97, "seconds": 1.5, "iterations": 40}
+    q = {
+        "ok": True,
+        "reason": "",
+        "rc_before": 12.5,
+        "rc_after": 3.25,
+        "ncc_before": 0.9,
+        "ncc_after": 0.998,
+        "folds": 0,
+        "min_det_j": 0.97,
+        "seconds": 1.5,
+        "iterations": 40,
+    }
     epe = {"epe_median": 0.071, "epe_p95": 0.183} if truth else None
     cr = {"2->3": (0.743, 0.812), "1->3": (0.751, 0.8), "1->2": (0.76, 0.81)}
-    quality = {"2->3": q, "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0", "folds": 3},
-               "1->2": q}
-    pairs = tuple(PairResult(int(n[0]), int(n[-1]), "rc", quality[n], {Domain.LOG: v[0], Domain.NEGATIVE: v[1]},
-                             None, None, epe) for n, v in cr.items())
-    domains = {Domain.LOG: _domain("log", 0.2512, 25.1, 0.27,
-                                   {k: (0.2512 * f, 20.0 * f, 0.27 * f, f) for k, f in factors.items()}),
-               Domain.NEGATIVE: _domain("negative", 0.0915, 9.2, 0.2,
-                                        {k: (0.0915 * 1.2, 9.0, 0.24, 1 + 0.2 * float(k)) for k in ks})}
-    return Results(SOURCE, scene, truth, 0.05, Domain.LOG, tuple(float(k) for k in ks), "rc", (1, 2, 3),
-                   (0.15, 0.20, 0.25), Rois((100, 164, 200, 264), (28, 36, 28, 36), (28, 36, 4, 12)), domains,
-                   pairs, "2->3", 32, Bound(None, ""), {"improvement_factor": {"1": 1.4, "2": 2.0},
-                                                        "change_ratio": [0.66, 0.84]},
-                   {"calibrate_s": 0.5, "correct_s": 1.25, "register_s": 12.0, "enhance_s": 0.01,
-                    "measure_s": 0.02, "total_s": 14.37}, control)
+    quality = {
+        "2->3": q,
+        "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0", "folds": 3},
+        "1->2": q,
+    }
+    pairs = tuple(
+        PairResult(int(n[0]), int(n[-1]), "rc", quality[n], {Domain.LOG: v[0], Domain.NEGATIVE: v[1]}, None, None, epe)
+        for n, v in cr.items()
+    )
+    domains = {
+        Domain.LOG: _domain(
+            "log", 0.2512, 25.1, 0.27, {k: (0.2512 * f, 20.0 * f, 0.27 * f, f) for k, f in factors.items()}
+        ),
+        Domain.NEGATIVE: _domain(
+            "negative", 0.0915, 9.2, 0.2, {k: (0.0915 * 1.2, 9.0, 0.24, 1 + 0.2 * float(k)) for k in ks}
+        ),
+    }
+    return Results(
+        SOURCE,
+        scene,
+        truth,
+        0.05,
+        Domain.LOG,
+        tuple(float(k) for k in ks),
+        "rc",
+        (1, 2, 3),
+        (0.15, 0.20, 0.25),
+        Rois((100, 164, 200, 264), (28, 36, 28, 36), (28, 36, 4, 12)),
+        domains,
+        pairs,
+        "2->3",
+        32,
+        Bound(None, ""),
+        {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]},
+        {
+            "calibrate_s": 0.5,
+            "correct_s": 1.25,
+            "register_s": 12.0,
+            "enhance_s": 0.01,
+            "measure_s": 0.02,
+            "total_s": 14.37,
+        },
+        control,
+    )
 
 
 def _control(ks):
@@ -52,8 +93,11 @@ def _control(ks):
     ctrl = _record(ks, {k: cf.get(k, 1.1) for k in ks}, truth=False)
     neg = _domain("negative", 0.09, 9.0, 0.2, {k: (0.1, 9.0, 0.2, 1.09 * float(k)) for k in ks})
     log = _domain("log", 0.2491, 25.0, 0.27, {k: (0.25, 20.0, 0.27, cf.get(k, 1.1)) for k in ks})
-    pairs = tuple(dataclasses.replace(p, change_ratio={Domain.LOG: 0.95, Domain.NEGATIVE: 0.97}) for p in ctrl.pairs
-                  if p.name == "2->3")
+    pairs = tuple(
+        dataclasses.replace(p, change_ratio={Domain.LOG: 0.95, Domain.NEGATIVE: 0.97})
+        for p in ctrl.pairs
+        if p.name == "2->3"
+    )
     return dataclasses.replace(ctrl, domains={Domain.LOG: log, Domain.NEGATIVE: neg}, pairs=pairs)
 
 
@@ -77,11 +121,23 @@ def _synthetic(n=64, *, control=False, truth=False, ks=("1", "2"), noise=0.01, s
     for dom in (Domain.LOG, Domain.NEGATIVE):
         r, g = to_domain(ref, dom), to_domain(registered, dom)
         D = r - g
-        enhanced[dom] = Enhancement(dom, r, g, D, tuple((float(k), (r + float(k) * (D - D.mean())).astype(np.float32))
-                                                        for k in ks))
+        enhanced[dom] = Enhancement(
+            dom, r, g, D, tuple((float(k), (r + float(k) * (D - D.mean())).astype(np.float32)) for k in ks)
+        )
     tf = d + np.float32(0.05) if truth else None
-    images = Images(steps, ref, registered, np.roll(moving, 1, axis=1), d, det_j, None, enhanced, {}, tf,
-                    np.hypot(*(d - tf)) if truth else None)
+    images = Images(
+        steps,
+        ref,
+        registered,
+        np.roll(moving, 1, axis=1),
+        d,
+        det_j,
+        None,
+        enhanced,
+        {},
+        tf,
+        np.hypot(*(d - tf)) if truth else None,
+    )
     factors = {"1": 1.374, "2": 2.046, "0.5": 1.187, "3": 3.1}
     factors = {k: factors[k] for k in ks}
     results = _record(ks, factors, truth=truth, control=_control(ks) if control else None)
@@ -127,8 +183,11 @@ def bare_report(tmp_path_factory):
     for img in (images.steps[0], images.enhanced[Domain.LOG].reference, images.enhanced[Domain.LOG].images[0][1]):
         img[30:34] = np.nan
     main = dataclasses.replace(results.pair("2->3"), quality={"ok": False, "reason": "diverged <badly>"})
-    results = dataclasses.replace(results, pairs=tuple(main if p.name == "2->3" else p for p in results.pairs),
-                                  scene='[scene]\nname = "block"\nnote = "E_inclusion > E_background & dense"\n')
+    results = dataclasses.replace(
+        results,
+        pairs=tuple(main if p.name == "2->3" else p for p in results.pairs),
+        scene='[scene]\nname = "block"\nnote = "E_inclusion > E_background & dense"\n',
+    )
     return write_report(out, results, images), results  # RuntimeWarnings are errors here
 
 
@@ -151,8 +210,13 @@ def test_html_written_and_every_image_loads(full_report):
     path, _ = full_report
     assert path == path.parent / "report.html" and path.is_file()
     srcs = _check_images(path, 5)
-    assert {Path(s).name for s in srcs} == {"projections.png", "profiles.png", "difference.png",
-                                             "rois.png", "registration.png"}
+    assert {Path(s).name for s in srcs} == {
+        "projections.png",
+        "profiles.png",
+        "difference.png",
+        "rois.png",
+        "registration.png",
+    }
 
 
 def test_page_is_self_contained(full_report):
@@ -172,8 +236,10 @@ def test_headline_numbers_appear_formatted(full_report):
     assert "1.37 at k=1" in summary and "2.05 at k=2" in summary and "0.74 times" in summary
     # the text speaks of k = 1 (the paper's direct addition) even when a smaller k comes first
     assert "contrast-to-noise ratio changes by a factor of 1.09 at k=1" in summary
-    assert "improves the contrast by 1.11 at k=1: the share of the gain that needs the inclusion's " \
-           "stiffness is 70 %" in summary
+    assert (
+        "improves the contrast by 1.11 at k=1: the share of the gain that needs the inclusion's "
+        "stiffness is 70 %" in summary
+    )
 
 
 def test_text_is_escaped(full_report):
@@ -185,8 +251,10 @@ def test_text_is_escaped(full_report):
 
 
 def _sentences(text):
-    pat = (r"In the (log|negative) domain, the control's improvement at k=1 is ([\d.]+) vs ([\d.]+): "
-           r"(-?\d+) % of the compression-induced contrast")
+    pat = (
+        r"In the (log|negative) domain, the control's improvement at k=1 is ([\d.]+) vs ([\d.]+): "
+        r"(-?\d+) % of the compression-induced contrast"
+    )
     return {m[0]: (float(m[1]), float(m[2]), int(m[3])) for m in re.findall(pat, text)}
 
 
@@ -215,8 +283,11 @@ def test_no_control_no_truth_still_renders(bare_report):
     assert "1.37" in text and "Timings" in text
     assert "Caution: the registration of 2->3 was flagged (diverged <badly>)" in text
     raw = path.read_text(encoding="utf-8")  # a simulation's TOML scene is folded away, escaped
-    assert re.search(r"<details><summary>scene configuration</summary><pre>\[scene\]\nname = &quot;block&quot;"
-                     r"\nnote = &quot;E_inclusion &gt; E_background &amp; dense&quot;", raw)
+    assert re.search(
+        r"<details><summary>scene configuration</summary><pre>\[scene\]\nname = &quot;block&quot;"
+        r"\nnote = &quot;E_inclusion &gt; E_background &amp; dense&quot;",
+        raw,
+    )
 
 
 def test_only_the_typed_records_are_taken(tmp_path):
@@ -245,17 +316,34 @@ def test_noisy_figures_are_kept_under_the_size_limit(tmp_path):
     assert img.shape[1] >= 200 and float(np.std(img)) > 0.05
 
 
-@pytest.mark.parametrize("domain, if_stiff, if_control, expected", [
-    ("log", 1.4, 1.1, "75 % of the compression-induced contrast needs the inclusion's stiffness; the rest "
-                      "comes from attenuation alone"),
-    ("log", 1.004, 1.1, "is not measurable"),
-    ("log", 1.4, 0.9, "125 % of the compression-induced contrast needs the inclusion's stiffness; "
-                      "attenuation alone (the thinning of a denser inclusion) would lower the contrast"),
-    ("log", 1.2, 1.3, "-50 % of the compression-induced contrast needs the inclusion's stiffness: the "
-                      "control gains more"),
-    ("negative", 1.4, 1.1, "exponential in the line integral"),
-    ("log", None, 1.1, "not measurable"),
-])
+@pytest.mark.parametrize(
+    "domain, if_stiff, if_control, expected",
+    [
+        (
+            "log",
+            1.4,
+            1.1,
+            "75 % of the compression-induced contrast needs the inclusion's stiffness; the rest "
+            "comes from attenuation alone",
+        ),
+        ("log", 1.004, 1.1, "is not measurable"),
+        (
+            "log",
+            1.4,
+            0.9,
+            "125 % of the compression-induced contrast needs the inclusion's stiffness; "
+            "attenuation alone (the thinning of a denser inclusion) would lower the contrast",
+        ),
+        (
+            "log",
+            1.2,
+            1.3,
+            "-50 % of the compression-induced contrast needs the inclusion's stiffness: the control gains more",
+        ),
+        ("negative", 1.4, 1.1, "exponential in the line integral"),
+        ("log", None, 1.1, "not measurable"),
+    ],
+)
 def test_control_sentence_wording(domain, if_stiff, if_control, expected):
     sentence = R._control_sentence(domain, 1.0, if_stiff, if_control)
     assert sentence.startswith(f"In the {domain} domain, the control's improvement at k=1 is ")
@@ -263,18 +351,31 @@ def test_control_sentence_wording(domain, if_stiff, if_control, expected):
     assert ("exponential" in sentence) == (domain == "negative")
 
 
-@pytest.mark.parametrize("if_stiff, if_control, expected", [
-    (1.4, 1.1, 0.75), (2.0, 1.0, 1.0), (2.0, 0.5, 1.5), (1.2, 1.3, -0.5), (1.4, 1.4, 0.0),
-    (1.0, 1.2, None), (1.005, 1.0, None), (0.995, 1.0, None), (float("nan"), 1.1, None),
-    (1.4, None, None), ("1.4", "1.1", 0.75),
-])
+@pytest.mark.parametrize(
+    "if_stiff, if_control, expected",
+    [
+        (1.4, 1.1, 0.75),
+        (2.0, 1.0, 1.0),
+        (2.0, 0.5, 1.5),
+        (1.2, 1.3, -0.5),
+        (1.4, 1.4, 0.0),
+        (1.0, 1.2, None),
+        (1.005, 1.0, None),
+        (0.995, 1.0, None),
+        (float("nan"), 1.1, None),
+        (1.4, None, None),
+        ("1.4", "1.1", 0.75),
+    ],
+)
 def test_stiffness_share(if_stiff, if_control, expected):
     got = stiffness_share(if_stiff, if_control)
     assert got == pytest.approx(expected) if expected is not None else got is None
 
 
 def test_report_imports_neither_sim_nor_acquisition():
-    code = ("import sys, radiokit.report; "
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
-            "assert not bad, bad")
+    code = (
+        "import sys, radiokit.report; "
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'acquisition')); "
+        "assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)

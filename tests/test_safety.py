@@ -26,6 +26,7 @@ guardian, so a kill -9 is switched off in the dialect the unit speaks.
 A test that sends a signal expects the process that receives it to install its own handlers: the
 command is started with SIGINT ignored in some rows, as ``make test &`` starts it.
 """
+
 from __future__ import annotations
 
 import os
@@ -56,6 +57,7 @@ MATRIX = []
 
 
 # -- the bench --------------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory):
@@ -102,16 +104,39 @@ def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, ou
     dialect = getattr(getattr(server, "model", None), "dialect", "A")
     # timeout_s: the driver's default; shorter ones made a loaded machine's late reply (the
     # emulator runs in this process) look like a silent controller
-    src = {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "off_attempts": 2,
-           "min_interval_s": 0.01, "dialect": dialect, **(source or {})}
+    src = {
+        "voltage_kv": 60,
+        "current_ua": 250,
+        "poll_s": 0.1,
+        "timeout_s": 1.0,
+        "off_attempts": 2,
+        "min_interval_s": 0.01,
+        "dialect": dialect,
+        **(source or {}),
+    }
     src = {k: v for k, v in src.items() if v is not None}  # None: the driver's default
-    ser = {"darks": DARKS, "flats": FLATS, "frames_per_step": PER_STEP, "steps": list(STEPS), "settle_s": 0.3,
-           **(series or {})}
+    ser = {
+        "darks": DARKS,
+        "flats": FLATS,
+        "frames_per_step": PER_STEP,
+        "steps": list(STEPS),
+        "settle_s": 0.3,
+        **(series or {}),
+    }
     path = tmp_path / "protocol.toml"
-    path.write_text(tomli_w.dumps({
-        "output": str(output or tmp_path / "series.h5"), "name": "safety", "source": src,
-        "detector": {"kind": "sim", "timeout_s": 2.0}, "frame": {"kind": "sim", "initial_height_mm": 10.0},
-        "series": ser, "sim": {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": port}}))
+    path.write_text(
+        tomli_w.dumps(
+            {
+                "output": str(output or tmp_path / "series.h5"),
+                "name": "safety",
+                "source": src,
+                "detector": {"kind": "sim", "timeout_s": 2.0},
+                "frame": {"kind": "sim", "initial_height_mm": 10.0},
+                "series": ser,
+                "sim": {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": port},
+            }
+        )
+    )
     return path
 
 
@@ -124,12 +149,18 @@ class Acquire:
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
         code = "import sys; from radiokit.cli import main; sys.exit(main())"
         if sigint_ignored:  # the disposition survives exec, as a shell's does
-            code = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-                    f"os.execv(sys.executable, [sys.executable, '-c', {code!r}, *sys.argv[1:]])")
+            code = (
+                "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                f"os.execv(sys.executable, [sys.executable, '-c', {code!r}, *sys.argv[1:]])"
+            )
         self.proc = subprocess.Popen(
             [sys.executable, "-c", code, "acquire", *map(str, args)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
-            start_new_session=True)
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
         self.lines = []
         self.times = []  # time.monotonic() at which each line arrived
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -204,6 +235,7 @@ class OffWatch:
 
 # -- where each phase is reached --------------------------------------------------------------------
 
+
 def _in_warm_up(model, tmp_path):
     wait_until(lambda: model.state == 1, what="warm-up")  # WARMING_UP
 
@@ -230,8 +262,13 @@ def _in_settle(model, tmp_path):
 
 
 SETTLE_ROW_S = 1.0  # the settle row's wait: long enough to signal inside it on a loaded machine
-PHASES = {"warm-up": _in_warm_up, "darks (beam off)": _in_darks, "flats (beam on)": _in_flats,
-          "projection (beam on)": _in_projection, "settle (operator/compression wait)": _in_settle}
+PHASES = {
+    "warm-up": _in_warm_up,
+    "darks (beam off)": _in_darks,
+    "flats (beam on)": _in_flats,
+    "projection (beam on)": _in_projection,
+    "settle (operator/compression wait)": _in_settle,
+}
 SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP, "SIGKILL": signal.SIGKILL}
 
 
@@ -294,8 +331,12 @@ def test_three_ctrl_c_during_a_frame_and_the_switch_off(tmp_path, scene_file, co
     watch = OffWatch(model)
     model.slow(0.3)
     acq.signal(signal.SIGINT)
-    wait_until(lambda: any(e.command == "XOF" and e.t >= watch.model_t_fault for e in model.log) or
-               acq.proc.poll() is not None, what="the switch-off")
+    wait_until(
+        lambda: (
+            any(e.command == "XOF" and e.t >= watch.model_t_fault for e in model.log) or acq.proc.poll() is not None
+        ),
+        what="the switch-off",
+    )
     for _ in range(2):
         acq.signal(signal.SIGINT)
         time.sleep(0.1)
@@ -331,8 +372,11 @@ WARNING_BOUND_S = 0.25 + 1.0 + 2 * 1.0 + 1.5
 SILENT_OFF_BOUND_S = 0.25 + 1.0 + 1.0 + 1.0
 
 
-_FAULT_ROWS = [pytest.param(d, *f, id=f"{d}-{f[0]}") for f in CONTROLLER_FAULTS
-               for d in (("A",) if f[0].startswith("unplugged") else ("A", "B"))]
+_FAULT_ROWS = [
+    pytest.param(d, *f, id=f"{d}-{f[0]}")
+    for f in CONTROLLER_FAULTS
+    for d in (("A",) if f[0].startswith("unplugged") else ("A", "B"))
+]
 
 
 @pytest.mark.parametrize("controller, name, inject, can_switch_off", _FAULT_ROWS, indirect=["controller"])
@@ -409,14 +453,16 @@ def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_f
     commands = [e.command for e in model.log[n0:]]
     first_xof = commands.index("XOF")
     # nothing but identification (A: TYP; B: the operate switch, SRL) and state queries before the XOF
-    assert set(commands[:first_xof]) <= {"TYP", "SRL", "STS", "DAG"} and "STS" in commands[:first_xof], \
-        commands[:first_xof + 1]
+    assert set(commands[:first_xof]) <= {"TYP", "SRL", "STS", "DAG"} and "STS" in commands[:first_xof], commands[
+        : first_xof + 1
+    ]
     assert commands[first_xof + 1] == "STS"  # ... confirmed
     assert not model.xray_on
     with h5py.File(tmp_path / "series.h5", "r") as h5:
         keys = h5["entry/instrument/detector/image_key"][:]
-    assert sorted(keys.tolist()) == sorted([ImageKey.DARK] * DARKS + [ImageKey.FLAT] * FLATS
-                                           + [ImageKey.PROJECTION] * PER_STEP * len(STEPS))
+    assert sorted(keys.tolist()) == sorted(
+        [ImageKey.DARK] * DARKS + [ImageKey.FLAT] * FLATS + [ImageKey.PROJECTION] * PER_STEP * len(STEPS)
+    )
 
 
 # -- limits before the first byte ------------------------------------------------------------------
@@ -444,9 +490,11 @@ TIMING = [  # the protocol's own checks of [series]
 ]
 
 
-@pytest.mark.parametrize("section, values, message, flags",
-                         [("source", v, m, ["--sim"]) for v, m in LIMITS] + [("series", v, m, []) for v, m in TIMING],
-                         ids=[str(v) for v, _ in LIMITS + TIMING])
+@pytest.mark.parametrize(
+    "section, values, message, flags",
+    [("source", v, m, ["--sim"]) for v, m in LIMITS] + [("series", v, m, []) for v, m in TIMING],
+    ids=[str(v) for v, _ in LIMITS + TIMING],
+)
 def test_dry_run_refuses_what_the_run_would_refuse(tmp_path, scene_file, capsys, section, values, message, flags):
     from radiokit.cli import main
 
@@ -512,7 +560,9 @@ def small_disk(tmp_path):
     writer covers the protocol side."""
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4900k", "tmpfs", str(mnt)], check=False, capture_output=True)
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=4900k", "tmpfs", str(mnt)], check=False, capture_output=True
+    )
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip()})")
     yield mnt
@@ -525,8 +575,9 @@ def test_a_frame_cut_short_by_the_disk_stays_invalid(small_disk):
     -- never a zero-filled frame labelled complete."""
     path = small_disk / "exp.h5"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path)], check=False, capture_output=True, env=env,
-                       timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path)], check=False, capture_output=True, env=env, timeout=120
+    )
     assert r.returncode == 0 and b"failed at" in r.stdout, r.stderr.decode()[-2000:]
     failed_at = int(r.stdout.split()[2])
     assert int(r.stdout.split()[3]) == 28  # ENOSPC, named as such
@@ -568,7 +619,7 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     acq = Acquire(proto, "--sim", "-q", "--resume")
     assert acq.wait(timeout=60) == 0, acq.output
     with h5py.File(out, "r") as h5:
-        keys = h5["entry/instrument/detector/image_key"][:int(h5["entry"].attrs["frames_complete"])]
+        keys = h5["entry/instrument/detector/image_key"][: int(h5["entry"].attrs["frames_complete"])]
     assert np.sum(keys == ImageKey.DARK) == DARKS and np.sum(keys == ImageKey.FLAT) == FLATS
     assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
 
@@ -601,8 +652,11 @@ def print_matrix(request):
     yield
     if not MATRIX:
         return
-    lines = ["", "X-ray safety matrix (radiokit acquire in a subprocess, guardian, emulated L8121 on a pty):",
-             f"{'':2}{'row':<48} {'final':<5} {'exit':>5} {'to off':>7} {'warning':>7}  last line"]
+    lines = [
+        "",
+        "X-ray safety matrix (radiokit acquire in a subprocess, guardian, emulated L8121 on a pty):",
+        f"{'':2}{'row':<48} {'final':<5} {'exit':>5} {'to off':>7} {'warning':>7}  last line",
+    ]
     for dialect, row, final, code, off_s, warn_s, last in sorted(MATRIX, key=lambda m: m[0]):
         t = "-" if off_s is None else f"{off_s:.2f} s"
         w = "-" if warn_s is None else f"{warn_s:.2f} s"

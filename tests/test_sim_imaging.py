@@ -1,4 +1,5 @@
 """Image models beyond the monochromatic line integral (sim.imaging)."""
+
 import numpy as np
 import pytest
 
@@ -51,7 +52,7 @@ def test_wide_gaussian_on_a_coarse_grid_matches_the_direct_filter():
     from scipy import ndimage
 
     y, x = np.mgrid[:400, :360]
-    img = np.exp(-((x - 180.0) ** 2 + (y - 190.0) ** 2) / 90.0 ** 2) * ((x - 180) ** 2 + (y - 190) ** 2 < 150 ** 2)
+    img = np.exp(-((x - 180.0) ** 2 + (y - 190.0) ** 2) / 90.0**2) * ((x - 180) ** 2 + (y - 190) ** 2 < 150**2)
     direct = ndimage.gaussian_filter(img, 40.0, mode="nearest")
     assert np.abs(imaging._gauss(img, 40.0) - direct).max() < 3e-3 * direct.max()
 

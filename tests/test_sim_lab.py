@@ -41,10 +41,12 @@ def test_truth_is_exact_for_homogeneous_compression(direction):
     inside = (np.abs(cols)[None, :] < half_x - 2 * p) & (np.abs(rows)[:, None] < half_v - 2 * p)
     outside = (np.abs(cols)[None, :] > half_x + p) | (np.abs(rows)[:, None] > half_v + p)
     assert inside.sum() > 1000
-    np.testing.assert_allclose(field[1][inside], np.broadcast_to(col_expected[None, :], field[1].shape)[inside],
-                               atol=1e-4)
-    np.testing.assert_allclose(field[0][inside], np.broadcast_to(row_expected[:, None], field[0].shape)[inside],
-                               atol=1e-4)
+    np.testing.assert_allclose(
+        field[1][inside], np.broadcast_to(col_expected[None, :], field[1].shape)[inside], atol=1e-4
+    )
+    np.testing.assert_allclose(
+        field[0][inside], np.broadcast_to(row_expected[:, None], field[0].shape)[inside], atol=1e-4
+    )
     assert np.all(field[:, outside] == 0)
     # non-trivial: the field reaches a fraction of a pixel to several pixels at the edges
     assert np.abs(field[1][inside]).max() > 0.5
@@ -97,8 +99,10 @@ def test_axisymmetric_truth_agrees_with_3d():
     np.testing.assert_allclose(ax[0], ax[0][:, ::-1], atol=1e-3 * scale)
 
 
-@pytest.mark.parametrize("model, kind, factor", [("3d", "parallel", 4), ("3d", "cone", 4),
-                                                  ("axisymmetric", "cone", 4), ("3d", "parallel", 1)])
+@pytest.mark.parametrize(
+    "model, kind, factor",
+    [("3d", "parallel", 4), ("3d", "cone", 4), ("axisymmetric", "cone", 4), ("3d", "parallel", 1)],
+)
 def test_fast_truth_equals_the_reference_evaluation(model, kind, factor):
     """The fast path (one rasterisation for all the images, shared faces once, OpenCV's
     interpolation, the silhouette from the projection) computes the same sums as the original
@@ -195,7 +199,7 @@ def test_radiokit_recovers_the_simulated_line_integral_within_the_noise(sim_file
         counts = 16 * n0 * np.exp(-truth[k][ok])
         expected = np.sqrt(np.mean(1 / counts / 4 + 1 / (16 * n0) / 8))
         assert abs(err.mean()) < 0.1 * expected
-        assert np.sqrt(np.mean(err ** 2)) == pytest.approx(expected, rel=0.25)
+        assert np.sqrt(np.mean(err**2)) == pytest.approx(expected, rel=0.25)
 
 
 def test_cli_sim_run(tmp_path, capsys):
@@ -205,8 +209,10 @@ def test_cli_sim_run(tmp_path, capsys):
     toml = tmp_path / "block.toml"
     _block("y", ratios=(0.2,)).save(toml)
     out = tmp_path / "run.h5"
-    assert main(["sim", "run", str(toml), "--ratios", "0.1", "0.2", "-o", str(out), "--darks", "2", "--flats", "2",
-                 "-q"]) == 0
+    assert (
+        main(["sim", "run", str(toml), "--ratios", "0.1", "0.2", "-o", str(out), "--darks", "2", "--flats", "2", "-q"])
+        == 0
+    )
     text = capsys.readouterr().out
     assert "0.100" in text and "0.200" in text and "wrote" in text
     np.testing.assert_allclose(read_simulation(out).ratio, [0.1, 0.2])

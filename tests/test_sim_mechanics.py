@@ -1,4 +1,5 @@
 """Scenes, meshing and mechanics checked against closed forms (issue 3, first part)."""
+
 import numpy as np
 import pytest
 
@@ -36,7 +37,7 @@ def test_seed_breast_mesh_is_a_quarter_with_a_conforming_inclusion():
     vol = np.einsum("ij,ij->j", np.cross(b - a, c - a, axis=0), d - a) / 6
     assert (vol > 0).all()
     v_inc = vol[fem.region == 1].sum()
-    assert np.pi / 6 * 8 ** 3 / 4 * (1 - 3 * h ** 2 / (8 * r ** 2)) < v_inc < np.pi / 6 * 8 ** 3 / 4
+    assert np.pi / 6 * 8**3 / 4 * (1 - 3 * h**2 / (8 * r**2)) < v_inc < np.pi / 6 * 8**3 / 4
     v_all = vol.sum()
     assert v_all == pytest.approx(2 / 3 * np.pi * 50 * 25 * 25 / 4, rel=0.03)
 
@@ -74,7 +75,9 @@ def test_pva_fit_reproduces_the_gel_modulus_range():
         target = 20.0 + 10.0 * strain / 0.2
         assert abs(tangent_kpa / target - 1) < misfit + 0.02
     E_inc, misfit_inc = fit_neo_hookean((0.0, 0.2), (100.0, 250.0))
-    assert load_scene("pva-phantom").inclusions[0].material.E_kpa == pytest.approx(E_inc, rel=5e-3)  # rounded to 3 digits
+    assert load_scene("pva-phantom").inclusions[0].material.E_kpa == pytest.approx(
+        E_inc, rel=5e-3
+    )  # rounded to 3 digits
     assert 0.3 < misfit_inc < 0.4  # the neo-Hookean limit, stated in sim.materials
 
 
@@ -84,10 +87,12 @@ def _cylinder(model, size=(1.5, 5.0)):
 
     gel = Material("gel", "neo-hookean", E_kpa=20.0, nu=0.495, attenuation_per_cm=0.77)
     stiff = Material("inclusion", "neo-hookean", E_kpa=134.0, nu=0.495, attenuation_per_cm=0.85)
-    return Scene(name=f"cylinder-{model}",
-                 body=Body("cylinder", height_mm=40.0, diameter_mm=40.0, material=gel),
-                 inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=10.0, material=stiff)],
-                 mesh=MeshSpec(size[0], size[1], model, True))
+    return Scene(
+        name=f"cylinder-{model}",
+        body=Body("cylinder", height_mm=40.0, diameter_mm=40.0, material=gel),
+        inclusions=[Inclusion("sphere", centre_mm=(0.0, 0.0, 0.0), diameter_mm=10.0, material=stiff)],
+        mesh=MeshSpec(size[0], size[1], model, True),
+    )
 
 
 def test_axisymmetric_model_agrees_with_3d():

@@ -13,6 +13,7 @@ inclusion on the axis, so the axisymmetric model (the 8 x 8 x 10 mm box as the c
 section and height) at the demo's coarse sizes, noise-free, 0.3 mm pixels; both views project
 the same solved states.
 """
+
 import numpy as np
 import pytest
 
@@ -35,7 +36,10 @@ def test_view_is_a_scene_option_that_round_trips():
     assert top.beam.direction == "y" and top.beam.kind == "cone" and top.name == "pva-phantom-through-plates"
     assert Scene.from_toml(top.to_toml()) == top
     assert Beam(direction="side").direction == "z"
-    assert Scene.from_toml(scene.to_toml().replace('direction = "z"', 'direction = "through_plates"')).beam.direction == "y"
+    assert (
+        Scene.from_toml(scene.to_toml().replace('direction = "z"', 'direction = "through_plates"')).beam.direction
+        == "y"
+    )
     with pytest.raises(ValueError, match="through_plates"):
         with_view(scene, "above")
     with pytest.raises(ValueError, match="beam direction 'x'"):

@@ -14,6 +14,7 @@ Two kinds of reference:
   icosphere has ``delta / R = 1.8e-5``, so at most 5e-5), and the relative error against the analytic chord must be
   below ``1e-4`` there, as the issue asks.
 """
+
 import doctest
 import types
 
@@ -36,8 +37,9 @@ def grid_mesh(lo, hi, n, region_of=None, symmetry=()):
     axes = [np.linspace(lo[i], hi[i], n[i] + 1) for i in range(3)]
     P = np.stack(np.meshgrid(*axes, indexing="ij")).reshape(3, -1)
     idx = np.arange(P.shape[1]).reshape(n[0] + 1, n[1] + 1, n[2] + 1)
-    corners = np.stack([idx[a:a + n[0], b:b + n[1], c:c + n[2]].ravel()
-                        for a in (0, 1) for b in (0, 1) for c in (0, 1)], axis=1)  # (cubes, 8): 4a + 2b + c
+    corners = np.stack(
+        [idx[a : a + n[0], b : b + n[1], c : c + n[2]].ravel() for a in (0, 1) for b in (0, 1) for c in (0, 1)], axis=1
+    )  # (cubes, 8): 4a + 2b + c
     tets = corners[:, KUHN].reshape(-1, 4)
     region = np.zeros(len(corners), int) if region_of is None else region_of(P[:, corners].mean(axis=2)).astype(int)
     region = np.repeat(region, len(KUHN))
@@ -58,12 +60,48 @@ def grid_2d(lo, hi, n, region_of=None, model="axisymmetric", symmetry=()):
 
 def icosphere(level):
     """Unit icosphere: (3, n) vertices on the sphere, (m, 3) outward-oriented faces."""
-    t = (1 + 5 ** 0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-                  [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
-                  [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
-                  [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ],
+        float,
+    )
+    f = np.array(
+        [
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ]
+    )
     v /= np.linalg.norm(v, axis=1)[:, None]
     for _ in range(level):
         e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
@@ -72,7 +110,7 @@ def icosphere(level):
         mid = v[ue[:, 0]] + v[ue[:, 1]]
         v = np.concatenate([v, mid / np.linalg.norm(mid, axis=1)[:, None]])
         m = len(f)
-        ab, bc, ca = inv[:m], inv[m:2 * m], inv[2 * m:]
+        ab, bc, ca = inv[:m], inv[m : 2 * m], inv[2 * m :]
         a, b, c = f.T
         f = np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))])
     return v.T.copy(), f
@@ -183,8 +221,14 @@ def test_two_regions_split_the_depth_and_weight_the_line_integral():
     surf = surface_of(fem)
     assert_closed(surf)
     for kind in ("parallel", "cone"):
-        g = Geometry(kind, "y", shape=(40, 44), pixel_size_mm=0.25 * (1.2 if kind == "cone" else 1.0),
-                     source_distance_mm=100.0, detector_distance_mm=20.0)
+        g = Geometry(
+            kind,
+            "y",
+            shape=(40, 44),
+            pixel_size_mm=0.25 * (1.2 if kind == "cone" else 1.0),
+            source_distance_mm=100.0,
+            detector_distance_mm=20.0,
+        )
         L = path_lengths(fem, g)
         o, d = g.rays()
         outer = convex_chord(*box_planes((-4, -3, -3), (4, 3, 3)), o, d)
@@ -213,8 +257,15 @@ def test_affinely_deformed_box_is_exact(kind, direction):
     b = np.array([0.4, -0.3, 0.7])
     X = A @ fem.points + b[:, None]
     u = np.concatenate([X - fem.points, np.zeros((3, 7))], axis=1)  # extra (P2-like) dofs are ignored
-    g = Geometry(kind, direction, shape=(48, 52), pixel_size_mm=0.35, centre_mm=(0.2, 0.1, -0.3),
-                 source_distance_mm=60.0, detector_distance_mm=30.0)
+    g = Geometry(
+        kind,
+        direction,
+        shape=(48, 52),
+        pixel_size_mm=0.35,
+        centre_mm=(0.2, 0.1, -0.3),
+        source_distance_mm=60.0,
+        detector_distance_mm=30.0,
+    )
     L = path_lengths(fem, g, u)[0]
     o, d = g.rays()
     n, h = box_planes((-5, -4, -3), (5, 4, 3))
@@ -304,8 +355,15 @@ def test_sphere_cone_beam_against_analytic_ray_chord(fine_sphere, direction):
     v, f, delta = fine_sphere
     R, c = 8.0, np.array([2.0, 1.5, -1.0])
     fem = star_mesh(v * R + c[:, None], f, c)
-    g = Geometry("cone", direction, shape=(90, 96), pixel_size_mm=0.3, centre_mm=(0.5, 0.5, 0.5),
-                 source_distance_mm=60.0, detector_distance_mm=40.0)
+    g = Geometry(
+        "cone",
+        direction,
+        shape=(90, 96),
+        pixel_size_mm=0.3,
+        centre_mm=(0.5, 0.5, 0.5),
+        source_distance_mm=60.0,
+        detector_distance_mm=40.0,
+    )
     L = path_lengths(fem, g)[0]
     o, d = g.rays()
     ref = ray_sphere_chord(o, d, R, c)
@@ -322,10 +380,15 @@ def test_ray_chords_agree_with_parallel_ones():
     u, v = rng.uniform(-6, 6, (2, 200))
     o = np.stack([u, v, np.full_like(u, -50.0)])
     d = np.broadcast_to(np.array([0.0, 0.0, 2.0])[:, None], o.shape)
-    np.testing.assert_allclose(ray_ellipsoid_chord(o, d, (5, 6, 3), (0.5, -0.2, 1.0)),
-                               ellipsoid_chord(u, v, 5, 6, 3, (0.5, -0.2)), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(ray_sphere_chord(o, d, 4.0, (0.5, -0.2, 9.0)), sphere_chord(u, v, 4.0, (0.5, -0.2)),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        ray_ellipsoid_chord(o, d, (5, 6, 3), (0.5, -0.2, 1.0)),
+        ellipsoid_chord(u, v, 5, 6, 3, (0.5, -0.2)),
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        ray_sphere_chord(o, d, 4.0, (0.5, -0.2, 9.0)), sphere_chord(u, v, 4.0, (0.5, -0.2)), rtol=1e-12, atol=1e-12
+    )
 
 
 # -- symmetry and reduced models -----------------------------------------------------------------
@@ -335,8 +398,15 @@ def test_mirrored_quarter_and_eighth_equal_the_full_mesh(kind):
     full = grid_mesh((-4, -3, -3), (4, 3, 3), (16, 12, 12), region_of=incl)
     quarter = grid_mesh((0, -3, 0), (4, 3, 3), (8, 12, 6), region_of=incl, symmetry=("x", "z"))
     for direction in ("y", "z"):
-        g = Geometry(kind, direction, shape=(36, 40), pixel_size_mm=0.23, centre_mm=(0.1, 0.05, -0.07),
-                     source_distance_mm=40.0, detector_distance_mm=20.0)
+        g = Geometry(
+            kind,
+            direction,
+            shape=(36, 40),
+            pixel_size_mm=0.23,
+            centre_mm=(0.1, 0.05, -0.07),
+            source_distance_mm=40.0,
+            detector_distance_mm=20.0,
+        )
         ref = path_lengths(full, g)
         assert (ref[1] > 0).sum() > 50
         np.testing.assert_allclose(path_lengths(quarter, g), ref, rtol=0, atol=1e-11)
@@ -384,8 +454,9 @@ def test_axisymmetric_sphere_section_revolves_to_the_sphere():
     assert_closed(surf)
     shrink = np.cos(np.pi / (2 * n)) * (1 - tol)
     for kind, direction in (("parallel", "z"), ("parallel", "y"), ("cone", "z"), ("cone", "y")):
-        g = Geometry(kind, direction, shape=(80, 84), pixel_size_mm=0.2, source_distance_mm=50.0,
-                     detector_distance_mm=10.0)
+        g = Geometry(
+            kind, direction, shape=(80, 84), pixel_size_mm=0.2, source_distance_mm=50.0, detector_distance_mm=10.0
+        )
         L = path_lengths(fem, g)[0]
         o, d = g.rays()
         ref = ray_sphere_chord(o, d, R)
@@ -398,8 +469,9 @@ def test_axisymmetric_sphere_section_revolves_to_the_sphere():
 def test_axisymmetric_cylinder_with_inclusion_and_y_symmetry():
     """Section r in [0, 10], y in [0, 15] (mirrored across y = 0) with a cylindrical inclusion
     r < 4, |y| < 5: beam across the axis, against the analytic cylinder chords."""
-    fem = grid_2d((0, 0), (10, 15), (10, 15), region_of=lambda c: (c[0] < 4) & (c[1] < 5),
-                  model="axisymmetric", symmetry=("y",))
+    fem = grid_2d(
+        (0, 0), (10, 15), (10, 15), region_of=lambda c: (c[0] < 4) & (c[1] < 5), model="axisymmetric", symmetry=("y",)
+    )
     tol = 1e-5
     assert_closed(surface_of(fem, revolve_tol=tol))
     g = Geometry("parallel", "z", shape=(70, 60), pixel_size_mm=0.5)
@@ -423,8 +495,9 @@ def test_plane_strain_slab_equals_the_box():
     box = grid_mesh((-5, -4, -3), (5, 4, 3), (4, 4, 3))
     assert_closed(surface_of(fem2, thickness_mm=6.0))
     for kind, direction in (("parallel", "y"), ("cone", "z"), ("cone", "y")):
-        g = Geometry(kind, direction, shape=(44, 48), pixel_size_mm=0.3, source_distance_mm=40.0,
-                     detector_distance_mm=15.0)
+        g = Geometry(
+            kind, direction, shape=(44, 48), pixel_size_mm=0.3, source_distance_mm=40.0, detector_distance_mm=15.0
+        )
         np.testing.assert_allclose(path_lengths(fem2, g, thickness_mm=6.0), path_lengths(box, g), rtol=0, atol=1e-11)
     with pytest.raises(ValueError, match="thickness"):
         surface_of(fem2)

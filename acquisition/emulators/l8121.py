@@ -51,6 +51,7 @@ Examples
 >>> b.handle("PHV 600"), b.handle("PCU 250"), b.handle("XON"), b.handle("SHV"), b.handle("SIN")
 ('PHV 600', 'PCU 250', 'XON', 'SHV 60.0kV', 'INTER LOCK ON')
 """
+
 from __future__ import annotations
 
 import heapq
@@ -78,6 +79,7 @@ logger = logging.getLogger(__name__)
 
 class ErrorCode(IntEnum):
     """What ``SER`` answers: this emulator's own codes (the real controller's are not documented)."""
+
     NONE = 0
     INTERLOCK = 1
     WARMUP = 2
@@ -89,9 +91,15 @@ class ErrorCode(IntEnum):
 
 
 DEFAULT_BAUD = {"A": 38400, "B": 9600}
-_B_STATES = {SourceState.WARMUP_NEEDED: "STANDBY", SourceState.WARMING_UP: "AGING", SourceState.STANDBY: "STANDBY",
-             SourceState.XRAY_ON: "XON", SourceState.OVERLOAD: "OVER", SourceState.NOT_READY: "NOT READY",
-             SourceState.SELF_TEST: "NOT READY"}
+_B_STATES = {
+    SourceState.WARMUP_NEEDED: "STANDBY",
+    SourceState.WARMING_UP: "AGING",
+    SourceState.STANDBY: "STANDBY",
+    SourceState.XRAY_ON: "XON",
+    SourceState.OVERLOAD: "OVER",
+    SourceState.NOT_READY: "NOT READY",
+    SourceState.SELF_TEST: "NOT READY",
+}
 _B_FOCUS = ("SMALL", "MIDDLE", "LARGE")
 # What a remote operate switch other than REMOTE refuses: everything that acts on the tube.
 _CONTROL = {"HIV", "CUR", "PHV", "PCU", "XON", "XOF", "WUP", "RST", "CFS", "CFM", "CFL"}
@@ -103,6 +111,7 @@ _JUNK = "#%&*?!~^@$+=<>0123456789abcdefxyz"
 class Exchange:
     """One line the model received: model time (s), the line, its reply (None: none sent), and
     whether it was understood (False: it arrived at the wrong baud rate)."""
+
     t: float
     command: str
     reply: str | None
@@ -146,10 +155,23 @@ class L8121Model:
     is then needed again.
     """
 
-    def __init__(self, *, dialect: str = "A", model: str = "L8121-01", warmup_s: float = 3.0, ramp_s: float = 1.0,
-                 clock: Callable[[], float] = time.monotonic, kv_min: float = 40, kv_max: float = 150,
-                 ua_max: float = 500, watts_max: float = 75, warmed_up: bool = False, baudrate: int | None = None,
-                 voltage_scale: float | None = None, seed: int = 0):
+    def __init__(
+        self,
+        *,
+        dialect: str = "A",
+        model: str = "L8121-01",
+        warmup_s: float = 3.0,
+        ramp_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+        kv_min: float = 40,
+        kv_max: float = 150,
+        ua_max: float = 500,
+        watts_max: float = 75,
+        warmed_up: bool = False,
+        baudrate: int | None = None,
+        voltage_scale: float | None = None,
+        seed: int = 0,
+    ):
         dialect = str(dialect).upper()
         if dialect not in DEFAULT_BAUD:
             raise ValueError(f"L8121 emulator: dialect {dialect!r}: expected 'A' or 'B'")
@@ -186,8 +208,13 @@ class L8121Model:
     # -- the two front ends -----------------------------------------------------------------------
     def _front_end_a(self):
         commands = {
-            "HIV": self._hiv, "CUR": self._cur, "XON": self._xon_a, "XOF": self._xof, "WUP": self._wup,
-            "RST": self._rst, "CFS": self._cfs,
+            "HIV": self._hiv,
+            "CUR": self._cur,
+            "XON": self._xon_a,
+            "XOF": self._xof,
+            "WUP": self._wup,
+            "RST": self._rst,
+            "CFS": self._cfs,
             "STS": lambda t: f"STS {self._state:d}",
             "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
             "SVI": lambda t: f"SVI {self._set_kv} {self._set_ua}",
@@ -210,11 +237,15 @@ class L8121Model:
             return lambda t, arg: fn(t, arg) if not self._state.emitting else self._refuse(ErrorCode.STATE)
 
         commands = {
-            "HIV": on_only(self._hiv), "CUR": on_only(self._cur),
+            "HIV": on_only(self._hiv),
+            "CUR": on_only(self._cur),
             "PHV": off_only(lambda t, arg: self._hiv(t, arg, "PHV")),
             "PCU": off_only(lambda t, arg: self._cur(t, arg, "PCU")),
-            "XON": self._xon_b, "XOF": self._xof, "RST": self._rst,
-            "CFS": lambda t: self._cf(0, "CFS"), "CFM": lambda t: self._cf(1, "CFM"),
+            "XON": self._xon_b,
+            "XOF": self._xof,
+            "RST": self._rst,
+            "CFS": lambda t: self._cf(0, "CFS"),
+            "CFM": lambda t: self._cf(1, "CFM"),
             "CFL": lambda t: self._cf(2, "CFL"),
             "STS": lambda t: _B_STATES[self._state],
             "SHV": lambda t: f"SHV {self._measured(t)[0]:.1f}kV",
@@ -287,6 +318,7 @@ class L8121Model:
         With X-rays on, the controller drops the beam: standby, interlock open, error code 1. A
         running warm-up stops (warm-up needed again).
         """
+
         def fault(t):
             self._interlock_open = True
             if self._state == SourceState.XRAY_ON:
@@ -294,45 +326,56 @@ class L8121Model:
             elif self._state == SourceState.WARMING_UP:
                 self._state, self._warmup = SourceState.WARMUP_NEEDED, WarmupState.NOT_STARTED
                 self._error = ErrorCode.INTERLOCK
+
         self._at(at_s, fault)
 
     def close_interlock(self, at_s: float | None = None) -> None:
         """Close the interlock chain now, or at model time ``at_s``."""
+
         def fix(t):
             self._interlock_open = False
+
         self._at(at_s, fix)
 
     def overload(self, at_s: float | None = None) -> None:
         """Trip the overload protection now, or at model time ``at_s``: state 4 (B ``OVER``), beam
         off, error 3. Only ``RST`` leaves the overload state."""
+
         def fault(t):
             self._state, self._error = SourceState.OVERLOAD, ErrorCode.OVERLOAD
+
         self._at(at_s, fault)
 
     def drop_beam(self, at_s: float | None = None) -> None:
         """Let the emitter fail now, or at model time ``at_s``: the measured current collapses to
         0 while the state stays X-rays on (until ``XOF``)."""
+
         def fault(t):
             if self._state == SourceState.XRAY_ON:
                 self._beam_dropped = True
+
         self._at(at_s, fault)
 
     def require_warm_up(self, at_s: float | None = None) -> None:
         """Decide that a warm-up is due (B: the 8-hour idle rule, ``DAG`` says ``YET``): from
         standby the state becomes warm-up needed, so B's next ``XON`` starts a warm-up."""
+
         def fault(t):
             self._warmup = WarmupState.NOT_STARTED
             if self._state == SourceState.STANDBY:
                 self._state = SourceState.WARMUP_NEEDED
+
         self._at(at_s, fault)
 
     def warm(self, at_s: float | None = None) -> None:
         """Mark the warm-up done now, or at model time ``at_s`` (someone ran it at the controller):
         from warm-up needed the state becomes standby, so B's next ``XON`` is an exposure."""
+
         def fix(t):
             self._warmup = WarmupState.DONE
             if self._state == SourceState.WARMUP_NEEDED:
                 self._state = SourceState.STANDBY
+
         self._at(at_s, fix)
 
     def inject_after(self, command: str, fault: Callable[[], object]) -> None:
@@ -465,9 +508,15 @@ class L8121Model:
 
     def _why_not_on(self) -> ErrorCode:
         off = (SourceState.STANDBY, SourceState.WARMUP_NEEDED)
-        return (ErrorCode.INTERLOCK if self._interlock_open and self._state in off else
-                ErrorCode.WARMUP if self._state in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP) else
-                ErrorCode.OVERLOAD if self._state == SourceState.OVERLOAD else ErrorCode.STATE)
+        return (
+            ErrorCode.INTERLOCK
+            if self._interlock_open and self._state in off
+            else ErrorCode.WARMUP
+            if self._state in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
+            else ErrorCode.OVERLOAD
+            if self._state == SourceState.OVERLOAD
+            else ErrorCode.STATE
+        )
 
     def _xon_a(self, t):
         if self._state != SourceState.STANDBY or self._interlock_open:
@@ -515,6 +564,7 @@ class L8121Model:
         def done(t_done):
             if self._state == SourceState.WARMING_UP and self._warmup_t0 == started:
                 self._state, self._warmup = SourceState.STANDBY, WarmupState.DONE
+
         self._schedule(t + self.warmup_s, done)
 
     def _dag(self, t):
@@ -574,16 +624,21 @@ class L8121Model:
             fn(t)
 
     def __repr__(self) -> str:
-        return (f"L8121Model(dialect {self.dialect}, {self.baudrate} baud, state={self.state}, "
-                f"set {self._set_kv} kV {self._set_ua} µA)")
+        return (
+            f"L8121Model(dialect {self.dialect}, {self.baudrate} baud, state={self.state}, "
+            f"set {self._set_kv} kV {self._set_ua} µA)"
+        )
 
 
 def _whole(text: str) -> int | None:
     return int(text) if text.isdigit() else None
 
 
-_SPEEDS = {getattr(termios, f"B{b}"): b for b in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400)
-           if hasattr(termios, f"B{b}")}
+_SPEEDS = {
+    getattr(termios, f"B{b}"): b
+    for b in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400)
+    if hasattr(termios, f"B{b}")
+}
 
 
 # -- servers --------------------------------------------------------------------------------------
@@ -604,7 +659,7 @@ class _LineServer:
             cuts = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
             if not cuts:
                 return
-            line, buf[:] = bytes(buf[:min(cuts)]), buf[min(cuts) + 1:]
+            line, buf[:] = bytes(buf[: min(cuts)]), buf[min(cuts) + 1 :]
             exchange = self.model.receive(line.decode("ascii", errors="replace"), self._baudrate())
             if exchange is None or exchange.reply is None:
                 continue
@@ -755,9 +810,11 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import signal
 
-    parser = argparse.ArgumentParser(prog="python -m acquisition.emulators.l8121",
-                                     description="Serve an emulated Hamamatsu L8121 controller until Ctrl-C; "
-                                     "the first line on stdout is the url to open.")
+    parser = argparse.ArgumentParser(
+        prog="python -m acquisition.emulators.l8121",
+        description="Serve an emulated Hamamatsu L8121 controller until Ctrl-C; "
+        "the first line on stdout is the url to open.",
+    )
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
     where.add_argument("--socket", type=int, metavar="PORT", help="serve on TCP 127.0.0.1:PORT (0: any free port)")
@@ -773,8 +830,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.verbose:
         logging.basicConfig(level=logging.DEBUG, stream=sys.stderr, format="%(asctime)s %(message)s")
-    model = L8121Model(dialect=args.dialect, model=args.model, warmup_s=args.warmup_s, ramp_s=args.ramp_s,
-                       warmed_up=args.warmed_up, baudrate=args.baudrate)
+    model = L8121Model(
+        dialect=args.dialect,
+        model=args.model,
+        warmup_s=args.warmup_s,
+        ramp_s=args.ramp_s,
+        warmed_up=args.warmed_up,
+        baudrate=args.baudrate,
+    )
     if args.local:
         model.set_operate_switch("LOCAL")
     if args.foreign:
@@ -783,6 +846,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def terminate(signum, frame):
         raise KeyboardInterrupt
+
     signal.signal(signal.SIGTERM, terminate)
     try:
         with server:

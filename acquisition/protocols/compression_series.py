@@ -55,6 +55,7 @@ Example (the virtual bench, seconds; a dry run needs no devices)::
     >>> pl.n_frames, round(pl.beam_on_s)
     (14, 25)
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -73,9 +74,24 @@ import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
 
-__all__ = ["Protocol", "SourceSettings", "DetectorSettings", "FrameSettings", "SeriesSettings", "SimSettings",
-           "load_protocol", "plan", "Plan", "run", "Result", "Devices", "lab_devices", "sim_devices",
-           "ProtocolError", "PHASES"]
+__all__ = [
+    "Protocol",
+    "SourceSettings",
+    "DetectorSettings",
+    "FrameSettings",
+    "SeriesSettings",
+    "SimSettings",
+    "load_protocol",
+    "plan",
+    "Plan",
+    "run",
+    "Result",
+    "Devices",
+    "lab_devices",
+    "sim_devices",
+    "ProtocolError",
+    "PHASES",
+]
 
 log = logging.getLogger("acquisition.protocol")
 
@@ -88,41 +104,45 @@ class ProtocolError(DeviceError):
 
 # -- the protocol as data ---------------------------------------------------------------------------
 
+
 @dataclass
 class SourceSettings:
     """The X-ray source: link, exposure and limits (``acquisition.l8121.L8121`` configuration)."""
-    port: str = ""                  # device path, socket://host:port or rfc2217://...; --sim ignores it
-    baudrate: int | None = None     # None: the dialect's (A 38400, B 9600); [source] dialect = "A" | "B" | "auto"
-    voltage_kv: float = 60.0        # the paper: 60 kV, 250 uA
+
+    port: str = ""  # device path, socket://host:port or rfc2217://...; --sim ignores it
+    baudrate: int | None = None  # None: the dialect's (A 38400, B 9600); [source] dialect = "A" | "B" | "auto"
+    voltage_kv: float = 60.0  # the paper: 60 kV, 250 uA
     current_ua: float = 250.0
-    focus: int | None = None        # CFS mode, None = leave as is
+    focus: int | None = None  # CFS mode, None = leave as is
     warmup_timeout_s: float = 1800.0
     warmup_estimate_s: float = 600.0  # for the dry run's duration only
-    poll_s: float = 0.25            # beam monitor period while X-rays are on
+    poll_s: float = 0.25  # beam monitor period while X-rays are on
     limits: dict = field(default_factory=dict)  # kv_max, ua_max, watts_max, ... (driver config)
 
 
 @dataclass
 class DetectorSettings:
     """Where frames come from: ``folder`` (the vendor software writes files) or ``sim``."""
+
     kind: str = "folder"
     folder: str = ""
     pattern: str = "*.tif"
-    shape: tuple | None = None      # (rows, cols), checked on every frame when given
-    preset: str | None = None       # raw-file geometry preset (radiokit.io.PRESETS)
+    shape: tuple | None = None  # (rows, cols), checked on every frame when given
+    preset: str | None = None  # raw-file geometry preset (radiokit.io.PRESETS)
     timeout_s: float = 30.0
-    discard_first: bool = False     # the C7942's first frame after an external-trigger start is invalid
-    frame_period_s: float = 0.5     # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
+    discard_first: bool = False  # the C7942's first frame after an external-trigger start is invalid
+    frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
     pixel_size_mm: float = 0.05
 
 
 @dataclass
 class FrameSettings:
     """The compression frame: ``manual`` (operator turns the screws) or ``sim``."""
+
     kind: str = "manual"
     initial_height_mm: float = 40.0
     interactive: bool = True
-    move_estimate_s: float = 60.0   # operator time per step, for the dry run
+    move_estimate_s: float = 60.0  # operator time per step, for the dry run
 
 
 @dataclass
@@ -131,20 +151,21 @@ class SeriesSettings:
     flats: int = 10
     frames_per_step: int = 5
     steps: tuple = (0.15, 0.20, 0.25)  # compression ratios, 1 - gap / initial height
-    settle_s: float = 60.0          # gel relaxation after each compression, tube off
+    settle_s: float = 60.0  # gel relaxation after each compression, tube off
 
 
 @dataclass
 class SimSettings:
     """The virtual bench used with ``--sim``."""
-    scene: str = "seed-breast"      # preset name or TOML path
+
+    scene: str = "seed-breast"  # preset name or TOML path
     binning: int | None = None
     seed: int = 0
-    warmup_s: float = 2.0           # the emulated source's warm-up
-    ramp_s: float = 0.3             # its kV / uA ramp after XON
-    warmed_up: bool = False         # start the emulator already warm
-    frame_period_s: float = 0.0     # SimDetector's pace (0: as fast as it renders)
-    source_port: str = ""           # drive the emulator already serving here (tests), through the guardian
+    warmup_s: float = 2.0  # the emulated source's warm-up
+    ramp_s: float = 0.3  # its kV / uA ramp after XON
+    warmed_up: bool = False  # start the emulator already warm
+    frame_period_s: float = 0.0  # SimDetector's pace (0: as fast as it renders)
+    source_port: str = ""  # drive the emulator already serving here (tests), through the guardian
 
 
 @dataclass
@@ -158,13 +179,19 @@ class Protocol:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self):
-        for name, section in (("source", self.source), ("detector", self.detector), ("frame", self.frame),
-                              ("series", self.series), ("sim", self.sim)):
+        for name, section in (
+            ("source", self.source),
+            ("detector", self.detector),
+            ("frame", self.frame),
+            ("series", self.series),
+            ("sim", self.sim),
+        ):
             _check_numbers(name, section)
         s = self.series
         if s.darks < 0 or s.flats < 0 or s.frames_per_step < 1:
-            raise ProtocolError(f"series: darks {s.darks} and flats {s.flats} must be >= 0, "
-                                f"frames_per_step {s.frames_per_step} >= 1")
+            raise ProtocolError(
+                f"series: darks {s.darks} and flats {s.flats} must be >= 0, frames_per_step {s.frames_per_step} >= 1"
+            )
         steps = tuple(float(r) for r in s.steps)
         if not steps or any(not 0 <= r < 0.9 for r in steps) or list(steps) != sorted(set(steps)):
             raise ProtocolError(f"series.steps {list(s.steps)}: expected increasing compression ratios in [0, 0.9)")
@@ -197,9 +224,14 @@ def _check_numbers(section: str, settings) -> None:
         kind = str(f.type).replace(" | None", "")
         if value is None and "None" in str(f.type) or kind not in ("float", "int"):
             continue
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
-                kind == "int" and not isinstance(value, int)):
-            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected {'an integer' if kind == 'int' else 'a number'}")
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or (kind == "int" and not isinstance(value, int))
+        ):
+            raise ProtocolError(
+                f"[{section}] {f.name} = {value!r}: expected {'an integer' if kind == 'int' else 'a number'}"
+            )
         if not math.isfinite(value) or value < 0:
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a finite number >= 0")
 
@@ -219,8 +251,13 @@ def _source_limits(s: SourceSettings):
         if isinstance(value, float) and not math.isfinite(value):
             raise ProtocolError(f"[source] {key} = {value!r}: expected a finite number")
     try:
-        cfg = SourceConfig.from_dict({**s.limits, "poll_s": s.limits.get("poll_s", min(0.2, s.poll_s)),
-                                      "warmup_timeout_s": s.limits.get("warmup_timeout_s", s.warmup_timeout_s)})
+        cfg = SourceConfig.from_dict(
+            {
+                **s.limits,
+                "poll_s": s.limits.get("poll_s", min(0.2, s.poll_s)),
+                "warmup_timeout_s": s.limits.get("warmup_timeout_s", s.warmup_timeout_s),
+            }
+        )
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"[source]: {exc}") from None
     return cfg
@@ -234,8 +271,9 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(s.voltage_kv, s.current_ua)
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
-    if s.focus is not None and (isinstance(s.focus, bool) or not isinstance(s.focus, int)
-                                or s.focus not in cfg.focus_modes):
+    if s.focus is not None and (
+        isinstance(s.focus, bool) or not isinstance(s.focus, int) or s.focus not in cfg.focus_modes
+    ):
         raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(cfg.focus_modes)}")
     if not isinstance(s.port, str):
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
@@ -243,8 +281,13 @@ def _check_source(s: SourceSettings) -> None:
         raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
 
 
-_SECTIONS = {"source": SourceSettings, "detector": DetectorSettings, "frame": FrameSettings,
-             "series": SeriesSettings, "sim": SimSettings}
+_SECTIONS = {
+    "source": SourceSettings,
+    "detector": DetectorSettings,
+    "frame": FrameSettings,
+    "series": SeriesSettings,
+    "sim": SimSettings,
+}
 
 
 def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Protocol:
@@ -262,7 +305,9 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             try:
                 text_ = Path(text_).read_text()
             except (OSError, UnicodeDecodeError) as exc:
-                raise ProtocolError(f"{where}: cannot read the protocol ({getattr(exc, 'strerror', None) or exc})") from None
+                raise ProtocolError(
+                    f"{where}: cannot read the protocol ({getattr(exc, 'strerror', None) or exc})"
+                ) from None
         try:
             data = tomllib.loads(text_)
         except tomllib.TOMLDecodeError as exc:
@@ -280,14 +325,17 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
                 value.setdefault("limits", {}).update(limits)
             unknown = set(value) - names
             if unknown:
-                raise ProtocolError(f"{where}: unknown key(s) in [{key}]: {', '.join(sorted(unknown))}; "
-                                    f"expected some of {', '.join(sorted(names))}")
+                raise ProtocolError(
+                    f"{where}: unknown key(s) in [{key}]: {', '.join(sorted(unknown))}; "
+                    f"expected some of {', '.join(sorted(names))}"
+                )
             top[key] = cls(**value)
         elif key in ("output", "name"):
             top[key] = value
         else:
-            raise ProtocolError(f"{where}: unknown key {key!r}; expected output, name or a section "
-                                f"[{'], ['.join(_SECTIONS)}]")
+            raise ProtocolError(
+                f"{where}: unknown key {key!r}; expected output, name or a section [{'], ['.join(_SECTIONS)}]"
+            )
     try:
         return Protocol(**top)
     except (TypeError, ProtocolError) as exc:
@@ -296,9 +344,11 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
 
 # -- the plan (and the dry run) ------------------------------------------------------------------
 
+
 @dataclass
 class Plan:
     """What a run will do: ``rows`` of (phase, what, frames, seconds, beam-on seconds)."""
+
     rows: list
     n_frames: int
     duration_s: float
@@ -334,30 +384,46 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) ->
     if nf:
         t = nf * period + ramp
         person = 2 * p.frame.move_estimate_s if p.frame.kind == "manual" else 0.0
-        rows.append(("flats", f"phantom out, {p.source.voltage_kv:g} kV {p.source.current_ua:g} uA, phantom in",
-                     nf, t + person, t))
+        rows.append(
+            (
+                "flats",
+                f"phantom out, {p.source.voltage_kv:g} kV {p.source.current_ua:g} uA, phantom in",
+                nf,
+                t + person,
+                t,
+            )
+        )
     h0 = p.frame.initial_height_mm
     for i, r in enumerate(p.series.steps, start=1):
         n = max(0, p.series.frames_per_step - done.get("steps", {}).get(i, 0))
         if n:
             t = n * period + ramp
-            rows.append((f"step {i}", f"{100 * r:g} %: gap {h0 * (1 - r):.3f} mm, settle {p.series.settle_s:g} s",
-                         n, p.frame.move_estimate_s + p.series.settle_s + t, t))
+            rows.append(
+                (
+                    f"step {i}",
+                    f"{100 * r:g} %: gap {h0 * (1 - r):.3f} mm, settle {p.series.settle_s:g} s",
+                    n,
+                    p.frame.move_estimate_s + p.series.settle_s + t,
+                    t,
+                )
+            )
     return Plan(rows, sum(r[2] for r in rows), sum(r[3] for r in rows), sum(r[4] for r in rows))
 
 
 # -- devices ---------------------------------------------------------------------------------------
 
+
 @dataclass
 class Devices:
     """The three instruments a series needs, and what to close after it (emulator servers)."""
+
     source: object
     detector: object
     frame: object
     closers: list = field(default_factory=list)
     emulator: object = None  # the emulated controller's model, when simulated (for tests and the demo)
     bench: object = None
-    off_done: bool = False    # the run's final switch-off has been attempted
+    off_done: bool = False  # the run's final switch-off has been attempted
     off_failed: bool = False  # ... and could not be confirmed
 
     def close(self):
@@ -419,11 +485,17 @@ def lab_devices(p: Protocol) -> Devices:
     if not p.source.port:
         raise ProtocolError("source.port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
     if p.detector.kind != "folder" or not p.detector.folder:
-        raise ProtocolError("detector: the lab needs kind = \"folder\" and the folder the vendor software writes to")
+        raise ProtocolError('detector: the lab needs kind = "folder" and the folder the vendor software writes to')
     if p.frame.kind != "manual":
-        raise ProtocolError("frame: the lab's frame is kind = \"manual\" (a motorised stage has no driver yet)")
-    detector = FolderWatcher(p.detector.folder, p.detector.pattern, shape=p.detector.shape, preset=p.detector.preset,
-                             timeout_s=p.detector.timeout_s, discard_first=p.detector.discard_first)
+        raise ProtocolError('frame: the lab\'s frame is kind = "manual" (a motorised stage has no driver yet)')
+    detector = FolderWatcher(
+        p.detector.folder,
+        p.detector.pattern,
+        shape=p.detector.shape,
+        preset=p.detector.preset,
+        timeout_s=p.detector.timeout_s,
+        discard_first=p.detector.discard_first,
+    )
     frame = ManualFrame(p.frame.initial_height_mm, interactive=p.frame.interactive)
     source = _guarded_source(p.source.port, p)
     return Devices(source, detector, frame)
@@ -459,8 +531,13 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
         from acquisition.emulators.l8121 import L8121Model, PtyServer
 
         dialect = str(p.source.limits.get("dialect", "A")).upper()  # the emulator speaks the configured dialect
-        model = L8121Model(dialect=dialect if dialect == "B" else "A", baudrate=p.source.baudrate,
-                           warmup_s=p.sim.warmup_s, ramp_s=p.sim.ramp_s, warmed_up=p.sim.warmed_up)
+        model = L8121Model(
+            dialect=dialect if dialect == "B" else "A",
+            baudrate=p.source.baudrate,
+            warmup_s=p.sim.warmup_s,
+            ramp_s=p.sim.ramp_s,
+            warmed_up=p.sim.warmed_up,
+        )
         server = PtyServer(model)
         server.start()
         closers = [server.stop]
@@ -481,6 +558,7 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
 
 # -- the beam monitor ----------------------------------------------------------------------------
 
+
 class _BeamMonitor:
     """Polls ``source.check()`` every ``period_s`` while X-rays are on, from a thread, so a fault
     switches the tube off within a poll period whatever the main thread is doing (waiting for a
@@ -493,7 +571,7 @@ class _BeamMonitor:
         self.error = None
         self.kv = self.ua = float("nan")
         self.last_ok = 0.0  # time.time() just before the last poll that found the beam good
-        self.written = []   # (file index, frame time) of the frames taken in this beam period
+        self.written = []  # (file index, frame time) of the frames taken in this beam period
         self.off_failed = False
         self._stop = threading.Event()
         self._thread = None
@@ -560,10 +638,12 @@ class _BeamMonitor:
 
 # -- the run ---------------------------------------------------------------------------------------
 
+
 @dataclass
 class Result:
     """What a run did: the file, frames written this run and in all, timings, the phase reached,
     and whether ``STS`` confirmed the tube off at the end (``None``: the source was never reached)."""
+
     output: str
     frames_written: int
     frames_total: int
@@ -589,10 +669,15 @@ def _existing(path: Path, protocol: Protocol) -> dict:
             raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
         # the stored text is a protocol, never the name of a file to open
         a, b = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)"), protocol
-        if (a.series != b.series or a.frame.initial_height_mm != b.frame.initial_height_mm
-                or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)):
-            raise ProtocolError(f"{path}: written by a different protocol (series, frame height or exposure "
-                                f"differ); resume with the protocol stored in the file")
+        if (
+            a.series != b.series
+            or a.frame.initial_height_mm != b.frame.initial_height_mm
+            or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)
+        ):
+            raise ProtocolError(
+                f"{path}: written by a different protocol (series, frame height or exposure "
+                f"differ); resume with the protocol stored in the file"
+            )
         keys, steps = progress.image_key, progress.step
     except (OSError, KeyError, TypeError, ValueError) as exc:
         raise ProtocolError(f"{path}: cannot resume from this file ({exc})") from None
@@ -605,6 +690,7 @@ def _existing(path: Path, protocol: Protocol) -> dict:
 @dataclass
 class _Run:
     """One run's state, handed from phase to phase."""
+
     p: Protocol
     out: Path
     sim: bool
@@ -655,8 +741,9 @@ def _phase_connect(r: _Run):
     state = src.status()
     log.info("source state %s", getattr(state, "name", state))
     if _emitting(state):
-        log.warning("X-rays were on at the start (state %s): switching off before anything else",
-                    getattr(state, "name", state))
+        log.warning(
+            "X-rays were on at the start (state %s): switching off before anything else", getattr(state, "name", state)
+        )
         src.off()
     if not src.interlock_closed():
         log.warning("interlock open: close the cabinet before X-rays are needed")
@@ -670,22 +757,25 @@ def _phase_warm_up(r: _Run):
     if p.source.focus is not None:
         src.focus = int(p.source.focus)
     det = r.devices.detector
-    kw = dict(pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
-              source={"name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
-                      "voltage_kv": p.source.voltage_kv, "current_ua": p.source.current_ua},
-              title=f"radiokit compression series: {p.name}")
+    kw = dict(
+        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
+        source={
+            "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
+            "voltage_kv": p.source.voltage_kv,
+            "current_ua": p.source.current_ua,
+        },
+        title=f"radiokit compression series: {p.name}",
+    )
     existed = r.out.exists()
     try:
-        r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite,
-                                    **kw)
+        r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite, **kw)
     except OSError as exc:
         if not existed:  # a file this run began and could not finish: it would block the next run
             r.out.unlink(missing_ok=True)
         code = exc.errno or errno.EIO
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
-        r.writer.record_run(p.to_toml(), {"detector": det.describe(),
-                                          "source": getattr(src, "describe", lambda: {})()})
+        r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
     det.arm()
 
 
@@ -696,9 +786,16 @@ def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
         t = time.perf_counter()
         if beam:
             monitor.raise_if_failed()
-        index = writer.append(frame.data, image_key=image_key, step=step, ratio=ratio, gap_mm=gap,
-                              time_s=frame.time_s, voltage_kv=monitor.kv if beam else 0.0,
-                              current_ua=monitor.ua if beam else 0.0)
+        index = writer.append(
+            frame.data,
+            image_key=image_key,
+            step=step,
+            ratio=ratio,
+            gap_mm=gap,
+            time_s=frame.time_s,
+            voltage_kv=monitor.kv if beam else 0.0,
+            current_ua=monitor.ua if beam else 0.0,
+        )
         log.debug("frame %d written (image_key %d, step %d)", index, int(image_key), step)
         if beam:
             monitor.written.append((index, frame.time_s))
@@ -719,7 +816,7 @@ def _beam_on(r: _Run):
 def _beam_off(r: _Run):
     r.monitor.stop()
     r.monitor.raise_if_failed()  # the fault itself, not what switching off then ran into
-    r.monitor.confirm()          # the beam was good up to the last frame (faults latch)
+    r.monitor.confirm()  # the beam was good up to the last frame (faults latch)
     r.source.off()
     r.beam_on_s += time.perf_counter() - r.beam_since
     r.beam_since = None
@@ -774,17 +871,35 @@ def _phase_close(r: _Run):
     r.devices.frame.stop()
     r.guard.cleanup()
     if not _tube_off(r):
-        raise DeviceError(f"{r.source.port if hasattr(r.source, 'port') else 'source'}: the series is complete "
-                          f"but switching X-rays off could not be confirmed")
+        raise DeviceError(
+            f"{r.source.port if hasattr(r.source, 'port') else 'source'}: the series is complete "
+            f"but switching X-rays off could not be confirmed"
+        )
 
 
 # The order of work; "steps" enters one phase per compression step itself.
-_PHASES = (("connect", _phase_connect), ("warm-up", _phase_warm_up), ("darks", _phase_darks),
-           ("flats", _phase_flats), ("steps", _phase_steps), ("close", _phase_close))
+_PHASES = (
+    ("connect", _phase_connect),
+    ("warm-up", _phase_warm_up),
+    ("darks", _phase_darks),
+    ("flats", _phase_flats),
+    ("steps", _phase_steps),
+    ("close", _phase_close),
+)
 
 
-def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, progress=True, on_phase=None,
-        writer_factory=None, overwrite=False, guard=None) -> Result:
+def run(
+    protocol,
+    *,
+    sim=False,
+    resume=False,
+    devices: Devices | None = None,
+    progress=True,
+    on_phase=None,
+    writer_factory=None,
+    overwrite=False,
+    guard=None,
+) -> Result:
     """Run a compression series (see the module docstring).
 
     Parameters
@@ -829,8 +944,20 @@ def run(protocol, *, sim=False, resume=False, devices: Devices | None = None, pr
     notebook = _open_notebook(out)
     res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
     bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
-    r = _Run(p, out, sim, resume, overwrite, progress, guard or SignalGuard(), res, bar,
-             on_phase or (lambda phase, info=None: None), writer_factory or ExperimentWriter, devices=devices)
+    r = _Run(
+        p,
+        out,
+        sim,
+        resume,
+        overwrite,
+        progress,
+        guard or SignalGuard(),
+        res,
+        bar,
+        on_phase or (lambda phase, info=None: None),
+        writer_factory or ExperimentWriter,
+        devices=devices,
+    )
     if done:
         r.done = done
     with r.guard:
@@ -881,8 +1008,9 @@ def _open_notebook(out: Path) -> logging.Handler:
     """The lab notebook: every serial exchange, phase and fault, beside the experiment file."""
     notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
     notebook.setLevel(logging.DEBUG)
-    notebook.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s",
-                                            "%Y-%m-%d %H:%M:%S"))
+    notebook.setFormatter(
+        logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S")
+    )
     acq_log = logging.getLogger("acquisition")
     notebook.old_level = acq_log.level
     acq_log.addHandler(notebook)
@@ -925,15 +1053,22 @@ def _stop(r: _Run, exc: BaseException):
         res.frames_total = r.writer.n_frames
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
-    what = (f"stopped by {exc.name}" if hasattr(exc, "signum") else "interrupted (Ctrl-C)"
-            if isinstance(exc, KeyboardInterrupt) else f"stopped by {type(exc).__name__}")
+    what = (
+        f"stopped by {exc.name}"
+        if hasattr(exc, "signum")
+        else "interrupted (Ctrl-C)"
+        if isinstance(exc, KeyboardInterrupt)
+        else f"stopped by {type(exc).__name__}"
+    )
     tube = {True: "tube off", False: "tube NOT confirmed off", None: "source not contacted"}[res.tube_off]
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
     if hasattr(exc, "add_note"):
-        exc.add_note(f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
-                     f"`radiokit acquire PROTOCOL --resume` completes the series")
+        exc.add_note(
+            f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
+            f"`radiokit acquire PROTOCOL --resume` completes the series"
+        )
 
 
 def _release(r: _Run, notebook):
@@ -967,8 +1102,10 @@ def _tube_off(r: _Run) -> bool | None:
     if monitor is not None and monitor.off_failed or getattr(dev.source, "off_failed", None) is not None:
         dev.off_failed = True
         r.res.tube_off = False
-        log.error("not switching off again: the last XOF could not be confirmed (%s)",
-                  getattr(dev.source, "off_failed", None) or "beam monitor")
+        log.error(
+            "not switching off again: the last XOF could not be confirmed (%s)",
+            getattr(dev.source, "off_failed", None) or "beam monitor",
+        )
         return False
     try:
         state = dev.source.off()

@@ -8,6 +8,7 @@ previous complete output, or none: never a truncated file or a folder mixing two
 for output, and the next run writing the same output on that host removes it once its process is
 gone.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -21,9 +22,18 @@ from pathlib import Path
 
 from radiokit.errors import RadiokitError
 
-__all__ = ["atomic_path", "atomic_dir", "check_output", "OutputError", "OutputExistsError", "RESULTS_MARKER",
-           "DiskFullError", "is_disk_full",
-           "atomic_h5", "check_free_space"]
+__all__ = [
+    "atomic_path",
+    "atomic_dir",
+    "check_output",
+    "OutputError",
+    "OutputExistsError",
+    "RESULTS_MARKER",
+    "DiskFullError",
+    "is_disk_full",
+    "atomic_h5",
+    "check_free_space",
+]
 
 #: written into every results folder radiokit assembles: only such folders may be replaced
 RESULTS_MARKER = ".radiokit-output"
@@ -51,8 +61,11 @@ class DiskFullError(OutputError):
     """The disk (or quota) is, or filled while writing, too full; the partial output was removed."""
 
     def __init__(self, path, detail=""):
-        super().__init__(path, f"no space left on the device{detail}; nothing was written (the partial "
-                               "output was removed)", errno.ENOSPC)
+        super().__init__(
+            path,
+            f"no space left on the device{detail}; nothing was written (the partial output was removed)",
+            errno.ENOSPC,
+        )
 
 
 def _human(n) -> str:
@@ -83,8 +96,7 @@ def is_disk_full(exc: BaseException) -> bool:
             return True
         # numpy's tofile (tifffile's writer) reports a short write without an errno; on a
         # regular file that is a full disk or quota
-        if isinstance(exc, OSError) and exc.errno is None and re.fullmatch(r"\d+ requested and \d+ written",
-                                                                           str(exc)):
+        if isinstance(exc, OSError) and exc.errno is None and re.fullmatch(r"\d+ requested and \d+ written", str(exc)):
             return True
         exc = exc.__cause__ or exc.__context__
     return False
@@ -128,18 +140,25 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
     path = Path(path)
     for src in inputs:
         src = Path(src)
-        if (folder and _inside(src, path)) or (not folder and src.exists() and path.exists() and _same(src, path)) \
-                or src.resolve() == path.resolve():
-            raise OutputError(path, f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
-                                    f"input {src}: an input is never overwritten; choose another output")
+        if (
+            (folder and _inside(src, path))
+            or (not folder and src.exists() and path.exists() and _same(src, path))
+            or src.resolve() == path.resolve()
+        ):
+            raise OutputError(
+                path,
+                f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
+                f"input {src}: an input is never overwritten; choose another output",
+            )
     if not (path.exists() or path.is_symlink()):
         return path
     if folder:
         if not path.is_dir() or path.is_symlink():
             raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
         if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
-            raise OutputError(path, "exists, is not empty and was not made by radiokit; it is never "
-                                    "replaced: choose a new folder")
+            raise OutputError(
+                path, "exists, is not empty and was not made by radiokit; it is never replaced: choose a new folder"
+            )
         if not any(path.iterdir()):
             return path  # an empty folder holds nothing to lose
     elif path.is_dir():
@@ -284,16 +303,21 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
     path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True)
     strangers = sorted(_files(path) - _manifest(path)) if (path / RESULTS_MARKER).exists() else []
     if strangers:
-        raise OutputError(path, f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
-                                "it is never replaced: move them or choose a new folder")
+        raise OutputError(
+            path,
+            f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
+            "it is never replaced: move them or choose a new folder",
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(path, folder=True)
     tmp = _temporary_name(path, folder=True)
     try:
         tmp.mkdir()
         yield tmp
-        (tmp / RESULTS_MARKER).write_text("made by radiokit; may be replaced by a run with --overwrite. Files:\n"
-                                          + "".join(f"{name}\n" for name in sorted(_files(tmp))))
+        (tmp / RESULTS_MARKER).write_text(
+            "made by radiokit; may be replaced by a run with --overwrite. Files:\n"
+            + "".join(f"{name}\n" for name in sorted(_files(tmp)))
+        )
         old = None
         if path.exists():
             old = _temporary_name(path, folder=True, kind="old")

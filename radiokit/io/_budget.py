@@ -5,6 +5,7 @@ frames and a small zlib TIFF a 60000 x 60000 page. Every reader multiplies what 
 out and refuses, with a message naming the file, anything beyond the budget, before the
 allocation that would exhaust the machine.
 """
+
 from __future__ import annotations
 
 import os
@@ -18,8 +19,22 @@ __all__ = ["memory_budget", "parse_size", "check_budget", "BUDGET_ENV"]
 BUDGET_ENV = "RADIOKIT_MEMORY_BUDGET"
 #: default budget: this fraction of the machine's available physical memory
 DEFAULT_FRACTION = 0.5
-_UNITS = {"": 1, "b": 1, "k": 10**3, "kb": 10**3, "kib": 2**10, "m": 10**6, "mb": 10**6, "mib": 2**20,
-          "g": 10**9, "gb": 10**9, "gib": 2**30, "t": 10**12, "tb": 10**12, "tib": 2**40}
+_UNITS = {
+    "": 1,
+    "b": 1,
+    "k": 10**3,
+    "kb": 10**3,
+    "kib": 2**10,
+    "m": 10**6,
+    "mb": 10**6,
+    "mib": 2**20,
+    "g": 10**9,
+    "gb": 10**9,
+    "gib": 2**30,
+    "t": 10**12,
+    "tb": 10**12,
+    "tib": 2**40,
+}
 _SIZE = re.compile(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*([A-Za-z]*)\s*\Z")
 
 
@@ -75,5 +90,8 @@ def check_budget(path, nbytes: int, what: str, budget=None) -> None:
     """Raise :class:`FormatError` if ``nbytes`` (what ``what`` would allocate) exceeds the budget."""
     limit = memory_budget(budget)
     if nbytes > limit:
-        raise FormatError(path, f"{what} would need {_human(int(nbytes))}, over the memory budget of "
-                                f"{_human(limit)} (a corrupt header, or raise {BUDGET_ENV})")
+        raise FormatError(
+            path,
+            f"{what} would need {_human(int(nbytes))}, over the memory budget of "
+            f"{_human(limit)} (a corrupt header, or raise {BUDGET_ENV})",
+        )

@@ -8,6 +8,7 @@
     ``current``), ``data`` (NXdata, ``@signal = "data"``: links to the frames and their keys),
     and, in simulated files only, ``simulation`` (see :mod:`radiokit.io._simulation`).
 """
+
 from __future__ import annotations
 
 import errno
@@ -24,8 +25,20 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["ExperimentWriter", "ImageKey", "ExperimentProgress", "read_progress", "DETECTOR", "FRAMES",
-           "IMAGE_KEY", "STEP", "read_experiment_meta", "checked_dataset", "check_local", "check_links"]
+__all__ = [
+    "ExperimentWriter",
+    "ImageKey",
+    "ExperimentProgress",
+    "read_progress",
+    "DETECTOR",
+    "FRAMES",
+    "IMAGE_KEY",
+    "STEP",
+    "read_experiment_meta",
+    "checked_dataset",
+    "check_local",
+    "check_links",
+]
 
 ENTRY = "entry"
 DETECTOR = "entry/instrument/detector"
@@ -93,8 +106,18 @@ class ExperimentWriter:
     ((2, 4, 5), [2, 0])
     """
 
-    def __init__(self, path, shape=None, *, mode="w", overwrite=False, pixel_size_mm=0.05,
-                 source=None, detector_name="Hamamatsu C7942SK-02", title="radiokit experiment"):
+    def __init__(
+        self,
+        path,
+        shape=None,
+        *,
+        mode="w",
+        overwrite=False,
+        pixel_size_mm=0.05,
+        source=None,
+        detector_name="Hamamatsu C7942SK-02",
+        title="radiokit experiment",
+    ):
         self.path = Path(path)
         if mode not in ("w", "a"):
             raise ValueError(f"mode={mode!r}: expected 'w' (new file) or 'a' (append)")
@@ -131,8 +154,11 @@ class ExperimentWriter:
         _set_class(src, "NXsource")
         # Fixed-length strings: read() reads these, and reading a variable-length string parses
         # the global heap, which libhdf5 can hang or crash on when the file is corrupt.
-        for key, value in (("type", "Fixed Tube X-ray"), ("name", source.get("name", "Hamamatsu L8121-01")),
-                           ("probe", "x-ray")):
+        for key, value in (
+            ("type", "Fixed Tube X-ray"),
+            ("name", source.get("name", "Hamamatsu L8121-01")),
+            ("probe", "x-ray"),
+        ):
             src[key] = np.bytes_(str(value).encode("utf-8"))
         for key, unit in (("voltage", "kV"), ("current", "uA")):
             value = source.get(f"{key}_{unit.lower()}")
@@ -142,8 +168,9 @@ class ExperimentWriter:
         _set_class(det, "NXdetector")
         det["description"] = detector_name
         rows, cols = shape
-        data = det.create_dataset("data", shape=(0, rows, cols), maxshape=(None, rows, cols),
-                                  chunks=(1, rows, cols), dtype=np.uint16)
+        data = det.create_dataset(
+            "data", shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols), dtype=np.uint16
+        )
         data.attrs["interpretation"] = "image"
         for axis in ("x_pixel_size", "y_pixel_size"):
             det.create_dataset(axis, data=pixel_size_mm * 1e-3).attrs["units"] = "m"
@@ -203,8 +230,9 @@ class ExperimentWriter:
     #: finish what it started and the file stays whole.
     ballast = True
 
-    def append(self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None,
-               voltage_kv=None, current_ua=None) -> int:
+    def append(
+        self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None, voltage_kv=None, current_ua=None
+    ) -> int:
         """Append one frame and its bookkeeping, then flush. Returns the frame's index.
 
         The frame is recorded in three flushed steps: its row, labelled ``INVALID`` (3) and
@@ -236,14 +264,20 @@ class ExperimentWriter:
         self._hold_ballast(frame.nbytes + self.reserve_bytes)
         free = self._free_bytes()
         if free < frame.nbytes + self.reserve_bytes:
-            raise OSError(errno.ENOSPC, f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
-                                        f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete")
-        values = {"image_key": ImageKey.INVALID, "step": int(step),
-                  "ratio": np.nan if ratio is None else float(ratio),
-                  "gap": np.nan if gap_mm is None else float(gap_mm) * 1e-3,
-                  "time": time.time() if time_s is None else float(time_s),
-                  "voltage": np.nan if voltage_kv is None else float(voltage_kv),
-                  "current": np.nan if current_ua is None else float(current_ua)}
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
+                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+            )
+        values = {
+            "image_key": ImageKey.INVALID,
+            "step": int(step),
+            "ratio": np.nan if ratio is None else float(ratio),
+            "gap": np.nan if gap_mm is None else float(gap_mm) * 1e-3,
+            "time": time.time() if time_s is None else float(time_s),
+            "voltage": np.nan if voltage_kv is None else float(voltage_kv),
+            "current": np.nan if current_ua is None else float(current_ua),
+        }
         try:
             data.resize(i + 1, axis=0)
             for group, name, *_ in _SERIES:
@@ -252,11 +286,11 @@ class ExperimentWriter:
                 ds[i] = values[name]
             self._h5[ENTRY].attrs["frames_complete"] = i + 1
             self._h5.flush()
-            self._n = i + 1           # counted, labelled invalid
+            self._n = i + 1  # counted, labelled invalid
             data[i] = frame
-            self._h5.flush()          # the pixels are on disk
+            self._h5.flush()  # the pixels are on disk
             self._h5[DETECTOR]["image_key"][i] = int(image_key)
-            self._h5.flush()          # only now is the frame what it claims to be
+            self._h5.flush()  # only now is the frame what it claims to be
         except Exception as exc:
             self._failed = " ".join(str(exc).split())[:200]
             self._drop_ballast()
@@ -264,10 +298,14 @@ class ExperimentWriter:
                 self._h5.flush()
             except Exception:
                 pass
-            code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC \
+            code = (
+                errno.ENOSPC
+                if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC
                 else errno.EIO
-            raise OSError(code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays "
-                                f"labelled invalid") from None
+            )
+            raise OSError(
+                code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays labelled invalid"
+            ) from None
         return i
 
     def _free_bytes(self) -> int:
@@ -355,8 +393,7 @@ class ExperimentWriter:
 
 
 def _refuse_external(path, what):
-    raise FormatError(path, f"{what}: data outside this file is not read unless asked for "
-                            "(allow_external=True)")
+    raise FormatError(path, f"{what}: data outside this file is not read unless asked for (allow_external=True)")
 
 
 @dataclass(frozen=True)
@@ -402,11 +439,15 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
         n = int(n)
         check_budget(path, 16 * n, f"the keys and steps of {n} frames")
         keys = checked_dataset(path, h5, IMAGE_KEY, "iu", (1,), allow_external)[:n]
-        steps = checked_dataset(path, h5, STEP, "iu", (1,), allow_external)[:n] if STEP in h5 \
-            else np.full(n, -1, np.int16)
+        steps = (
+            checked_dataset(path, h5, STEP, "iu", (1,), allow_external)[:n] if STEP in h5 else np.full(n, -1, np.int16)
+        )
         if len(keys) != n or len(steps) != n:
-            raise FormatError(path, f"/{ENTRY}@frames_complete is {n}, but /{IMAGE_KEY} holds {len(keys)} keys "
-                                    f"and /{STEP} {len(steps)} steps")
+            raise FormatError(
+                path,
+                f"/{ENTRY}@frames_complete is {n}, but /{IMAGE_KEY} holds {len(keys)} keys "
+                f"and /{STEP} {len(steps)} steps",
+            )
         notes = {k: None if attrs.get(k) is None else text(attrs[k]) for k in ("protocol", "devices")}
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
 
@@ -452,7 +493,9 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
         raise FormatError(path, f"/{name} is not a dataset")
     check_local(path, h5, ds, allow_external)
     if not _plain_numbers(ds.dtype, kinds):
-        raise FormatError(path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}")
+        raise FormatError(
+            path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
+        )
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
     return ds
@@ -472,8 +515,11 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
 
     check_links(path, h5, FRAMES, allow_external)
     if FRAMES not in h5:
-        raise FormatError(path, f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
-                                "(pass dataset='/path/to/frames' to read another layout)")
+        raise FormatError(
+            path,
+            f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
+            "(pass dataset='/path/to/frames' to read another layout)",
+        )
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
@@ -506,8 +552,11 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             # only scalar numbers and strings: libhdf5 can crash on a corrupt variable-length type
             check_links(path, h5, f"{src.name}/{key}", allow_external)
             ds = src.get(key)
-            if not isinstance(ds, h5py.Dataset) or ds.shape != () or not (
-                    ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None):
+            if (
+                not isinstance(ds, h5py.Dataset)
+                or ds.shape != ()
+                or not (ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None)
+            ):
                 continue
             check_local(path, h5, ds, allow_external)
             value = ds[()]

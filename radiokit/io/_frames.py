@@ -1,4 +1,5 @@
 """The container every reader returns."""
+
 from __future__ import annotations
 
 import warnings
@@ -44,8 +45,10 @@ class Frames:
         return self.data.shape[0]
 
     def __repr__(self) -> str:
-        return (f"Frames({self.meta.get('format', '?')}, n={self.n}, "
-                f"shape={self.data.shape[1:]}, dtype={self.data.dtype}, path={str(self.path)!r})")
+        return (
+            f"Frames({self.meta.get('format', '?')}, n={self.n}, "
+            f"shape={self.data.shape[1:]}, dtype={self.data.dtype}, path={str(self.path)!r})"
+        )
 
 
 def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> None:
@@ -66,4 +69,6 @@ def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> None:
     warnings.warn(
         f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; "
         f"wrong bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}",
-        BitDepthWarning, stacklevel=3)
+        BitDepthWarning,
+        stacklevel=3,
+    )

@@ -4,6 +4,7 @@ Layout (all little-endian): a 64-byte header, an ASCII comment of ``comment_leng
 pixels (unsigned, ``width * height`` per image, rows top first), then optional blocks such as the
 float32 axis arrays a ``[Scaling]`` section points at with ``"#<byte offset>,<count>"``.
 """
+
 from __future__ import annotations
 
 import re
@@ -26,8 +27,9 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
     """Validate the 64-byte header against the file size and return the geometry."""
     if len(head) < HEADER_BYTES:
         raise FormatError(path, f"ITEX header needs {HEADER_BYTES} bytes; the file has {len(head)}")
-    (magic, comment_len, width, height, x0, y0, ftype, n_images, n_channels, channel, stamp,
-     marker, info) = HEADER.unpack(head[:HEADER_BYTES])
+    (magic, comment_len, width, height, x0, y0, ftype, n_images, n_channels, channel, stamp, marker, info) = (
+        HEADER.unpack(head[:HEADER_BYTES])
+    )
     if magic != b"IM":
         raise FormatError(path, f"wrong magic {magic!r}: an ITEX .img starts with b'IM'")
     if ftype == 1:
@@ -45,20 +47,38 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
     data_offset = HEADER_BYTES + comment_len
     need = data_offset + n * width * height * dt.itemsize
     if need > size:
-        raise FormatError(path, f"ITEX header promises {n} image(s) of {width}x{height} {dt.itemsize * 8}-bit "
-                                f"after a {comment_len}-byte comment ({need} bytes); the file has {size}")
-    return dict(format="itex", n=n, rows=int(height), cols=int(width), dtype=dt, offset=data_offset,
-                comment_length=int(comment_len), file_type=int(ftype), x_offset=int(x0), y_offset=int(y0),
-                channels=int(n_channels), channel=int(channel), time_stamp=float(stamp),
-                marker=marker.rstrip(b"\0").decode("latin-1"), info=info.rstrip(b"\0").decode("latin-1"),
-                file_size=size)
+        raise FormatError(
+            path,
+            f"ITEX header promises {n} image(s) of {width}x{height} {dt.itemsize * 8}-bit "
+            f"after a {comment_len}-byte comment ({need} bytes); the file has {size}",
+        )
+    return dict(
+        format="itex",
+        n=n,
+        rows=int(height),
+        cols=int(width),
+        dtype=dt,
+        offset=data_offset,
+        comment_length=int(comment_len),
+        file_type=int(ftype),
+        x_offset=int(x0),
+        y_offset=int(y0),
+        channels=int(n_channels),
+        channel=int(channel),
+        time_stamp=float(stamp),
+        marker=marker.rstrip(b"\0").decode("latin-1"),
+        info=info.rstrip(b"\0").decode("latin-1"),
+        file_size=size,
+    )
 
 
 # A section header, or one key=value item whose value may be quoted (and then hold commas).
 # Possessive quantifiers and a section name without "[" keep every attempt from backtracking,
 # so parsing is linear in the comment (lazy keys followed by \s* made 32 KB take seconds).
-_TOKEN = re.compile(r'(?:\[(?P<section>[^\]\r\n\[]*+)\]|(?P<key>[^=,\r\n\[]++)='
-                    r'\s*+(?:"(?P<quoted>[^"]*+)"|(?P<bare>[^,\r\n\[]*+)))\s*+,?')
+_TOKEN = re.compile(
+    r"(?:\[(?P<section>[^\]\r\n\[]*+)\]|(?P<key>[^=,\r\n\[]++)="
+    r'\s*+(?:"(?P<quoted>[^"]*+)"|(?P<bare>[^,\r\n\[]*+)))\s*+,?'
+)
 _SEPARATOR = re.compile(r"[,\n\[]")
 _SPACE = re.compile(r"\s*")
 
@@ -110,7 +130,7 @@ def parse_comment(text: str) -> dict:
         else:
             key = m.group("key").strip()
             if not key:  # "=value" with no name: keep it, as any text that is not an item
-                leftovers.append(text[pos:m.end()].strip(" ,\r\n\0"))
+                leftovers.append(text[pos : m.end()].strip(" ,\r\n\0"))
                 pos = m.end()
                 continue
             current[key] = m.group("quoted") if m.group("quoted") is not None else _number(m.group("bare").strip())
@@ -133,14 +153,20 @@ def read_scaling(path, fh, comment: dict, size: int) -> dict:
         ref = sec.get(f"Scaling{axis}ScalingFile")
         if ref is None:
             continue
-        entry = {"type": sec.get(f"Scaling{axis}Type"), "scale": sec.get(f"Scaling{axis}Scale"),
-                 "unit": sec.get(f"Scaling{axis}Unit", "")}
+        entry = {
+            "type": sec.get(f"Scaling{axis}Type"),
+            "scale": sec.get(f"Scaling{axis}Scale"),
+            "unit": sec.get(f"Scaling{axis}Unit", ""),
+        }
         m = _POINTER.match(str(ref))
         if m:
             off, count = int(m.group(1)), int(m.group(2))
             if off + 4 * count > size:
-                raise FormatError(path, f"[Scaling] {axis} axis points at {count} float32 values at byte {off}, "
-                                        f"beyond the end of the {size}-byte file")
+                raise FormatError(
+                    path,
+                    f"[Scaling] {axis} axis points at {count} float32 values at byte {off}, "
+                    f"beyond the end of the {size}-byte file",
+                )
             fh.seek(off)
             entry["values"] = np.frombuffer(fh.read(4 * count), "<f4").astype(np.float32)
         else:

@@ -5,6 +5,7 @@ disk, edited by hand, or made to hurt. libhdf5 reports such files with OSError, 
 ("too many links" for soft links in a circle), KeyError or TypeError, none of which name the
 file; :func:`open_layout` turns each into one :class:`FormatError` line that does.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,8 +35,9 @@ def open_layout(path, what: str):
     try:
         h5 = h5py.File(path, "r")
     except OSError as exc:
-        raise FormatError(path, f"cannot be opened as HDF5, so not {what} (truncated or another "
-                                f"format): {_one_line(exc)}") from None
+        raise FormatError(
+            path, f"cannot be opened as HDF5, so not {what} (truncated or another format): {_one_line(exc)}"
+        ) from None
     try:
         with h5:
             yield h5
@@ -93,8 +95,9 @@ def check_finite(path, name: str, values: np.ndarray, *, nan_ok: bool = False) -
     """Refuse inf (and NaN unless ``nan_ok``) in ``values``, the dataset ``name``."""
     bad = np.isinf(values) if nan_ok else ~np.isfinite(values)
     if np.any(bad):
-        raise FormatError(path, f"/{name} holds {'inf' if nan_ok else 'NaN or inf'} "
-                                f"(at index {int(np.flatnonzero(bad.ravel())[0])})")
+        raise FormatError(
+            path, f"/{name} holds {'inf' if nan_ok else 'NaN or inf'} (at index {int(np.flatnonzero(bad.ravel())[0])})"
+        )
 
 
 def _one_line(exc) -> str:

@@ -1,4 +1,5 @@
 """Headerless raw frames as the C7942's vendor software writes them (16-bit little-endian)."""
+
 from __future__ import annotations
 
 import operator
@@ -69,8 +70,32 @@ def _frame_count(path, n) -> int:
     return n
 
 
-def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None,
-                 offset=0, n=None) -> dict:
+def _preset_for(path, payload: int, preset) -> RawPreset:
+    """The preset named, else the one the payload's size implies (see :func:`raw_geometry`)."""
+    if preset is not None:
+        if preset not in PRESETS:
+            raise FormatError(path, f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+        return PRESETS[preset]
+    single = [p for p in PRESETS.values() if p.frame_bytes == payload]
+    stack_default = PRESETS[DEFAULT_PRESET]
+    dividing = [p for p in PRESETS.values() if payload % p.frame_bytes == 0]
+    if len(single) == 1:
+        return single[0]
+    if payload % stack_default.frame_bytes == 0:
+        return stack_default
+    if len(dividing) == 1:
+        return dividing[0]
+    if not dividing:
+        raise FormatError(
+            path,
+            f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
+            f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset=",
+        )
+    opts = ", ".join(f"{p.name} x{payload // p.frame_bytes}" for p in dividing)
+    raise FormatError(path, f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape=")
+
+
+def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None, offset=0, n=None) -> dict:
     """Decide the geometry of a headerless raw file of ``size`` bytes.
 
     Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a file
@@ -102,42 +127,37 @@ def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteo
     else:
         if dt.itemsize != 2:
             raise FormatError(path, f"presets hold 16-bit words; dtype {dt} needs an explicit shape=")
-        if preset is not None:
-            if preset not in PRESETS:
-                raise FormatError(path, f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
-            p = PRESETS[preset]
-        else:
-            single = [p for p in PRESETS.values() if p.frame_bytes == payload]
-            stack_default = PRESETS[DEFAULT_PRESET]
-            dividing = [p for p in PRESETS.values() if payload % p.frame_bytes == 0]
-            if len(single) == 1:
-                p = single[0]
-            elif payload % stack_default.frame_bytes == 0:
-                p = stack_default
-            elif len(dividing) == 1:
-                p = dividing[0]
-            elif not dividing:
-                raise FormatError(
-                    path, f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
-                    f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset=")
-            else:
-                opts = ", ".join(f"{p.name} x{payload // p.frame_bytes}" for p in dividing)
-                raise FormatError(path, f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape=")
+        p = _preset_for(path, payload, preset)
         name, rows, cols, bits, pixel_size_mm = p.name, p.rows, p.cols, p.bits, p.pixel_size_mm
         frame_bytes = p.frame_bytes
     if n is None:
         if payload % frame_bytes:
             raise FormatError(
-                path, f"size {payload} bytes is not a whole number of {rows}x{cols} {dt} frames "
-                f"({frame_bytes} bytes each): truncated or wrong geometry")
+                path,
+                f"size {payload} bytes is not a whole number of {rows}x{cols} {dt} frames "
+                f"({frame_bytes} bytes each): truncated or wrong geometry",
+            )
         n = payload // frame_bytes
     elif n * frame_bytes > payload:
-        raise FormatError(path, f"{n} frames of {rows}x{cols} {dt} need {n * frame_bytes} bytes "
-                                f"after offset {offset}; the file has {payload}: truncated")
+        raise FormatError(
+            path,
+            f"{n} frames of {rows}x{cols} {dt} need {n * frame_bytes} bytes "
+            f"after offset {offset}; the file has {payload}: truncated",
+        )
     if n == 0:
         raise FormatError(path, f"file holds less than one {rows}x{cols} frame")
-    return dict(format="raw", preset=name, n=int(n), rows=int(rows), cols=int(cols), dtype=dt,
-                offset=int(offset), bits=bits, pixel_size_mm=pixel_size_mm, file_size=size)
+    return dict(
+        format="raw",
+        preset=name,
+        n=int(n),
+        rows=int(rows),
+        cols=int(cols),
+        dtype=dt,
+        offset=int(offset),
+        bits=bits,
+        pixel_size_mm=pixel_size_mm,
+        file_size=size,
+    )
 
 
 def read_raw_frame(fh, geo: dict, index: int) -> np.ndarray:

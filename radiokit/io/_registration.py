@@ -8,6 +8,7 @@
     ``@method``, ``@fixed``, ``@moving`` (the input files), ``@convention``,
     ``@quality_*``: :class:`radiokit.register.Quality`'s fields.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -73,8 +74,10 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
     displacement = np.asarray(record.displacement, np.float32)
     registered = np.asarray(record.registered, np.float32)
     if displacement.shape != (2,) + registered.shape:
-        raise ValueError(f"{path}: displacement {displacement.shape} does not match the registered image "
-                         f"{registered.shape}; expected (2, rows, cols)")
+        raise ValueError(
+            f"{path}: displacement {displacement.shape} does not match the registered image "
+            f"{registered.shape}; expected (2, rows, cols)"
+        )
     with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
         h5.attrs["default"] = ENTRY
         entry = h5.create_group(ENTRY)
@@ -108,14 +111,21 @@ def read_registration(path, *, allow_external=False) -> RegistrationRecord:
         registered = checked_dataset(path, h5, REGISTERED, "f", (2,), allow_external)
         displacement = checked_dataset(path, h5, DISPLACEMENT, "f", (3,), allow_external)
         if displacement.shape != (2,) + registered.shape:
-            raise FormatError(path, f"/{DISPLACEMENT} is {displacement.shape}; the registered image "
-                                    f"{registered.shape} needs (2, rows, cols)")
-        quality = {k[len("quality_"):]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
+            raise FormatError(
+                path,
+                f"/{DISPLACEMENT} is {displacement.shape}; the registered image "
+                f"{registered.shape} needs (2, rows, cols)",
+            )
+        quality = {k[len("quality_") :]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
         budget = ReadBudget(path)
-        return RegistrationRecord(method=_plain(g.attrs.get("method", "")), fixed=_plain(g.attrs.get("fixed", "")),
-                                  moving=_plain(g.attrs.get("moving", "")),
-                                  displacement=budget.read(displacement), registered=budget.read(registered),
-                                  quality=quality)
+        return RegistrationRecord(
+            method=_plain(g.attrs.get("method", "")),
+            fixed=_plain(g.attrs.get("fixed", "")),
+            moving=_plain(g.attrs.get("moving", "")),
+            displacement=budget.read(displacement),
+            registered=budget.read(registered),
+            quality=quality,
+        )
 
 
 def _plain(value):

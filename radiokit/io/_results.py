@@ -14,6 +14,7 @@
     ``reference``, ``difference`` and ``k{k}``: the enhanced image for each factor ``k``.
 ``/entry/measurements`` (NXcollection): one attribute per region of interest.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -139,6 +140,7 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
     """
     budget = ReadBudget(path)
     with open_layout(path, "a radiokit results file") as h5:
+
         def array(name, ndims=range(1, 5), kinds="buif"):
             return budget.read(checked_dataset(path, h5, name, kinds, ndims, allow_external))
 
@@ -149,8 +151,9 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
         step, ratio = array(f"{RESULTS_STEPS}/step", (1,), "iu"), array(f"{RESULTS_STEPS}/ratio", (1,), "f")
         for name, values in (("step", step), ("ratio", ratio)):
             if len(values) != len(line_integral):
-                raise FormatError(path, f"/{RESULTS_STEPS}/{name} holds {len(values)} values for "
-                                        f"{len(line_integral)} step images")
+                raise FormatError(
+                    path, f"/{RESULTS_STEPS}/{name} holds {len(values)} values for {len(line_integral)} step images"
+                )
         check_finite(path, f"{RESULTS_STEPS}/ratio", ratio, nan_ok=True)  # NaN: a step without a ratio
         crop = _integers(path, h5[RESULTS_STEPS], "crop", 4)
         groups = {}
@@ -169,12 +172,17 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
             enhanced[domain] = EnhancedImages(array(f"{g}/reference"), array(f"{g}/difference"), ks)
         attrs = h5[ENTRY].attrs
         return ResultsRecord(
-            source=text(attrs.get("source", "")), results_json=text(attrs.get("results_json", "")),
-            line_integral=line_integral, step=step, ratio=ratio, crop=crop,
+            source=text(attrs.get("source", "")),
+            results_json=text(attrs.get("results_json", "")),
+            line_integral=line_integral,
+            step=step,
+            ratio=ratio,
+            crop=crop,
             pair=_pair(path, reg),
             registration={name: array(f"{RESULTS_REGISTRATION}/{name}") for name in (reg or {})},
             enhanced=enhanced,
-            rois={k: np.asarray(v) for k, v in meas.attrs.items() if k != "NX_class"} if meas is not None else {})
+            rois={k: np.asarray(v) for k, v in meas.attrs.items() if k != "NX_class"} if meas is not None else {},
+        )
 
 
 def _pair(path, reg) -> tuple:

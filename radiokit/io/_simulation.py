@@ -15,6 +15,7 @@ Only simulated experiment files have it; ``sim.lab`` and ``sim.bench`` write it 
 
 Steps are numbered from 1, in increasing compression, as the lab numbers them.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,8 +32,14 @@ from radiokit.errors import FormatError
 from radiokit.io._experiment import check_links, checked_dataset
 from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
 
-__all__ = ["SIMULATION", "SimulationRecord", "PlantedDefects", "write_simulation", "read_simulation",
-           "displacement_name"]
+__all__ = [
+    "SIMULATION",
+    "SimulationRecord",
+    "PlantedDefects",
+    "write_simulation",
+    "read_simulation",
+    "displacement_name",
+]
 
 #: the group, inside an experiment file
 SIMULATION = "entry/simulation"
@@ -43,8 +50,10 @@ INCLUSION_MASK = "inclusion_mask"
 DISPLACEMENT = "displacement"
 DEFECTS = "defects"
 DEFECT_KINDS = ("dead", "under", "noisy")
-CONVENTION = ("pull, pixels, (row, col): moving(x + d(x)) matches fixed(x); "
-              "attenuation-weighted mean along each ray of the fixed state; 0 off the body")
+CONVENTION = (
+    "pull, pixels, (row, col): moving(x + d(x)) matches fixed(x); "
+    "attenuation-weighted mean along each ray of the fixed state; 0 off the body"
+)
 _PAIR = re.compile(r"step(\d+)_to_step(\d+)$")
 
 
@@ -156,8 +165,12 @@ def write_simulation(target, record: SimulationRecord, *, replace: bool = False)
     d = g.create_group(DISPLACEMENT)
     d.attrs["convention"] = CONVENTION
     for (a, b), values in record.displacement.items():
-        ds = d.create_dataset(displacement_name(a, b), data=np.asarray(values, np.float32),
-                              chunks=(1,) + np.shape(values)[1:], compression="lzf")
+        ds = d.create_dataset(
+            displacement_name(a, b),
+            data=np.asarray(values, np.float32),
+            chunks=(1,) + np.shape(values)[1:],
+            compression="lzf",
+        )
         ds.attrs["moving_step"], ds.attrs["fixed_step"] = int(a), int(b)
     if record.defects is not None:
         dg = g.create_group(DEFECTS)
@@ -213,8 +226,11 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
         budget = ReadBudget(path)
         curve = _read_curve(path, numbers, budget)
         n_steps = len(curve["ratio"])
-        chosen = tuple(range(1, n_steps + 1)) if steps is None else tuple(
-            int(s) if s > 0 else n_steps + 1 + int(s) for s in steps)
+        chosen = (
+            tuple(range(1, n_steps + 1))
+            if steps is None
+            else tuple(int(s) if s > 0 else n_steps + 1 + int(s) for s in steps)
+        )
         if any(not 1 <= s <= n_steps for s in chosen):
             raise FormatError(path, f"steps {list(steps)}: /{SIMULATION} holds steps 1..{n_steps}")
         images = _read_images(path, numbers, n_steps, chosen, budget)
@@ -228,21 +244,30 @@ def read_simulation(path, *, steps=None, pairs=None, allow_external=False) -> Si
             if pair and (pairs is None or pair in set(map(tuple, pairs))):
                 ds = numbers(f"{DISPLACEMENT}/{name}", (3,))
                 if ds.shape != (2,) + frame or not 1 <= pair[0] <= n_steps or not 1 <= pair[1] <= n_steps:
-                    raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}: expected {(2, *frame)}, "
-                                            f"between steps 1..{n_steps}")
+                    raise FormatError(
+                        path,
+                        f"/{ds.name.lstrip('/')} is {ds.shape}: expected {(2, *frame)}, between steps 1..{n_steps}",
+                    )
                 fields[pair] = budget.read(ds)
         defects = None
         if DEFECTS in g:
-            defects = PlantedDefects(*(budget.read(numbers(f"{DEFECTS}/{k}", (2,))) for k in DEFECT_KINDS),
-                                     budget.read(numbers(f"{DEFECTS}/columns", (1,))))
+            defects = PlantedDefects(
+                *(budget.read(numbers(f"{DEFECTS}/{k}", (2,))) for k in DEFECT_KINDS),
+                budget.read(numbers(f"{DEFECTS}/columns", (1,))),
+            )
             if any(d.shape[1] != 2 for d in (defects.dead, defects.under, defects.noisy)):
                 raise FormatError(path, f"/{SIMULATION}/{DEFECTS}/dead, under and noisy must be (k, 2) pixels")
         return SimulationRecord(
-            scene_toml=text(g.attrs.get("scene", "")), line_integral=images[LINE_INTEGRAL],
-            inclusion_mask=images[INCLUSION_MASK], steps=chosen, displacement=fields, defects=defects,
+            scene_toml=text(g.attrs.get("scene", "")),
+            line_integral=images[LINE_INTEGRAL],
+            inclusion_mask=images[INCLUSION_MASK],
+            steps=chosen,
+            displacement=fields,
+            defects=defects,
             initial_gap_mm=_number(path, g, "initial_gap_mm"),
-            seconds={k[len("seconds_"):]: _number(path, g, k) for k in g.attrs if k.startswith("seconds_")},
-            **curve)
+            seconds={k[len("seconds_") :]: _number(path, g, k) for k in g.attrs if k.startswith("seconds_")},
+            **curve,
+        )
 
 
 def _read_curve(path, numbers, budget) -> dict:
@@ -252,8 +277,11 @@ def _read_curve(path, numbers, budget) -> dict:
         ds = numbers(name, (1,))
         curve[name] = budget.read(ds)
         if len(curve[name]) != len(curve[CURVE[0]]):
-            raise FormatError(path, f"/{SIMULATION}/{name} holds {len(curve[name])} values, "
-                                    f"/{SIMULATION}/{CURVE[0]} {len(curve[CURVE[0]])}: one per step in each")
+            raise FormatError(
+                path,
+                f"/{SIMULATION}/{name} holds {len(curve[name])} values, "
+                f"/{SIMULATION}/{CURVE[0]} {len(curve[CURVE[0]])}: one per step in each",
+            )
         if name in ("ratio", "gap_mm"):
             check_finite(path, ds.name.lstrip("/"), curve[name])
     return curve
@@ -265,11 +293,16 @@ def _read_images(path, numbers, n_steps, chosen, budget) -> dict:
     for name in (LINE_INTEGRAL, INCLUSION_MASK):
         ds = numbers(name, (3,))
         if ds.shape[0] != n_steps or first not in (None, ds.shape):
-            raise FormatError(path, f"/{ds.name.lstrip('/')} is {ds.shape}; expected one image per step of the "
-                                    f"curve ({n_steps})" + (f", as /{SIMULATION}/{LINE_INTEGRAL} {first}" if first else ""))
+            raise FormatError(
+                path,
+                f"/{ds.name.lstrip('/')} is {ds.shape}; expected one image per step of the "
+                f"curve ({n_steps})" + (f", as /{SIMULATION}/{LINE_INTEGRAL} {first}" if first else ""),
+            )
         shape = first = ds.shape
-        budget.reserve(len(chosen) * math.prod(shape[1:]) * ds.dtype.itemsize,
-                       f"{len(chosen)} step(s) of /{ds.name.lstrip('/')} {shape}")
+        budget.reserve(
+            len(chosen) * math.prod(shape[1:]) * ds.dtype.itemsize,
+            f"{len(chosen)} step(s) of /{ds.name.lstrip('/')} {shape}",
+        )
         images[name] = np.stack([ds[s - 1] for s in chosen]) if chosen else ds[:0]
     return images
 

@@ -1,4 +1,5 @@
 """Open any frame file: detect the format from content, then extension; read lazily or at once."""
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,19 @@ FORMATS = ("raw", "tiff", "itex", "hdf5")
 CALIBRATION = "calibration"
 _TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-_EXTENSIONS = {".tif": "tiff", ".tiff": "tiff", ".img": "itex", ".h5": "hdf5", ".hdf5": "hdf5",
-               ".hdf": "hdf5", ".nxs": "hdf5", ".nx": "hdf5", ".raw": "raw", ".bin": "raw", ".dat": "raw"}
+_EXTENSIONS = {
+    ".tif": "tiff",
+    ".tiff": "tiff",
+    ".img": "itex",
+    ".h5": "hdf5",
+    ".hdf5": "hdf5",
+    ".hdf": "hdf5",
+    ".nxs": "hdf5",
+    ".nx": "hdf5",
+    ".raw": "raw",
+    ".bin": "raw",
+    ".dat": "raw",
+}
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
 #: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
 #: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
@@ -96,23 +108,31 @@ class FrameSource:
         self._budget = budget
         unknown = set(hints) - _RAW_HINTS
         if unknown:
-            raise TypeError(f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}")
+            raise TypeError(
+                f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}"
+            )
         if format is not None and format not in FORMATS:
             raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
         _check_file(self.path)
         self.format = format or ("hdf5" if dataset else sniff(self.path))
         if self.format != "raw" and hints.keys() - {"n"}:
             # Geometry hints only make sense for headerless data.
-            raise FormatError(self.path, f"{self.format} files carry their own geometry; hints "
-                                         f"{sorted(hints)} apply to raw files only")
+            raise FormatError(
+                self.path,
+                f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
+            )
         self._fh = self._tif = self._h5 = None
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
             if self.format != "raw" and hints.get("n") is not None:
                 self._limit_frames(hints["n"])
-            check_budget(self.path, self.frame_bytes, f"one {self.frame_shape[0]}x{self.frame_shape[1]} "
-                                                      f"{np.dtype(self.dtype)} frame", self._budget)
+            check_budget(
+                self.path,
+                self.frame_bytes,
+                f"one {self.frame_shape[0]}x{self.frame_shape[1]} {np.dtype(self.dtype)} frame",
+                self._budget,
+            )
         except FormatError:
             self.close()
             raise
@@ -155,9 +175,13 @@ class FrameSource:
         self._geo = geo
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"]
         self.bits = None
-        self.meta.update({k: v for k, v in geo.items() if k != "dtype"}, dtype=str(geo["dtype"]),
-                         comment=parsed, comment_text=comment,
-                         scaling=read_scaling(self.path, self._fh, parsed, size))
+        self.meta.update(
+            {k: v for k, v in geo.items() if k != "dtype"},
+            dtype=str(geo["dtype"]),
+            comment=parsed,
+            comment_text=comment,
+            scaling=read_scaling(self.path, self._fh, parsed, size),
+        )
 
     _read_itex = _read_raw
 
@@ -177,8 +201,10 @@ class FrameSource:
             # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
             # another shape is a corrupt frame, never a silently shorter stack
             if page.shape != shape and not (getattr(page, "subfiletype", 0) & 0b101):
-                raise FormatError(self.path, f"TIFF page {i} is {page.shape}, page 0 is {shape}: "
-                                             "a corrupt page, or not one stack of frames")
+                raise FormatError(
+                    self.path,
+                    f"TIFF page {i} is {page.shape}, page 0 is {shape}: a corrupt page, or not one stack of frames",
+                )
         self._check_ifd_chain(all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
@@ -186,8 +212,17 @@ class FrameSource:
         self.bits = None
         tags = {}
         for tag in first.tags:
-            if tag.name in ("ImageDescription", "Software", "DateTime", "Artist", "XResolution",
-                            "YResolution", "ResolutionUnit", "BitsPerSample", "Compression"):
+            if tag.name in (
+                "ImageDescription",
+                "Software",
+                "DateTime",
+                "Artist",
+                "XResolution",
+                "YResolution",
+                "ResolutionUnit",
+                "BitsPerSample",
+                "Compression",
+            ):
                 value = tag.value
                 tags[tag.name] = value.name if hasattr(value, "name") else value
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
@@ -212,8 +247,9 @@ class FrameSource:
         size = fh.size
 
         def broken(what):
-            return FormatError(self.path, f"TIFF {what} lies beyond the end of the {size}-byte file: "
-                                          "truncated or corrupt")
+            return FormatError(
+                self.path, f"TIFF {what} lies beyond the end of the {size}-byte file: truncated or corrupt"
+            )
 
         entries = b""
         for index, page in enumerate(pages):
@@ -226,7 +262,7 @@ class FrameSource:
             if len(entries) != count * t.tagsize + t.offsetsize:
                 raise broken(f"IFD of page {index}")
             for k in range(count):
-                entry = entries[k * t.tagsize:(k + 1) * t.tagsize]
+                entry = entries[k * t.tagsize : (k + 1) * t.tagsize]
                 code, kind = struct.unpack(t.tagformat1, entry[:4])
                 n_values, value = struct.unpack(t.tagformat2, entry[4:])
                 fmt = tifffile.TIFF.DATA_FORMATS.get(kind)
@@ -241,7 +277,7 @@ class FrameSource:
                 if nbytes and offset + nbytes > size:
                     raise broken(f"image data of page {index}")
         # the last IFD must end the chain
-        if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize:])[0] != 0:
+        if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] != 0:
             raise broken(f"IFD after page {len(pages) - 1}")
 
     def _check_page_layout(self, i, page, shape):
@@ -250,28 +286,40 @@ class FrameSource:
         rows, cols = shape
         if page.is_tiled:
             # a tile is decoded whole, whatever the image: a corrupt tile size is a bomb of its own
-            check_budget(self.path, int(page.tilelength) * int(page.tilewidth) * max(page.bitspersample // 8, 1),
-                         f"one {page.tilelength}x{page.tilewidth} tile of TIFF page {i}", self._budget)
+            check_budget(
+                self.path,
+                int(page.tilelength) * int(page.tilewidth) * max(page.bitspersample // 8, 1),
+                f"one {page.tilelength}x{page.tilewidth} tile of TIFF page {i}",
+                self._budget,
+            )
             expected = -(-rows // page.tilelength) * -(-cols // page.tilewidth)
         else:
             per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
             expected = -(-rows // per_strip)
         if len(page.dataoffsets) != expected:
-            raise FormatError(self.path, f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
-                                         f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}")
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
+                f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}",
+            )
         ratio = _MAX_RATIO.get(int(page.compression))
         need = rows * cols * page.bitspersample // 8
         if ratio and need > ratio * sum(page.databytecounts) + 4096:
-            raise FormatError(self.path, f"TIFF page {i} declares {rows}x{cols} pixels ({need} bytes) from "
-                                         f"{sum(page.databytecounts)} compressed bytes, beyond what "
-                                         f"{page.compression.name} can expand to (1:{ratio}): corrupt or a "
-                                         "decompression bomb")
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} declares {rows}x{cols} pixels ({need} bytes) from "
+                f"{sum(page.databytecounts)} compressed bytes, beyond what "
+                f"{page.compression.name} can expand to (1:{ratio}): corrupt or a "
+                "decompression bomb",
+            )
         if page.compression == 1 and not page.is_tiled:
             need = rows * ((cols * page.bitspersample + 7) // 8)
             have = sum(page.databytecounts)
             if have < need:
-                raise FormatError(self.path, f"TIFF page {i} holds {have} bytes of pixels; "
-                                             f"{rows}x{cols} {page.bitspersample}-bit needs {need}")
+                raise FormatError(
+                    self.path,
+                    f"TIFF page {i} holds {have} bytes of pixels; {rows}x{cols} {page.bitspersample}-bit needs {need}",
+                )
 
     def _read_tiff(self, i):
         frame = self._pages[i].asarray()
@@ -292,7 +340,9 @@ class FrameSource:
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
                 raise FormatError(self.path, f"no dataset {dataset!r}")
             if self._h5[dataset].ndim not in (2, 3):
-                raise FormatError(self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions")
+                raise FormatError(
+                    self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
+                )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
             meta = {"format": "hdf5", "dataset": dataset}
             n = 1 if data.ndim == 2 else data.shape[0]
@@ -310,14 +360,22 @@ class FrameSource:
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
         ``ImageKey.DARK`` and ``ImageKey.FLAT``."""
-        pair = [checked_dataset(self.path, self._h5, f"{CALIBRATION}/{name}", "iuf", (2,), self._allow_external)
-                for name in ("dark", "flat")]
+        pair = [
+            checked_dataset(self.path, self._h5, f"{CALIBRATION}/{name}", "iuf", (2,), self._allow_external)
+            for name in ("dark", "flat")
+        ]
         if pair[0].shape != pair[1].shape:
             raise FormatError(self.path, f"/{CALIBRATION}: dark {pair[0].shape} and flat {pair[1].shape} differ")
         self._ds = _DatasetStack(pair)
         self.n, self.frame_shape, self.dtype, self.bits = 2, pair[0].shape, self._ds.dtype, None
-        self.meta.update(format="calibration", image_key=np.array([ImageKey.DARK, ImageKey.FLAT], np.int8), n=2,
-                         rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(self.dtype))
+        self.meta.update(
+            format="calibration",
+            image_key=np.array([ImageKey.DARK, ImageKey.FLAT], np.int8),
+            n=2,
+            rows=self.frame_shape[0],
+            cols=self.frame_shape[1],
+            dtype=str(self.dtype),
+        )
 
     def _read_hdf5(self, i):
         return self._ds[()] if self._ds.ndim == 2 else self._ds[i]
@@ -352,14 +410,18 @@ class FrameSource:
         return rows * cols * np.dtype(self.dtype).itemsize
 
     def read_all(self) -> Frames:
-        check_budget(self.path, self.n * self.frame_bytes, f"{self.n} frame(s) of {self.frame_shape} {self.dtype}",
-                     self._budget)
+        check_budget(
+            self.path, self.n * self.frame_bytes, f"{self.n} frame(s) of {self.frame_shape} {self.dtype}", self._budget
+        )
         try:
             out = np.empty((self.n,) + self.frame_shape, dtype=self.dtype)
         except MemoryError:
-            raise FormatError(self.path, f"{self.n} frame(s) of {self.frame_shape} {self.dtype} do not fit "
-                                         "in memory: a corrupt header, or read them one by one with "
-                                         "open_frames()") from None
+            raise FormatError(
+                self.path,
+                f"{self.n} frame(s) of {self.frame_shape} {self.dtype} do not fit "
+                "in memory: a corrupt header, or read them one by one with "
+                "open_frames()",
+            ) from None
         for i in range(self.n):
             out[i] = self[i]
         return Frames(out, dict(self.meta), self.path)
@@ -382,7 +444,6 @@ class FrameSource:
             self.close()
         except Exception:
             pass
-
 
 
 def open_frames(path, /, **hints) -> FrameSource:

@@ -8,6 +8,7 @@ The HDF5 layout (``radiokit correct``'s output):
     ``data`` (n, rows, cols), one frame per chunk (the plot);
     per-frame series (n,) named by :meth:`StackWriter.append`'s keywords (e.g. ``step``).
 """
+
 from __future__ import annotations
 
 import json
@@ -43,8 +44,9 @@ def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=True, input
         image = image[None]
     if image.ndim != 3:
         raise ValueError(f"write_tiff: expected (rows, cols) or (n, rows, cols), got shape {image.shape}")
-    with StackWriter(path, image.shape[1:], image.dtype, meta=meta, bigtiff=bigtiff, overwrite=overwrite,
-                     inputs=inputs) as w:
+    with StackWriter(
+        path, image.shape[1:], image.dtype, meta=meta, bigtiff=bigtiff, overwrite=overwrite, inputs=inputs
+    ) as w:
         for frame in image:
             w.append(frame)
     return path
@@ -65,8 +67,9 @@ class StackWriter:
     existing ``path``; ``inputs`` are files ``path`` must not be.
     """
 
-    def __init__(self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True,
-                 n_frames=None, inputs=()):
+    def __init__(
+        self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True, n_frames=None, inputs=()
+    ):
         self.path = Path(path)
         self.frame_shape = tuple(int(s) for s in frame_shape)
         self.dtype = np.dtype(dtype)
@@ -76,8 +79,12 @@ class StackWriter:
         if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
             raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
         frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
-        self._atomic = atomic_path(self.path, overwrite=overwrite, inputs=inputs,
-                                   size_hint=(int(n_frames) * frame_bytes + 2**20) if n_frames else None)
+        self._atomic = atomic_path(
+            self.path,
+            overwrite=overwrite,
+            inputs=inputs,
+            size_hint=(int(n_frames) * frame_bytes + 2**20) if n_frames else None,
+        )
         tmp = self._atomic.__enter__()
         try:
             self._open(tmp, suffix, n_frames, bigtiff)
@@ -110,14 +117,21 @@ class StackWriter:
                 dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
                 dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
                 dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
-            self._ds = grp.create_dataset("data", shape=(self._alloc,) + self.frame_shape,
-                                          maxshape=(None,) + self.frame_shape,
-                                          chunks=(1,) + self.frame_shape, dtype=self.dtype, dcpl=dcpl)
+            self._ds = grp.create_dataset(
+                "data",
+                shape=(self._alloc,) + self.frame_shape,
+                maxshape=(None,) + self.frame_shape,
+                chunks=(1,) + self.frame_shape,
+                dtype=self.dtype,
+                dcpl=dcpl,
+            )
             self._ds.attrs["interpretation"] = "image"
             self._direct = _DirectFrames.open(tmp, self._ds) if self._alloc else None
         else:
             frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
-            self._tif = tifffile.TiffWriter(tmp, bigtiff=True if bigtiff is None and frame_bytes > 2**28 else bool(bigtiff))
+            self._tif = tifffile.TiffWriter(
+                tmp, bigtiff=True if bigtiff is None and frame_bytes > 2**28 else bool(bigtiff)
+            )
 
     def append(self, frame, **series):
         frame = np.asarray(frame)
@@ -132,8 +146,13 @@ class StackWriter:
             for name, value in series.items():
                 ds = self._series.get(name)
                 if ds is None:
-                    ds = self._h5[STACK].create_dataset(name, shape=(max(self._alloc, i),), maxshape=(None,),
-                                                        dtype=np.asarray(value).dtype, chunks=(256,))
+                    ds = self._h5[STACK].create_dataset(
+                        name,
+                        shape=(max(self._alloc, i),),
+                        maxshape=(None,),
+                        dtype=np.asarray(value).dtype,
+                        chunks=(256,),
+                    )
                     self._series[name] = ds
                 if i >= ds.shape[0]:
                     ds.resize(i + 1, axis=0)
@@ -141,8 +160,7 @@ class StackWriter:
             self._h5.flush()
         else:
             desc = json.dumps(self.meta) if self.n == 0 and self.meta else None
-            self._tif.write(frame.astype(self.dtype, copy=False), contiguous=False,
-                            description=desc, metadata=None)
+            self._tif.write(frame.astype(self.dtype, copy=False), contiguous=False, description=desc, metadata=None)
         self.n += 1
 
     def _close_files(self):

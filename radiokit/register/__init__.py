@@ -15,6 +15,7 @@ Methods: ``rc`` (cubic B-spline free-form deformation, residual complexity, Myro
 ``ilk`` (scikit-image), ``dis``, ``farneback`` (OpenCV), and, when installed, ``sitk-bspline``,
 ``sitk-demons`` (SimpleITK) and ``elastix`` (itk-elastix).
 """
+
 from __future__ import annotations
 
 import time
@@ -22,8 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from radiokit.register._common import (jacobian_determinant, ncc, residual_complexity, warp)
-
+from radiokit.register._common import jacobian_determinant, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
 
 __all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant", "roi_observed"]
@@ -86,6 +86,7 @@ def _method(name):
     def deco(fn):
         METHODS[name] = fn
         return fn
+
     return deco
 
 
@@ -184,7 +185,7 @@ def _bin(a, k):
     if a.ndim == 3:
         return np.stack([_bin(x, k) for x in a])
     r, c = a.shape[0] // k, a.shape[1] // k
-    return cv2.resize(a[:r * k, :c * k], (c, r), interpolation=cv2.INTER_AREA)  # exact k x k means
+    return cv2.resize(a[: r * k, : c * k], (c, r), interpolation=cv2.INTER_AREA)  # exact k x k means
 
 
 def _assess(reg, f, m, mask, info, seconds):
@@ -292,11 +293,15 @@ def _observed(reg, f, m, w, d, mask):
     q.misaligned_fraction = _misaligned(f, m, w, d, obs)
     reasons = []
     if q.observed_fraction < _MIN_OBSERVED:
-        reasons.append(f"motion observable in only {100 * q.observed_fraction:.0f} % of the object (confidence map; "
-                       f"noise {q.noise:.3g}): elsewhere the field is the regulariser's guess")
+        reasons.append(
+            f"motion observable in only {100 * q.observed_fraction:.0f} % of the object (confidence map; "
+            f"noise {q.noise:.3g}): elsewhere the field is the regulariser's guess"
+        )
     if obs.any() and q.misaligned_fraction > _MAX_MISALIGNED:
-        reasons.append(f"structure left misaligned in {100 * q.misaligned_fraction:.0f} % of the observed object "
-                       f"(residual above the noise's by more than {100 * _EXCESS:.0f} %)")
+        reasons.append(
+            f"structure left misaligned in {100 * q.misaligned_fraction:.0f} % of the observed object "
+            f"(residual above the noise's by more than {100 * _EXCESS:.0f} %)"
+        )
     return reasons, n_obj
 
 

@@ -48,6 +48,7 @@ coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart.
 than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
 still (the B-spline field is evaluated at full resolution all the same).
 """
+
 from __future__ import annotations
 
 import collections
@@ -66,21 +67,73 @@ __all__ = ["bspline_basis_matrix", "BSplineField"]
 # the history of every value are in benchmarks/README.md ("Registration on nearly textureless
 # phantoms (issue 11)" and "rc presets").
 PRESETS = {
-    "default": dict(spacing=24, alpha=0.005, regularisation=1e-3, iterations=(250, 120, 80), min_size=160,
-                    max_pixels=2_000_000, levels_skip=0, converge_px=0.35, min_levels=3, coarse_alpha=1.0,
-                    coarse_regularisation=1.0, highpass=0.02, balance="lattice", stiffen=0.0),
-    "fast": dict(spacing=16, alpha=0.005, regularisation=1e-3, iterations=(60, 40), min_size=96,
-                 max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1, coarse_alpha=1.0,
-                 coarse_regularisation=1.0, highpass=0.02, balance="lattice", stiffen=0.0),
+    "default": dict(
+        spacing=24,
+        alpha=0.005,
+        regularisation=1e-3,
+        iterations=(250, 120, 80),
+        min_size=160,
+        max_pixels=2_000_000,
+        levels_skip=0,
+        converge_px=0.35,
+        min_levels=3,
+        coarse_alpha=1.0,
+        coarse_regularisation=1.0,
+        highpass=0.02,
+        balance="lattice",
+        stiffen=0.0,
+    ),
+    "fast": dict(
+        spacing=16,
+        alpha=0.005,
+        regularisation=1e-3,
+        iterations=(60, 40),
+        min_size=96,
+        max_pixels=100_000,
+        levels_skip=0,
+        converge_px=0.5,
+        min_levels=1,
+        coarse_alpha=1.0,
+        coarse_regularisation=1.0,
+        highpass=0.02,
+        balance="lattice",
+        stiffen=0.0,
+    ),
     # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free
     # coarse levels, stiff fine ones (module docstring); not the default: a simulated silent
     # body's edges carry thickness change that free coarse levels follow (benchmarks/README.md)
-    "weak": dict(spacing=24, alpha=0.005, regularisation=1e-6, iterations=(250, 120, 80), min_size=160,
-                 max_pixels=2_000_000, levels_skip=0, converge_px=0.35, min_levels=3, coarse_alpha=1.0,
-                 coarse_regularisation=1.0, highpass=0.02, balance="frame", stiffen=6.0),
-    "weak-fast": dict(spacing=16, alpha=0.005, regularisation=1e-6, iterations=(60, 40), min_size=96,
-                      max_pixels=100_000, levels_skip=0, converge_px=0.5, min_levels=1, coarse_alpha=1.0,
-                      coarse_regularisation=1.0, highpass=0.02, balance="frame", stiffen=6.0),
+    "weak": dict(
+        spacing=24,
+        alpha=0.005,
+        regularisation=1e-6,
+        iterations=(250, 120, 80),
+        min_size=160,
+        max_pixels=2_000_000,
+        levels_skip=0,
+        converge_px=0.35,
+        min_levels=3,
+        coarse_alpha=1.0,
+        coarse_regularisation=1.0,
+        highpass=0.02,
+        balance="frame",
+        stiffen=6.0,
+    ),
+    "weak-fast": dict(
+        spacing=16,
+        alpha=0.005,
+        regularisation=1e-6,
+        iterations=(60, 40),
+        min_size=96,
+        max_pixels=100_000,
+        levels_skip=0,
+        converge_px=0.5,
+        min_levels=1,
+        coarse_alpha=1.0,
+        coarse_regularisation=1.0,
+        highpass=0.02,
+        balance="frame",
+        stiffen=6.0,
+    ),
 }
 
 
@@ -100,6 +153,7 @@ def _laplacian(nr, nc):
     """Discrete bending energy of a control lattice as a stacked operator ``L``:
     ``||L c||^2 = sum (c_rr^2 + c_cc^2 + 2 c_rc^2)`` with second differences taken only where
     they exist, so affine fields (a uniform expansion, a shear) cost nothing."""
+
     def d2(n):
         if n < 3:
             return sp.csr_matrix((0, n))
@@ -108,8 +162,9 @@ def _laplacian(nr, nc):
     def d1(n):
         return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
 
-    return sp.vstack([sp.kron(d2(nr), sp.identity(nc)), sp.kron(sp.identity(nr), d2(nc)),
-                      np.sqrt(2.0) * sp.kron(d1(nr), d1(nc))]).tocsr()
+    return sp.vstack(
+        [sp.kron(d2(nr), sp.identity(nc)), sp.kron(sp.identity(nr), d2(nc)), np.sqrt(2.0) * sp.kron(d1(nr), d1(nc))]
+    ).tocsr()
 
 
 class BSplineField:
@@ -145,7 +200,7 @@ class BSplineField:
         d = np.stack([Br @ np.ascontiguousarray((Bc @ C[k].T).T) for k in range(2)])
         d *= np.float32(1.0 / factor)
         if shape is not None:
-            d = d[:, :shape[0], :shape[1]]
+            d = d[:, : shape[0], : shape[1]]
         return d
 
     def adjoint(self, g, factor=1):
@@ -192,7 +247,7 @@ class _Level:
         self.moving = _downsample(moving, factor)
         self.mask = None if mask is None else _downsample(mask.astype(np.float32), factor) > 0.5
         self.shape = self.fixed.shape
-        rr, cc = np.mgrid[0:self.shape[0], 0:self.shape[1]].astype(self.fixed.dtype)
+        rr, cc = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(self.fixed.dtype)
         self.rr, self.cc = rr, cc
         self.similarity = similarity
         self.alpha = alpha
@@ -310,8 +365,8 @@ class _Level:
 def _cubic_bspline(t):
     """Cubic B-spline kernel and its derivative (support |t| < 2)."""
     a = np.abs(t)
-    out = np.where(a < 1, (4 - 6 * a ** 2 + 3 * a ** 3) / 6, np.where(a < 2, (2 - a) ** 3 / 6, 0.0))
-    d = np.where(a < 1, (-12 * a + 9 * a ** 2) / 6, np.where(a < 2, -3 * (2 - a) ** 2 / 6, 0.0)) * np.sign(t)
+    out = np.where(a < 1, (4 - 6 * a**2 + 3 * a**3) / 6, np.where(a < 2, (2 - a) ** 3 / 6, 0.0))
+    d = np.where(a < 1, (-12 * a + 9 * a**2) / 6, np.where(a < 2, -3 * (2 - a) ** 2 / 6, 0.0)) * np.sign(t)
     return out, d
 
 
@@ -430,9 +485,9 @@ def _pyramid(shape, o) -> list:
     factors = factors[::-1]
     size = shape[0] * shape[1]
     run = [k for k in factors if size / (k * k) <= o["max_pixels"]] or factors[:1]
-    run = run[:len(run) - min(int(o["levels_skip"]), len(run) - 1)]
+    run = run[: len(run) - min(int(o["levels_skip"]), len(run) - 1)]
     its = list(o["iterations"])
-    its = (its + [its[-1]] * len(run))[:len(run)]  # a small image runs the coarse budgets
+    its = (its + [its[-1]] * len(run))[: len(run)]  # a small image runs the coarse budgets
     return list(zip(run, its))
 
 
@@ -449,7 +504,7 @@ def _objective(level, grid, base, lam, factor, balance):
     if balance == "frame":
         frame = float(min(grid.shape))
         data_w = level.n * (1.0 if level.similarity == "rc" else factor * factor) / _N_REF
-        w_bend = lam * frame ** 2 / (grid.spacing ** 4 * grid.nr * grid.nc)
+        w_bend = lam * frame**2 / (grid.spacing**4 * grid.nr * grid.nc)
     else:  # "lattice": the mean similarity; the bending energy per control point, in pixels
         data_w, w_bend = 1.0, lam / (grid.nr * grid.nc)
     L = grid.L
@@ -477,8 +532,14 @@ def _fit_level(fun, grid, n_it, coarsest):
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
         last.append(intermediate_result.x.copy())
 
-    res = minimize(fun, np.zeros(grid.n_params), jac=True, method="L-BFGS-B", callback=track,
-                   options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10))
+    res = minimize(
+        fun,
+        np.zeros(grid.n_params),
+        jac=True,
+        method="L-BFGS-B",
+        callback=track,
+        options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10),
+    )
     move = float("inf")
     if len(last) == last.maxlen:
         change = grid.field(last[-1] - last[0], coarsest) * coarsest
@@ -506,7 +567,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         fine = factor == finest
         # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
         # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
-        alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor ** 2 if o["balance"] == "frame" else 1)
+        alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
         lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
         level = _Level(f, m, mask, factor, similarity, alpha)
         base = np.zeros((2,) + level.shape, np.float32)
@@ -515,12 +576,21 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
         res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
         if not np.all(np.isfinite(res.x)):
-            return np.zeros((2,) + f.shape, np.float32), dict(iterations=total_its, converged=False, options=o,
-                                                              message="optimiser produced non-finite values")
+            return np.zeros((2,) + f.shape, np.float32), dict(
+                iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
+            )
         grids.append((grid, res.x))
         total_its += int(res.nit)
-        history.append(dict(factor=factor, spacing=grid.spacing, iterations=int(res.nit), energy=float(res.fun),
-                            status=int(res.status), last_move_px=move))
+        history.append(
+            dict(
+                factor=factor,
+                spacing=grid.spacing,
+                iterations=int(res.nit),
+                energy=float(res.fun),
+                status=int(res.status),
+                last_move_px=move,
+            )
+        )
         if callback is not None:
             callback(factor, res)
         if fine:
@@ -528,8 +598,14 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     d = np.zeros((2,) + f.shape, np.float32)
     for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
         d += g_.field(c_, 1, f.shape)
-    return d, dict(iterations=total_its, converged=converged, message=message, regularisation=o["regularisation"],
-                   levels=history, options=o)
+    return d, dict(
+        iterations=total_its,
+        converged=converged,
+        message=message,
+        regularisation=o["regularisation"],
+        levels=history,
+        options=o,
+    )
 
 
 def _converged(res, move, converge_px):
@@ -538,8 +614,10 @@ def _converged(res, move, converge_px):
     the field by more than ``converge_px`` (99th percentile)."""
     if res.status in (0, 2) or move <= converge_px:
         return True, str(res.message)
-    return False, (f"still moving: {move:.2g} px in the last 5 of {res.nit} iterations at the finest level run "
-                   f"(more than converge_px={converge_px}; raise iterations)")
+    return False, (
+        f"still moving: {move:.2g} px in the last 5 of {res.nit} iterations at the finest level run "
+        f"(more than converge_px={converge_px}; raise iterations)"
+    )
 
 
 @_method("rc")

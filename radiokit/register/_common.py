@@ -1,4 +1,5 @@
 """Pieces every registration method shares: warping, det J, similarity measures."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,8 +16,7 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     rows, cols = d.shape[1:]
     rr, cc = np.mgrid[0:rows, 0:cols].astype(np.float32)
     if order == 1:
-        return cv2.remap(image, cc + d[1], rr + d[0], interpolation=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+        return cv2.remap(image, cc + d[1], rr + d[0], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     from scipy import ndimage
 
     return ndimage.map_coordinates(image, [rr + d[0], cc + d[1]], order=order, mode="nearest").astype(np.float32)

@@ -41,6 +41,7 @@ deviations) is structure the pair carries left misaligned, not noise. ``quality.
 when too little of the object is observed (the field there is the regulariser's guess,
 whatever the similarity says) or when too much of the observed part is left misaligned.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -49,6 +49,7 @@ is also faster. Each method's defaults were chosen with ``benchmarks/bench_regis
 ``mask``: SimpleITK's B-spline and elastix limit their metric to it; the optical flows and
 demons (dense, local) ignore it.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -69,8 +70,7 @@ class MissingPeer(RadiokitError, ImportError):
 
 def _require(module, method, package, attr=None):
     """Import ``module`` or raise :class:`MissingPeer` naming ``package`` and the extra."""
-    msg = (f"method {method!r} needs {package}: pip install radiokit[register-peers] "
-           f"(or pip install {package})")
+    msg = f"method {method!r} needs {package}: pip install radiokit[register-peers] (or pip install {package})"
     if importlib.util.find_spec(module) is None:
         raise MissingPeer(msg)
     mod = importlib.import_module(module)
@@ -80,6 +80,7 @@ def _require(module, method, package, attr=None):
 
 
 # -- shared preprocessing ---------------------------------------------------------------------
+
 
 def highpass(image, sigma):
     """``image - G_sigma * image`` (float32; borders reflected). A wide blur is computed on the
@@ -118,8 +119,12 @@ def _expand(d, shape):
     if d.shape[1:] == tuple(shape):
         return d
     scale = (shape[0] / d.shape[1], shape[1] / d.shape[2])
-    return np.stack([cv2.resize(d[i], (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR) * np.float32(scale[i])
-                     for i in range(2)])
+    return np.stack(
+        [
+            cv2.resize(d[i], (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR) * np.float32(scale[i])
+            for i in range(2)
+        ]
+    )
 
 
 def _prepare(fixed, moving, prefilter, highpass_sigma):
@@ -136,8 +141,9 @@ def _prepare(fixed, moving, prefilter, highpass_sigma):
     step = max(1, int(np.sqrt(f.size / 250_000)))  # percentiles from ~2 x 250k samples
     lo, hi = np.percentile(np.concatenate([f[::step, ::step].ravel(), m[::step, ::step].ravel()]), [0.5, 99.5])
     scale = 1.0 / max(float(hi - lo), 1e-12)
-    return ((f - np.float32(lo)) * np.float32(scale)).astype(np.float32), \
-        ((m - np.float32(lo)) * np.float32(scale)).astype(np.float32)
+    return ((f - np.float32(lo)) * np.float32(scale)).astype(np.float32), (
+        (m - np.float32(lo)) * np.float32(scale)
+    ).astype(np.float32)
 
 
 def _to_u8(a):
@@ -162,9 +168,22 @@ def _size_relative(value, fraction, shape, minimum):
 
 # -- scikit-image -----------------------------------------------------------------------------
 
+
 @_method("tvl1")
-def _tvl1(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_size=512, attachment=5.0,
-          tightness=0.3, num_warp=5, num_iter=10, tol=1e-4):
+def _tvl1(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    working_size=512,
+    attachment=5.0,
+    tightness=0.3,
+    num_warp=5,
+    num_iter=10,
+    tol=1e-4,
+):
     """scikit-image TV-L1 optical flow (``optical_flow_tvl1``) on the pair scaled to [0, 1].
 
     ``attachment`` 5 (scikit-image's default is 15): a smoother field, more accurate on
@@ -174,14 +193,31 @@ def _tvl1(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working
     from skimage.registration import optical_flow_tvl1
 
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
-    flow = optical_flow_tvl1(f, m, attachment=float(attachment), tightness=float(tightness), num_warp=int(num_warp),
-                             num_iter=int(num_iter), tol=float(tol))
+    flow = optical_flow_tvl1(
+        f,
+        m,
+        attachment=float(attachment),
+        tightness=float(tightness),
+        num_warp=int(num_warp),
+        num_iter=int(num_iter),
+        tol=float(tol),
+    )
     return _expand(np.asarray(flow, np.float32), fixed.shape), {"iterations": int(num_warp) * int(num_iter)}
 
 
 @_method("ilk")
-def _ilk(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_size=None, radius=None, num_warp=10,
-         gaussian=False):
+def _ilk(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    working_size=None,
+    radius=None,
+    num_warp=10,
+    gaussian=False,
+):
     """scikit-image iterative Lucas-Kanade (``optical_flow_ilk``): a uniform (or with
     ``gaussian=True`` Gaussian) window of ``radius`` pixels, ``num_warp`` warps per pyramid level.
 
@@ -203,10 +239,22 @@ _DIS_PRESETS = ("ultrafast", "fast", "medium")
 
 
 @_method("dis")
-def _dis(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_size=768, preset="medium",
-         finest_scale=None,
-         patch_size=None, patch_stride=None, refinement_iterations=None, refinement_alpha=80.0,
-         mean_normalization=True):
+def _dis(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    working_size=768,
+    preset="medium",
+    finest_scale=None,
+    patch_size=None,
+    patch_stride=None,
+    refinement_iterations=None,
+    refinement_alpha=80.0,
+    mean_normalization=True,
+):
     """OpenCV Dense Inverse Search optical flow on the pair scaled to 8 bits (see the module
     docstring).
 
@@ -223,9 +271,12 @@ def _dis(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_
         raise ValueError(f"dis preset {preset!r}: expected one of {', '.join(_DIS_PRESETS)}")
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
     dis = cv2.DISOpticalFlow_create(getattr(cv2, f"DISOPTICAL_FLOW_PRESET_{preset.upper()}"))
-    for setter, value in ((dis.setFinestScale, finest_scale), (dis.setPatchSize, patch_size),
-                          (dis.setPatchStride, patch_stride),
-                          (dis.setVariationalRefinementIterations, refinement_iterations)):
+    for setter, value in (
+        (dis.setFinestScale, finest_scale),
+        (dis.setPatchSize, patch_size),
+        (dis.setPatchStride, patch_stride),
+        (dis.setVariationalRefinementIterations, refinement_iterations),
+    ):
         if value is not None:
             setter(int(value))
     if refinement_alpha is not None:
@@ -236,8 +287,22 @@ def _dis(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_
 
 
 @_method("farneback")
-def _farneback(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, working_size=512, pyr_scale=0.5,
-               levels=None, winsize=None, iterations=5, poly_n=5, poly_sigma=1.1, gaussian=True):
+def _farneback(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    working_size=512,
+    pyr_scale=0.5,
+    levels=None,
+    winsize=None,
+    iterations=5,
+    poly_n=5,
+    poly_sigma=1.1,
+    gaussian=True,
+):
     """OpenCV Farneback dense optical flow on the float32 pair scaled to 0-255 (its polynomial
     fit's regularisation assumes 8-bit grey levels: on [0, 1] it returns zero flow).
 
@@ -254,20 +319,43 @@ def _farneback(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, wo
     n_levels = _levels(f.shape) if levels is None else int(levels)
     win = int(_size_relative(winsize, 1 / 12, f.shape, 15)) // 2 * 2 + 1 if winsize is None else int(winsize)
     flags = cv2.OPTFLOW_FARNEBACK_GAUSSIAN if gaussian else 0
-    flow = cv2.calcOpticalFlowFarneback(f * np.float32(255), m * np.float32(255), None, float(pyr_scale), n_levels,
-                                        win, int(iterations), int(poly_n), float(poly_sigma), flags)
+    flow = cv2.calcOpticalFlowFarneback(
+        f * np.float32(255),
+        m * np.float32(255),
+        None,
+        float(pyr_scale),
+        n_levels,
+        win,
+        int(iterations),
+        int(poly_n),
+        float(poly_sigma),
+        flags,
+    )
     return _expand(_from_xy(flow), fixed.shape), {"iterations": int(iterations) * n_levels}
 
 
 # -- SimpleITK (optional) -------------------------------------------------------------------------
+
 
 def _sitk_image(sitk, a):
     return sitk.GetImageFromArray(np.ascontiguousarray(a, np.float32))  # spacing 1, origin 0
 
 
 @_method("sitk-bspline")
-def _sitk_bspline(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, spacing=None,
-                  metric="correlation", iterations=100, shrink=None, sampling=None, seed=0):
+def _sitk_bspline(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    spacing=None,
+    metric="correlation",
+    iterations=100,
+    shrink=None,
+    sampling=None,
+    seed=0,
+):
     """SimpleITK free-form B-spline (``ImageRegistrationMethod``, L-BFGS), optional extra.
 
     Control points ``spacing`` pixels apart at the finest level (``None``: 1/24 of the image's
@@ -282,14 +370,17 @@ def _sitk_bspline(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05,
     F, M = _sitk_image(sitk, f), _sitk_image(sitk, m)
     spacing = float(_size_relative(spacing, 1 / 24, f.shape, 16))
     if shrink is None:
-        shrink = [2 ** k for k in reversed(range(_levels(f.shape, 128)))]
+        shrink = [2**k for k in reversed(range(_levels(f.shape, 128)))]
     shrink = [int(s) for s in shrink]
     coarse = max(shrink)
     mesh = [max(1, int(round((n - 1) / (spacing * coarse)))) for n in F.GetSize()]
     tx = sitk.BSplineTransformInitializer(F, mesh, 3)
     reg = sitk.ImageRegistrationMethod()
-    metrics = {"correlation": reg.SetMetricAsCorrelation, "meansquares": reg.SetMetricAsMeanSquares,
-               "mattes": lambda: reg.SetMetricAsMattesMutualInformation(32)}
+    metrics = {
+        "correlation": reg.SetMetricAsCorrelation,
+        "meansquares": reg.SetMetricAsMeanSquares,
+        "mattes": lambda: reg.SetMetricAsMattesMutualInformation(32),
+    }
     if metric not in metrics:
         raise ValueError(f"sitk-bspline metric {metric!r}: expected one of {', '.join(metrics)}")
     metrics[metric]()
@@ -316,15 +407,28 @@ def _sitk_bspline(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05,
     return _from_xy(field), {"iterations": len(its), "message": reg.GetOptimizerStopConditionDescription()}
 
 
-_DEMONS = {"fast-symmetric": "FastSymmetricForcesDemonsRegistrationFilter",
-           "symmetric": "SymmetricForcesDemonsRegistrationFilter",
-           "diffeomorphic": "DiffeomorphicDemonsRegistrationFilter",
-           "classic": "DemonsRegistrationFilter"}
+_DEMONS = {
+    "fast-symmetric": "FastSymmetricForcesDemonsRegistrationFilter",
+    "symmetric": "SymmetricForcesDemonsRegistrationFilter",
+    "diffeomorphic": "DiffeomorphicDemonsRegistrationFilter",
+    "classic": "DemonsRegistrationFilter",
+}
 
 
 @_method("sitk-demons")
-def _sitk_demons(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, variant="fast-symmetric",
-                 iterations=50, smoothing=None, levels=None, max_step=2.0):
+def _sitk_demons(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    variant="fast-symmetric",
+    iterations=50,
+    smoothing=None,
+    levels=None,
+    max_step=2.0,
+):
     """SimpleITK demons, optional extra, coarse to fine: the pair area-averaged by 2^k
     (``levels=None``: down to about 64 pixels), each level's field upsampled to start the next.
 
@@ -344,7 +448,7 @@ def _sitk_demons(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, 
     n_levels = _levels(f.shape, 64) if levels is None else int(levels)
     d = None
     for level in reversed(range(n_levels)):
-        k = 2 ** level
+        k = 2**level
         size = (max(1, round(f.shape[1] / k)), max(1, round(f.shape[0] / k)))
         fl = cv2.resize(f, size, interpolation=cv2.INTER_AREA) if k > 1 else f
         ml = cv2.resize(m, size, interpolation=cv2.INTER_AREA) if k > 1 else m
@@ -366,10 +470,24 @@ def _sitk_demons(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, 
 
 # -- itk-elastix (optional) -------------------------------------------------------------------------
 
+
 @_method("elastix")
-def _elastix(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, spacing=None,
-             metric="AdvancedNormalizedCorrelation", iterations=256, resolutions=None, samples=4096,
-             bending_weight=0.0, seed=0, parameters=None):
+def _elastix(
+    fixed,
+    moving,
+    mask,
+    *,
+    prefilter="none",
+    highpass_sigma=0.05,
+    spacing=None,
+    metric="AdvancedNormalizedCorrelation",
+    iterations=256,
+    resolutions=None,
+    samples=4096,
+    bending_weight=0.0,
+    seed=0,
+    parameters=None,
+):
     """elastix B-spline (itk-elastix), optional extra: elastix's default ``bspline`` map
     (adaptive stochastic gradient descent, random samples, grid halved per resolution) with:
 
@@ -405,8 +523,9 @@ def _elastix(fixed, moving, mask, *, prefilter="none", highpass_sigma=0.05, spac
     # elastix and transformix write files (transformix its deformationField.nii) into the
     # current directory unless told otherwise: a temporary one
     with tempfile.TemporaryDirectory(prefix="radiokit-elastix-") as tmp:
-        _, tp = itk.elastix_registration_method(F, M, parameter_object=po, log_to_console=False,
-                                                output_directory=tmp, **kw)
+        _, tp = itk.elastix_registration_method(
+            F, M, parameter_object=po, log_to_console=False, output_directory=tmp, **kw
+        )
         field = itk.transformix_deformation_field(M, tp, output_directory=tmp)
         d = _from_xy(np.asarray(field))
     return d, {"iterations": int(iterations) * n_res}
