@@ -99,42 +99,13 @@ PRESETS = {
         balance="lattice",
         stiffen=0.0,
     ),
-    # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free
-    # coarse levels, stiff fine ones (module docstring); not the default: a simulated silent
-    # body's edges carry thickness change that free coarse levels follow (benchmarks/README.md)
-    "weak": dict(
-        spacing=24,
-        alpha=0.005,
-        regularisation=1e-6,
-        iterations=(250, 120, 80),
-        min_size=160,
-        max_pixels=2_000_000,
-        levels_skip=0,
-        converge_px=0.35,
-        min_levels=3,
-        coarse_alpha=1.0,
-        coarse_regularisation=1.0,
-        highpass=0.02,
-        balance="frame",
-        stiffen=6.0,
-    ),
-    "weak-fast": dict(
-        spacing=16,
-        alpha=0.005,
-        regularisation=1e-6,
-        iterations=(60, 40),
-        min_size=96,
-        max_pixels=100_000,
-        levels_skip=0,
-        converge_px=0.5,
-        min_levels=1,
-        coarse_alpha=1.0,
-        coarse_regularisation=1.0,
-        highpass=0.02,
-        balance="frame",
-        stiffen=6.0,
-    ),
 }
+# weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
+# levels, stiff fine ones (module docstring); not the default: a simulated silent body's edges
+# carry thickness change that free coarse levels follow (benchmarks/README.md)
+_WEAK = dict(regularisation=1e-6, balance="frame", stiffen=6.0)
+PRESETS["weak"] = {**PRESETS["default"], **_WEAK}
+PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK}
 
 
 def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> sp.csr_matrix:
