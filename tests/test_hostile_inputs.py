@@ -509,9 +509,10 @@ def _stack_file(path):
             w.append(np.full((4, 5), i, np.float32), step=i + 1)
 
 
-def _simulation_file(path):
-    curve = np.array([0.1, 0.2])
-    record = SimulationRecord(
+def _truth_record(n_steps, shape):
+    """A valid simulation truth of ``n_steps`` steps of ``shape``, one field for the last pair."""
+    curve = np.linspace(0.1, 0.1 * n_steps, n_steps)
+    return SimulationRecord(
         'name = "block"',
         curve,
         curve,
@@ -519,10 +520,14 @@ def _simulation_file(path):
         curve,
         curve,
         curve,
-        np.zeros((2, 4, 5), np.float32),
-        np.zeros((2, 4, 5), np.uint8),
-        displacement={(1, 2): np.zeros((2, 4, 5), np.float32)},
+        np.zeros((n_steps, *shape), np.float32),
+        np.zeros((n_steps, *shape), np.uint8),
+        displacement={(n_steps - 1, n_steps): np.zeros((2, *shape), np.float32)},
     )
+
+
+def _simulation_file(path):
+    record = _truth_record(2, (4, 5))
     with ExperimentWriter(path, shape=(4, 5)) as w:
         for key in (ImageKey.DARK, ImageKey.FLAT):
             w.append(np.full((4, 5), 100 * (key + 1), np.uint16), image_key=key)
@@ -945,20 +950,7 @@ def _simulation_group_into(path):
     """A valid 3-step truth for ``_experiment``'s (32, 40) frames."""
     from radiokit.io import write_simulation
 
-    curve = np.array([0.1, 0.2, 0.3])
-    record = SimulationRecord(
-        'name = "block"',
-        curve,
-        curve,
-        curve,
-        curve,
-        curve,
-        curve,
-        np.zeros((3, 32, 40), np.float32),
-        np.zeros((3, 32, 40), np.uint8),
-        displacement={(2, 3): np.zeros((2, 32, 40), np.float32)},
-    )
-    write_simulation(path, record, replace=True)
+    write_simulation(path, _truth_record(3, (32, 40)), replace=True)
 
 
 # -- results.json --------------------------------------------------------------------------------
