@@ -291,6 +291,7 @@ def bench_frame(reps: int, seed: int = 1):
 N_HOT = 300  # over-responding pixels of the realistic calibration
 N_SATURATED = 200  # raw pixels at the ADC's top in the realistic frame
 N_BELOW_DARK = 500  # raw pixels below the dark in the realistic frame
+_BLOCK_ROWS = 128  # 128 x 2240 float32 = 1.1 MB: the OpenCV floor's fastest block on 2240-wide frames
 
 
 def realistic(panel, rng):
@@ -315,7 +316,6 @@ def opencv_fused(raw, dark, log_i0, out, threads):
     import cv2
 
     from radiokit._threads import pool as _pool
-    from radiokit.correct import _BLOCK_ROWS
 
     rows, cols = raw.shape
 

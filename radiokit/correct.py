@@ -1,9 +1,10 @@
-"""Apply a :class:`~radiokit.calibrate.Calibration` fast: fused, cache-blocked float32 on all cores.
+"""Apply a :class:`~radiokit.calibrate.Calibration` fast: one fused float32 pass on all cores.
 
-The work per frame is one pass over row blocks small enough to stay in cache (128 rows of a
-2240-wide frame is 1.1 MB of float32), split between threads: numpy's ufuncs release the GIL,
-so two threads use two cores. Everything that does not depend on the frame (``ln(flat - dark)``,
-``1 / (flat - dark)``, the defect fill plan) is computed once per calibration.
+The work per frame is one compiled pass per row (:mod:`radiokit._correct_loop`: subtract the
+dark, clamp, log, count the bad pixels), the rows split between threads (the loop releases the
+GIL). Only rows that hold a non-positive or saturated pixel are searched afterwards, and the
+defect fill plan touches only its pixels. Everything that does not depend on the frame
+(``ln(flat - dark)``, ``1 / (flat - dark)``, the fill plan) is computed once per calibration.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import functools
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +25,7 @@ __all__ = ["correct_frames", "correct_files", "CorrectionReport", "CorrectionKer
 
 DOMAINS = ("log", "linear", "counts")
 #: raw - dark at or below zero is clamped to this many counts before the log.
-FLOOR_COUNTS = 0.5
-#: what a non-finite raw value becomes: below any dark, so it is filled as non-positive
-_NONFINITE = -1e30
-_BLOCK_ROWS = 128  # 128 x 2240 float32 = 1.1 MB: measured fastest on 2240-wide frames (32: +30 %)
+FLOOR_COUNTS = 0.5  # radiokit._correct_loop.FLOOR_COUNTS, kept here without importing numba
 
 
 @dataclass
@@ -192,7 +190,6 @@ class CorrectionKernel:
     n_defects: int
     _log_i0: np.ndarray | None = None
     _inv_gain: np.ndarray | None = None
-    _dark_max: dict = field(default_factory=dict)
 
     @classmethod
     def build(cls, cal: Calibration) -> CorrectionKernel:
@@ -201,19 +198,12 @@ class CorrectionKernel:
         ok = (cal.mask == 0) & (response > cal.thresholds.eps)
         response[~ok] = 1.0
         return cls(
-            dark=cal.dark,
-            response=response,
+            dark=np.ascontiguousarray(cal.dark, np.float32),
+            response=np.ascontiguousarray(response, np.float32),
             stages=fill_plan(cal),
             invalid=cal.mask != 0,
             n_defects=int(np.count_nonzero(cal.mask)),
         )
-
-    def dark_max(self, r0: int, r1: int) -> float:
-        """The largest dark value in rows r0..r1 (cached per block)."""
-        v = self._dark_max.get((r0, r1))
-        if v is None:
-            v = self._dark_max[(r0, r1)] = float(self.dark[r0:r1].max())
-        return v
 
     @classmethod
     def of(cls, cal: Calibration) -> CorrectionKernel:
@@ -250,98 +240,52 @@ class CorrectionKernel:
 _KERNELS: dict[int, tuple] = {}
 _KERNELS_LOCK = threading.Lock()
 
-_CV_DEPTHS = {np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32)}
+
+def _native(raw2d: np.ndarray) -> np.ndarray:
+    """``raw2d`` as the compiled loop takes it: C-contiguous, native byte order, and a dtype numba
+    computes with (float16 widened to float32)."""
+    if raw2d.dtype == np.float16:
+        return np.ascontiguousarray(raw2d, np.float32)
+    if not raw2d.dtype.isnative:
+        raw2d = raw2d.astype(raw2d.dtype.newbyteorder("="))
+    return np.ascontiguousarray(raw2d)
 
 
-def _at_most(block, limit) -> np.ndarray | None:
-    """Flat indices (in ``block``) of the pixels ``<= limit``, or None. The hits are a few
-    hundred pixels of millions: the column minima (one vectorised pass over the block, in cache)
-    name the few columns that hold them, and only those are searched."""
-    cols = np.flatnonzero(block.min(axis=0) <= limit)
-    if cols.size == 0:
-        return None
-    r, j = np.nonzero(block[:, cols] <= limit)
-    return r * block.shape[1] + cols[j]
+def _saturation_in(dtype, saturation) -> tuple:
+    """``(threshold in raw's dtype, whether to count)``: nothing counts when the dtype cannot
+    reach the threshold (or saturation is not counted)."""
+    if saturation is None or dtype.kind not in "ui" or saturation > np.iinfo(dtype).max:
+        return dtype.type(0), False
+    return dtype.type(max(saturation, np.iinfo(dtype).min)), True
 
 
-def _at_least(block, limit) -> np.ndarray | None:
-    """Flat indices (in ``block``) of the pixels ``>= limit``, or None (as :func:`_at_most`;
-    OpenCV's column maxima: numpy's are slow on uint16)."""
-    import cv2
-
-    col_max = cv2.reduce(block, 0, cv2.REDUCE_MAX).ravel() if block.dtype in _CV_DEPTHS else block.max(axis=0)
-    cols = np.flatnonzero(col_max >= limit)
-    if cols.size == 0:
-        return None
-    r, j = np.nonzero(block[:, cols] >= limit)
-    return r * block.shape[1] + cols[j]
+#: flat indices of clamped / saturated pixels one thread records per frame before it falls back to
+#: a second search of its rows (32 KB each; a realistic frame has a few hundred)
+_ROOM = 4096
 
 
-def _correct_rows(raw, k: CorrectionKernel, out, domain, scale, r0, r1, saturation):
-    """One thread's share: rows r0..r1 in cache-sized blocks. Returns flat indices of the
-    non-positive and saturated pixels met (rare: found by a min/max per block, then searched
-    only in the rows that hold them, and clamped on that index list).
+def _correct_range(raw2d, k: CorrectionKernel, coef, out2d, r0, r1, args):
+    """Rows r0..r1 through the compiled loop; the clamped and saturated pixels' flat indices."""
+    from radiokit._correct_loop import correct_rows, find
 
-    Each block is one fused pass, as OpenCV's subtract-log-subtract would do: ``raw - dark``
-    converted on the fly (``cv2.subtract`` into float32), ``ln``, ``ln(flat - dark) - ln``."""
-    import cv2
-
-    log_i0 = k.log_i0 if domain == "log" else None
-    inv_gain = k.inv_gain if domain != "log" else None
-    cols = raw.shape[1]
-    tmp = np.empty((_BLOCK_ROWS, cols), np.float32)
-    nonpos, sat = [], []
-    fused = raw.dtype in _CV_DEPTHS
-    for a in range(r0, r1, _BLOCK_ROWS):
-        b = min(a + _BLOCK_ROWS, r1)
-        t = tmp[: b - a]
-        rb = raw[a:b]
-        if fused:
-            cv2.subtract(rb, k.dark[a:b], t, dtype=cv2.CV_32F)
-        else:  # dtypes OpenCV lacks (int32, float64, ...): a plain cast, then the subtraction
-            np.copyto(t, rb, casting="unsafe")
-            np.subtract(t, k.dark[a:b], out=t)
-        if rb.dtype.kind == "f" and not np.isfinite(t).all():
-            # NaN/inf raw values are defects of this frame: sent below zero so that the
-            # non-positive path clamps, fills and counts them (the output is never NaN or inf)
-            np.nan_to_num(t, copy=False, nan=_NONFINITE, posinf=_NONFINITE, neginf=_NONFINITE)
-        # one min (or min/max) pass says whether anything needs looking at; raw - dark <= 0
-        # needs raw <= the block's largest dark
-        if saturation is None:
-            lo, hi = t.min(), 0
-            hit = _at_most(t, 0) if lo <= 0 else None
-        else:
-            lo, hi = cv2.minMaxLoc(rb)[:2] if fused else (rb.min(), rb.max())
-            hit = _at_most(t, 0) if lo <= k.dark_max(a, b) else None
-        if hit is not None:
-            t.ravel()[hit] = FLOOR_COUNTS
-            nonpos.append(hit + a * cols)
-        hit = _at_least(rb, saturation) if saturation is not None and hi >= saturation else None
-        if hit is not None:
-            sat.append(hit + a * cols)
-        if domain == "log":
-            cv2.log(t, t)
-            cv2.subtract(log_i0[a:b], t, out[a:b])
-        else:
-            cv2.multiply(t, inv_gain[a:b], out[a:b], scale=float(scale))
-    return nonpos, sat
+    bad, sat = np.empty(_ROOM, np.int64), np.empty(_ROOM, np.int64)
+    n_bad, n_sat = correct_rows(raw2d, k.dark, coef, out2d, r0, r1, *args, bad, sat)
+    if n_bad > _ROOM or n_sat > _ROOM:  # many: search the rows again (the same tests)
+        return find(raw2d, k.dark, r0, r1, args[2], args[3], n_bad, n_sat)
+    return bad[:n_bad], sat[:n_sat]
 
 
 def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
+    raw2d = _native(raw2d)
     rows = raw2d.shape[0]
-    nt = min(threads(), max(1, rows // _BLOCK_ROWS))
-    if nt == 1:
-        parts = [_correct_rows(raw2d, k, out2d, domain, scale, 0, rows, saturation)]
-    else:
-        # Split on block boundaries so threads never share a cache line of output.
-        edges = [(rows * i // nt) // _BLOCK_ROWS * _BLOCK_ROWS for i in range(nt)] + [rows]
-        parts = list(
-            pool().map(
-                lambda i: _correct_rows(raw2d, k, out2d, domain, scale, edges[i], edges[i + 1], saturation), range(nt)
-            )
-        )
-    nonpos = np.concatenate([a for p in parts for a in p[0]]) if any(p[0] for p in parts) else np.zeros(0, np.int64)
-    sat = np.concatenate([a for p in parts for a in p[1]]) if any(p[1] for p in parts) else np.zeros(0, np.int64)
+    coef = k.log_i0 if domain == "log" else k.inv_gain
+    args = (domain == "log", np.float32(scale), *_saturation_in(raw2d.dtype, saturation))
+    nt = min(threads(), max(1, rows // 64))
+    edges = [rows * i // nt for i in range(nt + 1)]
+    # the compiled loop releases the GIL: one row range per thread
+    parts = list(pool().map(lambda i: _correct_range(raw2d, k, coef, out2d, edges[i], edges[i + 1], args), range(nt)))
+    nonpos = np.concatenate([p[0] for p in parts])
+    sat = np.concatenate([p[1] for p in parts])
     flat_out = out2d.reshape(-1)
     for stage in k.stages:
         stage.apply(flat_out)

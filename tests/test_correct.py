@@ -194,11 +194,11 @@ def test_correct_files_streams_and_a_write_failure_surfaces(tmp_path, monkeypatc
 @pytest.mark.parametrize("dtype", [np.uint16, np.int16, np.int32, np.float32])
 @pytest.mark.parametrize("domain", ["log", "linear", "counts"])
 def test_scattered_repairs_match_a_whole_frame_reference(dtype, domain, threads, monkeypatch):
-    """The kernel finds below-dark pixels by the minima of 16-row bands and saturated ones by
-    block and column maxima, and repairs them on index lists: it must find exactly the pixels a
-    whole-frame mask finds, on band and block edges, in blocks split across threads (300 rows:
-    three 128-row blocks, the last band 12 rows), and leave every other pixel as the float64
-    formula has it (float32 rounding)."""
+    """The compiled loop counts below-dark and saturated pixels per row and records where they
+    are only in rows that hold some (64-column chunks), and the repairs work on those index
+    lists: it must find exactly the pixels a whole-frame mask finds, on chunk edges and at the
+    rows where the threads' ranges meet, and leave every other pixel as the float64 formula has
+    it (float32 rounding)."""
     monkeypatch.setenv("RADIOKIT_THREADS", threads)
     rng = np.random.default_rng(11)
     shape = (300, 257)
@@ -291,3 +291,77 @@ def test_fills_near_the_thread_edge_equal_one_thread(domain, monkeypatch):
     two = correct_frames(cal, raw, domain=domain)
     assert np.isfinite(one).all()
     np.testing.assert_array_equal(two, one)
+
+
+def test_the_compiled_log_is_within_an_ulp_or_two_of_float64():
+    """radiokit._correct_loop._ln is Cephes' logf (a polynomial, so that the loop vectorises):
+    over every binade of positive normal float32, it must round like a correct log to 2 ulp."""
+    import numba
+
+    from radiokit._correct_loop import _ln
+
+    rng = np.random.default_rng(5)
+    x = np.concatenate(
+        [
+            np.ldexp(rng.uniform(1, 2, 200_000), rng.integers(-126, 128, 200_000)),
+            rng.uniform(0.5, 2, 100_000),  # around 1, where ln is small and relative error shows
+            [np.finfo(np.float32).tiny, np.finfo(np.float32).max, 1.0, 2.0, 0.5, np.sqrt(0.5), np.sqrt(2)],
+        ]
+    ).astype(np.float32)
+    got = numba.njit(lambda a: np.array([_ln(v) for v in a], dtype=np.float32))(x)
+    exact = np.log(x.astype(np.float64))
+    ulp = np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got - exact) / ulp) <= 2.0
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_more_repairs_than_the_loop_records_are_all_found(threads, monkeypatch):
+    """A thread records up to radiokit.correct._ROOM indices per frame, then searches its rows
+    again: a frame with more below-dark and saturated pixels than that must be repaired alike."""
+    from radiokit.correct import _ROOM
+
+    monkeypatch.setenv("RADIOKIT_THREADS", threads)
+    rng = np.random.default_rng(12)
+    shape = (200, 160)
+    cal = _cal(*shape)
+    raw = rng.integers(150, 1000, shape).astype(np.uint16)
+    below = rng.random(shape) < 0.3
+    raw[below] = 100 - rng.integers(0, 50, int(below.sum()))
+    saturated = ~below & (rng.random(shape) < 0.3)
+    raw[saturated] = 4095
+    assert below.sum() > _ROOM and saturated.sum() > _ROOM
+    out, report = correct_frames(cal, raw, domain="log", return_report=True)
+    assert np.isfinite(out).all()
+    np.testing.assert_array_equal((report.flags & PixelFlag.NONPOSITIVE) != 0, below)
+    np.testing.assert_array_equal((report.flags & PixelFlag.SATURATED) != 0, saturated)
+    assert report.nonpositive.tolist() == [int(below.sum())]
+
+
+@pytest.mark.parametrize(
+    "dtype", [np.dtype(">u2"), np.dtype(">f4"), np.dtype(np.float16), np.dtype(np.float64), np.dtype(np.uint8)]
+)
+def test_byte_order_and_unusual_dtypes_give_the_native_result(dtype):
+    """The compiled loop takes native, contiguous arrays: big-endian frames (raw files and some
+    TIFFs), half floats and strided views are converted first and must give the same image."""
+    rng = np.random.default_rng(13)
+    cal = _cal(40, 30, dark=10.0, flat=250.0)
+    values = rng.integers(0, 250, cal.shape)  # some at or below the dark
+    ref, ref_report = correct_frames(cal, values.astype(np.float32), domain="log", return_report=True)
+    raw = values.astype(dtype)
+    out, report = correct_frames(cal, raw, domain="log", return_report=True)
+    np.testing.assert_array_equal(out, ref)
+    assert report.nonpositive.tolist() == ref_report.nonpositive.tolist()
+    wide = np.zeros((40, 60), dtype)
+    wide[:, ::2] = raw
+    np.testing.assert_array_equal(correct_frames(cal, wide[:, ::2], domain="log"), ref)
+
+
+def test_non_finite_float_raw_is_clamped_filled_and_counted():
+    cal = _cal(8, 9)
+    raw = np.full(cal.shape, 600.0, np.float64)
+    raw[2, 3], raw[4, 4], raw[5, 1] = np.nan, np.inf, -np.inf
+    raw[6, 6] = 100.0 + 1e-300  # float32(raw) - dark is 0: non-positive
+    out, report = correct_frames(cal, raw, domain="log", return_report=True)
+    assert np.isfinite(out).all()
+    assert report.nonpositive.tolist() == [4]
+    np.testing.assert_allclose(out, np.log(2.0), rtol=1e-6)  # filled from neighbours at -ln(0.5)
