@@ -185,3 +185,48 @@ def find(raw, dark, r0, r1, saturation, count_saturated, n_bad, n_sat):
                 bad[nb_] = i * cols + j
                 nb_ += 1
     return bad, sat
+
+
+@nb.njit(**_JIT)
+def gather(flat, dst, src, w):
+    """``flat[dst[i]] = sum_k w[i, k] * flat[src[i, k]]``, every value read before any is written."""
+    values = np.empty(dst.size, np.float32)
+    for i in range(dst.size):
+        s = np.float32(0.0)
+        for k in range(src.shape[1]):
+            s += w[i, k] * flat[src[i, k]]
+        values[i] = s
+    for i in range(dst.size):
+        flat[dst[i]] = values[i]
+
+
+@nb.njit(**_JIT)
+def fill_from_neighbours(img, idx, invalid, max_radius):
+    """Replace each pixel ``idx`` (flat, of C-contiguous ``img``) by the mean of the pixels in
+    the smallest square around it (radius 1, then 2, ... ``max_radius``) that has any valid one;
+    valid means not ``invalid`` and not itself in ``idx``. Every mean is taken before any pixel
+    is written; a pixel with no valid one within ``max_radius`` keeps its value."""
+    rows, cols = img.shape
+    flat = img.ravel()
+    flat_invalid = invalid.ravel()
+    kept = np.empty(idx.size, np.float32)
+    for n in range(idx.size):
+        kept[n] = flat[idx[n]]
+        flat[idx[n]] = np.nan  # marks the pixels being filled (the image holds no other NaN)
+    values = kept.copy()
+    for n in range(idx.size):
+        r, c = idx[n] // cols, idx[n] % cols
+        for radius in range(1, max_radius + 1):
+            s = 0.0
+            count = 0
+            for rr in range(max(0, r - radius), min(rows, r + radius + 1)):
+                for cc in range(max(0, c - radius), min(cols, c + radius + 1)):
+                    x = flat[rr * cols + cc]
+                    if x == x and not flat_invalid[rr * cols + cc]:
+                        s += x
+                        count += 1
+            if count:
+                values[n] = s / count
+                break
+    for n in range(idx.size):
+        flat[idx[n]] = values[n]

@@ -63,8 +63,10 @@ class _Stage:
     w: np.ndarray  # (m, k) float32 weights summing to 1
 
     def apply(self, flat_image: np.ndarray):
+        from radiokit._correct_loop import gather
+
         if self.dst.size:
-            flat_image[self.dst] = np.einsum("ij,ij->i", flat_image[self.src], self.w)
+            gather(flat_image, self.dst, self.src, self.w)
 
 
 @functools.lru_cache(maxsize=16)
@@ -290,17 +292,10 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     for stage in k.stages:
         stage.apply(flat_out)
     if nonpos.size:
-        flat_invalid = k.invalid.ravel()
-        nonpos = nonpos[~flat_invalid[nonpos]]  # defect pixels: filled by the plan, counted as defects
-        todo = nonpos
-        if todo.size:
+        from radiokit._correct_loop import fill_from_neighbours
 
-            def is_invalid(idx):  # nonpos is sorted: blocks and threads run in row order
-                pos = np.searchsorted(nonpos, idx).clip(max=nonpos.size - 1)
-                return flat_invalid[idx] | (nonpos[pos] == idx)
-
-            stage, _ = _neighbour_stage(todo, is_invalid, out2d.shape, max_radius=2)
-            stage.apply(flat_out)
+        nonpos = nonpos[~k.invalid.ravel()[nonpos]]  # defect pixels: filled by the plan, counted as defects
+        fill_from_neighbours(out2d, nonpos, k.invalid, 2)
     return nonpos, sat
 
 
@@ -355,8 +350,8 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
         raise ValueError(f"raw frames must be numeric, got dtype {raw.dtype}")
     if out is None:
         out = np.empty(raw.shape, np.float32)
-    elif out.shape != raw.shape or out.dtype != np.float32:
-        raise ValueError(f"out must be float32 of shape {raw.shape}, got {out.dtype} {out.shape}")
+    elif out.shape != raw.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be C-contiguous float32 of shape {raw.shape}, got {out.dtype} {out.shape}")
     stack = raw if raw.ndim == 3 else raw[None]
     ostack = out if out.ndim == 3 else out[None]
     n = stack.shape[0]

@@ -365,3 +365,39 @@ def test_non_finite_float_raw_is_clamped_filled_and_counted():
     assert np.isfinite(out).all()
     assert report.nonpositive.tolist() == [4]
     np.testing.assert_allclose(out, np.log(2.0), rtol=1e-6)  # filled from neighbours at -ln(0.5)
+
+
+def test_below_dark_fills_are_the_mean_of_the_nearest_valid_square():
+    """Each below-dark pixel becomes the mean of the valid pixels (not defects, not below the
+    dark) of the smallest square (radius 1, else 2) around it that has any, computed from the
+    frame before any fill; checked against a direct loop over a frame with clusters, a pixel
+    surrounded at radius 1, defects beside them and the frame's edges."""
+    rng = np.random.default_rng(14)
+    shape = (30, 40)
+    mask = np.zeros(shape, np.uint32)
+    mask[rng.random(shape) < 0.03] = PixelFlag.DEAD
+    cal = _cal(*shape, mask=mask)
+    raw = rng.integers(300, 1000, shape).astype(np.uint16)
+    raw[rng.random(shape) < 0.08] = 20
+    raw[10:13, 10:13] = 20  # the centre's radius-1 square holds only below-dark pixels
+    raw[0, 0] = raw[29, 39] = 20
+    out = correct_frames(cal, raw, domain="linear")
+    unfilled = (raw.astype(np.float64) - 100.0) / 1000.0
+    below = raw <= 100
+    for r, c in zip(*np.nonzero(below & (mask == 0))):
+        for radius in (1, 2):
+            rr, cc = slice(max(0, r - radius), r + radius + 1), slice(max(0, c - radius), c + radius + 1)
+            valid = ~below[rr, cc] & (mask[rr, cc] == 0)
+            if valid.any():
+                assert out[r, c] == pytest.approx(unfilled[rr, cc][valid].mean(), rel=1e-5), (r, c)
+                break
+    assert below[11, 11] and out[11, 11] == pytest.approx(
+        unfilled[9:14, 9:14][~below[9:14, 9:14] & (mask[9:14, 9:14] == 0)].mean(), rel=1e-5
+    )
+
+
+def test_out_must_be_contiguous():
+    cal = _cal()
+    raw = np.full(cal.shape, 600, np.uint16)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        correct_frames(cal, raw, out=np.empty((cal.shape[1], cal.shape[0]), np.float32).T)
