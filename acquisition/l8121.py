@@ -109,9 +109,16 @@ __all__ = [
     "Query",
     "Command",
     "Choice",
+    "SwitchedOff",
 ]
 
 logger = logging.getLogger(__name__)
+
+
+class SwitchedOff(DeviceError):
+    """A routine reading (:meth:`L8121.check`) was cut short because another thread switched X-rays
+    off meanwhile: its remaining queries were not sent -- they would have waited behind the ``XOF``
+    and then measured a tube that is off -- so the reading vouches for nothing."""
 
 
 class SourceState(IntEnum):
@@ -978,6 +985,10 @@ class L8121:
         self._off_thread: int | None = None
         self._off_running = False
         self._off_state: SourceState | None = None
+        # Counts the switch-offs begun; a routine reading (check()) notes it in this thread-local
+        # when it starts and sends no further query once another thread's switch-off has begun.
+        self._off_epoch = 0
+        self._local = threading.local()
         #: The last :meth:`off` that could not be confirmed (None once one confirms). While set, a
         #: failed exchange does not start another switch-off by itself: the one that failed has
         #: said to switch off at the controller, and asking a silent controller again only delays
@@ -1262,6 +1273,12 @@ class L8121:
                 and isinstance(self.off_failed.__cause__, NoReply)
             ):
                 raise NoReply(f"{self.port}: {line} not sent: the controller did not answer the switch-off")
+            epoch = getattr(self._local, "epoch", None)
+            if epoch is not None and epoch != self._off_epoch:
+                raise SwitchedOff(
+                    f"{self.port}: {line} not sent: X-rays were switched off during this reading "
+                    f"(it cannot vouch for the beam)"
+                )
             self._busy = True
 
     def _claim_off(self, me: int) -> None:
@@ -1599,7 +1616,7 @@ class L8121:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
             if state != SourceState.XRAY_ON:
-                self._trip(self._fault_reason(state, m_kv, m_ua, ramping=True))
+                self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
             if abs(m_kv - kv) <= tol_kv and abs(m_ua - ua) <= tol_ua:
                 return {
                     "voltage_kv": m_kv,
@@ -1617,9 +1634,18 @@ class L8121:
             time.sleep(c.poll_s)
 
     def _fault_reason(
-        self, state: SourceState, kv: float, ua: float, *, ramping: bool = False, interlock_closed: bool | None = None
+        self,
+        state: SourceState,
+        kv: float,
+        ua: float,
+        *,
+        ramping: bool = False,
+        interlock_closed: bool | None = None,
+        beam: tuple[int, int] | None = None,
     ) -> str | None:
-        """Why the beam is not what this driver switched on, or None when it is."""
+        """Why the beam is not what this driver switched on (``beam``: its set kV and µA, default
+        the ones kept now), or None when it is. Asks ``SIN`` when ``interlock_closed`` is None."""
+        beam = self._beam if beam is None else beam
         if state == SourceState.OVERLOAD:
             return "overload"
         if state == SourceState.WARMING_UP:
@@ -1630,25 +1656,54 @@ class L8121:
             return "interlock open"
         if state != SourceState.XRAY_ON:
             return f"beam dropped: state {state.name} instead of XRAY_ON"
-        if not ramping and self._beam is not None:
+        if not ramping and beam is not None:
             f = self.config.beam_drop_fraction
-            set_kv, set_ua = self._beam
+            set_kv, set_ua = beam
             if ua < f * set_ua:
                 return f"beam dropped: measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
             if kv < f * set_kv:
                 return f"beam dropped: measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
         return None
 
-    def _trip(self, reason: str):
-        """Switch off and raise :class:`SourceFault` naming ``reason``."""
+    def _evident_fault(self, state: SourceState, kv: float, ua: float) -> bool:
+        """Whether a beam reading alone shows that the beam this driver keeps is not as set (a
+        state other than X-rays on, or a measured value below ``beam_drop_fraction``): then it is
+        switched off before anything else is asked (the interlock, for the message)."""
+        if state != SourceState.XRAY_ON:
+            return True
+        f = self.config.beam_drop_fraction
+        return self._beam is not None and (ua < f * self._beam[1] or kv < f * self._beam[0])
+
+    def _reason_after_off(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False):
+        """The fault's reason, to be worked out after the ``XOF`` (:meth:`_trip` calls it): ``SIN``
+        (which tells an open interlock from a dropped beam) is asked only then, and only of a
+        controller that confirmed the switch-off (``ask``); otherwise the reading names it."""
+        beam = self._beam
+
+        def reason(ask: bool) -> str:
+            closed = None if ask else True
+            try:
+                why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=closed, beam=beam)
+            except DeviceError:
+                why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=True, beam=beam)
+            return why or f"beam fault: state {state.name}, measured {kv:g} kV {ua:g} µA"
+
+        return reason
+
+    def _trip(self, reason: str | Callable[[bool], str]):
+        """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
+        returns, called after the switch-off; see :meth:`_reason_after_off`)."""
         note = "X-rays switched off"
         try:
-            if self.off() == SourceState.OVERLOAD and not reason.startswith("overload"):
-                # B reads state and current in separate exchanges: an overload between them looks
-                # like a dropped beam until the STS after XOF says what it was
-                reason = f"overload ({reason})"
+            state = self.off()
         except DeviceError as exc:
-            note = f"switching X-rays off could not be confirmed ({exc})"
+            state, note = None, f"switching X-rays off could not be confirmed ({exc})"
+        if callable(reason):
+            reason = reason(self.off_failed is None)
+        if state == SourceState.OVERLOAD and not reason.startswith("overload"):
+            # B reads state and current in separate exchanges: an overload between them looks
+            # like a dropped beam until the STS after XOF says what it was
+            reason = f"overload ({reason})"
         try:
             code = None if self.off_failed else self.error_code()  # (not asked of a controller that failed)
             note += f"; controller error code {code}" if code else ""
@@ -1671,14 +1726,18 @@ class L8121:
             ``state`` (:class:`SourceState`), ``voltage_kv``, ``current_ua`` (measured),
             ``interlock_closed``, ``time`` (``time.time()``), for the frame's metadata.
         """
-        state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
-        closed = self.interlock_closed()
-        if self._beam is not None:
-            reason = self._fault_reason(state, kv, ua, interlock_closed=closed)
-        else:
-            reason = "overload" if state == SourceState.OVERLOAD else None
-        if reason:
-            self._trip(reason)
+        self._local.epoch = self._off_epoch  # routine: another thread's XOF goes before its next query
+        try:
+            state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
+            if self._beam is not None and self._evident_fault(state, kv, ua):
+                self._trip(self._reason_after_off(state, kv, ua))  # XOF first, then SIN for the message
+            if self._beam is None and state == SourceState.OVERLOAD:
+                self._trip("overload")
+            closed = self.interlock_closed()
+            if self._beam is not None and not closed:
+                self._trip("interlock open")
+        finally:
+            self._local.epoch = None
         return {"state": state, "voltage_kv": kv, "current_ua": ua, "interlock_closed": closed, "time": time.time()}
 
     def off(self) -> SourceState:
@@ -1697,6 +1756,7 @@ class L8121:
             Not confirmed after ``off_attempts`` attempts: switch off at the controller.
         """
         me = threading.get_ident()
+        self._local.epoch = None  # from here on this thread switches off: nothing it sends is routine
         with self._turns:
             waited = False
             while self._off_thread not in (None, me):  # another thread is switching off: its outcome
@@ -1707,6 +1767,7 @@ class L8121:
                     raise self.off_failed
                 return self._off_state
             self._off_thread, self._off_running = me, True
+            self._off_epoch += 1  # other threads' routine readings in progress send nothing more
         attempts, last, silent = int(self.config.off_attempts), None, False
         try:
             for attempt in range(attempts):

@@ -36,6 +36,7 @@ from acquisition.l8121 import (
     Command,
     SourceConfig,
     SourceState,
+    SwitchedOff,
     WarmupState,
     probe,
 )
@@ -707,6 +708,39 @@ def test_a_silent_controller_costs_one_switch_off_not_one_per_caller(source):
         src.off()  # an explicit call still tries (and is the one owner now)
     model.silence(False)
     assert src.off() == SourceState.STANDBY
+
+
+def test_off_from_another_thread_cuts_a_poll_short(source, dialect):
+    """A switch-off asked for while another thread polls the beam (the run's monitor: A SAR, SIN;
+    B STS, SHV, SCU, SIN) goes right after the one exchange on the link, not after the rest of the
+    poll; the poll then sends nothing more and vouches for nothing (SwitchedOff), since what it
+    would measure is the tube switched off. Replies are slowed so the poll is on the link."""
+    src, model = source
+    src.on(60, 250)
+    model.slow(0.2)
+    n0 = len(model.log)
+    errors = []
+
+    def poll():
+        try:
+            src.check()
+        except DeviceError as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=poll)
+    t.start()
+    end = time.monotonic() + 5
+    while len(model.log) == n0 and time.monotonic() < end:  # the poll's first query has arrived
+        time.sleep(0.005)
+    state = src.off()
+    t.join(timeout=10)
+    sent = [e.command for e in model.log[n0:]]
+    first = {"A": "SAR", "B": "STS"}[dialect]
+    assert sent == [first, "XOF", "STS"], sent
+    assert state == SourceState.STANDBY and not model.xray_on
+    assert len(errors) == 1 and isinstance(errors[0], SwitchedOff), errors
+    model.slow(0)
+    assert src.check()["state"] == SourceState.STANDBY  # the next poll is a poll again
 
 
 def test_operate_switch_turned_to_local_while_on(source, dialect):

@@ -292,38 +292,48 @@ def test_off_not_confirmed(dialect, pairs, message):
 
 
 # -- faults while on ------------------------------------------------------------------------------
+# ``poll``: what is asked before the XOF; ``after``: what is asked after the switch-off, before
+# ``SER``. A fault the beam reading shows by itself (a state other than X-rays on, a collapsed
+# current) is switched off at once; the interlock is asked after the XOF, for the message only.
 @pytest.mark.parametrize(
-    "dialect, poll, code, message",
+    "dialect, poll, after, code, message",
     [
-        ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], "SER 1", "interlock open"),
+        ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], [], "SER 1", "interlock open"),
         (
             "B",
             [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA"), ("SIN", "INTER LOCK OFF")],
+            [],
             "SER 1",
             "interlock open",
         ),
-        ("A", [("SAR", "SAR 4 0 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 3", "overload"),
-        ("B", [("STS", "OVER"), ("SIN", "INTER LOCK ON")], "SER 3", "overload"),  # no SHV/SCU: off at once
-        ("A", [("SAR", "SAR 3 60 0 0 0 0 0"), ("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
+        # the controller drops the beam when the interlock opens: seen in the reading, off at once
+        ("A", [("SAR", "SAR 2 0 0 0 0 0 0")], [("SIN", "SIN 1")], "SER 1", "interlock open"),
+        ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK OFF")], "SER 1", "interlock open"),
+        ("A", [("SAR", "SAR 4 0 0 0 0 0 0")], [], "SER 3", "overload"),
+        ("B", [("STS", "OVER")], [], "SER 3", "overload"),  # no SHV/SCU/SIN: off at once
+        ("A", [("SAR", "SAR 3 60 0 0 0 0 0")], [("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
         (
             "B",
-            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")],
+            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA")],
+            [("SIN", "INTER LOCK ON")],
             "SER 0",
             "beam dropped: measured current 0 µA",
         ),
-        ("B", [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
+        ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
         # an overload between B's STS and its SCU: named by the STS after the XOF
         (
             "B",
-            [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA"), ("SIN", "INTER LOCK ON")],
+            [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA")],
+            [("SIN", "INTER LOCK ON")],
             "SER 3",
             r"overload \(beam dropped: measured current 0 µA",
         ),
     ],
 )
-def test_check_switches_off_on_a_fault(dialect, poll, code, message):
-    off = OFF[dialect] if "overload" not in message else [("XOF", "XOF"), ("STS", {"A": "STS 4", "B": "OVER"}[dialect])]
-    pairs = CONNECT[dialect] + ON_60_250[dialect] + poll + off + [("SER", code)]
+def test_check_switches_off_on_a_fault(dialect, poll, after, code, message):
+    overload = "overload" in message
+    off = OFF[dialect] if not overload else [("XOF", "XOF"), ("STS", {"A": "STS 4", "B": "OVER"}[dialect])]
+    pairs = CONNECT[dialect] + ON_60_250[dialect] + poll + off + after + [("SER", code)]
     with expected_protocol(dialect, pairs) as src:
         src.on(60, 250)
         with pytest.raises(SourceFault, match=f"{message}.*X-rays switched off"):

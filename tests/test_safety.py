@@ -344,6 +344,11 @@ def test_three_ctrl_c_during_a_frame_and_the_switch_off(tmp_path, scene_file, co
     off_s = watch.seconds()
     record("3 x Ctrl-C (frame, XOF, XOF)", model, acq, off_s, code)
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    # the XOF waits for the one exchange on the link at most (a beam poll's query), never for the
+    # rest of that poll or a poll to vouch for the last frames (B: four queries of 0.3 s each)
+    xof_t = next(e.t for e in model.log if e.command == "XOF" and e.t >= watch.model_t_fault)
+    before = [e.command for e in model.log if watch.model_t_fault <= e.t < xof_t]
+    assert len(before) <= 1, f"sent after the Ctrl-C before XOF: {before}"
     assert code == 130 and CONFIRMED.search(acq.last_line), acq.output
     assert acq.output.count("switching the X-ray tube off first") >= 1, acq.output
     assert "Traceback" not in acq.output

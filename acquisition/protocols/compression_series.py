@@ -593,6 +593,10 @@ class _BeamMonitor:
                 self.last_ok = t
             except BaseException as exc:  # a fault, a silent controller, garbage: stop the series
                 self.error = exc
+                from acquisition.l8121 import SwitchedOff
+
+                if isinstance(exc, SwitchedOff):  # another thread switched off during the poll
+                    return
                 if getattr(self.source, "off_failed", None) is not None:
                     # the driver's own switch-off (its fail-safe) failed and said so: one owner
                     # retries, so the operator's warning is not delayed by a second full budget
@@ -626,6 +630,10 @@ class _BeamMonitor:
         """File indices of this beam period's frames taken after the last good poll: once the
         beam has failed, nobody can say they were exposed as asked."""
         return [i for i, t in self.written if t > self.last_ok]
+
+    def halt(self):
+        """No further poll (one in flight goes on until the driver cuts it short)."""
+        self._stop.set()
 
     def stop(self):
         self._stop.set()
@@ -1026,28 +1034,23 @@ def _stop(r: _Run, exc: BaseException):
     res, monitor = r.res, r.monitor
     res.phase = r.phase
     beam_period = r.beam_since is not None
-    if monitor is not None:
-        # wait for a poll in flight (and the switch-off a fault makes it do): nothing may race the
-        # switch-off below for the link, or print after the command's last line
-        monitor.stop()
+    unvouched = False
     if beam_period and monitor is not None:
         if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
-            # stopped for another reason (a signal, the disk, the detector): vouch for the frames
-            # taken since the last poll with one more, before switching off
-            try:
-                monitor.confirm()
-            except BaseException as confirm_exc:
-                log.error("the source failed too: %s", confirm_exc)
+            # stopped for another reason (a signal, the disk, the detector): X-rays off first. A poll
+            # to vouch for the frames since the last one would keep the beam on for its exchanges
+            # (A: SAR, SIN; B: STS, SHV, SCU, SIN); those frames are labelled invalid instead
+            unvouched = True
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
-    _tube_off(r)
+    _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     if res.tube_off is None and getattr(exc, "port_never_opened", False):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
-    if monitor is not None and monitor.error is not None and r.writer is not None:
+    if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None:
         _mark_invalid(r.writer, monitor.suspect())
     if r.writer is not None:
         res.frames_total = r.writer.n_frames
@@ -1095,7 +1098,18 @@ def _tube_off(r: _Run) -> bool | None:
     warning would wait for every layer's. Records the outcome in ``r.res.tube_off``."""
     monitor, dev = r.monitor, r.devices
     if monitor is not None:
-        monitor.stop()
+        # no new poll, and none waited for: the driver sends the XOF right after the exchange on
+        # the link and cuts the rest of a poll in flight short (SwitchedOff); joined afterwards
+        monitor.halt()
+    try:
+        return _switch_off_once(r, dev)
+    finally:
+        if monitor is not None:
+            monitor.stop()  # nothing prints after the command's last line
+
+
+def _switch_off_once(r: _Run, dev) -> bool | None:
+    monitor = r.monitor
     if dev is None or dev.off_done:
         return r.res.tube_off
     dev.off_done = True
