@@ -1718,7 +1718,12 @@ class L8121:
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
         state other than X-rays on, or a measured current (or voltage) below
         ``beam_drop_fraction`` of the set value switches off and raises :class:`SourceFault` naming
-        which. Otherwise only an overload is a fault.
+        which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
+        state, the measured values) is switched off before ``SIN`` is asked, for the message only.
+
+        A poll is routine: when another thread switches off meanwhile, that ``XOF`` goes right after
+        the exchange on the link, and the poll sends nothing more and raises :class:`SwitchedOff`
+        (it vouches for nothing).
 
         Returns
         -------
