@@ -1731,7 +1731,11 @@ class L8121:
             ``state`` (:class:`SourceState`), ``voltage_kv``, ``current_ua`` (measured),
             ``interlock_closed``, ``time`` (``time.time()``), for the frame's metadata.
         """
-        self._local.epoch = self._off_epoch  # routine: another thread's XOF goes before its next query
+        # routine: another thread's XOF goes before this poll's next query, and a poll begun while
+        # one is pending or running sends nothing at all (it would read the tube switched off)
+        with self._turns:
+            pending = self._off_thread not in (None, threading.get_ident())
+            self._local.epoch = -1 if pending else self._off_epoch
         try:
             state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
             if self._beam is not None and self._evident_fault(state, kv, ua):

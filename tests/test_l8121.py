@@ -743,6 +743,26 @@ def test_off_from_another_thread_cuts_a_poll_short(source, dialect):
     assert src.check()["state"] == SourceState.STANDBY  # the next poll is a poll again
 
 
+def test_a_poll_begun_during_a_switch_off_sends_nothing(source, dialect):
+    """A poll that starts while another thread's switch-off is on the link (the monitor waking just
+    as the run stops) sends no query, before or after it, and vouches for nothing (SwitchedOff)."""
+    src, model = source
+    src.on(60, 250)
+    model.slow(0.2)
+    n0 = len(model.log)
+    states = []
+    t = threading.Thread(target=lambda: states.append(src.off()))
+    t.start()
+    end = time.monotonic() + 5
+    while "XOF" not in [e.command for e in model.log[n0:]] and time.monotonic() < end:
+        time.sleep(0.005)
+    with pytest.raises(SwitchedOff):
+        src.check()
+    t.join(timeout=10)
+    assert [e.command for e in model.log[n0:]] == ["XOF", "STS"]
+    assert states == [SourceState.STANDBY] and not model.xray_on
+
+
 def test_operate_switch_turned_to_local_while_on(source, dialect):
     """Someone turns the operate switch to LOCAL while X-rays are on: XOF is refused, off() says
     it could not confirm -- naming the switch where the dialect can read it -- and succeeds once

@@ -590,6 +590,8 @@ class _BeamMonitor:
             t = time.time()
             try:
                 reading = self.source.check()
+                if self._stop.is_set():  # the run is stopping: this poll may have read the tube after its XOF
+                    return
                 self.last_ok = t
             except BaseException as exc:  # a fault, a silent controller, garbage: stop the series
                 self.error = exc
