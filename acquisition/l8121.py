@@ -950,7 +950,9 @@ class L8121:
     :meth:`set_values`, :meth:`off`, :meth:`warm_up` and :meth:`reset`, which keep the safety rules.
 
     The transport serialises exchanges, so :meth:`off` may be called from another thread (a
-    watchdog) at any time, also while :meth:`on` waits for a stable beam.
+    watchdog) at any time, also while :meth:`on` waits for a stable beam. Its ``XOF`` goes right
+    after the exchange on the link, before any other thread's next query (the rest of a
+    :meth:`check` in flight is not sent: :class:`SwitchedOff`).
     """
 
     def __init__(
