@@ -5,8 +5,8 @@ Run (from the repository root)::
     python benchmarks/bench_register_flag.py --split test --size 560 --seeds 2
     python benchmarks/bench_register_flag.py --split train --size 560 --seeds 2   # to choose thresholds
 
-Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, elastix and DIS on high-passed
-images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
+Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, rc weak, rc weak-fast, elastix
+and DIS on high-passed images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
 simulated pairs of both scene presets, noisy, as in ``bench_register``'s part 3). Each result is
 cached (``--out``, the field and the method's ``info``), so the flag can be re-assessed
 (``radiokit.register._assess``) as its rule changes without registering again (``--reassess``
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_register import FAMILY_METHODS, configs, confusion
+from bench_register import FAMILY_METHODS, _method_of, configs, confusion
 from regdata import family, family_pair, score, sim_pair
 
 
@@ -61,7 +61,7 @@ def registered(out, label, name, opts, fixed, moving, fresh=False):
     if path.exists() and not fresh:
         z = np.load(path, allow_pickle=False)
         return z["d"], json.loads(str(z["info"])), float(z["seconds"])
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     f, m, _ = _check(fixed, moving, None)
     t = time.perf_counter()
     d, info = METHODS[method](f, m, None, **opts)
@@ -78,7 +78,7 @@ def assess(name, opts, fixed, moving, d, info, seconds):
     and confidence map, exactly as ``register()`` would return it."""
     from radiokit.register import Quality, Registration, _assess, _check
 
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     f, m, _ = _check(fixed, moving, None)
     reg = Registration(np.ascontiguousarray(d, np.float32), method, Quality(), dict(opts))
     _assess(reg, f, m, None, info, seconds)
