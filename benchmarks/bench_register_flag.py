@@ -193,8 +193,9 @@ def textureless(rows) -> list[str]:
 
 def rule_inputs(fixed, moving, d, stride=2):
     """What ``register()``'s flag rule reads, per object pixel (every ``stride``-th row and
-    column of the assessment grid), before its thresholds: the Cramer-Rao bound at scale 1 with
-    the correlation-length charge (observed where ``bound_scale x b1 <= 0.5 px``), the
+    column of the assessment grid), before its thresholds: the Cramer-Rao bound at scale 1 and
+    the field's correlation length in windows (observed where ``bound_scale x b1 / min(windows,
+    max_length) <= 0.5 px``), the
     residual's excess over the noise after registering, and that excess against a quarter of the
     excess before (misaligned where both exceed their lines). The same steps as
     ``radiokit.register._observed`` and ``_misaligned`` (``sweep`` checks that the present
@@ -210,33 +211,35 @@ def rule_inputs(fixed, moving, d, stride=2):
     w, d = np.nan_to_num(warp(m, d)), np.nan_to_num(d)
     ob = C.observability(f, _WINDOW, None)
     smooth = np.stack([C._gauss(c, _WINDOW) for c in d])
-    length = np.clip(_correlation_length(smooth, ob.object), _WINDOW / 2, 4 * _WINDOW)
+    length = max(_correlation_length(smooth, ob.object), _WINDOW / 2)  # the upper clip is swept
     sig = C.noise_map(f, _WINDOW)
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
     after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
     before = C.consistency(f, m, _WINDOW, sig) - 1.0
     sel = ob.object[::stride, ::stride]
     return dict(
-        b1=(ob.bound_px * np.float32(_WINDOW / length))[::stride, ::stride][sel],
+        b1=ob.bound_px[::stride, ::stride][sel],
+        windows=length / _WINDOW,
         after=after[::stride, ::stride][sel],
         gate=(after * factor - 0.5 * np.maximum(before, 0))[::stride, ::stride][sel],
         n_object=int(ob.object.sum()) * k * k,
     )
 
 
-def rule_ok(x, q, bound_scale, min_observed, excess, max_misaligned, max_folds):
+def rule_ok(x, q, bound_scale, max_length, min_observed, excess, max_misaligned, max_folds):
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
     the result's ``Quality`` for the reasons the thresholds do not touch)."""
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
-    obs = x["b1"] * bound_scale <= 0.5
+    obs = x["b1"] * (bound_scale / min(x["windows"], max_length)) <= 0.5
     if not obs.size or obs.mean() < min_observed:
         return False
     return not (np.mean((x["after"][obs] > excess) & (x["gate"][obs] > 0)) > max_misaligned)
 
 
 SWEEP = dict(
-    bound_scale=(2.0, 3.0, 4.0, 6.0),
+    bound_scale=(2.0, 3.0, 4.0, 5.0, 6.0),
+    max_length=(4.0, 8.0),  # windows: the longest correlation length credited
     min_observed=(0.3, 0.4, 0.5),
     excess=(0.1, 0.15, 0.2, 0.3),
     max_misaligned=(0.2, 0.3, 0.4, 0.5),
@@ -248,12 +251,12 @@ def sweep(rows, inputs, min_flagged=0.97):
     least ``min_flagged`` of the failed results, best trusted share of the good first."""
     import itertools
 
-    from radiokit.register import _BOUND_SCALE, _EXCESS, _MAX_FOLDS, _MAX_MISALIGNED, _MIN_OBSERVED
+    from radiokit.register import _BOUND_SCALE, _EXCESS, _MAX_FOLDS, _MAX_LENGTH, _MAX_MISALIGNED, _MIN_OBSERVED
 
     res = [(r, x) for r, x in zip(rows, inputs) if x is not None]
     failed = [(r, x) for r, x in res if r["epe_median"] > max(1.0, 0.5 * r["identity"])]
     good = [(r, x) for r, x in res if r["epe_median"] <= 0.5]
-    now = (_BOUND_SCALE, _MIN_OBSERVED, _EXCESS, _MAX_MISALIGNED)
+    now = (_BOUND_SCALE, _MAX_LENGTH, _MIN_OBSERVED, _EXCESS, _MAX_MISALIGNED)
     same = sum(rule_ok(x, r["quality"], *now, _MAX_FOLDS) == r["ok"] for r, x in res)
     out = [f"  the present thresholds {now} reproduce register()'s ok for {same}/{len(res)} results (subsampled)"]
     table = []
@@ -344,6 +347,11 @@ def main(argv=None) -> int:
             print("\n(--sweep chooses thresholds: it runs on --split train only)")
         else:
             print("\n".join(["", "thresholds swept (best first):"] + sweep(rows, inputs)))
+            import pickle  # the rule's inputs, to explore other rules without assessing again
+
+            keep = ("method", "case", "epe_median", "identity", "ok", "quality")
+            with open(args.out / "sweep_inputs.pkl", "wb") as fh:
+                pickle.dump([({k: r.get(k) for k in keep}, x) for r, x in zip(rows, inputs)], fh)
         for r in rows:
             r.pop("quality", None)
     print(f"\n{time.perf_counter() - t0:.0f} s; load average after: {os.getloadavg()}")

@@ -247,6 +247,7 @@ def _assess(reg, f, m, mask, info, seconds):
 # square (see radiokit.register._confidence).
 _WINDOW = 24.0
 _BOUND_SCALE = 4.0
+_MAX_LENGTH = 4.0  # windows: the longest correlation length the map credits
 _MIN_OBSERVED = 0.5
 _EXCESS = 0.1
 _MAX_MISALIGNED = 0.2
@@ -278,7 +279,7 @@ def _observed(reg, f, m, w, d, mask):
     q = reg.quality
     ob = C.observability(f, _WINDOW, mask)
     smooth = np.stack([C._gauss(c, _WINDOW) for c in d])
-    length = np.clip(_correlation_length(smooth, ob.object), _WINDOW / 2, 4 * _WINDOW)
+    length = np.clip(_correlation_length(smooth, ob.object), _WINDOW / 2, _MAX_LENGTH * _WINDOW)
     ob.bound_px *= np.float32(_BOUND_SCALE * _WINDOW / length)
     ob.confidence = (1.0 / (1.0 + (ob.bound_px / C.OBSERVED_PX) ** 2)).astype(np.float32)
     rows, cols = reg.displacement.shape[1:]
