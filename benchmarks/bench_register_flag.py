@@ -3,10 +3,10 @@
 Run (from the repository root)::
 
     python benchmarks/bench_register_flag.py --split test --size 560 --seeds 2
-    python benchmarks/bench_register_flag.py --split train --size 560 --seeds 2   # to choose thresholds
+    python benchmarks/bench_register_flag.py --split train --size 560 --seeds 4 --sweep   # to choose thresholds
 
-Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, elastix and DIS on high-passed
-images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
+Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, rc weak, rc weak-fast, elastix
+and DIS on high-passed images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
 simulated pairs of both scene presets, noisy, as in ``bench_register``'s part 3). Each result is
 cached (``--out``, the field and the method's ``info``), so the flag can be re-assessed
 (``radiokit.register._assess``) as its rule changes without registering again (``--reassess``
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_register import FAMILY_METHODS, configs, confusion
+from bench_register import FAMILY_METHODS, _method_of, configs, confusion
 from regdata import family, family_pair, score, sim_pair
 
 
@@ -61,7 +61,7 @@ def registered(out, label, name, opts, fixed, moving, fresh=False):
     if path.exists() and not fresh:
         z = np.load(path, allow_pickle=False)
         return z["d"], json.loads(str(z["info"])), float(z["seconds"])
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     f, m, _ = _check(fixed, moving, None)
     t = time.perf_counter()
     d, info = METHODS[method](f, m, None, **opts)
@@ -78,7 +78,7 @@ def assess(name, opts, fixed, moving, d, info, seconds):
     and confidence map, exactly as ``register()`` would return it."""
     from radiokit.register import Quality, Registration, _assess, _check
 
-    method = name.split("+")[0].replace("rc-fast", "rc")
+    method = _method_of(name)
     f, m, _ = _check(fixed, moving, None)
     reg = Registration(np.ascontiguousarray(d, np.float32), method, Quality(), dict(opts))
     _assess(reg, f, m, None, info, seconds)
@@ -92,14 +92,17 @@ def run(args):
     cfgs = dict(configs())
     methods = [(n, cfgs[n]) for n in FAMILY_METHODS if n in cfgs and n.split("+")[0] not in args.skip]
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows, inputs = [], []
     for label, meta, thunk in pairs(args.split, args.size, args.seeds, args.sim):
         fixed, moving, truth, mask = thunk()
         ident = score(np.zeros_like(truth), truth, mask)["epe_median"]
         rows.append(dict(meta, case=label, method="identity", epe_median=ident, identity=ident, ok=None))
+        inputs += [None] if args.sweep else []
         for name, opts in methods:
             d, info, sec = registered(args.out, label, name, opts, fixed, moving, args.fresh)
             reg = assess(name, opts, fixed, moving, d, info, sec)
+            if args.sweep:
+                inputs.append(rule_inputs(fixed, moving, d))
             e = np.hypot(*(reg.displacement - truth))
             obs = (reg.confidence >= 0.5) & mask
             rows.append(
@@ -117,6 +120,8 @@ def run(args):
                     epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
                 )
             )
+            if args.sweep:
+                rows[-1]["quality"] = reg.quality
         print(
             f"  {label:<62} "
             + " ".join(
@@ -125,16 +130,26 @@ def run(args):
             ),
             flush=True,
         )
-    return rows, methods
+    return rows, methods, inputs
 
 
 def _pct(a, b):
-    return f"{100 * a / b:.0f} %" if b else "-"
+    """``a / b`` in per cent with its exact (Clopper-Pearson) 95 % binomial interval: the
+    tables count a few dozen good results, so a rate is known to +-5-10 points at best."""
+    if not b:
+        return "-"
+    from scipy.stats import binomtest
+
+    ci = binomtest(a, b).proportion_ci(0.95, method="exact")
+    return f"{100 * a / b:.0f} %, CI {100 * ci.low:.0f}-{100 * ci.high:.0f} %"
 
 
 def table(rows, methods) -> str:
     """The confusion table (markdown): all methods, then each one."""
-    lines = ["| results | failed | flagged (ok False) | good | trusted (ok True) |", "|---|---|---|---|---|"]
+    lines = [
+        "| results | failed | flagged (ok False; 95 % CI) | good | trusted (ok True; 95 % CI) |",
+        "|---|---|---|---|---|",
+    ]
     for tag, sel in [("all methods", rows)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
         c = confusion(sel)
         lines.append(
@@ -173,6 +188,88 @@ def textureless(rows) -> list[str]:
                 f"  {r['method']:<11} {r['case']:<58} body {r['epe_median']:.2f} px, observed "
                 f"{100 * r['observed']:.0f} % of the body, EPE there {eo} px, ok {r['ok']}"
             )
+    return out
+
+
+def rule_inputs(fixed, moving, d, stride=2):
+    """What ``register()``'s flag rule reads, per object pixel (every ``stride``-th row and
+    column of the assessment grid), before its thresholds: the Cramer-Rao bound at scale 1 and
+    the field's correlation length in windows (observed where ``bound_scale x b1 / min(windows,
+    max_length) <= 0.5 px``), the
+    residual's excess over the noise after registering, and that excess against a quarter of the
+    excess before (misaligned where both exceed their lines). The same steps as
+    ``radiokit.register._observed`` and ``_misaligned`` (``sweep`` checks that the present
+    thresholds give ``ok`` as ``register()`` does)."""
+    from radiokit.register import _ASSESS_PIXELS, _WINDOW, _bin, _check, _correlation_length, warp
+    from radiokit.register import _confidence as C
+
+    f, m, _ = _check(fixed, moving, None)
+    k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
+    d = np.asarray(d, np.float32)
+    if k > 1:
+        f, m, d = _bin(f, k), _bin(m, k), _bin(d, k) / np.float32(k)
+    w, d = np.nan_to_num(warp(m, d)), np.nan_to_num(d)
+    ob = C.observability(f, _WINDOW, None)
+    smooth = np.stack([C._gauss(c, _WINDOW) for c in d])
+    length = max(_correlation_length(smooth, ob.object), _WINDOW / 2)  # the upper clip is swept
+    sig = C.noise_map(f, _WINDOW)
+    factor = 1.0 + C.interpolation_variance(d, _WINDOW)
+    after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
+    before = C.consistency(f, m, _WINDOW, sig) - 1.0
+    sel = ob.object[::stride, ::stride]
+    return dict(
+        b1=ob.bound_px[::stride, ::stride][sel],
+        windows=length / _WINDOW,
+        after=after[::stride, ::stride][sel],
+        gate=(after * factor - 0.5 * np.maximum(before, 0))[::stride, ::stride][sel],
+        n_object=int(ob.object.sum()) * k * k,
+    )
+
+
+def rule_ok(x, q, bound_scale, max_length, min_observed, excess, max_misaligned, max_folds):
+    """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
+    the result's ``Quality`` for the reasons the thresholds do not touch)."""
+    if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
+        return False
+    obs = x["b1"] * (bound_scale / min(x["windows"], max_length)) <= 0.5
+    if not obs.size or obs.mean() < min_observed:
+        return False
+    return not (np.mean((x["after"][obs] > excess) & (x["gate"][obs] > 0)) > max_misaligned)
+
+
+SWEEP = dict(
+    bound_scale=(2.0, 3.0, 4.0, 5.0, 6.0),
+    max_length=(4.0, 8.0),  # windows: the longest correlation length credited
+    min_observed=(0.3, 0.4, 0.5),
+    excess=(0.1, 0.15, 0.2, 0.3),
+    max_misaligned=(0.2, 0.3, 0.4, 0.5),
+)
+
+
+def sweep(rows, inputs, min_flagged=0.97):
+    """The confusion over a grid of the rule's thresholds (``SWEEP``): the rules that flag at
+    least ``min_flagged`` of the failed results, best trusted share of the good first."""
+    import itertools
+
+    from radiokit.register import _BOUND_SCALE, _EXCESS, _MAX_FOLDS, _MAX_LENGTH, _MAX_MISALIGNED, _MIN_OBSERVED
+
+    res = [(r, x) for r, x in zip(rows, inputs) if x is not None]
+    failed = [(r, x) for r, x in res if r["epe_median"] > max(1.0, 0.5 * r["identity"])]
+    good = [(r, x) for r, x in res if r["epe_median"] <= 0.5]
+    now = (_BOUND_SCALE, _MAX_LENGTH, _MIN_OBSERVED, _EXCESS, _MAX_MISALIGNED)
+    same = sum(rule_ok(x, r["quality"], *now, _MAX_FOLDS) == r["ok"] for r, x in res)
+    out = [f"  the present thresholds {now} reproduce register()'s ok for {same}/{len(res)} results (subsampled)"]
+    table = []
+    for combo in itertools.product(*SWEEP.values()):
+        ff = sum(not rule_ok(x, r["quality"], *combo, _MAX_FOLDS) for r, x in failed)
+        gt = sum(rule_ok(x, r["quality"], *combo, _MAX_FOLDS) for r, x in good)
+        table.append((gt / max(len(good), 1), ff / max(len(failed), 1), combo, ff, gt))
+    table.sort(key=lambda t: (-(t[1] >= min_flagged), -t[0], -t[1]))
+    for gt_rate, ff_rate, combo, ff, gt in table[:15]:
+        out.append(
+            f"  {dict(zip(SWEEP, combo))}: failed flagged {ff}/{len(failed)} ({100 * ff_rate:.1f} %), "
+            f"good trusted {gt}/{len(good)} ({100 * gt_rate:.1f} %)"
+        )
     return out
 
 
@@ -219,6 +316,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="register again even when a result is cached")
     ap.add_argument("--textureless", action="store_true", help="also the textureless pairs' observed EPE")
     ap.add_argument(
+        "--sweep", action="store_true", help="train split: the confusion over a grid of the flag's thresholds"
+    )
+    ap.add_argument(
         "--textureless-check",
         type=int,
         metavar="SIZE",
@@ -233,7 +333,7 @@ def main(argv=None) -> int:
     args.out = args.out or Path(f"out/bench_register_flag/{args.split}-{args.size}")
     print(f"load average before: {os.getloadavg()}", flush=True)
     t0 = time.perf_counter()
-    rows, methods = run(args)
+    rows, methods, inputs = run(args)
     print(
         f"\nquality.ok against the truth, {args.split} seeds ({args.seeds} per case), {args.size} px "
         f"(failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px):\n"
@@ -242,6 +342,18 @@ def main(argv=None) -> int:
     print("\n".join(["", "misses:"] + misses(rows)))
     if args.textureless:
         print("\n".join(["", "textureless pairs:"] + textureless(rows)))
+    if args.sweep:
+        if args.split != "train":
+            print("\n(--sweep chooses thresholds: it runs on --split train only)")
+        else:
+            print("\n".join(["", "thresholds swept (best first):"] + sweep(rows, inputs)))
+            import pickle  # the rule's inputs, to explore other rules without assessing again
+
+            keep = ("method", "case", "epe_median", "identity", "ok", "quality")
+            with open(args.out / "sweep_inputs.pkl", "wb") as fh:
+                pickle.dump([({k: r.get(k) for k in keep}, x) for r, x in zip(rows, inputs)], fh)
+        for r in rows:
+            r.pop("quality", None)
     print(f"\n{time.perf_counter() - t0:.0f} s; load average after: {os.getloadavg()}")
     (args.out / "rows.json").write_text(json.dumps(rows, indent=1, default=float))
     return 0

@@ -78,6 +78,8 @@ __all__ = [
     "enhance_pair",
     "measure_domains",
     "check_pairs",
+    "rois_verdict",
+    "ROI_MIN_OBSERVED",
     "process_many",
     "output_folders",
     "PAPER",
@@ -296,6 +298,31 @@ def cross_check(field, other, body, method):
     }
 
 
+#: a ROI lies in an observed region when at least this share of it is observed (confidence
+#: >= 0.5): the paper's contrast is the ROI's mean, so once half or more of its pixels were
+#: registered by the regulariser's guess rather than by the images, so is the number; the same
+#: line ``radiokit.register`` draws for the object as a whole (observed under half: not ok)
+ROI_MIN_OBSERVED = 0.5
+
+
+def rois_verdict(observed: dict | None) -> tuple[bool | None, str]:
+    """Do the ROIs lie where the motion was observed? ``observed``: ROI name -> the share of it
+    observed (:func:`radiokit.register.roi_observed`). Returns ``(ok, reason)``: None and ""
+    without a confidence map; False, naming each ROI observed in under
+    :data:`ROI_MIN_OBSERVED` of its area, otherwise True and ""."""
+    if observed is None:
+        return None, ""
+    unseen = {name: share for name, share in observed.items() if share < ROI_MIN_OBSERVED}
+    if not unseen:
+        return True, ""
+    which = " and ".join(f"the {name} ROI ({100 * (1 - s):.0f} % of it)" for name, s in unseen.items())
+    verb = "lies" if len(unseen) == 1 else "lie"
+    return False, (
+        f"{which} {verb} where the motion was not observed (confidence map): the field there is the "
+        "regulariser's guess, and so is the contrast measured there"
+    )
+
+
 def _step_gaps_mm(path, numbers):
     """Mean plate gap (mm) of each step's projections, NaN where the file does not record it."""
     from radiokit.io import ImageKey, open_frames
@@ -469,9 +496,10 @@ def check_pairs(
     pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background: ROI, truth=None, crop=None
 ) -> tuple[PairResult, ...]:
     """Per registered pair (:class:`radiokit.results.PairResult`): the intensity-change ratio in
-    each domain, the registration's quality, whether the motion was observed in the ROIs, the
-    cross-check (a disagreement flags the pair), and for a simulated file the end-point error
-    against the truth (over the body, and over the two ROIs where the images carry the motion)."""
+    each domain, the registration's quality, whether the motion was observed in the ROIs
+    (:func:`rois_verdict`: a ROI mostly unobserved flags the pair), the cross-check (a
+    disagreement flags the pair), and for a simulated file the end-point error against the truth
+    (over the body, and over the two ROIs where the images carry the motion)."""
     from radiokit.enhance import to_domain
     from radiokit.measure import change_ratio
     from radiokit.register import roi_observed
@@ -493,19 +521,23 @@ def check_pairs(
                 "inclusion": roi_observed(reg.confidence, inclusion),
                 "background": roi_observed(reg.confidence, background),
             }
+        whys = []
         if p.cross_check is not None and not p.cross_check["agree"]:
-            why = (
+            whys.append(
                 f"disagrees with {p.cross_check['method']} by {p.cross_check['median_px']:.1f} px (median over "
                 f"the body): at least one of the two is wrong"
             )
-            q["ok"], q["reason"] = False, f"{q['reason']}; {why}" if q.get("reason") else why
+        rois_ok, why = rois_verdict(observed)
+        whys += [why] if rois_ok is False else []
+        if whys:
+            q["ok"], q["reason"] = False, "; ".join(([q["reason"]] if q.get("reason") else []) + whys)
         epe = None
         if truth and (a, b) in truth["fields"]:
             tf = truth["fields"][(a, b)][(slice(None), *crop)]
             epe = dict(zip(("epe_median", "epe_p95"), _epe(reg.displacement, tf, body)))
             # a uniform slab's interior moves unseen: there the field is the regulariser's guess
             epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
-        out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe))
+        out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok))
     return tuple(out)
 
 

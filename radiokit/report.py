@@ -568,10 +568,12 @@ def _headline_rows(results, paper):
     status = "passed" if main.ok else f"FLAGGED: {main.reason or 'no reason given'}"
     rows.append((f"registration {_pair_label(main.name)} ({main.method})", status, "", ""))
     if main.rois_observed:
+        unseen = _rois_unobserved(main)
         rows.append(
             (
                 "motion observed in the ROIs (inclusion / background)",
-                " / ".join(f"{_fmt(100 * main.rois_observed[k], '.0f')} %" for k in ("inclusion", "background")),
+                " / ".join(f"{_fmt(100 * main.rois_observed[k], '.0f')} %" for k in ("inclusion", "background"))
+                + (f": {' and '.join(unseen)} mostly unobserved, flagged" if unseen else ": both observed"),
                 "",
                 "",
             )
@@ -702,14 +704,30 @@ def _pair_sentences(results, paper):
         )
     if main.rois_observed:
         obs = main.rois_observed
-        unseen = [k for k, v in obs.items() if v < 0.5]
+        unseen = _rois_unobserved(main)
         s = "The motion was observed (registration confidence map) in " + " and ".join(
             f"{_fmt(100 * v, '.0f')} % of the {k} ROI" for k, v in obs.items()
         )
         out.append(
-            s + (f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess." if unseen else ".")
+            s
+            + (
+                f"; in the {' and '.join(unseen)} ROI the field is mostly the regulariser's guess, so the "
+                "registration is flagged and the contrast measured there rests on that guess."
+                if unseen
+                else ": both ROIs lie where the images carry the motion."
+            )
         )
     return out
+
+
+def _rois_unobserved(pair) -> list[str]:
+    """The ROIs of ``pair`` that lie mostly where the motion was not observed (a results.json of
+    schema 1.0 has no ``rois_ok``: the pipeline's rule applied to its ``rois_observed``)."""
+    from radiokit.pipeline import ROI_MIN_OBSERVED
+
+    if pair.rois_ok is True:
+        return []
+    return [k for k, v in (pair.rois_observed or {}).items() if v is not None and v < ROI_MIN_OBSERVED]
 
 
 def _plain_language(results, paper):

@@ -41,7 +41,8 @@ __all__ = [
 ]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"
+# 1.1: registration/<pair>/rois_ok (do the ROIs lie where the motion was observed?)
 
 
 def k_label(k) -> str:
@@ -118,6 +119,9 @@ class PairResult:
     rois_observed: dict | None = None  #: "inclusion"/"background" -> fraction of the ROI observed
     cross_check: dict | None = None  #: see radiokit.pipeline.cross_check
     epe: dict | None = None  #: simulated files: median/p95 end-point error (px), body and ROIs
+    #: both ROIs mostly where the motion was observed (radiokit.pipeline.rois_verdict; False also
+    #: makes ``ok`` False, with the reason); None without a confidence map or in a 1.0 file
+    rois_ok: bool | None = None
 
     @property
     def name(self) -> str:
@@ -136,6 +140,8 @@ class PairResult:
         q["method"] = self.method
         if self.rois_observed is not None:
             q["rois_observed"] = dict(self.rois_observed)
+        if self.rois_ok is not None:
+            q["rois_ok"] = bool(self.rois_ok)
         if self.cross_check is not None:
             q["cross_check"] = dict(self.cross_check)
         q.update(self.epe or {})
@@ -145,7 +151,9 @@ class PairResult:
     def from_json(cls, name: str, registration: dict, change_ratio: dict) -> PairResult:
         q = dict(registration)
         a, _, b = name.partition("->")
-        extras = {key: q.pop(key, None) for key in ("method", "rois_observed", "cross_check")}
+        extras = {key: q.pop(key, None) for key in ("method", "rois_observed", "cross_check", "rois_ok")}
+        if extras["rois_ok"] is not None and not isinstance(extras["rois_ok"], bool):
+            raise ValueError(f"registration {name!r}: rois_ok is {extras['rois_ok']!r}, not true, false or null")
         epe = {key: q.pop(key) for key in ("epe_median", "epe_p95", "epe_roi_median", "epe_roi_p95") if key in q}
         return cls(
             int(a),
@@ -156,6 +164,7 @@ class PairResult:
             extras["rois_observed"],
             extras["cross_check"],
             epe or None,
+            extras["rois_ok"],
         )
 
 

@@ -242,11 +242,14 @@ def _assess(reg, f, m, mask, info, seconds):
 # smooth, right field look unobservable. A method that reaches less than the data allow is
 # caught by the consistency check (misaligned structure), not by a map tuned to one method.
 # _BOUND_SCALE, _EXCESS and _MAX_MISALIGNED were chosen on the training seeds of
-# benchmarks/regdata.family at 560 px, all four methods of bench_register_flag.py (numbers in
-# benchmarks/README.md, "The flag"); _EXCESS is 6 standard deviations of a window's noise mean
+# benchmarks/regdata.family at 560 px, all four methods of bench_register_flag.py, and checked
+# against a grid of alternatives (with _MIN_OBSERVED and _MAX_LENGTH) on 4 training seeds and all
+# six methods (`bench_register_flag.py --split train --seeds 4 --sweep`: none does better; numbers
+# in benchmarks/README.md, "The flag"); _EXCESS is 6 standard deviations of a window's noise mean
 # square (see radiokit.register._confidence).
 _WINDOW = 24.0
 _BOUND_SCALE = 4.0
+_MAX_LENGTH = 4.0  # windows: the longest correlation length the map credits
 _MIN_OBSERVED = 0.5
 _EXCESS = 0.1
 _MAX_MISALIGNED = 0.2
@@ -278,7 +281,7 @@ def _observed(reg, f, m, w, d, mask):
     q = reg.quality
     ob = C.observability(f, _WINDOW, mask)
     smooth = np.stack([C._gauss(c, _WINDOW) for c in d])
-    length = np.clip(_correlation_length(smooth, ob.object), _WINDOW / 2, 4 * _WINDOW)
+    length = np.clip(_correlation_length(smooth, ob.object), _WINDOW / 2, _MAX_LENGTH * _WINDOW)
     ob.bound_px *= np.float32(_BOUND_SCALE * _WINDOW / length)
     ob.confidence = (1.0 / (1.0 + (ob.bound_px / C.OBSERVED_PX) ** 2)).astype(np.float32)
     rows, cols = reg.displacement.shape[1:]
