@@ -112,10 +112,10 @@ def _record_row(row, i, value, found, pos):
     cols = row.size
     for j0 in range(0, cols, CHUNK):
         j1 = min(cols, j0 + CHUNK)
-        hit = False
-        for j in range(j0, j1):
-            hit |= row[j] == value
-        if hit:
+        hits = 0
+        for j in range(j0, j1):  # an integer sum vectorises; a boolean "or" did not
+            hits += row[j] == value
+        if hits:
             pos = _record(row, i, j0, j1, value, found, pos)
     return pos
 
@@ -139,30 +139,31 @@ def correct_rows(raw, dark, coef, out, r0, r1, log_domain, scale, saturation, co
     n_bad = 0
     n_sat = 0
     for i in range(r0, r1):
-        any_bad = False
-        any_sat = False
+        any_bad = 0
+        any_sat = 0
         for j in range(cols):
             v = raw[i, j]
             t = np.float32(v) - dark[i, j]
             good = (t >= _TINY) & (t <= _HUGE)  # False for NaN, inf and anything <= 0
-            any_bad |= not good
+            any_bad += not good  # integer sums vectorise (a boolean "or" did not)
             row[j] = t if good else _MARK
             if count_saturated:
                 is_sat = v >= saturation
-                any_sat |= is_sat
+                any_sat += is_sat
                 flags[j] = np.float32(is_sat)
-        if any_bad:  # rare: record where, then clamp
+        if any_bad:  # rare: record where (the marks are clamped below)
             n_bad = _record_row(row, i, _MARK, bad, n_bad)
-            for j in range(cols):
-                row[j] = FLOOR_COUNTS if row[j] == _MARK else row[j]
         if any_sat:
             n_sat = _record_row(flags, i, np.float32(1.0), sat, n_sat)
+        # the clamp is a select inside the vectorised loop: no pass of its own
         if log_domain:
             for j in range(cols):
-                out[i, j] = coef[i, j] - _ln(row[j])
+                t = row[j]
+                out[i, j] = coef[i, j] - _ln(t if t > 0 else FLOOR_COUNTS)
         else:
             for j in range(cols):
-                out[i, j] = row[j] * coef[i, j] * scale
+                t = row[j]
+                out[i, j] = (t if t > 0 else FLOOR_COUNTS) * coef[i, j] * scale
     return n_bad, n_sat
 
 
