@@ -182,8 +182,8 @@ class BSplineField:
         return np.stack([(Bc @ C[k].T).T for k in range(2)])
 
     def bands(self, factor, slices):
-        """``(slice, j0, j1, B, B^T)`` per row band: the rows ``slice`` of ``B_r`` on the only
-        control rows ``j0:j1`` they weigh (cached: the same bands every evaluation)."""
+        """``(slice, j0, j1, B)`` per row band: the rows ``slice`` of ``B_r`` on the only control
+        rows ``j0:j1`` they weigh (cached: the same bands every evaluation)."""
         key = (factor, tuple((s.start, s.stop) for s in slices))
         if key not in self._cache:
             Br = self.matrices(factor)[0]
@@ -193,18 +193,33 @@ class BSplineField:
                 j0, j1 = int(b.indices.min()), int(b.indices.max()) + 1
                 b = b[:, j0:j1].tocsr()
                 b.sort_indices()
-                out.append((sl, j0, j1, b, b.T.tocsr()))
+                out.append((sl, j0, j1, b))
             self._cache[key] = out
         return self._cache[key]
 
-    def adjoint_columns(self, acc, factor=1):
-        """The gradient with respect to the coefficients from ``acc`` (2, nr, cols) =
-        ``B_r^T G`` per component: ``acc B_c``, flattened, float64."""
-        _, _, _, BcT = self.matrices(factor)
-        cols = acc.shape[2]
-        if BcT.shape[1] != cols:
-            BcT = BcT[:, :cols]
-        return np.stack([(BcT @ acc[k].T).T for k in range(2)]).ravel() / factor
+    def adjoint_rows(self, gy, gx, factor=1):
+        """``adjoint(np.stack([gy, gx]), factor)`` to the last bit, ``B_r^T G`` computed by
+        blocks of lattice rows on the thread pool (each row's sum over its pixel rows is the
+        one ``adjoint`` runs)."""
+        _, _, BrT, BcT = self.matrices(factor)
+        rows, cols = gy.shape
+        key = ("rows", factor, rows)
+        if key not in self._cache:
+            BrT = BrT[:, :rows] if BrT.shape[1] != rows else BrT
+            step = max(4, -(-self.nr // (4 * _threads())))
+            self._cache[key] = [(slice(a, a + step), BrT[a : a + step]) for a in range(0, self.nr, step)]
+        acc = np.empty((2, self.nr, cols), self.dtype)
+        gy, gx = gy.astype(self.dtype, copy=False), gx.astype(self.dtype, copy=False)
+
+        def block(b):
+            js, B = b
+            acc[0, js] = B @ gy
+            acc[1, js] = B @ gx
+
+        _parallel(block, self._cache[key])
+        BcT = BcT[:, :cols] if BcT.shape[1] != cols else BcT
+        out = np.stack([(BcT @ acc[k].T).T for k in range(2)])
+        return out.ravel().astype(np.float64) / factor
 
     def adjoint(self, g, factor=1):
         """Gradient with respect to the coefficients of a gradient ``g`` (2, rows, cols) with
@@ -237,8 +252,46 @@ def _downsample(img, f):
 
     rows, cols = img.shape
     R, C = -(-rows // f), -(-cols // f)
-    pad = np.pad(img, ((0, R * f - rows), (0, C * f - cols)), mode="edge")
-    return cv2.resize(pad, (C, R), interpolation=cv2.INTER_AREA)
+    if (R * f, C * f) != (rows, cols):  # (a copy of the whole frame otherwise)
+        img = np.pad(img, ((0, R * f - rows), (0, C * f - cols)), mode="edge")
+    return cv2.resize(img, (C, R), interpolation=cv2.INTER_AREA)
+
+
+def _row_bands(rows, step=128):
+    return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
+
+
+def _parallel(fn, items):
+    """``[fn(item) for item in items]``, on the thread pool when it has several threads: a
+    whole-frame pass at 2240 x 2240 run band by band stays in cache, without frame-sized
+    temporaries (page faults)."""
+    if len(items) == 1 or _threads() == 1:
+        return [fn(b) for b in items]
+    return list(_pool().map(fn, items))
+
+
+def _fields(grids, factor, shape):
+    """``sum(grid.field(c, factor, shape) for grid, c in grids)`` (float32, the same to the bit),
+    computed band by band: no frame-sized temporaries."""
+    out = np.zeros((2,) + tuple(shape), np.float32)
+    if not grids:
+        return out
+    Ts = [g.columns(c, factor)[:, :, : shape[1]] for g, c in grids]
+    slices = _row_bands(shape[0])
+    parts = [g.bands(factor, slices) for g, _ in grids]
+    scale = np.float32(1.0 / factor)
+
+    def band(i):
+        sl = slices[i]
+        for T, p in zip(Ts, parts):
+            _, j0, j1, Bs = p[i]
+            for k in range(2):
+                v = Bs @ T[k, j0:j1]
+                v *= scale
+                out[k, sl] += v
+
+    _parallel(band, range(len(slices)))
+    return out
 
 
 class _Level:
@@ -392,14 +445,14 @@ class _Level:
         """``(energy, gradient)``: the similarity of the lattice coefficients ``x`` of ``grid``
         on top of the field ``base`` (this level's pixels), and its gradient with respect to
         ``x`` (float64). The same as ``energy(grid.field(x, factor) + base)`` followed by
-        ``grid.adjoint``, computed band by band (the adjoint's sums over rows are added band
-        after band: the same to float32 rounding)."""
+        ``grid.adjoint``, to the last bit: the field, warp, residual and gradient band by band,
+        the adjoint by blocks of lattice rows (each row's sum over pixel rows in the same order)."""
         T = grid.columns(x, factor)
         bands = grid.bands(factor, self._bands())
         scale = np.float32(1.0 / factor)
 
         def sample(b):
-            sl, j0, j1, Bs, _ = b
+            sl, j0, j1, Bs = b
             y, xx = (Bs @ T[k, j0:j1] for k in range(2))
             y *= scale
             xx *= scale
@@ -412,16 +465,13 @@ class _Level:
         if dr is None:
             return e, np.zeros(grid.n_params)
 
-        def adjoint(b):
-            sl, j0, j1, _, BsT = b
-            gy, gx = self._band_gradient(dr, sl)
-            return j0, j1, BsT @ gy, BsT @ gx
+        def gradient(sl):  # dE/dd in place of the warped image's derivatives
+            g = dr[sl] * self._maskf[sl] if self._maskf is not None else dr[sl]
+            np.multiply(g, self._dy[sl], out=self._dy[sl])
+            np.multiply(g, self._dx[sl], out=self._dx[sl])
 
-        acc = np.zeros((2, grid.nr, self.shape[1]))
-        for j0, j1, py, px in self._map(adjoint, bands):
-            acc[0, j0:j1] += py
-            acc[1, j0:j1] += px
-        return e, grid.adjoint_columns(acc, factor)
+        self._map(gradient)
+        return e, grid.adjoint_rows(self._dy, self._dx, factor)
 
 
 def _bilinear_table(m):
@@ -501,7 +551,14 @@ def _normalise(fixed, moving):
     if hi <= lo:
         lo, hi = float(fixed.min()), float(fixed.max())
     scale = 1.0 / (hi - lo)
-    return ((fixed - lo) * scale).astype(np.float32), ((moving - lo) * scale).astype(np.float32)
+    out = np.empty(fixed.shape, np.float32), np.empty(moving.shape, np.float32)
+
+    def band(sl):  # (x - lo) * scale as before (in double when lo is), rounded to float32
+        for a, o in zip((fixed, moving), out):
+            o[sl] = (a[sl] - lo) * scale
+
+    _parallel(band, _row_bands(fixed.shape[0]))
+    return out
 
 
 def _highpass(img, sigma):
@@ -514,7 +571,7 @@ def _highpass(img, sigma):
     blur = cv2.GaussianBlur(small, (0, 0), sigma / k, borderType=cv2.BORDER_REFLECT)
     if k > 1:
         blur = cv2.resize(blur, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
-    return (img - blur).astype(np.float32)
+    return (img - blur).astype(np.float32, copy=False)
 
 
 def bspline_register(fixed, moving, mask=None, **options):
@@ -643,9 +700,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
         lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
         level = _Level(f, m, mask, factor, similarity, alpha)
-        base = np.zeros((2,) + level.shape, np.float32)
-        for g_, c_ in grids:  # the coarser lattices' field, fixed at this level
-            base += g_.field(c_, factor, level.shape)
+        base = _fields(grids, factor, level.shape)  # the coarser lattices' field, fixed at this level
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
         res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
         if not np.all(np.isfinite(res.x)):
@@ -668,9 +723,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
             callback(factor, res)
         if fine:
             converged, message = _converged(res, move, o["converge_px"])
-    d = np.zeros((2,) + f.shape, np.float32)
-    for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
-        d += g_.field(c_, 1, f.shape)
+    d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
     return d, dict(
         iterations=total_its,
         converged=converged,

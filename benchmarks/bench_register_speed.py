@@ -1,0 +1,159 @@
+"""rc's CPU and wall time, this tree against an older ``_bspline.py``, side by side in one run.
+
+Run (from the repository root)::
+
+    git show a6e5868:radiokit/register/_bspline.py > /tmp/bspline_old.py
+    python benchmarks/bench_register_speed.py --old /tmp/bspline_old.py --equivalence
+    python benchmarks/bench_register_speed.py --old /tmp/bspline_old.py --size 2240 \\
+        --presets default fast --threads 1 2 --reps 5
+
+The old module is loaded beside the current one (its ``@_method`` registrations are undone), and
+``radiokit.register.register(fixed, moving, "rc", preset=...)`` runs with either ``rc`` in turn,
+old and new interleaved, so a shared machine's load falls on both alike. ``RADIOKIT_THREADS``
+and OpenCV's threads are set to ``--threads`` (as ``radiokit process`` sets them in a worker).
+
+Timing prints, per preset and thread count, the medians over ``--reps`` of wall and CPU
+(``time.process_time``: every thread of the process) seconds of the whole ``register`` call
+(the method and the quality assessment) and of the method alone (wall), new / old, and the load
+average before and after. ``--equivalence`` registers each pair once with each and prints the
+median end-point error against the truth inside the body, old and new, and how far the two
+fields are apart (median, 99th percentile and largest |difference|, px).
+
+Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
+1/10-frame correlation length, 1 % motion), ``rich`` ``analytic_pair`` (the texture ten times the
+noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
+stiffer disc) on weak texture.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from regdata import Case, analytic_pair, family_pair
+
+
+def make_pair(name, size):
+    if name == "weak":
+        return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1000))
+    if name == "rich":
+        return analytic_pair(size, 0.01, 0.10, 0.01, seed=1)
+    if name == "phys":
+        return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0, motion="physical", seed=1001))
+    raise ValueError(f"pair {name!r}: expected weak, rich or phys")
+
+
+def methods(old_path):
+    """``{"old": rc, "new": rc}``: the method functions of the old file and of this tree."""
+    from radiokit.register import METHODS, _load_methods
+
+    _load_methods()
+    saved = dict(METHODS)
+    spec = importlib.util.spec_from_file_location("radiokit.register._bspline_old", old_path)
+    old = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(old)  # registers its methods over ours...
+    rc_old = METHODS["rc"]
+    METHODS.clear()
+    METHODS.update(saved)  # ...undone
+    return {"old": rc_old, "new": saved["rc"]}
+
+
+def set_threads(n):
+    import cv2
+
+    os.environ["RADIOKIT_THREADS"] = str(n)
+    cv2.setNumThreads(n)
+
+
+def run(fn, fixed, moving, preset):
+    """``(registration, wall s, cpu s)`` of ``register`` with ``fn`` as its ``rc``."""
+    from radiokit.register import METHODS, register
+
+    METHODS["rc"] = fn
+    t0, c0 = time.perf_counter(), time.process_time()
+    reg = register(fixed, moving, "rc", preset=preset)
+    return reg, time.perf_counter() - t0, time.process_time() - c0
+
+
+def epe(d, truth, mask):
+    return float(np.median(np.sqrt(((d - truth) ** 2).sum(axis=0))[mask]))
+
+
+def equivalence(fns, pairs, sizes, presets, threads):
+    set_threads(threads)
+    print(f"equivalence, {threads} thread(s): median EPE (px) old / new; |new - old| field px: median, p99, max")
+    for size in sizes:
+        for name in pairs:
+            fixed, moving, truth, mask = make_pair(name, size)
+            for preset in presets:
+                r = {k: run(fn, fixed, moving, preset)[0] for k, fn in fns.items()}
+                diff = np.sqrt(((r["new"].displacement - r["old"].displacement) ** 2).sum(axis=0))[mask]
+                eo, en = (epe(r[k].displacement, truth, mask) for k in ("old", "new"))
+                print(
+                    f"  {name} {size} {preset:9s} EPE {eo:.4f} / {en:.4f} (diff {en - eo:+.4f})  "
+                    f"field diff {np.median(diff):.2e} {np.percentile(diff, 99):.2e} {diff.max():.2e}  "
+                    f"ok {r['old'].quality.ok}/{r['new'].quality.ok} its {r['old'].quality.iterations}/"
+                    f"{r['new'].quality.iterations}",
+                    flush=True,
+                )
+
+
+def timing(fns, pair, size, presets, threads, reps):
+    fixed, moving, _, _ = make_pair(pair, size)
+    print(f"timing: {pair} {size} x {size}, medians of {reps} interleaved runs; new / old")
+    print(
+        "| preset | threads | wall old | wall new | cpu old | cpu new | method old | method new | cpu new/old | load |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n in threads:
+        set_threads(n)
+        for preset in presets:
+            for fn in fns.values():  # warm: the thread pool, imports, first-touch of the pair
+                run(fn, fixed[:256, :256], moving[:256, :256], preset)
+            load0 = os.getloadavg()[0]
+            t = {k: [] for k in fns}
+            for i in range(reps):
+                for k in list(fns)[:: 1 if i % 2 == 0 else -1]:  # alternate who goes first
+                    reg, wall, cpu = run(fns[k], fixed, moving, preset)
+                    t[k].append((wall, cpu, reg.quality.seconds))
+            m = {k: np.median(np.array(v), axis=0) for k, v in t.items()}
+            o, w = m["old"], m["new"]
+            print(
+                f"| {preset} | {n} | {o[0]:.2f} | {w[0]:.2f} | {o[1]:.2f} | {w[1]:.2f} | {o[2]:.2f} | {w[2]:.2f} "
+                f"| {w[1] / o[1]:.2f} | {load0:.1f}-{os.getloadavg()[0]:.1f} |",
+                flush=True,
+            )
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old", required=True, help="the older _bspline.py (e.g. from git show)")
+    ap.add_argument("--equivalence", action="store_true", help="compare the results instead of timing")
+    ap.add_argument("--pairs", nargs="+", default=["weak", "rich", "phys"])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[560, 2240], help="sizes of --equivalence")
+    ap.add_argument("--size", type=int, default=2240, help="the timing's frame size (the weak pair)")
+    ap.add_argument("--presets", nargs="+", default=["default", "fast", "weak-fast"])
+    ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
+    ap.add_argument("--reps", type=int, default=5)
+    a = ap.parse_args(argv)
+    from threadpoolctl import threadpool_limits
+
+    fns = methods(a.old)
+    print(f"cores {os.cpu_count()}, load average {os.getloadavg()}")
+    with threadpool_limits(limits=1, user_api="blas"):
+        if a.equivalence:
+            equivalence(fns, a.pairs, a.sizes, a.presets, a.threads[0])
+        else:
+            timing(fns, a.pairs[0], a.size, a.presets, a.threads, a.reps)
+    print(f"load average {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
