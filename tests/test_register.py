@@ -162,6 +162,23 @@ def test_planted_fold_is_reported():
     assert jacobian_determinant(np.zeros((2, 8, 8))).min() == 1.0
 
 
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_jacobian_determinant_in_bands_is_numpy_gradients(threads, monkeypatch):
+    """det J computed in row bands with a halo row is the whole-frame ``np.gradient`` formula
+    to the last bit, on frames that split into bands unevenly (a last band of one row) and on
+    a smooth affine field whose det J is known: (1 + a)(1 + d) - b c."""
+    monkeypatch.setenv("RADIOKIT_THREADS", threads)
+    rng = np.random.default_rng(4)
+    for rows, cols in ((2, 5), (65, 7), (129, 33), (300, 41)):
+        d = (rng.standard_normal((2, rows, cols)) * 3).astype(np.float32)
+        drr, drc = np.gradient(d[0])
+        dcr, dcc = np.gradient(d[1])
+        np.testing.assert_array_equal(jacobian_determinant(d), (drr + 1) * (dcc + 1) - drc * dcr)
+    yy, xx = np.mgrid[0:200, 0:90].astype(np.float32)
+    affine = np.stack([0.1 * yy - 0.05 * xx, 0.02 * yy + 0.2 * xx])
+    np.testing.assert_allclose(jacobian_determinant(affine), 1.1 * 1.2 + 0.05 * 0.02, rtol=1e-5)
+
+
 def test_divergence_is_reported():
     """A registration that ends worse than not registering is flagged."""
     from radiokit.register import Quality, _assess

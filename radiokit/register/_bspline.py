@@ -306,7 +306,8 @@ class _Level:
         self.factor = factor
         self.fixed = _downsample(fixed, factor)
         self.moving = _downsample(moving, factor)
-        self.mask = None if mask is None else _downsample(mask.astype(np.float32), factor) > 0.5
+        # (a float32 mask is not copied: the caller converts it once for all levels)
+        self.mask = None if mask is None else _downsample(mask.astype(np.float32, copy=False), factor) > 0.5
         self.shape = self.fixed.shape
         dt = self.fixed.dtype
         self._row = np.arange(self.shape[0], dtype=dt)[:, None]  # pixel positions, broadcast
@@ -346,14 +347,8 @@ class _Level:
         rows, cols = self.shape
         y += self._row[sl]
         x += self._col
-        yc = np.minimum(np.maximum(y, 0), rows - 1)
-        xc = np.minimum(np.maximum(x, 0), cols - 1)
-        outside_y = yc != y
-        outside_x = xc != x
-        y0 = np.minimum(np.floor(yc), rows - 2)  # the last row/column: weight 1 on the far side
-        x0 = np.minimum(np.floor(xc), cols - 2)
-        yc -= y0  # b (exact: a float minus the integer below it)
-        xc -= x0  # a
+        yc, y0, outside_y = _cell(y, rows)  # b and its cell's row
+        xc, x0, outside_x = _cell(x, cols)  # a and its column
         # the cell's I00, I10 - I00, I01, I11 - I01, gathered plane by plane by OpenCV's
         # nearest-pixel remap (exact at these whole-pixel positions; 2-3x faster than an index
         # array and numpy's take, and contiguous planes: 4x faster arithmetic than the strided
@@ -372,8 +367,10 @@ class _Level:
         np.subtract(c[3], c[1], out=bottom)
         bottom *= yc
         np.add(c[1], bottom, out=self._dx[sl])
-        np.copyto(dy, 0, where=outside_y)
-        np.copyto(self._dx[sl], 0, where=outside_x)
+        if outside_y is not None:
+            np.copyto(dy, 0, where=outside_y)
+        if outside_x is not None:
+            np.copyto(self._dx[sl], 0, where=outside_x)
         r = np.subtract(w, self.fixed[sl], out=self._r[sl])
         if self._maskf is not None:
             r *= self._maskf[sl]
@@ -474,6 +471,25 @@ class _Level:
         return e, grid.adjoint_rows(self._dy, self._dx, factor)
 
 
+def _cell(v, n):
+    """``(fraction, cell, outside)`` of positions ``v`` (overwritten) on an axis of ``n`` pixels:
+    clamped to the image (``outside`` marks where, or is None when nothing was), the cell's
+    first pixel (the last pixel's cell is the one before: weight 1 on its far side), and the
+    position less it (exact: a float minus the whole number below it). The clamp and the last
+    cell's test only run when the band's extremes need them."""
+    lo, hi = float(v.min()), float(v.max())
+    outside = None
+    if lo < 0 or hi > n - 1:
+        c = np.clip(v, 0, n - 1)
+        outside = c != v
+        v, hi = c, min(hi, n - 1)
+    v0 = np.floor(v)
+    if hi >= n - 1:
+        np.minimum(v0, n - 2, out=v0)
+    v -= v0
+    return v, v0, outside
+
+
 def _bilinear_table(m):
     """``(4, rows, cols)``: for the cell whose top-left pixel is ``k``, ``m[k]``, the step to
     its right neighbour, the pixel below and that pixel's step to its right (the last row and
@@ -557,7 +573,7 @@ def _normalise(fixed, moving):
         for a, o in zip((fixed, moving), out):
             o[sl] = (a[sl] - lo) * scale
 
-    _parallel(band, _row_bands(fixed.shape[0]))
+    _parallel(band, _row_bands(fixed.shape[0], 32))  # float64 temporaries of a band in cache
     return out
 
 
@@ -690,6 +706,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     o = _options(preset, overrides)
     f, m = _prepare(fixed, moving, o)
     levels = _pyramid(f.shape, o)
+    maskf = None if mask is None else mask.astype(np.float32)  # once, not per level
     coarsest, finest = levels[0][0], levels[-1][0]
     grids, history = [], []  # one lattice per level, spacing halving with the pixels
     total_its, converged, message = 0, True, ""
@@ -699,7 +716,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
         alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
         lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
-        level = _Level(f, m, mask, factor, similarity, alpha)
+        level = _Level(f, m, maskf, factor, similarity, alpha)
         base = _fields(grids, factor, level.shape)  # the coarser lattices' field, fixed at this level
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
         res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
