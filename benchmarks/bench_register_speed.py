@@ -1,15 +1,15 @@
-"""rc's CPU and wall time, this tree against an older ``_bspline.py``, side by side in one run.
+"""rc's CPU and wall time, this tree against an older revision, side by side in one run.
 
-Run (from the repository root)::
+Run (from the repository root, a git checkout)::
 
-    git show a6e5868:radiokit/register/_bspline.py > /tmp/bspline_old.py
-    python benchmarks/bench_register_speed.py --old /tmp/bspline_old.py --equivalence
-    python benchmarks/bench_register_speed.py --old /tmp/bspline_old.py --size 2240 \\
-        --presets default fast --threads 1 2 --reps 5
+    python benchmarks/bench_register_speed.py --equivalence
+    python benchmarks/bench_register_speed.py --size 2240 --presets default fast --threads 1 2 --reps 5
 
-The old module is loaded beside the current one (its ``@_method`` registrations are undone), and
-``radiokit.register.register(fixed, moving, "rc", preset=...)`` runs with either ``rc`` in turn,
-old and new interleaved, so a shared machine's load falls on both alike. ``RADIOKIT_THREADS``
+The older revision's (``--old``, default a6e5868, before session 5) ``radiokit/register/
+_bspline.py`` and ``_common.py`` are loaded beside the current ones (the old module's
+``@_method`` registrations undone), and ``radiokit.register.register(fixed, moving, "rc",
+preset=...)`` runs with either ``rc`` (and det J of the quality assessment) in turn, old and
+new interleaved, so a shared machine's load falls on both alike. ``RADIOKIT_THREADS``
 and OpenCV's threads are set to ``--threads`` (as ``radiokit process`` sets them in a worker).
 
 Timing prints, per preset and thread count, the medians over ``--reps`` of wall and CPU
@@ -30,7 +30,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -50,19 +52,37 @@ def make_pair(name, size):
     raise ValueError(f"pair {name!r}: expected weak, rich or phys")
 
 
-def methods(old_path):
-    """``{"old": rc, "new": rc}``: the method functions of the old file and of this tree."""
-    from radiokit.register import METHODS, _load_methods
+def _load(name, source):
+    path = Path(tempfile.mkdtemp()) / f"{name}.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location(f"radiokit.register.{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
-    _load_methods()
-    saved = dict(METHODS)
-    spec = importlib.util.spec_from_file_location("radiokit.register._bspline_old", old_path)
-    old = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(old)  # registers its methods over ours...
-    rc_old = METHODS["rc"]
-    METHODS.clear()
-    METHODS.update(saved)  # ...undone
-    return {"old": rc_old, "new": saved["rc"]}
+
+def methods(rev):
+    """``{"old": (rc, det J), "new": (rc, det J)}``: of revision ``rev`` and of this tree."""
+    import radiokit.register as R
+
+    R._load_methods()
+    saved = dict(R.METHODS)
+    root = Path(__file__).resolve().parent.parent
+    src = {
+        f: subprocess.run(
+            ["git", "-C", str(root), "show", f"{rev}:radiokit/register/{f}.py"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        for f in ("_bspline", "_common")
+    }
+    _load("_bspline_old", src["_bspline"])  # registers its methods over ours...
+    rc_old = R.METHODS["rc"]
+    R.METHODS.clear()
+    R.METHODS.update(saved)  # ...undone
+    common_old = _load("_common_old", src["_common"])
+    return {"old": (rc_old, common_old.jacobian_determinant), "new": (saved["rc"], R.jacobian_determinant)}
 
 
 def set_threads(n):
@@ -73,13 +93,23 @@ def set_threads(n):
 
 
 def run(fn, fixed, moving, preset):
-    """``(registration, wall s, cpu s)`` of ``register`` with ``fn`` as its ``rc``."""
-    from radiokit.register import METHODS, register
+    """``(registration, wall s, cpu s)`` of ``register`` with ``fn`` = (rc, det J)."""
+    import radiokit.register as R
 
-    METHODS["rc"] = fn
+    R.METHODS["rc"], R.jacobian_determinant = fn
     t0, c0 = time.perf_counter(), time.process_time()
-    reg = register(fixed, moving, "rc", preset=preset)
+    reg = R.register(fixed, moving, "rc", preset=preset)
     return reg, time.perf_counter() - t0, time.process_time() - c0
+
+
+def same(a, b):
+    """Field, confidence map and quality identical to the bit (but the time)?"""
+    qa, qb = (dict(vars(x.quality), seconds=0.0) for x in (a, b))
+    return bool(
+        np.array_equal(a.displacement, b.displacement)
+        and np.array_equal(a.confidence, b.confidence)
+        and str(qa) == str(qb)
+    )
 
 
 def epe(d, truth, mask):
@@ -88,7 +118,10 @@ def epe(d, truth, mask):
 
 def equivalence(fns, pairs, sizes, presets, threads):
     set_threads(threads)
-    print(f"equivalence, {threads} thread(s): median EPE (px) old / new; |new - old| field px: median, p99, max")
+    print(
+        f"equivalence, {threads} thread(s): median EPE (px) old / new; |new - old| field px: median, p99, max; "
+        "field, confidence and quality identical to the bit"
+    )
     for size in sizes:
         for name in pairs:
             fixed, moving, truth, mask = make_pair(name, size)
@@ -100,7 +133,7 @@ def equivalence(fns, pairs, sizes, presets, threads):
                     f"  {name} {size} {preset:9s} EPE {eo:.4f} / {en:.4f} (diff {en - eo:+.4f})  "
                     f"field diff {np.median(diff):.2e} {np.percentile(diff, 99):.2e} {diff.max():.2e}  "
                     f"ok {r['old'].quality.ok}/{r['new'].quality.ok} its {r['old'].quality.iterations}/"
-                    f"{r['new'].quality.iterations}",
+                    f"{r['new'].quality.iterations} identical {same(r['old'], r['new'])}",
                     flush=True,
                 )
 
@@ -134,7 +167,7 @@ def timing(fns, pair, size, presets, threads, reps):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--old", required=True, help="the older _bspline.py (e.g. from git show)")
+    ap.add_argument("--old", default="a6e5868", help="the older revision (git)")
     ap.add_argument("--equivalence", action="store_true", help="compare the results instead of timing")
     ap.add_argument("--pairs", nargs="+", default=["weak", "rich", "phys"])
     ap.add_argument("--sizes", nargs="+", type=int, default=[560, 2240], help="sizes of --equivalence")

@@ -287,7 +287,8 @@ def _fields(grids, factor, shape):
             _, j0, j1, Bs = p[i]
             for k in range(2):
                 v = Bs @ T[k, j0:j1]
-                v *= scale
+                if factor != 1:  # (x 1.0 changes no bit)
+                    v *= scale
                 out[k, sl] += v
 
     _parallel(band, range(len(slices)))
@@ -451,8 +452,9 @@ class _Level:
         def sample(b):
             sl, j0, j1, Bs = b
             y, xx = (Bs @ T[k, j0:j1] for k in range(2))
-            y *= scale
-            xx *= scale
+            if factor != 1:  # (x 1.0 changes no bit)
+                y *= scale
+                xx *= scale
             y += base[0, sl]
             xx += base[1, sl]
             self._sample_band(sl, y, xx)
