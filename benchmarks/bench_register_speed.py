@@ -4,6 +4,8 @@ Run (from the repository root, a git checkout)::
 
     python benchmarks/bench_register_speed.py --equivalence
     python benchmarks/bench_register_speed.py --size 2240 --presets default fast --threads 1 2 --reps 5
+    git worktree add /tmp/rk-old a6e5868
+    python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --presets fast default --reps 5
 
 The older revision's (``--old``, default a6e5868, before session 5) ``radiokit/register/
 _bspline.py`` and ``_common.py`` are loaded beside the current ones (the old module's
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -165,6 +168,51 @@ def timing(fns, pair, size, presets, threads, reps):
             )
 
 
+_CHILD = """
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+f, m = np.load(sys.argv[2]), np.load(sys.argv[3])
+import radiokit.register as R
+R._load_methods()
+t0, c0 = time.perf_counter(), time.process_time()
+reg = R.register(f, m, "rc", preset=sys.argv[4])
+print(json.dumps([time.perf_counter() - t0, time.process_time() - c0, reg.quality.seconds]))
+"""
+
+
+def fresh(old_tree, pair, size, presets, threads, reps):
+    """Each run a new process (the first registration of a command-line run: imports done, the
+    pair read from .npy files, memory not yet touched), old tree and this one alternately."""
+    root = Path(__file__).resolve().parent.parent
+    tmp = Path(tempfile.mkdtemp())
+    fixed, moving, _, _ = make_pair(pair, size)
+    np.save(tmp / "f.npy", fixed)
+    np.save(tmp / "m.npy", moving)
+    trees = {"old": str(Path(old_tree).resolve()), "new": str(root)}
+    print(f"fresh processes: {pair} {size} x {size}, medians of {reps} alternating runs ({trees['old']} / this tree)")
+    print(
+        "| preset | threads | wall old | wall new | cpu old | cpu new | method old | method new | cpu new/old | load |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n in threads:
+        env = dict(os.environ, RADIOKIT_THREADS=str(n), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+        for preset in presets:
+            load0 = os.getloadavg()[0]
+            t = {k: [] for k in trees}
+            for i in range(reps):
+                for k in list(trees)[:: 1 if i % 2 == 0 else -1]:
+                    args = [sys.executable, "-c", _CHILD, trees[k], str(tmp / "f.npy"), str(tmp / "m.npy"), preset]
+                    out = subprocess.run(args, env=env, capture_output=True, text=True, check=True).stdout
+                    t[k].append(json.loads(out.strip().splitlines()[-1]))
+            o, w = (np.median(np.array(t[k]), axis=0) for k in ("old", "new"))
+            print(
+                f"| {preset} | {n} | {o[0]:.2f} | {w[0]:.2f} | {o[1]:.2f} | {w[1]:.2f} | {o[2]:.2f} | {w[2]:.2f} "
+                f"| {w[1] / o[1]:.2f} | {load0:.1f}-{os.getloadavg()[0]:.1f} |",
+                flush=True,
+            )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old", default="a6e5868", help="the older revision (git)")
@@ -175,11 +223,15 @@ def main(argv=None):
     ap.add_argument("--presets", nargs="+", default=["default", "fast", "weak-fast"])
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--fresh", metavar="OLD_TREE", help="time new processes against a checkout of the old revision")
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
 
-    fns = methods(a.old)
     print(f"cores {os.cpu_count()}, load average {os.getloadavg()}")
+    if a.fresh:
+        fresh(a.fresh, a.pairs[0], a.size, a.presets, a.threads, a.reps)
+        return
+    fns = methods(a.old)
     with threadpool_limits(limits=1, user_api="blas"):
         if a.equivalence:
             equivalence(fns, a.pairs, a.sizes, a.presets, a.threads[0])
