@@ -6,6 +6,8 @@ Run (from the repository root, a git checkout)::
     python benchmarks/bench_register_speed.py --size 2240 --presets default fast --threads 1 2 --reps 5
     git worktree add /tmp/rk-old a6e5868
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --presets fast default --reps 5
+    radiokit sim run --preset seed-breast -o /tmp/sb.h5
+    python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --process /tmp/sb.h5 --reps 2
 
 The older revision's (``--old``, default a6e5868, before session 5) ``radiokit/register/
 _bspline.py`` and ``_common.py`` are loaded beside the current ones (the old module's
@@ -213,6 +215,57 @@ def fresh(old_tree, pair, size, presets, threads, reps):
             )
 
 
+def _numbers(obj, path=""):
+    """``{path: value}`` of a results.json's numbers and strings, but times and paths."""
+    if isinstance(obj, dict):
+        out = {}
+        for k, v in obj.items():
+            if not any(w in k for w in ("second", "time", "path", "file", "date", "version", "host")):
+                out.update(_numbers(v, f"{path}/{k}"))
+        return out
+    if isinstance(obj, list):
+        return {k: v for i, x in enumerate(obj) for k, v in _numbers(x, f"{path}/{i}").items()}
+    return {path: obj}
+
+
+def process(old_tree, path, threads, reps):
+    """``radiokit process FILE`` (default preset, one file) in new processes, old checkout and
+    this tree alternately: wall, user and system seconds, and whether results.json agrees."""
+    import resource
+
+    root = Path(__file__).resolve().parent.parent
+    trees = {"old": str(Path(old_tree).resolve()), "new": str(root)}
+    out = Path(tempfile.mkdtemp())
+    child = "import sys; from radiokit.cli import main; sys.exit(main(sys.argv[1:]))"
+    print(f"radiokit process {path}: medians of {reps} alternating runs ({trees['old']} / this tree)")
+    print("| threads | wall old | wall new | user+sys old | user+sys new | sys old | sys new | cpu new/old | load |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for n in threads:
+        env = dict(os.environ, RADIOKIT_THREADS=str(n), OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+        load0 = os.getloadavg()[0]
+        t = {k: [] for k in trees}
+        for i in range(reps):
+            for k in list(trees)[:: 1 if i % 2 == 0 else -1]:
+                env["PYTHONPATH"] = trees[k]
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                args = [sys.executable, "-c", child, "process", str(path), "-o", str(out / k), "--overwrite", "-q"]
+                subprocess.run(args, env=env, check=True, capture_output=True)
+                wall = time.perf_counter() - t0
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                user, sys_ = r1.ru_utime - r0.ru_utime, r1.ru_stime - r0.ru_stime
+                t[k].append((wall, user + sys_, sys_))
+        o, w = (np.median(np.array(t[k]), axis=0) for k in ("old", "new"))
+        print(
+            f"| {n} | {o[0]:.1f} | {w[0]:.1f} | {o[1]:.1f} | {w[1]:.1f} | {o[2]:.1f} | {w[2]:.1f} | {w[1] / o[1]:.2f} "
+            f"| {load0:.1f}-{os.getloadavg()[0]:.1f} |",
+            flush=True,
+        )
+        res = {k: _numbers(json.loads(next((out / k).rglob("results.json")).read_text())) for k in trees}
+        diff = sorted(k for k in res["old"].keys() | res["new"].keys() if res["old"].get(k) != res["new"].get(k))
+        print(f"  results.json: {len(res['new'])} values, {len(diff)} differ {diff[:8]}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old", default="a6e5868", help="the older revision (git)")
@@ -224,10 +277,14 @@ def main(argv=None):
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--fresh", metavar="OLD_TREE", help="time new processes against a checkout of the old revision")
+    ap.add_argument("--process", metavar="FILE", help="with --fresh: time `radiokit process FILE` instead")
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
 
     print(f"cores {os.cpu_count()}, load average {os.getloadavg()}")
+    if a.fresh and a.process:
+        process(a.fresh, a.process, a.threads, a.reps)
+        return
     if a.fresh:
         fresh(a.fresh, a.pairs[0], a.size, a.presets, a.threads, a.reps)
         return

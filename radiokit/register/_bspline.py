@@ -361,7 +361,7 @@ class _Level:
         # the cell's I00, I10 - I00, I01, I11 - I01, gathered plane by plane by OpenCV's
         # nearest-pixel remap (exact at these whole-pixel positions; 2-3x faster than an index
         # array and numpy's take, and contiguous planes: 4x faster arithmetic than the strided
-        # columns of one (n, 4) gather)
+        # columns of one (n, 4) gather; OpenCV's remap takes images under 32767 px a side)
         mx, my = x0.astype(np.float32, copy=False), y0.astype(np.float32, copy=False)  # its map type
         c = [cv2.remap(t, mx, my, cv2.INTER_NEAREST) for t in self._table]
         top = c[1] * xc
