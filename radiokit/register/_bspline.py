@@ -60,6 +60,7 @@ path are the same to the bit, for a given thread count (benchmarks/README.md, "r
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
 
 import numpy as np
@@ -606,11 +607,26 @@ def bspline_register(fixed, moving, mask=None, **options):
 
     BLAS is held to one thread meanwhile: its matrices here are small, and OpenBLAS's threads
     spin between calls, starving the row-band threads and L-BFGS (measured: 3.1 s -> 0.64 s for
-    a 60-iteration level on two cores)."""
+    a 60-iteration level on two cores). OpenCV too: its calls run inside the row bands, which
+    are the parallelism; with its own pool each remap of a band cost two cores' CPU time
+    (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
         return _bspline_register(fixed, moving, mask, **options)
+
+
+@contextlib.contextmanager
+def _opencv_threads(n):
+    """OpenCV's thread count set to ``n`` meanwhile (process-wide), then put back."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 # the data term is a sum over pixels per this many full-resolution pixels, so the bending
