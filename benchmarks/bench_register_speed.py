@@ -236,7 +236,11 @@ def process(old_tree, path, threads, reps):
     root = Path(__file__).resolve().parent.parent
     trees = {"old": str(Path(old_tree).resolve()), "new": str(root)}
     out = Path(tempfile.mkdtemp())
-    child = "import sys; from radiokit.cli import main; sys.exit(main(sys.argv[1:]))"
+    # the tree first on sys.path (a -c child has the working directory, maybe a checkout, before
+    # PYTHONPATH)
+    child = (
+        "import sys; sys.path.insert(0, sys.argv.pop(1)); from radiokit.cli import main; sys.exit(main(sys.argv[1:]))"
+    )
     print(f"radiokit process {path}: medians of {reps} alternating runs ({trees['old']} / this tree)")
     print("| threads | wall old | wall new | user+sys old | user+sys new | sys old | sys new | cpu new/old | load |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -246,10 +250,20 @@ def process(old_tree, path, threads, reps):
         t = {k: [] for k in trees}
         for i in range(reps):
             for k in list(trees)[:: 1 if i % 2 == 0 else -1]:
-                env["PYTHONPATH"] = trees[k]
                 r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.perf_counter()
-                args = [sys.executable, "-c", child, "process", str(path), "-o", str(out / k), "--overwrite", "-q"]
+                args = [
+                    sys.executable,
+                    "-c",
+                    child,
+                    trees[k],
+                    "process",
+                    str(path),
+                    "-o",
+                    str(out / k),
+                    "--overwrite",
+                    "-q",
+                ]
                 subprocess.run(args, env=env, check=True, capture_output=True)
                 wall = time.perf_counter() - t0
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
