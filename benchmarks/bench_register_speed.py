@@ -8,6 +8,7 @@ Run (from the repository root, a git checkout)::
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --presets fast default --reps 5
     radiokit sim run --preset seed-breast -o /tmp/sb.h5
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --process /tmp/sb.h5 --reps 2
+    python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --process /tmp/sb.h5 --files 4
 
 The older revision's (``--old``, default a6e5868, before session 5) ``radiokit/register/
 _bspline.py`` and ``_common.py`` are loaded beside the current ones (the old module's
@@ -280,6 +281,54 @@ def process(old_tree, path, threads, reps):
         print(f"  results.json: {len(res['new'])} values, {len(diff)} differ {diff[:8]}", flush=True)
 
 
+_FILES_CHILD = """
+import json, resource, sys, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from radiokit.pipeline import Config, process, process_many
+mode, paths, out_root = sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
+cfg = Config(progress=False)
+t = time.perf_counter()
+if mode == "sequential":
+    for p in paths:
+        process(p, cfg, out_dir=Path(out_root) / Path(p).stem)
+else:
+    res = process_many(paths, cfg, out_root=out_root, workers=2)
+    bad = [r for r in res if "error" in r]
+    assert not bad, bad[0]
+wall = time.perf_counter() - t
+me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+print(json.dumps({"wall_s": wall, "user_s": me.ru_utime + kids.ru_utime, "sys_s": me.ru_stime + kids.ru_stime}))
+"""
+
+
+def files(old_tree, path, n):
+    """``n`` links to ``path`` processed one after the other in one process (two threads) and on
+    a local Dask cluster of two workers (``bench_scaling``'s ``sequential`` and ``local-2``), old
+    checkout and this tree: wall, user and system seconds and the ratio of the walls."""
+    root = Path(__file__).resolve().parent.parent
+    trees = {"old": str(Path(old_tree).resolve()), "new": str(root)}
+    tmp = Path(tempfile.mkdtemp())
+    paths = []
+    for i in range(n):
+        os.link(path, tmp / f"file{i}.h5")
+        paths.append(str(tmp / f"file{i}.h5"))
+    env = {k: v for k, v in os.environ.items() if k not in ("RADIOKIT_THREADS", "PYTHONPATH")}
+    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    res = {}
+    for mode, k in (("sequential", "old"), ("sequential", "new"), ("local-2", "new"), ("local-2", "old")):
+        load0 = os.getloadavg()[0]
+        out = tempfile.mkdtemp(dir=tmp)
+        args = [sys.executable, "-c", _FILES_CHILD, trees[k], mode, json.dumps(paths), out]
+        r = subprocess.run(args, env=env, capture_output=True, text=True, check=True)
+        res[mode, k] = json.loads(r.stdout.strip().splitlines()[-1])
+        print(f"  {mode:10s} {k}: {res[mode, k]}, load {load0:.1f}-{os.getloadavg()[0]:.1f}", flush=True)
+    for k in trees:
+        print(
+            f"{k}: 2 workers / one after the other, wall {res['local-2', k]['wall_s'] / res['sequential', k]['wall_s']:.2f}"
+        )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old", default="a6e5868", help="the older revision (git)")
@@ -292,10 +341,16 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--fresh", metavar="OLD_TREE", help="time new processes against a checkout of the old revision")
     ap.add_argument("--process", metavar="FILE", help="with --fresh: time `radiokit process FILE` instead")
+    ap.add_argument(
+        "--files", type=int, default=0, help="with --process: N links of FILE, one after the other and on 2 workers"
+    )
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
 
     print(f"cores {os.cpu_count()}, load average {os.getloadavg()}")
+    if a.fresh and a.process and a.files:
+        files(a.fresh, a.process, a.files)
+        return
     if a.fresh and a.process:
         process(a.fresh, a.process, a.threads, a.reps)
         return
