@@ -47,11 +47,20 @@ until the smaller side is below ``min_size``), each level adding its own lattice
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
 than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
 still (the B-spline field is evaluated at full resolution all the same).
+
+Computation. One evaluation of a level's energy runs in row bands on radiokit's threads: a
+band's field rows (``B_r`` rows times ``C B_c^T``), the bilinear warp and its derivatives (one
+gather per coefficient plane of a table built once per level), the residual and, after the
+whole-frame DCT, the gradient; the adjoint ``B_r^T G`` by blocks of lattice rows. Every sum is
+taken in the order the frame-at-once code took it, so the energy, gradient and the optimiser's
+path are the same to the bit, for a given thread count (benchmarks/README.md, "rc speed at
+2240 (session 5)").
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
 
 import numpy as np
@@ -174,6 +183,53 @@ class BSplineField:
             d = d[:, : shape[0], : shape[1]]
         return d
 
+    def columns(self, c, factor=1):
+        """``(2, nr, cols)``: the lattice interpolated along the columns of a grid ``factor``
+        times coarser, ``(B_c C^T)^T`` per component; ``B_r`` times it is the field."""
+        _, Bc, _, _ = self.matrices(factor)
+        C = c.reshape(2, self.nr, self.nc).astype(self.dtype)
+        return np.stack([(Bc @ C[k].T).T for k in range(2)])
+
+    def bands(self, factor, slices):
+        """``(slice, j0, j1, B)`` per row band: the rows ``slice`` of ``B_r`` on the only control
+        rows ``j0:j1`` they weigh (cached: the same bands every evaluation)."""
+        key = (factor, tuple((s.start, s.stop) for s in slices))
+        if key not in self._cache:
+            Br = self.matrices(factor)[0]
+            out = []
+            for sl in slices:
+                b = Br[sl]
+                j0, j1 = int(b.indices.min()), int(b.indices.max()) + 1
+                b = b[:, j0:j1].tocsr()
+                b.sort_indices()
+                out.append((sl, j0, j1, b))
+            self._cache[key] = out
+        return self._cache[key]
+
+    def adjoint_rows(self, gy, gx, factor=1):
+        """``adjoint(np.stack([gy, gx]), factor)`` to the last bit, ``B_r^T G`` computed by
+        blocks of lattice rows on the thread pool (each row's sum over its pixel rows is the
+        one ``adjoint`` runs)."""
+        _, _, BrT, BcT = self.matrices(factor)
+        rows, cols = gy.shape
+        key = ("rows", factor, rows)
+        if key not in self._cache:
+            BrT = BrT[:, :rows] if BrT.shape[1] != rows else BrT
+            step = max(4, -(-self.nr // (4 * _threads())))
+            self._cache[key] = [(slice(a, a + step), BrT[a : a + step]) for a in range(0, self.nr, step)]
+        acc = np.empty((2, self.nr, cols), self.dtype)
+        gy, gx = gy.astype(self.dtype, copy=False), gx.astype(self.dtype, copy=False)
+
+        def block(b):
+            js, B = b
+            acc[0, js] = B @ gy
+            acc[1, js] = B @ gx
+
+        _parallel(block, self._cache[key])
+        BcT = BcT[:, :cols] if BcT.shape[1] != cols else BcT
+        out = np.stack([(BcT @ acc[k].T).T for k in range(2)])
+        return out.ravel().astype(np.float64) / factor
+
     def adjoint(self, g, factor=1):
         """Gradient with respect to the coefficients of a gradient ``g`` (2, rows, cols) with
         respect to the field (in the grid's pixels)."""
@@ -205,21 +261,70 @@ def _downsample(img, f):
 
     rows, cols = img.shape
     R, C = -(-rows // f), -(-cols // f)
-    pad = np.pad(img, ((0, R * f - rows), (0, C * f - cols)), mode="edge")
-    return cv2.resize(pad, (C, R), interpolation=cv2.INTER_AREA)
+    if (R * f, C * f) != (rows, cols):  # (a copy of the whole frame otherwise)
+        img = np.pad(img, ((0, R * f - rows), (0, C * f - cols)), mode="edge")
+    return cv2.resize(img, (C, R), interpolation=cv2.INTER_AREA)
+
+
+def _row_bands(rows, step=128):
+    return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
+
+
+def _parallel(fn, items):
+    """``[fn(item) for item in items]``, on the thread pool when it has several threads: a
+    whole-frame pass at 2240 x 2240 run band by band stays in cache, without frame-sized
+    temporaries (page faults)."""
+    if len(items) == 1 or _threads() == 1:
+        return [fn(b) for b in items]
+    return list(_pool().map(fn, items))
+
+
+def _fields(grids, factor, shape):
+    """``sum(grid.field(c, factor, shape) for grid, c in grids)`` (float32, the same to the bit),
+    computed band by band: no frame-sized temporaries."""
+    out = np.zeros((2,) + tuple(shape), np.float32)
+    if not grids:
+        return out
+    Ts = [g.columns(c, factor)[:, :, : shape[1]] for g, c in grids]
+    slices = _row_bands(shape[0])
+    parts = [g.bands(factor, slices) for g, _ in grids]
+    scale = np.float32(1.0 / factor)
+
+    def band(i):
+        sl = slices[i]
+        for T, p in zip(Ts, parts):
+            _, j0, j1, Bs = p[i]
+            for k in range(2):
+                v = Bs @ T[k, j0:j1]
+                if factor != 1:  # (x 1.0 changes no bit)
+                    v *= scale
+                out[k, sl] += v
+
+    _parallel(band, range(len(slices)))
+    return out
 
 
 class _Level:
-    """Images and similarity at one pyramid level."""
+    """Images and similarity at one pyramid level.
+
+    The energy of a lattice runs in row bands (``lattice_energy``): a band's field, warp,
+    residual, gradient and adjoint stay in cache, and the only frame-sized arrays are buffers
+    kept from one evaluation to the next (the residual, which the DCT needs whole, and the
+    warped image's derivatives, which wait for it)."""
 
     def __init__(self, fixed, moving, mask, factor, similarity, alpha):
         self.factor = factor
         self.fixed = _downsample(fixed, factor)
         self.moving = _downsample(moving, factor)
-        self.mask = None if mask is None else _downsample(mask.astype(np.float32), factor) > 0.5
+        # (a float32 mask is not copied: the caller converts it once for all levels)
+        self.mask = None if mask is None else _downsample(mask.astype(np.float32, copy=False), factor) > 0.5
         self.shape = self.fixed.shape
-        rr, cc = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(self.fixed.dtype)
-        self.rr, self.cc = rr, cc
+        dt = self.fixed.dtype
+        self._row = np.arange(self.shape[0], dtype=dt)[:, None]  # pixel positions, broadcast
+        self._col = np.arange(self.shape[1], dtype=dt)
+        self._maskf = None if self.mask is None else self.mask.astype(dt)
+        self._table = _bilinear_table(self.moving)
+        self._w, self._dy, self._dx, self._r = (np.empty(self.shape, dt) for _ in range(4))
         self.similarity = similarity
         self.alpha = alpha
         self.n = float(self.mask.sum()) if self.mask is not None else float(self.fixed.size)
@@ -231,66 +336,62 @@ class _Level:
         step = max(16, min(128, -(-rows // (4 * _threads()))))
         return [slice(a, min(a + step, rows)) for a in range(0, rows, step)]
 
-    def _map(self, fn):
-        """``fn(band)`` over the row bands, on the thread pool when there are several."""
-        bands = self._bands()
-        if len(bands) == 1 or _threads() == 1:  # one thread (a Dask worker): the bands in turn, in
-            return [fn(b) for b in bands]  # cache (whole-frame temporaries: more CPU, page faults)
-        return list(_pool().map(fn, bands))
+    def _map(self, fn, items=None):
+        """``fn(item)`` over the row bands (or ``items``, one per band), on the thread pool when
+        there are several."""
+        items = self._bands() if items is None else items
+        if len(items) == 1 or _threads() == 1:  # one thread (a Dask worker): the bands in turn, in
+            return [fn(b) for b in items]  # cache (whole-frame temporaries: more CPU, page faults)
+        return list(_pool().map(fn, items))
 
-    def _sample_band(self, d, sl, w, dy, dx):
-        """Bilinear ``moving(x + d)`` and its exact derivatives along rows and columns on rows
-        ``sl`` (the derivative of the interpolant itself, so the energy's gradient is exact;
-        border replicated, no derivative where clamped). Numpy rather than OpenCV's remap, whose
-        1/32-pixel fixed-point positions make the energy a staircase at fine scales."""
+    def _sample_band(self, sl, y, x):
+        """Bilinear ``moving(pixel + d)`` and its exact derivatives along rows and columns on rows
+        ``sl`` into ``_w``, ``_dy``, ``_dx``, the masked residual into ``_r``; ``y``, ``x`` the
+        band's displacement (overwritten). The derivative is the interpolant's own, so the
+        energy's gradient is exact; border replicated, no derivative where clamped. Numpy rather
+        than OpenCV's remap, whose 1/32-pixel fixed-point positions make the energy a staircase
+        at fine scales. One gather of the cell's four coefficients (``_bilinear_table``) per
+        pixel; the arithmetic is the textbook one, operation for operation."""
+        import cv2
+
         rows, cols = self.shape
-        y = self.rr[sl] + d[0, sl]
-        x = self.cc[sl] + d[1, sl]
-        outside_y = (y < 0) | (y > rows - 1)
-        outside_x = (x < 0) | (x > cols - 1)
-        np.clip(y, 0, rows - 1, out=y)
-        np.clip(x, 0, cols - 1, out=x)
-        y0 = np.minimum(y.astype(np.int32), rows - 2)  # the last row/column: weight 1 on the far side
-        x0 = np.minimum(x.astype(np.int32), cols - 2)
-        y -= y0  # b
-        x -= x0  # a
-        i = y0 * cols + x0
-        flat = self.moving.ravel()
-        I00 = flat.take(i)
-        I10 = flat.take(i + 1)
-        I01 = flat.take(i + cols)
-        I11 = flat.take(i + cols + 1)
-        I10 -= I00  # d_top
-        I11 -= I01  # d_bottom
-        top = I00 + x * I10
-        bottom = I01 + x * I11
-        np.subtract(bottom, top, out=dy[sl])
-        np.multiply(y, dy[sl], out=w[sl])
-        w[sl] += top
-        I11 -= I10
-        I11 *= y
-        np.add(I10, I11, out=dx[sl])
-        dy[sl][outside_y] = 0
-        dx[sl][outside_x] = 0
-        r = w[sl] - self.fixed[sl]
-        if self.mask is not None:
-            r *= self.mask[sl]
-        self._r[sl] = r
+        y += self._row[sl]
+        x += self._col
+        yc, y0, outside_y = _cell(y, rows)  # b and its cell's row
+        xc, x0, outside_x = _cell(x, cols)  # a and its column
+        # the cell's I00, I10 - I00, I01, I11 - I01, gathered plane by plane by OpenCV's
+        # nearest-pixel remap (exact at these whole-pixel positions; 2-3x faster than an index
+        # array and numpy's take, and contiguous planes: 4x faster arithmetic than the strided
+        # columns of one (n, 4) gather; OpenCV's remap takes images under 32767 px a side)
+        mx, my = x0.astype(np.float32, copy=False), y0.astype(np.float32, copy=False)  # its map type
+        c = [cv2.remap(t, mx, my, cv2.INTER_NEAREST) for t in self._table]
+        top = c[1] * xc
+        top += c[0]
+        bottom = c[3] * xc
+        bottom += c[2]
+        dy = self._dy[sl]
+        np.subtract(bottom, top, out=dy)
+        w = self._w[sl]
+        np.multiply(yc, dy, out=w)
+        w += top
+        np.subtract(c[3], c[1], out=bottom)
+        bottom *= yc
+        np.add(c[1], bottom, out=self._dx[sl])
+        if outside_y is not None:
+            np.copyto(dy, 0, where=outside_y)
+        if outside_x is not None:
+            np.copyto(self._dx[sl], 0, where=outside_x)
+        r = np.subtract(w, self.fixed[sl], out=self._r[sl])
+        if self._maskf is not None:
+            r *= self._maskf[sl]
 
-    def sample(self, d):
-        """``(w, dy, dx)``: the warped moving image and its derivatives, computed in row bands on
-        all cores (numpy releases the GIL); ``self._r`` gets the masked residual."""
-        if not hasattr(self, "_w"):
-            self._w, self._dy, self._dx, self._r = (np.empty(self.shape, self.fixed.dtype) for _ in range(4))
-        self._map(lambda sl: self._sample_band(d, sl, self._w, self._dy, self._dx))
-        return self._w, self._dy, self._dx
-
-    def energy(self, d):
-        """Similarity energy and its gradient with respect to the field d (2, rows, cols)."""
-        w, gy, gx = self.sample(d)
-        r = self._r
+    def _similarity(self):
+        """Energy and its derivative with respect to the warped image (frame-sized; may be the
+        residual buffer itself), from ``_w`` and ``_r``."""
+        w, r = self._w, self._r
         if self.similarity == "rc":
-            q = sfft.dctn(r, norm="ortho", workers=_threads())
+            # in place: the residual buffer is refilled by the next evaluation's warp
+            q = sfft.dctn(r, norm="ortho", workers=_threads(), overwrite_x=True)
             alpha = self.alpha
 
             def band(sl):  # in place: q -> q / (q^2 + alpha); returns the band's energy
@@ -313,7 +414,7 @@ class _Level:
             b = np.where(sel, self.fixed - self.fixed[sel].mean(), 0)
             na, nb = float(np.sqrt(np.sum(a * a, dtype=np.float64))), float(np.sqrt(np.sum(b * b, dtype=np.float64)))
             if na == 0 or nb == 0:
-                return 1.0, np.zeros((2,) + self.shape, self.fixed.dtype)
+                return 1.0, None
             c = float(np.sum(a * b, dtype=np.float64)) / (na * nb)
             e = 1.0 - c
             dr = -(b / (na * nb) - c * a / (na * na))
@@ -321,16 +422,96 @@ class _Level:
             e, dr = self._mutual_information(w)
         else:
             raise ValueError(f"unknown similarity {self.similarity!r}")
-        out = np.empty((2,) + self.shape, self.fixed.dtype)
-        dr = dr.astype(self.fixed.dtype, copy=False)
+        return e, dr.astype(self.fixed.dtype, copy=False)
+
+    def _band_gradient(self, dr, sl):
+        """``(dE/dd_row, dE/dd_col)`` on rows ``sl``: the similarity's derivative (masked) times
+        the warped image's."""
+        if self._maskf is None:
+            return dr[sl] * self._dy[sl], dr[sl] * self._dx[sl]
+        g = dr[sl] * self._maskf[sl]
+        gy = g * self._dy[sl]
+        g *= self._dx[sl]
+        return gy, g
+
+    def energy(self, d):
+        """Similarity energy and its gradient with respect to the field d (2, rows, cols)."""
+        self._map(lambda sl: self._sample_band(sl, d[0, sl].copy(), d[1, sl].copy()))
+        e, dr = self._similarity()
+        out = np.zeros((2,) + self.shape, self.fixed.dtype)
+        if dr is None:
+            return e, out
 
         def band(sl):
-            g = dr[sl] * self.mask[sl] if self.mask is not None else dr[sl]
-            np.multiply(g, gy[sl], out=out[0, sl])
-            np.multiply(g, gx[sl], out=out[1, sl])
+            out[0, sl], out[1, sl] = self._band_gradient(dr, sl)
 
         self._map(band)
         return e, out
+
+    def lattice_energy(self, grid, x, base, factor):
+        """``(energy, gradient)``: the similarity of the lattice coefficients ``x`` of ``grid``
+        on top of the field ``base`` (this level's pixels), and its gradient with respect to
+        ``x`` (float64). The same as ``energy(grid.field(x, factor) + base)`` followed by
+        ``grid.adjoint``, to the last bit: the field, warp, residual and gradient band by band,
+        the adjoint by blocks of lattice rows (each row's sum over pixel rows in the same order)."""
+        T = grid.columns(x, factor)
+        bands = grid.bands(factor, self._bands())
+        scale = np.float32(1.0 / factor)
+
+        def sample(b):
+            sl, j0, j1, Bs = b
+            y, xx = (Bs @ T[k, j0:j1] for k in range(2))
+            if factor != 1:  # (x 1.0 changes no bit)
+                y *= scale
+                xx *= scale
+            y += base[0, sl]
+            xx += base[1, sl]
+            self._sample_band(sl, y, xx)
+
+        self._map(sample, bands)
+        e, dr = self._similarity()
+        if dr is None:
+            return e, np.zeros(grid.n_params)
+
+        def gradient(sl):  # dE/dd in place of the warped image's derivatives
+            g = dr[sl] * self._maskf[sl] if self._maskf is not None else dr[sl]
+            np.multiply(g, self._dy[sl], out=self._dy[sl])
+            np.multiply(g, self._dx[sl], out=self._dx[sl])
+
+        self._map(gradient)
+        return e, grid.adjoint_rows(self._dy, self._dx, factor)
+
+
+def _cell(v, n):
+    """``(fraction, cell, outside)`` of positions ``v`` (overwritten) on an axis of ``n`` pixels:
+    clamped to the image (``outside`` marks where, or is None when nothing was), the cell's
+    first pixel (the last pixel's cell is the one before: weight 1 on its far side), and the
+    position less it (exact: a float minus the whole number below it). The clamp and the last
+    cell's test only run when the band's extremes need them."""
+    lo, hi = float(v.min()), float(v.max())
+    outside = None
+    if lo < 0 or hi > n - 1:
+        c = np.clip(v, 0, n - 1)
+        outside = c != v
+        v, hi = c, min(hi, n - 1)
+    v0 = np.floor(v)
+    if hi >= n - 1:
+        np.minimum(v0, n - 2, out=v0)
+    v -= v0
+    return v, v0, outside
+
+
+def _bilinear_table(m):
+    """``(4, rows, cols)``: for the cell whose top-left pixel is ``k``, ``m[k]``, the step to
+    its right neighbour, the pixel below and that pixel's step to its right (the last row and
+    column are never a cell's top-left: zeros)."""
+    rows, cols = m.shape
+    t = np.zeros((4, rows, cols), m.dtype)
+    t[0, :-1, :-1] = m[:-1, :-1]
+    np.subtract(m[:-1, 1:], m[:-1, :-1], out=t[1, :-1, :-1])
+    t[2, :-1, :-1] = m[1:, :-1]
+    np.subtract(m[1:, 1:], m[1:, :-1], out=t[3, :-1, :-1])
+    return t
 
 
 def _cubic_bspline(t):
@@ -397,20 +578,28 @@ def _normalise(fixed, moving):
     if hi <= lo:
         lo, hi = float(fixed.min()), float(fixed.max())
     scale = 1.0 / (hi - lo)
-    return ((fixed - lo) * scale).astype(np.float32), ((moving - lo) * scale).astype(np.float32)
+    out = np.empty(fixed.shape, np.float32), np.empty(moving.shape, np.float32)
+
+    def band(sl):  # (x - lo) * scale as before (in double when lo is), rounded to float32
+        for a, o in zip((fixed, moving), out):
+            o[sl] = (a[sl] - lo) * scale
+
+    _parallel(band, _row_bands(fixed.shape[0], 32))  # float64 temporaries of a band in cache
+    return out
 
 
-def _highpass(img, sigma):
-    """``img`` minus its Gaussian blur of ``sigma`` px (the blur computed on a grid ``sigma / 8``
-    times coarser: it is wide, and 20x cheaper at 2240)."""
+def _highpass(img, sigma, out=None, scratch=None):
+    """``img`` (float32) minus its Gaussian blur of ``sigma`` px (the blur computed on a grid
+    ``sigma / 8`` times coarser: it is wide, and 20x cheaper at 2240), into ``out`` (may be
+    ``img``); ``scratch``, an array of ``img``'s shape and type, takes the upsampled blur."""
     import cv2
 
     k = max(1, int(sigma / 8))
     small = _downsample(img, k)
     blur = cv2.GaussianBlur(small, (0, 0), sigma / k, borderType=cv2.BORDER_REFLECT)
     if k > 1:
-        blur = cv2.resize(blur, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
-    return (img - blur).astype(np.float32)
+        blur = cv2.resize(blur, (img.shape[1], img.shape[0]), dst=scratch, interpolation=cv2.INTER_LINEAR)
+    return np.subtract(img, blur, out=out)
 
 
 def bspline_register(fixed, moving, mask=None, **options):
@@ -418,11 +607,26 @@ def bspline_register(fixed, moving, mask=None, **options):
 
     BLAS is held to one thread meanwhile: its matrices here are small, and OpenBLAS's threads
     spin between calls, starving the row-band threads and L-BFGS (measured: 3.1 s -> 0.64 s for
-    a 60-iteration level on two cores)."""
+    a 60-iteration level on two cores). OpenCV too: its calls run inside the row bands, which
+    are the parallelism; with its own pool each remap of a band cost two cores' CPU time
+    (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
         return _bspline_register(fixed, moving, mask, **options)
+
+
+@contextlib.contextmanager
+def _opencv_threads(n):
+    """OpenCV's thread count set to ``n`` meanwhile (process-wide), then put back."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 # the data term is a sum over pixels per this many full-resolution pixels, so the bending
@@ -481,10 +685,8 @@ def _objective(level, grid, base, lam, factor, balance):
     L = grid.L
 
     def fun(x):
-        d = grid.field(x, factor, level.shape)
-        d += base
-        e, g = level.energy(d)
-        grad = grid.adjoint(g, factor) * data_w
+        e, grad = level.lattice_energy(grid, x, base, factor)
+        grad *= data_w
         X = x.reshape(2, -1)
         LX = np.stack([L @ X[0], L @ X[1]])
         e = e * data_w + w_bend * float(np.sum(LX * LX))
@@ -521,9 +723,11 @@ def _fit_level(fun, grid, n_it, coarsest):
 def _prepare(fixed, moving, o):
     """Both images normalised by the fixed one's 1-99 % range, high-passed if asked."""
     f, m = _normalise(fixed, moving)
-    if o.get("highpass"):
+    if o.get("highpass"):  # in place, one scratch frame: new memory is slow to touch the first time
         sigma = o["highpass"] * min(f.shape)
-        f, m = _highpass(f, sigma), _highpass(m, sigma)
+        scratch = np.empty_like(f)
+        _highpass(f, sigma, out=f, scratch=scratch)
+        _highpass(m, sigma, out=m, scratch=scratch)
     return f, m
 
 
@@ -531,6 +735,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     o = _options(preset, overrides)
     f, m = _prepare(fixed, moving, o)
     levels = _pyramid(f.shape, o)
+    maskf = None if mask is None else mask.astype(np.float32)  # once, not per level
     coarsest, finest = levels[0][0], levels[-1][0]
     grids, history = [], []  # one lattice per level, spacing halving with the pixels
     total_its, converged, message = 0, True, ""
@@ -540,10 +745,8 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
         alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
         lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
-        level = _Level(f, m, mask, factor, similarity, alpha)
-        base = np.zeros((2,) + level.shape, np.float32)
-        for g_, c_ in grids:  # the coarser lattices' field, fixed at this level
-            base += g_.field(c_, factor, level.shape)
+        level = _Level(f, m, maskf, factor, similarity, alpha)
+        base = _fields(grids, factor, level.shape)  # the coarser lattices' field, fixed at this level
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
         res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
         if not np.all(np.isfinite(res.x)):
@@ -566,9 +769,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
             callback(factor, res)
         if fine:
             converged, message = _converged(res, move, o["converge_px"])
-    d = np.zeros((2,) + f.shape, np.float32)
-    for g_, c_ in grids:  # B-splines are defined everywhere: full resolution even if levels were skipped
-        d += g_.field(c_, 1, f.shape)
+    d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
     return d, dict(
         iterations=total_its,
         converged=converged,

@@ -24,16 +24,36 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
 
 def jacobian_determinant(displacement) -> np.ndarray:
     """det of the Jacobian of x -> x + d(x) per pixel (central differences, one-sided at the
-    border; float32); <= 0 is a fold."""
+    border; float32); <= 0 is a fold. Computed in row bands (each with a row of halo) on
+    radiokit's threads: ``np.gradient``'s numbers, without four frame-sized temporaries (a
+    tenth of ``rc fast``'s time at 2240 x 2240 otherwise)."""
+    from radiokit._threads import pool, threads
+
     d = np.asarray(displacement, np.float32)
-    drr, drc = np.gradient(d[0])
-    dcr, dcc = np.gradient(d[1])
-    drr += 1
-    dcc += 1
-    drr *= dcc
-    drc *= dcr
-    drr -= drc
-    return drr
+    rows = d.shape[1]
+    out = np.empty(d.shape[1:], np.float32)
+
+    def band(sl):
+        lo, hi = max(sl.start - 1, 0), min(sl.stop + 1, rows)
+        keep = slice(sl.start - lo, sl.stop - lo)  # the halo rows' one-sided differences are dropped
+        drr = np.gradient(d[0, lo:hi], axis=0)[keep]
+        dcr = np.gradient(d[1, lo:hi], axis=0)[keep]
+        drc = np.gradient(d[0, sl], axis=1)
+        dcc = np.gradient(d[1, sl], axis=1)
+        drr += 1
+        dcc += 1
+        drr *= dcc
+        drc *= dcr
+        drr -= drc
+        out[sl] = drr
+
+    bands = [slice(a, min(a + 64, rows)) for a in range(0, rows, 64)]
+    if len(bands) == 1 or threads() == 1:
+        for b in bands:
+            band(b)
+    else:
+        list(pool().map(band, bands))
+    return out
 
 
 def residual_complexity(residual, mask=None, alpha=0.05) -> float:
