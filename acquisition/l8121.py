@@ -1671,10 +1671,7 @@ class L8121:
         """Whether a beam reading alone shows that the beam this driver keeps is not as set (a
         state other than X-rays on, or a measured value below ``beam_drop_fraction``): then it is
         switched off before anything else is asked (the interlock, for the message)."""
-        if state != SourceState.XRAY_ON:
-            return True
-        f = self.config.beam_drop_fraction
-        return self._beam is not None and (ua < f * self._beam[1] or kv < f * self._beam[0])
+        return self._fault_reason(state, kv, ua, interlock_closed=True) is not None  # no SIN asked
 
     def _reason_after_off(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False):
         """The fault's reason, to be worked out after the ``XOF`` (:meth:`_trip` calls it): ``SIN``

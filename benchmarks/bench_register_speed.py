@@ -281,24 +281,12 @@ def process(old_tree, path, threads, reps):
         print(f"  results.json: {len(res['new'])} values, {len(diff)} differ {diff[:8]}", flush=True)
 
 
+# bench_scaling's child, with the given tree's radiokit (and benchmarks) first on the path
 _FILES_CHILD = """
-import json, resource, sys, time
-from pathlib import Path
+import json, sys
 sys.path.insert(0, sys.argv[1])
-from radiokit.pipeline import Config, process, process_many
-mode, paths, out_root = sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
-cfg = Config(progress=False)
-t = time.perf_counter()
-if mode == "sequential":
-    for p in paths:
-        process(p, cfg, out_dir=Path(out_root) / Path(p).stem)
-else:
-    res = process_many(paths, cfg, out_root=out_root, workers=2)
-    bad = [r for r in res if "error" in r]
-    assert not bad, bad[0]
-wall = time.perf_counter() - t
-me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-print(json.dumps({"wall_s": wall, "user_s": me.ru_utime + kids.ru_utime, "sys_s": me.ru_stime + kids.ru_stime}))
+from benchmarks.bench_scaling import child_files
+print(json.dumps(child_files(sys.argv[2], json.loads(sys.argv[3]), sys.argv[4], None)))
 """
 
 

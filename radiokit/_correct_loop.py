@@ -22,15 +22,16 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["correct_rows", "find", "FLOOR_COUNTS"]
+from radiokit.correct import FLOOR_COUNTS
+
+__all__ = ["correct_rows", "find", "gather", "fill_from_neighbours"]
 
 # a bad row is searched for its marked pixels in chunks of this many columns, skipping clean ones
 CHUNK = 64
 # what a clamped pixel holds until it is recorded: no positive difference can be negative
 _MARK = np.float32(-1.0)
-#: raw - dark at or below zero (or not finite) is clamped to this many counts before the log.
-FLOOR_COUNTS = np.float32(0.5)
-# Below the smallest normal float32 the exponent trick of _ln_row does not hold: such a
+_FLOOR = np.float32(FLOOR_COUNTS)
+# Below the smallest normal float32 the exponent trick of _ln does not hold: such a
 # difference (only a float raw frame can make one) counts as non-positive.
 _TINY = np.float32(np.finfo(np.float32).tiny)
 _HUGE = np.float32(np.finfo(np.float32).max)
@@ -93,6 +94,13 @@ def _ln(x):
 
 
 @nb.njit(**_JIT)
+def _good(t):
+    """``raw - dark`` usable for the log: a positive, normal, finite float32 (False for NaN, inf
+    and anything <= 0)."""
+    return (t >= _TINY) & (t <= _HUGE)
+
+
+@nb.njit(**_JIT)
 def _record(row, i, j0, j1, value, found, pos):
     """Write the flat indices of ``row[j0:j1] == value`` (row ``i``) at ``found[pos:]``, while
     there is room; returns the new ``pos`` (counting past the room, so the caller sees overflow)."""
@@ -144,7 +152,7 @@ def correct_rows(raw, dark, coef, out, r0, r1, log_domain, scale, saturation, co
         for j in range(cols):
             v = raw[i, j]
             t = np.float32(v) - dark[i, j]
-            good = (t >= _TINY) & (t <= _HUGE)  # False for NaN, inf and anything <= 0
+            good = _good(t)
             any_bad += not good  # integer sums vectorise (a boolean "or" did not)
             row[j] = t if good else _MARK
             if count_saturated:
@@ -159,11 +167,11 @@ def correct_rows(raw, dark, coef, out, r0, r1, log_domain, scale, saturation, co
         if log_domain:
             for j in range(cols):
                 t = row[j]
-                out[i, j] = coef[i, j] - _ln(t if t > 0 else FLOOR_COUNTS)
+                out[i, j] = coef[i, j] - _ln(t if t > 0 else _FLOOR)
         else:
             for j in range(cols):
                 t = row[j]
-                out[i, j] = (t if t > 0 else FLOOR_COUNTS) * coef[i, j] * scale
+                out[i, j] = (t if t > 0 else _FLOOR) * coef[i, j] * scale
     return n_bad, n_sat
 
 
@@ -182,7 +190,7 @@ def find(raw, dark, r0, r1, saturation, count_saturated, n_bad, n_sat):
                 sat[ns] = i * cols + j
                 ns += 1
             t = np.float32(v) - dark[i, j]
-            if not ((t >= _TINY) & (t <= _HUGE)):
+            if not _good(t):
                 bad[nb_] = i * cols + j
                 nb_ += 1
     return bad, sat

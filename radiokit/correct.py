@@ -25,7 +25,7 @@ __all__ = ["correct_frames", "correct_files", "CorrectionReport", "CorrectionKer
 
 DOMAINS = ("log", "linear", "counts")
 #: raw - dark at or below zero is clamped to this many counts before the log.
-FLOOR_COUNTS = 0.5  # radiokit._correct_loop.FLOOR_COUNTS, kept here without importing numba
+FLOOR_COUNTS = 0.5
 
 
 @dataclass
@@ -78,9 +78,9 @@ def _offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
     return dr[keep][None], dc[keep][None]
 
 
-def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple[_Stage, np.ndarray]:
+def _neighbour_stage(todo: np.ndarray, flat_invalid, shape, max_radius=4) -> tuple[_Stage, np.ndarray]:
     """Fill each pixel of ``todo`` (flat indices) with the mean of the valid pixels
-    (``is_invalid(flat_indices) -> bool array``) in the smallest square neighbourhood (radius 1,
+    (not ``flat_invalid``, the flattened defect map) in the smallest square neighbourhood (radius 1,
     then 2, ...) that has any. Returns the stage and the pixels left without a valid neighbour
     within ``max_radius``."""
     rows, cols = shape
@@ -94,7 +94,7 @@ def _neighbour_stage(todo: np.ndarray, is_invalid, shape, max_radius=4) -> tuple
         cc = c[:, None] + dc
         inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
         idx = np.where(inside, rr.clip(0, rows - 1) * cols + cc.clip(0, cols - 1), 0)
-        ok = inside & ~is_invalid(idx)
+        ok = inside & ~flat_invalid[idx]
         count = ok.sum(axis=1)
         done = count > 0
         w = np.where(ok, 1.0, 0.0)[done] / count[done, None]
@@ -154,7 +154,7 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     invalid = cal.mask != 0
     isolated = invalid & ~on_line
     flat_invalid = invalid.ravel()
-    stage, left = _neighbour_stage(np.flatnonzero(isolated), lambda i: flat_invalid[i], cal.shape, max_radius=8)
+    stage, left = _neighbour_stage(np.flatnonzero(isolated), flat_invalid, cal.shape, max_radius=8)
     stages = [stage]
     if left.size:
         # Huge clusters: better a finite, flagged value than a hole.
@@ -266,14 +266,14 @@ def _saturation_in(dtype, saturation) -> tuple:
 _ROOM = 4096
 
 
-def _correct_range(raw2d, k: CorrectionKernel, coef, out2d, r0, r1, args):
+def _correct_range(raw2d, k: CorrectionKernel, coef, out2d, r0, r1, log_domain, scale, sat_value, count_sat):
     """Rows r0..r1 through the compiled loop; the clamped and saturated pixels' flat indices."""
     from radiokit._correct_loop import correct_rows, find
 
     bad, sat = np.empty(_ROOM, np.int64), np.empty(_ROOM, np.int64)
-    n_bad, n_sat = correct_rows(raw2d, k.dark, coef, out2d, r0, r1, *args, bad, sat)
+    n_bad, n_sat = correct_rows(raw2d, k.dark, coef, out2d, r0, r1, log_domain, scale, sat_value, count_sat, bad, sat)
     if n_bad > _ROOM or n_sat > _ROOM:  # many: search the rows again (the same tests)
-        return find(raw2d, k.dark, r0, r1, args[2], args[3], n_bad, n_sat)
+        return find(raw2d, k.dark, r0, r1, sat_value, count_sat, n_bad, n_sat)
     return bad[:n_bad], sat[:n_sat]
 
 
@@ -281,11 +281,11 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     raw2d = _native(raw2d)
     rows = raw2d.shape[0]
     coef = k.log_i0 if domain == "log" else k.inv_gain
-    args = (domain == "log", np.float32(scale), *_saturation_in(raw2d.dtype, saturation))
+    args = (domain == "log", np.float32(scale), *_saturation_in(raw2d.dtype, saturation))  # the loop's settings
     nt = min(threads(), max(1, rows // 64))
     edges = [rows * i // nt for i in range(nt + 1)]
     # the compiled loop releases the GIL: one row range per thread
-    parts = list(pool().map(lambda i: _correct_range(raw2d, k, coef, out2d, edges[i], edges[i + 1], args), range(nt)))
+    parts = list(pool().map(lambda i: _correct_range(raw2d, k, coef, out2d, edges[i], edges[i + 1], *args), range(nt)))
     nonpos = np.concatenate([p[0] for p in parts])
     sat = np.concatenate([p[1] for p in parts])
     flat_out = out2d.reshape(-1)

@@ -678,6 +678,14 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert src.off() == SourceState.STANDBY and src.off_failed is None
 
 
+def _check_into(src, errors):
+    """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
+    try:
+        src.check()
+    except DeviceError as exc:
+        errors.append(exc)
+
+
 def test_a_silent_controller_costs_one_switch_off_not_one_per_caller(source):
     """A watchdog thread and the main thread both meet the silence while the beam is on: one
     switch-off (XOF, STS) is sent, its failure is what both report, and the other thread's query is
@@ -689,14 +697,7 @@ def test_a_silent_controller_costs_one_switch_off_not_one_per_caller(source):
     model.silence()
     n0 = len(model.log)
     errors = []
-
-    def poll():
-        try:
-            src.check()
-        except DeviceError as exc:
-            errors.append(exc)
-
-    threads = [threading.Thread(target=poll) for _ in range(2)]
+    threads = [threading.Thread(target=_check_into, args=(src, errors)) for _ in range(2)]
     for t in threads:
         t.start()
     for t in threads:
@@ -720,14 +721,7 @@ def test_off_from_another_thread_cuts_a_poll_short(source, dialect):
     model.slow(0.2)
     n0 = len(model.log)
     errors = []
-
-    def poll():
-        try:
-            src.check()
-        except DeviceError as exc:
-            errors.append(exc)
-
-    t = threading.Thread(target=poll)
+    t = threading.Thread(target=_check_into, args=(src, errors))
     t.start()
     end = time.monotonic() + 5
     while len(model.log) == n0 and time.monotonic() < end:  # the poll's first query has arrived
