@@ -81,6 +81,11 @@ class SignalGuard:
     tube is being switched off. Once a signal has raised, the guard stays stopping, so the
     cleanup that follows it cannot be interrupted either.
 
+    Python runs a handler only when the main thread next executes bytecode, which may be a frame
+    write or a C call later. Callbacks given to :meth:`on_signal` run at once instead, from a thread
+    woken through :func:`signal.set_wakeup_fd` (the protocol uses this to stop routine beam polls,
+    so that the switch-off is not queued behind them).
+
     Examples
     --------
     >>> import signal
@@ -97,20 +102,75 @@ class SignalGuard:
         self.received: list[int] = []
         self._old: dict[int, object] = {}
         self._depth = 0
+        self._listeners: list = []
+        self._wake = None  # (read fd, write fd, the previous wakeup fd, watcher thread)
 
     def __enter__(self) -> SignalGuard:
         self._depth += 1
         if self._depth == 1 and threading.current_thread() is threading.main_thread():
             for sig in _SIGNALS:
                 self._old[sig] = signal.signal(sig, self._handle)
+            self._start_watch()
         return self
 
     def __exit__(self, *exc_info) -> None:
         self._depth -= 1
         if self._depth == 0:
+            self._stop_watch()
             for sig, old in self._old.items():
                 signal.signal(sig, old)
             self._old.clear()
+
+    def on_signal(self, callback) -> None:
+        """Call ``callback()`` (no arguments, from the watcher thread) as soon as a guarded signal
+        arrives, before the main thread's handler runs; again for every further signal. It must
+        be quick, thread-safe and idempotent; what it raises is ignored. :meth:`forget` removes it."""
+        self._listeners.append(callback)
+
+    def forget(self, callback) -> None:
+        if callback in self._listeners:
+            self._listeners.remove(callback)
+
+    def _start_watch(self) -> None:
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)  # set_wakeup_fd's requirement: the C handler never blocks
+        try:
+            # the only wakeup fd of the process is taken for the run and given back on exit
+            previous = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+        except ValueError:
+            os.close(read_fd)
+            os.close(write_fd)
+            return
+        watcher = threading.Thread(target=self._watch, args=(read_fd,), name="signal-watch", daemon=True)
+        watcher.start()
+        self._wake = (read_fd, write_fd, previous, watcher)
+
+    def _stop_watch(self) -> None:
+        if self._wake is None:
+            return
+        read_fd, write_fd, previous, watcher = self._wake
+        self._wake = None
+        signal.set_wakeup_fd(previous)
+        os.close(write_fd)  # the watcher reads end-of-file and returns
+        watcher.join(timeout=5.0)
+        if not watcher.is_alive():
+            os.close(read_fd)
+
+    def _watch(self, read_fd: int) -> None:
+        while True:
+            try:
+                data = os.read(read_fd, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if not any(byte in _SIGNALS for byte in data):
+                continue
+            for callback in list(self._listeners):
+                try:
+                    callback()
+                except Exception as exc:  # the main thread's handler still stops the run
+                    _say(f"signal callback failed: {exc}")
 
     def reinstall(self) -> None:
         """Install the handlers again. C libraries may replace them behind Python's back (gmsh,

@@ -987,9 +987,10 @@ class L8121:
         self._off_thread: int | None = None
         self._off_running = False
         self._off_state: SourceState | None = None
-        # Counts the switch-offs begun; a routine reading (check()) notes it in this thread-local
-        # when it starts and sends no further query once another thread's switch-off has begun.
-        self._off_epoch = 0
+        # Counts the switch-offs begun and the stops announced (cancel_readings()); a routine
+        # reading (check()) notes it in this thread-local when it starts and sends no further
+        # query once another thread's switch-off has begun or a stop is on its way.
+        self._routine_epoch = 0
         self._local = threading.local()
         #: The last :meth:`off` that could not be confirmed (None once one confirms). While set, a
         #: failed exchange does not start another switch-off by itself: the one that failed has
@@ -1276,10 +1277,10 @@ class L8121:
             ):
                 raise NoReply(f"{self.port}: {line} not sent: the controller did not answer the switch-off")
             epoch = getattr(self._local, "epoch", None)
-            if epoch is not None and epoch != self._off_epoch:
+            if epoch is not None and epoch != self._routine_epoch:
                 raise SwitchedOff(
-                    f"{self.port}: {line} not sent: X-rays were switched off during this reading "
-                    f"(it cannot vouch for the beam)"
+                    f"{self.port}: {line} not sent: X-rays are being switched off (or a stop was asked) "
+                    f"during this reading (it cannot vouch for the beam)"
                 )
             self._busy = True
 
@@ -1734,7 +1735,7 @@ class L8121:
         # one is pending or running sends nothing at all (it would read the tube switched off)
         with self._turns:
             pending = self._off_thread not in (None, threading.get_ident())
-            self._local.epoch = -1 if pending else self._off_epoch
+            self._local.epoch = -1 if pending else self._routine_epoch
         try:
             state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
             if self._beam is not None and self._evident_fault(state, kv, ua):
@@ -1747,6 +1748,14 @@ class L8121:
         finally:
             self._local.epoch = None
         return {"state": state, "voltage_kv": kv, "current_ua": ua, "interlock_closed": closed, "time": time.time()}
+
+    def cancel_readings(self) -> None:
+        """A stop is on its way: a routine reading in progress in another thread (:meth:`check`)
+        sends nothing after the exchange on the link and raises :class:`SwitchedOff`, so the
+        coming ``XOF`` is not queued behind it. Sends nothing; safe from any thread (a signal's
+        watcher calls it before the main thread has begun to stop)."""
+        with self._turns:
+            self._routine_epoch += 1
 
     def off(self) -> SourceState:
         """Switch X-rays off (``XOF``) and confirm with ``STS`` that the tube no longer emits.
@@ -1775,7 +1784,7 @@ class L8121:
                     raise self.off_failed
                 return self._off_state
             self._off_thread, self._off_running = me, True
-            self._off_epoch += 1  # other threads' routine readings in progress send nothing more
+            self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
         attempts, last, silent = int(self.config.off_attempts), None, False
         try:
             for attempt in range(attempts):

@@ -732,6 +732,17 @@ class _Run:
     def source(self):
         return self.devices.source
 
+    def on_signal(self):
+        """Called from the signal guard's watcher thread the moment a stop signal arrives, while
+        the main thread may still be inside a frame: no further beam poll, and a poll in flight
+        sends nothing after its exchange on the link, so the XOF that follows waits for one
+        exchange at most (A: not SAR then SIN; B: not STS, SHV, SCU, SIN at 0.3 s each)."""
+        if self.monitor is not None:
+            self.monitor.halt()
+        cancel = getattr(getattr(self.devices, "source", None), "cancel_readings", None)
+        if cancel is not None:
+            cancel()
+
 
 def _emitting(state) -> bool:
     """X-rays on, for every safety rule: the beam, and the warm-up sequence, which runs the tube
@@ -971,6 +982,9 @@ def run(
     if done:
         r.done = done
     with r.guard:
+        watch = getattr(r.guard, "on_signal", None)
+        if watch is not None:
+            watch(r.on_signal)
         try:
             for name, phase in _PHASES:
                 if name != "steps":
@@ -981,6 +995,8 @@ def run(
             raise
         finally:
             _release(r, notebook)
+            if watch is not None:
+                r.guard.forget(r.on_signal)
     res.phase = "done"
     res.frames_total = r.writer.n_frames if r.writer is not None else 0
     res.seconds = time.perf_counter() - r.t0
