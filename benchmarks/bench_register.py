@@ -265,6 +265,41 @@ def auto_part(split, seeds):
         _auto_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind))
 
 
+def auto_features_part(split):
+    """The interior texture-to-noise ratio (``radiokit.register._auto``) of the fixed image
+    over the regimes, no registration: the 560 map (2 seeds) and spread cases, 1120 and 2240
+    family pairs, analytic_pair 560-2240, the simulated pairs noisy and noise-free."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
+
+    from radiokit.register._auto import interior_texture_to_noise
+
+    ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+
+    def row(tag, f):
+        ratio, interior = interior_texture_to_noise(f)
+        print(f"{tag:<52} {ratio:7.2f}  (interior {100 * interior:.0f} % of the binned frame)", flush=True)
+
+    for c in family(split, 560, n_seeds=2, grid="map") + family(split, 560, n_seeds=1, grid="spread"):
+        row(c.label(), family_pair(c)[0])
+    for pre in ("seed-breast", "pva-phantom"):
+        for noisy in (True, False):
+            row(
+                f"sim {pre} 560 {'noisy' if noisy else 'noise-free'}",
+                sim_pair(pre, moving_step=-1, noisy=noisy, size=560)[0],
+            )
+    for size in (1120, 2240):
+        for tex, i in [(0.0, 0), (0.0, 1), (0.003, 0), (0.01, 0), (0.01, 1), (0.02, 2), (0.03, 0), (0.1, 0)]:
+            c = Case(size=size, texture=tex, noise=0.01, corr=0.1, seed=ss[i])
+            row(c.label(), family_pair(c)[0])
+    for size in (560, 1120, 2240):
+        for kind in ("thinning", "gain"):
+            for seed in (1, 2):
+                row(
+                    f"analytic_pair {size} {kind} seed {seed}",
+                    analytic_pair(size, 0.01, 0.10, 0.01, seed=seed, kind=kind)[0],
+                )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -296,15 +331,18 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
     ap.add_argument(
         "--presets",
-        choices=["weak", "rich", "map", "auto"],
+        choices=["weak", "rich", "map", "auto", "auto-features"],
         help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
         "simulated pairs; 'auto' preset='auto' against default and weak on all of those (--seeds seeds "
-        "of the 560 map)",
+        "of the 560 map); 'auto-features' only auto's texture-to-noise ratio over the regimes)",
     )
     ap.add_argument("--seeds", type=int, default=2, help="the 560 map's seeds per cell of --presets auto")
     ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
     args = ap.parse_args(argv)
+    if args.presets == "auto-features":
+        auto_features_part(args.split)
+        return 0
     if args.presets == "auto":
         auto_part(args.split, args.seeds)
         return 0

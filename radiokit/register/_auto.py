@@ -46,8 +46,8 @@ AUTO_PRESETS = {"auto": ("default", "weak"), "auto-fast": ("fast", "weak-fast")}
 # Chosen on TRAINING seeds (benchmarks/README.md, "Automatic preset choice (session 6)"): the
 # textureless and near-textureless pairs (family texture 0 at 560-2240, texture 0.3x noise at
 # 560, where `weak` is no better; the simulated pairs of both scene presets, where it is worse)
-# read at most 0.69 (seed-breast), the weak-texture pairs where `weak` wins (texture >= noise,
-# every spread case, 560-2240) at least 1.1; rich texture where `default` wins (analytic_pair at
+# read at most 0.68 (seed-breast), the weak-texture pairs where `weak` wins (texture >= noise,
+# every spread case, 560-2240) at least 1.09; rich texture where `default` wins (analytic_pair at
 # 1120 and 2240) at least 31, the family's texture 10x noise at 1120 (`weak` better) 26.
 TEXTURE_LOW = 0.9
 TEXTURE_HIGH = 29.0
