@@ -203,6 +203,103 @@ def presets_part(which, split):
             _presets_row(f"sim {pre} 560 noisy", sim_pair(pre, moving_step=-1, noisy=True, size=560), list(RC_PRESETS))
 
 
+def _auto_row(tag, pair, fast_only=False):
+    """One pair: the interior texture-to-noise ratio and what ``auto`` / ``auto-fast`` chose, then
+    median / p95 EPE and ``ok`` of default, weak, auto (and the fast ones). ``auto`` runs exactly
+    the preset it chose (``bspline_register`` swaps the name before registering), so its result
+    is that preset's, taken from the same run rather than registered twice."""
+    from radiokit.register import register
+    from radiokit.register._auto import choose
+
+    f, m, d, mask = pair
+    t = time.perf_counter()
+    slow, fast = choose(f, "auto"), choose(f, "auto-fast")
+    t_choose = time.perf_counter() - t
+    res = {}
+    for p in ["fast", "weak-fast"] if fast_only else ["default", "weak", "fast", "weak-fast"]:
+        t = time.perf_counter()
+        r = register(f, m, "rc", preset=p)
+        s = score(r.displacement, d, mask)
+        res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
+    res["auto"], res["auto-fast"] = res.get(slow.preset), res[fast.preset]
+    cells = [
+        f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}"
+        for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast")
+        if (v := res.get(p)) is not None
+    ]
+    print(
+        f"{tag:<50} ratio {slow.ratio:6.2f} -> {slow.preset}/{fast.preset} ({t_choose:.2f} s) "
+        f"id {score(0 * d, d, mask)['epe_median']:.2f} | " + " | ".join(cells),
+        flush=True,
+    )
+    return dict(tag=tag, ratio=slow.ratio, chose=slow.preset, res=res)
+
+
+def _auto_summary(rows):
+    """Median, 95th percentile and mean over the rows of each preset's median EPE."""
+    for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast"):
+        v = np.array([r["res"][p][0] for r in rows if r["res"].get(p) is not None])
+        if v.size:
+            print(
+                f"  {p:<10} over {v.size} pairs: median of medians {np.median(v):.2f} px, "
+                f"p95 of medians {np.percentile(v, 95):.2f} px, mean {v.mean():.2f} px",
+                flush=True,
+            )
+
+
+def auto_part(split, seeds):
+    """``preset="auto"`` against default and weak (issue 11, session 6): the 560 map on ``seeds``
+    seeds, the 2240 weak-texture and textureless pairs, analytic_pair 2240, the simulated pairs."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
+
+    ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+    rows = [_auto_row(c.label(), family_pair(c)) for c in family(split, 560, n_seeds=seeds, grid="map")]
+    print("560 map:", flush=True)
+    _auto_summary(rows)
+    for pre in ("seed-breast", "pva-phantom"):
+        _auto_row(f"sim {pre} 560 noisy", sim_pair(pre, moving_step=-1, noisy=True, size=560))
+    for tex, s in [(0.01, ss[0]), (0.01, ss[1]), (0.02, ss[2]), (0.0, ss[0])]:
+        c = Case(size=2240, texture=tex, noise=0.01, corr=0.1, seed=s)
+        _auto_row(c.label(), family_pair(c))
+    for kind in ("thinning", "gain"):
+        _auto_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind))
+
+
+def auto_features_part(split):
+    """The interior texture-to-noise ratio (``radiokit.register._auto``) of the fixed image
+    over the regimes, no registration: the 560 map (2 seeds) and spread cases, 1120 and 2240
+    family pairs, analytic_pair 560-2240, the simulated pairs noisy and noise-free."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
+
+    from radiokit.register._auto import interior_texture_to_noise
+
+    ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+
+    def row(tag, f):
+        ratio, interior = interior_texture_to_noise(f)
+        print(f"{tag:<52} {ratio:7.2f}  (interior {100 * interior:.0f} % of the binned frame)", flush=True)
+
+    for c in family(split, 560, n_seeds=2, grid="map") + family(split, 560, n_seeds=1, grid="spread"):
+        row(c.label(), family_pair(c)[0])
+    for pre in ("seed-breast", "pva-phantom"):
+        for noisy in (True, False):
+            row(
+                f"sim {pre} 560 {'noisy' if noisy else 'noise-free'}",
+                sim_pair(pre, moving_step=-1, noisy=noisy, size=560)[0],
+            )
+    for size in (1120, 2240):
+        for tex, i in [(0.0, 0), (0.0, 1), (0.003, 0), (0.01, 0), (0.01, 1), (0.02, 2), (0.03, 0), (0.1, 0)]:
+            c = Case(size=size, texture=tex, noise=0.01, corr=0.1, seed=ss[i])
+            row(c.label(), family_pair(c)[0])
+    for size in (560, 1120, 2240):
+        for kind in ("thinning", "gain"):
+            for seed in (1, 2):
+                row(
+                    f"analytic_pair {size} {kind} seed {seed}",
+                    analytic_pair(size, 0.01, 0.10, 0.01, seed=seed, kind=kind)[0],
+                )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -234,13 +331,21 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
     ap.add_argument(
         "--presets",
-        choices=["weak", "rich", "map"],
+        choices=["weak", "rich", "map", "auto", "auto-features"],
         help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
-        "simulated pairs",
+        "simulated pairs; 'auto' preset='auto' against default and weak on all of those (--seeds seeds "
+        "of the 560 map); 'auto-features' only auto's texture-to-noise ratio over the regimes)",
     )
+    ap.add_argument("--seeds", type=int, default=2, help="the 560 map's seeds per cell of --presets auto")
     ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
     args = ap.parse_args(argv)
+    if args.presets == "auto-features":
+        auto_features_part(args.split)
+        return 0
+    if args.presets == "auto":
+        auto_part(args.split, args.seeds)
+        return 0
     if args.presets:
         presets_part(args.presets, args.split)
         return 0

@@ -459,3 +459,78 @@ def test_pure_noise_observes_nothing():
     img = 1.0 + 0.01 * np.random.default_rng(5).standard_normal((400, 400)).astype(np.float32)
     ob = observability(img, 24.0, bound_scale=B_SCALE())
     assert np.mean(ob.confidence[80:-80, 80:-80] >= 0.5) < 0.01
+
+
+# -- preset="auto": default or weak chosen from the pair (issue 11, session 6) -------------------
+# Margins from the training seeds (benchmarks/README.md, "Automatic preset choice (session 6)"):
+# silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it; rich texture at
+# least 1.08x TEXTURE_HIGH, the richest pair that `weak` won 0.9x it.
+
+
+def test_auto_picks_weak_on_weak_texture_and_records_why():
+    """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
+    of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
+    inside the weak band by the training margin; ``auto`` runs ``weak`` (the same field), says
+    so in ``options["auto"]``, and so leaves well under the error ``default`` leaves."""
+    from radiokit.register._auto import TEXTURE_HIGH, TEXTURE_LOW, choose
+
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    ratio = choose(fixed).ratio
+    assert 1.2 * TEXTURE_LOW <= ratio <= TEXTURE_HIGH / 1.2, ratio
+    assert choose(fixed, "auto-fast").preset == "weak-fast"
+    reg = register(fixed, moving, "rc", preset="auto")
+    assert reg.options["auto"].preset == "weak" and "weak texture" in reg.options["auto"].reason
+    np.testing.assert_array_equal(reg.displacement, register(fixed, moving, "rc", preset="weak").displacement)
+    auto, _ = _epe(reg.displacement, d, mask)
+    default, _ = _epe(register(fixed, moving, "rc").displacement, d, mask)
+    assert auto < 0.6 * default, (auto, default)
+
+
+def test_auto_keeps_default_on_a_silent_body():
+    """No texture, noise at two levels: the interior carries nothing above the noise, so the
+    ratio is below the silent margin and ``auto`` keeps ``default`` (``fast`` for auto-fast).
+    (Noise-free images are not covered: there the body's curvature and a disc's rim can read
+    above TEXTURE_LOW, benchmarks/README.md.)"""
+    from radiokit.register._auto import TEXTURE_LOW, choose
+
+    for noise in (0.01, 0.03):
+        fixed = _family_pair(size=384, texture=0.0, noise=noise, corr=0.1, seed=8)[0]
+        c = choose(fixed)
+        assert c.ratio <= 0.76 * TEXTURE_LOW and c.preset == "default", (noise, c)
+        assert "silent" in c.reason and choose(fixed, "auto-fast").preset == "fast"
+
+
+def test_auto_keeps_default_on_rich_texture():
+    """Texture 50x the noise: above the rich margin, ``default``."""
+    from radiokit.register._auto import TEXTURE_HIGH, choose
+
+    fixed = _family_pair(size=384, texture=0.1, noise=0.002, corr=0.1, seed=8)[0]
+    c = choose(fixed)
+    assert c.ratio >= 1.08 * TEXTURE_HIGH and c.preset == "default", c
+    assert "rich" in c.reason
+
+
+def test_auto_ratio_is_the_texture_against_the_noise():
+    """The ratio is the band-passed texture's standard deviation over the noise's: tripling the
+    texture at a fixed noise triples it (within the body's fading texture and the estimate's
+    scatter, 20 %), and so does a third of the noise at a fixed texture."""
+    from radiokit.register._auto import interior_texture_to_noise
+
+    def ratio(texture, noise):
+        return interior_texture_to_noise(_family_pair(size=384, texture=texture, noise=noise, seed=8)[0])[0]
+
+    base = ratio(0.01, 0.01)
+    assert ratio(0.03, 0.01) == pytest.approx(3 * base, rel=0.2)
+    assert ratio(0.01, 0.01 / 3) == pytest.approx(3 * base, rel=0.2)
+
+
+def test_auto_without_an_interior_keeps_default():
+    """A body too small to have pixels 48 binned px inside its edge: nothing to judge the
+    texture by, so ``default``, with the reason."""
+    from radiokit.register._auto import choose
+
+    img = np.zeros((200, 200), np.float32)
+    img[80:120, 80:120] = 1.0
+    img += 0.01 * np.random.default_rng(2).standard_normal(img.shape).astype(np.float32)
+    c = choose(img)
+    assert c.preset == "default" and c.interior == 0.0 and "no interior" in c.reason

@@ -161,6 +161,8 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     disp, info = METHODS[method](f, m, mask, **options)
     seconds = time.perf_counter() - t0
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
+    if "auto" in info:  # preset="auto": the preset it chose and why (radiokit.register._auto)
+        reg.options["auto"] = info["auto"]
     _assess(reg, f, m, mask, info, seconds)
     if retry and not reg.quality.ok and "regularisation" in info:
         opts = dict(options, regularisation=10 * info["regularisation"])

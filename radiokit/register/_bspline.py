@@ -69,6 +69,8 @@ from scipy import fft as sfft
 from scipy.optimize import minimize
 
 from radiokit.register import _method
+from radiokit.register._auto import AUTO_PRESETS
+from radiokit.register._auto import choose as choose_preset
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
@@ -612,8 +614,15 @@ def bspline_register(fixed, moving, mask=None, **options):
     (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
     from threadpoolctl import threadpool_limits
 
+    choice = None
+    if options.get("preset") in AUTO_PRESETS:  # chosen from the fixed image, before registering
+        choice = choose_preset(fixed, options["preset"])
+        options = dict(options, preset=choice.preset)
     with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
-        return _bspline_register(fixed, moving, mask, **options)
+        d, info = _bspline_register(fixed, moving, mask, **options)
+    if choice is not None:
+        info["auto"] = choice
+    return d, info
 
 
 @contextlib.contextmanager
@@ -637,7 +646,7 @@ _N_REF = 1_000_000
 def _options(preset, overrides) -> dict:
     """``PRESETS[preset]`` with the overrides that are not None; validated."""
     if preset not in PRESETS:
-        raise ValueError(f"preset {preset!r}: expected one of {', '.join(PRESETS)}")
+        raise ValueError(f"preset {preset!r}: expected one of {', '.join([*PRESETS, *AUTO_PRESETS])}")
     o = dict(PRESETS[preset])
     o.update({k: v for k, v in overrides.items() if v is not None})
     if o["balance"] not in ("lattice", "frame"):
@@ -795,7 +804,10 @@ def _converged(res, move, converge_px):
 @_method("rc")
 def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast';
-    'weak', 'weak-fast' for texture near the noise level), spacing (px), alpha, regularisation,
+    'weak', 'weak-fast' for texture near the noise level; 'auto', 'auto-fast' choose between
+    'default' and 'weak' ('fast' and 'weak-fast') from the fixed image's interior texture-to-
+    noise ratio, see ``radiokit.register._auto``, and record the choice in the result's
+    ``options["auto"]``), spacing (px), alpha, regularisation,
     balance ('lattice' or 'frame': see the module docstring), stiffen (balance 'frame': level
     ``k`` halvings finer than the coarsest is 2^(k stiffen) times stiffer), iterations (per
     level, coarse to fine), min_size (px, the coarsest level's smaller side), min_levels (at

@@ -1,0 +1,126 @@
+"""rc's preset chosen from the pair before registering (``preset="auto"``, ``"auto-fast"``).
+
+The ``weak`` presets (scale-invariant energy balance, free coarse levels) recover texture near
+the noise level that ``default`` leaves, but lose on a silent (textureless) body, whose edges
+carry thickness change the free coarse levels follow, and a little on rich texture
+(benchmarks/README.md, issue 11). So three regimes, told apart by one no-truth number, the
+**texture-to-noise ratio of the body's interior**:
+
+- the fixed image area-averaged to about 0.4 Mpx (as ``register``'s assessment), band-passed
+  (Gaussian of 1 px minus Gaussian of 6 px: the body's slow shape and slope go, a texture
+  and the noise stay);
+- its local variance in a Gaussian window of 4 px (the window's mean removed: the band-passed
+  curvature of a smooth body is nearly constant over it), over what the noise alone gives
+  there (the noise level from ``_confidence.noise_map``, with ``_confidence.MODEL_FLOOR``
+  under it as in the confidence map, times the band-pass's gain on white noise), less 1, square-rooted: the texture's standard deviation against the noise's after
+  the same filter, 0 for noise alone;
+- its median over the object (``_confidence``'s: differs from the frame's border level) eroded
+  by 48 binned pixels: the body's edge and the band-pass's reach from it (6 + 4 px filters,
+  each ~3 sigma, plus the object's 4 px blur) are structure, not texture, and the median
+  ignores an inclusion's rim.
+
+Binning makes the ratio grow with the frame at a given per-pixel texture-to-noise (a 2240
+frame binned by 4 has a quarter of the noise), which is what the weak presets need: their win
+grows with the frame (benchmarks/README.md, "Automatic preset choice (session 6)").
+
+``ratio < TEXTURE_LOW``: silent body, ``default``; ``TEXTURE_LOW <= ratio < TEXTURE_HIGH``:
+weak texture, ``weak``; ``ratio >= TEXTURE_HIGH``: rich texture, ``default`` (``fast`` /
+``weak-fast`` for ``auto-fast``). Thresholds chosen on ``regdata`` TRAINING seeds only.
+
+Made for noisy images (a detector's): on a noise-free image the band-passed curvature of a
+smooth body and an inclusion's rim are all there is, and can read above ``TEXTURE_LOW``
+(the simulated pva-phantom pair noise-free: 1.4; the family's textureless body at 384 px
+noise-free: 1.3; noisy, both under 0.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["AUTO_PRESETS", "AutoChoice", "choose", "interior_texture_to_noise", "TEXTURE_LOW", "TEXTURE_HIGH"]
+
+# name -> (the preset for silent or rich images, the preset for weak texture)
+AUTO_PRESETS = {"auto": ("default", "weak"), "auto-fast": ("fast", "weak-fast")}
+# Chosen on TRAINING seeds (benchmarks/README.md, "Automatic preset choice (session 6)"): the
+# textureless and near-textureless pairs (family texture 0 at 560-2240, texture 0.3x noise at
+# 560, where `weak` is no better; the simulated pairs of both scene presets, where it is worse)
+# read at most 0.68 (seed-breast), the weak-texture pairs where `weak` wins (texture >= noise,
+# every spread case, 560-2240) at least 1.09; rich texture where `default` wins (analytic_pair at
+# 1120 and 2240) at least 31, the family's texture 10x noise at 1120 (`weak` better) 26.
+TEXTURE_LOW = 0.9
+TEXTURE_HIGH = 29.0
+_ASSESS_PIXELS = 400_000  # the binned size (as register()'s assessment)
+_NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
+_BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
+_WINDOW = 4.0  # px (binned): the local variance's Gaussian window
+_ERODE = 48  # px (binned): the interior starts this far inside the object
+_GAIN = {}  # band -> variance of the band-pass of unit white noise (measured once)
+
+
+@dataclass(frozen=True)
+class AutoChoice:
+    """What ``preset="auto"`` chose and why: ``preset`` the preset run, ``ratio`` the
+    interior's texture-to-noise ratio, ``interior`` the share of the (binned) frame it was
+    measured on, ``reason`` one line."""
+
+    preset: str
+    ratio: float
+    interior: float
+    reason: str
+
+
+def _band_gain(band):
+    """Variance of the band-pass (Gaussian ``band[0]`` minus Gaussian ``band[1]``) of unit
+    white noise: measured once on a noise image (exact enough, and true to the filters used)."""
+    from radiokit.register import _confidence as C
+
+    if band not in _GAIN:
+        z = np.random.default_rng(0).standard_normal((512, 512)).astype(np.float32)
+        b = C._gauss(z, band[0]) - C._gauss(z, band[1])
+        _GAIN[band] = float(b[64:-64, 64:-64].var())
+    return _GAIN[band]
+
+
+def interior_texture_to_noise(image) -> tuple[float, float]:
+    """``(ratio, interior)``: the median texture-to-noise ratio of the body's interior and the
+    share of the binned frame the interior covers (see the module docstring); ``(0, 0)`` when no
+    pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
+    import cv2
+
+    from radiokit.register import _bin
+    from radiokit.register import _confidence as C
+
+    f = np.asarray(image, np.float32)
+    fb = _bin(f, max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS)))))
+    sig = C.noise_map(fb, _NOISE_WINDOW)
+    obj = C._object(fb, float(np.median(sig)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _ERODE + 1, 2 * _ERODE + 1))
+    inner = cv2.erode(obj.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    if not inner.any():
+        return 0.0, 0.0
+    b = C._gauss(fb, _BAND[0]) - C._gauss(fb, _BAND[1])
+    mean = C._gauss(b, _WINDOW)
+    var = C._gauss(b * b, _WINDOW) - mean * mean
+    step = max(1, int(np.sqrt(fb.size / 250_000)))
+    lo, hi = np.percentile(fb[::step, ::step], [1, 99])
+    noise2 = sig[inner] ** 2 + (C.MODEL_FLOOR * float(hi - lo)) ** 2  # a noise-free image: see MODEL_FLOOR
+    ratio = np.sqrt(np.maximum(var[inner] / (_band_gain(_BAND) * noise2) - 1.0, 0.0))
+    return float(np.median(ratio)), float(inner.mean())
+
+
+def choose(fixed, name="auto") -> AutoChoice:
+    """The preset ``name`` (``"auto"`` or ``"auto-fast"``) stands for on this ``fixed`` image."""
+    plain, weak = AUTO_PRESETS[name]
+    ratio, interior = interior_texture_to_noise(fixed)
+    if interior == 0.0:
+        return AutoChoice(plain, ratio, interior, f"no interior {_ERODE} px (binned) inside the body: {plain}")
+    if ratio < TEXTURE_LOW:
+        why = f"silent body: interior texture/noise {ratio:.2f} < {TEXTURE_LOW:g}"
+        return AutoChoice(plain, ratio, interior, why)
+    if ratio >= TEXTURE_HIGH:
+        why = f"rich texture: interior texture/noise {ratio:.3g} >= {TEXTURE_HIGH:g}"
+        return AutoChoice(plain, ratio, interior, why)
+    why = f"weak texture: interior texture/noise {ratio:.2f} in [{TEXTURE_LOW:g}, {TEXTURE_HIGH:g})"
+    return AutoChoice(weak, ratio, interior, why)
