@@ -20,9 +20,9 @@ import numpy as np
 from radiokit import __version__
 from radiokit.errors import RadiokitError
 
-#: radiokit.register's B-spline presets; a literal so that --help does not import scipy
-#: (tests/test_cli.py checks it against the registry)
-PRESET_NAMES = ("default", "fast", "weak", "weak-fast")
+#: radiokit.register's B-spline presets and rc's automatic choice between them; a literal so that
+#: --help does not import scipy (tests/test_cli.py checks it against the registry)
+PRESET_NAMES = ("default", "fast", "weak", "weak-fast", "auto", "auto-fast")
 
 __all__ = ["main", "build_parser"]
 
@@ -292,6 +292,8 @@ def cmd_register(args) -> int:
         f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
         f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px"
     )
+    if "auto" in reg.options:  # --preset auto: what it ran, and why
+        print(f"preset {reg.options['auto'].preset} ({reg.options['auto'].reason})")
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
         with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:
@@ -455,7 +457,8 @@ def _add_register(sub):
     p.add_argument(
         "--preset",
         choices=PRESET_NAMES,
-        help="B-spline methods: default, fast, or weak / weak-fast (opt-in, nearly textureless pairs)",
+        help="B-spline methods: default, fast, weak / weak-fast (texture near the noise level), or (rc) "
+        "auto / auto-fast (chooses between them from the fixed image's interior texture-to-noise ratio)",
     )
     p.add_argument(
         "--roi",

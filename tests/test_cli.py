@@ -160,6 +160,27 @@ def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):
 
 def test_cli_preset_choices_are_the_registrys_presets():
     from radiokit.cli import PRESET_NAMES
+    from radiokit.register._auto import AUTO_PRESETS
     from radiokit.register._bspline import PRESETS
 
-    assert set(PRESET_NAMES) == set(PRESETS)
+    assert set(PRESET_NAMES) == set(PRESETS) | set(AUTO_PRESETS)
+
+
+def test_register_preset_auto_says_what_it_ran(tmp_path, capsys):
+    """``--preset auto`` prints the preset it chose and the ratio behind it: a smooth body with
+    noise only has no interior texture, so the default runs (its ratio is ~0, far under 0.9)."""
+    import tifffile
+
+    from radiokit.cli import main
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:256, 0:256] / 256
+    body = 2.0 * np.clip(1 - ((yy - 0.5) ** 2 + (xx - 0.5) ** 2) / 0.2, 0, None)
+    for name in ("f", "m"):
+        tifffile.imwrite(tmp_path / f"{name}.tif", (body + 0.01 * rng.standard_normal(body.shape)).astype(np.float32))
+    out = tmp_path / "reg.h5"
+    main(["register", str(tmp_path / "f.tif"), str(tmp_path / "m.tif"), "--preset", "auto", "-o", str(out)])
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("preset "))
+    assert line.startswith("preset default (silent body: interior texture/noise"), line
+    ratio = float(re.search(r"texture/noise ([\d.]+)", line).group(1))
+    assert ratio < 0.5 and out.exists()
