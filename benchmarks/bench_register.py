@@ -204,35 +204,40 @@ def presets_part(which, split):
 
 
 def _auto_row(tag, pair, fast_only=False):
-    """One pair: the interior texture-to-noise ratio and what ``auto`` / ``auto-fast`` chose, then
-    median / p95 EPE and ``ok`` of default, weak, auto (and the fast ones). ``auto`` runs exactly
-    the preset it chose (``bspline_register`` swaps the name before registering), so its result
-    is that preset's, taken from the same run rather than registered twice."""
+    """One pair: median / p95 EPE and ``ok`` of default, weak, auto (and the fast ones), and what
+    ``auto`` / ``auto-fast`` returned. ``auto`` returns the plain preset's run when it passes its
+    own checks or the interior is silent, else the weak preset's run (``register_auto``), so its
+    result is one of the two rows, taken from them rather than registered again; the time of a
+    fallback is both runs'."""
     from radiokit.register import register
-    from radiokit.register._auto import choose
+    from radiokit.register._auto import AUTO_PRESETS, choose
 
     f, m, d, mask = pair
-    t = time.perf_counter()
-    slow, fast = choose(f, "auto"), choose(f, "auto-fast")
-    t_choose = time.perf_counter() - t
-    res = {}
+    res, chose = {}, {}
     for p in ["fast", "weak-fast"] if fast_only else ["default", "weak", "fast", "weak-fast"]:
         t = time.perf_counter()
         r = register(f, m, "rc", preset=p)
         s = score(r.displacement, d, mask)
         res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
-    res["auto"], res["auto-fast"] = res.get(slow.preset), res[fast.preset]
+    fallback = {name: choose(f, name) for name in AUTO_PRESETS}
+    for name, (plain, weak) in AUTO_PRESETS.items():
+        if plain not in res:
+            continue
+        use = plain if res[plain][3] or fallback[name].preset == plain else weak
+        v = res[use]
+        res[name] = v if use == plain else (v[0], v[1], v[2] + res[plain][2], v[3])
+        chose[name] = use
     cells = [
         f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}"
         for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast")
         if (v := res.get(p)) is not None
     ]
     print(
-        f"{tag:<50} ratio {slow.ratio:6.2f} -> {slow.preset}/{fast.preset} ({t_choose:.2f} s) "
+        f"{tag:<50} ratio {fallback['auto'].ratio:6.2f} -> {'/'.join(chose.values())} "
         f"id {score(0 * d, d, mask)['epe_median']:.2f} | " + " | ".join(cells),
         flush=True,
     )
-    return dict(tag=tag, ratio=slow.ratio, chose=slow.preset, res=res)
+    return dict(tag=tag, ratio=fallback["auto"].ratio, chose=chose.get("auto"), res=res)
 
 
 def _auto_summary(rows):
@@ -271,13 +276,17 @@ def auto_features_part(split):
     family pairs, analytic_pair 560-2240, the simulated pairs noisy and noise-free."""
     from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
 
-    from radiokit.register._auto import interior_texture_to_noise
+    from radiokit.register._auto import _measure, choose
 
     ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
 
     def row(tag, f):
-        ratio, interior = interior_texture_to_noise(f)
-        print(f"{tag:<52} {ratio:7.2f}  (interior {100 * interior:.0f} % of the binned frame)", flush=True)
+        ratio, interior, noise = _measure(f)
+        print(
+            f"{tag:<52} {ratio:7.2f}  noise/floor {noise:6.2f} -> fallback {choose(f).preset:<8}"
+            f"(interior {100 * interior:.0f} % of the binned frame)",
+            flush=True,
+        )
 
     for c in family(split, 560, n_seeds=2, grid="map") + family(split, 560, n_seeds=1, grid="spread"):
         row(c.label(), family_pair(c)[0])

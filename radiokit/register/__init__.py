@@ -157,12 +157,14 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     f, m, mask = _check(fixed, moving, mask)
+    if options.get("preset") in ("auto", "auto-fast"):  # the plain preset, then the weak one if it fails
+        from radiokit.register._auto import register_auto
+
+        return register_auto(register, f, m, method, mask, retry, options)
     t0 = time.perf_counter()
     disp, info = METHODS[method](f, m, mask, **options)
     seconds = time.perf_counter() - t0
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
-    if "auto" in info:  # preset="auto": the preset it chose and why (radiokit.register._auto)
-        reg.options["auto"] = info["auto"]
     _assess(reg, f, m, mask, info, seconds)
     if retry and not reg.quality.ok and "regularisation" in info:
         opts = dict(options, regularisation=10 * info["regularisation"])

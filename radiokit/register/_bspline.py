@@ -69,8 +69,6 @@ from scipy import fft as sfft
 from scipy.optimize import minimize
 
 from radiokit.register import _method
-from radiokit.register._auto import AUTO_PRESETS
-from radiokit.register._auto import choose as choose_preset
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
@@ -614,15 +612,8 @@ def bspline_register(fixed, moving, mask=None, **options):
     (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
     from threadpoolctl import threadpool_limits
 
-    choice = None
-    if options.get("preset") in AUTO_PRESETS:  # chosen from the fixed image, before registering
-        choice = choose_preset(fixed, options["preset"])
-        options = dict(options, preset=choice.preset)
     with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
-        d, info = _bspline_register(fixed, moving, mask, **options)
-    if choice is not None:
-        info["auto"] = choice
-    return d, info
+        return _bspline_register(fixed, moving, mask, **options)
 
 
 @contextlib.contextmanager
@@ -646,7 +637,9 @@ _N_REF = 1_000_000
 def _options(preset, overrides) -> dict:
     """``PRESETS[preset]`` with the overrides that are not None; validated."""
     if preset not in PRESETS:
-        raise ValueError(f"preset {preset!r}: expected one of {', '.join([*PRESETS, *AUTO_PRESETS])}")
+        raise ValueError(
+            f"preset {preset!r}: expected one of {', '.join(PRESETS)} (or, through register(), auto, auto-fast)"
+        )
     o = dict(PRESETS[preset])
     o.update({k: v for k, v in overrides.items() if v is not None})
     if o["balance"] not in ("lattice", "frame"):
