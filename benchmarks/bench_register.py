@@ -206,9 +206,9 @@ def presets_part(which, split):
 def _auto_row(tag, pair, fast_only=False):
     """One pair: median / p95 EPE and ``ok`` of default, weak, auto (and the fast ones), and what
     ``auto`` / ``auto-fast`` returned. ``auto`` returns the plain preset's run when it passes its
-    own checks or the interior is silent, else the weak preset's run (``register_auto``), so its
-    result is one of the two rows, taken from them rather than registered again; the time of a
-    fallback is both runs'."""
+    own checks or the interior is silent, else the better of it and the weak preset's run (the
+    smaller misaligned share, ``register_auto``), so its result is one of the two rows, taken
+    from them rather than registered again; the time of a fallback is both runs'."""
     from radiokit.register import register
     from radiokit.register._auto import AUTO_PRESETS, choose
 
@@ -218,17 +218,18 @@ def _auto_row(tag, pair, fast_only=False):
         t = time.perf_counter()
         r = register(f, m, "rc", preset=p)
         s = score(r.displacement, d, mask)
-        res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
+        res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok, r.quality.misaligned_fraction)
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
     for name, (plain, weak) in AUTO_PRESETS.items():
         if plain not in res:
             continue
-        use = plain if res[plain][3] or fallback[name].preset == plain else weak
+        tried = not res[plain][3] and fallback[name].preset != plain
+        use = weak if tried and res[weak][4] < res[plain][4] else plain
         v = res[use]
-        res[name] = v if use == plain else (v[0], v[1], v[2] + res[plain][2], v[3])
+        res[name] = v if not tried else (v[0], v[1], res[weak][2] + res[plain][2], v[3], v[4])
         chose[name] = use
     cells = [
-        f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}"
+        f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}" + (f" {v[2]:.1f}s" if p.startswith("auto") else "")
         for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast")
         if (v := res.get(p)) is not None
     ]
