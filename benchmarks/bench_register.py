@@ -210,23 +210,24 @@ def _auto_row(tag, pair, fast_only=False):
     smaller misaligned share, ``register_auto``), so its result is one of the two rows, taken
     from them rather than registered again; the time of a fallback is both runs'."""
     from radiokit.register import register
-    from radiokit.register._auto import AUTO_PRESETS, choose
+    from radiokit.register._auto import AUTO_PRESETS, choose, keeps_retry
 
     f, m, d, mask = pair
-    res, chose = {}, {}
+    res, chose, quality = {}, {}, {}
     for p in ["fast", "weak-fast"] if fast_only else ["default", "weak", "fast", "weak-fast"]:
         t = time.perf_counter()
         r = register(f, m, "rc", preset=p)
         s = score(r.displacement, d, mask)
-        res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok, r.quality.misaligned_fraction)
+        res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
+        quality[p] = r.quality
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
     for name, (plain, weak) in AUTO_PRESETS.items():
         if plain not in res:
             continue
         tried = not res[plain][3] and fallback[name].preset != plain
-        use = weak if tried and res[weak][4] < res[plain][4] else plain
+        use = weak if tried and keeps_retry(quality[plain], quality[weak]) else plain
         v = res[use]
-        res[name] = v if not tried else (v[0], v[1], res[weak][2] + res[plain][2], v[3], v[4])
+        res[name] = v if not tried else (v[0], v[1], res[weak][2] + res[plain][2], v[3])
         chose[name] = use
     cells = [
         f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}" + (f" {v[2]:.1f}s" if p.startswith("auto") else "")
@@ -309,12 +310,12 @@ def auto_features_part(split):
     family pairs, analytic_pair 560-2240, the simulated pairs noisy and noise-free."""
     from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
 
-    from radiokit.register._auto import _measure, choose
+    from radiokit.register._auto import choose, interior_texture_to_noise
 
     ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
 
     def row(tag, f):
-        ratio, interior, noise = _measure(f)
+        ratio, interior, noise = interior_texture_to_noise(f)
         print(
             f"{tag:<52} {ratio:7.2f}  noise/floor {noise:6.2f} -> fallback {choose(f).preset:<8}"
             f"(interior {100 * interior:.0f} % of the binned frame)",

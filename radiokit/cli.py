@@ -458,7 +458,7 @@ def _add_register(sub):
         "--preset",
         choices=PRESET_NAMES,
         help="B-spline methods: default, fast, weak / weak-fast (texture near the noise level), or (rc) "
-        "auto / auto-fast (chooses between them from the fixed image's interior texture-to-noise ratio)",
+        "auto / auto-fast (default, retried with weak when flagged on a textured interior)",
     )
     p.add_argument(
         "--roi",

@@ -507,16 +507,16 @@ def test_auto_keeps_default_on_a_noise_free_image():
     """Noise-free, the smooth body's band-passed curvature reads as texture (ratio above
     TEXTURE_LOW without the rule); weak texture is texture near the noise, so an image without
     noise keeps ``default``, and says why."""
-    from radiokit.register._auto import NOISE_FREE, TEXTURE_LOW, _measure, choose
+    from radiokit.register._auto import NOISE_FREE, TEXTURE_LOW, choose, interior_texture_to_noise
 
     fixed = _family_pair(size=384, texture=0.0, noise=0.0, corr=0.1, seed=8)[0]
-    ratio, _, noise = _measure(fixed)
+    ratio, _, noise = interior_texture_to_noise(fixed)
     assert ratio > TEXTURE_LOW and noise < 0.5 * NOISE_FREE, (ratio, noise)  # what the rule is for
     c = choose(fixed)
     assert c.preset == "default" and "noise-free" in c.reason, c
     # the same body with noise at the family's level is far above the floor: the ratio decides
     noisy = _family_pair(size=384, texture=0.0, noise=0.01, corr=0.1, seed=8)[0]
-    assert _measure(noisy)[2] > 3 * NOISE_FREE
+    assert interior_texture_to_noise(noisy)[2] > 3 * NOISE_FREE
 
 
 def test_auto_keeps_default_when_it_passes_its_own_checks():

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from radiokit.register._auto import AUTO_PRESETS
 from radiokit.register._common import jacobian_determinant, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
 
@@ -157,7 +158,7 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     f, m, mask = _check(fixed, moving, mask)
-    if options.get("preset") in ("auto", "auto-fast"):  # the plain preset, then the weak one if it fails
+    if options.get("preset") in AUTO_PRESETS:  # the plain preset, then the weak one if it fails
         from radiokit.register._auto import register_auto
 
         return register_auto(register, f, m, method, mask, retry, options)

@@ -54,6 +54,7 @@ __all__ = [
     "AutoChoice",
     "choose",
     "register_auto",
+    "keeps_retry",
     "interior_texture_to_noise",
     "TEXTURE_LOW",
     "NOISE_FREE",
@@ -72,7 +73,6 @@ TEXTURE_LOW = 0.9
 # simulated pairs noise-free 0.2-1.0; with noise every pair 5-35 (the family 15-35 at 560-2240,
 # the simulated pairs with photon noise 5-26, analytic_pair 14-20)
 NOISE_FREE = 2.0
-_ASSESS_PIXELS = 400_000  # the binned size (as register()'s assessment)
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -104,20 +104,14 @@ def _band_gain(band):
     return _GAIN[band]
 
 
-def interior_texture_to_noise(image) -> tuple[float, float]:
-    """``(ratio, interior)``: the median texture-to-noise ratio of the body's interior and the
-    share of the binned frame the interior covers (see the module docstring); ``(0, 0)`` when no
-    pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
-    ratio, interior, _ = _measure(image)
-    return ratio, interior
-
-
-def _measure(image) -> tuple[float, float, float]:
-    """``interior_texture_to_noise``'s two numbers and the interior's median noise per
-    full-resolution pixel over the model floor (``inf`` without an interior)."""
+def interior_texture_to_noise(image) -> tuple[float, float, float]:
+    """``(ratio, interior, noise)``: the median texture-to-noise ratio of the body's interior,
+    the share of the binned frame the interior covers (see the module docstring), and the
+    interior's median noise per full-resolution pixel over the model floor; ``(0, 0, inf)`` when
+    no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
     import cv2
 
-    from radiokit.register import _bin
+    from radiokit.register import _ASSESS_PIXELS, _bin
     from radiokit.register import _confidence as C
 
     f = np.asarray(image, np.float32)
@@ -132,9 +126,7 @@ def _measure(image) -> tuple[float, float, float]:
     b = C._gauss(fb, _BAND[0]) - C._gauss(fb, _BAND[1])
     mean = C._gauss(b, _WINDOW)
     var = C._gauss(b * b, _WINDOW) - mean * mean
-    step = max(1, int(np.sqrt(fb.size / 250_000)))
-    lo, hi = np.percentile(fb[::step, ::step], [1, 99])
-    floor = C.MODEL_FLOOR * float(hi - lo)
+    floor = C.model_floor(fb)
     noise2 = sig[inner] ** 2 + floor**2  # a noise-free image: see MODEL_FLOOR
     ratio = np.sqrt(np.maximum(var[inner] / (_band_gain(_BAND) * noise2) - 1.0, 0.0))
     quiet = binning * float(np.median(sig[inner])) / floor if floor > 0 else 0.0
@@ -147,7 +139,7 @@ def choose(fixed, name="auto") -> AutoChoice:
     (ratio >= ``TEXTURE_LOW``, with noise), else the plain one (a silent or noise-free body, or
     no interior: ``weak``'s free coarse levels would follow the edges there)."""
     plain, weak = AUTO_PRESETS[name]
-    ratio, interior, noise = _measure(fixed)
+    ratio, interior, noise = interior_texture_to_noise(fixed)
     if interior == 0.0:
         return AutoChoice(plain, ratio, interior, f"no interior {_ERODE} px (binned) inside the body")
     if noise < NOISE_FREE:
@@ -156,6 +148,13 @@ def choose(fixed, name="auto") -> AutoChoice:
     if ratio < TEXTURE_LOW:
         return AutoChoice(plain, ratio, interior, f"silent body: interior texture/noise {ratio:.2f} < {TEXTURE_LOW:g}")
     return AutoChoice(weak, ratio, interior, f"weak texture: interior texture/noise {ratio:.2f} >= {TEXTURE_LOW:g}")
+
+
+def keeps_retry(plain, retry) -> bool:
+    """Whether the weak retry's ``Quality`` beats the plain run's: it leaves a smaller share of the
+    observed structure misaligned (a natural image the plain preset nearly got, camera 2240:
+    0.14 -> 0.31, 0.11 -> 2.2 px); NaN (nothing observed) keeps the plain run."""
+    return retry.misaligned_fraction < plain.misaligned_fraction
 
 
 def register_auto(register, f, m, method, mask, retry, options):
@@ -178,10 +177,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     total = first.quality.seconds + second.quality.seconds
     mis = (first.quality.misaligned_fraction, second.quality.misaligned_fraction)
     why = f"{plain} not ok ({first.quality.reason}); {fallback.reason}; misaligned {mis[0]:.2f} -> {mis[1]:.2f}"
-    # the fallback must leave less of the observed structure misaligned than the plain run (a
-    # natural image the plain preset nearly got, camera 2240: 0.14 -> 0.31, 0.11 -> 2.2 px);
-    # NaN (nothing observed) keeps the plain run
-    best = second if mis[1] < mis[0] else first
+    best = second if keeps_retry(first.quality, second.quality) else first
     best.quality.seconds = total
     best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
     return best

@@ -797,9 +797,9 @@ def _converged(res, move, converge_px):
 @_method("rc")
 def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast';
-    'weak', 'weak-fast' for texture near the noise level; 'auto', 'auto-fast' choose between
-    'default' and 'weak' ('fast' and 'weak-fast') from the fixed image's interior texture-to-
-    noise ratio, see ``radiokit.register._auto``, and record the choice in the result's
+    'weak', 'weak-fast' for texture near the noise level; through ``register()``, 'auto',
+    'auto-fast' run 'default' ('fast') and retry a flagged result on a textured interior with
+    'weak' ('weak-fast'), see ``radiokit.register._auto``; the choice is in the result's
     ``options["auto"]``), spacing (px), alpha, regularisation,
     balance ('lattice' or 'frame': see the module docstring), stiffen (balance 'frame': level
     ``k`` halvings finer than the coarsest is 2^(k stiffen) times stiffer), iterations (per

@@ -135,6 +135,14 @@ def _noise_lmin(spacing, highpass):
     return _NOISE_DERIV[key]
 
 
+def model_floor(f) -> float:
+    """``MODEL_FLOOR`` of the image's range (1st to 99th percentile, from ~250k samples): the
+    noise level below which nothing counts as noise (see MODEL_FLOOR)."""
+    step = max(1, int(np.sqrt(f.size / 250_000)))
+    lo, hi = np.percentile(f[::step, ::step], [1, 99])
+    return MODEL_FLOOR * float(hi - lo)
+
+
 def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
     (see the module docstring); ``bound_scale`` multiplies the bound (the method's error is
@@ -142,9 +150,7 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
-    step = max(1, int(np.sqrt(f.size / 250_000)))
-    lo, hi = np.percentile(f[::step, ::step], [1, 99])
-    floor2 = (MODEL_FLOOR * float(hi - lo)) ** 2  # see MODEL_FLOOR
+    floor2 = model_floor(f) ** 2
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
     lmin = np.maximum(_lmin(f, spacing, highpass, sig2) - _noise_lmin(spacing, highpass) * sig2, 0)
