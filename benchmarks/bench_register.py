@@ -204,34 +204,38 @@ def presets_part(which, split):
 
 
 def _auto_row(tag, pair, fast_only=False):
-    """One pair: median / p95 EPE and ``ok`` of default, weak, auto (and the fast ones), and what
-    ``auto`` / ``auto-fast`` returned. ``auto`` returns the plain preset's run when it passes its
-    own checks or the interior is silent, else the better of it and the weak preset's run (the
-    smaller misaligned share, ``register_auto``), so its result is one of the two rows, taken
-    from them rather than registered again; the time of a fallback is both runs'."""
+    """One pair: median / p95 EPE and ``ok`` of default, weak, silent, auto (and the fast ones),
+    and what ``auto`` / ``auto-fast`` returned. ``auto`` returns the plain preset's run when it
+    passes its own checks or there is no interior to judge, else the better of it and the weak
+    (textured interior) or silent (silent body) preset's run (``register_auto``'s rule), so its
+    result is one of the rows, taken from them rather than registered again; the time of a
+    fallback is both runs'."""
     from radiokit.register import register
     from radiokit.register._auto import AUTO_PRESETS, choose, keeps_retry
 
     f, m, d, mask = pair
     res, chose, quality = {}, {}, {}
-    for p in ["fast", "weak-fast"] if fast_only else ["default", "weak", "fast", "weak-fast"]:
+    names = _AUTO_ROW[1] if fast_only else _AUTO_ROW[0] + _AUTO_ROW[1]
+    for p in names:
         t = time.perf_counter()
         r = register(f, m, "rc", preset=p)
         s = score(r.displacement, d, mask)
         res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
         quality[p] = r.quality
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
-    for name, (plain, weak) in AUTO_PRESETS.items():
+    for name, (plain, _, silent) in AUTO_PRESETS.items():
         if plain not in res:
             continue
-        tried = not res[plain][3] and fallback[name].preset != plain
-        use = weak if tried and keeps_retry(quality[plain], quality[weak]) else plain
+        other = fallback[name].preset
+        tried = not res[plain][3] and other != plain
+        keep = tried and keeps_retry(quality[plain], quality[other], silent=other == silent)
+        use = other if keep else plain
         v = res[use]
-        res[name] = v if not tried else (v[0], v[1], res[weak][2] + res[plain][2], v[3])
+        res[name] = v if not tried else (v[0], v[1], res[other][2] + res[plain][2], v[3])
         chose[name] = use
     cells = [
         f"{p} {v[0]:.2f}/{v[1]:.2f}{'' if v[3] else '!'}" + (f" {v[2]:.1f}s" if p.startswith("auto") else "")
-        for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast")
+        for p in _AUTO_ROW[0] + ("auto",) + _AUTO_ROW[1] + ("auto-fast",)
         if (v := res.get(p)) is not None
     ]
     print(
@@ -242,9 +246,12 @@ def _auto_row(tag, pair, fast_only=False):
     return dict(tag=tag, ratio=fallback["auto"].ratio, chose=chose.get("auto"), res=res)
 
 
+_AUTO_ROW = (("default", "weak", "silent"), ("fast", "weak-fast", "silent-fast"))
+
+
 def _auto_summary(rows):
     """Median, 95th percentile and mean over the rows of each preset's median EPE."""
-    for p in ("default", "weak", "auto", "fast", "weak-fast", "auto-fast"):
+    for p in _AUTO_ROW[0] + ("auto",) + _AUTO_ROW[1] + ("auto-fast",):
         v = np.array([r["res"][p][0] for r in rows if r["res"].get(p) is not None])
         if v.size:
             print(
@@ -255,16 +262,21 @@ def _auto_summary(rows):
 
 
 def auto_part(split, seeds):
-    """``preset="auto"`` against default and weak (issue 11, session 6): the 560 map on ``seeds``
-    seeds, the 2240 weak-texture and textureless pairs, analytic_pair 2240, the simulated pairs."""
+    """``preset="auto"`` against default, weak and silent (issue 11, sessions 6-7): the 560 map on
+    ``seeds`` seeds, the physical motion with and without texture, the simulated pairs (the
+    paper's step and the largest), the 2240 weak-texture and textureless pairs, analytic_pair 2240."""
     from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family, family_pair
 
     ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
     rows = [_auto_row(c.label(), family_pair(c)) for c in family(split, 560, n_seeds=seeds, grid="map")]
     print("560 map:", flush=True)
     _auto_summary(rows)
+    for tex in (0.0, 0.01):  # a compressed body's motion: uniform expansion, a lag around a stiffer disc
+        c = Case(size=560, texture=tex, noise=0.01, corr=0.0, motion="physical", seed=ss[0])
+        _auto_row(c.label(), family_pair(c))
     for pre in ("seed-breast", "pva-phantom"):
-        _auto_row(f"sim {pre} 560 noisy", sim_pair(pre, moving_step=-1, noisy=True, size=560))
+        for step in (-1, 1):  # the paper's pair (the step before), and the largest motion (the first step)
+            _auto_row(f"sim {pre} 560 noisy, step {step}", sim_pair(pre, moving_step=step, noisy=True, size=560))
     for tex, s in [(0.01, ss[0]), (0.01, ss[1]), (0.02, ss[2]), (0.0, ss[0])]:
         c = Case(size=2240, texture=tex, noise=0.01, corr=0.1, seed=s)
         _auto_row(c.label(), family_pair(c))

@@ -48,6 +48,8 @@ METHODS = (("rc", {"preset": "fast"}), ("ncc", {"preset": "fast"}), ("tvl1", {})
 AGAINST_TRUTH = (
     ("rc", "rc", {}),
     ("rc fast", "rc", {"preset": "fast"}),
+    ("rc auto", "rc", {"preset": "auto"}),
+    ("rc auto-fast", "rc", {"preset": "auto-fast"}),
     ("elastix+hp", "elastix", {"prefilter": "highpass"}),
     ("dis+hp", "dis", {"prefilter": "highpass"}),
 )

@@ -22,7 +22,7 @@ from radiokit.errors import RadiokitError
 
 #: radiokit.register's B-spline presets and rc's automatic choice between them; a literal so that
 #: --help does not import scipy (tests/test_cli.py checks it against the registry)
-PRESET_NAMES = ("default", "fast", "weak", "weak-fast", "auto", "auto-fast")
+PRESET_NAMES = ("default", "fast", "weak", "weak-fast", "silent", "silent-fast", "auto", "auto-fast")
 
 __all__ = ["main", "build_parser"]
 

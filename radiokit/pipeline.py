@@ -515,6 +515,7 @@ def check_pairs(
             for dom in DOMAINS
         }
         q = dataclasses.asdict(reg.quality)
+        q.update(_preset_record(reg))
         observed = None
         if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
             observed = {
@@ -539,6 +540,21 @@ def check_pairs(
             epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
         out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok))
     return tuple(out)
+
+
+def _preset_record(reg) -> dict:
+    """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
+    and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
+    the flow peers, which have no presets."""
+    out = {}
+    if reg.method in ("rc", "ssd", "ncc", "mi"):
+        chosen = reg.options.get("auto")
+        out["preset"] = chosen.preset if chosen is not None else reg.options.get("preset", "default")
+        if chosen is not None:
+            out["preset_reason"] = chosen.reason
+    if "initial" in reg.options:
+        out["initial"] = reg.options["initial"]
+    return out
 
 
 def process(path, config: Config | None = None, *, out_dir=None, overwrite=False) -> Result:

@@ -807,7 +807,7 @@ def _registration_table(results):
         q = p.quality
         row = [
             _pair_label(p.name),
-            p.method,
+            p.method + (f" ({q['preset']})" if q.get("preset") else ""),
             "yes" if p.ok else "NO",
             f"{_fmt(q.get('rc_before'), '.5g')} \u2192 {_fmt(q.get('rc_after'), '.5g')}",
             f"{_fmt(q.get('ncc_before'), '.4f')} \u2192 {_fmt(q.get('ncc_after'), '.4f')}",

@@ -158,7 +158,7 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     f, m, mask = _check(fixed, moving, mask)
-    if options.get("preset") in AUTO_PRESETS:  # the plain preset, then the weak one if it fails
+    if options.get("preset") in AUTO_PRESETS:  # the plain preset, then weak or silent if it fails
         from radiokit.register._auto import register_auto
 
         return register_auto(register, f, m, method, mask, retry, options)
@@ -166,6 +166,8 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     disp, info = METHODS[method](f, m, mask, **options)
     seconds = time.perf_counter() - t0
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
+    if "init" in info:  # what the field started from (the silhouette's map, or why not)
+        reg.options["initial"] = info["init"]
     _assess(reg, f, m, mask, info, seconds)
     if retry and not reg.quality.ok and "regularisation" in info:
         opts = dict(options, regularisation=10 * info["regularisation"])

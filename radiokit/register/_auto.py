@@ -60,8 +60,9 @@ __all__ = [
     "NOISE_FREE",
 ]
 
-# name -> (the preset run first, the one a flagged result on a textured interior falls back to)
-AUTO_PRESETS = {"auto": ("default", "weak"), "auto-fast": ("fast", "weak-fast")}
+# name -> (the preset run first, the one a flagged result on a textured interior falls back to,
+# the one a flagged result on a silent body falls back to)
+AUTO_PRESETS = {"auto": ("default", "weak", "silent"), "auto-fast": ("fast", "weak-fast", "silent-fast")}
 # Chosen on TRAINING seeds (benchmarks/README.md, "Automatic preset choice (session 6)"): the
 # textureless and near-textureless pairs (family texture 0 at 560-2240, texture 0.3x noise at
 # 560, where `weak` is no better; the simulated pairs of both scene presets, where it is worse)
@@ -134,26 +135,33 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
 
 
 def choose(fixed, name="auto") -> AutoChoice:
-    """What ``name`` (``"auto"`` or ``"auto-fast"``) would fall back to on this ``fixed`` image
-    when its plain preset fails its own checks: the weak preset when the interior carries texture
-    (ratio >= ``TEXTURE_LOW``, with noise), else the plain one (a silent or noise-free body, or
-    no interior: ``weak``'s free coarse levels would follow the edges there)."""
-    plain, weak = AUTO_PRESETS[name]
+    """What ``name`` (``"auto"`` or ``"auto-fast"``) falls back to on this ``fixed`` image when
+    its plain preset fails its own checks: the weak preset when the interior carries texture
+    (ratio >= ``TEXTURE_LOW``, with noise); the silent preset when it does not (a silent or
+    noise-free body: only its edges and inclusions observe the motion, and ``weak``'s free
+    coarse levels would follow the edges' thickness change); the plain one when there is no
+    interior to judge by."""
+    plain, weak, silent = AUTO_PRESETS[name]
     ratio, interior, noise = interior_texture_to_noise(fixed)
     if interior == 0.0:
         return AutoChoice(plain, ratio, interior, f"no interior {_ERODE} px (binned) inside the body")
     if noise < NOISE_FREE:
         why = f"noise-free image: interior noise {noise:.2f} x the model floor (< {NOISE_FREE:g}), texture/noise moot"
-        return AutoChoice(plain, ratio, interior, why)
+        return AutoChoice(silent, ratio, interior, why)
     if ratio < TEXTURE_LOW:
-        return AutoChoice(plain, ratio, interior, f"silent body: interior texture/noise {ratio:.2f} < {TEXTURE_LOW:g}")
+        return AutoChoice(silent, ratio, interior, f"silent body: interior texture/noise {ratio:.2f} < {TEXTURE_LOW:g}")
     return AutoChoice(weak, ratio, interior, f"weak texture: interior texture/noise {ratio:.2f} >= {TEXTURE_LOW:g}")
 
 
-def keeps_retry(plain, retry) -> bool:
-    """Whether the weak retry's ``Quality`` beats the plain run's: it leaves a smaller share of the
+def keeps_retry(plain, retry, silent=False) -> bool:
+    """Whether the retry's ``Quality`` beats the plain run's: it leaves a smaller share of the
     observed structure misaligned (a natural image the plain preset nearly got, camera 2240:
-    0.14 -> 0.31, 0.11 -> 2.2 px); NaN (nothing observed) keeps the plain run."""
+    0.14 -> 0.31, 0.11 -> 2.2 px); NaN (nothing observed) keeps the plain run. A ``silent``
+    retry also wins a tie: on a silent body the stiff field is the better guess where nothing
+    observes the motion, and the observed part cannot tell them apart (the family's physical
+    motion without texture: 0.00 misaligned for both, 0.81 against 0.18 px)."""
+    if silent:
+        return retry.misaligned_fraction <= plain.misaligned_fraction
     return retry.misaligned_fraction < plain.misaligned_fraction
 
 
@@ -164,7 +172,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     the observed structure misaligned is returned (its time is both runs'). ``options["auto"]``
     records the choice and why."""
     name = options["preset"]
-    plain, _ = AUTO_PRESETS[name]
+    plain, _, silent = AUTO_PRESETS[name]
     first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
     if first.quality.ok:
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
@@ -177,7 +185,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     total = first.quality.seconds + second.quality.seconds
     mis = (first.quality.misaligned_fraction, second.quality.misaligned_fraction)
     why = f"{plain} not ok ({first.quality.reason}); {fallback.reason}; misaligned {mis[0]:.2f} -> {mis[1]:.2f}"
-    best = second if keeps_retry(first.quality, second.quality) else first
+    best = second if keeps_retry(first.quality, second.quality, silent=fallback.preset == silent) else first
     best.quality.seconds = total
     best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
     return best

@@ -91,6 +91,7 @@ PRESETS = {
         highpass=0.02,
         balance="lattice",
         stiffen=0.0,
+        init="none",
     ),
     "fast": dict(
         spacing=16,
@@ -107,6 +108,7 @@ PRESETS = {
         highpass=0.02,
         balance="lattice",
         stiffen=0.0,
+        init="none",
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -115,6 +117,12 @@ PRESETS = {
 _WEAK = dict(regularisation=1e-6, balance="frame", stiffen=6.0)
 PRESETS["weak"] = {**PRESETS["default"], **_WEAK}
 PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK}
+# a silent body (no texture inside: a homogeneous gel phantom) observes its motion only at its
+# edges and inclusions; a compressed body moves mostly as one affine map, so the field starts
+# from the silhouette's and the lattices are stiff: the least-bent field the edges allow
+_SILENT = dict(init="silhouette", regularisation=0.1)
+PRESETS["silent"] = {**PRESETS["default"], **_SILENT}
+PRESETS["silent-fast"] = {**PRESETS["fast"], **_SILENT}
 
 
 def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> sp.csr_matrix:
@@ -644,6 +652,8 @@ def _options(preset, overrides) -> dict:
     o.update({k: v for k, v in overrides.items() if v is not None})
     if o["balance"] not in ("lattice", "frame"):
         raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
+    if o["init"] not in ("none", "silhouette"):
+        raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
     if o["spacing"] < 4:
         raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
     return o
@@ -738,6 +748,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     f, m = _prepare(fixed, moving, o)
     levels = _pyramid(f.shape, o)
     maskf = None if mask is None else mask.astype(np.float32)  # once, not per level
+    affine, init_note = _initial(fixed, moving, o)
     coarsest, finest = levels[0][0], levels[-1][0]
     grids, history = [], []  # one lattice per level, spacing halving with the pixels
     total_its, converged, message = 0, True, ""
@@ -749,6 +760,8 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
         level = _Level(f, m, maskf, factor, similarity, alpha)
         base = _fields(grids, factor, level.shape)  # the coarser lattices' field, fixed at this level
+        if affine is not None:
+            base += affine.field(level.shape, factor)
         grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
         res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
         if not np.all(np.isfinite(res.x)):
@@ -772,7 +785,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         if fine:
             converged, message = _converged(res, move, o["converge_px"])
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
+    if affine is not None:
+        d += affine.field(f.shape)
     return d, dict(
+        init=init_note,
         iterations=total_its,
         converged=converged,
         message=message,
@@ -780,6 +796,16 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         levels=history,
         options=o,
     )
+
+
+def _initial(fixed, moving, o):
+    """``(affine or None, note)``: the global first guess asked for by ``init``."""
+    if o["init"] != "silhouette":
+        return None, "none"
+    from radiokit.register._global import silhouette_affine
+
+    affine, why = silhouette_affine(fixed, moving)
+    return affine, ("silhouette: " + affine.describe()) if affine is not None else f"none (silhouette not used: {why})"
 
 
 def _converged(res, move, converge_px):
