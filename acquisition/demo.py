@@ -102,7 +102,7 @@ def run_demo(
     flats=10,
     coarse=False,
     method="rc",
-    register_preset="default",
+    register_preset="auto",
     progress=True,
     dialect="A",
     overwrite=False,
@@ -112,8 +112,8 @@ def run_demo(
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
     The lab's settings by default: the full panel (``binning`` 1), the scene's own mesh, the
-    default registration preset; ``binning=2``, ``coarse=True`` and ``register_preset="fast"``
-    are the cheaper ones. ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and
+    pipeline's registration preset (``auto``); ``binning=2``, ``coarse=True`` and
+    ``register_preset="auto-fast"`` are the cheaper ones. ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and
     the driver speak. ``out_dir`` must be new, empty, or a previous demo's folder (replaced only
     with ``overwrite=True``): the demo never deletes a file it did not make. ``view`` is the beam
     direction (``"through_plates"`` or ``"side"``; default: the preset's own), ``imaging`` the
@@ -247,7 +247,7 @@ def add_demo(subparsers):
     )
     p.add_argument("--coarse", action="store_true", help="a coarser finite-element mesh than the scene's (faster)")
     p.add_argument("--fine", action="store_true", help=argparse.SUPPRESS)  # the default now; kept for old scripts
-    p.add_argument("--fast", action="store_true", help="the fast registration preset, not the default one")
+    p.add_argument("--fast", action="store_true", help="the fast registration presets (auto-fast), not auto")
     p.add_argument(
         "--view",
         choices=["through_plates", "side"],
@@ -279,7 +279,7 @@ def _run(args) -> int:
         frames_per_step=args.frames,
         coarse=args.coarse,
         method=args.method,
-        register_preset="fast" if args.fast else "default",
+        register_preset="auto-fast" if args.fast else "auto",
         progress=not args.quiet,
         dialect=args.dialect,
         overwrite=args.overwrite,

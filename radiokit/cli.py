@@ -457,8 +457,9 @@ def _add_register(sub):
     p.add_argument(
         "--preset",
         choices=PRESET_NAMES,
-        help="B-spline methods: default, fast, weak / weak-fast (texture near the noise level), or (rc) "
-        "auto / auto-fast (default, retried with weak when flagged on a textured interior)",
+        help="B-spline methods: default, fast, weak / weak-fast (texture near the noise level), silent / "
+        "silent-fast (a textureless body: starts from the silhouettes' affine map, stiff lattices), or auto / "
+        "auto-fast (default, retried when flagged: with weak on a textured interior, silent on a silent body)",
     )
     p.add_argument(
         "--roi",
@@ -508,7 +509,11 @@ def _add_process(sub):
         "(-ln(I/I0)); both are computed",
     )
     p.add_argument("--method", default="rc", help="registration method (default rc)")
-    p.add_argument("--preset", choices=PRESET_NAMES, help="registration preset (see `radiokit register --help`)")
+    p.add_argument(
+        "--preset",
+        choices=PRESET_NAMES,
+        help="registration preset (see `radiokit register --help`; default for the B-spline methods: auto)",
+    )
     p.add_argument(
         "--crop-mm",
         type=float,

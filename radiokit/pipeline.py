@@ -103,7 +103,7 @@ class Config:
     ks: tuple = (1.0, 2.0)
     domain: Domain = Domain.NEGATIVE
     method: str = "rc"
-    register_options: dict = field(default_factory=dict)
+    register_options: dict = field(default_factory=dict)  # B-spline methods: preset "auto" unless given
     crop_mm: float | None = 30.0  # side of the square around the inclusion kept in the outputs; None: all
     inclusion: tuple | None = None
     background: tuple | None = None
@@ -430,10 +430,12 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
     win = rois.slices()
     out = []
     for i, j in tqdm(pairs, desc=f"register {label}", unit="pair", disable=not cfg.progress):
-        reg = register(images[j], images[i], cfg.method, **cfg.register_options)
+        reg = register(images[j], images[i], cfg.method, **_register_options(cfg.method, cfg.register_options))
         check = None
         if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
-            other = register(images[j], images[i], cfg.cross_check, **cfg.register_options)
+            other = register(
+                images[j], images[i], cfg.cross_check, **_register_options(cfg.cross_check, cfg.register_options)
+            )
             check = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
         warped = reg.warp(images[i])[win]  # warped whole, then cropped: no border effects
         reg.displacement = np.ascontiguousarray(reg.displacement[(slice(None), *win)])
@@ -542,12 +544,26 @@ def check_pairs(
     return tuple(out)
 
 
+_BSPLINE = ("rc", "ssd", "ncc", "mi")
+
+
+def _register_options(method, options) -> dict:
+    """``options`` for ``register(..., method)``: a B-spline method without a preset runs
+    ``preset="auto"`` (``default``, and on a flagged result ``weak`` for a textured interior or
+    ``silent`` for a silent body: ``radiokit.register._auto``), the paper's phantoms being the
+    silent bodies ``default`` alone cannot register (benchmarks/README.md, issue 11); the flow
+    peers take no preset."""
+    if method in _BSPLINE and "preset" not in options:
+        return {**options, "preset": "auto"}
+    return dict(options)
+
+
 def _preset_record(reg) -> dict:
     """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
     and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
     the flow peers, which have no presets."""
     out = {}
-    if reg.method in ("rc", "ssd", "ncc", "mi"):
+    if reg.method in _BSPLINE:
         chosen = reg.options.get("auto")
         out["preset"] = chosen.preset if chosen is not None else reg.options.get("preset", "default")
         if chosen is not None:

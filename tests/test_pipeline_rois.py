@@ -55,7 +55,7 @@ def _experiment(path, texture_outside: float | None, seed=0):
             )
 
 
-def _process(tmp_path, texture_outside, report=False):
+def _process(tmp_path, texture_outside, report=False, preset="fast"):
     from radiokit.pipeline import Config, process
     from radiokit.results import load_results
 
@@ -65,7 +65,7 @@ def _process(tmp_path, texture_outside, report=False):
         crop_mm=None,
         progress=False,
         report=report,
-        register_options={"preset": "fast"},  # the default preset's verdicts are the same, slower
+        register_options={"preset": preset},  # the default preset's verdicts are the same, slower
         cross_check=None,
         inclusion=INCLUSION,
         background=BACKGROUND,
@@ -137,3 +137,26 @@ def test_rois_verdict_names_each_mostly_unobserved_roi(observed, ok, names):
         assert (f"the {name} ROI" in reason) == (name in names)
     if names:
         assert f"({100 - round(100 * observed[names[0]])} % of it)" in reason
+
+
+def test_the_pipeline_runs_auto_and_records_what_it_returned(tmp_path):
+    """Without a preset the B-spline methods run ``auto``. On the textureless body (which grows
+    by 2 % a step) ``fast`` is flagged, the interior is silent, so ``silent-fast`` is tried: it
+    starts from the silhouettes' map (a stretch of 1/1.02 or 1/1.04 between steps) and leaves
+    nothing it observes misaligned, so it is kept. Each pair records the preset returned, why,
+    and the start, in results.json (read back equal) and the report's table."""
+    from radiokit.pipeline import _register_options
+
+    assert _register_options("rc", {})["preset"] == "auto" and _register_options("ncc", {"x": 1})["preset"] == "auto"
+    assert _register_options("rc", {"preset": "fast"})["preset"] == "fast" and "preset" not in _register_options(
+        "dis", {}
+    )
+    record, report = _process(tmp_path, None, report=True, preset="auto-fast")
+    silent = [p for p in record.pairs if p.quality["preset"] == "silent-fast"]
+    assert silent and {p.quality["preset"] for p in record.pairs} <= {"fast", "silent-fast"}
+    for p in silent:
+        assert "fast not ok" in p.quality["preset_reason"] and "silent body" in p.quality["preset_reason"]
+        a, b = (int(x) for x in p.name.split("->"))
+        stretch = float(p.quality["initial"].split("stretch ")[1].split(" ")[0])
+        assert stretch == pytest.approx((1 + 0.02 * (a - 1)) / (1 + 0.02 * (b - 1)), abs=0.004), p.quality["initial"]
+    assert "rc (silent-fast)" in report.read_text()

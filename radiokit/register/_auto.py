@@ -159,8 +159,11 @@ def keeps_retry(plain, retry, silent=False) -> bool:
     0.14 -> 0.31, 0.11 -> 2.2 px); NaN (nothing observed) keeps the plain run. A ``silent``
     retry also wins a tie: on a silent body the stiff field is the better guess where nothing
     observes the motion, and the observed part cannot tell them apart (the family's physical
-    motion without texture: 0.00 misaligned for both, 0.81 against 0.18 px)."""
+    motion without texture: 0.00 misaligned for both, 0.81 against 0.18 px), and so does a silent
+    retry that observes what the plain run did not (its share a number, the plain run's NaN)."""
     if silent:
+        if np.isnan(plain.misaligned_fraction):
+            return not np.isnan(retry.misaligned_fraction)
         return retry.misaligned_fraction <= plain.misaligned_fraction
     return retry.misaligned_fraction < plain.misaligned_fraction
 
