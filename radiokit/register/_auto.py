@@ -8,8 +8,13 @@ preset first and keeps it when it passes its own checks (``quality.ok``: rich te
 anything ``default`` registers well); only a result it flags is tried again with ``weak``, only
 when the body's interior carries texture for ``weak`` to use, and the ``weak`` result is kept
 only when it leaves less of the observed structure misaligned (``quality.misaligned_fraction``;
-on the training seeds it always did when it was tried). That is judged on the fixed image
-by one no-truth number, the **texture-to-noise ratio of the body's interior**:
+on the training seeds it always did when it was tried). A flagged result on a body whose
+interior carries no texture is tried again with ``silent`` (``silent-fast``): the field starts
+from the silhouettes' affine map and the lattices are stiff, the least-bent field the edges
+allow, which is what a compressed phantom's silent slab does (the simulated pva-phantom side
+view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. Which
+fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
+the body's interior**:
 
 - the fixed image area-averaged to about 0.4 Mpx (as ``register``'s assessment), band-passed
   (Gaussian of 1 px minus Gaussian of 6 px: the body's slow shape and slope go, a texture
@@ -28,8 +33,8 @@ Binning makes the ratio grow with the frame at a given per-pixel texture-to-nois
 frame binned by 4 has a quarter of the noise), which is what the weak presets need: their win
 grows with the frame (benchmarks/README.md, "Automatic preset choice (session 6)").
 
-``ratio < TEXTURE_LOW``: silent body, the plain preset's result stands even when flagged;
-otherwise ``weak`` (``weak-fast`` for ``auto-fast``) is run. Threshold chosen on ``regdata``
+``ratio < TEXTURE_LOW``: silent body, ``silent`` (``silent-fast``) is run; otherwise ``weak``
+(``weak-fast`` for ``auto-fast``). Threshold chosen on ``regdata``
 TRAINING seeds only. (A first version also kept ``default`` above a "rich" ratio of 29, chosen on
 the family; natural images read 3-13 there, their structure raising the noise estimate, so the
 plain preset's own check replaced it.)
@@ -37,7 +42,7 @@ plain preset's own check replaced it.)
 An image without noise is not weak texture, whatever it carries: ``weak`` exists for data that
 the noise leaves little to say, so when the interior's noise is below what the confidence map
 calls noise-free (``NOISE_FREE`` x ``_confidence.MODEL_FLOOR`` of the image's range, per
-full-resolution pixel) the plain preset runs. Without this rule a smooth body's band-passed curvature and an inclusion's rim read
+full-resolution pixel) it counts as a silent body. Without this rule a smooth body's band-passed curvature and an inclusion's rim read
 as texture there (the simulated pva-phantom pair noise-free: 1.4; the family's textureless body
 at 384 px noise-free: 1.3; noisy, both under 0.2). The simulated pairs noise-free read noise
 0.2-1.0 x that floor, every noisy training pair 5 x or more.

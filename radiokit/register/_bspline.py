@@ -42,6 +42,13 @@ more information. The coarsest level runs ``regularisation`` itself, finer ones
 ``x (coarsest factor / factor)^stiffen``: on weak texture the coarse level pins the motion the
 data observe, and the fine lattices, pinned by little data, would refit the noise.
 
+A global start. ``init="silhouette"`` (presets ``silent``, ``silent-fast``) adds the affine map
+between the two images' silhouettes (``radiokit.register._global``: centroid and second
+moments) under every level's lattices: a compressed phantom's slab moves tens of pixels at its
+ends with nothing inside to see it by, and the lattices, which the bending energy never charges
+for an affine field, then refine around it. Dropped, and said so in the result's
+``options["initial"]``, when the body is not wholly inside the frame or the silhouettes disagree.
+
 Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by area averaging
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
@@ -823,10 +830,12 @@ def _converged(res, move, converge_px):
 @_method("rc")
 def _rc(fixed, moving, mask, **options):
     """Residual complexity B-spline (the paper's method). Options: preset ('default', 'fast';
-    'weak', 'weak-fast' for texture near the noise level; through ``register()``, 'auto',
-    'auto-fast' run 'default' ('fast') and retry a flagged result on a textured interior with
-    'weak' ('weak-fast'), see ``radiokit.register._auto``; the choice is in the result's
-    ``options["auto"]``), spacing (px), alpha, regularisation,
+    'weak', 'weak-fast' for texture near the noise level; 'silent', 'silent-fast' for a
+    textureless body; through ``register()``, 'auto', 'auto-fast' run 'default' ('fast') and
+    retry a flagged result with 'weak' ('weak-fast') on a textured interior or 'silent'
+    ('silent-fast') on a silent body, see ``radiokit.register._auto``; the choice is in the
+    result's ``options["auto"]``), init ('none', or 'silhouette': start from the silhouettes'
+    affine map, module docstring), spacing (px), alpha, regularisation,
     balance ('lattice' or 'frame': see the module docstring), stiffen (balance 'frame': level
     ``k`` halvings finer than the coarsest is 2^(k stiffen) times stiffer), iterations (per
     level, coarse to fine), min_size (px, the coarsest level's smaller side), min_levels (at
