@@ -175,10 +175,9 @@ def keeps_retry(plain, retry, silent=False) -> bool:
 
 def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
-    checks (``quality.ok``) or when the interior has no texture for the weak preset to use
-    (:func:`choose`); otherwise the weak preset too, and the one that leaves the smaller share of
-    the observed structure misaligned is returned (its time is both runs'). ``options["auto"]``
-    records the choice and why."""
+    checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
+    the weak or silent preset too (:func:`choose`), and the one :func:`keeps_retry` prefers is
+    returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
     name = options["preset"]
     plain, _, silent = AUTO_PRESETS[name]
     first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
