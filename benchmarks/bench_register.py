@@ -50,6 +50,8 @@ def configs():
         ("rc-fast", {"preset": "fast"}),
         ("rc-weak", {"preset": "weak"}),
         ("rc-weak-fast", {"preset": "weak-fast"}),
+        ("rc-silent", {"preset": "silent"}),
+        ("rc-silent-fast", {"preset": "silent-fast"}),
         ("ssd", {}),
         ("ncc", {}),
         ("mi", {}),

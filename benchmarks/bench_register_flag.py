@@ -6,7 +6,9 @@ Run (from the repository root)::
     python benchmarks/bench_register_flag.py --split train --size 560 --seeds 4 --sweep   # to choose thresholds
 
 Every method of ``bench_register.FAMILY_METHODS`` (rc, rc fast, rc weak, rc weak-fast, elastix
-and DIS on high-passed images) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
+and DIS on high-passed images), rc silent and silent-fast, and ``preset="auto"`` / ``"auto-fast"``
+(``rc-auto``, ``rc-auto-fast``: composed from the cached plain, weak and silent results by
+``register_auto``'s own rule, not registered again) on every pair of ``regdata.family(split, size, grid="all")`` (and, on the test split, the
 simulated pairs of both scene presets, noisy, as in ``bench_register``'s part 3). Each result is
 cached (``--out``, the field and the method's ``info``), so the flag can be re-assessed
 (``radiokit.register._assess``) as its rule changes without registering again (``--reassess``
@@ -85,12 +87,53 @@ def assess(name, opts, fixed, moving, d, info, seconds):
     return reg
 
 
+# preset="auto" as register_auto composes it: the plain run, and its weak or silent fallback
+AUTO = {"rc-auto": ("auto", "rc"), "rc-auto-fast": ("auto-fast", "rc-fast")}
+EXTRA = ("rc-silent", "rc-silent-fast")
+
+
+def _auto_choice(name, fixed, regs):
+    """The configuration ``register(..., preset=AUTO[name][0])`` returns, from the assessed
+    results ``regs`` (configuration -> Registration): ``register_auto``'s rule (the plain run if
+    it passes its checks or ``choose`` keeps it, else the fallback if ``keeps_retry``)."""
+    from radiokit.register._auto import AUTO_PRESETS, choose, keeps_retry
+
+    auto, plain = AUTO[name]
+    if regs[plain].quality.ok:
+        return plain
+    fallback = choose(fixed, auto).preset
+    if fallback == AUTO_PRESETS[auto][0]:
+        return plain
+    other = "rc-" + fallback
+    silent = fallback == AUTO_PRESETS[auto][2]
+    return other if keeps_retry(regs[plain].quality, regs[other].quality, silent=silent) else plain
+
+
+def _row(meta, label, name, reg, truth, mask, ident, sec):
+    e = np.hypot(*(reg.displacement - truth))
+    obs = (reg.confidence >= 0.5) & mask
+    return dict(
+        meta,
+        case=label,
+        method=name,
+        epe_median=float(np.median(e[mask])),
+        identity=ident,
+        ok=bool(reg.quality.ok),
+        reason=reg.quality.reason,
+        seconds=sec,
+        observed=float(obs.sum() / mask.sum()),
+        misaligned=reg.quality.misaligned_fraction,
+        epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
+    )
+
+
 def run(args):
     from radiokit.register import _load_methods
 
     _load_methods()
     cfgs = dict(configs())
-    methods = [(n, cfgs[n]) for n in FAMILY_METHODS if n in cfgs and n.split("+")[0] not in args.skip]
+    names = [n for n in FAMILY_METHODS + EXTRA if n in cfgs and n.split("+")[0] not in args.skip]
+    methods = [(n, cfgs[n]) for n in names]
     args.out.mkdir(parents=True, exist_ok=True)
     rows, inputs = [], []
     for label, meta, thunk in pairs(args.split, args.size, args.seeds, args.sim):
@@ -98,35 +141,27 @@ def run(args):
         ident = score(np.zeros_like(truth), truth, mask)["epe_median"]
         rows.append(dict(meta, case=label, method="identity", epe_median=ident, identity=ident, ok=None))
         inputs += [None] if args.sweep else []
+        regs, secs = {}, {}
         for name, opts in methods:
             d, info, sec = registered(args.out, label, name, opts, fixed, moving, args.fresh)
             reg = assess(name, opts, fixed, moving, d, info, sec)
+            regs[name], secs[name] = reg, sec
             if args.sweep:
                 inputs.append(rule_inputs(fixed, moving, d))
-            e = np.hypot(*(reg.displacement - truth))
-            obs = (reg.confidence >= 0.5) & mask
-            rows.append(
-                dict(
-                    meta,
-                    case=label,
-                    method=name,
-                    epe_median=float(np.median(e[mask])),
-                    identity=ident,
-                    ok=bool(reg.quality.ok),
-                    reason=reg.quality.reason,
-                    seconds=sec,
-                    observed=float(obs.sum() / mask.sum()),
-                    misaligned=reg.quality.misaligned_fraction,
-                    epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
-                )
-            )
+            rows.append(_row(meta, label, name, reg, truth, mask, ident, sec))
             if args.sweep:
                 rows[-1]["quality"] = reg.quality
+        for name, (_, plain) in AUTO.items():
+            if {plain, "rc-weak" + plain[2:], "rc-silent" + plain[2:]} <= set(regs) and not args.sweep:
+                use = _auto_choice(name, fixed, regs)
+                sec = secs[plain] + (secs[use] if use != plain else 0.0)
+                rows.append(dict(_row(meta, label, name, regs[use], truth, mask, ident, sec), returned=use))
         print(
             f"  {label:<62} "
             + " ".join(
                 f"{r['method']} {r['epe_median']:.2f}{'' if r['ok'] in (None, True) else '!'}"
-                for r in rows[-1 - len(methods) :]
+                for r in rows
+                if r["case"] == label and r["method"] != "identity"
             ),
             flush=True,
         )
@@ -145,12 +180,14 @@ def _pct(a, b):
 
 
 def table(rows, methods) -> str:
-    """The confusion table (markdown): all methods, then each one."""
+    """The confusion table (markdown): all methods (those of FAMILY_METHODS, as in earlier
+    tables), then each one."""
     lines = [
         "| results | failed | flagged (ok False; 95 % CI) | good | trusted (ok True; 95 % CI) |",
         "|---|---|---|---|---|",
     ]
-    for tag, sel in [("all methods", rows)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
+    family = [r for r in rows if r["method"] in FAMILY_METHODS or r["method"] == "identity"]
+    for tag, sel in [("all methods", family)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
         c = confusion(sel)
         lines.append(
             f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} "
@@ -334,6 +371,7 @@ def main(argv=None) -> int:
     print(f"load average before: {os.getloadavg()}", flush=True)
     t0 = time.perf_counter()
     rows, methods, inputs = run(args)
+    methods += [(n, {}) for n in AUTO if any(r["method"] == n for r in rows)]
     print(
         f"\nquality.ok against the truth, {args.split} seeds ({args.seeds} per case), {args.size} px "
         f"(failed: median EPE > max(1 px, half the identity's); good: <= 0.5 px):\n"
