@@ -286,6 +286,28 @@ def auto_part(split, seeds):
         _auto_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind))
 
 
+def silent_part(split, seeds):
+    """``auto`` on silent bodies (issue 11, session 7), where it falls back to ``silent``: the 560
+    map's textureless and 0.3x-noise cells and the physical motion with and without texture at
+    0.3x the noise, on ``seeds`` seeds each; the simulated pairs (both steps) and the textureless
+    2240 pair once."""
+    from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair
+
+    ss = TRAIN_SEEDS if split == "train" else TEST_SEEDS
+    rows = []
+    for s in ss[:seeds]:
+        cases = [Case(size=560, texture=t, noise=0.01, corr=c, seed=s) for t in (0.0, 0.003) for c in (0.25, 0.1, 0.05)]
+        cases += [Case(size=560, texture=t, noise=0.01, corr=0.0, motion="physical", seed=s) for t in (0.0, 0.003)]
+        rows += [_auto_row(c.label(), family_pair(c)) for c in cases]
+    print(f"560, silent bodies ({len(rows)} pairs):", flush=True)
+    _auto_summary(rows)
+    for pre in ("seed-breast", "pva-phantom"):
+        for step in (-1, 1):
+            _auto_row(f"sim {pre} 560 noisy, step {step}", sim_pair(pre, moving_step=step, noisy=True, size=560))
+    c = Case(size=2240, texture=0.0, noise=0.01, corr=0.1, seed=ss[0])
+    _auto_row(c.label(), family_pair(c))
+
+
 def natural_pair(name, size, seed=1):
     """A natural image of scikit-image (``camera``, ``moon``) scaled to ``size`` and to 0-1, as
     rich texture of a kind ``regdata`` does not make: fixed = moving warped by a smooth local
@@ -388,12 +410,13 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
     ap.add_argument(
         "--presets",
-        choices=["weak", "rich", "map", "auto", "auto-features", "natural"],
+        choices=["weak", "rich", "map", "auto", "auto-features", "natural", "silent"],
         help="only rc's presets side by side (issue 11): 'weak' the 2240 weak-texture pairs, 'rich' "
         "analytic_pair and texture 10x noise at 2240, 'map' the 560 map (one seed) and the "
         "simulated pairs; 'auto' preset='auto' against default and weak on all of those (--seeds seeds "
         "of the 560 map); 'auto-features' only auto's texture-to-noise ratio over the regimes; 'natural' "
-        "auto on scikit-image's camera and moon, warped)",
+        "auto on scikit-image's camera and moon, warped; 'silent' auto on silent bodies (--seeds seeds "
+        "of the textureless and 0.3x-noise cells and the physical motion), the simulated pairs, 2240 textureless)",
     )
     ap.add_argument("--seeds", type=int, default=2, help="the 560 map's seeds per cell of --presets auto")
     ap.add_argument("--split", choices=["train", "test"], default="test", help="the seeds of --presets")
@@ -406,6 +429,9 @@ def main(argv=None):
         return 0
     if args.presets == "natural":
         natural_part()
+        return 0
+    if args.presets == "silent":
+        silent_part(args.split, args.seeds)
         return 0
     if args.presets:
         presets_part(args.presets, args.split)

@@ -503,6 +503,25 @@ def test_auto_falls_back_to_silent_on_a_silent_body():
         assert "silent" in c.reason and choose(fixed, "auto-fast").preset == "silent-fast"
 
 
+def test_a_silent_retry_is_kept_unless_clearly_more_misaligned():
+    """The keep rule: a weak retry must leave strictly less misaligned; a silent one may leave up
+    to SILENT_TIE more (a tie on the thin observed band goes to the stiff field); NaN (nothing
+    observed) never beats a number, and a number beats a plain NaN only for silent."""
+    from radiokit.register import Quality
+    from radiokit.register._auto import SILENT_TIE, keeps_retry
+
+    def q(m):
+        return Quality(misaligned_fraction=m)
+
+    assert keeps_retry(q(0.2), q(0.1)) and not keeps_retry(q(0.1), q(0.1))
+    assert keeps_retry(q(0.1), q(0.1), silent=True)
+    assert keeps_retry(q(0.1), q(0.1 + 0.9 * SILENT_TIE), silent=True)
+    assert not keeps_retry(q(0.1), q(0.1 + 1.1 * SILENT_TIE), silent=True)
+    nan = float("nan")
+    assert keeps_retry(q(nan), q(0.3), silent=True) and not keeps_retry(q(nan), q(0.3))
+    assert not keeps_retry(q(0.3), q(nan), silent=True) and not keeps_retry(q(nan), q(nan), silent=True)
+
+
 def test_auto_treats_a_noise_free_image_as_silent():
     """Noise-free, the smooth body's band-passed curvature reads as texture (ratio above
     TEXTURE_LOW without the rule); weak texture is texture near the noise, so an image without
