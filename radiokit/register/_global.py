@@ -51,13 +51,14 @@ class Affine:
         full resolution (pixel ``k`` at ``factor k + (factor - 1) / 2``, as the B-spline
         levels), in that grid's pixels."""
         rows, cols = shape
-        y = factor * np.arange(rows, dtype=np.float64) + (factor - 1) / 2 - self.fixed_centre[0]
-        x = factor * np.arange(cols, dtype=np.float64) + (factor - 1) / 2 - self.fixed_centre[1]
-        t = self.moving_centre - self.fixed_centre
-        a = self.matrix - np.eye(2)
-        d = np.empty((2, rows, cols), np.float32)
+        y = (factor * np.arange(rows) + (factor - 1) / 2 - self.fixed_centre[0]).astype(np.float32)
+        x = (factor * np.arange(cols) + (factor - 1) / 2 - self.fixed_centre[1]).astype(np.float32)
+        t = (self.moving_centre - self.fixed_centre) / factor
+        a = (self.matrix - np.eye(2)) / factor
+        d = np.empty((2, rows, cols), np.float32)  # float32 throughout: no frame-sized doubles
         for k in range(2):
-            d[k] = ((t[k] + a[k, 0] * y[:, None] + a[k, 1] * x[None, :]) / factor).astype(np.float32)
+            np.multiply(np.float32(a[k, 1]), x[None, :], out=d[k])
+            d[k] += (np.float32(t[k]) + np.float32(a[k, 0]) * y)[:, None]
         return d
 
     def describe(self) -> str:
