@@ -277,7 +277,8 @@ def cmd_register(args) -> int:
             check_output(out, overwrite=args.overwrite, inputs=inputs)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
-    options = {"preset": args.preset} if args.preset and args.method in ("rc", "ssd", "ncc", "mi") else {}
+    # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
+    options = {"preset": args.preset or "auto"} if args.method in ("rc", "ssd", "ncc", "mi") else {}
     reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
     q = reg.quality
     registered = reg.warp(moving)
@@ -292,7 +293,7 @@ def cmd_register(args) -> int:
         f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
         f"folds {q.folds}, min det J {q.min_det_j:.3f}; max |d| {np.abs(reg.displacement).max():.2f} px"
     )
-    if "auto" in reg.options:  # --preset auto: what it ran, and why
+    if "auto" in reg.options:  # preset auto: what it returned, and why
         print(f"preset {reg.options['auto'].preset} ({reg.options['auto'].reason})")
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
@@ -459,7 +460,8 @@ def _add_register(sub):
         choices=PRESET_NAMES,
         help="B-spline methods: default, fast, weak / weak-fast (texture near the noise level), silent / "
         "silent-fast (a textureless body: starts from the silhouettes' affine map, stiff lattices), or auto / "
-        "auto-fast (default, retried when flagged: with weak on a textured interior, silent on a silent body)",
+        "auto-fast (default, retried when flagged: with weak on a textured interior, silent on a silent body; "
+        "the default)",
     )
     p.add_argument(
         "--roi",
