@@ -213,7 +213,7 @@ def _auto_row(tag, pair, fast_only=False):
     result is one of the rows, taken from them rather than registered again; the time of a
     fallback is both runs'."""
     from radiokit.register import register
-    from radiokit.register._auto import AUTO_PRESETS, choose, keeps_retry
+    from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     f, m, d, mask = pair
     res, chose, quality = {}, {}, {}
@@ -225,13 +225,12 @@ def _auto_row(tag, pair, fast_only=False):
         res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
         quality[p] = r.quality
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
-    for name, (plain, _, silent) in AUTO_PRESETS.items():
+    for name, (plain, *_) in AUTO_PRESETS.items():
         if plain not in res:
             continue
         other = fallback[name].preset
         tried = not res[plain][3] and other != plain
-        keep = tried and keeps_retry(quality[plain], quality[other], silent=other == silent)
-        use = other if keep else plain
+        use = returned(name, quality[plain], other, quality.get(other))
         v = res[use]
         res[name] = v if not tried else (v[0], v[1], res[other][2] + res[plain][2], v[3])
         chose[name] = use
@@ -276,14 +275,20 @@ def auto_part(split, seeds):
     for tex in (0.0, 0.01):  # a compressed body's motion: uniform expansion, a lag around a stiffer disc
         c = Case(size=560, texture=tex, noise=0.01, corr=0.0, motion="physical", seed=ss[0])
         _auto_row(c.label(), family_pair(c))
-    for pre in ("seed-breast", "pva-phantom"):
-        for step in (-1, 1):  # the paper's pair (the step before), and the largest motion (the first step)
-            _auto_row(f"sim {pre} 560 noisy, step {step}", sim_pair(pre, moving_step=step, noisy=True, size=560))
+    _sim_auto_rows()
     for tex, s in [(0.01, ss[0]), (0.01, ss[1]), (0.02, ss[2]), (0.0, ss[0])]:
         c = Case(size=2240, texture=tex, noise=0.01, corr=0.1, seed=s)
         _auto_row(c.label(), family_pair(c))
     for kind in ("thinning", "gain"):
         _auto_row(f"analytic_pair 2240 {kind} seed 1", analytic_pair(2240, 0.01, 0.10, 0.01, seed=1, kind=kind))
+
+
+def _sim_auto_rows():
+    """``_auto_row`` on the simulated pairs of both scene presets, 560 px, noisy: the paper's pair
+    (the step before) and the largest motion (the first step)."""
+    for pre in ("seed-breast", "pva-phantom"):
+        for step in (-1, 1):
+            _auto_row(f"sim {pre} 560 noisy, step {step}", sim_pair(pre, moving_step=step, noisy=True, size=560))
 
 
 def silent_part(split, seeds):
@@ -301,9 +306,7 @@ def silent_part(split, seeds):
         rows += [_auto_row(c.label(), family_pair(c)) for c in cases]
     print(f"560, silent bodies ({len(rows)} pairs):", flush=True)
     _auto_summary(rows)
-    for pre in ("seed-breast", "pva-phantom"):
-        for step in (-1, 1):
-            _auto_row(f"sim {pre} 560 noisy, step {step}", sim_pair(pre, moving_step=step, noisy=True, size=560))
+    _sim_auto_rows()
     c = Case(size=2240, texture=0.0, noise=0.01, corr=0.1, seed=ss[0])
     _auto_row(c.label(), family_pair(c))
 

@@ -94,19 +94,16 @@ EXTRA = ("rc-silent", "rc-silent-fast")
 
 def _auto_choice(name, fixed, regs):
     """The configuration ``register(..., preset=AUTO[name][0])`` returns, from the assessed
-    results ``regs`` (configuration -> Registration): ``register_auto``'s rule (the plain run if
-    it passes its checks or ``choose`` keeps it, else the fallback if ``keeps_retry``)."""
-    from radiokit.register._auto import AUTO_PRESETS, choose, keeps_retry
+    results ``regs`` (configuration -> Registration), by ``register_auto``'s own rule."""
+    from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     auto, plain = AUTO[name]
-    if regs[plain].quality.ok:
+    if regs[plain].quality.ok:  # as register_auto: no fallback is judged
         return plain
     fallback = choose(fixed, auto).preset
-    if fallback == AUTO_PRESETS[auto][0]:
-        return plain
-    other = "rc-" + fallback
-    silent = fallback == AUTO_PRESETS[auto][2]
-    return other if keeps_retry(regs[plain].quality, regs[other].quality, silent=silent) else plain
+    retry = regs.get("rc-" + fallback)  # absent only when nothing is retried
+    use = returned(auto, regs[plain].quality, fallback, retry.quality if retry is not None else None)
+    return plain if use == AUTO_PRESETS[auto][0] else "rc-" + use
 
 
 def _row(meta, label, name, reg, truth, mask, ident, sec):

@@ -260,7 +260,7 @@ def _one_image(path, index, dataset):
 
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
-    from radiokit.register import register
+    from radiokit.register import BSPLINE_METHODS, register, with_default_preset
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
     moving = _one_image(args.moving, args.moving_frame, args.dataset)
@@ -277,9 +277,9 @@ def cmd_register(args) -> int:
             check_output(out, overwrite=args.overwrite, inputs=inputs)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
+    options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
-    options = {"preset": args.preset or "auto"} if args.method in ("rc", "ssd", "ncc", "mi") else {}
-    reg = register(fixed, moving, args.method, mask, retry=args.retry, **options)
+    reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
     q = reg.quality
     registered = reg.warp(moving)
     write_registration(

@@ -422,7 +422,7 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
     ``cfg.cross_check`` and the two compared (:func:`cross_check`)."""
     from tqdm.auto import tqdm
 
-    from radiokit.register import register
+    from radiokit.register import register, with_default_preset
 
     images, n = steps.images, len(steps.numbers)
     pairs = [(i, n - 1) for i in range(n - 1)] + [(i, i + 1) for i in range(n - 2)]
@@ -430,11 +430,11 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
     win = rois.slices()
     out = []
     for i, j in tqdm(pairs, desc=f"register {label}", unit="pair", disable=not cfg.progress):
-        reg = register(images[j], images[i], cfg.method, **_register_options(cfg.method, cfg.register_options))
+        reg = register(images[j], images[i], cfg.method, **with_default_preset(cfg.method, cfg.register_options))
         check = None
         if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
             other = register(
-                images[j], images[i], cfg.cross_check, **_register_options(cfg.cross_check, cfg.register_options)
+                images[j], images[i], cfg.cross_check, **with_default_preset(cfg.cross_check, cfg.register_options)
             )
             check = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
         warped = reg.warp(images[i])[win]  # warped whole, then cropped: no border effects
@@ -544,26 +544,14 @@ def check_pairs(
     return tuple(out)
 
 
-_BSPLINE = ("rc", "ssd", "ncc", "mi")
-
-
-def _register_options(method, options) -> dict:
-    """``options`` for ``register(..., method)``: a B-spline method without a preset runs
-    ``preset="auto"`` (``default``, and on a flagged result ``weak`` for a textured interior or
-    ``silent`` for a silent body: ``radiokit.register._auto``), the paper's phantoms being the
-    silent bodies ``default`` alone cannot register (benchmarks/README.md, issue 11); the flow
-    peers take no preset."""
-    if method in _BSPLINE and "preset" not in options:
-        return {**options, "preset": "auto"}
-    return dict(options)
-
-
 def _preset_record(reg) -> dict:
     """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
     and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
     the flow peers, which have no presets."""
     out = {}
-    if reg.method in _BSPLINE:
+    from radiokit.register import BSPLINE_METHODS
+
+    if reg.method in BSPLINE_METHODS:
         chosen = reg.options.get("auto")
         out["preset"] = chosen.preset if chosen is not None else reg.options.get("preset", "default")
         if chosen is not None:

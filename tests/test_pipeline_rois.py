@@ -145,7 +145,7 @@ def test_the_pipeline_runs_auto_and_records_what_it_returned(tmp_path):
     starts from the silhouettes' map (a stretch of 1/1.02 or 1/1.04 between steps) and leaves
     nothing it observes misaligned, so it is kept. Each pair records the preset returned, why,
     and the start, in results.json (read back equal) and the report's table."""
-    from radiokit.pipeline import _register_options
+    from radiokit.register import with_default_preset as _register_options
 
     assert _register_options("rc", {})["preset"] == "auto" and _register_options("ncc", {"x": 1})["preset"] == "auto"
     assert _register_options("rc", {"preset": "fast"})["preset"] == "fast" and "preset" not in _register_options(

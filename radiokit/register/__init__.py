@@ -27,7 +27,31 @@ from radiokit.register._auto import AUTO_PRESETS
 from radiokit.register._common import jacobian_determinant, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
 
-__all__ = ["register", "Registration", "Quality", "METHODS", "warp", "jacobian_determinant", "roi_observed"]
+__all__ = [
+    "register",
+    "Registration",
+    "Quality",
+    "METHODS",
+    "BSPLINE_METHODS",
+    "with_default_preset",
+    "warp",
+    "jacobian_determinant",
+    "roi_observed",
+]
+
+#: the methods on the B-spline transform, which take rc's presets (``preset=``)
+BSPLINE_METHODS = ("rc", "ssd", "ncc", "mi")
+
+
+def with_default_preset(method, options) -> dict:
+    """``options`` with ``preset="auto"`` added for a B-spline method that names none: what the
+    command line and ``radiokit.pipeline`` run (``default``, and on a flagged result ``weak``
+    for a textured interior or ``silent`` for a silent body: ``radiokit.register._auto``); the
+    paper's phantoms are the silent bodies ``default`` alone cannot register (benchmarks/README.md,
+    issue 11). ``register()`` itself runs what it is given."""
+    if method in BSPLINE_METHODS and "preset" not in options:
+        return {**options, "preset": "auto"}
+    return dict(options)
 
 
 @dataclass

@@ -60,6 +60,7 @@ __all__ = [
     "choose",
     "register_auto",
     "keeps_retry",
+    "returned",
     "interior_texture_to_noise",
     "TEXTURE_LOW",
     "NOISE_FREE",
@@ -182,13 +183,25 @@ def keeps_retry(plain, retry, silent=False) -> bool:
     return r < p
 
 
+def returned(name, plain_quality, fallback, retry_quality) -> str:
+    """The preset ``register(..., preset=name)`` returns, given the plain run's ``Quality``, the
+    preset :func:`choose` fell back to, and that retry's ``Quality`` (read only when the retry
+    is run): the plain one when it passed its own checks or nothing else is tried, else the
+    retry if :func:`keeps_retry` prefers it. The benchmarks compose ``auto`` from cached runs
+    with it."""
+    plain, _, silent = AUTO_PRESETS[name]
+    if plain_quality.ok or fallback == plain:
+        return plain
+    return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
+
+
 def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
     checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
     the weak or silent preset too (:func:`choose`), and the one :func:`keeps_retry` prefers is
     returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
     name = options["preset"]
-    plain, _, silent = AUTO_PRESETS[name]
+    plain = AUTO_PRESETS[name][0]
     first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
     if first.quality.ok:
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
@@ -201,7 +214,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     total = first.quality.seconds + second.quality.seconds
     mis = (first.quality.misaligned_fraction, second.quality.misaligned_fraction)
     why = f"{plain} not ok ({first.quality.reason}); {fallback.reason}; misaligned {mis[0]:.2f} -> {mis[1]:.2f}"
-    best = second if keeps_retry(first.quality, second.quality, silent=fallback.preset == silent) else first
+    best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
     best.quality.seconds = total
     best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
     return best
