@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from regdata import analytic_pair, block_mean, evaluate, score, sim_pair
@@ -382,6 +383,46 @@ def auto_features_part(split):
                 )
 
 
+# the data term before issue 11's session 8, and its three changes in turn (rc's module docstring)
+_BIAS_STEPS = (
+    ("images high-passed (before)", dict(highpass_on="images", smooth=0.0, gain=0.0)),
+    ("+ the residual high-passed", dict(highpass_on="residual", smooth=0.0, gain=0.0)),
+    ("+ levels smoothed by 1 px", dict(highpass_on="residual", smooth=1.0, gain=0.0)),
+    ("+ the thinning term (now)", {}),
+)
+
+
+def bias_part(size, seed, preset="weak"):
+    """What each change of the data term does, on one TRAINING pair of the family (texture =
+    noise, correlation 1/10) at ``size``: registered from the truth (the moving image warped by
+    it; the field found is the drift of the energy's minimum off the truth) and from the
+    identity, noise-free without and with the 10 % thinning, then as the family makes it."""
+    from regdata import Case, family_pair
+
+    from radiokit.register import register
+
+    print(f"| pair ({size}, training seed {seed}, {preset}) | data term | drift from the truth | EPE from identity |")
+    print("|---|---|---|---|")
+    cases = (
+        ("noise-free, no intensity change", dict(noise=0.0, intensity=0.0)),
+        ("noise-free, 10 % thinning", dict(noise=0.0)),
+        ("noise 0.01, 10 % thinning", {}),
+    )
+    for label, case in cases:
+        f, m, d, mask = family_pair(Case(**{**dict(size=size, texture=0.01, noise=0.01, corr=0.1, seed=seed), **case}))
+        rr, cc = np.mgrid[0 : d.shape[1], 0 : d.shape[2]].astype(np.float32)
+        at_truth = ndimage.map_coordinates(m, [rr + d[0], cc + d[1]], order=3, mode="nearest")
+        del rr, cc
+        for name, opts in _BIAS_STEPS:
+            drift = score(register(f, at_truth, "rc", preset=preset, **opts).displacement, 0 * d, mask)
+            e = score(register(f, m, "rc", preset=preset, **opts).displacement, d, mask)
+            print(
+                f"| {label} | {name} | {drift['epe_median']:.2f} / {drift['epe_p95']:.2f} px "
+                f"| {e['epe_median']:.2f} / {e['epe_p95']:.2f} px |",
+                flush=True,
+            )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -410,7 +451,15 @@ def main(argv=None):
         "(texture = noise, correlation 1/10) at --size and binned by 2, for each JSON option set "
         "(e.g. '{}' '{\"preset\": \"weak\"}')",
     )
-    ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels")
+    ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels and --bias")
+    ap.add_argument(
+        "--bias",
+        metavar="PRESET",
+        nargs="?",
+        const="weak",
+        help="only the data term's bias: drift from the truth and EPE from identity as each of its "
+        "changes is added (rc's module docstring), one TRAINING pair at --size (e.g. --size 2240 --bias)",
+    )
     ap.add_argument(
         "--presets",
         choices=["weak", "rich", "map", "auto", "auto-features", "natural", "silent"],
@@ -438,6 +487,9 @@ def main(argv=None):
         return 0
     if args.presets:
         presets_part(args.presets, args.split)
+        return 0
+    if args.bias:
+        bias_part(args.size, args.seed, args.bias)
         return 0
     if args.levels is not None:
         for opts in args.levels or ["{}"]:

@@ -21,10 +21,34 @@ misalignment (broadband residual) costs a lot. Its gradient is
 ``ssd`` (1/2 mean r^2), ``ncc`` (1 - normalised cross-correlation) and ``mi`` (negative Mattes
 mutual information, 32 bins, cubic B-spline Parzen window) use the same transform.
 Images are normalised by the fixed image's 1st-99th percentile range, so ``alpha`` is in those
-units (MIRT's default is 0.05 for images in [0, 1]; ours 0.005, see PRESETS), then high-passed
-(``highpass``: minus a Gaussian blur of 2 % of the frame): what is slower than that is the
-body's smooth thickness and the intensity change, which observe no motion residual complexity
-can tell from an intensity change.
+units (MIRT's default is 0.05 for images in [0, 1]; ours 0.005, see PRESETS).
+
+An unbiased data term (issue 11; each part's effect measured in benchmarks/README.md, "The data
+term's bias"). At the true field the data term must be smallest; on a weak-texture phantom
+three things moved its minimum off the truth by more than the texture could pull it back:
+
+- *The high-pass* (``highpass``: what is slower than a Gaussian of 2 % of the frame is the
+  body's smooth thickness and the intensity change, which observe no motion residual complexity
+  can tell from an intensity change). Applied to each image it does not commute with a
+  non-uniform warp: the blurred body moves with the field averaged over the blur, so the two
+  high-passed images disagree at the truth. ``highpass_on="residual"`` (every preset) applies
+  it to the residual instead, as the DCT's diagonal ``1 - exp(-sigma^2 omega^2 / 2)`` (the
+  Gaussian's response under the DCT's symmetric extension): ``Q r`` is weighted by it inside
+  the log and in the gradient, and the residual is exactly zero at the truth.
+- *Under-sampled levels.* Area averaging leaves the body's edge (a square-root cusp, the
+  sharpest structure in a phantom's radiograph) and fine texture under-sampled at coarse
+  levels, and a bilinear warp of an under-sampled edge does not match its shifted self: at the
+  truth, 99 % of a coarse level's residual lay in the band around the body's edge. ``smooth``
+  (1 level pixel in every preset) blurs both of a level's images by a Gaussian after averaging.
+- *Thinning.* A compressed body's line integrals scale by ``1 + b(x)`` with ``b`` smooth
+  (``regdata``'s "thinning"). Residual complexity absorbs an additive smooth change, but a scaled
+  body edge is not smooth, and it was read as motion at the edge. The residual is
+  ``(1 + b) warped - fixed``, ``b`` a cubic B-spline on a lattice ``gain`` x the frame apart
+  (coefficients in percent, bending energy ``gain_regularisation``), fitted with the motion's
+  lattice by the same L-BFGS; at the finest level it is refitted (``gain_fine``, presets
+  ``weak``) or kept from the coarser levels (``default``, ``fast``: refitting costs that
+  level's iterations and changed nothing measurable). An additive smooth change (a gain of the
+  source) is still residual complexity's. ``ncc`` and ``mi`` keep high-passed images and no ``b``.
 
 Energy balance. ``balance="lattice"`` (presets ``default``, ``fast``): the similarity's mean
 over the level's pixels plus ``regularisation * sum((L c)^2) / n_control``, ``L`` the lattice's
@@ -99,6 +123,11 @@ PRESETS = {
         balance="lattice",
         stiffen=0.0,
         init="none",
+        highpass_on="residual",
+        smooth=1.0,
+        gain=0.125,
+        gain_regularisation=1e-5,
+        gain_fine=False,
     ),
     "fast": dict(
         spacing=16,
@@ -116,23 +145,28 @@ PRESETS = {
         balance="lattice",
         stiffen=0.0,
         init="none",
+        highpass_on="residual",
+        smooth=1.0,
+        gain=0.125,
+        gain_regularisation=1e-5,
+        gain_fine=False,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
-# levels, stiff fine ones (module docstring); not the default: a simulated silent body's edges
-# carry thickness change that free coarse levels follow (benchmarks/README.md)
-_WEAK = dict(regularisation=1e-6, balance="frame", stiffen=6.0)
-# weak stops at levels of ~0.4 Mpx (the 560 px level at 2240): its finer lattices, stiffened
-# 2^6 a level, add little on weak texture but half its time (training seeds 0-5 at 2240: 0.88 px
-# in 5.5 s with the default's levels, 0.91 px in 2.7 s with these); stopping at ~0.1 Mpx was
-# better still on the family (0.74 px, 1.2 s) but lost 2.5-3x on natural images (moon 2240 0.49
-# -> 1.61 px), and rich texture needs the finer levels (benchmarks/README.md, session 7)
+# levels, stiffer fine ones (module docstring); not the default: a simulated silent body's edges
+# carry thickness change that free coarse levels follow (benchmarks/README.md). Stiffening 2^2
+# a level (was 2^6) and the thinning field refitted at every level, chosen with the unbiased
+# data term on TRAINING seeds 1-3 at 2240 (texture = noise): mean median EPE 0.51 px at 2^6,
+# 0.49 at 2^2, 0.54 at 2^0; refitting against keeping the thinning at the finest level (seeds 4-6) 0.52 /
+# 0.55 px, rich texture 0.08 / 0.12 px (benchmarks/README.md, session 8)
+_WEAK = dict(regularisation=1e-6, balance="frame", stiffen=2.0, gain_fine=True)
+# weak stops at levels of ~0.4 Mpx (the 560 px level at 2240): finer levels added nothing on
+# weak texture at twice the time (training seeds 0-5 at 2240: 0.88 px in 5.5 s with the
+# default's levels, 0.91 px in 2.7 s with these; with the unbiased data term, at 2^6, 0.507 /
+# 0.508 px on seeds 1-3); stopping at ~0.1 Mpx lost 2.5-3x on natural images (benchmarks/README.md)
 PRESETS["weak"] = {**PRESETS["default"], **_WEAK, "max_pixels": 400_000}
-# weak-fast runs two levels (1/16 and 1/8 at 2240): its finer lattice (64 px there) may follow
-# the data more than weak's 48 and 24 px ones, so it is stiffened by 2^2 a level, not 2^6 (chosen
-# on TRAINING seeds 0-5 at 2240, texture = noise: mean median EPE 1.21 px at 6, 0.84 at 1-2, 0.87
-# at 3; the training 560 map, 1120 pairs, rich texture: geometric mean 0.51 -> 0.49; benchmarks/README.md)
-PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK, "stiffen": 2.0}
+# weak-fast runs two levels (1/16 and 1/8 at 2240), its finer lattice 64 px there
+PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK}
 # a silent body (no texture inside: a homogeneous gel phantom) observes its motion only at its
 # edges and inclusions; a compressed body moves mostly as one affine map, so the field starts
 # from the silhouette's and the lattices are stiff: the least-bent field the edges allow
@@ -336,10 +370,17 @@ class _Level:
     kept from one evaluation to the next (the residual, which the DCT needs whole, and the
     warped image's derivatives, which wait for it)."""
 
-    def __init__(self, fixed, moving, mask, factor, similarity, alpha):
+    def __init__(self, fixed, moving, mask, factor, similarity, alpha, hp_sigma=0.0, smooth=0.0):
         self.factor = factor
+        self.gain = None  # a smooth thinning field b (this level's pixels): residual (1 + b) w - f
+        self.gain_grad = None
         self.fixed = _downsample(fixed, factor)
         self.moving = _downsample(moving, factor)
+        if smooth:
+            import cv2
+
+            self.fixed = cv2.GaussianBlur(self.fixed, (0, 0), smooth, borderType=cv2.BORDER_REFLECT)
+            self.moving = cv2.GaussianBlur(self.moving, (0, 0), smooth, borderType=cv2.BORDER_REFLECT)
         # (a float32 mask is not copied: the caller converts it once for all levels)
         self.mask = None if mask is None else _downsample(mask.astype(np.float32, copy=False), factor) > 0.5
         self.shape = self.fixed.shape
@@ -352,6 +393,11 @@ class _Level:
         self.similarity = similarity
         self.alpha = alpha
         self.n = float(self.mask.sum()) if self.mask is not None else float(self.fixed.size)
+        self.hp = None
+        if hp_sigma:  # the residual's high-pass as the DCT's diagonal: 1 - the Gaussian's response
+            wy = (np.pi * np.arange(self.shape[0]) / self.shape[0]) ** 2
+            wx = (np.pi * np.arange(self.shape[1]) / self.shape[1]) ** 2
+            self.hp = (-np.expm1(-0.5 * hp_sigma**2 * (wy[:, None] + wx[None, :]))).astype(dt)
 
     def _bands(self):
         rows = self.shape[0]
@@ -413,17 +459,26 @@ class _Level:
         """Energy and its derivative with respect to the warped image (frame-sized; may be the
         residual buffer itself), from ``_w`` and ``_r``."""
         w, r = self._w, self._r
+        wm = None
+        if self.gain is not None:
+            wm = w if self._maskf is None else w * self._maskf
+            r += self.gain * wm
         if self.similarity == "rc":
             # in place: the residual buffer is refilled by the next evaluation's warp
             q = sfft.dctn(r, norm="ortho", workers=_threads(), overwrite_x=True)
             alpha = self.alpha
+            hp = self.hp
 
             def band(sl):  # in place: q -> q / (q^2 + alpha); returns the band's energy
                 qs = q[sl]
+                if hp is not None:
+                    qs *= hp[sl]
                 q2 = qs * qs
                 e = float(np.sum(np.log1p(q2 * (1.0 / alpha)), dtype=np.float64))
                 q2 += alpha
                 qs /= q2
+                if hp is not None:
+                    qs *= hp[sl]
                 return e
 
             e = 0.5 * sum(self._map(band)) / self.n
@@ -446,6 +501,9 @@ class _Level:
             e, dr = self._mutual_information(w)
         else:
             raise ValueError(f"unknown similarity {self.similarity!r}")
+        if wm is not None:
+            self.gain_grad = dr * wm
+            dr = dr * (1 + self.gain)
         return e, dr.astype(self.fixed.dtype, copy=False)
 
     def _band_gradient(self, dr, sl):
@@ -670,6 +728,11 @@ def _options(preset, overrides) -> dict:
         raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
     if o["init"] not in ("none", "silhouette"):
         raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
+    if o["highpass_on"] not in ("images", "residual"):
+        raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
+    for key in ("smooth", "gain", "gain_regularisation"):
+        if not o[key] >= 0:
+            raise ValueError(f"{key}={o[key]}: expected >= 0")
     if o["spacing"] < 4:
         raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
     return o
@@ -694,7 +757,12 @@ def _pyramid(shape, o) -> list:
     return list(zip(run, its))
 
 
-def _objective(level, grid, base, lam, factor, balance):
+# the thinning field's coefficients are in percent: a 1 % change of a line integral and a 1 px
+# shift of a structure of ~100 px change the residual alike, so L-BFGS sees both on one scale
+_GAIN_UNIT = 0.01
+
+
+def _objective(level, grid, base, lam, factor, balance, gain=None):
     """``fun(c) -> (energy, gradient)`` of one level's lattice on top of the coarser ``base``.
 
     ``balance="frame"``: data: the similarity summed over the level's pixels per ``_N_REF`` full-resolution pixels
@@ -711,20 +779,37 @@ def _objective(level, grid, base, lam, factor, balance):
     else:  # "lattice": the mean similarity; the bending energy per control point, in pixels
         data_w, w_bend = 1.0, lam / (grid.nr * grid.nc)
     L = grid.L
+    n_d = grid.n_params
+    if gain is not None:  # (gain lattice, its bending weight): the thinning field's coefficients follow
+        g_grid, g_lam = gain
+        Br, Bc, BrT, _ = g_grid.matrices(factor)
+        Br, Bc = Br[: level.shape[0]], Bc[: level.shape[1]]
+        BrT = Br.T.tocsr()
+        Lg = g_grid.L
+        w_gbend = g_lam / (g_grid.nr * g_grid.nc)
 
     def fun(x):
-        e, grad = level.lattice_energy(grid, x, base, factor)
+        if gain is not None:
+            C = (x[n_d:] * _GAIN_UNIT).reshape(g_grid.nr, g_grid.nc).astype(np.float32)
+            level.gain = np.ascontiguousarray((Br @ (Bc @ C.T).T).astype(np.float32))
+        e, grad = level.lattice_energy(grid, x[:n_d], base, factor)
         grad *= data_w
-        X = x.reshape(2, -1)
+        X = x[:n_d].reshape(2, -1)
         LX = np.stack([L @ X[0], L @ X[1]])
         e = e * data_w + w_bend * float(np.sum(LX * LX))
         grad += (2 * w_bend) * np.concatenate([L.T @ LX[0], L.T @ LX[1]])
+        if gain is not None:
+            gC = (BrT @ (Bc.T @ level.gain_grad.T).T).astype(np.float64).ravel() * (data_w * _GAIN_UNIT)
+            LC = Lg @ x[n_d:]
+            e += w_gbend * float(LC @ LC)
+            gC += (2 * w_gbend) * (Lg.T @ LC)
+            grad = np.concatenate([grad, gC])
         return e, grad
 
     return fun
 
 
-def _fit_level(fun, grid, n_it, coarsest):
+def _fit_level(fun, grid, n_it, coarsest, x0=None):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
     level's grid: the field is smooth on it)."""
@@ -735,7 +820,7 @@ def _fit_level(fun, grid, n_it, coarsest):
 
     res = minimize(
         fun,
-        np.zeros(grid.n_params),
+        np.zeros(grid.n_params) if x0 is None else x0,
         jac=True,
         method="L-BFGS-B",
         callback=track,
@@ -743,7 +828,7 @@ def _fit_level(fun, grid, n_it, coarsest):
     )
     move = float("inf")
     if len(last) == last.maxlen:
-        change = grid.field(last[-1] - last[0], coarsest) * coarsest
+        change = grid.field((last[-1] - last[0])[: grid.n_params], coarsest) * coarsest
         move = float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
     return res, move
 
@@ -751,7 +836,7 @@ def _fit_level(fun, grid, n_it, coarsest):
 def _prepare(fixed, moving, o):
     """Both images normalised by the fixed one's 1-99 % range, high-passed if asked."""
     f, m = _normalise(fixed, moving)
-    if o.get("highpass"):  # in place, one scratch frame: new memory is slow to touch the first time
+    if o.get("highpass") and o["highpass_on"] == "images":  # in place, one scratch frame: slow to touch the first time
         sigma = o["highpass"] * min(f.shape)
         scratch = np.empty_like(f)
         _highpass(f, sigma, out=f, scratch=scratch)
@@ -761,25 +846,22 @@ def _prepare(fixed, moving, o):
 
 def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", callback=None, **overrides):
     o = _options(preset, overrides)
+    if similarity != "rc":  # the residual's high-pass and the thinning term act on rc's residual
+        o.update(highpass_on="images", gain=0.0)
     f, m = _prepare(fixed, moving, o)
     levels = _pyramid(f.shape, o)
     maskf = None if mask is None else mask.astype(np.float32)  # once, not per level
     affine, init_note = _initial(fixed, moving, o)
     coarsest, finest = levels[0][0], levels[-1][0]
     grids, history = [], []  # one lattice per level, spacing halving with the pixels
+    # the thinning field: one coarse lattice for all levels, its coefficients carried down
+    gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message = 0, True, ""
     for factor, n_it in levels:
-        fine = factor == finest
-        # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
-        # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
-        alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
-        lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
-        level = _Level(f, m, maskf, factor, similarity, alpha)
-        base = _fields(grids, factor, level.shape)  # the coarser lattices' field, fixed at this level
+        base = _fields(grids, factor, tuple(-(-n // factor) for n in f.shape))  # the coarser lattices' field
         if affine is not None:
-            base += affine.field(level.shape, factor)
-        grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
-        res, move = _fit_level(_objective(level, grid, base, lam, factor, o["balance"]), grid, n_it, coarsest)
+            base += affine.field(base.shape[1:], factor)
+        grid, res, move = _run_level(f, m, maskf, similarity, o, (factor, n_it, coarsest, finest), base, gain)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -798,7 +880,7 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         )
         if callback is not None:
             callback(factor, res)
-        if fine:
+        if factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
     if affine is not None:
@@ -812,6 +894,41 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         levels=history,
         options=o,
     )
+
+
+def _run_level(f, m, maskf, similarity, o, where, base, gain):
+    """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
+    (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
+    coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients."""
+    factor, n_it, coarsest, finest = where
+    fine = factor == finest
+    # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
+    # each coarser level's lattice stiffer by (coarsest / factor)^stiffen
+    alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
+    lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
+    hp_sigma = o["highpass"] * min(f.shape) / factor if o["highpass_on"] == "residual" else 0.0
+    level = _Level(f, m, maskf, factor, similarity, alpha, hp_sigma, o["smooth"])
+    grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
+    x0 = None
+    if gain is not None and gain[1] is not None and fine and not o["gain_fine"]:
+        # the thinning field kept as the coarser levels left it
+        g_grid = gain[0]
+        Br, Bc, _, _ = g_grid.matrices(factor)
+        C = (gain[1] * _GAIN_UNIT).reshape(g_grid.nr, g_grid.nc).astype(np.float32)
+        level.gain = np.ascontiguousarray((Br[: level.shape[0]] @ (Bc[: level.shape[1]] @ C.T).T).astype(np.float32))
+        gain = None
+    if gain is not None:
+        g_grid = gain[0]
+        x0 = np.zeros(grid.n_params + g_grid.nr * g_grid.nc)
+        if gain[1] is not None:
+            x0[grid.n_params :] = gain[1]
+    thinning = None if gain is None else (gain[0], o["gain_regularisation"])
+    fun = _objective(level, grid, base, lam, factor, o["balance"], thinning)
+    res, move = _fit_level(fun, grid, n_it, coarsest, x0)
+    if gain is not None:
+        gain[1] = res.x[grid.n_params :]
+        res.x = res.x[: grid.n_params]
+    return grid, res, move
 
 
 def _initial(fixed, moving, o):
@@ -852,8 +969,11 @@ def _rc(fixed, moving, mask, **options):
     run), coarse_alpha and coarse_regularisation (alpha and the regularisation x these at every
     level but the finest; 1 by default), levels_skip,
     converge_px (the finest level run is converged when its last 5 iterations moved the field
-    less than this, in pixels, 99th percentile), highpass (fraction of the smaller side: both
-    images minus their Gaussian blur of that width before the similarity; 0 or None: off)."""
+    less than this, in pixels, 99th percentile), highpass (fraction of the smaller side: the
+    residual, or with highpass_on='images' both images, minus its Gaussian blur of that width;
+    0 or None: off), smooth (level pixels: each level's images blurred by a Gaussian that wide),
+    gain (the thinning field's lattice spacing, fraction of the smaller side; 0: no thinning
+    term), gain_regularisation, gain_fine (refit the thinning field at the finest level)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
