@@ -214,7 +214,7 @@ def _auto_row(tag, pair, fast_only=False):
     result is one of the rows, taken from them rather than registered again; the time of a
     fallback is both runs'."""
     from radiokit.register import register
-    from radiokit.register._auto import AUTO_PRESETS, choose, retried, returned
+    from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     f, m, d, mask = pair
     res, chose, quality = {}, {}, {}
@@ -230,7 +230,7 @@ def _auto_row(tag, pair, fast_only=False):
         if plain not in res:
             continue
         other = fallback[name].preset
-        tried = retried(name, quality[plain], other)
+        tried = not res[plain][3] and other != plain
         use = returned(name, quality[plain], other, quality.get(other))
         v = res[use]
         res[name] = v if not tried else (v[0], v[1], res[other][2] + res[plain][2], v[3])

@@ -98,6 +98,8 @@ def _auto_choice(name, fixed, regs):
     from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     auto, plain = AUTO[name]
+    if regs[plain].quality.ok:  # as register_auto: no fallback is judged
+        return plain
     fallback = choose(fixed, auto).preset
     retry = regs.get("rc-" + fallback)  # absent only when nothing is retried
     use = returned(auto, regs[plain].quality, fallback, retry.quality if retry is not None else None)

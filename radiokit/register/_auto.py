@@ -5,12 +5,10 @@ the noise level that ``default`` leaves, but lose on a silent (textureless) body
 carry thickness change the free coarse levels follow, and on rich texture (benchmarks/README.md,
 issue 11; on natural images 3-6x: camera 1120 0.056 -> 0.35 px). So ``auto`` runs the plain
 preset first and keeps it when it passes its own checks (``quality.ok``: rich texture, or
-anything ``default`` registers well); a result it flags, or one that passed but leaves more than
-``RETRY_MISALIGNED`` (2 %) of the observed structure misaligned, is tried again with ``weak``,
-only when the body's interior carries texture for ``weak`` to use, and the ``weak`` result is
-kept only when it leaves less of the observed structure misaligned
-(``quality.misaligned_fraction``). (The misaligned test cannot see a 2 px error on texture at
-the noise level, so ``default``'s pass there is not enough.) A flagged result on a body whose
+anything ``default`` registers well); only a result it flags is tried again with ``weak``, only
+when the body's interior carries texture for ``weak`` to use, and the ``weak`` result is kept
+only when it leaves less of the observed structure misaligned (``quality.misaligned_fraction``;
+on the training seeds it always did when it was tried). A flagged result on a body whose
 interior carries no texture is tried again with ``silent`` (``silent-fast``): the field starts
 from the silhouettes' affine map and the lattices are stiff, the least-bent field the edges
 allow, which is what a compressed phantom's silent slab does (the simulated pva-phantom side
@@ -63,12 +61,10 @@ __all__ = [
     "register_auto",
     "keeps_retry",
     "returned",
-    "retried",
     "interior_texture_to_noise",
     "TEXTURE_LOW",
     "NOISE_FREE",
     "SILENT_TIE",
-    "RETRY_MISALIGNED",
 ]
 
 # name -> (the preset run first, the one a flagged result on a textured interior falls back to,
@@ -91,14 +87,6 @@ NOISE_FREE = 2.0
 # with auto 1.59 px at 0, 1.52 at 0.01-0.02, 1.49 at 0.05, 1.51 at 0.1 (auto-fast 1.76, 1.63-1.67,
 # 1.65, 1.65); the physical pairs, where silent wins 5-20x, differ by at most 0.01
 SILENT_TIE = 0.05
-# a plain result that passed its own checks is still tried with ``weak`` when it leaves more than
-# this share of the observed structure misaligned on a textured interior: the misaligned test
-# cannot see 2 px of error on texture at the noise level (2240, texture 2x noise: default
-# 2.1 px, 2 % misaligned, ok), and weak then leaves none (0.29 px). Chosen on TRAINING seeds
-# (66 pairs: the 560 map and spread cases, 2 seeds; 2240 and 1120 weak texture; rich texture;
-# natural images; benchmarks/README.md, session 8): geometric mean of the returned median EPE
-# 0.534 px without the rule, 0.506 at 0.05, 0.424 at 0.02 and 0.01, 0.433 at 0.005 and 0
-RETRY_MISALIGNED = 0.02
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -195,53 +183,37 @@ def keeps_retry(plain, retry, silent=False) -> bool:
     return r < p
 
 
-def retried(name, plain_quality, fallback) -> bool:
-    """Whether ``register(..., preset=name)`` runs ``fallback`` (the preset :func:`choose` fell
-    back to) after the plain run of ``Quality`` ``plain_quality``: when the plain run failed its
-    own checks, or, on a textured interior (``fallback`` the weak preset), passed them leaving
-    more than ``RETRY_MISALIGNED`` of the observed structure misaligned; never when nothing
-    else is chosen."""
-    plain, weak, _ = AUTO_PRESETS[name]
-    if fallback == plain:
-        return False
-    return not plain_quality.ok or (fallback == weak and plain_quality.misaligned_fraction > RETRY_MISALIGNED)
-
-
 def returned(name, plain_quality, fallback, retry_quality) -> str:
     """The preset ``register(..., preset=name)`` returns, given the plain run's ``Quality``, the
-    preset :func:`choose` fell back to, and that retry's ``Quality`` (read only when
-    :func:`retried`): the plain one unless the retry ran and :func:`keeps_retry` prefers it.
-    The benchmarks compose ``auto`` from cached runs with it."""
+    preset :func:`choose` fell back to, and that retry's ``Quality`` (read only when the retry
+    is run): the plain one when it passed its own checks or nothing else is tried, else the
+    retry if :func:`keeps_retry` prefers it. The benchmarks compose ``auto`` from cached runs
+    with it."""
     plain, _, silent = AUTO_PRESETS[name]
-    if not retried(name, plain_quality, fallback):
+    if plain_quality.ok or fallback == plain:
         return plain
     return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
 
 
 def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
-    checks (``quality.ok``) with at most ``RETRY_MISALIGNED`` of the observed structure left
-    misaligned, or when there is no interior to judge by (:func:`choose`); otherwise the weak or
-    silent preset too (:func:`choose`; a result that passed is tried with the weak one only), and
-    the one :func:`keeps_retry` prefers is returned (its time is both runs'). ``options["auto"]``
-    records the choice and why."""
+    checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
+    the weak or silent preset too (:func:`choose`), and the one :func:`keeps_retry` prefers is
+    returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
     name = options["preset"]
     plain = AUTO_PRESETS[name][0]
     first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
-    passed = f"{plain} passed its own checks"
-    if first.quality.ok and not first.quality.misaligned_fraction > RETRY_MISALIGNED:  # no fallback retries
-        first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), passed)
+    if first.quality.ok:
+        first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
         return first
     fallback = choose(f, name)
-    if not retried(name, first.quality, fallback.preset):
-        why = passed if first.quality.ok else fallback.reason
-        first.options["auto"] = AutoChoice(plain, fallback.ratio, fallback.interior, why)
+    if fallback.preset == plain:
+        first.options["auto"] = fallback
         return first
     second = register(f, m, method, mask, retry=False, **dict(options, preset=fallback.preset))
     total = first.quality.seconds + second.quality.seconds
     mis = (first.quality.misaligned_fraction, second.quality.misaligned_fraction)
-    state = f"not ok ({first.quality.reason})" if not first.quality.ok else f"ok but {mis[0]:.2f} misaligned"
-    why = f"{plain} {state}; {fallback.reason}; misaligned {mis[0]:.2f} -> {mis[1]:.2f}"
+    why = f"{plain} not ok ({first.quality.reason}); {fallback.reason}; misaligned {mis[0]:.2f} -> {mis[1]:.2f}"
     best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
     best.quality.seconds = total
     best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
