@@ -302,9 +302,9 @@ def test_weak_texture_pair_recovered():
 
 def test_weak_preset_recovers_weak_texture_short_correlation():
     """Texture 3x the noise, motion correlated over a tenth of the frame: the default (its
-    bending energy per control point pins the coarse levels) leaves two thirds of the motion
-    (0.82 of 1.24 px measured); the scale-invariant ``weak`` preset must remove at least three
-    quarters of the motion's median and bring the p95 under it (0.30 / 0.98 px measured), and
+    bending energy per control point pins the coarse levels) leaves over half of the motion
+    (0.70 of 1.24 px measured); the scale-invariant ``weak`` preset must remove at least three
+    quarters of the motion's median and bring the p95 under it (0.17 / 0.51 px measured), and
     ``weak-fast`` most of it."""
     fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
     before, _ = _epe(np.zeros_like(d), d, mask)
@@ -312,7 +312,7 @@ def test_weak_preset_recovers_weak_texture_short_correlation():
     assert med < 0.25 * before and p95 < before, (med, p95, before)
     stiff, _ = _epe(register(fixed, moving, "rc").displacement, d, mask)
     assert stiff > 0.5 * before  # the energy balance is what recovers it
-    # weak-fast too (0.26 px measured), well under fast's own (0.56 px)
+    # weak-fast too (0.25 px measured), well under fast's own (0.63 px)
     quick, _ = _epe(register(fixed, moving, "rc", preset="weak-fast").displacement, d, mask)
     assert (
         quick < 0.3 * before
