@@ -423,6 +423,53 @@ def bias_part(size, seed, preset="weak"):
             )
 
 
+def regimes_part(opts):
+    """rc with the options ``opts`` (JSON) over the regimes the data term was compared on
+    (TRAINING seeds; natural images seed 1): 2240 weak texture, 2240 rich texture, the 560 map,
+    natural images at 1120, the 560 physical motion without texture; the geometric mean of the
+    median EPE per regime (benchmarks/README.md, "The data term's bias (session 8)")."""
+    from regdata import Case, family_pair
+
+    from radiokit.register import register
+
+    def run(tag, pair):
+        f, m, d, mask = pair
+        t = time.perf_counter()
+        r = register(f, m, "rc", **opts)
+        sc = score(r.displacement, d, mask)
+        print(f"  {tag}: {sc['epe_median']:.3f} / {sc['epe_p95']:.2f} px, {time.perf_counter() - t:.1f} s", flush=True)
+        return sc["epe_median"]
+
+    def family(tag, **case):
+        return run(tag, family_pair(Case(**{**dict(noise=0.01, corr=0.1), **case})))
+
+    regimes = {
+        "2240 weak texture": lambda: (
+            [family(f"2240 s{s}", size=2240, texture=0.01, seed=s) for s in (4, 5)]
+            + [family("2240 gain s6", size=2240, texture=0.01, seed=6, kind="gain")]
+        ),
+        "2240 rich": lambda: (
+            [family("2240 texture 10x s1", size=2240, texture=0.1, seed=1)]
+            + [
+                run(f"analytic 2240 {k} s0", analytic_pair(2240, 0.01, 0.10, 0.01, seed=0, kind=k))
+                for k in ("thinning", "gain")
+            ]
+        ),
+        "560 map": lambda: [
+            family(f"560 t/n {t} corr {c:g}", size=560, texture=0.01 * t, corr=c, seed=0)
+            for t in (0.3, 1, 3, 10)
+            for c in (0.25, 0.1, 0.05)
+        ],
+        "natural 1120": lambda: [run(f"{n} 1120", natural_pair(n, 1120)) for n in ("camera", "moon")],
+        "560 physical, no texture": lambda: [
+            family(f"560 physical s{s}", size=560, texture=0.0, corr=0.0, motion="physical", seed=s) for s in (0, 1)
+        ],
+    }
+    print(f"rc {opts}", flush=True)
+    for name, make in regimes.items():
+        print(f"{name}: geometric mean {float(np.exp(np.mean(np.log(make())))):.3f} px", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1120)
@@ -452,6 +499,13 @@ def main(argv=None):
         "(e.g. '{}' '{\"preset\": \"weak\"}')",
     )
     ap.add_argument("--seed", type=int, default=1, help="the training seed of --levels and --bias")
+    ap.add_argument(
+        "--regimes",
+        metavar="JSON",
+        nargs="*",
+        help="only rc over the regimes the data term was compared on (TRAINING seeds), for each JSON "
+        'option set (e.g. \'{"preset": "weak"}\' \'{"preset": "weak", "gain": 0}\')',
+    )
     ap.add_argument(
         "--bias",
         metavar="PRESET",
@@ -490,6 +544,10 @@ def main(argv=None):
         return 0
     if args.bias:
         bias_part(args.size, args.seed, args.bias)
+        return 0
+    if args.regimes is not None:
+        for opts in args.regimes or ["{}"]:
+            regimes_part(json.loads(opts))
         return 0
     if args.levels is not None:
         for opts in args.levels or ["{}"]:
