@@ -373,6 +373,7 @@ class _Level:
     def __init__(self, fixed, moving, mask, factor, similarity, alpha, hp_sigma=0.0, smooth=0.0):
         self.factor = factor
         self.gain = None  # a smooth thinning field b (this level's pixels): residual (1 + b) w - f
+        self.fit_gain = False  # whether b is being fitted (its gradient wanted) or kept
         self.gain_grad = None
         self.fixed = _downsample(fixed, factor)
         self.moving = _downsample(moving, factor)
@@ -502,7 +503,8 @@ class _Level:
         else:
             raise ValueError(f"unknown similarity {self.similarity!r}")
         if wm is not None:
-            self.gain_grad = dr * wm
+            if self.fit_gain:
+                self.gain_grad = dr * wm
             dr = dr * (1 + self.gain)
         return e, dr.astype(self.fixed.dtype, copy=False)
 
@@ -762,6 +764,19 @@ def _pyramid(shape, o) -> list:
 _GAIN_UNIT = 0.01
 
 
+def _thinning_basis(g_grid, factor, shape):
+    """The thinning lattice's row and column B-spline matrices at a level of ``shape``."""
+    Br, Bc, _, _ = g_grid.matrices(factor)
+    return Br[: shape[0]], Bc[: shape[1]]
+
+
+def _thinning_field(g_grid, coeffs, factor, shape):
+    """The thinning field ``b`` (float32, a level of ``shape``) of coefficients in percent."""
+    Br, Bc = _thinning_basis(g_grid, factor, shape)
+    C = (coeffs * _GAIN_UNIT).reshape(g_grid.nr, g_grid.nc).astype(np.float32)
+    return np.ascontiguousarray((Br @ (Bc @ C.T).T).astype(np.float32))
+
+
 def _objective(level, grid, base, lam, factor, balance, gain=None):
     """``fun(c) -> (energy, gradient)`` of one level's lattice on top of the coarser ``base``.
 
@@ -782,16 +797,15 @@ def _objective(level, grid, base, lam, factor, balance, gain=None):
     n_d = grid.n_params
     if gain is not None:  # (gain lattice, its bending weight): the thinning field's coefficients follow
         g_grid, g_lam = gain
-        Br, Bc, BrT, _ = g_grid.matrices(factor)
-        Br, Bc = Br[: level.shape[0]], Bc[: level.shape[1]]
+        Br, Bc = _thinning_basis(g_grid, factor, level.shape)
         BrT = Br.T.tocsr()
         Lg = g_grid.L
         w_gbend = g_lam / (g_grid.nr * g_grid.nc)
+        level.fit_gain = True
 
     def fun(x):
         if gain is not None:
-            C = (x[n_d:] * _GAIN_UNIT).reshape(g_grid.nr, g_grid.nc).astype(np.float32)
-            level.gain = np.ascontiguousarray((Br @ (Bc @ C.T).T).astype(np.float32))
+            level.gain = _thinning_field(g_grid, x[n_d:], factor, level.shape)
         e, grad = level.lattice_energy(grid, x[:n_d], base, factor)
         grad *= data_w
         X = x[:n_d].reshape(2, -1)
@@ -922,11 +936,7 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain):
     grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
     x0 = None
     if gain is not None and gain[1] is not None and fine and not o["gain_fine"]:
-        # the thinning field kept as the coarser levels left it
-        g_grid = gain[0]
-        Br, Bc, _, _ = g_grid.matrices(factor)
-        C = (gain[1] * _GAIN_UNIT).reshape(g_grid.nr, g_grid.nc).astype(np.float32)
-        level.gain = np.ascontiguousarray((Br[: level.shape[0]] @ (Bc[: level.shape[1]] @ C.T).T).astype(np.float32))
+        level.gain = _thinning_field(gain[0], gain[1], factor, level.shape)  # kept as the coarser levels left it
         gain = None
     if gain is not None:
         g_grid = gain[0]
