@@ -120,6 +120,7 @@ def _row(meta, label, name, reg, truth, mask, ident, sec):
         seconds=sec,
         observed=float(obs.sum() / mask.sum()),
         misaligned=reg.quality.misaligned_fraction,
+        step=reg.quality.residual_motion,
         epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
     )
 
@@ -207,7 +208,7 @@ def misses(rows) -> list[str]:
             out.append(
                 f"  failed, trusted: {r['method']:<11} {r['case']:<58} {r['epe_median']:.2f} px "
                 f"(identity {r['identity']:.2f}; observed {r['observed']:.2f}, "
-                f"misaligned {r['misaligned']:.2f})"
+                f"step {r['step']:.2f} px, misaligned {r['misaligned']:.2f})"
             )
     return out
 
@@ -227,14 +228,13 @@ def textureless(rows) -> list[str]:
 
 def rule_inputs(fixed, moving, d, stride=2):
     """What ``register()``'s flag rule reads, per object pixel (every ``stride``-th row and
-    column of the assessment grid), before its thresholds: the Cramer-Rao bound at scale 1 and
-    the field's correlation length in windows (observed where ``bound_scale x b1 / min(windows,
-    max_length) <= 0.5 px``), the
-    residual's excess over the noise after registering, and that excess against a quarter of the
-    excess before (misaligned where both exceed their lines). The same steps as
-    ``radiokit.register._observed`` and ``_misaligned`` (``sweep`` checks that the present
-    thresholds give ``ok`` as ``register()`` does)."""
-    from radiokit.register import _ASSESS_PIXELS, _WINDOW, _bin, _check, _correlation_length, warp
+    column of the assessment grid), before its thresholds: the Cramer-Rao bound of one window
+    (observed where ``bound_scale x b1 <= 0.5 px``), over the object and over its interior, the residual's Gauss-Newton step
+    (``_confidence.residual_motion``), the residual's excess over the noise after registering,
+    and that excess against a quarter of the excess before (misaligned where both exceed their
+    lines). The same steps as ``radiokit.register._observed`` and ``_misaligned`` (``sweep``
+    checks that the present thresholds give ``ok`` as ``register()`` does)."""
+    from radiokit.register import _ASSESS_PIXELS, _STEP_WINDOW, _WINDOW, _bin, _check, _interior, warp
     from radiokit.register import _confidence as C
 
     f, m, _ = _check(fixed, moving, None)
@@ -244,39 +244,44 @@ def rule_inputs(fixed, moving, d, stride=2):
         f, m, d = _bin(f, k), _bin(m, k), _bin(d, k) / np.float32(k)
     w, d = np.nan_to_num(warp(m, d)), np.nan_to_num(d)
     ob = C.observability(f, _WINDOW, None)
-    smooth = np.stack([C._gauss(c, _WINDOW) for c in d])
-    length = max(_correlation_length(smooth, ob.object), _WINDOW / 2)  # the upper clip is swept
     sig = C.noise_map(f, _WINDOW)
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
     after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
     before = C.consistency(f, m, _WINDOW, sig) - 1.0
+    step = C.residual_motion(f, w, _STEP_WINDOW)
     sel = ob.object[::stride, ::stride]
+    inner = _interior(ob.object)
+    inner = inner if inner.any() else ob.object
     return dict(
         b1=ob.bound_px[::stride, ::stride][sel],
-        windows=length / _WINDOW,
+        b1_inner=ob.bound_px[::stride, ::stride][inner[::stride, ::stride]],
+        step=step[::stride, ::stride][sel],
         after=after[::stride, ::stride][sel],
         gate=(after * factor - 0.5 * np.maximum(before, 0))[::stride, ::stride][sel],
         n_object=int(ob.object.sum()) * k * k,
     )
 
 
-def rule_ok(x, q, bound_scale, max_length, min_observed, excess, max_misaligned, max_folds):
+def rule_ok(x, q, bound_scale, min_observed, max_step, excess, max_misaligned, max_folds):
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
-    the result's ``Quality`` for the reasons the thresholds do not touch)."""
+    the result's ``Quality`` for the reasons the thresholds do not touch). Subsampled, so a
+    result near a threshold may differ from ``register()``'s."""
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
-    obs = x["b1"] * (bound_scale / min(x["windows"], max_length)) <= 0.5
-    if not obs.size or obs.mean() < min_observed:
+    obs = x["b1"] * bound_scale <= 0.5
+    if not obs.size or np.mean(x["b1_inner"] * bound_scale <= 0.5) < min_observed:
+        return False
+    if np.median(x["step"][obs]) > max_step:
         return False
     return not (np.mean((x["after"][obs] > excess) & (x["gate"][obs] > 0)) > max_misaligned)
 
 
 SWEEP = dict(
-    bound_scale=(2.0, 3.0, 4.0, 5.0, 6.0),
-    max_length=(4.0, 8.0),  # windows: the longest correlation length credited
-    min_observed=(0.3, 0.4, 0.5),
-    excess=(0.1, 0.15, 0.2, 0.3),
-    max_misaligned=(0.2, 0.3, 0.4, 0.5),
+    bound_scale=(0.5, 0.75, 1.0, 1.5, 2.0, 4.0),
+    min_observed=(0.3, 0.4, 0.5, 0.6, 0.7),  # of the interior
+    max_step=(0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5),
+    excess=(0.1, 0.2),
+    max_misaligned=(0.2, 0.5, 1.01),
 )
 
 
@@ -285,12 +290,12 @@ def sweep(rows, inputs, min_flagged=0.97):
     least ``min_flagged`` of the failed results, best trusted share of the good first."""
     import itertools
 
-    from radiokit.register import _BOUND_SCALE, _EXCESS, _MAX_FOLDS, _MAX_LENGTH, _MAX_MISALIGNED, _MIN_OBSERVED
+    from radiokit.register import _EXCESS, _MAX_FOLDS, _MAX_MISALIGNED, _MAX_RESIDUAL_MOTION, _MIN_OBSERVED
 
     res = [(r, x) for r, x in zip(rows, inputs) if x is not None]
     failed = [(r, x) for r, x in res if r["epe_median"] > max(1.0, 0.5 * r["identity"])]
     good = [(r, x) for r, x in res if r["epe_median"] <= 0.5]
-    now = (_BOUND_SCALE, _MAX_LENGTH, _MIN_OBSERVED, _EXCESS, _MAX_MISALIGNED)
+    now = (1.0, _MIN_OBSERVED, _MAX_RESIDUAL_MOTION, _EXCESS, _MAX_MISALIGNED)
     same = sum(rule_ok(x, r["quality"], *now, _MAX_FOLDS) == r["ok"] for r, x in res)
     out = [f"  the present thresholds {now} reproduce register()'s ok for {same}/{len(res)} results (subsampled)"]
     table = []

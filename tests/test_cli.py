@@ -168,10 +168,10 @@ def test_cli_preset_choices_are_the_registrys_presets():
 
 def test_register_preset_auto_says_what_it_ran(tmp_path, capsys):
     """``--preset auto`` prints the preset it returned and why: a smooth body with noise only, not
-    moved, observes nothing, so ``default`` is flagged; the interior has no texture (ratio ~0,
-    far under 0.9), so ``silent`` is tried; it observes a sliver of the outline (0.4 %), none
-    of it misaligned, where the plain run observed nothing, so it is kept. Its field is the
-    stiffer one: the truth is no motion (default up to 0.82 px, silent 0.31 px measured)."""
+    moved, observes the motion only near its rim (8 % of its interior), so ``default`` is
+    flagged; the interior has no texture (ratio ~0, far under 0.9), so ``silent`` is tried; it
+    leaves no more misaligned than ``default`` (none), so it is kept. Its field is the stiffer
+    one: the truth is no motion (default 0.63 px median, silent 0.03 px measured)."""
     import tifffile
 
     from radiokit.cli import main

@@ -19,7 +19,11 @@ still says "linear", the paper's word) and carries a ``schema_version``; the num
 A deliberate change of the simulator's physics or of TV-L1 moves these numbers: re-pin then, and
 say so in the commit. Re-pinned once since: the correction's log became a compiled polynomial
 (issue 15, under an ulp from OpenCV's), which moved the numbers by at most 1.5e-5 relative (the
-end-point error's p95; contrasts and ratios by 1e-7 to 2e-6).
+end-point error's p95; contrasts and ratios by 1e-7 to 2e-6). The flag was re-pinned once
+(issue 11, session 9): its no-truth check of the residual's remaining motion (a Gauss-Newton
+step on it, ``Quality.residual_motion``) reads 0.35 and 0.64 px after TV-L1's 1->2 and 1->3
+fields (over the 0.35 px line; rc's fields on the same pairs read 0.04), so those two pairs are
+flagged and ``radiokit process`` exits 1; no number moved.
 """
 
 from __future__ import annotations
@@ -88,7 +92,7 @@ PINNED = {
     "change_ratio/2->3/negative": 0.7672854436229809,
     "change_ratio/1->2/log": 1.207412271472647,
     "change_ratio/1->2/negative": 1.0054343586827539,
-    "registration/1->3/ok": True,
+    "registration/1->3/ok": False,
     "registration/1->3/method": "tvl1",
     "registration/1->3/epe_median": 0.5730447769165039,
     "registration/1->3/epe_p95": 0.8095512986183167,
@@ -100,7 +104,7 @@ PINNED = {
     "registration/2->3/epe_p95": 0.5217480063438416,
     "registration/2->3/epe_roi_median": 0.2979002296924591,
     "registration/2->3/epe_roi_p95": 0.4335991442203522,
-    "registration/1->2/ok": True,
+    "registration/1->2/ok": False,
     "registration/1->2/method": "tvl1",
     "registration/1->2/epe_median": 0.16668379306793213,
     "registration/1->2/epe_p95": 0.7116087079048157,
@@ -198,7 +202,7 @@ def _same(got, want) -> bool:
 
 def test_the_printed_table_is_unchanged(golden):
     code, printed, _ = golden
-    assert code == 0
+    assert code == 1  # pairs 1->2 and 1->3 are flagged (the main pair, 2->3, is not)
     assert printed == PRINTED
 
 

@@ -407,7 +407,7 @@ def test_confidence_map_marks_the_silent_interior_unobserved():
     rad = 0.05 * n
     img += 0.3 * np.sqrt(np.clip(1 - (dist / rad) ** 2, 0, None))
     img = ndimage.gaussian_filter(img, 1.0) + 0.002 * np.random.default_rng(0).standard_normal((n, n))
-    ob = observability(img.astype(np.float32), 24.0, bound_scale=B_SCALE())
+    ob = observability(img.astype(np.float32), 24.0)
     obs = ob.confidence >= 0.5
     disc_edge = np.abs(dist - rad) < 2
     body_edge = (r2 < 1) & (r2 > 0.85)
@@ -415,12 +415,6 @@ def test_confidence_map_marks_the_silent_interior_unobserved():
     assert obs[disc_edge].mean() > 0.8 and obs[body_edge].mean() > 0.8
     assert obs[interior].mean() < 0.1
     assert abs(ob.sigma - 0.002) < 0.0005  # the noise level, estimated from the image alone
-
-
-def B_SCALE():
-    import radiokit.register as R
-
-    return R._BOUND_SCALE
 
 
 def test_roi_observed():
@@ -470,13 +464,32 @@ def test_unregistered_weak_texture_is_flagged():
     assert not reg.quality.ok and "misaligned" in reg.quality.reason, reg.quality.reason
 
 
+def test_residual_motion_is_the_shift_left_and_ignores_a_gain():
+    """One Gauss-Newton step on the residual is, to first order, the shift left between the
+    images: a texture correlated over ~5 px (after the step's 3 px smoothing) shifted by 0.3 px
+    reads 0.3 px (central differences and the second-order term: within 10 %); with a 10 %
+    gain on the shifted image the gain itself is fitted away and the step reads the shift in
+    the gained image's units, 0.33 px; the same image against itself reads 0."""
+    from radiokit.register._confidence import residual_motion
+
+    rng = np.random.default_rng(11)
+    tex = ndimage.gaussian_filter(rng.standard_normal((300, 300)), 4.0)
+    fixed = tex[22:278, 22:278].astype(np.float32)
+    shifted = ndimage.shift(tex, (0.0, -0.3), order=3)[22:278, 22:278].astype(np.float32)  # f(x + 0.3)
+    inner = (slice(48, -48), slice(48, -48))
+    for gain in (1.0, 1.1):
+        step = residual_motion(fixed, gain * shifted, 24.0)
+        assert np.median(step[inner]) == pytest.approx(0.3 * gain, rel=0.1), gain
+    assert np.max(residual_motion(fixed, fixed, 24.0)[inner]) < 1e-3
+
+
 def test_pure_noise_observes_nothing():
     """A flat image with white noise carries no structure: the map's noise-only floor (what noise
     shows as structure 99 % of the time is not information) leaves it unobserved (under 1 %)."""
     from radiokit.register._confidence import observability
 
     img = 1.0 + 0.01 * np.random.default_rng(5).standard_normal((400, 400)).astype(np.float32)
-    ob = observability(img, 24.0, bound_scale=B_SCALE())
+    ob = observability(img, 24.0)
     assert np.mean(ob.confidence[80:-80, 80:-80] >= 0.5) < 0.01
 
 
@@ -488,9 +501,8 @@ def test_pure_noise_observes_nothing():
 def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
     """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
     of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
-    ``default`` leaves structure misaligned and says so; the interior has texture (ratio above
-    TEXTURE_LOW by the training margin), so ``auto`` tries ``weak``, which leaves less
-    misaligned: it returns ``weak``'s field, says why, counts both runs' time, and leaves well
+    ``default`` is flagged; the interior has texture (ratio above TEXTURE_LOW by the training
+    margin), so ``auto`` tries ``weak``, whose residual moves less: it returns ``weak``'s field, says why, counts both runs' time, and leaves well
     under ``default``'s error."""
     from radiokit.register._auto import TEXTURE_LOW, choose
 
@@ -503,8 +515,8 @@ def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
     assert why.preset == "weak" and "default not ok" in why.reason and "weak texture" in why.reason, why
     weak = register(fixed, moving, "rc", preset="weak")
     np.testing.assert_array_equal(reg.displacement, weak.displacement)
-    # kept because it leaves less of the observed structure misaligned than default did
-    assert weak.quality.misaligned_fraction < default.quality.misaligned_fraction
+    # kept because its residual moves less than default's did
+    assert weak.quality.residual_motion < default.quality.residual_motion
     assert reg.quality.seconds > weak.quality.seconds
     assert _epe(reg.displacement, d, mask)[0] < 0.6 * _epe(default.displacement, d, mask)[0]
 
@@ -523,22 +535,26 @@ def test_auto_falls_back_to_silent_on_a_silent_body():
 
 
 def test_a_silent_retry_is_kept_unless_clearly_more_misaligned():
-    """The keep rule: a weak retry must leave strictly less misaligned; a silent one may leave up
-    to SILENT_TIE more (a tie on the thin observed band goes to the stiff field); NaN (nothing
-    observed) never beats a number, and a number beats a plain NaN only for silent."""
+    """The keep rule: a weak retry must leave a residual that moves strictly less; a silent one
+    may leave up to SILENT_TIE more misaligned (a tie on the thin observed band goes to the
+    stiff field); NaN (nothing observed) never beats a number, and a number beats a plain NaN."""
     from radiokit.register import Quality
     from radiokit.register._auto import SILENT_TIE, keeps_retry
 
     def q(m):
         return Quality(misaligned_fraction=m)
 
-    assert keeps_retry(q(0.2), q(0.1)) and not keeps_retry(q(0.1), q(0.1))
+    def s(step):
+        return Quality(residual_motion=step, misaligned_fraction=0.5)  # the share does not decide
+
+    assert keeps_retry(s(0.2), s(0.1)) and not keeps_retry(s(0.1), s(0.1))
     assert keeps_retry(q(0.1), q(0.1), silent=True)
     assert keeps_retry(q(0.1), q(0.1 + 0.9 * SILENT_TIE), silent=True)
     assert not keeps_retry(q(0.1), q(0.1 + 1.1 * SILENT_TIE), silent=True)
     nan = float("nan")
-    assert keeps_retry(q(nan), q(0.3), silent=True) and not keeps_retry(q(nan), q(0.3))
+    assert keeps_retry(q(nan), q(0.3), silent=True) and keeps_retry(s(nan), s(0.3))
     assert not keeps_retry(q(0.3), q(nan), silent=True) and not keeps_retry(q(nan), q(nan), silent=True)
+    assert not keeps_retry(s(0.3), s(nan)) and not keeps_retry(s(nan), s(nan))
 
 
 def test_auto_treats_a_noise_free_image_as_silent():
