@@ -424,16 +424,20 @@ def test_cli_source_commands_on_the_emulator(capsys):
 
     model = L8121Model(warmup_s=0.2, ramp_s=0.1)
     with PtyServer(model) as server:
+        # the first command finds the dialect (auto: the probe); the others are told it, as a lab
+        # that knows its unit does (the probe, ~0.65 s a command here, is the same code for every action)
         assert _cli("acquire", "source", "status", "--port", server.url) == 0
-        assert "WARMUP_NEEDED" in capsys.readouterr().out
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 1
+        out = capsys.readouterr().out
+        assert "dialect A at 38400 baud" in out and "WARMUP_NEEDED" in out
+        port = ("--port", server.url, "--dialect", "A")
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 1
         assert "warm-up" in capsys.readouterr().err and not model.xray_on
-        assert _cli("acquire", "source", "warm-up", "--port", server.url, "-q") == 0
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 0
+        assert _cli("acquire", "source", "warm-up", *port, "-q") == 0
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 0
         assert model.xray_on  # bench work: on until told otherwise
         kv, ua = model.measured()
         assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
-        assert _cli("acquire", "source", "off", "--port", server.url) == 0
+        assert _cli("acquire", "source", "off", *port) == 0
         assert not model.xray_on
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "200", "--ua", "250") == 1
+        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
         assert "kV" in capsys.readouterr().err and not model.xray_on
