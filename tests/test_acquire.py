@@ -398,7 +398,9 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
 
 
 def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
-    p = protocol(tmp_path, scene_toml, frames_per_step=1)
+    # the command line and the resume, not the link: a short command spacing (the dialect's 50 ms
+    # took 2 of this test's 3.7 s; the clean series and the fault matrix keep it)
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
     path = tmp_path / "protocol.toml"
     path.write_text(p.to_toml())
     assert _cli("acquire", str(path), "--sim", "-q") == 0
@@ -424,16 +426,20 @@ def test_cli_source_commands_on_the_emulator(capsys):
 
     model = L8121Model(warmup_s=0.2, ramp_s=0.1)
     with PtyServer(model) as server:
+        # the first command finds the dialect (auto: the probe); the others are told it, as a lab
+        # that knows its unit does (the probe, ~0.65 s a command here, is the same code for every action)
         assert _cli("acquire", "source", "status", "--port", server.url) == 0
-        assert "WARMUP_NEEDED" in capsys.readouterr().out
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 1
+        out = capsys.readouterr().out
+        assert "dialect A at 38400 baud" in out and "WARMUP_NEEDED" in out
+        port = ("--port", server.url, "--dialect", "A")
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 1
         assert "warm-up" in capsys.readouterr().err and not model.xray_on
-        assert _cli("acquire", "source", "warm-up", "--port", server.url, "-q") == 0
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250") == 0
+        assert _cli("acquire", "source", "warm-up", *port, "-q") == 0
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 0
         assert model.xray_on  # bench work: on until told otherwise
         kv, ua = model.measured()
         assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
-        assert _cli("acquire", "source", "off", "--port", server.url) == 0
+        assert _cli("acquire", "source", "off", *port) == 0
         assert not model.xray_on
-        assert _cli("acquire", "source", "on", "--port", server.url, "--kv", "200", "--ua", "250") == 1
+        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
         assert "kV" in capsys.readouterr().err and not model.xray_on

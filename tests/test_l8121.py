@@ -1312,6 +1312,7 @@ def test_acquire_sim_runs_in_either_dialect(dialect, tmp_path, capsys):
                 "voltage_kv = 60",
                 "current_ua = 250",
                 "poll_s = 0.1",
+                "min_interval_s = 0.01",  # not the dialect's spacing (A 50 ms): the test is the dialect's commands
                 "[detector]",
                 'kind = "sim"',
                 "[frame]",

@@ -199,7 +199,16 @@ def test_radiokit_acquire_sim_and_the_bench_truth(tmp_path):
         {
             "output": str(tmp_path / "series.h5"),
             "name": "layouts",
-            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "off_attempts": 1},
+            # min_interval_s: a short command spacing (the dialect's 50 ms made 40 exchanges 2 s);
+            # this test is about the file, the spacing has its own (test_l8121, the fault matrix)
+            "source": {
+                "voltage_kv": 60,
+                "current_ua": 250,
+                "poll_s": 0.1,
+                "timeout_s": 0.5,
+                "off_attempts": 1,
+                "min_interval_s": 0.01,
+            },
             "detector": {"kind": "sim", "timeout_s": 2.0},
             "frame": {"kind": "sim", "initial_height_mm": 10.0},
             "series": {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": [0.15, 0.25], "settle_s": 0.0},
