@@ -248,13 +248,13 @@ def rule_inputs(fixed, moving, d, stride=2):
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
     after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
     before = C.consistency(f, m, _WINDOW, sig) - 1.0
-    step = C.residual_motion(f, w, _STEP_WINDOW)
+    step = k * C.residual_motion(f, w, _STEP_WINDOW)  # full-resolution px, as register() reports it
     sel = ob.object[::stride, ::stride]
     inner = _interior(ob.object)
     inner = inner if inner.any() else ob.object
     return dict(
-        b1=ob.bound_px[::stride, ::stride][sel],
-        b1_inner=ob.bound_px[::stride, ::stride][inner[::stride, ::stride]],
+        b1=k * ob.bound_px[::stride, ::stride][sel],  # full-resolution px, as register() judges it
+        b1_inner=k * ob.bound_px[::stride, ::stride][inner[::stride, ::stride]],
         step=step[::stride, ::stride][sel],
         after=after[::stride, ::stride][sel],
         gate=(after * factor - 0.5 * np.maximum(before, 0))[::stride, ::stride][sel],

@@ -24,8 +24,10 @@ the data alone:
 
 ``confidence = 1 / (1 + (s / 0.5 px)^2)``, ``s`` the bound: 0.5 where the bound is 0.5 px,
 near 1 where the motion is pinned, near 0 where the image is silent (a textureless interior).
-``observed`` means confidence >= 0.5. All of it on the pair binned to about 0.4 Mpx (the bound
-is per area, so binning changes it little for structure coarser than the bin), then upsampled.
+``observed`` means confidence >= 0.5. ``register()`` computes all of it on the pair binned to
+about 0.4 Mpx and converts the bound to full-resolution pixels (binning by ``k`` leaves the
+information per area nearly unchanged for structure coarser than the bin, so a bound in binned
+pixels is the full-resolution one over ``k``), then upsamples the map.
 
 Consistency (no truth)
 ----------------------
