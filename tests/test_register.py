@@ -356,8 +356,8 @@ def test_textureless_pair_is_flagged_with_a_reason():
     before, _ = _epe(np.zeros_like(d), d, mask)
     assert med > max(1.0, before / 2)  # a failure by the definition ...
     assert not reg.quality.ok  # ... and flagged as one: too little observed, or the observed
-    # edges and disc left misaligned (the residual there says so without the truth)
-    assert "observable" in reg.quality.reason or "misaligned" in reg.quality.reason
+    # edges and disc left misaligned or still moving (the residual there says so without the truth)
+    assert any(w in reg.quality.reason for w in ("observable", "misaligned", "still moves"))
     assert reg.confidence.shape == fixed.shape and reg.confidence.dtype == np.float32
 
 

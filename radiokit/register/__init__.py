@@ -78,7 +78,7 @@ class Quality:
     object), divergence (similarity worse than not registering), non-convergence, too little of
     the interior observed (under half: the field there is the regulariser's guess, whatever the
     similarity says), a residual that still moves (a step over 0.35 px), or too much of the
-    observed part misaligned (over a fifth).
+    observed part misaligned (over half).
     """
 
     rc_before: float = float("nan")
@@ -286,6 +286,9 @@ def _assess(reg, f, m, mask, info, seconds):
 # field's correlation length, the least observed share 0.5-0.8, the step's median 0.1-0.5 px in
 # windows of 12 and 24 px;
 # `bench_register_flag.py --split train --sweep`; numbers in benchmarks/README.md, "The flag").
+# The misaligned share's line was then checked on 4 training seeds (800 results): at a fifth it
+# flagged 7 more good results than at a half and no more failed ones (all 428 flagged either
+# way), so it is a half; at 2 seeds the two had tied.
 # What must be observed is the object's interior, _INTERIOR windows inside its edge (beyond
 # the window's reach from the edge): a textureless body's edges observe the motion in a band
 # (0.47-0.56 of the object on the training pairs, 0.62 for a smooth dome with a sharp rim),
@@ -303,7 +306,7 @@ _MAX_RESIDUAL_MOTION = 0.35  # px: the step's median; it underestimates a larger
 # training seeds 12 px flagged 205/205 failed results where 24 px flagged 201/205)
 _STEP_WINDOW = 12.0
 _EXCESS = 0.1
-_MAX_MISALIGNED = 0.2
+_MAX_MISALIGNED = 0.5  # the share of the observed object (see above: 0.2 until session 9)
 # folding flags when it exceeds this share of the object: a compressed body cannot fold, but a
 # flow's few folded pixels (patch-scale noise, often in the empty beam or at the body's edge)
 # are a local defect, reported in quality.folds, not a failed registration; on the training
