@@ -72,9 +72,8 @@ class Quality:
     exceeds the noise's expected share by more than a tenth (structure left misaligned, see
     ``radiokit.register._confidence``); ``residual_motion``: the median over the observed part
     of what one Gauss-Newton step on the residual would still move (full-resolution px, a
-    detection statistic
-    that underestimates large misalignments); ``noise``: the noise level estimated from the fixed
-    image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
+    detection statistic that underestimates large misalignments); ``noise``: the noise level
+    estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
     object), divergence (similarity worse than not registering), non-convergence, too little of
     the interior observed (under half: the field there is the regulariser's guess, whatever the
     similarity says), a residual that still moves (a step over 0.35 px), or too much of the

@@ -40,8 +40,9 @@ looks better than noise). A window's mean square of pure noise scatters by ``sqr
 around its expectation, ``N = 4 pi window^2`` the Gaussian window's effective number of pixels
 (about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
 deviations) is structure the pair carries left misaligned, not noise. ``quality.ok`` is False
-when too little of the object is observed (the field there is the regulariser's guess,
-whatever the similarity says) or when too much of the observed part is left misaligned.
+when too little of the object's interior is observed (the field there is the regulariser's
+guess, whatever the similarity says), when the residual still moves (below), or when too much
+of the observed part is left misaligned.
 
 Residual motion (no truth)
 --------------------------
