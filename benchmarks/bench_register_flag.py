@@ -229,7 +229,8 @@ def textureless(rows) -> list[str]:
 def rule_inputs(fixed, moving, d, stride=2):
     """What ``register()``'s flag rule reads, per object pixel (every ``stride``-th row and
     column of the assessment grid), before its thresholds: the Cramer-Rao bound of one window
-    (observed where ``bound_scale x b1 <= 0.5 px``), over the object and over its interior, the residual's Gauss-Newton step
+    (observed where ``bound_scale x b1 <= 0.5 px``), over the object and over its interior,
+    the residual's Gauss-Newton step
     (``_confidence.residual_motion``), the residual's excess over the noise after registering,
     and that excess against a quarter of the excess before (misaligned where both exceed their
     lines). The same steps as ``radiokit.register._observed`` and ``_misaligned`` (``sweep``
@@ -243,7 +244,7 @@ def rule_inputs(fixed, moving, d, stride=2):
     if k > 1:
         f, m, d = _bin(f, k), _bin(m, k), _bin(d, k) / np.float32(k)
     w, d = np.nan_to_num(warp(m, d)), np.nan_to_num(d)
-    ob = C.observability(f, _WINDOW, None)
+    ob = C.observability(f, _WINDOW, None, bound_scale=k)  # full-resolution px, as register()
     sig = C.noise_map(f, _WINDOW)
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
     after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
@@ -253,8 +254,8 @@ def rule_inputs(fixed, moving, d, stride=2):
     inner = _interior(ob.object)
     inner = inner if inner.any() else ob.object
     return dict(
-        b1=k * ob.bound_px[::stride, ::stride][sel],  # full-resolution px, as register() judges it
-        b1_inner=k * ob.bound_px[::stride, ::stride][inner[::stride, ::stride]],
+        b1=ob.bound_px[::stride, ::stride][sel],
+        b1_inner=ob.bound_px[::stride, ::stride][inner[::stride, ::stride]],
         step=step[::stride, ::stride][sel],
         after=after[::stride, ::stride][sel],
         gate=(after * factor - 0.5 * np.maximum(before, 0))[::stride, ::stride][sel],

@@ -324,12 +324,10 @@ def _observed(reg, f, m, w, d, mask, k=1):
     from radiokit.register import _confidence as C
 
     q = reg.quality
-    ob = C.observability(f, _WINDOW, mask)
     # the bound in full-resolution pixels, as the field's error is judged: binning by k divides
     # a bound in binned pixels by k (a 2240 frame's textureless interior read 65 % observed in
     # binned pixels, 27 % in its own)
-    ob.bound_px *= np.float32(k)
-    ob.confidence = (1.0 / (1.0 + (ob.bound_px / C.OBSERVED_PX) ** 2)).astype(np.float32)
+    ob = C.observability(f, _WINDOW, mask, bound_scale=k)
     rows, cols = reg.displacement.shape[1:]
     conf = ob.confidence
     if conf.shape != (rows, cols):
@@ -364,15 +362,19 @@ def _observed(reg, f, m, w, d, mask, k=1):
     return reasons, n_obj
 
 
-def _interior(obj):
-    """``obj`` eroded by ``_INTERIOR`` windows (a disc): the part beyond the window's reach from
-    the object's edge; empty for an object narrower than that."""
+def _erode(mask, radius):
+    """``mask`` (bool) eroded by a disc of ``radius`` pixels, outside the frame counting as
+    outside the mask."""
     import cv2
 
-    r = int(round(_INTERIOR * _WINDOW))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    inner = cv2.erode(obj.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    return inner.astype(bool)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return cv2.erode(mask.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def _interior(obj):
+    """``obj`` eroded by ``_INTERIOR`` windows: the part beyond the window's reach from the
+    object's edge; empty for an object narrower than that."""
+    return _erode(obj, int(round(_INTERIOR * _WINDOW)))
 
 
 def _misaligned(f, m, w, d, obs):

@@ -122,9 +122,7 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
     the share of the binned frame the interior covers (see the module docstring), and the
     interior's median noise per full-resolution pixel over the model floor; ``(0, 0, inf)`` when
     no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
-    import cv2
-
-    from radiokit.register import _ASSESS_PIXELS, _bin
+    from radiokit.register import _ASSESS_PIXELS, _bin, _erode
     from radiokit.register import _confidence as C
 
     f = np.asarray(image, np.float32)
@@ -132,8 +130,7 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
     fb = _bin(f, binning)
     sig = C.noise_map(fb, _NOISE_WINDOW)
     obj = C._object(fb, float(np.median(sig)))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _ERODE + 1, 2 * _ERODE + 1))
-    inner = cv2.erode(obj.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    inner = _erode(obj, _ERODE)
     if not inner.any():
         return 0.0, 0.0, float("inf")
     b = C._gauss(fb, _BAND[0]) - C._gauss(fb, _BAND[1])

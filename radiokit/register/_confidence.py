@@ -171,8 +171,8 @@ def model_floor(f) -> float:
 
 def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
-    (see the module docstring); ``bound_scale`` multiplies the bound (the method's error is
-    larger than the ideal estimator's)."""
+    (see the module docstring); ``bound_scale`` multiplies the bound (``register()`` passes the
+    binning factor: the bound in full-resolution pixels)."""
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
@@ -241,15 +241,17 @@ def residual_motion(fixed, warped, window, highpass=0.25, smooth=3.0):
     Both images are high-passed at ``highpass x window`` and smoothed by ``smooth`` px (at the
     flag's 12 px window a band around 20 px wavelengths: a texture near the noise still
     correlates there after a misalignment of a pixel or two, and the noise is damped); in each
-    window the residual is fitted as ``delta . grad f + a f + c``. The gain ``a`` takes a thinning or gain change, the constant ``c`` what the high-pass
-    left of a slow one; ``delta`` follows in closed form (the 2 x 2 Schur complement of the gain)."""
+    window the residual is fitted as ``delta . grad f + a f + c``. The gain ``a`` takes a
+    thinning or gain change, the constant ``c`` what the high-pass left of a slow one; ``delta``
+    follows in closed form (the 2 x 2 Schur complement of the gain)."""
     f, w = np.asarray(fixed, np.float32), np.asarray(warped, np.float32)
     fs = _gauss(f - _gauss(f, highpass * window), smooth)
     r = _gauss(w - _gauss(w, highpass * window), smooth) - fs
     gy, gx = np.gradient(fs)
+    means = {id(a): _window_mean(a, window) for a in (gy, gx, fs, r)}  # each channel's once
 
     def cov(a, b):  # the window's covariance (its mean removed: the constant c)
-        return _window_mean(a * b, window) - _window_mean(a, window) * _window_mean(b, window)
+        return _window_mean(a * b, window) - means[id(a)] * means[id(b)]
 
     syy, sxx, sxy = cov(gy, gy), cov(gx, gx), cov(gy, gx)
     sff, syf, sxf = cov(fs, fs) + 1e-30, cov(gy, fs), cov(gx, fs)
