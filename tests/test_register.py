@@ -75,6 +75,34 @@ def test_gradient_matches_finite_differences(similarity, factor):
         assert fd == pytest.approx(float(g @ v), rel=2e-3)
 
 
+@pytest.mark.parametrize("factor", [1, 2])
+def test_joint_objective_gradient_matches_finite_differences(factor):
+    """``joint``: the finest lattice refitted with a coarser one and the thinning field. The
+    gradient (each lattice's adjoint of one dE/dd, plus each lattice's own bending energy)
+    against central differences of the energy along random directions."""
+    rng = np.random.default_rng(5)
+    n = 64
+    # one image and its shifted self, sharp enough that every block's gradient is far from 0
+    f = ndimage.gaussian_filter(rng.random((n, n)), 1.5) * 10
+    m = np.roll(f, 1, axis=1)
+    level = B._Level(f, m, None, factor, "rc", 0.05)
+    fine = B.BSplineField((n, n), 8, dtype=np.float64)
+    coarse = B.BSplineField((n, n), 16, dtype=np.float64)
+    gain = B.BSplineField((n, n), 32, dtype=np.float64)
+    base = np.zeros((2,) + level.shape, np.float64)
+    fun = B._objective(level, fine, base, 1e-3, factor, "frame", (gain, 1e-3), coarse=[(coarse, 1e-5)])
+    x = rng.standard_normal(fine.n_params + coarse.n_params + gain.nr * gain.nc) * 0.5
+    _, g = fun(x)
+    cuts = np.cumsum([0, fine.n_params, coarse.n_params, gain.nr * gain.nc])
+    for a, b in zip(cuts[:-1], cuts[1:]):  # each block on its own: one wrong block shows
+        v = np.zeros_like(x)
+        v[a:b] = rng.standard_normal(b - a)
+        v /= np.linalg.norm(v)
+        h = 1e-4
+        fd = (fun(x + h * v)[0] - fun(x - h * v)[0]) / (2 * h)
+        assert fd == pytest.approx(float(g @ v), rel=2e-3)
+
+
 @pytest.mark.parametrize("similarity", ["rc", "ncc"])
 @pytest.mark.parametrize("threads", ["1", "2"])
 def test_banded_lattice_energy_equals_the_frame_at_once(similarity, threads, monkeypatch):

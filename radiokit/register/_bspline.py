@@ -77,7 +77,14 @@ Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
 than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
-still (the B-spline field is evaluated at full resolution all the same).
+still (the B-spline field is evaluated at full resolution all the same). With ``joint``
+(presets ``weak``, ``weak-fast``) the finest level refits every coarser lattice with its own,
+each keeping the bending weight it was fitted with: the prior is the same sum of lattices, but
+its minimum is taken over all of them at once, so what a coarse level got wrong where only the
+coarse images could see (a weak texture's body edge, where the texture fades) is corrected
+where the finest images see better, at the coarse lattice's own (low) price. Each evaluation
+then adds one adjoint per coarser lattice (``joint`` off: each level's lattice alone, on top of
+the frozen coarser field).
 
 Computation. One evaluation of a level's energy runs in row bands on radiokit's threads: a
 band's field rows (``B_r`` rows times ``C B_c^T``), the bilinear warp and its derivatives (one
@@ -128,6 +135,7 @@ PRESETS = {
         gain=0.125,
         gain_regularisation=1e-5,
         gain_fine=False,
+        joint=False,
     ),
     "fast": dict(
         spacing=16,
@@ -150,6 +158,7 @@ PRESETS = {
         gain=0.125,
         gain_regularisation=1e-5,
         gain_fine=False,
+        joint=False,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -159,7 +168,16 @@ PRESETS = {
 # data term on TRAINING seeds 1-3 at 2240 (texture = noise): mean median EPE 0.51 px at 2^6,
 # 0.49 at 2^2, 0.54 at 2^0; refitting against keeping the thinning at the finest level (seeds 4-6) 0.52 /
 # 0.55 px, rich texture 0.08 / 0.12 px (benchmarks/README.md, session 8)
-_WEAK = dict(regularisation=1e-6, balance="frame", stiffen=2.0, gain_fine=True)
+#
+# joint (session 10): the finest level refits the coarser lattices with its own (each with the
+# bending weight it was fitted with: the MAP of the same prior, not the greedy coarse-to-fine
+# path, whose coarse lattices froze where only the coarse images had seen them). TRAINING seeds,
+# `bench_register.py --regimes`, geometric means of the median EPE, without -> with: weak 2240
+# weak texture 0.515 -> 0.494 px, 560 map 0.375 -> 0.367, natural 0.113 -> 0.111, rich 0.081 ->
+# 0.081, physical 2.38 -> 2.40; weak-fast 0.988 -> 0.701, 0.366 -> 0.342, 0.366 -> 0.353, 0.144
+# -> 0.144, 1.86 -> 1.75. With joint, stiffen 1 / 0 and regularisation 3e-7 were tried and lost
+# at 2240 (0.505, 0.549, 0.555 px; benchmarks/README.md, session 10)
+_WEAK = dict(regularisation=1e-6, balance="frame", stiffen=2.0, gain_fine=True, joint=True)
 # weak stops at levels of ~0.4 Mpx (the 560 px level at 2240): finer levels added nothing on
 # weak texture at twice the time (training seeds 0-5 at 2240: 0.88 px in 5.5 s with the
 # default's levels, 0.91 px in 2.7 s with these; with the unbiased data term, at 2^6, 0.507 /
@@ -554,7 +572,9 @@ class _Level:
 
         self._map(sample, bands)
         e, dr = self._similarity()
-        if dr is None:
+        if dr is None:  # no gradient: dE/dd (left in _dy, _dx, which ``joint`` reads) is zero
+            self._dy.fill(0)
+            self._dx.fill(0)
             return e, np.zeros(grid.n_params)
 
         def gradient(sl):  # dE/dd in place of the warped image's derivatives
@@ -777,7 +797,7 @@ def _thinning_field(g_grid, coeffs, factor, shape):
     return np.ascontiguousarray((Br @ (Bc @ C.T).T).astype(np.float32))
 
 
-def _objective(level, grid, base, lam, factor, balance, gain=None):
+def _objective(level, grid, base, lam, factor, balance, gain=None, coarse=()):
     """``fun(c) -> (energy, gradient)`` of one level's lattice on top of the coarser ``base``.
 
     ``balance="frame"``: data: the similarity summed over the level's pixels per ``_N_REF`` full-resolution pixels
@@ -786,15 +806,26 @@ def _objective(level, grid, base, lam, factor, balance, gain=None):
     second derivative of the field in frame fractions over the frame in frame fractions,
     ``lam * sum((L c)^2) / n_control * frame^2 / spacing^4`` (c in full-resolution pixels),
     the same for a given motion at every lattice, level and image size. ``"lattice"``: the
-    mean similarity and ``lam * sum((L c)^2) / n_control``."""
+    mean similarity and ``lam * sum((L c)^2) / n_control``.
+
+    ``coarse``: ``(grid, lam)`` of coarser lattices refitted with this one (``joint``): their
+    coefficients follow this lattice's in ``x`` (before the thinning field's), their field is
+    added to ``base`` and each keeps the bending weight it was fitted with."""
     if balance == "frame":
         frame = float(min(grid.shape))
         data_w = level.n * (1.0 if level.similarity == "rc" else factor * factor) / _N_REF
-        w_bend = lam * frame**2 / (grid.spacing**4 * grid.nr * grid.nc)
+
+        def bend_weight(g, lam_g):
+            return lam_g * frame**2 / (g.spacing**4 * g.nr * g.nc)
+
     else:  # "lattice": the mean similarity; the bending energy per control point, in pixels
-        data_w, w_bend = 1.0, lam / (grid.nr * grid.nc)
-    L = grid.L
-    n_d = grid.n_params
+        data_w = 1.0
+
+        def bend_weight(g, lam_g):
+            return lam_g / (g.nr * g.nc)
+
+    lattices = [(grid, bend_weight(grid, lam))] + [(g, bend_weight(g, lam_g)) for g, lam_g in coarse]
+    n_d = sum(g.n_params for g, _ in lattices)
     if gain is not None:  # (gain lattice, its bending weight): the thinning field's coefficients follow
         g_grid, g_lam = gain
         Br, Bc = _thinning_basis(g_grid, factor, level.shape)
@@ -806,12 +837,22 @@ def _objective(level, grid, base, lam, factor, balance, gain=None):
     def fun(x):
         if gain is not None:
             level.gain = _thinning_field(g_grid, x[n_d:], factor, level.shape)
-        e, grad = level.lattice_energy(grid, x[:n_d], base, factor)
-        grad *= data_w
-        X = x[:n_d].reshape(2, -1)
-        LX = np.stack([L @ X[0], L @ X[1]])
-        e = e * data_w + w_bend * float(np.sum(LX * LX))
-        grad += (2 * w_bend) * np.concatenate([L.T @ LX[0], L.T @ LX[1]])
+        cuts = np.cumsum([0] + [g.n_params for g, _ in lattices])
+        xs = [x[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+        total = base
+        if coarse:  # the coarser lattices' field, as they stand
+            total = base + _fields([(g, c) for (g, _), c in zip(lattices[1:], xs[1:])], factor, base.shape[1:])
+        e, g0 = level.lattice_energy(grid, xs[0], total, factor)
+        # lattice_energy leaves dE/dd in level._dy, level._dx: each coarser lattice's adjoint of it
+        grads = [g0] + [g.adjoint_rows(level._dy, level._dx, factor) for g, _ in lattices[1:]]
+        e *= data_w
+        for (g, w), xg, gg in zip(lattices, xs, grads):
+            gg *= data_w
+            X = xg.reshape(2, -1)
+            LX = np.stack([g.L @ X[0], g.L @ X[1]])
+            e += w * float(np.sum(LX * LX))
+            gg += (2 * w) * np.concatenate([g.L.T @ LX[0], g.L.T @ LX[1]])
+        grad = np.concatenate(grads)
         if gain is not None:
             gC = (BrT @ (Bc.T @ level.gain_grad.T).T).astype(np.float64).ravel() * (data_w * _GAIN_UNIT)
             LC = Lg @ x[n_d:]
@@ -831,14 +872,19 @@ def _objective(level, grid, base, lam, factor, balance, gain=None):
 _STILL_PX = 0.01
 
 
-def _fit_level(fun, grid, n_it, coarsest, x0=None):
+def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
-    level's grid: the field is smooth on it). Stops early when that is under ``_STILL_PX``."""
+    level's grid: the field is smooth on it; with ``coarse`` lattices refitted alongside, whose
+    coefficients follow ``grid``'s in ``x``, their change counts too). Stops early when that is
+    under ``_STILL_PX``."""
     last = collections.deque(maxlen=6)
+    lattices = [grid, *coarse]
+    cuts = np.cumsum([0] + [g.n_params for g in lattices])
 
     def moved():
-        change = grid.field((last[-1] - last[0])[: grid.n_params], coarsest) * coarsest
+        step = last[-1] - last[0]
+        change = sum(g.field(step[a:b], coarsest) for g, a, b in zip(lattices, cuts[:-1], cuts[1:])) * coarsest
         return float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
 
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
@@ -886,7 +932,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         base = _fields(grids, factor, tuple(-(-n // factor) for n in f.shape))  # the coarser lattices' field
         if affine is not None:
             base += affine.field(base.shape[1:], factor)
-        grid, res, move = _run_level(f, m, maskf, similarity, o, (factor, n_it, coarsest, finest), base, gain)
+        coarse = grids if o["joint"] and factor == finest else []
+        if coarse:  # the coarser lattices are refitted with the finest's: their field not in base
+            base = affine.field(base.shape[1:], factor) if affine is not None else np.zeros_like(base)
+        grid, res, move = _run_level(f, m, maskf, similarity, o, (factor, n_it, coarsest, finest), base, gain, coarse)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -921,10 +970,12 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     )
 
 
-def _run_level(f, m, maskf, similarity, o, where, base, gain):
+def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=()):
     """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
     (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
-    coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients."""
+    coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients.
+    ``coarse`` (``joint``): the coarser levels' ``[(grid, coefficients)]``, refitted with this
+    lattice from where they stand, each with its own bending weight; updated in place."""
     factor, n_it, coarsest, finest = where
     fine = factor == finest
     # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
@@ -934,21 +985,32 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain):
     hp_sigma = o["highpass"] * min(f.shape) / factor if o["highpass_on"] == "residual" else 0.0
     level = _Level(f, m, maskf, factor, similarity, alpha, hp_sigma, o["smooth"])
     grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
-    x0 = None
     if gain is not None and gain[1] is not None and fine and not o["gain_fine"]:
         level.gain = _thinning_field(gain[0], gain[1], factor, level.shape)  # kept as the coarser levels left it
         gain = None
+    # x: this lattice, the coarser ones refitted with it (as they stand), the thinning field
+    parts = [np.zeros(grid.n_params)] + [c for _, c in coarse]
     if gain is not None:
         g_grid = gain[0]
-        x0 = np.zeros(grid.n_params + g_grid.nr * g_grid.nc)
-        if gain[1] is not None:
-            x0[grid.n_params :] = gain[1]
+        parts.append(np.zeros(g_grid.nr * g_grid.nc) if gain[1] is None else gain[1])
+    x0 = np.concatenate(parts) if len(parts) > 1 else None
     thinning = None if gain is None else (gain[0], o["gain_regularisation"])
-    fun = _objective(level, grid, base, lam, factor, o["balance"], thinning)
-    res, move = _fit_level(fun, grid, n_it, coarsest, x0)
+    grid.level_factor = factor
+    lams = [
+        o["regularisation"] * o["coarse_regularisation"] * (coarsest / g.level_factor) ** o["stiffen"]
+        for g, _ in coarse
+    ]
+    fun = _objective(
+        level, grid, base, lam, factor, o["balance"], thinning, [(g, l) for (g, _), l in zip(coarse, lams)]
+    )
+    res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse])
+    at = grid.n_params
+    for i, (g, _) in enumerate(coarse):
+        coarse[i] = (g, res.x[at : at + g.n_params])
+        at += g.n_params
     if gain is not None:
-        gain[1] = res.x[grid.n_params :]
-        res.x = res.x[: grid.n_params]
+        gain[1] = res.x[at:]
+    res.x = res.x[: grid.n_params]
     return grid, res, move
 
 
@@ -994,7 +1056,8 @@ def _rc(fixed, moving, mask, **options):
     residual, or with highpass_on='images' both images, minus its Gaussian blur of that width;
     0 or None: off), smooth (level pixels: each level's images blurred by a Gaussian that wide),
     gain (the thinning field's lattice spacing, fraction of the smaller side; 0: no thinning
-    term), gain_regularisation, gain_fine (refit the thinning field at the finest level)."""
+    term), gain_regularisation, gain_fine (refit the thinning field at the finest level), joint (the finest level refits
+    the coarser lattices with its own)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
