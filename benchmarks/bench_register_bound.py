@@ -45,7 +45,7 @@ from scipy import linalg
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair, score
+from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair
 
 BANDS = ((0, 50), (50, 100), (100, 200), (200, 400), (400, 10**6))
 
@@ -173,7 +173,6 @@ def main(argv=None):
                     e = np.sqrt(((reg.displacement - d) ** 2).sum(0))
                     took = time.perf_counter() - t
                     print(f"  rc {preset:<4} ({took:4.1f} s)     {band_table(e, mask)}", flush=True)
-                    assert abs(score(reg.displacement, d, mask)["epe_median"] - np.median(e[mask])) < 1e-3
     return 0
 
 

@@ -96,12 +96,10 @@ EXTRA = ("rc-silent", "rc-silent-fast")
 def _auto_choice(name, fixed, regs):
     """The configuration ``register(..., preset=AUTO[name][0])`` returns, from the assessed
     results ``regs`` (configuration -> Registration), by ``register_auto``'s own rule."""
-    from radiokit.register import _auto
-    from radiokit.register._auto import AUTO_PRESETS, choose, returned
+    from radiokit.register._auto import AUTO_PRESETS, choose, returned, settled
 
     auto, plain = AUTO[name]
-    q = regs[plain].quality
-    if q.ok and not q.residual_motion > _auto.POLISH:  # as register_auto: no fallback is judged
+    if settled(regs[plain].quality):  # as register_auto: no fallback is judged
         return plain
     fallback = choose(fixed, auto).preset
     retry = regs.get("rc-" + fallback)  # absent only when nothing is retried

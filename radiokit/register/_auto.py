@@ -68,6 +68,7 @@ __all__ = [
     "SILENT_TIE",
     "POLISH",
     "polishes",
+    "settled",
 ]
 
 # name -> (the preset run first, the one a flagged result on a textured interior falls back to,
@@ -197,6 +198,12 @@ def keeps_retry(plain, retry, silent=False) -> bool:
     return bool(np.isnan(p) or r < p)
 
 
+def settled(quality) -> bool:
+    """A plain run ``auto`` returns without trying anything else: it passed its own checks and
+    its residual is still (``residual_motion`` at most ``POLISH``)."""
+    return bool(quality.ok and not quality.residual_motion > POLISH)
+
+
 def polishes(name, plain_quality, fallback) -> bool:
     """Whether a plain run that passed its own checks is tried again all the same: when its
     residual still moves by more than ``POLISH`` px and the body's interior carries texture
@@ -204,8 +211,7 @@ def polishes(name, plain_quality, fallback) -> bool:
     on a small frame, and the weak preset's free coarse levels fit it where the texture is
     rich (the 560 map, texture 10x the noise, correlation 1/10: 0.30-0.37 px kept, the weak
     preset's 0.05-0.06 px); the retry is kept only when its residual moves less."""
-    plain, weak, _ = AUTO_PRESETS[name]
-    return bool(plain_quality.ok and fallback == weak and plain_quality.residual_motion > POLISH)
+    return bool(plain_quality.ok and fallback == AUTO_PRESETS[name][1] and not settled(plain_quality))
 
 
 def returned(name, plain_quality, fallback, retry_quality) -> str:
@@ -228,7 +234,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     name = options["preset"]
     plain = AUTO_PRESETS[name][0]
     first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
-    if first.quality.ok and not first.quality.residual_motion > POLISH:
+    if settled(first.quality):
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
         return first
     fallback = choose(f, name)

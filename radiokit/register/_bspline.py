@@ -233,6 +233,7 @@ class BSplineField:
         self.nr = int(math.ceil((shape[0] - 1) / spacing)) + 3
         self.nc = int(math.ceil((shape[1] - 1) / spacing)) + 3
         self.L = _laplacian(self.nr, self.nc)
+        self.lam = None  # the bending weight the lattice was fitted with (set by the level that fits it)
         self._cache = {}
 
     @property
@@ -837,8 +838,7 @@ def _objective(level, grid, base, lam, factor, balance, gain=None, coarse=()):
     def fun(x):
         if gain is not None:
             level.gain = _thinning_field(g_grid, x[n_d:], factor, level.shape)
-        cuts = np.cumsum([0] + [g.n_params for g, _ in lattices])
-        xs = [x[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+        xs, _ = _split(x, [g for g, _ in lattices])
         total = base
         if coarse:  # the coarser lattices' field, as they stand
             total = base + _fields([(g, c) for (g, _), c in zip(lattices[1:], xs[1:])], factor, base.shape[1:])
@@ -872,6 +872,12 @@ def _objective(level, grid, base, lam, factor, balance, gain=None, coarse=()):
 _STILL_PX = 0.01
 
 
+def _split(x, lattices):
+    """``x`` cut into each lattice's coefficients (in ``lattices``' order) and what follows."""
+    cuts = np.cumsum([0] + [g.n_params for g in lattices])
+    return [x[a:b] for a, b in zip(cuts[:-1], cuts[1:])], x[cuts[-1] :]
+
+
 def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
@@ -880,11 +886,10 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
     under ``_STILL_PX``."""
     last = collections.deque(maxlen=6)
     lattices = [grid, *coarse]
-    cuts = np.cumsum([0] + [g.n_params for g in lattices])
 
     def moved():
-        step = last[-1] - last[0]
-        change = sum(g.field(step[a:b], coarsest) for g, a, b in zip(lattices, cuts[:-1], cuts[1:])) * coarsest
+        steps, _ = _split(last[-1] - last[0], lattices)
+        change = sum(g.field(c, coarsest) for g, c in zip(lattices, steps)) * coarsest
         return float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
 
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
@@ -929,12 +934,11 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message = 0, True, ""
     for factor, n_it in levels:
-        base = _fields(grids, factor, tuple(-(-n // factor) for n in f.shape))  # the coarser lattices' field
+        # joint: the coarser lattices are refitted with the finest's, so their field is not in base
+        coarse = grids if o["joint"] and factor == finest else []
+        base = _fields([] if coarse else grids, factor, tuple(-(-n // factor) for n in f.shape))
         if affine is not None:
             base += affine.field(base.shape[1:], factor)
-        coarse = grids if o["joint"] and factor == finest else []
-        if coarse:  # the coarser lattices are refitted with the finest's: their field not in base
-            base = affine.field(base.shape[1:], factor) if affine is not None else np.zeros_like(base)
         grid, res, move = _run_level(f, m, maskf, similarity, o, (factor, n_it, coarsest, finest), base, gain, coarse)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
@@ -995,22 +999,14 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=()):
         parts.append(np.zeros(g_grid.nr * g_grid.nc) if gain[1] is None else gain[1])
     x0 = np.concatenate(parts) if len(parts) > 1 else None
     thinning = None if gain is None else (gain[0], o["gain_regularisation"])
-    grid.level_factor = factor
-    lams = [
-        o["regularisation"] * o["coarse_regularisation"] * (coarsest / g.level_factor) ** o["stiffen"]
-        for g, _ in coarse
-    ]
-    fun = _objective(
-        level, grid, base, lam, factor, o["balance"], thinning, [(g, l) for (g, _), l in zip(coarse, lams)]
-    )
+    grid.lam = lam  # what ``joint`` refits it with at the finest level
+    fun = _objective(level, grid, base, lam, factor, o["balance"], thinning, [(g, g.lam) for g, _ in coarse])
     res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse])
-    at = grid.n_params
-    for i, (g, _) in enumerate(coarse):
-        coarse[i] = (g, res.x[at : at + g.n_params])
-        at += g.n_params
+    xs, rest = _split(res.x, [grid] + [g for g, _ in coarse])
+    coarse[:] = [(g, c) for (g, _), c in zip(coarse, xs[1:])]
     if gain is not None:
-        gain[1] = res.x[at:]
-    res.x = res.x[: grid.n_params]
+        gain[1] = rest
+    res.x = xs[0]
     return grid, res, move
 
 
