@@ -20,7 +20,7 @@ W = 24.0
 
 
 def _disc(radius, noise, seed=0):
-    n = 2 * radius + 200  # the window's reach (4 sigma) stays clear of the reflected border
+    n = 2 * radius + 300  # the reflected border stays beyond the window's reach (4 sigma) of the edge
     y, x = np.mgrid[0:n, 0:n]
     r = np.hypot(y - n / 2, x - n / 2)
     # drawn from r, not blurred from a binary disc: a binary disc's staircase is texture along
