@@ -48,11 +48,12 @@ def _kernel(s, p):
 
 
 def _moment(a, s, py, px):
-    """``sum_u w(u) u_row^py u_col^px a(x0 + u)`` at every ``x0`` (a correlation, hence the flips).
-    In float64: eliminating the gradient leaves of a gently curved edge's tangential information
-    only its second-order part, ``(window / radius)^2`` of the first, which float32 sums lose."""
-    ky, kx = _kernel(s, py)[::-1].copy(), _kernel(s, px)[::-1].copy()
-    return cv2.sepFilter2D(np.asarray(a, np.float64), cv2.CV_64F, kx, ky, borderType=cv2.BORDER_REFLECT)
+    """``sum_u w(u) u_row^py u_col^px a(x0 + u)`` at every ``x0`` (OpenCV's filters correlate, so
+    the kernel is not flipped). In float64: eliminating the gradient leaves of a gently curved
+    edge's tangential information only its second-order part, which float32 sums lose."""
+    return cv2.sepFilter2D(
+        np.asarray(a, np.float64), cv2.CV_64F, _kernel(s, px), _kernel(s, py), borderType=cv2.BORDER_REFLECT
+    )
 
 
 def window_lmin(f, spacing, highpass, sig2, affine=True):

@@ -8,11 +8,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from bench_register_observed import window_bound, window_lmin
+from bench_register_observed import _moment, window_bound, window_lmin
 
 from radiokit.register import _confidence as C
 
@@ -73,3 +74,16 @@ def test_a_fine_texture_pays_almost_nothing_for_the_local_gradient():
     tex = _texture()
     ratio = (window_bound(tex, W, affine=True) / window_bound(tex, W, affine=False))[60:-60, 60:-60]
     assert 1.0 <= np.median(ratio) < 1.05 and ratio.max() < 1.15
+
+
+def test_a_moment_weighs_by_the_offset_from_the_window_centre():
+    """``_moment(a, s, 0, 1)`` at x0 is ``sum_u w(u) u_col a(x0 + u)``: a unit point 5 px to the
+    right of x0 gives ``w(5) * 5``, w the normalised Gaussian; one 5 px below, with the row power."""
+    a = np.zeros((41, 41))
+    a[20, 25] = 1.0
+    r = np.arange(-12, 13)
+    w = np.exp(-0.5 * (r / 3.0) ** 2)
+    w5 = np.exp(-0.5 * (5 / 3.0) ** 2) / w.sum() * (1 / w.sum())  # row weight at 0 times column weight at 5
+    assert _moment(a, 3.0, 0, 1)[20, 20] == pytest.approx(5 * w5, rel=1e-9)
+    assert _moment(a.T, 3.0, 1, 0)[20, 20] == pytest.approx(5 * w5, rel=1e-9)
+    assert _moment(a, 3.0, 0, 2)[20, 20] == pytest.approx(25 * w5, rel=1e-9)
