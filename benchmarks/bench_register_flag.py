@@ -267,11 +267,11 @@ def rule_inputs(fixed, moving, d, stride=2):
     and that excess against a quarter of the excess before (misaligned where both exceed their
     lines). The same steps as ``radiokit.register._observed`` and ``_misaligned`` (``sweep``
     checks that the present thresholds give ``ok`` as ``register()`` does)."""
-    from radiokit.register import _ASSESS_PIXELS, _STEP_WINDOW, _WINDOW, _bin, _check, _interior, warp
+    from radiokit.register import _STEP_WINDOW, _WINDOW, _assess_binning, _bin, _check, _interior, warp
     from radiokit.register import _confidence as C
 
     f, m, _ = _check(fixed, moving, None)
-    k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
+    k = _assess_binning(f.size)
     d = np.asarray(d, np.float32)
     if k > 1:
         f, m, d = _bin(f, k), _bin(m, k), _bin(d, k) / np.float32(k)

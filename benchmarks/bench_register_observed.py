@@ -121,28 +121,19 @@ def window_bound(fixed, spacing=24.0, highpass=0.25, affine=True, bound_scale=1.
 
 def _full_res_bound(f, affine):
     """The bound on the pair binned as ``register()`` assesses it, in full-resolution px, upsampled."""
-    from radiokit.register import _ASSESS_PIXELS, _WINDOW, _bin
+    from radiokit.register import _WINDOW, _assess_binning, _bin
 
-    k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
-    fb = _bin(f, k) if k > 1 else f
-    b = window_bound(fb, _WINDOW, affine=affine, bound_scale=k)
+    k = _assess_binning(f.size)
+    b = window_bound(_bin(f, k), _WINDOW, affine=affine, bound_scale=k)
     return cv2.resize(b, (f.shape[1], f.shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
-def score_observed(fixed, error, observed):
-    """Median EPE, and its normal and tangential components (against the fixed image's gradient
-    after a 2 px blur), over ``observed``."""
-    if not observed.any():
-        return float("nan"), float("nan"), float("nan")
+def error_components(fixed, error):
+    """``(EPE, normal, tangential)`` per pixel: the error's length and its components along and
+    across the fixed image's gradient (after a 2 px blur)."""
     gy, gx = np.gradient(C._gauss(fixed, 2.0))
     gn = np.hypot(gy, gx) + 1e-20
-    normal = np.abs(error[0] * gy + error[1] * gx) / gn
-    tangential = np.abs(error[1] * gy - error[0] * gx) / gn
-    return (
-        float(np.median(np.hypot(*error)[observed])),
-        float(np.median(normal[observed])),
-        float(np.median(tangential[observed])),
-    )
+    return np.hypot(*error), np.abs(error[0] * gy + error[1] * gx) / gn, np.abs(error[1] * gy - error[0] * gx) / gn
 
 
 def cases(size, n_seeds):
@@ -173,12 +164,12 @@ def main(argv=None):
         t = time.perf_counter()
         reg = register(fixed, moving, "rc", preset=args.preset)
         seconds = time.perf_counter() - t
-        err = reg.displacement - truth
+        parts = error_components(fixed, reg.displacement - truth)
         cells = []
         for obs in ((reg.confidence >= 0.5) & mask, (_full_res_bound(fixed, True) <= C.OBSERVED_PX) & mask):
-            e, n, tg = score_observed(fixed, err, obs)
+            e, n, tg = (float(np.median(p[obs])) if obs.any() else float("nan") for p in parts)
             cells.append(f"{100 * obs.sum() / mask.sum():.0f} %, {e:.2f} ({n:.2f} / {tg:.2f})")
-        body = float(np.median(np.hypot(*err)[mask]))
+        body = float(np.median(parts[0][mask]))
         print(
             f"| {case.label()} | {body:.2f} | {cells[0]} | {cells[1]} | {reg.quality.ok} ({seconds:.0f} s) |",
             flush=True,

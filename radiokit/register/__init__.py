@@ -211,6 +211,11 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
 _ASSESS_PIXELS = 400_000
 
 
+def _assess_binning(n_pixels) -> int:
+    """The factor the checks bin an image of ``n_pixels`` by: to at most ~``_ASSESS_PIXELS``."""
+    return max(1, int(np.ceil(np.sqrt(n_pixels / _ASSESS_PIXELS))))
+
+
 def _bin(a, k):
     """``a`` area-averaged by ``k`` (cropped to a multiple of k). Equal to
     ``skimage.measure.block_reduce(a, (k, k), np.mean)`` on the crop, but 5x faster at 2240 x 2240
@@ -231,7 +236,7 @@ def _assess(reg, f, m, mask, info, seconds):
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
     field itself is not binned); det J at full resolution."""
     q = reg.quality
-    k = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
+    k = _assess_binning(f.size)
     if k > 1:
         fb, mb = _bin(f, k), _bin(m, k)
         db = _bin(reg.displacement, k) / np.float32(k)

@@ -134,11 +134,11 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
     the share of the binned frame the interior covers (see the module docstring), and the
     interior's median noise per full-resolution pixel over the model floor; ``(0, 0, inf)`` when
     no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
-    from radiokit.register import _ASSESS_PIXELS, _bin, _erode
+    from radiokit.register import _assess_binning, _bin, _erode
     from radiokit.register import _confidence as C
 
     f = np.asarray(image, np.float32)
-    binning = max(1, int(np.ceil(np.sqrt(f.size / _ASSESS_PIXELS))))
+    binning = _assess_binning(f.size)
     fb = _bin(f, binning)
     sig = C.noise_map(fb, _NOISE_WINDOW)
     obj = C._object(fb, float(np.median(sig)))
