@@ -348,6 +348,42 @@ def test_weak_preset_recovers_weak_texture_short_correlation():
     )
 
 
+def test_weak_alpha_follows_the_noise():
+    """The same pair with texture and noise both 4x weaker carries no less information (the
+    body's edge even more), so ``weak`` must not lose much: with a fixed alpha the smaller
+    residual of a misfit let the prior take over (0.16 -> 0.33 px median measured); with alpha
+    following the measured noise, 0.16 -> 0.21. The alpha used is in the result."""
+    loud = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    quiet = _family_pair(size=384, texture=0.0075, noise=0.0025, corr=0.1, seed=8)
+    d, mask = loud[2], loud[3]
+    reg_loud = register(*loud[:2], "rc", preset="weak")
+    reg_quiet = register(*quiet[:2], "rc", preset="weak")
+    med_loud, _ = _epe(reg_loud.displacement, d, mask)
+    med_quiet, _ = _epe(reg_quiet.displacement, d, mask)
+    assert med_quiet < 1.5 * med_loud < 0.4, (med_quiet, med_loud)
+    # alpha scales with the noise variance: 16x between the two (the estimate within 10 %)
+    assert 16 / 1.25 < reg_loud.options["alpha"] / reg_quiet.options["alpha"] < 16 * 1.25
+    fixed_alpha, _ = _epe(register(*quiet[:2], "rc", preset="weak", alpha=0.005).displacement, d, mask)
+    assert fixed_alpha > 1.6 * med_loud  # what the noise-following alpha recovers
+    assert "noise_sigma" not in register(*quiet[:2], "rc", preset="weak-fast", alpha=0.005).options
+
+
+def test_noise_sigma_reads_white_noise_through_edges_and_smooth_structure():
+    """The global noise estimate: white noise of a known level on a smooth body with a sharp
+    disc, an edge and a ramp is read within 5 % (the median ignores the few edge pixels)."""
+    from radiokit.register._confidence import noise_sigma
+
+    rng = np.random.default_rng(3)
+    n = 600
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    img = 2.0 * np.sqrt(np.clip(1 - ((xx - 0.5) / 0.4) ** 2 - ((yy - 0.5) / 0.35) ** 2, 0, None))
+    img += 0.5 * (np.hypot(xx - 0.4, yy - 0.45) < 0.06) + 0.3 * xx  # a sharp disc and a ramp
+    for sigma in (0.001, 0.01, 0.05):
+        est = noise_sigma((img + sigma * rng.standard_normal((n, n))).astype(np.float32))
+        assert abs(est / sigma - 1) < 0.05, (sigma, est)
+    assert noise_sigma(img.astype(np.float32)) < 0.001  # no noise: only the edges' few pixels
+
+
 def test_frame_balance_bending_energy_is_scale_invariant():
     """The bending energy in frame fractions: the same motion (a smooth field scaled with the
     frame) on a lattice of the same frame fraction costs the same at 300 and 600 px, and the
