@@ -55,3 +55,12 @@ def test_acquire_example(tmp_path, monkeypatch):
     assert ns["result"].frames_written == 10 == f.data.shape[0]
     keys = f.meta["image_key"]
     assert (keys == ImageKey.PROJECTION).sum() == 6 and (keys == ImageKey.DARK).sum() == 2
+
+
+def test_weak_alpha_example(capsys):
+    """The noise the example adds (0.01 in both images) is what ``weak`` reads and sets alpha by."""
+    ns = {}
+    exec(compile(_block("`weak`'s alpha follows the pair's noise"), "README.md", "exec"), ns)
+    sigma, alpha = capsys.readouterr().out.split()
+    assert abs(float(sigma) - 0.01) <= 0.001
+    assert abs(float(alpha) / (210 * ns["reg"].options["noise_sigma"] ** 2) - 1) < 1e-6
