@@ -382,6 +382,12 @@ def test_noise_sigma_reads_white_noise_through_edges_and_smooth_structure():
         est = noise_sigma((img + sigma * rng.standard_normal((n, n))).astype(np.float32))
         assert abs(est / sigma - 1) < 0.05, (sigma, est)
     assert noise_sigma(img.astype(np.float32)) < 0.001  # no noise: only the edges' few pixels
+    # a collimated frame: two thirds of it one constant value, the noise read from the rest
+    noisy = (img + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    noisy[: n // 3], noisy[-n // 3 :] = 0, 0
+    noisy[:, : n // 4] = 0
+    assert abs(noise_sigma(noisy) / 0.01 - 1) < 0.05
+    assert noise_sigma(np.zeros((64, 64), np.float32)) == 0.0
 
 
 def test_frame_balance_bending_energy_is_scale_invariant():

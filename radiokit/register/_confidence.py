@@ -118,14 +118,18 @@ def noise_sigma(f) -> float:
     """The image's typical noise standard deviation: the median absolute diagonal second
     difference (see ``noise_map``) x 1.4826, the median-absolute-deviation scale of a
     Gaussian, from ~250k samples. The median, not the mean: a body's edge or an inclusion
-    reaches the second difference in a few pixels, which the median ignores."""
+    reaches the second difference in a few pixels, which the median ignores. Blocks whose four
+    pixels are equal are left out: a collimated, masked or saturated part of the frame holds no
+    noise to measure, and where it is over half the frame it would read the noise as 0."""
     f = np.asarray(f, np.float32)
     step = max(1, int(np.sqrt(f.size / 250_000)))
     a, b = f[: f.shape[0] - 1 : step, : f.shape[1] - 1 : step], f[: f.shape[0] - 1 : step, 1::step]
     c, d = f[1::step, : f.shape[1] - 1 : step], f[1::step, 1::step]
     n0, n1 = min(map(len, (a, b, c, d))), min(x.shape[1] for x in (a, b, c, d))
-    h = 0.5 * (a[:n0, :n1] - b[:n0, :n1] - c[:n0, :n1] + d[:n0, :n1])
-    return float(1.4826 * np.median(np.abs(h)))
+    a, b, c, d = a[:n0, :n1], b[:n0, :n1], c[:n0, :n1], d[:n0, :n1]
+    live = (a != b) | (a != c) | (a != d)
+    h = 0.5 * (a - b - c + d)[live]
+    return float(1.4826 * np.median(np.abs(h))) if h.size else 0.0
 
 
 def noise_map(f, window):
