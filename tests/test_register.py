@@ -390,6 +390,22 @@ def test_noise_sigma_reads_white_noise_through_edges_and_smooth_structure():
     assert noise_sigma(np.zeros((64, 64), np.float32)) == 0.0
 
 
+def test_object_noise_is_the_bodys_not_the_open_beams():
+    """Poisson-like noise: a body (30 % of the frame) four times noisier than the open beam
+    around it. The frame's median reads the beam's; ``object_noise`` (what rc's alpha follows)
+    the body's, within 10 %."""
+    from radiokit.register._confidence import noise_sigma, object_noise
+
+    rng = np.random.default_rng(5)
+    n = 500
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    inside = ((xx - 0.5) / 0.35) ** 2 + ((yy - 0.5) / 0.28) ** 2 < 1
+    img = np.where(inside, 1.5, 0.0) + np.where(inside, 0.02, 0.005) * rng.standard_normal((n, n))
+    img = img.astype(np.float32)
+    assert noise_sigma(img) < 0.01  # the open beam's
+    assert abs(object_noise(img) / 0.02 - 1) < 0.1, object_noise(img)
+
+
 def test_frame_balance_bending_energy_is_scale_invariant():
     """The bending energy in frame fractions: the same motion (a smooth field scaled with the
     frame) on a lattice of the same frame fraction costs the same at 300 and 600 px, and the

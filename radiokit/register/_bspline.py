@@ -934,11 +934,12 @@ def _prepare(fixed, moving, o):
 
 def _noise_alpha(f, m, o):
     """``o["alpha"] = noise_alpha x sigma^2`` (in place), ``sigma`` the normalised pair's noise
-    (the mean of the two images' variances), floored at the model error no similarity fits
-    (``MODEL_FLOOR`` of the range): a noise-free pair still leaves interpolation's residual."""
-    from radiokit.register._confidence import MODEL_FLOOR, noise_sigma
+    over the body (the mean of the two images' variances; ``_confidence.object_noise``), floored
+    at the model error no similarity fits (``MODEL_FLOOR`` of the range): a noise-free pair still
+    leaves interpolation's residual."""
+    from radiokit.register._confidence import MODEL_FLOOR, object_noise
 
-    sigma = max(float(np.sqrt((noise_sigma(f) ** 2 + noise_sigma(m) ** 2) / 2)), MODEL_FLOOR)
+    sigma = max(float(np.sqrt((object_noise(f) ** 2 + object_noise(m) ** 2) / 2)), MODEL_FLOOR)
     o["noise_sigma"] = sigma
     o["alpha"] = o["noise_alpha"] * sigma * sigma
 
