@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair
+from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, evaluate, family_pair
 
 NOISES = (0.0025, 0.005, 0.01, 0.02)
 RUNS = (
@@ -39,19 +38,10 @@ RUNS = (
 
 
 def run_case(case):
-    """``[(median, p95, seconds, ok, alpha)]`` per entry of ``RUNS`` on ``case``'s pair."""
-    from radiokit.register import register
-
-    fixed, moving, truth, mask = family_pair(case)
-    out = []
-    for _, options in RUNS:
-        t = time.perf_counter()
-        reg = register(fixed, moving, "rc", **options)
-        took = time.perf_counter() - t
-        e = np.sqrt(((reg.displacement - truth) ** 2).sum(0))[mask]
-        alpha = reg.options.get("alpha", float("nan"))
-        out.append((float(np.median(e)), float(np.percentile(e, 95)), took, bool(reg.quality.ok), alpha))
-    return out
+    """``[(median, p95, seconds, ok)]`` per entry of ``RUNS`` on ``case``'s pair."""
+    pair = family_pair(case)
+    rows = [evaluate("rc", pair, **options) for _, options in RUNS]
+    return [(r["epe_median"], r["epe_p95"], r["seconds"], r["ok"]) for r in rows]
 
 
 def main(argv=None):
@@ -70,7 +60,7 @@ def main(argv=None):
             for seed in seeds:
                 case = Case(size=args.size, texture=noise * ratio, noise=noise, corr=0.1, seed=seed)
                 rows = run_case(case)
-                cells = [f"{m:.3f} / {p:.2f} ({s:.1f} s) [{'ok' if ok else '--'}]" for m, p, s, ok, _ in rows]
+                cells = [f"{m:.3f} / {p:.2f} ({s:.1f} s) [{'ok' if ok else '--'}]" for m, p, s, ok in rows]
                 print(f"noise {noise:.4f} texture {ratio:g}x s{seed}: " + " | ".join(cells), flush=True)
                 for name, row in zip(names, rows):
                     medians.setdefault((name, noise), []).append(row[0])

@@ -107,6 +107,7 @@ from scipy import fft as sfft
 from scipy.optimize import minimize
 
 from radiokit.register import _method
+from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
@@ -688,7 +689,7 @@ _Level._mutual_information = _mutual_information
 
 
 def _normalise(fixed, moving):
-    step = max(1, int(np.sqrt(fixed.size / 250_000)))  # percentiles from ~250k samples
+    step = sample_step(fixed.size)  # percentiles from ~250k samples
     lo, hi = np.percentile(fixed[::step, ::step], [1, 99])
     if hi <= lo:
         lo, hi = float(fixed.min()), float(fixed.max())
@@ -937,8 +938,6 @@ def _noise_alpha(f, m, o):
     over the body (the mean of the two images' variances; ``_confidence.object_noise``), floored
     at the model error no similarity fits (``MODEL_FLOOR`` of the range): a noise-free pair still
     leaves interpolation's residual."""
-    from radiokit.register._confidence import MODEL_FLOOR, object_noise
-
     sigma = max(float(np.sqrt((object_noise(f) ** 2 + object_noise(m) ** 2) / 2)), MODEL_FLOOR)
     o["noise_sigma"] = sigma
     o["alpha"] = o["noise_alpha"] * sigma * sigma

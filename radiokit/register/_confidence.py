@@ -115,6 +115,12 @@ def _deriv_noise_var(s):
     return _NOISE_DERIV[s]
 
 
+def sample_step(n_pixels) -> int:
+    """The stride that leaves about 250k samples of an image of ``n_pixels`` (in each
+    direction): enough for a percentile or a median, and cheap at 2240 x 2240."""
+    return max(1, int(np.sqrt(n_pixels / 250_000)))
+
+
 def noise_sigma(f, where=None) -> float:
     """The image's typical noise standard deviation: the median absolute diagonal second
     difference (see ``noise_map``) x 1.4826, the median-absolute-deviation scale of a
@@ -124,7 +130,7 @@ def noise_sigma(f, where=None) -> float:
     noise to measure, and where it is over half the frame it would read the noise as 0.
     ``where`` (bool, ``f``'s shape): only the blocks whose first pixel it holds."""
     f = np.asarray(f, np.float32)
-    step = max(1, int(np.sqrt(f.size / 250_000)))
+    step = sample_step(f.size)
     a, b = f[: f.shape[0] - 1 : step, : f.shape[1] - 1 : step], f[: f.shape[0] - 1 : step, 1::step]
     c, d = f[1::step, : f.shape[1] - 1 : step], f[1::step, 1::step]
     n0, n1 = min(map(len, (a, b, c, d))), min(x.shape[1] for x in (a, b, c, d))
@@ -201,7 +207,7 @@ def _noise_lmin(spacing, highpass):
 def model_floor(f) -> float:
     """``MODEL_FLOOR`` of the image's range (1st to 99th percentile, from ~250k samples): the
     noise level below which nothing counts as noise (see MODEL_FLOOR)."""
-    step = max(1, int(np.sqrt(f.size / 250_000)))
+    step = sample_step(f.size)
     lo, hi = np.percentile(f[::step, ::step], [1, 99])
     return MODEL_FLOOR * float(hi - lo)
 

@@ -138,7 +138,9 @@ def _prepare(fixed, moving, prefilter, highpass_sigma):
         f, m = highpass(fixed, sigma), highpass(moving, sigma)
     else:
         raise ValueError(f"prefilter={prefilter!r}: expected 'none' or 'highpass'")
-    step = max(1, int(np.sqrt(f.size / 250_000)))  # percentiles from ~2 x 250k samples
+    from radiokit.register._confidence import sample_step
+
+    step = sample_step(f.size)  # percentiles from ~2 x 250k samples
     lo, hi = np.percentile(np.concatenate([f[::step, ::step].ravel(), m[::step, ::step].ravel()]), [0.5, 99.5])
     scale = 1.0 / max(float(hi - lo), 1e-12)
     return ((f - np.float32(lo)) * np.float32(scale)).astype(np.float32), (
