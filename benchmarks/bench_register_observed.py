@@ -40,8 +40,9 @@ _FLOOR = {}  # (spacing, highpass, affine) -> the 99th percentile of the statist
 
 
 def _kernel(s, p):
-    """A normalised Gaussian of sigma ``s`` times ``u^p`` (u from the window's centre)."""
-    r = int(np.ceil(4 * s))
+    """A normalised Gaussian of sigma ``s`` times ``u^p`` (u from the window's centre), cut where
+    the library's map window is (``_confidence.WINDOW_REACH`` sigmas)."""
+    r = int(round(C.WINDOW_REACH * s))
     u = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (u / s) ** 2)
     return g / g.sum() * u**p
@@ -115,7 +116,7 @@ def window_bound(fixed, spacing=24.0, highpass=0.25, affine=True, bound_scale=1.
     sig2 = C.noise_map(f, spacing) ** 2
     floor2 = C.model_floor(f) ** 2
     lm = np.maximum(window_lmin(f, spacing, highpass, sig2, affine) - _noise_floor(spacing, highpass, affine) * sig2, 0)
-    info = 2 * np.pi * spacing**2 * lm / (2 * (sig2 + floor2))
+    info = C._window_area(spacing) * lm / (2 * (sig2 + floor2))
     return (bound_scale / np.sqrt(np.maximum(info, 1e-12))).astype(np.float32)
 
 

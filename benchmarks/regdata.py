@@ -438,7 +438,8 @@ def family(split="test", size=1120, *, n_seeds=1, grid="map"):
     (1 % amplitude, +-10 % change, Gaussian noise 0.01, log domain) -- the maps' cells;
     ``grid="spread"``: the other axes one at a time around the weak-texture case (texture 0.01 =
     noise): amplitude 0.5-4 %, the physical motion, gain/thinning at 20 %, Poisson-like noise,
-    the intensity domain, the noise at 2x and 1/4 (texture with it); ``grid="all"``: both."""
+    the intensity domain, the noise at 2x and 1/4 (texture with it; and at 1/4 without texture);
+    ``grid="all"``: both."""
     seeds = TRAIN_SEEDS if split == "train" else TEST_SEEDS
     if split not in ("train", "test"):
         raise ValueError(f"split={split!r}: expected 'train' or 'test'")
@@ -461,6 +462,9 @@ def family(split="test", size=1120, *, n_seeds=1, grid="map"):
                 replace(base, domain="intensity"),
                 replace(base, texture=0.02, noise=0.02),
                 replace(base, texture=0.0025, noise=0.0025),  # a quieter exposure (session 12)
+                # ... and a quiet one without texture: the map's window once let the body's edge
+                # call its silent interior observed at this noise (session 13)
+                replace(base, texture=0.0, noise=0.0025),
                 replace(base, texture=0.1),
             ]
     return out
