@@ -503,6 +503,29 @@ def test_confidence_map_marks_the_silent_interior_unobserved():
     assert abs(ob.sigma - 0.002) < 0.0005  # the noise level, estimated from the image alone
 
 
+def test_the_maps_window_does_not_reach_past_two_spacings():
+    """Texture in the left third of a silent frame, low noise: a window observes the motion
+    only while the texture lies within ``WINDOW_REACH`` (2) spacings of its centre. With the
+    Gaussian's full tails (4 sigma) the texture's information, 100x the noise's here, reached
+    nearly four spacings (94 px) into the silent part and called it observed (the silent
+    interior of a quiet textureless body read 66 % observed at 560 px through its edge's tails)."""
+    from radiokit.register._confidence import WINDOW_REACH, observability
+
+    n, w = 480, 24.0
+    rng = np.random.default_rng(3)
+    img = np.zeros((n, n), np.float32)
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 1.5)
+    img[:, :160] = 0.1 * tex[:, :160] / tex.std()
+    img += 0.001 * rng.standard_normal((n, n)).astype(np.float32)
+    bound = observability(img, w).bound_px[100:-100]
+    assert WINDOW_REACH == 2.0
+    assert np.median(bound[:, 160 + int(w)]) < 0.5  # one spacing from the texture: observed
+    beyond = 160 + int(WINDOW_REACH * w) + 2
+    # past the reach nothing is observed, however strong the texture (the few windows whose
+    # noise exceeds the floor, 1 % by its definition, read a bound of several px)
+    assert np.all(bound[:, beyond:] > 0.5) and np.median(bound[:, beyond:]) >= 1e5
+
+
 def test_roi_observed():
     from radiokit.measure import ROI
     from radiokit.register import roi_observed
