@@ -299,7 +299,8 @@ def _assess(reg, f, m, mask, info, seconds):
 # the window's reach from the edge): a textureless body's edges observe the motion in a band
 # (0.47-0.56 of the object on the training pairs, 0.62 for a smooth dome with a sharp rim),
 # while its interior is the regulariser's guess, and a smooth wrong field aligns the edges as
-# well as a right one. On the training pairs a textureless body's interior is 13-25 % observed,
+# well as a right one. On the training pairs a textureless body's interior is 13-25 % observed
+# (7-16 % since the map's window is cut at two spacings, session 13; 34 % on a quiet exposure),
 # and any share from 0.3 to 0.7 flags the same results (the observed share of the whole object
 # worked only in 0.6 +- 0.05). _EXCESS is 6 standard deviations of a window's noise mean square
 # (see radiokit.register._confidence).
