@@ -823,3 +823,52 @@ def test_silent_preset_registers_a_compressed_textureless_slab():
     auto = register(fixed, moving, "rc", preset="auto")
     assert auto.options["auto"].preset == "silent", auto.options["auto"]
     assert _epe(auto.displacement, truth, mask)[0] < 0.2
+
+
+def test_a_binned_field_is_upsampled_onto_the_full_resolution_pixel_centres():
+    """``bin_pixels`` registers a large pair area-averaged by k and upsamples the field: binned pixel
+    ``i`` is centred on full-resolution ``k i + (k - 1) / 2``, and a displacement of ``u`` binned
+    pixels is ``k u`` full-resolution ones. A field linear in position must come back exactly
+    (linear interpolation of a linear function) at every full-resolution pixel the binning kept,
+    and the cropped edge takes the last values."""
+    from radiokit.register._bspline import _bin_factor, _upsample_field
+
+    assert _bin_factor((2240, 2240), 400_000) == 4 and _bin_factor((1120, 1120), 400_000) == 2
+    assert _bin_factor((560, 560), 400_000) == 1 and _bin_factor((2240, 2240), 0) == 1
+    k, shape = 3, (62, 47)  # 20 x 15 binned, 2 full-resolution rows and columns cropped
+    ib, jb = np.mgrid[0:20, 0:15].astype(np.float64)
+    rc, cc = k * ib + (k - 1) / 2, k * jb + (k - 1) / 2  # the binned centres, full-resolution px
+
+    def truth(r, c):  # full-resolution displacement, linear in full-resolution position
+        return np.stack([0.02 * r - 0.01 * c + 1.5, 0.005 * r + 0.03 * c - 0.7])
+
+    d_binned = (truth(rc, cc) / k).astype(np.float32)
+    up = _upsample_field(d_binned, k, shape)
+    assert up.shape == (2,) + shape
+    r, c = np.mgrid[0:60, 0:45].astype(np.float64)
+    inner = (slice(None), slice(1, 59), slice(1, 44))  # between the first and last binned centres
+    np.testing.assert_allclose(up[:, :60, :45][inner], truth(r, c)[inner], atol=1e-4)
+    np.testing.assert_array_equal(up[:, 60:, :45], np.repeat(up[:, 59:60, :45], 2, axis=1))
+
+
+def test_silent_registers_a_large_pair_binned_when_asked():
+    """At 704 x 704 (0.5 Mpx) ``silent`` with ``bin_pixels=400_000`` registers the pair area-
+    averaged by 2 and says so; the field is full resolution and recovers a uniform shift of a
+    textureless body's edge."""
+    from radiokit.register import register
+
+    n = 704
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    r2 = ((yy - n / 2) / (0.35 * n)) ** 2 + ((xx - n / 2) / (0.4 * n)) ** 2
+    body = np.sqrt(np.clip(1 - r2, 0, None)).astype(np.float32)
+    fixed = ndimage.gaussian_filter(body, 1.0)
+    moving = ndimage.shift(fixed, (3.0, -2.0), order=3, mode="nearest")  # fixed(x) = moving(x + (3, -2))
+    assert (
+        "binned" not in register(fixed[::2, ::2], moving[::2, ::2], "rc", preset="silent", bin_pixels=400_000).options
+    )
+    reg = register(fixed, moving, "rc", preset="silent", bin_pixels=400_000)
+    assert reg.options["binned"] == 2
+    d = reg.displacement
+    assert d.shape == (2, n, n)
+    inside = r2 < 0.8
+    assert abs(np.median(d[0][inside]) - 3.0) < 0.3 and abs(np.median(d[1][inside]) + 2.0) < 0.3

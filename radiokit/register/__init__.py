@@ -199,6 +199,8 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
     if "init" in info:  # what the field started from (the silhouette's map, or why not)
         reg.options["initial"] = info["init"]
+    if "binned" in info:  # registered area-averaged by this factor (``bin_pixels``), the field upsampled
+        reg.options["binned"] = info["binned"]
     if "noise_sigma" in info.get("options", {}):  # alpha set from the pair's noise: what it measured and used
         reg.options.update(alpha=info["options"]["alpha"], noise_sigma=info["options"]["noise_sigma"])
     _assess(reg, f, m, mask, info, seconds)
