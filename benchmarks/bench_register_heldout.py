@@ -107,6 +107,9 @@ def heldout_pair(size, seed, t2n, noise):
 
 
 def run(size, seeds):
+    """Every method on every pair; rows as ``bench_register_flag`` makes them (``_row``)."""
+    from bench_register_flag import _row
+
     from radiokit.register import register
 
     rows = []
@@ -115,34 +118,32 @@ def run(size, seeds):
             for t2n in (0.0, 0.3, 1.0, 3.0, 10.0):
                 f, m, d, mask = heldout_pair(size, seed, t2n, noise)
                 ident = score(np.zeros_like(d), d, mask)["epe_median"]
-                line = f"  s{seed} noise {noise:g} t/n {t2n:<4g} identity {ident:5.2f}:"
+                label = f"s{seed} noise {noise:g} t/n {t2n:g}"
+                line = f"  {label:<26} identity {ident:5.2f}:"
                 for name, preset in METHODS.items():
                     t0 = time.perf_counter()
                     reg = register(f, m, "rc", preset=preset)
-                    sec = time.perf_counter() - t0
-                    e = score(reg.displacement, d, mask)["epe_median"]
-                    q = reg.quality
-                    rows.append(
-                        dict(method=name, t2n=t2n, noise=noise, epe=e, ident=ident, ok=q.ok, s=sec, why=q.reason)
-                    )
-                    line += f" {name} {e:.2f}{'' if reg.quality.ok else '!'}"
+                    rows.append(_row({}, label, name, reg, d, mask, ident, time.perf_counter() - t0))
+                    line += f" {name} {rows[-1]['epe_median']:.2f}{'' if reg.quality.ok else '!'}"
                 print(line, flush=True)
     return rows
 
 
-def confusion(rows) -> str:
+def table(rows) -> str:
+    """The flag's confusion (``bench_register.confusion``: failed = median EPE > max(1 px, half
+    the identity's), good = <= 0.5 px), over all results and per method."""
+    from bench_register import confusion
+
     lines = ["| results | failed | flagged | good | trusted |", "|---|---|---|---|---|"]
     for tag in ["all"] + list(METHODS):
-        sel = [r for r in rows if tag == "all" or r["method"] == tag]
-        failed = [r for r in sel if r["epe"] > max(1.0, 0.5 * r["ident"])]
-        good = [r for r in sel if r["epe"] <= 0.5]
-        fl = sum(not r["ok"] for r in failed)
-        tr = sum(r["ok"] for r in good)
-        lines.append(f"| {tag} ({len(sel)}) | {len(failed)} | {fl} | {len(good)} | {tr} |")
+        c = confusion([r for r in rows if tag == "all" or r["method"] == tag])
+        lines.append(f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} | {c['good']} | {c['good_ok']} |")
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
+    from bench_register_flag import misses
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=560)
     ap.add_argument("--seeds", type=int, default=2)
@@ -152,16 +153,8 @@ def main(argv=None) -> int:
     print(
         f"\n{len(rows)} results, {args.size} px, seeds {SEEDS[0]}-{SEEDS[args.seeds - 1]}, {time.perf_counter() - t0:.0f} s"
     )
-    print(confusion(rows))
-    misses = [
-        r for r in rows if (r["epe"] > max(1.0, 0.5 * r["ident"]) and r["ok"]) or (r["epe"] <= 0.5 and not r["ok"])
-    ]
-    for r in misses:
-        kind = "failed, trusted" if r["ok"] else "good, flagged"
-        print(
-            f"  {kind}: {r['method']} noise {r['noise']:g} t/n {r['t2n']:g}: {r['epe']:.2f} px "
-            f"(identity {r['ident']:.2f}) {r['why'][:110]}"
-        )
+    print(table(rows))
+    print("\n".join(misses(rows)))
     return 0
 
 

@@ -42,9 +42,8 @@ _FLOOR = {}  # (spacing, highpass, affine) -> the 99th percentile of the statist
 def _kernel(s, p):
     """A normalised Gaussian of sigma ``s`` times ``u^p`` (u from the window's centre), cut where
     the library's map window is (``_confidence.WINDOW_REACH`` sigmas)."""
-    r = int(round(C.WINDOW_REACH * s))
-    u = np.arange(-r, r + 1, dtype=np.float64)
-    g = np.exp(-0.5 * (u / s) ** 2)
+    g = C._window_kernel(s)
+    u = np.arange(len(g), dtype=np.float64) - len(g) // 2
     return g / g.sum() * u**p
 
 

@@ -978,13 +978,13 @@ def _noise_alpha(f, m, o):
 
 def _register_binned(fixed, moving, mask, k, how, overrides):
     """:func:`_bspline_register` of the pair area-averaged by ``k`` (``how``: its similarity,
-    preset and callback), the field upsampled to ``fixed``'s shape; ``info["binned"]`` is ``k``."""
+    preset and callback; ``bin_pixels`` off), the field upsampled to ``fixed``'s shape;
+    ``info["binned"]`` is ``k``."""
     from radiokit.register import _bin
 
     small = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
     d, info = _bspline_register(_bin(fixed, k), _bin(moving, k), small, **how, **dict(overrides, bin_pixels=0))
     info["binned"] = k
-    info["options"]["bin_pixels"] = _options(how["preset"], overrides)["bin_pixels"]
     return _upsample_field(d, k, fixed.shape), info
 
 
@@ -992,9 +992,10 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     o = _options(preset, overrides)
     k = _bin_factor(fixed.shape, o["bin_pixels"])
     if k > 1:  # the pair area-averaged by k, registered, the field upsampled (presets' comment)
-        return _register_binned(
-            fixed, moving, mask, k, dict(similarity=similarity, preset=preset, callback=callback), overrides
-        )
+        how = dict(similarity=similarity, preset=preset, callback=callback)
+        d, info = _register_binned(fixed, moving, mask, k, how, overrides)
+        info["options"]["bin_pixels"] = o["bin_pixels"]
+        return d, info
     if similarity != "rc":  # the residual's high-pass and the thinning term act on rc's residual
         o.update(highpass_on="images", gain=0.0)
     f, m = _prepare(fixed, moving, o)
