@@ -299,10 +299,16 @@ def rule_ok(x, q, bound_scale, min_observed, max_step, excess, max_misaligned, m
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
     the result's ``Quality`` for the reasons the thresholds do not touch). Subsampled, so a
     result near a threshold may differ from ``register()``'s."""
+    from radiokit.register import _BODY_SCALE_PX
+
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
     obs = x["b1"] * bound_scale <= 0.5
-    if not obs.size or np.mean(x["b1_inner"] * bound_scale <= 0.5) < min_observed:
+    if not obs.size:
+        return False
+    # a silent interior is trusted when the field is body-scale (register()'s waiver; its
+    # statistic is computed only below register()'s own interior line, NaN elsewhere: not waived)
+    if np.mean(x["b1_inner"] * bound_scale <= 0.5) < min_observed and not q.body_scale <= _BODY_SCALE_PX:
         return False
     if np.median(x["step"][obs]) > max_step:
         return False

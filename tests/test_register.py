@@ -872,3 +872,49 @@ def test_silent_registers_a_large_pair_binned_when_asked():
     assert d.shape == (2, n, n)
     inside = r2 < 0.8
     assert abs(np.median(d[0][inside]) - 3.0) < 0.3 and abs(np.median(d[1][inside]) + 2.0) < 0.3
+
+
+def test_body_scale_measures_the_fields_departure_from_a_quadratic_motion():
+    """``_body_scale``: a quadratic field (an expansion and a barrelling) departs by nothing;
+    a 3 px bump on one side of the rim by at most its RMS over the rim (the fit takes a part of
+    it) and more than half of it; a rim seen only on one
+    side cannot vouch for the interior (NaN); an interior filled with something the rim does not
+    predict departs by what it holds there."""
+    from radiokit.register import _body_scale
+
+    n = 200
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    r = np.hypot(yy - 100, xx - 100)
+    obj, inner = r < 80, r < 50
+    obs = obj & ~inner  # the rim observed, the interior not
+    y, x = (yy - 100) / 80, (xx - 100) / 80
+    quad = np.stack([3 * y - 1.5 * y * x, -2 * x + 0.8 * y * y + 0.5]).astype(np.float32)
+    assert _body_scale(quad, obj, obs, inner) < 1e-4
+    bump = quad.copy()
+    local = 3.0 * np.exp(-((yy - 100) ** 2 + (xx - 170) ** 2) / (2 * 12.0**2))
+    bump[0] += local
+    rms = np.sqrt(np.mean(local[obs] ** 2))
+    assert 0.5 * rms < _body_scale(bump, obj, obs, inner) <= rms and rms > 0.5  # a local motion at the rim
+    half = obs & (xx < 100)
+    assert np.isnan(_body_scale(quad, obj, half, inner))
+    fill = quad.copy()
+    fill[1][inner] += 1.0
+    assert 0.7 < _body_scale(fill, obj, obs, inner) < 1.3
+
+
+def test_a_silent_body_moving_at_its_own_scale_is_trusted():
+    """No texture: the interior is unobserved either way. Under the physical motion (a uniform
+    expansion with a lag around the stiffer disc) the observed rim moves as a quadratic does and
+    ``silent`` fills the interior accordingly: trusted, and right (0.1 px). Under a local motion
+    of a tenth of the frame ``silent``'s stiff field is body-scale too, but it leaves the rim
+    misaligned, which the residual tests see: the waiver lifts only the interior's reason."""
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.0, noise=0.01, motion="physical", corr=0.0, seed=7)
+    reg = register(fixed, moving, "rc", preset="silent")
+    q = reg.quality
+    assert q.interior_observed < 0.5 and q.body_scale <= 0.3 and q.ok, q
+    assert _epe(reg.displacement, d, mask)[0] < 0.5
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.0, noise=0.01, corr=0.1, seed=7)
+    reg = register(fixed, moving, "rc", preset="silent")
+    q = reg.quality
+    assert q.interior_observed < 0.5 and not q.ok and _epe(reg.displacement, d, mask)[0] > 1.0
+    assert "misaligned" in q.reason or "still moves" in q.reason or "not body-scale" in q.reason
