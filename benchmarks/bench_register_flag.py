@@ -146,7 +146,7 @@ def run(args):
             reg = assess(name, opts, fixed, moving, d, info, sec)
             regs[name], secs[name] = reg, sec
             if args.sweep:
-                inputs.append(rule_inputs(fixed, moving, d))
+                inputs.append(dict(rule_inputs(fixed, moving, d), preset=opts.get("preset")))
             rows.append(_row(meta, label, name, reg, truth, mask, ident, sec))
             if args.sweep:
                 rows[-1]["quality"] = reg.quality
@@ -299,16 +299,18 @@ def rule_ok(x, q, bound_scale, min_observed, max_step, excess, max_misaligned, m
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
     the result's ``Quality`` for the reasons the thresholds do not touch). Subsampled, so a
     result near a threshold may differ from ``register()``'s."""
-    from radiokit.register import _BODY_SCALE_PX
+    from radiokit.register import _BODY_SCALE_PRESETS, _BODY_SCALE_PX
 
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
     obs = x["b1"] * bound_scale <= 0.5
     if not obs.size:
         return False
-    # a silent interior is trusted when the field is body-scale (register()'s waiver; its
-    # statistic is computed only below register()'s own interior line, NaN elsewhere: not waived)
-    if np.mean(x["b1_inner"] * bound_scale <= 0.5) < min_observed and not q.body_scale <= _BODY_SCALE_PX:
+    # a silent interior is trusted when the field is body-scale (register()'s waiver, which it
+    # grants only to the silent presets' fields; its statistic is computed only below
+    # register()'s own interior line, NaN elsewhere: not waived)
+    waived = q.body_scale <= _BODY_SCALE_PX and x.get("preset") in _BODY_SCALE_PRESETS
+    if np.mean(x["b1_inner"] * bound_scale <= 0.5) < min_observed and not waived:
         return False
     if np.median(x["step"][obs]) > max_step:
         return False

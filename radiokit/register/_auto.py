@@ -199,32 +199,19 @@ def keeps_retry(plain, retry, silent=False) -> bool:
 
 
 def settled(quality) -> bool:
-    """A plain run ``auto`` returns without trying anything else: it passed its own checks, its
-    residual is still (``residual_motion`` at most ``POLISH``) and its interior observed (not
-    :func:`filled`)."""
-    return bool(quality.ok and not quality.residual_motion > POLISH and not filled(quality))
-
-
-def filled(quality) -> bool:
-    """Whether the object's interior is mostly unobserved, so that a passing run was trusted
-    for a body-scale field (``Quality.body_scale``): the fallback is tried all the same, since
-    the silent preset's stiffer fill is the better guess there (the family's physical motion
-    without texture: ``default`` 0.38 px, ``silent`` 0.11, both body-scale)."""
-    from radiokit.register import _MIN_OBSERVED
-
-    return bool(quality.interior_observed < _MIN_OBSERVED)
+    """A plain run ``auto`` returns without trying anything else: it passed its own checks and
+    its residual is still (``residual_motion`` at most ``POLISH``)."""
+    return bool(quality.ok and not quality.residual_motion > POLISH)
 
 
 def polishes(name, plain_quality, fallback) -> bool:
     """Whether a plain run that passed its own checks is tried again all the same: when its
-    interior is :func:`filled` (any fallback), or when its residual still moves by more than
-    ``POLISH`` px and the body's interior carries texture (``fallback`` is the weak preset). ``default``'s lattice balance is stiff for local motion
+    residual still moves by more than ``POLISH`` px and the body's interior carries texture
+    (``fallback`` is the weak preset). ``default``'s lattice balance is stiff for local motion
     on a small frame, and the weak preset's free coarse levels fit it where the texture is
     rich (the 560 map, texture 10x the noise, correlation 1/10: 0.30-0.37 px kept, the weak
     preset's 0.05-0.06 px); the retry is kept only when its residual moves less."""
-    if not plain_quality.ok or settled(plain_quality):
-        return False
-    return bool(fallback == AUTO_PRESETS[name][1] or filled(plain_quality))
+    return bool(plain_quality.ok and fallback == AUTO_PRESETS[name][1] and not settled(plain_quality))
 
 
 def returned(name, plain_quality, fallback, retry_quality) -> str:
@@ -261,12 +248,7 @@ def register_auto(register, f, m, method, mask, retry, options):
         a, b, what = first.quality.misaligned_fraction, second.quality.misaligned_fraction, "misaligned"
     else:
         a, b, what = first.quality.residual_motion, second.quality.residual_motion, "residual motion"
-    if not first.quality.ok:
-        state = f"{plain} not ok ({first.quality.reason})"
-    elif filled(first.quality):
-        state = f"{plain} ok, its interior unobserved (body-scale {first.quality.body_scale:.2f} px)"
-    else:
-        state = f"{plain} ok, its residual still moving"
+    state = f"{plain} ok, its residual still moving" if first.quality.ok else f"{plain} not ok ({first.quality.reason})"
     why = f"{state}; {fallback.reason}; {what} {a:.2f} -> {b:.2f}"
     best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
     best.quality.seconds = total
