@@ -1039,7 +1039,7 @@ def _interior_thinning(fixed, moving, d, mask):
 
     f = np.asarray(fixed, np.float32)
     level = float(np.median(np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])))
-    body = _object(f, noise_sigma(f)) if mask is None else (mask & _object(f, noise_sigma(f)))
+    body = _object(f, noise_sigma(f)) if mask is None else (np.asarray(mask, bool) & _object(f, noise_sigma(f)))
     # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
     inner = cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5) >= REFIT_INTERIOR * min(f.shape)
     if inner.mean() < 0.05:
