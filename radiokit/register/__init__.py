@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from radiokit.register._auto import AUTO_PRESETS
-from radiokit.register._common import jacobian_determinant, ncc, residual_complexity, warp
+from radiokit.register._common import jacobian_determinant, monomials, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
 
 __all__ = [
@@ -418,9 +418,8 @@ def _body_scale(d, obj, obs, inner) -> float:
     if np.unique(np.minimum(sector, _BODY_SECTORS - 1)).size < _BODY_COVER * _BODY_SECTORS:
         return float("nan")
 
-    def basis(y, x):
-        y, x = (y - cy) / scale, (x - cx) / scale
-        return np.stack([np.ones_like(y), y, x, y * y, x * y, x * x], axis=-1)
+    def basis(y, x):  # a quadratic, in coordinates scaled for the fit's conditioning
+        return monomials((y - cy) / scale, (x - cx) / scale, 2)
 
     coef = np.linalg.lstsq(basis(ry, rx), d[:, ry, rx].T.astype(np.float64), rcond=None)[0]
     dev = [np.hypot(*(d[:, ry, rx] - (basis(ry, rx) @ coef).T))]

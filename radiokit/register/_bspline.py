@@ -107,6 +107,7 @@ from scipy import fft as sfft
 from scipy.optimize import minimize
 
 from radiokit.register import _method
+from radiokit.register._common import monomials
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
@@ -1039,7 +1040,9 @@ def _interior_thinning(fixed, moving, d, mask):
 
     f = np.asarray(fixed, np.float32)
     level = float(np.median(np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])))
-    body = _object(f, noise_sigma(f)) if mask is None else (np.asarray(mask, bool) & _object(f, noise_sigma(f)))
+    body = _object(f, noise_sigma(f))
+    if mask is not None:
+        body &= np.asarray(mask, bool)
     # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
     inner = cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5) >= REFIT_INTERIOR * min(f.shape)
     if inner.mean() < 0.05:
@@ -1051,8 +1054,8 @@ def _interior_thinning(fixed, moving, d, mask):
     ws = _gauss(np.nan_to_num(warp(moving, d)), 2.0)[yy, xx] - level
     rows, cols = f.shape
     n = REFIT_DEGREE + 1
-    terms = [(i, j) for i in range(n) for j in range(n - i)]
-    poly = np.stack([(yy / rows - 0.5) ** i * (xx / cols - 0.5) ** j for i, j in terms], axis=-1)
+    terms = [(i, j) for i in range(n) for j in range(n - i)]  # monomials' order
+    poly = monomials(yy / rows - 0.5, xx / cols - 0.5, REFIT_DEGREE)
     coef, rss_b = np.linalg.lstsq(poly * ws[:, None], fs - ws, rcond=None)[:2]
     rss_a = np.linalg.lstsq(poly, fs - ws, rcond=None)[1]
     if rss_a.size and rss_b.size and rss_a[0] <= rss_b[0]:

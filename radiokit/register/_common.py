@@ -22,6 +22,13 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     return ndimage.map_coordinates(image, [rr + d[0], cc + d[1]], order=order, mode="nearest").astype(np.float32)
 
 
+def monomials(y, x, degree) -> np.ndarray:
+    """``y^i x^j`` for every ``i + j <= degree``, stacked on a last axis: a polynomial's design
+    matrix (the body-scale motion's and the interior thinning's)."""
+    y, x = np.asarray(y, np.float64), np.asarray(x, np.float64)
+    return np.stack([y**i * x**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)
+
+
 def jacobian_determinant(displacement) -> np.ndarray:
     """det of the Jacobian of x -> x + d(x) per pixel (central differences, one-sided at the
     border; float32); <= 0 is a fold. Computed in row bands (each with a row of halo) on
