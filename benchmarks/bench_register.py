@@ -211,8 +211,9 @@ def _auto_row(tag, pair, fast_only=False):
     passes its own checks or there is no interior to judge, else the better of it and the weak
     (textured interior) or silent (silent body) preset's run (``register_auto``'s rule), so its
     result is one of the rows, taken from them rather than registered again; the time of a
-    fallback is both runs'."""
-    from radiokit.register import register
+    fallback is both runs'. In a frame over the checks' ~0.4 Mpx ``auto``'s plain run may stop
+    early (``_auto.ABANDON``), so there ``auto`` is registered as it is."""
+    from radiokit.register import _ASSESS_PIXELS, register
     from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     f, m, d, mask = pair
@@ -227,6 +228,13 @@ def _auto_row(tag, pair, fast_only=False):
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
     for name, (plain, *_) in AUTO_PRESETS.items():
         if plain not in res:
+            continue
+        if name == "auto" and f.size > _ASSESS_PIXELS:
+            t = time.perf_counter()
+            r = register(f, m, "rc", preset=name)
+            s = score(r.displacement, d, mask)
+            res[name] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
+            chose[name] = r.options["preset"]
             continue
         other = fallback[name].preset
         tried = not res[plain][3] and other != plain

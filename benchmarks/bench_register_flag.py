@@ -95,7 +95,9 @@ EXTRA = ("rc-silent", "rc-silent-fast")
 
 def _auto_choice(name, fixed, regs):
     """The configuration ``register(..., preset=AUTO[name][0])`` returns, from the assessed
-    results ``regs`` (configuration -> Registration), by ``register_auto``'s own rule."""
+    results ``regs`` (configuration -> Registration), by ``register_auto``'s own rule (faithful
+    in frames of at most the checks' ~0.4 Mpx, such as the 560 family, where the plain run is
+    never stopped early: ``_auto.ABANDON``)."""
     from radiokit.register._auto import AUTO_PRESETS, choose, returned, settled
 
     auto, plain = AUTO[name]

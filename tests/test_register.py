@@ -959,3 +959,72 @@ def test_weak_refits_the_thinning_from_the_interior():
     assert refit.options["thinning_refit"].startswith("thinning refitted")
     assert "thinning_refit" not in plain.options
     assert _epe(refit.displacement, d, mask)[0] < 0.9 * _epe(plain.displacement, d, mask)[0]
+
+
+# -- abandon_px: a plain run far off before its finest level stops there (auto's ABANDON) --
+# 704 px: the smallest family frame the checks bin (by 2), so the default's finest level is
+# finer than the checks' and the stop can apply
+
+
+def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
+    """Texture = noise, motion correlated over a tenth of the frame: ``default`` is far off
+    after its 352 px level, so with ``abandon_px`` it stops there, not converged, says why,
+    and the motion it stopped on is the one its checks then measure on that field (the same
+    measure, from the lattices at the checks' binning rather than the field binned: a few
+    percent apart). A frame the checks do not bin never stops (its finest level is theirs)."""
+    import re
+
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, seed=9)
+    reg = register(fixed, moving, "rc", abandon_px=0.35)
+    why = reg.options["abandoned"]
+    assert not reg.quality.ok and why in reg.quality.reason
+    stopped_on = float(re.search(r"moves ([0-9.]+) px", why).group(1))
+    assert stopped_on > 0.35 and reg.quality.residual_motion == pytest.approx(stopped_on, rel=0.05)
+    small = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.1, seed=9)[:2]
+    assert "abandoned" not in register(*small, "rc", abandon_px=0.35).options
+
+
+def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
+    """Texture 10x the noise, motion correlated over a quarter of the frame: ``default`` is
+    within the line after its 352 px level, so ``abandon_px`` changes nothing: the same field
+    to the bit."""
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.1, noise=0.01, corr=0.25, seed=9)
+    plain = register(fixed, moving, "rc")
+    checked = register(fixed, moving, "rc", abandon_px=0.35)
+    assert "abandoned" not in checked.options and checked.quality.ok
+    np.testing.assert_array_equal(checked.displacement, plain.displacement)
+
+
+def test_auto_stops_default_early_on_weak_texture_and_returns_weak():
+    """The first test's pair through ``auto``: the interior carries texture, so ``default`` runs
+    with ``ABANDON``, stops before its finest level, and ``weak`` (which follows anyway) is
+    returned, its residual moving less; the reason records the stop."""
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, seed=9)
+    reg = register(fixed, moving, "rc", preset="auto")
+    why = reg.options["auto"]
+    assert why.preset == "weak" and "abandoned before the finest level" in why.reason, why
+    assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] < 0.6
+
+
+def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it():
+    """A fault injected (a weak run whose residual moves without bound: no pair here makes one
+    on purpose): ``auto`` must not return the stopped run's field but finish the plain run after
+    all and return it, as if it had never stopped."""
+    from radiokit.register import Quality, Registration
+    from radiokit.register._auto import register_auto
+
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, seed=9)
+    calls = []
+
+    def losing_weak(f, m, method, mask, retry=False, **options):
+        calls.append(dict(options))
+        if options["preset"] == "weak":
+            return Registration(np.zeros((2,) + f.shape, np.float32), method, Quality(residual_motion=np.inf), options)
+        return register(f, m, method, mask, retry=retry, **options)
+
+    reg = register_auto(losing_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
+    assert [c["preset"] for c in calls] == ["default", "weak", "default"]
+    assert "abandon_px" in calls[0] and "abandon_px" not in calls[2]
+    full = register(fixed, moving, "rc")
+    assert reg.options["auto"].preset == "default" and "abandoned" not in reg.options
+    np.testing.assert_array_equal(reg.displacement, full.displacement)

@@ -209,6 +209,8 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
         reg.options["initial"] = info["init"]
     if "binned" in info:  # registered area-averaged by this factor (``bin_pixels``), the field upsampled
         reg.options["binned"] = info["binned"]
+    if "abandoned" in info:  # abandon_px: the run stopped before its finest level, and why
+        reg.options["abandoned"] = info["abandoned"]
     if "thinning_refit" in info:  # refit_thinning: what the second pass divided out
         reg.options["thinning_refit"] = info["thinning_refit"]
     if "noise_sigma" in info.get("options", {}):  # alpha set from the pair's noise: what it measured and used
@@ -376,8 +378,7 @@ def _observed(reg, f, m, w, d, mask, k=1):
     inner = _interior(ob.object)
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction = _misaligned(f, m, w, d, obs)
-    step = float(np.median(C.residual_motion(f, w, _STEP_WINDOW)[obs])) if obs.any() else float("nan")
-    q.residual_motion = k * step
+    q.residual_motion = _residual_step(f, w, obs, k)
     reasons = []
     if q.interior_observed < _MIN_OBSERVED:
         q.body_scale = k * _body_scale(d, ob.object, obs, inner)
@@ -399,6 +400,31 @@ def _observed(reg, f, m, w, d, mask, k=1):
             f"(residual above the noise's by more than {100 * _EXCESS:.0f} %)"
         )
     return reasons, n_obj
+
+
+def _residual_step(f, w, obs, k) -> float:
+    """``Quality.residual_motion``: the median over ``obs`` of one Gauss-Newton step on the
+    residual ``w - f`` (images binned by ``k``), in full-resolution pixels; NaN when nothing is
+    observed."""
+    from radiokit.register import _confidence as C
+
+    if not obs.any():
+        return float("nan")
+    return k * float(np.median(C.residual_motion(f, w, _STEP_WINDOW)[obs]))
+
+
+def coarse_residual_motion(fixed, moving, mask, d) -> float:
+    """``Quality.residual_motion`` of a field ``d`` given at the assessment's binning (the pair
+    area-averaged by ``_assess_binning(fixed.size)``, ``d`` in those pixels), as ``register``'s
+    checks measure it: rc's ``abandon_px`` stops a run with it before its finest level, where
+    the checks would see the same misalignment at several times the cost."""
+    from radiokit.register import _confidence as C
+
+    k = _assess_binning(fixed.size)
+    fb, mb = _bin(fixed, k), _bin(moving, k)
+    maskb = None if mask is None else _bin(np.asarray(mask, np.float32), k) > 0.5
+    ob = C.observability(fb, _WINDOW, maskb, bound_scale=k)
+    return _residual_step(fb, np.nan_to_num(warp(mb, d)), (ob.confidence >= 0.5) & ob.object, k)
 
 
 def _body_scale(d, obj, obs, inner) -> float:

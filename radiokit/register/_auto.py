@@ -13,7 +13,10 @@ result is kept only when its residual moves less (``quality.residual_motion``, s
 interior carries no texture is tried again with ``silent`` (``silent-fast``): the field starts
 from the silhouettes' affine map and the lattices are stiff, the least-bent field the edges
 allow, which is what a compressed phantom's silent slab does (the simulated pva-phantom side
-view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. Which
+view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. On a
+textured interior, in a frame larger than the checks' ~0.4 Mpx, the plain run stops before its
+finest level when it is still far off there (``ABANDON``; the weak preset follows, and the plain
+run is finished after all only if the weak one does not beat it). Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
 the body's interior**:
 
@@ -67,6 +70,7 @@ __all__ = [
     "NOISE_FREE",
     "SILENT_TIE",
     "POLISH",
+    "ABANDON",
     "polishes",
     "settled",
 ]
@@ -98,6 +102,17 @@ SILENT_TIE = 0.05
 # auto 0.500 px without, 0.447 at 0.05-0.2 (6-8 retries, every one kept), 0.500 at 0.25-0.3;
 # auto-fast 0.518 without, 0.464 at 0.05-0.15, 0.517 at 0.2-0.25. 0.1: inside both plateaus
 POLISH = 0.1
+# px: on a textured interior (the fallback the weak preset) the plain run stops before its finest
+# level when its residual's motion there, measured as the checks measure it, is over this (rc's
+# abandon_px; only where that level is finer than the checks' binning: 1120 px and larger).
+# A field that far off is not settled after one more level, so the weak preset runs anyway; the
+# finest level (at 2240 more than half the plain run's time) is not spent on it. The flag's own
+# line (_MAX_RESIDUAL_MOTION). TRAINING pairs (2240: the family's map and spread, seeds 0-1,
+# texture 10x seeds 2-3, analytic_pair seeds 0-1, camera and moon; 1120: the same rich pairs):
+# every plain run that settled read at most 0.24 px there (analytic 0.05-0.10, texture 10x at
+# 1/4 0.16-0.24, camera 1120 0.09), every one that did not and fell back to weak at least 0.56
+# (benchmarks/README.md, "auto stops a plain run that is far off (session 15)")
+ABANDON = 0.35
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -226,6 +241,11 @@ def returned(name, plain_quality, fallback, retry_quality) -> str:
     return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
 
 
+def _early(on) -> dict:
+    """The plain run's ``abandon_px`` (``ABANDON``) when ``on``, else nothing."""
+    return {"abandon_px": ABANDON} if on else {}
+
+
 def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
     checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
@@ -233,17 +253,24 @@ def register_auto(register, f, m, method, mask, retry, options):
     returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
     name = options["preset"]
     plain = AUTO_PRESETS[name][0]
-    first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
+    fallback = choose(f, name)
+    # on a textured interior a plain run that is far off before its finest level stops there
+    # (ABANDON): the weak preset follows anyway
+    early = fallback.preset == AUTO_PRESETS[name][1] and not retry and options.get("abandon_px") is None
+    first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain, **_early(early)))
     if settled(first.quality):
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
         return first
-    fallback = choose(f, name)
     if fallback.preset == plain or (first.quality.ok and not polishes(name, first.quality, fallback.preset)):
         why = f"{plain} passed its own checks" if first.quality.ok else fallback.reason
         first.options["auto"] = AutoChoice(plain, fallback.ratio, fallback.interior, why)
         return first
     second = register(f, m, method, mask, retry=False, **dict(options, preset=fallback.preset))
     total = first.quality.seconds + second.quality.seconds
+    if "abandoned" in first.options and returned(name, first.quality, fallback.preset, second.quality) == plain:
+        # the fallback did not beat the abandoned run: the plain preset in full after all
+        first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
+        total += first.quality.seconds
     if fallback.preset == AUTO_PRESETS[name][2]:  # silent: judged by the misaligned share
         a, b, what = first.quality.misaligned_fraction, second.quality.misaligned_fraction, "misaligned"
     else:

@@ -141,6 +141,7 @@ PRESETS = {
         noise_alpha=0.0,
         bin_pixels=0,
         refit_thinning=False,
+        abandon_px=0.0,
     ),
     "fast": dict(
         spacing=16,
@@ -167,6 +168,7 @@ PRESETS = {
         noise_alpha=0.0,
         bin_pixels=0,
         refit_thinning=False,
+        abandon_px=0.0,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -781,7 +783,7 @@ def _options(preset, overrides) -> dict:
         raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
     if o["highpass_on"] not in ("images", "residual"):
         raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
-    for key in ("smooth", "gain", "gain_regularisation", "noise_alpha"):
+    for key in ("smooth", "gain", "gain_regularisation", "noise_alpha", "abandon_px"):
         if not o[key] >= 0:
             raise ValueError(f"{key}={o[key]}: expected >= 0")
     if o["spacing"] < 4:
@@ -1005,6 +1007,13 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
 # measured in the interior").
 REFIT_INTERIOR = 0.134
 REFIT_DEGREE = 4
+# The second pass starts from the first's lattices and runs the finest level only, for this many
+# iterations (joint refits the coarser lattices there all the same): the first pass's field is
+# within a pixel or so, which is what the coarse levels exist to reach. TRAINING seeds 1-3 at
+# 2240, 1/10, texture = noise and 0.3x noise, mean median EPE: run again from scratch 0.380 /
+# 1.569 px, warm with 120 iterations 0.384 / 1.558, 60: 0.383 / 1.542, 40: 0.378 / 1.613, 30:
+# 0.384 / 1.659; iterations in all 740, 490, 430, 410, 400 (benchmarks/README.md, session 15)
+REFIT_ITERATIONS = 60
 
 
 def _register_refit(fixed, moving, mask, how, overrides):
@@ -1017,7 +1026,9 @@ def _register_refit(fixed, moving, mask, how, overrides):
         info["thinning_refit"] = note
         return d, info
     f2 = (level + (np.asarray(fixed, np.float32) - level) / (1.0 + b)).astype(np.float32)
-    d2, info2 = _bspline_register(f2, moving, mask, **how, **dict(overrides, refit_thinning=False, gain=0.0))
+    again = dict(overrides, refit_thinning=False, gain=0.0)
+    start = (info["lattices"], REFIT_ITERATIONS)
+    d2, info2 = _bspline_register(f2, moving, mask, **how, start=start, **again)
     info2["iterations"] += info["iterations"]
     info2["thinning_refit"] = note
     return d2, info2
@@ -1076,7 +1087,13 @@ def _interior_thinning(fixed, moving, d, mask):
     return b, level, note
 
 
-def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="default", callback=None, **overrides):
+def _bspline_register(
+    fixed, moving, mask=None, *, similarity="rc", preset="default", callback=None, start=None, **overrides
+):
+    """Long because the pyramid's loop carries the lattices, the thinning field and the
+    history from level to level. ``start``: ``(lattices, iterations)``, another run's
+    ``info["lattices"]`` on a pair of the same shape and options: only the finest level is run,
+    from them, for that many iterations."""
     o = _options(preset, overrides)
     k = _bin_factor(fixed.shape, o["bin_pixels"])
     how = dict(similarity=similarity, preset=preset, callback=callback)
@@ -1096,16 +1113,22 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
     affine, init_note = _initial(fixed, moving, o)
     coarsest, finest = levels[0][0], levels[-1][0]
     grids, history = [], []  # one lattice per level, spacing halving with the pixels
+    x_start = None
+    if start is not None:  # the coarser lattices as another run left them, its finest as the start
+        lattices, n_it = start
+        grids, x_start = list(lattices[:-1]), lattices[-1][1]
+        levels = [(levels[-1][0], n_it)]
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
-    total_its, converged, message = 0, True, ""
+    total_its, converged, message, abandoned = 0, True, "", {}
     for factor, n_it in levels:
         # joint: the coarser lattices are refitted with the finest's, so their field is not in base
         coarse = grids if o["joint"] and factor == finest else []
         base = _fields([] if coarse else grids, factor, tuple(-(-n // factor) for n in f.shape))
         if affine is not None:
             base += affine.field(base.shape[1:], factor)
-        grid, res, move = _run_level(f, m, maskf, similarity, o, (factor, n_it, coarsest, finest), base, gain, coarse)
+        where = (factor, n_it, coarsest, finest)
+        grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -1126,6 +1149,9 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
             callback(factor, res)
         if factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
+        elif factor == levels[-2:][0][0] and (why := _abandon(fixed, moving, mask, grids, affine, o, finest)):
+            converged, message, abandoned = False, why, {"abandoned": why}
+            break
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
     if affine is not None:
         d += affine.field(f.shape)
@@ -1136,16 +1162,42 @@ def _bspline_register(fixed, moving, mask=None, *, similarity="rc", preset="defa
         message=message,
         regularisation=o["regularisation"],
         levels=history,
+        lattices=grids,
         options=o,
+        **abandoned,
     )
 
 
-def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=()):
+def _abandon(fixed, moving, mask, grids, affine, o, finest):
+    """Why the run stops before its finest level (``abandon_px``), or None: after the level
+    before it, when the finest is finer than the quality checks' binning, the residual's motion
+    is measured as they would measure it (``coarse_residual_motion``) and is over ``abandon_px``
+    (a misalignment the finer level is not there to mend: ``auto`` then goes to its fallback)."""
+    from radiokit.register import _assess_binning, coarse_residual_motion
+
+    k = _assess_binning(fixed.size)
+    if not o["abandon_px"] or finest >= k:
+        return None
+    shape = (fixed.shape[0] // k, fixed.shape[1] // k)
+    d = _fields(grids, k, shape)
+    if affine is not None:
+        d += affine.field(shape, k)
+    motion = coarse_residual_motion(fixed, moving, mask, d)
+    if not motion > o["abandon_px"]:
+        return None
+    return (
+        f"abandoned before the finest level: the residual still moves {motion:.2f} px after the level "
+        f"before it (abandon_px={o['abandon_px']:g})"
+    )
+
+
+def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None):
     """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
     (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
     coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients.
     ``coarse`` (``joint``): the coarser levels' ``[(grid, coefficients)]``, refitted with this
-    lattice from where they stand, each with its own bending weight; updated in place."""
+    lattice from where they stand, each with its own bending weight; updated in place.
+    ``x_start``: this lattice's first coefficients (None: zero)."""
     factor, n_it, coarsest, finest = where
     fine = factor == finest
     # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
@@ -1159,11 +1211,11 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=()):
         level.gain = _thinning_field(gain[0], gain[1], factor, level.shape)  # kept as the coarser levels left it
         gain = None
     # x: this lattice, the coarser ones refitted with it (as they stand), the thinning field
-    parts = [np.zeros(grid.n_params)] + [c for _, c in coarse]
+    parts = [np.zeros(grid.n_params) if x_start is None else x_start] + [c for _, c in coarse]
     if gain is not None:
         g_grid = gain[0]
         parts.append(np.zeros(g_grid.nr * g_grid.nc) if gain[1] is None else gain[1])
-    x0 = np.concatenate(parts) if len(parts) > 1 else None
+    x0 = np.concatenate(parts) if len(parts) > 1 or x_start is not None else None
     thinning = None if gain is None else (gain[0], o["gain_regularisation"])
     grid.lam = lam  # what ``joint`` refits it with at the finest level
     fun = _objective(level, grid, base, lam, factor, o["balance"], thinning, [(g, g.lam) for g, _ in coarse])
@@ -1224,7 +1276,11 @@ def _rc(fixed, moving, mask, **options):
     alpha turns it off; the alpha used and the noise are in the result's ``options``), bin_pixels
     (a pair of more pixels is registered area-averaged by the least integer factor that brings it
     under this many and the field upsampled; 0, every preset's: off), refit_thinning (a second
-    pass with the thinning measured in the body's interior divided out; see REFIT_INTERIOR)."""
+    pass with the thinning measured in the body's interior divided out; see REFIT_INTERIOR),
+    abandon_px (> 0: stop before the finest level, not converged, when after the level before it
+    the residual still moves by more than this, measured as the quality checks do; only when the
+    finest level is finer than their binning; ``auto`` sets it on its plain run, see
+    ``radiokit.register._auto.ABANDON``)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
