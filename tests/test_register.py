@@ -1028,3 +1028,15 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     full = register(fixed, moving, "rc")
     assert reg.options["auto"].preset == "default" and "abandoned" not in reg.options
     np.testing.assert_array_equal(reg.displacement, full.displacement)
+
+
+def test_the_still_check_decides_as_the_percentile_does():
+    """``_p99_below`` (a level's early stop, at every L-BFGS iteration) answers exactly what
+    ``np.percentile(v, 99) < limit`` answers, ties and limits between the two order statistics
+    included, on random and on heavily tied samples."""
+    rng = np.random.default_rng(0)
+    for t in range(3000):
+        n = int(rng.integers(1, 400))
+        v = rng.exponential(size=n).astype(np.float32) if t % 3 else np.round(rng.random(n) * 4) / 4
+        limit = float(np.quantile(v, rng.uniform(0.9, 1.0))) if t % 2 else float(rng.uniform(0, 3))
+        assert B._p99_below(v, limit) == (np.percentile(v, 99) < limit), (n, limit)

@@ -930,6 +930,22 @@ def _split(x, lattices):
     return [x[a:b] for a, b in zip(cuts[:-1], cuts[1:])], x[cuts[-1] :]
 
 
+def _p99_below(v, limit) -> bool:
+    """``np.percentile(v, 99) < limit`` (linear interpolation between the order statistics ``i``
+    and ``i + 1``, ``i = floor(0.99 (n - 1))``), decided by counting the values at or over
+    ``limit`` wherever that count settles it (both order statistics under the limit, or the lower
+    one at or over it) and by the percentile only when the limit falls between them: the same
+    answer, without a partial sort at every iteration (a tenth of the time)."""
+    n = v.size
+    i = int(0.99 * (n - 1))
+    above = int(np.count_nonzero(v >= limit))
+    if above < n - i - 1:
+        return True
+    if above >= n - i:
+        return False
+    return bool(np.percentile(v, 99) < limit)
+
+
 def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
@@ -939,14 +955,17 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
     last = collections.deque(maxlen=6)
     lattices = [grid, *coarse]
 
-    def moved():
+    def change():
         steps, _ = _split(last[-1] - last[0], lattices)
-        change = sum(g.field(c, coarsest) for g, c in zip(lattices, steps)) * coarsest
-        return float(np.percentile(np.sqrt((change * change).sum(axis=0)), 99))
+        d = sum(g.field(c, coarsest) for g, c in zip(lattices, steps)) * coarsest
+        return np.sqrt((d * d).sum(axis=0)).ravel()
+
+    def moved():
+        return float(np.percentile(change(), 99))
 
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
         last.append(intermediate_result.x.copy())
-        if len(last) == last.maxlen and moved() < _STILL_PX:
+        if len(last) == last.maxlen and _p99_below(change(), _STILL_PX):
             raise StopIteration  # scipy ends the minimisation with the current iterate
 
     res = minimize(
