@@ -1040,6 +1040,8 @@ def _register_refit(fixed, moving, mask, how, overrides):
     (:func:`_interior_thinning`), and a second pass on ``fixed`` with it divided out and the
     thinning term off; ``info["thinning_refit"]`` says what was done."""
     d, info = _bspline_register(fixed, moving, mask, **how, **dict(overrides, refit_thinning=False))
+    if "abandoned" in info:  # stopped short of its finest level (abandon_px): nothing to refine
+        return d, info
     b, level, note = _interior_thinning(fixed, moving, d, mask)
     if b is None:
         info["thinning_refit"] = note
@@ -1117,8 +1119,9 @@ def _bspline_register(
     k = _bin_factor(fixed.shape, o["bin_pixels"])
     how = dict(similarity=similarity, preset=preset, callback=callback)
     if k > 1:  # the pair area-averaged by k, registered, the field upsampled (presets' comment)
-        d, info = _register_binned(fixed, moving, mask, k, how, overrides)
-        info["options"]["bin_pixels"] = o["bin_pixels"]
+        # abandon_px is in full-resolution pixels; the binned run measures in its own
+        d, info = _register_binned(fixed, moving, mask, k, how, dict(overrides, abandon_px=o["abandon_px"] / k))
+        info["options"].update(bin_pixels=o["bin_pixels"], abandon_px=o["abandon_px"])
         return d, info
     if o["refit_thinning"] and similarity == "rc" and o["gain"]:
         return _register_refit(fixed, moving, mask, how, overrides)
