@@ -49,6 +49,10 @@ three things moved its minimum off the truth by more than the texture could pull
   ``weak``) or kept from the coarser levels (``default``, ``fast``: refitting costs that
   level's iterations and changed nothing measurable). An additive smooth change (a gain of the
   source) is still residual complexity's. ``ncc`` and ``mi`` keep high-passed images and no ``b``.
+  Because the residual is high-passed, ``b`` is seen only at the body's edge, where a scaled edge
+  and a shifted one look alike; ``refit_thinning`` (preset ``weak``) measures ``b`` again after
+  a first pass in the body's interior, divides it out and runs the finest level once more from
+  the first pass's lattices with the term off (``REFIT_INTERIOR``, ``REFIT_ITERATIONS``).
 
 Energy balance. ``balance="lattice"`` (presets ``default``, ``fast``): the similarity's mean
 over the level's pixels plus ``regularisation * sum((L c)^2) / n_control``, ``L`` the lattice's
@@ -85,6 +89,10 @@ coarse images could see (a weak texture's body edge, where the texture fades) is
 where the finest images see better, at the coarse lattice's own (low) price. Each evaluation
 then adds one adjoint per coarser lattice (``joint`` off: each level's lattice alone, on top of
 the frozen coarser field).
+``abandon_px`` stops a run before its finest level when, after the level before it, the
+residual still moves by more than that (measured as ``register``'s checks measure it): ``auto``
+uses it so that a plain run already far off does not spend its most costly level
+(``radiokit.register._auto.ABANDON``).
 
 Computation. One evaluation of a level's energy runs in row bands on radiokit's threads: a
 band's field rows (``B_r`` rows times ``C B_c^T``), the bilinear warp and its derivatives (one
