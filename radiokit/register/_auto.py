@@ -107,11 +107,12 @@ POLISH = 0.1
 # abandon_px; only where that level is finer than the checks' binning: 1120 px and larger).
 # A field that far off is not settled after one more level, so the weak preset runs anyway; the
 # finest level (at 2240 more than half the plain run's time) is not spent on it. The flag's own
-# line (_MAX_RESIDUAL_MOTION). TRAINING pairs (2240: the family's map and spread, seeds 0-1,
-# texture 10x seeds 2-3, analytic_pair seeds 0-1, camera and moon; 1120: the same rich pairs):
-# every plain run that settled read at most 0.24 px there (analytic 0.05-0.10, texture 10x at
-# 1/4 0.16-0.24, camera 1120 0.09), every one that did not and fell back to weak at least 0.56
-# (benchmarks/README.md, "auto stops a plain run that is far off (session 15)")
+# line (_MAX_RESIDUAL_MOTION). 63 TRAINING pairs (2240: the family's map and spread of seed 0 and
+# 13 map cells of seed 1, texture 10x at seeds 2-3, analytic_pair seeds 0-1, camera and moon;
+# 1120: the same rich pairs): the 17 plain runs that settled read at most 0.24 px there
+# (analytic 0.02-0.10, texture 10x 0.04-0.24, camera and moon 1120 0.09-0.10); of the 38 that
+# did not and fell back to weak, one read 0.28 (1120, polished by weak anyway), the rest 0.56 or
+# more (benchmarks/README.md, "`auto` under 10 s on weak texture at 2240 ... (session 15)")
 ABANDON = 0.35
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass

@@ -1039,7 +1039,8 @@ REFIT_DEGREE = 4
 # within a pixel or so, which is what the coarse levels exist to reach. TRAINING seeds 1-3 at
 # 2240, 1/10, texture = noise and 0.3x noise, mean median EPE: run again from scratch 0.380 /
 # 1.569 px, warm with 120 iterations 0.384 / 1.558, 60: 0.383 / 1.542, 40: 0.378 / 1.613, 30:
-# 0.384 / 1.659; iterations in all 740, 490, 430, 410, 400 (benchmarks/README.md, session 15)
+# 0.384 / 1.659; iterations in all 740, 490, 430, 410, 400 (benchmarks/README.md, "`auto` under
+# 10 s on weak texture at 2240 ... (session 15)")
 REFIT_ITERATIONS = 60
 
 
