@@ -1040,3 +1040,16 @@ def test_the_still_check_decides_as_the_percentile_does():
         v = rng.exponential(size=n).astype(np.float32) if t % 3 else np.round(rng.random(n) * 4) / 4
         limit = float(np.quantile(v, rng.uniform(0.9, 1.0))) if t % 2 else float(rng.uniform(0, 3))
         assert B._p99_below(v, limit) == (np.percentile(v, 99) < limit), (n, limit)
+
+
+def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass():
+    """``refit_thinning``'s second pass starts from the first pass's lattices and runs only the
+    finest level, for at most ``REFIT_ITERATIONS`` (the coarse levels exist to reach a field the
+    first pass has already reached); its field is still the better one against the truth."""
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    field, info = B._bspline_register(fixed, moving, None, preset="weak")
+    first, _ = B._bspline_register(fixed, moving, None, preset="weak", refit_thinning=False)
+    assert info["thinning_refit"].startswith("thinning refitted")
+    (level,) = info["levels"]  # one level: the finest, started warm
+    assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
+    assert _epe(field, d, mask)[0] < 0.9 * _epe(first, d, mask)[0]
