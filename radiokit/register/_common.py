@@ -14,7 +14,10 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     image = np.asarray(image, np.float32)
     d = np.asarray(displacement, np.float32)
     rows, cols = d.shape[1:]
-    rr, cc = np.mgrid[0:rows, 0:cols].astype(np.float32)
+    # pixel positions broadcast, not a frame-sized grid per axis (np.mgrid's int64 planes and
+    # their conversion were most of a 2240 frame's warp); the same float32 sums
+    rr = np.arange(rows, dtype=np.float32)[:, None]
+    cc = np.arange(cols, dtype=np.float32)[None, :]
     if order == 1:
         return cv2.remap(image, cc + d[1], rr + d[0], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     from scipy import ndimage
