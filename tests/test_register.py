@@ -968,7 +968,7 @@ def test_weak_refits_the_thinning_from_the_interior():
 
 def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
     """Texture = noise, motion correlated over a tenth of the frame: ``default`` is far off
-    after its 352 px level, so with ``abandon_px`` it stops there, not converged, says why,
+    halfway through its 352 px level, so with ``abandon_px`` it stops there, not converged, says why,
     and the motion it stopped on is the one its checks then measure on that field (the same
     measure, from the lattices at the checks' binning rather than the field binned: a few
     percent apart). A frame the checks do not bin never stops (its finest level is theirs)."""
@@ -978,6 +978,7 @@ def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
     reg = register(fixed, moving, "rc", abandon_px=0.35)
     why = reg.options["abandoned"]
     assert not reg.quality.ok and why in reg.quality.reason
+    assert "after 60 of 120 iterations of the level before it" in why  # halfway (ABANDON_AT)
     stopped_on = float(re.search(r"moves ([0-9.]+) px", why).group(1))
     assert stopped_on > 0.35 and reg.quality.residual_motion == pytest.approx(stopped_on, rel=0.05)
     small = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.1, seed=9)[:2]
@@ -986,8 +987,8 @@ def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
 
 def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
     """Texture 10x the noise, motion correlated over a quarter of the frame: ``default`` is
-    within the line after its 352 px level, so ``abandon_px`` changes nothing: the same field
-    to the bit."""
+    within the line halfway through its 352 px level and after it, so ``abandon_px`` changes
+    nothing: the same field to the bit (the checks do not change the optimiser's path)."""
     fixed, moving, d, mask = _family_pair(size=704, texture=0.1, noise=0.01, corr=0.25, seed=9)
     plain = register(fixed, moving, "rc")
     checked = register(fixed, moving, "rc", abandon_px=0.35)

@@ -954,13 +954,16 @@ def _p99_below(v, limit) -> bool:
     return bool(np.percentile(v, 99) < limit)
 
 
-def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
+def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
     level's grid: the field is smooth on it; with ``coarse`` lattices refitted alongside, whose
     coefficients follow ``grid``'s in ``x``, their change counts too). Stops early when that is
-    under ``_STILL_PX``."""
+    under ``_STILL_PX``. ``check``: ``(iteration, fn)``, ``fn(x)`` called at that iteration (it
+    does not change the path); a message from it stops the level there, in
+    ``result["abandoned"]``."""
     last = collections.deque(maxlen=6)
+    stopped, count = [], [0]
     lattices = [grid, *coarse]
 
     def change():
@@ -973,6 +976,10 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
 
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
         last.append(intermediate_result.x.copy())
+        count[0] += 1  # (the iterate carries no iteration number)
+        if check is not None and count[0] == check[0] and (why := check[1](last[-1])):
+            stopped.append(why)
+            raise StopIteration
         if len(last) == last.maxlen and _p99_below(change(), _STILL_PX):
             raise StopIteration  # scipy ends the minimisation with the current iterate
 
@@ -985,6 +992,8 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=()):
         options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10),
     )
     move = moved() if len(last) == last.maxlen else float("inf")
+    if stopped:
+        res["abandoned"] = stopped[0]
     return res, move
 
 
@@ -1042,6 +1051,13 @@ REFIT_DEGREE = 4
 # 0.384 / 1.659; iterations in all 740, 490, 430, 410, 400 (benchmarks/README.md, "`auto` under
 # 10 s on weak texture at 2240 ... (session 15)")
 REFIT_ITERATIONS = 60
+# abandon_px checks the level before the finest at this share of its iterations as well as at its
+# end: a run far off at the end was far off halfway (the 55 textured TRAINING pairs of
+# _auto.ABANDON: the residual's motion after 60 of default's 120 iterations there read at most
+# 0.28 px on the 17 runs that settled, 0.28 on one that fell back to weak (1120, polished anyway)
+# and 0.62 or more on the other 37; half chosen before the data, not tuned; benchmarks/README.md,
+# session 15). The check does not change the path of a run it lets go on.
+ABANDON_AT = 0.5
 
 
 def _register_refit(fixed, moving, mask, how, overrides):
@@ -1159,7 +1175,14 @@ def _bspline_register(
         if affine is not None:
             base += affine.field(base.shape[1:], factor)
         where = (factor, n_it, coarsest, finest)
-        grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start)
+        # abandon_px: the level before the finest is checked partway (ABANDON_AT) and at its end
+        last_coarse = factor != finest and factor == levels[-2:][0][0] and _abandons(fixed, o, finest)
+        check = None
+        if last_coarse:
+            at = int(n_it * ABANDON_AT)
+            when = f"after {at} of {n_it} iterations of the level before it"
+            check = (at, lambda lat, when=when: _far_off(fixed, moving, mask, grids + [lat], affine, o, when))
+        grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -1180,7 +1203,9 @@ def _bspline_register(
             callback(factor, res)
         if factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
-        elif factor == levels[-2:][0][0] and (why := _abandon(fixed, moving, mask, grids, affine, o, finest)):
+        elif last_coarse and (
+            why := res.get("abandoned") or _far_off(fixed, moving, mask, grids, affine, o, "after the level before it")
+        ):
             converged, message, abandoned = False, why, {"abandoned": why}
             break
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
@@ -1199,36 +1224,44 @@ def _bspline_register(
     )
 
 
-def _abandon(fixed, moving, mask, grids, affine, o, finest):
-    """Why the run stops before its finest level (``abandon_px``), or None: after the level
-    before it, when the finest is finer than the quality checks' binning, the residual's motion
-    is measured as they would measure it (``coarse_residual_motion``) and is over ``abandon_px``
-    (a misalignment the finer level is not there to mend: ``auto`` then goes to its fallback)."""
+def _abandons(fixed, o, finest) -> bool:
+    """Whether ``abandon_px`` applies: asked for, and the finest level finer than the quality
+    checks' binning (a frame over ~0.4 Mpx), so that a level before it is where they look."""
+    from radiokit.register import _assess_binning
+
+    return bool(o["abandon_px"]) and finest < _assess_binning(fixed.size)
+
+
+def _far_off(fixed, moving, mask, lattices, affine, o, when):
+    """Why the run stops before its finest level (``abandon_px``), or None: the field of
+    ``lattices`` (and ``affine``) at the checks' binning, its residual's motion measured as they
+    would measure it (``coarse_residual_motion``), over ``abandon_px`` (a misalignment the finer
+    level is not there to mend: ``auto`` then goes to its fallback). ``when``: for the message."""
     from radiokit.register import _assess_binning, coarse_residual_motion
 
     k = _assess_binning(fixed.size)
-    if not o["abandon_px"] or finest >= k:
-        return None
     shape = (fixed.shape[0] // k, fixed.shape[1] // k)
-    d = _fields(grids, k, shape)
+    d = _fields(lattices, k, shape)
     if affine is not None:
         d += affine.field(shape, k)
     motion = coarse_residual_motion(fixed, moving, mask, d)
     if not motion > o["abandon_px"]:
         return None
     return (
-        f"abandoned before the finest level: the residual still moves {motion:.2f} px after the level "
-        f"before it (abandon_px={o['abandon_px']:g})"
+        f"abandoned before the finest level: the residual still moves {motion:.2f} px {when} "
+        f"(abandon_px={o['abandon_px']:g})"
     )
 
 
-def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None):
+def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None):
     """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
     (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
     coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients.
     ``coarse`` (``joint``): the coarser levels' ``[(grid, coefficients)]``, refitted with this
     lattice from where they stand, each with its own bending weight; updated in place.
-    ``x_start``: this lattice's first coefficients (None: zero)."""
+    ``x_start``: this lattice's first coefficients (None: zero). ``check``: ``(iteration, fn)``,
+    ``fn((grid, coefficients))`` at that iteration, whose message (not None) stops the level
+    there, left in ``result["abandoned"]``."""
     factor, n_it, coarsest, finest = where
     fine = factor == finest
     # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
@@ -1250,7 +1283,9 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     thinning = None if gain is None else (gain[0], o["gain_regularisation"])
     grid.lam = lam  # what ``joint`` refits it with at the finest level
     fun = _objective(level, grid, base, lam, factor, o["balance"], thinning, [(g, g.lam) for g, _ in coarse])
-    res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse])
+    if check is not None:
+        check = (check[0], lambda x, fn=check[1]: fn((grid, x[: grid.n_params].copy())))
+    res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse], check)
     xs, rest = _split(res.x, [grid] + [g for g, _ in coarse])
     coarse[:] = [(g, c) for (g, _), c in zip(coarse, xs[1:])]
     if gain is not None:
