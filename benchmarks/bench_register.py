@@ -218,23 +218,23 @@ def _auto_row(tag, pair, fast_only=False):
 
     f, m, d, mask = pair
     res, chose, quality = {}, {}, {}
-    names = _AUTO_ROW[1] if fast_only else _AUTO_ROW[0] + _AUTO_ROW[1]
-    for p in names:
+
+    def run(p):  # registered and scored into res; the Registration
         t = time.perf_counter()
         r = register(f, m, "rc", preset=p)
         s = score(r.displacement, d, mask)
         res[p] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
-        quality[p] = r.quality
+        return r
+
+    names = _AUTO_ROW[1] if fast_only else _AUTO_ROW[0] + _AUTO_ROW[1]
+    for p in names:
+        quality[p] = run(p).quality
     fallback = {name: choose(f, name) for name in AUTO_PRESETS}
     for name, (plain, *_) in AUTO_PRESETS.items():
         if plain not in res:
             continue
         if name == "auto" and f.size > _ASSESS_PIXELS:
-            t = time.perf_counter()
-            r = register(f, m, "rc", preset=name)
-            s = score(r.displacement, d, mask)
-            res[name] = (s["epe_median"], s["epe_p95"], time.perf_counter() - t, r.quality.ok)
-            chose[name] = r.options["preset"]
+            chose[name] = run(name).options["preset"]
             continue
         other = fallback[name].preset
         tried = not res[plain][3] and other != plain

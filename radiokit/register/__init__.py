@@ -247,6 +247,13 @@ def _bin(a, k):
     return cv2.resize(a[: r * k, : c * k], (c, r), interpolation=cv2.INTER_AREA)  # exact k x k means
 
 
+def _bin_pair(f, m, mask, k):
+    """``(fixed, moving, mask)`` area-averaged by ``k`` as the checks see them (a mask pixel is
+    kept where over half its bin was)."""
+    maskb = None if mask is None else _bin(np.asarray(mask, np.float32), k) > 0.5
+    return _bin(f, k), _bin(m, k), maskb
+
+
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
@@ -254,11 +261,9 @@ def _assess(reg, f, m, mask, info, seconds):
     q = reg.quality
     k = _assess_binning(f.size)
     if k > 1:
-        fb, mb = _bin(f, k), _bin(m, k)
+        f, m, mask_s = _bin_pair(f, m, mask, k)
         db = _bin(reg.displacement, k) / np.float32(k)
-        w = warp(mb, db)
-        maskb = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
-        f, m, mask_s = fb, mb, maskb
+        w = warp(m, db)
     else:
         w = reg.warp(m)
         db = reg.displacement
@@ -413,18 +418,19 @@ def _residual_step(f, w, obs, k) -> float:
     return k * float(np.median(C.residual_motion(f, w, _STEP_WINDOW)[obs]))
 
 
-def coarse_residual_motion(fixed, moving, mask, d) -> float:
-    """``Quality.residual_motion`` of a field ``d`` given at the assessment's binning (the pair
-    area-averaged by ``_assess_binning(fixed.size)``, ``d`` in those pixels), as ``register``'s
-    checks measure it: rc's ``abandon_px`` stops a run with it before its finest level, where
-    the checks would see the same misalignment at several times the cost."""
+def coarse_residual_motion(fixed, moving, mask):
+    """``(k, shape, motion)``: the checks' binning of this pair, the binned shape, and
+    ``motion(d)``, the ``Quality.residual_motion`` of a field ``d`` of that shape (in its pixels), as
+    ``register``'s checks measure it. rc's ``abandon_px`` stops a run with it before its finest
+    level, where the checks would see the same misalignment at several times the cost; the binned
+    pair and its observed part are computed once, for every field measured."""
     from radiokit.register import _confidence as C
 
     k = _assess_binning(fixed.size)
-    fb, mb = _bin(fixed, k), _bin(moving, k)
-    maskb = None if mask is None else _bin(np.asarray(mask, np.float32), k) > 0.5
+    fb, mb, maskb = _bin_pair(fixed, moving, mask, k)
     ob = C.observability(fb, _WINDOW, maskb, bound_scale=k)
-    return _residual_step(fb, np.nan_to_num(warp(mb, d)), (ob.confidence >= 0.5) & ob.object, k)
+    obs = (ob.confidence >= 0.5) & ob.object
+    return k, fb.shape, lambda d: _residual_step(fb, np.nan_to_num(warp(mb, d)), obs, k)
 
 
 def _body_scale(d, obj, obs, inner) -> float:

@@ -1179,9 +1179,12 @@ def _bspline_register(
         last_coarse = factor != finest and factor == levels[-2:][0][0] and _abandons(fixed, o, finest)
         check = None
         if last_coarse:
+            from radiokit.register import coarse_residual_motion
+
+            measure = coarse_residual_motion(fixed, moving, mask)  # once for both checks
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
-            check = (at, lambda lat, when=when: _far_off(fixed, moving, mask, grids + [lat], affine, o, when))
+            check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
         grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
@@ -1204,7 +1207,7 @@ def _bspline_register(
         if factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
         elif last_coarse and (
-            why := res.get("abandoned") or _far_off(fixed, moving, mask, grids, affine, o, "after the level before it")
+            why := res.get("abandoned") or _far_off(measure, grids, affine, o, "after the level before it")
         ):
             converged, message, abandoned = False, why, {"abandoned": why}
             break
@@ -1232,19 +1235,17 @@ def _abandons(fixed, o, finest) -> bool:
     return bool(o["abandon_px"]) and finest < _assess_binning(fixed.size)
 
 
-def _far_off(fixed, moving, mask, lattices, affine, o, when):
+def _far_off(measure, lattices, affine, o, when):
     """Why the run stops before its finest level (``abandon_px``), or None: the field of
     ``lattices`` (and ``affine``) at the checks' binning, its residual's motion measured as they
-    would measure it (``coarse_residual_motion``), over ``abandon_px`` (a misalignment the finer
-    level is not there to mend: ``auto`` then goes to its fallback). ``when``: for the message."""
-    from radiokit.register import _assess_binning, coarse_residual_motion
-
-    k = _assess_binning(fixed.size)
-    shape = (fixed.shape[0] // k, fixed.shape[1] // k)
+    would measure it (``measure``: ``coarse_residual_motion``'s ``(k, shape, motion)``), over
+    ``abandon_px`` (a misalignment the finer level is not there to mend: ``auto`` then goes to
+    its fallback). ``when``: for the message."""
+    k, shape, motion_of = measure
     d = _fields(lattices, k, shape)
     if affine is not None:
         d += affine.field(shape, k)
-    motion = coarse_residual_motion(fixed, moving, mask, d)
+    motion = motion_of(d)
     if not motion > o["abandon_px"]:
         return None
     return (
