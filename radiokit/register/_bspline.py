@@ -92,7 +92,10 @@ the frozen coarser field).
 ``abandon_px`` stops a run before its finest level when, after the level before it, the
 residual still moves by more than that (measured as ``register``'s checks measure it): ``auto``
 uses it so that a plain run already far off does not spend its most costly level
-(``radiokit.register._auto.ABANDON``).
+(``radiokit.register._auto.ABANDON``). ``extend`` is the converse: a finest level that ends its
+budget with the field still moving (``converge_px``) while the residual, measured the same way,
+already passes the checks' line is slow, not lost, and runs up to that many iterations more from
+where it stands (``auto`` sets it on its plain run: natural images at 2240, ``_auto.EXTEND``).
 
 Computation. One evaluation of a level's energy runs in row bands on radiokit's threads: a
 band's field rows (``B_r`` rows times ``C B_c^T``), the bilinear warp and its derivatives (one
@@ -150,6 +153,7 @@ PRESETS = {
         bin_pixels=0,
         refit_thinning=False,
         abandon_px=0.0,
+        extend=0,
     ),
     "fast": dict(
         spacing=16,
@@ -177,6 +181,7 @@ PRESETS = {
         bin_pixels=0,
         refit_thinning=False,
         abandon_px=0.0,
+        extend=0,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -796,6 +801,8 @@ def _options(preset, overrides) -> dict:
             raise ValueError(f"{key}={o[key]}: expected >= 0")
     if o["spacing"] < 4:
         raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
+    if not (isinstance(o["extend"], (int, np.integer)) and o["extend"] >= 0):
+        raise ValueError(f"extend={o['extend']!r}: expected a whole number of iterations >= 0")
     if not o["bin_pixels"] >= 0:
         raise ValueError(f"bin_pixels={o['bin_pixels']}: expected >= 0 (0: off)")
     return o
@@ -1168,6 +1175,7 @@ def _bspline_register(
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message, abandoned = 0, True, "", {}
+    measure = None  # coarse_residual_motion's (k, shape, motion): built once, when first needed
     for factor, n_it in levels:
         # joint: the coarser lattices are refitted with the finest's, so their field is not in base
         coarse = grids if o["joint"] and factor == finest else []
@@ -1179,13 +1187,18 @@ def _bspline_register(
         last_coarse = factor != finest and factor == levels[-2:][0][0] and _abandons(fixed, o, finest)
         check = None
         if last_coarse:
-            from radiokit.register import coarse_residual_motion
-
-            measure = coarse_residual_motion(fixed, moving, mask)  # once for both checks
+            measure = measure or _coarse_measure(fixed, moving, mask)  # once for both checks
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
             check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
         grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check)
+        if factor == finest and o["extend"] and not _converged(res, move, o["converge_px"])[0]:
+            measure = measure or _coarse_measure(fixed, moving, mask)
+            if _settles(measure, grids + [(grid, res.x)], affine):  # slow, not lost: go on from here
+                more = (factor, o["extend"], coarsest, finest)
+                grid, res2, move = _run_level(f, m, maskf, similarity, o, more, base, gain, coarse, res.x)
+                res2.nit += res.nit
+                res = res2
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -1252,6 +1265,27 @@ def _far_off(measure, lattices, affine, o, when):
         f"abandoned before the finest level: the residual still moves {motion:.2f} px {when} "
         f"(abandon_px={o['abandon_px']:g})"
     )
+
+
+def _coarse_measure(fixed, moving, mask):
+    """``coarse_residual_motion`` (imported here: the register package imports this module)."""
+    from radiokit.register import coarse_residual_motion
+
+    return coarse_residual_motion(fixed, moving, mask)
+
+
+def _settles(measure, lattices, affine) -> bool:
+    """Whether the residual of the field of ``lattices`` (and ``affine``), measured as the checks
+    measure it (``measure``: ``coarse_residual_motion``'s), is within their line
+    (``_MAX_RESIDUAL_MOTION``): a field still moving there is slow to converge, not lost
+    (``extend``)."""
+    from radiokit.register import _MAX_RESIDUAL_MOTION
+
+    k, shape, motion_of = measure
+    d = _fields(lattices, k, shape)
+    if affine is not None:
+        d += affine.field(shape, k)
+    return bool(motion_of(d) <= _MAX_RESIDUAL_MOTION)
 
 
 def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None):
@@ -1347,7 +1381,10 @@ def _rc(fixed, moving, mask, **options):
     abandon_px (> 0: stop before the finest level, not converged, when after the level before it
     the residual still moves by more than this, measured as the quality checks do; only when the
     finest level is finer than their binning; ``auto`` sets it on its plain run, see
-    ``radiokit.register._auto.ABANDON``)."""
+    ``radiokit.register._auto.ABANDON``), extend (iterations the finest level may add when its
+    budget ends with the field still moving more than converge_px while the residual, measured as
+    the quality checks do, is within their line; 0, every preset's: off; ``auto`` sets it on its
+    plain run, see ``radiokit.register._auto.EXTEND``)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
