@@ -207,13 +207,14 @@ def presets_part(which, split):
 
 def _auto_row(tag, pair, fast_only=False):
     """One pair: median / p95 EPE and ``ok`` of default, weak, silent, auto (and the fast ones),
-    and what ``auto`` / ``auto-fast`` returned. ``auto`` returns the plain preset's run when it
-    passes its own checks or there is no interior to judge, else the better of it and the weak
+    and what ``auto`` / ``auto-fast`` returned. ``auto-fast`` returns the plain preset's run when
+    it passes its own checks or there is no interior to judge, else the better of it and the weak
     (textured interior) or silent (silent body) preset's run (``register_auto``'s rule), so its
     result is one of the rows, taken from them rather than registered again; the time of a
-    fallback is both runs'. In a frame over the checks' ~0.4 Mpx ``auto``'s plain run may stop
-    early (``_auto.ABANDON``), so there ``auto`` is registered as it is."""
-    from radiokit.register import _ASSESS_PIXELS, register
+    fallback is both runs'. ``auto`` is registered as it is: its plain run may go on at
+    its finest level (``_auto.EXTEND``) and, over the checks' ~0.4 Mpx, stop early
+    (``_auto.ABANDON``), neither of which the plain preset's row does."""
+    from radiokit.register import register
     from radiokit.register._auto import AUTO_PRESETS, choose, returned
 
     f, m, d, mask = pair
@@ -233,7 +234,7 @@ def _auto_row(tag, pair, fast_only=False):
     for name, (plain, *_) in AUTO_PRESETS.items():
         if plain not in res:
             continue
-        if name == "auto" and f.size > _ASSESS_PIXELS:
+        if name == "auto":  # its plain run extends (_auto.EXTEND) and, over ~0.4 Mpx, may stop early
             chose[name] = run(name).options["preset"]
             continue
         other = fallback[name].preset

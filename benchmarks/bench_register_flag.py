@@ -88,9 +88,12 @@ def assess(name, opts, fixed, moving, d, info, seconds):
     return reg
 
 
-# preset="auto" as register_auto composes it: the plain run, and its weak or silent fallback
-AUTO = {"rc-auto": ("auto", "rc"), "rc-auto-fast": ("auto-fast", "rc-fast")}
-EXTRA = ("rc-silent", "rc-silent-fast")
+# preset="auto" as register_auto composes it: the plain run (``auto``'s with rc's ``extend``,
+# _auto.EXTEND, registered for that alone and not tabled), and its weak or silent fallback
+# (configuration name's suffix)
+AUTO = {"rc-auto": ("auto", "rc-extend", ""), "rc-auto-fast": ("auto-fast", "rc-fast", "-fast")}
+EXTRA = ("rc-silent", "rc-silent-fast", "rc-extend")
+_UNTABLED = ("rc-extend",)
 
 
 def _auto_choice(name, fixed, regs):
@@ -100,11 +103,11 @@ def _auto_choice(name, fixed, regs):
     never stopped early: ``_auto.ABANDON``)."""
     from radiokit.register._auto import AUTO_PRESETS, choose, returned, settled
 
-    auto, plain = AUTO[name]
+    auto, plain, _ = AUTO[name]
     if settled(regs[plain].quality):  # as register_auto: no fallback is judged
         return plain
     fallback = choose(fixed, auto).preset
-    retry = regs.get("rc-" + fallback)  # absent only when nothing is retried
+    retry = regs.get("rc-" + fallback)  # absent only when nothing is retried (names: the presets')
     use = returned(auto, regs[plain].quality, fallback, retry.quality if retry is not None else None)
     return plain if use == AUTO_PRESETS[auto][0] else "rc-" + use
 
@@ -132,7 +135,9 @@ def run(args):
     from radiokit.register import _load_methods
 
     _load_methods()
-    cfgs = dict(configs())
+    from radiokit.register._auto import EXTEND
+
+    cfgs = dict(configs(), **{"rc-extend": {"extend": EXTEND}})
     names = [n for n in FAMILY_METHODS + EXTRA if n in cfgs and n.split("+")[0] not in args.skip]
     methods = [(n, cfgs[n]) for n in names]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -149,11 +154,13 @@ def run(args):
             regs[name], secs[name] = reg, sec
             if args.sweep:
                 inputs.append(dict(rule_inputs(fixed, moving, d), preset=opts.get("preset")))
+            if name in _UNTABLED:
+                continue
             rows.append(_row(meta, label, name, reg, truth, mask, ident, sec))
             if args.sweep:
                 rows[-1]["quality"] = reg.quality
-        for name, (_, plain) in AUTO.items():
-            if {plain, "rc-weak" + plain[2:], "rc-silent" + plain[2:]} <= set(regs) and not args.sweep:
+        for name, (_, plain, suffix) in AUTO.items():
+            if {plain, "rc-weak" + suffix, "rc-silent" + suffix} <= set(regs) and not args.sweep:
                 use = _auto_choice(name, fixed, regs)
                 sec = secs[plain] + (secs[use] if use != plain else 0.0)
                 rows.append(dict(_row(meta, label, name, regs[use], truth, mask, ident, sec), returned=use))

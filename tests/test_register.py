@@ -997,14 +997,16 @@ def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
 
 
 def test_auto_stops_default_early_on_weak_texture_and_returns_weak():
-    """The first test's pair through ``auto``: the interior carries texture, so ``default`` runs
-    with ``ABANDON``, stops before its finest level, and ``weak`` (which follows anyway) is
-    returned, its residual moving less; the reason records the stop."""
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, seed=9)
+    """Texture = noise and a local motion of 3 % of the frame through ``auto``: the interior
+    carries texture, so ``default`` runs with ``ABANDON`` (a pixel), is over twice that far off
+    halfway through the level before its finest, stops there, and ``weak`` (which follows anyway)
+    is returned, its residual moving less; the reason records the stop."""
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
     reg = register(fixed, moving, "rc", preset="auto")
     why = reg.options["auto"]
     assert why.preset == "weak" and "abandoned before the finest level" in why.reason, why
-    assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] < 0.6
+    identity = _epe(np.zeros_like(d), d, mask)[0]
+    assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] < 0.2 * identity
 
 
 def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it():
@@ -1014,7 +1016,9 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     from radiokit.register import Quality, Registration
     from radiokit.register._auto import register_auto
 
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, seed=9)
+    from radiokit.register._auto import EXTEND
+
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
     calls = []
 
     def losing_weak(f, m, method, mask, retry=False, **options):
@@ -1026,9 +1030,31 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     reg = register_auto(losing_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
     assert [c["preset"] for c in calls] == ["default", "weak", "default"]
     assert "abandon_px" in calls[0] and "abandon_px" not in calls[2]
-    full = register(fixed, moving, "rc")
+    assert calls[0]["extend"] == calls[2]["extend"] == EXTEND  # auto's plain run, as a user's would be
+    full = register(fixed, moving, "rc", extend=EXTEND)
     assert reg.options["auto"].preset == "default" and "abandoned" not in reg.options
     np.testing.assert_array_equal(reg.displacement, full.displacement)
+
+
+def test_extend_goes_on_with_a_slow_run_and_not_with_a_lost_one():
+    """``extend``: a finest level whose budget (5 iterations) ends with the field still moving
+    while its residual already passes the checks goes on from where it stands, converges and
+    comes closer to the truth; a run whose residual fails the checks (texture = noise, a local
+    motion of 3 % correlated over a twentieth of the frame: it is lost, not slow) is left as it
+    was, the same field to the bit."""
+    fixed, moving, d, mask = _family_pair(size=352, texture=0.1, noise=0.01, corr=0.25, seed=9)
+    short = register(fixed, moving, "rc", iterations=(250, 5))
+    longer = register(fixed, moving, "rc", iterations=(250, 5), extend=60)
+    assert not short.quality.converged and "still moving" in short.quality.reason
+    assert longer.quality.ok and short.quality.iterations < longer.quality.iterations <= short.quality.iterations + 60
+    assert _epe(longer.displacement, d, mask)[0] < _epe(short.displacement, d, mask)[0]
+    lost = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.05, amplitude=0.03, seed=9)[:2]
+    plain = register(*lost, "rc", iterations=(250, 5))
+    asked = register(*lost, "rc", iterations=(250, 5), extend=60)
+    assert plain.quality.residual_motion > 0.35 and asked.quality.iterations == plain.quality.iterations
+    np.testing.assert_array_equal(asked.displacement, plain.displacement)
+    with pytest.raises(ValueError, match="extend"):
+        register(*lost, "rc", extend=-1)
 
 
 def test_the_still_check_decides_as_the_percentile_does():

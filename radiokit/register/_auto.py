@@ -71,6 +71,7 @@ __all__ = [
     "SILENT_TIE",
     "POLISH",
     "ABANDON",
+    "EXTEND",
     "polishes",
     "settled",
 ]
@@ -106,14 +107,24 @@ POLISH = 0.1
 # level when its residual's motion there, measured as the checks measure it, is over this (rc's
 # abandon_px; only where that level is finer than the checks' binning: 1120 px and larger).
 # A field that far off is not settled after one more level, so the weak preset runs anyway; the
-# finest level (at 2240 more than half the plain run's time) is not spent on it. The flag's own
-# line (_MAX_RESIDUAL_MOTION). 63 TRAINING pairs (2240: the family's map and spread of seed 0 and
-# 13 map cells of seed 1, texture 10x at seeds 2-3, analytic_pair seeds 0-1, camera and moon;
-# 1120: the same rich pairs): the 17 plain runs that settled read at most 0.24 px there
-# (analytic 0.02-0.10, texture 10x 0.04-0.24, camera and moon 1120 0.09-0.10); of the 38 that
-# did not and fell back to weak, one read 0.28 (1120, polished by weak anyway), the rest 0.56 or
-# more (benchmarks/README.md, "`auto` under 10 s on weak texture at 2240 ... (session 15)")
-ABANDON = 0.35
+# finest level (at 2240 more than half the plain run's time) is not spent on it. TRAINING pairs
+# at 2240, the residual after 60 of the level's 120 iterations (benchmarks/README.md, "Natural
+# images at 2240 (session 16)"): the family's plain runs that settled read at most 0.28 px, those
+# that did not 0.83 or more (most 1.5-7.4); but natural images (scikit-image's astronaut, brick,
+# coffee, chelsea, retina under a smooth and a local motion), on which the plain run settles after
+# its finest level and beats weak 1.3-4x, read up to 0.96 (retina's smooth motion 1.44). A stop
+# wrongly made costs the natural image that accuracy; one wrongly not made costs a family pair
+# the finest level's time (the weak preset runs after it all the same). So a pixel: session 15's
+# 0.35 (the flag's own line) stopped every natural image with the smooth motion
+ABANDON = 1.0
+# iterations the plain run of ``auto`` (not ``auto-fast``: its time is the point) may add at its
+# finest level when the budget ends with the field still moving while the residual already passes
+# the checks (rc's ``extend``): such a run is slow, not lost, and without it ``auto`` replaced it
+# with ``weak``, which is 1.3-4x worse on natural images at 2240 (TRAINING images of
+# scikit-image, benchmarks/README.md, "Natural images at 2240 (session 16)"). 60 more (140 in
+# all): all five training images converged under local motion of 1/10 of the frame, four of five
+# under a smooth one, their medians within 0.013 px of 200 iterations' (0.04-0.15 px)
+EXTEND = 60
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -242,9 +253,15 @@ def returned(name, plain_quality, fallback, retry_quality) -> str:
     return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
 
 
-def _early(on) -> dict:
-    """The plain run's ``abandon_px`` (``ABANDON``) when ``on``, else nothing."""
-    return {"abandon_px": ABANDON} if on else {}
+def _plain(name, options, early) -> dict:
+    """The options of ``name``'s plain run: ``abandon_px`` (``ABANDON``) when ``early`` and
+    ``extend`` (``EXTEND``, ``auto`` only), each unless the caller set it."""
+    o = dict(options, preset=AUTO_PRESETS[name][0])
+    if early and options.get("abandon_px") is None:
+        o["abandon_px"] = ABANDON
+    if name == "auto" and options.get("extend") is None:
+        o["extend"] = EXTEND
+    return o
 
 
 def register_auto(register, f, m, method, mask, retry, options):
@@ -257,8 +274,8 @@ def register_auto(register, f, m, method, mask, retry, options):
     fallback = choose(f, name)
     # on a textured interior a plain run that is far off before its finest level stops there
     # (ABANDON): the weak preset follows anyway
-    early = fallback.preset == AUTO_PRESETS[name][1] and not retry and options.get("abandon_px") is None
-    first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain, **_early(early)))
+    early = fallback.preset == AUTO_PRESETS[name][1] and not retry
+    first = register(f, m, method, mask, retry=retry, **_plain(name, options, early))
     if settled(first.quality):
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
         return first
@@ -270,7 +287,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     total = first.quality.seconds + second.quality.seconds
     if "abandoned" in first.options and returned(name, first.quality, fallback.preset, second.quality) == plain:
         # the fallback did not beat the abandoned run: the plain preset in full after all
-        first = register(f, m, method, mask, retry=retry, **dict(options, preset=plain))
+        first = register(f, m, method, mask, retry=retry, **_plain(name, options, False))
         total += first.quality.seconds
     if fallback.preset == AUTO_PRESETS[name][2]:  # silent: judged by the misaligned share
         a, b, what = first.quality.misaligned_fraction, second.quality.misaligned_fraction, "misaligned"
