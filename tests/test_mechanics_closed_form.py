@@ -202,3 +202,32 @@ def test_eshelby_cylinder_in_plane_strain():
     expected = dilute_strain_ratio(r, nu, "cylinder")
     assert ratio == pytest.approx(expected, rel=5e-3)
     assert abs(ratio / dilute_strain_ratio(r, nu, "sphere") - 1) > 0.1
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.45, 0.495])
+def test_block_closed_form_has_the_linear_elastic_small_strain_limit(nu):
+    """``uniaxial_block_force`` (the reference the FE block tests use) at strain 1e-4: plate stress
+    E eps, lateral stretch 1 + nu eps, volume change -(1 - 2 nu) eps (Hooke), each to the next
+    order of the expansion, O(eps) relative (allowed: 10 eps)."""
+    from sim.mechanics import uniaxial_block_force
+
+    eps, E, area = 1e-4, 5.0, 100.0
+    force, t = uniaxial_block_force(eps, E, nu, area)
+    assert force == pytest.approx(E * 1e-3 * area * eps, rel=10 * eps)
+    assert t - 1 == pytest.approx(nu * eps, rel=10 * eps)
+    assert 1 - (1 - eps) * t * t == pytest.approx((1 - 2 * nu) * eps, rel=10 * eps)
+
+
+def test_tangent_modulus_of_the_nearly_incompressible_block():
+    """sim.materials fits the gels with the incompressible neo-Hookean tangent modulus
+    ``E0 (1 + 2 s^-3) / 3``; the model's solid has nu = 0.495. The compressible closed form's
+    d(stress)/d(strain) must agree to O(1 - 2 nu) = 1 % over the paper's 0-25 % strain."""
+    from sim.materials import neo_hookean_tangent_modulus
+    from sim.mechanics import uniaxial_block_force
+
+    E0, nu, h = 19.7, 0.495, 1e-6
+    for strain in (0.0, 0.1, 0.2, 0.25):
+        hi, _ = uniaxial_block_force(strain + h, E0, nu, 1.0)
+        lo, _ = uniaxial_block_force(max(strain - h, 0.0), E0, nu, 1.0)
+        slope_kpa = (hi - lo) / (strain + h - max(strain - h, 0.0)) * 1e3
+        assert slope_kpa == pytest.approx(float(neo_hookean_tangent_modulus(E0, strain)), rel=1 - 2 * nu)
