@@ -7,6 +7,12 @@ variance is ``q * signal``), ``gain`` a smooth non-uniformity times a small per-
 under-responding pixels, noisy pixels, and whole defect columns. Binning sums charge: a 2x2 binned
 pixel collects four pixels' signal and is read once.
 
+The open beam ``I0`` is the same on every pixel: a point source's inverse-square and obliquity
+falloff on a flat panel (``cos^3`` of the ray's angle to the normal: 0.964 at the corners of the
+full 112 mm panel 500 mm from the source, the pva-phantom's cone beam) and the anode heel are not
+modelled. The flat field divides them out of the mean exactly; they would only raise the noise
+there, by ``cos^-3/2`` (1.9 % at those corners).
+
 Defaults follow the C7942 facts (../shared/hardware/C7942.md): 12-bit ADC, about 1100 e- read
 noise against a 2.2 Me- full well (so ~2 counts rms), a dark offset of a hundred-odd counts.
 """

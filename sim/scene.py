@@ -1,7 +1,7 @@
 """Scenes as data: what is compressed, how, and how it is imaged. TOML in, TOML out.
 
 Coordinates are millimetres, the compression axis is ``y`` and the plates are normal to it.
-``seed-breast``: the hemi-ellipsoid's flat face is the chest wall ``x = 0`` (fixed), the body
+``seed-breast``: the hemi-ellipsoid's flat face is the chest wall ``x = 0`` (sliding), the body
 extends to ``x = a``; the beam is parallel along ``y`` (through the plates, as in mammography).
 ``pva-phantom``: the cone's axis is ``y`` (bottom face at ``y = -h/2``), compressed axially, and
 imaged by a cone beam from the side along ``z`` by default. The paper does not state the beam
@@ -57,7 +57,8 @@ class Material:
     """A hyperelastic (neo-Hookean, FEBio's form) or linear elastic solid with an attenuation.
 
     Give either ``E_kpa`` and ``nu`` or ``mu_kpa`` and ``kappa_kpa`` (shear and bulk moduli).
-    ``psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``; ``"linear"`` is small-strain Hooke.
+    ``psi = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``; ``"linear"`` is Hooke's law on the
+    Green-Lagrange strain (St Venant-Kirchhoff, see ``MATERIAL_MODELS``).
     """
 
     name: str = "material"

@@ -15,11 +15,15 @@ It is what an ideal registration of two line-integral images recovers where the 
 ray moves together; where it does not (the inclusion's shadow), it is the motion of the
 attenuation-weighted centre.
 
-How it is computed, exactly for the finite-element field
----------------------------------------------------------
+How it is computed, exactly for the finite-element field (parallel beams)
+-------------------------------------------------------------------------
 The projected motion ``f = P(X_moving) - P(X_fixed)`` is interpolated linearly over each
-tetrahedron of the fixed state from its vertices: ``f = a . x + b``. Along a ray ``x = o + t w``
-through one tetrahedron,
+tetrahedron of the fixed state from its vertices: ``f = a . x + b``. For a parallel beam ``P`` is
+affine and this is exact; a cone beam's perspective ``P`` bends ``f`` inside a tetrahedron, an
+error of order ``(h / s)^2`` of the motion for elements of size ``h`` at ``s`` from the source
+(at most 1.6e-4 of it for the pva-phantom's 5 mm elements 400 mm from the source; a block of
+2.5 mm elements measures 1e-5, tests/test_sim_lab.py). Along a ray ``x = o + t w`` through one
+tetrahedron,
 
     int f dl = sum over its 4 faces of s_f [(a . o + b) t_f + (a . w) t_f^2 / 2],
 

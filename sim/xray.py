@@ -798,7 +798,10 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
         ``None``: the undeformed mesh (``fem``, or ``build_mesh(scene)``).
     fem : FEMesh, optional
     supersample : int
-        ``s x s`` sub-rays per pixel.
+        ``s x s`` sub-rays per pixel; their line integrals are averaged. A pixel integrates
+        intensity, so what it measures is ``-ln(mean exp(-L))``, smaller where ``L`` varies across
+        it (Jensen): half a pixel behind a slab of line integral ``L`` measures
+        ``-ln((1 + e^-L) / 2)``, not ``L / 2``. The simulated experiment renders one ray per pixel.
     revolve_tol : float
         Axisymmetric meshes: see :func:`surface_of`.
 

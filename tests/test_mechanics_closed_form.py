@@ -46,7 +46,7 @@ def test_eshelby_sphere_in_a_large_body(E_ratio):
     Axisymmetric: the cheapest exact model of this body of revolution. The volume-averaged axial
     strain of the inclusion over the applied 1 %: the issue's 5 / (3 + 2 E_i/E_m) within 3 %,
     and the nu = 0.495 formula within 1 %. Mesh 0.25 mm at the sphere, 2 mm far (700 dofs,
-    0.1 s; measured 0.3298, 0.3306, 0.3313 at 0.25, 0.15, 0.1 mm for E_ratio 6)."""
+    0.1 s; measured 0.3298, 0.3306, 0.3307 at 0.25, 0.15, 0.1 mm for E_ratio 6)."""
     m = Material("matrix", "neo-hookean", E_kpa=5.0, nu=0.495)
     i = Material("inclusion", "neo-hookean", E_kpa=5.0 * E_ratio, nu=0.495)
     scene = Scene(
@@ -135,3 +135,99 @@ def test_mesh_convergence_of_the_headline_through_the_plates():
     assert n2 > 2.5 * n1
     assert coarse[2] < 0.9 and coarse[3] > 1.0  # a real elasticity signal to converge on
     np.testing.assert_array_less(np.abs(coarse / fine - 1), 0.02)
+
+
+def dilute_strain_ratio(E_ratio, nu, shape):
+    """Axial strain of a dilute inhomogeneity over the remote one, same ``nu`` in both, from
+    Eshelby's tensor ``S`` of the ``"sphere"`` or of the circular ``"cylinder"`` (axis z, plane
+    strain; Mura, Micromechanics, eq. 11.22): with ``C_i = E_ratio C_m`` the equivalent-inclusion
+    equations reduce to ``eps_i = [I + (E_ratio - 1) S]^-1 eps_0``, normal components only (no
+    remote shear). Remote uniaxial stress along y: ``eps_0 = (nu, -1, nu)`` (sphere) and, with
+    ``eps_zz = 0``, ``(nu / (1 - nu), -1, 0)`` (cylinder)."""
+    if shape == "sphere":
+        a = 1 / (15 * (1 - nu))
+        S = np.full((3, 3), (5 * nu - 1) * a) + np.eye(3) * 2 * (4 - 5 * nu) * a
+        eps0 = np.array([nu, -1.0, nu])
+    else:
+        S = np.array([[5 - 4 * nu, 4 * nu - 1, 4 * nu], [4 * nu - 1, 5 - 4 * nu, 4 * nu], [0, 0, 0]]) / (8 * (1 - nu))
+        eps0 = np.array([nu / (1 - nu), -1.0, 0.0])
+    return float(np.linalg.solve(np.eye(3) + (E_ratio - 1) * S, eps0)[1] / eps0[1])
+
+
+def _inhomogeneity(body, nu, E_ratio, sizes, model):
+    m = Material("matrix", "neo-hookean", E_kpa=5.0, nu=nu)
+    i = Material("inclusion", "neo-hookean", E_kpa=5.0 * E_ratio, nu=nu)
+    scene = Scene(
+        name="inhomogeneity",
+        body=body(m),
+        inclusions=[Inclusion("sphere", diameter_mm=2.0, material=i)],
+        compression=Compression((0.001,)),
+        mesh=MeshSpec(*sizes, model, True),
+    )
+    (state,) = compress(scene)
+    assert state.solver.model in ("axisymmetric", "plane-strain")  # a sphere of revolution, a 2-D disk
+    return state.inclusion_strain / 0.001
+
+
+def test_eshelby_tensor_form_is_the_formula_above():
+    for nu in (0.3, 0.45, 0.495):
+        for r in (2.0, 6.0, 20.0):
+            assert dilute_strain_ratio(r, nu, "sphere") == pytest.approx(eshelby_strain_ratio(r, nu), rel=1e-12)
+
+
+def test_eshelby_sphere_at_a_compressible_poisson_ratio():
+    """At nu = 0.3 the incompressible limit 5 / (3 + 2 E_i/E_m) is 15 % off (0.333 against 0.289 at
+    6): the model must follow the nu-dependent Eshelby value. Same 10x cylinder as above, 0.1 %
+    compression (linear to 1e-3); tolerance 0.5 %: the body's finite size perturbs by about
+    (a/R)^3 = 1e-3, and halving the 0.2 mm elements moves the result by 4e-4."""
+    r, nu = 6.0, 0.3
+    ratio = _inhomogeneity(
+        lambda m: Body("cylinder", height_mm=20.0, diameter_mm=20.0, material=m), nu, r, (0.2, 2.0), "auto"
+    )
+    assert ratio == pytest.approx(dilute_strain_ratio(r, nu, "sphere"), rel=5e-3)
+    assert abs(ratio / (5 / (3 + 2 * r)) - 1) > 0.1
+
+
+def test_eshelby_cylinder_in_plane_strain():
+    """A plane-strain slab section (40 x 40 mm) with a 2 mm circular inclusion, i.e. a long
+    cylinder across the beam, compressed 0.1 % between frictionless plates, nu = 0.495, E ratio 6:
+    the cylinder's Eshelby value (0.283), not the sphere's (0.331). Tolerance 0.5 %: twice the
+    finite width's (a / half-width)^2 = 2.5e-3 (a 2-D disturbance decays as (a/r)^2); the far
+    elements are 1 mm because near incompressibility the element-wise constant pressure of the
+    P2-P0 pair makes the far mesh, not the inclusion's, set the error (4 mm far: -0.35 %)."""
+    r, nu = 6.0, 0.495
+    ratio = _inhomogeneity(
+        lambda m: Body("box", size_mm=(40.0, 40.0, 10.0), material=m), nu, r, (0.1, 1.0), "plane-strain"
+    )
+    expected = dilute_strain_ratio(r, nu, "cylinder")
+    assert ratio == pytest.approx(expected, rel=5e-3)
+    assert abs(ratio / dilute_strain_ratio(r, nu, "sphere") - 1) > 0.1
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.45, 0.495])
+def test_block_closed_form_has_the_linear_elastic_small_strain_limit(nu):
+    """``uniaxial_block_force`` (the reference the FE block tests use) at strain 1e-4: plate stress
+    E eps, lateral stretch 1 + nu eps, volume change -(1 - 2 nu) eps (Hooke), each to the next
+    order of the expansion, O(eps) relative (allowed: 10 eps)."""
+    from sim.mechanics import uniaxial_block_force
+
+    eps, E, area = 1e-4, 5.0, 100.0
+    force, t = uniaxial_block_force(eps, E, nu, area)
+    assert force == pytest.approx(E * 1e-3 * area * eps, rel=10 * eps)
+    assert t - 1 == pytest.approx(nu * eps, rel=10 * eps)
+    assert 1 - (1 - eps) * t * t == pytest.approx((1 - 2 * nu) * eps, rel=10 * eps)
+
+
+def test_tangent_modulus_of_the_nearly_incompressible_block():
+    """sim.materials fits the gels with the incompressible neo-Hookean tangent modulus
+    ``E0 (1 + 2 s^-3) / 3``; the model's solid has nu = 0.495. The compressible closed form's
+    d(stress)/d(strain) must agree to O(1 - 2 nu) = 1 % over the paper's 0-25 % strain."""
+    from sim.materials import neo_hookean_tangent_modulus
+    from sim.mechanics import uniaxial_block_force
+
+    E0, nu, h = 19.7, 0.495, 1e-6
+    for strain in (0.0, 0.1, 0.2, 0.25):
+        hi, _ = uniaxial_block_force(strain + h, E0, nu, 1.0)
+        lo, _ = uniaxial_block_force(max(strain - h, 0.0), E0, nu, 1.0)
+        slope_kpa = (hi - lo) / (strain + h - max(strain - h, 0.0)) * 1e3
+        assert slope_kpa == pytest.approx(float(neo_hookean_tangent_modulus(E0, strain)), rel=1 - 2 * nu)
