@@ -189,7 +189,7 @@ class SourceConfig:
     """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
 
     ``dialect`` is ``"A"``, ``"B"`` or ``"auto"`` (probe at connect, :func:`probe`). ``baudrate``
-    ``None`` means the dialect's (A 38400, B 9600; ``auto`` tries ``baudrate`` if set, then
+    ``None`` means the dialect's (9600 in both, the link default of ``L8121.md``; ``auto`` tries ``baudrate`` if set, then
     ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
     argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV). ``min_interval_s``,
     the pause between two commands, ``None`` means the dialect's (A 0.05 s, ``L8121.md``; B 0.02 s,
@@ -654,7 +654,8 @@ _FOCUS_B = {0: "SMALL", 1: "MIDDLE", 2: "LARGE"}
 
 DIALECT_A = Dialect(
     name="A",
-    baudrate=38400,
+    # L8121.md: "default 9600" under Link, whose rules "hold for both dialects"
+    baudrate=9600,
     voltage_scale=1,
     min_interval_s=0.05,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",

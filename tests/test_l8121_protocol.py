@@ -98,7 +98,7 @@ def test_connect(dialect):
         (
             "A",
             [("TYP", "ERROR")],
-            r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and "
+            r"TYP refused by the controller \(ERROR\); is this unit on 9600 baud and "
             r"speaking dialect A\? If it speaks dialect B",
         ),
         ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),

@@ -110,7 +110,7 @@ class SourceSettings:
     """The X-ray source: link, exposure and limits (``acquisition.l8121.L8121`` configuration)."""
 
     port: str = ""  # device path, socket://host:port or rfc2217://...; --sim ignores it
-    baudrate: int | None = None  # None: the dialect's (A 38400, B 9600); [source] dialect = "A" | "B" | "auto"
+    baudrate: int | None = None  # None: the dialect's (9600 in both, L8121.md); [source] dialect = "A" | "B" | "auto"
     voltage_kv: float = 60.0  # the paper: 60 kV, 250 uA
     current_ua: float = 250.0
     focus: int | None = None  # CFS mode, None = leave as is

@@ -1,0 +1,213 @@
+"""The L8121 driver against a second, independent model of the controller, written from
+``L8121.md`` alone (not from ``acquisition.emulators.l8121``), on a real pseudo-terminal.
+
+The project's emulator and driver were written together, so they can share a misreading of the
+hardware notes; this model is deliberately separate and small. It keeps the link rules of
+``L8121.md`` that hold for both dialects -- the default of 9600 baud (a line at another rate is
+not understood), and a controller that may need ~50 ms between commands (a command that comes
+sooner is lost) -- and, as an option, a controller that reports an open interlock without
+switching the tube off itself (``L8121.md`` says only that ``XON`` is refused then).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import termios
+import threading
+import time
+import tty
+
+import pytest
+
+from acquisition.l8121 import L8121
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+_SPEEDS = {termios.B9600: 9600, termios.B38400: 38400, termios.B115200: 115200}
+_A_CODES = {"WUPNEED": 0, "WARMING": 1, "STANDBY": 2, "XON": 3, "OVER": 4, "NOTREADY": 5}
+_B_WORDS = {"WUPNEED": "STANDBY", "WARMING": "AGING", "STANDBY": "STANDBY", "XON": "XON", "OVER": "OVER"}
+
+
+class SpecModel:
+    """One L8121 controller in dialect ``"A"`` or ``"B"``, as ``L8121.md`` describes it."""
+
+    def __init__(self, dialect, *, baud=9600, warm=False, warmup_s=0.3, ramp_s=0.2, min_gap_s=0.045):
+        self.dialect, self.baud, self.min_gap_s = dialect, baud, min_gap_s
+        self.warmup_s, self.ramp_s = warmup_s, ramp_s
+        self.state = "STANDBY" if warm else "WUPNEED"
+        self.interlock_closed = True
+        self.interlock_stops_beam = True  # False: the controller only reports the open interlock
+        self.set_kv = self.set_ua = 0
+        self.t_on = self.t_warm = 0.0
+        self.received: list[str] = []  # what was understood, in order
+        self.lost: list[str] = []  # what arrived at the wrong rate or too soon
+        self.lock = threading.Lock()
+
+    @property
+    def emitting(self) -> bool:
+        with self.lock:
+            self._tick()
+            return self.state in ("XON", "WARMING")
+
+    def _tick(self):
+        if self.state == "WARMING" and time.monotonic() - self.t_warm >= self.warmup_s:
+            self.state = "STANDBY"
+        if not self.interlock_closed and self.interlock_stops_beam and self.state in ("XON", "WARMING"):
+            self.state = "STANDBY" if self.state == "XON" else "WUPNEED"
+
+    def _measured(self):
+        if self.state != "XON":
+            return 0.0, 0.0
+        f = min(1.0, (time.monotonic() - self.t_on) / self.ramp_s) if self.ramp_s else 1.0
+        return self.set_kv * f, self.set_ua * f
+
+    def handle(self, line: str) -> str:
+        with self.lock:
+            self._tick()
+            self.received.append(line)
+            word, *args = line.split() or [""]
+            value = int(args[0]) if len(args) == 1 and args[0].isdigit() else None
+            refused = "ERR" if self.dialect == "A" else "ERROR"
+            reply = self._setting(word, value, line) if args else self._action(word)
+            return refused if reply is None else reply
+
+    def _setting(self, word, value, line):
+        b = self.dialect == "B"
+        if value is None:
+            return None
+        if word in (("PHV", "HIV") if b else ("HIV",)):
+            if b and (word == "HIV") != (self.state == "XON"):
+                return None  # B: HIV/CUR while on, the presets PHV/PCU while off
+            kv = value / 10 if b else value
+            if not 40 <= kv <= 150:
+                return None
+            self.set_kv = kv
+            return line
+        if word in (("PCU", "CUR") if b else ("CUR",)):
+            if b and (word == "CUR") != (self.state == "XON"):
+                return None
+            if not 0 <= value <= 500:
+                return None
+            self.set_ua = value
+            return line
+        return line if word == "CFS" and not b and value <= 3 else None
+
+    def _action(self, word):
+        if word == "XOF":
+            self.state = {"XON": "STANDBY", "WARMING": "WUPNEED"}.get(self.state, self.state)
+            return "XOF"
+        if word == "XON":
+            if not self.interlock_closed:
+                return None
+            if self.dialect == "B" and self.state == "WUPNEED":
+                self.state, self.t_warm = "WARMING", time.monotonic()  # B: XON starts the warm-up
+                return "XON"
+            if self.state != "STANDBY":
+                return None
+            self.state, self.t_on = "XON", time.monotonic()
+            return "XON"
+        if word == "WUP" and self.dialect == "A":
+            if self.state not in ("WUPNEED", "STANDBY") or not self.interlock_closed:
+                return None
+            self.state, self.t_warm = "WARMING", time.monotonic()
+            return "WUP"
+        return (self._query_a if self.dialect == "A" else self._query_b)(word)
+
+    def _query_a(self, word):
+        kv, ua = self._measured()
+        done = 1 if self.state == "WARMING" else 2 if self.state == "WUPNEED" else 0
+        return {
+            "STS": f"STS {_A_CODES[self.state]}",
+            "SAR": f"SAR {_A_CODES[self.state]} {kv:.0f} {ua:.0f} 0 0 0 0",
+            "SVI": f"SVI {self.set_kv} {self.set_ua}",
+            "SIN": f"SIN {0 if self.interlock_closed else 1}",
+            "SWE": f"SWE {done}",
+            "SER": "SER 0",
+            "TYP": "TYP L8121-01",
+        }.get(word)
+
+    def _query_b(self, word):
+        kv, ua = self._measured()
+        done = self.state not in ("WUPNEED", "WARMING")
+        return {
+            "STS": _B_WORDS[self.state],
+            "SHV": f"SHV {kv:.1f}kV",
+            "SCU": f"SCU {ua:.0f}uA",
+            "SPV": f"SPV {self.set_kv:.1f}kV",
+            "SPC": f"SPC {self.set_ua}uA",
+            "SIN": "INTER LOCK ON" if self.interlock_closed else "INTER LOCK OFF",
+            "DAG": f"AGING 1 {3 if done else 0} {'END' if done else 'YET'}",
+            "SER": "SER 0",
+            "SRL": "REMOTE",
+            "SRB": "READY",
+        }.get(word)
+
+
+class SpecPty:
+    """``model`` on a pseudo-terminal: CR-terminated lines in, replies ending in CR out."""
+
+    def __init__(self, model: SpecModel):
+        self.model = model
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.url = os.ttyname(self._slave)
+        self._last = float("-inf")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self):
+        buf = b""
+        while not self._stop.is_set():
+            if not select.select([self._master], [], [], 0.02)[0]:
+                continue
+            try:
+                buf += os.read(self._master, 1024)
+            except OSError:
+                continue
+            while b"\r" in buf:
+                raw, buf = buf.split(b"\r", 1)
+                line = raw.decode("ascii", "replace").strip()
+                speed = _SPEEDS.get(termios.tcgetattr(self._master)[4])
+                if speed != self.model.baud or time.monotonic() - self._last < self.model.min_gap_s:
+                    self.model.lost.append(line)  # a UART at another rate, or a controller not ready
+                    continue
+                reply = self.model.handle(line)
+                os.write(self._master, reply.encode("ascii") + b"\r")
+                self._last = time.monotonic()
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2)
+        os.close(self._master)
+        os.close(self._slave)
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    return request.param
+
+
+@contextlib.contextmanager
+def served(model):
+    """``model`` on a pty, closed on leaving."""
+    pty = SpecPty(model)
+    try:
+        yield pty
+    finally:
+        pty.close()
+
+
+# -- the link rules of L8121.md, which hold for both dialects ---------------------------------------
+def test_the_default_baud_rate_is_the_link_default_9600_in_both_dialects(dialect):
+    """``L8121.md``, Link: "baud configurable (9600, 38400 or 115200; default 9600 ...)" and
+    "These link rules hold for both dialects": a driver configured with the dialect alone must
+    reach a controller left at its default rate."""
+    model = SpecModel(dialect, min_gap_s=0)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        assert src.baudrate == 9600
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+    assert model.lost == [] and not model.emitting
