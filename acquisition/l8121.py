@@ -189,11 +189,12 @@ class SourceConfig:
     """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
 
     ``dialect`` is ``"A"``, ``"B"`` or ``"auto"`` (probe at connect, :func:`probe`). ``baudrate``
-    ``None`` means the dialect's (9600 in both, the link default of ``L8121.md``; ``auto`` tries ``baudrate`` if set, then
-    ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
+    ``None`` means the dialect's (9600 in both, the link default of ``L8121.md``; ``auto`` tries
+    ``baudrate`` if set, then ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
     argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV). ``min_interval_s``,
-    the pause between two commands, ``None`` means the dialect's (A 0.05 s, ``L8121.md``; B 0.02 s,
-    the L8121-02 driver's polling pace).
+    the pause between two commands, ``None`` means the dialect's (0.05 s in both: ``L8121.md``'s
+    link rule "a controller may need ~50 ms between commands" holds for both dialects, although
+    the L8121-02 driver polls 20 ms apart).
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -697,7 +698,8 @@ DIALECT_B = Dialect(
     name="B",
     baudrate=9600,
     voltage_scale=10,
-    min_interval_s=0.02,
+    # not the L8121-02 driver's 20 ms: L8121.md's link rule (~50 ms) holds for both dialects
+    min_interval_s=0.05,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
         "state": Query(

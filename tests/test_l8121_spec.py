@@ -211,3 +211,14 @@ def test_the_default_baud_rate_is_the_link_default_9600_in_both_dialects(dialect
         src.warm_up(timeout_s=10, progress=False)
         src.on(60, 250)
     assert model.lost == [] and not model.emitting
+
+
+def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect):
+    """``L8121.md``, Link: "A controller may need ~50 ms between commands" (for both dialects): a
+    controller that drops a command sent sooner must lose none of the driver's."""
+    model = SpecModel(dialect, min_gap_s=0.045)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, baudrate=9600, poll_s=0.05) as src:
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+        src.check()
+    assert model.lost == [] and not model.emitting
