@@ -1532,6 +1532,10 @@ class L8121:
                 return
             if state == SourceState.XRAY_ON:
                 self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
+            # the warm-up emits: the interlock rules of an exposure hold (a controller need not
+            # stop by itself when it opens; L8121.md only says XON is refused then)
+            if state.emitting and not self.interlock_closed():
+                self._trip("interlock open during the warm-up")
             if state == SourceState.OVERLOAD:
                 raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
             if seen_running and state == SourceState.WARMUP_NEEDED:
@@ -1623,6 +1627,9 @@ class L8121:
             seconds = time.monotonic() - t0
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
+            # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
+            if not self.interlock_closed():
+                self._trip("interlock open")
             if abs(m_kv - kv) <= tol_kv and abs(m_ua - ua) <= tol_ua:
                 return {
                     "voltage_kv": m_kv,

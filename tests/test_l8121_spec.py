@@ -21,6 +21,7 @@ import tty
 
 import pytest
 
+from acquisition.errors import SourceFault
 from acquisition.l8121 import L8121
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -222,3 +223,36 @@ def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect):
         src.on(60, 250)
         src.check()
     assert model.lost == [] and not model.emitting
+
+
+# -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
+def _open_interlock_once_emitting(model, after_s=0.2):
+    def watch():
+        deadline = time.monotonic() + 10
+        while not model.emitting and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(after_s)
+        model.interlock_closed = False
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+@pytest.mark.parametrize("phase", ["warm-up", "ramp"])
+def test_an_interlock_opening_while_emitting_stops_the_tube(dialect, phase):
+    """``L8121.md``: "Warm-up emits X-rays: it is started only on purpose, with the same interlock
+    ... rules as any exposure", and while X-rays are on the driver polls (B: ``STS``, ``SHV``,
+    ``SCU``, ``SIN``) and stops on "an interlock opening". A controller that only reports the open
+    interlock (the notes do not say it switches off by itself) must be switched off by the driver
+    within a few polls, not when the warm-up ends or the beam is stable."""
+    model = SpecModel(dialect, warm=phase == "ramp", warmup_s=3.0, ramp_s=3.0)
+    model.interlock_stops_beam = False
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        _open_interlock_once_emitting(model)
+        t0 = time.monotonic()
+        with pytest.raises(SourceFault, match="interlock open"):
+            if phase == "warm-up":
+                src.warm_up(timeout_s=10, progress=False)
+            else:
+                src.on(60, 250)
+        assert time.monotonic() - t0 < 2.0  # the warm-up or the ramp would take 3 s
+        assert not model.emitting
