@@ -270,8 +270,10 @@ class SourceConfig:
             raise ValueError(
                 f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
             )
-        if self.timeout_s == 0 or self.poll_s == 0 or self.probe_timeout_s == 0:
-            raise ValueError("L8121 configuration: timeout_s, probe_timeout_s and poll_s must be > 0")
+        # a zero warm-up or stable time-out would switch the tube on only to switch it off again
+        for name in ("timeout_s", "probe_timeout_s", "poll_s", "warmup_timeout_s", "stable_timeout_s"):
+            if getattr(self, name) == 0:
+                raise ValueError(f"L8121 configuration: {name} must be > 0")
         if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
             raise ValueError(f"L8121 configuration: off_attempts must be >= 1, got {self.off_attempts}")
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
@@ -1466,6 +1468,11 @@ class L8121:
             Overload (not reset automatically), or the interlock is open.
         """
         timeout_s = self.config.warmup_timeout_s if timeout_s is None else float(timeout_s)
+        if not (math.isfinite(timeout_s) and timeout_s > 0):  # checked before the warm-up emits
+            raise ValueError(
+                f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
+                f"nothing sent"
+            )
         state = self.status()
         if not self._warm_up_needed(state, force):
             return 0.0

@@ -22,7 +22,7 @@ import tty
 import pytest
 
 from acquisition.errors import SourceFault
-from acquisition.l8121 import L8121
+from acquisition.l8121 import L8121, SourceConfig
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 
@@ -256,3 +256,25 @@ def test_an_interlock_opening_while_emitting_stops_the_tube(dialect, phase):
                 src.on(60, 250)
         assert time.monotonic() - t0 < 2.0  # the warm-up or the ramp would take 3 s
         assert not model.emitting
+
+
+# -- no X-ray command before every setting is valid ------------------------------------------------
+@pytest.mark.parametrize("timeout_s", [0, -5, float("nan"), float("inf")])
+def test_an_invalid_warm_up_time_out_is_refused_before_the_warm_up_starts(dialect, timeout_s):
+    """``L8121.md``: "Time-outs are explicit and short", and the warm-up emits X-rays, so it may
+    only start once its settings are valid: a time-out that is not a positive finite number of
+    seconds (one that ends the warm-up at once, or never) is refused before ``WUP`` (A) or the
+    warm-up's ``XON`` (B) is sent."""
+    model = SpecModel(dialect)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        with pytest.raises(ValueError, match="timeout_s"):
+            src.warm_up(timeout_s=timeout_s, progress=False)
+    assert not {"WUP", "XON"} & set(model.received)
+
+
+@pytest.mark.parametrize("key", ["warmup_timeout_s", "stable_timeout_s"])
+def test_a_zero_time_out_is_not_a_configuration(key):
+    """A warm-up or an exposure that may not last at all would switch the tube on only to switch it
+    off again: refused with the other time-outs that must be > 0."""
+    with pytest.raises(ValueError, match=key):
+        SourceConfig(**{key: 0})
