@@ -192,8 +192,7 @@ def _finish(res, code: int, err: bool = True) -> int:
 
 
 def _source(args) -> int:
-    from acquisition.errors import DeviceError
-    from acquisition.l8121 import L8121, SourceConfig, probe
+    from acquisition.l8121 import SourceConfig, probe
 
     if not args.action:
         print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
@@ -208,6 +207,28 @@ def _source(args) -> int:
         )
         print(result.report())
         return 0 if result.found else 1
+    from acquisition.guardian import SignalGuard, StopSignal
+
+    # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
+    # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
+    # switches off first, and defers any further signal until that is done
+    with SignalGuard():
+        try:
+            return _source_command(args)
+        except KeyboardInterrupt as exc:
+            name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+            _say(
+                f"stopped by {name}; {getattr(exc, 'tube', 'interrupted while connecting: no X-ray command was sent')}"
+            )
+            return 128 + getattr(exc, "signum", 2)
+
+
+def _source_command(args) -> int:
+    """One source action on a connected driver. Any exception switches off before it propagates;
+    an interrupt carries the confirmed outcome in ``tube`` (or, unconfirmed, becomes the error)."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
     try:
         src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
         try:
@@ -234,6 +255,20 @@ def _source(args) -> int:
             else:
                 src.off()
                 print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
+        except KeyboardInterrupt as exc:
+            # XOF whatever this command had begun (always accepted): the line then states the tube.
+            # Not confirmed: off() raises the error that says to switch off at the controller, and
+            # the link is let go without a second round of attempts (close() would repeat them)
+            try:
+                if src.off_failed is not None:  # the interrupted call's own switch-off failed already
+                    raise src.off_failed
+                exc.tube = f"tube off (confirmed by STS: {src.off().name})"
+            finally:
+                if src.off_failed:
+                    src.detach()
+                else:
+                    src.close()
+            raise
         except BaseException:
             src.close()  # a failed or interrupted command leaves the tube off
             raise

@@ -14,6 +14,9 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+import signal
+import subprocess
+import sys
 import termios
 import threading
 import time
@@ -278,3 +281,34 @@ def test_a_zero_time_out_is_not_a_configuration(key):
     off again: refused with the other time-outs that must be > 0."""
     with pytest.raises(ValueError, match=key):
         SourceConfig(**{key: 0})
+
+
+# -- the bench-top commands: a signal switches the tube off too ------------------------------------
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_a_signal_during_source_warm_up_switches_the_tube_off(dialect, sig):
+    """``L8121.md``: X-rays are switched off "on every exit path" and "an interrupted warm-up is
+    switched off like an exposure". ``radiokit acquire source warm-up`` killed (SIGTERM), hung up
+    on (SIGHUP) or interrupted (Ctrl-C) while the warm-up runs must leave the tube off, confirmed,
+    and say so in one line, without a traceback."""
+    model = SpecModel(dialect, warmup_s=60.0)
+    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    with served(model) as pty:
+        argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
+        try:
+            deadline = time.monotonic() + 30
+            while not model.emitting and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert model.emitting, f"the warm-up never started: {proc.poll()}"
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert not model.emitting, f"left warming up after {sig.name}: {model.received[-4:]}"
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith(f"stopped by {sig.name}; tube off (confirmed by STS"), err
