@@ -641,6 +641,11 @@ class Dialect:
     def __repr__(self) -> str:
         return f"Dialect({self.name!r})"
 
+    def focus_modes(self, config: SourceConfig) -> tuple[int, ...]:
+        """The focus modes ``config`` allows that this dialect can set (B has three commands)."""
+        focus = self.settings["focus"]
+        return tuple(m for m in config.focus_modes if not isinstance(focus, Choice) or m in focus.choices)
+
 
 _STATES_A = _enum(SourceState, range(7))
 _STATES_B = _words(
@@ -1384,6 +1389,12 @@ class L8121:
     @focus.setter
     def focus(self, value: int) -> None:
         self._do("focus", value)
+
+    def check_focus(self, value: int) -> None:
+        """Refuse a focus mode this dialect and configuration cannot set (``ValueError``); nothing
+        is sent. For a caller that sets the focus after an X-ray command (the warm-up) and must
+        know before it that the setting is valid."""
+        self.dialect.settings["focus"].line(self, value)
 
     # ---- operations ----
     def validate(self, kv: float, ua: float) -> tuple[int, int]:

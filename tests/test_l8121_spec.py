@@ -312,3 +312,46 @@ def test_a_signal_during_source_warm_up_switches_the_tube_off(dialect, sig):
     assert proc.returncode == 128 + sig, err
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith(f"stopped by {sig.name}; tube off (confirmed by STS"), err
+
+
+# -- a protocol's focus is a setting too -------------------------------------------------------------
+def _series(port, dialect, focus):
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=(0.15,))
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0
+    return {
+        "output": "unused.h5",
+        "name": "focus",
+        # timeout_s 3: the model answers from this process, which also solves the scene meanwhile
+        "source": {"voltage_kv": 60, "current_ua": 250, "dialect": dialect, "focus": focus, "timeout_s": 3.0},
+        "detector": {"kind": "sim", "timeout_s": 2.0},
+        "frame": {"kind": "sim", "initial_height_mm": 10.0},
+        "series": {"darks": 1, "flats": 1, "frames_per_step": 1, "steps": [0.15], "settle_s": 0.0},
+        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.1, "source_port": port},
+    }
+
+
+def test_a_focus_dialect_b_lacks_is_refused_when_the_protocol_is_loaded():
+    """Dialect B has three focus commands (``CFS``/``CFM``/``CFL``: 0, 1, 2); ``focus = 3`` is a
+    setting it cannot take, refused with the protocol's other settings, before anything is sent."""
+    from acquisition.protocols.compression_series import ProtocolError, load_protocol
+
+    with pytest.raises(ProtocolError, match="focus = 3"):
+        load_protocol(_series("/dev/null", "B", 3))
+    assert load_protocol(_series("/dev/null", "A", 3)).source.focus == 3
+
+
+def test_a_focus_the_probed_dialect_lacks_is_refused_before_the_warm_up(tmp_path):
+    """``dialect = "auto"``: the dialect is known only at connect, so the focus is checked then --
+    before the warm-up, which emits X-rays (B starts it with ``XON``), not after it."""
+    from acquisition.protocols.compression_series import load_protocol, run
+
+    model = SpecModel("B")  # warm-up needed
+    with served(model) as pty:
+        p = load_protocol(_series(pty.url, "auto", 3))
+        p.output = str(tmp_path / "series.h5")
+        with pytest.raises(ValueError, match="focus"):
+            run(p, sim=True, progress=False)
+    assert "XON" not in model.received, model.received
