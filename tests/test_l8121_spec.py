@@ -43,6 +43,7 @@ class SpecModel:
         self.state = "STANDBY" if warm else "WUPNEED"
         self.interlock_closed = True
         self.interlock_stops_beam = True  # False: the controller only reports the open interlock
+        self.relay_stuck = False  # True: XOF is answered but the tube stays on (a fault)
         self.set_kv = self.set_ua = 0
         self.t_on = self.t_warm = 0.0
         self.received: list[str] = []  # what was understood, in order
@@ -100,6 +101,8 @@ class SpecModel:
 
     def _action(self, word):
         if word == "XOF":
+            if self.relay_stuck:
+                return "XOF"
             self.state = {"XON": "STANDBY", "WARMING": "WUPNEED"}.get(self.state, self.state)
             return "XOF"
         if word == "XON":
@@ -355,3 +358,33 @@ def test_a_focus_the_probed_dialect_lacks_is_refused_before_the_warm_up(tmp_path
         with pytest.raises(ValueError, match="focus"):
             run(p, sim=True, progress=False)
     assert "XON" not in model.received, model.received
+
+
+@pytest.mark.parametrize("nth_xof", [4, 7])
+def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect, nth_xof):
+    """The interlock opens during ``source warm-up`` and the tube does not switch off (XOF answered,
+    STS still warming up): whenever SIGTERM comes -- during the failing switch-off after the fault
+    (the 4th XOF) or during the one on the way out (the 7th) -- the last line must say to switch
+    off at the controller, never that the tube is off or that no X-ray command was sent."""
+    model = SpecModel(dialect, warmup_s=60.0)
+    model.interlock_stops_beam = False
+    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    with served(model) as pty:
+        argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
+        proc = subprocess.Popen([sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while not model.emitting and time.monotonic() < deadline:
+                time.sleep(0.02)
+            model.relay_stuck, model.interlock_closed = True, False
+            while model.received.count("XOF") < nth_xof and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.002)
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert model.emitting and proc.returncode != 0
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and "switch the source off at the controller" in last, err
