@@ -72,7 +72,7 @@ def sigint_default():
 
 
 def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
-    """The module's series; ``link_s``: the command spacing, when not the dialect's (A 50 ms, B 20 ms)."""
+    """The module's series; ``link_s``: the command spacing, when not the dialect's (50 ms in both)."""
     link = {} if link_s is None else {"min_interval_s": link_s}
     return load_protocol(
         {

@@ -710,7 +710,7 @@ class PtyServer(_LineServer):
     --------
     >>> import serial
     >>> with PtyServer(L8121Model()) as server:
-    ...     with serial.serial_for_url(server.url, baudrate=38400, timeout=1) as port:
+    ...     with serial.serial_for_url(server.url, baudrate=9600, timeout=1) as port:
     ...         _ = port.write(b"TYP\\r")
     ...         port.read_until(b"\\r")
     b'TYP L8121-01\\r'
