@@ -1867,6 +1867,10 @@ class L8121:
         """Best-effort off on an error path: log, never raise over the original exception."""
         if not self._may_be_on or self._transport is None:
             return
+        if self.off_failed is not None and isinstance(self.off_failed.__cause__, NoReply):
+            # the error being handled met a silent controller in its own switch-off, which said so:
+            # another round cannot reach it and only delays the error by two time-outs
+            return
         try:
             self.off()
         except Exception as exc:

@@ -24,7 +24,7 @@ import tty
 
 import pytest
 
-from acquisition.errors import SourceFault
+from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import L8121, SourceConfig
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -44,6 +44,7 @@ class SpecModel:
         self.interlock_closed = True
         self.interlock_stops_beam = True  # False: the controller only reports the open interlock
         self.relay_stuck = False  # True: XOF is answered but the tube stays on (a fault)
+        self.silent = False  # True: commands are carried out but never answered
         self.set_kv = self.set_ua = 0
         self.t_on = self.t_warm = 0.0
         self.received: list[str] = []  # what was understood, in order
@@ -182,7 +183,8 @@ class SpecPty:
                     self.model.lost.append(line)  # a UART at another rate, or a controller not ready
                     continue
                 reply = self.model.handle(line)
-                os.write(self._master, reply.encode("ascii") + b"\r")
+                if not self.model.silent:
+                    os.write(self._master, reply.encode("ascii") + b"\r")
                 self._last = time.monotonic()
 
     def close(self):
@@ -388,3 +390,21 @@ def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect
     assert model.emitting and proc.returncode != 0
     last = err.strip().splitlines()[-1]
     assert "Traceback" not in err and "switch the source off at the controller" in last, err
+
+
+# -- a silent controller is told once ----------------------------------------------------------------
+def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
+    """The controller falls silent while the beam ramps: one switch-off (``XOF``, ``STS``, both
+    unanswered) and the error -- not a second round on the way out of ``on()``, which cannot
+    reach a silent controller and only delays the operator's message by two more time-outs
+    (``L8121.md``: "Time-outs are explicit and short; a silent controller is an error")."""
+    model = SpecModel(dialect, warm=True, ramp_s=5.0)
+    with served(model) as pty:
+        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.5)
+        threading.Timer(0.5, setattr, (model, "silent", True)).start()
+        with pytest.raises(DeviceError, match="no reply"):
+            src.on(60, 250)
+        n_xof = model.received.count("XOF")
+        src.detach()
+    assert n_xof == 1, model.received[-8:]
+    assert src.off_failed is not None and "does not answer" in str(src.off_failed)
