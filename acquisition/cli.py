@@ -192,8 +192,7 @@ def _finish(res, code: int, err: bool = True) -> int:
 
 
 def _source(args) -> int:
-    from acquisition.errors import DeviceError
-    from acquisition.l8121 import L8121, SourceConfig, probe
+    from acquisition.l8121 import SourceConfig, probe
 
     if not args.action:
         print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
@@ -208,41 +207,85 @@ def _source(args) -> int:
         )
         print(result.report())
         return 0 if result.found else 1
-    try:
-        src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
+    from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal
+
+    # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
+    # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
+    # switches off first, and defers any further signal until that is done
+    with SignalGuard() as guard:
         try:
-            if args.action == "status":
-                kv, ua = src.measured()
-                print(
-                    f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
-                    f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
-                )
-            elif args.action == "warm-up":
-                src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
-                print(f"{args.port}: warmed up, state {src.status().name}")
-            elif args.action == "on":
-                if args.kv is None or args.ua is None:
-                    print("error: 'on' needs --kv and --ua", file=sys.stderr)
-                    return 2
-                r = src.on(args.kv, args.ua)
-                print(
-                    f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
-                    f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
-                    f"--port {args.port}` switches them off."
-                )
-                return 0
-            else:
-                src.off()
-                print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
-        except BaseException:
-            src.close()  # a failed or interrupted command leaves the tube off
+            return _source_command(args, guard)
+        except KeyboardInterrupt as exc:
+            name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+            _say(f"stopped by {name}; {getattr(exc, 'tube', TUBE_WARNING)}")  # tube: what is known
+            return 128 + getattr(exc, "signum", 2)
+
+
+def _source_command(args, guard) -> int:
+    """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
+    before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
+    it becomes the switch-off error instead)."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    try:
+        try:
+            src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
+        except KeyboardInterrupt as exc:  # connect sends queries only
+            exc.tube = "interrupted while connecting: no X-ray command was sent"
             raise
+        try:
+            code = _source_action(src, args)
+        except KeyboardInterrupt as exc:
+            # XOF whatever this command had begun (always accepted): the line then states the tube.
+            # Not confirmed: off() raises the error that says to switch off at the controller, and
+            # the link is let go without a second round of attempts (close() would repeat them)
+            try:
+                if src.off_failed is not None:  # the interrupted call's own switch-off failed already
+                    raise src.off_failed
+                exc.tube = f"tube off (confirmed by STS: {src.off().name})"
+            finally:
+                if src.off_failed:
+                    src.detach()
+                else:
+                    src.close()
+            raise
+        except BaseException:
+            guard.cleanup()  # from here a signal must not cut the switch-off short
+            src.close()  # a failed command leaves the tube off, or close() raises that it may not be
+            raise
+        if args.action == "on" and code == 0:
+            src.detach()  # bench work: on until `acquire source off`
         else:
-            if args.action == "on":
-                src.detach()  # bench work: on until `acquire source off`
-            else:
-                src.close()
+            src.close()
+        return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+
+
+def _source_action(src, args) -> int:
+    """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
+    if args.action == "status":
+        kv, ua = src.measured()
+        print(
+            f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
+            f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
+        )
+    elif args.action == "warm-up":
+        src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
+        print(f"{args.port}: warmed up, state {src.status().name}")
+    elif args.action == "on":
+        if args.kv is None or args.ua is None:
+            print("error: 'on' needs --kv and --ua", file=sys.stderr)
+            return 2
+        r = src.on(args.kv, args.ua)
+        print(
+            f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
+            f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
+            f"--port {args.port}` switches them off."
+        )
+    else:
+        src.off()
+        print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
     return 0

@@ -189,11 +189,12 @@ class SourceConfig:
     """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
 
     ``dialect`` is ``"A"``, ``"B"`` or ``"auto"`` (probe at connect, :func:`probe`). ``baudrate``
-    ``None`` means the dialect's (A 38400, B 9600; ``auto`` tries ``baudrate`` if set, then
-    ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
+    ``None`` means the dialect's (9600 in both, the link default of ``L8121.md``; ``auto`` tries
+    ``baudrate`` if set, then ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
     argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV). ``min_interval_s``,
-    the pause between two commands, ``None`` means the dialect's (A 0.05 s, ``L8121.md``; B 0.02 s,
-    the L8121-02 driver's polling pace).
+    the pause between two commands, ``None`` means the dialect's (0.05 s in both: ``L8121.md``'s
+    link rule "a controller may need ~50 ms between commands" holds for both dialects, although
+    the L8121-02 driver polls 20 ms apart).
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -269,8 +270,10 @@ class SourceConfig:
             raise ValueError(
                 f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
             )
-        if self.timeout_s == 0 or self.poll_s == 0 or self.probe_timeout_s == 0:
-            raise ValueError("L8121 configuration: timeout_s, probe_timeout_s and poll_s must be > 0")
+        # a zero warm-up or stable time-out would switch the tube on only to switch it off again
+        for name in ("timeout_s", "probe_timeout_s", "poll_s", "warmup_timeout_s", "stable_timeout_s"):
+            if getattr(self, name) == 0:
+                raise ValueError(f"L8121 configuration: {name} must be > 0")
         if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
             raise ValueError(f"L8121 configuration: off_attempts must be >= 1, got {self.off_attempts}")
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
@@ -638,6 +641,11 @@ class Dialect:
     def __repr__(self) -> str:
         return f"Dialect({self.name!r})"
 
+    def focus_modes(self, config: SourceConfig) -> tuple[int, ...]:
+        """The focus modes ``config`` allows that this dialect can set (B has three commands)."""
+        focus = self.settings["focus"]
+        return tuple(m for m in config.focus_modes if not isinstance(focus, Choice) or m in focus.choices)
+
 
 _STATES_A = _enum(SourceState, range(7))
 _STATES_B = _words(
@@ -654,7 +662,8 @@ _FOCUS_B = {0: "SMALL", 1: "MIDDLE", 2: "LARGE"}
 
 DIALECT_A = Dialect(
     name="A",
-    baudrate=38400,
+    # L8121.md: "default 9600" under Link, whose rules "hold for both dialects"
+    baudrate=9600,
     voltage_scale=1,
     min_interval_s=0.05,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
@@ -696,7 +705,8 @@ DIALECT_B = Dialect(
     name="B",
     baudrate=9600,
     voltage_scale=10,
-    min_interval_s=0.02,
+    # not the L8121-02 driver's 20 ms: L8121.md's link rule (~50 ms) holds for both dialects
+    min_interval_s=0.05,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
         "state": Query(
@@ -1380,6 +1390,12 @@ class L8121:
     def focus(self, value: int) -> None:
         self._do("focus", value)
 
+    def check_focus(self, value: int) -> None:
+        """Refuse a focus mode this dialect and configuration cannot set (``ValueError``); nothing
+        is sent. For a caller that sets the focus after an X-ray command (the warm-up) and must
+        know before it that the setting is valid."""
+        self.dialect.settings["focus"].line(self, value)
+
     # ---- operations ----
     def validate(self, kv: float, ua: float) -> tuple[int, int]:
         """Check a voltage and current against the configuration and the ratings; nothing is sent.
@@ -1463,6 +1479,11 @@ class L8121:
             Overload (not reset automatically), or the interlock is open.
         """
         timeout_s = self.config.warmup_timeout_s if timeout_s is None else float(timeout_s)
+        if not (math.isfinite(timeout_s) and timeout_s > 0):  # checked before the warm-up emits
+            raise ValueError(
+                f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
+                f"nothing sent"
+            )
         state = self.status()
         if not self._warm_up_needed(state, force):
             return 0.0
@@ -1529,6 +1550,10 @@ class L8121:
                 return
             if state == SourceState.XRAY_ON:
                 self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
+            # the warm-up emits: the interlock rules of an exposure hold (a controller need not
+            # stop by itself when it opens; L8121.md only says XON is refused then)
+            if state.emitting and not self.interlock_closed():
+                self._trip("interlock open during the warm-up")
             if state == SourceState.OVERLOAD:
                 raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
             if seen_running and state == SourceState.WARMUP_NEEDED:
@@ -1620,6 +1645,9 @@ class L8121:
             seconds = time.monotonic() - t0
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
+            # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
+            if not self.interlock_closed():
+                self._trip("interlock open")
             if abs(m_kv - kv) <= tol_kv and abs(m_ua - ua) <= tol_ua:
                 return {
                     "voltage_kv": m_kv,
@@ -1838,6 +1866,10 @@ class L8121:
     def _off_quietly(self) -> None:
         """Best-effort off on an error path: log, never raise over the original exception."""
         if not self._may_be_on or self._transport is None:
+            return
+        if self.off_failed is not None and isinstance(self.off_failed.__cause__, NoReply):
+            # the error being handled met a silent controller in its own switch-off, which said so:
+            # another round cannot reach it and only delays the error by two time-outs
             return
         try:
             self.off()

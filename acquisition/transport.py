@@ -95,7 +95,7 @@ class SerialTransport:
         self,
         url: str,
         *,
-        baudrate: int = 38400,
+        baudrate: int = 9600,
         timeout_s: float = 1.0,
         write_timeout_s: float = 1.0,
         min_interval_s: float = 0.05,
@@ -306,7 +306,7 @@ class PipeTransport:
     """
 
     def __init__(
-        self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 38400, log: logging.Logger = logger
+        self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 9600, log: logging.Logger = logger
     ):
         self.url = str(url)
         self.baudrate = int(baudrate)

@@ -72,7 +72,7 @@ def sigint_default():
 
 
 def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
-    """The module's series; ``link_s``: the command spacing, when not the dialect's (A 50 ms, B 20 ms)."""
+    """The module's series; ``link_s``: the command spacing, when not the dialect's (50 ms in both)."""
     link = {} if link_s is None else {"min_interval_s": link_s}
     return load_protocol(
         {
@@ -430,7 +430,7 @@ def test_cli_source_commands_on_the_emulator(capsys):
         # that knows its unit does (the probe, ~0.65 s a command here, is the same code for every action)
         assert _cli("acquire", "source", "status", "--port", server.url) == 0
         out = capsys.readouterr().out
-        assert "dialect A at 38400 baud" in out and "WARMUP_NEEDED" in out
+        assert "dialect A at 9600 baud" in out and "WARMUP_NEEDED" in out
         port = ("--port", server.url, "--dialect", "A")
         assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 1
         assert "warm-up" in capsys.readouterr().err and not model.xray_on

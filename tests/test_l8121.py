@@ -322,7 +322,7 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
         with pytest.raises(
             DeviceError,
             match={
-                "A": r"SRL refused by the controller \(ERR\); is this unit on 38400 "
+                "A": r"SRL refused by the controller \(ERR\); is this unit on 9600 "
                 r"baud and speaking dialect B\? If it speaks dialect A, set "
                 r"dialect = \"A\" or \"auto\"",
                 "B": r"TYP refused .*If it speaks dialect B, set dialect = \"B\" or "
@@ -964,7 +964,7 @@ def test_probe_refuses_a_mix_of_dialects():
             return ex
 
     with PtyServer(Mixed(warmed_up=True)) as server:
-        result = probe(server.url, baudrates=(38400,), timeout_s=0.2, min_interval_s=0.01)
+        result = probe(server.url, baudrates=(9600,), timeout_s=0.2, min_interval_s=0.01)
     assert not result.found
     assert "STS 'STS 2' fits dialect A but SIN answered 'INTER LOCK ON' (dialect B's shape: a mix" in result.summary()
 
@@ -1048,7 +1048,7 @@ def test_config_from_toml_and_dict(tmp_path):
         "B",
         10,
     )
-    assert L8121("loop://", connect=False).baudrate == 38400  # dialect A's default
+    assert L8121("loop://", connect=False).baudrate == 9600  # L8121.md's link default, both dialects
     assert L8121("loop://", connect=False, dialect="B", voltage_scale=1).voltage_scale == 1
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['kv_maximum'\]"):
         SourceConfig.from_dict({"kv_maximum": 90})
@@ -1260,7 +1260,7 @@ def test_emulator_scheduled_faults(dialect):
 @pytest.mark.parametrize(
     "argv, baud, exchange",
     [
-        ([], 38400, [("TYP", "TYP L8121-01"), ("WUP", "WUP")]),
+        ([], 9600, [("TYP", "TYP L8121-01"), ("WUP", "WUP")]),
         (["--dialect", "B"], 9600, [("SRL", "REMOTE"), ("STS", "STANDBY"), ("XON", "XON"), ("STS", "AGING")]),
         (["--dialect", "B", "--local"], 9600, [("SRL", "LOCAL"), ("XON", "ERROR")]),
     ],

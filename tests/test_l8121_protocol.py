@@ -65,6 +65,7 @@ ON_60_250 = {
         ("CUR 250", "CUR 250"),
         ("XON", "XON"),
         ("SAR", "SAR 3 60 250 0 0 0 0"),
+        ("SIN", "SIN 0"),  # the beam is on: the interlock is watched from the first poll
     ],
     "B": [
         ("STS", "STANDBY"),
@@ -79,6 +80,7 @@ ON_60_250 = {
         ("STS", "XON"),
         ("SHV", "SHV 60.0kV"),
         ("SCU", "SCU 250uA"),
+        ("SIN", "INTER LOCK ON"),
     ],
 }
 OFF = {"A": [("XOF", "XOF"), ("STS", "STS 2")], "B": [("XOF", "XOF"), ("STS", "STANDBY")]}
@@ -98,7 +100,7 @@ def test_connect(dialect):
         (
             "A",
             [("TYP", "ERROR")],
-            r"TYP refused by the controller \(ERROR\); is this unit on 38400 baud and "
+            r"TYP refused by the controller \(ERROR\); is this unit on 9600 baud and "
             r"speaking dialect A\? If it speaks dialect B",
         ),
         ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
@@ -138,6 +140,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("SIN", "SIN 0"),
                 ("WUP", "WUP"),
                 ("STS", "STS 1"),
+                ("SIN", "SIN 0"),  # the warm-up emits: the interlock is watched
                 ("STS", "STS 2"),
                 ("SWE", "SWE 0"),
             ],
@@ -152,6 +155,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("SIN", "INTER LOCK ON"),
                 ("XON", "XON"),
                 ("STS", "AGING"),
+                ("SIN", "INTER LOCK ON"),
                 ("STS", "STANDBY"),
                 ("DAG", "AGING 0 0 END"),
                 ("DAG", "AGING 0 0 END"),

@@ -20,8 +20,8 @@ control commands refused with ``ERROR``; B reports it with ``SRL``) and
 :meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
 
 The baud rate. A pseudo-terminal moves bytes at any speed, so a wrong baud rate would go unnoticed.
-The model is configured with the controller's ``baudrate`` (default: the dialect's, A 38400, B
-9600) and :class:`PtyServer` reads the rate the client set on the terminal (``termios``): when they
+The model is configured with the controller's ``baudrate`` (default: 9600 in both
+dialects, the link default of ``L8121.md``) and :class:`PtyServer` reads the rate the client set on the terminal (``termios``): when they
 differ, the line is taken as what a UART would make of it -- not understood, not executed -- and
 the reply as what the client's UART would make of the controller's ``ERROR``: a few bytes of junk
 with no line end. This is a model of a baud mismatch, not a measurement of one.
@@ -90,7 +90,7 @@ class ErrorCode(IntEnum):
     LOCAL = 7
 
 
-DEFAULT_BAUD = {"A": 38400, "B": 9600}
+DEFAULT_BAUD = {"A": 9600, "B": 9600}
 _B_STATES = {
     SourceState.WARMUP_NEEDED: "STANDBY",
     SourceState.WARMING_UP: "AGING",
@@ -710,7 +710,7 @@ class PtyServer(_LineServer):
     --------
     >>> import serial
     >>> with PtyServer(L8121Model()) as server:
-    ...     with serial.serial_for_url(server.url, baudrate=38400, timeout=1) as port:
+    ...     with serial.serial_for_url(server.url, baudrate=9600, timeout=1) as port:
     ...         _ = port.write(b"TYP\\r")
     ...         port.read_until(b"\\r")
     b'TYP L8121-01\\r'
@@ -819,7 +819,7 @@ def main(argv: list[str] | None = None) -> int:
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal (default)")
     where.add_argument("--socket", type=int, metavar="PORT", help="serve on TCP 127.0.0.1:PORT (0: any free port)")
     parser.add_argument("--dialect", choices=("A", "B"), default="A", help="command dialect (default %(default)s)")
-    parser.add_argument("--baudrate", type=int, help="the controller's baud rate (default: A 38400, B 9600)")
+    parser.add_argument("--baudrate", type=int, help="the controller's baud rate (default: 9600, both dialects)")
     parser.add_argument("--model", default="L8121-01", help="what TYP answers in dialect A (default %(default)s)")
     parser.add_argument("--warmup-s", type=float, default=3.0, help="warm-up duration, s (default %(default)s)")
     parser.add_argument("--ramp-s", type=float, default=1.0, help="kV/µA ramp after XON, s (default %(default)s)")

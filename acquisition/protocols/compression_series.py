@@ -110,7 +110,7 @@ class SourceSettings:
     """The X-ray source: link, exposure and limits (``acquisition.l8121.L8121`` configuration)."""
 
     port: str = ""  # device path, socket://host:port or rfc2217://...; --sim ignores it
-    baudrate: int | None = None  # None: the dialect's (A 38400, B 9600); [source] dialect = "A" | "B" | "auto"
+    baudrate: int | None = None  # None: the dialect's (9600 in both, L8121.md); [source] dialect = "A" | "B" | "auto"
     voltage_kv: float = 60.0  # the paper: 60 kV, 250 uA
     current_ua: float = 250.0
     focus: int | None = None  # CFS mode, None = leave as is
@@ -266,15 +266,18 @@ def _source_limits(s: SourceSettings):
 def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
+    from acquisition.l8121 import DIALECTS
+
     cfg = _source_limits(s)
     try:  # the driver's own check (the one implementation of the ratings), before anything is sent
         cfg.check_exposure(s.voltage_kv, s.current_ua)
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
-    if s.focus is not None and (
-        isinstance(s.focus, bool) or not isinstance(s.focus, int) or s.focus not in cfg.focus_modes
-    ):
-        raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(cfg.focus_modes)}")
+    modes = cfg.focus_modes
+    if cfg.dialect in DIALECTS:  # "auto": checked at connect, once the dialect is known (_phase_warm_up)
+        modes = DIALECTS[cfg.dialect].focus_modes(cfg)
+    if s.focus is not None and (isinstance(s.focus, bool) or not isinstance(s.focus, int) or s.focus not in modes):
+        raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(modes)} (dialect {cfg.dialect})")
     if not isinstance(s.port, str):
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
     if s.poll_s <= 0:
@@ -773,6 +776,8 @@ def _phase_connect(r: _Run):
 def _phase_warm_up(r: _Run):
     """Warm up if the source needs it, set the focus, open the experiment file, arm the panel."""
     src, p = r.source, r.p
+    if p.source.focus is not None:  # a setting: valid before the warm-up emits, though set after it
+        src.check_focus(int(p.source.focus))
     if _needs_warm_up(src):
         src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
     if p.source.focus is not None:

@@ -1,0 +1,410 @@
+"""The L8121 driver against a second, independent model of the controller, written from
+``L8121.md`` alone (not from ``acquisition.emulators.l8121``), on a real pseudo-terminal.
+
+The project's emulator and driver were written together, so they can share a misreading of the
+hardware notes; this model is deliberately separate and small. It keeps the link rules of
+``L8121.md`` that hold for both dialects -- the default of 9600 baud (a line at another rate is
+not understood), and a controller that may need ~50 ms between commands (a command that comes
+sooner is lost) -- and, as an option, a controller that reports an open interlock without
+switching the tube off itself (``L8121.md`` says only that ``XON`` is refused then).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+import subprocess
+import sys
+import termios
+import threading
+import time
+import tty
+
+import pytest
+
+from acquisition.errors import DeviceError, SourceFault
+from acquisition.l8121 import L8121, SourceConfig
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+_SPEEDS = {termios.B9600: 9600, termios.B38400: 38400, termios.B115200: 115200}
+_A_CODES = {"WUPNEED": 0, "WARMING": 1, "STANDBY": 2, "XON": 3, "OVER": 4, "NOTREADY": 5}
+_B_WORDS = {"WUPNEED": "STANDBY", "WARMING": "AGING", "STANDBY": "STANDBY", "XON": "XON", "OVER": "OVER"}
+
+
+class SpecModel:
+    """One L8121 controller in dialect ``"A"`` or ``"B"``, as ``L8121.md`` describes it."""
+
+    def __init__(self, dialect, *, baud=9600, warm=False, warmup_s=0.3, ramp_s=0.2, min_gap_s=0.045):
+        self.dialect, self.baud, self.min_gap_s = dialect, baud, min_gap_s
+        self.warmup_s, self.ramp_s = warmup_s, ramp_s
+        self.state = "STANDBY" if warm else "WUPNEED"
+        self.interlock_closed = True
+        self.interlock_stops_beam = True  # False: the controller only reports the open interlock
+        self.relay_stuck = False  # True: XOF is answered but the tube stays on (a fault)
+        self.silent = False  # True: commands are carried out but never answered
+        self.set_kv = self.set_ua = 0
+        self.t_on = self.t_warm = 0.0
+        self.received: list[str] = []  # what was understood, in order
+        self.lost: list[str] = []  # what arrived at the wrong rate or too soon
+        self.lock = threading.Lock()
+
+    @property
+    def emitting(self) -> bool:
+        with self.lock:
+            self._tick()
+            return self.state in ("XON", "WARMING")
+
+    def _tick(self):
+        if self.state == "WARMING" and time.monotonic() - self.t_warm >= self.warmup_s:
+            self.state = "STANDBY"
+        if not self.interlock_closed and self.interlock_stops_beam and self.state in ("XON", "WARMING"):
+            self.state = "STANDBY" if self.state == "XON" else "WUPNEED"
+
+    def _measured(self):
+        if self.state != "XON":
+            return 0.0, 0.0
+        f = min(1.0, (time.monotonic() - self.t_on) / self.ramp_s) if self.ramp_s else 1.0
+        return self.set_kv * f, self.set_ua * f
+
+    def handle(self, line: str) -> str:
+        with self.lock:
+            self._tick()
+            self.received.append(line)
+            word, *args = line.split() or [""]
+            value = int(args[0]) if len(args) == 1 and args[0].isdigit() else None
+            refused = "ERR" if self.dialect == "A" else "ERROR"
+            reply = self._setting(word, value, line) if args else self._action(word)
+            return refused if reply is None else reply
+
+    def _setting(self, word, value, line):
+        b = self.dialect == "B"
+        if value is None:
+            return None
+        if word in (("PHV", "HIV") if b else ("HIV",)):
+            if b and (word == "HIV") != (self.state == "XON"):
+                return None  # B: HIV/CUR while on, the presets PHV/PCU while off
+            kv = value / 10 if b else value
+            if not 40 <= kv <= 150:
+                return None
+            self.set_kv = kv
+            return line
+        if word in (("PCU", "CUR") if b else ("CUR",)):
+            if b and (word == "CUR") != (self.state == "XON"):
+                return None
+            if not 0 <= value <= 500:
+                return None
+            self.set_ua = value
+            return line
+        return line if word == "CFS" and not b and value <= 3 else None
+
+    def _action(self, word):
+        if word == "XOF":
+            if self.relay_stuck:
+                return "XOF"
+            self.state = {"XON": "STANDBY", "WARMING": "WUPNEED"}.get(self.state, self.state)
+            return "XOF"
+        if word == "XON":
+            if not self.interlock_closed:
+                return None
+            if self.dialect == "B" and self.state == "WUPNEED":
+                self.state, self.t_warm = "WARMING", time.monotonic()  # B: XON starts the warm-up
+                return "XON"
+            if self.state != "STANDBY":
+                return None
+            self.state, self.t_on = "XON", time.monotonic()
+            return "XON"
+        if word == "WUP" and self.dialect == "A":
+            if self.state not in ("WUPNEED", "STANDBY") or not self.interlock_closed:
+                return None
+            self.state, self.t_warm = "WARMING", time.monotonic()
+            return "WUP"
+        return (self._query_a if self.dialect == "A" else self._query_b)(word)
+
+    def _query_a(self, word):
+        kv, ua = self._measured()
+        done = 1 if self.state == "WARMING" else 2 if self.state == "WUPNEED" else 0
+        return {
+            "STS": f"STS {_A_CODES[self.state]}",
+            "SAR": f"SAR {_A_CODES[self.state]} {kv:.0f} {ua:.0f} 0 0 0 0",
+            "SVI": f"SVI {self.set_kv} {self.set_ua}",
+            "SIN": f"SIN {0 if self.interlock_closed else 1}",
+            "SWE": f"SWE {done}",
+            "SER": "SER 0",
+            "TYP": "TYP L8121-01",
+        }.get(word)
+
+    def _query_b(self, word):
+        kv, ua = self._measured()
+        done = self.state not in ("WUPNEED", "WARMING")
+        return {
+            "STS": _B_WORDS[self.state],
+            "SHV": f"SHV {kv:.1f}kV",
+            "SCU": f"SCU {ua:.0f}uA",
+            "SPV": f"SPV {self.set_kv:.1f}kV",
+            "SPC": f"SPC {self.set_ua}uA",
+            "SIN": "INTER LOCK ON" if self.interlock_closed else "INTER LOCK OFF",
+            "DAG": f"AGING 1 {3 if done else 0} {'END' if done else 'YET'}",
+            "SER": "SER 0",
+            "SRL": "REMOTE",
+            "SRB": "READY",
+        }.get(word)
+
+
+class SpecPty:
+    """``model`` on a pseudo-terminal: CR-terminated lines in, replies ending in CR out."""
+
+    def __init__(self, model: SpecModel):
+        self.model = model
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.url = os.ttyname(self._slave)
+        self._last = float("-inf")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self):
+        buf = b""
+        while not self._stop.is_set():
+            if not select.select([self._master], [], [], 0.02)[0]:
+                continue
+            try:
+                buf += os.read(self._master, 1024)
+            except OSError:
+                continue
+            while b"\r" in buf:
+                raw, buf = buf.split(b"\r", 1)
+                line = raw.decode("ascii", "replace").strip()
+                speed = _SPEEDS.get(termios.tcgetattr(self._master)[4])
+                if speed != self.model.baud or time.monotonic() - self._last < self.model.min_gap_s:
+                    self.model.lost.append(line)  # a UART at another rate, or a controller not ready
+                    continue
+                reply = self.model.handle(line)
+                if not self.model.silent:
+                    os.write(self._master, reply.encode("ascii") + b"\r")
+                self._last = time.monotonic()
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2)
+        os.close(self._master)
+        os.close(self._slave)
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    return request.param
+
+
+@contextlib.contextmanager
+def served(model):
+    """``model`` on a pty, closed on leaving."""
+    pty = SpecPty(model)
+    try:
+        yield pty
+    finally:
+        pty.close()
+
+
+# -- the link rules of L8121.md, which hold for both dialects ---------------------------------------
+def test_the_default_baud_rate_is_the_link_default_9600_in_both_dialects(dialect):
+    """``L8121.md``, Link: "baud configurable (9600, 38400 or 115200; default 9600 ...)" and
+    "These link rules hold for both dialects": a driver configured with the dialect alone must
+    reach a controller left at its default rate."""
+    model = SpecModel(dialect, min_gap_s=0)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        assert src.baudrate == 9600
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+    assert model.lost == [] and not model.emitting
+
+
+def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect):
+    """``L8121.md``, Link: "A controller may need ~50 ms between commands" (for both dialects): a
+    controller that drops a command sent sooner must lose none of the driver's."""
+    model = SpecModel(dialect, min_gap_s=0.045)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, baudrate=9600, poll_s=0.05) as src:
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+        src.check()
+    assert model.lost == [] and not model.emitting
+
+
+# -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
+def _open_interlock_once_emitting(model, after_s=0.2):
+    def watch():
+        deadline = time.monotonic() + 10
+        while not model.emitting and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(after_s)
+        model.interlock_closed = False
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+@pytest.mark.parametrize("phase", ["warm-up", "ramp"])
+def test_an_interlock_opening_while_emitting_stops_the_tube(dialect, phase):
+    """``L8121.md``: "Warm-up emits X-rays: it is started only on purpose, with the same interlock
+    ... rules as any exposure", and while X-rays are on the driver polls (B: ``STS``, ``SHV``,
+    ``SCU``, ``SIN``) and stops on "an interlock opening". A controller that only reports the open
+    interlock (the notes do not say it switches off by itself) must be switched off by the driver
+    within a few polls, not when the warm-up ends or the beam is stable."""
+    model = SpecModel(dialect, warm=phase == "ramp", warmup_s=3.0, ramp_s=3.0)
+    model.interlock_stops_beam = False
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        _open_interlock_once_emitting(model)
+        t0 = time.monotonic()
+        with pytest.raises(SourceFault, match="interlock open"):
+            if phase == "warm-up":
+                src.warm_up(timeout_s=10, progress=False)
+            else:
+                src.on(60, 250)
+        assert time.monotonic() - t0 < 2.0  # the warm-up or the ramp would take 3 s
+        assert not model.emitting
+
+
+# -- no X-ray command before every setting is valid ------------------------------------------------
+@pytest.mark.parametrize("timeout_s", [0, -5, float("nan"), float("inf")])
+def test_an_invalid_warm_up_time_out_is_refused_before_the_warm_up_starts(dialect, timeout_s):
+    """``L8121.md``: "Time-outs are explicit and short", and the warm-up emits X-rays, so it may
+    only start once its settings are valid: a time-out that is not a positive finite number of
+    seconds (one that ends the warm-up at once, or never) is refused before ``WUP`` (A) or the
+    warm-up's ``XON`` (B) is sent."""
+    model = SpecModel(dialect)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        with pytest.raises(ValueError, match="timeout_s"):
+            src.warm_up(timeout_s=timeout_s, progress=False)
+    assert not {"WUP", "XON"} & set(model.received)
+
+
+@pytest.mark.parametrize("key", ["warmup_timeout_s", "stable_timeout_s"])
+def test_a_zero_time_out_is_not_a_configuration(key):
+    """A warm-up or an exposure that may not last at all would switch the tube on only to switch it
+    off again: refused with the other time-outs that must be > 0."""
+    with pytest.raises(ValueError, match=key):
+        SourceConfig(**{key: 0})
+
+
+# -- the bench-top commands: a signal switches the tube off too ------------------------------------
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_a_signal_during_source_warm_up_switches_the_tube_off(dialect, sig):
+    """``L8121.md``: X-rays are switched off "on every exit path" and "an interrupted warm-up is
+    switched off like an exposure". ``radiokit acquire source warm-up`` killed (SIGTERM), hung up
+    on (SIGHUP) or interrupted (Ctrl-C) while the warm-up runs must leave the tube off, confirmed,
+    and say so in one line, without a traceback."""
+    model = SpecModel(dialect, warmup_s=60.0)
+    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    with served(model) as pty:
+        argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
+        try:
+            deadline = time.monotonic() + 30
+            while not model.emitting and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert model.emitting, f"the warm-up never started: {proc.poll()}"
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert not model.emitting, f"left warming up after {sig.name}: {model.received[-4:]}"
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith(f"stopped by {sig.name}; tube off (confirmed by STS"), err
+
+
+# -- a protocol's focus is a setting too -------------------------------------------------------------
+def _series(port, dialect, focus):
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=(0.15,))
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0
+    return {
+        "output": "unused.h5",
+        "name": "focus",
+        # timeout_s 3: the model answers from this process, which also solves the scene meanwhile
+        "source": {"voltage_kv": 60, "current_ua": 250, "dialect": dialect, "focus": focus, "timeout_s": 3.0},
+        "detector": {"kind": "sim", "timeout_s": 2.0},
+        "frame": {"kind": "sim", "initial_height_mm": 10.0},
+        "series": {"darks": 1, "flats": 1, "frames_per_step": 1, "steps": [0.15], "settle_s": 0.0},
+        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.1, "source_port": port},
+    }
+
+
+def test_a_focus_dialect_b_lacks_is_refused_when_the_protocol_is_loaded():
+    """Dialect B has three focus commands (``CFS``/``CFM``/``CFL``: 0, 1, 2); ``focus = 3`` is a
+    setting it cannot take, refused with the protocol's other settings, before anything is sent."""
+    from acquisition.protocols.compression_series import ProtocolError, load_protocol
+
+    with pytest.raises(ProtocolError, match="focus = 3"):
+        load_protocol(_series("/dev/null", "B", 3))
+    assert load_protocol(_series("/dev/null", "A", 3)).source.focus == 3
+
+
+def test_a_focus_the_probed_dialect_lacks_is_refused_before_the_warm_up(tmp_path):
+    """``dialect = "auto"``: the dialect is known only at connect, so the focus is checked then --
+    before the warm-up, which emits X-rays (B starts it with ``XON``), not after it."""
+    from acquisition.protocols.compression_series import load_protocol, run
+
+    model = SpecModel("B")  # warm-up needed
+    with served(model) as pty:
+        p = load_protocol(_series(pty.url, "auto", 3))
+        p.output = str(tmp_path / "series.h5")
+        with pytest.raises(ValueError, match="focus"):
+            run(p, sim=True, progress=False)
+    assert "XON" not in model.received, model.received
+
+
+@pytest.mark.parametrize("nth_xof", [4, 7])
+def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect, nth_xof):
+    """The interlock opens during ``source warm-up`` and the tube does not switch off (XOF answered,
+    STS still warming up): whenever SIGTERM comes -- during the failing switch-off after the fault
+    (the 4th XOF) or during the one on the way out (the 7th) -- the last line must say to switch
+    off at the controller, never that the tube is off or that no X-ray command was sent."""
+    model = SpecModel(dialect, warmup_s=60.0)
+    model.interlock_stops_beam = False
+    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    with served(model) as pty:
+        argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
+        proc = subprocess.Popen([sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while not model.emitting and time.monotonic() < deadline:
+                time.sleep(0.02)
+            model.relay_stuck, model.interlock_closed = True, False
+            while model.received.count("XOF") < nth_xof and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.002)
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert model.emitting and proc.returncode != 0
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and "switch the source off at the controller" in last, err
+
+
+# -- a silent controller is told once ----------------------------------------------------------------
+def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
+    """The controller falls silent while the beam ramps: one switch-off (``XOF``, ``STS``, both
+    unanswered) and the error -- not a second round on the way out of ``on()``, which cannot
+    reach a silent controller and only delays the operator's message by two more time-outs
+    (``L8121.md``: "Time-outs are explicit and short; a silent controller is an error")."""
+    model = SpecModel(dialect, warm=True, ramp_s=5.0)
+    with served(model) as pty:
+        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.5)
+        threading.Timer(0.5, setattr, (model, "silent", True)).start()
+        with pytest.raises(DeviceError, match="no reply"):
+            src.on(60, 250)
+        n_xof = model.received.count("XOF")
+        src.detach()
+    assert n_xof == 1, model.received[-8:]
+    assert src.off_failed is not None and "does not answer" in str(src.off_failed)
