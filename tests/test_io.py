@@ -877,6 +877,24 @@ def test_tiff_strip_and_tile_layouts(tmp_path, kw):
     np.testing.assert_array_equal(f.data, data)
 
 
+@pytest.mark.parametrize(
+    "name, kw",
+    [
+        # OME-TIFF (Micro-Manager, Bio-Formats): tifffile lists pages after the first as TiffFrames
+        ("stack.ome.tif", {"metadata": {"axes": "ZYX"}}),
+        ("tiled.ome.tif", {"metadata": {"axes": "ZYX"}, "tile": (16, 16)}),
+        ("hyper.tif", {"imagej": True, "metadata": {"axes": "ZYX"}}),
+    ],
+)
+def test_tiff_ome_and_imagej_stacks_read_every_page(tmp_path, name, kw):
+    data = _rand12((3, 37, 50), seed=29)
+    path = tmp_path / name
+    tifffile.imwrite(path, data, photometric="minisblack", **kw)
+    np.testing.assert_array_equal(read(path).data, data)
+    with open_frames(path) as src:
+        np.testing.assert_array_equal(src[2], data[2])
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

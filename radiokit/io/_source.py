@@ -195,7 +195,8 @@ class FrameSource:
         shape = first.shape
         if len(shape) != 2:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
-        all_pages = list(pages)
+        # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
+        all_pages = [page.aspage() for page in pages]
         self._pages = [p for p in all_pages if p.shape == shape]
         for i, page in enumerate(all_pages):
             # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
