@@ -895,6 +895,16 @@ def test_tiff_ome_and_imagej_stacks_read_every_page(tmp_path, name, kw):
         np.testing.assert_array_equal(src[2], data[2])
 
 
+def test_tiff_pages_of_another_dtype_are_refused_not_cast(tmp_path):
+    """A page of another SampleFormat/BitsPerSample is not a frame of the same stack: casting
+    a float32 page into the first page's uint16 would silently truncate it."""
+    path = tmp_path / "mixed.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((6, 7), np.uint16), photometric="minisblack")
+        tif.write(np.full((6, 7), 0.5, np.float32), photometric="minisblack")
+    _raises_format(path, "float32")
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

@@ -209,6 +209,10 @@ class FrameSource:
         self._check_ifd_chain(all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
+            if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
+                raise FormatError(
+                    self.path, f"TIFF page {i} holds {page.dtype} pixels, page 0 {first.dtype}: not one stack of frames"
+                )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
         self.bits = None
         tags = {}
