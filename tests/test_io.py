@@ -1232,6 +1232,22 @@ def test_hdf5_experiment_missing_image_key(tmp_path):
     _raises_format(path, "(n, rows, cols)")
 
 
+@pytest.mark.parametrize("dtype", [">u2", ">f4", ">i4"])
+def test_hdf5_big_endian_frames_come_in_native_byte_order(tmp_path, dtype):
+    """read() promises the file's dtype in native byte order, as the raw and TIFF readers give:
+    HDF5 stores the byte order in the dataset's type, and h5py hands it through unless asked."""
+    values = np.arange(60).reshape(3, 4, 5)
+    path = tmp_path / "be.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("frames", data=values.astype(dtype))
+    f = read(path, dataset="frames")
+    assert f.data.dtype == np.dtype(dtype).newbyteorder("=")
+    np.testing.assert_array_equal(f.data, values)
+    with open_frames(path, dataset="frames") as src:
+        assert src.dtype.isnative and src[1].dtype.isnative
+        np.testing.assert_array_equal(src[1], values[1])
+
+
 def test_dataset_hint_on_non_hdf5(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)

@@ -358,7 +358,8 @@ class FrameSource:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
         self._ds = data
-        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype
+        # h5py hands through the byte order the file stores; read() promises native order
+        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype.newbyteorder("=")
         self.bits = 12 if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
@@ -383,7 +384,8 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
-        return self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self):
