@@ -1248,6 +1248,33 @@ def test_hdf5_big_endian_frames_come_in_native_byte_order(tmp_path, dtype):
         np.testing.assert_array_equal(src[1], values[1])
 
 
+_READ_SUM = "import sys; from radiokit.io import read; print(int(read(sys.argv[1], dataset='d').data.sum()))"
+
+
+@pytest.mark.parametrize("plugin", ["Zstd", "Bitshuffle", "LZ4"])
+def test_hdf5_compressed_by_a_plugin_filter_reads_or_names_the_filter(tmp_path, plugin):
+    """Detector and beamline software compress HDF5 with registered plugin filters (zstd,
+    bitshuffle, LZ4): read them through hdf5plugin's filters where it is installed, and where
+    no filter is at hand say which one is missing, not libhdf5's "can't open directory".
+    Each read runs in a fresh interpreter: this one has hdf5plugin loaded to write the file."""
+    hdf5plugin = pytest.importorskip("hdf5plugin")
+    values = np.arange(3 * 40 * 50, dtype=np.uint16).reshape(3, 40, 50)
+    path = tmp_path / "plugin.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("d", data=values, chunks=(1, 40, 50), **getattr(hdf5plugin, plugin)())
+    env = {**os.environ, "HDF5_PLUGIN_PATH": str(tmp_path / "no-plugins-here")}
+    res = subprocess.run([sys.executable, "-c", _READ_SUM, path], capture_output=True, text=True, env=env)
+    assert res.returncode == 0, res.stderr
+    assert int(res.stdout) == int(values.sum())
+    without = "import sys; sys.modules['hdf5plugin'] = None; " + _READ_SUM  # as if it were not installed
+    res = subprocess.run([sys.executable, "-c", without, path], capture_output=True, text=True, env=env)
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("radiokit.errors.FormatError") and str(path) in last, res.stderr
+    with h5py.File(path) as h5:
+        code = h5["d"].id.get_create_plist().get_filter(0)[0]
+    assert f"filter {code}" in last and "hdf5plugin" in last, last
+
+
 def test_dataset_hint_on_non_hdf5(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)
