@@ -199,3 +199,28 @@ def _datasets(h5):
     names = []
     h5.visititems(lambda name, obj: names.append(name) if hasattr(obj, "shape") else None)
     return names
+
+
+def _write_stack(path, frames):
+    import tifffile
+
+    tifffile.imwrite(path, np.asarray(frames, np.float32), photometric="minisblack")
+    return path
+
+
+def test_nonfinite_frames_are_refused_naming_the_file_and_frame(tmp_path):
+    """A float frame of only NaN/inf (a broken export) stops the run in one line that says which
+    file and which frame, not only "a raw frame": a run may read many files."""
+    rng = np.random.default_rng(5)
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    good = _write_stack(tmp_path / "good.tif", rng.normal(1000, 20, (2, 12, 14)))
+    frames = rng.normal(1000, 20, (3, 12, 14))
+    frames[1] = np.inf
+    bad = _write_stack(tmp_path / "bad.tif", frames)
+    res = run("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    res = run("correct", good, bad, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "bad.tif" in res.stderr and "frame 1" in res.stderr, res.stderr
+    assert not (tmp_path / "out.h5").exists()
