@@ -165,7 +165,7 @@ def _parse_thresholds(items) -> dict:
 
 
 def _stack(paths, hints, key=None) -> np.ndarray:
-    from radiokit.io import check_budget, open_frames
+    from radiokit.io import FormatError, check_budget, open_frames
 
     frames, total = [], 0
     for p in paths:
@@ -176,6 +176,8 @@ def _stack(paths, hints, key=None) -> np.ndarray:
             for i in range(len(src)):
                 if key is None or keys is None or keys[i] == key:
                     frames.append(src[i])
+                    if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
+                        raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:
         raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
     return np.stack(frames)

@@ -224,3 +224,16 @@ def test_nonfinite_frames_are_refused_naming_the_file_and_frame(tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "bad.tif" in res.stderr and "frame 1" in res.stderr, res.stderr
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_nonfinite_darks_or_flats_are_refused_naming_the_file(tmp_path):
+    rng = np.random.default_rng(6)
+    darks = rng.normal(100, 2, (5, 12, 14))
+    darks[3, 4, 5] = np.nan
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    bad_dark = _write_stack(tmp_path / "bad dark.tif", darks)
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    res = run("calibrate", "--dark", dark, bad_dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "bad dark.tif" in res.stderr and "frame 3" in res.stderr, res.stderr
+    assert not (tmp_path / "cal.h5").exists()
