@@ -905,6 +905,34 @@ def test_tiff_pages_of_another_dtype_are_refused_not_cast(tmp_path):
     _raises_format(path, "float32")
 
 
+def _imagej_one_ifd(path, data, byteorder):
+    """An ImageJ stack as ImageJ writes one over 4 GB: the first IFD only (its next-IFD offset
+    0), ``images=N`` in its description, and all N frames stored contiguously after it."""
+    tifffile.imwrite(path, data, imagej=True, byteorder=byteorder)
+    raw = bytearray(path.read_bytes())
+    ifd = struct.unpack_from(byteorder + "I", raw, 4)[0]
+    count = struct.unpack_from(byteorder + "H", raw, ifd)[0]
+    struct.pack_into(byteorder + "I", raw, ifd + 2 + 12 * count, 0)
+    path.write_bytes(bytes(raw))
+    return path
+
+
+@pytest.mark.parametrize("byteorder", [">", "<"])  # ImageJ itself writes big-endian
+def test_tiff_imagej_stack_with_one_ifd_reads_every_frame(tmp_path, byteorder):
+    """Past 4 GB (428 frames of 2240 x 2240 uint16) ImageJ writes one IFD and says ``images=N``:
+    reading only the first page would silently drop every frame after it."""
+    data = _rand12((4, 20, 30), seed=31)
+    path = _imagej_one_ifd(tmp_path / "big.tif", data, byteorder)
+    np.testing.assert_array_equal(read(path).data, data)
+    with open_frames(path) as src:
+        assert len(src) == 4
+        np.testing.assert_array_equal(src[3], data[3])
+    np.testing.assert_array_equal(read(path, n=2).data, data[:2])
+    # a description promising more frames than the file holds is a truncated file, not 4 frames
+    path.write_bytes(path.read_bytes().replace(b"images=4", b"images=9"))
+    _raises_format(path, "images=9", "truncated")
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

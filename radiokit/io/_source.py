@@ -207,6 +207,7 @@ class FrameSource:
                     f"TIFF page {i} is {page.shape}, page 0 is {shape}: a corrupt page, or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
+        self._contiguous = self._imagej_contiguous(first, all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
@@ -214,6 +215,8 @@ class FrameSource:
                     self.path, f"TIFF page {i} holds {page.dtype} pixels, page 0 {first.dtype}: not one stack of frames"
                 )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
+        if self._contiguous:
+            self.n = self._contiguous["n"]
         self.bits = None
         tags = {}
         for tag in first.tags:
@@ -285,6 +288,32 @@ class FrameSource:
         if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] != 0:
             raise broken(f"IFD after page {len(pages) - 1}")
 
+    def _imagej_contiguous(self, first, pages) -> dict | None:
+        """The geometry of an ImageJ stack stored after a single IFD, else None.
+
+        ImageJ writes a stack over 4 GB with its first IFD only, ``images=N`` in the description
+        and the N frames uncompressed and contiguous after it; tifffile reads it as one series.
+        Its frames are then read as raw ones, one at a time.
+        """
+        tif = self._tif
+        images = (tif.imagej_metadata or {}).get("images", 1) if tif.is_imagej else 1
+        if len(pages) != 1 or not isinstance(images, int) or images <= 1:
+            return None
+        if not first.is_contiguous or first.compression != 1:
+            raise FormatError(self.path, f"ImageJ stack of {images} images with one IFD and compressed data")
+        rows, cols = first.shape
+        dtype = np.dtype(first.dtype).newbyteorder(tif.byteorder)
+        geo = dict(n=images, rows=rows, cols=cols, dtype=dtype, offset=int(first.dataoffsets[0]))
+        need = geo["offset"] + images * rows * cols * dtype.itemsize
+        if need > tif.filehandle.size:
+            raise FormatError(
+                self.path,
+                f"ImageJ description says images={images} of {rows}x{cols} {dtype.name} stored after "
+                f"the first IFD ({need} bytes); the file has {tif.filehandle.size}: truncated",
+            )
+        self._fh = open(self.path, "rb")
+        return geo
+
     def _check_page_layout(self, i, page, shape):
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
@@ -327,6 +356,8 @@ class FrameSource:
                 )
 
     def _read_tiff(self, i):
+        if self._contiguous:
+            return read_raw_frame(self._fh, self._contiguous, i)
         frame = self._pages[i].asarray()
         if frame.shape != self.frame_shape:
             raise FormatError(self.path, f"page {i} decodes to {frame.shape}, expected {self.frame_shape}")
