@@ -29,7 +29,7 @@ __all__ = ["main", "build_parser"]
 
 def _raw_hints(args) -> dict:
     hints = {}
-    for name in ("preset", "byteorder", "offset", "format"):
+    for name in ("preset", "byteorder", "offset", "format", "dataset"):
         value = getattr(args, name, None)
         if value is not None:
             hints[name] = value
@@ -45,6 +45,8 @@ def _add_raw_hints(p):
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
+    g = p.add_argument_group("HDF5 files of other layouts")
+    g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
 
 
 # -- info --------------------------------------------------------------------------------------

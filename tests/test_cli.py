@@ -237,3 +237,19 @@ def test_nonfinite_darks_or_flats_are_refused_naming_the_file(tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "bad dark.tif" in res.stderr and "frame 3" in res.stderr, res.stderr
     assert not (tmp_path / "cal.h5").exists()
+
+
+def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
+    """An HDF5 file of another layout: the one line says how to name its frames, and the way it
+    says exists on the command line."""
+    import h5py
+
+    values = np.arange(3 * 6 * 7, dtype=np.uint16).reshape(3, 6, 7)
+    with h5py.File(tmp_path / "beamline.h5", "w") as h5:
+        h5["scan/frames"] = values
+    res = run("info", tmp_path / "beamline.h5")
+    assert res.returncode == 2 and "beamline.h5" in res.stderr and "--dataset" in res.stderr, res.stderr
+    res = run("info", "--json", tmp_path / "beamline.h5", "--dataset", "scan/frames")
+    assert res.returncode == 0, res.stderr
+    rep = json.loads(res.stdout)[0]
+    assert rep["frames"] == 3 and rep["range"] == [0, int(values.max())]

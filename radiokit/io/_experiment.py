@@ -541,7 +541,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
         raise FormatError(
             path,
             f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
-            "(pass dataset='/path/to/frames' to read another layout)",
+            "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)",
         )
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:
