@@ -1320,6 +1320,22 @@ def test_stackwriter_hdf5_read_back(tmp_path):
     _raises_format(tmp_path / "out.h5", "dimensions", dataset="entry/data/step")  # 1-D: not frames
 
 
+@pytest.mark.parametrize("n_frames, bigtiff", [(300_000, True), (200_000, False), (None, False)])
+def test_stackwriter_tiff_is_bigtiff_when_the_stack_will_pass_4_gib(tmp_path, monkeypatch, n_frames, bigtiff):
+    """Classic TIFF offsets are 32-bit: a stack announced past 4 GiB must start as BigTIFF, or
+    the page after the 4 GiB mark fails ("data too large for non-BigTIFF file") after hours
+    of correction. 300 000 frames of 64 x 64 float32 are 4.9 GB, 200 000 are 3.3 GB."""
+    import radiokit.io._atomic as atomic
+
+    monkeypatch.setattr(atomic, "check_free_space", lambda path, nbytes: None)  # only one frame is written
+    path = tmp_path / "stack.tif"
+    with StackWriter(path, (64, 64), np.float32, n_frames=n_frames) as w:
+        w.append(np.ones((64, 64), np.float32))
+    with tifffile.TiffFile(path) as tif:
+        assert tif.is_bigtiff == bigtiff
+    np.testing.assert_array_equal(read(path).data, np.ones((1, 64, 64), np.float32))
+
+
 @pytest.mark.parametrize("direct", [True, False], ids=["o_direct", "page_cache"])
 def test_stackwriter_preallocated_direct_and_buffered_agree(tmp_path, monkeypatch, direct):
     """With n_frames known, frames (4 KiB multiples here) go straight to their chunks with
