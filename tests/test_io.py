@@ -1303,6 +1303,16 @@ def test_hdf5_compressed_by_a_plugin_filter_reads_or_names_the_filter(tmp_path, 
     assert f"filter {code}" in last and "hdf5plugin" in last, last
 
 
+@pytest.mark.parametrize("shape", [(3, 0, 24), (0, 5), (2, 4, 0)])
+def test_hdf5_frames_without_pixels_are_refused(tmp_path, shape):
+    """A dataset of (n, 0, cols) frames has nothing to read: refused naming the file, rather than
+    failing later in whatever first reduces a frame (min, mean) with numpy's words."""
+    path = tmp_path / "nopixels.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("d", shape=shape, dtype=np.uint16)
+    _raises_format(path, "no pixels", dataset="d")
+
+
 def test_dataset_hint_on_non_hdf5(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)

@@ -127,6 +127,8 @@ class FrameSource:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
             if self.format != "raw" and hints.get("n") is not None:
                 self._limit_frames(hints["n"])
+            if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
+                raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
             check_budget(
                 self.path,
                 self.frame_bytes,
