@@ -283,7 +283,10 @@ def cmd_register(args) -> int:
         raise ValueError(f"--png {args.png}: the same file as -o")
     options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
-    reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
+    try:
+        reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
+    except ValueError as exc:  # the library says "fixed" or "moving"; the user wants the file
+        raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
     q = reg.quality
     registered = reg.warp(moving)
     write_registration(

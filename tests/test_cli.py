@@ -253,3 +253,20 @@ def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)[0]
     assert rep["frames"] == 3 and rep["range"] == [0, int(values.max())]
+
+
+@pytest.mark.parametrize(
+    "fixed, moving, problem",
+    [
+        (np.full((32, 32), np.nan), np.ones((32, 32)), "NaN"),
+        (np.ones((32, 32)), np.ones((32, 40)), "differ in shape"),
+        (np.ones((4, 4)), np.ones((4, 4)), "too small"),
+    ],
+)
+def test_register_names_the_files_of_an_image_it_refuses(tmp_path, fixed, moving, problem):
+    f = _write_stack(tmp_path / "fixed one.tif", fixed)
+    m = _write_stack(tmp_path / "moving one.tif", moving)
+    res = run("register", f, m, "-o", tmp_path / "reg.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert problem in res.stderr and "fixed one.tif" in res.stderr and "moving one.tif" in res.stderr, res.stderr
+    assert not (tmp_path / "reg.h5").exists()
