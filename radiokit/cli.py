@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import sys
+import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
@@ -618,6 +619,10 @@ def main(argv=None) -> int:
         return 2
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+        # a warning is for the user: the command's line, not radiokit's file, line and source
+        warnings.formatwarning = lambda message, category, *_, **__: (
+            f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
+        )
     if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)

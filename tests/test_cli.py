@@ -270,3 +270,19 @@ def test_register_names_the_files_of_an_image_it_refuses(tmp_path, fixed, moving
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert problem in res.stderr and "fixed one.tif" in res.stderr and "moving one.tif" in res.stderr, res.stderr
     assert not (tmp_path / "reg.h5").exists()
+
+
+def test_a_warning_is_one_line_without_source_code(tmp_path):
+    """Warnings reach the user as the line of the command that met them, not Python's
+    ``/path/to/radiokit/cli.py:110: BitDepthWarning: ...`` followed by a line of source."""
+    np.full((1120, 1120), 60000, "<u2").tofile(tmp_path / "hot.raw")  # MSB-aligned 12-bit
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(tmp_path / "hot.raw")],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith("radiokit info: BitDepthWarning: "), res.stderr
+    assert "hot.raw" in res.stderr and ".py:" not in res.stderr, res.stderr
