@@ -933,6 +933,34 @@ def test_tiff_imagej_stack_with_one_ifd_reads_every_frame(tmp_path, byteorder):
     _raises_format(path, "images=9", "truncated")
 
 
+def _tiff_12bit_packed(path, image):
+    """A one-strip TIFF of BitsPerSample 12 (TIFF 6.0: samples packed MSB first, FillOrder 1,
+    each row padded to a whole byte), as 12-bit camera software writes it."""
+    rows, cols = image.shape
+    bits = ((image[..., None] >> np.arange(11, -1, -1)) & 1).astype(np.uint8).reshape(rows, cols * 12)
+    data = np.packbits(bits, axis=1).tobytes()  # packbits pads each row to a byte
+    tags = [(256, cols), (257, rows), (258, 12), (259, 1), (262, 1), (273, 0), (277, 1), (278, rows), (279, len(data))]
+    data_offset = 8 + 2 + 12 * len(tags) + 4
+    out = b"II*\0" + struct.pack("<IH", 8, len(tags))
+    for code, value in tags:
+        out += struct.pack("<HHII", code, 4, 1, data_offset if code == 273 else value)
+    path.write_bytes(out + struct.pack("<I", 0) + data)
+    return path
+
+
+def test_tiff_lzw_and_12bit_packed_read(tmp_path):
+    """LZW (Pillow, GIMP, Photoshop, many acquisition programs) and 12-bit packed samples (a
+    12-bit detector's own TIFF) are ordinary TIFF; tifffile decodes both through imagecodecs."""
+    from PIL import Image
+
+    data = _rand12((9, 11), seed=37)
+    Image.fromarray(data).save(tmp_path / "lzw.tif", compression="tiff_lzw")
+    with tifffile.TiffFile(tmp_path / "lzw.tif") as tif:
+        assert tif.pages.first.compression == 5  # LZW
+    np.testing.assert_array_equal(read(tmp_path / "lzw.tif").data[0], data)
+    np.testing.assert_array_equal(read(_tiff_12bit_packed(tmp_path / "p12.tif", data)).data[0], data)
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)
