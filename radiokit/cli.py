@@ -364,7 +364,12 @@ def cmd_process(args) -> int:
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
     if single:
-        res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
+        try:
+            res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
+        except ValueError as exc:  # as process_many reports each file's error: name the file
+            if str(args.files[0]) in str(exc):
+                raise
+            raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
         return 0 if all(p.ok for p in res.record.pairs) else 1
     results = process_many(

@@ -286,3 +286,13 @@ def test_a_warning_is_one_line_without_source_code(tmp_path):
     assert res.returncode == 0, res.stderr
     assert res.stderr.count("\n") == 1 and res.stderr.startswith("radiokit info: BitDepthWarning: "), res.stderr
     assert "hot.raw" in res.stderr and ".py:" not in res.stderr, res.stderr
+
+
+def test_process_names_the_file_it_cannot_measure(experiment, tmp_path):
+    """No inclusion to be found (a uniform body): the one line names the experiment file and the
+    command's own option for the rectangles, not a keyword of the library."""
+    path, _ = experiment
+    res = run("process", path, "-o", tmp_path / "res", "-q", "--no-report", "--cross-check", "none")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert str(path) in res.stderr and "--inclusion" in res.stderr, res.stderr
+    assert not (tmp_path / "res").exists()
