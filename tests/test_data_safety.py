@@ -466,3 +466,39 @@ def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, t
     assert run("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
     assert not any(folder.exists() for folder in stale)
     no_temporaries(tmp_path)
+
+
+# -- an output folder that cannot be written -----------------------------------------------------
+@pytest.fixture
+def readonly_dir(tmp_path):
+    """A read-only tmpfs (needs root), else a folder without write permission (not for root)."""
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64m", "tmpfs", str(mnt)], capture_output=True)
+    if ok.returncode == 0:
+        try:
+            yield mnt
+        finally:
+            subprocess.run(["umount", str(mnt)], check=True)
+        return
+    if os.geteuid() == 0:
+        pytest.skip("root without mount: no folder it cannot write")
+    mnt.chmod(0o555)
+    try:
+        yield mnt
+    finally:
+        mnt.chmod(0o755)
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png", "process"])
+def test_an_output_that_cannot_be_written_is_named_not_its_temporary(cmd, readonly_dir, experiment, images, tmp_path):
+    """A read-only folder: the one line names the output asked for and why, not the hidden
+    temporary radiokit writes first (``.out.tmp-HOST-PID-XXXXXXXX.h5``) nor libhdf5's flags."""
+    commands = {**_commands(experiment, images, readonly_dir / "out"), "process": ["process", experiment, "-q"]}
+    args = commands[cmd] + (["-o", readonly_dir / "out", *ROI] if cmd == "process" else [])
+    out = Path(args[args.index("--png") + 1] if cmd == "register-png" else args[args.index("-o") + 1])
+    if cmd == "register-png":  # the field goes to a writable folder; only the figure cannot be written
+        args[args.index("-o") + 1] = tmp_path / "field.h5"
+    res = run(*args)
+    line = one_line_error(res, out, "cannot be written")
+    assert ".tmp-" not in line and "o_flags" not in line, line

@@ -231,6 +231,8 @@ def _fsync(path: Path) -> None:
 
 
 def _remove(path: Path) -> None:
+    if not os.path.lexists(path):  # unlink on a read-only filesystem fails even for no file
+        return
     with contextlib.suppress(FileNotFoundError):
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
@@ -270,7 +272,16 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         _remove(tmp)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
+        _raise_unwritable(exc, tmp, path)
         raise
+
+
+def _raise_unwritable(exc, tmp: Path, path: Path) -> None:
+    """An OSError about the temporary (a read-only folder or filesystem) is one about ``path``:
+    say so of the output asked for, not of a hidden name the user never gave (or libhdf5's flags)."""
+    if isinstance(exc, OSError) and not isinstance(exc, OutputError) and exc.errno:
+        if str(tmp) in f"{exc.filename} {exc}":
+            raise OutputError(path, f"cannot be written: {os.strerror(exc.errno)}", exc.errno) from exc
 
 
 @contextlib.contextmanager
@@ -329,4 +340,5 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
         _remove(tmp)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
+        _raise_unwritable(exc, tmp, path)
         raise
