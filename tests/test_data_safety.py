@@ -502,3 +502,20 @@ def test_an_output_that_cannot_be_written_is_named_not_its_temporary(cmd, readon
     res = run(*args)
     line = one_line_error(res, out, "cannot be written")
     assert ".tmp-" not in line and "o_flags" not in line, line
+
+
+# -- long names --------------------------------------------------------------------------------
+@pytest.mark.parametrize("stem", ["x" * 245, "\u7a7a" * 83])  # 248 and 252 bytes with the suffix
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "process"])
+def test_an_output_whose_name_is_near_the_filesystem_limit_is_written(cmd, stem, experiment, images, tmp_path):
+    """A name of up to 255 bytes is a valid file name; the hidden temporary beside it must
+    fit the same limit, or the output could never be written."""
+    out = tmp_path / (stem if cmd == "process" else stem + ".h5")
+    assert len(os.fsencode(out.name)) <= 255
+    args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
+    if cmd != "process":
+        args[-1] = out
+    res = run(*args, "--no-report") if cmd == "process" else run(*args)
+    assert res.returncode == 0, res.stderr
+    assert out.exists()
+    no_temporaries(tmp_path)

@@ -188,11 +188,26 @@ def _owner_tag() -> str:
     return f"{socket.gethostname().split('.')[0]}-{os.getpid()}"
 
 
+#: the longest file name most filesystems take (NAME_MAX), in bytes
+_NAME_MAX = 255
+
+
+def _head(path: Path, folder: bool) -> str:
+    """The part of ``path``'s name its temporaries begin with: the name (a folder) or the stem,
+    cut so that ``.HEAD.tmp-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
+    (room for a 10-digit PID: the same head for every process, so stale ones are found)."""
+    head, tail = (path.name, "") if folder else (path.stem, path.suffix)
+    room = _NAME_MAX - len(os.fsencode(f"..tmp-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
+    while head and len(os.fsencode(head)) > room:  # cut whole characters, not bytes of one
+        head = head[:-1]
+    return head
+
+
 def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path`` (``old`` for a folder being replaced); a file
     keeps its suffix last, since writers choose the format from it (StackWriter, matplotlib)."""
     tag = f"{kind}-{_owner_tag()}-{secrets.token_hex(4)}"
-    return path.with_name(f".{path.name}.{tag}" if folder else f".{path.stem}.{tag}{path.suffix}")
+    return path.with_name(f".{_head(path, folder)}.{tag}{'' if folder else path.suffix}")
 
 
 def _remove_stale(path: Path, folder=False) -> None:
@@ -200,7 +215,7 @@ def _remove_stale(path: Path, folder=False) -> None:
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
     for kind in ("tmp", "old") if folder else ("tmp",):
-        pattern = f".{path.name}.{kind}-{host}-*" if folder else f".{path.stem}.{kind}-{host}-*{path.suffix}"
+        pattern = f".{_head(path, folder)}.{kind}-{host}-*{'' if folder else path.suffix}"
         for old in path.parent.glob(pattern):
             m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
             if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
