@@ -519,3 +519,25 @@ def test_an_output_whose_name_is_near_the_filesystem_limit_is_written(cmd, stem,
     assert res.returncode == 0, res.stderr
     assert out.exists()
     no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("stem", ["scan[1]", "a*b?", "[x]"])
+def test_a_killed_runs_temporary_is_found_whatever_its_name(tmp_path, stem):
+    """Names with glob characters (``scan[1].h5``) are names, not patterns: the stale temporary
+    of this output is removed, and only it (``.scan1.tmp-...`` belongs to ``scan1.h5``)."""
+    import socket
+
+    from radiokit.io import atomic_path
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()  # a process that has ended
+    stale = tmp_path / f".{stem}.tmp-{host}-{dead}-0123abcd.h5"
+    other = tmp_path / f".{stem.replace('[', '').replace(']', '')}1.tmp-{host}-{dead}-0123abcd.h5"
+    for p in (stale, other):
+        p.write_bytes(b"half a file")
+    with atomic_path(tmp_path / f"{stem}.h5") as tmp:
+        tmp.write_bytes(b"whole")
+    assert not stale.exists() and other.exists()
+    assert (tmp_path / f"{stem}.h5").read_bytes() == b"whole"

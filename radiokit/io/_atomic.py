@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import re
 import secrets
@@ -215,7 +216,9 @@ def _remove_stale(path: Path, folder=False) -> None:
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
     for kind in ("tmp", "old") if folder else ("tmp",):
-        pattern = f".{_head(path, folder)}.{kind}-{host}-*{'' if folder else path.suffix}"
+        # the name's own characters taken literally: "scan[1]" is no character class
+        head, suffix = glob.escape(_head(path, folder)), "" if folder else glob.escape(path.suffix)
+        pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
         for old in path.parent.glob(pattern):
             m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
             if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
