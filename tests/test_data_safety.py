@@ -541,3 +541,15 @@ def test_a_killed_runs_temporary_is_found_whatever_its_name(tmp_path, stem):
         tmp.write_bytes(b"whole")
     assert not stale.exists() and other.exists()
     assert (tmp_path / f"{stem}.h5").read_bytes() == b"whole"
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "process"])
+def test_an_output_under_a_file_is_refused_saying_so(cmd, experiment, images, tmp_path):
+    """``-o notes.txt/out.h5``: the folder to hold the output is a file. One line naming the
+    output and that, before any work, and the file untouched."""
+    (tmp_path / "notes.txt").write_text("mine")
+    out = tmp_path / "notes.txt" / "sub" / "out"
+    args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
+    res = run(*args)
+    one_line_error(res, "notes.txt", "not a folder")
+    assert (tmp_path / "notes.txt").read_text() == "mine"

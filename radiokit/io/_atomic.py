@@ -151,6 +151,9 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
                 f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
                 f"input {src}: an input is never overwritten; choose another output",
             )
+    holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
+    if holder is not None and not holder.is_dir():
+        raise OutputError(path, f"{holder} is a file, not a folder to hold the output; choose another output")
     if not (path.exists() or path.is_symlink()):
         return path
     if folder:
