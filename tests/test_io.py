@@ -961,6 +961,23 @@ def test_tiff_lzw_and_12bit_packed_read(tmp_path):
     np.testing.assert_array_equal(read(_tiff_12bit_packed(tmp_path / "p12.tif", data)).data[0], data)
 
 
+@pytest.mark.parametrize("where", ["first", "last"])
+@pytest.mark.parametrize("preview", [(4, 5), (12, 10)], ids=["smaller", "same_shape"])
+def test_tiff_reduced_resolution_pages_are_not_frames(tmp_path, where, preview):
+    """NewSubfileType bit 0 (TIFF 6.0, section 8) marks a reduced-resolution version of another
+    image: a preview, first or last, of any shape, is never a frame of the stack."""
+    data = _rand12((2, 12, 10), seed=41)
+    path = tmp_path / "preview.tif"
+    with tifffile.TiffWriter(path) as tif:
+        if where == "first":
+            tif.write(np.zeros(preview, np.uint8), subfiletype=1)
+        for frame in data:
+            tif.write(frame, photometric="minisblack")
+        if where == "last":
+            tif.write(np.zeros(preview, np.uint8), subfiletype=1)
+    np.testing.assert_array_equal(read(path).data, data)
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

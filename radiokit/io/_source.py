@@ -45,6 +45,18 @@ _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
+#: the TIFF tags of the first frame kept in ``meta["tags"]``
+_TIFF_TAGS = (
+    "ImageDescription",
+    "Software",
+    "DateTime",
+    "Artist",
+    "XResolution",
+    "YResolution",
+    "ResolutionUnit",
+    "BitsPerSample",
+    "Compression",
+)
 
 
 def _check_file(path) -> None:
@@ -192,21 +204,24 @@ class FrameSource:
         series = self._tif.series
         if not series:
             raise FormatError(self.path, "TIFF holds no image series")
-        pages = self._tif.pages
-        first = pages.first
+        # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
+        all_pages = [page.aspage() for page in self._tif.pages]
+        # NewSubfileType bits 0 and 2: a reduced-resolution preview or a mask of another image,
+        # whatever its shape or place, is not a frame
+        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
+        if not index:
+            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        self._pages = [all_pages[i] for i in index]
+        first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
-        # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
-        all_pages = [page.aspage() for page in pages]
-        self._pages = [p for p in all_pages if p.shape == shape]
-        for i, page in enumerate(all_pages):
-            # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
-            # another shape is a corrupt frame, never a silently shorter stack
-            if page.shape != shape and not (getattr(page, "subfiletype", 0) & 0b101):
+        for i in index:
+            if all_pages[i].shape != shape:  # a corrupt frame is an error, never a silently shorter stack
                 raise FormatError(
                     self.path,
-                    f"TIFF page {i} is {page.shape}, page 0 is {shape}: a corrupt page, or not one stack of frames",
+                    f"TIFF page {i} is {all_pages[i].shape}, page {index[0]} is {shape}: a corrupt page, "
+                    "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._imagej_contiguous(first, all_pages)
@@ -214,27 +229,18 @@ class FrameSource:
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
                 raise FormatError(
-                    self.path, f"TIFF page {i} holds {page.dtype} pixels, page 0 {first.dtype}: not one stack of frames"
+                    self.path,
+                    f"TIFF frame {i} holds {page.dtype} pixels, frame 0 {first.dtype}: not one stack of frames",
                 )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
         if self._contiguous:
             self.n = self._contiguous["n"]
         self.bits = None
-        tags = {}
-        for tag in first.tags:
-            if tag.name in (
-                "ImageDescription",
-                "Software",
-                "DateTime",
-                "Artist",
-                "XResolution",
-                "YResolution",
-                "ResolutionUnit",
-                "BitsPerSample",
-                "Compression",
-            ):
-                value = tag.value
-                tags[tag.name] = value.name if hasattr(value, "name") else value
+        tags = {
+            tag.name: tag.value.name if hasattr(tag.value, "name") else tag.value
+            for tag in first.tags
+            if tag.name in _TIFF_TAGS
+        }
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
