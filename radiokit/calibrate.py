@@ -354,9 +354,12 @@ class Calibration:
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
-        cal = cls.from_frames(
-            darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
-        )
+        try:
+            cal = cls.from_frames(
+                darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
+            )
+        except ValueError as exc:  # its darks and flats are this file's: name it
+            raise FormatError(path, str(exc)) from exc
         cal.provenance["source"] = str(path)
         return cal
 

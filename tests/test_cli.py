@@ -296,3 +296,25 @@ def test_process_names_the_file_it_cannot_measure(experiment, tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert str(path) in res.stderr and "--inclusion" in res.stderr, res.stderr
     assert not (tmp_path / "res").exists()
+
+
+def test_an_experiment_whose_darks_hold_nan_is_named(experiment, tmp_path):
+    """Experiment frames stored as float (another program's file) with a NaN in a dark: the
+    one line of calibrate, and of correct calibrating from the file, names the file."""
+    import shutil
+
+    import h5py
+
+    path = shutil.copy(experiment[0], tmp_path / "float exp.h5")
+    with h5py.File(path, "r+") as h5:
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[0, 3, 3] = np.nan  # the first frame is a dark
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    for args in (
+        ["calibrate", "--experiment", path, "-o", tmp_path / "cal.h5"],
+        ["correct", path, "-o", tmp_path / "o.h5"],
+    ):
+        res = run(*args, "-q") if args[0] == "correct" else run(*args)
+        assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+        assert "float exp.h5" in res.stderr and "NaN" in res.stderr, res.stderr
