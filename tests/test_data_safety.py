@@ -553,3 +553,35 @@ def test_an_output_under_a_file_is_refused_saying_so(cmd, experiment, images, tm
     res = run(*args)
     one_line_error(res, "notes.txt", "not a folder")
     assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+# -- file names that are not UTF-8 -------------------------------------------------------------
+def _non_utf8(tmp_path, name: bytes) -> Path:
+    """``tmp_path / name`` for a name of bytes that are not UTF-8 (legal on POSIX filesystems:
+    Latin-1 names from old systems); skipped where the filesystem refuses such names."""
+    path = Path(os.fsdecode(os.path.join(os.fsencode(tmp_path), name)))
+    try:
+        path.write_bytes(b"")
+    except OSError:
+        pytest.skip("this filesystem takes only UTF-8 names")
+    path.unlink()
+    return path
+
+
+def test_inputs_named_in_bytes_that_are_not_utf8_are_recorded_readably(images, tmp_path):
+    """register and process record their inputs' names in HDF5 text attributes (UTF-8): a name
+    that is not UTF-8 is recorded with its odd bytes as \\xNN, not refused after the work."""
+    fixed = _non_utf8(tmp_path, b"fixed\xff.tif")
+    fixed.write_bytes(images[0].read_bytes())
+    res = run("register", fixed, images[1], "-o", tmp_path / "reg.h5", "--method", "ncc")
+    assert res.returncode in (0, 1), res.stderr  # 1: registered, flagged untrustworthy
+    attrs = []
+    with h5py.File(tmp_path / "reg.h5") as h5:
+        h5.visititems(lambda name, obj: attrs.extend(str(v) for v in obj.attrs.values()))
+    assert any(a.endswith("fixed\\xff.tif") for a in attrs), attrs
+    exp = synthetic(_non_utf8(tmp_path, b"exp\xe9 1.h5"))
+    res = run("process", exp, "-q", "-o", tmp_path / "res", "--cross-check", "none", *ROI)
+    assert res.returncode in (0, 1), res.stderr
+    with h5py.File(tmp_path / "res" / "results.h5") as h5:
+        assert h5["entry"].attrs["source"].endswith("exp\\xe9 1.h5")
+    assert "exp\\xe9 1.h5" in (tmp_path / "res" / "report.html").read_text(encoding="utf-8")
