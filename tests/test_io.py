@@ -724,6 +724,21 @@ def test_raw_n_hint_reads_leading_frames(tmp_path):
     np.testing.assert_array_equal(read(path, shape=(3, 4), n=1).data, data[:1])
 
 
+@pytest.mark.parametrize("dtype", ["O", "U1", "S2", "V4", "c8", "M8[s]"])
+def test_raw_dtype_must_be_numbers(tmp_path, dtype):
+    """Pixels are integers or real numbers: an object dtype would read the file's bytes as
+    pointers (a crash), strings and complex numbers are no pixels."""
+    path = tmp_path / "x.raw"
+    np.zeros(400, "<u2").tofile(path)
+    _raises_format(path, "dtype", shape=(5, 5), dtype=dtype)
+
+
+def test_tiff_of_complex_pixels_is_refused(tmp_path):
+    path = tmp_path / "complex.tif"
+    tifffile.imwrite(path, np.ones((6, 7), np.complex64))
+    _raises_format(path, "complex64")
+
+
 def test_unknown_hint_and_format(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)

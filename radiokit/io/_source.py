@@ -139,6 +139,10 @@ class FrameSource:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
             if self.format != "raw" and hints.get("n") is not None:
                 self._limit_frames(hints["n"])
+            if np.dtype(self.dtype).kind not in "buif":  # complex (TIFF may hold it) or no number at all
+                raise FormatError(
+                    self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
+                )
             if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
                 raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
             check_budget(
