@@ -993,6 +993,26 @@ def test_tiff_reduced_resolution_pages_are_not_frames(tmp_path, where, preview):
     np.testing.assert_array_equal(read(path).data, data)
 
 
+def test_tiff_image_codec_declaring_its_own_size_is_refused_before_decoding(tmp_path):
+    """A JPEG strip declares its own height and width (its SOF marker, ITU T.81 B.2.2), which the
+    decoder allocates whatever the TIFF page says: a 2 KB file whose SOF claims 60000 x 60000
+    made the reader allocate 3.6 GB. Image codecs are refused before any decoding."""
+    path = tmp_path / "jpeg.tif"
+    tifffile.imwrite(path, np.zeros((64, 48), np.uint8), compression="jpeg")
+    raw = bytearray(path.read_bytes())
+    with tifffile.TiffFile(path) as tif:
+        start = tif.pages.first.dataoffsets[0]
+    sof = raw.index(b"\xff\xc0", start)
+    struct.pack_into(">HH", raw, sof + 5, 60000, 60000)  # Y (lines), X (samples per line)
+    path.write_bytes(bytes(raw))
+    _raises_format(path, "JPEG")
+    # lossless codecs whose output the page's size bounds still read
+    data = _rand12((2, 9, 11), seed=43)
+    for compression in ("lzw", "zstd", "lzma", "packbits", "zlib"):
+        tifffile.imwrite(tmp_path / "ok.tif", data, compression=compression, photometric="minisblack")
+        np.testing.assert_array_equal(read(tmp_path / "ok.tif").data, data)
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

@@ -45,6 +45,11 @@ _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
+#: TIFF compressions read: none, LZW, deflate, PackBits, LZMA and zstd decode into the strip or tile
+#: they fill. Image codecs (JPEG, JPEG 2000, JPEG XL, WebP, PNG, LERC, ...) carry their own image
+#: size, which their decoder allocates whatever the page says: a 2 KB JPEG strip claiming
+#: 60000 x 60000 pixels took 3.6 GB. They are refused before any decoding.
+_TIFF_CODECS = {1, 5, 8, 32946, 32773, 34925, 34926, 50000}
 #: the TIFF tags of the first frame kept in ``meta["tags"]``
 _TIFF_TAGS = (
     "ImageDescription",
@@ -330,6 +335,12 @@ class FrameSource:
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
+        if int(page.compression) not in _TIFF_CODECS:
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} is compressed with {page.compression.name}, an image codec declaring its own "
+                "image size, not checked before decoding: save it uncompressed, LZW, deflate or zstd",
+            )
         if page.is_tiled:
             # a tile is decoded whole, whatever the image: a corrupt tile size is a bomb of its own
             check_budget(
