@@ -948,6 +948,19 @@ def test_tiff_imagej_stack_with_one_ifd_reads_every_frame(tmp_path, byteorder):
     _raises_format(path, "images=9", "truncated")
 
 
+def test_tiff_written_truncated_by_tifffile_reads_every_frame(tmp_path):
+    """tifffile's ``truncate=True`` writes a contiguous stack with its first IFD only and
+    ``{"shape": [n, rows, cols], "truncated": true}`` in the description; tifffile reads n frames."""
+    data = _rand12((4, 20, 30), seed=47)
+    path = tmp_path / "truncated.tif"
+    tifffile.imwrite(path, data, truncate=True, photometric="minisblack")
+    with tifffile.TiffFile(path) as tif:
+        assert len(tif.pages) == 1
+    np.testing.assert_array_equal(read(path).data, data)
+    path.write_bytes(path.read_bytes().replace(b'"shape": [4,', b'"shape": [9,'))  # promises more
+    _raises_format(path, "truncated")
+
+
 def _tiff_12bit_packed(path, image):
     """A one-strip TIFF of BitsPerSample 12 (TIFF 6.0: samples packed MSB first, FillOrder 1,
     each row padded to a whole byte), as 12-bit camera software writes it."""

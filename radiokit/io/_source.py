@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 import struct
@@ -233,7 +234,7 @@ class FrameSource:
                     "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
-        self._contiguous = self._imagej_contiguous(first, all_pages)
+        self._contiguous = self._contiguous_stack(first, all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
@@ -305,19 +306,25 @@ class FrameSource:
         if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] != 0:
             raise broken(f"IFD after page {len(pages) - 1}")
 
-    def _imagej_contiguous(self, first, pages) -> dict | None:
-        """The geometry of an ImageJ stack stored after a single IFD, else None.
+    def _contiguous_stack(self, first, pages) -> dict | None:
+        """The geometry of a stack stored after a single IFD, else None.
 
-        ImageJ writes a stack over 4 GB with its first IFD only, ``images=N`` in the description
-        and the N frames uncompressed and contiguous after it; tifffile reads it as one series.
-        Its frames are then read as raw ones, one at a time.
+        ImageJ writes a stack over 4 GB with its first IFD only and ``images=N`` in the
+        description; tifffile's ``truncate=True`` likewise, with ``{"shape": [N, rows, cols],
+        "truncated": true}``. The N frames follow the first uncompressed and contiguous (tifffile
+        reads them as one series); they are then read as raw frames, one at a time.
         """
-        tif = self._tif
-        images = (tif.imagej_metadata or {}).get("images", 1) if tif.is_imagej else 1
+        tif, images, what = self._tif, 1, ""
+        if tif.is_imagej:
+            images, what = (tif.imagej_metadata or {}).get("images", 1), "ImageJ description says images="
+        elif tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+            shape = tif.shaped_metadata[0].get("shape", [])
+            if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
+                images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
         if len(pages) != 1 or not isinstance(images, int) or images <= 1:
             return None
         if not first.is_contiguous or first.compression != 1:
-            raise FormatError(self.path, f"ImageJ stack of {images} images with one IFD and compressed data")
+            raise FormatError(self.path, f"stack of {images} images with one IFD and compressed data")
         rows, cols = first.shape
         dtype = np.dtype(first.dtype).newbyteorder(tif.byteorder)
         geo = dict(n=images, rows=rows, cols=cols, dtype=dtype, offset=int(first.dataoffsets[0]))
@@ -325,7 +332,7 @@ class FrameSource:
         if need > tif.filehandle.size:
             raise FormatError(
                 self.path,
-                f"ImageJ description says images={images} of {rows}x{cols} {dtype.name} stored after "
+                f"{what}{images} of {rows}x{cols} {dtype.name} stored after "
                 f"the first IFD ({need} bytes); the file has {tif.filehandle.size}: truncated",
             )
         self._fh = open(self.path, "rb")
