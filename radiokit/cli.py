@@ -94,6 +94,40 @@ def _summary(meta: dict) -> dict:
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
+def _describe(path, src, every: bool, sample: int) -> dict:
+    """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
+    no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
+    spaced frames (``every``: all of them)."""
+    lo, hi, saturated, nonfinite = None, None, 0, 0
+    top = (1 << src.bits) - 1 if src.bits else None
+    n_read = len(src) if every else min(len(src), sample)
+    picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
+    for i in picks:
+        frame = src[i]
+        if frame.dtype.kind == "f":
+            finite = np.isfinite(frame)
+            nonfinite += int(frame.size - np.count_nonzero(finite))
+            frame = frame[finite]
+        if frame.size:
+            fmin, fmax = frame.min(), frame.max()
+            lo = fmin if lo is None else min(lo, fmin)
+            hi = fmax if hi is None else max(hi, fmax)
+        if top is not None:
+            saturated += int(np.count_nonzero(frame >= top))
+    return {
+        "file": str(path),
+        "format": src.meta.get("format", src.format),
+        "frames": len(src),
+        "shape": list(src.frame_shape),
+        "dtype": str(src.dtype),
+        "range": [lo.item(), hi.item()] if lo is not None else None,
+        "frames_read": len(picks),
+        "saturated": saturated if top is not None else None,
+        "nonfinite": nonfinite,
+        "metadata": _summary(src.meta),
+    }
+
+
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
@@ -102,30 +136,7 @@ def cmd_info(args) -> int:
     reports = []
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
-            lo, hi, saturated = None, None, 0
-            top = (1 << src.bits) - 1 if src.bits else None
-            # a summary reads a few evenly spaced frames, not the whole file (--all reads every one)
-            n_read = len(src) if args.all else min(len(src), args.sample)
-            picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
-            for i in picks:
-                frame = src[i]
-                fmin, fmax = frame.min(), frame.max()
-                lo = fmin if lo is None else min(lo, fmin)
-                hi = fmax if hi is None else max(hi, fmax)
-                if top is not None:
-                    saturated += int(np.count_nonzero(frame >= top))
-            rep = {
-                "file": str(path),
-                "format": src.meta.get("format", src.format),
-                "frames": len(src),
-                "shape": list(src.frame_shape),
-                "dtype": str(src.dtype),
-                "range": [lo.item(), hi.item()] if lo is not None else None,
-                "frames_read": len(picks),
-                "saturated": saturated if top is not None else None,
-                "metadata": _summary(src.meta),
-            }
-        reports.append(rep)
+            reports.append(_describe(path, src, args.all, args.sample))
     if args.json:
         print(json.dumps(reports, indent=2, default=str))
         return 0
@@ -138,6 +149,8 @@ def cmd_info(args) -> int:
             print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
         if rep["saturated"] is not None:
             print(f"  saturated  {rep['saturated']} pixel(s){of}")
+        if rep["nonfinite"]:
+            print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {value}")
     return 0

@@ -318,3 +318,21 @@ def test_an_experiment_whose_darks_hold_nan_is_named(experiment, tmp_path):
         res = run(*args, "-q") if args[0] == "correct" else run(*args)
         assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
         assert "float exp.h5" in res.stderr and "NaN" in res.stderr, res.stderr
+
+
+def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
+    """--json is for programs: RFC 8259 has no NaN or Infinity. The range is that of the finite
+    pixels, and the NaN or inf ones are counted."""
+    frame = np.arange(20, dtype=np.float32).reshape(4, 5)
+    frame[0, 0], frame[1, 1], frame[2, 2] = np.nan, np.inf, -np.inf
+    stack = _write_stack(tmp_path / "f.tif", [frame, np.full((4, 5), np.nan)])
+    res = run("info", "--json", stack)
+    assert res.returncode == 0, res.stderr
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    rep = json.loads(res.stdout, parse_constant=refuse)[0]
+    assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20
+    res = run("info", stack)
+    assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel", res.stdout), res.stdout
