@@ -183,9 +183,12 @@ def _parse_thresholds(items) -> dict:
 def _stack(paths, hints, key=None) -> np.ndarray:
     from radiokit.io import FormatError, check_budget, open_frames
 
-    frames, total = [], 0
+    frames, total, first = [], 0, None
     for p in paths:
         with open_frames(p, **hints) as src:
+            first = first or (p, src.frame_shape)
+            if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
+                raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
             total += len(src) * src.frame_bytes
             check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
             keys = src.meta.get("image_key")

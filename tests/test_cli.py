@@ -336,3 +336,13 @@ def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
     assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20
     res = run("info", stack)
     assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel", res.stdout), res.stdout
+
+
+def test_calibrate_names_the_file_whose_frames_differ_in_shape(tmp_path):
+    rng = np.random.default_rng(7)
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    other = _write_stack(tmp_path / "dark small.tif", rng.normal(100, 2, (5, 12, 10)))
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    res = run("calibrate", "--dark", dark, other, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "dark small.tif" in res.stderr and "(12, 10)" in res.stderr and "(12, 14)" in res.stderr, res.stderr
