@@ -1026,6 +1026,17 @@ def test_tiff_image_codec_declaring_its_own_size_is_refused_before_decoding(tmp_
         np.testing.assert_array_equal(read(tmp_path / "ok.tif").data, data)
 
 
+def test_tiff_description_nested_past_the_recursion_limit_stays_text(tmp_path):
+    """The ImageDescription is free text (TIFF 6.0): JSON too deep for Python's parser is kept as
+    text, as HDF5 attributes are, never a reason to refuse the pixels."""
+    path = tmp_path / "deep.tif"
+    text = '{"a":' + "[" * 100_000 + "]" * 100_000 + "}"
+    tifffile.imwrite(path, np.ones((4, 5), np.uint16), description=text, metadata=None)
+    f = read(path)
+    assert f.data.shape == (1, 4, 5) and f.meta["tags"]["ImageDescription"] == text
+    assert "description" not in f.meta
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)

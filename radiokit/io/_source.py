@@ -256,7 +256,7 @@ class FrameSource:
         if isinstance(desc, str) and desc.startswith("{"):
             try:
                 self.meta["description"] = json.loads(desc)
-            except ValueError:
+            except (ValueError, RecursionError):  # free text, however it looks
                 pass
 
     def _check_ifd_chain(self, pages):
