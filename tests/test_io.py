@@ -1063,6 +1063,16 @@ def test_tiff_corrupt_dimensions_fail_fast(tmp_path, compression, tag, value):
     assert time.monotonic() - t0 < 2
 
 
+@pytest.mark.parametrize("compression", [None, "zlib"])
+@pytest.mark.parametrize("tag", [256, 257])
+def test_tiff_of_zero_width_or_height_says_so(tmp_path, compression, tag):
+    """ImageWidth or ImageLength 0: a page with no pixels, said so, not "integer division or modulo by zero"."""
+    path = tmp_path / "empty page.tif"
+    tifffile.imwrite(path, _rand12((5, 6), seed=24), compression=compression)
+    path.write_bytes(_patch_tiff_tag(path.read_bytes(), tag, 0))
+    _raises_format(path, "no pixels")
+
+
 def test_write_tiff_round_trip_with_meta(tmp_path):
     data = _rand12((3, 8, 10), seed=16)
     meta = {"step": 2, "ratio": 0.15, "nested": {"kv": 40.0, "names": ["a", "b"]}}

@@ -211,9 +211,8 @@ class FrameSource:
 
     def _open_tiff(self, dataset=None, **hints):
         self._tif = tifffile.TiffFile(self.path)
-        series = self._tif.series
-        if not series:
-            raise FormatError(self.path, "TIFF holds no image series")
+        if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
+            raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
         # NewSubfileType bits 0 and 2: a reduced-resolution preview or a mask of another image,
@@ -226,6 +225,8 @@ class FrameSource:
         shape = first.shape
         if len(shape) != 2:
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
+        if 0 in shape:  # before the layout checks divide by it
+            raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
         for i in index:
             if all_pages[i].shape != shape:  # a corrupt frame is an error, never a silently shorter stack
                 raise FormatError(
