@@ -202,6 +202,12 @@ def _stack(paths, hints, key=None) -> np.ndarray:
     return np.stack(frames)
 
 
+def _hdf5_name(path) -> None:
+    """An HDF5 output must be named so: under ``out.tif`` other programs would take it for a TIFF."""
+    if Path(path).suffix.lower() not in (".h5", ".hdf5", ".hdf", ".nxs", ".nx"):
+        raise ValueError(f"{path}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
+
+
 def cmd_calibrate(args) -> int:
     from radiokit.calibrate import Calibration
     from radiokit.io import atomic_path, check_output
@@ -209,6 +215,7 @@ def cmd_calibrate(args) -> int:
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
+    _hdf5_name(args.output)
     if args.experiment:
         cal = Calibration.from_experiment(args.experiment, **th)
     else:
@@ -296,6 +303,7 @@ def cmd_register(args) -> int:
     for out in (args.output, args.png):  # refused before the registration, not after
         if out is not None:
             check_output(out, overwrite=args.overwrite, inputs=inputs)
+    _hdf5_name(args.output)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
     options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}

@@ -585,3 +585,14 @@ def test_inputs_named_in_bytes_that_are_not_utf8_are_recorded_readably(images, t
     with h5py.File(tmp_path / "res" / "results.h5") as h5:
         assert h5["entry"].attrs["source"].endswith("exp\\xe9 1.h5")
     assert "exp\\xe9 1.h5" in (tmp_path / "res" / "report.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "register"])
+@pytest.mark.parametrize("name", ["out.tif", "out.png", "out"])
+def test_an_hdf5_output_is_not_written_under_another_formats_name(cmd, name, experiment, images, tmp_path):
+    """calibrate and register write HDF5: under ``out.tif`` other programs would take it for a
+    TIFF and fail on it. Refused in one line before the work, as correct refuses ``.png``."""
+    args = _commands(experiment, images, tmp_path / "x")[cmd][:-1] + [tmp_path / name]
+    res = run(*args)
+    one_line_error(res, name, ".h5")
+    assert not (tmp_path / name).exists()
