@@ -1110,6 +1110,17 @@ def test_tiff_rgb_rejected(tmp_path, shape, kw):
     _raises_format(path, "greyscale")
 
 
+@pytest.mark.parametrize("n", [3, 4])
+def test_tiff_of_three_or_four_frames_written_as_colour_planes_says_how(tmp_path, n):
+    """tifffile.imwrite stores a (3 or 4, rows, cols) array as RGB(A) planes of one page unless
+    told photometric='minisblack' (it warns so): the file is colour, and the one line says why."""
+    path = tmp_path / "three.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        tifffile.imwrite(path, np.zeros((n, 6, 7), np.uint16))
+    _raises_format(path, "greyscale", "photometric='minisblack'")
+
+
 def test_tiff_truncated_at_page_boundary(tmp_path):
     """A multi-page TIFF cut right after a page must not read as a shorter stack."""
     data = _rand12((3, 6, 7), seed=18)

@@ -224,7 +224,13 @@ class FrameSource:
         first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
-            raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
+            hint = ""
+            if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
+                hint = (
+                    f" (colour planes: tifffile.imwrite stores a ({first.samplesperpixel}, rows, cols) array so "
+                    "unless given photometric='minisblack')"
+                )
+            raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
         if 0 in shape:  # before the layout checks divide by it
             raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
         for i in index:
