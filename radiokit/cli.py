@@ -36,6 +36,8 @@ def _raw_hints(args) -> dict:
             hints[name] = value
     if getattr(args, "shape", None):
         hints["shape"] = tuple(args.shape)
+    if getattr(args, "allow_external", False):
+        hints["allow_external"] = True
     return hints
 
 
@@ -48,6 +50,11 @@ def _add_raw_hints(p):
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
     g = p.add_argument_group("HDF5 files of other layouts")
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
+    g.add_argument(
+        "--allow-external",
+        action="store_true",
+        help="follow external links, external raw storage and virtual datasets (data in other files)",
+    )
 
 
 # -- info --------------------------------------------------------------------------------------
@@ -217,7 +224,7 @@ def cmd_calibrate(args) -> int:
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
     _hdf5_name(args.output)
     if args.experiment:
-        cal = Calibration.from_experiment(args.experiment, **th)
+        cal = Calibration.from_experiment(args.experiment, allow_external=args.allow_external, **th)
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
@@ -251,7 +258,7 @@ def cmd_correct(args) -> int:
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
-        cal = Calibration.from_experiment(args.frames[0])
+        cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
         print(f"calibrated from the darks and flats of {args.frames[0]}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")

@@ -346,3 +346,34 @@ def test_calibrate_names_the_file_whose_frames_differ_in_shape(tmp_path):
     res = run("calibrate", "--dark", dark, other, "--flat", flat, "-o", tmp_path / "cal.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "dark small.tif" in res.stderr and "(12, 10)" in res.stderr and "(12, 14)" in res.stderr, res.stderr
+
+
+def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_path):
+    """Detector software writes a master file linking to data files (HDF5 external links):
+    refused by default, and the one line names the command's way to allow it."""
+    import h5py
+
+    values = np.arange(2 * 6 * 7, dtype=np.uint16).reshape(2, 6, 7)
+    with h5py.File(tmp_path / "data_000001.h5", "w") as h5:
+        h5["data"] = values
+    with h5py.File(tmp_path / "master.h5", "w") as h5:
+        h5["entry/data"] = h5py.ExternalLink("data_000001.h5", "/data")
+    res = run("info", tmp_path / "master.h5", "--dataset", "entry/data")
+    assert res.returncode == 2 and "master.h5" in res.stderr and "--allow-external" in res.stderr, res.stderr
+    res = run("info", "--json", tmp_path / "master.h5", "--dataset", "entry/data", "--allow-external")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)[0]["range"] == [0, int(values.max())]
+    # an experiment file whose frames are in another file: calibrate and correct take the flag too
+    with h5py.File(tmp_path / "frames.h5", "w") as h5:
+        h5["data"] = np.concatenate([np.full((2, 6, 7), 100), np.full((2, 6, 7), 3000), np.full((1, 6, 7), 1500)])
+    with h5py.File(tmp_path / "exp.h5", "w") as h5:
+        h5["entry/instrument/detector/data"] = h5py.ExternalLink("frames.h5", "/data")
+        h5["entry/instrument/detector/image_key"] = np.array([2, 2, 1, 1, 0], np.int8)
+    res = run("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
+    for args in (
+        ["calibrate", "--experiment", tmp_path / "exp.h5", "-o", tmp_path / "cal.h5"],
+        ["correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q"],
+    ):
+        res = run(*args, "--allow-external")
+        assert res.returncode == 0, res.stderr

@@ -393,7 +393,9 @@ class ExperimentWriter:
 
 
 def _refuse_external(path, what):
-    raise FormatError(path, f"{what}: data outside this file is not read unless asked for (allow_external=True)")
+    raise FormatError(
+        path, f"{what}: data outside this file is not read unless asked for (allow_external=True; --allow-external)"
+    )
 
 
 @dataclass(frozen=True)
