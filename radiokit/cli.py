@@ -283,10 +283,10 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset):
+def _one_image(path, index, dataset, allow_external=False):
     from radiokit.io import open_frames
 
-    hints = {"dataset": dataset} if dataset else {}
+    hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
@@ -297,8 +297,8 @@ def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
     from radiokit.register import BSPLINE_METHODS, register, with_default_preset
 
-    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset)
+    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
     mask = None
     if args.roi:
         r0, r1, c0, c1 = args.roi
@@ -517,6 +517,7 @@ def _add_register(sub):
     p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
     p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
+    p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
     p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"

@@ -377,3 +377,17 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
     ):
         res = run(*args, "--allow-external")
         assert res.returncode == 0, res.stderr
+    # register reads the linked frames too (6 x 7: then too small to register, said so)
+    reg = [
+        "register",
+        tmp_path / "master.h5",
+        tmp_path / "master.h5",
+        "--dataset",
+        "entry/data",
+        "-o",
+        tmp_path / "r.h5",
+    ]
+    res = run(*reg)
+    assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
+    res = run(*reg, "--allow-external")
+    assert res.returncode == 2 and "too small" in res.stderr, res.stderr
