@@ -337,11 +337,12 @@ class Calibration:
         )
 
     @classmethod
-    def from_experiment(cls, path, **thresholds) -> Calibration:
-        """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file."""
+    def from_experiment(cls, path, *, allow_external=False, **thresholds) -> Calibration:
+        """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file
+        (``allow_external``: its frames may lie in other files, see :func:`radiokit.io.read`)."""
         from radiokit.io import ImageKey, open_frames
 
-        with open_frames(path) as src:
+        with open_frames(path, allow_external=allow_external) as src:
             keys = np.asarray(src.meta.get("image_key", []))
             times = np.asarray(src.meta.get("time", np.full(len(keys), np.nan)))
             sel = {k: np.flatnonzero(keys == k) for k in (ImageKey.DARK, ImageKey.FLAT)}
@@ -354,9 +355,12 @@ class Calibration:
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
-        cal = cls.from_frames(
-            darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
-        )
+        try:
+            cal = cls.from_frames(
+                darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
+            )
+        except ValueError as exc:  # its darks and flats are this file's: name it
+            raise FormatError(path, str(exc)) from exc
         cal.provenance["source"] = str(path)
         return cal
 

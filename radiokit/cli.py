@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import sys
+import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
@@ -29,12 +30,14 @@ __all__ = ["main", "build_parser"]
 
 def _raw_hints(args) -> dict:
     hints = {}
-    for name in ("preset", "byteorder", "offset", "format"):
+    for name in ("preset", "byteorder", "offset", "format", "dataset"):
         value = getattr(args, name, None)
         if value is not None:
             hints[name] = value
     if getattr(args, "shape", None):
         hints["shape"] = tuple(args.shape)
+    if getattr(args, "allow_external", False):
+        hints["allow_external"] = True
     return hints
 
 
@@ -45,6 +48,13 @@ def _add_raw_hints(p):
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
+    g = p.add_argument_group("HDF5 files of other layouts")
+    g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
+    g.add_argument(
+        "--allow-external",
+        action="store_true",
+        help="follow external links, external raw storage and virtual datasets (data in other files)",
+    )
 
 
 # -- info --------------------------------------------------------------------------------------
@@ -91,6 +101,40 @@ def _summary(meta: dict) -> dict:
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
+def _describe(path, src, every: bool, sample: int) -> dict:
+    """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
+    no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
+    spaced frames (``every``: all of them)."""
+    lo, hi, saturated, nonfinite = None, None, 0, 0
+    top = (1 << src.bits) - 1 if src.bits else None
+    n_read = len(src) if every else min(len(src), sample)
+    picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
+    for i in picks:
+        frame = src[i]
+        if frame.dtype.kind == "f":
+            finite = np.isfinite(frame)
+            nonfinite += int(frame.size - np.count_nonzero(finite))
+            frame = frame[finite]
+        if frame.size:
+            fmin, fmax = frame.min(), frame.max()
+            lo = fmin if lo is None else min(lo, fmin)
+            hi = fmax if hi is None else max(hi, fmax)
+        if top is not None:
+            saturated += int(np.count_nonzero(frame >= top))
+    return {
+        "file": str(path),
+        "format": src.meta.get("format", src.format),
+        "frames": len(src),
+        "shape": list(src.frame_shape),
+        "dtype": str(src.dtype),
+        "range": [lo.item(), hi.item()] if lo is not None else None,
+        "frames_read": len(picks),
+        "saturated": saturated if top is not None else None,
+        "nonfinite": nonfinite,
+        "metadata": _summary(src.meta),
+    }
+
+
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
@@ -99,30 +143,7 @@ def cmd_info(args) -> int:
     reports = []
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
-            lo, hi, saturated = None, None, 0
-            top = (1 << src.bits) - 1 if src.bits else None
-            # a summary reads a few evenly spaced frames, not the whole file (--all reads every one)
-            n_read = len(src) if args.all else min(len(src), args.sample)
-            picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
-            for i in picks:
-                frame = src[i]
-                fmin, fmax = frame.min(), frame.max()
-                lo = fmin if lo is None else min(lo, fmin)
-                hi = fmax if hi is None else max(hi, fmax)
-                if top is not None:
-                    saturated += int(np.count_nonzero(frame >= top))
-            rep = {
-                "file": str(path),
-                "format": src.meta.get("format", src.format),
-                "frames": len(src),
-                "shape": list(src.frame_shape),
-                "dtype": str(src.dtype),
-                "range": [lo.item(), hi.item()] if lo is not None else None,
-                "frames_read": len(picks),
-                "saturated": saturated if top is not None else None,
-                "metadata": _summary(src.meta),
-            }
-        reports.append(rep)
+            reports.append(_describe(path, src, args.all, args.sample))
     if args.json:
         print(json.dumps(reports, indent=2, default=str))
         return 0
@@ -135,6 +156,8 @@ def cmd_info(args) -> int:
             print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
         if rep["saturated"] is not None:
             print(f"  saturated  {rep['saturated']} pixel(s){of}")
+        if rep["nonfinite"]:
+            print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {value}")
     return 0
@@ -165,20 +188,31 @@ def _parse_thresholds(items) -> dict:
 
 
 def _stack(paths, hints, key=None) -> np.ndarray:
-    from radiokit.io import check_budget, open_frames
+    from radiokit.io import FormatError, check_budget, open_frames
 
-    frames, total = [], 0
+    frames, total, first = [], 0, None
     for p in paths:
         with open_frames(p, **hints) as src:
+            first = first or (p, src.frame_shape)
+            if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
+                raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
             total += len(src) * src.frame_bytes
             check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
             keys = src.meta.get("image_key")
             for i in range(len(src)):
                 if key is None or keys is None or keys[i] == key:
                     frames.append(src[i])
+                    if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
+                        raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:
         raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
     return np.stack(frames)
+
+
+def _hdf5_name(path) -> None:
+    """An HDF5 output must be named so: under ``out.tif`` other programs would take it for a TIFF."""
+    if Path(path).suffix.lower() not in (".h5", ".hdf5", ".hdf", ".nxs", ".nx"):
+        raise ValueError(f"{path}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
 
 
 def cmd_calibrate(args) -> int:
@@ -188,8 +222,9 @@ def cmd_calibrate(args) -> int:
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
+    _hdf5_name(args.output)
     if args.experiment:
-        cal = Calibration.from_experiment(args.experiment, **th)
+        cal = Calibration.from_experiment(args.experiment, allow_external=args.allow_external, **th)
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
@@ -223,7 +258,7 @@ def cmd_correct(args) -> int:
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
-        cal = Calibration.from_experiment(args.frames[0])
+        cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
         print(f"calibrated from the darks and flats of {args.frames[0]}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
@@ -248,10 +283,10 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset):
+def _one_image(path, index, dataset, allow_external=False):
     from radiokit.io import open_frames
 
-    hints = {"dataset": dataset} if dataset else {}
+    hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
@@ -262,8 +297,8 @@ def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
     from radiokit.register import BSPLINE_METHODS, register, with_default_preset
 
-    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset)
+    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
     mask = None
     if args.roi:
         r0, r1, c0, c1 = args.roi
@@ -275,11 +310,15 @@ def cmd_register(args) -> int:
     for out in (args.output, args.png):  # refused before the registration, not after
         if out is not None:
             check_output(out, overwrite=args.overwrite, inputs=inputs)
+    _hdf5_name(args.output)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
     options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
-    reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
+    try:
+        reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
+    except ValueError as exc:  # the library says "fixed" or "moving"; the user wants the file
+        raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
     q = reg.quality
     registered = reg.warp(moving)
     write_registration(
@@ -356,7 +395,12 @@ def cmd_process(args) -> int:
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
     if single:
-        res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
+        try:
+            res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
+        except ValueError as exc:  # as process_many reports each file's error: name the file
+            if str(args.files[0]) in str(exc):
+                raise
+            raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
         return 0 if all(p.ok for p in res.record.pairs) else 1
     results = process_many(
@@ -473,6 +517,7 @@ def _add_register(sub):
     p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
     p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
+    p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
     p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"
@@ -611,6 +656,10 @@ def main(argv=None) -> int:
         return 2
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+        # a warning is for the user: the command's line, not radiokit's file, line and source
+        warnings.formatwarning = lambda message, category, *_, **__: (
+            f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
+        )
     if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)

@@ -20,6 +20,7 @@ import numpy as np
 
 from radiokit._threads import pool, threads
 from radiokit.calibrate import Calibration, PixelFlag
+from radiokit.errors import FormatError
 
 __all__ = ["correct_frames", "correct_files", "CorrectionReport", "CorrectionKernel", "DOMAINS", "fill_plan"]
 
@@ -478,8 +479,11 @@ def correct_files(
             _BackgroundWriter(writer) as bg,
         ):
             for si, fi, step in plan:
-                frame = bg.buffer()
-                nonpos, sat = _correct_checked(cal, sources[si][fi], frame, domain)
+                frame, raw = bg.buffer(), sources[si][fi]
+                try:
+                    nonpos, sat = _correct_checked(cal, raw, frame, domain)
+                except ValueError as exc:  # a run reads many files: say which file and frame
+                    raise FormatError(sources[si].path, f"frame {fi}: {exc}") from exc
                 sat_total += sat.size
                 np_total += nonpos.size
                 bg.put(

@@ -775,7 +775,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     if fit is None:
         raise ValueError(
             "no inclusion found: no blob inside the body is brighter than its surroundings; "
-            "pass inclusion_mask or the ROIs yourself"
+            "pass inclusion_mask or the ROIs yourself (radiokit process --inclusion R0 R1 C0 C1)"
         )
     resid, (r0, c0), dist = fit
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")

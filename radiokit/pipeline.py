@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -618,7 +619,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     images = _images(steps_c, steps.numbers, main, enhanced, truth, rois, mid)
     timings["measure_s"] = time.perf_counter() - t
     record = Results(
-        source=str(path),
+        source=os.fsencode(path).decode("utf-8", "backslashreplace"),  # a name's non-UTF-8 bytes as \\xNN
         scene=truth.get("scene") if truth else None,
         simulated=truth is not None,
         pixel_size_mm=steps.pixel_size_mm,

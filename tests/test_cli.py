@@ -199,3 +199,195 @@ def _datasets(h5):
     names = []
     h5.visititems(lambda name, obj: names.append(name) if hasattr(obj, "shape") else None)
     return names
+
+
+def _write_stack(path, frames):
+    import tifffile
+
+    tifffile.imwrite(path, np.asarray(frames, np.float32), photometric="minisblack")
+    return path
+
+
+def test_nonfinite_frames_are_refused_naming_the_file_and_frame(tmp_path):
+    """A float frame of only NaN/inf (a broken export) stops the run in one line that says which
+    file and which frame, not only "a raw frame": a run may read many files."""
+    rng = np.random.default_rng(5)
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    good = _write_stack(tmp_path / "good.tif", rng.normal(1000, 20, (2, 12, 14)))
+    frames = rng.normal(1000, 20, (3, 12, 14))
+    frames[1] = np.inf
+    bad = _write_stack(tmp_path / "bad.tif", frames)
+    res = run("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    res = run("correct", good, bad, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "bad.tif" in res.stderr and "frame 1" in res.stderr, res.stderr
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_nonfinite_darks_or_flats_are_refused_naming_the_file(tmp_path):
+    rng = np.random.default_rng(6)
+    darks = rng.normal(100, 2, (5, 12, 14))
+    darks[3, 4, 5] = np.nan
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    bad_dark = _write_stack(tmp_path / "bad dark.tif", darks)
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    res = run("calibrate", "--dark", dark, bad_dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "bad dark.tif" in res.stderr and "frame 3" in res.stderr, res.stderr
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
+    """An HDF5 file of another layout: the one line says how to name its frames, and the way it
+    says exists on the command line."""
+    import h5py
+
+    values = np.arange(3 * 6 * 7, dtype=np.uint16).reshape(3, 6, 7)
+    with h5py.File(tmp_path / "beamline.h5", "w") as h5:
+        h5["scan/frames"] = values
+    res = run("info", tmp_path / "beamline.h5")
+    assert res.returncode == 2 and "beamline.h5" in res.stderr and "--dataset" in res.stderr, res.stderr
+    res = run("info", "--json", tmp_path / "beamline.h5", "--dataset", "scan/frames")
+    assert res.returncode == 0, res.stderr
+    rep = json.loads(res.stdout)[0]
+    assert rep["frames"] == 3 and rep["range"] == [0, int(values.max())]
+
+
+@pytest.mark.parametrize(
+    "fixed, moving, problem",
+    [
+        (np.full((32, 32), np.nan), np.ones((32, 32)), "NaN"),
+        (np.ones((32, 32)), np.ones((32, 40)), "differ in shape"),
+        (np.ones((4, 4)), np.ones((4, 4)), "too small"),
+    ],
+)
+def test_register_names_the_files_of_an_image_it_refuses(tmp_path, fixed, moving, problem):
+    f = _write_stack(tmp_path / "fixed one.tif", fixed)
+    m = _write_stack(tmp_path / "moving one.tif", moving)
+    res = run("register", f, m, "-o", tmp_path / "reg.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert problem in res.stderr and "fixed one.tif" in res.stderr and "moving one.tif" in res.stderr, res.stderr
+    assert not (tmp_path / "reg.h5").exists()
+
+
+def test_a_warning_is_one_line_without_source_code(tmp_path):
+    """Warnings reach the user as the line of the command that met them, not Python's
+    ``/path/to/radiokit/cli.py:110: BitDepthWarning: ...`` followed by a line of source."""
+    np.full((1120, 1120), 60000, "<u2").tofile(tmp_path / "hot.raw")  # MSB-aligned 12-bit
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(tmp_path / "hot.raw")],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith("radiokit info: BitDepthWarning: "), res.stderr
+    assert "hot.raw" in res.stderr and ".py:" not in res.stderr, res.stderr
+
+
+def test_process_names_the_file_it_cannot_measure(experiment, tmp_path):
+    """No inclusion to be found (a uniform body): the one line names the experiment file and the
+    command's own option for the rectangles, not a keyword of the library."""
+    path, _ = experiment
+    res = run("process", path, "-o", tmp_path / "res", "-q", "--no-report", "--cross-check", "none")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert str(path) in res.stderr and "--inclusion" in res.stderr, res.stderr
+    assert not (tmp_path / "res").exists()
+
+
+def test_an_experiment_whose_darks_hold_nan_is_named(experiment, tmp_path):
+    """Experiment frames stored as float (another program's file) with a NaN in a dark: the
+    one line of calibrate, and of correct calibrating from the file, names the file."""
+    import shutil
+
+    import h5py
+
+    path = shutil.copy(experiment[0], tmp_path / "float exp.h5")
+    with h5py.File(path, "r+") as h5:
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[0, 3, 3] = np.nan  # the first frame is a dark
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    for args in (
+        ["calibrate", "--experiment", path, "-o", tmp_path / "cal.h5"],
+        ["correct", path, "-o", tmp_path / "o.h5"],
+    ):
+        res = run(*args, "-q") if args[0] == "correct" else run(*args)
+        assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+        assert "float exp.h5" in res.stderr and "NaN" in res.stderr, res.stderr
+
+
+def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
+    """--json is for programs: RFC 8259 has no NaN or Infinity. The range is that of the finite
+    pixels, and the NaN or inf ones are counted."""
+    frame = np.arange(20, dtype=np.float32).reshape(4, 5)
+    frame[0, 0], frame[1, 1], frame[2, 2] = np.nan, np.inf, -np.inf
+    stack = _write_stack(tmp_path / "f.tif", [frame, np.full((4, 5), np.nan)])
+    res = run("info", "--json", stack)
+    assert res.returncode == 0, res.stderr
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    rep = json.loads(res.stdout, parse_constant=refuse)[0]
+    assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20
+    res = run("info", stack)
+    assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel", res.stdout), res.stdout
+
+
+def test_calibrate_names_the_file_whose_frames_differ_in_shape(tmp_path):
+    rng = np.random.default_rng(7)
+    dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
+    other = _write_stack(tmp_path / "dark small.tif", rng.normal(100, 2, (5, 12, 10)))
+    flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
+    res = run("calibrate", "--dark", dark, other, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "dark small.tif" in res.stderr and "(12, 10)" in res.stderr and "(12, 14)" in res.stderr, res.stderr
+
+
+def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_path):
+    """Detector software writes a master file linking to data files (HDF5 external links):
+    refused by default, and the one line names the command's way to allow it."""
+    import h5py
+
+    values = np.arange(2 * 6 * 7, dtype=np.uint16).reshape(2, 6, 7)
+    with h5py.File(tmp_path / "data_000001.h5", "w") as h5:
+        h5["data"] = values
+    with h5py.File(tmp_path / "master.h5", "w") as h5:
+        h5["entry/data"] = h5py.ExternalLink("data_000001.h5", "/data")
+    res = run("info", tmp_path / "master.h5", "--dataset", "entry/data")
+    assert res.returncode == 2 and "master.h5" in res.stderr and "--allow-external" in res.stderr, res.stderr
+    res = run("info", "--json", tmp_path / "master.h5", "--dataset", "entry/data", "--allow-external")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)[0]["range"] == [0, int(values.max())]
+    # an experiment file whose frames are in another file: calibrate and correct take the flag too
+    with h5py.File(tmp_path / "frames.h5", "w") as h5:
+        h5["data"] = np.concatenate([np.full((2, 6, 7), 100), np.full((2, 6, 7), 3000), np.full((1, 6, 7), 1500)])
+    with h5py.File(tmp_path / "exp.h5", "w") as h5:
+        h5["entry/instrument/detector/data"] = h5py.ExternalLink("frames.h5", "/data")
+        h5["entry/instrument/detector/image_key"] = np.array([2, 2, 1, 1, 0], np.int8)
+    res = run("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
+    for args in (
+        ["calibrate", "--experiment", tmp_path / "exp.h5", "-o", tmp_path / "cal.h5"],
+        ["correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q"],
+    ):
+        res = run(*args, "--allow-external")
+        assert res.returncode == 0, res.stderr
+    # register reads the linked frames too (6 x 7: then too small to register, said so)
+    reg = [
+        "register",
+        tmp_path / "master.h5",
+        tmp_path / "master.h5",
+        "--dataset",
+        "entry/data",
+        "-o",
+        tmp_path / "r.h5",
+    ]
+    res = run(*reg)
+    assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
+    res = run(*reg, "--allow-external")
+    assert res.returncode == 2 and "too small" in res.stderr, res.stderr

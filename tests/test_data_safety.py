@@ -466,3 +466,133 @@ def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, t
     assert run("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
     assert not any(folder.exists() for folder in stale)
     no_temporaries(tmp_path)
+
+
+# -- an output folder that cannot be written -----------------------------------------------------
+@pytest.fixture
+def readonly_dir(tmp_path):
+    """A read-only tmpfs (needs root), else a folder without write permission (not for root)."""
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64m", "tmpfs", str(mnt)], capture_output=True)
+    if ok.returncode == 0:
+        try:
+            yield mnt
+        finally:
+            subprocess.run(["umount", str(mnt)], check=True)
+        return
+    if os.geteuid() == 0:
+        pytest.skip("root without mount: no folder it cannot write")
+    mnt.chmod(0o555)
+    try:
+        yield mnt
+    finally:
+        mnt.chmod(0o755)
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png", "process"])
+def test_an_output_that_cannot_be_written_is_named_not_its_temporary(cmd, readonly_dir, experiment, images, tmp_path):
+    """A read-only folder: the one line names the output asked for and why, not the hidden
+    temporary radiokit writes first (``.out.tmp-HOST-PID-XXXXXXXX.h5``) nor libhdf5's flags."""
+    commands = {**_commands(experiment, images, readonly_dir / "out"), "process": ["process", experiment, "-q"]}
+    args = commands[cmd] + (["-o", readonly_dir / "out", *ROI] if cmd == "process" else [])
+    out = Path(args[args.index("--png") + 1] if cmd == "register-png" else args[args.index("-o") + 1])
+    if cmd == "register-png":  # the field goes to a writable folder; only the figure cannot be written
+        args[args.index("-o") + 1] = tmp_path / "field.h5"
+    res = run(*args)
+    line = one_line_error(res, out, "cannot be written")
+    assert ".tmp-" not in line and "o_flags" not in line, line
+
+
+# -- long names --------------------------------------------------------------------------------
+@pytest.mark.parametrize("stem", ["x" * 245, "\u7a7a" * 83])  # 248 and 252 bytes with the suffix
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "process"])
+def test_an_output_whose_name_is_near_the_filesystem_limit_is_written(cmd, stem, experiment, images, tmp_path):
+    """A name of up to 255 bytes is a valid file name; the hidden temporary beside it must
+    fit the same limit, or the output could never be written."""
+    out = tmp_path / (stem if cmd == "process" else stem + ".h5")
+    assert len(os.fsencode(out.name)) <= 255
+    args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
+    if cmd != "process":
+        args[-1] = out
+    res = run(*args, "--no-report") if cmd == "process" else run(*args)
+    assert res.returncode == 0, res.stderr
+    assert out.exists()
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("stem", ["scan[1]", "a*b?", "[x]"])
+def test_a_killed_runs_temporary_is_found_whatever_its_name(tmp_path, stem):
+    """Names with glob characters (``scan[1].h5``) are names, not patterns: the stale temporary
+    of this output is removed, and only it (``.scan1.tmp-...`` belongs to ``scan1.h5``)."""
+    import socket
+
+    from radiokit.io import atomic_path
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()  # a process that has ended
+    stale = tmp_path / f".{stem}.tmp-{host}-{dead}-0123abcd.h5"
+    other = tmp_path / f".{stem.replace('[', '').replace(']', '')}1.tmp-{host}-{dead}-0123abcd.h5"
+    for p in (stale, other):
+        p.write_bytes(b"half a file")
+    with atomic_path(tmp_path / f"{stem}.h5") as tmp:
+        tmp.write_bytes(b"whole")
+    assert not stale.exists() and other.exists()
+    assert (tmp_path / f"{stem}.h5").read_bytes() == b"whole"
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "process"])
+def test_an_output_under_a_file_is_refused_saying_so(cmd, experiment, images, tmp_path):
+    """``-o notes.txt/out.h5``: the folder to hold the output is a file. One line naming the
+    output and that, before any work, and the file untouched."""
+    (tmp_path / "notes.txt").write_text("mine")
+    out = tmp_path / "notes.txt" / "sub" / "out"
+    args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
+    res = run(*args)
+    one_line_error(res, "notes.txt", "not a folder")
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+# -- file names that are not UTF-8 -------------------------------------------------------------
+def _non_utf8(tmp_path, name: bytes) -> Path:
+    """``tmp_path / name`` for a name of bytes that are not UTF-8 (legal on POSIX filesystems:
+    Latin-1 names from old systems); skipped where the filesystem refuses such names."""
+    path = Path(os.fsdecode(os.path.join(os.fsencode(tmp_path), name)))
+    try:
+        path.write_bytes(b"")
+    except OSError:
+        pytest.skip("this filesystem takes only UTF-8 names")
+    path.unlink()
+    return path
+
+
+def test_inputs_named_in_bytes_that_are_not_utf8_are_recorded_readably(images, tmp_path):
+    """register and process record their inputs' names in HDF5 text attributes (UTF-8): a name
+    that is not UTF-8 is recorded with its odd bytes as \\xNN, not refused after the work."""
+    fixed = _non_utf8(tmp_path, b"fixed\xff.tif")
+    fixed.write_bytes(images[0].read_bytes())
+    res = run("register", fixed, images[1], "-o", tmp_path / "reg.h5", "--method", "ncc")
+    assert res.returncode in (0, 1), res.stderr  # 1: registered, flagged untrustworthy
+    attrs = []
+    with h5py.File(tmp_path / "reg.h5") as h5:
+        h5.visititems(lambda name, obj: attrs.extend(str(v) for v in obj.attrs.values()))
+    assert any(a.endswith("fixed\\xff.tif") for a in attrs), attrs
+    exp = synthetic(_non_utf8(tmp_path, b"exp\xe9 1.h5"))
+    res = run("process", exp, "-q", "-o", tmp_path / "res", "--cross-check", "none", *ROI)
+    assert res.returncode in (0, 1), res.stderr
+    with h5py.File(tmp_path / "res" / "results.h5") as h5:
+        assert h5["entry"].attrs["source"].endswith("exp\\xe9 1.h5")
+    assert "exp\\xe9 1.h5" in (tmp_path / "res" / "report.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "register"])
+@pytest.mark.parametrize("name", ["out.tif", "out.png", "out"])
+def test_an_hdf5_output_is_not_written_under_another_formats_name(cmd, name, experiment, images, tmp_path):
+    """calibrate and register write HDF5: under ``out.tif`` other programs would take it for a
+    TIFF and fail on it. Refused in one line before the work, as correct refuses ``.png``."""
+    args = _commands(experiment, images, tmp_path / "x")[cmd][:-1] + [tmp_path / name]
+    res = run(*args)
+    one_line_error(res, name, ".h5")
+    assert not (tmp_path / name).exists()

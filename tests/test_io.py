@@ -724,6 +724,21 @@ def test_raw_n_hint_reads_leading_frames(tmp_path):
     np.testing.assert_array_equal(read(path, shape=(3, 4), n=1).data, data[:1])
 
 
+@pytest.mark.parametrize("dtype", ["O", "U1", "S2", "V4", "c8", "M8[s]"])
+def test_raw_dtype_must_be_numbers(tmp_path, dtype):
+    """Pixels are integers or real numbers: an object dtype would read the file's bytes as
+    pointers (a crash), strings and complex numbers are no pixels."""
+    path = tmp_path / "x.raw"
+    np.zeros(400, "<u2").tofile(path)
+    _raises_format(path, "dtype", shape=(5, 5), dtype=dtype)
+
+
+def test_tiff_of_complex_pixels_is_refused(tmp_path):
+    path = tmp_path / "complex.tif"
+    tifffile.imwrite(path, np.ones((6, 7), np.complex64))
+    _raises_format(path, "complex64")
+
+
 def test_unknown_hint_and_format(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)
@@ -877,6 +892,151 @@ def test_tiff_strip_and_tile_layouts(tmp_path, kw):
     np.testing.assert_array_equal(f.data, data)
 
 
+@pytest.mark.parametrize(
+    "name, kw",
+    [
+        # OME-TIFF (Micro-Manager, Bio-Formats): tifffile lists pages after the first as TiffFrames
+        ("stack.ome.tif", {"metadata": {"axes": "ZYX"}}),
+        ("tiled.ome.tif", {"metadata": {"axes": "ZYX"}, "tile": (16, 16)}),
+        ("hyper.tif", {"imagej": True, "metadata": {"axes": "ZYX"}}),
+    ],
+)
+def test_tiff_ome_and_imagej_stacks_read_every_page(tmp_path, name, kw):
+    data = _rand12((3, 37, 50), seed=29)
+    path = tmp_path / name
+    tifffile.imwrite(path, data, photometric="minisblack", **kw)
+    np.testing.assert_array_equal(read(path).data, data)
+    with open_frames(path) as src:
+        np.testing.assert_array_equal(src[2], data[2])
+
+
+def test_tiff_pages_of_another_dtype_are_refused_not_cast(tmp_path):
+    """A page of another SampleFormat/BitsPerSample is not a frame of the same stack: casting
+    a float32 page into the first page's uint16 would silently truncate it."""
+    path = tmp_path / "mixed.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((6, 7), np.uint16), photometric="minisblack")
+        tif.write(np.full((6, 7), 0.5, np.float32), photometric="minisblack")
+    _raises_format(path, "float32")
+
+
+def _imagej_one_ifd(path, data, byteorder):
+    """An ImageJ stack as ImageJ writes one over 4 GB: the first IFD only (its next-IFD offset
+    0), ``images=N`` in its description, and all N frames stored contiguously after it."""
+    tifffile.imwrite(path, data, imagej=True, byteorder=byteorder)
+    raw = bytearray(path.read_bytes())
+    ifd = struct.unpack_from(byteorder + "I", raw, 4)[0]
+    count = struct.unpack_from(byteorder + "H", raw, ifd)[0]
+    struct.pack_into(byteorder + "I", raw, ifd + 2 + 12 * count, 0)
+    path.write_bytes(bytes(raw))
+    return path
+
+
+@pytest.mark.parametrize("byteorder", [">", "<"])  # ImageJ itself writes big-endian
+def test_tiff_imagej_stack_with_one_ifd_reads_every_frame(tmp_path, byteorder):
+    """Past 4 GB (428 frames of 2240 x 2240 uint16) ImageJ writes one IFD and says ``images=N``:
+    reading only the first page would silently drop every frame after it."""
+    data = _rand12((4, 20, 30), seed=31)
+    path = _imagej_one_ifd(tmp_path / "big.tif", data, byteorder)
+    np.testing.assert_array_equal(read(path).data, data)
+    with open_frames(path) as src:
+        assert len(src) == 4
+        np.testing.assert_array_equal(src[3], data[3])
+    np.testing.assert_array_equal(read(path, n=2).data, data[:2])
+    # a description promising more frames than the file holds is a truncated file, not 4 frames
+    path.write_bytes(path.read_bytes().replace(b"images=4", b"images=9"))
+    _raises_format(path, "images=9", "truncated")
+
+
+def test_tiff_written_truncated_by_tifffile_reads_every_frame(tmp_path):
+    """tifffile's ``truncate=True`` writes a contiguous stack with its first IFD only and
+    ``{"shape": [n, rows, cols], "truncated": true}`` in the description; tifffile reads n frames."""
+    data = _rand12((4, 20, 30), seed=47)
+    path = tmp_path / "truncated.tif"
+    tifffile.imwrite(path, data, truncate=True, photometric="minisblack")
+    with tifffile.TiffFile(path) as tif:
+        assert len(tif.pages) == 1
+    np.testing.assert_array_equal(read(path).data, data)
+    path.write_bytes(path.read_bytes().replace(b'"shape": [4,', b'"shape": [9,'))  # promises more
+    _raises_format(path, "truncated")
+
+
+def _tiff_12bit_packed(path, image):
+    """A one-strip TIFF of BitsPerSample 12 (TIFF 6.0: samples packed MSB first, FillOrder 1,
+    each row padded to a whole byte), as 12-bit camera software writes it."""
+    rows, cols = image.shape
+    bits = ((image[..., None] >> np.arange(11, -1, -1)) & 1).astype(np.uint8).reshape(rows, cols * 12)
+    data = np.packbits(bits, axis=1).tobytes()  # packbits pads each row to a byte
+    tags = [(256, cols), (257, rows), (258, 12), (259, 1), (262, 1), (273, 0), (277, 1), (278, rows), (279, len(data))]
+    data_offset = 8 + 2 + 12 * len(tags) + 4
+    out = b"II*\0" + struct.pack("<IH", 8, len(tags))
+    for code, value in tags:
+        out += struct.pack("<HHII", code, 4, 1, data_offset if code == 273 else value)
+    path.write_bytes(out + struct.pack("<I", 0) + data)
+    return path
+
+
+def test_tiff_lzw_and_12bit_packed_read(tmp_path):
+    """LZW (Pillow, GIMP, Photoshop, many acquisition programs) and 12-bit packed samples (a
+    12-bit detector's own TIFF) are ordinary TIFF; tifffile decodes both through imagecodecs."""
+    from PIL import Image
+
+    data = _rand12((9, 11), seed=37)
+    Image.fromarray(data).save(tmp_path / "lzw.tif", compression="tiff_lzw")
+    with tifffile.TiffFile(tmp_path / "lzw.tif") as tif:
+        assert tif.pages.first.compression == 5  # LZW
+    np.testing.assert_array_equal(read(tmp_path / "lzw.tif").data[0], data)
+    np.testing.assert_array_equal(read(_tiff_12bit_packed(tmp_path / "p12.tif", data)).data[0], data)
+
+
+@pytest.mark.parametrize("where", ["first", "last"])
+@pytest.mark.parametrize("preview", [(4, 5), (12, 10)], ids=["smaller", "same_shape"])
+def test_tiff_reduced_resolution_pages_are_not_frames(tmp_path, where, preview):
+    """NewSubfileType bit 0 (TIFF 6.0, section 8) marks a reduced-resolution version of another
+    image: a preview, first or last, of any shape, is never a frame of the stack."""
+    data = _rand12((2, 12, 10), seed=41)
+    path = tmp_path / "preview.tif"
+    with tifffile.TiffWriter(path) as tif:
+        if where == "first":
+            tif.write(np.zeros(preview, np.uint8), subfiletype=1)
+        for frame in data:
+            tif.write(frame, photometric="minisblack")
+        if where == "last":
+            tif.write(np.zeros(preview, np.uint8), subfiletype=1)
+    np.testing.assert_array_equal(read(path).data, data)
+
+
+def test_tiff_image_codec_declaring_its_own_size_is_refused_before_decoding(tmp_path):
+    """A JPEG strip declares its own height and width (its SOF marker, ITU T.81 B.2.2), which the
+    decoder allocates whatever the TIFF page says: a 2 KB file whose SOF claims 60000 x 60000
+    made the reader allocate 3.6 GB. Image codecs are refused before any decoding."""
+    path = tmp_path / "jpeg.tif"
+    tifffile.imwrite(path, np.zeros((64, 48), np.uint8), compression="jpeg")
+    raw = bytearray(path.read_bytes())
+    with tifffile.TiffFile(path) as tif:
+        start = tif.pages.first.dataoffsets[0]
+    sof = raw.index(b"\xff\xc0", start)
+    struct.pack_into(">HH", raw, sof + 5, 60000, 60000)  # Y (lines), X (samples per line)
+    path.write_bytes(bytes(raw))
+    _raises_format(path, "JPEG")
+    # lossless codecs whose output the page's size bounds still read
+    data = _rand12((2, 9, 11), seed=43)
+    for compression in ("lzw", "zstd", "lzma", "packbits", "zlib"):
+        tifffile.imwrite(tmp_path / "ok.tif", data, compression=compression, photometric="minisblack")
+        np.testing.assert_array_equal(read(tmp_path / "ok.tif").data, data)
+
+
+def test_tiff_description_nested_past_the_recursion_limit_stays_text(tmp_path):
+    """The ImageDescription is free text (TIFF 6.0): JSON too deep for Python's parser is kept as
+    text, as HDF5 attributes are, never a reason to refuse the pixels."""
+    path = tmp_path / "deep.tif"
+    text = '{"a":' + "[" * 100_000 + "]" * 100_000 + "}"
+    tifffile.imwrite(path, np.ones((4, 5), np.uint16), description=text, metadata=None)
+    f = read(path)
+    assert f.data.shape == (1, 4, 5) and f.meta["tags"]["ImageDescription"] == text
+    assert "description" not in f.meta
+
+
 def _patch_tiff_tag(data: bytes, code: int, value: int) -> bytes:
     """Overwrite a LONG tag's value in the first IFD of a little-endian classic TIFF."""
     out = bytearray(data)
@@ -901,6 +1061,16 @@ def test_tiff_corrupt_dimensions_fail_fast(tmp_path, compression, tag, value):
     t0 = time.monotonic()
     _raises_format(path)
     assert time.monotonic() - t0 < 2
+
+
+@pytest.mark.parametrize("compression", [None, "zlib"])
+@pytest.mark.parametrize("tag", [256, 257])
+def test_tiff_of_zero_width_or_height_says_so(tmp_path, compression, tag):
+    """ImageWidth or ImageLength 0: a page with no pixels, said so, not "integer division or modulo by zero"."""
+    path = tmp_path / "empty page.tif"
+    tifffile.imwrite(path, _rand12((5, 6), seed=24), compression=compression)
+    path.write_bytes(_patch_tiff_tag(path.read_bytes(), tag, 0))
+    _raises_format(path, "no pixels")
 
 
 def test_write_tiff_round_trip_with_meta(tmp_path):
@@ -938,6 +1108,17 @@ def test_tiff_rgb_rejected(tmp_path, shape, kw):
     path = tmp_path / "rgb.tif"
     tifffile.imwrite(path, np.zeros(shape, np.uint8), **kw)
     _raises_format(path, "greyscale")
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_tiff_of_three_or_four_frames_written_as_colour_planes_says_how(tmp_path, n):
+    """tifffile.imwrite stores a (3 or 4, rows, cols) array as RGB(A) planes of one page unless
+    told photometric='minisblack' (it warns so): the file is colour, and the one line says why."""
+    path = tmp_path / "three.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        tifffile.imwrite(path, np.zeros((n, 6, 7), np.uint16))
+    _raises_format(path, "greyscale", "photometric='minisblack'")
 
 
 def test_tiff_truncated_at_page_boundary(tmp_path):
@@ -1204,6 +1385,59 @@ def test_hdf5_experiment_missing_image_key(tmp_path):
     _raises_format(path, "(n, rows, cols)")
 
 
+@pytest.mark.parametrize("dtype", [">u2", ">f4", ">i4"])
+def test_hdf5_big_endian_frames_come_in_native_byte_order(tmp_path, dtype):
+    """read() promises the file's dtype in native byte order, as the raw and TIFF readers give:
+    HDF5 stores the byte order in the dataset's type, and h5py hands it through unless asked."""
+    values = np.arange(60).reshape(3, 4, 5)
+    path = tmp_path / "be.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("frames", data=values.astype(dtype))
+    f = read(path, dataset="frames")
+    assert f.data.dtype == np.dtype(dtype).newbyteorder("=")
+    np.testing.assert_array_equal(f.data, values)
+    with open_frames(path, dataset="frames") as src:
+        assert src.dtype.isnative and src[1].dtype.isnative
+        np.testing.assert_array_equal(src[1], values[1])
+
+
+_READ_SUM = "import sys; from radiokit.io import read; print(int(read(sys.argv[1], dataset='d').data.sum()))"
+
+
+@pytest.mark.parametrize("plugin", ["Zstd", "Bitshuffle", "LZ4"])
+def test_hdf5_compressed_by_a_plugin_filter_reads_or_names_the_filter(tmp_path, plugin):
+    """Detector and beamline software compress HDF5 with registered plugin filters (zstd,
+    bitshuffle, LZ4): read them through hdf5plugin's filters where it is installed, and where
+    no filter is at hand say which one is missing, not libhdf5's "can't open directory".
+    Each read runs in a fresh interpreter: this one has hdf5plugin loaded to write the file."""
+    hdf5plugin = pytest.importorskip("hdf5plugin")
+    values = np.arange(3 * 40 * 50, dtype=np.uint16).reshape(3, 40, 50)
+    path = tmp_path / "plugin.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("d", data=values, chunks=(1, 40, 50), **getattr(hdf5plugin, plugin)())
+    env = {**os.environ, "HDF5_PLUGIN_PATH": str(tmp_path / "no-plugins-here")}
+    res = subprocess.run([sys.executable, "-c", _READ_SUM, path], capture_output=True, text=True, env=env)
+    assert res.returncode == 0, res.stderr
+    assert int(res.stdout) == int(values.sum())
+    without = "import sys; sys.modules['hdf5plugin'] = None; " + _READ_SUM  # as if it were not installed
+    res = subprocess.run([sys.executable, "-c", without, path], capture_output=True, text=True, env=env)
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("radiokit.errors.FormatError") and str(path) in last, res.stderr
+    with h5py.File(path) as h5:
+        code = h5["d"].id.get_create_plist().get_filter(0)[0]
+    assert f"filter {code}" in last and "hdf5plugin" in last, last
+
+
+@pytest.mark.parametrize("shape", [(3, 0, 24), (0, 5), (2, 4, 0)])
+def test_hdf5_frames_without_pixels_are_refused(tmp_path, shape):
+    """A dataset of (n, 0, cols) frames has nothing to read: refused naming the file, rather than
+    failing later in whatever first reduces a frame (min, mean) with numpy's words."""
+    path = tmp_path / "nopixels.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("d", shape=shape, dtype=np.uint16)
+    _raises_format(path, "no pixels", dataset="d")
+
+
 def test_dataset_hint_on_non_hdf5(tmp_path):
     path = tmp_path / "x.raw"
     np.zeros(10, "<u2").tofile(path)
@@ -1219,6 +1453,22 @@ def test_stackwriter_hdf5_read_back(tmp_path):
     np.testing.assert_array_equal(f.data, data)
     np.testing.assert_array_equal(read(tmp_path / "out.h5", dataset="entry/data/data", n=2).data, data[:2])
     _raises_format(tmp_path / "out.h5", "dimensions", dataset="entry/data/step")  # 1-D: not frames
+
+
+@pytest.mark.parametrize("n_frames, bigtiff", [(300_000, True), (200_000, False), (None, False)])
+def test_stackwriter_tiff_is_bigtiff_when_the_stack_will_pass_4_gib(tmp_path, monkeypatch, n_frames, bigtiff):
+    """Classic TIFF offsets are 32-bit: a stack announced past 4 GiB must start as BigTIFF, or
+    the page after the 4 GiB mark fails ("data too large for non-BigTIFF file") after hours
+    of correction. 300 000 frames of 64 x 64 float32 are 4.9 GB, 200 000 are 3.3 GB."""
+    import radiokit.io._atomic as atomic
+
+    monkeypatch.setattr(atomic, "check_free_space", lambda path, nbytes: None)  # only one frame is written
+    path = tmp_path / "stack.tif"
+    with StackWriter(path, (64, 64), np.float32, n_frames=n_frames) as w:
+        w.append(np.ones((64, 64), np.float32))
+    with tifffile.TiffFile(path) as tif:
+        assert tif.is_bigtiff == bigtiff
+    np.testing.assert_array_equal(read(path).data, np.ones((1, 64, 64), np.float32))
 
 
 @pytest.mark.parametrize("direct", [True, False], ids=["o_direct", "page_cache"])
@@ -1282,13 +1532,16 @@ def test_experiment_survives_sigkill(tmp_path):
     rows, cols = 48, 40
     base = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
     f = read(path)
-    assert f.n >= last + 1  # every frame reported complete is there
-    for i in range(f.n):
+    # the frame in flight when killed, if its row was counted, is labelled INVALID (the writer's
+    # contract: never pixels claimed complete); the writer labels the others 0, 1, 2
+    n = f.n - 1 if f.meta["image_key"][-1] == ImageKey.INVALID else f.n
+    assert n >= last + 1  # every frame reported complete is there
+    for i in range(n):
         np.testing.assert_array_equal(f.data[i], (base * 3 + i * 17) % 4096)
-    np.testing.assert_array_equal(f.meta["step"], np.arange(f.n))
-    np.testing.assert_array_equal(f.meta["image_key"], np.arange(f.n) % 3)
-    np.testing.assert_allclose(f.meta["gap"], (10 - np.arange(f.n) / 10) * 1e-3)
-    np.testing.assert_array_equal(f.meta["time"], np.arange(f.n))
+    np.testing.assert_array_equal(f.meta["step"][:n], np.arange(n))
+    np.testing.assert_array_equal(f.meta["image_key"][:n], np.arange(n) % 3)
+    np.testing.assert_allclose(f.meta["gap"][:n], (10 - np.arange(n) / 10) * 1e-3)
+    np.testing.assert_array_equal(f.meta["time"][:n], np.arange(n))
 
     with ExperimentWriter(path, mode="a") as w:
         assert w.n_frames == f.n

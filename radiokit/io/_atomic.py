@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import re
 import secrets
@@ -150,6 +151,9 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
                 f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
                 f"input {src}: an input is never overwritten; choose another output",
             )
+    holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
+    if holder is not None and not holder.is_dir():
+        raise OutputError(path, f"{holder} is a file, not a folder to hold the output; choose another output")
     if not (path.exists() or path.is_symlink()):
         return path
     if folder:
@@ -188,11 +192,26 @@ def _owner_tag() -> str:
     return f"{socket.gethostname().split('.')[0]}-{os.getpid()}"
 
 
+#: the longest file name most filesystems take (NAME_MAX), in bytes
+_NAME_MAX = 255
+
+
+def _head(path: Path, folder: bool) -> str:
+    """The part of ``path``'s name its temporaries begin with: the name (a folder) or the stem,
+    cut so that ``.HEAD.tmp-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
+    (room for a 10-digit PID: the same head for every process, so stale ones are found)."""
+    head, tail = (path.name, "") if folder else (path.stem, path.suffix)
+    room = _NAME_MAX - len(os.fsencode(f"..tmp-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
+    while head and len(os.fsencode(head)) > room:  # cut whole characters, not bytes of one
+        head = head[:-1]
+    return head
+
+
 def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path`` (``old`` for a folder being replaced); a file
     keeps its suffix last, since writers choose the format from it (StackWriter, matplotlib)."""
     tag = f"{kind}-{_owner_tag()}-{secrets.token_hex(4)}"
-    return path.with_name(f".{path.name}.{tag}" if folder else f".{path.stem}.{tag}{path.suffix}")
+    return path.with_name(f".{_head(path, folder)}.{tag}{'' if folder else path.suffix}")
 
 
 def _remove_stale(path: Path, folder=False) -> None:
@@ -200,7 +219,9 @@ def _remove_stale(path: Path, folder=False) -> None:
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
     for kind in ("tmp", "old") if folder else ("tmp",):
-        pattern = f".{path.name}.{kind}-{host}-*" if folder else f".{path.stem}.{kind}-{host}-*{path.suffix}"
+        # the name's own characters taken literally: "scan[1]" is no character class
+        head, suffix = glob.escape(_head(path, folder)), "" if folder else glob.escape(path.suffix)
+        pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
         for old in path.parent.glob(pattern):
             m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
             if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
@@ -231,6 +252,8 @@ def _fsync(path: Path) -> None:
 
 
 def _remove(path: Path) -> None:
+    if not os.path.lexists(path):  # unlink on a read-only filesystem fails even for no file
+        return
     with contextlib.suppress(FileNotFoundError):
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
@@ -270,7 +293,16 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         _remove(tmp)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
+        _raise_unwritable(exc, tmp, path)
         raise
+
+
+def _raise_unwritable(exc, tmp: Path, path: Path) -> None:
+    """An OSError about the temporary (a read-only folder or filesystem) is one about ``path``:
+    say so of the output asked for, not of a hidden name the user never gave (or libhdf5's flags)."""
+    if isinstance(exc, OSError) and not isinstance(exc, OutputError) and exc.errno:
+        if str(tmp) in f"{exc.filename} {exc}":
+            raise OutputError(path, f"cannot be written: {os.strerror(exc.errno)}", exc.errno) from exc
 
 
 @contextlib.contextmanager
@@ -329,4 +361,5 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
         _remove(tmp)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
+        _raise_unwritable(exc, tmp, path)
         raise

@@ -393,7 +393,9 @@ class ExperimentWriter:
 
 
 def _refuse_external(path, what):
-    raise FormatError(path, f"{what}: data outside this file is not read unless asked for (allow_external=True)")
+    raise FormatError(
+        path, f"{what}: data outside this file is not read unless asked for (allow_external=True; --allow-external)"
+    )
 
 
 @dataclass(frozen=True)
@@ -498,7 +500,30 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
         )
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
+    check_filters(path, ds)
     return ds
+
+
+def check_filters(path, ds) -> None:
+    """Refuse, naming it, a compression filter libhdf5 lacks (zstd, Blosc, bitshuffle, LZ4 from
+    beamline and detector software), after loading hdf5plugin's filters where it is installed;
+    libhdf5 itself only says it "can't open directory" of plugins when a frame is read."""
+    plist = ds.id.get_create_plist()
+    filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]
+    missing = [(code, name) for code, _flags, _values, name in filters if not h5py.h5z.filter_avail(code)]
+    if missing:
+        try:
+            import hdf5plugin  # noqa: F401  (registers its filters with libhdf5 on import)
+        except ImportError:
+            pass
+        missing = [(code, name) for code, name in missing if not h5py.h5z.filter_avail(code)]
+    if missing:
+        code, name = missing[0]
+        raise FormatError(
+            path,
+            f"{ds.name} is compressed with HDF5 filter {code} ({name.decode('latin-1') or 'unnamed'}), "
+            "which is not available here: install hdf5plugin (pip install hdf5plugin)",
+        )
 
 
 def _plain_numbers(dtype, kinds="iuf") -> bool:
@@ -518,7 +543,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
         raise FormatError(
             path,
             f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
-            "(pass dataset='/path/to/frames' to read another layout)",
+            "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)",
         )
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:

@@ -91,6 +91,12 @@ def text(value) -> str:
     return str(value)
 
 
+def path_text(path) -> str:
+    """A file's name as UTF-8 text for an HDF5 attribute: a POSIX name may hold bytes that are
+    not UTF-8 (a Latin-1 name), which h5py cannot encode; those are written as ``\\xNN``."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
 def check_finite(path, name: str, values: np.ndarray, *, nan_ok: bool = False) -> None:
     """Refuse inf (and NaN unless ``nan_ok``) in ``values``, the dataset ``name``."""
     bad = np.isinf(values) if nan_ok else ~np.isfinite(values)

@@ -51,6 +51,8 @@ def _parse_dtype(path, dtype, byteorder) -> np.dtype:
         dt = np.dtype(dtype)
     except TypeError as exc:
         raise FormatError(path, f"dtype={dtype!r} is not a numpy dtype") from exc
+    if dt.kind not in "uif":  # an object dtype would take the file's bytes for pointers
+        raise FormatError(path, f"dtype={dtype!r}: pixels are integers or real numbers (e.g. '<u2', '<f4')")
     if byteorder is not None:
         order = {"<": "<", "little": "<", ">": ">", "big": ">", "=": "=", "native": "="}.get(byteorder)
         if order is None:

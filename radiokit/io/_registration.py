@@ -20,7 +20,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
-from radiokit.io._layout import ReadBudget, open_layout, text
+from radiokit.io._layout import ReadBudget, open_layout, path_text, text
 
 __all__ = ["REGISTRATION", "RegistrationRecord", "write_registration", "read_registration"]
 
@@ -87,7 +87,7 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
         g.attrs["NX_class"] = "NXdata"
         g.attrs["signal"] = REGISTERED.rsplit("/", 1)[1]
         g.attrs["method"] = record.method
-        g.attrs["fixed"], g.attrs["moving"] = str(record.fixed), str(record.moving)
+        g.attrs["fixed"], g.attrs["moving"] = path_text(record.fixed), path_text(record.moving)
         g.attrs["convention"] = CONVENTION
         h5.create_dataset(DISPLACEMENT, data=displacement, compression="lzf")
         h5.create_dataset(REGISTERED, data=registered, compression="lzf").attrs["interpretation"] = "image"

@@ -26,7 +26,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
-from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
+from radiokit.io._layout import ReadBudget, check_finite, open_layout, path_text, text
 
 __all__ = ["RESULTS_STEPS", "ResultsRecord", "EnhancedImages", "write_results", "read_results"]
 
@@ -98,7 +98,7 @@ def write_results(path, record: ResultsRecord, *, overwrite=True, inputs=()) -> 
         entry = h5.create_group(ENTRY)
         entry.attrs["NX_class"] = "NXentry"
         entry.attrs["default"] = RESULTS_STEPS.rsplit("/", 1)[1]
-        entry.attrs["source"] = str(record.source)
+        entry.attrs["source"] = path_text(record.source)
         entry.attrs["results_json"] = record.results_json
         steps = _group(h5, RESULTS_STEPS, "NXdata")
         steps.attrs["signal"] = _SIGNAL

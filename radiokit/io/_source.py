@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 import struct
@@ -45,6 +46,23 @@ _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
+#: TIFF compressions read: none, LZW, deflate, PackBits, LZMA and zstd decode into the strip or tile
+#: they fill. Image codecs (JPEG, JPEG 2000, JPEG XL, WebP, PNG, LERC, ...) carry their own image
+#: size, which their decoder allocates whatever the page says: a 2 KB JPEG strip claiming
+#: 60000 x 60000 pixels took 3.6 GB. They are refused before any decoding.
+_TIFF_CODECS = {1, 5, 8, 32946, 32773, 34925, 34926, 50000}
+#: the TIFF tags of the first frame kept in ``meta["tags"]``
+_TIFF_TAGS = (
+    "ImageDescription",
+    "Software",
+    "DateTime",
+    "Artist",
+    "XResolution",
+    "YResolution",
+    "ResolutionUnit",
+    "BitsPerSample",
+    "Compression",
+)
 
 
 def _check_file(path) -> None:
@@ -127,6 +145,12 @@ class FrameSource:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
             if self.format != "raw" and hints.get("n") is not None:
                 self._limit_frames(hints["n"])
+            if np.dtype(self.dtype).kind not in "buif":  # complex (TIFF may hold it) or no number at all
+                raise FormatError(
+                    self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
+                )
+            if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
+                raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
             check_budget(
                 self.path,
                 self.frame_bytes,
@@ -187,50 +211,59 @@ class FrameSource:
 
     def _open_tiff(self, dataset=None, **hints):
         self._tif = tifffile.TiffFile(self.path)
-        series = self._tif.series
-        if not series:
-            raise FormatError(self.path, "TIFF holds no image series")
-        pages = self._tif.pages
-        first = pages.first
+        if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
+            raise FormatError(self.path, "TIFF holds no image")
+        # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
+        all_pages = [page.aspage() for page in self._tif.pages]
+        # NewSubfileType bits 0 and 2: a reduced-resolution preview or a mask of another image,
+        # whatever its shape or place, is not a frame
+        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
+        if not index:
+            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        self._pages = [all_pages[i] for i in index]
+        first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
-            raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image")
-        all_pages = list(pages)
-        self._pages = [p for p in all_pages if p.shape == shape]
-        for i, page in enumerate(all_pages):
-            # only a thumbnail (reduced-resolution) or mask page may differ; any other page of
-            # another shape is a corrupt frame, never a silently shorter stack
-            if page.shape != shape and not (getattr(page, "subfiletype", 0) & 0b101):
+            hint = ""
+            if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
+                hint = (
+                    f" (colour planes: tifffile.imwrite stores a ({first.samplesperpixel}, rows, cols) array so "
+                    "unless given photometric='minisblack')"
+                )
+            raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
+        if 0 in shape:  # before the layout checks divide by it
+            raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
+        for i in index:
+            if all_pages[i].shape != shape:  # a corrupt frame is an error, never a silently shorter stack
                 raise FormatError(
                     self.path,
-                    f"TIFF page {i} is {page.shape}, page 0 is {shape}: a corrupt page, or not one stack of frames",
+                    f"TIFF page {i} is {all_pages[i].shape}, page {index[0]} is {shape}: a corrupt page, "
+                    "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
+        self._contiguous = self._contiguous_stack(first, all_pages)
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
+            if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
+                raise FormatError(
+                    self.path,
+                    f"TIFF frame {i} holds {page.dtype} pixels, frame 0 {first.dtype}: not one stack of frames",
+                )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
+        if self._contiguous:
+            self.n = self._contiguous["n"]
         self.bits = None
-        tags = {}
-        for tag in first.tags:
-            if tag.name in (
-                "ImageDescription",
-                "Software",
-                "DateTime",
-                "Artist",
-                "XResolution",
-                "YResolution",
-                "ResolutionUnit",
-                "BitsPerSample",
-                "Compression",
-            ):
-                value = tag.value
-                tags[tag.name] = value.name if hasattr(value, "name") else value
+        tags = {
+            tag.name: tag.value.name if hasattr(tag.value, "name") else tag.value
+            for tag in first.tags
+            if tag.name in _TIFF_TAGS
+        }
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
                 self.meta["description"] = json.loads(desc)
-            except ValueError:
+            except (ValueError, RecursionError):  # free text, however it looks
                 pass
 
     def _check_ifd_chain(self, pages):
@@ -280,10 +313,48 @@ class FrameSource:
         if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] != 0:
             raise broken(f"IFD after page {len(pages) - 1}")
 
+    def _contiguous_stack(self, first, pages) -> dict | None:
+        """The geometry of a stack stored after a single IFD, else None.
+
+        ImageJ writes a stack over 4 GB with its first IFD only and ``images=N`` in the
+        description; tifffile's ``truncate=True`` likewise, with ``{"shape": [N, rows, cols],
+        "truncated": true}``. The N frames follow the first uncompressed and contiguous (tifffile
+        reads them as one series); they are then read as raw frames, one at a time.
+        """
+        tif, images, what = self._tif, 1, ""
+        if tif.is_imagej:
+            images, what = (tif.imagej_metadata or {}).get("images", 1), "ImageJ description says images="
+        elif tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+            shape = tif.shaped_metadata[0].get("shape", [])
+            if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
+                images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
+        if len(pages) != 1 or not isinstance(images, int) or images <= 1:
+            return None
+        if not first.is_contiguous or first.compression != 1:
+            raise FormatError(self.path, f"stack of {images} images with one IFD and compressed data")
+        rows, cols = first.shape
+        dtype = np.dtype(first.dtype).newbyteorder(tif.byteorder)
+        geo = dict(n=images, rows=rows, cols=cols, dtype=dtype, offset=int(first.dataoffsets[0]))
+        need = geo["offset"] + images * rows * cols * dtype.itemsize
+        if need > tif.filehandle.size:
+            raise FormatError(
+                self.path,
+                f"{what}{images} of {rows}x{cols} {dtype.name} stored after "
+                f"the first IFD ({need} bytes); the file has {tif.filehandle.size}: truncated",
+            )
+        self._fh = open(self.path, "rb")
+        return geo
+
     def _check_page_layout(self, i, page, shape):
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
+        if int(page.compression) not in _TIFF_CODECS:
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} is compressed with {page.compression.name}, an image codec declaring its own "
+                "image size, not checked before decoding: save it uncompressed, LZW, deflate or zstd",
+            )
         if page.is_tiled:
             # a tile is decoded whole, whatever the image: a corrupt tile size is a bomb of its own
             check_budget(
@@ -322,6 +393,8 @@ class FrameSource:
                 )
 
     def _read_tiff(self, i):
+        if self._contiguous:
+            return read_raw_frame(self._fh, self._contiguous, i)
         frame = self._pages[i].asarray()
         if frame.shape != self.frame_shape:
             raise FormatError(self.path, f"page {i} decodes to {frame.shape}, expected {self.frame_shape}")
@@ -353,7 +426,8 @@ class FrameSource:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
         self._ds = data
-        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype
+        # h5py hands through the byte order the file stores; read() promises native order
+        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype.newbyteorder("=")
         self.bits = 12 if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
@@ -378,7 +452,8 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
-        return self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self):

@@ -128,10 +128,11 @@ class StackWriter:
             self._ds.attrs["interpretation"] = "image"
             self._direct = _DirectFrames.open(tmp, self._ds) if self._alloc else None
         else:
-            frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
-            self._tif = tifffile.TiffWriter(
-                tmp, bigtiff=True if bigtiff is None and frame_bytes > 2**28 else bool(bigtiff)
-            )
+            # classic TIFF offsets are 32-bit: a stack that will pass 4 GiB (tifffile's own margin
+            # for the IFDs) must be BigTIFF from its first page, or a page past the mark fails
+            stack_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize * max(int(n_frames or 0), 1)
+            auto = stack_bytes > 2**28 if n_frames is None else stack_bytes > 2**32 - 2**25
+            self._tif = tifffile.TiffWriter(tmp, bigtiff=auto if bigtiff is None else bool(bigtiff))
 
     def append(self, frame, **series):
         frame = np.asarray(frame)
