@@ -183,9 +183,12 @@ class SpecPty:
                     self.model.lost.append(line)  # a UART at another rate, or a controller not ready
                     continue
                 reply = self.model.handle(line)
+                # the gap is counted from before the reply goes out: a stamp taken after the write
+                # runs late when this thread is descheduled there (a loaded machine), and the
+                # driver's next command, spaced from its receipt of the reply, looked too soon
+                self._last = time.monotonic()
                 if not self.model.silent:
                     os.write(self._master, reply.encode("ascii") + b"\r")
-                self._last = time.monotonic()
 
     def close(self):
         self._stop.set()
