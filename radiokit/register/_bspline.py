@@ -961,14 +961,18 @@ def _p99_below(v, limit) -> bool:
     return bool(np.percentile(v, 99) < limit)
 
 
-def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None):
+def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None, extend=None):
     """L-BFGS on one level; ``(result, move)``, ``move`` how far the last 5 iterations moved the
     field (99th percentile of |change|, full-resolution pixels, evaluated on the ``coarsest``
     level's grid: the field is smooth on it; with ``coarse`` lattices refitted alongside, whose
     coefficients follow ``grid``'s in ``x``, their change counts too). Stops early when that is
     under ``_STILL_PX``. ``check``: ``(iteration, fn)``, ``fn(x)`` called at that iteration (it
     does not change the path); a message from it stops the level there, in
-    ``result["abandoned"]``."""
+    ``result["abandoned"]``. ``extend``: ``(more, converge_px, settles)``: at the budget's end
+    (``n_it`` iterations) the run goes on, up to ``more`` iterations more, only if the field still
+    moves by more than ``converge_px`` and ``settles(x)`` (the residual passes the checks); else it
+    stops there, where the budget alone would have stopped it (the same iterate: L-BFGS's path
+    does not depend on its budget)."""
     last = collections.deque(maxlen=6)
     stopped, count = [], [0]
     lattices = [grid, *coarse]
@@ -981,12 +985,17 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None):
     def moved():
         return float(np.percentile(change(), 99))
 
+    def moved_now():  # as the level's end measures it (``inf`` before 6 iterates)
+        return moved() if len(last) == last.maxlen else float("inf")
+
     def track(intermediate_result):  # scipy passes the iterate by this name (sole parameter)
         last.append(intermediate_result.x.copy())
         count[0] += 1  # (the iterate carries no iteration number)
         if check is not None and count[0] == check[0] and (why := check[1](last[-1])):
             stopped.append(why)
             raise StopIteration
+        if extend is not None and count[0] == n_it and not (moved_now() > extend[1] and extend[2](last[-1])):
+            raise StopIteration  # converged by the budget's measure, or lost: no more iterations
         if len(last) == last.maxlen and _p99_below(change(), _STILL_PX):
             raise StopIteration  # scipy ends the minimisation with the current iterate
 
@@ -996,7 +1005,9 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None):
         jac=True,
         method="L-BFGS-B",
         callback=track,
-        options=dict(maxiter=int(n_it), maxcor=10, gtol=1e-9, ftol=1e-10),
+        options=dict(
+            maxiter=int(n_it) + (int(extend[0]) if extend is not None else 0), maxcor=10, gtol=1e-9, ftol=1e-10
+        ),
     )
     move = moved() if len(last) == last.maxlen else float("inf")
     if stopped:
@@ -1191,14 +1202,16 @@ def _bspline_register(
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
             check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
-        grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check)
-        if factor == finest and o["extend"] and not _converged(res, move, o["converge_px"])[0]:
+        extend = None
+        if factor == finest and o["extend"]:  # past its budget only while slow, not lost (``extend``)
             measure = measure or _coarse_measure(fixed, moving, mask)
-            if _settles(measure, grids + [(grid, res.x)], affine):  # slow, not lost: go on from here
-                more = (factor, o["extend"], coarsest, finest)
-                grid, res2, move = _run_level(f, m, maskf, similarity, o, more, base, gain, coarse, res.x)
-                res2.nit += res.nit
-                res = res2
+            fixed_part = [] if coarse else grids  # joint: the coarser lattices are refitted in x
+            extend = (
+                o["extend"],
+                o["converge_px"],
+                lambda lats, ms=measure, fp=fixed_part: _settles(ms, fp + lats, affine),
+            )
+        grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check, extend)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
                 iterations=total_its, converged=False, options=o, message="optimiser produced non-finite values"
@@ -1288,7 +1301,7 @@ def _settles(measure, lattices, affine) -> bool:
     return bool(motion_of(d) <= _MAX_RESIDUAL_MOTION)
 
 
-def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None):
+def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None, extend=None):
     """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
     (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
     coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients.
@@ -1296,7 +1309,8 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     lattice from where they stand, each with its own bending weight; updated in place.
     ``x_start``: this lattice's first coefficients (None: zero). ``check``: ``(iteration, fn)``,
     ``fn((grid, coefficients))`` at that iteration, whose message (not None) stops the level
-    there, left in ``result["abandoned"]``."""
+    there, left in ``result["abandoned"]``. ``extend``: ``(iterations, converge_px, fn)``, see
+    :func:`_fit_level`; ``fn`` gets the lattices refitted here (``coarse``'s and this one)."""
     factor, n_it, coarsest, finest = where
     fine = factor == finest
     # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
@@ -1320,7 +1334,13 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     fun = _objective(level, grid, base, lam, factor, o["balance"], thinning, [(g, g.lam) for g, _ in coarse])
     if check is not None:
         check = (check[0], lambda x, fn=check[1]: fn((grid, x[: grid.n_params].copy())))
-    res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse], check)
+    if extend is not None:
+        lattices = [grid] + [g for g, _ in coarse]
+        extend = (
+            *extend[:2],
+            lambda x, fn=extend[2]: fn([(g, c.copy()) for g, c in zip(lattices, _split(x, lattices)[0])]),
+        )
+    res, move = _fit_level(fun, grid, n_it, coarsest, x0, [g for g, _ in coarse], check, extend)
     xs, rest = _split(res.x, [grid] + [g for g, _ in coarse])
     coarse[:] = [(g, c) for (g, _), c in zip(coarse, xs[1:])]
     if gain is not None:
