@@ -16,7 +16,9 @@ allow, which is what a compressed phantom's silent slab does (the simulated pva-
 view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. On a
 textured interior, in a frame larger than the checks' ~0.4 Mpx, the plain run stops before its
 finest level when it is still far off there (``ABANDON``; the weak preset follows, and the plain
-run is finished after all only if the weak one does not beat it). Which
+run is finished after all only if the weak one does not beat it). ``auto``'s plain run may go
+past its finest level's budget when its field is still moving there but its residual already
+passes the checks (``EXTEND``): slow, not lost, as on natural images at 2240. Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
 the body's interior**:
 
