@@ -27,7 +27,8 @@ fields are apart (median, 99th percentile and largest |difference|, px).
 Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
 1/10-frame correlation length, 1 % motion), ``rich`` ``analytic_pair`` (the texture ten times the
 noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
-stiffer disc) on weak texture.
+stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local motion
+(``bench_register_natural.py``'s test pair).
 """
 
 from __future__ import annotations
@@ -55,7 +56,11 @@ def make_pair(name, size):
         return analytic_pair(size, 0.01, 0.10, 0.01, seed=1)
     if name == "phys":
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0, motion="physical", seed=1001))
-    raise ValueError(f"pair {name!r}: expected weak, rich or phys")
+    if name == "camera":  # a natural image under a local motion (bench_register_natural.py, test)
+        from bench_register_natural import natural
+
+        return natural("camera", size, "local", "test")
+    raise ValueError(f"pair {name!r}: expected weak, rich, phys or camera")
 
 
 def _load(name, source):
