@@ -1204,13 +1204,13 @@ def _bspline_register(
             check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
         extend = None
         if factor == finest and o["extend"]:  # past its budget only while slow, not lost (``extend``)
-            measure = measure or _coarse_measure(fixed, moving, mask)
-            fixed_part = [] if coarse else grids  # joint: the coarser lattices are refitted in x
-            extend = (
-                o["extend"],
-                o["converge_px"],
-                lambda lats, ms=measure, fp=fixed_part: _settles(ms, fp + lats, affine),
-            )
+            lazy = [measure]  # the abandon checks' measure, or built when first needed (~0.2 s at 2240)
+
+            def settles(lats, fp=[] if coarse else grids, lazy=lazy):  # joint: coarser lattices in lats
+                lazy[0] = lazy[0] or _coarse_measure(fixed, moving, mask)
+                return _settles(lazy[0], fp + lats, affine)
+
+            extend = (o["extend"], o["converge_px"], settles)
         grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check, extend)
         if not np.all(np.isfinite(res.x)):
             return np.zeros((2,) + f.shape, np.float32), dict(
