@@ -1054,3 +1054,70 @@ def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass():
     (level,) = info["levels"]  # one level: the finest, started warm
     assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
     assert _epe(field, d, mask)[0] < 0.9 * _epe(first, d, mask)[0]
+
+
+def _within(seconds, fn):
+    """``fn()``, or TimeoutError after ``seconds`` (a hang is a failure, not a stuck suite)."""
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    before = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        return fn()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)
+
+
+@pytest.mark.parametrize("method", ["rc", "ssd"])
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("min_size", 0),  # halved the pyramid forever
+        ("min_size", -3),
+        ("iterations", (-5,)),
+        ("iterations", (0, 10)),
+        ("iterations", ()),
+        ("iterations", (2.5,)),
+        ("iterations", ("a",)),
+        ("alpha", -1.0),
+        ("alpha", 0.0),
+        ("alpha", float("nan")),
+        ("regularisation", -1.0),
+        ("regularisation", float("nan")),
+        ("coarse_alpha", -1.0),
+        ("coarse_regularisation", -1.0),
+        ("converge_px", -1.0),
+        ("max_pixels", -1),
+        ("levels_skip", -1),
+        ("levels_skip", 2.5),
+        ("min_levels", 0),
+        ("highpass", -0.1),
+        ("highpass", float("inf")),
+        ("smooth", float("inf")),
+        ("gain_regularisation", float("inf")),
+        ("spacing", float("nan")),
+        ("spacing", float("inf")),
+        ("spacing", "8"),
+        ("stiffen", float("nan")),
+        ("joint", "no"),
+        ("gain_fine", 1),
+        ("refit_thinning", "yes"),
+    ],
+)
+def test_an_option_out_of_range_is_refused_naming_it(method, option, value):
+    """Every B-spline option is checked before the run: a value outside its range is one
+    ValueError that names the option, not a hang, a numpy or OpenCV error, or a silent run."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match=f"^{option}="):
+        _within(20, lambda: register(f, np.roll(f, 1, axis=0), method, **{option: value}))
+
+
+def test_a_single_iteration_count_serves_every_level():
+    """``iterations=n`` (not a tuple) is the budget of every level, as a short tuple's last entry is."""
+    f, _ = _phantom(48)
+    reg = register(f, np.roll(f, 1, axis=0), iterations=3)
+    assert 1 <= reg.quality.iterations <= 3 * 3

@@ -108,6 +108,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import math
+import numbers
 
 import numpy as np
 import scipy.sparse as sp
@@ -791,14 +792,57 @@ def _options(preset, overrides) -> dict:
         raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
     if o["highpass_on"] not in ("images", "residual"):
         raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
-    for key in ("smooth", "gain", "gain_regularisation", "noise_alpha", "abandon_px"):
-        if not o[key] >= 0:
-            raise ValueError(f"{key}={o[key]}: expected >= 0")
-    if o["spacing"] < 4:
-        raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
-    if not o["bin_pixels"] >= 0:
-        raise ValueError(f"bin_pixels={o['bin_pixels']}: expected >= 0 (0: off)")
+    _check_values(o)
     return o
+
+
+# each numeric option's least value and whether it may equal it; every one must be a finite real
+# number (a NaN compared False with every bound and ran; min_size 0 halved the pyramid forever)
+_LOWEST = {
+    "spacing": (4, True),
+    "alpha": (0, False),
+    "regularisation": (0, True),
+    "min_size": (1, True),
+    "max_pixels": (0, True),
+    "converge_px": (0, True),
+    "coarse_alpha": (0, False),
+    "coarse_regularisation": (0, True),
+    "highpass": (0, True),
+    "stiffen": (-math.inf, True),
+    "smooth": (0, True),
+    "gain": (0, True),
+    "gain_regularisation": (0, True),
+    "noise_alpha": (0, True),
+    "bin_pixels": (0, True),
+    "abandon_px": (0, True),
+}
+_COUNTS = {"levels_skip": 0, "min_levels": 1}  # integers, at least this
+_FLAGS = ("gain_fine", "joint", "refit_thinning")
+
+
+def _check_values(o):
+    """ValueError naming the first option of ``o`` outside its range (``_LOWEST``, ``_COUNTS``,
+    ``_FLAGS``, ``iterations``); ``iterations`` given as one count becomes that count's tuple."""
+    real = lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+    for key, (lowest, equal) in _LOWEST.items():
+        v = o[key]
+        if not (real(v) and (v >= lowest if equal else v > lowest)):
+            what = "control points closer than 4 pixels cannot be resolved" if key == "spacing" else ""
+            raise ValueError(
+                f"{key}={v!r}: expected a finite number {'>=' if equal else '>'} {lowest:g} {what}".rstrip()
+            )
+    for key, lowest in _COUNTS.items():
+        if not (isinstance(o[key], numbers.Integral) and not isinstance(o[key], bool) and o[key] >= lowest):
+            raise ValueError(f"{key}={o[key]!r}: expected an integer >= {lowest}")
+    for key in _FLAGS:
+        if not isinstance(o[key], (bool, np.bool_)):
+            raise ValueError(f"{key}={o[key]!r}: expected True or False")
+    its = o["iterations"]
+    its = (its,) if isinstance(its, numbers.Integral) else its
+    ok = isinstance(its, (tuple, list)) and its and all(isinstance(n, numbers.Integral) and n >= 1 for n in its)
+    if not ok or any(isinstance(n, bool) for n in its):
+        raise ValueError(f"iterations={o['iterations']!r}: expected a count >= 1, or one per level (coarse to fine)")
+    o["iterations"] = tuple(its)
 
 
 def _bin_factor(shape, bin_pixels) -> int:
