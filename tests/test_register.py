@@ -1121,3 +1121,13 @@ def test_a_single_iteration_count_serves_every_level():
     f, _ = _phantom(48)
     reg = register(f, np.roll(f, 1, axis=0), iterations=3)
     assert 1 <= reg.quality.iterations <= 3 * 3
+
+
+@pytest.mark.parametrize("method", ["rc", "ssd", "ncc", "mi", "tvl1", "ilk", "dis", "farneback"])
+def test_an_unknown_option_is_refused_naming_it_and_the_method(method):
+    """A misspelt option (``spacingg``) is one TypeError (Python's for an unexpected keyword)
+    naming it and the method: not ignored (the B-spline methods ran with the preset's spacing),
+    nor a message about a private function."""
+    f, _ = _phantom(48)
+    with pytest.raises(TypeError, match=rf"unknown option 'spacingg' for method '{method}'"):
+        register(f, np.roll(f, 1, axis=0), method, spacingg=8)

@@ -177,6 +177,26 @@ def _check(fixed, moving, mask):
     return f, m, mask
 
 
+def _check_option_names(method, options):
+    """TypeError (Python's for an unexpected keyword) naming an option ``method`` does not take
+    and the ones it does: the B-spline methods (``**options``) ignored a misspelt one, the peers'
+    own TypeError named a private function."""
+    import inspect
+
+    if method in BSPLINE_METHODS:
+        from radiokit.register._bspline import PRESETS
+
+        known = {"preset", "callback", *PRESETS["default"]}
+    else:
+        params = list(inspect.signature(METHODS[method]).parameters.values())[3:]  # after fixed, moving, mask
+        if any(p.kind is p.VAR_KEYWORD for p in params):
+            return
+        known = {p.name for p in params}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(f"unknown option {unknown[0]!r} for method {method!r}; its options: {', '.join(sorted(known))}")
+
+
 def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
     """Register ``moving`` onto ``fixed`` (2-D arrays of one shape).
 
@@ -196,6 +216,7 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     _load_methods()
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
+    _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
     if options.get("preset") in AUTO_PRESETS:  # the plain preset, then weak or silent if it fails
         from radiokit.register._auto import register_auto
