@@ -1131,3 +1131,12 @@ def test_an_unknown_option_is_refused_naming_it_and_the_method(method):
     f, _ = _phantom(48)
     with pytest.raises(TypeError, match=rf"unknown option 'spacingg' for method '{method}'"):
         register(f, np.roll(f, 1, axis=0), method, spacingg=8)
+
+
+@pytest.mark.parametrize("bin_pixels", [1, 40])
+def test_bin_pixels_that_leave_too_small_a_pair_are_refused(bin_pixels):
+    """``bin_pixels`` so small that the area-averaged pair is under ``register``'s 8 px a side is a
+    ValueError naming it (1: an OpenCV assertion; 40: a 6 x 6 pair registered into a zero field)."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match=r"^bin_pixels=.*too small"):
+        register(f, np.roll(f, 1, axis=0), bin_pixels=bin_pixels)

@@ -1068,6 +1068,12 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
     ``info["binned"]`` is ``k``."""
     from radiokit.register import _bin
 
+    shape = (fixed.shape[0] // k, fixed.shape[1] // k)
+    if min(shape) < 8:  # register()'s own least size: OpenCV asserted on an empty pair
+        raise ValueError(
+            f"bin_pixels={overrides.get('bin_pixels')}: bins the {fixed.shape} pair by {k} to {shape}, "
+            "too small to register (8 px a side at least)"
+        )
     small = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
     d, info = _bspline_register(_bin(fixed, k), _bin(moving, k), small, **how, **dict(overrides, bin_pixels=0))
     info["binned"] = k
