@@ -777,7 +777,7 @@ _N_REF = 1_000_000
 
 
 def _options(preset, overrides) -> dict:
-    """``PRESETS[preset]`` with the overrides that are not None; validated."""
+    """``PRESETS[preset]`` with the overrides that are not None (``highpass=None``: off); validated."""
     if preset not in PRESETS:
         raise ValueError(
             f"preset {preset!r}: expected one of {', '.join(PRESETS)} (or, through register(), auto, auto-fast)"
@@ -786,6 +786,8 @@ def _options(preset, overrides) -> dict:
     if overrides.get("alpha") is not None and overrides.get("noise_alpha") is None:
         o["noise_alpha"] = 0.0  # an alpha asked for is used as it is
     o.update({k: v for k, v in overrides.items() if v is not None})
+    if "highpass" in overrides and overrides["highpass"] is None:  # documented: "0 or None: off"
+        o["highpass"] = 0.0
     if o["balance"] not in ("lattice", "frame"):
         raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
     if o["init"] not in ("none", "silhouette"):
