@@ -1149,3 +1149,25 @@ def test_highpass_none_turns_the_highpass_off_as_documented():
     off = register(fixed, moving, preset="fast", highpass=0).displacement
     none = register(fixed, moving, preset="fast", highpass=None).displacement
     np.testing.assert_array_equal(none, off)
+
+
+def _shifted_texture(shape=(200, 150), shift=(0.4, -0.7), seed=3):
+    """A smooth noise-free texture and the same texture moved by ``shift`` (px): the pulling field
+    that registers the pair is ``shift`` everywhere."""
+    big = ndimage.gaussian_filter(np.random.default_rng(seed).standard_normal((shape[0] + 60, shape[1] + 60)), 2)
+    crop = (slice(30, 30 + shape[0]), slice(30, 30 + shape[1]))
+    return big[crop].astype(np.float32), ndimage.shift(big, shift, order=3, mode="nearest")[crop].astype(np.float32)
+
+
+def test_the_quality_verdict_does_not_depend_on_the_intensity_unit():
+    """The same pair in other units (x 1000 + 5000, e.g. counts) is the same registration: the
+    peers and rc normalise the pair, so the field is the same, and so must the verdict be. The
+    yardstick's alpha (0.05) was in the image's units, so in counts a TV-L1 field within 0.1 px
+    read "diverged"."""
+    fixed, moving = _shifted_texture()
+    regs = [register(s * fixed + 5 * s, s * moving + 5 * s, "tvl1") for s in (1.0, 1000.0)]
+    err = np.hypot(regs[1].displacement[0] - 0.4, regs[1].displacement[1] + 0.7)[20:-20, 20:-20]
+    assert np.median(err) < 0.1  # the field is right ...
+    assert regs[0].quality.ok and regs[1].quality.ok, regs[1].quality.reason  # ... and trusted in both units
+    for name in ("rc_before", "rc_after"):
+        assert getattr(regs[1].quality, name) == pytest.approx(getattr(regs[0].quality, name), rel=1e-3)

@@ -59,7 +59,8 @@ class Quality:
     """How far to trust a registration.
 
     ``rc_before``/``rc_after``: residual complexity of ``moving - fixed`` and ``warped - fixed``
-    (lower is better; insensitive to slow intensity change). ``ncc_before``/``ncc_after``:
+    in units of the fixed image's 1-99 % range (lower is better; insensitive to slow intensity
+    change; the same for any intensity unit). ``ncc_before``/``ncc_after``:
     normalised cross-correlation (higher is better); all four measured on the pair area-averaged
     to at most ~0.4 Mpx (by 4 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
@@ -275,6 +276,19 @@ def _bin_pair(f, m, mask, k):
     return _bin(f, k), _bin(m, k), maskb
 
 
+def _range_unit(f, mask):
+    """``1 / (p99 - p1)`` of ``f`` (inside ``mask``; its full range when those tie; 1 when it is
+    constant there): residual complexity's alpha (0.05, Myronenko & Song's for images in [0, 1])
+    then means the same for line integrals, transmissions and counts, as in rc's own data term."""
+    from radiokit.register._confidence import sample_step
+
+    v = f[mask] if mask is not None else f[:: sample_step(f.size), :: sample_step(f.size)]
+    lo, hi = np.percentile(v, [1, 99]) if v.size else (0.0, 0.0)
+    if hi <= lo:
+        lo, hi = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+    return np.float32(1.0 / (hi - lo)) if hi > lo else np.float32(1.0)
+
+
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
@@ -289,8 +303,9 @@ def _assess(reg, f, m, mask, info, seconds):
         w = reg.warp(m)
         db = reg.displacement
         mask_s = mask
-    q.rc_before = residual_complexity(m - f, mask_s)
-    q.rc_after = residual_complexity(w - f, mask_s)
+    unit = _range_unit(f, mask_s)  # alpha is in the range's units, whatever the image's
+    q.rc_before = residual_complexity((m - f) * unit, mask_s)
+    q.rc_after = residual_complexity((w - f) * unit, mask_s)
     q.ncc_before = ncc(m, f, mask_s)
     q.ncc_after = ncc(w, f, mask_s)
     det = jacobian_determinant(reg.displacement)
