@@ -289,6 +289,15 @@ def _range_unit(f, mask):
     return np.float32(1.0 / (hi - lo)) if hi > lo else np.float32(1.0)
 
 
+def _rounding_rc(f, unit) -> float:
+    """The residual complexity float32 rounding of ``f`` can make (in ``unit``s): a residual of
+    ``eps |f|`` costs at most ``mean(r^2) / (2 alpha)`` (``log(1 + x) <= x``, an orthonormal DCT;
+    alpha 0.05, ``residual_complexity``'s).
+    A change below it is not a divergence (identical images: a 1e-7 px step from 0 to 1e-16)."""
+    eps = float(np.finfo(np.float32).eps) * float(unit)
+    return 0.5 * eps * eps * float(np.mean(np.square(f, dtype=np.float64))) / 0.05
+
+
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
@@ -323,7 +332,7 @@ def _assess(reg, f, m, mask, info, seconds):
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
-    if q.rc_after > q.rc_before:
+    if q.rc_after > q.rc_before + _rounding_rc(f, unit):
         reasons.append(f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before")
     if not q.converged:
         reasons.append(info.get("message", "did not converge"))
