@@ -1192,3 +1192,19 @@ def test_identical_images_give_a_zero_field_and_ok(method, shape):
     reg = register(f, f.copy(), method)
     assert np.abs(reg.displacement).max() < 0.02
     assert reg.quality.ok, reg.quality.reason
+
+
+@pytest.mark.parametrize("mask", [lambda s: np.full(s, 0.5), lambda s: np.ones(s, np.uint8), lambda s: np.ones(s)])
+def test_a_mask_that_is_not_bool_is_refused(mask):
+    """``mask`` is a bool array (as in ``radiokit.measure`` and ``enhance``): a float mask of
+    weights (0.5 everywhere) was cast to all True and ran as no mask."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match="mask must be a bool array"):
+        register(f, np.roll(f, 1, axis=0), mask=mask(f.shape))
+
+
+def test_an_all_true_mask_is_no_mask():
+    fixed, moving, _, _ = _pair(64)
+    a = register(fixed, moving, preset="fast")
+    b = register(fixed, moving, preset="fast", mask=np.ones(fixed.shape, bool))
+    np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-4)

@@ -170,7 +170,9 @@ def _check(fixed, moving, mask):
         if float(a.max()) == float(a.min()):
             raise ValueError(f"{name} image is constant: nothing to register")
     if mask is not None:
-        mask = np.asarray(mask, bool)
+        mask = np.asarray(mask)
+        if mask.dtype != bool:  # a float mask of weights was cast to all True
+            raise ValueError(f"mask must be a bool array (True on the object); got dtype {mask.dtype}")
         if mask.shape != f.shape:
             raise ValueError(f"mask {mask.shape} does not match the images {f.shape}")
         if not mask.any():
