@@ -629,7 +629,10 @@ def body_mask(image, *, fraction: float = 0.2, erode_px: int = 2) -> np.ndarray:
     >>> int(body_mask(img, erode_px=1).sum())
     9
     """
-    return _body(np.asarray(_image(image), np.float64), fraction, erode_px)
+    img = np.asarray(_image(image), np.float64)
+    if not np.all(np.isfinite(img)):  # one NaN made every threshold False: an empty body, silently
+        raise ValueError(f"image has {int(np.count_nonzero(~np.isfinite(img)))} non-finite value(s) (NaN or inf)")
+    return _body(img, fraction, erode_px)
 
 
 def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:

@@ -450,6 +450,15 @@ def test_find_rois_featureless_image_says_no_inclusion():
         find_rois(np.random.default_rng(0).normal(2.0, 0.01, (80, 80)))
 
 
+def test_body_mask_refuses_non_finite_pixels():
+    """One NaN pixel made every comparison False: an empty body, silently (find_rois refuses NaN)."""
+    img = np.zeros((32, 32))
+    img[8:24, 8:24] = 1.0
+    img[0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        radiokit.measure.body_mask(img)
+
+
 # -- the examples in the docstrings run, and the core does not reach into sim/acquisition -------
 @pytest.mark.parametrize("module", [radiokit.enhance, radiokit.measure])
 def test_docstring_examples(module):
