@@ -708,7 +708,9 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     coef, *_ = np.linalg.lstsq(basis(v.flat[idx], u.flat[idx]), win.flat[idx], rcond=None)
     resid = win - basis(v, u) @ coef
     core = dist <= max(0.5, 1.0 / radius)
-    noise = resid.flat[idx].std()
+    # at least float32's step at the window's level: on a constant image the fit's rounding
+    # (1e-16) stood "8 standard errors" above a rounding-sized scatter
+    noise = max(resid.flat[idx].std(), np.finfo(np.float32).eps * np.abs(win.flat[idx]).max())
     score = resid[core].mean()
     # a real inclusion stands many standard errors above its surroundings; noise spikes picked
     # as the largest of ~1e6 candidates stand ~5

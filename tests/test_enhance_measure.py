@@ -450,6 +450,14 @@ def test_find_rois_featureless_image_says_no_inclusion():
         find_rois(np.random.default_rng(0).normal(2.0, 0.01, (80, 80)))
 
 
+@pytest.mark.parametrize("level", [1.0, -0.5, 2.0e4])
+def test_find_rois_on_a_constant_image_says_no_inclusion(level):
+    """A constant image has no blob brighter than its surroundings: the fit's rounding (1e-16)
+    stood "8 standard errors" above a rounding-sized scatter, and an inclusion was returned."""
+    with pytest.raises(ValueError, match="no inclusion found"):
+        find_rois(np.full((64, 64), level))
+
+
 def test_body_mask_refuses_non_finite_pixels():
     """One NaN pixel made every comparison False: an empty body, silently (find_rois refuses NaN)."""
     img = np.zeros((32, 32))
