@@ -1208,3 +1208,32 @@ def test_an_all_true_mask_is_no_mask():
     a = register(fixed, moving, preset="fast")
     b = register(fixed, moving, preset="fast", mask=np.ones(fixed.shape, bool))
     np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "shape, options",
+    [
+        ((10, 40), {}),
+        ((40, 14), {}),
+        ((24, 100), {"preset": "fast"}),
+        ((2000, 40), {}),
+        ((9, 11), {"finest_scale": 0}),
+    ],
+)
+def test_dis_refuses_a_working_image_too_small_for_its_patches(shape, options):
+    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
+    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
+    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
+    child process, so a crash fails this test instead of the run."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\nfrom radiokit.register import register\n"
+        f"f = np.random.default_rng(0).random({shape!r}).astype(np.float32)\n"
+        f"try:\n    register(f, np.roll(f, 1, axis=0), 'dis', **{options!r})\n"
+        "except ValueError as e:\n    print('ValueError:', e)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-300:]}"
+    assert run.stdout.startswith("ValueError: dis:") and "too small" in run.stdout, run.stdout

@@ -284,8 +284,23 @@ def _dis(
     if refinement_alpha is not None:
         dis.setVariationalRefinementAlpha(float(refinement_alpha))
     dis.setUseMeanNormalization(bool(mean_normalization))
+    _dis_fits(dis, f.shape)
     flow = dis.calc(_to_u8(f), _to_u8(m), None)
     return _expand(_from_xy(flow), fixed.shape), {}
+
+
+def _dis_fits(dis, shape):
+    """ValueError unless DIS's pyramid fits a working image of ``shape``: its finest level's smaller
+    side must hold a patch, and its coarsest level index (OpenCV's ``log2(larger side / (4 patch))
+    + 1/2``, truncated) must not be negative. Below that OpenCV crashed the interpreter (10 x 40:
+    a segmentation fault), returned NaN or raised; found on a grid of sizes, presets and patches."""
+    ps, fs = dis.getPatchSize(), dis.getFinestScale()
+    if min(shape) < ps * 2**fs or max(shape) <= ps * np.sqrt(2):
+        raise ValueError(
+            f"dis: the working image {shape} is too small for patch_size {ps} at finest_scale {fs}: "
+            f"its smaller side must be at least {ps * 2**fs} px and its larger over {ps * np.sqrt(2):.1f} "
+            "(a smaller patch_size or finest_scale, a larger working_size, or another method)"
+        )
 
 
 @_method("farneback")
