@@ -1237,3 +1237,26 @@ def test_dis_refuses_a_working_image_too_small_for_its_patches(shape, options):
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-300:]}"
     assert run.stdout.startswith("ValueError: dis:") and "too small" in run.stdout, run.stdout
+
+
+@pytest.mark.parametrize(
+    "image, field, match",
+    [
+        (np.zeros((2, 20, 30)), np.zeros((2, 20, 30)), "image must be 2-D"),  # a field warped as an image
+        (np.zeros(30), np.zeros((2, 20, 30)), "image must be 2-D"),
+        (np.zeros((20, 30)), np.zeros((20, 30, 2)), r"displacement must be \(2, rows, cols\)"),  # OpenCV's layout
+        (np.zeros((20, 30)), np.zeros((3, 20, 30)), r"displacement must be \(2, rows, cols\)"),
+        (np.zeros((20, 30)), np.zeros((20, 30)), r"displacement must be \(2, rows, cols\)"),
+    ],
+)
+def test_warp_refuses_arrays_of_the_wrong_shape(image, field, match):
+    """``warp`` returned (20, 30, 30) for a (2, 20, 30) image and (30, 2) for a per-pixel (20, 30,
+    2) field, silently; a 2-D field was a tuple-unpacking error."""
+    with pytest.raises(ValueError, match=match):
+        warp(image, field)
+
+
+@pytest.mark.parametrize("field", [np.zeros((20, 30, 2)), np.zeros((20, 30)), np.zeros((3, 20, 30))])
+def test_jacobian_determinant_refuses_a_field_of_the_wrong_shape(field):
+    with pytest.raises(ValueError, match=r"displacement must be \(2, rows, cols\)"):
+        jacobian_determinant(field)
