@@ -1260,3 +1260,12 @@ def test_warp_refuses_arrays_of_the_wrong_shape(image, field, match):
 def test_jacobian_determinant_refuses_a_field_of_the_wrong_shape(field):
     with pytest.raises(ValueError, match=r"displacement must be \(2, rows, cols\)"):
         jacobian_determinant(field)
+
+
+@pytest.mark.parametrize("preset", ["auto", "auto-fast"])
+def test_auto_presets_are_the_bspline_methods_only(preset):
+    """``auto``/``auto-fast`` choose among rc's presets; ``dis`` has presets of its own, and
+    ``preset="auto-fast"`` ran dis's ``fast`` preset, silently (``auto``: an error about 'default')."""
+    f, _ = _phantom(64)
+    with pytest.raises(ValueError, match=f"dis preset '{preset}'"):
+        register(f, np.roll(f, 1, axis=0), "dis", preset=preset)

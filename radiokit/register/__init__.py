@@ -221,7 +221,7 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
-    if options.get("preset") in AUTO_PRESETS:  # the plain preset, then weak or silent if it fails
+    if method in BSPLINE_METHODS and options.get("preset") in AUTO_PRESETS:  # plain, then weak or silent
         from radiokit.register._auto import register_auto
 
         return register_auto(register, f, m, method, mask, retry, options)
