@@ -1269,3 +1269,44 @@ def test_auto_presets_are_the_bspline_methods_only(preset):
     f, _ = _phantom(64)
     with pytest.raises(ValueError, match=f"dis preset '{preset}'"):
         register(f, np.roll(f, 1, axis=0), "dis", preset=preset)
+
+
+_PEER_MODULES = {"sitk-bspline": "SimpleITK", "sitk-demons": "SimpleITK", "elastix": "itk"}
+
+
+@pytest.mark.parametrize(
+    "method, option, value",
+    [
+        ("tvl1", "working_size", 0),  # a division by zero
+        ("tvl1", "num_iter", -1),
+        ("tvl1", "attachment", -1.0),
+        ("tvl1", "tightness", -1.0),  # a field 1000 px off
+        ("ilk", "radius", 0),
+        ("ilk", "num_warp", -1),
+        ("dis", "patch_size", 0),  # killed the interpreter (SIGFPE)
+        ("dis", "patch_stride", 0),  # killed the interpreter (SIGFPE)
+        ("dis", "patch_size", -4),
+        ("dis", "finest_scale", -1),
+        ("farneback", "pyr_scale", 1.5),
+        ("farneback", "iterations", 0),
+        ("farneback", "poly_n", 0),
+        ("farneback", "winsize", 0),
+        ("sitk-bspline", "iterations", -1),
+        ("sitk-bspline", "spacing", 0),
+        ("sitk-bspline", "sampling", 2.0),
+        ("sitk-demons", "iterations", -1),
+        ("sitk-demons", "levels", 0),
+        ("elastix", "iterations", -1),
+        ("elastix", "resolutions", 0),
+        ("elastix", "samples", 0),
+    ],
+)
+def test_a_peer_option_out_of_range_is_refused_naming_it(method, option, value):
+    """Each peer's numeric options are checked before its library runs: one ValueError naming the
+    method and the option, not a crash of the interpreter, an OpenCV, SimpleITK or elastix error,
+    a division by zero, or a silent garbage field."""
+    if method in _PEER_MODULES:
+        pytest.importorskip(_PEER_MODULES[method])
+    f, _ = _phantom(64)
+    with pytest.raises(ValueError, match=f"^{method} {option}="):
+        register(f, np.roll(f, 1, axis=0), method, **{option: value})
