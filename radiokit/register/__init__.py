@@ -215,7 +215,13 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
 
     The result carries ``confidence`` (where the motion is observable from these images, see
     ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
-    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed."""
+    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
+
+    Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
+    finite, non-constant, of one shape and at least 8 px a side, a mask that is not a bool array
+    of that shape selecting a pixel, an unknown method or preset, or an option value out of its
+    range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
+    peer whose package is not installed."""
     _load_methods()
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
