@@ -482,3 +482,11 @@ def test_core_imports_neither_sim_nor_acquisition():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("domain", ["linear", "negative"])
+def test_to_domain_refuses_line_integrals_whose_transmission_overflows(domain):
+    """``exp(-L)`` of L = -100 (a transmission of e^100, no radiograph's) is beyond float32: it
+    came back inf, silently."""
+    with pytest.raises(ValueError, match="overflows"):
+        to_domain(np.array([[0.0, -100.0]]), domain)
