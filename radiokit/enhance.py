@@ -135,7 +135,8 @@ def to_domain(line_integral, domain: Domain | str) -> np.ndarray:
     """A line-integral image ``L = -ln(I/I0)`` in ``domain`` (float32).
 
     ``"log"``: unchanged; ``"linear"``: ``I/I0 = exp(-L)``; ``"negative"``: ``-I/I0 = -exp(-L)``,
-    the paper's experimental convention (more attenuation brighter).
+    the paper's experimental convention (more attenuation brighter). ValueError for a value that
+    is not finite, or so negative (below about -88.7) that ``exp(-L)`` overflows float32.
 
     Examples
     --------
@@ -148,8 +149,16 @@ def to_domain(line_integral, domain: Domain | str) -> np.ndarray:
     L = np.asarray(_image(line_integral, "line_integral"), np.float64)
     if domain is Domain.LOG:
         return L.astype(np.float32)
+    if L.min() < _MIN_LOG:  # exp(-L) would be inf in float32, silently
+        raise ValueError(
+            f"line_integral has values down to {L.min():.4g}: exp(-L) overflows float32 below {_MIN_LOG:.4g} "
+            "(a transmission above 1e38; is this a line-integral image?)"
+        )
     t = np.exp(-L)
     return (t if domain is Domain.LINEAR else -t).astype(np.float32)
+
+
+_MIN_LOG = -float(np.log(np.finfo(np.float32).max))  # the least L whose exp(-L) float32 holds
 
 
 def compression_contrast(

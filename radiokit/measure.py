@@ -629,7 +629,10 @@ def body_mask(image, *, fraction: float = 0.2, erode_px: int = 2) -> np.ndarray:
     >>> int(body_mask(img, erode_px=1).sum())
     9
     """
-    return _body(np.asarray(_image(image), np.float64), fraction, erode_px)
+    img = np.asarray(_image(image), np.float64)
+    if not np.all(np.isfinite(img)):  # one NaN made every threshold False: an empty body, silently
+        raise ValueError(f"image has {int(np.count_nonzero(~np.isfinite(img)))} non-finite value(s) (NaN or inf)")
+    return _body(img, fraction, erode_px)
 
 
 def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:
@@ -705,7 +708,9 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     coef, *_ = np.linalg.lstsq(basis(v.flat[idx], u.flat[idx]), win.flat[idx], rcond=None)
     resid = win - basis(v, u) @ coef
     core = dist <= max(0.5, 1.0 / radius)
-    noise = resid.flat[idx].std()
+    # at least float32's step at the window's level: on a constant image the fit's rounding
+    # (1e-16) stood "8 standard errors" above a rounding-sized scatter
+    noise = max(resid.flat[idx].std(), np.finfo(np.float32).eps * np.abs(win.flat[idx]).max())
     score = resid[core].mean()
     # a real inclusion stands many standard errors above its surroundings; noise spikes picked
     # as the largest of ~1e6 candidates stand ~5

@@ -191,17 +191,29 @@ class Result:
         return self.images.as_dict(self.record)
 
 
-def _roi(value, units, pixel_size_mm):
+def _roi(value, units, pixel_size_mm, name):
+    """``Config``'s ``name`` ROI as an :class:`ROI` in pixels, or None; a ValueError naming it
+    when it is not four finite numbers or rounds to an empty rectangle (it was a Python
+    unpacking, conversion or key error)."""
     if value is None:
         return None
     if isinstance(value, ROI):
         return value
-    if isinstance(value, dict):
-        value = (value["row0"], value["row1"], value["col0"], value["col1"])
-    r0, r1, c0, c1 = (float(v) for v in value)
+    what = f"{name} ROI {value!r}"
+    try:
+        if isinstance(value, dict):
+            value = (value["row0"], value["row1"], value["col0"], value["col1"])
+        r0, r1, c0, c1 = (float(v) for v in value)
+    except (TypeError, ValueError, KeyError):
+        raise ValueError(f"{what}: expected (row0, row1, col0, col1), four numbers in {units}") from None
+    if not np.all(np.isfinite([r0, r1, c0, c1])):
+        raise ValueError(f"{what}: its bounds must be finite")
     if units == "mm":
         r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
-    return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
+    try:
+        return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
+    except ValueError as exc:
+        raise ValueError(f"{what} ({units}): {exc}") from None
 
 
 def load_steps(path, progress: bool = False) -> Steps:
@@ -396,8 +408,8 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     from radiokit.measure import find_rois
 
     ref = steps.images[-1]
-    inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm)
-    bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm)
+    inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm, "inclusion")
+    bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)

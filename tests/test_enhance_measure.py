@@ -450,6 +450,23 @@ def test_find_rois_featureless_image_says_no_inclusion():
         find_rois(np.random.default_rng(0).normal(2.0, 0.01, (80, 80)))
 
 
+@pytest.mark.parametrize("level", [1.0, -0.5, 2.0e4])
+def test_find_rois_on_a_constant_image_says_no_inclusion(level):
+    """A constant image has no blob brighter than its surroundings: the fit's rounding (1e-16)
+    stood "8 standard errors" above a rounding-sized scatter, and an inclusion was returned."""
+    with pytest.raises(ValueError, match="no inclusion found"):
+        find_rois(np.full((64, 64), level))
+
+
+def test_body_mask_refuses_non_finite_pixels():
+    """One NaN pixel made every comparison False: an empty body, silently (find_rois refuses NaN)."""
+    img = np.zeros((32, 32))
+    img[8:24, 8:24] = 1.0
+    img[0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        radiokit.measure.body_mask(img)
+
+
 # -- the examples in the docstrings run, and the core does not reach into sim/acquisition -------
 @pytest.mark.parametrize("module", [radiokit.enhance, radiokit.measure])
 def test_docstring_examples(module):
@@ -465,3 +482,11 @@ def test_core_imports_neither_sim_nor_acquisition():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("domain", ["linear", "negative"])
+def test_to_domain_refuses_line_integrals_whose_transmission_overflows(domain):
+    """``exp(-L)`` of L = -100 (a transmission of e^100, no radiograph's) is beyond float32: it
+    came back inf, silently."""
+    with pytest.raises(ValueError, match="overflows"):
+        to_domain(np.array([[0.0, -100.0]]), domain)

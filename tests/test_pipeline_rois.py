@@ -166,3 +166,28 @@ def test_the_pipeline_runs_auto_and_records_what_it_returned(tmp_path):
         stretch = float(p.quality["initial"].split("stretch ")[1].split(" ")[0])
         assert stretch == pytest.approx((1 + 0.02 * (a - 1)) / (1 + 0.02 * (b - 1)), abs=0.004), p.quality["initial"]
     assert "rc (silent-fast)" in report.read_text()
+
+
+@pytest.mark.parametrize(
+    "inclusion, units, words",
+    [
+        ((1, 2, 3), "px", "four numbers"),  # was "not enough values to unpack"
+        (5, "px", "four numbers"),  # was "'int' object is not iterable"
+        (("a", 35, 30, 40), "px", "four numbers"),  # was "could not convert string to float"
+        ({"row0": 1}, "px", "four numbers"),  # was KeyError 'row1'
+        ((25, 35, 30, float("nan")), "px", "finite"),  # was "cannot convert float NaN to integer"
+        ((35, 25, 30, 40), "px", "empty"),
+        ((2.5, 2.52, 3.0, 4.0), "mm", "empty"),  # 0.2 px rounds to nothing
+    ],
+)
+def test_a_configured_roi_that_is_not_a_rectangle_is_one_line_naming_it(inclusion, units, words):
+    """``Config``'s ROIs are four numbers (row0, row1, col0, col1): anything else is a ValueError
+    that names the ROI, not a Python unpacking or conversion error."""
+    from radiokit.pipeline import Config, Steps, choose_rois
+
+    img = np.zeros((3, 64, 80), np.float32)
+    img[:, 10:50, 10:70] = 1.0
+    steps = Steps(img, (1, 2, 3), (0.9, 0.85, 0.8), 0.1, {})
+    cfg = Config(inclusion=inclusion, background=(25, 35, 12, 22), roi_units=units, crop_mm=None)
+    with pytest.raises(ValueError, match=f"^inclusion ROI .*{words}"):
+        choose_rois(steps, cfg)

@@ -1080,3 +1080,259 @@ def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass():
     (level,) = info["levels"]  # one level: the finest, started warm
     assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
     assert _epe(field, d, mask)[0] < 0.9 * _epe(first, d, mask)[0]
+
+
+def _within(seconds, fn):
+    """``fn()``, or TimeoutError after ``seconds`` (a hang is a failure, not a stuck suite)."""
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    before = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        return fn()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)
+
+
+@pytest.mark.parametrize("method", ["rc", "ssd"])
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("min_size", 0),  # halved the pyramid forever
+        ("min_size", -3),
+        ("iterations", (-5,)),
+        ("iterations", (0, 10)),
+        ("iterations", ()),
+        ("iterations", (2.5,)),
+        ("iterations", ("a",)),
+        ("alpha", -1.0),
+        ("alpha", 0.0),
+        ("alpha", float("nan")),
+        ("regularisation", -1.0),
+        ("regularisation", float("nan")),
+        ("coarse_alpha", -1.0),
+        ("coarse_regularisation", -1.0),
+        ("converge_px", -1.0),
+        ("max_pixels", -1),
+        ("levels_skip", -1),
+        ("levels_skip", 2.5),
+        ("min_levels", 0),
+        ("highpass", -0.1),
+        ("highpass", float("inf")),
+        ("smooth", float("inf")),
+        ("gain_regularisation", float("inf")),
+        ("spacing", float("nan")),
+        ("spacing", float("inf")),
+        ("spacing", "8"),
+        ("stiffen", float("nan")),
+        ("joint", "no"),
+        ("gain_fine", 1),
+        ("refit_thinning", "yes"),
+    ],
+)
+def test_an_option_out_of_range_is_refused_naming_it(method, option, value):
+    """Every B-spline option is checked before the run: a value outside its range is one
+    ValueError that names the option, not a hang, a numpy or OpenCV error, or a silent run."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match=f"^{option}="):
+        _within(20, lambda: register(f, np.roll(f, 1, axis=0), method, **{option: value}))
+
+
+def test_a_single_iteration_count_serves_every_level():
+    """``iterations=n`` (not a tuple) is the budget of every level, as a short tuple's last entry is."""
+    f, _ = _phantom(48)
+    reg = register(f, np.roll(f, 1, axis=0), iterations=3)
+    assert 1 <= reg.quality.iterations <= 3 * 3
+
+
+@pytest.mark.parametrize("method", ["rc", "ssd", "ncc", "mi", "tvl1", "ilk", "dis", "farneback"])
+def test_an_unknown_option_is_refused_naming_it_and_the_method(method):
+    """A misspelt option (``spacingg``) is one TypeError (Python's for an unexpected keyword)
+    naming it and the method: not ignored (the B-spline methods ran with the preset's spacing),
+    nor a message about a private function."""
+    f, _ = _phantom(48)
+    with pytest.raises(TypeError, match=rf"unknown option 'spacingg' for method '{method}'"):
+        register(f, np.roll(f, 1, axis=0), method, spacingg=8)
+
+
+@pytest.mark.parametrize("bin_pixels", [1, 40])
+def test_bin_pixels_that_leave_too_small_a_pair_are_refused(bin_pixels):
+    """``bin_pixels`` so small that the area-averaged pair is under ``register``'s 8 px a side is a
+    ValueError naming it (1: an OpenCV assertion; 40: a 6 x 6 pair registered into a zero field)."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match=r"^bin_pixels=.*too small"):
+        register(f, np.roll(f, 1, axis=0), bin_pixels=bin_pixels)
+
+
+def test_highpass_none_turns_the_highpass_off_as_documented():
+    """rc's docstring: ``highpass`` "0 or None: off". None was dropped as "not given" and the
+    preset's 2 % ran."""
+    fixed, moving, _, _ = _pair(96)
+    off = register(fixed, moving, preset="fast", highpass=0).displacement
+    none = register(fixed, moving, preset="fast", highpass=None).displacement
+    np.testing.assert_array_equal(none, off)
+
+
+def _shifted_texture(shape=(200, 150), shift=(0.4, -0.7), seed=3):
+    """A smooth noise-free texture and the same texture moved by ``shift`` (px): the pulling field
+    that registers the pair is ``shift`` everywhere."""
+    big = ndimage.gaussian_filter(np.random.default_rng(seed).standard_normal((shape[0] + 60, shape[1] + 60)), 2)
+    crop = (slice(30, 30 + shape[0]), slice(30, 30 + shape[1]))
+    return big[crop].astype(np.float32), ndimage.shift(big, shift, order=3, mode="nearest")[crop].astype(np.float32)
+
+
+def test_the_quality_verdict_does_not_depend_on_the_intensity_unit():
+    """The same pair in other units (x 1000 + 5000, e.g. counts) is the same registration: the
+    peers and rc normalise the pair, so the field is the same, and so must the verdict be. The
+    yardstick's alpha (0.05) was in the image's units, so in counts a TV-L1 field within 0.1 px
+    read "diverged"."""
+    fixed, moving = _shifted_texture()
+    regs = [register(s * fixed + 5 * s, s * moving + 5 * s, "tvl1") for s in (1.0, 1000.0)]
+    err = np.hypot(regs[1].displacement[0] - 0.4, regs[1].displacement[1] + 0.7)[20:-20, 20:-20]
+    assert np.median(err) < 0.1  # the field is right ...
+    assert regs[0].quality.ok and regs[1].quality.ok, regs[1].quality.reason  # ... and trusted in both units
+    for name in ("rc_before", "rc_after"):
+        assert getattr(regs[1].quality, name) == pytest.approx(getattr(regs[0].quality, name), rel=1e-3)
+
+
+# farneback is not here: OpenCV's expansion treats the moving image's last row and column as
+# zero, so identical images give it up to 0.6 px there (padding the pair moved the error, it did
+# not remove it); its quality then says "diverged", which is true. So it is for mi at 33 x 17,
+# which moves 0.012 px there (Mattes MI's gradient at the identity is not zero on 561 pixels).
+_IDENTICAL = [(m, (64, 48)) for m in ("rc", "ssd", "ncc", "mi", "tvl1", "ilk", "dis")]
+
+
+@pytest.mark.parametrize(
+    "method, shape", _IDENTICAL + [(m, (33, 17)) for m in ("rc", "ssd", "ncc", "tvl1", "ilk", "dis")]
+)
+def test_identical_images_give_a_zero_field_and_ok(method, shape):
+    """Registering an image onto itself: the field is zero (within half the best accuracy the
+    README states, rc's 0.04 px median on rich texture) and the result trusted. mi's optimiser
+    stepped 1e-7 px, its residual complexity rose from 0 to 1e-16, and that rounding read
+    "diverged"."""
+    f = ndimage.gaussian_filter(np.random.default_rng(0).standard_normal(shape), 2).astype(np.float32)
+    reg = register(f, f.copy(), method)
+    assert np.abs(reg.displacement).max() < 0.02
+    assert reg.quality.ok, reg.quality.reason
+
+
+@pytest.mark.parametrize("mask", [lambda s: np.full(s, 0.5), lambda s: np.ones(s, np.uint8), lambda s: np.ones(s)])
+def test_a_mask_that_is_not_bool_is_refused(mask):
+    """``mask`` is a bool array (as in ``radiokit.measure`` and ``enhance``): a float mask of
+    weights (0.5 everywhere) was cast to all True and ran as no mask."""
+    f, _ = _phantom(48)
+    with pytest.raises(ValueError, match="mask must be a bool array"):
+        register(f, np.roll(f, 1, axis=0), mask=mask(f.shape))
+
+
+def test_an_all_true_mask_is_no_mask():
+    fixed, moving, _, _ = _pair(64)
+    a = register(fixed, moving, preset="fast")
+    b = register(fixed, moving, preset="fast", mask=np.ones(fixed.shape, bool))
+    np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "shape, options",
+    [
+        ((10, 40), {}),
+        ((40, 14), {}),
+        ((24, 100), {"preset": "fast"}),
+        ((2000, 40), {}),
+        ((9, 11), {"finest_scale": 0}),
+    ],
+)
+def test_dis_refuses_a_working_image_too_small_for_its_patches(shape, options):
+    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
+    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
+    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
+    child process, so a crash fails this test instead of the run."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\nfrom radiokit.register import register\n"
+        f"f = np.random.default_rng(0).random({shape!r}).astype(np.float32)\n"
+        f"try:\n    register(f, np.roll(f, 1, axis=0), 'dis', **{options!r})\n"
+        "except ValueError as e:\n    print('ValueError:', e)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-300:]}"
+    assert run.stdout.startswith("ValueError: dis:") and "too small" in run.stdout, run.stdout
+
+
+@pytest.mark.parametrize(
+    "image, field, match",
+    [
+        (np.zeros((2, 20, 30)), np.zeros((2, 20, 30)), "image must be 2-D"),  # a field warped as an image
+        (np.zeros(30), np.zeros((2, 20, 30)), "image must be 2-D"),
+        (np.zeros((20, 30)), np.zeros((20, 30, 2)), r"displacement must be \(2, rows, cols\)"),  # OpenCV's layout
+        (np.zeros((20, 30)), np.zeros((3, 20, 30)), r"displacement must be \(2, rows, cols\)"),
+        (np.zeros((20, 30)), np.zeros((20, 30)), r"displacement must be \(2, rows, cols\)"),
+    ],
+)
+def test_warp_refuses_arrays_of_the_wrong_shape(image, field, match):
+    """``warp`` returned (20, 30, 30) for a (2, 20, 30) image and (30, 2) for a per-pixel (20, 30,
+    2) field, silently; a 2-D field was a tuple-unpacking error."""
+    with pytest.raises(ValueError, match=match):
+        warp(image, field)
+
+
+@pytest.mark.parametrize("field", [np.zeros((20, 30, 2)), np.zeros((20, 30)), np.zeros((3, 20, 30))])
+def test_jacobian_determinant_refuses_a_field_of_the_wrong_shape(field):
+    with pytest.raises(ValueError, match=r"displacement must be \(2, rows, cols\)"):
+        jacobian_determinant(field)
+
+
+@pytest.mark.parametrize("preset", ["auto", "auto-fast"])
+def test_auto_presets_are_the_bspline_methods_only(preset):
+    """``auto``/``auto-fast`` choose among rc's presets; ``dis`` has presets of its own, and
+    ``preset="auto-fast"`` ran dis's ``fast`` preset, silently (``auto``: an error about 'default')."""
+    f, _ = _phantom(64)
+    with pytest.raises(ValueError, match=f"dis preset '{preset}'"):
+        register(f, np.roll(f, 1, axis=0), "dis", preset=preset)
+
+
+_PEER_MODULES = {"sitk-bspline": "SimpleITK", "sitk-demons": "SimpleITK", "elastix": "itk"}
+
+
+@pytest.mark.parametrize(
+    "method, option, value",
+    [
+        ("tvl1", "working_size", 0),  # a division by zero
+        ("tvl1", "num_iter", -1),
+        ("tvl1", "attachment", -1.0),
+        ("tvl1", "tightness", -1.0),  # a field 1000 px off
+        ("ilk", "radius", 0),
+        ("ilk", "num_warp", -1),
+        ("dis", "patch_size", 0),  # killed the interpreter (SIGFPE)
+        ("dis", "patch_stride", 0),  # killed the interpreter (SIGFPE)
+        ("dis", "patch_size", -4),
+        ("dis", "finest_scale", -1),
+        ("farneback", "pyr_scale", 1.5),
+        ("farneback", "iterations", 0),
+        ("farneback", "poly_n", 0),
+        ("farneback", "winsize", 0),
+        ("sitk-bspline", "iterations", -1),
+        ("sitk-bspline", "spacing", 0),
+        ("sitk-bspline", "sampling", 2.0),
+        ("sitk-demons", "iterations", -1),
+        ("sitk-demons", "levels", 0),
+        ("elastix", "iterations", -1),
+        ("elastix", "resolutions", 0),
+        ("elastix", "samples", 0),
+    ],
+)
+def test_a_peer_option_out_of_range_is_refused_naming_it(method, option, value):
+    """Each peer's numeric options are checked before its library runs: one ValueError naming the
+    method and the option, not a crash of the interpreter, an OpenCV, SimpleITK or elastix error,
+    a division by zero, or a silent garbage field."""
+    if method in _PEER_MODULES:
+        pytest.importorskip(_PEER_MODULES[method])
+    f, _ = _phantom(64)
+    with pytest.raises(ValueError, match=f"^{method} {option}="):
+        register(f, np.roll(f, 1, axis=0), method, **{option: value})

@@ -59,7 +59,8 @@ class Quality:
     """How far to trust a registration.
 
     ``rc_before``/``rc_after``: residual complexity of ``moving - fixed`` and ``warped - fixed``
-    (lower is better; insensitive to slow intensity change). ``ncc_before``/``ncc_after``:
+    in units of the fixed image's 1-99 % range (lower is better; insensitive to slow intensity
+    change; the same for any intensity unit). ``ncc_before``/``ncc_after``:
     normalised cross-correlation (higher is better); all four measured on the pair area-averaged
     to at most ~0.4 Mpx (by 4 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
@@ -169,12 +170,34 @@ def _check(fixed, moving, mask):
         if float(a.max()) == float(a.min()):
             raise ValueError(f"{name} image is constant: nothing to register")
     if mask is not None:
-        mask = np.asarray(mask, bool)
+        mask = np.asarray(mask)
+        if mask.dtype != bool:  # a float mask of weights was cast to all True
+            raise ValueError(f"mask must be a bool array (True on the object); got dtype {mask.dtype}")
         if mask.shape != f.shape:
             raise ValueError(f"mask {mask.shape} does not match the images {f.shape}")
         if not mask.any():
             raise ValueError("mask selects no pixel")
     return f, m, mask
+
+
+def _check_option_names(method, options):
+    """TypeError (Python's for an unexpected keyword) naming an option ``method`` does not take
+    and the ones it does: the B-spline methods (``**options``) ignored a misspelt one, the peers'
+    own TypeError named a private function."""
+    import inspect
+
+    if method in BSPLINE_METHODS:
+        from radiokit.register._bspline import PRESETS
+
+        known = {"preset", "callback", *PRESETS["default"]}
+    else:
+        params = list(inspect.signature(METHODS[method]).parameters.values())[3:]  # after fixed, moving, mask
+        if any(p.kind is p.VAR_KEYWORD for p in params):
+            return
+        known = {p.name for p in params}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(f"unknown option {unknown[0]!r} for method {method!r}; its options: {', '.join(sorted(known))}")
 
 
 def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
@@ -192,12 +215,19 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
 
     The result carries ``confidence`` (where the motion is observable from these images, see
     ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
-    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed."""
+    the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
+
+    Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
+    finite, non-constant, of one shape and at least 8 px a side, a mask that is not a bool array
+    of that shape selecting a pixel, an unknown method or preset, or an option value out of its
+    range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
+    peer whose package is not installed."""
     _load_methods()
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
+    _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
-    if options.get("preset") in AUTO_PRESETS:  # the plain preset, then weak or silent if it fails
+    if method in BSPLINE_METHODS and options.get("preset") in AUTO_PRESETS:  # plain, then weak or silent
         from radiokit.register._auto import register_auto
 
         return register_auto(register, f, m, method, mask, retry, options)
@@ -254,6 +284,28 @@ def _bin_pair(f, m, mask, k):
     return _bin(f, k), _bin(m, k), maskb
 
 
+def _range_unit(f, mask):
+    """``1 / (p99 - p1)`` of ``f`` (inside ``mask``; its full range when those tie; 1 when it is
+    constant there): residual complexity's alpha (0.05, Myronenko & Song's for images in [0, 1])
+    then means the same for line integrals, transmissions and counts, as in rc's own data term."""
+    from radiokit.register._confidence import sample_step
+
+    v = f[mask] if mask is not None else f[:: sample_step(f.size), :: sample_step(f.size)]
+    lo, hi = np.percentile(v, [1, 99]) if v.size else (0.0, 0.0)
+    if hi <= lo:
+        lo, hi = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+    return np.float32(1.0 / (hi - lo)) if hi > lo else np.float32(1.0)
+
+
+def _rounding_rc(f, unit) -> float:
+    """The residual complexity float32 rounding of ``f`` can make (in ``unit``s): a residual of
+    ``eps |f|`` costs at most ``mean(r^2) / (2 alpha)`` (``log(1 + x) <= x``, an orthonormal DCT;
+    alpha 0.05, ``residual_complexity``'s).
+    A change below it is not a divergence (identical images: a 1e-7 px step from 0 to 1e-16)."""
+    eps = float(np.finfo(np.float32).eps) * float(unit)
+    return 0.5 * eps * eps * float(np.mean(np.square(f, dtype=np.float64))) / 0.05
+
+
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
@@ -268,8 +320,9 @@ def _assess(reg, f, m, mask, info, seconds):
         w = reg.warp(m)
         db = reg.displacement
         mask_s = mask
-    q.rc_before = residual_complexity(m - f, mask_s)
-    q.rc_after = residual_complexity(w - f, mask_s)
+    unit = _range_unit(f, mask_s)  # alpha is in the range's units, whatever the image's
+    q.rc_before = residual_complexity((m - f) * unit, mask_s)
+    q.rc_after = residual_complexity((w - f) * unit, mask_s)
     q.ncc_before = ncc(m, f, mask_s)
     q.ncc_after = ncc(w, f, mask_s)
     det = jacobian_determinant(reg.displacement)
@@ -287,7 +340,7 @@ def _assess(reg, f, m, mask, info, seconds):
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
-    if q.rc_after > q.rc_before:
+    if q.rc_after > q.rc_before + _rounding_rc(f, unit):
         reasons.append(f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before")
     if not q.converged:
         reasons.append(info.get("message", "did not converge"))

@@ -111,6 +111,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import math
+import numbers
 
 import numpy as np
 import scipy.sparse as sp
@@ -781,7 +782,7 @@ _N_REF = 1_000_000
 
 
 def _options(preset, overrides) -> dict:
-    """``PRESETS[preset]`` with the overrides that are not None; validated."""
+    """``PRESETS[preset]`` with the overrides that are not None (``highpass=None``: off); validated."""
     if preset not in PRESETS:
         raise ValueError(
             f"preset {preset!r}: expected one of {', '.join(PRESETS)} (or, through register(), auto, auto-fast)"
@@ -790,22 +791,65 @@ def _options(preset, overrides) -> dict:
     if overrides.get("alpha") is not None and overrides.get("noise_alpha") is None:
         o["noise_alpha"] = 0.0  # an alpha asked for is used as it is
     o.update({k: v for k, v in overrides.items() if v is not None})
+    if "highpass" in overrides and overrides["highpass"] is None:  # documented: "0 or None: off"
+        o["highpass"] = 0.0
     if o["balance"] not in ("lattice", "frame"):
         raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
     if o["init"] not in ("none", "silhouette"):
         raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
     if o["highpass_on"] not in ("images", "residual"):
         raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
-    for key in ("smooth", "gain", "gain_regularisation", "noise_alpha", "abandon_px"):
-        if not o[key] >= 0:
-            raise ValueError(f"{key}={o[key]}: expected >= 0")
-    if o["spacing"] < 4:
-        raise ValueError(f"spacing={o['spacing']}: control points closer than 4 pixels cannot be resolved")
-    if not (isinstance(o["extend"], (int, np.integer)) and o["extend"] >= 0):
-        raise ValueError(f"extend={o['extend']!r}: expected a whole number of iterations >= 0")
-    if not o["bin_pixels"] >= 0:
-        raise ValueError(f"bin_pixels={o['bin_pixels']}: expected >= 0 (0: off)")
+    _check_values(o)
     return o
+
+
+# each numeric option's least value and whether it may equal it; every one must be a finite real
+# number (a NaN compared False with every bound and ran; min_size 0 halved the pyramid forever)
+_LOWEST = {
+    "spacing": (4, True),
+    "alpha": (0, False),
+    "regularisation": (0, True),
+    "min_size": (1, True),
+    "max_pixels": (0, True),
+    "converge_px": (0, True),
+    "coarse_alpha": (0, False),
+    "coarse_regularisation": (0, True),
+    "highpass": (0, True),
+    "stiffen": (-math.inf, True),
+    "smooth": (0, True),
+    "gain": (0, True),
+    "gain_regularisation": (0, True),
+    "noise_alpha": (0, True),
+    "bin_pixels": (0, True),
+    "abandon_px": (0, True),
+}
+_COUNTS = {"levels_skip": 0, "min_levels": 1, "extend": 0}  # integers, at least this
+_FLAGS = ("gain_fine", "joint", "refit_thinning")
+
+
+def _check_values(o):
+    """ValueError naming the first option of ``o`` outside its range (``_LOWEST``, ``_COUNTS``,
+    ``_FLAGS``, ``iterations``); ``iterations`` given as one count becomes that count's tuple."""
+    real = lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+    for key, (lowest, equal) in _LOWEST.items():
+        v = o[key]
+        if not (real(v) and (v >= lowest if equal else v > lowest)):
+            what = "control points closer than 4 pixels cannot be resolved" if key == "spacing" else ""
+            raise ValueError(
+                f"{key}={v!r}: expected a finite number {'>=' if equal else '>'} {lowest:g} {what}".rstrip()
+            )
+    for key, lowest in _COUNTS.items():
+        if not (isinstance(o[key], numbers.Integral) and not isinstance(o[key], bool) and o[key] >= lowest):
+            raise ValueError(f"{key}={o[key]!r}: expected an integer >= {lowest}")
+    for key in _FLAGS:
+        if not isinstance(o[key], (bool, np.bool_)):
+            raise ValueError(f"{key}={o[key]!r}: expected True or False")
+    its = o["iterations"]
+    its = (its,) if isinstance(its, numbers.Integral) else its
+    ok = isinstance(its, (tuple, list)) and its and all(isinstance(n, numbers.Integral) and n >= 1 for n in its)
+    if not ok or any(isinstance(n, bool) for n in its):
+        raise ValueError(f"iterations={o['iterations']!r}: expected a count >= 1, or one per level (coarse to fine)")
+    o["iterations"] = tuple(its)
 
 
 def _bin_factor(shape, bin_pixels) -> int:
@@ -1042,6 +1086,12 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
     ``info["binned"]`` is ``k``."""
     from radiokit.register import _bin
 
+    shape = (fixed.shape[0] // k, fixed.shape[1] // k)
+    if min(shape) < 8:  # register()'s own least size: OpenCV asserted on an empty pair
+        raise ValueError(
+            f"bin_pixels={overrides.get('bin_pixels')}: bins the {fixed.shape} pair by {k} to {shape}, "
+            "too small to register (8 px a side at least)"
+        )
     small = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
     d, info = _bspline_register(_bin(fixed, k), _bin(moving, k), small, **how, **dict(overrides, bin_pixels=0))
     info["binned"] = k

@@ -12,7 +12,9 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     import cv2
 
     image = np.asarray(image, np.float32)
-    d = np.asarray(displacement, np.float32)
+    if image.ndim != 2:  # OpenCV took a (2, rows, cols) stack as 2 rows of many channels
+        raise ValueError(f"image must be 2-D (rows, cols); got shape {image.shape}")
+    d = _field(displacement)
     rows, cols = d.shape[1:]
     # pixel positions broadcast, not a frame-sized grid per axis (np.mgrid's int64 planes and
     # their conversion were most of a 2240 frame's warp); the same float32 sums
@@ -23,6 +25,15 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     from scipy import ndimage
 
     return ndimage.map_coordinates(image, [rr + d[0], cc + d[1]], order=order, mode="nearest").astype(np.float32)
+
+
+def _field(displacement) -> np.ndarray:
+    """``displacement`` as float32, checked to be ``(2, rows, cols)`` (OpenCV's per-pixel
+    ``(rows, cols, 2)`` was read as 20 rows of 2 columns, silently)."""
+    d = np.asarray(displacement, np.float32)
+    if d.ndim != 3 or d.shape[0] != 2:
+        raise ValueError(f"displacement must be (2, rows, cols) in pixels, (row, col) order; got shape {d.shape}")
+    return d
 
 
 def monomials(y, x, degree) -> np.ndarray:
@@ -39,7 +50,7 @@ def jacobian_determinant(displacement) -> np.ndarray:
     tenth of ``rc fast``'s time at 2240 x 2240 otherwise)."""
     from radiokit._threads import pool, threads
 
-    d = np.asarray(displacement, np.float32)
+    d = _field(displacement)
     rows = d.shape[1]
     out = np.empty(d.shape[1:], np.float32)
 

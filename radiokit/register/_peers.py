@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import numbers
 import tempfile
 
 import numpy as np
@@ -148,6 +149,26 @@ def _prepare(fixed, moving, prefilter, highpass_sigma):
     ).astype(np.float32)
 
 
+_POSITIVE = float(np.finfo(float).tiny)  # a lower bound that means "> 0"
+_BELOW_ONE = float(np.nextafter(1.0, 0.0))  # an upper bound that means "< 1"
+
+
+def _check_ranges(method, **ranges):
+    """ValueError naming the first of ``method``'s options outside its range, before its library
+    runs: ``name=(value, low, high)``, both ends included, an int ``low`` asking for an integer;
+    None (an automatic choice) passes. Out of range, OpenCV's DIS killed the interpreter (a zero
+    patch size or stride), other values were OpenCV, SimpleITK or elastix errors, a division by
+    zero, or a silent garbage field."""
+    for name, (value, low, high) in ranges.items():
+        integer = isinstance(low, int)
+        kind = numbers.Integral if integer else numbers.Real
+        if value is None or (isinstance(value, kind) and not isinstance(value, bool) and low <= value <= high):
+            continue
+        lo = "> 0" if low == _POSITIVE else f">= {low}"
+        hi = "" if high == np.inf else (" and < 1" if high == _BELOW_ONE else f" and <= {high}")
+        raise ValueError(f"{method} {name}={value!r}: expected {'an integer' if integer else 'a number'} {lo}{hi}")
+
+
 def _to_u8(a):
     return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
 
@@ -194,6 +215,15 @@ def _tvl1(
     resolution at a fraction of the time. ``mask`` is ignored."""
     from skimage.registration import optical_flow_tvl1
 
+    _check_ranges(
+        "tvl1",
+        working_size=(working_size, _POSITIVE, np.inf),
+        attachment=(attachment, _POSITIVE, np.inf),
+        tightness=(tightness, _POSITIVE, np.inf),
+        num_warp=(num_warp, 1, np.inf),
+        num_iter=(num_iter, 1, np.inf),
+        tol=(tol, _POSITIVE, np.inf),
+    )
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
     flow = optical_flow_tvl1(
         f,
@@ -229,6 +259,12 @@ def _ilk(
     this method. ``mask`` is ignored."""
     from skimage.registration import optical_flow_ilk
 
+    _check_ranges(
+        "ilk",
+        working_size=(working_size, _POSITIVE, np.inf),
+        radius=(radius, 1.0, np.inf),
+        num_warp=(num_warp, 1, np.inf),
+    )
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
     r = int(round(_size_relative(radius, 1 / 40, f.shape, 7)))
     flow = optical_flow_ilk(f, m, radius=r, num_warp=int(num_warp), gaussian=bool(gaussian))
@@ -271,6 +307,15 @@ def _dis(
 
     if preset not in _DIS_PRESETS:
         raise ValueError(f"dis preset {preset!r}: expected one of {', '.join(_DIS_PRESETS)}")
+    _check_ranges(
+        "dis",
+        working_size=(working_size, _POSITIVE, np.inf),
+        finest_scale=(finest_scale, 0, np.inf),
+        patch_size=(patch_size, 1, np.inf),
+        patch_stride=(patch_stride, 1, np.inf),
+        refinement_iterations=(refinement_iterations, 0, np.inf),
+        refinement_alpha=(refinement_alpha, 0.0, np.inf),
+    )
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
     dis = cv2.DISOpticalFlow_create(getattr(cv2, f"DISOPTICAL_FLOW_PRESET_{preset.upper()}"))
     for setter, value in (
@@ -284,8 +329,23 @@ def _dis(
     if refinement_alpha is not None:
         dis.setVariationalRefinementAlpha(float(refinement_alpha))
     dis.setUseMeanNormalization(bool(mean_normalization))
+    _dis_fits(dis, f.shape)
     flow = dis.calc(_to_u8(f), _to_u8(m), None)
     return _expand(_from_xy(flow), fixed.shape), {}
+
+
+def _dis_fits(dis, shape):
+    """ValueError unless DIS's pyramid fits a working image of ``shape``: its finest level's smaller
+    side must hold a patch, and its coarsest level index (OpenCV's ``log2(larger side / (4 patch))
+    + 1/2``, truncated) must not be negative. Below that OpenCV crashed the interpreter (10 x 40:
+    a segmentation fault), returned NaN or raised; found on a grid of sizes, presets and patches."""
+    ps, fs = dis.getPatchSize(), dis.getFinestScale()
+    if min(shape) < ps * 2**fs or max(shape) <= ps * np.sqrt(2):
+        raise ValueError(
+            f"dis: the working image {shape} is too small for patch_size {ps} at finest_scale {fs}: "
+            f"its smaller side must be at least {ps * 2**fs} px and its larger over {ps * np.sqrt(2):.1f} "
+            "(a smaller patch_size or finest_scale, a larger working_size, or another method)"
+        )
 
 
 @_method("farneback")
@@ -317,6 +377,16 @@ def _farneback(
     ``mask`` is ignored."""
     import cv2
 
+    _check_ranges(
+        "farneback",
+        working_size=(working_size, _POSITIVE, np.inf),
+        pyr_scale=(pyr_scale, _POSITIVE, _BELOW_ONE),
+        levels=(levels, 0, np.inf),
+        winsize=(winsize, 1, np.inf),
+        iterations=(iterations, 1, np.inf),
+        poly_n=(poly_n, 1, np.inf),
+        poly_sigma=(poly_sigma, _POSITIVE, np.inf),
+    )
     f, m, _ = _shrink(*_prepare(fixed, moving, prefilter, highpass_sigma), working_size)
     n_levels = _levels(f.shape) if levels is None else int(levels)
     win = int(_size_relative(winsize, 1 / 12, f.shape, 15)) // 2 * 2 + 1 if winsize is None else int(winsize)
@@ -368,6 +438,12 @@ def _sitk_bspline(
     level; ``sampling`` a fraction of the pixels for the metric (random, ``seed``) or ``None``
     for all. ``mask`` limits the metric."""
     sitk = _require("SimpleITK", "sitk-bspline", "SimpleITK")
+    _check_ranges(
+        "sitk-bspline",
+        spacing=(spacing, _POSITIVE, np.inf),
+        iterations=(iterations, 1, np.inf),
+        sampling=(sampling, _POSITIVE, 1.0),
+    )
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
     F, M = _sitk_image(sitk, f), _sitk_image(sitk, m)
     spacing = float(_size_relative(spacing, 1 / 24, f.shape, 16))
@@ -445,6 +521,13 @@ def _sitk_demons(
     sitk = _require("SimpleITK", "sitk-demons", "SimpleITK")
     if variant not in _DEMONS:
         raise ValueError(f"sitk-demons variant {variant!r}: expected one of {', '.join(_DEMONS)}")
+    _check_ranges(
+        "sitk-demons",
+        iterations=(iterations, 1, np.inf),
+        levels=(levels, 1, np.inf),
+        max_step=(max_step, _POSITIVE, np.inf),
+        smoothing=(smoothing, _POSITIVE, np.inf),
+    )
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
     sigma = float(_size_relative(smoothing, 1 / 85, f.shape, 1.0))
     n_levels = _levels(f.shape, 64) if levels is None else int(levels)
@@ -503,6 +586,13 @@ def _elastix(
     dict of further elastix parameters (values: strings or lists) that override all of these.
     ``mask`` limits the metric (elastix's fixed mask)."""
     itk = _require("itk", "elastix", "itk-elastix", attr="elastix_registration_method")
+    _check_ranges(
+        "elastix",
+        spacing=(spacing, _POSITIVE, np.inf),
+        iterations=(iterations, 1, np.inf),
+        resolutions=(resolutions, 1, np.inf),
+        samples=(samples, 1, np.inf),
+    )
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
     F = itk.GetImageFromArray(np.ascontiguousarray(f, np.float32))
     M = itk.GetImageFromArray(np.ascontiguousarray(m, np.float32))
