@@ -1014,9 +1014,7 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     on purpose): ``auto`` must not return the stopped run's field but finish the plain run after
     all and return it, as if it had never stopped."""
     from radiokit.register import Quality, Registration
-    from radiokit.register._auto import register_auto
-
-    from radiokit.register._auto import EXTEND
+    from radiokit.register._auto import EXTEND, register_auto
 
     fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
     calls = []
