@@ -195,7 +195,9 @@ def table(rows, methods) -> str:
         "|---|---|---|---|---|",
     ]
     family = [r for r in rows if r["method"] in FAMILY_METHODS or r["method"] == "identity"]
-    for tag, sel in [("all methods", family)] + [(n, [r for r in rows if r["method"] == n]) for n, _ in methods]:
+    for tag, sel in [("all methods", family)] + [
+        (n, [r for r in rows if r["method"] == n]) for n, _ in methods if n not in _UNTABLED
+    ]:
         c = confusion(sel)
         lines.append(
             f"| {tag} ({c['n']}) | {c['failed']} | {c['failed_flagged']} "

@@ -80,13 +80,13 @@ def _cell(v):
 
 def row(name, size, motion, split):
     """One pair's line (``!``: ``quality.ok`` False)."""
-    from radiokit.register._auto import EXTEND
-
     pair = natural(name, size, motion, split)
     auto = _run(pair, preset="auto")
     chose = auto[3].options["auto"].preset
     out = f"{name:<18} {motion:<5} auto {_cell(auto)} ({chose}, {auto[2]:.1f} s)"
     if split == "train":
+        from radiokit.register._auto import EXTEND
+
         half = _run(pair, preset="default", levels_skip=1, iterations=(250, 60))[3].quality.residual_motion
         default, extended, weak = (
             _run(pair, preset=p, **o) for p, o in (("default", {}), ("default", {"extend": EXTEND}), ("weak", {}))

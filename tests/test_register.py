@@ -985,6 +985,25 @@ def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
     assert "abandoned" not in register(*small, "rc", abandon_px=0.35).options
 
 
+def test_abandon_px_checks_the_finest_level_against_the_checks_line():
+    """A run let past the level before its finest (``abandon_px`` of 10 px there) that cannot mend
+    its misalignment (texture = noise, a local motion of 3 % of the frame) is stopped
+    ``ABANDON_FINEST`` iterations into its finest level, its residual over the checks' own line,
+    with the same measure they then take of the field it leaves."""
+    import re
+
+    from radiokit.register import _MAX_RESIDUAL_MOTION
+    from radiokit.register._bspline import ABANDON_FINEST
+
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    reg = register(fixed, moving, "rc", abandon_px=10.0)
+    why = reg.options["abandoned"]
+    assert why.startswith("abandoned at the finest level") and f"after {ABANDON_FINEST} of" in why
+    assert not reg.quality.ok and why in reg.quality.reason
+    stopped_on = float(re.search(r"moves ([0-9.]+) px", why).group(1))
+    assert stopped_on > _MAX_RESIDUAL_MOTION and reg.quality.residual_motion == pytest.approx(stopped_on, rel=0.05)
+
+
 def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
     """Texture 10x the noise, motion correlated over a quarter of the frame: ``default`` is
     within the line halfway through its 352 px level and after it, so ``abandon_px`` changes

@@ -90,9 +90,10 @@ where the finest images see better, at the coarse lattice's own (low) price. Eac
 then adds one adjoint per coarser lattice (``joint`` off: each level's lattice alone, on top of
 the frozen coarser field).
 ``abandon_px`` stops a run before its finest level when, after the level before it, the
-residual still moves by more than that (measured as ``register``'s checks measure it): ``auto``
-uses it so that a plain run already far off does not spend its most costly level
-(``radiokit.register._auto.ABANDON``). ``extend`` is the converse: a finest level that ends its
+residual still moves by more than that (measured as ``register``'s checks measure it), and at
+its finest level when ``ABANDON_FINEST`` iterations in it still moves by more than the checks'
+own line: ``auto`` uses it so that a plain run already far off does not spend its most costly
+level (``radiokit.register._auto.ABANDON``). ``extend`` is the converse: a finest level that ends its
 budget with the field still moving (``converge_px``) while the residual, measured the same way,
 already passes the checks' line is slow, not lost, and runs up to that many iterations more from
 where it stands (``auto`` sets it on its plain run: natural images at 2240, ``_auto.EXTEND``).
@@ -1126,6 +1127,16 @@ REFIT_ITERATIONS = 60
 # and 0.62 or more on the other 37; half chosen before the data, not tuned; benchmarks/README.md,
 # session 15). The check does not change the path of a run it lets go on.
 ABANDON_AT = 0.5
+# ... and once more this many iterations into the finest level, against the checks' own line
+# (_MAX_RESIDUAL_MOTION): a run that passes the level before the finest a little off (abandon_px is
+# a pixel in ``auto``: natural images read up to 0.96 px there and settle after their finest level)
+# but cannot mend it there is still over the line after a few of its iterations. TRAINING pairs at
+# 2240, the residual's motion after 10 / 20 / 40 finest iterations: natural images that settle
+# (astronaut, brick, coffee, chelsea, retina, rocket; benchmarks/README.md, session 16) at most
+# 0.24 / 0.17 / 0.12 px; the family's pairs under the pixel that do not (physical motion, texture =
+# noise; texture 0.3x the noise, correlation 1/4) at least 0.45 / 0.45 / 0.46 px. 20 its: about a
+# second at 2240, against the finest level's 3-4 s
+ABANDON_FINEST = 20
 
 
 def _register_refit(fixed, moving, mask, how, overrides):
@@ -1252,6 +1263,10 @@ def _bspline_register(
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
             check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
+        elif factor == finest and not coarse and n_it > ABANDON_FINEST and _abandons(fixed, o, finest):
+            measure = measure or _coarse_measure(fixed, moving, mask)
+            when = f"after {ABANDON_FINEST} of {n_it} iterations"
+            check = (ABANDON_FINEST, lambda lat, when=when, ms=measure: _lost(ms, grids + [lat], affine, when))
         extend = None
         if factor == finest and o["extend"]:  # past its budget only while slow, not lost (``extend``)
             lazy = [measure]  # the abandon checks' measure, or built when first needed (~0.2 s at 2240)
@@ -1280,7 +1295,9 @@ def _bspline_register(
         )
         if callback is not None:
             callback(factor, res)
-        if factor == finest:
+        if factor == finest and (why := res.get("abandoned")):
+            converged, message, abandoned = False, why, {"abandoned": why}
+        elif factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
         elif last_coarse and (
             why := res.get("abandoned") or _far_off(measure, grids, affine, o, "after the level before it")
@@ -1317,11 +1334,7 @@ def _far_off(measure, lattices, affine, o, when):
     would measure it (``measure``: ``coarse_residual_motion``'s ``(k, shape, motion)``), over
     ``abandon_px`` (a misalignment the finer level is not there to mend: ``auto`` then goes to
     its fallback). ``when``: for the message."""
-    k, shape, motion_of = measure
-    d = _fields(lattices, k, shape)
-    if affine is not None:
-        d += affine.field(shape, k)
-    motion = motion_of(d)
+    motion = _motion(measure, lattices, affine)
     if not motion > o["abandon_px"]:
         return None
     return (
@@ -1337,18 +1350,35 @@ def _coarse_measure(fixed, moving, mask):
     return coarse_residual_motion(fixed, moving, mask)
 
 
-def _settles(measure, lattices, affine) -> bool:
-    """Whether the residual of the field of ``lattices`` (and ``affine``), measured as the checks
-    measure it (``measure``: ``coarse_residual_motion``'s), is within their line
-    (``_MAX_RESIDUAL_MOTION``): a field still moving there is slow to converge, not lost
-    (``extend``)."""
-    from radiokit.register import _MAX_RESIDUAL_MOTION
-
+def _motion(measure, lattices, affine) -> float:
+    """The residual's motion of the field of ``lattices`` (and ``affine``) as the checks measure
+    it (``measure``: ``coarse_residual_motion``'s ``(k, shape, motion)``), full-resolution px."""
     k, shape, motion_of = measure
     d = _fields(lattices, k, shape)
     if affine is not None:
         d += affine.field(shape, k)
-    return bool(motion_of(d) <= _MAX_RESIDUAL_MOTION)
+    return motion_of(d)
+
+
+def _settles(measure, lattices, affine) -> bool:
+    """Whether that motion is within the checks' line (``_MAX_RESIDUAL_MOTION``): a field still
+    moving there is slow to converge, not lost (``extend``)."""
+    from radiokit.register import _MAX_RESIDUAL_MOTION
+
+    return bool(_motion(measure, lattices, affine) <= _MAX_RESIDUAL_MOTION)
+
+
+def _lost(measure, lattices, affine, when):
+    """Why the run stops at its finest level (``abandon_px``, ``ABANDON_FINEST`` iterations in), or
+    None: the residual's motion still over the checks' own line there."""
+    from radiokit.register import _MAX_RESIDUAL_MOTION
+
+    motion = _motion(measure, lattices, affine)
+    if not motion > _MAX_RESIDUAL_MOTION:
+        return None
+    return (
+        f"abandoned at the finest level: the residual still moves {motion:.2f} px {when} (> {_MAX_RESIDUAL_MOTION:g})"
+    )
 
 
 def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None, extend=None):
@@ -1449,8 +1479,9 @@ def _rc(fixed, moving, mask, **options):
     under this many and the field upsampled; 0, every preset's: off), refit_thinning (a second
     pass with the thinning measured in the body's interior divided out; see REFIT_INTERIOR),
     abandon_px (> 0: stop before the finest level, not converged, when after the level before it
-    the residual still moves by more than this, measured as the quality checks do; only when the
-    finest level is finer than their binning; ``auto`` sets it on its plain run, see
+    the residual still moves by more than this, measured as the quality checks do, or at the
+    finest level when ABANDON_FINEST iterations in it still moves by more than their own line;
+    only when the finest level is finer than their binning; ``auto`` sets it on its plain run, see
     ``radiokit.register._auto.ABANDON``), extend (iterations the finest level may add when its
     budget ends with the field still moving more than converge_px while the residual, measured as
     the quality checks do, is within their line; 0, every preset's: off; ``auto`` sets it on its
