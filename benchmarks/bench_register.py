@@ -324,23 +324,11 @@ def natural_pair(name, size, seed=1):
     """A natural image of scikit-image (``camera``, ``moon``) scaled to ``size`` and to 0-1, as
     rich texture of a kind ``regdata`` does not make: fixed = moving warped by a smooth local
     field (1 % of the frame, 2-3 periods across it), +-10 % gain across the frame, noise 0.004
-    on both. ``(fixed, moving, truth, mask)``, the mask the central 80 %."""
-    import cv2
-    import skimage.data
+    on both. ``(fixed, moving, truth, mask)``, the mask the central 80 %
+    (``bench_register_natural.natural``'s smooth motion)."""
+    from bench_register_natural import natural
 
-    rng = np.random.default_rng(seed)
-    im = cv2.resize(getattr(skimage.data, name)().astype(np.float32), (size, size), interpolation=cv2.INTER_CUBIC)
-    im /= 255.0
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    dy = 0.01 * size * np.sin(2 * np.pi * 3 * xx + 1.0) * np.cos(2 * np.pi * 2 * yy)
-    dx = 0.01 * size * np.cos(2 * np.pi * 2 * xx) * np.sin(2 * np.pi * 3 * yy + 0.5)
-    mx, my = (xx * size + dx).astype(np.float32), (yy * size + dy).astype(np.float32)
-    fixed = cv2.remap(im, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT) * (1 + 0.1 * xx)
-    fixed += 0.004 * rng.standard_normal(im.shape).astype(np.float32)
-    moving = im + 0.004 * rng.standard_normal(im.shape).astype(np.float32)
-    mask = np.zeros(im.shape, bool)
-    mask[size // 10 : -size // 10, size // 10 : -size // 10] = True
-    return fixed, moving, np.stack([dy, dx]), mask
+    return natural(name, size, "sine", "test", seed=seed)
 
 
 def natural_part():

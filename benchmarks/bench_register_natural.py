@@ -38,13 +38,14 @@ TEST = ("camera", "moon")
 MOTIONS = ("sine", "local")
 
 
-def natural(name, size, motion, split):
-    """``(fixed, moving, truth, mask)`` of the picture ``name`` (see the module docstring)."""
+def natural(name, size, motion, split, seed=1):
+    """``(fixed, moving, truth, mask)`` of the picture ``name`` (see the module docstring);
+    ``seed`` the noise's."""
     import cv2
     import skimage.color
     import skimage.data
 
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     im = getattr(skimage.data, name)()
     if im.ndim == 3:
         im = skimage.color.rgb2gray(im[..., :3]) * 255.0

@@ -111,6 +111,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import math
 import numbers
 
@@ -1247,7 +1248,8 @@ def _bspline_register(
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message, abandoned = 0, True, "", {}
-    measure = None  # coarse_residual_motion's (k, shape, motion): built once, when first needed
+    # the checks' measure of a field's residual (coarse_residual_motion): built once, when first needed
+    measured = functools.cache(lambda: _coarse_measure(fixed, moving, mask))
     for factor, n_it in levels:
         # joint: the coarser lattices are refitted with the finest's, so their field is not in base
         coarse = grids if o["joint"] and factor == finest else []
@@ -1259,22 +1261,16 @@ def _bspline_register(
         last_coarse = factor != finest and factor == levels[-2:][0][0] and _abandons(fixed, o, finest)
         check = None
         if last_coarse:
-            measure = measure or _coarse_measure(fixed, moving, mask)  # once for both checks
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
-            check = (at, lambda lat, when=when, ms=measure: _far_off(ms, grids + [lat], affine, o, when))
+            check = (at, lambda lat, when=when: _far_off(measured(), grids + [lat], affine, o, when))
         elif factor == finest and not coarse and n_it > ABANDON_FINEST and _abandons(fixed, o, finest):
-            measure = measure or _coarse_measure(fixed, moving, mask)
             when = f"after {ABANDON_FINEST} of {n_it} iterations"
-            check = (ABANDON_FINEST, lambda lat, when=when, ms=measure: _lost(ms, grids + [lat], affine, when))
+            check = (ABANDON_FINEST, lambda lat, when=when: _far_off(measured(), grids + [lat], affine, None, when))
         extend = None
         if factor == finest and o["extend"]:  # past its budget only while slow, not lost (``extend``)
-            lazy = [measure]  # the abandon checks' measure, or built when first needed (~0.2 s at 2240)
-
-            def settles(lats, fp=[] if coarse else grids, lazy=lazy):  # joint: coarser lattices in lats
-                lazy[0] = lazy[0] or _coarse_measure(fixed, moving, mask)
-                return _settles(lazy[0], fp + lats, affine)
-
+            fixed_part = [] if coarse else grids  # joint: the coarser lattices are in what it is given
+            settles = lambda lats, fp=fixed_part: _settles(measured(), fp + lats, affine)
             extend = (o["extend"], o["converge_px"], settles)
         grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, coarse, x_start, check, extend)
         if not np.all(np.isfinite(res.x)):
@@ -1300,7 +1296,7 @@ def _bspline_register(
         elif factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
         elif last_coarse and (
-            why := res.get("abandoned") or _far_off(measure, grids, affine, o, "after the level before it")
+            why := res.get("abandoned") or _far_off(measured(), grids, affine, o, "after the level before it")
         ):
             converged, message, abandoned = False, why, {"abandoned": why}
             break
@@ -1329,18 +1325,23 @@ def _abandons(fixed, o, finest) -> bool:
 
 
 def _far_off(measure, lattices, affine, o, when):
-    """Why the run stops before its finest level (``abandon_px``), or None: the field of
-    ``lattices`` (and ``affine``) at the checks' binning, its residual's motion measured as they
-    would measure it (``measure``: ``coarse_residual_motion``'s ``(k, shape, motion)``), over
-    ``abandon_px`` (a misalignment the finer level is not there to mend: ``auto`` then goes to
-    its fallback). ``when``: for the message."""
-    motion = _motion(measure, lattices, affine)
-    if not motion > o["abandon_px"]:
-        return None
-    return (
-        f"abandoned before the finest level: the residual still moves {motion:.2f} px {when} "
-        f"(abandon_px={o['abandon_px']:g})"
+    """Why the run stops (``abandon_px``), or None: the field of ``lattices`` (and ``affine``) at
+    the checks' binning, its residual's motion measured as they would measure it (``measure``:
+    ``coarse_residual_motion``'s ``(k, shape, motion)``), over ``abandon_px`` before the finest
+    level (``o`` the options: a misalignment the finer level is not there to mend) or, with ``o``
+    None, over the checks' own line at the finest level (``ABANDON_FINEST`` iterations in): ``auto``
+    then goes to its fallback. ``when``: for the message."""
+    from radiokit.register import _MAX_RESIDUAL_MOTION
+
+    line, where, why = (
+        (_MAX_RESIDUAL_MOTION, "at", f"> {_MAX_RESIDUAL_MOTION:g}")
+        if o is None
+        else (o["abandon_px"], "before", f"abandon_px={o['abandon_px']:g}")
     )
+    motion = _motion(measure, lattices, affine)
+    if not motion > line:
+        return None
+    return f"abandoned {where} the finest level: the residual still moves {motion:.2f} px {when} ({why})"
 
 
 def _coarse_measure(fixed, moving, mask):
@@ -1366,19 +1367,6 @@ def _settles(measure, lattices, affine) -> bool:
     from radiokit.register import _MAX_RESIDUAL_MOTION
 
     return bool(_motion(measure, lattices, affine) <= _MAX_RESIDUAL_MOTION)
-
-
-def _lost(measure, lattices, affine, when):
-    """Why the run stops at its finest level (``abandon_px``, ``ABANDON_FINEST`` iterations in), or
-    None: the residual's motion still over the checks' own line there."""
-    from radiokit.register import _MAX_RESIDUAL_MOTION
-
-    motion = _motion(measure, lattices, affine)
-    if not motion > _MAX_RESIDUAL_MOTION:
-        return None
-    return (
-        f"abandoned at the finest level: the residual still moves {motion:.2f} px {when} (> {_MAX_RESIDUAL_MOTION:g})"
-    )
 
 
 def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None, extend=None):
