@@ -50,8 +50,13 @@ def _run_sim(args) -> int:
     scene = load_scene(args.preset if args.preset is not None else str(args.scene))
     if args.binning:
         scene.detector.binning = args.binning
-    if args.ratios and not all(0 < r < 1 for r in args.ratios):  # also refuses nan
-        raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: compression ratios lie between 0 and 1")
+    if args.ratios:  # the scene's rule: each in [0, 0.9), strictly increasing (also refuses nan)
+        from sim.scene import Compression
+
+        try:
+            Compression(tuple(args.ratios), scene.compression.contact)
+        except ValueError as exc:
+            raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: {exc}") from None
     for name in ("darks", "flats", "frames"):
         if getattr(args, name) < (1 if name == "frames" else 0):
             raise ValueError(
@@ -65,6 +70,7 @@ def _run_sim(args) -> int:
         from sim.scene import with_imaging
 
         scene = with_imaging(scene, args.imaging)
+    scene.validate()  # the options above change it
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs"):
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []

@@ -203,9 +203,9 @@ def tube(kv: float, anode: str, match_mm: float) -> Polychromatic:
     """The polychromatic beam of a scene's tube: ``anode`` ``Mo`` (a mammography tube: 30 um Mo
     filter) or ``W`` (the L8121-01: 150 um Be window), ``auto`` being Mo up to 35 kV; 500 mm
     of air; matched at ``match_mm`` of background. Cached: SpekPy takes a fraction of a second."""
-    if anode == "auto":
-        anode = "Mo" if kv <= 35 else "W"
-    return _tube(float(kv), anode, float(match_mm))
+    from sim.scene import anode_for
+
+    return _tube(float(kv), anode_for(kv, anode), float(match_mm))
 
 
 @lru_cache(maxsize=8)

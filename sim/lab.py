@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.detector import PanelModel
-from sim.scene import Scene, load_scene
+from sim.scene import Scene, anode_for, load_scene
 
 __all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts", "truth_record"]
 
@@ -82,6 +82,14 @@ def open_beam_counts(scene: Scene) -> float:
     return scene.exposure.i0_counts / scene.detector.binning**2
 
 
+def source_record(scene: Scene) -> dict:
+    """The experiment file's source: the scene's tube (the L8121-01 has a tungsten anode and runs
+    40-150 kV; ``anode = "auto"`` at 35 kV or less is a molybdenum mammography tube), kV, µA."""
+    ex = scene.exposure
+    tube = "Hamamatsu L8121-01" if anode_for(ex.voltage_kv, scene.imaging.anode) == "W" else "Mo-anode mammography tube"
+    return {"name": f"{tube} (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
+
+
 def simulate_experiment(
     scene,
     output,
@@ -120,7 +128,7 @@ def simulate_experiment(
     from sim.mechanics import compress
     from sim.truth import truth_displacement
 
-    scene = load_scene(scene)
+    scene = load_scene(scene).validate()
     output = Path(output)
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output}: exists (pass overwrite=True, or --overwrite on the command line)")
@@ -154,7 +162,7 @@ def simulate_experiment(
     i0 = open_beam_counts(scene)
     rng = np.random.default_rng(seed)
     ex = scene.exposure
-    src = {"name": "Hamamatsu L8121-01 (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
+    src = source_record(scene)
     gap0 = states[0].gap_mm / (1 - states[0].ratio) if states[0].ratio < 1 else float("nan")
     n_frames = n_darks + n_flats + frames_per_step * len(states)
     with (

@@ -225,6 +225,7 @@ def build_mesh(
     """Mesh ``scene`` with gmsh (see the module docstring for the models and symmetry use)."""
     import dataclasses
 
+    scene.validate()  # before gmsh: its fields may have been replaced since it was made
     model = model or choose_model(scene)
     spec = dataclasses.replace(
         scene.mesh,

@@ -16,11 +16,13 @@ mm, N and MPa (N/mm^2).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import tomli_w
 
 __all__ = [
@@ -35,6 +37,7 @@ __all__ = [
     "Imaging",
     "Scene",
     "load_scene",
+    "anode_for",
     "block_scene",
     "with_view",
     "with_imaging",
@@ -44,6 +47,16 @@ __all__ = [
 ]
 
 GEOMETRIES = ("hemi-ellipsoid", "ellipsoid", "truncated-cone", "cylinder", "box")
+
+
+def _positive(what: str, value, n: int | None = None, *, zero=False):
+    """Refuse a size that is not finite and > 0 (``zero``: >= 0), or not ``n`` of them."""
+    values = tuple(value) if n is not None else (value,)
+    if n is not None and len(values) != n:
+        raise ValueError(f"{what} {list(values)}: expected {n} numbers")
+    if not all(math.isfinite(v) and (v >= 0 if zero else v > 0) for v in values):
+        shown = list(values) if n is not None else value
+        raise ValueError(f"{what} {shown}: expected finite numbers {'>= 0' if zero else '> 0'}")
 
 
 #: ``neo-hookean``: FEBio's coupled form; ``neo-hookean-uncoupled``: ANSYS's (the paper's package),
@@ -73,15 +86,20 @@ class Material:
         if self.model not in MATERIAL_MODELS:
             raise ValueError(f"material {self.name!r}: model {self.model!r} is not one of {', '.join(MATERIAL_MODELS)}")
         if self.E_kpa is not None and self.nu is not None:
-            if not (self.E_kpa > 0 and -1 < self.nu < 0.5):
+            if not (0 < self.E_kpa < math.inf and -1 < self.nu < 0.5):
                 raise ValueError(f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu}")
         elif self.mu_kpa is not None and self.kappa_kpa is not None:
-            if not (self.mu_kpa > 0 and self.kappa_kpa > 0):
-                raise ValueError(f"material {self.name!r}: need mu, kappa > 0")
+            if not (0 < self.mu_kpa < math.inf and 0 < self.kappa_kpa < math.inf):
+                raise ValueError(
+                    f"material {self.name!r}: need finite mu, kappa > 0, got {self.mu_kpa}, {self.kappa_kpa}"
+                )
         else:
             raise ValueError(f"material {self.name!r}: give E_kpa and nu, or mu_kpa and kappa_kpa")
-        if self.attenuation_per_cm < 0:
-            raise ValueError(f"material {self.name!r}: attenuation must be >= 0")
+        given = [k for k in ("E_kpa", "nu", "mu_kpa", "kappa_kpa") if getattr(self, k) is not None]
+        if len(given) != 2:  # the properties below read one pair: the other would be ignored
+            raise ValueError(f"material {self.name!r}: give E_kpa and nu, or mu_kpa and kappa_kpa, not {given}")
+        if not 0 <= self.attenuation_per_cm < math.inf:
+            raise ValueError(f"material {self.name!r}: attenuation must be finite and >= 0")
 
     @property
     def shear_kpa(self) -> float:
@@ -99,6 +117,16 @@ class Material:
     @property
     def attenuation_per_mm(self) -> float:
         return self.attenuation_per_cm / 10.0
+
+
+#: The sizes each body geometry reads (the others are kept but unused).
+_BODY_SIZES = {
+    "hemi-ellipsoid": ("semi_axes_mm",),
+    "ellipsoid": ("semi_axes_mm",),
+    "truncated-cone": ("height_mm", "bottom_diameter_mm", "top_diameter_mm"),
+    "cylinder": ("height_mm", "diameter_mm"),
+    "box": ("size_mm",),
+}
 
 
 @dataclass
@@ -124,6 +152,10 @@ class Body:
     def __post_init__(self):
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"body geometry {self.geometry!r}: expected one of {GEOMETRIES}")
+        for name in _BODY_SIZES[self.geometry]:
+            _positive(
+                f"{self.geometry} body {name}", getattr(self, name), 3 if name in ("semi_axes_mm", "size_mm") else None
+            )
 
     @property
     def half_height_mm(self) -> float:
@@ -143,6 +175,35 @@ class Body:
             g == "ellipsoid" and self.semi_axes_mm[0] == self.semi_axes_mm[2]
         )
 
+    def half_extent_mm(self, axis: str) -> float:
+        """How far the body reaches from the origin along ``axis`` (either way)."""
+        g, k = self.geometry, "xyz".index(axis)
+        if g in ("hemi-ellipsoid", "ellipsoid"):
+            return float(self.semi_axes_mm[k])
+        if g == "box":
+            return self.size_mm[k] / 2
+        if axis == "y":
+            return self.height_mm / 2
+        return (self.diameter_mm if g == "cylinder" else max(self.bottom_diameter_mm, self.top_diameter_mm)) / 2
+
+    def contains(self, points) -> np.ndarray:
+        """Which of ``points`` (n, 3) mm lie strictly inside the body (not on its surface)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        x, y, z = p.T
+        g = self.geometry
+        if g == "box":
+            return np.all(np.abs(p) < np.asarray(self.size_mm) / 2, axis=1)
+        if g in ("hemi-ellipsoid", "ellipsoid"):
+            inside = ((p / np.asarray(self.semi_axes_mm)) ** 2).sum(axis=1) < 1
+            return inside & (x > 0) if g == "hemi-ellipsoid" else inside
+        h = self.height_mm / 2
+        if g == "cylinder":
+            radius = self.diameter_mm / 2
+        else:  # the radius grows linearly from the bottom face (y = -h) to the top (y = h)
+            r1, r2 = self.bottom_diameter_mm / 2, self.top_diameter_mm / 2
+            radius = r1 + (r2 - r1) * (y + h) / (2 * h)
+        return (np.hypot(x, z) < radius) & (np.abs(y) < h)
+
     def volume_mm3(self) -> float:
         g = self.geometry
         if g == "ellipsoid":
@@ -161,7 +222,8 @@ class Body:
 
 @dataclass
 class Inclusion:
-    """A stiffer region inside the body: ``sphere`` (``diameter_mm``) or ``box`` (``size_mm``)."""
+    """A region of another material strictly inside the body (stiffer, as a tumour, or softer):
+    ``sphere`` (``diameter_mm``) or ``box`` (``size_mm``, axis-aligned), at ``centre_mm``."""
 
     shape: str = "sphere"
     centre_mm: tuple = (0.0, 0.0, 0.0)
@@ -174,6 +236,12 @@ class Inclusion:
     def __post_init__(self):
         if self.shape not in ("sphere", "box"):
             raise ValueError(f"inclusion shape {self.shape!r}: expected 'sphere' or 'box'")
+        if len(self.centre_mm) != 3 or not all(math.isfinite(v) for v in self.centre_mm):
+            raise ValueError(f"inclusion centre_mm {list(self.centre_mm)}: expected 3 finite numbers")
+        if self.shape == "sphere":
+            _positive("sphere inclusion diameter_mm", self.diameter_mm)
+        else:
+            _positive("box inclusion size_mm", self.size_mm, 3)
 
     def volume_mm3(self) -> float:
         if self.shape == "sphere":
@@ -183,7 +251,8 @@ class Inclusion:
 
 @dataclass
 class Compression:
-    """Rigid plates normal to y, closing symmetrically to ``1 - ratio`` of the initial gap."""
+    """Rigid plates normal to y, closing symmetrically to ``1 - ratio`` of the initial gap, one
+    state per ratio: strictly increasing, each in [0, 0.9) (0 is the uncompressed reference)."""
 
     ratios: tuple = (0.15, 0.20, 0.25)
     contact: str = "frictionless"
@@ -191,8 +260,14 @@ class Compression:
     def __post_init__(self):
         if self.contact not in ("frictionless", "bonded"):
             raise ValueError(f"contact {self.contact!r}: expected 'frictionless' or 'bonded'")
+        if not self.ratios:
+            raise ValueError("compression ratios: none given")
         if not all(0 <= r < 0.9 for r in self.ratios):
-            raise ValueError(f"compression ratios {self.ratios} must lie in [0, 0.9)")
+            raise ValueError(f"compression ratios {list(self.ratios)} must lie in [0, 0.9)")
+        # one state per ratio, in the order given: a repeated ratio would silently give one state
+        # fewer, a decreasing one would be reordered (the plates only close)
+        if any(b <= a for a, b in zip(self.ratios, self.ratios[1:])):
+            raise ValueError(f"compression ratios {list(self.ratios)} must increase strictly")
 
 
 #: The two imaging geometries, by the beam direction: through the plates (along the compression
@@ -218,6 +293,8 @@ class Beam:
         self.direction = VIEWS.get(self.direction, self.direction)
         if self.direction not in ("y", "z"):
             raise ValueError(f"beam direction {self.direction!r}: expected 'y' (through_plates) or 'z' (side)")
+        _positive("beam source_distance_mm", self.source_distance_mm)
+        _positive("beam detector_distance_mm", self.detector_distance_mm, zero=True)
 
     @property
     def view(self) -> str:
@@ -263,11 +340,29 @@ class Detector:
 
 @dataclass
 class Exposure:
-    """Open-beam counts per (unbinned) pixel; kV and µA are recorded as metadata."""
+    """Open-beam counts of one read-out pixel (``i0_counts``, above the dark offset: binning does
+    not change it, see :func:`sim.lab.open_beam_counts`); kV and µA are recorded as metadata, and
+    the kV sets the polychromatic spectrum. The tube's and the panel's ranges are checked by
+    :meth:`Scene.validate` (they depend on the anode)."""
 
     i0_counts: float = 2500.0
     voltage_kv: float = 60.0
     current_ua: float = 250.0
+
+    def __post_init__(self):
+        from sim.detector import PanelModel
+
+        _positive("exposure voltage_kv", self.voltage_kv)
+        _positive("exposure current_ua", self.current_ua)
+        _positive("exposure i0_counts", self.i0_counts)
+        # the mean open beam above the model panel's dark offset must stay below the 12-bit
+        # ceiling: beyond it the flats, and every pixel the object does not shade, clip at 4095
+        ceiling = (1 << PanelModel.bits) - 1 - PanelModel.dark_level
+        if self.i0_counts >= ceiling:
+            raise ValueError(
+                f"exposure i0_counts {self.i0_counts:g}: the open beam would saturate the C7942's 12-bit ADC "
+                f"(4095 counts, of which about {PanelModel.dark_level:g} are dark offset): need below {ceiling:g}"
+            )
 
 
 #: Named imaging models: ``paper`` is the paper's (a monochromatic beam, no scatter; the line
@@ -299,7 +394,11 @@ class Imaging:
             raise ValueError(f"imaging beam {self.beam!r}: expected 'monochromatic' or 'polychromatic'")
         if self.anode not in ("auto", "W", "Mo"):
             raise ValueError(f"imaging anode {self.anode!r}: expected 'auto', 'W' or 'Mo'")
-        if not (0 <= self.scatter_fraction < 10 and self.scatter_sigma_mm > 0 and self.blur_sigma_mm >= 0):
+        if not (
+            0 <= self.scatter_fraction < 10
+            and 0 < self.scatter_sigma_mm < math.inf
+            and 0 <= self.blur_sigma_mm < math.inf
+        ):
             raise ValueError("imaging: need 0 <= scatter_fraction < 10, scatter_sigma_mm > 0, blur_sigma_mm >= 0")
 
     @classmethod
@@ -335,8 +434,10 @@ class MeshSpec:
     def __post_init__(self):
         if self.model not in ("auto", "3d", "axisymmetric", "plane-strain"):
             raise ValueError(f"mesh model {self.model!r}: expected auto, 3d, axisymmetric or plane-strain")
-        if not (0 < self.size_inclusion_mm <= self.size_far_mm):
-            raise ValueError("mesh sizes: need 0 < size_inclusion_mm <= size_far_mm")
+        if not (0 < self.size_inclusion_mm <= self.size_far_mm < math.inf):
+            raise ValueError(
+                f"mesh sizes {self.size_inclusion_mm}, {self.size_far_mm}: need 0 < size_inclusion_mm <= size_far_mm, finite"
+            )
         if self.size_contact_mm is not None and not 0 < self.size_contact_mm <= self.size_far_mm:
             raise ValueError("mesh sizes: need 0 < size_contact_mm <= size_far_mm")
 
@@ -365,6 +466,40 @@ class Scene:
     def __post_init__(self):
         if self.wall not in ("none", "sliding", "fixed"):
             raise ValueError(f"wall {self.wall!r}: expected 'none', 'sliding' or 'fixed'")
+        self.validate()
+
+    def validate(self) -> Scene:
+        """Refuse what each part cannot see alone: an inclusion not strictly inside the body,
+        overlapping another or too small for its mesh size; a cone beam's source or detector
+        inside the body; kV and µA outside the tube's or the panel's ratings. Run on
+        construction and again before meshing (a scene's fields may be replaced). Returns the
+        scene."""
+        for i, inc in enumerate(self.inclusions):
+            where = f"inclusions[{i}] ({_describe(inc)})"
+            if not self.body.contains(_hull_points(inc)).all():
+                raise ValueError(
+                    f"scene {self.name!r}: {where} is not strictly inside the {self.body.geometry} body "
+                    "(it touches, crosses or lies outside its surface)"
+                )
+            for j, other in enumerate(self.inclusions[:i]):
+                if _overlap(inc, other):
+                    raise ValueError(f"scene {self.name!r}: {where} touches or overlaps inclusions[{j}]")
+            smallest = inc.diameter_mm if inc.shape == "sphere" else min(inc.size_mm)
+            if self.mesh.size_inclusion_mm > smallest / 2:
+                raise ValueError(
+                    f"scene {self.name!r}: mesh size_inclusion_mm {self.mesh.size_inclusion_mm:g} cannot resolve "
+                    f"{where}: need at most half its smallest extent, {smallest / 2:g} mm"
+                )
+        if self.beam.kind == "cone":
+            extent = self.body.half_extent_mm(self.beam.direction)
+            for name in ("source_distance_mm", "detector_distance_mm"):
+                if getattr(self.beam, name) <= extent:
+                    raise ValueError(
+                        f"scene {self.name!r}: beam {name} {getattr(self.beam, name):g} lies inside the body, which "
+                        f"reaches {extent:g} mm from its centre along {self.beam.direction}"
+                    )
+        _check_tube(self.exposure, self.imaging.anode)
+        return self
 
     # -- TOML ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -398,8 +533,13 @@ class Scene:
             if name in d:
                 kw[name] = _build(typ, d.pop(name), name)
         if "inclusions" in d:
-            kw["inclusions"] = [_build(Inclusion, x, f"inclusions[{i}]") for i, x in enumerate(d.pop("inclusions"))]
-        return cls(**kw, **d)
+            incs = d.pop("inclusions")
+            if not isinstance(incs, list):
+                raise ValueError(f"scene inclusions: expected an array of tables ([[inclusions]]), got {incs!r}")
+            kw["inclusions"] = [_build(Inclusion, x, f"inclusions[{i}]") for i, x in enumerate(incs)]
+        for name, value in d.items():  # name, wall
+            kw[name] = _typed(value, "str", name)
+        return cls(**kw)
 
     @classmethod
     def from_toml(cls, text: str) -> Scene:
@@ -413,16 +553,110 @@ def _build(typ, d, where):
     if not isinstance(d, dict):
         raise ValueError(f"scene {where}: expected a table, got {d!r}")
     d = dict(d)
-    names = {f.name for f in dataclasses.fields(typ)}
-    unknown = set(d) - names
+    types = {f.name: f.type for f in dataclasses.fields(typ) if f.init}
+    unknown = set(d) - set(types)
     if unknown:
-        raise ValueError(f"scene {where}: unknown keys {sorted(unknown)}; known: {sorted(names)}")
-    if "material" in d:
-        d["material"] = _build(Material, d["material"], f"{where}.material")
+        raise ValueError(f"scene {where}: unknown keys {sorted(unknown)}; known: {sorted(types)}")
     for k, v in d.items():
-        if isinstance(v, list):
-            d[k] = tuple(v)
-    return typ(**d)
+        if k == "material":
+            d[k] = _build(Material, v, f"{where}.material")
+        else:
+            d[k] = _typed(v, types[k], f"{where}.{k}")
+    try:
+        return typ(**d)
+    except ValueError as exc:  # the dataclass names the field; this names where it is in the file
+        raise ValueError(f"scene {where}: {exc}") from None
+
+
+def _typed(value, annotation: str, where: str):
+    """``value`` as the field's type (the annotation's text: ``from __future__ import annotations``)
+    or a ValueError naming the key: TOML's types are not Python's (an integer where a number is
+    meant is fine, a string or a boolean is not; ``True > 0`` would pass a range check)."""
+    kind = annotation.split(" | ")[0]
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if kind == "float" and number(value):
+        return float(value)
+    if kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind == "str" and isinstance(value, str) or kind == "bool" and isinstance(value, bool):
+        return value
+    if kind == "tuple" and isinstance(value, (list, tuple)) and all(number(v) for v in value):
+        return tuple(float(v) for v in value)
+    expected = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
+    raise ValueError(f"scene {where}: expected {expected.get(kind, 'a list of numbers')}, got {value!r}")
+
+
+def _hull_points(inc: Inclusion) -> np.ndarray:
+    """Points whose convex hull contains the inclusion: all bodies are convex, so the inclusion
+    is strictly inside one when these points are. A box's corners; for a sphere, 2000 Fibonacci
+    points on a sphere 1 % larger (their hull's inner radius is within 0.4 % of theirs)."""
+    c = np.asarray(inc.centre_mm, float)
+    if inc.shape == "box":
+        return c + np.asarray(inc.size_mm) / 2 * np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
+    n = 2000
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = math.pi * (1 + math.sqrt(5)) * k
+    r = np.sqrt(1 - z * z)
+    return c + 1.01 * inc.diameter_mm / 2 * np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _overlap(a: Inclusion, b: Inclusion) -> bool:
+    """Whether two inclusions touch or overlap (exact for spheres and axis-aligned boxes)."""
+    if a.shape == "box" and b.shape == "box":
+        gap = np.abs(np.subtract(a.centre_mm, b.centre_mm)) - (np.asarray(a.size_mm) + b.size_mm) / 2
+        return bool(np.all(gap <= 0))
+    if a.shape == "box":
+        a, b = b, a
+    c = np.asarray(a.centre_mm, float)
+    if b.shape == "sphere":
+        return float(np.linalg.norm(c - b.centre_mm)) <= (a.diameter_mm + b.diameter_mm) / 2
+    half = np.asarray(b.size_mm) / 2
+    nearest = np.clip(c, np.subtract(b.centre_mm, half), np.add(b.centre_mm, half))
+    return float(np.linalg.norm(c - nearest)) <= a.diameter_mm / 2
+
+
+def _describe(inc: Inclusion) -> str:
+    size = (
+        f"diameter {inc.diameter_mm:g} mm"
+        if inc.shape == "sphere"
+        else "size " + " x ".join(f"{v:g}" for v in inc.size_mm) + " mm"
+    )
+    return f"{inc.shape}, {size}, centre {', '.join(f'{v:g}' for v in inc.centre_mm)} mm"
+
+
+#: The panel: C7942 "-02" models are specified for 20-100 kVp (../shared/hardware/C7942.md).
+PANEL_KV = (20.0, 100.0)
+#: The L8121-01 (tungsten anode): 40-150 kV, up to 500 uA, 75 W (../shared/hardware/L8121.md).
+#: Within the panel's 100 kV, 500 uA is at most 50 W: the power rating cannot bind.
+L8121_KV, L8121_UA = (40.0, 150.0), 500.0
+#: ``anode = "auto"``: molybdenum (a mammography tube) up to this voltage, else the L8121-01.
+AUTO_MO_MAX_KV = 35.0
+
+
+def anode_for(voltage_kv: float, anode: str) -> str:
+    """The anode a scene's tube has: ``W`` (the L8121-01) or ``Mo`` (a mammography tube)."""
+    if anode == "auto":
+        return "Mo" if voltage_kv <= AUTO_MO_MAX_KV else "W"
+    return anode
+
+
+def _check_tube(ex: Exposure, anode: str):
+    kv, ua = ex.voltage_kv, ex.current_ua
+    if not PANEL_KV[0] <= kv <= PANEL_KV[1]:
+        raise ValueError(f"exposure voltage_kv {kv:g}: outside the C7942's rated {PANEL_KV[0]:g}-{PANEL_KV[1]:g} kVp")
+    if anode_for(kv, anode) == "W":
+        how = f"imaging anode {anode!r}" + (f", which is W above {AUTO_MO_MAX_KV:g} kV" if anode == "auto" else "")
+        if not L8121_KV[0] <= kv <= L8121_KV[1]:
+            raise ValueError(
+                f"exposure voltage_kv {kv:g}: the L8121-01 (tungsten anode; {how}) runs "
+                f"{L8121_KV[0]:g}-{L8121_KV[1]:g} kV"
+            )
+        if ua > L8121_UA:
+            raise ValueError(f"exposure current_ua {ua:g}: the L8121-01 gives at most {L8121_UA:g} µA")
 
 
 def _strip_none(obj):

@@ -390,7 +390,7 @@ def test_debug_shows_the_traceback(tmp_path):
     "args, words",
     [
         (["sim", "run", "--preset", "seed-breast", "--ratios", "nan", "-o", "sim.h5"], "--ratios nan"),
-        (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
+        (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "must lie in [0, 0.9)"),
         (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
         (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
         (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder

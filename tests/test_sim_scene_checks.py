@@ -1,0 +1,201 @@
+"""Hostile scenes: each invalid value is refused on loading, in one line naming the key and the
+problem, before gmsh or the solver run (they are made to fail loudly here if reached)."""
+
+import copy
+import tomllib
+
+import pytest
+import tomli_w
+
+from sim.scene import Imaging, Inclusion, Material, MeshSpec, Scene, block_scene, load_scene
+
+
+def base() -> dict:
+    """A 10 mm gel cube with a 3 mm stiff sphere, meshed finely enough to resolve it."""
+    scene = block_scene(size_mm=10.0, ratios=(0.1,))
+    scene.inclusions = [Inclusion("sphere", diameter_mm=3.0)]
+    scene.mesh = MeshSpec(1.0, 2.5, "3d", True)
+    return tomllib.loads(Scene(**vars(scene)).to_toml())
+
+
+def edited(path: str, value) -> dict:
+    d = copy.deepcopy(base())
+    *parents, key = path.split(".")
+    node = d
+    for k in parents:
+        node = node[int(k)] if k.isdigit() else node[k]
+    node[key] = value
+    return d
+
+
+CASES = [
+    # sizes
+    ("body.size_mm", [-10.0, 10.0, 10.0], "size_mm [-10.0, 10.0, 10.0]: expected finite numbers > 0"),
+    ("body.size_mm", [10.0, 0.0, 10.0], "size_mm [10.0, 0.0, 10.0]: expected finite numbers > 0"),
+    ("body.size_mm", [10.0, 10.0], "size_mm [10.0, 10.0]: expected 3 numbers"),
+    ("inclusions.0.diameter_mm", 0.0, "diameter_mm 0.0: expected finite numbers > 0"),
+    ("inclusions.0.centre_mm", [0.0, 0.0], "centre_mm [0.0, 0.0]: expected 3 finite numbers"),
+    # the inclusion against the body (a 10 mm cube)
+    ("inclusions.0.diameter_mm", 20.0, "inclusions[0] (sphere, diameter 20 mm"),  # larger
+    ("inclusions.0.diameter_mm", 10.0, "not strictly inside the box body"),  # touching all faces
+    ("inclusions.0.centre_mm", [3.5, 0.0, 0.0], "not strictly inside"),  # 3.5 + 1.5 = 5: touching a face
+    ("inclusions.0.centre_mm", [4.0, 0.0, 0.0], "not strictly inside"),  # crossing
+    ("inclusions.0.centre_mm", [40.0, 0.0, 0.0], "centre 40, 0, 0 mm) is not strictly inside"),  # outside
+    ("mesh.size_inclusion_mm", 2.0, "size_inclusion_mm 2 cannot resolve inclusions[0]"),
+    # compression
+    ("compression.ratios", [0.2, 0.1], "ratios [0.2, 0.1] must increase strictly"),
+    ("compression.ratios", [0.1, 0.1], "must increase strictly"),
+    ("compression.ratios", [1.0], "must lie in [0, 0.9)"),
+    ("compression.ratios", [], "compression ratios: none given"),
+    ("compression.ratios", 0.1, "scene compression.ratios: expected a list of numbers, got 0.1"),
+    # materials
+    ("body.material.nu", 0.5, "-1 < nu < 0.5, got 5.0, 0.5"),
+    ("body.material.nu", 0.6, "nu < 0.5"),
+    ("body.material.E_kpa", -5.0, "need E > 0"),
+    ("body.material.E_kpa", float("inf"), "got inf"),
+    ("body.material.E_kpa", "5", "scene body.material.E_kpa: expected a number, got '5'"),
+    ("body.material.E_kpa", True, "expected a number, got True"),
+    ("body.material.model", "mooney-rivlin", "model 'mooney-rivlin' is not one of"),
+    ("body.material.mu_kpa", 2.0, "not ['E_kpa', 'nu', 'mu_kpa']"),
+    ("body.material.colour", "red", "scene body.material: unknown keys ['colour']"),
+    # beam, detector, exposure
+    ("beam.source_distance_mm", -500.0, "source_distance_mm -500.0: expected finite numbers > 0"),
+    ("detector.binning", 4.0, "scene detector.binning: expected an integer, got 4.0"),
+    ("detector.binning", "4", "expected an integer, got '4'"),
+    ("detector.binning", 3, "binning 3: expected 1, 2 or 4"),
+    ("exposure.voltage_kv", 120.0, "voltage_kv 120: outside the C7942's rated 20-100 kVp"),
+    ("exposure.voltage_kv", 10.0, "voltage_kv 10: outside the C7942's rated 20-100 kVp"),
+    ("exposure.voltage_kv", 38.0, "voltage_kv 38: the L8121-01 (tungsten anode"),  # auto: W above 35 kV
+    ("exposure.current_ua", 600.0, "current_ua 600: the L8121-01 gives at most 500 µA"),
+    ("exposure.current_ua", -1.0, "current_ua -1.0: expected finite numbers > 0"),
+    ("exposure.i0_counts", 4000.0, "i0_counts 4000: the open beam would saturate"),
+    ("exposure.i0_counts", 0.0, "i0_counts 0.0: expected finite numbers > 0"),
+    ("mesh.size_far_mm", float("inf"), "need 0 < size_inclusion_mm <= size_far_mm, finite"),
+    ("imaging.blur_sigma_mm", float("inf"), "blur_sigma_mm >= 0"),
+    ("name", 5, "scene name: expected a string, got 5"),
+    ("inclusions", {"shape": "sphere"}, "expected an array of tables"),
+]
+
+
+@pytest.fixture
+def no_meshing(monkeypatch):
+    """gmsh and the solver must not be reached by an invalid scene."""
+    import sim.mechanics
+    import sim.mesh
+
+    def reached(*_, **__):
+        raise AssertionError("an invalid scene reached gmsh or the solver")
+
+    monkeypatch.setattr(sim.mesh, "_gmsh", reached)
+    monkeypatch.setattr(sim.mechanics.Solver, "__init__", reached)
+
+
+def test_the_base_scene_is_valid():
+    assert Scene.from_toml(tomli_w.dumps(base())).inclusions[0].diameter_mm == 3.0
+
+
+@pytest.mark.parametrize("path, value, words", CASES, ids=[f"{p}={v!r}" for p, v, _ in CASES])
+def test_an_invalid_scene_value_is_named_on_loading(path, value, words):
+    with pytest.raises(ValueError) as err:
+        Scene.from_toml(tomli_w.dumps(edited(path, value)))
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("case", [0, 6, 11, 29])
+def test_the_cli_refuses_an_invalid_scene_in_one_line_before_meshing(case, no_meshing, tmp_path, capsys):
+    from radiokit.cli import main
+
+    path, value, words = CASES[case]
+    scene = tmp_path / "scene.toml"
+    scene.write_text(tomli_w.dumps(edited(path, value)))
+    assert main(["sim", "run", str(scene), "-o", str(tmp_path / "sim.h5"), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and words in err and str(scene) in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--ratios", "0.25", "0.15"], "--ratios 0.25 0.15: compression ratios [0.25, 0.15] must increase strictly"),
+        (["--ratios", "0.95"], "--ratios 0.95: compression ratios [0.95] must lie in [0, 0.9)"),
+        (["--imaging", "paper", "--view", "side"], None),  # valid: reaches the (refused) meshing
+    ],
+)
+def test_cli_options_are_checked_with_the_scene(args, words, no_meshing, tmp_path, capsys):
+    from radiokit.cli import main
+
+    out = tmp_path / "sim.h5"
+    if words is None:
+        with pytest.raises(AssertionError, match="reached gmsh or the solver"):
+            main(["sim", "run", "--preset", "pva-phantom", "-o", str(out), "-q", *args])
+        return
+    assert main(["sim", "run", "--preset", "pva-phantom", "-o", str(out), "-q", *args]) == 2
+    assert capsys.readouterr().err.strip() == f"radiokit sim: {words}"
+    assert not out.exists()
+
+
+def test_a_scene_changed_after_loading_is_checked_again_before_meshing(no_meshing):
+    """Fields can be replaced after construction (as the tests and benchmarks do): build_mesh
+    checks the whole scene again before gmsh."""
+    from sim.mesh import build_mesh
+
+    scene = load_scene("pva-phantom")
+    scene.inclusions = [Inclusion("sphere", centre_mm=(0.0, 28.0, 0.0), diameter_mm=8.0)]  # above the 60 mm cone
+    with pytest.raises(ValueError, match=r"inclusions\[0\] .* is not strictly inside the truncated-cone body"):
+        build_mesh(scene)
+
+
+@pytest.mark.parametrize(
+    "geometry, inside, outside",
+    [
+        # a 2 mm sphere: the cone's radius at y is 20 + 5 (y + 30) / 60 (40 mm at the bottom, 50 at the top)
+        ("pva-phantom", (0.0, -27.0, 17.0), (0.0, -27.0, 20.0)),  # near the bottom rim: r = 20.25
+        ("pva-phantom", (0.0, 27.0, 23.0), (0.0, 27.0, 24.0)),  # near the top: r = 24.75
+        # the hemi-ellipsoid (50, 25, 25), flat face x = 0
+        ("seed-breast", (1.1, 0.0, 0.0), (0.9, 0.0, 0.0)),  # against the chest wall
+        ("seed-breast", (48.0, 0.0, 0.0), (49.5, 0.0, 0.0)),  # the tip (x = 50, radius of curvature 12.5 mm)
+    ],
+)
+def test_inclusion_containment_follows_each_body_surface(geometry, inside, outside):
+    scene = load_scene(geometry)
+    scene.mesh = MeshSpec(0.5, 5.0, "3d", True)
+
+    def with_sphere(centre):
+        return Scene(**{**vars(scene), "inclusions": [Inclusion("sphere", centre_mm=centre, diameter_mm=2.0)]})
+
+    assert with_sphere(inside).inclusions[0].centre_mm == inside
+    with pytest.raises(ValueError, match="not strictly inside"):
+        with_sphere(outside)
+
+
+def test_inclusions_may_not_overlap():
+    scene = load_scene("pva-phantom")
+    box = scene.inclusions[0]  # 8 x 10 x 8 mm at the origin
+    Scene(**{**vars(scene), "inclusions": [box, Inclusion("sphere", centre_mm=(0.0, 0.0, 9.1), diameter_mm=10.0)]})
+    with pytest.raises(ValueError, match=r"inclusions\[1\] .* overlaps inclusions\[0\]"):
+        Scene(**{**vars(scene), "inclusions": [box, Inclusion("sphere", centre_mm=(0.0, 0.0, 8.9), diameter_mm=10.0)]})
+
+
+def test_the_source_recorded_is_the_scenes_tube():
+    """28 kV with anode ``auto`` is a molybdenum mammography tube, not the L8121-01 (40-150 kV)."""
+    from sim.lab import source_record
+
+    assert source_record(load_scene("seed-breast"))["name"] == "Mo-anode mammography tube (simulated)"
+    assert source_record(load_scene("pva-phantom"))["name"] == "Hamamatsu L8121-01 (simulated)"
+    scene = load_scene("pva-phantom")
+    with pytest.raises(ValueError, match="voltage_kv 30: the L8121-01"):
+        Scene(
+            **{**vars(scene), "imaging": Imaging("polychromatic", "W"), "exposure": type(scene.exposure)(2500.0, 30.0)}
+        )
+    mo = Scene(
+        **{**vars(scene), "imaging": Imaging("polychromatic", "Mo"), "exposure": type(scene.exposure)(2500.0, 30.0)}
+    )
+    assert source_record(mo)["voltage_kv"] == 30.0
+
+
+def test_a_softer_inclusion_is_a_valid_scene():
+    """Not only stiffer inclusions (a tumour): a softer one (a cyst, fat) is a scene too; the
+    mechanics against Eshelby for it is in test_mechanics_closed_form."""
+    scene = Scene.from_toml(tomli_w.dumps(edited("inclusions.0.material", {"E_kpa": 1.0, "nu": 0.45})))
+    assert scene.inclusions[0].material == Material("material", E_kpa=1.0, nu=0.45)
