@@ -739,9 +739,12 @@ class Solver:
                     step /= 2
                     if step < min_step:
                         bar.close()
+                        # the last attempt's reason alone ("step too large") would read as if a
+                        # larger step had been tried; say that the march itself has stalled
                         raise ConvergenceError(
-                            f"scene {self.scene.name!r}: cannot reach compression "
-                            f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %): {exc}"
+                            f"scene {self.scene.name!r}: the solver does not converge: cannot reach compression "
+                            f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %) on the way to {100 * target:.2f} %, "
+                            f"the load step halved below {100 * min_step:.2g} %; last attempt: {exc}"
                         ) from exc
                     continue
                 u, r_now = u_new, r_try
