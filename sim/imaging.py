@@ -18,7 +18,10 @@ relative factor for every material (``mu_m(E) / mu_b(E) = mu_m / mu_b``), chosen
 polychromatic transmission through the body's own undeformed thickness ``match_mm`` equals the
 monochromatic one: the scene's coefficients stay the effective ones where they were measured,
 and what changes is only beam hardening (the effective coefficient falling with depth). The
-detector integrates energy (a CsI scintillator absorbing everything: weight ``E * fluence``).
+detector integrates energy, its scintillator taken to absorb every photon (weight ``E * fluence``):
+the C7942's is GOS on a fibre-optic plate (../shared/hardware/C7942.md), whose absorption falls
+with energy and jumps at gadolinium's K edge (50.2 keV); its thickness is not in the vendor facts,
+so that efficiency is not modelled.
 
 Image side
 ----------
