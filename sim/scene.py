@@ -498,6 +498,12 @@ class Scene:
                         f"scene {self.name!r}: beam {name} {getattr(self.beam, name):g} lies inside the body, which "
                         f"reaches {extent:g} mm from its centre along {self.beam.direction}"
                     )
+        if self.wall != "none" and self.body.geometry != "hemi-ellipsoid":
+            # the mechanics holds the plane x = 0: for any other body an interior plane
+            raise ValueError(
+                f"scene {self.name!r}: wall {self.wall!r} is the flat face x = 0 of a hemi-ellipsoid; "
+                f"a {self.body.geometry} has none (use wall = 'none')"
+            )
         _check_tube(self.exposure, self.imaging.anode)
         return self
 

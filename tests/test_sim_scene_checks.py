@@ -74,6 +74,8 @@ CASES = [
     ("imaging.blur_sigma_mm", float("inf"), "blur_sigma_mm >= 0"),
     ("name", 5, "scene name: expected a string, got 5"),
     ("inclusions", {"shape": "sphere"}, "expected an array of tables"),
+    # held the box's mid-plane x = 0 (plate force 0.65 N instead of 0.125 N at 20 %)
+    ("wall", "fixed", "wall 'fixed' is the flat face x = 0 of a hemi-ellipsoid; a box has none"),
 ]
 
 
