@@ -598,7 +598,8 @@ def _typed(value, annotation: str, where: str):
 def _hull_points(inc: Inclusion) -> np.ndarray:
     """Points whose convex hull contains the inclusion: all bodies are convex, so the inclusion
     is strictly inside one when these points are. A box's corners; for a sphere, 2000 Fibonacci
-    points on a sphere 1 % larger (their hull's inner radius is within 0.4 % of theirs)."""
+    points on a sphere 1 % larger (their hull's facets lie 0.998 of that radius from the centre,
+outside the inclusion: tests/test_sim_scene_checks.py)."""
     c = np.asarray(inc.centre_mm, float)
     if inc.shape == "box":
         return c + np.asarray(inc.size_mm) / 2 * np.array(list(itertools.product((-1.0, 1.0), repeat=3)))

@@ -171,6 +171,19 @@ def test_inclusion_containment_follows_each_body_surface(geometry, inside, outsi
         with_sphere(outside)
 
 
+def test_the_points_checked_for_a_sphere_enclose_it():
+    """The bodies are convex, so a sphere is inside one if the convex hull of the points checked
+    is: every facet plane of that hull must lie farther from the centre than the radius."""
+    from scipy.spatial import ConvexHull
+
+    from sim.scene import _hull_points
+
+    points = _hull_points(Inclusion("sphere", centre_mm=(1.0, -2.0, 3.0), diameter_mm=2.0)) - (1.0, -2.0, 3.0)
+    distances = -ConvexHull(points).equations[:, 3]  # unit outward normals: n.x + c = 0
+    assert distances.min() > 1.0  # the radius
+    assert distances.max() < 1.01 + 1e-12
+
+
 def test_inclusions_may_not_overlap():
     scene = load_scene("pva-phantom")
     box = scene.inclusions[0]  # 8 x 10 x 8 mm at the origin
