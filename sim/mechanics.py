@@ -779,7 +779,7 @@ def compress(
     from sim.scene import load_scene
 
     t0 = time.perf_counter()
-    scene = load_scene(scene)
+    scene = load_scene(scene).validate()  # its fields may have been replaced since it was made
     solver = Solver(scene, fem)
     states = solver.solve(
         scene.compression.ratios if ratios is None else ratios, progress=progress, on_step=on_step, on_state=on_state

@@ -498,6 +498,8 @@ class Scene:
                         f"scene {self.name!r}: beam {name} {getattr(self.beam, name):g} lies inside the body, which "
                         f"reaches {extent:g} mm from its centre along {self.beam.direction}"
                     )
+        if self.body.geometry in ("ellipsoid", "hemi-ellipsoid"):
+            _check_curved_contact(self)
         if self.wall != "none" and self.body.geometry != "hemi-ellipsoid":
             # the mechanics holds the plane x = 0: for any other body an interior plane
             raise ValueError(
@@ -595,11 +597,30 @@ def _typed(value, annotation: str, where: str):
     raise ValueError(f"scene {where}: expected {expected.get(kind, 'a list of numbers')}, got {value!r}")
 
 
+def _check_curved_contact(scene: Scene):
+    """A curved body meets the plates by penalty contact, solved on its half y >= 0 with the
+    other plate mirrored (sim.mechanics): frictionless, and the scene symmetric about y = 0."""
+    name, g = scene.name, scene.body.geometry
+    if scene.compression.contact == "bonded":
+        raise ValueError(
+            f"scene {name!r}: bonded plates need flat faces on the plates; a {g} touches them at a point "
+            "(use contact = 'frictionless')"
+        )
+    if not scene.mesh.symmetry:
+        raise ValueError(f"scene {name!r}: a {g} is solved on its half y >= 0: set mesh.symmetry = true")
+    for i, inc in enumerate(scene.inclusions):
+        if inc.centre_mm[1] != 0:
+            raise ValueError(
+                f"scene {name!r}: inclusions[{i}] is centred at y = {inc.centre_mm[1]:g} mm; a {g} is solved "
+                "on its half y >= 0, so its inclusions must be centred at y = 0"
+            )
+
+
 def _hull_points(inc: Inclusion) -> np.ndarray:
     """Points whose convex hull contains the inclusion: all bodies are convex, so the inclusion
-    is strictly inside one when these points are. A box's corners; for a sphere, 2000 Fibonacci
-    points on a sphere 1 % larger (their hull's facets lie 0.998 of that radius from the centre,
-outside the inclusion: tests/test_sim_scene_checks.py)."""
+        is strictly inside one when these points are. A box's corners; for a sphere, 2000 Fibonacci
+        points on a sphere 1 % larger (their hull's facets lie 0.998 of that radius from the centre,
+    outside the inclusion: tests/test_sim_scene_checks.py)."""
     c = np.asarray(inc.centre_mm, float)
     if inc.shape == "box":
         return c + np.asarray(inc.size_mm) / 2 * np.array(list(itertools.product((-1.0, 1.0), repeat=3)))

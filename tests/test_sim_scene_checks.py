@@ -7,7 +7,7 @@ import tomllib
 import pytest
 import tomli_w
 
-from sim.scene import Imaging, Inclusion, Material, MeshSpec, Scene, block_scene, load_scene
+from sim.scene import Compression, Imaging, Inclusion, Material, MeshSpec, Scene, block_scene, load_scene
 
 
 def base() -> dict:
@@ -182,6 +182,25 @@ def test_the_points_checked_for_a_sphere_enclose_it():
     distances = -ConvexHull(points).equations[:, 3]  # unit outward normals: n.x + c = 0
     assert distances.min() > 1.0  # the radius
     assert distances.max() < 1.01 + 1e-12
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        # reached the solver, which blamed mesh.symmetry (set): the inclusion off y = 0 was the cause
+        ({"inclusions": [Inclusion(centre_mm=(25.0, 3.0, 0.0), diameter_mm=8.0)]}, "centred at y = 3 mm"),
+        ({"mesh": MeshSpec(1.4, 12.0, "3d", False)}, "set mesh.symmetry = true"),
+        ({"compression": Compression((0.2,), "bonded")}, "bonded plates need flat faces"),
+    ],
+)
+def test_a_curved_body_between_plates_is_checked_before_meshing(change, words, no_meshing):
+    from sim.mechanics import compress
+
+    scene = load_scene("seed-breast")
+    for key, value in change.items():
+        setattr(scene, key, value)
+    with pytest.raises(ValueError, match=words):
+        compress(scene)
 
 
 def test_inclusions_may_not_overlap():
