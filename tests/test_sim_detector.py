@@ -50,3 +50,43 @@ def test_dark_frames_are_offset_plus_read_noise_and_bright_ones_clip_at_12_bits(
     # 4x the 12-bit range above the offset: every pixel at 4095 (the C7942's ADC), none beyond
     bright = panel.flat_frames(3, i0=4.0 * panel.saturation, rng=np.random.default_rng(3))
     assert bright.dtype == np.uint16 and np.all(bright == 4095) and panel.saturation == 4095
+
+
+@pytest.mark.parametrize("domain", ["linear", "log"])
+def test_predicted_cnr_matches_sampled_poisson_noise(domain):
+    """``sim.study.predicted_cnr`` against CNRs measured on images with Poisson noise
+    (``sim.study.add_noise``). Uniform background and inclusion, registration exact (the moving
+    image is already on the reference): the only background variance is the noise. In the
+    paper's linear domain ``-q / N`` has variance ``e^-L / N`` exactly; in the log domain
+    ``e^L / N`` to first order (the next term is ``e^L / N`` smaller: 0.1 % here). The enhanced
+    image ``R + k (R - M - mean D)`` then has ``(1 + k)^2 var_R + k^2 var_M``. Each sampled CNR
+    scatters by its background's ``1 / sqrt(2 m)`` and its ROI means; the mean of n samples is
+    compared within five of its standard errors, taken from the samples themselves."""
+    from radiokit.enhance import compression_contrast, to_domain
+    from radiokit.measure import cnr
+    from sim import study
+
+    n, counts, samples = 160, 2000.0, 24
+    inside = (slice(60, 100), slice(60, 100))
+    reference, moving = np.full((n, n), 1.0), np.full((n, n), 0.9)
+    reference[inside], moving[inside] = 1.3, 1.25
+    mask = np.zeros((n, n), bool)
+    mask[inside] = True
+    zero = np.zeros((2, n, n), np.float32)
+    pair = study.ImagePair(reference, moving, moving.copy(), zero, zero, mask, 0.25, None, "side")
+    h = study.headline(pair)
+    predicted = study.predicted_cnr(pair, h, counts, domain)
+    assert set(predicted) == {"reference", "1", "2"}
+    rng = np.random.default_rng(11)
+    pixels = study._PIXELS[domain]
+    measured = {key: [] for key in predicted}
+    for _ in range(samples):
+        r = to_domain(study.add_noise(reference, counts, rng), pixels)
+        m = to_domain(study.add_noise(moving, counts, rng), pixels)
+        measured["reference"].append(cnr(r, h.inclusion, h.background))
+        for k in ("1", "2"):
+            enhanced = compression_contrast(r, m, float(k), domain=pixels)
+            measured[k].append(cnr(enhanced, h.inclusion, h.background))
+    for key, values in measured.items():
+        standard_error = np.std(values, ddof=1) / np.sqrt(samples)
+        assert np.mean(values) == pytest.approx(predicted[key], abs=5 * standard_error), key
