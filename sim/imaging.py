@@ -15,7 +15,8 @@ The scene gives one coefficient per material, an effective one (the paper's are 
 transmission values at the operating voltage). Each material's ``mu(E)`` is water's shape
 (tissues and gels are water-like, Z_eff 6.5-7.5, between 15 and 60 keV) times a factor, the same
 relative factor for every material (``mu_m(E) / mu_b(E) = mu_m / mu_b``), chosen so that the
-polychromatic transmission through the body's own undeformed thickness ``match_mm`` equals the
+polychromatic transmission through ``match_mm`` (:func:`for_scene`: the undeformed gap between the
+plates, whatever the view) equals the
 monochromatic one: the scene's coefficients stay the effective ones where they were measured,
 and what changes is only beam hardening (the effective coefficient falling with depth). The
 detector integrates energy, its scintillator taken to absorb every photon (weight ``E * fluence``):
