@@ -87,7 +87,10 @@ class Material:
             raise ValueError(f"material {self.name!r}: model {self.model!r} is not one of {', '.join(MATERIAL_MODELS)}")
         if self.E_kpa is not None and self.nu is not None:
             if not (0 < self.E_kpa < math.inf and -1 < self.nu < 0.5):
-                raise ValueError(f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu}")
+                raise ValueError(
+                    f"material {self.name!r}: need E > 0 and -1 < nu < 0.5, got {self.E_kpa}, {self.nu} "
+                    "(the energies are compressible: a nearly incompressible gel is nu = 0.495)"
+                )
         elif self.mu_kpa is not None and self.kappa_kpa is not None:
             if not (0 < self.mu_kpa < math.inf and 0 < self.kappa_kpa < math.inf):
                 raise ValueError(
