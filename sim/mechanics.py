@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,6 +73,18 @@ class ConvergenceError(RadiokitError, RuntimeError):
     """The solver could not reach a requested compression (the message names it)."""
 
 
+#: St Venant-Kirchhoff (the ``linear`` material) in uniaxial stress: nominal stress
+#: ``P = E s (s^2 - 1) / 2`` at stretch ``s``, ``dP/ds = E (3 s^2 - 1) / 2``: it peaks at
+#: ``s = 1 / sqrt(3)`` (42.3 % compression) and falls beyond, down to zero at total collapse, so
+#: there the model no longer describes a solid (its strain is then meaningless, and the solver
+#: may stall: the march's step halving ends in ConvergenceError).
+SVK_LIMIT_STRETCH = 1.0 / math.sqrt(3.0)
+
+
+class MaterialWarning(UserWarning):
+    """A material model used beyond the range where it describes a solid."""
+
+
 @dataclass
 class State:
     """One equilibrium state.
@@ -96,6 +109,10 @@ class State:
     inclusion_strain, background_strain : float
         Volume-averaged compressive strain ``1 - F_yy`` of the inclusions and of the background:
         their ratio is the elasticity contrast the method relies on.
+    linear_min_stretch : float
+        The smallest principal stretch at any quadrature point of a ``linear`` (St Venant-Kirchhoff)
+        material (NaN without one): below :data:`SVK_LIMIT_STRETCH` that model no longer describes
+        a solid (a :class:`MaterialWarning` says so).
     """
 
     ratio: float
@@ -108,6 +125,7 @@ class State:
     contact_area_mm2: float = 0.0
     inclusion_strain: float = float("nan")
     background_strain: float = float("nan")
+    linear_min_stretch: float = float("nan")
     solver: Solver = field(default=None, repr=False, compare=False)  #: mesh and dof layout
 
 
@@ -686,7 +704,17 @@ class Solver:
             contact_area_mm2=area * self.force_multiplicity,
             inclusion_strain=inc_strain,
             background_strain=bg_strain,
+            linear_min_stretch=self._svk_min_stretch(ev["F"]),
         )
+
+    def _svk_min_stretch(self, F) -> float:
+        """The smallest principal stretch (square root of C = F^T F's eigenvalues) over the
+        quadrature points of St Venant-Kirchhoff elements; NaN without any."""
+        if not self.svk.any():
+            return float("nan")
+        Fs = F[self.svk]
+        C = np.einsum("eqki,eqkj->eqij", Fs, Fs)
+        return float(np.sqrt(max(np.linalg.eigvalsh(C)[..., 0].min(), 0.0)))
 
     def _strains(self, F):
         """Volume-averaged compressive strain 1 - F_yy of the inclusions and of the background."""
@@ -761,6 +789,15 @@ class Solver:
                 delta = target * self.gap0 * per_plate
                 states.append(self._state(u, ev, target, delta, iters_total, total_steps))
                 states[-1].solver = self
+                if states[-1].linear_min_stretch < SVK_LIMIT_STRETCH:
+                    warnings.warn(
+                        f"scene {self.scene.name!r} at compression {100 * target:.2f} %: a 'linear' (St "
+                        f"Venant-Kirchhoff) material is stretched to {states[-1].linear_min_stretch:.3f}, below "
+                        f"1/sqrt(3) = {SVK_LIMIT_STRETCH:.3f} where its stress peaks and then falls: it no longer "
+                        "describes a solid there (use neo-hookean)",
+                        MaterialWarning,
+                        stacklevel=2,
+                    )
                 if on_state is not None:
                     on_state(states[-1])
             bar.update(1)

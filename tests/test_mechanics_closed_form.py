@@ -231,3 +231,31 @@ def test_tangent_modulus_of_the_nearly_incompressible_block():
         lo, _ = uniaxial_block_force(max(strain - h, 0.0), E0, nu, 1.0)
         slope_kpa = (hi - lo) / (strain + h - max(strain - h, 0.0)) * 1e3
         assert slope_kpa == pytest.approx(float(neo_hookean_tangent_modulus(E0, strain)), rel=1 - 2 * nu)
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.45])
+def test_st_venant_kirchhoff_block_and_its_limit_point(nu):
+    """The ``linear`` material (St Venant-Kirchhoff) in homogeneous uniaxial compression: the
+    lateral Green-Lagrange strain is ``-nu`` times the axial one (so ``S_lat = 0``), the axial
+    2nd Piola-Kirchhoff stress ``E (s^2 - 1) / 2`` whatever ``nu``, and the plate force the nominal
+    stress ``E s (1 - s^2) / 2`` times the undeformed area, exactly (the FE field is exact here:
+    tolerance 1e-6 of the force). It peaks at ``s = 1/sqrt(3)`` (42.3 %) and falls beyond: there
+    the solver warns (MaterialWarning) that the material no longer describes a solid, and only
+    there."""
+    from sim.mechanics import SVK_LIMIT_STRETCH, MaterialWarning
+    from sim.scene import block_scene
+
+    E, ratios = 5.0, (0.2, 0.4, 0.5, 0.6)
+    scene = block_scene(size_mm=10.0, E_kpa=E, nu=nu, ratios=ratios)
+    scene.body.material = Material("svk", "linear", E_kpa=E, nu=nu)
+    with pytest.warns(MaterialWarning) as caught:
+        states = compress(scene)
+    for s in states:
+        stretch = 1 - s.ratio
+        assert s.plate_force_n == pytest.approx(E * 1e-3 * stretch * (1 - stretch**2) / 2 * 100.0, rel=1e-6)
+        assert s.linear_min_stretch == pytest.approx(stretch, abs=1e-6)
+    assert states[2].plate_force_n < states[1].plate_force_n  # past the peak
+    warned = [str(w.message) for w in caught if issubclass(w.category, MaterialWarning)]
+    beyond = [r for r in ratios if 1 - r < SVK_LIMIT_STRETCH]
+    assert beyond == [0.5, 0.6] and len(warned) == len(beyond)
+    assert all(f"compression {100 * r:.2f} %" in m for r, m in zip(beyond, warned))

@@ -253,10 +253,11 @@ def test_uncoupled_block_force_matches_closed_form():
 
 
 def test_a_genuine_non_convergence_says_so():
-    """A stiff St Venant-Kirchhoff ("linear") cylinder in a plane-strain block, squeezed towards
-    85 %: that material's energy is not convex in compression, the elements round it collapse
-    near 40 % and the march stalls. It must end in one ConvergenceError that says the solver does
-    not converge, where, and what was asked, not in NaNs (plane strain: a fraction of a second)."""
+    """A 3 mm cylinder 60 times stiffer than the gel of a plane-strain block, squeezed towards
+    85 %: the gel crushed against the inclusion's poles inverts elements near 40 % on this mesh
+    (measured: a neo-Hookean inclusion alike; a 0.5 mm mesh stalls at 30 %) and the march stalls.
+    It must end in one ConvergenceError that says the solver does not converge, where, and what
+    was asked, not in NaNs (plane strain: a fraction of a second)."""
     from sim.mechanics import ConvergenceError
     from sim.scene import Inclusion, Material, MeshSpec
 
