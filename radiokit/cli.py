@@ -293,9 +293,24 @@ def _one_image(path, index, dataset, allow_external=False):
         return np.asarray(src[index], np.float32)
 
 
+def _check_preset(args) -> None:
+    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process)."""
+    from radiokit.register import BSPLINE_METHODS
+
+    if args.preset and args.method not in BSPLINE_METHODS:
+        raise ValueError(
+            f"--preset {args.preset}: presets are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), "
+            f"not --method {args.method}"
+        )
+
+
+#: Config's field names as ``radiokit process`` spells them, for its one-line errors
+_PROCESS_OPTIONS = {"ks=": "--k ", "crop_mm=": "--crop-mm ", "method=": "--method ", "cross_check=": "--cross-check "}
+
+
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
-    from radiokit.register import BSPLINE_METHODS, register, with_default_preset
+    from radiokit.register import register, with_default_preset
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
     moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
@@ -313,7 +328,14 @@ def cmd_register(args) -> int:
     _hdf5_name(args.output)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
-    options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}
+    if args.png is not None:  # matplotlib refused it only after the registration and -o were written
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        kinds = FigureCanvasBase.get_supported_filetypes()
+        if args.png.suffix.lower().lstrip(".") not in kinds:
+            raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+    _check_preset(args)
+    options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
     try:
         reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
@@ -369,13 +391,10 @@ def _register_png(path, fixed, moving, registered, reg):
     plt.close(fig)
 
 
-def cmd_process(args) -> int:
-    from radiokit.io import check_output
-    from radiokit.pipeline import Config, output_folders, process, process_many
-    from radiokit.results import Results
+def _process_config(args, opts):
+    from radiokit.pipeline import Config
 
-    opts = {"preset": args.preset} if args.preset else {}
-    cfg = Config(
+    return Config(
         ks=tuple(args.k),
         domain=args.domain,
         method=args.method,
@@ -389,6 +408,30 @@ def cmd_process(args) -> int:
         control=str(args.control) if args.control else None,
         cross_check=None if args.cross_check in ("none", "") else args.cross_check,
     )
+
+
+def cmd_process(args) -> int:
+    from radiokit.io import check_output
+    from radiokit.pipeline import output_folders, process, process_many
+    from radiokit.results import Results
+
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers {args.workers}: expected at least one worker")
+    for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
+        if Path(f).is_dir():
+            raise ValueError(f"{f}: is a folder, not an experiment file")
+    if args.control and not args.control.exists():  # checked now, not after the main file's registrations
+        raise ValueError(f"--control {args.control}: no such experiment file")
+    _check_preset(args)
+    opts = {"preset": args.preset} if args.preset else {}
+    try:
+        cfg = _process_config(args, opts)
+    except ValueError as exc:  # Config names its fields; the user typed the options
+        text = str(exc)
+        for field, option in _PROCESS_OPTIONS.items():
+            if text.startswith(field):
+                text = option + text[len(field) :]
+        raise ValueError(text) from None
     inputs = [*args.files, *([args.control] if args.control else [])]
     single = len(args.files) == 1 and not args.scheduler
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)

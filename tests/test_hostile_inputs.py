@@ -372,13 +372,44 @@ def test_process_on_unusable_files(case, tmp_path):
         (["--fixed-frame", "7"], "frame 7"),
         (["--roi", "0", "500", "0", "10"], "--roi"),
         (["--method", "nosuch"], "nosuch"),
+        (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # was dropped without a word
+        (["--png", "reg.txt"], "--png"),  # matplotlib refused it after reg.h5 was written
+        (["--png", "reg"], "--png"),
     ],
 )
 def test_register_bad_arguments(args, words, tmp_path):
     img = tmp_path / "img.tif"
     tifffile.imwrite(img, np.random.default_rng(0).random((32, 32), np.float32))
-    one_line_error(run("register", img, img, *args, "-o", tmp_path / "reg.h5"), words)
-    assert not (tmp_path / "reg.h5").exists()
+    one_line_error(run("register", img, img, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.tif"]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--k", "0"], "--k 0"),  # IF(0) = 1 whatever the data
+        (["--k", "1", "-2"], "--k 1 -2"),
+        (["--k", "1e308"], "--k 1e+308"),  # overflowed float32 after the registrations
+        (["--crop-mm", "-5"], "--crop-mm -5"),
+        (["--crop-mm", "nan"], "--crop-mm nan"),
+        (["--method", "nosuch"], "--method 'nosuch'"),  # found only at the first registration
+        (["--cross-check", "nosuch"], "--cross-check 'nosuch'"),  # only after the main registration
+        (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # a traceback
+        (["--workers", "0"], "--workers 0"),
+        (["--control", "missing.h5"], "--control missing.h5"),  # only after the main file's work
+        (["--control", "."], "is a folder"),
+    ],
+)
+def test_process_refuses_bad_options_before_any_work(args, words, tmp_path):
+    path = _experiment(tmp_path / "exp.h5")  # no inclusion: any work would fail saying so
+    one_line_error(run("process", path, *args, "-o", tmp_path / "res", cwd=tmp_path), words)
+    assert not (tmp_path / "res").exists()
+
+
+def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
+    # its default results folder is the folder itself: "is the input exp: never overwritten" before
+    (tmp_path / "exp").mkdir()
+    one_line_error(run("process", "exp", "-q", cwd=tmp_path), "exp: is a folder, not an experiment file")
 
 
 def test_debug_shows_the_traceback(tmp_path):
