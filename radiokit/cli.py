@@ -170,6 +170,7 @@ def _parse_thresholds(items) -> dict:
     from radiokit.calibrate import Thresholds
 
     known = [f.name for f in fields(Thresholds)]
+    whole = {f.name for f in fields(Thresholds) if f.type == "int"}  # saturation, smooth_block
     out = {}
     for item in items or ():
         key, sep, value = item.partition("=")
@@ -178,12 +179,21 @@ def _parse_thresholds(items) -> dict:
         if key.strip() not in known:
             raise ValueError(f"--threshold {item!r}: unknown name {key.strip()!r}; known: {', '.join(known)}")
         try:
-            number = float(value) if key.strip() != "saturation" else int(value)
+            number = int(value) if key.strip() in whole else float(value)
         except ValueError:
-            raise ValueError(f"--threshold {item!r}: {value!r} is not a number") from None
+            kind = "a whole number" if key.strip() in whole else "a number"
+            raise ValueError(f"--threshold {item!r}: {value!r} is not {kind}") from None
         if not np.isfinite(number):
             raise ValueError(f"--threshold {item!r}: a threshold must be a finite number")
+        try:  # each in its domain, before any frame is read
+            Thresholds(**{key.strip(): number})
+        except ValueError as exc:
+            raise ValueError(f"--threshold {item!r}: {exc}") from None
         out[key.strip()] = number
+    try:  # and together (dead_below <= under_below)
+        Thresholds(**out)
+    except ValueError as exc:
+        raise ValueError(f"--threshold {' '.join(items)}: {exc}") from None
     return out
 
 
@@ -223,6 +233,8 @@ def cmd_calibrate(args) -> int:
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
     _hdf5_name(args.output)
+    if args.experiment and (args.dark or args.flat):  # the files given were silently not used
+        raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
     if args.experiment:
         cal = Calibration.from_experiment(args.experiment, allow_external=args.allow_external, **th)
     else:

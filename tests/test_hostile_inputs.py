@@ -280,11 +280,25 @@ def test_itex_vendor_files_still_parse():
 
 
 # -- bad values --------------------------------------------------------------------------------
-@pytest.mark.parametrize("value", ["eps=nan", "eps=inf", "dead_below=-inf", "saturation=abc", "nosuch=1", "eps"])
+@pytest.mark.parametrize(
+    "value",
+    [
+        *["eps=nan", "eps=inf", "dead_below=-inf", "saturation=abc", "nosuch=1", "eps"],
+        # out of their domains: dead_below=5 marked every pixel dead and wrote the calibration
+        *["dead_below=5", "eps=-1", "saturation=0", "over_above=0.5", "line_fraction=2", "smooth_block=1.5"],
+    ],
+)
 def test_a_bad_threshold_is_refused_before_anything_is_written(value, tmp_path):
     path = _experiment(tmp_path / "exp.h5")
     res = run("calibrate", "--experiment", path, "--threshold", value, "-o", tmp_path / "cal.h5")
     one_line_error(res, "--threshold", value)
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_calibrate_refuses_an_experiment_and_dark_or_flat_files_together(tmp_path):
+    path = _experiment(tmp_path / "exp.h5")  # the --dark files were silently not used
+    res = run("calibrate", "--experiment", path, "--dark", path, "-o", tmp_path / "cal.h5")
+    one_line_error(res, "--experiment", "not both")
     assert not (tmp_path / "cal.h5").exists()
 
 
