@@ -438,6 +438,26 @@ def test_debug_shows_the_traceback(tmp_path):
         (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "between 0 and 1"),
         (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
         (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+        # merged into one state without a word
+        (["sim", "run", "--preset", "seed-breast", "--ratios", "0.2", "0.2", "-o", "sim.h5"], "--ratios 0.2 0.2"),
+        (["sim", "run", "--preset", "seed-breast", "--seed", "-1", "-o", "sim.h5"], "--seed -1"),  # after the mechanics
+        (["sim", "run", "--preset", "seed-breast", "--save-scene", "sim.h5", "-o", "sim.h5"], "the same file as -o"),
+        # petabytes of frames: refused by the free space before the mechanics, the scene not written first
+        (
+            [
+                "sim",
+                "run",
+                "--preset",
+                "seed-breast",
+                "--frames",
+                "100000000",
+                "--save-scene",
+                "s.toml",
+                "-o",
+                "sim.h5",
+            ],
+            "no space left",
+        ),
         (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
     ],
 )
