@@ -77,6 +77,9 @@ def _run(args) -> int:
         return 2
     if args.output:
         p.output = str(args.output)
+    if Path(p.output).suffix.lower() not in (".h5", ".hdf5", ".nxs"):  # an HDF5 file under x.tif fooled readers
+        print(f"error: {p.output}: the experiment file is HDF5; name it .h5 (or .hdf5, .nxs)", file=sys.stderr)
+        return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
