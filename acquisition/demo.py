@@ -119,12 +119,29 @@ def run_demo(
     direction (``"through_plates"`` or ``"side"``; default: the preset's own), ``imaging`` the
     imaging model (``"paper"`` or ``"experiment"``; default: the preset's, ``sim.scene.Imaging``)."""
     from acquisition.protocols import run, sim_devices
+    from radiokit.io import check_free_space
     from radiokit.pipeline import Config, process
     from sim.bench import VirtualBench
     from sim.scene import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(preset)  # a bad preset is refused before the folder is claimed
+    # so are the rest: a bad --frames left the claimed folder behind, and a bad --method was found
+    # only after both acquisitions
+    if int(frames_per_step) != frames_per_step or frames_per_step < 1:
+        raise ValueError(f"--frames {frames_per_step}: expected a whole number of frames per step, at least 1")
+    from radiokit.register import BSPLINE_METHODS
+
+    if method not in BSPLINE_METHODS:  # the demo runs the pipeline's presets, which are theirs
+        raise ValueError(f"--method {method}: the demo registers with a B-spline method: {', '.join(BSPLINE_METHODS)}")
+    cfg = Config(
+        control=str(Path(out_dir) / "control.h5"),
+        progress=progress,
+        method=method,
+        register_options={"preset": register_preset},
+    )
+    side = 2240 // (int(binning) if binning else 1)  # uint16 frames of both series, per step
+    check_free_space(Path(out_dir) / "experiment.h5", 2 * side**2 * 2 * (darks + flats + frames_per_step * 3))
     out = _demo_folder(out_dir, overwrite)
     if view:
         from sim.scene import with_view
@@ -165,9 +182,6 @@ def run_demo(
             files["frames"] = res.frames_total
             files["per_frame_overhead_ms"] = 1000 * sorted(res.per_frame_overhead_s)[len(res.per_frame_overhead_s) // 2]
     t = time.perf_counter()
-    cfg = Config(
-        control=files["control"], progress=progress, method=method, register_options={"preset": register_preset}
-    )
     result = process(files["experiment"], cfg, out_dir=out / "results", overwrite=overwrite)
     timings["process_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
@@ -259,7 +273,7 @@ def add_demo(subparsers):
         help="paper: monochromatic beam, no scatter; experiment (the presets'): tube spectrum and scatter",
     )
     p.add_argument("--frames", type=int, default=2, help="frames per compression step (default 2)")
-    p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd (the same B-spline)")
+    p.add_argument("--method", default="rc", help="registration: rc (default), or ncc / ssd / mi (the same B-spline)")
     p.add_argument(
         "--dialect",
         choices=("A", "B"),

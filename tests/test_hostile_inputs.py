@@ -459,6 +459,9 @@ def test_debug_shows_the_traceback(tmp_path):
             "no space left",
         ),
         (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
+        (["demo", "--frames", "0", "-o", "demo"], "--frames 0"),  # the claimed folder was left behind
+        (["demo", "--method", "tvl1", "-o", "demo"], "--method tvl1"),  # found after both acquisitions
+        (["demo", "--frames", "10000000", "-o", "demo"], "no space left"),  # terabytes of frames
     ],
 )
 def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):
