@@ -655,8 +655,16 @@ def _add_process_options(p):
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose usage errors are one line, as every other error (argparse printed
+    the whole usage, up to eight lines, above it); the subcommands' parsers are of this class too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
+    parser = _Parser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
     parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -426,6 +426,23 @@ def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
     one_line_error(run("process", "exp", "-q", cwd=tmp_path), "exp: is a folder, not an experiment file")
 
 
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["register", "a.tif", "b.tif", "-o", "r.h5", "--preset", "nosuch"], "--preset"),
+        (["process"], "files"),
+        (["info", "--sample", "x", "a.tif"], "--sample"),
+        (["sim", "run", "-o", "s.h5"], "radiokit sim run: "),
+        (["nosuch"], "nosuch"),
+    ],
+)
+def test_a_usage_error_is_one_line(args, words, tmp_path):
+    # argparse printed the whole usage (up to eight lines) above its error
+    line = one_line_error(run(*args, cwd=tmp_path), words)
+    assert line.endswith("--help)")
+    assert not any(tmp_path.iterdir())
+
+
 def test_debug_shows_the_traceback(tmp_path):
     res = run("info", tmp_path / "missing.h5", env={"RADIOKIT_DEBUG": "1"})
     assert res.returncode != 0 and "Traceback" in res.stderr
