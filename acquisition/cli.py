@@ -46,8 +46,8 @@ def add_acquire(subparsers):
         type=int,
         help="the controller's baud rate (default: the dialect's; auto tries this one first, then 9600, 38400, 115200)",
     )
-    s.add_argument("--kv", type=float, help="tube voltage for 'on' (kV)")
-    s.add_argument("--ua", type=float, help="tube current for 'on' (uA)")
+    s.add_argument("--kv", type=float, help="tube voltage for 'on', kV (the L8121: 40-150, at most 75 W)")
+    s.add_argument("--ua", type=float, help="tube current for 'on', uA (the L8121: at most 500)")
     s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
     p.set_defaults(func=_run)
 

@@ -498,8 +498,18 @@ def _print_headline(record, files):
 
 # -- parser ------------------------------------------------------------------------------------
 def _add_info(sub):
-    p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
-    p.add_argument("files", nargs="+", type=Path)
+    p = sub.add_parser(
+        "info",
+        help="describe frame files (format, geometry, range, metadata)",
+        description="Describe frame files: format, frames x rows x cols, pixel type, value range, saturated "
+        "and NaN/inf pixels (in --sample evenly spaced frames) and the metadata that matters.",
+    )
+    p.add_argument(
+        "files",
+        nargs="+",
+        type=Path,
+        help="frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--sample",
@@ -514,15 +524,28 @@ def _add_info(sub):
 
 
 def _add_calibrate(sub):
-    p = sub.add_parser("calibrate", help="build a dark/flat/defect calibration")
-    p.add_argument("--dark", nargs="+", type=Path, help="dark frame files")
-    p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam) frame files")
+    p = sub.add_parser(
+        "calibrate",
+        help="build a dark/flat/defect calibration",
+        description="Average darks (beam off) and flats (open beam, phantom out) and classify defective "
+        "pixels and lines, from frame files or from an experiment file's own darks and flats.",
+    )
+    p.add_argument(
+        "--dark",
+        nargs="+",
+        type=Path,
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+    )
+    p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
     p.add_argument(
         "--threshold",
         action="append",
         metavar="NAME=VALUE",
-        help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable",
+        help="a defect threshold, repeatable: dead_below, under_below, over_above (relative response), "
+        "noisy_factor, line_deviation, line_noise_factor, line_fraction, clip_sigma, eps (counts), "
+        "saturation (ADC value, default 4095), smooth_block (px); radiokit.calibrate.Thresholds has each "
+        "default",
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
@@ -531,8 +554,19 @@ def _add_calibrate(sub):
 
 
 def _add_correct(sub):
-    p = sub.add_parser("correct", help="dark/flat/defect-correct frames to transmission or line integral")
-    p.add_argument("frames", nargs="+", type=Path)
+    p = sub.add_parser(
+        "correct",
+        help="dark/flat/defect-correct frames to transmission or line integral",
+        description="Correct frames with a calibration (offset, gain, defect pixels and lines filled and "
+        "flagged) to line integrals -ln(I/I0), transmission I/I0 or gain-corrected counts, streamed frame by "
+        "frame into one HDF5 or TIFF stack.",
+    )
+    p.add_argument(
+        "frames",
+        nargs="+",
+        type=Path,
+        help="frame files (raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
+    )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(
         "--domain",
@@ -548,9 +582,19 @@ def _add_correct(sub):
 
 
 def _add_register(sub):
-    p = sub.add_parser("register", help="non-rigid registration of MOVING onto FIXED (residual complexity by default)")
-    p.add_argument("fixed", type=Path, help="fixed image file (e.g. a corrected line-integral frame)")
-    p.add_argument("moving", type=Path, help="moving image file")
+    p = sub.add_parser(
+        "register",
+        help="non-rigid registration of MOVING onto FIXED (residual complexity by default)",
+        description="Register one frame of MOVING onto one of FIXED; write the pull field (pixels, (row, col)), "
+        "the registered image and the quality checks. Exit code 1 when the result is flagged not ok.",
+    )
+    p.add_argument(
+        "fixed",
+        type=Path,
+        help="fixed image file: TIFF, HDF5 or any format `radiokit info` reads (e.g. a line-integral frame "
+        "from `radiokit correct --domain log`)",
+    )
+    p.add_argument("moving", type=Path, help="moving image file, of the fixed image's size")
     p.add_argument(
         "--method", default="rc", help="rc (default), ssd, ncc, mi, or a peer: tvl1, ilk, dis, farneback, ..."
     )
@@ -573,11 +617,15 @@ def _add_register(sub):
     p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
-    p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
+    p.add_argument(
+        "--retry",
+        action="store_true",
+        help="B-spline methods: retry a registration flagged not ok with 10x stronger regularisation",
+    )
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"
     )
-    p.add_argument("--png", type=Path, help="also write an overlay and det J figure")
+    p.add_argument("--png", type=Path, help="also write an overlay and det J figure (.png, .pdf, .svg, ...)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.set_defaults(func=cmd_register)
 
@@ -602,7 +650,9 @@ def _add_process(sub):
         action="store_true",
         help="replace an existing results folder radiokit made (never one holding an input)",
     )
-    p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors (default 1 2)")
+    p.add_argument(
+        "--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors, each in (0, 100] (default 1 2)"
+    )
     p.add_argument(
         "--domain",
         choices=["negative", "log"],
@@ -620,21 +670,22 @@ def _add_process(sub):
         "--crop-mm",
         type=float,
         default=30.0,
-        help="side of the registered square around the inclusion, mm (0: the whole frame)",
+        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0: the whole frame)",
     )
     p.add_argument(
         "--inclusion",
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="inclusion rectangle (default: found automatically)",
+        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in pixels (mm with --mm) "
+        "(default: found automatically)",
     )
     p.add_argument(
         "--background",
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="background rectangle (default: beside the inclusion)",
+        help="background rectangle, as --inclusion (default: beside the inclusion)",
     )
     _add_process_options(p)
     p.set_defaults(func=cmd_process)

@@ -15,10 +15,14 @@ def add_sim(subparsers):
         "model C7942 and write an experiment file with /entry/simulation (the truth).",
     )
     src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("scene", nargs="?", type=Path, help="scene TOML file")
+    src.add_argument("scene", nargs="?", type=Path, help="scene TOML file (`--save-scene` writes a preset's)")
     src.add_argument("--preset", help="a built-in scene: seed-breast or pva-phantom")
     r.add_argument(
-        "--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25"
+        "--ratios",
+        type=float,
+        nargs="+",
+        help="compression ratios, fractions of the body's height, each once, in (0, 1) (default: the scene's), "
+        "e.g. 0.15 0.2 0.25",
     )
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
