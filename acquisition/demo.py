@@ -92,6 +92,29 @@ def control_scene(scene):
     return dataclasses.replace(scene, name=f"{scene.name}-control", inclusions=incs)
 
 
+def _checked_config(out_dir, frames_per_step, method, register_preset, binning, n_calibration, progress):
+    """The pipeline's configuration, and the arguments checked before the folder is claimed: a bad
+    ``--frames`` left the claimed folder behind, a bad ``--method`` was found only after both
+    acquisitions, and a huge ``--frames`` started terabytes of frames."""
+    from radiokit.io import check_free_space
+    from radiokit.pipeline import Config
+    from radiokit.register import BSPLINE_METHODS
+
+    if int(frames_per_step) != frames_per_step or frames_per_step < 1:
+        raise ValueError(f"--frames {frames_per_step}: expected a whole number of frames per step, at least 1")
+    if method not in BSPLINE_METHODS:  # the demo runs the pipeline's presets, which are theirs
+        raise ValueError(f"--method {method}: the demo registers with a B-spline method: {', '.join(BSPLINE_METHODS)}")
+    cfg = Config(
+        control=str(Path(out_dir) / "control.h5"),
+        progress=progress,
+        method=method,
+        register_options={"preset": register_preset},
+    )
+    side = 2240 // (int(binning) if binning else 1)  # uint16 frames of both series (three steps each)
+    check_free_space(Path(out_dir) / "experiment.h5", 2 * side**2 * 2 * (n_calibration + frames_per_step * 3))
+    return cfg
+
+
 def run_demo(
     out_dir="out/demo",
     *,
@@ -119,29 +142,13 @@ def run_demo(
     direction (``"through_plates"`` or ``"side"``; default: the preset's own), ``imaging`` the
     imaging model (``"paper"`` or ``"experiment"``; default: the preset's, ``sim.scene.Imaging``)."""
     from acquisition.protocols import run, sim_devices
-    from radiokit.io import check_free_space
-    from radiokit.pipeline import Config, process
+    from radiokit.pipeline import process
     from sim.bench import VirtualBench
     from sim.scene import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(preset)  # a bad preset is refused before the folder is claimed
-    # so are the rest: a bad --frames left the claimed folder behind, and a bad --method was found
-    # only after both acquisitions
-    if int(frames_per_step) != frames_per_step or frames_per_step < 1:
-        raise ValueError(f"--frames {frames_per_step}: expected a whole number of frames per step, at least 1")
-    from radiokit.register import BSPLINE_METHODS
-
-    if method not in BSPLINE_METHODS:  # the demo runs the pipeline's presets, which are theirs
-        raise ValueError(f"--method {method}: the demo registers with a B-spline method: {', '.join(BSPLINE_METHODS)}")
-    cfg = Config(
-        control=str(Path(out_dir) / "control.h5"),
-        progress=progress,
-        method=method,
-        register_options={"preset": register_preset},
-    )
-    side = 2240 // (int(binning) if binning else 1)  # uint16 frames of both series, per step
-    check_free_space(Path(out_dir) / "experiment.h5", 2 * side**2 * 2 * (darks + flats + frames_per_step * 3))
+    cfg = _checked_config(out_dir, frames_per_step, method, register_preset, binning, darks + flats, progress)
     out = _demo_folder(out_dir, overwrite)
     if view:
         from sim.scene import with_view
