@@ -522,7 +522,16 @@ class FrameSource:
 
 
 def open_frames(path, /, **hints) -> FrameSource:
-    """Open a frame file for lazy, frame-by-frame access (see :func:`read` for ``hints``)."""
+    """Open a frame file for lazy, frame-by-frame access (see :func:`read` for ``hints``): a long
+    stack is read one frame at a time, never whole.
+
+    >>> import numpy as np, tempfile, os
+    >>> path = os.path.join(tempfile.mkdtemp(), "stack.raw")
+    >>> np.arange(3 * 4 * 5, dtype="<u2").reshape(3, 4, 5).tofile(path)
+    >>> with open_frames(path, shape=(4, 5)) as src:
+    ...     len(src), src.frame_shape, int(src[2][0, 0])
+    (3, (4, 5), 40)
+    """
     return FrameSource(path, **hints)
 
 
