@@ -227,8 +227,9 @@ class FrameSource:
             hint = ""
             if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
                 hint = (
-                    f" (colour planes: tifffile.imwrite stores a ({first.samplesperpixel}, rows, cols) array so "
-                    "unless given photometric='minisblack')"
+                    f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
+                    f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
+                    "again with that"
                 )
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
         if 0 in shape:  # before the layout checks divide by it
