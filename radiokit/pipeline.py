@@ -624,12 +624,40 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such experiment file")
+    _check_inputs(path, cfg.control)  # before any work
     out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
     with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
         res = _process(path, cfg, stage)
     res.files = {k: str(out_dir / Path(v).relative_to(stage)) for k, v in res.files.items()}
     return res
+
+
+def _check_inputs(path: Path, control) -> None:
+    """An experiment file, and a control imaged on the same grid. A calibration or results file
+    was read as frames (two warnings, then "no steps"); a control of another frame size was
+    measured in the main file's pixel ROIs, on whatever lay there."""
+    from radiokit.io import open_frames
+
+    shapes = []
+    for p, what in ((path, "experiment"), *(((Path(control), "control experiment"),) if control else ())):
+        if not p.exists():
+            raise FileNotFoundError(f"{p}: no such {what} file")
+        with open_frames(p) as src:
+            kind = src.meta.get("format", src.format)
+            if kind != "experiment":
+                raise FormatError(
+                    p,
+                    f"holds {kind} data, not an {what} (darks, flats and projections by step, as "
+                    "radiokit acquire or radiokit.io.ExperimentWriter write them)",
+                )
+            shapes.append(src.frame_shape)
+    if len(shapes) == 2 and shapes[0] != shapes[1]:
+        raise FormatError(
+            control,
+            f"frames are {shapes[1][0]}x{shapes[1][1]}, the experiment's {shapes[0][0]}x{shapes[0][1]}: "
+            "the control must be imaged as the experiment",
+        )
 
 
 def _timed(timings, name, fn, *args, **kwargs):

@@ -420,6 +420,17 @@ def test_process_refuses_bad_options_before_any_work(args, words, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
+def test_process_names_a_file_that_is_not_an_experiment_and_a_control_of_another_size(tmp_path):
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"  # a calibration was read as frames: two warnings, then "found steps []"
+    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    one_line_error(run("process", cal, "-q", "-o", tmp_path / "res"), "cal.h5", "calibration", "not an experiment")
+    # a control on another grid was measured in the main file's pixel ROIs
+    other = _experiment(tmp_path / "other.h5", shape=(40, 32))
+    one_line_error(run("process", exp, "--control", other, "-q", "-o", tmp_path / "res"), "other.h5", "40x32")
+    assert not (tmp_path / "res").exists()
+
+
 def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
     # its default results folder is the folder itself: "is the input exp: never overwritten" before
     (tmp_path / "exp").mkdir()
