@@ -46,8 +46,8 @@ def add_acquire(subparsers):
         type=int,
         help="the controller's baud rate (default: the dialect's; auto tries this one first, then 9600, 38400, 115200)",
     )
-    s.add_argument("--kv", type=float, help="tube voltage for 'on' (kV)")
-    s.add_argument("--ua", type=float, help="tube current for 'on' (uA)")
+    s.add_argument("--kv", type=float, help="tube voltage for 'on', kV (the L8121: 40-150, at most 75 W)")
+    s.add_argument("--ua", type=float, help="tube current for 'on', uA (the L8121: at most 500)")
     s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
     p.set_defaults(func=_run)
 
@@ -77,6 +77,9 @@ def _run(args) -> int:
         return 2
     if args.output:
         p.output = str(args.output)
+    if Path(p.output).suffix.lower() not in (".h5", ".hdf5", ".nxs"):  # an HDF5 file under x.tif fooled readers
+        print(f"error: {p.output}: the experiment file is HDF5; name it .h5 (or .hdf5, .nxs)", file=sys.stderr)
+        return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())

@@ -90,6 +90,34 @@ class Thresholds:
     saturation: int = 4095
     smooth_block: int = 32
 
+    def __post_init__(self):
+        """Each threshold in its domain (ValueError naming it): ``dead_below = 5`` once marked every
+        pixel dead and wrote a calibration that ``correct`` could only refuse."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+                raise ValueError(f"threshold {f.name}={v!r}: expected a finite number")
+        rules = [
+            ("dead_below", 0 <= self.dead_below <= self.under_below, "0 <= dead_below <= under_below"),
+            ("under_below", self.under_below < 1, "under_below < 1 (relative to the local response)"),
+            ("over_above", self.over_above > 1, "over_above > 1 (relative to the local response)"),
+            ("line_fraction", 0 < self.line_fraction <= 1, "0 < line_fraction <= 1"),
+            (
+                "saturation",
+                float(self.saturation).is_integer() and 0 < self.saturation < 1 << 16,
+                "an ADC value, 1-65535",
+            ),
+            ("smooth_block", float(self.smooth_block).is_integer() and self.smooth_block >= 2, "a whole block >= 2 px"),
+            ("eps", self.eps >= 0, "eps >= 0 counts"),
+        ]
+        rules += [
+            (n, getattr(self, n) > 0, f"{n} > 0")
+            for n in ("noisy_factor", "line_deviation", "line_noise_factor", "clip_sigma")
+        ]
+        for name, ok, rule in rules:
+            if not ok:
+                raise ValueError(f"threshold {name}={getattr(self, name)!r}: expected {rule}")
+
     @classmethod
     def from_kwargs(cls, **kwargs) -> Thresholds:
         known = {f.name for f in fields(cls)}

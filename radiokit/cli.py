@@ -170,6 +170,7 @@ def _parse_thresholds(items) -> dict:
     from radiokit.calibrate import Thresholds
 
     known = [f.name for f in fields(Thresholds)]
+    whole = {f.name for f in fields(Thresholds) if f.type == "int"}  # saturation, smooth_block
     out = {}
     for item in items or ():
         key, sep, value = item.partition("=")
@@ -178,12 +179,21 @@ def _parse_thresholds(items) -> dict:
         if key.strip() not in known:
             raise ValueError(f"--threshold {item!r}: unknown name {key.strip()!r}; known: {', '.join(known)}")
         try:
-            number = float(value) if key.strip() != "saturation" else int(value)
+            number = int(value) if key.strip() in whole else float(value)
         except ValueError:
-            raise ValueError(f"--threshold {item!r}: {value!r} is not a number") from None
+            kind = "a whole number" if key.strip() in whole else "a number"
+            raise ValueError(f"--threshold {item!r}: {value!r} is not {kind}") from None
         if not np.isfinite(number):
             raise ValueError(f"--threshold {item!r}: a threshold must be a finite number")
+        try:  # each in its domain, before any frame is read
+            Thresholds(**{key.strip(): number})
+        except ValueError as exc:
+            raise ValueError(f"--threshold {item!r}: {exc}") from None
         out[key.strip()] = number
+    try:  # and together (dead_below <= under_below)
+        Thresholds(**out)
+    except ValueError as exc:
+        raise ValueError(f"--threshold {' '.join(items)}: {exc}") from None
     return out
 
 
@@ -223,6 +233,8 @@ def cmd_calibrate(args) -> int:
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
     _hdf5_name(args.output)
+    if args.experiment and (args.dark or args.flat):  # the files given were silently not used
+        raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
     if args.experiment:
         cal = Calibration.from_experiment(args.experiment, allow_external=args.allow_external, **th)
     else:
@@ -293,9 +305,24 @@ def _one_image(path, index, dataset, allow_external=False):
         return np.asarray(src[index], np.float32)
 
 
+def _check_preset(args) -> None:
+    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process)."""
+    from radiokit.register import BSPLINE_METHODS
+
+    if args.preset and args.method not in BSPLINE_METHODS:
+        raise ValueError(
+            f"--preset {args.preset}: presets are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), "
+            f"not --method {args.method}"
+        )
+
+
+#: Config's field names as ``radiokit process`` spells them, for its one-line errors
+_PROCESS_OPTIONS = {"ks=": "--k ", "crop_mm=": "--crop-mm ", "method=": "--method ", "cross_check=": "--cross-check "}
+
+
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
-    from radiokit.register import BSPLINE_METHODS, register, with_default_preset
+    from radiokit.register import register, with_default_preset
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
     moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
@@ -313,7 +340,14 @@ def cmd_register(args) -> int:
     _hdf5_name(args.output)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
-    options = {"preset": args.preset} if args.preset and args.method in BSPLINE_METHODS else {}
+    if args.png is not None:  # matplotlib refused it only after the registration and -o were written
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        kinds = FigureCanvasBase.get_supported_filetypes()
+        if args.png.suffix.lower().lstrip(".") not in kinds:
+            raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+    _check_preset(args)
+    options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
     try:
         reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
@@ -369,13 +403,10 @@ def _register_png(path, fixed, moving, registered, reg):
     plt.close(fig)
 
 
-def cmd_process(args) -> int:
-    from radiokit.io import check_output
-    from radiokit.pipeline import Config, output_folders, process, process_many
-    from radiokit.results import Results
+def _process_config(args, opts):
+    from radiokit.pipeline import Config
 
-    opts = {"preset": args.preset} if args.preset else {}
-    cfg = Config(
+    return Config(
         ks=tuple(args.k),
         domain=args.domain,
         method=args.method,
@@ -389,6 +420,30 @@ def cmd_process(args) -> int:
         control=str(args.control) if args.control else None,
         cross_check=None if args.cross_check in ("none", "") else args.cross_check,
     )
+
+
+def cmd_process(args) -> int:
+    from radiokit.io import check_output
+    from radiokit.pipeline import output_folders, process, process_many
+    from radiokit.results import Results
+
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers {args.workers}: expected at least one worker")
+    for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
+        if Path(f).is_dir():
+            raise ValueError(f"{f}: is a folder, not an experiment file")
+    if args.control and not args.control.exists():  # checked now, not after the main file's registrations
+        raise ValueError(f"--control {args.control}: no such experiment file")
+    _check_preset(args)
+    opts = {"preset": args.preset} if args.preset else {}
+    try:
+        cfg = _process_config(args, opts)
+    except ValueError as exc:  # Config names its fields; the user typed the options
+        text = str(exc)
+        for field, option in _PROCESS_OPTIONS.items():
+            if text.startswith(field):
+                text = option + text[len(field) :]
+        raise ValueError(text) from None
     inputs = [*args.files, *([args.control] if args.control else [])]
     single = len(args.files) == 1 and not args.scheduler
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
@@ -443,8 +498,18 @@ def _print_headline(record, files):
 
 # -- parser ------------------------------------------------------------------------------------
 def _add_info(sub):
-    p = sub.add_parser("info", help="describe frame files (format, geometry, range, metadata)")
-    p.add_argument("files", nargs="+", type=Path)
+    p = sub.add_parser(
+        "info",
+        help="describe frame files (format, geometry, range, metadata)",
+        description="Describe frame files: format, frames x rows x cols, pixel type, value range, saturated "
+        "and NaN/inf pixels (in --sample evenly spaced frames) and the metadata that matters.",
+    )
+    p.add_argument(
+        "files",
+        nargs="+",
+        type=Path,
+        help="frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--sample",
@@ -459,15 +524,28 @@ def _add_info(sub):
 
 
 def _add_calibrate(sub):
-    p = sub.add_parser("calibrate", help="build a dark/flat/defect calibration")
-    p.add_argument("--dark", nargs="+", type=Path, help="dark frame files")
-    p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam) frame files")
+    p = sub.add_parser(
+        "calibrate",
+        help="build a dark/flat/defect calibration",
+        description="Average darks (beam off) and flats (open beam, phantom out) and classify defective "
+        "pixels and lines, from frame files or from an experiment file's own darks and flats.",
+    )
+    p.add_argument(
+        "--dark",
+        nargs="+",
+        type=Path,
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+    )
+    p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
     p.add_argument(
         "--threshold",
         action="append",
         metavar="NAME=VALUE",
-        help="a defect threshold (see radiokit.calibrate.Thresholds), repeatable",
+        help="a defect threshold, repeatable: dead_below, under_below, over_above (relative response), "
+        "noisy_factor, line_deviation, line_noise_factor, line_fraction, clip_sigma, eps (counts), "
+        "saturation (ADC value, default 4095), smooth_block (px); radiokit.calibrate.Thresholds has each "
+        "default",
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
@@ -476,8 +554,19 @@ def _add_calibrate(sub):
 
 
 def _add_correct(sub):
-    p = sub.add_parser("correct", help="dark/flat/defect-correct frames to transmission or line integral")
-    p.add_argument("frames", nargs="+", type=Path)
+    p = sub.add_parser(
+        "correct",
+        help="dark/flat/defect-correct frames to transmission or line integral",
+        description="Correct frames with a calibration (offset, gain, defect pixels and lines filled and "
+        "flagged) to line integrals -ln(I/I0), transmission I/I0 or gain-corrected counts, streamed frame by "
+        "frame into one HDF5 or TIFF stack.",
+    )
+    p.add_argument(
+        "frames",
+        nargs="+",
+        type=Path,
+        help="frame files (raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
+    )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(
         "--domain",
@@ -493,9 +582,19 @@ def _add_correct(sub):
 
 
 def _add_register(sub):
-    p = sub.add_parser("register", help="non-rigid registration of MOVING onto FIXED (residual complexity by default)")
-    p.add_argument("fixed", type=Path, help="fixed image file (e.g. a corrected line-integral frame)")
-    p.add_argument("moving", type=Path, help="moving image file")
+    p = sub.add_parser(
+        "register",
+        help="non-rigid registration of MOVING onto FIXED (residual complexity by default)",
+        description="Register one frame of MOVING onto one of FIXED; write the pull field (pixels, (row, col)), "
+        "the registered image and the quality checks. Exit code 1 when the result is flagged not ok.",
+    )
+    p.add_argument(
+        "fixed",
+        type=Path,
+        help="fixed image file: TIFF, HDF5 or any format `radiokit info` reads (e.g. a line-integral frame "
+        "from `radiokit correct --domain log`)",
+    )
+    p.add_argument("moving", type=Path, help="moving image file, of the fixed image's size")
     p.add_argument(
         "--method", default="rc", help="rc (default), ssd, ncc, mi, or a peer: tvl1, ilk, dis, farneback, ..."
     )
@@ -518,11 +617,15 @@ def _add_register(sub):
     p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
-    p.add_argument("--retry", action="store_true", help="retry a failed registration with stronger regularisation")
+    p.add_argument(
+        "--retry",
+        action="store_true",
+        help="B-spline methods: retry a registration flagged not ok with 10x stronger regularisation",
+    )
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"
     )
-    p.add_argument("--png", type=Path, help="also write an overlay and det J figure")
+    p.add_argument("--png", type=Path, help="also write an overlay and det J figure (.png, .pdf, .svg, ...)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
     p.set_defaults(func=cmd_register)
 
@@ -547,7 +650,9 @@ def _add_process(sub):
         action="store_true",
         help="replace an existing results folder radiokit made (never one holding an input)",
     )
-    p.add_argument("--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors (default 1 2)")
+    p.add_argument(
+        "--k", type=float, nargs="+", default=[1.0, 2.0], help="enhancement factors, each in (0, 100] (default 1 2)"
+    )
     p.add_argument(
         "--domain",
         choices=["negative", "log"],
@@ -565,21 +670,22 @@ def _add_process(sub):
         "--crop-mm",
         type=float,
         default=30.0,
-        help="side of the registered square around the inclusion, mm (0: the whole frame)",
+        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0: the whole frame)",
     )
     p.add_argument(
         "--inclusion",
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="inclusion rectangle (default: found automatically)",
+        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in pixels (mm with --mm) "
+        "(default: found automatically)",
     )
     p.add_argument(
         "--background",
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="background rectangle (default: beside the inclusion)",
+        help="background rectangle, as --inclusion (default: beside the inclusion)",
     )
     _add_process_options(p)
     p.set_defaults(func=cmd_process)
@@ -600,8 +706,16 @@ def _add_process_options(p):
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose usage errors are one line, as every other error (argparse printed
+    the whole usage, up to eight lines, above it); the subcommands' parsers are of this class too."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
+    parser = _Parser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")
     parser.add_argument("--version", action="version", version=f"radiokit {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -341,6 +341,20 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     ``NONPOSITIVE`` and counted. Raw values at or above ``thresholds.saturation`` are
     flagged ``SATURATED`` and counted. Filling happens in the output domain. What does not
     depend on the frame is computed once per calibration (:class:`CorrectionKernel`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from radiokit.calibrate import Calibration
+    >>> from radiokit.correct import correct_frames
+    >>> darks = np.full((3, 64, 64), 100, np.uint16)
+    >>> flats = np.full((3, 64, 64), 3100, np.uint16)
+    >>> cal = Calibration.from_frames(darks, flats)
+    >>> raw = np.full((64, 64), 1600, np.uint16)  # (1600 - 100) / (3100 - 100): I/I0 = 0.5
+    >>> float(correct_frames(cal, raw, domain="linear")[10, 10])
+    0.5
+    >>> round(float(correct_frames(cal, raw)[10, 10]), 4)  # -ln(0.5)
+    0.6931
     """
     if domain not in DOMAINS:
         raise ValueError(f"domain={domain!r}: expected one of {DOMAINS}")

@@ -128,6 +128,43 @@ class Config:
             raise ValueError(f"ks={self.ks}: expected finite enhancement factors")
         if len(set(self.ks)) != len(self.ks):
             raise ValueError(f"ks={self.ks}: each enhancement factor once")
+        if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
+            raise ValueError(
+                f"ks={' '.join(f'{k:g}' for k in self.ks)}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)"
+            )
+        if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
+            raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
+        _check_methods(self.method, self.cross_check, self.register_options)
+
+
+#: The largest enhancement factor: ``IF(k) - 1`` is linear in k, so a larger k shows nothing new,
+#: while ``k (R - M)`` swamps the reference in float32 (1e308 overflowed after the registrations).
+K_MAX = 100.0
+
+
+def _check_methods(method, cross_check, options) -> None:
+    """Refuse, before any work, an unknown method or cross-check and an option ``method`` does
+    not take (a B-spline ``preset`` given to a peer), as ``ValueError`` in one line: found only
+    at the first registration they cost the correction, and a peer's ``TypeError`` a traceback."""
+    from radiokit.register import METHODS, _check_option_names, _load_methods
+
+    _load_methods()
+    for what, name in (("method", method), ("cross_check", cross_check)):
+        if name is not None and name not in METHODS:
+            raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(METHODS))}")
+    try:
+        _check_option_names(method, options)
+    except TypeError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _cross_check_options(cfg) -> dict:
+    """The main method's options for the cross-check when both are B-spline methods (one
+    option set); a peer takes its own defaults, since the B-spline options are not its own."""
+    from radiokit.register import BSPLINE_METHODS, with_default_preset
+
+    both = cfg.method in BSPLINE_METHODS and cfg.cross_check in BSPLINE_METHODS
+    return with_default_preset(cfg.cross_check, cfg.register_options if both else {})
 
 
 @dataclass(frozen=True)
@@ -446,9 +483,7 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
         reg = register(images[j], images[i], cfg.method, **with_default_preset(cfg.method, cfg.register_options))
         check = None
         if cfg.cross_check and (i, j) == (n - 2, n - 1) and cfg.cross_check != cfg.method:
-            other = register(
-                images[j], images[i], cfg.cross_check, **with_default_preset(cfg.cross_check, cfg.register_options)
-            )
+            other = register(images[j], images[i], cfg.cross_check, **_cross_check_options(cfg))
             check = cross_check(reg.displacement, other.displacement, body_full, cfg.cross_check)
         warped = reg.warp(images[i])[win]  # warped whole, then cropped: no border effects
         reg.displacement = np.ascontiguousarray(reg.displacement[(slice(None), *win)])
@@ -589,12 +624,40 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such experiment file")
+    _check_inputs(path, cfg.control)  # before any work
     out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
     with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
         res = _process(path, cfg, stage)
     res.files = {k: str(out_dir / Path(v).relative_to(stage)) for k, v in res.files.items()}
     return res
+
+
+def _check_inputs(path: Path, control) -> None:
+    """An experiment file, and a control imaged on the same grid. A calibration or results file
+    was read as frames (two warnings, then "no steps"); a control of another frame size was
+    measured in the main file's pixel ROIs, on whatever lay there."""
+    from radiokit.io import open_frames
+
+    shapes = []
+    for p, what in ((path, "experiment"), *(((Path(control), "control experiment"),) if control else ())):
+        if not p.exists():
+            raise FileNotFoundError(f"{p}: no such {what} file")
+        with open_frames(p) as src:
+            kind = src.meta.get("format", src.format)
+            if kind != "experiment":
+                raise FormatError(
+                    p,
+                    f"holds {kind} data, not an {what} (darks, flats and projections by step, as "
+                    "radiokit acquire or radiokit.io.ExperimentWriter write them)",
+                )
+            shapes.append(src.frame_shape)
+    if len(shapes) == 2 and shapes[0] != shapes[1]:
+        raise FormatError(
+            control,
+            f"frames are {shapes[1][0]}x{shapes[1][1]}, the experiment's {shapes[0][0]}x{shapes[0][1]}: "
+            "the control must be imaged as the experiment",
+        )
 
 
 def _timed(timings, name, fn, *args, **kwargs):

@@ -15,10 +15,14 @@ def add_sim(subparsers):
         "model C7942 and write an experiment file with /entry/simulation (the truth).",
     )
     src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("scene", nargs="?", type=Path, help="scene TOML file")
+    src.add_argument("scene", nargs="?", type=Path, help="scene TOML file (`--save-scene` writes a preset's)")
     src.add_argument("--preset", help="a built-in scene: seed-breast or pva-phantom")
     r.add_argument(
-        "--ratios", type=float, nargs="+", help="compression ratios (default: the scene's), e.g. 0.15 0.2 0.25"
+        "--ratios",
+        type=float,
+        nargs="+",
+        help="compression ratios, fractions of the body's height, each once, in (0, 1) (default: the scene's), "
+        "e.g. 0.15 0.2 0.25",
     )
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
@@ -57,6 +61,8 @@ def _run_sim(args) -> int:
             Compression(tuple(args.ratios), scene.compression.contact)
         except ValueError as exc:
             raise ValueError(f"--ratios {' '.join(map(str, args.ratios))}: {exc}") from None
+    if args.seed < 0:  # numpy refused it only after the mechanics
+        raise ValueError(f"--seed {args.seed}: expected a whole number >= 0")
     for name in ("darks", "flats", "frames"):
         if getattr(args, name) < (1 if name == "frames" else 0):
             raise ValueError(
@@ -75,9 +81,14 @@ def _run_sim(args) -> int:
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before minutes of mechanics
-    if args.save_scene:
-        with atomic_path(args.save_scene, overwrite=args.overwrite, inputs=[*inputs, args.output]) as tmp:
-            scene.save(tmp)
+    if args.save_scene:  # checked now, written with the experiment file: no scene of a failed run
+        if args.save_scene.resolve() == args.output.resolve():
+            raise ValueError(f"--save-scene {args.save_scene}: the same file as -o")
+        check_output(args.save_scene, overwrite=args.overwrite, inputs=inputs)
+    rows, cols = scene.detector.shape
+    n_states = len(args.ratios or scene.compression.ratios)
+    # the frames (uint16), and per state a line integral and mask, per pair a truth field (float32)
+    size = rows * cols * (2 * (args.darks + args.flats + args.frames * n_states) + 5 * n_states + 4 * n_states**2)
     t0 = time.perf_counter()
     say = (lambda *a, **k: None) if args.quiet else print
 
@@ -97,7 +108,7 @@ def _run_sim(args) -> int:
         f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})"
     )
     # written under a temporary name and renamed when complete: never a half-simulated file
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs) as tmp:
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=size) as tmp:
         res = simulate_experiment(
             scene,
             tmp,
@@ -111,6 +122,9 @@ def _run_sim(args) -> int:
             on_state=on_state,
             on_step=on_step,
         )
+    if args.save_scene:
+        with atomic_path(args.save_scene, overwrite=args.overwrite, inputs=inputs) as tmp:
+            scene.save(tmp)
     res["file"] = str(args.output)
     sec = res["seconds"]
     print(f"\n{'step':>4} {'ratio':>6} {'gap mm':>8} {'force N':>10} {'volume':>8} {'incl/bg strain':>15}")

@@ -90,6 +90,22 @@ def source_record(scene: Scene) -> dict:
     return {"name": f"{tube} (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
 
 
+def _check_counts(ratios, n_darks, n_flats, frames_per_step, seed) -> None:
+    """ValueError naming the argument: a repeated ratio was merged into one state without a word,
+    and a negative seed failed in numpy only after the mechanics."""
+    if len(set(ratios)) != len(ratios):
+        raise ValueError(f"ratios {' '.join(f'{r:g}' for r in ratios)}: each compression ratio once")
+    for name, value, least in (
+        ("n_darks", n_darks, 0),
+        ("n_flats", n_flats, 0),
+        ("frames_per_step", frames_per_step, 1),
+    ):
+        if int(value) != value or value < least:
+            raise ValueError(f"{name}={value!r}: expected a whole count of at least {least}")
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"seed={seed!r}: expected a whole number >= 0")
+
+
 def simulate_experiment(
     scene,
     output,
@@ -135,6 +151,7 @@ def simulate_experiment(
     ratios = tuple(sorted(float(r) for r in (scene.compression.ratios if ratios is None else ratios)))
     if not ratios:
         raise ValueError("no compression ratios to simulate")
+    _check_counts(ratios, n_darks, n_flats, frames_per_step, seed)  # before minutes of mechanics
     t0 = time.perf_counter()
     states = compress(scene, ratios, progress=progress and on_step is None, on_state=on_state, on_step=on_step)
     t_mech = time.perf_counter() - t0

@@ -101,11 +101,31 @@ def _symmetry_planes(scene: Scene) -> tuple:
     return tuple(planes)
 
 
+def _keeping_signal_handlers(init) -> None:
+    """Run ``init`` and put back the handlers of SIGTERM and SIGHUP: gmsh's initialisation resets
+    them to the default at the C level (Python's ``getsignal`` does not see it), so a ``kill`` or a
+    closed terminal then ended ``radiokit sim run`` at once, leaving its temporary file behind,
+    instead of through the command's handler, which removes it (README, "Your data is safe")."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():  # handlers live on the main thread
+        init()
+        return
+    kept = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        init()
+    finally:
+        for sig, handler in kept.items():
+            if handler is not None:  # None: set outside Python, nothing to restore
+                signal.signal(sig, handler)
+
+
 def _gmsh():
     import gmsh
 
     if not gmsh.isInitialized():
-        gmsh.initialize(interruptible=False)
+        _keeping_signal_handlers(lambda: gmsh.initialize(interruptible=False))
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.option.setNumber("General.Verbosity", 1)
     gmsh.clear()

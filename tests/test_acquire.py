@@ -421,6 +421,24 @@ def test_cli_bad_protocol_is_a_clear_error(tmp_path, capsys):
     assert "increasing compression ratios" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("text", ["", "# a comment only\n"])
+def test_cli_an_empty_protocol_is_refused_not_run_on_defaults(tmp_path, capsys, text):
+    path = tmp_path / "empty.toml"  # it planned (and with --sim ran) every default exposure and step
+    path.write_text(text)
+    assert _cli("acquire", str(path), "--dry-run") == 2
+    assert "holds no settings" in capsys.readouterr().err
+
+
+def test_cli_an_experiment_file_not_named_hdf5_is_refused(tmp_path, scene_toml, capsys):
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    # `-o run.tif` wrote a whole HDF5 series under a TIFF's name
+    assert _cli("acquire", str(path), "--sim", "-q", "-o", str(tmp_path / "run.tif")) == 2
+    assert "name it .h5" in capsys.readouterr().err
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["protocol.toml"]
+
+
 def test_cli_source_commands_on_the_emulator(capsys):
     from acquisition.emulators.l8121 import L8121Model, PtyServer
 

@@ -144,6 +144,32 @@ def test_version_and_help():
         assert cmd in res.stdout
 
 
+def _subparsers(parser, prefix=()):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*prefix, name), sub
+                yield from _subparsers(sub, (*prefix, name))
+
+
+def test_every_subcommand_has_a_description_and_every_argument_help():
+    """What a new user reads first: `radiokit info --help` said nothing of its FILES (formats),
+    `correct` nothing of FRAMES, `calibrate` and `demo` had no description."""
+    from radiokit.cli import build_parser
+
+    seen = []
+    for path, sub in _subparsers(build_parser()):
+        seen.append(" ".join(path))
+        if sub._subparsers is not None and path == ("sim",):  # a group of subcommands: each has its own
+            continue
+        assert sub.description, path
+        for action in sub._actions:
+            assert action.help, (path, action.dest)
+    assert {"info", "calibrate", "correct", "register", "process", "acquire", "demo", "sim run"} <= set(seen)
+
+
 def test_every_command_that_writes_takes_overwrite():
     for cmd in (["calibrate"], ["correct"], ["register"], ["process"], ["sim", "run"], ["demo"], ["acquire"]):
         res = run(*cmd, "--help")

@@ -428,6 +428,24 @@ def test_sim_run_refuses_before_the_mechanics(tmp_path):
     assert sha(scene) == before and not (tmp_path / "new.h5").exists()
 
 
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP"])
+def test_meshing_keeps_the_commands_signal_handlers(sig):
+    """gmsh's initialisation reset SIGTERM and SIGHUP to the default at the C level: `kill` during
+    `radiokit sim run` ended it at once (exit 143) and left its temporary file and reserve behind."""
+    code = (
+        "import os, signal, time\n"
+        "got = []\n"
+        f"signal.signal(signal.{sig}, lambda *a: got.append(1))\n"
+        "from sim.mesh import _gmsh\n"
+        "_gmsh()\n"
+        f"os.kill(os.getpid(), signal.{sig})\n"
+        "time.sleep(0.05)\n"
+        "print('handled' if got else 'not handled')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "handled", (res.returncode, res.stdout, res.stderr)
+
+
 def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path):
     import socket
 

@@ -280,11 +280,25 @@ def test_itex_vendor_files_still_parse():
 
 
 # -- bad values --------------------------------------------------------------------------------
-@pytest.mark.parametrize("value", ["eps=nan", "eps=inf", "dead_below=-inf", "saturation=abc", "nosuch=1", "eps"])
+@pytest.mark.parametrize(
+    "value",
+    [
+        *["eps=nan", "eps=inf", "dead_below=-inf", "saturation=abc", "nosuch=1", "eps"],
+        # out of their domains: dead_below=5 marked every pixel dead and wrote the calibration
+        *["dead_below=5", "eps=-1", "saturation=0", "over_above=0.5", "line_fraction=2", "smooth_block=1.5"],
+    ],
+)
 def test_a_bad_threshold_is_refused_before_anything_is_written(value, tmp_path):
     path = _experiment(tmp_path / "exp.h5")
     res = run("calibrate", "--experiment", path, "--threshold", value, "-o", tmp_path / "cal.h5")
     one_line_error(res, "--threshold", value)
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_calibrate_refuses_an_experiment_and_dark_or_flat_files_together(tmp_path):
+    path = _experiment(tmp_path / "exp.h5")  # the --dark files were silently not used
+    res = run("calibrate", "--experiment", path, "--dark", path, "-o", tmp_path / "cal.h5")
+    one_line_error(res, "--experiment", "not both")
     assert not (tmp_path / "cal.h5").exists()
 
 
@@ -372,13 +386,72 @@ def test_process_on_unusable_files(case, tmp_path):
         (["--fixed-frame", "7"], "frame 7"),
         (["--roi", "0", "500", "0", "10"], "--roi"),
         (["--method", "nosuch"], "nosuch"),
+        (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # was dropped without a word
+        (["--png", "reg.txt"], "--png"),  # matplotlib refused it after reg.h5 was written
+        (["--png", "reg"], "--png"),
     ],
 )
 def test_register_bad_arguments(args, words, tmp_path):
     img = tmp_path / "img.tif"
     tifffile.imwrite(img, np.random.default_rng(0).random((32, 32), np.float32))
-    one_line_error(run("register", img, img, *args, "-o", tmp_path / "reg.h5"), words)
-    assert not (tmp_path / "reg.h5").exists()
+    one_line_error(run("register", img, img, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.tif"]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--k", "0"], "--k 0"),  # IF(0) = 1 whatever the data
+        (["--k", "1", "-2"], "--k 1 -2"),
+        (["--k", "1e308"], "--k 1e+308"),  # overflowed float32 after the registrations
+        (["--crop-mm", "-5"], "--crop-mm -5"),
+        (["--crop-mm", "nan"], "--crop-mm nan"),
+        (["--method", "nosuch"], "--method 'nosuch'"),  # found only at the first registration
+        (["--cross-check", "nosuch"], "--cross-check 'nosuch'"),  # only after the main registration
+        (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # a traceback
+        (["--workers", "0"], "--workers 0"),
+        (["--control", "missing.h5"], "--control missing.h5"),  # only after the main file's work
+        (["--control", "."], "is a folder"),
+    ],
+)
+def test_process_refuses_bad_options_before_any_work(args, words, tmp_path):
+    path = _experiment(tmp_path / "exp.h5")  # no inclusion: any work would fail saying so
+    one_line_error(run("process", path, *args, "-o", tmp_path / "res", cwd=tmp_path), words)
+    assert not (tmp_path / "res").exists()
+
+
+def test_process_names_a_file_that_is_not_an_experiment_and_a_control_of_another_size(tmp_path):
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"  # a calibration was read as frames: two warnings, then "found steps []"
+    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    one_line_error(run("process", cal, "-q", "-o", tmp_path / "res"), "cal.h5", "calibration", "not an experiment")
+    # a control on another grid was measured in the main file's pixel ROIs
+    other = _experiment(tmp_path / "other.h5", shape=(40, 32))
+    one_line_error(run("process", exp, "--control", other, "-q", "-o", tmp_path / "res"), "other.h5", "40x32")
+    assert not (tmp_path / "res").exists()
+
+
+def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
+    # its default results folder is the folder itself: "is the input exp: never overwritten" before
+    (tmp_path / "exp").mkdir()
+    one_line_error(run("process", "exp", "-q", cwd=tmp_path), "exp: is a folder, not an experiment file")
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["register", "a.tif", "b.tif", "-o", "r.h5", "--preset", "nosuch"], "--preset"),
+        (["process"], "files"),
+        (["info", "--sample", "x", "a.tif"], "--sample"),
+        (["sim", "run", "-o", "s.h5"], "radiokit sim run: "),
+        (["nosuch"], "nosuch"),
+    ],
+)
+def test_a_usage_error_is_one_line(args, words, tmp_path):
+    # argparse printed the whole usage (up to eight lines) above its error
+    line = one_line_error(run(*args, cwd=tmp_path), words)
+    assert line.endswith("--help)")
+    assert not any(tmp_path.iterdir())
 
 
 def test_debug_shows_the_traceback(tmp_path):
@@ -393,7 +466,30 @@ def test_debug_shows_the_traceback(tmp_path):
         (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "must lie in [0, 0.9)"),
         (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
         (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+        # merged into one state without a word
+        (["sim", "run", "--preset", "seed-breast", "--ratios", "0.2", "0.2", "-o", "sim.h5"], "--ratios 0.2 0.2"),
+        (["sim", "run", "--preset", "seed-breast", "--seed", "-1", "-o", "sim.h5"], "--seed -1"),  # after the mechanics
+        (["sim", "run", "--preset", "seed-breast", "--save-scene", "sim.h5", "-o", "sim.h5"], "the same file as -o"),
+        # petabytes of frames: refused by the free space before the mechanics, the scene not written first
+        (
+            [
+                "sim",
+                "run",
+                "--preset",
+                "seed-breast",
+                "--frames",
+                "100000000",
+                "--save-scene",
+                "s.toml",
+                "-o",
+                "sim.h5",
+            ],
+            "no space left",
+        ),
         (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
+        (["demo", "--frames", "0", "-o", "demo"], "--frames 0"),  # the claimed folder was left behind
+        (["demo", "--method", "tvl1", "-o", "demo"], "--method tvl1"),  # found after both acquisitions
+        (["demo", "--frames", "10000000", "-o", "demo"], "no space left"),  # terabytes of frames
     ],
 )
 def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):

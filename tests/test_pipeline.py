@@ -394,3 +394,17 @@ def test_config_names_its_domains(domain, match):
 
     with pytest.raises(ValueError, match=match):
         Config(domain=domain)
+
+
+def test_a_peer_cross_check_does_not_get_the_bspline_preset(tmp_path):
+    """rc with a preset, cross-checked by a peer: the peer takes its own options (it was given the
+    preset, and its TypeError was a traceback after the main registration)."""
+    from radiokit.pipeline import Config, process
+
+    _synthetic(tmp_path / "a.h5")
+    rois = {"inclusion": (75, 86, 75, 86), "background": (75, 86, 40, 51)}
+    cfg = Config(
+        crop_mm=None, report=False, progress=False, register_options={"preset": "fast"}, cross_check="tvl1", **rois
+    )
+    main = process(tmp_path / "a.h5", cfg, out_dir=tmp_path / "out").record.pair("2->3")
+    assert main.cross_check is not None and main.cross_check["method"] == "tvl1"

@@ -315,6 +315,8 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             data = tomllib.loads(text_)
         except tomllib.TOMLDecodeError as exc:
             raise ProtocolError(f"{where}: not valid TOML: {exc}") from None
+        if not data:  # an empty file ran every default exposure and series, as a typo must not
+            raise ProtocolError(f"{where}: the protocol holds no settings; write at least [source] and [series]")
     top = {}
     for key, value in data.items():
         if key in _SECTIONS:

@@ -227,8 +227,9 @@ class FrameSource:
             hint = ""
             if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
                 hint = (
-                    f" (colour planes: tifffile.imwrite stores a ({first.samplesperpixel}, rows, cols) array so "
-                    "unless given photometric='minisblack')"
+                    f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
+                    f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
+                    "again with that"
                 )
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
         if 0 in shape:  # before the layout checks divide by it
@@ -522,7 +523,16 @@ class FrameSource:
 
 
 def open_frames(path, /, **hints) -> FrameSource:
-    """Open a frame file for lazy, frame-by-frame access (see :func:`read` for ``hints``)."""
+    """Open a frame file for lazy, frame-by-frame access (see :func:`read` for ``hints``): a long
+    stack is read one frame at a time, never whole.
+
+    >>> import numpy as np, tempfile, os
+    >>> path = os.path.join(tempfile.mkdtemp(), "stack.raw")
+    >>> np.arange(3 * 4 * 5, dtype="<u2").reshape(3, 4, 5).tofile(path)
+    >>> with open_frames(path, shape=(4, 5)) as src:
+    ...     len(src), src.frame_shape, int(src[2][0, 0])
+    (3, (4, 5), 40)
+    """
     return FrameSource(path, **hints)
 
 

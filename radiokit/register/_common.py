@@ -6,9 +6,19 @@ import numpy as np
 from scipy import fft as sfft
 
 
-def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
+def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     """``image(x + d(x))`` on the displacement's grid; ``order`` 1 (bilinear, OpenCV) or 3.
-    Samples outside ``image`` repeat its border."""
+    Samples outside ``image`` repeat its border, or with ``cval`` (e.g. ``np.nan``) take that
+    value (``cval`` was once accepted and ignored).
+
+    >>> import numpy as np
+    >>> ramp = np.tile(np.arange(6, dtype=np.float32), (2, 1))
+    >>> pull = np.zeros((2, 2, 6), np.float32); pull[1] = 2  # sample two columns to the right
+    >>> warp(ramp, pull)[0].tolist()
+    [2.0, 3.0, 4.0, 5.0, 5.0, 5.0]
+    >>> warp(ramp, pull, cval=np.nan)[0].tolist()
+    [2.0, 3.0, 4.0, 5.0, nan, nan]
+    """
     import cv2
 
     image = np.asarray(image, np.float32)
@@ -20,11 +30,16 @@ def warp(image, displacement, order=1, cval=0.0) -> np.ndarray:
     # their conversion were most of a 2240 frame's warp); the same float32 sums
     rr = np.arange(rows, dtype=np.float32)[:, None]
     cc = np.arange(cols, dtype=np.float32)[None, :]
+    r, c = rr + d[0], cc + d[1]
     if order == 1:
-        return cv2.remap(image, cc + d[1], rr + d[0], interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    from scipy import ndimage
+        out = cv2.remap(image, c, r, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    else:
+        from scipy import ndimage
 
-    return ndimage.map_coordinates(image, [rr + d[0], cc + d[1]], order=order, mode="nearest").astype(np.float32)
+        out = ndimage.map_coordinates(image, [r, c], order=order, mode="nearest").astype(np.float32)
+    if cval is not None:  # by position, not a constant border: OpenCV blends it in at weight 0 (NaN * 0)
+        out[(r < 0) | (r > image.shape[0] - 1) | (c < 0) | (c > image.shape[1] - 1)] = cval
+    return out
 
 
 def _field(displacement) -> np.ndarray:

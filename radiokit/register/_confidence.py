@@ -343,7 +343,13 @@ def residual_motion(fixed, warped, window, highpass=0.25, smooth=3.0):
 def roi_observed(confidence, roi) -> float:
     """Fraction of ``roi`` where the motion was observed (confidence >= 0.5). ``roi``: an object
     with ``row0, row1, col0, col1`` (``radiokit.measure.ROI``), a (row0, row1, col0, col1)
-    tuple, or a bool mask of the confidence map's shape."""
+    tuple, or a bool mask of the confidence map's shape.
+
+    >>> import numpy as np
+    >>> confidence = np.zeros((10, 10)); confidence[:, :5] = 1  # the left half observed
+    >>> roi_observed(confidence, (0, 10, 3, 7))
+    0.5
+    """
     c = np.asarray(confidence)
     if isinstance(roi, np.ndarray) and roi.dtype == bool:
         if roi.shape != c.shape:
