@@ -443,3 +443,27 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert not model.xray_on
         assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
         assert "kV" in capsys.readouterr().err and not model.xray_on
+
+
+def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):
+    """Found: a lab protocol naming the vendor software's folder but no frame size loaded, ran the
+    warm-up (X-rays) and then died opening the experiment file with "TypeError: 'NoneType' object
+    is not iterable" (the file is sized before the first frame). Now the protocol is refused at
+    load -- the dry run refuses it too -- naming what is missing."""
+    from radiokit.cli import main
+
+    lab = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"port": "/dev/ttyUSB0"},
+        "detector": {"kind": "folder", "folder": str(tmp_path)},
+        "frame": {"kind": "manual"},
+    }
+    with pytest.raises(DeviceError, match=r"\[detector\] folder = .* needs the frame size: shape = \[rows, cols\]"):
+        load_protocol(lab)
+    for given in ({"shape": [64, 64]}, {"preset": "c7942"}):
+        assert load_protocol({**lab, "detector": {**lab["detector"], **given}}).detector.folder == str(tmp_path)
+    proto = tmp_path / "lab.toml"
+    proto.write_text(f'output = "{tmp_path / "series.h5"}"\n[detector]\nkind = "folder"\nfolder = "{tmp_path}"\n')
+    assert main(["acquire", str(proto), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(proto) in err[0] and "needs the frame size" in err[0], err

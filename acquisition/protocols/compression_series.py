@@ -204,6 +204,14 @@ class Protocol:
             raise ProtocolError(f"frame.initial_height_mm {self.frame.initial_height_mm}: expected > 0")
         if self.detector.shape is not None:
             self.detector.shape = tuple(int(v) for v in self.detector.shape)
+        d = self.detector
+        if d.kind == "folder" and d.folder and d.shape is None and d.preset is None:
+            # the experiment file is sized before the first frame arrives, and after the warm-up,
+            # which emits: an unknown frame size must stop the run before any X-ray command
+            raise ProtocolError(
+                f"[detector] folder = {d.folder!r} needs the frame size: shape = [rows, cols] or a "
+                f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
+            )
         _check_source(self.source)
 
     def to_toml(self) -> str:
