@@ -29,6 +29,7 @@ command is started with SIGINT ignored in some rows, as ``make test &`` starts i
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import signal
@@ -144,7 +145,7 @@ class Acquire:
     """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
     the guardian's included) collected line by line."""
 
-    def __init__(self, *args, sigint_ignored=False):
+    def __init__(self, *args, sigint_ignored=False, fsize_limit=None):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
         code = "import sys; from radiokit.cli import main; sys.exit(main())"
@@ -160,6 +161,7 @@ class Acquire:
             stderr=subprocess.STDOUT,
             env=env,
             start_new_session=True,
+            preexec_fn=None if fsize_limit is None else lambda: _limit_file_size(fsize_limit),
         )
         self.lines = []
         self.times = []  # time.monotonic() at which each line arrived
@@ -191,6 +193,14 @@ class Acquire:
     @property
     def output(self):
         return "\n".join(self.lines)
+
+
+def _limit_file_size(nbytes):
+    """``ulimit -f``: a write past ``nbytes`` fails with EFBIG (Python ignores SIGXFSZ) -- as on a
+    FAT32 / exFAT disk, whose files stop at 4 GiB, 400 frames of 2240 x 2240."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
 
 
 def wait_until(cond, timeout=20.0, what="condition", period=0.02):
@@ -650,6 +660,78 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
         assert np.all(h5["entry/instrument/detector/data"][:n][keys != ImageKey.INVALID].max(axis=(1, 2)) > 0)
     r = subprocess.run(["mount", "-o", "remount,size=16m", str(small_disk)], check=False, capture_output=True)
     assert r.returncode == 0, r.stderr
+    acq = Acquire(proto, "--sim", "-q", "--resume")
+    assert acq.wait(timeout=60) == 0, acq.output
+    with h5py.File(out, "r") as h5:
+        keys = h5["entry/instrument/detector/image_key"][: int(h5["entry"].attrs["frames_complete"])]
+    assert np.sum(keys == ImageKey.DARK) == DARKS and np.sum(keys == ImageKey.FLAT) == FLATS
+    assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
+
+
+_FILE_SIZE_LIMIT = """
+import errno, sys
+import numpy as np
+from radiokit.io import ExperimentWriter, ImageKey
+w = ExperimentWriter(sys.argv[1], shape=(256, 256))
+i = 0
+try:
+    while True:
+        w.append(np.full((256, 256), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
+        i += 1
+except OSError as exc:
+    print("failed at", i, exc.errno, flush=True)
+w.close()
+"""
+
+
+def test_a_file_size_limit_refuses_the_frame_while_the_file_is_whole(tmp_path):
+    """Found: under a file-size limit (``ulimit -f``; a FAT32 disk's 4 GiB) the frame that crossed
+    it failed inside libhdf5, the file no longer opened (every frame lost) and the process
+    crashed (SIGSEGV) closing it. Now the writer refuses that frame beforehand, as it does on a
+    full disk: EFBIG, and every frame before it intact."""
+    path = tmp_path / "exp.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run(
+        [sys.executable, "-c", _FILE_SIZE_LIMIT, str(path)],
+        check=False,
+        capture_output=True,
+        env=env,
+        timeout=60,
+        preexec_fn=lambda: _limit_file_size(3_000_000),
+    )
+    assert r.returncode == 0 and b"failed at" in r.stdout, (r.returncode, r.stderr.decode()[-2000:])
+    failed_at, code = map(int, r.stdout.split()[2:4])
+    assert code == errno.EFBIG
+    # 3 MB, less the 1 MiB reserve, holds 14 frames of 128 KiB (plus the file's metadata)
+    assert 8 <= failed_at <= (3_000_000 - (1 << 20)) // (256 * 256 * 2)
+    with h5py.File(path, "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) == failed_at
+        data = h5["entry/instrument/detector/data"]
+        for i in range(failed_at):
+            assert np.all(data[i] == 1000 + i)
+        assert np.all(h5["entry/instrument/detector/image_key"][:failed_at] == ImageKey.FLAT)
+
+
+@ONE_DIALECT
+def test_file_size_limit_during_a_series_one_message_and_resume(tmp_path, scene_file, controller):
+    """The series meets a file-size limit with X-rays on: exit 1, one error line naming the file
+    and the limit, the tube confirmed off, a file that opens with the frames that fit; without
+    the limit, --resume completes it."""
+    model, server = controller()
+    out = tmp_path / "series.h5"
+    proto = write_protocol(tmp_path, scene_file, server, output=out)
+    # the file, 2 darks and 1 flat of 627 KB, and the writer's 1 MiB reserve: the limit falls in the flats
+    acq = Acquire(proto, "--sim", "-q", fsize_limit=3_000_000)
+    code = acq.wait(timeout=60)
+    record("file size limit (ulimit -f 3 MB)", model, acq, None, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert len(errors) == 1 and "file size limit" in errors[0] and str(out) in errors[0], acq.output
+    assert "Traceback" not in acq.output and not model.xray_on
+    assert "stopped in phase flats" in acq.output, acq.output
+    with h5py.File(out, "r") as h5:
+        n = int(h5["entry"].attrs["frames_complete"])
+        assert DARKS <= n < DARKS + FLATS
     acq = Acquire(proto, "--sim", "-q", "--resume")
     assert acq.wait(timeout=60) == 0, acq.output
     with h5py.File(out, "r") as h5:
