@@ -3,8 +3,8 @@
 A protocol that leaves X-rays on because its process died is the one failure the lab cannot
 accept. Two mechanisms cover the two ways a process ends:
 
-- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session:
-  SIGINT, SIGTERM, SIGHUP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
+- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session, Ctrl-Z:
+  SIGINT, SIGTERM, SIGHUP, SIGTSTP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
   (a ``KeyboardInterrupt``), so the protocol's own exit path switches the tube off and confirms
   it; every further signal, and any signal during that switch-off, is only acknowledged on
   stderr -- the switch-off sequence is never interrupted.
@@ -44,11 +44,13 @@ __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"
 #: The last line the operator reads when switching off could not be confirmed.
 TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller (key switch) now"
 
-_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+# SIGTSTP (Ctrl-Z) too: its default suspends the process -- beam monitor and all -- with the tube
+# on, and the guardian, whose pipe stays open, would not act
+_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGTSTP") if hasattr(signal, name))
 
 
 class StopSignal(KeyboardInterrupt):
-    """A signal asked the run to stop (SIGINT, SIGTERM or SIGHUP); ``signum`` says which.
+    """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP or SIGTSTP); ``signum`` says which.
 
     A ``KeyboardInterrupt``, so code that handles Ctrl-C handles all three alike."""
 
@@ -71,7 +73,10 @@ def _say(text: str) -> None:
 
 
 class SignalGuard:
-    """SIGINT, SIGTERM, SIGHUP: the first raises :class:`StopSignal`; the rest are deferred.
+    """SIGINT, SIGTERM, SIGHUP, SIGTSTP: the first raises :class:`StopSignal`; the rest are deferred.
+
+    Ctrl-Z (SIGTSTP) stops the run like Ctrl-C instead of suspending it: a suspended process
+    keeps the tube on and its beam monitor still.
 
     Use as a context manager around a run (handlers are installed only in the main thread, where
     Python delivers signals; elsewhere the guard does nothing). They are installed whatever the

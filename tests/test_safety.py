@@ -145,7 +145,7 @@ class Acquire:
     """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
     the guardian's included) collected line by line."""
 
-    def __init__(self, *args, sigint_ignored=False, fsize_limit=None):
+    def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
         code = "import sys; from radiokit.cli import main; sys.exit(main())"
@@ -160,7 +160,10 @@ class Acquire:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             env=env,
-            start_new_session=True,
+            # own_session=False: a process group of this session (a shell's job), not orphaned, so
+            # that the kernel carries out the stop signals (SIGTSTP) rather than discarding them
+            start_new_session=own_session,
+            process_group=None if own_session else 0,
             preexec_fn=None if fsize_limit is None else lambda: _limit_file_size(fsize_limit),
         )
         self.lines = []
@@ -447,6 +450,34 @@ def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, c
     record("SIGINT (inherited ignored) in projection", model, acq, off_s, code)
     assert code == 130 and CONFIRMED.search(acq.last_line), acq.output
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+
+
+def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_path, scene_file, controller):
+    """Found: Ctrl-Z (SIGTSTP to the job's process group) suspended the acquiring process -- its
+    beam monitor too -- with X-rays on, and the guardian, whose pipe stayed open, had no reason to
+    act: the tube stayed on until someone typed ``fg``. Now Ctrl-Z stops the series like Ctrl-C:
+    tube off (confirmed), the frames kept, exit 148 (128 + SIGTSTP)."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q", own_session=False)
+    try:
+        reach("projection (beam on)", model, tmp_path, acq)
+        watch = OffWatch(model)
+        os.killpg(acq.proc.pid, signal.SIGTSTP)
+        try:
+            code = acq.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            code = None
+        off_s = watch.seconds()
+        record("SIGTSTP (Ctrl-Z) in projection", model, acq, off_s, "susp." if code is None else code)
+        assert code == 128 + signal.SIGTSTP, f"exit {code}; emulator X-rays on: {model.xray_on}\n{acq.output}"
+    finally:
+        if acq.proc.poll() is None:  # suspended (the fault): wake it to switch off, then end it
+            os.killpg(acq.proc.pid, signal.SIGCONT)
+            acq.signal(signal.SIGTERM)
+            acq.wait(timeout=30)
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    assert CONFIRMED.search(acq.last_line) and "stopped by SIGTSTP" in acq.output, acq.output
+    assert "Traceback" not in acq.output
 
 
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
