@@ -8,7 +8,8 @@ accept. Two mechanisms cover the two ways a process ends:
   (a ``KeyboardInterrupt``), so the protocol's own exit path switches the tube off and confirms
   it; every further signal, and any signal during that switch-off, is only acknowledged on
   stderr -- the switch-off sequence is never interrupted.
-- **Deaths it cannot handle** (``kill -9``, the OOM killer, a crash in a C library): the port is
+- **Deaths it cannot handle** (``kill -9``, the OOM killer, a crash in a C library) **and a
+  process that stops** (SIGSTOP, a debugger, a hang): the port is
   owned by a small guardian process (``python -m acquisition.guardian``), started before the first
   command is sent. The acquiring process talks to the controller through a pipe
   (:class:`acquisition.transport.PipeTransport`, the interface of ``SerialTransport``). When that
@@ -16,7 +17,9 @@ accept. Two mechanisms cover the two ways a process ends:
   with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
   baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
-  notebook, and exits. It runs in its own session and ignores
+  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls: none
+  for ``watchdog_s`` (the protocol's ``[source] watchdog_s``) and it switches off the same way,
+  says so, and keeps serving (the series then stops at its next beam check). It runs in its own session and ignores
   SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
@@ -202,7 +205,14 @@ class SignalGuard:
 # -- the client side --------------------------------------------------------------------------------
 
 
-def start_guardian(url: str, config, *, notebook: str | Path | None = None, startup_timeout_s: float = 20.0):
+def start_guardian(
+    url: str,
+    config,
+    *,
+    notebook: str | Path | None = None,
+    startup_timeout_s: float = 20.0,
+    watchdog_s: float | None = None,
+):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
 
@@ -217,6 +227,11 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
         as the acquiring process, and never probes.
     notebook : path, optional
         The lab notebook (``<output>.log``) the guardian appends to when it has to act.
+    watchdog_s : float, optional
+        While X-rays may be on (an ``XON`` or ``WUP`` passed on, or an ``STS`` reply that says so,
+        and no ``STS`` reply since that says otherwise), the acquiring process polls the source
+        every beam-monitor period; silent for this long, it is suspended or hung, and the
+        guardian switches off (and says so). None: no watchdog.
 
     Raises
     ------
@@ -238,6 +253,8 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
+    if watchdog_s is not None:
+        cmd += ["--watchdog", repr(float(watchdog_s))]
     env = dict(os.environ)
     # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
     root = str(Path(__file__).resolve().parent.parent)
@@ -297,18 +314,78 @@ def _switch_off(link, config, note) -> bool:
     return True
 
 
-def _serve(link, config, note) -> int:
-    """Answer the acquiring process until it releases the port (0) or disappears (switch off)."""
+class _Watch:
+    """What the guardian knows of the tube from the exchanges it passes on: X-rays may be on from
+    an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says the tube emits, until an
+    ``STS`` reply says it does not."""
+
+    def __init__(self, config):
+        from acquisition.l8121 import DIALECTS
+
+        self.state_query = DIALECTS[config.dialect].readings["state"]
+        self.may_be_on = False
+
+    def sent(self, command: str) -> None:
+        if command.split(" ", 1)[0] in ("XON", "WUP"):
+            self.may_be_on = True
+
+    def replied(self, command: str, reply: str) -> None:
+        if command == self.state_query.command:
+            try:
+                self.may_be_on = bool(self.state_query.parse(reply).emitting)
+            except ValueError:  # not a state: it says nothing either way
+                pass
+
+
+def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | None:
+    """The next bytes from the acquiring process (b"" when its end closed), or None when, with
+    X-rays possibly on, it has sent nothing for ``watchdog_s``: it is suspended (SIGSTOP, a
+    debugger) or hung, and its beam monitor no longer watches the tube."""
+    import select
+
+    while True:
+        wait = watchdog_s if watch.may_be_on and watchdog_s else None
+        try:
+            ready, _, _ = select.select([rfd], [], [], wait)
+        except InterruptedError:
+            continue
+        except OSError:
+            return b""
+        if not ready:
+            return None
+        try:
+            return os.read(rfd, 4096)
+        except OSError:
+            return b""
+
+
+def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
+    note(
+        "WARNING",
+        f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
+        f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
+    )
+    if _switch_off(link, config, note):
+        watch.may_be_on = False
+    else:
+        _say(TUBE_WARNING)
+        watch.may_be_on = False  # said once; the acquiring process's own checks say the rest
+
+
+def _serve(link, config, note, watchdog_s: float | None = None) -> int:
+    """Answer the acquiring process until it releases the port (0) or disappears (switch off);
+    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
     from acquisition.errors import DeviceError, NoReply
 
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
+    watch = _Watch(config)
     while True:
         while b"\n" not in buf:
-            try:
-                data = os.read(rfd, 4096)
-            except OSError:
-                data = b""
+            data = _read_request(rfd, watch, watchdog_s)
+            if data is None:
+                _watchdog_off(link, config, note, watch, watchdog_s)
+                continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
                 note(
                     "WARNING",
@@ -329,8 +406,11 @@ def _serve(link, config, note) -> int:
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]
+        watch.sent(command)
         try:
-            out = f"R {seq} {link.query(command)}"
+            reply = link.query(command)
+            watch.replied(command, reply)
+            out = f"R {seq} {reply}"
         except (DeviceError, ValueError) as exc:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
@@ -359,6 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("url")
     ap.add_argument("--config", required=True)
     ap.add_argument("--notebook")
+    ap.add_argument("--watchdog", type=float, help="switch off after this many seconds of silence with X-rays on")
     args = ap.parse_args(argv)
     from acquisition.l8121 import SourceConfig
 
@@ -386,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1
     os.write(1, b"READY\n")
-    return _serve(link, config, note)
+    return _serve(link, config, note, args.watchdog)
 
 
 if __name__ == "__main__":

@@ -452,6 +452,7 @@ def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, c
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
 
 
+@ONE_DIALECT
 def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_path, scene_file, controller):
     """Found: Ctrl-Z (SIGTSTP to the job's process group) suspended the acquiring process -- its
     beam monitor too -- with X-rays on, and the guardian, whose pipe stayed open, had no reason to
@@ -478,6 +479,52 @@ def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_pat
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
     assert CONFIRMED.search(acq.last_line) and "stopped by SIGTSTP" in acq.output, acq.output
     assert "Traceback" not in acq.output
+
+
+def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scene_file, controller):
+    """Found: SIGSTOP (which no process can catch: ``kill -STOP``, a debugger) or a hang of the
+    acquiring process with X-rays on left the tube on for as long as it lasted: its beam monitor
+    stopped with it, and the guardian acts only when the pipe closes. Now the guardian, which
+    sees every poll, switches off after ``watchdog_s`` without one while X-rays may be on and
+    says so; woken again, the run finds the beam gone and stops with the tube confirmed off."""
+    model, server = controller()
+    watchdog_s = 1.0
+    proto = write_protocol(tmp_path, scene_file, server, source={"watchdog_s": watchdog_s})
+    acq = Acquire(proto, "--sim", "-q")
+    try:
+        reach("projection (beam on)", model, tmp_path, acq)
+        watch = OffWatch(model)
+        acq.signal(signal.SIGSTOP)
+        wait_until(lambda: not model.xray_on, timeout=watchdog_s + 5.0, what="the guardian's switch-off")
+        off_s = watch.seconds()
+        assert acq.proc.poll() is None  # still suspended: it was the guardian
+    finally:
+        acq.signal(signal.SIGCONT)
+    code = acq.wait()
+    record("SIGSTOP in projection (guardian watchdog)", model, acq, off_s, code)
+    assert off_s is not None and off_s <= watchdog_s + OFF_BOUND_S, off_s
+    said = [ln for ln in acq.lines if ln.startswith("X-ray guardian:")]
+    assert any(f"sent nothing for {watchdog_s:g} s" in ln for ln in said), acq.output
+    assert any("X-rays off (confirmed by STS" in ln for ln in said), acq.output
+    # woken, the run's beam check finds the beam gone: one error, the frames kept, tube off confirmed
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    assert "Traceback" not in acq.output and not model.xray_on
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
+@ONE_DIALECT
+def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene_file, controller):
+    """The watchdog only counts silence while X-rays may be on: a settle of two watchdog
+    periods with the tube off (the operator's wait) passes without a word from the guardian."""
+    model, server = controller()
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": 0.5}, series={"steps": [0.15], "settle_s": 1.0}
+    )
+    acq = Acquire(proto, "--sim", "-q")
+    assert acq.wait(timeout=60) == 0, acq.output
+    assert not any(ln.startswith("X-ray guardian:") for ln in acq.lines), acq.output
+    assert CONFIRMED.search(acq.last_line)
 
 
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
@@ -555,6 +602,7 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     ({"dialect": "C"}, r"dialect 'C': expected 'A', 'B' or 'auto'"),
     ({"focus": -1}, r"focus = -1"),
     ({"poll_s": float("inf")}, r"poll_s = inf"),
+    ({"watchdog_s": 0.2}, r"watchdog_s = 0\.2: expected at least 4 poll periods \(0\.4 s\), or 0 for none"),
 ]
 
 

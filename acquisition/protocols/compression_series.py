@@ -117,6 +117,9 @@ class SourceSettings:
     warmup_timeout_s: float = 1800.0
     warmup_estimate_s: float = 600.0  # for the dry run's duration only
     poll_s: float = 0.25  # beam monitor period while X-rays are on
+    # the guardian switches off when no poll has come for this long while X-rays may be on (the
+    # process suspended or hung); at least 4 poll periods; 0: no watchdog (a debugger's pauses)
+    watchdog_s: float = 5.0
     limits: dict = field(default_factory=dict)  # kv_max, ua_max, watts_max, ... (driver config)
 
 
@@ -290,6 +293,10 @@ def _check_source(s: SourceSettings) -> None:
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
     if s.poll_s <= 0:
         raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
+    if 0 < s.watchdog_s < 4 * s.poll_s:  # a run that polls as asked must never trip it
+        raise ProtocolError(
+            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * s.poll_s:g} s), or 0 for none"
+        )
 
 
 _SECTIONS = {
@@ -472,7 +479,9 @@ def _guarded_source(url: str, p: Protocol):
     driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
     try:
         resolved = driver.resolve()
-        link = start_guardian(url, resolved, notebook=Path(p.output).with_suffix(".log"))
+        link = start_guardian(
+            url, resolved, notebook=Path(p.output).with_suffix(".log"), watchdog_s=p.source.watchdog_s or None
+        )
     except BaseException as exc:
         exc.source_unreached = True
         exc.port_never_opened = isinstance(exc, PortUnavailable)
