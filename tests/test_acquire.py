@@ -467,3 +467,23 @@ def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_se
     assert main(["acquire", str(proto), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(proto) in err[0] and "needs the frame size" in err[0], err
+
+
+def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path, scene_toml, capsys):
+    """Found: an experiment file in a folder that does not exist (or a read-only one) ended the
+    command with "error: [Errno 2] No such file or directory: '.../series.log'" -- a file the
+    operator never named. Now the line names the experiment file, the folder and that nothing
+    was sent."""
+    from radiokit.cli import main
+
+    p = protocol(tmp_path, scene_toml)
+    out = tmp_path / "no-such-folder" / "series.h5"
+    p.output = str(out)
+    with pytest.raises(OSError, match=rf"{re.escape(str(out))}: .*\(no folder .*no-such-folder\); nothing was sent"):
+        run(p, sim=True, progress=False)
+    proto = tmp_path / "p.toml"
+    proto.write_text(p.to_toml())
+    assert main(["acquire", str(proto), "--sim", "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {out}: ") and "no folder" in err[0], err
+    assert not out.parent.exists()

@@ -984,7 +984,15 @@ def run(
     done = _existing(out, p) if resume else None
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
-    notebook = _open_notebook(out)
+    try:
+        notebook = _open_notebook(out)
+    except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
+        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
+        raise OSError(
+            exc.errno or errno.EIO,
+            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
+            f"({where}); nothing was sent to the devices",
+        ) from None
     res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
     bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
     r = _Run(
