@@ -187,6 +187,12 @@ class SignalGuard:
         if self._old and threading.current_thread() is threading.main_thread():
             for sig in self._old:
                 signal.signal(sig, self._handle)
+            # gmsh also resets SIGPIPE to its default at the C level while Python still reports
+            # it ignored: a write to the pipe of a guardian that died then killed this process
+            # on the spot, without a word and with the tube on. Ignored again, the write fails
+            # with EPIPE, and the run switches off or warns as for any lost link.
+            if hasattr(signal, "SIGPIPE") and signal.getsignal(signal.SIGPIPE) == signal.SIG_IGN:
+                signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
     def cleanup(self) -> SignalGuard:
         """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
@@ -267,7 +273,9 @@ def start_guardian(
         )
     except OSError as exc:
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
-    link = PipeTransport(url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate)
+    link = PipeTransport(
+        url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate, min_interval_s=config.min_interval_s
+    )
     link.wait_ready(startup_timeout_s)
     return link
 

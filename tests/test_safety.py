@@ -527,6 +527,44 @@ def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene
     assert CONFIRMED.search(acq.last_line)
 
 
+def guardian_of(pid):
+    """The pid of the X-ray guardian process that ``pid`` started (from /proc)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and b"acquisition.guardian" in cmdline:
+            return int(entry.name)
+    raise AssertionError(f"no X-ray guardian started by pid {pid}")
+
+
+@ONE_DIALECT
+def test_the_guardian_killed_mid_exposure_the_run_switches_off_itself(tmp_path, scene_file, controller):
+    """Found: kill -9 of the guardian with X-rays on killed the acquiring process too, silently
+    (exit -13: gmsh, building the virtual bench, had reset SIGPIPE to its default, so the write
+    to the dead guardian's pipe was fatal) -- no line, tube on; and once that write failed as an
+    error instead, the run could only warn, the port being the dead guardian's. Now SIGPIPE is
+    ignored again with the other signals, and the run opens the freed port itself: the series
+    stops with the tube confirmed off."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    os.kill(guardian_of(acq.proc.pid), signal.SIGKILL)
+    code = acq.wait()
+    off_s = watch.seconds()
+    record("guardian killed (-9) in projection", model, acq, off_s, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), f"exit {code}:\n{acq.output}"
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    assert "X-ray guardian" in acq.output and "died" in acq.output and "Traceback" not in acq.output
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     """A stop signal reaches :meth:`SignalGuard.on_signal`'s callbacks from the watcher thread,
     without the main thread's help. The main thread blocks the signal here, as a frame write in a C
