@@ -489,7 +489,10 @@ def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scen
     says so; woken again, the run finds the beam gone and stops with the tube confirmed off."""
     model, server = controller()
     watchdog_s = 1.0
-    proto = write_protocol(tmp_path, scene_file, server, source={"watchdog_s": watchdog_s})
+    # 10 frames a step (1 s of beam): the stop lands well inside the exposure, not in its XOF
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
+    )
     acq = Acquire(proto, "--sim", "-q")
     try:
         reach("projection (beam on)", model, tmp_path, acq)
@@ -878,6 +881,31 @@ def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small
     assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
     assert "Traceback" not in acq.output and "Logging error" not in acq.output
     assert not out.exists() and not model.xray_on
+
+
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_disk_that_cannot_take_the_file_is_found_before_the_warm_up(tmp_path, scene_file, controller, small_disk):
+    """Found: with a source that needed its warm-up, the run warmed it up -- X-rays, up to 30
+    minutes at the lab's time-out -- and only then found it could not create the experiment file
+    (a full disk). Now the file is opened first: the warm-up's command (A: WUP, B: XON) is never
+    sent, and the line names the file."""
+    with open(small_disk / "filler", "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+    model, server = controller(warmed_up=False)
+    out = small_disk / "series.h5"
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, output=out), "--sim", "-q")
+    code = acq.wait(timeout=60)
+    record("disk full, source needing its warm-up", model, acq, None, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
+    assert not {"WUP", "XON"} & set(model.commands), model.commands
+    assert model.state == 0 and not out.exists()  # still needing its warm-up; no empty file left
 
 
 @pytest.fixture(scope="module", autouse=True)

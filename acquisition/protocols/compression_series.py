@@ -791,15 +791,23 @@ def _phase_connect(r: _Run):
 
 
 def _phase_warm_up(r: _Run):
-    """Warm up if the source needs it, set the focus, open the experiment file, arm the panel."""
+    """Open the experiment file, then warm up if the source needs it, set the focus, arm the
+    panel. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
+    full disk, a read-only folder) must not have started it."""
     src, p = r.source, r.p
     if p.source.focus is not None:  # a setting: valid before the warm-up emits, though set after it
         src.check_focus(int(p.source.focus))
+    _open_experiment(r)
     if _needs_warm_up(src):
         src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
     if p.source.focus is not None:
         src.focus = int(p.source.focus)
-    det = r.devices.detector
+    r.devices.detector.arm()
+
+
+def _open_experiment(r: _Run):
+    """The experiment file, created (or reopened to resume) and the run recorded in it."""
+    src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
         pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
         source={
@@ -819,7 +827,6 @@ def _phase_warm_up(r: _Run):
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
-    det.arm()
 
 
 def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
