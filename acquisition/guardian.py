@@ -55,7 +55,7 @@ _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP
 class StopSignal(KeyboardInterrupt):
     """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP or SIGTSTP); ``signum`` says which.
 
-    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles all three alike."""
+    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles them all alike."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)

@@ -264,24 +264,7 @@ class ExperimentWriter:
         if getattr(self, "_failed", None):
             raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
         self._hold_ballast(frame.nbytes + self.reserve_bytes)
-        free = self._free_bytes()
-        if free < frame.nbytes + self.reserve_bytes:
-            raise OSError(
-                errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
-                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
-            )
-        size, limit = self._size_and_limit()
-        if size + frame.nbytes + self.reserve_bytes > limit:
-            # a file-size limit (ulimit -f, or a FAT32 / exFAT-formatted disk's 4 GiB) fails the
-            # write half-way just as a full disk does, and libhdf5 then leaves a file that does not
-            # open: refused while the file is whole
-            raise OSError(
-                errno.EFBIG,
-                f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
-                f"(the process's file-size limit or the file system's); frame {i} needs {frame.nbytes} plus "
-                f"{self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
-            )
+        self._check_room(frame.nbytes, i)
         values = {
             "image_key": ImageKey.INVALID,
             "step": int(step),
@@ -320,6 +303,28 @@ class ExperimentWriter:
                 code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays labelled invalid"
             ) from None
         return i
+
+    def _check_room(self, nbytes: int, i: int) -> None:
+        """Refuse frame ``i`` (``nbytes``) while the file is whole when the disk or the file's size
+        limit has no room for it and :attr:`reserve_bytes`: ENOSPC or EFBIG, naming the file and frame."""
+        free = self._free_bytes()
+        if free < nbytes + self.reserve_bytes:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, frame {i} needs {nbytes} "
+                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+            )
+        size, limit = self._size_and_limit()
+        if size + nbytes + self.reserve_bytes > limit:
+            # a file-size limit (ulimit -f, or a FAT32 / exFAT-formatted disk's 4 GiB) fails the
+            # write half-way just as a full disk does, and libhdf5 then leaves a file that does not
+            # open: refused while the file is whole
+            raise OSError(
+                errno.EFBIG,
+                f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
+                f"(the process's file-size limit or the file system's); frame {i} needs {nbytes} plus "
+                f"{self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+            )
 
     def _free_bytes(self) -> int:
         """Bytes free for this file on its file system."""
