@@ -130,7 +130,7 @@ def _tube_line(res) -> tuple[str, bool]:
 def _run_series(args, p) -> int:
     """Run the series under one signal guard, kept until the last line is printed: no signal can
     interrupt the switch-off or the report of it. Exit codes: 0 done, 1 error, 128 + signal
-    number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP), 3 whenever the tube
+    number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 148 Ctrl-Z), 3 whenever the tube
     could not be confirmed off (the last line then says to switch off at the controller)."""
     from acquisition.errors import DeviceError
     from acquisition.guardian import SignalGuard, StopSignal

@@ -338,6 +338,18 @@ class FolderWatcher:
 
     def _read(self, path: Path) -> np.ndarray:
         """Read one frame file and check it; :class:`_NotYet` if it does not read (yet)."""
+        # tifffile logs what it meets in a damaged file (a warning per bad tag) before radiokit's
+        # reader raises the error that names it; retried every poll until the time-out, that was
+        # some twenty lines a second on the operator's terminal, X-rays on. The error says it once.
+        tiff_log = logging.getLogger("tifffile")
+        was = tiff_log.disabled
+        tiff_log.disabled = True
+        try:
+            return self._read_checked(path)
+        finally:
+            tiff_log.disabled = was
+
+    def _read_checked(self, path: Path) -> np.ndarray:
         try:
             fmt = sniff(path)
             if fmt == "hdf5":

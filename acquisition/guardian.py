@@ -3,12 +3,13 @@
 A protocol that leaves X-rays on because its process died is the one failure the lab cannot
 accept. Two mechanisms cover the two ways a process ends:
 
-- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session:
-  SIGINT, SIGTERM, SIGHUP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
+- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session, Ctrl-Z:
+  SIGINT, SIGTERM, SIGHUP, SIGTSTP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
   (a ``KeyboardInterrupt``), so the protocol's own exit path switches the tube off and confirms
   it; every further signal, and any signal during that switch-off, is only acknowledged on
   stderr -- the switch-off sequence is never interrupted.
-- **Deaths it cannot handle** (``kill -9``, the OOM killer, a crash in a C library): the port is
+- **Deaths it cannot handle** (``kill -9``, the OOM killer, a crash in a C library) **and a
+  process that stops** (SIGSTOP, a debugger, a hang): the port is
   owned by a small guardian process (``python -m acquisition.guardian``), started before the first
   command is sent. The acquiring process talks to the controller through a pipe
   (:class:`acquisition.transport.PipeTransport`, the interface of ``SerialTransport``). When that
@@ -16,7 +17,9 @@ accept. Two mechanisms cover the two ways a process ends:
   with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
   baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
-  notebook, and exits. It runs in its own session and ignores
+  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls: none
+  for ``watchdog_s`` (the protocol's ``[source] watchdog_s``) and it switches off the same way,
+  says so, and keeps serving (the series then stops at its next beam check). It runs in its own session and ignores
   SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
@@ -44,13 +47,15 @@ __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"
 #: The last line the operator reads when switching off could not be confirmed.
 TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller (key switch) now"
 
-_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+# SIGTSTP (Ctrl-Z) too: its default suspends the process -- beam monitor and all -- with the tube
+# on, and the guardian, whose pipe stays open, would not act
+_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGTSTP") if hasattr(signal, name))
 
 
 class StopSignal(KeyboardInterrupt):
-    """A signal asked the run to stop (SIGINT, SIGTERM or SIGHUP); ``signum`` says which.
+    """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP or SIGTSTP); ``signum`` says which.
 
-    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles all three alike."""
+    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles them all alike."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
@@ -71,7 +76,10 @@ def _say(text: str) -> None:
 
 
 class SignalGuard:
-    """SIGINT, SIGTERM, SIGHUP: the first raises :class:`StopSignal`; the rest are deferred.
+    """SIGINT, SIGTERM, SIGHUP, SIGTSTP: the first raises :class:`StopSignal`; the rest are deferred.
+
+    Ctrl-Z (SIGTSTP) stops the run like Ctrl-C instead of suspending it: a suspended process
+    keeps the tube on and its beam monitor still.
 
     Use as a context manager around a run (handlers are installed only in the main thread, where
     Python delivers signals; elsewhere the guard does nothing). They are installed whatever the
@@ -179,6 +187,12 @@ class SignalGuard:
         if self._old and threading.current_thread() is threading.main_thread():
             for sig in self._old:
                 signal.signal(sig, self._handle)
+            # gmsh also resets SIGPIPE to its default at the C level while Python still reports
+            # it ignored: a write to the pipe of a guardian that died then killed this process
+            # on the spot, without a word and with the tube on. Ignored again, the write fails
+            # with EPIPE, and the run switches off or warns as for any lost link.
+            if hasattr(signal, "SIGPIPE") and signal.getsignal(signal.SIGPIPE) == signal.SIG_IGN:
+                signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
     def cleanup(self) -> SignalGuard:
         """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
@@ -197,7 +211,14 @@ class SignalGuard:
 # -- the client side --------------------------------------------------------------------------------
 
 
-def start_guardian(url: str, config, *, notebook: str | Path | None = None, startup_timeout_s: float = 20.0):
+def start_guardian(
+    url: str,
+    config,
+    *,
+    notebook: str | Path | None = None,
+    startup_timeout_s: float = 20.0,
+    watchdog_s: float | None = None,
+):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
 
@@ -212,6 +233,11 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
         as the acquiring process, and never probes.
     notebook : path, optional
         The lab notebook (``<output>.log``) the guardian appends to when it has to act.
+    watchdog_s : float, optional
+        While X-rays may be on (an ``XON`` or ``WUP`` passed on, or an ``STS`` reply that says so,
+        and no ``STS`` reply since that says otherwise), the acquiring process polls the source
+        every beam-monitor period; silent for this long, it is suspended or hung, and the
+        guardian switches off (and says so). None: no watchdog.
 
     Raises
     ------
@@ -233,6 +259,8 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
+    if watchdog_s is not None:
+        cmd += ["--watchdog", repr(float(watchdog_s))]
     env = dict(os.environ)
     # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
     root = str(Path(__file__).resolve().parent.parent)
@@ -245,7 +273,9 @@ def start_guardian(url: str, config, *, notebook: str | Path | None = None, star
         )
     except OSError as exc:
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
-    link = PipeTransport(url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate)
+    link = PipeTransport(
+        url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate, min_interval_s=config.min_interval_s
+    )
     link.wait_ready(startup_timeout_s)
     return link
 
@@ -292,18 +322,78 @@ def _switch_off(link, config, note) -> bool:
     return True
 
 
-def _serve(link, config, note) -> int:
-    """Answer the acquiring process until it releases the port (0) or disappears (switch off)."""
+class _Watch:
+    """What the guardian knows of the tube from the exchanges it passes on: X-rays may be on from
+    an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says the tube emits, until an
+    ``STS`` reply says it does not."""
+
+    def __init__(self, config):
+        from acquisition.l8121 import DIALECTS
+
+        self.state_query = DIALECTS[config.dialect].readings["state"]
+        self.may_be_on = False
+
+    def sent(self, command: str) -> None:
+        if command.split(" ", 1)[0] in ("XON", "WUP"):
+            self.may_be_on = True
+
+    def replied(self, command: str, reply: str) -> None:
+        if command == self.state_query.command:
+            try:
+                self.may_be_on = bool(self.state_query.parse(reply).emitting)
+            except ValueError:  # not a state: it says nothing either way
+                pass
+
+
+def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | None:
+    """The next bytes from the acquiring process (b"" when its end closed), or None when, with
+    X-rays possibly on, it has sent nothing for ``watchdog_s``: it is suspended (SIGSTOP, a
+    debugger) or hung, and its beam monitor no longer watches the tube."""
+    import select
+
+    while True:
+        wait = watchdog_s if watch.may_be_on and watchdog_s else None
+        try:
+            ready, _, _ = select.select([rfd], [], [], wait)
+        except InterruptedError:
+            continue
+        except OSError:
+            return b""
+        if not ready:
+            return None
+        try:
+            return os.read(rfd, 4096)
+        except OSError:
+            return b""
+
+
+def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
+    note(
+        "WARNING",
+        f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
+        f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
+    )
+    if _switch_off(link, config, note):
+        watch.may_be_on = False
+    else:
+        _say(TUBE_WARNING)
+        watch.may_be_on = False  # said once; the acquiring process's own checks say the rest
+
+
+def _serve(link, config, note, watchdog_s: float | None = None) -> int:
+    """Answer the acquiring process until it releases the port (0) or disappears (switch off);
+    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
     from acquisition.errors import DeviceError, NoReply
 
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
+    watch = _Watch(config)
     while True:
         while b"\n" not in buf:
-            try:
-                data = os.read(rfd, 4096)
-            except OSError:
-                data = b""
+            data = _read_request(rfd, watch, watchdog_s)
+            if data is None:
+                _watchdog_off(link, config, note, watch, watchdog_s)
+                continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
                 note(
                     "WARNING",
@@ -324,8 +414,11 @@ def _serve(link, config, note) -> int:
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]
+        watch.sent(command)
         try:
-            out = f"R {seq} {link.query(command)}"
+            reply = link.query(command)
+            watch.replied(command, reply)
+            out = f"R {seq} {reply}"
         except (DeviceError, ValueError) as exc:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
@@ -354,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("url")
     ap.add_argument("--config", required=True)
     ap.add_argument("--notebook")
+    ap.add_argument("--watchdog", type=float, help="switch off after this many seconds of silence with X-rays on")
     args = ap.parse_args(argv)
     from acquisition.l8121 import SourceConfig
 
@@ -381,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1
     os.write(1, b"READY\n")
-    return _serve(link, config, note)
+    return _serve(link, config, note, args.watchdog)
 
 
 if __name__ == "__main__":

@@ -231,6 +231,7 @@ class SourceConfig:
     stable_timeout_s: float = 15.0
     poll_s: float = 0.2
     warmup_timeout_s: float = 1800.0
+    warmup_start_s: float = 5.0  # the start command answered, still "warm-up needed" after this: not started
     off_attempts: int = 3
     beam_drop_fraction: float = 0.5
 
@@ -258,6 +259,7 @@ class SourceConfig:
             "stable_timeout_s",
             "poll_s",
             "warmup_timeout_s",
+            "warmup_start_s",
             "beam_drop_fraction",
         ):
             _finite(getattr(self, name), name)
@@ -271,7 +273,14 @@ class SourceConfig:
                 f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
             )
         # a zero warm-up or stable time-out would switch the tube on only to switch it off again
-        for name in ("timeout_s", "probe_timeout_s", "poll_s", "warmup_timeout_s", "stable_timeout_s"):
+        for name in (
+            "timeout_s",
+            "probe_timeout_s",
+            "poll_s",
+            "warmup_timeout_s",
+            "warmup_start_s",
+            "stable_timeout_s",
+        ):
             if getattr(self, name) == 0:
                 raise ValueError(f"L8121 configuration: {name} must be > 0")
         if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
@@ -1556,16 +1565,31 @@ class L8121:
                 self._trip("interlock open during the warm-up")
             if state == SourceState.OVERLOAD:
                 raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
-            if seen_running and state == SourceState.WARMUP_NEEDED:
-                raise DeviceError(
-                    f"{self.port}: warm-up stopped after {elapsed:.1f} s (state WARMUP_NEEDED, "
-                    f"error code {self.error_code()})"
-                )
+            if state == SourceState.WARMUP_NEEDED and (seen_running or elapsed > self.config.warmup_start_s):
+                # stopped, or never started although the start command was answered (the interlock
+                # opened, the controller refused it silently): not a reason to wait out the time-out
+                self._warm_up_stopped(elapsed, seen_running)
             if elapsed > timeout_s:
                 raise DeviceError(
                     f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
                 )
             time.sleep(self.config.poll_s)
+
+    def _warm_up_stopped(self, elapsed: float, started: bool):
+        """Raise the error of a warm-up that stopped (``started``) or never started: a
+        :class:`SourceFault` when the interlock is open, else a :class:`DeviceError` with the
+        controller's error code."""
+        what = (
+            f"warm-up stopped after {elapsed:.1f} s"
+            if started
+            else (
+                f"warm-up did not start: {self.dialect.settings['warm_up'].command} was answered, but the "
+                f"controller still reports warm-up needed after {elapsed:.1f} s"
+            )
+        )
+        if not self.interlock_closed():
+            raise SourceFault(f"{self.port}: {what}: interlock open")
+        raise DeviceError(f"{self.port}: {what} (state WARMUP_NEEDED, error code {self.error_code()})")
 
     def on(self, kv: float, ua: float) -> dict[str, Any]:
         """Switch X-rays on at ``kv`` kV and ``ua`` µA and wait for a stable beam.

@@ -302,16 +302,36 @@ class PipeTransport:
         The guardian's reply time-out per exchange; this side waits for it plus the guardian's
         reconnect and a margin before calling the guardian lost.
     baudrate : int
-        For :func:`repr` and messages only (the guardian opened the port).
+        The port's rate (the guardian opened it): used only if this process must open the port
+        itself because the guardian died.
+    min_interval_s : float
+        The command spacing, likewise.
+
+    Notes
+    -----
+    If the guardian dies (``kill -9``, the OOM killer) the exchange in progress fails with
+    :class:`DeviceError` (so the run stops and switches off), and every later exchange goes
+    straight to the port, which the guardian's death has freed: the switch-off then reaches the
+    controller, and is confirmed, instead of leaving the operator only a warning.
     """
 
     def __init__(
-        self, url: str, process, *, timeout_s: float = 1.0, baudrate: int = 9600, log: logging.Logger = logger
+        self,
+        url: str,
+        process,
+        *,
+        timeout_s: float = 1.0,
+        baudrate: int = 9600,
+        min_interval_s: float = 0.05,
+        log: logging.Logger = logger,
     ):
         self.url = str(url)
         self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
+        self.min_interval_s = float(min_interval_s)
         self.log = log
+        self._lost = False  # the guardian died (not released): the port is free for this process
+        self._direct: SerialTransport | None = None
         self._process = process
         self._rfd = process.stdout.fileno()
         self._wfd = process.stdin.fileno()
@@ -329,8 +349,8 @@ class PipeTransport:
 
     @property
     def is_open(self) -> bool:
-        """Whether the guardian is serving this process."""
-        return self._open
+        """Whether the guardian is serving this process (or, after its death, the port is open here)."""
+        return self._open or self._direct is not None
 
     @property
     def pid(self) -> int:
@@ -356,6 +376,9 @@ class PipeTransport:
 
     def close(self) -> None:
         """Release the port: the guardian closes it and exits, leaving the source as it is."""
+        direct, self._direct, self._lost = self._direct, None, False
+        if direct is not None:
+            direct.close()
         if not self._open:
             return
         self._open = False
@@ -393,6 +416,8 @@ class PipeTransport:
         if any(end.decode() in command for end in _LINE_ENDS) or "\n" in command:
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         with self._lock:
+            if self._lost:
+                return self._take_over().query(command)
             if not self._open:
                 raise DeviceError(f"{self.url}: {command}: the port has been released")
             self._seq += 1
@@ -402,6 +427,7 @@ class PipeTransport:
             try:
                 os.write(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
+                self._open, self._lost = False, True
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
             deadline = t0 + self._reply_wait_s
             while True:  # replies to requests that were interrupted earlier carry older numbers
@@ -413,6 +439,29 @@ class PipeTransport:
             if kind == "R":
                 return text
             raise NoReply(text) if kind == "N" else DeviceError(text)
+
+    def _take_over(self) -> SerialTransport:
+        """The guardian died: open the port it held, here (once), so that the switch-off that
+        follows reaches the controller. A kill -9 of this process is no longer covered, so the
+        run that met the death stops."""
+        if self._direct is None:
+            try:  # the guardian is gone for good: reap it, so its end of the port is closed
+                self._process.wait(timeout=5.0)
+            except Exception:
+                pass
+            self.log.warning(
+                "%s: the X-ray guardian (pid %d) died; this process opens the port itself to switch off",
+                self.url,
+                self._process.pid,
+            )
+            self._direct = SerialTransport(
+                self.url,
+                baudrate=self.baudrate,
+                timeout_s=self.timeout_s,
+                min_interval_s=self.min_interval_s,
+                log=self.log,
+            )
+        return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:
         while b"\n" not in self._buf:
@@ -428,6 +477,7 @@ class PipeTransport:
             data = os.read(self._rfd, 4096)
             if not data:
                 self._open = False
+                self._lost = command != "start"  # (at start it could not open the port: nothing to take)
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited (code {self._process.poll()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)

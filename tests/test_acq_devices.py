@@ -269,6 +269,24 @@ def test_folder_truncated_file_is_an_error_once_a_later_one_is_complete(tmp_path
     assert type(info.value) is DeviceError  # a bad file, not a missing one
 
 
+def test_folder_a_damaged_tiff_is_one_error_not_a_stream_of_tifffile_warnings(tmp_path, caplog):
+    """Found: a frame file with a damaged tag (here the image width's data type) was retried at
+    every poll until the time-out, and at each read tifffile logged its complaint: about twenty
+    warning lines a second on the operator's terminal, with X-rays on, before the one error that
+    names the file. Now tifffile is quiet while the watcher reads; the error says it once."""
+    data = bytearray(_tiff(_frames(1)[0]))
+    assert data[:4] == b"II*\x00" and int.from_bytes(data[10:12], "little") == 256  # first tag: width
+    data[12:14] = (60932).to_bytes(2, "little")  # its data type: none that exists
+    watcher = FolderWatcher(tmp_path, "*.tif", **FAST)
+    watcher.arm()
+    (tmp_path / "bad.tif").write_bytes(bytes(data))
+    with caplog.at_level(logging.DEBUG):
+        with pytest.raises(DeviceError, match=r"bad\.tif: not a readable frame file after 0\.3 s"):
+            next(watcher.acquire(1, timeout_s=0.3))
+    assert [r.getMessage() for r in caplog.records if r.name.startswith("tifffile")] == []
+    assert not logging.getLogger("tifffile").disabled  # as it was
+
+
 def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
     """Raw files without a shape are recognised by size as a single C7942 frame (here 4x4 binned,
     560 x 560); the preset also gives the pixel size."""

@@ -461,3 +461,47 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert not model.xray_on
         assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
         assert "kV" in capsys.readouterr().err and not model.xray_on
+
+
+def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):
+    """Found: a lab protocol naming the vendor software's folder but no frame size loaded, ran the
+    warm-up (X-rays) and then died opening the experiment file with "TypeError: 'NoneType' object
+    is not iterable" (the file is sized before the first frame). Now the protocol is refused at
+    load -- the dry run refuses it too -- naming what is missing."""
+    from radiokit.cli import main
+
+    lab = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"port": "/dev/ttyUSB0"},
+        "detector": {"kind": "folder", "folder": str(tmp_path)},
+        "frame": {"kind": "manual"},
+    }
+    with pytest.raises(DeviceError, match=r"\[detector\] folder = .* needs the frame size: shape = \[rows, cols\]"):
+        load_protocol(lab)
+    for given in ({"shape": [64, 64]}, {"preset": "c7942"}):
+        assert load_protocol({**lab, "detector": {**lab["detector"], **given}}).detector.folder == str(tmp_path)
+    proto = tmp_path / "lab.toml"
+    proto.write_text(f'output = "{tmp_path / "series.h5"}"\n[detector]\nkind = "folder"\nfolder = "{tmp_path}"\n')
+    assert main(["acquire", str(proto), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(proto) in err[0] and "needs the frame size" in err[0], err
+
+
+def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path, scene_toml, capsys):
+    """Found: an experiment file in a folder that does not exist (or a read-only one) ended the
+    command with "error: [Errno 2] No such file or directory: '.../series.log'" -- a file the
+    operator never named. Now the line names the experiment file, the folder and that nothing
+    was sent."""
+    from radiokit.cli import main
+
+    p = protocol(tmp_path, scene_toml)
+    out = tmp_path / "no-such-folder" / "series.h5"
+    p.output = str(out)
+    with pytest.raises(OSError, match=rf"{re.escape(str(out))}: .*\(no folder .*no-such-folder\); nothing was sent"):
+        run(p, sim=True, progress=False)
+    proto = tmp_path / "p.toml"
+    proto.write_text(p.to_toml())
+    assert main(["acquire", str(proto), "--sim", "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {out}: ") and "no folder" in err[0], err
+    assert not out.parent.exists()

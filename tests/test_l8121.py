@@ -532,6 +532,28 @@ def test_warm_up_times_out_and_switches_off(cold, dialect, wire):
     assert "XOF" in commands_after(model, wire["warm"]) and not model.xray_on
 
 
+@pytest.mark.parametrize("fault", ["interlock", "refused silently"])
+def test_a_warm_up_that_does_not_start_is_an_error_not_a_wait(cold, dialect, wire, fault):
+    """The start command answered, but the warm-up stops before the first poll (the interlock
+    opened right after it) or never starts: the controller keeps saying warm-up needed. Found:
+    the driver polled that for the whole warm-up time-out (30 min by default) without a word.
+    Now it stops after ``warmup_start_s``, naming the interlock when it is open."""
+    model, server = cold
+    model.warmup_s = 30
+    if fault == "interlock":
+        model.inject_after(wire["warm"], model.open_interlock)  # lands before the driver's first poll
+    else:
+        model.inject_after(wire["warm"], lambda: model.handle("XOF"))  # the sequence ends at once
+    with driver(server, dialect, warmup_start_s=0.2) as src:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match=r"warm-up did not start: .* still reports warm-up needed") as info:
+            src.warm_up(timeout_s=60, progress=False)
+        assert time.monotonic() - t0 < 3
+    assert isinstance(info.value, SourceFault) is (fault == "interlock")
+    assert ("interlock open" in str(info.value)) is (fault == "interlock")
+    assert "XOF" in commands_after(model, wire["warm"]) and not model.xray_on and model.state != 1
+
+
 def test_ctrl_c_during_warm_up_switches_off(cold, dialect):
     model, server = cold
     model.warmup_s = 30

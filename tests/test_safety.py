@@ -29,6 +29,7 @@ command is started with SIGINT ignored in some rows, as ``make test &`` starts i
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import signal
@@ -144,7 +145,7 @@ class Acquire:
     """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
     the guardian's included) collected line by line."""
 
-    def __init__(self, *args, sigint_ignored=False):
+    def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
         code = "import sys; from radiokit.cli import main; sys.exit(main())"
@@ -159,7 +160,11 @@ class Acquire:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             env=env,
-            start_new_session=True,
+            # own_session=False: a process group of this session (a shell's job), not orphaned, so
+            # that the kernel carries out the stop signals (SIGTSTP) rather than discarding them
+            start_new_session=own_session,
+            process_group=None if own_session else 0,
+            preexec_fn=None if fsize_limit is None else lambda: _limit_file_size(fsize_limit),
         )
         self.lines = []
         self.times = []  # time.monotonic() at which each line arrived
@@ -191,6 +196,14 @@ class Acquire:
     @property
     def output(self):
         return "\n".join(self.lines)
+
+
+def _limit_file_size(nbytes):
+    """``ulimit -f``: a write past ``nbytes`` fails with EFBIG (Python ignores SIGXFSZ) -- as on a
+    FAT32 / exFAT disk, whose files stop at 4 GiB, 400 frames of 2240 x 2240."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
 
 
 def wait_until(cond, timeout=20.0, what="condition", period=0.02):
@@ -439,6 +452,122 @@ def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, c
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
 
 
+@ONE_DIALECT
+def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_path, scene_file, controller):
+    """Found: Ctrl-Z (SIGTSTP to the job's process group) suspended the acquiring process -- its
+    beam monitor too -- with X-rays on, and the guardian, whose pipe stayed open, had no reason to
+    act: the tube stayed on until someone typed ``fg``. Now Ctrl-Z stops the series like Ctrl-C:
+    tube off (confirmed), the frames kept, exit 148 (128 + SIGTSTP)."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q", own_session=False)
+    try:
+        reach("projection (beam on)", model, tmp_path, acq)
+        watch = OffWatch(model)
+        os.killpg(acq.proc.pid, signal.SIGTSTP)
+        try:
+            code = acq.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            code = None
+        off_s = watch.seconds()
+        record("SIGTSTP (Ctrl-Z) in projection", model, acq, off_s, "susp." if code is None else code)
+        assert code == 128 + signal.SIGTSTP, f"exit {code}; emulator X-rays on: {model.xray_on}\n{acq.output}"
+    finally:
+        if acq.proc.poll() is None:  # suspended (the fault): wake it to switch off, then end it
+            os.killpg(acq.proc.pid, signal.SIGCONT)
+            acq.signal(signal.SIGTERM)
+            acq.wait(timeout=30)
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    assert CONFIRMED.search(acq.last_line) and "stopped by SIGTSTP" in acq.output, acq.output
+    assert "Traceback" not in acq.output
+
+
+def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scene_file, controller):
+    """Found: SIGSTOP (which no process can catch: ``kill -STOP``, a debugger) or a hang of the
+    acquiring process with X-rays on left the tube on for as long as it lasted: its beam monitor
+    stopped with it, and the guardian acts only when the pipe closes. Now the guardian, which
+    sees every poll, switches off after ``watchdog_s`` without one while X-rays may be on and
+    says so; woken again, the run finds the beam gone and stops with the tube confirmed off."""
+    model, server = controller()
+    watchdog_s = 1.0
+    # 10 frames a step (1 s of beam): the stop lands well inside the exposure, not in its XOF
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
+    )
+    acq = Acquire(proto, "--sim", "-q")
+    try:
+        reach("projection (beam on)", model, tmp_path, acq)
+        watch = OffWatch(model)
+        acq.signal(signal.SIGSTOP)
+        wait_until(lambda: not model.xray_on, timeout=watchdog_s + 5.0, what="the guardian's switch-off")
+        off_s = watch.seconds()
+        assert acq.proc.poll() is None  # still suspended: it was the guardian
+    finally:
+        acq.signal(signal.SIGCONT)
+    code = acq.wait()
+    record("SIGSTOP in projection (guardian watchdog)", model, acq, off_s, code)
+    assert off_s is not None and off_s <= watchdog_s + OFF_BOUND_S, off_s
+    said = [ln for ln in acq.lines if ln.startswith("X-ray guardian:")]
+    assert any(f"sent nothing for {watchdog_s:g} s" in ln for ln in said), acq.output
+    assert any("X-rays off (confirmed by STS" in ln for ln in said), acq.output
+    # woken, the run's beam check finds the beam gone: one error, the frames kept, tube off confirmed
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    assert "Traceback" not in acq.output and not model.xray_on
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
+@ONE_DIALECT
+def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene_file, controller):
+    """The watchdog only counts silence while X-rays may be on: a settle of two watchdog
+    periods with the tube off (the operator's wait) passes without a word from the guardian."""
+    model, server = controller()
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": 0.5}, series={"steps": [0.15], "settle_s": 1.0}
+    )
+    acq = Acquire(proto, "--sim", "-q")
+    assert acq.wait(timeout=60) == 0, acq.output
+    assert not any(ln.startswith("X-ray guardian:") for ln in acq.lines), acq.output
+    assert CONFIRMED.search(acq.last_line)
+
+
+def guardian_of(pid):
+    """The pid of the X-ray guardian process that ``pid`` started (from /proc)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and b"acquisition.guardian" in cmdline:
+            return int(entry.name)
+    raise AssertionError(f"no X-ray guardian started by pid {pid}")
+
+
+@ONE_DIALECT
+def test_the_guardian_killed_mid_exposure_the_run_switches_off_itself(tmp_path, scene_file, controller):
+    """Found: kill -9 of the guardian with X-rays on killed the acquiring process too, silently
+    (exit -13: gmsh, building the virtual bench, had reset SIGPIPE to its default, so the write
+    to the dead guardian's pipe was fatal) -- no line, tube on; and once that write failed as an
+    error instead, the run could only warn, the port being the dead guardian's. Now SIGPIPE is
+    ignored again with the other signals, and the run opens the freed port itself: the series
+    stops with the tube confirmed off."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
+    reach("projection (beam on)", model, tmp_path, acq)
+    watch = OffWatch(model)
+    os.kill(guardian_of(acq.proc.pid), signal.SIGKILL)
+    code = acq.wait()
+    off_s = watch.seconds()
+    record("guardian killed (-9) in projection", model, acq, off_s, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), f"exit {code}:\n{acq.output}"
+    assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
+    assert "X-ray guardian" in acq.output and "died" in acq.output and "Traceback" not in acq.output
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     """A stop signal reaches :meth:`SignalGuard.on_signal`'s callbacks from the watcher thread,
     without the main thread's help. The main thread blocks the signal here, as a frame write in a C
@@ -514,6 +643,7 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     ({"dialect": "C"}, r"dialect 'C': expected 'A', 'B' or 'auto'"),
     ({"focus": -1}, r"focus = -1"),
     ({"poll_s": float("inf")}, r"poll_s = inf"),
+    ({"watchdog_s": 0.2}, r"watchdog_s = 0\.2: expected at least 4 poll periods \(0\.4 s\), or 0 for none"),
 ]
 
 
@@ -658,6 +788,78 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
 
 
+_FILE_SIZE_LIMIT = """
+import errno, sys
+import numpy as np
+from radiokit.io import ExperimentWriter, ImageKey
+w = ExperimentWriter(sys.argv[1], shape=(256, 256))
+i = 0
+try:
+    while True:
+        w.append(np.full((256, 256), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
+        i += 1
+except OSError as exc:
+    print("failed at", i, exc.errno, flush=True)
+w.close()
+"""
+
+
+def test_a_file_size_limit_refuses_the_frame_while_the_file_is_whole(tmp_path):
+    """Found: under a file-size limit (``ulimit -f``; a FAT32 disk's 4 GiB) the frame that crossed
+    it failed inside libhdf5, the file no longer opened (every frame lost) and the process
+    crashed (SIGSEGV) closing it. Now the writer refuses that frame beforehand, as it does on a
+    full disk: EFBIG, and every frame before it intact."""
+    path = tmp_path / "exp.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run(
+        [sys.executable, "-c", _FILE_SIZE_LIMIT, str(path)],
+        check=False,
+        capture_output=True,
+        env=env,
+        timeout=60,
+        preexec_fn=lambda: _limit_file_size(3_000_000),
+    )
+    assert r.returncode == 0 and b"failed at" in r.stdout, (r.returncode, r.stderr.decode()[-2000:])
+    failed_at, code = map(int, r.stdout.split()[2:4])
+    assert code == errno.EFBIG
+    # 3 MB, less the 1 MiB reserve, holds 14 frames of 128 KiB (plus the file's metadata)
+    assert 8 <= failed_at <= (3_000_000 - (1 << 20)) // (256 * 256 * 2)
+    with h5py.File(path, "r") as h5:
+        assert int(h5["entry"].attrs["frames_complete"]) == failed_at
+        data = h5["entry/instrument/detector/data"]
+        for i in range(failed_at):
+            assert np.all(data[i] == 1000 + i)
+        assert np.all(h5["entry/instrument/detector/image_key"][:failed_at] == ImageKey.FLAT)
+
+
+@ONE_DIALECT
+def test_file_size_limit_during_a_series_one_message_and_resume(tmp_path, scene_file, controller):
+    """The series meets a file-size limit with X-rays on: exit 1, one error line naming the file
+    and the limit, the tube confirmed off, a file that opens with the frames that fit; without
+    the limit, --resume completes it."""
+    model, server = controller()
+    out = tmp_path / "series.h5"
+    proto = write_protocol(tmp_path, scene_file, server, output=out)
+    # the file, 2 darks and 1 flat of 627 KB, and the writer's 1 MiB reserve: the limit falls in the flats
+    acq = Acquire(proto, "--sim", "-q", fsize_limit=3_000_000)
+    code = acq.wait(timeout=60)
+    record("file size limit (ulimit -f 3 MB)", model, acq, None, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert len(errors) == 1 and "file size limit" in errors[0] and str(out) in errors[0], acq.output
+    assert "Traceback" not in acq.output and not model.xray_on
+    assert "stopped in phase flats" in acq.output, acq.output
+    with h5py.File(out, "r") as h5:
+        n = int(h5["entry"].attrs["frames_complete"])
+        assert DARKS <= n < DARKS + FLATS
+    acq = Acquire(proto, "--sim", "-q", "--resume")
+    assert acq.wait(timeout=60) == 0, acq.output
+    with h5py.File(out, "r") as h5:
+        keys = h5["entry/instrument/detector/image_key"][: int(h5["entry"].attrs["frames_complete"])]
+    assert np.sum(keys == ImageKey.DARK) == DARKS and np.sum(keys == ImageKey.FLAT) == FLATS
+    assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
+
+
 @ONE_DIALECT
 def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small_disk):
     """A disk already full: one line naming the file, the tube confirmed off, and no empty file
@@ -679,6 +881,31 @@ def test_full_disk_before_the_first_byte(tmp_path, scene_file, controller, small
     assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
     assert "Traceback" not in acq.output and "Logging error" not in acq.output
     assert not out.exists() and not model.xray_on
+
+
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_disk_that_cannot_take_the_file_is_found_before_the_warm_up(tmp_path, scene_file, controller, small_disk):
+    """Found: with a source that needed its warm-up, the run warmed it up -- X-rays, up to 30
+    minutes at the lab's time-out -- and only then found it could not create the experiment file
+    (a full disk). Now the file is opened first: the warm-up's command (A: WUP, B: XON) is never
+    sent, and the line names the file."""
+    with open(small_disk / "filler", "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+    model, server = controller(warmed_up=False)
+    out = small_disk / "series.h5"
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, output=out), "--sim", "-q")
+    code = acq.wait(timeout=60)
+    record("disk full, source needing its warm-up", model, acq, None, code)
+    assert code == 1 and CONFIRMED.search(acq.last_line), acq.output
+    errors = [ln for ln in acq.lines if ln.startswith("error:")]
+    assert len(errors) == 1 and str(out) in errors[0] and "No space left" in errors[0], acq.output
+    assert not {"WUP", "XON"} & set(model.commands), model.commands
+    assert model.state == 0 and not out.exists()  # still needing its warm-up; no empty file left
 
 
 @pytest.fixture(scope="module", autouse=True)

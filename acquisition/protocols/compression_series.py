@@ -19,7 +19,7 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
   refuses what a run would;
 - the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on;
 - the tube is switched off (``XOF``, confirmed by ``STS``) on every exit path -- normal end,
-  exception, Ctrl-C, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
+  exception, Ctrl-C, Ctrl-Z, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
   every wait for a person (moving the screws, taking the phantom out). No signal interrupts the
   switch-off (:class:`acquisition.guardian.SignalGuard`). ``Result.tube_off`` says whether it was
   confirmed. On the lab's port (and ``[sim] source_port``), a guardian process holds the link and
@@ -117,6 +117,9 @@ class SourceSettings:
     warmup_timeout_s: float = 1800.0
     warmup_estimate_s: float = 600.0  # for the dry run's duration only
     poll_s: float = 0.25  # beam monitor period while X-rays are on
+    # the guardian switches off when no poll has come for this long while X-rays may be on (the
+    # process suspended or hung); at least 4 poll periods; 0: no watchdog (a debugger's pauses)
+    watchdog_s: float = 5.0
     limits: dict = field(default_factory=dict)  # kv_max, ua_max, watts_max, ... (driver config)
 
 
@@ -204,6 +207,14 @@ class Protocol:
             raise ProtocolError(f"frame.initial_height_mm {self.frame.initial_height_mm}: expected > 0")
         if self.detector.shape is not None:
             self.detector.shape = tuple(int(v) for v in self.detector.shape)
+        d = self.detector
+        if d.kind == "folder" and d.folder and d.shape is None and d.preset is None:
+            # the experiment file is sized before the first frame arrives, and after the warm-up,
+            # which emits: an unknown frame size must stop the run before any X-ray command
+            raise ProtocolError(
+                f"[detector] folder = {d.folder!r} needs the frame size: shape = [rows, cols] or a "
+                f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
+            )
         _check_source(self.source)
 
     def to_toml(self) -> str:
@@ -282,6 +293,10 @@ def _check_source(s: SourceSettings) -> None:
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
     if s.poll_s <= 0:
         raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
+    if 0 < s.watchdog_s < 4 * s.poll_s:  # a run that polls as asked must never trip it
+        raise ProtocolError(
+            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * s.poll_s:g} s), or 0 for none"
+        )
 
 
 _SECTIONS = {
@@ -466,7 +481,9 @@ def _guarded_source(url: str, p: Protocol):
     driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
     try:
         resolved = driver.resolve()
-        link = start_guardian(url, resolved, notebook=Path(p.output).with_suffix(".log"))
+        link = start_guardian(
+            url, resolved, notebook=Path(p.output).with_suffix(".log"), watchdog_s=p.source.watchdog_s or None
+        )
     except BaseException as exc:
         exc.source_unreached = True
         exc.port_never_opened = isinstance(exc, PortUnavailable)
@@ -776,15 +793,23 @@ def _phase_connect(r: _Run):
 
 
 def _phase_warm_up(r: _Run):
-    """Warm up if the source needs it, set the focus, open the experiment file, arm the panel."""
+    """Open the experiment file, then warm up if the source needs it, set the focus, arm the
+    panel. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
+    full disk, a read-only folder) must not have started it."""
     src, p = r.source, r.p
     if p.source.focus is not None:  # a setting: valid before the warm-up emits, though set after it
         src.check_focus(int(p.source.focus))
+    _open_experiment(r)
     if _needs_warm_up(src):
         src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
     if p.source.focus is not None:
         src.focus = int(p.source.focus)
-    det = r.devices.detector
+    r.devices.detector.arm()
+
+
+def _open_experiment(r: _Run):
+    """The experiment file, created (or reopened to resume) and the run recorded in it."""
+    src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
         pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
         source={
@@ -804,7 +829,6 @@ def _phase_warm_up(r: _Run):
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
-    det.arm()
 
 
 def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
@@ -946,7 +970,7 @@ def run(
         How the experiment file is opened (tests pass one whose disk fills).
     guard : acquisition.guardian.SignalGuard, optional
         The signal guard to run under (the command line keeps one until its last line is
-        printed); by default the run installs its own: SIGINT, SIGTERM and SIGHUP stop the series
+        printed); by default the run installs its own: SIGINT, SIGTERM, SIGHUP and SIGTSTP stop the series
         with :class:`~acquisition.guardian.StopSignal`, and none interrupts the switch-off.
 
     Raises
@@ -969,7 +993,15 @@ def run(
     done = _existing(out, p) if resume else None
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
-    notebook = _open_notebook(out)
+    try:
+        notebook = _open_notebook(out)
+    except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
+        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
+        raise OSError(
+            exc.errno or errno.EIO,
+            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
+            f"({where}); nothing was sent to the devices",
+        ) from None
     res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
     bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
     r = _Run(

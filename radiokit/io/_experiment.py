@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import shutil
 import time
@@ -243,8 +244,9 @@ class ExperimentWriter:
         Raises
         ------
         OSError
-            ``ENOSPC`` when the disk has no room for the frame and :attr:`reserve_bytes` (nothing
-            written: the file stays complete up to the previous frame), or any error writing it
+            ``ENOSPC`` when the disk has no room for the frame and :attr:`reserve_bytes`, ``EFBIG``
+            when they would take the file past its size limit (the process's or the file
+            system's) -- nothing written: the file stays complete up to the previous frame --, or any error writing it
             (the frame stays labelled invalid and the file takes no more frames). The message
             names the file and the frame.
         """
@@ -262,13 +264,7 @@ class ExperimentWriter:
         if getattr(self, "_failed", None):
             raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
         self._hold_ballast(frame.nbytes + self.reserve_bytes)
-        free = self._free_bytes()
-        if free < frame.nbytes + self.reserve_bytes:
-            raise OSError(
-                errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, frame {i} needs {frame.nbytes} "
-                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
-            )
+        self._check_room(frame.nbytes, i)
         values = {
             "image_key": ImageKey.INVALID,
             "step": int(step),
@@ -308,9 +304,52 @@ class ExperimentWriter:
             ) from None
         return i
 
+    def _check_room(self, nbytes: int, i: int) -> None:
+        """Refuse frame ``i`` (``nbytes``) while the file is whole when the disk or the file's size
+        limit has no room for it and :attr:`reserve_bytes`: ENOSPC or EFBIG, naming the file and frame."""
+        free = self._free_bytes()
+        if free < nbytes + self.reserve_bytes:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, frame {i} needs {nbytes} "
+                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+            )
+        size, limit = self._size_and_limit()
+        if size + nbytes + self.reserve_bytes > limit:
+            # a file-size limit (ulimit -f, or a FAT32 / exFAT-formatted disk's 4 GiB) fails the
+            # write half-way just as a full disk does, and libhdf5 then leaves a file that does not
+            # open: refused while the file is whole
+            raise OSError(
+                errno.EFBIG,
+                f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
+                f"(the process's file-size limit or the file system's); frame {i} needs {nbytes} plus "
+                f"{self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+            )
+
     def _free_bytes(self) -> int:
         """Bytes free for this file on its file system."""
         return shutil.disk_usage(self.path.parent).free
+
+    def _size_and_limit(self) -> tuple[int, float]:
+        """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and the
+        file system's (``FILESIZEBITS``: 32 on FAT, read as a signed size), whichever is lower."""
+        size = self.path.stat().st_size
+        limit = math.inf
+        try:
+            import resource
+
+            soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+            if soft != resource.RLIM_INFINITY:
+                limit = soft
+        except (ImportError, OSError, ValueError):  # no resource module (Windows): no process limit
+            pass
+        try:
+            bits = os.pathconf(self.path.parent, "PC_FILESIZEBITS")
+            if 0 < bits < 64:
+                limit = min(limit, 2 ** (bits - 1) - 1)
+        except (AttributeError, OSError, ValueError):  # not known here: no file-system limit assumed
+            pass
+        return size, limit
 
     @property
     def _ballast_path(self) -> Path:
