@@ -487,6 +487,30 @@ def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_se
     assert len(err) == 1 and str(proto) in err[0] and "needs the frame size" in err[0], err
 
 
+def test_a_voltage_beyond_the_panels_rating_is_refused_before_anything_is_sent(tmp_path, capsys):
+    """The L8121 is rated to 150 kV, the C7942SK-02 panel to 100 kVp (C7942.md): a protocol at
+    120 kV passed the source's checks and would have exposed the panel beyond its rating."""
+    from radiokit.cli import main
+
+    lab = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"port": "/dev/ttyUSB0", "voltage_kv": 120.0, "current_ua": 100.0},
+        "detector": {"kind": "folder", "folder": str(tmp_path), "preset": "c7942"},
+        "frame": {"kind": "manual"},
+    }
+    with pytest.raises(DeviceError, match=r"voltage_kv = 120 exceeds the panel's rating .*kvp_max = 100"):
+        load_protocol(lab)
+    # at the rating it loads; a panel rated higher says so in its own protocol
+    assert load_protocol({**lab, "source": {**lab["source"], "voltage_kv": 100.0}}).source.voltage_kv == 100.0
+    other = {**lab, "detector": {**lab["detector"], "kvp_max": 150.0}}
+    assert load_protocol(other).source.voltage_kv == 120.0
+    proto = tmp_path / "lab.toml"
+    proto.write_text(load_protocol(other).to_toml().replace("kvp_max = 150.0", "kvp_max = 100.0"))
+    assert main(["acquire", str(proto), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exceeds the panel's rating" in err[0], err
+
+
 def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path, scene_toml, capsys):
     """Found: an experiment file in a folder that does not exist (or a read-only one) ended the
     command with "error: [Errno 2] No such file or directory: '.../series.log'" -- a file the

@@ -136,6 +136,9 @@ class DetectorSettings:
     discard_first: bool = False  # the C7942's first frame after an external-trigger start is invalid
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
     pixel_size_mm: float = 0.05
+    # the panel's rated tube voltage (C7942.md: 20-100 kVp for the C7942SK-02); the L8121 goes to
+    # 150 kV, so the source's ratings alone would let a protocol expose the panel beyond its own
+    kvp_max: float = 100.0
 
 
 @dataclass
@@ -216,6 +219,11 @@ class Protocol:
                 f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
             )
         _check_source(self.source)
+        if self.source.voltage_kv > d.kvp_max:
+            raise ProtocolError(
+                f"[source] voltage_kv = {self.source.voltage_kv:g} exceeds the panel's rating "
+                f"([detector] kvp_max = {d.kvp_max:g} kVp; the C7942SK-02 is rated 20-100 kVp)"
+            )
 
     def to_toml(self) -> str:
         """The protocol as TOML (what the experiment file stores, and what ``--resume`` checks)."""
