@@ -13,7 +13,7 @@ import enum
 import json
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import cv2
@@ -72,8 +72,10 @@ class Thresholds:
         dropped from the average (zingers).
     eps : float
         ``flat - dark`` at or below this many counts is dead whatever its neighbours do.
-    saturation : int
-        ADC value flagged as saturated (4095 for the 12-bit C7942).
+    saturation : int or None
+        ADC value flagged as saturated. None (the default): the top of the ADC the darks and
+        flats imply, the smallest of 4095 (12-bit, the C7942), 16383 (14-bit) and 65535 (16-bit)
+        that none of their values exceeds; float frames above 65535: none counted.
     smooth_block : int
         Block size (pixels) of the local median response.
     """
@@ -87,7 +89,7 @@ class Thresholds:
     line_fraction: float = 0.5
     clip_sigma: float = 5.0
     eps: float = 1.0
-    saturation: int = 4095
+    saturation: int | None = None
     smooth_block: int = 32
 
     @classmethod
@@ -267,6 +269,8 @@ class Calibration:
                 f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
                 "must be the same (rows, cols) shape"
             )
+        if self.thresholds.saturation is None:  # built from plain data: the ADC its averages imply
+            self.thresholds = replace(self.thresholds, saturation=adc_top(self.dark, self.flat))
         # A pixel without response cannot be corrected, whoever built the mask: always fill it.
         unusable = ~((self.flat - self.dark) > self.thresholds.eps)
         if unusable.any():
@@ -313,6 +317,8 @@ class Calibration:
         """
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
+        if th.saturation is None:
+            th = replace(th, saturation=adc_top(darks, flats))
         dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True)
         flat = robust_average(flats, clip_sigma=th.clip_sigma)
         if darks.shape[0] < 3:
@@ -353,6 +359,8 @@ class Calibration:
 
             n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
+            if thresholds.get("saturation") is None and "bit_depth" in src.meta:  # the panel's, as recorded
+                thresholds = {**thresholds, "saturation": (1 << src.meta["bit_depth"]) - 1}
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
         try:
@@ -444,6 +452,20 @@ def _json_attr(path, group, name) -> dict:
     return value
 
 
+#: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.
+ADC_TOPS = (4095, 16383, 65535)
+
+
+def adc_top(*stacks) -> int | None:
+    """The saturation level the frames imply: the smallest of :data:`ADC_TOPS` that none of their
+    values exceeds (None above 65535: float frames of no ADC).
+
+    Why: a fixed 4095 called every pixel of a 16-bit panel's flat saturated, and the calibration
+    refused the lab's data ("lower the flat exposure")."""
+    peak = max(float(np.max(s)) for s in stacks)
+    return next((top for top in ADC_TOPS if peak <= top), None)
+
+
 def _check_stacks(darks, flats):
     """Both stacks as 3-D arrays of one frame shape; a warning for fewer than 3 frames."""
     darks = _as_stack(darks, "darks")
@@ -471,13 +493,14 @@ def _defect_map(flat, dark_std, response, th):
     mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
     mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
     mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
-    n_flat_saturated = int(np.count_nonzero(flat >= th.saturation))
+    sat = np.inf if th.saturation is None else th.saturation
+    n_flat_saturated = int(np.count_nonzero(flat >= sat))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(
             f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
             f"{flat.size} pixels: lower the flat exposure (current or time)"
         )
-    mask[flat >= th.saturation] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    mask[flat >= sat] |= np.uint32(PixelFlag.OVER_RESPONDING)
     if dark_std is not None:
         ref = float(np.nanmedian(dark_std))
         if ref > 0:

@@ -204,3 +204,62 @@ def test_few_frames_warn():
 def test_unknown_threshold_is_a_typeerror():
     with pytest.raises(TypeError, match="dead_belowx"):
         Calibration.from_frames(np.zeros((3, 8, 8)), np.full((3, 8, 8), 1000.0), dead_belowx=0.1)
+
+
+def _sixteen_bit_experiment(path, bit_depth, rng):
+    """Another lab's panel: 16-bit, flats at 40 000 counts over a 1 000-count pedestal, 384 x 250
+    (non-square, odd-free but not the C7942's), a slab of line integral 0.8 with a saturated
+    corner in the projection. Returns the exact transmission."""
+    shape = (250, 384)
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    L = 0.8 * ((rr > 40) & (rr < 210)) + 0.002 * cc  # a slab and a slow ramp
+    kw = {} if bit_depth is None else {"bit_depth": bit_depth}
+    with ExperimentWriter(path, shape=shape, **kw) as w:
+        for _ in range(4):
+            w.append(np.rint(1000 + rng.normal(0, 3, shape)).astype(np.uint16), image_key=ImageKey.DARK)
+        for _ in range(4):
+            w.append((1000 + rng.poisson(40000, shape)).astype(np.uint16), image_key=ImageKey.FLAT)
+        proj = np.minimum(1000 + rng.poisson(40000 * np.exp(-L)), 65535).astype(np.uint16)
+        proj[:10, :10] = 65535  # saturated
+        w.append(proj, image_key=ImageKey.PROJECTION, step=1)
+    return np.exp(-L)
+
+
+@pytest.mark.filterwarnings("ignore::radiokit.io.BitDepthWarning")  # None: read as 12 bits, warned once
+@pytest.mark.parametrize("bit_depth", [16, None])
+def test_a_16_bit_panel_calibrates_and_corrects_to_the_exact_transmission(tmp_path, bit_depth):
+    """A 16-bit panel's flats (40 000 counts) were all "saturated" against the C7942's fixed
+    4095 and the calibration refused the lab's data. Its saturation is now the bit depth the file
+    records (NeXus bit_depth_readout), or without it the smallest ADC range the frames fit."""
+    from radiokit.io import open_frames
+
+    path = tmp_path / "exp16.h5"
+    exact = _sixteen_bit_experiment(path, bit_depth, np.random.default_rng(7))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationWarning)
+        cal = Calibration.from_experiment(path)
+    assert cal.thresholds.saturation == 65535
+    assert cal.c == pytest.approx(40000, rel=1e-3)
+    with open_frames(path) as src:
+        raw = src[len(src) - 1]
+    t, report = correct_frames(cal, raw, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [100]  # the corner, and nothing else
+    # Poisson noise of one frame: sqrt(40000 T) / 40000 <= 0.005 per pixel; means over 10^4 pixels
+    err = (t - exact)[20:, 20:]
+    assert abs(float(np.mean(err))) < 5e-4 and float(np.std(err)) < 0.0055
+
+
+def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
+    """An experiment file that does not record its panel's bit depth is read as the C7942's 12
+    bits: its 16-bit frames warned once per frame read (one line per frame on the command line);
+    now once per open file. With ``bit_depth=16`` recorded, not at all."""
+    from radiokit.io import BitDepthWarning, open_frames
+
+    for bit_depth, expected in ((None, 1), (16, 0)):
+        path = tmp_path / f"exp{bit_depth}.h5"
+        _sixteen_bit_experiment(path, bit_depth, np.random.default_rng(8))
+        with warnings.catch_warnings(record=True) as caught, open_frames(path) as src:
+            warnings.simplefilter("always")
+            frames = [src[i] for i in range(len(src))]
+        assert len(frames) == 9
+        assert sum(issubclass(w.category, BitDepthWarning) for w in caught) == expected, bit_depth
