@@ -23,7 +23,15 @@ import numpy as np
 from radiokit._version import __version__
 from radiokit.errors import FormatError
 
-__all__ = ["PixelFlag", "Thresholds", "Calibration", "robust_average", "CalibrationWarning"]
+__all__ = [
+    "PixelFlag",
+    "Thresholds",
+    "Calibration",
+    "robust_average",
+    "CalibrationWarning",
+    "exposure_factors",
+    "adc_top",
+]
 
 
 class CalibrationWarning(UserWarning):
@@ -370,6 +378,10 @@ class Calibration:
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         cal.provenance["source"] = str(path)
+        for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
+            values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
+            if np.isfinite(values).any():
+                cal.provenance[f"flat_{name}_{unit}"] = float(np.nanmean(values))
         return cal
 
     # -- persistence --------------------------------------------------------------------------
@@ -450,6 +462,38 @@ def _json_attr(path, group, name) -> dict:
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
     return value
+
+
+def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
+    """Per frame of an experiment file (indices ``frames``), the factor its transmission
+    ``(raw - dark) / (flat - dark)`` must be multiplied by for the flats' tube current: the
+    flats' current over the frame's, 1 where either is not recorded. The tube's output is
+    proportional to its current at a given voltage, so a flat at 200 uA and projections at 100 uA
+    read every transmission half its value; without this the log images were off by ln 2 and the
+    paper's negative contrasts by half, silently. A voltage that differs (the spectrum: no
+    factor corrects it) is warned of, once.
+    """
+    frames = np.asarray(frames, int)
+    n = len(np.asarray(meta.get("image_key", [])))
+    out = np.ones(frames.size)
+    flat_ua = cal.provenance.get("flat_current_ua")
+    cur = np.asarray(meta.get("current", np.full(n, np.nan)), float)[frames]
+    if flat_ua is not None and np.isfinite(flat_ua) and flat_ua > 0:
+        ok = np.isfinite(cur) & (cur > 0)
+        out[ok] = flat_ua / cur[ok]
+    flat_kv = cal.provenance.get("flat_voltage_kv")
+    kv = np.asarray(meta.get("voltage", np.full(n, np.nan)), float)[frames]
+    if flat_kv is not None and np.isfinite(flat_kv):
+        off = np.isfinite(kv) & (np.abs(kv - flat_kv) > 0.01 * flat_kv)
+        if off.any():
+            warnings.warn(
+                f"{path}: {int(off.sum())} frame(s) at {np.unique(np.round(kv[off], 1)).tolist()} kV, the flats at "
+                f"{flat_kv:.1f} kV: their transmission is not the object's alone (no factor corrects a spectrum); "
+                "take flats at the projections' voltage",
+                CalibrationWarning,
+                stacklevel=2,
+            )
+    return out
 
 
 #: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.

@@ -436,6 +436,14 @@ class _BackgroundWriter:
             raise self._error
 
 
+def _rescale(frame, domain, factor) -> None:
+    """Multiply a corrected frame's transmission by ``factor``, in its domain, in place."""
+    if domain == "log":
+        frame -= np.float32(np.log(factor))
+    else:
+        frame *= np.float32(factor)
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -452,6 +460,7 @@ def correct_files(
     """
     from tqdm.auto import tqdm
 
+    from radiokit.calibrate import exposure_factors
     from radiokit.io import StackWriter, open_frames
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
@@ -463,9 +472,9 @@ def correct_files(
                 raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
             keys = src.meta.get("image_key")
             steps = src.meta.get("step")
-            for fi in range(len(src)):
-                if keys is None or keys[fi] in image_keys:
-                    plan.append((si, fi, int(steps[fi]) if steps is not None else -1))
+            picked = [fi for fi in range(len(src)) if keys is None or keys[fi] in image_keys]
+            factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
+            plan += [(si, fi, int(steps[fi]) if steps is not None else -1, f) for fi, f in zip(picked, factors)]
         if not plan:
             raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
@@ -478,12 +487,14 @@ def correct_files(
             tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,
         ):
-            for si, fi, step in plan:
+            for si, fi, step, factor in plan:
                 frame, raw = bg.buffer(), sources[si][fi]
                 try:
                     nonpos, sat = _correct_checked(cal, raw, frame, domain)
                 except ValueError as exc:  # a run reads many files: say which file and frame
                     raise FormatError(sources[si].path, f"frame {fi}: {exc}") from exc
+                if factor != 1:  # the projection's tube current was not the flats'
+                    _rescale(frame, domain, factor)
                 sat_total += sat.size
                 np_total += nonpos.size
                 bg.put(

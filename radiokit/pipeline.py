@@ -221,7 +221,7 @@ def load_steps(path, progress: bool = False) -> Steps:
     of its frames), step numbers, ratios, pixel size (:class:`Steps`)."""
     from tqdm.auto import tqdm
 
-    from radiokit.calibrate import Calibration
+    from radiokit.calibrate import Calibration, exposure_factors
     from radiokit.correct import correct_frames
     from radiokit.io import ImageKey, open_frames
 
@@ -243,8 +243,8 @@ def load_steps(path, progress: bool = False) -> Steps:
         for s in numbers:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             acc = None
-            for i in idx:
-                li = correct_frames(cal, src[i], domain="log")
+            for i, factor in zip(idx, exposure_factors(cal, meta, path, idx)):
+                li = correct_frames(cal, src[i], domain="log") - np.float32(np.log(factor))  # the flats' current
                 acc = li.astype(np.float64) if acc is None else acc + li
                 bar.update()
             images.append((acc / len(idx)).astype(np.float32))

@@ -263,3 +263,34 @@ def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
             frames = [src[i] for i in range(len(src))]
         assert len(frames) == 9
         assert sum(issubclass(w.category, BitDepthWarning) for w in caught) == expected, bit_depth
+
+
+def test_flats_at_another_tube_current_than_the_projections(tmp_path):
+    """Flats at 200 uA, projections at 100 uA (the tube's output proportional to its current):
+    every transmission read half its value, the line integrals ln 2 too high, silently. Both
+    `radiokit process`'s steps and `radiokit correct` now scale by the recorded currents; a
+    voltage that differs is warned of (no factor corrects a spectrum)."""
+    from radiokit.correct import correct_files
+    from radiokit.io import read
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (96, 128), np.random.default_rng(9)
+    L = np.tile(np.linspace(0.2, 1.2, shape[1]), (shape[0], 1))
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape, source={"voltage_kv": 40, "current_ua": 200}) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+        for _ in range(3):
+            w.append(100 + rng.poisson(3000, shape), image_key=ImageKey.FLAT, voltage_kv=40, current_ua=200)
+        for step, kv in ((1, 40), (2, 45)):  # step 2 also at another voltage
+            raw = 100 + rng.poisson(1500 * np.exp(-L))  # half the flats' current: half the counts
+            w.append(raw, image_key=ImageKey.PROJECTION, step=step, voltage_kv=kv, current_ua=100)
+    with pytest.warns(CalibrationWarning, match=r"1 frame\(s\) at \[45.0\] kV, the flats at 40.0 kV"):
+        steps = load_steps(path)
+    # one frame's Poisson noise at >= 450 counts (sigma 0.05 in L) and the flats' (0.01)
+    assert float(np.mean(steps.images[0] - L)) == pytest.approx(0, abs=2e-3)  # ln 2 = 0.69 before
+    cal = Calibration.from_experiment(path)
+    with pytest.warns(CalibrationWarning, match="45.0"):
+        correct_files(path, cal, tmp_path / "t.h5", domain="linear", progress=False)
+    t = read(tmp_path / "t.h5").data[0]
+    assert float(np.mean(t / np.exp(-L))) == pytest.approx(1, abs=3e-3)  # 0.5 before
