@@ -474,8 +474,10 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
     factor corrects it) is warned of, once.
     """
     frames = np.asarray(frames, int)
-    n = len(np.asarray(meta.get("image_key", [])))
     out = np.ones(frames.size)
+    if "current" not in meta and "voltage" not in meta:  # not an experiment file, or nothing recorded
+        return out
+    n = int(frames.max()) + 1 if frames.size else 0
     flat_ua = cal.provenance.get("flat_current_ua")
     cur = np.asarray(meta.get("current", np.full(n, np.nan)), float)[frames]
     if flat_ua is not None and np.isfinite(flat_ua) and flat_ua > 0:
