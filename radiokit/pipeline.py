@@ -222,7 +222,7 @@ def load_steps(path, progress: bool = False) -> Steps:
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration, exposure_factors
-    from radiokit.correct import correct_frames
+    from radiokit.correct import check_above_dark, correct_frames
     from radiokit.io import ImageKey, open_frames
 
     t = time.perf_counter()
@@ -244,7 +244,12 @@ def load_steps(path, progress: bool = False) -> Steps:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             acc = None
             for i, factor in zip(idx, exposure_factors(cal, meta, path, idx)):
-                li = correct_frames(cal, src[i], domain="log") - np.float32(np.log(factor))  # the flats' current
+                raw = src[i]
+                try:  # a frame with the beam off would pull its step's mean towards nothing
+                    check_above_dark(cal, raw)
+                except ValueError as exc:
+                    raise FormatError(path, f"frame {i} (step {s}): {exc}") from None
+                li = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
                 acc = li.astype(np.float64) if acc is None else acc + li
                 bar.update()
             images.append((acc / len(idx)).astype(np.float32))

@@ -294,3 +294,22 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
         correct_files(path, cal, tmp_path / "t.h5", domain="linear", progress=False)
     t = read(tmp_path / "t.h5").data[0]
     assert float(np.mean(t / np.exp(-L))) == pytest.approx(1, abs=3e-3)  # 0.5 before
+
+
+def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
+    """A projection at the dark level (the beam off, a shutter closed) was clamped, "filled" and
+    averaged into its step: the step's mean was pulled halfway to a uniform image, silently."""
+    from radiokit.errors import FormatError
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (64, 80), np.random.default_rng(10)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+            for _ in range(3):
+                w.append(level + rng.poisson(5, shape), image_key=key)
+        w.append(100 + rng.poisson(1500, shape), image_key=ImageKey.PROJECTION, step=1)
+        w.append(100 + rng.poisson(5, shape), image_key=ImageKey.PROJECTION, step=2)  # beam off: the dark
+        w.append(100 + rng.poisson(1400, shape), image_key=ImageKey.PROJECTION, step=2)
+    with pytest.raises(FormatError, match=r"exp.h5: frame 7 \(step 2\): no signal above the dark"):
+        load_steps(path)
