@@ -874,10 +874,14 @@ def process_many(
     from tqdm.auto import tqdm
 
     from radiokit._threads import cores
+    from radiokit.io._atomic import _missing_folders, remove_empty_folders
 
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
+    made = _missing_folders(out_root) if out_root is not None else []
+    if made:  # made here, not by the workers: one that fails must not remove it under the others
+        Path(out_root).mkdir(parents=True)
     cluster = _local_cluster(workers or max(1, min(len(paths), cores()))) if scheduler is None else None
     client = Client(cluster if cluster is not None else scheduler)
     try:
@@ -897,6 +901,7 @@ def process_many(
         client.close()
         if cluster is not None:
             cluster.close()
+        remove_empty_folders(made)  # every file failed: no empty folder left behind
 
 
 def _local_cluster(n_workers: int):
