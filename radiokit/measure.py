@@ -804,7 +804,8 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     if fit is None:
         raise ValueError(
             "no inclusion found: no compact blob inside the body stands out from its surroundings "
-            "(brighter or darker, beyond their noise and texture); "
+            "(brighter or darker, beyond their noise and texture; none is searched within three of its radii "
+            "of the body's or the frame's edge); "
             "pass inclusion_mask or the ROIs yourself (radiokit process --inclusion R0 R1 C0 C1)"
         )
     resid, (r0, c0), dist = fit
