@@ -327,3 +327,23 @@ def test_three_darks_of_a_clean_panel_flag_no_noisy_pixels():
         warnings.simplefilter("ignore", CalibrationWarning)  # "take 10 or more"
         cal = Calibration.from_frames(darks, flats)
     assert cal.provenance["defects"]["noisy"] == 0
+
+
+def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
+    """A 20 x 20 patch at the ADC's top (4095) in every projection: nothing said so, and its
+    pixels, whose intensity is unknown, entered the steps like any other."""
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (64, 80), np.random.default_rng(13)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+            for _ in range(4):
+                w.append(level + rng.poisson(5, shape), image_key=key)
+        for step in (1, 2):
+            for _ in range(2):
+                raw = 100 + rng.poisson(1500, shape)
+                raw[10:30, 20:40] = 4095
+                w.append(raw, image_key=ImageKey.PROJECTION, step=step)
+    with pytest.warns(CalibrationWarning, match=r"saturated pixels \(>= 4095\).*step 1: 400, step 2: 400"):
+        load_steps(path)
