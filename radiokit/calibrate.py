@@ -468,6 +468,10 @@ def _json_attr(path, group, name) -> dict:
     return value
 
 
+#: Tube currents of a frame and of the flats closer than this (relative) are one setting.
+CURRENT_TOLERANCE = 0.05
+
+
 def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
     """Per frame of an experiment file (indices ``frames``), the factor its transmission
     ``(raw - dark) / (flat - dark)`` must be multiplied by for the flats' tube current: the
@@ -476,6 +480,10 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
     read every transmission half its value; without this the log images were off by ln 2 and the
     paper's negative contrasts by half, silently. A voltage that differs (the spectrum: no
     factor corrects it) is warned of, once.
+
+    Currents within :data:`CURRENT_TOLERANCE` of the flats' count as the same setting: the file
+    records the controller's readback (whole uA, polled during the frame), whose jitter would
+    otherwise move every frame by its own few tenths of a per cent.
     """
     frames = np.asarray(frames, int)
     out = np.ones(frames.size)
@@ -486,6 +494,7 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
     cur = np.asarray(meta.get("current", np.full(n, np.nan)), float)[frames]
     if flat_ua is not None and np.isfinite(flat_ua) and flat_ua > 0:
         ok = np.isfinite(cur) & (cur > 0)
+        ok[ok] &= np.abs(cur[ok] - flat_ua) > CURRENT_TOLERANCE * flat_ua  # another setting, not readback jitter
         out[ok] = flat_ua / cur[ok]
     flat_kv = cal.provenance.get("flat_voltage_kv")
     kv = np.asarray(meta.get("voltage", np.full(n, np.nan)), float)[frames]

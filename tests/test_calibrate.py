@@ -270,6 +270,7 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
     every transmission read half its value, the line integrals ln 2 too high, silently. Both
     `radiokit process`'s steps and `radiokit correct` now scale by the recorded currents; a
     voltage that differs is warned of (no factor corrects a spectrum)."""
+    from radiokit.calibrate import exposure_factors
     from radiokit.correct import correct_files
     from radiokit.io import read
     from radiokit.pipeline import load_steps
@@ -294,6 +295,9 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
         correct_files(path, cal, tmp_path / "t.h5", domain="linear", progress=False)
     t = read(tmp_path / "t.h5").data[0]
     assert float(np.mean(t / np.exp(-L))) == pytest.approx(1, abs=3e-3)  # 0.5 before
+    # the controller's readback jitters by a uA or two: the same setting, not a factor of 200/201
+    jitter = {"image_key": np.zeros(3), "current": np.array([201.0, 198.0, 100.0])}
+    np.testing.assert_array_equal(exposure_factors(cal, jitter, path, [0, 1, 2]), [1.0, 1.0, 2.0])
 
 
 def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
