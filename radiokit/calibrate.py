@@ -13,7 +13,7 @@ import enum
 import json
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import cv2
@@ -23,7 +23,15 @@ import numpy as np
 from radiokit._version import __version__
 from radiokit.errors import FormatError
 
-__all__ = ["PixelFlag", "Thresholds", "Calibration", "robust_average", "CalibrationWarning"]
+__all__ = [
+    "PixelFlag",
+    "Thresholds",
+    "Calibration",
+    "robust_average",
+    "CalibrationWarning",
+    "exposure_factors",
+    "adc_top",
+]
 
 
 class CalibrationWarning(UserWarning):
@@ -60,7 +68,7 @@ class Thresholds:
     under_below, over_above : float
         Relative response outside ``[under_below, over_above]`` is under-/over-responding.
     noisy_factor : float
-        Temporal dark noise above this multiple of the panel's median is noisy.
+        Temporal dark noise above this multiple of the panel's median is noisy (tested from 4 darks on).
     line_deviation : float
         A row or column whose median relative response is off by more than this is a defect line.
     line_noise_factor : float
@@ -72,8 +80,10 @@ class Thresholds:
         dropped from the average (zingers).
     eps : float
         ``flat - dark`` at or below this many counts is dead whatever its neighbours do.
-    saturation : int
-        ADC value flagged as saturated (4095 for the 12-bit C7942).
+    saturation : int or None
+        ADC value flagged as saturated. None (the default): the top of the ADC the darks and
+        flats imply, the smallest of 4095 (12-bit, the C7942), 16383 (14-bit) and 65535 (16-bit)
+        that none of their values exceeds; float frames above 65535: none counted.
     smooth_block : int
         Block size (pixels) of the local median response.
     """
@@ -87,7 +97,7 @@ class Thresholds:
     line_fraction: float = 0.5
     clip_sigma: float = 5.0
     eps: float = 1.0
-    saturation: int = 4095
+    saturation: int | None = None
     smooth_block: int = 32
 
     def __post_init__(self):
@@ -295,6 +305,8 @@ class Calibration:
                 f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
                 "must be the same (rows, cols) shape"
             )
+        if self.thresholds.saturation is None:  # built from plain data: the ADC its averages imply
+            self.thresholds = replace(self.thresholds, saturation=adc_top(self.dark, self.flat))
         # A pixel without response cannot be corrected, whoever built the mask: always fill it.
         unusable = ~((self.flat - self.dark) > self.thresholds.eps)
         if unusable.any():
@@ -341,9 +353,15 @@ class Calibration:
         """
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
+        if th.saturation is None:
+            th = replace(th, saturation=adc_top(darks, flats))
         dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True)
         flat = robust_average(flats, clip_sigma=th.clip_sigma)
-        if darks.shape[0] < 3:
+        if darks.shape[0] < 4:
+            # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
+            # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
+            # median in 1 pixel of 1400 on a clean panel (578 of 1M flagged, then filled in
+            # every frame); from 4 darks on, none.
             dark_std = None
         response = flat - dark
         if float(np.median(response)) <= th.eps:
@@ -381,6 +399,8 @@ class Calibration:
 
             n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
+            if thresholds.get("saturation") is None and "bit_depth" in src.meta:  # the panel's, as recorded
+                thresholds = {**thresholds, "saturation": (1 << src.meta["bit_depth"]) - 1}
             darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
             flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
         try:
@@ -390,6 +410,10 @@ class Calibration:
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         cal.provenance["source"] = str(path)
+        for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
+            values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
+            if np.isfinite(values).any():
+                cal.provenance[f"flat_{name}_{unit}"] = float(np.nanmean(values))
         return cal
 
     # -- persistence --------------------------------------------------------------------------
@@ -472,6 +496,63 @@ def _json_attr(path, group, name) -> dict:
     return value
 
 
+#: Tube currents of a frame and of the flats closer than this (relative) are one setting.
+CURRENT_TOLERANCE = 0.05
+
+
+def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
+    """Per frame of an experiment file (indices ``frames``), the factor its transmission
+    ``(raw - dark) / (flat - dark)`` must be multiplied by for the flats' tube current: the
+    flats' current over the frame's, 1 where either is not recorded. The tube's output is
+    proportional to its current at a given voltage, so a flat at 200 uA and projections at 100 uA
+    read every transmission half its value; without this the log images were off by ln 2 and the
+    paper's negative contrasts by half, silently. A voltage that differs (the spectrum: no
+    factor corrects it) is warned of, once.
+
+    Currents within :data:`CURRENT_TOLERANCE` of the flats' count as the same setting: the file
+    records the controller's readback (whole uA, polled during the frame), whose jitter would
+    otherwise move every frame by its own few tenths of a per cent.
+    """
+    frames = np.asarray(frames, int)
+    out = np.ones(frames.size)
+    if "current" not in meta and "voltage" not in meta:  # not an experiment file, or nothing recorded
+        return out
+    n = int(frames.max()) + 1 if frames.size else 0
+    flat_ua = cal.provenance.get("flat_current_ua")
+    cur = np.asarray(meta.get("current", np.full(n, np.nan)), float)[frames]
+    if flat_ua is not None and np.isfinite(flat_ua) and flat_ua > 0:
+        ok = np.isfinite(cur) & (cur > 0)
+        ok[ok] &= np.abs(cur[ok] - flat_ua) > CURRENT_TOLERANCE * flat_ua  # another setting, not readback jitter
+        out[ok] = flat_ua / cur[ok]
+    flat_kv = cal.provenance.get("flat_voltage_kv")
+    kv = np.asarray(meta.get("voltage", np.full(n, np.nan)), float)[frames]
+    if flat_kv is not None and np.isfinite(flat_kv):
+        off = np.isfinite(kv) & (np.abs(kv - flat_kv) > 0.01 * flat_kv)
+        if off.any():
+            warnings.warn(
+                f"{path}: {int(off.sum())} frame(s) at {np.unique(np.round(kv[off], 1)).tolist()} kV, the flats at "
+                f"{flat_kv:.1f} kV: their transmission is not the object's alone (no factor corrects a spectrum); "
+                "take flats at the projections' voltage",
+                CalibrationWarning,
+                stacklevel=2,
+            )
+    return out
+
+
+#: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.
+ADC_TOPS = (4095, 16383, 65535)
+
+
+def adc_top(*stacks) -> int | None:
+    """The saturation level the frames imply: the smallest of :data:`ADC_TOPS` that none of their
+    values exceeds (None above 65535: float frames of no ADC).
+
+    Why: a fixed 4095 called every pixel of a 16-bit panel's flat saturated, and the calibration
+    refused the lab's data ("lower the flat exposure")."""
+    peak = max(float(np.max(s)) for s in stacks)
+    return next((top for top in ADC_TOPS if peak <= top), None)
+
+
 def _check_stacks(darks, flats):
     """Both stacks as 3-D arrays of one frame shape; a warning for fewer than 3 frames."""
     darks = _as_stack(darks, "darks")
@@ -499,13 +580,14 @@ def _defect_map(flat, dark_std, response, th):
     mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
     mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
     mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
-    n_flat_saturated = int(np.count_nonzero(flat >= th.saturation))
+    sat = np.inf if th.saturation is None else th.saturation
+    n_flat_saturated = int(np.count_nonzero(flat >= sat))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(
             f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
             f"{flat.size} pixels: lower the flat exposure (current or time)"
         )
-    mask[flat >= th.saturation] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    mask[flat >= sat] |= np.uint32(PixelFlag.OVER_RESPONDING)
     if dark_std is not None:
         ref = float(np.nanmedian(dark_std))
         if ref > 0:

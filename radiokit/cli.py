@@ -241,7 +241,13 @@ def cmd_calibrate(args) -> int:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
         hints = _raw_hints(args)
-        cal = Calibration.from_frames(_stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1), **th)
+        darks, flats = _stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1)
+        if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
+            raise ValueError(
+                f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
+                f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
+            )
+        cal = Calibration.from_frames(darks, flats, **th)
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
     # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit

@@ -22,7 +22,15 @@ from radiokit._threads import pool, threads
 from radiokit.calibrate import Calibration, PixelFlag
 from radiokit.errors import FormatError
 
-__all__ = ["correct_frames", "correct_files", "CorrectionReport", "CorrectionKernel", "DOMAINS", "fill_plan"]
+__all__ = [
+    "correct_frames",
+    "correct_files",
+    "check_above_dark",
+    "CorrectionReport",
+    "CorrectionKernel",
+    "DOMAINS",
+    "fill_plan",
+]
 
 DOMAINS = ("log", "linear", "counts")
 #: raw - dark at or below zero is clamped to this many counts before the log.
@@ -311,6 +319,25 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)
 
 
+def check_above_dark(cal: Calibration, raw2d) -> None:
+    """Refuse a frame that holds no signal: half or more of its pixels (defects aside; every 4th
+    row and column) no more than ``thresholds.eps`` above the dark.
+
+    :func:`correct_frames` clamps and fills such a frame (a beam-off frame stays finite); a caller
+    that takes the frame for data calls this. Why: float32 frames already corrected
+    (transmission about 0.5 against a dark of 100 counts) were written as a uniform image with
+    exit code 0, and a beam-off projection was averaged into its step."""
+    s = (slice(None, None, 4), slice(None, None, 4))
+    valid = cal.mask[s] == 0
+    signal = (np.asarray(raw2d[s], np.float32) - cal.dark[s])[valid]
+    if signal.size and float(np.median(signal)) <= cal.thresholds.eps:
+        raise ValueError(
+            f"no signal above the dark (frame {raw2d.dtype}, {float(np.min(raw2d)):.4g} .. "
+            f"{float(np.max(raw2d)):.4g}; dark about {float(np.median(cal.dark)):.4g} counts): raw counts were "
+            "expected, not frames already corrected, a frame with the beam off, nor another set-up's frames"
+        )
+
+
 def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_report=False):
     """Correct a raw frame or stack with ``cal``: offset, gain, defects, then transmission or line integral.
 
@@ -450,6 +477,29 @@ class _BackgroundWriter:
             raise self._error
 
 
+def _correct_planned(cal, src, fi, frame, domain, factor):
+    """Frame ``fi`` of ``src`` corrected into ``frame``, at the flats' tube current (``factor``);
+    errors name the file and the frame (a run reads many)."""
+    raw = src[fi]
+    try:
+        nonpos, sat = _correct_checked(cal, raw, frame, domain)
+        if raw.dtype.kind == "f":
+            check_above_dark(cal, raw)  # float frames already corrected, not raw counts
+    except ValueError as exc:
+        raise FormatError(src.path, f"frame {fi}: {exc}") from exc
+    if factor != 1:
+        _rescale(frame, domain, factor)
+    return nonpos, sat
+
+
+def _rescale(frame, domain, factor) -> None:
+    """Multiply a corrected frame's transmission by ``factor``, in its domain, in place."""
+    if domain == "log":
+        frame -= np.float32(np.log(factor))
+    else:
+        frame *= np.float32(factor)
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -466,6 +516,7 @@ def correct_files(
     """
     from tqdm.auto import tqdm
 
+    from radiokit.calibrate import exposure_factors
     from radiokit.io import StackWriter, open_frames
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
@@ -477,9 +528,9 @@ def correct_files(
                 raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
             keys = src.meta.get("image_key")
             steps = src.meta.get("step")
-            for fi in range(len(src)):
-                if keys is None or keys[fi] in image_keys:
-                    plan.append((si, fi, int(steps[fi]) if steps is not None else -1))
+            picked = [fi for fi in range(len(src)) if keys is None or keys[fi] in image_keys]
+            factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
+            plan += [(si, fi, int(steps[fi]) if steps is not None else -1, f) for fi, f in zip(picked, factors)]
         if not plan:
             raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
@@ -492,12 +543,9 @@ def correct_files(
             tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,
         ):
-            for si, fi, step in plan:
-                frame, raw = bg.buffer(), sources[si][fi]
-                try:
-                    nonpos, sat = _correct_checked(cal, raw, frame, domain)
-                except ValueError as exc:  # a run reads many files: say which file and frame
-                    raise FormatError(sources[si].path, f"frame {fi}: {exc}") from exc
+            for si, fi, step, factor in plan:
+                frame = bg.buffer()
+                nonpos, sat = _correct_planned(cal, sources[si], fi, frame, domain, factor)
                 sat_total += sat.size
                 np_total += nonpos.size
                 bg.put(

@@ -714,19 +714,41 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     score = resid[core].mean()
     # a real inclusion stands many standard errors above its surroundings; noise spikes picked
     # as the largest of ~1e6 candidates stand ~5
-    if not score > _MIN_T * noise / np.sqrt(core.sum()):
+    if not score > _MIN_T * max(noise / np.sqrt(core.sum()), _clutter(resid, ring, int(core.sum()))):
         return -np.inf, None
     return float(score), (resid, (r0, c0), dist)
 
 
+def _clutter(resid: np.ndarray, ring: np.ndarray, n_core: int) -> float:
+    """The scatter of a core-sized mean of the residual over the ring: what a blob of the core's
+    size in the surroundings reads as.
+
+    Why: for white noise it is ``noise / sqrt(n_core)``, the standard error above; a gel's smooth
+    thickness or density texture is correlated over the core, so there the standard error is far
+    too small and the texture's strongest bump "stood 8 standard errors" above it (a
+    near-uniform phantom with 1 % thickness ripple under noise got an invented inclusion). Means
+    over squares of the core's area, of ring pixels only (normalised by the ring's share)."""
+    side = max(1, int(round(np.sqrt(n_core))))
+    w = ndi.uniform_filter(ring.astype(np.float64), side, mode="constant")
+    m = ndi.uniform_filter(np.where(ring, resid, 0.0), side, mode="constant")
+    full = ring & (w >= 0.999)  # windows wholly in the ring: their mean is of ring pixels only
+    if full.sum() < 24:
+        return 0.0
+    return float((m[full] / w[full]).std())
+
+
 def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.ndarray:
-    """The brightest compact blob inside the body, as a boolean mask (its half-maximum extent).
+    """The strongest compact blob inside the body, brighter or darker than its surroundings, as a
+    boolean mask (its half-maximum extent).
 
     Candidates: local maxima of the scale-normalised Laplacian of Gaussian over radii of
     1.5-12 mm (or 3 px to a sixth of the image when the pixel size is unknown), whole with their
     surroundings inside the body. Each is scored by its height above a quadratic fitted to its
     surroundings (1.5-3 radii), which ignores the smooth shape of the body; the best one's
-    extent is the connected region above half its height. Negative images (the paper's
+    extent is the connected region above half its height. Dark blobs are searched the same way
+    on the negated image: an inclusion less dense than the gel (a cyst, a foam) is as much an
+    inclusion, and a detector of bright blobs alone picked the gel's texture instead of it; its
+    contrast is then negative. Negative images (the paper's
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
 
@@ -760,6 +782,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
         return depths[f]
 
     best = (-np.inf, None, None)
+    signed = {1: img, -1: -img}  # bright blobs, then dark ones
     for radius in radii:
         sigma = radius / np.sqrt(2)
         f = max(1, int(sigma // 3))  # work on a block-averaged image: sigma >= 3 px there
@@ -768,18 +791,21 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
         dp = depth(f, h, w)
         resp = -((sigma / f) ** 2) * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body
-        peaks = peak_local_max(
-            resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0, num_peaks=3, exclude_border=False
-        )
-        for rr, cc in peaks:
-            centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
-            score, fit = _blob_fit(img, body, centre, radius)
-            if score > best[0]:
-                best = (score, fit, radius)
+        for sign, image in signed.items():
+            peaks = peak_local_max(
+                sign * resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0, num_peaks=3, exclude_border=False
+            )
+            for rr, cc in peaks:
+                centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
+                score, fit = _blob_fit(image, body, centre, radius)
+                if score > best[0]:
+                    best = (score, fit, radius)
     score, fit, radius = best
     if fit is None:
         raise ValueError(
-            "no inclusion found: no blob inside the body is brighter than its surroundings; "
+            "no inclusion found: no compact blob inside the body stands out from its surroundings "
+            "(brighter or darker, beyond their noise and texture; none is searched within three of its radii "
+            "of the body's or the frame's edge); "
             "pass inclusion_mask or the ROIs yourself (radiokit process --inclusion R0 R1 C0 C1)"
         )
     resid, (r0, c0), dist = fit
@@ -821,7 +847,8 @@ def find_rois(
         More attenuation brighter: line integrals or the paper's negative intensities.
     inclusion_mask : (rows, cols) bool array, optional
         Where the inclusion is (e.g. a simulation's truth). Without it the inclusion is
-        detected: the strongest compact blob brighter than its surroundings inside the body.
+        detected: the strongest compact blob inside the body, brighter or darker than its surroundings
+        beyond their noise and texture (a dark one: an inclusion less dense than the gel).
     pixel_size_mm : float or (float, float), optional
         Pixel pitch. When given, ``inclusion_size``, ``gap`` and ``background_size`` are in mm and
         detection looks for blobs of 1.5-12 mm radius; otherwise they are in pixels.

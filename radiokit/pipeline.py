@@ -258,8 +258,7 @@ def load_steps(path, progress: bool = False) -> Steps:
     of its frames), step numbers, ratios, pixel size (:class:`Steps`)."""
     from tqdm.auto import tqdm
 
-    from radiokit.calibrate import Calibration
-    from radiokit.correct import correct_frames
+    from radiokit.calibrate import Calibration, exposure_factors
     from radiokit.io import ImageKey, open_frames
 
     t = time.perf_counter()
@@ -277,16 +276,14 @@ def load_steps(path, progress: bool = False) -> Steps:
         images, ratios = [], []
         n_frames = int(np.sum((keys == ImageKey.PROJECTION) & (steps >= 0)))
         bar = tqdm(total=n_frames, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
+        saturated = {}
         for s in numbers:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
-            acc = None
-            for i in idx:
-                li = correct_frames(cal, src[i], domain="log")
-                acc = li.astype(np.float64) if acc is None else acc + li
-                bar.update()
-            images.append((acc / len(idx)).astype(np.float32))
+            image, saturated[s] = _step_image(cal, src, path, s, idx, exposure_factors(cal, meta, path, idx), bar)
+            images.append(image)
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
+        _warn_saturated(path, saturated, cal.thresholds.saturation)
         pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
     return Steps(
         np.stack(images),
@@ -295,6 +292,44 @@ def load_steps(path, progress: bool = False) -> Steps:
         pixel_size_mm,
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
     )
+
+
+def _step_image(cal, src, path, step, idx, factors, bar):
+    """The mean line integral of one step's frames ``idx`` (each at the flats' tube current,
+    ``factors``) and how many saturated pixels a frame held on average."""
+    from radiokit.correct import check_above_dark, correct_frames
+
+    acc, n_sat = None, 0
+    for i, factor in zip(idx, factors):
+        raw = src[i]
+        try:  # a frame with the beam off would pull its step's mean towards nothing
+            check_above_dark(cal, raw)
+        except ValueError as exc:
+            raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
+        if raw.dtype.kind in "ui" and cal.thresholds.saturation is not None:
+            n_sat += int(np.count_nonzero(raw >= cal.thresholds.saturation))
+        li = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
+        acc = li.astype(np.float64) if acc is None else acc + li
+        bar.update()
+    return (acc / len(idx)).astype(np.float32), n_sat / len(idx)
+
+
+def _warn_saturated(path, saturated: dict, level) -> None:
+    """One line when projections hold saturated pixels. Why: their intensity is unknown (a
+    lower bound), so a ROI or a registration that leans on them measures the ADC, not the
+    object, and nothing said so."""
+    import warnings
+
+    from radiokit.calibrate import CalibrationWarning
+
+    if any(n > 0 for n in saturated.values()):
+        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in saturated.items() if n > 0)
+        warnings.warn(
+            f"{path}: saturated pixels (>= {level}) in the projections, per frame ({per_step}): their "
+            "intensity is unknown; check that they lie outside the ROIs, or lower the exposure",
+            CalibrationWarning,
+            stacklevel=3,
+        )
 
 
 def _sim_truth(path, numbers):
@@ -932,10 +967,14 @@ def process_many(
     from tqdm.auto import tqdm
 
     from radiokit._threads import cores
+    from radiokit.io._atomic import _missing_folders, remove_empty_folders
 
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
+    made = _missing_folders(out_root) if out_root is not None else []
+    if made:  # made here, not by the workers: one that fails must not remove it under the others
+        Path(out_root).mkdir(parents=True)
     cluster = _local_cluster(workers or max(1, min(len(paths), cores()))) if scheduler is None else None
     client = Client(cluster if cluster is not None else scheduler)
     try:
@@ -955,6 +994,7 @@ def process_many(
         client.close()
         if cluster is not None:
             cluster.close()
+        remove_empty_folders(made)  # every file failed: no empty folder left behind
 
 
 def _local_cluster(n_workers: int):

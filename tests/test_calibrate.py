@@ -204,3 +204,150 @@ def test_few_frames_warn():
 def test_unknown_threshold_is_a_typeerror():
     with pytest.raises(TypeError, match="dead_belowx"):
         Calibration.from_frames(np.zeros((3, 8, 8)), np.full((3, 8, 8), 1000.0), dead_belowx=0.1)
+
+
+def _sixteen_bit_experiment(path, bit_depth, rng):
+    """Another lab's panel: 16-bit, flats at 40 000 counts over a 1 000-count pedestal, 384 x 250
+    (non-square, odd-free but not the C7942's), a slab of line integral 0.8 with a saturated
+    corner in the projection. Returns the exact transmission."""
+    shape = (250, 384)
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    L = 0.8 * ((rr > 40) & (rr < 210)) + 0.002 * cc  # a slab and a slow ramp
+    kw = {} if bit_depth is None else {"bit_depth": bit_depth}
+    with ExperimentWriter(path, shape=shape, **kw) as w:
+        for _ in range(4):
+            w.append(np.rint(1000 + rng.normal(0, 3, shape)).astype(np.uint16), image_key=ImageKey.DARK)
+        for _ in range(4):
+            w.append((1000 + rng.poisson(40000, shape)).astype(np.uint16), image_key=ImageKey.FLAT)
+        proj = np.minimum(1000 + rng.poisson(40000 * np.exp(-L)), 65535).astype(np.uint16)
+        proj[:10, :10] = 65535  # saturated
+        w.append(proj, image_key=ImageKey.PROJECTION, step=1)
+    return np.exp(-L)
+
+
+@pytest.mark.filterwarnings("ignore::radiokit.io.BitDepthWarning")  # None: read as 12 bits, warned once
+@pytest.mark.parametrize("bit_depth", [16, None])
+def test_a_16_bit_panel_calibrates_and_corrects_to_the_exact_transmission(tmp_path, bit_depth):
+    """A 16-bit panel's flats (40 000 counts) were all "saturated" against the C7942's fixed
+    4095 and the calibration refused the lab's data. Its saturation is now the bit depth the file
+    records (NeXus bit_depth_readout), or without it the smallest ADC range the frames fit."""
+    from radiokit.io import open_frames
+
+    path = tmp_path / "exp16.h5"
+    exact = _sixteen_bit_experiment(path, bit_depth, np.random.default_rng(7))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationWarning)
+        cal = Calibration.from_experiment(path)
+    assert cal.thresholds.saturation == 65535
+    assert cal.c == pytest.approx(40000, rel=1e-3)
+    with open_frames(path) as src:
+        raw = src[len(src) - 1]
+    t, report = correct_frames(cal, raw, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [100]  # the corner, and nothing else
+    # Poisson noise of one frame: sqrt(40000 T) / 40000 <= 0.005 per pixel; means over 10^4 pixels
+    err = (t - exact)[20:, 20:]
+    assert abs(float(np.mean(err))) < 5e-4 and float(np.std(err)) < 0.0055
+
+
+def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
+    """An experiment file that does not record its panel's bit depth is read as the C7942's 12
+    bits: its 16-bit frames warned once per frame read (one line per frame on the command line);
+    now once per open file. With ``bit_depth=16`` recorded, not at all."""
+    from radiokit.io import BitDepthWarning, open_frames
+
+    for bit_depth, expected in ((None, 1), (16, 0)):
+        path = tmp_path / f"exp{bit_depth}.h5"
+        _sixteen_bit_experiment(path, bit_depth, np.random.default_rng(8))
+        with warnings.catch_warnings(record=True) as caught, open_frames(path) as src:
+            warnings.simplefilter("always")
+            frames = [src[i] for i in range(len(src))]
+        assert len(frames) == 9
+        assert sum(issubclass(w.category, BitDepthWarning) for w in caught) == expected, bit_depth
+
+
+def test_flats_at_another_tube_current_than_the_projections(tmp_path):
+    """Flats at 200 uA, projections at 100 uA (the tube's output proportional to its current):
+    every transmission read half its value, the line integrals ln 2 too high, silently. Both
+    `radiokit process`'s steps and `radiokit correct` now scale by the recorded currents; a
+    voltage that differs is warned of (no factor corrects a spectrum)."""
+    from radiokit.calibrate import exposure_factors
+    from radiokit.correct import correct_files
+    from radiokit.io import read
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (96, 128), np.random.default_rng(9)
+    L = np.tile(np.linspace(0.2, 1.2, shape[1]), (shape[0], 1))
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape, source={"voltage_kv": 40, "current_ua": 200}) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+        for _ in range(3):
+            w.append(100 + rng.poisson(3000, shape), image_key=ImageKey.FLAT, voltage_kv=40, current_ua=200)
+        for step, kv in ((1, 40), (2, 45)):  # step 2 also at another voltage
+            raw = 100 + rng.poisson(1500 * np.exp(-L))  # half the flats' current: half the counts
+            w.append(raw, image_key=ImageKey.PROJECTION, step=step, voltage_kv=kv, current_ua=100)
+    with pytest.warns(CalibrationWarning, match=r"1 frame\(s\) at \[45.0\] kV, the flats at 40.0 kV"):
+        steps = load_steps(path)
+    # one frame's Poisson noise at >= 450 counts (sigma 0.05 in L) and the flats' (0.01)
+    assert float(np.mean(steps.images[0] - L)) == pytest.approx(0, abs=2e-3)  # ln 2 = 0.69 before
+    cal = Calibration.from_experiment(path)
+    with pytest.warns(CalibrationWarning, match="45.0"):
+        correct_files(path, cal, tmp_path / "t.h5", domain="linear", progress=False)
+    t = read(tmp_path / "t.h5").data[0]
+    assert float(np.mean(t / np.exp(-L))) == pytest.approx(1, abs=3e-3)  # 0.5 before
+    # the controller's readback jitters by a uA or two: the same setting, not a factor of 200/201
+    jitter = {"image_key": np.zeros(3), "current": np.array([201.0, 198.0, 100.0])}
+    np.testing.assert_array_equal(exposure_factors(cal, jitter, path, [0, 1, 2]), [1.0, 1.0, 2.0])
+
+
+def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
+    """A projection at the dark level (the beam off, a shutter closed) was clamped, "filled" and
+    averaged into its step: the step's mean was pulled halfway to a uniform image, silently."""
+    from radiokit.errors import FormatError
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (64, 80), np.random.default_rng(10)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+            for _ in range(3):
+                w.append(level + rng.poisson(5, shape), image_key=key)
+        w.append(100 + rng.poisson(1500, shape), image_key=ImageKey.PROJECTION, step=1)
+        w.append(100 + rng.poisson(5, shape), image_key=ImageKey.PROJECTION, step=2)  # beam off: the dark
+        w.append(100 + rng.poisson(1400, shape), image_key=ImageKey.PROJECTION, step=2)
+    with pytest.raises(FormatError, match=r"exp.h5: frame 7 \(step 2\): no signal above the dark"):
+        load_steps(path)
+
+
+def test_three_darks_of_a_clean_panel_flag_no_noisy_pixels():
+    """Three darks of a panel with no noisy pixel (Gaussian read noise of 2.2 counts): about 1
+    pixel in 1400 was flagged noisy (its std, after the most deviant sample was dropped, is one
+    difference of two samples, whose tail passes 5x the median) and then filled in every frame."""
+    rng = np.random.default_rng(12)
+    shape = (512, 512)
+    darks = np.rint(rng.normal(100, 2.2, (3, *shape))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (3, *shape))).astype(np.uint16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)  # "take 10 or more"
+        cal = Calibration.from_frames(darks, flats)
+    assert cal.provenance["defects"]["noisy"] == 0
+
+
+def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
+    """A 20 x 20 patch at the ADC's top (4095) in every projection: nothing said so, and its
+    pixels, whose intensity is unknown, entered the steps like any other."""
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (64, 80), np.random.default_rng(13)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+            for _ in range(4):
+                w.append(level + rng.poisson(5, shape), image_key=key)
+        for step in (1, 2):
+            for _ in range(2):
+                raw = 100 + rng.poisson(1500, shape)
+                raw[10:30, 20:40] = 4095
+                w.append(raw, image_key=ImageKey.PROJECTION, step=step)
+    with pytest.warns(CalibrationWarning, match=r"saturated pixels \(>= 4095\).*step 1: 400, step 2: 400"):
+        load_steps(path)

@@ -417,3 +417,36 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
     assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
     res = run(*reg, "--allow-external")
     assert res.returncode == 2 and "too small" in res.stderr, res.stderr
+
+
+def test_calibrate_refuses_flats_of_another_size_naming_both_files(tmp_path):
+    """Darks of 384 x 512 and flats of 383 x 511: the library's "darks are (...) but flats are
+    (...)" named neither file; now one line names both, and nothing is written."""
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "d.tif", rng.normal(100, 2, (4, 384, 512)).astype(np.uint16), photometric="minisblack")
+    tifffile.imwrite(tmp_path / "f.tif", rng.normal(3000, 9, (4, 383, 511)).astype(np.uint16), photometric="minisblack")
+    res = run("calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "f.tif are (383, 511)" in res.stderr and "d.tif (384, 512)" in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.tif", "f.tif"]
+
+
+def test_correct_refuses_frames_already_corrected(tmp_path):
+    """Float32 transmission (about 0.5) given to `radiokit correct` with a raw-count calibration
+    (dark 100): every pixel is below the dark, and each was clamped and "filled" into a uniform
+    image written with exit code 0. Now one line naming the file and frame, and no output."""
+    import tifffile
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(1)
+    Calibration.from_frames(
+        rng.normal(100, 2, (4, 64, 80)).astype(np.uint16), rng.normal(3000, 30, (4, 64, 80)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    tifffile.imwrite(tmp_path / "t.tif", rng.normal(0.5, 0.01, (64, 80)).astype(np.float32))
+    res = run("correct", tmp_path / "t.tif", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "t.tif: frame 0: no signal above the dark" in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "t.tif"]

@@ -614,3 +614,18 @@ def test_an_hdf5_output_is_not_written_under_another_formats_name(cmd, name, exp
     res = run(*args)
     one_line_error(res, name, ".h5")
     assert not (tmp_path / name).exists()
+
+
+def test_a_failed_process_leaves_no_empty_folders(tmp_path):
+    """`-o new/sub/res` for a file that cannot be processed (no darks), alone and as one of two
+    Dask runs that both fail: the runs left `new/sub/` (and `many/`) behind, empty. Folders the
+    run made are removed again; one that existed stays."""
+    bad = tmp_path / "bad.h5"
+    with ExperimentWriter(bad, shape=(32, 40)) as w:  # flats and projections, no darks
+        w.append(np.full((32, 40), 3000, np.uint16), image_key=ImageKey.FLAT)
+        for step in (1, 2):
+            w.append(np.full((32, 40), 1500, np.uint16), image_key=ImageKey.PROJECTION, step=step)
+    one_line_error(run("process", bad, "-o", tmp_path / "new" / "sub" / "res", "-q"), "bad.h5", "no darks")
+    res = run("process", bad, bad, "-o", tmp_path / "many" / "x", "-q", "--workers", "1")
+    assert res.returncode == 1 and res.stderr.count("no darks") == 2, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]

@@ -458,6 +458,40 @@ def test_find_rois_on_a_constant_image_says_no_inclusion(level):
         find_rois(np.full((64, 64), level))
 
 
+def _slab(extra_l, ripple, seed, shape=(192, 256)):
+    """A gel slab (line integral 0.8) with a smooth thickness ripple (std ``ripple`` of it,
+    correlated over ~6 px) under Poisson noise at 3000 counts, and a disc of ``extra_l`` (radius
+    14 px) at (96, 120); ``-ln(counts / 3000)``."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    t = ndimage.gaussian_filter(rng.standard_normal(shape), 6.0)
+    body = (rr >= 20) & (rr < shape[0] - 20) & (cc >= 24) & (cc < shape[1] - 24)
+    L = body * (0.8 * (1 + ripple * t / t.std()) + extra_l * (np.hypot(rr - 96, cc - 120) <= 14))
+    return (-np.log(np.maximum(rng.poisson(3000 * np.exp(-L)), 1) / 3000)).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_find_rois_near_uniform_slab_says_no_inclusion(seed):
+    """A slab whose thickness ripples by 1 % (0.008 in L, under the pixel noise of 0.027) has no
+    inclusion: its strongest ripple was "8 standard errors" above white noise (the ripple is
+    correlated over the blob, the standard error assumed it is not) and an inclusion was invented."""
+    with pytest.raises(ValueError, match="no inclusion found"):
+        find_rois(_slab(0.0, 0.01, seed), pixel_size_mm=0.1)
+
+
+@pytest.mark.parametrize("extra", [0.2, -0.2])
+def test_find_rois_finds_a_denser_or_a_less_dense_inclusion(extra):
+    """The same slab with a disc 0.2 denser or 0.2 less dense (in L) than the gel: found where
+    it is, with the contrast's sign its density's (a less dense one was passed over for the
+    ripple's strongest bump)."""
+    img = _slab(extra, 0.01, 5)
+    inc, bg = find_rois(img, pixel_size_mm=0.1)  # a 2x2-binned panel: blobs of 1.5-3.2 mm
+    assert inc.contains((96, 120)) and np.hypot(*np.subtract(inc.center, (96, 120))).max() <= 2
+    assert contrast(img, inc, bg) == pytest.approx(extra, abs=0.03)  # the ripple's 0.008 and noise
+
+
 def test_body_mask_refuses_non_finite_pixels():
     """One NaN pixel made every comparison False: an empty body, silently (find_rois refuses NaN)."""
     img = np.zeros((32, 32))

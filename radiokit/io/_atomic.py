@@ -279,6 +279,7 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
     path = check_output(path, overwrite=overwrite, inputs=inputs)
     if size_hint:
         check_free_space(path, size_hint)
+    made = _missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(path)
     tmp = _temporary_name(path)
@@ -291,10 +292,33 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         _fsync(path.parent)
     except BaseException as exc:
         _remove(tmp)
+        remove_empty_folders(made)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
         _raise_unwritable(exc, tmp, path)
         raise
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, deepest first: what making it
+    creates, and what a failed run removes again (:func:`remove_empty_folders`)."""
+    out = []
+    folder = Path(os.path.abspath(folder))
+    while not folder.exists() and folder.parent != folder:
+        out.append(folder)
+        folder = folder.parent
+    return out
+
+
+def remove_empty_folders(folders) -> None:
+    """Remove each of ``folders`` (deepest first) that is empty. Why: a run that failed left the
+    output's parent folders it had made (``-o new/results`` left ``new/``), empty; one another
+    run has written into stays."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or gone: leave it
+            return
 
 
 def _raise_unwritable(exc, tmp: Path, path: Path) -> None:
@@ -340,6 +364,7 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
             f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
             "it is never replaced: move them or choose a new folder",
         )
+    made = _missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(path, folder=True)
     tmp = _temporary_name(path, folder=True)
@@ -359,6 +384,7 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
             shutil.rmtree(old, ignore_errors=True)
     except BaseException as exc:
         _remove(tmp)
+        remove_empty_folders(made)
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
         _raise_unwritable(exc, tmp, path)

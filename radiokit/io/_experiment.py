@@ -93,6 +93,13 @@ class ExperimentWriter:
         ``name``, ``voltage_kv``, ``current_ua`` of the X-ray source.
     detector_name : str
         Written to ``instrument/detector/description``.
+    bit_depth : int, optional
+        The panel's ADC bits, recorded as NeXus ``bit_depth_readout``: 12 for the C7942, 16 for
+        a panel that saturates at 65535. Readers take values above ``2**bit_depth - 1`` for a
+        wrong byte or bit order, and the calibration flags ``2**bit_depth - 1`` as saturated.
+        Not given: not recorded; readers assume the C7942's 12 bits for that warning, and the
+        calibration infers the range from the darks and flats
+        (:func:`radiokit.calibrate.adc_top`).
 
     Examples
     --------
@@ -118,6 +125,7 @@ class ExperimentWriter:
         source=None,
         detector_name="Hamamatsu C7942SK-02",
         title="radiokit experiment",
+        bit_depth=None,
     ):
         self.path = Path(path)
         if mode not in ("w", "a"):
@@ -131,7 +139,11 @@ class ExperimentWriter:
             if mode == "w":
                 if shape is None:
                     raise ValueError("shape=(rows, cols) is required for a new experiment file")
+                if bit_depth is not None and not (isinstance(bit_depth, (int, np.integer)) and 1 <= bit_depth <= 16):
+                    raise ValueError(f"bit_depth={bit_depth!r}: frames are stored as uint16, 1 to 16 bits")
                 self._create(tuple(int(s) for s in shape), pixel_size_mm, source or {}, detector_name, title)
+                if bit_depth is not None:
+                    self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
             else:
                 self._reopen(shape)
         except Exception:
@@ -598,7 +610,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             meta[name] = values
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{IMAGE_KEY}")
-    for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2)):
+    for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
         # optional: left out unless plain numbers of the expected rank
@@ -606,6 +618,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             check_local(path, h5, ds, allow_external)
             check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
             meta[name] = ds[()]
+    bits = meta.pop("bit_depth_readout", None)
+    if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
+        meta["bit_depth"] = int(bits)
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
     check_links(path, h5, SOURCE, allow_external)

@@ -51,14 +51,14 @@ class Frames:
         )
 
 
-def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> None:
-    """Warn once per call when a frame holds values the ADC cannot produce."""
+def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> bool:
+    """Warn when a frame holds values the ADC cannot produce; whether it warned."""
     if bits is None or frame.dtype.kind not in "ui" or frame.size == 0:
-        return
+        return False
     top = (1 << bits) - 1
     peak = int(frame.max())
     if peak <= top:
-        return
+        return False
     hint = ""
     if frame.dtype.itemsize == 2:
         swapped = int(frame.byteswap().max())
@@ -72,3 +72,4 @@ def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> None:
         BitDepthWarning,
         stacklevel=3,
     )
+    return True

@@ -122,6 +122,7 @@ class FrameSource:
 
     def __init__(self, path, *, format=None, dataset=None, allow_external=False, budget=None, **hints):
         self.path = Path(path)
+        self._bits_warned = False  # the bit-depth warning, once per open file, not once per frame
         self._allow_external = bool(allow_external)
         self._budget = budget
         unknown = set(hints) - _RAW_HINTS
@@ -429,7 +430,8 @@ class FrameSource:
         self._ds = data
         # h5py hands through the byte order the file stores; read() promises native order
         self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype.newbyteorder("=")
-        self.bits = 12 if meta.get("format") == "experiment" else None
+        # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
+        self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
     def _open_calibration(self):
@@ -472,7 +474,8 @@ class FrameSource:
             raise
         except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
             raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
-        check_bit_depth(self.path, frame, self.bits)
+        if not self._bits_warned:
+            self._bits_warned = check_bit_depth(self.path, frame, self.bits)
         return frame
 
     def __iter__(self):
