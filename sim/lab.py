@@ -188,6 +188,7 @@ def simulate_experiment(
             shape=panel.shape,
             overwrite=overwrite,
             pixel_size_mm=det.pixel_size_mm,
+            bit_depth=panel.bits,  # readers then know the ADC's top without inferring it
             source=src,
             title=f"radiokit simulation: {scene.name}",
         ) as w,

@@ -152,7 +152,7 @@ def test_simulated_file_layout(sim_file):
     scene, path, res = sim_file
     f = read(path)
     assert f.data.dtype == np.uint16 and f.data.shape == (6 + 8 + 2 * 4, 560, 560)
-    assert f.data.max() <= 4095
+    assert f.data.max() <= 4095 and f.meta["bit_depth"] == 12  # the panel's ADC, recorded
     keys = f.meta["image_key"]
     assert (keys == 2).sum() == 6 and (keys == 1).sum() == 8 and (keys == 0).sum() == 8
     sim = read_simulation(path)
