@@ -173,6 +173,16 @@ def _one_line(exc) -> str:
     return " ".join(str(text).split()) or type(exc).__name__
 
 
+def _console_quiet() -> None:
+    """No log line on the terminal after this: the operator's last line is the tube's state. A
+    thread still unwinding (the simulated panel's beam query, a monitor's last poll) logged after
+    the warning under load, and the terminal's last line was then a driver's error, not the
+    warning. The notebook's file handlers keep logging."""
+    for h in logging.getLogger().handlers:
+        if not isinstance(h, logging.FileHandler) and getattr(h, "stream", None) in (sys.stderr, sys.stdout):
+            h.setLevel(logging.CRITICAL + 1)
+
+
 #: The last line when the source's port could not be opened (a mistyped port, a cable not in).
 NEVER_REACHED = (
     "radiokit never reached the X-ray controller (its port could not be opened), so it sent no "
@@ -184,6 +194,7 @@ def _finish(res, code: int, err: bool = True) -> int:
     """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed,
     or -- the port never opened -- that radiokit never reached the controller. No line when the
     run stopped before trying to connect."""
+    _console_quiet()
     if res is not None and res.port_never_opened:
         _say(NEVER_REACHED)
         return code or 1

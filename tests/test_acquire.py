@@ -529,3 +529,30 @@ def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sen
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {out}: ") and "no folder" in err[0], err
     assert not out.parent.exists()
+
+
+def test_no_log_line_reaches_the_terminal_after_the_operators_last_line(capsys):
+    """Found under load (s17-h3's full run): a thread still unwinding (the simulated panel's beam
+    query) logged a driver error after the warning, so the terminal's last line was not the
+    warning. After the last line only the notebook's files log."""
+    import logging
+    import sys
+    import threading
+    from types import SimpleNamespace
+
+    from acquisition.cli import _finish
+    from acquisition.guardian import TUBE_WARNING
+
+    root = logging.getLogger()
+    console = logging.StreamHandler(sys.stderr)  # what logging.basicConfig gives the command
+    root.addHandler(console)
+    try:
+        code = _finish(SimpleNamespace(port_never_opened=False, tube_off=False, tube_state=None), 1)
+        late = threading.Thread(target=lambda: logging.getLogger("acquisition.l8121").error("late: link lost"))
+        late.start()
+        late.join()
+    finally:
+        root.removeHandler(console)
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 3 and err[-1] == TUBE_WARNING, err
+    assert not any("late: link lost" in ln for ln in err)
