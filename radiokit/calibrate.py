@@ -105,6 +105,8 @@ class Thresholds:
         pixel dead and wrote a calibration that ``correct`` could only refuse."""
         for f in fields(self):
             v = getattr(self, f.name)
+            if v is None and f.name == "saturation":  # the ADC's top, implied by the darks and flats
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
                 raise ValueError(f"threshold {f.name}={v!r}: expected a finite number")
         rules = [
@@ -114,7 +116,7 @@ class Thresholds:
             ("line_fraction", 0 < self.line_fraction <= 1, "0 < line_fraction <= 1"),
             (
                 "saturation",
-                float(self.saturation).is_integer() and 0 < self.saturation < 1 << 16,
+                self.saturation is None or (float(self.saturation).is_integer() and 0 < self.saturation < 1 << 16),
                 "an ADC value, 1-65535",
             ),
             ("smooth_block", float(self.smooth_block).is_integer() and self.smooth_block >= 2, "a whole block >= 2 px"),
