@@ -746,9 +746,9 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     surroundings inside the body. Each is scored by its height above a quadratic fitted to its
     surroundings (1.5-3 radii), which ignores the smooth shape of the body; the best one's
     extent is the connected region above half its height. Dark blobs are searched the same way
-    on the negated image: an inclusion less dense than the gel (a cyst, a foam) is as much an
-    inclusion, and a detector of bright blobs alone picked the gel's texture instead of it; its
-    contrast is then negative. Negative images (the paper's
+    on the negated image and taken when no bright one stands out: an inclusion less dense than the
+    gel (a cyst, a foam) is as much an inclusion, and a detector of bright blobs alone picked the
+    gel's texture instead of it; its contrast is then negative. Negative images (the paper's
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
 
@@ -781,8 +781,11 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
             depths[f] = ndi.distance_transform_edt(np.pad(b, 1))[1:-1, 1:-1] * f
         return depths[f]
 
-    best = (-np.inf, None, None)
-    signed = {1: img, -1: -img}  # bright blobs, then dark ones
+    # the best bright blob and the best dark one; a dark one is taken only when no bright one
+    # stands out: the paper's inclusion is denser than the gel, and a darker feature of a real
+    # phantom (an air bubble) may stand out more than it
+    best = {1: (-np.inf, None, None), -1: (-np.inf, None, None)}
+    signed = {1: img, -1: -img}
     for radius in radii:
         sigma = radius / np.sqrt(2)
         f = max(1, int(sigma // 3))  # work on a block-averaged image: sigma >= 3 px there
@@ -798,9 +801,9 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
             for rr, cc in peaks:
                 centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
                 score, fit = _blob_fit(image, body, centre, radius)
-                if score > best[0]:
-                    best = (score, fit, radius)
-    score, fit, radius = best
+                if score > best[sign][0]:
+                    best[sign] = (score, fit, radius)
+    score, fit, radius = best[1] if best[1][1] is not None else best[-1]
     if fit is None:
         raise ValueError(
             "no inclusion found: no compact blob inside the body stands out from its surroundings "
@@ -847,8 +850,9 @@ def find_rois(
         More attenuation brighter: line integrals or the paper's negative intensities.
     inclusion_mask : (rows, cols) bool array, optional
         Where the inclusion is (e.g. a simulation's truth). Without it the inclusion is
-        detected: the strongest compact blob inside the body, brighter or darker than its surroundings
-        beyond their noise and texture (a dark one: an inclusion less dense than the gel).
+        detected: the strongest compact blob inside the body brighter than its surroundings beyond
+        their noise and texture, or, when there is none, the strongest darker one (an inclusion
+        less dense than the gel).
     pixel_size_mm : float or (float, float), optional
         Pixel pitch. When given, ``inclusion_size``, ``gap`` and ``background_size`` are in mm and
         detection looks for blobs of 1.5-12 mm radius; otherwise they are in pixels.

@@ -492,6 +492,16 @@ def test_find_rois_finds_a_denser_or_a_less_dense_inclusion(extra):
     assert contrast(img, inc, bg) == pytest.approx(extra, abs=0.03)  # the ripple's 0.008 and noise
 
 
+def test_find_rois_prefers_a_denser_inclusion_to_a_stronger_dark_bubble():
+    """The paper's inclusion is denser than the gel; an air bubble (less dense, here standing out
+    twice as much) must not take its place: a dark blob is taken only when no bright one stands out."""
+    rr, cc = np.mgrid[0:192, 0:256]
+    img = _slab(0.2, 0.01, 6)
+    img[np.hypot(rr - 100, cc - 190) <= 12] -= 0.4  # the bubble, clear of the inclusion's ring
+    inc, bg = find_rois(img, pixel_size_mm=0.1)
+    assert inc.contains((96, 120)) and contrast(img, inc, bg) > 0.15
+
+
 def test_body_mask_refuses_non_finite_pixels():
     """One NaN pixel made every comparison False: an empty body, silently (find_rois refuses NaN)."""
     img = np.zeros((32, 32))
