@@ -332,17 +332,26 @@ class _Watch:
 
         self.state_query = DIALECTS[config.dialect].readings["state"]
         self.may_be_on = False
+        self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
 
     def sent(self, command: str) -> None:
         if command.split(" ", 1)[0] in ("XON", "WUP"):
             self.may_be_on = True
 
     def replied(self, command: str, reply: str) -> None:
+        from acquisition.l8121 import _OFF_STATES
+
         if command == self.state_query.command:
             try:
-                self.may_be_on = bool(self.state_query.parse(reply).emitting)
+                state = self.state_query.parse(reply)
             except ValueError:  # not a state: it says nothing either way
-                pass
+                return
+            if state.emitting:
+                self.may_be_on = True
+            elif state in _OFF_STATES:
+                self.may_be_on = False
+            # else B's ERROR (read as pre-heating, and also what a refused query looks like): the
+            # driver never takes it as "off", so neither does the watchdog -- it stays as it was
 
 
 def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | None:
@@ -375,9 +384,13 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
     )
     if _switch_off(link, config, note):
         watch.may_be_on = False
-    else:
+        return
+    # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
+    # silence (a controller silent for a second or two at the first attempt must not leave the
+    # tube on for good); the operator's warning is printed once
+    if not watch.warned:
         _say(TUBE_WARNING)
-        watch.may_be_on = False  # said once; the acquiring process's own checks say the rest
+        watch.warned = True
 
 
 def _serve(link, config, note, watchdog_s: float | None = None) -> int:

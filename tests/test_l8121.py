@@ -1386,3 +1386,22 @@ def test_demo_takes_the_dialect(dialect):
         assert devices.source.status() == SourceState.STANDBY
     finally:
         devices.close()
+
+
+def test_the_guardians_watch_is_not_disarmed_by_a_reply_the_driver_never_takes_as_off():
+    """Found in review: dialect B's ``STS`` -> ``ERROR`` (read as pre-heating, and also what a
+    refused query looks like) disarmed the guardian's watchdog, though the driver never accepts
+    it as "off". Only a confirmed off state disarms it."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect="B"))
+    query = watch.state_query.command
+    watch.sent("XON")
+    watch.replied(query, "ERROR")
+    assert watch.may_be_on
+    watch.replied(query, "STANDBY")
+    assert not watch.may_be_on
+    watch.replied(query, "XON")
+    assert watch.may_be_on

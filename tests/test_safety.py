@@ -231,18 +231,27 @@ class OffWatch:
         self.model_t_fault = model.time
         self.on_at_fault = model.xray_on
         self._done = threading.Event()
-        threading.Thread(target=self._loop, daemon=True).start()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _off(self) -> bool:
+        xof = any(e.command == "XOF" and e.t >= self.model_t_fault for e in self.model.log)
+        return xof and not self.model.xray_on
 
     def _loop(self):
         while not self._done.is_set() and time.monotonic() - self.t_fault < 30:
-            xof = any(e.command == "XOF" and e.t >= self.model_t_fault for e in self.model.log)
-            if xof and not self.model.xray_on:
+            if self._off():
                 self.off_at = time.monotonic()
                 return
             time.sleep(0.005)
 
     def seconds(self):
+        # a caller that has just seen the tube off (its own poll) may ask before this thread's next
+        # 5 ms look: one last look here, so that race reads "off now", not "never off"
         self._done.set()
+        self._thread.join(timeout=1.0)
+        if self.off_at is None and self._off():
+            self.off_at = time.monotonic()
         return None if self.off_at is None else self.off_at - self.t_fault
 
 
@@ -514,6 +523,33 @@ def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scen
     assert "Traceback" not in acq.output and not model.xray_on
     with h5py.File(tmp_path / "series.h5", "r") as h5:
         assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
+@ONE_DIALECT
+def test_the_guardian_watchdog_tries_again_after_an_unconfirmed_switch_off(tmp_path, scene_file, controller):
+    """Found in review: an unconfirmed watchdog switch-off disarmed the watchdog for good ("said
+    once"), so a controller silent for a moment at that attempt left the tube on for as long as
+    the run stayed suspended. Now it warns once and tries again after every further watchdog_s."""
+    model, server = controller()
+    watchdog_s = 1.0
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
+    )
+    acq = Acquire(proto, "--sim", "-q")
+    try:
+        reach("projection (beam on)", model, tmp_path, acq)
+        model.silence(True)  # dead for the first attempt: nothing the guardian sends acts
+        acq.signal(signal.SIGSTOP)
+        wait_until(lambda: any(ln.startswith(WARNING) for ln in acq.lines), timeout=watchdog_s + 8.0, what="warning")
+        assert model.xray_on
+        model.silence(False)
+        wait_until(lambda: not model.xray_on, timeout=watchdog_s + OFF_BOUND_S + 3.0, what="the second switch-off")
+        assert acq.proc.poll() is None  # still suspended: it was the guardian, again
+    finally:
+        model.silence(False)
+        acq.signal(signal.SIGCONT)
+    acq.wait()
+    assert not model.xray_on and sum(ln.startswith(WARNING) for ln in acq.lines if "guardian" not in ln) >= 1
 
 
 @ONE_DIALECT
