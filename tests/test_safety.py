@@ -680,6 +680,10 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     ({"focus": -1}, r"focus = -1"),
     ({"poll_s": float("inf")}, r"poll_s = inf"),
     ({"watchdog_s": 0.2}, r"watchdog_s = 0\.2: expected at least 4 poll periods \(0\.4 s\), or 0 for none"),
+    # found in review: the driver's warm-up and ramp waits poll every limits.poll_s, which tripped
+    # the watchdog in every warm-up; and the driver rounds before XON, which is after the warm-up
+    ({"limits": {"poll_s": 2.0}}, r"watchdog_s = 5\.0: expected at least 4 poll periods \(8 s\)"),
+    ({"voltage_kv": 60.5, "current_ua": 165, "watts_max": 10}, r"61 kV x 165 µA = 10\.065 W exceeds watts_max = 10 W"),
 ]
 
 

@@ -219,7 +219,7 @@ class Protocol:
                 f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
             )
         _check_source(self.source)
-        if self.source.voltage_kv > d.kvp_max:
+        if _whole(self.source.voltage_kv) > d.kvp_max:  # what the driver sends
             raise ProtocolError(
                 f"[source] voltage_kv = {self.source.voltage_kv:g} exceeds the panel's rating "
                 f"([detector] kvp_max = {d.kvp_max:g} kVp; the C7942SK-02 is rated 20-100 kVp)"
@@ -282,6 +282,11 @@ def _source_limits(s: SourceSettings):
     return cfg
 
 
+def _whole(value: float) -> int:
+    """The whole kV or uA the driver sends (``acquisition.l8121``: round half up)."""
+    return math.floor(value + 0.5)
+
+
 def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
@@ -290,6 +295,9 @@ def _check_source(s: SourceSettings) -> None:
     cfg = _source_limits(s)
     try:  # the driver's own check (the one implementation of the ratings), before anything is sent
         cfg.check_exposure(s.voltage_kv, s.current_ua)
+        # ... and on the whole numbers the driver will send (it rounds half up): 60.5 kV x 165 uA
+        # passed a 10 W limit here, warmed the tube up, and was refused only at XON
+        cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
     modes = cfg.focus_modes
@@ -301,9 +309,12 @@ def _check_source(s: SourceSettings) -> None:
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
     if s.poll_s <= 0:
         raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
-    if 0 < s.watchdog_s < 4 * s.poll_s:  # a run that polls as asked must never trip it
+    # a run that polls as asked must never trip it: the beam monitor polls every poll_s, the
+    # driver's warm-up and ramp waits every limits.poll_s
+    period = max(s.poll_s, cfg.poll_s)
+    if 0 < s.watchdog_s < 4 * period:
         raise ProtocolError(
-            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * s.poll_s:g} s), or 0 for none"
+            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * period:g} s), or 0 for none"
         )
 
 
