@@ -629,3 +629,26 @@ def test_a_failed_process_leaves_no_empty_folders(tmp_path):
     res = run("process", bad, bad, "-o", tmp_path / "many" / "x", "-q", "--workers", "1")
     assert res.returncode == 1 and res.stderr.count("no darks") == 2, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]
+
+
+def test_the_file_size_limit_is_not_guessed_on_file_systems_glibc_does_not_list(tmp_path):
+    """Found in review: the writer took ``pathconf(PC_FILESIZEBITS)`` as the file system's limit,
+    and glibc answers 32 for every file system it does not list (tmpfs, NFS, CIFS, FUSE): an
+    experiment file there was refused at 2 GiB, about 200 full frames. Only FAT caps a file (4 GiB
+    - 1); elsewhere only the process's RLIMIT_FSIZE counts. /dev/shm is a tmpfs on Linux."""
+    import math
+    import shutil
+    import tempfile
+
+    from radiokit.io._experiment import _file_system_type
+
+    shm = Path("/dev/shm")
+    if not (shm.is_dir() and os.access(shm, os.W_OK)) or _file_system_type(shm) != "tmpfs":
+        pytest.fail("this test needs Linux's /dev/shm tmpfs (every CI runner here has it)")
+    folder = Path(tempfile.mkdtemp(dir=shm))
+    try:
+        with ExperimentWriter(folder / "exp.h5", shape=(4, 5)) as w:
+            assert w._size_and_limit()[1] == math.inf
+        assert _file_system_type(tmp_path) not in (None, "vfat", "msdos")
+    finally:
+        shutil.rmtree(folder)

@@ -200,7 +200,7 @@ class Acquire:
 
 def _limit_file_size(nbytes):
     """``ulimit -f``: a write past ``nbytes`` fails with EFBIG (Python ignores SIGXFSZ) -- as on a
-    FAT32 / exFAT disk, whose files stop at 4 GiB, 400 frames of 2240 x 2240."""
+    FAT32 disk, whose files stop at 4 GiB, 400 frames of 2240 x 2240."""
     import resource
 
     resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))

@@ -77,6 +77,35 @@ def _set_class(group, nx_class):
     group.attrs["NX_class"] = nx_class
 
 
+#: File systems whose files stop at 4 GiB - 1 (FAT12/16/32; exFAT has no such limit).
+_FAT_TYPES = frozenset({"vfat", "msdos", "fat", "umsdos"})
+_FAT_MAX_FILE = 2**32 - 1
+
+
+def _file_system_type(folder) -> str | None:
+    """The type of the file system holding ``folder`` (Linux: the longest mount point of
+    /proc/self/mounts above it), or None where that is not known.
+
+    Why not ``pathconf(PC_FILESIZEBITS)``: glibc answers 32 for every file system it does not
+    list (tmpfs, NFS, CIFS, FUSE, overlay), which capped experiment files there at 2 GiB --
+    about 200 full frames -- with no such limit on the disk."""
+    try:
+        target = os.path.realpath(folder)
+        best, kind = "", None
+        with open("/proc/self/mounts", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                fields = line.split()
+                if len(fields) < 3:
+                    continue
+                mount = fields[1].replace("\\040", " ")
+                inside = target == mount or target.startswith(mount.rstrip("/") + "/")
+                if inside and len(mount) >= len(best):
+                    best, kind = mount, fields[2]
+        return kind
+    except OSError:  # no /proc (not Linux): no file-system limit assumed
+        return None
+
+
 class ExperimentWriter:
     """Append frames to an experiment file, flushing after each so a crash loses at most one.
 
@@ -328,7 +357,7 @@ class ExperimentWriter:
             )
         size, limit = self._size_and_limit()
         if size + nbytes + self.reserve_bytes > limit:
-            # a file-size limit (ulimit -f, or a FAT32 / exFAT-formatted disk's 4 GiB) fails the
+            # a file-size limit (ulimit -f, or a FAT32-formatted disk's 4 GiB) fails the
             # write half-way just as a full disk does, and libhdf5 then leaves a file that does not
             # open: refused while the file is whole
             raise OSError(
@@ -343,8 +372,8 @@ class ExperimentWriter:
         return shutil.disk_usage(self.path.parent).free
 
     def _size_and_limit(self) -> tuple[int, float]:
-        """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and the
-        file system's (``FILESIZEBITS``: 32 on FAT, read as a signed size), whichever is lower."""
+        """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and, on
+        a FAT file system, 4 GiB - 1, whichever is lower."""
         size = self.path.stat().st_size
         limit = math.inf
         try:
@@ -355,12 +384,8 @@ class ExperimentWriter:
                 limit = soft
         except (ImportError, OSError, ValueError):  # no resource module (Windows): no process limit
             pass
-        try:
-            bits = os.pathconf(self.path.parent, "PC_FILESIZEBITS")
-            if 0 < bits < 64:
-                limit = min(limit, 2 ** (bits - 1) - 1)
-        except (AttributeError, OSError, ValueError):  # not known here: no file-system limit assumed
-            pass
+        if _file_system_type(self.path.parent) in _FAT_TYPES:
+            limit = min(limit, _FAT_MAX_FILE)
         return size, limit
 
     @property
