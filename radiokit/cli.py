@@ -185,15 +185,13 @@ def _parse_thresholds(items) -> dict:
             raise ValueError(f"--threshold {item!r}: {value!r} is not {kind}") from None
         if not np.isfinite(number):
             raise ValueError(f"--threshold {item!r}: a threshold must be a finite number")
-        try:  # each in its domain, before any frame is read
-            Thresholds(**{key.strip(): number})
-        except ValueError as exc:
-            raise ValueError(f"--threshold {item!r}: {exc}") from None
         out[key.strip()] = number
-    try:  # and together (dead_below <= under_below)
+    # checked together, before any frame is read: one at a time against the defaults refused
+    # dead_below=0.02 under_below=0.05 (dead_below 0.1 > under_below 0.05), a valid pair
+    try:
         Thresholds(**out)
     except ValueError as exc:
-        raise ValueError(f"--threshold {' '.join(items)}: {exc}") from None
+        raise ValueError(f"--threshold {' '.join(items or ())}: {exc}") from None
     return out
 
 
@@ -550,7 +548,7 @@ def _add_calibrate(sub):
         metavar="NAME=VALUE",
         help="a defect threshold, repeatable: dead_below, under_below, over_above (relative response), "
         "noisy_factor, line_deviation, line_noise_factor, line_fraction, clip_sigma, eps (counts), "
-        "saturation (ADC value, default 4095), smooth_block (px); radiokit.calibrate.Thresholds has each "
+        "saturation (ADC value; default: the top of the 12-, 14- or 16-bit range the darks and flats fit), smooth_block (px); radiokit.calibrate.Thresholds has each "
         "default",
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")

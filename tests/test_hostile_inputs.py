@@ -279,6 +279,16 @@ def test_itex_vendor_files_still_parse():
     assert "_unparsed" not in c
 
 
+def test_thresholds_are_checked_together_not_one_at_a_time():
+    """Found in review: each --threshold was checked alone against the defaults, so
+    dead_below=0.02 with under_below=0.05 (a valid pair) was refused as dead_below 0.1 > 0.05."""
+    from radiokit.cli import _parse_thresholds
+
+    assert _parse_thresholds(["dead_below=0.02", "under_below=0.05"]) == {"dead_below": 0.02, "under_below": 0.05}
+    with pytest.raises(ValueError, match="dead_below"):
+        _parse_thresholds(["dead_below=0.2", "under_below=0.05"])
+
+
 # -- bad values --------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "value",
