@@ -1568,12 +1568,22 @@ class L8121:
             if state == SourceState.WARMUP_NEEDED and (seen_running or elapsed > self.config.warmup_start_s):
                 # stopped, or never started although the start command was answered (the interlock
                 # opened, the controller refused it silently): not a reason to wait out the time-out
-                self._warm_up_stopped(elapsed, seen_running)
+                if seen_running or not self._warm_up_pending():
+                    self._warm_up_stopped(elapsed, seen_running)
             if elapsed > timeout_s:
                 raise DeviceError(
                     f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
                 )
             time.sleep(self.config.poll_s)
+
+    def _warm_up_pending(self) -> bool:
+        """Whether a warm-up whose state still reads "needed" is under way all the same: dialect A's
+        ``SPH 1`` (pre-heating; ``STS`` has no value for it) or its ``SWE 1`` (running). L8121.md
+        does not say what ``STS`` reads while a unit pre-heats after ``WUP``: a unit answering
+        ``STS 0`` then must not have every warm-up called "not started" after warmup_start_s."""
+        if "preheating" in self.dialect.readings and self._read("preheating"):
+            return True
+        return self.warmup_state() == WarmupState.RUNNING
 
     def _warm_up_stopped(self, elapsed: float, started: bool):
         """Raise the error of a warm-up that stopped (``started``) or never started: a

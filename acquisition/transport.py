@@ -448,7 +448,14 @@ class PipeTransport:
             try:  # the guardian is gone for good: reap it, so its end of the port is closed
                 self._process.wait(timeout=5.0)
             except Exception:
-                pass
+                # alive but not serving (its stdin closed, e.g. a SIGTERM): two processes on one
+                # port would discard each other's replies (each clears its input before an
+                # exchange), so it is ended before this one opens the port
+                try:
+                    self._process.kill()
+                    self._process.wait(timeout=5.0)
+                except Exception:
+                    pass
             self.log.warning(
                 "%s: the X-ray guardian (pid %d) died; this process opens the port itself to switch off",
                 self.url,

@@ -554,6 +554,35 @@ def test_a_warm_up_that_does_not_start_is_an_error_not_a_wait(cold, dialect, wir
     assert "XOF" in commands_after(model, wire["warm"]) and not model.xray_on and model.state != 1
 
 
+class _PreheatingModel(L8121Model):
+    """A dialect-A unit that pre-heats for ``pre_s`` after ``WUP`` and reports it only in ``SPH``,
+    its ``STS`` still 0 (warm-up needed). L8121.md lists ``SPH`` but does not say what ``STS`` reads
+    then; our emulator does not pre-heat, so this one behaviour is faked here, on purpose."""
+
+    pre_s = 0.8
+    _wup_at = None
+
+    def handle(self, line, baudrate=None):
+        word = line.strip()
+        if word == "WUP":
+            self._wup_at = time.monotonic()
+        pre = self._wup_at is not None and time.monotonic() - self._wup_at < self.pre_s
+        if pre and word in ("STS", "SPH", "SWE"):
+            return {"STS": "STS 0", "SPH": "SPH 1", "SWE": "SWE 2"}[word]
+        return super().handle(line, baudrate)
+
+
+def test_a_pre_heating_unit_is_not_called_a_warm_up_that_did_not_start():
+    """Found in review: the 'warm-up did not start' stop (warmup_start_s) read only STS; a dialect-A
+    unit that pre-heats first (SPH 1, STS still 0) had every warm-up stopped. Now SPH (and SWE) are
+    asked before calling it not started."""
+    model = _PreheatingModel(dialect="A", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    with PtyServer(model) as server, driver(server, "A", warmup_start_s=0.2) as src:
+        src.warm_up(timeout_s=30, progress=False)
+        assert src.status() == SourceState.STANDBY and src.warmup_state() == WarmupState.DONE
+    assert not model.xray_on
+
+
 def test_ctrl_c_during_warm_up_switches_off(cold, dialect):
     model, server = cold
     model.warmup_s = 30
