@@ -562,14 +562,19 @@ class _PreheatingModel(L8121Model):
     pre_s = 0.8
     _wup_at = None
 
-    def handle(self, line, baudrate=None):
-        word = line.strip()
-        if word == "WUP":
+    def _execute(self, line, t):
+        if line == "WUP" and self._wup_at is None:  # answered now, the warm-up proper after pre_s
             self._wup_at = time.monotonic()
-        pre = self._wup_at is not None and time.monotonic() - self._wup_at < self.pre_s
-        if pre and word in ("STS", "SPH", "SWE"):
-            return {"STS": "STS 0", "SPH": "SPH 1", "SWE": "SWE 2"}[word]
-        return super().handle(line, baudrate)
+            return "WUP"
+        if self._wup_at is not None and time.monotonic() - self._wup_at < self.pre_s:
+            if line in ("STS", "SPH", "SWE"):
+                return {"STS": "STS 0", "SPH": "SPH 1", "SWE": "SWE 2"}[line]
+        elif self._wup_at is not None and not self._started:
+            self._started = True
+            super()._execute("WUP", t)
+        return super()._execute(line, t)
+
+    _started = False
 
 
 def test_a_pre_heating_unit_is_not_called_a_warm_up_that_did_not_start():
