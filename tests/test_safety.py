@@ -813,6 +813,8 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     assert len(errors) == 1 and "disk full" in errors[0] and str(out) in errors[0], acq.output
     assert "Traceback" not in acq.output and not model.xray_on
     assert "stopped in phase flats" in acq.output, acq.output  # X-rays were on when the disk filled
+    # ... and the operator was told before the warm-up that the series would not fit (review)
+    assert any("the series needs up to" in ln and "MB are free" in ln for ln in acq.lines), acq.output
     with h5py.File(out, "r") as h5:
         n = int(h5["entry"].attrs["frames_complete"])
         assert DARKS <= n < DARKS + FLATS

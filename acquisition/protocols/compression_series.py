@@ -826,6 +826,30 @@ def _phase_warm_up(r: _Run):
     r.devices.detector.arm()
 
 
+def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
+    """Say before the warm-up when the disk cannot hold the whole series (uint16 frames: an upper
+    bound). A warning, not a refusal: the bound may overstate, and a series that fills the disk
+    stops safely and resumes; but a warm-up of up to 30 min should not be spent unannounced."""
+    import shutil
+
+    p = r.p
+    series = p.series.darks + p.series.flats + p.series.frames_per_step * len(p.series.steps)
+    held = r.out.stat().st_size if r.resume and existed else 0
+    need = series * 2 * int(np.prod(r.devices.detector.shape)) - held
+    try:
+        free = shutil.disk_usage(r.out.parent).free
+    except OSError:
+        return
+    if need > free:
+        log.warning(
+            "%s: the series needs up to %.0f MB and %.0f MB are free: it will stop when the disk fills "
+            "(--resume completes it on a disk with room)",
+            r.out,
+            need / 1e6,
+            free / 1e6,
+        )
+
+
 def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
     src, p, det = r.source, r.p, r.devices.detector
@@ -839,6 +863,7 @@ def _open_experiment(r: _Run):
         title=f"radiokit compression series: {p.name}",
     )
     existed = r.out.exists()
+    _warn_if_short_of_room(r, existed)
     try:
         r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite, **kw)
     except OSError as exc:
