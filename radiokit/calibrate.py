@@ -31,6 +31,7 @@ __all__ = [
     "CalibrationWarning",
     "exposure_factors",
     "adc_top",
+    "frame_saturation",
 ]
 
 
@@ -553,6 +554,17 @@ def adc_top(*stacks) -> int | None:
     refused the lab's data ("lower the flat exposure")."""
     peak = max(float(np.max(s)) for s in stacks)
     return next((top for top in ADC_TOPS if peak <= top), None)
+
+
+def frame_saturation(saturation, raw) -> int | None:
+    """The saturation level to count ``raw``'s pixels against: ``saturation``, unless the frame
+    holds values above it, which no ADC of that depth gives -- the level was inferred from darks
+    and flats that never reached the top (flats at a lower current than the projections on a
+    16-bit panel read as 12-bit), and the frame's own range then decides (:func:`adc_top`).
+    Without this every pixel of such a projection was reported saturated."""
+    if saturation is None or not raw.size or raw.max() <= saturation:
+        return saturation
+    return adc_top(raw)
 
 
 def _check_stacks(darks, flats):

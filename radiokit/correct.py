@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from radiokit._threads import pool, threads
-from radiokit.calibrate import Calibration, PixelFlag
+from radiokit.calibrate import Calibration, PixelFlag, frame_saturation
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -313,7 +313,9 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
     ones (only reported, never repaired: a caller that reports nothing does not pay for them)."""
     k = CorrectionKernel.of(cal)
     scale = cal.c if domain == "counts" else 1.0
-    saturation = cal.thresholds.saturation if raw2d.dtype.kind in "ui" and count_saturated else None
+    saturation = None
+    if raw2d.dtype.kind in "ui" and count_saturated:
+        saturation = frame_saturation(cal.thresholds.saturation, raw2d)
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
         raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)

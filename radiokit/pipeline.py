@@ -297,6 +297,7 @@ def load_steps(path, progress: bool = False) -> Steps:
 def _step_image(cal, src, path, step, idx, factors, bar):
     """The mean line integral of one step's frames ``idx`` (each at the flats' tube current,
     ``factors``) and how many saturated pixels a frame held on average."""
+    from radiokit.calibrate import frame_saturation
     from radiokit.correct import check_above_dark, correct_frames
 
     acc, n_sat = None, 0
@@ -306,8 +307,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
             check_above_dark(cal, raw)
         except ValueError as exc:
             raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
-        if raw.dtype.kind in "ui" and cal.thresholds.saturation is not None:
-            n_sat += int(np.count_nonzero(raw >= cal.thresholds.saturation))
+        top = frame_saturation(cal.thresholds.saturation, raw) if raw.dtype.kind in "ui" else None
+        if top is not None:
+            n_sat += int(np.count_nonzero(raw >= top))
         li = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
         acc = li.astype(np.float64) if acc is None else acc + li
         bar.update()

@@ -249,6 +249,26 @@ def test_a_16_bit_panel_calibrates_and_corrects_to_the_exact_transmission(tmp_pa
     assert abs(float(np.mean(err))) < 5e-4 and float(np.std(err)) < 0.0055
 
 
+def test_a_frame_above_the_inferred_adc_top_is_not_reported_saturated():
+    """Found in review: a 16-bit panel whose darks and flats stay under 4095 (flats at a lower
+    tube current than the projections) was inferred 12-bit, and every pixel of a projection at
+    5000 counts was reported saturated. A frame above the level cannot come from that ADC: its
+    own range decides; a real 12-bit frame still counts its 4095s."""
+    rng = np.random.default_rng(3)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 32, 32))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 32, 32))).astype(np.uint16)
+    cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 4095  # what the darks and flats imply
+    bright = (100 + rng.poisson(5000, (32, 32))).astype(np.uint16)  # twice the flats' current
+    bright[:2, :3] = 65535
+    _, report = correct_frames(cal, bright, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [6]  # the 16-bit top only
+    twelve = (100 + rng.poisson(3000, (32, 32))).astype(np.uint16)
+    twelve[:3, :3] = 4095
+    _, report = correct_frames(cal, twelve, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [9]
+
+
 def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
     """An experiment file that does not record its panel's bit depth is read as the C7942's 12
     bits: its 16-bit frames warned once per frame read (one line per frame on the command line);
