@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.detector import PanelModel
-from sim.scene import Scene, anode_for, load_scene
+from sim.scene import Compression, Scene, anode_for, load_scene
 
 __all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts", "truth_record"]
 
@@ -90,11 +90,11 @@ def source_record(scene: Scene) -> dict:
     return {"name": f"{tube} (simulated)", "voltage_kv": ex.voltage_kv, "current_ua": ex.current_ua}
 
 
-def _check_counts(ratios, n_darks, n_flats, frames_per_step, seed) -> None:
-    """ValueError naming the argument: a repeated ratio was merged into one state without a word,
-    and a negative seed failed in numpy only after the mechanics."""
-    if len(set(ratios)) != len(ratios):
-        raise ValueError(f"ratios {' '.join(f'{r:g}' for r in ratios)}: each compression ratio once")
+def _check_counts(ratios, contact, n_darks, n_flats, frames_per_step, seed) -> None:
+    """ValueError naming the argument: the ratios by the scene's own rule (:class:`Compression`:
+    a repeated one was merged into one state without a word), and a negative seed failed in numpy
+    only after the mechanics."""
+    Compression(ratios, contact)
     for name, value, least in (
         ("n_darks", n_darks, 0),
         ("n_flats", n_flats, 0),
@@ -149,9 +149,7 @@ def simulate_experiment(
     if output.exists() and not overwrite:
         raise FileExistsError(f"{output}: exists (pass overwrite=True, or --overwrite on the command line)")
     ratios = tuple(sorted(float(r) for r in (scene.compression.ratios if ratios is None else ratios)))
-    if not ratios:
-        raise ValueError("no compression ratios to simulate")
-    _check_counts(ratios, n_darks, n_flats, frames_per_step, seed)  # before minutes of mechanics
+    _check_counts(ratios, scene.compression.contact, n_darks, n_flats, frames_per_step, seed)  # before the mechanics
     t0 = time.perf_counter()
     states = compress(scene, ratios, progress=progress and on_step is None, on_state=on_state, on_step=on_step)
     t_mech = time.perf_counter() - t0

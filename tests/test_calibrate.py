@@ -320,6 +320,13 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
     np.testing.assert_array_equal(exposure_factors(cal, jitter, path, [0, 1, 2]), [1.0, 1.0, 2.0])
 
 
+def _darks_and_flats(w, shape, rng, n):
+    """``n`` darks at 100 counts and ``n`` flats at 3100 (Poisson noise of 5), appended to ``w``."""
+    for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+        for _ in range(n):
+            w.append(level + rng.poisson(5, shape), image_key=key)
+
+
 def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
     """A projection at the dark level (the beam off, a shutter closed) was clamped, "filled" and
     averaged into its step: the step's mean was pulled halfway to a uniform image, silently."""
@@ -329,9 +336,7 @@ def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
     shape, rng = (64, 80), np.random.default_rng(10)
     path = tmp_path / "exp.h5"
     with ExperimentWriter(path, shape=shape) as w:
-        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
-            for _ in range(3):
-                w.append(level + rng.poisson(5, shape), image_key=key)
+        _darks_and_flats(w, shape, rng, 3)
         w.append(100 + rng.poisson(1500, shape), image_key=ImageKey.PROJECTION, step=1)
         w.append(100 + rng.poisson(5, shape), image_key=ImageKey.PROJECTION, step=2)  # beam off: the dark
         w.append(100 + rng.poisson(1400, shape), image_key=ImageKey.PROJECTION, step=2)
@@ -361,9 +366,7 @@ def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
     shape, rng = (64, 80), np.random.default_rng(13)
     path = tmp_path / "exp.h5"
     with ExperimentWriter(path, shape=shape) as w:
-        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
-            for _ in range(4):
-                w.append(level + rng.poisson(5, shape), image_key=key)
+        _darks_and_flats(w, shape, rng, 4)
         for step in (1, 2):
             for _ in range(2):
                 raw = 100 + rng.poisson(1500, shape)

@@ -490,6 +490,17 @@ def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_pat
     assert "Traceback" not in acq.output
 
 
+def _watchdog_run(tmp_path, scene_file, model, server, watchdog_s):
+    """``radiokit acquire`` with ``watchdog_s``, reached its beam-on projection; 10 frames a step
+    (1 s of beam), so a stop lands well inside the exposure, not in its XOF."""
+    proto = write_protocol(
+        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
+    )
+    acq = Acquire(proto, "--sim", "-q")
+    reach("projection (beam on)", model, tmp_path, acq)
+    return acq
+
+
 def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scene_file, controller):
     """Found: SIGSTOP (which no process can catch: ``kill -STOP``, a debugger) or a hang of the
     acquiring process with X-rays on left the tube on for as long as it lasted: its beam monitor
@@ -498,13 +509,8 @@ def test_a_suspended_run_is_switched_off_by_the_guardian_watchdog(tmp_path, scen
     says so; woken again, the run finds the beam gone and stops with the tube confirmed off."""
     model, server = controller()
     watchdog_s = 1.0
-    # 10 frames a step (1 s of beam): the stop lands well inside the exposure, not in its XOF
-    proto = write_protocol(
-        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
-    )
-    acq = Acquire(proto, "--sim", "-q")
+    acq = _watchdog_run(tmp_path, scene_file, model, server, watchdog_s)
     try:
-        reach("projection (beam on)", model, tmp_path, acq)
         watch = OffWatch(model)
         acq.signal(signal.SIGSTOP)
         wait_until(lambda: not model.xray_on, timeout=watchdog_s + 5.0, what="the guardian's switch-off")
@@ -532,12 +538,8 @@ def test_the_guardian_watchdog_tries_again_after_an_unconfirmed_switch_off(tmp_p
     the run stayed suspended. Now it warns once and tries again after every further watchdog_s."""
     model, server = controller()
     watchdog_s = 1.0
-    proto = write_protocol(
-        tmp_path, scene_file, server, source={"watchdog_s": watchdog_s}, series={"frames_per_step": 10}
-    )
-    acq = Acquire(proto, "--sim", "-q")
+    acq = _watchdog_run(tmp_path, scene_file, model, server, watchdog_s)
     try:
-        reach("projection (beam on)", model, tmp_path, acq)
         model.silence(True)  # dead for the first attempt: nothing the guardian sends acts
         acq.signal(signal.SIGSTOP)
         wait_until(lambda: any(ln.startswith(WARNING) for ln in acq.lines), timeout=watchdog_s + 8.0, what="warning")
