@@ -35,9 +35,9 @@ scatter, an ideal detector. The choices:
 - **beam**: polychromatic (``sim.imaging.Polychromatic``: SpekPy spectrum, XrayDB attenuation;
   seed-breast 28 kV molybdenum with 30 um Mo, the scene's mammography label; pva-phantom the
   L8121-01's 60 kV tungsten with 150 um Be; both through 500 mm of air), matched to the scene's
-  coefficients at the body's thickness;
+  coefficients at the body's thickness along the beam (``sim.imaging.match_thickness_mm``);
 - **scatter**: a smooth additive term (``sim.imaging.scatter``), scatter-to-primary 0.3 (a 5-6 cm
-  object without a grid) through the body's thickness, Gaussian of 10 mm;
+  object without a grid) through that thickness, Gaussian of 10 mm;
 - **blur**: the CsI scintillator's point spread, Gaussian sigma 0.1 mm;
 - **the presets' imaging** (``sim.scene.Imaging`` "experiment": polychromatic + scatter) and the
   richest imaging (+ blur): the defaults rule's check;
@@ -166,12 +166,12 @@ def _base(name):
 
 def _beam(name, base):
     """The scene's tube (sim.imaging.tube: 28 kV Mo/Mo for seed-breast, 60 kV W/Be for the pva-phantom)."""
-    return imaging.tube(base.exposure.voltage_kv, "auto", 2 * base.body.half_height_mm)
+    return imaging.tube(base.exposure.voltage_kv, "auto", imaging.match_thickness_mm(base))
 
 
 def _image_rows(scene, label, proj, counts, t_proj, beam):
     rows = []
-    l_ref = scene.body.material.attenuation_per_mm * 2 * scene.body.half_height_mm
+    l_ref = scene.body.material.attenuation_per_mm * imaging.match_thickness_mm(scene)
     mono = imaging.monochromatic
     sc = lambda L: imaging.scatter(L, 0.3, 10.0, PIXEL_MM, l_ref)
     bl = lambda L: imaging.blur(L, 0.1, PIXEL_MM)

@@ -15,8 +15,8 @@ The scene gives one coefficient per material, an effective one (the paper's are 
 transmission values at the operating voltage). Each material's ``mu(E)`` is water's shape
 (tissues and gels are water-like, Z_eff 6.5-7.5, between 15 and 60 keV) times a factor, the same
 relative factor for every material (``mu_m(E) / mu_b(E) = mu_m / mu_b``), chosen so that the
-polychromatic transmission through ``match_mm`` (:func:`for_scene`: the undeformed gap between the
-plates, whatever the view) equals the
+polychromatic transmission through ``match_mm`` (:func:`for_scene`: :func:`match_thickness_mm`,
+the undeformed body's thickness along the beam, the longest chord the view's rays cross) equals the
 monochromatic one: the scene's coefficients stay the effective ones where they were measured,
 and what changes is only beam hardening (the effective coefficient falling with depth). The
 detector integrates energy, its scintillator taken to absorb every photon (weight ``E * fluence``):
@@ -41,7 +41,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["monochromatic", "Polychromatic", "scatter", "blur", "chain", "for_scene", "tube"]
+__all__ = ["monochromatic", "Polychromatic", "scatter", "blur", "chain", "for_scene", "match_thickness_mm", "tube"]
 
 
 def monochromatic(lengths, mu_per_mm):
@@ -218,11 +218,21 @@ def _tube(kv, anode, match_mm):
     return Polychromatic(kv, anode, filters=filters, match_mm=match_mm)
 
 
+def match_thickness_mm(scene) -> float:
+    """The background thickness the polychromatic beam is matched at and scatter's reference slab:
+    the undeformed body's extent along the beam, the longest chord a ray of the view crosses (to
+    the cone beam's obliquity: 0.2 % for ``pva-phantom``). Through the plates the plate gap; from
+    the side the body's width across the beam: the pva-phantom's 50 mm top face, not its 60 mm
+    height, which no side ray crosses."""
+    return 2 * scene.body.half_extent_mm(scene.beam.direction)
+
+
 def for_scene(scene, pixel_size_mm: float):
     """The image model ``model(lengths, mu) -> -ln(I/I0)`` of ``scene.imaging`` on pixels of
-    ``pixel_size_mm`` (see :class:`sim.scene.Imaging`): the beam, then scatter, then blur."""
+    ``pixel_size_mm`` (see :class:`sim.scene.Imaging`): the beam, then scatter, then blur; both
+    referred to :func:`match_thickness_mm` of background."""
     im = scene.imaging
-    thickness = 2 * scene.body.half_height_mm
+    thickness = match_thickness_mm(scene)
     beam = monochromatic if im.beam == "monochromatic" else tube(scene.exposure.voltage_kv, im.anode, thickness)
     effects = []
     if im.scatter_fraction > 0:

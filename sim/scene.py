@@ -381,9 +381,10 @@ class Imaging:
     ``beam``: ``monochromatic`` (the paper's) or ``polychromatic`` (the tube's spectrum from
     SpekPy at ``exposure.voltage_kv``, anode ``anode``: ``auto`` is molybdenum up to 35 kV, a
     mammography tube, else tungsten, the L8121-01's; water-shaped attenuation from XrayDB,
-    matched to the scene's coefficients through the body's thickness between the plates,
-    ``2 * body.half_height_mm``, in either view: from the side, no ray of ``pva-phantom`` is that
-    long). ``scatter_fraction``: scatter-to-primary ratio through that thickness (0: none), spread
+    matched to the scene's coefficients through the body's thickness along the beam
+    (:func:`sim.imaging.match_thickness_mm`: the plate gap through the plates, the body's width
+    from the side, the longest chord of either view). ``scatter_fraction``: scatter-to-primary
+    ratio through that thickness (0: none), spread
     by a Gaussian of ``scatter_sigma_mm``; ``blur_sigma_mm``: the scintillator's point spread.
     """
 
