@@ -259,3 +259,48 @@ def test_st_venant_kirchhoff_block_and_its_limit_point(nu):
     beyond = [r for r in ratios if 1 - r < SVK_LIMIT_STRETCH]
     assert beyond == [0.5, 0.6] and len(warned) == len(beyond)
     assert all(f"compression {100 * r:.2f} %" in m for r, m in zip(beyond, warned))
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.2, 0.3, 0.49])
+def test_block_lateral_expansion_and_force_minimise_the_energy(nu):
+    """A 10 mm neo-Hookean cube (FEBio's energy, the model's own) between frictionless plates,
+    compressed 5, 15 and 25 %, from no lateral coupling (nu = 0) to nearly incompressible. The
+    reference is independent of ``uniaxial_block_force`` (no stress formula): the lateral stretch
+    ``t`` minimises ``W(s, t) = mu/2 (s^2 + 2 t^2 - 3) - mu ln J + lambda/2 (ln J)^2`` (J = s t^2;
+    the sides are traction-free), found as the root of ``dW/dt`` where ``d2W/dt2 > 0``, and the
+    plate force is ``A dW/ds`` at that ``t`` (stationary in t, so the total derivative); the
+    derivatives by complex step (exact to rounding). The lateral stretch is read off
+    the displacement of every node on the free face x = 5 mm (the homogeneous state is exactly
+    representable: all equal). Tolerances: Newton's (forces agree to 1e-7, stretches to 1e-8 in
+    the measurement); at nu = 0, t = 1 exactly and the force is ``mu (1/s - s) A``."""
+    from scipy.optimize import brentq
+
+    from sim.scene import block_scene
+
+    E, side = 5.0, 10.0
+    mu = E / (2 * (1 + nu)) * 1e-3  # N/mm^2
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu)) * 1e-3
+
+    def W(s, t):
+        J = s * t * t
+        return mu / 2 * (s * s + 2 * t * t - 3) - mu * np.log(J) + lam / 2 * np.log(J) ** 2
+
+    h = 1e-30  # complex step: a derivative without cancellation
+
+    def dW_dt(t, s):
+        return W(s, t + 1j * h).imag / h
+
+    for state in compress(block_scene(side, E, nu, ratios=(0.05, 0.15, 0.25))):
+        s = 1 - state.ratio
+        t = brentq(dW_dt, 0.9, 1.5, args=(s,), xtol=1e-15, rtol=1e-15)
+        assert dW_dt(t + 1e-6, s) > 0 > dW_dt(t - 1e-6, s)  # a minimum
+        force = -W(s + 1j * h, t).imag / h * side * side
+        points, u = state.solver.dof_points, state.displacement
+        face = np.isclose(points[0], side / 2)
+        assert face.sum() >= 9
+        stretch = 1 + u[0, face] / points[0, face]
+        assert np.all(np.abs(stretch / t - 1) < 1e-8), (nu, state.ratio)
+        assert state.plate_force_n == pytest.approx(force, rel=1e-6)
+        if nu == 0:
+            assert t == pytest.approx(1.0, abs=1e-9)
+            assert force == pytest.approx(mu * (1 / s - s) * side * side, rel=1e-9)
