@@ -38,7 +38,7 @@ scatter, an ideal detector. The choices:
   coefficients at the body's thickness along the beam (``sim.imaging.match_thickness_mm``);
 - **scatter**: a smooth additive term (``sim.imaging.scatter``), scatter-to-primary 0.3 (a 5-6 cm
   object without a grid) through that thickness, Gaussian of 10 mm;
-- **blur**: the CsI scintillator's point spread, Gaussian sigma 0.1 mm;
+- **blur**: the scintillator's point spread (GOS on a fibre-optic plate, ../shared/hardware/C7942.md), Gaussian sigma 0.1 mm;
 - **the presets' imaging** (``sim.scene.Imaging`` "experiment": polychromatic + scatter) and the
   richest imaging (+ blur): the defaults rule's check;
 - **noise**: Poisson at the scene's exposure (2500 quanta per 50 um pixel, i.e. 90 000 per 0.3 mm
