@@ -15,7 +15,15 @@ import tifffile
 
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._experiment import FRAMES, ImageKey, check_links, checked_dataset, read_experiment_meta
+from radiokit.io._experiment import (
+    ENTRY,
+    FRAMES,
+    IMAGE_KEY,
+    ImageKey,
+    check_links,
+    checked_dataset,
+    read_experiment_meta,
+)
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
@@ -406,8 +414,9 @@ class FrameSource:
         self._h5 = h5py.File(self.path, "r")
         if not dataset:
             check_links(self.path, self._h5, FRAMES, self._allow_external)
-            if FRAMES not in self._h5:
-                dataset = _nexus_signal(self._h5)  # another NeXus file (radiokit's other outputs)
+            if not _is_experiment(self._h5):
+                # another NeXus file: radiokit's other outputs, or another lab's NXdetector frames
+                dataset = _nexus_signal(self._h5) or (f"/{FRAMES}" if FRAMES in self._h5 else None)
                 if dataset is None and CALIBRATION in self._h5:
                     return self._open_calibration()
         if dataset:
@@ -419,8 +428,8 @@ class FrameSource:
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
-            meta = {"format": "hdf5", "dataset": dataset}
             n = 1 if data.ndim == 2 else data.shape[0]
+            meta = {"format": "hdf5", "dataset": dataset, **self._keys_beside(dataset, n)}
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
@@ -433,6 +442,18 @@ class FrameSource:
         # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
+
+    def _keys_beside(self, dataset: str, n: int) -> dict:
+        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
+        NXdata), so that darks and flats are told from projections as in an experiment file."""
+        name = f"{dataset.rstrip('/').rpartition('/')[0]}/image_key"
+        if self._h5.get(name, getlink=True) is None:
+            return {}
+        keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
+        if keys.shape != (n,):
+            raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
+        check_budget(self.path, keys.nbytes, f"the {n} image keys of {keys.name}", self._budget)
+        return {"image_key": keys[()]}
 
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
@@ -607,6 +628,15 @@ class _DatasetStack:
         return self._datasets[i][()].astype(self.dtype, copy=False)
 
 
+def _is_experiment(h5: h5py.File) -> bool:
+    """Whether ``h5`` is an experiment file: frames at :data:`FRAMES` with their ``image_key``
+    (NXtomo's layout), or radiokit's ``@frames_complete`` (then a missing key is an error). The
+    same frames without either are an NXdetector's, which other acquisition software writes."""
+    if FRAMES not in h5:
+        return False
+    return h5.get(IMAGE_KEY, getlink=True) is not None or "frames_complete" in h5[ENTRY].attrs
+
+
 def _nexus_signal(h5: h5py.File) -> str | None:
     """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
     an NXentry and on to an NXdata, else take the only NXentry and its only NXdata; the
@@ -627,7 +657,9 @@ def _nexus_signal(h5: h5py.File) -> str | None:
     signal = data.attrs.get("signal") if data is not None else None
     if isinstance(signal, bytes):
         signal = signal.decode()
-    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), h5py.HardLink):
+    # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
+    # frames so); an external one is left to the caller's check_links, which refuses it
+    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
         return None
     return f"{data.name}/{signal}"
 

@@ -1,0 +1,130 @@
+"""radiokit.io on files other labs' software writes: NeXus detector layouts (NXdetector, NXtomo) and
+TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
+value and in the same orientation (rows, columns), not only that the file opens."""
+
+import h5py
+import numpy as np
+import pytest
+
+from radiokit.calibrate import Calibration
+from radiokit.errors import FormatError
+from radiokit.io import ImageKey, read
+
+
+def _frames(n=4, rows=30, cols=40, dtype="<u2", seed=0):
+    """Distinct values in a non-square frame: a transposed, flipped or shifted read cannot match."""
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 4096, (n, rows, cols)).astype(dtype)
+
+
+def _nx_class(group, name):
+    group.attrs["NX_class"] = name
+    return group
+
+
+# ------------------------------------------------------------------------------------------------
+# NeXus frames of other acquisition software
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("nxdata", [None, "hard", "soft"])
+def test_nexus_detector_frames_without_image_keys_are_read(tmp_path, nxdata):
+    """Another program's NeXus file puts its frames where NeXus says, ``/entry/instrument/detector/
+    data`` (NXdetector), often linked into ``/entry/data`` (NXdata, ``@signal``) with a soft link,
+    as radiokit's own experiment files do. Without NXtomo's ``image_key`` it is frames, not an
+    experiment: read them (chunked, gzip and shuffle), instead of refusing a missing key."""
+    frames = _frames()
+    path = tmp_path / "detector.nxs"
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1, 30, 40), compression="gzip", shuffle=True)
+        if nxdata:
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = det["data"] if nxdata == "hard" else h5py.SoftLink("/entry/instrument/detector/data")
+    f = read(path)
+    assert f.meta["format"] == "hdf5" and "image_key" not in f.meta
+    assert f.data.shape == frames.shape and f.data.dtype == np.uint16
+    np.testing.assert_array_equal(f.data, frames)
+
+
+def test_nexus_signal_soft_linked_from_elsewhere_is_read(tmp_path):
+    """The NXdata's signal soft-linked to a detector at another path than radiokit's: the file
+    names its frames, so they are read (a soft link stays inside the file)."""
+    frames = _frames(n=3, dtype="<i2") - 2048  # int16 negatives must stay negative
+    path = tmp_path / "camera.h5"
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        entry.create_dataset("instrument/camera/image", data=frames, chunks=(1, 15, 20), compression="lzf")
+        data = _nx_class(entry.create_group("data"), "NXdata")
+        data.attrs["signal"] = "image"
+        data["image"] = h5py.SoftLink("/entry/instrument/camera/image")
+    f = read(path)
+    assert f.meta["dataset"] == "/entry/data/image" and f.data.dtype == np.int16
+    np.testing.assert_array_equal(f.data, frames)
+
+
+def test_nexus_detector_single_image_is_one_frame(tmp_path):
+    """An NXdetector holding one 2-D image is one frame, rows and columns as stored."""
+    frame = _frames(n=1)[0]
+    path = tmp_path / "one.nxs"
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = frame
+    f = read(path)
+    assert f.data.shape == (1, 30, 40)
+    np.testing.assert_array_equal(f.data[0], frame)
+
+
+def _nxtomo(path, frames, keys, entry="entry0000"):
+    """NXtomo as nxtomomill and tomoscan write it: keys beside the frames, both linked into NXdata."""
+    with h5py.File(path, "w") as h5:
+        e = _nx_class(h5.create_group(entry), "NXentry")
+        det = _nx_class(e.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1,) + frames.shape[1:], compression="gzip")
+        det["image_key"] = np.asarray(keys, np.int32)
+        data = _nx_class(e.create_group("data"), "NXdata")
+        data.attrs["signal"] = "data"
+        for name in ("data", "image_key"):
+            data[name] = h5py.SoftLink(f"/{entry}/instrument/detector/{name}")
+
+
+def test_nxtomo_keys_beside_the_frames_tell_darks_and_flats(tmp_path):
+    """An NXtomo file whose entry is not named ``entry`` (``entry0000``) is read through its NXdata,
+    and the ``image_key`` beside the frames comes with them: a calibration from it takes its
+    darks and flats, never every frame as both."""
+    rng = np.random.default_rng(4)
+    darks = rng.normal(100, 2, (3, 24, 32))
+    flats = rng.normal(3000, 30, (3, 24, 32))
+    proj = rng.normal(1500, 20, (2, 24, 32))
+    frames = np.concatenate([darks, flats, proj]).round().astype(np.uint16)
+    keys = [ImageKey.DARK] * 3 + [ImageKey.FLAT] * 3 + [ImageKey.PROJECTION] * 2
+    path = tmp_path / "scan.nx"
+    _nxtomo(path, frames, keys)
+    f = read(path)
+    np.testing.assert_array_equal(f.data, frames)
+    np.testing.assert_array_equal(f.meta["image_key"], keys)
+    cal = Calibration.from_experiment(path)
+    expected = Calibration.from_frames(frames[:3], frames[3:6])
+    np.testing.assert_allclose(cal.dark, expected.dark)
+    np.testing.assert_allclose(cal.flat, expected.flat)
+    assert read(path, n=4).meta["image_key"].tolist() == keys[:4]  # cut with the frames
+
+
+def test_nxtomo_keys_of_another_length_are_refused(tmp_path):
+    """Keys that do not label every frame would misfile darks and flats: one line naming them."""
+    path = tmp_path / "scan.nx"
+    _nxtomo(path, _frames(n=4), [2, 1, 0])
+    with pytest.raises(FormatError, match=r"scan\.nx: .*image_key holds 3 image keys for 4 frames"):
+        read(path)
+
+
+def test_radiokit_experiment_missing_its_keys_stays_an_error(tmp_path):
+    """A file radiokit wrote (``@frames_complete``) that lost its ``image_key`` is broken, not
+    another lab's frames: still refused, naming the missing key."""
+    path = tmp_path / "exp.h5"
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = _frames(n=2)
+        h5["entry"].attrs["frames_complete"] = 2
+    with pytest.raises(FormatError, match="lacks /entry/instrument/detector/image_key"):
+        read(path)
