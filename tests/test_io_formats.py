@@ -2,6 +2,10 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import subprocess
+import sys
+import threading
+
 import h5py
 import numpy as np
 import pytest
@@ -128,3 +132,70 @@ def test_radiokit_experiment_missing_its_keys_stays_an_error(tmp_path):
         h5["entry"].attrs["frames_complete"] = 2
     with pytest.raises(FormatError, match="lacks /entry/instrument/detector/image_key"):
         read(path)
+
+
+# A writer that stays open until its stdin closes: in SWMR mode as detector software writes, or
+# plainly (holding the HDF5 file lock); "exit" leaves without closing, as a killed writer does.
+_OPEN_WRITER = """
+import os, sys, h5py, numpy as np
+path, mode = sys.argv[1], sys.argv[2]
+frames = np.arange(2 * 30 * 40, dtype="<u2").reshape(2, 30, 40)
+f = h5py.File(path, "w", libver="latest")
+ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
+f["entry"].attrs["NX_class"] = "NXentry"
+f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
+if mode != "plain":
+    f.swmr_mode = True
+ds.resize((2, 30, 40))
+ds[:] = frames
+f.flush()
+if mode == "exit":
+    os._exit(0)
+print("ready", flush=True)
+sys.stdin.read()
+f.close()
+"""
+
+
+def _open_writer(path, mode):
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _OPEN_WRITER, str(path), mode], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    watchdog = threading.Timer(60, proc.kill)  # never hang the suite on a stuck writer
+    watchdog.start()
+    return proc, watchdog
+
+
+@pytest.mark.parametrize("mode", ["swmr", "exit"])
+def test_hdf5_written_in_swmr_mode_is_read_as_it_stands(tmp_path, mode):
+    """A file another program is writing in SWMR mode (or was, when it was killed) is marked open
+    for write; libhdf5 refuses a plain reader ("file is already open for write"). Read it as a
+    SWMR reader: its frames as flushed, value by value."""
+    path = tmp_path / "live.h5"
+    proc, watchdog = _open_writer(path, mode)
+    try:
+        if mode == "exit":
+            assert proc.wait() == 0
+        else:
+            assert proc.stdout.readline() == "ready\n"
+        f = read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    np.testing.assert_array_equal(f.data, np.arange(2 * 30 * 40).reshape(2, 30, 40))
+
+
+def test_hdf5_held_by_a_writer_without_swmr_says_so(tmp_path, monkeypatch):
+    """A writer without SWMR holds the file lock; its file cannot be read consistently. One line
+    in words, not libhdf5's "unable to lock file, errno = 11"."""
+    monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "TRUE")  # libhdf5's default, whatever the shell says
+    path = tmp_path / "busy.h5"
+    proc, watchdog = _open_writer(path, "plain")
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        with pytest.raises(FormatError, match=r"busy\.h5: is open for writing by another program"):
+            read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    assert read(path).n == 2  # and once closed, it reads

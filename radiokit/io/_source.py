@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -411,7 +412,7 @@ class FrameSource:
         return frame
 
     def _open_hdf5(self, dataset=None, **hints):
-        self._h5 = h5py.File(self.path, "r")
+        self._h5 = _open_h5(self.path)
         if not dataset:
             check_links(self.path, self._h5, FRAMES, self._allow_external)
             if not _is_experiment(self._h5):
@@ -626,6 +627,27 @@ class _DatasetStack:
 
     def __getitem__(self, i):
         return self._datasets[i][()].astype(self.dtype, copy=False)
+
+
+def _open_h5(path) -> h5py.File:
+    """Open an HDF5 file for reading, also while another program writes it.
+
+    A writer in SWMR mode (detector and beamline software), or one killed in it, leaves the file
+    marked open for write, which only a SWMR reader may open: read it so, as it stands. A writer
+    without SWMR holds the file's lock, and its file cannot be read consistently: say so in
+    words rather than libhdf5's "unable to lock file, errno = 11".
+    """
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        if "already open for write" in str(exc):
+            return h5py.File(path, "r", swmr=True)
+        if exc.errno == errno.EAGAIN or "unable to lock file" in str(exc):
+            raise FormatError(
+                path,
+                "is open for writing by another program (it holds the HDF5 file lock): read it once that is closed",
+            ) from None
+        raise
 
 
 def _is_experiment(h5: h5py.File) -> bool:
