@@ -199,3 +199,32 @@ def test_hdf5_held_by_a_writer_without_swmr_says_so(tmp_path, monkeypatch):
         proc.communicate("")
         watchdog.cancel()
     assert read(path).n == 2  # and once closed, it reads
+
+
+def _matlab_v73(path, **variables):
+    """A MATLAB ``save -v7.3`` file as MATLAB writes it: a 512-byte text userblock, and each
+    variable a root dataset with ``@MATLAB_class``, its column-major dimensions reversed (so a
+    rows x cols x n stack is stored as (n, cols, rows))."""
+    with h5py.File(path, "w", userblock_size=512) as h5:
+        for name, value in variables.items():
+            h5[name] = np.transpose(value)  # numpy's C order of MATLAB's Fortran-ordered array
+            h5[name].attrs["MATLAB_class"] = np.bytes_(value.dtype.name)  # "uint16": MATLAB's name too
+    with open(path, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 .")
+
+
+@pytest.mark.parametrize("rows, cols", [(30, 40), (32, 32)])
+def test_matlab_v73_stack_reads_in_matlabs_orientation(tmp_path, rows, cols):
+    """A lab's MATLAB script saving its frames (rows x cols x n, as imread and cat(3, ...) build
+    them) with ``save -v7.3`` writes HDF5 with the dimensions reversed. Read frame by frame as
+    MATLAB shows them, not transposed: a square frame would otherwise be transposed silently,
+    and calibrated against darks from a TIFF in another orientation."""
+    stack = _frames(n=3, rows=rows, cols=cols).transpose(1, 2, 0)  # MATLAB's A(:, :, k)
+    image = _frames(n=1, rows=rows, cols=cols, seed=1)[0]
+    path = tmp_path / "frames.mat"
+    _matlab_v73(path, frames=stack, image=image)
+    f = read(path, dataset="frames")
+    assert f.data.shape == (3, rows, cols) and f.meta["matlab_class"] == "uint16"
+    for k in range(3):
+        np.testing.assert_array_equal(f.data[k], stack[:, :, k])
+    np.testing.assert_array_equal(read(path, dataset="image").data[0], image)

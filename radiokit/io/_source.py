@@ -150,6 +150,7 @@ class FrameSource:
                 f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
+        self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
@@ -430,7 +431,11 @@ class FrameSource:
                 )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
             n = 1 if data.ndim == 2 else data.shape[0]
-            meta = {"format": "hdf5", "dataset": dataset, **self._keys_beside(dataset, n)}
+            meta = {"format": "hdf5", "dataset": dataset}
+            if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
+                meta["matlab_class"] = _text(data.attrs["MATLAB_class"])
+            else:
+                meta.update(self._keys_beside(dataset, n))
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
@@ -438,8 +443,12 @@ class FrameSource:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
         self._ds = data
+        # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
+        # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
+        self._transposed = "matlab_class" in meta
+        shape = tuple(data.shape[-2:])[:: -1 if self._transposed else 1]
         # h5py hands through the byte order the file stores; read() promises native order
-        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype.newbyteorder("=")
+        self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
         # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
@@ -478,6 +487,8 @@ class FrameSource:
 
     def _read_hdf5(self, i):
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        if self._transposed:
+            frame = np.ascontiguousarray(frame.T)
         return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
@@ -684,6 +695,11 @@ def _nexus_signal(h5: h5py.File) -> str | None:
     if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
         return None
     return f"{data.name}/{signal}"
+
+
+def _text(value) -> str:
+    """An HDF5 string attribute as text, whether stored fixed-length (bytes) or variable."""
+    return value.decode("latin-1") if isinstance(value, bytes) else str(value)
 
 
 def _nx_class(group) -> str:
