@@ -9,6 +9,7 @@ import threading
 import h5py
 import numpy as np
 import pytest
+import scipy.io
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -228,3 +229,12 @@ def test_matlab_v73_stack_reads_in_matlabs_orientation(tmp_path, rows, cols):
     for k in range(3):
         np.testing.assert_array_equal(f.data[k], stack[:, :, k])
     np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+
+
+def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):
+    """MATLAB's default .mat format is not HDF5; read as headerless raw it drew "pass shape=",
+    which would read its header as pixels. One line says what it is and how to save it."""
+    path = tmp_path / "frames.mat"
+    scipy.io.savemat(path, {"frames": _frames(n=2)})
+    with pytest.raises(FormatError, match=r"frames\.mat: a MATLAB \.mat file in its v5/v7 format.*-v7\.3"):
+        read(path)

@@ -113,6 +113,8 @@ def sniff(path) -> str:
         return "itex"
     if not head:
         raise FormatError(path, "file is empty")
+    if head == b"MATLAB 5":  # save's default format (v5, v7): its header is no pixels, whatever shape= says
+        raise FormatError(path, "a MATLAB .mat file in its v5/v7 format, not read here: save it with -v7.3 (HDF5)")
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
