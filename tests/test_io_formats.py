@@ -238,3 +238,52 @@ def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):
     scipy.io.savemat(path, {"frames": _frames(n=2)})
     with pytest.raises(FormatError, match=r"frames\.mat: a MATLAB \.mat file in its v5/v7 format.*-v7\.3"):
         read(path)
+
+
+def _png(path, frame):
+    import cv2
+
+    assert cv2.imwrite(str(path), frame)
+
+
+def _jpeg(path, frame):
+    import cv2
+
+    assert cv2.imwrite(str(path), (frame >> 4).astype(np.uint8))
+
+
+def _dicom(path, frame):  # the 128-byte preamble, "DICM", then a data element (here a stub)
+    path.write_bytes(b"\0" * 128 + b"DICM" + b"\x02\x00\x00\x00UL\x04\x00" + bytes(4) + frame.tobytes())
+
+
+def _mhd(path, frame):
+    path.write_bytes(
+        b"ObjectType = Image\nNDims = 2\nDimSize = 40 30\nElementType = MET_USHORT\nElementDataFile = f.raw\n"
+    )
+
+
+def _fits(path, frame):
+    card = [b"SIMPLE  =                    T", b"BITPIX  =                   16", b"END"]
+    path.write_bytes(b"".join(c.ljust(80) for c in card).ljust(2880) + frame.astype(">i2").tobytes())
+
+
+@pytest.mark.parametrize(
+    "writer, name, what",
+    [
+        (_png, "f.png", "a PNG image"),
+        (_jpeg, "f.jpg", "a JPEG image"),
+        (_dicom, "f.dcm", "a DICOM file"),
+        (_mhd, "f.mhd", "a MetaImage header"),
+        (_fits, "f.fits", "a FITS file"),
+    ],
+)
+def test_image_formats_not_read_are_named_not_taken_for_raw_frames(tmp_path, writer, name, what):
+    """A PNG or JPEG a viewer exported, a DICOM, a MetaImage header, a FITS file: none is read,
+    and each is named in one line rather than read as headerless raw ("pass shape=", which would
+    take its header for pixels). format="raw" still reads the bytes for whoever means it."""
+    path = tmp_path / name
+    writer(path, _frames(n=1)[0])
+    with pytest.raises(FormatError, match=rf"{name}: {what}, which radiokit does not read: "):
+        read(path)
+    raw = read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1")
+    np.testing.assert_array_equal(raw.data[0, 0], np.frombuffer(path.read_bytes(), np.uint8))

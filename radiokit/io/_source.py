@@ -50,10 +50,23 @@ _EXTENSIONS = {
     ".dat": "raw",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
-#: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
 #: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
+#: Files other software saves that radiokit does not read, named by their signature rather than
+#: read as headerless raw frames (where shape= would take their headers for pixels).
+_MHD = "read the ElementDataFile it names with shape= and dtype= as it gives them"
+_FOREIGN = (
+    (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
+    (128, b"DICM", "a DICOM file", "export its frames as TIFF, or read them with pydicom"),
+    (0, b"\x89PNG\r\n\x1a\n", "a PNG image", "save the frames as TIFF"),
+    (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
+    (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
+    (0, b"NRRD000", "an NRRD file", "save the frames as TIFF"),
+    (0, b"ObjectType", "a MetaImage header", _MHD),
+    (0, b"NDims", "a MetaImage header", _MHD),
+)
+#: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
 #: TIFF compressions read: none, LZW, deflate, PackBits, LZMA and zstd decode into the strip or tile
 #: they fill. Image codecs (JPEG, JPEG 2000, JPEG XL, WebP, PNG, LERC, ...) carry their own image
@@ -99,11 +112,12 @@ def sniff(path) -> str:
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            head = fh.read(8)
+            start = fh.read(132)  # DICOM's signature is at byte 128
     except IsADirectoryError:
         raise FormatError(path, "is a directory, not a frame file") from None
     except FileNotFoundError:
         raise FormatError(path, "no such file") from None
+    head = start[:8]
     if head[:4] in _TIFF_MAGIC:
         return "tiff"
     if head == _HDF5_MAGIC or (len(head) == 8 and h5py.is_hdf5(path)):
@@ -113,8 +127,9 @@ def sniff(path) -> str:
         return "itex"
     if not head:
         raise FormatError(path, "file is empty")
-    if head == b"MATLAB 5":  # save's default format (v5, v7): its header is no pixels, whatever shape= says
-        raise FormatError(path, "a MATLAB .mat file in its v5/v7 format, not read here: save it with -v7.3 (HDF5)")
+    for offset, magic, what, advice in _FOREIGN:
+        if start[offset : offset + len(magic)] == magic:
+            raise FormatError(path, f"{what}, which radiokit does not read: {advice}")
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
