@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 import scipy.io
+import tifffile
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -287,3 +288,44 @@ def test_image_formats_not_read_are_named_not_taken_for_raw_frames(tmp_path, wri
         read(path)
     raw = read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1")
     np.testing.assert_array_equal(raw.data[0, 0], np.frombuffer(path.read_bytes(), np.uint8))
+
+
+# ------------------------------------------------------------------------------------------------
+# TIFF as other programs write it (these pass today: they guard the layout and bomb checks)
+# ------------------------------------------------------------------------------------------------
+
+
+def _values(dtype, shape=(37, 53), seed=7):
+    """Extremes of the dtype included: int16 negatives, float NaN and -inf must come back as written."""
+    rng = np.random.default_rng(seed)
+    dt = np.dtype(dtype)
+    if dt.kind == "f":
+        out = rng.normal(0, 1000, shape).astype(dt)
+        out.flat[3], out.flat[5] = np.nan, -np.inf
+        return out
+    info = np.iinfo(dt)
+    return rng.integers(info.min, info.max, shape, dtype=dt, endpoint=True)
+
+
+@pytest.mark.parametrize("dtype", ["u1", "u2", "i2", "u4", "f4", "f8"])
+@pytest.mark.parametrize("byteorder", ["<", ">"])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},
+        {"compression": "lzw", "predictor": True},
+        {"compression": "zlib"},
+        {"compression": "zstd", "predictor": True},
+        {"compression": "packbits"},
+        {"tile": (16, 32), "compression": "zlib", "predictor": True},
+    ],
+)
+def test_tiff_variants_read_value_for_value(tmp_path, dtype, byteorder, kw):
+    """Byte order x pixel type x compression (with the predictor) x strips of 5 rows over 37
+    (the last one short) or tiles over the edge: every pixel as written, rows and columns as stored."""
+    frame = _values(dtype)
+    path = tmp_path / "v.tif"
+    tifffile.imwrite(path, frame, byteorder=byteorder, **({"rowsperstrip": 5} | kw))
+    f = read(path)
+    assert f.data.shape == (1, 37, 53) and f.data.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(f.data[0], frame)
