@@ -1376,12 +1376,16 @@ def test_hdf5_without_experiment_datasets(tmp_path):
 
 
 def test_hdf5_experiment_missing_image_key(tmp_path):
+    """A file radiokit wrote (``@frames_complete``) without its keys or with 2-D frames is broken;
+    the same frames without the marker are another program's NXdetector (tests/test_io_formats.py)."""
     path = tmp_path / "nokey.h5"
     with h5py.File(path, "w") as h5:
         h5["entry/instrument/detector/data"] = np.zeros((2, 3, 4), np.uint16)
+        h5["entry"].attrs["frames_complete"] = 2
     _raises_format(path, "image_key")
     with h5py.File(path, "w") as h5:
         h5["entry/instrument/detector/data"] = np.zeros((3, 4), np.uint16)
+        h5["entry/instrument/detector/image_key"] = np.zeros(3, np.int8)
     _raises_format(path, "(n, rows, cols)")
 
 

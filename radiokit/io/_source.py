@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -15,7 +16,15 @@ import tifffile
 
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._experiment import FRAMES, ImageKey, check_links, checked_dataset, read_experiment_meta
+from radiokit.io._experiment import (
+    ENTRY,
+    FRAMES,
+    IMAGE_KEY,
+    ImageKey,
+    check_links,
+    checked_dataset,
+    read_experiment_meta,
+)
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
@@ -41,10 +50,23 @@ _EXTENSIONS = {
     ".dat": "raw",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
-#: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
 #: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
+#: Files other software saves that radiokit does not read, named by their signature rather than
+#: read as headerless raw frames (where shape= would take their headers for pixels).
+_MHD = "read the ElementDataFile it names with shape= and dtype= as it gives them"
+_FOREIGN = (
+    (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
+    (128, b"DICM", "a DICOM file", "export its frames as TIFF, or read them with pydicom"),
+    (0, b"\x89PNG\r\n\x1a\n", "a PNG image", "save the frames as TIFF"),
+    (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
+    (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
+    (0, b"NRRD000", "an NRRD file", "save the frames as TIFF"),
+    (0, b"ObjectType", "a MetaImage header", _MHD),
+    (0, b"NDims", "a MetaImage header", _MHD),
+)
+#: per-frame metadata arrays, cut together with the frames by an ``n=`` hint
 _PER_FRAME = {"image_key", "step", "ratio", "gap", "time", "voltage", "current"}
 #: TIFF compressions read: none, LZW, deflate, PackBits, LZMA and zstd decode into the strip or tile
 #: they fill. Image codecs (JPEG, JPEG 2000, JPEG XL, WebP, PNG, LERC, ...) carry their own image
@@ -90,11 +112,12 @@ def sniff(path) -> str:
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            head = fh.read(8)
+            start = fh.read(132)  # DICOM's signature is at byte 128
     except IsADirectoryError:
         raise FormatError(path, "is a directory, not a frame file") from None
     except FileNotFoundError:
         raise FormatError(path, "no such file") from None
+    head = start[:8]
     if head[:4] in _TIFF_MAGIC:
         return "tiff"
     if head == _HDF5_MAGIC or (len(head) == 8 and h5py.is_hdf5(path)):
@@ -104,6 +127,9 @@ def sniff(path) -> str:
         return "itex"
     if not head:
         raise FormatError(path, "file is empty")
+    for offset, magic, what, advice in _FOREIGN:
+        if start[offset : offset + len(magic)] == magic:
+            raise FormatError(path, f"{what}, which radiokit does not read: {advice}")
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
@@ -141,6 +167,7 @@ class FrameSource:
                 f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
+        self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
@@ -403,11 +430,12 @@ class FrameSource:
         return frame
 
     def _open_hdf5(self, dataset=None, **hints):
-        self._h5 = h5py.File(self.path, "r")
+        self._h5 = _open_h5(self.path)
         if not dataset:
             check_links(self.path, self._h5, FRAMES, self._allow_external)
-            if FRAMES not in self._h5:
-                dataset = _nexus_signal(self._h5)  # another NeXus file (radiokit's other outputs)
+            if not _is_experiment(self._h5):
+                # another NeXus file: radiokit's other outputs, or another lab's NXdetector frames
+                dataset = _nexus_signal(self._h5) or (f"/{FRAMES}" if FRAMES in self._h5 else None)
                 if dataset is None and CALIBRATION in self._h5:
                     return self._open_calibration()
         if dataset:
@@ -419,8 +447,12 @@ class FrameSource:
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
-            meta = {"format": "hdf5", "dataset": dataset}
             n = 1 if data.ndim == 2 else data.shape[0]
+            meta = {"format": "hdf5", "dataset": dataset}
+            if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
+                meta["matlab_class"] = _text(data.attrs["MATLAB_class"])
+            else:
+                meta.update(self._keys_beside(dataset, n))
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
@@ -428,11 +460,27 @@ class FrameSource:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
         self._ds = data
+        # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
+        # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
+        self._transposed = "matlab_class" in meta
+        shape = tuple(data.shape[-2:])[:: -1 if self._transposed else 1]
         # h5py hands through the byte order the file stores; read() promises native order
-        self.n, self.frame_shape, self.dtype = n, tuple(data.shape[-2:]), data.dtype.newbyteorder("=")
+        self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
         # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
+
+    def _keys_beside(self, dataset: str, n: int) -> dict:
+        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
+        NXdata), so that darks and flats are told from projections as in an experiment file."""
+        name = f"{dataset.rstrip('/').rpartition('/')[0]}/image_key"
+        if self._h5.get(name, getlink=True) is None:
+            return {}
+        keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
+        if keys.shape != (n,):
+            raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
+        check_budget(self.path, keys.nbytes, f"the {n} image keys of {keys.name}", self._budget)
+        return {"image_key": keys[()]}
 
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
@@ -456,6 +504,8 @@ class FrameSource:
 
     def _read_hdf5(self, i):
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        if self._transposed:
+            frame = np.ascontiguousarray(frame.T)
         return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
@@ -607,6 +657,36 @@ class _DatasetStack:
         return self._datasets[i][()].astype(self.dtype, copy=False)
 
 
+def _open_h5(path) -> h5py.File:
+    """Open an HDF5 file for reading, also while another program writes it.
+
+    A writer in SWMR mode (detector and beamline software), or one killed in it, leaves the file
+    marked open for write, which only a SWMR reader may open: read it so, as it stands. A writer
+    without SWMR holds the file's lock, and its file cannot be read consistently: say so in
+    words rather than libhdf5's "unable to lock file, errno = 11".
+    """
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        if "already open for write" in str(exc):
+            return h5py.File(path, "r", swmr=True)
+        if exc.errno == errno.EAGAIN or "unable to lock file" in str(exc):
+            raise FormatError(
+                path,
+                "is open for writing by another program (it holds the HDF5 file lock): read it once that is closed",
+            ) from None
+        raise
+
+
+def _is_experiment(h5: h5py.File) -> bool:
+    """Whether ``h5`` is an experiment file: frames at :data:`FRAMES` with their ``image_key``
+    (NXtomo's layout), or radiokit's ``@frames_complete`` (then a missing key is an error). The
+    same frames without either are an NXdetector's, which other acquisition software writes."""
+    if FRAMES not in h5:
+        return False
+    return h5.get(IMAGE_KEY, getlink=True) is not None or "frames_complete" in h5[ENTRY].attrs
+
+
 def _nexus_signal(h5: h5py.File) -> str | None:
     """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
     an NXentry and on to an NXdata, else take the only NXentry and its only NXdata; the
@@ -627,9 +707,16 @@ def _nexus_signal(h5: h5py.File) -> str | None:
     signal = data.attrs.get("signal") if data is not None else None
     if isinstance(signal, bytes):
         signal = signal.decode()
-    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), h5py.HardLink):
+    # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
+    # frames so); an external one is left to the caller's check_links, which refuses it
+    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
         return None
     return f"{data.name}/{signal}"
+
+
+def _text(value) -> str:
+    """An HDF5 string attribute as text, whether stored fixed-length (bytes) or variable."""
+    return value.decode("latin-1") if isinstance(value, bytes) else str(value)
 
 
 def _nx_class(group) -> str:

@@ -1,0 +1,331 @@
+"""radiokit.io on files other labs' software writes: NeXus detector layouts (NXdetector, NXtomo) and
+TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
+value and in the same orientation (rows, columns), not only that the file opens."""
+
+import subprocess
+import sys
+import threading
+
+import h5py
+import numpy as np
+import pytest
+import scipy.io
+import tifffile
+
+from radiokit.calibrate import Calibration
+from radiokit.errors import FormatError
+from radiokit.io import ImageKey, read
+
+
+def _frames(n=4, rows=30, cols=40, dtype="<u2", seed=0):
+    """Distinct values in a non-square frame: a transposed, flipped or shifted read cannot match."""
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 4096, (n, rows, cols)).astype(dtype)
+
+
+def _nx_class(group, name):
+    group.attrs["NX_class"] = name
+    return group
+
+
+# ------------------------------------------------------------------------------------------------
+# NeXus frames of other acquisition software
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("nxdata", [None, "hard", "soft"])
+def test_nexus_detector_frames_without_image_keys_are_read(tmp_path, nxdata):
+    """Another program's NeXus file puts its frames where NeXus says, ``/entry/instrument/detector/
+    data`` (NXdetector), often linked into ``/entry/data`` (NXdata, ``@signal``) with a soft link,
+    as radiokit's own experiment files do. Without NXtomo's ``image_key`` it is frames, not an
+    experiment: read them (chunked, gzip and shuffle), instead of refusing a missing key."""
+    frames = _frames()
+    path = tmp_path / "detector.nxs"
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1, 30, 40), compression="gzip", shuffle=True)
+        if nxdata:
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = det["data"] if nxdata == "hard" else h5py.SoftLink("/entry/instrument/detector/data")
+    f = read(path)
+    assert f.meta["format"] == "hdf5" and "image_key" not in f.meta
+    assert f.data.shape == frames.shape and f.data.dtype == np.uint16
+    np.testing.assert_array_equal(f.data, frames)
+
+
+def test_nexus_signal_soft_linked_from_elsewhere_is_read(tmp_path):
+    """The NXdata's signal soft-linked to a detector at another path than radiokit's: the file
+    names its frames, so they are read (a soft link stays inside the file)."""
+    frames = _frames(n=3, dtype="<i2") - 2048  # int16 negatives must stay negative
+    path = tmp_path / "camera.h5"
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        entry.create_dataset("instrument/camera/image", data=frames, chunks=(1, 15, 20), compression="lzf")
+        data = _nx_class(entry.create_group("data"), "NXdata")
+        data.attrs["signal"] = "image"
+        data["image"] = h5py.SoftLink("/entry/instrument/camera/image")
+    f = read(path)
+    assert f.meta["dataset"] == "/entry/data/image" and f.data.dtype == np.int16
+    np.testing.assert_array_equal(f.data, frames)
+
+
+def test_nexus_detector_single_image_is_one_frame(tmp_path):
+    """An NXdetector holding one 2-D image is one frame, rows and columns as stored."""
+    frame = _frames(n=1)[0]
+    path = tmp_path / "one.nxs"
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = frame
+    f = read(path)
+    assert f.data.shape == (1, 30, 40)
+    np.testing.assert_array_equal(f.data[0], frame)
+
+
+def _nxtomo(path, frames, keys, entry="entry0000"):
+    """NXtomo as nxtomomill and tomoscan write it: keys beside the frames, both linked into NXdata."""
+    with h5py.File(path, "w") as h5:
+        e = _nx_class(h5.create_group(entry), "NXentry")
+        det = _nx_class(e.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1,) + frames.shape[1:], compression="gzip")
+        det["image_key"] = np.asarray(keys, np.int32)
+        data = _nx_class(e.create_group("data"), "NXdata")
+        data.attrs["signal"] = "data"
+        for name in ("data", "image_key"):
+            data[name] = h5py.SoftLink(f"/{entry}/instrument/detector/{name}")
+
+
+def test_nxtomo_keys_beside_the_frames_tell_darks_and_flats(tmp_path):
+    """An NXtomo file whose entry is not named ``entry`` (``entry0000``) is read through its NXdata,
+    and the ``image_key`` beside the frames comes with them: a calibration from it takes its
+    darks and flats, never every frame as both."""
+    rng = np.random.default_rng(4)
+    darks = rng.normal(100, 2, (3, 24, 32))
+    flats = rng.normal(3000, 30, (3, 24, 32))
+    proj = rng.normal(1500, 20, (2, 24, 32))
+    frames = np.concatenate([darks, flats, proj]).round().astype(np.uint16)
+    keys = [ImageKey.DARK] * 3 + [ImageKey.FLAT] * 3 + [ImageKey.PROJECTION] * 2
+    path = tmp_path / "scan.nx"
+    _nxtomo(path, frames, keys)
+    f = read(path)
+    np.testing.assert_array_equal(f.data, frames)
+    np.testing.assert_array_equal(f.meta["image_key"], keys)
+    cal = Calibration.from_experiment(path)
+    expected = Calibration.from_frames(frames[:3], frames[3:6])
+    np.testing.assert_allclose(cal.dark, expected.dark)
+    np.testing.assert_allclose(cal.flat, expected.flat)
+    assert read(path, n=4).meta["image_key"].tolist() == keys[:4]  # cut with the frames
+
+
+def test_nxtomo_keys_of_another_length_are_refused(tmp_path):
+    """Keys that do not label every frame would misfile darks and flats: one line naming them."""
+    path = tmp_path / "scan.nx"
+    _nxtomo(path, _frames(n=4), [2, 1, 0])
+    with pytest.raises(FormatError, match=r"scan\.nx: .*image_key holds 3 image keys for 4 frames"):
+        read(path)
+
+
+def test_radiokit_experiment_missing_its_keys_stays_an_error(tmp_path):
+    """A file radiokit wrote (``@frames_complete``) that lost its ``image_key`` is broken, not
+    another lab's frames: still refused, naming the missing key."""
+    path = tmp_path / "exp.h5"
+    with h5py.File(path, "w") as h5:
+        h5["entry/instrument/detector/data"] = _frames(n=2)
+        h5["entry"].attrs["frames_complete"] = 2
+    with pytest.raises(FormatError, match="lacks /entry/instrument/detector/image_key"):
+        read(path)
+
+
+# A writer that stays open until its stdin closes: in SWMR mode as detector software writes, or
+# plainly (holding the HDF5 file lock); "exit" leaves without closing, as a killed writer does.
+_OPEN_WRITER = """
+import os, sys, h5py, numpy as np
+path, mode = sys.argv[1], sys.argv[2]
+frames = np.arange(2 * 30 * 40, dtype="<u2").reshape(2, 30, 40)
+f = h5py.File(path, "w", libver="latest")
+ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
+f["entry"].attrs["NX_class"] = "NXentry"
+f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
+if mode != "plain":
+    f.swmr_mode = True
+ds.resize((2, 30, 40))
+ds[:] = frames
+f.flush()
+if mode == "exit":
+    os._exit(0)
+print("ready", flush=True)
+sys.stdin.read()
+f.close()
+"""
+
+
+def _open_writer(path, mode):
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _OPEN_WRITER, str(path), mode], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    watchdog = threading.Timer(60, proc.kill)  # never hang the suite on a stuck writer
+    watchdog.start()
+    return proc, watchdog
+
+
+@pytest.mark.parametrize("mode", ["swmr", "exit"])
+def test_hdf5_written_in_swmr_mode_is_read_as_it_stands(tmp_path, mode):
+    """A file another program is writing in SWMR mode (or was, when it was killed) is marked open
+    for write; libhdf5 refuses a plain reader ("file is already open for write"). Read it as a
+    SWMR reader: its frames as flushed, value by value."""
+    path = tmp_path / "live.h5"
+    proc, watchdog = _open_writer(path, mode)
+    try:
+        if mode == "exit":
+            assert proc.wait() == 0
+        else:
+            assert proc.stdout.readline() == "ready\n"
+        f = read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    np.testing.assert_array_equal(f.data, np.arange(2 * 30 * 40).reshape(2, 30, 40))
+
+
+def test_hdf5_held_by_a_writer_without_swmr_says_so(tmp_path, monkeypatch):
+    """A writer without SWMR holds the file lock; its file cannot be read consistently. One line
+    in words, not libhdf5's "unable to lock file, errno = 11"."""
+    monkeypatch.setenv("HDF5_USE_FILE_LOCKING", "TRUE")  # libhdf5's default, whatever the shell says
+    path = tmp_path / "busy.h5"
+    proc, watchdog = _open_writer(path, "plain")
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        with pytest.raises(FormatError, match=r"busy\.h5: is open for writing by another program"):
+            read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    assert read(path).n == 2  # and once closed, it reads
+
+
+def _matlab_v73(path, **variables):
+    """A MATLAB ``save -v7.3`` file as MATLAB writes it: a 512-byte text userblock, and each
+    variable a root dataset with ``@MATLAB_class``, its column-major dimensions reversed (so a
+    rows x cols x n stack is stored as (n, cols, rows))."""
+    with h5py.File(path, "w", userblock_size=512) as h5:
+        for name, value in variables.items():
+            h5[name] = np.transpose(value)  # numpy's C order of MATLAB's Fortran-ordered array
+            h5[name].attrs["MATLAB_class"] = np.bytes_(value.dtype.name)  # "uint16": MATLAB's name too
+    with open(path, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 .")
+
+
+@pytest.mark.parametrize("rows, cols", [(30, 40), (32, 32)])
+def test_matlab_v73_stack_reads_in_matlabs_orientation(tmp_path, rows, cols):
+    """A lab's MATLAB script saving its frames (rows x cols x n, as imread and cat(3, ...) build
+    them) with ``save -v7.3`` writes HDF5 with the dimensions reversed. Read frame by frame as
+    MATLAB shows them, not transposed: a square frame would otherwise be transposed silently,
+    and calibrated against darks from a TIFF in another orientation."""
+    stack = _frames(n=3, rows=rows, cols=cols).transpose(1, 2, 0)  # MATLAB's A(:, :, k)
+    image = _frames(n=1, rows=rows, cols=cols, seed=1)[0]
+    path = tmp_path / "frames.mat"
+    _matlab_v73(path, frames=stack, image=image)
+    f = read(path, dataset="frames")
+    assert f.data.shape == (3, rows, cols) and f.meta["matlab_class"] == "uint16"
+    for k in range(3):
+        np.testing.assert_array_equal(f.data[k], stack[:, :, k])
+    np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+
+
+def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):
+    """MATLAB's default .mat format is not HDF5; read as headerless raw it drew "pass shape=",
+    which would read its header as pixels. One line says what it is and how to save it."""
+    path = tmp_path / "frames.mat"
+    scipy.io.savemat(path, {"frames": _frames(n=2)})
+    with pytest.raises(FormatError, match=r"frames\.mat: a MATLAB \.mat file in its v5/v7 format.*-v7\.3"):
+        read(path)
+
+
+def _png(path, frame):
+    import cv2
+
+    assert cv2.imwrite(str(path), frame)
+
+
+def _jpeg(path, frame):
+    import cv2
+
+    assert cv2.imwrite(str(path), (frame >> 4).astype(np.uint8))
+
+
+def _dicom(path, frame):  # the 128-byte preamble, "DICM", then a data element (here a stub)
+    path.write_bytes(b"\0" * 128 + b"DICM" + b"\x02\x00\x00\x00UL\x04\x00" + bytes(4) + frame.tobytes())
+
+
+def _mhd(path, frame):
+    path.write_bytes(
+        b"ObjectType = Image\nNDims = 2\nDimSize = 40 30\nElementType = MET_USHORT\nElementDataFile = f.raw\n"
+    )
+
+
+def _fits(path, frame):
+    card = [b"SIMPLE  =                    T", b"BITPIX  =                   16", b"END"]
+    path.write_bytes(b"".join(c.ljust(80) for c in card).ljust(2880) + frame.astype(">i2").tobytes())
+
+
+@pytest.mark.parametrize(
+    "writer, name, what",
+    [
+        (_png, "f.png", "a PNG image"),
+        (_jpeg, "f.jpg", "a JPEG image"),
+        (_dicom, "f.dcm", "a DICOM file"),
+        (_mhd, "f.mhd", "a MetaImage header"),
+        (_fits, "f.fits", "a FITS file"),
+    ],
+)
+def test_image_formats_not_read_are_named_not_taken_for_raw_frames(tmp_path, writer, name, what):
+    """A PNG or JPEG a viewer exported, a DICOM, a MetaImage header, a FITS file: none is read,
+    and each is named in one line rather than read as headerless raw ("pass shape=", which would
+    take its header for pixels). format="raw" still reads the bytes for whoever means it."""
+    path = tmp_path / name
+    writer(path, _frames(n=1)[0])
+    with pytest.raises(FormatError, match=rf"{name}: {what}, which radiokit does not read: "):
+        read(path)
+    raw = read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1")
+    np.testing.assert_array_equal(raw.data[0, 0], np.frombuffer(path.read_bytes(), np.uint8))
+
+
+# ------------------------------------------------------------------------------------------------
+# TIFF as other programs write it (these pass today: they guard the layout and bomb checks)
+# ------------------------------------------------------------------------------------------------
+
+
+def _values(dtype, shape=(37, 53), seed=7):
+    """Extremes of the dtype included: int16 negatives, float NaN and -inf must come back as written."""
+    rng = np.random.default_rng(seed)
+    dt = np.dtype(dtype)
+    if dt.kind == "f":
+        out = rng.normal(0, 1000, shape).astype(dt)
+        out.flat[3], out.flat[5] = np.nan, -np.inf
+        return out
+    info = np.iinfo(dt)
+    return rng.integers(info.min, info.max, shape, dtype=dt, endpoint=True)
+
+
+@pytest.mark.parametrize("dtype", ["u1", "u2", "i2", "u4", "f4", "f8"])
+@pytest.mark.parametrize("byteorder", ["<", ">"])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},
+        {"compression": "lzw", "predictor": True},
+        {"compression": "zlib"},
+        {"compression": "zstd", "predictor": True},
+        {"compression": "packbits"},
+        {"tile": (16, 32), "compression": "zlib", "predictor": True},
+    ],
+)
+def test_tiff_variants_read_value_for_value(tmp_path, dtype, byteorder, kw):
+    """Byte order x pixel type x compression (with the predictor) x strips of 5 rows over 37
+    (the last one short) or tiles over the edge: every pixel as written, rows and columns as stored."""
+    frame = _values(dtype)
+    path = tmp_path / "v.tif"
+    tifffile.imwrite(path, frame, byteorder=byteorder, **({"rowsperstrip": 5} | kw))
+    f = read(path)
+    assert f.data.shape == (1, 37, 53) and f.data.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(f.data[0], frame)
