@@ -361,7 +361,9 @@ def cmd_register(args) -> int:
     registered = reg.warp(moving)
     write_registration(
         args.output,
-        RegistrationRecord(reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, vars(q)),
+        RegistrationRecord(
+            reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, vars(q), reg.confidence
+        ),
         overwrite=args.overwrite,
         inputs=inputs,
     )
