@@ -218,6 +218,12 @@ def test_register_preset_auto_says_what_it_ran(tmp_path, capsys):
     with h5py.File(out, "r") as h5:
         d = next(h5[k][()] for k in _datasets(h5) if k.endswith("displacement"))
     assert np.abs(d).max() < 0.5
+    # the file says so too (it said only "rc"): the preset returned, why, and what it started from
+    from radiokit.io import read_registration
+
+    saved = read_registration(out).quality
+    assert saved["preset"] == "silent" and saved["preset_reason"] == line.split(" (", 1)[1][:-1], saved
+    assert saved["initial"].startswith("silhouette"), saved["initial"]
 
 
 def _datasets(h5):
