@@ -326,6 +326,7 @@ _PROCESS_OPTIONS = {"ks=": "--k ", "crop_mm=": "--crop-mm ", "method=": "--metho
 
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
+    from radiokit.pipeline import _preset_record
     from radiokit.register import register, with_default_preset
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
@@ -359,9 +360,14 @@ def cmd_register(args) -> int:
         raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
     q = reg.quality
     registered = reg.warp(moving)
+    # the preset that made the field (auto's choice and why, what it started from), as
+    # radiokit process records it: the file alone then says how to reproduce it
+    quality = vars(q) | _preset_record(reg)
     write_registration(
         args.output,
-        RegistrationRecord(reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, vars(q)),
+        RegistrationRecord(
+            reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
+        ),
         overwrite=args.overwrite,
         inputs=inputs,
     )

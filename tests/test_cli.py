@@ -218,6 +218,12 @@ def test_register_preset_auto_says_what_it_ran(tmp_path, capsys):
     with h5py.File(out, "r") as h5:
         d = next(h5[k][()] for k in _datasets(h5) if k.endswith("displacement"))
     assert np.abs(d).max() < 0.5
+    # the file says so too (it said only "rc"): the preset returned, why, and what it started from
+    from radiokit.io import read_registration
+
+    saved = read_registration(out).quality
+    assert saved["preset"] == "silent" and saved["preset_reason"] == line.split(" (", 1)[1][:-1], saved
+    assert saved["initial"].startswith("silhouette"), saved["initial"]
 
 
 def _datasets(h5):
@@ -296,6 +302,32 @@ def test_register_names_the_files_of_an_image_it_refuses(tmp_path, fixed, moving
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert problem in res.stderr and "fixed one.tif" in res.stderr and "moving one.tif" in res.stderr, res.stderr
     assert not (tmp_path / "reg.h5").exists()
+
+
+def test_register_saves_the_confidence_map_with_the_field(tmp_path):
+    """The file ``radiokit register`` writes carries the confidence map beside the field: without
+    it a user cannot tell, from the file, where the field was measured and where it is the
+    regulariser's guess (it was printed nowhere and lost). A textured left half and a flat,
+    noisy right half, moved by 1 px: the map reads observed over the texture and not over the
+    flat half, as ``register()``'s own map does."""
+    from scipy import ndimage
+
+    from radiokit.io import read_registration
+    from radiokit.register import warp
+
+    rng = np.random.default_rng(5)
+    base = ndimage.gaussian_filter(rng.random((96, 256)), 2)
+    base = (base - base.min()) / np.ptp(base)
+    base[:, 128:] = 0.5  # no structure: the motion is not observable there, beyond the map's window (2 x 24 px)
+    images = {"f": warp(base.astype(np.float32), np.full((2, 96, 256), 1.0, np.float32)), "m": base}
+    for name, image in images.items():
+        _write_stack(tmp_path / f"{name}.tif", (image + 0.005 * rng.standard_normal(image.shape)).astype(np.float32))
+    res = run("register", tmp_path / "f.tif", tmp_path / "m.tif", "--preset", "fast", "-o", tmp_path / "reg.h5")
+    assert res.returncode in (0, 1), res.stderr
+    conf = read_registration(tmp_path / "reg.h5").confidence
+    assert conf is not None and conf.shape == (96, 256) and conf.dtype == np.float32
+    assert 0 <= conf.min() and conf.max() <= 1
+    assert np.median(conf[16:-16, 16:96]) >= 0.5 and np.median(conf[16:-16, 192:-8]) < 0.5
 
 
 def test_a_warning_is_one_line_without_source_code(tmp_path):

@@ -585,7 +585,13 @@ def _registration_file(path):
     write_registration(
         path,
         RegistrationRecord(
-            "rc", "a.h5", "b.h5", np.zeros((2, 4, 5), np.float32), np.ones((4, 5), np.float32), {"ok": True}
+            "rc",
+            "a.h5",
+            "b.h5",
+            np.zeros((2, 4, 5), np.float32),
+            np.ones((4, 5), np.float32),
+            {"ok": True},
+            np.full((4, 5), 0.5, np.float32),
         ),
     )
 
@@ -821,6 +827,7 @@ HUGE_CONSISTENT = {
     "registration": lambda h5: (
         _huge(h5, "entry/registration/registered", FRAME),
         _huge(h5, "entry/registration/displacement", (2,) + FRAME),
+        _huge(h5, "entry/registration/confidence", FRAME),
     ),
     "results": lambda h5: _huge(h5, "entry/steps/line_integral", (2,) + FRAME),
     "stack": lambda h5: _huge(h5, "entry/data/data", (2,) + FRAME),
@@ -856,6 +863,7 @@ OVER_IN_SUM = {
     "registration": lambda h5: (
         _data("entry/registration/registered", np.zeros(ROWS_COLS, "f4"))(h5),
         _data("entry/registration/displacement", np.zeros((2,) + ROWS_COLS, "f4"))(h5),
+        _data("entry/registration/confidence", np.zeros(ROWS_COLS, "f4"))(h5),
     ),
     "results": lambda h5: [
         h5.create_dataset(f"entry/registration/{name}", data=np.zeros(ROWS_COLS, "f4"))
@@ -931,6 +939,18 @@ BAD_CONTENT = [
         "field of 3 components",
         _data("entry/registration/displacement", np.zeros((3, 4, 5), "f4")),
         "displacement",
+    ),
+    (
+        "registration",
+        "confidence of another shape",
+        _data("entry/registration/confidence", np.zeros((4, 6), "f4")),
+        "confidence",
+    ),
+    (
+        "registration",
+        "confidence as text",
+        _data("entry/registration/confidence", np.array([b"a", b"b"])),
+        "confidence",
     ),
     ("stack", "series longer than the stack", _data("entry/data/step", np.arange(5)), "step"),
     ("stack", "series of text", _data("entry/data/step", np.array([b"a", b"b"])), "step"),

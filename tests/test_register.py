@@ -224,6 +224,8 @@ def test_divergence_is_reported():
         (lambda f: (f, np.where(f > 0.5, np.nan, f)), "NaN"),
         (lambda f: (np.ones_like(f), f), "constant"),
         (lambda f: (f[None], f[None]), "2-D"),
+        # finite float64 past float32's range: once "contains NaN or inf", which it did not
+        (lambda f: (f.astype(np.float64) * 1e300, f), r"^fixed image has values beyond float32's range"),
     ],
 )
 def test_bad_inputs_are_refused_clearly(bad, match):

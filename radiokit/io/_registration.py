@@ -5,6 +5,9 @@
 ``/entry/registration`` (NXdata, ``@signal = "registered"``)
     ``registered`` (rows, cols) float32: the moving image warped onto the fixed one (the plot);
     ``displacement`` (2, rows, cols) float32: the pull field, pixels, (row, col);
+    ``confidence`` (rows, cols) float32 in [0, 1], when given: where the images observe the motion
+    (``radiokit.register.Registration.confidence``; >= 0.5 observed, elsewhere the field is the
+    regulariser's guess);
     ``@method``, ``@fixed``, ``@moving`` (the input files), ``@convention``,
     ``@quality_*``: :class:`radiokit.register.Quality`'s fields.
 """
@@ -27,6 +30,7 @@ __all__ = ["REGISTRATION", "RegistrationRecord", "write_registration", "read_reg
 REGISTRATION = f"{ENTRY}/registration"
 REGISTERED = f"{REGISTRATION}/registered"
 DISPLACEMENT = f"{REGISTRATION}/displacement"
+CONFIDENCE = f"{REGISTRATION}/confidence"
 CONVENTION = "pull, pixels, (row, col): moving(x + d(x)) matches fixed(x)"
 
 
@@ -46,6 +50,10 @@ class RegistrationRecord:
         The moving image warped by ``displacement``.
     quality : mapping str -> number, bool or str
         The registration's quality figures (``radiokit.register.Quality``'s fields).
+    confidence : (rows, cols) float32 or None
+        Where the images observe the motion (``radiokit.register.Registration.confidence``):
+        the field is measured where it is >= 0.5 and the regulariser's guess elsewhere. None in
+        a file written without it (before session 18).
     """
 
     method: str
@@ -54,6 +62,7 @@ class RegistrationRecord:
     displacement: np.ndarray
     registered: np.ndarray
     quality: Mapping = field(default_factory=dict)
+    confidence: np.ndarray | None = None
 
 
 def write_registration(path, record: RegistrationRecord, *, overwrite=False, inputs=()) -> None:
@@ -78,6 +87,11 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
             f"{path}: displacement {displacement.shape} does not match the registered image "
             f"{registered.shape}; expected (2, rows, cols)"
         )
+    confidence = None if record.confidence is None else np.asarray(record.confidence, np.float32)
+    if confidence is not None and confidence.shape != registered.shape:
+        raise ValueError(
+            f"{path}: confidence {confidence.shape} does not match the registered image {registered.shape}"
+        )
     with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
         h5.attrs["default"] = ENTRY
         entry = h5.create_group(ENTRY)
@@ -91,6 +105,8 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
         g.attrs["convention"] = CONVENTION
         h5.create_dataset(DISPLACEMENT, data=displacement, compression="lzf")
         h5.create_dataset(REGISTERED, data=registered, compression="lzf").attrs["interpretation"] = "image"
+        if confidence is not None:
+            h5.create_dataset(CONFIDENCE, data=confidence, compression="lzf").attrs["interpretation"] = "image"
         for k, v in record.quality.items():
             g.attrs[f"quality_{k}"] = v
 
@@ -116,6 +132,13 @@ def read_registration(path, *, allow_external=False) -> RegistrationRecord:
                 f"/{DISPLACEMENT} is {displacement.shape}; the registered image "
                 f"{registered.shape} needs (2, rows, cols)",
             )
+        confidence = None
+        if CONFIDENCE in h5:  # files written before session 18 lack it
+            confidence = checked_dataset(path, h5, CONFIDENCE, "f", (2,), allow_external)
+            if confidence.shape != registered.shape:
+                raise FormatError(
+                    path, f"/{CONFIDENCE} is {confidence.shape}; the registered image is {registered.shape}"
+                )
         quality = {k[len("quality_") :]: _plain(v) for k, v in g.attrs.items() if k.startswith("quality_")}
         budget = ReadBudget(path)
         return RegistrationRecord(
@@ -125,6 +148,7 @@ def read_registration(path, *, allow_external=False) -> RegistrationRecord:
             displacement=budget.read(displacement),
             registered=budget.read(registered),
             quality=quality,
+            confidence=None if confidence is None else budget.read(confidence),
         )
 
 

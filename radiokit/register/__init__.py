@@ -162,11 +162,19 @@ def _check(fixed, moving, mask):
             raise ValueError(f"{name} image is too small to register: {a.shape}")
     if f.shape != m.shape:
         raise ValueError(f"fixed {f.shape} and moving {m.shape} images differ in shape")
-    f = f.astype(np.float32, copy=False)
-    m = m.astype(np.float32, copy=False)
+    cast = []
     for name, a in (("fixed", f), ("moving", m)):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} image contains NaN or inf ({int(np.sum(~np.isfinite(a)))} pixels)")
+        with np.errstate(over="ignore"):  # refused just below, in the user's terms
+            a32 = a.astype(np.float32, copy=False)
+        # finite float64 past float32's range became inf here, once called "NaN or inf" pixels
+        if a32 is not a and not np.all(np.isfinite(a32)):
+            big = int(np.sum(~np.isfinite(a32)))
+            raise ValueError(f"{name} image has values beyond float32's range ({big} pixels over 3.4e38): rescale it")
+        cast.append(a32)
+    f, m = cast
+    for name, a in (("fixed", f), ("moving", m)):
         if float(a.max()) == float(a.min()):
             raise ValueError(f"{name} image is constant: nothing to register")
     if mask is not None:
@@ -218,9 +226,9 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
 
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
-    finite, non-constant, of one shape and at least 8 px a side, a mask that is not a bool array
-    of that shape selecting a pixel, an unknown method or preset, or an option value out of its
-    range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
+    finite (and within float32's range), non-constant, of one shape and at least 8 px a side, a
+    mask that is not a bool array of that shape selecting a pixel, an unknown method or preset,
+    or an option value out of its range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
     peer whose package is not installed.
 
     Examples
