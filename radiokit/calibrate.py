@@ -548,12 +548,32 @@ ADC_TOPS = (4095, 16383, 65535)
 
 def adc_top(*stacks) -> int | None:
     """The saturation level the frames imply: the smallest of :data:`ADC_TOPS` that none of their
-    values exceeds (None above 65535: float frames of no ADC).
+    values exceeds (None above 65535: float frames of no ADC), less the low bits that integer
+    frames never set (:func:`_unused_low_bits`).
 
     Why: a fixed 4095 called every pixel of a 16-bit panel's flat saturated, and the calibration
-    refused the lab's data ("lower the flat exposure")."""
+    refused the lab's data ("lower the flat exposure"). And a 12-bit panel whose software stores
+    its counts in the top bits of 16 (``value << 4``: TIFFs from several frame grabbers) saturates
+    at 65520, never 65535: against 65535 its saturated flat pixels were not flagged at all."""
     peak = max(float(np.max(s)) for s in stacks)
-    return next((top for top in ADC_TOPS if peak <= top), None)
+    top = next((top for top in ADC_TOPS if peak <= top), None)
+    if top is None:
+        return None
+    return top & ~((1 << _unused_low_bits(stacks)) - 1)
+
+
+def _unused_low_bits(stacks, most=8) -> int:
+    """How many low bits every value of the integer ``stacks`` leaves 0 (at most ``most``, so that
+    8 significant bits remain; 0 for float stacks or all-zero ones). Real frames' noise sets every
+    bit of an LSB-aligned ADC, so only MSB-aligned data (``counts << b``) leaves low bits unused."""
+    if any(np.asarray(s).dtype.kind not in "ui" for s in stacks):
+        return 0
+    used = 0
+    for s in stacks:
+        used |= int(np.bitwise_or.reduce(np.asarray(s), axis=None))
+    if used == 0:
+        return 0
+    return min((used & -used).bit_length() - 1, most)
 
 
 def frame_saturation(saturation, raw) -> int | None:

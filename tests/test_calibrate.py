@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 
-from radiokit.calibrate import Calibration, CalibrationWarning, PixelFlag, robust_average
+from radiokit.calibrate import Calibration, CalibrationWarning, PixelFlag, adc_top, robust_average
 from radiokit.correct import correct_frames
 from radiokit.io import ExperimentWriter, ImageKey
 from sim.detector import PanelModel
@@ -267,6 +267,26 @@ def test_a_frame_above_the_inferred_adc_top_is_not_reported_saturated():
     twelve[:3, :3] = 4095
     _, report = correct_frames(cal, twelve, domain="linear", return_report=True)
     assert report.saturated.tolist() == [9]
+
+
+def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
+    """Found by trying other labs' files: frame grabbers often store a 12-bit panel's counts in the
+    top bits of 16 (``value << 4``). Its top is 65520, under the 65535 of a 16-bit ADC, so the
+    flat's saturated pixels were not flagged and the "lower the flat exposure" warning never came.
+    The unused low bits now lower the top; an LSB-aligned frame (noise sets every bit) keeps it."""
+    rng = np.random.default_rng(11)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 32, 32))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 32, 32))).astype(np.uint16)
+    flats[:, :8, :8] = 4095  # 64 saturated pixels
+    with pytest.warns(CalibrationWarning, match="saturated"):
+        cal = Calibration.from_frames(darks << 4, flats << 4)
+    assert cal.thresholds.saturation == 65520
+    assert np.count_nonzero(cal.mask & PixelFlag.OVER_RESPONDING) == 64
+    bright = (100 + rng.poisson(3000, (32, 32))).astype(np.uint16)
+    bright[:2, :3] = 4095
+    _, report = correct_frames(cal, bright << 4, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [6]
+    assert adc_top(darks, flats) == 4095 and adc_top(flats.astype(np.float32) * 16) == 65535
 
 
 def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
