@@ -67,7 +67,7 @@ class SerialTransport:
         Longest wait for the command to leave the output buffer.
     min_interval_s : float
         Shortest time between the end of one exchange and the next command (controllers that need a
-        pause between commands).
+        pause between commands); the first command after the port is opened waits it too.
     terminator : str
         Appended to every command. Replies may end in CR, LF or CR LF; all are accepted and
         stripped, and empty lines (the LF of a CR LF) are skipped.
@@ -157,6 +157,10 @@ class SerialTransport:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
+        # The spacing is the controller's need, not this object's: another link (the probe's, a
+        # guardian's, this one before a reconnect) may have had a reply just before the port was
+        # opened, so the first command waits min_interval_s as if one had ended now.
+        self._last_exchange = time.monotonic()
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
     def close(self) -> None:

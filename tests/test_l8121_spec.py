@@ -236,6 +236,21 @@ def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect):
     assert model.lost == [] and not model.emitting
 
 
+def test_the_spacing_holds_across_a_new_link_to_the_same_controller(dialect):
+    """The ~50 ms between commands is the controller's need, whichever link object sends them:
+    ``dialect = "auto"`` probes the port over one link, closes it and connects over a new one (the
+    guardian, or a run taking over from a dead guardian, likewise opens the port afresh). A new
+    link's first command sent at once after the probe's last reply was lost (``TYP`` in A, ``SRL``
+    in B), and the connect failed, blaming the baud rate or the dialect."""
+    model = SpecModel(dialect, min_gap_s=0.045)
+    with served(model) as pty, L8121(pty.url, dialect="auto", poll_s=0.05) as src:
+        assert src.dialect.name == dialect
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+        src.check()
+    assert model.lost == [] and not model.emitting
+
+
 # -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
 def _open_interlock_once_emitting(model, after_s=0.2):
     def watch():
