@@ -50,6 +50,16 @@ _READ_SLICE_S = 0.05
 _LINE_ENDS = (b"\r", b"\n")
 
 
+def _text(raw: bytes) -> str:
+    """A reply line as text. Controllers write ASCII, but some write units with the micro sign
+    (``250µA``) in UTF-8 or in an 8-bit code page: both must reach a parser as ``µ``, where
+    an ASCII decoding turned them into replacement characters nobody can parse."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")  # every byte is a character: nothing is lost or replaced
+
+
 class SerialTransport:
     """A line-oriented serial link with explicit time-outs and one exchange at a time.
 
@@ -268,7 +278,7 @@ class SerialTransport:
             if cut >= 0:
                 line, buf = bytes(buf[:cut]), buf[cut + 1 :]
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
-                    return line.decode("ascii", errors="replace").strip()
+                    return _text(line).strip()
                 continue
             left = deadline - time.monotonic()
             if left <= 0 and not drained and ser.in_waiting:
@@ -492,4 +502,4 @@ class PipeTransport:
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited (code {self._process.poll()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
-        return line.decode("ascii", "replace")
+        return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")
