@@ -436,7 +436,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
         try:
-            os.write(wfd, (out + "\n").encode("ascii", "replace"))
+            os.write(wfd, (out + "\n").encode("utf-8", "replace"))  # a reply may hold "µA"
         except OSError:
             pass  # the reader is gone: the next read sees the end of the pipe
 

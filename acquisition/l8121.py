@@ -192,9 +192,9 @@ class SourceConfig:
     ``None`` means the dialect's (9600 in both, the link default of ``L8121.md``; ``auto`` tries
     ``baudrate`` if set, then ``probe_baudrates``). ``voltage_scale`` is what a kV value is multiplied by in a command
     argument; ``None`` means the dialect's (A 1, B 10: ``PHV 600`` for 60 kV). ``min_interval_s``,
-    the pause between two commands, ``None`` means the dialect's (0.05 s in both: ``L8121.md``'s
+    the pause between two commands, ``None`` means the dialect's (0.06 s in both: ``L8121.md``'s
     link rule "a controller may need ~50 ms between commands" holds for both dialects, although
-    the L8121-02 driver polls 20 ms apart).
+    the L8121-02 driver polls 20 ms apart; "~50" leaves room above 50, so 20 % is added).
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -674,7 +674,9 @@ DIALECT_A = Dialect(
     # L8121.md: "default 9600" under Link, whose rules "hold for both dialects"
     baudrate=9600,
     voltage_scale=1,
-    min_interval_s=0.05,
+    # L8121.md: "a controller may need ~50 ms between commands"; at exactly 50 ms a unit that
+    # needs a little more (55 ms is "~50") loses commands, so the spacing has a margin
+    min_interval_s=0.06,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
@@ -714,8 +716,8 @@ DIALECT_B = Dialect(
     name="B",
     baudrate=9600,
     voltage_scale=10,
-    # not the L8121-02 driver's 20 ms: L8121.md's link rule (~50 ms) holds for both dialects
-    min_interval_s=0.05,
+    # not the L8121-02 driver's 20 ms: L8121.md's link rule (~50 ms, with A's margin) holds for both dialects
+    min_interval_s=0.06,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
         "state": Query(
@@ -828,7 +830,7 @@ class ProbeResult:
         return "\n".join(lines + [f"note: {n}" for n in self.notes if self.found])
 
 
-def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_interval_s: float = 0.05) -> ProbeResult:
+def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_interval_s: float = 0.06) -> ProbeResult:
     """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
 
     At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too

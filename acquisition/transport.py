@@ -50,6 +50,16 @@ _READ_SLICE_S = 0.05
 _LINE_ENDS = (b"\r", b"\n")
 
 
+def _text(raw: bytes) -> str:
+    """A reply line as text. Controllers write ASCII, but some write units with the micro sign
+    (``250µA``) in UTF-8 or in an 8-bit code page: both must reach a parser as ``µ``, where
+    an ASCII decoding turned them into replacement characters nobody can parse."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")  # every byte is a character: nothing is lost or replaced
+
+
 class SerialTransport:
     """A line-oriented serial link with explicit time-outs and one exchange at a time.
 
@@ -67,7 +77,7 @@ class SerialTransport:
         Longest wait for the command to leave the output buffer.
     min_interval_s : float
         Shortest time between the end of one exchange and the next command (controllers that need a
-        pause between commands).
+        pause between commands); the first command after the port is opened waits it too.
     terminator : str
         Appended to every command. Replies may end in CR, LF or CR LF; all are accepted and
         stripped, and empty lines (the LF of a CR LF) are skipped.
@@ -157,6 +167,10 @@ class SerialTransport:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
+        # The spacing is the controller's need, not this object's: another link (the probe's, a
+        # guardian's, this one before a reconnect) may have had a reply just before the port was
+        # opened, so the first command waits min_interval_s as if one had ended now.
+        self._last_exchange = time.monotonic()
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
     def close(self) -> None:
@@ -264,7 +278,7 @@ class SerialTransport:
             if cut >= 0:
                 line, buf = bytes(buf[:cut]), buf[cut + 1 :]
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
-                    return line.decode("ascii", errors="replace").strip()
+                    return _text(line).strip()
                 continue
             left = deadline - time.monotonic()
             if left <= 0 and not drained and ser.in_waiting:
@@ -488,4 +502,4 @@ class PipeTransport:
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited (code {self._process.poll()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
-        return line.decode("ascii", "replace")
+        return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")

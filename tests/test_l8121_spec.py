@@ -45,6 +45,9 @@ class SpecModel:
         self.interlock_stops_beam = True  # False: the controller only reports the open interlock
         self.relay_stuck = False  # True: XOF is answered but the tube stays on (a fault)
         self.silent = False  # True: commands are carried out but never answered
+        # B writes currents as "uA" (L8121.md's table); a unit may write the micro sign instead,
+        # in this encoding ("latin-1" or "utf-8"), as the notes' own prose does ("µA")
+        self.micro_sign: str | None = None
         self.set_kv = self.set_ua = 0
         self.t_on = self.t_warm = 0.0
         self.received: list[str] = []  # what was understood, in order
@@ -142,9 +145,9 @@ class SpecModel:
         return {
             "STS": _B_WORDS[self.state],
             "SHV": f"SHV {kv:.1f}kV",
-            "SCU": f"SCU {ua:.0f}uA",
+            "SCU": f"SCU {ua:.0f}{'µA' if self.micro_sign else 'uA'}",
             "SPV": f"SPV {self.set_kv:.1f}kV",
-            "SPC": f"SPC {self.set_ua}uA",
+            "SPC": f"SPC {self.set_ua}{'µA' if self.micro_sign else 'uA'}",
             "SIN": "INTER LOCK ON" if self.interlock_closed else "INTER LOCK OFF",
             "DAG": f"AGING 1 {3 if done else 0} {'END' if done else 'YET'}",
             "SER": "SER 0",
@@ -188,7 +191,7 @@ class SpecPty:
                 # driver's next command, spaced from its receipt of the reply, looked too soon
                 self._last = time.monotonic()
                 if not self.model.silent:
-                    os.write(self._master, reply.encode("ascii") + b"\r")
+                    os.write(self._master, reply.encode(self.model.micro_sign or "ascii") + b"\r")
 
     def close(self):
         self._stop.set()
@@ -225,15 +228,58 @@ def test_the_default_baud_rate_is_the_link_default_9600_in_both_dialects(dialect
     assert model.lost == [] and not model.emitting
 
 
-def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect):
+@pytest.mark.parametrize("gap_s", [0.045, 0.055])
+def test_commands_are_spaced_for_a_controller_that_needs_50_ms(dialect, gap_s):
     """``L8121.md``, Link: "A controller may need ~50 ms between commands" (for both dialects): a
-    controller that drops a command sent sooner must lose none of the driver's."""
-    model = SpecModel(dialect, min_gap_s=0.045)
+    controller that drops a command sent sooner must lose none of the driver's. "~50" is not
+    "at most 50": a unit that needs 55 ms is within it, and a spacing of exactly 50 ms lost its
+    commands (the second one already)."""
+    model = SpecModel(dialect, min_gap_s=gap_s)
     with served(model) as pty, L8121(pty.url, dialect=dialect, baudrate=9600, poll_s=0.05) as src:
         src.warm_up(timeout_s=10, progress=False)
         src.on(60, 250)
         src.check()
     assert model.lost == [] and not model.emitting
+
+
+def test_the_spacing_holds_across_a_new_link_to_the_same_controller(dialect):
+    """The ~50 ms between commands is the controller's need, whichever link object sends them:
+    ``dialect = "auto"`` probes the port over one link, closes it and connects over a new one (the
+    guardian, or a run taking over from a dead guardian, likewise opens the port afresh). A new
+    link's first command sent at once after the probe's last reply was lost (``TYP`` in A, ``SRL``
+    in B), and the connect failed, blaming the baud rate or the dialect."""
+    model = SpecModel(dialect, min_gap_s=0.045)
+    with served(model) as pty, L8121(pty.url, dialect="auto", poll_s=0.05) as src:
+        assert src.dialect.name == dialect
+        src.warm_up(timeout_s=10, progress=False)
+        src.on(60, 250)
+        src.check()
+    assert model.lost == [] and not model.emitting
+
+
+@pytest.mark.parametrize("encoding", ["latin-1", "utf-8"])
+def test_a_b_unit_that_writes_the_micro_sign_is_understood(encoding, tmp_path):
+    """Dialect B's currents are ``250uA`` in ``L8121.md``'s table, ``µA`` in its prose, and the
+    driver's parser takes both; but the link read replies as ASCII and the guardian passed them
+    on as ASCII, so ``SPC 250µA`` reached the parser as ``250\ufffdA`` (or ``250?A``) and a unit
+    writing the micro sign, in either 8-bit encoding, could not be used: the run stopped before
+    the first exposure. Both, directly and through the guardian (``radiokit acquire``)."""
+    from acquisition.protocols.compression_series import load_protocol, run
+
+    model = SpecModel("B", warm=True)
+    model.micro_sign = encoding
+    with served(model) as pty:
+        with L8121(pty.url, dialect="B", poll_s=0.05) as src:
+            beam = src.on(60, 250)
+            assert src.setpoint() == (60.0, 250.0)
+        assert abs(beam["current_ua"] - 250) <= 5  # the driver's default tolerance, 5 µA
+        series = _series(pty.url, "B", None)
+        del series["source"]["focus"]  # (this model has no focus commands in B)
+        p = load_protocol(series)
+        p.output = str(tmp_path / "series.h5")
+        result = run(p, sim=True, progress=False)
+    assert result.frames_written == 3 and result.tube_off
+    assert not model.emitting and model.lost == []
 
 
 # -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
