@@ -29,9 +29,15 @@ with eps chosen so that the penetration is below 1e-3 of the element size at the
 
 Solver
 ------
-Newton on Pi with an Armijo line search that also keeps J > 0, adaptive load steps (halved on
-failure, grown after easy steps), and a :class:`ConvergenceError` naming the compression at which
-it gave up; never NaN. Units: mm, N, MPa.
+Newton on Pi with an Armijo line search that also keeps J > 0 (in every material), adaptive load
+steps (halved on failure, grown after easy steps), and a :class:`ConvergenceError` naming the
+compression at which it gave up and why; never NaN. Units: mm, N, MPa.
+
+A state depends only on its compression, not on how the requests split the way there: each load
+step must stay on its equilibrium branch (its energy change is the plates' work). Where the branch
+ends (a limit point: a free surface creasing, a 'linear' inclusion past its stress peak) the march
+stops there, whatever the steps, and says where the unstable mode lies; stepping over it used to
+land on another branch or on inverted elements and carry on.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ from radiokit.errors import RadiokitError
 from sim.mesh import FEMesh, build_mesh, curved_skfem_mesh, p2_submesh
 from sim.scene import Scene
 
-__all__ = ["State", "ConvergenceError", "Solver", "compress", "uniaxial_block_force"]
+__all__ = ["State", "ConvergenceError", "InstabilityError", "Solver", "compress", "uniaxial_block_force"]
 
 _EYE = np.eye(3)
 
@@ -66,11 +72,21 @@ PREDICTOR = True
 STEP_RTOL = 1e-5
 #: a contact step takes the plates at most this factor further than the last equilibrium
 CONTACT_GROWTH = 1.5
+#: largest departure of a load step's energy change from the plate's work (trapezoid of the
+#: forces), as a fraction of step x force, before the step counts as a jump between branches
+#: (Solver._path_check: smooth steps measured within 0.03, first contact's delta^1.5 within 0.1;
+#: a cylinder's side creasing at 41 % released 2.1)
+SNAP_TOL = 0.25
 TRACE = False
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
     """The solver could not reach a requested compression (the message names it)."""
+
+
+class InstabilityError(ConvergenceError):
+    """A load step met a limit point of the equilibrium path: the tangent stiffness is not
+    positive definite there, or the step snapped to another branch (see Solver._path_check)."""
 
 
 #: St Venant-Kirchhoff (the ``linear`` material) in uniaxial stress: nominal stress
@@ -383,7 +399,10 @@ class Solver:
         lam = self.lam
         J = np.linalg.det(F)
         ok = J > 0
-        if not np.all(ok[~self.svk]):
+        # no material survives inversion: St Venant-Kirchhoff's polynomial energy is finite at
+        # J <= 0, and admitting it let a collapsed tumour turn inside out and the march run on
+        # (seed-breast asked for 80 % at once: inclusion strain 118 %, reported as reached)
+        if not np.all(ok):
             return None
         svk = self.svk[:, None] & np.ones((1, nq), bool)
         Jc = np.where(ok, J, 1.0)
@@ -603,6 +622,12 @@ class Solver:
                         break
                 alpha *= 0.5
             else:
+                if slope >= 0:
+                    # -K^-1 R climbs the energy: K has a negative eigenvalue, so no Newton step
+                    # descends; the equilibrium path has reached a limit point (buckling, creasing)
+                    raise InstabilityError(
+                        "the tangent stiffness is not positive definite (Newton's update climbs the energy)"
+                    )
                 raise ConvergenceError("line search failed (no decrease of the energy keeping J > 0)")
             if TRACE:
                 print(f"    it {it} alpha {alpha} res {res_t:.2e} area {ev_t['contact_area']:.3f}")
@@ -742,7 +767,10 @@ class Solver:
         step = min(FIRST_STEP, ratios[-1] / 3) if ratios else FIRST_STEP
         total_steps = 0
         bar = tqdm(total=len(ratios), desc=f"compress {self.scene.name}", unit="state", disable=not progress)
-        history = [(0.0, u)]  # converged (delta, u): the next guess extrapolates the last two
+        # converged (delta, u, energy, dPi/d delta): the next guess extrapolates the last two, and
+        # the next step's energy change must be the plate's work from the last (_path_check)
+        history = [(0.0, u, 0.0, 0.0)]
+        unstable = False  # a limit point met since the last converged step
         for target in ratios:
             iters_total = 0
             while r_now < target - 1e-12:
@@ -752,31 +780,27 @@ class Solver:
                     # predictor (the rim penetrates deep and the line search crawls)
                     r_try = min(r_try, CONTACT_GROWTH * r_now)
                 delta = r_try * self.gap0 * per_plate
-                (d1, u1) = history[-1]
-                if len(history) > 1:
-                    d0, u0 = history[-2]
-                    guess = u1 + (delta - d1) / (d1 - d0) * (u1 - u0)
-                else:
-                    guess = u1 + self._homogeneous(delta) - self._homogeneous(d1)
                 t_step = time.perf_counter()
                 try:
                     u_new, ev, its = self._newton(
-                        u, delta, guess=guess, delta_prev=d1, rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL
+                        u,
+                        delta,
+                        guess=self._guess(history, delta),
+                        delta_prev=history[-1][0],
+                        rtol=1e-9 if r_try >= target - 1e-12 else STEP_RTOL,
                     )
+                    energy, rate = self._path_check(history[-1], delta, ev)
                 except ConvergenceError as exc:
+                    unstable |= isinstance(exc, InstabilityError)
                     step /= 2
                     if step < min_step:
                         bar.close()
-                        # the last attempt's reason alone ("step too large") would read as if a
-                        # larger step had been tried; say that the march itself has stalled
                         raise ConvergenceError(
-                            f"scene {self.scene.name!r}: the solver does not converge: cannot reach compression "
-                            f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %) on the way to {100 * target:.2f} %, "
-                            f"the load step halved below {100 * min_step:.2g} %; last attempt: {exc}"
+                            self._stall_message(r_try, r_now, target, min_step, history[-1], unstable, exc)
                         ) from exc
                     continue
-                u, r_now = u_new, r_try
-                history = [history[-1], (delta, u)]
+                u, r_now, unstable = u_new, r_try, False
+                history = [history[-1], (delta, u, energy, rate)]
                 total_steps += 1
                 if on_step is not None:
                     on_step(r_now, its, time.perf_counter() - t_step)
@@ -786,23 +810,129 @@ class Solver:
             if not states or states[-1].ratio != target:
                 if r_now == 0.0:
                     u, ev, its = self._newton(u, 0.0)
-                delta = target * self.gap0 * per_plate
-                states.append(self._state(u, ev, target, delta, iters_total, total_steps))
-                states[-1].solver = self
-                if states[-1].linear_min_stretch < SVK_LIMIT_STRETCH:
-                    warnings.warn(
-                        f"scene {self.scene.name!r} at compression {100 * target:.2f} %: a 'linear' (St "
-                        f"Venant-Kirchhoff) material is stretched to {states[-1].linear_min_stretch:.3f}, below "
-                        f"1/sqrt(3) = {SVK_LIMIT_STRETCH:.3f} where its stress peaks and then falls: it no longer "
-                        "describes a solid there (use neo-hookean)",
-                        MaterialWarning,
-                        stacklevel=2,
-                    )
+                states.append(self._keep_state(u, ev, target, target * self.gap0 * per_plate, iters_total, total_steps))
                 if on_state is not None:
                     on_state(states[-1])
             bar.update(1)
         bar.close()
         return states
+
+    def _guess(self, history, delta):
+        """The next step's start: the last two equilibria extrapolated (the homogeneous
+        compression's increment after the first)."""
+        d1, u1 = history[-1][:2]
+        if len(history) > 1:
+            d0, u0 = history[-2][:2]
+            return u1 + (delta - d1) / (d1 - d0) * (u1 - u0)
+        return u1 + self._homogeneous(delta) - self._homogeneous(d1)
+
+    def _plate_rate(self, ev) -> float:
+        """dPi/d delta at an equilibrium: the plate's force on the model (contact: the penalty
+        force; flat plates: minus the residual on the dofs held at -delta)."""
+        if self.contact is not None:
+            return float(ev["contact_force"])
+        return -float(np.sum(ev["R"][self.moving]))
+
+    def _path_check(self, last, delta, ev):
+        """Refuse a load step that left its equilibrium branch; returns (energy, dPi/d delta).
+
+        Along one branch dPi/d delta is the plate force (the plates alone do work, frictionless,
+        hyperelastic), so the energy's change over a step is the trapezoid of the end forces to
+        O(step^3). Past a limit point the branch ends and Newton lands on another one (a crease,
+        a collapsed inclusion): the energy then drops by what the snap releases, and where the
+        march goes on (or stops) depends on how the user split the steps. ``SNAP_TOL`` of
+        step x force separates the two."""
+        d0, _, e0, f0 = last
+        f = self._plate_rate(ev)
+        mismatch = ev["energy"] - e0 - (delta - d0) * (f0 + f) / 2
+        floor = 1e-12 * float(np.max(self.mu)) * self.H**3
+        if abs(mismatch) > SNAP_TOL * (delta - d0) * max(abs(f0), abs(f)) + floor:
+            raise InstabilityError(
+                f"the step snapped to another equilibrium branch (its energy change differs from the plates' work "
+                f"by {abs(mismatch) / max((delta - d0) * max(abs(f0), abs(f)), 1e-300):.2g} of step x force)"
+            )
+        return ev["energy"], f
+
+    def _stall_message(self, r_try, r_now, target, min_step, last, unstable, exc) -> str:
+        """One line: where the march stalled, what was asked, and why where known (a 'linear'
+        material past its limit point, or a limit point of the equilibrium path)."""
+        # the last attempt's reason alone ("step too large") would read as if a larger step had
+        # been tried; say that the march itself has stalled
+        msg = (
+            f"scene {self.scene.name!r}: the solver does not converge: cannot reach compression "
+            f"{100 * r_try:.2f} % (from {100 * r_now:.2f} %) on the way to {100 * target:.2f} %, "
+            f"the load step halved below {100 * min_step:.2g} %"
+        )
+        ev = self.evaluate(last[1], self.H - last[0] if self.contact is not None else None, need_tangent=False)
+        stretch = self._svk_min_stretch(ev["F"]) if ev is not None else float("nan")
+        if stretch < SVK_LIMIT_STRETCH:
+            msg += (
+                f": a 'linear' (St Venant-Kirchhoff) material is stretched to {stretch:.3f} at {100 * r_now:.2f} %, "
+                f"past 1/sqrt(3) = {SVK_LIMIT_STRETCH:.3f} where its stress peaks, and collapses beyond: no solid "
+                "equilibrium lies further (use neo-hookean)"
+            )
+        elif unstable:
+            msg += (
+                f": the equilibrium becomes unstable at {100 * r_now:.2f} % (a limit point{self._where_unstable(last)})"
+            )
+        return f"{msg}; last attempt: {exc}"
+
+    def _where_unstable(self, last) -> str:
+        """The unstable mode's place and what it means, for the stall message."""
+        found = self._unstable_mode(last[1], last[0])
+        if found is None:
+            return ": the body buckles, a free surface creases or a material softens"
+        where, region = found
+        at = "(" + ", ".join(f"{x:.1f}" for x in where) + ") mm"
+        if region == 0:
+            return f" in the body, largest at {at}: it buckles or a free surface creases, which this model, without self-contact, cannot follow"
+        mat = self.scene.inclusions[region - 1].material
+        hint = (
+            ": St Venant-Kirchhoff's energy is not convex in strong compression (use neo-hookean)"
+            if mat.model == "linear"
+            else ""
+        )
+        return f" in inclusions[{region - 1}] ({mat.model} {mat.name!r}), largest at {at}{hint}"
+
+    def _unstable_mode(self, u, delta):
+        """Where the equilibrium at ``u`` loses stability: the eigenvector of the tangent's
+        eigenvalue nearest zero (one shift-invert Lanczos, at a stall only). Returns the node of
+        largest amplitude (mm) and the region (0: the body, i + 1: inclusion i) of most of the
+        mode's amplitude."""
+        ev = self.evaluate(u, self.H - delta if self.contact is not None else None)
+        if ev is None or not self.free.size:
+            return None
+        K = ev["K"][self.free][:, self.free].tocsc()
+        shift = 1e-8 * float(np.abs(K.diagonal()).mean())
+        try:
+            lu = self._factorise((K + shift * sp.identity(K.shape[0], format="csc")).tocsc())
+            op = spla.LinearOperator(K.shape, lu.solve)
+            _, vec = spla.eigsh(K, k=1, sigma=-shift, OPinv=op, which="LM", tol=1e-3, maxiter=200)
+        except (ConvergenceError, spla.ArpackNoConvergence, RuntimeError):
+            return None
+        v = np.zeros(self.ndof)
+        v[self.free] = vec[:, 0]
+        amp = np.linalg.norm(v.reshape(self.n_nodes, self.dim), axis=1)
+        where = self.dof_points[:, int(np.argmax(amp))]
+        # the mode's amplitude per element (its nodes'), summed per region
+        per_element = (amp[self.basis.element_dofs.T] ** 2).sum(axis=1)
+        region = int(np.argmax(np.bincount(self.region, per_element)))
+        return where, region
+
+    def _keep_state(self, u, ev, target, delta, iterations, steps) -> State:
+        """The requested state, warned about where a 'linear' material is past its limit point."""
+        state = self._state(u, ev, target, delta, iterations, steps)
+        state.solver = self
+        if state.linear_min_stretch < SVK_LIMIT_STRETCH:
+            warnings.warn(
+                f"scene {self.scene.name!r} at compression {100 * target:.2f} %: a 'linear' (St "
+                f"Venant-Kirchhoff) material is stretched to {state.linear_min_stretch:.3f}, below "
+                f"1/sqrt(3) = {SVK_LIMIT_STRETCH:.3f} where its stress peaks and then falls: it no longer "
+                "describes a solid there (use neo-hookean)",
+                MaterialWarning,
+                stacklevel=3,
+            )
+        return state
 
 
 def compress(

@@ -254,10 +254,12 @@ def test_uncoupled_block_force_matches_closed_form():
 
 def test_a_genuine_non_convergence_says_so():
     """A 3 mm cylinder 60 times stiffer than the gel of a plane-strain block, squeezed towards
-    85 %: the gel crushed against the inclusion's poles inverts elements near 40 % on this mesh
-    (measured: a neo-Hookean inclusion alike; a 0.5 mm mesh stalls at 30 %) and the march stalls.
-    It must end in one ConvergenceError that says the solver does not converge, where, and what
-    was asked, not in NaNs (plane strain: a fraction of a second)."""
+    85 %: near 40 % on this mesh the block's free side creases at mid-height (the tangent's
+    lowest eigenmode is largest at (5, 0) mm and turns negative there; not the inclusion's poles:
+    a neo-Hookean inclusion stalls alike, a 0.5 mm mesh at 38.9 %, a crease being a mesh-scale
+    fold), and the march stalls. It must end in one ConvergenceError that says the solver does
+    not converge, where, what was asked and why, not in NaNs (plane strain: a fraction of a
+    second)."""
     from sim.mechanics import ConvergenceError
     from sim.scene import Inclusion, Material, MeshSpec
 
@@ -269,5 +271,64 @@ def test_a_genuine_non_convergence_says_so():
     message = str(err.value)
     assert "the solver does not converge: cannot reach compression" in message
     assert "on the way to 85.00 %" in message and "\n" not in message
+    assert "the equilibrium becomes unstable" in message and "in the body, largest at (5.0, 0.0) mm" in message
     reached = float(message.split("(from ")[1].split(" %")[0])
     assert 10.0 < reached < 85.0
+
+
+def _sphere_in_cylinder():
+    """An 8 mm sphere six times stiffer than the gel in a 20 x 20 mm cylinder (axisymmetric,
+    1 mm at the sphere, 4 mm far: 0.2 s a march)."""
+    from sim.scene import Body, Inclusion, Material, MeshSpec
+
+    gel = Material("gel", "neo-hookean", E_kpa=5.0, nu=0.495)
+    stiff = Material("stiff", "neo-hookean", E_kpa=30.0, nu=0.495)
+    return Scene(
+        name="sphere-in-cylinder",
+        body=Body("cylinder", height_mm=20.0, diameter_mm=20.0, material=gel),
+        inclusions=[Inclusion("sphere", diameter_mm=8.0, material=stiff)],
+        mesh=MeshSpec(1.0, 4.0, "auto", True),
+    )
+
+
+def test_the_result_does_not_depend_on_how_the_steps_are_split():
+    """Hyperelastic body, frictionless plates: the state at a compression is the end of one
+    equilibrium path, whatever the requests on the way. Below the path's limit point the force
+    at 40 % must be the same asked at once or after 20 % (to the solver's 1e-9 residual). The
+    cylinder's free side creases at its equator near 41 % (the tangent's lowest eigenmode sits
+    there and turns negative; a neo-Hookean free surface creases near 35 % surface compression):
+    asked for 80 % at once the march stepped over that limit point onto another branch (the
+    force dropped 1.30 -> 1.19 N in one step) and stalled at 47.6 %, asked 25 % then 80 % it
+    stalled at 41.4 %. Both must now stop at the limit point, within 0.05 % of each other, and
+    say that the equilibrium became unstable, and where."""
+    from sim.mechanics import ConvergenceError
+
+    (at_once,) = compress(_sphere_in_cylinder(), ratios=[0.4])
+    _, split = compress(_sphere_in_cylinder(), ratios=[0.2, 0.4])
+    assert split.plate_force_n == pytest.approx(at_once.plate_force_n, rel=1e-6)
+    reached = []
+    for ratios in ([0.8], [0.25, 0.8]):
+        with pytest.raises(ConvergenceError) as err:
+            compress(_sphere_in_cylinder(), ratios=ratios)
+        message = str(err.value)
+        assert "the equilibrium becomes unstable at" in message and "in the body, largest at" in message
+        reached.append(float(message.split("(from ")[1].split(" %")[0]))
+    assert 40.4 < reached[0] < 45.0  # above the 40 % reached without complaint
+    assert reached[0] == pytest.approx(reached[1], abs=0.05)
+
+
+@pytest.mark.parametrize("model", ["neo-hookean", "neo-hookean-uncoupled", "linear"])
+def test_an_inverted_element_is_refused_for_every_material(model):
+    """J <= 0 is no solid in any model. St Venant-Kirchhoff's polynomial energy is finite there,
+    and the solver used to accept it: seed-breast asked for 80 % at once let its collapsed
+    'linear' tumour turn inside out (inclusion strain 118 %) and reported 80 % as reached,
+    while asked 25 % then 80 % it stalled at 52 %. The point reflection u = -2 X (F = -I) must
+    be refused (evaluate returns None) for every material."""
+    from sim.mechanics import Solver
+    from sim.scene import Material
+
+    scene = block_scene(size_mm=10, E_kpa=5, nu=0.45)
+    scene.body.material = Material("b", model, E_kpa=5.0, nu=0.45)
+    s = Solver(scene)
+    assert s.evaluate(np.zeros(s.ndof), None) is not None
+    assert s.evaluate(-2.0 * s.dof_points.T.ravel(), None) is None
