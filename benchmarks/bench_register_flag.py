@@ -126,6 +126,7 @@ def _row(meta, label, name, reg, truth, mask, ident, sec):
         seconds=sec,
         observed=float(obs.sum() / mask.sum()),
         misaligned=reg.quality.misaligned_fraction,
+        kept=reg.quality.excess_kept,
         step=reg.quality.residual_motion,
         epe_observed=float(np.median(e[obs])) if obs.sum() > 50 else None,
     )
@@ -310,8 +311,10 @@ def rule_ok(x, q, bound_scale, min_observed, max_step, excess, max_misaligned, m
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
     the result's ``Quality`` for the reasons the thresholds do not touch). Subsampled, so a
     result near a threshold may differ from ``register()``'s."""
-    from radiokit.register import _BODY_SCALE_PRESETS, _BODY_SCALE_PX
+    from radiokit.register import _BODY_SCALE_PRESETS, _BODY_SCALE_PX, _MAX_KEPT
 
+    if q.excess_kept > _MAX_KEPT:  # not swept (session 18: chosen from the training rows' values)
+        return False
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
     obs = x["b1"] * bound_scale <= 0.5

@@ -1355,3 +1355,40 @@ def test_a_peer_option_out_of_range_is_refused_naming_it(method, option, value):
     f, _ = _phantom(64)
     with pytest.raises(ValueError, match=f"^{method} {option}="):
         register(f, np.roll(f, 1, axis=0), method, **{option: value})
+
+
+def _clock_pair(shift, shape=(300, 517), seed=200):
+    """scikit-image's clock as line integrals, the fixed image the moving one pulled by a rigid
+    ``shift`` (rows, cols) with a slow 10 % gain, Poisson counts of 5000 in both."""
+    import cv2
+    from skimage import data
+
+    pic = data.clock().astype(np.float32)
+    pic = cv2.resize((pic - pic.min()) / np.ptp(pic), shape[::-1], interpolation=cv2.INTER_AREA)
+    mu = 0.3 + 1.5 * pic.astype(np.float64)
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    pulled = ndimage.map_coordinates(mu, [yy + shift[0], xx + shift[1]], order=3, mode="reflect")
+    gain = 1.0 + 0.1 * (xx / shape[1] - 0.5) + 0.05 * np.sin(3 * yy / shape[1])
+    rng = np.random.default_rng(seed)
+
+    def counts(m, g):
+        return (-np.log(np.maximum(rng.poisson(5000 * g * np.exp(-m)), 1) / 5000)).astype(np.float32)
+
+    return counts(pulled, gain), counts(mu, 1.0)
+
+
+def test_a_motion_beyond_capture_range_is_not_trusted():
+    """Found on pairs nothing was chosen on (session 18): a 100 px shift, far beyond rc's capture
+    range, was trusted at 98 px of error: the stiff `silent` lattice moved a little, the residual's
+    Gauss-Newton step underestimates so large a misalignment (0.30 px) and 44 % misaligned is
+    under the half. The registration had kept more of the pair's misaligned structure than it
+    started with (``excess_kept`` 1.6); a good registration keeps a few per cent."""
+    fixed, moving = _clock_pair((60.0, 80.0))
+    reg = register(fixed, moving, "rc", preset="silent")
+    assert np.median(np.hypot(reg.displacement[0] - 60, reg.displacement[1] - 80)) > 90  # it failed
+    assert not reg.quality.ok and "did not find the motion" in reg.quality.reason, reg.quality.reason
+    assert reg.quality.excess_kept > 1
+    fixed, moving = _clock_pair((1.8, 2.4))  # a 3 px shift, found (the clock's flat face aside)
+    reg = register(fixed, moving, "rc")
+    assert np.median(np.hypot(reg.displacement[0] - 1.8, reg.displacement[1] - 2.4)) < 1.0
+    assert reg.quality.excess_kept < 0.1 and "did not find" not in reg.quality.reason
