@@ -74,9 +74,9 @@ class Quality:
     ``radiokit.register._confidence``); ``residual_motion``: the median over the observed part
     of what one Gauss-Newton step on the residual would still move (full-resolution px, a
     detection statistic that underestimates large misalignments); ``excess_kept``: the mean
-    excess of that residual over the noise's share across the observed part, after registering
-    against before (0: all the misaligned structure explained; 1 or more: none of it, or made
-    worse; NaN when the pair showed no more than a tenth before); ``noise``: the noise level
+    excess of that residual over the noise's share after registering against before, over the
+    observed windows that showed over a tenth before (0: all the misaligned structure explained;
+    1 or more: none of it, or made worse; NaN when under 1 % of the observed part showed any); ``noise``: the noise level
     estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
     object), divergence (similarity worse than not registering), non-convergence, too little of
     the interior observed (under half: the field there is the regulariser's guess, whatever the
@@ -471,7 +471,7 @@ def _observed(reg, f, m, w, d, mask, k=1):
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
     inner = _interior(ob.object)
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
-    q.misaligned_fraction, q.excess_kept = _misaligned(f, m, w, d, obs)
+    q.misaligned_fraction, q.excess_kept = _misaligned(f, m, w, d, obs, mask)
     q.residual_motion = _residual_step(f, w, obs, k)
     reasons = []
     if q.interior_observed < _MIN_OBSERVED:
@@ -579,21 +579,27 @@ def _interior(obj):
     return _erode(obj, int(round(_INTERIOR * _WINDOW)))
 
 
-def _misaligned(f, m, w, d, obs):
+def _misaligned(f, m, w, d, obs, mask=None):
     """``(share, kept)``: the share of ``obs`` where the residual ``w - f`` exceeds the noise's
     expected share by more than _EXCESS of it, and by more than a quarter of the excess before
     registering (which keeps interpolation error on noise-free data from counting); and the mean
-    excess over ``obs`` after registering against before (``Quality.excess_kept``), NaN when the
-    pair showed no more than _EXCESS before (nothing misaligned to keep) or nothing is observed."""
+    excess after registering against before over the part of ``obs`` whose excess before was over
+    _EXCESS (``Quality.excess_kept``), NaN when that part is under 1 % of ``obs`` (nothing
+    misaligned to keep) or nothing is observed."""
     from radiokit.register import _confidence as C
 
     if not obs.any():
         return float("nan"), float("nan")
     sig = C.noise_map(f, _WINDOW)
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
-    after = C.consistency(f, w, _WINDOW, sig, factor) - 1.0
-    before = C.consistency(f, m, _WINDOW, sig) - 1.0
+    after = C.consistency(f, w, _WINDOW, sig, factor, support=mask) - 1.0
+    before = C.consistency(f, m, _WINDOW, sig, support=mask) - 1.0
     bad = (after > _EXCESS) & (after * factor > 0.25 * 2.0 * np.maximum(before, 0))
-    was = float(np.mean(np.maximum(before[obs], 0)))
-    kept = float(np.mean(np.maximum(after[obs], 0))) / was if was > _EXCESS else float("nan")
+    # kept: over the windows that showed misaligned structure before (a static structure the
+    # field moves, such as a collimator's edge at a mask's border, adds excess where there was
+    # none: a good field at 0.29 px read 10x)
+    showed = obs & (before > _EXCESS)
+    kept = float("nan")
+    if showed.mean() > 0.01:
+        kept = float(np.mean(np.maximum(after[showed], 0)) / np.mean(before[showed]))
     return float(np.mean(bad[obs])), kept

@@ -276,16 +276,20 @@ def interpolation_variance(displacement, spacing):
     return _gauss(((1 - a) ** 2 + a * a) * ((1 - b) ** 2 + b * b), spacing)
 
 
-def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0):
+def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0, support=None):
     """Local mean square of the residual ``warped - fixed`` that a slow intensity change cannot
     explain, over the noise's expected share ``noise_factor x sigma^2`` (about 1 for noise
     alone; ``noise_factor`` 2 for two independent noisy images, ``1 + interpolation_variance``
     for a warped one): both high-passed at ``spacing`` px, then, in a Gaussian window of
     ``spacing`` px, the part proportional to the high-passed fixed image removed (a thinning or
     gain change locally scales the image's structure; a misalignment ``d . grad f`` is not
-    proportional to it)."""
+    proportional to it). ``support`` (bool, optional): the residual outside it is taken as 0, so
+    that what the caller's mask excludes (a collimator's static edge, which a field warps out of
+    place) does not reach the windows inside it."""
     f = np.asarray(fixed, np.float32)
     r = np.asarray(warped, np.float32) - f
+    if support is not None:
+        r = np.where(support, r, np.float32(0))
     r = r - _gauss(r, spacing)
     fh = f - _gauss(f, spacing)
     s = noise_map(f, spacing) if sigma_map is None else sigma_map
