@@ -50,14 +50,20 @@ _READ_SLICE_S = 0.05
 _LINE_ENDS = (b"\r", b"\n")
 
 
+#: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
+#: Greek mu Unicode normalisation makes of it)
+_MICRO = (b"\xc2\xb5", b"\xce\xbc", b"\xb5")
+
+
 def _text(raw: bytes) -> str:
-    """A reply line as text. Controllers write ASCII, but some write units with the micro sign
-    (``250µA``) in UTF-8 or in an 8-bit code page: both must reach a parser as ``µ``, where
-    an ASCII decoding turned them into replacement characters nobody can parse."""
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError:
-        return raw.decode("latin-1")  # every byte is a character: nothing is lost or replaced
+    """A reply line as text: ASCII, with the micro sign (``250µA``) in any of :data:`_MICRO`
+    read as ``µ``, and every other byte above 127 a replacement character. Why not a permissive
+    decoding: the parsers read digits and spaces with Unicode-aware patterns, so a garbled line
+    decoded as UTF-8 or Latin-1 could read as a valid state (``STS \xd9\xa2`` is an Arabic-Indic
+    2, "X-rays off"), and a confirmation must never come from a garbled reply."""
+    for micro in _MICRO[:-1]:
+        raw = raw.replace(micro, _MICRO[-1])
+    return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
 
 
 class SerialTransport:
@@ -108,7 +114,7 @@ class SerialTransport:
         baudrate: int = 9600,
         timeout_s: float = 1.0,
         write_timeout_s: float = 1.0,
-        min_interval_s: float = 0.05,
+        min_interval_s: float = 0.06,  # the dialects' (acquisition.l8121.DIALECT_A)
         terminator: str = "\r",
         retries: int = 1,
         log: logging.Logger = logger,
@@ -336,7 +342,7 @@ class PipeTransport:
         *,
         timeout_s: float = 1.0,
         baudrate: int = 9600,
-        min_interval_s: float = 0.05,
+        min_interval_s: float = 0.06,  # the dialects' (acquisition.l8121.DIALECT_A)
         log: logging.Logger = logger,
     ):
         self.url = str(url)

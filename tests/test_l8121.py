@@ -1439,3 +1439,26 @@ def test_the_guardians_watch_is_not_disarmed_by_a_reply_the_driver_never_takes_a
     assert not watch.may_be_on
     watch.replied(query, "XON")
     assert watch.may_be_on
+
+
+@pytest.mark.parametrize(
+    "dialect, raw",
+    [
+        ("A", b"STS \xd9\xa2"),  # an Arabic-Indic 2 in UTF-8
+        ("A", b"STS \xef\xbc\x92"),  # a full-width 2
+        ("A", b"STS\xa02"),  # a no-break space (Latin-1)
+        ("B", b"STS NOT\x85READY"),  # NEL, a Unicode line break, inside the word
+    ],
+)
+def test_a_garbled_reply_never_reads_as_a_state(dialect, raw):
+    """Found in review: replies decoded as UTF-8, else Latin-1 (to read B's ``250µA``), met the
+    parsers' Unicode-aware digits and spaces, so these garbled lines parsed as valid states --
+    A's STANDBY, an X-rays-off state a switch-off would take as confirmed. Only the micro sign
+    is read beyond ASCII."""
+    from acquisition.l8121 import DIALECT_A, DIALECT_B
+    from acquisition.transport import _text
+
+    query = (DIALECT_A if dialect == "A" else DIALECT_B).readings["state"]
+    with pytest.raises(ValueError):
+        query.parse(_text(raw))
+    assert _text(b"SPC 250\xb5A") == _text(b"SPC 250\xc2\xb5A") == _text(b"SPC 250\xce\xbcA") == "SPC 250µA"
