@@ -137,7 +137,8 @@ def test_radiokit_experiment_missing_its_keys_stays_an_error(tmp_path):
 
 
 # A writer that stays open until its stdin closes: in SWMR mode as detector software writes, or
-# plainly (holding the HDF5 file lock); "exit" leaves without closing, as a killed writer does.
+# plainly (holding the HDF5 file lock); "exit" and "plain-exit" leave without closing, as a killed
+# writer does.
 _OPEN_WRITER = """
 import os, sys, h5py, numpy as np
 path, mode = sys.argv[1], sys.argv[2]
@@ -146,12 +147,12 @@ f = h5py.File(path, "w", libver="latest")
 ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
 f["entry"].attrs["NX_class"] = "NXentry"
 f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
-if mode != "plain":
+if mode not in ("plain", "plain-exit"):
     f.swmr_mode = True
 ds.resize((2, 30, 40))
 ds[:] = frames
 f.flush()
-if mode == "exit":
+if mode in ("exit", "plain-exit"):
     os._exit(0)
 print("ready", flush=True)
 sys.stdin.read()
@@ -201,6 +202,24 @@ def test_hdf5_held_by_a_writer_without_swmr_says_so(tmp_path, monkeypatch):
         proc.communicate("")
         watchdog.cancel()
     assert read(path).n == 2  # and once closed, it reads
+
+
+@pytest.mark.parametrize("reader", ["frames", "registration"])
+def test_hdf5_left_open_by_a_killed_writer_without_swmr_says_so(tmp_path, reader):
+    """Found in review: a plain writer (no SWMR) killed before closing leaves its file marked open
+    for write, as a SWMR one does; the SWMR retry then failed with libhdf5's "file is not already
+    open for SWMR writing", untranslated, and the typed-layout readers (registration, results,
+    stacks) never retried at all. One line in words, naming h5clear, from every reader."""
+    from radiokit.io import read_registration
+
+    path = tmp_path / "killed.h5"
+    proc, watchdog = _open_writer(path, "plain-exit")
+    try:
+        assert proc.wait() == 0
+    finally:
+        watchdog.cancel()
+    with pytest.raises(FormatError, match=r"killed\.h5: is marked open for writing .*h5clear"):
+        read(path) if reader == "frames" else read_registration(path)
 
 
 def _matlab_v73(path, **variables):
@@ -288,6 +307,18 @@ def test_image_formats_not_read_are_named_not_taken_for_raw_frames(tmp_path, wri
         read(path)
     raw = read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1")
     np.testing.assert_array_equal(raw.data[0, 0], np.frombuffer(path.read_bytes(), np.uint8))
+
+
+def test_a_raw_frame_whose_first_bytes_look_like_a_signature_is_read(tmp_path):
+    """Found in review: the signature table was checked for .raw files too, so a headerless
+    little-endian uint16 frame whose first pixel is 0xD8FF and second's low byte 0xFF was refused
+    as "a JPEG image". A .raw file's bytes are pixels (as ITEX's b'IM' is checked only for .img)."""
+    frame = _frames(n=1)[0].astype("<u2")
+    frame.flat[0], frame.flat[1] = 0xD8FF, 0x12FF
+    path = tmp_path / "frame.raw"
+    path.write_bytes(frame.tobytes())
+    got = read(path, shape=frame.shape, dtype="<u2")
+    np.testing.assert_array_equal(got.data[0], frame)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ file; :func:`open_layout` turns each into one :class:`FormatError` line that doe
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import stat
@@ -19,7 +20,7 @@ import numpy as np
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
 
-__all__ = ["open_layout", "check_regular_file", "ReadBudget", "text", "check_finite"]
+__all__ = ["open_h5", "open_layout", "check_regular_file", "ReadBudget", "text", "check_finite"]
 
 #: what libhdf5 and h5py raise on a corrupt file (RecursionError: links nested past Python's limit)
 _H5_ERRORS = (OSError, RuntimeError, KeyError, TypeError, ValueError, RecursionError)
@@ -33,7 +34,7 @@ def open_layout(path, what: str):
     """
     check_regular_file(path, what)
     try:
-        h5 = h5py.File(path, "r")
+        h5 = open_h5(path)
     except OSError as exc:
         raise FormatError(
             path, f"cannot be opened as HDF5, so not {what} (truncated or another format): {_one_line(exc)}"
@@ -45,6 +46,36 @@ def open_layout(path, what: str):
         raise
     except _H5_ERRORS as exc:
         raise FormatError(path, f"corrupt, not {what}: {type(exc).__name__}: {_one_line(exc)}") from exc
+
+
+def open_h5(path) -> h5py.File:
+    """Open an HDF5 file for reading, also while another program writes it.
+
+    A writer in SWMR mode (detector and beamline software), or one killed in it, leaves the file
+    marked open for write, which only a SWMR reader may open: read it so, as it stands. A writer
+    without SWMR holds the file's lock, or left its mark unclosed (killed; or alive where file
+    locking is off, as on many NFS and Lustre mounts): its file cannot be read consistently, and
+    libhdf5's "unable to lock file, errno = 11" or "file is not already open for SWMR writing"
+    are said in words instead. Other failures propagate as OSError for the caller to name.
+    """
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        if exc.errno == errno.EAGAIN or "unable to lock file" in str(exc):
+            raise FormatError(
+                path,
+                "is open for writing by another program (it holds the HDF5 file lock): read it once that is closed",
+            ) from None
+        if "already open for write" not in str(exc):
+            raise
+    try:
+        return h5py.File(path, "r", swmr=True)
+    except OSError:
+        raise FormatError(
+            path,
+            "is marked open for writing by a program that is still writing it or was stopped before "
+            "closing it: read it once it is closed (a file left so by a crash: `h5clear -s` it first)",
+        ) from None
 
 
 def check_regular_file(path, what: str) -> None:

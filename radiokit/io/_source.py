@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import errno
 import json
 import math
 import os
@@ -27,6 +26,7 @@ from radiokit.io._experiment import (
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
+from radiokit.io._layout import open_h5, text
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
@@ -127,9 +127,13 @@ def sniff(path) -> str:
         return "itex"
     if not head:
         raise FormatError(path, "file is empty")
-    for offset, magic, what, advice in _FOREIGN:
+    # a .raw/.bin/.dat file is headerless pixels, whatever its first bytes (a first pixel of
+    # 0xD8FF followed by 0xFF.. reads as JPEG's signature), as ITEX's b'IM' above
+    for offset, magic, what, advice in _FOREIGN if ext != "raw" else ():
         if start[offset : offset + len(magic)] == magic:
-            raise FormatError(path, f"{what}, which radiokit does not read: {advice}")
+            raise FormatError(
+                path, f"{what}, which radiokit does not read: {advice} (format='raw' reads its bytes as pixels)"
+            )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
@@ -430,7 +434,7 @@ class FrameSource:
         return frame
 
     def _open_hdf5(self, dataset=None, **hints):
-        self._h5 = _open_h5(self.path)
+        self._h5 = open_h5(self.path)
         if not dataset:
             check_links(self.path, self._h5, FRAMES, self._allow_external)
             if not _is_experiment(self._h5):
@@ -450,7 +454,7 @@ class FrameSource:
             n = 1 if data.ndim == 2 else data.shape[0]
             meta = {"format": "hdf5", "dataset": dataset}
             if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
-                meta["matlab_class"] = _text(data.attrs["MATLAB_class"])
+                meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:
                 meta.update(self._keys_beside(dataset, n))
         else:
@@ -657,27 +661,6 @@ class _DatasetStack:
         return self._datasets[i][()].astype(self.dtype, copy=False)
 
 
-def _open_h5(path) -> h5py.File:
-    """Open an HDF5 file for reading, also while another program writes it.
-
-    A writer in SWMR mode (detector and beamline software), or one killed in it, leaves the file
-    marked open for write, which only a SWMR reader may open: read it so, as it stands. A writer
-    without SWMR holds the file's lock, and its file cannot be read consistently: say so in
-    words rather than libhdf5's "unable to lock file, errno = 11".
-    """
-    try:
-        return h5py.File(path, "r")
-    except OSError as exc:
-        if "already open for write" in str(exc):
-            return h5py.File(path, "r", swmr=True)
-        if exc.errno == errno.EAGAIN or "unable to lock file" in str(exc):
-            raise FormatError(
-                path,
-                "is open for writing by another program (it holds the HDF5 file lock): read it once that is closed",
-            ) from None
-        raise
-
-
 def _is_experiment(h5: h5py.File) -> bool:
     """Whether ``h5`` is an experiment file: frames at :data:`FRAMES` with their ``image_key``
     (NXtomo's layout), or radiokit's ``@frames_complete`` (then a missing key is an error). The
@@ -712,11 +695,6 @@ def _nexus_signal(h5: h5py.File) -> str | None:
     if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
         return None
     return f"{data.name}/{signal}"
-
-
-def _text(value) -> str:
-    """An HDF5 string attribute as text, whether stored fixed-length (bytes) or variable."""
-    return value.decode("latin-1") if isinstance(value, bytes) else str(value)
 
 
 def _nx_class(group) -> str:
