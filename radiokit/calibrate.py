@@ -573,7 +573,12 @@ def _unused_low_bits(stacks, most=8) -> int:
         used |= int(np.bitwise_or.reduce(np.asarray(s), axis=None))
     if used == 0:
         return 0
-    return min((used & -used).bit_length() - 1, most)
+    bits = min((used & -used).bit_length() - 1, most)
+    # Noise-free frames (synthetic, or a constant flat at a round number such as 4064 = 0xFE0)
+    # leave low bits unused too, and would put the top at their own level: every pixel
+    # "saturated". MSB-aligned frames of a real panel vary over many levels of their counts.
+    sample = np.concatenate([np.asarray(s).ravel()[:: max(1, np.asarray(s).size // 50_000)] for s in stacks])
+    return bits if np.unique(sample >> bits).size >= 32 else 0
 
 
 def frame_saturation(saturation, raw) -> int | None:

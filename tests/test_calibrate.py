@@ -287,6 +287,10 @@ def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
     _, report = correct_frames(cal, bright << 4, domain="linear", return_report=True)
     assert report.saturated.tolist() == [6]
     assert adc_top(darks, flats) == 4095 and adc_top(flats.astype(np.float32) * 16) == 65535
+    # noise-free frames at round numbers leave low bits unused too (review): 4064 = 0xFE0 is a
+    # flat's level, not the ADC's top
+    flat = np.full((3, 16, 16), 4064, np.uint16)
+    assert adc_top(np.full((3, 16, 16), 96, np.uint16), flat) == 4095
 
 
 def test_a_16_bit_experiment_file_warns_of_its_bit_depth_once(tmp_path):
