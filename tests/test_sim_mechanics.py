@@ -1,5 +1,7 @@
 """Scenes, meshing and mechanics checked against closed forms (issue 3, first part)."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -271,7 +273,13 @@ def test_a_genuine_non_convergence_says_so():
     message = str(err.value)
     assert "the solver does not converge: cannot reach compression" in message
     assert "on the way to 85.00 %" in message and "\n" not in message
-    assert "the equilibrium becomes unstable" in message and "in the body, largest at (5.0, 0.0) mm" in message
+    assert "the equilibrium becomes unstable" in message
+    # the unstable mode on the block's free side at mid-height (a crease), within a mesh element:
+    # ARPACK's eigenvector is found to a tolerance, so its largest node may move by one
+    place = re.search(r"in the body, largest at \((-?[\d.]+), (-?[\d.]+)\) mm", message)
+    assert place is not None, message
+    x, y = float(place.group(1)), float(place.group(2))
+    assert abs(abs(x) - 5.0) <= 1.0 and abs(y) <= 2.0, (x, y)
     reached = float(message.split("(from ")[1].split(" %")[0])
     assert 10.0 < reached < 85.0
 
