@@ -82,8 +82,9 @@ def test_nexus_detector_single_image_is_one_frame(tmp_path):
     np.testing.assert_array_equal(f.data[0], frame)
 
 
-def _nxtomo(path, frames, keys, entry="entry0000"):
-    """NXtomo as nxtomomill and tomoscan write it: keys beside the frames, both linked into NXdata."""
+def _nxtomo(path, frames, keys, entry="entry0000", linked=("data", "image_key")):
+    """NXtomo as nxtomomill and tomoscan write it: keys beside the frames, both (``linked``) linked
+    into NXdata."""
     with h5py.File(path, "w") as h5:
         e = _nx_class(h5.create_group(entry), "NXentry")
         det = _nx_class(e.create_group("instrument/detector"), "NXdetector")
@@ -91,7 +92,7 @@ def _nxtomo(path, frames, keys, entry="entry0000"):
         det["image_key"] = np.asarray(keys, np.int32)
         data = _nx_class(e.create_group("data"), "NXdata")
         data.attrs["signal"] = "data"
-        for name in ("data", "image_key"):
+        for name in linked:
             data[name] = h5py.SoftLink(f"/{entry}/instrument/detector/{name}")
 
 
@@ -115,6 +116,9 @@ def test_nxtomo_keys_beside_the_frames_tell_darks_and_flats(tmp_path):
     np.testing.assert_allclose(cal.dark, expected.dark)
     np.testing.assert_allclose(cal.flat, expected.flat)
     assert read(path, n=4).meta["image_key"].tolist() == keys[:4]  # cut with the frames
+    # found in review: an NXdata linking only the frames lost the keys beside their target
+    _nxtomo(path, frames, keys, linked=("data",))
+    np.testing.assert_array_equal(read(path).meta["image_key"], keys)
 
 
 def test_nxtomo_keys_of_another_length_are_refused(tmp_path):

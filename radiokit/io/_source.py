@@ -477,8 +477,15 @@ class FrameSource:
     def _keys_beside(self, dataset: str, n: int) -> dict:
         """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
         NXdata), so that darks and flats are told from projections as in an experiment file."""
-        name = f"{dataset.rstrip('/').rpartition('/')[0]}/image_key"
-        if self._h5.get(name, getlink=True) is None:
+        link = self._h5.get(dataset, getlink=True)
+        # beside the frames where the signal's soft link points (NXdata may link the frames alone)
+        places = [dataset]
+        if isinstance(link, h5py.SoftLink):  # a relative link is resolved from the link's group
+            target = link.path
+            places.append(target if target.startswith("/") else f"{dataset.rpartition('/')[0]}/{target}")
+        names = [f"{p.rstrip('/').rpartition('/')[0]}/image_key" for p in places]
+        name = next((k for k in names if self._h5.get(k, getlink=True) is not None), None)
+        if name is None:
             return {}
         keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
         if keys.shape != (n,):
