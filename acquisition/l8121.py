@@ -1533,7 +1533,7 @@ class L8121:
         if state == SourceState.OVERLOAD:
             raise SourceFault(f"{self.port}: overload; inspect the tube, then reset() by hand")
         if state not in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP, SourceState.STANDBY):
-            raise DeviceError(f"{self.port}: warm-up not started: controller not ready (state {state.name})")
+            raise DeviceError(f"{self.port}: warm-up not started: {self._not_ready()} (state {state.name})")
         if state == SourceState.STANDBY:
             if not force:
                 return False
@@ -1660,18 +1660,29 @@ class L8121:
             SourceState.WARMUP_NEEDED: "warm-up needed (call warm_up())",
             SourceState.WARMING_UP: "warm-up still running",
             SourceState.XRAY_ON: "X-rays are already on (use set_values() or off())",
-            SourceState.NOT_READY: "controller not ready",
+            SourceState.NOT_READY: None,  # asked below: the likeliest reason is the interlock
             SourceState.SELF_TEST: "controller in self-test",
             SourceState.PREHEATING: "controller pre-heating (STS ERROR)",
         }
         if state == SourceState.OVERLOAD:
             raise SourceFault(f"{self.port}: overload; X-rays not switched on. Inspect the tube, then reset() by hand")
         if state != SourceState.STANDBY:
-            raise DeviceError(f"{self.port}: X-rays not switched on: {reasons[state]} (state {state.name})")
+            why = reasons[state] or self._not_ready()
+            raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.name})")
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
             raise DeviceError(f"{self.port}: X-rays not switched on: the operate switch is {switch}, not REMOTE")
+
+    def _not_ready(self) -> str:
+        """Why a controller reports NOT_READY, where it can say: a unit may report state 5 while
+        its interlock is open (L8121.md lists both without relating them), and "not ready" alone
+        sends the operator looking at the controller rather than the door."""
+        try:
+            closed = self.interlock_closed()
+        except DeviceError:
+            return "controller not ready"
+        return "controller not ready" if closed else "controller not ready: the interlock is open (close it first)"
 
     def _wait_stable(self, kv: int, ua: int, t0: float) -> dict[str, Any]:
         c = self.config

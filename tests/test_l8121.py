@@ -474,6 +474,22 @@ def test_xon_refused_with_interlock_open(warm, dialect, wire):
         assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 1"]
 
 
+def test_not_ready_with_the_interlock_open_says_so(warm, dialect):
+    """A controller may report state 5 (NOT READY) while its interlock is open (s18-h1's model did;
+    L8121.md lists both without relating them): the refusal said only "controller not ready",
+    sending the operator to the controller instead of the door. The emulator has no such state
+    of its own, so the test sets it (the one fake here)."""
+    model, server = warm
+    model.open_interlock()
+    model._state = SourceState.NOT_READY
+    with driver(server, dialect) as src:
+        with pytest.raises(DeviceError, match="controller not ready: the interlock is open"):
+            src.on(60, 250)
+        with pytest.raises(DeviceError, match="warm-up not started: controller not ready: the interlock is open"):
+            src.warm_up(progress=False)
+    assert "XON" not in model.commands and not model.xray_on
+
+
 def test_xon_refused_in_overload(warm, dialect):
     model, server = warm
     model.overload()
