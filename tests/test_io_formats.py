@@ -325,6 +325,27 @@ def test_a_raw_frame_whose_first_bytes_look_like_a_signature_is_read(tmp_path):
     np.testing.assert_array_equal(got.data[0], frame)
 
 
+@pytest.mark.parametrize(
+    "samples, kw, what",
+    [
+        (3, {"photometric": "rgb"}, "an RGB image"),
+        (4, {"photometric": "rgb", "extrasamples": ["unassalpha"]}, "an RGBA image"),
+        (
+            2,
+            {"photometric": "minisblack", "planarconfig": "contig", "extrasamples": ["unassalpha"]},
+            "a grey image with alpha",
+        ),
+    ],
+)
+def test_a_colour_tiff_is_named_as_a_display_copy(tmp_path, samples, kw, what):
+    """s18-h2: a viewer's colour copy of a radiograph was refused as "shape (40, 50, 3); expected a
+    greyscale image", leaving the user to guess; its 8-bit display values are not counts."""
+    path = tmp_path / "view.tif"
+    tifffile.imwrite(path, np.zeros((40, 50, samples), np.uint8), **kw)
+    with pytest.raises(FormatError, match=rf"view\.tif: .*{what}, a viewer's display copy"):
+        read(path)
+
+
 # ------------------------------------------------------------------------------------------------
 # TIFF as other programs write it (these pass today: they guard the layout and bomb checks)
 # ------------------------------------------------------------------------------------------------

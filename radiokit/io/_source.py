@@ -263,6 +263,12 @@ class FrameSource:
                     f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
                     "again with that"
                 )
+            elif first.samplesperpixel in (2, 3, 4) and first.photometric in (1, 2):  # interleaved colour
+                what = {2: "a grey image with alpha", 3: "an RGB image", 4: "an RGBA image"}[first.samplesperpixel]
+                hint = (
+                    f": {what}, a viewer's display copy rather than the detector's counts; read the "
+                    "frames the detector software saved"
+                )
             raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
         if 0 in shape:  # before the layout checks divide by it
             raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
