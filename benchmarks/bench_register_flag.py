@@ -311,9 +311,9 @@ def rule_ok(x, q, bound_scale, min_observed, max_step, excess, max_misaligned, m
     """``ok`` of one result under the given thresholds (``x`` from :func:`rule_inputs`, ``q``
     the result's ``Quality`` for the reasons the thresholds do not touch). Subsampled, so a
     result near a threshold may differ from ``register()``'s."""
-    from radiokit.register import _BODY_SCALE_PRESETS, _BODY_SCALE_PX, _MAX_KEPT
+    from radiokit.register import _BODY_SCALE_PRESETS, _BODY_SCALE_PX
 
-    if q.excess_kept > _MAX_KEPT:  # not swept (session 18: chosen from the training rows' values)
+    if "did not find the motion" in q.reason:  # excess_kept's rule, not swept (session 18)
         return False
     if q.rc_after > q.rc_before or not q.converged or q.folds > max_folds * max(x["n_object"], 1):
         return False
