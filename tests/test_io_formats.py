@@ -346,6 +346,17 @@ def test_a_colour_tiff_is_named_as_a_display_copy(tmp_path, samples, kw, what):
         read(path)
 
 
+def test_an_imagej_stack_with_fewer_pages_than_it_says_is_read_with_a_warning(tmp_path):
+    """s18-h2: an ImageJ stack whose description says images=3 but whose chain holds 2 pages (a
+    writer that crashed, or a file edited) read as 2 frames without a word."""
+    frames = _frames(n=2)
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, frames, description="ImageJ=1.54f\nimages=3\nslices=3\n", metadata=None)
+    with pytest.warns(UserWarning, match=r"stack\.tif: its ImageJ description says images=3 but it holds 2 pages"):
+        got = read(path)
+    np.testing.assert_array_equal(got.data, frames)
+
+
 # ------------------------------------------------------------------------------------------------
 # TIFF as other programs write it (these pass today: they guard the layout and bomb checks)
 # ------------------------------------------------------------------------------------------------

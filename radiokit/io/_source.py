@@ -7,6 +7,7 @@ import math
 import os
 import stat
 import struct
+import warnings
 from pathlib import Path
 
 import h5py
@@ -367,6 +368,15 @@ class FrameSource:
             shape = tif.shaped_metadata[0].get("shape", [])
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
+        if len(pages) > 1 and tif.is_imagej and isinstance(images, int) and images != len(pages):
+            # ImageJ counts every image it wrote: a chain of another length was cut short (a
+            # crashed writer) or edited, and reads as the pages there are, which the user should know
+            warnings.warn(
+                f"{self.path}: its ImageJ description says images={images} but it holds {len(pages)} pages "
+                f"(cut short or edited?): reading the {len(pages)}",
+                UserWarning,
+                stacklevel=2,
+            )
         if len(pages) != 1 or not isinstance(images, int) or images <= 1:
             return None
         if not first.is_contiguous or first.compression != 1:
