@@ -738,24 +738,33 @@ def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file
 
 # -- frames and a full disk ------------------------------------------------------------------------
 
-_FILLED_INSIDE_HDF5 = """
+# A writer appending flats of SIDE x SIDE until a write fails, then printing where and why
+# (argv: path, side); PRELUDE runs first.
+_WRITE_UNTIL_IT_FAILS = """
 import sys
 import numpy as np
 from radiokit.io import ExperimentWriter, ImageKey
-# the one fake here: the writer is told the disk has room, so a frame meets the full disk inside
-# libhdf5 -- as when another program (the vendor software) fills the disk between the writer's
-# space check and its write
-ExperimentWriter._free_bytes = lambda self: 1 << 40
-w = ExperimentWriter(sys.argv[1], shape=(64, 64))
+{prelude}
+side = int(sys.argv[2])
+w = ExperimentWriter(sys.argv[1], shape=(side, side))
 i = 0
 try:
     while True:
-        w.append(np.full((64, 64), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
+        w.append(np.full((side, side), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
         i += 1
 except OSError as exc:
     print("failed at", i, exc.errno, flush=True)
 w.close()
 """
+
+_FILLED_INSIDE_HDF5 = _WRITE_UNTIL_IT_FAILS.format(
+    prelude="""
+# the one fake here: the writer is told the disk has room, so a frame meets the full disk inside
+# libhdf5 -- as when another program (the vendor software) fills the disk between the writer's
+# space check and its write
+ExperimentWriter._free_bytes = lambda self: 1 << 40
+"""
+)
 
 
 @pytest.fixture
@@ -782,7 +791,11 @@ def test_a_frame_cut_short_by_the_disk_stays_invalid(small_disk):
     path = small_disk / "exp.h5"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     r = subprocess.run(
-        [sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path)], check=False, capture_output=True, env=env, timeout=120
+        [sys.executable, "-c", _FILLED_INSIDE_HDF5, str(path), "64"],
+        check=False,
+        capture_output=True,
+        env=env,
+        timeout=120,
     )
     assert r.returncode == 0 and b"failed at" in r.stdout, r.stderr.decode()[-2000:]
     failed_at = int(r.stdout.split()[2])
@@ -832,20 +845,7 @@ def test_full_disk_during_a_series_one_message_and_resume(tmp_path, scene_file, 
     assert np.sum(keys == ImageKey.PROJECTION) == PER_STEP * len(STEPS)
 
 
-_FILE_SIZE_LIMIT = """
-import errno, sys
-import numpy as np
-from radiokit.io import ExperimentWriter, ImageKey
-w = ExperimentWriter(sys.argv[1], shape=(256, 256))
-i = 0
-try:
-    while True:
-        w.append(np.full((256, 256), 1000 + i, np.uint16), image_key=ImageKey.FLAT)
-        i += 1
-except OSError as exc:
-    print("failed at", i, exc.errno, flush=True)
-w.close()
-"""
+_FILE_SIZE_LIMIT = _WRITE_UNTIL_IT_FAILS.format(prelude="")
 
 
 def test_a_file_size_limit_refuses_the_frame_while_the_file_is_whole(tmp_path):
@@ -856,7 +856,7 @@ def test_a_file_size_limit_refuses_the_frame_while_the_file_is_whole(tmp_path):
     path = tmp_path / "exp.h5"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     r = subprocess.run(
-        [sys.executable, "-c", _FILE_SIZE_LIMIT, str(path)],
+        [sys.executable, "-c", _FILE_SIZE_LIMIT, str(path), "256"],
         check=False,
         capture_output=True,
         env=env,
