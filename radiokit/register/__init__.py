@@ -601,9 +601,7 @@ def _misaligned(f, m, w, d, obs, mask=None):
     bad = (after > _EXCESS) & (after * factor > 0.25 * 2.0 * np.maximum(before, 0))
     # kept: over the windows that showed misaligned structure before (a static structure the
     # field moves, such as a collimator's edge at a mask's border, adds excess where there was
-    # none: a good field at 0.29 px read 10x)
-    # ... and a kept excess under the line itself is no misalignment, whatever the ratio (a small
-    # local change that is not motion, a marker or a zinger cluster, read 0.2-0.4 on a good field)
+    # none: a good field at 0.29 px read 10x); the floor on ``left`` is _MAX_KEPT's rule
     showed = obs & (before > _EXCESS) & np.isfinite(after)
     kept = left = float("nan")
     if showed.mean() > 0.01:
