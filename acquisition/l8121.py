@@ -233,6 +233,9 @@ class SourceConfig:
     warmup_timeout_s: float = 1800.0
     warmup_start_s: float = 5.0  # the start command answered, still "warm-up needed" after this: not started
     off_attempts: int = 3
+    # L8121.md does not say how soon STS reads off after XOF (a high-voltage supply ramps down): the
+    # attempts spread over this window, STS asked every poll_s, before the operator is told
+    off_confirm_s: float = 3.0
     beam_drop_fraction: float = 0.5
 
     def __post_init__(self):
@@ -260,6 +263,7 @@ class SourceConfig:
             "poll_s",
             "warmup_timeout_s",
             "warmup_start_s",
+            "off_confirm_s",
             "beam_drop_fraction",
         ):
             _finite(getattr(self, name), name)
@@ -1836,8 +1840,9 @@ class L8121:
         """Switch X-rays off (``XOF``) and confirm with ``STS`` that the tube no longer emits.
 
         Confirmed by a state that cannot emit (not X-rays on, not warming up / ``AGING``, not dialect
-        B's ambiguous ``ERROR``). Tries ``off_attempts`` times (``XOF`` then ``STS``, ``poll_s``
-        apart), but not again after an attempt that got no reply to either (a silent controller:
+        B's ambiguous ``ERROR``). Tries ``off_attempts`` times: ``XOF``, then ``STS`` every
+        ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
+        down), but not again after an attempt that got no reply to either (a silent controller:
         each further attempt would cost two reply time-outs before the operator is told). Returns
         the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
         :attr:`off_failed`.
@@ -1861,6 +1866,7 @@ class L8121:
             self._off_thread, self._off_running = me, True
             self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
         attempts, last, silent = int(self.config.off_attempts), None, False
+        window = max(float(self.config.off_confirm_s), 0.0) / attempts
         try:
             for attempt in range(attempts):
                 if attempt:
@@ -1870,22 +1876,15 @@ class L8121:
                     silent = False
                 except DeviceError as exc:
                     last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
-                try:
-                    state = self._read("state")
-                except DeviceError as exc:
-                    last = exc
-                    if silent and isinstance(exc, NoReply):
-                        # no reply to XOF nor STS: another attempt costs two more time-outs and
-                        # reaches nobody; the operator must hear it now
-                        break
-                    silent = False
-                    continue
-                silent = False
-                if state in _OFF_STATES:
+                state, last, silent = self._await_off(time.monotonic() + window, last, silent)
+                if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     return state
-                last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
+                if silent:
+                    # no reply to XOF nor STS: another attempt costs two more time-outs and
+                    # reaches nobody; the operator must hear it now
+                    break
             # still inside: a failed query here must not call off() again; a silent one is not asked
             why = "; the controller does not answer" if silent else self._why_not_remote()
             tried = f"{attempt + 1} attempt(s)"
@@ -1899,6 +1898,23 @@ class L8121:
                 self._off_thread, self._off_running = None, False
                 self._turns.notify_all()
         raise self.off_failed from last
+
+    def _await_off(self, until: float, last: Exception | None, silent: bool):
+        """Ask ``STS`` (``poll_s`` apart) until it reads a state that cannot emit or ``until``
+        (monotonic) has passed: a tube still ramping down reads on for a while after ``XOF``.
+        Returns (the off state or None, the last error, whether neither XOF nor STS answered)."""
+        while True:
+            try:
+                state = self._read("state")
+            except DeviceError as exc:
+                # a silent XOF and a silent STS: the caller stops; another error: the next attempt
+                return None, exc, silent and isinstance(exc, NoReply)
+            if state in _OFF_STATES:
+                return state, last, False
+            last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
+            if time.monotonic() + self.config.poll_s > until:
+                return None, last, False
+            time.sleep(self.config.poll_s)
 
     def _why_not_remote(self) -> str:
         """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""

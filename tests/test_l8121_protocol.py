@@ -50,7 +50,8 @@ def expected_protocol(dialect, pairs, **config):
     """A connected driver on a :class:`ScriptedTransport`; on leaving, every pair must have been
     exchanged."""
     link = ScriptedTransport(pairs)
-    src = L8121(link, dialect=dialect, poll_s=0.001, **config)
+    # one STS per XOF (off_confirm_s 0): a script lists each exchange, not a ramp-down's polls
+    src = L8121(link, dialect=dialect, **{"poll_s": 0.001, "off_confirm_s": 0.0, **config})
     yield src
     assert link.done(), f"left in the script: {link.pairs[len(link.sent) :]}"
 

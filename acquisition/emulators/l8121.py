@@ -201,6 +201,7 @@ class L8121Model:
         self._silent = self._garbage = self._stuck = self._foreign = False
         self._silent_executes = False
         self._delay_s = 0.0
+        self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
         self._commands, self._takes_argument = self._front_end_a() if dialect == "A" else self._front_end_b()
@@ -398,6 +399,14 @@ class L8121Model:
         with self._lock:
             self._stuck = bool(on)
 
+    def ramp_down(self, delay_s: float) -> None:
+        """After ``XOF``, keep reading X-rays on for ``delay_s`` seconds (a high-voltage supply
+        ramping down; L8121.md does not say how long a real one takes). 0 restores."""
+        if delay_s < 0:
+            raise ValueError(f"delay_s must be >= 0, got {delay_s}")
+        with self._lock:
+            self._off_delay_s = float(delay_s)
+
     def silence(self, on: bool = True, *, execute: bool = False) -> None:
         """Stop answering. ``execute=False``: a dead controller, commands are recorded but neither
         executed nor answered (nothing the software sends can switch the tube off: only the
@@ -541,12 +550,22 @@ class L8121Model:
     def _xof(self, t):
         if self._stuck:
             return "XOF"
+        if self._state == SourceState.XRAY_ON and self._off_delay_s > 0:
+            if not self._ramping_down:  # a repeated XOF does not restart the ramp
+                self._ramping_down = True
+                self._schedule(t + self._off_delay_s, self._ramped_down)
+            return "XOF"
         if self._state == SourceState.XRAY_ON:
             self._state = SourceState.STANDBY
         elif self._state == SourceState.WARMING_UP:  # the warm-up runs the tube: XOF ends it, and must be run again
             self._state, self._warmup = SourceState.WARMUP_NEEDED, WarmupState.NOT_STARTED
         self._beam_dropped = False
         return "XOF"
+
+    def _ramped_down(self, t):
+        self._ramping_down = False
+        if self._state == SourceState.XRAY_ON:
+            self._state, self._beam_dropped = SourceState.STANDBY, False
 
     def _wup(self, t):
         if self._state not in (SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.WARMING_UP):
