@@ -442,6 +442,14 @@ def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect
 
 
 # -- a silent controller is told once ----------------------------------------------------------------
+def _silence_after_xon(model, deadline_s=30.0):
+    end = time.monotonic() + deadline_s
+    while "XON" not in model.received and time.monotonic() < end:
+        time.sleep(0.01)
+    time.sleep(0.1)
+    model.silent = True
+
+
 def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
     """The controller falls silent while the beam ramps: one switch-off (``XOF``, ``STS``, both
     unanswered) and the error -- not a second round on the way out of ``on()``, which cannot
@@ -450,7 +458,9 @@ def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
     model = SpecModel(dialect, warm=True, ramp_s=5.0)
     with served(model) as pty:
         src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.5)
-        threading.Timer(0.5, setattr, (model, "silent", True)).start()
+        # silent once the XON is in (a fixed 0.5 s fell before B's nine commands to XON on a loaded
+        # machine: no XON, rightly no XOF), while the beam ramps
+        threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
         with pytest.raises(DeviceError, match="no reply"):
             src.on(60, 250)
         n_xof = model.received.count("XOF")
