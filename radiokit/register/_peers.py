@@ -585,7 +585,6 @@ def _elastix(
     5), ``bending_weight`` (the bending-energy penalty; 0 = off), ``seed``; ``parameters``: a
     dict of further elastix parameters (values: strings or lists) that override all of these.
     ``mask`` limits the metric (elastix's fixed mask)."""
-    itk = _require("itk", "elastix", "itk-elastix", attr="elastix_registration_method")
     _check_ranges(
         "elastix",
         spacing=(spacing, _POSITIVE, np.inf),
@@ -593,6 +592,8 @@ def _elastix(
         resolutions=(resolutions, 1, np.inf),
         samples=(samples, 1, np.inf),
     )
+    # after the checks: reaching elastix_registration_method loads all of itk (12 s here)
+    itk = _require("itk", "elastix", "itk-elastix", attr="elastix_registration_method")
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
     F = itk.GetImageFromArray(np.ascontiguousarray(f, np.float32))
     M = itk.GetImageFromArray(np.ascontiguousarray(m, np.float32))
