@@ -151,8 +151,13 @@ f = h5py.File(path, "w", libver="latest")
 ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
 f["entry"].attrs["NX_class"] = "NXentry"
 f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
+if mode == "lag":  # NXtomo keys, the writer one frame behind with them
+    keys = f.create_dataset("entry/data/image_key", shape=(0,), maxshape=(None,), dtype="i1", chunks=(4,))
 if mode not in ("plain", "plain-exit"):
     f.swmr_mode = True
+if mode == "lag":
+    keys.resize((1,))
+    keys[0] = 2
 ds.resize((2, 30, 40))
 ds[:] = frames
 f.flush()
@@ -190,6 +195,27 @@ def test_hdf5_written_in_swmr_mode_is_read_as_it_stands(tmp_path, mode):
         proc.communicate("")
         watchdog.cancel()
     np.testing.assert_array_equal(f.data, np.arange(2 * 30 * 40).reshape(2, 30, 40))
+
+
+def test_hdf5_being_written_with_its_keys_behind_reads_the_frames_both_hold(tmp_path):
+    """A SWMR writer extends the frames and their NXtomo image keys one after the other: caught
+    between the two (2 frames, 1 key) the file reads as the frame both hold, with a warning;
+    it was refused as "holds 1 image keys for 2 frames", and a file nobody writes still is."""
+    path = tmp_path / "live.h5"
+    proc, watchdog = _open_writer(path, "lag")
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        with pytest.warns(
+            UserWarning, match=r"live\.h5: is marked as being written .* 1 image keys for 2 frames; reading the first 1"
+        ):
+            f = read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    np.testing.assert_array_equal(f.data, np.arange(30 * 40).reshape(1, 30, 40))
+    assert f.meta["image_key"].tolist() == [2]
+    with pytest.raises(FormatError, match="holds 1 image keys for 2 frames"):
+        read(path)  # closed by its writer: a mismatch that no longer moves
 
 
 def test_hdf5_held_by_a_writer_without_swmr_says_so(tmp_path, monkeypatch):

@@ -473,6 +473,7 @@ class FrameSource:
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:
                 meta.update(self._keys_beside(dataset, n))
+                n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
@@ -504,9 +505,20 @@ class FrameSource:
         if name is None:
             return {}
         keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
-        if keys.shape != (n,):
+        if keys.shape != (n,) and not self._h5.swmr_mode:
             raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
         check_budget(self.path, keys.nbytes, f"the {n} image keys of {keys.name}", self._budget)
+        if keys.shape != (n,):
+            # a file still being written (SWMR): the writer extends the frames and their keys one
+            # after the other, so one may be ahead; what both hold is what has been written
+            m = min(n, keys.shape[0])
+            warnings.warn(
+                f"{self.path}: is marked as being written (SWMR): {keys.name} holds {keys.shape[0]} image keys for {n} "
+                f"frames; reading the first {m}",
+                UserWarning,
+                stacklevel=3,
+            )
+            return {"image_key": keys[:m]}
         return {"image_key": keys[()]}
 
     def _open_calibration(self):
