@@ -195,6 +195,9 @@ class SourceConfig:
     the pause between two commands, ``None`` means the dialect's (0.06 s in both: ``L8121.md``'s
     link rule "a controller may need ~50 ms between commands" holds for both dialects, although
     the L8121-02 driver polls 20 ms apart; "~50" leaves room above 50, so 20 % is added).
+    ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (A 1 s; B 2 s, the
+    L8121-02 driver's wait before a missed reply). ``off_confirm_s``: how long a switch-off's
+    attempts may take for ``STS`` to read off (a supply ramping down).
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -225,7 +228,7 @@ class SourceConfig:
     kv_tolerance: float | str = 1.0
     ua_tolerance: float | str = 5.0
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
-    timeout_s: float = 1.0
+    timeout_s: float | None = None
     probe_timeout_s: float = 0.5
     min_interval_s: float | None = None
     stable_timeout_s: float = 15.0
@@ -257,7 +260,6 @@ class SourceConfig:
             "ua_min",
             "ua_max",
             "watts_max",
-            "timeout_s",
             "probe_timeout_s",
             "stable_timeout_s",
             "poll_s",
@@ -269,6 +271,8 @@ class SourceConfig:
             _finite(getattr(self, name), name)
         if self.min_interval_s is not None:
             _finite(self.min_interval_s, "min_interval_s")
+        if self.timeout_s is not None:
+            _finite(self.timeout_s, "timeout_s")
         if self.voltage_scale is not None and (_finite(self.voltage_scale, "voltage_scale") == 0):
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
         self._check_ceiling()
@@ -285,7 +289,7 @@ class SourceConfig:
             "warmup_start_s",
             "stable_timeout_s",
         ):
-            if getattr(self, name) == 0:
+            if getattr(self, name) == 0:  # timeout_s None: the dialect's
                 raise ValueError(f"L8121 configuration: {name} must be > 0")
         if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
             raise ValueError(f"L8121 configuration: off_attempts must be >= 1, got {self.off_attempts}")
@@ -646,6 +650,7 @@ class Dialect:
     baudrate: int
     voltage_scale: float
     min_interval_s: float
+    timeout_s: float
     readings: Mapping[str, Query]
     settings: Mapping[str, Command]
     poll: tuple[str, ...]
@@ -681,6 +686,8 @@ DIALECT_A = Dialect(
     # L8121.md: "a controller may need ~50 ms between commands"; at exactly 50 ms a unit that
     # needs a little more (55 ms is "~50") loses commands, so the spacing has a margin
     min_interval_s=0.06,
+    # L8121.md gives dialect A no reply time: a second, long beside a serial exchange
+    timeout_s=1.0,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
@@ -722,6 +729,9 @@ DIALECT_B = Dialect(
     voltage_scale=10,
     # not the L8121-02 driver's 20 ms: L8121.md's link rule (~50 ms, with A's margin) holds for both dialects
     min_interval_s=0.06,
+    # L8121.md: the L8121-02 driver "treats 2 s without a reply as a missed reply"; a unit that
+    # answers in 1.5 s is within what that driver allows and must not read as a silent controller
+    timeout_s=2.0,
     evidence="a public Windows driver for the L8121-02 controller",
     readings={
         "state": Query(
@@ -1035,6 +1045,11 @@ class L8121:
         return self.dialect.min_interval_s if self.config.min_interval_s is None else self.config.min_interval_s
 
     @property
+    def timeout_s(self) -> float:
+        """The longest wait for a reply (configuration, else the dialect's: A 1 s, B 2 s)."""
+        return self.dialect.timeout_s if self.config.timeout_s is None else self.config.timeout_s
+
+    @property
     def voltage_scale(self) -> float:
         """kV are multiplied by this in a command argument (configuration, else the dialect's)."""
         return self.config.voltage_scale or self.dialect.voltage_scale
@@ -1075,7 +1090,7 @@ class L8121:
             self._probe()
         if isinstance(self.url, str):
             self._transport = SerialTransport(
-                self.url, baudrate=self.baudrate, timeout_s=self.config.timeout_s, min_interval_s=self.min_interval_s
+                self.url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
             )
         else:
             self._transport = self.url
@@ -1200,6 +1215,7 @@ class L8121:
             baudrate=self.baudrate,
             voltage_scale=self.voltage_scale,
             min_interval_s=self.min_interval_s,
+            timeout_s=self.timeout_s,
         )
 
     def resolve(self) -> SourceConfig:

@@ -730,6 +730,19 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
     model.stuck_on(False)
 
 
+def test_a_b_unit_answering_within_the_l8121_02_drivers_wait_is_not_silent():
+    """L8121.md: the L8121-02 driver "treats 2 s without a reply as a missed reply". A B unit
+    answering every command in 1.4 s is within that, and is talked to; at the former 1 s wait it
+    read as a silent controller. A keeps 1 s (L8121.md gives it no reply time)."""
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server:
+        model.slow(1.4)
+        with L8121(server.url, dialect="B", **FAST) as src:
+            assert src.timeout_s == 2.0 and src.resolved_config().timeout_s == 2.0
+            assert src.status() == SourceState.STANDBY
+    assert L8121("unused", dialect="A", connect=False).resolved_config().timeout_s == 1.0
+
+
 def test_off_waits_for_a_supply_that_ramps_down(source):
     """STS may read on for a while after XOF (L8121.md does not say how long): a tube that reads
     on for 1.2 s is confirmed off, within the attempts, rather than reported as possibly still on.
@@ -912,10 +925,11 @@ def test_silent_controller_times_out(warm, dialect, wire):
     with driver(server, dialect) as src:
         model.silence()
         t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=rf"{server.url}: no reply to STS within 1 s"):
+        wait = src.timeout_s  # the dialect's: A 1 s, B 2 s
+        with pytest.raises(DeviceError, match=rf"{server.url}: no reply to STS within {wait:g} s"):
             src.status()
         elapsed = time.monotonic() - t0
-    assert 0.9 <= elapsed < 3
+    assert 0.9 * wait <= elapsed < wait + 2
     t0 = time.monotonic()
     with pytest.raises(DeviceError, match=f"no reply to {wire['connect_last']}"):
         driver(server, dialect, timeout_s=0.5)

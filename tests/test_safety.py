@@ -45,6 +45,7 @@ import pytest
 import tomli_w
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.l8121 import DIALECT_A, DIALECT_B, SourceConfig
 from radiokit.io import ExperimentWriter, ImageKey
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -384,18 +385,30 @@ CONTROLLER_FAULTS = [
 ]
 
 
-# The driver's defaults (SourceConfig: 1 s reply time-out, 3 XOF attempts, the dialect's command
-# spacing; SourceSettings: the beam monitor polls every 0.25 s): what a lab runs with.
+# The driver's defaults (SourceConfig: the dialect's reply time-out, A 1 s, B 2 s; 3 XOF attempts
+# over off_confirm_s; the dialect's command spacing; SourceSettings: the beam monitor polls every
+# 0.25 s): what a lab runs with.
 DRIVER_DEFAULTS = {"poll_s": 0.25, "timeout_s": None, "off_attempts": None, "min_interval_s": None}
-# The longest a silent controller may keep the operator from the warning, at those defaults: the
-# monitor's poll (0.25 s) and the time-out (1 s) of the first query that meets the silence, then
-# one switch-off attempt (XOF and STS, 1 s each), not repeated, which goes before any other
-# thread's queued query -- 3.25 s; plus 1.5 s for a loaded machine. (Each layer retrying with the
-# full budget -- driver fail-safe, beam monitor, the panel's beam query -- took ~15 s.)
-WARNING_BOUND_S = 0.25 + 1.0 + 2 * 1.0 + 1.5
-# ... and the XOF reaches a controller that executes but cannot reply after the poll, its
-# query's time-out and perhaps the panel's query's time-out: 2.25 s, plus 1 s for a loaded machine
-SILENT_OFF_BOUND_S = 0.25 + 1.0 + 1.0 + 1.0
+REPLY_WAIT_S = {"A": DIALECT_A.timeout_s, "B": DIALECT_B.timeout_s}
+
+
+def warning_bound_s(dialect, name):
+    """The longest the operator may wait for the warning, at those defaults. A silent controller:
+    the monitor's poll (0.25 s) and the time-out of the first query that meets the silence, then
+    one switch-off attempt (XOF and STS, a time-out each), not repeated, which goes before any
+    other thread's queued query (A 3.25 s, B 6.25 s). One that answers but stays on: the poll, the
+    switch-off's window (off_confirm_s) and its last exchanges (0.5 s). Plus 1.5 s for a loaded
+    machine. (Each layer retrying with the full budget -- driver fail-safe, beam monitor, the
+    panel's beam query -- took ~15 s.)"""
+    if "stuck" in name:
+        return 0.25 + SourceConfig().off_confirm_s + 0.5 + 1.5
+    return 0.25 + 3 * REPLY_WAIT_S[dialect] + 1.5
+
+
+def silent_off_bound_s(dialect):
+    """The XOF reaches a controller that executes but cannot reply after the poll, its query's
+    time-out and perhaps the panel's query's time-out, plus 1 s for a loaded machine."""
+    return 0.25 + 2 * REPLY_WAIT_S[dialect] + 1.0
 
 
 _FAULT_ROWS = [
@@ -423,13 +436,14 @@ def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, na
     record(name, model, acq, off_s, code, warn_s)
     assert code == 3, acq.output
     assert acq.last_line.startswith(WARNING), acq.output
-    assert warn_s is not None and warn_s <= WARNING_BOUND_S, f"{name}: warning after {warn_s} s"
+    dialect = model.dialect
+    assert warn_s is not None and warn_s <= warning_bound_s(dialect, name), f"{name}: warning after {warn_s} s"
     assert "tube off (confirmed" not in acq.output
     assert "Traceback" not in acq.output
     # the emulator's own state: off when commands still act, on when nothing could reach it
     assert model.xray_on is (not can_switch_off)
     if can_switch_off:
-        assert off_s is not None and off_s <= SILENT_OFF_BOUND_S
+        assert off_s is not None and off_s <= silent_off_bound_s(dialect)
 
 
 @pytest.mark.parametrize("dialect", ["A", "auto"])
