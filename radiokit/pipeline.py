@@ -4,7 +4,8 @@
 simulated one; DESIGN.md's layout) as a few public steps, each returning a typed record:
 
 1. :func:`load_steps` -> :class:`Steps`: calibrate from the file's own darks and flats, correct
-   every projection to line integrals (``-ln(I/I0)``), average the frames of each step;
+   every projection to line integrals (``-ln(I/I0)``), average the frames of each step, steps
+   least compressed first (by their recorded ratios or gaps);
 2. :func:`choose_rois` -> :class:`RoiChoice`: the inclusion and a background rectangle beside it
    on the reference (the most compressed step), or the configuration's, and the crop around them;
 3. :func:`register_pairs` -> :class:`RegisteredPair` per pair: every step onto the reference and
@@ -170,7 +171,8 @@ def _cross_check_options(cfg) -> dict:
 @dataclass(frozen=True)
 class Steps:
     """The corrected line integral of each compression step (mean of its frames), least
-    compressed first, with the step numbers, compression ratios, pixel size and the seconds spent."""
+    compressed first (by the recorded ratios, else gaps, else step numbers), with the step
+    numbers, compression ratios, pixel size and the seconds spent."""
 
     images: np.ndarray
     numbers: tuple[int, ...]
@@ -255,7 +257,7 @@ def _roi(value, units, pixel_size_mm, name):
 
 def load_steps(path, progress: bool = False) -> Steps:
     """Calibrate from the file's darks and flats; the corrected line integral of each step (mean
-    of its frames), step numbers, ratios, pixel size (:class:`Steps`)."""
+    of its frames), least compressed first, step numbers, ratios, pixel size (:class:`Steps`)."""
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration, exposure_factors
@@ -273,6 +275,8 @@ def load_steps(path, progress: bool = False) -> Steps:
         numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
         if len(numbers) < 2:
             raise FormatError(path, f"needs projections of at least two compression steps; found steps {numbers}")
+        gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
+        numbers = _compression_order(numbers, keys, steps, ratios_all, gaps)
         images, ratios = [], []
         n_frames = int(np.sum((keys == ImageKey.PROJECTION) & (steps >= 0)))
         bar = tqdm(total=n_frames, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
@@ -292,6 +296,30 @@ def load_steps(path, progress: bool = False) -> Steps:
         pixel_size_mm,
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
     )
+
+
+def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
+    """The step numbers least compressed first: by the recorded compression ratio when every
+    step has one, else by the recorded plate gap (widest first) when every step has one, else
+    by step number; ties keep the step numbers' order.
+
+    Why: the reference is the *most compressed* step (DESIGN.md), not the highest-numbered. A
+    series taken while releasing the plates (step 1 at 25 %, step 3 at 15 %) made the least
+    compressed step the reference, registered 20 % onto 15 %, and reported "plate gaps not
+    recorded: no bound" because the gaps, recorded, opened instead of closing."""
+    from radiokit.io import ImageKey
+
+    def per_step(values):
+        out = []
+        for s in numbers:
+            v = values[(keys == ImageKey.PROJECTION) & (steps == s)]
+            out.append(float(np.nanmean(v)) if np.isfinite(v).any() else float("nan"))
+        return np.asarray(out)
+
+    for values, sign in ((per_step(ratios), 1.0), (per_step(gaps), -1.0)):
+        if np.isfinite(values).all():
+            return [numbers[i] for i in np.argsort(sign * values, kind="stable")]
+    return list(numbers)
 
 
 def _step_image(cal, src, path, step, idx, factors, bar):
@@ -449,8 +477,10 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
             pass
     if view == "side":
         return Bound(None, "beam from the side: columns lengthen as the body expands, no bound holds"), {}
-    if not (np.isfinite(dg) and dg >= 0 and np.isfinite(gaps[-1]) and gaps[-1] > 0):
+    if not (np.isfinite(dg) and np.isfinite(gaps[-1]) and gaps[-1] > 0):
         return Bound(None, "plate gaps not recorded: no bound"), {}
+    if dg < 0:  # the recorded ratios put the steps in another order than the gaps do
+        return Bound(None, f"the plate gap opens by {-dg:.3g} mm towards the reference step: no bound"), {}
     if mu_b is not None:
         basis = "through the plates; mu_b from the simulated scene, gaps from the file"
     else:
