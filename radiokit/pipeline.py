@@ -4,8 +4,8 @@
 simulated one; DESIGN.md's layout) as a few public steps, each returning a typed record:
 
 1. :func:`load_steps` -> :class:`Steps`: calibrate from the file's own darks and flats, correct
-   every projection to line integrals (``-ln(I/I0)``), average the frames of each step, steps
-   least compressed first (by their recorded ratios or gaps);
+   every projection, and take each step's line integral (``-ln(I/I0)``) of its frames' mean
+   transmission, steps least compressed first (by their recorded ratios or gaps);
 2. :func:`choose_rois` -> :class:`RoiChoice`: the inclusion and a background rectangle beside it
    on the reference (the most compressed step), or the configuration's, and the crop around them;
 3. :func:`register_pairs` -> :class:`RegisteredPair` per pair: every step onto the reference and
@@ -170,9 +170,9 @@ def _cross_check_options(cfg) -> dict:
 
 @dataclass(frozen=True)
 class Steps:
-    """The corrected line integral of each compression step (mean of its frames), least
-    compressed first (by the recorded ratios, else gaps, else step numbers), with the step
-    numbers, compression ratios, pixel size and the seconds spent."""
+    """The corrected line integral of each compression step (``-ln`` of its frames' mean
+    transmission), least compressed first (by the recorded ratios, else gaps, else step
+    numbers), with the step numbers, compression ratios, pixel size and the seconds spent."""
 
     images: np.ndarray
     numbers: tuple[int, ...]
@@ -256,8 +256,9 @@ def _roi(value, units, pixel_size_mm, name):
 
 
 def load_steps(path, progress: bool = False) -> Steps:
-    """Calibrate from the file's darks and flats; the corrected line integral of each step (mean
-    of its frames), least compressed first, step numbers, ratios, pixel size (:class:`Steps`)."""
+    """Calibrate from the file's darks and flats; the corrected line integral of each step
+    (``-ln`` of its frames' mean transmission), least compressed first, step numbers, ratios,
+    pixel size (:class:`Steps`)."""
     from tqdm.auto import tqdm
 
     from radiokit.calibrate import Calibration, exposure_factors
@@ -323,11 +324,20 @@ def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
 
 
 def _step_image(cal, src, path, step, idx, factors, bar):
-    """The mean line integral of one step's frames ``idx`` (each at the flats' tube current,
-    ``factors``) and how many saturated pixels a frame held on average."""
+    """The line integral of one step's frames ``idx`` (each at the flats' tube current,
+    ``factors``), ``-ln`` of their mean transmission, and how many saturated pixels a frame held
+    on average.
+
+    Why the transmissions are averaged, not the logs: the detector is linear in the dose, so N
+    frames averaged are one N times longer exposure, and ``-ln`` of their mean is biased by
+    ``1 / (2 N I0 T)`` (Jensen: ``var / (2 mean^2)`` of the counts). The mean of each frame's
+    ``-ln`` keeps a single frame's bias, ``1 / (2 I0 T)``, however many frames are taken: 0.0125
+    at 40 counts behind the object, 40 standard errors of a 128 x 128 ROI's mean of 16 frames.
+    One frame is the same estimator either way; it takes the log domain's one compiled pass."""
     from radiokit.calibrate import frame_saturation
     from radiokit.correct import check_above_dark, correct_frames
 
+    domain = "log" if len(idx) == 1 else "linear"
     acc, n_sat = None, 0
     for i, factor in zip(idx, factors):
         raw = src[i]
@@ -338,10 +348,16 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         top = frame_saturation(cal.thresholds.saturation, raw) if raw.dtype.kind in "ui" else None
         if top is not None:
             n_sat += int(np.count_nonzero(raw >= top))
-        li = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
-        acc = li.astype(np.float64) if acc is None else acc + li
+        if domain == "log":
+            image = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
+        else:
+            image = correct_frames(cal, raw, domain="linear") * np.float32(factor)
+        acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
-    return (acc / len(idx)).astype(np.float32), n_sat / len(idx)
+    if domain == "log":
+        return acc.astype(np.float32), n_sat
+    # linear correction clamps raw - dark to half a count: every transmission and mean is > 0
+    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx)
 
 
 def _warn_saturated(path, saturated: dict, level) -> None:

@@ -99,3 +99,28 @@ def test_a_series_taken_while_releasing_the_plates_keeps_the_most_compressed_ste
         assert r["domains"]["negative"]["bound"][str(k)] == pytest.approx(
             improvement_bound(k, mu_b, GAPS[1] - GAPS[2], "negative"), rel=1e-12
         )
+
+
+def test_a_steps_line_integral_is_the_log_of_its_frames_mean_transmission(tmp_path):
+    """16 Poisson frames of 40 counts per pixel behind the object (noise-free flats): the step's
+    line integral is ``-ln`` of the mean transmission, whose bias is ``1 / (2 N lambda)`` (the
+    16 frames are one 16 times longer exposure), and its noise ``1 / sqrt(N lambda)``.
+    Averaging each frame's ``-ln`` instead kept one frame's bias, ``1 / (2 lambda)`` = 0.0125,
+    about 50 standard errors of the frame's mean here."""
+    from radiokit.pipeline import load_steps
+
+    lam, n_frames = 40.0, 16
+    t = lam / I0
+    path = tmp_path / "dim.h5"
+    _write(path, order=(0, 1), frames_per_step=n_frames, counts=lambda s: np.full((N, N), lam))
+    steps = load_steps(path)
+    m = n_frames * lam  # counts summed over the step's frames
+    # E[-ln(n / m)] for n ~ Poisson(m): 1 / (2 m) + 1 / (3 m^2) + O(m^-3); var 1 / m + O(m^-2)
+    bias = 1 / (2 * m) + 1 / (3 * m**2)
+    sigma = math.sqrt(1 / m)
+    for image in steps.images:
+        li = image.astype(np.float64)
+        se = sigma / math.sqrt(li.size)
+        assert li.mean() == pytest.approx(-math.log(t) + bias, abs=5 * se + 1 / m**2)
+        # the sample standard deviation's relative standard error is 1 / sqrt(2 n)
+        assert li.std() == pytest.approx(sigma, rel=5 / math.sqrt(2 * li.size) + 1 / m)
