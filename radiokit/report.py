@@ -971,7 +971,8 @@ def _measurements(results, paper) -> list:
     return [
         "<h2>Contrast measurements</h2>",
         "<p>Contrast: mean of the inclusion ROI \u2212 mean of the background ROI; CNR: contrast over "
-        "the background ROI's standard deviation; Weber: contrast over the background mean; "
+        "the background ROI's (population) standard deviation; Weber: contrast over |mean of the background ROI| "
+        "(its magnitude: the negative domain's means are negative); "
         "improvement factor: enhanced contrast over the reference's. Domains: log is \u2212ln(I/I\u2080); "
         "negative is \u2212I/I\u2080, the paper's \u201clinear\u201d images. The paper's improvement "
         "factors (about 1.4 and 2) and intensity-change ratios (0.66\u20130.84, the authors' "

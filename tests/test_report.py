@@ -399,3 +399,22 @@ def test_the_total_time_includes_the_report_it_times(tmp_path):
     assert headline_s == total_s
     assert total_s == pytest.approx(2.0 + report_s, abs=0.01)  # each shown to 0.005
     assert report_s > 0.01  # the figures take time: the old total (2.00) is told apart
+
+
+def test_the_stated_definitions_reproduce_the_table(tmp_path):
+    """The page's words for CNR and Weber give its numbers: on a negative-domain image whose
+    ROIs hold known values, the Weber contrast is the contrast over the background mean's
+    magnitude (the page said "over the background mean", which gives the opposite sign there)
+    and the CNR the contrast over the population standard deviation."""
+    from radiokit.measure import ROI, cnr, weber
+
+    img = np.full((8, 8), -0.5)
+    img[:2, :2] = -0.3  # inclusion: more attenuation, brighter (less negative)
+    img[4:6, 4:6] = [[-0.6, -0.4], [-0.6, -0.4]]  # background: mean -0.5, population std 0.1
+    inc, bg = ROI(0, 2, 0, 2), ROI(4, 6, 4, 6)
+    assert weber(img, inc, bg) == pytest.approx(0.2 / abs(-0.5))
+    assert cnr(img, inc, bg) == pytest.approx(0.2 / 0.1)
+    results, images = _synthetic()
+    _, _, text = _parse(write_report(tmp_path, results, images))
+    assert "Weber: contrast over |mean of the background ROI|" in text
+    assert "CNR: contrast over the background ROI's (population) standard deviation" in text
