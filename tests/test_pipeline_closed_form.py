@@ -38,7 +38,7 @@ def _contrast(img):
     return _mean(img, INC) - _mean(img, BG)
 
 
-def _write(path, order, frames_per_step=1, counts=None):
+def _write(path, order, frames_per_step=1, counts=None, record=("ratio", "gap")):
     """Darks, flats and one projection per step; steps numbered 1, 2, ... in the order
     ``order`` (indices into GAPS), each recorded with its compression ratio and gap."""
     from radiokit.io import ExperimentWriter, ImageKey
@@ -57,8 +57,8 @@ def _write(path, order, frames_per_step=1, counts=None):
                     (DARK + signal).astype(np.uint16),
                     image_key=ImageKey.PROJECTION,
                     step=number,
-                    ratio=0.15 + 0.05 * s,
-                    gap_mm=GAPS[s],
+                    ratio=0.15 + 0.05 * s if "ratio" in record else None,
+                    gap_mm=GAPS[s] if "gap" in record else None,
                 )
 
 
@@ -99,6 +99,24 @@ def test_a_series_taken_while_releasing_the_plates_keeps_the_most_compressed_ste
         assert r["domains"]["negative"]["bound"][str(k)] == pytest.approx(
             improvement_bound(k, mu_b, GAPS[1] - GAPS[2], "negative"), rel=1e-12
         )
+
+
+@pytest.mark.parametrize(
+    "record, numbers",
+    [(("ratio",), (3, 2, 1)), (("gap",), (3, 2, 1)), ((), (1, 2, 3))],
+)
+def test_steps_are_ordered_by_ratio_else_gap_else_number(tmp_path, record, numbers):
+    """The same release series with only the ratios, only the gaps, or neither recorded: the
+    first two put the least compressed step (3) first; without either the step numbers decide."""
+    from radiokit.pipeline import load_steps
+
+    path = tmp_path / "release.h5"
+    _write(path, order=(2, 1, 0), record=record)
+    steps = load_steps(path)
+    assert steps.numbers == numbers
+    # the images follow their labels: step 1 holds the most compressed (thinnest) object
+    means = {n: float(img.mean(dtype=np.float64)) for n, img in zip(steps.numbers, steps.images)}
+    assert means[1] < means[2] < means[3]
 
 
 def test_a_steps_line_integral_is_the_log_of_its_frames_mean_transmission(tmp_path):
