@@ -256,7 +256,7 @@ def cmd_calibrate(args) -> int:
         f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
     )
     print(
-        f"  c = mean(flat - dark) = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts"
+        f"  c = mean(flat - dark) over valid pixels = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts"
     )
     print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
     if cal.defect_rows.size or cal.defect_columns.size:

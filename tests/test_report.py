@@ -229,8 +229,12 @@ def test_page_is_self_contained(full_report):
 
 def test_headline_numbers_appear_formatted(full_report):
     _, _, text = _parse(full_report[0])
-    for s in ("1.37", "2.05", "0.74", "0.2512", "0.66\u20130.84", "14.37 s", "12.00 s", "0.071 / 0.183"):
+    for s in ("1.37", "2.05", "0.74", "0.2512", "0.66\u20130.84", "12.00 s", "0.071 / 0.183"):
         assert s in text, s
+    # the record's total (14.37 s) was taken before the report: the page adds the report's time
+    report_s = float(re.search(r"\breport (\d+\.\d\d) s", text).group(1))
+    total_s = float(re.search(r"total processing time (\d+\.\d\d) s", text).group(1))
+    assert total_s == pytest.approx(14.37 + report_s, abs=0.01)
     assert "1.374" not in text  # the improvement factors are shown to 2 decimals
     summary = text.split("What the numbers show.")[1]
     assert "1.37 at k=1" in summary and "2.05 at k=2" in summary and "0.74 times" in summary
@@ -379,3 +383,38 @@ def test_report_imports_neither_sim_nor_acquisition():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_the_total_time_includes_the_report_it_times(tmp_path):
+    """A record whose total was taken before its report (as ``process`` takes it): the page's
+    total, in the headline and the timings table alike, is that total plus the report's own
+    time, so no row exceeds it and it matches results.json's. It showed the total from before
+    the report, below the sum of its own rows."""
+    results, images = _synthetic()
+    results = dataclasses.replace(results, timings={"register_s": 1.0, "total_s": 2.0})
+    _, _, text = _parse(write_report(tmp_path, results, images))
+    report_s = float(re.search(r"\breport (\d+\.\d\d) s", text).group(1))
+    total_s = float(re.search(r"\btotal (\d+\.\d\d) s", text).group(1))
+    headline_s = float(re.search(r"total processing time (\d+\.\d\d) s", text).group(1))
+    assert headline_s == total_s
+    assert total_s == pytest.approx(2.0 + report_s, abs=0.01)  # each shown to 0.005
+    assert report_s > 0.01  # the figures take time: the old total (2.00) is told apart
+
+
+def test_the_stated_definitions_reproduce_the_table(tmp_path):
+    """The page's words for CNR and Weber give its numbers: on a negative-domain image whose
+    ROIs hold known values, the Weber contrast is the contrast over the background mean's
+    magnitude (the page said "over the background mean", which gives the opposite sign there)
+    and the CNR the contrast over the population standard deviation."""
+    from radiokit.measure import ROI, cnr, weber
+
+    img = np.full((8, 8), -0.5)
+    img[:2, :2] = -0.3  # inclusion: more attenuation, brighter (less negative)
+    img[4:6, 4:6] = [[-0.6, -0.4], [-0.6, -0.4]]  # background: mean -0.5, population std 0.1
+    inc, bg = ROI(0, 2, 0, 2), ROI(4, 6, 4, 6)
+    assert weber(img, inc, bg) == pytest.approx(0.2 / abs(-0.5))
+    assert cnr(img, inc, bg) == pytest.approx(0.2 / 0.1)
+    results, images = _synthetic()
+    _, _, text = _parse(write_report(tmp_path, results, images))
+    assert "Weber: contrast over |mean of the background ROI|" in text
+    assert "CNR: contrast over the background ROI's (population) standard deviation" in text
