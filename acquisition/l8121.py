@@ -844,7 +844,14 @@ class ProbeResult:
         return "\n".join(lines + [f"note: {n}" for n in self.notes if self.found])
 
 
-def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_interval_s: float = 0.06) -> ProbeResult:
+def probe(
+    url,
+    *,
+    baudrates=(9600, 38400, 115200),
+    timeout_s: float = 0.5,
+    min_interval_s: float = 0.06,
+    first_timeout_s: float | None = None,
+) -> ProbeResult:
     """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
 
     At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too
@@ -861,6 +868,11 @@ def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_i
         The rates to try, in order.
     timeout_s, min_interval_s : float
         Reply time-out per query and the pause between queries.
+    first_timeout_s : float, optional
+        The reply time-out at the first rate (the configured one, else both dialects' 9600, where
+        a unit most likely is); ``None``: the longest dialect's (B's 2 s), so that a unit slower
+        than ``timeout_s`` but within its dialect's wait is found there. Other rates, tried only
+        when nothing fitted, use ``timeout_s`` (a silent port costs 2 + 0.5 + 0.5 s).
 
     Returns
     -------
@@ -871,10 +883,12 @@ def probe(url, *, baudrates=(9600, 38400, 115200), timeout_s: float = 0.5, min_i
     notes: list[str] = []
     rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
-    for baud in rates:
+    first = max(d.timeout_s for d in DIALECTS.values()) if first_timeout_s is None else first_timeout_s
+    for i, baud in enumerate(rates):
+        wait = max(first, timeout_s) if i == 0 else timeout_s
         try:
             link = (
-                SerialTransport(url, baudrate=baud, timeout_s=timeout_s, min_interval_s=min_interval_s, retries=0)
+                SerialTransport(url, baudrate=baud, timeout_s=wait, min_interval_s=min_interval_s, retries=0)
                 if isinstance(url, str)
                 else url
             )

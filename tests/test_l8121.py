@@ -732,15 +732,26 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
 
 def test_a_b_unit_answering_within_the_l8121_02_drivers_wait_is_not_silent():
     """L8121.md: the L8121-02 driver "treats 2 s without a reply as a missed reply". A B unit
-    answering every command in 1.4 s is within that, and is talked to; at the former 1 s wait it
+    answering every command in 1.2 s is within that, and is talked to; at the former 1 s wait it
     read as a silent controller. A keeps 1 s (L8121.md gives it no reply time)."""
     model = L8121Model(dialect="B", warmed_up=True)
     with PtyServer(model) as server:
-        model.slow(1.4)
+        model.slow(1.2)
         with L8121(server.url, dialect="B", **FAST) as src:
             assert src.timeout_s == 2.0 and src.resolved_config().timeout_s == 2.0
             assert src.status() == SourceState.STANDBY
     assert L8121("unused", dialect="A", connect=False).resolved_config().timeout_s == 1.0
+
+
+def test_auto_finds_a_b_unit_that_answers_within_its_dialects_wait():
+    """``dialect = "auto"``: the probe's queries at the first rate wait as long as the slower
+    dialect's replies may take (B: 2 s); at the probe's 0.5 s a B unit answering in 1.4 s fitted
+    neither dialect and the run was refused."""
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server:
+        model.slow(0.8)
+        with L8121(server.url, dialect="auto", **FAST) as src:
+            assert src.dialect.name == "B" and src.baudrate == 9600
 
 
 def test_off_waits_for_a_supply_that_ramps_down(source):
