@@ -351,6 +351,22 @@ def test_weak_preset_recovers_weak_texture_short_correlation():
     )
 
 
+def test_grid_jitter_keeps_a_pair_that_did_not_move_on_its_place():
+    """Texture at the noise's level and no motion at all: on the pixel grid a field gains by
+    moving a noisy image off it (linear interpolation at half a pixel quarters its noise
+    variance), and ``default`` returned 0.27 px of median error, its mean (-0.11, +0.10) px,
+    trusted. Sampled off the grid (``grid_jitter``), every displacement sees the same mixture of
+    interpolation weights: the field stays within a tenth of a pixel of zero."""
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, amplitude=1e-9, intensity=0.0, seed=1)
+    assert np.abs(d).max() < 1e-6
+    reg = register(fixed, moving, "rc", grid_jitter=True)
+    med, _ = _epe(reg.displacement, d, mask)
+    assert med < 0.1, med
+    for k in range(2):
+        assert abs(float(reg.displacement[k][mask].mean())) < 0.05
+    assert reg.options["grid_jitter"] is True
+
+
 def test_weak_alpha_follows_the_noise():
     """The same pair with texture and noise both 4x weaker carries no less information (the
     body's edge even more), so ``weak`` must not lose much: with a fixed alpha the smaller

@@ -157,6 +157,7 @@ PRESETS = {
         refit_thinning=False,
         abandon_px=0.0,
         extend=0,
+        grid_jitter=False,
     ),
     "fast": dict(
         spacing=16,
@@ -185,6 +186,7 @@ PRESETS = {
         refit_thinning=False,
         abandon_px=0.0,
         extend=0,
+        grid_jitter=False,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -433,7 +435,7 @@ class _Level:
     kept from one evaluation to the next (the residual, which the DCT needs whole, and the
     warped image's derivatives, which wait for it)."""
 
-    def __init__(self, fixed, moving, mask, factor, similarity, alpha, hp_sigma=0.0, smooth=0.0):
+    def __init__(self, fixed, moving, mask, factor, similarity, alpha, hp_sigma=0.0, smooth=0.0, jitter=False):
         self.factor = factor
         self.gain = None  # a smooth thinning field b (this level's pixels): residual (1 + b) w - f
         self.fit_gain = False  # whether b is being fitted (its gradient wanted) or kept
@@ -451,6 +453,8 @@ class _Level:
         dt = self.fixed.dtype
         self._row = np.arange(self.shape[0], dtype=dt)[:, None]  # pixel positions, broadcast
         self._col = np.arange(self.shape[1], dtype=dt)
+        if jitter:
+            self._jitter()
         self._maskf = None if self.mask is None else self.mask.astype(dt)
         self._table = _bilinear_table(self.moving)
         self._w, self._dy, self._dx, self._r = (np.empty(self.shape, dt) for _ in range(4))
@@ -462,6 +466,23 @@ class _Level:
             wy = (np.pi * np.arange(self.shape[0]) / self.shape[0]) ** 2
             wx = (np.pi * np.arange(self.shape[1]) / self.shape[1]) ** 2
             self.hp = (-np.expm1(-0.5 * hp_sigma**2 * (wy[:, None] + wx[None, :]))).astype(dt)
+
+    def _jitter(self):
+        """``grid_jitter``: both images sampled at the pixels moved by a fixed uniform offset in
+        [-1/2, 1/2) each, ``fixed`` once here, ``moving`` at each warp. Linear interpolation at a
+        fractional offset ``f`` lowers the noise variance by ``(1 - f)^2 + f^2`` per axis, so on
+        the pixel grid a field gains by moving a noisy image off it (half a pixel: a quarter of the
+        variance; benchmarks/README.md, "Interpolation pulls a noisy pair off the pixel grid").
+        Off the grid, every displacement sees the same mixture of offsets: the residual's noise no
+        longer depends on the field (elastix's random sampler avoids the same artefact)."""
+        import cv2
+
+        rng = np.random.default_rng(0)  # the same offsets every run: a registration is repeatable
+        dt = self.fixed.dtype
+        self._row = (self._row + rng.uniform(-0.5, 0.5, self.shape)).astype(dt)
+        self._col = (self._col + rng.uniform(-0.5, 0.5, self.shape)).astype(dt)
+        # (OpenCV's 1/32-pixel positions are fine for the fixed image, sampled once)
+        self.fixed = cv2.remap(self.fixed, self._col, self._row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _bands(self):
         rows = self.shape[0]
@@ -490,7 +511,7 @@ class _Level:
 
         rows, cols = self.shape
         y += self._row[sl]
-        x += self._col
+        x += self._col if self._col.ndim == 1 else self._col[sl]
         yc, y0, outside_y = _cell(y, rows)  # b and its cell's row
         xc, x0, outside_x = _cell(x, cols)  # a and its column
         # the cell's I00, I10 - I00, I01, I11 - I01, gathered plane by plane by OpenCV's
@@ -826,7 +847,7 @@ _LOWEST = {
     "abandon_px": (0, True),
 }
 _COUNTS = {"levels_skip": 0, "min_levels": 1, "extend": 0}  # integers, at least this
-_FLAGS = ("gain_fine", "joint", "refit_thinning")
+_FLAGS = ("gain_fine", "joint", "refit_thinning", "grid_jitter")
 
 
 def _check_values(o):
@@ -1386,7 +1407,7 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     alpha = o["alpha"] * (1.0 if fine else o["coarse_alpha"]) / (factor**2 if o["balance"] == "frame" else 1)
     lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
     hp_sigma = o["highpass"] * min(f.shape) / factor if o["highpass_on"] == "residual" else 0.0
-    level = _Level(f, m, maskf, factor, similarity, alpha, hp_sigma, o["smooth"])
+    level = _Level(f, m, maskf, factor, similarity, alpha, hp_sigma, o["smooth"], o["grid_jitter"])
     grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
     if gain is not None and gain[1] is not None and fine and not o["gain_fine"]:
         level.gain = _thinning_field(gain[0], gain[1], factor, level.shape)  # kept as the coarser levels left it
@@ -1466,7 +1487,9 @@ def _rc(fixed, moving, mask, **options):
     (a pair of more pixels is registered area-averaged by the least integer factor that brings it
     under this many and the field upsampled; 0, every preset's: off), refit_thinning (a second
     pass with the thinning measured in the body's interior divided out; see REFIT_INTERIOR),
-    abandon_px (> 0: stop before the finest level, not converged, when after the level before it
+    grid_jitter (both images sampled off the pixel grid at fixed random offsets, so that the
+    interpolation's smoothing of the noise does not depend on the field; every preset's: off,
+    see :meth:`_Level._jitter`), abandon_px (> 0: stop before the finest level, not converged, when after the level before it
     the residual still moves by more than this, measured as the quality checks do, or at the
     finest level when ABANDON_FINEST iterations in it still moves by more than their own line;
     only when the finest level is finer than their binning; ``auto`` sets it on its plain run, see
