@@ -78,6 +78,10 @@ class Detector(typing.Protocol):
     def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
         """Yield ``n`` frames, each as soon as it is complete."""
 
+    def begin_batch(self, discard: int = 0) -> None:
+        """The devices have just reached the state the next frames must show (tube on or off,
+        phantom placed): no frame made before now may be taken, nor the next ``discard``."""
+
     def describe(self) -> dict:
         """JSON-able: kind, folder or scene, shape, settings."""
 
@@ -187,7 +191,7 @@ class FolderWatcher:
         self._armed = False
         self._known: set[str] = set()
         self._taken: set[str] = set()
-        self._discard_pending = False
+        self._discard_pending = 0  # new frames still to drop
         self._seen: dict[str, tuple] = {}  # name -> ((size, mtime_ns), monotonic time first seen so)
 
     def _pixel_size(self) -> float:
@@ -203,7 +207,7 @@ class FolderWatcher:
         self._known = {name for name, _ in self._listing()}
         self._taken = set()
         self._seen = {}
-        self._discard_pending = self.discard_first
+        self._discard_pending = int(self.discard_first)
         self._armed = True
         log.info(
             "detector folder %s: armed, %d existing file(s) matching %r ignored%s",
@@ -234,15 +238,42 @@ class FolderWatcher:
         while got < n:
             path, data = self._next(time.monotonic() + timeout, timeout, got, n)
             if self._discard_pending:
-                self._discard_pending = False
+                self._discard_pending -= 1
                 log.info(
-                    "detector folder %s: discarded %s, the invalid first frame after the trigger start",
+                    "detector folder %s: discarded %s (the invalid first frame after the trigger start, "
+                    "or one in flight when the beam or the phantom changed)",
                     self.folder,
                     path.name,
                 )
                 continue
             got += 1
             yield Frame(data, time.time(), str(path))
+
+    def begin_batch(self, discard: int = 0) -> None:
+        """Never take the files in the folder now, complete or still being written, nor the next
+        ``discard`` new ones.
+
+        The vendor software may save frames continuously, whatever the run is doing: while the
+        operator turns the screws, the gel settles and the beam ramps up, frames pile up in the
+        folder. Taken in arrival order they were the next batch's frames: a flat was a dark
+        frame, a step's projection was taken with the tube off at the previous gap. The frame
+        being integrated when the change was confirmed saw both states; at most ``discard``
+        frames can be in flight like that (one when the software writes each frame as it is read
+        out)."""
+        if not self._armed:
+            self.arm()
+        backlog = {name for name, _ in self._listing()} - self._known - self._taken
+        self._known |= backlog
+        for name in backlog:
+            self._seen.pop(name, None)
+        self._discard_pending = max(self._discard_pending, int(discard))
+        if backlog or discard:
+            log.info(
+                "detector folder %s: new batch: %d file(s) made before it ignored, the next %d new one(s) discarded",
+                self.folder,
+                len(backlog),
+                self._discard_pending,
+            )
 
     def describe(self) -> dict:
         return {
@@ -526,6 +557,10 @@ class SimDetector:
                 self._remaining -= 1
             self.frames_delivered += 1
             yield Frame(data, time.time(), "sim")
+
+    def begin_batch(self, discard: int = 0) -> None:
+        """Each frame is rendered at the bench's state when it is read out: none is ever made
+        before the state it shows, so there is nothing to skip."""
 
     def describe(self) -> dict:
         d = {

@@ -134,6 +134,10 @@ class DetectorSettings:
     preset: str | None = None  # raw-file geometry preset (radiokit.io.PRESETS)
     timeout_s: float = 30.0
     discard_first: bool = False  # the C7942's first frame after an external-trigger start is invalid
+    # frames dropped at the start of every batch (darks, flats, each step), after the frames the
+    # folder already holds: the vendor software may save continuously, and the frame in flight
+    # when the tube or the phantom changed saw both states (1: it writes each frame on read-out)
+    discard_after_change: int = 1
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
     pixel_size_mm: float = 0.05
     # the panel's rated tube voltage (C7942.md: 20-100 kVp for the C7942SK-02); the L8121 goes to
@@ -876,9 +880,12 @@ def _open_experiment(r: _Run):
 
 
 def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
-    """``n`` frames from the panel, each appended (and flushed) as it arrives."""
-    monitor, writer = r.monitor, r.writer
-    for frame in r.devices.detector.acquire(n, timeout_s=r.p.detector.timeout_s):
+    """``n`` frames from the panel, each appended (and flushed) as it arrives. Only frames made
+    after the devices reached this batch's state: none the folder already holds (made while the
+    operator turned the screws, the gel settled or the beam ramped up), nor the one in flight."""
+    monitor, writer, detector = r.monitor, r.writer, r.devices.detector
+    detector.begin_batch(r.p.detector.discard_after_change)
+    for frame in detector.acquire(n, timeout_s=r.p.detector.timeout_s):
         t = time.perf_counter()
         if beam:
             monitor.raise_if_failed()

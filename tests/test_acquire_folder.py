@@ -1,0 +1,145 @@
+"""The compression series as the lab meets it: the L8121 emulator on a pseudo-terminal through the
+real pyserial stack, the folder the C7942's vendor software writes (real TIFF files, written by a
+thread that models that software from C7942.md), and the manual frame answered by a modelled
+operator who takes a while at each request.
+
+The vendor-software model saves frames *continuously*, one file per frame on read-out, whatever
+the run is doing (HiPic's sequence saving; radiokit has no trigger line to the panel). Each frame
+records what it saw at the start and at the end of its integration: the emulated tube's state,
+the phantom (in or out) and the plate gap the operator has set. A frame is good for its label only
+if both ends saw the state the label claims.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import tifffile
+
+from acquisition.detector import FolderWatcher
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.frame import ManualFrame
+from acquisition.l8121 import L8121
+from acquisition.protocols import load_protocol, run
+from acquisition.protocols.compression_series import Devices
+from radiokit.io import ImageKey
+
+SHAPE = (16, 20)
+H0 = 10.0  # mm, the phantom's initial height
+STEPS = (0.15, 0.25)
+
+
+class Operator:
+    """The person at the frame: each request takes ``work_s``; the gap and the phantom change
+    when they are done, before they press Enter (as ManualFrame records them)."""
+
+    def __init__(self, work_s=0.1):
+        self.work_s = work_s
+        self.gap_mm, self.phantom_in = H0, True
+        self._said = ""
+
+    def say(self, text):
+        self._said = text
+
+    def ask(self, prompt):
+        time.sleep(self.work_s)
+        if "Remove the phantom" in self._said:
+            self.phantom_in = False
+        elif "Put the phantom back" in self._said:
+            self.phantom_in = True
+        elif "Turn the screws" in self._said:
+            self.gap_mm = float(self._said.split("plate gap of ")[1].split(" mm")[0])
+        return ""
+
+
+class Vendor(threading.Thread):
+    """HiPic saving continuously: integrate ``period_s``, then write ``frame_NNNNN.tif``. Pixel
+    (0, k) records, at the start and at the end of the integration: the tube on (0, 1), the
+    phantom in (2, 3), the gap in 0.01 mm (4, 5)."""
+
+    def __init__(self, folder, model, operator, period_s=0.04):
+        super().__init__(daemon=True)
+        self.folder, self.model, self.operator, self.period_s = Path(folder), model, operator, period_s
+        self.halt = threading.Event()
+        self.error = None
+
+    def _state(self):
+        return int(self.model.xray_on), int(self.operator.phantom_in), round(100 * self.operator.gap_mm)
+
+    def run(self):
+        k = 0
+        try:
+            while not self.halt.is_set():
+                start = self._state()
+                time.sleep(self.period_s)
+                end = self._state()
+                a = np.full(SHAPE, 100, np.uint16)
+                a[0, 0:6] = [start[0], end[0], start[1], end[1], start[2], end[2]]
+                tifffile.imwrite(self.folder / f"frame_{k:05d}.tif", a)
+                k += 1
+        except Exception as exc:  # pragma: no cover - re-raised by the test
+            self.error = exc
+
+
+def _lab(tmp_path, **detector):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    p = load_protocol(
+        {
+            "output": str(tmp_path / "series.h5"),
+            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "port": "emulated"},
+            "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "timeout_s": 5.0, **detector},
+            "frame": {"kind": "manual", "initial_height_mm": H0},
+            "series": {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
+        }
+    )
+    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
+    server = PtyServer(model)
+    server.start()
+    try:
+        source = L8121(server.url, poll_s=0.1, timeout_s=0.5)
+    except Exception:
+        server.stop()
+        raise
+    watcher = FolderWatcher(folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01)
+    operator = Operator()
+    frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
+    return p, Devices(source, watcher, frame, [server.stop], emulator=model), operator
+
+
+def test_frames_saved_while_the_run_waited_are_never_taken_for_the_next_batch(tmp_path):
+    """Found: the vendor software saves frames whatever the run is doing, and the watcher took
+    new files in arrival order from the moment it was armed. The frames that piled up while the
+    operator took the phantom out, turned the screws, the gel settled and the beam ramped up
+    became the next batch: every flat was a dark frame (tube off), step 1's projections were
+    taken with the tube off at the uncompressed gap, and so on, all labelled as asked. Now each
+    batch starts after the frames the folder holds, and drops the one in flight."""
+    p, dev, operator = _lab(tmp_path)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    vendor.start()
+    try:
+        res = run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert vendor.error is None
+    assert res.tube_off is True and res.frames_total == 2 + 2 + 2 * len(STEPS)
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+        step = h5["entry/sample/compression/step"][:]
+        gap_m = h5["entry/sample/compression/gap"][:]
+        seen = h5["entry/instrument/detector/data"][:, 0, 0:6].astype(int)
+    tube, phantom, gap = seen[:, 0:2], seen[:, 2:4], seen[:, 4:6] / 100.0
+    dark, flat, proj = key == ImageKey.DARK, key == ImageKey.FLAT, key == ImageKey.PROJECTION
+    assert dark.sum() == 2 and flat.sum() == 2 and proj.sum() == 2 * len(STEPS)
+    assert np.all(tube[dark] == 0), tube[dark]
+    assert np.all(tube[flat | proj] == 1), tube[flat | proj]
+    assert np.all(phantom[flat] == 0) and np.all(phantom[proj] == 1), phantom
+    for i, r in enumerate(STEPS, start=1):
+        sel = proj & (step == i)
+        np.testing.assert_allclose(gap[sel], H0 * (1 - r), atol=0.005)  # the gap set for this step
+        np.testing.assert_allclose(gap_m[sel] * 1e3, H0 * (1 - r), atol=1e-9)  # and the one recorded
