@@ -25,6 +25,7 @@ Examples
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import logging
 import math
 import operator
@@ -41,7 +42,7 @@ from acquisition.errors import DetectorTimeout, DeviceError
 from radiokit.errors import FormatError
 from radiokit.io import PRESETS, read, sniff
 
-__all__ = ["Frame", "Detector", "FolderWatcher", "SimDetector"]
+__all__ = ["Frame", "Detector", "FolderWatcher", "FrameLost", "SimDetector"]
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +136,9 @@ class FolderWatcher:
     Notes
     -----
     :meth:`arm` records the matching files already in the folder; they are never taken, however
-    often they change. New files are taken in order of modification time, then name. A file that
+    often they change (nor those there at :meth:`begin_batch`). New files are taken in order of
+    modification time, then name; a taken file renamed (a writer's temporary name) is not taken
+    again, and a taken file that changes and then holds other pixels is :class:`FrameLost`. A file that
     has settled but does not read as a frame (still being written with pauses, or truncated) is
     retried until it does, until a later file has settled too (the writer has moved on), or until
     the time-out; the last two raise :class:`DeviceError` naming the file. Files are never
@@ -189,8 +192,10 @@ class FolderWatcher:
         self._pixel_size_given = pixel_size_mm is not None
         self.pixel_size_mm = float(pixel_size_mm) if pixel_size_mm is not None else self._pixel_size()
         self._armed = False
-        self._known: set[str] = set()
+        self._known: dict[str, tuple] = {}  # name -> (size, mtime_ns) of files never to be taken
         self._taken: set[str] = set()
+        self._took: dict[str, tuple] = {}  # name -> ((size, mtime_ns), pixel digest) of frames taken
+        self._took_ids: dict[tuple, str] = {}  # _identity() of each frame taken -> its name
         self._discard_pending = 0  # new frames still to drop
         self._seen: dict[str, tuple] = {}  # name -> ((size, mtime_ns), monotonic time first seen so)
 
@@ -204,8 +209,10 @@ class FolderWatcher:
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:
         """Record the files already there (never taken) and re-arm the discard of the first frame."""
-        self._known = {name for name, _ in self._listing()}
+        self._known = {name: (st.st_size, st.st_mtime_ns) for name, st in self._listing()}
         self._taken = set()
+        self._took = {}
+        self._took_ids = {}
         self._seen = {}
         self._discard_pending = int(self.discard_first)
         self._armed = True
@@ -262,8 +269,12 @@ class FolderWatcher:
         out)."""
         if not self._armed:
             self.arm()
-        backlog = {name for name, _ in self._listing()} - self._known - self._taken
-        self._known |= backlog
+        backlog = {
+            name: (st.st_size, st.st_mtime_ns)
+            for name, st in self._listing()
+            if name not in self._known and name not in self._taken
+        }
+        self._known.update(backlog)
         for name in backlog:
             self._seen.pop(name, None)
         self._discard_pending = max(self._discard_pending, int(discard))
@@ -319,29 +330,22 @@ class FolderWatcher:
         failure = None  # (name, message) of a settled file that does not read
         while True:
             now = time.monotonic()
+            listing = self._listing()
+            self._recheck_taken(listing, now)
             new = sorted(
-                (
-                    (st.st_mtime_ns, name, st)
-                    for name, st in self._listing()
-                    if name not in self._known and name not in self._taken
-                ),
+                ((st.st_mtime_ns, name, st) for name, st in listing if self._is_new(name, st)),
                 key=lambda t: t[:2],
             )
-            settled = []
-            for _, name, st in new:
-                sig = (st.st_size, st.st_mtime_ns)
-                seen = self._seen.get(name)
-                if seen is None or seen[0] != sig:
-                    self._seen[name] = (sig, now)
-                    if failure is not None and failure[0] == name:
-                        failure = None  # it changed: still being written
-                elif now - seen[1] >= self.settle_s and st.st_size > 0:
-                    settled.append(name)
+            settled = self._settled(new, now)
+            if failure is not None and failure[0] not in settled:
+                failure = None  # it changed (still being written) or is gone (renamed)
             if new and new[0][1] in settled:
                 name = new[0][1]
                 path = self.folder / name
                 try:
                     data = self._read(path)
+                except _Gone:  # renamed or removed between the listing and the read
+                    self._seen.pop(name, None)
                 except _NotYet as exc:
                     failure = (name, str(exc))
                     if len(settled) > 1:  # a later file is complete: this one will not be
@@ -351,8 +355,7 @@ class FolderWatcher:
                             f"({settled[1]}) is already complete"
                         ) from None
                 else:
-                    self._taken.add(name)
-                    self._seen.pop(name, None)
+                    self._took_frame(name, new[0][2], data)
                     return path, data
             if now >= deadline:
                 if failure is not None:
@@ -360,15 +363,100 @@ class FolderWatcher:
                     raise DeviceError(
                         f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: {failure[1]}"
                     )
-                growing = f"; {new[0][1]} is still being written" if new else ""
-                raise DetectorTimeout(
-                    f"detector folder {self.folder}: {got} of {n} frames arrived "
-                    f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{growing}"
-                )
+                raise self._timeout(listing, new, got, n, timeout)
             time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
 
-    def _read(self, path: Path) -> np.ndarray:
-        """Read one frame file and check it; :class:`_NotYet` if it does not read (yet)."""
+    def _timeout(self, listing, new, got: int, n: int, timeout: float) -> DetectorTimeout:
+        """The time-out, saying what the folder shows: a file still growing, or one that was
+        there before and has changed since (the vendor software saving every frame to one name:
+        each frame is lost, and the folder never gets a new file)."""
+        why = f"; {new[0][1]} is still being written" if new else ""
+        over = [
+            name
+            for name, st in listing
+            if self._known.get(name, (st.st_size, st.st_mtime_ns)) != (st.st_size, st.st_mtime_ns)
+        ]
+        if not new and over:
+            why = (
+                f"; {over[0]}, already there, has changed since (if the vendor software saves every "
+                f"frame to that one name, have it save each frame to a new, numbered file)"
+            )
+        return DetectorTimeout(
+            f"detector folder {self.folder}: {got} of {n} frames arrived "
+            f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{why}"
+        )
+
+    def _settled(self, new, now: float) -> list[str]:
+        """Names among ``new`` whose size and time stamp have held for ``settle_s``."""
+        settled = []
+        for _, name, st in new:
+            sig = (st.st_size, st.st_mtime_ns)
+            seen = self._seen.get(name)
+            if seen is None or seen[0] != sig:
+                self._seen[name] = (sig, now)
+            elif now - seen[1] >= self.settle_s and st.st_size > 0:
+                settled.append(name)
+        return settled
+
+    def _is_new(self, name: str, st: os.stat_result) -> bool:
+        """Not known at arm(), not taken, and not a taken file under a new name: a writer that
+        saves to a temporary name and renames it (the same file: device, inode, size and time
+        stamp) had each frame taken twice when the temporary name matched the pattern."""
+        if name in self._known or name in self._taken:
+            return False
+        ident = _identity(st)
+        if ident is not None and ident in self._took_ids:
+            self._taken.add(name)
+            log.info("detector folder %s: %s is %s renamed: taken already", self.folder, name, self._took_ids[ident])
+            return False
+        return True
+
+    def _took_frame(self, name: str, st: os.stat_result, data: np.ndarray) -> None:
+        self._taken.add(name)
+        self._seen.pop(name, None)
+        self._took[name] = ((st.st_size, st.st_mtime_ns), _digest(data))
+        ident = _identity(st)
+        if ident is not None:
+            self._took_ids[ident] = name
+
+    def _recheck_taken(self, listing, now: float) -> None:
+        """A file taken as a frame that changes afterwards and, once settled, holds other pixels:
+        the vendor software (or another program) saves over the name, so every frame saved there
+        since is lost, or the file was still being written when it was taken. Either way say so
+        at once, naming the files, rather than time out later (or never) without a word."""
+        changed = []
+        for name, st in listing:
+            took = self._took.get(name)
+            sig = (st.st_size, st.st_mtime_ns)
+            if took is None or took[0] == sig:
+                continue
+            seen = self._seen.get(name)
+            if seen is None or seen[0] != sig:
+                self._seen[name] = (sig, now)
+                continue
+            if now - seen[1] < self.settle_s:
+                continue
+            try:
+                digest = _digest(self._read(self.folder / name, check=False))
+            except _NotYet:
+                continue  # being written again: looked at once it reads
+            self._seen.pop(name, None)
+            self._took[name] = (sig, digest)
+            if digest != took[1]:
+                changed.append(str(self.folder / name))
+        if changed:
+            raise FrameLost(
+                f"{changed[0]}{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: changed after it "
+                f"was taken as a frame and now holds other pixels: the vendor software or another program "
+                f"saves over it (frames saved there since are lost), or it was still being written (a pause "
+                f"over settle_s = {self.settle_s:g} s); have the vendor software save every frame to a new, "
+                f"numbered file, and nothing else write there",
+                origins=changed,
+            )
+
+    def _read(self, path: Path, *, check: bool = True) -> np.ndarray:
+        """Read one frame file and check it (``check=False``: its pixels as they are);
+        :class:`_NotYet` if it does not read (yet)."""
         # tifffile logs what it meets in a damaged file (a warning per bad tag) before radiokit's
         # reader raises the error that names it; retried every poll until the time-out, that was
         # some twenty lines a second on the operator's terminal, X-rays on. The error says it once.
@@ -376,11 +464,12 @@ class FolderWatcher:
         was = tiff_log.disabled
         tiff_log.disabled = True
         try:
-            return self._read_checked(path)
+            return self._read_checked(path) if check else self._load(path)
         finally:
             tiff_log.disabled = was
 
-    def _read_checked(self, path: Path) -> np.ndarray:
+    def _load(self, path: Path) -> np.ndarray:
+        """The file's frames ``(n, rows, cols)``; :class:`_NotYet` if it does not read (yet)."""
         try:
             fmt = sniff(path)
             if fmt == "hdf5":
@@ -391,12 +480,16 @@ class FolderWatcher:
             hints = {}
             if fmt == "raw":
                 hints["shape"] = self._raw_shape(path)
-            frames = read(path, **hints)
+            return read(path, **hints).data
         except FormatError as exc:
             raise _NotYet(exc.problem) from None
+        except FileNotFoundError:
+            raise _Gone(f"{path.name} is gone") from None
         except OSError as exc:  # e.g. still locked by the writer on a network share
             raise _NotYet(exc.strerror or str(exc)) from None
-        data = frames.data
+
+    def _read_checked(self, path: Path) -> np.ndarray:
+        data = self._load(path)
         if data.shape[0] != 1:
             self._taken.add(path.name)
             raise DeviceError(f"{path}: holds {data.shape[0]} frames; the detector folder expects one frame per file")
@@ -455,6 +548,29 @@ class FolderWatcher:
 
 class _NotYet(Exception):
     """A settled file does not read as a frame (yet)."""
+
+
+class _Gone(_NotYet):
+    """The file was renamed or removed between the listing and the read."""
+
+
+class FrameLost(DeviceError):
+    """Frame files changed after they were taken: ``origins`` names them (the frames stored from
+    them may be incomplete)."""
+
+    def __init__(self, message: str, *, origins: list[str]):
+        super().__init__(message)
+        self.origins = list(origins)
+
+
+def _identity(st: os.stat_result):
+    """The same file under another name (a rename keeps all four); None where the file system
+    gives no inode number (``os.scandir`` on Windows)."""
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns) if st.st_ino else None
+
+
+def _digest(data: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest()
 
 
 # -- the virtual bench ---------------------------------------------------------------------------

@@ -304,6 +304,57 @@ def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
         FolderWatcher(tmp_path / "missing")
 
 
+def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_path):
+    """Found: a writer that saves each frame to ``frame_K.tif.tmp`` and renames it to
+    ``frame_K.tif`` (the usual atomic save), watched with a pattern both names match, had every
+    frame taken twice: the temporary file once it had settled, then the renamed one as new. A
+    rename keeps the file (device, inode, size, time stamp): it is now known as taken."""
+    data = _frames(3)
+    watcher = FolderWatcher(tmp_path, "frame*", shape=SHAPE, timeout_s=5, **FAST)
+    watcher.arm()
+    renamed = threading.Event()
+
+    def write():
+        for k, a in enumerate(data):
+            tmp = tmp_path / f"frame_{k}.tif.tmp"
+            tmp.write_bytes(_tiff(a))
+            time.sleep(FAST["settle_s"] * 3)  # settled: it may be taken under this name
+            tmp.rename(tmp_path / f"frame_{k}.tif")
+        renamed.set()
+
+    thread = threading.Thread(target=write)
+    thread.start()
+    got = [f.data for f in watcher.acquire(3)]
+    thread.join()
+    for a, b in zip(got, data):
+        np.testing.assert_array_equal(a, b)
+    assert renamed.wait(5)
+    with pytest.raises(DetectorTimeout, match="0 of 1"):  # no frame left: the renamed ones were taken
+        next(watcher.acquire(1, timeout_s=0.5))
+
+
+def test_folder_a_frame_file_saved_over_after_it_was_taken_is_an_error_naming_it(tmp_path):
+    """Found: vendor software set to save every frame to one name (``image.tif``) gave one frame;
+    every later one was saved over it, never taken, and the run waited out the detector time-out
+    with X-rays on before saying "1 of 3 frames arrived; no new complete file". Now a taken file
+    that changes and then holds other pixels is an error at once, naming it (the same pixels
+    written again, or only a new time stamp, are not)."""
+    a, b = _frames(2)
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=10, **FAST)
+    watcher.arm()
+    path = tmp_path / "image.tif"
+    path.write_bytes(_tiff(a))
+    frames = watcher.acquire(3)
+    np.testing.assert_array_equal(next(frames).data, a)
+    path.write_bytes(_tiff(a))  # the same pixels again, a new time stamp: not a lost frame
+    os.utime(path, ns=(time.time_ns() + 10**9,) * 2)
+    t = time.monotonic()
+    threading.Timer(0.3, lambda: path.write_bytes(_tiff(b))).start()
+    with pytest.raises(DeviceError, match=r"image\.tif: changed after it was taken as a frame.*new, numbered file"):
+        next(frames)
+    assert time.monotonic() - t < 5  # well before the 10 s time-out
+
+
 @needs_itex
 def test_folder_reads_real_itex_files(tmp_path):
     """The real HPD-TA files copied in as the vendor software would save them: 16-bit ones come

@@ -18,10 +18,12 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 import tifffile
 
 from acquisition.detector import FolderWatcher
 from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.errors import DeviceError
 from acquisition.frame import ManualFrame
 from acquisition.l8121 import L8121
 from acquisition.protocols import load_protocol, run
@@ -61,9 +63,10 @@ class Vendor(threading.Thread):
     (0, k) records, at the start and at the end of the integration: the tube on (0, 1), the
     phantom in (2, 3), the gap in 0.01 mm (4, 5)."""
 
-    def __init__(self, folder, model, operator, period_s=0.04):
+    def __init__(self, folder, model, operator, period_s=0.04, name=lambda k: f"frame_{k:05d}.tif"):
         super().__init__(daemon=True)
         self.folder, self.model, self.operator, self.period_s = Path(folder), model, operator, period_s
+        self.naming = name
         self.halt = threading.Event()
         self.error = None
 
@@ -79,10 +82,20 @@ class Vendor(threading.Thread):
                 end = self._state()
                 a = np.full(SHAPE, 100, np.uint16)
                 a[0, 0:6] = [start[0], end[0], start[1], end[1], start[2], end[2]]
-                tifffile.imwrite(self.folder / f"frame_{k:05d}.tif", a)
+                tifffile.imwrite(self.folder / self.naming(k), a)
                 k += 1
         except Exception as exc:  # pragma: no cover - re-raised by the test
             self.error = exc
+
+
+class Watcher(FolderWatcher):
+    """The lab's watcher, remembering the file each frame it handed over came from."""
+
+    def acquire(self, n, **kw):
+        self.handed = getattr(self, "handed", [])
+        for frame in super().acquire(n, **kw):
+            self.handed.append(frame.origin)
+            yield frame
 
 
 def _lab(tmp_path, **detector):
@@ -105,7 +118,7 @@ def _lab(tmp_path, **detector):
     except Exception:
         server.stop()
         raise
-    watcher = FolderWatcher(folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01)
+    watcher = Watcher(folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01)
     operator = Operator()
     frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
     return p, Devices(source, watcher, frame, [server.stop], emulator=model), operator
@@ -143,3 +156,59 @@ def test_frames_saved_while_the_run_waited_are_never_taken_for_the_next_batch(tm
         sel = proj & (step == i)
         np.testing.assert_allclose(gap[sel], H0 * (1 - r), atol=0.005)  # the gap set for this step
         np.testing.assert_allclose(gap_m[sel] * 1e3, H0 * (1 - r), atol=1e-9)  # and the one recorded
+
+
+def test_vendor_software_saving_every_frame_to_one_name_stops_the_run_saying_so(tmp_path):
+    """Found: vendor software saving every frame to one name (``image.tif``) gave the run at
+    most one frame; the others were saved over it unseen, and the run waited out the time-out
+    (X-rays on in a beam phase) to say only "no new complete file". Now the run stops with one
+    error naming the file and what to change, the tube off, and no frame from that file is left
+    labelled valid (the one stored, if any, is labelled invalid: its file changed afterwards)."""
+    p, dev, operator = _lab(tmp_path, timeout_s=1.0)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, name=lambda k: "image.tif")
+    vendor.start()
+    try:
+        with pytest.raises(DeviceError) as info:
+            run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert vendor.error is None
+    msg = str(info.value)
+    assert "image.tif" in msg and "new, numbered file" in msg, msg
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+    assert np.all(key == ImageKey.INVALID), key
+
+
+def test_a_frame_file_saved_over_after_it_was_stored_stops_the_run_and_the_frame_is_invalid(tmp_path):
+    """A second program saves over a frame file already stored (someone saves the first dark
+    from an image viewer while the run goes on; or the vendor software was still writing it
+    when it was taken). The run stops at once with one error naming the file, the tube off, and
+    the frame stored from it is labelled invalid (``--resume`` takes it again); the other dark
+    stays valid."""
+    p, dev, operator = _lab(tmp_path)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    saved_over = []
+
+    def second_writer(phase, info=None):
+        if phase == "flats":  # both darks are stored
+            first = dev.detector.handed[0]
+            tifffile.imwrite(first, np.full(SHAPE, 4000, np.uint16))
+            saved_over.append(first)
+
+    vendor.start()
+    try:
+        with pytest.raises(DeviceError) as info:
+            run(p, devices=dev, progress=False, on_phase=second_writer)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert vendor.error is None and len(saved_over) == 1
+    msg = str(info.value)
+    assert msg.startswith(f"{saved_over[0]}: changed after it was taken as a frame"), msg
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+    assert list(key[:2]) == [ImageKey.INVALID, ImageKey.DARK], key

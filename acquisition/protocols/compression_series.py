@@ -763,6 +763,7 @@ class _Run:
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
     phase: str = "connect"
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
+    origins: dict = field(default_factory=dict)  # frame file -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
 
@@ -883,9 +884,25 @@ def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
     """``n`` frames from the panel, each appended (and flushed) as it arrives. Only frames made
     after the devices reached this batch's state: none the folder already holds (made while the
     operator turned the screws, the gel settled or the beam ramped up), nor the one in flight."""
-    monitor, writer, detector = r.monitor, r.writer, r.devices.detector
+    detector = r.devices.detector
     detector.begin_batch(r.p.detector.discard_after_change)
-    for frame in detector.acquire(n, timeout_s=r.p.detector.timeout_s):
+    try:
+        _append_frames(r, detector.acquire(n, timeout_s=r.p.detector.timeout_s), image_key, step, ratio, gap, beam)
+    except DeviceError as exc:
+        # frames whose files changed after they were stored (FrameLost): nobody can vouch for them
+        lost = sorted(r.origins[o] for o in getattr(exc, "origins", ()) if o in r.origins)
+        if lost:
+            try:
+                r.writer.mark_invalid(lost)
+                log.warning("frames %s kept as image_key 3 (invalid): their files changed afterwards", lost)
+            except Exception as mark_exc:
+                log.error("could not mark frames %s invalid: %s", lost, mark_exc)
+        raise
+
+
+def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
+    monitor, writer = r.monitor, r.writer
+    for frame in frames:
         t = time.perf_counter()
         if beam:
             monitor.raise_if_failed()
@@ -899,7 +916,8 @@ def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
             voltage_kv=monitor.kv if beam else 0.0,
             current_ua=monitor.ua if beam else 0.0,
         )
-        log.debug("frame %d written (image_key %d, step %d)", index, int(image_key), step)
+        log.debug("frame %d written (image_key %d, step %d) from %s", index, int(image_key), step, frame.origin)
+        r.origins[frame.origin] = index
         if beam:
             monitor.written.append((index, frame.time_s))
         r.res.frames_written += 1
