@@ -212,3 +212,35 @@ def test_a_frame_file_saved_over_after_it_was_stored_stops_the_run_and_the_frame
     with h5py.File(p.output, "r") as h5:
         key = h5["entry/instrument/detector/image_key"][:]
     assert list(key[:2]) == [ImageKey.INVALID, ImageKey.DARK], key
+
+
+def test_the_protocols_pixel_size_reaches_the_lab_detector(tmp_path):
+    """Found: ``[detector] pixel_size_mm`` was never passed to the lab's folder watcher, which
+    guessed the pitch from the frame width: a 1120-wide crop of the unbinned panel (0.05 mm)
+    was stored as 0.1 mm, so every ROI and crop in mm was off by two, whatever the protocol
+    said. Now a given pitch is used; without one, the preset's or the width's (2 x 2 binned)."""
+    from acquisition.protocols import lab_devices
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    server = PtyServer(model)
+    server.start()
+    try:
+        for given, expected in ((0.05, 0.05), (None, 0.1)):
+            p = load_protocol(
+                {
+                    "output": str(tmp_path / "series.h5"),
+                    "source": {"port": server.url, "watchdog_s": 0},
+                    "detector": {"folder": str(tmp_path), "shape": [1120, 1120], "pixel_size_mm": given},
+                    "frame": {"kind": "manual", "initial_height_mm": H0},
+                }
+            )
+            dev = lab_devices(p)
+            try:
+                assert dev.detector.pixel_size_mm == expected
+                assert dev.detector.describe()["pixel_size_mm"] == expected
+            finally:
+                dev.close()
+    finally:
+        server.stop()
+    with pytest.raises(DeviceError, match=r"pixel_size_mm = 0: expected the panel's pitch"):
+        load_protocol({"detector": {"folder": str(tmp_path), "shape": [8, 8], "pixel_size_mm": 0}})

@@ -139,7 +139,9 @@ class DetectorSettings:
     # when the tube or the phantom changed saw both states (1: it writes each frame on read-out)
     discard_after_change: int = 1
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
-    pixel_size_mm: float = 0.05
+    # the panel's pitch at the frames' binning; None: the preset's, else 0.05 mm times the binning
+    # a 2240 / 1120 / 560 column width implies (a cropped frame needs it given)
+    pixel_size_mm: float | None = None
     # the panel's rated tube voltage (C7942.md: 20-100 kVp for the C7942SK-02); the L8121 goes to
     # 150 kV, so the source's ratings alone would let a protocol expose the panel beyond its own
     kvp_max: float = 100.0
@@ -221,6 +223,10 @@ class Protocol:
             raise ProtocolError(
                 f"[detector] folder = {d.folder!r} needs the frame size: shape = [rows, cols] or a "
                 f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
+            )
+        if d.pixel_size_mm is not None and d.pixel_size_mm <= 0:
+            raise ProtocolError(
+                f"[detector] pixel_size_mm = {d.pixel_size_mm!r}: expected the panel's pitch in mm, > 0"
             )
         _check_source(self.source)
         if _whole(self.source.voltage_kv) > d.kvp_max:  # what the driver sends
@@ -540,6 +546,7 @@ def lab_devices(p: Protocol) -> Devices:
         preset=p.detector.preset,
         timeout_s=p.detector.timeout_s,
         discard_first=p.detector.discard_first,
+        pixel_size_mm=p.detector.pixel_size_mm,
     )
     frame = ManualFrame(p.frame.initial_height_mm, interactive=p.frame.interactive)
     source = _guarded_source(p.source.port, p)
@@ -859,7 +866,7 @@ def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
     src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
-        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
+        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or 0.05),
         source={
             "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
             "voltage_kv": p.source.voltage_kv,
