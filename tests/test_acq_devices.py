@@ -416,6 +416,27 @@ def test_manual_frame_interactive():
         frame.move_to(0)
 
 
+def test_manual_frame_a_typo_is_not_recorded_as_the_steps_compression():
+    """Found: any positive number was taken as the measured gap and recorded as the step's
+    compression ratio: 85 typed for 8.5 mm on a 10 mm phantom stored ratio -7.5 (plates wider
+    than the phantom compress nothing), and 7.9 for a step-1 target of 8.5 (overshot past step
+    2's 8.0) stored ratio 0.21 without a question. Now a gap wider than the initial height is
+    asked again, and one farther from the target than a step (5 % of the height) is taken only
+    when typed twice; a near miss (8.45) is taken at once, as measured."""
+    op = Operator("85", "8.45", "7.9", "7.9", "7.9", "7.6", "7.5")
+    frame = ManualFrame(10.0, ask=op.ask, say=op.say)
+    assert frame.move_to(8.5) == pytest.approx(8.45)
+    assert any("wider than the phantom's initial height (10.000 mm)" in t for t in op.said)
+    assert frame.move_to(8.5) == pytest.approx(7.9)  # typed twice: taken, the overshoot recorded
+    assert any("0.600 mm from the target 8.500 mm" in t and "again to confirm" in t for t in op.said)
+    assert frame.ratio(frame.position()) == pytest.approx(0.21)
+    n_prompts = len(op.prompts)
+    assert frame.move_to(8.0) == pytest.approx(7.9)  # within a step: at once
+    assert len(op.prompts) == n_prompts + 1
+    assert frame.move_to(7.0) == pytest.approx(7.5)  # 7.6 once, then another reading: that one is taken
+    assert frame.ratio(frame.position()) >= 0
+
+
 def test_manual_frame_non_interactive_logs(caplog):
     op = Operator()
     frame = ManualFrame(40.0, interactive=False, ask=op.ask, say=op.say)
