@@ -30,6 +30,7 @@ import logging
 import math
 import operator
 import os
+import re
 import time
 import typing
 from collections.abc import Iterator
@@ -192,6 +193,7 @@ class FolderWatcher:
         self._pixel_size_given = pixel_size_mm is not None
         self.pixel_size_mm = float(pixel_size_mm) if pixel_size_mm is not None else self._pixel_size()
         self._armed = False
+        self._names_at_arm: set[str] = set()  # every file in the folder at arm(), matching or not
         self._known: dict[str, tuple] = {}  # name -> (size, mtime_ns) of files never to be taken
         self._taken: set[str] = set()
         self._took: dict[str, tuple] = {}  # name -> ((size, mtime_ns), pixel digest) of frames taken
@@ -210,6 +212,7 @@ class FolderWatcher:
     def arm(self) -> None:
         """Record the files already there (never taken) and re-arm the discard of the first frame."""
         self._known = {name: (st.st_size, st.st_mtime_ns) for name, st in self._listing()}
+        self._names_at_arm = self._names()
         self._taken = set()
         self._took = {}
         self._took_ids = {}
@@ -334,7 +337,7 @@ class FolderWatcher:
             self._recheck_taken(listing, now)
             new = sorted(
                 ((st.st_mtime_ns, name, st) for name, st in listing if self._is_new(name, st)),
-                key=lambda t: t[:2],
+                key=lambda t: (t[0], _natural(t[1])),
             )
             settled = self._settled(new, now)
             if failure is not None and failure[0] not in settled:
@@ -361,7 +364,8 @@ class FolderWatcher:
                 if failure is not None:
                     self._taken.add(failure[0])
                     raise DeviceError(
-                        f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: {failure[1]}"
+                        f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: "
+                        f"{failure[1]}{self._disk_full()}"
                     )
                 raise self._timeout(listing, new, got, n, timeout)
             time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
@@ -376,15 +380,38 @@ class FolderWatcher:
             for name, st in listing
             if self._known.get(name, (st.st_size, st.st_mtime_ns)) != (st.st_size, st.st_mtime_ns)
         ]
+        strays = sorted(self._names() - self._names_at_arm - {name for name, _ in listing}, key=_natural)
         if not new and over:
             why = (
                 f"; {over[0]}, already there, has changed since (if the vendor software saves every "
                 f"frame to that one name, have it save each frame to a new, numbered file)"
             )
+        elif not new and strays:  # the vendor software saves under another name or extension
+            why = f"; {len(strays)} new file(s) that do not match the pattern arrived meanwhile, e.g. {strays[-1]}"
         return DetectorTimeout(
             f"detector folder {self.folder}: {got} of {n} frames arrived "
-            f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{why}"
+            f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{why}{self._disk_full()}"
         )
+
+    def _names(self) -> set[str]:
+        try:
+            return set(os.listdir(self.folder))
+        except OSError:
+            return set()
+
+    def _disk_full(self) -> str:
+        """A note when the disk holding the folder cannot take another frame: the vendor software
+        then leaves truncated files, or none, and the run would only see a frame that never came."""
+        import shutil
+
+        need = 2 * math.prod(self.shape) if self.shape is not None else 1 << 20
+        try:
+            free = shutil.disk_usage(self.folder).free
+        except OSError:
+            return ""
+        if free >= need:
+            return ""
+        return f"; the disk holding the folder is full ({free} bytes free): the vendor software cannot save frames"
 
     def _settled(self, new, now: float) -> list[str]:
         """Names among ``new`` whose size and time stamp have held for ``settle_s``."""
@@ -561,6 +588,12 @@ class FrameLost(DeviceError):
     def __init__(self, message: str, *, origins: list[str]):
         super().__init__(message)
         self.origins = list(origins)
+
+
+def _natural(name: str) -> tuple:
+    """Sort key reading digit runs as numbers: frame_9 before frame_10 (file systems whose time
+    stamps are coarse, FAT's 2 s, give many frames the same one; then the name decides)."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name.lower()))
 
 
 def _identity(st: os.stat_result):

@@ -355,6 +355,41 @@ def test_folder_a_frame_file_saved_over_after_it_was_taken_is_an_error_naming_it
     assert time.monotonic() - t < 5  # well before the 10 s time-out
 
 
+def test_folder_a_time_out_names_what_the_folder_shows_instead(tmp_path, monkeypatch):
+    """Found: a time-out said only "no new complete file" when the vendor software was saving
+    every frame under another extension (``.tiff`` for a ``*.tif`` pattern) or could not save
+    at all (its disk full, the run's own experiment file filling it): the operator had to guess.
+    Now it names a new file that does not match the pattern, and says when the folder's disk
+    cannot take another frame."""
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, **FAST)
+    watcher.arm()
+    for k in (9, 10):
+        (tmp_path / f"frame_{k}.tiff").write_bytes(_tiff(_frames(1)[0]))
+    with pytest.raises(DetectorTimeout, match=r"2 new file\(s\) that do not match the pattern .*e\.g\. frame_10\.tiff"):
+        next(watcher.acquire(1, timeout_s=0.3))
+    # the one fake here: a full disk cannot be caused safely on a shared machine
+    import shutil
+
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 4096, 4096))
+    (tmp_path / "cut.tif").write_bytes(_tiff(_frames(1)[0])[:1000])
+    with pytest.raises(
+        DeviceError, match=r"cut\.tif: not a readable frame file .*disk holding the folder is full \(4096"
+    ):
+        next(watcher.acquire(1, timeout_s=0.3))
+
+
+def test_folder_frames_with_one_time_stamp_are_taken_in_numeric_order(tmp_path):
+    """On a file system with coarse time stamps (FAT: 2 s) many frames share one; the name then
+    decides, and frame_10 came before frame_9. Digit runs now compare as numbers."""
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=5, **FAST)
+    watcher.arm()
+    stamp = time.time_ns()
+    for k in (10, 9, 100):
+        (tmp_path / f"frame_{k}.tif").write_bytes(_tiff(_frames(1)[0]))
+        os.utime(tmp_path / f"frame_{k}.tif", ns=(stamp, stamp))
+    assert [Path(f.origin).name for f in watcher.acquire(3)] == ["frame_9.tif", "frame_10.tif", "frame_100.tif"]
+
+
 @needs_itex
 def test_folder_reads_real_itex_files(tmp_path):
     """The real HPD-TA files copied in as the vendor software would save them: 16-bit ones come
