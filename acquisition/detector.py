@@ -509,7 +509,7 @@ class FolderWatcher:
                 hints["shape"] = self._raw_shape(path)
             return read(path, **hints).data
         except FormatError as exc:
-            raise _NotYet(exc.problem) from None
+            raise _NotYet(exc.problem + self._other_geometry(path, fmt)) from None
         except FileNotFoundError:
             raise _Gone(f"{path.name} is gone") from None
         except OSError as exc:  # e.g. still locked by the writer on a network share
@@ -523,6 +523,25 @@ class FolderWatcher:
         frame = data[0]
         self._check(path, frame)
         return frame
+
+    def _other_geometry(self, path: Path, fmt) -> str:
+        """For a raw file that does not read at the expected shape: the C7942 geometry its size
+        is one frame of, if any (the panel set to another effective area or binning than the
+        protocol's), so the error says what to change rather than only "truncated"."""
+        if fmt != "raw" or self.shape is None:
+            return ""
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return ""
+        fits = [p for p in PRESETS.values() if p.frame_bytes == size and (p.rows, p.cols) != self.shape]
+        if len(fits) != 1:
+            return ""
+        p = fits[0]
+        return (
+            f"; its size is one {p.rows}x{p.cols} frame (preset {p.name}): is the vendor software set to "
+            f"the geometry and binning the protocol expects ({self.shape[0]}x{self.shape[1]})?"
+        )
 
     def _raw_shape(self, path: Path) -> tuple[int, int]:
         if self.shape is not None:

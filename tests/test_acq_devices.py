@@ -289,13 +289,24 @@ def test_folder_a_damaged_tiff_is_one_error_not_a_stream_of_tifffile_warnings(tm
 
 def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
     """Raw files without a shape are recognised by size as a single C7942 frame (here 4x4 binned,
-    560 x 560); the preset also gives the pixel size."""
+    560 x 560); the preset also gives the pixel size. Found: a raw frame of another C7942
+    geometry (the panel set to 2240 x 2368 at 4x4, the protocol to c7942-4x4) was only "not a
+    whole number of 560x560 frames: truncated or wrong geometry"; the error now names the
+    geometry its size fits."""
     frame = _frames(1, (560, 560))[0]
     watcher = FolderWatcher(tmp_path, "*.raw", **FAST, timeout_s=5)
     watcher.arm()
     (tmp_path / "a.raw").write_bytes(_raw(frame))
     np.testing.assert_array_equal(next(watcher.acquire(1)).data, frame)
     assert watcher.shape == (560, 560) and watcher.pixel_size_mm == pytest.approx(0.2)
+    # a raw frame of another C7942 geometry than the preset's says which one it is
+    other = FolderWatcher(tmp_path, "*.raw", preset="c7942-4x4", **FAST)
+    other.arm()
+    (tmp_path / "b.raw").write_bytes(_raw(_frames(1, (592, 560))[0]))  # c7942-2368-4x4
+    with pytest.raises(
+        DeviceError, match=r"b\.raw: .*one 592x560 frame \(preset c7942-2368-4x4\).*expects \(560x560\)"
+    ):
+        next(other.acquire(1, timeout_s=0.3))
     preset = FolderWatcher(tmp_path, "*.raw", preset="c7942-4x4")
     assert preset.shape == (560, 560) and preset.pixel_size_mm == pytest.approx(0.2)
     with pytest.raises(ValueError, match="contradicts"):
