@@ -244,3 +244,31 @@ def test_the_protocols_pixel_size_reaches_the_lab_detector(tmp_path):
         server.stop()
     with pytest.raises(DeviceError, match=r"pixel_size_mm = 0: expected the panel's pitch"):
         load_protocol({"detector": {"folder": str(tmp_path), "shape": [8, 8], "pixel_size_mm": 0}})
+
+
+def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):
+    """Found with the pixel size: ``settle_s`` (how long a frame file must hold still, which a
+    network share with pausing writes needs longer, and which the saved-over error names) could
+    not be set from the protocol at all; now ``[detector] settle_s`` reaches the watcher."""
+    from acquisition.protocols import lab_devices
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    server = PtyServer(model)
+    server.start()
+    try:
+        p = load_protocol(
+            {
+                "output": str(tmp_path / "series.h5"),
+                "source": {"port": server.url, "watchdog_s": 0},
+                "detector": {"folder": str(tmp_path), "preset": "c7942-2x2", "settle_s": 1.5, "timeout_s": 12.0},
+                "frame": {"kind": "manual", "initial_height_mm": H0},
+            }
+        )
+        dev = lab_devices(p)
+        try:
+            d = dev.detector.describe()
+            assert (d["settle_s"], d["timeout_s"], d["shape"], d["pixel_size_mm"]) == (1.5, 12.0, [1120, 1120], 0.1)
+        finally:
+            dev.close()
+    finally:
+        server.stop()

@@ -138,6 +138,9 @@ class DetectorSettings:
     # folder already holds: the vendor software may save continuously, and the frame in flight
     # when the tube or the phantom changed saw both states (1: it writes each frame on read-out)
     discard_after_change: int = 1
+    # a frame file is complete once its size and time stamp have held this long (and it reads):
+    # longer on a network share whose writes pause
+    settle_s: float = 0.2
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
     # the panel's pitch at the frames' binning; None: the preset's, else 0.05 mm times the binning
     # a 2240 / 1120 / 560 column width implies (a cropped frame needs it given)
@@ -545,6 +548,7 @@ def lab_devices(p: Protocol) -> Devices:
         shape=p.detector.shape,
         preset=p.detector.preset,
         timeout_s=p.detector.timeout_s,
+        settle_s=p.detector.settle_s,
         discard_first=p.detector.discard_first,
         pixel_size_mm=p.detector.pixel_size_mm,
     )
