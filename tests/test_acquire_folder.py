@@ -39,8 +39,9 @@ class Operator:
     """The person at the frame: each request takes ``work_s``; the gap and the phantom change
     when they are done, before they press Enter (as ManualFrame records them)."""
 
-    def __init__(self, work_s=0.1):
+    def __init__(self, work_s=0.1, readings=()):
         self.work_s = work_s
+        self.readings = list(readings)  # what they type for each gap measured (Enter when none left)
         self.gap_mm, self.phantom_in = H0, True
         self._said = ""
 
@@ -53,7 +54,11 @@ class Operator:
             self.phantom_in = False
         elif "Put the phantom back" in self._said:
             self.phantom_in = True
-        elif "Turn the screws" in self._said:
+        elif "Turn the screws" in self._said or "again to confirm" in self._said:
+            if self.readings:
+                reading = self.readings.pop(0)
+                self.gap_mm = float(reading)
+                return reading
             self.gap_mm = float(self._said.split("plate gap of ")[1].split(" mm")[0])
         return ""
 
@@ -98,7 +103,7 @@ class Watcher(FolderWatcher):
             yield frame
 
 
-def _lab(tmp_path, **detector):
+def _lab(tmp_path, series=None, operator=None, **detector):
     folder = tmp_path / "frames"
     folder.mkdir()
     p = load_protocol(
@@ -107,7 +112,7 @@ def _lab(tmp_path, **detector):
             "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "port": "emulated"},
             "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "timeout_s": 5.0, **detector},
             "frame": {"kind": "manual", "initial_height_mm": H0},
-            "series": {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
+            "series": series or {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
         }
     )
     model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
@@ -119,7 +124,7 @@ def _lab(tmp_path, **detector):
         server.stop()
         raise
     watcher = Watcher(folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01)
-    operator = Operator()
+    operator = operator or Operator()
     frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
     return p, Devices(source, watcher, frame, [server.stop], emulator=model), operator
 
@@ -272,3 +277,25 @@ def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):
             dev.close()
     finally:
         server.stop()
+
+
+def test_steps_measured_out_of_order_are_said(tmp_path, caplog):
+    """The operator overshoots step 1 (7.9 mm for 8.5, confirmed by typing it twice), then
+    stops short at step 2 (8.0 mm for 7.5): the file holds a step 2 less compressed than step 1,
+    and processing takes the steps in their numbers' order. Found: nothing said so; now the
+    notebook and the console get a warning naming both steps."""
+    import logging
+
+    series = {"darks": 0, "flats": 0, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, Operator(readings=["7.9", "7.9", "8.0"]))
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    vendor.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="acquisition.protocol"):
+            res = run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert res.frames_total == 2 and res.tube_off is True
+    warned = [r.getMessage() for r in caplog.records if "not in increasing compression" in r.getMessage()]
+    assert len(warned) == 1 and "step 2: measured compression 0.2000" in warned[0] and "step 1's 0.2100" in warned[0]

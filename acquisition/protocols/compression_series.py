@@ -985,12 +985,24 @@ def _phase_steps(r: _Run):
 
     p, frm = r.p, r.devices.frame
     h0 = frm.initial_height_mm
+    before = None  # (step, measured ratio) of the step moved to before this one
     for i, ratio in enumerate(p.series.steps, start=1):
         n = p.series.frames_per_step - r.done["steps"].get(i, 0)
         if n <= 0:
             continue
         r.enter(f"step {i}", ratio)
         gap = frm.move_to(h0 * (1 - ratio))
+        if before is not None and 1 - gap / h0 <= before[1]:
+            # processing takes the steps in their numbers' order, the last as the most compressed
+            log.warning(
+                "step %d: measured compression %.4f (gap %.3f mm) is not above step %d's %.4f: "
+                "the series is not in increasing compression",
+                i,
+                1 - gap / h0,
+                gap,
+                *before,
+            )
+        before = (i, 1 - gap / h0)
         _settle(p.series.settle_s, r.bar, r.progress)
         _beam_on(r)
         _take(r, n, ImageKey.PROJECTION, step=i, ratio=1 - gap / h0, gap=gap, beam=True)
