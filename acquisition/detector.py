@@ -194,7 +194,7 @@ class FolderWatcher:
         self.pixel_size_mm = float(pixel_size_mm) if pixel_size_mm is not None else self._pixel_size()
         self._armed = False
         self._names_at_arm: set[str] = set()  # every file in the folder at arm(), matching or not
-        self._known: dict[str, tuple] = {}  # name -> (size, mtime_ns) of files never to be taken
+        self._known: dict[str, list] = {}  # name -> _known_entry() of files never to be taken
         self._taken: set[str] = set()
         self._took: dict[str, tuple] = {}  # name -> ((size, mtime_ns), pixel digest) of frames taken
         self._took_ids: dict[tuple, str] = {}  # _identity() of each frame taken -> its name
@@ -211,7 +211,7 @@ class FolderWatcher:
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:
         """Record the files already there (never taken) and re-arm the discard of the first frame."""
-        self._known = {name: (st.st_size, st.st_mtime_ns) for name, st in self._listing()}
+        self._known = {name: self._known_entry(st) for name, st in self._listing()}
         self._names_at_arm = self._names()
         self._taken = set()
         self._took = {}
@@ -273,7 +273,7 @@ class FolderWatcher:
         if not self._armed:
             self.arm()
         backlog = {
-            name: (st.st_size, st.st_mtime_ns)
+            name: self._known_entry(st)
             for name, st in self._listing()
             if name not in self._known and name not in self._taken
         }
@@ -334,11 +334,13 @@ class FolderWatcher:
         while True:
             now = time.monotonic()
             listing = self._listing()
-            self._recheck_taken(listing, now)
+            files = dict(listing)
             new = sorted(
-                ((st.st_mtime_ns, name, st) for name, st in listing if self._is_new(name, st)),
+                ((st.st_mtime_ns, name, st) for name, st in listing if self._is_new(name, st, files)),
                 key=lambda t: (t[0], _natural(t[1])),
             )
+            self._recheck_taken(listing, now)  # after _is_new has followed renamed frames
+            self._watch_known(listing, now)
             settled = self._settled(new, now)
             if failure is not None and failure[0] not in settled:
                 failure = None  # it changed (still being written) or is gone (renamed)
@@ -371,20 +373,17 @@ class FolderWatcher:
             time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
 
     def _timeout(self, listing, new, got: int, n: int, timeout: float) -> DetectorTimeout:
-        """The time-out, saying what the folder shows: a file still growing, or one that was
-        there before and has changed since (the vendor software saving every frame to one name:
-        each frame is lost, and the folder never gets a new file)."""
+        """The time-out, saying what the folder shows: a file still growing, one that was there
+        before and was saved over after it had held still (the vendor software saving every frame
+        to one name: each frame is lost, and the folder never gets a new file), new files the
+        pattern does not match, a full disk."""
         why = f"; {new[0][1]} is still being written" if new else ""
-        over = [
-            name
-            for name, st in listing
-            if self._known.get(name, (st.st_size, st.st_mtime_ns)) != (st.st_size, st.st_mtime_ns)
-        ]
+        over = [name for name, entry in self._known.items() if entry[3]]
         strays = sorted(self._names() - self._names_at_arm - {name for name, _ in listing}, key=_natural)
         if not new and over:
             why = (
-                f"; {over[0]}, already there, has changed since (if the vendor software saves every "
-                f"frame to that one name, have it save each frame to a new, numbered file)"
+                f"; {over[0]}, already there, was saved over meanwhile (if the vendor software saves "
+                f"every frame to that one name, have it save each frame to a new, numbered file)"
             )
         elif not new and strays:  # the vendor software saves under another name or extension
             why = f"; {len(strays)} new file(s) that do not match the pattern arrived meanwhile, e.g. {strays[-1]}"
@@ -425,18 +424,46 @@ class FolderWatcher:
                 settled.append(name)
         return settled
 
-    def _is_new(self, name: str, st: os.stat_result) -> bool:
+    @staticmethod
+    def _known_entry(st: os.stat_result) -> list:
+        """[(size, mtime_ns), monotonic time seen so, held still for settle_s, changed after that]"""
+        return [(st.st_size, st.st_mtime_ns), time.monotonic(), False, False]
+
+    def _watch_known(self, listing, now: float) -> None:
+        """Note a file never to be taken that changes after it has held still: saved over (the
+        vendor software saving every frame to one name), which a time-out then says."""
+        for name, st in listing:
+            entry = self._known.get(name)
+            if entry is None:
+                continue
+            sig = (st.st_size, st.st_mtime_ns)
+            if sig == entry[0]:
+                entry[2] = entry[2] or now - entry[1] >= self.settle_s
+            else:
+                entry[3] = entry[3] or entry[2]
+                entry[0], entry[1] = sig, now
+
+    def _is_new(self, name: str, st: os.stat_result, files: dict) -> bool:
         """Not known at arm(), not taken, and not a taken file under a new name: a writer that
         saves to a temporary name and renames it (the same file: device, inode, size and time
-        stamp) had each frame taken twice when the temporary name matched the pattern."""
+        stamp) had each frame taken twice when the temporary name matched the pattern. The
+        renamed frame is followed under its new name, and the old name is free for the next
+        temporary file."""
         if name in self._known or name in self._taken:
             return False
         ident = _identity(st)
-        if ident is not None and ident in self._took_ids:
-            self._taken.add(name)
-            log.info("detector folder %s: %s is %s renamed: taken already", self.folder, name, self._took_ids[ident])
-            return False
-        return True
+        old = self._took_ids.get(ident) if ident is not None else None
+        if old is None:
+            return True
+        self._taken.add(name)
+        still = files.get(old)
+        if (still is None or _identity(still) != ident) and old in self._took:  # renamed, not a second link
+            self._took[name] = self._took.pop(old)
+            self._took_ids[ident] = name
+            self._taken.discard(old)
+            self._seen.pop(old, None)
+        log.info("detector folder %s: %s is the frame taken as %s: not taken again", self.folder, name, old)
+        return False
 
     def _took_frame(self, name: str, st: os.stat_result, data: np.ndarray) -> None:
         self._taken.add(name)

@@ -315,19 +315,22 @@ def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
         FolderWatcher(tmp_path / "missing")
 
 
-def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_path):
+@pytest.mark.parametrize("pattern, temporary", [("frame*", "frame_{k}.tif.tmp"), ("*.tif", "~temp.tif")])
+def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_path, pattern, temporary):
     """Found: a writer that saves each frame to ``frame_K.tif.tmp`` and renames it to
     ``frame_K.tif`` (the usual atomic save), watched with a pattern both names match, had every
     frame taken twice: the temporary file once it had settled, then the renamed one as new. A
-    rename keeps the file (device, inode, size, time stamp): it is now known as taken."""
-    data = _frames(3)
-    watcher = FolderWatcher(tmp_path, "frame*", shape=SHAPE, timeout_s=5, **FAST)
+    rename keeps the file (device, inode, size, time stamp): it is now known as taken, under
+    its new name, and a temporary name used for every frame (``~temp.tif``) is free again for
+    the next one (not a file saved over)."""
+    data = _frames(4)
+    watcher = FolderWatcher(tmp_path, pattern, shape=SHAPE, timeout_s=5, **FAST)
     watcher.arm()
     renamed = threading.Event()
 
     def write():
         for k, a in enumerate(data):
-            tmp = tmp_path / f"frame_{k}.tif.tmp"
+            tmp = tmp_path / temporary.format(k=k)
             tmp.write_bytes(_tiff(a))
             time.sleep(FAST["settle_s"] * 3)  # settled: it may be taken under this name
             tmp.rename(tmp_path / f"frame_{k}.tif")
@@ -335,7 +338,7 @@ def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_
 
     thread = threading.Thread(target=write)
     thread.start()
-    got = [f.data for f in watcher.acquire(3)]
+    got = [f.data for f in watcher.acquire(len(data))]
     thread.join()
     for a, b in zip(got, data):
         np.testing.assert_array_equal(a, b)
@@ -387,6 +390,35 @@ def test_folder_a_time_out_names_what_the_folder_shows_instead(tmp_path, monkeyp
         DeviceError, match=r"cut\.tif: not a readable frame file .*disk holding the folder is full \(4096"
     ):
         next(watcher.acquire(1, timeout_s=0.3))
+
+
+def test_folder_a_time_out_says_when_a_file_there_before_was_saved_over(tmp_path):
+    """Vendor software saving every frame to one name that was already there at arm(): never a
+    new file, so never a frame. The time-out says that file was saved over after it had held
+    still; a file still being written at arm() that merely completes is not called saved over."""
+    path = tmp_path / "image.tif"
+    path.write_bytes(_tiff(_frames(1)[0]))
+    late = tmp_path / "late.tif"
+    late.write_bytes(_tiff(_frames(1)[0])[:500])  # in flight at arm()
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, **FAST)
+    watcher.arm()
+    late.write_bytes(_tiff(_frames(1)[0]))
+    with pytest.raises(DetectorTimeout) as info:
+        next(watcher.acquire(1, timeout_s=0.5))
+    assert "saved over" not in str(info.value)
+
+    def save_over():
+        for k in range(3):
+            time.sleep(0.3)  # each held still for longer than settle_s
+            path.write_bytes(_tiff(_frames(k + 2)[-1]))
+
+    thread = threading.Thread(target=save_over)
+    thread.start()
+    with pytest.raises(
+        DetectorTimeout, match=r"image\.tif, already there, was saved over meanwhile .*new, numbered file"
+    ):
+        next(watcher.acquire(1, timeout_s=1.2))
+    thread.join()
 
 
 def test_folder_frames_with_one_time_stamp_are_taken_in_numeric_order(tmp_path):

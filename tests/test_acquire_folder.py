@@ -170,7 +170,7 @@ def test_vendor_software_saving_every_frame_to_one_name_stops_the_run_saying_so(
     error naming the file and what to change, the tube off, and no frame from that file is left
     labelled valid (the one stored, if any, is labelled invalid: its file changed afterwards)."""
     p, dev, operator = _lab(tmp_path, timeout_s=1.0)
-    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, name=lambda k: "image.tif")
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, period_s=0.1, name=lambda k: "image.tif")
     vendor.start()
     try:
         with pytest.raises(DeviceError) as info:
