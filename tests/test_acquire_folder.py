@@ -299,3 +299,84 @@ def test_steps_measured_out_of_order_are_said(tmp_path, caplog):
     assert res.frames_total == 2 and res.tube_off is True
     warned = [r.getMessage() for r in caplog.records if "not in increasing compression" in r.getMessage()]
     assert len(warned) == 1 and "step 2: measured compression 0.2000" in warned[0] and "step 1's 0.2100" in warned[0]
+
+
+def test_ctrl_c_while_the_lab_run_waits_for_folder_frames_with_x_rays_on(tmp_path):
+    """The lab's path through the command: ``radiokit acquire`` in a subprocess on the emulator's
+    pseudo-terminal (through the guardian), the folder written by the vendor model, the operator
+    answering the manual frame's prompts on stdin. Ctrl-C while step 1's frames are awaited with
+    X-rays on: exit 130, the last line confirms the tube off, the emulated tube is off, and the
+    darks and flats are in the file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import tomli_w
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
+    server = PtyServer(model)
+    server.start()
+    operator = Operator()
+    vendor = Vendor(folder, model, operator, period_s=0.05)
+    proto = tmp_path / "lab.toml"
+    series = {"darks": 2, "flats": 2, "frames_per_step": 10**4, "steps": list(STEPS), "settle_s": 0.0}
+    source = {"port": server.url, "voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5}
+    proto.write_text(
+        tomli_w.dumps(
+            {
+                "output": str(tmp_path / "series.h5"),
+                "source": source,
+                "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "settle_s": 0.03},
+                "frame": {"kind": "manual", "initial_height_mm": H0},
+                "series": series,
+            }
+        )
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
+    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "acquire", str(proto), "-q"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env=env,
+        start_new_session=True,
+    )
+    notebook = tmp_path / "series.log"
+
+    def logged(text):
+        return notebook.exists() and text in notebook.read_text(errors="replace")
+
+    def wait(cond, what, timeout=30.0):
+        end = time.monotonic() + timeout
+        while not cond():
+            assert proc.poll() is None, f"the run ended before {what}"
+            assert time.monotonic() < end, f"timed out waiting for {what}"
+            time.sleep(0.02)
+
+    vendor.start()
+    try:
+        for _ in range(3):  # phantom out, phantom back in, the screws: Enter each time
+            proc.stdin.write(b"\n")
+        proc.stdin.flush()
+        wait(lambda: logged("phase step 1") and model.xray_on, "X-rays on in step 1")
+        wait(lambda: notebook.read_text(errors="replace").count("new batch") >= 3, "step 1's frames awaited")
+        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C goes to the process group
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+        if proc.poll() is None:
+            proc.kill()
+        server.stop()
+    lines = [ln for ln in out.decode("utf-8", "replace").splitlines() if ln.strip()]
+    assert proc.returncode == 130, lines[-5:]
+    assert lines[-1].startswith("tube off (confirmed by STS"), lines[-5:]
+    assert not model.xray_on
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        key = list(h5["entry/instrument/detector/image_key"][:4])
+    assert key == [ImageKey.DARK] * 2 + [ImageKey.FLAT] * 2
