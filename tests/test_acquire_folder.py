@@ -68,10 +68,11 @@ class Vendor(threading.Thread):
     (0, k) records, at the start and at the end of the integration: the tube on (0, 1), the
     phantom in (2, 3), the gap in 0.01 mm (4, 5)."""
 
-    def __init__(self, folder, model, operator, period_s=0.04, name=lambda k: f"frame_{k:05d}.tif"):
+    def __init__(self, folder, model, operator, period_s=0.04, name=lambda k: f"frame_{k:05d}.tif", fill=100):
         super().__init__(daemon=True)
         self.folder, self.model, self.operator, self.period_s = Path(folder), model, operator, period_s
         self.naming = name
+        self.fill = fill
         self.halt = threading.Event()
         self.error = None
 
@@ -85,7 +86,7 @@ class Vendor(threading.Thread):
                 start = self._state()
                 time.sleep(self.period_s)
                 end = self._state()
-                a = np.full(SHAPE, 100, np.uint16)
+                a = np.full(SHAPE, self.fill, np.uint16)
                 a[0, 0:6] = [start[0], end[0], start[1], end[1], start[2], end[2]]
                 tifffile.imwrite(self.folder / self.naming(k), a)
                 k += 1
@@ -123,7 +124,9 @@ def _lab(tmp_path, series=None, operator=None, **detector):
     except Exception:
         server.stop()
         raise
-    watcher = Watcher(folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01)
+    watcher = Watcher(
+        folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01, bits=p.detector.bits
+    )
     operator = operator or Operator()
     frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
     return p, Devices(source, watcher, frame, [server.stop], emulator=model), operator
@@ -253,8 +256,9 @@ def test_the_protocols_pixel_size_reaches_the_lab_detector(tmp_path):
 
 def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):
     """Found with the pixel size: ``settle_s`` (how long a frame file must hold still, which a
-    network share with pausing writes needs longer, and which the saved-over error names) could
-    not be set from the protocol at all; now ``[detector] settle_s`` reaches the watcher."""
+    network share with pausing writes needs longer, and which the saved-over error names) and the
+    panel's ADC depth (the watcher's "another detector model (C9730DK/C9732DK are 14-bit)" advice
+    had nothing to act on) could not be set from the protocol; now both reach the watcher."""
     from acquisition.protocols import lab_devices
 
     model = L8121Model(dialect="A", warmed_up=True)
@@ -265,7 +269,13 @@ def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):
             {
                 "output": str(tmp_path / "series.h5"),
                 "source": {"port": server.url, "watchdog_s": 0},
-                "detector": {"folder": str(tmp_path), "preset": "c7942-2x2", "settle_s": 1.5, "timeout_s": 12.0},
+                "detector": {
+                    "folder": str(tmp_path),
+                    "preset": "c7942-2x2",
+                    "settle_s": 1.5,
+                    "timeout_s": 12.0,
+                    "bits": 14,
+                },
                 "frame": {"kind": "manual", "initial_height_mm": H0},
             }
         )
@@ -273,6 +283,7 @@ def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):
         try:
             d = dev.detector.describe()
             assert (d["settle_s"], d["timeout_s"], d["shape"], d["pixel_size_mm"]) == (1.5, 12.0, [1120, 1120], 0.1)
+            assert d["bits"] == 14
         finally:
             dev.close()
     finally:
@@ -380,3 +391,28 @@ def test_ctrl_c_while_the_lab_run_waits_for_folder_frames_with_x_rays_on(tmp_pat
     with h5py.File(tmp_path / "series.h5", "r") as h5:
         key = list(h5["entry/instrument/detector/image_key"][:4])
     assert key == [ImageKey.DARK] * 2 + [ImageKey.FLAT] * 2
+
+
+def test_a_14_bit_panel_named_in_the_protocol_runs_and_is_recorded(tmp_path):
+    """A 14-bit panel (C9730DK/C9732DK) under a protocol that says ``bits = 14``: frames up to
+    16383 are taken, and the file records the depth, so readers and the calibration take 16383 as
+    saturation, not 4095 as wrong byte order. Without it the run stops at the first frame."""
+    series = {"darks": 1, "flats": 0, "frames_per_step": 1, "steps": [0.15, 0.25], "settle_s": 0.0}
+    for bits in (12, 14):
+        out = tmp_path / f"bits{bits}"
+        out.mkdir()
+        p, dev, operator = _lab(out, series, bits=bits, timeout_s=2.0)
+        vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, fill=16000)
+        vendor.start()
+        try:
+            if bits == 12:
+                with pytest.raises(DeviceError, match=r"pixel values up to 16000 exceed the 12-bit range"):
+                    run(p, devices=dev, progress=False)
+            else:
+                assert run(p, devices=dev, progress=False).frames_total == 3
+        finally:
+            vendor.halt.set()
+            vendor.join(5)
+    with h5py.File(p.output, "r") as h5:
+        assert int(h5["entry/instrument/detector/bit_depth_readout"][()]) == 14
+        assert int(h5["entry/instrument/detector/data"][0].max()) == 16000

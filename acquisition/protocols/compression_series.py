@@ -141,6 +141,9 @@ class DetectorSettings:
     # a frame file is complete once its size and time stamp have held this long (and it reads):
     # longer on a network share whose writes pause
     settle_s: float = 0.2
+    # the panel's ADC depth: a value beyond it stops the run (C7942: 12; C9730DK/C9732DK: 14),
+    # and the experiment file records it (NeXus bit_depth_readout) when it is not 12
+    bits: int = 12
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
     # the panel's pitch at the frames' binning; None: the preset's, else 0.05 mm times the binning
     # a 2240 / 1120 / 560 column width implies (a cropped frame needs it given)
@@ -226,6 +229,10 @@ class Protocol:
             raise ProtocolError(
                 f"[detector] folder = {d.folder!r} needs the frame size: shape = [rows, cols] or a "
                 f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
+            )
+        if not 1 <= d.bits <= 16:
+            raise ProtocolError(
+                f"[detector] bits = {d.bits!r}: expected the panel's ADC bits, 1 to 16 (frames are uint16)"
             )
         if d.pixel_size_mm is not None and d.pixel_size_mm <= 0:
             raise ProtocolError(
@@ -549,6 +556,7 @@ def lab_devices(p: Protocol) -> Devices:
         preset=p.detector.preset,
         timeout_s=p.detector.timeout_s,
         settle_s=p.detector.settle_s,
+        bits=p.detector.bits,
         discard_first=p.detector.discard_first,
         pixel_size_mm=p.detector.pixel_size_mm,
     )
@@ -877,6 +885,7 @@ def _open_experiment(r: _Run):
             "current_ua": p.source.current_ua,
         },
         title=f"radiokit compression series: {p.name}",
+        bit_depth=p.detector.bits if p.detector.bits != 12 else None,  # 12: the readers' default
     )
     existed = r.out.exists()
     _warn_if_short_of_room(r, existed)
