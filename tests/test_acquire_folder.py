@@ -416,3 +416,57 @@ def test_a_14_bit_panel_named_in_the_protocol_runs_and_is_recorded(tmp_path):
     with h5py.File(p.output, "r") as h5:
         assert int(h5["entry/instrument/detector/bit_depth_readout"][()]) == 14
         assert int(h5["entry/instrument/detector/data"][0].max()) == 16000
+
+
+def test_a_stopped_series_stops_the_compression_frame(tmp_path):
+    """Found: only the series' normal end called the frame's ``stop()``; a fault or Ctrl-C while
+    a motorised stage moved left its axis running, closing on the phantom, although the
+    MotorisedStage contract asks for ``stop()`` in the protocol's abort path. No motorised driver
+    exists, so the stage here is the one fake of this module: an axis on a thread that closes
+    the gap until it is there or stopped. Ctrl-C arrives mid-move; the tube is off and the axis
+    is halted short of the target."""
+    import signal
+
+    from acquisition.frame import MotorisedStage
+
+    class Stage(MotorisedStage):
+        def __init__(self):
+            super().__init__(H0)
+            self.gap, self.halted, self.moving = H0, threading.Event(), threading.Event()
+
+        def move_to(self, gap_mm):
+            def axis():
+                while self.gap > gap_mm and not self.halted.wait(0.01):
+                    self.gap = max(gap_mm, self.gap - 0.01)
+                    self.moving.set()
+
+            threading.Thread(target=axis, daemon=True).start()
+            assert self.moving.wait(5)
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C mid-move: the guard raises here
+            while self.gap > gap_mm:  # pragma: no cover - never reached
+                time.sleep(0.01)
+            return self.gap
+
+        def position(self):
+            return self.gap
+
+        def stop(self):
+            self.halted.set()
+
+        def sample_out(self):
+            pass
+
+        def sample_in(self):
+            pass
+
+    series = {"darks": 0, "flats": 0, "frames_per_step": 1, "steps": [0.5, 0.6], "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series)
+    stage = dev.frame = Stage()
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt) as info:
+            run(p, devices=dev, progress=False)
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    assert stage.halted.is_set() and stage.gap > H0 * 0.5

@@ -1202,6 +1202,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
+    _stop_frame(r)
     if res.tube_off is None and getattr(exc, "port_never_opened", False):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
@@ -1230,6 +1231,19 @@ def _stop(r: _Run, exc: BaseException):
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
         )
+
+
+def _stop_frame(r: _Run) -> None:
+    """Halt the compression frame once the tube is off: a stopped series must not leave a
+    motorised stage closing on the phantom (``MotorisedStage.stop``: safe at any time). Only the
+    normal end stopped it, so a fault or Ctrl-C in a move left the axis running."""
+    frame = getattr(r.devices, "frame", None)
+    if frame is None:
+        return
+    try:
+        frame.stop()
+    except Exception as exc:  # the error that ended the run is the one to report
+        log.error("stopping the compression frame: %s", exc)
 
 
 def _release(r: _Run, notebook):
