@@ -470,3 +470,36 @@ def test_a_stopped_series_stops_the_compression_frame(tmp_path):
         signal.signal(signal.SIGINT, old)
     assert info.value.result.tube_off is True and not dev.emulator.xray_on
     assert stage.halted.is_set() and stage.gap > H0 * 0.5
+
+
+@pytest.mark.parametrize(
+    "detector, message",
+    [
+        ({"preset": "c7942-3x3"}, r"preset = 'c7942-3x3': unknown; known: c7942, "),
+        ({"preset": "c7942-2x2", "shape": [2240, 2240]}, r"shape = \[2240, 2240\] contradicts preset = 'c7942-2x2'"),
+        ({"shape": ["a", 3]}, r"shape = \['a', 3\]: expected two whole numbers > 0"),
+        ({"shape": [2240.5, 2240]}, r"expected two whole numbers"),
+        ({"shape": [2240]}, r"shape = \[2240\]: expected \[rows, cols\]"),
+    ],
+)
+def test_the_dry_run_refuses_a_frame_geometry_the_run_would_refuse(tmp_path, capsys, detector, message):
+    """Found: an unknown preset, or a shape contradicting the preset, passed ``--dry-run`` and
+    stopped the run only at connect; a shape of non-numbers ended the dry run in "invalid
+    literal for int() with base 10: 'a'" naming neither file nor setting, and 2240.5 was
+    truncated to 2240. Each is now one line at load naming the setting."""
+    import tomli_w
+
+    from radiokit.cli import main
+
+    lab = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"port": "/dev/ttyUSB0"},
+        "detector": {"folder": str(tmp_path), **detector},
+    }
+    with pytest.raises(DeviceError, match=message):
+        load_protocol(lab)
+    proto = tmp_path / "lab.toml"
+    proto.write_text(tomli_w.dumps(lab))
+    assert main(["acquire", str(proto), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {proto}: [detector]"), err

@@ -220,8 +220,7 @@ class Protocol:
             raise ProtocolError(f"frame.kind {self.frame.kind!r}: expected 'manual' or 'sim'")
         if self.frame.initial_height_mm <= 0:
             raise ProtocolError(f"frame.initial_height_mm {self.frame.initial_height_mm}: expected > 0")
-        if self.detector.shape is not None:
-            self.detector.shape = tuple(int(v) for v in self.detector.shape)
+        _check_geometry(self.detector)
         d = self.detector
         if d.kind == "folder" and d.folder and d.shape is None and d.preset is None:
             # the experiment file is sized before the first frame arrives, and after the warm-up,
@@ -273,6 +272,30 @@ def _check_numbers(section: str, settings) -> None:
             )
         if not math.isfinite(value) or value < 0:
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a finite number >= 0")
+
+
+def _check_geometry(d: DetectorSettings) -> None:
+    """``[detector] shape`` and ``preset`` as the watcher will take them, so a dry run refuses
+    what the run would: an unknown preset or a shape that contradicts it passed ``--dry-run``
+    and stopped the run at connect."""
+    from radiokit.io import PRESETS
+
+    if d.shape is not None:
+        shape = d.shape
+        if isinstance(shape, (str, bytes)) or not hasattr(shape, "__len__") or len(shape) != 2:
+            raise ProtocolError(f"[detector] shape = {shape!r}: expected [rows, cols]")
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in shape):
+            raise ProtocolError(f"[detector] shape = {list(shape)!r}: expected two whole numbers > 0")
+        d.shape = tuple(shape)
+    if d.preset is None:
+        return
+    if d.preset not in PRESETS:
+        raise ProtocolError(f"[detector] preset = {d.preset!r}: unknown; known: {', '.join(PRESETS)}")
+    p = PRESETS[d.preset]
+    if d.shape is not None and d.shape != (p.rows, p.cols):
+        raise ProtocolError(
+            f"[detector] shape = {list(d.shape)} contradicts preset = {d.preset!r} ({p.rows} x {p.cols}); give one of them"
+        )
 
 
 def _source_limits(s: SourceSettings):
