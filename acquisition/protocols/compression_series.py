@@ -62,6 +62,7 @@ import dataclasses
 import errno
 import logging
 import math
+import numbers
 import os
 import threading
 import time
@@ -284,9 +285,9 @@ def _check_geometry(d: DetectorSettings) -> None:
         shape = d.shape
         if isinstance(shape, (str, bytes)) or not hasattr(shape, "__len__") or len(shape) != 2:
             raise ProtocolError(f"[detector] shape = {shape!r}: expected [rows, cols]")
-        if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in shape):
+        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v > 0 for v in shape):
             raise ProtocolError(f"[detector] shape = {list(shape)!r}: expected two whole numbers > 0")
-        d.shape = tuple(shape)
+        d.shape = tuple(int(v) for v in shape)
     if d.preset is None:
         return
     if d.preset not in PRESETS:
