@@ -25,10 +25,12 @@ Examples
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import logging
 import math
 import operator
 import os
+import re
 import time
 import typing
 from collections.abc import Iterator
@@ -41,7 +43,7 @@ from acquisition.errors import DetectorTimeout, DeviceError
 from radiokit.errors import FormatError
 from radiokit.io import PRESETS, read, sniff
 
-__all__ = ["Frame", "Detector", "FolderWatcher", "SimDetector"]
+__all__ = ["Frame", "Detector", "FolderWatcher", "FrameLost", "SimDetector"]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +79,10 @@ class Detector(typing.Protocol):
 
     def acquire(self, n: int, *, timeout_s: float | None = None) -> Iterator[Frame]:
         """Yield ``n`` frames, each as soon as it is complete."""
+
+    def begin_batch(self, discard: int = 0) -> None:
+        """The devices have just reached the state the next frames must show (tube on or off,
+        phantom placed): no frame made before now may be taken, nor the next ``discard``."""
 
     def describe(self) -> dict:
         """JSON-able: kind, folder or scene, shape, settings."""
@@ -131,7 +137,9 @@ class FolderWatcher:
     Notes
     -----
     :meth:`arm` records the matching files already in the folder; they are never taken, however
-    often they change. New files are taken in order of modification time, then name. A file that
+    often they change (nor those there at :meth:`begin_batch`). New files are taken in order of
+    modification time, then name; a taken file renamed (a writer's temporary name) is not taken
+    again, and a taken file that changes and then holds other pixels is :class:`FrameLost`. A file that
     has settled but does not read as a frame (still being written with pauses, or truncated) is
     retried until it does, until a later file has settled too (the writer has moved on), or until
     the time-out; the last two raise :class:`DeviceError` naming the file. Files are never
@@ -185,9 +193,12 @@ class FolderWatcher:
         self._pixel_size_given = pixel_size_mm is not None
         self.pixel_size_mm = float(pixel_size_mm) if pixel_size_mm is not None else self._pixel_size()
         self._armed = False
-        self._known: set[str] = set()
+        self._names_at_arm: set[str] = set()  # every file in the folder at arm(), matching or not
+        self._known: dict[str, list] = {}  # name -> _known_entry() of files never to be taken
         self._taken: set[str] = set()
-        self._discard_pending = False
+        self._took: dict[str, tuple] = {}  # name -> ((size, mtime_ns), pixel digest) of frames taken
+        self._took_ids: dict[tuple, str] = {}  # _identity() of each frame taken -> its name
+        self._discard_pending = 0  # new frames still to drop
         self._seen: dict[str, tuple] = {}  # name -> ((size, mtime_ns), monotonic time first seen so)
 
     def _pixel_size(self) -> float:
@@ -200,10 +211,13 @@ class FolderWatcher:
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:
         """Record the files already there (never taken) and re-arm the discard of the first frame."""
-        self._known = {name for name, _ in self._listing()}
+        self._known = {name: self._known_entry(st) for name, st in self._listing()}
+        self._names_at_arm = self._names()
         self._taken = set()
+        self._took = {}
+        self._took_ids = {}
         self._seen = {}
-        self._discard_pending = self.discard_first
+        self._discard_pending = int(self.discard_first)
         self._armed = True
         log.info(
             "detector folder %s: armed, %d existing file(s) matching %r ignored%s",
@@ -234,15 +248,46 @@ class FolderWatcher:
         while got < n:
             path, data = self._next(time.monotonic() + timeout, timeout, got, n)
             if self._discard_pending:
-                self._discard_pending = False
+                self._discard_pending -= 1
                 log.info(
-                    "detector folder %s: discarded %s, the invalid first frame after the trigger start",
+                    "detector folder %s: discarded %s (the invalid first frame after the trigger start, "
+                    "or one in flight when the beam or the phantom changed)",
                     self.folder,
                     path.name,
                 )
                 continue
             got += 1
             yield Frame(data, time.time(), str(path))
+
+    def begin_batch(self, discard: int = 0) -> None:
+        """Never take the files in the folder now, complete or still being written, nor the next
+        ``discard`` new ones.
+
+        The vendor software may save frames continuously, whatever the run is doing: while the
+        operator turns the screws, the gel settles and the beam ramps up, frames pile up in the
+        folder. Taken in arrival order they were the next batch's frames: a flat was a dark
+        frame, a step's projection was taken with the tube off at the previous gap. The frame
+        being integrated when the change was confirmed saw both states; at most ``discard``
+        frames can be in flight like that (one when the software writes each frame as it is read
+        out)."""
+        if not self._armed:
+            self.arm()
+        backlog = {
+            name: self._known_entry(st)
+            for name, st in self._listing()
+            if name not in self._known and name not in self._taken
+        }
+        self._known.update(backlog)
+        for name in backlog:
+            self._seen.pop(name, None)
+        self._discard_pending = max(self._discard_pending, int(discard))
+        if backlog or discard:
+            log.info(
+                "detector folder %s: new batch: %d file(s) made before it ignored, the next %d new one(s) discarded",
+                self.folder,
+                len(backlog),
+                self._discard_pending,
+            )
 
     def describe(self) -> dict:
         return {
@@ -288,29 +333,24 @@ class FolderWatcher:
         failure = None  # (name, message) of a settled file that does not read
         while True:
             now = time.monotonic()
+            listing = self._listing()
+            files = dict(listing)
             new = sorted(
-                (
-                    (st.st_mtime_ns, name, st)
-                    for name, st in self._listing()
-                    if name not in self._known and name not in self._taken
-                ),
-                key=lambda t: t[:2],
+                ((st.st_mtime_ns, name, st) for name, st in listing if self._is_new(name, st, files)),
+                key=lambda t: (t[0], _natural(t[1])),
             )
-            settled = []
-            for _, name, st in new:
-                sig = (st.st_size, st.st_mtime_ns)
-                seen = self._seen.get(name)
-                if seen is None or seen[0] != sig:
-                    self._seen[name] = (sig, now)
-                    if failure is not None and failure[0] == name:
-                        failure = None  # it changed: still being written
-                elif now - seen[1] >= self.settle_s and st.st_size > 0:
-                    settled.append(name)
+            self._recheck_taken(listing, now)  # after _is_new has followed renamed frames
+            self._watch_known(listing, now)
+            settled = self._settled(new, now)
+            if failure is not None and failure[0] not in settled:
+                failure = None  # it changed (still being written) or is gone (renamed)
             if new and new[0][1] in settled:
                 name = new[0][1]
                 path = self.folder / name
                 try:
                     data = self._read(path)
+                except _Gone:  # renamed or removed between the listing and the read
+                    self._seen.pop(name, None)
                 except _NotYet as exc:
                     failure = (name, str(exc))
                     if len(settled) > 1:  # a later file is complete: this one will not be
@@ -320,24 +360,157 @@ class FolderWatcher:
                             f"({settled[1]}) is already complete"
                         ) from None
                 else:
-                    self._taken.add(name)
-                    self._seen.pop(name, None)
+                    self._took_frame(name, new[0][2], data)
                     return path, data
             if now >= deadline:
                 if failure is not None:
                     self._taken.add(failure[0])
                     raise DeviceError(
-                        f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: {failure[1]}"
+                        f"{self.folder / failure[0]}: not a readable frame file after {timeout:g} s: "
+                        f"{failure[1]}{self._disk_full()}"
                     )
-                growing = f"; {new[0][1]} is still being written" if new else ""
-                raise DetectorTimeout(
-                    f"detector folder {self.folder}: {got} of {n} frames arrived "
-                    f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{growing}"
-                )
+                raise self._timeout(listing, new, got, n, timeout)
             time.sleep(min(self.poll_s, max(deadline - now, 0.0) + 1e-3))
 
-    def _read(self, path: Path) -> np.ndarray:
-        """Read one frame file and check it; :class:`_NotYet` if it does not read (yet)."""
+    def _timeout(self, listing, new, got: int, n: int, timeout: float) -> DetectorTimeout:
+        """The time-out, saying what the folder shows: a file still growing, one that was there
+        before and was saved over after it had held still (the vendor software saving every frame
+        to one name: each frame is lost, and the folder never gets a new file), new files the
+        pattern does not match, a full disk."""
+        why = f"; {new[0][1]} is still being written" if new else ""
+        over = [name for name, entry in self._known.items() if entry[3]]
+        strays = sorted(self._names() - self._names_at_arm - {name for name, _ in listing}, key=_natural)
+        if not new and over:
+            why = (
+                f"; {over[0]}, already there, was saved over meanwhile (if the vendor software saves "
+                f"every frame to that one name, have it save each frame to a new, numbered file)"
+            )
+        elif not new and strays:  # the vendor software saves under another name or extension
+            why = f"; {len(strays)} new file(s) that do not match the pattern arrived meanwhile, e.g. {strays[-1]}"
+        return DetectorTimeout(
+            f"detector folder {self.folder}: {got} of {n} frames arrived "
+            f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{why}{self._disk_full()}"
+        )
+
+    def _names(self) -> set[str]:
+        try:
+            return set(os.listdir(self.folder))
+        except OSError:
+            return set()
+
+    def _disk_full(self) -> str:
+        """A note when the disk holding the folder cannot take another frame: the vendor software
+        then leaves truncated files, or none, and the run would only see a frame that never came."""
+        import shutil
+
+        need = 2 * math.prod(self.shape) if self.shape is not None else 1 << 20
+        try:
+            free = shutil.disk_usage(self.folder).free
+        except OSError:
+            return ""
+        if free >= need:
+            return ""
+        return f"; the disk holding the folder is full ({free} bytes free): the vendor software cannot save frames"
+
+    def _settled(self, new, now: float) -> list[str]:
+        """Names among ``new`` whose size and time stamp have held for ``settle_s``."""
+        settled = []
+        for _, name, st in new:
+            sig = (st.st_size, st.st_mtime_ns)
+            seen = self._seen.get(name)
+            if seen is None or seen[0] != sig:
+                self._seen[name] = (sig, now)
+            elif now - seen[1] >= self.settle_s and st.st_size > 0:
+                settled.append(name)
+        return settled
+
+    @staticmethod
+    def _known_entry(st: os.stat_result) -> list:
+        """[(size, mtime_ns), monotonic time seen so, held still for settle_s, changed after that]"""
+        return [(st.st_size, st.st_mtime_ns), time.monotonic(), False, False]
+
+    def _watch_known(self, listing, now: float) -> None:
+        """Note a file never to be taken that changes after it has held still: saved over (the
+        vendor software saving every frame to one name), which a time-out then says."""
+        for name, st in listing:
+            entry = self._known.get(name)
+            if entry is None:
+                continue
+            sig = (st.st_size, st.st_mtime_ns)
+            if sig == entry[0]:
+                entry[2] = entry[2] or now - entry[1] >= self.settle_s
+            else:
+                entry[3] = entry[3] or entry[2]
+                entry[0], entry[1] = sig, now
+
+    def _is_new(self, name: str, st: os.stat_result, files: dict) -> bool:
+        """Not known at arm(), not taken, and not a taken file under a new name: a writer that
+        saves to a temporary name and renames it (the same file: device, inode, size and time
+        stamp) had each frame taken twice when the temporary name matched the pattern. The
+        renamed frame is followed under its new name, and the old name is free for the next
+        temporary file."""
+        if name in self._known or name in self._taken:
+            return False
+        ident = _identity(st)
+        old = self._took_ids.get(ident) if ident is not None else None
+        if old is None:
+            return True
+        self._taken.add(name)
+        still = files.get(old)
+        if (still is None or _identity(still) != ident) and old in self._took:  # renamed, not a second link
+            self._took[name] = self._took.pop(old)
+            self._took_ids[ident] = name
+            self._taken.discard(old)
+            self._seen.pop(old, None)
+        log.info("detector folder %s: %s is the frame taken as %s: not taken again", self.folder, name, old)
+        return False
+
+    def _took_frame(self, name: str, st: os.stat_result, data: np.ndarray) -> None:
+        self._taken.add(name)
+        self._seen.pop(name, None)
+        self._took[name] = ((st.st_size, st.st_mtime_ns), _digest(data))
+        ident = _identity(st)
+        if ident is not None:
+            self._took_ids[ident] = name
+
+    def _recheck_taken(self, listing, now: float) -> None:
+        """A file taken as a frame that changes afterwards and, once settled, holds other pixels:
+        the vendor software (or another program) saves over the name, so every frame saved there
+        since is lost, or the file was still being written when it was taken. Either way say so
+        at once, naming the files, rather than time out later (or never) without a word."""
+        changed = []
+        for name, st in listing:
+            took = self._took.get(name)
+            sig = (st.st_size, st.st_mtime_ns)
+            if took is None or took[0] == sig:
+                continue
+            seen = self._seen.get(name)
+            if seen is None or seen[0] != sig:
+                self._seen[name] = (sig, now)
+                continue
+            if now - seen[1] < self.settle_s:
+                continue
+            try:
+                digest = _digest(self._read(self.folder / name, check=False))
+            except _NotYet:
+                continue  # being written again: looked at once it reads
+            self._seen.pop(name, None)
+            self._took[name] = (sig, digest)
+            if digest != took[1]:
+                changed.append(str(self.folder / name))
+        if changed:
+            raise FrameLost(
+                f"{changed[0]}{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: changed after it "
+                f"was taken as a frame and now holds other pixels: the vendor software or another program "
+                f"saves over it (frames saved there since are lost), or it was still being written (a pause "
+                f"over settle_s = {self.settle_s:g} s); have the vendor software save every frame to a new, "
+                f"numbered file, and nothing else write there",
+                origins=changed,
+            )
+
+    def _read(self, path: Path, *, check: bool = True) -> np.ndarray:
+        """Read one frame file and check it (``check=False``: its pixels as they are);
+        :class:`_NotYet` if it does not read (yet)."""
         # tifffile logs what it meets in a damaged file (a warning per bad tag) before radiokit's
         # reader raises the error that names it; retried every poll until the time-out, that was
         # some twenty lines a second on the operator's terminal, X-rays on. The error says it once.
@@ -345,11 +518,12 @@ class FolderWatcher:
         was = tiff_log.disabled
         tiff_log.disabled = True
         try:
-            return self._read_checked(path)
+            return self._read_checked(path) if check else self._load(path)
         finally:
             tiff_log.disabled = was
 
-    def _read_checked(self, path: Path) -> np.ndarray:
+    def _load(self, path: Path) -> np.ndarray:
+        """The file's frames ``(n, rows, cols)``; :class:`_NotYet` if it does not read (yet)."""
         try:
             fmt = sniff(path)
             if fmt == "hdf5":
@@ -360,18 +534,41 @@ class FolderWatcher:
             hints = {}
             if fmt == "raw":
                 hints["shape"] = self._raw_shape(path)
-            frames = read(path, **hints)
+            return read(path, **hints).data
         except FormatError as exc:
-            raise _NotYet(exc.problem) from None
+            raise _NotYet(exc.problem + self._other_geometry(path, fmt)) from None
+        except FileNotFoundError:
+            raise _Gone(f"{path.name} is gone") from None
         except OSError as exc:  # e.g. still locked by the writer on a network share
             raise _NotYet(exc.strerror or str(exc)) from None
-        data = frames.data
+
+    def _read_checked(self, path: Path) -> np.ndarray:
+        data = self._load(path)
         if data.shape[0] != 1:
             self._taken.add(path.name)
             raise DeviceError(f"{path}: holds {data.shape[0]} frames; the detector folder expects one frame per file")
         frame = data[0]
         self._check(path, frame)
         return frame
+
+    def _other_geometry(self, path: Path, fmt) -> str:
+        """For a raw file that does not read at the expected shape: the C7942 geometry its size
+        is one frame of, if any (the panel set to another effective area or binning than the
+        protocol's), so the error says what to change rather than only "truncated"."""
+        if fmt != "raw" or self.shape is None:
+            return ""
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return ""
+        fits = [p for p in PRESETS.values() if p.frame_bytes == size and (p.rows, p.cols) != self.shape]
+        if len(fits) != 1:
+            return ""
+        p = fits[0]
+        return (
+            f"; its size is one {p.rows}x{p.cols} frame (preset {p.name}): is the vendor software set to "
+            f"the geometry and binning the protocol expects ({self.shape[0]}x{self.shape[1]})?"
+        )
 
     def _raw_shape(self, path: Path) -> tuple[int, int]:
         if self.shape is not None:
@@ -424,6 +621,35 @@ class FolderWatcher:
 
 class _NotYet(Exception):
     """A settled file does not read as a frame (yet)."""
+
+
+class _Gone(_NotYet):
+    """The file was renamed or removed between the listing and the read."""
+
+
+class FrameLost(DeviceError):
+    """Frame files changed after they were taken: ``origins`` names them (the frames stored from
+    them may be incomplete)."""
+
+    def __init__(self, message: str, *, origins: list[str]):
+        super().__init__(message)
+        self.origins = list(origins)
+
+
+def _natural(name: str) -> tuple:
+    """Sort key reading digit runs as numbers: frame_9 before frame_10 (file systems whose time
+    stamps are coarse, FAT's 2 s, give many frames the same one; then the name decides)."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name.lower()))
+
+
+def _identity(st: os.stat_result):
+    """The same file under another name (a rename keeps all four); None where the file system
+    gives no inode number (``os.scandir`` on Windows)."""
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns) if st.st_ino else None
+
+
+def _digest(data: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest()
 
 
 # -- the virtual bench ---------------------------------------------------------------------------
@@ -526,6 +752,10 @@ class SimDetector:
                 self._remaining -= 1
             self.frames_delivered += 1
             yield Frame(data, time.time(), "sim")
+
+    def begin_batch(self, discard: int = 0) -> None:
+        """Each frame is rendered at the bench's state when it is read out: none is ever made
+        before the state it shows, so there is nothing to skip."""
 
     def describe(self) -> dict:
         d = {

@@ -29,6 +29,10 @@ __all__ = ["CompressionFrame", "ManualFrame", "MotorisedStage", "SimFrame"]
 
 log = logging.getLogger(__name__)
 
+#: a measured gap this far from the target (a fraction of the initial height: the paper's steps,
+#: 15 / 20 / 25 %, are 5 % apart) is taken only when the operator types it twice
+FAR_FROM_TARGET = 0.05
+
 
 @typing.runtime_checkable
 class CompressionFrame(typing.Protocol):
@@ -102,7 +106,9 @@ class ManualFrame(_Gaps):
     Notes
     -----
     :meth:`move_to` shows the target gap to 3 decimals and reads the measurement: Enter accepts
-    the target, a number (``8.47`` or ``8,47``) is the measured gap, anything else is asked again.
+    the target, a number (``8.47`` or ``8,47``) is the measured gap, anything else is asked again,
+    as is a gap wider than the initial height; one farther from the target than
+    :data:`FAR_FROM_TARGET` of the initial height is taken when typed a second time.
     End of input (a closed terminal) raises :class:`DeviceError`.
     """
 
@@ -137,23 +143,42 @@ class ManualFrame(_Gaps):
             f"Turn the screws to a plate gap of {target:.3f} mm "
             f"(compression {100 * self.ratio(target):.1f} % of {self.initial_height_mm:.3f} mm)."
         )
+        measured = self._measured(target)
+        log.info("manual frame: target %.3f mm, measured %.3f mm (ratio %.4f)", target, measured, self.ratio(measured))
+        self._gap = measured
+        return measured
+
+    def _measured(self, target: float) -> float:
+        """The operator's reading. A gap wider than the phantom's initial height is asked again
+        (it compresses nothing: a typo, 85 for 8.5, or cm for mm), and one farther from the
+        target than the paper's step spacing is taken only when typed twice: either was recorded
+        as the step's compression ratio without a word (85 mm on 10 mm: ratio -7.5)."""
+        pending = None  # a far-off reading typed once
         while True:
             text = self._reply(f"Measured gap in mm [Enter = {target:.3f}]: ").strip()
             if not text:
-                measured = target
-                break
+                return target
             try:
                 measured = float(text.replace(",", "."))
             except ValueError:
                 measured = float("nan")
-            if math.isfinite(measured) and measured > 0:
-                break
-            self.say(
-                f"{text!r} is not a gap: type the measured gap in mm (e.g. {target:.3f}), or Enter if it is the target."
-            )
-        log.info("manual frame: target %.3f mm, measured %.3f mm (ratio %.4f)", target, measured, self.ratio(measured))
-        self._gap = measured
-        return measured
+            if not (math.isfinite(measured) and measured > 0):
+                self.say(
+                    f"{text!r} is not a gap: type the measured gap in mm (e.g. {target:.3f}), or Enter if it is the target."
+                )
+            elif measured > self.initial_height_mm:
+                self.say(
+                    f"{measured:g} mm is wider than the phantom's initial height ({self.initial_height_mm:.3f} mm): "
+                    f"the plates would not compress it. Type the measured gap in mm."
+                )
+            elif abs(measured - target) > FAR_FROM_TARGET * self.initial_height_mm and measured != pending:
+                pending = measured
+                self.say(
+                    f"{measured:g} mm is {abs(measured - target):.3f} mm from the target {target:.3f} mm, more than "
+                    f"a step of {100 * FAR_FROM_TARGET:g} % of the height: type it again to confirm, or re-measure."
+                )
+            else:
+                return measured
 
     def position(self) -> float:
         """The last measured gap (the initial height before the first move)."""

@@ -289,19 +289,148 @@ def test_folder_a_damaged_tiff_is_one_error_not_a_stream_of_tifffile_warnings(tm
 
 def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
     """Raw files without a shape are recognised by size as a single C7942 frame (here 4x4 binned,
-    560 x 560); the preset also gives the pixel size."""
+    560 x 560); the preset also gives the pixel size. Found: a raw frame of another C7942
+    geometry (the panel set to 2240 x 2368 at 4x4, the protocol to c7942-4x4) was only "not a
+    whole number of 560x560 frames: truncated or wrong geometry"; the error now names the
+    geometry its size fits."""
     frame = _frames(1, (560, 560))[0]
     watcher = FolderWatcher(tmp_path, "*.raw", **FAST, timeout_s=5)
     watcher.arm()
     (tmp_path / "a.raw").write_bytes(_raw(frame))
     np.testing.assert_array_equal(next(watcher.acquire(1)).data, frame)
     assert watcher.shape == (560, 560) and watcher.pixel_size_mm == pytest.approx(0.2)
+    # a raw frame of another C7942 geometry than the preset's says which one it is
+    other = FolderWatcher(tmp_path, "*.raw", preset="c7942-4x4", **FAST)
+    other.arm()
+    (tmp_path / "b.raw").write_bytes(_raw(_frames(1, (592, 560))[0]))  # c7942-2368-4x4
+    with pytest.raises(
+        DeviceError, match=r"b\.raw: .*one 592x560 frame \(preset c7942-2368-4x4\).*expects \(560x560\)"
+    ):
+        next(other.acquire(1, timeout_s=0.3))
     preset = FolderWatcher(tmp_path, "*.raw", preset="c7942-4x4")
     assert preset.shape == (560, 560) and preset.pixel_size_mm == pytest.approx(0.2)
     with pytest.raises(ValueError, match="contradicts"):
         FolderWatcher(tmp_path, preset="c7942-4x4", shape=(10, 10))
     with pytest.raises(DeviceError, match="no such folder"):
         FolderWatcher(tmp_path / "missing")
+
+
+@pytest.mark.parametrize("pattern, temporary", [("frame*", "frame_{k}.tif.tmp"), ("*.tif", "~temp.tif")])
+def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_path, pattern, temporary):
+    """Found: a writer that saves each frame to ``frame_K.tif.tmp`` and renames it to
+    ``frame_K.tif`` (the usual atomic save), watched with a pattern both names match, had every
+    frame taken twice: the temporary file once it had settled, then the renamed one as new. A
+    rename keeps the file (device, inode, size, time stamp): it is now known as taken, under
+    its new name, and a temporary name used for every frame (``~temp.tif``) is free again for
+    the next one (not a file saved over)."""
+    data = _frames(4)
+    watcher = FolderWatcher(tmp_path, pattern, shape=SHAPE, timeout_s=5, **FAST)
+    watcher.arm()
+    renamed = threading.Event()
+
+    def write():
+        for k, a in enumerate(data):
+            tmp = tmp_path / temporary.format(k=k)
+            tmp.write_bytes(_tiff(a))
+            time.sleep(FAST["settle_s"] * 3)  # settled: it may be taken under this name
+            tmp.rename(tmp_path / f"frame_{k}.tif")
+        renamed.set()
+
+    thread = threading.Thread(target=write)
+    thread.start()
+    got = [f.data for f in watcher.acquire(len(data))]
+    thread.join()
+    for a, b in zip(got, data):
+        np.testing.assert_array_equal(a, b)
+    assert renamed.wait(5)
+    with pytest.raises(DetectorTimeout, match="0 of 1"):  # no frame left: the renamed ones were taken
+        next(watcher.acquire(1, timeout_s=0.5))
+
+
+def test_folder_a_frame_file_saved_over_after_it_was_taken_is_an_error_naming_it(tmp_path):
+    """Found: vendor software set to save every frame to one name (``image.tif``) gave one frame;
+    every later one was saved over it, never taken, and the run waited out the detector time-out
+    with X-rays on before saying "1 of 3 frames arrived; no new complete file". Now a taken file
+    that changes and then holds other pixels is an error at once, naming it (the same pixels
+    written again, or only a new time stamp, are not)."""
+    a, b = _frames(2)
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=10, **FAST)
+    watcher.arm()
+    path = tmp_path / "image.tif"
+    path.write_bytes(_tiff(a))
+    frames = watcher.acquire(3)
+    np.testing.assert_array_equal(next(frames).data, a)
+    path.write_bytes(_tiff(a))  # the same pixels again, a new time stamp: not a lost frame
+    os.utime(path, ns=(time.time_ns() + 10**9,) * 2)
+    t = time.monotonic()
+    threading.Timer(0.3, lambda: path.write_bytes(_tiff(b))).start()
+    with pytest.raises(DeviceError, match=r"image\.tif: changed after it was taken as a frame.*new, numbered file"):
+        next(frames)
+    assert time.monotonic() - t < 5  # well before the 10 s time-out
+
+
+def test_folder_a_time_out_names_what_the_folder_shows_instead(tmp_path, monkeypatch):
+    """Found: a time-out said only "no new complete file" when the vendor software was saving
+    every frame under another extension (``.tiff`` for a ``*.tif`` pattern) or could not save
+    at all (its disk full, the run's own experiment file filling it): the operator had to guess.
+    Now it names a new file that does not match the pattern, and says when the folder's disk
+    cannot take another frame."""
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, **FAST)
+    watcher.arm()
+    for k in (9, 10):
+        (tmp_path / f"frame_{k}.tiff").write_bytes(_tiff(_frames(1)[0]))
+    with pytest.raises(DetectorTimeout, match=r"2 new file\(s\) that do not match the pattern .*e\.g\. frame_10\.tiff"):
+        next(watcher.acquire(1, timeout_s=0.3))
+    # the one fake here: a full disk cannot be caused safely on a shared machine
+    import shutil
+
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 4096, 4096))
+    (tmp_path / "cut.tif").write_bytes(_tiff(_frames(1)[0])[:1000])
+    with pytest.raises(
+        DeviceError, match=r"cut\.tif: not a readable frame file .*disk holding the folder is full \(4096"
+    ):
+        next(watcher.acquire(1, timeout_s=0.3))
+
+
+def test_folder_a_time_out_says_when_a_file_there_before_was_saved_over(tmp_path):
+    """Vendor software saving every frame to one name that was already there at arm(): never a
+    new file, so never a frame. The time-out says that file was saved over after it had held
+    still; a file still being written at arm() that merely completes is not called saved over."""
+    path = tmp_path / "image.tif"
+    path.write_bytes(_tiff(_frames(1)[0]))
+    late = tmp_path / "late.tif"
+    late.write_bytes(_tiff(_frames(1)[0])[:500])  # in flight at arm()
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, **FAST)
+    watcher.arm()
+    late.write_bytes(_tiff(_frames(1)[0]))
+    with pytest.raises(DetectorTimeout) as info:
+        next(watcher.acquire(1, timeout_s=0.5))
+    assert "saved over" not in str(info.value)
+
+    def save_over():
+        for k in range(3):
+            time.sleep(0.3)  # each held still for longer than settle_s
+            path.write_bytes(_tiff(_frames(k + 2)[-1]))
+
+    thread = threading.Thread(target=save_over)
+    thread.start()
+    with pytest.raises(
+        DetectorTimeout, match=r"image\.tif, already there, was saved over meanwhile .*new, numbered file"
+    ):
+        next(watcher.acquire(1, timeout_s=1.2))
+    thread.join()
+
+
+def test_folder_frames_with_one_time_stamp_are_taken_in_numeric_order(tmp_path):
+    """On a file system with coarse time stamps (FAT: 2 s) many frames share one; the name then
+    decides, and frame_10 came before frame_9. Digit runs now compare as numbers."""
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=5, **FAST)
+    watcher.arm()
+    stamp = time.time_ns()
+    for k in (10, 9, 100):
+        (tmp_path / f"frame_{k}.tif").write_bytes(_tiff(_frames(1)[0]))
+        os.utime(tmp_path / f"frame_{k}.tif", ns=(stamp, stamp))
+    assert [Path(f.origin).name for f in watcher.acquire(3)] == ["frame_9.tif", "frame_10.tif", "frame_100.tif"]
 
 
 @needs_itex
@@ -363,6 +492,27 @@ def test_manual_frame_interactive():
     assert frame.ratio(7.5) == pytest.approx(0.25) and frame.gap_for(0.25) == pytest.approx(7.5)
     with pytest.raises(ValueError, match="gap"):
         frame.move_to(0)
+
+
+def test_manual_frame_a_typo_is_not_recorded_as_the_steps_compression():
+    """Found: any positive number was taken as the measured gap and recorded as the step's
+    compression ratio: 85 typed for 8.5 mm on a 10 mm phantom stored ratio -7.5 (plates wider
+    than the phantom compress nothing), and 7.9 for a step-1 target of 8.5 (overshot past step
+    2's 8.0) stored ratio 0.21 without a question. Now a gap wider than the initial height is
+    asked again, and one farther from the target than a step (5 % of the height) is taken only
+    when typed twice; a near miss (8.45) is taken at once, as measured."""
+    op = Operator("85", "8.45", "7.9", "7.9", "7.9", "7.6", "7.5")
+    frame = ManualFrame(10.0, ask=op.ask, say=op.say)
+    assert frame.move_to(8.5) == pytest.approx(8.45)
+    assert any("wider than the phantom's initial height (10.000 mm)" in t for t in op.said)
+    assert frame.move_to(8.5) == pytest.approx(7.9)  # typed twice: taken, the overshoot recorded
+    assert any("0.600 mm from the target 8.500 mm" in t and "again to confirm" in t for t in op.said)
+    assert frame.ratio(frame.position()) == pytest.approx(0.21)
+    n_prompts = len(op.prompts)
+    assert frame.move_to(8.0) == pytest.approx(7.9)  # within a step: at once
+    assert len(op.prompts) == n_prompts + 1
+    assert frame.move_to(7.0) == pytest.approx(7.5)  # 7.6 once, then another reading: that one is taken
+    assert frame.ratio(frame.position()) >= 0
 
 
 def test_manual_frame_non_interactive_logs(caplog):

@@ -62,6 +62,7 @@ import dataclasses
 import errno
 import logging
 import math
+import numbers
 import os
 import threading
 import time
@@ -134,8 +135,20 @@ class DetectorSettings:
     preset: str | None = None  # raw-file geometry preset (radiokit.io.PRESETS)
     timeout_s: float = 30.0
     discard_first: bool = False  # the C7942's first frame after an external-trigger start is invalid
+    # frames dropped at the start of every batch (darks, flats, each step), after the frames the
+    # folder already holds: the vendor software may save continuously, and the frame in flight
+    # when the tube or the phantom changed saw both states (1: it writes each frame on read-out)
+    discard_after_change: int = 1
+    # a frame file is complete once its size and time stamp have held this long (and it reads):
+    # longer on a network share whose writes pause
+    settle_s: float = 0.2
+    # the panel's ADC depth: a value beyond it stops the run (C7942: 12; C9730DK/C9732DK: 14),
+    # and the experiment file records it (NeXus bit_depth_readout) when it is not 12
+    bits: int = 12
     frame_period_s: float = 0.5  # 2 fps at 1x1; the dry run's estimate and SimDetector's pace
-    pixel_size_mm: float = 0.05
+    # the panel's pitch at the frames' binning; None: the preset's, else 0.05 mm times the binning
+    # a 2240 / 1120 / 560 column width implies (a cropped frame needs it given)
+    pixel_size_mm: float | None = None
     # the panel's rated tube voltage (C7942.md: 20-100 kVp for the C7942SK-02); the L8121 goes to
     # 150 kV, so the source's ratings alone would let a protocol expose the panel beyond its own
     kvp_max: float = 100.0
@@ -208,8 +221,7 @@ class Protocol:
             raise ProtocolError(f"frame.kind {self.frame.kind!r}: expected 'manual' or 'sim'")
         if self.frame.initial_height_mm <= 0:
             raise ProtocolError(f"frame.initial_height_mm {self.frame.initial_height_mm}: expected > 0")
-        if self.detector.shape is not None:
-            self.detector.shape = tuple(int(v) for v in self.detector.shape)
+        _check_geometry(self.detector)
         d = self.detector
         if d.kind == "folder" and d.folder and d.shape is None and d.preset is None:
             # the experiment file is sized before the first frame arrives, and after the warm-up,
@@ -217,6 +229,14 @@ class Protocol:
             raise ProtocolError(
                 f"[detector] folder = {d.folder!r} needs the frame size: shape = [rows, cols] or a "
                 f'preset (e.g. preset = "c7942" for 2240 x 2240 raw or TIFF frames)'
+            )
+        if not 1 <= d.bits <= 16:
+            raise ProtocolError(
+                f"[detector] bits = {d.bits!r}: expected the panel's ADC bits, 1 to 16 (frames are uint16)"
+            )
+        if d.pixel_size_mm is not None and d.pixel_size_mm <= 0:
+            raise ProtocolError(
+                f"[detector] pixel_size_mm = {d.pixel_size_mm!r}: expected the panel's pitch in mm, > 0"
             )
         _check_source(self.source)
         if _whole(self.source.voltage_kv) > d.kvp_max:  # what the driver sends
@@ -253,6 +273,30 @@ def _check_numbers(section: str, settings) -> None:
             )
         if not math.isfinite(value) or value < 0:
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a finite number >= 0")
+
+
+def _check_geometry(d: DetectorSettings) -> None:
+    """``[detector] shape`` and ``preset`` as the watcher will take them, so a dry run refuses
+    what the run would: an unknown preset or a shape that contradicts it passed ``--dry-run``
+    and stopped the run at connect."""
+    from radiokit.io import PRESETS
+
+    if d.shape is not None:
+        shape = d.shape
+        if isinstance(shape, (str, bytes)) or not hasattr(shape, "__len__") or len(shape) != 2:
+            raise ProtocolError(f"[detector] shape = {shape!r}: expected [rows, cols]")
+        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v > 0 for v in shape):
+            raise ProtocolError(f"[detector] shape = {list(shape)!r}: expected two whole numbers > 0")
+        d.shape = tuple(int(v) for v in shape)
+    if d.preset is None:
+        return
+    if d.preset not in PRESETS:
+        raise ProtocolError(f"[detector] preset = {d.preset!r}: unknown; known: {', '.join(PRESETS)}")
+    p = PRESETS[d.preset]
+    if d.shape is not None and d.shape != (p.rows, p.cols):
+        raise ProtocolError(
+            f"[detector] shape = {list(d.shape)} contradicts preset = {d.preset!r} ({p.rows} x {p.cols}); give one of them"
+        )
 
 
 def _source_limits(s: SourceSettings):
@@ -535,7 +579,10 @@ def lab_devices(p: Protocol) -> Devices:
         shape=p.detector.shape,
         preset=p.detector.preset,
         timeout_s=p.detector.timeout_s,
+        settle_s=p.detector.settle_s,
+        bits=p.detector.bits,
         discard_first=p.detector.discard_first,
+        pixel_size_mm=p.detector.pixel_size_mm,
     )
     frame = ManualFrame(p.frame.initial_height_mm, interactive=p.frame.interactive)
     source = _guarded_source(p.source.port, p)
@@ -759,6 +806,7 @@ class _Run:
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
     phase: str = "connect"
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
+    origins: dict = field(default_factory=dict)  # frame file -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
 
@@ -854,13 +902,14 @@ def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
     src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
-        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm),
+        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or 0.05),
         source={
             "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
             "voltage_kv": p.source.voltage_kv,
             "current_ua": p.source.current_ua,
         },
         title=f"radiokit compression series: {p.name}",
+        bit_depth=p.detector.bits if p.detector.bits != 12 else None,  # 12: the readers' default
     )
     existed = r.out.exists()
     _warn_if_short_of_room(r, existed)
@@ -876,9 +925,28 @@ def _open_experiment(r: _Run):
 
 
 def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
-    """``n`` frames from the panel, each appended (and flushed) as it arrives."""
+    """``n`` frames from the panel, each appended (and flushed) as it arrives. Only frames made
+    after the devices reached this batch's state: none the folder already holds (made while the
+    operator turned the screws, the gel settled or the beam ramped up), nor the one in flight."""
+    detector = r.devices.detector
+    detector.begin_batch(r.p.detector.discard_after_change)
+    try:
+        _append_frames(r, detector.acquire(n, timeout_s=r.p.detector.timeout_s), image_key, step, ratio, gap, beam)
+    except DeviceError as exc:
+        # frames whose files changed after they were stored (FrameLost): nobody can vouch for them
+        lost = sorted(r.origins[o] for o in getattr(exc, "origins", ()) if o in r.origins)
+        if lost:
+            try:
+                r.writer.mark_invalid(lost)
+                log.warning("frames %s kept as image_key 3 (invalid): their files changed afterwards", lost)
+            except Exception as mark_exc:
+                log.error("could not mark frames %s invalid: %s", lost, mark_exc)
+        raise
+
+
+def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
     monitor, writer = r.monitor, r.writer
-    for frame in r.devices.detector.acquire(n, timeout_s=r.p.detector.timeout_s):
+    for frame in frames:
         t = time.perf_counter()
         if beam:
             monitor.raise_if_failed()
@@ -892,7 +960,8 @@ def _take(r: _Run, n, image_key, step=-1, ratio=None, gap=None, beam=False):
             voltage_kv=monitor.kv if beam else 0.0,
             current_ua=monitor.ua if beam else 0.0,
         )
-        log.debug("frame %d written (image_key %d, step %d)", index, int(image_key), step)
+        log.debug("frame %d written (image_key %d, step %d) from %s", index, int(image_key), step, frame.origin)
+        r.origins[frame.origin] = index
         if beam:
             monitor.written.append((index, frame.time_s))
         r.res.frames_written += 1
@@ -949,12 +1018,24 @@ def _phase_steps(r: _Run):
 
     p, frm = r.p, r.devices.frame
     h0 = frm.initial_height_mm
+    before = None  # (step, measured ratio) of the step moved to before this one
     for i, ratio in enumerate(p.series.steps, start=1):
         n = p.series.frames_per_step - r.done["steps"].get(i, 0)
         if n <= 0:
             continue
         r.enter(f"step {i}", ratio)
         gap = frm.move_to(h0 * (1 - ratio))
+        if before is not None and 1 - gap / h0 <= before[1]:
+            # processing takes the steps in their numbers' order, the last as the most compressed
+            log.warning(
+                "step %d: measured compression %.4f (gap %.3f mm) is not above step %d's %.4f: "
+                "the series is not in increasing compression",
+                i,
+                1 - gap / h0,
+                gap,
+                *before,
+            )
+        before = (i, 1 - gap / h0)
         _settle(p.series.settle_s, r.bar, r.progress)
         _beam_on(r)
         _take(r, n, ImageKey.PROJECTION, step=i, ratio=1 - gap / h0, gap=gap, beam=True)
@@ -1145,6 +1226,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
+    _stop_frame(r)
     if res.tube_off is None and getattr(exc, "port_never_opened", False):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
@@ -1173,6 +1255,19 @@ def _stop(r: _Run, exc: BaseException):
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
         )
+
+
+def _stop_frame(r: _Run) -> None:
+    """Halt the compression frame once the tube is off: a stopped series must not leave a
+    motorised stage closing on the phantom (``MotorisedStage.stop``: safe at any time). Only the
+    normal end stopped it, so a fault or Ctrl-C in a move left the axis running."""
+    frame = getattr(r.devices, "frame", None)
+    if frame is None:
+        return
+    try:
+        frame.stop()
+    except Exception as exc:  # the error that ended the run is the one to report
+        log.error("stopping the compression frame: %s", exc)
 
 
 def _release(r: _Run, notebook):
