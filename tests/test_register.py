@@ -1421,3 +1421,26 @@ def test_a_static_edge_outside_the_mask_is_not_misaligned_structure():
     inner = ndimage.binary_erosion(col, iterations=12)
     assert np.median(np.hypot(*(reg.displacement - d))[inner]) < 0.5
     assert reg.quality.excess_kept < 0.5 and "did not find" not in reg.quality.reason, reg.quality.reason
+
+
+def test_excess_kept_is_judged_on_a_small_body():
+    """``excess_kept`` is NaN only when under 1 % of the *observed part* showed misaligned
+    structure (Quality's docstring). It was computed over 1 % of the whole frame, so a small
+    textured body (here 0.6 % of the frame) whose texture moved by 100 px had no ``excess_kept``
+    at all and the "did not find the motion" check never ran on it. The identity field keeps all
+    of the pair's misaligned structure: the ratio is 1 (the same residual before and after)."""
+    from radiokit.register import _misaligned
+
+    rng = np.random.default_rng(3)
+    n, s = 320, 24
+    f = 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    m = 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    texture = ndimage.gaussian_filter(rng.standard_normal((n, n)), 1.5).astype(np.float32)
+    texture /= texture.std()
+    f[148 : 148 + s, 148 : 148 + s] += texture[148 : 148 + s, 148 : 148 + s]  # the body
+    m[148 : 148 + s, 148 : 148 + s] += texture[48 : 48 + s, 48 : 48 + s]  # its texture 100 px on
+    obs = np.zeros((n, n), bool)
+    obs[148 : 148 + s, 148 : 148 + s] = True  # the body observed; 0.56 % of the frame
+    share, kept, left = _misaligned(f, m, m, np.zeros((2, n, n), np.float32), obs)
+    assert kept == pytest.approx(1.0, abs=1e-6)  # nothing explained
+    assert left > 0.1 and share > 0.5
