@@ -762,6 +762,35 @@ def test_auto_without_an_interior_keeps_default():
     assert c.preset == "default" and c.interior == 0.0 and "no interior" in c.reason
 
 
+def test_auto_judges_the_texture_inside_the_callers_mask():
+    """``auto``'s fallback is chosen by the texture of the object's interior; with ``mask=`` that
+    object is the caller's, as for ``register``'s checks. Found in session 19: the choice read
+    the whole frame, so a textureless gel body masked beside a textured plate (a foam pad, a
+    grid) read the plate's texture (ratio 18) and fell back to ``weak``, the preset for weak
+    texture, on a silent body, and returned ``fast`` flagged. Inside the mask the ratio is under
+    ``TEXTURE_LOW``: ``silent``."""
+    from radiokit.register._auto import TEXTURE_LOW, choose
+
+    n, rng = 320, np.random.default_rng(5)
+    y, x = np.mgrid[0:n, 0:n].astype(np.float64)
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0)
+    plate = (x < 0.45 * n) & (y > 20) & (y < n - 20)
+    q = ((y - 160) / 120) ** 2 + ((x - 235) / 70) ** 2
+    gel = q <= 1
+    image = np.where(plate, 0.8 + 0.1 * tex / tex.std(), 0.0) + 0.8 * np.sqrt(np.clip(1 - q, 0, 1))
+    fixed = (image + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    # the whole scene moved one column (pulling field (0, 1)): `fast` is flagged on the silent
+    # body; the silent retry registers it (before: `weak-fast` tried, `fast` returned, not ok)
+    moving = ndimage.shift(fixed, (0.0, 1.0), order=1, mode="nearest")
+    reg = register(fixed, moving, "rc", mask=gel, preset="auto-fast")
+    assert reg.options["auto"].preset == "silent-fast" and reg.quality.ok, reg.options["auto"]
+    epe = np.hypot(reg.displacement[0], reg.displacement[1] - 1.0)[ndimage.binary_erosion(gel, iterations=8)]
+    assert np.median(epe) < 0.5
+    assert choose(fixed).preset == "weak"  # the frame's object: mostly the textured plate
+    c = choose(fixed, mask=gel)
+    assert c.ratio < TEXTURE_LOW and c.interior > 0 and c.preset == "silent", c
+
+
 # -- a silent body: the silhouette's affine map and the stiff lattices (preset "silent") ----------
 
 
@@ -1438,3 +1467,26 @@ def test_a_static_edge_outside_the_mask_is_not_misaligned_structure():
     inner = ndimage.binary_erosion(col, iterations=12)
     assert np.median(np.hypot(*(reg.displacement - d))[inner]) < 0.5
     assert reg.quality.excess_kept < 0.5 and "did not find" not in reg.quality.reason, reg.quality.reason
+
+
+def test_excess_kept_is_judged_on_a_small_body():
+    """``excess_kept`` is NaN only when under 1 % of the *observed part* showed misaligned
+    structure (Quality's docstring). It was computed over 1 % of the whole frame, so a small
+    textured body (here 0.6 % of the frame) whose texture moved by 100 px had no ``excess_kept``
+    at all and the "did not find the motion" check never ran on it. The identity field keeps all
+    of the pair's misaligned structure: the ratio is 1 (the same residual before and after)."""
+    from radiokit.register import _misaligned
+
+    rng = np.random.default_rng(3)
+    n, s = 320, 24
+    f = 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    m = 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    texture = ndimage.gaussian_filter(rng.standard_normal((n, n)), 1.5).astype(np.float32)
+    texture /= texture.std()
+    f[148 : 148 + s, 148 : 148 + s] += texture[148 : 148 + s, 148 : 148 + s]  # the body
+    m[148 : 148 + s, 148 : 148 + s] += texture[48 : 48 + s, 48 : 48 + s]  # its texture 100 px on
+    obs = np.zeros((n, n), bool)
+    obs[148 : 148 + s, 148 : 148 + s] = True  # the body observed; 0.56 % of the frame
+    share, kept, left = _misaligned(f, m, m, np.zeros((2, n, n), np.float32), obs)
+    assert kept == pytest.approx(1.0, abs=1e-6)  # nothing explained
+    assert left > 0.1 and share > 0.5

@@ -158,11 +158,13 @@ def _band_gain(band):
     return _GAIN[band]
 
 
-def interior_texture_to_noise(image) -> tuple[float, float, float]:
+def interior_texture_to_noise(image, mask=None) -> tuple[float, float, float]:
     """``(ratio, interior, noise)``: the median texture-to-noise ratio of the body's interior,
     the share of the binned frame the interior covers (see the module docstring), and the
     interior's median noise per full-resolution pixel over the model floor; ``(0, 0, inf)`` when
-    no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by)."""
+    no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by).
+    ``mask`` (bool, the image's shape; ``register``'s ``mask=``): the object only where it holds,
+    as ``register``'s checks take it."""
     from radiokit.register import _assess_binning, _bin, _erode
     from radiokit.register import _confidence as C
 
@@ -171,6 +173,10 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
     fb = _bin(f, binning)
     sig = C.noise_map(fb, _NOISE_WINDOW)
     obj = C._object(fb, float(np.median(sig)))
+    # the caller's object, as register()'s checks take it (a mask pixel kept where over half its
+    # bin was): a textured structure the mask leaves out is not the body's texture
+    if mask is not None:
+        obj &= _bin(np.asarray(mask, np.float32), binning) > 0.5
     inner = _erode(obj, _ERODE)
     if not inner.any():
         return 0.0, 0.0, float("inf")
@@ -184,15 +190,15 @@ def interior_texture_to_noise(image) -> tuple[float, float, float]:
     return float(np.median(ratio)), float(inner.mean()), quiet
 
 
-def choose(fixed, name="auto") -> AutoChoice:
+def choose(fixed, name="auto", mask=None) -> AutoChoice:
     """What ``name`` (``"auto"`` or ``"auto-fast"``) falls back to on this ``fixed`` image when
     its plain preset fails its own checks: the weak preset when the interior carries texture
     (ratio >= ``TEXTURE_LOW``, with noise); the silent preset when it does not (a silent or
     noise-free body: only its edges and inclusions observe the motion, and ``weak``'s free
     coarse levels would follow the edges' thickness change); the plain one when there is no
-    interior to judge by."""
+    interior to judge by. ``mask``: ``register``'s, the object the texture is judged on."""
     plain, weak, silent = AUTO_PRESETS[name]
-    ratio, interior, noise = interior_texture_to_noise(fixed)
+    ratio, interior, noise = interior_texture_to_noise(fixed, mask)
     if interior == 0.0:
         return AutoChoice(plain, ratio, interior, f"no interior {_ERODE} px (binned) inside the body")
     if noise < NOISE_FREE:
@@ -273,7 +279,7 @@ def register_auto(register, f, m, method, mask, retry, options):
     returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
     name = options["preset"]
     plain = AUTO_PRESETS[name][0]
-    fallback = choose(f, name)
+    fallback = choose(f, name, mask)  # judged where the caller's mask says the object is
     # on a textured interior a plain run that is far off before its finest level stops there
     # (ABANDON): the weak preset follows anyway
     early = fallback.preset == AUTO_PRESETS[name][1] and not retry
