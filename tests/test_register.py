@@ -1002,8 +1002,11 @@ def test_weak_refits_the_thinning_from_the_interior():
     thinning term is pinned only at the body's edge, where a scaled edge and a shifted one look
     alike, and the edge band carries the error. With the refit the median is lower."""
     fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
-    refit = register(fixed, moving, "rc", preset="weak")
-    plain = register(fixed, moving, "rc", preset="weak", refit_thinning=False)
+    # grid_jitter off: on this small pair the jittered first pass is already at 0.23 px and the
+    # refit ties it (0.24); at 2240 the refit still takes it from 0.45-0.51 to 0.36-0.40 px
+    # (benchmarks/README.md, session 19)
+    refit = register(fixed, moving, "rc", preset="weak", grid_jitter=False)
+    plain = register(fixed, moving, "rc", preset="weak", refit_thinning=False, grid_jitter=False)
     assert refit.options["thinning_refit"].startswith("thinning refitted")
     assert "thinning_refit" not in plain.options
     assert _epe(refit.displacement, d, mask)[0] < 0.9 * _epe(plain.displacement, d, mask)[0]
@@ -1139,8 +1142,9 @@ def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass():
     finest level, for at most ``REFIT_ITERATIONS`` (the coarse levels exist to reach a field the
     first pass has already reached); its field is still the better one against the truth."""
     fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
-    field, info = B._bspline_register(fixed, moving, None, preset="weak")
-    first, _ = B._bspline_register(fixed, moving, None, preset="weak", refit_thinning=False)
+    # grid_jitter off, as in test_weak_refits_the_thinning_from_the_interior (the same pair)
+    field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
+    first, _ = B._bspline_register(fixed, moving, None, preset="weak", refit_thinning=False, grid_jitter=False)
     assert info["thinning_refit"].startswith("thinning refitted")
     (level,) = info["levels"]  # one level: the finest, started warm
     assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
