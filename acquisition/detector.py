@@ -216,6 +216,7 @@ class FolderWatcher:
         self._taken = set()
         self._took = {}
         self._took_ids = {}
+        self._backlog_ids = set()
         self._seen = {}
         self._discard_pending = int(self.discard_first)
         self._armed = True
@@ -257,7 +258,12 @@ class FolderWatcher:
                 )
                 continue
             got += 1
-            yield Frame(data, time.time(), str(path))
+            frame = Frame(data, time.time(), str(path))
+            # the frame as the run stores it: FrameLost names it so, whatever the file is called
+            # by then (a temporary name reused for every frame, or renamed after it was taken)
+            sig, digest, _ = self._took[path.name]
+            self._took[path.name] = (sig, digest, (frame.origin, frame.time_s))
+            yield frame
 
     def begin_batch(self, discard: int = 0) -> None:
         """Never take the files in the folder now, complete or still being written, nor the next
@@ -280,6 +286,9 @@ class FolderWatcher:
         self._known.update(backlog)
         for name in backlog:
             self._seen.pop(name, None)
+        # and every file there now under any name (device and inode): a frame being saved to a
+        # temporary name that the pattern does not match is renamed into it later, made before
+        self._backlog_ids = self._inodes()
         self._discard_pending = max(self._discard_pending, int(discard))
         if backlog or discard:
             log.info(
@@ -323,7 +332,12 @@ class FolderWatcher:
                 continue
             try:
                 if e.is_file():
-                    out.append((e.name, e.stat()))
+                    st = e.stat()
+                    if not st.st_ino and e.name not in self._taken and e.name not in self._known:
+                        # os.scandir on Windows (where the vendor software runs) leaves the inode
+                        # 0; os.stat fills it, and a renamed frame is followed by it
+                        st = os.stat(e.path)
+                    out.append((e.name, st))
             except FileNotFoundError:  # removed between listing and stat
                 continue
         return out
@@ -392,6 +406,24 @@ class FolderWatcher:
             f"(pattern {self.pattern!r}); no new complete file within {timeout:g} s{why}{self._disk_full()}"
         )
 
+    def _inodes(self) -> set[tuple[int, int]]:
+        """(device, inode) of every file in the folder, whatever its name."""
+        ids = set()
+        try:
+            entries = list(os.scandir(self.folder))
+        except OSError:
+            return ids
+        for e in entries:
+            try:
+                st = e.stat()
+                if not st.st_ino:  # Windows' scandir: os.stat fills it
+                    st = os.stat(e.path)
+            except OSError:
+                continue
+            if st.st_ino:
+                ids.add((st.st_dev, st.st_ino))
+        return ids
+
     def _names(self) -> set[str]:
         try:
             return set(os.listdir(self.folder))
@@ -454,6 +486,10 @@ class FolderWatcher:
         ident = _identity(st)
         old = self._took_ids.get(ident) if ident is not None else None
         if old is None:
+            if st.st_ino and (st.st_dev, st.st_ino) in self._backlog_ids:  # renamed into the pattern
+                self._known[name] = self._known_entry(st)
+                log.info("detector folder %s: %s was there before this batch (renamed): not taken", self.folder, name)
+                return False
             return True
         self._taken.add(name)
         still = files.get(old)
@@ -468,7 +504,7 @@ class FolderWatcher:
     def _took_frame(self, name: str, st: os.stat_result, data: np.ndarray) -> None:
         self._taken.add(name)
         self._seen.pop(name, None)
-        self._took[name] = ((st.st_size, st.st_mtime_ns), _digest(data))
+        self._took[name] = ((st.st_size, st.st_mtime_ns), _digest(data), None)
         ident = _identity(st)
         if ident is not None:
             self._took_ids[ident] = name
@@ -495,17 +531,18 @@ class FolderWatcher:
             except _NotYet:
                 continue  # being written again: looked at once it reads
             self._seen.pop(name, None)
-            self._took[name] = (sig, digest)
+            self._took[name] = (sig, digest, took[2])
             if digest != took[1]:
-                changed.append(str(self.folder / name))
+                changed.append((str(self.folder / name), took[2]))
         if changed:
+            names, frames = [c[0] for c in changed], [c[1] for c in changed if c[1] is not None]
             raise FrameLost(
-                f"{changed[0]}{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: changed after it "
+                f"{names[0]}{f' (and {len(names) - 1} more)' if len(names) > 1 else ''}: changed after it "
                 f"was taken as a frame and now holds other pixels: the vendor software or another program "
                 f"saves over it (frames saved there since are lost), or it was still being written (a pause "
                 f"over settle_s = {self.settle_s:g} s); have the vendor software save every frame to a new, "
                 f"numbered file, and nothing else write there",
-                origins=changed,
+                origins=frames,
             )
 
     def _read(self, path: Path, *, check: bool = True) -> np.ndarray:
@@ -628,8 +665,9 @@ class _Gone(_NotYet):
 
 
 class FrameLost(DeviceError):
-    """Frame files changed after they were taken: ``origins`` names them (the frames stored from
-    them may be incomplete)."""
+    """Frame files changed after they were taken: ``origins`` names the frames stored from them
+    (each a yielded :class:`Frame`'s ``(origin, time_s)``, the name it was taken under even if
+    the file was renamed since; those frames may be incomplete)."""
 
     def __init__(self, message: str, *, origins: list[str]):
         super().__init__(message)

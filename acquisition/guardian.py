@@ -251,10 +251,16 @@ def start_guardian(
     from acquisition.errors import DeviceError
     from acquisition.transport import PipeTransport
 
-    if config.dialect not in ("A", "B") or config.baudrate is None or config.min_interval_s is None:
+    if (
+        config.dialect not in ("A", "B")
+        or config.baudrate is None
+        or config.min_interval_s is None
+        or config.timeout_s is None
+    ):
         raise ValueError(
             f"{url}: the guardian needs a resolved configuration (dialect {config.dialect!r}, "
-            f"baudrate {config.baudrate!r}); pass driver.resolved_config()"
+            f"baudrate {config.baudrate!r}, command spacing {config.min_interval_s!r}, reply time-out "
+            f"{config.timeout_s!r}); pass driver.resolved_config()"
         )
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
     if notebook is not None:

@@ -330,7 +330,8 @@ def _step_image(cal, src, path, step, idx, factors, bar):
 
     Why the transmissions are averaged, not the logs: the detector is linear in the dose, so N
     frames averaged are one N times longer exposure, and ``-ln`` of their mean is biased by
-    ``1 / (2 N I0 T)`` (Jensen: ``var / (2 mean^2)`` of the counts). The mean of each frame's
+    ``1 / (2 N I0 T)`` (Jensen: ``var / (2 mean^2)``, ``I0 T`` in detected quanta; a panel's
+    grey levels are ``g`` quanta-equivalents each, so ``g / (2 N counts)``). The mean of each frame's
     ``-ln`` keeps a single frame's bias, ``1 / (2 I0 T)``, however many frames are taken: 0.0125
     at 40 counts behind the object, 40 standard errors of a 128 x 128 ROI's mean of 16 frames.
     One frame is the same estimator either way; it takes the log domain's one compiled pass."""

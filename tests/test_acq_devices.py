@@ -315,14 +315,40 @@ def test_folder_raw_frames_of_a_c7942_preset(tmp_path):
         FolderWatcher(tmp_path / "missing")
 
 
+def _scandir_without_inodes(real):
+    """``os.scandir`` as on Windows, where the vendor software runs: each entry's ``stat()``
+    has ``st_ino`` 0 (``os.stat`` fills it). A fake: this file system cannot be had here."""
+
+    class Entry:
+        def __init__(self, entry):
+            self._entry, self.name, self.path = entry, entry.name, entry.path
+
+        def is_file(self):
+            return self._entry.is_file()
+
+        def stat(self):
+            st = self._entry.stat()
+            fields = list(st[:10])
+            fields[1] = 0  # st_ino
+            return os.stat_result(fields, {"st_mtime_ns": st.st_mtime_ns, "st_atime_ns": st.st_atime_ns})
+
+    return lambda path: iter([Entry(e) for e in real(path)])
+
+
+@pytest.mark.parametrize("windows", [False, True], ids=["posix", "windows-scandir"])
 @pytest.mark.parametrize("pattern, temporary", [("frame*", "frame_{k}.tif.tmp"), ("*.tif", "~temp.tif")])
-def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(tmp_path, pattern, temporary):
+def test_folder_a_frame_saved_to_a_temporary_name_and_renamed_is_taken_once(
+    tmp_path, monkeypatch, pattern, temporary, windows
+):
     """Found: a writer that saves each frame to ``frame_K.tif.tmp`` and renames it to
     ``frame_K.tif`` (the usual atomic save), watched with a pattern both names match, had every
     frame taken twice: the temporary file once it had settled, then the renamed one as new. A
     rename keeps the file (device, inode, size, time stamp): it is now known as taken, under
     its new name, and a temporary name used for every frame (``~temp.tif``) is free again for
-    the next one (not a file saved over)."""
+    the next one (not a file saved over). On Windows ``os.scandir`` gives no inode (the review
+    of session 19: each frame was taken twice there, then "changed after it was taken")."""
+    if windows:
+        monkeypatch.setattr(os, "scandir", _scandir_without_inodes(os.scandir))
     data = _frames(4)
     watcher = FolderWatcher(tmp_path, pattern, shape=SHAPE, timeout_s=5, **FAST)
     watcher.arm()
@@ -367,6 +393,50 @@ def test_folder_a_frame_file_saved_over_after_it_was_taken_is_an_error_naming_it
     with pytest.raises(DeviceError, match=r"image\.tif: changed after it was taken as a frame.*new, numbered file"):
         next(frames)
     assert time.monotonic() - t < 5  # well before the 10 s time-out
+
+
+def test_folder_a_renamed_frame_saved_over_later_names_the_frame_as_it_was_stored(tmp_path):
+    """A frame taken as ``frame_1.tif.tmp``, renamed ``frame_1.tif``, then saved over: FrameLost
+    names the frame as the run stored it (its origin and time), so the run marks it invalid; it
+    named the file's new name, which the run had never stored, and the frame stayed valid."""
+    from acquisition.detector import FrameLost
+
+    a, b = _frames(2)
+    watcher = FolderWatcher(tmp_path, "frame*", shape=SHAPE, timeout_s=10, **FAST)
+    watcher.arm()
+    tmp = tmp_path / "frame_1.tif.tmp"
+    tmp.write_bytes(_tiff(a))
+    frames = watcher.acquire(2)
+    first = next(frames)
+    assert first.origin == str(tmp)
+    tmp.rename(tmp_path / "frame_1.tif")
+    time.sleep(FAST["settle_s"] * 3)
+
+    def save_over():
+        time.sleep(0.3)
+        (tmp_path / "frame_1.tif").write_bytes(_tiff(b))
+
+    threading.Thread(target=save_over).start()
+    with pytest.raises(FrameLost, match=r"frame_1\.tif: changed after it was taken") as info:
+        next(frames)
+    assert info.value.origins == [(first.origin, first.time_s)]
+
+
+def test_folder_a_frame_renamed_into_the_pattern_after_a_new_batch_began_is_not_taken(tmp_path):
+    """A writer that saves to a temporary name the pattern does not match (``~frame.part``) and
+    renames it: the frame being saved when a batch began (a dark, say, while the flats begin) was
+    renamed into the pattern afterwards and taken as the new batch's first frame. A file in the
+    folder at ``begin_batch`` under any name is made before the batch (review of session 19)."""
+    old, new = _frames(2)
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=5, **FAST)
+    watcher.arm()
+    part = tmp_path / "~frame.part"
+    part.write_bytes(_tiff(old)[:300])  # being saved when the batch begins
+    watcher.begin_batch(0)
+    part.write_bytes(_tiff(old))
+    part.rename(tmp_path / "frame_7.tif")
+    (tmp_path / "frame_8.tif").write_bytes(_tiff(new))
+    np.testing.assert_array_equal(next(watcher.acquire(1)).data, new)
 
 
 def test_folder_a_time_out_names_what_the_folder_shows_instead(tmp_path, monkeypatch):

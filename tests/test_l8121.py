@@ -743,9 +743,20 @@ def test_a_b_unit_answering_within_the_l8121_02_drivers_wait_is_not_silent():
     assert L8121("unused", dialect="A", connect=False).resolved_config().timeout_s == 1.0
 
 
+def test_the_guardian_refuses_a_configuration_without_its_reply_time_out():
+    """The reply time-out is the dialect's unless set (None): a hand-built configuration that
+    leaves it open is refused before the guardian process starts, naming it, rather than
+    failing inside it on float(None) (review of session 19). resolved_config() always sets it."""
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import SourceConfig
+
+    with pytest.raises(ValueError, match="reply time-out None"):
+        start_guardian("/dev/null", SourceConfig(dialect="B", baudrate=9600, min_interval_s=0.06))
+
+
 def test_auto_finds_a_b_unit_that_answers_within_its_dialects_wait():
     """``dialect = "auto"``: the probe's queries at the first rate wait as long as the slower
-    dialect's replies may take (B: 2 s); at the probe's 0.5 s a B unit answering in 1.4 s fitted
+    dialect's replies may take (B: 2 s); at the probe's 0.5 s a B unit answering in 0.8 s fitted
     neither dialect and the run was refused."""
     model = L8121Model(dialect="B", warmed_up=True)
     with PtyServer(model) as server:

@@ -806,7 +806,7 @@ class _Run:
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
     phase: str = "connect"
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
-    origins: dict = field(default_factory=dict)  # frame file -> its index in the experiment file
+    origins: dict = field(default_factory=dict)  # (frame file, time) -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
 
@@ -961,7 +961,7 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
             current_ua=monitor.ua if beam else 0.0,
         )
         log.debug("frame %d written (image_key %d, step %d) from %s", index, int(image_key), step, frame.origin)
-        r.origins[frame.origin] = index
+        r.origins[(frame.origin, frame.time_s)] = index  # FrameLost names a stored frame so
         if beam:
             monitor.written.append((index, frame.time_s))
         r.res.frames_written += 1
