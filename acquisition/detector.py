@@ -332,12 +332,10 @@ class FolderWatcher:
                 continue
             try:
                 if e.is_file():
-                    st = e.stat()
-                    if not st.st_ino and e.name not in self._taken and e.name not in self._known:
-                        # os.scandir on Windows (where the vendor software runs) leaves the inode
-                        # 0; os.stat fills it, and a renamed frame is followed by it
-                        st = os.stat(e.path)
-                    out.append((e.name, st))
+                    # the inode only where it decides: a new candidate (taken and known files
+                    # are not stat'ed again every poll)
+                    fresh = e.name not in self._taken and e.name not in self._known
+                    out.append((e.name, _entry_stat(e) if fresh else e.stat()))
             except FileNotFoundError:  # removed between listing and stat
                 continue
         return out
@@ -415,9 +413,7 @@ class FolderWatcher:
             return ids
         for e in entries:
             try:
-                st = e.stat()
-                if not st.st_ino:  # Windows' scandir: os.stat fills it
-                    st = os.stat(e.path)
+                st = _entry_stat(e)
             except OSError:
                 continue
             if st.st_ino:
@@ -678,6 +674,13 @@ def _natural(name: str) -> tuple:
     """Sort key reading digit runs as numbers: frame_9 before frame_10 (file systems whose time
     stamps are coarse, FAT's 2 s, give many frames the same one; then the name decides)."""
     return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name.lower()))
+
+
+def _entry_stat(entry: os.DirEntry) -> os.stat_result:
+    """``entry.stat()`` with its inode number: ``os.scandir`` on Windows (where the vendor software
+    runs) leaves it 0, ``os.stat`` fills it, and renamed frames are followed by it."""
+    st = entry.stat()
+    return os.stat(entry.path) if not st.st_ino else st
 
 
 def _identity(st: os.stat_result):
