@@ -1,10 +1,17 @@
 """Can ``quality.ok`` and the ROI verdict be trusted on phantom-like pairs nothing was chosen on?
 
 Run (from the repository root; one process, 300 registrations, about 15 min on a shared 2-core
-machine; rows are cached in ``OUT/rows.jsonl`` and a rerun continues where it stopped)::
+machine; each field is cached in ``OUT/fields``, so a rerun continues where it stopped and
+assesses the cached fields again with the present flag; ``--fresh`` registers again)::
 
-    python benchmarks/bench_register_phantoms.py [--out out/phantoms] [--cases 60] [--presets auto,default,fast,weak,silent]
-    python benchmarks/bench_register_phantoms.py --out out/phantoms --table   # the tables again, from the cache
+    python benchmarks/bench_register_phantoms.py [--out out/phantoms] [--cases 60] [--split all|train|test] [--presets auto,default,fast,weak,silent]
+    python benchmarks/bench_register_phantoms.py --out out/phantoms --split test --table   # the tables again
+
+``--split train`` is the first half of the seeds (6000-6029 of 60 cases), ``test`` the second
+(6030-6059): a flag rule changed on these pairs (session 20) was chosen on ``train`` only.
+``auto`` is composed from the cached ``default`` run with ``auto``'s ``extend``, ``weak`` and
+``silent`` by ``register_auto``'s own rule (``_auto.choose``, ``returned``), as
+``bench_register_flag.py`` does.
 
 An **independent** generator: it uses nothing of ``benchmarks/regdata.py``,
 ``bench_register_heldout.py`` or ``sim/`` (only ``radiokit.register`` and
@@ -38,7 +45,7 @@ the collimator). Failed: median EPE > max(1 px, half the identity's); good: <= 0
 check: an inclusion ROI (a square inside the largest inclusion) and a background ROI (the same
 size, in the body away from the inclusions), ``roi_observed`` of the confidence map and
 ``rois_verdict``, against the truth's median EPE in each ROI (over 1 px: wrong there).
-Sizes 256-448 px. Nothing here chooses anything: it is a check. Tables and findings:
+Sizes 256-448 px. Tables and findings:
 benchmarks/README.md, "Phantom-like pairs from an independent generator (session 19)".
 """
 
@@ -380,15 +387,82 @@ def fixed_stats(fixed):
     return out
 
 
-def run_one(seed, preset):
-    """Register one pair with one preset; a JSON-able row."""
-    from radiokit.pipeline import rois_verdict
-    from radiokit.register import register, roi_observed
+# the configurations registered per pair (cached fields); ``auto`` is composed from "auto-plain"
+# (``default`` with ``auto``'s ``extend``), ``weak`` and ``silent`` by ``register_auto``'s own rule
+# (faithful below the checks' ~0.4 Mpx, where the plain run is never abandoned: every pair here)
+CONFIGS = ("auto-plain", "default", "fast", "weak", "silent")
+
+
+def _options(name):
+    from radiokit.register._auto import EXTEND
+
+    return {"preset": "default", "extend": EXTEND} if name == "auto-plain" else {"preset": name}
+
+
+def _cached_field(out, seed, name, fixed, moving, fresh=False):
+    """``(displacement, info, seconds)`` of one configuration: from ``out/fields`` or registered now."""
+    from radiokit.register import METHODS, _check, _load_methods
+
+    path = out / "fields" / f"{seed}-{name}.npz"
+    if path.exists() and not fresh:
+        z = np.load(path, allow_pickle=False)
+        return z["d"].astype(np.float32), json.loads(str(z["info"])), float(z["seconds"])
+    _load_methods()
+    f, m, _ = _check(fixed, moving, None)
+    t = time.perf_counter()
+    d, info = METHODS["rc"](f, m, None, **_options(name))
+    sec = time.perf_counter() - t
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, d=np.asarray(d, np.float32), info=json.dumps(info), seconds=sec)
+    tmp.replace(path)
+    return np.asarray(d, np.float32), info, sec
+
+
+def _assessed(name, fixed, moving, d, info, sec):
+    """``register()``'s assessment of a cached field (its quality and confidence map)."""
+    from radiokit.register import Quality, Registration, _assess, _check
+
+    f, m, _ = _check(fixed, moving, None)
+    reg = Registration(np.ascontiguousarray(d, np.float32), "rc", Quality(), _options(name))
+    _assess(reg, f, m, None, info, sec)
+    return reg
+
+
+def run_seed(seed, presets, out, fresh=False):
+    """Every preset of ``presets`` on one pair: JSON-able rows, the fields from the cache (the
+    flag assessed again by the present code) or registered now."""
+    from radiokit.register._auto import choose, polishes, returned, settled
 
     fixed, moving, truth, body, info = make_pair(seed)
-    t = time.perf_counter()
-    reg = register(fixed, moving, "rc", preset=preset)
-    sec = time.perf_counter() - t
+    need = set(presets) - {"auto"} | ({"auto-plain", "weak", "silent"} if "auto" in presets else set())
+    regs, secs = {}, {}
+    for name in CONFIGS:
+        if name in need:
+            d, i, secs[name] = _cached_field(out, seed, name, fixed, moving, fresh)
+            regs[name] = _assessed(name, fixed, moving, d, i, secs[name])
+    rows = []
+    for preset in presets:
+        use, sec = preset, secs.get(preset)
+        if preset == "auto":
+            plain = regs["auto-plain"]
+            use, sec = "auto-plain", secs["auto-plain"]
+            if not settled(plain.quality):
+                fb = choose(fixed, "auto").preset
+                r = returned("auto", plain.quality, fb, regs[fb].quality if fb in regs else None)
+                use = "auto-plain" if r == "default" else r
+                if fb in regs and (not plain.quality.ok or polishes("auto", plain.quality, fb)):
+                    sec += secs[fb]  # the retry ran, kept or not
+        rows.append(_row(seed, preset, regs[use], sec, truth, body, info, fixed, use))
+    return rows
+
+
+def _row(seed, preset, reg, sec, truth, body, info, fixed, use):
+    """One result as a JSON-able row (the truth's EPE, the quality, the ROI check)."""
+    from radiokit.pipeline import rois_verdict
+    from radiokit.register import roi_observed
+
     med, p95 = _epe(reg.displacement, truth, body)
     ident = float(np.median(np.hypot(*truth)[body]))
     q = {k: (v if not isinstance(v, float) or np.isfinite(v) else None) for k, v in vars(reg.quality).items()}
@@ -401,7 +475,7 @@ def run_one(seed, preset):
         identity=ident,
         seconds=sec,
         quality=q,
-        returned=reg.options.get("preset") if preset.startswith("auto") else None,
+        returned=("default" if use == "auto-plain" else use) if preset.startswith("auto") else None,
         fixed=fixed_stats(fixed),
     )
     rois = _rois(info, body)
@@ -549,33 +623,42 @@ def _separation(rows):
         )
 
 
+def seeds_of(split, cases):
+    """The seeds of ``split``: "train" the first half of ``SEED0 .. SEED0 + cases``, "test" the
+    rest, "all" both. Texture cycles every 5 seeds and the motion every 30, so with 60 cases
+    each half (6000-6029, 6030-6059) holds every texture x motion once."""
+    seeds = list(range(SEED0, SEED0 + cases))
+    half = (cases + 1) // 2
+    return {"all": seeds, "train": seeds[:half], "test": seeds[half:]}[split]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/phantoms")
     ap.add_argument("--cases", type=int, default=60)
+    ap.add_argument("--split", choices=("all", "train", "test"), default="all", help="train: the first half of the seeds")
     ap.add_argument("--presets", default=",".join(PRESETS))
-    ap.add_argument("--table", action="store_true", help="only print the tables from the cache")
+    ap.add_argument("--fresh", action="store_true", help="register again even when a field is cached")
+    ap.add_argument("--table", action="store_true", help="only print the tables from OUT/rows-SPLIT.json")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    cache = out / "rows.jsonl"
-    rows = [json.loads(line) for line in cache.read_text().splitlines()] if cache.exists() else []
-    done = {(r["seed"], r["preset"]) for r in rows}
-    if not a.table:
-        for seed in range(SEED0, SEED0 + a.cases):
-            for p in a.presets.split(","):
-                if (seed, p) in done:
-                    continue
-                row = run_one(seed, p)
-                rows.append(row)
-                with cache.open("a") as fh:
-                    fh.write(json.dumps(row) + "\n")
-                print(
-                    f"{seed} {p:8s} {status(row):8s} ok={row['quality']['ok']!s:5s} EPE {row['epe_median']:.2f} "
-                    f"id {row['identity']:.2f} {row['seconds']:.1f}s",
-                    flush=True,
-                )
+    cache = out / f"rows-{a.split}.json"
+    if a.table:
+        tables(json.loads(cache.read_text()))
+        return 0
+    rows = []
+    for seed in seeds_of(a.split, a.cases):
+        for row in run_seed(seed, a.presets.split(","), out, a.fresh):
+            rows.append(row)
+            print(
+                f"{seed} {row['preset']:8s} {status(row):8s} ok={row['quality']['ok']!s:5s} EPE {row['epe_median']:.2f} "
+                f"id {row['identity']:.2f} {row['seconds']:.1f}s",
+                flush=True,
+            )
+    cache.write_text(json.dumps(rows))
     tables(rows)
+    return 0
 
 
 if __name__ == "__main__":
