@@ -198,12 +198,70 @@ def noise_map(f, window):
     return np.sqrt(np.maximum(_gauss(h * h, window), 1e-30))
 
 
-def _object(f, sigma):
+# the ring inside a collimator's aperture whose level is the open beam's (px from the border
+# region, beyond the object's 4 px blur: 3 sigmas), and the share of the aperture that may lie
+# beyond that level (the open beam is an extreme: nothing attenuates less than nothing)
+_APERTURE_RING = (12.0, 16.0)
+_BEYOND_OPEN = 0.01
+_OPEN_QUANTILE = 10.0
+_COLLIMATOR_COVER = 0.9  # the share of the frame's edge at the border's level
+
+
+def _object(f, sigma, collimator=True):
     """Pixels that differ from the frame's border level by more than 5 noise levels after a
-    4 px blur (the body; the empty beam outside it observes nothing and is not scored)."""
+    4 px blur (the body; the empty beam outside it observes nothing and is not scored), and,
+    with ``collimator``, from the open beam inside a collimator (:func:`_open_beam_level`)."""
     border = np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])
     level = float(np.median(border))
-    return np.abs(_gauss(f, 4.0) - level) > 5 * sigma / 4.0 + 1e-12
+    fs = _gauss(f, 4.0)
+    line = 5 * sigma / 4.0 + 1e-12
+    obj = np.abs(fs - level) > line
+    if collimator:
+        beam = _open_beam_level(fs, obj, level, line)
+        if beam is not None:
+            obj &= np.abs(fs - beam) > line
+    return obj
+
+
+def _open_beam_level(fs, obj, level, line):
+    """The open beam's level inside a collimator, or None. A collimator's static border sets the
+    frame's border level, and then everything inside its aperture (the empty beam too) differs
+    from it and would count as the object, its edges as observed structure. Inside the aperture
+    the open beam lies along the collimator's edge (which covers ``_COLLIMATOR_COVER`` of the
+    frame's edge); it is recognised by physics, not shape: the
+    least attenuated part of the image, so no more than ``_BEYOND_OPEN`` of the aperture lies
+    beyond its level on the side away from the collimator's (log or linear input alike). The
+    level is the extreme tenth (``_OPEN_QUANTILE``, on that side) of ``fs`` (the blurred image)
+    in a ring ``_APERTURE_RING`` px inside the aperture's edge, taken half-way between the
+    border's level and the aperture's median (a strong step's blur reaches far past the
+    object's own line). A body seen through the frame's edge, around which the border is the
+    open beam, fails the test: its inclusions, texture or centre lie beyond its edge's level."""
+    import cv2
+
+    if obj.all() or not obj.any():
+        return None
+    side = np.sign(float(np.median(fs[obj])) - level)  # beyond: away from the border's level
+    if side == 0:
+        return None
+    mid = 0.5 * (level + float(np.median(fs[obj])))
+    # the border region: the pixels on the border's side of ``mid`` connected to the frame's edge
+    n, lab = cv2.connectedComponents((side * (fs - mid) < 0).astype(np.uint8), connectivity=4)
+    edge = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    outer = np.isin(lab, edge[edge > 0])
+    # a collimator surrounds the aperture: the frame's edge nearly all on its side (a body or
+    # plates running off the frame make it a mixture, whose extremes need not be the beam)
+    if np.concatenate([outer[0], outer[-1], outer[:, 0], outer[:, -1]]).mean() < _COLLIMATOR_COVER:
+        return None
+    dist = cv2.distanceTransform((~outer).astype(np.uint8), cv2.DIST_L2, 5)
+    ring = obj & (dist >= _APERTURE_RING[0]) & (dist < _APERTURE_RING[1])
+    if ring.sum() < 50:
+        return None
+    # the ring's extreme tenth: the open beam need only hold part of the ring (a body and the
+    # plates may cover most of the collimator's edge)
+    beam = side * float(np.percentile(side * fs[ring], 100.0 - _OPEN_QUANTILE))
+    if np.mean(side * (fs[obj] - beam) > line) > _BEYOND_OPEN:
+        return None
+    return beam
 
 
 def _lmin(f, spacing, highpass, sig2):
