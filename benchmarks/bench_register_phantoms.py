@@ -525,8 +525,8 @@ def tables(rows):
     """Print the confusion table per preset, every trusted failure, and the ROI check."""
     print("| preset | results | failed flagged | good trusted | between (ok) | trusted failures |")
     print("|---|---|---|---|---|---|")
-    for p in PRESETS:
-        rs = [r for r in rows if r["preset"] == p]
+    for p in PRESETS + ("all",):
+        rs = [r for r in rows if r["preset"] == p or p == "all"]
         if not rs:
             continue
         f = [r for r in rs if status(r) == "failed"]
