@@ -636,7 +636,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/phantoms")
     ap.add_argument("--cases", type=int, default=60)
-    ap.add_argument("--split", choices=("all", "train", "test"), default="all", help="train: the first half of the seeds")
+    ap.add_argument(
+        "--split", choices=("all", "train", "test"), default="all", help="train: the first half of the seeds"
+    )
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--fresh", action="store_true", help="register again even when a field is cached")
     ap.add_argument("--table", action="store_true", help="only print the tables from OUT/rows-SPLIT.json")

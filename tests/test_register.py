@@ -469,6 +469,15 @@ def test_the_object_inside_a_collimator_is_not_the_open_beam(domain):
         assert obj[beam].mean() < 0.02, obj[beam].mean()
         if not collimator:
             assert np.array_equal(obj, _object(img, noise_sigma(img), collimator=False))
+    # auto's texture is judged on the body's interior, not on the open beam's (which took 44 %
+    # of the frame here, against the body's 9 %)
+    from radiokit.register._auto import interior_texture_to_noise
+
+    shares = []
+    for collimator in (True, False):
+        img = _collimated_body(n, np.random.default_rng(12), collimator)[0]
+        shares.append(interior_texture_to_noise(img if domain == "log" else np.exp(-img))[1])
+    assert shares[0] == pytest.approx(shares[1], rel=0.2), shares
 
 
 def test_frame_balance_bending_energy_is_scale_invariant():
