@@ -45,8 +45,8 @@ the collimator). Failed: median EPE > max(1 px, half the identity's); good: <= 0
 check: an inclusion ROI (a square inside the largest inclusion) and a background ROI (the same
 size, in the body away from the inclusions), ``roi_observed`` of the confidence map and
 ``rois_verdict``, against the truth's median EPE in each ROI (over 1 px: wrong there).
-Sizes 256-448 px. Tables and findings:
-benchmarks/README.md, "Phantom-like pairs from an independent generator (session 19)".
+Sizes 256-448 px. Tables and findings: benchmarks/README.md, "Phantom-like pairs from an
+independent generator (session 19)" and "The flag between sharp edges (session 20)".
 """
 
 from __future__ import annotations
