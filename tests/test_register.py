@@ -469,6 +469,13 @@ def test_the_object_inside_a_collimator_is_not_the_open_beam(domain):
         assert obj[beam].mean() < 0.02, obj[beam].mean()
         if not collimator:
             assert np.array_equal(obj, _object(img, noise_sigma(img), collimator=False))
+    # a flat slab in the open beam looks like an open field in a collimator; its border (the
+    # beam) is most of the frame, which a collimator's is not: the slab stays the object
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    slab = np.where((np.abs(yy - 0.5) < 0.3) & (np.abs(xx - 0.5) < 0.25), 1.5, 0.0)
+    slab = (slab + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    slab = slab if domain == "log" else np.exp(-slab)
+    assert np.array_equal(_object(slab, noise_sigma(slab)), _object(slab, noise_sigma(slab), collimator=False))
     # auto's texture is judged on the body's interior, not on the open beam's (which took 44 %
     # of the frame here, against the body's 9 %)
     from radiokit.register._auto import interior_texture_to_noise

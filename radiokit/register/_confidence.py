@@ -186,7 +186,8 @@ def object_noise(f) -> float:
 
     frame = noise_sigma(f)
     # less a rim: the 4 px blur spreads the object past a sharp edge into the beam
-    obj = cv2.erode(_object(f, frame).astype(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
+    # the registration's noise (rc's alpha) as before session 20: the collimator's test is the checks'
+    obj = cv2.erode(_object(f, frame, collimator=False).astype(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
     return noise_sigma(f, obj) if obj.mean() >= 0.05 else frame
 
 
@@ -205,6 +206,7 @@ _APERTURE_RING = (12.0, 16.0)
 _BEYOND_OPEN = 0.01
 _OPEN_QUANTILE = 10.0
 _COLLIMATOR_COVER = 0.9  # the share of the frame's edge at the border's level
+_COLLIMATOR_AREA = 0.25  # the most of the frame a collimator's border may cover
 
 
 def _object(f, sigma, collimator=True):
@@ -251,6 +253,10 @@ def _open_beam_level(fs, obj, level, line):
     # a collimator surrounds the aperture: the frame's edge nearly all on its side (a body or
     # plates running off the frame make it a mixture, whose extremes need not be the beam)
     if np.concatenate([outer[0], outer[-1], outer[:, 0], outer[:, -1]]).mean() < _COLLIMATOR_COVER:
+        return None
+    # ... and frames the field, it does not fill it: a flat slab in the open beam looks like an
+    # open field in a collimator, but its border (the beam) is most of the frame
+    if outer.mean() > _COLLIMATOR_AREA:
         return None
     dist = cv2.distanceTransform((~outer).astype(np.uint8), cv2.DIST_L2, 5)
     ring = obj & (dist >= _APERTURE_RING[0]) & (dist < _APERTURE_RING[1])
