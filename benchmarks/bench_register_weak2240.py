@@ -12,7 +12,9 @@ range), each pair made once and registered by rc with every JSON option set of `
 turn, so the times are side by side on one machine. Printed per pair and option set: the median /
 95th percentile end-point error inside the body, the median over the band within 100 px of the
 scored body's edge and over the rest, the seconds and ``ok``; then the geometric mean of the
-medians per option set. ``--split train`` (``regdata.TRAIN_SEEDS``) is where choices are made,
+medians per option set. ``--oracle`` adds a row per pair: the first option set on ``fixed`` with
+the true thinning divided out (``regdata.family_thinning``), the thinning term and its refit off:
+what is left when the thinning is known. ``--split train`` (``regdata.TRAIN_SEEDS``) is where choices are made,
 ``--split test`` where they are reported (benchmarks/README.md, session 20).
 """
 
@@ -28,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair, score
+from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair, family_thinning, score
 
 EDGE_PX = 100  # the band the thinning field's confound lives in (README, "The thinning measured in the interior")
 
@@ -58,6 +60,7 @@ def main(argv=None):
     ap.add_argument("--kind", default="thinning", help="the family's intensity change (thinning, gain)")
     ap.add_argument("--size", type=int, default=2240)
     ap.add_argument("--runs", nargs="+", default=['{"preset": "weak"}'], help="rc option sets (JSON)")
+    ap.add_argument("--oracle", action="store_true", help="also the first set with the true thinning divided out")
     args = ap.parse_args(argv)
     pool = TRAIN_SEEDS if args.split == "train" else TEST_SEEDS
     seeds = args.seeds or list(pool[:2])
@@ -69,8 +72,14 @@ def main(argv=None):
         for seed in seeds:
             case = Case(size=args.size, texture=tex, noise=0.01, corr=0.1, seed=seed, kind=args.kind)
             pair = family_pair(case)
-            for text in args.runs:
-                med, p95, edge, inner, sec, ok = _row(pair, json.loads(text))
+            runs = [(text, pair, json.loads(text)) for text in args.runs]
+            if args.oracle:
+                f, m, d, mask = pair
+                known = (f / (1 + family_thinning(case)), m, d, mask)  # the open beam's level is 0
+                off = dict(json.loads(args.runs[0]), gain=0.0, refit_thinning=False)
+                runs.append((f"{args.runs[0]}, true thinning divided out", known, off))
+            for text, p, options in runs:
+                med, p95, edge, inner, sec, ok = _row(p, options)
                 medians.setdefault(text, []).append(med)
                 print(
                     f"texture {tex:g} s{seed} {text}: {med:.3f} / {p95:.2f} ({edge:.3f} / {inner:.3f}) "
