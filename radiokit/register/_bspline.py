@@ -228,7 +228,7 @@ _WEAK = dict(regularisation=1e-6, balance="frame", stiffen=2.0, gain_fine=True, 
 # it: 1.11 -> 1.38 s at 2240 side by side (its 1 s budget), default: no gain
 # refit_again 1 in weak (session 20): the thinning measured once more from the second pass's field,
 # nearer the edge (REFIT_AGAIN_INTERIOR), and a third pass; chosen on TRAINING seeds at 2240
-# (benchmarks/README.md, "The thinning measured twice (session 20)")
+# (benchmarks/README.md, "`weak` with the jitter: ..., the thinning measured twice (session 20)")
 PRESETS["weak"] = {
     **PRESETS["default"],
     **_WEAK,
@@ -1162,8 +1162,8 @@ REFIT_ITERATIONS = 60
 # refit_again (preset weak): the second pass's field is nearer the truth at the body's edge than
 # the first's, so the ratio there is biased less and the interior may come closer to the edge,
 # where the polynomial otherwise extrapolates (what was left of the edge band's error). Interior
-# and iterations chosen on TRAINING seeds at 2240 (benchmarks/README.md, "The thinning measured
-# twice (session 20)")
+# and iterations chosen on TRAINING seeds at 2240 (benchmarks/README.md, "`weak` with the
+# jitter: ..., the thinning measured twice (session 20)")
 REFIT_AGAIN_INTERIOR = 0.067
 REFIT_AGAIN_ITERATIONS = 30
 # abandon_px checks the level before the finest at this share of its iterations as well as at its
@@ -1215,8 +1215,8 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR):
     """``(b, level, note)``: the thinning ``fixed - level = (1 + b) (warped moving - level)``
     (``level`` the open beam's, the frame's border median), ``b`` a polynomial of degree
     ``REFIT_DEGREE`` in frame coordinates fitted by least squares over the body's interior
-    (``interior`` x the smaller side inside its edge; both
-    images smoothed by 2 px, ~150k samples). ``b`` None, with why, when the interior is under 5 %
+    (``interior`` x the smaller side inside its edge; both images smoothed by 2 px, ~150k
+    samples). ``b`` None, with why, when the interior is under 5 %
     of the frame, when an additive change (``fixed = warped moving + a``, ``a`` a polynomial of the
     same degree: a stale flat field's, which rc's high-passed residual tolerates as it is) fits the
     interior better, or when the thinning found is implausible (over 50 % anywhere on the body).
