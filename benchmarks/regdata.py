@@ -58,6 +58,7 @@ __all__ = [
     "Case",
     "family",
     "family_pair",
+    "family_thinning",
     "gel_phantom",
     "block_mean",
     "TRAIN_SEEDS",
@@ -401,6 +402,19 @@ def family_pair(case: Case):
     """``(fixed, moving, truth, mask)`` for a :class:`Case` (see the module's family comment).
     ``fixed(x) = moving(x + truth(x))``, changed in intensity, plus noise; both in ``case.domain``.
     The mask is the body shrunk by 3 % of the frame."""
+    return _family(case)[:4]
+
+
+def family_thinning(case: Case) -> np.ndarray:
+    """The relative change ``b`` of ``case``'s fixed line integral (``fixed = (1 + b) moving(x +
+    truth)`` before the noise; zeros for ``kind="gain"``), as :func:`family_pair` makes it: what
+    registering with the true thinning divided out is measured with (benchmarks/README.md,
+    session 20). Makes the pair again."""
+    return _family(case)[4]
+
+
+def _family(case: Case):
+    """:func:`family_pair`'s four arrays and the thinning ``b`` (float32)."""
     if case.kind not in ("thinning", "gain"):
         raise ValueError(f"kind={case.kind!r}: expected 'thinning' or 'gain'")
     n = int(case.size)
@@ -415,8 +429,10 @@ def family_pair(case: Case):
     del rr, cc
     s = smooth_field((n, n), rng, cycles=1.0, n_modes=4).astype(np.float32)
     change = case.intensity * (1 if case.seed % 2 else -1)  # both signs over the seeds
+    thinning = np.zeros((n, n), np.float32)
     if case.kind == "thinning":
-        fixed *= 1 + change * s
+        thinning = (change * s).astype(np.float32)
+        fixed *= 1 + thinning
     else:
         fixed -= np.log1p(change * s)
     pair = []
@@ -428,7 +444,7 @@ def family_pair(case: Case):
             img = img + case.noise * z
         pair.append(np.exp(-img).astype(np.float32) if case.domain == "intensity" else img.astype(np.float32))
     mask = _ellipse_r2(n, ax=_BODY[0] - 0.03, ay=_BODY[1] - 0.03) < 1
-    return pair[0], pair[1], d, mask
+    return pair[0], pair[1], d, mask, thinning
 
 
 def family(split="test", size=1120, *, n_seeds=1, grid="map"):

@@ -1058,6 +1058,48 @@ def test_interior_thinning_recovers_a_slow_thinning_and_declines_an_additive_cha
     assert b is None and "interior" in note
 
 
+def test_interior_thinning_nearer_the_edge_extrapolates_less():
+    """``_interior_thinning(interior=...)``: with the field exact (no motion), a thinning that is
+    not a polynomial (a sine across the body) is fitted by the refit's polynomial over the
+    interior and extrapolated to the edge; the nearer the edge the interior reaches, the less
+    is extrapolated, so the error over the band by the edge falls (``refit_again`` measures
+    from a field good enough for this, ``REFIT_AGAIN_INTERIOR``)."""
+    from radiokit.register._bspline import REFIT_AGAIN_INTERIOR, REFIT_INTERIOR, _interior_thinning
+
+    n = 320
+    rng = np.random.default_rng(6)
+    yy, xx = np.mgrid[0:n, 0:n] / n - 0.5
+    r2 = (yy / 0.4) ** 2 + (xx / 0.35) ** 2
+    body = 2 * np.sqrt(np.clip(1 - r2, 0, None))
+    slow = 0.08 * np.sin(2 * np.pi * (1.1 * xx + 0.6 * yy) + 0.4)  # one cycle across the frame
+    noise = 0.002 * rng.standard_normal((2, n, n))
+    moving = (body + noise[0]).astype(np.float32)
+    fixed = (body * (1 + slow) + noise[1]).astype(np.float32)
+    zero = np.zeros((2, n, n), np.float32)
+    band = (r2 > 0.85**2) & (r2 < 0.97**2)  # by the edge (within 20 px), outside both interiors
+    errors = []
+    for interior in (REFIT_INTERIOR, REFIT_AGAIN_INTERIOR):
+        b, _, note = _interior_thinning(fixed, moving, zero, None, interior)
+        assert b is not None and "refitted" in note
+        errors.append(float(np.sqrt(np.mean((b - slow)[band] ** 2))))
+    assert errors[1] < 0.7 * errors[0], errors
+
+
+def test_weak_measures_the_thinning_again_from_its_second_pass():
+    """``refit_again`` (1 in ``weak``): the thinning is measured once more from the second
+    pass's field and a third pass runs the finest level from its lattices, for at most
+    ``REFIT_AGAIN_ITERATIONS``; ``refit_again=0`` stops after the second pass, as before."""
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
+    once, info_once = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
+    assert info["thinning_refit"].startswith("thinning refitted")
+    assert "measured again: thinning refitted" in info["thinning_refit"]
+    assert "measured again" not in info_once["thinning_refit"]
+    (level,) = info["levels"]
+    assert level["factor"] == 1 and level["iterations"] <= B.REFIT_AGAIN_ITERATIONS
+    assert info["iterations"] > info_once["iterations"]
+
+
 def test_weak_refits_the_thinning_from_the_interior():
     """Texture = noise with a +-10 % thinning (384 px): ``weak`` measures the thinning again in
     the body's interior and registers a second time with it divided out; without that the
@@ -1267,6 +1309,8 @@ def _within(seconds, fn):
         ("joint", "no"),
         ("gain_fine", 1),
         ("refit_thinning", "yes"),
+        ("refit_again", -1),
+        ("refit_again", 0.5),
     ],
 )
 def test_an_option_out_of_range_is_refused_naming_it(method, option, value):
