@@ -1198,8 +1198,9 @@ def _register_refit(fixed, moving, mask, how, overrides):
     rounds += [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * _options(how["preset"], overrides)["refit_again"]
     again = dict(overrides, refit_thinning=False, gain=0.0)
     notes = []
+    side = _fixed_side(fixed, mask)  # the same for every round: measured once
     for interior, n_it in rounds:
-        b, level, note = _interior_thinning(fixed, moving, d, mask, interior)
+        b, level, note = _interior_thinning(fixed, moving, d, mask, interior, side)
         notes.append(note if not notes else f"measured again: {note}")
         if b is None:
             break
@@ -1211,7 +1212,24 @@ def _register_refit(fixed, moving, mask, how, overrides):
     return d, info
 
 
-def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR):
+def _fixed_side(fixed, mask):
+    """What :func:`_interior_thinning` measures on ``fixed`` alone, the same for every round of
+    :func:`_register_refit`: ``(fixed as float32, the open beam's level, the distance to the
+    body's edge, fixed smoothed by 2 px)``."""
+    import cv2
+
+    from radiokit.register._confidence import _gauss, _object, noise_sigma
+
+    f = np.asarray(fixed, np.float32)
+    level = float(np.median(np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])))
+    body = _object(f, noise_sigma(f))
+    if mask is not None:
+        body &= np.asarray(mask, bool)
+    # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
+    return f, level, cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5), _gauss(f, 2.0)
+
+
+def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=None):
     """``(b, level, note)``: the thinning ``fixed - level = (1 + b) (warped moving - level)``
     (``level`` the open beam's, the frame's border median), ``b`` a polynomial of degree
     ``REFIT_DEGREE`` in frame coordinates fitted by least squares over the body's interior
@@ -1221,25 +1239,20 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR):
     same degree: a stale flat field's, which rc's high-passed residual tolerates as it is) fits the
     interior better, or when the thinning found is implausible (over 50 % anywhere on the body).
     The two models are told apart by where the change falls: a thinning scales the body's line
-    integral, an additive change does not follow it."""
-    import cv2
-
+    integral, an additive change does not follow it. ``side``: :func:`_fixed_side` of ``fixed``
+    and ``mask`` if already measured."""
     from radiokit.register import warp
-    from radiokit.register._confidence import _gauss, _object, noise_sigma
+    from radiokit.register._confidence import _gauss
 
-    f = np.asarray(fixed, np.float32)
-    level = float(np.median(np.concatenate([f[0], f[-1], f[:, 0], f[:, -1]])))
-    body = _object(f, noise_sigma(f))
-    if mask is not None:
-        body &= np.asarray(mask, bool)
-    # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
-    inner = cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5) >= interior * min(f.shape)
+    f, level, dist, f_smooth = _fixed_side(fixed, mask) if side is None else side
+    body = dist > 0
+    inner = dist >= interior * min(f.shape)
     if inner.mean() < 0.05:
         return None, level, f"not refitted: the body's interior is {100 * inner.mean():.1f} % of the frame (< 5 %)"
     step = max(1, int(np.sqrt(inner.sum() / 150_000)))
     yy, xx = np.nonzero(inner[::step, ::step])
     yy, xx = yy * step, xx * step
-    fs = _gauss(f, 2.0)[yy, xx] - level
+    fs = f_smooth[yy, xx] - level
     ws = _gauss(np.nan_to_num(warp(moving, d)), 2.0)[yy, xx] - level
     rows, cols = f.shape
     n = REFIT_DEGREE + 1
