@@ -1163,7 +1163,10 @@ REFIT_ITERATIONS = 60
 # the first's, so the ratio there is biased less and the interior may come closer to the edge,
 # where the polynomial otherwise extrapolates (what was left of the edge band's error). Interior
 # and iterations chosen on TRAINING seeds at 2240 (benchmarks/README.md, "`weak` with the
-# jitter: ..., the thinning measured twice (session 20)")
+# jitter: ..., the thinning measured twice (session 20)"). The second pass then runs
+# REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS: the refit's iterations in all stay those of one pass,
+# and so, nearly, its time (there 60 + 30 iterations cost 0.7-0.8 s more, 30 + 30 kept most of the
+# gain: the same section, "Time")
 REFIT_AGAIN_INTERIOR = 0.067
 REFIT_AGAIN_ITERATIONS = 30
 # abandon_px checks the level before the finest at this share of its iterations as well as at its
@@ -1189,17 +1192,20 @@ def _register_refit(fixed, moving, mask, how, overrides):
     """``refit_thinning``: a first pass as asked, the thinning measured in the interior
     (:func:`_interior_thinning`), and a second pass on ``fixed`` with it divided out and the
     thinning term off; ``refit_again`` times more, the thinning measured again from the last
-    pass's field nearer the edge (``REFIT_AGAIN_INTERIOR``) and a pass from its lattices.
+    pass's field nearer the edge (``REFIT_AGAIN_INTERIOR``) and a pass from its lattices (the
+    second pass's iterations then less theirs).
     ``info["thinning_refit"]`` says what was done."""
     d, info = _bspline_register(fixed, moving, mask, **how, **dict(overrides, refit_thinning=False))
     if "abandoned" in info:  # stopped short of its finest level (abandon_px): nothing to refine
         return d, info
-    rounds = [(REFIT_INTERIOR, REFIT_ITERATIONS)]
-    rounds += [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * _options(how["preset"], overrides)["refit_again"]
+    n_again = _options(how["preset"], overrides)["refit_again"]
+    rounds = [(REFIT_INTERIOR, REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS if n_again else REFIT_ITERATIONS)]
+    rounds += [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * n_again
     again = dict(overrides, refit_thinning=False, gain=0.0)
     notes = []
+    side = _fixed_side(fixed, mask)  # the same for every round: measured once
     for interior, n_it in rounds:
-        b, level, note = _interior_thinning(fixed, moving, d, mask, interior)
+        b, level, note = _interior_thinning(fixed, moving, d, mask, interior, side)
         notes.append(note if not notes else f"measured again: {note}")
         if b is None:
             break
@@ -1211,20 +1217,12 @@ def _register_refit(fixed, moving, mask, how, overrides):
     return d, info
 
 
-def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR):
-    """``(b, level, note)``: the thinning ``fixed - level = (1 + b) (warped moving - level)``
-    (``level`` the open beam's, the frame's border median), ``b`` a polynomial of degree
-    ``REFIT_DEGREE`` in frame coordinates fitted by least squares over the body's interior
-    (``interior`` x the smaller side inside its edge; both images smoothed by 2 px, ~150k
-    samples). ``b`` None, with why, when the interior is under 5 %
-    of the frame, when an additive change (``fixed = warped moving + a``, ``a`` a polynomial of the
-    same degree: a stale flat field's, which rc's high-passed residual tolerates as it is) fits the
-    interior better, or when the thinning found is implausible (over 50 % anywhere on the body).
-    The two models are told apart by where the change falls: a thinning scales the body's line
-    integral, an additive change does not follow it."""
+def _fixed_side(fixed, mask):
+    """What :func:`_interior_thinning` measures on ``fixed`` alone, the same for every round of
+    :func:`_register_refit`: ``(fixed as float32, the open beam's level, the distance to the
+    body's edge, fixed smoothed by 2 px)``."""
     import cv2
 
-    from radiokit.register import warp
     from radiokit.register._confidence import _gauss, _object, noise_sigma
 
     f = np.asarray(fixed, np.float32)
@@ -1234,13 +1232,33 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR):
     if mask is not None:
         body &= np.asarray(mask, bool)
     # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
-    inner = cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5) >= interior * min(f.shape)
+    return f, level, cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5), _gauss(f, 2.0)
+
+
+def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=None):
+    """``(b, level, note)``: the thinning ``fixed - level = (1 + b) (warped moving - level)``
+    (``level`` the open beam's, the frame's border median), ``b`` a polynomial of degree
+    ``REFIT_DEGREE`` in frame coordinates fitted by least squares over the body's interior
+    (``interior`` x the smaller side inside its edge; both images smoothed by 2 px, ~150k
+    samples). ``b`` None, with why, when the interior is under 5 %
+    of the frame, when an additive change (``fixed = warped moving + a``, ``a`` a polynomial of the
+    same degree: a stale flat field's, which rc's high-passed residual tolerates as it is) fits the
+    interior better, or when the thinning found is implausible (over 50 % anywhere on the body).
+    The two models are told apart by where the change falls: a thinning scales the body's line
+    integral, an additive change does not follow it. ``side``: :func:`_fixed_side` of ``fixed``
+    and ``mask`` if already measured."""
+    from radiokit.register import warp
+    from radiokit.register._confidence import _gauss
+
+    f, level, dist, f_smooth = _fixed_side(fixed, mask) if side is None else side
+    body = dist > 0
+    inner = dist >= interior * min(f.shape)
     if inner.mean() < 0.05:
         return None, level, f"not refitted: the body's interior is {100 * inner.mean():.1f} % of the frame (< 5 %)"
     step = max(1, int(np.sqrt(inner.sum() / 150_000)))
     yy, xx = np.nonzero(inner[::step, ::step])
     yy, xx = yy * step, xx * step
-    fs = _gauss(f, 2.0)[yy, xx] - level
+    fs = f_smooth[yy, xx] - level
     ws = _gauss(np.nan_to_num(warp(moving, d)), 2.0)[yy, xx] - level
     rows, cols = f.shape
     n = REFIT_DEGREE + 1
