@@ -476,6 +476,12 @@ def test_the_object_inside_a_collimator_is_not_the_open_beam(domain):
     slab = (slab + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
     slab = slab if domain == "log" else np.exp(-slab)
     assert np.array_equal(_object(slab, noise_sigma(slab)), _object(slab, noise_sigma(slab), collimator=False))
+    # ... nor by area when it fills most of the frame (its border under a quarter of it): the
+    # open beam would take its whole plateau, leaving the rim; such a cut is refused
+    big = np.where((np.abs(yy - 0.5) < 0.44) & (np.abs(xx - 0.5) < 0.44), 1.5, 0.0)
+    big = (big + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    big = big if domain == "log" else np.exp(-big)
+    assert np.array_equal(_object(big, noise_sigma(big)), _object(big, noise_sigma(big), collimator=False))
     # auto's texture is judged on the body's interior, not on the open beam's (which took 44 %
     # of the frame here, against the body's 9 %)
     from radiokit.register._auto import interior_texture_to_noise
@@ -1103,6 +1109,30 @@ def test_weak_measures_the_thinning_again_from_its_second_pass():
     assert level["factor"] == 1 and level["iterations"] <= B.REFIT_AGAIN_ITERATIONS
     second, third = runs[-2:]
     assert second[0] == third[0] == 1 and second[1] + third[1] <= B.REFIT_ITERATIONS
+
+
+def test_weak_runs_the_refits_budget_when_the_thinning_measured_again_is_declined(monkeypatch):
+    """When the thinning measured again is declined (an additive change fits better, or it is
+    implausible), the second pass had only part of the refit's iterations; it runs on from its
+    lattices for the rest, so the refit keeps the budget of one pass and its convergence. The
+    decline is forced (a fake ``_interior_thinning`` that answers None on its second call): on a
+    real pair the second measurement is rarely declined once the first was taken."""
+    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    real, calls = B._interior_thinning, []
+
+    def declined_again(*args, **kw):
+        calls.append(1)
+        out = real(*args, **kw)
+        return out if len(calls) == 1 else (None, out[1], "not refitted: forced")
+
+    monkeypatch.setattr(B, "_interior_thinning", declined_again)
+    runs = []
+    callback = lambda factor, res: runs.append((factor, int(res.nit)))
+    _, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False, callback=callback)
+    assert len(calls) == 2 and "the last thinning's pass continued" in info["thinning_refit"]
+    second, rest = runs[-2:]
+    assert second[0] == rest[0] == 1
+    assert B.REFIT_ITERATIONS - B.REFIT_AGAIN_ITERATIONS < second[1] + rest[1] <= B.REFIT_ITERATIONS
 
 
 def test_weak_refits_the_thinning_from_the_interior():

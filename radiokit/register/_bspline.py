@@ -1164,8 +1164,8 @@ REFIT_ITERATIONS = 60
 # where the polynomial otherwise extrapolates (what was left of the edge band's error). Interior
 # and iterations chosen on TRAINING seeds at 2240 (benchmarks/README.md, "`weak` with the
 # jitter: ..., the thinning measured twice (session 20)"). The second pass then runs
-# REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS: the refit's iterations in all stay those of one pass,
-# and so, nearly, its time (there 60 + 30 iterations cost 0.7-0.8 s more, 30 + 30 kept most of the
+# REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS: with refit_again 1 the refit's iterations in all stay
+# those of one pass (each further round adds REFIT_AGAIN_ITERATIONS), and so, nearly, its time (there 60 + 30 iterations cost 0.7-0.8 s more, 30 + 30 kept most of the
 # gain: the same section, "Time")
 REFIT_AGAIN_INTERIOR = 0.067
 REFIT_AGAIN_ITERATIONS = 30
@@ -1202,17 +1202,23 @@ def _register_refit(fixed, moving, mask, how, overrides):
     rounds = [(REFIT_INTERIOR, REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS if n_again else REFIT_ITERATIONS)]
     rounds += [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * n_again
     again = dict(overrides, refit_thinning=False, gain=0.0)
-    notes = []
+    notes, f2 = [], None
     side = _fixed_side(fixed, mask)  # the same for every round: measured once
     for interior, n_it in rounds:
         b, level, note = _interior_thinning(fixed, moving, d, mask, interior, side)
         notes.append(note if not notes else f"measured again: {note}")
-        if b is None:
+        if b is None and f2 is None:
             break
-        f2 = (level + (np.asarray(fixed, np.float32) - level) / (1.0 + b)).astype(np.float32)
+        if b is None:  # declined later: the last thinning's pass runs on for these iterations,
+            # so the refit keeps the budget of one (a pass cut short reads "not converged")
+            notes[-1] += "; the last thinning's pass continued"
+        else:
+            f2 = (level + (np.asarray(fixed, np.float32) - level) / (1.0 + b)).astype(np.float32)
         d2, info2 = _bspline_register(f2, moving, mask, **how, start=(info["lattices"], n_it), **again)
         info2["iterations"] += info["iterations"]
         d, info = d2, info2
+        if b is None:
+            break
     info["thinning_refit"] = "; ".join(notes)
     return d, info
 
