@@ -571,10 +571,13 @@ def test_the_guardian_watchdog_tries_again_after_an_unconfirmed_switch_off(tmp_p
 @ONE_DIALECT
 def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene_file, controller):
     """The watchdog only counts silence while X-rays may be on: a settle of two watchdog
-    periods with the tube off (the operator's wait) passes without a word from the guardian."""
+    periods with the tube off (the operator's wait) passes without a word from the guardian.
+    The watchdog is 1 s, as in the tests beside it: at 0.5 s (five polls) a fresh clone's suite,
+    with a second run beside it on the two cores, starved the acquiring process that long with
+    the tube on and the guardian rightly switched off (session 20)."""
     model, server = controller()
     proto = write_protocol(
-        tmp_path, scene_file, server, source={"watchdog_s": 0.5}, series={"steps": [0.15], "settle_s": 1.0}
+        tmp_path, scene_file, server, source={"watchdog_s": 1.0}, series={"steps": [0.15], "settle_s": 2.5}
     )
     acq = Acquire(proto, "--sim", "-q")
     assert acq.wait(timeout=60) == 0, acq.output
