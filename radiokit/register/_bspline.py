@@ -1213,7 +1213,7 @@ def _register_refit(fixed, moving, mask, how, overrides):
             # so the refit keeps the budget of one (a pass cut short reads "not converged")
             notes[-1] += "; the last thinning's pass continued"
         else:
-            f2 = (level + (np.asarray(fixed, np.float32) - level) / (1.0 + b)).astype(np.float32)
+            f2 = (level + (side[0] - level) / (1.0 + b)).astype(np.float32)  # side[0]: fixed as float32
         d2, info2 = _bspline_register(f2, moving, mask, **how, start=(info["lattices"], n_it), **again)
         info2["iterations"] += info["iterations"]
         d, info = d2, info2
