@@ -840,6 +840,8 @@ def _options(preset, overrides) -> dict:
     if o["highpass_on"] not in ("images", "residual"):
         raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
     _check_values(o)
+    if overrides.get("refit_again") and not o["refit_thinning"]:  # asked for, it would do nothing
+        raise ValueError(f"refit_again={o['refit_again']!r}: needs refit_thinning=True (it repeats that refit)")
     return o
 
 
@@ -1163,10 +1165,10 @@ REFIT_ITERATIONS = 60
 # the first's, so the ratio there is biased less and the interior may come closer to the edge,
 # where the polynomial otherwise extrapolates (what was left of the edge band's error). Interior
 # and iterations chosen on TRAINING seeds at 2240 (benchmarks/README.md, "`weak` with the
-# jitter: ..., the thinning measured twice (session 20)"). The second pass then runs
-# REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS: with refit_again 1 the refit's iterations in all stay
-# those of one pass (each further round adds REFIT_AGAIN_ITERATIONS), and so, nearly, its time (there 60 + 30 iterations cost 0.7-0.8 s more, 30 + 30 kept most of the
-# gain: the same section, "Time")
+# jitter: ..., the thinning measured twice (session 20)"), where each pass keeps its own budget
+# (60 + 30): splitting the same 60 iterations 30 + 30 saved ~0.2 s of CPU at 2240 but lost on
+# both sets of training rows (0.448 against 0.446 px; the flag family's one good result a cut
+# second pass left "still moving"; session 21)
 REFIT_AGAIN_INTERIOR = 0.067
 REFIT_AGAIN_ITERATIONS = 30
 # abandon_px checks the level before the finest at this share of its iterations as well as at its
@@ -1192,33 +1194,26 @@ def _register_refit(fixed, moving, mask, how, overrides):
     """``refit_thinning``: a first pass as asked, the thinning measured in the interior
     (:func:`_interior_thinning`), and a second pass on ``fixed`` with it divided out and the
     thinning term off; ``refit_again`` times more, the thinning measured again from the last
-    pass's field nearer the edge (``REFIT_AGAIN_INTERIOR``) and a pass from its lattices (the
-    second pass's iterations then less theirs).
+    pass's field nearer the edge (``REFIT_AGAIN_INTERIOR``) and a pass of
+    ``REFIT_AGAIN_ITERATIONS`` from its lattices; a thinning declined ends the refit there.
     ``info["thinning_refit"]`` says what was done."""
-    d, info = _bspline_register(fixed, moving, mask, **how, **dict(overrides, refit_thinning=False))
+    d, info = _bspline_register(fixed, moving, mask, **how, **dict(overrides, refit_thinning=False, refit_again=0))
     if "abandoned" in info:  # stopped short of its finest level (abandon_px): nothing to refine
         return d, info
     n_again = _options(how["preset"], overrides)["refit_again"]
-    rounds = [(REFIT_INTERIOR, REFIT_ITERATIONS - REFIT_AGAIN_ITERATIONS if n_again else REFIT_ITERATIONS)]
-    rounds += [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * n_again
-    again = dict(overrides, refit_thinning=False, gain=0.0)
-    notes, f2 = [], None
+    rounds = [(REFIT_INTERIOR, REFIT_ITERATIONS)] + [(REFIT_AGAIN_INTERIOR, REFIT_AGAIN_ITERATIONS)] * n_again
+    again = dict(overrides, refit_thinning=False, refit_again=0, gain=0.0)
+    notes = []
     side = _fixed_side(fixed, mask)  # the same for every round: measured once
     for interior, n_it in rounds:
         b, level, note = _interior_thinning(fixed, moving, d, mask, interior, side)
         notes.append(note if not notes else f"measured again: {note}")
-        if b is None and f2 is None:
+        if b is None:  # declined (at a later round: the last pass, which ran its full budget, stands)
             break
-        if b is None:  # declined later: the last thinning's pass runs on for these iterations,
-            # so the refit keeps the budget of one (a pass cut short reads "not converged")
-            notes[-1] += "; the last thinning's pass continued"
-        else:
-            f2 = (level + (side[0] - level) / (1.0 + b)).astype(np.float32)  # side[0]: fixed as float32
+        f2 = (level + (side[0] - level) / (1.0 + b)).astype(np.float32)  # side[0]: fixed as float32
         d2, info2 = _bspline_register(f2, moving, mask, **how, start=(info["lattices"], n_it), **again)
         info2["iterations"] += info["iterations"]
         d, info = d2, info2
-        if b is None:
-            break
     info["thinning_refit"] = "; ".join(notes)
     return d, info
 
