@@ -71,7 +71,7 @@ def _run(args) -> int:
     from acquisition.protocols.compression_series import _existing, load_protocol, plan
 
     try:
-        p = load_protocol(args.protocol)
+        p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
     except DeviceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
