@@ -1367,7 +1367,10 @@ def _kv_ua(reading, kv, ua):
 def _needs_warm_up(src) -> bool:
     from acquisition.l8121 import SourceState
 
-    return src.status() in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
+    # settled: a controller still in its power-on checks (A's self-test, B's pre-heating) reads
+    # neither "warm-up needed" nor standby yet; asked now, the warm-up was skipped and on() refused
+    # it after the darks and flats ("warm-up needed")
+    return src.settled_status() in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
 
 
 def _settle(seconds, bar, progress):
