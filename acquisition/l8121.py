@@ -1194,6 +1194,10 @@ class L8121:
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
 
+        After a switch-off that failed (:attr:`off_failed`) this tries once more -- ``XOF`` and
+        ``STS`` again, each waiting out its reply time-out with a silent controller (about 2 s in A,
+        4 s in B) -- before it raises; a caller that must not wait again uses :meth:`detach`.
+
         Raises
         ------
         DeviceError
@@ -1566,7 +1570,7 @@ class L8121:
         warm-up done would be an exposure), and switches off if the controller answers it with
         X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
         standby is switched off (confirmed) and counts as done if the controller reports it done.
-        Both wait first for the controller's power-on checks (:meth:`settled_status`).
+        It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
