@@ -559,3 +559,22 @@ def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
         src.detach()
     assert n_xof == 1, model.received[-8:]
     assert src.off_failed is not None and "does not answer" in str(src.off_failed)
+
+
+def test_close_after_a_failed_switch_off_tries_once_more(dialect):
+    """What the README says of ``L8121.close()`` (the end of a ``with`` block, the bench-top source
+    commands): after a switch-off that met a silent controller it sends ``XOF`` and ``STS`` once
+    more -- one attempt, not ``off_attempts`` -- and then raises the error that says to switch off
+    at the controller; ``detach()`` is the way out without that round."""
+    model = SpecModel(dialect, warm=True, ramp_s=5.0)
+    with served(model) as pty:
+        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.3)
+        threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
+        with pytest.raises(DeviceError, match="no reply"):
+            src.on(60, 250)
+        assert model.received.count("XOF") == 1
+        with pytest.raises(DeviceError, match="switch the source off at the controller"):
+            src.close()
+    after = model.received[model.received.index("XOF") + 1 :]
+    assert after[after.index("XOF") :] == ["XOF", "STS"]  # one more round, and only one
+    assert not src.is_connected
