@@ -25,6 +25,7 @@ import tty
 import pytest
 
 from acquisition.errors import DeviceError, SourceFault
+from acquisition.guardian import TUBE_WARNING
 from acquisition.l8121 import L8121, SourceConfig
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -530,7 +531,9 @@ def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect
                 proc.wait()
     assert model.emitting and proc.returncode != 0
     last = err.strip().splitlines()[-1]
-    assert "Traceback" not in err and "switch the source off at the controller" in last, err
+    assert "Traceback" not in err and "switch the source off at the controller" in err, err
+    assert last == TUBE_WARNING, err  # the last line, as a series ends (and exit code 3)
+    assert proc.returncode == 3, err
 
 
 # -- a silent controller is told once ----------------------------------------------------------------
@@ -578,3 +581,24 @@ def test_close_after_a_failed_switch_off_tries_once_more(dialect):
     after = model.received[model.received.index("XOF") + 1 :]
     assert after[after.index("XOF") :] == ["XOF", "STS"]  # one more round, and only one
     assert not src.is_connected
+
+
+def test_a_source_command_whose_switch_off_is_not_confirmed_ends_as_a_series_does(dialect, capsys, monkeypatch):
+    """README: ``radiokit acquire`` exits 3 "when the tube may still be on", its last line the
+    warning. ``source off`` against a tube that stays on (``XOF`` answered, ``STS`` still on)
+    ended as a plain error, exit code 1, its last line the driver's message."""
+    import functools
+
+    import acquisition.l8121
+    from radiokit.cli import main
+
+    model = SpecModel(dialect, warm=True)
+    model.state, model.t_on = "XON", time.monotonic()  # left on (`source on`)
+    model.relay_stuck = True
+    # the real driver, giving up sooner than its 3 s per switch-off (off_confirm_s)
+    monkeypatch.setattr(acquisition.l8121, "L8121", functools.partial(L8121, off_confirm_s=0.3, poll_s=0.05))
+    with served(model) as pty:
+        code = main(["acquire", "source", "off", "--port", pty.url, "--dialect", dialect, "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (code, err[-1]) == (3, TUBE_WARNING), err
+    assert "could not confirm X-rays off" in err[-2] and model.emitting
