@@ -71,7 +71,7 @@ def _run(args) -> int:
     from acquisition.protocols.compression_series import _existing, load_protocol, plan
 
     try:
-        p = load_protocol(args.protocol)
+        p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
     except DeviceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -240,8 +240,10 @@ def _source_command(args, guard) -> int:
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
     it becomes the switch-off error instead)."""
     from acquisition.errors import DeviceError
+    from acquisition.guardian import TUBE_WARNING
     from acquisition.l8121 import L8121
 
+    src = None
     try:
         try:
             src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
@@ -275,6 +277,11 @@ def _source_command(args, guard) -> int:
         return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        if src is not None and src.off_failed is not None:
+            # the switch-off was not confirmed: the same last line and exit code as a series
+            # (README: 3 when the tube may still be on), not a plain error's 1
+            _say(TUBE_WARNING)
+            return 3
         return 1
 
 

@@ -32,7 +32,9 @@ off on exit, never taken as "off" after ``XOF``). In dialect B the same ``XON`` 
 warm-up or an exposure, depending on the controller's warm-up state; the driver never sends an
 ``XON`` meant as an exposure unless ``DAG`` has just said ``END``, never sends the warm-up ``XON``
 unless it has just said ``YET``, and if the controller does the other thing all the same (``AGING``
-after an exposure's ``XON``, ``XON`` after a warm-up's) it switches off and says so.
+after an exposure's ``XON``, ``XON`` after a warm-up's) it switches off and says so. A warm-up
+that runs on from ``AGING`` into ``XON`` at its end is switched off too (confirmed) and counts as
+done when ``DAG`` then says ``END``.
 
 ``dialect="auto"`` runs :func:`probe` at connect: harmless queries only (``STS``, ``SIN``, ``TYP``,
 ``SRL``, ``DAG``; never ``XON``, ``HIV``, ``CUR``, ``PHV``, ``PCU``, ``WUP`` or ``RST``) at each
@@ -197,7 +199,9 @@ class SourceConfig:
     the L8121-02 driver polls 20 ms apart; "~50" leaves room above 50, so 20 % is added).
     ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (A 1 s; B 2 s, the
     L8121-02 driver's wait before a missed reply). ``off_confirm_s``: how long a switch-off's
-    attempts may take for ``STS`` to read off (a supply ramping down).
+    attempts may take for ``STS`` to read off (a supply ramping down). ``ready_timeout_s``: how long
+    :meth:`L8121.settled_status` (and so :meth:`L8121.warm_up` and :meth:`L8121.on`) waits for the
+    controller's power-on checks to finish.
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
@@ -235,6 +239,10 @@ class SourceConfig:
     poll_s: float = 0.2
     warmup_timeout_s: float = 1800.0
     warmup_start_s: float = 5.0  # the start command answered, still "warm-up needed" after this: not started
+    # the controller's power-on checks (A: STS 6 self-test; B: STS ERROR, pre-heating; either's "not
+    # ready" with the interlock closed) may still run when a session starts: warm_up() and on() wait
+    # this long for them to finish (L8121.md gives no duration)
+    ready_timeout_s: float = 30.0
     off_attempts: int = 3
     # L8121.md does not say how soon STS reads off after XOF (a high-voltage supply ramps down): the
     # attempts spread over this window, STS asked every poll_s, before the operator is told
@@ -265,6 +273,7 @@ class SourceConfig:
             "poll_s",
             "warmup_timeout_s",
             "warmup_start_s",
+            "ready_timeout_s",
             "off_confirm_s",
             "beam_drop_fraction",
         ):
@@ -288,6 +297,7 @@ class SourceConfig:
             "warmup_timeout_s",
             "warmup_start_s",
             "stable_timeout_s",
+            "ready_timeout_s",
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
                 raise ValueError(f"L8121 configuration: {name} must be > 0")
@@ -405,16 +415,23 @@ def _tolerance(spec: float | str, set_value: float, name: str) -> float:
     return float(spec)
 
 
+def _names_file(text: str) -> bool:
+    """Whether ``text`` is the path of an existing file (a name too long or holding NUL is not)."""
+    try:
+        return Path(text).is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def _toml_section(source: str | Path, section: str) -> dict:
     text = source
-    if isinstance(source, Path) or ("\n" not in source and "=" not in source):
+    # a one-line string is a file when it has no "=" or names an existing one (runs/kv=60/source.toml)
+    if isinstance(source, Path) or ("\n" not in source and ("=" not in source or _names_file(source))):
         text = Path(source).read_text(encoding="utf-8")
     table: Any = tomllib.loads(text)
     for part in section.split(".") if section else ():
         if not isinstance(table, dict) or part not in table:
-            raise ValueError(
-                f"{source if isinstance(source, Path) or '=' not in source else 'TOML text'}: no [{section}] table"
-            )
+            raise ValueError(f"{source if text is not source else 'TOML text'}: no [{section}] table")
         table = table[part]
     return dict(table)
 
@@ -1177,6 +1194,10 @@ class L8121:
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
 
+        After a switch-off that failed (:attr:`off_failed`) this tries once more -- ``XOF`` and
+        ``STS`` again, each waiting out its reply time-out with a silent controller (about 2 s in A,
+        4 s in B) -- before it raises; a caller that must not wait again uses :meth:`detach`.
+
         Raises
         ------
         DeviceError
@@ -1381,6 +1402,55 @@ class L8121:
             return SourceState.WARMUP_NEEDED
         return state
 
+    def settled_status(self, timeout_s: float | None = None) -> SourceState:
+        """The controller's state once its power-on checks are over (:meth:`status` otherwise).
+
+        A controller switched on just before the session may still be checking itself: A's
+        ``STS 6`` (self-test), B's ``STS ERROR`` (pre-heating), or either's "not ready" while the
+        interlock reads closed (with it open, "not ready" is the door, not the checks, and is
+        returned at once). These pass by themselves, so :meth:`warm_up` and :meth:`on` ask this
+        instead of failing at the first ``STS``: it reads ``STS`` every ``poll_s`` until the state
+        is another one, for at most ``timeout_s`` (default ``config.ready_timeout_s``, 30 s).
+        Queries only: nothing here can switch X-rays on.
+
+        Raises
+        ------
+        DeviceError
+            Still checking after ``timeout_s`` (one line naming the state and the setting).
+        """
+        limit = self.config.ready_timeout_s if timeout_s is None else float(timeout_s)
+        t0 = time.monotonic()
+        state = self.status()
+        told = False
+        while self._checking(state):
+            waited = time.monotonic() - t0
+            if waited >= limit:
+                raise DeviceError(
+                    f"{self.port}: the controller's power-on checks did not finish within ready_timeout_s = "
+                    f"{limit:g} s (still {state.name}); look at the controller (or raise [source] ready_timeout_s)"
+                )
+            if not told:
+                logger.warning(
+                    "%s: controller still in its power-on checks (state %s): waiting up to %g s",
+                    self.port,
+                    state.name,
+                    limit,
+                )
+                told = True
+            time.sleep(min(self.config.poll_s, max(limit - waited, 0.0)))
+            state = self.status()
+        if told:
+            logger.info(
+                "%s: power-on checks over after %.1f s (state %s)", self.port, time.monotonic() - t0, state.name
+            )
+        return state
+
+    def _checking(self, state: SourceState) -> bool:
+        """Whether ``state`` is one the controller leaves by itself after power-on."""
+        if state in (SourceState.SELF_TEST, SourceState.PREHEATING):
+            return True
+        return state == SourceState.NOT_READY and self.interlock_closed()
+
     def _beam_reading(self, *, stop_early: bool = False) -> tuple[SourceState, float, float]:
         """State, measured kV and µA (A: one ``SAR``; B: ``STS``, ``SHV``, ``SCU``). ``stop_early``:
         in B, when ``STS`` already says the beam is not on, do not spend two more exchanges before
@@ -1498,7 +1568,9 @@ class L8121:
         closed, and an interrupted or failed warm-up is switched off like an exposure. Dialect A
         sends ``WUP``; dialect B sends ``XON`` only while ``DAG`` says ``YET`` (an ``XON`` with the
         warm-up done would be an exposure), and switches off if the controller answers it with
-        X-rays on instead of ``AGING``.
+        X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
+        standby is switched off (confirmed) and counts as done if the controller reports it done.
+        It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
@@ -1529,7 +1601,7 @@ class L8121:
                 f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
                 f"nothing sent"
             )
-        state = self.status()
+        state = self.settled_status()
         if not self._warm_up_needed(state, force):
             return 0.0
         bar = None
@@ -1594,7 +1666,10 @@ class L8121:
             if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
                 return
             if state == SourceState.XRAY_ON:
-                self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
+                if not seen_running:  # the start command began an exposure, not a warm-up
+                    self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
+                self._warm_up_ran_on(elapsed)
+                return
             # the warm-up emits: the interlock rules of an exposure hold (a controller need not
             # stop by itself when it opens; L8121.md only says XON is refused then)
             if state.emitting and not self.interlock_closed():
@@ -1611,6 +1686,23 @@ class L8121:
                     f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
                 )
             time.sleep(self.config.poll_s)
+
+    def _warm_up_ran_on(self, elapsed: float) -> None:
+        """The warm-up (seen running) went on into X-rays on instead of back to standby: dialect B's
+        ``AGING`` may end that way (L8121.md does not say it returns to ``STANDBY``). Nobody asked
+        for that beam: switch off, confirmed (``off()`` raises when it cannot confirm), then the
+        controller's own record says whether the warm-up counts as done (B ``DAG ... END``, A
+        ``SWE 0``); if it does not, the warm-up failed."""
+        logger.warning(
+            "%s: the warm-up ran on into X-rays on after %.1f s (STS says X-rays on): switching off", self.port, elapsed
+        )
+        state = self.off()
+        if self.warmup_state() != WarmupState.DONE:
+            raise DeviceError(
+                f"{self.port}: the warm-up ran on into X-rays on after {elapsed:.1f} s and the controller does not "
+                f"report it done; X-rays switched off (state {state.name})"
+            )
+        logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
 
     def _warm_up_pending(self) -> bool:
         """Whether a warm-up whose state still reads "needed" is under way all the same: dialect A's
@@ -1689,7 +1781,7 @@ class L8121:
         return reading
 
     def _require_ready(self) -> None:
-        state = self.status()
+        state = self.settled_status()
         reasons = {
             SourceState.WARMUP_NEEDED: "warm-up needed (call warm_up())",
             SourceState.WARMING_UP: "warm-up still running",

@@ -397,6 +397,25 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
     assert not os.path.exists(p.output)
 
 
+@pytest.mark.parametrize("relative", [False, True])
+def test_cli_a_protocol_path_holding_an_equals_sign_is_read_as_a_file(
+    tmp_path, scene_toml, capsys, monkeypatch, relative
+):
+    """``runs/kv=60/protocol.toml`` is a file name: the guess "a string with '=' is TOML text" made
+    the command parse the path itself as TOML ("not valid TOML")."""
+    folder = tmp_path / "kv=60"
+    folder.mkdir()
+    p = protocol(folder, scene_toml)
+    (folder / "protocol.toml").write_text(p.to_toml())
+    if relative:
+        monkeypatch.chdir(folder)
+    path = "protocol=v2.toml" if relative else str(folder / "protocol.toml")
+    if relative:
+        (folder / "protocol.toml").rename(folder / path)
+    assert _cli("acquire", path, "--dry-run", "--sim") == 0, capsys.readouterr().err
+    assert re.search(rf"total\s+{TOTAL}\b", capsys.readouterr().out)
+
+
 def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     # the command line and the resume, not the link: a short command spacing (the dialect's 50 ms
     # took 2 of this test's 3.7 s; the clean series and the fault matrix keep it)

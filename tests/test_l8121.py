@@ -1170,6 +1170,12 @@ def test_config_from_toml_and_dict(tmp_path):
         "B",
         10,
     )
+    # a file name given as a string that holds "=" (runs/kv=60/lab.toml) is the file, not TOML text
+    odd = tmp_path / "kv=60"
+    odd.mkdir()
+    (odd / "lab.toml").write_text(path.read_text())
+    assert L8121.from_config(str(odd / "lab.toml"), connect=False).config.kv_max == 90
+    assert SourceConfig.from_toml("[source]\nkv_max = 80").kv_max == 80  # text stays text
     assert L8121("loop://", connect=False).baudrate == 9600  # L8121.md's link default, both dialects
     assert L8121("loop://", connect=False, dialect="B", voltage_scale=1).voltage_scale == 1
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['kv_maximum'\]"):

@@ -25,6 +25,7 @@ import tty
 import pytest
 
 from acquisition.errors import DeviceError, SourceFault
+from acquisition.guardian import TUBE_WARNING
 from acquisition.l8121 import L8121, SourceConfig
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -37,9 +38,16 @@ _B_WORDS = {"WUPNEED": "STANDBY", "WARMING": "AGING", "STANDBY": "STANDBY", "XON
 class SpecModel:
     """One L8121 controller in dialect ``"A"`` or ``"B"``, as ``L8121.md`` describes it."""
 
-    def __init__(self, dialect, *, baud=9600, warm=False, warmup_s=0.3, ramp_s=0.2, min_gap_s=0.045):
+    def __init__(self, dialect, *, baud=9600, warm=False, warmup_s=0.3, ramp_s=0.2, min_gap_s=0.045, checking_s=0.0):
         self.dialect, self.baud, self.min_gap_s = dialect, baud, min_gap_s
         self.warmup_s, self.ramp_s = warmup_s, ramp_s
+        # power-on checks still running for checking_s after the first command (the unit was
+        # switched on just before the session): A's STS 6 (self-test), B's STS ERROR (pre-heating);
+        # XON and WUP are refused meanwhile ("wrong state")
+        self.checking_s, self.checks_end = checking_s, None
+        # B: the warm-up (AGING) runs on into X-rays on at its end instead of back to STANDBY;
+        # L8121.md says AGING is X-rays on and nothing of how it ends
+        self.warm_up_ends_on = False
         self.state = "STANDBY" if warm else "WUPNEED"
         self.interlock_closed = True
         self.interlock_stops_beam = True  # False: the controller only reports the open interlock
@@ -63,6 +71,8 @@ class SpecModel:
     def _tick(self):
         if self.state == "WARMING" and time.monotonic() - self.t_warm >= self.warmup_s:
             self.state = "STANDBY"
+            if self.warm_up_ends_on and self.dialect == "B":
+                self.state, self.t_on = "XON", self.t_warm + self.warmup_s
         if not self.interlock_closed and self.interlock_stops_beam and self.state in ("XON", "WARMING"):
             self.state = "STANDBY" if self.state == "XON" else "WUPNEED"
 
@@ -76,6 +86,8 @@ class SpecModel:
         with self.lock:
             self._tick()
             self.received.append(line)
+            if self.checks_end is None:
+                self.checks_end = time.monotonic() + self.checking_s
             word, *args = line.split() or [""]
             value = int(args[0]) if len(args) == 1 and args[0].isdigit() else None
             refused = "ERR" if self.dialect == "A" else "ERROR"
@@ -109,6 +121,8 @@ class SpecModel:
                 return "XOF"
             self.state = {"XON": "STANDBY", "WARMING": "WUPNEED"}.get(self.state, self.state)
             return "XOF"
+        if word in ("XON", "WUP") and time.monotonic() < self.checks_end:
+            return None
         if word == "XON":
             if not self.interlock_closed:
                 return None
@@ -129,9 +143,10 @@ class SpecModel:
     def _query_a(self, word):
         kv, ua = self._measured()
         done = 1 if self.state == "WARMING" else 2 if self.state == "WUPNEED" else 0
+        code = 6 if time.monotonic() < self.checks_end else _A_CODES[self.state]
         return {
-            "STS": f"STS {_A_CODES[self.state]}",
-            "SAR": f"SAR {_A_CODES[self.state]} {kv:.0f} {ua:.0f} 0 0 0 0",
+            "STS": f"STS {code}",
+            "SAR": f"SAR {code} {kv:.0f} {ua:.0f} 0 0 0 0",
             "SVI": f"SVI {self.set_kv} {self.set_ua}",
             "SIN": f"SIN {0 if self.interlock_closed else 1}",
             "SWE": f"SWE {done}",
@@ -143,7 +158,7 @@ class SpecModel:
         kv, ua = self._measured()
         done = self.state not in ("WUPNEED", "WARMING")
         return {
-            "STS": _B_WORDS[self.state],
+            "STS": "ERROR" if time.monotonic() < self.checks_end else _B_WORDS[self.state],
             "SHV": f"SHV {kv:.1f}kV",
             "SCU": f"SCU {ua:.0f}{'µA' if self.micro_sign else 'uA'}",
             "SPV": f"SPV {self.set_kv:.1f}kV",
@@ -282,6 +297,84 @@ def test_a_b_unit_that_writes_the_micro_sign_is_understood(encoding, tmp_path):
     assert not model.emitting and model.lost == []
 
 
+# -- a controller still in its power-on checks, a warm-up that runs on ------------------------------
+# (acquisition.emulators.l8121 can do neither -- it starts checked and its B warm-up always ends in
+# STANDBY -- so this spec model does)
+def test_warm_up_and_on_wait_for_the_power_on_checks(dialect):
+    """``L8121.md`` lists states a controller passes through by itself after power-on: A's ``STS 6``
+    (self-test), B's ``STS ERROR`` (pre-heating). A session started meanwhile failed at its first
+    ``STS`` ("warm-up not started: controller not ready (state SELF_TEST)"); the driver waits for
+    them (``ready_timeout_s``) and sends no X-ray command before they end: this model refuses
+    ``WUP`` and ``XON`` meanwhile, so one sent too soon fails the warm-up or the exposure."""
+    model = SpecModel(dialect, checking_s=0.5)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
+        assert src.warm_up(timeout_s=10, progress=False) > 0
+        src.on(60, 250)
+    started = [c for c in model.received if c in ("WUP", "XON")]
+    assert started == (["WUP", "XON"] if dialect == "A" else ["XON", "XON"])  # the warm-up, then the exposure
+    assert not model.emitting and model.lost == []
+
+
+def test_power_on_checks_that_do_not_end_are_one_clear_error(dialect):
+    """Checks that outlast ``ready_timeout_s`` are an error of one line naming the state and the
+    setting, before any setting or X-ray command is sent, for the warm-up and the exposure alike."""
+    model = SpecModel(dialect, checking_s=60.0)
+    still = "SELF_TEST" if dialect == "A" else "PREHEATING"
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05, ready_timeout_s=0.3) as src:
+        for action in (lambda: src.warm_up(timeout_s=10, progress=False), lambda: src.on(60, 250)):
+            with pytest.raises(DeviceError) as err:
+                action()
+            assert str(err.value) == (
+                f"{pty.url}: the controller's power-on checks did not finish within ready_timeout_s = 0.3 s "
+                f"(still {still}); look at the controller (or raise [source] ready_timeout_s)"
+            )
+    assert [c for c in model.received if c not in ("STS", "SIN", "TYP", "SRL")] == []
+
+
+def test_b_a_warm_up_that_runs_on_into_x_rays_on_is_switched_off_and_counts_as_done():
+    """B's warm-up is ``AGING``, X-rays on; ``L8121.md`` does not say it returns to ``STANDBY``
+    when it ends. One that runs on into ``XON`` left the driver calling it "an exposure instead of
+    a warm-up": the warm-up failed although the controller had finished it. The driver switches
+    that beam off (confirmed by ``STS``) and counts the warm-up done, as the controller's ``DAG``
+    does; the exposure that follows goes ahead."""
+    from acquisition.l8121 import SourceState, WarmupState
+
+    model = SpecModel("B", warmup_s=0.3)
+    model.warm_up_ends_on = True
+    with served(model) as pty, L8121(pty.url, dialect="B", poll_s=0.05) as src:
+        assert src.warm_up(timeout_s=10, progress=False) > 0
+        assert not model.emitting  # switched off, before warm_up() returned
+        after = model.received[model.received.index("XON") :]
+        assert after[after.index("XOF") + 1] == "STS"  # ... and confirmed
+        assert src.warmup_state() == WarmupState.DONE and src.status() == SourceState.STANDBY
+        src.on(60, 250)
+        assert model.emitting and model.state == "XON"
+    assert not model.emitting
+
+
+@pytest.mark.parametrize("case", ["A checking", "B checking", "B runs on"])
+def test_a_series_warms_up_after_the_power_on_checks_and_through_a_warm_up_that_runs_on(case, tmp_path):
+    """The same through ``run()`` and the guardian: the series asked whether a warm-up was needed
+    while the controller was still checking itself, skipped it, and was refused at the first
+    exposure ("warm-up needed"); and a B warm-up that ran on into X-rays on stopped the series."""
+    from acquisition.protocols.compression_series import load_protocol, run
+
+    dialect = case[0]
+    # checks of 0.5 s from the first command outlast the connect and the question "warm-up needed?"
+    model = SpecModel(dialect, checking_s=0.5 if "checking" in case else 0.0, warmup_s=0.2, ramp_s=0.05)
+    model.warm_up_ends_on = case == "B runs on"
+    with served(model) as pty:
+        series = _series(pty.url, dialect, None)
+        del series["source"]["focus"]
+        series["series"].update(darks=0, flats=0)  # one exposure: the warm-up is what is tried here
+        p = load_protocol(series)
+        p.output = str(tmp_path / "series.h5")
+        result = run(p, sim=True, progress=False)
+    assert result.frames_written == 1 and result.tube_off
+    assert ("WUP" if dialect == "A" else "XON") in model.received
+    assert not model.emitting and model.lost == []
+
+
 # -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
 def _open_interlock_once_emitting(model, after_s=0.2):
     def watch():
@@ -329,7 +422,7 @@ def test_an_invalid_warm_up_time_out_is_refused_before_the_warm_up_starts(dialec
     assert not {"WUP", "XON"} & set(model.received)
 
 
-@pytest.mark.parametrize("key", ["warmup_timeout_s", "stable_timeout_s"])
+@pytest.mark.parametrize("key", ["warmup_timeout_s", "stable_timeout_s", "ready_timeout_s"])
 def test_a_zero_time_out_is_not_a_configuration(key):
     """A warm-up or an exposure that may not last at all would switch the tube on only to switch it
     off again: refused with the other time-outs that must be > 0."""
@@ -438,7 +531,9 @@ def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect
                 proc.wait()
     assert model.emitting and proc.returncode != 0
     last = err.strip().splitlines()[-1]
-    assert "Traceback" not in err and "switch the source off at the controller" in last, err
+    assert "Traceback" not in err and "switch the source off at the controller" in err, err
+    assert last == TUBE_WARNING, err  # the last line, as a series ends (and exit code 3)
+    assert proc.returncode == 3, err
 
 
 # -- a silent controller is told once ----------------------------------------------------------------
@@ -467,3 +562,43 @@ def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
         src.detach()
     assert n_xof == 1, model.received[-8:]
     assert src.off_failed is not None and "does not answer" in str(src.off_failed)
+
+
+def test_close_after_a_failed_switch_off_tries_once_more(dialect):
+    """What the README says of ``L8121.close()`` (the end of a ``with`` block, the bench-top source
+    commands): after a switch-off that met a silent controller it sends ``XOF`` and ``STS`` once
+    more -- one attempt, not ``off_attempts`` -- and then raises the error that says to switch off
+    at the controller; ``detach()`` is the way out without that round."""
+    model = SpecModel(dialect, warm=True, ramp_s=5.0)
+    with served(model) as pty:
+        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.3)
+        threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
+        with pytest.raises(DeviceError, match="no reply"):
+            src.on(60, 250)
+        assert model.received.count("XOF") == 1
+        with pytest.raises(DeviceError, match="switch the source off at the controller"):
+            src.close()
+    after = model.received[model.received.index("XOF") + 1 :]
+    assert after[after.index("XOF") :] == ["XOF", "STS"]  # one more round, and only one
+    assert not src.is_connected
+
+
+def test_a_source_command_whose_switch_off_is_not_confirmed_ends_as_a_series_does(dialect, capsys, monkeypatch):
+    """README: ``radiokit acquire`` exits 3 "when the tube may still be on", its last line the
+    warning. ``source off`` against a tube that stays on (``XOF`` answered, ``STS`` still on)
+    ended as a plain error, exit code 1, its last line the driver's message."""
+    import functools
+
+    import acquisition.l8121
+    from radiokit.cli import main
+
+    model = SpecModel(dialect, warm=True)
+    model.state, model.t_on = "XON", time.monotonic()  # left on (`source on`)
+    model.relay_stuck = True
+    # the real driver, giving up sooner than its 3 s per switch-off (off_confirm_s)
+    monkeypatch.setattr(acquisition.l8121, "L8121", functools.partial(L8121, off_confirm_s=0.3, poll_s=0.05))
+    with served(model) as pty:
+        code = main(["acquire", "source", "off", "--port", pty.url, "--dialect", dialect, "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (code, err[-1]) == (3, TUBE_WARNING), err
+    assert "could not confirm X-rays off" in err[-2] and model.emitting

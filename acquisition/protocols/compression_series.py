@@ -371,17 +371,28 @@ _SECTIONS = {
 }
 
 
+def _names_file(text: str) -> bool:
+    """Whether ``text`` is the path of an existing file (a name too long or holding NUL is not)."""
+    try:
+        return Path(text).is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Protocol:
     """A :class:`Protocol` from a TOML file path, TOML text, or a dict. Unknown keys are errors
     (a typo must not silently fall back to a default exposure), and so is every setting the run
     would refuse (exposure outside the limits or the L8121's ratings, non-finite times), so a dry
     run refuses it too. ``text=True``: ``source`` is TOML text, never a path (a protocol stored in
-    a file is not a name of another file to open)."""
+    a file is not a name of another file to open). A :class:`~pathlib.Path` is always a file: a
+    path may hold ``=`` (``runs/kv=60/protocol.toml``), so a one-line string is a file when it has
+    no ``=`` or names an existing file, and TOML text otherwise."""
     if isinstance(source, dict):
         data = source
     else:
         text_ = str(source)
-        if not text and "\n" not in text_ and "=" not in text_:
+        one_line = not text and "\n" not in text_
+        if isinstance(source, Path) or (one_line and ("=" not in text_ or _names_file(text_))):
             where = text_
             try:
                 text_ = Path(text_).read_text()
@@ -1356,7 +1367,10 @@ def _kv_ua(reading, kv, ua):
 def _needs_warm_up(src) -> bool:
     from acquisition.l8121 import SourceState
 
-    return src.status() in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
+    # settled: a controller still in its power-on checks (A's self-test, B's pre-heating) reads
+    # neither "warm-up needed" nor standby yet; asked now, the warm-up was skipped and on() refused
+    # it after the darks and flats ("warm-up needed")
+    return src.settled_status() in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
 
 
 def _settle(seconds, bar, progress):
