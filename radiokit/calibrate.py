@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import json
+import os
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -421,8 +422,10 @@ class Calibration:
 
     # -- persistence --------------------------------------------------------------------------
     def save(self, path, group="calibration") -> Path:
-        """Write to an HDF5 file (a new file, or a new group of an existing one)."""
-        path = Path(path)
+        """Write to an HDF5 file (a new file, or a new group of an existing one), or into a
+        binary file object (``io.BytesIO``: ``radiokit calibrate`` then writes the bytes, of a
+        known size, atomically)."""
+        path = Path(path) if isinstance(path, (str, os.PathLike)) else path
         with h5py.File(path, "a") as h5:
             if group in h5:
                 del h5[group]

@@ -7,6 +7,9 @@ Subcommands of other packages (``sim``, ``acquisition``) register themselves thr
 from __future__ import annotations
 
 import argparse
+import codecs
+import contextlib
+import io
 import json
 import logging
 import os
@@ -248,9 +251,12 @@ def cmd_calibrate(args) -> int:
         cal = Calibration.from_frames(darks, flats, **th)
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
-    # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=12 * cal.dark.size + 2**20) as tmp:
-        cal.save(tmp)
+    # built in memory first: its size is then known, and a disk or file-size limit too small for
+    # it is refused before the first byte (libhdf5 failing mid-write has crashed the interpreter)
+    image = io.BytesIO()
+    cal.save(image)
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=len(image.getbuffer())) as tmp:
+        tmp.write_bytes(image.getbuffer())
     p = cal.provenance
     print(
         f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
@@ -769,10 +775,58 @@ def _debug(args) -> bool:
     return bool(getattr(args, "debug", False) or os.environ.get("RADIOKIT_DEBUG", "") not in ("", "0"))
 
 
+def _names_as_bytes(exc: UnicodeEncodeError):
+    """Codec error handler for the command's output: a file name's bytes that are not UTF-8 (a
+    Latin-1 name; Python holds them as lone surrogates) print as ``\\xNN``, as radiokit records
+    them in its files, and any other character the terminal cannot show as ``\\uNNNN``.
+
+    Why: under a UTF-8 locale stdout is strict, and printing such a name after the work (``-> o\\xfe.h5``)
+    failed the command with exit code 2 although its output had been written."""
+    bad = exc.object[exc.start : exc.end]
+    return (
+        "".join(
+            f"\\x{ord(ch) - 0xDC00:02x}"
+            if 0xDC80 <= ord(ch) <= 0xDCFF
+            else ch.encode("ascii", "backslashreplace").decode()
+            for ch in bad
+        ),
+        exc.end,
+    )
+
+
+codecs.register_error("radiokit-names", _names_as_bytes)
+
+
+@contextlib.contextmanager
+def _printable_names():
+    """stdout and stderr print any file name (see :func:`_names_as_bytes`); restored afterwards
+    (``main`` also runs inside other programs and tests)."""
+    before = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            before.append((stream, stream.errors))
+            stream.reconfigure(errors="radiokit-names")
+        except (AttributeError, ValueError, OSError):  # not a text stream that can be reconfigured
+            before.pop()
+    try:
+        yield
+    finally:
+        for stream, errors in before:
+            try:
+                stream.reconfigure(errors=errors)
+            except (AttributeError, ValueError, OSError):
+                pass
+
+
 def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
+    with _printable_names():
+        return _main(argv)
+
+
+def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import errno
 import json
-import math
 import os
 import shutil
 import time
@@ -25,6 +24,7 @@ import h5py
 import numpy as np
 
 from radiokit.errors import FormatError
+from radiokit.io._atomic import file_size_limit
 
 __all__ = [
     "ExperimentWriter",
@@ -75,35 +75,6 @@ _SERIES = (
 
 def _set_class(group, nx_class):
     group.attrs["NX_class"] = nx_class
-
-
-#: File systems whose files stop at 4 GiB - 1 (FAT12/16/32; exFAT has no such limit).
-_FAT_TYPES = frozenset({"vfat", "msdos", "fat", "umsdos"})
-_FAT_MAX_FILE = 2**32 - 1
-
-
-def _file_system_type(folder) -> str | None:
-    """The type of the file system holding ``folder`` (Linux: the longest mount point of
-    /proc/self/mounts above it), or None where that is not known.
-
-    Why not ``pathconf(PC_FILESIZEBITS)``: glibc answers 32 for every file system it does not
-    list (tmpfs, NFS, CIFS, FUSE, overlay), which capped experiment files there at 2 GiB --
-    about 200 full frames -- with no such limit on the disk."""
-    try:
-        target = os.path.realpath(folder)
-        best, kind = "", None
-        with open("/proc/self/mounts", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                fields = line.split()
-                if len(fields) < 3:
-                    continue
-                mount = fields[1].replace("\\040", " ")
-                inside = target == mount or target.startswith(mount.rstrip("/") + "/")
-                if inside and len(mount) >= len(best):
-                    best, kind = mount, fields[2]
-        return kind
-    except OSError:  # no /proc (not Linux): no file-system limit assumed
-        return None
 
 
 class ExperimentWriter:
@@ -374,19 +345,7 @@ class ExperimentWriter:
     def _size_and_limit(self) -> tuple[int, float]:
         """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and, on
         a FAT file system, 4 GiB - 1, whichever is lower."""
-        size = self.path.stat().st_size
-        limit = math.inf
-        try:
-            import resource
-
-            soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-            if soft != resource.RLIM_INFINITY:
-                limit = soft
-        except (ImportError, OSError, ValueError):  # no resource module (Windows): no process limit
-            pass
-        if _file_system_type(self.path.parent) in _FAT_TYPES:
-            limit = min(limit, _FAT_MAX_FILE)
-        return size, limit
+        return self.path.stat().st_size, file_size_limit(self.path.parent)
 
     @property
     def _ballast_path(self) -> Path:
