@@ -50,9 +50,13 @@ Example (a small synthetic experiment written here; real files come from ``radio
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import logging
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1016,7 +1020,7 @@ def process_many(
     from tqdm.auto import tqdm
 
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, remove_empty_folders
+    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
 
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
@@ -1024,7 +1028,7 @@ def process_many(
     made = _missing_folders(out_root) if out_root is not None else []
     if made:  # made here, not by the workers: one that fails must not remove it under the others
         Path(out_root).mkdir(parents=True)
-    cluster = _local_cluster(workers or max(1, min(len(paths), cores()))) if scheduler is None else None
+    cluster = _local_cluster(local_workers(workers, len(paths), cores())) if scheduler is None else None
     client = Client(cluster if cluster is not None else scheduler)
     try:
         shares = _scheduler_shares(client)
@@ -1039,11 +1043,32 @@ def process_many(
                 results[futures[fut]] = fut.result()
                 bar.update()
         return results
+    except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
+        try:  # the workers' own logs of the tasks cut short, too
+            client.run(_quiet_worker)
+        except Exception:
+            pass
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-        remove_empty_folders(made)  # every file failed: no empty folder left behind
+        # Stopping the workers takes seconds; a second signal (radiokit's SIGTERM handler repeats
+        # its interrupt after a second) cut this short and left the workers' temporaries.
+        with _ignoring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            client.close()
+            if cluster is not None:
+                cluster.close()
+                # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
+                # results folder's temporary: removed once its process is gone, as the next run would
+                for out in outs:
+                    _remove_stale(out, folder=True, kinds=("tmp",))
+            remove_empty_folders(made)  # every file failed: no empty folder left behind
+
+
+def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
+    """The local cluster's workers: ``asked`` (default one per core), never more than files. Each
+    takes one file at a time, so more would only hold memory and a share of the cores that no file
+    uses (``--workers 8`` on two files started eight, each with an eighth of the machine)."""
+    return max(1, min(asked or n_cores, n_files))
 
 
 def _local_cluster(n_workers: int):
@@ -1054,9 +1079,51 @@ def _local_cluster(n_workers: int):
     from radiokit._threads import cores
 
     share = worker_threads(cores(), n_workers)
-    return LocalCluster(
-        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
-    )
+    # Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the
+    # workers too: each died mid-file with tracebacks and left its temporary folder. Started with
+    # both ignored (kept across exec; Python and asyncio then install no handler), they leave the
+    # signal to this process, which stops them (process_many).
+    with _ignoring(signal.SIGINT, signal.SIGHUP):
+        _quiet_resource_tracker()
+        return LocalCluster(
+            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
+        )
+
+
+@contextlib.contextmanager
+def _ignoring(*signals):
+    """Ignore ``signals`` in this process while the block starts child processes, which keep the
+    disposition; then restore the handlers. Only the main thread may set them: elsewhere, nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
+def _quiet_worker():
+    """Run in each worker on an interrupt: the tasks closed under it are not warnings to show."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+
+
+def _quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (the process that unlinks the semaphores of
+    processes that did not) with its report of them silenced: a worker stopped mid-file on Ctrl-C
+    leaves two, which the tracker removes, and its warning was two more lines after the command's
+    one. Its filters come from ``sys.warnoptions`` when it starts; it is started once."""
+    import sys
+    from multiprocessing import resource_tracker
+
+    option = "ignore:resource_tracker:UserWarning"
+    sys.warnoptions.append(option)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        sys.warnoptions.remove(option)
 
 
 def _limit_worker(shares, dask_worker=None):

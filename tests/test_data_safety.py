@@ -736,3 +736,42 @@ def test_names_that_are_not_utf8_print_under_a_strict_utf8_terminal(tmp_path):
     assert res.returncode == 0 and "-> " + str(tmp_path) + "/o\\xfe.tif (log)" in res.stdout, (res.stdout, res.stderr)
     assert read(tif).n == 3
     one_line_error(run("correct", exp, "-q", "--cal", out, "-o", tif, env=strict), "o\\xfe.tif", "--overwrite")
+
+
+def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_path):
+    """Ctrl-C goes to the terminal's whole process group (SIGHUP too, when it closes): the Dask
+    workers died mid-file, each printing tracebacks and leaving its temporary results folder.
+    Now the command stops them: one line, exit code 130, no temporary, no process of the run left."""
+    a, b = (synthetic(tmp_path / name, shape=(384, 384), n_per_step=2, noise=30.0) for name in ("a.h5", "b.h5"))
+    out = tmp_path / "many"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", "4", *ROI],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal gives a command
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        t_end = time.monotonic() + 120
+        while not list(out.glob(".*.tmp-*")) and proc.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.01)
+        workers = subprocess.run(
+            ["pgrep", "-P", str(proc.pid), "-f", "multiprocessing"], capture_output=True, text=True
+        )
+        assert list(out.glob(".*.tmp-*")), "the run ended before its temporary folders were seen"
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, as the terminal sends it
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip() == "radiokit process: interrupted; no partial output was left", err
+    # the workers: two (one per file, though four were asked), and none outlives the command
+    assert len(workers.stdout.split()) == 2 + 1, workers.stdout  # and multiprocessing's resource tracker
+    t_end, left = time.monotonic() + 20, ["?"]
+    while left and time.monotonic() < t_end:  # multiprocessing's resource tracker ends last, by itself
+        left = subprocess.run(["pgrep", "-a", "-s", str(proc.pid)], capture_output=True, text=True).stdout.splitlines()
+        time.sleep(0.05)
+    assert left == [], left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5"]  # `many/` it made: gone too

@@ -313,11 +313,11 @@ def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     return path.with_name(f".{_head(path, folder)}.{tag}{'' if folder else path.suffix}")
 
 
-def _remove_stale(path: Path, folder=False) -> None:
+def _remove_stale(path: Path, folder=False, kinds=("tmp", "old")) -> None:
     """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
-    for kind in ("tmp", "old") if folder else ("tmp",):
+    for kind in kinds if folder else ("tmp",):
         # the name's own characters taken literally: "scan[1]" is no character class
         head, suffix = glob.escape(_head(path, folder)), "" if folder else glob.escape(path.suffix)
         pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
