@@ -111,7 +111,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     lo, hi, saturated, nonfinite = None, None, 0, 0
     top = (1 << src.bits) - 1 if src.bits else None
     n_read = len(src) if every else min(len(src), sample)
-    picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
+    # --all: a range, not an array of every index (a small file may declare 10**8 frames)
+    picks = range(len(src)) if every else np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int))
     for i in picks:
         frame = src[i]
         if frame.dtype.kind == "f":

@@ -139,6 +139,48 @@ def test_hdf5_memory_bomb_is_refused_by_the_default_budget(hdf5_bomb):
     one_line_error(res, "bomb.h5", "over the memory budget of 512.0 MiB")
 
 
+@pytest.fixture
+def many_frames(tmp_path):
+    """A 14 kB HDF5 file declaring 10**8 frames of 128 x 128 (a chunked dataset, one chunk
+    written): each frame is small, so no one frame is over the budget; the count is the bomb."""
+    path = tmp_path / "many.h5"
+    with h5py.File(path, "w") as h5:
+        ds = h5.create_dataset("scan/data", shape=(10**8, 128, 128), dtype="u2", chunks=(1, 128, 128))
+        ds[0] = 1000
+    assert path.stat().st_size < 50_000
+    return path
+
+
+def test_a_file_declaring_1e8_frames_is_refused_by_its_output_size_not_by_memory(many_frames, tmp_path):
+    """``correct`` planned every frame as a Python tuple before anything else (10**8 tuples, ~10 GB):
+    MemoryError under 1 GiB of address space, and on a big machine minutes of allocation. Now the
+    frames are planned lazily and the 6 TiB float32 output is refused in one line, in bounded memory."""
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (4, 128, 128)).astype(np.uint16), rng.normal(3000, 30, (4, 128, 128)).astype(np.uint16)
+    )
+    cal.save(tmp_path / "cal.h5")
+    for out in ("out.h5", "out.tif"):
+        res = run(
+            "correct",
+            many_frames,
+            "--dataset",
+            "scan/data",
+            "--cal",
+            tmp_path / "cal.h5",
+            "-q",
+            "-o",
+            tmp_path / out,
+            limit=AS_LIMIT,
+        )
+        one_line_error(res, out, "no space left", "needs about 6.0 TiB")
+    res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT)
+    assert res.returncode == 0 and "100000000 x 128 rows" in res.stdout, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "many.h5"]
+
+
 def test_tiff_decompression_bomb_is_refused(tiff_bomb):
     res = run("info", tiff_bomb, limit=AS_LIMIT)
     one_line_error(res, "bomb.tif", "60000x60000", "decompression bomb")

@@ -164,6 +164,10 @@ def _too_large_in(exc, tmp: Path, path: Path) -> FileTooLargeError:
 
 
 def _human(n) -> str:
+    """Bytes in MiB, or GiB and TiB past them (a header's 10**8 frames: "5.9 TiB", not 6 million MiB)."""
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
     return f"{n / 2**20:.1f} MiB"
 
 
