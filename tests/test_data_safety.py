@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -775,3 +776,24 @@ def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_pa
         time.sleep(0.05)
     assert left == [], left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5"]  # `many/` it made: gone too
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+@pytest.mark.parametrize("cmd", ["calibrate", "correct-tiff", "register-png"])
+def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd, kind, experiment, images, tmp_path):
+    """``-o`` a named pipe (or ``-o /dev/null``, here through a symlink): with --overwrite the
+    output was written beside it and renamed over it, the FIFO replaced by a regular file. One
+    line instead, before any work, and the FIFO or the link left as it was."""
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(os.devnull)
+    res = run(*args, "--overwrite")
+    one_line_error(res, out.name, "not a regular file", "FIFO" if kind == "fifo" else "character device")
+    if kind == "fifo":
+        assert stat.S_ISFIFO(out.lstat().st_mode)
+    else:
+        assert out.is_symlink() and os.readlink(out) == os.devnull
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["exp.h5", "fixed.tif", "moving.tif", out.name])

@@ -20,6 +20,7 @@ import re
 import secrets
 import shutil
 import socket
+import stat
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
@@ -270,9 +271,28 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
             return path  # an empty folder holds nothing to lose
     elif path.is_dir():
         raise OutputError(path, "is a folder; expected a file name")
+    elif path.exists() and not stat.S_ISREG(path.stat().st_mode):
+        # even with --overwrite: the output is written beside it and renamed into place, which
+        # replaced a FIFO (or a device, through a symlink) with a regular file; -o /dev/null too
+        raise OutputError(
+            path, f"is {_kind(path.stat().st_mode)}, not a regular file: radiokit never replaces it; choose a file name"
+        )
     if not overwrite:
         raise OutputExistsError(path)
     return path
+
+
+def _kind(mode: int) -> str:
+    """What a file that is not a regular file or a folder is, for an error message."""
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return "a special file"
 
 
 def _files(folder: Path) -> set[str]:
