@@ -1381,3 +1381,28 @@ def test_a_good_calibration_still_loads(tmp_path):
 
     cal = Calibration.load(_calibration(tmp_path / "cal.h5"))
     assert cal.shape == (8, 8) and float(cal.flat[0, 0]) == 3000.0
+
+
+@pytest.mark.parametrize("value", [0.0, -5e-5, math.nan, math.inf, 1e-300, 0.05])
+def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
+    """x_pixel_size divides every ROI in mm and the crop: 0 was a ZeroDivisionError traceback
+    (``process --mm``), NaN "cannot convert float NaN to integer", inf or a negative pitch an
+    empty ROI; 0.05 is a millimetre value in NeXus's metres (a 5 cm pixel). Refused naming the
+    file and the field, by every reader of the file."""
+    from radiokit.io._experiment import DETECTOR
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        del h5[DETECTOR]["x_pixel_size"]
+        h5[DETECTOR]["x_pixel_size"] = value
+    res = run("process", exp, "-q", "--mm", "--inclusion", "0.5", "1", "0.5", "1", "-o", tmp_path / "res")
+    one_line_error(res, "exp.h5", "x_pixel_size", "metres")
+    one_line_error(run("info", exp), "exp.h5", "x_pixel_size")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+@pytest.mark.parametrize("value", [0, -0.05, math.nan, math.inf, True, 50, "0.05"])
+def test_the_experiment_writer_refuses_a_pixel_size_no_reader_would_open(value, tmp_path):
+    with pytest.raises(ValueError, match="pixel_size_mm=.*expected a panel's pixel pitch"):
+        ExperimentWriter(tmp_path / "exp.h5", shape=(4, 5), pixel_size_mm=value)
+    assert not (tmp_path / "exp.h5").exists()

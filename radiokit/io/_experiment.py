@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import shutil
 import time
@@ -134,6 +135,11 @@ class ExperimentWriter:
             raise FileExistsError(f"{self.path}: exists; raw data is never overwritten (use mode='a' to append)")
         if mode == "a" and not self.path.exists():
             raise FileNotFoundError(f"{self.path}: no experiment file to append to")
+        lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
+        number = isinstance(pixel_size_mm, (int, float, np.number)) and not isinstance(pixel_size_mm, (bool, np.bool_))
+        if mode == "w" and not (number and lo <= pixel_size_mm <= hi):
+            # checked as the readers check it (NaN fails too): a file no reader would open is not begun
+            raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._h5 = h5py.File(self.path, "w" if mode == "w" else "r+")
         try:
             if mode == "w":
@@ -561,6 +567,26 @@ def check_filters(path, ds) -> None:
         )
 
 
+#: The pixel pitches a radiography panel may have, in metres: 0.1 um to 10 mm. Outside, the value
+#: is corrupt or in the wrong unit (NeXus stores metres: 0.05 there is 5 cm, a millimetre value).
+PIXEL_SIZE_RANGE_M = (1e-7, 1e-2)
+
+
+def _check_pixel_size(path, name: str, value) -> None:
+    """Refuse a pixel pitch that is not a positive finite length of a panel's order: ROIs in mm and
+    the crop divide by it (0 was a ZeroDivisionError traceback, NaN or inf an empty-ROI riddle)."""
+    value = float(value)
+    lo, hi = PIXEL_SIZE_RANGE_M
+    if not math.isfinite(value) or value <= 0:
+        raise FormatError(path, f"{name} is {value!r}: a pixel size must be a positive finite number (metres)")
+    if not lo <= value <= hi:
+        raise FormatError(
+            path,
+            f"{name} is {value!r} m ({value * 1e3:g} mm): not a panel's pixel ({lo * 1e6:g} um to {hi * 1e3:g} mm); "
+            "NeXus stores metres (0.05 mm is 5e-05)",
+        )
+
+
 def _plain_numbers(dtype, kinds="iuf") -> bool:
     return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
 
@@ -605,6 +631,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     bits = meta.pop("bit_depth_readout", None)
     if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
         meta["bit_depth"] = int(bits)
+    for name in ("x_pixel_size", "y_pixel_size"):
+        if name in meta:
+            _check_pixel_size(path, f"/{DETECTOR}/{name}", meta[name])
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
     check_links(path, h5, SOURCE, allow_external)
