@@ -54,6 +54,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import signal
 import threading
@@ -493,9 +494,18 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
         try:
             sc = tomllib.loads(scene_text)
             view = "side" if sc.get("beam", {}).get("direction", "y") in ("z", "side") else "through_plates"
-            mu_b = float(sc["body"]["material"]["attenuation_per_cm"]) / 10
-        except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError):
-            pass
+            mu = sc["body"]["material"]["attenuation_per_cm"]
+        except (tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
+            mu = None
+        if mu is not None:
+            # TOML's `true` is Python's 1: float() took it for 1/cm, and "0.3" or nan too, a wrong bound in silence
+            if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not (math.isfinite(mu) and mu > 0):
+                raise FormatError(
+                    path,
+                    f"simulation truth: scene body.material.attenuation_per_cm = {json.dumps(mu)}: "
+                    "expected a positive number (1/cm)",
+                )
+            mu_b = mu / 10
     if view == "side":
         return Bound(None, "beam from the side: columns lengthen as the body expands, no bound holds"), {}
     if not (np.isfinite(dg) and np.isfinite(gaps[-1]) and gaps[-1] > 0):

@@ -1352,6 +1352,16 @@ def _calibration(path, **attrs):
         (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
         (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
         (dict(provenance=b"\xff\xfe"), ("provenance",)),
+        # JSON's and HDF5's true is Python's 1: the flats' current read as 1 uA scaled every
+        # transmission by 1/200 in silence, c = true the counts domain by 1/3000; a string was a
+        # TypeError traceback
+        (dict(provenance='{"flat_current_ua": true}'), ("flat_current_ua is true", "expected a number (uA)")),
+        (dict(provenance='{"flat_current_ua": "200"}'), ('flat_current_ua is "200"',)),
+        (dict(provenance='{"flat_voltage_kv": [60]}'), ("flat_voltage_kv is [60]", "(kV)")),
+        (dict(c=True), ("@c is True", "positive finite number")),
+        (dict(c="3000"), ("@c is '3000'",)),
+        (dict(c=np.inf), ("@c is inf",)),
+        (dict(c=-5.0), ("@c is -5.0",)),
     ],
 )
 def test_a_calibration_with_bad_attributes_is_one_line(tmp_path, attrs, words):
@@ -1406,3 +1416,45 @@ def test_the_experiment_writer_refuses_a_pixel_size_no_reader_would_open(value, 
     with pytest.raises(ValueError, match="pixel_size_mm=.*expected a panel's pixel pitch"):
         ExperimentWriter(tmp_path / "exp.h5", shape=(4, 5), pixel_size_mm=value)
     assert not (tmp_path / "exp.h5").exists()
+
+
+@pytest.mark.parametrize("value", ["true", '"0.3"', "nan", "-0.5"])
+def test_a_simulated_scenes_attenuation_that_is_not_a_number_is_one_line(value, tmp_path):
+    """The simulation truth's scene is TOML: ``attenuation_per_cm = true`` was float(True), 1/cm,
+    and the bound came out of it in silence (a string or NaN too). Refused, naming the field."""
+    import dataclasses
+
+    from radiokit.io import write_simulation
+
+    path = _experiment(tmp_path / "sim.h5")
+    scene = f'name = "block"\n[body.material]\nattenuation_per_cm = {value}\n'
+    write_simulation(path, dataclasses.replace(_truth_record(3, (32, 40)), scene_toml=scene), replace=True)
+    roi = ["--inclusion", "10", "20", "10", "20", "--background", "10", "20", "25", "35", "--crop-mm", "0"]
+    res = run(
+        "process", path, "-q", "--no-report", "--cross-check", "none", "--method", "ncc", *roi, "-o", tmp_path / "res"
+    )
+    one_line_error(res, "sim.h5", "attenuation_per_cm", "expected a positive number")
+    assert not (tmp_path / "res").exists()
+
+
+def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
+    """End to end: the flats at 200 uA, the projections at 200 uA, transmission 0.5; a calibration
+    whose provenance says ``"flat_current_ua": true`` corrected them to 0.0025 with exit code 0."""
+    shape = (16, 20)
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=shape) as w:
+        for _ in range(2):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=200)
+        w.append(np.full(shape, 1600, np.uint16), image_key=ImageKey.PROJECTION, step=1, current_ua=200)
+    cal = tmp_path / "cal.h5"
+    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    good = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "good.h5")
+    assert good.returncode == 0 and read(tmp_path / "good.h5").data.mean() == pytest.approx(0.5, rel=1e-6)
+    with h5py.File(cal, "a") as h5:
+        prov = json.loads(h5["calibration"].attrs["provenance"])
+        assert prov["flat_current_ua"] == 200
+        h5["calibration"].attrs["provenance"] = json.dumps(prov | {"flat_current_ua": True})
+    res = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "out.h5")
+    one_line_error(res, "cal.h5", "flat_current_ua is true")
+    assert not (tmp_path / "out.h5").exists()
