@@ -485,7 +485,9 @@ def cmd_process(args) -> int:
             print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
         else:
             files = {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {}
-            _print_headline(Results.from_json(r, r["source"]), files)
+            record = Results.from_json(r, r["source"])
+            _print_headline(record, files)
+            failed += not all(p.ok for p in record.pairs)  # as one file's run: a flagged pair is exit 1
     return 1 if failed else 0
 
 
@@ -508,6 +510,11 @@ def _print_headline(record, files):
             for x in m.per_k
         ]
         print(f"  {dom.paper_name:<6}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
+    # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
+    # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
+    for pair in record.pairs:
+        if not pair.ok and pair.name != main.name:
+            print(f"  WARNING: pair {pair.name} NOT ok: {pair.reason}")
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {files[name]}")
