@@ -278,6 +278,8 @@ def cmd_correct(args) -> int:
     from radiokit.io import check_output
 
     check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
+    if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
+        raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
@@ -328,7 +330,14 @@ def _check_preset(args) -> None:
 
 
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors
-_PROCESS_OPTIONS = {"ks=": "--k ", "crop_mm=": "--crop-mm ", "method=": "--method ", "cross_check=": "--cross-check "}
+_PROCESS_OPTIONS = {
+    "ks=": "--k ",
+    "crop_mm=": "--crop-mm ",
+    "method=": "--method ",
+    "cross_check=": "--cross-check ",
+    "inclusion ROI ": "--inclusion ",
+    "background ROI ": "--background ",
+}
 
 
 def cmd_register(args) -> int:

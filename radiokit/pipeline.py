@@ -141,6 +141,31 @@ class Config:
         if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
             raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
         _check_methods(self.method, self.cross_check, self.register_options)
+        self._check_rectangles()
+
+    def _check_rectangles(self) -> None:
+        """The ROIs given as numbers, refused now as :func:`choose_rois` would refuse them, not after
+        the file's correction (``--inclusion nan 1 2 3`` cost the whole correction first), and the
+        same rectangle twice (a "zero reference contrast" at the very end). In mm, whether a ROI
+        rounds to no pixel waits for the file's pixel size."""
+        given = {}
+        for name in ("inclusion", "background"):
+            value = getattr(self, name)
+            if value is None or isinstance(value, ROI):
+                continue
+            if self.roi_units == "px":
+                roi = _roi(value, "px", 1.0, name)
+                given[name] = (roi.row0, roi.row1, roi.col0, roi.col1)
+                continue
+            r0, r1, c0, c1 = _roi_numbers(value, "mm", name)
+            if not (r0 < r1 and c0 < c1):
+                raise ValueError(f"{name} ROI {value!r} (mm): ROI is empty (need row1 > row0 and col1 > col0)")
+            given[name] = (r0, r1, c0, c1)
+        if len(given) == 2 and given["inclusion"] == given["background"]:
+            raise ValueError(
+                f"background ROI {self.background!r}: the inclusion's rectangle; the contrast between them is "
+                "zero: give two regions"
+            )
 
 
 #: The largest enhancement factor: ``IF(k) - 1`` is linear in k, so a larger k shows nothing new,
@@ -235,14 +260,8 @@ class Result:
         return self.images.as_dict(self.record)
 
 
-def _roi(value, units, pixel_size_mm, name):
-    """``Config``'s ``name`` ROI as an :class:`ROI` in pixels, or None; a ValueError naming it
-    when it is not four finite numbers or rounds to an empty rectangle (it was a Python
-    unpacking, conversion or key error)."""
-    if value is None:
-        return None
-    if isinstance(value, ROI):
-        return value
+def _roi_numbers(value, units, name) -> tuple[float, float, float, float]:
+    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it."""
     what = f"{name} ROI {value!r}"
     try:
         if isinstance(value, dict):
@@ -252,6 +271,19 @@ def _roi(value, units, pixel_size_mm, name):
         raise ValueError(f"{what}: expected (row0, row1, col0, col1), four numbers in {units}") from None
     if not np.all(np.isfinite([r0, r1, c0, c1])):
         raise ValueError(f"{what}: its bounds must be finite")
+    return r0, r1, c0, c1
+
+
+def _roi(value, units, pixel_size_mm, name):
+    """``Config``'s ``name`` ROI as an :class:`ROI` in pixels, or None; a ValueError naming it
+    when it is not four finite numbers or rounds to an empty rectangle (it was a Python
+    unpacking, conversion or key error)."""
+    if value is None:
+        return None
+    if isinstance(value, ROI):
+        return value
+    what = f"{name} ROI {value!r}"
+    r0, r1, c0, c1 = _roi_numbers(value, units, name)
     if units == "mm":
         r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
     try:

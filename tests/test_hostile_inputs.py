@@ -1458,3 +1458,26 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
     res = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "out.h5")
     one_line_error(res, "cal.h5", "flat_current_ua is true")
     assert not (tmp_path / "out.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--inclusion", "nan", "1", "2", "3"], ("--inclusion [nan, 1.0, 2.0, 3.0]", "finite")),
+        (["--inclusion", "5", "1", "2", "3"], ("--inclusion", "empty")),
+        (["--mm", "--inclusion", "5", "1", "2", "3"], ("--inclusion", "(mm)", "empty")),
+        (["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"], ("--background", "zero")),
+    ],
+)
+def test_process_refuses_a_rectangle_it_cannot_use_before_correcting(args, words, tmp_path):
+    """Refused only after the whole correction (a progress bar, then the line), or, for the same
+    rectangle twice, at the very end as a zero reference contrast."""
+    res = run("process", _experiment(tmp_path / "exp.h5"), *args, "-o", tmp_path / "res")
+    one_line_error(res, *words)
+    assert res.stdout == "" and not (tmp_path / "res").exists()
+
+
+def test_correct_refuses_an_output_format_it_cannot_write_before_calibrating(tmp_path):
+    res = run("correct", _experiment(tmp_path / "exp.h5"), "-q", "-o", tmp_path / "out.png")
+    one_line_error(res, "out.png", ".h5", ".tif")
+    assert res.stdout == ""  # was "calibrated from the darks and flats of exp.h5", then the refusal
