@@ -7,6 +7,7 @@ budget check must refuse first, naming the file.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -1481,3 +1482,23 @@ def test_correct_refuses_an_output_format_it_cannot_write_before_calibrating(tmp
     res = run("correct", _experiment(tmp_path / "exp.h5"), "-q", "-o", tmp_path / "out.png")
     one_line_error(res, "out.png", ".h5", ".tif")
     assert res.stdout == ""  # was "calibrated from the darks and flats of exp.h5", then the refusal
+
+
+@pytest.mark.parametrize("value", [True, 2.5, -5, "lots"])
+def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value, tmp_path):
+    """``@frames_complete = true`` read as 1: ``info`` showed 1 frame of 9, and opening the file to
+    append (``ExperimentWriter(mode="a")``, ``acquire --resume``) cut the frames to that one; 2.5
+    read as 2, -5 as none, text as "cannot be read as hdf5". Each is one line naming the field,
+    and the frames stay."""
+    from radiokit.io._experiment import ENTRY, FRAMES
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        h5[ENTRY].attrs["frames_complete"] = value
+    before = hashlib.sha256(exp.read_bytes()).hexdigest()
+    one_line_error(run("info", exp), "exp.h5", "frames_complete", "expected a count of frames")
+    with pytest.raises(FormatError, match="frames_complete"):
+        ExperimentWriter(exp, mode="a")
+    with h5py.File(exp, "r") as h5:
+        assert h5[FRAMES].shape[0] == 9
+    assert hashlib.sha256(exp.read_bytes()).hexdigest() == before

@@ -221,7 +221,8 @@ class ExperimentWriter:
         if shape is not None and tuple(shape) != data.shape[1:]:
             raise ValueError(f"{self.path}: frames are {data.shape[1:]}, not {tuple(shape)}")
         # A crash between resizing and the counter update leaves a partial frame: drop it.
-        n = int(h5[ENTRY].attrs.get("frames_complete", data.shape[0]))
+        # checked first: `true` (1) or a negative count here truncated the frames already taken
+        n = _frames_complete(self.path, h5, data.shape[0])
         n = min([n, data.shape[0]] + [h5[g][name].shape[0] for g, name, *_ in _SERIES if name in h5[g]])
         for ds in [data] + [h5[g][name] for g, name, *_ in _SERIES]:
             if ds.shape[0] != n:
@@ -476,10 +477,7 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
         if ENTRY not in h5 or IMAGE_KEY not in h5:
             raise FormatError(path, f"lacks /{IMAGE_KEY}: not a radiokit experiment file")
         attrs = h5[ENTRY].attrs
-        n = attrs.get("frames_complete", 0)
-        if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
-            raise FormatError(path, f"/{ENTRY}@frames_complete is {n!r}; expected a count of frames")
-        n = int(n)
+        n = _frames_complete(path, h5, 0)
         check_budget(path, 16 * n, f"the keys and steps of {n} frames")
         keys = checked_dataset(path, h5, IMAGE_KEY, "iu", (1,), allow_external)[:n]
         steps = (
@@ -587,6 +585,16 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+def _frames_complete(path, h5, default: int) -> int:
+    """``@frames_complete`` (``default`` when absent) as a count, or a FormatError naming it: a
+    bool (HDF5's ``true`` reads as 1 frame), a fraction, text or a negative number is no count."""
+    n = h5[ENTRY].attrs.get("frames_complete", default)
+    if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
+        shown = n.item() if isinstance(n, np.generic) else n
+        raise FormatError(path, f"/{ENTRY}@frames_complete is {shown!r}; expected a count of frames")
+    return int(n)
+
+
 def _plain_numbers(dtype, kinds="iuf") -> bool:
     return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
 
@@ -609,7 +617,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
-    n = max(0, min(int(h5[ENTRY].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
+    n = min(_frames_complete(path, h5, data.shape[0]), data.shape[0])
     check_budget(path, len(_SERIES) * 8 * n, f"the per-frame records of {n} frames", budget)
     meta = {"format": "experiment"}
     for group, name, *_ in _SERIES:
