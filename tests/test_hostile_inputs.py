@@ -1394,12 +1394,13 @@ def test_a_good_calibration_still_loads(tmp_path):
     assert cal.shape == (8, 8) and float(cal.flat[0, 0]) == 3000.0
 
 
-@pytest.mark.parametrize("value", [0.0, -5e-5, math.nan, math.inf, 1e-300, 0.05])
+@pytest.mark.parametrize("value", [0.0, -5e-5, math.nan, math.inf, 1e-300, 0.05, True, "5e-05", [5e-5, 5e-5]])
 def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
     """x_pixel_size divides every ROI in mm and the crop: 0 was a ZeroDivisionError traceback
     (``process --mm``), NaN "cannot convert float NaN to integer", inf or a negative pitch an
-    empty ROI; 0.05 is a millimetre value in NeXus's metres (a 5 cm pixel). Refused naming the
-    file and the field, by every reader of the file."""
+    empty ROI; 0.05 is a millimetre value in NeXus's metres (a 5 cm pixel); `true`, text or two
+    values were left out, and ROIs in mm measured with 0.05 mm instead. Refused naming the file
+    and the field, by every reader of the file."""
     from radiokit.io._experiment import DETECTOR
 
     exp = _experiment(tmp_path / "exp.h5")
@@ -1408,7 +1409,7 @@ def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
         h5[DETECTOR]["x_pixel_size"] = value
     res = run("process", exp, "-q", "--mm", "--inclusion", "0.5", "1", "0.5", "1", "-o", tmp_path / "res")
     one_line_error(res, "exp.h5", "x_pixel_size", "metres")
-    one_line_error(run("info", exp), "exp.h5", "x_pixel_size")
+    one_line_error(run("info", exp), "exp.h5", "x_pixel_size", "metres")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
 
 

@@ -631,7 +631,21 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
-        # optional: left out unless plain numbers of the expected rank
+        # optional: left out unless plain numbers of the expected rank -- but a pixel size that is
+        # there and unreadable (`true`, text) is refused: left out, ROIs in mm took 0.05 mm instead
+        if (
+            name.endswith("pixel_size")
+            and ds is not None
+            and not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype))
+        ):
+            what = (
+                "a group"
+                if not isinstance(ds, h5py.Dataset)
+                else "text"
+                if h5py.check_string_dtype(ds.dtype) is not None
+                else f"{ds.dtype} of shape {ds.shape}"
+            )
+            raise FormatError(path, f"/{DETECTOR}/{name} is {what}: expected one number (metres)")
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
             check_local(path, h5, ds, allow_external)
             check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
