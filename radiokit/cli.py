@@ -249,7 +249,12 @@ def cmd_calibrate(args) -> int:
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
                 f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
             )
-        cal = Calibration.from_frames(darks, flats, **th)
+        try:
+            cal = Calibration.from_frames(darks, flats, **th)
+        except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
+            raise ValueError(
+                f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+            ) from exc
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
     # built in memory first: its size is then known, and a disk or file-size limit too small for
@@ -788,6 +793,23 @@ def _user_error(exc) -> bool:
     return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
 
 
+def _stdout_gone() -> bool:
+    """stdout is a pipe whose reader has closed it (poll reports POLLERR); then stdout points at
+    /dev/null, so that the interpreter's last flush does not fail again (Python's recipe)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if not any(events & select.POLLERR for _, events in poller.poll(0)):
+            return False
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return True
+    except (AttributeError, ValueError, OSError):  # no stdout, not a file, or no poll (Windows)
+        return False
+
+
 def _debug(args) -> bool:
     return bool(getattr(args, "debug", False) or os.environ.get("RADIOKIT_DEBUG", "") not in ("", "0"))
 
@@ -864,6 +886,11 @@ def _main(argv) -> int:
         print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
         return 130
     except Exception as exc:
+        if isinstance(exc, BrokenPipeError) and _stdout_gone():
+            # the reader of the output went away (`radiokit info *.img | head -1`): not an error of
+            # the command's ("[Errno 32] Broken pipe" after calibrate had written its file); quiet,
+            # with the status a shell gives a command that SIGPIPE ended
+            return 128 + signal.SIGPIPE
         if not _user_error(exc) or _debug(args):
             raise
         if _interrupted(exc):  # a C extension turned the interrupt into its own error

@@ -518,3 +518,26 @@ def test_process_says_which_pair_made_its_exit_code_1(capsys):
     assert "change ratio 2->3 0.800; registration ok" in out
     assert "WARNING: pair 1->3 NOT ok: structure left misaligned" in out
     assert out.count("WARNING") == 1
+
+
+def test_a_reader_that_closes_the_output_early_is_no_error(tmp_path):
+    """``radiokit calibrate ... | head -0``: the reader went away before the summary was printed
+    (the calibration already written): "[Errno 32] Broken pipe", exit code 2, as if it had failed.
+    Quiet now, with the status a shell gives a command SIGPIPE ended (141)."""
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=(8, 10)) as w:
+        w.append(np.full((8, 10), 100, np.uint16), image_key=ImageKey.DARK)
+        w.append(np.full((8, 10), 3000, np.uint16), image_key=ImageKey.FLAT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "calibrate", "--experiment", str(exp), "-o", str(tmp_path / "cal.h5")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    proc.stdout.close()  # before the command, still importing, prints anything
+    err = proc.stderr.read().decode()
+    proc.wait()
+    assert proc.returncode == 141 and err == "", (proc.returncode, err)
+    from radiokit.calibrate import Calibration
+
+    assert Calibration.load(tmp_path / "cal.h5").shape == (8, 10)
