@@ -1067,11 +1067,18 @@ def process_many(
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
-    made = _missing_folders(out_root) if out_root is not None else []
-    if made:  # made here, not by the workers: one that fails must not remove it under the others
-        Path(out_root).mkdir(parents=True)
     cluster = _local_cluster(local_workers(workers, len(paths), cores())) if scheduler is None else None
-    client = Client(cluster if cluster is not None else scheduler)
+    try:
+        client = Client(cluster if cluster is not None else scheduler)
+    except BaseException:  # a scheduler that does not answer: nothing made, nothing left running
+        if cluster is not None:
+            cluster.close()
+        raise
+    # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty), and
+    # here, not by the workers: one that fails must not remove it under the others
+    made = _missing_folders(out_root) if out_root is not None else []
+    if made:
+        Path(out_root).mkdir(parents=True)
     try:
         shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)

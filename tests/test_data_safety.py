@@ -797,3 +797,11 @@ def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd
     else:
         assert out.is_symlink() and os.readlink(out) == os.devnull
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["exp.h5", "fixed.tif", "moving.tif", out.name])
+
+
+def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_path):
+    """`process a.h5 b.h5 --scheduler ADDRESS -o new/res`: the folder was made before connecting,
+    and a scheduler that did not answer left `new/res/` behind, empty."""
+    res = run("process", experiment, experiment, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
+    one_line_error(res, "no-port-here")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
