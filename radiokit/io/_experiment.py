@@ -585,6 +585,20 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+def _check_pixel_dataset(path, name: str, ds) -> None:
+    """A pixel size that is there must be one plain number: left out as other optional fields are
+    when unreadable (`true`, text, an array), ROIs in mm were measured with 0.05 mm instead."""
+    if isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype):
+        return
+    if not isinstance(ds, h5py.Dataset):
+        what = "a group"
+    elif h5py.check_string_dtype(ds.dtype) is not None:
+        what = "text"
+    else:
+        what = f"{ds.dtype} of shape {ds.shape}"
+    raise FormatError(path, f"/{DETECTOR}/{name} is {what}: expected one number (metres)")
+
+
 def _frames_complete(path, h5, default: int) -> int:
     """``@frames_complete`` (``default`` when absent) as a count, or a FormatError naming it: a
     bool (HDF5's ``true`` reads as 1 frame), a fraction, text or a negative number is no count."""
@@ -631,21 +645,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
-        # optional: left out unless plain numbers of the expected rank -- but a pixel size that is
-        # there and unreadable (`true`, text) is refused: left out, ROIs in mm took 0.05 mm instead
-        if (
-            name.endswith("pixel_size")
-            and ds is not None
-            and not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype))
-        ):
-            what = (
-                "a group"
-                if not isinstance(ds, h5py.Dataset)
-                else "text"
-                if h5py.check_string_dtype(ds.dtype) is not None
-                else f"{ds.dtype} of shape {ds.shape}"
-            )
-            raise FormatError(path, f"/{DETECTOR}/{name} is {what}: expected one number (metres)")
+        if name.endswith("pixel_size") and ds is not None:
+            _check_pixel_dataset(path, name, ds)
+        # optional: left out unless plain numbers of the expected rank
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
             check_local(path, h5, ds, allow_external)
             check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
