@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import json
+import os
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -421,8 +422,10 @@ class Calibration:
 
     # -- persistence --------------------------------------------------------------------------
     def save(self, path, group="calibration") -> Path:
-        """Write to an HDF5 file (a new file, or a new group of an existing one)."""
-        path = Path(path)
+        """Write to an HDF5 file (a new file, or a new group of an existing one), or into a
+        binary file object (``io.BytesIO``: ``radiokit calibrate`` then writes the bytes, of a
+        known size, atomically)."""
+        path = Path(path) if isinstance(path, (str, os.PathLike)) else path
         with h5py.File(path, "a") as h5:
             if group in h5:
                 del h5[group]
@@ -468,6 +471,8 @@ class Calibration:
                 thresholds = Thresholds.from_kwargs(**_json_attr(path, g, "thresholds"))
             except (TypeError, ValueError) as exc:
                 raise FormatError(path, f"/{group}@thresholds: {exc}") from None
+            provenance = _json_attr(path, g, "provenance")
+            _check_numbers(path, g, provenance)
             return cls(
                 g["dark"][()],
                 g["flat"][()],
@@ -476,7 +481,7 @@ class Calibration:
                 g["defect_columns"][()] if "defect_columns" in g else (),
                 c=float(g.attrs.get("c", np.nan)),
                 thresholds=thresholds,
-                provenance=_json_attr(path, g, "provenance"),
+                provenance=provenance,
             )
 
     def __repr__(self) -> str:
@@ -485,6 +490,32 @@ class Calibration:
             f"Calibration(shape={self.shape}, c={self.c:.1f}, defect pixels={int(np.count_nonzero(self.mask))}, "
             f"rows={self.defect_rows.tolist()}, columns={self.defect_columns.tolist()}, {d})"
         )
+
+
+#: The provenance entries :func:`exposure_factors` computes with: a number, NaN or null each.
+_PROVENANCE_NUMBERS = {"flat_current_ua": "uA", "flat_voltage_kv": "kV"}
+
+
+def _real(value) -> bool:
+    """A real number, not a bool (JSON's and HDF5's ``true`` is Python's 1)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_numbers(path, group, provenance: dict) -> None:
+    """Refuse, naming the file and the field, a number of the calibration that is not one: the
+    gain ``c`` (``true`` read as 1 and scaled ``--domain counts`` by 1/3000) and the flats' tube
+    current and voltage (``"flat_current_ua": true`` scaled every transmission by 1/200 in
+    silence; ``"200"``, a string, was a TypeError traceback)."""
+    c = group.attrs.get("c", np.nan)
+    if not _real(c) or float(c) <= 0 or np.isinf(c):  # NaN: not recorded, computed again
+        shown = c.item() if isinstance(c, np.generic) else c
+        raise FormatError(path, f"{group.name}@c is {shown!r}: expected a positive finite number of counts")
+    for key, unit in _PROVENANCE_NUMBERS.items():
+        value = provenance.get(key)
+        if value is not None and not _real(value):
+            raise FormatError(
+                path, f"{group.name}@provenance: {key} is {json.dumps(value)}: expected a number ({unit}) or null"
+            )
 
 
 def _json_attr(path, group, name) -> dict:

@@ -7,6 +7,9 @@ Subcommands of other packages (``sim``, ``acquisition``) register themselves thr
 from __future__ import annotations
 
 import argparse
+import codecs
+import contextlib
+import io
 import json
 import logging
 import os
@@ -108,7 +111,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     lo, hi, saturated, nonfinite = None, None, 0, 0
     top = (1 << src.bits) - 1 if src.bits else None
     n_read = len(src) if every else min(len(src), sample)
-    picks = np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int)) if n_read else []
+    # --all: a range, not an array of every index (a small file may declare 10**8 frames)
+    picks = range(len(src)) if every else np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int))
     for i in picks:
         frame = src[i]
         if frame.dtype.kind == "f":
@@ -245,12 +249,20 @@ def cmd_calibrate(args) -> int:
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
                 f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
             )
-        cal = Calibration.from_frames(darks, flats, **th)
+        try:
+            cal = Calibration.from_frames(darks, flats, **th)
+        except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
+            raise ValueError(
+                f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+            ) from exc
         cal.provenance["dark_files"] = [str(p) for p in args.dark]
         cal.provenance["flat_files"] = [str(p) for p in args.flat]
-    # dark, flat (float32) and mask, uncompressed at worst: refused up front if that cannot fit
-    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=12 * cal.dark.size + 2**20) as tmp:
-        cal.save(tmp)
+    # built in memory first: its size is then known, and a disk or file-size limit too small for
+    # it is refused before the first byte (libhdf5 failing mid-write has crashed the interpreter)
+    image = io.BytesIO()
+    cal.save(image)
+    with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=len(image.getbuffer())) as tmp:
+        tmp.write_bytes(image.getbuffer())
     p = cal.provenance
     print(
         f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
@@ -271,6 +283,8 @@ def cmd_correct(args) -> int:
     from radiokit.io import check_output
 
     check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
+    if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
+        raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
@@ -321,7 +335,14 @@ def _check_preset(args) -> None:
 
 
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors
-_PROCESS_OPTIONS = {"ks=": "--k ", "crop_mm=": "--crop-mm ", "method=": "--method ", "cross_check=": "--cross-check "}
+_PROCESS_OPTIONS = {
+    "ks=": "--k ",
+    "crop_mm=": "--crop-mm ",
+    "method=": "--method ",
+    "cross_check=": "--cross-check ",
+    "inclusion ROI ": "--inclusion ",
+    "background ROI ": "--background ",
+}
 
 
 def cmd_register(args) -> int:
@@ -478,7 +499,9 @@ def cmd_process(args) -> int:
             print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
         else:
             files = {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {}
-            _print_headline(Results.from_json(r, r["source"]), files)
+            record = Results.from_json(r, r["source"])
+            _print_headline(record, files)
+            failed += not all(p.ok for p in record.pairs)  # as one file's run: a flagged pair is exit 1
     return 1 if failed else 0
 
 
@@ -501,6 +524,11 @@ def _print_headline(record, files):
             for x in m.per_k
         ]
         print(f"  {dom.paper_name:<6}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
+    # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
+    # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
+    for pair in record.pairs:
+        if not pair.ok and pair.name != main.name:
+            print(f"  WARNING: pair {pair.name} NOT ok: {pair.reason}")
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {files[name]}")
@@ -765,14 +793,79 @@ def _user_error(exc) -> bool:
     return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
 
 
+def _stdout_gone() -> bool:
+    """stdout is a pipe whose reader has closed it (poll reports POLLERR); then stdout points at
+    /dev/null, so that the interpreter's last flush does not fail again (Python's recipe)."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if not any(events & select.POLLERR for _, events in poller.poll(0)):
+            return False
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return True
+    except (AttributeError, ValueError, OSError):  # no stdout, not a file, or no poll (Windows)
+        return False
+
+
 def _debug(args) -> bool:
     return bool(getattr(args, "debug", False) or os.environ.get("RADIOKIT_DEBUG", "") not in ("", "0"))
+
+
+def _names_as_bytes(exc: UnicodeEncodeError):
+    """Codec error handler for the command's output: a file name's bytes that are not UTF-8 (a
+    Latin-1 name; Python holds them as lone surrogates) print as ``\\xNN``, as radiokit records
+    them in its files, and any other character the terminal cannot show as ``\\uNNNN``.
+
+    Why: under a UTF-8 locale stdout is strict, and printing such a name after the work (``-> o\\xfe.h5``)
+    failed the command with exit code 2 although its output had been written."""
+    bad = exc.object[exc.start : exc.end]
+    return (
+        "".join(
+            f"\\x{ord(ch) - 0xDC00:02x}"
+            if 0xDC80 <= ord(ch) <= 0xDCFF
+            else ch.encode("ascii", "backslashreplace").decode()
+            for ch in bad
+        ),
+        exc.end,
+    )
+
+
+codecs.register_error("radiokit-names", _names_as_bytes)
+
+
+@contextlib.contextmanager
+def _printable_names():
+    """stdout and stderr print any file name (see :func:`_names_as_bytes`); restored afterwards
+    (``main`` also runs inside other programs and tests)."""
+    before = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            before.append((stream, stream.errors))
+            stream.reconfigure(errors="radiokit-names")
+        except (AttributeError, ValueError, OSError):  # not a text stream that can be reconfigured
+            before.pop()
+    try:
+        yield
+    finally:
+        for stream, errors in before:
+            try:
+                stream.reconfigure(errors=errors)
+            except (AttributeError, ValueError, OSError):
+                pass
 
 
 def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
+    with _printable_names():
+        return _main(argv)
+
+
+def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -793,6 +886,11 @@ def main(argv=None) -> int:
         print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
         return 130
     except Exception as exc:
+        if isinstance(exc, BrokenPipeError) and _stdout_gone():
+            # the reader of the output went away (`radiokit info *.img | head -1`): not an error of
+            # the command's ("[Errno 32] Broken pipe" after calibrate had written its file); quiet,
+            # with the status a shell gives a command that SIGPIPE ended
+            return 128 + signal.SIGPIPE
         if not _user_error(exc) or _debug(args):
             raise
         if _interrupted(exc):  # a C extension turned the interrupt into its own error

@@ -502,6 +502,15 @@ def _rescale(frame, domain, factor) -> None:
         frame *= np.float32(factor)
 
 
+def _planned(segments):
+    """(source, frame, step, factor) of each frame to correct, one at a time (see correct_files)."""
+    for si, picked, steps, factors in segments:
+        for j, fi in enumerate(picked):
+            fi = int(fi)
+            step = int(steps[fi]) if steps is not None else -1
+            yield si, fi, step, (1.0 if factors is None else float(factors[j]))
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -524,28 +533,35 @@ def correct_files(
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     sources = [open_frames(p, **hints) for p in inputs]
     try:
-        plan = []
+        # Per source, the frames to correct: every frame of a file without image keys as a range,
+        # not a list -- a 14 kB HDF5 file declaring 10**8 frames made a list of 10**8 tuples (GBs)
+        # before the output's size could be refused. Keyed files' records fit the memory budget.
+        segments = []
         for si, src in enumerate(sources):
             if src.frame_shape != cal.shape:
                 raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
             keys = src.meta.get("image_key")
             steps = src.meta.get("step")
-            picked = [fi for fi in range(len(src)) if keys is None or keys[fi] in image_keys]
+            if keys is None:
+                segments.append((si, range(len(src)), steps, None))
+                continue
+            picked = np.flatnonzero(np.isin(np.asarray(keys), list(image_keys)))
             factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
-            plan += [(si, fi, int(steps[fi]) if steps is not None else -1, f) for fi, f in zip(picked, factors)]
-        if not plan:
+            segments.append((si, picked, steps, factors))
+        n_plan = sum(len(picked) for _, picked, _, _ in segments)
+        if not n_plan:
             raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = 0
         with (
             StackWriter(
-                output, cal.shape, np.float32, meta=meta, n_frames=len(plan), overwrite=overwrite, inputs=inputs
+                output, cal.shape, np.float32, meta=meta, n_frames=n_plan, overwrite=overwrite, inputs=inputs
             ) as writer,
-            tqdm(total=len(plan), unit="frame", desc="correct", disable=not progress) as bar,
+            tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,
         ):
-            for si, fi, step, factor in plan:
+            for si, fi, step, factor in _planned(segments):
                 frame = bg.buffer()
                 nonpos, sat = _correct_planned(cal, sources[si], fi, frame, domain, factor)
                 sat_total += sat.size
@@ -564,11 +580,11 @@ def correct_files(
         for src in sources:
             src.close()
     return {
-        "frames": len(plan),
+        "frames": n_plan,
         "output": str(output),
         "domain": domain,
         "seconds": elapsed,
-        "frames_per_second": len(plan) / elapsed if elapsed else float("inf"),
+        "frames_per_second": n_plan / elapsed if elapsed else float("inf"),
         "saturated": sat_total,
         "nonpositive": np_total,
         "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects,

@@ -50,9 +50,14 @@ Example (a small synthetic experiment written here; real files come from ``radio
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import logging
+import math
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -136,6 +141,31 @@ class Config:
         if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
             raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
         _check_methods(self.method, self.cross_check, self.register_options)
+        self._check_rectangles()
+
+    def _check_rectangles(self) -> None:
+        """The ROIs given as numbers, refused now as :func:`choose_rois` would refuse them, not after
+        the file's correction (``--inclusion nan 1 2 3`` cost the whole correction first), and the
+        same rectangle twice (a "zero reference contrast" at the very end). In mm, whether a ROI
+        rounds to no pixel waits for the file's pixel size."""
+        given = {}
+        for name in ("inclusion", "background"):
+            value = getattr(self, name)
+            if value is None or isinstance(value, ROI):
+                continue
+            if self.roi_units == "px":
+                roi = _roi(value, "px", 1.0, name)
+                given[name] = (roi.row0, roi.row1, roi.col0, roi.col1)
+                continue
+            r0, r1, c0, c1 = _roi_numbers(value, "mm", name)
+            if not (r0 < r1 and c0 < c1):
+                raise ValueError(f"{name} ROI {value!r} (mm): ROI is empty (need row1 > row0 and col1 > col0)")
+            given[name] = (r0, r1, c0, c1)
+        if len(given) == 2 and given["inclusion"] == given["background"]:
+            raise ValueError(
+                f"background ROI {self.background!r}: the inclusion's rectangle; the contrast between them is "
+                "zero: give two regions"
+            )
 
 
 #: The largest enhancement factor: ``IF(k) - 1`` is linear in k, so a larger k shows nothing new,
@@ -230,14 +260,8 @@ class Result:
         return self.images.as_dict(self.record)
 
 
-def _roi(value, units, pixel_size_mm, name):
-    """``Config``'s ``name`` ROI as an :class:`ROI` in pixels, or None; a ValueError naming it
-    when it is not four finite numbers or rounds to an empty rectangle (it was a Python
-    unpacking, conversion or key error)."""
-    if value is None:
-        return None
-    if isinstance(value, ROI):
-        return value
+def _roi_numbers(value, units, name) -> tuple[float, float, float, float]:
+    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it."""
     what = f"{name} ROI {value!r}"
     try:
         if isinstance(value, dict):
@@ -247,6 +271,19 @@ def _roi(value, units, pixel_size_mm, name):
         raise ValueError(f"{what}: expected (row0, row1, col0, col1), four numbers in {units}") from None
     if not np.all(np.isfinite([r0, r1, c0, c1])):
         raise ValueError(f"{what}: its bounds must be finite")
+    return r0, r1, c0, c1
+
+
+def _roi(value, units, pixel_size_mm, name):
+    """``Config``'s ``name`` ROI as an :class:`ROI` in pixels, or None; a ValueError naming it
+    when it is not four finite numbers or rounds to an empty rectangle (it was a Python
+    unpacking, conversion or key error)."""
+    if value is None:
+        return None
+    if isinstance(value, ROI):
+        return value
+    what = f"{name} ROI {value!r}"
+    r0, r1, c0, c1 = _roi_numbers(value, units, name)
     if units == "mm":
         r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
     try:
@@ -489,9 +526,18 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
         try:
             sc = tomllib.loads(scene_text)
             view = "side" if sc.get("beam", {}).get("direction", "y") in ("z", "side") else "through_plates"
-            mu_b = float(sc["body"]["material"]["attenuation_per_cm"]) / 10
-        except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError):
-            pass
+            mu = sc["body"]["material"]["attenuation_per_cm"]
+        except (tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
+            mu = None
+        if mu is not None:
+            # TOML's `true` is Python's 1: float() took it for 1/cm, and "0.3" or nan too, a wrong bound in silence
+            if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not (math.isfinite(mu) and mu > 0):
+                raise FormatError(
+                    path,
+                    f"simulation truth: scene body.material.attenuation_per_cm = {json.dumps(mu)}: "
+                    "expected a positive number (1/cm)",
+                )
+            mu_b = mu / 10
     if view == "side":
         return Bound(None, "beam from the side: columns lengthen as the body expands, no bound holds"), {}
     if not (np.isfinite(dg) and np.isfinite(gaps[-1]) and gaps[-1] > 0):
@@ -1016,16 +1062,23 @@ def process_many(
     from tqdm.auto import tqdm
 
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, remove_empty_folders
+    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
 
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
+    cluster = _local_cluster(local_workers(workers, len(paths), cores())) if scheduler is None else None
+    try:
+        client = Client(cluster if cluster is not None else scheduler)
+    except BaseException:  # a scheduler that does not answer: nothing made, nothing left running
+        if cluster is not None:
+            cluster.close()
+        raise
+    # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty), and
+    # here, not by the workers: one that fails must not remove it under the others
     made = _missing_folders(out_root) if out_root is not None else []
-    if made:  # made here, not by the workers: one that fails must not remove it under the others
+    if made:
         Path(out_root).mkdir(parents=True)
-    cluster = _local_cluster(workers or max(1, min(len(paths), cores()))) if scheduler is None else None
-    client = Client(cluster if cluster is not None else scheduler)
     try:
         shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)
@@ -1039,11 +1092,32 @@ def process_many(
                 results[futures[fut]] = fut.result()
                 bar.update()
         return results
+    except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
+        try:  # the workers' own logs of the tasks cut short, too
+            client.run(_quiet_worker)
+        except Exception:
+            pass
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-        remove_empty_folders(made)  # every file failed: no empty folder left behind
+        # Stopping the workers takes seconds; a second signal (radiokit's SIGTERM handler repeats
+        # its interrupt after a second) cut this short and left the workers' temporaries.
+        with _ignoring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            client.close()
+            if cluster is not None:
+                cluster.close()
+                # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
+                # results folder's temporary: removed once its process is gone, as the next run would
+                for out in outs:
+                    _remove_stale(out, folder=True, kinds=("tmp",))
+            remove_empty_folders(made)  # every file failed: no empty folder left behind
+
+
+def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
+    """The local cluster's workers: ``asked`` (default one per core), never more than files. Each
+    takes one file at a time, so more would only hold memory and a share of the cores that no file
+    uses (``--workers 8`` on two files started eight, each with an eighth of the machine)."""
+    return max(1, min(asked or n_cores, n_files))
 
 
 def _local_cluster(n_workers: int):
@@ -1054,9 +1128,51 @@ def _local_cluster(n_workers: int):
     from radiokit._threads import cores
 
     share = worker_threads(cores(), n_workers)
-    return LocalCluster(
-        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
-    )
+    # Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the
+    # workers too: each died mid-file with tracebacks and left its temporary folder. Started with
+    # both ignored (kept across exec; Python and asyncio then install no handler), they leave the
+    # signal to this process, which stops them (process_many).
+    with _ignoring(signal.SIGINT, signal.SIGHUP):
+        _quiet_resource_tracker()
+        return LocalCluster(
+            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
+        )
+
+
+@contextlib.contextmanager
+def _ignoring(*signals):
+    """Ignore ``signals`` in this process while the block starts child processes, which keep the
+    disposition; then restore the handlers. Only the main thread may set them: elsewhere, nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
+def _quiet_worker():
+    """Run in each worker on an interrupt: the tasks closed under it are not warnings to show."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+
+
+def _quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (the process that unlinks the semaphores of
+    processes that did not) with its report of them silenced: a worker stopped mid-file on Ctrl-C
+    leaves two, which the tracker removes, and its warning was two more lines after the command's
+    one. Its filters come from ``sys.warnoptions`` when it starts; it is started once."""
+    import sys
+    from multiprocessing import resource_tracker
+
+    option = "ignore:resource_tracker:UserWarning"
+    sys.warnoptions.append(option)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        sys.warnoptions.remove(option)
 
 
 def _limit_worker(shares, dask_worker=None):

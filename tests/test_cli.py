@@ -482,3 +482,62 @@ def test_correct_refuses_frames_already_corrected(tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "t.tif: frame 0: no signal above the dark" in res.stderr, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "t.tif"]
+
+
+def test_process_says_which_pair_made_its_exit_code_1(capsys):
+    """A run exits 1 when any registered pair is flagged; its output said only "registration ok"
+    (the main pair's) when another pair (1->3) was the one flagged. Each flagged pair is named."""
+    from radiokit.cli import _print_headline
+    from radiokit.enhance import Domain
+    from radiokit.results import Bound, DomainMeasures, KMeasure, PairResult, Results, Rois
+
+    def pair(moving, ok, reason=""):
+        return PairResult(moving, 3, "rc", {"ok": ok, "reason": reason}, {Domain.LOG: 0.8})
+
+    record = Results(
+        source="exp.h5",
+        scene=None,
+        simulated=False,
+        pixel_size_mm=0.05,
+        domain=Domain.LOG,
+        ks=(1.0,),
+        method="rc",
+        steps=(1, 2, 3),
+        ratios=(0.1, 0.2, 0.3),
+        rois=Rois((0, 40, 0, 50), (1, 5, 1, 5), (6, 9, 6, 9)),
+        domains={Domain.LOG: DomainMeasures(Domain.LOG, 0.05, 1.0, 0.02, (KMeasure(1.0, 0.1, 2.0, 0.05, 1.5),))},
+        pairs=(pair(2, True), pair(1, False, "structure left misaligned")),
+        main_pair="2->3",
+        profiles_row=20,
+        bound=Bound(None, "no gaps"),
+        paper={},
+        timings={},
+    )
+    _print_headline(record, {})
+    out = capsys.readouterr().out
+    assert "change ratio 2->3 0.800; registration ok" in out
+    assert "WARNING: pair 1->3 NOT ok: structure left misaligned" in out
+    assert out.count("WARNING") == 1
+
+
+def test_a_reader_that_closes_the_output_early_is_no_error(tmp_path):
+    """``radiokit calibrate ... | head -0``: the reader went away before the summary was printed
+    (the calibration already written): "[Errno 32] Broken pipe", exit code 2, as if it had failed.
+    Quiet now, with the status a shell gives a command SIGPIPE ended (141)."""
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=(8, 10)) as w:
+        w.append(np.full((8, 10), 100, np.uint16), image_key=ImageKey.DARK)
+        w.append(np.full((8, 10), 3000, np.uint16), image_key=ImageKey.FLAT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "calibrate", "--experiment", str(exp), "-o", str(tmp_path / "cal.h5")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    proc.stdout.close()  # before the command, still importing, prints anything
+    err = proc.stderr.read().decode()
+    proc.wait()
+    assert proc.returncode == 141 and err == "", (proc.returncode, err)
+    from radiokit.calibrate import Calibration
+
+    assert Calibration.load(tmp_path / "cal.h5").shape == (8, 10)

@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -640,7 +641,7 @@ def test_the_file_size_limit_is_not_guessed_on_file_systems_glibc_does_not_list(
     import shutil
     import tempfile
 
-    from radiokit.io._experiment import _file_system_type
+    from radiokit.io._atomic import _file_system_type
 
     shm = Path("/dev/shm")
     if not (shm.is_dir() and os.access(shm, os.W_OK)) or _file_system_type(shm) != "tmpfs":
@@ -652,3 +653,155 @@ def test_the_file_size_limit_is_not_guessed_on_file_systems_glibc_does_not_list(
         assert _file_system_type(tmp_path) not in (None, "vfat", "msdos")
     finally:
         shutil.rmtree(folder)
+
+
+# -- the file-size limit (ulimit -f) -------------------------------------------------------------
+def _limited(nbytes):
+    """``ulimit -f``: the child may write no file past ``nbytes``; Python ignores SIGXFSZ, so such a
+    write fails with EFBIG (as on a FAT disk at 4 GiB) rather than killing the process."""
+    import resource
+
+    def preexec():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+
+    return preexec
+
+
+@pytest.mark.parametrize(
+    "cmd, output, args",
+    [
+        ("correct", "out.h5", []),  # 6 x 256 KiB frames
+        ("correct", "out.tif", []),
+        ("calibrate", "cal.h5", []),  # 19 kB: darks and flats of one value compress well
+        ("process", "res", [*ROI, "--no-report", "--cross-check", "none"]),  # results.h5, in the folder
+    ],
+)
+def test_an_output_past_the_file_size_limit_is_one_line_and_leaves_nothing(cmd, output, args, tmp_path):
+    """Found by a hostile-input trial: ``correct`` under ``ulimit -f`` died in libhdf5 (a traceback,
+    then SIGSEGV while closing); ``correct -o x.tif`` said "no space left"; ``process`` said
+    "[Errno 27] File too large", naming no file."""
+    exp = synthetic(tmp_path / "exp.h5", shape=(256, 256), n_per_step=2, noise=30.0)
+    out = tmp_path / "out"
+    out.mkdir()
+    before = sha(exp)
+    argv = (
+        ["calibrate", "--experiment", exp, "-o", out / output]
+        if cmd == "calibrate"
+        else [cmd, exp, "-q", "-o", out / output, *args]
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        preexec_fn=_limited(10_000),
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    line = one_line_error(res, output, "file-size limit", "10000 bytes")
+    assert ".tmp-" not in line
+    assert list(out.iterdir()) == [] and sha(exp) == before
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_a_stack_of_unknown_length_that_passes_the_file_size_limit_is_removed(suffix, tmp_path):
+    """No size known in advance, so nothing to refuse up front: the write fails half-way (EFBIG
+    inside libhdf5, a short write inside tifffile) and is one FileTooLargeError, no file left."""
+    code = (
+        "import numpy as np; from radiokit.io import StackWriter, FileTooLargeError\n"
+        "try:\n"
+        f"    with StackWriter({str(tmp_path / ('s' + suffix))!r}, (256, 256)) as w:\n"
+        "        for i in range(12): w.append(np.full((256, 256), i, np.float32))\n"
+        "except FileTooLargeError as exc:\n"
+        "    print(exc)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, preexec_fn=_limited(300_000))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().endswith(
+        "larger than the file-size limit (300000 bytes); nothing was written (the partial output was removed)"
+    ), res.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_names_that_are_not_utf8_print_under_a_strict_utf8_terminal(tmp_path):
+    """Under a UTF-8 locale Python's stdout is strict (``PYTHONIOENCODING=utf-8`` makes it so
+    here): printing a Latin-1 name after the work failed the command, exit code 2, with the output
+    written. Each name prints, its odd bytes as \\xNN (as radiokit records them), errors too."""
+    exp = synthetic(_non_utf8(tmp_path, b"exp\xff.h5"), shape=(32, 40))
+    out = _non_utf8(tmp_path, b"o\xfe.h5")
+    strict = {"PYTHONIOENCODING": "utf-8"}
+    res = run("calibrate", "--experiment", exp, "-o", out, env=strict)
+    assert res.returncode == 0 and "/o\\xfe.h5\n" in res.stdout, (res.stdout, res.stderr)
+    res = run("info", exp, env=strict)
+    assert res.returncode == 0 and res.stdout.splitlines()[0].endswith("exp\\xff.h5"), (res.stdout, res.stderr)
+    tif = out.with_suffix(".tif")
+    res = run("correct", exp, "-q", "--cal", out, "-o", tif, env=strict)
+    assert res.returncode == 0 and "-> " + str(tmp_path) + "/o\\xfe.tif (log)" in res.stdout, (res.stdout, res.stderr)
+    assert read(tif).n == 3
+    one_line_error(run("correct", exp, "-q", "--cal", out, "-o", tif, env=strict), "o\\xfe.tif", "--overwrite")
+
+
+def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_path):
+    """Ctrl-C goes to the terminal's whole process group (SIGHUP too, when it closes): the Dask
+    workers died mid-file, each printing tracebacks and leaving its temporary results folder.
+    Now the command stops them: one line, exit code 130, no temporary, no process of the run left."""
+    a, b = (synthetic(tmp_path / name, shape=(384, 384), n_per_step=2, noise=30.0) for name in ("a.h5", "b.h5"))
+    out = tmp_path / "many"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", "4", *ROI],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal gives a command
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        t_end = time.monotonic() + 120
+        while not list(out.glob(".*.tmp-*")) and proc.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.01)
+        workers = subprocess.run(
+            ["pgrep", "-P", str(proc.pid), "-f", "multiprocessing"], capture_output=True, text=True
+        )
+        assert list(out.glob(".*.tmp-*")), "the run ended before its temporary folders were seen"
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, as the terminal sends it
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip() == "radiokit process: interrupted; no partial output was left", err
+    # the workers: two (one per file, though four were asked), and none outlives the command
+    assert len(workers.stdout.split()) == 2 + 1, workers.stdout  # and multiprocessing's resource tracker
+    t_end, left = time.monotonic() + 20, ["?"]
+    while left and time.monotonic() < t_end:  # multiprocessing's resource tracker ends last, by itself
+        left = subprocess.run(["pgrep", "-a", "-s", str(proc.pid)], capture_output=True, text=True).stdout.splitlines()
+        time.sleep(0.05)
+    assert left == [], left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5"]  # `many/` it made: gone too
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+@pytest.mark.parametrize("cmd", ["calibrate", "correct-tiff", "register-png"])
+def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd, kind, experiment, images, tmp_path):
+    """``-o`` a named pipe (or ``-o /dev/null``, here through a symlink): with --overwrite the
+    output was written beside it and renamed over it, the FIFO replaced by a regular file. One
+    line instead, before any work, and the FIFO or the link left as it was."""
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(os.devnull)
+    res = run(*args, "--overwrite")
+    one_line_error(res, out.name, "not a regular file", "FIFO" if kind == "fifo" else "character device")
+    if kind == "fifo":
+        assert stat.S_ISFIFO(out.lstat().st_mode)
+    else:
+        assert out.is_symlink() and os.readlink(out) == os.devnull
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["exp.h5", "fixed.tif", "moving.tif", out.name])
+
+
+def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_path):
+    """`process a.h5 b.h5 --scheduler ADDRESS -o new/res`: the folder was made before connecting,
+    and a scheduler that did not answer left `new/res/` behind, empty."""
+    res = run("process", experiment, experiment, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
+    one_line_error(res, "no-port-here")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]

@@ -7,6 +7,7 @@ budget check must refuse first, naming the file.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -137,6 +138,48 @@ def test_hdf5_memory_bomb_is_refused_by_the_default_budget(hdf5_bomb):
         preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT)),
     )
     one_line_error(res, "bomb.h5", "over the memory budget of 512.0 MiB")
+
+
+@pytest.fixture
+def many_frames(tmp_path):
+    """A 14 kB HDF5 file declaring 10**8 frames of 128 x 128 (a chunked dataset, one chunk
+    written): each frame is small, so no one frame is over the budget; the count is the bomb."""
+    path = tmp_path / "many.h5"
+    with h5py.File(path, "w") as h5:
+        ds = h5.create_dataset("scan/data", shape=(10**8, 128, 128), dtype="u2", chunks=(1, 128, 128))
+        ds[0] = 1000
+    assert path.stat().st_size < 50_000
+    return path
+
+
+def test_a_file_declaring_1e8_frames_is_refused_by_its_output_size_not_by_memory(many_frames, tmp_path):
+    """``correct`` planned every frame as a Python tuple before anything else (10**8 tuples, ~10 GB):
+    MemoryError under 1 GiB of address space, and on a big machine minutes of allocation. Now the
+    frames are planned lazily and the 6 TiB float32 output is refused in one line, in bounded memory."""
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (4, 128, 128)).astype(np.uint16), rng.normal(3000, 30, (4, 128, 128)).astype(np.uint16)
+    )
+    cal.save(tmp_path / "cal.h5")
+    for out in ("out.h5", "out.tif"):
+        res = run(
+            "correct",
+            many_frames,
+            "--dataset",
+            "scan/data",
+            "--cal",
+            tmp_path / "cal.h5",
+            "-q",
+            "-o",
+            tmp_path / out,
+            limit=AS_LIMIT,
+        )
+        one_line_error(res, out, "no space left", "needs about 6.0 TiB")
+    res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT)
+    assert res.returncode == 0 and "100000000 x 128 rows" in res.stdout, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "many.h5"]
 
 
 def test_tiff_decompression_bomb_is_refused(tiff_bomb):
@@ -1310,6 +1353,16 @@ def _calibration(path, **attrs):
         (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
         (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
         (dict(provenance=b"\xff\xfe"), ("provenance",)),
+        # JSON's and HDF5's true is Python's 1: the flats' current read as 1 uA scaled every
+        # transmission by 1/200 in silence, c = true the counts domain by 1/3000; a string was a
+        # TypeError traceback
+        (dict(provenance='{"flat_current_ua": true}'), ("flat_current_ua is true", "expected a number (uA)")),
+        (dict(provenance='{"flat_current_ua": "200"}'), ('flat_current_ua is "200"',)),
+        (dict(provenance='{"flat_voltage_kv": [60]}'), ("flat_voltage_kv is [60]", "(kV)")),
+        (dict(c=True), ("@c is True", "positive finite number")),
+        (dict(c="3000"), ("@c is '3000'",)),
+        (dict(c=np.inf), ("@c is inf",)),
+        (dict(c=-5.0), ("@c is -5.0",)),
     ],
 )
 def test_a_calibration_with_bad_attributes_is_one_line(tmp_path, attrs, words):
@@ -1339,3 +1392,114 @@ def test_a_good_calibration_still_loads(tmp_path):
 
     cal = Calibration.load(_calibration(tmp_path / "cal.h5"))
     assert cal.shape == (8, 8) and float(cal.flat[0, 0]) == 3000.0
+
+
+@pytest.mark.parametrize("value", [0.0, -5e-5, math.nan, math.inf, 1e-300, 0.05, True, "5e-05", [5e-5, 5e-5]])
+def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
+    """x_pixel_size divides every ROI in mm and the crop: 0 was a ZeroDivisionError traceback
+    (``process --mm``), NaN "cannot convert float NaN to integer", inf or a negative pitch an
+    empty ROI; 0.05 is a millimetre value in NeXus's metres (a 5 cm pixel); `true`, text or two
+    values were left out, and ROIs in mm measured with 0.05 mm instead. Refused naming the file
+    and the field, by every reader of the file."""
+    from radiokit.io._experiment import DETECTOR
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        del h5[DETECTOR]["x_pixel_size"]
+        h5[DETECTOR]["x_pixel_size"] = value
+    res = run("process", exp, "-q", "--mm", "--inclusion", "0.5", "1", "0.5", "1", "-o", tmp_path / "res")
+    one_line_error(res, "exp.h5", "x_pixel_size", "metres")
+    one_line_error(run("info", exp), "exp.h5", "x_pixel_size", "metres")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+@pytest.mark.parametrize("value", [0, -0.05, math.nan, math.inf, True, 50, "0.05"])
+def test_the_experiment_writer_refuses_a_pixel_size_no_reader_would_open(value, tmp_path):
+    with pytest.raises(ValueError, match="pixel_size_mm=.*expected a panel's pixel pitch"):
+        ExperimentWriter(tmp_path / "exp.h5", shape=(4, 5), pixel_size_mm=value)
+    assert not (tmp_path / "exp.h5").exists()
+
+
+@pytest.mark.parametrize("value", ["true", '"0.3"', "nan", "-0.5"])
+def test_a_simulated_scenes_attenuation_that_is_not_a_number_is_one_line(value, tmp_path):
+    """The simulation truth's scene is TOML: ``attenuation_per_cm = true`` was float(True), 1/cm,
+    and the bound came out of it in silence (a string or NaN too). Refused, naming the field."""
+    import dataclasses
+
+    from radiokit.io import write_simulation
+
+    path = _experiment(tmp_path / "sim.h5")
+    scene = f'name = "block"\n[body.material]\nattenuation_per_cm = {value}\n'
+    write_simulation(path, dataclasses.replace(_truth_record(3, (32, 40)), scene_toml=scene), replace=True)
+    roi = ["--inclusion", "10", "20", "10", "20", "--background", "10", "20", "25", "35", "--crop-mm", "0"]
+    res = run(
+        "process", path, "-q", "--no-report", "--cross-check", "none", "--method", "ncc", *roi, "-o", tmp_path / "res"
+    )
+    one_line_error(res, "sim.h5", "attenuation_per_cm", "expected a positive number")
+    assert not (tmp_path / "res").exists()
+
+
+def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
+    """End to end: the flats at 200 uA, the projections at 200 uA, transmission 0.5; a calibration
+    whose provenance says ``"flat_current_ua": true`` corrected them to 0.0025 with exit code 0."""
+    shape = (16, 20)
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=shape) as w:
+        for _ in range(2):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=200)
+        w.append(np.full(shape, 1600, np.uint16), image_key=ImageKey.PROJECTION, step=1, current_ua=200)
+    cal = tmp_path / "cal.h5"
+    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    good = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "good.h5")
+    assert good.returncode == 0 and read(tmp_path / "good.h5").data.mean() == pytest.approx(0.5, rel=1e-6)
+    with h5py.File(cal, "a") as h5:
+        prov = json.loads(h5["calibration"].attrs["provenance"])
+        assert prov["flat_current_ua"] == 200
+        h5["calibration"].attrs["provenance"] = json.dumps(prov | {"flat_current_ua": True})
+    res = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "out.h5")
+    one_line_error(res, "cal.h5", "flat_current_ua is true")
+    assert not (tmp_path / "out.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--inclusion", "nan", "1", "2", "3"], ("--inclusion [nan, 1.0, 2.0, 3.0]", "finite")),
+        (["--inclusion", "5", "1", "2", "3"], ("--inclusion", "empty")),
+        (["--mm", "--inclusion", "5", "1", "2", "3"], ("--inclusion", "(mm)", "empty")),
+        (["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"], ("--background", "zero")),
+    ],
+)
+def test_process_refuses_a_rectangle_it_cannot_use_before_correcting(args, words, tmp_path):
+    """Refused only after the whole correction (a progress bar, then the line), or, for the same
+    rectangle twice, at the very end as a zero reference contrast."""
+    res = run("process", _experiment(tmp_path / "exp.h5"), *args, "-o", tmp_path / "res")
+    one_line_error(res, *words)
+    assert res.stdout == "" and not (tmp_path / "res").exists()
+
+
+def test_correct_refuses_an_output_format_it_cannot_write_before_calibrating(tmp_path):
+    res = run("correct", _experiment(tmp_path / "exp.h5"), "-q", "-o", tmp_path / "out.png")
+    one_line_error(res, "out.png", ".h5", ".tif")
+    assert res.stdout == ""  # was "calibrated from the darks and flats of exp.h5", then the refusal
+
+
+@pytest.mark.parametrize("value", [True, 2.5, -5, "lots"])
+def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value, tmp_path):
+    """``@frames_complete = true`` read as 1: ``info`` showed 1 frame of 9, and opening the file to
+    append (``ExperimentWriter(mode="a")``, ``acquire --resume``) cut the frames to that one; 2.5
+    read as 2, -5 as none, text as "cannot be read as hdf5". Each is one line naming the field,
+    and the frames stay."""
+    from radiokit.io._experiment import ENTRY, FRAMES
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        h5[ENTRY].attrs["frames_complete"] = value
+    before = hashlib.sha256(exp.read_bytes()).hexdigest()
+    one_line_error(run("info", exp), "exp.h5", "frames_complete", "expected a count of frames")
+    with pytest.raises(FormatError, match="frames_complete"):
+        ExperimentWriter(exp, mode="a")
+    with h5py.File(exp, "r") as h5:
+        assert h5[FRAMES].shape[0] == 9
+    assert hashlib.sha256(exp.read_bytes()).hexdigest() == before

@@ -408,3 +408,15 @@ def test_a_peer_cross_check_does_not_get_the_bspline_preset(tmp_path):
     )
     main = process(tmp_path / "a.h5", cfg, out_dir=tmp_path / "out").record.pair("2->3")
     assert main.cross_check is not None and main.cross_check["method"] == "tvl1"
+
+
+@pytest.mark.parametrize(
+    "asked, files, cores, expect",
+    [(None, 2, 8, 2), (8, 2, 2, 2), (5, 3, 64, 3), (None, 10, 4, 4), (1, 10, 4, 1), (None, 1, 1, 1)],
+)
+def test_a_local_cluster_never_has_more_workers_than_files(asked, files, cores, expect):
+    """`--workers 8` on two files started eight workers: six idle, each holding its memory and an
+    eighth of the cores (worker_threads), so the two files ran on a quarter of the machine."""
+    from radiokit.pipeline import local_workers
+
+    assert local_workers(asked, files, cores) == expect

@@ -188,6 +188,6 @@ def test_a_configured_roi_that_is_not_a_rectangle_is_one_line_naming_it(inclusio
     img = np.zeros((3, 64, 80), np.float32)
     img[:, 10:50, 10:70] = 1.0
     steps = Steps(img, (1, 2, 3), (0.9, 0.85, 0.8), 0.1, {})
-    cfg = Config(inclusion=inclusion, background=(25, 35, 12, 22), roi_units=units, crop_mm=None)
     with pytest.raises(ValueError, match=f"^inclusion ROI .*{words}"):
-        choose_rois(steps, cfg)
+        # Config refuses what it can before any work; an mm ROI that rounds to no pixel, here
+        choose_rois(steps, Config(inclusion=inclusion, background=(25, 35, 12, 22), roi_units=units, crop_mm=None))

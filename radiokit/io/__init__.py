@@ -16,6 +16,7 @@ from radiokit.errors import FormatError
 from radiokit.io._atomic import (
     RESULTS_MARKER,
     DiskFullError,
+    FileTooLargeError,
     OutputError,
     OutputExistsError,
     atomic_dir,
@@ -59,6 +60,7 @@ __all__ = [
     "OutputError",
     "OutputExistsError",
     "DiskFullError",
+    "FileTooLargeError",
     "RESULTS_MARKER",
     "memory_budget",
     "check_budget",

@@ -14,11 +14,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import glob
+import math
 import os
 import re
 import secrets
 import shutil
 import socket
+import stat
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
@@ -31,6 +33,7 @@ __all__ = [
     "OutputExistsError",
     "RESULTS_MARKER",
     "DiskFullError",
+    "FileTooLargeError",
     "is_disk_full",
     "atomic_h5",
     "check_free_space",
@@ -69,7 +72,103 @@ class DiskFullError(OutputError):
         )
 
 
+#: File systems whose files stop at 4 GiB - 1 (FAT12/16/32; exFAT has no such limit).
+_FAT_TYPES = frozenset({"vfat", "msdos", "fat", "umsdos"})
+_FAT_MAX_FILE = 2**32 - 1
+
+
+def _file_system_type(folder) -> str | None:
+    """The type of the file system holding ``folder`` (Linux: the longest mount point of
+    /proc/self/mounts above it), or None where that is not known.
+
+    Why not ``pathconf(PC_FILESIZEBITS)``: glibc answers 32 for every file system it does not
+    list (tmpfs, NFS, CIFS, FUSE, overlay), which capped experiment files there at 2 GiB --
+    about 200 full frames -- with no such limit on the disk."""
+    try:
+        target = os.path.realpath(folder)
+        best, kind = "", None
+        with open("/proc/self/mounts", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                fields = line.split()
+                if len(fields) < 3:
+                    continue
+                mount = fields[1].replace("\\040", " ")
+                inside = target == mount or target.startswith(mount.rstrip("/") + "/")
+                if inside and len(mount) >= len(best):
+                    best, kind = mount, fields[2]
+        return kind
+    except OSError:  # no /proc (not Linux): no file-system limit assumed
+        return None
+
+
+def file_size_limit(folder) -> float:
+    """The largest file this process may write in ``folder``, in bytes: its ``RLIMIT_FSIZE``
+    (``ulimit -f``) and, on a FAT file system, 4 GiB - 1, whichever is lower (inf: none)."""
+    limit = math.inf
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if soft != resource.RLIM_INFINITY:
+            limit = soft
+    except (ImportError, OSError, ValueError):  # no resource module (Windows): no process limit
+        pass
+    if _file_system_type(folder) in _FAT_TYPES:
+        limit = min(limit, _FAT_MAX_FILE)
+    return limit
+
+
+class FileTooLargeError(OutputError):
+    """The output would pass, or passed while being written, the largest file this process may
+    write there (``ulimit -f``, a FAT disk's 4 GiB); the partial output was removed."""
+
+    def __init__(self, path, detail=""):
+        self.detail = detail
+        super().__init__(
+            path,
+            f"larger than the file-size limit{detail}; nothing was written (the partial output was removed)",
+            errno.EFBIG,
+        )
+
+
+def _is_too_large(exc: BaseException, tmp: Path) -> bool:
+    """``exc`` (or its cause) is a write past the file-size limit: EFBIG (h5py only in its text),
+    or numpy's short write (tifffile) that stopped at the limit. Python ignores SIGXFSZ, so the
+    write fails with EFBIG rather than the process being killed."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno == errno.EFBIG:
+            return True
+        if "File too large" in str(exc) or "errno = 27" in str(exc):
+            return True
+        if isinstance(exc, OSError) and exc.errno is None and re.fullmatch(r"\d+ requested and \d+ written", str(exc)):
+            try:  # a short write: at the limit it is this, else a full disk (is_disk_full)
+                return tmp.stat().st_size >= file_size_limit(tmp.parent)
+            except OSError:
+                return False
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _too_large_in(exc, tmp: Path, path: Path) -> FileTooLargeError:
+    """The :class:`FileTooLargeError` of folder ``path`` (being assembled in ``tmp``): naming the
+    file inside it that hit the limit, as ``path/results.h5``, where an inner error says which."""
+    inner = exc
+    while inner is not None and not isinstance(inner, FileTooLargeError):
+        inner = inner.__cause__ or inner.__context__
+    if inner is None:
+        return FileTooLargeError(path, f" ({file_size_limit(path.parent)} bytes)")
+    try:
+        name = path / Path(inner.path).relative_to(tmp)
+    except ValueError:
+        name = path
+    return FileTooLargeError(name, inner.detail)
+
+
 def _human(n) -> str:
+    """Bytes in MiB, or GiB and TiB past them (a header's 10**8 frames: "5.9 TiB", not 6 million MiB)."""
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
     return f"{n / 2**20:.1f} MiB"
 
 
@@ -86,6 +185,11 @@ def check_free_space(path, nbytes) -> None:
     free = usage.free
     if usage.total and nbytes > free:  # total 0: a pseudo filesystem; let the write say what is wrong
         raise DiskFullError(path, f" (needs about {_human(nbytes)}, {_human(free)} free)")
+    # as a full disk, a write past ``ulimit -f`` fails inside libhdf5, which then crashed the
+    # interpreter (SIGSEGV) while closing the file: refused before the first byte instead
+    limit = file_size_limit(folder)
+    if nbytes > limit:
+        raise FileTooLargeError(path, f" ({limit} bytes: ulimit -f, or a FAT disk's 4 GiB; it needs about {nbytes})")
 
 
 def is_disk_full(exc: BaseException) -> bool:
@@ -167,9 +271,28 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
             return path  # an empty folder holds nothing to lose
     elif path.is_dir():
         raise OutputError(path, "is a folder; expected a file name")
+    elif path.exists() and not stat.S_ISREG(path.stat().st_mode):
+        # even with --overwrite: the output is written beside it and renamed into place, which
+        # replaced a FIFO (or a device, through a symlink) with a regular file; -o /dev/null too
+        raise OutputError(
+            path, f"is {_kind(path.stat().st_mode)}, not a regular file: radiokit never replaces it; choose a file name"
+        )
     if not overwrite:
         raise OutputExistsError(path)
     return path
+
+
+def _kind(mode: int) -> str:
+    """What a file that is not a regular file or a folder is, for an error message."""
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return "a special file"
 
 
 def _files(folder: Path) -> set[str]:
@@ -214,11 +337,11 @@ def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     return path.with_name(f".{_head(path, folder)}.{tag}{'' if folder else path.suffix}")
 
 
-def _remove_stale(path: Path, folder=False) -> None:
+def _remove_stale(path: Path, folder=False, kinds=("tmp", "old")) -> None:
     """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
     gone): only names radiokit makes, never anything else."""
     host = socket.gethostname().split(".")[0]
-    for kind in ("tmp", "old") if folder else ("tmp",):
+    for kind in kinds if folder else ("tmp",):
         # the name's own characters taken literally: "scan[1]" is no character class
         head, suffix = glob.escape(_head(path, folder)), "" if folder else glob.escape(path.suffix)
         pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
@@ -291,8 +414,11 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         os.replace(tmp, path)
         _fsync(path.parent)
     except BaseException as exc:
+        too_large = _is_too_large(exc, tmp)  # before the temporary, whose size may tell, is removed
         _remove(tmp)
         remove_empty_folders(made)
+        if too_large:
+            raise FileTooLargeError(path, f" ({file_size_limit(path.parent)} bytes)") from exc
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
         _raise_unwritable(exc, tmp, path)
@@ -383,8 +509,11 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException as exc:
+        too_large = _is_too_large(exc, tmp)  # before the temporary, whose size may tell, is removed
         _remove(tmp)
         remove_empty_folders(made)
+        if too_large:  # the file inside, named in the folder asked for, and the limit if known
+            raise _too_large_in(exc, tmp, path) from exc
         if is_disk_full(exc):
             raise DiskFullError(path) from exc
         _raise_unwritable(exc, tmp, path)

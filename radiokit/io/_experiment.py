@@ -25,6 +25,7 @@ import h5py
 import numpy as np
 
 from radiokit.errors import FormatError
+from radiokit.io._atomic import file_size_limit
 
 __all__ = [
     "ExperimentWriter",
@@ -75,35 +76,6 @@ _SERIES = (
 
 def _set_class(group, nx_class):
     group.attrs["NX_class"] = nx_class
-
-
-#: File systems whose files stop at 4 GiB - 1 (FAT12/16/32; exFAT has no such limit).
-_FAT_TYPES = frozenset({"vfat", "msdos", "fat", "umsdos"})
-_FAT_MAX_FILE = 2**32 - 1
-
-
-def _file_system_type(folder) -> str | None:
-    """The type of the file system holding ``folder`` (Linux: the longest mount point of
-    /proc/self/mounts above it), or None where that is not known.
-
-    Why not ``pathconf(PC_FILESIZEBITS)``: glibc answers 32 for every file system it does not
-    list (tmpfs, NFS, CIFS, FUSE, overlay), which capped experiment files there at 2 GiB --
-    about 200 full frames -- with no such limit on the disk."""
-    try:
-        target = os.path.realpath(folder)
-        best, kind = "", None
-        with open("/proc/self/mounts", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                fields = line.split()
-                if len(fields) < 3:
-                    continue
-                mount = fields[1].replace("\\040", " ")
-                inside = target == mount or target.startswith(mount.rstrip("/") + "/")
-                if inside and len(mount) >= len(best):
-                    best, kind = mount, fields[2]
-        return kind
-    except OSError:  # no /proc (not Linux): no file-system limit assumed
-        return None
 
 
 class ExperimentWriter:
@@ -163,6 +135,11 @@ class ExperimentWriter:
             raise FileExistsError(f"{self.path}: exists; raw data is never overwritten (use mode='a' to append)")
         if mode == "a" and not self.path.exists():
             raise FileNotFoundError(f"{self.path}: no experiment file to append to")
+        lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
+        number = isinstance(pixel_size_mm, (int, float, np.number)) and not isinstance(pixel_size_mm, (bool, np.bool_))
+        if mode == "w" and not (number and lo <= pixel_size_mm <= hi):
+            # checked as the readers check it (NaN fails too): a file no reader would open is not begun
+            raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._h5 = h5py.File(self.path, "w" if mode == "w" else "r+")
         try:
             if mode == "w":
@@ -244,7 +221,8 @@ class ExperimentWriter:
         if shape is not None and tuple(shape) != data.shape[1:]:
             raise ValueError(f"{self.path}: frames are {data.shape[1:]}, not {tuple(shape)}")
         # A crash between resizing and the counter update leaves a partial frame: drop it.
-        n = int(h5[ENTRY].attrs.get("frames_complete", data.shape[0]))
+        # checked first: `true` (1) or a negative count here truncated the frames already taken
+        n = _frames_complete(self.path, h5, data.shape[0])
         n = min([n, data.shape[0]] + [h5[g][name].shape[0] for g, name, *_ in _SERIES if name in h5[g]])
         for ds in [data] + [h5[g][name] for g, name, *_ in _SERIES]:
             if ds.shape[0] != n:
@@ -374,19 +352,7 @@ class ExperimentWriter:
     def _size_and_limit(self) -> tuple[int, float]:
         """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and, on
         a FAT file system, 4 GiB - 1, whichever is lower."""
-        size = self.path.stat().st_size
-        limit = math.inf
-        try:
-            import resource
-
-            soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-            if soft != resource.RLIM_INFINITY:
-                limit = soft
-        except (ImportError, OSError, ValueError):  # no resource module (Windows): no process limit
-            pass
-        if _file_system_type(self.path.parent) in _FAT_TYPES:
-            limit = min(limit, _FAT_MAX_FILE)
-        return size, limit
+        return self.path.stat().st_size, file_size_limit(self.path.parent)
 
     @property
     def _ballast_path(self) -> Path:
@@ -511,10 +477,7 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
         if ENTRY not in h5 or IMAGE_KEY not in h5:
             raise FormatError(path, f"lacks /{IMAGE_KEY}: not a radiokit experiment file")
         attrs = h5[ENTRY].attrs
-        n = attrs.get("frames_complete", 0)
-        if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
-            raise FormatError(path, f"/{ENTRY}@frames_complete is {n!r}; expected a count of frames")
-        n = int(n)
+        n = _frames_complete(path, h5, 0)
         check_budget(path, 16 * n, f"the keys and steps of {n} frames")
         keys = checked_dataset(path, h5, IMAGE_KEY, "iu", (1,), allow_external)[:n]
         steps = (
@@ -602,6 +565,50 @@ def check_filters(path, ds) -> None:
         )
 
 
+#: The pixel pitches a radiography panel may have, in metres: 0.1 um to 10 mm. Outside, the value
+#: is corrupt or in the wrong unit (NeXus stores metres: 0.05 there is 5 cm, a millimetre value).
+PIXEL_SIZE_RANGE_M = (1e-7, 1e-2)
+
+
+def _check_pixel_size(path, name: str, value) -> None:
+    """Refuse a pixel pitch that is not a positive finite length of a panel's order: ROIs in mm and
+    the crop divide by it (0 was a ZeroDivisionError traceback, NaN or inf an empty-ROI riddle)."""
+    value = float(value)
+    lo, hi = PIXEL_SIZE_RANGE_M
+    if not math.isfinite(value) or value <= 0:
+        raise FormatError(path, f"{name} is {value!r}: a pixel size must be a positive finite number (metres)")
+    if not lo <= value <= hi:
+        raise FormatError(
+            path,
+            f"{name} is {value!r} m ({value * 1e3:g} mm): not a panel's pixel ({lo * 1e6:g} um to {hi * 1e3:g} mm); "
+            "NeXus stores metres (0.05 mm is 5e-05)",
+        )
+
+
+def _check_pixel_dataset(path, name: str, ds) -> None:
+    """A pixel size that is there must be one plain number: left out as other optional fields are
+    when unreadable (`true`, text, an array), ROIs in mm were measured with 0.05 mm instead."""
+    if isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype):
+        return
+    if not isinstance(ds, h5py.Dataset):
+        what = "a group"
+    elif h5py.check_string_dtype(ds.dtype) is not None:
+        what = "text"
+    else:
+        what = f"{ds.dtype} of shape {ds.shape}"
+    raise FormatError(path, f"/{DETECTOR}/{name} is {what}: expected one number (metres)")
+
+
+def _frames_complete(path, h5, default: int) -> int:
+    """``@frames_complete`` (``default`` when absent) as a count, or a FormatError naming it: a
+    bool (HDF5's ``true`` reads as 1 frame), a fraction, text or a negative number is no count."""
+    n = h5[ENTRY].attrs.get("frames_complete", default)
+    if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
+        shown = n.item() if isinstance(n, np.generic) else n
+        raise FormatError(path, f"/{ENTRY}@frames_complete is {shown!r}; expected a count of frames")
+    return int(n)
+
+
 def _plain_numbers(dtype, kinds="iuf") -> bool:
     return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
 
@@ -624,7 +631,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
-    n = max(0, min(int(h5[ENTRY].attrs.get("frames_complete", data.shape[0])), data.shape[0]))
+    n = min(_frames_complete(path, h5, data.shape[0]), data.shape[0])
     check_budget(path, len(_SERIES) * 8 * n, f"the per-frame records of {n} frames", budget)
     meta = {"format": "experiment"}
     for group, name, *_ in _SERIES:
@@ -638,6 +645,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
+        if name.endswith("pixel_size") and ds is not None:
+            _check_pixel_dataset(path, name, ds)
         # optional: left out unless plain numbers of the expected rank
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
             check_local(path, h5, ds, allow_external)
@@ -646,6 +655,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     bits = meta.pop("bit_depth_readout", None)
     if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
         meta["bit_depth"] = int(bits)
+    for name in ("x_pixel_size", "y_pixel_size"):
+        if name in meta:
+            _check_pixel_size(path, f"/{DETECTOR}/{name}", meta[name])
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
     check_links(path, h5, SOURCE, allow_external)
