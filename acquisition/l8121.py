@@ -415,7 +415,7 @@ def _tolerance(spec: float | str, set_value: float, name: str) -> float:
     return float(spec)
 
 
-def _names_file(text: str) -> bool:
+def names_file(text: str) -> bool:
     """Whether ``text`` is the path of an existing file (a name too long or holding NUL is not)."""
     try:
         return Path(text).is_file()
@@ -426,7 +426,7 @@ def _names_file(text: str) -> bool:
 def _toml_section(source: str | Path, section: str) -> dict:
     text = source
     # a one-line string is a file when it has no "=" or names an existing one (runs/kv=60/source.toml)
-    if isinstance(source, Path) or ("\n" not in source and ("=" not in source or _names_file(source))):
+    if isinstance(source, Path) or ("\n" not in source and ("=" not in source or names_file(source))):
         text = Path(source).read_text(encoding="utf-8")
     table: Any = tomllib.loads(text)
     for part in section.split(".") if section else ():

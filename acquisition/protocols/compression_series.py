@@ -371,14 +371,6 @@ _SECTIONS = {
 }
 
 
-def _names_file(text: str) -> bool:
-    """Whether ``text`` is the path of an existing file (a name too long or holding NUL is not)."""
-    try:
-        return Path(text).is_file()
-    except (OSError, ValueError):
-        return False
-
-
 def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Protocol:
     """A :class:`Protocol` from a TOML file path, TOML text, or a dict. Unknown keys are errors
     (a typo must not silently fall back to a default exposure), and so is every setting the run
@@ -390,9 +382,11 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
     if isinstance(source, dict):
         data = source
     else:
+        from acquisition.l8121 import names_file  # the source config's rule, one place
+
         text_ = str(source)
         one_line = not text and "\n" not in text_
-        if isinstance(source, Path) or (one_line and ("=" not in text_ or _names_file(text_))):
+        if isinstance(source, Path) or (one_line and ("=" not in text_ or names_file(text_))):
             where = text_
             try:
                 text_ = Path(text_).read_text()
