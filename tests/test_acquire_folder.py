@@ -252,6 +252,10 @@ def test_the_protocols_pixel_size_reaches_the_lab_detector(tmp_path):
         server.stop()
     with pytest.raises(DeviceError, match=r"pixel_size_mm = 0: expected the panel's pitch"):
         load_protocol({"detector": {"folder": str(tmp_path), "shape": [8, 8], "pixel_size_mm": 0}})
+    # the experiment file refuses these when the run opens it (after connecting): a dry run must too
+    for bad in (20, 5e-5):  # 2 cm; metres by mistake
+        with pytest.raises(DeviceError, match=r"pixel_size_mm = .*expected the panel's pitch in mm, 0.0001 to 10"):
+            load_protocol({"detector": {"folder": str(tmp_path), "shape": [8, 8], "pixel_size_mm": bad}})
 
 
 def test_the_folder_settings_of_the_protocol_reach_the_watcher(tmp_path):

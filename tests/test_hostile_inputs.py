@@ -1413,6 +1413,36 @@ def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
 
 
+@pytest.mark.parametrize(
+    ("value", "units", "mm"),
+    [(np.array([7.5e-5]), None, 0.075), (75.0, "um", 0.075), (np.array([0.1]), "mm", 0.1), (5e-5, "m", 0.05)],
+)
+def test_a_pixel_size_as_one_element_or_in_other_units_is_read(value, units, mm, tmp_path):
+    """Some NXtomo writers store the pitch as a one-element array, and NeXus lets ``@units`` say
+    um or mm: the review found the first refused outright (and 75 um read as 75 m, refused) once
+    the pitch was checked. Both are the panel's pitch."""
+    from radiokit.io._experiment import DETECTOR, read_experiment_meta
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        del h5[DETECTOR]["x_pixel_size"]
+        h5[DETECTOR]["x_pixel_size"] = value
+        if units is not None:
+            h5[DETECTOR]["x_pixel_size"].attrs["units"] = units
+    with h5py.File(exp, "r") as h5:
+        _, meta = read_experiment_meta(exp, h5)
+    assert meta["pixel_size_mm"] == pytest.approx(mm, rel=1e-12)
+
+
+def test_a_pixel_size_in_unknown_units_is_one_line(tmp_path):
+    from radiokit.io._experiment import DETECTOR
+
+    exp = _experiment(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        h5[DETECTOR]["x_pixel_size"].attrs["units"] = "furlong"
+    one_line_error(run("info", exp), "exp.h5", "x_pixel_size", "furlong")
+
+
 @pytest.mark.parametrize("value", [0, -0.05, math.nan, math.inf, True, 50, "0.05"])
 def test_the_experiment_writer_refuses_a_pixel_size_no_reader_would_open(value, tmp_path):
     with pytest.raises(ValueError, match="pixel_size_mm=.*expected a panel's pixel pitch"):

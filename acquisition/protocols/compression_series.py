@@ -234,10 +234,17 @@ class Protocol:
             raise ProtocolError(
                 f"[detector] bits = {d.bits!r}: expected the panel's ADC bits, 1 to 16 (frames are uint16)"
             )
-        if d.pixel_size_mm is not None and d.pixel_size_mm <= 0:
-            raise ProtocolError(
-                f"[detector] pixel_size_mm = {d.pixel_size_mm!r}: expected the panel's pitch in mm, > 0"
-            )
+        if d.pixel_size_mm is not None:
+            from radiokit.io._experiment import PIXEL_SIZE_RANGE_M
+
+            # the experiment file refuses the same range when the run opens it: a dry run must too
+            lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
+            size = d.pixel_size_mm
+            if isinstance(size, bool) or not isinstance(size, numbers.Real) or not lo <= size <= hi:
+                raise ProtocolError(
+                    f"[detector] pixel_size_mm = {size!r}: expected the panel's pitch in mm, {lo:g} to {hi:g} "
+                    "(the C7942's is 0.05)"
+                )
         _check_source(self.source)
         if _whole(self.source.voltage_kv) > d.kvp_max:  # what the driver sends
             raise ProtocolError(

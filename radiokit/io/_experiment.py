@@ -585,10 +585,26 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+#: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says
+_LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "\u00b5m": 1e-6, "micron": 1e-6, "nm": 1e-9}
+
+
+def _pixel_metres(path, name: str, ds) -> float:
+    """A pixel size that is there as one plain number, in metres. One number stored as a
+    one-element array (as some NXtomo writers do) is that number, and ``@units`` (m, mm, um, nm) is
+    honoured; anything else is refused: left out as other optional fields are when unreadable
+    (`true`, text, two numbers), ROIs in mm were measured with 0.05 mm instead."""
+    _check_pixel_dataset(path, name, ds)
+    units = ds.attrs.get("units", "m")
+    units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
+    if units not in _LENGTH_UNITS_M:
+        raise FormatError(path, f"/{DETECTOR}/{name} has units {units!r}: expected one of {sorted(_LENGTH_UNITS_M)}")
+    return float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M[units]
+
+
 def _check_pixel_dataset(path, name: str, ds) -> None:
-    """A pixel size that is there must be one plain number: left out as other optional fields are
-    when unreadable (`true`, text, an array), ROIs in mm were measured with 0.05 mm instead."""
-    if isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype):
+    """See :func:`_pixel_metres`: one plain number (a 0-d dataset or a one-element array)."""
+    if isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype):
         return
     if not isinstance(ds, h5py.Dataset):
         what = "a group"
@@ -645,8 +661,11 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
-        if name.endswith("pixel_size") and ds is not None:
-            _check_pixel_dataset(path, name, ds)
+        if name.endswith("pixel_size"):
+            if ds is not None:
+                check_local(path, h5, ds, allow_external)
+                meta[name] = _pixel_metres(path, name, ds)
+            continue
         # optional: left out unless plain numbers of the expected rank
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
             check_local(path, h5, ds, allow_external)
