@@ -235,7 +235,7 @@ class Protocol:
                 f"[detector] bits = {d.bits!r}: expected the panel's ADC bits, 1 to 16 (frames are uint16)"
             )
         if d.pixel_size_mm is not None:
-            from radiokit.io._experiment import PIXEL_SIZE_RANGE_M
+            from radiokit.io import PIXEL_SIZE_RANGE_M
 
             # the experiment file refuses the same range when the run opens it: a dry run must too
             lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)

@@ -26,7 +26,7 @@ from radiokit.io._atomic import (
     check_output,
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
-from radiokit.io._experiment import ExperimentProgress, ExperimentWriter, ImageKey, read_progress
+from radiokit.io._experiment import PIXEL_SIZE_RANGE_M, ExperimentProgress, ExperimentWriter, ImageKey, read_progress
 from radiokit.io._frames import BitDepthWarning, Frames
 from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
@@ -36,6 +36,7 @@ from radiokit.io._source import FORMATS, FrameSource, iter_frames, open_frames, 
 from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = [
+    "PIXEL_SIZE_RANGE_M",
     "read",
     "open_frames",
     "iter_frames",

@@ -602,6 +602,20 @@ def _pixel_metres(path, name: str, ds) -> float:
     return float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M[units]
 
 
+def _read_pixel_sizes(path, h5, meta: dict, allow_external: bool) -> None:
+    """``meta``'s ``x_pixel_size`` / ``y_pixel_size`` (metres) and ``pixel_size_mm``, where the
+    file has them; one that is there but is no panel's pitch is refused."""
+    for name in ("x_pixel_size", "y_pixel_size"):
+        check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
+        ds = h5[DETECTOR].get(name)
+        if ds is not None:
+            check_local(path, h5, ds, allow_external)
+            meta[name] = _pixel_metres(path, name, ds)
+            _check_pixel_size(path, f"/{DETECTOR}/{name}", meta[name])
+    if "x_pixel_size" in meta:
+        meta["pixel_size_mm"] = meta["x_pixel_size"] * 1e3
+
+
 def _check_pixel_dataset(path, name: str, ds) -> None:
     """See :func:`_pixel_metres`: one plain number (a 0-d dataset or a one-element array)."""
     if isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype):
@@ -658,14 +672,10 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             meta[name] = values
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{IMAGE_KEY}")
-    for name, ndim in (("x_pixel_size", 0), ("y_pixel_size", 0), ("pixel_mask", 2), ("bit_depth_readout", 0)):
+    _read_pixel_sizes(path, h5, meta, allow_external)
+    for name, ndim in (("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
         ds = h5[DETECTOR].get(name)
-        if name.endswith("pixel_size"):
-            if ds is not None:
-                check_local(path, h5, ds, allow_external)
-                meta[name] = _pixel_metres(path, name, ds)
-            continue
         # optional: left out unless plain numbers of the expected rank
         if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
             check_local(path, h5, ds, allow_external)
@@ -674,11 +684,6 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     bits = meta.pop("bit_depth_readout", None)
     if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
         meta["bit_depth"] = int(bits)
-    for name in ("x_pixel_size", "y_pixel_size"):
-        if name in meta:
-            _check_pixel_size(path, f"/{DETECTOR}/{name}", meta[name])
-    if "x_pixel_size" in meta:
-        meta["pixel_size_mm"] = float(meta["x_pixel_size"]) * 1e3
     check_links(path, h5, SOURCE, allow_external)
     src = h5.get(SOURCE)
     if src is not None:
