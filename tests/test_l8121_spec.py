@@ -545,6 +545,17 @@ def _silence_after_xon(model, deadline_s=30.0):
     model.silent = True
 
 
+def _on_silenced_after_xon(model, pty, dialect, timeout_s):
+    """An ``on()`` whose controller falls silent once the ``XON`` is in, while the beam ramps (a
+    fixed 0.5 s fell before B's nine commands to XON on a loaded machine: no XON, rightly no XOF);
+    it must fail with "no reply". The driver, for the caller to go on with."""
+    src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=timeout_s)
+    threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
+    with pytest.raises(DeviceError, match="no reply"):
+        src.on(60, 250)
+    return src
+
+
 def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
     """The controller falls silent while the beam ramps: one switch-off (``XOF``, ``STS``, both
     unanswered) and the error -- not a second round on the way out of ``on()``, which cannot
@@ -552,12 +563,7 @@ def test_a_silent_controller_gets_one_switch_off_before_the_error(dialect):
     (``L8121.md``: "Time-outs are explicit and short; a silent controller is an error")."""
     model = SpecModel(dialect, warm=True, ramp_s=5.0)
     with served(model) as pty:
-        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.5)
-        # silent once the XON is in (a fixed 0.5 s fell before B's nine commands to XON on a loaded
-        # machine: no XON, rightly no XOF), while the beam ramps
-        threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
-        with pytest.raises(DeviceError, match="no reply"):
-            src.on(60, 250)
+        src = _on_silenced_after_xon(model, pty, dialect, timeout_s=0.5)
         n_xof = model.received.count("XOF")
         src.detach()
     assert n_xof == 1, model.received[-8:]
@@ -571,10 +577,7 @@ def test_close_after_a_failed_switch_off_tries_once_more(dialect):
     at the controller; ``detach()`` is the way out without that round."""
     model = SpecModel(dialect, warm=True, ramp_s=5.0)
     with served(model) as pty:
-        src = L8121(pty.url, dialect=dialect, poll_s=0.05, timeout_s=0.3)
-        threading.Thread(target=_silence_after_xon, args=(model,), daemon=True).start()
-        with pytest.raises(DeviceError, match="no reply"):
-            src.on(60, 250)
+        src = _on_silenced_after_xon(model, pty, dialect, timeout_s=0.3)
         assert model.received.count("XOF") == 1
         with pytest.raises(DeviceError, match="switch the source off at the controller"):
             src.close()
