@@ -239,8 +239,8 @@ class Protocol:
 
             # the experiment file refuses the same range when the run opens it: a dry run must too
             lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
-            size = d.pixel_size_mm
-            if isinstance(size, bool) or not isinstance(size, numbers.Real) or not lo <= size <= hi:
+            size = d.pixel_size_mm  # already a finite number (bools and text refused where it was read)
+            if not lo <= size <= hi:
                 raise ProtocolError(
                     f"[detector] pixel_size_mm = {size!r}: expected the panel's pitch in mm, {lo:g} to {hi:g} "
                     "(the C7942's is 0.05)"
