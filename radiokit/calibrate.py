@@ -21,6 +21,7 @@ import cv2
 import h5py
 import numpy as np
 
+from radiokit import _json as strict_json
 from radiokit._version import __version__
 from radiokit.errors import FormatError
 
@@ -439,8 +440,9 @@ class Calibration:
             g["defect_rows"] = self.defect_rows
             g["defect_columns"] = self.defect_columns
             g.attrs["c"] = self.c
-            g.attrs["thresholds"] = json.dumps(asdict(self.thresholds))
-            g.attrs["provenance"] = json.dumps(self.provenance)
+            # strict JSON (radiokit._json): a NaN current or noise is null, named in "not_finite"
+            g.attrs["thresholds"] = strict_json.dumps(asdict(self.thresholds))
+            g.attrs["provenance"] = strict_json.dumps(self.provenance)
             g.attrs["software"] = f"radiokit {__version__}"
         return path
 
@@ -525,6 +527,10 @@ def _json_attr(path, group, name) -> dict:
         value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
     except (TypeError, ValueError, RecursionError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
+    try:  # the non-finite numbers the writer nulled (radiokit._json)
+        value = strict_json.restore(value, f"{group.name}@{name}")
+    except ValueError as exc:
+        raise FormatError(path, str(exc)) from None
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
     return value

@@ -148,8 +148,10 @@ def cmd_info(args) -> int:
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
             reports.append(_describe(path, src, args.all, args.sample))
-    if args.json:
-        print(json.dumps(reports, indent=2, default=str))
+    if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
+        from radiokit._json import strict
+
+        print(json.dumps([strict(r) for r in reports], indent=2, default=str, allow_nan=False))
         return 0
     for rep in reports:
         print(f"{rep['file']}")

@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import errno
-import json
 import math
 import os
 import shutil
@@ -24,6 +23,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._atomic import file_size_limit
 
@@ -400,7 +400,7 @@ class ExperimentWriter:
         """Record what wrote the file: the protocol (TOML text, so ``--resume`` can check it) and
         the devices (JSON)."""
         self._h5[ENTRY].attrs["protocol"] = protocol_toml
-        self._h5[ENTRY].attrs["devices"] = json.dumps(devices, default=str)
+        self._h5[ENTRY].attrs["devices"] = strict_json.dumps(devices, default=str)  # no NaN/Infinity words
         self._h5.flush()
 
     def mark_invalid(self, indices) -> None:

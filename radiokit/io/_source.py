@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import stat
@@ -14,6 +13,7 @@ import h5py
 import numpy as np
 import tifffile
 
+from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
 from radiokit.io._experiment import (
@@ -302,7 +302,7 @@ class FrameSource:
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
-                self.meta["description"] = json.loads(desc)
+                self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
             except (ValueError, RecursionError):  # free text, however it looks
                 pass
 
