@@ -455,6 +455,44 @@ def _process_config(args, opts):
     )
 
 
+#: names that say "a file": ``-o x.h5`` made a results folder called x.h5, which every other program
+#: then takes for an HDF5 file
+_DATA_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nxs", ".nx", ".tif", ".tiff", ".json")
+
+
+def _same_file(a, b) -> bool:
+    """The same file however named: a symlink, a hard link, ``./a.h5`` (os.path.samefile
+    compares device and inode); names that do not exist yet compare resolved."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def _check_process_files(args) -> None:
+    """Refuse, before any work, what can only be a slip: a file given twice (it was processed
+    twice, its folders STEM and STEM-2 holding the same numbers), a control that is one of the
+    files (a control is another phantom, its inclusion as soft as the background: a file against
+    itself compares nothing), and an ``-o`` named like a data file (it is a folder)."""
+    for i, a in enumerate(args.files):
+        for b in args.files[:i]:
+            if _same_file(a, b):
+                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
+                raise ValueError(f"{a}: the same experiment file given {same}; give each file once")
+    if args.control:
+        for f in args.files:
+            if _same_file(args.control, f):
+                raise ValueError(
+                    f"--control {args.control}: is the experiment file {f} itself; a control is another "
+                    "experiment, its inclusion as soft as the background"
+                )
+    if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
+        raise ValueError(
+            f"-o {args.output}: -o is a results folder, not a file; name it without {args.output.suffix} "
+            "(results.h5, results.json and report.html are written inside)"
+        )
+
+
 def cmd_process(args) -> int:
     from radiokit.io import check_output
     from radiokit.pipeline import output_folders, process, process_many
@@ -467,6 +505,7 @@ def cmd_process(args) -> int:
             raise ValueError(f"{f}: is a folder, not an experiment file")
     if args.control and not args.control.exists():  # checked now, not after the main file's registrations
         raise ValueError(f"--control {args.control}: no such experiment file")
+    _check_process_files(args)
     _check_preset(args)
     opts = {"preset": args.preset} if args.preset else {}
     try:
