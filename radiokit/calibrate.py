@@ -375,6 +375,7 @@ class Calibration:
                 "counts): was the beam on for the flats?"
             )
         mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
+        _check_defect_share(mask)
         good = mask == 0
         return cls(
             dark,
@@ -681,6 +682,29 @@ def _defect_map(flat, dark_std, response, th):
             stacklevel=3,
         )
     return mask, rows_idx, cols_idx, n_flat_saturated
+
+
+#: The largest share of the panel a defect map may mark defective. The C7942 has up to 20 defect
+#: lines (the hardware facts, shared/hardware/C7942.md, "Corrections the manual prescribes"): at 1x1 that is
+#: 20 lines of 2240-2368 px in a 2240 x 2240-2368 frame, 0.9 %; a line stays a line when binned, so
+#: at 4x4 (560 px) it is 20 / 560 = 3.6 %, and isolated defects and the thresholds' statistical
+#: flags add a fraction of a percent. 10 % is nearly three times that worst honest case, while frames
+#: that are not a dark and flat of one set-up (the beam blocked for most of the flats, a flat taken
+#: as a dark, another panel's frames) flag half the panel or more (line_fraction then turns every
+#: row and column into a line).
+MAX_DEFECTIVE_SHARE = 0.10
+
+
+def _check_defect_share(mask) -> None:
+    """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
+    calibration "corrects" by filling most pixels from their neighbours, and was exiting 0."""
+    n = int(np.count_nonzero(mask))
+    if n > MAX_DEFECTIVE_SHARE * mask.size:
+        raise ValueError(
+            f"the defect map marks {n} of {mask.size} pixels ({100 * n / mask.size:.1f} %) defective, over the "
+            f"{100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most (up to 20 defect lines): these darks and flats "
+            "are not of one panel set-up (beam blocked for the flats? frames swapped or of another panel?)"
+        )
 
 
 def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) -> dict:
