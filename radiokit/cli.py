@@ -214,22 +214,21 @@ def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
 
     frames, total, first = [], 0, None
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
-    bar = tqdm(desc=f"read {what}", unit="frame", disable=not progress)
-    for p in paths:
-        with open_frames(p, **hints) as src:
-            first = first or (p, src.frame_shape)
-            if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
-                raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
-            total += len(src) * src.frame_bytes
-            check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
-            keys = src.meta.get("image_key")
-            for i in range(len(src)):
-                if key is None or keys is None or keys[i] == key:
-                    frames.append(src[i])
-                    bar.update()
-                    if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
-                        raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
-    bar.close()
+    with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
+        for p in paths:
+            with open_frames(p, **hints) as src:
+                first = first or (p, src.frame_shape)
+                if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
+                    raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
+                total += len(src) * src.frame_bytes
+                check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
+                keys = src.meta.get("image_key")
+                for i in range(len(src)):
+                    if key is None or keys is None or keys[i] == key:
+                        frames.append(src[i])
+                        bar.update()
+                        if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
+                            raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:
         raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
     return np.stack(frames)
