@@ -21,6 +21,7 @@ import cv2
 import h5py
 import numpy as np
 
+from radiokit import _json as strict_json
 from radiokit._version import __version__
 from radiokit.errors import FormatError
 
@@ -155,7 +156,7 @@ def _as_stack(frames, what) -> np.ndarray:
     return data
 
 
-def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
+def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, callback=None):
     """Average a stack so that a zinger in one frame leaves no trace.
 
     Each pixel's samples further than ``clip_sigma`` noise sigmas from the pixel's median are
@@ -172,6 +173,8 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
         Also return each pixel's temporal standard deviation, leaving out its most deviant
         sample when that one is an outlier against the others (a zinger does not count, a noisy
         pixel does); NaN with fewer than 3 frames.
+    callback : callable, optional
+        Called with the number of rows averaged after each block (a progress bar's ``update``).
 
     Returns
     -------
@@ -219,6 +222,8 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False):
             outlier = np.abs(x_w - m_o) > clip_sigma * np.maximum(s_o, sigma / 4)
             s_all = blk.std(axis=0, ddof=1)
             std[r0 : r0 + block_rows] = np.where(outlier, s_o, s_all)
+        if callback is not None:
+            callback(blk.shape[1])
     return (mean, std) if return_std else mean
 
 
@@ -328,7 +333,9 @@ class Calibration:
 
     # -- building -----------------------------------------------------------------------------
     @classmethod
-    def from_frames(cls, darks, flats, *, dark_times=None, flat_times=None, **thresholds) -> Calibration:
+    def from_frames(
+        cls, darks, flats, *, dark_times=None, flat_times=None, progress=False, **thresholds
+    ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
 
         Parameters
@@ -337,6 +344,9 @@ class Calibration:
             Frames with the beam off and with the open beam (no object), raw counts.
         dark_times, flat_times : sequence of float, optional
             Acquisition times (s since the epoch), kept in the provenance.
+        progress : bool
+            A progress bar on stderr over the rows averaged and mapped (a 2240 x 2240 panel's
+            averages take seconds per ten frames of each).
         **thresholds
             Any field of :class:`Thresholds`.
 
@@ -359,8 +369,19 @@ class Calibration:
         darks, flats = _check_stacks(darks, flats)
         if th.saturation is None:
             th = replace(th, saturation=adc_top(darks, flats))
-        dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True)
-        flat = robust_average(flats, clip_sigma=th.clip_sigma)
+        rows = darks.shape[1]
+        with _bar(progress, 3 * rows, "calibrate darks", "row") as bar:
+            dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True, callback=bar.update)
+            bar.set_description("calibrate flats")
+            flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
+            bar.set_description("calibrate defects")
+            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times)
+            bar.update(rows)
+        return cal
+
+    @classmethod
+    def _from_averages(cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times) -> Calibration:
+        """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`)."""
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
             # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
@@ -374,6 +395,7 @@ class Calibration:
                 "counts): was the beam on for the flats?"
             )
         mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
+        _check_defect_share(mask)
         good = mask == 0
         return cls(
             dark,
@@ -387,9 +409,10 @@ class Calibration:
         )
 
     @classmethod
-    def from_experiment(cls, path, *, allow_external=False, **thresholds) -> Calibration:
+    def from_experiment(cls, path, *, allow_external=False, progress=False, **thresholds) -> Calibration:
         """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file
-        (``allow_external``: its frames may lie in other files, see :func:`radiokit.io.read`)."""
+        (``allow_external``: its frames may lie in other files, see :func:`radiokit.io.read`;
+        ``progress``: bars on stderr over the frames read and the rows averaged)."""
         from radiokit.io import ImageKey, open_frames
 
         with open_frames(path, allow_external=allow_external) as src:
@@ -405,11 +428,16 @@ class Calibration:
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             if thresholds.get("saturation") is None and "bit_depth" in src.meta:  # the panel's, as recorded
                 thresholds = {**thresholds, "saturation": (1 << src.meta["bit_depth"]) - 1}
-            darks = np.stack([src[i] for i in sel[ImageKey.DARK]])
-            flats = np.stack([src[i] for i in sel[ImageKey.FLAT]])
+            with _bar(progress, n_cal, f"read {Path(path).name}", "frame") as bar:
+                darks, flats = (_read_counted(src, sel[k], bar) for k in (ImageKey.DARK, ImageKey.FLAT))
         try:
             cal = cls.from_frames(
-                darks, flats, dark_times=times[sel[ImageKey.DARK]], flat_times=times[sel[ImageKey.FLAT]], **thresholds
+                darks,
+                flats,
+                dark_times=times[sel[ImageKey.DARK]],
+                flat_times=times[sel[ImageKey.FLAT]],
+                progress=progress,
+                **thresholds,
             )
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
@@ -439,8 +467,9 @@ class Calibration:
             g["defect_rows"] = self.defect_rows
             g["defect_columns"] = self.defect_columns
             g.attrs["c"] = self.c
-            g.attrs["thresholds"] = json.dumps(asdict(self.thresholds))
-            g.attrs["provenance"] = json.dumps(self.provenance)
+            # strict JSON (radiokit._json): a NaN current or noise is null, named in "not_finite"
+            g.attrs["thresholds"] = strict_json.dumps(asdict(self.thresholds))
+            g.attrs["provenance"] = strict_json.dumps(self.provenance)
             g.attrs["software"] = f"radiokit {__version__}"
         return path
 
@@ -525,6 +554,10 @@ def _json_attr(path, group, name) -> dict:
         value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
     except (TypeError, ValueError, RecursionError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
+    try:  # the non-finite numbers the writer nulled (radiokit._json)
+        value = strict_json.restore(value, f"{group.name}@{name}")
+    except ValueError as exc:
+        raise FormatError(path, str(exc)) from None
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
     return value
@@ -623,6 +656,22 @@ def frame_saturation(saturation, raw) -> int | None:
     return adc_top(raw)
 
 
+def _bar(progress: bool, total, desc: str, unit: str):
+    """A tqdm bar on stderr, or one that shows nothing (``progress`` False), as radiokit process's."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=not progress)
+
+
+def _read_counted(src, indices, bar) -> np.ndarray:
+    """Frames ``indices`` of ``src`` stacked, the bar advanced by one per frame read."""
+    frames = []
+    for i in indices:
+        frames.append(src[i])
+        bar.update()
+    return np.stack(frames)
+
+
 def _check_stacks(darks, flats):
     """Both stacks as 3-D arrays of one frame shape; a warning for fewer than 3 frames."""
     darks = _as_stack(darks, "darks")
@@ -672,9 +721,32 @@ def _defect_map(flat, dark_std, response, th):
             f"{n_flat_saturated} pixels of the averaged flat are saturated (>= {th.saturation}); "
             "they are flagged, but lower the flat exposure",
             CalibrationWarning,
-            stacklevel=3,
+            stacklevel=4,  # _defect_map, _from_averages, from_frames: the caller's line
         )
     return mask, rows_idx, cols_idx, n_flat_saturated
+
+
+#: The largest share of the panel a defect map may mark defective. The C7942 has up to 20 defect
+#: lines (the hardware facts, shared/hardware/C7942.md, "Corrections the manual prescribes"): at 1x1 that is
+#: 20 lines of 2240-2368 px in a 2240 x 2240-2368 frame, 0.9 %; a line stays a line when binned, so
+#: at 4x4 (560 px) it is 20 / 560 = 3.6 %, and isolated defects and the thresholds' statistical
+#: flags add a fraction of a percent. 10 % is nearly three times that worst honest case, while frames
+#: that are not a dark and flat of one set-up (the beam blocked for most of the flats, a flat taken
+#: as a dark, another panel's frames) flag half the panel or more (line_fraction then turns every
+#: row and column into a line).
+MAX_DEFECTIVE_SHARE = 0.10
+
+
+def _check_defect_share(mask) -> None:
+    """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
+    calibration "corrects" by filling most pixels from their neighbours, and was exiting 0."""
+    n = int(np.count_nonzero(mask))
+    if n > MAX_DEFECTIVE_SHARE * mask.size:
+        raise ValueError(
+            f"the defect map marks {n} of {mask.size} pixels ({100 * n / mask.size:.1f} %) defective, over the "
+            f"{100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most (up to 20 defect lines): these darks and flats "
+            "are not of one panel set-up (beam blocked for the flats? frames swapped or of another panel?)"
+        )
 
 
 def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) -> dict:

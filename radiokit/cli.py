@@ -148,8 +148,10 @@ def cmd_info(args) -> int:
     for path in args.files:
         with open_frames(path, **_raw_hints(args)) as src:
             reports.append(_describe(path, src, args.all, args.sample))
-    if args.json:
-        print(json.dumps(reports, indent=2, default=str))
+    if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
+        from radiokit._json import strict
+
+        print(json.dumps([strict(r) for r in reports], indent=2, default=str, allow_nan=False))
         return 0
     for rep in reports:
         print(f"{rep['file']}")
@@ -199,23 +201,34 @@ def _parse_thresholds(items) -> dict:
     return out
 
 
-def _stack(paths, hints, key=None) -> np.ndarray:
+def _progress(args) -> bool:
+    """Progress bars on stderr: not with ``-q``, nor when stderr is not a terminal (a log file or
+    a pipe would get every redraw, and a caller reading stderr for the one-line error a bar)."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
+
+
+def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
+    from tqdm.auto import tqdm
+
     from radiokit.io import FormatError, check_budget, open_frames
 
     frames, total, first = [], 0, None
-    for p in paths:
-        with open_frames(p, **hints) as src:
-            first = first or (p, src.frame_shape)
-            if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
-                raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
-            total += len(src) * src.frame_bytes
-            check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
-            keys = src.meta.get("image_key")
-            for i in range(len(src)):
-                if key is None or keys is None or keys[i] == key:
-                    frames.append(src[i])
-                    if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
-                        raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
+    what = "darks" if key == 2 else "flats" if key == 1 else "frames"
+    with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
+        for p in paths:
+            with open_frames(p, **hints) as src:
+                first = first or (p, src.frame_shape)
+                if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
+                    raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
+                total += len(src) * src.frame_bytes
+                check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
+                keys = src.meta.get("image_key")
+                for i in range(len(src)):
+                    if key is None or keys is None or keys[i] == key:
+                        frames.append(src[i])
+                        bar.update()
+                        if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
+                            raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:
         raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
     return np.stack(frames)
@@ -238,19 +251,21 @@ def cmd_calibrate(args) -> int:
     if args.experiment and (args.dark or args.flat):  # the files given were silently not used
         raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
     if args.experiment:
-        cal = Calibration.from_experiment(args.experiment, allow_external=args.allow_external, **th)
+        cal = Calibration.from_experiment(
+            args.experiment, allow_external=args.allow_external, progress=_progress(args), **th
+        )
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
         hints = _raw_hints(args)
-        darks, flats = _stack(args.dark, hints, key=2), _stack(args.flat, hints, key=1)
+        darks, flats = _stack(args.dark, hints, 2, _progress(args)), _stack(args.flat, hints, 1, _progress(args))
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
                 f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
             )
         try:
-            cal = Calibration.from_frames(darks, flats, **th)
+            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **th)
         except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
             raise ValueError(
                 f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
@@ -297,7 +312,7 @@ def cmd_correct(args) -> int:
         cal,
         args.output,
         domain=args.domain,
-        progress=not args.quiet,
+        progress=_progress(args),
         overwrite=args.overwrite,
         **_raw_hints(args),
     )
@@ -376,7 +391,10 @@ def cmd_register(args) -> int:
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
     try:
-        reg = register(fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options))
+        with _levels_bar(args, options) as options:
+            reg = register(
+                fixed, moving, args.method, mask, retry=args.retry, **with_default_preset(args.method, options)
+            )
     except ValueError as exc:  # the library says "fixed" or "moving"; the user wants the file
         raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
     q = reg.quality
@@ -405,6 +423,27 @@ def cmd_register(args) -> int:
             _register_png(tmp, fixed, moving, registered, reg)
         print(f"figure {args.png}")
     return 0 if q.ok else 1
+
+
+@contextlib.contextmanager
+def _levels_bar(args, options):
+    """``options`` with a progress bar over the B-spline pyramid's levels (their callback: each
+    level reports its factor and iterations; auto's second run and --retry count on). The flow
+    peers take no callback and report nothing: ``options`` as given."""
+    from radiokit.register import BSPLINE_METHODS
+
+    if args.method not in BSPLINE_METHODS or not _progress(args):
+        yield options
+        return
+    from tqdm.auto import tqdm
+
+    with tqdm(desc=f"register {args.method}", unit="level") as bar:
+
+        def level_done(factor, res):
+            bar.set_postfix_str(f"1/{factor} scale, {int(res.nit)} iterations", refresh=False)
+            bar.update()
+
+        yield {**options, "callback": level_done}
 
 
 def _register_png(path, fixed, moving, registered, reg):
@@ -447,10 +486,48 @@ def _process_config(args, opts):
         background=args.background,
         roi_units="mm" if args.mm else "px",
         report=not args.no_report,
-        progress=not args.quiet,
+        progress=_progress(args),
         control=str(args.control) if args.control else None,
         cross_check=None if args.cross_check in ("none", "") else args.cross_check,
     )
+
+
+#: names that say "a file": ``-o x.h5`` made a results folder called x.h5, which every other program
+#: then takes for an HDF5 file
+_DATA_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nxs", ".nx", ".tif", ".tiff", ".json")
+
+
+def _same_file(a, b) -> bool:
+    """The same file however named: a symlink, a hard link, ``./a.h5`` (os.path.samefile
+    compares device and inode); names that do not exist yet compare resolved."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def _check_process_files(args) -> None:
+    """Refuse, before any work, what can only be a slip: a file given twice (it was processed
+    twice, its folders STEM and STEM-2 holding the same numbers), a control that is one of the
+    files (a control is another phantom, its inclusion as soft as the background: a file against
+    itself compares nothing), and an ``-o`` named like a data file (it is a folder)."""
+    for i, a in enumerate(args.files):
+        for b in args.files[:i]:
+            if _same_file(a, b):
+                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
+                raise ValueError(f"{a}: the same experiment file given {same}; give each file once")
+    if args.control:
+        for f in args.files:
+            if _same_file(args.control, f):
+                raise ValueError(
+                    f"--control {args.control}: is the experiment file {f} itself; a control is another "
+                    "experiment, its inclusion as soft as the background"
+                )
+    if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
+        raise ValueError(
+            f"-o {args.output}: -o is a results folder, not a file; name it without {args.output.suffix} "
+            "(results.h5, results.json and report.html are written inside)"
+        )
 
 
 def cmd_process(args) -> int:
@@ -465,6 +542,7 @@ def cmd_process(args) -> int:
             raise ValueError(f"{f}: is a folder, not an experiment file")
     if args.control and not args.control.exists():  # checked now, not after the main file's registrations
         raise ValueError(f"--control {args.control}: no such experiment file")
+    _check_process_files(args)
     _check_preset(args)
     opts = {"preset": args.preset} if args.preset else {}
     try:
@@ -587,6 +665,9 @@ def _add_calibrate(sub):
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
+    )
     _add_raw_hints(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -614,7 +695,9 @@ def _add_correct(sub):
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="output .h5 or .tif")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bar (none either when stderr is not a terminal)"
+    )
     _add_raw_hints(p)
     p.set_defaults(func=cmd_correct)
 
@@ -665,6 +748,9 @@ def _add_register(sub):
     )
     p.add_argument("--png", type=Path, help="also write an overlay and det J figure (.png, .pdf, .svg, ...)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (never an input)")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bar (none either when stderr is not a terminal)"
+    )
     p.set_defaults(func=cmd_register)
 
 
@@ -741,7 +827,9 @@ def _add_process_options(p):
     )
     p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
     p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
+    )
 
 
 class _Parser(argparse.ArgumentParser):

@@ -903,7 +903,7 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
         h5path,
         ResultsRecord(
             source=record.source,
-            results_json=json.dumps(record.to_json()),
+            results_json=json.dumps(record.to_json(), allow_nan=False),  # strict: to_json nulls inf/NaN
             line_integral=images.steps,
             step=np.asarray(record.steps),
             ratio=np.asarray(record.ratios, float),

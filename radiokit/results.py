@@ -12,6 +12,11 @@ k values are floats everywhere in memory; :func:`k_label` is the only place they
 A zero reference contrast makes the improvement factor undefined: the pipeline refuses it with
 a ValueError naming the file and the domain (as :func:`radiokit.measure.improvement_factor`
 does), so no NaN improvement factor is ever written.
+
+``results.json`` is strict JSON (:mod:`radiokit._json`): a number that is not finite (a CNR is
+infinite when the background's noise is zero, as in a noiseless simulation) is written ``null``,
+and the object's ``"not_finite"`` maps its JSON pointer to ``"Infinity"``, ``"-Infinity"`` or
+``"NaN"``; :meth:`Results.from_json` puts the numbers back. Any other ``null`` is "not recorded".
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from radiokit._json import restore, strict
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 
@@ -41,17 +47,14 @@ __all__ = [
 ]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 # 1.1: registration/<pair>/rois_ok (do the ROIs lie where the motion was observed?)
+# 1.2: strict JSON: non-finite numbers written null and named in "not_finite" (radiokit._json)
 
 
 def k_label(k) -> str:
     """The text form of an enhancement factor (``1.0 -> "1"``, ``1.5 -> "1.5"``)."""
     return f"{float(k):g}"
-
-
-def _finite_or_none(v):
-    return v if not isinstance(v, float) or math.isfinite(v) else None
 
 
 @dataclass(frozen=True)
@@ -136,7 +139,7 @@ class PairResult:
         return self.quality.get("reason") or ""
 
     def registration_json(self) -> dict:
-        q = {k: _finite_or_none(v) for k, v in self.quality.items()}
+        q = dict(self.quality)
         q["method"] = self.method
         if self.rois_observed is not None:
             q["rois_observed"] = dict(self.rois_observed)
@@ -221,7 +224,8 @@ class Results:
         return {m.k: m.improvement_factor for m in self.domains[self.domain].per_k}
 
     def to_json(self) -> dict:
-        """The JSON-able form written to ``results.json`` (numbers as Python floats and ints)."""
+        """The strict-JSON form written to ``results.json`` (numbers as Python floats and ints; a
+        non-finite one null, named in ``"not_finite"``: :func:`radiokit._json.strict`)."""
         out = {
             "schema_version": SCHEMA_VERSION,
             "source": self.source,
@@ -245,8 +249,8 @@ class Results:
             "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis},
         }
         if self.control is not None:
-            out["control"] = self.control.to_json()
-        return out
+            out["control"] = self.control.to_json()  # strict already, with its own "not_finite"
+        return strict(out)
 
     @classmethod
     def from_json(cls, d: dict, where="results") -> Results:
@@ -261,6 +265,10 @@ class Results:
                 f"results schema version {shown}, this radiokit reads {SCHEMA_VERSION} "
                 "(re-run `radiokit process` to rewrite it)",
             )
+        try:  # before the fields' checks: they see the numbers as written
+            d = restore(d, str(where))
+        except ValueError as exc:
+            raise FormatError(where, f"results.json {str(exc).removeprefix(f'{where}: ')}") from None
         _check_fields(d, where)
         pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
         r = d["rois"]
@@ -287,7 +295,7 @@ class Results:
 
     def write_json(self, path) -> Path:
         path = Path(path)
-        path.write_text(json.dumps(self.to_json(), indent=1))
+        path.write_text(json.dumps(self.to_json(), indent=1, allow_nan=False))
         return path
 
 

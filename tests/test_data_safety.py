@@ -627,9 +627,11 @@ def test_a_failed_process_leaves_no_empty_folders(tmp_path):
         for step in (1, 2):
             w.append(np.full((32, 40), 1500, np.uint16), image_key=ImageKey.PROJECTION, step=step)
     one_line_error(run("process", bad, "-o", tmp_path / "new" / "sub" / "res", "-q"), "bad.h5", "no darks")
-    res = run("process", bad, bad, "-o", tmp_path / "many" / "x", "-q", "--workers", "1")
+    twin = tmp_path / "twin.h5"  # another file: one file given twice is refused before any work
+    twin.write_bytes(bad.read_bytes())
+    res = run("process", bad, twin, "-o", tmp_path / "many" / "x", "-q", "--workers", "1")
     assert res.returncode == 1 and res.stderr.count("no darks") == 2, res.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5", "twin.h5"]
 
 
 def test_the_file_size_limit_is_not_guessed_on_file_systems_glibc_does_not_list(tmp_path):
@@ -802,6 +804,8 @@ def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd
 def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_path):
     """`process a.h5 b.h5 --scheduler ADDRESS -o new/res`: the folder was made before connecting,
     and a scheduler that did not answer left `new/res/` behind, empty."""
-    res = run("process", experiment, experiment, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
+    twin = tmp_path / "twin.h5"  # another file: one file given twice is refused before connecting
+    twin.write_bytes(experiment.read_bytes())
+    res = run("process", experiment, twin, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
     one_line_error(res, "no-port-here")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "twin.h5"]

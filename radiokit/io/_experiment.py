@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import errno
-import json
 import math
 import os
 import shutil
@@ -24,6 +23,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._atomic import file_size_limit
 
@@ -400,7 +400,7 @@ class ExperimentWriter:
         """Record what wrote the file: the protocol (TOML text, so ``--resume`` can check it) and
         the devices (JSON)."""
         self._h5[ENTRY].attrs["protocol"] = protocol_toml
-        self._h5[ENTRY].attrs["devices"] = json.dumps(devices, default=str)
+        self._h5[ENTRY].attrs["devices"] = strict_json.dumps(devices, default=str)  # no NaN/Infinity words
         self._h5.flush()
 
     def mark_invalid(self, indices) -> None:
@@ -483,6 +483,7 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
         steps = (
             checked_dataset(path, h5, STEP, "iu", (1,), allow_external)[:n] if STEP in h5 else np.full(n, -1, np.int16)
         )
+        check_image_keys(path, keys, f"/{IMAGE_KEY}")
         if len(keys) != n or len(steps) != n:
             raise FormatError(
                 path,
@@ -491,6 +492,22 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
             )
         notes = {k: None if attrs.get(k) is None else text(attrs[k]) for k in ("protocol", "devices")}
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
+
+
+def check_image_keys(path, keys, name) -> None:
+    """Refuse, naming the first, a key that is none of NXtomo's four: every reader selects frames
+    by ``keys == k``, so a frame keyed 7 was silently neither projection, flat nor dark (a step's
+    only projection dropped, the run measured on the others)."""
+    keys = np.asarray(keys)
+    bad = np.flatnonzero((keys < 0) | (keys > 3))
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more frame(s))" if bad.size > 1 else ""
+        raise FormatError(
+            path,
+            f"{name}[{i}]: frame {i} has image_key {int(keys[i])}{more}; "
+            "expected 0 projection, 1 flat, 2 dark or 3 invalid",
+        )
 
 
 def check_links(path, h5, name, allow_external, depth=0):
@@ -670,6 +687,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             if len(values) != n:
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
             meta[name] = values
+            if name == "image_key":
+                check_image_keys(path, values, f"/{group}/{name}")
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{IMAGE_KEY}")
     _read_pixel_sizes(path, h5, meta, allow_external)

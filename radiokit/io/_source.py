@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import stat
@@ -14,6 +13,7 @@ import h5py
 import numpy as np
 import tifffile
 
+from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
 from radiokit.io._experiment import (
@@ -21,6 +21,7 @@ from radiokit.io._experiment import (
     FRAMES,
     IMAGE_KEY,
     ImageKey,
+    check_image_keys,
     check_links,
     checked_dataset,
     read_experiment_meta,
@@ -302,7 +303,7 @@ class FrameSource:
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
-                self.meta["description"] = json.loads(desc)
+                self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
             except (ValueError, RecursionError):  # free text, however it looks
                 pass
 
@@ -505,6 +506,7 @@ class FrameSource:
         if name is None:
             return {}
         keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
+        keys_name = keys.name
         if keys.shape != (n,) and not self._h5.swmr_mode:
             raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
         check_budget(self.path, keys.nbytes, f"the {n} image keys of {keys.name}", self._budget)
@@ -518,8 +520,11 @@ class FrameSource:
                 UserWarning,
                 stacklevel=3,
             )
-            return {"image_key": keys[:m]}
-        return {"image_key": keys[()]}
+            keys = keys[:m]
+        else:
+            keys = keys[()]
+        check_image_keys(self.path, keys, keys_name)
+        return {"image_key": keys}
 
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled

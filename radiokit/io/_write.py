@@ -11,7 +11,6 @@ The HDF5 layout (``radiokit correct``'s output):
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping
@@ -22,6 +21,7 @@ import h5py
 import numpy as np
 import tifffile
 
+from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
 from radiokit.io._layout import ReadBudget, open_layout, text
@@ -58,6 +58,11 @@ class StackWriter:
     HDF5 output holds ``/entry/data/data`` (chunked one frame per chunk) and, from
     :meth:`append`'s keyword arguments, per-frame series under ``/entry/data/``; ``meta`` becomes
     attributes of ``/entry/data`` (nested dicts as JSON). Each frame is flushed as written.
+
+    JSON is strict (:mod:`radiokit._json`): a non-finite number is null, and a dict names it in its
+    ``"not_finite"`` and reads back as the number; a list attribute cannot carry that map, so a
+    non-finite number in one reads back ``None``.
+
     ``n_frames``, when known, preallocates the HDF5 datasets (no resize per frame); a file closed
     early is shrunk to the frames written.
 
@@ -110,7 +115,8 @@ class StackWriter:
             grp.attrs["NX_class"] = "NXdata"
             grp.attrs["signal"] = STACK_FRAMES.rsplit("/", 1)[1]
             for key, value in self.meta.items():
-                grp.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+                # strict JSON (radiokit._json): a non-finite number is null, named in "not_finite"
+                grp.attrs[key] = strict_json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
             self._alloc = int(n_frames or 0)
             dcpl = None
             if self._alloc:  # all chunks allocated now, never filled: frames can be written in place
@@ -160,7 +166,7 @@ class StackWriter:
                 ds[i] = value
             self._h5.flush()
         else:
-            desc = json.dumps(self.meta) if self.n == 0 and self.meta else None
+            desc = strict_json.dumps(self.meta) if self.n == 0 and self.meta else None
             self._tif.write(frame.astype(self.dtype, copy=False), contiguous=False, description=desc, metadata=None)
         self.n += 1
 
@@ -263,7 +269,7 @@ def _attr(value):
         value = text(value)
     if isinstance(value, str) and value[:1] in "[{":
         try:
-            return json.loads(value)
+            return strict_json.loads(value)
         except (ValueError, RecursionError):
             pass
     return value.item() if isinstance(value, np.generic) else value

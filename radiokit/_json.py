@@ -1,0 +1,107 @@
+"""Strict JSON for everything radiokit writes: no ``NaN``, ``Infinity`` or ``-Infinity``.
+
+Python's :func:`json.dumps` writes those bare words by default; they are not JSON (RFC 8259), and
+strict readers (jq, JavaScript's ``JSON.parse``, ``json.loads(..., parse_constant=...)``) refuse
+the whole file. A noiseless background makes a CNR infinite, so a results.json hit it.
+
+The rule: a non-finite number is written ``null``, and the top-level object's ``"not_finite"``
+maps the JSON Pointer (RFC 6901) of each such null to ``"Infinity"``, ``"-Infinity"`` or
+``"NaN"``, so that :func:`restore` gives the numbers back exactly. A ``null`` that the map does
+not name was ``None`` (not recorded). The key is present only when something was not finite.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+__all__ = ["NOT_FINITE", "strict", "dumps", "loads", "restore"]
+
+#: the top-level key holding the map ``JSON pointer -> "Infinity" | "-Infinity" | "NaN"``
+NOT_FINITE = "not_finite"
+_WORDS = {"Infinity": math.inf, "-Infinity": -math.inf, "NaN": math.nan}
+
+
+def _word(x: float) -> str:
+    return "NaN" if math.isnan(x) else ("Infinity" if x > 0 else "-Infinity")
+
+
+def _escape(key) -> str:
+    return str(key).replace("~", "~0").replace("/", "~1")
+
+
+def _walk(value, pointer: str, found: dict):
+    if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+        found[pointer] = _word(float(value))
+        return None
+    if isinstance(value, dict):
+        return {k: _walk(v, f"{pointer}/{_escape(k)}", found) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_walk(v, f"{pointer}/{i}", found) for i, v in enumerate(value)]
+    return value
+
+
+def strict(value):
+    """``value`` with every non-finite float replaced by ``None``; a dict also gets
+    ``"not_finite"`` naming them (a list or a bare number cannot carry the map: nulls only)."""
+    found: dict = {}
+    out = _walk(value, "", found)
+    if found and isinstance(out, dict):
+        out[NOT_FINITE] = found
+    return out
+
+
+def dumps(value, **kwargs) -> str:
+    """:func:`json.dumps` of :func:`strict` ``(value)``, refusing any non-finite number left."""
+    return json.dumps(strict(value), allow_nan=False, **kwargs)
+
+
+def loads(text):
+    """:func:`json.loads` and :func:`restore`: radiokit's own JSON read back with its numbers."""
+    return restore(json.loads(text))
+
+
+def restore(value, where="JSON"):
+    """Put back the numbers a top-level ``"not_finite"`` map names (the map is removed; the
+    argument is not changed). ValueError, naming ``where``, for a map that names no ``null`` of
+    the document or a word other than Infinity, -Infinity and NaN (a hand-edited file)."""
+    if not isinstance(value, dict) or NOT_FINITE not in value:
+        return value
+    out = dict(value)
+    marks = out.pop(NOT_FINITE)
+    if not isinstance(marks, dict):
+        raise ValueError(f"{where}: {NOT_FINITE!r} is a {type(marks).__name__}, not an object of JSON pointers")
+    for pointer, word in marks.items():
+        if word not in _WORDS:
+            raise ValueError(f"{where}: {NOT_FINITE!r} {pointer!r} is {word!r}: expected Infinity, -Infinity or NaN")
+        parts = [p.replace("~1", "/").replace("~0", "~") for p in pointer.split("/")[1:]]
+        if not pointer.startswith("/") or not parts or parts[0] == NOT_FINITE:
+            raise ValueError(f"{where}: {NOT_FINITE!r} {pointer!r} is not a JSON pointer into the document")
+        parent, key = out, parts[-1]
+        try:
+            for part in parts[:-1]:
+                index = _index(parent, part)
+                child = parent[index]
+                # copied on the way down: the caller's document is left as it was
+                child = dict(child) if isinstance(child, dict) else list(child) if isinstance(child, list) else child
+                parent[index] = child
+                parent = child
+            key = _index(parent, key)
+            if parent[key] is not None:
+                raise LookupError
+        except (LookupError, TypeError, ValueError):
+            raise ValueError(f"{where}: {NOT_FINITE!r} {pointer!r} names no null of the document") from None
+        parent[key] = _WORDS[word]
+    return out
+
+
+def _index(container, part: str):
+    if isinstance(container, list):
+        if not part.isdigit():
+            raise ValueError(part)
+        return int(part)
+    if not isinstance(container, dict):
+        raise TypeError(part)
+    return part

@@ -1,0 +1,94 @@
+"""Progress bars of the long commands: on a terminal's stderr; none with -q or when stderr is not
+a terminal (a pipe, a log file). The terminal is a real pseudo-terminal (pty), 100 columns wide."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import pty
+import struct
+import subprocess
+import sys
+import termios
+
+import numpy as np
+import pytest
+import tifffile
+
+from radiokit.io import ExperimentWriter, ImageKey
+from sim.detector import PanelModel
+
+
+def _run(args, stderr_tty: bool):
+    """The command with stderr on a pseudo-terminal (or a pipe): (exit code, stdout, stderr)."""
+    cmd = [sys.executable, "-m", "radiokit.cli", *map(str, args)]
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    if not stderr_tty:
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        return res.returncode, res.stdout, res.stderr
+    master, slave = pty.openpty()
+    # a new pty is 0 x 0: tqdm would fit its bar into no columns and print nothing
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=slave, text=True, env=env)
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 65536)
+        except OSError:  # EIO: the command closed its end
+            break
+        if not data:
+            break
+        chunks.append(data)
+    out = proc.stdout.read()
+    rc = proc.wait()
+    os.close(master)
+    return rc, out, b"".join(chunks).decode(errors="replace")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("progress")
+    panel = PanelModel(rows=64, cols=80, defect_columns=(30,), n_dead=2, n_under=2, n_noisy=2)
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(tmp / "exp.h5", shape=panel.shape) as w:
+        for f in panel.dark_frames(4, rng):
+            w.append(f, image_key=ImageKey.DARK)
+        for f in panel.flat_frames(4, 2000, rng):
+            w.append(f, image_key=ImageKey.FLAT)
+    tifffile.imwrite(tmp / "darks.tif", np.asarray(panel.dark_frames(4, rng)), photometric="minisblack")
+    tifffile.imwrite(tmp / "flats.tif", np.asarray(panel.flat_frames(4, 2000, rng)), photometric="minisblack")
+    rr, cc = np.mgrid[0:64, 0:64]  # a blob moved by one pixel (tests/test_data_safety.py's pair)
+    tifffile.imwrite(tmp / "fixed.tif", np.exp(-((rr - 32) ** 2 + (cc - 30) ** 2) / 200.0).astype(np.float32))
+    tifffile.imwrite(tmp / "moving.tif", np.exp(-((rr - 33) ** 2 + (cc - 31) ** 2) / 200.0).astype(np.float32))
+    return tmp
+
+
+CASES = {
+    # command, what its bars say when done
+    "calibrate-experiment": (
+        ["calibrate", "--experiment", "exp.h5"],
+        ["read exp.h5", "8/8", "calibrate defects", "100%"],
+    ),
+    "calibrate-files": (
+        ["calibrate", "--dark", "darks.tif", "--flat", "flats.tif"],
+        ["read darks", "read flats", "100%"],
+    ),
+    "register": (["register", "fixed.tif", "moving.tif", "--preset", "fast"], ["register rc", "1/1 scale"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("how", ["tty", "tty -q", "pipe"])
+def test_long_commands_show_progress_on_a_terminal_only(case, how, files, tmp_path):
+    args, words = CASES[case]
+    out = tmp_path / "out.h5"
+    args = [files / a if (files / a).exists() else a for a in args] + ["-o", out] + (["-q"] if "-q" in how else [])
+    rc, stdout, stderr = _run(args, stderr_tty=how.startswith("tty"))
+    assert rc == 0, (stdout, stderr)
+    assert out.exists() and stdout.strip()  # the summary on stdout either way
+    if how == "tty":
+        for word in words:
+            assert word in stderr, (word, stderr)
+    else:
+        assert stderr.strip() == "", stderr

@@ -1,0 +1,240 @@
+"""Slips the offline commands once accepted in silence, each now one line and exit code 2 (or,
+for non-finite numbers, strict JSON that reads back): real files, the real command in a subprocess."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from radiokit import _json as strict_json
+from radiokit.calibrate import MAX_DEFECTIVE_SHARE, Calibration
+from radiokit.errors import FormatError
+from radiokit.io import ExperimentWriter, ImageKey, StackWriter, read, read_stack, write_tiff
+from radiokit.io._experiment import IMAGE_KEY, read_progress
+from radiokit.results import load_results
+from sim.detector import PanelModel
+
+# the square inclusion of synthetic() and a background beside it, whole frame (no crop)
+ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
+FAST = ["-q", "--no-report", "--cross-check", "none", *ROI]
+
+
+def run(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"},
+    )
+
+
+def one_line_error(res, *needles):
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, res.stderr
+    for needle in needles:
+        assert str(needle) in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def synthetic(path, shape=(160, 160)):
+    """A slab thinned by compression with a denser square, noiseless: the background's standard
+    deviation is exactly zero, so every CNR is infinite (as tests/test_data_safety.py's)."""
+    rows, cols = shape
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
+    with ExperimentWriter(path, shape=shape) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
+            counts = 100 + 3000 * np.exp(-(0.08 * tb + 0.03 * ti * sq))
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
+    return path
+
+
+def _no_constants(word):
+    raise ValueError(f"{word} is not JSON")
+
+
+def strict_loads(text):
+    """What jq or JavaScript's JSON.parse accept: no NaN, Infinity or -Infinity."""
+    return json.loads(text, parse_constant=_no_constants)
+
+
+# -- 1: strict JSON ----------------------------------------------------------------------------
+def test_results_json_of_a_noiseless_run_is_strict_json_and_reads_back_infinite(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    res = run("process", exp, "-o", tmp_path / "res", *FAST)
+    assert res.returncode == 0, res.stderr
+    text = (tmp_path / "res" / "results.json").read_text()
+    d = strict_loads(text)  # was: "Infinity is not JSON"
+    # the reason is in the file: null, and not_finite names it Infinity (noise exactly zero)
+    assert d["domains"]["log"]["cnr_reference"] is None
+    assert d["not_finite"]["/domains/log/cnr_reference"] == "Infinity"
+    assert d["not_finite"]["/domains/negative/cnr/2"] in ("Infinity", "-Infinity")
+    record = load_results(tmp_path / "res" / "results.json")
+    assert math.isinf(record.domains[record.domain].cnr_reference)
+    assert all(math.isinf(m.cnr) for m in record.domains[record.domain].per_k)
+    # the improvement factors are finite and unchanged by the round trip
+    assert all(math.isfinite(v) and v > 0 for v in record.improvement_factor.values())
+    with h5py.File(tmp_path / "res" / "results.h5") as h5:  # the copy inside results.h5 too
+        strict_loads(h5["entry"].attrs["results_json"])
+
+
+@pytest.mark.parametrize(
+    "marks, words",
+    [
+        ({"/domains/log/contrast_reference": "Infinity"}, "names no null"),  # a number there
+        ({"/no/such/key": "NaN"}, "names no null"),
+        ({"/domains/log/cnr_reference": "Inf"}, "expected Infinity, -Infinity or NaN"),
+        (["/domains/log/cnr_reference"], "not an object"),
+        ({"domains": "NaN"}, "not a JSON pointer"),
+    ],
+)
+def test_a_hand_edited_not_finite_map_is_one_line(marks, words, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    assert run("process", exp, "-o", tmp_path / "res", *FAST).returncode == 0
+    path = tmp_path / "res" / "results.json"
+    d = json.loads(path.read_text())
+    d["not_finite"] = marks
+    path.write_text(json.dumps(d))
+    with pytest.raises(FormatError, match=words) as exc:
+        load_results(path)
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_the_strict_form_round_trips_every_non_finite_number():
+    doc = {"a": [1.0, math.inf, {"b/c": -math.inf, "d~e": math.nan}], "f": None, "g": np.float32("nan")}
+    text = strict_json.dumps(doc)
+    strict_loads(text)
+    back = strict_json.loads(text)
+    assert back["a"][1] == math.inf and back["a"][2]["b/c"] == -math.inf
+    assert math.isnan(back["a"][2]["d~e"]) and math.isnan(back["g"])
+    assert back["f"] is None and "not_finite" not in back
+    assert doc["a"][1] == math.inf  # the argument is left as it was
+
+
+def test_a_calibration_with_nan_provenance_is_strict_json_and_reads_back(tmp_path):
+    panel = PanelModel(rows=64, cols=64, defect_columns=(), n_dead=1, n_under=1, n_noisy=0)
+    rng = np.random.default_rng(0)
+    cal = Calibration.from_frames(panel.dark_frames(4, rng), panel.flat_frames(4, 2000, rng))
+    cal.provenance["flat_current_ua"] = math.nan  # "a number, NaN or null": not recorded
+    cal.save(tmp_path / "cal.h5")
+    with h5py.File(tmp_path / "cal.h5") as h5:
+        assert strict_loads(h5["calibration"].attrs["provenance"])["flat_current_ua"] is None
+    assert math.isnan(Calibration.load(tmp_path / "cal.h5").provenance["flat_current_ua"])
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".h5"])
+def test_a_stacks_metadata_with_nan_is_strict_json_and_reads_back(suffix, tmp_path):
+    path = write_tiff(tmp_path / "s.tif", np.zeros((2, 4, 4), np.float32), meta={"exposure": [1.0, math.inf]})
+    if suffix == ".h5":
+        path = tmp_path / "s.h5"
+        with StackWriter(path, (4, 4), meta={"exposure": [1.0, math.inf], "gain": {"x": math.nan}}) as w:
+            w.append(np.zeros((4, 4), np.float32))
+        with h5py.File(path) as h5:
+            strict_loads(h5["entry/data"].attrs["gain"])
+        meta = read_stack(path).meta
+        # a dict attribute carries its "not_finite" map; a bare list cannot (radiokit._json): null
+        assert math.isnan(meta["gain"]["x"]) and meta["exposure"] == [1.0, None]
+    else:
+        strict_loads(tifffile.TiffFile(path).pages[0].description)
+        assert read(path).meta["description"]["exposure"] == [1.0, math.inf]
+
+
+# -- 2, 3, 4: process's inputs and output ------------------------------------------------------
+@pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
+def test_process_refuses_one_file_given_twice(how, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    other = {"twice": exp, "dotted": tmp_path / "." / "exp.h5"}.get(how, tmp_path / "alias.h5")
+    if how == "symlink":
+        other.symlink_to(exp)
+    elif how == "hardlink":
+        os.link(exp, other)
+    res = run("process", exp, other, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "the same experiment file given", "give each file once")
+    assert not (tmp_path / "out").exists()  # refused before any work
+
+
+def test_process_refuses_a_control_that_is_one_of_its_files(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    (tmp_path / "ctl.h5").symlink_to(exp)
+    res = run("process", exp, "--control", tmp_path / "ctl.h5", "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "--control", "ctl.h5", "is the experiment file", "exp.h5")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["x.h5", "x.HDF5", "x.nxs", "x.tif", "x.tiff", "x.json"])
+def test_process_refuses_an_output_folder_named_like_a_file(name, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    res = run("process", exp, "-o", tmp_path / name, *FAST)
+    one_line_error(res, f"-o {tmp_path / name}", "-o is a results folder")
+    assert not (tmp_path / name).exists()
+
+
+# -- 5: a calibration that marks most of the panel ---------------------------------------------
+def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path):
+    rng = np.random.default_rng(1)
+    shape = (128, 160)
+    dark = rng.normal(100, 2, (5, *shape)).clip(0).astype(np.uint16)
+    # the beam blocked for most of the flats: a scatter of lit pixels, half the panel barely lit
+    resp = np.where(rng.random(shape) < 0.55, 2000.0, 60.0) * rng.uniform(0.5, 1.5, shape)
+    flat = (100 + resp + rng.normal(0, 5, (5, *shape))).clip(0, 4095).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "dark.tif", dark)
+    tifffile.imwrite(tmp_path / "flat.tif", flat)
+    res = run("calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5")
+    line = one_line_error(res, "dark.tif", "flat.tif", "defective", f"{100 * MAX_DEFECTIVE_SHARE:g} %")
+    assert "(100.0 %)" in line  # line_fraction makes every row and column a line
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_4x4_binned_panel_with_the_most_defect_lines_it_may_have_still_calibrates(tmp_path):
+    """The limit's worst honest case: 20 defect lines (the C7942's most) of a 560 x 560 frame,
+    3.6 % of it, plus isolated defects."""
+    cols = tuple(range(14, 560, 28))
+    panel = PanelModel(rows=560, cols=560, binning=4, defect_columns=cols, n_dead=20, n_under=20, n_noisy=20)
+    rng = np.random.default_rng(2)
+    tifffile.imwrite(tmp_path / "dark.tif", np.asarray(panel.dark_frames(6, rng)))
+    tifffile.imwrite(tmp_path / "flat.tif", np.asarray(panel.flat_frames(6, 150, rng)))
+    res = run("calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5")
+    assert res.returncode == 0, res.stderr
+    cal = Calibration.load(tmp_path / "c.h5")
+    assert len(cols) == 20 and set(cols) <= set(cal.defect_columns.tolist())
+    assert 0.035 < np.count_nonzero(cal.mask) / cal.mask.size < MAX_DEFECTIVE_SHARE
+
+
+# -- 6: image keys outside NXtomo's four -------------------------------------------------------
+@pytest.mark.parametrize("value", [7, -1, 4])
+@pytest.mark.parametrize("cmd", ["info", "calibrate", "process"])
+def test_an_image_key_outside_0_to_3_is_refused_naming_the_frame(cmd, value, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        h5[IMAGE_KEY][7] = value  # a projection of step 2: was silently dropped
+    args = {
+        "info": ["info", exp],
+        "calibrate": ["calibrate", "--experiment", exp, "-o", tmp_path / "c.h5"],
+        "process": ["process", exp, "-o", tmp_path / "out", *FAST],
+    }[cmd]
+    one_line_error(run(*args), "exp.h5", "frame 7", f"image_key {value}", "0 projection, 1 flat, 2 dark or 3 invalid")
+    assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
+    with pytest.raises(FormatError, match=f"frame 7 has image_key {value}"):  # acquire --resume's reader
+        read_progress(exp)
+
+
+def test_an_image_key_beside_another_layouts_frames_is_checked_too(tmp_path):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as h5:
+        h5["scan/data"] = np.zeros((4, 8, 8), np.uint16)
+        h5["scan/image_key"] = np.array([2, 1, 0, 9], np.int8)
+    one_line_error(run("info", path, "--dataset", "scan/data"), "other.h5", "/scan/image_key[3]", "image_key 9")
