@@ -1274,6 +1274,31 @@ def test_extend_goes_on_with_a_slow_run_and_not_with_a_lost_one():
         register(*lost, "rc", extend=-1)
 
 
+def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_checks():
+    """``polish``: a pyramid cut short of full resolution (``max_pixels``, as 2240 frames are at
+    1120 px) gets one more level there, of at most ``polish`` iterations, when its residual
+    already passes the checks' line, and comes closer to the truth (rich texture: the
+    half-resolution images hide what the full ones show); a field the checks would flag (texture
+    = noise, a local motion of 3 % correlated over a twentieth of the frame) is left as it was,
+    the same field to the bit. ``fast`` and the presets that chose their own levels do not polish."""
+    fixed, moving, d, mask = _family_pair(size=352, texture=0.1, noise=0.01, corr=0.25, seed=9)
+    cut = dict(max_pixels=40_000)  # 352 px: the 176 px level is the finest run
+    plain, plain_info = B._bspline_register(fixed, moving, None, polish=0, **cut)
+    polished, info = B._bspline_register(fixed, moving, None, **cut)
+    assert [lv["factor"] for lv in plain_info["levels"]][-1] == 2
+    last = info["levels"][-1]
+    assert last["factor"] == 1 and last.get("polish") and 1 <= last["iterations"] <= B.PRESETS["default"]["polish"]
+    assert _epe(polished, d, mask)[0] < 0.8 * _epe(plain, d, mask)[0]
+    lost = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.05, amplitude=0.03, seed=9)[:2]
+    left, left_info = B._bspline_register(*lost, None, polish=0, **cut)
+    asked, asked_info = B._bspline_register(*lost, None, **cut)
+    assert not any(lv.get("polish") for lv in asked_info["levels"])
+    np.testing.assert_array_equal(asked, left)
+    assert all(B.PRESETS[p]["polish"] == 0 for p in ("fast", "weak", "weak-fast", "silent", "silent-fast"))
+    with pytest.raises(ValueError, match="polish"):
+        register(*lost, "rc", polish=-1)
+
+
 def test_the_still_check_decides_as_the_percentile_does():
     """``_p99_below`` (a level's early stop, at every L-BFGS iteration) answers exactly what
     ``np.percentile(v, 99) < limit`` answers, ties and limits between the two order statistics

@@ -82,7 +82,11 @@ Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
 than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
-still (the B-spline field is evaluated at full resolution all the same). With ``joint``
+still (the B-spline field is evaluated at full resolution all the same). ``polish`` (preset
+``default`` only) then runs that many iterations at full resolution, a lattice of the finest's
+spacing on top, when the pyramid stopped short of it and its field already passes the checks'
+residual line: the full-resolution images see what the half-resolution ones hide on rich
+texture, and a field the checks would flag is not worth the time. With ``joint``
 (presets ``weak``, ``weak-fast``) the finest level refits every coarser lattice with its own,
 each keeping the bending weight it was fitted with: the prior is the same sum of lattices, but
 its minimum is taken over all of them at once, so what a coarse level got wrong where only the
@@ -160,6 +164,7 @@ PRESETS = {
         abandon_px=0.0,
         extend=0,
         grid_jitter=False,
+        polish=20,
     ),
     "fast": dict(
         spacing=16,
@@ -190,6 +195,7 @@ PRESETS = {
         abandon_px=0.0,
         extend=0,
         grid_jitter=False,
+        polish=0,
     ),
 }
 # weak texture (a gel phantom's, near the noise): the scale-invariant energy balance, free coarse
@@ -236,6 +242,7 @@ PRESETS["weak"] = {
     "refit_thinning": True,
     "refit_again": 1,
     "grid_jitter": True,
+    "polish": 0,
 }
 # weak-fast runs two levels (1/16 and 1/8 at 2240), its finer lattice 64 px there
 PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK}
@@ -251,7 +258,7 @@ PRESETS["weak-fast"] = {**PRESETS["fast"], **_WEAK}
 # paper's phantom; `radiokit demo --preset pva-phantom --imaging paper`, `auto` returns silent)
 # it loses: 1.36 px unbinned, 1.76 by 2, 2.60 by 4, where the straight, sharp plate edges carry
 # the motion and binning blurs them (benchmarks/README.md, "A silent body registered at 0.4 Mpx")
-_SILENT = dict(init="silhouette", regularisation=0.1)
+_SILENT = dict(init="silhouette", regularisation=0.1, polish=0)
 PRESETS["silent"] = {**PRESETS["default"], **_SILENT}
 PRESETS["silent-fast"] = {**PRESETS["fast"], **_SILENT}
 
@@ -865,7 +872,7 @@ _LOWEST = {
     "bin_pixels": (0, True),
     "abandon_px": (0, True),
 }
-_COUNTS = {"levels_skip": 0, "min_levels": 1, "extend": 0, "refit_again": 0}  # integers, at least this
+_COUNTS = {"levels_skip": 0, "min_levels": 1, "extend": 0, "refit_again": 0, "polish": 0}  # integers, at least this
 _FLAGS = ("gain_fine", "joint", "refit_thinning", "grid_jitter")
 
 
@@ -1372,6 +1379,28 @@ def _bspline_register(
         ):
             converged, message, abandoned = False, why, {"abandoned": why}
             break
+    # polish: only on a textured interior, and a field that passes the checks' residual line
+    asked = finest > 1 and o["polish"] and start is None and not abandoned
+    if asked and _textured(fixed, mask) and _settles(measured(), grids, affine):
+        res, move = _polish(f, m, maskf, similarity, o, coarsest, grids, affine, gain)
+        total_its += int(res.nit)
+        history.append(
+            dict(
+                factor=1,
+                spacing=grids[-1][0].spacing,
+                iterations=int(res.nit),
+                energy=float(res.fun),
+                status=int(res.status),
+                last_move_px=move,
+                polish=True,
+            )
+        )
+        if callback is not None:
+            callback(1, res)
+        # converged and message stay the pyramid's: a finest level still moving is a field not
+        # found (the rocket's sky at 2240: 3.99 px flagged "still moving", the polish's 20
+        # iterations then settled at 3.86 px), and a polish cut by its budget refines a field
+        # that had converged (TRAINING pictures: never worse than without it)
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
     if affine is not None:
         d += affine.field(f.shape)
@@ -1386,6 +1415,35 @@ def _bspline_register(
         options=o,
         **abandoned,
     )
+
+
+def _textured(fixed, mask) -> bool:
+    """Whether the body's interior is not silent, as ``auto`` judges it (``_auto.choose`` does not
+    fall back to ``silent``: the interior's texture-to-noise ratio at least ``TEXTURE_LOW`` with
+    noise, or no interior to judge, as in a picture that fills the frame): a silent body has
+    nothing for ``polish``'s full-resolution images to see (the family's textureless pairs at
+    2240: 8.469 -> 8.471 px for 3 s more)."""
+    from radiokit.register._auto import AUTO_PRESETS, choose
+
+    return choose(fixed, "auto", mask).preset != AUTO_PRESETS["auto"][2]
+
+
+def _polish(f, m, maskf, similarity, o, coarsest, grids, affine, gain):
+    """``polish``: one more level at full resolution, ``o["polish"]`` iterations, its lattice (the
+    finest's spacing) on top of the pyramid's field, appended to ``grids``; ``(result, move)``.
+    Run only on a textured interior and a field whose residual already passes the checks' line
+    (the caller's gates, :func:`_textured` and :func:`_settles`): the pyramid stops at ``max_pixels`` (the 1120 px level at 2240) for time, and on rich texture the
+    half-resolution images leave 0.1-0.17 px that the full-resolution ones see (natural pictures
+    at 2240, TRAINING: benchmarks/README.md, "A full-resolution polish (session 23)"); a field the
+    checks would flag is not worth the time (``auto`` moves on to its fallback)."""
+    base = _fields(grids, 1, f.shape)
+    if affine is not None:
+        base += affine.field(base.shape[1:], 1)
+    grid, res, move = _run_level(f, m, maskf, similarity, o, (1, o["polish"], coarsest, 1), base, gain, [])
+    if not np.all(np.isfinite(res.x)):  # the pyramid's field stands
+        return res, move
+    grids.append((grid, res.x))
+    return res, move
 
 
 def _abandons(fixed, o, finest) -> bool:
