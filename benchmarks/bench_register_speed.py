@@ -25,7 +25,7 @@ median end-point error against the truth inside the body, old and new, and how f
 fields are apart (median, 99th percentile and largest |difference|, px).
 
 Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
-1/10-frame correlation length, 1 % motion), ``rich`` ``analytic_pair`` (the texture ten times the
+1/10-frame correlation length, 1 % motion; ``weak-train`` the same on TRAINING seed 1), ``rich`` ``analytic_pair`` (the texture ten times the
 noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
 stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local motion
 (``bench_register_natural.py``'s test pair).
@@ -52,6 +52,8 @@ from regdata import Case, analytic_pair, family_pair
 def make_pair(name, size):
     if name == "weak":
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1000))
+    if name == "weak-train":  # the same on a TRAINING seed (bench_register_weak2240.py's s1)
+        return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1))
     if name == "rich":
         return analytic_pair(size, 0.01, 0.10, 0.01, seed=1)
     if name == "phys":
@@ -60,7 +62,7 @@ def make_pair(name, size):
         from bench_register_natural import natural
 
         return natural("camera", size, "local", "test")
-    raise ValueError(f"pair {name!r}: expected weak, rich, phys or camera")
+    raise ValueError(f"pair {name!r}: expected weak, weak-train, rich, phys or camera")
 
 
 def _load(name, source):
