@@ -1117,10 +1117,7 @@ def _noise_alpha(f, m, o):
     over the body (the mean of the two images' variances; ``_confidence.object_noise``), floored
     at the model error no similarity fits (``MODEL_FLOOR`` of the range): a noise-free pair still
     leaves interpolation's residual."""
-    # the two images' on the pool's threads (each a few whole-frame passes that release the GIL;
-    # every pass of a refit measures both again)
-    noise_f, noise_m = _parallel(object_noise, [f, m])
-    sigma = max(float(np.sqrt((noise_f**2 + noise_m**2) / 2)), MODEL_FLOOR)
+    sigma = max(float(np.sqrt((object_noise(f) ** 2 + object_noise(m) ** 2) / 2)), MODEL_FLOOR)
     o["noise_sigma"] = sigma
     o["alpha"] = o["noise_alpha"] * sigma * sigma
 
