@@ -3,6 +3,7 @@
 Run (from the repository root, a git checkout)::
 
     python benchmarks/bench_register_speed.py --equivalence
+    python benchmarks/bench_register_speed.py --old main --refit-parts --pairs weak-train --reps 11
     python benchmarks/bench_register_speed.py --size 2240 --presets default fast --threads 1 2 --reps 5
     git worktree add /tmp/rk-old a6e5868
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --presets fast default --reps 5
@@ -22,10 +23,14 @@ Timing prints, per preset and thread count, the medians over ``--reps`` of wall 
 (the method and the quality assessment) and of the method alone (wall), new / old, and the load
 average before and after. ``--equivalence`` registers each pair once with each and prints the
 median end-point error against the truth inside the body, old and new, and how far the two
-fields are apart (median, 99th percentile and largest |difference|, px).
+fields are apart (median, 99th percentile and largest |difference|, px). ``--refit-parts`` times
+the ``weak`` thinning refit's own work, old and new interleaved on the same inputs (the interior
+thinning of both rounds from a first pass's field, and ``_noise_alpha``, which every pass runs):
+the part of a whole run's difference that the optimiser's time, many times larger and noisier on a
+shared machine, hides.
 
 Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
-1/10-frame correlation length, 1 % motion), ``rich`` ``analytic_pair`` (the texture ten times the
+1/10-frame correlation length, 1 % motion; ``weak-train`` the same on TRAINING seed 1), ``rich`` ``analytic_pair`` (the texture ten times the
 noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
 stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local motion
 (``bench_register_natural.py``'s test pair).
@@ -52,6 +57,8 @@ from regdata import Case, analytic_pair, family_pair
 def make_pair(name, size):
     if name == "weak":
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1000))
+    if name == "weak-train":  # the same on a TRAINING seed (bench_register_weak2240.py's s1)
+        return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1))
     if name == "rich":
         return analytic_pair(size, 0.01, 0.10, 0.01, seed=1)
     if name == "phys":
@@ -60,7 +67,7 @@ def make_pair(name, size):
         from bench_register_natural import natural
 
         return natural("camera", size, "local", "test")
-    raise ValueError(f"pair {name!r}: expected weak, rich, phys or camera")
+    raise ValueError(f"pair {name!r}: expected weak, weak-train, rich, phys or camera")
 
 
 def _load(name, source):
@@ -72,8 +79,9 @@ def _load(name, source):
     return mod
 
 
-def methods(rev):
-    """``{"old": (rc, det J), "new": (rc, det J)}``: of revision ``rev`` and of this tree."""
+def _old_modules(rev):
+    """``(old _bspline, old _common, old rc)``: revision ``rev``'s modules loaded beside ours, the
+    methods they register over ours undone."""
     import radiokit.register as R
 
     R._load_methods()
@@ -88,12 +96,58 @@ def methods(rev):
         ).stdout
         for f in ("_bspline", "_common")
     }
-    _load("_bspline_old", src["_bspline"])  # registers its methods over ours...
+    bspline_old = _load("_bspline_old", src["_bspline"])  # registers its methods over ours...
     rc_old = R.METHODS["rc"]
     R.METHODS.clear()
     R.METHODS.update(saved)  # ...undone
-    common_old = _load("_common_old", src["_common"])
-    return {"old": (rc_old, common_old.jacobian_determinant), "new": (saved["rc"], R.jacobian_determinant)}
+    return bspline_old, _load("_common_old", src["_common"]), rc_old
+
+
+def methods(rev):
+    """``{"old": (rc, det J), "new": (rc, det J)}``: of revision ``rev`` and of this tree."""
+    import radiokit.register as R
+
+    _, common_old, rc_old = _old_modules(rev)
+    return {"old": (rc_old, common_old.jacobian_determinant), "new": (R.METHODS["rc"], R.jacobian_determinant)}
+
+
+def refit_parts(rev, pair, size, reps, threads):
+    """The thinning refit's own work (``weak``), old and new interleaved on the same inputs: the
+    interior thinning of both rounds (``_interior_thinning``) on the field of a first pass, and
+    the normalised pair's noise (``_noise_alpha``, run once per pass); medians of ``reps``, ms."""
+    import radiokit.register._bspline as B
+
+    set_threads(threads)
+    old = _old_modules(rev)[0]
+    fixed, moving, _, _ = make_pair(pair, size)
+    d, _ = B._bspline_register(fixed, moving, None, preset="weak", refit_thinning=False, refit_again=0)
+    side = B._fixed_side(fixed, None)  # measured once for both rounds, old and new alike
+    f, m = B._normalise(fixed, moving)
+    parts = {
+        f"_interior_thinning {interior}": {
+            k: (lambda mod=mod, interior=interior: mod._interior_thinning(fixed, moving, d, None, interior, side))
+            for k, mod in (("old", old), ("new", B))
+        }
+        for interior in (B.REFIT_INTERIOR, B.REFIT_AGAIN_INTERIOR)
+    }
+    parts["_noise_alpha"] = {
+        k: (lambda mod=mod: mod._noise_alpha(f, m, dict(noise_alpha=1.0))) for k, mod in (("old", old), ("new", B))
+    }
+    print(f"refit parts: {pair} {size} x {size}, {threads} thread(s), medians of {reps} interleaved runs, ms")
+    print("| part | old | new | new - old |")
+    print("|---|---|---|---|")
+    for name, fns in parts.items():
+        load0 = os.getloadavg()[0]
+        for fn in fns.values():  # warm: caches, first touch
+            fn()
+        t = {k: [] for k in fns}
+        for i in range(reps):
+            for k in list(fns)[:: 1 if i % 2 == 0 else -1]:
+                t0 = time.perf_counter()
+                fns[k]()
+                t[k].append(time.perf_counter() - t0)
+        o, w = (1000 * float(np.median(t[k])) for k in ("old", "new"))
+        print(f"| {name} | {o:.0f} | {w:.0f} | {w - o:+.0f} | load {load0:.1f}-{os.getloadavg()[0]:.1f}", flush=True)
 
 
 def set_threads(n):
@@ -332,6 +386,7 @@ def main(argv=None):
     ap.add_argument("--presets", nargs="+", default=["default", "fast", "weak-fast"])
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--refit-parts", action="store_true", help="time the thinning refit's own parts instead")
     ap.add_argument("--fresh", metavar="OLD_TREE", help="time new processes against a checkout of the old revision")
     ap.add_argument("--process", metavar="FILE", help="with --fresh: time `radiokit process FILE` instead")
     ap.add_argument(
@@ -350,6 +405,10 @@ def main(argv=None):
     if a.fresh:
         fresh(a.fresh, a.pairs[0], a.size, a.presets, a.threads, a.reps)
         return
+    with threadpool_limits(limits=1, user_api="blas"):
+        if a.refit_parts:
+            refit_parts(a.old, a.pairs[0], a.size, a.reps, a.threads[0])
+            return
     fns = methods(a.old)
     with threadpool_limits(limits=1, user_api="blas"):
         if a.equivalence:

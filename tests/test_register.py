@@ -1091,6 +1091,112 @@ def test_interior_thinning_nearer_the_edge_extrapolates_less():
     assert errors[1] < 0.7 * errors[0], errors
 
 
+def _lstsq_fit(y, x, w, t, degree):
+    """What ``_poly_fit`` replaces: the design matrix of the monomials, ``np.linalg.lstsq``."""
+    from radiokit.register._common import monomials
+
+    design = monomials(y, x, degree)
+    coef, rss = np.linalg.lstsq(design if w is None else design * w[:, None], t, rcond=None)[:2]
+    return coef, rss
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_poly_fit_by_the_samples_moments_is_lstsq(weighted):
+    """``_poly_fit`` (the normal equations from the samples' moments, columns scaled) gives
+    ``np.linalg.lstsq``'s coefficients and residual on the design matrix itself: on a
+    well-conditioned problem (samples over a disc of the frame, weights near 1 as the thinning's
+    ``1 + b`` are) the two agree to cond x 1e-16 relative, so to 1e-10 here; the frame's powers
+    also evaluate the polynomial at the samples."""
+    n, degree = 480, 4
+    rng = np.random.default_rng(11)
+    yy, xx = np.nonzero(rng.random((n, n)) < 0.3)
+    keep = (yy / n - 0.5) ** 2 + (xx / n - 0.5) ** 2 < 0.16  # an interior, not the whole frame
+    yy, xx = yy[keep], xx[keep]
+    y, x = yy / n - 0.5, xx / n - 0.5
+    w = (0.9 + 0.2 * rng.random(yy.size)).astype(np.float32) if weighted else None
+    t = (0.05 * y - 0.3 * x**3 * y + 0.01 * rng.standard_normal(yy.size)).astype(np.float32)
+    vy, vx = B._frame_powers((n, n), 2 * degree + 1)
+    c, rss = B._poly_fit(vy.take(yy, axis=1), vx.take(xx, axis=1), w, t, degree)
+    coef, rss_ref = _lstsq_fit(y, x, w, t, degree)
+    terms = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    got = np.array([c[i, j] for i, j in terms])
+    assert np.abs(got - coef).max() <= 1e-10 * np.abs(coef).max()
+    assert rss == pytest.approx(float(rss_ref[0]), rel=1e-10)
+    assert all(c[i, j] == 0 for i in range(degree + 1) for j in range(degree + 1) if i + j > degree)
+
+
+def test_poly_fit_falls_back_to_lstsq_when_rank_deficient():
+    """Samples on one row leave every power of ``y`` the same column: the normal equations are
+    singular, and ``_poly_fit`` answers as lstsq does (its minimum-norm coefficients; no
+    residual), which the refit reads as nothing to compare."""
+    n, degree = 64, 2
+    xx = np.arange(n)
+    yy = np.full(n, 20)
+    t = np.cos(xx / 9.0).astype(np.float32)
+    vy, vx = B._frame_powers((n, n), 2 * degree + 1)
+    c, rss = B._poly_fit(vy.take(yy, axis=1), vx.take(xx, axis=1), None, t, degree)
+    coef, rss_ref = _lstsq_fit(yy / n - 0.5, xx / n - 0.5, None, t, degree)
+    terms = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    assert rss is None and rss_ref.size == 0
+    assert np.allclose([c[i, j] for i, j in terms], coef, rtol=1e-12, atol=1e-12)
+
+
+def test_warp_rows_and_their_blur_are_the_whole_frames():
+    """The interior thinning warps and blurs only the rows it samples: ``_warp_rows`` of a band
+    of the field is the band of :func:`warp`'s whole frame to the bit, and the 2 px blur of that
+    band, ``_BLUR_REACH`` rows in from its cut edges, is the whole frame's blur to the bit."""
+    from radiokit.register._common import _warp_rows
+    from radiokit.register._confidence import _gauss
+
+    image, _ = _phantom(200, seed=3)
+    d = _smooth_field(200, 6.0, seed=4)
+    whole = warp(image, d)
+    r0, r1 = 37, 151
+    band = _warp_rows(image, d[:, r0:r1], r0)
+    assert np.array_equal(band, whole[r0:r1])
+    reach = B._BLUR_REACH
+    blurred = _gauss(band, B._THINNING_BLUR)[reach:-reach]
+    assert np.array_equal(blurred, _gauss(whole, B._THINNING_BLUR)[r0 + reach : r1 - reach])
+    top = _gauss(_warp_rows(image, d[:, :r1], 0), B._THINNING_BLUR)[: r1 - reach]  # the frame's own edge
+    assert np.array_equal(top, _gauss(whole, B._THINNING_BLUR)[: r1 - reach])
+
+
+def test_interior_thinning_is_the_straightforward_computation():
+    """``_interior_thinning`` (the warp and blur of the sampled rows, the frame's powers, the
+    normal equations) gives the thinning the straightforward way gives (the whole frame warped
+    and blurred, the monomials' design matrix, ``np.linalg.lstsq``), under a real motion, to the
+    float32 field's rounding (1e-7 of a 10 % thinning)."""
+    from radiokit.register._common import monomials
+    from radiokit.register._confidence import _gauss
+
+    n = 320
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:n, 0:n] / n - 0.5
+    r2 = (yy / 0.4) ** 2 + (xx / 0.35) ** 2
+    body = 2 * np.sqrt(np.clip(1 - r2, 0, None)) * (1 + 0.05 * np.sin(9 * xx) * np.cos(7 * yy))
+    slow = 0.06 * yy - 0.04 * xx + 0.2 * xx * yy + 0.3 * yy**3
+    moving = (body + 0.002 * rng.standard_normal((n, n))).astype(np.float32)
+    d = _smooth_field(n, 3.0, seed=8)
+    fixed = (warp(moving, d, order=3) * (1 + slow) + 0.002 * rng.standard_normal((n, n))).astype(np.float32)
+    side = B._fixed_side(fixed, None)
+    terms = [(i, j) for i in range(B.REFIT_DEGREE + 1) for j in range(B.REFIT_DEGREE + 1 - i)]
+    for interior in (B.REFIT_INTERIOR, B.REFIT_AGAIN_INTERIOR):
+        b, level, note = B._interior_thinning(fixed, moving, d, None, interior, side)
+        f, level, dist, f_smooth = side
+        iy, ix = np.nonzero(dist >= interior * n)  # 150k samples and more: every pixel here
+        fs = f_smooth[iy, ix] - level
+        ws = _gauss(np.nan_to_num(warp(moving, d)), 2.0)[iy, ix] - level
+        coef = np.linalg.lstsq(monomials(iy / n - 0.5, ix / n - 0.5, B.REFIT_DEGREE) * ws[:, None], fs - ws)[0]
+        c = np.zeros((B.REFIT_DEGREE + 1,) * 2)
+        for (i, j), v in zip(terms, coef):
+            c[i, j] = v
+        v = np.vander(np.arange(n) / n - 0.5, B.REFIT_DEGREE + 1, increasing=True)
+        expected = (v @ c @ v.T).astype(np.float32)
+        assert b is not None and "refitted" in note
+        assert np.abs(b - expected).max() < 1e-7, interior
+        assert np.abs(b - slow)[dist > interior * n].max() < 0.01  # and it is the thinning
+
+
 def test_weak_measures_the_thinning_again_from_its_second_pass():
     """``refit_again`` (1 in ``weak``): the thinning is measured once more from the second
     pass's field and a third pass runs the finest level from its lattices, for at most

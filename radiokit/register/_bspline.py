@@ -126,7 +126,7 @@ from scipy import fft as sfft
 from scipy.optimize import minimize
 
 from radiokit.register import _method
-from radiokit.register._common import monomials
+from radiokit.register._common import _field, _warp_rows
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
@@ -1240,7 +1240,7 @@ def _fixed_side(fixed, mask):
     if mask is not None:
         body &= np.asarray(mask, bool)
     # the interior by the distance to the body's edge (an erosion by a disc of 300 px is slow)
-    return f, level, cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5), _gauss(f, 2.0)
+    return f, level, cv2.distanceTransform(body.astype(np.uint8), cv2.DIST_L2, 5), _gauss(f, _THINNING_BLUR)
 
 
 def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=None):
@@ -1255,7 +1255,6 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=Non
     The two models are told apart by where the change falls: a thinning scales the body's line
     integral, an additive change does not follow it. ``side``: :func:`_fixed_side` of ``fixed``
     and ``mask`` if already measured."""
-    from radiokit.register import warp
     from radiokit.register._confidence import _gauss
 
     f, level, dist, f_smooth = _fixed_side(fixed, mask) if side is None else side
@@ -1267,22 +1266,27 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=Non
     yy, xx = np.nonzero(inner[::step, ::step])
     yy, xx = yy * step, xx * step
     fs = f_smooth[yy, xx] - level
-    ws = _gauss(np.nan_to_num(warp(moving, d)), 2.0)[yy, xx] - level
-    rows, cols = f.shape
-    n = REFIT_DEGREE + 1
-    terms = [(i, j) for i in range(n) for j in range(n - i)]  # monomials' order
-    poly = monomials(yy / rows - 0.5, xx / cols - 0.5, REFIT_DEGREE)
-    coef, rss_b = np.linalg.lstsq(poly * ws[:, None], fs - ws, rcond=None)[:2]
-    rss_a = np.linalg.lstsq(poly, fs - ws, rcond=None)[1]
-    if rss_a.size and rss_b.size and rss_a[0] <= rss_b[0]:
+    # the warped moving image smoothed on the sampled rows alone (and the blur's reach around
+    # them): the same numbers as over the whole frame, in about half the time (the interior is
+    # 40-60 % of the rows at 2240)
+    r0, r1 = max(int(yy.min()) - _BLUR_REACH, 0), min(int(yy.max()) + 1 + _BLUR_REACH, f.shape[0])
+    warped = _warp_rows(np.asarray(moving, np.float32), _field(d)[:, r0:r1], r0)
+    ws = _gauss(np.nan_to_num(warped), _THINNING_BLUR)[yy - r0, xx] - level
+    vy, vx = _frame_powers(f.shape, 2 * REFIT_DEGREE + 1)
+    py, px = vy.take(yy, axis=1), vx.take(xx, axis=1)  # the samples' powers, gathered
+    c, rss_b = _poly_fit(py, px, ws, fs - ws, REFIT_DEGREE)
+    rss_a = _poly_fit(py, px, None, fs - ws, REFIT_DEGREE)[1]
+    if rss_a is not None and rss_b is not None and rss_a <= rss_b:
         return None, level, "not refitted: an additive change fits the interior better than a thinning"
-    c = np.zeros((n, n))
-    for (i, j), v in zip(terms, coef):
-        c[i, j] = v
-    vy = np.vander(np.arange(rows) / rows - 0.5, n, increasing=True)
-    vx = np.vander(np.arange(cols) / cols - 0.5, n, increasing=True)
-    b = (vy @ c @ vx.T).astype(np.float32)  # separable: sum c_ij y^i x^j
-    lo, hi = float(b[body].min()), float(b[body].max())
+    n = REFIT_DEGREE + 1
+    # separable: sum c_ij y^i x^j, in double as before (a float32 product moved b by an ulp in two
+    # thirds of the frame, and the second pass follows such changes; benchmarks/README.md), by
+    # bands of rows: no frame of doubles (3x faster at 2240 on one thread; on the pool, slower)
+    b, rows_c = np.empty(f.shape, np.float32), vy[:n].T @ c
+    for sl in _row_bands(f.shape[0]):
+        b[sl] = rows_c[sl] @ vx[:n]
+    on_body = b[body]
+    lo, hi = float(on_body.min()), float(on_body.max())
     if not (-0.5 < lo and hi < 0.5):
         return None, level, f"not refitted: the thinning found, {100 * lo:.0f} to {100 * hi:.0f} %, is implausible"
     note = (
@@ -1290,6 +1294,69 @@ def _interior_thinning(fixed, moving, d, mask, interior=REFIT_INTERIOR, side=Non
         f"{100 * lo:.1f} to {100 * hi:.1f} % over the body"
     )
     return b, level, note
+
+
+# the interior thinning's blur (px) and how far OpenCV's Gaussian of that sigma reaches on
+# float32 (its kernel: 2 x round(4 sigma) + 1 taps), with a row to spare: rows further than
+# this from a band's edge are blurred as in the whole frame
+_THINNING_BLUR = 2.0
+_BLUR_REACH = int(round(4 * _THINNING_BLUR)) + 1
+
+
+@functools.lru_cache(maxsize=4)
+def _frame_powers(shape, n):
+    """``(vy, vx)``: the frame's row and column coordinates in [-0.5, 0.5) raised to the
+    powers ``0 .. n - 1``, ``vy[i]`` the rows' ``y^i`` (``np.vander``, increasing, transposed: a
+    power's values contiguous), built once per frame size."""
+    rows, cols = shape
+    vy = np.vander(np.arange(rows) / rows - 0.5, n, increasing=True).T.copy()
+    vx = np.vander(np.arange(cols) / cols - 0.5, n, increasing=True).T.copy()
+    vy.flags.writeable = vx.flags.writeable = False  # cached: shared by every call
+    return vy, vx
+
+
+# the largest condition number of the column-scaled normal equations solved as they are: their
+# error is then under cond x 1e-16 relative, far below the float32 thinning field's rounding
+# (the interior's degree-4 monomials read ~300 at 2240, whatever the coordinates' scale: the
+# columns' scaling takes it out; lstsq's own error there is ~2e-14, the normal equations' 2e-13)
+_NORMAL_COND = 1e8
+
+
+def _poly_fit(py, px, w, t, degree):
+    """``(c, rss)``: ``np.linalg.lstsq(A, t)`` for the design ``A[k] = w_k y_k^i x_k^j`` (every
+    ``i + j <= degree``; ``w`` None: 1), ``c[i, j]`` its coefficient of ``y^i x^j`` (0 where ``i +
+    j > degree``), ``rss`` the residual sum of squares (None where lstsq gives none: rank
+    deficient). ``py``, ``px``: the samples' powers ``y^0 .. y^(2 degree)`` and of ``x``, one
+    power a row (``_frame_powers``). Solved by the normal equations, whose matrix needs only the
+    samples' moments ``sum w^2 y^p x^q`` (one (2 degree + 1)^2 product instead of the SVD of the
+    ~150k x 15 design: ~6x less time at 2240); conditioned worse than ``_NORMAL_COND`` (columns
+    scaled to unit norm), by lstsq on the design itself."""
+    n = degree + 1
+    terms = [(i, j) for i in range(n) for j in range(n - i)]  # monomials' order
+    # in double: float32 samples squared in float32 would round the moments at 6e-8
+    w = None if w is None else np.asarray(w, np.float64)
+    t = np.asarray(t, np.float64)
+    w2 = None if w is None else w * w
+    moments = (py if w2 is None else py * w2) @ px.T
+    gram = np.array([[moments[i + k, j + m] for k, m in terms] for i, j in terms])
+    wt = t if w is None else w * t
+    rhs = (py[:n] * wt) @ px[:n].T
+    rhs = np.array([rhs[i, j] for i, j in terms])
+    scale = np.sqrt(np.diag(gram))
+    c = np.zeros((n, n))
+    if len(t) > len(terms) and np.all(scale > 0) and np.linalg.cond(gram / np.outer(scale, scale)) < _NORMAL_COND:
+        coef = np.linalg.solve(gram / np.outer(scale, scale), rhs / scale) / scale
+        for (i, j), v in zip(terms, coef):
+            c[i, j] = v
+        # the residual itself, not an expansion of it: sum_i y^i (sum_j c_ij x^j) at the samples
+        fit = (py[:n] * (c @ px[:n])).sum(axis=0)
+        r = (fit if w is None else w * fit) - t
+        return c, float(r @ r)
+    design = np.stack([py[i] * px[j] for i, j in terms], axis=-1)
+    coef, rss = np.linalg.lstsq(design if w is None else design * w[:, None], t, rcond=None)[:2]
+    for (i, j), v in zip(terms, coef):
+        c[i, j] = v
+    return c, (float(rss[0]) if rss.size else None)
 
 
 def _bspline_register(

@@ -19,16 +19,23 @@ def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     >>> warp(ramp, pull, cval=np.nan)[0].tolist()
     [2.0, 3.0, 4.0, 5.0, nan, nan]
     """
-    import cv2
-
     image = np.asarray(image, np.float32)
     if image.ndim != 2:  # OpenCV took a (2, rows, cols) stack as 2 rows of many channels
         raise ValueError(f"image must be 2-D (rows, cols); got shape {image.shape}")
     d = _field(displacement)
+    return _warp_rows(image, d, 0, order, cval)
+
+
+def _warp_rows(image, d, row0, order=1, cval=None) -> np.ndarray:
+    """:func:`warp` of the rows ``row0, row0 + 1, ...`` of a frame whose field there is ``d``
+    (``image`` float32 and 2-D, ``d`` as :func:`_field` gives it): ``warp(image, full)[row0:row0 +
+    len]`` to the bit, without the rest of the frame (a row's samples depend on its field alone)."""
+    import cv2
+
     rows, cols = d.shape[1:]
     # pixel positions broadcast, not a frame-sized grid per axis (np.mgrid's int64 planes and
     # their conversion were most of a 2240 frame's warp); the same float32 sums
-    rr = np.arange(rows, dtype=np.float32)[:, None]
+    rr = np.arange(row0, row0 + rows, dtype=np.float32)[:, None]
     cc = np.arange(cols, dtype=np.float32)[None, :]
     r, c = rr + d[0], cc + d[1]
     if order == 1:
