@@ -1382,9 +1382,10 @@ def test_extend_goes_on_with_a_slow_run_and_not_with_a_lost_one():
 
 def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_checks():
     """``polish``: a pyramid cut short of full resolution (``max_pixels``, as 2240 frames are at
-    1120 px) gets one more level there, of at most ``polish`` iterations, when its residual
-    already passes the checks' line, and comes closer to the truth (rich texture: the
-    half-resolution images hide what the full ones show); a field the checks would flag (texture
+    1120 px) has its finest lattice refitted there (no lattice added: the same prior), for at most
+    ``polish`` iterations, when its residual already passes the checks' line, and comes closer to
+    the truth (rich texture: the half-resolution images hide what the full ones show; 0.24 ->
+    0.14 px here); a field the checks would flag (texture
     = noise, a local motion of 3 % correlated over a twentieth of the frame) is left as it was,
     the same field to the bit. ``fast`` and the presets that chose their own levels do not polish."""
     fixed, moving, d, mask = _family_pair(size=352, texture=0.1, noise=0.01, corr=0.25, seed=9)
@@ -1394,6 +1395,8 @@ def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_
     assert [lv["factor"] for lv in plain_info["levels"]][-1] == 2
     last = info["levels"][-1]
     assert last["factor"] == 1 and last.get("polish") and 1 <= last["iterations"] <= B.PRESETS["default"]["polish"]
+    assert len(info["lattices"]) == len(plain_info["lattices"]) == 1
+    assert info["lattices"][0][0].spacing == plain_info["lattices"][0][0].spacing
     assert _epe(polished, d, mask)[0] < 0.8 * _epe(plain, d, mask)[0]
     lost = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.05, amplitude=0.03, seed=9)[:2]
     left, left_info = B._bspline_register(*lost, None, polish=0, **cut)

@@ -1496,20 +1496,24 @@ def _textured(fixed, mask) -> bool:
 
 
 def _polish(f, m, maskf, similarity, o, coarsest, grids, affine, gain):
-    """``polish``: one more level at full resolution, ``o["polish"]`` iterations, its lattice (the
-    finest's spacing) on top of the pyramid's field, appended to ``grids``; ``(result, move)``.
-    Run only on a textured interior and a field whose residual already passes the checks' line
-    (the caller's gates, :func:`_textured` and :func:`_settles`): the pyramid stops at ``max_pixels`` (the 1120 px level at 2240) for time, and on rich texture the
-    half-resolution images leave 0.1-0.17 px that the full-resolution ones see (natural pictures
-    at 2240, TRAINING: benchmarks/README.md, "A full-resolution polish (session 23)"); a field the
-    checks would flag is not worth the time (``auto`` moves on to its fallback)."""
-    base = _fields(grids, 1, f.shape)
+    """``polish``: the finest lattice refitted on the full-resolution images for ``o["polish"]``
+    iterations from where the pyramid left it (the same lattice and bending weight: a second
+    lattice of that spacing on top would halve the prior's weight there, and fitted the noise of
+    analytic_pair at 2240, 0.036 -> 0.044 px); ``grids[-1]`` replaced; ``(result, move)``.
+    Run only on a non-silent interior and a field whose residual already passes the checks' line
+    (the caller's gates, :func:`_textured` and :func:`_settles`): the pyramid stops at
+    ``max_pixels`` (the 1120 px level at 2240) for time, and on rich texture the half-resolution
+    images leave 0.1-0.17 px that the full-resolution ones see (natural pictures at 2240,
+    TRAINING: benchmarks/README.md, "A full-resolution polish (session 23)"); a field the checks
+    would flag is not worth the time (``auto`` moves on to its fallback)."""
+    last, x0 = grids[-1]
+    base = _fields(grids[:-1], 1, f.shape)
     if affine is not None:
         base += affine.field(base.shape[1:], 1)
-    grid, res, move = _run_level(f, m, maskf, similarity, o, (1, o["polish"], coarsest, 1), base, gain, [])
-    if not np.all(np.isfinite(res.x)):  # the pyramid's field stands
-        return res, move
-    grids.append((grid, res.x))
+    where = (1, o["polish"], coarsest, 1)
+    grid, res, move = _run_level(f, m, maskf, similarity, o, where, base, gain, [], x0, spacing=last.spacing)
+    if np.all(np.isfinite(res.x)):  # else the pyramid's field stands
+        grids[-1] = (grid, res.x)
     return res, move
 
 
@@ -1566,7 +1570,9 @@ def _settles(measure, lattices, affine) -> bool:
     return bool(_motion(measure, lattices, affine) <= _MAX_RESIDUAL_MOTION)
 
 
-def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None, extend=None):
+def _run_level(
+    f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start=None, check=None, extend=None, spacing=None
+):
     """``(grid, result, move)`` of one pyramid level: its lattice fitted on top of ``base``
     (and, with ``gain`` = [lattice, coefficients], the thinning field refitted from the
     coarser level's, which is left in ``gain[1]``); ``result.x`` the lattice's coefficients.
@@ -1575,7 +1581,8 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     ``x_start``: this lattice's first coefficients (None: zero). ``check``: ``(iteration, fn)``,
     ``fn((grid, coefficients))`` at that iteration, whose message (not None) stops the level
     there, left in ``result["abandoned"]``. ``extend``: ``(iterations, converge_px, fn)``, see
-    :func:`_fit_level`; ``fn`` gets the lattices refitted here (``coarse``'s and this one)."""
+    :func:`_fit_level`; ``fn`` gets the lattices refitted here (``coarse``'s and this one).
+    ``spacing``: the lattice's (None: ``spacing`` x max(1, factor / 2), the pyramid's)."""
     factor, n_it, coarsest, finest = where
     fine = factor == finest
     # coarse levels may run a larger alpha (closer to SSD) and another bending energy;
@@ -1584,7 +1591,7 @@ def _run_level(f, m, maskf, similarity, o, where, base, gain, coarse=(), x_start
     lam = o["regularisation"] * (1.0 if fine else o["coarse_regularisation"]) * (coarsest / factor) ** o["stiffen"]
     hp_sigma = o["highpass"] * min(f.shape) / factor if o["highpass_on"] == "residual" else 0.0
     level = _Level(f, m, maskf, factor, similarity, alpha, hp_sigma, o["smooth"], o["grid_jitter"])
-    grid = BSplineField(f.shape, o["spacing"] * max(1, factor // 2))
+    grid = BSplineField(f.shape, spacing or o["spacing"] * max(1, factor // 2))
     if gain is not None and gain[1] is not None and fine and not o["gain_fine"]:
         level.gain = _thinning_field(gain[0], gain[1], factor, level.shape)  # kept as the coarser levels left it
         gain = None
