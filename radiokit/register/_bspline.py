@@ -164,7 +164,7 @@ PRESETS = {
         abandon_px=0.0,
         extend=0,
         grid_jitter=False,
-        polish=20,
+        polish=10,
     ),
     "fast": dict(
         spacing=16,
