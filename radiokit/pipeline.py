@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.measure import PAPER, ROI
@@ -531,7 +532,7 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
             mu = None
         if mu is not None:
             # TOML's `true` is Python's 1: float() took it for 1/cm, and "0.3" or nan too, a wrong bound in silence
-            if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not (math.isfinite(mu) and mu > 0):
+            if not is_number(mu) or not (math.isfinite(mu) and mu > 0):
                 raise FormatError(
                     path,
                     f"simulation truth: scene body.material.attenuation_per_cm = {json.dumps(mu)}: "
