@@ -86,12 +86,12 @@ import time
 import tomllib
 from collections.abc import Callable, Mapping
 from enum import IntEnum
-from numbers import Real
 from pathlib import Path
 from typing import Any
 
 from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
+from radiokit.checks import is_integer, is_number
 
 __all__ = [
     "L8121",
@@ -334,7 +334,7 @@ class SourceConfig:
             parameter and the limit.
         """
         for name, value, unit in (("voltage_kv", voltage_kv, "kV"), ("current_ua", current_ua, "µA")):
-            if isinstance(value, bool) or not isinstance(value, Real):
+            if not is_number(value):
                 raise ValueError(f"L8121: {name} must be a number of {unit}, got {value!r}")
             if not math.isfinite(value):
                 raise ValueError(f"L8121: {name} must be finite, got {value!r} {unit}")
@@ -393,13 +393,13 @@ class SourceConfig:
 
 
 def _finite(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value) or value < 0:
+    if not is_number(value) or not math.isfinite(value) or value < 0:
         raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
     return value
 
 
 def _baud(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+    if not is_integer(value) or value <= 0:
         raise ValueError(f"L8121 configuration: {name} must hold positive whole baud rates, got {value!r}")
     return value
 
@@ -410,7 +410,7 @@ def _tolerance(spec: float | str, set_value: float, name: str) -> float:
         if not m:
             raise ValueError(f"L8121 configuration: {name} {spec!r} is neither a number nor a percentage like '2%'")
         return abs(set_value) * float(m.group(1)) / 100
-    if isinstance(spec, bool) or not isinstance(spec, Real) or not spec >= 0:
+    if not is_number(spec) or not spec >= 0:
         raise ValueError(f"L8121 configuration: {name} must be >= 0, got {spec!r}")
     return float(spec)
 
@@ -649,7 +649,7 @@ def _ua_argument(driver: L8121, value) -> int:
 
 
 def _focus_argument(driver: L8121, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value not in driver.config.focus_modes:
+    if not is_integer(value) or value not in driver.config.focus_modes:
         raise ValueError(f"focus mode must be one of focus_modes = {driver.config.focus_modes}, got {value!r}")
     return value
 

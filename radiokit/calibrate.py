@@ -23,6 +23,7 @@ import numpy as np
 
 from radiokit import _json as strict_json
 from radiokit._version import __version__
+from radiokit.checks import is_number
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -110,7 +111,7 @@ class Thresholds:
             v = getattr(self, f.name)
             if v is None and f.name == "saturation":  # the ADC's top, implied by the darks and flats
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+            if not is_number(v) or not np.isfinite(v):
                 raise ValueError(f"threshold {f.name}={v!r}: expected a finite number")
         rules = [
             ("dead_below", 0 <= self.dead_below <= self.under_below, "0 <= dead_below <= under_below"),
@@ -525,23 +526,18 @@ class Calibration:
 _PROVENANCE_NUMBERS = {"flat_current_ua": "uA", "flat_voltage_kv": "kV"}
 
 
-def _real(value) -> bool:
-    """A real number, not a bool (JSON's and HDF5's ``true`` is Python's 1)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-
-
 def _check_numbers(path, group, provenance: dict) -> None:
     """Refuse, naming the file and the field, a number of the calibration that is not one: the
     gain ``c`` (``true`` read as 1 and scaled ``--domain counts`` by 1/3000) and the flats' tube
     current and voltage (``"flat_current_ua": true`` scaled every transmission by 1/200 in
     silence; ``"200"``, a string, was a TypeError traceback)."""
     c = group.attrs.get("c", np.nan)
-    if not _real(c) or float(c) <= 0 or np.isinf(c):  # NaN: not recorded, computed again
+    if not is_number(c) or float(c) <= 0 or np.isinf(c):  # NaN: not recorded, computed again
         shown = c.item() if isinstance(c, np.generic) else c
         raise FormatError(path, f"{group.name}@c is {shown!r}: expected a positive finite number of counts")
     for key, unit in _PROVENANCE_NUMBERS.items():
         value = provenance.get(key)
-        if value is not None and not _real(value):
+        if value is not None and not is_number(value):
             raise FormatError(
                 path, f"{group.name}@provenance: {key} is {json.dumps(value)}: expected a number ({unit}) or null"
             )

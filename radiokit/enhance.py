@@ -26,10 +26,10 @@ while improvement factors and change ratios (ratios of contrasts) do not.
 from __future__ import annotations
 
 import enum
-import numbers
 
 import numpy as np
 
+from radiokit.checks import is_number
 from radiokit.measure import ROI
 
 __all__ = ["Domain", "compression_contrast", "difference", "to_domain", "DOMAINS"]
@@ -257,7 +257,7 @@ def compression_contrast(
     """
     domain = Domain.parse(domain)
     ref, reg = _pair(reference, registered)
-    if isinstance(k, bool) or not isinstance(k, numbers.Real) or not np.isfinite(k):
+    if not is_number(k) or not np.isfinite(k):
         raise ValueError(f"k must be a finite real number, got {k!r}")
     _check_sign(ref, "reference", domain)
     _check_sign(reg, "registered", domain)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from radiokit.checks import is_number
+
 __all__ = [
     "ROI",
     "contrast",
@@ -457,12 +459,7 @@ def improvement_bound(k, mu_b_per_mm, delta_gap_mm, domain: str) -> float:
     if domain not in ("log", "linear", "negative"):
         raise ValueError(f"domain must be 'log', 'linear' or 'negative', got {domain!r}")
     for name, v in (("k", k), ("mu_b_per_mm", mu_b_per_mm), ("delta_gap_mm", delta_gap_mm)):
-        if (
-            isinstance(v, bool)
-            or not isinstance(v, (int, float, np.floating, np.integer))
-            or not math.isfinite(v)
-            or v < 0
-        ):
+        if not is_number(v) or not math.isfinite(v) or v < 0:
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
     if domain == "log":
         return 1.0

@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.measure import PAPER, ROI
@@ -531,7 +532,7 @@ def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
             mu = None
         if mu is not None:
             # TOML's `true` is Python's 1: float() took it for 1/cm, and "0.3" or nan too, a wrong bound in silence
-            if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not (math.isfinite(mu) and mu > 0):
+            if not is_number(mu) or not (math.isfinite(mu) and mu > 0):
                 raise FormatError(
                     path,
                     f"simulation truth: scene body.material.attenuation_per_cm = {json.dumps(mu)}: "
@@ -1072,7 +1073,9 @@ def process_many(
         client = Client(cluster if cluster is not None else scheduler)
     except BaseException:  # a scheduler that does not answer: nothing made, nothing left running
         if cluster is not None:
-            cluster.close()
+            with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                _kill_workers(cluster)
+                cluster.close()
         raise
     # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty), and
     # here, not by the workers: one that fails must not remove it under the others
@@ -1094,15 +1097,16 @@ def process_many(
         return results
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
         logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
-        try:  # the workers' own logs of the tasks cut short, too
-            client.run(_quiet_worker)
-        except Exception:
-            pass
+        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            if cluster is not None:  # ours: stopped now, not after each busy worker's grace period
+                _kill_workers(cluster)
+            else:  # a scheduler's workers are not ours to kill: their logs of the tasks cut short quiet
+                with contextlib.suppress(Exception):
+                    client.run(_quiet_worker)
         raise
     finally:
-        # Stopping the workers takes seconds; a second signal (radiokit's SIGTERM handler repeats
-        # its interrupt after a second) cut this short and left the workers' temporaries.
-        with _ignoring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        # A signal while the workers stop is acted on once they have (see _deferring)
+        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             client.close()
             if cluster is not None:
                 cluster.close()
@@ -1122,36 +1126,110 @@ def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
 
 def _local_cluster(n_workers: int):
     """A local cluster of ``n_workers`` single-threaded worker processes, each started with its
-    share of this machine's cores in its environment."""
+    share of this machine's cores in its environment.
+
+    Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the workers
+    too: each died mid-file with tracebacks and left its temporary folder. So the workers start
+    with both *blocked*: the cluster is started from a thread that blocks them, whose mask the
+    threads Dask starts there inherit (its event loop, the ones that start the workers), and a
+    process keeps its mask across exec. They leave the signal to this process, which stops them
+    (process_many). This process is never made to ignore them: it was while the cluster started,
+    and a Ctrl-C then was lost (the run went on to its end, exit code 0).
+
+    A Ctrl-C while the cluster starts lets it finish starting, then stops it: Dask cut short
+    half-way keeps workers it no longer knows how to close."""
     from dask.distributed import LocalCluster
 
     from radiokit._threads import cores
 
     share = worker_threads(cores(), n_workers)
-    # Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the
-    # workers too: each died mid-file with tracebacks and left its temporary folder. Started with
-    # both ignored (kept across exec; Python and asyncio then install no handler), they leave the
-    # signal to this process, which stops them (process_many).
-    with _ignoring(signal.SIGINT, signal.SIGHUP):
+    with _blocked(signal.SIGHUP):  # the tracker blocks, then ignores, SIGINT itself (and unblocks it here)
         _quiet_resource_tracker()
-        return LocalCluster(
-            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
-        )
+    made = {}
+
+    def start():
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGHUP})
+        try:
+            made["cluster"] = LocalCluster(
+                n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
+            )
+        except BaseException as exc:  # raised in the caller's thread
+            made["error"] = exc
+
+    starter = threading.Thread(target=start, name="radiokit local cluster", daemon=True)
+    starter.start()
+    try:
+        starter.join()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
+    except BaseException:
+        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            starter.join()
+            if "cluster" in made:
+                _kill_workers(made["cluster"])
+                made["cluster"].close()
+        raise
+    if "error" in made:
+        raise made["error"]
+    return made["cluster"]
+
+
+def _kill_workers(cluster) -> None:
+    """Kill the worker processes of a started ``cluster`` on an interrupt, before closing it: a
+    worker stopped mid-file has nothing worth the grace period Dask gives it (closing waited 4 s
+    for each one busy with a file); its temporaries are removed once it is gone (process_many)."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
+    nannies = list(cluster.workers.values())
+    for nanny in nannies:
+        with contextlib.suppress(Exception):
+            nanny.close_gracefully()  # Dask's flag for "do not restart a worker that goes away"
+    for nanny in nannies:
+        pid = getattr(nanny, "pid", None)
+        if pid:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
 
 
 @contextlib.contextmanager
-def _ignoring(*signals):
-    """Ignore ``signals`` in this process while the block starts child processes, which keep the
-    disposition; then restore the handlers. Only the main thread may set them: elsewhere, nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in signals}
+def _blocked(*signals):
+    """Block ``signals`` in this thread while the block starts threads or processes, which inherit
+    the mask; then unblock them, which delivers one sent meanwhile."""
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+@contextlib.contextmanager
+def _deferring(*signals):
+    """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is a
+    KeyboardInterrupt once the block is done (an exception of the block's own goes out instead).
+
+    Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
+    come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
+    and a second signal (radiokit's SIGTERM handler repeats its interrupt after a second) cut it
+    short and left the workers' temporaries. Only the main thread may set handlers: elsewhere,
+    nothing is held off."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came = []
+
+    def note(signum, frame):
+        came.append(signum)
+
+    # a signal the command was started ignoring (`make test &` starts it so) stays ignored
+    before = {sig: signal.signal(sig, note) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
+    unwinding = False
+    try:
+        yield
+    except BaseException:
+        unwinding = True
+        raise
+    finally:
         for sig, handler in before.items():
             signal.signal(sig, handler)
+        if came and not unwinding:
+            raise KeyboardInterrupt(signal.Signals(came[0]).name)
 
 
 def _quiet_worker():

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from radiokit._json import restore, strict
+from radiokit.checks import is_integer, is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 
@@ -390,12 +391,8 @@ def load_results(path) -> Results:
         raise FormatError(path, f"not a radiokit results.json: {type(exc).__name__} {exc}") from None
 
 
-def _number(v) -> bool:  # numpy scalars too: process_many hands over to_json()'s dict unserialised
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-
-
-def _maybe_number(v) -> bool:
-    return v is None or _number(v)
+def _maybe_number(v) -> bool:  # numpy scalars too: process_many hands over to_json()'s dict unserialised
+    return v is None or is_number(v)
 
 
 def _list_of(check, n=None):
@@ -416,11 +413,7 @@ def _k_keyed(v) -> bool:
         return False
 
 
-def _int(v) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-
-_BOX = _list_of(_int, 4)
+_BOX = _list_of(is_integer, 4)
 _DOMAIN_FIELDS = {
     "contrast_reference": _maybe_number,
     "cnr_reference": _maybe_number,
@@ -435,18 +428,18 @@ _FIELDS = {
     "source": (str,),
     "scene": (str, None),
     "simulated": (bool, np.bool_),
-    "pixel_size_mm": _number,
+    "pixel_size_mm": is_number,
     "domain": (str,),
-    "ks": _list_of(_number),
+    "ks": _list_of(is_number),
     "method": (str,),
-    "steps": _list_of(_int),
+    "steps": _list_of(is_integer),
     "ratios": _list_of(_maybe_number),
     "rois": lambda v: isinstance(v, dict) and all(_BOX(v.get(k)) for k in ("crop", "inclusion", "background")),
     "domains": _dict_of(lambda m: isinstance(m, dict) and all(c(m.get(k)) for k, c in _DOMAIN_FIELDS.items())),
     "change_ratio": _dict_of(_dict_of(_maybe_number)),
     "registration": _dict_of(lambda q: isinstance(q, dict)),
     "main_pair": (str,),
-    "profiles_row": _int,
+    "profiles_row": is_integer,
     "paper": (dict, None),
     "timings": (dict, None),
     "bound": lambda v: isinstance(v, dict) and _maybe_number(v.get("mu_dg")) and isinstance(v.get("basis"), str),

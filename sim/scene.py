@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from radiokit.checks import is_integer, is_number
+
 __all__ = [
     "Material",
     "Body",
@@ -586,17 +588,13 @@ def _typed(value, annotation: str, where: str):
     or a ValueError naming the key: TOML's types are not Python's (an integer where a number is
     meant is fine, a string or a boolean is not; ``True > 0`` would pass a range check)."""
     kind = annotation.split(" | ")[0]
-
-    def number(v):
-        return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-    if kind == "float" and number(value):
+    if kind == "float" and is_number(value):
         return float(value)
-    if kind == "int" and isinstance(value, int) and not isinstance(value, bool):
+    if kind == "int" and is_integer(value):
         return value
     if kind == "str" and isinstance(value, str) or kind == "bool" and isinstance(value, bool):
         return value
-    if kind == "tuple" and isinstance(value, (list, tuple)) and all(number(v) for v in value):
+    if kind == "tuple" and isinstance(value, (list, tuple)) and all(is_number(v) for v in value):
         return tuple(float(v) for v in value)
     expected = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
     raise ValueError(f"scene {where}: expected {expected.get(kind, 'a list of numbers')}, got {value!r}")

@@ -780,6 +780,65 @@ def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.h5"]  # `many/` it made: gone too
 
 
+def _processes(field: int, value: int) -> list[tuple[int, str]]:
+    """Live processes (pid, command line) whose /proc stat field ``field`` (3 the parent, 5 the
+    session) is ``value``. Zombies are left out: dead, only not yet reaped by whoever adopted them."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat_fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # ended meanwhile
+            continue
+        if stat_fields[0] != "Z" and int(stat_fields[field - 2]) == value:
+            found.append((int(entry.name), cmdline))
+    return found
+
+
+@pytest.mark.parametrize("to", ["group", "parent"])
+def test_process_on_dask_interrupted_while_its_cluster_starts(to, tmp_path):
+    """The local cluster started with SIGINT ignored in the whole process, so that its workers
+    inherited it: a Ctrl-C (to the terminal's process group, or `kill -INT` to the command alone)
+    while the workers started was lost, and the run went on to its end with exit code 0. Now it
+    ends the run: exit code 130, one line, nothing written, no process of the run left."""
+    data = tmp_path / "data"
+    data.mkdir()
+    a, b = (synthetic(data / name) for name in ("a.h5", "b.h5"))
+    out = data / "many"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", "2", *ROI],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group and session, as a terminal gives a command
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        # the cluster is starting once a worker process exists: multiprocessing spawns each one
+        t_end, workers = time.monotonic() + 60, []
+        while not workers and proc.poll() is None and time.monotonic() < t_end:
+            workers = [pid for pid, cmd in _processes(3, proc.pid) if "spawn_main" in cmd]
+            time.sleep(0.01)
+        assert workers, "no worker process was seen starting"
+        # `-o`'s folder is made once the cluster is up and the client connected: not yet
+        assert not out.exists(), "the cluster had started before the signal was sent"
+        (os.killpg if to == "group" else os.kill)(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip() == "radiokit process: interrupted; no partial output was left", err
+    t_end, left = time.monotonic() + 10, ["?"]
+    while left and time.monotonic() < t_end:  # multiprocessing's resource tracker ends last, by itself
+        left = _processes(5, proc.pid)
+        time.sleep(0.05)
+    assert left == [], left
+    assert sorted(p.name for p in data.iterdir()) == ["a.h5", "b.h5"]
+
+
 @pytest.mark.parametrize("kind", ["fifo", "device"])
 @pytest.mark.parametrize("cmd", ["calibrate", "correct-tiff", "register-png"])
 def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd, kind, experiment, images, tmp_path):

@@ -62,7 +62,6 @@ import dataclasses
 import errno
 import logging
 import math
-import numbers
 import os
 import threading
 import time
@@ -74,6 +73,7 @@ import numpy as np
 import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
+from radiokit.checks import is_integer, is_number
 
 __all__ = [
     "Protocol",
@@ -270,11 +270,7 @@ def _check_numbers(section: str, settings) -> None:
         kind = str(f.type).replace(" | None", "")
         if value is None and "None" in str(f.type) or kind not in ("float", "int"):
             continue
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, (int, float))
-            or (kind == "int" and not isinstance(value, int))
-        ):
+        if not (is_integer(value) if kind == "int" else is_number(value)):
             raise ProtocolError(
                 f"[{section}] {f.name} = {value!r}: expected {'an integer' if kind == 'int' else 'a number'}"
             )
@@ -292,7 +288,7 @@ def _check_geometry(d: DetectorSettings) -> None:
         shape = d.shape
         if isinstance(shape, (str, bytes)) or not hasattr(shape, "__len__") or len(shape) != 2:
             raise ProtocolError(f"[detector] shape = {shape!r}: expected [rows, cols]")
-        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v > 0 for v in shape):
+        if not all(is_integer(v) and v > 0 for v in shape):
             raise ProtocolError(f"[detector] shape = {list(shape)!r}: expected two whole numbers > 0")
         d.shape = tuple(int(v) for v in shape)
     if d.preset is None:
@@ -354,7 +350,7 @@ def _check_source(s: SourceSettings) -> None:
     modes = cfg.focus_modes
     if cfg.dialect in DIALECTS:  # "auto": checked at connect, once the dialect is known (_phase_warm_up)
         modes = DIALECTS[cfg.dialect].focus_modes(cfg)
-    if s.focus is not None and (isinstance(s.focus, bool) or not isinstance(s.focus, int) or s.focus not in modes):
+    if s.focus is not None and (not is_integer(s.focus) or s.focus not in modes):
         raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(modes)} (dialect {cfg.dialect})")
     if not isinstance(s.port, str):
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")

@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit.checks import is_number
 from radiokit.errors import FormatError
 from radiokit.io._atomic import file_size_limit
 
@@ -136,8 +137,7 @@ class ExperimentWriter:
         if mode == "a" and not self.path.exists():
             raise FileNotFoundError(f"{self.path}: no experiment file to append to")
         lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
-        number = isinstance(pixel_size_mm, (int, float, np.number)) and not isinstance(pixel_size_mm, (bool, np.bool_))
-        if mode == "w" and not (number and lo <= pixel_size_mm <= hi):
+        if mode == "w" and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._h5 = h5py.File(self.path, "w" if mode == "w" else "r+")

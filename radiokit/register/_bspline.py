@@ -125,6 +125,7 @@ import scipy.sparse as sp
 from scipy import fft as sfft
 from scipy.optimize import minimize
 
+from radiokit.checks import is_integer, is_number
 from radiokit.register import _method
 from radiokit.register._common import _field, _warp_rows
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
@@ -879,24 +880,22 @@ _FLAGS = ("gain_fine", "joint", "refit_thinning", "grid_jitter")
 def _check_values(o):
     """ValueError naming the first option of ``o`` outside its range (``_LOWEST``, ``_COUNTS``,
     ``_FLAGS``, ``iterations``); ``iterations`` given as one count becomes that count's tuple."""
-    real = lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
     for key, (lowest, equal) in _LOWEST.items():
         v = o[key]
-        if not (real(v) and (v >= lowest if equal else v > lowest)):
+        if not (is_number(v) and math.isfinite(v) and (v >= lowest if equal else v > lowest)):
             what = "control points closer than 4 pixels cannot be resolved" if key == "spacing" else ""
             raise ValueError(
                 f"{key}={v!r}: expected a finite number {'>=' if equal else '>'} {lowest:g} {what}".rstrip()
             )
     for key, lowest in _COUNTS.items():
-        if not (isinstance(o[key], numbers.Integral) and not isinstance(o[key], bool) and o[key] >= lowest):
+        if not (is_integer(o[key]) and o[key] >= lowest):
             raise ValueError(f"{key}={o[key]!r}: expected an integer >= {lowest}")
     for key in _FLAGS:
         if not isinstance(o[key], (bool, np.bool_)):
             raise ValueError(f"{key}={o[key]!r}: expected True or False")
     its = o["iterations"]
     its = (its,) if isinstance(its, numbers.Integral) else its
-    ok = isinstance(its, (tuple, list)) and its and all(isinstance(n, numbers.Integral) and n >= 1 for n in its)
-    if not ok or any(isinstance(n, bool) for n in its):
+    if not (isinstance(its, (tuple, list)) and its and all(is_integer(n) and n >= 1 for n in its)):
         raise ValueError(f"iterations={o['iterations']!r}: expected a count >= 1, or one per level (coarse to fine)")
     o["iterations"] = tuple(its)
 

@@ -54,11 +54,11 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
-import numbers
 import tempfile
 
 import numpy as np
 
+from radiokit.checks import is_integer, is_number
 from radiokit.errors import RadiokitError
 from radiokit.register import _method
 
@@ -161,8 +161,7 @@ def _check_ranges(method, **ranges):
     zero, or a silent garbage field."""
     for name, (value, low, high) in ranges.items():
         integer = isinstance(low, int)
-        kind = numbers.Integral if integer else numbers.Real
-        if value is None or (isinstance(value, kind) and not isinstance(value, bool) and low <= value <= high):
+        if value is None or ((is_integer if integer else is_number)(value) and low <= value <= high):
             continue
         lo = "> 0" if low == _POSITIVE else f">= {low}"
         hi = "" if high == np.inf else (" and < 1" if high == _BELOW_ONE else f" and <= {high}")

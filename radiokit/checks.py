@@ -1,0 +1,38 @@
+"""What counts as a number where radiokit, the simulator and the acquisition code read one.
+
+JSON's, TOML's and HDF5's ``true`` reaches Python as ``True``, which *is* the int 1:
+``isinstance(True, int)`` holds and ``True > 0`` passes a range check, so a bool where a number
+belongs went through as 1 (``"flat_current_ua": true`` scaled every transmission by 1/200). These
+two tests refuse it and take numpy's integers and floats (readers of HDF5 get ``np.float64``, not
+``float``). numpy's bool is no ``numbers.Number``, so it is refused without numpy imported here
+(the L8121 driver does not load numpy). Each caller keeps its own range check and its message.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+__all__ = ["is_integer", "is_number"]
+
+
+def is_number(value) -> bool:
+    """A real number, Python's or numpy's (``numbers.Real``), and not a bool. NaN and inf are
+    numbers here: the caller says whether it takes them.
+
+    >>> import numpy as np
+    >>> is_number(2), is_number(0.5), is_number(np.float32(1)), is_number(float("nan"))
+    (True, True, True, True)
+    >>> is_number(True), is_number(np.bool_(False)), is_number("1"), is_number(1j), is_number(None)
+    (False, False, False, False, False)
+    """
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def is_integer(value) -> bool:
+    """A whole number, Python's or numpy's (``numbers.Integral``), and not a bool; ``2.0`` is not one.
+
+    >>> import numpy as np
+    >>> is_integer(3), is_integer(np.uint16(3)), is_integer(3.0), is_integer(True), is_integer(np.bool_(True))
+    (True, True, False, False, False)
+    """
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
