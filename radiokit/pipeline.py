@@ -1145,7 +1145,7 @@ def _local_cluster(n_workers: int):
     share = worker_threads(cores(), n_workers)
     with _blocked(signal.SIGHUP):  # the tracker blocks, then ignores, SIGINT itself (and unblocks it here)
         _quiet_resource_tracker()
-    made = {}
+    made, done = {}, threading.Event()
 
     def start():
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGHUP})
@@ -1155,14 +1155,19 @@ def _local_cluster(n_workers: int):
             )
         except BaseException as exc:  # raised in the caller's thread
             made["error"] = exc
+        finally:
+            done.set()
 
     starter = threading.Thread(target=start, name="radiokit local cluster", daemon=True)
     starter.start()
+    # an Event, not Thread.join: a join cut short by Ctrl-C marks the thread finished (CPython
+    # 3.11 releases its lock on the way out), so a second join returned at once and the cluster,
+    # started a moment later, was left running with no owner
     try:
-        starter.join()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
+        done.wait()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
     except BaseException:
         with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            starter.join()
+            done.wait()
             if "cluster" in made:
                 _kill_workers(made["cluster"])
                 made["cluster"].close()

@@ -839,6 +839,72 @@ def test_process_on_dask_interrupted_while_its_cluster_starts(to, tmp_path):
     assert sorted(p.name for p in data.iterdir()) == ["a.h5", "b.h5"]
 
 
+_CLUSTER_INTERRUPTED = """
+import json, os, signal, sys, threading, time
+from pathlib import Path
+from radiokit import pipeline
+
+def children():
+    out = []
+    for e in Path("/proc").iterdir():
+        try:
+            f = (e / "stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if e.name.isdigit() and int(f[1]) == os.getpid() and f[0] != "Z":
+            out.append(int(e.name))
+    return out
+
+def worker_seen():
+    for p in children():
+        try:
+            if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes():
+                return True
+        except OSError:
+            pass
+    return False
+
+def fire():
+    t_end = time.monotonic() + 60
+    while not worker_seen() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    os.kill(os.getpid(), signal.SIGINT)
+
+threading.Thread(target=fire, daemon=True).start()
+try:
+    pipeline._local_cluster(2)
+    outcome = "returned"
+except KeyboardInterrupt:
+    outcome = "interrupted"
+t_end = time.monotonic() + 10
+while time.monotonic() < t_end:  # what is still running once the interrupt is out
+    starting = [t.name for t in threading.enumerate() if t.name == "radiokit local cluster"]
+    workers = [p for p in children() if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    if not starting and not workers:
+        break
+    time.sleep(0.05)
+print(json.dumps({"outcome": outcome, "starting": starting, "workers": workers}))
+"""
+
+
+def test_a_cluster_interrupted_while_it_starts_is_stopped_before_the_interrupt_goes_on():
+    """In-process view of the test above, for a caller that catches the interrupt (a notebook):
+    a Ctrl-C while ``_local_cluster`` starts must wait for the start and stop the cluster before
+    the KeyboardInterrupt goes on. Waiting with ``Thread.join`` did not: a join cut short by the
+    interrupt marks the thread finished (CPython 3.11), so the second join returned at once and
+    the cluster, started a moment later, kept running with its workers (the CLI looked right only
+    because Dask's exit hook closed it)."""
+    res = subprocess.run(
+        [sys.executable, "-c", _CLUSTER_INTERRUPTED],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    assert got == {"outcome": "interrupted", "starting": [], "workers": []}, (got, res.stderr[-2000:])
+
+
 @pytest.mark.parametrize("kind", ["fifo", "device"])
 @pytest.mark.parametrize("cmd", ["calibrate", "correct-tiff", "register-png"])
 def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd, kind, experiment, images, tmp_path):
