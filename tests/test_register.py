@@ -1404,6 +1404,8 @@ def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_
     assert not any(lv.get("polish") for lv in asked_info["levels"])
     np.testing.assert_array_equal(asked, left)
     assert all(B.PRESETS[p]["polish"] == 0 for p in ("fast", "weak", "weak-fast", "silent", "silent-fast"))
+    _, ncc_info = B._bspline_register(fixed, moving, None, similarity="ncc", **cut)  # measured for rc only
+    assert not any(lv.get("polish") for lv in ncc_info["levels"])
     with pytest.raises(ValueError, match="polish"):
         register(*lost, "rc", polish=-1)
 

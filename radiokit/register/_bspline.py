@@ -83,9 +83,9 @@ until the smaller side is below ``min_size``), each level adding its own lattice
 coarser ones' field, with control points ``spacing`` x max(1, factor / 2) apart. Levels of more
 than ``max_pixels`` pixels are not run, and ``levels_skip`` stops that many levels earlier
 still (the B-spline field is evaluated at full resolution all the same). ``polish`` (preset
-``default`` only) then runs that many iterations at full resolution, a lattice of the finest's
-spacing on top, when the pyramid stopped short of it and its field already passes the checks'
-residual line: the full-resolution images see what the half-resolution ones hide on rich
+``default`` only, rc only) then refits the finest lattice on the full-resolution images for that
+many iterations, when the pyramid stopped short of them (``max_pixels`` or ``levels_skip``), the
+interior is not silent and the field already passes the checks' residual line: the full-resolution images see what the half-resolution ones hide on rich
 texture, and a field the checks would flag is not worth the time. With ``joint``
 (presets ``weak``, ``weak-fast``) the finest level refits every coarser lattice with its own,
 each keeping the bending weight it was fitted with: the prior is the same sum of lattices, but
@@ -1376,7 +1376,8 @@ def _bspline_register(
     if o["refit_thinning"] and similarity == "rc" and o["gain"]:
         return _register_refit(fixed, moving, mask, how, overrides)
     if similarity != "rc":  # the residual's high-pass and the thinning term act on rc's residual
-        o.update(highpass_on="images", gain=0.0)
+        # (polish was measured for rc only)
+        o.update(highpass_on="images", gain=0.0, polish=0)
     f, m = _prepare(fixed, moving, o)
     if o["noise_alpha"]:
         _noise_alpha(f, m, o)
@@ -1464,7 +1465,7 @@ def _bspline_register(
         if callback is not None:
             callback(1, res)
         # converged and message stay the pyramid's: a finest level still moving is a field not
-        # found (the rocket's sky at 2240: 3.99 px flagged "still moving", the polish's 20
+        # found (the rocket's sky at 2240: 3.99 px flagged "still moving", a polish's 20
         # iterations then settled at 3.86 px), and a polish cut by its budget refines a field
         # that had converged (TRAINING pictures: never worse than without it)
     d = _fields(grids, 1, f.shape)  # B-splines are defined everywhere: full resolution even if levels were skipped
