@@ -277,12 +277,11 @@ class SourceConfig:
             "off_confirm_s",
             "beam_drop_fraction",
         ):
-            _finite(getattr(self, name), name)
-        if self.min_interval_s is not None:
-            _finite(self.min_interval_s, "min_interval_s")
-        if self.timeout_s is not None:
-            _finite(self.timeout_s, "timeout_s")
-        if self.voltage_scale is not None and (_finite(self.voltage_scale, "voltage_scale") == 0):
+            setattr(self, name, _finite(getattr(self, name), name))
+        for name in ("min_interval_s", "timeout_s", "voltage_scale"):
+            if getattr(self, name) is not None:
+                setattr(self, name, _finite(getattr(self, name), name))
+        if self.voltage_scale == 0:
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
@@ -395,13 +394,13 @@ class SourceConfig:
 def _finite(value, name: str) -> float:
     if not is_number(value) or not math.isfinite(value) or value < 0:
         raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
-    return value
+    return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
 def _baud(value, name: str) -> int:
     if not is_integer(value) or value <= 0:
         raise ValueError(f"L8121 configuration: {name} must hold positive whole baud rates, got {value!r}")
-    return value
+    return int(value)  # a numpy integer is not TOML's
 
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:

@@ -591,7 +591,7 @@ def _typed(value, annotation: str, where: str):
     if kind == "float" and is_number(value):
         return float(value)
     if kind == "int" and is_integer(value):
-        return value
+        return int(value)  # a numpy integer (the Python API) is not TOML's
     if kind == "str" and isinstance(value, str) or kind == "bool" and isinstance(value, bool):
         return value
     if kind == "tuple" and isinstance(value, (list, tuple)) and all(is_number(v) for v in value):

@@ -1534,3 +1534,21 @@ def test_a_garbled_reply_never_reads_as_a_state(dialect, raw):
     with pytest.raises(ValueError):
         query.parse(_text(raw))
     assert _text(b"SPC 250\xb5A") == _text(b"SPC 250\xc2\xb5A") == _text(b"SPC 250\xce\xbcA") == "SPC 250µA"
+
+
+def test_numpy_numbers_from_the_python_api_are_kept_as_python_numbers():
+    """The shared number rule (radiokit.checks) takes numpy numbers, which TOML cannot write: a
+    protocol or source configuration given them from Python must hold plain ints and floats, so
+    writing it out works (it raised ``TypeError: Object of type 'int64' is not TOML
+    serializable``)."""
+    import tomllib
+
+    import numpy as np
+
+    from acquisition.protocols.compression_series import Protocol, SeriesSettings
+
+    config = SourceConfig(baudrate=np.int64(9600), kv_max=np.float32(90.0), probe_baudrates=(np.int64(9600),))
+    assert type(config.baudrate) is int and type(config.kv_max) is float
+    assert all(type(b) is int for b in config.probe_baudrates)
+    protocol = Protocol(series=SeriesSettings(darks=np.int64(10)))
+    assert tomllib.loads(protocol.to_toml())["series"]["darks"] == 10

@@ -276,6 +276,8 @@ def _check_numbers(section: str, settings) -> None:
             )
         if not math.isfinite(value) or value < 0:
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a finite number >= 0")
+        if type(value) not in (int, float):  # a numpy number (the Python API): TOML cannot write it
+            setattr(settings, f.name, int(value) if kind == "int" else float(value))
 
 
 def _check_geometry(d: DetectorSettings) -> None:
