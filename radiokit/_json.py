@@ -74,7 +74,7 @@ def restore(value, where="JSON"):
     if not isinstance(marks, dict):
         raise ValueError(f"{where}: {NOT_FINITE!r} is a {type(marks).__name__}, not an object of JSON pointers")
     for pointer, word in marks.items():
-        if word not in _WORDS:
+        if not isinstance(word, str) or word not in _WORDS:
             raise ValueError(f"{where}: {NOT_FINITE!r} {pointer!r} is {word!r}: expected Infinity, -Infinity or NaN")
         parts = [p.replace("~1", "/").replace("~0", "~") for p in pointer.split("/")[1:]]
         if not pointer.startswith("/") or not parts or parts[0] == NOT_FINITE:

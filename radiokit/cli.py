@@ -513,7 +513,7 @@ def _check_process_files(args) -> None:
     itself compares nothing), and an ``-o`` named like a data file (it is a folder)."""
     for i, a in enumerate(args.files):
         for b in args.files[:i]:
-            if _same_file(a, b):
+            if os.path.exists(a) and _same_file(a, b):  # a missing file: its own error, later
                 same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
                 raise ValueError(f"{a}: the same experiment file given {same}; give each file once")
     if args.control:

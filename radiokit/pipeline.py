@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from radiokit._json import strict as strict_json
 from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
@@ -904,7 +905,7 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
         h5path,
         ResultsRecord(
             source=record.source,
-            results_json=json.dumps(record.to_json(), allow_nan=False),  # strict: to_json nulls inf/NaN
+            results_json=json.dumps(strict_json(record.to_json()), allow_nan=False),  # inf/NaN: null, named
             line_integral=images.steps,
             step=np.asarray(record.steps),
             ratio=np.asarray(record.ratios, float),

@@ -225,8 +225,9 @@ class Results:
         return {m.k: m.improvement_factor for m in self.domains[self.domain].per_k}
 
     def to_json(self) -> dict:
-        """The strict-JSON form written to ``results.json`` (numbers as Python floats and ints; a
-        non-finite one null, named in ``"not_finite"``: :func:`radiokit._json.strict`)."""
+        """The JSON form of the record, its numbers as numbers (an infinite CNR is ``inf``: the
+        Python API's view); :meth:`write_json` writes it strict (a non-finite number null, named in
+        ``"not_finite"``: :func:`radiokit._json.strict`)."""
         out = {
             "schema_version": SCHEMA_VERSION,
             "source": self.source,
@@ -250,8 +251,8 @@ class Results:
             "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis},
         }
         if self.control is not None:
-            out["control"] = self.control.to_json()  # strict already, with its own "not_finite"
-        return strict(out)
+            out["control"] = self.control.to_json()
+        return out
 
     @classmethod
     def from_json(cls, d: dict, where="results") -> Results:
@@ -296,7 +297,7 @@ class Results:
 
     def write_json(self, path) -> Path:
         path = Path(path)
-        path.write_text(json.dumps(self.to_json(), indent=1, allow_nan=False))
+        path.write_text(json.dumps(strict(self.to_json()), indent=1, allow_nan=False))
         return path
 
 

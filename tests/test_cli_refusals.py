@@ -90,6 +90,9 @@ def test_results_json_of_a_noiseless_run_is_strict_json_and_reads_back_infinite(
     assert all(math.isfinite(v) and v > 0 for v in record.improvement_factor.values())
     with h5py.File(tmp_path / "res" / "results.h5") as h5:  # the copy inside results.h5 too
         strict_loads(h5["entry"].attrs["results_json"])
+    # the Python API keeps the numbers: only the files are strict (to_json returned nulls)
+    d_api = record.to_json()
+    assert math.isinf(d_api["domains"]["log"]["cnr_reference"]) and "not_finite" not in d_api
 
 
 @pytest.mark.parametrize(
@@ -100,6 +103,7 @@ def test_results_json_of_a_noiseless_run_is_strict_json_and_reads_back_infinite(
         ({"/domains/log/cnr_reference": "Inf"}, "expected Infinity, -Infinity or NaN"),
         (["/domains/log/cnr_reference"], "not an object"),
         ({"domains": "NaN"}, "not a JSON pointer"),
+        ({"/domains/log/cnr_reference": ["NaN"]}, "expected Infinity, -Infinity or NaN"),  # was a TypeError
     ],
 )
 def test_a_hand_edited_not_finite_map_is_one_line(marks, words, tmp_path):
@@ -165,6 +169,12 @@ def test_process_refuses_one_file_given_twice(how, tmp_path):
     res = run("process", exp, other, "-o", tmp_path / "out", *FAST)
     one_line_error(res, "the same experiment file given", "give each file once")
     assert not (tmp_path / "out").exists()  # refused before any work
+
+
+def test_a_missing_file_given_twice_is_said_to_be_missing(tmp_path):
+    res = run("process", tmp_path / "nope.h5", tmp_path / "nope.h5", "-o", tmp_path / "out", *FAST)
+    assert res.returncode != 0 and "no such experiment file" in res.stderr
+    assert "given twice" not in res.stderr and not (tmp_path / "out").exists()
 
 
 def test_process_refuses_a_control_that_is_one_of_its_files(tmp_path):
