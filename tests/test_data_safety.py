@@ -263,6 +263,14 @@ def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIG
     return False
 
 
+def _as_from_a_terminal():
+    """A command's child starts with SIGINT and SIGHUP as a terminal gives them (their default
+    actions): under ``make test &`` the suite inherits them ignored, a run keeps a signal it was
+    started ignoring ignored (radiokit.pipeline._deferring), and a test's Ctrl-C went nowhere."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def _popen(*args):
     return subprocess.Popen(
         [sys.executable, "-m", "radiokit.cli", *map(str, args)],
@@ -753,6 +761,7 @@ def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_pa
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, as a terminal gives a command
+        preexec_fn=_as_from_a_terminal,
         env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     try:
@@ -813,6 +822,7 @@ def test_process_on_dask_interrupted_while_its_cluster_starts(to, tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group and session, as a terminal gives a command
+        preexec_fn=_as_from_a_terminal,
         env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     try:
@@ -896,6 +906,7 @@ def test_a_cluster_interrupted_while_it_starts_is_stopped_before_the_interrupt_g
     because Dask's exit hook closed it)."""
     res = subprocess.run(
         [sys.executable, "-c", _CLUSTER_INTERRUPTED],
+        preexec_fn=_as_from_a_terminal,
         capture_output=True,
         text=True,
         timeout=120,
