@@ -140,7 +140,12 @@ def _run_series(args, p) -> int:
     with SignalGuard() as guard:
         try:
             res = run(
-                p, sim=args.sim, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite, guard=guard
+                p,
+                sim=args.sim,
+                resume=args.resume,
+                progress=not args.quiet and sys.stderr.isatty(),
+                overwrite=args.overwrite,
+                guard=guard,
             )
         except KeyboardInterrupt as exc:
             r = getattr(exc, "result", None)
@@ -294,7 +299,7 @@ def _source_action(src, args) -> int:
             f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
         )
     elif args.action == "warm-up":
-        src.warm_up(timeout_s=args.timeout, progress=not args.quiet)
+        src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
         print(f"{args.port}: warmed up, state {src.status().name}")
     elif args.action == "on":
         if args.kv is None or args.ua is None:

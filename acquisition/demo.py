@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 from pathlib import Path
 
@@ -307,7 +308,7 @@ def _run(args) -> int:
         coarse=args.coarse,
         method=args.method,
         register_preset="auto-fast" if args.fast else "auto",
-        progress=not args.quiet,
+        progress=not args.quiet and sys.stderr.isatty(),
         dialect=args.dialect,
         overwrite=args.overwrite,
         view=args.view,

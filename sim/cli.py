@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 
@@ -118,7 +119,7 @@ def _run_sim(args) -> int:
             frames_per_step=args.frames,
             seed=args.seed,
             overwrite=True,
-            progress=not args.quiet,
+            progress=not args.quiet and sys.stderr.isatty(),
             on_state=on_state,
             on_step=on_step,
         )

@@ -422,9 +422,10 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
     path = tmp_path / "protocol.toml"
     path.write_text(p.to_toml())
-    assert _cli("acquire", str(path), "--sim", "-q") == 0
-    out = capsys.readouterr().out
+    assert _cli("acquire", str(path), "--sim") == 0
+    out, err = capsys.readouterr()
     assert f"{DARKS + FLATS + 3} frames written" in out
+    assert "%|" not in err and "frame/s" not in err  # no bar when stderr is not a terminal (a log)
     assert "> TYP" in (tmp_path / "series.log").read_text()  # devices made by run: the connect is logged
     # a second run refuses to overwrite; --resume on a complete file takes nothing more
     assert _cli("acquire", str(path), "--sim", "-q") == 1
