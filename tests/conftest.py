@@ -20,3 +20,14 @@ needs_itex = pytest.mark.skipif(
 def pytest_report_header(config):
     found = "found" if ITEX_DIR.is_dir() else "MISSING: tests that need them skip"
     return f"shared vendor files: {ITEX_DIR} ({found})"
+
+
+def one_line_error(res, *needles):
+    """Exit code 2, no traceback, one line on stderr naming every needle."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, res.stderr
+    for needle in needles:
+        assert str(needle) in lines[0], (needle, lines[0])
+    return lines[0]

@@ -21,6 +21,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
+from conftest import one_line_error
 
 from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, read
 
@@ -44,17 +45,6 @@ def sha(path: Path) -> str:
 
 def tree_sha(folder: Path) -> dict:
     return {p.relative_to(folder).as_posix(): sha(p) for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
-def one_line_error(res, *needles):
-    """Exit code 2, no traceback, one line on stderr naming every needle."""
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    assert "Traceback" not in res.stderr, res.stderr
-    lines = [line for line in res.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, res.stderr
-    for needle in needles:
-        assert str(needle) in lines[0], (needle, lines[0])
-    return lines[0]
 
 
 def no_temporaries(folder: Path):
