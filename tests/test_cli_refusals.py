@@ -13,12 +13,12 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import one_line_error
+from conftest import one_line_error, synthetic
 
 from radiokit import _json as strict_json
 from radiokit.calibrate import MAX_DEFECTIVE_SHARE, Calibration
 from radiokit.errors import FormatError
-from radiokit.io import ExperimentWriter, ImageKey, StackWriter, read, read_stack, write_tiff
+from radiokit.io import StackWriter, read, read_stack, write_tiff
 from radiokit.io._experiment import IMAGE_KEY, read_progress
 from radiokit.results import load_results
 from sim.detector import PanelModel
@@ -36,22 +36,6 @@ def run(*args, cwd=None):
         cwd=cwd,
         env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"},
     )
-
-
-def synthetic(path, shape=(160, 160)):
-    """A slab thinned by compression with a denser square, noiseless: the background's standard
-    deviation is exactly zero, so every CNR is infinite (as tests/test_data_safety.py's)."""
-    rows, cols = shape
-    rr, cc = np.mgrid[0:rows, 0:cols]
-    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=shape) as w:
-        for _ in range(3):
-            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
-            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)
-        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
-            counts = 100 + 3000 * np.exp(-(0.08 * tb + 0.03 * ti * sq))
-            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
-    return path
 
 
 def _no_constants(word):

@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import one_line_error
+from conftest import one_line_error, synthetic
 
 from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, read
 
@@ -50,25 +50,6 @@ def tree_sha(folder: Path) -> dict:
 def no_temporaries(folder: Path):
     left = [p.name for p in Path(folder).iterdir() if ".tmp-" in p.name or ".old-" in p.name]
     assert not left, left
-
-
-def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
-    """A slab thinned by compression with a denser square (pipeline's test experiment); with
-    ``noise`` counts of Gaussian noise, so that outputs do not compress to nothing."""
-    rng = np.random.default_rng(0)
-    rows, cols = shape
-    rr, cc = np.mgrid[0:rows, 0:cols]
-    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=shape) as w:
-        for _ in range(3):
-            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
-            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)
-        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
-            L = scale * (0.08 * tb + 0.03 * ti * sq)
-            for _ in range(n_per_step):
-                counts = 100 + 3000 * np.exp(-L) + rng.normal(0, noise, shape)
-                w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
-    return path
 
 
 @pytest.fixture
@@ -259,6 +240,20 @@ def _as_from_a_terminal():
     started ignoring ignored (radiokit.pipeline._deferring), and a test's Ctrl-C went nowhere."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
+def _process_from_a_terminal(a, b, out, workers):
+    """``radiokit process a b -o out --workers N`` in its own process group and session (as a
+    terminal gives a command), its signals at their defaults, stdout and stderr piped."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", str(workers), *ROI],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_as_from_a_terminal,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 def _popen(*args):
@@ -745,15 +740,7 @@ def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_pa
     Now the command stops them: one line, exit code 130, no temporary, no process of the run left."""
     a, b = (synthetic(tmp_path / name, shape=(384, 384), n_per_step=2, noise=30.0) for name in ("a.h5", "b.h5"))
     out = tmp_path / "many"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", "4", *ROI],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group, as a terminal gives a command
-        preexec_fn=_as_from_a_terminal,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
+    proc = _process_from_a_terminal(a, b, out, workers=4)
     try:
         t_end = time.monotonic() + 120
         while not list(out.glob(".*.tmp-*")) and proc.poll() is None and time.monotonic() < t_end:
@@ -806,15 +793,7 @@ def test_process_on_dask_interrupted_while_its_cluster_starts(to, tmp_path):
     data.mkdir()
     a, b = (synthetic(data / name) for name in ("a.h5", "b.h5"))
     out = data / "many"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", "2", *ROI],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group and session, as a terminal gives a command
-        preexec_fn=_as_from_a_terminal,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
+    proc = _process_from_a_terminal(a, b, out, workers=2)
     try:
         # the cluster is starting once a worker process exists: multiprocessing spawns each one
         t_end, workers = time.monotonic() + 60, []
