@@ -29,7 +29,10 @@ def _word(x: float) -> str:
 
 
 def _escape(key) -> str:
-    return str(key).replace("~", "~0").replace("/", "~1")
+    # a non-string key is named as json.dumps writes it (True -> "true", None -> "null"), so
+    # that the pointer finds it in the file
+    text = key if isinstance(key, str) else json.dumps(key)
+    return text.replace("~", "~0").replace("/", "~1")
 
 
 def _walk(value, pointer: str, found: dict):

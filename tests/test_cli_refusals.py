@@ -104,6 +104,13 @@ def test_the_strict_form_round_trips_every_non_finite_number():
     assert doc["a"][1] == math.inf  # the argument is left as it was
 
 
+def test_a_non_string_key_is_named_as_json_writes_it():
+    # json.dumps writes True as "true", None as "null", 2 as "2": the pointer must say the same
+    doc = {True: math.inf, None: [math.nan], 2: {1.5: -math.inf}}
+    back = strict_json.loads(strict_json.dumps(doc))
+    assert back["true"] == math.inf and math.isnan(back["null"][0]) and back["2"]["1.5"] == -math.inf
+
+
 def test_a_calibration_with_nan_provenance_is_strict_json_and_reads_back(tmp_path):
     panel = PanelModel(rows=64, cols=64, defect_columns=(), n_dead=1, n_under=1, n_noisy=0)
     rng = np.random.default_rng(0)
