@@ -1069,21 +1069,20 @@ def process_many(
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
-    cluster = _local_cluster(local_workers(workers, len(paths), cores())) if scheduler is None else None
+    # the cluster is handed over in `ours` the moment it exists, and everything after is inside
+    # the try: a Ctrl-C between _local_cluster's return and an assignment, or before a `try`,
+    # would leave its workers running with no owner
+    ours: dict = {}
+    client, made = None, []
     try:
-        client = Client(cluster if cluster is not None else scheduler)
-    except BaseException:  # a scheduler that does not answer: nothing made, nothing left running
-        if cluster is not None:
-            with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-                _kill_workers(cluster)
-                cluster.close()
-        raise
-    # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty), and
-    # here, not by the workers: one that fails must not remove it under the others
-    made = _missing_folders(out_root) if out_root is not None else []
-    if made:
-        Path(out_root).mkdir(parents=True)
-    try:
+        if scheduler is None:
+            _local_cluster(local_workers(workers, len(paths), cores()), ours)
+        client = Client(ours["cluster"] if ours else scheduler)  # a scheduler that does not answer raises
+        # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
+        # and here, not by the workers: one that fails must not remove it under the others
+        made = _missing_folders(out_root) if out_root is not None else []
+        if made:
+            Path(out_root).mkdir(parents=True)
         shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)
         futures = {
@@ -1099,18 +1098,21 @@ def process_many(
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
         logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
         with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            if cluster is not None:  # ours: stopped now, not after each busy worker's grace period
-                _kill_workers(cluster)
-            else:  # a scheduler's workers are not ours to kill: their logs of the tasks cut short quiet
+            if ours:  # stopped now, not after each busy worker's grace period
+                _kill_workers(ours["cluster"])
+            elif (
+                client is not None
+            ):  # a scheduler's workers are not ours to kill: their logs of the tasks cut short quiet
                 with contextlib.suppress(Exception):
                     client.run(_quiet_worker)
         raise
     finally:
         # A signal while the workers stop is acted on once they have (see _deferring)
         with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            if client is not None:
+                client.close()
+            if ours:
+                ours["cluster"].close()
                 # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
                 # results folder's temporary: removed once its process is gone, as the next run would
                 for out in outs:
@@ -1125,9 +1127,11 @@ def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
     return max(1, min(asked or n_cores, n_files))
 
 
-def _local_cluster(n_workers: int):
+def _local_cluster(n_workers: int, made: dict | None = None):
     """A local cluster of ``n_workers`` single-threaded worker processes, each started with its
-    share of this machine's cores in its environment.
+    share of this machine's cores in its environment; also put in ``made["cluster"]`` as soon as
+    it exists (the caller's clean-up finds it there even if an interrupt comes before this
+    returns), and taken out again if it is stopped here.
 
     Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the workers
     too: each died mid-file with tracebacks and left its temporary folder. So the workers start
@@ -1146,7 +1150,7 @@ def _local_cluster(n_workers: int):
     share = worker_threads(cores(), n_workers)
     with _blocked(signal.SIGHUP):  # the tracker blocks, then ignores, SIGINT itself (and unblocks it here)
         _quiet_resource_tracker()
-    made, done = {}, threading.Event()
+    made, done = ({} if made is None else made), threading.Event()
 
     def start():
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGHUP})
@@ -1171,10 +1175,10 @@ def _local_cluster(n_workers: int):
             done.wait()
             if "cluster" in made:
                 _kill_workers(made["cluster"])
-                made["cluster"].close()
+                made.pop("cluster").close()
         raise
     if "error" in made:
-        raise made["error"]
+        raise made.pop("error")
     return made["cluster"]
 
 
