@@ -1064,8 +1064,16 @@ def process_many(
     from tqdm.auto import tqdm
 
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.io._atomic import RESULTS_MARKER, OutputError, _missing_folders, _remove_stale, remove_empty_folders
 
+    if out_root is not None and (Path(out_root) / RESULTS_MARKER).exists():
+        # one run's results folder: the files' folders would be written beside its report, a folder
+        # mixing two runs that neither could then replace
+        raise OutputError(
+            out_root,
+            f"holds the results of one run ({RESULTS_MARKER}); several files each get a folder under "
+            "-o (out_root): choose another folder",
+        )
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)

@@ -175,6 +175,18 @@ def test_process_refuses_an_output_folder_named_like_a_file(name, tmp_path):
     assert not (tmp_path / name).exists()
 
 
+def test_several_files_are_not_written_into_one_runs_results_folder(tmp_path):
+    # they were: a.h5's and b.h5's folders beside the first run's report, a mixed folder that
+    # `--overwrite` then refused to replace (files radiokit did not write there)
+    a, b = synthetic(tmp_path / "a.h5"), synthetic(tmp_path / "b.h5", scale=1.1)
+    assert run("process", a, "-o", tmp_path / "out", *FAST).returncode == 0
+    before = sorted(p.name for p in (tmp_path / "out").iterdir())
+    for extra in ([], ["--overwrite"]):
+        res = run("process", a, b, "-o", tmp_path / "out", *FAST, *extra)
+        one_line_error(res, str(tmp_path / "out"), "holds the results of one run", "choose another folder")
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
+
+
 # -- 5: a calibration that marks most of the panel ---------------------------------------------
 def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path):
     rng = np.random.default_rng(1)
