@@ -839,6 +839,22 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        # the innermost parser finishes first: it names itself, and the outer ones keep its name
+        if not hasattr(namespace, "_radiokit_parser"):
+            namespace._radiokit_parser = self
+        return namespace, extras
+
+    def parse_args(self, args=None, namespace=None):
+        # an option the subcommand does not know is its error, not the top level's: "radiokit:
+        # unrecognized arguments: --overwirte (see radiokit --help)" pointed at the wrong help
+        namespace, extras = self.parse_known_args(args, namespace)
+        parser = vars(namespace).pop("_radiokit_parser", self)
+        if extras:
+            parser.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="radiokit", description="X-ray radiography for elasticity-contrast studies.")

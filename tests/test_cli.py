@@ -176,6 +176,15 @@ def test_every_command_that_writes_takes_overwrite():
         assert res.returncode == 0 and "--overwrite" in res.stdout, cmd
 
 
+@pytest.mark.parametrize("cmd", [["process", "x.h5"], ["sim", "run", "--preset", "seed-breast", "-o", "x.h5"]])
+def test_an_unknown_option_is_the_subcommands_error(cmd):
+    # it was the top level's: "radiokit: unrecognized arguments: --overwirte (see radiokit --help)"
+    res = run(*cmd, "--overwirte")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    name = " ".join(cmd[:-1] if cmd[0] == "process" else cmd[:2])
+    assert res.stderr.strip() == f"radiokit {name}: unrecognized arguments: --overwirte (see radiokit {name} --help)"
+
+
 def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):
     res = run("correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1
