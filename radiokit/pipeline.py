@@ -581,7 +581,18 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
-        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
+        if inc is not None:
+            # the background beside the inclusion given, not beside one detected elsewhere (or an
+            # error asking for --inclusion when none was): the given ROI taken as the automatic one
+            # would be, about the central half of the inclusion's width (find_rois), so the
+            # inclusion as twice its size about its centre
+            mask = np.zeros(ref.shape, bool)
+            grow_r, grow_c = (inc.row1 - inc.row0 + 1) // 2, (inc.col1 - inc.col0 + 1) // 2
+            mask[max(0, inc.row0 - grow_r) : inc.row1 + grow_r, max(0, inc.col0 - grow_c) : inc.col1 + grow_c] = True
+        size = None  # the background the given inclusion's shape, as it is the automatic one's
+        if inc is not None:
+            size = inc.shape if steps.pixel_size_mm is None else tuple(np.multiply(inc.shape, steps.pixel_size_mm))
+        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm, background_size=size)
         inc = inc or auto_inc
         bg = bg or auto_bg
     for name, roi in (("inclusion", inc), ("background", bg)):

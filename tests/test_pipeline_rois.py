@@ -193,3 +193,22 @@ def test_a_configured_roi_that_is_not_a_rectangle_is_one_line_naming_it(inclusio
     with pytest.raises(ValueError, match=f"^inclusion ROI .*{words}"):
         # Config refuses what it can before any work; an mm ROI that rounds to no pixel, here
         choose_rois(steps, Config(inclusion=inclusion, background=(25, 35, 12, 22), roi_units=units, crop_mm=None))
+
+
+def test_an_inclusion_given_alone_gets_its_background_beside_it(tmp_path):
+    # the background was placed beside a *detected* inclusion: on this square (which the blob
+    # detector does not find) the run stopped with "no inclusion found ... pass --inclusion",
+    # the option it had been given
+    from conftest import synthetic
+
+    from radiokit.pipeline import Config, process
+
+    exp = synthetic(tmp_path / "exp.h5")  # a denser square, rows and cols 71-89, on a flat slab
+    given = (75, 86, 75, 86)
+    cfg = Config(inclusion=given, crop_mm=None, progress=False, cross_check=None)
+    rois = process(exp, cfg, out_dir=tmp_path / "out").record.rois.to_json()
+    r0, r1, c0, c1 = rois["background"]
+    assert rois["inclusion"] == list(given)
+    assert (r1 - r0, c1 - c0) == (11, 11) and (r0, r1) == (75, 86)  # its shape, level with it
+    assert c1 <= 71 or c0 >= 90  # beside the square, not on it
+    assert 0 <= c0 and c1 <= 160
