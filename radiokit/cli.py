@@ -566,7 +566,7 @@ def cmd_process(args) -> int:
                 raise
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
-        return 0 if all(p.ok for p in res.record.pairs) else 1
+        return 0 if _all_ok(res.record) else 1
     results = process_many(
         args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers, overwrite=args.overwrite
     )
@@ -579,19 +579,26 @@ def cmd_process(args) -> int:
             files = {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {}
             record = Results.from_json(r, r["source"])
             _print_headline(record, files)
-            failed += not all(p.ok for p in record.pairs)  # as one file's run: a flagged pair is exit 1
+            failed += not _all_ok(record)  # as one file's run: a flagged pair is exit 1
     return 1 if failed else 0
 
 
-def _print_headline(record, files):
-    """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`);
-    the negative domain under the paper's name for it, "linear"."""
+def _all_ok(record) -> bool:
+    """Every registration of the file's run passed its checks, the control's too: its numbers are
+    what the file's are judged against."""
+    return all(p.ok for p in record.pairs) and (record.control is None or _all_ok(record.control))
+
+
+def _print_headline(record, files, prefix=""):
+    """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
+    for its control after them (``prefix`` "control "); the negative domain under the paper's
+    name for it, "linear"."""
     from radiokit.results import k_label
 
     ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
     main = record.pair(record.main_pair)
     print(
-        f"{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
+        f"{prefix}{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
         f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
@@ -607,6 +614,8 @@ def _print_headline(record, files):
     for pair in record.pairs:
         if not pair.ok and pair.name != main.name:
             print(f"  WARNING: pair {pair.name} NOT ok: {pair.reason}")
+    if record.control is not None:  # it was in results.json and the report only
+        _print_headline(record.control, {}, prefix="control ")
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {files[name]}")

@@ -167,6 +167,19 @@ def test_process_refuses_a_control_that_is_one_of_its_files(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_process_prints_the_controls_lines_and_its_flags_count(tmp_path):
+    # the control's numbers were in results.json and the report only, and its flagged pairs did
+    # not count in the exit code
+    exp, ctl = synthetic(tmp_path / "exp.h5"), synthetic(tmp_path / "ctl.h5", scale=1.1)
+    res = run("process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST)
+    lines = res.stdout.splitlines()
+    assert lines[0].startswith(f"{exp}: improvement factor"), res.stdout
+    assert any(line.startswith(f"control {ctl}: improvement factor") for line in lines), res.stdout
+    saved = load_results(tmp_path / "out" / "results.json")
+    every_ok = all(p.ok for p in saved.pairs) and all(p.ok for p in saved.control.pairs)
+    assert res.returncode == (0 if every_ok else 1)
+
+
 @pytest.mark.parametrize("name", ["x.h5", "x.HDF5", "x.nxs", "x.tif", "x.tiff", "x.json"])
 def test_process_refuses_an_output_folder_named_like_a_file(name, tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
