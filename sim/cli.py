@@ -22,8 +22,8 @@ def add_sim(subparsers):
         "--ratios",
         type=float,
         nargs="+",
-        help="compression ratios, fractions of the body's height, each once, in (0, 1) (default: the scene's), "
-        "e.g. 0.15 0.2 0.25",
+        help="compression ratios, fractions of the body's height, increasing, each in [0, 0.9) (default: the "
+        "scene's), e.g. 0.15 0.2 0.25",
     )
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
     r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
@@ -65,9 +65,12 @@ def _run_sim(args) -> int:
     if args.seed < 0:  # numpy refused it only after the mechanics
         raise ValueError(f"--seed {args.seed}: expected a whole number >= 0")
     for name in ("darks", "flats", "frames"):
-        if getattr(args, name) < (1 if name == "frames" else 0):
+        # 0 darks or flats wrote a file (25 s at full size) that `process` and `correct` then
+        # refused: "holds no darks (image_key 2): cannot calibrate"
+        if getattr(args, name) < 1:
             raise ValueError(
-                f"--{name} {getattr(args, name)}: expected a count of at least {1 if name == 'frames' else 0}"
+                f"--{name} {getattr(args, name)}: expected a count of at least 1 (the experiment is "
+                "corrected with its own darks and flats)"
             )
     if args.view:
         from sim.scene import with_view

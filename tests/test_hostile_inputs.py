@@ -519,6 +519,9 @@ def test_debug_shows_the_traceback(tmp_path):
         (["sim", "run", "--preset", "seed-breast", "--ratios", "0.15", "2", "-o", "sim.h5"], "must lie in [0, 0.9)"),
         (["sim", "run", "--preset", "seed-breast", "--darks", "-1", "-o", "sim.h5"], "--darks -1"),
         (["sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", "sim.h5"], "--frames 0"),
+        # a file nothing could then correct ("holds no darks"), written for 25 s
+        (["sim", "run", "--preset", "seed-breast", "--darks", "0", "-o", "sim.h5"], "--darks 0"),
+        (["sim", "run", "--preset", "seed-breast", "--flats", "0", "-o", "sim.h5"], "--flats 0"),
         # merged into one state without a word
         (["sim", "run", "--preset", "seed-breast", "--ratios", "0.2", "0.2", "-o", "sim.h5"], "--ratios 0.2 0.2"),
         (["sim", "run", "--preset", "seed-breast", "--seed", "-1", "-o", "sim.h5"], "--seed -1"),  # after the mechanics
