@@ -37,7 +37,11 @@ def add_sim(subparsers):
     r.add_argument("--flats", type=int, default=10, help="flat frames (default 10)")
     r.add_argument("--frames", type=int, default=1, help="projections per compression step (default 1)")
     r.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    r.add_argument("--overwrite", action="store_true", help="replace an existing output file (never an input)")
+    r.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an earlier simulation's file (never an input, nor a lab's experiment file)",
+    )
     r.add_argument("--save-scene", type=Path, help="also write the scene as TOML here")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     r.set_defaults(func=_run_sim)
@@ -85,6 +89,8 @@ def _run_sim(args) -> int:
         raise ValueError(f"{args.output}: the experiment file must end in .h5")
     inputs = [args.scene] if args.scene is not None else []
     check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before minutes of mechanics
+    if args.overwrite and args.output.exists():
+        _refuse_replacing_raw_data(args.output)
     if args.save_scene:  # checked now, written with the experiment file: no scene of a failed run
         if args.save_scene.resolve() == args.output.resolve():
             raise ValueError(f"--save-scene {args.save_scene}: the same file as -o")
@@ -144,3 +150,21 @@ def _run_sim(args) -> int:
         f"frames {sec['frames']:.1f} s, total {time.perf_counter() - t0:.1f} s"
     )
     return 0
+
+
+def _refuse_replacing_raw_data(path: Path) -> None:
+    """``--overwrite`` replaces an earlier simulation only: an experiment file without
+    ``/entry/simulation`` holds frames from the lab (DESIGN.md: raw data is never modified), and a
+    file that is not HDF5 at all is not radiokit's to replace either."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            simulated = "entry/simulation" in f
+    except OSError:
+        simulated = False
+    if not simulated:
+        raise ValueError(
+            f"{path}: is not a simulated experiment (no /entry/simulation): --overwrite replaces only an earlier "
+            "`sim run`'s file; choose another output"
+        )

@@ -222,6 +222,16 @@ def test_cli_sim_run(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
     assert main(["sim", "run", "--preset", "no-such", "-o", str(tmp_path / "x.h5"), "-q"]) == 2
     assert "no-such" in capsys.readouterr().err
+    # --overwrite replaces an earlier simulation, never a lab's experiment file (no /entry/simulation)
+    from conftest import synthetic
+
+    lab = synthetic(tmp_path / "lab.h5")
+    before = lab.read_bytes()
+    short = ["--ratios", "0.1", "--darks", "1", "--flats", "1", "-q", "--overwrite"]
+    assert main(["sim", "run", str(toml), "-o", str(lab), *short]) == 2
+    assert "not a simulated experiment" in capsys.readouterr().err and lab.read_bytes() == before
+    assert main(["sim", "run", str(toml), "-o", str(out), *short]) == 0
+    np.testing.assert_allclose(read_simulation(out).ratio, [0.1])
 
 
 @pytest.mark.parametrize("direction", ["y", "z"])
