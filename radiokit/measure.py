@@ -768,7 +768,9 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     r_hi = min(r_hi, small / 6)
     r_lo = min(r_lo, r_hi)
     if r_hi < 1.5:
-        raise ValueError(f"image {rows}x{cols} is too small to detect an inclusion in; pass inclusion_mask or ROIs")
+        raise ValueError(
+            f"image {rows}x{cols} is too small to detect an inclusion in; pass inclusion_mask or ROIs (radiokit process --inclusion R0 R1 C0 C1)"
+        )
     radii = np.geomspace(r_lo, r_hi, max(2, int(np.ceil(np.log2(r_hi / r_lo) * 3)) + 1))
     depths = {}  # distance to the body's edge (or the image's) on the block-reduced grid, in px
 
@@ -806,7 +808,7 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
             "no inclusion found: no compact blob inside the body stands out from its surroundings "
             "(brighter or darker, beyond their noise and texture; none is searched within three of its radii "
             "of the body's or the frame's edge); "
-            "pass inclusion_mask or the ROIs yourself (radiokit process --inclusion R0 R1 C0 C1)"
+            "pass inclusion_mask or the ROIs yourself (on the command line: radiokit process --inclusion R0 R1 C0 C1)"
         )
     resid, (r0, c0), dist = fit
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")

@@ -91,10 +91,13 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
         raise FormatError(
             path,
             f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
-            f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset=",
+            f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset= (on the command line --shape ROWS COLS or --preset)",
         )
     opts = ", ".join(f"{p.name} x{payload // p.frame_bytes}" for p in dividing)
-    raise FormatError(path, f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape=")
+    raise FormatError(
+        path,
+        f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape= (on the command line --preset or --shape ROWS COLS)",
+    )
 
 
 def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None, offset=0, n=None) -> dict:

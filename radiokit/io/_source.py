@@ -134,7 +134,8 @@ def sniff(path) -> str:
     for offset, magic, what, advice in _FOREIGN if ext != "raw" else ():
         if start[offset : offset + len(magic)] == magic:
             raise FormatError(
-                path, f"{what}, which radiokit does not read: {advice} (format='raw' reads its bytes as pixels)"
+                path,
+                f"{what}, which radiokit does not read: {advice} (format='raw', on the command line --format raw, reads its bytes as pixels)",
             )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
