@@ -518,7 +518,12 @@ class Scene:
 
     # -- TOML ---------------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return _strip_none(dataclasses.asdict(self))
+        d = _strip_none(dataclasses.asdict(self))
+        # only the sizes the body's geometry reads: a saved hemi-ellipsoid also held diameter_mm,
+        # and editing it changed nothing
+        unread = {n for sizes in _BODY_SIZES.values() for n in sizes} - set(_BODY_SIZES[self.body.geometry])
+        d["body"] = {k: v for k, v in d["body"].items() if k not in unread}
+        return d
 
     def to_toml(self) -> str:
         return tomli_w.dumps(self.to_dict())
@@ -572,6 +577,16 @@ def _build(typ, d, where):
     unknown = set(d) - set(types)
     if unknown:
         raise ValueError(f"scene {where}: unknown keys {sorted(unknown)}; known: {sorted(types)}")
+    if typ is Body and d.get("geometry", Body.geometry) in _BODY_SIZES:
+        # a size the geometry does not read would be ignored in silence (a cylinder's diameter_mm
+        # on a hemi-ellipsoid): refused, naming what it reads
+        reads = _BODY_SIZES[d.get("geometry", Body.geometry)]
+        unread = sorted(k for sizes in _BODY_SIZES.values() for k in sizes if k in d and k not in reads)
+        if unread:
+            raise ValueError(
+                f"scene {where}: {', '.join(unread)} not read by a {d.get('geometry', Body.geometry)} body "
+                f"(it reads {', '.join(reads)})"
+            )
     for k, v in d.items():
         if k == "material":
             d[k] = _build(Material, v, f"{where}.material")

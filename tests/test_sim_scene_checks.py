@@ -233,3 +233,20 @@ def test_a_softer_inclusion_is_a_valid_scene():
     mechanics against Eshelby for it is in test_mechanics_closed_form."""
     scene = Scene.from_toml(tomli_w.dumps(edited("inclusions.0.material", {"E_kpa": 1.0, "nu": 0.45})))
     assert scene.inclusions[0].material == Material("material", E_kpa=1.0, nu=0.45)
+
+
+@pytest.mark.parametrize("preset", ["seed-breast", "pva-phantom"])
+def test_a_saved_scene_holds_only_the_sizes_its_body_reads_and_refuses_the_others(preset):
+    # a saved hemi-ellipsoid held diameter_mm, height_mm, size_mm...; editing them changed nothing
+    from sim.scene import _BODY_SIZES
+
+    scene = load_scene(preset)
+    d = tomllib.loads(scene.to_toml())
+    reads = _BODY_SIZES[scene.body.geometry]
+    every = {k for sizes in _BODY_SIZES.values() for k in sizes}
+    assert {k for k in d["body"] if k in every} == set(reads)
+    assert Scene.from_toml(scene.to_toml()).body == scene.body  # the round trip is whole
+    other = next(k for k in sorted(every) if k not in reads)
+    d["body"][other] = 5.0 if "diameter" in other or "height" in other else [5.0, 5.0, 5.0]
+    with pytest.raises(ValueError, match=f"{other} not read by a {scene.body.geometry} body"):
+        Scene.from_toml(tomli_w.dumps(d))
