@@ -1206,6 +1206,46 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         L8121("loop://", connect=False, **{key: value})
 
 
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        # int() took each of these: "3" as 3 attempts, 2.5 as 2, 3.0 as 3; "1" and 1.5 as focus mode 1
+        ("off_attempts", "3", "off_attempts must be a whole number >= 1, got '3'"),
+        ("off_attempts", 2.5, "off_attempts must be a whole number >= 1, got 2.5"),
+        ("off_attempts", 3.0, "off_attempts must be a whole number >= 1, got 3.0"),
+        ("off_attempts", True, "off_attempts must be a whole number >= 1, got True"),
+        ("off_attempts", 0, "off_attempts must be a whole number >= 1, got 0"),
+        ("focus_modes", [1.5], r"focus_modes must hold whole numbers >= 0, got \[1.5\]"),
+        ("focus_modes", ["1"], r"focus_modes must hold whole numbers >= 0, got \['1'\]"),
+        ("focus_modes", [True], r"focus_modes must hold whole numbers >= 0, got \[True\]"),
+        ("focus_modes", "012", "focus_modes must be a list of whole numbers >= 0, got '012'"),
+        # inf passed ">= 0": any measured beam, even none, would count as stable
+        ("kv_tolerance", float("inf"), "kv_tolerance must be a finite number >= 0, got inf"),
+        ("ua_tolerance", "1.2.3%", "ua_tolerance '1.2.3%' is neither a number nor a percentage"),
+    ],
+)
+def test_a_count_or_mode_must_be_a_whole_number(tmp_path, key, value, message):
+    """Refused in one line at construction, and so in a protocol before the run sends anything."""
+    with pytest.raises(ValueError, match=message):
+        SourceConfig(**{key: value})
+    with pytest.raises(ValueError, match=message):
+        L8121("loop://", connect=False, **{key: value})
+    from acquisition.protocols import load_protocol
+    from acquisition.protocols.compression_series import ProtocolError
+
+    with pytest.raises(ProtocolError, match=key) as info:  # inf: the protocol's own finite check
+        load_protocol({"output": str(tmp_path / "x.h5"), "source": {key: value}, "series": {"steps": [0.1]}})
+    assert "\n" not in str(info.value)
+
+
+def test_whole_numbers_of_numpy_are_taken_and_stored_as_python_ints():
+    import numpy as np
+
+    config = SourceConfig(off_attempts=np.int64(2), focus_modes=[np.uint8(0), np.int32(2)])
+    assert (config.off_attempts, config.focus_modes) == (2, (0, 2))
+    assert type(config.off_attempts) is int and all(type(m) is int for m in config.focus_modes)
+
+
 def test_check_exposure_is_the_ceiling_even_after_a_config_is_changed():
     config = SourceConfig(kv_max=90, watts_max=50)
     assert config.check_exposure(60, 250) is None
