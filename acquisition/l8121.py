@@ -630,7 +630,8 @@ class Choice(Command):
         self.choices = dict(choices)
 
     def line(self, driver, value=None) -> str:
-        if isinstance(value, bool) or value not in self.choices or value not in driver.config.focus_modes:
+        # a whole number, as dialect A's CFS n takes: 1.0 == 1 found the dict key, and B sent CFM
+        if not is_integer(value) or value not in self.choices or value not in driver.config.focus_modes:
             allowed = tuple(v for v in self.choices if v in driver.config.focus_modes)
             raise ValueError(f"focus mode must be one of {allowed} (focus_modes, and {self.command}), got {value!r}")
         return self.choices[value]

@@ -280,6 +280,20 @@ def test_settings_read_like_the_manual(source, wire):
         src.focus = 7
 
 
+@pytest.mark.parametrize("value", [1.0, 2.0, True, "1", None])
+def test_a_focus_mode_is_a_whole_number_in_both_dialects(source, value):
+    """Dialect A's ``CFS n`` takes a whole number; dialect B's three commands are radiokit's modes
+    0, 1, 2 (L8121.md names them small, middle, large, with no number). B sent ``CFM`` for 1.0
+    (1.0 == 1 found the command) where A refused it. Refused, nothing sent, in both."""
+    src, model = source
+    sent = len(model.commands)
+    with pytest.raises(ValueError, match="focus mode must be one of"):
+        src.focus = value
+    with pytest.raises(ValueError, match="focus mode must be one of"):
+        src.check_focus(value)
+    assert model.commands[sent:] == []
+
+
 def test_set_values_orders_voltage_and_current_to_stay_within_power(source, dialect):
     """From 60 kV 500 µA (30 W) to 150 kV 100 µA (15 W): voltage first would ask for 75 W with
     the old current; at watts_max 40 the driver must send the current first."""
