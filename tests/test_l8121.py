@@ -1167,6 +1167,26 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
         assert not model.xray_on
 
 
+def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
+    """A tube left on (``source on``) is found on by ``status``, whose link is then let go, and the
+    driver lets no link go with X-rays on: the switch-off happened after the line said XRAY_ON.
+    The last line says so, with the state STS confirmed."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    port = ["--port", "", "--dialect", dialect]
+    with PtyServer(model) as server:
+        port[1] = server.url
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 0
+        first, last = capsys.readouterr().out.splitlines()
+        assert "state XRAY_ON" in first
+        assert "X-rays were on: switched off (confirmed: state STANDBY)" in last and not model.xray_on
+        assert main(["acquire", "source", "status", *port]) == 0  # off: one line, nothing switched
+        assert len(capsys.readouterr().out.splitlines()) == 1 and "XOF" not in model.commands[-4:]
+
+
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
