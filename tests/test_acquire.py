@@ -72,7 +72,7 @@ def sigint_default():
     signal.signal(signal.SIGINT, old)
 
 
-def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
+def protocol(tmp_path, scene_toml, dialect="A", link_s=None, timeout_s=TIMEOUT_S, **series):
     """The module's series; ``link_s``: the command spacing, when not the dialect's (50 ms in both)."""
     link = {} if link_s is None else {"min_interval_s": link_s}
     return load_protocol(
@@ -83,7 +83,7 @@ def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
                 "voltage_kv": 60,
                 "current_ua": 250,
                 "poll_s": POLL_S,
-                "timeout_s": TIMEOUT_S,
+                "timeout_s": timeout_s,
                 "off_attempts": 1,
                 "dialect": dialect,
                 **link,
@@ -132,10 +132,12 @@ def assert_complete(path):
     return c
 
 
-def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path, scene_toml, bench):
+def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path, scene_toml, bench, caplog):
     p = protocol(tmp_path, scene_toml)
     dev = sim_devices(p, bench=bench)
-    res = run(p, devices=dev, progress=False)
+    with caplog.at_level("WARNING", logger="acquisition.protocol"):
+        res = run(p, devices=dev, progress=False)
+    assert not [r for r in caplog.records if "X-rays were on" in r.getMessage()]  # within the plan
     assert (res.frames_written, res.frames_total, res.phase) == (TOTAL, TOTAL, "done")
     assert not dev.emulator.xray_on and res.tube_off is True and res.tube_state == "STANDBY"
     c = assert_complete(p.output)
@@ -154,6 +156,29 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
     notebook = (tmp_path / "series.log").read_text()  # every exchange, for the lab notebook
     for cmd in ("> HIV 60", "> CUR 250", "> XON", "> XOF", "> SAR"):
         assert cmd in notebook, cmd
+
+
+def test_a_slow_controller_keeping_the_beam_on_past_the_plan_is_told(tmp_path, scene_toml, bench, caplog):
+    """Replies of 1.2 s are within L8121.md (dialect B counts a reply as missed after 2 s), so
+    nothing fails, but every exchange of a beam-on period (set values, XON, the ramp's polls, the
+    beam monitor, XOF) costs that: a 3-frame step planned at 6.5 s kept X-rays on about 24 s, and
+    the operator was not told. One warning line names the period, the time and the plan."""
+    from acquisition.protocols.compression_series import OVERRUN_FACTOR, OVERRUN_S, RAMP_ESTIMATE_S
+
+    p = protocol(tmp_path, scene_toml, "B", timeout_s=2.0, darks=0, flats=0, steps=[STEPS[0]])
+    dev = sim_devices(p, bench=bench)
+    dev.emulator.slow(1.2)
+    with caplog.at_level("WARNING", logger="acquisition.protocol"):
+        res = run(p, devices=dev, progress=False)
+    assert res.phase == "done" and res.tube_off is True
+    told = [r.getMessage() for r in caplog.records if r.getMessage().startswith("X-rays were on")]
+    planned = PER_STEP * p.detector.frame_period_s + RAMP_ESTIMATE_S
+    assert res.beam_on_s > max(OVERRUN_FACTOR * planned, planned + OVERRUN_S)
+    assert told == [
+        f"X-rays were on {res.beam_on_s:.1f} s for step 1 ({PER_STEP} frames), planned {planned:.1f} s "
+        f"({p.detector.frame_period_s:g} s a frame + {RAMP_ESTIMATE_S:g} s to stabilise): a slow controller "
+        "or detector keeps the tube on longer than the dry run said"
+    ]
 
 
 def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
