@@ -294,10 +294,18 @@ def _source_action(src, args) -> int:
     """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
     if args.action == "status":
         kv, ua = src.measured()
+        state = src.status()
         print(
-            f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {src.status().name}, "
+            f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
             f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
         )
+        if state.emitting:
+            # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
+            # off after the line above said XRAY_ON, and the operator's last line was no longer true
+            print(
+                f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
+                "only `radiokit acquire source on` leaves them on"
+            )
     elif args.action == "warm-up":
         src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
         print(f"{args.port}: warmed up, state {src.status().name}")

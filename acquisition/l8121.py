@@ -84,7 +84,7 @@ import re
 import threading
 import time
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -256,7 +256,13 @@ class SourceConfig:
         self.dialect = dialect.upper() if dialect.upper() in ("A", "B") else dialect.lower()
         if self.dialect not in ("A", "B", "auto"):
             raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
-        self.focus_modes = tuple(int(m) for m in self.focus_modes)
+        # whole numbers only, each (int() took "1" and 1.5 as mode 1, and a string "0123" as four modes)
+        modes = self.focus_modes
+        if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
+            raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
+        if not all(is_integer(m) and m >= 0 for m in modes):
+            raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {list(modes)!r}")
+        self.focus_modes = tuple(int(m) for m in modes)  # a numpy integer is not TOML's
         self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
         if not self.probe_baudrates:
             raise ValueError("L8121 configuration: probe_baudrates is empty")
@@ -300,8 +306,12 @@ class SourceConfig:
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
                 raise ValueError(f"L8121 configuration: {name} must be > 0")
-        if isinstance(self.off_attempts, bool) or int(self.off_attempts) < 1:
-            raise ValueError(f"L8121 configuration: off_attempts must be >= 1, got {self.off_attempts}")
+        # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
+        if not is_integer(self.off_attempts) or self.off_attempts < 1:
+            raise ValueError(
+                f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
+            )
+        self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
 
     def _check_ceiling(self) -> None:
@@ -405,12 +415,12 @@ def _baud(value, name: str) -> int:
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:
     if isinstance(spec, str):
-        m = re.fullmatch(r"\s*([0-9.]+)\s*%\s*", spec)
+        m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?|\.[0-9]+)\s*%\s*", spec)  # "1.2.3%" was float()'s traceback
         if not m:
             raise ValueError(f"L8121 configuration: {name} {spec!r} is neither a number nor a percentage like '2%'")
         return abs(set_value) * float(m.group(1)) / 100
-    if not is_number(spec) or not spec >= 0:
-        raise ValueError(f"L8121 configuration: {name} must be >= 0, got {spec!r}")
+    if not is_number(spec) or not 0 <= spec < math.inf:  # inf: any beam, even none, counts as stable
+        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {spec!r}")
     return float(spec)
 
 
@@ -620,7 +630,8 @@ class Choice(Command):
         self.choices = dict(choices)
 
     def line(self, driver, value=None) -> str:
-        if isinstance(value, bool) or value not in self.choices or value not in driver.config.focus_modes:
+        # a whole number, as dialect A's CFS n takes: 1.0 == 1 found the dict key, and B sent CFM
+        if not is_integer(value) or value not in self.choices or value not in driver.config.focus_modes:
             allowed = tuple(v for v in self.choices if v in driver.config.focus_modes)
             raise ValueError(f"focus mode must be one of {allowed} (focus_modes, and {self.command}), got {value!r}")
         return self.choices[value]

@@ -257,6 +257,11 @@ def cmd_calibrate(args) -> int:
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
+        # a file given twice counted its frames twice: "3 darks" from 2, and the noise estimate
+        # and the zinger rejection fed one frame as two. One file in both lists is allowed: an
+        # experiment-style file holds darks and flats, told apart by image_key
+        _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
+        _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
         hints = _raw_hints(args)
         darks, flats = _stack(args.dark, hints, 2, _progress(args)), _stack(args.flat, hints, 1, _progress(args))
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
@@ -365,6 +370,13 @@ def cmd_register(args) -> int:
     from radiokit.pipeline import _preset_record
     from radiokit.register import register, with_default_preset
 
+    if args.fixed_frame == args.moving_frame and os.path.exists(args.moving) and _same_file(args.fixed, args.moving):
+        # an image against itself: a zero field that says nothing (two frames of one file are fine)
+        same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
+        raise ValueError(
+            f"{args.moving}: fixed and moving are the same image ({same}, frame {args.fixed_frame}); "
+            "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"
+        )
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
     moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
     mask = None
@@ -506,16 +518,22 @@ def _same_file(a, b) -> bool:
         return Path(a).resolve() == Path(b).resolve()
 
 
+def _refuse_repeats(files, what: str, why: str = "") -> None:
+    """Refuse a file named twice in ``files`` (one line naming it, as given both ways when the names
+    differ); a missing file is left to its own error, later."""
+    for i, a in enumerate(files):
+        for b in files[:i]:
+            if os.path.exists(a) and _same_file(a, b):
+                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
+                raise ValueError(f"{a}: the same {what} given {same}{why}; give each file once")
+
+
 def _check_process_files(args) -> None:
     """Refuse, before any work, what can only be a slip: a file given twice (it was processed
     twice, its folders STEM and STEM-2 holding the same numbers), a control that is one of the
     files (a control is another phantom, its inclusion as soft as the background: a file against
     itself compares nothing), and an ``-o`` named like a data file (it is a folder)."""
-    for i, a in enumerate(args.files):
-        for b in args.files[:i]:
-            if os.path.exists(a) and _same_file(a, b):  # a missing file: its own error, later
-                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
-                raise ValueError(f"{a}: the same experiment file given {same}; give each file once")
+    _refuse_repeats(args.files, "experiment file")
     if args.control:
         for f in args.files:
             if _same_file(args.control, f):

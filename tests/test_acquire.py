@@ -4,16 +4,17 @@ the L8121 emulator on a pseudo-terminal through the real pyserial stack, SimDete
 The fault matrix: for each fault -- the interlock opening mid-step, an overload, a silent
 controller, a garbage reply, the detector timing out, the disk filling (a writer whose append
 raises ``OSError(ENOSPC)``: the one fake here, a full disk cannot be caused safely), Ctrl-C in
-each phase -- the tube is off within 1 s of the fault being detectable (the emulator's own state,
-watched every 5 ms), the file opens and holds every frame completed before the fault with its
+each phase -- the tube is switched off at the first chance, counted in the controller's own
+exchanges (see ``assert_off_at_the_first_chance``; seconds measured the machine's load too), the
+file opens and holds every frame completed before the fault with its
 metadata (frames the beam monitor could not vouch for -- taken after its last good reading, at
 most a poll period before the fault -- are kept, labelled image_key 3, invalid), the error names the fault, and ``resume=True`` finishes the series. The matrix is
-printed at the end of the module's run.
+printed at the end of the module's run, with the seconds from the fault to the tube seen off (the
+emulator's own state, watched every 5 ms) for the reader.
 
-Bounds: a fault the controller reports (interlock, overload, garbage) is seen at the next poll of
-the beam monitor (``poll_s`` 0.1 s) plus one exchange (<= 0.1 s); a silent controller needs the
-reply time-out (``timeout_s``, 0.5 s here) first, so its bound is poll + time-out + 0.5 s;
-everything else switches off on the way out of ``run``.
+A fault the controller reports (interlock, overload, dropped beam, garbage) is seen at the beam
+monitor's next poll (``poll_s`` 0.1 s); a silent controller needs the reply time-out first
+(``timeout_s``, 0.5 s here); everything else switches off on the way out of ``run``.
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ def sigint_default():
     signal.signal(signal.SIGINT, old)
 
 
-def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
+def protocol(tmp_path, scene_toml, dialect="A", link_s=None, timeout_s=TIMEOUT_S, **series):
     """The module's series; ``link_s``: the command spacing, when not the dialect's (50 ms in both)."""
     link = {} if link_s is None else {"min_interval_s": link_s}
     return load_protocol(
@@ -82,7 +83,7 @@ def protocol(tmp_path, scene_toml, dialect="A", link_s=None, **series):
                 "voltage_kv": 60,
                 "current_ua": 250,
                 "poll_s": POLL_S,
-                "timeout_s": TIMEOUT_S,
+                "timeout_s": timeout_s,
                 "off_attempts": 1,
                 "dialect": dialect,
                 **link,
@@ -131,10 +132,12 @@ def assert_complete(path):
     return c
 
 
-def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path, scene_toml, bench):
+def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path, scene_toml, bench, caplog):
     p = protocol(tmp_path, scene_toml)
     dev = sim_devices(p, bench=bench)
-    res = run(p, devices=dev, progress=False)
+    with caplog.at_level("WARNING", logger="acquisition.protocol"):
+        res = run(p, devices=dev, progress=False)
+    assert not [r for r in caplog.records if "X-rays were on" in r.getMessage()]  # within the plan
     assert (res.frames_written, res.frames_total, res.phase) == (TOTAL, TOTAL, "done")
     assert not dev.emulator.xray_on and res.tube_off is True and res.tube_state == "STANDBY"
     c = assert_complete(p.output)
@@ -153,6 +156,29 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
     notebook = (tmp_path / "series.log").read_text()  # every exchange, for the lab notebook
     for cmd in ("> HIV 60", "> CUR 250", "> XON", "> XOF", "> SAR"):
         assert cmd in notebook, cmd
+
+
+def test_a_slow_controller_keeping_the_beam_on_past_the_plan_is_told(tmp_path, scene_toml, bench, caplog):
+    """Replies of 1.2 s are within L8121.md (dialect B counts a reply as missed after 2 s), so
+    nothing fails, but every exchange of a beam-on period (set values, XON, the ramp's polls, the
+    beam monitor, XOF) costs that: a 3-frame step planned at 6.5 s kept X-rays on about 24 s, and
+    the operator was not told. One warning line names the period, the time and the plan."""
+    from acquisition.protocols.compression_series import OVERRUN_FACTOR, OVERRUN_S, RAMP_ESTIMATE_S
+
+    p = protocol(tmp_path, scene_toml, "B", timeout_s=2.0, darks=0, flats=0, steps=[STEPS[0]])
+    dev = sim_devices(p, bench=bench)
+    dev.emulator.slow(1.2)
+    with caplog.at_level("WARNING", logger="acquisition.protocol"):
+        res = run(p, devices=dev, progress=False)
+    assert res.phase == "done" and res.tube_off is True
+    told = [r.getMessage() for r in caplog.records if r.getMessage().startswith("X-rays were on")]
+    planned = PER_STEP * p.detector.frame_period_s + RAMP_ESTIMATE_S
+    assert res.beam_on_s > max(OVERRUN_FACTOR * planned, planned + OVERRUN_S)
+    assert told == [
+        f"X-rays were on {res.beam_on_s:.1f} s for step 1 ({PER_STEP} frames), planned {planned:.1f} s "
+        f"({p.detector.frame_period_s:g} s a frame + {RAMP_ESTIMATE_S:g} s to stabilise): a slow controller "
+        "or detector keeps the tube on longer than the dry run said"
+    ]
 
 
 def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
@@ -187,9 +213,12 @@ class FullDisk(ExperimentWriter):
     cannot be caused safely on a shared machine)."""
 
     limit = 7
+    on_full = None  # the test's hook: marks the fault in the controller's log
 
     def append(self, frame, **kw):
         if self.n_frames >= self.limit:
+            if FullDisk.on_full is not None:
+                FullDisk.on_full()
             raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
         return super().append(frame, **kw)
 
@@ -210,7 +239,7 @@ def _watch_off(model, since, box):
     return t
 
 
-# (name, when to inject: phase and frame within it, injection, expected exception, message pattern, bound s)
+# (name, when to inject: phase and frame within it, injection, expected exception, message pattern)
 FAULTS = (
     [
         (
@@ -219,17 +248,15 @@ FAULTS = (
             lambda d: d.emulator.open_interlock(),
             SourceFault,
             r"interlock",
-            0.5,
         ),
-        ("overload mid-step", ("step 2", 1), lambda d: d.emulator.overload(), SourceFault, r"overload", 0.5),
-        ("beam drops mid-step", ("step 3", 2), lambda d: d.emulator.drop_beam(), SourceFault, r"beam|current", 0.5),
+        ("overload mid-step", ("step 2", 1), lambda d: d.emulator.overload(), SourceFault, r"overload"),
+        ("beam drops mid-step", ("step 3", 2), lambda d: d.emulator.drop_beam(), SourceFault, r"beam|current"),
         (
             "silent controller",
             ("step 2", 1),
             lambda d: d.emulator.silence(True, execute=True),
             DeviceError,
             r"no reply|silent|timed? ?out",
-            POLL_S + TIMEOUT_S + 0.5,
         ),
         (
             "garbage reply",
@@ -237,7 +264,6 @@ FAULTS = (
             lambda d: d.emulator.garbage(True),
             DeviceError,
             r"unparseable|cannot parse|garbage|unexpected|not understood|reply",
-            0.5,
         ),
         (
             "detector time-out",
@@ -245,25 +271,47 @@ FAULTS = (
             lambda d: d.detector.fail_after(0),
             DetectorTimeout,
             r"detector|frame",
-            0.5,
         ),
-        ("disk full", None, None, OSError, r"No space left", 0.5),
+        ("disk full", None, None, OSError, r"No space left"),
     ]
     + [
-        (f"Ctrl-C in {ph}", (ph, 0), "sigint", KeyboardInterrupt, r"", 0.5)
+        (f"Ctrl-C in {ph}", (ph, 0), "sigint", KeyboardInterrupt, r"")
         for ph in ("connect", "warm-up", "darks", "flats", "step 1", "step 3")
     ]
     + [
-        ("Ctrl-C with X-rays on", ("step 2", 1), "sigint", KeyboardInterrupt, r"", 0.5),
+        ("Ctrl-C with X-rays on", ("step 2", 1), "sigint", KeyboardInterrupt, r""),
     ]
 )
 
 
+def assert_off_at_the_first_chance(model, n_log, dialect, name):
+    """The switch-off, counted in the controller's own exchanges (its log), not in seconds: a
+    time bound (0.5 s) measured the machine's load as much as the driver (0.65 s was seen on 2
+    busy cores) and, raised, would pass a driver that polled twice more before acting.
+
+    From the fault to the first ``XOF`` the controller may receive only the beam monitor's poll
+    queries, at most one poll cycle (A ``SAR SIN``, B ``STS SHV SCU SIN``): the fault may strike
+    just after the query that would show it, so the rest of that cycle and the next cycle's
+    query that shows it -- len(poll) exchanges in all -- or, for a silent controller, the one
+    query that met the silence (its reply time-out, L8121.md). A fault of the process (detector,
+    disk, Ctrl-C) is known at once, so only the cycle already in flight may precede ``XOF``.
+    No control command may come before it, and ``STS`` (the confirmation) follows it."""
+    from acquisition.l8121 import DIALECTS
+
+    d = DIALECTS[dialect]
+    poll = [d.readings[r].command for r in d.poll]
+    after = [e.command for e in model.log[n_log:]]
+    assert "XOF" in after, f"{name}: no XOF after the fault: {after}"
+    first = after.index("XOF")
+    before = after[:first]
+    assert all(c in poll for c in before), f"{name}: {before} before XOF; only the poll {poll} may come first"
+    assert len(before) <= len(poll), f"{name}: {len(before)} exchanges before XOF ({before}); bound {len(poll)}"
+    assert "STS" in after[first + 1 :], f"{name}: no STS after the XOF to confirm it: {after[first:]}"
+
+
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
-@pytest.mark.parametrize("name, when, inject, exc_type, pattern, bound", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(
-    tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, bound, dialect, sigint_default
-):
+@pytest.mark.parametrize("name, when, inject, exc_type, pattern", FAULTS, ids=[f[0] for f in FAULTS])
+def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, dialect, sigint_default):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
@@ -283,6 +331,7 @@ def test_fault_matrix(
             state["wall_fault"] = time.time()
             state["before"] = state["frames"]
             state["xray_at_fault"] = model.xray_on
+            state["n_log"] = len(model.log)
             _watch_off(model, state["t_fault"], state["box"])
             if inject == "sigint":
                 signal.raise_signal(signal.SIGINT)
@@ -290,8 +339,13 @@ def test_fault_matrix(
                 inject(dev)
 
     kw = {"writer_factory": FullDisk} if name == "disk full" else {}
-    with pytest.raises(exc_type) as info:
-        run(p, devices=dev, progress=False, on_phase=hook, **kw)
+    if name == "disk full":
+        FullDisk.on_full = lambda: state.setdefault("n_log", len(model.log))
+    try:
+        with pytest.raises(exc_type) as info:
+            run(p, devices=dev, progress=False, on_phase=hook, **kw)
+    finally:
+        FullDisk.on_full = None
     t_end = time.monotonic()
     if name == "disk full":
         state["t_fault"], state["before"], state["wall_fault"] = t_end, FullDisk.limit, time.time()
@@ -299,10 +353,11 @@ def test_fault_matrix(
     # the tube is off, on the emulator's own state
     assert not model.xray_on
     off_at = state["box"].get("off_at", t_end if not state["xray_at_fault"] else None)
+    if state["xray_at_fault"]:
+        assert_off_at_the_first_chance(model, state["n_log"], dialect, name)
     if state["xray_at_fault"] and name != "disk full":
         assert off_at is not None, "tube never seen off"
-        off_s = off_at - state["t_fault"]
-        assert off_s <= bound, f"{name}: tube off {off_s:.2f} s after the fault (bound {bound} s)"
+        off_s = off_at - state["t_fault"]  # reported in the matrix; a loaded machine stretches it
     else:
         off_s = 0.0
     # the error names the fault

@@ -153,6 +153,62 @@ def test_process_refuses_one_file_given_twice(how, tmp_path):
     assert not (tmp_path / "out").exists()  # refused before any work
 
 
+def _alias(path, how):
+    """Another name of ``path``: itself, a symlink, a hard link, or ``DIR/./NAME``."""
+    other = {"twice": path, "dotted": path.parent / "." / path.name}.get(how, path.with_name("alias" + path.suffix))
+    if how == "symlink":
+        other.symlink_to(path)
+    elif how == "hardlink":
+        os.link(path, other)
+    return other
+
+
+def _frames(path, level, n=1):
+    rng = np.random.default_rng(level)
+    tifffile.imwrite(path, (level + rng.normal(0, 2, (n, 32, 32))).astype(np.uint16))
+    return path
+
+
+@pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
+@pytest.mark.parametrize("which", ["--dark", "--flat"])
+def test_calibrate_refuses_one_frame_file_given_twice(which, how, tmp_path):
+    """``--dark a.tif a.tif`` counted a's frames twice ("2 darks" from one)."""
+    darks = [_frames(tmp_path / "d0.tif", 100), _frames(tmp_path / "d1.tif", 101)]
+    flats = [_frames(tmp_path / "f0.tif", 3000), _frames(tmp_path / "f1.tif", 3001)]
+    given = darks if which == "--dark" else flats
+    given[1] = _alias(given[0], how)
+    res = run("calibrate", "--dark", *darks, "--flat", *flats, "-o", tmp_path / "cal.h5")
+    line = one_line_error(res, f"the same {which} file given", "its frames would count twice", "give each file once")
+    assert str(given[1]) in line and not (tmp_path / "cal.h5").exists()
+
+
+def test_calibrate_takes_darks_and_flats_from_one_file_by_image_key(tmp_path):
+    """One file in both lists is no repeat: an experiment-style file holds both, by image_key."""
+    exp = synthetic(tmp_path / "exp.h5", shape=(32, 32))
+    res = run("calibrate", "--dark", exp, "--flat", exp, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "from 3 darks and 3 flats" in res.stdout
+
+
+@pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
+def test_register_refuses_one_image_as_fixed_and_moving(how, tmp_path):
+    img = _frames(tmp_path / "a.tif", 1000)
+    res = run("register", img, _alias(img, how), "-o", tmp_path / "reg.h5")
+    one_line_error(res, "fixed and moving are the same image", "frame 0")
+    assert not (tmp_path / "reg.h5").exists()
+
+
+def test_register_takes_two_frames_of_one_file(tmp_path):
+    """Two frames of one stack are two images: not a repeat."""
+    rr, cc = np.mgrid[0:64, 0:64].astype(np.float32)
+    blobs = [np.exp(-((rr - 30 - dy) ** 2 + (cc - 34) ** 2) / 60) + 0.5 * np.sin(cc / 5) for dy in (0, 1)]
+    img = tmp_path / "stack.tif"
+    tifffile.imwrite(img, np.stack(blobs).astype(np.float32))
+    res = run("register", img, img, "--moving-frame", "1", "-o", tmp_path / "reg.h5")
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "reg.h5").exists()
+
+
 def test_a_missing_file_given_twice_is_said_to_be_missing(tmp_path):
     res = run("process", tmp_path / "nope.h5", tmp_path / "nope.h5", "-o", tmp_path / "out", *FAST)
     assert res.returncode != 0 and "no such experiment file" in res.stderr

@@ -280,6 +280,20 @@ def test_settings_read_like_the_manual(source, wire):
         src.focus = 7
 
 
+@pytest.mark.parametrize("value", [1.0, 2.0, True, "1", None])
+def test_a_focus_mode_is_a_whole_number_in_both_dialects(source, value):
+    """Dialect A's ``CFS n`` takes a whole number; dialect B's three commands are radiokit's modes
+    0, 1, 2 (L8121.md names them small, middle, large, with no number). B sent ``CFM`` for 1.0
+    (1.0 == 1 found the command) where A refused it. Refused, nothing sent, in both."""
+    src, model = source
+    sent = len(model.commands)
+    with pytest.raises(ValueError, match="focus mode must be one of"):
+        src.focus = value
+    with pytest.raises(ValueError, match="focus mode must be one of"):
+        src.check_focus(value)
+    assert model.commands[sent:] == []
+
+
 def test_set_values_orders_voltage_and_current_to_stay_within_power(source, dialect):
     """From 60 kV 500 µA (30 W) to 150 kV 100 µA (15 W): voltage first would ask for 75 W with
     the old current; at watts_max 40 the driver must send the current first."""
@@ -1153,6 +1167,26 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
         assert not model.xray_on
 
 
+def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
+    """A tube left on (``source on``) is found on by ``status``, whose link is then let go, and the
+    driver lets no link go with X-rays on: the switch-off happened after the line said XRAY_ON.
+    The last line says so, with the state STS confirmed."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    port = ["--port", "", "--dialect", dialect]
+    with PtyServer(model) as server:
+        port[1] = server.url
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 0
+        first, last = capsys.readouterr().out.splitlines()
+        assert "state XRAY_ON" in first
+        assert "X-rays were on: switched off (confirmed: state STANDBY)" in last and not model.xray_on
+        assert main(["acquire", "source", "status", *port]) == 0  # off: one line, nothing switched
+        assert len(capsys.readouterr().out.splitlines()) == 1 and "XOF" not in model.commands[-4:]
+
+
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
@@ -1204,6 +1238,46 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         SourceConfig(**{key: value})
     with pytest.raises(ValueError, match=message):
         L8121("loop://", connect=False, **{key: value})
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        # int() took each of these: "3" as 3 attempts, 2.5 as 2, 3.0 as 3; "1" and 1.5 as focus mode 1
+        ("off_attempts", "3", "off_attempts must be a whole number >= 1, got '3'"),
+        ("off_attempts", 2.5, "off_attempts must be a whole number >= 1, got 2.5"),
+        ("off_attempts", 3.0, "off_attempts must be a whole number >= 1, got 3.0"),
+        ("off_attempts", True, "off_attempts must be a whole number >= 1, got True"),
+        ("off_attempts", 0, "off_attempts must be a whole number >= 1, got 0"),
+        ("focus_modes", [1.5], r"focus_modes must hold whole numbers >= 0, got \[1.5\]"),
+        ("focus_modes", ["1"], r"focus_modes must hold whole numbers >= 0, got \['1'\]"),
+        ("focus_modes", [True], r"focus_modes must hold whole numbers >= 0, got \[True\]"),
+        ("focus_modes", "012", "focus_modes must be a list of whole numbers >= 0, got '012'"),
+        # inf passed ">= 0": any measured beam, even none, would count as stable
+        ("kv_tolerance", float("inf"), "kv_tolerance must be a finite number >= 0, got inf"),
+        ("ua_tolerance", "1.2.3%", "ua_tolerance '1.2.3%' is neither a number nor a percentage"),
+    ],
+)
+def test_a_count_or_mode_must_be_a_whole_number(tmp_path, key, value, message):
+    """Refused in one line at construction, and so in a protocol before the run sends anything."""
+    with pytest.raises(ValueError, match=message):
+        SourceConfig(**{key: value})
+    with pytest.raises(ValueError, match=message):
+        L8121("loop://", connect=False, **{key: value})
+    from acquisition.protocols import load_protocol
+    from acquisition.protocols.compression_series import ProtocolError
+
+    with pytest.raises(ProtocolError, match=key) as info:  # inf: the protocol's own finite check
+        load_protocol({"output": str(tmp_path / "x.h5"), "source": {key: value}, "series": {"steps": [0.1]}})
+    assert "\n" not in str(info.value)
+
+
+def test_whole_numbers_of_numpy_are_taken_and_stored_as_python_ints():
+    import numpy as np
+
+    config = SourceConfig(off_attempts=np.int64(2), focus_modes=[np.uint8(0), np.int32(2)])
+    assert (config.off_attempts, config.focus_modes) == (2, (0, 2))
+    assert type(config.off_attempts) is int and all(type(m) is int for m in config.focus_modes)
 
 
 def test_check_exposure_is_the_ceiling_even_after_a_config_is_changed():

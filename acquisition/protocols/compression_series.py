@@ -460,13 +460,20 @@ def _hms(s):
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
+RAMP_ESTIMATE_S = 5.0  # XON until the measured kV/uA are stable, per beam-on period (estimate)
+# a beam-on period longer than this many times its plan, and by at least OVERRUN_S, is told to the
+# operator: X-rays stay on longer than the dry run said (a slow controller: L8121.md's dialect B
+# counts a reply as missed only after 2 s; 1.2 s replies kept a 3-frame step on 24 s, planned 6.5 s)
+OVERRUN_FACTOR, OVERRUN_S = 2.0, 10.0
+
+
 def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) -> Plan:
     """The run's phases with estimated durations and beam-on time. ``done`` (from a file being
     resumed) removes what is already there; ``warm=True`` leaves out the warm-up."""
     p = protocol
     done = done or {}
     period = p.detector.frame_period_s
-    ramp = 5.0  # XON until the measured kV/uA are stable, per beam-on period (estimate)
+    ramp = RAMP_ESTIMATE_S
     rows = []
     if not warm:
         rows.append(("warm-up", "if the source needs it", 0, p.source.warmup_estimate_s, 0.0))
@@ -816,6 +823,8 @@ class _Run:
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
     phase: str = "connect"
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
+    beam_planned: tuple = (0.0, 0, "")  # the plan's seconds, frames and name of that period
+    overrun_told: bool = False
     origins: dict = field(default_factory=dict)  # (frame file, time) -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
@@ -982,7 +991,10 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
             monitor.raise_if_failed()
 
 
-def _beam_on(r: _Run):
+def _beam_on(r: _Run, n: int, what: str):
+    """X-rays on for ``n`` frames of ``what`` (the plan's estimate of this period is kept for
+    :func:`_beam_off`)."""
+    r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
     r.monitor.start(*_kv_ua(reading, r.p.source.voltage_kv, r.p.source.current_ua))
@@ -993,8 +1005,22 @@ def _beam_off(r: _Run):
     r.monitor.raise_if_failed()  # the fault itself, not what switching off then ran into
     r.monitor.confirm()  # the beam was good up to the last frame (faults latch)
     r.source.off()
-    r.beam_on_s += time.perf_counter() - r.beam_since
+    took = time.perf_counter() - r.beam_since
+    r.beam_on_s += took
     r.beam_since = None
+    planned, n, what = r.beam_planned
+    if not r.overrun_told and took > OVERRUN_FACTOR * planned and took - planned >= OVERRUN_S:
+        r.overrun_told = True  # once a run: the cause (the link, the panel) is the same every period
+        log.warning(
+            "X-rays were on %.1f s for %s (%d frames), planned %.1f s (%g s a frame + %g s to stabilise): "
+            "a slow controller or detector keeps the tube on longer than the dry run said",
+            took,
+            what,
+            n,
+            planned,
+            r.p.detector.frame_period_s,
+            RAMP_ESTIMATE_S,
+        )
 
 
 def _phase_darks(r: _Run):
@@ -1016,7 +1042,7 @@ def _phase_flats(r: _Run):
     if n > 0:
         frm = r.devices.frame
         frm.sample_out()
-        _beam_on(r)
+        _beam_on(r, n, "the flats")
         _take(r, n, ImageKey.FLAT, beam=True)
         _beam_off(r)
         frm.sample_in()
@@ -1047,7 +1073,7 @@ def _phase_steps(r: _Run):
             )
         before = (i, 1 - gap / h0)
         _settle(p.series.settle_s, r.bar, r.progress)
-        _beam_on(r)
+        _beam_on(r, n, f"step {i}")
         _take(r, n, ImageKey.PROJECTION, step=i, ratio=1 - gap / h0, gap=gap, beam=True)
         _beam_off(r)
 
