@@ -25,9 +25,12 @@ def threads() -> int:
     env = os.environ.get("RADIOKIT_THREADS")
     if env:
         try:
-            return max(1, int(env))
+            n = int(env)
         except ValueError:
-            raise ValueError(f"RADIOKIT_THREADS={env!r}: expected a whole number of threads") from None
+            n = 0
+        if n < 1:  # "0" or "-2" was quietly one thread
+            raise ValueError(f"RADIOKIT_THREADS={env!r}: expected a whole number of threads, at least 1")
+        return n
     return min(cores(), 8)
 
 

@@ -996,6 +996,17 @@ def main(argv=None) -> int:
         return _main(argv)
 
 
+def _check_environment() -> None:
+    """The environment's settings read once, before any work: a bad one was reported as a
+    problem of the first file that needed it ("exp.h5: cannot be read as hdf5: RADIOKIT_MEMORY_
+    BUDGET='abc' ...", or "exp.h5: frame 20: RADIOKIT_THREADS=..." after the calibration)."""
+    from radiokit._threads import threads
+    from radiokit.io._budget import memory_budget
+
+    threads()
+    memory_budget()
+
+
 def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1012,6 +1023,7 @@ def _main(argv) -> int:
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)
     try:
+        _check_environment()
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import tifffile
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex
+from conftest import needs_itex, synthetic
 
 from radiokit.errors import FormatError
 from radiokit.io import ExperimentWriter, ImageKey, memory_budget, parse_size, read
@@ -505,6 +505,17 @@ def test_a_usage_error_is_one_line(args, words, tmp_path):
     line = one_line_error(run(*args, cwd=tmp_path), words)
     assert line.endswith("--help)")
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "env", [{"RADIOKIT_MEMORY_BUDGET": "abc"}, {"RADIOKIT_THREADS": "abc"}, {"RADIOKIT_THREADS": "0"}]
+)
+def test_a_bad_environment_setting_is_named_before_any_file(env, tmp_path):
+    # it was blamed on the first file that needed it ("exp.h5: cannot be read as hdf5: ...")
+    exp = synthetic(tmp_path / "exp.h5")
+    ((name, value),) = env.items()
+    line = one_line_error(run("info", exp, env=env), f"{name}={value!r}")
+    assert "exp.h5" not in line
 
 
 def test_debug_shows_the_traceback(tmp_path):
