@@ -558,8 +558,10 @@ def cmd_process(args) -> int:
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
             raise ValueError(f"{f}: is a folder, not an experiment file")
-    if args.control and not args.control.exists():  # checked now, not after the main file's registrations
-        raise ValueError(f"--control {args.control}: no such experiment file")
+        if not (Path(f).exists() or Path(f).is_symlink()):
+            # said first: `process runs/*.h5 -o results` with no runs/ said "results: exists"
+            where = "--control " if f == args.control else ""
+            raise ValueError(f"{where}{f}: no such experiment file")
     _check_process_files(args)
     _check_preset(args)
     opts = {"preset": args.preset} if args.preset else {}

@@ -215,6 +215,14 @@ def test_a_missing_file_given_twice_is_said_to_be_missing(tmp_path):
     assert "given twice" not in res.stderr and not (tmp_path / "out").exists()
 
 
+def test_a_missing_file_is_said_before_the_output_is_judged(tmp_path):
+    # `process runs/*.h5 -o results` with no runs/ said "results: exists ..."
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "notes.txt").write_text("mine")
+    res = run("process", tmp_path / "runs" / "*.h5", "-o", tmp_path / "results", *FAST)
+    one_line_error(res, "*.h5", "no such experiment file")
+
+
 def test_process_refuses_a_control_that_is_one_of_its_files(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     (tmp_path / "ctl.h5").symlink_to(exp)
