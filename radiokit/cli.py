@@ -596,7 +596,11 @@ def cmd_process(args) -> int:
             failed += 1
             print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
         else:
-            files = {"results_json": str(Path(r["output"]) / "results.json")} if "output" in r else {}
+            files = {}
+            if "output" in r:  # as one file's run prints them
+                report = Path(r["output"]) / "report.html"
+                files = {"report": str(report)} if report.exists() else {}
+                files["results_json"] = str(Path(r["output"]) / "results.json")
             record = Results.from_json(r, r["source"])
             _print_headline(record, files)
             failed += not _all_ok(record)  # as one file's run: a flagged pair is exit 1
