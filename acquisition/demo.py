@@ -215,7 +215,7 @@ def headline(summary) -> str:
         f"(dialect {summary.get('dialect', 'A')}) "
         f"(write + bookkeeping {summary['files']['per_frame_overhead_ms']:.1f} ms per frame)",
         "",
-        f"{'':<34} {'log domain':>12} {'linear':>10}   {'control log':>12} {'control lin':>12}   paper",
+        f"{'':<34} {'log domain':>12} {'negative':>10}   {'control log':>12} {'control neg':>12}   paper",
     ]
 
     def row(label, get, paper=""):

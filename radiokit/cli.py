@@ -615,14 +615,14 @@ def _all_ok(record) -> bool:
 
 def _print_headline(record, files, prefix=""):
     """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
-    for its control after them (``prefix`` "control "); the negative domain under the paper's
-    name for it, "linear"."""
+    for its control after them (``prefix`` "control "); the domains by radiokit's names
+    (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0)."""
     from radiokit.results import k_label
 
     ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
     main = record.pair(record.main_pair)
     print(
-        f"{prefix}{record.source}: improvement factor ({record.domain.paper_name}) {ifs}; change ratio {main.name} "
+        f"{prefix}{record.source}: improvement factor ({record.domain.value}) {ifs}; change ratio {main.name} "
         f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
@@ -632,7 +632,7 @@ def _print_headline(record, files, prefix=""):
             + f", CNR {x.cnr:.3g}"
             for x in m.per_k
         ]
-        print(f"  {dom.paper_name:<6}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
+        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
     # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
     # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
     for pair in record.pairs:

@@ -50,11 +50,6 @@ class Domain(enum.StrEnum):
         except ValueError:
             raise ValueError(f"{name} must be one of {DOMAINS}, got {value!r}") from None
 
-    @property
-    def paper_name(self) -> str:
-        """What the paper and the printed tables call it: its negative images are its "linear" ones."""
-        return "linear" if self is Domain.NEGATIVE else self.value
-
 
 #: Every domain's name, for messages and argument choices.
 DOMAINS = tuple(d.value for d in Domain)

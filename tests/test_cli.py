@@ -451,6 +451,8 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
         tmp_path / "master.h5",
         "--dataset",
         "entry/data",
+        "--moving-frame",
+        "1",  # two frames of one file: the same image twice is refused
         "-o",
         tmp_path / "r.h5",
     ]

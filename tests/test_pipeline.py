@@ -228,7 +228,7 @@ def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest
         ]
     )
     captured = capsys.readouterr()
-    assert code == 1 and "broken.h5: error" in captured.err and "improvement factor (linear)" in captured.out
+    assert code == 1 and "broken.h5: error" in captured.err and "improvement factor (negative)" in captured.out
     # the files' lines as one file's run prints them: no report asked for, none named
     assert f"results.json: {tmp_path / 'cli' / 'a' / 'results.json'}" in captured.out
     assert "report" not in captured.out
