@@ -38,9 +38,9 @@ TEST = ("camera", "moon")
 MOTIONS = ("sine", "local")
 
 
-def natural(name, size, motion, split, seed=1):
+def natural(name, size, motion, split, seed=1, truth=None):
     """``(fixed, moving, truth, mask)`` of the picture ``name`` (see the module docstring);
-    ``seed`` the noise's."""
+    ``seed`` the noise's; ``truth`` (2, size, size): this motion instead of ``motion``'s."""
     import cv2
     import skimage.color
     import skimage.data
@@ -51,7 +51,9 @@ def natural(name, size, motion, split, seed=1):
         im = skimage.color.rgb2gray(im[..., :3]) * 255.0
     im = cv2.resize(im.astype(np.float32), (size, size), interpolation=cv2.INTER_CUBIC) / 255.0
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
-    if motion == "sine":
+    if truth is not None:
+        dy, dx = truth
+    elif motion == "sine":
         dy = 0.01 * size * np.sin(2 * np.pi * 3 * xx + 1.0) * np.cos(2 * np.pi * 2 * yy)
         dx = 0.01 * size * np.cos(2 * np.pi * 2 * xx) * np.sin(2 * np.pi * 3 * yy + 0.5)
     else:

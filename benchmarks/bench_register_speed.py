@@ -33,7 +33,9 @@ Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = n
 1/10-frame correlation length, 1 % motion; ``weak-train`` the same on TRAINING seed 1), ``rich`` ``analytic_pair`` (the texture ten times the
 noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
 stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local motion
-(``bench_register_natural.py``'s test pair).
+(``bench_register_natural.py``'s test pair), ``astronaut`` scikit-image's astronaut under the
+TRAINING local motion (``bench_register_natural.py --split train``: what a rich-texture time is
+chosen on).
 """
 
 from __future__ import annotations
@@ -67,7 +69,11 @@ def make_pair(name, size):
         from bench_register_natural import natural
 
         return natural("camera", size, "local", "test")
-    raise ValueError(f"pair {name!r}: expected weak, weak-train, rich, phys or camera")
+    if name == "astronaut":  # the same on a TRAINING picture and motion
+        from bench_register_natural import natural
+
+        return natural("astronaut", size, "local", "train")
+    raise ValueError(f"pair {name!r}: expected weak, weak-train, rich, phys, camera or astronaut")
 
 
 def _load(name, source):
