@@ -874,18 +874,20 @@ class _Parser(argparse.ArgumentParser):
 
     def parse_known_args(self, args=None, namespace=None):
         namespace, extras = super().parse_known_args(args, namespace)
-        # the innermost parser finishes first: it names itself, and the outer ones keep its name
-        if not hasattr(namespace, "_radiokit_parser"):
-            namespace._radiokit_parser = self
+        # the innermost parser with arguments it does not know finishes first: it names itself
+        # and them, and the outer ones keep that (their own extras come on top of it)
+        if extras and not hasattr(namespace, "_radiokit_unknown"):
+            namespace._radiokit_unknown = (self, list(extras))
         return namespace, extras
 
     def parse_args(self, args=None, namespace=None):
         # an option the subcommand does not know is its error, not the top level's: "radiokit:
-        # unrecognized arguments: --overwirte (see radiokit --help)" pointed at the wrong help
+        # unrecognized arguments: --overwirte (see radiokit --help)" pointed at the wrong help;
+        # one given to an outer level (`radiokit --bogus process`) stays that level's
         namespace, extras = self.parse_known_args(args, namespace)
-        parser = vars(namespace).pop("_radiokit_parser", self)
+        parser, theirs = vars(namespace).pop("_radiokit_unknown", (self, []))
         if extras:
-            parser.error(f"unrecognized arguments: {' '.join(extras)}")
+            (parser if sorted(theirs) == sorted(extras) else self).error(f"unrecognized arguments: {' '.join(extras)}")
         return namespace
 
 
@@ -1029,7 +1031,8 @@ def _main(argv) -> int:
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)
     try:
-        _check_environment()
+        if args.command != "acquire":  # never in the way of a switch-off (acquire source off)
+            _check_environment()
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)

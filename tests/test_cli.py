@@ -176,13 +176,19 @@ def test_every_command_that_writes_takes_overwrite():
         assert res.returncode == 0 and "--overwrite" in res.stdout, cmd
 
 
-@pytest.mark.parametrize("cmd", [["process", "x.h5"], ["sim", "run", "--preset", "seed-breast", "-o", "x.h5"]])
-def test_an_unknown_option_is_the_subcommands_error(cmd):
-    # it was the top level's: "radiokit: unrecognized arguments: --overwirte (see radiokit --help)"
-    res = run(*cmd, "--overwirte")
+@pytest.mark.parametrize(
+    "cmd, name",
+    [
+        (["process", "x.h5", "--overwirte"], "radiokit process"),
+        (["sim", "run", "--preset", "seed-breast", "-o", "x.h5", "--overwirte"], "radiokit sim run"),
+        (["--overwirte", "process", "x.h5"], "radiokit"),  # given to the top level: its error still
+    ],
+)
+def test_an_unknown_option_is_the_error_of_the_command_it_was_given_to(cmd, name):
+    # it was always the top level's: "radiokit: unrecognized arguments: --overwirte (see radiokit --help)"
+    res = run(*cmd)
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    name = " ".join(cmd[:-1] if cmd[0] == "process" else cmd[:2])
-    assert res.stderr.strip() == f"radiokit {name}: unrecognized arguments: --overwirte (see radiokit {name} --help)"
+    assert res.stderr.strip() == f"{name}: unrecognized arguments: --overwirte (see {name} --help)"
 
 
 def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):

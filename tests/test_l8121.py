@@ -1167,6 +1167,20 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
         assert not model.xray_on
 
 
+def test_a_bad_environment_setting_does_not_stop_a_switch_off(dialect, capsys, monkeypatch):
+    # the offline commands' check of RADIOKIT_THREADS refused `acquire source off` too: the tube stayed on
+    from radiokit.cli import main
+
+    monkeypatch.setenv("RADIOKIT_THREADS", "0")
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "lots")
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        assert main(["acquire", "source", "off", *port]) == 0
+        assert not model.xray_on
+
+
 def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
     """A tube left on (``source on``) is found on by ``status``, whose link is then let go, and the
     driver lets no link go with X-rays on: the switch-off happened after the line said XRAY_ON.
