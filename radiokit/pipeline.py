@@ -569,6 +569,30 @@ def _bounds(roi: ROI) -> tuple[int, int, int, int]:
     return roi.row0, roi.row1, roi.col0, roi.col1
 
 
+def _within_inclusion(found, centre) -> bool:
+    """Whether ``centre`` lies in the inclusion whose automatic ROI is ``found`` (None: none was
+    found). That ROI is about the central half of the inclusion's width (find_rois), so the
+    inclusion is taken as twice its size about its centre."""
+    if found is None:
+        return False
+    (rc, cc), (h, w) = found.center, found.shape
+    return abs(centre[0] - rc) <= h and abs(centre[1] - cc) <= w
+
+
+def _background_beside(ref, inc, pixel_size_mm):
+    """A background ROI of ``inc``'s shape beside the inclusion given as ``inc`` (where detection
+    found none there, or none at all: it was placed beside the detected one, or the run stopped
+    asking for the --inclusion it had been given). ``inc`` is taken as the automatic ROI would be,
+    so the inclusion as twice its size about its centre."""
+    from radiokit.measure import find_rois
+
+    mask = np.zeros(ref.shape, bool)
+    grow_r, grow_c = (inc.row1 - inc.row0 + 1) // 2, (inc.col1 - inc.col0 + 1) // 2
+    mask[max(0, inc.row0 - grow_r) : inc.row1 + grow_r, max(0, inc.col0 - grow_c) : inc.col1 + grow_c] = True
+    size = inc.shape if pixel_size_mm is None else tuple(np.multiply(inc.shape, pixel_size_mm))
+    return find_rois(ref, inclusion_mask=mask, pixel_size_mm=pixel_size_mm, background_size=size)[1]
+
+
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
     on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
@@ -581,18 +605,14 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
-        if inc is not None:
-            # the background beside the inclusion given, not beside one detected elsewhere (or an
-            # error asking for --inclusion when none was): the given ROI taken as the automatic one
-            # would be, about the central half of the inclusion's width (find_rois), so the
-            # inclusion as twice its size about its centre
-            mask = np.zeros(ref.shape, bool)
-            grow_r, grow_c = (inc.row1 - inc.row0 + 1) // 2, (inc.col1 - inc.col0 + 1) // 2
-            mask[max(0, inc.row0 - grow_r) : inc.row1 + grow_r, max(0, inc.col0 - grow_c) : inc.col1 + grow_c] = True
-        size = None  # the background the given inclusion's shape, as it is the automatic one's
-        if inc is not None:
-            size = inc.shape if steps.pixel_size_mm is None else tuple(np.multiply(inc.shape, steps.pixel_size_mm))
-        auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm, background_size=size)
+        try:
+            auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
+        except ValueError:
+            if inc is None:
+                raise
+            auto_inc = auto_bg = None
+        if bg is None and inc is not None and not _within_inclusion(auto_inc, inc.center):
+            auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
         inc = inc or auto_inc
         bg = bg or auto_bg
     for name, roi in (("inclusion", inc), ("background", bg)):
