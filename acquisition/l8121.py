@@ -260,6 +260,7 @@ class SourceConfig:
         modes = self.focus_modes
         if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
             raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
+        modes = list(modes)  # read twice below: a generator would be empty the second time
         if not all(is_integer(m) and m >= 0 for m in modes):
             raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {list(modes)!r}")
         self.focus_modes = tuple(int(m) for m in modes)  # a numpy integer is not TOML's

@@ -581,7 +581,17 @@ def _build(typ, d, where):
         # a size the geometry does not read would be ignored in silence (a cylinder's diameter_mm
         # on a hemi-ellipsoid): refused, naming what it reads
         reads = _BODY_SIZES[d.get("geometry", Body.geometry)]
-        unread = sorted(k for sizes in _BODY_SIZES.values() for k in sizes if k in d and k not in reads)
+        # at its default it is a file saved before saving left them out (and the @scene text of
+        # older simulated files): an edit is a value that differs
+        default = {f.name: f.default for f in dataclasses.fields(Body)}
+        unread = sorted(
+            {
+                k
+                for sizes in _BODY_SIZES.values()
+                for k in sizes
+                if k in d and k not in reads and _as_tuple(d[k]) != default[k]
+            }
+        )
         if unread:
             raise ValueError(
                 f"scene {where}: {', '.join(unread)} not read by a {d.get('geometry', Body.geometry)} body "
@@ -596,6 +606,10 @@ def _build(typ, d, where):
         return typ(**d)
     except ValueError as exc:  # the dataclass names the field; this names where it is in the file
         raise ValueError(f"scene {where}: {exc}") from None
+
+
+def _as_tuple(value):
+    return tuple(value) if isinstance(value, list) else value
 
 
 def _typed(value, annotation: str, where: str):

@@ -1292,6 +1292,7 @@ def test_whole_numbers_of_numpy_are_taken_and_stored_as_python_ints():
     config = SourceConfig(off_attempts=np.int64(2), focus_modes=[np.uint8(0), np.int32(2)])
     assert (config.off_attempts, config.focus_modes) == (2, (0, 2))
     assert type(config.off_attempts) is int and all(type(m) is int for m in config.focus_modes)
+    assert SourceConfig(focus_modes=(m for m in (0, 1, 2))).focus_modes == (0, 1, 2)  # read once, not twice
 
 
 def test_check_exposure_is_the_ceiling_even_after_a_config_is_changed():
