@@ -243,10 +243,9 @@ _WEAK = dict(regularisation=1e-6, balance="frame", stiffen=2.0, gain_fine=True, 
 # (benchmarks/README.md, "`weak` with the jitter: ..., the thinning measured twice (session 20)")
 # rim 0.004 in weak (session 24): the refit's passes leave the body's outermost 9 px (at 2240) out
 # of the data term, where the under-sampled square-root edge pulled the faded texture's
-# tangential motion beside it; the first pass keeps it (it finds the thinning there). 20 TRAINING
-# pairs at 2240 (textures 0.006-0.02), geometric mean of the median EPE 0.403 -> 0.398 px (0.0075:
-# 0.399), of the p95 1.23 -> 1.15 (0.0075: 1.08); benchmarks/README.md, "The edge band on weak
-# texture (session 24)"
+# tangential motion beside it; the first pass keeps it (it finds the thinning there, and its
+# steep slope pins the normal motion). Chosen on TRAINING pairs at 2240 by the median, over 0 and
+# 0.0075 (benchmarks/README.md, "The edge band on weak texture (session 24)")
 PRESETS["weak"] = {
     **PRESETS["default"],
     **_WEAK,
