@@ -1247,6 +1247,36 @@ def test_refit_again_without_the_refit_is_an_error():
         register(fixed, moving, "rc", preset="default", refit_again=2)
 
 
+def test_rim_leaves_the_bodys_edge_out_of_the_refit_passes(monkeypatch):
+    """``rim``: the refit's passes (the thinning divided out) see the body less its outermost
+    ``rim`` x the side, every other pixel as before; the first pass, which finds the thinning at
+    that edge, sees the whole frame. The real passes run; the wrapper only records their masks."""
+    fixed, moving, d, mask = _family_pair(size=256, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    real, masks = B._bspline_register, []
+
+    def recorded(f, m, data_mask=None, **kw):
+        masks.append(data_mask)
+        return real(f, m, data_mask, **kw)
+
+    monkeypatch.setattr(B, "_bspline_register", recorded)
+    field, info = real(fixed, moving, None, preset="weak", rim=0.02)
+    assert masks[0] is None and len(masks) == 3  # the first pass, then the two refit passes
+    dist = B._fixed_side(fixed, None)[2]
+    expected = dist >= 0.02 * 256  # the body's rim (~5 px) and the open beam outside it are left out
+    for m in masks[1:]:
+        np.testing.assert_array_equal(m, expected)
+    body = (dist > 0).mean()  # ~45 % of the frame; its rim ~5 px x ~600 px of perimeter: ~5 %
+    assert 0.85 * body < expected.mean() < 0.95 * body
+    assert info["options"]["rim"] == 0.02
+
+
+def test_rim_without_the_refit_is_an_error():
+    """``rim`` acts on the refit's passes only: asked for without them, it is refused by name."""
+    fixed, moving, d, mask = _family_pair(size=128, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    with pytest.raises(ValueError, match="rim=0.01: needs refit_thinning=True"):
+        register(fixed, moving, "rc", preset="default", rim=0.01)
+
+
 def test_weak_refits_the_thinning_from_the_interior():
     """Texture = noise with a +-10 % thinning (384 px): ``weak`` measures the thinning again in
     the body's interior and registers a second time with it divided out; without that the
