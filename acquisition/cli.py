@@ -136,7 +136,7 @@ def _run_series(args, p) -> int:
     from acquisition.guardian import SignalGuard, StopSignal
     from acquisition.protocols.compression_series import run
 
-    again = f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume`"
+    again = f"`{resume_command(args)}`"
     with SignalGuard() as guard:
         try:
             res = run(
@@ -163,6 +163,13 @@ def _run_series(args, p) -> int:
                     f"{again} completes the series"
                 )
             return _finish(r, 1)
+        if res.already_complete:  # raw data is never modified after acquisition (DESIGN.md)
+            _say(
+                f"{res.output}: already complete ({res.frames_total} frames); nothing to resume, "
+                "the file and the devices were not touched",
+                err=False,
+            )
+            return 0
         oh = sorted(res.per_frame_overhead_s)
         med = oh[len(oh) // 2] * 1000 if oh else float("nan")
         _say(
@@ -171,6 +178,22 @@ def _run_series(args, p) -> int:
             err=False,
         )
         return _finish(res, 0, err=False)
+
+
+def resume_command(args) -> str:
+    """The command that completes the file this run writes: every option that chose that file or
+    how its devices speak (``-o``, ``--dialect``, ``--sim``), shell-quoted. A hint that left out
+    ``-o`` resumed the protocol's own default output, another file, when followed literally."""
+    import shlex
+
+    words = ["radiokit", "acquire", args.protocol]
+    if args.sim:
+        words.append("--sim")
+    if args.output:
+        words += ["-o", str(args.output)]
+    if args.dialect:
+        words += ["--dialect", args.dialect]
+    return shlex.join([*words, "--resume"])
 
 
 def _one_line(exc) -> str:

@@ -486,7 +486,54 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     assert _cli("acquire", str(path), "--sim", "-q") == 1
     assert "never overwritten" in capsys.readouterr().err
     assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0
-    assert "0 frames written" in capsys.readouterr().out
+    assert "already complete" in capsys.readouterr().out
+
+
+def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(
+    tmp_path, scene_toml, capsys, sigint_default
+):
+    """Found: after Ctrl-C, `acquire protocol.toml --sim -o int_acq.h5` said "`radiokit acquire
+    protocol.toml --sim --resume` completes it" -- without `-o` (nor `--dialect`), so following it
+    literally started the protocol's own default output, another file. And `--resume` on a file
+    already complete rewrote its /entry@end_time: raw data is never modified after acquisition."""
+    import shlex
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    p.sim.frame_period_s = 0.2  # paced, so that Ctrl-C lands before the series ends
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = tmp_path / "int acq.h5"  # a space: the hint is quoted for the shell
+    notebook = out.with_suffix(".log")
+
+    def ctrl_c_after_two_frames():
+        for _ in range(600):
+            if notebook.exists() and "frame 1 written" in notebook.read_text(errors="replace"):
+                break
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c_after_two_frames)
+    t.start()
+    code = _cli("acquire", str(path), "--sim", "-q", "-o", str(out), "--dialect", "B")
+    t.join()
+    err = capsys.readouterr().err
+    assert code == 130, err
+    hint = re.search(r"`(radiokit acquire [^`]*)` completes it", err)
+    assert hint, err
+    words = shlex.split(hint.group(1))
+    assert words == ["radiokit", "acquire", str(path), "--sim", "-o", str(out), "--dialect", "B", "--resume"]
+    assert 0 < contents(out)["key"].size < TOTAL
+    assert _cli(*words[1:]) == 0, capsys.readouterr().err  # the hint, followed literally
+    assert "frames written" in capsys.readouterr().out
+    assert_complete(out)
+    assert not os.path.exists(p.output)  # the protocol's own default output was never started
+    with h5py.File(out, "r") as h5:
+        assert "B" in h5["entry"].attrs["devices"] and '"dialect": "B"' in h5["entry"].attrs["devices"]
+    before = {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in (out, notebook)}
+    assert _cli(*words[1:]) == 0
+    said = capsys.readouterr().out
+    assert f"{out}: already complete ({TOTAL} frames)" in said and "not touched" in said, said
+    assert {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in (out, notebook)} == before
 
 
 def test_cli_bad_protocol_is_a_clear_error(tmp_path, capsys):

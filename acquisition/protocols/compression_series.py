@@ -770,6 +770,7 @@ class Result:
     tube_off: bool | None = None
     tube_state: str = ""
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
+    already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
@@ -1152,6 +1153,14 @@ def run(
         log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
         resume = False
     done = _existing(out, p) if resume else None
+    if done is not None and plan(p, done, warm=True).n_frames == 0:
+        # nothing to take: no device is opened, no notebook line and no end time written (raw data
+        # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
+        from radiokit.io import read_progress
+
+        n = read_progress(out).frames_complete
+        log.info("%s: already complete (%d frames); nothing to resume", out, n)
+        return Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
     try:
