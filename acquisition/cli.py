@@ -68,7 +68,7 @@ def _run(args) -> int:
         )
         return 2
     from acquisition.errors import DeviceError
-    from acquisition.protocols.compression_series import _existing, load_protocol, plan
+    from acquisition.protocols.compression_series import _existing, check_lab, load_protocol, plan
 
     try:
         p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
@@ -82,6 +82,12 @@ def _run(args) -> int:
         return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
+    if not args.sim:
+        try:  # the lab's bench: refused here, before the dry run's plan or the run's first file
+            check_lab(p)
+        except DeviceError as exc:
+            print(f"error: {args.protocol}: {exc}", file=sys.stderr)
+            return 2
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
         from radiokit.io import check_output
 
@@ -97,7 +103,7 @@ def _run(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         pl = plan(p, done)
-        where = "the virtual bench" if args.sim else f"source {p.source.port or '(port not set)'}"
+        where = "the virtual bench" if args.sim else f"source {p.source.port}"
         print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
         print(pl.table())
         print(

@@ -633,6 +633,47 @@ def test_a_voltage_beyond_the_panels_rating_is_refused_before_anything_is_sent(t
     assert len(err) == 1 and "exceeds the panel's rating" in err[0], err
 
 
+@pytest.mark.parametrize(
+    "lab, message",
+    [
+        ({"source": {"port": "/dev/pts/99"}, "detector": {"kind": "sim"}}, r'\[detector\] kind = "sim", no folder'),
+        ({"detector": {"kind": "sim"}}, r"\[source\] port is empty"),
+        (
+            {"source": {"port": "/dev/pts/99"}, "detector": {"kind": "folder", "preset": "c7942", "folder": "."}},
+            r'\[frame\] kind = "sim": the lab\'s frame is kind = "manual"',
+        ),
+    ],
+    ids=["port-but-sim-panel", "no-port", "sim-frame"],
+)
+def test_the_dry_run_refuses_a_protocol_the_lab_run_refuses_and_the_run_leaves_no_file(
+    tmp_path, capsys, monkeypatch, lab, message
+):
+    """Found: a protocol with `[source] port` but `[detector] kind = "sim"` (or no port at all)
+    dry-ran with exit 0 and a plan "on source /dev/pts/99", while the run said `error: detector:
+    the lab needs kind = "folder"` (exit 1) and left its notebook (series.log) behind. Now both
+    refuse it in the same one line, exit 2, and nothing is written."""
+    import tomli_w
+
+    from radiokit.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    data = {"output": "series.h5", "frame": {"kind": "sim"}, "series": {"steps": [0.15]}, **lab}
+    proto = tmp_path / "lab.toml"
+    proto.write_text(tomli_w.dumps(data))
+    lines = []
+    for flags in (["--dry-run"], ["-q"]):
+        assert main(["acquire", str(proto), *flags]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: {proto}: ") and re.search(message, err[0]), err
+        lines.append(err[0])
+    assert lines[0] == lines[1]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["lab.toml"]  # no notebook, no experiment file
+    with pytest.raises(DeviceError, match=message):  # the Python API too, before its notebook
+        run(load_protocol(data), progress=False)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["lab.toml"]
+    assert main(["acquire", str(proto), "--dry-run", "--sim"]) == 0  # the virtual bench's: a plan
+
+
 def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path, scene_toml, capsys):
     """Found: an experiment file in a folder that does not exist (or a read-only one) ended the
     command with "error: [Errno 2] No such file or directory: '.../series.log'" -- a file the

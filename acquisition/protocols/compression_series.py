@@ -89,6 +89,7 @@ __all__ = [
     "Result",
     "Devices",
     "lab_devices",
+    "check_lab",
     "sim_devices",
     "ProtocolError",
     "PHASES",
@@ -578,18 +579,32 @@ def _guarded_source(url: str, p: Protocol):
     return source
 
 
+def check_lab(p: Protocol) -> None:
+    """What the lab's bench needs of a protocol (a port, the vendor software's folder, the manual
+    frame): checked by the run before it writes anything (its notebook included) and by the dry
+    run without ``--sim``, so a dry run refuses what the run would (README). A protocol with a
+    port but the virtual panel dry-ran "on source /dev/..." and the run then refused it."""
+    if not p.source.port:
+        raise ProtocolError("[source] port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
+    if p.detector.kind != "folder" or not p.detector.folder:
+        raise ProtocolError(
+            f'[detector] kind = "{p.detector.kind}"{", no folder" if not p.detector.folder else ""}: the lab needs '
+            'kind = "folder" and the folder the vendor software writes to (kind = "sim" needs --sim)'
+        )
+    if p.frame.kind != "manual":
+        raise ProtocolError(
+            f'[frame] kind = "{p.frame.kind}": the lab\'s frame is kind = "manual" (a motorised stage has no '
+            'driver yet; kind = "sim" needs --sim)'
+        )
+
+
 def lab_devices(p: Protocol) -> Devices:
     """The real bench: the L8121 on ``source.port`` (through the guardian), the folder the vendor
     software writes, the manual frame."""
     from acquisition.detector import FolderWatcher
     from acquisition.frame import ManualFrame
 
-    if not p.source.port:
-        raise ProtocolError("source.port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
-    if p.detector.kind != "folder" or not p.detector.folder:
-        raise ProtocolError('detector: the lab needs kind = "folder" and the folder the vendor software writes to')
-    if p.frame.kind != "manual":
-        raise ProtocolError('frame: the lab\'s frame is kind = "manual" (a motorised stage has no driver yet)')
+    check_lab(p)
     detector = FolderWatcher(
         p.detector.folder,
         p.detector.pattern,
@@ -1163,6 +1178,8 @@ def run(
         return Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
+    if not sim and devices is None:
+        check_lab(p)  # before the notebook: a refused protocol leaves no file behind
     try:
         notebook = _open_notebook(out)
     except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
