@@ -253,6 +253,9 @@ def _source(args) -> int:
         result = probe(
             args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
         )
+        if result.port_unavailable:  # no rate could be opened: nothing to report of the controller
+            print(f"error: {result.summary()}", file=sys.stderr)
+            return 2
         print(result.report())
         return 0 if result.found else 1
     from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal

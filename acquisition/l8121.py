@@ -852,8 +852,16 @@ class ProbeResult:
         """Whether the replies fit one dialect."""
         return self.dialect is not None
 
+    @property
+    def port_unavailable(self) -> bool:
+        """The port could not be opened at any rate: not a byte was sent, so nothing is known of
+        the controller (the summary says so, not that its replies fit neither dialect)."""
+        return bool(self.exchange) and all(e.sent == "(open)" for e in self.exchange)
+
     def summary(self) -> str:
         """One line: what the unit speaks, or why the probe refuses."""
+        if self.port_unavailable:
+            return f"{self.exchange[-1].error}; nothing was sent"
         if not self.found:
             silent = [str(e.baudrate) for e in self.exchange if e.sent == "STS" and e.reply is None]
             why = "; ".join(([f"no reply (or junk) at {', '.join(silent)} baud"] if silent else []) + list(self.notes))
@@ -1166,7 +1174,7 @@ class L8121:
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
-            if result.exchange and all(e.sent == "(open)" for e in result.exchange):
+            if result.port_unavailable:
                 raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
             raise DeviceError(
                 f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "

@@ -1151,6 +1151,28 @@ def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     assert set(model.commands) <= PROBE_QUERIES
 
 
+def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tmp_path, capsys):
+    """Found: `source probe --port /dev/ttyUSB0` with nothing there said "the replies fit neither
+    dialect A nor B at 9600, 38400, 115200 baud (cannot open the port ...)", blaming a controller
+    it never reached, with three lines of "raw exchange" that had none; `source status` said
+    plainly "cannot open the port"."""
+    from radiokit.cli import main
+
+    port = str(tmp_path / "ttyUSB0")  # nothing at that path
+    assert main(["acquire", "source", "probe", "--port", port]) == 2
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert out == "" and len(lines) == 1, (out, err)
+    assert lines[0].startswith(f"error: {port}: cannot open the port") and lines[0].endswith("nothing was sent")
+    assert "neither dialect" not in err
+    # a port that opens but whose replies fit nothing is still the probe's report (exit 1)
+    model = L8121Model(dialect="A")
+    model.foreign()
+    with PtyServer(model) as server:
+        assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 1
+        assert "fit neither dialect" in capsys.readouterr().out
+
+
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     from radiokit.cli import main
 
