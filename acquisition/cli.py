@@ -96,6 +96,9 @@ def _run(args) -> int:
         except OSError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+        if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
+            print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
+            return 2
     if args.dry_run:
         try:
             done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
@@ -113,6 +116,10 @@ def _run(args) -> int:
         )
         return 0
     return _run_series(args, p)
+
+
+#: An existing experiment file, without --resume or --overwrite (the run and the dry run alike).
+EXISTS = "{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
 
 
 def _say(*lines, err=True) -> None:
@@ -248,6 +255,26 @@ def _source(args) -> int:
     if not args.port:
         print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
         return 2
+    if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
+        if args.kv is None or args.ua is None:
+            print("error: 'on' needs --kv and --ua", file=sys.stderr)
+            return 2
+        import math
+
+        from acquisition.l8121 import L8121
+
+        # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half
+        # up), on its configuration, unconnected; on() checks again and warns of the rounding
+        cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
+        try:
+            cfg.check_exposure(args.kv, args.ua)
+            cfg.check_exposure(math.floor(args.kv + 0.5), math.floor(args.ua + 0.5))
+        except ValueError as exc:
+            print(
+                f"error: --kv {args.kv:g} --ua {args.ua:g}: {str(exc).removeprefix('L8121: ')}; nothing was sent",
+                file=sys.stderr,
+            )
+            return 2
     if args.action == "probe":
         c = SourceConfig(baudrate=args.baudrate)
         result = probe(
@@ -341,10 +368,7 @@ def _source_action(src, args) -> int:
     elif args.action == "warm-up":
         src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
         print(f"{args.port}: warmed up, state {src.status().name}")
-    elif args.action == "on":
-        if args.kv is None or args.ua is None:
-            print("error: 'on' needs --kv and --ua", file=sys.stderr)
-            return 2
+    elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         r = src.on(args.kv, args.ua)
         print(
             f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "

@@ -483,7 +483,7 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     assert "%|" not in err and "frame/s" not in err  # no bar when stderr is not a terminal (a log)
     assert "> TYP" in (tmp_path / "series.log").read_text()  # devices made by run: the connect is logged
     # a second run refuses to overwrite; --resume on a complete file takes nothing more
-    assert _cli("acquire", str(path), "--sim", "-q") == 1
+    assert _cli("acquire", str(path), "--sim", "-q") == 2
     assert "never overwritten" in capsys.readouterr().err
     assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0
     assert "already complete" in capsys.readouterr().out
@@ -581,8 +581,46 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
         assert _cli("acquire", "source", "off", *port) == 0
         assert not model.xray_on
-        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
+        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 2
         assert "kV" in capsys.readouterr().err and not model.xray_on
+
+
+def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):
+    """Found: README says `radiokit acquire` exits 2 for an option it refuses, but an existing
+    output exited 1 (and did not mention --overwrite), `source on --kv 200` exited 1 after
+    connecting, and `source on` without --ua opened the port and probed the controller before
+    refusing. Each is now one line, exit 2, and the controller hears nothing."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        port = ("--port", server.url, "--dialect", "A")
+        for given, pattern in (
+            (
+                ("--kv", "200", "--ua", "250"),
+                r"^error: --kv 200 --ua 250: voltage_kv = 200 kV is outside .*40\.\.150 kV",
+            ),
+            (("--kv", "60", "--ua", "nan"), r"current_ua must be finite"),
+            (("--kv", "60"), r"^error: 'on' needs --kv and --ua$"),
+        ):
+            code = _cli("acquire", "source", "on", *port, *given)
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code == 2 and len(err) == 1 and re.search(pattern, err[0]), (given, code, err)
+        assert model.commands == [] and not model.xray_on  # nothing was sent, not even a query
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = tmp_path / "series.h5"
+    with ExperimentWriter(out, shape=(4, 4)):
+        pass
+    before = out.read_bytes()
+    for flags in (["-q"], ["--dry-run"]):  # the dry run refuses what the run would refuse
+        assert _cli("acquire", str(path), "--sim", *flags) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [
+            f"error: {out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+        ]
+    assert out.read_bytes() == before and not out.with_suffix(".log").exists()
 
 
 def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):

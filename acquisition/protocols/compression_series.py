@@ -1177,7 +1177,9 @@ def run(
         log.info("%s: already complete (%d frames); nothing to resume", out, n)
         return Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
+        raise FileExistsError(
+            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+        )
     if not sim and devices is None:
         check_lab(p)  # before the notebook: a refused protocol leaves no file behind
     try:
