@@ -106,12 +106,14 @@ def _run(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         pl = plan(p, done)
+        warm = p.source.warmup_estimate_s
         where = "the virtual bench" if args.sim else f"source {p.source.port}"
         print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
         print(pl.table())
         print(
             f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
-            f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+            f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
+            f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
             f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
         )
         return 0

@@ -192,6 +192,28 @@ def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
     done = {"darks": DARKS, "flats": FLATS, "steps": {1: PER_STEP, 2: 1}}
     left = plan(p, done, warm=True)
     assert left.n_frames == PER_STEP - 1 + PER_STEP
+    # the warm-up emits (README: it counts as X-rays on everywhere): the dry run's plan showed
+    # its row as "beam on 0:00:00" and left its 10 min out of the X-rays-on total
+    full = plan(p)
+    warm_row = full.rows[0]
+    assert warm_row[0] == "warm-up" and warm_row[4] == p.source.warmup_estimate_s == warm_row[3]
+    assert full.beam_on_s == pytest.approx(pl.beam_on_s + p.source.warmup_estimate_s)
+
+
+def test_the_runs_x_rays_on_time_counts_the_warm_up(tmp_path, scene_toml, bench):
+    """The run's "X-rays on N s" counts the warm-up it ran, as the plan does: at least the
+    emulated warm-up's duration plus every XON..XOF period the controller saw."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
+    p.sim.warmed_up, p.sim.warmup_s = False, 1.5
+    dev = sim_devices(p, bench=bench)
+    res = run(p, devices=dev, progress=False)
+    log = dev.emulator.log
+    assert any(e.command == "WUP" for e in log)  # it warmed up
+    ons = [e.t for e in log if e.command == "XON"]
+    offs = [next(e.t for e in log if e.command == "XOF" and e.t > t) for t in ons]
+    exposures = sum(b - a for a, b in zip(ons, offs))
+    # the run times each period around the controller's exchanges: never shorter than they are
+    assert res.beam_on_s >= exposures + p.sim.warmup_s, (res.beam_on_s, exposures)
 
 
 def test_protocol_errors_are_clear(tmp_path, scene_toml):
@@ -449,6 +471,7 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
     out = capsys.readouterr().out
     assert "virtual bench" in out and re.search(rf"total\s+{TOTAL}\b", out)
     assert "gap 8.500 mm" in out and "X-rays on about" in out
+    assert re.search(r"warm-up .* 0:10:00\s+0:10:00\n", out), out  # its time, all of it with X-rays on
     assert not os.path.exists(p.output)
 
 

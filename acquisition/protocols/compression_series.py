@@ -52,8 +52,8 @@ Example (the virtual bench, seconds; a dry run needs no devices)::
     ... settle_s = 30
     ... ''')
     >>> pl = plan(p)
-    >>> pl.n_frames, round(pl.beam_on_s)
-    (14, 25)
+    >>> pl.n_frames, round(pl.beam_on_s)  # the warm-up's 600 s estimate emits too
+    (14, 625)
 """
 
 from __future__ import annotations
@@ -477,7 +477,10 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) ->
     ramp = RAMP_ESTIMATE_S
     rows = []
     if not warm:
-        rows.append(("warm-up", "if the source needs it", 0, p.source.warmup_estimate_s, 0.0))
+        # the warm-up emits X-rays (dialect B reports it as AGING): it counts as beam-on time
+        # wherever X-rays on is counted (README), here as the time it may take
+        w = p.source.warmup_estimate_s
+        rows.append(("warm-up", "if the source needs it: X-rays on", 0, w, w))
     nd = max(0, p.series.darks - done.get("darks", 0))
     if nd:
         rows.append(("darks", "tube off", nd, nd * period, 0.0))
@@ -903,7 +906,11 @@ def _phase_warm_up(r: _Run):
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
     if _needs_warm_up(src):
-        src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+        t = time.perf_counter()
+        try:
+            src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+        finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
+            r.beam_on_s += time.perf_counter() - t
     if p.source.focus is not None:
         src.focus = int(p.source.focus)
     r.devices.detector.arm()
