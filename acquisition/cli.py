@@ -257,6 +257,14 @@ def _source(args) -> int:
     if not args.port:
         print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
         return 2
+    if args.baudrate is not None:
+        from acquisition.l8121 import SourceConfig
+
+        try:
+            SourceConfig(baudrate=args.baudrate)
+        except ValueError as exc:
+            print(f"error: --baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}", file=sys.stderr)
+            return 2
     if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
         if args.kv is None or args.ua is None:
             print("error: 'on' needs --kv and --ua", file=sys.stderr)

@@ -407,9 +407,17 @@ def _finite(value, name: str) -> float:
     return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
+#: The rates L8121.md's link section lists for the controller; another rate cannot be right, and
+#: was found only as a silent link (or junk) at connect
+BAUDRATES = (9600, 38400, 115200)
+
+
 def _baud(value, name: str) -> int:
-    if not is_integer(value) or value <= 0:
-        raise ValueError(f"L8121 configuration: {name} must hold positive whole baud rates, got {value!r}")
+    if not is_integer(value) or value not in BAUDRATES:
+        raise ValueError(
+            f"L8121 configuration: {name} = {value!r}: the controller takes "
+            f"{', '.join(map(str, BAUDRATES[:-1]))} or {BAUDRATES[-1]} baud"
+        )
     return int(value)  # a numpy integer is not TOML's
 
 

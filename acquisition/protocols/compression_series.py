@@ -340,9 +340,14 @@ def _whole(value: float) -> int:
 def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
-    from acquisition.l8121 import DIALECTS
+    from acquisition.l8121 import DIALECTS, SourceConfig
 
     cfg = _source_limits(s)
+    if s.baudrate is not None:  # [source] baudrate is the protocol's own key, not a limit: the driver's check
+        try:
+            SourceConfig(baudrate=s.baudrate)
+        except ValueError as exc:
+            raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     try:  # the driver's own check (the one implementation of the ratings), before anything is sent
         cfg.check_exposure(s.voltage_kv, s.current_ua)
         # ... and on the whole numbers the driver will send (it rounds half up): 60.5 kV x 165 uA
@@ -1182,6 +1187,8 @@ def run(
 
         n = read_progress(out).frames_complete
         log.info("%s: already complete (%d frames); nothing to resume", out, n)
+        if devices is not None:  # handed in: closed at the end all the same (the docstring's promise)
+            devices.close()
         return Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(
