@@ -68,7 +68,7 @@ def _run(args) -> int:
         )
         return 2
     from acquisition.errors import DeviceError
-    from acquisition.protocols.compression_series import _existing, check_lab, load_protocol, plan
+    from acquisition.protocols.compression_series import check_lab, load_protocol
 
     try:
         p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
@@ -100,24 +100,32 @@ def _run(args) -> int:
             print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
             return 2
     if args.dry_run:
-        try:
-            done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
-        except DeviceError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        pl = plan(p, done)
-        warm = p.source.warmup_estimate_s
-        where = "the virtual bench" if args.sim else f"source {p.source.port}"
-        print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
-        print(pl.table())
-        print(
-            f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
-            f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
-            f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
-            f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
-        )
-        return 0
+        return _dry_run(args, p)
     return _run_series(args, p)
+
+
+def _dry_run(args, p) -> int:
+    """Print the plan (what a resume still has to take, with --resume), its duration and beam-on time."""
+    from acquisition.errors import DeviceError
+    from acquisition.protocols.compression_series import _existing, plan
+
+    try:
+        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
+    except DeviceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    pl = plan(p, done)
+    warm = p.source.warmup_estimate_s
+    where = "the virtual bench" if args.sim else f"source {p.source.port}"
+    print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
+    print(pl.table())
+    print(
+        f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
+        f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
+        f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+        f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
+    )
+    return 0
 
 
 #: An existing experiment file, without --resume or --overwrite (the run and the dry run alike).

@@ -1176,26 +1176,9 @@ def run(
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)
-    if resume and not out.exists():
-        log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
-        resume = False
-    done = _existing(out, p) if resume else None
-    if done is not None and plan(p, done, warm=True).n_frames == 0:
-        # nothing to take: no device is opened, no notebook line and no end time written (raw data
-        # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
-        from radiokit.io import read_progress
-
-        n = read_progress(out).frames_complete
-        log.info("%s: already complete (%d frames); nothing to resume", out, n)
-        if devices is not None:  # handed in: closed at the end all the same (the docstring's promise)
-            devices.close()
-        return Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
-    if not resume and out.exists() and not overwrite:
-        raise FileExistsError(
-            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
-        )
-    if not sim and devices is None:
-        check_lab(p)  # before the notebook: a refused protocol leaves no file behind
+    resume, done, complete = _what_to_take(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
+    if complete is not None:
+        return complete
     try:
         notebook = _open_notebook(out)
     except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
@@ -1244,6 +1227,33 @@ def run(
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
     return res
+
+
+def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
+    """The checks before a run writes or opens anything: ``(resume, done, complete)``, where
+    ``done`` is what a resumed file holds and ``complete`` the :class:`Result` of a resume that
+    has nothing to take (then nothing was touched)."""
+    if resume and not out.exists():
+        log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
+        resume = False
+    done = _existing(out, p) if resume else None
+    if done is not None and plan(p, done, warm=True).n_frames == 0:
+        # nothing to take: no device is opened, no notebook line and no end time written (raw data
+        # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
+        from radiokit.io import read_progress
+
+        n = read_progress(out).frames_complete
+        log.info("%s: already complete (%d frames); nothing to resume", out, n)
+        if devices is not None:  # handed in: closed at the end all the same (the docstring's promise)
+            devices.close()
+        return resume, done, Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
+    if not resume and out.exists() and not overwrite:
+        raise FileExistsError(
+            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+        )
+    if not sim and devices is None:
+        check_lab(p)  # before the notebook: a refused protocol leaves no file behind
+    return resume, done, None
 
 
 class _Notebook(logging.FileHandler):
