@@ -68,7 +68,7 @@ def _run(args) -> int:
         )
         return 2
     from acquisition.errors import DeviceError
-    from acquisition.protocols.compression_series import _existing, load_protocol, plan
+    from acquisition.protocols.compression_series import check_lab, load_protocol
 
     try:
         p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
@@ -82,6 +82,12 @@ def _run(args) -> int:
         return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
+    if not args.sim:
+        try:  # the lab's bench: refused here, before the dry run's plan or the run's first file
+            check_lab(p)
+        except DeviceError as exc:
+            print(f"error: {args.protocol}: {exc}", file=sys.stderr)
+            return 2
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
         from radiokit.io import check_output
 
@@ -90,23 +96,40 @@ def _run(args) -> int:
         except OSError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    if args.dry_run:
-        try:
-            done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
-        except DeviceError as exc:
-            print(f"error: {exc}", file=sys.stderr)
+        if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
+            print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
             return 2
-        pl = plan(p, done)
-        where = "the virtual bench" if args.sim else f"source {p.source.port or '(port not set)'}"
-        print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
-        print(pl.table())
-        print(
-            f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
-            f"(estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
-            f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
-        )
-        return 0
+    if args.dry_run:
+        return _dry_run(args, p)
     return _run_series(args, p)
+
+
+def _dry_run(args, p) -> int:
+    """Print the plan (what a resume still has to take, with --resume), its duration and beam-on time."""
+    from acquisition.errors import DeviceError
+    from acquisition.protocols.compression_series import _existing, plan
+
+    try:
+        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
+    except DeviceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    pl = plan(p, done)
+    warm = p.source.warmup_estimate_s
+    where = "the virtual bench" if args.sim else f"source {p.source.port}"
+    print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
+    print(pl.table())
+    print(
+        f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
+        f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
+        f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+        f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
+    )
+    return 0
+
+
+#: An existing experiment file, without --resume or --overwrite (the run and the dry run alike).
+EXISTS = "{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
 
 
 def _say(*lines, err=True) -> None:
@@ -136,7 +159,7 @@ def _run_series(args, p) -> int:
     from acquisition.guardian import SignalGuard, StopSignal
     from acquisition.protocols.compression_series import run
 
-    again = f"`radiokit acquire {args.protocol}{' --sim' if args.sim else ''} --resume`"
+    again = f"`{resume_command(args)}`"
     with SignalGuard() as guard:
         try:
             res = run(
@@ -163,6 +186,13 @@ def _run_series(args, p) -> int:
                     f"{again} completes the series"
                 )
             return _finish(r, 1)
+        if res.already_complete:  # raw data is never modified after acquisition (DESIGN.md)
+            _say(
+                f"{res.output}: already complete ({res.frames_total} frames); nothing to resume, "
+                "the file and the devices were not touched",
+                err=False,
+            )
+            return 0
         oh = sorted(res.per_frame_overhead_s)
         med = oh[len(oh) // 2] * 1000 if oh else float("nan")
         _say(
@@ -171,6 +201,22 @@ def _run_series(args, p) -> int:
             err=False,
         )
         return _finish(res, 0, err=False)
+
+
+def resume_command(args) -> str:
+    """The command that completes the file this run writes: every option that chose that file or
+    how its devices speak (``-o``, ``--dialect``, ``--sim``), shell-quoted. A hint that left out
+    ``-o`` resumed the protocol's own default output, another file, when followed literally."""
+    import shlex
+
+    words = ["radiokit", "acquire", args.protocol]
+    if args.sim:
+        words.append("--sim")
+    if args.output:
+        words += ["-o", str(args.output)]
+    if args.dialect:
+        words += ["--dialect", args.dialect]
+    return shlex.join([*words, "--resume"])
 
 
 def _one_line(exc) -> str:
@@ -219,11 +265,42 @@ def _source(args) -> int:
     if not args.port:
         print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
         return 2
+    if args.baudrate is not None:
+        from acquisition.l8121 import SourceConfig
+
+        try:
+            SourceConfig(baudrate=args.baudrate)
+        except ValueError as exc:
+            print(f"error: --baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}", file=sys.stderr)
+            return 2
+    if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
+        if args.kv is None or args.ua is None:
+            print("error: 'on' needs --kv and --ua", file=sys.stderr)
+            return 2
+        import math
+
+        from acquisition.l8121 import L8121
+
+        # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half
+        # up), on its configuration, unconnected; on() checks again and warns of the rounding
+        cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
+        try:
+            cfg.check_exposure(args.kv, args.ua)
+            cfg.check_exposure(math.floor(args.kv + 0.5), math.floor(args.ua + 0.5))
+        except ValueError as exc:
+            print(
+                f"error: --kv {args.kv:g} --ua {args.ua:g}: {str(exc).removeprefix('L8121: ')}; nothing was sent",
+                file=sys.stderr,
+            )
+            return 2
     if args.action == "probe":
         c = SourceConfig(baudrate=args.baudrate)
         result = probe(
             args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
         )
+        if result.port_unavailable:  # no rate could be opened: nothing to report of the controller
+            print(f"error: {result.summary()}", file=sys.stderr)
+            return 2
         print(result.report())
         return 0 if result.found else 1
     from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal
@@ -309,10 +386,7 @@ def _source_action(src, args) -> int:
     elif args.action == "warm-up":
         src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
         print(f"{args.port}: warmed up, state {src.status().name}")
-    elif args.action == "on":
-        if args.kv is None or args.ua is None:
-            print("error: 'on' needs --kv and --ua", file=sys.stderr)
-            return 2
+    elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         r = src.on(args.kv, args.ua)
         print(
             f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "

@@ -408,9 +408,17 @@ def _finite(value, name: str) -> float:
     return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
+#: The rates L8121.md's link section lists for the controller; another rate cannot be right, and
+#: was found only as a silent link (or junk) at connect
+BAUDRATES = (9600, 38400, 115200)
+
+
 def _baud(value, name: str) -> int:
-    if not is_integer(value) or value <= 0:
-        raise ValueError(f"L8121 configuration: {name} must hold positive whole baud rates, got {value!r}")
+    if not is_integer(value) or value not in BAUDRATES:
+        raise ValueError(
+            f"L8121 configuration: {name} = {value!r}: the controller takes "
+            f"{', '.join(map(str, BAUDRATES[:-1]))} or {BAUDRATES[-1]} baud"
+        )
     return int(value)  # a numpy integer is not TOML's
 
 
@@ -853,8 +861,16 @@ class ProbeResult:
         """Whether the replies fit one dialect."""
         return self.dialect is not None
 
+    @property
+    def port_unavailable(self) -> bool:
+        """The port could not be opened at any rate: not a byte was sent, so nothing is known of
+        the controller (the summary says so, not that its replies fit neither dialect)."""
+        return bool(self.exchange) and all(e.sent == "(open)" for e in self.exchange)
+
     def summary(self) -> str:
         """One line: what the unit speaks, or why the probe refuses."""
+        if self.port_unavailable:
+            return f"{self.exchange[-1].error}; nothing was sent"
         if not self.found:
             silent = [str(e.baudrate) for e in self.exchange if e.sent == "STS" and e.reply is None]
             why = "; ".join(([f"no reply (or junk) at {', '.join(silent)} baud"] if silent else []) + list(self.notes))
@@ -1167,7 +1183,7 @@ class L8121:
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
-            if result.exchange and all(e.sent == "(open)" for e in result.exchange):
+            if result.port_unavailable:
                 raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
             raise DeviceError(
                 f"{result.summary()}; refusing to go on (`radiokit acquire source probe --port "

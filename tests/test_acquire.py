@@ -192,6 +192,28 @@ def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
     done = {"darks": DARKS, "flats": FLATS, "steps": {1: PER_STEP, 2: 1}}
     left = plan(p, done, warm=True)
     assert left.n_frames == PER_STEP - 1 + PER_STEP
+    # the warm-up emits (README: it counts as X-rays on everywhere): the dry run's plan showed
+    # its row as "beam on 0:00:00" and left its 10 min out of the X-rays-on total
+    full = plan(p)
+    warm_row = full.rows[0]
+    assert warm_row[0] == "warm-up" and warm_row[4] == p.source.warmup_estimate_s == warm_row[3]
+    assert full.beam_on_s == pytest.approx(pl.beam_on_s + p.source.warmup_estimate_s)
+
+
+def test_the_runs_x_rays_on_time_counts_the_warm_up(tmp_path, scene_toml, bench):
+    """The run's "X-rays on N s" counts the warm-up it ran, as the plan does: at least the
+    emulated warm-up's duration plus every XON..XOF period the controller saw."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
+    p.sim.warmed_up, p.sim.warmup_s = False, 1.5
+    dev = sim_devices(p, bench=bench)
+    res = run(p, devices=dev, progress=False)
+    log = dev.emulator.log
+    assert any(e.command == "WUP" for e in log)  # it warmed up
+    ons = [e.t for e in log if e.command == "XON"]
+    offs = [next(e.t for e in log if e.command == "XOF" and e.t > t) for t in ons]
+    exposures = sum(b - a for a, b in zip(ons, offs))
+    # the run times each period around the controller's exchanges: never shorter than they are
+    assert res.beam_on_s >= exposures + p.sim.warmup_s, (res.beam_on_s, exposures)
 
 
 def test_protocol_errors_are_clear(tmp_path, scene_toml):
@@ -449,6 +471,7 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
     out = capsys.readouterr().out
     assert "virtual bench" in out and re.search(rf"total\s+{TOTAL}\b", out)
     assert "gap 8.500 mm" in out and "X-rays on about" in out
+    assert re.search(r"warm-up .* 0:10:00\s+0:10:00\n", out), out  # its time, all of it with X-rays on
     assert not os.path.exists(p.output)
 
 
@@ -483,10 +506,57 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     assert "%|" not in err and "frame/s" not in err  # no bar when stderr is not a terminal (a log)
     assert "> TYP" in (tmp_path / "series.log").read_text()  # devices made by run: the connect is logged
     # a second run refuses to overwrite; --resume on a complete file takes nothing more
-    assert _cli("acquire", str(path), "--sim", "-q") == 1
+    assert _cli("acquire", str(path), "--sim", "-q") == 2
     assert "never overwritten" in capsys.readouterr().err
     assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0
-    assert "0 frames written" in capsys.readouterr().out
+    assert "already complete" in capsys.readouterr().out
+
+
+def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(
+    tmp_path, scene_toml, capsys, sigint_default
+):
+    """Found: after Ctrl-C, `acquire protocol.toml --sim -o int_acq.h5` said "`radiokit acquire
+    protocol.toml --sim --resume` completes it" -- without `-o` (nor `--dialect`), so following it
+    literally started the protocol's own default output, another file. And `--resume` on a file
+    already complete rewrote its /entry@end_time: raw data is never modified after acquisition."""
+    import shlex
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    p.sim.frame_period_s = 0.2  # paced, so that Ctrl-C lands before the series ends
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = tmp_path / "int acq.h5"  # a space: the hint is quoted for the shell
+    notebook = out.with_suffix(".log")
+
+    def ctrl_c_after_two_frames():
+        for _ in range(600):
+            if notebook.exists() and "frame 1 written" in notebook.read_text(errors="replace"):
+                break
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c_after_two_frames)
+    t.start()
+    code = _cli("acquire", str(path), "--sim", "-q", "-o", str(out), "--dialect", "B")
+    t.join()
+    err = capsys.readouterr().err
+    assert code == 130, err
+    hint = re.search(r"`(radiokit acquire [^`]*)` completes it", err)
+    assert hint, err
+    words = shlex.split(hint.group(1))
+    assert words == ["radiokit", "acquire", str(path), "--sim", "-o", str(out), "--dialect", "B", "--resume"]
+    assert 0 < contents(out)["key"].size < TOTAL
+    assert _cli(*words[1:]) == 0, capsys.readouterr().err  # the hint, followed literally
+    assert "frames written" in capsys.readouterr().out
+    assert_complete(out)
+    assert not os.path.exists(p.output)  # the protocol's own default output was never started
+    with h5py.File(out, "r") as h5:
+        assert "B" in h5["entry"].attrs["devices"] and '"dialect": "B"' in h5["entry"].attrs["devices"]
+    before = {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in (out, notebook)}
+    assert _cli(*words[1:]) == 0
+    said = capsys.readouterr().out
+    assert f"{out}: already complete ({TOTAL} frames)" in said and "not touched" in said, said
+    assert {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in (out, notebook)} == before
 
 
 def test_cli_bad_protocol_is_a_clear_error(tmp_path, capsys):
@@ -534,8 +604,46 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
         assert _cli("acquire", "source", "off", *port) == 0
         assert not model.xray_on
-        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 1
+        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 2
         assert "kV" in capsys.readouterr().err and not model.xray_on
+
+
+def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):
+    """Found: README says `radiokit acquire` exits 2 for an option it refuses, but an existing
+    output exited 1 (and did not mention --overwrite), `source on --kv 200` exited 1 after
+    connecting, and `source on` without --ua opened the port and probed the controller before
+    refusing. Each is now one line, exit 2, and the controller hears nothing."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        port = ("--port", server.url, "--dialect", "A")
+        for given, pattern in (
+            (
+                ("--kv", "200", "--ua", "250"),
+                r"^error: --kv 200 --ua 250: voltage_kv = 200 kV is outside .*40\.\.150 kV",
+            ),
+            (("--kv", "60", "--ua", "nan"), r"current_ua must be finite"),
+            (("--kv", "60"), r"^error: 'on' needs --kv and --ua$"),
+        ):
+            code = _cli("acquire", "source", "on", *port, *given)
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code == 2 and len(err) == 1 and re.search(pattern, err[0]), (given, code, err)
+        assert model.commands == [] and not model.xray_on  # nothing was sent, not even a query
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = tmp_path / "series.h5"
+    with ExperimentWriter(out, shape=(4, 4)):
+        pass
+    before = out.read_bytes()
+    for flags in (["-q"], ["--dry-run"]):  # the dry run refuses what the run would refuse
+        assert _cli("acquire", str(path), "--sim", *flags) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [
+            f"error: {out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+        ]
+    assert out.read_bytes() == before and not out.with_suffix(".log").exists()
 
 
 def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):
@@ -584,6 +692,47 @@ def test_a_voltage_beyond_the_panels_rating_is_refused_before_anything_is_sent(t
     assert main(["acquire", str(proto), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "exceeds the panel's rating" in err[0], err
+
+
+@pytest.mark.parametrize(
+    "lab, message",
+    [
+        ({"source": {"port": "/dev/pts/99"}, "detector": {"kind": "sim"}}, r'\[detector\] kind = "sim", no folder'),
+        ({"detector": {"kind": "sim"}}, r"\[source\] port is empty"),
+        (
+            {"source": {"port": "/dev/pts/99"}, "detector": {"kind": "folder", "preset": "c7942", "folder": "."}},
+            r'\[frame\] kind = "sim": the lab\'s frame is kind = "manual"',
+        ),
+    ],
+    ids=["port-but-sim-panel", "no-port", "sim-frame"],
+)
+def test_the_dry_run_refuses_a_protocol_the_lab_run_refuses_and_the_run_leaves_no_file(
+    tmp_path, capsys, monkeypatch, lab, message
+):
+    """Found: a protocol with `[source] port` but `[detector] kind = "sim"` (or no port at all)
+    dry-ran with exit 0 and a plan "on source /dev/pts/99", while the run said `error: detector:
+    the lab needs kind = "folder"` (exit 1) and left its notebook (series.log) behind. Now both
+    refuse it in the same one line, exit 2, and nothing is written."""
+    import tomli_w
+
+    from radiokit.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    data = {"output": "series.h5", "frame": {"kind": "sim"}, "series": {"steps": [0.15]}, **lab}
+    proto = tmp_path / "lab.toml"
+    proto.write_text(tomli_w.dumps(data))
+    lines = []
+    for flags in (["--dry-run"], ["-q"]):
+        assert main(["acquire", str(proto), *flags]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: {proto}: ") and re.search(message, err[0]), err
+        lines.append(err[0])
+    assert lines[0] == lines[1]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["lab.toml"]  # no notebook, no experiment file
+    with pytest.raises(DeviceError, match=message):  # the Python API too, before its notebook
+        run(load_protocol(data), progress=False)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["lab.toml"]
+    assert main(["acquire", str(proto), "--dry-run", "--sim"]) == 0  # the virtual bench's: a plan
 
 
 def test_an_output_folder_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path, scene_toml, capsys):

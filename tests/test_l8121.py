@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import select
 import signal
 import subprocess
@@ -1151,6 +1152,28 @@ def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     assert set(model.commands) <= PROBE_QUERIES
 
 
+def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tmp_path, capsys):
+    """Found: `source probe --port /dev/ttyUSB0` with nothing there said "the replies fit neither
+    dialect A nor B at 9600, 38400, 115200 baud (cannot open the port ...)", blaming a controller
+    it never reached, with three lines of "raw exchange" that had none; `source status` said
+    plainly "cannot open the port"."""
+    from radiokit.cli import main
+
+    port = str(tmp_path / "ttyUSB0")  # nothing at that path
+    assert main(["acquire", "source", "probe", "--port", port]) == 2
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert out == "" and len(lines) == 1, (out, err)
+    assert lines[0].startswith(f"error: {port}: cannot open the port") and lines[0].endswith("nothing was sent")
+    assert "neither dialect" not in err
+    # a port that opens but whose replies fit nothing is still the probe's report (exit 1)
+    model = L8121Model(dialect="A")
+    model.foreign()
+    with PtyServer(model) as server:
+        assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 1
+        assert "fit neither dialect" in capsys.readouterr().out
+
+
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     from radiokit.cli import main
 
@@ -1202,6 +1225,42 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
 
 
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
+@pytest.mark.parametrize("baud", [19200, 9601, 0, -9600, 9600.5, "9600"])
+def test_a_baud_rate_the_controller_does_not_take_is_refused_at_load(tmp_path, capsys, baud):
+    """Found: any positive integer was a valid baud rate, while L8121.md lists 9600, 38400 and
+    115200; `baudrate = 19200` dry-ran and was found only as a silent link at connect. Each
+    way in (driver configuration, protocol, --baudrate) now refuses it in one line."""
+    import tomli_w
+
+    from acquisition.protocols import load_protocol
+    from radiokit.cli import main
+
+    why = r"the controller takes 9600, 38400 or 115200 baud"
+    with pytest.raises(ValueError, match=rf"baudrate = {re.escape(repr(baud))}: {why}"):
+        SourceConfig(baudrate=baud)
+    with pytest.raises(ValueError, match=why):
+        SourceConfig(probe_baudrates=(9600, baud))
+    # the protocol's own checks refuse a fraction, text or a negative number first, in one line too
+    said = why if isinstance(baud, int) and baud >= 0 else r"expected (an integer|a finite number >= 0)"
+    with pytest.raises(DeviceError, match=rf"\[source\] baudrate = {re.escape(repr(baud))}: {said}"):
+        load_protocol({"source": {"baudrate": baud}, "series": {"steps": [0.15]}})
+    proto = tmp_path / "p.toml"
+    proto.write_text(tomli_w.dumps({"output": str(tmp_path / "s.h5"), "source": {"baudrate": baud}}))
+    assert main(["acquire", str(proto), "--dry-run", "--sim"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {proto}: [source] baudrate") and re.search(said, err[0]), err
+    if isinstance(baud, int):  # argparse takes whole numbers only
+        model = L8121Model(dialect="A")
+        with PtyServer(model) as server:
+            for action in ("probe", "status"):
+                assert main(["acquire", "source", action, "--port", server.url, "--baudrate", str(baud)]) == 2
+                err = capsys.readouterr().err.strip().splitlines()
+                assert err == [f"error: --baudrate {baud}: the controller takes 9600, 38400 or 115200 baud"], err
+        assert model.commands == []  # refused before the port was opened
+    for ok in BAUDS:
+        assert SourceConfig(baudrate=ok).baudrate == ok
+
+
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
     path.write_text(

@@ -748,7 +748,7 @@ def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file
     proto = write_protocol(tmp_path, scene_file, "/dev/null")
     with ExperimentWriter(tmp_path / "series.h5", shape=(4, 4)) as w:
         w.h5["entry"].attrs["protocol"] = str(secret)
-    assert main(["acquire", str(proto), "--dry-run", "--resume"]) == 2
+    assert main(["acquire", str(proto), "--dry-run", "--sim", "--resume"]) == 2
     err = capsys.readouterr().err.strip()
     assert "stored protocol" in err and len(err.splitlines()) == 1, err
 

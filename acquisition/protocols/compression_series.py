@@ -52,8 +52,8 @@ Example (the virtual bench, seconds; a dry run needs no devices)::
     ... settle_s = 30
     ... ''')
     >>> pl = plan(p)
-    >>> pl.n_frames, round(pl.beam_on_s)
-    (14, 25)
+    >>> pl.n_frames, round(pl.beam_on_s)  # the warm-up's 600 s estimate emits too
+    (14, 625)
 """
 
 from __future__ import annotations
@@ -89,6 +89,7 @@ __all__ = [
     "Result",
     "Devices",
     "lab_devices",
+    "check_lab",
     "sim_devices",
     "ProtocolError",
     "PHASES",
@@ -339,9 +340,14 @@ def _whole(value: float) -> int:
 def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
-    from acquisition.l8121 import DIALECTS
+    from acquisition.l8121 import DIALECTS, SourceConfig
 
     cfg = _source_limits(s)
+    if s.baudrate is not None:  # [source] baudrate is the protocol's own key, not a limit: the driver's check
+        try:
+            SourceConfig(baudrate=s.baudrate)
+        except ValueError as exc:
+            raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     try:  # the driver's own check (the one implementation of the ratings), before anything is sent
         cfg.check_exposure(s.voltage_kv, s.current_ua)
         # ... and on the whole numbers the driver will send (it rounds half up): 60.5 kV x 165 uA
@@ -476,7 +482,10 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) ->
     ramp = RAMP_ESTIMATE_S
     rows = []
     if not warm:
-        rows.append(("warm-up", "if the source needs it", 0, p.source.warmup_estimate_s, 0.0))
+        # the warm-up emits X-rays (dialect B reports it as AGING): it counts as beam-on time
+        # wherever X-rays on is counted (README), here as the time it may take
+        w = p.source.warmup_estimate_s
+        rows.append(("warm-up", "if the source needs it: X-rays on", 0, w, w))
     nd = max(0, p.series.darks - done.get("darks", 0))
     if nd:
         rows.append(("darks", "tube off", nd, nd * period, 0.0))
@@ -578,18 +587,32 @@ def _guarded_source(url: str, p: Protocol):
     return source
 
 
+def check_lab(p: Protocol) -> None:
+    """What the lab's bench needs of a protocol (a port, the vendor software's folder, the manual
+    frame): checked by the run before it writes anything (its notebook included) and by the dry
+    run without ``--sim``, so a dry run refuses what the run would (README). A protocol with a
+    port but the virtual panel dry-ran "on source /dev/..." and the run then refused it."""
+    if not p.source.port:
+        raise ProtocolError("[source] port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
+    if p.detector.kind != "folder" or not p.detector.folder:
+        raise ProtocolError(
+            f'[detector] kind = "{p.detector.kind}"{", no folder" if not p.detector.folder else ""}: the lab needs '
+            'kind = "folder" and the folder the vendor software writes to (kind = "sim" needs --sim)'
+        )
+    if p.frame.kind != "manual":
+        raise ProtocolError(
+            f'[frame] kind = "{p.frame.kind}": the lab\'s frame is kind = "manual" (a motorised stage has no '
+            'driver yet; kind = "sim" needs --sim)'
+        )
+
+
 def lab_devices(p: Protocol) -> Devices:
     """The real bench: the L8121 on ``source.port`` (through the guardian), the folder the vendor
     software writes, the manual frame."""
     from acquisition.detector import FolderWatcher
     from acquisition.frame import ManualFrame
 
-    if not p.source.port:
-        raise ProtocolError("source.port is empty: name the serial port (e.g. /dev/ttyUSB0) or run with --sim")
-    if p.detector.kind != "folder" or not p.detector.folder:
-        raise ProtocolError('detector: the lab needs kind = "folder" and the folder the vendor software writes to')
-    if p.frame.kind != "manual":
-        raise ProtocolError('frame: the lab\'s frame is kind = "manual" (a motorised stage has no driver yet)')
+    check_lab(p)
     detector = FolderWatcher(
         p.detector.folder,
         p.detector.pattern,
@@ -770,6 +793,7 @@ class Result:
     tube_off: bool | None = None
     tube_state: str = ""
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
+    already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
@@ -887,7 +911,11 @@ def _phase_warm_up(r: _Run):
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
     if _needs_warm_up(src):
-        src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+        t = time.perf_counter()
+        try:
+            src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+        finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
+            r.beam_on_s += time.perf_counter() - t
     if p.source.focus is not None:
         src.focus = int(p.source.focus)
     r.devices.detector.arm()
@@ -1148,12 +1176,9 @@ def run(
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)
-    if resume and not out.exists():
-        log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
-        resume = False
-    done = _existing(out, p) if resume else None
-    if not resume and out.exists() and not overwrite:
-        raise FileExistsError(f"{out}: exists; raw data is never overwritten (--resume completes it)")
+    resume, done, complete = _what_to_take(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
+    if complete is not None:
+        return complete
     try:
         notebook = _open_notebook(out)
     except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
@@ -1202,6 +1227,33 @@ def run(
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
     return res
+
+
+def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
+    """The checks before a run writes or opens anything: ``(resume, done, complete)``, where
+    ``done`` is what a resumed file holds and ``complete`` the :class:`Result` of a resume that
+    has nothing to take (then nothing was touched)."""
+    if resume and not out.exists():
+        log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
+        resume = False
+    done = _existing(out, p) if resume else None
+    if done is not None and plan(p, done, warm=True).n_frames == 0:
+        # nothing to take: no device is opened, no notebook line and no end time written (raw data
+        # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
+        from radiokit.io import read_progress
+
+        n = read_progress(out).frames_complete
+        log.info("%s: already complete (%d frames); nothing to resume", out, n)
+        if devices is not None:  # handed in: closed at the end all the same (the docstring's promise)
+            devices.close()
+        return resume, done, Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
+    if not resume and out.exists() and not overwrite:
+        raise FileExistsError(
+            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+        )
+    if not sim and devices is None:
+        check_lab(p)  # before the notebook: a refused protocol leaves no file behind
+    return resume, done, None
 
 
 class _Notebook(logging.FileHandler):
