@@ -256,14 +256,7 @@ class SourceConfig:
         self.dialect = dialect.upper() if dialect.upper() in ("A", "B") else dialect.lower()
         if self.dialect not in ("A", "B", "auto"):
             raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
-        # whole numbers only, each (int() took "1" and 1.5 as mode 1, and a string "0123" as four modes)
-        modes = self.focus_modes
-        if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
-            raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
-        modes = list(modes)  # read twice below: a generator would be empty the second time
-        if not all(is_integer(m) and m >= 0 for m in modes):
-            raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {list(modes)!r}")
-        self.focus_modes = tuple(int(m) for m in modes)  # a numpy integer is not TOML's
+        self.focus_modes = _focus_modes(self.focus_modes)
         self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
         if not self.probe_baudrates:
             raise ValueError("L8121 configuration: probe_baudrates is empty")
@@ -420,6 +413,17 @@ def _baud(value, name: str) -> int:
             f"{', '.join(map(str, BAUDRATES[:-1]))} or {BAUDRATES[-1]} baud"
         )
     return int(value)  # a numpy integer is not TOML's
+
+
+def _focus_modes(modes) -> tuple:
+    """``focus_modes`` as a tuple of Python ints: whole numbers only, each (int() took "1" and 1.5
+    as mode 1, and a string "0123" as four modes)."""
+    if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
+        raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
+    modes = list(modes)  # read twice below: a generator would be empty the second time
+    if not all(is_integer(m) and m >= 0 for m in modes):
+        raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {modes!r}")
+    return tuple(int(m) for m in modes)  # a numpy integer is not TOML's
 
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:

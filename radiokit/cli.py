@@ -365,10 +365,11 @@ _PROCESS_OPTIONS = {
 }
 
 
-def cmd_register(args) -> int:
-    from radiokit.io import RegistrationRecord, atomic_path, check_output, write_registration
-    from radiokit.pipeline import _preset_record
-    from radiokit.register import register, with_default_preset
+def _register_inputs(args):
+    """``register``'s two images and ``--roi`` mask, and its outputs checked: everything refused
+    before the registration, not after it (an image against itself, a ROI off the image, an
+    output onto an input, a figure matplotlib cannot write)."""
+    from radiokit.io import check_output
 
     if args.fixed_frame == args.moving_frame and os.path.exists(args.moving) and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
@@ -386,10 +387,9 @@ def cmd_register(args) -> int:
             raise ValueError(f"--roi {args.roi}: must lie inside the {fixed.shape[0]}x{fixed.shape[1]} image")
         mask = np.zeros(fixed.shape, bool)
         mask[r0:r1, c0:c1] = True
-    inputs = [args.fixed, args.moving]
-    for out in (args.output, args.png):  # refused before the registration, not after
+    for out in (args.output, args.png):
         if out is not None:
-            check_output(out, overwrite=args.overwrite, inputs=inputs)
+            check_output(out, overwrite=args.overwrite, inputs=[args.fixed, args.moving])
     _hdf5_name(args.output)
     if args.png is not None and args.png.resolve() == args.output.resolve():
         raise ValueError(f"--png {args.png}: the same file as -o")
@@ -399,6 +399,16 @@ def cmd_register(args) -> int:
         kinds = FigureCanvasBase.get_supported_filetypes()
         if args.png.suffix.lower().lstrip(".") not in kinds:
             raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+    return fixed, moving, mask
+
+
+def cmd_register(args) -> int:
+    from radiokit.io import RegistrationRecord, atomic_path, write_registration
+    from radiokit.pipeline import _preset_record
+    from radiokit.register import register, with_default_preset
+
+    fixed, moving, mask = _register_inputs(args)
+    inputs = [args.fixed, args.moving]
     _check_preset(args)
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
