@@ -242,6 +242,27 @@ def test_process_prints_the_controls_lines_and_its_flags_count(tmp_path):
     saved = load_results(tmp_path / "out" / "results.json")
     every_ok = all(p.ok for p in saved.pairs) and all(p.ok for p in saved.control.pairs)
     assert res.returncode == (0 if every_ok else 1)
+    # the exit code's rule on the saved record, with one control pair flagged (a real flagged
+    # control cannot be made to order here): the file's pairs all ok, the run still not
+    import dataclasses
+
+    from radiokit.cli import _all_ok
+
+    clean = dataclasses.replace(
+        saved, pairs=tuple(dataclasses.replace(p, quality={**p.quality, "ok": True}) for p in saved.pairs)
+    )
+    control = clean.control
+    flagged = dataclasses.replace(control.pairs[0], quality={**control.pairs[0].quality, "ok": False})
+    one_off = dataclasses.replace(clean, control=dataclasses.replace(control, pairs=(flagged, *control.pairs[1:])))
+    assert _all_ok(
+        dataclasses.replace(
+            clean,
+            control=dataclasses.replace(
+                control, pairs=tuple(dataclasses.replace(p, quality={**p.quality, "ok": True}) for p in control.pairs)
+            ),
+        )
+    )
+    assert not _all_ok(one_off)
 
 
 @pytest.mark.parametrize("name", ["x.h5", "x.HDF5", "x.nxs", "x.tif", "x.tiff", "x.json"])
