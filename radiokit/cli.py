@@ -371,15 +371,16 @@ def _register_inputs(args):
     output onto an input, a figure matplotlib cannot write)."""
     from radiokit.io import check_output
 
-    if args.fixed_frame == args.moving_frame and os.path.exists(args.moving) and _same_file(args.fixed, args.moving):
+    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
+    # after the reads (a file that cannot be read says so first), before anything else is judged
+    if args.fixed_frame == args.moving_frame and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
         same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
         raise ValueError(
             f"{args.moving}: fixed and moving are the same image ({same}, frame {args.fixed_frame}); "
             "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"
         )
-    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
     mask = None
     if args.roi:
         r0, r1, c0, c1 = args.roi

@@ -445,10 +445,11 @@ def test_process_on_unusable_files(case, tmp_path):
     ],
 )
 def test_register_bad_arguments(args, words, tmp_path):
-    img = tmp_path / "img.tif"
+    img, other = tmp_path / "img.tif", tmp_path / "other.tif"  # one image twice is refused on its own
     tifffile.imwrite(img, np.random.default_rng(0).random((32, 32), np.float32))
-    one_line_error(run("register", img, img, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.tif"]
+    tifffile.imwrite(other, np.random.default_rng(1).random((32, 32), np.float32))
+    one_line_error(run("register", img, other, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.tif", "other.tif"]
 
 
 @pytest.mark.parametrize(
