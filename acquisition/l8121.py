@@ -401,16 +401,21 @@ def _finite(value, name: str) -> float:
     return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
-#: The rates L8121.md's link section lists for the controller; another rate cannot be right, and
-#: was found only as a silent link (or junk) at connect
+#: The rates L8121.md's link section lists for the controller. Another is used as configured, with
+#: a warning: L8121.md says no manual of the L8121-01 exists and that a unit that differs is the
+#: configuration's to absorb (a refusal stopped even `acquire source off` reaching such a unit)
 BAUDRATES = (9600, 38400, 115200)
 
 
 def _baud(value, name: str) -> int:
-    if not is_integer(value) or value not in BAUDRATES:
-        raise ValueError(
-            f"L8121 configuration: {name} = {value!r}: the controller takes "
-            f"{', '.join(map(str, BAUDRATES[:-1]))} or {BAUDRATES[-1]} baud"
+    if not is_integer(value) or value <= 0:
+        raise ValueError(f"L8121 configuration: {name} = {value!r}: expected a whole number of baud > 0")
+    if value not in BAUDRATES:
+        logger.warning(
+            "L8121 configuration: %s = %s is not a rate L8121.md lists (%s): used as configured",
+            name,
+            value,
+            ", ".join(map(str, BAUDRATES)),
         )
     return int(value)  # a numpy integer is not TOML's
 

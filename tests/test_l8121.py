@@ -1225,17 +1225,15 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
 
 
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
-@pytest.mark.parametrize("baud", [19200, 9601, 0, -9600, 9600.5, "9600"])
-def test_a_baud_rate_the_controller_does_not_take_is_refused_at_load(tmp_path, capsys, baud):
-    """Found: any positive integer was a valid baud rate, while L8121.md lists 9600, 38400 and
-    115200; `baudrate = 19200` dry-ran and was found only as a silent link at connect. Each
-    way in (driver configuration, protocol, --baudrate) now refuses it in one line."""
+@pytest.mark.parametrize("baud", [0, -9600, 9600.5, "9600"])
+def test_a_baud_rate_that_is_not_a_rate_is_refused_at_load(tmp_path, capsys, baud):
+    """Each way in (driver configuration, protocol, --baudrate) refuses it in one line."""
     import tomli_w
 
     from acquisition.protocols import load_protocol
     from radiokit.cli import main
 
-    why = r"the controller takes 9600, 38400 or 115200 baud"
+    why = r"expected a whole number of baud > 0"
     with pytest.raises(ValueError, match=rf"baudrate = {re.escape(repr(baud))}: {why}"):
         SourceConfig(baudrate=baud)
     with pytest.raises(ValueError, match=why):
@@ -1255,10 +1253,29 @@ def test_a_baud_rate_the_controller_does_not_take_is_refused_at_load(tmp_path, c
             for action in ("probe", "status"):
                 assert main(["acquire", "source", action, "--port", server.url, "--baudrate", str(baud)]) == 2
                 err = capsys.readouterr().err.strip().splitlines()
-                assert err == [f"error: --baudrate {baud}: the controller takes 9600, 38400 or 115200 baud"], err
+                assert err == [f"error: --baudrate {baud}: {why}"], err
         assert model.commands == []  # refused before the port was opened
+
+
+def test_a_rate_l8121_md_does_not_list_is_used_with_a_warning_and_reaches_the_unit(caplog, capsys):
+    """A first version refused any rate but 9600, 38400 and 115200, and so `acquire source off`
+    could not reach a unit set to 19200 (review): L8121.md says the configuration absorbs a unit
+    that differs. Used as configured, with a warning."""
+    from radiokit.cli import main
+
+    with caplog.at_level("WARNING", logger="acquisition.l8121"):
+        assert SourceConfig(baudrate=19200).baudrate == 19200
+    assert "19200 is not a rate L8121.md lists" in caplog.text
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1, baudrate=19200)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A", "--baudrate", "19200"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        assert main(["acquire", "source", "off", *port]) == 0
+        assert not model.xray_on
+    caplog.clear()
     for ok in BAUDS:
         assert SourceConfig(baudrate=ok).baudrate == ok
+    assert "not a rate" not in caplog.text  # the listed rates without a word
 
 
 def test_config_from_toml_and_dict(tmp_path):
