@@ -364,6 +364,11 @@ def _source_command(args, guard) -> int:
             # (README: 3 when the tube may still be on), not a plain error's 1
             _say(TUBE_WARNING)
             return 3
+        if src is None and args.action == "off":
+            # the switch-off asked for never reached the controller: a tube left on by `source on`
+            # is on still, and the operator must hear it as from a series (exit 3)
+            _say(TUBE_WARNING)
+            return 3
         return 1
 
 

@@ -1174,6 +1174,19 @@ def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tm
         assert "fit neither dialect" in capsys.readouterr().out
 
 
+def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, capsys):
+    # review: it said only "cannot open the port", exit 1, of a tube `source on` may have left on
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    port = str(tmp_path / "ttyUSB0")  # nothing at that path
+    assert main(["acquire", "source", "off", "--port", port, "--dialect", "A"]) == 3
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert "cannot open the port" in lines[0] and lines[-1] == TUBE_WARNING
+    assert main(["acquire", "source", "status", "--port", port, "--dialect", "A"]) == 1  # nothing asked of the tube
+    assert TUBE_WARNING not in capsys.readouterr().err
+
+
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     from radiokit.cli import main
 
