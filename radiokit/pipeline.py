@@ -579,6 +579,11 @@ def _within_inclusion(found, centre) -> bool:
     return abs(centre[0] - rc) <= h and abs(centre[1] - cc) <= w
 
 
+def _overlap(a, b) -> bool:
+    """Whether ROIs ``a`` and ``b`` share a pixel."""
+    return a.row0 < b.row1 and b.row0 < a.row1 and a.col0 < b.col1 and b.col0 < a.col1
+
+
 def _background_beside(ref, inc, pixel_size_mm):
     """A background ROI of ``inc``'s shape beside the inclusion given as ``inc`` (where detection
     found none there, or none at all: it was placed beside the detected one, or the run stopped
@@ -590,7 +595,13 @@ def _background_beside(ref, inc, pixel_size_mm):
     grow_r, grow_c = (inc.row1 - inc.row0 + 1) // 2, (inc.col1 - inc.col0 + 1) // 2
     mask[max(0, inc.row0 - grow_r) : inc.row1 + grow_r, max(0, inc.col0 - grow_c) : inc.col1 + grow_c] = True
     size = inc.shape if pixel_size_mm is None else tuple(np.multiply(inc.shape, pixel_size_mm))
-    return find_rois(ref, inclusion_mask=mask, pixel_size_mm=pixel_size_mm, background_size=size)[1]
+    try:
+        return find_rois(ref, inclusion_mask=mask, pixel_size_mm=pixel_size_mm, background_size=size)[1]
+    except ValueError:  # find_rois names its grown inclusion, which the user never gave
+        raise ValueError(
+            f"inclusion ROI {inc} given alone: no background of its shape fits beside it inside the frame and "
+            "the body; give the background too (radiokit process --background R0 R1 C0 C1)"
+        ) from None
 
 
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
@@ -611,8 +622,11 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
             if inc is None:
                 raise
             auto_inc = auto_bg = None
-        if bg is None and inc is not None and not _within_inclusion(auto_inc, inc.center):
-            auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
+        if bg is None and inc is not None:
+            # the detected inclusion's background where the given rectangle is in that inclusion
+            # and clear of it (a rectangle drawn around the inclusion held it: review)
+            if not _within_inclusion(auto_inc, inc.center) or _overlap(auto_bg, inc):
+                auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
         inc = inc or auto_inc
         bg = bg or auto_bg
     for name, roi in (("inclusion", inc), ("background", bg)):

@@ -243,3 +243,13 @@ def test_a_small_inclusion_roi_on_a_detected_inclusion_keeps_the_background_off_
     r0, r1, c0, c1 = rois["background"]
     assert rois["inclusion"] == [96, 104, 96, 104]
     assert not disc[r0:r1, c0:c1].any()
+
+
+def test_an_inclusion_roi_drawn_around_the_inclusion_never_gets_a_background_inside_it(tmp_path):
+    # review: the detected inclusion's background was kept, and lay inside the given rectangle
+    from radiokit.pipeline import Config, process
+
+    exp, _ = _disc_experiment(tmp_path / "exp.h5")
+    cfg = Config(inclusion=(60, 140, 60, 140), crop_mm=None, progress=False, cross_check=None)
+    with pytest.raises(ValueError, match=r"given alone: no background of its shape fits.*--background"):
+        process(exp, cfg, out_dir=tmp_path / "out")
