@@ -581,15 +581,17 @@ def _build(typ, d, where):
         # a size the geometry does not read would be ignored in silence (a cylinder's diameter_mm
         # on a hemi-ellipsoid): refused, naming what it reads
         reads = _BODY_SIZES[d.get("geometry", Body.geometry)]
-        # at its default it is a file saved before saving left them out (and the @scene text of
-        # older simulated files): an edit is a value that differs
-        default = {f.name: f.default for f in dataclasses.fields(Body)}
+        # a file saved before saving left them out (and the @scene text of older simulated files)
+        # holds every size, the unread ones at their defaults: there an edit is a value that
+        # differs; elsewhere any unread size is one (a box's size_mm under geometry = "cylinder")
+        every = {k for sizes in _BODY_SIZES.values() for k in sizes}
+        default = {f.name: f.default for f in dataclasses.fields(Body)} if every <= set(d) else {}
         unread = sorted(
             {
                 k
                 for sizes in _BODY_SIZES.values()
                 for k in sizes
-                if k in d and k not in reads and _as_tuple(d[k]) != default[k]
+                if k in d and k not in reads and _as_tuple(d[k]) != default.get(k, object())
             }
         )
         if unread:

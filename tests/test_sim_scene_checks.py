@@ -259,6 +259,14 @@ def test_a_saved_scene_holds_only_the_sizes_its_body_reads_and_refuses_the_other
     assert Scene.from_toml(tomli_w.dumps(old)).body == scene.body
 
 
+def test_an_unread_size_at_its_default_is_refused_unless_the_file_holds_every_size():
+    # review: a box saved (size_mm at its default) and turned into a cylinder loaded in silence
+    d = tomllib.loads(block_scene().to_toml())
+    d["body"]["geometry"] = "cylinder"
+    with pytest.raises(ValueError, match="size_mm not read by a cylinder body"):
+        Scene.from_toml(tomli_w.dumps(d))
+
+
 def test_an_unread_size_is_named_once():
     with pytest.raises(ValueError, match=r"body: height_mm not read by a box body \(it reads size_mm\)$"):
         Scene.from_toml('[body]\ngeometry = "box"\nheight_mm = 30.0\n')
