@@ -1275,6 +1275,10 @@ def test_rim_without_the_refit_is_an_error():
     fixed, moving, d, mask = _family_pair(size=128, texture=0.01, noise=0.01, corr=0.25, seed=9)
     with pytest.raises(ValueError, match="rim=0.01: needs refit_thinning=True"):
         register(fixed, moving, "rc", preset="default", rim=0.01)
+    # half the smaller side leaves no pixel: a ZeroDivisionError in the data term (review)
+    for rim in (0.5, 5):
+        with pytest.raises(ValueError, match=f"rim={rim}: must be under 0.5"):
+            register(fixed, moving, "rc", preset="weak", rim=rim)
 
 
 def test_weak_refits_the_thinning_from_the_interior():

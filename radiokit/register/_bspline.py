@@ -863,6 +863,8 @@ def _options(preset, overrides) -> dict:
         raise ValueError(f"refit_again={o['refit_again']!r}: needs refit_thinning=True (it repeats that refit)")
     if overrides.get("rim") and not o["refit_thinning"]:  # measured only in the refit's passes
         raise ValueError(f"rim={o['rim']!r}: needs refit_thinning=True (the rim is left out of its passes)")
+    if not o["rim"] < 0.5:  # no pixel lies half the smaller side from every edge: no data left
+        raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
     return o
 
 
@@ -1228,6 +1230,10 @@ def _register_refit(fixed, moving, mask, how, overrides):
     side = _fixed_side(fixed, mask)  # the same for every round: measured once
     rim = _options(how["preset"], overrides)["rim"]
     data_mask = _without_rim(side, mask, rim) if rim else mask
+    if rim and np.count_nonzero(data_mask) < 0.25 * (side[2] > 0).sum():
+        # a small body (or a wide rim) would lose most of its data to it: the passes keep the rim
+        rim, data_mask = 0.0, mask
+    ran = False
     for interior, n_it in rounds:
         b, level, note = _interior_thinning(fixed, moving, d, mask, interior, side)
         notes.append(note if not notes else f"measured again: {note}")
@@ -1236,9 +1242,9 @@ def _register_refit(fixed, moving, mask, how, overrides):
         f2 = (level + (side[0] - level) / (1.0 + b)).astype(np.float32)  # side[0]: fixed as float32
         d2, info2 = _bspline_register(f2, moving, data_mask, **how, start=(info["lattices"], n_it), **again)
         info2["iterations"] += info["iterations"]
-        d, info = d2, info2
+        d, info, ran = d2, info2, True
     info["thinning_refit"] = "; ".join(notes)
-    info["options"]["rim"] = rim  # the passes ran with it off, its mask in their place
+    info["options"]["rim"] = rim if ran else 0.0  # what the passes ran with (none ran: not used)
     return d, info
 
 
