@@ -4,6 +4,7 @@ commands (entry-point group ``radiokit.commands``)."""
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -273,12 +274,18 @@ def _source(args) -> int:
         except ValueError as exc:
             print(f"error: --baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}", file=sys.stderr)
             return 2
+    if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
+        # refused before the port is opened, as warm_up() would refuse it after TYP and STS (exit 1)
+        print(
+            f"error: --timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
+            "seconds; nothing was sent",
+            file=sys.stderr,
+        )
+        return 2
     if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
         if args.kv is None or args.ua is None:
             print("error: 'on' needs --kv and --ua", file=sys.stderr)
             return 2
-        import math
-
         from acquisition.l8121 import L8121
 
         # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half

@@ -651,6 +651,21 @@ def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, sc
     assert out.read_bytes() == before and not out.with_suffix(".log").exists()
 
 
+@pytest.mark.parametrize("timeout", ["-1", "nan", "inf", "0"])
+def test_cli_source_warm_up_refuses_a_bad_timeout_before_the_port_is_opened(capsys, timeout):
+    """Found in review: `source warm-up --timeout -1` (or nan) opened the port and sent TYP and STS
+    before warm_up() refused the time-out, exit 1. An option refused is exit 2, with nothing sent."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model()  # warm-up needed: a time-out let through would start one
+    with PtyServer(model) as server:
+        code = _cli("acquire", "source", "warm-up", "--port", server.url, "--dialect", "A", "-q", "--timeout", timeout)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: --timeout {float(timeout):g}: "), err
+        assert "positive finite number of seconds" in err[0] and "nothing was sent" in err[0], err
+        assert model.commands == [] and not model.xray_on
+
+
 def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):
     """Found: a lab protocol naming the vendor software's folder but no frame size loaded, ran the
     warm-up (X-rays) and then died opening the experiment file with "TypeError: 'NoneType' object
