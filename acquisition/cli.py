@@ -100,21 +100,46 @@ def _run(args) -> int:
         if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
             print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
             return 2
+    code, done = _resumable(args, p)
+    if code is not None:
+        return code
     if args.dry_run:
-        return _dry_run(args, p)
+        return _dry_run(args, p, done)
     return _run_series(args, p)
 
 
-def _dry_run(args, p) -> int:
-    """Print the plan (what a resume still has to take, with --resume), its duration and beam-on time."""
+#: ``--resume`` on a file that holds every frame (the run and the dry run alike).
+COMPLETE = "{out}: already complete ({n} frames); nothing to resume, the file and the devices were not touched"
+
+
+def _resumable(args, p) -> tuple[int | None, dict | None]:
+    """With ``--resume`` on an existing file: ``(exit code or None, what it holds)``. The run and
+    the dry run alike, before any device is opened: a file not to resume from (another protocol's,
+    not an experiment file) is refused, exit 2, and a complete one is reported, exit 0 (the dry run
+    planned its warm-up, 10 min of X-rays, where the run touches nothing)."""
+    if not (args.resume and Path(p.output).exists()):
+        return None, None
     from acquisition.errors import DeviceError
     from acquisition.protocols.compression_series import _existing, plan
+    from radiokit.io import read_progress
 
     try:
-        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
-    except DeviceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        done = _existing(Path(p.output), p)
+        if plan(p, done, warm=True).n_frames:
+            return None, done
+        n = read_progress(Path(p.output)).frames_complete
+    except (DeviceError, OSError, ValueError) as exc:
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return 2, None
+    _say(COMPLETE.format(out=p.output, n=n), err=False)
+    return 0, done
+
+
+def _dry_run(args, p, done) -> int:
+    """Print the plan (what a resume still has to take, ``done``: what the file holds), its
+    duration and beam-on time."""
+    from acquisition.protocols.compression_series import plan
+
     pl = plan(p, done)
     warm = p.source.warmup_estimate_s
     where = "the virtual bench" if args.sim else f"source {p.source.port}"
@@ -187,12 +212,8 @@ def _run_series(args, p) -> int:
                     f"{again} completes the series"
                 )
             return _finish(r, 1)
-        if res.already_complete:  # raw data is never modified after acquisition (DESIGN.md)
-            _say(
-                f"{res.output}: already complete ({res.frames_total} frames); nothing to resume, "
-                "the file and the devices were not touched",
-                err=False,
-            )
+        if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
+            _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
             return 0
         oh = sorted(res.per_frame_overhead_s)
         med = oh[len(oh) // 2] * 1000 if oh else float("nan")
