@@ -702,6 +702,30 @@ def test_cli_source_warm_up_refuses_a_bad_timeout_before_the_port_is_opened(caps
         assert model.commands == [] and not model.xray_on
 
 
+@pytest.mark.parametrize("flags", [["--dry-run"], ["-q"]])
+def test_cli_source_command_options_with_a_protocol_are_refused_not_ignored(tmp_path, scene_toml, capsys, flags):
+    """Found in review: `acquire lab.toml --dry-run --kv 40 --ua 100 --port /dev/ttyS9 --baudrate
+    19200 --timeout 5` exited 0 and ignored them all: a run would use the protocol's kV and uA
+    without a word. Refused in one line, exit 2, before any file is written; --dialect, which a
+    protocol does take, still works."""
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    given = ["--kv", "40", "--ua", "100", "--port", "/dev/ttyS9", "--baudrate", "19200", "--timeout", "5"]
+    for words, names in (
+        (given, "--port, --baudrate, --kv, --ua, --timeout"),
+        (["--kv", "40"], "--kv"),
+        (["--timeout", "1800"], "--timeout"),  # its default spelled out is still the wrong command's
+    ):
+        code = _cli("acquire", str(path), "--sim", *flags, *words)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: {names}: only for "), (words, err)
+        assert "[source] section" in err[0]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["protocol.toml"]  # no notebook, no file
+    if flags == ["--dry-run"]:
+        assert _cli("acquire", str(path), "--sim", "--dry-run", "--dialect", "B") == 0, capsys.readouterr().err
+
+
 def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):
     """Found: a lab protocol naming the vendor software's folder but no frame size loaded, ran the
     warm-up (X-rays) and then died opening the experiment file with "TypeError: 'NoneType' object
