@@ -4,6 +4,7 @@ commands (entry-point group ``radiokit.commands``)."""
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -39,7 +40,7 @@ def add_acquire(subparsers):
         "dialect, and with --sim the virtual bench's emulator speaks it (A or B); source commands "
         "default to auto (probe first)",
     )
-    s = p.add_argument_group("source commands")
+    s = p.add_argument_group("source commands (refused with a protocol: its [source] section sets these)")
     s.add_argument("--port", help="serial port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port")
     s.add_argument(
         "--baudrate",
@@ -48,7 +49,7 @@ def add_acquire(subparsers):
     )
     s.add_argument("--kv", type=float, help="tube voltage for 'on', kV (the L8121: 40-150, at most 75 W)")
     s.add_argument("--ua", type=float, help="tube current for 'on', uA (the L8121: at most 500)")
-    s.add_argument("--timeout", type=float, default=1800.0, help="warm-up time-out, s (default 1800)")
+    s.add_argument("--timeout", type=float, help="warm-up time-out, s (default 1800)")
     p.set_defaults(func=_run)
 
 
@@ -61,11 +62,9 @@ def _run(args) -> int:
         h.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     if args.protocol == "source":
         return _source(args)
-    if args.action:
-        print(
-            f"error: {args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)",
-            file=sys.stderr,
-        )
+    stray = _not_for_a_protocol(args)
+    if stray:
+        print(f"error: {stray}", file=sys.stderr)
         return 2
     from acquisition.errors import DeviceError
     from acquisition.protocols.compression_series import check_lab, load_protocol
@@ -99,21 +98,71 @@ def _run(args) -> int:
         if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
             print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
             return 2
+    code, done = _resumable(args, p)
+    if code is not None:
+        return code
     if args.dry_run:
-        return _dry_run(args, p)
+        return _dry_run(args, p, done)
     return _run_series(args, p)
 
 
-def _dry_run(args, p) -> int:
-    """Print the plan (what a resume still has to take, with --resume), its duration and beam-on time."""
+#: ``--resume`` on a file that holds every frame (the run and the dry run alike).
+COMPLETE = "{out}: already complete ({n} frames); nothing to resume, the file and the devices were not touched"
+
+
+def _resumable(args, p) -> tuple[int | None, dict | None]:
+    """With ``--resume`` on an existing file: ``(exit code or None, what it holds)``. The run and
+    the dry run alike, before any device is opened: a file not to resume from (another protocol's,
+    not an experiment file) is refused, exit 2, and a complete one is reported, exit 0 (the dry run
+    planned its warm-up, 10 min of X-rays, where the run touches nothing)."""
+    if not (args.resume and Path(p.output).exists()):
+        return None, None
     from acquisition.errors import DeviceError
     from acquisition.protocols.compression_series import _existing, plan
+    from radiokit.io import read_progress
 
     try:
-        done = _existing(Path(p.output), p) if args.resume and Path(p.output).exists() else None
-    except DeviceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        done = _existing(Path(p.output), p)
+        if plan(p, done, warm=True).n_frames:
+            return None, done
+        n = read_progress(Path(p.output)).frames_complete
+    except (DeviceError, OSError, ValueError) as exc:
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return 2, None
+    _say(COMPLETE.format(out=p.output, n=n), err=False)
+    return 0, done
+
+
+def _not_for_a_protocol(args) -> str | None:
+    """What only source commands take, given with a protocol: the problem, one line. Ignored, it
+    misled: `lab.toml --kv 40` ran at the protocol's kV with no word. A protocol takes --dialect
+    (it replaces [source] dialect), never these."""
+    if args.action:
+        return f"{args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)"
+    given = [
+        name
+        for name, value in (
+            ("--port", args.port),
+            ("--baudrate", args.baudrate),
+            ("--kv", args.kv),
+            ("--ua", args.ua),
+            ("--timeout", args.timeout),
+        )
+        if value is not None
+    ]
+    if not given:
+        return None
+    return (
+        f"{', '.join(given)}: only for 'radiokit acquire source ACTION'; a protocol's port, baud rate, "
+        f"exposure and warm-up time-out are its [source] section's ({args.protocol})"
+    )
+
+
+def _dry_run(args, p, done) -> int:
+    """Print the plan (what a resume still has to take, ``done``: what the file holds), its
+    duration and beam-on time."""
+    from acquisition.protocols.compression_series import plan
+
     pl = plan(p, done)
     warm = p.source.warmup_estimate_s
     where = "the virtual bench" if args.sim else f"source {p.source.port}"
@@ -186,12 +235,8 @@ def _run_series(args, p) -> int:
                     f"{again} completes the series"
                 )
             return _finish(r, 1)
-        if res.already_complete:  # raw data is never modified after acquisition (DESIGN.md)
-            _say(
-                f"{res.output}: already complete ({res.frames_total} frames); nothing to resume, "
-                "the file and the devices were not touched",
-                err=False,
-            )
+        if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
+            _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
             return 0
         oh = sorted(res.per_frame_overhead_s)
         med = oh[len(oh) // 2] * 1000 if oh else float("nan")
@@ -273,12 +318,18 @@ def _source(args) -> int:
         except ValueError as exc:
             print(f"error: --baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}", file=sys.stderr)
             return 2
+    if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
+        # refused before the port is opened, as warm_up() would refuse it after TYP and STS (exit 1)
+        print(
+            f"error: --timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
+            "seconds; nothing was sent",
+            file=sys.stderr,
+        )
+        return 2
     if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
         if args.kv is None or args.ua is None:
             print("error: 'on' needs --kv and --ua", file=sys.stderr)
             return 2
-        import math
-
         from acquisition.l8121 import L8121
 
         # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half

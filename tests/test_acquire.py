@@ -25,6 +25,7 @@ import re
 import signal
 import threading
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -514,7 +515,42 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
     assert _cli("acquire", str(path), "--sim", "-q") == 2
     assert "never overwritten" in capsys.readouterr().err
     assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0
-    assert "already complete" in capsys.readouterr().out
+    said = capsys.readouterr().out.strip().splitlines()
+    assert said == [f"{p.output}: already complete ({DARKS + FLATS + 3} frames); {NOT_TOUCHED}"], said
+    # found in review: the dry run of that resume planned the warm-up, 10 min of X-rays; it says
+    # what the resume says, and touches nothing either
+    before = {f: f.stat().st_mtime_ns for f in (Path(p.output), Path(p.output).with_suffix(".log"))}
+    assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0
+    assert capsys.readouterr().out.strip().splitlines() == said
+    assert {f: f.stat().st_mtime_ns for f in before} == before
+
+
+NOT_TOUCHED = "nothing to resume, the file and the devices were not touched"
+
+
+@pytest.mark.parametrize("flags", [["-q"], ["--dry-run"]])
+@pytest.mark.parametrize("written_by", ["junk", "another protocol"])
+def test_cli_a_file_not_to_resume_from_is_refused_exit_2_in_the_run_as_in_the_dry_run(
+    tmp_path, scene_toml, capsys, flags, written_by
+):
+    """Found in review: refusing to resume a file (another protocol's, or not an experiment file)
+    exited 2 in the dry run but 1 in the run; nothing was opened in either: a refusal, exit 2."""
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    if written_by == "junk":
+        out.write_bytes(b"not an HDF5 file\n")
+        pattern = rf"^error: {re.escape(str(out))}: cannot resume from this file \("
+    else:
+        with ExperimentWriter(out, shape=(4, 4)) as w:
+            w.record_run(protocol(tmp_path, scene_toml, darks=DARKS + 1).to_toml(), {})
+        pattern = rf"^error: {re.escape(str(out))}: written by a different protocol"
+    before = out.read_bytes()
+    code = _cli("acquire", str(path), "--sim", "--resume", *flags)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and re.search(pattern, err[0]), (code, err)
+    assert out.read_bytes() == before and not out.with_suffix(".log").exists()  # no notebook: nothing opened
 
 
 def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(
@@ -649,6 +685,45 @@ def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, sc
             f"error: {out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
         ]
     assert out.read_bytes() == before and not out.with_suffix(".log").exists()
+
+
+@pytest.mark.parametrize("timeout", ["-1", "nan", "inf", "0"])
+def test_cli_source_warm_up_refuses_a_bad_timeout_before_the_port_is_opened(capsys, timeout):
+    """Found in review: `source warm-up --timeout -1` (or nan) opened the port and sent TYP and STS
+    before warm_up() refused the time-out, exit 1. An option refused is exit 2, with nothing sent."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model()  # warm-up needed: a time-out let through would start one
+    with PtyServer(model) as server:
+        code = _cli("acquire", "source", "warm-up", "--port", server.url, "--dialect", "A", "-q", "--timeout", timeout)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: --timeout {float(timeout):g}: "), err
+        assert "positive finite number of seconds" in err[0] and "nothing was sent" in err[0], err
+        assert model.commands == [] and not model.xray_on
+
+
+@pytest.mark.parametrize("flags", [["--dry-run"], ["-q"]])
+def test_cli_source_command_options_with_a_protocol_are_refused_not_ignored(tmp_path, scene_toml, capsys, flags):
+    """Found in review: `acquire lab.toml --dry-run --kv 40 --ua 100 --port /dev/ttyS9 --baudrate
+    19200 --timeout 5` exited 0 and ignored them all: a run would use the protocol's kV and uA
+    without a word. Refused in one line, exit 2, before any file is written; --dialect, which a
+    protocol does take, still works."""
+    p = protocol(tmp_path, scene_toml)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    given = ["--kv", "40", "--ua", "100", "--port", "/dev/ttyS9", "--baudrate", "19200", "--timeout", "5"]
+    for words, names in (
+        (given, "--port, --baudrate, --kv, --ua, --timeout"),
+        (["--kv", "40"], "--kv"),
+        (["--timeout", "1800"], "--timeout"),  # its default spelled out is still the wrong command's
+    ):
+        code = _cli("acquire", str(path), "--sim", *flags, *words)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: {names}: only for "), (words, err)
+        assert "[source] section" in err[0]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["protocol.toml"]  # no notebook, no file
+    if flags == ["--dry-run"]:
+        assert _cli("acquire", str(path), "--sim", "--dry-run", "--dialect", "B") == 0, capsys.readouterr().err
 
 
 def test_a_folder_detector_without_a_frame_size_is_refused_before_anything_is_sent(tmp_path, capsys):

@@ -17,7 +17,8 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
 - the protocol is checked at load: every number finite, the exposure within the protocol's limits
   and the L8121's ratings (which a protocol may only tighten), no unknown key -- so a dry run
   refuses what a run would;
-- the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on;
+- the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on (a
+  resume of a complete file opens no device);
 - the tube is switched off (``XOF``, confirmed by ``STS``) on every exit path -- normal end,
   exception, Ctrl-C, Ctrl-Z, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
   every wait for a person (moving the screws, taking the phantom out). No signal interrupts the
