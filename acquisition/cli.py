@@ -310,6 +310,23 @@ def _source(args) -> int:
     if not args.port:
         print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
         return 2
+    # an option the action does not read was ignored without a word (`source status --kv 60`)
+    unread = [
+        option
+        for option, value, action in (
+            ("--kv", args.kv, "on"),
+            ("--ua", args.ua, "on"),
+            ("--timeout", args.timeout, "warm-up"),
+        )
+        if value is not None and args.action != action
+    ]
+    if unread:
+        print(
+            f"error: {', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on', "
+            "--timeout for 'warm-up'); nothing was sent",
+            file=sys.stderr,
+        )
+        return 2
     if args.baudrate is not None:
         from acquisition.l8121 import SourceConfig
 

@@ -1187,6 +1187,22 @@ def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, 
     assert TUBE_WARNING not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "action, extra",
+    [("status", ["--kv", "60"]), ("off", ["--ua", "100"]), ("on", ["--kv", "60", "--ua", "250", "--timeout", "5"])],
+)
+def test_cli_source_options_an_action_does_not_read_are_refused(action, extra, capsys):
+    # they were ignored without a word (`source status --kv 60`, `source on --timeout 5`)
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        assert main(["acquire", "source", action, "--port", server.url, "--dialect", "A", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"not read by 'source {action}'" in err[0] and err[0].endswith("nothing was sent")
+    assert model.commands == [] and not model.xray_on
+
+
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     from radiokit.cli import main
 
