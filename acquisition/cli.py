@@ -163,8 +163,8 @@ def _dry_run(args, p, done) -> int:
     duration and beam-on time."""
     from acquisition.protocols.compression_series import plan
 
-    pl = plan(p, done)
-    warm = p.source.warmup_estimate_s
+    pl = plan(p, done, sim=args.sim)
+    warm = p.sim.warmup_s if args.sim else p.source.warmup_estimate_s  # the virtual bench's own
     where = "the virtual bench" if args.sim else f"source {p.source.port}"
     print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
     print(pl.table())
@@ -301,15 +301,8 @@ def _finish(res, code: int, err: bool = True) -> int:
     return code if ok else 3
 
 
-def _source(args) -> int:
-    from acquisition.l8121 import SourceConfig, probe
-
-    if not args.action:
-        print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
-        return 2
-    if not args.port:
-        print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
-        return 2
+def _source_refusal(args) -> str | None:
+    """Why a source command's options are refused before the port is opened, or None."""
     # an option the action does not read was ignored without a word (`source status --kv 60`)
     unread = [
         option
@@ -321,27 +314,37 @@ def _source(args) -> int:
         if value is not None and args.action != action
     ]
     if unread:
-        print(
-            f"error: {', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on', "
-            "--timeout for 'warm-up'); nothing was sent",
-            file=sys.stderr,
+        return (
+            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on', "
+            "--timeout for 'warm-up'); nothing was sent"
         )
-        return 2
     if args.baudrate is not None:
         from acquisition.l8121 import SourceConfig
 
         try:
             SourceConfig(baudrate=args.baudrate)
         except ValueError as exc:
-            print(f"error: --baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}", file=sys.stderr)
-            return 2
+            return f"--baudrate {args.baudrate}: {str(exc).split(': ', 2)[-1]}"
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
         # refused before the port is opened, as warm_up() would refuse it after TYP and STS (exit 1)
-        print(
-            f"error: --timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
-            "seconds; nothing was sent",
-            file=sys.stderr,
+        return (
+            f"--timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
+            "seconds; nothing was sent"
         )
+    return None
+
+
+def _source(args) -> int:
+    from acquisition.l8121 import SourceConfig, probe
+
+    if not args.action:
+        print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
+        return 2
+    if not args.port:
+        print("error: --port URL is required (e.g. /dev/ttyUSB0 or socket://host:port)", file=sys.stderr)
+        return 2
+    if (refusal := _source_refusal(args)) is not None:
+        print(f"error: {refusal}", file=sys.stderr)
         return 2
     if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
         if args.kv is None or args.ua is None:

@@ -199,6 +199,10 @@ def test_dry_run_plan_counts_frames_and_beam_time(tmp_path, scene_toml):
     warm_row = full.rows[0]
     assert warm_row[0] == "warm-up" and warm_row[4] == p.source.warmup_estimate_s == warm_row[3]
     assert full.beam_on_s == pytest.approx(pl.beam_on_s + p.source.warmup_estimate_s)
+    # the virtual bench's source warms up in its own [sim] warmup_s, not the lab's estimate
+    virtual = plan(p, sim=True)
+    assert virtual.rows[0][3] == virtual.rows[0][4] == p.sim.warmup_s != p.source.warmup_estimate_s
+    assert virtual.beam_on_s == pytest.approx(pl.beam_on_s + p.sim.warmup_s)
 
 
 def test_the_runs_x_rays_on_time_counts_the_warm_up(tmp_path, scene_toml, bench):
@@ -477,7 +481,10 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
     out = capsys.readouterr().out
     assert "virtual bench" in out and re.search(rf"total\s+{TOTAL}\b", out)
     assert "gap 8.500 mm" in out and "X-rays on about" in out
-    assert re.search(r"warm-up .* 0:10:00\s+0:10:00\n", out), out  # its time, all of it with X-rays on
+    # its time, all of it with X-rays on: the virtual bench's own [sim] warmup_s under --sim
+    # (it showed the lab's 10 min estimate), the lab's estimate without it
+    w = int(p.sim.warmup_s)
+    assert re.search(rf"warm-up .* 0:{w // 60:02d}:{w % 60:02d}\s+0:{w // 60:02d}:{w % 60:02d}\n", out), out
     assert not os.path.exists(p.output)
 
 

@@ -474,9 +474,10 @@ RAMP_ESTIMATE_S = 5.0  # XON until the measured kV/uA are stable, per beam-on pe
 OVERRUN_FACTOR, OVERRUN_S = 2.0, 10.0
 
 
-def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) -> Plan:
+def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False, sim: bool = False) -> Plan:
     """The run's phases with estimated durations and beam-on time. ``done`` (from a file being
-    resumed) removes what is already there; ``warm=True`` leaves out the warm-up."""
+    resumed) removes what is already there; ``warm=True`` leaves out the warm-up; ``sim=True``
+    plans the virtual bench, whose source warms up in ``[sim] warmup_s``."""
     p = protocol
     done = done or {}
     period = p.detector.frame_period_s
@@ -485,7 +486,7 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False) ->
     if not warm:
         # the warm-up emits X-rays (dialect B reports it as AGING): it counts as beam-on time
         # wherever X-rays on is counted (README), here as the time it may take
-        w = p.source.warmup_estimate_s
+        w = p.sim.warmup_s if sim else p.source.warmup_estimate_s
         rows.append(("warm-up", "if the source needs it: X-rays on", 0, w, w))
     nd = max(0, p.series.darks - done.get("darks", 0))
     if nd:
