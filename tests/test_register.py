@@ -1393,6 +1393,34 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     np.testing.assert_array_equal(reg.displacement, returned[-1].displacement)  # its field, untouched
 
 
+def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without_finishing_it():
+    """After a stopped plain run, a weak result that passes its checks but whose residual still
+    moves by more than ``POLISH`` (as on the family's texture = noise at 2240: 0.15-0.17 px, the
+    stopped run 3.9-5.4 px) is returned, and the plain run is not finished to compare finals: on
+    the training pairs finishing it cost 6-12 s and never changed the field returned
+    (benchmarks/README.md, session 25). The weak run is injected (a fault no small pair makes:
+    the stop needs 704 px, and ``weak`` here settles); the plain run is real."""
+    from radiokit.register import Quality, Registration
+    from radiokit.register._auto import POLISH, register_auto, settled
+
+    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    calls, stopped = [], []
+    moving_weak = Quality(residual_motion=0.17)
+
+    def still_moving_weak(f, m, method, mask, retry=False, **options):
+        calls.append(options["preset"])
+        if options["preset"] == "weak":
+            return Registration(np.zeros((2,) + f.shape, np.float32), method, moving_weak, options)
+        stopped.append(register(f, m, method, mask, retry=retry, **options))
+        return stopped[-1]
+
+    reg = register_auto(still_moving_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
+    assert "abandoned" in stopped[0].options and stopped[0].quality.residual_motion > 0.17
+    assert moving_weak.ok and moving_weak.residual_motion > POLISH and not settled(moving_weak)
+    assert calls == ["default", "weak"]  # not finished: "weak settled or finish" would run it again
+    assert reg.options["auto"].preset == "weak" and reg.quality is moving_weak
+
+
 def test_extend_goes_on_with_a_slow_run_and_not_with_a_lost_one():
     """``extend``: a finest level whose budget (5 iterations) ends with the field still moving
     while its residual already passes the checks goes on from where it stands, converges and

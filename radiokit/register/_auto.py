@@ -16,9 +16,15 @@ allow, which is what a compressed phantom's silent slab does (the simulated pva-
 view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. On a
 textured interior, in a frame larger than the checks' ~0.4 Mpx, the plain run stops before its
 finest level when it is still far off there (``ABANDON``; the weak preset follows, and the plain
-run is finished after all only if the weak one does not beat it). ``auto``'s plain run may go
-past its finest level's budget when its field is still moving there but its residual already
-passes the checks (``EXTEND``): slow, not lost, as on natural images at 2240. Which
+run is finished after all only if the weak one does not beat it). That compares an unfinished run
+with a finished one, but at one level: ``weak`` ends on the plain run's level before its finest
+(both at the checks' ~0.4 Mpx), where the stop mostly reads it. What it cannot see is what the
+plain run's finest level would add (a picture's fine detail under a smooth motion); only finishing
+the run shows that, at the time the stop saves, and neither the reading at the stop nor the weak
+run's own settling told the pairs where it pays from those where it does not (benchmarks/README.md,
+"After an abandoned plain run: which comparison (session 25)"). ``auto``'s plain run may go past
+its finest level's budget when its field is still moving there but its residual already passes
+the checks (``EXTEND``): slow, not lost, as on natural images at 2240. Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
 the body's interior**:
 
@@ -294,7 +300,9 @@ def register_auto(register, f, m, method, mask, retry, options):
     second = register(f, m, method, mask, retry=False, **dict(options, preset=fallback.preset))
     total = first.quality.seconds + second.quality.seconds
     if "abandoned" in first.options and returned(name, first.quality, fallback.preset, second.quality) == plain:
-        # the fallback did not beat the abandoned run: the plain preset in full after all
+        # the fallback did not beat the abandoned run where it stopped: the plain preset in full
+        # after all. Not "unless weak settled": weak still moves on the weak texture the stop is
+        # for, and finishing there buys time over the budget and no better field (module docstring)
         first = register(f, m, method, mask, retry=retry, **_plain(name, options, False))
         total += first.quality.seconds
     if fallback.preset == AUTO_PRESETS[name][2]:  # silent: judged by the misaligned share
