@@ -331,17 +331,31 @@ def test_weak_texture_pair_recovered():
     assert _epe(_old_rc(fixed, moving).displacement, d, mask)[0] > med + 0.1  # the change is what recovers it
 
 
-def test_weak_preset_recovers_weak_texture_short_correlation():
+@pytest.fixture(scope="module")
+def loud_pair():
+    """Texture 3x the noise, motion correlated over a tenth of the frame (384 px), with its
+    ``weak`` and ``default`` registrations: three tests assert different things on these same
+    deterministic runs (the auto test compares auto's field to weak's to the bit), so they run once
+    for the module (session 25: three weak and two default runs before)."""
+    pair = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    return dict(
+        pair=pair,
+        weak=register(*pair[:2], "rc", preset="weak"),
+        default=register(*pair[:2], "rc"),
+    )
+
+
+def test_weak_preset_recovers_weak_texture_short_correlation(loud_pair):
     """Texture 3x the noise, motion correlated over a tenth of the frame: the default (its
     bending energy per control point pins the coarse levels) leaves over half of the motion
     (0.70 of 1.24 px measured); the scale-invariant ``weak`` preset must remove at least three
     quarters of the motion's median and bring the p95 under it (0.17 / 0.51 px measured), and
     ``weak-fast`` most of it."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    fixed, moving, d, mask = loud_pair["pair"]
     before, _ = _epe(np.zeros_like(d), d, mask)
-    med, p95 = _epe(register(fixed, moving, "rc", preset="weak").displacement, d, mask)
+    med, p95 = _epe(loud_pair["weak"].displacement, d, mask)
     assert med < 0.25 * before and p95 < before, (med, p95, before)
-    stiff, _ = _epe(register(fixed, moving, "rc").displacement, d, mask)
+    stiff, _ = _epe(loud_pair["default"].displacement, d, mask)
     assert stiff > 0.5 * before  # the energy balance is what recovers it
     # weak-fast too (0.25 px measured), well under fast's own (0.63 px)
     quick, _ = _epe(register(fixed, moving, "rc", preset="weak-fast").displacement, d, mask)
@@ -367,15 +381,15 @@ def test_grid_jitter_keeps_a_pair_that_did_not_move_on_its_place():
     assert reg.options["grid_jitter"] is True
 
 
-def test_weak_alpha_follows_the_noise():
+def test_weak_alpha_follows_the_noise(loud_pair):
     """The same pair with texture and noise both 4x weaker carries no less information (the
     body's edge even more), so ``weak`` must not lose much: with a fixed alpha the smaller
     residual of a misfit let the prior take over (0.16 -> 0.33 px median measured); with alpha
     following the measured noise, 0.16 -> 0.21. The alpha used is in the result."""
-    loud = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    loud = loud_pair["pair"]
     quiet = _family_pair(size=384, texture=0.0075, noise=0.0025, corr=0.1, seed=8)
     d, mask = loud[2], loud[3]
-    reg_loud = register(*loud[:2], "rc", preset="weak")
+    reg_loud = loud_pair["weak"]
     reg_quiet = register(*quiet[:2], "rc", preset="weak")
     med_loud, _ = _epe(reg_loud.displacement, d, mask)
     med_quiet, _ = _epe(reg_quiet.displacement, d, mask)
@@ -694,7 +708,7 @@ def test_pure_noise_observes_nothing():
 # silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it.
 
 
-def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
+def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture(loud_pair):
     """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
     of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
     ``default`` is flagged; the interior has texture (ratio above TEXTURE_LOW by the training
@@ -702,14 +716,14 @@ def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
     under ``default``'s error."""
     from radiokit.register._auto import TEXTURE_LOW, choose
 
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    fixed, moving, d, mask = loud_pair["pair"]
     assert choose(fixed).ratio >= 1.2 * TEXTURE_LOW and choose(fixed, "auto-fast").preset == "weak-fast"
-    default = register(fixed, moving, "rc")
+    default = loud_pair["default"]
     assert not default.quality.ok  # what the fallback is for
     reg = register(fixed, moving, "rc", preset="auto")
     why = reg.options["auto"]
     assert why.preset == "weak" and "default not ok" in why.reason and "weak texture" in why.reason, why
-    weak = register(fixed, moving, "rc", preset="weak")
+    weak = loud_pair["weak"]
     np.testing.assert_array_equal(reg.displacement, weak.displacement)
     # kept because its residual moves less than default's did
     assert weak.quality.residual_motion < default.quality.residual_motion
