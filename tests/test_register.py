@@ -331,17 +331,31 @@ def test_weak_texture_pair_recovered():
     assert _epe(_old_rc(fixed, moving).displacement, d, mask)[0] > med + 0.1  # the change is what recovers it
 
 
-def test_weak_preset_recovers_weak_texture_short_correlation():
+@pytest.fixture(scope="module")
+def loud_pair():
+    """Texture 3x the noise, motion correlated over a tenth of the frame (384 px), with its
+    ``weak`` and ``default`` registrations: three tests assert different things on these same
+    deterministic runs (the auto test compares auto's field to weak's to the bit), so they run once
+    for the module (session 25: three weak and two default runs before)."""
+    pair = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    return dict(
+        pair=pair,
+        weak=register(*pair[:2], "rc", preset="weak"),
+        default=register(*pair[:2], "rc"),
+    )
+
+
+def test_weak_preset_recovers_weak_texture_short_correlation(loud_pair):
     """Texture 3x the noise, motion correlated over a tenth of the frame: the default (its
     bending energy per control point pins the coarse levels) leaves over half of the motion
     (0.70 of 1.24 px measured); the scale-invariant ``weak`` preset must remove at least three
     quarters of the motion's median and bring the p95 under it (0.17 / 0.51 px measured), and
     ``weak-fast`` most of it."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    fixed, moving, d, mask = loud_pair["pair"]
     before, _ = _epe(np.zeros_like(d), d, mask)
-    med, p95 = _epe(register(fixed, moving, "rc", preset="weak").displacement, d, mask)
+    med, p95 = _epe(loud_pair["weak"].displacement, d, mask)
     assert med < 0.25 * before and p95 < before, (med, p95, before)
-    stiff, _ = _epe(register(fixed, moving, "rc").displacement, d, mask)
+    stiff, _ = _epe(loud_pair["default"].displacement, d, mask)
     assert stiff > 0.5 * before  # the energy balance is what recovers it
     # weak-fast too (0.25 px measured), well under fast's own (0.63 px)
     quick, _ = _epe(register(fixed, moving, "rc", preset="weak-fast").displacement, d, mask)
@@ -367,15 +381,15 @@ def test_grid_jitter_keeps_a_pair_that_did_not_move_on_its_place():
     assert reg.options["grid_jitter"] is True
 
 
-def test_weak_alpha_follows_the_noise():
+def test_weak_alpha_follows_the_noise(loud_pair):
     """The same pair with texture and noise both 4x weaker carries no less information (the
     body's edge even more), so ``weak`` must not lose much: with a fixed alpha the smaller
     residual of a misfit let the prior take over (0.16 -> 0.33 px median measured); with alpha
     following the measured noise, 0.16 -> 0.21. The alpha used is in the result."""
-    loud = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    loud = loud_pair["pair"]
     quiet = _family_pair(size=384, texture=0.0075, noise=0.0025, corr=0.1, seed=8)
     d, mask = loud[2], loud[3]
-    reg_loud = register(*loud[:2], "rc", preset="weak")
+    reg_loud = loud_pair["weak"]
     reg_quiet = register(*quiet[:2], "rc", preset="weak")
     med_loud, _ = _epe(reg_loud.displacement, d, mask)
     med_quiet, _ = _epe(reg_quiet.displacement, d, mask)
@@ -694,7 +708,7 @@ def test_pure_noise_observes_nothing():
 # silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it.
 
 
-def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
+def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture(loud_pair):
     """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
     of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
     ``default`` is flagged; the interior has texture (ratio above TEXTURE_LOW by the training
@@ -702,14 +716,14 @@ def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture():
     under ``default``'s error."""
     from radiokit.register._auto import TEXTURE_LOW, choose
 
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.03, noise=0.01, corr=0.1, seed=8)
+    fixed, moving, d, mask = loud_pair["pair"]
     assert choose(fixed).ratio >= 1.2 * TEXTURE_LOW and choose(fixed, "auto-fast").preset == "weak-fast"
-    default = register(fixed, moving, "rc")
+    default = loud_pair["default"]
     assert not default.quality.ok  # what the fallback is for
     reg = register(fixed, moving, "rc", preset="auto")
     why = reg.options["auto"]
     assert why.preset == "weak" and "default not ok" in why.reason and "weak texture" in why.reason, why
-    weak = register(fixed, moving, "rc", preset="weak")
+    weak = loud_pair["weak"]
     np.testing.assert_array_equal(reg.displacement, weak.displacement)
     # kept because its residual moves less than default's did
     assert weak.quality.residual_motion < default.quality.residual_motion
@@ -1197,16 +1211,46 @@ def test_interior_thinning_is_the_straightforward_computation():
         assert np.abs(b - slow)[dist > interior * n].max() < 0.01  # and it is the thinning
 
 
-def test_weak_measures_the_thinning_again_from_its_second_pass():
+@pytest.fixture(scope="module")
+def weak_runs():
+    """The 384 px pair with texture = noise and a +-10 % thinning, registered by ``weak`` (grid_jitter
+    off) three ways: as it is (``refit``, through ``register``), without the refit (``plain``) and
+    with one refit round fewer (``once``, ``refit_again=0``). Four tests assert different things on
+    these same runs, which are deterministic (the refit test compares two of them to the bit), so
+    they run once for the module (session 25: seven runs of 4-8 s each before). ``info`` is the
+    refit run's own: a wrapper passes every call to the real ``_bspline_register`` and keeps the
+    outermost call's info (as ``test_rim_leaves_the_bodys_edge_out_of_the_refit_passes`` records its
+    masks); ``runs``, its callback's (level's factor, iterations)."""
+    pair = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    fixed, moving = pair[:2]
+    real, depth, outer, runs = B._bspline_register, [0], [], []
+
+    def recorded(*args, **kw):
+        depth[0] += 1
+        try:
+            out = real(*args, **kw)
+        finally:
+            depth[0] -= 1
+        if depth[0] == 0:
+            outer.append(out[1])
+        return out
+
+    callback = lambda factor, res: runs.append((factor, int(res.nit)))  # the refit passes' last: one level each
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(B, "_bspline_register", recorded)
+        refit = register(fixed, moving, "rc", preset="weak", grid_jitter=False, callback=callback)
+    (info,) = outer
+    plain = register(fixed, moving, "rc", preset="weak", refit_thinning=False, grid_jitter=False)
+    once = real(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
+    return dict(pair=pair, refit=refit, info=info, runs=runs, plain=plain, once=once)
+
+
+def test_weak_measures_the_thinning_again_from_its_second_pass(weak_runs):
     """``refit_again`` (1 in ``weak``): the thinning is measured once more from the second
     pass's field and a third pass runs the finest level from its lattices, for at most
     ``REFIT_AGAIN_ITERATIONS``; the second pass keeps its ``REFIT_ITERATIONS`` budget, so
     ``refit_again=0`` is the same run stopped after the second pass."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
-    runs = []  # (level's factor, iterations), the refit passes' last: each runs one level
-    callback = lambda factor, res: runs.append((factor, int(res.nit)))
-    field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False, callback=callback)
-    once, info_once = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
+    runs, info, info_once = weak_runs["runs"], weak_runs["info"], weak_runs["once"][1]
     assert info["thinning_refit"].startswith("thinning refitted")
     assert "measured again: thinning refitted" in info["thinning_refit"]
     assert "measured again" not in info_once["thinning_refit"]
@@ -1217,13 +1261,13 @@ def test_weak_measures_the_thinning_again_from_its_second_pass():
     assert info["iterations"] == info_once["iterations"] + third[1]
 
 
-def test_weak_keeps_the_second_pass_when_the_thinning_measured_again_is_declined(monkeypatch):
+def test_weak_keeps_the_second_pass_when_the_thinning_measured_again_is_declined(weak_runs, monkeypatch):
     """When the thinning measured again is declined (an additive change fits better, or it is
     implausible), no third pass runs: the result is the second pass's, as with
     ``refit_again=0``, and the note says why. The decline is forced (a fake
     ``_interior_thinning`` that answers None on its second call): on a real pair the second
     measurement is rarely declined once the first was taken."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    fixed, moving = weak_runs["pair"][:2]
     real, calls = B._interior_thinning, []
 
     def declined_again(*args, **kw):
@@ -1231,7 +1275,7 @@ def test_weak_keeps_the_second_pass_when_the_thinning_measured_again_is_declined
         out = real(*args, **kw)
         return out if len(calls) == 1 else (None, out[1], "not refitted: forced")
 
-    once, info_once = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
+    once, info_once = weak_runs["once"]
     monkeypatch.setattr(B, "_interior_thinning", declined_again)
     field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
     assert len(calls) == 2 and info["thinning_refit"].endswith("measured again: not refitted: forced")
@@ -1281,17 +1325,16 @@ def test_rim_without_the_refit_is_an_error():
             register(fixed, moving, "rc", preset="weak", rim=rim)
 
 
-def test_weak_refits_the_thinning_from_the_interior():
+def test_weak_refits_the_thinning_from_the_interior(weak_runs):
     """Texture = noise with a +-10 % thinning (384 px): ``weak`` measures the thinning again in
     the body's interior and registers a second time with it divided out; without that the
     thinning term is pinned only at the body's edge, where a scaled edge and a shifted one look
     alike, and the edge band carries the error. With the refit the median is lower."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
+    d, mask = weak_runs["pair"][2:]
     # grid_jitter off: on this small pair the jittered first pass is already at 0.23 px and the
     # refit ties it (0.24); at 2240 the refit still takes it from 0.45-0.51 to 0.36-0.40 px
     # (benchmarks/README.md, session 19)
-    refit = register(fixed, moving, "rc", preset="weak", grid_jitter=False)
-    plain = register(fixed, moving, "rc", preset="weak", refit_thinning=False, grid_jitter=False)
+    refit, plain = weak_runs["refit"], weak_runs["plain"]
     assert refit.options["thinning_refit"].startswith("thinning refitted")
     assert "thinning_refit" not in plain.options
     assert _epe(refit.displacement, d, mask)[0] < 0.9 * _epe(plain.displacement, d, mask)[0]
@@ -1484,14 +1527,13 @@ def test_the_still_check_decides_as_the_percentile_does():
         assert B._p99_below(v, limit) == (np.percentile(v, 99) < limit), (n, limit)
 
 
-def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass():
+def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass(weak_runs):
     """``refit_thinning``'s second pass starts from the first pass's lattices and runs only the
     finest level, for at most ``REFIT_ITERATIONS`` (the coarse levels exist to reach a field the
     first pass has already reached); its field is still the better one against the truth."""
-    fixed, moving, d, mask = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.25, seed=9)
-    # grid_jitter off, as in test_weak_refits_the_thinning_from_the_interior (the same pair)
-    field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
-    first, _ = B._bspline_register(fixed, moving, None, preset="weak", refit_thinning=False, grid_jitter=False)
+    d, mask = weak_runs["pair"][2:]
+    # grid_jitter off, as in test_weak_refits_the_thinning_from_the_interior (the same runs)
+    field, info, first = weak_runs["refit"].displacement, weak_runs["info"], weak_runs["plain"].displacement
     assert info["thinning_refit"].startswith("thinning refitted")
     (level,) = info["levels"]  # one level: the finest, started warm
     assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
