@@ -44,8 +44,8 @@ scatter, an ideal detector. The choices:
 - **noise**: Poisson at the scene's exposure (2500 quanta per 50 um pixel, i.e. 90 000 per 0.3 mm
   pixel), mean and standard deviation over 5 seeds.
 
-Quantities: the change ratio (linear domain, the paper's ``-I/I0``), IF(1) and IF(2) (linear), IF(1)
-in the log domain, the bound (through the plates), and CNR at k = 1 (linear): for noise-free rows
+Quantities: the change ratio (negative domain, the paper's ``-I/I0``), IF(1) and IF(2) (negative), IF(1)
+in the log domain, the bound (through the plates), and CNR at k = 1 (negative): for noise-free rows
 *predicted* from the Poisson model at the scene's exposure (``sim.study.predicted_cnr``), for the
 noise row measured. ``d%`` is the largest relative change of CR, IF(1), IF(2) and CNR against the
 base; a choice "matters" when it exceeds 1 %. Seconds: the mechanics for rows that solve again,
@@ -100,15 +100,15 @@ def _counts(scene):
 
 def _row(scene, name, choice, pair, seconds, counts):
     h = study.headline(pair)
-    c = study.predicted_cnr(pair, h, counts, "linear")
+    c = study.predicted_cnr(pair, h, counts, "negative")
     return Row(
         name,
         choice,
-        h.change_ratio["linear"],
-        h.improvement["linear"]["1"],
-        h.improvement["linear"]["2"],
+        h.change_ratio["negative"],
+        h.improvement["negative"]["1"],
+        h.improvement["negative"]["2"],
         h.improvement["log"]["1"],
-        h.bound["linear"]["1"],
+        h.bound["negative"]["1"],
         c["1"],
         c["reference"],
         seconds,
@@ -195,12 +195,12 @@ def _image_rows(scene, label, proj, counts, t_proj, beam):
         h = study.headline(pair)
         samples.append(
             (
-                h.change_ratio["linear"],
-                h.improvement["linear"]["1"],
-                h.improvement["linear"]["2"],
+                h.change_ratio["negative"],
+                h.improvement["negative"]["1"],
+                h.improvement["negative"]["2"],
                 h.improvement["log"]["1"],
-                h.cnr["linear"]["1"],
-                h.cnr_reference["linear"],
+                h.cnr["negative"]["1"],
+                h.cnr_reference["negative"],
             )
         )
     a = np.array(samples)
@@ -312,7 +312,7 @@ def _parse_mesh(text):
 def convergence_row(a, b, c) -> dict:
     """seed-breast (3-D, through the plates, its own three states) at one mesh: unknowns, seconds
     and the solver's work, the 25 % state's force and inclusion strain, and the 20 -> 25 % pair's
-    change ratio and IF (linear), truth-registered."""
+    change ratio and IF (negative), truth-registered."""
     sc = load_scene("seed-breast")
     sc.mesh.size_inclusion_mm, sc.mesh.size_far_mm, sc.mesh.size_contact_mm = a, b, c
     t = time.perf_counter()
@@ -331,9 +331,9 @@ def convergence_row(a, b, c) -> dict:
         gmres=sv.krylov_iterations,
         force=s.plate_force_n,
         strain=s.inclusion_strain,
-        cr=h.change_ratio["linear"],
-        if1=h.improvement["linear"]["1"],
-        if2=h.improvement["linear"]["2"],
+        cr=h.change_ratio["negative"],
+        if1=h.improvement["negative"]["1"],
+        if2=h.improvement["negative"]["2"],
         load=os.getloadavg()[0],
     )
 

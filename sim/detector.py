@@ -19,6 +19,7 @@ noise against a 2.2 Me- full well (so ~2 counts rms), a dark offset of a hundred
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,14 @@ class DefectTruth:
                 m[pts[:, 0], pts[:, 1]] = True
         m[:, self.columns] = True
         return m
+
+
+def _smooth_gain(rows, cols, variation) -> np.ndarray:
+    """The panel's smooth gain non-uniformity over the frame, mean 1."""
+    y = np.linspace(-1, 1, rows)[:, None]
+    x = np.linspace(-1, 1, cols)[None, :]
+    smooth = 1 + variation * (0.6 * np.cos(1.3 * x + 0.4) * np.cos(0.9 * y) - 0.4 * (x * x + y * y) / 2)
+    return smooth / smooth.mean()
 
 
 @dataclass
@@ -96,16 +105,31 @@ class PanelModel:
     noise: np.ndarray = field(init=False, repr=False)
     truth: DefectTruth = field(init=False, repr=False)
 
+    @classmethod
+    def open_beam_ceiling(cls, spread: float = 3.0) -> float:
+        """The largest open-beam signal (counts above the dark offset, one read-out pixel, the
+        panel's mean gain) whose flat frames stay below the ADC's top code: the brightest pixels
+        (the smooth gain's peak times ``spread`` pixel-gain deviations) plus the dark offset
+        (``spread`` of its deviations) plus ``spread`` standard deviations of shot and read noise.
+        The mean alone against the ceiling let a quarter of the flats clip at 4095 (their gain
+        is up to ~5 % over the mean), which the calibration then marks defective or, once over
+        its 10 %, refuses; a clipped flat biases the line integral low where the gain is high."""
+        g = _smooth_gain(257, 257, cls.gain_variation).max() * (1 + spread * cls.pixel_gain_spread)
+        top = (1 << cls.bits) - 1 - cls.dark_level - spread * cls.dark_spread
+        # g i0 + spread sqrt(q g i0 + r^2) = top, a quadratic in sqrt(i0)-like form: solved by
+        # fixed point (the noise term is a ~2 % correction, so three rounds settle it)
+        i0 = top / g
+        for _ in range(8):
+            i0 = (top - spread * math.sqrt(cls.counts_per_quantum * g * i0 + cls.read_noise**2)) / g
+        return float(i0)
+
     def __post_init__(self):
         if self.binning not in (1, 2, 4):
             raise ValueError(f"binning={self.binning}: the C7942 bins 1x1, 2x2 or 4x4")
         rng = np.random.default_rng(self.seed)
         shape = (self.rows, self.cols)
-        y = np.linspace(-1, 1, self.rows)[:, None]
-        x = np.linspace(-1, 1, self.cols)[None, :]
-        smooth = 1 + self.gain_variation * (0.6 * np.cos(1.3 * x + 0.4) * np.cos(0.9 * y) - 0.4 * (x * x + y * y) / 2)
-        smooth /= smooth.mean()
-        gain = smooth * (1 + self.pixel_gain_spread * rng.standard_normal(shape))
+        gain = _smooth_gain(self.rows, self.cols, self.gain_variation)
+        gain *= 1 + self.pixel_gain_spread * rng.standard_normal(shape)
         self.offset = (self.dark_level + self.dark_spread * rng.standard_normal(shape)).astype(np.float32)
         self.noise = np.full(shape, self.read_noise, np.float32)
         cols = [c for c in self.defect_columns if 0 <= c < self.cols]

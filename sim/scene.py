@@ -360,13 +360,15 @@ class Exposure:
         _positive("exposure voltage_kv", self.voltage_kv)
         _positive("exposure current_ua", self.current_ua)
         _positive("exposure i0_counts", self.i0_counts)
-        # the mean open beam above the model panel's dark offset must stay below the 12-bit
-        # ceiling: beyond it the flats, and every pixel the object does not shade, clip at 4095
-        ceiling = (1 << PanelModel.bits) - 1 - PanelModel.dark_level
-        if self.i0_counts >= ceiling:
+        # the open beam's brightest pixels (gain, dark offset and noise included) must stay below
+        # the 12-bit ceiling: beyond it the flats, and every pixel the object does not shade,
+        # clip at 4095, the calibration marks them defective and the line integral reads low
+        ceiling = PanelModel.open_beam_ceiling()
+        if self.i0_counts > ceiling:
             raise ValueError(
                 f"exposure i0_counts {self.i0_counts:g}: the open beam would saturate the C7942's 12-bit ADC "
-                f"(4095 counts, of which about {PanelModel.dark_level:g} are dark offset): need below {ceiling:g}"
+                f"(4095 counts: about {PanelModel.dark_level:g} of dark offset, and the brightest pixels' gain "
+                f"and noise above the mean): need at most {math.floor(ceiling):d}"
             )
 
 

@@ -19,7 +19,7 @@ Example (an axisymmetric cylinder through the plates, about a second)::
     ...            inclusions=[Inclusion("sphere", diameter_mm=8.0, material=hard)],
     ...            compression=Compression((0.20, 0.25)), mesh=MeshSpec(1.0, 5.0))
     >>> h = headline(image_pair(sc, compress(sc), pixel_size_mm=0.25))
-    >>> round(h.improvement["linear"]["1"], 3), round(h.bound["linear"]["1"], 3)
+    >>> round(h.improvement["negative"]["1"], 3), round(h.bound["negative"]["1"], 3)
     (1.114, 1.118)
 """
 
@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = [
+    "DOMAINS",
     "ImagePair",
     "Headline",
     "Projected",
@@ -89,8 +90,9 @@ class ImagePair:
 
 @dataclass
 class Headline:
-    """The numbers of one pair. Dictionaries are keyed by domain (``log``, ``linear``), then by
-    k as a string (``"1"``, ``"2"``), as in ``results.json``."""
+    """The numbers of one pair. Dictionaries are keyed by domain (``log``, ``negative``: the
+    paper's -I/I0, never called "linear", which is +I/I0, DESIGN.md), then by k as a string
+    (``"1"``, ``"2"``), as in ``results.json``."""
 
     change_ratio: dict
     improvement: dict
@@ -308,34 +310,36 @@ def find_inclusion_roi(pair: ImagePair):
     return find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_size_mm=pair.pixel_size_mm)[0]
 
 
-#: This module's domain names -> radiokit.enhance.Domain: its "linear" is the paper's negative
-#: transmission -I/I0 (radiokit's "negative"; radiokit's "linear" is +I/I0).
-_PIXELS = {"log": "log", "linear": "negative"}
+#: The domains measured: line integrals and the paper's negative transmission -I/I0 (as
+#: radiokit.pipeline; until session 25 this module called -I/I0 "linear", radiokit's +I/I0).
+DOMAINS = ("log", "negative")
 
 
-def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "linear") -> dict:
+def predicted_cnr(pair: ImagePair, h: Headline, counts: float, domain: str = "negative") -> dict:
     """CNR of the reference and of each enhanced image with Poisson noise of ``counts`` open-beam
     quanta per pixel, predicted rather than sampled (so noise-free studies have a CNR that
     responds to the model). As :func:`radiokit.measure.cnr`, the denominator is the background
     ROI's standard deviation: the noise-free image's own variation there (a side view's
     background is not flat) and the noise, added in quadrature. One exposure's per-pixel noise
-    is ``sqrt(e^L / N)`` (log) or ``sqrt(e^-L / N)`` (linear), independent between the two
+    is ``sqrt(e^L / N)`` (log) or ``sqrt(e^-L / N)`` (negative), independent between the two
     exposures, and ``E = R + k (R - M - mean D)`` has ``var_E = (1 + k)^2 var_R + k^2 var_M``.
     Returns ``{"reference": CNR_R, "1": CNR_E(1), ...}``."""
     from radiokit.enhance import compression_contrast, to_domain
     from radiokit.measure import contrast
 
+    if domain not in DOMAINS:
+        raise ValueError(f"domain {domain!r}: expected one of {DOMAINS} (-I/I0 is 'negative')")
     bg = h.background
     L_r, L_m = (float(np.mean(im[bg.slices])) for im in (pair.reference, pair.registered))
     sign = 1.0 if domain == "log" else -1.0
     var_r, var_m = math.exp(sign * L_r) / counts, math.exp(sign * L_m) / counts
-    ref, reg = to_domain(pair.reference, _PIXELS[domain]), to_domain(pair.registered, _PIXELS[domain])
+    ref, reg = to_domain(pair.reference, domain), to_domain(pair.registered, domain)
     out = {
         "reference": contrast(ref, h.inclusion, bg) / math.sqrt(var_r + float(np.var(ref[bg.slices], dtype=np.float64)))
     }
     for key in h.improvement[domain]:
         k = float(key)
-        enh = compression_contrast(ref, reg, k, domain=_PIXELS[domain])
+        enh = compression_contrast(ref, reg, k, domain=domain)
         structure = float(np.var(enh[bg.slices], dtype=np.float64))
         out[key] = contrast(enh, h.inclusion, bg) / math.sqrt((1 + k) ** 2 * var_r + k * k * var_m + structure)
     return out
@@ -352,8 +356,8 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
         rois = find_rois(pair.reference, inclusion_mask=pair.inclusion_mask, pixel_size_mm=pair.pixel_size_mm)
     inc, bg = rois
     out = Headline({}, {}, {}, inclusion=inc, background=bg)
-    for dom in ("log", "linear"):
-        ref, reg = to_domain(pair.reference, _PIXELS[dom]), to_domain(pair.registered, _PIXELS[dom])
+    for dom in DOMAINS:
+        ref, reg = to_domain(pair.reference, dom), to_domain(pair.registered, dom)
         out.change_ratio[dom] = change_ratio(reg, ref, inc, bg)
         out.contrast_reference[dom] = contrast(ref, inc, bg)
         noisy = float(np.std(ref[bg.slices])) > 0
@@ -361,7 +365,7 @@ def headline(pair: ImagePair, ks=(1.0, 2.0), rois=None) -> Headline:
         out.improvement[dom], out.cnr[dom], out.bound[dom] = {}, {}, {}
         for k in ks:
             key = f"{float(k):g}"
-            enh = compression_contrast(ref, reg, float(k), domain=_PIXELS[dom])
+            enh = compression_contrast(ref, reg, float(k), domain=dom)
             out.improvement[dom][key] = improvement_factor(enh, ref, inc, bg)
             out.cnr[dom][key] = cnr(enh, inc, bg) if noisy else math.nan
             out.bound[dom][key] = improvement_bound(float(k), 1.0, pair.mu_dg, dom) if pair.mu_dg is not None else None

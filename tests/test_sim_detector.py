@@ -9,6 +9,8 @@ excess kurtosis ``1 / lambda`` adds under 1 %): averaged over ``m`` pixels, both
 ``1 / sqrt(m)`` of that, and the tests allow five such standard errors.
 """
 
+import math
+
 import numpy as np
 import pytest
 
@@ -52,7 +54,7 @@ def test_dark_frames_are_offset_plus_read_noise_and_bright_ones_clip_at_12_bits(
     assert bright.dtype == np.uint16 and np.all(bright == 4095) and panel.saturation == 4095
 
 
-@pytest.mark.parametrize("domain", ["linear", "log"])
+@pytest.mark.parametrize("domain", ["negative", "log"])
 def test_predicted_cnr_matches_sampled_poisson_noise(domain):
     """``sim.study.predicted_cnr`` against CNRs measured on images with Poisson noise
     (``sim.study.add_noise``). Uniform background and inclusion, registration exact (the moving
@@ -78,7 +80,7 @@ def test_predicted_cnr_matches_sampled_poisson_noise(domain):
     predicted = study.predicted_cnr(pair, h, counts, domain)
     assert set(predicted) == {"reference", "1", "2"}
     rng = np.random.default_rng(11)
-    pixels = study._PIXELS[domain]
+    pixels = domain
     measured = {key: [] for key in predicted}
     for _ in range(samples):
         r = to_domain(study.add_noise(reference, counts, rng), pixels)
@@ -90,3 +92,23 @@ def test_predicted_cnr_matches_sampled_poisson_noise(domain):
     for key, values in measured.items():
         standard_error = np.std(values, ddof=1) / np.sqrt(samples)
         assert np.mean(values) == pytest.approx(predicted[key], abs=5 * standard_error), key
+
+
+def test_the_exposure_ceiling_keeps_the_flats_below_the_adc_top():
+    """``Exposure`` accepts an open beam only up to ``PanelModel.open_beam_ceiling()``: there the
+    brightest pixels' mean plus three standard deviations (gain peak, dark offset, shot and read
+    noise) stays under 4095, so a full-size panel's flats clip in about 0.1 % of pixels or fewer
+    (3 sigma's one-sided 0.13 % bounds the tail at the very brightest pixels; most sit further
+    down). The mean-only rule it replaced accepted 3974 counts, where half the flats clip."""
+    from sim.scene import Exposure
+
+    ceiling = PanelModel.open_beam_ceiling()
+    panel = PanelModel(rows=1120, cols=1120, n_dead=0, n_under=0, n_noisy=0, defect_columns=())
+    flats = panel.flat_frames(2, i0=ceiling, rng=np.random.default_rng(4))
+    assert np.mean(flats == panel.saturation) < 0.0013
+    # and the ceiling is not needlessly low: 10 % above it, the panel's bright part clips
+    over = panel.flat_frames(2, i0=1.1 * ceiling, rng=np.random.default_rng(5))
+    assert np.mean(over == panel.saturation) > 0.1
+    Exposure(i0_counts=math.floor(ceiling))
+    with pytest.raises(ValueError, match="would saturate"):
+        Exposure(i0_counts=3974.0)
