@@ -190,7 +190,7 @@ def test_a_slow_controller_keeping_the_beam_on_past_the_plan_is_told(tmp_path, s
     planned = 1 * p.detector.frame_period_s + RAMP_ESTIMATE_S
     assert res.beam_on_s > max(OVERRUN_FACTOR * planned, planned + OVERRUN_S)
     assert told == [
-        f"X-rays were on {res.beam_on_s:.1f} s for step 1 (1 frames), planned {planned:.1f} s "
+        f"X-rays were on {res.beam_on_s:.1f} s for step 1 (1 frame), planned {planned:.1f} s "
         f"({p.detector.frame_period_s:g} s a frame + {RAMP_ESTIMATE_S:g} s to stabilise): a slow controller "
         "or detector keeps the tube on longer than the dry run said"
     ]

@@ -1042,11 +1042,12 @@ def _beam_off(r: _Run):
     if not r.overrun_told and took > OVERRUN_FACTOR * planned and took - planned >= OVERRUN_S:
         r.overrun_told = True  # once a run: the cause (the link, the panel) is the same every period
         log.warning(
-            "X-rays were on %.1f s for %s (%d frames), planned %.1f s (%g s a frame + %g s to stabilise): "
+            "X-rays were on %.1f s for %s (%d frame%s), planned %.1f s (%g s a frame + %g s to stabilise): "
             "a slow controller or detector keeps the tube on longer than the dry run said",
             took,
             what,
             n,
+            "" if n == 1 else "s",
             planned,
             r.p.detector.frame_period_s,
             RAMP_ESTIMATE_S,
