@@ -1090,6 +1090,35 @@ def test_probe_refuses_a_controller_that_speaks_neither(misbehave, why):
     assert set(model.commands) <= PROBE_QUERIES
 
 
+def test_probe_finds_a_slow_b_unit_at_a_later_rate():
+    """Found: the first rate got 2 s per reply, later ones only 0.5 s, so a B unit at 38400
+    answering in 0.6 s (inside B's 2 s) was refused, its late reply read as the next rate's."""
+    model = L8121Model(dialect="B", baudrate=38400, warmed_up=True)
+    model.slow(0.6)
+    with PtyServer(model) as server:
+        result = probe(server.url, baudrates=(9600, 38400, 115200), min_interval_s=0.01)  # default wait
+    assert (result.dialect, result.baudrate) == ("B", 38400), result.report()
+    assert [e.baudrate for e in result.exchange] == [9600, 38400, 38400, 38400, 38400]  # never at 115200
+
+
+def test_probe_says_what_typ_answered_when_it_is_no_identity(capsys):
+    """Found: an A unit whose TYP answered ERROR was summed up as "no identity query in this dialect"."""
+    from radiokit.cli import main
+
+    class NoTyp(L8121Model):
+        def receive(self, line, baudrate=None):
+            ex = super().receive(line, baudrate)
+            if line == "TYP" and ex.understood:  # the one fake here: no emulator mode refuses TYP
+                return type(ex)(ex.t, ex.command, "ERROR", True)
+            return ex
+
+    with PtyServer(NoTyp(warmed_up=True)) as server:
+        assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert "dialect A at 9600 baud, identity unknown (TYP answered 'ERROR')" in first
+    assert "no identity query" not in first
+
+
 def test_probe_refuses_a_mix_of_dialects():
     """STS in A's shape but SIN in B's: a unit the tables do not describe -- refused, not guessed."""
 
