@@ -396,7 +396,9 @@ def _source_command(args, guard) -> int:
     src = None
     try:
         try:
-            src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
+            src = L8121(
+                args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", control=args.action != "status"
+            )
         except KeyboardInterrupt as exc:  # connect sends queries only
             exc.tube = "interrupted while connecting: no X-ray command was sent"
             raise
@@ -445,10 +447,26 @@ def _source_action(src, args) -> int:
     if args.action == "status":
         kv, ua = src.measured()
         state = src.status()
+        switch = src.switch_at_connect
         print(
             f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
             f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
+            f"{', operate switch ' + switch if switch else ''}"
         )
+        if switch not in (None, "REMOTE"):
+            # queries are answered, but the controller refuses XOF: a beam that is or may be on
+            # (B's AGING and its ambiguous ERROR included) cannot be switched off from here
+            if not state.confirms_off:
+                _say(
+                    f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
+                    f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
+                )
+                from acquisition.guardian import TUBE_WARNING
+
+                _say(TUBE_WARNING)
+                return 3
+            print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
+            return 0
         if state.emitting:
             # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
             # off after the line above said XRAY_ON, and the operator's last line was no longer true

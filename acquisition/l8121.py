@@ -147,6 +147,12 @@ class SourceState(IntEnum):
         """Whether the tube may emit in this state: X-rays on, or warming up (B: ``AGING``)."""
         return self in (SourceState.XRAY_ON, SourceState.WARMING_UP)
 
+    @property
+    def confirms_off(self) -> bool:
+        """Whether this state shows the tube cannot emit (what confirms a switch-off; B's
+        ambiguous ``ERROR`` does not)."""
+        return self in _OFF_STATES
+
 
 # States that confirm X-rays are off after an XOF.
 _OFF_STATES = frozenset(
@@ -1045,6 +1051,11 @@ class L8121:
         As set on the controller; overrides ``config.baudrate`` (default: the dialect's).
     connect : bool
         Open the link and check the controller now (default).
+    control : bool
+        Whether this session will control the tube (default). False (queries only, a status):
+        a B unit whose operate switch is not on REMOTE is connected all the same, its position
+        kept in :attr:`switch_at_connect`, and X-rays found on then are not switched off by
+        :meth:`close` (the controller would refuse the ``XOF``): the caller must say so.
     config : SourceConfig or mapping, optional
         Dialect, ratings, tolerances and timing; keyword arguments override single fields
         (``L8121(url, dialect="B", kv_max=90, poll_s=0.1)``).
@@ -1076,6 +1087,7 @@ class L8121:
         *,
         connect: bool = True,
         config: SourceConfig | Mapping[str, Any] | None = None,
+        control: bool = True,
         **overrides,
     ):
         if baudrate is not None:
@@ -1084,6 +1096,10 @@ class L8121:
         self.config = SourceConfig.from_dict({**dataclasses.asdict(base), **overrides}) if overrides else base
         self.url = url
         self.identity: str | None = None
+        # False: a session of queries only (a status): B's operate switch need not be on REMOTE,
+        # which the spec asks for remote control, not for queries; its position is kept here
+        self.control = bool(control)
+        self.switch_at_connect: str | None = None
         self.probe_result: ProbeResult | None = None
         self.dialect: Dialect | None = None
         self.baudrate: int | None = self.config.baudrate
@@ -1176,8 +1192,11 @@ class L8121:
         try:
             self._check_identity()
             if self._read("state").emitting:
-                logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
-                self._may_be_on = True
+                if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
+                    logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
+                else:
+                    logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
+                    self._may_be_on = True
         except BaseException:
             self._transport.close()
             self._transport = None
@@ -1232,8 +1251,8 @@ class L8121:
                     f"(configure model=None to accept any model)"
                 )
         else:
-            switch = value
-            if switch != "REMOTE":
+            switch = self.switch_at_connect = value
+            if switch != "REMOTE" and self.control:
                 raise DeviceError(
                     f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"

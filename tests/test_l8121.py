@@ -1282,6 +1282,34 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
         assert len(capsys.readouterr().out.splitlines()) == 1 and "XOF" not in model.commands[-4:]
 
 
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(switch, capsys):
+    """Found: with X-rays on and B's operate switch then turned to LOCAL or OFF, `source status`
+    asked nothing but SRL and ended "turn it to REMOTE", exit 1, with no word of the beam; the
+    spec's REMOTE is for control, not queries. It reads the state and warns: XOF would be refused."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.set_operate_switch(switch)
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 3
+        out, err = capsys.readouterr()
+        assert f"state XRAY_ON, measured 60 kV 250 uA, interlock closed, operate switch {switch}" in out
+        assert err.strip().splitlines()[-1] == TUBE_WARNING
+        assert "XOF" not in model.commands[-6:] and model.xray_on  # nothing sent the controller refuses
+        model.set_operate_switch("REMOTE")
+        assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
+        model.set_operate_switch(switch)
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 0  # off: the state, and what the switch stops
+        out = capsys.readouterr().out
+        assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
+
+
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 @pytest.mark.parametrize("baud", [0, -9600, 9600.5, "9600"])
 def test_a_baud_rate_that_is_not_a_rate_is_refused_at_load(tmp_path, capsys, baud):
