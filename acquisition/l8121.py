@@ -1281,6 +1281,18 @@ class L8121:
             self._transport = None
             logger.info("%s: closed", port)
 
+    @property
+    def may_be_on(self) -> bool:
+        """Whether X-rays may be on by what this session knows (found on at connect, or switched
+        on), until a switch-off confirms; :meth:`close` then switches off."""
+        return self._may_be_on
+
+    @property
+    def confirmed_off(self) -> SourceState | None:
+        """The state ``STS`` read when this session's last switch-off was confirmed (None: none
+        yet); while :attr:`off_failed` is set it vouches for nothing."""
+        return None if self.off_failed is not None else self._off_state
+
     def detach(self) -> None:
         """Close the link and leave the source as it is -- X-rays on included. Only for bench work
         from the command line (``radiokit acquire source on``), where the operator switches off

@@ -1282,6 +1282,46 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
         assert len(capsys.readouterr().out.splitlines()) == 1 and "XOF" not in model.commands[-4:]
 
 
+def test_cli_source_on_twice_switches_off_and_says_so(dialect, capsys):
+    """Found: a second `source on` ended "X-rays are already on (use set_values() or off())", exit 1,
+    while close() had switched them off (only a log line said so). A refused `on` leaves the tube
+    off, confirmed, as every exit but a successful `on` does, and its last line says so."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        assert main(["acquire", "source", "on", *port, "--kv", "70", "--ua", "200"]) == 1
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert not model.xray_on and "set_values()" not in last
+        assert "X-rays are already on (state XRAY_ON)" in last
+        assert "now off, confirmed by STS: STANDBY" in last and "again to switch them on at 70 kV 200 uA" in last
+
+
+def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
+    """Found: an XON answered with a garbled echo is switched off and confirmed, but the last line
+    only named the garbled reply."""
+    from radiokit.cli import main
+
+    class Garbled(L8121Model):
+        def receive(self, line, baudrate=None):
+            ex = super().receive(line, baudrate)  # executed: the beam comes on
+            if line == "XON" and ex.understood:  # the one fake here: no emulator mode garbles one echo
+                return type(ex)(ex.t, ex.command, "X\x7fN", True)
+            return ex
+
+    model = Garbled(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        assert (
+            main(["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]) == 1
+        )
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "XON" in last and last.endswith("X-rays off, confirmed by STS: STANDBY"), last
+    assert not model.xray_on and "XOF" in model.commands
+
+
 @pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
 def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(switch, capsys):
     """Found: with X-rays on and B's operate switch then turned to LOCAL or OFF, `source status`
