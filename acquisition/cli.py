@@ -465,7 +465,8 @@ def _after_failed_on(src, args) -> str:
 _CLI_TERMS = (
     (" (use set_values() or off())", ""),
     ("(call warm_up())", "(`radiokit acquire source warm-up --port {port}`)"),
-    ("then reset() by hand", "then reset it at the controller"),
+    # there is no reset action: an overload needs a person at the tube first (L8121.md: no automatic RST)
+    ("then reset() by hand", "then reset the overload by hand (RST; no `radiokit acquire source` action sends it)"),
     (
         "(configure model=None to accept any model)",
         '(the source commands expect that model; a protocol\'s [source] model = "" accepts any)',

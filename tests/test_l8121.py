@@ -1322,6 +1322,30 @@ def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
     assert not model.xray_on and "XOF" in model.commands
 
 
+def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
+    """Found: command-line errors said "(call warm_up())", "reset() by hand" and "configure
+    model=None", Python the operator at a terminal cannot type."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", ramp_s=0.1)  # cold: warm-up needed
+    with PtyServer(model) as server:
+        on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]
+        assert main(on) == 1
+        err = capsys.readouterr().err
+        assert f"warm-up needed (`radiokit acquire source warm-up --port {server.url}`)" in err and "()" not in err
+        model.warm()
+        model.overload()
+        assert main(on) == 1
+        err = capsys.readouterr().err
+        assert "reset the overload by hand (RST; no `radiokit acquire source` action sends it)" in err
+        assert "reset()" not in err
+    with PtyServer(L8121Model(dialect="A", model="L8121-02")) as server:
+        assert main(["acquire", "source", "status", "--port", server.url, "--dialect", "A"]) == 1
+        err = capsys.readouterr().err
+        assert "TYP answered 'L8121-02'" in err and 'model = "" accepts any' in err and "model=None" not in err
+    assert not model.xray_on
+
+
 @pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
 def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(switch, capsys):
     """Found: with X-rays on and B's operate switch then turned to LOCAL or OFF, `source status`
