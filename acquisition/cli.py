@@ -266,7 +266,7 @@ def resume_command(args) -> str:
 
 def _one_line(exc) -> str:
     text = exc.strerror if isinstance(exc, OSError) and exc.strerror and exc.filename is None else str(exc)
-    return " ".join(str(text).split()) or type(exc).__name__
+    return _cli_terms(" ".join(str(text).split())) or type(exc).__name__
 
 
 def _console_quiet() -> None:
@@ -396,7 +396,9 @@ def _source_command(args, guard) -> int:
     src = None
     try:
         try:
-            src = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto")
+            src = L8121(
+                args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", control=args.action != "status"
+            )
         except KeyboardInterrupt as exc:  # connect sends queries only
             exc.tube = "interrupted while connecting: no X-ray command was sent"
             raise
@@ -426,7 +428,7 @@ def _source_command(args, guard) -> int:
             src.close()
         return code
     except (DeviceError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         if src is not None and src.off_failed is not None:
             # the switch-off was not confirmed: the same last line and exit code as a series
             # (README: 3 when the tube may still be on), not a plain error's 1
@@ -440,15 +442,72 @@ def _source_command(args, guard) -> int:
         return 1
 
 
+def _after_failed_on(src, args) -> str:
+    """What a refused or failed ``on`` left the tube in, for the end of its error line. on()
+    switches off (confirmed) after any failure past its XON; a tube already on when it began
+    (an earlier `source on`: on() refuses to change a beam it did not start) is switched off here,
+    not left to close(): the project's rule is the tube off on every exit but a successful `on`'s,
+    and the operator asked for other values, not for the old beam to go on. The line says so; a
+    switch-off not confirmed raises, and the caller ends on the X-rays warning (exit 3)."""
+    if src.off_failed is not None:
+        return ""
+    if src.may_be_on:
+        state = src.off()
+        return (
+            f"; they were on from before this command (an earlier `source on`) and are now off, confirmed "
+            f"by STS: {state.name}; run the same command again to switch them on at {args.kv:g} kV {args.ua:g} uA"
+        )
+    state = src.confirmed_off
+    return f"; X-rays off, confirmed by STS: {state.name}" if state is not None else ""
+
+
+#: Python calls the driver's messages name, and what a command-line user does instead.
+_CLI_TERMS = (
+    (" (use set_values() or off())", ""),
+    ("(call warm_up())", "(`radiokit acquire source warm-up --port {port}`)"),
+    # there is no reset action: an overload needs a person at the tube first (L8121.md: no automatic RST)
+    ("then reset() by hand", "then reset the overload by hand (RST; no `radiokit acquire source` action sends it)"),
+    (
+        "(configure model=None to accept any model)",
+        '(the source commands expect that model; a protocol\'s [source] model = "" accepts any)',
+    ),
+)
+
+
+def _cli_terms(text: str, port: str | None = None) -> str:
+    """``text`` with the Python calls of the driver's messages in command-line terms."""
+    for api, cli in _CLI_TERMS:
+        text = text.replace(api, cli.format(port=port or "URL"))
+    return text
+
+
 def _source_action(src, args) -> int:
     """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
+    from acquisition.errors import DeviceError
+
     if args.action == "status":
         kv, ua = src.measured()
         state = src.status()
+        switch = src.switch_at_connect
         print(
             f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
             f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
+            f"{', operate switch ' + switch if switch else ''}"
         )
+        if switch not in (None, "REMOTE"):
+            # queries are answered, but the controller refuses XOF: a beam that is or may be on
+            # (B's AGING and its ambiguous ERROR included) cannot be switched off from here
+            if not state.confirms_off:
+                _say(
+                    f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
+                    f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
+                )
+                from acquisition.guardian import TUBE_WARNING
+
+                _say(TUBE_WARNING)
+                return 3
+            print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
+            return 0
         if state.emitting:
             # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
             # off after the line above said XRAY_ON, and the operator's last line was no longer true
@@ -460,7 +519,10 @@ def _source_action(src, args) -> int:
         src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
         print(f"{args.port}: warmed up, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
-        r = src.on(args.kv, args.ua)
+        try:
+            r = src.on(args.kv, args.ua)
+        except DeviceError as exc:
+            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
         print(
             f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
             f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "

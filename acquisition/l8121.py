@@ -147,6 +147,12 @@ class SourceState(IntEnum):
         """Whether the tube may emit in this state: X-rays on, or warming up (B: ``AGING``)."""
         return self in (SourceState.XRAY_ON, SourceState.WARMING_UP)
 
+    @property
+    def confirms_off(self) -> bool:
+        """Whether this state shows the tube cannot emit (what confirms a switch-off; B's
+        ambiguous ``ERROR`` does not)."""
+        return self in _OFF_STATES
+
 
 # States that confirm X-rays are off after an XOF.
 _OFF_STATES = frozenset(
@@ -233,7 +239,9 @@ class SourceConfig:
     ua_tolerance: float | str = 5.0
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float | None = None
-    probe_timeout_s: float = 0.5
+    # the probe's reply time-out at every baud rate; None: the longest dialect's (B's 2 s), so a
+    # unit answering within its dialect's documented wait is found at any rate it may be set to
+    probe_timeout_s: float | None = None
     min_interval_s: float | None = None
     stable_timeout_s: float = 15.0
     poll_s: float = 0.2
@@ -268,7 +276,6 @@ class SourceConfig:
             "ua_min",
             "ua_max",
             "watts_max",
-            "probe_timeout_s",
             "stable_timeout_s",
             "poll_s",
             "warmup_timeout_s",
@@ -278,7 +285,7 @@ class SourceConfig:
             "beam_drop_fraction",
         ):
             setattr(self, name, _finite(getattr(self, name), name))
-        for name in ("min_interval_s", "timeout_s", "voltage_scale"):
+        for name in ("min_interval_s", "timeout_s", "voltage_scale", "probe_timeout_s"):
             if getattr(self, name) is not None:
                 setattr(self, name, _finite(getattr(self, name), name))
         if self.voltage_scale == 0:
@@ -888,6 +895,10 @@ class ProbeResult:
                 f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})"
             )
         ident = f", identity {self.identity!r}" if self.identity else ", no identity query in this dialect"
+        typ = [e for e in self.exchange if e.sent == "TYP" and e.baudrate == self.baudrate]
+        if not self.identity and typ:  # A asked TYP and got no identity: say what it answered
+            got = f"answered {typ[-1].reply!r}" if typ[-1].reply is not None else "got no reply"
+            ident = f", identity unknown (TYP {got})"
         more = "".join(f", {k} {v}" for k, v in self.details)
         return f"{self.port}: dialect {self.dialect} at {self.baudrate} baud{ident}{more}"
 
@@ -901,9 +912,8 @@ def probe(
     url,
     *,
     baudrates=(9600, 38400, 115200),
-    timeout_s: float = 0.5,
+    timeout_s: float | None = None,
     min_interval_s: float = 0.06,
-    first_timeout_s: float | None = None,
 ) -> ProbeResult:
     """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
 
@@ -919,13 +929,18 @@ def probe(
         ``getattr(url, "baudrate", None)``, is tried).
     baudrates : sequence of int
         The rates to try, in order.
-    timeout_s, min_interval_s : float
-        Reply time-out per query and the pause between queries.
-    first_timeout_s : float, optional
-        The reply time-out at the first rate (the configured one, else both dialects' 9600, where
-        a unit most likely is); ``None``: the longest dialect's (B's 2 s), so that a unit slower
-        than ``timeout_s`` but within its dialect's wait is found there. Other rates, tried only
-        when nothing fitted, use ``timeout_s`` (a silent port costs 2 + 0.5 + 0.5 s).
+    timeout_s : float, optional
+        The reply time-out per query, at every rate; ``None``: the longest dialect's (B's 2 s). A
+        unit may be set to any listed rate, and one answering within its dialect's documented wait
+        must be found there as at the first (a shorter wait at later rates refused a B unit at
+        38400 answering in 0.8 s, and read its late reply at the next rate).
+    min_interval_s : float
+        The pause between queries.
+
+    After a rate whose last query went unanswered the probe waits a quarter of ``timeout_s``
+    before the next rate's first query (whose input flush then discards a late reply), so a reply
+    that comes after its time-out is not read as the next rate's. A silent port costs, at the
+    defaults, 2 s per rate and 0.5 s between rates: about 7 s for the three listed rates.
 
     Returns
     -------
@@ -936,9 +951,11 @@ def probe(
     notes: list[str] = []
     rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
-    first = max(d.timeout_s for d in DIALECTS.values()) if first_timeout_s is None else first_timeout_s
-    for i, baud in enumerate(rates):
-        wait = max(first, timeout_s) if i == 0 else timeout_s
+    wait = max(d.timeout_s for d in DIALECTS.values()) if timeout_s is None else float(timeout_s)
+    missed = False
+    for baud in rates:
+        if missed:
+            time.sleep(wait / 4)  # a late reply arrives now, and the next query's flush discards it
         try:
             link = (
                 SerialTransport(url, baudrate=baud, timeout_s=wait, min_interval_s=min_interval_s, retries=0)
@@ -951,6 +968,7 @@ def probe(
             continue
         try:
             found = _probe_at(link, baud, exchange, notes)
+            missed = exchange[-1].reply is None
         finally:
             if isinstance(url, str):
                 link.close()
@@ -1033,6 +1051,11 @@ class L8121:
         As set on the controller; overrides ``config.baudrate`` (default: the dialect's).
     connect : bool
         Open the link and check the controller now (default).
+    control : bool
+        Whether this session will control the tube (default). False (queries only, a status):
+        a B unit whose operate switch is not on REMOTE is connected all the same, its position
+        kept in :attr:`switch_at_connect`, and X-rays found on then are not switched off by
+        :meth:`close` (the controller would refuse the ``XOF``): the caller must say so.
     config : SourceConfig or mapping, optional
         Dialect, ratings, tolerances and timing; keyword arguments override single fields
         (``L8121(url, dialect="B", kv_max=90, poll_s=0.1)``).
@@ -1064,6 +1087,7 @@ class L8121:
         *,
         connect: bool = True,
         config: SourceConfig | Mapping[str, Any] | None = None,
+        control: bool = True,
         **overrides,
     ):
         if baudrate is not None:
@@ -1072,6 +1096,10 @@ class L8121:
         self.config = SourceConfig.from_dict({**dataclasses.asdict(base), **overrides}) if overrides else base
         self.url = url
         self.identity: str | None = None
+        # False: a session of queries only (a status): B's operate switch need not be on REMOTE,
+        # which the spec asks for remote control, not for queries; its position is kept here
+        self.control = bool(control)
+        self.switch_at_connect: str | None = None
         self.probe_result: ProbeResult | None = None
         self.dialect: Dialect | None = None
         self.baudrate: int | None = self.config.baudrate
@@ -1164,8 +1192,11 @@ class L8121:
         try:
             self._check_identity()
             if self._read("state").emitting:
-                logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
-                self._may_be_on = True
+                if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
+                    logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
+                else:
+                    logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
+                    self._may_be_on = True
         except BaseException:
             self._transport.close()
             self._transport = None
@@ -1220,8 +1251,8 @@ class L8121:
                     f"(configure model=None to accept any model)"
                 )
         else:
-            switch = value
-            if switch != "REMOTE":
+            switch = self.switch_at_connect = value
+            if switch != "REMOTE" and self.control:
                 raise DeviceError(
                     f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"
@@ -1249,6 +1280,18 @@ class L8121:
             self._transport.close()
             self._transport = None
             logger.info("%s: closed", port)
+
+    @property
+    def may_be_on(self) -> bool:
+        """Whether X-rays may be on by what this session knows (found on at connect, or switched
+        on), until a switch-off confirms; :meth:`close` then switches off."""
+        return self._may_be_on
+
+    @property
+    def confirmed_off(self) -> SourceState | None:
+        """The state ``STS`` read when this session's last switch-off was confirmed (None: none
+        yet); while :attr:`off_failed` is set it vouches for nothing."""
+        return None if self.off_failed is not None else self._off_state
 
     def detach(self) -> None:
         """Close the link and leave the source as it is -- X-rays on included. Only for bench work

@@ -1090,6 +1090,35 @@ def test_probe_refuses_a_controller_that_speaks_neither(misbehave, why):
     assert set(model.commands) <= PROBE_QUERIES
 
 
+def test_probe_finds_a_slow_b_unit_at_a_later_rate():
+    """Found: the first rate got 2 s per reply, later ones only 0.5 s, so a B unit at 38400
+    answering in 0.6 s (inside B's 2 s) was refused, its late reply read as the next rate's."""
+    model = L8121Model(dialect="B", baudrate=38400, warmed_up=True)
+    model.slow(0.6)
+    with PtyServer(model) as server:
+        result = probe(server.url, baudrates=(9600, 38400, 115200), min_interval_s=0.01)  # default wait
+    assert (result.dialect, result.baudrate) == ("B", 38400), result.report()
+    assert [e.baudrate for e in result.exchange] == [9600, 38400, 38400, 38400, 38400]  # never at 115200
+
+
+def test_probe_says_what_typ_answered_when_it_is_no_identity(capsys):
+    """Found: an A unit whose TYP answered ERROR was summed up as "no identity query in this dialect"."""
+    from radiokit.cli import main
+
+    class NoTyp(L8121Model):
+        def receive(self, line, baudrate=None):
+            ex = super().receive(line, baudrate)
+            if line == "TYP" and ex.understood:  # the one fake here: no emulator mode refuses TYP
+                return type(ex)(ex.t, ex.command, "ERROR", True)
+            return ex
+
+    with PtyServer(NoTyp(warmed_up=True)) as server:
+        assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert "dialect A at 9600 baud, identity unknown (TYP answered 'ERROR')" in first
+    assert "no identity query" not in first
+
+
 def test_probe_refuses_a_mix_of_dialects():
     """STS in A's shape but SIN in B's: a unit the tables do not describe -- refused, not guessed."""
 
@@ -1251,6 +1280,98 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
         assert "X-rays were on: switched off (confirmed: state STANDBY)" in last and not model.xray_on
         assert main(["acquire", "source", "status", *port]) == 0  # off: one line, nothing switched
         assert len(capsys.readouterr().out.splitlines()) == 1 and "XOF" not in model.commands[-4:]
+
+
+def test_cli_source_on_twice_switches_off_and_says_so(dialect, capsys):
+    """Found: a second `source on` ended "X-rays are already on (use set_values() or off())", exit 1,
+    while close() had switched them off (only a log line said so). A refused `on` leaves the tube
+    off, confirmed, as every exit but a successful `on` does, and its last line says so."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        assert main(["acquire", "source", "on", *port, "--kv", "70", "--ua", "200"]) == 1
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert not model.xray_on and "set_values()" not in last
+        assert "X-rays are already on (state XRAY_ON)" in last
+        assert "now off, confirmed by STS: STANDBY" in last and "again to switch them on at 70 kV 200 uA" in last
+
+
+def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
+    """Found: an XON answered with a garbled echo is switched off and confirmed, but the last line
+    only named the garbled reply."""
+    from radiokit.cli import main
+
+    class Garbled(L8121Model):
+        def receive(self, line, baudrate=None):
+            ex = super().receive(line, baudrate)  # executed: the beam comes on
+            if line == "XON" and ex.understood:  # the one fake here: no emulator mode garbles one echo
+                return type(ex)(ex.t, ex.command, "X\x7fN", True)
+            return ex
+
+    model = Garbled(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        assert (
+            main(["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]) == 1
+        )
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "XON" in last and last.endswith("X-rays off, confirmed by STS: STANDBY"), last
+    assert not model.xray_on and "XOF" in model.commands
+
+
+def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
+    """Found: command-line errors said "(call warm_up())", "reset() by hand" and "configure
+    model=None", Python the operator at a terminal cannot type."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", ramp_s=0.1)  # cold: warm-up needed
+    with PtyServer(model) as server:
+        on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]
+        assert main(on) == 1
+        err = capsys.readouterr().err
+        assert f"warm-up needed (`radiokit acquire source warm-up --port {server.url}`)" in err and "()" not in err
+        model.warm()
+        model.overload()
+        assert main(on) == 1
+        err = capsys.readouterr().err
+        assert "reset the overload by hand (RST; no `radiokit acquire source` action sends it)" in err
+        assert "reset()" not in err
+    with PtyServer(L8121Model(dialect="A", model="L8121-02")) as server:
+        assert main(["acquire", "source", "status", "--port", server.url, "--dialect", "A"]) == 1
+        err = capsys.readouterr().err
+        assert "TYP answered 'L8121-02'" in err and 'model = "" accepts any' in err and "model=None" not in err
+    assert not model.xray_on
+
+
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(switch, capsys):
+    """Found: with X-rays on and B's operate switch then turned to LOCAL or OFF, `source status`
+    asked nothing but SRL and ended "turn it to REMOTE", exit 1, with no word of the beam; the
+    spec's REMOTE is for control, not queries. It reads the state and warns: XOF would be refused."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.set_operate_switch(switch)
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 3
+        out, err = capsys.readouterr()
+        assert f"state XRAY_ON, measured 60 kV 250 uA, interlock closed, operate switch {switch}" in out
+        assert err.strip().splitlines()[-1] == TUBE_WARNING
+        assert "XOF" not in model.commands[-6:] and model.xray_on  # nothing sent the controller refuses
+        model.set_operate_switch("REMOTE")
+        assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
+        model.set_operate_switch(switch)
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 0  # off: the state, and what the switch stops
+        out = capsys.readouterr().out
+        assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
 
 
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
