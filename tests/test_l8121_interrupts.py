@@ -113,3 +113,22 @@ def test_an_interrupt_while_connecting_to_a_unit_left_on_switches_it_off(dialect
     assert after[:2] == ["STS", "SIN"] and "XOF" in after, after
     assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)
     assert getattr(info.value, "probe_sent", None) is True
+
+
+def test_an_interrupt_before_the_first_byte_says_nothing_was_sent():
+    """Interrupted while the probe waits out the command spacing before its first ``STS``: the
+    controller received nothing, and the interrupt says so (``probe_sent`` False), so that the
+    last line can say radiokit never reached the controller instead of a warning that it may be on."""
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server:
+        old = signal.signal(signal.SIGINT, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt))
+        timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+        timer.start()
+        try:
+            with pytest.raises(KeyboardInterrupt) as info:
+                L8121(server.url, dialect="auto", min_interval_s=5.0)  # the spacing: 5 s before STS
+        finally:
+            timer.cancel()
+            signal.signal(signal.SIGINT, old)
+        assert model.commands == []
+    assert getattr(info.value, "probe_sent", None) is False, vars(info.value)
