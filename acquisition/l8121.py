@@ -1205,6 +1205,9 @@ class L8121:
                 logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
                 self._may_be_on = True
         except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
+                # (as the probe's: whether the controller has received anything from this connect)
+                exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
             if isinstance(exc, KeyboardInterrupt) and self.probe_result is not None and self.probe_result.emitting:
                 self.off_for_interrupt(exc)  # the probe read X-rays on: an interrupt still switches off
             self._transport.close()
