@@ -1333,7 +1333,7 @@ def _stop(r: _Run, exc: BaseException):
     elif (
         res.tube_off is None
         and isinstance(exc, KeyboardInterrupt)
-        and (getattr(exc, "nothing_sent", False) or r.devices is None and not hasattr(exc, "source_unreached"))
+        and (getattr(exc, "nothing_sent", False) or r.devices is None and _before_source(r, exc))
     ):
         res.nothing_sent = True  # interrupted before the first byte to the source
     elif res.tube_off is None and getattr(exc, "port_never_opened", False):
@@ -1364,6 +1364,14 @@ def _stop(r: _Run, exc: BaseException):
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
         )
+
+
+def _before_source(r: _Run, exc: BaseException) -> bool:
+    """Whether ``exc`` stopped the building of the devices before the source's link was touched:
+    a controller on a port (the lab's, or ``[sim] source_port``) is reached only through
+    :func:`_guarded_source`, whose errors all carry ``source_unreached``. (The virtual bench's own
+    emulator is not a controller anyone must check.)"""
+    return (not r.sim or bool(r.p.sim.source_port)) and not hasattr(exc, "source_unreached")
 
 
 def _stop_frame(r: _Run) -> None:
