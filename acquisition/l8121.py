@@ -1209,7 +1209,7 @@ class L8121:
                 # (as the probe's: whether the controller has received anything from this connect)
                 exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
             if isinstance(exc, KeyboardInterrupt) and self.probe_result is not None and self.probe_result.emitting:
-                self.off_for_interrupt(exc)  # the probe read X-rays on: an interrupt still switches off
+                self._off_for_interrupt(exc)  # the probe read X-rays on: an interrupt still switches off
             self._transport.close()
             self._transport = None
             raise
@@ -1236,12 +1236,12 @@ class L8121:
         link.timeout_s = self.timeout_s  # the dialect's reply time, not the probe's
         self._transport = link
         try:
-            self.off_for_interrupt(exc)
+            self._off_for_interrupt(exc)
         finally:
             self._transport = None
             link.close()
 
-    def off_for_interrupt(self, exc: BaseException) -> None:
+    def _off_for_interrupt(self, exc: BaseException) -> None:
         """XOF and confirm on the open link for an interrupted connect that found X-rays on; the
         outcome goes on ``exc``: ``tube_state`` (confirmed) or ``off_failed``."""
         logger.warning("%s: interrupted while X-rays were on (dialect %s): switching off", self.port, self.dialect.name)

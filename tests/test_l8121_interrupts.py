@@ -132,3 +132,29 @@ def test_an_interrupt_before_the_first_byte_says_nothing_was_sent():
             signal.signal(signal.SIGINT, old)
         assert model.commands == []
     assert getattr(info.value, "probe_sent", None) is False, vars(info.value)
+
+
+def test_an_interrupt_in_the_connect_checks_after_the_probe_saw_x_rays_on_switches_off(dialect):
+    """A series resolves the dialect (the probe reads X-rays on) and then connects over another
+    link (the guardian's): interrupted in that connect's checks (A ``TYP``, B ``SRL`` pending),
+    the driver still switches off on that link, confirmed, before it lets the link go."""
+    from acquisition.transport import SerialTransport
+
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.2, warmed_up=True)
+    with PtyServer(model) as server:
+        first = L8121(server.url, dialect=dialect, **FAST)
+        first.on(60, 250)
+        first.detach()
+        resolver = L8121(server.url, dialect="auto", connect=False, **FAST)
+        resolved = resolver.resolve()
+        link = SerialTransport(server.url, baudrate=resolved.baudrate, timeout_s=resolved.timeout_s)
+        src = L8121(link, connect=False, config=resolved)
+        src.probe_result = resolver.probe_result  # as compression_series._guarded_source does
+        model.slow(DELAY_S)
+        n = len(model.commands)
+        with interrupt_when_received(model, "TYP" if dialect == "A" else "SRL", n):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        assert not model.xray_on, model.commands[n:]
+    assert "XOF" in model.commands[n:]
+    assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)

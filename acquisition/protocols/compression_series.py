@@ -583,17 +583,16 @@ def _guarded_source(url: str, p: Protocol):
         exc.port_never_opened = isinstance(exc, PortUnavailable)
         exc.nothing_sent = getattr(exc, "probe_sent", None) is False
         raise
+    source = L8121(link, connect=False, config=resolved)
+    # what "auto" found, for the file's record -- and for connect(): interrupted after the probe
+    # read X-rays on, it switches off through the guardian (confirmed) before it lets the link go
+    source.probe_result = driver.probe_result
     try:
-        source = L8121(link, config=resolved)
+        source.connect()
     except BaseException as exc:
-        exc.source_unreached = True
-        if isinstance(exc, KeyboardInterrupt) and driver.probe_result is not None and driver.probe_result.emitting:
-            # the dialect is known and X-rays were on: XOF through the guardian, confirmed
-            L8121(link, connect=False, config=resolved).attach(link).off_for_interrupt(exc)
-            exc.source_unreached = getattr(exc, "tube_state", None) is None
+        exc.source_unreached = getattr(exc, "tube_state", None) is None
         link.close()
         raise
-    source.probe_result = driver.probe_result  # what "auto" found, for the file's record
     return source
 
 
