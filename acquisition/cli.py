@@ -301,7 +301,7 @@ def _finish(res, code: int, err: bool = True) -> int:
     if res is not None and res.port_never_opened:
         _say(NEVER_REACHED)
         return code or 1
-    if res is not None and res.nothing_sent:
+    if getattr(res, "nothing_sent", False):  # (None, or a result of an older shape: no)
         _say(NOTHING_SENT)
         return code
     if res is None or res.tube_off is None:
