@@ -1188,6 +1188,9 @@ class L8121:
         ``dialect="auto"``: :func:`probe` first (refused when nothing fits). Dialect A: ``TYP``
         must name ``config.model``. Dialect B: the operate switch (``SRL``) must be ``REMOTE``.
         If the tube is found emitting, it is noted (a warning) and :meth:`close` will switch it off.
+        An interrupt (``KeyboardInterrupt``, a stop signal) after the probe read X-rays on still
+        sends ``XOF`` and confirms it before it propagates, carrying ``tube_state`` (confirmed) or
+        ``off_failed``; every interrupt here carries ``probe_sent`` (False: nothing was sent).
         """
         if self.is_connected:
             return self
