@@ -286,14 +286,24 @@ NEVER_REACHED = (
 )
 
 
+#: The last line when a run was stopped before its first byte to the source.
+NOTHING_SENT = (
+    "radiokit never reached the X-ray controller (stopped before its first command), so it sent "
+    "nothing and did not change the tube; check the controller's state at the unit"
+)
+
+
 def _finish(res, code: int, err: bool = True) -> int:
     """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed,
-    or -- the port never opened -- that radiokit never reached the controller. No line when the
-    run stopped before trying to connect."""
+    or -- the port never opened, or a signal came before the first command -- that radiokit never
+    reached the controller."""
     _console_quiet()
     if res is not None and res.port_never_opened:
         _say(NEVER_REACHED)
         return code or 1
+    if getattr(res, "nothing_sent", False):  # (None, or a result of an older shape: no)
+        _say(NOTHING_SENT)
+        return code
     if res is None or res.tube_off is None:
         return code
     line, ok = _tube_line(res)
@@ -382,6 +392,9 @@ def _source(args) -> int:
         except KeyboardInterrupt as exc:
             name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
             _say(f"stopped by {name}; {getattr(exc, 'tube', TUBE_WARNING)}")  # tube: what is known
+            if getattr(exc, "off_failed", None) is not None:
+                _say(TUBE_WARNING)
+                return 3
             return 128 + getattr(exc, "signum", 2)
 
 
@@ -399,8 +412,15 @@ def _source_command(args, guard) -> int:
             src = L8121(
                 args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", control=args.action != "status"
             )
-        except KeyboardInterrupt as exc:  # connect sends queries only
-            exc.tube = "interrupted while connecting: no X-ray command was sent"
+        except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
+            if getattr(exc, "off_failed", None) is not None:
+                exc.tube = f"X-rays were on; switching them off failed ({exc.off_failed})"  # + the warning
+            elif getattr(exc, "tube_state", None) is not None:
+                exc.tube = f"X-rays were on: tube off (confirmed by STS: {exc.tube_state.name})"
+            elif getattr(exc, "probe_sent", None) is False:
+                exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
+            else:
+                exc.tube = "interrupted while connecting: no X-ray command was sent"
             raise
         try:
             code = _source_action(src, args)

@@ -883,6 +883,13 @@ class ProbeResult:
         the controller (the summary says so, not that its replies fit neither dialect)."""
         return bool(self.exchange) and all(e.sent == "(open)" for e in self.exchange)
 
+    @property
+    def emitting(self) -> bool:
+        """Whether the probe's ``STS`` read a state that emits (X-rays on, warming up): a unit
+        left on, which an interrupted connect must still switch off."""
+        state = dict(self.details).get("state")
+        return state in SourceState.__members__ and SourceState[state].emitting
+
     def summary(self) -> str:
         """One line: what the unit speaks, or why the probe refuses."""
         if self.port_unavailable:
@@ -914,6 +921,7 @@ def probe(
     baudrates=(9600, 38400, 115200),
     timeout_s: float | None = None,
     min_interval_s: float = 0.06,
+    keep_link_if_emitting: bool = False,
 ) -> ProbeResult:
     """Find which dialect (and baud rate) the controller on ``url`` speaks, with harmless queries.
 
@@ -936,6 +944,13 @@ def probe(
         38400 answering in 0.8 s, and read its late reply at the next rate).
     min_interval_s : float
         The pause between queries.
+    keep_link_if_emitting : bool
+        For a driver that must switch off what the probe found (:meth:`L8121.connect`): when an
+        interrupt (Ctrl-C, a stop signal) cuts the probe short after ``STS`` fitted a dialect and
+        read X-rays on, the exception carries ``probe_emitting`` = (dialect name, baud rate, the
+        still open link) instead of the link being closed (its interrupted reply is still on the
+        way: the link completes it before the next command). Every interrupt carries
+        ``probe_sent``: whether any query had been sent.
 
     After a rate whose last query went unanswered the probe waits a quarter of ``timeout_s``
     before the next rate's first query (whose input flush then discards a late reply), so a reply
@@ -952,6 +967,15 @@ def probe(
     rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
     wait = max(d.timeout_s for d in DIALECTS.values()) if timeout_s is None else float(timeout_s)
+    try:
+        return _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, exchange, notes)
+    except BaseException as exc:
+        if not isinstance(exc, Exception) and not hasattr(exc, "probe_sent"):  # interrupted between rates
+            exc.probe_sent = any(e.sent != "(open)" for e in exchange)
+        raise
+
+
+def _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, exchange, notes):
     missed = False
     for baud in rates:
         if missed:
@@ -966,11 +990,22 @@ def probe(
             exchange.append(ProbeExchange(baud, "(open)", None, str(exc)))
             notes.append(f"cannot open the port at {baud} baud")
             continue
+        seen: dict[str, Any] = {}
+        keep = False
         try:
-            found = _probe_at(link, baud, exchange, notes)
+            found = _probe_at(link, baud, exchange, notes, seen)
             missed = exchange[-1].reply is None
+        except BaseException as exc:
+            if not isinstance(exc, Exception):  # an interrupt: say what is known of the tube
+                # (a transport that does not count its writes is taken to have sent something)
+                wrote = getattr(link, "commands_written", 1) > 0
+                exc.probe_sent = wrote or any(e.sent != "(open)" for e in exchange)
+                state = seen.get("state")
+                if keep_link_if_emitting and isinstance(url, str) and state is not None and state.emitting:
+                    exc.probe_emitting, keep = (seen["dialect"], baud, link), True
+            raise
         finally:
-            if isinstance(url, str):
+            if isinstance(url, str) and not keep:
                 link.close()
         if found is not None:
             dialect, identity, details = found
@@ -978,7 +1013,9 @@ def probe(
     return ProbeResult(port, None, None, None, (), tuple(exchange), tuple(notes))
 
 
-def _probe_at(link, baud, exchange: list, notes: list):
+def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None):
+    seen = {} if seen is None else seen  # for an interrupt: the dialect and state read
+
     def ask(command: str) -> str | None:
         assert command in PROBE_QUERIES, command  # never anything that changes the tube
         try:
@@ -1006,6 +1043,7 @@ def _probe_at(link, baud, exchange: list, notes: list):
         notes.append(f"STS answered {sts!r} at {baud} baud")
         return None
     dialect = candidates[0]
+    seen["dialect"], seen["state"] = dialect.name, dialect.readings["state"].parse(sts)
     sin = ask("SIN")
     if not fits(dialect, "interlock_closed", sin):
         other = [d.name for d in DIALECTS.values() if d is not dialect and fits(d, "interlock_closed", sin)]
@@ -1178,6 +1216,9 @@ class L8121:
         ``dialect="auto"``: :func:`probe` first (refused when nothing fits). Dialect A: ``TYP``
         must name ``config.model``. Dialect B: the operate switch (``SRL``) must be ``REMOTE``.
         If the tube is found emitting, it is noted (a warning) and :meth:`close` will switch it off.
+        An interrupt (``KeyboardInterrupt``, a stop signal) after the probe read X-rays on still
+        sends ``XOF`` and confirms it before it propagates, carrying ``tube_state`` (confirmed) or
+        ``off_failed``; every interrupt here carries ``probe_sent`` (False: nothing was sent).
         """
         if self.is_connected:
             return self
@@ -1197,7 +1238,12 @@ class L8121:
                 else:
                     logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
                     self._may_be_on = True
-        except BaseException:
+        except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
+                # (as the probe's: whether the controller has received anything from this connect)
+                exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
+            if isinstance(exc, KeyboardInterrupt) and self.probe_result is not None and self.probe_result.emitting:
+                self._off_for_interrupt(exc)  # the probe read X-rays on: an interrupt still switches off
             self._transport.close()
             self._transport = None
             raise
@@ -1210,15 +1256,50 @@ class L8121:
         )
         return self
 
+    def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
+        """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
+        ``source on``, or by hand): the dialect is known, so switch off on the probe's link and
+        confirm (``L8121.md``: off "on every exit path", Ctrl-C included) before the interrupt goes
+        on. The exception then carries ``tube_state`` (the confirmed off state) or ``off_failed``;
+        the caller's signal guard defers further signals meanwhile (it stays stopping)."""
+        seen = getattr(exc, "probe_emitting", None)
+        if seen is None:
+            return
+        name, baud, link = seen
+        self._use(DIALECTS[name], baud)
+        link.timeout_s = self.timeout_s  # the dialect's reply time, not the probe's
+        self._transport = link
+        try:
+            self._off_for_interrupt(exc)
+        finally:
+            self._transport = None
+            link.close()
+
+    def _off_for_interrupt(self, exc: BaseException) -> None:
+        """XOF and confirm on the open link for an interrupted connect that found X-rays on; the
+        outcome goes on ``exc``: ``tube_state`` (confirmed) or ``off_failed``."""
+        logger.warning("%s: interrupted while X-rays were on (dialect %s): switching off", self.port, self.dialect.name)
+        self._may_be_on = True
+        try:
+            exc.tube_state = self.off()
+        except DeviceError as err:
+            exc.off_failed = err
+            logger.critical("%s: %s", self.port, err)
+
     def _probe(self) -> None:
         c = self.config
         rates = ((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates
-        result = probe(
-            self.url,
-            baudrates=rates,
-            timeout_s=c.probe_timeout_s,
-            min_interval_s=DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s,
-        )
+        try:
+            result = probe(
+                self.url,
+                baudrates=rates,
+                timeout_s=c.probe_timeout_s,
+                min_interval_s=DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s,
+                keep_link_if_emitting=True,
+            )
+        except KeyboardInterrupt as exc:  # connect() and resolve() alike
+            self._off_after_probe(exc)
+            raise
         self.probe_result = result
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)

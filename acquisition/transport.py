@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import select
 import threading
 import time
@@ -140,6 +141,14 @@ class SerialTransport:
         self._serial: serial.SerialBase | None = None
         self._lock = threading.Lock()
         self._last_exchange = float("-inf")
+        # An exchange cut short by a signal after its command was written: (command, the reply's
+        # deadline). The controller still answers it, and that late reply must not be read as the
+        # next command's (the flush before a command only clears what has arrived by then)
+        self._pending: tuple[str, float] | None = None
+        self._rx = bytearray()  # what the exchange in progress has read of its reply so far
+        #: Commands this link has begun to write (counted before the write): 0 means the device
+        #: has received nothing from it -- what an interrupted caller may tell the operator.
+        self.commands_written = 0
         if open:
             self.open()
 
@@ -173,6 +182,7 @@ class SerialTransport:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
+        self._pending = None  # (a reconnect repeats the command itself)
         # The spacing is the controller's need, not this object's: another link (the probe's, a
         # guardian's, this one before a reconnect) may have had a reply just before the port was
         # opened, so the first command waits min_interval_s as if one had ended now.
@@ -260,29 +270,58 @@ class SerialTransport:
 
     def _exchange(self, command: str, payload: bytes) -> str:
         ser = self._serial
+        self._drain_pending()
         wait = self._last_exchange + self.min_interval_s - time.monotonic()
         if wait > 0:
             time.sleep(wait)
         ser.reset_input_buffer()  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
+        self._rx = bytearray()
         self.log.debug("%s > %s", self.url, command)
         try:
+            self.commands_written += 1
             ser.write(payload)
             ser.flush()
             reply = self._read_line(command, t0 + self.timeout_s)
+        except BaseException as exc:
+            if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
+                # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
+                self._pending = (command, t0 + self.timeout_s)
+                self.log.debug("%s: %s interrupted (%s) before its reply", self.url, command, type(exc).__name__)
+            raise
         finally:
             self._last_exchange = time.monotonic()
         self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
         return reply
 
+    def _drain_pending(self) -> None:
+        """Complete an exchange a signal cut short (``L8121.md``: "one command, one reply ... never
+        pipeline"): wait for its reply, up to that reply's own deadline, and discard it, so the next
+        command reads its own reply. A switch-off after Ctrl-C waits at most one reply time-out more;
+        sent at once instead, each command read the previous one's reply (XOF read SIN's, STS read
+        XOF's) and the switch-off could never be confirmed."""
+        if self._pending is None:
+            return
+        (command, deadline), self._pending = self._pending, None
+        ser, buf = self._serial, self._rx
+        while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
+            if time.monotonic() >= deadline:
+                self.log.debug("%s: no late reply to the interrupted %s within its time-out", self.url, command)
+                return
+            buf += ser.read(max(1, ser.in_waiting))
+        late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
+        self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
+        self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
+
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
-        buf = bytearray()
+        buf = self._rx  # kept on self: an interrupted exchange's reply is completed from it (_drain_pending)
         drained = False
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
                 line, buf = bytes(buf[:cut]), buf[cut + 1 :]
+                self._rx = buf
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     return _text(line).strip()
                 continue

@@ -564,7 +564,10 @@ def _guarded_source(url: str, p: Protocol):
     the right rate and switches off in the right dialect without probing again.
 
     An error carries ``source_unreached`` (the source's state is unknown: the run must say so),
-    or ``port_never_opened`` when the port could not be opened at all (nothing was sent)."""
+    or ``port_never_opened`` when the port could not be opened at all (nothing was sent), or
+    ``nothing_sent`` when an interrupt came before the first query. An interrupt after the probe
+    read X-rays on (a unit left on by ``source on``) still switches off, confirmed: the exception
+    then carries ``tube_state`` (or ``off_failed``)."""
     from acquisition.errors import PortUnavailable
     from acquisition.guardian import start_guardian
     from acquisition.l8121 import L8121
@@ -576,16 +579,20 @@ def _guarded_source(url: str, p: Protocol):
             url, resolved, notebook=Path(p.output).with_suffix(".log"), watchdog_s=p.source.watchdog_s or None
         )
     except BaseException as exc:
-        exc.source_unreached = True
+        exc.source_unreached = getattr(exc, "tube_state", None) is None  # (off after the probe: known)
         exc.port_never_opened = isinstance(exc, PortUnavailable)
+        exc.nothing_sent = getattr(exc, "probe_sent", None) is False
         raise
+    source = L8121(link, connect=False, config=resolved)
+    # what "auto" found, for the file's record -- and for connect(): interrupted after the probe
+    # read X-rays on, it switches off through the guardian (confirmed) before it lets the link go
+    source.probe_result = driver.probe_result
     try:
-        source = L8121(link, config=resolved)
+        source.connect()
     except BaseException as exc:
-        exc.source_unreached = True
+        exc.source_unreached = getattr(exc, "tube_state", None) is None
         link.close()
         raise
-    source.probe_result = driver.probe_result  # what "auto" found, for the file's record
     return source
 
 
@@ -795,6 +802,7 @@ class Result:
     tube_off: bool | None = None
     tube_state: str = ""
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
+    nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
 
 
@@ -1318,7 +1326,16 @@ def _stop(r: _Run, exc: BaseException):
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     _stop_frame(r)
-    if res.tube_off is None and getattr(exc, "port_never_opened", False):
+    if res.tube_off is None and getattr(exc, "tube_state", None) is not None:
+        # interrupted while connecting to a unit found on: switched off there, confirmed by STS
+        res.tube_off, res.tube_state = True, exc.tube_state.name
+    elif (
+        res.tube_off is None
+        and isinstance(exc, KeyboardInterrupt)
+        and (getattr(exc, "nothing_sent", False) or r.devices is None and _before_source(r, exc))
+    ):
+        res.nothing_sent = True  # interrupted before the first byte to the source
+    elif res.tube_off is None and getattr(exc, "port_never_opened", False):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
@@ -1346,6 +1363,14 @@ def _stop(r: _Run, exc: BaseException):
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
         )
+
+
+def _before_source(r: _Run, exc: BaseException) -> bool:
+    """Whether ``exc`` stopped the building of the devices before the source's link was touched:
+    a controller on a port (the lab's, or ``[sim] source_port``) is reached only through
+    :func:`_guarded_source`, whose errors all carry ``source_unreached``. (The virtual bench's own
+    emulator is not a controller anyone must check.)"""
+    return (not r.sim or bool(r.p.sim.source_port)) and not hasattr(exc, "source_unreached")
 
 
 def _stop_frame(r: _Run) -> None:

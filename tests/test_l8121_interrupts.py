@@ -1,0 +1,160 @@
+"""An interrupt (Ctrl-C, a stop signal) in the middle of an exchange with the L8121, on the bench
+path (the driver on its own serial link, no guardian).
+
+``L8121.md``: "One command, one reply ... never pipeline", and X-rays are switched off on every exit
+path, Ctrl-C included. A signal that cuts the wait for a reply short leaves that reply on its way:
+the switch-off that follows must not read it as the ``XOF``'s answer (each command then read the
+previous one's reply and the switch-off was never confirmed). And an interrupt during the connect
+of a unit left on (by ``source on``) must still switch it off once the dialect is known.
+
+Real pyserial on a pseudo-terminal with radiokit's emulator; the replies are delayed
+(``L8121Model.slow``) so that the interrupt lands while one is pending. The interrupt is a real
+SIGINT to this process, sent when the emulator receives the command, raised as KeyboardInterrupt
+by a handler installed for the test (as the command line's signal guard raises StopSignal).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.l8121 import L8121, SourceState
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+FAST = dict(poll_s=0.05, min_interval_s=0.02)
+# just over what the fault needs: the interrupt comes as the command is received, so any delay
+# leaves its reply pending; 0.3 s keeps it pending well past a loaded machine's scheduling
+DELAY_S = 0.3
+OFF = {SourceState.STANDBY, SourceState.WARMUP_NEEDED}
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    return request.param
+
+
+@contextlib.contextmanager
+def interrupt_when_received(model: L8121Model, command: str, after: int):
+    """SIGINT to this process as soon as the model receives ``command`` (its reply then delayed),
+    counting from the ``after``-th command received; the handler raises KeyboardInterrupt in the
+    main thread, which is waiting for that reply."""
+    stop = threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            if command in model.commands[after:]:
+                os.kill(os.getpid(), signal.SIGINT)
+                return
+            time.sleep(0.005)
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGINT, handler)
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        signal.signal(signal.SIGINT, old)
+
+
+def test_a_reply_cut_short_by_an_interrupt_is_not_read_as_the_switch_off(dialect):
+    """Interrupted while a poll's reply is pending (A ``SAR``, B ``STS``), the switch-off waits
+    for that late reply, discards it, and its ``XOF`` reads its own echo: confirmed at the first
+    attempt, one ``XOF`` on the wire, the tube off."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.2, warmed_up=True)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, **FAST)
+        try:
+            src.on(60, 250)
+            model.slow(DELAY_S)
+            n = len(model.commands)
+            first = src.dialect.poll[0]
+            with interrupt_when_received(model, src.dialect.readings[first].command, n):
+                with pytest.raises(KeyboardInterrupt):
+                    src.check()
+            state = src.off()
+        finally:
+            src.detach()
+    assert state in OFF, state
+    assert not model.xray_on
+    after = model.commands[n:]
+    assert after.count("XOF") == 1, after  # no second attempt: the first was confirmed
+    assert after[-2:] == ["XOF", "STS"], after
+
+
+def test_an_interrupt_while_connecting_to_a_unit_left_on_switches_it_off(dialect):
+    """``dialect = "auto"``, the unit left on: interrupted in the probe after ``STS`` read X-rays
+    on (``SIN``'s reply pending), the driver still sends ``XOF`` in the dialect found and confirms
+    it; the interrupt carries the confirmed state for the last line."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.2, warmed_up=True)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, **FAST)
+        src.on(60, 250)
+        src.detach()  # as `radiokit acquire source on` leaves it
+        assert model.xray_on
+        model.slow(DELAY_S)
+        n = len(model.commands)
+        with interrupt_when_received(model, "SIN", n):
+            with pytest.raises(KeyboardInterrupt) as info:
+                L8121(server.url, dialect="auto", **FAST)
+        assert not model.xray_on, model.commands[n:]
+    after = model.commands[n:]
+    assert after[:2] == ["STS", "SIN"] and "XOF" in after, after
+    assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)
+    assert getattr(info.value, "probe_sent", None) is True
+
+
+def test_an_interrupt_before_the_first_byte_says_nothing_was_sent():
+    """Interrupted while the probe waits out the command spacing before its first ``STS``: the
+    controller received nothing, and the interrupt says so (``probe_sent`` False), so that the
+    last line can say radiokit never reached the controller instead of a warning that it may be on."""
+    model = L8121Model(dialect="B", warmed_up=True)
+    with PtyServer(model) as server:
+        old = signal.signal(signal.SIGINT, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt))
+        timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+        timer.start()
+        try:
+            with pytest.raises(KeyboardInterrupt) as info:
+                L8121(server.url, dialect="auto", min_interval_s=5.0)  # the spacing: 5 s before STS
+        finally:
+            timer.cancel()
+            signal.signal(signal.SIGINT, old)
+        assert model.commands == []
+    assert getattr(info.value, "probe_sent", None) is False, vars(info.value)
+
+
+def test_an_interrupt_in_the_connect_checks_after_the_probe_saw_x_rays_on_switches_off(dialect):
+    """A series resolves the dialect (the probe reads X-rays on) and then connects over another
+    link (the guardian's): interrupted in that connect's checks (A ``TYP``, B ``SRL`` pending),
+    the driver still switches off on that link, confirmed, before it lets the link go."""
+    from acquisition.transport import SerialTransport
+
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.2, warmed_up=True)
+    with PtyServer(model) as server:
+        first = L8121(server.url, dialect=dialect, **FAST)
+        first.on(60, 250)
+        first.detach()
+        resolver = L8121(server.url, dialect="auto", connect=False, **FAST)
+        resolved = resolver.resolve()
+        link = SerialTransport(server.url, baudrate=resolved.baudrate, timeout_s=resolved.timeout_s)
+        src = L8121(link, connect=False, config=resolved)
+        src.probe_result = resolver.probe_result  # as compression_series._guarded_source does
+        model.slow(DELAY_S)
+        n = len(model.commands)
+        with interrupt_when_received(model, "TYP" if dialect == "A" else "SRL", n):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        assert not model.xray_on, model.commands[n:]
+    assert "XOF" in model.commands[n:]
+    assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)
