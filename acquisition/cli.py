@@ -392,7 +392,7 @@ def _source(args) -> int:
         except KeyboardInterrupt as exc:
             name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
             _say(f"stopped by {name}; {getattr(exc, 'tube', TUBE_WARNING)}")  # tube: what is known
-            if getattr(exc, "off_failed", None) is not None:
+            if getattr(exc, "off_failed", None) is not None or getattr(exc, "may_be_on", False):
                 _say(TUBE_WARNING)
                 return 3
             return 128 + getattr(exc, "signum", 2)
@@ -421,6 +421,10 @@ def _source_command(args, guard) -> int:
                 exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
             else:
                 exc.tube = "interrupted while connecting: no X-ray command was sent"
+            if args.action == "off" and getattr(exc, "tube_state", None) is None:
+                # the switch-off asked for never happened: a tube an earlier `source on` left on
+                # is on still, and the last line must be the warning (as when the port fails)
+                exc.may_be_on = True
             raise
         try:
             code = _source_action(src, args)
@@ -452,6 +456,11 @@ def _source_command(args, guard) -> int:
         if src is not None and src.off_failed is not None:
             # the switch-off was not confirmed: the same last line and exit code as a series
             # (README: 3 when the tube may still be on), not a plain error's 1
+            _say(TUBE_WARNING)
+            return 3
+        if src is not None and src.emitting_at_connect and src.confirmed_off is None:
+            # status on a unit whose operate switch refuses remote control found X-rays on, then
+            # failed: nothing here switched them off, and the operator must hear it
             _say(TUBE_WARNING)
             return 3
         if src is None and args.action == "off":

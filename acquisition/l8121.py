@@ -1138,6 +1138,8 @@ class L8121:
         # which the spec asks for remote control, not for queries; its position is kept here
         self.control = bool(control)
         self.switch_at_connect: str | None = None
+        # X-rays found on at connect by a session that cannot switch them off (control=False)
+        self.emitting_at_connect = False
         self.probe_result: ProbeResult | None = None
         self.dialect: Dialect | None = None
         self.baudrate: int | None = self.config.baudrate
@@ -1234,6 +1236,8 @@ class L8121:
             self._check_identity()
             if self._read("state").emitting:
                 if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
+                    # not switched off from here (refused): whoever ends this session must say so
+                    self.emitting_at_connect = True
                     logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
                 else:
                     logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
@@ -1242,8 +1246,9 @@ class L8121:
             if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
                 # (as the probe's: whether the controller has received anything from this connect)
                 exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
-            if isinstance(exc, KeyboardInterrupt) and self.probe_result is not None and self.probe_result.emitting:
-                self._off_for_interrupt(exc)  # the probe read X-rays on: an interrupt still switches off
+            seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
+            if isinstance(exc, KeyboardInterrupt) and seen_on:
+                self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
             self._transport.close()
             self._transport = None
             raise

@@ -158,3 +158,54 @@ def test_an_interrupt_in_the_connect_checks_after_the_probe_saw_x_rays_on_switch
         assert not model.xray_on, model.commands[n:]
     assert "XOF" in model.commands[n:]
     assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)
+
+
+@pytest.mark.parametrize("given", ["B", "auto"])
+def test_source_off_interrupted_while_connecting_ends_on_the_warning(given):
+    """``radiokit acquire source off`` on a unit left on by ``source on``, a real SIGINT while the
+    connect waits for a reply: the switch-off asked for never happened, so (as when the port
+    cannot be opened) the last line is the X-rays-may-be-on warning, exit 3 -- it said
+    "interrupted while connecting: no X-ray command was sent", exit 130, the tube on."""
+    import subprocess
+    import sys
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        src.on(60, 250)
+        src.detach()
+        model.slow(1.0)
+        n = len(model.commands)
+        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "off", "--port", server.url]
+        p = subprocess.Popen(cmd + ([] if given == "auto" else ["--dialect", given]), stderr=subprocess.PIPE, text=True)
+        t0 = time.monotonic()
+        while len(model.commands) == n and time.monotonic() - t0 < 30:
+            time.sleep(0.01)
+        time.sleep(0.2)  # the first query's reply is pending
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    if "XOF" in model.commands[n:]:  # a loaded machine let connect read X-rays on first: then
+        assert not model.xray_on  # the interrupted connect switched off and confirmed
+    else:
+        assert model.xray_on and p.returncode == 3 and err.strip().splitlines()[-1] == TUBE_WARNING, err
+
+
+def test_status_of_a_local_unit_found_on_that_then_fails_ends_on_the_warning(capsys):
+    """``source status`` of a B unit whose operate switch is LOCAL connects without remote control
+    (it cannot switch off); X-rays on, then a garbled reply: the error line alone (exit 1) said
+    nothing of the beam; it now ends on the warning, exit 3."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0
+        model.set_operate_switch("LOCAL")
+        model.inject_after("SHV", lambda: model.garbage(True))
+        capsys.readouterr()
+        assert main(["acquire", "source", "status", *port]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert model.xray_on and "unparseable reply to SHV" in err[0] and err[-1] == TUBE_WARNING, err

@@ -583,11 +583,12 @@ def _guarded_source(url: str, p: Protocol):
         exc.port_never_opened = isinstance(exc, PortUnavailable)
         exc.nothing_sent = getattr(exc, "probe_sent", None) is False
         raise
-    source = L8121(link, connect=False, config=resolved)
-    # what "auto" found, for the file's record -- and for connect(): interrupted after the probe
-    # read X-rays on, it switches off through the guardian (confirmed) before it lets the link go
-    source.probe_result = driver.probe_result
     try:
+        source = L8121(link, connect=False, config=resolved)
+        # what "auto" found, for the file's record -- and for connect(): interrupted after the
+        # probe read X-rays on, it switches off through the guardian (confirmed) before it lets
+        # the link go. (Inside the try: an interrupt here must not read as "nothing sent".)
+        source.probe_result = driver.probe_result
         source.connect()
     except BaseException as exc:
         exc.source_unreached = getattr(exc, "tube_state", None) is None
