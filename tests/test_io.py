@@ -41,7 +41,17 @@ from radiokit.io import (
 )
 from radiokit.io._itex import parse_comment
 
-PROPS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# derandomize: the suite runs the same examples every time (hypothesis's advice for CI). A random
+# run found a corrupted HDF5 file on which libhdf5 itself loops for good inside an attribute
+# read, out of reach of any Python time-out (session 25, README "Known limits"): a fuzz run
+# that can hang the suite at random is no test; the random search belongs to a deliberate run
+# (RADIOKIT_FUZZ=1 draws new examples).
+PROPS = settings(
+    max_examples=120,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+    derandomize=not os.environ.get("RADIOKIT_FUZZ"),
+)
 
 
 def _raises_format(path, *fragments, **hints):
