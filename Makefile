@@ -12,15 +12,13 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-# Reinstall when the project's dependencies change. --no-compile: pip would byte-compile every
-# installed module (half the install's time, about 40 s of 80 on CI's two cores); Python compiles
-# the modules a run imports, once, on first import.
+# Reinstall when the project's dependencies change.
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q --no-compile -e '.[sim]'
+	$(BIN)/python -m pip install -q -e '.[sim]'
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q --no-compile -e '.[test]'
+	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
