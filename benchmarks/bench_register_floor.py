@@ -5,6 +5,7 @@ Run (from the repository root)::
 
     python benchmarks/bench_register_floor.py                      # the floors only (~1 min)
     python benchmarks/bench_register_floor.py --register astronaut coffee brick retina
+    python benchmarks/bench_register_floor.py --split test --register camera moon   # held out, run once
 
 ``bench_register_natural.py``'s local motion is ``regdata.random_motion``: white noise filtered on
 a grid 28 px apart (at 2240) and brought to the frame by OpenCV's cubic resize, a cubic convolution
@@ -14,8 +15,8 @@ kinks. The floor printed is the median, over the central 80 % (the benchmark's s
 ``|truth - P truth|``, ``P`` the least-squares projection on a lattice of that spacing (the
 tensor product's pseudo-inverse, axis by axis), for the TRAINING motion as the benchmark makes
 it and for the same coarse noise brought up by a C2 cubic B-spline at the same sample positions
-(``smooth``: no kinks, the same statistics). ``--register``: ``auto`` on the named TRAINING
-pictures (``natural``'s recipe) under either motion, median EPE px.
+(``smooth``: no kinks, the same statistics). ``--register``: ``auto`` on the named pictures of
+``--split`` (``natural``'s recipe and seeds) under either motion, median EPE px.
 """
 
 from __future__ import annotations
@@ -69,20 +70,21 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=2240)
     ap.add_argument("--spacings", type=float, nargs="+", default=[24, 16, 12])
-    ap.add_argument("--register", nargs="*", default=[], help="TRAINING pictures to register under both motions")
+    ap.add_argument("--register", nargs="*", default=[], help="pictures of --split to register under both motions")
+    ap.add_argument("--split", choices=["train", "test"], default="train", help="the motion's seed and the pictures'")
     args = ap.parse_args(argv)
     n = args.size
     mask = np.zeros((n, n), bool)
     mask[n // 10 : -n // 10, n // 10 : -n // 10] = True
-    truths = motions(n)
+    truths = motions(n, args.split)
     for kind, t in truths.items():
         cells = ", ".join(f"{s:g} px {floor(t, s, mask):.4f}" for s in args.spacings)
-        print(f"lattice floor, TRAINING local motion ({kind}): {cells}", flush=True)
+        print(f"lattice floor, {args.split.upper()} local motion ({kind}): {cells}", flush=True)
     from radiokit.register import register
 
     for name in args.register:
         for kind, t in truths.items():
-            fixed, moving, _, m = natural(name, n, "local", "train", truth=t)
+            fixed, moving, _, m = natural(name, n, "local", args.split, truth=t)
             t0 = time.perf_counter()
             reg = register(fixed, moving, "rc", preset="auto")
             e = score(reg.displacement, t, m)["epe_median"]
