@@ -675,7 +675,7 @@ def read(path, /, **hints) -> Frames:
     >>> from radiokit.io import read
     >>> path = os.path.join(tempfile.mkdtemp(), "frame.raw")
     >>> np.full((1120, 1120), 100, "<u2").tofile(path)     # one 2x2-binned C7942 frame
-    >>> f = read(path)
+    >>> f = read(path, preset="c7942-2x2")  # the size is also 4 frames binned 4x4
     >>> f.data.shape, f.meta["preset"]
     ((1, 1120, 1120), 'c7942-2x2')
     """
