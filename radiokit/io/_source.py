@@ -166,7 +166,10 @@ class FrameSource:
         if format is not None and format not in FORMATS:
             raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
         _check_file(self.path)
-        self.format = format or ("hdf5" if dataset else sniff(self.path))
+        self.format = format or sniff(self.path)
+        if dataset and self.format != "hdf5":  # h5py's "file signature not found" named neither
+            what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(self.format, "not HDF5 (no HDF5 signature)")
+            raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
         if self.format != "raw" and hints.keys() - {"n"}:
             # Geometry hints only make sense for headerless data.
             raise FormatError(
