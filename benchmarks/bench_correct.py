@@ -460,6 +460,10 @@ def memory_now() -> dict:
     return {"rss": _proc_status_bytes("VmRSS"), "peak": hwm if hwm is not None else ru, "ru_maxrss": ru}
 
 
+#: the stack's geometry: its size is also 4x as many 2x2-binned frames, so the reader needs it named
+RAW_PRESET = "c7942"
+
+
 def child_stream(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     """Internal mode: stream ``n`` frames through correct_files and report peak memory."""
     from radiokit.calibrate import Calibration
@@ -467,10 +471,10 @@ def child_stream(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     from radiokit.io import open_frames
 
     cal = Calibration.load(cal_path)
-    with open_frames(raw_path) as src:
+    with open_frames(raw_path, preset=RAW_PRESET) as src:
         total = len(src)
     before = memory_now()
-    hints = {"n": n} if n < total else {}
+    hints = {"preset": RAW_PRESET} | ({"n": n} if n < total else {})
     t0 = time.perf_counter()
     summary = correct_files([raw_path], cal, out_path, domain="log", progress=False, **hints)
     wall = time.perf_counter() - t0
@@ -502,7 +506,7 @@ def child_split(n: int, raw_path: str, cal_path: str, out_path: str) -> dict:
     t_read = t_corr = t_write = t_plain = 0.0
     plain_path = Path(out_path).with_suffix(".bin")
     with (
-        open_frames(raw_path, n=n) as src,
+        open_frames(raw_path, preset=RAW_PRESET, n=n) as src,
         open(plain_path, "wb") as plain,
         StackWriter(out_path, cal.shape, np.float32, meta={"domain": "log"}, n_frames=n) as w,
     ):
@@ -572,7 +576,7 @@ def check_output(h5_path: Path, n: int, cal, raw_path: Path) -> dict:
         ds = h5["entry/data/data"]
         shape = ds.shape
         last = ds[n - 1]
-    with open_frames(raw_path) as src:
+    with open_frames(raw_path, preset=RAW_PRESET) as src:
         expect = correct_frames(cal, src[n - 1], domain="log")
     return {
         "shape": list(shape),

@@ -33,7 +33,7 @@ __all__ = ["main", "build_parser"]
 
 def _raw_hints(args) -> dict:
     hints = {}
-    for name in ("preset", "byteorder", "offset", "format", "dataset"):
+    for name in ("preset", "dtype", "byteorder", "offset", "format", "dataset"):
         value = getattr(args, name, None)
         if value is not None:
             hints[name] = value
@@ -46,8 +46,13 @@ def _raw_hints(args) -> dict:
 
 def _add_raw_hints(p):
     g = p.add_argument_group("raw files (headerless)")
-    g.add_argument("--preset", help="geometry preset, e.g. c7942, c7942-2x2 (default: inferred from size)")
-    g.add_argument("--shape", type=int, nargs="+", metavar="N", help="ROWS COLS (or N ROWS COLS)")
+    g.add_argument(
+        "--preset", help="geometry preset, e.g. c7942, c7942-2x2 (default: from the size where only one fits)"
+    )
+    # exactly two numbers: nargs="+" took the file after them for a third ("invalid int value: 'f.raw'");
+    # the frame count follows from the file's size
+    g.add_argument("--shape", type=int, nargs=2, metavar=("ROWS", "COLS"), help="frame size, e.g. --shape 2240 2240")
+    g.add_argument("--dtype", help="pixel type with --shape, e.g. '<f4' for float32 (default '<u2', 16-bit)")
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
@@ -144,19 +149,33 @@ def cmd_info(args) -> int:
 
     if args.sample < 1:
         raise ValueError(f"--sample {args.sample}: expected at least one frame")
-    reports = []
+    reports, failed = [], 0
+    # one bad file among several: its one line on stderr, the others still described (the first
+    # error used to end the command with nothing printed for the good files), exit status 2
     for path in args.files:
-        with open_frames(path, **_raw_hints(args)) as src:
-            reports.append(_describe(path, src, args.all, args.sample))
+        try:
+            with open_frames(path, **_raw_hints(args)) as src:
+                reports.append(_describe(path, src, args.all, args.sample))
+        except Exception as exc:
+            if not _user_error(exc) or _interrupted(exc) or _debug(args) or len(args.files) == 1:
+                raise
+            failed += 1
+            print(f"radiokit info: {' '.join((str(exc) or type(exc).__name__).split())}", file=sys.stderr)
+            continue
+        if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
+            failed += 1
+            print(f"radiokit info: {path}: no frames", file=sys.stderr)
+    status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
         from radiokit._json import strict
 
         print(json.dumps([strict(r) for r in reports], indent=2, default=str, allow_nan=False))
-        return 0
+        return status
     for rep in reports:
         print(f"{rep['file']}")
         print(f"  format     {rep['format']}")
-        print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}")
+        none = "" if rep["frames"] else " (no frames)"
+        print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
         of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
         if rep["range"] is not None:
             print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
@@ -166,7 +185,7 @@ def cmd_info(args) -> int:
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {value}")
-    return 0
+    return status
 
 
 # -- calibrate ---------------------------------------------------------------------------------
@@ -217,6 +236,8 @@ def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
     with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
         for p in paths:
             with open_frames(p, **hints) as src:
+                if not len(src):  # as `radiokit info` says it
+                    raise FormatError(p, "no frames")
                 first = first or (p, src.frame_shape)
                 if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
                     raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
@@ -229,8 +250,9 @@ def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
                         bar.update()
                         if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
-    if not frames:
-        raise ValueError(f"no frames found in {', '.join(map(str, paths))}")
+    if not frames:  # every file has frames (above), none of them keyed as wanted
+        names = {2: "darks (image_key 2)", 1: "flats (image_key 1)"}.get(key, "frames")
+        raise ValueError(f"{', '.join(map(str, paths))}: no {names} among their frames")
     return np.stack(frames)
 
 
@@ -668,7 +690,7 @@ def _add_info(sub):
         "files",
         nargs="+",
         type=Path,
-        help="frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
     )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -694,7 +716,7 @@ def _add_calibrate(sub):
         "--dark",
         nargs="+",
         type=Path,
-        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
     )
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
@@ -728,7 +750,7 @@ def _add_correct(sub):
         "frames",
         nargs="+",
         type=Path,
-        help="frame files (raw (headerless 16-bit, geometry from the size or --shape/--preset), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
+        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
     )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(
@@ -1026,6 +1048,26 @@ def _check_environment() -> None:
     memory_budget()
 
 
+def _one_warning_per_file() -> None:
+    """A warning about a file (it carries ``path``) shown once per command: `radiokit correct
+    exp.h5` opens the file to calibrate and again to correct, and each open warned (with the peak
+    of the frames each read first, so the two lines differed and Python's filter kept both)."""
+    shown = set()
+    # a fresh set per command: main() run again in one process (tests) wraps the original anew
+    show = getattr(warnings.showwarning, "original", warnings.showwarning)
+
+    def once(message, category, *rest, **kw):
+        key = (category, getattr(message, "path", None))
+        if key[1] is not None:
+            if key in shown:
+                return
+            shown.add(key)
+        show(message, category, *rest, **kw)
+
+    once.original = show
+    warnings.showwarning = once
+
+
 def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1038,6 +1080,7 @@ def _main(argv) -> int:
         warnings.formatwarning = lambda message, category, *_, **__: (
             f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
         )
+    _one_warning_per_file()
     if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)

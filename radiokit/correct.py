@@ -538,6 +538,8 @@ def correct_files(
         # before the output's size could be refused. Keyed files' records fit the memory budget.
         segments = []
         for si, src in enumerate(sources):
+            if not len(src):  # as `radiokit info` and `calibrate` say it
+                raise FormatError(src.path, "no frames")
             if src.frame_shape != cal.shape:
                 raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
             keys = src.meta.get("image_key")

@@ -351,7 +351,7 @@ def test_a_warning_is_one_line_without_source_code(tmp_path):
     np.full((1120, 1120), 60000, "<u2").tofile(tmp_path / "hot.raw")  # MSB-aligned 12-bit
     env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
     res = subprocess.run(
-        [sys.executable, "-m", "radiokit.cli", "info", str(tmp_path / "hot.raw")],
+        [sys.executable, "-m", "radiokit.cli", "info", "--preset", "c7942-2x2", str(tmp_path / "hot.raw")],
         capture_output=True,
         text=True,
         env=env,
@@ -359,6 +359,95 @@ def test_a_warning_is_one_line_without_source_code(tmp_path):
     assert res.returncode == 0, res.stderr
     assert res.stderr.count("\n") == 1 and res.stderr.startswith("radiokit info: BitDepthWarning: "), res.stderr
     assert "hot.raw" in res.stderr and ".py:" not in res.stderr, res.stderr
+
+
+def _run_with_warnings(*args, cwd=None):
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    return subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True, env=env, cwd=cwd
+    )
+
+
+def test_correct_warns_of_bit_depth_once_per_file(tmp_path):
+    """Another lab's 16-bit NXtomo (no bit_depth_readout, so read as the C7942's 12 bits): `radiokit
+    correct scan.h5` opens it to calibrate and again to correct, and showed the warning twice
+    (flats' peak, then the projections'); the README says once per file."""
+    import h5py
+
+    rng = np.random.default_rng(1)
+    dark = rng.normal(1000, 3, (2, 24, 32))
+    flat = rng.normal(30000, 50, (2, 24, 32))
+    proj = np.full((1, 24, 32), 15000.0)
+    with h5py.File(tmp_path / "scan.h5", "w") as f:
+        det = f.create_group("entry/instrument/detector")
+        det["data"] = np.concatenate([dark, flat, proj]).round().astype(np.uint16)
+        det["image_key"] = np.array([2, 2, 1, 1, 0], np.int8)
+    res = _run_with_warnings("correct", tmp_path / "scan.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("BitDepthWarning") == 1, res.stderr
+    # no MSB advice: these counts have their low 4 bits set
+    assert "scan.h5" in res.stderr and "MSB" not in res.stderr and "divide" not in res.stderr, res.stderr
+
+
+def test_shape_takes_two_numbers_and_leaves_the_file(tmp_path):
+    """--shape took nargs='+': `radiokit info --shape 300 400 f.raw` read f.raw as a third number
+    ("invalid int value"). It takes ROWS COLS; the frame count follows from the size."""
+    data = np.arange(3 * 30 * 40, dtype="<u2").reshape(3, 30, 40) % 4096
+    data.tofile(tmp_path / "f.raw")
+    res = run("info", "--shape", 30, 40, tmp_path / "f.raw")
+    assert res.returncode == 0, res.stderr
+    assert "3 x 30 rows x 40 cols" in res.stdout
+    res = run("info", "--shape", 3, 30, 40, tmp_path / "f.raw")  # no third number
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+def test_ambiguous_raw_size_is_refused_naming_the_geometries(tmp_path):
+    """Four 2x2-binned frames have the bytes of one 2240 x 2240 frame: refused in one line naming
+    each reading and the option, and read as the one --preset names."""
+    np.zeros((4, 1120, 1120), "<u2").tofile(tmp_path / "four.raw")
+    res = run("info", tmp_path / "four.raw")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "four.raw" in res.stderr and "ambiguous" in res.stderr and "--preset" in res.stderr
+    assert "4 frames of 1120x1120 (c7942-2x2)" in res.stderr and "1 frame of 2240x2240 (c7942)" in res.stderr
+    res = run("info", "--preset", "c7942-2x2", tmp_path / "four.raw")
+    assert res.returncode == 0 and "4 x 1120 rows x 1120 cols" in res.stdout, res.stderr
+
+
+def test_dataset_for_a_tiff_says_it_is_for_hdf5(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "a.tif", np.zeros((4, 5), np.uint16))
+    res = run("info", "--dataset", "img", tmp_path / "a.tif")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "a.tif" in res.stderr and "HDF5 files" in res.stderr and "TIFF" in res.stderr, res.stderr
+    assert "signature" not in res.stderr, res.stderr
+
+
+def test_info_describes_the_good_files_and_names_the_bad(tmp_path):
+    """`radiokit info good.tif bad.tif` printed the bad one's error and nothing of the good one."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "good.tif", np.full((4, 5), 7, np.uint16))
+    (tmp_path / "bad.tif").write_bytes(b"GARBAGE!" * 20)
+    res = run("info", tmp_path / "good.tif", tmp_path / "bad.tif", tmp_path / "good.tif")
+    assert res.returncode == 2
+    assert res.stdout.count("good.tif") == 2 and "1 x 4 rows x 5 cols" in res.stdout
+    assert res.stderr.count("\n") == 1 and "bad.tif" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_stack_of_no_frames_is_named_alike_by_info_and_calibrate(tmp_path):
+    """An HDF5 dataset of 0 frames: info exited 0 ("0 x 200 x 320") while calibrate said "no frames
+    found in FILE"; both now say FILE: no frames (info still describes it)."""
+    import h5py
+
+    with h5py.File(tmp_path / "empty.h5", "w") as f:
+        f["d"] = np.zeros((0, 20, 32), np.uint16)
+    empty = tmp_path / "empty.h5"
+    res = run("info", "--dataset", "d", empty)
+    assert res.returncode == 2 and "0 x 20 rows x 32 cols" in res.stdout and "no frames" in res.stdout
+    assert res.stderr == f"radiokit info: {empty}: no frames\n"
+    res = run("calibrate", "--dataset", "d", "--dark", empty, "--flat", empty, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2 and res.stderr == f"radiokit calibrate: {empty}: no frames\n"
 
 
 def test_process_names_the_file_it_cannot_measure(experiment, tmp_path):

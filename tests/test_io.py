@@ -320,7 +320,7 @@ def _itex_bytes(
     dtype = {0: "<u1", 1: "<u2", 2: "<u2", 3: "<u4"}[ftype]
     head = bytearray(64)
     head[0:2] = magic
-    struct.pack_into("<h", head, 2, len(comment) if comment_len is None else comment_len)
+    struct.pack_into("<H", head, 2, len(comment) if comment_len is None else comment_len % 65536)
     struct.pack_into("<h", head, 4, cols if width is None else width)
     struct.pack_into("<h", head, 6, rows if height is None else height)
     struct.pack_into("<h", head, 12, ftype)
@@ -443,13 +443,41 @@ def test_itex_header_promises_more_than_file(tmp_path, change):
         (dict(width=0), "0x4"),
         (dict(height=-4), "8x-4"),
         (dict(n_images=-2), "negative image count"),
-        (dict(comment_len=-5), "negative comment length"),
     ],
 )
 def test_itex_header_nonsense(tmp_path, change, fragment):
     path = tmp_path / "nonsense.img"
     path.write_bytes(_itex_bytes(np.ones((4, 8), np.uint16), 2, **change))
     _raises_format(path, fragment)
+
+
+def test_itex_comment_over_32767_bytes_is_read(tmp_path):
+    """The comment length is unsigned 16-bit: a valid file with a 40 000-byte comment was refused
+    as "negative comment length -25536" (the field read as int16). Read as int16 in this
+    test's own layout the same bytes would be negative, so the test fails on a signed reader."""
+    pix = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    comment = b"[Info],Note=" + b"x" * (40_000 - 12)
+    path = tmp_path / "long.img"
+    path.write_bytes(_itex_bytes(pix, 2, comment))
+    assert struct.unpack_from("<h", path.read_bytes(), 2)[0] < 0
+    f = read(path)
+    np.testing.assert_array_equal(f.data[0], pix)
+    assert f.meta["comment_length"] == 40_000 and len(f.meta["comment"]["Info"]["Note"]) == 40_000 - 12
+    # a comment claimed longer than the file is still refused, not read as pixels
+    path.write_bytes(_itex_bytes(pix, 2, b"[A],b=1", comment_len=65_000))
+    _raises_format(path, "65000-byte comment", "the file has")
+
+
+def test_itex_big_endian_header_is_named(tmp_path):
+    """ITEX is little-endian; a big-endian header read "unknown ITEX file type 512", leaving the
+    user to guess. The one line now says the header is big-endian."""
+    head = bytearray(64)
+    head[0:2] = b"IM"
+    struct.pack_into(">hhhhhhi", head, 2, 0, 4, 3, 0, 0, 2, 0)
+    path = tmp_path / "be.img"
+    path.write_bytes(bytes(head) + np.arange(12, dtype=">u2").tobytes())
+    err = _raises_format(path, "big-endian", "little-endian")
+    assert "512" in str(err)
 
 
 def test_itex_unknown_type_and_wrong_magic(tmp_path):
@@ -552,7 +580,7 @@ def test_raw_round_trip_every_preset(tmp_path, name):
     data.astype("<u2").tofile(path)
     with warnings.catch_warnings():
         warnings.simplefilter("error", BitDepthWarning)
-        f = read(path)
+        f = read(path, preset=name)
     assert f.meta["format"] == "raw"
     assert f.meta["preset"] == name
     assert (f.meta["rows"], f.meta["cols"], f.meta["n"]) == (rows, cols, 1)
@@ -561,23 +589,43 @@ def test_raw_round_trip_every_preset(tmp_path, name):
     assert f.shape == (1, rows, cols)
     assert f.data.dtype == np.uint16 and f.data.dtype.isnative
     np.testing.assert_array_equal(f.data[0], data)
+    # without preset=: one 4x4-binned frame is no whole number of any other preset's frames; one
+    # unbinned or 2x2-binned frame is also 4 (or 16) frames binned further, and is refused
+    if b == 4:
+        assert read(path).meta["preset"] == name
+    else:
+        _raises_format(path, "ambiguous", f"1 frame of {rows}x{cols} ({name})", f"frames of {rows // (4 // b)}x")
 
 
-def test_raw_stack_of_full_frames(tmp_path):
+def test_raw_full_frames_need_the_geometry_named(tmp_path):
+    """Found by an outside test: four 2x2-binned frames have the bytes of one 2240 x 2240 frame
+    and were read as one (garbage), silently, while three were refused as ambiguous. C7942.md
+    asks for inference only where the size is unambiguous: a whole number of 2240 x 2240 frames
+    is also four times as many 2x2-binned ones, so the reader names them all and reads the one
+    preset= (or shape=) names."""
     data = _rand12((3, 2240, 2240), seed=5)
     path = tmp_path / "stack.raw"
     data.tofile(path)
-    f = read(path)
+    _raises_format(
+        path,
+        "ambiguous",
+        "3 frames of 2240x2240 (c7942)",
+        "12 frames of 1120x1120 (c7942-2x2)",
+        "48 frames of 560x560 (c7942-4x4)",
+        "--preset c7942",
+    )
+    f = read(path, preset="c7942")
     assert f.meta["preset"] == "c7942"
     assert f.n == 3
     np.testing.assert_array_equal(f.data, data)
-    with open_frames(path) as src:
+    with open_frames(path, preset="c7942") as src:
         assert len(src) == 3
         np.testing.assert_array_equal(src[1], data[1])
-    assert [int(fr[0, 0]) for fr in iter_frames(path)] == [int(v) for v in data[:, 0, 0]]
-    g = read(path, n=2)
+    assert [int(fr[0, 0]) for fr in iter_frames(path, preset="c7942")] == [int(v) for v in data[:, 0, 0]]
+    g = read(path, preset="c7942", n=2)
     assert g.n == 2
     np.testing.assert_array_equal(g.data, data[:2])
+    assert read(path, shape=(2240, 2240)).n == 3
 
 
 @pytest.mark.parametrize("name, n", [("c7942-4x4", 5), ("c7942-2344-4x4", 2), ("c7942-2368-4x4", 3)])
@@ -593,43 +641,20 @@ def test_raw_stack_of_binned_frames(tmp_path, name, n):
 
 
 @pytest.mark.parametrize("name", ["c7942-2x2", "c7942-2344-2x2", "c7942-2368-2x2"])
-def test_raw_stack_of_2x2_frames_needs_preset(tmp_path, name):
-    """n 2x2-binned frames are as long as 4n 4x4-binned ones: the size cannot tell them apart."""
+@pytest.mark.parametrize("n", [1, 3, 4])
+def test_raw_stacks_of_2x2_frames_need_preset(tmp_path, name, n):
+    """n 2x2-binned frames are as long as 4n 4x4-binned ones: the size cannot tell them apart.
+    Four of them are also one unbinned frame: that one was read as a 2240-wide frame, silently."""
     rows, cols, _ = PRESET_TABLE[name]
-    data = _rand12((3, rows, cols), seed=3)
+    data = _rand12((n, rows, cols), seed=3)
     path = tmp_path / "binned.raw"
     data.tofile(path)
-    _raises_format(path, "ambiguous", f"{name} x3", f"{name.replace('2x2', '4x4')} x12", "preset=")
+    four = name.replace("2x2", "4x4")
+    _raises_format(path, "ambiguous", f"({name})", f"{4 * n} frames of {rows // 2}x{cols // 2} ({four})", "preset=")
     f = read(path, preset=name)
-    assert f.n == 3 and f.meta["preset"] == name
+    assert f.n == n and f.meta["preset"] == name
     np.testing.assert_array_equal(f.data, data)
-
-
-def test_raw_single_frame_rule_wins_and_preset_overrides(tmp_path):
-    # four 4x4-binned frames are exactly one 2x2-binned frame: the single-frame reading wins
-    data = _rand12((4, 560, 560), seed=4)
-    path = tmp_path / "four.raw"
-    data.tofile(path)
-    assert read(path).meta["preset"] == "c7942-2x2"
-    f = read(path, preset="c7942-4x4")
-    assert f.n == 4
-    np.testing.assert_array_equal(f.data, data)
-
-
-def test_raw_ambiguous_size(tmp_path):
-    # two 2344-2x2 frames == eight 2344-4x4 frames
-    data = _rand12((2, 1172, 1120), seed=6)
-    path = tmp_path / "two.raw"
-    data.tofile(path)
-    err = _raises_format(path, "ambiguous", "preset=", "shape=", str(data.nbytes))
-    assert "c7942-2344-2x2 x2" in str(err) and "c7942-2344-4x4 x8" in str(err)
-    f = read(path, preset="c7942-2344-2x2")
-    assert f.n == 2
-    np.testing.assert_array_equal(f.data, data)
-    assert read(path, preset="c7942-2344-4x4").n == 8
-    g = read(path, shape=(2, 1172, 1120))
-    assert g.meta["preset"] == "custom"
-    np.testing.assert_array_equal(g.data, data)
+    assert read(path, preset=four).n == 4 * n
 
 
 @pytest.mark.parametrize("size", [1, 2, 1000, 627200 - 2, 627200 + 2, 10035200 - 1000])
@@ -803,8 +828,45 @@ def test_bit_depth_warning_msb_aligned(tmp_path):
     data[0, 0] = 4095
     path = tmp_path / "shifted.raw"
     (data << 4).astype("<u2").tofile(path)
-    with pytest.warns(BitDepthWarning, match="shifted left by 4"):
+    with pytest.warns(BitDepthWarning, match="shifted left by 4") as rec:
         read(path)
+    assert "low 4 bits are 0" in str(rec[0].message) and "divide by 16" in str(rec[0].message)
+
+
+def test_bit_depth_warning_gives_no_msb_advice_without_evidence(tmp_path):
+    """Found by an outside test: every uint16 frame above 4095 that byte swapping did not fix was
+    "shifted left by 4 bits (MSB-aligned)", since max >> 4 <= 4095 holds for any 16-bit value;
+    a user of a 14-bit panel would divide good counts by 16. MSB alignment needs its evidence,
+    the low 4 bits 0 in (nearly) every pixel; 9001 (and 14-bit noise) has them set."""
+    rng = np.random.default_rng(14)
+    for name, data in (
+        ("const", np.full((560, 560), 9001, "<u2")),
+        ("noisy", rng.integers(4096, 16384, (560, 560)).astype("<u2")),
+    ):
+        path = tmp_path / f"fourteen_{name}.raw"
+        data.tofile(path)
+        with pytest.warns(BitDepthWarning, match="14-bit") as rec:
+            f = read(path)
+        message = str(rec[0].message)
+        assert "shifted" not in message and "MSB" not in message and "divide" not in message, message
+        assert "byteorder" not in message, message
+        np.testing.assert_array_equal(f.data[0], data)
+
+
+def test_bit_depth_warning_names_float32_words(tmp_path):
+    """A float32 frame (transmission 0.2..1.1) in a headerless file read as 16-bit words: the
+    warning says the words are float32 numbers and how to read them, not "MSB-aligned" (the
+    words of 0.5 have their low 4 bits 0) nor "big-endian" (swapped, they are 0 and 63)."""
+    rng = np.random.default_rng(32)
+    for name, values in (("ramp", rng.uniform(0.2, 1.1, (560, 280))), ("exact", np.full((560, 280), 0.5))):
+        path = tmp_path / f"{name}.raw"
+        values.astype("<f4").tofile(path)  # 560 x 280 float32: the bytes of one 560 x 560 frame
+        with pytest.warns(BitDepthWarning, match="float32") as rec:
+            read(path)
+        message = str(rec[0].message)
+        assert "dtype='<f4'" in message and "MSB" not in message and "byteorder" not in message, message
+        f = read(path, shape=(560, 280), dtype="<f4")
+        np.testing.assert_array_equal(f.data[0], values.astype("<f4"))
 
 
 def test_no_bit_depth_warning_at_4095(tmp_path):

@@ -51,25 +51,70 @@ class Frames:
         )
 
 
+def _words_as_float32(frame: np.ndarray) -> bool:
+    """Whether a 16-bit frame's words, read two at a time, are float32 numbers: a float32 frame
+    in a headerless file read as 16-bit words. Evidence needed on (nearly) every pair: the pair
+    decodes to a number between about 1e-6 and 1e6 in size and mostly positive (as transmission,
+    attenuation or counts are), and the two words of a pair do not look alike (a 16-bit image's
+    neighbours do; a float's low word is its mantissa's tail, its high word sign and exponent).
+    All-zero pairs carry no evidence either way and are left out."""
+    words = np.ascontiguousarray(frame, dtype="<u2").reshape(-1)
+    words = words[: words.size - words.size % 2]
+    pairs = words.reshape(-1, 2)
+    pairs = pairs[(pairs != 0).any(axis=1)]
+    if len(pairs) < 16:
+        return False
+    high = pairs[:, 1]  # little-endian: sign, 8 exponent bits and the mantissa's top in word 2
+    exponent = (high >> 7) & 0xFF
+    plausible = (exponent >= 127 - 20) & (exponent <= 127 + 19)  # 2**-20 (1e-6) .. 2**20 (1e6)
+    positive = (high >> 15) == 0
+    differ = np.abs(pairs[:, 0].astype(np.int32) - pairs[:, 1].astype(np.int32)) > 4096
+    return bool(np.mean(plausible) >= 0.99 and np.mean(positive) >= 0.9 and np.mean(differ) >= 0.5)
+
+
+def _msb_aligned(frame: np.ndarray, bits: int) -> bool:
+    """Whether a 16-bit frame looks like ``bits``-bit data shifted to the top of its words: the
+    low ``16 - bits`` bits 0 in (nearly) every non-zero pixel, which in other data holds for one
+    pixel in 2**(16 - bits). (The shifted values always fit: that alone is no evidence.)"""
+    low = (1 << (16 - bits)) - 1
+    nonzero = frame[frame != 0]
+    if nonzero.size < 16:
+        return False
+    return bool(np.count_nonzero(nonzero & low) <= 0.01 * nonzero.size)
+
+
 def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> bool:
-    """Warn when a frame holds values the ADC cannot produce; whether it warned."""
+    """Warn when a frame holds values the ADC cannot produce; whether it warned.
+
+    The warning names a cause only on evidence: the byte-swapped values fit (byte order), the
+    words pair up into float32 numbers (a float file read as 16-bit), or the low bits are 0 in
+    (nearly) every pixel (MSB-aligned data). Otherwise it says what the values may mean and
+    gives no advice that would change good data (such as dividing 14-bit counts by 16)."""
     if bits is None or frame.dtype.kind not in "ui" or frame.size == 0:
         return False
     top = (1 << bits) - 1
     peak = int(frame.max())
     if peak <= top:
         return False
-    hint = ""
-    if frame.dtype.itemsize == 2:
-        swapped = int(frame.byteswap().max())
-        if swapped <= top:
-            hint = " The byte-swapped values fit: try byteorder='>' (or '<')."
-        elif int(frame.max() >> 4) <= top:
-            hint = " Values look shifted left by 4 bits (MSB-aligned 12-bit data)."
-    warnings.warn(
-        f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; "
-        f"wrong bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}",
-        BitDepthWarning,
-        stacklevel=3,
+    cause = (
+        "another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data rescaled "
+        "before saving, or a wrong geometry, offset or byte order; the values are read as stored"
     )
+    if frame.dtype.itemsize == 2:
+        # floats first: the swapped words of 0.5 (0x0000, 0x3F00) are 0 and 63, which "fit"
+        if _words_as_float32(frame):
+            cause = (
+                "its 16-bit words pair up into float32 numbers: the file holds float32 pixels, not the "
+                "panel's 16-bit counts; read it with dtype='<f4' and shape=(rows, cols) (--dtype '<f4' --shape ROWS COLS)"
+            )
+        elif int(frame.byteswap().max()) <= top:
+            cause = "the byte-swapped values fit: the file is big-endian, try byteorder='>' (or '<')"
+        elif bits < 16 and _msb_aligned(frame, bits):
+            cause = (
+                f"the low {16 - bits} bits are 0 in (nearly) every pixel: {bits}-bit data stored MSB-aligned "
+                f"(shifted left by {16 - bits}); divide by {1 << (16 - bits)} for ADC counts"
+            )
+    message = BitDepthWarning(f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; {cause}.")
+    message.path = str(path)  # for callers that show one warning per file (the command line)
+    warnings.warn(message, stacklevel=3)
     return True

@@ -1,8 +1,9 @@
 """Hamamatsu ITEX / HiPic ``.img`` files (HPD-TA, HiPic, XVS-FPD).
 
-Layout (all little-endian): a 64-byte header, an ASCII comment of ``comment_length`` bytes, the
-pixels (unsigned, ``width * height`` per image, rows top first), then optional blocks such as the
-float32 axis arrays a ``[Scaling]`` section points at with ``"#<byte offset>,<count>"``.
+Layout (all little-endian): a 64-byte header, an ASCII comment of ``comment_length`` bytes (an
+unsigned 16-bit count), the pixels (unsigned, ``width * height`` per image, rows top first), then
+optional blocks such as the float32 axis arrays a ``[Scaling]`` section points at with
+``"#<byte offset>,<count>"``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ from radiokit.errors import FormatError
 
 __all__ = ["parse_itex_header", "parse_comment", "ITEX_TYPES"]
 
-HEADER = struct.Struct("<2shhhhhhihhd4s30s")
+# The comment length is unsigned: HiPic writes comments over 32767 bytes (read signed, a valid
+# 40 000-byte one was "negative"); width and height stay signed, a negative one is corrupt.
+HEADER = struct.Struct("<2sHhhhhhihhd4s30s")
 HEADER_BYTES = 64
 assert HEADER.size == HEADER_BYTES
 #: file type -> pixel dtype; type 1 is a compressed format nobody documents.
@@ -35,9 +38,14 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
     if ftype == 1:
         raise FormatError(path, "ITEX file type 1 (compressed) is not supported; save as 16-bit (type 2)")
     if ftype not in ITEX_TYPES:
+        swapped = struct.unpack_from(">h", head, 12)[0]
+        if swapped in ITEX_TYPES or swapped == 1:  # 2 read as 512: the header's bytes are swapped
+            raise FormatError(
+                path,
+                f"big-endian ITEX header (file type {ftype} is {swapped} byte-swapped): ITEX files are "
+                "little-endian as HiPic and HPD-TA write them; radiokit does not read big-endian ones",
+            )
         raise FormatError(path, f"unknown ITEX file type {ftype} (known: 0 8-bit, 2 16-bit, 3 32-bit)")
-    if comment_len < 0:
-        raise FormatError(path, f"negative comment length {comment_len} in the ITEX header")
     if width <= 0 or height <= 0:
         raise FormatError(path, f"ITEX header gives a {width}x{height} image")
     if n_images < 0:

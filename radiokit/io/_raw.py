@@ -78,35 +78,35 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
         if preset not in PRESETS:
             raise FormatError(path, f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
         return PRESETS[preset]
-    single = [p for p in PRESETS.values() if p.frame_bytes == payload]
-    stack_default = PRESETS[DEFAULT_PRESET]
     dividing = [p for p in PRESETS.values() if payload % p.frame_bytes == 0]
-    if len(single) == 1:
-        return single[0]
-    if payload % stack_default.frame_bytes == 0:
-        return stack_default
     if len(dividing) == 1:
         return dividing[0]
+    full = PRESETS[DEFAULT_PRESET]
     if not dividing:
         raise FormatError(
             path,
             f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
-            f"{stack_default.frame_bytes} bytes); pass shape=(rows, cols) or preset= (on the command line --shape ROWS COLS or --preset)",
+            f"{full.frame_bytes} bytes); pass shape=(rows, cols) or preset= (on the command line --shape ROWS COLS or --preset)",
         )
-    opts = ", ".join(f"{p.name} x{payload // p.frame_bytes}" for p in dividing)
+    # One 2240 x 2240 frame has the bytes of four 2x2-binned and sixteen 4x4-binned ones: the size
+    # cannot tell them apart, and the hardware notes ask for inference only where it is unambiguous.
+    counts = [(payload // p.frame_bytes, p) for p in dividing]
+    fits = ", ".join(f"{k} frame{'s' * (k > 1)} of {p.rows}x{p.cols} ({p.name})" for k, p in counts)
     raise FormatError(
         path,
-        f"size {payload} bytes is ambiguous ({opts}); pass preset= or shape= (on the command line --preset or --shape ROWS COLS)",
+        f"size {payload} bytes is ambiguous, it fits {fits}; name the panel's geometry with preset= or "
+        f"shape= (on the command line e.g. --preset {dividing[0].name}, or --shape ROWS COLS)",
     )
 
 
 def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None, offset=0, n=None) -> dict:
     """Decide the geometry of a headerless raw file of ``size`` bytes.
 
-    Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a file
-    holding exactly one frame of exactly one preset is that preset; a whole number of default-preset
-    (2240 x 2240) frames is a stack of those; a whole number of frames of exactly one preset is a
-    stack of that preset. Anything else is ambiguous and raises :class:`FormatError`.
+    Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a size
+    that is a whole number of frames of exactly one preset is a stack of that preset. A size that
+    fits several (one 2240 x 2240 frame is four 2x2-binned frames and sixteen 4x4-binned ones) or
+    none raises :class:`FormatError` naming them: geometry is inferred only where the size
+    leaves no doubt.
     """
     dt = _parse_dtype(path, dtype, byteorder)
     if offset < 0:

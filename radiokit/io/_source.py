@@ -166,7 +166,10 @@ class FrameSource:
         if format is not None and format not in FORMATS:
             raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
         _check_file(self.path)
-        self.format = format or ("hdf5" if dataset else sniff(self.path))
+        self.format = format or sniff(self.path)
+        if dataset and self.format != "hdf5":  # h5py's "file signature not found" named neither
+            what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(self.format, "not HDF5 (no HDF5 signature)")
+            raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
         if self.format != "raw" and hints.keys() - {"n"}:
             # Geometry hints only make sense for headerless data.
             raise FormatError(
@@ -675,7 +678,7 @@ def read(path, /, **hints) -> Frames:
     >>> from radiokit.io import read
     >>> path = os.path.join(tempfile.mkdtemp(), "frame.raw")
     >>> np.full((1120, 1120), 100, "<u2").tofile(path)     # one 2x2-binned C7942 frame
-    >>> f = read(path)
+    >>> f = read(path, preset="c7942-2x2")  # the size is also 4 frames binned 4x4
     >>> f.data.shape, f.meta["preset"]
     ((1, 1120, 1120), 'c7942-2x2')
     """
