@@ -511,6 +511,30 @@ def _planned(segments):
             yield si, fi, step, (1.0 if factors is None else float(factors[j]))
 
 
+def _segments(sources, cal: Calibration, image_keys) -> list:
+    """Per source, ``(index, frames, steps, exposure factors)`` of the frames to correct: every
+    frame of a file without image keys as a range, not a list -- a 14 kB HDF5 file declaring 10**8
+    frames made a list of 10**8 tuples (GBs) before the output's size could be refused. Keyed
+    files' records fit the memory budget."""
+    from radiokit.calibrate import exposure_factors
+
+    segments = []
+    for si, src in enumerate(sources):
+        if not len(src):  # as `radiokit info` and `calibrate` say it
+            raise FormatError(src.path, "no frames")
+        if src.frame_shape != cal.shape:
+            raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
+        keys = src.meta.get("image_key")
+        steps = src.meta.get("step")
+        if keys is None:
+            segments.append((si, range(len(src)), steps, None))
+            continue
+        picked = np.flatnonzero(np.isin(np.asarray(keys), list(image_keys)))
+        factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
+        segments.append((si, picked, steps, factors))
+    return segments
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -527,29 +551,12 @@ def correct_files(
     """
     from tqdm.auto import tqdm
 
-    from radiokit.calibrate import exposure_factors
     from radiokit.io import StackWriter, open_frames
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     sources = [open_frames(p, **hints) for p in inputs]
     try:
-        # Per source, the frames to correct: every frame of a file without image keys as a range,
-        # not a list -- a 14 kB HDF5 file declaring 10**8 frames made a list of 10**8 tuples (GBs)
-        # before the output's size could be refused. Keyed files' records fit the memory budget.
-        segments = []
-        for si, src in enumerate(sources):
-            if not len(src):  # as `radiokit info` and `calibrate` say it
-                raise FormatError(src.path, "no frames")
-            if src.frame_shape != cal.shape:
-                raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
-            keys = src.meta.get("image_key")
-            steps = src.meta.get("step")
-            if keys is None:
-                segments.append((si, range(len(src)), steps, None))
-                continue
-            picked = np.flatnonzero(np.isin(np.asarray(keys), list(image_keys)))
-            factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
-            segments.append((si, picked, steps, factors))
+        segments = _segments(sources, cal, image_keys)
         n_plan = sum(len(picked) for _, picked, _, _ in segments)
         if not n_plan:
             raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
