@@ -506,7 +506,7 @@ class FrameSource:
                     f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one 16-bit word per pixel: "
                     f"read as 16-bit words",
                     UserWarning,
-                    stacklevel=4,
+                    stacklevel=6,  # the caller of read() / open_frames(),
                 )
             return True
         raise FormatError(
@@ -583,7 +583,7 @@ class FrameSource:
                 f"its MaxSampleValue {int(np.max(stored_max))} is statistics only and not used, so a writer "
                 f"that inverted within 0..{int(np.max(stored_max))} reads {top - int(np.max(stored_max))} higher",
                 UserWarning,
-                stacklevel=3,
+                stacklevel=5,  # the caller of read() / open_frames(),
             )
         return np.dtype(page.dtype).type(top)
 
@@ -608,7 +608,7 @@ class FrameSource:
                 f"{self.path}: its ImageJ description gives c0..c{len(coefficients) - 1} with cf=20, ImageJ's "
                 "'no calibration' (signed 16-bit is cf=0): ImageJ shows the stored values, and so they are read",
                 UserWarning,
-                stacklevel=3,
+                stacklevel=5,  # the caller of read() / open_frames(),
             )
         if cf == 20 or (cf != 21 and len(coefficients) < 2):
             return None  # ImageJ's NONE: shown as stored (coefficients then unused, as ImageJ does)
