@@ -430,13 +430,15 @@ def test_tiff_variants_read_value_for_value(tmp_path, dtype, byteorder, kw):
 # ------------------------------------------------------------------------------------------------
 
 
-def _set_short_tag(path, code, value):
-    """Overwrite a SHORT tag's value in the first IFD of a little-endian classic TIFF (to make
-    files tifffile will not write, as other software does)."""
+def _set_short_tag(path, code, value, page=0):
+    """Overwrite a SHORT tag's value in an IFD of a little-endian classic TIFF (to make files
+    tifffile will not write, as other software does)."""
     import struct
 
     data = bytearray(path.read_bytes())
     ifd = struct.unpack_from("<I", data, 4)[0]
+    for _ in range(page):
+        ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * struct.unpack_from("<H", data, ifd)[0])[0]
     for k in range(struct.unpack_from("<H", data, ifd)[0]):
         entry = ifd + 2 + 12 * k
         if struct.unpack_from("<H", data, entry)[0] == code:
@@ -550,6 +552,17 @@ def test_tiff_12_bit_packed_still_unpacks(tmp_path):
     path = tmp_path / "p.tif"
     tifffile.imwrite(path, counts[0], photometric="minisblack", bitspersample=12, rowsperstrip=4)
     np.testing.assert_array_equal(read(path).data, counts)
+
+
+def test_tiff_12_bit_pages_packed_and_in_words_are_refused(tmp_path):
+    counts = _frames(2)
+    path = tmp_path / "mixed.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(counts[0], photometric="minisblack", bitspersample=12)  # packed
+        tif.write(counts[1], photometric="minisblack")
+    _set_short_tag(path, 258, 12, page=1)  # words saying 12 bits
+    with pytest.warns(UserWarning, match="16-bit word"), pytest.raises(FormatError, match="not one stack"):
+        read(path)
 
 
 def test_tiff_12_bit_strips_of_neither_size_are_refused(tmp_path):

@@ -551,11 +551,16 @@ def check_virtual_sources(path, ds) -> None:
     seen = set()
     for source in ds.virtual_sources():
         name, dset = source.file_name, source.dset_name
-        if (name, dset) in seen or name == ".":
+        if (name, dset) in seen or name == "." or "%" in name:  # %b: one file per block, unexpanded
             continue
         seen.add((name, dset))
         given = Path(name)
         places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
+        prefix = os.environ.get("HDF5_VDS_PREFIX")  # libhdf5 tries it first
+        if prefix:
+            places.insert(
+                0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
+            )
         found = next((p for p in places if p.is_file()), None)
         if found is None:
             raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")

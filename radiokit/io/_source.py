@@ -302,6 +302,11 @@ class FrameSource:
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
         if self._contiguous:
             self.n = self._contiguous["n"]
+        if self._contiguous and first.bitspersample % 8 and not self._words:
+            raise FormatError(
+                self.path,
+                f"stack of {self.n} images after one IFD holding packed {first.bitspersample}-bit pixels: not read",
+            )
         self.bits = 12 if self._words else None  # words above 4095 then warn (MSB-aligned data)
         self._stored_shape = self.frame_shape
         self._invert = self._tiff_inversion(first)
@@ -477,8 +482,15 @@ class FrameSource:
                     self.path,
                     f"TIFF page {i} holds {have} bytes of pixels; {rows}x{cols} {page.bitspersample}-bit needs {need}",
                 )
-            if 8 < page.bitspersample < 16 and self._words_not_packed(i, page, rows, cols):
-                self._words = True
+            if 8 < page.bitspersample < 16:
+                words = self._words_not_packed(i, page, rows, cols)
+                if i and words != self._words:  # one way of reading serves every page
+                    raise FormatError(
+                        self.path,
+                        f"TIFF page {i} holds {'16-bit words' if words else 'packed rows'}, page 0 "
+                        f"{'16-bit words' if self._words else 'packed rows'}: not one stack of frames",
+                    )
+                self._words = words
 
     def _words_not_packed(self, i, page, rows, cols) -> bool:
         """Whether an uncompressed 9..15-bit page holds 16-bit words rather than packed bits.
