@@ -422,3 +422,246 @@ def test_tiff_variants_read_value_for_value(tmp_path, dtype, byteorder, kw):
     f = read(path)
     assert f.data.shape == (1, 37, 53) and f.data.dtype == np.dtype(dtype)
     np.testing.assert_array_equal(f.data[0], frame)
+
+
+# ------------------------------------------------------------------------------------------------
+# TIFF pixels other software stores differently: WhiteIsZero, palettes, ImageJ's calibration,
+# 12-bit counts in 16-bit words, Orientation
+# ------------------------------------------------------------------------------------------------
+
+
+def _set_short_tag(path, code, value, page=0):
+    """Overwrite a SHORT tag's value in an IFD of a little-endian classic TIFF (to make files
+    tifffile will not write, as other software does)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    for _ in range(page):
+        ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * struct.unpack_from("<H", data, ifd)[0])[0]
+    for k in range(struct.unpack_from("<H", data, ifd)[0]):
+        entry = ifd + 2 + 12 * k
+        if struct.unpack_from("<H", data, entry)[0] == code:
+            struct.pack_into("<H", data, entry + 8, value)
+            path.write_bytes(bytes(data))
+            return
+    raise AssertionError(f"tag {code} not in the first IFD")
+
+
+def _both_ways(path, **hints):
+    """The frames by read() and frame by frame by open_frames(): both must agree."""
+    from radiokit.io import open_frames
+
+    eager = read(path, **hints).data
+    with open_frames(path, **hints) as src:
+        lazy = np.stack(list(src))
+    np.testing.assert_array_equal(eager, lazy)
+    return eager
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_miniswhite_tiff_is_inverted_as_tiff_6_says(tmp_path, dtype):
+    counts = _frames(2, dtype=dtype)
+    top = np.iinfo(dtype).max  # 2**BitsPerSample - 1
+    path = tmp_path / "w.tif"
+    tifffile.imwrite(path, top - counts, photometric="miniswhite")
+    frames = _both_ways(path)
+    assert frames.dtype == dtype
+    np.testing.assert_array_equal(frames, counts)
+
+
+def test_miniswhite_tiff_ignores_max_sample_value_and_says_so(tmp_path):
+    """TIFF 6.0: MaxSampleValue is statistics only; the inversion is against 2**16 - 1."""
+    counts = _frames(1)
+    path = tmp_path / "w12.tif"
+    tifffile.imwrite(path, 4095 - counts, photometric="miniswhite", extratags=[(281, "H", 1, 4095, True)])
+    with pytest.warns(UserWarning, match="MaxSampleValue 4095 is statistics only"):
+        frames = read(path).data
+    np.testing.assert_array_equal(frames, 65535 - (4095 - counts.astype(np.int64)))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int16])
+def test_miniswhite_tiff_of_signed_or_float_pixels_is_refused(tmp_path, dtype):
+    path = tmp_path / "w.tif"
+    tifffile.imwrite(path, np.ones((4, 5), dtype), photometric="miniswhite")
+    with pytest.raises(FormatError, match="MinIsWhite .* unsigned integers only"):
+        read(path)
+
+
+def test_palette_tiff_is_refused(tmp_path):
+    path = tmp_path / "p.tif"
+    cmap = np.repeat(((255 - np.arange(256)) * 257)[None].astype(np.uint16), 3, axis=0)
+    tifffile.imwrite(path, np.arange(20, dtype=np.uint8).reshape(4, 5), photometric="palette", colormap=cmap)
+    with pytest.raises(FormatError, match="palette .* not detector counts"):
+        read(path)
+
+
+def _imagej(path, stored, cf, coefficients):
+    lines = ["ImageJ=1.54f", f"cf={cf}"] + [f"c{k}={c}" for k, c in enumerate(coefficients)] + ["vunit=Gray Value", ""]
+    tifffile.imwrite(path, stored, description="\n".join(lines), photometric="minisblack", metadata=None)
+
+
+def test_imagej_signed_16_bit_reads_as_int16(tmp_path):
+    """ImageJ stores signed 16-bit as uint16 + its straight-line calibration cf=0, c0=-32768, c1=1."""
+    signed = np.array([[[-32768, -2000, -1], [0, 2095, 32767]]], np.int16)
+    path = tmp_path / "s.tif"
+    _imagej(path, (signed.astype(np.int32) + 32768).astype(np.uint16), 0, (-32768.0, 1.0))
+    frames = _both_ways(path)
+    assert frames.dtype == np.int16
+    np.testing.assert_array_equal(frames, signed)
+
+
+def test_imagej_straight_line_calibration_is_applied(tmp_path):
+    stored = _frames(1)
+    path = tmp_path / "line.tif"
+    _imagej(path, stored, 0, (-1.5, 0.25))
+    frames = _both_ways(path)
+    assert frames.dtype == np.float32
+    np.testing.assert_allclose(frames, -1.5 + 0.25 * stored.astype(np.float64), rtol=0, atol=1e-3)
+
+
+def test_imagej_no_calibration_reads_stored_values_as_imagej_shows(tmp_path):
+    """cf=20 is ImageJ's NONE: it ignores c0/c1 then (its FileOpener), so the values are as stored."""
+    stored = _frames(1)
+    path = tmp_path / "none.tif"
+    _imagej(path, stored, 20, (-32768.0, 1.0))
+    with pytest.warns(UserWarning, match="cf=20"):
+        frames = read(path).data
+    np.testing.assert_array_equal(frames, stored)
+
+
+def test_imagej_calibration_function_not_implemented_is_refused(tmp_path):
+    path = tmp_path / "poly.tif"
+    _imagej(path, _frames(1), 1, (1.0, 2.0, 3.0))  # POLY2
+    with pytest.raises(FormatError, match="cf=1 is not read"):
+        read(path)
+
+
+def test_tiff_12_bit_counts_in_16_bit_words_read_as_words(tmp_path):
+    counts = _frames(1)
+    path = tmp_path / "w.tif"
+    tifffile.imwrite(path, counts[0], photometric="minisblack", rowsperstrip=7)
+    _set_short_tag(path, 258, 12)  # BitsPerSample 12 over 16-bit words, as some panel software
+    with pytest.warns(UserWarning, match="BitsPerSample 12 but its strips hold one 16-bit word"):
+        frames = _both_ways(path)
+    np.testing.assert_array_equal(frames, counts)
+
+
+def test_tiff_12_bit_packed_still_unpacks(tmp_path):
+    counts = _frames(1, cols=41)  # odd width: each row padded to a whole byte
+    path = tmp_path / "p.tif"
+    tifffile.imwrite(path, counts[0], photometric="minisblack", bitspersample=12, rowsperstrip=4)
+    np.testing.assert_array_equal(read(path).data, counts)
+
+
+def test_tiff_12_bit_pages_packed_and_in_words_are_refused(tmp_path):
+    counts = _frames(2)
+    path = tmp_path / "mixed.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(counts[0], photometric="minisblack", bitspersample=12)  # packed
+        tif.write(counts[1], photometric="minisblack")
+    _set_short_tag(path, 258, 12, page=1)  # words saying 12 bits
+    with pytest.warns(UserWarning, match="16-bit word"), pytest.raises(FormatError, match="not one stack"):
+        read(path)
+
+
+def test_tiff_12_bit_strips_of_neither_size_are_refused(tmp_path):
+    path = tmp_path / "odd.tif"
+    tifffile.imwrite(path, _frames(1, dtype="<u4")[0], photometric="minisblack")
+    _set_short_tag(path, 258, 12)  # 4 bytes a pixel: neither packed 12-bit nor words
+    with pytest.raises(FormatError, match="fit neither packed 12-bit rows nor 16-bit words"):
+        read(path)
+
+
+@pytest.mark.parametrize(
+    "orientation, view",
+    [
+        (1, lambda a: a),
+        (2, lambda a: a[:, ::-1]),
+        (3, lambda a: a[::-1, ::-1]),
+        (4, lambda a: a[::-1]),
+        (5, lambda a: a.T),
+        (6, lambda a: np.rot90(a, -1)),  # row 0 at the right: turned clockwise to view
+        (7, lambda a: a.T[::-1, ::-1]),  # PIL's exif_transpose: TRANSVERSE
+        (8, lambda a: np.rot90(a, 1)),
+    ],
+)
+def test_tiff_orientation_is_applied_as_a_viewer_does(tmp_path, orientation, view):
+    """TIFF 6.0's Orientation names where stored row 0 and column 0 are seen (5..8 swap rows and
+    columns): frames read so that row 0 is the top and column 0 the left, as a viewer shows them."""
+    stored = _frames(2)
+    path = tmp_path / "o.tif"
+    tifffile.imwrite(path, stored, photometric="minisblack", extratags=[(274, "H", 1, orientation, False)])
+    frames = _both_ways(path)
+    np.testing.assert_array_equal(frames, np.stack([view(f) for f in stored]))
+    assert read(path).meta.get("orientation", 1) == orientation
+
+
+def test_tiff_ifd_chain_that_loops_is_named_a_loop(tmp_path):
+    import struct
+
+    path = tmp_path / "loop.tif"
+    tifffile.imwrite(path, _frames(2), photometric="minisblack")
+    with tifffile.TiffFile(path) as tif:
+        first, second = tif.pages[0].offset, tif.pages[1].offset
+    data = bytearray(path.read_bytes())
+    entries = struct.unpack_from("<H", data, second)[0]
+    struct.pack_into("<I", data, second + 2 + 12 * entries, first)  # page 1's next IFD: page 0
+    path.write_bytes(bytes(data))
+    with pytest.raises(FormatError, match="IFD chain loops: the IFD after page 1 is page 0's again"):
+        read(path)
+
+
+# ------------------------------------------------------------------------------------------------
+# HDF5 images and NeXus defaults of other software
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("shape", [(20, 32, 3), (3, 20, 32)])
+def test_hdf5_truecolour_image_is_refused_not_read_as_frames(tmp_path, shape):
+    path = tmp_path / "rgb.h5"
+    with h5py.File(path, "w") as f:
+        ds = f.create_dataset("img", data=np.zeros(shape, np.uint8))
+        ds.attrs["CLASS"] = np.bytes_("IMAGE")
+        ds.attrs["IMAGE_SUBCLASS"] = np.bytes_("IMAGE_TRUECOLOR")
+    with pytest.raises(FormatError, match="colour image"):
+        read(path, dataset="img")
+
+
+def test_hdf5_virtual_dataset_with_a_missing_source_is_refused_naming_it(tmp_path):
+    stack = _frames(2)
+    layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+    layout[:] = h5py.VirtualSource("src.h5", "data", shape=stack.shape)  # relative: beside the file
+    path = tmp_path / "vds.h5"
+    with h5py.File(path, "w") as f:
+        f.create_virtual_dataset("scan/data", layout, fillvalue=0)
+    with pytest.raises(FormatError, match="source file src.h5 is missing"):
+        read(path, dataset="scan/data", allow_external=True)
+    with h5py.File(tmp_path / "src.h5", "w") as f:
+        f["data"] = stack
+    np.testing.assert_array_equal(read(path, dataset="scan/data", allow_external=True).data, stack)
+
+
+def test_nexus_default_given_as_a_path_is_followed(tmp_path):
+    """ESRF's Lima/bliss: the NXentry's @default is "measurement/pco", which silx follows."""
+    stack = _frames(3)
+    path = tmp_path / "lima.h5"
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry_0000"), "NXentry")
+        _nx_class(entry.create_group("instrument/pco"), "NXdetector")["data"] = stack
+        plot = _nx_class(entry.create_group("measurement/pco"), "NXdata")
+        plot.attrs["signal"] = "data"
+        plot["data"] = h5py.SoftLink("/entry_0000/instrument/pco/data")
+        entry.attrs["default"] = "measurement/pco"
+        f.attrs["default"] = "entry_0000"
+    np.testing.assert_array_equal(read(path).data, stack)
+
+
+def test_nexus_signal_naming_a_missing_dataset_says_so(tmp_path):
+    path = tmp_path / "missing.h5"
+    with h5py.File(path, "w") as f:
+        plot = _nx_class(_nx_class(f.create_group("entry"), "NXentry").create_group("plot"), "NXdata")
+        plot.attrs["signal"] = "nothere"
+        plot["other"] = _frames(1)
+    with pytest.raises(FormatError, match="@signal names 'nothere', which /entry/plot does not hold"):
+        read(path)

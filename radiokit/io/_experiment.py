@@ -539,6 +539,40 @@ def check_local(path, h5, ds, allow_external=False) -> None:
         _refuse_external(path, f"{ds.name} is stored in external raw files")
 
 
+def check_virtual_sources(path, ds) -> None:
+    """Refuse a virtual dataset whose source file or dataset is missing: libhdf5 reads the
+    unmapped parts as the fill value, so a moved or deleted source read as frames of zeros.
+
+    A source named ``.`` is the file itself. Others are found as libhdf5 looks for them: a
+    relative name beside the virtual file (its ``${ORIGIN}``), then from the working directory;
+    an absolute name as given, then its base name beside the virtual file.
+    """
+    folder = Path(ds.file.filename).parent
+    seen = set()
+    for source in ds.virtual_sources():
+        name, dset = source.file_name, source.dset_name
+        if (name, dset) in seen or name == "." or "%" in name:  # %b: one file per block, unexpanded
+            continue
+        seen.add((name, dset))
+        given = Path(name)
+        places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
+        prefix = os.environ.get("HDF5_VDS_PREFIX")  # libhdf5 tries it first
+        if prefix:
+            places.insert(
+                0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
+            )
+        found = next((p for p in places if p.is_file()), None)
+        if found is None:
+            raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
+        try:
+            with h5py.File(found, "r") as src:
+                present = isinstance(src.get(dset), h5py.Dataset)
+        except OSError as exc:
+            raise FormatError(path, f"{ds.name}: its virtual source {found} cannot be opened: {exc}") from None
+        if not present:
+            raise FormatError(path, f"{ds.name}: its virtual source {found} holds no dataset {dset}")
+
+
 def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
@@ -550,6 +584,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
     if not isinstance(ds, h5py.Dataset):
         raise FormatError(path, f"/{name} is not a dataset")
     check_local(path, h5, ds, allow_external)
+    if ds.is_virtual:  # allowed: its sources must be there, or libhdf5 gives the fill value
+        check_virtual_sources(path, ds)
     if not _plain_numbers(ds.dtype, kinds):
         raise FormatError(
             path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"

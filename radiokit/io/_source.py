@@ -287,6 +287,7 @@ class FrameSource:
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._contiguous_stack(first, all_pages)
+        self._words = False  # BitsPerSample 12 (or 9..15) held in 16-bit words, not packed
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
@@ -294,16 +295,43 @@ class FrameSource:
                     self.path,
                     f"TIFF frame {i} holds {page.dtype} pixels, frame 0 {first.dtype}: not one stack of frames",
                 )
+            for name, code, default in (("PhotometricInterpretation", 262, 1), ("Orientation", 274, 1)):
+                if page.tags.valueof(code, default) != first.tags.valueof(code, default):
+                    raise FormatError(
+                        self.path,
+                        f"TIFF page {index[i]} has {name} {page.tags.valueof(code, default)}, page {index[0]} "
+                        f"{first.tags.valueof(code, default)}: not one stack of frames",
+                    )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
         if self._contiguous:
             self.n = self._contiguous["n"]
-        self.bits = None
+        if self._contiguous and first.bitspersample % 8 and not self._words:
+            raise FormatError(
+                self.path,
+                f"stack of {self.n} images after one IFD holding packed {first.bitspersample}-bit pixels: not read",
+            )
+        self.bits = 12 if self._words else None  # words above 4095 then warn (MSB-aligned data)
+        self._stored_shape = self.frame_shape
+        self._invert = self._tiff_inversion(first)
+        self._line = self._imagej_calibration(first)
+        self._orientation = self._tiff_orientation(first)
+        if self._line is not None:
+            self.dtype = self._line[2]
+        if self._orientation >= 5:  # the transposing orientations swap rows and columns
+            self.frame_shape = self.frame_shape[::-1]
+        shape = self.frame_shape
         tags = {
             tag.name: tag.value.name if hasattr(tag.value, "name") else tag.value
             for tag in first.tags
             if tag.name in _TIFF_TAGS
         }
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
+        if self._orientation != 1:
+            self.meta["orientation"] = self._orientation  # applied: row 0 is the top as viewers show it
+        if self._invert is not None:
+            self.meta["photometric"] = "miniswhite"  # inverted to counts (MinIsBlack)
+        if self._line is not None:
+            self.meta["imagej_calibration"] = {"c0": self._line[0], "c1": self._line[1]}
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
@@ -355,8 +383,20 @@ class FrameSource:
                 if nbytes and offset + nbytes > size:
                     raise broken(f"image data of page {index}")
         # the last IFD must end the chain
-        if entries and struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] != 0:
+        following = struct.unpack(t.offsetformat, entries[-t.offsetsize :])[0] if entries else 0
+        if following in {page.offset for page in pages}:  # tifffile stops at the circle
+            back = [page.offset for page in pages].index(following)
+            raise FormatError(
+                self.path,
+                f"TIFF IFD chain loops: the IFD after page {len(pages) - 1} is page {back}'s again (offset {following}): corrupt",
+            )
+        if following >= size:
             raise broken(f"IFD after page {len(pages) - 1}")
+        if following:
+            raise FormatError(
+                self.path,
+                f"TIFF IFD after page {len(pages) - 1} (offset {following}) is not a readable IFD: corrupt",
+            )
 
     def _contiguous_stack(self, first, pages) -> dict | None:
         """The geometry of a stack stored after a single IFD, else None.
@@ -445,14 +485,168 @@ class FrameSource:
                     self.path,
                     f"TIFF page {i} holds {have} bytes of pixels; {rows}x{cols} {page.bitspersample}-bit needs {need}",
                 )
+            if 8 < page.bitspersample < 16:
+                words = self._words_not_packed(i, page, rows, cols)
+                if i and words != self._words:  # one way of reading serves every page
+                    raise FormatError(
+                        self.path,
+                        f"TIFF page {i} holds {'16-bit words' if words else 'packed rows'}, page 0 "
+                        f"{'16-bit words' if self._words else 'packed rows'}: not one stack of frames",
+                    )
+                self._words = words
+
+    def _words_not_packed(self, i, page, rows, cols) -> bool:
+        """Whether an uncompressed 9..15-bit page holds 16-bit words rather than packed bits.
+
+        TIFF packs such samples, each row starting on a byte boundary: a strip of r rows holds
+        r * ceil(cols * bits / 8) bytes. Some writers store the 12-bit counts in 16-bit words and
+        still say BitsPerSample 12; their strips hold r * cols * 2 bytes, which unpacking as packed
+        bits turns to garbage. The strip byte counts tell which; neither is an error.
+        """
+        bits = int(page.bitspersample)
+        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+        packed = words = 0
+        for k, nbytes in enumerate(page.databytecounts):
+            r = min(per_strip, rows - k * per_strip)
+            need_packed, need_words = r * ((cols * bits + 7) // 8), r * cols * 2
+            # the same size either way (one 12-bit column, narrow 15-bit rows): TIFF's packing
+            packed += need_packed <= nbytes and (nbytes < need_words or need_packed == need_words)
+            words += nbytes == need_words
+        n = len(page.databytecounts)
+        if packed == n:
+            return False
+        if words == n and page.fillorder == 1 and page.samplesperpixel == 1:
+            if not self._words:
+                warnings.warn(
+                    f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one 16-bit word per pixel: "
+                    f"read as 16-bit words",
+                    UserWarning,
+                    stacklevel=6,  # the caller of read() / open_frames(),
+                )
+            return True
+        raise FormatError(
+            self.path,
+            f"TIFF page {i}: its strip byte counts {list(page.databytecounts)[:4]} fit neither packed {bits}-bit "
+            f"rows nor 16-bit words for {rows}x{cols} pixels",
+        )
 
     def _read_tiff(self, i):
         if self._contiguous:
-            return read_raw_frame(self._fh, self._contiguous, i)
-        frame = self._pages[i].asarray()
-        if frame.shape != self.frame_shape:
-            raise FormatError(self.path, f"page {i} decodes to {frame.shape}, expected {self.frame_shape}")
-        return frame
+            frame = read_raw_frame(self._fh, self._contiguous, i)
+        elif self._words:
+            frame = self._read_words(self._pages[i])
+        else:
+            frame = self._pages[i].asarray()
+        if frame.shape != self._stored_shape:
+            raise FormatError(self.path, f"page {i} decodes to {frame.shape}, expected {self._stored_shape}")
+        if self._invert is not None:
+            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
+        if self._line is not None:
+            c0, c1, dtype = self._line
+            frame = (frame.astype(np.int32) + int(c0)) if dtype == np.int16 else (c0 + c1 * frame.astype(np.float64))
+            frame = frame.astype(dtype)
+        return _ORIENT[self._orientation](frame)
+
+    def _read_words(self, page) -> np.ndarray:
+        """A page whose strips hold one 16-bit word per pixel although BitsPerSample says fewer."""
+        fh = self._tif.filehandle
+        parts = []
+        for offset, nbytes in zip(page.dataoffsets, page.databytecounts):
+            fh.seek(offset)
+            parts.append(fh.read(nbytes))
+        words = np.frombuffer(b"".join(parts), np.dtype(self._tif.byteorder + "u2"))
+        return words.reshape(self._stored_shape).astype(np.uint16)
+
+    def _tiff_inversion(self, page):
+        """The value TIFF 6.0's WhiteIsZero (PhotometricInterpretation 0) subtracts from, else None.
+
+        TIFF 6.0: 0 is imaged as white and 2**BitsPerSample - 1 as black, so the detector's count
+        is ``2**BitsPerSample - 1 - v``; MaxSampleValue "is not to be used to affect the visual
+        appearance ... nor the interpretation of any other field" (statistics only), as libtiff
+        ignores it too. A palette is no radiograph; signed and float pixels have no defined maximum.
+        """
+        photometric = page.tags.valueof(262)
+        if photometric == 3:
+            raise FormatError(
+                self.path,
+                "TIFF is a palette (colour-mapped) image: its pixels are indices into a colour table, "
+                "not detector counts; save the frames as greyscale",
+            )
+        if photometric not in (None, 0, 1):  # 2D pages only here: mask, CFA, depth, ...
+            name = getattr(page.photometric, "name", photometric)
+            raise FormatError(self.path, f"TIFF PhotometricInterpretation is {name}: not a greyscale image")
+        if photometric != 0:
+            return None
+        kind = np.dtype(page.dtype).kind
+        if kind == "b":
+            return True  # bilevel: inverted with ~
+        if kind != "u":
+            raise FormatError(
+                self.path,
+                f"TIFF is MinIsWhite with {np.dtype(page.dtype)} pixels: TIFF 6.0 defines the inversion "
+                "for unsigned integers only; save the frames as MinIsBlack",
+            )
+        if self._words:
+            raise FormatError(
+                self.path, "TIFF is MinIsWhite and holds 16-bit words where BitsPerSample says fewer: ambiguous"
+            )
+        top = (1 << int(page.bitspersample)) - 1
+        stored_max = page.tags.valueof(281)
+        if stored_max is not None and int(np.max(stored_max)) < top:
+            warnings.warn(
+                f"{self.path}: MinIsWhite TIFF: values read as {top} - stored (TIFF 6.0, {page.bitspersample}-bit); "
+                f"its MaxSampleValue {int(np.max(stored_max))} is statistics only and not used, so a writer "
+                f"that inverted within 0..{int(np.max(stored_max))} reads {top - int(np.max(stored_max))} higher",
+                UserWarning,
+                stacklevel=5,  # the caller of read() / open_frames(),
+            )
+        return np.dtype(page.dtype).type(top)
+
+    def _imagej_calibration(self, page):
+        """ImageJ's density calibration as ``(c0, c1, dtype)`` when it is a straight line, else None.
+
+        ImageJ's description holds ``cf=`` (its Calibration function code: 0 straight line, 1..13
+        fits, 20 none, 21 uncalibrated OD) and ``c0=, c1=, ...``; ImageJ applies it to 8- and
+        16-bit images when a ``vunit=`` is given and the code is 0..13 (with coefficients) or 21.
+        Its signed 16-bit images are uint16 with ``cf=0 c0=-32768 c1=1``: read as int16, exactly.
+        Another straight line reads as float32 (ImageJ's own table is float); other functions are
+        refused rather than read uncalibrated.
+        """
+        meta = self._tif.imagej_metadata if self._tif.is_imagej else None
+        if not meta or "cf" not in meta or "vunit" not in meta or np.dtype(page.dtype).itemsize > 2:
+            return None
+        cf = meta["cf"]
+        coefficients = [meta.get(f"c{k}") for k in range(5)]
+        coefficients = coefficients[: coefficients.index(None)] if None in coefficients else coefficients
+        if cf == 20 and coefficients:
+            warnings.warn(
+                f"{self.path}: its ImageJ description gives c0..c{len(coefficients) - 1} with cf=20, ImageJ's "
+                "'no calibration' (signed 16-bit is cf=0): ImageJ shows the stored values, and so they are read",
+                UserWarning,
+                stacklevel=5,  # the caller of read() / open_frames(),
+            )
+        if cf == 20 or (cf != 21 and len(coefficients) < 2):
+            return None  # ImageJ's NONE: shown as stored (coefficients then unused, as ImageJ does)
+        if cf != 0:
+            raise FormatError(
+                self.path,
+                f"ImageJ calibration function cf={cf} is not read (only cf=0, a straight line): "
+                "save the calibrated values as 32-bit, or the frames uncalibrated",
+            )
+        if self._invert is not None:
+            raise FormatError(self.path, "TIFF is MinIsWhite and ImageJ-calibrated: ambiguous")
+        c0, c1 = float(coefficients[0]), float(coefficients[1])
+        if page.dtype == np.uint16 and (c0, c1) == (-32768.0, 1.0):
+            return c0, c1, np.dtype(np.int16)
+        return c0, c1, np.dtype(np.float32)
+
+    def _tiff_orientation(self, page) -> int:
+        """TIFF's Orientation (1..8), applied as a viewer does; 1 (row 0 at the top, column 0 at
+        the left) when absent."""
+        value = page.tags.valueof(274, 1)
+        if value not in _ORIENT:
+            raise FormatError(self.path, f"TIFF Orientation is {value}: TIFF 6.0 defines 1 to 8")
+        return int(value)
 
     def _open_hdf5(self, dataset=None, **hints):
         self._h5 = open_h5(self.path)
@@ -460,9 +654,12 @@ class FrameSource:
             check_links(self.path, self._h5, FRAMES, self._allow_external)
             if not _is_experiment(self._h5):
                 # another NeXus file: radiokit's other outputs, or another lab's NXdetector frames
-                dataset = _nexus_signal(self._h5) or (f"/{FRAMES}" if FRAMES in self._h5 else None)
+                dataset, missing = _nexus_signal(self._h5)
+                dataset = dataset or (f"/{FRAMES}" if FRAMES in self._h5 else None)
                 if dataset is None and CALIBRATION in self._h5:
                     return self._open_calibration()
+                if dataset is None and missing:
+                    raise FormatError(self.path, missing)
         if dataset:
             check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
@@ -472,6 +669,7 @@ class FrameSource:
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
+            _refuse_colour(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
             meta = {"format": "hdf5", "dataset": dataset}
             if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
@@ -657,8 +855,10 @@ def read(path, /, **hints) -> Frames:
     Returns
     -------
     Frames
-        ``data`` of shape (n, rows, cols) in the file's dtype (native byte order), row 0 as stored;
-        ``meta`` with ``format`` and whatever the file records.
+        ``data`` of shape (n, rows, cols) in the file's dtype (native byte order), row 0 as stored
+        (a TIFF's Orientation applied; MinIsWhite inverted; ImageJ's straight-line calibration
+        applied, its signed 16-bit as int16, another line as float32); ``meta`` with ``format``
+        and whatever the file records.
 
     Raises
     ------
@@ -714,31 +914,79 @@ def _is_experiment(h5: h5py.File) -> bool:
     return h5.get(IMAGE_KEY, getlink=True) is not None or "frames_complete" in h5[ENTRY].attrs
 
 
-def _nexus_signal(h5: h5py.File) -> str | None:
+def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
-    an NXentry and on to an NXdata, else take the only NXentry and its only NXdata; the
-    NXdata's ``@signal`` names the dataset. ``None`` when the file does not say."""
+    an NXentry and on to an NXdata (a name, or a path such as ``measurement/pco`` as silx follows),
+    else take the only NXentry and its only NXdata; the NXdata's ``@signal`` names the dataset.
+    Returns ``(name, None)``, or ``(None, why)``: ``why`` is None when the file does not say, else
+    that the ``@signal`` names nothing there."""
 
-    def child(group, nx_class):  # only hard links: nothing outside the file is ever followed
-        local = [k for k in group if isinstance(group.get(k, getlink=True), h5py.HardLink)]
-        name = group.attrs.get("default")
+    def follow(group, name):  # only hard links: nothing outside the file is ever followed
         if isinstance(name, bytes):
-            name = name.decode()
-        if name in local and isinstance(group[name], h5py.Group):
-            return group[name]
+            name = name.decode("utf-8", "replace")
+        if not isinstance(name, str) or not name.strip("/"):
+            return None
+        node = group.file if name.startswith("/") else group
+        for part in (p for p in name.split("/") if p):
+            if not isinstance(node, h5py.Group) or not isinstance(node.get(part, getlink=True), h5py.HardLink):
+                return None
+            node = node[part]
+        return node if isinstance(node, h5py.Group) else None
+
+    def child(group, nx_class):
+        found = follow(group, group.attrs.get("default"))
+        if found is not None:
+            return found
+        local = [k for k in group if isinstance(group.get(k, getlink=True), h5py.HardLink)]
         found = [group[k] for k in local if isinstance(group[k], h5py.Group) and _nx_class(group[k]) == nx_class]
         return found[0] if len(found) == 1 else None
 
     entry = child(h5, "NXentry")
-    data = child(entry, "NXdata") if entry is not None else None
+    # a root @default may name the NXdata itself, as an NXentry's would
+    data = entry if entry is not None and _nx_class(entry) == "NXdata" else None
+    if data is None and entry is not None:
+        data = child(entry, "NXdata")
     signal = data.attrs.get("signal") if data is not None else None
     if isinstance(signal, bytes):
-        signal = signal.decode()
+        signal = signal.decode("utf-8", "replace")
+    if isinstance(signal, str) and data.get(signal, getlink=True) is None:
+        return None, f"NeXus {data.name}@signal names {signal!r}, which {data.name} does not hold"
     # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
     # frames so); an external one is left to the caller's check_links, which refuses it
     if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
-        return None
-    return f"{data.name}/{signal}"
+        return None, None
+    return f"{data.name}/{signal}", None
+
+
+def _refuse_colour(path, data) -> None:
+    """A colour image is no radiograph: HDF5's Image spec (``CLASS=IMAGE``) marks a truecolour one
+    ``IMAGE_TRUECOLOR`` ((rows, cols, 3) pixel-interlaced or (3, rows, cols) planes) and an indexed
+    one ``IMAGE_INDEXED`` with a ``PALETTE``; read as frames they were rows frames of cols x 3."""
+    attrs = data.attrs
+    if text(attrs.get("CLASS", b"")) != "IMAGE":
+        return
+    subclass = text(attrs.get("IMAGE_SUBCLASS", b""))
+    if subclass == "IMAGE_TRUECOLOR":
+        raise FormatError(path, f"{data.name} is a colour image (HDF5 IMAGE_TRUECOLOR, {data.shape}), not frames")
+    if subclass == "IMAGE_INDEXED" or "PALETTE" in attrs:
+        raise FormatError(
+            path, f"{data.name} is a palette image (HDF5 IMAGE_INDEXED): colour-table indices, not counts"
+        )
+
+
+#: TIFF 6.0's Orientation: where the stored 0th row and 0th column are on the visual image
+#: (1 top/left, 2 top/right, 3 bottom/right, 4 bottom/left, 5 left/top, 6 right/top, 7 right/bottom,
+#: 8 left/bottom), each as the view that puts row 0 at the top and column 0 at the left
+_ORIENT = {
+    1: lambda a: a,
+    2: lambda a: np.ascontiguousarray(a[:, ::-1]),
+    3: lambda a: np.ascontiguousarray(a[::-1, ::-1]),
+    4: lambda a: np.ascontiguousarray(a[::-1, :]),
+    5: lambda a: np.ascontiguousarray(a.T),
+    6: lambda a: np.ascontiguousarray(a.T[:, ::-1]),
+    7: lambda a: np.ascontiguousarray(a.T[::-1, ::-1]),
+    8: lambda a: np.ascontiguousarray(a.T[::-1, :]),
+}
 
 
 def _nx_class(group) -> str:
