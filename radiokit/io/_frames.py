@@ -22,7 +22,8 @@ class Frames:
     Attributes
     ----------
     data : ndarray, shape (n, rows, cols)
-        Pixels in the file's own dtype and order; row 0 is the first row stored (a TIFF's Orientation tag applied: row 0 at the top as viewers show it).
+        Pixels in the file's own dtype and order; row 0 is the first row stored (a TIFF's
+        Orientation tag applied: row 0 at the top as viewers show it).
     meta : dict
         Everything else the file says, nested where the file nests it. Always has ``format``.
     path : Path
