@@ -262,20 +262,7 @@ class FrameSource:
         first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
-            hint = ""
-            if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
-                hint = (
-                    f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
-                    f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
-                    "again with that"
-                )
-            elif first.samplesperpixel in (2, 3, 4) and first.photometric in (1, 2):  # interleaved colour
-                what = {2: "a grey image with alpha", 3: "an RGB image", 4: "an RGBA image"}[first.samplesperpixel]
-                hint = (
-                    f": {what}, a viewer's display copy rather than the detector's counts; read the "
-                    "frames the detector software saved"
-                )
-            raise FormatError(self.path, f"TIFF page has shape {shape}; expected a greyscale (rows, cols) image{hint}")
+            raise self._not_greyscale(first)
         if 0 in shape:  # before the layout checks divide by it
             raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
         for i in index:
@@ -319,6 +306,30 @@ class FrameSource:
             self.dtype = self._line[2]
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
+        self._tiff_meta(first)
+
+    def _not_greyscale(self, first) -> FormatError:
+        """The refusal of a page that is not one (rows, cols) image, naming what it is."""
+        hint = ""
+        if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
+            hint = (
+                f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
+                f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
+                "again with that"
+            )
+        elif first.samplesperpixel in (2, 3, 4) and first.photometric in (1, 2):  # interleaved colour
+            what = {2: "a grey image with alpha", 3: "an RGB image", 4: "an RGBA image"}[first.samplesperpixel]
+            hint = (
+                f": {what}, a viewer's display copy rather than the detector's counts; read the "
+                "frames the detector software saved"
+            )
+        return FormatError(
+            self.path, f"TIFF page has shape {first.shape}; expected a greyscale (rows, cols) image{hint}"
+        )
+
+    def _tiff_meta(self, first) -> None:
+        """``meta``: the frames' size and type, page 0's tags of note, what reading applied, and a
+        JSON ImageDescription parsed."""
         shape = self.frame_shape
         tags = {
             tag.name: tag.value.name if hasattr(tag.value, "name") else tag.value
