@@ -15,11 +15,12 @@ reply (:class:`Query`, :class:`Command`, :class:`Choice`, in the manner of PyMea
 each keeping the safety rules of the hardware notes:
 
 - :meth:`L8121.warm_up` starts the warm-up (A: ``WUP``; B: ``XON`` while ``DAG`` says ``YET``) only
-  when it is needed and the interlock is closed, and waits for standby;
+  when it is needed and the interlock is closed, after setting the values it emits at (given, or
+  the configuration's lowest) and reading them back, and waits for standby;
 - :meth:`L8121.on` checks voltage, current and power against :meth:`SourceConfig.check_exposure`
   *before sending anything*, requires standby (B: ``STS STANDBY`` and ``DAG ... END``) and a closed
-  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``), switches on and
-  waits for a stable beam;
+  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them
+  back (A: ``SVI``; B: ``SPV``/``SPC``), switches on and waits for a stable beam;
 - :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
   ``SCU``, ``SIN``) and, on overload, an open interlock or a dropped beam, switches off and raises
   :class:`~acquisition.errors.SourceFault`;
@@ -1167,6 +1168,9 @@ class L8121:
         #: said to switch off at the controller, and asking a silent controller again only delays
         #: that message.
         self.off_failed: DeviceError | None = None
+        #: What the last :meth:`warm_up` set (and read back) before starting its warm-up: ``(kV,
+        #: µA, given)``, given False for the configuration's lowest; None when it started none.
+        self.warmup_values: tuple[int, int, bool] | None = None
         if connect:
             self.connect()
 
@@ -1711,6 +1715,10 @@ class L8121:
             else:
                 self._do(current, ua_i)
                 self._do(voltage, kv_i)
+            if not beam_on:
+                # the next command may be an X-ray command (on(), a warm-up): it goes only after the
+                # controller has read back what it will emit at (a wrong voltage_scale shows here)
+                self._read_back(kv_i, ua_i)
             if beam_on:
                 self._beam = (kv_i, ua_i)
                 self._wait_stable(kv_i, ua_i, time.monotonic())
@@ -1720,12 +1728,25 @@ class L8121:
             raise
         return kv_i, ua_i
 
+    def _read_back(self, kv: int, ua: int) -> tuple[float, float]:
+        """Read the set values back (A: ``SVI``; B: ``SPV``, ``SPC``) and require the whole
+        ``kv``, ``ua`` just sent; raises :class:`DeviceError` otherwise (no X-ray command follows)."""
+        got_kv, got_ua = self.setpoint()
+        if abs(got_kv - kv) >= 0.5 or abs(got_ua - ua) >= 0.5:
+            raise DeviceError(
+                f"{self.port}: the controller reads back {got_kv:g} kV {got_ua:g} µA after {kv} kV {ua} µA were "
+                f"set (voltage_scale {self.voltage_scale:g}); no X-ray command sent"
+            )
+        return got_kv, got_ua
+
     def warm_up(
         self,
         timeout_s: float | None = None,
         progress: bool | Callable[[float, SourceState], Any] = True,
         *,
         force: bool = False,
+        kv: float | None = None,
+        ua: float | None = None,
     ) -> float:
         """Run the controller's warm-up sequence and wait until it reports standby.
 
@@ -1746,6 +1767,17 @@ class L8121:
             poll; ``False``: quiet.
         force : bool
             Dialect A: send ``WUP`` even when the warm-up is done. Refused in dialect B.
+        kv, ua : float, optional
+            The tube voltage and current to set before the warm-up starts (both or neither).
+            ``L8121.md`` does not say what a warm-up emits at; B's warm-up is an ``XON``, which
+            emits at the presets, and a warm-up that runs on into X-rays on keeps them. So before
+            the start command (A ``WUP``, B ``XON``) the set values are made valid in both
+            dialects: given, they are checked (nothing sent when out of range), set (A ``HIV``,
+            ``CUR``; B ``PHV``, ``PCU``) and read back (A ``SVI``; B ``SPV``, ``SPC``); not given,
+            the lowest-power values the configuration allows (``kv_min``, ``ua_min``: 40 kV 0 µA
+            by default) are set and read back the same way. A refusal or another read-back stops
+            the warm-up before any X-ray command. What was set is kept in :attr:`warmup_values`
+            (``(kv, ua, given)``; None: no warm-up was started).
 
         Returns
         -------
@@ -1766,9 +1798,15 @@ class L8121:
                 f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
                 f"nothing sent"
             )
+        if (kv is None) != (ua is None):
+            raise ValueError(f"{self.port}: warm_up() takes kv and ua together (or neither); nothing sent")
+        wanted = None if kv is None else self.validate(kv, ua)  # checked before anything is sent
+        self.warmup_values = None
         state = self.settled_status()
         if not self._warm_up_needed(state, force):
             return 0.0
+        if state != SourceState.WARMING_UP:  # a start command follows: its settings first
+            self.warmup_values = self._warm_up_values(wanted)
         bar = None
         if progress is True:
             from tqdm.auto import tqdm
@@ -1796,6 +1834,27 @@ class L8121:
         elapsed = time.monotonic() - t0
         logger.info("%s: warm-up done in %.1f s", self.port, elapsed)
         return elapsed
+
+    def _warm_up_values(self, wanted: tuple[int, int] | None) -> tuple[int, int, bool]:
+        """Set, and read back, the values a warm-up will emit at, before its start command: ``wanted``
+        (validated already), else the lowest-power ones the configuration allows (the tube off: A
+        ``HIV``/``CUR``, B the presets ``PHV``/``PCU``). Raises before any X-ray command when the
+        controller refuses them or reads back others."""
+        given = wanted is not None
+        if not given:
+            c = self.config
+            wanted = self.validate(math.ceil(max(c.kv_min, RATINGS.kv_min)), math.ceil(max(c.ua_min, 0.0)))
+        try:
+            self.set_values(*wanted)  # read back inside (_read_back)
+        except DeviceError as exc:
+            raise DeviceError(f"{exc}; warm-up not started") from None
+        logger.info(
+            "%s: warm-up settings %d kV %d µA (%s) set and read back",
+            self.port,
+            *wanted,
+            "given" if given else "the lowest the configuration allows",
+        )
+        return wanted[0], wanted[1], given
 
     def _warm_up_needed(self, state: SourceState, force: bool) -> bool:
         """Whether to start (or wait for) a warm-up; raises when one must not start now."""

@@ -275,7 +275,8 @@ def test_settings_read_like_the_manual(source, wire):
     src.focus = 2
     assert model.commands[-1] == wire["focus_2"] and src.focus == 2
     assert src.set_values(60, 250) == (60, 250)
-    assert model.commands[-2:] == wire["set_60_250"]
+    n = len(wire["setpoint"])  # tube off: the values are read back after they are set
+    assert model.commands[-2 - n :] == wire["set_60_250"] + wire["setpoint"]
     assert src.setpoint() == (60.0, 250.0) and (model.set_kv, model.set_ua) == (60, 250)
     with pytest.raises(ValueError, match="focus_modes"):
         src.focus = 7
@@ -302,7 +303,8 @@ def test_set_values_orders_voltage_and_current_to_stay_within_power(source, dial
     src.config.watts_max = model.watts_max = 40
     src.set_values(60, 500)
     src.set_values(150, 100)
-    assert model.commands[-2:] == {"A": ["CUR 100", "HIV 150"], "B": ["PCU 100", "PHV 1500"]}[dialect]
+    sent = {"A": ["CUR 100", "HIV 150"], "B": ["PCU 100", "PHV 1500"]}[dialect]
+    assert model.commands[-2 - len(WIRE[dialect]["setpoint"]) :] == sent + WIRE[dialect]["setpoint"]
     assert (model.set_kv, model.set_ua) == (150, 100)
 
 
@@ -532,6 +534,77 @@ def test_warm_up_completes(cold, dialect, wire):
     assert model.commands.count(wire["warm"]) == 1
     assert seconds >= 0.9 * WARMUP_S
     assert SourceState.WARMING_UP in seen and not model.xray_on
+
+
+def before_the_start(model: L8121Model, wire) -> list[str]:
+    """The commands the model received before the (first) warm-up start command."""
+    cmds = model.commands
+    return cmds[: cmds.index(wire["warm"])]
+
+
+@pytest.mark.parametrize("given", [(60, 250), None])
+def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, wire, given):
+    """Found: B's warm-up sent XON (which emits, at the presets) without setting or reading the
+    presets, and A's WUP likewise; L8121.md says nothing of what a warm-up emits at. Now both set
+    the values (given, or the configuration's lowest, 40 kV 0 µA) and read them back first."""
+    model, server = cold
+    kw = {} if given is None else dict(kv=given[0], ua=given[1])
+    kv, ua = given or (40, 0)
+    with driver(server, dialect) as src:
+        src.warm_up(timeout_s=10, progress=False, **kw)
+        assert src.warmup_values == (kv, ua, given is not None)
+    sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
+    assert before_the_start(model, wire)[-len(sets) - len(wire["setpoint"]) :] == sets + wire["setpoint"]
+    assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
+
+
+def test_warm_up_refuses_values_the_controller_reads_back_otherwise(dialect, wire):
+    """A unit whose voltage unit is not the configured one (a tenth of it: A's ``HIV 60`` and B's
+    ``PHV 600`` are 6 kV there) reads back another voltage: refused before the warm-up's X-ray
+    command, and before on()'s XON."""
+    scale = {"A": 10, "B": 100}[dialect]
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S, voltage_scale=scale, kv_min=1)
+    with PtyServer(model) as server, driver(server, dialect) as src:
+        with pytest.raises(
+            DeviceError, match=r"reads back 6 kV 250 µA after 60 kV 250 µA were set.*warm-up not started"
+        ):
+            src.warm_up(timeout_s=10, progress=False, kv=60, ua=250)
+        model.warm()
+        with pytest.raises(DeviceError, match=r"reads back 6 kV 250 µA after 60 kV 250 µA.*no X-ray command sent"):
+            src.on(60, 250)
+    assert not {"XON", "WUP"} & set(model.commands) and not model.xray_on
+
+
+def test_warm_up_refuses_bad_values_before_anything_is_sent(cold, dialect):
+    model, server = cold
+    with driver(server, dialect) as src:
+        n = len(model.commands)
+        with pytest.raises(ValueError, match="voltage_kv = 900 kV is outside"):
+            src.warm_up(progress=False, kv=900, ua=250)
+        with pytest.raises(ValueError, match="kv and ua together"):
+            src.warm_up(progress=False, kv=60)
+        assert model.commands[n:] == []
+
+
+def test_cli_source_warm_up_says_what_it_set(dialect, capsys):
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmup_s=0.1, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect, "-q"]
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60", "--ua", "250"]) == 0
+        out = capsys.readouterr().out
+        assert "set 60 kV 250 uA before it started, read back by the controller (--kv/--ua)" in out, out
+        assert (model.set_kv, model.set_ua) == (60, 250)
+        model.require_warm_up()
+        assert main(["acquire", "source", "warm-up", *port]) == 0
+        assert "set 40 kV 0 uA before it started" in capsys.readouterr().out
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60", "--ua", "250"]) == 0
+        assert "no warm-up needed: nothing sent that emits (--kv 60 --ua 250 not set" in capsys.readouterr().out
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60"]) == 2
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "200", "--ua", "250"]) == 2
+        assert "nothing was sent" in capsys.readouterr().err
+    assert not model.xray_on
 
 
 def test_warm_up_with_a_progress_bar(cold, dialect, capsys):
