@@ -967,19 +967,38 @@ def test_a_poll_begun_during_a_switch_off_sends_nothing(source, dialect):
 
 
 def test_operate_switch_turned_to_local_while_on(source, dialect):
-    """Someone turns the operate switch to LOCAL while X-rays are on: XOF is refused, off() says
-    it could not confirm -- naming the switch where the dialect can read it -- and succeeds once
-    the switch is back on REMOTE."""
+    """Someone turns the operate switch to LOCAL while X-rays are on. A: L8121.md's XOF is "always
+    accepted", so off() confirms as usual (the emulator refused it before, and the test leaned on
+    that). B: its notes say remote control needs REMOTE, with no exception for XOF: refused, off()
+    says it could not confirm, naming the switch, and succeeds once the switch is back on REMOTE."""
     src, model = source
     src.on(60, 250)
     model.set_operate_switch("LOCAL")
-    with pytest.raises(
-        DeviceError, match="could not confirm X-rays off" + (".*the operate switch is LOCAL" if dialect == "B" else "")
-    ):
+    if dialect == "A":
+        assert src.off() == SourceState.STANDBY and not model.xray_on
+        assert model.log[-2].command == "XOF" and model.log[-2].reply == "XOF"
+        return
+    with pytest.raises(DeviceError, match="could not confirm X-rays off.*the operate switch is LOCAL"):
         src.off()
     assert model.xray_on
     model.set_operate_switch("REMOTE")
     assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_emulator_a_accepts_xof_whatever_the_operate_switch(dialect, switch):
+    """L8121.md, dialect A: "XOF | XOF | X-rays off; always accepted"; a rejected command is one
+    "not in remote mode" among others, so every other control command is refused there. B's notes
+    say only "remote control needs REMOTE": its XOF is refused like the rest."""
+    m = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0)
+    assert m.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]) != "ERROR" and m.handle("XON") == "XON"
+    m.set_operate_switch(switch)
+    refused = "ERROR"
+    assert m.handle({"A": "CUR 100", "B": "CUR 100"}[dialect]) == refused and m.handle("RST") == refused
+    if dialect == "A":
+        assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("XON") == refused
+    else:
+        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 7"
 
 
 def test_b_on_refused_when_the_switch_is_local_after_connect():

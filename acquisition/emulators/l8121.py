@@ -16,7 +16,8 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
-control commands refused with ``ERROR``; B reports it with ``SRL``) and
+control commands refused with ``ERROR``, A's always accepted ``XOF`` excepted; B reports it with
+``SRL``) and
 :meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
 
 The baud rate. A pseudo-terminal moves bytes at any speed, so a wrong baud rate would go unnoticed.
@@ -387,8 +388,9 @@ class L8121Model:
 
     def set_operate_switch(self, position: str = "LOCAL") -> None:
         """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
-        command that acts on the tube (``XOF`` included) is refused with ``ERROR``; queries are
-        answered. Dialect B reports the position with ``SRL``."""
+        command that acts on the tube is refused with ``ERROR`` -- in B ``XOF`` included (its notes
+        say remote control needs ``REMOTE``, and name no exception), in A not (``L8121.md``: ``XOF``
+        is "always accepted"); queries are answered. Dialect B reports the position with ``SRL``."""
         if position not in ("REMOTE", "LOCAL", "OFF"):
             raise ValueError(f"operate switch {position!r}: expected REMOTE, LOCAL or OFF")
         with self._lock:
@@ -483,7 +485,9 @@ class L8121Model:
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
             return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
-        if word in _CONTROL and self._switch != "REMOTE":
+        # L8121.md, dialect A: "XOF ... always accepted" -- not in remote mode too. B's notes say
+        # only that remote control needs REMOTE, with no exception: B refuses its XOF there
+        if word in _CONTROL and self._switch != "REMOTE" and not (word == "XOF" and self.dialect == "A"):
             return self._refuse(ErrorCode.LOCAL)
         reply = action(t, *args)
         fault = self._after.pop(word, None)
