@@ -562,6 +562,15 @@ def _source_action(src, args) -> int:
                 f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
                 "only `radiokit acquire source on` leaves them on"
             )
+        elif not state.confirms_off:
+            # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
+            # of the tube: an earlier `source on` may have left it on. Switch off and confirm;
+            # not confirmed, off() raises and the command ends on the warning (exit 3)
+            print(
+                f"{args.port}: state {state.name} does not show X-rays off: switching off to be sure",
+                flush=True,
+            )
+            print(f"{args.port}: switched off (confirmed: state {src.off().name})")
     elif args.action == "warm-up":
         seconds = src.warm_up(
             timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua

@@ -1466,6 +1466,70 @@ def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(swi
         assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
 
 
+# -- STS answered ERROR (B's pre-heating word, A's refusal) ----------------------------------------
+def test_emulator_can_answer_sts_with_error(dialect):
+    """L8121.md lists ERROR among B's STS words (pre-heating); the emulator never used it. The
+    switch answers STS with ERROR, whatever the state, and executes everything else."""
+    m = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0)
+    m.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]), m.handle("XON")
+    m.sts_error()
+    assert m.handle("STS") == "ERROR" and m.xray_on
+    assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("STS") == "ERROR"
+    m.sts_error(False)
+    assert m.handle("STS") == {"A": "STS 2", "B": "STANDBY"}[dialect]
+
+
+def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dialect):
+    """With the beam on, STS turns to ERROR: B's poll (STS first) sees the beam no longer reads on
+    and switches off; A's poll (SAR) does not ask STS, and its off() meets the refusal. Either way
+    XOF is sent (and here executed), and the switch-off is not called confirmed: ERROR does not
+    show the tube off."""
+    model, server = warm
+    src = driver(server, dialect, off_confirm_s=0.3)  # (STS asked for 0.3 s, not the default 3 s)
+    src.on(60, 250)
+    model.sts_error()
+    n = len(model.log)
+    try:
+        if dialect == "B":
+            with pytest.raises(SourceFault, match=r"state PREHEATING.*switching X-rays off could not be confirmed"):
+                src.check()
+        else:
+            src.check()  # SAR: the beam reads on, as it is
+            with pytest.raises(DeviceError, match=r"could not confirm X-rays off.*STS refused by the controller"):
+                src.off()
+        assert src.off_failed is not None and src.confirmed_off is None
+        after = [e.command for e in model.log[n:]]
+        assert "XOF" in after and "STS" in after[after.index("XOF") :] and not model.xray_on
+    finally:
+        src.detach()
+
+
+def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
+    """`source status` read B's STS ERROR as PREHEATING, printed it and ended 0 -- with X-rays on
+    from an earlier `source on` (SHV read 60 kV), left on, and not a word of it. Now a state that
+    does not show X-rays off is switched off; unconfirmed, the last line is the warning, exit 3
+    (README)."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    # (`source off` meeting it is the driver's unconfirmed off(), test_l8121_protocol's STS ERROR row)
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.sts_error()
+        capsys.readouterr()
+        n = len(model.log)
+        assert main(["acquire", "source", "status", *port]) == 3
+        out, err = capsys.readouterr()
+        assert "state PREHEATING" in out and "does not show X-rays off" in out, out
+        assert err.strip().splitlines()[-1] == TUBE_WARNING, err
+        assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
+        model.sts_error(False)
+        assert main(["acquire", "source", "status", *port]) == 0  # STS answers again: STANDBY
+        assert "state STANDBY" in capsys.readouterr().out
+
+
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 @pytest.mark.parametrize("baud", [0, -9600, 9600.5, "9600"])
 def test_a_baud_rate_that_is_not_a_rate_is_refused_at_load(tmp_path, capsys, baud):

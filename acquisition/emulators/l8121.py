@@ -12,6 +12,7 @@ commands ``ERR``/``ERROR``) or ``dialect="B"`` (``STS`` words, ``INTER LOCK ON``
 Faults, injected from any thread, now or at a given model time, in both dialects:
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
+:meth:`~L8121Model.sts_error` (``STS`` answered ``ERROR``: B's pre-heating word, A's refusal),
 :meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
@@ -199,7 +200,7 @@ class L8121Model:
         self._focus = 0
         self._error = ErrorCode.NONE
         self._switch = "REMOTE"
-        self._silent = self._garbage = self._stuck = self._foreign = False
+        self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._silent_executes = False
         self._delay_s = 0.0
         self._off_delay_s, self._ramping_down = 0.0, False
@@ -418,6 +419,15 @@ class L8121Model:
             self._silent = bool(on)
             self._silent_executes = bool(execute)
 
+    def sts_error(self, on: bool = True) -> None:
+        """Answer ``STS`` with ``ERROR`` whatever the state (every other command as usual, so an
+        ``XOF`` still switches off). Dialect B lists ``ERROR`` among ``STS``'s words (pre-heating,
+        by L8121.md's table), which is also how B refuses a command: a state that shows nothing
+        about the tube. In A it is a refused query. Either way no switch-off can be confirmed
+        while it lasts."""
+        with self._lock:
+            self._sts_error = bool(on)
+
     def garbage(self, on: bool = True) -> None:
         """Answer every command (executed as usual) with random junk instead of its reply."""
         with self._lock:
@@ -482,6 +492,8 @@ class L8121Model:
 
     def _execute(self, line: str, t: float) -> str:
         word, *args = line.split()
+        if word == "STS" and not args and self._sts_error:
+            return "ERROR"
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
             return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
