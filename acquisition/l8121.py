@@ -712,6 +712,29 @@ class Dialect:
     def __repr__(self) -> str:
         return f"Dialect({self.name!r})"
 
+    def reply_fits(self, line: str, reply: str) -> bool:
+        """Whether ``reply`` can be this dialect's answer to the command ``line``: a query's
+        reply parses (``STS`` -> ``STS 2`` in A, ``STANDBY`` in B), a command's echoes it, and a
+        refusal (``ERR``, ``ERROR``) fits any. What :class:`~acquisition.transport.SerialTransport`
+        asks after a time-out, to tell the late reply of the command that timed out from the
+        reply of the one it sent next (``L8121.md``: one command, one reply, in order). A command
+        the dialect does not know fits anything (no opinion)."""
+        if reply in ("ERR", "ERROR"):
+            return True
+        word = (line.split() or [""])[0]
+        for query in self.readings.values():
+            if query.command == word:
+                try:
+                    query.parse(reply)
+                    return True
+                except ValueError:
+                    return False
+        for command in self.settings.values():
+            words = command.choices.values() if isinstance(command, Choice) else (command.command,)
+            if word in words:
+                return Command.is_echo(line, reply)
+        return True
+
     def focus_modes(self, config: SourceConfig) -> tuple[int, ...]:
         """The focus modes ``config`` allows that this dialect can set (B has three commands)."""
         focus = self.settings["focus"]
@@ -1236,6 +1259,7 @@ class L8121:
             )
         else:
             self._transport = self.url
+        self._give_grammar(self._transport)
         try:
             self._check_identity()
             if self._read("state").emitting:
@@ -1265,6 +1289,12 @@ class L8121:
         )
         return self
 
+    def _give_grammar(self, transport) -> None:
+        """Let a transport that can (``SerialTransport.reply_fits``) tell a late reply, after a
+        time-out, from the reply to the command it sent next, by this dialect's reply grammar."""
+        if hasattr(transport, "reply_fits"):
+            transport.reply_fits = self.dialect.reply_fits
+
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
         """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
         ``source on``, or by hand): the dialect is known, so switch off on the probe's link and
@@ -1277,6 +1307,7 @@ class L8121:
         name, baud, link = seen
         self._use(DIALECTS[name], baud)
         link.timeout_s = self.timeout_s  # the dialect's reply time, not the probe's
+        self._give_grammar(link)
         self._transport = link
         try:
             self._off_for_interrupt(exc)
@@ -1443,6 +1474,7 @@ class L8121:
         more exchange with a silent controller would only delay that (the guardian)."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: attach() needs a known dialect (resolve() first)")
+        self._give_grammar(transport)
         self._transport = transport
         return self
 

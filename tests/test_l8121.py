@@ -1065,6 +1065,42 @@ def test_silent_controller_times_out(warm, dialect, wire):
     assert time.monotonic() - t0 < 3
 
 
+def test_a_late_reply_after_a_time_out_is_not_taken_for_the_next_commands(warm, dialect):
+    """A reply that comes after its own exchange's time-out: the flush before the next command
+    cannot catch it when it arrives after that command was written, and the next command read it
+    (STS read ``SIN 0`` or ``INTER LOCK ON``: "unparseable"). The dialect's reply grammar now
+    tells it from the next command's reply, which is read as usual."""
+    model, server = warm
+    with driver(server, dialect, timeout_s=0.3) as src:
+        model.delay_once(0.45, "SIN")  # 0.15 s after SIN's time-out, after the next command is written
+        with pytest.raises(DeviceError, match="no reply to SIN within 0.3 s"):
+            src.interlock_closed()
+        assert src.status() == SourceState.STANDBY
+        assert src.interlock_closed() is True
+    sent = ["SIN", "STS", *(["DAG"] if dialect == "B" else []), "SIN"]
+    assert [e.command for e in model.log[-len(sent) :]] == sent
+
+
+def test_a_late_reply_while_on_does_not_spoil_the_switch_off(warm, dialect, caplog):
+    """The beam poll's SIN times out with the beam on, and its reply comes late, after the
+    fail-safe's XOF was written: XOF read it (``unexpected reply to XOF: 'SIN 0'``), and STS was
+    confirmed only because the flush before it happened to discard XOF's own echo. Now XOF reads
+    its own echo (the late reply discarded by the grammar) and STS its own reply."""
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition")
+    with driver(server, dialect, timeout_s=0.3) as src:
+        src.on(60, 250)
+        model.delay_once(0.45, "SIN")
+        n = len(model.log)
+        with pytest.raises(DeviceError, match="no reply to SIN within 0.3 s"):
+            src.check()
+        assert src.confirmed_off == SourceState.STANDBY and src.off_failed is None
+        after = [e.command for e in model.log[n:]]
+        assert after[after.index("SIN") + 1 :] == ["XOF", "STS"], after  # one attempt, confirmed
+    assert not model.xray_on
+    assert "unexpected reply to XOF" not in caplog.text and "(late reply to SIN, not XOF's: discarded)" in caplog.text
+
+
 def test_slow_replies(warm, dialect, wire):
     model, server = warm
     model.slow(0.3)

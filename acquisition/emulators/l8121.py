@@ -13,7 +13,8 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
 :meth:`~L8121Model.sts_error` (``STS`` answered ``ERROR``: B's pre-heating word, A's refusal),
-:meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
+:meth:`~L8121Model.slow`, :meth:`~L8121Model.delay_once` (one reply after the client's time-out),
+:meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
@@ -203,6 +204,7 @@ class L8121Model:
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._silent_executes = False
         self._delay_s = 0.0
+        self._delay_once: tuple[float, str | None] | None = None
         self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
@@ -438,6 +440,25 @@ class L8121Model:
         speaks neither dialect."""
         with self._lock:
             self._foreign = bool(on)
+
+    def delay_once(self, delay_s: float, command: str | None = None) -> None:
+        """Delay one reply by ``delay_s`` seconds (in the servers): the next one, or the next reply
+        to ``command`` (a command word such as ``"SIN"``). Later commands are answered after it, in
+        order, as a controller's are: a reply that comes after the client's time-out, once."""
+        if delay_s < 0:
+            raise ValueError(f"delay_s must be >= 0, got {delay_s}")
+        with self._lock:
+            self._delay_once = (float(delay_s), command)
+
+    def reply_delay(self, line: str) -> float:
+        """How long a server waits before sending the reply to ``line``: :meth:`slow`'s delay, or a
+        pending :meth:`delay_once` that matches (used up)."""
+        with self._lock:
+            once = self._delay_once
+            if once is not None and once[1] in (None, (line.split() or [""])[0]):
+                self._delay_once = None
+                return once[0]
+            return self._delay_s
 
     def slow(self, delay_s: float) -> None:
         """Delay every reply by ``delay_s`` seconds (in the servers; 0 restores)."""
@@ -698,7 +719,7 @@ class _LineServer:
             exchange = self.model.receive(line.decode("ascii", errors="replace"), self._baudrate())
             if exchange is None or exchange.reply is None:
                 continue
-            delay = self.model.reply_delay_s
+            delay = self.model.reply_delay(exchange.command)
             if delay > 0 and self._stop.wait(delay):
                 return
             # a reply garbled by a baud mismatch has no recognisable line end
