@@ -384,8 +384,11 @@ def _source(args) -> int:
             args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
         )
         if result.port_unavailable:  # no rate could be opened: nothing to report of the controller
+            # a device error, as for every other source action and a series (README: exit 1), not
+            # an option refused (2): the port may be right and its cable out
             print(f"error: {result.summary()}", file=sys.stderr)
-            return 2
+            _say(NEVER_REACHED)
+            return 1
         print(result.report())
         return 0 if result.found else 1
     from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal
@@ -409,7 +412,7 @@ def _source_command(args, guard) -> int:
     """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
     it becomes the switch-off error instead)."""
-    from acquisition.errors import DeviceError
+    from acquisition.errors import DeviceError, PortUnavailable
     from acquisition.guardian import TUBE_WARNING
     from acquisition.l8121 import L8121
 
@@ -460,6 +463,11 @@ def _source_command(args, guard) -> int:
         return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
+        if src is None and isinstance(exc, PortUnavailable) and args.action != "off":
+            # not a byte sent: the same last line and exit code as a series that could not open
+            # its port (README); `off` warns instead (below): the tube it was to switch off may be on
+            _say(NEVER_REACHED)
+            return 1
         if src is not None and src.off_failed is not None:
             # the switch-off was not confirmed: the same last line and exit code as a series
             # (README: 3 when the tube may still be on), not a plain error's 1

@@ -1309,18 +1309,19 @@ def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     assert set(model.commands) <= PROBE_QUERIES
 
 
-def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tmp_path, capsys):
+def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so(tmp_path, capsys):
     """Found: `source probe --port /dev/ttyUSB0` with nothing there said "the replies fit neither
     dialect A nor B at 9600, 38400, 115200 baud (cannot open the port ...)", blaming a controller
     it never reached, with three lines of "raw exchange" that had none; `source status` said
     plainly "cannot open the port"."""
+    from acquisition.cli import NEVER_REACHED
     from radiokit.cli import main
 
     port = str(tmp_path / "ttyUSB0")  # nothing at that path
-    assert main(["acquire", "source", "probe", "--port", port]) == 2
+    assert main(["acquire", "source", "probe", "--port", port]) == 1  # a device error (README), as for status
     out, err = capsys.readouterr()
     lines = err.strip().splitlines()
-    assert out == "" and len(lines) == 1, (out, err)
+    assert out == "" and lines[1:] == [NEVER_REACHED], (out, err)
     assert lines[0].startswith(f"error: {port}: cannot open the port") and lines[0].endswith("nothing was sent")
     assert "neither dialect" not in err
     # a port that opens but whose replies fit nothing is still the probe's report (exit 1)
@@ -1329,6 +1330,30 @@ def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tm
     with PtyServer(model) as server:
         assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 1
         assert "fit neither dialect" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dialect", ["A", None])  # None: auto, the probe meets the port first
+def test_cli_source_actions_on_a_port_that_cannot_be_opened_share_one_exit_code(tmp_path, capsys, dialect):
+    """Found: probe ended 2 (as an option refused), status/warm-up/on 1 with a bare error line, off
+    3. README's exit codes: 2 an option refused, 1 a device error, 3 the tube may still be on. Now
+    every action but off ends 1 on the line a series ends on (radiokit never reached the controller,
+    so it sent nothing); off ends 3 on the warning (an earlier `source on` may have left X-rays on)."""
+    from acquisition.cli import NEVER_REACHED
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    port = str(tmp_path / "ttyUSB0")  # nothing at that path
+    given = ["--dialect", dialect] if dialect else []
+    for action, extra, code, last in [
+        ("probe", [], 1, NEVER_REACHED),
+        ("status", given, 1, NEVER_REACHED),
+        ("warm-up", given + ["-q"], 1, NEVER_REACHED),
+        ("on", given + ["--kv", "60", "--ua", "250"], 1, NEVER_REACHED),
+        ("off", given, 3, TUBE_WARNING),
+    ]:
+        assert main(["acquire", "source", action, "--port", port, *extra]) == code, action
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert "cannot open the port" in lines[0] and lines[-1] == last, (action, lines)
 
 
 def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, capsys):
