@@ -442,6 +442,9 @@ class PipeTransport:
         self._seq = 0
         self._open = False
         self._lock = threading.Lock()
+        #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
+        #: its own; this one goes to the link this process opens if the guardian dies.
+        self.reply_fits = None
         # the guardian's SerialTransport: write (1 s) + reply per attempt, one reconnect, and slack
         self._reply_wait_s = 2 * (self.timeout_s + 1.0) + 2.0
 
@@ -571,6 +574,7 @@ class PipeTransport:
                 min_interval_s=self.min_interval_s,
                 log=self.log,
             )
+            self._direct.reply_fits = self.reply_fits
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

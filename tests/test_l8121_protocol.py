@@ -410,3 +410,33 @@ def test_auto_probes_then_connects_in_the_dialect_found():
     pairs = [("STS", "STANDBY"), ("SIN", "INTER LOCK ON"), ("SRL", "REMOTE"), ("DAG", "AGING 0 0 END")]
     with expected_protocol("auto", pairs + CONNECT["B"]) as src:
         assert src.dialect.name == "B" and src.voltage_scale == 10
+
+
+# -- the reply grammar: what tells a late reply from the next command's ----------------------------
+@pytest.mark.parametrize(
+    "dialect, sent, reply, fits",
+    [
+        ("A", "STS", "STS 2", True),
+        ("A", "STS", "SIN 0", False),  # SIN's late reply, read after STS was sent
+        ("A", "XOF", "XOF", True),
+        ("A", "XOF", "SAR 3 60 250 0 0 0 0", False),
+        ("A", "HIV 60", "HIV 060", True),
+        ("A", "HIV 60", "HIV 50", False),
+        ("A", "XON", "ERR", True),  # a refusal answers any command
+        ("B", "STS", "STANDBY", True),
+        ("B", "STS", "INTER LOCK ON", False),
+        ("B", "STS", "ERROR", True),
+        ("B", "SIN", "INTER LOCK ON", True),
+        ("B", "XOF", "XON", False),  # XON's (or STS's) late reply is not XOF's echo
+        ("B", "PHV 600", "PHV 600", True),
+        ("B", "CFM", "CFM", True),
+        ("B", "CFM", "MIDDLE", False),
+        ("B", "SPV", "SPV 60.0kV", True),
+        ("B", "SPV", "SPC 250uA", False),
+        ("B", "Enter", "ERROR", True),  # a command the table does not know: no opinion
+    ],
+)
+def test_reply_fits_the_command_by_the_dialects_grammar(dialect, sent, reply, fits):
+    from acquisition.l8121 import DIALECTS
+
+    assert DIALECTS[dialect].reply_fits(sent, reply) is fits
