@@ -498,7 +498,8 @@ def _after_failed_on(src, args) -> str:
     if src.may_be_on:
         state = src.off()
         return (
-            f"; they were on from before this command (an earlier `source on`) and are now off, confirmed "
+            f"; they were (or may have been) on from before this command (an earlier `source on`) and are now "
+            f"off, confirmed "
             f"by STS: {state.name}; run the same command again to switch them on at {args.kv:g} kV {args.ua:g} uA"
         )
     state = src.confirmed_off
@@ -570,12 +571,13 @@ def _source_action(src, args) -> int:
                 f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
                 "only `radiokit acquire source on` leaves them on"
             )
-        elif not state.confirms_off:
+        elif not state.confirms_off and (kv > 0 or ua > 0):
             # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
-            # of the tube: an earlier `source on` may have left it on. Switch off and confirm;
-            # not confirmed, off() raises and the command ends on the warning (exit 3)
+            # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;
+            # not confirmed, off() raises and the command ends on the warning (exit 3). With
+            # nothing measured it is the pre-heating the notes name, and only reported
             print(
-                f"{args.port}: state {state.name} does not show X-rays off: switching off to be sure",
+                f"{args.port}: state {state.name} does not show X-rays off and a beam is measured: switching off",
                 flush=True,
             )
             print(f"{args.port}: switched off (confirmed: state {src.off().name})")

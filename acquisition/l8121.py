@@ -1626,9 +1626,10 @@ class L8121:
         while self._checking(state):
             waited = time.monotonic() - t0
             if waited >= limit:
+                beam = self._beam_measured(state)
                 raise DeviceError(
                     f"{self.port}: the controller's power-on checks did not finish within ready_timeout_s = "
-                    f"{limit:g} s (still {state.name}); look at the controller (or raise [source] ready_timeout_s)"
+                    f"{limit:g} s (still {state.name}{beam}); look at the controller (or raise [source] ready_timeout_s)"
                 )
             if not told:
                 logger.warning(
@@ -1645,6 +1646,23 @@ class L8121:
                 "%s: power-on checks over after %.1f s (state %s)", self.port, time.monotonic() - t0, state.name
             )
         return state
+
+    def _beam_measured(self, state: SourceState) -> str:
+        """For a state that does not show X-rays off (B's ``STS ERROR``: pre-heating by L8121.md,
+        and how B refuses): whether the measured values show a beam (an earlier session left it
+        on). If they do, or cannot be read, this session will switch off, confirmed, before it lets
+        the link go (:meth:`close`, a series' exit); returns the words that say so, or ``""``."""
+        if state.confirms_off:
+            return ""
+        try:
+            kv, ua = self.measured()
+        except DeviceError as exc:
+            self._may_be_on = True
+            return f", which does not show X-rays off, and the measured values cannot be read ({exc})"
+        if kv > 0 or ua > 0:
+            self._may_be_on = True
+            return f", which does not show X-rays off, with {kv:g} kV {ua:g} µA measured: X-rays are switched off"
+        return ""
 
     def _checking(self, state: SourceState) -> bool:
         """Whether ``state`` is one the controller leaves by itself after power-on."""

@@ -1565,11 +1565,33 @@ def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dial
         src.detach()
 
 
+@pytest.mark.parametrize("action", ["on", "warm_up"])
+def test_b_sts_error_that_outlasts_the_power_on_checks_is_switched_off_at_close(action):
+    """on() and warm_up() wait for B's STS ERROR (pre-heating) to pass; when it outlasts
+    ready_timeout_s they refused -- and left the link with nothing sent, though ERROR does not
+    show the tube off and SHV/SCU measured a beam (on, from before). Now the session switches off
+    before it lets the link go: close() sends XOF and, STS still reading ERROR, says it could not
+    confirm. (Pre-heating with nothing measured stays a one-line refusal: test_l8121_spec.)"""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0)
+    with PtyServer(model) as server:
+        model.handle("PHV 600"), model.handle("XON")  # left on by an earlier session
+        n = len(model.log)
+        src = driver(server, "B", ready_timeout_s=0.3, off_confirm_s=0.2)
+        model.sts_error()
+        call = (lambda: src.on(60, 250)) if action == "on" else (lambda: src.warm_up(progress=False))
+        with pytest.raises(DeviceError, match=r"still PREHEATING, which does not show X-rays off, with 60 kV 0 µA"):
+            call()
+        assert src.may_be_on and "XON" not in model.commands[n:]
+        with pytest.raises(DeviceError, match="could not confirm X-rays off"):
+            src.close()
+    assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it (unconfirmed)
+
+
 def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
     """`source status` read B's STS ERROR as PREHEATING, printed it and ended 0 -- with X-rays on
     from an earlier `source on` (SHV read 60 kV), left on, and not a word of it. Now a state that
-    does not show X-rays off is switched off; unconfirmed, the last line is the warning, exit 3
-    (README)."""
+    does not show X-rays off, with a beam measured, is switched off; unconfirmed, the last line is
+    the warning, exit 3 (README). With nothing measured it is the notes' pre-heating: reported."""
     from acquisition.guardian import TUBE_WARNING
     from radiokit.cli import main
 
@@ -1583,9 +1605,13 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         n = len(model.log)
         assert main(["acquire", "source", "status", *port]) == 3
         out, err = capsys.readouterr()
-        assert "state PREHEATING" in out and "does not show X-rays off" in out, out
+        assert "state PREHEATING" in out and "does not show X-rays off and a beam is measured" in out, out
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
+        n = len(model.log)
+        assert main(["acquire", "source", "status", *port]) == 0  # pre-heating, nothing measured: reported
+        assert "state PREHEATING, measured 0 kV 0 uA" in capsys.readouterr().out
+        assert "XOF" not in model.commands[n:]
         model.sts_error(False)
         assert main(["acquire", "source", "status", *port]) == 0  # STS answers again: STANDBY
         assert "state STANDBY" in capsys.readouterr().out
