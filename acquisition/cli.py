@@ -47,8 +47,12 @@ def add_acquire(subparsers):
         type=int,
         help="the controller's baud rate (default: the dialect's; auto tries this one first, then 9600, 38400, 115200)",
     )
-    s.add_argument("--kv", type=float, help="tube voltage for 'on', kV (the L8121: 40-150, at most 75 W)")
-    s.add_argument("--ua", type=float, help="tube current for 'on', uA (the L8121: at most 500)")
+    s.add_argument(
+        "--kv",
+        type=float,
+        help="tube voltage for 'on' (and 'warm-up': set before it starts), kV (the L8121: 40-150, at most 75 W)",
+    )
+    s.add_argument("--ua", type=float, help="tube current for 'on' (and 'warm-up'), uA (the L8121: at most 500)")
     s.add_argument("--timeout", type=float, help="warm-up time-out, s (default 1800)")
     p.set_defaults(func=_run)
 
@@ -316,18 +320,21 @@ def _source_refusal(args) -> str | None:
     # an option the action does not read was ignored without a word (`source status --kv 60`)
     unread = [
         option
-        for option, value, action in (
-            ("--kv", args.kv, "on"),
-            ("--ua", args.ua, "on"),
-            ("--timeout", args.timeout, "warm-up"),
+        for option, value, actions in (
+            ("--kv", args.kv, ("on", "warm-up")),
+            ("--ua", args.ua, ("on", "warm-up")),
+            ("--timeout", args.timeout, ("warm-up",)),
         )
-        if value is not None and args.action != action
+        if value is not None and args.action not in actions
     ]
     if unread:
         return (
-            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on', "
-            "--timeout for 'warm-up'); nothing was sent"
+            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on' and "
+            "'warm-up', --timeout for 'warm-up'); nothing was sent"
         )
+    if args.action == "warm-up" and (args.kv is None) != (args.ua is None):
+        return "'warm-up' takes --kv and --ua together (or neither: the lowest allowed); nothing was sent"
+
     if (
         args.baudrate is not None and args.baudrate <= 0
     ):  # argparse took a whole number; the driver warns of an unlisted one
@@ -353,10 +360,10 @@ def _source(args) -> int:
     if (refusal := _source_refusal(args)) is not None:
         print(f"error: {refusal}", file=sys.stderr)
         return 2
-    if args.action == "on":  # refused before the port is opened: nothing sent, nothing to switch off
-        if args.kv is None or args.ua is None:
-            print("error: 'on' needs --kv and --ua", file=sys.stderr)
-            return 2
+    if args.action == "on" and (args.kv is None or args.ua is None):
+        print("error: 'on' needs --kv and --ua", file=sys.stderr)
+        return 2
+    if args.kv is not None:  # on, warm-up: refused before the port is opened, nothing sent
         from acquisition.l8121 import L8121
 
         # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half
@@ -377,8 +384,11 @@ def _source(args) -> int:
             args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
         )
         if result.port_unavailable:  # no rate could be opened: nothing to report of the controller
+            # a device error, as for every other source action and a series (README: exit 1), not
+            # an option refused (2): the port may be right and its cable out
             print(f"error: {result.summary()}", file=sys.stderr)
-            return 2
+            _say(NEVER_REACHED)
+            return 1
         print(result.report())
         return 0 if result.found else 1
     from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal
@@ -402,7 +412,7 @@ def _source_command(args, guard) -> int:
     """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
     it becomes the switch-off error instead)."""
-    from acquisition.errors import DeviceError
+    from acquisition.errors import DeviceError, PortUnavailable
     from acquisition.guardian import TUBE_WARNING
     from acquisition.l8121 import L8121
 
@@ -453,6 +463,11 @@ def _source_command(args, guard) -> int:
         return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
+        if src is None and isinstance(exc, PortUnavailable) and args.action != "off":
+            # not a byte sent: the same last line and exit code as a series that could not open
+            # its port (README); `off` warns instead (below): the tube it was to switch off may be on
+            _say(NEVER_REACHED)
+            return 1
         if src is not None and src.off_failed is not None:
             # the switch-off was not confirmed: the same last line and exit code as a series
             # (README: 3 when the tube may still be on), not a plain error's 1
@@ -483,11 +498,23 @@ def _after_failed_on(src, args) -> str:
     if src.may_be_on:
         state = src.off()
         return (
-            f"; they were on from before this command (an earlier `source on`) and are now off, confirmed "
+            f"; they were (or may have been) on from before this command (an earlier `source on`) and are now "
+            f"off, confirmed "
             f"by STS: {state.name}; run the same command again to switch them on at {args.kv:g} kV {args.ua:g} uA"
         )
     state = src.confirmed_off
     return f"; X-rays off, confirmed by STS: {state.name}" if state is not None else ""
+
+
+def _warm_up_line(src, args, seconds: float) -> str:
+    """What a finished ``source warm-up`` did, and at which settings (the warm-up emits)."""
+    values = src.warmup_values
+    if values is None:
+        given = f" (--kv {args.kv:g} --ua {args.ua:g} not set: no warm-up to run)" if args.kv is not None else ""
+        return f"no warm-up needed: nothing sent that emits{given}"
+    kv, ua, given = values
+    how = "--kv/--ua" if given else "the lowest the configuration allows; --kv/--ua choose"
+    return f"warmed up in {seconds:.1f} s; set {kv} kV {ua} uA before it started, read back by the controller ({how})"
 
 
 #: Python calls the driver's messages name, and what a command-line user does instead.
@@ -544,9 +571,21 @@ def _source_action(src, args) -> int:
                 f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
                 "only `radiokit acquire source on` leaves them on"
             )
+        elif not state.confirms_off and (kv > 0 or ua > 0):
+            # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
+            # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;
+            # not confirmed, off() raises and the command ends on the warning (exit 3). With
+            # nothing measured it is the pre-heating the notes name, and only reported
+            print(
+                f"{args.port}: state {state.name} does not show X-rays off and a beam is measured: switching off",
+                flush=True,
+            )
+            print(f"{args.port}: switched off (confirmed: state {src.off().name})")
     elif args.action == "warm-up":
-        src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty())
-        print(f"{args.port}: warmed up, state {src.status().name}")
+        seconds = src.warm_up(
+            timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
+        )
+        print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         try:
             r = src.on(args.kv, args.ua)

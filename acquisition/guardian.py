@@ -493,6 +493,11 @@ def main(argv: list[str] | None = None) -> int:
     except (DeviceError, ValueError) as exc:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1
+    from acquisition.l8121 import DIALECTS
+
+    # the acquiring process's exchanges come through here: a late reply after a time-out is told
+    # from the next command's by the dialect's reply grammar, as on the driver's own link
+    link.reply_fits = DIALECTS[config.dialect].reply_fits
     os.write(1, b"READY\n")
     return _serve(link, config, note, args.watchdog)
 

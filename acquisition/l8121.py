@@ -15,11 +15,12 @@ reply (:class:`Query`, :class:`Command`, :class:`Choice`, in the manner of PyMea
 each keeping the safety rules of the hardware notes:
 
 - :meth:`L8121.warm_up` starts the warm-up (A: ``WUP``; B: ``XON`` while ``DAG`` says ``YET``) only
-  when it is needed and the interlock is closed, and waits for standby;
+  when it is needed and the interlock is closed, after setting the values it emits at (given, or
+  the configuration's lowest) and reading them back, and waits for standby;
 - :meth:`L8121.on` checks voltage, current and power against :meth:`SourceConfig.check_exposure`
   *before sending anything*, requires standby (B: ``STS STANDBY`` and ``DAG ... END``) and a closed
-  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``), switches on and
-  waits for a stable beam;
+  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them
+  back (A: ``SVI``; B: ``SPV``/``SPC``), switches on and waits for a stable beam;
 - :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
   ``SCU``, ``SIN``) and, on overload, an open interlock or a dropped beam, switches off and raises
   :class:`~acquisition.errors.SourceFault`;
@@ -711,6 +712,29 @@ class Dialect:
     def __repr__(self) -> str:
         return f"Dialect({self.name!r})"
 
+    def reply_fits(self, line: str, reply: str) -> bool:
+        """Whether ``reply`` can be this dialect's answer to the command ``line``: a query's
+        reply parses (``STS`` -> ``STS 2`` in A, ``STANDBY`` in B), a command's echoes it, and a
+        refusal (``ERR``, ``ERROR``) fits any. What :class:`~acquisition.transport.SerialTransport`
+        asks after a time-out, to tell the late reply of the command that timed out from the
+        reply of the one it sent next (``L8121.md``: one command, one reply, in order). A command
+        the dialect does not know fits anything (no opinion)."""
+        if reply in ("ERR", "ERROR"):
+            return True
+        word = (line.split() or [""])[0]
+        for query in self.readings.values():
+            if query.command == word:
+                try:
+                    query.parse(reply)
+                    return True
+                except ValueError:
+                    return False
+        for command in self.settings.values():
+            words = command.choices.values() if isinstance(command, Choice) else (command.command,)
+            if word in words:
+                return Command.is_echo(line, reply)
+        return True
+
     def focus_modes(self, config: SourceConfig) -> tuple[int, ...]:
         """The focus modes ``config`` allows that this dialect can set (B has three commands)."""
         focus = self.settings["focus"]
@@ -1167,6 +1191,9 @@ class L8121:
         #: said to switch off at the controller, and asking a silent controller again only delays
         #: that message.
         self.off_failed: DeviceError | None = None
+        #: What the last :meth:`warm_up` set (and read back) before starting its warm-up: ``(kV,
+        #: µA, given)``, given False for the configuration's lowest; None when it started none.
+        self.warmup_values: tuple[int, int, bool] | None = None
         if connect:
             self.connect()
 
@@ -1232,6 +1259,7 @@ class L8121:
             )
         else:
             self._transport = self.url
+        self._give_grammar(self._transport)
         try:
             self._check_identity()
             if self._read("state").emitting:
@@ -1261,6 +1289,12 @@ class L8121:
         )
         return self
 
+    def _give_grammar(self, transport) -> None:
+        """Let a transport that can (``SerialTransport.reply_fits``) tell a late reply, after a
+        time-out, from the reply to the command it sent next, by this dialect's reply grammar."""
+        if hasattr(transport, "reply_fits"):
+            transport.reply_fits = self.dialect.reply_fits
+
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
         """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
         ``source on``, or by hand): the dialect is known, so switch off on the probe's link and
@@ -1273,6 +1307,7 @@ class L8121:
         name, baud, link = seen
         self._use(DIALECTS[name], baud)
         link.timeout_s = self.timeout_s  # the dialect's reply time, not the probe's
+        self._give_grammar(link)
         self._transport = link
         try:
             self._off_for_interrupt(exc)
@@ -1439,6 +1474,7 @@ class L8121:
         more exchange with a silent controller would only delay that (the guardian)."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: attach() needs a known dialect (resolve() first)")
+        self._give_grammar(transport)
         self._transport = transport
         return self
 
@@ -1590,9 +1626,10 @@ class L8121:
         while self._checking(state):
             waited = time.monotonic() - t0
             if waited >= limit:
+                beam = self._beam_measured(state)
                 raise DeviceError(
                     f"{self.port}: the controller's power-on checks did not finish within ready_timeout_s = "
-                    f"{limit:g} s (still {state.name}); look at the controller (or raise [source] ready_timeout_s)"
+                    f"{limit:g} s (still {state.name}{beam}); look at the controller (or raise [source] ready_timeout_s)"
                 )
             if not told:
                 logger.warning(
@@ -1609,6 +1646,23 @@ class L8121:
                 "%s: power-on checks over after %.1f s (state %s)", self.port, time.monotonic() - t0, state.name
             )
         return state
+
+    def _beam_measured(self, state: SourceState) -> str:
+        """For a state that does not show X-rays off (B's ``STS ERROR``: pre-heating by L8121.md,
+        and how B refuses): whether the measured values show a beam (an earlier session left it
+        on). If they do, or cannot be read, this session will switch off, confirmed, before it lets
+        the link go (:meth:`close`, a series' exit); returns the words that say so, or ``""``."""
+        if state.confirms_off:
+            return ""
+        try:
+            kv, ua = self.measured()
+        except DeviceError as exc:
+            self._may_be_on = True
+            return f", which does not show X-rays off, and the measured values cannot be read ({exc})"
+        if kv > 0 or ua > 0:
+            self._may_be_on = True
+            return f", which does not show X-rays off, with {kv:g} kV {ua:g} µA measured: X-rays are switched off"
+        return ""
 
     def _checking(self, state: SourceState) -> bool:
         """Whether ``state`` is one the controller leaves by itself after power-on."""
@@ -1711,6 +1765,10 @@ class L8121:
             else:
                 self._do(current, ua_i)
                 self._do(voltage, kv_i)
+            if not beam_on:
+                # the next command may be an X-ray command (on(), a warm-up): it goes only after the
+                # controller has read back what it will emit at (a wrong voltage_scale shows here)
+                self._read_back(kv_i, ua_i)
             if beam_on:
                 self._beam = (kv_i, ua_i)
                 self._wait_stable(kv_i, ua_i, time.monotonic())
@@ -1720,12 +1778,25 @@ class L8121:
             raise
         return kv_i, ua_i
 
+    def _read_back(self, kv: int, ua: int) -> tuple[float, float]:
+        """Read the set values back (A: ``SVI``; B: ``SPV``, ``SPC``) and require the whole
+        ``kv``, ``ua`` just sent; raises :class:`DeviceError` otherwise (no X-ray command follows)."""
+        got_kv, got_ua = self.setpoint()
+        if abs(got_kv - kv) >= 0.5 or abs(got_ua - ua) >= 0.5:
+            raise DeviceError(
+                f"{self.port}: the controller reads back {got_kv:g} kV {got_ua:g} µA after {kv} kV {ua} µA were "
+                f"set (voltage_scale {self.voltage_scale:g}); no X-ray command sent"
+            )
+        return got_kv, got_ua
+
     def warm_up(
         self,
         timeout_s: float | None = None,
         progress: bool | Callable[[float, SourceState], Any] = True,
         *,
         force: bool = False,
+        kv: float | None = None,
+        ua: float | None = None,
     ) -> float:
         """Run the controller's warm-up sequence and wait until it reports standby.
 
@@ -1746,6 +1817,17 @@ class L8121:
             poll; ``False``: quiet.
         force : bool
             Dialect A: send ``WUP`` even when the warm-up is done. Refused in dialect B.
+        kv, ua : float, optional
+            The tube voltage and current to set before the warm-up starts (both or neither).
+            ``L8121.md`` does not say what a warm-up emits at; B's warm-up is an ``XON``, which
+            emits at the presets, and a warm-up that runs on into X-rays on keeps them. So before
+            the start command (A ``WUP``, B ``XON``) the set values are made valid in both
+            dialects: given, they are checked (nothing sent when out of range), set (A ``HIV``,
+            ``CUR``; B ``PHV``, ``PCU``) and read back (A ``SVI``; B ``SPV``, ``SPC``); not given,
+            the lowest-power values the configuration allows (``kv_min``, ``ua_min``: 40 kV 0 µA
+            by default) are set and read back the same way. A refusal or another read-back stops
+            the warm-up before any X-ray command. What was set is kept in :attr:`warmup_values`
+            (``(kv, ua, given)``; None: no warm-up was started).
 
         Returns
         -------
@@ -1766,9 +1848,15 @@ class L8121:
                 f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
                 f"nothing sent"
             )
+        if (kv is None) != (ua is None):
+            raise ValueError(f"{self.port}: warm_up() takes kv and ua together (or neither); nothing sent")
+        wanted = None if kv is None else self.validate(kv, ua)  # checked before anything is sent
+        self.warmup_values = None
         state = self.settled_status()
         if not self._warm_up_needed(state, force):
             return 0.0
+        if state != SourceState.WARMING_UP:  # a start command follows: its settings first
+            self.warmup_values = self._warm_up_values(wanted)
         bar = None
         if progress is True:
             from tqdm.auto import tqdm
@@ -1796,6 +1884,27 @@ class L8121:
         elapsed = time.monotonic() - t0
         logger.info("%s: warm-up done in %.1f s", self.port, elapsed)
         return elapsed
+
+    def _warm_up_values(self, wanted: tuple[int, int] | None) -> tuple[int, int, bool]:
+        """Set, and read back, the values a warm-up will emit at, before its start command: ``wanted``
+        (validated already), else the lowest-power ones the configuration allows (the tube off: A
+        ``HIV``/``CUR``, B the presets ``PHV``/``PCU``). Raises before any X-ray command when the
+        controller refuses them or reads back others."""
+        given = wanted is not None
+        if not given:
+            c = self.config
+            wanted = self.validate(math.ceil(max(c.kv_min, RATINGS.kv_min)), math.ceil(max(c.ua_min, 0.0)))
+        try:
+            self.set_values(*wanted)  # read back inside (_read_back)
+        except DeviceError as exc:
+            raise DeviceError(f"{exc}; warm-up not started") from None
+        logger.info(
+            "%s: warm-up settings %d kV %d µA (%s) set and read back",
+            self.port,
+            *wanted,
+            "given" if given else "the lowest the configuration allows",
+        )
+        return wanted[0], wanted[1], given
 
     def _warm_up_needed(self, state: SourceState, force: bool) -> bool:
         """Whether to start (or wait for) a warm-up; raises when one must not start now."""

@@ -146,6 +146,16 @@ class SerialTransport:
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
+        # Commands that timed out (NoReply), oldest first, each with the time after which its late
+        # reply is no longer waited for: the controller answers in order, so the next lines on the
+        # link may be theirs before the reply to the command sent next
+        self._owed: list[tuple[str, float]] = []
+        #: ``reply_fits(command, reply) -> bool``: whether a line can be the reply to ``command`` (a
+        #: driver sets its dialect's grammar, :meth:`acquisition.l8121.Dialect.reply_fits`). With
+        #: it, after a time-out, a line that does not fit the command just sent is taken for the
+        #: late reply of the one that timed out and discarded (once per command owed); without it,
+        #: only the flush before each command guards against late replies.
+        self.reply_fits = None
         #: Commands this link has begun to write (counted before the write): 0 means the device
         #: has received nothing from it -- what an interrupted caller may tell the operator.
         self.commands_written = 0
@@ -183,6 +193,7 @@ class SerialTransport:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self._pending = None  # (a reconnect repeats the command itself)
+        self._owed = []  # a new link: nothing on it answers an old one's commands
         # The spacing is the controller's need, not this object's: another link (the probe's, a
         # guardian's, this one before a reconnect) may have had a reply just before the port was
         # opened, so the first command waits min_interval_s as if one had ended now.
@@ -274,7 +285,7 @@ class SerialTransport:
         wait = self._last_exchange + self.min_interval_s - time.monotonic()
         if wait > 0:
             time.sleep(wait)
-        ser.reset_input_buffer()  # a late reply to an earlier, timed-out command
+        self._flush_late(ser)  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
         self._rx = bytearray()
         self.log.debug("%s > %s", self.url, command)
@@ -284,6 +295,8 @@ class SerialTransport:
             ser.flush()
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
+            if isinstance(exc, NoReply):  # its reply may still come, after the next command is sent
+                self._owed.append((command, t0 + 2 * self.timeout_s))
             if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
                 self._pending = (command, t0 + self.timeout_s)
@@ -293,6 +306,34 @@ class SerialTransport:
             self._last_exchange = time.monotonic()
         self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
         return reply
+
+    def _flush_late(self, ser) -> None:
+        """Discard what has arrived before a command is sent (nothing is owed to it yet): each
+        whole line is the late reply of a command that timed out, which is then no longer owed.
+        Commands whose late reply has not come within a further reply time-out are forgotten."""
+        now = time.monotonic()
+        self._owed = [(c, until) for c, until in self._owed if until > now]
+        waiting = ser.in_waiting
+        if waiting:
+            stale = ser.read(waiting)
+            lines = [line for line in re.split(rb"[\r\n]", stale)[:-1] if line.strip()]
+            for line in lines:
+                late = self._owed.pop(0)[0] if self._owed else "an earlier command"
+                self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
+        ser.reset_input_buffer()
+
+    def _is_late(self, command: str, text: str) -> bool:
+        """Whether ``text``, read as the reply to ``command``, is instead the late reply of a
+        command that timed out: one is owed, and ``text`` does not fit ``command`` by the
+        dialect's grammar. Then it is discarded (logged) and one fewer is owed."""
+        now = time.monotonic()
+        self._owed = [(c, until) for c, until in self._owed if until > now]
+        if not self._owed or self.reply_fits is None or self.reply_fits(command, text):
+            self._owed.clear()  # the controller answers in order: what was owed before is not coming
+            return False
+        late = self._owed.pop(0)[0]
+        self.log.debug("%s < %s (late reply to %s, not %s's: discarded)", self.url, text, late, command)
+        return True
 
     def _drain_pending(self) -> None:
         """Complete an exchange a signal cut short (``L8121.md``: "one command, one reply ... never
@@ -323,7 +364,10 @@ class SerialTransport:
                 line, buf = bytes(buf[:cut]), buf[cut + 1 :]
                 self._rx = buf
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
-                    return _text(line).strip()
+                    text = _text(line).strip()
+                    if self._is_late(command, text):
+                        continue
+                    return text
                 continue
             left = deadline - time.monotonic()
             if left <= 0 and not drained and ser.in_waiting:
@@ -398,6 +442,9 @@ class PipeTransport:
         self._seq = 0
         self._open = False
         self._lock = threading.Lock()
+        #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
+        #: its own; this one goes to the link this process opens if the guardian dies.
+        self.reply_fits = None
         # the guardian's SerialTransport: write (1 s) + reply per attempt, one reconnect, and slack
         self._reply_wait_s = 2 * (self.timeout_s + 1.0) + 2.0
 
@@ -527,6 +574,7 @@ class PipeTransport:
                 min_interval_s=self.min_interval_s,
                 log=self.log,
             )
+            self._direct.reply_fits = self.reply_fits
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

@@ -457,6 +457,39 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
     )
 
 
+def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(
+    tmp_path, scene_toml, bench, capsys
+):
+    """B's STS turns to ERROR with the beam on (L8121.md's pre-heating word; what a refusal looks
+    like too): the beam monitor's poll (STS first) stops the series, XOF goes at the first chance,
+    and since ERROR shows nothing of the tube the run does not claim it off: the command's last
+    line is the warning, exit 3."""
+    from acquisition.cli import _finish
+    from acquisition.guardian import TUBE_WARNING
+
+    p = protocol(tmp_path, scene_toml, "B")
+    p.source.limits["off_confirm_s"] = 0.3  # STS asked for 0.3 s after XOF, not the default 3 s
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    seen = {"frames": 0}
+
+    def hook(phase, info):
+        seen["frames"] += phase == "frame"
+        if phase == "frame" and seen["frames"] == DARKS + FLATS + 1 and "n" not in seen:
+            with model._lock:
+                seen["n"] = len(model.log)
+                model.sts_error()
+
+    with pytest.raises(SourceFault, match="PREHEATING") as info:
+        run(p, devices=dev, progress=False, on_phase=hook)
+    res = info.value.result
+    assert_off_at_the_first_chance(model, seen["n"], "B", "STS ERROR")
+    assert res.tube_off is False and not model.xray_on  # XOF executed, but never confirmed
+    capsys.readouterr()
+    assert _finish(res, 1) == 3
+    assert capsys.readouterr().err.strip().splitlines()[-1] == TUBE_WARNING
+
+
 @pytest.fixture(scope="module", autouse=True)
 def print_matrix(request):
     yield

@@ -275,7 +275,8 @@ def test_settings_read_like_the_manual(source, wire):
     src.focus = 2
     assert model.commands[-1] == wire["focus_2"] and src.focus == 2
     assert src.set_values(60, 250) == (60, 250)
-    assert model.commands[-2:] == wire["set_60_250"]
+    n = len(wire["setpoint"])  # tube off: the values are read back after they are set
+    assert model.commands[-2 - n :] == wire["set_60_250"] + wire["setpoint"]
     assert src.setpoint() == (60.0, 250.0) and (model.set_kv, model.set_ua) == (60, 250)
     with pytest.raises(ValueError, match="focus_modes"):
         src.focus = 7
@@ -302,7 +303,8 @@ def test_set_values_orders_voltage_and_current_to_stay_within_power(source, dial
     src.config.watts_max = model.watts_max = 40
     src.set_values(60, 500)
     src.set_values(150, 100)
-    assert model.commands[-2:] == {"A": ["CUR 100", "HIV 150"], "B": ["PCU 100", "PHV 1500"]}[dialect]
+    sent = {"A": ["CUR 100", "HIV 150"], "B": ["PCU 100", "PHV 1500"]}[dialect]
+    assert model.commands[-2 - len(WIRE[dialect]["setpoint"]) :] == sent + WIRE[dialect]["setpoint"]
     assert (model.set_kv, model.set_ua) == (150, 100)
 
 
@@ -532,6 +534,77 @@ def test_warm_up_completes(cold, dialect, wire):
     assert model.commands.count(wire["warm"]) == 1
     assert seconds >= 0.9 * WARMUP_S
     assert SourceState.WARMING_UP in seen and not model.xray_on
+
+
+def before_the_start(model: L8121Model, wire) -> list[str]:
+    """The commands the model received before the (first) warm-up start command."""
+    cmds = model.commands
+    return cmds[: cmds.index(wire["warm"])]
+
+
+@pytest.mark.parametrize("given", [(60, 250), None])
+def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, wire, given):
+    """Found: B's warm-up sent XON (which emits, at the presets) without setting or reading the
+    presets, and A's WUP likewise; L8121.md says nothing of what a warm-up emits at. Now both set
+    the values (given, or the configuration's lowest, 40 kV 0 µA) and read them back first."""
+    model, server = cold
+    kw = {} if given is None else dict(kv=given[0], ua=given[1])
+    kv, ua = given or (40, 0)
+    with driver(server, dialect) as src:
+        src.warm_up(timeout_s=10, progress=False, **kw)
+        assert src.warmup_values == (kv, ua, given is not None)
+    sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
+    assert before_the_start(model, wire)[-len(sets) - len(wire["setpoint"]) :] == sets + wire["setpoint"]
+    assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
+
+
+def test_warm_up_refuses_values_the_controller_reads_back_otherwise(dialect, wire):
+    """A unit whose voltage unit is not the configured one (a tenth of it: A's ``HIV 60`` and B's
+    ``PHV 600`` are 6 kV there) reads back another voltage: refused before the warm-up's X-ray
+    command, and before on()'s XON."""
+    scale = {"A": 10, "B": 100}[dialect]
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S, voltage_scale=scale, kv_min=1)
+    with PtyServer(model) as server, driver(server, dialect) as src:
+        with pytest.raises(
+            DeviceError, match=r"reads back 6 kV 250 µA after 60 kV 250 µA were set.*warm-up not started"
+        ):
+            src.warm_up(timeout_s=10, progress=False, kv=60, ua=250)
+        model.warm()
+        with pytest.raises(DeviceError, match=r"reads back 6 kV 250 µA after 60 kV 250 µA.*no X-ray command sent"):
+            src.on(60, 250)
+    assert not {"XON", "WUP"} & set(model.commands) and not model.xray_on
+
+
+def test_warm_up_refuses_bad_values_before_anything_is_sent(cold, dialect):
+    model, server = cold
+    with driver(server, dialect) as src:
+        n = len(model.commands)
+        with pytest.raises(ValueError, match="voltage_kv = 900 kV is outside"):
+            src.warm_up(progress=False, kv=900, ua=250)
+        with pytest.raises(ValueError, match="kv and ua together"):
+            src.warm_up(progress=False, kv=60)
+        assert model.commands[n:] == []
+
+
+def test_cli_source_warm_up_says_what_it_set(dialect, capsys):
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmup_s=0.1, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect, "-q"]
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60", "--ua", "250"]) == 0
+        out = capsys.readouterr().out
+        assert "set 60 kV 250 uA before it started, read back by the controller (--kv/--ua)" in out, out
+        assert (model.set_kv, model.set_ua) == (60, 250)
+        model.require_warm_up()
+        assert main(["acquire", "source", "warm-up", *port]) == 0
+        assert "set 40 kV 0 uA before it started" in capsys.readouterr().out
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60", "--ua", "250"]) == 0
+        assert "no warm-up needed: nothing sent that emits (--kv 60 --ua 250 not set" in capsys.readouterr().out
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "60"]) == 2
+        assert main(["acquire", "source", "warm-up", *port, "--kv", "200", "--ua", "250"]) == 2
+        assert "nothing was sent" in capsys.readouterr().err
+    assert not model.xray_on
 
 
 def test_warm_up_with_a_progress_bar(cold, dialect, capsys):
@@ -894,19 +967,38 @@ def test_a_poll_begun_during_a_switch_off_sends_nothing(source, dialect):
 
 
 def test_operate_switch_turned_to_local_while_on(source, dialect):
-    """Someone turns the operate switch to LOCAL while X-rays are on: XOF is refused, off() says
-    it could not confirm -- naming the switch where the dialect can read it -- and succeeds once
-    the switch is back on REMOTE."""
+    """Someone turns the operate switch to LOCAL while X-rays are on. A: L8121.md's XOF is "always
+    accepted", so off() confirms as usual (the emulator refused it before, and the test leaned on
+    that). B: its notes say remote control needs REMOTE, with no exception for XOF: refused, off()
+    says it could not confirm, naming the switch, and succeeds once the switch is back on REMOTE."""
     src, model = source
     src.on(60, 250)
     model.set_operate_switch("LOCAL")
-    with pytest.raises(
-        DeviceError, match="could not confirm X-rays off" + (".*the operate switch is LOCAL" if dialect == "B" else "")
-    ):
+    if dialect == "A":
+        assert src.off() == SourceState.STANDBY and not model.xray_on
+        assert model.log[-2].command == "XOF" and model.log[-2].reply == "XOF"
+        return
+    with pytest.raises(DeviceError, match="could not confirm X-rays off.*the operate switch is LOCAL"):
         src.off()
     assert model.xray_on
     model.set_operate_switch("REMOTE")
     assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_emulator_a_accepts_xof_whatever_the_operate_switch(dialect, switch):
+    """L8121.md, dialect A: "XOF | XOF | X-rays off; always accepted"; a rejected command is one
+    "not in remote mode" among others, so every other control command is refused there. B's notes
+    say only "remote control needs REMOTE": its XOF is refused like the rest."""
+    m = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0)
+    assert m.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]) != "ERROR" and m.handle("XON") == "XON"
+    m.set_operate_switch(switch)
+    refused = "ERROR"
+    assert m.handle({"A": "CUR 100", "B": "CUR 100"}[dialect]) == refused and m.handle("RST") == refused
+    if dialect == "A":
+        assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("XON") == refused
+    else:
+        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 7"
 
 
 def test_b_on_refused_when_the_switch_is_local_after_connect():
@@ -971,6 +1063,42 @@ def test_silent_controller_times_out(warm, dialect, wire):
     with pytest.raises(DeviceError, match=f"no reply to {wire['connect_last']}"):
         driver(server, dialect, timeout_s=0.5)
     assert time.monotonic() - t0 < 3
+
+
+def test_a_late_reply_after_a_time_out_is_not_taken_for_the_next_commands(warm, dialect):
+    """A reply that comes after its own exchange's time-out: the flush before the next command
+    cannot catch it when it arrives after that command was written, and the next command read it
+    (STS read ``SIN 0`` or ``INTER LOCK ON``: "unparseable"). The dialect's reply grammar now
+    tells it from the next command's reply, which is read as usual."""
+    model, server = warm
+    with driver(server, dialect, timeout_s=0.3) as src:
+        model.delay_once(0.45, "SIN")  # 0.15 s after SIN's time-out, after the next command is written
+        with pytest.raises(DeviceError, match="no reply to SIN within 0.3 s"):
+            src.interlock_closed()
+        assert src.status() == SourceState.STANDBY
+        assert src.interlock_closed() is True
+    sent = ["SIN", "STS", *(["DAG"] if dialect == "B" else []), "SIN"]
+    assert [e.command for e in model.log[-len(sent) :]] == sent
+
+
+def test_a_late_reply_while_on_does_not_spoil_the_switch_off(warm, dialect, caplog):
+    """The beam poll's SIN times out with the beam on, and its reply comes late, after the
+    fail-safe's XOF was written: XOF read it (``unexpected reply to XOF: 'SIN 0'``), and STS was
+    confirmed only because the flush before it happened to discard XOF's own echo. Now XOF reads
+    its own echo (the late reply discarded by the grammar) and STS its own reply."""
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition")
+    with driver(server, dialect, timeout_s=0.3) as src:
+        src.on(60, 250)
+        model.delay_once(0.45, "SIN")
+        n = len(model.log)
+        with pytest.raises(DeviceError, match="no reply to SIN within 0.3 s"):
+            src.check()
+        assert src.confirmed_off == SourceState.STANDBY and src.off_failed is None
+        after = [e.command for e in model.log[n:]]
+        assert after[after.index("SIN") + 1 :] == ["XOF", "STS"], after  # one attempt, confirmed
+    assert not model.xray_on
+    assert "unexpected reply to XOF" not in caplog.text and "(late reply to SIN, not XOF's: discarded)" in caplog.text
 
 
 def test_slow_replies(warm, dialect, wire):
@@ -1181,18 +1309,19 @@ def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     assert set(model.commands) <= PROBE_QUERIES
 
 
-def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tmp_path, capsys):
+def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so(tmp_path, capsys):
     """Found: `source probe --port /dev/ttyUSB0` with nothing there said "the replies fit neither
     dialect A nor B at 9600, 38400, 115200 baud (cannot open the port ...)", blaming a controller
     it never reached, with three lines of "raw exchange" that had none; `source status` said
     plainly "cannot open the port"."""
+    from acquisition.cli import NEVER_REACHED
     from radiokit.cli import main
 
     port = str(tmp_path / "ttyUSB0")  # nothing at that path
-    assert main(["acquire", "source", "probe", "--port", port]) == 2
+    assert main(["acquire", "source", "probe", "--port", port]) == 1  # a device error (README), as for status
     out, err = capsys.readouterr()
     lines = err.strip().splitlines()
-    assert out == "" and len(lines) == 1, (out, err)
+    assert out == "" and lines[1:] == [NEVER_REACHED], (out, err)
     assert lines[0].startswith(f"error: {port}: cannot open the port") and lines[0].endswith("nothing was sent")
     assert "neither dialect" not in err
     # a port that opens but whose replies fit nothing is still the probe's report (exit 1)
@@ -1201,6 +1330,30 @@ def test_cli_source_probe_on_a_port_that_cannot_be_opened_says_so_in_one_line(tm
     with PtyServer(model) as server:
         assert main(["acquire", "source", "probe", "--port", server.url, "--baudrate", "9600"]) == 1
         assert "fit neither dialect" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dialect", ["A", None])  # None: auto, the probe meets the port first
+def test_cli_source_actions_on_a_port_that_cannot_be_opened_share_one_exit_code(tmp_path, capsys, dialect):
+    """Found: probe ended 2 (as an option refused), status/warm-up/on 1 with a bare error line, off
+    3. README's exit codes: 2 an option refused, 1 a device error, 3 the tube may still be on. Now
+    every action but off ends 1 on the line a series ends on (radiokit never reached the controller,
+    so it sent nothing); off ends 3 on the warning (an earlier `source on` may have left X-rays on)."""
+    from acquisition.cli import NEVER_REACHED
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    port = str(tmp_path / "ttyUSB0")  # nothing at that path
+    given = ["--dialect", dialect] if dialect else []
+    for action, extra, code, last in [
+        ("probe", [], 1, NEVER_REACHED),
+        ("status", given, 1, NEVER_REACHED),
+        ("warm-up", given + ["-q"], 1, NEVER_REACHED),
+        ("on", given + ["--kv", "60", "--ua", "250"], 1, NEVER_REACHED),
+        ("off", given, 3, TUBE_WARNING),
+    ]:
+        assert main(["acquire", "source", action, "--port", port, *extra]) == code, action
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert "cannot open the port" in lines[0] and lines[-1] == last, (action, lines)
 
 
 def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, capsys):
@@ -1372,6 +1525,96 @@ def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(swi
         assert main(["acquire", "source", "status", *port]) == 0  # off: the state, and what the switch stops
         out = capsys.readouterr().out
         assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
+
+
+# -- STS answered ERROR (B's pre-heating word, A's refusal) ----------------------------------------
+def test_emulator_can_answer_sts_with_error(dialect):
+    """L8121.md lists ERROR among B's STS words (pre-heating); the emulator never used it. The
+    switch answers STS with ERROR, whatever the state, and executes everything else."""
+    m = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0)
+    m.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]), m.handle("XON")
+    m.sts_error()
+    assert m.handle("STS") == "ERROR" and m.xray_on
+    assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("STS") == "ERROR"
+    m.sts_error(False)
+    assert m.handle("STS") == {"A": "STS 2", "B": "STANDBY"}[dialect]
+
+
+def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dialect):
+    """With the beam on, STS turns to ERROR: B's poll (STS first) sees the beam no longer reads on
+    and switches off; A's poll (SAR) does not ask STS, and its off() meets the refusal. Either way
+    XOF is sent (and here executed), and the switch-off is not called confirmed: ERROR does not
+    show the tube off."""
+    model, server = warm
+    src = driver(server, dialect, off_confirm_s=0.3)  # (STS asked for 0.3 s, not the default 3 s)
+    src.on(60, 250)
+    model.sts_error()
+    n = len(model.log)
+    try:
+        if dialect == "B":
+            with pytest.raises(SourceFault, match=r"state PREHEATING.*switching X-rays off could not be confirmed"):
+                src.check()
+        else:
+            src.check()  # SAR: the beam reads on, as it is
+            with pytest.raises(DeviceError, match=r"could not confirm X-rays off.*STS refused by the controller"):
+                src.off()
+        assert src.off_failed is not None and src.confirmed_off is None
+        after = [e.command for e in model.log[n:]]
+        assert "XOF" in after and "STS" in after[after.index("XOF") :] and not model.xray_on
+    finally:
+        src.detach()
+
+
+@pytest.mark.parametrize("action", ["on", "warm_up"])
+def test_b_sts_error_that_outlasts_the_power_on_checks_is_switched_off_at_close(action):
+    """on() and warm_up() wait for B's STS ERROR (pre-heating) to pass; when it outlasts
+    ready_timeout_s they refused -- and left the link with nothing sent, though ERROR does not
+    show the tube off and SHV/SCU measured a beam (on, from before). Now the session switches off
+    before it lets the link go: close() sends XOF and, STS still reading ERROR, says it could not
+    confirm. (Pre-heating with nothing measured stays a one-line refusal: test_l8121_spec.)"""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0)
+    with PtyServer(model) as server:
+        model.handle("PHV 600"), model.handle("XON")  # left on by an earlier session
+        n = len(model.log)
+        src = driver(server, "B", ready_timeout_s=0.3, off_confirm_s=0.2)
+        model.sts_error()
+        call = (lambda: src.on(60, 250)) if action == "on" else (lambda: src.warm_up(progress=False))
+        with pytest.raises(DeviceError, match=r"still PREHEATING, which does not show X-rays off, with 60 kV 0 µA"):
+            call()
+        assert src.may_be_on and "XON" not in model.commands[n:]
+        with pytest.raises(DeviceError, match="could not confirm X-rays off"):
+            src.close()
+    assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it (unconfirmed)
+
+
+def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
+    """`source status` read B's STS ERROR as PREHEATING, printed it and ended 0 -- with X-rays on
+    from an earlier `source on` (SHV read 60 kV), left on, and not a word of it. Now a state that
+    does not show X-rays off, with a beam measured, is switched off; unconfirmed, the last line is
+    the warning, exit 3 (README). With nothing measured it is the notes' pre-heating: reported."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    # (`source off` meeting it is the driver's unconfirmed off(), test_l8121_protocol's STS ERROR row)
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.sts_error()
+        capsys.readouterr()
+        n = len(model.log)
+        assert main(["acquire", "source", "status", *port]) == 3
+        out, err = capsys.readouterr()
+        assert "state PREHEATING" in out and "does not show X-rays off and a beam is measured" in out, out
+        assert err.strip().splitlines()[-1] == TUBE_WARNING, err
+        assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
+        n = len(model.log)
+        assert main(["acquire", "source", "status", *port]) == 0  # pre-heating, nothing measured: reported
+        assert "state PREHEATING, measured 0 kV 0 uA" in capsys.readouterr().out
+        assert "XOF" not in model.commands[n:]
+        model.sts_error(False)
+        assert main(["acquire", "source", "status", *port]) == 0  # STS answers again: STANDBY
+        assert "state STANDBY" in capsys.readouterr().out
 
 
 # -- configuration: the ratings are a ceiling ----------------------------------------------------

@@ -64,6 +64,7 @@ ON_60_250 = {
         ("SVI", "SVI 40 0"),
         ("HIV 60", "HIV 60"),
         ("CUR 250", "CUR 250"),
+        ("SVI", "SVI 60 250"),  # read back before any X-ray command
         ("XON", "XON"),
         ("SAR", "SAR 3 60 250 0 0 0 0"),
         ("SIN", "SIN 0"),  # the beam is on: the interlock is watched from the first poll
@@ -77,6 +78,8 @@ ON_60_250 = {
         ("SPC", "SPC 0uA"),
         ("PHV 600", "PHV 600"),
         ("PCU 250", "PCU 250"),
+        ("SPV", "SPV 60.0kV"),  # read back before any X-ray command
+        ("SPC", "SPC 250uA"),
         ("XON", "XON"),
         ("STS", "XON"),
         ("SHV", "SHV 60.0kV"),
@@ -139,6 +142,11 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("STS", "STS 0"),
                 ("STS", "STS 0"),
                 ("SIN", "SIN 0"),
+                # the values the warm-up emits at, set and read back first (default: the lowest)
+                ("SVI", "SVI 0 0"),
+                ("HIV 40", "HIV 40"),
+                ("CUR 0", "CUR 0"),
+                ("SVI", "SVI 40 0"),
                 ("WUP", "WUP"),
                 ("STS", "STS 1"),
                 ("SIN", "SIN 0"),  # the warm-up emits: the interlock is watched
@@ -154,6 +162,13 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("STS", "STANDBY"),
                 ("DAG", "AGING 1 0 YET"),
                 ("SIN", "INTER LOCK ON"),
+                # the XON emits at the presets: set and read back first (default: the lowest)
+                ("SPV", "SPV 0.0kV"),
+                ("SPC", "SPC 0uA"),
+                ("PHV 400", "PHV 400"),
+                ("PCU 0", "PCU 0"),
+                ("SPV", "SPV 40.0kV"),
+                ("SPC", "SPC 0uA"),
                 ("XON", "XON"),
                 ("STS", "AGING"),
                 ("SIN", "INTER LOCK ON"),
@@ -186,6 +201,12 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("STS", "STANDBY"),
         ("DAG", "AGING 1 0 YET"),
         ("SIN", "INTER LOCK ON"),
+        ("SPV", "SPV 40.0kV"),
+        ("SPC", "SPC 0uA"),
+        ("PHV 400", "PHV 400"),
+        ("PCU 0", "PCU 0"),
+        ("SPV", "SPV 40.0kV"),
+        ("SPC", "SPC 0uA"),
         ("XON", "XON"),
         ("STS", "XON"),  # an exposure, not AGING
         ("XOF", "XOF"),
@@ -267,7 +288,7 @@ def test_on_refused_by_queries_alone(dialect, ready, message):
 def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
     pairs = (
         CONNECT["B"]
-        + ON_60_250["B"][:9]
+        + ON_60_250["B"][:11]
         + [
             ("STS", "AGING"),  # the controller started a warm-up instead
             ("XOF", "XOF"),
@@ -389,3 +410,33 @@ def test_auto_probes_then_connects_in_the_dialect_found():
     pairs = [("STS", "STANDBY"), ("SIN", "INTER LOCK ON"), ("SRL", "REMOTE"), ("DAG", "AGING 0 0 END")]
     with expected_protocol("auto", pairs + CONNECT["B"]) as src:
         assert src.dialect.name == "B" and src.voltage_scale == 10
+
+
+# -- the reply grammar: what tells a late reply from the next command's ----------------------------
+@pytest.mark.parametrize(
+    "dialect, sent, reply, fits",
+    [
+        ("A", "STS", "STS 2", True),
+        ("A", "STS", "SIN 0", False),  # SIN's late reply, read after STS was sent
+        ("A", "XOF", "XOF", True),
+        ("A", "XOF", "SAR 3 60 250 0 0 0 0", False),
+        ("A", "HIV 60", "HIV 060", True),
+        ("A", "HIV 60", "HIV 50", False),
+        ("A", "XON", "ERR", True),  # a refusal answers any command
+        ("B", "STS", "STANDBY", True),
+        ("B", "STS", "INTER LOCK ON", False),
+        ("B", "STS", "ERROR", True),
+        ("B", "SIN", "INTER LOCK ON", True),
+        ("B", "XOF", "XON", False),  # XON's (or STS's) late reply is not XOF's echo
+        ("B", "PHV 600", "PHV 600", True),
+        ("B", "CFM", "CFM", True),
+        ("B", "CFM", "MIDDLE", False),
+        ("B", "SPV", "SPV 60.0kV", True),
+        ("B", "SPV", "SPC 250uA", False),
+        ("B", "Enter", "ERROR", True),  # a command the table does not know: no opinion
+    ],
+)
+def test_reply_fits_the_command_by_the_dialects_grammar(dialect, sent, reply, fits):
+    from acquisition.l8121 import DIALECTS
+
+    assert DIALECTS[dialect].reply_fits(sent, reply) is fits

@@ -12,11 +12,14 @@ commands ``ERR``/``ERROR``) or ``dialect="B"`` (``STS`` words, ``INTER LOCK ON``
 Faults, injected from any thread, now or at a given model time, in both dialects:
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
-:meth:`~L8121Model.slow`, :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
+:meth:`~L8121Model.sts_error` (``STS`` answered ``ERROR``: B's pre-heating word, A's refusal),
+:meth:`~L8121Model.slow`, :meth:`~L8121Model.delay_once` (one reply after the client's time-out),
+:meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
-control commands refused with ``ERROR``; B reports it with ``SRL``) and
+control commands refused with ``ERROR``, A's always accepted ``XOF`` excepted; B reports it with
+``SRL``) and
 :meth:`~L8121Model.foreign` (answers like some other instrument: speaks neither dialect).
 
 The baud rate. A pseudo-terminal moves bytes at any speed, so a wrong baud rate would go unnoticed.
@@ -198,9 +201,10 @@ class L8121Model:
         self._focus = 0
         self._error = ErrorCode.NONE
         self._switch = "REMOTE"
-        self._silent = self._garbage = self._stuck = self._foreign = False
+        self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._silent_executes = False
         self._delay_s = 0.0
+        self._delay_once: tuple[float, str | None] | None = None
         self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
@@ -387,8 +391,9 @@ class L8121Model:
 
     def set_operate_switch(self, position: str = "LOCAL") -> None:
         """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
-        command that acts on the tube (``XOF`` included) is refused with ``ERROR``; queries are
-        answered. Dialect B reports the position with ``SRL``."""
+        command that acts on the tube is refused with ``ERROR`` -- in B ``XOF`` included (its notes
+        say remote control needs ``REMOTE``, and name no exception), in A not (``L8121.md``: ``XOF``
+        is "always accepted"); queries are answered. Dialect B reports the position with ``SRL``."""
         if position not in ("REMOTE", "LOCAL", "OFF"):
             raise ValueError(f"operate switch {position!r}: expected REMOTE, LOCAL or OFF")
         with self._lock:
@@ -416,6 +421,15 @@ class L8121Model:
             self._silent = bool(on)
             self._silent_executes = bool(execute)
 
+    def sts_error(self, on: bool = True) -> None:
+        """Answer ``STS`` with ``ERROR`` whatever the state (every other command as usual, so an
+        ``XOF`` still switches off). Dialect B lists ``ERROR`` among ``STS``'s words (pre-heating,
+        by L8121.md's table), which is also how B refuses a command: a state that shows nothing
+        about the tube. In A it is a refused query. Either way no switch-off can be confirmed
+        while it lasts."""
+        with self._lock:
+            self._sts_error = bool(on)
+
     def garbage(self, on: bool = True) -> None:
         """Answer every command (executed as usual) with random junk instead of its reply."""
         with self._lock:
@@ -426,6 +440,25 @@ class L8121Model:
         speaks neither dialect."""
         with self._lock:
             self._foreign = bool(on)
+
+    def delay_once(self, delay_s: float, command: str | None = None) -> None:
+        """Delay one reply by ``delay_s`` seconds (in the servers): the next one, or the next reply
+        to ``command`` (a command word such as ``"SIN"``). Later commands are answered after it, in
+        order, as a controller's are: a reply that comes after the client's time-out, once."""
+        if delay_s < 0:
+            raise ValueError(f"delay_s must be >= 0, got {delay_s}")
+        with self._lock:
+            self._delay_once = (float(delay_s), command)
+
+    def reply_delay(self, line: str) -> float:
+        """How long a server waits before sending the reply to ``line``: :meth:`slow`'s delay, or a
+        pending :meth:`delay_once` that matches (used up)."""
+        with self._lock:
+            once = self._delay_once
+            if once is not None and once[1] in (None, (line.split() or [""])[0]):
+                self._delay_once = None
+                return once[0]
+            return self._delay_s
 
     def slow(self, delay_s: float) -> None:
         """Delay every reply by ``delay_s`` seconds (in the servers; 0 restores)."""
@@ -480,10 +513,14 @@ class L8121Model:
 
     def _execute(self, line: str, t: float) -> str:
         word, *args = line.split()
+        if word == "STS" and not args and self._sts_error:
+            return "ERROR"
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
             return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
-        if word in _CONTROL and self._switch != "REMOTE":
+        # L8121.md, dialect A: "XOF ... always accepted" -- not in remote mode too. B's notes say
+        # only that remote control needs REMOTE, with no exception: B refuses its XOF there
+        if word in _CONTROL and self._switch != "REMOTE" and not (word == "XOF" and self.dialect == "A"):
             return self._refuse(ErrorCode.LOCAL)
         reply = action(t, *args)
         fault = self._after.pop(word, None)
@@ -682,7 +719,7 @@ class _LineServer:
             exchange = self.model.receive(line.decode("ascii", errors="replace"), self._baudrate())
             if exchange is None or exchange.reply is None:
                 continue
-            delay = self.model.reply_delay_s
+            delay = self.model.reply_delay(exchange.command)
             if delay > 0 and self._stop.wait(delay):
                 return
             # a reply garbled by a baud mismatch has no recognisable line end

@@ -924,7 +924,14 @@ def _phase_warm_up(r: _Run):
     if _needs_warm_up(src):
         t = time.perf_counter()
         try:
-            src.warm_up(timeout_s=p.source.warmup_timeout_s, progress=r.progress)
+            # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
+            # starts only after the values it runs at are set and read back valid
+            src.warm_up(
+                timeout_s=p.source.warmup_timeout_s,
+                progress=r.progress,
+                kv=p.source.voltage_kv,
+                ua=p.source.current_ua,
+            )
         finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
             r.beam_on_s += time.perf_counter() - t
     if p.source.focus is not None:
