@@ -4,6 +4,15 @@ The vendor files live in ``../shared`` beside the repository (the only place the
 tests that need them are marked ``needs_itex`` and skip with a message naming the missing folder.
 """
 
+import io
+import locale
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -54,3 +63,128 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
                 counts = 100 + 3000 * np.exp(-L) + rng.normal(0, noise, shape)
                 w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     return path
+
+
+# -- the command run in this process -------------------------------------------------------------
+# Starting `python -m radiokit.cli` costs 0.4-0.9 s of CPU (imports) per call, and most CLI tests
+# only check what a bad input prints and returns. run_cli runs radiokit.cli.main(argv) here
+# instead, as the subprocess helpers did: the same argv, stdout and stderr as text decoded as
+# `subprocess.run(text=True)` decodes a child's (the locale's encoding, universal newlines),
+# warnings ignored (the helpers set PYTHONWARNINGS=ignore), stdout and stderr not terminals (no
+# progress bars). Tests that need a process of their own (signals, rlimits, a possible hang, the
+# encodings set through the environment, imports, the console script) keep the subprocess.
+_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGPIPE") if hasattr(signal, name))
+
+
+def _logging_state():
+    loggers = [logging.root, *(lg for lg in logging.root.manager.loggerDict.values() if isinstance(lg, logging.Logger))]
+    return [
+        (lg, lg.level, list(lg.handlers), lg.propagate, lg.disabled) for lg in loggers
+    ], logging.root.manager.disable
+
+
+def _restore_logging(state):
+    loggers, disable = state
+    known = {id(lg) for lg, *_ in loggers}
+    for lg, level, handlers, propagate, disabled in loggers:
+        lg.setLevel(level)
+        lg.handlers[:] = handlers
+        lg.propagate, lg.disabled = propagate, disabled
+    for lg in list(logging.root.manager.loggerDict.values()):  # made during the run: as new loggers are
+        if isinstance(lg, logging.Logger) and id(lg) not in known:
+            lg.setLevel(logging.NOTSET)
+            lg.handlers[:] = []
+            lg.propagate, lg.disabled = True, False
+    logging.disable(disable)
+
+
+class _FdCapture:
+    """What C code (libhdf5, a library's own printf) writes to file descriptor 1 or 2: a child's
+    stderr held it, so a test counting stderr's lines must see it too."""
+
+    def __init__(self, fd):
+        self.fd, self.file = fd, tempfile.TemporaryFile()
+        self.saved = os.dup(fd)
+        os.dup2(self.file.fileno(), fd)
+
+    def restore(self) -> bytes:
+        os.dup2(self.saved, self.fd)
+        os.close(self.saved)
+        self.file.seek(0)
+        data = self.file.read()
+        self.file.close()
+        return data
+
+
+def _decode(data: bytes, encoding: str) -> str:
+    # as subprocess.run(text=True) reads a pipe: a TextIOWrapper, universal newlines, strict
+    return io.TextIOWrapper(io.BytesIO(data), encoding=encoding).read()
+
+
+def run_cli(*args, env=None, cwd=None) -> subprocess.CompletedProcess:
+    """``radiokit ARGS`` run in this process: its exit code, stdout and stderr as a
+    ``subprocess.CompletedProcess``. Everything ``main`` may change (signal handlers, logging,
+    warnings, the environment, the working directory, the umask, sys.argv, the standard streams)
+    is restored afterwards. An exception ``main`` lets through (a bug: a traceback) is raised
+    here, failing the test."""
+    from radiokit.cli import main
+
+    argv = [str(a) for a in args]
+    encoding = locale.getpreferredencoding(False)
+    out_bytes, err_bytes = io.BytesIO(), io.BytesIO()
+    saved_streams, saved_argv, saved_env = (sys.stdout, sys.stderr), sys.argv, dict(os.environ)
+    saved_cwd, saved_umask = os.getcwd(), os.umask(0o022)
+    os.umask(saved_umask)
+    saved_signals = {sig: signal.getsignal(sig) for sig in _SIGNALS}
+    saved_formatwarning, saved_showwarning = warnings.formatwarning, warnings.showwarning
+    saved_logging = _logging_state()
+    for stream in saved_streams:
+        stream.flush()
+    fds = [_FdCapture(1), _FdCapture(2)]
+    code, out_text, err_text = None, None, None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            os.environ.update({k: str(v) for k, v in (env or {}).items()})
+            if cwd is not None:
+                os.chdir(cwd)
+            # as in a fresh process: no handler on the root logger (pytest adds its own), so that a
+            # library's warning logged without one reaches stderr through logging.lastResort
+            logging.root.handlers[:] = []
+            logging.root.setLevel(logging.WARNING)
+            sys.argv = ["radiokit", *argv]
+            # a child's streams: stdout strict, stderr backslashreplace (Python's defaults for a pipe)
+            sys.stdout = out_text = io.TextIOWrapper(out_bytes, encoding=encoding, errors="strict", write_through=True)
+            sys.stderr = err_text = io.TextIOWrapper(
+                err_bytes, encoding=encoding, errors="backslashreplace", write_through=True
+            )
+            try:
+                code = main(argv)
+            except SystemExit as exc:  # argparse (usage errors, --help, --version), as the interpreter takes it
+                if exc.code is None or isinstance(exc.code, int):
+                    code = exc.code or 0
+                else:
+                    print(exc.code, file=sys.stderr)
+                    code = 1
+    finally:
+        for text in (out_text, err_text):
+            if text is not None:
+                text.flush()
+                text.detach()  # else closing the wrapper (when collected) would close the bytes
+        sys.stdout, sys.stderr = saved_streams
+        fd_out, fd_err = fds[0].restore(), fds[1].restore()
+        sys.argv = saved_argv
+        for key in set(os.environ) - set(saved_env):
+            del os.environ[key]
+        os.environ.update(saved_env)
+        os.chdir(saved_cwd)
+        os.umask(saved_umask)
+        for sig, handler in saved_signals.items():
+            if handler is not None:  # None: installed outside Python, cannot be put back
+                signal.signal(sig, handler)
+        warnings.formatwarning, warnings.showwarning = saved_formatwarning, saved_showwarning
+        _restore_logging(saved_logging)
+    assert isinstance(code, int), f"main returned {code!r}, not an exit code"
+    stdout = _decode(out_bytes.getvalue() + fd_out, encoding)
+    stderr = _decode(err_bytes.getvalue() + fd_err, encoding)
+    return subprocess.CompletedProcess(["radiokit", *argv], code, stdout, stderr)

@@ -1,25 +1,33 @@
-"""The radiokit command: real subprocess runs, checked on what they print and write."""
+"""The radiokit command, checked on what it prints and writes: the installed console script run
+for every command (the entry point itself), the rest through ``main`` in this process
+(``conftest.run_cli``), and in a subprocess what needs one (warnings as the interpreter prints
+them, a traceback, a reader closing the pipe)."""
 
 import json
 import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex
+from conftest import needs_itex, run_cli
 
 from radiokit.io import ExperimentWriter, ImageKey, read
 from sim.detector import PanelModel
 
+#: the console script pip installed beside this interpreter: the command a user types
+RADIOKIT = Path(sys.executable).with_name("radiokit")
+
 
 def run(*args, cwd=None):
+    """The installed ``radiokit`` in a subprocess."""
     return subprocess.run(
-        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
+        [RADIOKIT, *map(str, args)],
         capture_output=True,
         text=True,
         cwd=cwd,
@@ -47,7 +55,7 @@ def experiment(tmp_path_factory):
 
 @needs_itex
 def test_info_itex_json():
-    res = run("info", "--json", ITEX / "photon_counting.img", ITEX / "shading_file.img")
+    res = run_cli("info", "--json", ITEX / "photon_counting.img", ITEX / "shading_file.img")
     assert res.returncode == 0, res.stderr
     reps = json.loads(res.stdout)
     assert [r["format"] for r in reps] == ["itex", "itex"]
@@ -89,11 +97,11 @@ def test_calibrate_from_files_and_correct_to_tiff(experiment, tmp_path):
     tifffile.imwrite(tmp_path / "darks.tif", frames.data[keys == 2])
     tifffile.imwrite(tmp_path / "flats.tif", frames.data[keys == 1])
     frames.data[keys == 0].tofile(tmp_path / "proj.raw")
-    res = run(
+    res = run_cli(
         "calibrate", "--dark", tmp_path / "darks.tif", "--flat", tmp_path / "flats.tif", "-o", tmp_path / "cal.h5"
     )
     assert res.returncode == 0, res.stderr
-    res = run(
+    res = run_cli(
         "correct",
         tmp_path / "proj.raw",
         "--shape",
@@ -115,7 +123,7 @@ def test_calibrate_from_files_and_correct_to_tiff(experiment, tmp_path):
 
 def test_correct_without_cal_uses_the_files_darks_and_flats(experiment, tmp_path):
     path, _ = experiment
-    res = run("correct", path, "-o", tmp_path / "out.h5", "-q")
+    res = run_cli("correct", path, "-o", tmp_path / "out.h5", "-q")
     assert res.returncode == 0, res.stderr
     assert "calibrated from the darks and flats" in res.stdout
 
@@ -130,7 +138,7 @@ def test_correct_without_cal_uses_the_files_darks_and_flats(experiment, tmp_path
 )
 def test_bad_files_give_one_line_errors(tmp_path, content, name, message):
     (tmp_path / name).write_bytes(content)
-    res = run("info", tmp_path / name)
+    res = run_cli("info", tmp_path / name)
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
     assert name in res.stderr and message in res.stderr
@@ -186,13 +194,13 @@ def test_every_command_that_writes_takes_overwrite():
 )
 def test_an_unknown_option_is_the_error_of_the_command_it_was_given_to(cmd, name):
     # it was always the top level's: "radiokit: unrecognized arguments: --overwirte (see radiokit --help)"
-    res = run(*cmd)
+    res = run_cli(*cmd)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert res.stderr.strip() == f"{name}: unrecognized arguments: --overwirte (see {name} --help)"
 
 
 def test_a_user_error_is_one_line_and_debug_shows_the_traceback(tmp_path):
-    res = run("correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
+    res = run_cli("correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1
     assert res.stderr.startswith("radiokit correct: ") and "missing.raw" in res.stderr
     res = run("--debug", "correct", tmp_path / "missing.raw", "--shape", 4, 4, "-o", tmp_path / "out.h5")
@@ -265,9 +273,9 @@ def test_nonfinite_frames_are_refused_naming_the_file_and_frame(tmp_path):
     frames = rng.normal(1000, 20, (3, 12, 14))
     frames[1] = np.inf
     bad = _write_stack(tmp_path / "bad.tif", frames)
-    res = run("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
     assert res.returncode == 0, res.stderr
-    res = run("correct", good, bad, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    res = run_cli("correct", good, bad, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "bad.tif" in res.stderr and "frame 1" in res.stderr, res.stderr
     assert not (tmp_path / "out.h5").exists()
@@ -280,7 +288,7 @@ def test_nonfinite_darks_or_flats_are_refused_naming_the_file(tmp_path):
     dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
     bad_dark = _write_stack(tmp_path / "bad dark.tif", darks)
     flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
-    res = run("calibrate", "--dark", dark, bad_dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", dark, bad_dark, "--flat", flat, "-o", tmp_path / "cal.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "bad dark.tif" in res.stderr and "frame 3" in res.stderr, res.stderr
     assert not (tmp_path / "cal.h5").exists()
@@ -294,9 +302,9 @@ def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
     values = np.arange(3 * 6 * 7, dtype=np.uint16).reshape(3, 6, 7)
     with h5py.File(tmp_path / "beamline.h5", "w") as h5:
         h5["scan/frames"] = values
-    res = run("info", tmp_path / "beamline.h5")
+    res = run_cli("info", tmp_path / "beamline.h5")
     assert res.returncode == 2 and "beamline.h5" in res.stderr and "--dataset" in res.stderr, res.stderr
-    res = run("info", "--json", tmp_path / "beamline.h5", "--dataset", "scan/frames")
+    res = run_cli("info", "--json", tmp_path / "beamline.h5", "--dataset", "scan/frames")
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)[0]
     assert rep["frames"] == 3 and rep["range"] == [0, int(values.max())]
@@ -313,7 +321,7 @@ def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
 def test_register_names_the_files_of_an_image_it_refuses(tmp_path, fixed, moving, problem):
     f = _write_stack(tmp_path / "fixed one.tif", fixed)
     m = _write_stack(tmp_path / "moving one.tif", moving)
-    res = run("register", f, m, "-o", tmp_path / "reg.h5")
+    res = run_cli("register", f, m, "-o", tmp_path / "reg.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert problem in res.stderr and "fixed one.tif" in res.stderr and "moving one.tif" in res.stderr, res.stderr
     assert not (tmp_path / "reg.h5").exists()
@@ -477,7 +485,7 @@ def test_an_experiment_whose_darks_hold_nan_is_named(experiment, tmp_path):
         ["calibrate", "--experiment", path, "-o", tmp_path / "cal.h5"],
         ["correct", path, "-o", tmp_path / "o.h5"],
     ):
-        res = run(*args, "-q") if args[0] == "correct" else run(*args)
+        res = run_cli(*args, "-q") if args[0] == "correct" else run_cli(*args)
         assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
         assert "float exp.h5" in res.stderr and "NaN" in res.stderr, res.stderr
 
@@ -488,7 +496,7 @@ def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
     frame = np.arange(20, dtype=np.float32).reshape(4, 5)
     frame[0, 0], frame[1, 1], frame[2, 2] = np.nan, np.inf, -np.inf
     stack = _write_stack(tmp_path / "f.tif", [frame, np.full((4, 5), np.nan)])
-    res = run("info", "--json", stack)
+    res = run_cli("info", "--json", stack)
     assert res.returncode == 0, res.stderr
 
     def refuse(constant):
@@ -496,7 +504,7 @@ def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
 
     rep = json.loads(res.stdout, parse_constant=refuse)[0]
     assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20
-    res = run("info", stack)
+    res = run_cli("info", stack)
     assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel", res.stdout), res.stdout
 
 
@@ -505,7 +513,7 @@ def test_calibrate_names_the_file_whose_frames_differ_in_shape(tmp_path):
     dark = _write_stack(tmp_path / "dark.tif", rng.normal(100, 2, (5, 12, 14)))
     other = _write_stack(tmp_path / "dark small.tif", rng.normal(100, 2, (5, 12, 10)))
     flat = _write_stack(tmp_path / "flat.tif", rng.normal(2000, 20, (5, 12, 14)))
-    res = run("calibrate", "--dark", dark, other, "--flat", flat, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", dark, other, "--flat", flat, "-o", tmp_path / "cal.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "dark small.tif" in res.stderr and "(12, 10)" in res.stderr and "(12, 14)" in res.stderr, res.stderr
 
@@ -520,9 +528,9 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
         h5["data"] = values
     with h5py.File(tmp_path / "master.h5", "w") as h5:
         h5["entry/data"] = h5py.ExternalLink("data_000001.h5", "/data")
-    res = run("info", tmp_path / "master.h5", "--dataset", "entry/data")
+    res = run_cli("info", tmp_path / "master.h5", "--dataset", "entry/data")
     assert res.returncode == 2 and "master.h5" in res.stderr and "--allow-external" in res.stderr, res.stderr
-    res = run("info", "--json", tmp_path / "master.h5", "--dataset", "entry/data", "--allow-external")
+    res = run_cli("info", "--json", tmp_path / "master.h5", "--dataset", "entry/data", "--allow-external")
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)[0]["range"] == [0, int(values.max())]
     # an experiment file whose frames are in another file: calibrate and correct take the flag too
@@ -531,13 +539,13 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
     with h5py.File(tmp_path / "exp.h5", "w") as h5:
         h5["entry/instrument/detector/data"] = h5py.ExternalLink("frames.h5", "/data")
         h5["entry/instrument/detector/image_key"] = np.array([2, 2, 1, 1, 0], np.int8)
-    res = run("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q")
+    res = run_cli("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q")
     assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
     for args in (
         ["calibrate", "--experiment", tmp_path / "exp.h5", "-o", tmp_path / "cal.h5"],
         ["correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5", "-q"],
     ):
-        res = run(*args, "--allow-external")
+        res = run_cli(*args, "--allow-external")
         assert res.returncode == 0, res.stderr
     # register reads the linked frames too (6 x 7: then too small to register, said so)
     reg = [
@@ -551,9 +559,9 @@ def test_frames_behind_an_external_link_are_read_when_the_command_is_told(tmp_pa
         "-o",
         tmp_path / "r.h5",
     ]
-    res = run(*reg)
+    res = run_cli(*reg)
     assert res.returncode == 2 and "--allow-external" in res.stderr, res.stderr
-    res = run(*reg, "--allow-external")
+    res = run_cli(*reg, "--allow-external")
     assert res.returncode == 2 and "too small" in res.stderr, res.stderr
 
 
@@ -565,7 +573,7 @@ def test_calibrate_refuses_flats_of_another_size_naming_both_files(tmp_path):
     rng = np.random.default_rng(0)
     tifffile.imwrite(tmp_path / "d.tif", rng.normal(100, 2, (4, 384, 512)).astype(np.uint16), photometric="minisblack")
     tifffile.imwrite(tmp_path / "f.tif", rng.normal(3000, 9, (4, 383, 511)).astype(np.uint16), photometric="minisblack")
-    res = run("calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "f.tif are (383, 511)" in res.stderr and "d.tif (384, 512)" in res.stderr, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.tif", "f.tif"]
@@ -584,7 +592,7 @@ def test_correct_refuses_frames_already_corrected(tmp_path):
         rng.normal(100, 2, (4, 64, 80)).astype(np.uint16), rng.normal(3000, 30, (4, 64, 80)).astype(np.uint16)
     ).save(tmp_path / "cal.h5")
     tifffile.imwrite(tmp_path / "t.tif", rng.normal(0.5, 0.01, (64, 80)).astype(np.float32))
-    res = run("correct", tmp_path / "t.tif", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    res = run_cli("correct", tmp_path / "t.tif", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "t.tif: frame 0: no signal above the dark" in res.stderr, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "t.tif"]

@@ -1,19 +1,19 @@
 """Slips the offline commands once accepted in silence, each now one line and exit code 2 (or,
-for non-finite numbers, strict JSON that reads back): real files, the real command in a subprocess."""
+for non-finite numbers, strict JSON that reads back): real files, the real command's ``main`` run
+in this process (``conftest.run_cli``: nothing here needs a process of its own; tests/test_cli.py
+runs the installed command)."""
 
 from __future__ import annotations
 
 import json
 import math
 import os
-import subprocess
-import sys
 
 import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import one_line_error, synthetic
+from conftest import one_line_error, run_cli, synthetic
 
 from radiokit import _json as strict_json
 from radiokit.calibrate import MAX_DEFECTIVE_SHARE, Calibration
@@ -28,16 +28,6 @@ ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", 
 FAST = ["-q", "--no-report", "--cross-check", "none", *ROI]
 
 
-def run(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "radiokit.cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"},
-    )
-
-
 def _no_constants(word):
     raise ValueError(f"{word} is not JSON")
 
@@ -50,7 +40,7 @@ def strict_loads(text):
 # -- 1: strict JSON ----------------------------------------------------------------------------
 def test_results_json_of_a_noiseless_run_is_strict_json_and_reads_back_infinite(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
-    res = run("process", exp, "-o", tmp_path / "res", *FAST)
+    res = run_cli("process", exp, "-o", tmp_path / "res", *FAST)
     assert res.returncode == 0, res.stderr
     text = (tmp_path / "res" / "results.json").read_text()
     d = strict_loads(text)  # was: "Infinity is not JSON"
@@ -83,7 +73,7 @@ def test_results_json_of_a_noiseless_run_is_strict_json_and_reads_back_infinite(
 )
 def test_a_hand_edited_not_finite_map_is_one_line(marks, words, tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
-    assert run("process", exp, "-o", tmp_path / "res", *FAST).returncode == 0
+    assert run_cli("process", exp, "-o", tmp_path / "res", *FAST).returncode == 0
     path = tmp_path / "res" / "results.json"
     d = json.loads(path.read_text())
     d["not_finite"] = marks
@@ -148,7 +138,7 @@ def test_process_refuses_one_file_given_twice(how, tmp_path):
         other.symlink_to(exp)
     elif how == "hardlink":
         os.link(exp, other)
-    res = run("process", exp, other, "-o", tmp_path / "out", *FAST)
+    res = run_cli("process", exp, other, "-o", tmp_path / "out", *FAST)
     one_line_error(res, "the same experiment file given", "give each file once")
     assert not (tmp_path / "out").exists()  # refused before any work
 
@@ -177,7 +167,7 @@ def test_calibrate_refuses_one_frame_file_given_twice(which, how, tmp_path):
     flats = [_frames(tmp_path / "f0.tif", 3000), _frames(tmp_path / "f1.tif", 3001)]
     given = darks if which == "--dark" else flats
     given[1] = _alias(given[0], how)
-    res = run("calibrate", "--dark", *darks, "--flat", *flats, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", *darks, "--flat", *flats, "-o", tmp_path / "cal.h5")
     line = one_line_error(res, f"the same {which} file given", "its frames would count twice", "give each file once")
     assert str(given[1]) in line and not (tmp_path / "cal.h5").exists()
 
@@ -185,7 +175,7 @@ def test_calibrate_refuses_one_frame_file_given_twice(which, how, tmp_path):
 def test_calibrate_takes_darks_and_flats_from_one_file_by_image_key(tmp_path):
     """One file in both lists is no repeat: an experiment-style file holds both, by image_key."""
     exp = synthetic(tmp_path / "exp.h5", shape=(32, 32))
-    res = run("calibrate", "--dark", exp, "--flat", exp, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dark", exp, "--flat", exp, "-o", tmp_path / "cal.h5")
     assert res.returncode == 0, res.stderr
     assert "from 3 darks and 3 flats" in res.stdout
 
@@ -193,7 +183,7 @@ def test_calibrate_takes_darks_and_flats_from_one_file_by_image_key(tmp_path):
 @pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
 def test_register_refuses_one_image_as_fixed_and_moving(how, tmp_path):
     img = _frames(tmp_path / "a.tif", 1000)
-    res = run("register", img, _alias(img, how), "-o", tmp_path / "reg.h5")
+    res = run_cli("register", img, _alias(img, how), "-o", tmp_path / "reg.h5")
     one_line_error(res, "fixed and moving are the same image", "frame 0")
     assert not (tmp_path / "reg.h5").exists()
 
@@ -204,13 +194,13 @@ def test_register_takes_two_frames_of_one_file(tmp_path):
     blobs = [np.exp(-((rr - 30 - dy) ** 2 + (cc - 34) ** 2) / 60) + 0.5 * np.sin(cc / 5) for dy in (0, 1)]
     img = tmp_path / "stack.tif"
     tifffile.imwrite(img, np.stack(blobs).astype(np.float32))
-    res = run("register", img, img, "--moving-frame", "1", "-o", tmp_path / "reg.h5")
+    res = run_cli("register", img, img, "--moving-frame", "1", "-o", tmp_path / "reg.h5")
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "reg.h5").exists()
 
 
 def test_a_missing_file_given_twice_is_said_to_be_missing(tmp_path):
-    res = run("process", tmp_path / "nope.h5", tmp_path / "nope.h5", "-o", tmp_path / "out", *FAST)
+    res = run_cli("process", tmp_path / "nope.h5", tmp_path / "nope.h5", "-o", tmp_path / "out", *FAST)
     assert res.returncode != 0 and "no such experiment file" in res.stderr
     assert "given twice" not in res.stderr and not (tmp_path / "out").exists()
 
@@ -219,14 +209,14 @@ def test_a_missing_file_is_said_before_the_output_is_judged(tmp_path):
     # `process runs/*.h5 -o results` with no runs/ said "results: exists ..."
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "notes.txt").write_text("mine")
-    res = run("process", tmp_path / "runs" / "*.h5", "-o", tmp_path / "results", *FAST)
+    res = run_cli("process", tmp_path / "runs" / "*.h5", "-o", tmp_path / "results", *FAST)
     one_line_error(res, "*.h5", "no such experiment file")
 
 
 def test_process_refuses_a_control_that_is_one_of_its_files(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     (tmp_path / "ctl.h5").symlink_to(exp)
-    res = run("process", exp, "--control", tmp_path / "ctl.h5", "-o", tmp_path / "out", *FAST)
+    res = run_cli("process", exp, "--control", tmp_path / "ctl.h5", "-o", tmp_path / "out", *FAST)
     one_line_error(res, "--control", "ctl.h5", "is the experiment file", "exp.h5")
     assert not (tmp_path / "out").exists()
 
@@ -235,7 +225,7 @@ def test_process_prints_the_controls_lines_and_its_flags_count(tmp_path):
     # the control's numbers were in results.json and the report only, and its flagged pairs did
     # not count in the exit code
     exp, ctl = synthetic(tmp_path / "exp.h5"), synthetic(tmp_path / "ctl.h5", scale=1.1)
-    res = run("process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST)
+    res = run_cli("process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST)
     lines = res.stdout.splitlines()
     assert lines[0].startswith(f"{exp}: improvement factor"), res.stdout
     assert any(line.startswith(f"control {ctl}: improvement factor") for line in lines), res.stdout
@@ -268,7 +258,7 @@ def test_process_prints_the_controls_lines_and_its_flags_count(tmp_path):
 @pytest.mark.parametrize("name", ["x.h5", "x.HDF5", "x.nxs", "x.tif", "x.tiff", "x.json"])
 def test_process_refuses_an_output_folder_named_like_a_file(name, tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
-    res = run("process", exp, "-o", tmp_path / name, *FAST)
+    res = run_cli("process", exp, "-o", tmp_path / name, *FAST)
     one_line_error(res, f"-o {tmp_path / name}", "-o is a results folder")
     assert not (tmp_path / name).exists()
 
@@ -277,10 +267,10 @@ def test_several_files_are_not_written_into_one_runs_results_folder(tmp_path):
     # they were: a.h5's and b.h5's folders beside the first run's report, a mixed folder that
     # `--overwrite` then refused to replace (files radiokit did not write there)
     a, b = synthetic(tmp_path / "a.h5"), synthetic(tmp_path / "b.h5", scale=1.1)
-    assert run("process", a, "-o", tmp_path / "out", *FAST).returncode == 0
+    assert run_cli("process", a, "-o", tmp_path / "out", *FAST).returncode == 0
     before = sorted(p.name for p in (tmp_path / "out").iterdir())
     for extra in ([], ["--overwrite"]):
-        res = run("process", a, b, "-o", tmp_path / "out", *FAST, *extra)
+        res = run_cli("process", a, b, "-o", tmp_path / "out", *FAST, *extra)
         one_line_error(res, str(tmp_path / "out"), "holds the results of one run", "choose another folder")
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
 
@@ -295,7 +285,9 @@ def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path)
     flat = (100 + resp + rng.normal(0, 5, (5, *shape))).clip(0, 4095).astype(np.uint16)
     tifffile.imwrite(tmp_path / "dark.tif", dark)
     tifffile.imwrite(tmp_path / "flat.tif", flat)
-    res = run("calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5")
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5"
+    )
     line = one_line_error(res, "dark.tif", "flat.tif", "defective", f"{100 * MAX_DEFECTIVE_SHARE:g} %")
     assert "(100.0 %)" in line  # line_fraction makes every row and column a line
     assert not (tmp_path / "c.h5").exists()
@@ -309,7 +301,9 @@ def test_a_4x4_binned_panel_with_the_most_defect_lines_it_may_have_still_calibra
     rng = np.random.default_rng(2)
     tifffile.imwrite(tmp_path / "dark.tif", np.asarray(panel.dark_frames(6, rng)))
     tifffile.imwrite(tmp_path / "flat.tif", np.asarray(panel.flat_frames(6, 150, rng)))
-    res = run("calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5")
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5"
+    )
     assert res.returncode == 0, res.stderr
     cal = Calibration.load(tmp_path / "c.h5")
     assert len(cols) == 20 and set(cols) <= set(cal.defect_columns.tolist())
@@ -328,7 +322,9 @@ def test_an_image_key_outside_0_to_3_is_refused_naming_the_frame(cmd, value, tmp
         "calibrate": ["calibrate", "--experiment", exp, "-o", tmp_path / "c.h5"],
         "process": ["process", exp, "-o", tmp_path / "out", *FAST],
     }[cmd]
-    one_line_error(run(*args), "exp.h5", "frame 7", f"image_key {value}", "0 projection, 1 flat, 2 dark or 3 invalid")
+    one_line_error(
+        run_cli(*args), "exp.h5", "frame 7", f"image_key {value}", "0 projection, 1 flat, 2 dark or 3 invalid"
+    )
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
     with pytest.raises(FormatError, match=f"frame 7 has image_key {value}"):  # acquire --resume's reader
         read_progress(exp)
@@ -339,4 +335,4 @@ def test_an_image_key_beside_another_layouts_frames_is_checked_too(tmp_path):
     with h5py.File(path, "w") as h5:
         h5["scan/data"] = np.zeros((4, 8, 8), np.uint16)
         h5["scan/image_key"] = np.array([2, 1, 0, 9], np.int8)
-    one_line_error(run("info", path, "--dataset", "scan/data"), "other.h5", "/scan/image_key[3]", "image_key 9")
+    one_line_error(run_cli("info", path, "--dataset", "scan/data"), "other.h5", "/scan/image_key[3]", "image_key 9")

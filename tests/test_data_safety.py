@@ -1,8 +1,11 @@
 """Nothing radiokit did not make is overwritten or deleted; outputs are complete or absent.
 
-Every case runs the real ``radiokit`` command in a subprocess on real files, then checks that the
-inputs' SHA-256 are unchanged and that each output is either the previous complete one, a new
-complete one, or absent (no temporary file left beside it either, except after a kill -9).
+Every case runs the real ``radiokit`` command on real files, then checks that the inputs' SHA-256
+are unchanged and that each output is either the previous complete one, a new complete one, or
+absent (no temporary file left beside it either, except after a kill -9). The command runs in a
+subprocess where the case needs one (a kill or a signal, a resource limit, Dask's workers, the
+terminal's encoding, a faked ``shutil.disk_usage``), else its ``main`` in this process
+(``conftest.run_cli``).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import one_line_error, synthetic
+from conftest import one_line_error, run_cli, synthetic
 
 from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, read
 
@@ -92,10 +95,10 @@ def test_an_existing_output_needs_overwrite(cmd, experiment, images, tmp_path):
     out = Path(args[-1])
     out.write_bytes(b"a file the user cares about")
     before = {p: sha(p) for p in (experiment, *images)}
-    res = run(*args)
+    res = run_cli(*args)
     one_line_error(res, out.name, "exists", "--overwrite")
     assert out.read_bytes() == b"a file the user cares about"
-    res = run(*args, "--overwrite")
+    res = run_cli(*args, "--overwrite")
     assert res.returncode in (0, 1), res.stderr  # register exits 1 for an untrustworthy field
     assert out.read_bytes() != b"a file the user cares about"
     if out.suffix == ".png":
@@ -130,16 +133,16 @@ def test_an_output_that_is_an_input_is_refused_even_with_overwrite(cmd, how, exp
         "register": ["register", fixed, moving],
     }[cmd]
     before = {p: sha(p) for p in (experiment, fixed, moving)}
-    res = run(*args, "-o", out, "--overwrite")
+    res = run_cli(*args, "-o", out, "--overwrite")
     one_line_error(res, out.name, "input", target.name)
     assert {p: sha(p) for p in before} == before
 
 
 def test_correct_refuses_to_write_over_its_calibration(experiment, tmp_path):
     cal = tmp_path / "cal.h5"
-    assert run("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
     before = sha(cal)
-    one_line_error(run("correct", experiment, "--cal", cal, "-o", cal, "--overwrite", "-q"), "cal.h5", "input")
+    one_line_error(run_cli("correct", experiment, "--cal", cal, "-o", cal, "--overwrite", "-q"), "cal.h5", "input")
     assert sha(cal) == before
 
 
@@ -165,32 +168,34 @@ def test_process_never_writes_over_its_input_named_results_h5(tmp_path):
     exp = synthetic(folder / "results.h5")
     before = sha(exp)
     # into its own folder: that folder holds the input, refused even with --overwrite
-    one_line_error(run("process", exp, "-o", folder, "--overwrite", "--no-report", "-q", *ROI), "data", "input")
+    one_line_error(run_cli("process", exp, "-o", folder, "--overwrite", "--no-report", "-q", *ROI), "data", "input")
     assert sha(exp) == before and sorted(p.name for p in folder.iterdir()) == ["results.h5"]
     # the default, a folder beside it named after it, leaves it alone
-    res = run("process", exp, "--no-report", "-q", *ROI)
+    res = run_cli("process", exp, "--no-report", "-q", *ROI)
     assert res.returncode == 0, res.stderr
     assert sha(exp) == before and (folder / "results" / "results.h5").is_file()
 
 
 def test_process_replaces_only_its_own_results_folder(experiment, tmp_path):
     out = tmp_path / "res"
-    assert run("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode == 0
+    assert run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode == 0
     first = tree_sha(out)
     assert set(first) == {RESULTS_MARKER, "results.h5", "results.json"}
-    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", *ROI), "res", "--overwrite")
+    one_line_error(run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI), "res", "--overwrite")
     assert tree_sha(out) == first
-    assert run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI).returncode == 0
+    assert run_cli("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI).returncode == 0
     assert set(tree_sha(out)) == set(first)
     # a file radiokit did not write there: never deleted, so the folder is not replaced
     (out / "notes.txt").write_text("mine")
-    one_line_error(run("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI), "res", "notes.txt")
+    one_line_error(
+        run_cli("process", experiment, "-o", out, "--no-report", "-q", "--overwrite", *ROI), "res", "notes.txt"
+    )
     assert (out / "notes.txt").read_text() == "mine"
     # a folder radiokit did not make: refused even with --overwrite
     other = tmp_path / "theirs"
     other.mkdir()
     (other / "data.csv").write_text("1,2,3")
-    one_line_error(run("process", experiment, "-o", other, "--no-report", "-q", "--overwrite", *ROI), "theirs")
+    one_line_error(run_cli("process", experiment, "-o", other, "--no-report", "-q", "--overwrite", *ROI), "theirs")
     assert (other / "data.csv").read_text() == "1,2,3"
     no_temporaries(tmp_path)
 
@@ -198,7 +203,7 @@ def test_process_replaces_only_its_own_results_folder(experiment, tmp_path):
 def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
     (tmp_path / "experiment.h5").write_bytes(b"the user's own experiment")
     for extra in ([], ["--overwrite"]):
-        res = run("demo", "-o", ".", "-q", *extra, cwd=tmp_path)
+        res = run_cli("demo", "-o", ".", "-q", *extra, cwd=tmp_path)
         one_line_error(res, "not made by radiokit")
     assert (tmp_path / "experiment.h5").read_bytes() == b"the user's own experiment"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["experiment.h5"]
@@ -268,7 +273,7 @@ def _popen(*args):
 def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
     exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
     out = tmp_path / "out.h5"
-    assert run("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    assert run_cli("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
     previous, inputs = sha(out), sha(exp)
     proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
     assert _kill_when(proc, tmp_path, ".out.tmp-*"), "the run ended before its temporary file was seen"
@@ -289,7 +294,7 @@ def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
     new complete one. Both are whole outputs, never a mix.)"""
     exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
     out = tmp_path / "out.h5"
-    assert run("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    assert run_cli("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
     previous, inputs = sha(out), sha(exp)
     proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
     assert _kill_when(proc, tmp_path, ".out.tmp-*", sig=sig)
@@ -303,7 +308,7 @@ def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
 def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     out = tmp_path / "res"
-    assert run("process", exp, "-o", out, "-q", *ROI).returncode == 0  # with the report: many files
+    assert run_cli("process", exp, "-o", out, "-q", *ROI).returncode == 0  # with the report: many files
     previous, inputs = tree_sha(out), sha(exp)
     assert "report.html" in previous
     proc = _popen("process", exp, "-o", out, "-q", "--overwrite", *ROI)
@@ -332,7 +337,7 @@ def _full_disk_run(small_disk, *args):
     ``shutil.disk_usage`` faked to report 1000 bytes free (an injected ENOSPC: the only way to
     fill a disk without privileges)."""
     if small_disk is not None:
-        return run(*args)
+        return run_cli(*args)
     code = (
         "import shutil, sys; from collections import namedtuple; from radiokit.cli import main; "
         "shutil.disk_usage = lambda p: namedtuple('u', 'total used free')(10**6, 10**6 - 1000, 1000); "
@@ -393,14 +398,14 @@ def test_a_tiff_with_a_corrupt_fifth_page_is_an_error_not_a_shorter_stack(experi
     bad = tmp_path / "bad.tif"
     bad.write_bytes(bytes(data))
     before = sha(bad)
-    res = run("correct", bad, "--cal", _cal(experiment, tmp_path), "-q", "-o", tmp_path / "out.h5")
+    res = run_cli("correct", bad, "--cal", _cal(experiment, tmp_path), "-q", "-o", tmp_path / "out.h5")
     one_line_error(res, "bad.tif", "page 4")
     assert not (tmp_path / "out.h5").exists() and sha(bad) == before
 
 
 def _cal(experiment, tmp_path):
     cal = tmp_path / "cal.h5"
-    assert run("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
     return cal
 
 
@@ -411,11 +416,11 @@ def test_sim_run_refuses_before_the_mechanics(tmp_path):
     old = tmp_path / "old.h5"
     old.write_bytes(b"a previous simulation")
     before = sha(scene)
-    one_line_error(run("sim", "run", "--preset", "seed-breast", "-o", old, "-q"), "old.h5", "--overwrite")
+    one_line_error(run_cli("sim", "run", "--preset", "seed-breast", "-o", old, "-q"), "old.h5", "--overwrite")
     assert old.read_bytes() == b"a previous simulation"
     # the scene file is an input: neither the experiment nor --save-scene may replace it
     one_line_error(
-        run("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
+        run_cli("sim", "run", scene, "-o", tmp_path / "new.h5", "--save-scene", scene, "--overwrite", "-q"),
         "scene.toml",
         "input",
     )
@@ -456,7 +461,7 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
     alive.write_bytes(b"being written")
     mine = tmp_path / ".cal.tmp-notes.h5"  # not a name radiokit makes: kept
     mine.write_bytes(b"the user's")
-    assert run("calibrate", "--experiment", experiment, "-o", out).returncode == 0
+    assert run_cli("calibrate", "--experiment", experiment, "-o", out).returncode == 0
     assert not stale.exists() and alive.exists() and mine.exists() and h5py.is_hdf5(out)
     with atomic_path(tmp_path / "x.txt") as tmp:
         assert tmp.name.startswith(f".x.tmp-{host}-{os.getpid()}-") and tmp.suffix == ".txt"
@@ -475,7 +480,7 @@ def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, t
     for folder in stale:
         folder.mkdir()
         (folder / "results.h5").write_bytes(b"half")
-    assert run("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
+    assert run_cli("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
     assert not any(folder.exists() for folder in stale)
     no_temporaries(tmp_path)
 
@@ -511,7 +516,7 @@ def test_an_output_that_cannot_be_written_is_named_not_its_temporary(cmd, readon
     out = Path(args[args.index("--png") + 1] if cmd == "register-png" else args[args.index("-o") + 1])
     if cmd == "register-png":  # the field goes to a writable folder; only the figure cannot be written
         args[args.index("-o") + 1] = tmp_path / "field.h5"
-    res = run(*args)
+    res = run_cli(*args)
     line = one_line_error(res, out, "cannot be written")
     assert ".tmp-" not in line and "o_flags" not in line, line
 
@@ -527,7 +532,7 @@ def test_an_output_whose_name_is_near_the_filesystem_limit_is_written(cmd, stem,
     args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
     if cmd != "process":
         args[-1] = out
-    res = run(*args, "--no-report") if cmd == "process" else run(*args)
+    res = run_cli(*args, "--no-report") if cmd == "process" else run_cli(*args)
     assert res.returncode == 0, res.stderr
     assert out.exists()
     no_temporaries(tmp_path)
@@ -562,7 +567,7 @@ def test_an_output_under_a_file_is_refused_saying_so(cmd, experiment, images, tm
     (tmp_path / "notes.txt").write_text("mine")
     out = tmp_path / "notes.txt" / "sub" / "out"
     args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", out, *ROI]}[cmd]
-    res = run(*args)
+    res = run_cli(*args)
     one_line_error(res, "notes.txt", "not a folder")
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
@@ -585,14 +590,14 @@ def test_inputs_named_in_bytes_that_are_not_utf8_are_recorded_readably(images, t
     that is not UTF-8 is recorded with its odd bytes as \\xNN, not refused after the work."""
     fixed = _non_utf8(tmp_path, b"fixed\xff.tif")
     fixed.write_bytes(images[0].read_bytes())
-    res = run("register", fixed, images[1], "-o", tmp_path / "reg.h5", "--method", "ncc")
+    res = run_cli("register", fixed, images[1], "-o", tmp_path / "reg.h5", "--method", "ncc")
     assert res.returncode in (0, 1), res.stderr  # 1: registered, flagged untrustworthy
     attrs = []
     with h5py.File(tmp_path / "reg.h5") as h5:
         h5.visititems(lambda name, obj: attrs.extend(str(v) for v in obj.attrs.values()))
     assert any(a.endswith("fixed\\xff.tif") for a in attrs), attrs
     exp = synthetic(_non_utf8(tmp_path, b"exp\xe9 1.h5"))
-    res = run("process", exp, "-q", "-o", tmp_path / "res", "--cross-check", "none", *ROI)
+    res = run_cli("process", exp, "-q", "-o", tmp_path / "res", "--cross-check", "none", *ROI)
     assert res.returncode in (0, 1), res.stderr
     with h5py.File(tmp_path / "res" / "results.h5") as h5:
         assert h5["entry"].attrs["source"].endswith("exp\\xe9 1.h5")
@@ -605,7 +610,7 @@ def test_an_hdf5_output_is_not_written_under_another_formats_name(cmd, name, exp
     """calibrate and register write HDF5: under ``out.tif`` other programs would take it for a
     TIFF and fail on it. Refused in one line before the work, as correct refuses ``.png``."""
     args = _commands(experiment, images, tmp_path / "x")[cmd][:-1] + [tmp_path / name]
-    res = run(*args)
+    res = run_cli(*args)
     one_line_error(res, name, ".h5")
     assert not (tmp_path / name).exists()
 
@@ -619,9 +624,10 @@ def test_a_failed_process_leaves_no_empty_folders(tmp_path):
         w.append(np.full((32, 40), 3000, np.uint16), image_key=ImageKey.FLAT)
         for step in (1, 2):
             w.append(np.full((32, 40), 1500, np.uint16), image_key=ImageKey.PROJECTION, step=step)
-    one_line_error(run("process", bad, "-o", tmp_path / "new" / "sub" / "res", "-q"), "bad.h5", "no darks")
+    one_line_error(run_cli("process", bad, "-o", tmp_path / "new" / "sub" / "res", "-q"), "bad.h5", "no darks")
     twin = tmp_path / "twin.h5"  # another file: one file given twice is refused before any work
     twin.write_bytes(bad.read_bytes())
+    # two files run on a Dask cluster: in a process of its own, the cluster's workers its children
     res = run("process", bad, twin, "-o", tmp_path / "many" / "x", "-q", "--workers", "1")
     assert res.returncode == 1 and res.stderr.count("no darks") == 2, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5", "twin.h5"]
@@ -897,7 +903,7 @@ def test_an_output_that_is_a_fifo_or_a_device_is_refused_even_with_overwrite(cmd
         os.mkfifo(out)
     else:
         out.symlink_to(os.devnull)
-    res = run(*args, "--overwrite")
+    res = run_cli(*args, "--overwrite")
     one_line_error(res, out.name, "not a regular file", "FIFO" if kind == "fifo" else "character device")
     if kind == "fifo":
         assert stat.S_ISFIFO(out.lstat().st_mode)

@@ -2,7 +2,9 @@
 
 Memory cases run the command in a subprocess limited by ``resource.setrlimit(RLIMIT_AS)``: a
 reader that allocated what the header declares would die with MemoryError (or be killed); the
-budget check must refuse first, naming the file.
+budget check must refuse first, naming the file. The other command runs are in this process
+(``conftest.run_cli``): they check a refusal's line, exit code and files, which need no process
+of their own; ``--debug``'s traceback is checked in a subprocess too (the interpreter prints it).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 import pytest
 import tifffile
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, synthetic
+from conftest import needs_itex, run_cli, synthetic
 
 from radiokit.errors import FormatError
 from radiokit.io import ExperimentWriter, ImageKey, memory_budget, parse_size, read
@@ -208,7 +210,7 @@ def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
         read(path, budget="5MiB")
     assert read(path, budget="9MiB").data.shape == (4, 1024, 1024)
     # frame by frame, a stack larger than the budget can still be streamed
-    res = run("info", path, "--all", env={"RADIOKIT_MEMORY_BUDGET": "3MiB"})
+    res = run_cli("info", path, "--all", env={"RADIOKIT_MEMORY_BUDGET": "3MiB"})
     assert res.returncode == 0, res.stderr
 
 
@@ -223,7 +225,7 @@ def test_budget_sizes(text, expected):
 @pytest.mark.parametrize("text", ["lots", "-5M", "0", "2 parsecs", "nan"])
 def test_a_bad_budget_is_one_line(text, tmp_path):
     path = _experiment(tmp_path / "exp.h5")
-    one_line_error(run("info", path, env={"RADIOKIT_MEMORY_BUDGET": text}), "RADIOKIT_MEMORY_BUDGET", text)
+    one_line_error(run_cli("info", path, env={"RADIOKIT_MEMORY_BUDGET": text}), "RADIOKIT_MEMORY_BUDGET", text)
 
 
 @needs_itex
@@ -283,9 +285,9 @@ def test_data_outside_the_file_is_refused_unless_allowed(kind, words, outside):
     data = read(path, allow_external=True, **hints).data
     if kind == "external raw storage":  # what was refused: the private file's bytes as pixels
         assert data.tobytes() == secret.read_bytes()
-    res = run("info", path, *(["--format", "hdf5"] if not hints else []))
+    res = run_cli("info", path, *(["--format", "hdf5"] if not hints else []))
     if hints:  # the CLI reads a named dataset only in register; info reads experiment files
-        res = run("register", path, path, "--dataset", "frames", "-o", path.with_name("reg.h5"))
+        res = run_cli("register", path, path, "--dataset", "frames", "-o", path.with_name("reg.h5"))
     one_line_error(res, path.name, "allow_external")
 
 
@@ -343,14 +345,14 @@ def test_thresholds_are_checked_together_not_one_at_a_time():
 )
 def test_a_bad_threshold_is_refused_before_anything_is_written(value, tmp_path):
     path = _experiment(tmp_path / "exp.h5")
-    res = run("calibrate", "--experiment", path, "--threshold", value, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--experiment", path, "--threshold", value, "-o", tmp_path / "cal.h5")
     one_line_error(res, "--threshold", value)
     assert not (tmp_path / "cal.h5").exists()
 
 
 def test_calibrate_refuses_an_experiment_and_dark_or_flat_files_together(tmp_path):
     path = _experiment(tmp_path / "exp.h5")  # the --dark files were silently not used
-    res = run("calibrate", "--experiment", path, "--dark", path, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--experiment", path, "--dark", path, "-o", tmp_path / "cal.h5")
     one_line_error(res, "--experiment", "not both")
     assert not (tmp_path / "cal.h5").exists()
 
@@ -359,13 +361,13 @@ def test_nonfinite_pixels_are_filled_and_flagged_in_the_streaming_path(tmp_path)
     path = _experiment(tmp_path / "exp.h5")
     f = read(path)
     cal = tmp_path / "cal.h5"
-    assert run("calibrate", "--experiment", path, "-o", cal).returncode == 0
+    assert run_cli("calibrate", "--experiment", path, "-o", cal).returncode == 0
     proj = f.data[f.meta["image_key"] == 0].astype(np.float32)
     proj[0, 5, 5], proj[1, 10, 20], proj[2, 0, 0] = np.nan, np.inf, -np.inf
     proj[2, 20:22, 30:32] = np.nan  # a small cluster
     tif = tmp_path / "frames.tif"
     tifffile.imwrite(tif, proj, photometric="minisblack")
-    res = run("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "out.h5")
+    res = run_cli("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "out.h5")
     assert res.returncode == 0, res.stderr
     with h5py.File(tmp_path / "out.h5") as h5:
         out = h5["entry/data/data"][()]
@@ -389,10 +391,10 @@ def test_nonfinite_pixels_are_filled_and_flagged_in_the_streaming_path(tmp_path)
 def test_a_frame_of_only_nan_is_refused(tmp_path):
     path = _experiment(tmp_path / "exp.h5")
     cal = tmp_path / "cal.h5"
-    assert run("calibrate", "--experiment", path, "-o", cal).returncode == 0
+    assert run_cli("calibrate", "--experiment", path, "-o", cal).returncode == 0
     tif = tmp_path / "nan.tif"
     tifffile.imwrite(tif, np.full((2, 32, 40), np.nan, np.float32))
-    one_line_error(run("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "out.h5"), "only NaN or inf")
+    one_line_error(run_cli("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "out.h5"), "only NaN or inf")
     assert not (tmp_path / "out.h5").exists()
 
 
@@ -406,7 +408,7 @@ def test_a_frame_of_only_nan_is_refused(tmp_path):
 )
 def test_info_prints_what_it_read(steps, args, printed, tmp_path):
     path = _experiment(tmp_path / "exp.h5", step=steps)
-    res = run("info", path, *args)
+    res = run_cli("info", path, *args)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
     assert all(p in res.stdout for p in printed), res.stdout
 
@@ -428,7 +430,7 @@ def test_process_on_unusable_files(case, tmp_path):
         path.write_bytes(b"hello" * 100)
     elif case == "a folder":
         path.mkdir()
-    res = run("process", path, "-q", "-o", tmp_path / "res")
+    res = run_cli("process", path, "-q", "-o", tmp_path / "res")
     one_line_error(res, "radiokit process: ", "exp.h5")
     assert not (tmp_path / "res").exists()
 
@@ -448,7 +450,7 @@ def test_register_bad_arguments(args, words, tmp_path):
     img, other = tmp_path / "img.tif", tmp_path / "other.tif"  # one image twice is refused on its own
     tifffile.imwrite(img, np.random.default_rng(0).random((32, 32), np.float32))
     tifffile.imwrite(other, np.random.default_rng(1).random((32, 32), np.float32))
-    one_line_error(run("register", img, other, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
+    one_line_error(run_cli("register", img, other, *args, "-o", tmp_path / "reg.h5", cwd=tmp_path), words)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["img.tif", "other.tif"]
 
 
@@ -470,25 +472,25 @@ def test_register_bad_arguments(args, words, tmp_path):
 )
 def test_process_refuses_bad_options_before_any_work(args, words, tmp_path):
     path = _experiment(tmp_path / "exp.h5")  # no inclusion: any work would fail saying so
-    one_line_error(run("process", path, *args, "-o", tmp_path / "res", cwd=tmp_path), words)
+    one_line_error(run_cli("process", path, *args, "-o", tmp_path / "res", cwd=tmp_path), words)
     assert not (tmp_path / "res").exists()
 
 
 def test_process_names_a_file_that_is_not_an_experiment_and_a_control_of_another_size(tmp_path):
     exp = _experiment(tmp_path / "exp.h5")
     cal = tmp_path / "cal.h5"  # a calibration was read as frames: two warnings, then "found steps []"
-    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
-    one_line_error(run("process", cal, "-q", "-o", tmp_path / "res"), "cal.h5", "calibration", "not an experiment")
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    one_line_error(run_cli("process", cal, "-q", "-o", tmp_path / "res"), "cal.h5", "calibration", "not an experiment")
     # a control on another grid was measured in the main file's pixel ROIs
     other = _experiment(tmp_path / "other.h5", shape=(40, 32))
-    one_line_error(run("process", exp, "--control", other, "-q", "-o", tmp_path / "res"), "other.h5", "40x32")
+    one_line_error(run_cli("process", exp, "--control", other, "-q", "-o", tmp_path / "res"), "other.h5", "40x32")
     assert not (tmp_path / "res").exists()
 
 
 def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
     # its default results folder is the folder itself: "is the input exp: never overwritten" before
     (tmp_path / "exp").mkdir()
-    one_line_error(run("process", "exp", "-q", cwd=tmp_path), "exp: is a folder, not an experiment file")
+    one_line_error(run_cli("process", "exp", "-q", cwd=tmp_path), "exp: is a folder, not an experiment file")
 
 
 @pytest.mark.parametrize(
@@ -503,7 +505,7 @@ def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
 )
 def test_a_usage_error_is_one_line(args, words, tmp_path):
     # argparse printed the whole usage (up to eight lines) above its error
-    line = one_line_error(run(*args, cwd=tmp_path), words)
+    line = one_line_error(run_cli(*args, cwd=tmp_path), words)
     assert line.endswith("--help)")
     assert not any(tmp_path.iterdir())
 
@@ -515,7 +517,7 @@ def test_a_bad_environment_setting_is_named_before_any_file(env, tmp_path):
     # it was blamed on the first file that needed it ("exp.h5: cannot be read as hdf5: ...")
     exp = synthetic(tmp_path / "exp.h5")
     ((name, value),) = env.items()
-    line = one_line_error(run("info", exp, env=env), f"{name}={value!r}")
+    line = one_line_error(run_cli("info", exp, env=env), f"{name}={value!r}")
     assert "exp.h5" not in line
 
 
@@ -561,7 +563,7 @@ def test_debug_shows_the_traceback(tmp_path):
     ],
 )
 def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, tmp_path):
-    one_line_error(run(*args, "-q", cwd=tmp_path), words)
+    one_line_error(run_cli(*args, "-q", cwd=tmp_path), words)
     assert not any(tmp_path.iterdir())
 
 
@@ -1110,7 +1112,7 @@ def test_info_on_a_broken_layout_is_one_line(layout, case, tmp_path):
     path = tmp_path / f"{layout}.h5"
     make(path)
     _break(path, name, rank, dtype, case)
-    one_line_error(run("info", path, env={"RADIOKIT_MEMORY_BUDGET": SMALL_BUDGET}), "radiokit info: ", path)
+    one_line_error(run_cli("info", path, env={"RADIOKIT_MEMORY_BUDGET": SMALL_BUDGET}), "radiokit info: ", path)
 
 
 @pytest.mark.parametrize("case", ["NaN ratio", "soft link circle", "fewer images than steps"])
@@ -1125,7 +1127,7 @@ def test_process_on_a_broken_simulation_truth_is_one_line(case, tmp_path):
             _replace(h5, f"{S}/line_integral", h5py.SoftLink(f"/{S}/line_integral"))
         else:
             _data(f"{S}/line_integral", np.zeros((1, 32, 40), "f4"))(h5)
-    res = run("process", path, "-q", "--no-report", "-o", tmp_path / "res")
+    res = run_cli("process", path, "-q", "--no-report", "-o", tmp_path / "res")
     one_line_error(res, "radiokit process: ", path)
     assert not (tmp_path / "res").exists()
 
@@ -1397,7 +1399,7 @@ def test_a_calibration_with_links_in_a_circle_is_one_line_from_the_cli(tmp_path)
         h5["calibration/dark"] = h5py.SoftLink("/calibration/loop")
         h5["calibration/loop"] = h5py.SoftLink("/calibration/dark")
     exp = _experiment(tmp_path / "exp.h5")
-    res = run("correct", str(exp), "--cal", str(path), "-o", str(tmp_path / "out.h5"))
+    res = run_cli("correct", str(exp), "--cal", str(path), "-o", str(tmp_path / "out.h5"))
     one_line_error(res, str(path))
     assert not (tmp_path / "out.h5").exists()
 
@@ -1422,9 +1424,9 @@ def test_a_pixel_size_that_is_not_a_panels_is_one_line(value, tmp_path):
     with h5py.File(exp, "a") as h5:
         del h5[DETECTOR]["x_pixel_size"]
         h5[DETECTOR]["x_pixel_size"] = value
-    res = run("process", exp, "-q", "--mm", "--inclusion", "0.5", "1", "0.5", "1", "-o", tmp_path / "res")
+    res = run_cli("process", exp, "-q", "--mm", "--inclusion", "0.5", "1", "0.5", "1", "-o", tmp_path / "res")
     one_line_error(res, "exp.h5", "x_pixel_size", "metres")
-    one_line_error(run("info", exp), "exp.h5", "x_pixel_size", "metres")
+    one_line_error(run_cli("info", exp), "exp.h5", "x_pixel_size", "metres")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
 
 
@@ -1455,7 +1457,7 @@ def test_a_pixel_size_in_unknown_units_is_one_line(tmp_path):
     exp = _experiment(tmp_path / "exp.h5")
     with h5py.File(exp, "a") as h5:
         h5[DETECTOR]["x_pixel_size"].attrs["units"] = "furlong"
-    one_line_error(run("info", exp), "exp.h5", "x_pixel_size", "furlong")
+    one_line_error(run_cli("info", exp), "exp.h5", "x_pixel_size", "furlong")
 
 
 # a complex number (numpy's, whose comparisons take its real part) was written, and no reader opens it
@@ -1478,7 +1480,7 @@ def test_a_simulated_scenes_attenuation_that_is_not_a_number_is_one_line(value, 
     scene = f'name = "block"\n[body.material]\nattenuation_per_cm = {value}\n'
     write_simulation(path, dataclasses.replace(_truth_record(3, (32, 40)), scene_toml=scene), replace=True)
     roi = ["--inclusion", "10", "20", "10", "20", "--background", "10", "20", "25", "35", "--crop-mm", "0"]
-    res = run(
+    res = run_cli(
         "process", path, "-q", "--no-report", "--cross-check", "none", "--method", "ncc", *roi, "-o", tmp_path / "res"
     )
     one_line_error(res, "sim.h5", "attenuation_per_cm", "expected a positive number")
@@ -1496,14 +1498,14 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
             w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=200)
         w.append(np.full(shape, 1600, np.uint16), image_key=ImageKey.PROJECTION, step=1, current_ua=200)
     cal = tmp_path / "cal.h5"
-    assert run("calibrate", "--experiment", exp, "-o", cal).returncode == 0
-    good = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "good.h5")
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal).returncode == 0
+    good = run_cli("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "good.h5")
     assert good.returncode == 0 and read(tmp_path / "good.h5").data.mean() == pytest.approx(0.5, rel=1e-6)
     with h5py.File(cal, "a") as h5:
         prov = json.loads(h5["calibration"].attrs["provenance"])
         assert prov["flat_current_ua"] == 200
         h5["calibration"].attrs["provenance"] = json.dumps(prov | {"flat_current_ua": True})
-    res = run("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "out.h5")
+    res = run_cli("correct", exp, "--cal", cal, "--domain", "linear", "-q", "-o", tmp_path / "out.h5")
     one_line_error(res, "cal.h5", "flat_current_ua is true")
     assert not (tmp_path / "out.h5").exists()
 
@@ -1520,13 +1522,13 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
 def test_process_refuses_a_rectangle_it_cannot_use_before_correcting(args, words, tmp_path):
     """Refused only after the whole correction (a progress bar, then the line), or, for the same
     rectangle twice, at the very end as a zero reference contrast."""
-    res = run("process", _experiment(tmp_path / "exp.h5"), *args, "-o", tmp_path / "res")
+    res = run_cli("process", _experiment(tmp_path / "exp.h5"), *args, "-o", tmp_path / "res")
     one_line_error(res, *words)
     assert res.stdout == "" and not (tmp_path / "res").exists()
 
 
 def test_correct_refuses_an_output_format_it_cannot_write_before_calibrating(tmp_path):
-    res = run("correct", _experiment(tmp_path / "exp.h5"), "-q", "-o", tmp_path / "out.png")
+    res = run_cli("correct", _experiment(tmp_path / "exp.h5"), "-q", "-o", tmp_path / "out.png")
     one_line_error(res, "out.png", ".h5", ".tif")
     assert res.stdout == ""  # was "calibrated from the darks and flats of exp.h5", then the refusal
 
@@ -1543,7 +1545,7 @@ def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value
     with h5py.File(exp, "a") as h5:
         h5[ENTRY].attrs["frames_complete"] = value
     before = hashlib.sha256(exp.read_bytes()).hexdigest()
-    one_line_error(run("info", exp), "exp.h5", "frames_complete", "expected a count of frames")
+    one_line_error(run_cli("info", exp), "exp.h5", "frames_complete", "expected a count of frames")
     with pytest.raises(FormatError, match="frames_complete"):
         ExperimentWriter(exp, mode="a")
     with h5py.File(exp, "r") as h5:
