@@ -582,10 +582,8 @@ def _check_process_files(args) -> None:
 
 
 def cmd_process(args) -> int:
-    from radiokit.io import check_output
-    from radiokit.pipeline import output_folders, process, process_many
-    from radiokit.results import Results
-
+    # the checks of the command line and the files' names first: they need neither radiokit.pipeline
+    # nor radiokit.register (scipy and more, 0.4 s), and a slip is refused before those load
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers {args.workers}: expected at least one worker")
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
@@ -596,7 +594,12 @@ def cmd_process(args) -> int:
             where = "--control " if f == args.control else ""
             raise ValueError(f"{where}{f}: no such experiment file")
     _check_process_files(args)
-    _check_preset(args)
+    if args.preset:  # it refuses only a preset given (with a peer method); it imports radiokit.register
+        _check_preset(args)
+    from radiokit.io import check_output
+    from radiokit.pipeline import output_folders, process, process_many
+    from radiokit.results import Results
+
     opts = {"preset": args.preset} if args.preset else {}
     try:
         cfg = _process_config(args, opts)

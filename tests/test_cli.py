@@ -655,3 +655,63 @@ def test_a_reader_that_closes_the_output_early_is_no_error(tmp_path):
     from radiokit.calibrate import Calibration
 
     assert Calibration.load(tmp_path / "cal.h5").shape == (8, 10)
+
+
+def test_process_refuses_a_slip_before_loading_the_pipeline(tmp_path):
+    """A slip on ``process``'s command line (no workers, a missing file, one file twice, ``-o`` named
+    like a file) is refused before radiokit.pipeline and radiokit.register load (scipy and more,
+    0.4 s a run). A process of its own: what it imported is the point."""
+    exp = tmp_path / "exp.h5"
+    exp.write_bytes(b"not read")
+    slips = [
+        ["process", exp, "--workers", "0"],
+        ["process", tmp_path / "missing.h5"],
+        ["process", exp, exp],
+        ["process", exp, "-o", tmp_path / "res.h5"],
+    ]
+    code = (
+        "import json, sys; from radiokit.cli import main; "
+        "codes = [main(a) for a in json.loads(sys.argv[1])]; "
+        "print(json.dumps([codes, sorted(m for m in sys.modules if m in "
+        "('radiokit.pipeline', 'radiokit.register', 'radiokit.results', 'scipy'))]))"
+    )
+    argv = json.dumps([[str(a) for a in slip] for slip in slips])
+    res = subprocess.run(
+        [sys.executable, "-c", code, argv],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert res.returncode == 0, res.stderr
+    codes, loaded = json.loads(res.stdout)
+    assert codes == [2, 2, 2, 2] and res.stderr.count("\n") == 4, res.stderr
+    assert loaded == [], loaded
+
+
+def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
+    """conftest.run_cli runs main in the test's process: what main changes (its SIGTERM and SIGHUP
+    handlers, tifffile's log level, the warnings' format) and what run_cli sets for it (the
+    environment, the working directory, the streams) are back afterwards, or every later test in
+    the worker would run under them."""
+    import logging
+    import signal
+    import warnings
+
+    def state():
+        return (
+            signal.getsignal(signal.SIGTERM),
+            signal.getsignal(signal.SIGHUP),
+            logging.getLogger("tifffile").level,
+            warnings.formatwarning,
+            dict(os.environ),
+            os.getcwd(),
+            sys.argv,
+            sys.stdout,
+            sys.stderr,
+            list(logging.root.handlers),
+        )
+
+    before = state()
+    res = run_cli("info", "missing.h5", cwd=tmp_path, env={"RADIOKIT_THREADS": "1"})
+    assert res.returncode == 2 and res.stderr == "radiokit info: missing.h5: no such file\n", res.stderr
+    assert state() == before
