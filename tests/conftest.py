@@ -76,7 +76,14 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGPIPE") if hasattr(signal, name))
 
 
+#: the loggers radiokit's commands set levels on (radiokit.cli, radiokit.pipeline): made before
+#: the run, so that their state is saved and put back
+_COMMANDS_LOGGERS = ("tifffile", "distributed")
+
+
 def _logging_state():
+    for name in _COMMANDS_LOGGERS:
+        logging.getLogger(name)
     loggers = [logging.root, *(lg for lg in logging.root.manager.loggerDict.values() if isinstance(lg, logging.Logger))]
     return [
         (lg, lg.level, list(lg.handlers), lg.propagate, lg.disabled) for lg in loggers
@@ -84,17 +91,13 @@ def _logging_state():
 
 
 def _restore_logging(state):
+    # loggers first made during the run are left as their modules' imports configured them: an
+    # import's configuration stays in a process whichever test imported the module first
     loggers, disable = state
-    known = {id(lg) for lg, *_ in loggers}
     for lg, level, handlers, propagate, disabled in loggers:
         lg.setLevel(level)
         lg.handlers[:] = handlers
         lg.propagate, lg.disabled = propagate, disabled
-    for lg in list(logging.root.manager.loggerDict.values()):  # made during the run: as new loggers are
-        if isinstance(lg, logging.Logger) and id(lg) not in known:
-            lg.setLevel(logging.NOTSET)
-            lg.handlers[:] = []
-            lg.propagate, lg.disabled = True, False
     logging.disable(disable)
 
 
