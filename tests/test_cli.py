@@ -402,10 +402,10 @@ def test_shape_takes_two_numbers_and_leaves_the_file(tmp_path):
     ("invalid int value"). It takes ROWS COLS; the frame count follows from the size."""
     data = np.arange(3 * 30 * 40, dtype="<u2").reshape(3, 30, 40) % 4096
     data.tofile(tmp_path / "f.raw")
-    res = run("info", "--shape", 30, 40, tmp_path / "f.raw")
+    res = run_cli("info", "--shape", 30, 40, tmp_path / "f.raw")
     assert res.returncode == 0, res.stderr
     assert "3 x 30 rows x 40 cols" in res.stdout
-    res = run("info", "--shape", 3, 30, 40, tmp_path / "f.raw")  # no third number
+    res = run_cli("info", "--shape", 3, 30, 40, tmp_path / "f.raw")  # no third number
     assert res.returncode == 2 and "Traceback" not in res.stderr
 
 
@@ -413,11 +413,11 @@ def test_ambiguous_raw_size_is_refused_naming_the_geometries(tmp_path):
     """Four 2x2-binned frames have the bytes of one 2240 x 2240 frame: refused in one line naming
     each reading and the option, and read as the one --preset names."""
     np.zeros((4, 1120, 1120), "<u2").tofile(tmp_path / "four.raw")
-    res = run("info", tmp_path / "four.raw")
+    res = run_cli("info", tmp_path / "four.raw")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "four.raw" in res.stderr and "ambiguous" in res.stderr and "--preset" in res.stderr
     assert "4 frames of 1120x1120 (c7942-2x2)" in res.stderr and "1 frame of 2240x2240 (c7942)" in res.stderr
-    res = run("info", "--preset", "c7942-2x2", tmp_path / "four.raw")
+    res = run_cli("info", "--preset", "c7942-2x2", tmp_path / "four.raw")
     assert res.returncode == 0 and "4 x 1120 rows x 1120 cols" in res.stdout, res.stderr
 
 
@@ -425,7 +425,7 @@ def test_dataset_for_a_tiff_says_it_is_for_hdf5(tmp_path):
     import tifffile
 
     tifffile.imwrite(tmp_path / "a.tif", np.zeros((4, 5), np.uint16))
-    res = run("info", "--dataset", "img", tmp_path / "a.tif")
+    res = run_cli("info", "--dataset", "img", tmp_path / "a.tif")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "a.tif" in res.stderr and "HDF5 files" in res.stderr and "TIFF" in res.stderr, res.stderr
     assert "signature" not in res.stderr, res.stderr
@@ -437,7 +437,7 @@ def test_info_describes_the_good_files_and_names_the_bad(tmp_path):
 
     tifffile.imwrite(tmp_path / "good.tif", np.full((4, 5), 7, np.uint16))
     (tmp_path / "bad.tif").write_bytes(b"GARBAGE!" * 20)
-    res = run("info", tmp_path / "good.tif", tmp_path / "bad.tif", tmp_path / "good.tif")
+    res = run_cli("info", tmp_path / "good.tif", tmp_path / "bad.tif", tmp_path / "good.tif")
     assert res.returncode == 2
     assert res.stdout.count("good.tif") == 2 and "1 x 4 rows x 5 cols" in res.stdout
     assert res.stderr.count("\n") == 1 and "bad.tif" in res.stderr and "Traceback" not in res.stderr
@@ -451,10 +451,10 @@ def test_a_stack_of_no_frames_is_named_alike_by_info_and_calibrate(tmp_path):
     with h5py.File(tmp_path / "empty.h5", "w") as f:
         f["d"] = np.zeros((0, 20, 32), np.uint16)
     empty = tmp_path / "empty.h5"
-    res = run("info", "--dataset", "d", empty)
+    res = run_cli("info", "--dataset", "d", empty)
     assert res.returncode == 2 and "0 x 20 rows x 32 cols" in res.stdout and "no frames" in res.stdout
     assert res.stderr == f"radiokit info: {empty}: no frames\n"
-    res = run("calibrate", "--dataset", "d", "--dark", empty, "--flat", empty, "-o", tmp_path / "cal.h5")
+    res = run_cli("calibrate", "--dataset", "d", "--dark", empty, "--flat", empty, "-o", tmp_path / "cal.h5")
     assert res.returncode == 2 and res.stderr == f"radiokit calibrate: {empty}: no frames\n"
 
 
