@@ -141,6 +141,7 @@ def test_bad_files_give_one_line_errors(tmp_path, content, name, message):
     res = run_cli("info", tmp_path / name)
     assert res.returncode == 2
     assert "Traceback" not in res.stderr
+    assert res.stderr.count("\n") == 1, res.stderr  # one line, as every refusal
     assert name in res.stderr and message in res.stderr
 
 
