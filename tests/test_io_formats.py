@@ -665,3 +665,61 @@ def test_nexus_signal_naming_a_missing_dataset_says_so(tmp_path):
         plot["other"] = _frames(1)
     with pytest.raises(FormatError, match="@signal names 'nothere', which /entry/plot does not hold"):
         read(path)
+
+
+def test_imagej_calibration_passed_on_with_signed_pixels_is_not_applied_again(tmp_path):
+    """tifffile writes int16 pixels with an ImageJ description copied from a signed 16-bit file
+    (cf=0, c0=-32768): the pixels already hold the signed values; ImageJ calibrates only what it
+    stores unsigned."""
+    signed = np.array([[[-5, 0, 7], [-32768, 1, 32767]]], np.int16)
+    path = tmp_path / "i16.tif"
+    _imagej(path, signed, 0, (-32768.0, 1.0))
+    frames = _both_ways(path)
+    assert frames.dtype == np.int16
+    np.testing.assert_array_equal(frames, signed)
+
+
+def test_tiff_14_bit_counts_in_16_bit_words_are_checked_against_14_bits(tmp_path):
+    """BitsPerSample 14 over 16-bit words: 14-bit counts up to 16383 are in range (no bit-depth
+    warning), which a 12-bit check would call out of range."""
+    from radiokit.io import BitDepthWarning
+
+    counts = np.tile(np.array([[[0, 4096, 9000, 12000, 16383]]], np.uint16), (1, 3, 8))  # 3 x 40
+    path = tmp_path / "w14.tif"
+    tifffile.imwrite(path, counts[0], photometric="minisblack")
+    _set_short_tag(path, 258, 14)
+    with pytest.warns(UserWarning, match="BitsPerSample 14 but its strips hold one 16-bit word") as seen:
+        frames = _both_ways(path)
+    assert not [w for w in seen if issubclass(w.category, BitDepthWarning)]
+    np.testing.assert_array_equal(frames, counts)
+
+
+def test_tiff_12_bit_packed_with_its_last_strip_padded_to_a_whole_strip_unpacks(tmp_path):
+    """Some writers give a short last strip the byte count of a whole one (libtiff reads it): a
+    padded packed strip, not 16-bit words."""
+    import struct
+
+    counts = _frames(1, rows=10, cols=40)
+    path = tmp_path / "pad.tif"
+    tifffile.imwrite(path, counts[0], photometric="minisblack", bitspersample=12, rowsperstrip=4)
+    row_bytes = 40 * 12 // 8
+    with tifffile.TiffFile(path) as tif:
+        tag = tif.pages[0].tags[279]
+        assert list(tag.value) == [4 * row_bytes, 4 * row_bytes, 2 * row_bytes]
+        offset, fmt = tag.valueoffset, {3: "<H", 4: "<I"}[int(tag.dtype)]
+    data = bytearray(path.read_bytes())
+    struct.pack_into(fmt, data, offset + 2 * struct.calcsize(fmt), 4 * row_bytes)
+    path.write_bytes(bytes(data) + bytes(2 * row_bytes))  # the padding's bytes exist in the file
+    np.testing.assert_array_equal(_both_ways(path), counts)
+
+
+def test_imagej_miniswhite_is_its_inverting_lut_and_reads_as_stored(tmp_path):
+    """ImageJ saves an image shown with an inverting LUT as MinIsWhite with its pixel values
+    unchanged, and measures those: they are the data (another writer's MinIsWhite is inverted)."""
+    stored = _frames(1)
+    path = tmp_path / "lut.tif"
+    tifffile.imwrite(path, stored, description="ImageJ=1.54f\n", photometric="miniswhite", metadata=None)
+    src = read(path)
+    np.testing.assert_array_equal(src.data, stored)
+    np.testing.assert_array_equal(_both_ways(path), stored)
+    assert src.meta["imagej_inverted_lut"] is True

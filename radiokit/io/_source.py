@@ -297,7 +297,8 @@ class FrameSource:
                 self.path,
                 f"stack of {self.n} images after one IFD holding packed {first.bitspersample}-bit pixels: not read",
             )
-        self.bits = 12 if self._words else None  # words above 4095 then warn (MSB-aligned data)
+        # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
+        self.bits = int(first.bitspersample) if self._words else None
         self._stored_shape = self.frame_shape
         self._invert = self._tiff_inversion(first)
         self._line = self._imagej_calibration(first)
@@ -516,13 +517,14 @@ class FrameSource:
         """
         bits = int(page.bitspersample)
         per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+        row_bytes = (cols * bits + 7) // 8
         packed = words = 0
         for k, nbytes in enumerate(page.databytecounts):
             r = min(per_strip, rows - k * per_strip)
-            need_packed, need_words = r * ((cols * bits + 7) // 8), r * cols * 2
-            # the same size either way (one 12-bit column, narrow 15-bit rows): TIFF's packing
-            packed += need_packed <= nbytes and (nbytes < need_words or need_packed == need_words)
-            words += nbytes == need_words
+            # packed: a short last strip may be padded to a whole strip, any strip to an even length;
+            # a size that fits both readings (very narrow rows) is packed, as TIFF says
+            packed += r * row_bytes <= nbytes <= per_strip * row_bytes + 1
+            words += nbytes == r * cols * 2
         n = len(page.databytecounts)
         if packed == n:
             return False
@@ -588,6 +590,11 @@ class FrameSource:
             raise FormatError(self.path, f"TIFF PhotometricInterpretation is {name}: not a greyscale image")
         if photometric != 0:
             return None
+        if self._tif.is_imagej:
+            # ImageJ writes an image shown with an inverting LUT as MinIsWhite and its pixel values
+            # unchanged, and measures the stored values: they are the data, the LUT is display
+            self.meta["imagej_inverted_lut"] = True
+            return None
         kind = np.dtype(page.dtype).kind
         if kind == "b":
             return True  # bilevel: inverted with ~
@@ -626,6 +633,8 @@ class FrameSource:
         meta = self._tif.imagej_metadata if self._tif.is_imagej else None
         if not meta or "cf" not in meta or "vunit" not in meta or np.dtype(page.dtype).itemsize > 2:
             return None
+        if np.dtype(page.dtype).kind != "u":  # ImageJ calibrates what it stores unsigned; int16 pixels
+            return None  # (tifffile passing an ImageJ description on) already hold the signed values
         cf = meta["cf"]
         coefficients = [meta.get(f"c{k}") for k in range(5)]
         coefficients = coefficients[: coefficients.index(None)] if None in coefficients else coefficients
