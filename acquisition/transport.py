@@ -324,12 +324,17 @@ class SerialTransport:
 
     def _is_late(self, command: str, text: str) -> bool:
         """Whether ``text``, read as the reply to ``command``, is instead the late reply of a
-        command that timed out: one is owed, and ``text`` does not fit ``command`` by the
-        dialect's grammar. Then it is discarded (logged) and one fewer is owed."""
+        command that timed out: one is owed, and ``text`` fits that command and not ``command``
+        by the dialect's grammar. Then it is discarded (logged) and one fewer is owed. A line that
+        fits neither is a bad reply, not a late one: it goes to the caller, which reports it (as
+        "unexpected" or "unparseable") -- swallowed, it would read as a silent controller, which a
+        switch-off stops retrying."""
         now = time.monotonic()
         self._owed = [(c, until) for c, until in self._owed if until > now]
         if not self._owed or self.reply_fits is None or self.reply_fits(command, text):
             self._owed.clear()  # the controller answers in order: what was owed before is not coming
+            return False
+        if not self.reply_fits(self._owed[0][0], text):
             return False
         late = self._owed.pop(0)[0]
         self.log.debug("%s < %s (late reply to %s, not %s's: discarded)", self.url, text, late, command)

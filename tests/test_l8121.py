@@ -1101,6 +1101,31 @@ def test_a_late_reply_while_on_does_not_spoil_the_switch_off(warm, dialect, capl
     assert "unexpected reply to XOF" not in caplog.text and "(late reply to SIN, not XOF's: discarded)" in caplog.text
 
 
+def test_a_garbled_reply_after_a_time_out_is_reported_and_the_switch_off_tried_again(warm, dialect):
+    """A poll times out with the beam on, then the first switch-off attempt's XOF and STS get junk
+    (a transient glitch): junk fits neither the owed poll nor the command sent, so it is a bad
+    reply, not a late one. Swallowed as late, it read as a silent controller and the switch-off
+    stopped after one attempt with X-rays "possibly on"; now the second attempt confirms off."""
+    model, server = warm
+    poll = "SAR" if dialect == "A" else "STS"
+    with driver(server, dialect, timeout_s=0.3) as src:
+        src.on(60, 250)
+
+        def lose_then_junk():
+            model.silence(False)
+            model.garbage(True)
+            model.inject_after("XOF", lambda: model.inject_after("XOF", lambda: model.garbage(False)))
+
+        model.silence(True, execute=True)
+        model.inject_after(poll, lose_then_junk)
+        n = len(model.log)
+        with pytest.raises(DeviceError, match=f"no reply to {poll} within 0.3 s"):
+            src.check()
+        assert src.confirmed_off == SourceState.STANDBY and src.off_failed is None
+        assert [e.command for e in model.log[n:]].count("XOF") == 2
+    assert not model.xray_on
+
+
 def test_slow_replies(warm, dialect, wire):
     model, server = warm
     model.slow(0.3)
