@@ -478,6 +478,11 @@ def _source_command(args, guard) -> int:
             # failed: nothing here switched them off, and the operator must hear it
             _say(TUBE_WARNING)
             return 3
+        if src is None and getattr(exc, "may_be_on", False):
+            # the probe read X-rays on and then the port could not be opened again: nothing here
+            # switched them off
+            _say(TUBE_WARNING)
+            return 3
         if src is None and args.action == "off":
             # the switch-off asked for never reached the controller: a tube left on by `source on`
             # is on still, and the operator must hear it as from a series (exit 3)

@@ -1254,9 +1254,14 @@ class L8121:
         if self.dialect is None:
             self._probe()
         if isinstance(self.url, str):
-            self._transport = SerialTransport(
-                self.url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
-            )
+            try:
+                self._transport = SerialTransport(
+                    self.url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
+                )
+            except PortUnavailable as exc:
+                if self.probe_result is None:
+                    raise  # not a byte sent: the caller says radiokit never reached the controller
+                raise self._reopen_failed(exc) from exc
         else:
             self._transport = self.url
         self._give_grammar(self._transport)
@@ -1288,6 +1293,19 @@ class L8121:
             self.baudrate,
         )
         return self
+
+    def _reopen_failed(self, exc: PortUnavailable) -> DeviceError:
+        """The port, which the probe had open and talked over, could not be opened again (another
+        program took it, the adapter dropped out): not "never reached" -- the probe did reach the
+        controller. When its ``STS`` read X-rays on, the error carries ``may_be_on`` so that the
+        caller ends on the X-rays warning: nothing here could switch them off."""
+        state = dict(self.probe_result.details).get("state", "unknown")
+        err = DeviceError(
+            f"{exc}; the probe had reached the controller (state {state}) but the port could not be "
+            "opened again to control it"
+        )
+        err.may_be_on = self.probe_result.emitting
+        return err
 
     def _give_grammar(self, transport) -> None:
         """Let a transport that can (``SerialTransport.reply_fits``) tell a late reply, after a

@@ -1126,6 +1126,39 @@ def test_a_garbled_reply_after_a_time_out_is_reported_and_the_switch_off_tried_a
     assert not model.xray_on
 
 
+@pytest.mark.parametrize("action", ["status", "on"])
+def test_a_port_lost_after_the_probe_read_x_rays_on_ends_on_the_warning(monkeypatch, action):
+    """dialect auto: the probe reaches the controller and reads X-rays on (left by an earlier
+    `source on`), then the port cannot be opened again (another program took it, the adapter
+    dropped out). That is not "never reached the controller" (exit 1, no warning): nothing could
+    switch the tube off, so the command ends on the warning, exit 3. The race is caused by
+    stopping the emulator right after the probe -- a fake, the only way to time it."""
+    from conftest import run_cli
+
+    import acquisition.l8121 as l8121
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+    server = SocketServer(model).start()
+    try:
+        assert model.handle("HIV 60") and model.handle("CUR 250") and model.handle("XON") == "XON"
+        real = l8121.probe
+
+        def probe_then_port_gone(*args, **kwargs):
+            result = real(*args, **kwargs)
+            server.stop()
+            return result
+
+        monkeypatch.setattr(l8121, "probe", probe_then_port_gone)
+        extra = ["--kv", "60", "--ua", "250"] if action == "on" else []
+        res = run_cli("acquire", "source", action, "--port", server.url, *extra)
+    finally:
+        server.stop()
+    assert res.returncode == 3, res.stderr
+    assert "probe had reached the controller (state XRAY_ON)" in res.stderr
+    assert "never reached" not in res.stderr
+    assert res.stderr.rstrip().splitlines()[-1].startswith("WARNING: X-RAYS MAY STILL BE ON")
+
+
 def test_slow_replies(warm, dialect, wire):
     model, server = warm
     model.slow(0.3)
