@@ -412,8 +412,7 @@ def _source_command(args, guard) -> int:
     """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
     it becomes the switch-off error instead)."""
-    from acquisition.errors import DeviceError, PortUnavailable
-    from acquisition.guardian import TUBE_WARNING
+    from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
 
     src = None
@@ -463,32 +462,42 @@ def _source_command(args, guard) -> int:
         return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
-        if src is None and isinstance(exc, PortUnavailable) and args.action != "off":
-            # not a byte sent: the same last line and exit code as a series that could not open
-            # its port (README); `off` warns instead (below): the tube it was to switch off may be on
-            _say(NEVER_REACHED)
-            return 1
-        if src is not None and src.off_failed is not None:
-            # the switch-off was not confirmed: the same last line and exit code as a series
-            # (README: 3 when the tube may still be on), not a plain error's 1
-            _say(TUBE_WARNING)
-            return 3
-        if src is not None and src.emitting_at_connect and src.confirmed_off is None:
-            # status on a unit whose operate switch refuses remote control found X-rays on, then
-            # failed: nothing here switched them off, and the operator must hear it
-            _say(TUBE_WARNING)
-            return 3
-        if src is None and getattr(exc, "may_be_on", False):
-            # the probe read X-rays on and then the port could not be opened again: nothing here
-            # switched them off
-            _say(TUBE_WARNING)
-            return 3
-        if src is None and args.action == "off":
-            # the switch-off asked for never reached the controller: a tube left on by `source on`
-            # is on still, and the operator must hear it as from a series (exit 3)
-            _say(TUBE_WARNING)
-            return 3
+        return _source_error_code(exc, src, args)
+
+
+def _source_error_code(exc, src, args) -> int:
+    """The last line and the exit code of a source command that failed with ``exc`` (its error
+    line already printed): the X-rays warning and 3 whenever the tube may be on, "never reached"
+    and 1 when not a byte was sent, else 1 (README: the exit codes)."""
+    from acquisition.errors import PortUnavailable
+    from acquisition.guardian import TUBE_WARNING
+
+    if src is None and isinstance(exc, PortUnavailable) and args.action != "off":
+        # not a byte sent: the same last line and exit code as a series that could not open
+        # its port (README); `off` warns instead (below): the tube it was to switch off may be on
+        _say(NEVER_REACHED)
         return 1
+    if src is not None and src.off_failed is not None:
+        # the switch-off was not confirmed: the same last line and exit code as a series
+        # (README: 3 when the tube may still be on), not a plain error's 1
+        _say(TUBE_WARNING)
+        return 3
+    if src is not None and src.emitting_at_connect and src.confirmed_off is None:
+        # status on a unit whose operate switch refuses remote control found X-rays on, then
+        # failed: nothing here switched them off, and the operator must hear it
+        _say(TUBE_WARNING)
+        return 3
+    if src is None and getattr(exc, "may_be_on", False):
+        # the probe read X-rays on and then the port could not be opened again: nothing here
+        # switched them off
+        _say(TUBE_WARNING)
+        return 3
+    if src is None and args.action == "off":
+        # the switch-off asked for never reached the controller: a tube left on by `source on`
+        # is on still, and the operator must hear it as from a series (exit 3)
+        _say(TUBE_WARNING)
+        return 3
+    return 1
 
 
 def _after_failed_on(src, args) -> str:
