@@ -523,6 +523,12 @@ def _after_failed_on(src, args) -> str:
 def _warm_up_line(src, args, seconds: float) -> str:
     """What a finished ``source warm-up`` did, and at which settings (the warm-up emits)."""
     values = src.warmup_values
+    if values is None and src.warmup_joined:
+        given = f"; --kv {args.kv:g} --ua {args.ua:g} not applied" if args.kv is not None else ""
+        return (
+            f"a warm-up already running (started before this command, at the controller's settings) "
+            f"ended after {seconds:.1f} s of waiting{given}"
+        )
     if values is None:
         given = f" (--kv {args.kv:g} --ua {args.ua:g} not set: no warm-up to run)" if args.kv is not None else ""
         return f"no warm-up needed: nothing sent that emits{given}"

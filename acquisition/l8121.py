@@ -1194,6 +1194,9 @@ class L8121:
         #: What the last :meth:`warm_up` set (and read back) before starting its warm-up: ``(kV,
         #: µA, given)``, given False for the configuration's lowest; None when it started none.
         self.warmup_values: tuple[int, int, bool] | None = None
+        #: Whether the last :meth:`warm_up` found one already running (started by hand or by an
+        #: earlier command) and waited for it: nothing set, nothing sent that emits.
+        self.warmup_joined = False
         if connect:
             self.connect()
 
@@ -1871,6 +1874,7 @@ class L8121:
         wanted = None if kv is None else self.validate(kv, ua)  # checked before anything is sent
         self.warmup_values = None
         state = self.settled_status()
+        self.warmup_joined = state == SourceState.WARMING_UP  # one already running: waited for, not set
         if not self._warm_up_needed(state, force):
             return 0.0
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first

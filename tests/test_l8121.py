@@ -2168,3 +2168,24 @@ def test_numpy_numbers_from_the_python_api_are_kept_as_python_numbers():
     assert all(type(b) is int for b in config.probe_baudrates)
     protocol = Protocol(series=SeriesSettings(darks=np.int64(10)))
     assert tomllib.loads(protocol.to_toml())["series"]["darks"] == 10
+
+
+def test_cli_warm_up_that_joins_a_running_one_says_so():
+    """A warm-up already running (started at the front panel or by an earlier command) is waited
+    for: nothing is set or sent that emits, and the line says that, not "no warm-up needed"."""
+    from conftest import run_cli
+
+    model = L8121Model(dialect="A", warmup_s=1.0)
+    with PtyServer(model) as server:
+        assert model.handle("WUP") == "WUP"
+        n = len(model.log)
+        res = run_cli(
+            "acquire", "source", "warm-up", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"
+        )
+        sent = [e.command for e in model.log[n:]]
+    assert res.returncode == 0, res.stderr
+    assert "a warm-up already running" in res.stdout + res.stderr
+    assert "--kv 60 --ua 250 not applied" in res.stdout + res.stderr
+    assert "no warm-up needed" not in res.stdout + res.stderr
+    assert not {"WUP", "XON", "HIV", "CUR"} & set(sent), sent
+    assert model.state.name == "STANDBY"
