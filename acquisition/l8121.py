@@ -1879,6 +1879,8 @@ class L8121:
             return 0.0
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first
             self.warmup_values = self._warm_up_values(wanted)
+            if not self.interlock_closed():  # again, last before the start command (as on())
+                raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
         bar = None
         if progress is True:
             from tqdm.auto import tqdm
@@ -2057,6 +2059,10 @@ class L8121:
         self._require_ready()
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
+            # the interlock again, last before XON: the settings and their read-back took several
+            # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
+            if not self.interlock_closed():
+                raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()

@@ -554,8 +554,30 @@ def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, w
         src.warm_up(timeout_s=10, progress=False, **kw)
         assert src.warmup_values == (kv, ua, given is not None)
     sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
-    assert before_the_start(model, wire)[-len(sets) - len(wire["setpoint"]) :] == sets + wire["setpoint"]
+    sent = before_the_start(model, wire)
+    assert sent[-1] == "SIN"  # the interlock, read again last before the start command
+    assert sent[-len(sets) - len(wire["setpoint"]) - 1 : -1] == sets + wire["setpoint"]
     assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
+
+
+@pytest.mark.parametrize("action", ["on", "warm_up"])
+def test_an_interlock_opened_while_the_settings_are_read_back_stops_the_start(cold, dialect, wire, action):
+    """The interlock is read before the settings, and the start command follows their read-back
+    several exchanges later (B's XON is not documented to refuse an open interlock): it is read
+    again, last, and an interlock opened meanwhile stops the start with nothing emitted."""
+    model, server = cold
+    if action == "on":
+        model.warm()
+    readback = wire["setpoint"][-1]
+    with driver(server, dialect) as src:
+        # the door opens right after the last read-back's reply
+        model.inject_after(readback, lambda: model.inject_after(readback, lambda: model.open_interlock()))
+        with pytest.raises(SourceFault, match="interlock"):
+            if action == "on":
+                src.on(60, 250)
+            else:
+                src.warm_up(timeout_s=10, progress=False, kv=60, ua=250)
+    assert not {"XON", "WUP"} & set(model.commands) and not model.xray_on
 
 
 def test_warm_up_refuses_values_the_controller_reads_back_otherwise(dialect, wire):
