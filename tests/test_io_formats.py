@@ -617,6 +617,23 @@ def test_tiff_ifd_chain_that_loops_is_named_a_loop(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 
+def test_hdf5_image_with_a_palette_is_refused_and_one_without_is_read(tmp_path):
+    """HDF5's image API labels every 8-bit image IMAGE_INDEXED (H5IMmake_image_8bit), greyscale ones
+    too; only an attached PALETTE makes its values colour-table indices."""
+    pixels = np.arange(20 * 32, dtype=np.uint8).reshape(20, 32)
+    path = tmp_path / "im.h5"
+    with h5py.File(path, "w") as f:
+        for name in ("grey", "pal"):
+            ds = f.create_dataset(name, data=pixels)
+            ds.attrs["CLASS"] = np.bytes_("IMAGE")
+            ds.attrs["IMAGE_SUBCLASS"] = np.bytes_("IMAGE_INDEXED")
+        table = f.create_dataset("table", data=np.zeros((256, 3), np.uint8))
+        f["pal"].attrs["PALETTE"] = np.array([table.ref], dtype=h5py.ref_dtype)
+    np.testing.assert_array_equal(read(path, dataset="grey").data, pixels[None])
+    with pytest.raises(FormatError, match="palette image"):
+        read(path, dataset="pal")
+
+
 @pytest.mark.parametrize("shape", [(20, 32, 3), (3, 20, 32)])
 def test_hdf5_truecolour_image_is_refused_not_read_as_frames(tmp_path, shape):
     path = tmp_path / "rgb.h5"

@@ -980,17 +980,19 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
 
 def _refuse_colour(path, data) -> None:
     """A colour image is no radiograph: HDF5's Image spec (``CLASS=IMAGE``) marks a truecolour one
-    ``IMAGE_TRUECOLOR`` ((rows, cols, 3) pixel-interlaced or (3, rows, cols) planes) and an indexed
-    one ``IMAGE_INDEXED`` with a ``PALETTE``; read as frames they were rows frames of cols x 3."""
+    ``IMAGE_TRUECOLOR`` ((rows, cols, 3) pixel-interlaced or (3, rows, cols) planes; read as frames
+    they were rows frames of cols x 3) and a palette one by its ``PALETTE`` reference. An
+    ``IMAGE_INDEXED`` image without a palette is read: the HDF5 image API's ``H5IMmake_image_8bit``
+    labels every 8-bit image so, greyscale ones too, and with no colour table its values are the data."""
     attrs = data.attrs
     if text(attrs.get("CLASS", b"")) != "IMAGE":
         return
     subclass = text(attrs.get("IMAGE_SUBCLASS", b""))
     if subclass == "IMAGE_TRUECOLOR":
         raise FormatError(path, f"{data.name} is a colour image (HDF5 IMAGE_TRUECOLOR, {data.shape}), not frames")
-    if subclass == "IMAGE_INDEXED" or "PALETTE" in attrs:
+    if "PALETTE" in attrs:
         raise FormatError(
-            path, f"{data.name} is a palette image (HDF5 IMAGE_INDEXED): colour-table indices, not counts"
+            path, f"{data.name} is a palette image (HDF5 PALETTE attached): colour-table indices, not counts"
         )
 
 
