@@ -311,8 +311,7 @@ class SerialTransport:
         """Discard what has arrived before a command is sent (nothing is owed to it yet): each
         whole line is the late reply of a command that timed out, which is then no longer owed.
         Commands whose late reply has not come within a further reply time-out are forgotten."""
-        now = time.monotonic()
-        self._owed = [(c, until) for c, until in self._owed if until > now]
+        self._forget_overdue()
         waiting = ser.in_waiting
         if waiting:
             stale = ser.read(waiting)
@@ -322,6 +321,11 @@ class SerialTransport:
                 self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
         ser.reset_input_buffer()
 
+    def _forget_overdue(self) -> None:
+        """Drop the commands owed a late reply whose wait for it has passed."""
+        now = time.monotonic()
+        self._owed = [(c, until) for c, until in self._owed if until > now]
+
     def _is_late(self, command: str, text: str) -> bool:
         """Whether ``text``, read as the reply to ``command``, is instead the late reply of a
         command that timed out: one is owed, and ``text`` fits that command and not ``command``
@@ -329,8 +333,7 @@ class SerialTransport:
         fits neither is a bad reply, not a late one: it goes to the caller, which reports it (as
         "unexpected" or "unparseable") -- swallowed, it would read as a silent controller, which a
         switch-off stops retrying."""
-        now = time.monotonic()
-        self._owed = [(c, until) for c, until in self._owed if until > now]
+        self._forget_overdue()
         if not self._owed or self.reply_fits is None or self.reply_fits(command, text):
             self._owed.clear()  # the controller answers in order: what was owed before is not coming
             return False

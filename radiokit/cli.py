@@ -160,7 +160,7 @@ def cmd_info(args) -> int:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or len(args.files) == 1:
                 raise
             failed += 1
-            print(f"radiokit info: {' '.join((str(exc) or type(exc).__name__).split())}", file=sys.stderr)
+            print(_error_line("info", exc), file=sys.stderr)
             continue
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
@@ -1105,11 +1105,16 @@ def _main(argv) -> int:
         if _interrupted(exc):  # a C extension turned the interrupt into its own error
             print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
             return 130
-        message = str(exc) or type(exc).__name__
-        if isinstance(exc, MemoryError):
-            message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
-        print(f"radiokit {args.command}: {' '.join(message.split())}", file=sys.stderr)
+        print(_error_line(args.command, exc), file=sys.stderr)
         return 2
+
+
+def _error_line(command: str, exc: BaseException) -> str:
+    """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``."""
+    message = str(exc) or type(exc).__name__
+    if isinstance(exc, MemoryError):
+        message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
+    return f"radiokit {command}: {' '.join(message.split())}"
 
 
 if __name__ == "__main__":
