@@ -705,6 +705,40 @@ def test_hdf5_virtual_dataset_with_a_missing_source_is_refused_naming_it(tmp_pat
     np.testing.assert_array_equal(read(path, dataset="scan/data", allow_external=True).data, stack)
 
 
+def _block_vds(path, rows, cols):
+    """A virtual dataset of one frame per source file, ``src_0.h5``, ``src_1.h5``, ... (``%b``: the
+    block number of an unlimited selection), written with h5py's low-level API (the high-level
+    VirtualLayout cannot map an unlimited selection)."""
+    vspace = h5py.h5s.create_simple((0, rows, cols), (h5py.h5s.UNLIMITED, rows, cols))
+    vspace.select_hyperslab((0, 0, 0), (h5py.h5s.UNLIMITED, 1, 1), stride=(1, 1, 1), block=(1, rows, cols))
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_virtual(vspace, b"src_%b.h5", b"data", h5py.h5s.create_simple((1, rows, cols)))
+    with h5py.File(path, "w") as f:
+        h5py.h5d.create(f.id, b"frames", h5py.h5t.py_create(np.dtype("<u2")), vspace, dcpl=dcpl)
+
+
+@pytest.mark.parametrize("missing", [None, 0, 1, 2, 3])
+def test_hdf5_virtual_dataset_of_block_sources_read_short_is_refused(tmp_path, missing):
+    """libhdf5 sizes a %b virtual dataset by opening src_0, src_1, ... until one fails: with src_1
+    gone the 4-frame stack read as 1 frame, no error (with src_0 gone, as none). A file of the
+    pattern past the first one not read shows the gap; a missing last one leaves no trace."""
+    stack = _frames(4, 5, 6)
+    for k, frame in enumerate(stack):
+        if k != missing:
+            with h5py.File(tmp_path / f"src_{k}.h5", "w") as f:
+                f["data"] = frame[None]
+    (tmp_path / "src_01.h5").write_bytes(b"")  # not source 1: libhdf5 prints the number plainly
+    path = tmp_path / "vds.h5"
+    _block_vds(path, 5, 6)
+    if missing in (None, 3):
+        n = 4 if missing is None else 3
+        np.testing.assert_array_equal(read(path, dataset="frames", allow_external=True).data, stack[:n])
+        return
+    match = "first source src_0.h5:data" if missing == 0 else f"src_{missing}.h5:data .* after {missing} block"
+    with pytest.raises(FormatError, match=match):
+        read(path, dataset="frames", allow_external=True)
+
+
 def test_nexus_default_given_as_a_path_is_followed(tmp_path):
     """ESRF's Lima/bliss: the NXentry's @default is "measurement/pco", which silx follows."""
     stack = _frames(3)
