@@ -883,7 +883,7 @@ def read(path, /, **hints) -> Frames:
     -------
     Frames
         ``data`` of shape (n, rows, cols) in the file's dtype (native byte order), row 0 as stored
-        (a TIFF's Orientation applied; MinIsWhite inverted; ImageJ's straight-line calibration
+        (a TIFF's Orientation applied; MinIsWhite, and an HDF5 image's IMAGE_WHITE_IS_ZERO, inverted; ImageJ's straight-line calibration
         applied, its signed 16-bit as int16, another line as float32); ``meta`` with ``format``
         and whatever the file records.
 
