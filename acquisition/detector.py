@@ -41,7 +41,7 @@ import numpy as np
 
 from acquisition.errors import DetectorTimeout, DeviceError
 from radiokit.errors import FormatError
-from radiokit.io import PRESETS, read, sniff
+from radiokit.io import PRESETS, bit_depth_cause, read, sniff
 
 __all__ = ["Frame", "Detector", "FolderWatcher", "FrameLost", "SimDetector"]
 
@@ -631,11 +631,11 @@ class FolderWatcher:
             top = (1 << self.bits) - 1
             peak = int(frame.max())
             if peak > top:
-                hint = ""
-                if int(frame.byteswap().max()) <= top:
-                    hint = " The byte-swapped values fit: the file is big-endian."
-                elif not np.any(frame & 0xF):
-                    hint = " The low 4 bits are all 0: MSB-aligned 12-bit data (shift right by 4)."
+                # radiokit's reading of the evidence (float32 words, byte order, MSB-aligned), as
+                # the readers' warning gives it; its advice after ";" (byteorder=, dtype=, divide)
+                # is for reading a file by hand, which the watcher does not take
+                cause = (bit_depth_cause(frame, self.bits) or "").split(";")[0]
+                hint = f" {cause[0].upper()}{cause[1:]}." if cause else ""
                 raise bad(
                     f"pixel values up to {peak} exceed the {self.bits}-bit range 0..{top} of the C7942: wrong "
                     f"bit order, byte order, or another detector model (C9730DK/C9732DK are 14-bit).{hint}"

@@ -151,19 +151,23 @@ def cmd_info(args) -> int:
         raise ValueError(f"--sample {args.sample}: expected at least one frame")
     reports, failed = [], 0
     # one bad file among several: its one line on stderr, the others still described (the first
-    # error used to end the command with nothing printed for the good files), exit status 2
+    # error used to end the command with nothing printed for the good files), exit status 2; the
+    # JSON has an entry per file given, a bad one's {"file", "error"}, so that its reader sees it too
     for path in args.files:
         try:
             with open_frames(path, **_raw_hints(args)) as src:
                 reports.append(_describe(path, src, args.all, args.sample))
         except Exception as exc:
-            if not _user_error(exc) or _interrupted(exc) or _debug(args) or len(args.files) == 1:
+            if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
                 raise
             failed += 1
-            print(_error_line("info", exc), file=sys.stderr)
+            line = _error_line("info", exc)
+            print(line, file=sys.stderr)
+            reports.append({"file": str(path), "error": line.removeprefix("radiokit info: ")})
             continue
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
+            reports[-1]["error"] = f"{path}: no frames"
             print(f"radiokit info: {path}: no frames", file=sys.stderr)
     status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
@@ -172,6 +176,8 @@ def cmd_info(args) -> int:
         print(json.dumps([strict(r) for r in reports], indent=2, default=str, allow_nan=False))
         return status
     for rep in reports:
+        if "frames" not in rep:  # its one line is on stderr
+            continue
         print(f"{rep['file']}")
         print(f"  format     {rep['format']}")
         none = "" if rep["frames"] else " (no frames)"

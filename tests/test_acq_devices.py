@@ -210,6 +210,9 @@ def test_folder_times_out_naming_folder_pattern_and_count(tmp_path):
         ("over-range", ["5000", "4095", "12-bit"]),
         ("big-endian", ["byte-swapped"]),
         ("msb-aligned", ["low 4 bits"]),
+        # radiokit's hints (acquisition had its own, without these): a few noisy low bits, float words
+        ("msb-aligned-noisy", ["low 4 bits", "MSB-aligned"]),
+        ("float-words", ["float32 numbers"]),
         ("wrong-shape", ["64x48", "expected 48x64"]),
         ("float", ["float32", "uint16"]),
         ("two-frames", ["2 frames"]),
@@ -226,6 +229,12 @@ def test_folder_rejects_bad_frames_naming_the_file(tmp_path, case, fragments):
         name, payload = "bad.raw", _raw(good + 300, ">")
     elif case == "msb-aligned":
         payload = _tiff((good + 300) << 4)
+    elif case == "msb-aligned-noisy":
+        a = (good + 300) << 4
+        a.reshape(-1)[::500] += 1  # 0.2 % of the pixels: read noise in the low bits
+        payload = _tiff(a)
+    elif case == "float-words":  # a float32 frame of half the width saved raw, read as 16-bit words
+        name, payload = "bad.raw", (good[:, ::2] / 4096 + 0.05).astype("<f4").tobytes()
     elif case == "wrong-shape":
         payload = _tiff(good.T.copy())
     elif case == "float":

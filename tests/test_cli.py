@@ -444,6 +444,34 @@ def test_info_describes_the_good_files_and_names_the_bad(tmp_path):
     assert res.stderr.count("\n") == 1 and "bad.tif" in res.stderr and "Traceback" not in res.stderr
 
 
+def test_info_json_has_an_entry_for_every_file_given(tmp_path):
+    """`radiokit info --json good.tif bad.tif` listed the good file only: a JSON reader could not
+    tell the bad one from one never given. Every file now has its entry, in the order given, a bad
+    one's holding the stderr line's message as "error"; alone, a bad file still gets its entry."""
+    import h5py
+    import tifffile
+
+    good, bad, empty = tmp_path / "good.tif", tmp_path / "bad.tif", tmp_path / "empty.h5"
+    tifffile.imwrite(good, np.full((4, 5), 7, np.uint16))
+    bad.write_bytes(b"GARBAGE!" * 20)
+    with h5py.File(empty, "w") as f:  # NeXus names its frames: no --dataset, which the TIFFs would refuse
+        f.create_group("entry").attrs["NX_class"] = "NXentry"
+        f.create_group("entry/data").attrs.update(NX_class="NXdata", signal="frames")
+        f["entry/data/frames"] = np.zeros((0, 4, 5), np.uint16)
+    res = run_cli("info", "--json", bad, good, empty)
+    assert res.returncode == 2
+    reps = json.loads(res.stdout)
+    assert [r["file"] for r in reps] == [str(bad), str(good), str(empty)]
+    lines = res.stderr.splitlines()
+    assert len(lines) == 2 and lines[0].startswith(f"radiokit info: {bad}: ") and "Traceback" not in res.stderr
+    assert reps[0] == {"file": str(bad), "error": lines[0].removeprefix("radiokit info: ")}
+    assert "error" not in reps[1] and reps[1]["range"] == [7, 7]
+    assert reps[2]["frames"] == 0 and reps[2]["error"] == f"{empty}: no frames"
+    res = run_cli("info", "--json", bad)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert json.loads(res.stdout) == [{"file": str(bad), "error": res.stderr.strip().removeprefix("radiokit info: ")}]
+
+
 def test_a_stack_of_no_frames_is_named_alike_by_info_and_calibrate(tmp_path):
     """An HDF5 dataset of 0 frames: info exited 0 ("0 x 200 x 320") while calibrate said "no frames
     found in FILE"; both now say FILE: no frames (info still describes it)."""

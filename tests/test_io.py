@@ -310,22 +310,31 @@ def test_real_itex_axis_values_are_monotonic_wavelengths_and_times():
 
 
 def _itex_bytes(
-    pixels, ftype, comment=b"", n_images=None, tail=b"", width=None, height=None, comment_len=None, magic=b"IM"
+    pixels,
+    ftype,
+    comment=b"",
+    n_images=None,
+    tail=b"",
+    width=None,
+    height=None,
+    comment_len=None,
+    magic=b"IM",
+    order="<",
 ):
-    """Build an ITEX file from the layout in C7942.md."""
+    """Build an ITEX file from the layout in C7942.md (``order=">"``: the header and pixels big-endian)."""
     pixels = np.asarray(pixels)
     if pixels.ndim == 2:
         pixels = pixels[None]
     n, rows, cols = pixels.shape
-    dtype = {0: "<u1", 1: "<u2", 2: "<u2", 3: "<u4"}[ftype]
+    dtype = order + {0: "u1", 1: "u2", 2: "u2", 3: "u4"}[ftype]
     head = bytearray(64)
     head[0:2] = magic
-    struct.pack_into("<H", head, 2, len(comment) if comment_len is None else comment_len % 65536)
-    struct.pack_into("<h", head, 4, cols if width is None else width)
-    struct.pack_into("<h", head, 6, rows if height is None else height)
-    struct.pack_into("<h", head, 12, ftype)
-    struct.pack_into("<i", head, 14, (0 if n == 1 else n) if n_images is None else n_images)
-    struct.pack_into("<d", head, 22, 12.5)
+    struct.pack_into(order + "H", head, 2, len(comment) if comment_len is None else comment_len % 65536)
+    struct.pack_into(order + "h", head, 4, cols if width is None else width)
+    struct.pack_into(order + "h", head, 6, rows if height is None else height)
+    struct.pack_into(order + "h", head, 12, ftype)
+    struct.pack_into(order + "i", head, 14, (0 if n == 1 else n) if n_images is None else n_images)
+    struct.pack_into(order + "d", head, 22, 12.5)
     return bytes(head) + comment + pixels.astype(dtype).tobytes() + tail
 
 
@@ -478,6 +487,31 @@ def test_itex_big_endian_header_is_named(tmp_path):
     path.write_bytes(bytes(head) + np.arange(12, dtype=">u2").tobytes())
     err = _raises_format(path, "big-endian", "little-endian")
     assert "512" in str(err)
+
+
+@pytest.mark.parametrize(
+    ("shape", "comment"),
+    [((1, 3, 640), b""), ((1, 3, 4), b'[Camera],CameraName="X"'), ((3, 5, 7), b"[A],b=1"), ((1, 2, 300), b"")],
+)
+def test_itex_big_endian_8bit_header_is_named(tmp_path, shape, comment):
+    """File type 0 reads 0 in either byte order, so a big-endian 8-bit file passed the type check and
+    was read with swapped sizes (640 wide read -32766, a 23-byte comment 5888 bytes) or refused as
+    truncated. Its sizes read big-endian are what fit the file: the one line says big-endian."""
+    pix = np.arange(np.prod(shape), dtype=np.uint8).reshape(shape)
+    path = tmp_path / "be8.img"
+    path.write_bytes(_itex_bytes(pix, 0, comment, order=">"))
+    err = _raises_format(path, "big-endian", "file type 0", "little-endian")
+    assert f"{shape[0]} image(s) of {shape[2]}x{shape[1]}" in str(err)
+
+
+@pytest.mark.parametrize(("cols", "tail"), [(256, b""), (512, b"\0" * 8)])
+def test_itex_8bit_whose_sizes_fit_either_way_reads_little_endian(tmp_path, cols, tail):
+    """256 x 1 read swapped is 1 x 256, as many bytes: both readings fill the file, and one 512 x 1
+    with a block after it fits both ways; the header cannot tell, so it is read as HiPic writes."""
+    pix = (np.arange(cols) % 251).astype(np.uint8)[None]
+    path = tmp_path / "le8.img"
+    path.write_bytes(_itex_bytes(pix, 0, tail=tail))
+    np.testing.assert_array_equal(read(path).data[0], pix)
 
 
 def test_itex_unknown_type_and_wrong_magic(tmp_path):

@@ -645,6 +645,52 @@ def test_hdf5_truecolour_image_is_refused_not_read_as_frames(tmp_path, shape):
         read(path, dataset="img")
 
 
+def _hdf5_image(path, name, data, white_is_zero, subclass="IMAGE_GRAYSCALE"):
+    """A dataset labelled as the HDF5 Image spec 1.2 says, as h5py users write it (HDFView shows it)."""
+    with h5py.File(path, "a") as f:
+        ds = f.create_dataset(name, data=data)
+        ds.attrs["CLASS"] = np.bytes_("IMAGE")
+        ds.attrs["IMAGE_VERSION"] = np.bytes_("1.2")
+        ds.attrs["IMAGE_SUBCLASS"] = np.bytes_(subclass)
+        ds.attrs["IMAGE_WHITE_IS_ZERO"] = np.asarray(white_is_zero, np.uint8)
+        ds.attrs["IMAGE_MINMAXRANGE"] = np.array([data.min(), data.max()], data.dtype)
+
+
+@pytest.mark.parametrize("dtype", ["u1", "<u2", ">u2"])
+def test_hdf5_white_is_zero_image_is_inverted_as_a_miniswhite_tiff(tmp_path, dtype):
+    """HDF5 Image spec 1.2: IMAGE_WHITE_IS_ZERO=1 on a greyscale image means 0 is white. As TIFF's
+    MinIsWhite, the counts are the type's maximum minus the stored values; IMAGE_MINMAXRANGE is the
+    data's own min and max (statistics), not the scale, so it changes nothing."""
+    counts = _frames(2, dtype=dtype)
+    top = np.iinfo(counts.dtype).max
+    path = tmp_path / "wiz.h5"
+    _hdf5_image(path, "inverted", top - counts, 1)
+    _hdf5_image(path, "plain", counts, 0)
+    frames = _both_ways(path, dataset="inverted")
+    assert frames.dtype == np.dtype(dtype).newbyteorder("=")
+    np.testing.assert_array_equal(frames, counts)
+    assert read(path, dataset="inverted").meta["white_is_zero"] is True
+    plain = read(path, dataset="plain")
+    np.testing.assert_array_equal(plain.data, counts)
+    assert "white_is_zero" not in plain.meta
+
+
+@pytest.mark.parametrize(
+    ("dtype", "subclass", "flag", "match"),
+    [
+        ("<f4", "IMAGE_GRAYSCALE", 1, "float32 pixels: the inversion .* unsigned integers only"),
+        ("<i2", "IMAGE_GRAYSCALE", 1, "int16 pixels: the inversion .* unsigned integers only"),
+        ("u1", "IMAGE_BITMAP", 1, "with a bitmap"),
+        ("<u2", "IMAGE_GRAYSCALE", 7, "IMAGE_WHITE_IS_ZERO is 7: .* defines 0 and 1"),
+    ],
+)
+def test_hdf5_white_is_zero_image_without_a_defined_inversion_is_refused(tmp_path, dtype, subclass, flag, match):
+    path = tmp_path / "wiz.h5"
+    _hdf5_image(path, "img", np.ones((4, 5), dtype), flag, subclass)
+    with pytest.raises(FormatError, match=match):
+        read(path, dataset="img")
+
+
 def test_hdf5_virtual_dataset_with_a_missing_source_is_refused_naming_it(tmp_path):
     stack = _frames(2)
     layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
@@ -657,6 +703,40 @@ def test_hdf5_virtual_dataset_with_a_missing_source_is_refused_naming_it(tmp_pat
     with h5py.File(tmp_path / "src.h5", "w") as f:
         f["data"] = stack
     np.testing.assert_array_equal(read(path, dataset="scan/data", allow_external=True).data, stack)
+
+
+def _block_vds(path, rows, cols):
+    """A virtual dataset of one frame per source file, ``src_0.h5``, ``src_1.h5``, ... (``%b``: the
+    block number of an unlimited selection), written with h5py's low-level API (the high-level
+    VirtualLayout cannot map an unlimited selection)."""
+    vspace = h5py.h5s.create_simple((0, rows, cols), (h5py.h5s.UNLIMITED, rows, cols))
+    vspace.select_hyperslab((0, 0, 0), (h5py.h5s.UNLIMITED, 1, 1), stride=(1, 1, 1), block=(1, rows, cols))
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_virtual(vspace, b"src_%b.h5", b"data", h5py.h5s.create_simple((1, rows, cols)))
+    with h5py.File(path, "w") as f:
+        h5py.h5d.create(f.id, b"frames", h5py.h5t.py_create(np.dtype("<u2")), vspace, dcpl=dcpl)
+
+
+@pytest.mark.parametrize("missing", [None, 0, 1, 2, 3])
+def test_hdf5_virtual_dataset_of_block_sources_read_short_is_refused(tmp_path, missing):
+    """libhdf5 sizes a %b virtual dataset by opening src_0, src_1, ... until one fails: with src_1
+    gone the 4-frame stack read as 1 frame, no error (with src_0 gone, as none). A file of the
+    pattern past the first one not read shows the gap; a missing last one leaves no trace."""
+    stack = _frames(4, 5, 6)
+    for k, frame in enumerate(stack):
+        if k != missing:
+            with h5py.File(tmp_path / f"src_{k}.h5", "w") as f:
+                f["data"] = frame[None]
+    (tmp_path / "src_01.h5").write_bytes(b"")  # not source 1: libhdf5 prints the number plainly
+    path = tmp_path / "vds.h5"
+    _block_vds(path, 5, 6)
+    if missing in (None, 3):
+        n = 4 if missing is None else 3
+        np.testing.assert_array_equal(read(path, dataset="frames", allow_external=True).data, stack[:n])
+        return
+    match = "first source src_0.h5:data" if missing == 0 else f"src_{missing}.h5:data .* after {missing} block"
+    with pytest.raises(FormatError, match=match):
+        read(path, dataset="frames", allow_external=True)
 
 
 def test_nexus_default_given_as_a_path_is_followed(tmp_path):

@@ -27,7 +27,7 @@ from radiokit.io._atomic import (
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
 from radiokit.io._experiment import PIXEL_SIZE_RANGE_M, ExperimentProgress, ExperimentWriter, ImageKey, read_progress
-from radiokit.io._frames import BitDepthWarning, Frames
+from radiokit.io._frames import BitDepthWarning, Frames, bit_depth_cause
 from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
 from radiokit.io._results import EnhancedImages, ResultsRecord, read_results, write_results
@@ -53,6 +53,7 @@ __all__ = [
     "write_tiff",
     "FormatError",
     "BitDepthWarning",
+    "bit_depth_cause",
     "atomic_path",
     "atomic_dir",
     "atomic_h5",

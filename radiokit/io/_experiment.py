@@ -12,8 +12,10 @@
 from __future__ import annotations
 
 import errno
+import glob
 import math
 import os
+import re
 import shutil
 import time
 from dataclasses import dataclass
@@ -539,29 +541,39 @@ def check_local(path, h5, ds, allow_external=False) -> None:
         _refuse_external(path, f"{ds.name} is stored in external raw files")
 
 
+def _source_places(folder: Path, name: str) -> list[Path]:
+    """Where libhdf5 looks for a virtual dataset's source file ``name``, in its order: a relative
+    name beside the virtual file (its ``${ORIGIN}``), then from the working directory; an absolute
+    name as given, then its base name beside the virtual file; ``HDF5_VDS_PREFIX`` before all."""
+    given = Path(name)
+    places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
+    prefix = os.environ.get("HDF5_VDS_PREFIX")
+    if prefix:
+        places.insert(
+            0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
+        )
+    return places
+
+
 def check_virtual_sources(path, ds) -> None:
     """Refuse a virtual dataset whose source file or dataset is missing: libhdf5 reads the
     unmapped parts as the fill value, so a moved or deleted source read as frames of zeros.
 
-    A source named ``.`` is the file itself. Others are found as libhdf5 looks for them: a
-    relative name beside the virtual file (its ``${ORIGIN}``), then from the working directory;
-    an absolute name as given, then its base name beside the virtual file.
+    A source named ``.`` is the file itself; others are looked for as libhdf5 does
+    (:func:`_source_places`). A name with ``%b`` (one source per block of an unlimited
+    selection) is checked by :func:`_check_block_sources`.
     """
     folder = Path(ds.file.filename).parent
     seen = set()
     for source in ds.virtual_sources():
         name, dset = source.file_name, source.dset_name
-        if (name, dset) in seen or name == "." or "%" in name:  # %b: one file per block, unexpanded
+        if (name, dset) in seen or name == ".":
             continue
         seen.add((name, dset))
-        given = Path(name)
-        places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
-        prefix = os.environ.get("HDF5_VDS_PREFIX")  # libhdf5 tries it first
-        if prefix:
-            places.insert(
-                0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
-            )
-        found = next((p for p in places if p.is_file()), None)
+        if "%" in name or "%" in dset:
+            _check_block_sources(path, ds, source, folder)
+            continue
+        found = next((p for p in _source_places(folder, name) if p.is_file()), None)
         if found is None:
             raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
         try:
@@ -571,6 +583,65 @@ def check_virtual_sources(path, ds) -> None:
             raise FormatError(path, f"{ds.name}: its virtual source {found} cannot be opened: {exc}") from None
         if not present:
             raise FormatError(path, f"{ds.name}: its virtual source {found} holds no dataset {dset}")
+
+
+_PRINTF = re.compile(r"%(%|b)")
+
+
+def _check_block_sources(path, ds, source, folder: Path) -> None:
+    """Refuse a ``%b`` mapping (source ``k`` of a printf-style name feeds block ``k`` of an
+    unlimited selection) that libhdf5 read short.
+
+    libhdf5 sizes such a dataset by opening sources 0, 1, 2, ... and stops at the first it cannot
+    open or that lacks the dataset (HDF5 2.0.0): a missing middle source silently cut the stack
+    there, and a missing first one left no frames. The blocks the dataset's extent covers were all
+    found; a file of the pattern numbered at or past the first block not covered means a gap, and
+    no frames means source 0 is missing. A missing last source leaves no trace and cannot be told
+    from a shorter series; nor can a gap in dataset names (``%b`` in the dataset name only).
+    """
+    name, dset = source.file_name, source.dset_name
+    if _PRINTF.sub("", name).count("%") or _PRINTF.sub("", dset).count("%"):
+        return  # not a pattern libhdf5 expands (it refuses such a name itself)
+    try:
+        start, stride, count, _ = source.vspace.get_regular_hyperslab()
+    except (ValueError, RuntimeError):
+        return
+    axes = [i for i, c in enumerate(count) if c == h5py.h5s.UNLIMITED]
+    if len(axes) != 1:
+        return
+    axis = axes[0]
+    extent = ds.shape[axis]
+    covered = max(0, -(-(extent - start[axis]) // max(stride[axis], 1)))
+
+    def expand(text, k):
+        return _PRINTF.sub(lambda m: "%" if m.group(1) == "%" else str(k), text)
+
+    missing = f"{expand(name, covered)}:{expand(dset, covered)}"
+    if not covered:
+        raise FormatError(
+            path, f"{ds.name} is a virtual dataset whose first source {missing} is missing or unreadable: no frames"
+        )
+    tokens = re.split(r"(%%|%b)", Path(name).name)
+    if "%b" not in tokens:
+        return  # %b in a folder name or the dataset name only: no files to list
+    # libhdf5 prints the block number in plain decimal: src_01.h5 is not source 1
+    number = re.compile("".join({"%%": "%", "%b": "(0|[1-9][0-9]*)"}.get(t) or re.escape(t) for t in tokens))
+    pattern = "".join({"%%": "%", "%b": "*"}.get(t) or glob.escape(t) for t in tokens)
+    later = []
+    for place in _source_places(folder, name):
+        if "%" in str(place.parent) or not place.parent.is_dir():
+            continue
+        for candidate in place.parent.glob(pattern):
+            m = number.fullmatch(candidate.name)
+            if m and len(set(m.groups())) == 1 and int(m.group(1)) >= covered:
+                later.append(int(m.group(1)))
+    if later:
+        raise FormatError(
+            path,
+            f"{ds.name} is a virtual dataset read short: libhdf5 stops at the first source it cannot read, "
+            f"{missing} (source {covered}), so its stack ends after {covered} block(s) although "
+            f"{expand(Path(name).name, min(later))} is there",
+        )
 
 
 def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.Dataset:

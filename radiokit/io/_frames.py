@@ -84,37 +84,47 @@ def _msb_aligned(frame: np.ndarray, bits: int) -> bool:
     return bool(np.count_nonzero(nonzero & low) <= 0.01 * nonzero.size)
 
 
+def bit_depth_cause(frame: np.ndarray, bits: int) -> str | None:
+    """Why a frame holds values above ``2**bits - 1``, when the frame itself shows it, else None.
+
+    Named only on evidence: the words pair up into float32 numbers (a float file read as 16-bit),
+    the byte-swapped values fit (byte order), or the low bits are 0 in (nearly) every pixel
+    (MSB-aligned data). Shared by :func:`check_bit_depth` and the acquisition's detector folder."""
+    if frame.dtype.itemsize != 2 or frame.dtype.kind not in "ui" or frame.size == 0:
+        return None
+    top = (1 << bits) - 1
+    # floats first: the swapped words of 0.5 (0x0000, 0x3F00) are 0 and 63, which "fit"
+    if _words_as_float32(frame):
+        return (
+            "its 16-bit words pair up into float32 numbers: the file holds float32 pixels, not the "
+            "panel's 16-bit counts; read it with dtype='<f4' and shape=(rows, cols) (--dtype '<f4' --shape ROWS COLS)"
+        )
+    if int(frame.byteswap().max()) <= top:
+        return "the byte-swapped values fit: the file is big-endian, try byteorder='>' (or '<')"
+    if bits < 16 and _msb_aligned(frame, bits):
+        return (
+            f"the low {16 - bits} bits are 0 in (nearly) every pixel: {bits}-bit data stored MSB-aligned "
+            f"(shifted left by {16 - bits}); divide by {1 << (16 - bits)} for ADC counts"
+        )
+    return None
+
+
 def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> bool:
     """Warn when a frame holds values the ADC cannot produce; whether it warned.
 
-    The warning names a cause only on evidence: the byte-swapped values fit (byte order), the
-    words pair up into float32 numbers (a float file read as 16-bit), or the low bits are 0 in
-    (nearly) every pixel (MSB-aligned data). Otherwise it says what the values may mean and
-    gives no advice that would change good data (such as dividing 14-bit counts by 16)."""
+    The warning names a cause only on evidence (:func:`bit_depth_cause`). Otherwise it says what
+    the values may mean and gives no advice that would change good data (such as dividing 14-bit
+    counts by 16)."""
     if bits is None or frame.dtype.kind not in "ui" or frame.size == 0:
         return False
     top = (1 << bits) - 1
     peak = int(frame.max())
     if peak <= top:
         return False
-    cause = (
+    cause = bit_depth_cause(frame, bits) or (
         "another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data rescaled "
         "before saving, or a wrong geometry, offset or byte order; the values are read as stored"
     )
-    if frame.dtype.itemsize == 2:
-        # floats first: the swapped words of 0.5 (0x0000, 0x3F00) are 0 and 63, which "fit"
-        if _words_as_float32(frame):
-            cause = (
-                "its 16-bit words pair up into float32 numbers: the file holds float32 pixels, not the "
-                "panel's 16-bit counts; read it with dtype='<f4' and shape=(rows, cols) (--dtype '<f4' --shape ROWS COLS)"
-            )
-        elif int(frame.byteswap().max()) <= top:
-            cause = "the byte-swapped values fit: the file is big-endian, try byteorder='>' (or '<')"
-        elif bits < 16 and _msb_aligned(frame, bits):
-            cause = (
-                f"the low {16 - bits} bits are 0 in (nearly) every pixel: {bits}-bit data stored MSB-aligned "
-                f"(shifted left by {16 - bits}); divide by {1 << (16 - bits)} for ADC counts"
-            )
     message = BitDepthWarning(f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; {cause}.")
     message.path = str(path)  # for callers that show one warning per file (the command line)
     warnings.warn(message, stacklevel=3)

@@ -37,6 +37,8 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
         raise FormatError(path, f"wrong magic {magic!r}: an ITEX .img starts with b'IM'")
     if ftype == 1:
         raise FormatError(path, "ITEX file type 1 (compressed) is not supported; save as 16-bit (type 2)")
+    if ftype == 0:
+        _refuse_big_endian_8bit(path, head, size)
     if ftype not in ITEX_TYPES:
         swapped = struct.unpack_from(">h", head, 12)[0]
         if swapped in ITEX_TYPES or swapped == 1:  # 2 read as 512: the header's bytes are swapped
@@ -77,6 +79,43 @@ def parse_itex_header(path, head: bytes, size: int) -> dict:
         marker=marker.rstrip(b"\0").decode("latin-1"),
         info=info.rstrip(b"\0").decode("latin-1"),
         file_size=size,
+    )
+
+
+def _sizes(head: bytes, order: str) -> tuple[int, int, int, int] | None:
+    """Comment length, width, height and image count of an 8-bit image's header read in
+    ``order``; None when they cannot be a header's (a size or count below zero)."""
+    comment_len, width, height = struct.unpack_from(order + "Hhh", head, 2)
+    n_images = struct.unpack_from(order + "i", head, 14)[0]
+    if width <= 0 or height <= 0 or n_images < 0:
+        return None
+    return comment_len, width, height, max(n_images, 1)
+
+
+def _refuse_big_endian_8bit(path, head: bytes, size: int) -> None:
+    """Refuse a big-endian header of file type 0, whose type field reads 0 in either byte order.
+
+    The sizes tell: read in the wrong order they are nonsense (640 = 0x0280 reads -32766) or do
+    not account for the file. Big-endian is taken when only that reading fits in the file, or it
+    fills the file exactly and the little-endian one does not. When both fit and neither or both
+    fill it exactly (small swapped sizes, and blocks after the pixels), the header cannot tell,
+    and the file is read little-endian, as HiPic and HPD-TA write it.
+    """
+    need = {}
+    for order in "<>":
+        sizes = _sizes(head, order)
+        if sizes is not None and HEADER_BYTES + sizes[0] + sizes[3] * sizes[1] * sizes[2] <= size:
+            need[order] = (HEADER_BYTES + sizes[0] + sizes[3] * sizes[1] * sizes[2], sizes)
+    if ">" not in need or ("<" in need and (need["<"][0] == size or need[">"][0] != size)):
+        return
+    comment_len, width, height, n = need[">"][1]
+    how = "fill" if need[">"][0] == size else "fit in"
+    raise FormatError(
+        path,
+        f"big-endian ITEX header (8-bit, file type 0): read big-endian its sizes ({n} image(s) of "
+        f"{width}x{height} after a {comment_len}-byte comment) {how} the {size}-byte file, read "
+        "little-endian they do not; ITEX files are little-endian as HiPic and HPD-TA write them; "
+        "radiokit does not read big-endian ones",
     )
 
 

@@ -178,6 +178,7 @@ class FrameSource:
             )
         self._fh = self._tif = self._h5 = None
         self._transposed = False  # frames stored column-major (MATLAB), read transposed
+        self._invert = None  # what a white-is-zero image's values are subtracted from (TIFF, HDF5)
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
@@ -690,8 +691,11 @@ class FrameSource:
                 )
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
             _refuse_colour(self.path, data)
+            self._invert = _white_is_zero(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
             meta = {"format": "hdf5", "dataset": dataset}
+            if self._invert is not None:
+                meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
             if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:
@@ -772,7 +776,10 @@ class FrameSource:
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
-        return frame.astype(self.dtype, copy=False)
+        frame = frame.astype(self.dtype, copy=False)
+        if self._invert is not None:
+            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
+        return frame
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self):
@@ -876,7 +883,7 @@ def read(path, /, **hints) -> Frames:
     -------
     Frames
         ``data`` of shape (n, rows, cols) in the file's dtype (native byte order), row 0 as stored
-        (a TIFF's Orientation applied; MinIsWhite inverted; ImageJ's straight-line calibration
+        (a TIFF's Orientation applied; MinIsWhite, and an HDF5 image's IMAGE_WHITE_IS_ZERO, inverted; ImageJ's straight-line calibration
         applied, its signed 16-bit as int16, another line as float32); ``meta`` with ``format``
         and whatever the file records.
 
@@ -994,6 +1001,40 @@ def _refuse_colour(path, data) -> None:
         raise FormatError(
             path, f"{data.name} is a palette image (HDF5 PALETTE attached): colour-table indices, not counts"
         )
+
+
+def _white_is_zero(path, data):
+    """The value an HDF5 Image spec (1.2) greyscale image with ``IMAGE_WHITE_IS_ZERO=1`` is
+    subtracted from, else None.
+
+    As TIFF's MinIsWhite: 0 is white, so the count is ``2**bits - 1 - v`` over the pixel type's
+    range (``~v`` for booleans). ``IMAGE_MINMAXRANGE`` is not used: the spec defines it as the
+    minimum and maximum of the data, statistics of these values rather than the ends of the scale
+    (writers put ``[data.min(), data.max()]`` there), so inverting within it would make a count
+    depend on the other pixels. Signed and float pixels have no defined white; a bitmap's is its
+    bit, which the byte it is stored in does not say: both are refused.
+    """
+    attrs = data.attrs
+    if text(attrs.get("CLASS", b"")) != "IMAGE" or "IMAGE_WHITE_IS_ZERO" not in attrs:
+        return None
+    value = np.asarray(attrs["IMAGE_WHITE_IS_ZERO"])
+    flag = value.item() if value.size == 1 and value.dtype.kind in "biu" else None
+    if flag not in (0, 1):
+        raise FormatError(
+            path, f"{data.name}@IMAGE_WHITE_IS_ZERO is {value.tolist()!r}: the HDF5 Image spec defines 0 and 1"
+        )
+    if not flag:
+        return None
+    subclass = text(attrs.get("IMAGE_SUBCLASS", b""))
+    kind = data.dtype.kind
+    if subclass == "IMAGE_BITMAP" or kind not in "bu":
+        what = "a bitmap" if subclass == "IMAGE_BITMAP" else f"{data.dtype} pixels"
+        raise FormatError(
+            path,
+            f"{data.name} is white-is-zero (HDF5 IMAGE_WHITE_IS_ZERO=1) with {what}: the inversion to counts "
+            "is defined for unsigned integers only; save the frames with 0 as black",
+        )
+    return True if kind == "b" else np.iinfo(data.dtype).max
 
 
 #: TIFF 6.0's Orientation: where the stored 0th row and 0th column are on the visual image
