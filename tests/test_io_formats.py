@@ -739,6 +739,102 @@ def test_hdf5_virtual_dataset_of_block_sources_read_short_is_refused(tmp_path, m
         read(path, dataset="frames", allow_external=True)
 
 
+def _interleaved_vds(path, rows, cols):
+    """Even frames from ``a_%b.h5``, odd ones from ``b_%b.h5``: two block mappings of stride 2."""
+    vspace = h5py.h5s.create_simple((0, rows, cols), (h5py.h5s.UNLIMITED, rows, cols))
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    for first, name in ((0, b"a_%b.h5"), (1, b"b_%b.h5")):
+        vspace.select_hyperslab((first, 0, 0), (h5py.h5s.UNLIMITED, 1, 1), stride=(2, 1, 1), block=(1, rows, cols))
+        dcpl.set_virtual(vspace, name, b"data", h5py.h5s.create_simple((1, rows, cols)))
+    with h5py.File(path, "w") as f:
+        h5py.h5d.create(f.id, b"frames", h5py.h5t.py_create(np.dtype("<u2")), vspace, dcpl=dcpl)
+
+
+def test_hdf5_virtual_dataset_whose_shorter_block_mapping_misses_sources_is_refused(tmp_path):
+    """libhdf5 gives two mappings the longer one's extent: the shorter one's missing blocks read as
+    the fill value (4 files of b_, 2 of a_: frames 4 and 6 of zeros), so every covered block is looked for."""
+    stack = _frames(8, 5, 6)
+    path = tmp_path / "vds.h5"
+    _interleaved_vds(path, 5, 6)
+    for k in range(4):
+        for prefix, first in (("a", 0), ("b", 1)):
+            if prefix == "a" and k >= 2:
+                continue
+            with h5py.File(tmp_path / f"{prefix}_{k}.h5", "w") as f:
+                f["data"] = stack[2 * k + first][None]
+    with pytest.raises(FormatError, match="source file a_2.h5 is missing"):
+        read(path, dataset="frames", allow_external=True)
+    for k in (2, 3):
+        with h5py.File(tmp_path / f"a_{k}.h5", "w") as f:
+            f["data"] = stack[2 * k][None]
+    np.testing.assert_array_equal(read(path, dataset="frames", allow_external=True).data, stack)
+
+
+def test_hdf5_block_sources_topped_up_from_the_working_directory_are_refused(tmp_path, monkeypatch):
+    """libhdf5 looks for each block's file beside the virtual file, then in the working directory:
+    a series of 2 read from a folder holding another series' src_0..src_4 came back as 5 frames,
+    3 of them the other series'."""
+    ours, other = tmp_path / "ours", tmp_path / "other"
+    for folder, n, value in ((ours, 2, 100), (other, 5, 900)):
+        folder.mkdir()
+        for k in range(n):
+            with h5py.File(folder / f"src_{k}.h5", "w") as f:
+                f["data"] = np.full((1, 5, 6), value + k, np.uint16)
+    _block_vds(ours / "vds.h5", 5, 6)
+    assert read(ours / "vds.h5", dataset="frames", allow_external=True).data[:, 0, 0].tolist() == [100, 101]
+    monkeypatch.chdir(other)
+    with pytest.raises(FormatError, match="found in 2 folders"):
+        read(ours / "vds.h5", dataset="frames", allow_external=True)
+
+
+def test_hdf5_block_source_check_lists_one_folder_not_its_tree(tmp_path):
+    """The files past the last block are looked for in the sources' folder, not its tree (a name of
+    "%b%b" made the glob "**"): a folder deeper down named as a later source ("11") is none."""
+    with h5py.File(tmp_path / "00", "w") as f:
+        f["data"] = _frames(1, 5, 6)
+    (tmp_path / "tree" / "11").mkdir(parents=True)
+    vspace = h5py.h5s.create_simple((0, 5, 6), (h5py.h5s.UNLIMITED, 5, 6))
+    vspace.select_hyperslab((0, 0, 0), (h5py.h5s.UNLIMITED, 1, 1), stride=(1, 1, 1), block=(1, 5, 6))
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_virtual(vspace, b"%b%b", b"data", h5py.h5s.create_simple((1, 5, 6)))
+    with h5py.File(tmp_path / "vds.h5", "w") as f:
+        h5py.h5d.create(f.id, b"frames", h5py.h5t.py_create(np.dtype("<u2")), vspace, dcpl=dcpl)
+    assert read(tmp_path / "vds.h5", dataset="frames", allow_external=True).data.shape == (1, 5, 6)
+
+
+def test_hdf5_virtual_source_with_a_literal_percent_is_checked(tmp_path):
+    """``a%%b.h5`` in a fixed mapping is the file ``a%b.h5`` to libhdf5 (no block number): missing,
+    it read as zeros."""
+    stack = _frames(2)
+    layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+    layout[:] = h5py.VirtualSource("a%%b.h5", "data", shape=stack.shape)
+    path = tmp_path / "vds.h5"
+    with h5py.File(path, "w") as f:
+        f.create_virtual_dataset("frames", layout, fillvalue=0)
+    with pytest.raises(FormatError, match="source file a%b.h5 is missing"):
+        read(path, dataset="frames", allow_external=True)
+    with h5py.File(tmp_path / "a%b.h5", "w") as f:
+        f["data"] = stack
+    np.testing.assert_array_equal(read(path, dataset="frames", allow_external=True).data, stack)
+
+
+def test_hdf5_white_is_zero_flag_on_an_indexed_image_or_written_as_zero_changes_nothing(tmp_path):
+    """The spec's table: IMAGE_WHITE_IS_ZERO does not apply to IMAGE_INDEXED (read as stored); a
+    writer's 0.0 or "0" means 0 as the spec's unsigned char does."""
+    counts = _frames(1, dtype="u1")[0]
+    path = tmp_path / "wiz.h5"
+    _hdf5_image(path, "indexed", counts, 1, "IMAGE_INDEXED")
+    _hdf5_image(path, "float0", counts, 0)
+    _hdf5_image(path, "text0", counts, 0)
+    with h5py.File(path, "a") as f:
+        f["float0"].attrs["IMAGE_WHITE_IS_ZERO"] = 0.0
+        f["text0"].attrs["IMAGE_WHITE_IS_ZERO"] = np.bytes_("0")
+    for name in ("indexed", "float0", "text0"):
+        frames = read(path, dataset=name)
+        np.testing.assert_array_equal(frames.data[0], counts)
+        assert "white_is_zero" not in frames.meta
+
+
 def test_nexus_default_given_as_a_path_is_followed(tmp_path):
     """ESRF's Lima/bliss: the NXentry's @default is "measurement/pco", which silx follows."""
     stack = _frames(3)

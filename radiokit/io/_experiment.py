@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import errno
-import glob
 import math
 import os
 import re
@@ -573,16 +572,23 @@ def check_virtual_sources(path, ds) -> None:
         if "%" in name or "%" in dset:
             _check_block_sources(path, ds, source, folder)
             continue
-        found = next((p for p in _source_places(folder, name) if p.is_file()), None)
-        if found is None:
-            raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
-        try:
-            with h5py.File(found, "r") as src:
-                present = isinstance(src.get(dset), h5py.Dataset)
-        except OSError as exc:
-            raise FormatError(path, f"{ds.name}: its virtual source {found} cannot be opened: {exc}") from None
-        if not present:
-            raise FormatError(path, f"{ds.name}: its virtual source {found} holds no dataset {dset}")
+        _found_source(path, ds, folder, name, dset)
+
+
+def _found_source(path, ds, folder: Path, name: str, dset: str) -> Path:
+    """Where the source file ``name`` is, found as libhdf5 finds it; refused when it is missing,
+    cannot be opened or holds no dataset ``dset``."""
+    found = next((p for p in _source_places(folder, name) if p.is_file()), None)
+    if found is None:
+        raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
+    try:
+        with h5py.File(found, "r") as src:
+            present = isinstance(src.get(dset), h5py.Dataset)
+    except OSError as exc:
+        raise FormatError(path, f"{ds.name}: its virtual source {found} cannot be opened: {exc}") from None
+    if not present:
+        raise FormatError(path, f"{ds.name}: its virtual source {found} holds no dataset {dset}")
+    return found
 
 
 _PRINTF = re.compile(r"%(%|b)")
@@ -590,51 +596,67 @@ _PRINTF = re.compile(r"%(%|b)")
 
 def _check_block_sources(path, ds, source, folder: Path) -> None:
     """Refuse a ``%b`` mapping (source ``k`` of a printf-style name feeds block ``k`` of an
-    unlimited selection) that libhdf5 read short.
+    unlimited selection) that libhdf5 read short or filled from elsewhere.
 
     libhdf5 sizes such a dataset by opening sources 0, 1, 2, ... and stops at the first it cannot
     open or that lacks the dataset (HDF5 2.0.0): a missing middle source silently cut the stack
-    there, and a missing first one left no frames. The blocks the dataset's extent covers were all
-    found; a file of the pattern numbered at or past the first block not covered means a gap, and
-    no frames means source 0 is missing. A missing last source leaves no trace and cannot be told
-    from a shorter series; nor can a gap in dataset names (``%b`` in the dataset name only).
+    there, and a missing first one left no frames. With two or more mappings the extent is the
+    longest one's, so every block it covers is looked for here (a shorter mapping's missing blocks
+    read as the fill value), and all of them in one folder: libhdf5 looks beside the file, then in
+    the working directory, so a series that ends early could be topped up by another one's files of
+    the same names. A file of the pattern numbered at or past the first block not covered means a
+    gap. A missing last source leaves no trace and cannot be told from a shorter series; nor can a
+    gap in dataset names (``%b`` in the dataset name only). A fixed (not unlimited) mapping names
+    one file, ``%%`` read as ``%`` (libhdf5 refuses ``%b`` there): checked as any other source.
     """
     name, dset = source.file_name, source.dset_name
     if _PRINTF.sub("", name).count("%") or _PRINTF.sub("", dset).count("%"):
         return  # not a pattern libhdf5 expands (it refuses such a name itself)
     try:
         start, stride, count, _ = source.vspace.get_regular_hyperslab()
-    except (ValueError, RuntimeError):
-        return
+    except (ValueError, RuntimeError):  # a selection of everything, or points: not a block mapping
+        count = ()
     axes = [i for i, c in enumerate(count) if c == h5py.h5s.UNLIMITED]
-    if len(axes) != 1:
-        return
-    axis = axes[0]
-    extent = ds.shape[axis]
-    covered = max(0, -(-(extent - start[axis]) // max(stride[axis], 1)))
 
     def expand(text, k):
         return _PRINTF.sub(lambda m: "%" if m.group(1) == "%" else str(k), text)
 
+    if len(axes) != 1:
+        if not any(m.group(1) == "b" for t in (name, dset) for m in _PRINTF.finditer(t)):  # "a%%b": no block
+            _found_source(path, ds, folder, expand(name, 0), expand(dset, 0))
+        return
+    axis = axes[0]
+    extent = ds.shape[axis]
+    covered = max(0, -(-(extent - start[axis]) // max(stride[axis], 1)))
     missing = f"{expand(name, covered)}:{expand(dset, covered)}"
     if not covered:
         raise FormatError(
             path, f"{ds.name} is a virtual dataset whose first source {missing} is missing or unreadable: no frames"
+        )
+    folders = {
+        _found_source(path, ds, folder, expand(name, k), expand(dset, k)).parent.resolve() for k in range(covered)
+    }
+    if len(folders) > 1:
+        raise FormatError(
+            path,
+            f"{ds.name} is a virtual dataset whose sources {name} were found in {len(folders)} folders "
+            f"({', '.join(sorted(map(str, folders)))}): libhdf5 looks beside the file, then in the working "
+            "directory, so the series is mixed with another one's files; run from another folder",
         )
     tokens = re.split(r"(%%|%b)", Path(name).name)
     if "%b" not in tokens:
         return  # %b in a folder name or the dataset name only: no files to list
     # libhdf5 prints the block number in plain decimal: src_01.h5 is not source 1
     number = re.compile("".join({"%%": "%", "%b": "(0|[1-9][0-9]*)"}.get(t) or re.escape(t) for t in tokens))
-    pattern = "".join({"%%": "%", "%b": "*"}.get(t) or glob.escape(t) for t in tokens)
     later = []
-    for place in _source_places(folder, name):
-        if "%" in str(place.parent) or not place.parent.is_dir():
+    for place in {p.parent for p in _source_places(folder, name)}:
+        if "%" in str(place) or not place.is_dir():
             continue
-        for candidate in place.parent.glob(pattern):
-            m = number.fullmatch(candidate.name)
-            if m and len(set(m.groups())) == 1 and int(m.group(1)) >= covered:
-                later.append(int(m.group(1)))
+        with os.scandir(place) as entries:  # one folder, not its tree (a "%b%b" glob is "**")
+            for entry in entries:
+                m = number.fullmatch(entry.name)
+                if m and len(set(m.groups())) == 1 and int(m.group(1)) >= covered and entry.is_file():
+                    later.append(int(m.group(1)))
     if later:
         raise FormatError(
             path,

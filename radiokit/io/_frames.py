@@ -100,7 +100,7 @@ def bit_depth_cause(frame: np.ndarray, bits: int) -> str | None:
             "panel's 16-bit counts; read it with dtype='<f4' and shape=(rows, cols) (--dtype '<f4' --shape ROWS COLS)"
         )
     if int(frame.byteswap().max()) <= top:
-        return "the byte-swapped values fit: the file is big-endian, try byteorder='>' (or '<')"
+        return "the byte-swapped values fit: the file is big-endian; try byteorder='>' (or '<')"
     if bits < 16 and _msb_aligned(frame, bits):
         return (
             f"the low {16 - bits} bits are 0 in (nearly) every pixel: {bits}-bit data stored MSB-aligned "

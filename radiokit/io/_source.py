@@ -1017,15 +1017,22 @@ def _white_is_zero(path, data):
     attrs = data.attrs
     if text(attrs.get("CLASS", b"")) != "IMAGE" or "IMAGE_WHITE_IS_ZERO" not in attrs:
         return None
+    subclass = text(attrs.get("IMAGE_SUBCLASS", b""))
+    if subclass == "IMAGE_INDEXED":  # the spec's table: not applicable to indexed images (read as stored)
+        return None
     value = np.asarray(attrs["IMAGE_WHITE_IS_ZERO"])
-    flag = value.item() if value.size == 1 and value.dtype.kind in "biu" else None
+    flag = None
+    if value.size == 1:  # the spec's type is an unsigned char; a writer's 0.0 or "0" means the same
+        try:
+            flag = float(text(value.item()) if value.dtype.kind in "SUO" else value.item())
+        except (TypeError, ValueError):
+            flag = None
     if flag not in (0, 1):
         raise FormatError(
             path, f"{data.name}@IMAGE_WHITE_IS_ZERO is {value.tolist()!r}: the HDF5 Image spec defines 0 and 1"
         )
     if not flag:
         return None
-    subclass = text(attrs.get("IMAGE_SUBCLASS", b""))
     kind = data.dtype.kind
     if subclass == "IMAGE_BITMAP" or kind not in "bu":
         what = "a bitmap" if subclass == "IMAGE_BITMAP" else f"{data.dtype} pixels"
