@@ -1485,6 +1485,25 @@ def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without
     assert reg.options["auto"].preset == "weak" and reg.quality is moving_weak
 
 
+def test_start_lattices_runs_the_finest_level_on_another_runs_field():
+    """``start_lattices``: another run's lattices stay as they are (kept, not refitted) and only this
+    preset's finest level runs on top, with its own lattice and budget; with ``abandon_px`` that
+    level is checked halfway (``ABANDON_AT``) against it and stops there, not converged, saying why.
+    The lattices are not a setting: the result's options leave them out."""
+    fixed, moving, d, mask = _family_pair(size=256, texture=0.1, noise=0.01, corr=0.25, seed=9)
+    weak = register(fixed, moving, "rc", preset="weak-fast")  # any preset's lattices; this one is quick
+    on = register(fixed, moving, "rc", start_lattices=weak.lattices, iterations=20)
+    assert len(on.lattices) == len(weak.lattices) + 1 and 0 < on.quality.iterations <= 20
+    for (g0, c0), (g1, c1) in zip(weak.lattices, on.lattices):
+        assert g0 is g1 and np.array_equal(c0, c1)
+    assert "start_lattices" not in on.options and "abandoned" not in on.options
+    assert not np.array_equal(on.displacement, weak.displacement)
+    stopped = register(fixed, moving, "rc", start_lattices=weak.lattices, iterations=20, abandon_px=1e-6)
+    why = stopped.options["abandoned"]
+    assert "after 10 of 20 iterations on the field it started from" in why and why in stopped.quality.reason
+    assert stopped.quality.iterations == 10 and not stopped.quality.ok
+
+
 def test_auto_runs_the_plain_finest_level_on_a_settled_weak_field_after_a_stop():
     """scikit-image's immunohistochemistry (a TRAINING picture of benchmarks/README.md) at 704 px
     under the smooth motion of ``bench_register_natural.py`` at 2.5 % of the frame: ``auto``'s plain
