@@ -31,11 +31,13 @@ shared machine, hides.
 
 Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
 1/10-frame correlation length, 1 % motion; ``weak-train`` the same on TRAINING seed 1), ``rich`` ``analytic_pair`` (the texture ten times the
-noise), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
+noise), ``weak1`` / ``weak1-train`` the family's texture at 1 % of the line integral (twice the noise;
+TEST seed 1000 / TRAINING seed 1), ``phys`` the family's physically shaped motion (uniform expansion plus the lag around a
 stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local motion
 (``bench_register_natural.py``'s test pair), ``astronaut`` scikit-image's astronaut under the
 TRAINING local motion (``bench_register_natural.py --split train``: what a rich-texture time is
-chosen on).
+chosen on), ``retina`` / ``moon`` a TRAINING / TEST picture under the smooth motion (``sine``:
+where ``auto``'s plain run stops and its finest level then runs on the weak field, session 27).
 """
 
 from __future__ import annotations
@@ -61,6 +63,12 @@ def make_pair(name, size):
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1000))
     if name == "weak-train":  # the same on a TRAINING seed (bench_register_weak2240.py's s1)
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1))
+    if name in ("weak1", "weak1-train"):  # texture 1 % of the line integral (twice the noise): weak settles
+        return family_pair(Case(size=size, texture=0.02, noise=0.01, corr=0.1, seed=1000 if name == "weak1" else 1))
+    if name in ("retina", "moon"):  # a picture under the smooth motion: auto's plain run stops (session 27)
+        from bench_register_natural import natural
+
+        return natural(name, size, "sine", "train" if name == "retina" else "test")
     if name == "rich":
         return analytic_pair(size, 0.01, 0.10, 0.01, seed=1)
     if name == "phys":
@@ -73,7 +81,9 @@ def make_pair(name, size):
         from bench_register_natural import natural
 
         return natural("astronaut", size, "local", "train")
-    raise ValueError(f"pair {name!r}: expected weak, weak-train, rich, phys, camera or astronaut")
+    raise ValueError(
+        f"pair {name!r}: expected weak, weak-train, weak1, weak1-train, rich, phys, camera, astronaut, retina or moon"
+    )
 
 
 def _load(name, source):

@@ -119,6 +119,9 @@ class Registration:
     quality: Quality
     options: dict = field(default_factory=dict)
     confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
+    # B-spline methods: the lattices the field is the sum of, coarse to fine ((lattice, coefficients));
+    # what rc's ``start_lattices`` takes (``auto`` runs its plain preset's finest level on them)
+    lattices: list | None = field(default=None, repr=False, compare=False)
 
     def warp(self, image, order=1) -> np.ndarray:
         """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid."""
@@ -202,7 +205,7 @@ def _check_option_names(method, options):
     if method in BSPLINE_METHODS:
         from radiokit.register._bspline import PRESETS
 
-        known = {"preset", "callback", *PRESETS["default"]}
+        known = {"preset", "callback", "start_lattices", *PRESETS["default"]}
     else:
         params = list(inspect.signature(METHODS[method]).parameters.values())[3:]  # after fixed, moving, mask
         if any(p.kind is p.VAR_KEYWORD for p in params):
@@ -261,7 +264,9 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     t0 = time.perf_counter()
     disp, info = METHODS[method](f, m, mask, **options)
     seconds = time.perf_counter() - t0
-    reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), dict(options))
+    kept = {k: v for k, v in options.items() if k != "start_lattices"}  # arrays, not a setting to report
+    reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), kept)
+    reg.lattices = info.get("lattices")
     if "init" in info:  # what the field started from (the silhouette's map, or why not)
         reg.options["initial"] = info["init"]
     if "binned" in info:  # registered area-averaged by this factor (``bin_pixels``), the field upsampled

@@ -19,10 +19,14 @@ finest level when it is still far off there (``ABANDON``; the weak preset follow
 run is finished after all only if the weak one does not beat it). That compares an unfinished run
 with a finished one, but at one level: ``weak`` ends on the plain run's level before its finest
 (both at the checks' ~0.4 Mpx), where the stop mostly reads it. What it cannot see is what the
-plain run's finest level would add (a picture's fine detail under a smooth motion); only finishing
-the run shows that, at the time the stop saves, and neither the reading at the stop nor the weak
-run's own settling told the pairs where it pays from those where it does not (benchmarks/README.md,
-"After an abandoned plain run: which comparison (session 25)"). ``auto``'s plain run may go past
+plain run's finest level would add (a picture's fine detail under a smooth motion), and neither the
+reading at the stop nor the weak run's own settling told the pairs where that pays from those where
+it does not (benchmarks/README.md, "After an abandoned plain run: which comparison (session 25)").
+So when the weak run is kept and settled, the plain preset's finest level (and polish) runs on the
+weak run's field for a short budget (``FINEST_ITERATIONS``), stops halfway unless its residual
+already moves clearly less than the weak run's (``FINEST_GAIN``), and is returned only when it
+passes its checks and its residual moves less (:func:`finest_from_weak`, :func:`keeps_finest`;
+"The plain run's finest level on the weak run's field (session 27)"). ``auto``'s plain run may go past
 its finest level's budget when its field is still moving there but its residual already passes
 the checks (``EXTEND``): slow, not lost, as on natural images at 2240. Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
@@ -82,6 +86,11 @@ __all__ = [
     "EXTEND",
     "polishes",
     "settled",
+    "finest_from_weak",
+    "keeps_finest",
+    "FINEST_FROM_WEAK",
+    "FINEST_ITERATIONS",
+    "FINEST_GAIN",
 ]
 
 # name -> (the preset run first, the one a flagged result on a textured interior falls back to,
@@ -133,6 +142,22 @@ ABANDON = 1.0
 # all): all five training images converged under local motion of 1/10 of the frame, four of five
 # under a smooth one, their medians within 0.013 px of 200 iterations' (0.04-0.15 px)
 EXTEND = 60
+# after a stopped plain run and a settled weak one kept, the plain preset's finest level (and
+# polish) on the weak field (:func:`finest_from_weak`): the weak levels end at the checks' ~0.4 Mpx
+# and miss what the finer images show on a picture under a smooth motion (TRAINING, 2240: retina
+# 0.176 -> 0.083 px, the plain run in full 0.040 for 7-14 s more; benchmarks/README.md, "The plain
+# run's finest level on the weak run's field (session 27)")
+FINEST_FROM_WEAK = True
+# that level's budget: from the weak field it has only the fine detail left to fit. TRAINING
+# (retina, cell, the family's texture 1-10 %; 2240): 10 / 20 / 40 / 80 (+ extend 60) iterations,
+# then the polish: retina 0.077 / 0.083 / 0.082 / 0.083 px; the family's pairs gain nothing at
+# any budget (their residual moves more after 40 or more); 20 keeps its halfway check at 10
+FINEST_ITERATIONS = 20
+# ... and the level is stopped halfway (rc's abandon_px, ABANDON_AT) unless its residual moves less
+# than this x the weak run's: TRAINING, 2240, the residual after 10 iterations over the weak run's:
+# retina 0.81 (it wins 2.1x), cell 0.97, the family's texture 1-10 % (6 pairs) 0.93-1.00, where the
+# level, kept on a smaller residual alone, lost up to 5 % (0.114 -> 0.121 px) and cost ~1 s
+FINEST_GAIN = 0.85
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -267,6 +292,36 @@ def returned(name, plain_quality, fallback, retry_quality) -> str:
     return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
 
 
+def finest_from_weak(weak_quality) -> bool:
+    """Whether, after a plain run stopped early (``ABANDON``) and the weak run kept, the plain
+    preset's finest level (and polish) is run on the weak run's field (rc's ``start_lattices``):
+    when ``FINEST_FROM_WEAK`` and the weak run is settled (:func:`settled`)."""
+    return bool(FINEST_FROM_WEAK and settled(weak_quality) and np.isfinite(weak_quality.residual_motion))
+
+
+def keeps_finest(weak_quality, finest_quality) -> bool:
+    """Whether the plain preset's finest level on the weak run's field (:func:`finest_from_weak`)
+    is returned instead of the weak run: it passed its own checks (its level not stopped against
+    ``FINEST_GAIN``) and its residual moves less (:func:`keeps_retry`)."""
+    return bool(finest_quality.ok and keeps_retry(weak_quality, finest_quality))
+
+
+def _finest(name, options, weak) -> dict:
+    """The options of the plain preset's finest level on the ``weak`` run's field: its lattices
+    as the start (rc's ``start_lattices``), ``FINEST_ITERATIONS``, no ``extend``, and
+    ``abandon_px`` at ``FINEST_GAIN`` x the weak run's residual motion (checked halfway and at
+    the level's end: a level not on its way to beating the weak run stops, without its polish)."""
+    line = FINEST_GAIN * weak.quality.residual_motion
+    return dict(
+        options,
+        preset=AUTO_PRESETS[name][0],
+        start_lattices=weak.lattices,
+        iterations=FINEST_ITERATIONS,
+        extend=0,
+        abandon_px=line,
+    )
+
+
 def _plain(name, options, early) -> dict:
     """The options of ``name``'s plain run: ``abandon_px`` (``ABANDON``) when ``early`` and
     ``extend`` (``EXTEND``, ``auto`` only), each unless the caller set it."""
@@ -312,6 +367,15 @@ def register_auto(register, f, m, method, mask, retry, options):
     state = f"{plain} ok, its residual still moving" if first.quality.ok else f"{plain} not ok ({first.quality.reason})"
     why = f"{state}; {fallback.reason}; {what} {a:.2f} -> {b:.2f}"
     best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
+    if best is second and "abandoned" in first.options and finest_from_weak(second.quality):
+        # the plain run stopped and the weak one kept: the plain preset's finest level (and polish)
+        # on the weak field, what the stop left out, kept only when its residual moves less
+        third = register(f, m, method, mask, retry=False, **_finest(name, options, second))
+        total += third.quality.seconds
+        kept = keeps_finest(second.quality, third.quality)
+        r2, r3 = second.quality.residual_motion, third.quality.residual_motion
+        why += f"; {plain}'s finest level on it: residual motion {r2:.2f} -> {r3:.2f}, {'kept' if kept else 'not kept'}"
+        best = third if kept else second
     best.quality.seconds = total
     best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
     return best

@@ -1392,15 +1392,28 @@ def _poly_fit(py, px, w, t, degree):
 
 
 def _bspline_register(
-    fixed, moving, mask=None, *, similarity="rc", preset="default", callback=None, start=None, **overrides
+    fixed,
+    moving,
+    mask=None,
+    *,
+    similarity="rc",
+    preset="default",
+    callback=None,
+    start=None,
+    start_lattices=None,
+    **overrides,
 ):
     """Long because the pyramid's loop carries the lattices, the thinning field and the
     history from level to level. ``start``: ``(lattices, iterations)``, another run's
     ``info["lattices"]`` on a pair of the same shape and options: only the finest level is run,
-    from them, for that many iterations."""
+    from them, for that many iterations. ``start_lattices``: another run's lattices (any preset's,
+    a pair of the same shape): their field stays as it is, and only this preset's finest level
+    (with its own lattice, from zero, and budget) and its polish run on top of it (``auto``: the
+    plain preset's finest level after the weak run, ``_auto.FINEST_FROM_WEAK``)."""
     o = _options(preset, overrides)
     k = _bin_factor(fixed.shape, o["bin_pixels"])
-    how = dict(similarity=similarity, preset=preset, callback=callback)
+    # start_lattices go with the pair to a binned run (the lattices of a run binned alike) and a refit's first pass
+    how = dict(similarity=similarity, preset=preset, callback=callback, start_lattices=start_lattices)
     if k > 1:  # the pair area-averaged by k, registered, the field upsampled (presets' comment)
         # abandon_px is in full-resolution pixels; the binned run measures in its own
         d, info = _register_binned(fixed, moving, mask, k, how, dict(overrides, abandon_px=o["abandon_px"] / k))
@@ -1424,6 +1437,8 @@ def _bspline_register(
         lattices, n_it = start
         grids, x_start = list(lattices[:-1]), lattices[-1][1]
         levels = [(levels[-1][0], n_it)]
+    elif start_lattices is not None:  # another run's field as the coarser levels': the finest level on top
+        grids, levels = list(start_lattices), levels[-1:]
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message, abandoned = 0, True, "", {}
@@ -1439,7 +1454,11 @@ def _bspline_register(
         # abandon_px: the level before the finest is checked partway (ABANDON_AT) and at its end
         last_coarse = factor != finest and factor == levels[-2:][0][0] and _abandons(fixed, o, finest)
         check = None
-        if last_coarse:
+        if start_lattices is not None and o["abandon_px"]:  # on another run's field: checked against its line
+            at = int(n_it * ABANDON_AT)
+            when = f"after {at} of {n_it} iterations on the field it started from"
+            check = (at, lambda lat, when=when: _far_off(measured(), grids + [lat], affine, o, when, "at"))
+        elif last_coarse:
             at = int(n_it * ABANDON_AT)
             when = f"after {at} of {n_it} iterations of the level before it"
             check = (at, lambda lat, when=when: _far_off(measured(), grids + [lat], affine, o, when))
@@ -1471,6 +1490,17 @@ def _bspline_register(
         if callback is not None:
             callback(factor, res)
         if factor == finest and (why := res.get("abandoned")):
+            converged, message, abandoned = False, why, {"abandoned": why}
+        elif (
+            factor == finest
+            and start_lattices is not None
+            and o["abandon_px"]
+            and (
+                why := _far_off(
+                    measured(), grids, affine, o, f"after its {res.nit} iterations on the field it started from", "at"
+                )
+            )
+        ):
             converged, message, abandoned = False, why, {"abandoned": why}
         elif factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
@@ -1558,19 +1588,20 @@ def _abandons(fixed, o, finest) -> bool:
     return bool(o["abandon_px"]) and finest < _assess_binning(fixed.size)
 
 
-def _far_off(measure, lattices, affine, o, when):
+def _far_off(measure, lattices, affine, o, when, where="before"):
     """Why the run stops (``abandon_px``), or None: the field of ``lattices`` (and ``affine``) at
     the checks' binning, its residual's motion measured as they would measure it (``measure``:
     ``coarse_residual_motion``'s ``(k, shape, motion)``), over ``abandon_px`` before the finest
     level (``o`` the options: a misalignment the finer level is not there to mend) or, with ``o``
     None, over the checks' own line at the finest level (``ABANDON_FINEST`` iterations in): ``auto``
-    then goes to its fallback. ``when``: for the message."""
+    then goes to its fallback. ``when``: for the message; ``where``: "before" the finest level, or
+    "at" it (``start_lattices``: its one level checked against ``o``'s line)."""
     from radiokit.register import _MAX_RESIDUAL_MOTION
 
     line, where, why = (
         (_MAX_RESIDUAL_MOTION, "at", f"> {_MAX_RESIDUAL_MOTION:g}")
         if o is None
-        else (o["abandon_px"], "before", f"abandon_px={o['abandon_px']:g}")
+        else (o["abandon_px"], where, f"abandon_px={o['abandon_px']:.3g}")
     )
     motion = _motion(measure, lattices, affine)
     if not motion > line:
@@ -1716,7 +1747,12 @@ def _rc(fixed, moving, mask, **options):
     ``radiokit.register._auto.ABANDON``), extend (iterations the finest level may add when its
     budget ends with the field still moving more than converge_px while the residual, measured as
     the quality checks do, is within their line; 0, every preset's: off; ``auto`` sets it on its
-    plain run, see ``radiokit.register._auto.EXTEND``)."""
+    plain run, see ``radiokit.register._auto.EXTEND``), start_lattices (another rc
+    ``Registration.lattices`` on a pair of this shape and binning: their field is kept as it is and
+    only this preset's finest level, from zero, and its polish run on top of it; with abandon_px,
+    that level is stopped halfway or at its end, not converged, while its residual moves by more
+    than that; ``auto`` runs its plain preset's finest level so on the weak field, see
+    ``radiokit.register._auto.FINEST_FROM_WEAK``)."""
     return bspline_register(fixed, moving, mask, similarity="rc", **options)
 
 
