@@ -1451,7 +1451,13 @@ def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, 
 
 @pytest.mark.parametrize(
     "action, extra",
-    [("status", ["--kv", "60"]), ("off", ["--ua", "100"]), ("on", ["--kv", "60", "--ua", "250", "--timeout", "5"])],
+    [
+        ("status", ["--kv", "60"]),
+        ("off", ["--ua", "100"]),
+        ("on", ["--kv", "60", "--ua", "250", "--timeout", "5"]),
+        ("status", ["--ready-timeout", "5"]),
+        ("probe", ["--reply-timeout", "5"]),
+    ],
 )
 def test_cli_source_options_an_action_does_not_read_are_refused(action, extra, capsys):
     # they were ignored without a word (`source status --kv 60`, `source on --timeout 5`)
@@ -1463,6 +1469,17 @@ def test_cli_source_options_an_action_does_not_read_are_refused(action, extra, c
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"not read by 'source {action}'" in err[0] and err[0].endswith("nothing was sent")
     assert model.commands == [] and not model.xray_on
+
+
+@pytest.mark.parametrize("option", ["--reply-timeout", "--ready-timeout"])
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf"])
+def test_cli_source_time_outs_that_are_not_a_positive_finite_time_are_refused(option, value):
+    from conftest import run_cli
+
+    res = run_cli("acquire", "source", "on", "--port", "/dev/null", "--kv", "60", "--ua", "250", option, value)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"error: {option} {float(value):g}: expected a positive finite number of seconds; nothing was sent"
+    )
 
 
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
@@ -1671,7 +1688,9 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
     """`source status` read B's STS ERROR as PREHEATING, printed it and ended 0 -- with X-rays on
     from an earlier `source on` (SHV read 60 kV), left on, and not a word of it. Now a state that
     does not show X-rays off, with a beam measured, is switched off; unconfirmed, the last line is
-    the warning, exit 3 (README). With nothing measured it is the notes' pre-heating: reported."""
+    the warning, exit 3 (README). With nothing measured it may be the notes' pre-heating, but
+    ERROR is also how B refuses a query: STS has not confirmed the tube off, so the end is the
+    warning too (README's one rule for a controller that cannot be read as off), with no XOF."""
     from acquisition.guardian import TUBE_WARNING
     from radiokit.cli import main
 
@@ -1689,8 +1708,10 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
         n = len(model.log)
-        assert main(["acquire", "source", "status", *port]) == 0  # pre-heating, nothing measured: reported
-        assert "state PREHEATING, measured 0 kV 0 uA" in capsys.readouterr().out
+        assert main(["acquire", "source", "status", *port]) == 3  # nothing measured: said, and not confirmed off
+        out, err = capsys.readouterr()
+        assert "state PREHEATING, measured 0 kV 0 uA" in out and "nothing is measured, but" in err
+        assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" not in model.commands[n:]
         model.sts_error(False)
         assert main(["acquire", "source", "status", *port]) == 0  # STS answers again: STANDBY
