@@ -217,6 +217,58 @@ def test_transport_discards_a_late_reply():
         assert lnk.query("SIN") == "SIN 0"
 
 
+class _StalledLink:
+    """A port through which this process is stalled across the reply's deadline. A fake -- the
+    only way to cause the fault deterministically: a loaded machine, a long garbage collection or
+    another thread holding the GIL keep this process (and an emulator's thread in it) from running
+    until after the deadline, and the reply, due in time, is delivered only once the reading
+    thread waits again. (Found: test_l8121_spec's in-process model, "no reply to STS within 2 s"
+    under load; reproduced by letting the model's thread hold the GIL past the deadline, and gone
+    with the fix.) ``write_stalls``: pyserial's write time-out, which it checks after ``os.write``
+    returned, fires as well."""
+
+    is_open = True
+    in_waiting = out_waiting = 0
+
+    def __init__(self, reply: bytes, timeout_s: float, write_stalls=False):
+        self.reply, self.timeout_s, self.write_stalls, self.reads = reply, timeout_s, write_stalls, 0
+
+    def write(self, payload):
+        if self.write_stalls:
+            raise serial.SerialTimeoutException("Write timeout")  # the bytes left; the clock ran on
+
+    def read(self, size=1):
+        self.reads += 1
+        if self.reads == 1:  # stalled past the deadline, the reply not yet delivered
+            time.sleep(self.timeout_s * 1.5)
+            return b""
+        return self.reply
+
+    def flush(self):
+        pass
+
+    def reset_input_buffer(self):
+        pass
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("write_stalls", [False, True])
+def test_a_reply_delivered_after_a_stall_past_its_deadline_is_read(write_stalls):
+    lnk = SerialTransport("stalled", timeout_s=0.05, min_interval_s=0, open=False)
+    lnk._serial = _StalledLink(b"STS 2\r", 0.05, write_stalls)
+    assert lnk.query("STS") == "STS 2"
+
+
+def test_a_silent_device_is_still_one_time_out_and_a_slice():
+    lnk = SerialTransport("silent", timeout_s=0.05, min_interval_s=0, open=False)
+    lnk._serial = _StalledLink(b"", 0.05)
+    with pytest.raises(DeviceError, match="no reply to STS within 0.05 s"):
+        lnk.query("STS")
+    assert lnk._serial.reads >= 2  # the deadline, then the one slice more before calling it silent
+
+
 def test_transport_rejects_a_missing_port():
     with pytest.raises(DeviceError, match="/dev/nonexistent-l8121: cannot open"):
         SerialTransport("/dev/nonexistent-l8121")
