@@ -54,6 +54,16 @@ def add_acquire(subparsers):
     )
     s.add_argument("--ua", type=float, help="tube current for 'on' (and 'warm-up'), uA (the L8121: at most 500)")
     s.add_argument("--timeout", type=float, help="warm-up time-out, s (default 1800)")
+    s.add_argument(
+        "--reply-timeout",
+        type=float,
+        help="the longest wait for each reply, s (default: the dialect's, A 1, B 2); not for 'probe'",
+    )
+    s.add_argument(
+        "--ready-timeout",
+        type=float,
+        help="how long 'on' and 'warm-up' wait for the controller's power-on checks, s (default 30)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -151,6 +161,8 @@ def _not_for_a_protocol(args) -> str | None:
             ("--kv", args.kv),
             ("--ua", args.ua),
             ("--timeout", args.timeout),
+            ("--reply-timeout", args.reply_timeout),
+            ("--ready-timeout", args.ready_timeout),
         )
         if value is not None
     ]
@@ -158,7 +170,7 @@ def _not_for_a_protocol(args) -> str | None:
         return None
     return (
         f"{', '.join(given)}: only for 'radiokit acquire source ACTION'; a protocol's port, baud rate, "
-        f"exposure and warm-up time-out are its [source] section's ({args.protocol})"
+        f"exposure and time-outs are its [source] section's ({args.protocol})"
     )
 
 
@@ -324,13 +336,15 @@ def _source_refusal(args) -> str | None:
             ("--kv", args.kv, ("on", "warm-up")),
             ("--ua", args.ua, ("on", "warm-up")),
             ("--timeout", args.timeout, ("warm-up",)),
+            ("--reply-timeout", args.reply_timeout, ("status", "warm-up", "on", "off")),
+            ("--ready-timeout", args.ready_timeout, ("warm-up", "on")),
         )
         if value is not None and args.action not in actions
     ]
     if unread:
         return (
-            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on' and "
-            "'warm-up', --timeout for 'warm-up'); nothing was sent"
+            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv, --ua and --ready-timeout are for "
+            "'on' and 'warm-up', --timeout for 'warm-up', --reply-timeout for all but 'probe'); nothing was sent"
         )
     if args.action == "warm-up" and (args.kv is None) != (args.ua is None):
         return "'warm-up' takes --kv and --ua together (or neither: the lowest allowed); nothing was sent"
@@ -339,6 +353,9 @@ def _source_refusal(args) -> str | None:
         args.baudrate is not None and args.baudrate <= 0
     ):  # argparse took a whole number; the driver warns of an unlisted one
         return f"--baudrate {args.baudrate}: expected a whole number of baud > 0"
+    for option, value in (("--reply-timeout", args.reply_timeout), ("--ready-timeout", args.ready_timeout)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            return f"{option} {value:g}: expected a positive finite number of seconds; nothing was sent"
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
         # refused before the port is opened, as warm_up() would refuse it after TYP and STS (exit 1)
         return (
@@ -417,10 +434,18 @@ def _source_command(args, guard) -> int:
 
     src = None
     try:
+        # made before it connects, so that a failed connect still tells what it reached (the exit rule)
+        times = {"timeout_s": args.reply_timeout, "ready_timeout_s": args.ready_timeout}
+        src = L8121(
+            args.port,
+            baudrate=args.baudrate,
+            dialect=args.dialect or "auto",
+            control=args.action != "status",
+            connect=False,
+            **{key: value for key, value in times.items() if value is not None},
+        )
         try:
-            src = L8121(
-                args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", control=args.action != "status"
-            )
+            src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
             if getattr(exc, "off_failed", None) is not None:
                 exc.tube = f"X-rays were on; switching them off failed ({exc.off_failed})"  # + the warning
@@ -467,34 +492,20 @@ def _source_command(args, guard) -> int:
 
 def _source_error_code(exc, src, args) -> int:
     """The last line and the exit code of a source command that failed with ``exc`` (its error
-    line already printed): the X-rays warning and 3 whenever the tube may be on, "never reached"
-    and 1 when not a byte was sent, else 1 (README: the exit codes)."""
-    from acquisition.errors import PortUnavailable
+    line already printed). One rule, as for a series (README: the exit codes): the port never
+    opened -- "never reached" and 1 (`off`: the warning and 3, a tube an earlier `source on` left on
+    is on still); the port opened and the controller did not confirm the tube off (no reply, a
+    refused or garbled STS, a switch-off not confirmed, X-rays found on and left on) -- the
+    warning and 3, whoever switched the tube on; else 1."""
     from acquisition.guardian import TUBE_WARNING
 
-    if src is None and isinstance(exc, PortUnavailable) and args.action != "off":
-        # not a byte sent: the same last line and exit code as a series that could not open
-        # its port (README); `off` warns instead (below): the tube it was to switch off may be on
+    if src is None:  # the driver refused its configuration: nothing was opened
+        return 1
+    if not src.port_opened and args.action != "off":
+        # not a byte sent: the same last line and exit code as a series that could not open its port
         _say(NEVER_REACHED)
         return 1
-    if src is not None and src.off_failed is not None:
-        # the switch-off was not confirmed: the same last line and exit code as a series
-        # (README: 3 when the tube may still be on), not a plain error's 1
-        _say(TUBE_WARNING)
-        return 3
-    if src is not None and src.emitting_at_connect and src.confirmed_off is None:
-        # status on a unit whose operate switch refuses remote control found X-rays on, then
-        # failed: nothing here switched them off, and the operator must hear it
-        _say(TUBE_WARNING)
-        return 3
-    if src is None and getattr(exc, "may_be_on", False):
-        # the probe read X-rays on and then the port could not be opened again: nothing here
-        # switched them off
-        _say(TUBE_WARNING)
-        return 3
-    if src is None and args.action == "off":
-        # the switch-off asked for never reached the controller: a tube left on by `source on`
-        # is on still, and the operator must hear it as from a series (exit 3)
+    if not src.tube_confirmed_off:
         _say(TUBE_WARNING)
         return 3
     return 1
@@ -541,6 +552,7 @@ def _warm_up_line(src, args, seconds: float) -> str:
 _CLI_TERMS = (
     (" (use set_values() or off())", ""),
     ("(call warm_up())", "(`radiokit acquire source warm-up --port {port}`)"),
+    ("(or raise [source] ready_timeout_s)", "(or raise --ready-timeout)"),
     # there is no reset action: an overload needs a person at the tube first (L8121.md: no automatic RST)
     ("then reset() by hand", "then reset the overload by hand (RST; no `radiokit acquire source` action sends it)"),
     (
@@ -601,6 +613,13 @@ def _source_action(src, args) -> int:
                 flush=True,
             )
             print(f"{args.port}: switched off (confirmed: state {src.off().name})")
+        elif not state.confirms_off:
+            # nothing measured, but B's ERROR is also how B refuses a query: the controller has
+            # not confirmed the tube off, and the exit rule says so (README: exit codes)
+            _say(
+                f"{args.port}: state {state.name} does not show X-rays off (B's STS ERROR: pre-heating, or a "
+                "refused query); nothing is measured, but the controller has not confirmed the tube off"
+            )
     elif args.action == "warm-up":
         seconds = src.warm_up(
             timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
@@ -619,4 +638,9 @@ def _source_action(src, args) -> int:
     else:
         src.off()
         print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
+    if args.action != "on" and not src.tube_confirmed_off:  # the exit rule (README: exit codes)
+        from acquisition.guardian import TUBE_WARNING
+
+        _say(TUBE_WARNING)
+        return 3
     return 0

@@ -1171,6 +1171,10 @@ class L8121:
             self._use(DIALECTS[self.config.dialect], self.config.baudrate)
         self._transport = None
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
+        # What this session knows of the tube, for the exit rule (README: exit codes): whether it
+        # opened the port (the probe's included), and the state its last STS (or SAR) read
+        self.port_opened = False
+        self._last_state: SourceState | None = None
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
         # One switch-off at a time, and it goes first: the thread that owns it (_off_thread) sends
         # its XOF/STS before any other thread's queued exchange, and a second caller of off()
@@ -1267,6 +1271,7 @@ class L8121:
                 raise self._reopen_failed(exc) from exc
         else:
             self._transport = self.url
+        self.port_opened = True
         self._give_grammar(self._transport)
         try:
             self._check_identity()
@@ -1362,6 +1367,10 @@ class L8121:
             self._off_after_probe(exc)
             raise
         self.probe_result = result
+        self.port_opened = not result.port_unavailable
+        state = dict(result.details).get("state")
+        if state in SourceState.__members__:  # the probe's STS is this session's reading too
+            self._last_state = SourceState[state]
         for e in result.exchange:
             logger.debug("%s probe: %s", result.port, e)
         if not result.found:
@@ -1388,6 +1397,7 @@ class L8121:
         if first == "identity":
             self.identity = value
             if self.config.model is not None and self.identity != self.config.model:
+                self._read_state_for_the_record()
                 raise DeviceError(
                     f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
                     f"(configure model=None to accept any model)"
@@ -1395,10 +1405,23 @@ class L8121:
         else:
             switch = self.switch_at_connect = value
             if switch != "REMOTE" and self.control:
+                self._read_state_for_the_record()
                 raise DeviceError(
                     f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"
                 )
+
+    def _read_state_for_the_record(self) -> None:
+        """Before a connect is refused (another model, B's operate switch off REMOTE): ``STS``
+        once, a query, so that the command's end can say whether the controller showed the tube
+        off (:attr:`tube_confirmed_off`, the exit rule) rather than know nothing of it."""
+        try:
+            state = self._read("state")
+        except DeviceError as exc:
+            logger.warning("%s: the state could not be read either: %s", self.port, exc)
+            return
+        if state.emitting:
+            logger.warning("%s: X-rays are on (state %s)", self.port, state.name)
 
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
@@ -1428,6 +1451,16 @@ class L8121:
         """Whether X-rays may be on by what this session knows (found on at connect, or switched
         on), until a switch-off confirms; :meth:`close` then switches off."""
         return self._may_be_on
+
+    @property
+    def tube_confirmed_off(self) -> bool:
+        """Whether the controller confirmed the tube off in this session: its last ``STS`` (A's
+        ``SAR`` too, the probe's included) read a state that cannot emit (not B's ambiguous
+        ``ERROR``), nothing that emits was sent after it, and no switch-off has failed since. A
+        command that opened the port (:attr:`port_opened`) and ends without this ends on the
+        X-rays warning, exit 3, whoever switched the tube on (README: exit codes)."""
+        last = self._last_state
+        return self.off_failed is None and not self._may_be_on and last is not None and last.confirms_off
 
     @property
     def confirmed_off(self) -> SourceState | None:
@@ -1543,13 +1576,16 @@ class L8121:
             raise DeviceError(f"{self.port}: dialect {self.dialect.name} has no {name} reading")
         reply = self._exchange(query.command, query=query)
         try:
-            return query.parse(reply)
+            value = query.parse(reply)
         except ValueError as why:
             err = DeviceError(
                 f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
             )
             self._fail_safe(err)
             raise err from None
+        if name in ("state", "beam"):
+            self._last_state = value if name == "state" else value[0]
+        return value
 
     def _do(self, name: str, value=None) -> None:
         """Send the dialect's command for the setting or action ``name`` (validated first)."""

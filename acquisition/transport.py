@@ -291,8 +291,7 @@ class SerialTransport:
         self.log.debug("%s > %s", self.url, command)
         try:
             self.commands_written += 1
-            ser.write(payload)
-            ser.flush()
+            self._write(ser, command, payload)
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
             if isinstance(exc, NoReply):  # its reply may still come, after the next command is sent
@@ -306,6 +305,24 @@ class SerialTransport:
             self._last_exchange = time.monotonic()
         self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
         return reply
+
+    def _write(self, ser, command: str, payload: bytes) -> None:
+        """Send ``payload``. pyserial checks its write time-out only after ``os.write`` has
+        returned, so a process stalled right there (a loaded machine, the GIL held by another
+        thread for longer than ``write_timeout_s``) reads as a write time-out although the command
+        went out -- and its reply, then not read, would come after the next command. When the
+        output queue is empty the bytes have left: the exchange goes on to read the reply."""
+        try:
+            ser.write(payload)
+        except serial.SerialTimeoutException:
+            try:
+                gone = ser.out_waiting == 0
+            except (AttributeError, NotImplementedError, *_LINK_ERRORS):  # a link that cannot tell
+                gone = False
+            if not gone:
+                raise
+            self.log.debug("%s: %s written, though late by pyserial's clock (a stalled process)", self.url, command)
+        ser.flush()
 
     def _flush_late(self, ser) -> None:
         """Discard what has arrived before a command is sent (nothing is owed to it yet): each
@@ -378,17 +395,22 @@ class SerialTransport:
                     return text
                 continue
             left = deadline - time.monotonic()
-            if left <= 0 and not drained and ser.in_waiting:
-                # this thread may have been starved (a busy process) while the reply arrived: take
-                # what is already here once before calling the device silent
+            if left <= 0 and not drained:
+                # This process may have been stalled across the deadline (a loaded machine, a long
+                # garbage collection, a thread holding the GIL): this thread then wakes past it
+                # before the device's reply, due in time, was delivered -- or, with a responder in
+                # this process (an emulator's thread), before that thread ran again to write it.
+                # Before calling the device silent, wait one more slice, blocking with the GIL
+                # released: a silent device costs 50 ms more, a stalled reply is read
                 drained = True
-                buf += ser.read(ser.in_waiting)
+                deadline = time.monotonic() + _READ_SLICE_S
                 continue
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
                 raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
-            # the port's read time-out is one slice, so the deadline is overshot by at most a slice
+            # the port's read time-out is one slice, so the deadline is overshot by at most two
+            # slices (one of them the grace above)
             buf += ser.read(max(1, ser.in_waiting))
 
 

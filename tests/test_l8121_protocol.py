@@ -102,14 +102,16 @@ def test_connect(dialect):
 @pytest.mark.parametrize(
     "dialect, pairs, message",
     [
-        ("A", [("TYP", "TYP L8121-02")], "TYP answered 'L8121-02', expected 'L8121-01'"),
+        # a connect refused for the model or the operate switch asks STS once first (a query), so
+        # that the command's end knows whether the tube showed off (README: exit codes)
+        ("A", [("TYP", "TYP L8121-02"), ("STS", "STS 2")], "TYP answered 'L8121-02', expected 'L8121-01'"),
         (
             "A",
             [("TYP", "ERROR")],
             r"TYP refused by the controller \(ERROR\); is this unit on 9600 baud and "
             r"speaking dialect A\? If it speaks dialect B",
         ),
-        ("B", [("SRL", "LOCAL")], r"operate switch is LOCAL \(SRL\)"),
+        ("B", [("SRL", "LOCAL"), ("STS", "STANDBY")], r"operate switch is LOCAL \(SRL\)"),
         ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
         ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
         ("A", [("TYP", "TYP L8121-01"), ("STS", "STANDBY")], r"unparseable reply to STS \(dialect A\): 'STANDBY'"),

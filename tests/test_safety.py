@@ -461,6 +461,58 @@ def test_unreachable_port_says_the_controller_was_never_reached(tmp_path, scene_
     assert any(ln.startswith("error:") and port in ln and "cannot open the port" in ln for ln in acq.lines), acq.output
 
 
+# -- one rule for a controller that cannot be read ------------------------------------------------
+# Each fault meets the first exchange it can: silence and junk the identity query (A's TYP, B's
+# SRL), the refused STS the state query (A: ERR, a refused query; B: ERROR, its ambiguous word).
+UNREADABLE = {
+    "no reply": (lambda model: model.silence(), "no reply to"),
+    "refused STS": (lambda model: model.sts_error(), {"A": "STS refused", "B": "PREHEATING"}),
+    "garbled reply": (lambda model: model.garbage(), "unparseable reply to"),
+}
+# short time-outs keep each row well under a second (B's refused STS at `off`: its three XOF
+# attempts take off_confirm_s, 3 s, which the source commands do not shorten); only the silent
+# rows wait one out
+SOURCE_TIMES = ["--reply-timeout", "0.3"]
+ACTIONS = {
+    "status": [],
+    "warm-up": ["-q", "--ready-timeout", "0.3"],
+    "on": ["--kv", "60", "--ua", "250", "--ready-timeout", "0.3"],
+    "off": [],
+    "series": None,
+}
+
+
+@pytest.mark.parametrize("action", list(ACTIONS))
+@pytest.mark.parametrize("fault", list(UNREADABLE))
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_controller_reached_but_not_read_as_off_ends_on_the_warning(tmp_path, scene_file, controller, fault, action):
+    """README's rule: radiokit opened the port and the controller did not confirm the tube off --
+    exit 3, the X-rays warning last, whoever switched the tube on, for every source action and a
+    series alike. Found: `source status` (and warm-up, on) of a dialect-A unit whose STS was
+    refused at connect ended exit 1 with no warning, a series in the same state exit 3."""
+    from conftest import run_cli
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    inject, said = UNREADABLE[fault]
+    said = said if isinstance(said, str) else said[model.dialect]
+    if action == "series":
+        # the sim panel and frame, the controller on the pty: the run reaches it through the guardian
+        times = {"timeout_s": 0.3, "ready_timeout_s": 0.3, "off_confirm_s": 0.3, "watchdog_s": 0}
+        args = [write_protocol(tmp_path, scene_file, server, source=times), "--sim", "-q"]
+    else:
+        args = ["source", action, "--port", server.url, "--dialect", model.dialect, *SOURCE_TIMES, *ACTIONS[action]]
+    inject(model)
+    res = run_cli("acquire", *args)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 3, res.stderr
+    assert lines[-1] == TUBE_WARNING and said in res.stderr, res.stderr
+    assert "never reached" not in res.stderr and "Traceback" not in res.stderr
+    # nothing that emits went out to a controller that could not be read
+    assert not {"XON", "WUP"} & {c.split()[0] for c in model.commands}, model.commands
+
+
 @ONE_DIALECT
 def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, controller):
     """Started as ``make test &`` starts it (SIGINT ignored): the command installs its own handlers,

@@ -13,7 +13,7 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
 :meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
 :meth:`~L8121Model.sts_error` (``STS`` answered ``ERROR``: B's pre-heating word, A's refusal),
-:meth:`~L8121Model.slow`, :meth:`~L8121Model.delay_once` (one reply after the client's time-out),
+:meth:`~L8121Model.slow`, :meth:`~L8121Model.delay_once` (one reply after the client's time-out), :meth:`~L8121Model.hold_once` (one reply held until the client's next line),
 :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
@@ -205,6 +205,7 @@ class L8121Model:
         self._silent_executes = False
         self._delay_s = 0.0
         self._delay_once: tuple[float, str | None] | None = None
+        self._hold_once: tuple[str | None] | None = None  # (command or None for any), once
         self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
@@ -449,6 +450,26 @@ class L8121Model:
             raise ValueError(f"delay_s must be >= 0, got {delay_s}")
         with self._lock:
             self._delay_once = (float(delay_s), command)
+
+    def hold_once(self, command: str | None = None) -> None:
+        """Hold one reply (the next one, or the next reply to ``command``) until the client's next
+        line arrives, and send it then, before that line's reply: a reply that comes after the
+        client's time-out *and* after its next command was written. An event, not a delay
+        (:meth:`delay_once`): on a loaded machine a delayed reply can reach the client before its
+        next command, where the flush before that command discards it, and a test meant for the
+        late-reply grammar then passes without reaching it. The client must time out first."""
+        with self._lock:
+            self._hold_once = (command,)
+
+    def holds_reply(self, line: str) -> bool:
+        """Whether the servers hold the reply to ``line`` (a pending :meth:`hold_once` that
+        matches; used up)."""
+        with self._lock:
+            once = self._hold_once
+            if once is not None and once[0] in (None, (line.split() or [""])[0]):
+                self._hold_once = None
+                return True
+            return False
 
     def reply_delay(self, line: str) -> float:
         """How long a server waits before sending the reply to ``line``: :meth:`slow`'s delay, or a
@@ -706,6 +727,7 @@ class _LineServer:
         self.model = model
         self.reply_terminator = reply_terminator
         self.url: str | None = None
+        self._held: bytes | None = None  # a reply held back until the next line (hold_once)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -716,15 +738,22 @@ class _LineServer:
             if not cuts:
                 return
             line, buf[:] = bytes(buf[: min(cuts)]), buf[min(cuts) + 1 :]
+            if self._held is not None and line.strip():  # the next command is here: the late reply goes first
+                write(self._held)
+                self._held = None
             exchange = self.model.receive(line.decode("ascii", errors="replace"), self._baudrate())
             if exchange is None or exchange.reply is None:
+                continue
+            # a reply garbled by a baud mismatch has no recognisable line end
+            end = self.reply_terminator if exchange.understood else ""
+            reply = (exchange.reply + end).encode("latin-1", errors="replace")
+            if self.model.holds_reply(exchange.command):
+                self._held = reply
                 continue
             delay = self.model.reply_delay(exchange.command)
             if delay > 0 and self._stop.wait(delay):
                 return
-            # a reply garbled by a baud mismatch has no recognisable line end
-            end = self.reply_terminator if exchange.understood else ""
-            write((exchange.reply + end).encode("latin-1", errors="replace"))
+            write(reply)
 
     def _baudrate(self) -> int | None:
         """The baud rate the client set, where the link has one (a pty); None otherwise."""
