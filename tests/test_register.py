@@ -1504,6 +1504,28 @@ def test_start_lattices_runs_the_finest_level_on_another_runs_field():
     assert stopped.quality.iterations == 10 and not stopped.quality.ok
 
 
+def test_start_lattices_of_another_frame_binning_or_preset_are_refused():
+    """Lattices of another pair's shape or binning made a wrong field that passed its checks; a
+    preset that adds the silhouette's map or refits the field (weak's passes) cannot keep them as
+    they are; a joint preset leaves them unrefitted; a silent preset's lattices are not its whole
+    field (the silhouette's map is added), so it offers none."""
+    fixed, moving, d, mask = _family_pair(size=128, texture=0.1, noise=0.01, corr=0.25, seed=9)
+    base = register(fixed, moving, "rc", preset="fast")
+    other = register(fixed[:100, :120], moving[:100, :120], "rc", preset="fast")
+    with pytest.raises(ValueError, match=r"lattices of a \[\(100, 120\)\] frame, this run's is \(128, 128\)"):
+        register(fixed, moving, "rc", start_lattices=other.lattices)
+    with pytest.raises(ValueError, match="expected a Registration.lattices list"):
+        register(fixed, moving, "rc", start_lattices=[(1, 2)])
+    with pytest.raises(ValueError, match="silhouette"):
+        register(fixed, moving, "rc", preset="silent-fast", start_lattices=base.lattices)
+    with pytest.raises(ValueError, match="refit_thinning"):
+        register(fixed, moving, "rc", preset="weak", start_lattices=base.lattices)
+    joint = register(fixed, moving, "rc", preset="weak-fast", start_lattices=base.lattices, iterations=5)
+    for (g0, c0), (g1, c1) in zip(base.lattices, joint.lattices):
+        assert g0 is g1 and np.array_equal(c0, c1)
+    assert register(fixed, moving, "rc", preset="silent-fast").lattices is None
+
+
 def test_auto_runs_the_plain_finest_level_on_a_settled_weak_field_after_a_stop():
     """scikit-image's immunohistochemistry (a TRAINING picture of benchmarks/README.md) at 704 px
     under the smooth motion of ``bench_register_natural.py`` at 2.5 % of the frame: ``auto``'s plain
@@ -1535,7 +1557,12 @@ def test_auto_runs_the_plain_finest_level_on_a_settled_weak_field_after_a_stop()
     stopped, weak, finest = runs  # the plain run, the weak one, the plain finest level on it
     assert "abandoned" in stopped.options and weak.options["preset"] == "weak" and weak.quality.ok
     assert "start_lattices" not in finest.options and finest.quality.ok  # the lattices are not a setting
-    assert reg is finest and reg.options["auto"].preset == "default" and "kept" in reg.options["auto"].reason
+    assert reg is finest and "kept" in reg.options["auto"].reason
+    # the field is both runs': its record names both, its options are auto's (run again, they make
+    # it; the plain preset's finest-level options alone made a field 10 px off), its iterations both
+    assert reg.options["auto"].preset == "weak+default-finest" and reg.options["preset"] == "auto"
+    assert not {"iterations", "extend", "abandon_px"} & set(reg.options)
+    assert reg.quality.iterations > weak.quality.iterations
     assert reg.quality.residual_motion < weak.quality.residual_motion
     # the truth agrees with the residual: a clear gain, not a tie the no-truth rule broke by chance
     assert _epe(reg.displacement, d, mask)[0] < 0.8 * _epe(weak.displacement, d, mask)[0]

@@ -266,7 +266,10 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     seconds = time.perf_counter() - t0
     kept = {k: v for k, v in options.items() if k != "start_lattices"}  # arrays, not a setting to report
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), kept)
-    reg.lattices = info.get("lattices")
+    if info.get("lattices_whole"):  # a silent preset's field adds the silhouette's map to them
+        reg.lattices = info["lattices"]
+        for grid, _ in reg.lattices:
+            grid.drop_caches()
     if "init" in info:  # what the field started from (the silhouette's map, or why not)
         reg.options["initial"] = info["init"]
     if "binned" in info:  # registered area-averaged by this factor (``bin_pixels``), the field upsampled

@@ -144,19 +144,14 @@ ABANDON = 1.0
 EXTEND = 60
 # after a stopped plain run and a settled weak one kept, the plain preset's finest level (and
 # polish) on the weak field (:func:`finest_from_weak`): the weak levels end at the checks' ~0.4 Mpx
-# and miss what the finer images show on a picture under a smooth motion (TRAINING, 2240: retina
-# 0.176 -> 0.083 px, the plain run in full 0.040 for 7-14 s more; benchmarks/README.md, "The plain
-# run's finest level on the weak run's field (session 27)")
+# and miss what the finer images show on a picture under a smooth motion; chosen on TRAINING pairs
+# at 2240 (benchmarks/README.md, "The plain run's finest level on the weak run's field (session 27)")
 FINEST_FROM_WEAK = True
-# that level's budget: from the weak field it has only the fine detail left to fit. TRAINING
-# (retina, cell, the family's texture 1-10 %; 2240): 10 / 20 / 40 / 80 (+ extend 60) iterations,
-# then the polish: retina 0.077 / 0.083 / 0.082 / 0.083 px; the family's pairs gain nothing at
-# any budget (their residual moves more after 40 or more); 20 keeps its halfway check at 10
+# that level's budget: from the weak field it has only the fine detail left to fit (same section)
 FINEST_ITERATIONS = 20
 # ... and the level is stopped halfway (rc's abandon_px, ABANDON_AT) unless its residual moves less
-# than this x the weak run's: TRAINING, 2240, the residual after 10 iterations over the weak run's:
-# retina 0.81 (it wins 2.1x), cell 0.97, the family's texture 1-10 % (6 pairs) 0.93-1.00, where the
-# level, kept on a smaller residual alone, lost up to 5 % (0.114 -> 0.121 px) and cost ~1 s
+# than this x the weak run's: the ratio that told the picture that gains from the family's pairs,
+# where the level, kept on a smaller residual alone, lost accuracy and time (same section)
 FINEST_GAIN = 0.85
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
@@ -367,7 +362,14 @@ def register_auto(register, f, m, method, mask, retry, options):
     state = f"{plain} ok, its residual still moving" if first.quality.ok else f"{plain} not ok ({first.quality.reason})"
     why = f"{state}; {fallback.reason}; {what} {a:.2f} -> {b:.2f}"
     best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
-    if best is second and "abandoned" in first.options and finest_from_weak(second.quality):
+    chose = None
+    if (
+        best is second
+        and method == "rc"  # FINEST_ITERATIONS and FINEST_GAIN were chosen on rc's runs
+        and "abandoned" in first.options
+        and second.lattices is not None
+        and finest_from_weak(second.quality)
+    ):
         # the plain run stopped and the weak one kept: the plain preset's finest level (and polish)
         # on the weak field, what the stop left out, kept only when its residual moves less
         third = register(f, m, method, mask, retry=False, **_finest(name, options, second))
@@ -375,7 +377,16 @@ def register_auto(register, f, m, method, mask, retry, options):
         kept = keeps_finest(second.quality, third.quality)
         r2, r3 = second.quality.residual_motion, third.quality.residual_motion
         why += f"; {plain}'s finest level on it: residual motion {r2:.2f} -> {r3:.2f}, {'kept' if kept else 'not kept'}"
-        best = third if kept else second
+        if kept:
+            # the field is both runs': no one preset's options make it, so the options say
+            # auto (which, run again, makes it), the choice says what it is, and the
+            # iterations count both runs' (as the refit's passes are counted)
+            third.quality.iterations += second.quality.iterations
+            third.options = dict(
+                options, preset=name, **{k: third.options[k] for k in ("initial",) if k in third.options}
+            )
+            chose = f"{second.options['preset']}+{plain}-finest"
+            best = third
     best.quality.seconds = total
-    best.options["auto"] = AutoChoice(best.options["preset"], fallback.ratio, fallback.interior, why)
+    best.options["auto"] = AutoChoice(chose or best.options["preset"], fallback.ratio, fallback.interior, why)
     return best

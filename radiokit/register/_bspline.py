@@ -318,6 +318,11 @@ class BSplineField:
         self.lam = None  # the bending weight the lattice was fitted with (set by the level that fits it)
         self._cache = {}
 
+    def drop_caches(self):
+        """Forget the basis matrices and bands (rebuilt when used): a lattice kept with a result
+        (``Registration.lattices``) then holds its coefficients' size, not a level's matrices."""
+        self._cache.clear()
+
     @property
     def n_params(self):
         return 2 * self.nr * self.nc
@@ -1420,6 +1425,8 @@ def _bspline_register(
         info["options"].update(bin_pixels=o["bin_pixels"], abandon_px=o["abandon_px"])
         return d, info
     if o["refit_thinning"] and similarity == "rc" and o["gain"]:
+        if start_lattices is not None:  # its passes refit the field from their own start
+            raise ValueError(f"start_lattices: not with refit_thinning (preset {preset!r}); use a preset without it")
         return _register_refit(fixed, moving, mask, how, overrides)
     if similarity != "rc":  # the residual's high-pass and the thinning term act on rc's residual
         # (polish was measured for rc only)
@@ -1438,7 +1445,7 @@ def _bspline_register(
         grids, x_start = list(lattices[:-1]), lattices[-1][1]
         levels = [(levels[-1][0], n_it)]
     elif start_lattices is not None:  # another run's field as the coarser levels': the finest level on top
-        grids, levels = list(start_lattices), levels[-1:]
+        grids, levels = _checked_start(start_lattices, f.shape, affine), levels[-1:]
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
     total_its, converged, message, abandoned = 0, True, "", {}
@@ -1446,7 +1453,8 @@ def _bspline_register(
     measured = functools.cache(lambda: _coarse_measure(fixed, moving, mask))
     for factor, n_it in levels:
         # joint: the coarser lattices are refitted with the finest's, so their field is not in base
-        coarse = grids if o["joint"] and factor == finest else []
+        # (not another run's lattices, kept as they are: start_lattices)
+        coarse = grids if o["joint"] and factor == finest and start_lattices is None else []
         base = _fields([] if coarse else grids, factor, tuple(-(-n // factor) for n in f.shape))
         if affine is not None:
             base += affine.field(base.shape[1:], factor)
@@ -1542,9 +1550,31 @@ def _bspline_register(
         regularisation=o["regularisation"],
         levels=history,
         lattices=grids,
+        lattices_whole=affine is None,  # the field is theirs alone (not a silhouette's map added)
         options=o,
         **abandoned,
     )
+
+
+def _checked_start(start_lattices, shape, affine) -> list:
+    """``start_lattices`` as a list, if they are lattices of a pair of ``shape`` (after binning)
+    and this run adds no silhouette map to them; else ValueError (another shape's or binning's
+    lattices gave a wrong field, trusted)."""
+    if affine is not None:
+        raise ValueError("start_lattices: not with a preset that starts from the silhouette's map (silent)")
+    try:
+        lattices = list(start_lattices)
+        ok = all(isinstance(g, BSplineField) and np.size(c) == g.n_params for g, c in lattices)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError("start_lattices: expected a Registration.lattices list of (lattice, coefficients) pairs")
+    if any(g.shape != tuple(shape) for g, _ in lattices):
+        got = sorted({g.shape for g, _ in lattices})
+        raise ValueError(
+            f"start_lattices: lattices of a {got} frame, this run's is {tuple(shape)} (another pair or binning)"
+        )
+    return lattices
 
 
 def _textured(fixed, mask) -> bool:
