@@ -120,7 +120,8 @@ class Registration:
     options: dict = field(default_factory=dict)
     confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
     # B-spline methods: the lattices the field is the sum of, coarse to fine ((lattice, coefficients));
-    # what rc's ``start_lattices`` takes (``auto`` runs its plain preset's finest level on them)
+    # what rc's ``start_lattices`` takes (``auto`` runs its plain preset's finest level on them);
+    # None where the field is not theirs alone (a silent preset adds the silhouette's map)
     lattices: list | None = field(default=None, repr=False, compare=False)
 
     def warp(self, image, order=1) -> np.ndarray:
