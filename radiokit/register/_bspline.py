@@ -1412,9 +1412,10 @@ def _bspline_register(
     history from level to level. ``start``: ``(lattices, iterations)``, another run's
     ``info["lattices"]`` on a pair of the same shape and options: only the finest level is run,
     from them, for that many iterations. ``start_lattices``: another run's lattices (a pair of the
-    same shape and binning; not with silent or refit presets: :func:`_checked_start`): their field stays as it is, and only this preset's finest level
-    (with its own lattice, from zero, and budget) and its polish run on top of it (``auto``: the
-    plain preset's finest level after the weak run, ``_auto.FINEST_FROM_WEAK``)."""
+    same shape and binning; not with silent or refit presets: :func:`_checked_start`): their field
+    stays as it is, and only this preset's finest level (with its own lattice, from zero, and
+    budget) and its polish run on top of it (``auto``: the plain preset's finest level after the
+    weak run, ``_auto.FINEST_FROM_WEAK``)."""
     o = _options(preset, overrides)
     k = _bin_factor(fixed.shape, o["bin_pixels"])
     # start_lattices go with the pair to a binned run (the lattices of a run binned alike) and a refit's first pass
