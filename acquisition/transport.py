@@ -294,8 +294,10 @@ class SerialTransport:
             self._write(ser, command, payload)
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
-            if isinstance(exc, NoReply):  # its reply may still come, after the next command is sent
-                self._owed.append((command, t0 + 2 * self.timeout_s))
+            if isinstance(exc, NoReply):  # its reply may still come, after the next command is sent:
+                # owed for one more reply time-out from now (not from the send: the wait's last
+                # slice and a stall before the next command ate into a window counted from there)
+                self._owed.append((command, time.monotonic() + self.timeout_s))
             if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
                 self._pending = (command, t0 + self.timeout_s)
@@ -307,21 +309,35 @@ class SerialTransport:
         return reply
 
     def _write(self, ser, command: str, payload: bytes) -> None:
-        """Send ``payload``. pyserial checks its write time-out only after ``os.write`` has
-        returned, so a process stalled right there (a loaded machine, the GIL held by another
-        thread for longer than ``write_timeout_s``) reads as a write time-out although the command
-        went out -- and its reply, then not read, would come after the next command. When the
-        output queue is empty the bytes have left: the exchange goes on to read the reply."""
-        try:
+        """Send ``payload``, timed out only while bytes are left unsent.
+
+        pyserial checks its write time-out after ``os.write`` has returned, so a process stalled
+        right there (a loaded machine, the GIL held by another thread past ``write_timeout_s``)
+        read as a write time-out although the command had gone out, and its reply, then not read,
+        came after the next command. On a POSIX port (its descriptor non-blocking, as pyserial
+        opens it) the bytes are written here and counted: the deadline applies only to what is
+        still unsent. pyserial's output queue cannot stand in for the count (a pty reports it 0
+        even when the kernel takes nothing, and Windows drops what a timed-out write left).
+        Other links (sockets, RFC 2217, Windows) use pyserial's write: a time-out there stays one."""
+        fd = getattr(ser, "fd", None)
+        if os.name != "posix" or not isinstance(fd, int) or getattr(ser, "_rs485_mode", None) is not None:
             ser.write(payload)
-        except serial.SerialTimeoutException:
-            try:
-                gone = ser.out_waiting == 0
-            except (AttributeError, NotImplementedError, *_LINK_ERRORS):  # a link that cannot tell
-                gone = False
-            if not gone:
-                raise
-            self.log.debug("%s: %s written, though late by pyserial's clock (a stalled process)", self.url, command)
+        else:
+            view, deadline = memoryview(payload), time.monotonic() + self.write_timeout_s
+            while view:
+                try:
+                    view = view[os.write(fd, view) :]
+                except BlockingIOError:
+                    pass
+                except OSError as exc:
+                    raise serial.SerialException(f"write failed: {exc}") from exc
+                if not view:
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    sent = len(payload) - len(view)
+                    raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
+                select.select([], [fd], [], min(left, 0.05))
         ser.flush()
 
     def _flush_late(self, ser) -> None:
