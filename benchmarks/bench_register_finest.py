@@ -16,6 +16,13 @@ rules composed: ``present`` (``weak``, as ``auto`` returned it where ``weak`` be
 run), ``any`` (the finest level run whenever ``weak`` is kept, and kept itself when its residual
 moves less: ``_auto.keeps_retry``), ``settled`` (run only when ``weak`` is settled:
 ``_auto.settled``). Seconds: each run's wall and CPU (this process's), the rules' the runs' added.
+
+``--halfway`` (session 27, second look at ``FINEST_GAIN``): where ``auto`` would run that level,
+it runs without its line (to its end, polished), and the residual's motion at its two checks
+(halfway and at the level's end) is printed over ``weak``'s, with whether ``keeps_finest`` keeps
+the level then and its median EPE over ``weak``'s. ``--pairs wider``: TRAINING pictures not used
+before (:data:`WIDER`, under both motions; ``bench_register_abandon.MORE``'s under the local one);
+``--pairs sine2``: every TRAINING picture under another smooth motion (``natural``'s ``sine2``).
 """
 
 from __future__ import annotations
@@ -28,9 +35,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_register_abandon import pairs
-from bench_register_natural import natural
+from bench_register_abandon import MORE, pairs
+from bench_register_natural import MATPLOTLIB, MOTIONS, TRAIN, natural
 from regdata import Case, family_pair, score
+
+# TRAINING pictures of scikit-image and matplotlib (bundled, offline) added in session 27's second look at
+# FINEST_GAIN, under both motions, with MORE's under the local one (``--pairs wider``); chosen
+# after moon's TEST figure was known (benchmarks/README.md, "The plain run's finest level on the
+# weak run's field (session 27)")
+WIDER = ("stereo_motorcycle", "microaneurysms", "shepp_logan_phantom", *MATPLOTLIB)
 
 
 def _run(pair, **options):
@@ -45,19 +58,81 @@ def _run(pair, **options):
     return s["epe_median"], s["epe_p95"], reg.quality, wall, cpu, reg
 
 
+def _recorded():
+    """A list that fills, during a run on another run's field (``start_lattices``), with the
+    residual's motion at each of its checks (halfway and at the level's end), as the checks
+    measure it: ``_bspline._far_off`` wrapped (a benchmark's instrument; the run's path is its own)."""
+    from radiokit.register import _bspline
+
+    seen, original = [], _bspline._far_off
+
+    def far_off(measure, lattices, affine, o, when, where="before"):
+        if where == "at" and o is not None:
+            seen.append(_bspline._motion(measure, lattices, affine))
+        return original(measure, lattices, affine, o, when, where)
+
+    _bspline._far_off = far_off
+    return seen
+
+
+def halfway(label, pair, seen):
+    """``--halfway``: where ``auto`` would run the finest level on ``weak``'s field, that level
+    without its line (run to its end and polished), the checks' readings over ``weak``'s residual,
+    and whether ``keeps_finest`` keeps it then; returns ``(label, halfway, end, kept, finest / weak
+    median EPE)`` or None."""
+    from radiokit.register._auto import ABANDON, EXTEND, _finest, finest_from_weak, keeps_finest, returned
+
+    stopped = _run(pair, preset="default", abandon_px=ABANDON, extend=EXTEND)
+    if "abandoned" not in stopped[5].options:
+        print(f"{label} | not stopped: default {stopped[0]:.3f} ({stopped[4]:.0f} CPU s)", flush=True)
+        return None
+    weak = _run(pair, preset="weak")
+    w = weak[2]
+    if returned("auto", stopped[2], "weak", w) != "weak" or not finest_from_weak(w):
+        why = "weak not returned" if returned("auto", stopped[2], "weak", w) != "weak" else "weak not settled"
+        print(f"{label} | {why}: ok {w.ok} residual {w.residual_motion:.3f} median {weak[0]:.3f}", flush=True)
+        return None
+    seen.clear()
+    finest = _run(pair, **dict(_finest("auto", {"preset": "auto"}, weak[5]), abandon_px=1e9))
+    half, end = (v / w.residual_motion for v in seen[:2])
+    kept = keeps_finest(w, finest[2])
+    f = finest[2]
+    print(
+        f"{label} | weak ok {w.ok} {w.residual_motion:.3f} {weak[0]:.3f} / {weak[1]:.2f} | halfway {half:.3f}"
+        f" end {end:.3f} | finest to its end: ok {f.ok} {f.residual_motion:.3f} {finest[0]:.3f} / {finest[1]:.2f}"
+        f" ({finest[4]:.1f} CPU s) | kept without the line: {kept} | EPE finest/weak {finest[0] / weak[0]:.2f}",
+        flush=True,
+    )
+    return label, half, end, kept, finest[0] / weak[0]
+
+
 def main(argv=None):
     from radiokit.register._auto import ABANDON, EXTEND, _finest, finest_from_weak, keeps_finest, returned
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", choices=("train", "test"), default="test")
     ap.add_argument("--only", nargs="*", default=None, help="labels containing any of these substrings")
+    ap.add_argument("--pairs", choices=("abandon", "wider", "sine2"), default="abandon", help="wider, sine2: TRAINING")
+    ap.add_argument("--halfway", action="store_true", help="the finest level without its line: its readings")
     args = ap.parse_args(argv)
+    chosen = pairs(args.split)
+    if args.pairs == "wider":
+        chosen = [(f"{n} {m}", (n, m)) for m in MOTIONS for n in WIDER] + [(f"{n} local", (n, "local")) for n in MORE]
+    elif args.pairs == "sine2":  # every TRAINING picture under another smooth motion
+        chosen = [(f"{n} sine2", (n, "sine2")) for n in TRAIN + MORE + WIDER]
+    if args.halfway:
+        seen = _recorded()
+        for label, spec in chosen:
+            if args.only is None or any(s in label for s in args.only):
+                pair = family_pair(spec) if isinstance(spec, Case) else natural(spec[0], 2240, spec[1], args.split)
+                halfway(label, pair, seen)
+        return
     print(
         "pair | stopped at (px) | weak: ok, residual, median / p95 | finest on weak: ok, residual, median / p95,"
         " wall / cpu s | before: median / p95 (wall / cpu s) | now"
     )
     logs = {"before": [], "now": []}
-    for label, spec in pairs(args.split):
+    for label, spec in chosen:
         if args.only is not None and not any(s in label for s in args.only):
             continue
         pair = family_pair(spec) if isinstance(spec, Case) else natural(spec[0], 2240, spec[1], args.split)

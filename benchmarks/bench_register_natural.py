@@ -13,7 +13,9 @@ smooth one of ``natural_pair`` (``sine``: 2-3 periods across the frame) and ``re
 one correlated over a tenth of the frame (``local``; its seed apart between the splits).
 
 TRAINING pictures (the ones ``auto``'s lines were chosen on): astronaut, brick, coffee, rocket,
-retina, chelsea, hubble_deep_field, grass, gravel. TEST: camera, moon (the held-out check of
+retina, chelsea, hubble_deep_field, grass, gravel; those of ``bench_register_abandon.MORE`` and
+``bench_register_finest.WIDER`` (with :data:`MATPLOTLIB`'s) are TRAINING too, and ``sine2`` is a
+TRAINING motion (session 27). TEST: camera, moon (the held-out check of
 ``bench_register.py --presets natural`` since session 6). ``--split train`` prints, per pair,
 the residual's motion halfway through the level before the finest (what ``abandon_px`` reads),
 ``default`` at its budget and with ``extend`` (:data:`radiokit.register._auto.EXTEND`), ``weak``
@@ -38,6 +40,34 @@ TEST = ("camera", "moon")
 MOTIONS = ("sine", "local")
 
 
+# pictures bundled with matplotlib (its sample data, offline), by the name ``natural`` takes: a
+# photograph, an MRI slice and two elevation maps (smooth relief with fine detail, as moon's)
+MATPLOTLIB = {
+    "grace_hopper": "grace_hopper.jpg",
+    "mri_s1045": "s1045.ima.gz",
+    "jacksboro_dem": "jacksboro_fault_dem.npz",
+    "topobathy": "topobathy.npz",
+}
+
+
+def _matplotlib_sample(name):
+    """The picture ``name`` of :data:`MATPLOTLIB`: an RGB photograph as it is, a map scaled to 0-1."""
+    import matplotlib.image
+    from matplotlib import cbook
+
+    what = MATPLOTLIB[name]
+    if what.endswith(".jpg"):
+        return matplotlib.image.imread(cbook.get_sample_data(what))
+    if what.endswith(".ima.gz"):  # 256 x 256 big-endian 16-bit (matplotlib's own example reads it so)
+        with cbook.get_sample_data(what) as f:
+            im = np.frombuffer(f.read(), ">u2").reshape(256, 256)
+    else:
+        data = cbook.get_sample_data(what)
+        im = data["elevation" if "elevation" in data.files else "topo"]
+    im = im.astype(np.float64)
+    return (im - im.min()) / (im.max() - im.min())
+
+
 def natural(name, size, motion, split, seed=1, truth=None):
     """``(fixed, moving, truth, mask)`` of the picture ``name`` (see the module docstring);
     ``seed`` the noise's; ``truth`` (2, size, size): this motion instead of ``motion``'s."""
@@ -46,9 +76,13 @@ def natural(name, size, motion, split, seed=1, truth=None):
     import skimage.data
 
     rng = np.random.default_rng(seed)
-    im = getattr(skimage.data, name)()
+    im = _matplotlib_sample(name) if name in MATPLOTLIB else getattr(skimage.data, name)()
+    if isinstance(im, tuple):  # stereo_motorcycle: (left, right, disparity); the left view
+        im = im[0]
     if im.ndim == 3:
         im = skimage.color.rgb2gray(im[..., :3]) * 255.0
+    elif im.dtype.kind == "f":  # shepp_logan_phantom, MATPLOTLIB's maps: 0-1 already
+        im = im * 255.0
     im = cv2.resize(im.astype(np.float32), (size, size), interpolation=cv2.INTER_CUBIC) / 255.0
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
     if truth is not None:
@@ -56,6 +90,9 @@ def natural(name, size, motion, split, seed=1, truth=None):
     elif motion == "sine":
         dy = 0.01 * size * np.sin(2 * np.pi * 3 * xx + 1.0) * np.cos(2 * np.pi * 2 * yy)
         dx = 0.01 * size * np.cos(2 * np.pi * 2 * xx) * np.sin(2 * np.pi * 3 * yy + 0.5)
+    elif motion == "sine2":  # another smooth motion, its periods swapped (session 27, --pairs sine2)
+        dy = 0.01 * size * np.sin(2 * np.pi * 2 * xx + 0.3) * np.cos(2 * np.pi * 3 * yy + 0.7)
+        dx = 0.01 * size * np.cos(2 * np.pi * 3 * xx + 0.2) * np.sin(2 * np.pi * 2 * yy + 1.1)
     else:
         dy, dx = random_motion((size, size), np.random.default_rng(101 if split == "train" else 1101), 0.1, 0.01)
     mx, my = (xx * size + dx).astype(np.float32), (yy * size + dy).astype(np.float32)

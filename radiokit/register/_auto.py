@@ -150,8 +150,9 @@ FINEST_FROM_WEAK = True
 # that level's budget: from the weak field it has only the fine detail left to fit (same section)
 FINEST_ITERATIONS = 20
 # ... and the level is stopped halfway (rc's abandon_px, ABANDON_AT) unless its residual moves less
-# than this x the weak run's: the ratio that told the picture that gains from the family's pairs,
-# where the level, kept on a smaller residual alone, lost accuracy and time (same section)
+# than this x the weak run's: in the gap between the pictures that gain most and the first of the
+# family's pairs where the level, kept on a smaller residual alone, lost accuracy and time. It does
+# not separate the two: some pictures that gain read above it (same section, its widened training)
 FINEST_GAIN = 0.85
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
