@@ -456,9 +456,15 @@ def _source_command(args, guard) -> int:
             else:
                 exc.tube = "interrupted while connecting: no X-ray command was sent"
             if args.action == "off" and getattr(exc, "tube_state", None) is None:
-                # the switch-off asked for never happened: a tube an earlier `source on` left on
-                # is on still, and the last line must be the warning (as when the port fails)
-                exc.may_be_on = True
+                # the switch-off asked for did not happen in connect: it is tried now (signals
+                # deferred: the guard stays stopping); not confirmed -- an earlier `source on`'s
+                # tube may be on still -- the last line is the warning (as when the port fails)
+                exc.may_be_on = not _off_anyway(src, exc)
+            raise
+        except DeviceError:
+            if args.action == "off":
+                guard.cleanup()  # the switch-off asked for, whatever the connect found
+                _off_anyway(src)
             raise
         try:
             code = _source_action(src, args)
@@ -488,6 +494,38 @@ def _source_command(args, guard) -> int:
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         return _source_error_code(exc, src, args)
+
+
+def _off_anyway(src, interrupt: BaseException | None = None) -> bool:
+    """`source off` whose connect failed: the operator asked for the switch-off, so it is sent with
+    whatever link there is and confirmed by STS -- by the connect itself when the port opened in a
+    known dialect (its refusal sends XOF in a session that controls the tube), else here
+    (:meth:`L8121.off_unconnected`: the port opened again; the one XOF both dialects share when the
+    probe fitted neither). Nothing when the port never opened, nor a second round after a
+    switch-off that failed (its error is said; a silent controller would cost each round its
+    time-outs). Says the outcome (an ``interrupt`` gets it in ``tube``); returns whether STS
+    confirmed it. The exit rule reads the driver afterwards."""
+    from acquisition.errors import DeviceError
+
+    if src is None or not src.port_opened:
+        return False
+    state = src.confirmed_off
+    if state is None and src.off_failed is None:
+        try:
+            state = src.off_unconnected(after_interrupt=interrupt is not None)
+        except DeviceError as exc:
+            _say(f"error: switching off anyway: {_one_line(exc)}")
+            if interrupt is not None:
+                interrupt.tube = f"switching off anyway failed ({_one_line(exc)})"
+            return False
+    if state is None:
+        return False
+    line = f"XOF sent anyway: X-rays off (confirmed by STS: {state.name})"
+    if interrupt is not None:
+        interrupt.tube = line
+    else:
+        _say(f"{src.port}: {line}")
+    return True
 
 
 def _source_error_code(exc, src, args) -> int:
