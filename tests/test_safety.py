@@ -503,6 +503,27 @@ def test_a_port_lost_after_the_probe_follows_the_one_rule(tmp_path, scene_file, 
         assert res.returncode == 1 and lines[-1] == "tube off (confirmed by STS: STANDBY)", res.stderr
 
 
+@ONE_DIALECT
+def test_a_series_refused_at_connect_switches_a_tube_left_on_off(tmp_path, scene_file, controller):
+    """A unit left on by an earlier `source on` that names another model: the series' connect
+    (through the guardian) is refused, and it sent no XOF -- the tube stayed on, the warning, exit
+    3. Now the refused connect sends XOF and reads STS: the error ends exit 1 on the confirmed
+    line, and the tube is off."""
+    from conftest import run_cli
+
+    model, server = controller()
+    assert [model.handle(c) for c in ("HIV 60", "CUR 250", "XON")][-1] == "XON"
+    model.model = "L9181-02"
+    n = len(model.commands)
+    times = {"timeout_s": 0.3, "off_confirm_s": 0.3, "watchdog_s": 0}
+    res = run_cli("acquire", write_protocol(tmp_path, scene_file, server, source=times), "--sim", "-q")
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1 and lines[-1] == "tube off (confirmed by STS: STANDBY)", res.stderr
+    assert any("expected 'L8121-01'" in ln for ln in lines if ln.startswith("error:")), res.stderr
+    assert not model.xray_on and "XOF" in model.commands[n:]
+    assert not {"XON", "WUP", "HIV", "CUR"} & {c.split()[0] for c in model.commands[n:]}
+
+
 # -- one rule for a controller that cannot be read ------------------------------------------------
 # Each fault meets the first exchange it can: silence and junk the identity query (A's TYP, B's
 # SRL), the refused STS the state query (A: ERR, a refused query; B: ERROR, its ambiguous word).
