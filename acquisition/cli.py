@@ -455,10 +455,21 @@ def _source_command(args, guard) -> int:
                 exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
             else:
                 exc.tube = "interrupted while connecting: no X-ray command was sent"
-            if args.action == "off" and getattr(exc, "tube_state", None) is None:
-                # the switch-off asked for never happened: a tube an earlier `source on` left on
-                # is on still, and the last line must be the warning (as when the port fails)
-                exc.may_be_on = True
+            if getattr(exc, "tube_state", None) is None and getattr(exc, "off_failed", None) is None:
+                # no switch-off in connect: one is tried now (signals deferred: the guard stays
+                # stopping) by a command that controls the tube -- `off` asked for it, and every
+                # other exit of `on` and `warm-up` leaves the tube off too (`off` alone also when the
+                # interrupted probe found no dialect). README's one rule then: reached and not
+                # confirmed off -- an earlier `source on`'s tube may be on still -- the warning;
+                # `off` that never reached the controller too (as when the port fails)
+                tried = args.action != "status" and _off_anyway(src, exc, blind=args.action == "off")
+                confirmed = tried or src.tube_confirmed_off
+                exc.may_be_on = not confirmed and (src.port_opened or args.action == "off")
+            raise
+        except DeviceError:
+            if args.action == "off":
+                guard.cleanup()  # the switch-off asked for, whatever the connect found
+                _off_anyway(src)
             raise
         try:
             code = _source_action(src, args)
@@ -488,6 +499,39 @@ def _source_command(args, guard) -> int:
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         return _source_error_code(exc, src, args)
+
+
+def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True) -> bool:
+    """A source command whose connect failed (`off`) or was interrupted (`off`, `on`, `warm-up`):
+    the switch-off is sent with whatever link there is and confirmed by STS -- by the connect
+    itself when the port opened in a known dialect (its refusal sends XOF in a session that
+    controls the tube), else here (:meth:`L8121.off_unconnected`: the port opened again; with
+    ``blind``, the one XOF both dialects share when the probe found no dialect). Nothing when the
+    port never opened, nor a second round after a switch-off that failed (its error is said; a
+    silent controller would cost each round its time-outs). Says the outcome (an ``interrupt``
+    gets it in ``tube``); returns whether STS confirmed it. The exit rule reads the driver."""
+    from acquisition.errors import DeviceError
+
+    if src is None or not src.port_opened or (src.dialect is None and not blind):
+        return False
+    state = src.confirmed_off
+    if state is None and src.off_failed is None:
+        try:
+            state = src.off_unconnected(after_interrupt=interrupt is not None)
+        except DeviceError as exc:
+            if interrupt is None:
+                _say(f"error: switching off anyway: {_one_line(exc)}")
+            else:
+                interrupt.tube = f"switching off anyway failed ({_one_line(exc)})"
+            return False
+    if state is None:
+        return False
+    line = f"XOF sent anyway: X-rays off (confirmed by STS: {state.name})"
+    if interrupt is not None:
+        interrupt.tube = line
+    else:
+        _say(f"{src.port}: {line}")
+    return True
 
 
 def _source_error_code(exc, src, args) -> int:

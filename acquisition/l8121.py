@@ -1252,6 +1252,9 @@ class L8121:
         ``dialect="auto"``: :func:`probe` first (refused when nothing fits). Dialect A: ``TYP``
         must name ``config.model``. Dialect B: the operate switch (``SRL``) must be ``REMOTE``.
         If the tube is found emitting, it is noted (a warning) and :meth:`close` will switch it off.
+        A connect that fails after the port opened (the identity, the operate switch, the state)
+        sends ``XOF`` all the same in a session that controls the tube (``control``), confirmed by
+        ``STS`` or kept in :attr:`off_failed`, before it raises (:meth:`_off_after_refused_connect`).
         An interrupt (``KeyboardInterrupt``, a stop signal) after the probe read X-rays on still
         sends ``XOF`` and confirms it before it propagates, carrying ``tube_state`` (confirmed) or
         ``off_failed``; every interrupt here carries ``probe_sent`` (False: nothing was sent).
@@ -1290,6 +1293,8 @@ class L8121:
             seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
+            elif isinstance(exc, DeviceError) and self.control:
+                self._off_after_refused_connect()
             self._transport.close()
             self._transport = None
             raise
@@ -1301,6 +1306,27 @@ class L8121:
             self.baudrate,
         )
         return self
+
+    def take_over(self, prober: L8121) -> None:
+        """What ``prober``'s probe learnt of this controller -- its result, that it opened the port,
+        the state its ``STS`` read -- for this driver, which goes on over another link to the same
+        unit (the series' guardian): an interrupted connect and the exit rule
+        (:attr:`tube_confirmed_off`) read it. Sends nothing."""
+        self.probe_result = prober.probe_result
+        self.port_opened = self.port_opened or prober.port_opened
+        if self._last_state is None:
+            self._last_state = prober._last_state
+
+    @property
+    def last_state(self) -> SourceState | None:
+        """The state this session's last ``STS`` (or ``SAR``, or the probe's ``STS``) read; None:
+        none read."""
+        return self._last_state
+
+    def port_lost_after_probe(self, exc: PortUnavailable) -> DeviceError:
+        """The error for a port the probe had open that could not be opened again (see
+        :meth:`_reopen_failed`)."""
+        return self._reopen_failed(exc)
 
     def _reopen_failed(self, exc: PortUnavailable) -> DeviceError:
         """The port, which the probe had open and talked over, could not be opened again (another
@@ -1341,6 +1367,144 @@ class L8121:
             self._transport = None
             link.close()
 
+    def _off_after_refused_connect(self) -> None:
+        """A session that controls the tube (``control``) whose connect failed after the port
+        opened -- the identity query unanswered, refused or naming another model, B's operate switch
+        not on REMOTE, STS refused or garbled: ``XOF`` all the same on the link there is, then
+        ``STS`` (:meth:`off`). Nobody has read the tube off, and an earlier ``source on`` may have
+        left it on; the connect's refusal must not leave it so. ``XOF`` cannot emit in either
+        dialect (``L8121.md``: A's is "always accepted"; B names no exception to "remote control
+        needs REMOTE", so a B unit off REMOTE may refuse it -- a refused command changes nothing,
+        and its ``STS`` may still show the tube off). The outcome is the exit rule's
+        (:attr:`tube_confirmed_off`, or :attr:`off_failed`), never raised over the refusal."""
+        if self.off_failed is not None:  # a switch-off in this connect failed and said so already
+            return
+        self._may_be_on = True  # unknown until STS reads a state that cannot emit
+        logger.warning("%s: the connect failed; sending XOF all the same", self.port)
+        try:
+            self.off()
+        except DeviceError as err:
+            logger.critical("%s: %s", self.port, err)
+
+    def off_unconnected(self, *, after_interrupt: bool = False) -> SourceState:
+        """``radiokit acquire source off`` after a connect that failed: switch off with whatever
+        link there is, and confirm with ``STS``. The port is opened again (it was opened before:
+        :attr:`port_opened`; a port never opened raises at once). With the dialect known (given,
+        or found by the probe) this is :meth:`off` in it; when the probe fitted neither dialect it
+        is :meth:`_off_in_either_dialect`. Sends nothing that emits. ``after_interrupt``: the
+        connect was cut short while a reply may still be on its way; the new link knows nothing of
+        it, so it waits one reply time-out before its first command, whose input flush then
+        discards that reply (read as the XOF's, it shifted every later reply by one).
+
+        Raises
+        ------
+        DeviceError
+            The port cannot be opened, or ``STS`` did not confirm the tube off (:attr:`off_failed`).
+        """
+        if not self.port_opened:
+            raise DeviceError(f"{self.port}: the port was never opened: no switch-off could be sent")
+        if self.is_connected:
+            self._may_be_on = True
+            return self.off()
+        if not isinstance(self.url, str):
+            raise DeviceError(f"{self.port}: the link is closed: no switch-off could be sent")
+        if self.dialect is None:
+            return self._off_in_either_dialect(after_interrupt)
+        link = SerialTransport(
+            self.url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
+        )
+        if after_interrupt:
+            time.sleep(self.timeout_s)
+        self._give_grammar(link)
+        self._transport = link
+        try:
+            self._may_be_on = True
+            return self.off()
+        finally:
+            self._transport = None
+            link.close()
+
+    def _off_in_either_dialect(self, after_interrupt: bool = False) -> SourceState:
+        """``XOF`` to a controller whose replies fitted neither dialect at the probe, then ``STS``.
+
+        Both dialects' switch-off is the same line, ``XOF`` and CR (``L8121.md``: A "X-rays off;
+        always accepted", B "XON / XOF: X-rays on / off"), so sending "both dialects' switch-off"
+        is sending that one line, and neither dialect reads it as anything but off (the commands that
+        emit, ``XON`` and A's ``WUP``, are other words; no dialect has an ``XOF`` that does more). What is unknown is the baud
+        rate: it goes at the rates where the probe heard a reply (every rate it opened, if none),
+        as the probe's own queries went. At a rate the controller is not set to, the line arrives
+        as framing errors and junk bytes, which the controller refused or ignored as it did the
+        probe's ``STS`` there; a command it would act on needs exact letters and a CR. Confirmed
+        only by an ``STS`` reply that fits one dialect's grammar and reads a state that cannot
+        emit (a tube that reads on, ramping down, is asked again ``poll_s`` apart for ``off_confirm_s``)."""
+        c = self.config
+        exchange = self.probe_result.exchange if self.probe_result is not None else ()  # None: interrupted
+        heard = [e.baudrate for e in exchange if e.reply is not None]
+        opened = [e.baudrate for e in exchange if e.sent != "(open)"]
+        configured = ((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates
+        rates = list(dict.fromkeys(heard or opened or configured))
+        wait = c.timeout_s or max(d.timeout_s for d in DIALECTS.values())
+        spacing = DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s
+        said = []
+        if after_interrupt:  # see off_unconnected
+            time.sleep(wait)
+        for baud in rates:
+            try:
+                link = SerialTransport(self.url, baudrate=baud, timeout_s=wait, min_interval_s=spacing, retries=0)
+            except DeviceError as exc:
+                said.append(str(exc))
+                continue
+            # an XOF's reply that comes after its time-out is told from STS's by either dialect's
+            # grammar, as on a driver's link by its own
+            link.reply_fits = lambda line, reply: any(d.reply_fits(line, reply) for d in DIALECTS.values())
+            try:
+                found = self._xof_and_read(link, time.monotonic() + c.off_confirm_s, said)
+            finally:
+                link.close()
+            if found is not None:
+                dialect, state = found
+                self._use(dialect, baud)
+                self._may_be_on, self.off_failed, self._off_state, self._last_state = False, None, state, state
+                logger.info(
+                    "%s: X-rays off at %d baud (dialect %s by STS: %s)", self.port, baud, dialect.name, state.name
+                )
+                return state
+        self._may_be_on = True
+        self.off_failed = DeviceError(
+            f"{self.port}: XOF sent at {', '.join(map(str, rates))} baud (the dialect unknown: the probe's replies "
+            f"fitted neither), but no STS reply read the tube off ({'; '.join(said) or 'none'}); switch the source "
+            "off at the controller"
+        )
+        raise self.off_failed
+
+    def _xof_and_read(self, link, until: float, said: list):
+        """``XOF`` on ``link``, then ``STS`` until a reply fits one dialect with a state that cannot
+        emit (returned with its dialect) or ``until`` passes (None; what was heard goes in ``said``)."""
+        try:
+            said.append(f"{link.baudrate} baud: XOF answered {link.query('XOF')!r}")
+        except DeviceError as exc:
+            said.append(str(exc))  # still ask: the XOF may have arrived
+        while True:
+            try:
+                reply = link.query("STS")
+            except DeviceError as exc:
+                said.append(str(exc))
+                return None
+            fits = []
+            for dialect in (DIALECT_A, DIALECT_B):
+                try:
+                    fits.append((dialect, dialect.readings["state"].parse(reply)))
+                except ValueError:
+                    pass
+            if len(fits) == 1 and fits[0][1].confirms_off:
+                return fits[0]
+            # asked again only while it reads a state that emits (a supply ramping down); junk, or
+            # B's ambiguous ERROR, will not turn into a confirmation by asking
+            if len(fits) != 1 or not fits[0][1].emitting or time.monotonic() + self.config.poll_s > until:
+                said.append(f"{link.baudrate} baud: STS answered {reply!r}")
+                return None
+            time.sleep(self.config.poll_s)
+
     def _off_for_interrupt(self, exc: BaseException) -> None:
         """XOF and confirm on the open link for an interrupted connect that found X-rays on; the
         outcome goes on ``exc``: ``tube_state`` (confirmed) or ``off_failed``."""
@@ -1364,6 +1528,8 @@ class L8121:
                 keep_link_if_emitting=True,
             )
         except KeyboardInterrupt as exc:  # connect() and resolve() alike
+            # a query sent: the port was opened (the exit rule; `source off` switches off anyway)
+            self.port_opened = getattr(exc, "probe_sent", True)
             self._off_after_probe(exc)
             raise
         self.probe_result = result

@@ -447,7 +447,7 @@ def test_connect_checks_the_identity_or_the_operate_switch(warm, dialect):
 
 def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
     """A unit of one dialect, configured as the other (at its own baud rate): refused at connect,
-    before anything but a query was sent."""
+    nothing sent but queries and the switch-off."""
     other = {"A": "B", "B": "A"}[dialect]
     model = L8121Model(dialect=dialect, warmed_up=True)
     with PtyServer(model) as server:
@@ -462,7 +462,8 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
             }[dialect],
         ):
             L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
-    assert set(model.commands) <= PROBE_QUERIES | {"SRL"}
+    # queries, and the XOF every refused connect sends (the same line in both dialects: off)
+    assert set(model.commands) <= PROBE_QUERIES | {"SRL", "XOF"} and "XOF" in model.commands
 
 
 def test_unparseable_replies_raise(source, dialect):
@@ -1310,7 +1311,10 @@ def test_slow_replies(warm, dialect, wire):
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match=f"no reply to {wire['connect_last']} within 0.4 s"):
             src.connect()
-        assert time.monotonic() - t0 < 3
+        # a hang would be unbounded; this is the connect's missed reply, then the one switch-off
+        # attempt a refused connect makes (XOF, STS: each may wait out a late reply first), about
+        # 2 s unloaded
+        assert time.monotonic() - t0 < 6
     model.slow(0)
 
 
@@ -1566,6 +1570,87 @@ def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, 
     assert "cannot open the port" in lines[0] and lines[-1] == TUBE_WARNING
     assert main(["acquire", "source", "status", "--port", port, "--dialect", "A"]) == 1  # nothing asked of the tube
     assert TUBE_WARNING not in capsys.readouterr().err
+
+
+# the tube left on by an earlier `source on`, then a fault that makes the connect fail
+SWITCH_ON = {"A": ["HIV 60", "CUR 250", "XON"], "B": ["PHV 600", "PCU 250", "XON"]}
+EMITTING = {"XON", "WUP", "HIV", "CUR", "PHV", "PCU", "RST"}  # never sent by a switch-off
+
+
+def _another_model(model):
+    model.model = "L9181-02"
+
+
+@pytest.mark.parametrize(
+    "dialect, fault, on, confirmed",
+    [
+        ("A", _another_model, True, True),  # TYP names another model: STS reads it on, XOF, STS off
+        ("A", lambda m: m.silence(True, execute=True), True, False),  # TYP unanswered: the reply path lost
+        ("A", lambda m: m.sts_error(), True, False),  # STS refused at connect (and after the XOF)
+        ("B", lambda m: m.garbage(), True, False),  # SRL garbled
+        # B off REMOTE refuses its XOF (the emulator's reading of "remote control needs REMOTE"),
+        # and STS still shows the tube off: confirmed
+        ("B", lambda m: m.set_operate_switch("LOCAL"), False, True),
+    ],
+    ids=["A-another-model", "A-TYP-unanswered", "A-STS-refused", "B-SRL-garbled", "B-LOCAL"],
+)
+def test_cli_source_off_sends_xof_when_the_connect_fails(dialect, fault, on, confirmed):
+    """`source off` whose connect fails after the port opened (the identity query unanswered,
+    garbled or naming another model, B's operate switch not on REMOTE, STS refused) sent no XOF:
+    it warned and left a tube an earlier `source on` had switched on as it was. Now XOF goes out
+    all the same and STS is asked: confirmed, the error ends exit 1 with the tube off; not
+    confirmed, the warning, exit 3. Nothing that emits is sent."""
+    from conftest import run_cli
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        if on:
+            assert [model.handle(c) for c in SWITCH_ON[dialect]][-1] == "XON" and model.xray_on
+        n = len(model.commands)
+        fault(model)
+        res = run_cli("acquire", "source", "off", "--port", server.url, "--dialect", dialect, "--reply-timeout", "0.3")
+    sent = model.commands[n:]
+    assert "XOF" in sent and not EMITTING & {c.split()[0] for c in sent}, sent
+    assert not model.xray_on  # the XOF reached it (B-LOCAL: off from the start)
+    lines = res.stderr.strip().splitlines()
+    if confirmed:
+        assert res.returncode == 1, res.stderr
+        assert "XOF sent anyway: X-rays off (confirmed by STS: STANDBY)" in res.stderr
+        assert lines[-1].startswith("error:") and TUBE_WARNING not in res.stderr, res.stderr
+    else:
+        assert res.returncode == 3 and lines[-1] == TUBE_WARNING, res.stderr
+    assert "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("confirm", [True, False])
+def test_off_after_a_probe_that_fit_neither_dialect_sends_the_xof_both_share(confirm):
+    """dialect auto, the probe's replies fit neither dialect (a unit whose STS answers ERROR, B's
+    word, and SIN ``SIN 0``, A's shape), the tube on: `source off` (off_unconnected) sends the XOF
+    both dialects share at the rate that answered and reads STS; it confirms only when STS fits
+    one dialect with a state that cannot emit. Before, nothing was sent."""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        assert [model.handle(c) for c in SWITCH_ON["A"]][-1] == "XON"
+        model.sts_error()
+        n = len(model.commands)
+        # one probe rate and short time-outs keep the row cheap
+        src = L8121(server.url, dialect="auto", probe_baudrates=(9600,), probe_timeout_s=0.3, connect=False)
+        with pytest.raises(DeviceError, match="fit neither dialect"):
+            src.connect()
+        assert src.port_opened and src.dialect is None and not src.tube_confirmed_off
+        if confirm:
+            model.sts_error(False)  # STS answers A's shape again: "STS 2" confirms
+            assert src.off_unconnected() == SourceState.STANDBY
+            assert src.tube_confirmed_off and src.dialect is DIALECT_A
+        else:  # ERROR fits B only, as pre-heating (or a refusal): never a confirmation
+            with pytest.raises(DeviceError, match="no STS reply read the tube off"):
+                src.off_unconnected()
+            assert not src.tube_confirmed_off and src.off_failed is not None
+    sent = model.commands[n:]
+    assert sent.count("XOF") == 1 and not EMITTING & {c.split()[0] for c in sent}, sent
+    assert not model.xray_on
 
 
 @pytest.mark.parametrize(

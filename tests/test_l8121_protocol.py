@@ -103,24 +103,47 @@ def test_connect(dialect):
     "dialect, pairs, message",
     [
         # a connect refused for the model or the operate switch asks STS once first (a query), so
-        # that the command's end knows whether the tube showed off (README: exit codes)
-        ("A", [("TYP", "TYP L8121-02"), ("STS", "STS 2")], "TYP answered 'L8121-02', expected 'L8121-01'"),
+        # that the command's end knows whether the tube showed off (README: exit codes); then every
+        # refused connect of a session that controls the tube sends XOF all the same, confirmed by
+        # STS (an earlier `source on` may have left the tube on, and nobody has read it off)
         (
             "A",
-            [("TYP", "ERROR")],
+            [("TYP", "TYP L8121-02"), ("STS", "STS 2"), *OFF["A"]],
+            "TYP answered 'L8121-02', expected 'L8121-01'",
+        ),
+        (
+            "A",
+            [("TYP", "ERROR"), *OFF["A"]],
             r"TYP refused by the controller \(ERROR\); is this unit on 9600 baud and "
             r"speaking dialect A\? If it speaks dialect B",
         ),
-        ("B", [("SRL", "LOCAL"), ("STS", "STANDBY")], r"operate switch is LOCAL \(SRL\)"),
-        ("B", [("SRL", "ERR")], r"SRL refused by the controller \(ERR\)"),
-        ("B", [("SRL", "REMOTE"), ("STS", "STS 2")], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
-        ("A", [("TYP", "TYP L8121-01"), ("STS", "STANDBY")], r"unparseable reply to STS \(dialect A\): 'STANDBY'"),
+        # B off REMOTE refuses its XOF (no exception to "remote control needs REMOTE"): STS shows off
+        ("B", [("SRL", "LOCAL"), ("STS", "STANDBY"), ("XOF", "ERROR"), ("STS", "STANDBY")], r"operate switch is LOCAL"),
+        ("B", [("SRL", "ERR"), *OFF["B"]], r"SRL refused by the controller \(ERR\)"),
+        ("B", [("SRL", "REMOTE"), ("STS", "STS 2"), *OFF["B"]], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
+        (
+            "A",
+            [("TYP", "TYP L8121-01"), ("STS", "STANDBY"), *OFF["A"]],
+            r"unparseable reply to STS \(dialect A\): 'STANDBY'",
+        ),
     ],
 )
 def test_connect_refuses(dialect, pairs, message):
+    link = ScriptedTransport(pairs)
+    src = L8121(link, dialect=dialect, poll_s=0.001, off_confirm_s=0.0, connect=False)
     with pytest.raises(DeviceError, match=message):
-        with expected_protocol(dialect, pairs):
-            pass
+        src.connect()
+    assert link.done(), f"left in the script: {link.pairs[len(link.sent) :]}"
+    assert src.tube_confirmed_off and src.confirmed_off is not None  # by the XOF's STS
+
+
+def test_a_refused_connect_of_a_session_of_queries_sends_no_xof():
+    """`source status` (control=False) sends queries only: its refused connect sends no XOF."""
+    link = ScriptedTransport([("TYP", "TYP L8121-02"), ("STS", "STS 3")])
+    src = L8121(link, dialect="A", control=False, connect=False)
+    with pytest.raises(DeviceError, match="expected 'L8121-01'"):
+        src.connect()
+    assert link.done() and not src.tube_confirmed_off
 
 
 @pytest.mark.parametrize(

@@ -461,6 +461,69 @@ def test_unreachable_port_says_the_controller_was_never_reached(tmp_path, scene_
     assert any(ln.startswith("error:") and port in ln and "cannot open the port" in ln for ln in acq.lines), acq.output
 
 
+@pytest.mark.parametrize("left_on", [False, True])
+def test_a_port_lost_after_the_probe_follows_the_one_rule(tmp_path, scene_file, monkeypatch, left_on):
+    """dialect auto: the probe reaches the controller, then the guardian cannot open the port
+    (another program took it, the adapter dropped out). The series said "never reached", exit 1 --
+    of a controller the probe had reached, and of a tube the probe had read on. Now README's one
+    rule: the probe read it off, nothing that emits was sent after -- confirmed off, the error
+    ends exit 1 with the tube line; it read it on -- the warning, exit 3. The race is caused by
+    stopping the emulator right after the probe -- a fake, the only way to time it."""
+    from conftest import run_cli
+
+    import acquisition.l8121 as l8121
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.05)
+    server = PtyServer(model).start()
+    try:
+        if left_on:  # an earlier `source on`
+            assert [model.handle(c) for c in ("HIV 60", "CUR 250", "XON")][-1] == "XON"
+        real = l8121.probe
+
+        def probe_then_port_gone(*args, **kwargs):
+            result = real(*args, **kwargs)
+            server.stop()
+            # the pty's slave path can outlive the master's close for a moment: a guardian that
+            # opened it then met a dead link (another path, the warning), not a port it cannot open
+            wait_until(lambda: not os.path.exists(server.url), timeout=5.0, what="the pty gone")
+            return result
+
+        monkeypatch.setattr(l8121, "probe", probe_then_port_gone)
+        proto = write_protocol(tmp_path, scene_file, server, source={"dialect": "auto", "watchdog_s": 0})
+        res = run_cli("acquire", proto, "--sim", "-q")
+    finally:
+        server.stop()
+    lines = res.stderr.strip().splitlines()
+    assert "never reached" not in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert any("probe had reached the controller" in ln for ln in lines if ln.startswith("error:")), res.stderr
+    assert not {"XON", "WUP", "HIV", "CUR"} & {c.split()[0] for c in model.commands[3 * left_on :]}
+    if left_on:
+        assert res.returncode == 3 and lines[-1].startswith(WARNING), res.stderr
+    else:
+        assert res.returncode == 1 and lines[-1] == "tube off (confirmed by STS: STANDBY)", res.stderr
+
+
+@ONE_DIALECT
+def test_a_series_refused_at_connect_switches_a_tube_left_on_off(tmp_path, scene_file, controller):
+    """A unit left on by an earlier `source on` that names another model: the series' connect
+    (through the guardian) is refused, and it sent no XOF -- the tube stayed on, the warning, exit
+    3. Now the refused connect sends XOF and reads STS: the error ends exit 1 on the confirmed
+    line, and the tube is off."""
+    from conftest import run_cli
+
+    model, server = controller()
+    assert [model.handle(c) for c in ("HIV 60", "CUR 250", "XON")][-1] == "XON"
+    model.model = "L9181-02"
+    n = len(model.commands)
+    times = {"timeout_s": 0.3, "off_confirm_s": 0.3, "watchdog_s": 0}
+    res = run_cli("acquire", write_protocol(tmp_path, scene_file, server, source=times), "--sim", "-q")
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1 and lines[-1] == "tube off (confirmed by STS: STANDBY)", res.stderr
+    assert any("expected 'L8121-01'" in ln for ln in lines if ln.startswith("error:")), res.stderr
+    assert not model.xray_on and "XOF" in model.commands[n:]
+    assert not {"XON", "WUP", "HIV", "CUR"} & {c.split()[0] for c in model.commands[n:]}
+
+
 # -- one rule for a controller that cannot be read ------------------------------------------------
 # Each fault meets the first exchange it can: silence and junk the identity query (A's TYP, B's
 # SRL), the refused STS the state query (A: ERR, a refused query; B: ERROR, its ambiguous word).

@@ -563,11 +563,14 @@ def _guarded_source(url: str, p: Protocol):
     harmless queries), and the guardian gets that resolved configuration: it opens the port at
     the right rate and switches off in the right dialect without probing again.
 
-    An error carries ``source_unreached`` (the source's state is unknown: the run must say so),
-    or ``port_never_opened`` when the port could not be opened at all (nothing was sent), or
-    ``nothing_sent`` when an interrupt came before the first query. An interrupt after the probe
-    read X-rays on (a unit left on by ``source on``) still switches off, confirmed: the exception
-    then carries ``tube_state`` (or ``off_failed``)."""
+    An error follows README's one rule for the exit: ``port_never_opened`` when nothing opened
+    the port (not a byte was sent), ``nothing_sent`` when an interrupt came before the first
+    query, else the port was opened -- by the probe, or through the guardian -- and the error
+    carries ``tube_state`` when the controller's last ``STS`` (the probe's included) read a state
+    that cannot emit with nothing that emits sent after it, ``source_unreached`` (the tube not
+    confirmed off: the warning) otherwise. A connect refused through the guardian (identity,
+    operate switch, state) sends ``XOF`` first (the driver's, ``control``); an interrupt after
+    the probe read X-rays on still switches off, confirmed."""
     from acquisition.errors import PortUnavailable
     from acquisition.guardian import start_guardian
     from acquisition.l8121 import L8121
@@ -579,22 +582,39 @@ def _guarded_source(url: str, p: Protocol):
             url, resolved, notebook=Path(p.output).with_suffix(".log"), watchdog_s=p.source.watchdog_s or None
         )
     except BaseException as exc:
-        exc.source_unreached = getattr(exc, "tube_state", None) is None  # (off after the probe: known)
-        exc.port_never_opened = isinstance(exc, PortUnavailable)
-        exc.nothing_sent = getattr(exc, "probe_sent", None) is False
+        if isinstance(exc, PortUnavailable) and driver.probe_result is not None and driver.probe_result.found:
+            # the probe reached the controller, then the guardian could not take the port (another
+            # program took it, the adapter dropped out): not "never reached" -- say what it read
+            lost = driver.port_lost_after_probe(exc)
+            _what_was_reached(lost, driver)
+            raise lost from exc
+        _what_was_reached(exc, driver)
         raise
+    source = L8121(link, connect=False, config=resolved)
     try:
-        source = L8121(link, connect=False, config=resolved)
         # what "auto" found, for the file's record -- and for connect(): interrupted after the
         # probe read X-rays on, it switches off through the guardian (confirmed) before it lets
-        # the link go. (Inside the try: an interrupt here must not read as "nothing sent".)
-        source.probe_result = driver.probe_result
+        # the link go -- and the probe's reading for the exit rule
+        source.take_over(driver)
         source.connect()
     except BaseException as exc:
-        exc.source_unreached = getattr(exc, "tube_state", None) is None
+        _what_was_reached(exc, source)
         link.close()
         raise
     return source
+
+
+def _what_was_reached(exc: BaseException, driver) -> None:
+    """README's one rule on ``exc`` (see :func:`_guarded_source`), from what ``driver`` knows."""
+    from acquisition.errors import PortUnavailable
+
+    exc.port_never_opened = isinstance(exc, PortUnavailable) and not driver.port_opened
+    exc.nothing_sent = getattr(exc, "probe_sent", None) is False
+    if getattr(exc, "tube_state", None) is None and driver.tube_confirmed_off:
+        # the last STS (the probe's, or the refused connect's after its XOF) read the tube off and
+        # nothing that emits went out after it: confirmed, as the source commands say it
+        exc.tube_state = driver.last_state
+    exc.source_unreached = getattr(exc, "tube_state", None) is None
 
 
 def check_lab(p: Protocol) -> None:
@@ -1335,7 +1355,9 @@ def _stop(r: _Run, exc: BaseException):
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     _stop_frame(r)
     if res.tube_off is None and getattr(exc, "tube_state", None) is not None:
-        # interrupted while connecting to a unit found on: switched off there, confirmed by STS
+        # not connected, but the controller's last STS read the tube off (README's one rule): an
+        # interrupted connect that switched a unit found on off, a refused connect's XOF, or the
+        # probe's reading with nothing that emits sent after it (the guardian could not take the port)
         res.tube_off, res.tube_state = True, exc.tube_state.name
     elif (
         res.tube_off is None
