@@ -647,6 +647,11 @@ def _source_action(src, args) -> int:
                 f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
                 "only `radiokit acquire source on` leaves them on"
             )
+        elif state.confirms_off and src.may_be_on:
+            # found emitting at connect, read off now (a trip, a hand at the panel): that reading
+            # does not clear what connect saw (nothing confirmed a switch-off), so switch off and
+            # confirm, and say so; it ended on the warning, exit 3, though close() then confirmed off
+            print(f"{args.port}: X-rays were on at connect: switched off (confirmed: state {src.off().name})")
         elif not state.confirms_off and (kv > 0 or ua > 0):
             # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
             # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;

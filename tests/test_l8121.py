@@ -1922,6 +1922,25 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         assert "state STANDBY" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_cli_status_of_a_unit_found_on_then_read_off_switches_off_and_says_so(dialect, capsys):
+    """X-rays on at connect (an earlier `source on`), then the beam tripped at the controller before
+    status read STS: STANDBY was printed, then the warning, exit 3, while close() confirmed the
+    switch-off unseen. Now status switches off, confirms it and says so: exit 0."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        model.inject_after("STS", lambda: model.handle("XOF"))  # the connect's STS reads on, then it trips
+        assert main(["acquire", "source", "status", *port]) == 0
+        out, err = capsys.readouterr()
+        assert "state STANDBY" in out and "X-rays were on at connect: switched off (confirmed: state" in out, out
+        assert "MAY STILL BE ON" not in err and not model.xray_on
+
+
 # -- configuration: the ratings are a ceiling ----------------------------------------------------
 @pytest.mark.parametrize("baud", [0, -9600, 9600.5, "9600"])
 def test_a_baud_rate_that_is_not_a_rate_is_refused_at_load(tmp_path, capsys, baud):
