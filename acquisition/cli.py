@@ -516,6 +516,10 @@ def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tr
         return False
     state = src.confirmed_off
     if state is None and src.off_failed is None:
+        # said now: with a silent controller the attempt takes its time-outs (seconds), and the
+        # operator who pressed Ctrl-C or saw the connect fail would otherwise wait in silence
+        why = "interrupted while connecting" if interrupt is not None else "the connect failed"
+        _say(f"{src.port}: {why}: sending XOF anyway and confirming by STS (a few seconds)")
         try:
             state = src.off_unconnected(after_interrupt=interrupt is not None)
         except DeviceError as exc:
@@ -651,7 +655,10 @@ def _source_action(src, args) -> int:
             # found emitting at connect, read off now (a trip, a hand at the panel): that reading
             # does not clear what connect saw (nothing confirmed a switch-off), so switch off and
             # confirm, and say so; it ended on the warning, exit 3, though close() then confirmed off
-            print(f"{args.port}: X-rays were on at connect: switched off (confirmed: state {src.off().name})")
+            print(
+                f"{args.port}: X-rays read on at connect, off now (state {state.name}): XOF sent and "
+                f"confirmed (state {src.off().name})"
+            )
         elif not state.confirms_off and (kv > 0 or ua > 0):
             # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
             # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;

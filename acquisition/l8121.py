@@ -1445,7 +1445,7 @@ class L8121:
         rates = list(dict.fromkeys(heard or opened or configured))
         wait = c.timeout_s or max(d.timeout_s for d in DIALECTS.values())
         spacing = DIALECT_A.min_interval_s if c.min_interval_s is None else c.min_interval_s
-        said = []
+        said, sent = [], []
         if after_interrupt:  # see off_unconnected
             time.sleep(wait)
         for baud in rates:
@@ -1458,7 +1458,9 @@ class L8121:
             # grammar, as on a driver's link by its own
             link.reply_fits = lambda line, reply: any(d.reply_fits(line, reply) for d in DIALECTS.values())
             try:
-                found = self._xof_and_read(link, time.monotonic() + c.off_confirm_s, said)
+                # where the probe heard nothing, a silent XOF is not followed by STS: the same
+                # silence again, one time-out per rate, delayed the warning by 12-15 s
+                found = self._xof_and_read(link, time.monotonic() + c.off_confirm_s, said, sent, ask=bool(heard))
             finally:
                 link.close()
             if found is not None:
@@ -1470,20 +1472,28 @@ class L8121:
                 )
                 return state
         self._may_be_on = True
+        where = f"XOF sent at {', '.join(map(str, sent))} baud" if sent else "no XOF could be sent"
         self.off_failed = DeviceError(
-            f"{self.port}: XOF sent at {', '.join(map(str, rates))} baud (the dialect unknown: the probe's replies "
-            f"fitted neither), but no STS reply read the tube off ({'; '.join(said) or 'none'}); switch the source "
-            "off at the controller"
+            f"{self.port}: {where} (the dialect unknown: the probe's replies fitted neither), but no STS reply "
+            f"read the tube off ({'; '.join(said) or 'none'}); switch the source off at the controller"
         )
         raise self.off_failed
 
-    def _xof_and_read(self, link, until: float, said: list):
+    def _xof_and_read(self, link, until: float, said: list, sent: list, ask: bool = True):
         """``XOF`` on ``link``, then ``STS`` until a reply fits one dialect with a state that cannot
-        emit (returned with its dialect) or ``until`` passes (None; what was heard goes in ``said``)."""
+        emit (returned with its dialect) or ``until`` passes (None; what was heard goes in ``said``,
+        the rate in ``sent`` once the XOF was written). ``ask`` False: no ``STS`` after an XOF that
+        got no reply (a rate where the probe heard nothing)."""
         try:
             said.append(f"{link.baudrate} baud: XOF answered {link.query('XOF')!r}")
+            sent.append(link.baudrate)
         except DeviceError as exc:
-            said.append(str(exc))  # still ask: the XOF may have arrived
+            said.append(str(exc))
+            if "write timed out" not in str(exc):
+                sent.append(link.baudrate)
+            if not ask and isinstance(exc, NoReply):
+                return None
+            # otherwise still ask: the XOF may have arrived
         while True:
             try:
                 reply = link.query("STS")

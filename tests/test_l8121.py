@@ -1653,6 +1653,27 @@ def test_off_after_a_probe_that_fit_neither_dialect_sends_the_xof_both_share(con
     assert not model.xray_on
 
 
+def test_off_after_a_silent_probe_sends_xof_at_each_rate_without_waiting_on_sts():
+    """dialect auto, nothing answers the probe (silent), the tube on: `source off` sends the XOF at
+    every rate it opened, but where the probe heard nothing it does not wait on an STS after a
+    silent XOF (the same silence, one time-out per rate: the warning came 12-15 s later)."""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        assert [model.handle(c) for c in SWITCH_ON["A"]][-1] == "XON"
+        model.silence(True, execute=True)  # executes, never answers
+        src = L8121(
+            server.url, dialect="auto", probe_baudrates=(9600, 38400), probe_timeout_s=0.3, timeout_s=0.3, connect=False
+        )
+        with pytest.raises(DeviceError, match="fit neither dialect"):
+            src.connect()
+        n = len(model.commands)
+        with pytest.raises(DeviceError, match=r"XOF sent at 9600, 38400 baud .* no STS reply read the tube off"):
+            src.off_unconnected()
+        # one per rate (a pty has no baud rate: both arrive), and no STS after either
+        assert model.commands[n:] == ["XOF", "XOF"] and not src.tube_confirmed_off
+    assert not model.xray_on  # it executed the XOF it could not confirm
+
+
 @pytest.mark.parametrize(
     "action, extra",
     [
@@ -1937,7 +1958,10 @@ def test_cli_status_of_a_unit_found_on_then_read_off_switches_off_and_says_so(di
         model.inject_after("STS", lambda: model.handle("XOF"))  # the connect's STS reads on, then it trips
         assert main(["acquire", "source", "status", *port]) == 0
         out, err = capsys.readouterr()
-        assert "state STANDBY" in out and "X-rays were on at connect: switched off (confirmed: state" in out, out
+        assert (
+            "state STANDBY" in out
+            and "X-rays read on at connect, off now (state STANDBY): XOF sent and confirmed (state" in out
+        ), out
         assert "MAY STILL BE ON" not in err and not model.xray_on
 
 
