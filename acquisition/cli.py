@@ -617,65 +617,75 @@ def _cli_terms(text: str, port: str | None = None) -> str:
     return text
 
 
+def _source_status(src, args) -> int | None:
+    """``source status``: the state, measured beam, interlock (and B's operate switch) printed;
+    a tube found or read emitting switched off and confirmed. An exit code when it decides one
+    (an operate switch off REMOTE), else None: the exit rule of :func:`_source_action`."""
+    kv, ua = src.measured()
+    state = src.status()
+    switch = src.switch_at_connect
+    print(
+        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
+        f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
+        f"{', operate switch ' + switch if switch else ''}"
+    )
+    if switch not in (None, "REMOTE"):
+        # queries are answered, but the controller refuses XOF: a beam that is or may be on
+        # (B's AGING and its ambiguous ERROR included) cannot be switched off from here
+        if not state.confirms_off:
+            _say(
+                f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
+                f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
+            )
+            from acquisition.guardian import TUBE_WARNING
+
+            _say(TUBE_WARNING)
+            return 3
+        print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
+        return 0
+    if state.emitting:
+        # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
+        # off after the line above said XRAY_ON, and the operator's last line was no longer true
+        print(
+            f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
+            "only `radiokit acquire source on` leaves them on"
+        )
+    elif state.confirms_off and src.may_be_on:
+        # found emitting at connect, read off now (a trip, a hand at the panel): that reading
+        # does not clear what connect saw (nothing confirmed a switch-off), so switch off and
+        # confirm, and say so; it ended on the warning, exit 3, though close() then confirmed off
+        print(
+            f"{args.port}: X-rays read on at connect, off now (state {state.name}): XOF sent and "
+            f"confirmed (state {src.off().name})"
+        )
+    elif not state.confirms_off and (kv > 0 or ua > 0):
+        # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
+        # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;
+        # not confirmed, off() raises and the command ends on the warning (exit 3). With
+        # nothing measured it is the pre-heating the notes name, and only reported
+        print(
+            f"{args.port}: state {state.name} does not show X-rays off and a beam is measured: switching off",
+            flush=True,
+        )
+        print(f"{args.port}: switched off (confirmed: state {src.off().name})")
+    elif not state.confirms_off:
+        # nothing measured, but B's ERROR is also how B refuses a query: the controller has
+        # not confirmed the tube off, and the exit rule says so (README: exit codes)
+        _say(
+            f"{args.port}: state {state.name} does not show X-rays off (B's STS ERROR: pre-heating, or a "
+            "refused query); nothing is measured, but the controller has not confirmed the tube off"
+        )
+    return None
+
+
 def _source_action(src, args) -> int:
     """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
     from acquisition.errors import DeviceError
 
     if args.action == "status":
-        kv, ua = src.measured()
-        state = src.status()
-        switch = src.switch_at_connect
-        print(
-            f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
-            f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
-            f"{', operate switch ' + switch if switch else ''}"
-        )
-        if switch not in (None, "REMOTE"):
-            # queries are answered, but the controller refuses XOF: a beam that is or may be on
-            # (B's AGING and its ambiguous ERROR included) cannot be switched off from here
-            if not state.confirms_off:
-                _say(
-                    f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
-                    f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
-                )
-                from acquisition.guardian import TUBE_WARNING
-
-                _say(TUBE_WARNING)
-                return 3
-            print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
-            return 0
-        if state.emitting:
-            # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
-            # off after the line above said XRAY_ON, and the operator's last line was no longer true
-            print(
-                f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
-                "only `radiokit acquire source on` leaves them on"
-            )
-        elif state.confirms_off and src.may_be_on:
-            # found emitting at connect, read off now (a trip, a hand at the panel): that reading
-            # does not clear what connect saw (nothing confirmed a switch-off), so switch off and
-            # confirm, and say so; it ended on the warning, exit 3, though close() then confirmed off
-            print(
-                f"{args.port}: X-rays read on at connect, off now (state {state.name}): XOF sent and "
-                f"confirmed (state {src.off().name})"
-            )
-        elif not state.confirms_off and (kv > 0 or ua > 0):
-            # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
-            # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;
-            # not confirmed, off() raises and the command ends on the warning (exit 3). With
-            # nothing measured it is the pre-heating the notes name, and only reported
-            print(
-                f"{args.port}: state {state.name} does not show X-rays off and a beam is measured: switching off",
-                flush=True,
-            )
-            print(f"{args.port}: switched off (confirmed: state {src.off().name})")
-        elif not state.confirms_off:
-            # nothing measured, but B's ERROR is also how B refuses a query: the controller has
-            # not confirmed the tube off, and the exit rule says so (README: exit codes)
-            _say(
-                f"{args.port}: state {state.name} does not show X-rays off (B's STS ERROR: pre-heating, or a "
-                "refused query); nothing is measured, but the controller has not confirmed the tube off"
-            )
+        code = _source_status(src, args)
+        if code is not None:
+            return code
     elif args.action == "warm-up":
         seconds = src.warm_up(
             timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
