@@ -1025,6 +1025,58 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert src.off() == SourceState.STANDBY and src.off_failed is None
 
 
+# The device another process or adapter may put behind the port's path: in A another model; in B
+# (no identity query, only SRL's grammar) a unit that does not speak B.
+OTHER_DEVICE = {"A": dict(dialect="A", model="L9181-02"), "B": dict(dialect="A")}
+IDENTITY_QUERY = {"A": "TYP", "B": "SRL"}
+
+
+def _repoint(link: Path, target: str) -> None:
+    """Point the symlink ``link`` at ``target`` in one step, as udev repoints a /dev/serial/by-id
+    name when an adapter is re-plugged (a real path the transport reopens, not a mock)."""
+    new = link.with_name(link.name + ".new")
+    os.symlink(target, new)
+    os.replace(new, link)
+
+
+def test_a_reconnect_to_another_device_at_the_port_is_not_trusted(tmp_path, dialect):
+    """The link is lost and the port's path now leads to another device (a re-plugged adapter,
+    another program's pty given the same name). Once its STS "confirmed" the switch-off. Now the
+    driver asks the identity query connect asked first, and refuses a device that answers it
+    otherwise: no XOF, no STS is sent to it, the switch-off is not confirmed (the warning)."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    other = L8121Model(warmed_up=True, **OTHER_DEVICE[dialect])
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(other) as second:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        _repoint(port, second.url)
+        first.stop()  # the link is lost; the transport reconnects to the path
+        with pytest.raises(DeviceError, match="after a reconnect.*not trusted"):
+            src.close()
+    assert other.commands and set(other.commands) == {IDENTITY_QUERY[dialect]}, other.commands
+    assert not src.tube_confirmed_off and src.off_failed is not None
+    assert model.xray_on  # the controller that was switched on was never reached
+
+
+def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect):
+    """The same controller behind the path again (its adapter re-plugged, a new pty here): it
+    answers the identity query as at connect, and the switch-off goes on and is confirmed."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(model) as again:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        _repoint(port, again.url)
+        first.stop()
+        assert src.off() == SourceState.STANDBY
+        src.close()
+    assert commands_after(model, "XON")[-3:] == [IDENTITY_QUERY[dialect], "XOF", "STS"]
+    assert not model.xray_on and src.tube_confirmed_off
+
+
 def _check_into(src, errors):
     """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
     try:
