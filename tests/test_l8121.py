@@ -192,14 +192,44 @@ def test_transport_reconnects_after_a_lost_link(caplog):
     assert any("reconnecting" in r.getMessage() for r in caplog.records), caplog.text
 
 
-def test_transport_gives_up_when_the_device_is_gone():
+def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuses():
+    """``on_reconnect`` runs after a reopen, not after the first open, before the command is sent
+    again; a refusal (DeviceError) closes the port and fails the query as a lost link, and the
+    next query reopens and asks again. (The refusal here is the test's own rule: the transport
+    knows no instrument.)"""
+    model = L8121Model(warmed_up=True)
+    asked = []
+
+    def check(ask):
+        asked.append(ask("TYP"))
+        if len(asked) == 1:
+            raise DeviceError("not the one")
+
+    with SocketServer(model) as server, SerialTransport(server.url, retries=1) as lnk:
+        lnk.on_reconnect = check
+        assert lnk.query("STS") == "STS 2" and asked == []
+        server.drop_connection()
+        time.sleep(0.3)  # the server notices within its 0.05 s poll
+        with pytest.raises(DeviceError, match="reconnecting failed .*not the one"):
+            lnk.query("SIN")
+        assert not lnk.is_open and model.commands[-1] == "TYP"
+        assert lnk.query("SIN") == "SIN 0"
+    assert asked == ["TYP L8121-01"] * 2 and model.commands[-3:] == ["TYP", "TYP", "SIN"]
+
+
+def test_transport_gives_up_when_the_device_is_gone(tmp_path):
     model = L8121Model(warmed_up=True)
     server = PtyServer(model).start()
-    lnk = SerialTransport(server.url)
+    # the port by a name that goes with the device: the pty's own name may be handed to another
+    # xdist worker's emulator at once, and the reconnect would reach that one
+    port = tmp_path / "ttyUSB0"
+    port.symlink_to(server.url)
+    lnk = SerialTransport(str(port))
     assert lnk.query("STS") == "STS 2"
+    port.unlink()
     server.stop()
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match=rf"{server.url}: (no reply to SER|SER: link lost)"):
+    with pytest.raises(DeviceError, match=rf"{port}: (no reply to SER|SER: link lost)"):
         lnk.query("SER")
     assert time.monotonic() - t0 < 3
     lnk.close()
