@@ -292,7 +292,11 @@ class SerialTransport:
         try:
             self.open()
             if reconnect and self.on_reconnect is not None:
-                self.on_reconnect(self._ask)
+                try:
+                    self.on_reconnect(self._ask)
+                except BaseException:  # a write time-out, a signal too: a link left open unchecked
+                    self.close()  # would be trusted by the next query; reopened, it is asked again
+                    raise
         except DeviceError as reopen:
             self.close()
             if lost is None:
