@@ -339,6 +339,7 @@ class _Watch:
         self.state_query = DIALECTS[config.dialect].readings["state"]
         self.may_be_on = False
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
+        self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
 
     def sent(self, command: str) -> None:
         if command.split(" ", 1)[0] in ("XON", "WUP"):
@@ -346,6 +347,13 @@ class _Watch:
 
     def replied(self, command: str, reply: str) -> None:
         from acquisition.l8121 import _OFF_STATES
+
+        check = self.reidentify
+        if check is not None and check.name == "identity" and command == check.query.command:
+            try:  # the model the acquiring process's connect read: what a reconnect must find
+                check.identity = check.query.parse(reply)
+            except ValueError:
+                pass
 
         if command == self.state_query.command:
             try:
@@ -407,6 +415,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
     watch = _Watch(config)
+    watch.reidentify = getattr(link, "on_reconnect", None)
     while True:
         while b"\n" not in buf:
             data = _read_request(rfd, watch, watchdog_s)
@@ -493,11 +502,14 @@ def main(argv: list[str] | None = None) -> int:
     except (DeviceError, ValueError) as exc:
         os.write(1, f"E 0 {' '.join(str(exc).split())}\n".encode("ascii", "replace"))
         return 1
-    from acquisition.l8121 import DIALECTS
+    from acquisition.l8121 import DIALECTS, Reidentify
 
     # the acquiring process's exchanges come through here: a late reply after a time-out is told
     # from the next command's by the dialect's reply grammar, as on the driver's own link
     link.reply_fits = DIALECTS[config.dialect].reply_fits
+    # and a reconnect asks the controller who it is before its replies are passed on or its STS
+    # confirms a switch-off (the model: configured, then what the connect's TYP read through here)
+    link.on_reconnect = Reidentify(DIALECTS[config.dialect], config.model, args.url)
     os.write(1, b"READY\n")
     return _serve(link, config, note, args.watchdog)
 

@@ -1099,6 +1099,56 @@ def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None)
     return dialect.name, identity, tuple(details)
 
 
+class Reidentify:
+    """A transport's ``on_reconnect`` (:attr:`SerialTransport.on_reconnect`): after the link was
+    lost and the port opened again, ask the identity query connect asked -- A's ``TYP``, B's
+    ``SRL`` -- before any reply on the new link is trusted, above all an ``STS`` taken for a
+    switch-off's confirmation. A re-plugged USB adapter, or a pty path handed to another process,
+    may put another device behind the same path.
+
+    Dialect A: ``TYP`` must name :attr:`identity` (the model connect read; None: any model, as
+    connect accepts with ``model=None``). Neither dialect reports a serial number, so a second unit
+    of the same model passes. Dialect B has no identity query: ``SRL`` must answer in B's grammar
+    (a B controller at this rate), the weaker check, and its position is not compared (a switch
+    turned meanwhile is the same controller; the XOF it refuses says so).
+
+    Raises
+    ------
+    DeviceError
+        No fitting answer or another model (:class:`~acquisition.errors.NoReply` when silent):
+        the transport closes the port and the exchange fails as a lost link.
+    """
+
+    def __init__(self, dialect: Dialect, identity: str | None, port: str):
+        self.name = "identity" if "identity" in dialect.readings else "operate_switch"
+        self.query = dialect.readings[self.name]
+        self.dialect = dialect.name
+        self.identity = identity
+        self.port = port
+
+    def __call__(self, ask: Callable[[str], str]) -> None:
+        command = self.query.command
+        refused = f"{self.port}: after a reconnect, the device at the port"
+        try:
+            reply = ask(command)
+        except NoReply as exc:
+            raise NoReply(f"{refused} did not answer {command} ({exc}): not trusted as the controller") from exc
+        try:
+            value = self.query.parse(reply)
+        except ValueError:
+            value = None
+        if value is None or reply in ("ERR", "ERROR"):
+            raise DeviceError(
+                f"{refused} answered {command} with {reply!r}, not as the dialect-{self.dialect} controller "
+                "connected to: not trusted"
+            )
+        if self.name == "identity" and self.identity is not None and value != self.identity:
+            raise DeviceError(
+                f"{refused} is {value!r} ({command}), not the {self.identity!r} connected to: not trusted"
+            )
+        logger.warning("%s: reconnected; %s answered %r (the controller connected to)", self.port, command, reply)
+
+
 # -- the driver -----------------------------------------------------------------------------------
 class L8121:
     """A Hamamatsu L8121 X-ray source on a serial link, in either dialect.
@@ -1170,6 +1220,7 @@ class L8121:
         if self.config.dialect != "auto":
             self._use(DIALECTS[self.config.dialect], self.config.baudrate)
         self._transport = None
+        self._reidentify: Reidentify | None = None  # the link's on_reconnect check (_give_grammar)
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
         # What this session knows of the tube, for the exit rule (README: exit codes): whether it
         # opened the port (the probe's included), and the state its last STS (or SAR) read
@@ -1343,9 +1394,15 @@ class L8121:
 
     def _give_grammar(self, transport) -> None:
         """Let a transport that can (``SerialTransport.reply_fits``) tell a late reply, after a
-        time-out, from the reply to the command it sent next, by this dialect's reply grammar."""
+        time-out, from the reply to the command it sent next, by this dialect's reply grammar; and
+        re-identify the controller after a reconnect (:class:`Reidentify`, ``on_reconnect``)."""
         if hasattr(transport, "reply_fits"):
             transport.reply_fits = self.dialect.reply_fits
+        # a check already there is kept: the guardian's knows the model its client's connect read
+        if hasattr(transport, "on_reconnect") and transport.on_reconnect is None:
+            # the model connect will read (_check_identity updates it), else the configured one
+            self._reidentify = Reidentify(self.dialect, self.identity or self.config.model, self.port)
+            transport.on_reconnect = self._reidentify
 
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
         """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
@@ -1572,6 +1629,8 @@ class L8121:
             ) from None
         if first == "identity":
             self.identity = value
+            if self._reidentify is not None:  # a reconnect from now on must find this model
+                self._reidentify.identity = value
             if self.config.model is not None and self.identity != self.config.model:
                 self._read_state_for_the_record()
                 raise DeviceError(

@@ -156,6 +156,15 @@ class SerialTransport:
         #: late reply of the one that timed out and discarded (once per command owed); without it,
         #: only the flush before each command guards against late replies.
         self.reply_fits = None
+        #: ``on_reconnect(ask)``: run right after the port was opened again (a reconnect within
+        #: :meth:`query`, or a query on a link closed since it was first opened), before the
+        #: command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
+        #: :class:`~acquisition.errors.DeviceError` to refuse the device now behind the port: the
+        #: port is then closed and the query fails as a lost link. A driver sets it to re-identify
+        #: its instrument (:class:`acquisition.l8121.Reidentify`): a re-plugged adapter, or another
+        #: device given the same path, must not answer for the one it connected to.
+        self.on_reconnect = None
+        self._opened_once = False  # a later open is a reconnect: on_reconnect checks the device
         #: Commands this link has begun to write (counted before the write): 0 means the device
         #: has received nothing from it -- what an interrupted caller may tell the operator.
         self.commands_written = 0
@@ -192,6 +201,7 @@ class SerialTransport:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
+        self._opened_once = True
         self._pending = None  # (a reconnect repeats the command itself)
         self._owed = []  # a new link: nothing on it answers an old one's commands
         # The spacing is the controller's need, not this object's: another link (the probe's, a
@@ -246,11 +256,11 @@ class SerialTransport:
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         payload = (command + self.terminator).encode("ascii")
         with self._lock:
-            attempt = 0
+            attempt, lost = 0, None
             while True:
                 try:
                     if not self.is_open:
-                        self.open()
+                        self._reopen(command, lost)
                     return self._exchange(command, payload)
                 except _LINK_ERRORS as exc:
                     # Write time-outs are a device that does not take data, not a lost link.
@@ -272,12 +282,33 @@ class SerialTransport:
                         attempt,
                         self.retries,
                     )
-                    try:
-                        self.open()
-                    except DeviceError as reopen:
-                        raise DeviceError(
-                            f"{self.url}: {command}: link lost ({exc}) and reconnecting failed ({reopen})"
-                        ) from exc
+                    lost = exc  # reopened at the top of the loop, where a link lost again is retried
+
+    def _reopen(self, command: str, lost: BaseException | None) -> None:
+        """Open the port again and, when it was open before, let :attr:`on_reconnect` check the
+        device now behind it before ``command`` goes out. ``lost``: the error that closed the link
+        within this query (named in the message), or None."""
+        reconnect = self._opened_once
+        try:
+            self.open()
+            if reconnect and self.on_reconnect is not None:
+                try:
+                    self.on_reconnect(self._ask)
+                except BaseException:  # a write time-out, a signal too: a link left open unchecked
+                    self.close()  # would be trusted by the next query; reopened, it is asked again
+                    raise
+        except DeviceError as reopen:
+            self.close()
+            if lost is None:
+                raise
+            # a silent device stays NoReply (a switch-off does not ask it again); a port that
+            # cannot be opened any more is not PortUnavailable here: bytes went out before
+            kind = NoReply if isinstance(reopen, NoReply) else DeviceError
+            raise kind(f"{self.url}: {command}: link lost ({lost}) and reconnecting failed ({reopen})") from lost
+
+    def _ask(self, command: str) -> str:
+        """One exchange for :attr:`on_reconnect`, within the query that reconnected (its lock held)."""
+        return self._exchange(command, (command + self.terminator).encode("ascii"))
 
     def _exchange(self, command: str, payload: bytes) -> str:
         ser = self._serial
@@ -491,6 +522,10 @@ class PipeTransport:
         #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
         #: its own; this one goes to the link this process opens if the guardian dies.
         self.reply_fits = None
+        #: The driver's re-identification (as :attr:`SerialTransport.on_reconnect`): the guardian
+        #: checks its own reconnects; this one checks the port this process opens if the guardian
+        #: dies (a new open of the port: the device behind it is asked before it is trusted).
+        self.on_reconnect = None
         # the guardian's SerialTransport: write (1 s) + reply per attempt, one reconnect, and slack
         self._reply_wait_s = 2 * (self.timeout_s + 1.0) + 2.0
 
@@ -619,8 +654,12 @@ class PipeTransport:
                 timeout_s=self.timeout_s,
                 min_interval_s=self.min_interval_s,
                 log=self.log,
+                open=False,
             )
             self._direct.reply_fits = self.reply_fits
+            self._direct.on_reconnect = self.on_reconnect
+            # the guardian had the port open: this first open here is a reconnect (checked)
+            self._direct._opened_once = True
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

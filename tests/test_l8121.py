@@ -192,14 +192,44 @@ def test_transport_reconnects_after_a_lost_link(caplog):
     assert any("reconnecting" in r.getMessage() for r in caplog.records), caplog.text
 
 
-def test_transport_gives_up_when_the_device_is_gone():
+def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuses():
+    """``on_reconnect`` runs after a reopen, not after the first open, before the command is sent
+    again; a refusal (DeviceError) closes the port and fails the query as a lost link, and the
+    next query reopens and asks again. (The refusal here is the test's own rule: the transport
+    knows no instrument.)"""
+    model = L8121Model(warmed_up=True)
+    asked = []
+
+    def check(ask):
+        asked.append(ask("TYP"))
+        if len(asked) == 1:
+            raise DeviceError("not the one")
+
+    with SocketServer(model) as server, SerialTransport(server.url, retries=1) as lnk:
+        lnk.on_reconnect = check
+        assert lnk.query("STS") == "STS 2" and asked == []
+        server.drop_connection()
+        time.sleep(0.3)  # the server notices within its 0.05 s poll
+        with pytest.raises(DeviceError, match="reconnecting failed .*not the one"):
+            lnk.query("SIN")
+        assert not lnk.is_open and model.commands[-1] == "TYP"
+        assert lnk.query("SIN") == "SIN 0"
+    assert asked == ["TYP L8121-01"] * 2 and model.commands[-3:] == ["TYP", "TYP", "SIN"]
+
+
+def test_transport_gives_up_when_the_device_is_gone(tmp_path):
     model = L8121Model(warmed_up=True)
     server = PtyServer(model).start()
-    lnk = SerialTransport(server.url)
+    # the port by a name that goes with the device: the pty's own name may be handed to another
+    # xdist worker's emulator at once, and the reconnect would reach that one
+    port = tmp_path / "ttyUSB0"
+    port.symlink_to(server.url)
+    lnk = SerialTransport(str(port))
     assert lnk.query("STS") == "STS 2"
+    port.unlink()
     server.stop()
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match=rf"{server.url}: (no reply to SER|SER: link lost)"):
+    with pytest.raises(DeviceError, match=rf"{port}: (no reply to SER|SER: link lost)"):
         lnk.query("SER")
     assert time.monotonic() - t0 < 3
     lnk.close()
@@ -1023,6 +1053,58 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert len(model.log) == n0 + 2
     model.silence(False)
     assert src.off() == SourceState.STANDBY and src.off_failed is None
+
+
+# The device another process or adapter may put behind the port's path: in A another model; in B
+# (no identity query, only SRL's grammar) a unit that does not speak B.
+OTHER_DEVICE = {"A": dict(dialect="A", model="L9181-02"), "B": dict(dialect="A")}
+IDENTITY_QUERY = {"A": "TYP", "B": "SRL"}
+
+
+def _repoint(link: Path, target: str) -> None:
+    """Point the symlink ``link`` at ``target`` in one step, as udev repoints a /dev/serial/by-id
+    name when an adapter is re-plugged (a real path the transport reopens, not a mock)."""
+    new = link.with_name(link.name + ".new")
+    os.symlink(target, new)
+    os.replace(new, link)
+
+
+def test_a_reconnect_to_another_device_at_the_port_is_not_trusted(tmp_path, dialect):
+    """The link is lost and the port's path now leads to another device (a re-plugged adapter,
+    another program's pty given the same name). Once its STS "confirmed" the switch-off. Now the
+    driver asks the identity query connect asked first, and refuses a device that answers it
+    otherwise: no XOF, no STS is sent to it, the switch-off is not confirmed (the warning)."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    other = L8121Model(warmed_up=True, **OTHER_DEVICE[dialect])
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(other) as second:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        _repoint(port, second.url)
+        first.stop()  # the link is lost; the transport reconnects to the path
+        with pytest.raises(DeviceError, match="after a reconnect.*not trusted"):
+            src.close()
+    assert other.commands and set(other.commands) == {IDENTITY_QUERY[dialect]}, other.commands
+    assert not src.tube_confirmed_off and src.off_failed is not None
+    assert model.xray_on  # the controller that was switched on was never reached
+
+
+def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect):
+    """The same controller behind the path again (its adapter re-plugged, a new pty here): it
+    answers the identity query as at connect, and the switch-off goes on and is confirmed."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(model) as again:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        _repoint(port, again.url)
+        first.stop()
+        assert src.off() == SourceState.STANDBY
+        src.close()
+    assert commands_after(model, "XON")[-3:] == [IDENTITY_QUERY[dialect], "XOF", "STS"]
+    assert not model.xray_on and src.tube_confirmed_off
 
 
 def _check_into(src, errors):

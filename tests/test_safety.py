@@ -377,13 +377,17 @@ def test_three_ctrl_c_during_a_frame_and_the_switch_off(tmp_path, scene_file, co
 
 
 # (name, fault injected mid-projection, whether the software can still switch off)
+# The fault gets the model, its server and the port's path (a symlink to the server's pty).
 CONTROLLER_FAULTS = [
-    ("silent controller (reply path lost)", lambda m, s: m.silence(True, execute=True), True),
-    ("dead controller (silent, executes nothing)", lambda m, s: m.silence(True), False),
+    ("silent controller (reply path lost)", lambda m, s, p: m.silence(True, execute=True), True),
+    ("dead controller (silent, executes nothing)", lambda m, s, p: m.silence(True), False),
     # silenced first: stop() joins the serving thread, which could still answer an XOF and STS
-    # while it winds down (seen once under load: the switch-off confirmed by an unplugged unit)
-    ("unplugged controller (emulator closed)", lambda m, s: (m.silence(True), s.stop()), False),
-    ("XOF ignored (stuck on)", lambda m, s: m.stuck_on(), False),
+    # while it winds down (seen once under load: the switch-off confirmed by an unplugged unit).
+    # The port's name goes with it, as a USB adapter's by-id name does: the pty's own name may be
+    # handed to another xdist worker's emulator at once, and the reconnect once reached that one
+    # (same model, so re-identification passes) and took its STS for the confirmation
+    ("unplugged controller (emulator closed)", lambda m, s, p: (m.silence(True), p.unlink(), s.stop()), False),
+    ("XOF ignored (stuck on)", lambda m, s, p: m.stuck_on(), False),
 ]
 
 
@@ -426,12 +430,14 @@ def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, na
     the tube really did (the emulator's state says which); and the warning comes within one
     switch-off budget, not one per layer (driver fail-safe, beam monitor, the run's switch-off)."""
     model, server = controller()
-    proto = write_protocol(tmp_path, scene_file, server, source=DRIVER_DEFAULTS)
+    port = tmp_path / "ttyUSB0"  # the port by a name the test controls (the unplugged row removes it)
+    port.symlink_to(server.url)
+    proto = write_protocol(tmp_path, scene_file, str(port), source={**DRIVER_DEFAULTS, "dialect": model.dialect})
     acq = Acquire(proto, "--sim", "-q")
     reach("projection (beam on)", model, tmp_path, acq)
     watch = OffWatch(model)
     t0 = time.monotonic()
-    inject(model, server)
+    inject(model, server, port)
     code = acq.wait(timeout=60)
     off_s = watch.seconds()
     warn_s = warning_after(acq, t0)
@@ -446,6 +452,31 @@ def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, na
     assert model.xray_on is (not can_switch_off)
     if can_switch_off:
         assert off_s is not None and off_s <= silent_off_bound_s(dialect)
+
+
+@ONE_DIALECT
+def test_a_reconnect_to_another_unit_at_the_port_gives_the_warning(tmp_path, scene_file, controller):
+    """The controller's link is lost mid-projection and its port's name now leads to another
+    unit (a re-plugged adapter; here a symlink repointed from one emulator's pty to another's).
+    The guardian's reconnect asks TYP first, finds another model and trusts nothing from it: no
+    command but TYP reaches it, its STANDBY confirms nothing -- the warning, exit 3."""
+    model, server = controller()
+    other = L8121Model(dialect="A", model="L9181-02", warmed_up=True)
+    port = tmp_path / "ttyUSB0"
+    port.symlink_to(server.url)
+    proto = write_protocol(tmp_path, scene_file, str(port), source={"dialect": "A", "watchdog_s": 0})
+    with PtyServer(other) as second:
+        acq = Acquire(proto, "--sim", "-q")
+        reach("projection (beam on)", model, tmp_path, acq)
+        new = tmp_path / "ttyUSB0.new"
+        new.symlink_to(second.url)
+        new.replace(port)
+        model.silence(True)  # (as the unplugged row: the closing server must not answer)
+        server.stop()
+        code = acq.wait(timeout=60)
+    assert code == 3 and acq.last_line.startswith(WARNING), acq.output
+    assert "tube off (confirmed" not in acq.output and "Traceback" not in acq.output
+    assert other.commands and set(other.commands) == {"TYP"}, other.commands
 
 
 @pytest.mark.parametrize("dialect", ["A", "auto"])
