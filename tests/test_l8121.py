@@ -328,21 +328,22 @@ def test_a_command_written_whole_is_not_a_write_time_out_whatever_the_clock():
 
 
 def test_a_command_the_port_does_not_take_is_a_write_time_out_not_sent():
-    """A pty whose far end reads nothing fills up and then takes no byte more; pyserial's output
-    queue still reads 0 there, so "queue empty = sent" called the unsent command sent and waited
-    for a reply. Counted, it is a write time-out naming the command, and nothing of it went."""
+    """A port that takes no byte (its output suspended, as a device holding CTS low or sending
+    XOFF does: here ``tcflow(TCOOFF)`` on a real pty); pyserial's output queue still reads 0 there,
+    so "queue empty = sent" called the unsent command sent and waited for a reply. Counted, it is a
+    write time-out naming the command, and nothing of it went. (Filling the pty instead races: the
+    kernel frees room in it over a few hundred ms.)"""
     import pty
+    import termios
 
     master, slave = pty.openpty()
     try:
         with SerialTransport(os.ttyname(slave), timeout_s=0.3, min_interval_s=0, write_timeout_s=0.2) as lnk:
-            while True:  # the far end not reading: fill the line until the kernel takes nothing more
-                try:
-                    os.write(lnk._serial.fd, b"X" * 4096)
-                except BlockingIOError:
-                    break
+            termios.tcflow(lnk._serial.fd, termios.TCOOFF)
             with pytest.raises(DeviceError, match="XOF: write timed out after 0.2 s"):
                 lnk.query("XOF")
+            termios.tcflow(lnk._serial.fd, termios.TCOON)
+            time.sleep(0.1)
             os.set_blocking(master, False)
             held = b""
             with contextlib.suppress(BlockingIOError):
