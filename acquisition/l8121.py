@@ -1344,7 +1344,7 @@ class L8121:
             seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
-            elif isinstance(exc, DeviceError) and self.control:
+            elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
             self._transport.close()
             self._transport = None
@@ -1622,11 +1622,18 @@ class L8121:
             value = self._read(first)
         except DeviceError as exc:
             other = "B" if self.dialect is DIALECT_A else "A"
-            raise DeviceError(
+            err = DeviceError(
                 f"{exc}; is this unit on {self.baudrate} baud and speaking dialect {self.dialect.name}? "
                 f'If it speaks dialect {other}, set dialect = "{other}" or "auto" '
                 f"(`radiokit acquire source probe --port {self.port}` tells)"
-            ) from None
+            )
+            # an answer that fits neither dialect's grammar is another instrument on the port: the
+            # refused connect sends it no XOF (as a probe that fits neither sends nothing more)
+            reply = getattr(exc, "reply", None)
+            command = self.dialect.readings[first].command
+            knows = [d for d in DIALECTS.values() if command in {q.command for q in d.readings.values()}]
+            err.foreign = reply is not None and not any(d.reply_fits(command, reply) for d in knows)
+            raise err from None
         if first == "identity":
             self.identity = value
             if self._reidentify is not None:  # a reconnect from now on must find this model
@@ -1816,6 +1823,7 @@ class L8121:
             err = DeviceError(
                 f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
             )
+            err.reply = reply  # what answered (the connect tells an L8121 from another instrument by it)
             self._fail_safe(err)
             raise err from None
         if name in ("state", "beam"):

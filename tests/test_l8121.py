@@ -1736,6 +1736,20 @@ def test_off_after_a_probe_that_fit_neither_dialect_sends_the_xof_both_share(con
     assert not model.xray_on
 
 
+def test_a_refused_connect_to_another_instrument_sends_it_no_xof(dialect):
+    """dialect given, and the identity query answered in neither dialect's grammar (another
+    instrument on the port, answering "OK"): the refused connect's XOF and STS went to it three
+    times. A probe that fits neither sends nothing more (most likely the wrong port); neither does
+    this. (An L8121 refusing the query -- ERR, ERROR -- still gets the XOF.)"""
+    model = L8121Model(dialect="A", warmed_up=True)
+    model.foreign()
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, timeout_s=0.3, connect=False)
+        with pytest.raises(DeviceError, match="unparseable reply to"):
+            src.connect()
+    assert model.commands == [IDENTITY_QUERY[dialect]] and src.port_opened and not src.tube_confirmed_off
+
+
 def test_off_after_a_silent_probe_sends_xof_at_each_rate_without_waiting_on_sts():
     """dialect auto, nothing answers the probe (silent), the tube on: `source off` sends the XOF at
     every rate it opened, but where the probe heard nothing it does not wait on an STS after a
