@@ -1119,6 +1119,10 @@ class Reidentify:
         the transport closes the port and the exchange fails as a lost link.
     """
 
+    #: written once all the same to a device silent at the check (a controller whose replies are
+    #: lost may still act on it: it switched off so before the check existed); never confirmed by it
+    blind = frozenset({"XOF"})
+
     def __init__(self, dialect: Dialect, identity: str | None, port: str):
         self.name = "identity" if "identity" in dialect.readings else "operate_switch"
         self.query = dialect.readings[self.name]

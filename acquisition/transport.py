@@ -294,7 +294,9 @@ class SerialTransport:
             if reconnect and self.on_reconnect is not None:
                 try:
                     self.on_reconnect(self._ask)
-                except BaseException:  # a write time-out, a signal too: a link left open unchecked
+                except BaseException as exc:  # a write time-out, a signal too: a link left open unchecked
+                    if isinstance(exc, NoReply) and command in getattr(self.on_reconnect, "blind", ()):
+                        self._send_blind(command)
                     self.close()  # would be trusted by the next query; reopened, it is asked again
                     raise
         except DeviceError as reopen:
@@ -305,6 +307,20 @@ class SerialTransport:
             # cannot be opened any more is not PortUnavailable here: bytes went out before
             kind = NoReply if isinstance(reopen, NoReply) else DeviceError
             raise kind(f"{self.url}: {command}: link lost ({lost}) and reconnecting failed ({reopen})") from lost
+
+    def _send_blind(self, command: str) -> None:
+        """Write ``command`` once to a device that did not answer :attr:`on_reconnect`'s check,
+        when the check names it ``blind`` (the switch-off): a controller that still acts on commands
+        but whose replies are lost was switched off so before the check existed, and silence is not
+        another device's answer. Its reply is never read: nothing on this link confirms it."""
+        try:
+            self._write(self._serial, command, (command + self.terminator).encode("ascii"))
+        except (*_LINK_ERRORS, OSError) as exc:
+            self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
+            return
+        self.log.warning(
+            "%s: %s written to a device that did not answer the identity check (not confirmed)", self.url, command
+        )
 
     def _ask(self, command: str) -> str:
         """One exchange for :attr:`on_reconnect`, within the query that reconnected (its lock held)."""

@@ -1091,6 +1091,28 @@ def test_a_reconnect_to_another_device_at_the_port_is_not_trusted(tmp_path, dial
     assert model.xray_on  # the controller that was switched on was never reached
 
 
+def test_a_controller_silent_after_a_reconnect_still_gets_the_switch_off(tmp_path, dialect):
+    """The link lost and reopened to a controller that still acts on commands but whose replies are
+    lost (``silence(execute=True)``): the identity check gets no answer, so the XOF never went and
+    the tube stayed on (before the check: XOF sent, tube off, not confirmed). Silence is not
+    another device's answer: the XOF is written once all the same, never confirmed by that link."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(model) as again:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        model.silence(True, execute=True)
+        _repoint(port, again.url)
+        first.stop()
+        n = len(model.commands)
+        with pytest.raises(DeviceError):
+            src.close()
+        sent = model.commands[n:]
+    assert IDENTITY_QUERY[dialect] in sent and "XOF" in sent and not model.xray_on, sent
+    assert not src.tube_confirmed_off  # switched off, but nothing confirmed it: the warning
+
+
 def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect):
     """The same controller behind the path again (its adapter re-plugged, a new pty here): it
     answers the identity query as at connect, and the switch-off goes on and is confirmed."""
