@@ -1070,6 +1070,23 @@ def _repoint(link: Path, target: str) -> None:
     os.replace(new, link)
 
 
+@contextlib.contextmanager
+def _on_then_reconnected(tmp_path, dialect, model, behind, before_loss=None):
+    """``model`` behind a port path (a symlink, as /dev/serial/by-id), switched on through it;
+    then the path repointed to the server of ``behind`` and the first server stopped (the link
+    lost: the transport reconnects to the path). Yields the driver; ``before_loss`` runs first."""
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(behind) as second:
+        os.symlink(first.url, port)
+        src = L8121(str(port), dialect=dialect, **FAST)
+        src.on(60, 250)
+        if before_loss is not None:
+            before_loss()
+        _repoint(port, second.url)
+        first.stop()
+        yield src
+
+
 def test_a_reconnect_to_another_device_at_the_port_is_not_trusted(tmp_path, dialect):
     """The link is lost and the port's path now leads to another device (a re-plugged adapter,
     another program's pty given the same name). Once its STS "confirmed" the switch-off. Now the
@@ -1077,13 +1094,7 @@ def test_a_reconnect_to_another_device_at_the_port_is_not_trusted(tmp_path, dial
     otherwise: no XOF, no STS is sent to it, the switch-off is not confirmed (the warning)."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
     other = L8121Model(warmed_up=True, **OTHER_DEVICE[dialect])
-    port = tmp_path / "ttyUSB0"
-    with PtyServer(model) as first, PtyServer(other) as second:
-        os.symlink(first.url, port)
-        src = L8121(str(port), dialect=dialect, **FAST)
-        src.on(60, 250)
-        _repoint(port, second.url)
-        first.stop()  # the link is lost; the transport reconnects to the path
+    with _on_then_reconnected(tmp_path, dialect, model, other) as src:
         with pytest.raises(DeviceError, match="after a reconnect.*not trusted"):
             src.close()
     assert other.commands and set(other.commands) == {IDENTITY_QUERY[dialect]}, other.commands
@@ -1097,14 +1108,8 @@ def test_a_controller_silent_after_a_reconnect_still_gets_the_switch_off(tmp_pat
     the tube stayed on (before the check: XOF sent, tube off, not confirmed). Silence is not
     another device's answer: the XOF is written once all the same, never confirmed by that link."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
-    port = tmp_path / "ttyUSB0"
-    with PtyServer(model) as first, PtyServer(model) as again:
-        os.symlink(first.url, port)
-        src = L8121(str(port), dialect=dialect, **FAST)
-        src.on(60, 250)
-        model.silence(True, execute=True)
-        _repoint(port, again.url)
-        first.stop()
+    silenced = lambda: model.silence(True, execute=True)
+    with _on_then_reconnected(tmp_path, dialect, model, model, before_loss=silenced) as src:
         n = len(model.commands)
         with pytest.raises(DeviceError):
             src.close()
@@ -1117,13 +1122,7 @@ def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect
     """The same controller behind the path again (its adapter re-plugged, a new pty here): it
     answers the identity query as at connect, and the switch-off goes on and is confirmed."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
-    port = tmp_path / "ttyUSB0"
-    with PtyServer(model) as first, PtyServer(model) as again:
-        os.symlink(first.url, port)
-        src = L8121(str(port), dialect=dialect, **FAST)
-        src.on(60, 250)
-        _repoint(port, again.url)
-        first.stop()
+    with _on_then_reconnected(tmp_path, dialect, model, model) as src:
         assert src.off() == SourceState.STANDBY
         src.close()
     assert commands_after(model, "XON")[-3:] == [IDENTITY_QUERY[dialect], "XOF", "STS"]
