@@ -254,7 +254,7 @@ class SerialTransport:
         """
         if any(end.decode() in command for end in _LINE_ENDS):
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
-        payload = (command + self.terminator).encode("ascii")
+        payload = self._payload(command)
         with self._lock:
             attempt, lost = 0, None
             while True:
@@ -314,8 +314,8 @@ class SerialTransport:
         but whose replies are lost was switched off so before the check existed, and silence is not
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
-            self._write(self._serial, command, (command + self.terminator).encode("ascii"))
-        except (*_LINK_ERRORS, OSError) as exc:
+            self._write(self._serial, command, self._payload(command))
+        except _LINK_ERRORS as exc:
             self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
             return
         self.log.warning(
@@ -324,7 +324,11 @@ class SerialTransport:
 
     def _ask(self, command: str) -> str:
         """One exchange for :attr:`on_reconnect`, within the query that reconnected (its lock held)."""
-        return self._exchange(command, (command + self.terminator).encode("ascii"))
+        return self._exchange(command, self._payload(command))
+
+    def _payload(self, command: str) -> bytes:
+        """The bytes of ``command`` on the wire (its terminator added)."""
+        return (command + self.terminator).encode("ascii")
 
     def _exchange(self, command: str, payload: bytes) -> str:
         ser = self._serial
