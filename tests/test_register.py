@@ -865,6 +865,20 @@ def test_auto_without_an_interior_keeps_default():
     assert c.preset == "default" and c.interior == 0.0 and "no interior" in c.reason
 
 
+def _plate_and_gel():
+    """``(fixed, moving, gel)``: a textured plate beside a silent gel body (the mask), 320 px,
+    the whole scene moved one column (pulling field (0, 1))."""
+    n, rng = 320, np.random.default_rng(5)
+    y, x = np.mgrid[0:n, 0:n].astype(np.float64)
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0)
+    plate = (x < 0.45 * n) & (y > 20) & (y < n - 20)
+    q = ((y - 160) / 120) ** 2 + ((x - 235) / 70) ** 2
+    gel = q <= 1
+    image = np.where(plate, 0.8 + 0.1 * tex / tex.std(), 0.0) + 0.8 * np.sqrt(np.clip(1 - q, 0, 1))
+    fixed = (image + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    return fixed, ndimage.shift(fixed, (0.0, 1.0), order=1, mode="nearest"), gel
+
+
 def test_auto_judges_the_texture_inside_the_callers_mask():
     """``auto``'s fallback is chosen by the texture of the object's interior; with ``mask=`` that
     object is the caller's, as for ``register``'s checks. Found in session 19: the choice read
@@ -874,17 +888,9 @@ def test_auto_judges_the_texture_inside_the_callers_mask():
     ``TEXTURE_LOW``: ``silent``."""
     from radiokit.register._auto import TEXTURE_LOW, choose
 
-    n, rng = 320, np.random.default_rng(5)
-    y, x = np.mgrid[0:n, 0:n].astype(np.float64)
-    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0)
-    plate = (x < 0.45 * n) & (y > 20) & (y < n - 20)
-    q = ((y - 160) / 120) ** 2 + ((x - 235) / 70) ** 2
-    gel = q <= 1
-    image = np.where(plate, 0.8 + 0.1 * tex / tex.std(), 0.0) + 0.8 * np.sqrt(np.clip(1 - q, 0, 1))
-    fixed = (image + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    fixed, moving, gel = _plate_and_gel()
     # the whole scene moved one column (pulling field (0, 1)): `fast` is flagged on the silent
     # body; the silent retry registers it (before: `weak-fast` tried, `fast` returned, not ok)
-    moving = ndimage.shift(fixed, (0.0, 1.0), order=1, mode="nearest")
     reg = register(fixed, moving, "rc", mask=gel, preset="auto-fast")
     assert reg.options["auto"].preset == "silent-fast" and reg.quality.ok, reg.options["auto"]
     epe = np.hypot(reg.displacement[0], reg.displacement[1] - 1.0)[ndimage.binary_erosion(gel, iterations=8)]
@@ -892,6 +898,48 @@ def test_auto_judges_the_texture_inside_the_callers_mask():
     assert choose(fixed).preset == "weak"  # the frame's object: mostly the textured plate
     c = choose(fixed, mask=gel)
     assert c.ratio < TEXTURE_LOW and c.interior > 0 and c.preset == "silent", c
+
+
+def test_auto_checks_the_pair_once_and_each_run_as_alone(monkeypatch):
+    """``auto`` registers one pair two or three times; what its checks measure on the pair alone
+    (the binned pair, the confidence map, the fixed image's part of the residual tests:
+    ``_PairChecks``) is computed once per register() call and forgotten after it. Each run's
+    quality is then what the checks give it alone, to the bit (a stale or mixed-up memo would
+    judge one run by another's field or pair)."""
+    import radiokit.register as R
+
+    fixed, moving, gel = _plate_and_gel()  # `fast` flagged, `silent-fast` run after it
+    other = np.roll(moving, 1, axis=0)
+    made, real = [], R._PairChecks
+
+    def counted(*args):
+        made.append(args[1])
+        return real(*args)
+
+    monkeypatch.setattr(R, "_PairChecks", counted)
+    runs = _record_runs(monkeypatch)
+    reg = register(fixed, moving, "rc", mask=gel, preset="auto-fast")
+    assert len(runs) >= 2 and len(made) == 1 and made[0] is not None  # two runs, one pair's checks
+    assert R._PAIRS.get() is None  # forgotten after the call
+    register(fixed, other, "rc", mask=gel, preset="fast")  # another pair: its own checks, not the last one's
+    assert len(made) == 2 and made[1] is not moving
+    monkeypatch.undo()
+    alone = R.Registration(reg.displacement.copy(), "rc", R.Quality(), dict(reg.options))
+    R._assess(alone, fixed, moving, gel, {"iterations": reg.quality.iterations, "converged": True}, 0.0)
+    for name in (
+        "rc_before",
+        "rc_after",
+        "ncc_after",
+        "observed_fraction",
+        "interior_observed",
+        "residual_motion",
+        "misaligned_fraction",
+        "excess_kept",
+        "noise",
+    ):
+        a, b = getattr(reg.quality, name), getattr(alone.quality, name)
+        assert a == b or (np.isnan(a) and np.isnan(b)), (name, a, b)
+    np.testing.assert_array_equal(reg.confidence, alone.confidence)
 
 
 # -- a silent body: the silhouette's affine map and the stiff lattices (preset "silent") ----------
@@ -1974,7 +2022,7 @@ def test_excess_kept_is_judged_on_a_small_body():
     textured body (here 0.6 % of the frame) whose texture moved by 100 px had no ``excess_kept``
     at all and the "did not find the motion" check never ran on it. The identity field keeps all
     of the pair's misaligned structure: the ratio is 1 (the same residual before and after)."""
-    from radiokit.register import _misaligned
+    from radiokit.register import _misaligned, _PairChecks
 
     rng = np.random.default_rng(3)
     n, s = 320, 24
@@ -1986,6 +2034,6 @@ def test_excess_kept_is_judged_on_a_small_body():
     m[148 : 148 + s, 148 : 148 + s] += texture[48 : 48 + s, 48 : 48 + s]  # its texture 100 px on
     obs = np.zeros((n, n), bool)
     obs[148 : 148 + s, 148 : 148 + s] = True  # the body observed; 0.56 % of the frame
-    share, kept, left = _misaligned(f, m, m, np.zeros((2, n, n), np.float32), obs)
+    share, kept, left = _misaligned(_PairChecks(f, m, None), m, np.zeros((2, n, n), np.float32), obs)
     assert kept == pytest.approx(1.0, abs=1e-6)  # nothing explained
     assert left > 0.1 and share > 0.5

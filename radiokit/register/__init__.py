@@ -18,6 +18,8 @@ Methods: ``rc`` (cubic B-spline free-form deformation, residual complexity, Myro
 
 from __future__ import annotations
 
+import contextvars
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -258,6 +260,17 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
+    if _PAIRS.get() is not None:  # within a call that registers this pair again (auto, retry)
+        return _register(f, m, method, mask, retry, options)
+    token = _PAIRS.set({})
+    try:
+        return _register(f, m, method, mask, retry, options)
+    finally:
+        _PAIRS.reset(token)
+
+
+def _register(f, m, method, mask, retry, options) -> Registration:
+    """:func:`register` on checked images (``_check``'s)."""
     if method in BSPLINE_METHODS and options.get("preset") in AUTO_PRESETS:  # plain, then weak or silent
         from radiokit.register._auto import register_auto
 
@@ -347,20 +360,18 @@ def _assess(reg, f, m, mask, info, seconds):
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
     field itself is not binned); det J at full resolution."""
     q = reg.quality
-    k = _assess_binning(f.size)
+    p = _pair_checks(f, m, mask)
+    k = p.k
     if k > 1:
-        f, m, mask_s = _bin_pair(f, m, mask, k)
         db = _bin(reg.displacement, k) / np.float32(k)
-        w = warp(m, db)
+        w = warp(p.m, db)
     else:
         w = reg.warp(m)
         db = reg.displacement
-        mask_s = mask
-    unit = _range_unit(f, mask_s)  # alpha is in the range's units, whatever the image's
-    q.rc_before = residual_complexity((m - f) * unit, mask_s)
-    q.rc_after = residual_complexity((w - f) * unit, mask_s)
-    q.ncc_before = ncc(m, f, mask_s)
-    q.ncc_after = ncc(w, f, mask_s)
+    q.rc_before = p.rc_before
+    q.rc_after = residual_complexity((w - p.f) * p.unit, p.mask)
+    q.ncc_before = p.ncc_before
+    q.ncc_after = ncc(w, p.f, p.mask)
     det = jacobian_determinant(reg.displacement)
     if mask is not None:
         det = det[mask]
@@ -369,19 +380,86 @@ def _assess(reg, f, m, mask, info, seconds):
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
-    reasons, n_object = _observed(reg, f, m, np.nan_to_num(w), np.nan_to_num(db), mask_s, k)
+    reasons, n_object = _observed(reg, p, np.nan_to_num(w), np.nan_to_num(db))
     n_object = mask.sum() if mask is not None else n_object * k * k  # full-resolution pixels
     if not np.all(np.isfinite(reg.displacement)):
         reasons.append("non-finite displacement")
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
-    if q.rc_after > q.rc_before + _rounding_rc(f, unit):
+    if q.rc_after > q.rc_before + _rounding_rc(p.f, p.unit):
         reasons.append(f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before")
     if not q.converged:
         reasons.append(info.get("message", "did not converge"))
     q.ok = not reasons
     q.reason = "; ".join(reasons)
+
+
+# One register() call may check one pair several times: ``auto`` registers it two or three
+# times, ``retry`` twice, and rc's abandon_px measures fields of it while it runs. What the
+# checks compute from the pair alone (_PairChecks: at 2240 a third of rc fast's checks) is then
+# computed once: register() holds a memo of them for the call, keyed by the checked arrays
+# themselves (kept in the memo, so that their ids stay theirs).
+_PAIRS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("radiokit_register_pairs", default=None)
+
+
+def _pair_checks(f, m, mask) -> _PairChecks:
+    """The checks' pair-only part for ``f``, ``m``, ``mask`` (full resolution): the memo's, when
+    this register() call has already computed it."""
+    memo = _PAIRS.get()
+    key = (id(f), id(m), id(mask))
+    if memo is not None and key in memo:
+        return memo[key][1]
+    checks = _PairChecks(f, m, mask)
+    if memo is not None:
+        memo[key] = ((f, m, mask), checks)
+    return checks
+
+
+class _PairChecks:
+    """What the checks measure on the pair alone, before any field: the pair binned as the
+    checks see it (``k``; ``f``, ``m``, ``mask`` binned), the range's unit, the confidence map
+    (``ob``, ``obs`` its observed object, ``inner`` the object's interior), and, when first
+    needed, the similarities before, the fixed image's part of the residual tests and the
+    moving image's excess (``before``)."""
+
+    def __init__(self, f, m, mask):
+        from radiokit.register import _confidence as C
+
+        self.k = k = _assess_binning(f.size)
+        self.f, self.m, self.mask = _bin_pair(f, m, mask, k) if k > 1 else (f, m, mask)
+        self.unit = _range_unit(self.f, self.mask)  # alpha is in the range's units, whatever the image's
+        # the bound in full-resolution pixels, as the field's error is judged: binning by k divides
+        # a bound in binned pixels by k (a 2240 frame's textureless interior read 65 % observed in
+        # binned pixels, 27 % in its own)
+        self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k)
+        self.obs = (self.ob.confidence >= 0.5) & self.ob.object
+        self.inner = _interior(self.ob.object)
+
+    @functools.cached_property
+    def rc_before(self) -> float:
+        return residual_complexity((self.m - self.f) * self.unit, self.mask)
+
+    @functools.cached_property
+    def ncc_before(self) -> float:
+        return ncc(self.m, self.f, self.mask)
+
+    @functools.cached_property
+    def consistency(self):
+        from radiokit.register import _confidence as C
+
+        return C.Consistency(self.f, _WINDOW)
+
+    @functools.cached_property
+    def before(self) -> np.ndarray:
+        """The moving image's excess over the noise (``consistency - 1``), two noisy images."""
+        return self.consistency(self.m, support=self.mask) - 1.0
+
+    @functools.cached_property
+    def motion(self):
+        from radiokit.register import _confidence as C
+
+        return C.ResidualMotion(self.f, _STEP_WINDOW)
 
 
 # The confidence map and the checks are computed on the pair binned to ~0.4 Mpx with a window of
@@ -458,34 +536,28 @@ _MAX_KEPT = 0.5
 _MAX_FOLDS = 1e-3
 
 
-def _observed(reg, f, m, w, d, mask, k=1):
+def _observed(reg, p, w, d):
     """Fill ``reg.confidence`` (full resolution) and the quality's observability fields from
-    the fixed, moving and warped moving images ``f``, ``m``, ``w`` binned by ``k``; the reasons
-    for not ok, and the object's size (binned pixels). The residual's motion is reported in
-    full-resolution pixels, as the error it stands for is judged (a 2240 frame's step is taken
-    on the pair binned by 4)."""
+    the pair's checks ``p`` (:class:`_PairChecks`, binned by ``p.k``) and the warped moving image
+    ``w`` and field ``d`` binned as they are; the reasons for not ok, and the object's size
+    (binned pixels). The residual's motion is reported in full-resolution pixels, as the error
+    it stands for is judged (a 2240 frame's step is taken on the pair binned by 4)."""
     import cv2
 
-    from radiokit.register import _confidence as C
-
     q = reg.quality
-    # the bound in full-resolution pixels, as the field's error is judged: binning by k divides
-    # a bound in binned pixels by k (a 2240 frame's textureless interior read 65 % observed in
-    # binned pixels, 27 % in its own)
-    ob = C.observability(f, _WINDOW, mask, bound_scale=k)
+    ob, k = p.ob, p.k
     rows, cols = reg.displacement.shape[1:]
     conf = ob.confidence
     if conf.shape != (rows, cols):
         conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
     reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
-    obs = (ob.confidence >= 0.5) & ob.object
+    obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
     q.noise = ob.sigma
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
-    inner = _interior(ob.object)
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
-    q.misaligned_fraction, q.excess_kept, left = _misaligned(f, m, w, d, obs, mask)
-    q.residual_motion = _residual_step(f, w, obs, k)
+    q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, obs)
+    q.residual_motion = _residual_step(p, w, obs)
     reasons = []
     if q.interior_observed < _MIN_OBSERVED:
         q.body_scale = k * _body_scale(d, ob.object, obs, inner)
@@ -514,15 +586,13 @@ def _observed(reg, f, m, w, d, mask, k=1):
     return reasons, n_obj
 
 
-def _residual_step(f, w, obs, k) -> float:
+def _residual_step(p, w, obs) -> float:
     """``Quality.residual_motion``: the median over ``obs`` of one Gauss-Newton step on the
-    residual ``w - f`` (images binned by ``k``), in full-resolution pixels; NaN when nothing is
-    observed."""
-    from radiokit.register import _confidence as C
-
+    residual of the warped moving image ``w`` against the pair's fixed image (``p``, binned by
+    ``p.k``), in full-resolution pixels; NaN when nothing is observed."""
     if not obs.any():
         return float("nan")
-    return k * float(np.median(C.residual_motion(f, w, _STEP_WINDOW)[obs]))
+    return p.k * float(np.median(p.motion(w)[obs]))
 
 
 def coarse_residual_motion(fixed, moving, mask):
@@ -530,14 +600,9 @@ def coarse_residual_motion(fixed, moving, mask):
     ``motion(d)``, the ``Quality.residual_motion`` of a field ``d`` of that shape (in its pixels), as
     ``register``'s checks measure it. rc's ``abandon_px`` stops a run with it before its finest
     level, where the checks would see the same misalignment at several times the cost; the binned
-    pair and its observed part are computed once, for every field measured."""
-    from radiokit.register import _confidence as C
-
-    k = _assess_binning(fixed.size)
-    fb, mb, maskb = _bin_pair(fixed, moving, mask, k)
-    ob = C.observability(fb, _WINDOW, maskb, bound_scale=k)
-    obs = (ob.confidence >= 0.5) & ob.object
-    return k, fb.shape, lambda d: _residual_step(fb, np.nan_to_num(warp(mb, d)), obs, k)
+    pair and its observed part are computed once (:func:`_pair_checks`), for every field measured."""
+    p = _pair_checks(fixed, moving, mask)
+    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(warp(p.m, d)), p.obs)
 
 
 def _body_scale(d, obj, obs, inner) -> float:
@@ -592,21 +657,22 @@ def _interior(obj):
     return _erode(obj, int(round(_INTERIOR * _WINDOW)))
 
 
-def _misaligned(f, m, w, d, obs, mask=None):
-    """``(share, kept, left)``: the share of ``obs`` where the residual ``w - f`` exceeds the noise's
-    expected share by more than _EXCESS of it, and by more than a quarter of the excess before
-    registering (which keeps interpolation error on noise-free data from counting); and the mean
-    excess after registering against before over the part of ``obs`` whose excess before was over
-    _EXCESS (``Quality.excess_kept``), and that mean excess after; NaN when that part is under 1 %
-    of ``obs`` (nothing misaligned to keep) or nothing is observed."""
+def _misaligned(p, w, d, obs):
+    """``(share, kept, left)``: the share of ``obs`` where the residual of the warped moving image
+    ``w`` (field ``d``) against the pair's fixed image (``p``: :class:`_PairChecks`, its images
+    binned) exceeds the noise's expected share by more than _EXCESS of it, and by more than a
+    quarter of the excess before registering (which keeps interpolation error on noise-free data
+    from counting); and the mean excess after registering against before over the part of ``obs``
+    whose excess before was over _EXCESS (``Quality.excess_kept``), and that mean excess after;
+    NaN when that part is under 1 % of ``obs`` (nothing misaligned to keep) or nothing is
+    observed."""
     from radiokit.register import _confidence as C
 
     if not obs.any():
         return float("nan"), float("nan"), float("nan")
-    sig = C.noise_map(f, _WINDOW)
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
-    after = C.consistency(f, w, _WINDOW, sig, factor, support=mask) - 1.0
-    before = C.consistency(f, m, _WINDOW, sig, support=mask) - 1.0
+    after = p.consistency(w, factor, support=p.mask) - 1.0
+    before = p.before
     bad = (after > _EXCESS) & (after * factor > 0.25 * 2.0 * np.maximum(before, 0))
     # kept: over the windows that showed misaligned structure before (a static structure the
     # field moves, such as a collimator's edge at a mask's border, adds excess where there was

@@ -77,7 +77,9 @@ __all__ = [
     "Observability",
     "roi_observed",
     "consistency",
+    "Consistency",
     "residual_motion",
+    "ResidualMotion",
     "interpolation_variance",
     "noise_sigma",
     "object_noise",
@@ -356,18 +358,31 @@ def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0, suppor
     gain change locally scales the image's structure; a misalignment ``d . grad f`` is not
     proportional to it). ``support`` (bool, optional): the residual outside it is taken as 0, so
     that what the caller's mask excludes (a collimator's static edge, which a field warps out of
-    place) does not reach the windows inside it."""
-    f = np.asarray(fixed, np.float32)
-    r = np.asarray(warped, np.float32) - f
-    if support is not None:
-        r = np.where(support, r, np.float32(0))
-    r = r - _gauss(r, spacing)
-    fh = f - _gauss(f, spacing)
-    s = noise_map(f, spacing) if sigma_map is None else sigma_map
-    rf = _gauss(r * fh, spacing)
-    ff = _gauss(fh * fh, spacing) + 1e-30
-    left = np.maximum(_gauss(r * r, spacing) - rf * rf / ff, 0)
-    return left / (noise_factor * s * s)
+    place) does not reach the windows inside it. :class:`Consistency` keeps the fixed image's
+    part for several warped images."""
+    return Consistency(fixed, spacing, sigma_map)(warped, noise_factor, support)
+
+
+class Consistency:
+    """:func:`consistency` against one fixed image: its high-pass, window power and noise map
+    computed once (the checks judge the moving image and every run's warped image against it)."""
+
+    def __init__(self, fixed, spacing, sigma_map=None):
+        f = np.asarray(fixed, np.float32)
+        self.fixed, self.spacing = f, spacing
+        self.fh = f - _gauss(f, spacing)
+        self.ff = _gauss(self.fh * self.fh, spacing) + 1e-30
+        self.sigma = noise_map(f, spacing) if sigma_map is None else sigma_map
+
+    def __call__(self, warped, noise_factor=2.0, support=None):
+        r = np.asarray(warped, np.float32) - self.fixed
+        if support is not None:
+            r = np.where(support, r, np.float32(0))
+        r = r - _gauss(r, self.spacing)
+        rf = _gauss(r * self.fh, self.spacing)
+        left = np.maximum(_gauss(r * r, self.spacing) - rf * rf / self.ff, 0)
+        s = self.sigma
+        return left / (noise_factor * s * s)
 
 
 def _window_mean(a, window):
@@ -394,25 +409,45 @@ def residual_motion(fixed, warped, window, highpass=0.25, smooth=3.0):
     correlates there after a misalignment of a pixel or two, and the noise is damped); in each
     window the residual is fitted as ``delta . grad f + a f + c``. The gain ``a`` takes a
     thinning or gain change, the constant ``c`` what the high-pass left of a slow one; ``delta``
-    follows in closed form (the 2 x 2 Schur complement of the gain)."""
-    f, w = np.asarray(fixed, np.float32), np.asarray(warped, np.float32)
-    fs = _gauss(f - _gauss(f, highpass * window), smooth)
-    r = _gauss(w - _gauss(w, highpass * window), smooth) - fs
-    gy, gx = np.gradient(fs)
-    means = {id(a): _window_mean(a, window) for a in (gy, gx, fs, r)}  # each channel's once
+    follows in closed form (the 2 x 2 Schur complement of the gain). :class:`ResidualMotion`
+    keeps the fixed image's part for several warped images."""
+    return ResidualMotion(fixed, window, highpass, smooth)(warped)
 
-    def cov(a, b):  # the window's covariance (its mean removed: the constant c)
-        return _window_mean(a * b, window) - means[id(a)] * means[id(b)]
 
-    syy, sxx, sxy = cov(gy, gy), cov(gx, gx), cov(gy, gx)
-    sff, syf, sxf = cov(fs, fs) + 1e-30, cov(gy, fs), cov(gx, fs)
-    ry, rx, rf = cov(gy, r), cov(gx, r), cov(fs, r)
-    # the gain eliminated: (J - c c^T / s) delta = u - c v / s
-    jyy, jxx, jxy = syy - syf * syf / sff, sxx - sxf * sxf / sff, sxy - syf * sxf / sff
-    uy, ux = ry - syf * rf / sff, rx - sxf * rf / sff
-    det = jyy * jxx - jxy * jxy
-    det = np.where(np.abs(det) > 1e-12 * (jyy + jxx) ** 2 + 1e-30, det, np.inf)  # silent: no step
-    return np.hypot((jxx * uy - jxy * ux) / det, (jyy * ux - jxy * uy) / det).astype(np.float32)
+class ResidualMotion:
+    """:func:`residual_motion` against one fixed image: its filtered image, gradient and their
+    window moments (the step's 2 x 2 system) computed once; a call adds the residual's."""
+
+    def __init__(self, fixed, window, highpass=0.25, smooth=3.0):
+        self.window, self.highpass, self.smooth = window, highpass, smooth
+        f = np.asarray(fixed, np.float32)
+        fs = _gauss(f - _gauss(f, highpass * window), smooth)
+        gy, gx = np.gradient(fs)
+        self.fs, self.gy, self.gx = fs, gy, gx
+        my, mx, mf = (_window_mean(a, window) for a in (gy, gx, fs))
+        self.my, self.mx, self.mf = my, mx, mf
+        syy, sxx, sxy = self._cov(gy, my, gy, my), self._cov(gx, mx, gx, mx), self._cov(gy, my, gx, mx)
+        sff, syf, sxf = self._cov(fs, mf, fs, mf) + 1e-30, self._cov(gy, my, fs, mf), self._cov(gx, mx, fs, mf)
+        # the gain eliminated: (J - c c^T / s) delta = u - c v / s
+        self.jyy, self.jxx, self.jxy = syy - syf * syf / sff, sxx - sxf * sxf / sff, sxy - syf * sxf / sff
+        self.syf, self.sxf, self.sff = syf, sxf, sff
+        det = self.jyy * self.jxx - self.jxy * self.jxy
+        # silent: no step
+        self.det = np.where(np.abs(det) > 1e-12 * (self.jyy + self.jxx) ** 2 + 1e-30, det, np.inf)
+
+    def _cov(self, a, ma, b, mb):
+        """The window's covariance of ``a`` and ``b`` (window means ``ma``, ``mb``): their means
+        removed, the fit's constant ``c``."""
+        return _window_mean(a * b, self.window) - ma * mb
+
+    def __call__(self, warped):
+        w = np.asarray(warped, np.float32)
+        r = _gauss(w - _gauss(w, self.highpass * self.window), self.smooth) - self.fs
+        mr = _window_mean(r, self.window)
+        ry, rx, rf = (self._cov(a, ma, r, mr) for a, ma in ((self.gy, self.my), (self.gx, self.mx), (self.fs, self.mf)))
+        uy, ux = ry - self.syf * rf / self.sff, rx - self.sxf * rf / self.sff
+        jyy, jxx, jxy, det = self.jyy, self.jxx, self.jxy, self.det
+        return np.hypot((jxx * uy - jxy * ux) / det, (jyy * ux - jxy * uy) / det).astype(np.float32)
 
 
 def roi_observed(confidence, roi) -> float:
