@@ -260,9 +260,9 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
-    if _PAIRS.get() is not None:  # within a call that registers this pair again (auto, retry)
+    if _memo_of(f, m, mask) is not None:  # within a call that registers this pair again (auto, retry)
         return _register(f, m, method, mask, retry, options)
-    token = _PAIRS.set({})
+    token = _PAIRS.set(_Memo((f, m, mask)))
     try:
         return _register(f, m, method, mask, retry, options)
     finally:
@@ -398,22 +398,35 @@ def _assess(reg, f, m, mask, info, seconds):
 # One register() call may check one pair several times: ``auto`` registers it two or three
 # times, ``retry`` twice, and rc's abandon_px measures fields of it while it runs. What the
 # checks compute from the pair alone (_PairChecks: at 2240 a third of rc fast's checks) is then
-# computed once: register() holds a memo of them for the call, keyed by the checked arrays
-# themselves (kept in the memo, so that their ids stay theirs).
-_PAIRS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("radiokit_register_pairs", default=None)
+# computed once: register() holds it for the call, for the pair it checked only (the very
+# arrays: a binned run's pair, or another pair a callback registers, is checked afresh, and
+# nothing of it is kept past its use).
+@dataclass
+class _Memo:
+    pair: tuple
+    checks: _PairChecks | None = None
+
+
+_PAIRS: contextvars.ContextVar[_Memo | None] = contextvars.ContextVar("radiokit_register_pair", default=None)
+
+
+def _memo_of(f, m, mask) -> _Memo | None:
+    """The memo of this register() call when it is for these very arrays, else None."""
+    memo = _PAIRS.get()
+    if memo is not None and all(a is b for a, b in zip(memo.pair, (f, m, mask))):
+        return memo
+    return None
 
 
 def _pair_checks(f, m, mask) -> _PairChecks:
-    """The checks' pair-only part for ``f``, ``m``, ``mask`` (full resolution): the memo's, when
-    this register() call has already computed it."""
-    memo = _PAIRS.get()
-    key = (id(f), id(m), id(mask))
-    if memo is not None and key in memo:
-        return memo[key][1]
-    checks = _PairChecks(f, m, mask)
-    if memo is not None:
-        memo[key] = ((f, m, mask), checks)
-    return checks
+    """The checks' pair-only part for ``f``, ``m``, ``mask`` (full resolution): the call's, when
+    it is the pair register() checked (computed the first time)."""
+    memo = _memo_of(f, m, mask)
+    if memo is None:
+        return _PairChecks(f, m, mask)
+    if memo.checks is None:
+        memo.checks = _PairChecks(f, m, mask)
+    return memo.checks
 
 
 class _PairChecks:
@@ -428,13 +441,20 @@ class _PairChecks:
 
         self.k = k = _assess_binning(f.size)
         self.f, self.m, self.mask = _bin_pair(f, m, mask, k) if k > 1 else (f, m, mask)
-        self.unit = _range_unit(self.f, self.mask)  # alpha is in the range's units, whatever the image's
         # the bound in full-resolution pixels, as the field's error is judged: binning by k divides
         # a bound in binned pixels by k (a 2240 frame's textureless interior read 65 % observed in
         # binned pixels, 27 % in its own)
         self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k)
         self.obs = (self.ob.confidence >= 0.5) & self.ob.object
-        self.inner = _interior(self.ob.object)
+
+    @functools.cached_property
+    def unit(self) -> np.float32:
+        """Alpha is in the range's units, whatever the image's (:func:`_range_unit`)."""
+        return _range_unit(self.f, self.mask)
+
+    @functools.cached_property
+    def inner(self) -> np.ndarray:
+        return _interior(self.ob.object)
 
     @functools.cached_property
     def rc_before(self) -> float:
