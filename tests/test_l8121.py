@@ -1129,6 +1129,34 @@ def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect
     assert not model.xray_on and src.tube_confirmed_off
 
 
+@pytest.mark.parametrize("command", ["SIN", "XOF"])
+def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(warm, dialect, command, caplog):
+    """A brief read error while the reply to ``command`` is on its way (the port stays: the
+    controller was never lost): the transport reopens the port and asks the identity query, and
+    the late reply comes then, before the check's own. The check read it as its answer and refused
+    the controller ("not trusted"): a reading failed, and a switch-off ended on "may be on" for a
+    tube that was off. Now the command is owed its reply across the reopen: the late reply is
+    discarded by the dialect's grammar, the check reads its own answer, the command, sent again,
+    its own."""
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    check = IDENTITY_QUERY[dialect]
+    with driver(server, dialect) as src:
+        if command == "XOF":
+            src.on(60, 250)
+        model.hold_once(command)  # sent before the reply to the next line: the check's
+        model.inject_after(command, server.read_error)
+        n = len(model.log)
+        if command == "XOF":
+            assert src.off() == SourceState.STANDBY and src.tube_confirmed_off
+        else:
+            assert src.interlock_closed() is True
+        sent = [e.command for e in model.log[n:]]
+        assert sent[:3] == [command, check, command], sent
+    assert not model.xray_on
+    assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
+
+
 def _check_into(src, errors):
     """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
     try:
