@@ -183,9 +183,15 @@ class SerialTransport:
         return self._serial is not None and self._serial.is_open
 
     def open(self) -> None:
-        """Open the port (8N1, DTR and RTS asserted); a no-op when it is open."""
-        if self.is_open:
-            return
+        """Open the port (8N1, DTR and RTS asserted); a no-op when it is open. An open of a
+        transport opened before is a reconnect, whoever closed it: :attr:`on_reconnect` checks the
+        device now behind the port (the path may lead elsewhere since), and its refusal closes the
+        port and is raised."""
+        with self._lock:  # the check is an exchange: not interleaved with another thread's
+            if not self.is_open:
+                self._reopen(None, None)
+
+    def _open_port(self) -> None:
         try:
             ser = serial.serial_for_url(self.url, do_not_open=True)
             ser.baudrate = self.baudrate
@@ -288,13 +294,13 @@ class SerialTransport:
                     )
                     lost = exc  # reopened at the top of the loop, where a link lost again is retried
 
-    def _reopen(self, command: str, lost: BaseException | None) -> None:
-        """Open the port again and, when it was open before, let :attr:`on_reconnect` check the
-        device now behind it before ``command`` goes out. ``lost``: the error that closed the link
-        within this query (named in the message), or None."""
+    def _reopen(self, command: str | None, lost: BaseException | None) -> None:
+        """Open the port (the lock held) and, when it was open before, let :attr:`on_reconnect`
+        check the device now behind it before ``command`` (None: :meth:`open`'s) goes out.
+        ``lost``: the error that closed the link within this query (named in the message), or None."""
         reconnect = self._opened_once
         try:
-            self.open()
+            self._open_port()
             if reconnect and self.on_reconnect is not None:
                 try:
                     self.on_reconnect(self._ask)

@@ -217,6 +217,32 @@ def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuse
     assert asked == ["TYP L8121-01"] * 2 and model.commands[-3:] == ["TYP", "TYP", "SIN"]
 
 
+def test_an_explicit_reopen_is_a_reconnect_and_asks_on_reconnect():
+    """The caller's own ``close()`` then ``open()``: the device behind the path may have changed
+    while the port was closed, so the open is a reconnect and ``on_reconnect`` checks the device
+    before any command goes out (before, only a reopen within a query did: the next command went
+    to a device never checked). A refusal closes the port and raises from ``open()``."""
+    model = L8121Model(warmed_up=True)
+    asked = []
+
+    def check(ask):
+        asked.append(ask("TYP"))
+        if len(asked) == 2:
+            raise DeviceError("not the one")
+
+    with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=0.02) as lnk:
+        lnk.on_reconnect = check
+        assert lnk.query("STS") == "STS 2" and asked == []
+        lnk.close()
+        lnk.open()
+        assert asked == ["TYP L8121-01"] and lnk.is_open
+        lnk.close()
+        with pytest.raises(DeviceError, match="not the one"):
+            lnk.open()
+        assert not lnk.is_open
+    assert model.commands == ["STS", "TYP", "TYP"]
+
+
 def test_transport_gives_up_when_the_device_is_gone(tmp_path):
     model = L8121Model(warmed_up=True)
     server = PtyServer(model).start()
