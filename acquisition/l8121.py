@@ -1404,7 +1404,7 @@ class L8121:
             transport.reply_fits = self.dialect.reply_fits
         # a check already there is kept: the guardian's knows the model its client's connect read
         if hasattr(transport, "on_reconnect") and transport.on_reconnect is None:
-            # the model connect will read (_check_identity updates it), else the configured one
+            # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one
             self._reidentify = Reidentify(self.dialect, self.identity or self.config.model, self.port)
             transport.on_reconnect = self._reidentify
 
@@ -1619,6 +1619,10 @@ class L8121:
             )
         logger.info("%s", result.summary())
         self._use(DIALECTS[result.dialect], result.baudrate)
+        # the model the probe's TYP found (None in B): with model=None, what a reconnect must find
+        # (_give_grammar's Reidentify, and the guardian's through resolved_config) until connect's
+        # TYP reads it again -- not "any model", which let another unit behind the path pass
+        self.identity = result.identity
 
     def _check_identity(self) -> None:
         first = "identity" if "identity" in self.dialect.readings else "operate_switch"
@@ -1739,13 +1743,16 @@ class L8121:
         return f"L8121({self.port!r}, dialect {dialect}, {'connected' if self.is_connected else 'not connected'})"
 
     def resolved_config(self) -> SourceConfig:
-        """This configuration with the dialect and baud rate in use (after ``auto``, what the probe
-        found): what a second process talking to the same unit (a guardian) should use, so that it
+        """This configuration with the dialect, baud rate and model in use (after ``auto``, what
+        the probe found): what a second process talking to the same unit (a guardian) should use, so that it
         connects without probing again."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
         return dataclasses.replace(
             self.config,
+            # the model found (the probe's or connect's TYP), so the guardian's reconnect check
+            # asks for it, not for any model, when none was configured
+            model=self.config.model or self.identity,
             dialect=self.dialect.name,
             baudrate=self.baudrate,
             voltage_scale=self.voltage_scale,

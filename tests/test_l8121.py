@@ -1183,6 +1183,37 @@ def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(wa
     assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
 
 
+def test_after_auto_a_reconnect_checks_the_model_the_probe_found(tmp_path):
+    """``dialect="auto"``, ``model=None``: the probe's TYP found the L8121-01 at the port. The link
+    is lost during connect's own TYP and the path then leads to another model (a re-plugged
+    adapter). The reconnect check was given the configured model, None, and accepted any: connect
+    took the L9181-02 for the unit probed. Now it is given the model the probe found, and refuses."""
+    model = L8121Model(warmed_up=True)
+    other = L8121Model(warmed_up=True, model="L9181-02")
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(other) as second:
+        os.symlink(first.url, port)
+
+        def lose():
+            _repoint(port, second.url)
+            first.read_error()  # the port's path is reopened: it leads to the other unit now
+
+        model.inject_after("TYP", lambda: model.inject_after("TYP", lose))  # the probe's TYP, then connect's
+        with pytest.raises(DeviceError, match="not the 'L8121-01' connected to"):
+            L8121(str(port), dialect="auto", model=None, **FAST)
+    assert model.commands.count("TYP") == 2 and set(other.commands) <= {"TYP"}, other.commands
+
+
+def test_resolve_gives_the_guardian_the_model_the_probe_found(warm):
+    """The guardian's reconnect check is built from the resolved configuration: with
+    ``model=None`` it asked for any model until connect's TYP passed through. It now carries the
+    model the probe found (dialect A; B has no identity query: None)."""
+    model, server = warm
+    resolved = L8121(server.url, dialect="auto", model=None, connect=False, **FAST).resolve()
+    assert resolved.dialect == model.dialect
+    assert resolved.model == ("L8121-01" if model.dialect == "A" else None)
+
+
 def _check_into(src, errors):
     """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
     try:
