@@ -1910,6 +1910,18 @@ def test_cli_source_time_outs_that_are_not_a_positive_finite_time_are_refused(op
     )
 
 
+@pytest.mark.parametrize("value", ["10.5", "1e9"])
+def test_cli_source_a_reply_timeout_beyond_the_bound_is_refused(value):
+    """--reply-timeout had no upper bound: 1e9 made each wait of a switch-off a wait for ever."""
+    from conftest import run_cli
+
+    res = run_cli("acquire", "source", "off", "--port", "/dev/null", "--reply-timeout", value)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"error: --reply-timeout {float(value):g}: at most 10 s (a controller silent that long has "
+        "failed, L8121.md; each wait of a switch-off is one); nothing was sent"
+    )
+
+
 def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     from radiokit.cli import main
 
