@@ -1817,6 +1817,7 @@ class L8121:
             raise error
         if reply in ("ERR", "ERROR") and not (query is not None and query.error_is_value):
             err = DeviceError(f"{self.port}: {line} refused by the controller ({reply})")
+            err.refused = True  # the controller answered, and will not act (off() asks it why)
             if query is not None:  # a query is never refused by a working controller: as bad as garbage
                 self._fail_safe(err)
             raise err
@@ -2557,7 +2558,9 @@ class L8121:
         B's ambiguous ``ERROR``). Tries ``off_attempts`` times: ``XOF``, then ``STS`` every
         ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
         down), but not again after an attempt that got no reply to either (a silent controller:
-        each further attempt would cost two reply time-outs before the operator is told). Returns
+        each further attempt would cost two reply time-outs before the operator is told), nor
+        after a refused ``XOF`` whose reason the controller gives (B's operate switch off
+        ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``, no ramp-down). Returns
         the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
         :attr:`off_failed`.
 
@@ -2579,18 +2582,23 @@ class L8121:
                 return self._off_state
             self._off_thread, self._off_running = me, True
             self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
-        attempts, last, silent = int(self.config.off_attempts), None, False
+        attempts, last, silent, why = int(self.config.off_attempts), None, False, None
         window = max(float(self.config.off_confirm_s), 0.0) / attempts
         try:
             for attempt in range(attempts):
                 if attempt:
                     time.sleep(self.config.poll_s)
+                refused = False
                 try:
                     self._do("xray_off")
                     silent = False
                 except DeviceError as exc:
                     last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
-                state, last, silent = self._await_off(time.monotonic() + window, last, silent)
+                    refused = getattr(exc, "refused", False)
+                # a refused XOF changed nothing: one STS says whether the tube was off already; no
+                # ramp-down to wait for
+                until = time.monotonic() + (0.0 if refused else window)
+                state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
@@ -2599,8 +2607,15 @@ class L8121:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
                     # reaches nobody; the operator must hear it now
                     break
+                told = self._why_not_remote() if refused else ""
+                if told:
+                    # the controller says it will not act (B's operate switch off REMOTE): every
+                    # further XOF is refused alike until someone turns it; the operator must hear it now
+                    why = told
+                    break
             # still inside: a failed query here must not call off() again; a silent one is not asked
-            why = "; the controller does not answer" if silent else self._why_not_remote()
+            if why is None:
+                why = "; the controller does not answer" if silent else self._why_not_remote()
             tried = f"{attempt + 1} attempt(s)"
             self.off_failed = DeviceError(
                 f"{self.port}: could not confirm X-rays off after {tried} "

@@ -1313,6 +1313,26 @@ def test_operate_switch_turned_to_local_while_on(source, dialect):
 
 
 @pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_b_xof_refused_off_remote_ends_the_switch_off_at_once(switch):
+    """B off REMOTE refuses XOF (ERROR) and says why (SRL): it will not act on any further XOF.
+    The switch-off asked STS for the whole off_confirm_s (three attempts, a ramp-down waited for
+    that cannot come) before the operator heard it; now one STS (the tube may have been off
+    already) and SRL, and it ends on the same error, at once."""
+    model = L8121Model(dialect="B", warmup_s=WARMUP_S, ramp_s=RAMP_S, warmed_up=True)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        src.on(60, 250)
+        model.set_operate_switch(switch)
+        n = len(model.log)
+        with pytest.raises(
+            DeviceError, match=f"could not confirm X-rays off after 1 attempt.*operate switch is {switch}"
+        ):
+            src.off()
+        assert [e.command for e in model.log[n:]] == ["XOF", "STS", "SRL"]
+        assert model.xray_on and not src.tube_confirmed_off
+        model.set_operate_switch("REMOTE")
+
+
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
 def test_emulator_a_accepts_xof_whatever_the_operate_switch(dialect, switch):
     """L8121.md, dialect A: "XOF | XOF | X-rays off; always accepted"; a rejected command is one
     "not in remote mode" among others, so every other control command is refused there. B's notes
