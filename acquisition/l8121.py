@@ -1404,7 +1404,7 @@ class L8121:
             transport.reply_fits = self.dialect.reply_fits
         # a check already there is kept: the guardian's knows the model its client's connect read
         if hasattr(transport, "on_reconnect") and transport.on_reconnect is None:
-            # the model connect will read (_check_identity updates it), else the configured one
+            # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one
             self._reidentify = Reidentify(self.dialect, self.identity or self.config.model, self.port)
             transport.on_reconnect = self._reidentify
 
@@ -1619,6 +1619,10 @@ class L8121:
             )
         logger.info("%s", result.summary())
         self._use(DIALECTS[result.dialect], result.baudrate)
+        # the model the probe's TYP found (None in B): with model=None, what a reconnect must find
+        # (_give_grammar's Reidentify, and the guardian's through resolved_config) until connect's
+        # TYP reads it again -- not "any model", which let another unit behind the path pass
+        self.identity = result.identity
 
     def _check_identity(self) -> None:
         first = "identity" if "identity" in self.dialect.readings else "operate_switch"
@@ -1739,13 +1743,16 @@ class L8121:
         return f"L8121({self.port!r}, dialect {dialect}, {'connected' if self.is_connected else 'not connected'})"
 
     def resolved_config(self) -> SourceConfig:
-        """This configuration with the dialect and baud rate in use (after ``auto``, what the probe
-        found): what a second process talking to the same unit (a guardian) should use, so that it
+        """This configuration with the dialect, baud rate and model in use (after ``auto``, what
+        the probe found): what a second process talking to the same unit (a guardian) should use, so that it
         connects without probing again."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
         return dataclasses.replace(
             self.config,
+            # the model found (the probe's or connect's TYP), so the guardian's reconnect check
+            # asks for it, not for any model, when none was configured
+            model=self.config.model or self.identity,
             dialect=self.dialect.name,
             baudrate=self.baudrate,
             voltage_scale=self.voltage_scale,
@@ -1810,6 +1817,7 @@ class L8121:
             raise error
         if reply in ("ERR", "ERROR") and not (query is not None and query.error_is_value):
             err = DeviceError(f"{self.port}: {line} refused by the controller ({reply})")
+            err.refused = True  # the controller answered, and will not act (off() asks it why)
             if query is not None:  # a query is never refused by a working controller: as bad as garbage
                 self._fail_safe(err)
             raise err
@@ -2550,7 +2558,9 @@ class L8121:
         B's ambiguous ``ERROR``). Tries ``off_attempts`` times: ``XOF``, then ``STS`` every
         ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
         down), but not again after an attempt that got no reply to either (a silent controller:
-        each further attempt would cost two reply time-outs before the operator is told). Returns
+        each further attempt would cost two reply time-outs before the operator is told), nor
+        after a refused ``XOF`` whose reason the controller gives (B's operate switch off
+        ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``, no ramp-down). Returns
         the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
         :attr:`off_failed`.
 
@@ -2572,18 +2582,23 @@ class L8121:
                 return self._off_state
             self._off_thread, self._off_running = me, True
             self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
-        attempts, last, silent = int(self.config.off_attempts), None, False
+        attempts, last, silent, why = int(self.config.off_attempts), None, False, None
         window = max(float(self.config.off_confirm_s), 0.0) / attempts
         try:
             for attempt in range(attempts):
                 if attempt:
                     time.sleep(self.config.poll_s)
+                refused = False
                 try:
                     self._do("xray_off")
                     silent = False
                 except DeviceError as exc:
                     last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
-                state, last, silent = self._await_off(time.monotonic() + window, last, silent)
+                    refused = getattr(exc, "refused", False)
+                # a refused XOF changed nothing: one STS says whether the tube was off already; no
+                # ramp-down to wait for
+                until = time.monotonic() + (0.0 if refused else window)
+                state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
@@ -2592,8 +2607,15 @@ class L8121:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
                     # reaches nobody; the operator must hear it now
                     break
+                told = self._why_not_remote() if refused else ""
+                if told:
+                    # the controller says it will not act (B's operate switch off REMOTE): every
+                    # further XOF is refused alike until someone turns it; the operator must hear it now
+                    why = told
+                    break
             # still inside: a failed query here must not call off() again; a silent one is not asked
-            why = "; the controller does not answer" if silent else self._why_not_remote()
+            if why is None:
+                why = "; the controller does not answer" if silent else self._why_not_remote()
             tried = f"{attempt + 1} attempt(s)"
             self.off_failed = DeviceError(
                 f"{self.port}: could not confirm X-rays off after {tried} "

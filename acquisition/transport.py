@@ -183,9 +183,15 @@ class SerialTransport:
         return self._serial is not None and self._serial.is_open
 
     def open(self) -> None:
-        """Open the port (8N1, DTR and RTS asserted); a no-op when it is open."""
-        if self.is_open:
-            return
+        """Open the port (8N1, DTR and RTS asserted); a no-op when it is open. An open of a
+        transport opened before is a reconnect, whoever closed it: :attr:`on_reconnect` checks the
+        device now behind the port (the path may lead elsewhere since), and its refusal closes the
+        port and is raised."""
+        with self._lock:  # the check is an exchange: not interleaved with another thread's
+            if not self.is_open:
+                self._reopen(None, None)
+
+    def _open_port(self) -> None:
         try:
             ser = serial.serial_for_url(self.url, do_not_open=True)
             ser.baudrate = self.baudrate
@@ -203,7 +209,11 @@ class SerialTransport:
         self._serial = ser
         self._opened_once = True
         self._pending = None  # (a reconnect repeats the command itself)
-        self._owed = []  # a new link: nothing on it answers an old one's commands
+        # self._owed is kept: the same controller behind the port (a brief read error, a re-plugged
+        # adapter, a terminal server) still answers the commands the old link wrote, and a reply
+        # that comes now must not be read as the reconnect check's or the resent command's; each
+        # is owed only within its window (_forget_overdue), and a device that is not the one
+        # connected to is refused by the check, not by these
         # The spacing is the controller's need, not this object's: another link (the probe's, a
         # guardian's, this one before a reconnect) may have had a reply just before the port was
         # opened, so the first command waits min_interval_s as if one had ended now.
@@ -284,13 +294,13 @@ class SerialTransport:
                     )
                     lost = exc  # reopened at the top of the loop, where a link lost again is retried
 
-    def _reopen(self, command: str, lost: BaseException | None) -> None:
-        """Open the port again and, when it was open before, let :attr:`on_reconnect` check the
-        device now behind it before ``command`` goes out. ``lost``: the error that closed the link
-        within this query (named in the message), or None."""
+    def _reopen(self, command: str | None, lost: BaseException | None) -> None:
+        """Open the port (the lock held) and, when it was open before, let :attr:`on_reconnect`
+        check the device now behind it before ``command`` (None: :meth:`open`'s) goes out.
+        ``lost``: the error that closed the link within this query (named in the message), or None."""
         reconnect = self._opened_once
         try:
-            self.open()
+            self._open_port()
             if reconnect and self.on_reconnect is not None:
                 try:
                     self.on_reconnect(self._ask)
@@ -340,14 +350,18 @@ class SerialTransport:
         t0 = time.monotonic()
         self._rx = bytearray()
         self.log.debug("%s > %s", self.url, command)
+        written = False
         try:
             self.commands_written += 1
             self._write(ser, command, payload)
+            written = True
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
-            if isinstance(exc, NoReply):  # its reply may still come, after the next command is sent:
-                # owed for one more reply time-out from now (not from the send: the wait's last
-                # slice and a stall before the next command ate into a window counted from there)
+            if isinstance(exc, NoReply) or (written and isinstance(exc, _LINK_ERRORS)):
+                # its reply may still come, after the next command is sent -- after a read error,
+                # on the reopened port, before the reply to the reconnect check: owed for one more
+                # reply time-out from now (not from the send: the wait's last slice and a stall
+                # before the next command ate into a window counted from there)
                 self._owed.append((command, time.monotonic() + self.timeout_s))
             if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way

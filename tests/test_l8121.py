@@ -217,6 +217,32 @@ def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuse
     assert asked == ["TYP L8121-01"] * 2 and model.commands[-3:] == ["TYP", "TYP", "SIN"]
 
 
+def test_an_explicit_reopen_is_a_reconnect_and_asks_on_reconnect():
+    """The caller's own ``close()`` then ``open()``: the device behind the path may have changed
+    while the port was closed, so the open is a reconnect and ``on_reconnect`` checks the device
+    before any command goes out (before, only a reopen within a query did: the next command went
+    to a device never checked). A refusal closes the port and raises from ``open()``."""
+    model = L8121Model(warmed_up=True)
+    asked = []
+
+    def check(ask):
+        asked.append(ask("TYP"))
+        if len(asked) == 2:
+            raise DeviceError("not the one")
+
+    with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=0.02) as lnk:
+        lnk.on_reconnect = check
+        assert lnk.query("STS") == "STS 2" and asked == []
+        lnk.close()
+        lnk.open()
+        assert asked == ["TYP L8121-01"] and lnk.is_open
+        lnk.close()
+        with pytest.raises(DeviceError, match="not the one"):
+            lnk.open()
+        assert not lnk.is_open
+    assert model.commands == ["STS", "TYP", "TYP"]
+
+
 def test_transport_gives_up_when_the_device_is_gone(tmp_path):
     model = L8121Model(warmed_up=True)
     server = PtyServer(model).start()
@@ -1129,6 +1155,65 @@ def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect
     assert not model.xray_on and src.tube_confirmed_off
 
 
+@pytest.mark.parametrize("command", ["SIN", "XOF"])
+def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(warm, dialect, command, caplog):
+    """A brief read error while the reply to ``command`` is on its way (the port stays: the
+    controller was never lost): the transport reopens the port and asks the identity query, and
+    the late reply comes then, before the check's own. The check read it as its answer and refused
+    the controller ("not trusted"): a reading failed, and a switch-off ended on "may be on" for a
+    tube that was off. Now the command is owed its reply across the reopen: the late reply is
+    discarded by the dialect's grammar, the check reads its own answer, the command, sent again,
+    its own."""
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    check = IDENTITY_QUERY[dialect]
+    with driver(server, dialect) as src:
+        if command == "XOF":
+            src.on(60, 250)
+        model.hold_once(command)  # sent before the reply to the next line: the check's
+        model.inject_after(command, server.read_error)
+        n = len(model.log)
+        if command == "XOF":
+            assert src.off() == SourceState.STANDBY and src.tube_confirmed_off
+        else:
+            assert src.interlock_closed() is True
+        sent = [e.command for e in model.log[n:]]
+        assert sent[:3] == [command, check, command], sent
+    assert not model.xray_on
+    assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
+
+
+def test_after_auto_a_reconnect_checks_the_model_the_probe_found(tmp_path):
+    """``dialect="auto"``, ``model=None``: the probe's TYP found the L8121-01 at the port. The link
+    is lost during connect's own TYP and the path then leads to another model (a re-plugged
+    adapter). The reconnect check was given the configured model, None, and accepted any: connect
+    took the L9181-02 for the unit probed. Now it is given the model the probe found, and refuses."""
+    model = L8121Model(warmed_up=True)
+    other = L8121Model(warmed_up=True, model="L9181-02")
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(model) as first, PtyServer(other) as second:
+        os.symlink(first.url, port)
+
+        def lose():
+            _repoint(port, second.url)
+            first.read_error()  # the port's path is reopened: it leads to the other unit now
+
+        model.inject_after("TYP", lambda: model.inject_after("TYP", lose))  # the probe's TYP, then connect's
+        with pytest.raises(DeviceError, match="not the 'L8121-01' connected to"):
+            L8121(str(port), dialect="auto", model=None, **FAST)
+    assert model.commands.count("TYP") == 2 and set(other.commands) <= {"TYP"}, other.commands
+
+
+def test_resolve_gives_the_guardian_the_model_the_probe_found(warm):
+    """The guardian's reconnect check is built from the resolved configuration: with
+    ``model=None`` it asked for any model until connect's TYP passed through. It now carries the
+    model the probe found (dialect A; B has no identity query: None)."""
+    model, server = warm
+    resolved = L8121(server.url, dialect="auto", model=None, connect=False, **FAST).resolve()
+    assert resolved.dialect == model.dialect
+    assert resolved.model == ("L8121-01" if model.dialect == "A" else None)
+
+
 def _check_into(src, errors):
     """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
     try:
@@ -1225,6 +1310,26 @@ def test_operate_switch_turned_to_local_while_on(source, dialect):
     assert model.xray_on
     model.set_operate_switch("REMOTE")
     assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
+@pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
+def test_b_xof_refused_off_remote_ends_the_switch_off_at_once(switch):
+    """B off REMOTE refuses XOF (ERROR) and says why (SRL): it will not act on any further XOF.
+    The switch-off asked STS for the whole off_confirm_s (three attempts, a ramp-down waited for
+    that cannot come) before the operator heard it; now one STS (the tube may have been off
+    already) and SRL, and it ends on the same error, at once."""
+    model = L8121Model(dialect="B", warmup_s=WARMUP_S, ramp_s=RAMP_S, warmed_up=True)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        src.on(60, 250)
+        model.set_operate_switch(switch)
+        n = len(model.log)
+        with pytest.raises(
+            DeviceError, match=f"could not confirm X-rays off after 1 attempt.*operate switch is {switch}"
+        ):
+            src.off()
+        assert [e.command for e in model.log[n:]] == ["XOF", "STS", "SRL"]
+        assert model.xray_on and not src.tube_confirmed_off
+        model.set_operate_switch("REMOTE")
 
 
 @pytest.mark.parametrize("switch", ["LOCAL", "OFF"])
@@ -1822,6 +1927,18 @@ def test_cli_source_time_outs_that_are_not_a_positive_finite_time_are_refused(op
     res = run_cli("acquire", "source", "on", "--port", "/dev/null", "--kv", "60", "--ua", "250", option, value)
     assert res.returncode == 2 and res.stderr.strip() == (
         f"error: {option} {float(value):g}: expected a positive finite number of seconds; nothing was sent"
+    )
+
+
+@pytest.mark.parametrize("value", ["10.5", "1e9"])
+def test_cli_source_a_reply_timeout_beyond_the_bound_is_refused(value):
+    """--reply-timeout had no upper bound: 1e9 made each wait of a switch-off a wait for ever."""
+    from conftest import run_cli
+
+    res = run_cli("acquire", "source", "off", "--port", "/dev/null", "--reply-timeout", value)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"error: --reply-timeout {float(value):g}: at most 10 s (a controller silent that long has "
+        "failed, L8121.md; each wait of a switch-off is one); nothing was sent"
     )
 
 

@@ -808,6 +808,19 @@ class PtyServer(_LineServer):
         except (termios.error, TypeError):
             return None
 
+    def read_error(self) -> None:
+        """Make the client's next read of the port fail once while the port stays (a brief read
+        error, as a USB adapter's glitch): pyserial raises "device reports readiness to read but
+        returned no data". How, on a real pty: the terminal's line discipline is made canonical
+        and sent its end-of-file character, which a read returns as nothing; pyserial sets raw mode
+        again when it reopens the port, and the link then works as before. A reply held by
+        :meth:`L8121Model.hold_once` is still sent before the reply to the client's next line,
+        on the reopened port: the controller answering the command in flight at the error, late."""
+        attrs = termios.tcgetattr(self._slave)
+        attrs[3] |= termios.ICANON
+        termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
+        os.write(self._master, attrs[6][termios.VEOF])
+
     def _open(self) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line discipline: bytes pass as sent
