@@ -327,13 +327,6 @@ def _finish(res, code: int, err: bool = True) -> int:
     return code if ok else 3
 
 
-# The longest --reply-timeout: L8121.md's L8121-02 driver calls 10 s without replies a failed link,
-# so a longer wait waits for a controller that has failed; and a switch-off waits one reply time-out
-# per XOF and STS of each attempt before it can tell the operator, so an absurd value (1e9) made it
-# wait for ever with the tube possibly on.
-_REPLY_TIMEOUT_MAX_S = 10.0
-
-
 def _source_refusal(args) -> str | None:
     """Why a source command's options are refused before the port is opened, or None."""
     # an option the action does not read was ignored without a word (`source status --kv 60`)
@@ -363,9 +356,11 @@ def _source_refusal(args) -> str | None:
     for option, value in (("--reply-timeout", args.reply_timeout), ("--ready-timeout", args.ready_timeout)):
         if value is not None and not (math.isfinite(value) and value > 0):
             return f"{option} {value:g}: expected a positive finite number of seconds; nothing was sent"
-    if args.reply_timeout is not None and args.reply_timeout > _REPLY_TIMEOUT_MAX_S:
+    from acquisition.l8121 import REPLY_TIMEOUT_MAX_S  # the configuration's own bound, said before the port opens
+
+    if args.reply_timeout is not None and args.reply_timeout > REPLY_TIMEOUT_MAX_S:
         return (
-            f"--reply-timeout {args.reply_timeout:g}: at most {_REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
+            f"--reply-timeout {args.reply_timeout:g}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
             "that long has failed, L8121.md; each wait of a switch-off is one); nothing was sent"
         )
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):

@@ -193,6 +193,14 @@ RATINGS = Ratings()
 
 
 # -- configuration --------------------------------------------------------------------------------
+# The longest wait for one reply (timeout_s, probe_timeout_s, the CLI's --reply-timeout):
+# L8121.md's L8121-02 driver calls 10 s without replies a failed link, so a longer wait waits for
+# a controller that has failed; and a switch-off waits one reply time-out per XOF and STS of each
+# attempt before it can tell the operator, so an absurd value (1e9) made it wait for ever with
+# the tube possibly on.
+REPLY_TIMEOUT_MAX_S = 10.0
+
+
 @dataclasses.dataclass
 class SourceConfig:
     """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
@@ -308,6 +316,12 @@ class SourceConfig:
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
                 raise ValueError(f"L8121 configuration: {name} must be > 0")
+        for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
+            if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
+                raise ValueError(
+                    f"L8121 configuration: {name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
+                    "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
+                )
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
             raise ValueError(

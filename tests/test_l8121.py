@@ -2322,9 +2322,14 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         # inf passed ">= 0": any measured beam, even none, would count as stable
         ("kv_tolerance", float("inf"), "kv_tolerance must be a finite number >= 0, got inf"),
         ("ua_tolerance", "1.2.3%", "ua_tolerance '1.2.3%' is neither a number nor a percentage"),
+        # a reply's wait had no upper bound outside the CLI: 1e9 in a protocol's [source] made each
+        # wait of a switch-off a wait for ever (the CLI's --reply-timeout refused it)
+        ("timeout_s", 1e9, r"timeout_s = 1e\+09 s: at most 10 s"),
+        ("timeout_s", 10.5, "timeout_s = 10.5 s: at most 10 s"),
+        ("probe_timeout_s", 60, "probe_timeout_s = 60 s: at most 10 s"),
     ],
 )
-def test_a_count_or_mode_must_be_a_whole_number(tmp_path, key, value, message):
+def test_a_count_mode_or_reply_wait_out_of_range_is_refused(tmp_path, key, value, message):
     """Refused in one line at construction, and so in a protocol before the run sends anything."""
     with pytest.raises(ValueError, match=message):
         SourceConfig(**{key: value})
