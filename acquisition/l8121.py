@@ -1143,8 +1143,22 @@ class Reidentify:
         self.dialect = dialect.name
         self.identity = identity
         self.port = port
+        #: Command words a transport never sends again after a reconnect once the link was lost
+        #: during them (:meth:`SerialTransport.query`): every control command but XOF -- XON, WUP,
+        #: RST and the settings emit or change the beam, and the device behind the reopened port
+        #: is only known to be of the model (no serial number): XON resent to a second unit of
+        #: the model switched it on with settings this session never sent.
+        self.not_resent = frozenset(
+            word
+            for command in dialect.settings.values()
+            for word in (command.choices.values() if isinstance(command, Choice) else (command.command,))
+        ) - {"XOF"}
+        #: How often the check has been asked (each a reconnect): a driver compares it across an
+        #: exchange to know that a confirmation may come from a unit other than the one switched on.
+        self.reconnects = 0
 
     def __call__(self, ask: Callable[[str], str]) -> None:
+        self.reconnects += 1
         command = self.query.command
         refused = f"{self.port}: after a reconnect, the device at the port"
         try:
@@ -1240,6 +1254,10 @@ class L8121:
         self._transport = None
         self._reidentify: Reidentify | None = None  # the link's on_reconnect check (_give_grammar)
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
+        # The link was reopened (Reidentify.reconnects) while X-rays may have been on: a later
+        # confirmation comes from the unit now behind the port, which only its model vouches for
+        # (no serial numbers): the tube this session switched on is not confirmed off by it
+        self.unit_unverified = False
         # What this session knows of the tube, for the exit rule (README: exit codes): whether it
         # opened the port (the probe's included), and the state its last STS (or SAR) read
         self.port_opened = False
@@ -1421,6 +1439,8 @@ class L8121:
             # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one
             self._reidentify = Reidentify(self.dialect, self.identity or self.config.model, self.port)
             transport.on_reconnect = self._reidentify
+        elif isinstance(getattr(transport, "on_reconnect", None), Reidentify):
+            self._reidentify = transport.on_reconnect  # (the guardian's): its reconnects are counted
 
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
         """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
@@ -1720,10 +1740,14 @@ class L8121:
     def tube_confirmed_off(self) -> bool:
         """Whether the controller confirmed the tube off in this session: its last ``STS`` (A's
         ``SAR`` too, the probe's included) read a state that cannot emit (not B's ambiguous
-        ``ERROR``), nothing that emits was sent after it, and no switch-off has failed since. A
+        ``ERROR``), nothing that emits was sent after it, no switch-off has failed since, and the
+        link was not reopened while X-rays may have been on (:attr:`unit_unverified`: the
+        confirmation is then the unit's now behind the port, known only by its model). A
         command that opened the port (:attr:`port_opened`) and ends without this ends on the
         X-rays warning, exit 3, whoever switched the tube on (README: exit codes)."""
         last = self._last_state
+        if self.unit_unverified:  # confirmed by the unit now behind the port: maybe not the one switched on
+            return False
         return self.off_failed is None and not self._may_be_on and last is not None and last.confirms_off
 
     @property
@@ -1816,13 +1840,16 @@ class L8121:
             raise DeviceError(f"{self.port}: not connected (call connect())")
         me = threading.get_ident()
         self._take_turn(me, line)
-        error = None
+        error, check = None, self._reidentify
+        seen = check.reconnects if check is not None else 0
         try:
             reply = self._transport.query(line)
         except DeviceError as exc:
             error = exc
             self._claim_off(me)  # before another thread's queued exchange gets the link
         finally:
+            if check is not None and check.reconnects != seen and self._may_be_on:
+                self.unit_unverified = True
             with self._turns:
                 self._busy = False
                 self._turns.notify_all()
@@ -2616,6 +2643,8 @@ class L8121:
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
+                    if self.unit_unverified:
+                        logger.critical("%s", self.unverified_warning(state))
                     return state
                 if silent:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
@@ -2641,6 +2670,15 @@ class L8121:
                 self._off_thread, self._off_running = None, False
                 self._turns.notify_all()
         raise self.off_failed from last
+
+    def unverified_warning(self, state: SourceState) -> str:
+        """The operator's warning after an off confirmed by a unit known only by its model."""
+        return (
+            f"{self.port}: the link was lost and reopened while X-rays may have been on: STS "
+            f"{state.name} confirms the unit now at the port, which the L8121 identifies only by its "
+            "model (no serial number); if the adapter was re-plugged or the path moved, check by hand "
+            "that the unit first connected is off"
+        )
 
     def _await_off(self, until: float, last: Exception | None, silent: bool):
         """Ask ``STS`` (``poll_s`` apart) until it reads a state that cannot emit or ``until``

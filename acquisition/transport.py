@@ -280,6 +280,15 @@ class SerialTransport:
                         ) from exc
                     attempt += 1
                     self.close()
+                    if command.split(" ", 1)[0] in getattr(self.on_reconnect, "not_resent", ()):
+                        # it may have reached the controller, and the device behind the reopened
+                        # port is known only to be of the model: resent, XON switched on a second
+                        # unit with settings this session never sent. The caller switches off
+                        # (XOF is resent: it reconnects, checked) and the tube is said to be on.
+                        raise DeviceError(
+                            f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
+                            "controller; not sent again after a reconnect: X-rays may be on"
+                        ) from exc
                     if attempt > self.retries:
                         raise DeviceError(
                             f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"

@@ -1144,15 +1144,18 @@ def test_a_controller_silent_after_a_reconnect_still_gets_the_switch_off(tmp_pat
     assert not src.tube_confirmed_off  # switched off, but nothing confirmed it: the warning
 
 
-def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect):
+def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect, caplog):
     """The same controller behind the path again (its adapter re-plugged, a new pty here): it
-    answers the identity query as at connect, and the switch-off goes on and is confirmed."""
+    answers the identity query as at connect, and the switch-off goes on and is confirmed -- by
+    the unit now at the port, which only its model vouches for (no serial number): the operator
+    is told so loudly, and the exit rule does not call the tube confirmed off."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
     with _on_then_reconnected(tmp_path, dialect, model, model) as src:
         assert src.off() == SourceState.STANDBY
         src.close()
     assert commands_after(model, "XON")[-3:] == [IDENTITY_QUERY[dialect], "XOF", "STS"]
-    assert not model.xray_on and src.tube_confirmed_off
+    assert not model.xray_on and src.unit_unverified and not src.tube_confirmed_off
+    assert any(r.levelno == logging.CRITICAL and "check by hand" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.parametrize("command", ["SIN", "XOF"])
@@ -1173,14 +1176,61 @@ def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(wa
         model.hold_once(command)  # sent before the reply to the next line: the check's
         model.inject_after(command, server.read_error)
         n = len(model.log)
-        if command == "XOF":
-            assert src.off() == SourceState.STANDBY and src.tube_confirmed_off
+        if command == "XOF":  # confirmed, by a unit the reconnect knows only by its model
+            assert src.off() == SourceState.STANDBY and src.unit_unverified
         else:
             assert src.interlock_closed() is True
         sent = [e.command for e in model.log[n:]]
         assert sent[:3] == [command, check, command], sent
     assert not model.xray_on
     assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
+
+
+@pytest.mark.parametrize("what", ["xray_on", "preset_voltage"])
+def test_a_beam_command_lost_at_a_read_error_is_not_sent_again(warm, dialect, what, caplog):
+    """XON (or a setting) written, the controller acts, and a brief read error loses its reply:
+    the transport reopened the port, checked the model and sent the command again -- XON then
+    got ERROR (already on), and behind a repointed path a second unit was switched on. Now a
+    command that emits or changes the beam is never resent after a reconnect: the call fails
+    saying X-rays may be on, the driver switches off (XOF is resent, checked) and the operator is
+    told that the unit now at the port confirmed it."""
+    model, server = warm
+    word = {"xray_on": "XON", "preset_voltage": WIRE[dialect]["set_60_250"][0].split()[0]}[what]
+    with driver(server, dialect) as src:
+        model.hold_once(word)  # its reply comes late, on the reopened port
+        model.inject_after(word, server.read_error)
+        n = len(model.log)
+        with pytest.raises(DeviceError, match=f"{word}[^:]*: link lost .*not sent again after a reconnect"):
+            src.on(60, 250)
+        sent = [e.command.split()[0] for e in model.log[n:]]
+        assert sent.count(word) == 1 and not model.xray_on, sent
+        if word == "XON":  # switched off and confirmed, by a unit known only by its model: said loudly
+            assert sent[-2:] == ["XOF", "STS"] and not src.tube_confirmed_off, sent
+            warned = [r for r in caplog.records if r.levelno == logging.CRITICAL]
+            assert any("unit now at the port" in r.getMessage() for r in warned)
+
+
+def test_xon_lost_at_a_read_error_never_reaches_another_unit_behind_the_path(tmp_path):
+    """The read error comes as the port's path is repointed to a second unit of the same model
+    (it passes TYP): the XON was resent to it, which emitted with settings this session never
+    sent, and unit 1, still on, was reported confirmed off. Now unit 2 gets only the check and
+    the switch-off, and the exit rule leaves the warning up (unit 1 must be checked by hand)."""
+    one, two = (L8121Model(warmed_up=True, ramp_s=RAMP_S) for _ in range(2))
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(one) as first, PtyServer(two) as second:
+        os.symlink(first.url, port)
+
+        def lose():
+            _repoint(port, second.url)
+            first.read_error()
+
+        src = L8121(str(port), dialect="A", **FAST)
+        one.inject_after("XON", lose)
+        with pytest.raises(DeviceError, match="not sent again"):
+            src.on(60, 250)
+        src.close()
+    assert two.commands == ["TYP", "XOF", "STS"] and not two.xray_on
+    assert one.xray_on and not src.tube_confirmed_off  # unit 1 was never reached again: the warning
 
 
 def test_after_auto_a_reconnect_checks_the_model_the_probe_found(tmp_path):
