@@ -469,10 +469,25 @@ class SerialTransport:
         self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
 
+    def _undecided(self, command: str, text: str) -> bool:
+        """Whether ``text`` fits both the command owed a late reply and ``command``, a different
+        command: a line that fits any command (a refusal, ``ERROR``) or two (B's ``XON``, the
+        echo and a state). Read as ``command``'s, a late refusal of a timed-out command made the
+        reconnect check refuse the controller; so it is not decided on at once (:meth:`_read_line`)."""
+        self._forget_overdue()
+        if not self._owed or self.reply_fits is None:
+            return False
+        owed = self._owed[0][0]
+        return owed.split(" ", 1)[0] != command.split(" ", 1)[0] and self.reply_fits(owed, text)
+
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
         buf = self._rx  # kept on self: an interrupted exchange's reply is completed from it (_drain_pending)
         drained = False
+        # a line that may be the late reply owed or this command's own (_undecided): another line
+        # within this reply's time-out is this command's (the controller answers in order), and
+        # the first was the late one; none, and the first is this command's
+        undecided = None
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
@@ -480,6 +495,19 @@ class SerialTransport:
                 self._rx = buf
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()
+                    if undecided is not None:
+                        late = self._owed.pop(0)[0] if self._owed else "an earlier command"
+                        self.log.debug(
+                            "%s < %s (late reply to %s, not %s's: discarded)", self.url, undecided, late, command
+                        )
+                        undecided = None
+                    elif (
+                        self.reply_fits is not None
+                        and self.reply_fits(command, text)
+                        and self._undecided(command, text)
+                    ):
+                        undecided = text
+                        continue
                     if self._is_late(command, text):
                         continue
                     return text
@@ -495,6 +523,9 @@ class SerialTransport:
                 drained = True
                 deadline = time.monotonic() + _READ_SLICE_S
                 continue
+            if left <= 0 and undecided is not None:
+                self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
+                return undecided
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)

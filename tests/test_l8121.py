@@ -1186,6 +1186,38 @@ def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(wa
     assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
 
 
+@pytest.mark.parametrize("command", ["STS", "XOF"])
+def test_a_late_refusal_across_a_reconnect_is_not_taken_for_the_identity_checks(command, caplog):
+    """As above, with a late reply that is a refusal (B's ERROR: an STS that shows nothing, an XOF
+    refused with the operate switch on LOCAL). A refusal fits any command's grammar, so it was
+    taken for the check's answer and the controller refused as "not trusted". Now, with a reply
+    owed, a line that fits both it and the check is not decided on: the next line, within the
+    check's time-out, is the check's answer and the refusal the late reply."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=RAMP_S)
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    with PtyServer(model) as server, driver(server, "B") as src:
+        if command == "STS":
+            model.sts_error()
+        else:
+            src.on(60, 250)
+            model.set_operate_switch("LOCAL")
+        model.hold_once(command)  # sent before the reply to the next line: the check's
+        model.inject_after(command, server.read_error, refused=True)
+        n = len(model.log)
+        if command == "STS":
+            assert src.status() == SourceState.PREHEATING  # B's ERROR, read as a state, not a refusal
+        else:
+            with pytest.raises(DeviceError, match="operate switch is LOCAL"):
+                src.off()
+        sent = [e.command for e in model.log[n:]]
+        model.sts_error(False)
+        model.set_operate_switch("REMOTE")
+    assert sent[:3] == [command, "SRL", command], sent
+    assert "not trusted" not in caplog.text
+    assert f"(late reply to {command}, not SRL's: discarded)" in caplog.text
+    assert not model.xray_on
+
+
 @pytest.mark.parametrize("what", ["xray_on", "preset_voltage"])
 def test_a_beam_command_lost_at_a_read_error_is_not_sent_again(warm, dialect, what, caplog):
     """XON (or a setting) written, the controller acts, and a brief read error loses its reply:
