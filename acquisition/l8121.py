@@ -2600,8 +2600,10 @@ class L8121:
         ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
         down), but not again after an attempt that got no reply to either (a silent controller:
         each further attempt would cost two reply time-outs before the operator is told), nor
-        after a refused ``XOF`` whose reason the controller gives (B's operate switch off
-        ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``, no ramp-down). Returns
+        after a refused ``XOF`` whose reason the controller gives (``SRL``, asked first, names
+        B's operate switch off ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``,
+        no ramp-down). A refusal it does not explain (A, or B on ``REMOTE``) keeps the window: it
+        may come while a first ``XOF`` ramps the supply down. Returns
         the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
         :attr:`off_failed`.
 
@@ -2636,9 +2638,12 @@ class L8121:
                 except DeviceError as exc:
                     last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
                     refused = getattr(exc, "refused", False)
-                # a refused XOF changed nothing: one STS says whether the tube was off already; no
-                # ramp-down to wait for
-                until = time.monotonic() + (0.0 if refused else window)
+                # a refused XOF whose reason the controller gives (B's SRL off REMOTE) changed
+                # nothing and will not: one STS says whether the tube was off already, no ramp-down
+                # to wait for. A refusal it does not explain (A's ERR while a first XOF ramps the
+                # supply down) keeps the window: the tube may still be going off
+                told = self._why_not_remote() if refused else ""
+                until = time.monotonic() + (0.0 if told else window)
                 state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
@@ -2650,7 +2655,6 @@ class L8121:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
                     # reaches nobody; the operator must hear it now
                     break
-                told = self._why_not_remote() if refused else ""
                 if told:
                     # the controller says it will not act (B's operate switch off REMOTE): every
                     # further XOF is refused alike until someone turns it; the operator must hear it now

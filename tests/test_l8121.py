@@ -1409,7 +1409,7 @@ def test_b_xof_refused_off_remote_ends_the_switch_off_at_once(switch):
             DeviceError, match=f"could not confirm X-rays off after 1 attempt.*operate switch is {switch}"
         ):
             src.off()
-        assert [e.command for e in model.log[n:]] == ["XOF", "STS", "SRL"]
+        assert [e.command for e in model.log[n:]] == ["XOF", "SRL", "STS"]
         assert model.xray_on and not src.tube_confirmed_off
         model.set_operate_switch("REMOTE")
 
