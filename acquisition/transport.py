@@ -334,6 +334,7 @@ class SerialTransport:
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
             self._write(self._serial, command, self._payload(command))
+            self._serial.flush()
         except _LINK_ERRORS as exc:
             self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
             return
@@ -363,7 +364,10 @@ class SerialTransport:
         try:
             self.commands_written += 1
             self._write(ser, command, payload)
+            # its bytes are out: owed its reply from here, even if the drain below fails (the
+            # controller may have the command; its reply then comes on the reopened port)
             written = True
+            ser.flush()
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
             if isinstance(exc, NoReply) or (written and isinstance(exc, _LINK_ERRORS)):
@@ -383,7 +387,8 @@ class SerialTransport:
         return reply
 
     def _write(self, ser, command: str, payload: bytes) -> None:
-        """Send ``payload``, timed out only while bytes are left unsent.
+        """Send ``payload``, timed out only while bytes are left unsent (the caller drains the
+        output, ``ser.flush()``, once the command counts as written).
 
         pyserial checks its write time-out after ``os.write`` has returned, so a process stalled
         right there (a loaded machine, the GIL held by another thread past ``write_timeout_s``)
@@ -412,7 +417,6 @@ class SerialTransport:
                     sent = len(payload) - len(view)
                     raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
                 select.select([], [fd], [], min(left, 0.05))
-        ser.flush()
 
     def _flush_late(self, ser) -> None:
         """Discard what has arrived before a command is sent (nothing is owed to it yet): each

@@ -1186,6 +1186,34 @@ def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(wa
     assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
 
 
+def test_a_command_whose_drain_fails_after_its_bytes_went_out_is_owed_its_reply(warm, dialect, caplog):
+    """SIN's bytes written, then the drain (tcdrain) fails at a link glitch: the command counted as
+    written only once the drain returned, so it was not owed its reply, and its late answer, on
+    the reopened port, was read as the reconnect check's (B: "not trusted"). Now it is owed from
+    the moment its bytes are out. The failing drain is a stand-in (tcdrain cannot be made to fail
+    on a pty); the port, the emulator and the reconnect are real."""
+    import termios
+
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    with driver(server, dialect) as src:
+        ser = src._transport._serial
+        drain = ser.flush
+
+        def failing_drain():
+            drain()
+            ser.flush = drain
+            raise termios.error(5, "Input/output error")
+
+        ser.flush = failing_drain
+        model.hold_once("SIN")  # its reply comes late, on the reopened port
+        n = len(model.log)
+        assert src.interlock_closed() is True
+        sent = [e.command for e in model.log[n:]]
+    assert sent == ["SIN", IDENTITY_QUERY[dialect], "SIN"], sent
+    assert f"(late reply to SIN, not {IDENTITY_QUERY[dialect]}'s: discarded)" in caplog.text
+
+
 @pytest.mark.parametrize("command", ["STS", "XOF"])
 def test_a_late_refusal_across_a_reconnect_is_not_taken_for_the_identity_checks(command, caplog):
     """As above, with a late reply that is a refusal (B's ERROR: an STS that shows nothing, an XOF
