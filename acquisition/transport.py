@@ -186,10 +186,15 @@ class SerialTransport:
         """Open the port (8N1, DTR and RTS asserted); a no-op when it is open. An open of a
         transport opened before is a reconnect, whoever closed it: :attr:`on_reconnect` checks the
         device now behind the port (the path may lead elsewhere since), and its refusal closes the
-        port and is raised."""
+        port and is raised, as is a link lost during the check (a :class:`DeviceError`, the port
+        left closed: pyserial's exception named no port and reached the operator as a traceback)."""
         with self._lock:  # the check is an exchange: not interleaved with another thread's
             if not self.is_open:
-                self._reopen(None, None)
+                try:
+                    self._reopen(None, None)
+                except _LINK_ERRORS as exc:
+                    self.close()
+                    raise DeviceError(f"{self.url}: link lost during the identity check on opening ({exc})") from exc
 
     def _open_port(self) -> None:
         try:

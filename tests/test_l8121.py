@@ -36,6 +36,7 @@ from acquisition.l8121 import (
     RATINGS,
     Aging,
     Command,
+    Reidentify,
     SourceConfig,
     SourceState,
     SwitchedOff,
@@ -241,6 +242,21 @@ def test_an_explicit_reopen_is_a_reconnect_and_asks_on_reconnect():
             lnk.open()
         assert not lnk.is_open
     assert model.commands == ["STS", "TYP", "TYP"]
+
+
+def test_an_explicit_reopen_whose_check_meets_a_read_error_raises_a_device_error():
+    """``open()`` after ``close()``: the identity check's read fails (a real read error on the
+    pty). pyserial's SerialException escaped, naming no port (a traceback for the operator); now
+    a DeviceError naming the port, and the port is left closed as before."""
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=0.02) as lnk:
+        lnk.on_reconnect = Reidentify(DIALECT_A, "L8121-01", server.url)
+        assert lnk.query("STS") == "STS 2"
+        lnk.close()
+        model.inject_after("TYP", server.read_error)
+        with pytest.raises(DeviceError, match=f"{re.escape(server.url)}: link lost during the identity check"):
+            lnk.open()
+        assert not lnk.is_open
 
 
 def test_transport_gives_up_when_the_device_is_gone(tmp_path):
