@@ -265,6 +265,10 @@ class SourceConfig:
     # attempts spread over this window, STS asked every poll_s, before the operator is told
     off_confirm_s: float = 3.0
     beam_drop_fraction: float = 0.5
+    # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
+    # ``model`` from the probe's TYP when none was configured, so that a connect that finds
+    # another says the unit changed, not "configure model=None" (which the user did)
+    probed_model = None
 
     def __post_init__(self):
         if self.model == "":
@@ -1238,6 +1242,8 @@ class L8121:
             overrides["baudrate"] = baudrate
         base = config if isinstance(config, SourceConfig) else SourceConfig.from_dict(dict(config or {}))
         self.config = SourceConfig.from_dict({**dataclasses.asdict(base), **overrides}) if overrides else base
+        if "model" not in overrides:  # (not a field: from_dict does not carry it)
+            self.config.probed_model = base.probed_model
         self.url = url
         self.identity: str | None = None
         # False: a session of queries only (a status): B's operate switch need not be on REMOTE,
@@ -1682,9 +1688,16 @@ class L8121:
                 self._reidentify.identity = value
             if self.config.model is not None and self.identity != self.config.model:
                 self._read_state_for_the_record()
+                found = self.config.probed_model
+                # the model expected is the one the probe found (resolve(), model=None): the unit
+                # behind the port changed since; "configure model=None" was advice already taken
+                why = (
+                    f"the probe found {found!r} at this port moments before: another unit is behind it now"
+                    if found is not None and found == self.config.model
+                    else "configure model=None to accept any model"
+                )
                 raise DeviceError(
-                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
-                    f"(configure model=None to accept any model)"
+                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} ({why})"
                 )
         else:
             switch = self.switch_at_connect = value
@@ -1786,7 +1799,7 @@ class L8121:
         connects without probing again."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
-        return dataclasses.replace(
+        resolved = dataclasses.replace(
             self.config,
             # the model found (the probe's or connect's TYP), so the guardian's reconnect check
             # asks for it, not for any model, when none was configured
@@ -1797,6 +1810,9 @@ class L8121:
             min_interval_s=self.min_interval_s,
             timeout_s=self.timeout_s,
         )
+        if self.config.model is None:
+            resolved.probed_model = self.identity
+        return resolved
 
     def resolve(self) -> SourceConfig:
         """The dialect and baud rate before connecting: ``dialect="auto"`` runs :func:`probe` on

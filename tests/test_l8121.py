@@ -1340,6 +1340,19 @@ def test_resolve_gives_the_guardian_the_model_the_probe_found(warm):
     assert resolved.model == ("L8121-01" if model.dialect == "A" else None)
 
 
+def test_a_connect_with_the_resolved_model_that_finds_another_says_the_unit_changed():
+    """``model=None``; resolve() found the L8121-01, and the connect with that configuration (the
+    series' over the guardian) finds another model: refused, rightly, but the message said
+    "configure model=None to accept any model", which the user had done. It now says the probe
+    found the L8121-01 at this port moments before."""
+    with PtyServer(L8121Model(warmed_up=True)) as one, PtyServer(L8121Model(warmed_up=True, model="L9181-02")) as two:
+        resolved = L8121(one.url, dialect="auto", model=None, connect=False, **FAST).resolve()
+        with pytest.raises(DeviceError) as refused:
+            L8121(two.url, config=resolved, **FAST)
+    said = str(refused.value)
+    assert "the probe found 'L8121-01' at this port moments before" in said and "model=None" not in said, said
+
+
 def _check_into(src, errors):
     """A beam poll on another thread (the run's monitor); its DeviceError goes to ``errors``."""
     try:
