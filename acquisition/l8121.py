@@ -1124,9 +1124,12 @@ class Reidentify:
     switch-off's confirmation. A re-plugged USB adapter, or a pty path handed to another process,
     may put another device behind the same path.
 
-    Dialect A: ``TYP`` must name :attr:`identity` (the model connect read; None: any model, as
-    connect accepts with ``model=None``). Neither dialect reports a serial number, so a second unit
-    of the same model passes. Dialect B has no identity query: ``SRL`` must answer in B's grammar
+    Dialect A: ``TYP`` must name :attr:`identity` -- the model connect's ``TYP`` read, until then
+    the probe's (``dialect="auto"``) or the configured one; None: any model, as connect accepts
+    with ``model=None`` and nothing found yet. Neither dialect reports a serial number, so a second
+    unit of the same model passes: commands that emit or change the beam are therefore never
+    resent after a reconnect (:attr:`not_resent`), and a driver counts reconnects
+    (:attr:`reconnects`) to tell the operator whose off confirmation it has. Dialect B has no identity query: ``SRL`` must answer in B's grammar
     (a B controller at this rate), the weaker check, and its position is not compared (a switch
     turned meanwhile is the same controller; the XOF it refuses says so).
 
@@ -1182,7 +1185,12 @@ class Reidentify:
             raise DeviceError(
                 f"{refused} is {value!r} ({command}), not the {self.identity!r} connected to: not trusted"
             )
-        logger.warning("%s: reconnected; %s answered %r (the controller connected to)", self.port, command, reply)
+        logger.warning(
+            "%s: reconnected; %s answered %r (the model connected to; no serial number tells the unit)",
+            self.port,
+            command,
+            reply,
+        )
 
 
 # -- the driver -----------------------------------------------------------------------------------

@@ -146,9 +146,10 @@ class SerialTransport:
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
-        # Commands that timed out (NoReply), oldest first, each with the time after which its late
-        # reply is no longer waited for: the controller answers in order, so the next lines on the
-        # link may be theirs before the reply to the command sent next
+        # Commands whose reply was not read -- timed out (NoReply), or written before a link error
+        # (a read error: the port is reopened) -- oldest first, each with the time after which its
+        # late reply is no longer waited for: the controller answers in order, so the next lines
+        # on the link may be theirs before the reply to the command sent next
         self._owed: list[tuple[str, float]] = []
         #: ``reply_fits(command, reply) -> bool``: whether a line can be the reply to ``command`` (a
         #: driver sets its dialect's grammar, :meth:`acquisition.l8121.Dialect.reply_fits`). With
@@ -157,12 +158,14 @@ class SerialTransport:
         #: only the flush before each command guards against late replies.
         self.reply_fits = None
         #: ``on_reconnect(ask)``: run right after the port was opened again (a reconnect within
-        #: :meth:`query`, or a query on a link closed since it was first opened), before the
-        #: command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
+        #: :meth:`query`, a query on a link closed since it was first opened, or an explicit
+        #: :meth:`open` of such a link), before any command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
         #: :class:`~acquisition.errors.DeviceError` to refuse the device now behind the port: the
         #: port is then closed and the query fails as a lost link. A driver sets it to re-identify
         #: its instrument (:class:`acquisition.l8121.Reidentify`): a re-plugged adapter, or another
-        #: device given the same path, must not answer for the one it connected to.
+        #: device given the same path, must not answer for the one it connected to. Its
+        #: ``not_resent`` (command words), if any, are never sent again after the link was lost
+        #: during them: the query fails instead (a check of the model cannot tell two units apart).
         self.on_reconnect = None
         self._opened_once = False  # a later open is a reconnect: on_reconnect checks the device
         #: Commands this link has begun to write (counted before the write): 0 means the device
@@ -348,7 +351,8 @@ class SerialTransport:
         )
 
     def _ask(self, command: str) -> str:
-        """One exchange for :attr:`on_reconnect`, within the query that reconnected (its lock held)."""
+        """One exchange for :attr:`on_reconnect`, within the query or :meth:`open` that reconnected
+        (its lock held)."""
         return self._exchange(command, self._payload(command))
 
     def _payload(self, command: str) -> bytes:
