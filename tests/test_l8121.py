@@ -1733,8 +1733,13 @@ def test_exit_does_not_mask_the_original_exception(warm, dialect):
 @pytest.mark.parametrize("baud", BAUDS)
 def test_probe_identifies_each_dialect_at_each_baud_rate(dialect, baud):
     model = L8121Model(dialect=dialect, baudrate=baud)  # cold: an XON would start the warm-up in B
+    # The reply wait is paid in full (and a quarter more) at each rate tried before the unit's,
+    # where nothing answers; at the unit's rate the replies come at once. 0.2 s flaked under load
+    # (a reply later than that at the right rate): 1 s where no wrong rate precedes costs nothing;
+    # at 38400 and 115200 it would add about 1.25 s per wrong rate, so 0.2 s stays there
+    wait = 1.0 if baud == BAUDS[0] else 0.2
     with PtyServer(model) as server:
-        result = probe(server.url, baudrates=BAUDS, timeout_s=0.2, min_interval_s=0.01)
+        result = probe(server.url, baudrates=BAUDS, timeout_s=wait, min_interval_s=0.01)
     assert (result.dialect, result.baudrate) == (dialect, baud), result.report()
     assert result.identity == ("L8121-01" if dialect == "A" else None)
     assert dict(result.details)["interlock"] == "closed"
