@@ -2413,12 +2413,21 @@ class L8121:
         """
         kv_i, ua_i = self.validate(kv, ua)
         self._require_ready()
+        check = self._reidentify
+        seen = check.reconnects if check is not None else 0
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+            if check is not None and check.reconnects != seen:
+                # a query retried on a reopened link: the unit now at the port passed a check of
+                # its model only, and may not hold the settings sent (or read back) before
+                raise DeviceError(
+                    f"{self.port}: X-rays not switched on: the link was lost and reopened after the "
+                    "settings were sent, and the unit now at the port is known only by its model; switch on again"
+                )
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()

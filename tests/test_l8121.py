@@ -1286,6 +1286,22 @@ def test_a_beam_command_lost_at_a_read_error_is_not_sent_again(warm, dialect, wh
             assert any("unit now at the port" in r.getMessage() for r in warned)
 
 
+def test_no_xon_after_a_reconnect_since_the_settings_were_sent(warm, dialect):
+    """A read error after the settings' read-back (the query is retried on the reopened port,
+    which passes the model check): XON went out to the unit now at the port, which may not be the
+    one that holds the settings (no serial number). Now on() refuses before XON; nothing emits."""
+    model, server = warm
+    setting, readback = WIRE[dialect]["set_60_250"][-1].split()[0], WIRE[dialect]["setpoint"][-1]
+    with driver(server, dialect) as src:
+        model.inject_after(setting, lambda: model.inject_after(readback, server.read_error))
+        n = len(model.log)
+        with pytest.raises(DeviceError, match="not switched on: the link was lost and reopened after the settings"):
+            src.on(60, 250)
+        sent = [e.command for e in model.log[n:]]
+        assert "XON" not in sent and IDENTITY_QUERY[dialect] in sent and not model.xray_on, sent
+        assert src.tube_confirmed_off  # nothing emitting was sent: the STS before it still vouches
+
+
 def test_xon_lost_at_a_read_error_never_reaches_another_unit_behind_the_path(tmp_path):
     """The read error comes as the port's path is repointed to a second unit of the same model
     (it passes TYP): the XON was resent to it, which emitted with settings this session never
