@@ -2819,6 +2819,35 @@ def test_the_guardians_watch_is_not_disarmed_by_a_reply_the_driver_never_takes_a
     assert watch.may_be_on
 
 
+def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
+    """The guardian's link reconnected (its check's count moved) while X-rays may have been on:
+    the STS that later reads off is the unit's now at the port, known only by its model. The
+    operator is told so, loudly, once, when that off comes through; a reconnect with the tube
+    off says nothing."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    said = []
+    note = lambda level, text: said.append((level, text))
+    watch = _Watch(SimpleNamespace(dialect="A"))
+    watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
+    watch.reidentify.reconnects += 1  # a reconnect with the tube off
+    watch.exchanged(0, False, note, "p")
+    watch.sent("XON")
+    watch.replied("XON", "XON")
+    watch.exchanged(1, False, note, "p")
+    watch.reidentify.reconnects += 1  # the XOF's query reopened the link
+    watch.replied("XOF", "XOF")
+    watch.exchanged(1, True, note, "p")
+    assert said == []
+    watch.replied("STS", "STS 2")
+    watch.exchanged(2, True, note, "p")
+    assert [level for level, _ in said] == ["CRITICAL"] and "check by hand" in said[0][1]
+    watch.exchanged(2, False, note, "p")
+    assert len(said) == 1
+
+
 @pytest.mark.parametrize(
     "dialect, raw",
     [
