@@ -118,7 +118,12 @@ def test_connect(dialect):
             r"speaking dialect A\? If it speaks dialect B",
         ),
         # B off REMOTE refuses its XOF (no exception to "remote control needs REMOTE"): STS shows off
-        ("B", [("SRL", "LOCAL"), ("STS", "STANDBY"), ("XOF", "ERROR"), ("STS", "STANDBY")], r"operate switch is LOCAL"),
+        # the refused XOF: SRL first (it names LOCAL: no ramp-down window), then one STS
+        (
+            "B",
+            [("SRL", "LOCAL"), ("STS", "STANDBY"), ("XOF", "ERROR"), ("SRL", "LOCAL"), ("STS", "STANDBY")],
+            r"operate switch is LOCAL",
+        ),
         ("B", [("SRL", "ERR"), *OFF["B"]], r"SRL refused by the controller \(ERR\)"),
         ("B", [("SRL", "REMOTE"), ("STS", "STS 2"), *OFF["B"]], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
         (
