@@ -509,17 +509,18 @@ class SerialTransport:
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()
                     if undecided is not None:
-                        late = self._owed.pop(0)[0] if self._owed else "an earlier command"
+                        (first, late), undecided = undecided, None
                         self.log.debug(
-                            "%s < %s (late reply to %s, not %s's: discarded)", self.url, undecided, late, command
+                            "%s < %s (late reply to %s, not %s's: discarded)", self.url, first, late, command
                         )
-                        undecided = None
                     elif (
                         self.reply_fits is not None
                         and self.reply_fits(command, text)
                         and self._undecided(command, text)
                     ):
-                        undecided = text
+                        # no longer owed either way (a signal may end this wait: nothing is left
+                        # owed for a line already read)
+                        undecided = (text, self._owed.pop(0)[0])
                         continue
                     if self._is_late(command, text):
                         continue
@@ -538,7 +539,7 @@ class SerialTransport:
                 continue
             if left <= 0 and undecided is not None:
                 self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
-                return undecided
+                return undecided[0]
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
