@@ -324,6 +324,9 @@ def _switch_off(link, config, note) -> bool:
     if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
         note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
         return False
+    if driver.unit_unverified:  # reopened during this switch-off: the unit now at the port confirmed it
+        note("CRITICAL", driver.unverified_warning(state))
+        return False
     note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
     return True
 
@@ -340,6 +343,24 @@ class _Watch:
         self.may_be_on = False
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
+        # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
+        # the unit's now behind the port (the L8121 names only its model), told to the operator
+        self.unverified = False
+
+    def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
+        """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
+        may have been on? Then the next off confirmation is said loudly to be the unit's now at the port."""
+        if getattr(self.reidentify, "reconnects", seen) != seen and (may_have_been_on or self.may_be_on):
+            self.unverified = True
+        if self.unverified and not self.may_be_on:
+            self.unverified = False
+            note(
+                "CRITICAL",
+                f"{port}: the link was lost and reopened while X-rays may have been on: the STS that reads "
+                "off is the unit's now at the port, which the L8121 identifies only by its model (no serial "
+                "number); if the adapter was re-plugged or the path moved, check by hand that the unit first "
+                "connected is off",
+            )
 
     def sent(self, command: str) -> None:
         if command.split(" ", 1)[0] in ("XON", "WUP"):
@@ -442,6 +463,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]
+        was_on, seen = watch.may_be_on, getattr(watch.reidentify, "reconnects", 0)
         watch.sent(command)
         try:
             reply = link.query(command)
@@ -450,6 +472,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
         except (DeviceError, ValueError) as exc:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
+        watch.exchanged(seen, was_on, note, link.port)
         try:
             os.write(wfd, (out + "\n").encode("utf-8", "replace"))  # a reply may hold "µA"
         except OSError:

@@ -265,6 +265,10 @@ class SourceConfig:
     # attempts spread over this window, STS asked every poll_s, before the operator is told
     off_confirm_s: float = 3.0
     beam_drop_fraction: float = 0.5
+    # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
+    # ``model`` from the probe's TYP when none was configured, so that a connect that finds
+    # another says the unit changed, not "configure model=None" (which the user did)
+    probed_model = None
 
     def __post_init__(self):
         if self.model == "":
@@ -1120,9 +1124,12 @@ class Reidentify:
     switch-off's confirmation. A re-plugged USB adapter, or a pty path handed to another process,
     may put another device behind the same path.
 
-    Dialect A: ``TYP`` must name :attr:`identity` (the model connect read; None: any model, as
-    connect accepts with ``model=None``). Neither dialect reports a serial number, so a second unit
-    of the same model passes. Dialect B has no identity query: ``SRL`` must answer in B's grammar
+    Dialect A: ``TYP`` must name :attr:`identity` -- the model connect's ``TYP`` read, until then
+    the probe's (``dialect="auto"``) or the configured one; None: any model, as connect accepts
+    with ``model=None`` and nothing found yet. Neither dialect reports a serial number, so a second
+    unit of the same model passes: commands that emit or change the beam are therefore never
+    resent after a reconnect (:attr:`not_resent`), and a driver counts reconnects
+    (:attr:`reconnects`) to tell the operator whose off confirmation it has. Dialect B has no identity query: ``SRL`` must answer in B's grammar
     (a B controller at this rate), the weaker check, and its position is not compared (a switch
     turned meanwhile is the same controller; the XOF it refuses says so).
 
@@ -1143,8 +1150,22 @@ class Reidentify:
         self.dialect = dialect.name
         self.identity = identity
         self.port = port
+        #: Command words a transport never sends again after a reconnect once the link was lost
+        #: during them (:meth:`SerialTransport.query`): every control command but XOF -- XON, WUP,
+        #: RST and the settings emit or change the beam, and the device behind the reopened port
+        #: is only known to be of the model (no serial number): XON resent to a second unit of
+        #: the model switched it on with settings this session never sent.
+        self.not_resent = frozenset(
+            word
+            for command in dialect.settings.values()
+            for word in (command.choices.values() if isinstance(command, Choice) else (command.command,))
+        ) - {"XOF"}
+        #: How often the check has been asked (each a reconnect): a driver compares it across an
+        #: exchange to know that a confirmation may come from a unit other than the one switched on.
+        self.reconnects = 0
 
     def __call__(self, ask: Callable[[str], str]) -> None:
+        self.reconnects += 1
         command = self.query.command
         refused = f"{self.port}: after a reconnect, the device at the port"
         try:
@@ -1164,7 +1185,12 @@ class Reidentify:
             raise DeviceError(
                 f"{refused} is {value!r} ({command}), not the {self.identity!r} connected to: not trusted"
             )
-        logger.warning("%s: reconnected; %s answered %r (the controller connected to)", self.port, command, reply)
+        logger.warning(
+            "%s: reconnected; %s answered %r (the model connected to; no serial number tells the unit)",
+            self.port,
+            command,
+            reply,
+        )
 
 
 # -- the driver -----------------------------------------------------------------------------------
@@ -1224,6 +1250,8 @@ class L8121:
             overrides["baudrate"] = baudrate
         base = config if isinstance(config, SourceConfig) else SourceConfig.from_dict(dict(config or {}))
         self.config = SourceConfig.from_dict({**dataclasses.asdict(base), **overrides}) if overrides else base
+        if "model" not in overrides:  # (not a field: from_dict does not carry it)
+            self.config.probed_model = base.probed_model
         self.url = url
         self.identity: str | None = None
         # False: a session of queries only (a status): B's operate switch need not be on REMOTE,
@@ -1240,6 +1268,10 @@ class L8121:
         self._transport = None
         self._reidentify: Reidentify | None = None  # the link's on_reconnect check (_give_grammar)
         self._may_be_on = False  # True from before XON (or the warm-up) until off() has confirmed
+        # The link was reopened (Reidentify.reconnects) while X-rays may have been on: a later
+        # confirmation comes from the unit now behind the port, which only its model vouches for
+        # (no serial numbers): the tube this session switched on is not confirmed off by it
+        self.unit_unverified = False
         # What this session knows of the tube, for the exit rule (README: exit codes): whether it
         # opened the port (the probe's included), and the state its last STS (or SAR) read
         self.port_opened = False
@@ -1421,6 +1453,8 @@ class L8121:
             # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one
             self._reidentify = Reidentify(self.dialect, self.identity or self.config.model, self.port)
             transport.on_reconnect = self._reidentify
+        elif isinstance(getattr(transport, "on_reconnect", None), Reidentify):
+            self._reidentify = transport.on_reconnect  # (the guardian's): its reconnects are counted
 
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
         """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
@@ -1662,9 +1696,16 @@ class L8121:
                 self._reidentify.identity = value
             if self.config.model is not None and self.identity != self.config.model:
                 self._read_state_for_the_record()
+                found = self.config.probed_model
+                # the model expected is the one the probe found (resolve(), model=None): the unit
+                # behind the port changed since; "configure model=None" was advice already taken
+                why = (
+                    f"the probe found {found!r} at this port moments before: another unit is behind it now"
+                    if found is not None and found == self.config.model
+                    else "configure model=None to accept any model"
+                )
                 raise DeviceError(
-                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} "
-                    f"(configure model=None to accept any model)"
+                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} ({why})"
                 )
         else:
             switch = self.switch_at_connect = value
@@ -1720,10 +1761,14 @@ class L8121:
     def tube_confirmed_off(self) -> bool:
         """Whether the controller confirmed the tube off in this session: its last ``STS`` (A's
         ``SAR`` too, the probe's included) read a state that cannot emit (not B's ambiguous
-        ``ERROR``), nothing that emits was sent after it, and no switch-off has failed since. A
+        ``ERROR``), nothing that emits was sent after it, no switch-off has failed since, and the
+        link was not reopened while X-rays may have been on (:attr:`unit_unverified`: the
+        confirmation is then the unit's now behind the port, known only by its model). A
         command that opened the port (:attr:`port_opened`) and ends without this ends on the
         X-rays warning, exit 3, whoever switched the tube on (README: exit codes)."""
         last = self._last_state
+        if self.unit_unverified:  # confirmed by the unit now behind the port: maybe not the one switched on
+            return False
         return self.off_failed is None and not self._may_be_on and last is not None and last.confirms_off
 
     @property
@@ -1762,7 +1807,7 @@ class L8121:
         connects without probing again."""
         if self.dialect is None:
             raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
-        return dataclasses.replace(
+        resolved = dataclasses.replace(
             self.config,
             # the model found (the probe's or connect's TYP), so the guardian's reconnect check
             # asks for it, not for any model, when none was configured
@@ -1773,6 +1818,9 @@ class L8121:
             min_interval_s=self.min_interval_s,
             timeout_s=self.timeout_s,
         )
+        if self.config.model is None:
+            resolved.probed_model = self.identity
+        return resolved
 
     def resolve(self) -> SourceConfig:
         """The dialect and baud rate before connecting: ``dialect="auto"`` runs :func:`probe` on
@@ -1816,13 +1864,16 @@ class L8121:
             raise DeviceError(f"{self.port}: not connected (call connect())")
         me = threading.get_ident()
         self._take_turn(me, line)
-        error = None
+        error, check = None, self._reidentify
+        seen = check.reconnects if check is not None else 0
         try:
             reply = self._transport.query(line)
         except DeviceError as exc:
             error = exc
             self._claim_off(me)  # before another thread's queued exchange gets the link
         finally:
+            if check is not None and check.reconnects != seen and self._may_be_on:
+                self.unit_unverified = True
             with self._turns:
                 self._busy = False
                 self._turns.notify_all()
@@ -2362,12 +2413,21 @@ class L8121:
         """
         kv_i, ua_i = self.validate(kv, ua)
         self._require_ready()
+        check = self._reidentify
+        seen = check.reconnects if check is not None else 0
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+            if check is not None and check.reconnects != seen:
+                # a query retried on a reopened link: the unit now at the port passed a check of
+                # its model only, and may not hold the settings sent (or read back) before
+                raise DeviceError(
+                    f"{self.port}: X-rays not switched on: the link was lost and reopened after the "
+                    "settings were sent, and the unit now at the port is known only by its model; switch on again"
+                )
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()
@@ -2573,8 +2633,10 @@ class L8121:
         ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
         down), but not again after an attempt that got no reply to either (a silent controller:
         each further attempt would cost two reply time-outs before the operator is told), nor
-        after a refused ``XOF`` whose reason the controller gives (B's operate switch off
-        ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``, no ramp-down). Returns
+        after a refused ``XOF`` whose reason the controller gives (``SRL``, asked first, names
+        B's operate switch off ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``,
+        no ramp-down). A refusal it does not explain (A, or B on ``REMOTE``) keeps the window: it
+        may come while a first ``XOF`` ramps the supply down. Returns
         the state read after switching off. Until an ``off()`` confirms, a failed one is kept in
         :attr:`off_failed`.
 
@@ -2609,19 +2671,23 @@ class L8121:
                 except DeviceError as exc:
                     last, silent = exc, isinstance(exc, NoReply)  # still ask: the XOF may have arrived
                     refused = getattr(exc, "refused", False)
-                # a refused XOF changed nothing: one STS says whether the tube was off already; no
-                # ramp-down to wait for
-                until = time.monotonic() + (0.0 if refused else window)
+                # a refused XOF whose reason the controller gives (B's SRL off REMOTE) changed
+                # nothing and will not: one STS says whether the tube was off already, no ramp-down
+                # to wait for. A refusal it does not explain (A's ERR while a first XOF ramps the
+                # supply down) keeps the window: the tube may still be going off
+                told = self._why_not_remote() if refused else ""
+                until = time.monotonic() + (0.0 if told else window)
                 state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
+                    if self.unit_unverified:
+                        logger.critical("%s", self.unverified_warning(state))
                     return state
                 if silent:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
                     # reaches nobody; the operator must hear it now
                     break
-                told = self._why_not_remote() if refused else ""
                 if told:
                     # the controller says it will not act (B's operate switch off REMOTE): every
                     # further XOF is refused alike until someone turns it; the operator must hear it now
@@ -2641,6 +2707,15 @@ class L8121:
                 self._off_thread, self._off_running = None, False
                 self._turns.notify_all()
         raise self.off_failed from last
+
+    def unverified_warning(self, state: SourceState) -> str:
+        """The operator's warning after an off confirmed by a unit known only by its model."""
+        return (
+            f"{self.port}: the link was lost and reopened while X-rays may have been on: STS "
+            f"{state.name} confirms the unit now at the port, which the L8121 identifies only by its "
+            "model (no serial number); if the adapter was re-plugged or the path moved, check by hand "
+            "that the unit first connected is off"
+        )
 
     def _await_off(self, until: float, last: Exception | None, silent: bool):
         """Ask ``STS`` (``poll_s`` apart) until it reads a state that cannot emit or ``until``

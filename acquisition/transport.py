@@ -146,9 +146,10 @@ class SerialTransport:
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
-        # Commands that timed out (NoReply), oldest first, each with the time after which its late
-        # reply is no longer waited for: the controller answers in order, so the next lines on the
-        # link may be theirs before the reply to the command sent next
+        # Commands whose reply was not read -- timed out (NoReply), or written before a link error
+        # (a read error: the port is reopened) -- oldest first, each with the time after which its
+        # late reply is no longer waited for: the controller answers in order, so the next lines
+        # on the link may be theirs before the reply to the command sent next
         self._owed: list[tuple[str, float]] = []
         #: ``reply_fits(command, reply) -> bool``: whether a line can be the reply to ``command`` (a
         #: driver sets its dialect's grammar, :meth:`acquisition.l8121.Dialect.reply_fits`). With
@@ -157,12 +158,14 @@ class SerialTransport:
         #: only the flush before each command guards against late replies.
         self.reply_fits = None
         #: ``on_reconnect(ask)``: run right after the port was opened again (a reconnect within
-        #: :meth:`query`, or a query on a link closed since it was first opened), before the
-        #: command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
+        #: :meth:`query`, a query on a link closed since it was first opened, or an explicit
+        #: :meth:`open` of such a link), before any command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
         #: :class:`~acquisition.errors.DeviceError` to refuse the device now behind the port: the
         #: port is then closed and the query fails as a lost link. A driver sets it to re-identify
         #: its instrument (:class:`acquisition.l8121.Reidentify`): a re-plugged adapter, or another
-        #: device given the same path, must not answer for the one it connected to.
+        #: device given the same path, must not answer for the one it connected to. Its
+        #: ``not_resent`` (command words), if any, are never sent again after the link was lost
+        #: during them: the query fails instead (a check of the model cannot tell two units apart).
         self.on_reconnect = None
         self._opened_once = False  # a later open is a reconnect: on_reconnect checks the device
         #: Commands this link has begun to write (counted before the write): 0 means the device
@@ -186,10 +189,15 @@ class SerialTransport:
         """Open the port (8N1, DTR and RTS asserted); a no-op when it is open. An open of a
         transport opened before is a reconnect, whoever closed it: :attr:`on_reconnect` checks the
         device now behind the port (the path may lead elsewhere since), and its refusal closes the
-        port and is raised."""
+        port and is raised, as is a link lost during the check (a :class:`DeviceError`, the port
+        left closed: pyserial's exception named no port and reached the operator as a traceback)."""
         with self._lock:  # the check is an exchange: not interleaved with another thread's
             if not self.is_open:
-                self._reopen(None, None)
+                try:
+                    self._reopen(None, None)
+                except _LINK_ERRORS as exc:
+                    self.close()
+                    raise DeviceError(f"{self.url}: link lost during the identity check on opening ({exc})") from exc
 
     def _open_port(self) -> None:
         try:
@@ -280,6 +288,15 @@ class SerialTransport:
                         ) from exc
                     attempt += 1
                     self.close()
+                    if command.split(" ", 1)[0] in getattr(self.on_reconnect, "not_resent", ()):
+                        # it may have reached the controller, and the device behind the reopened
+                        # port is known only to be of the model: resent, XON switched on a second
+                        # unit with settings this session never sent. The caller switches off
+                        # (XOF is resent: it reconnects, checked) and the tube is said to be on.
+                        raise DeviceError(
+                            f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
+                            "controller; not sent again after a reconnect: X-rays may be on"
+                        ) from exc
                     if attempt > self.retries:
                         raise DeviceError(
                             f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
@@ -325,6 +342,7 @@ class SerialTransport:
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
             self._write(self._serial, command, self._payload(command))
+            self._serial.flush()
         except _LINK_ERRORS as exc:
             self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
             return
@@ -333,7 +351,8 @@ class SerialTransport:
         )
 
     def _ask(self, command: str) -> str:
-        """One exchange for :attr:`on_reconnect`, within the query that reconnected (its lock held)."""
+        """One exchange for :attr:`on_reconnect`, within the query or :meth:`open` that reconnected
+        (its lock held)."""
         return self._exchange(command, self._payload(command))
 
     def _payload(self, command: str) -> bytes:
@@ -354,7 +373,10 @@ class SerialTransport:
         try:
             self.commands_written += 1
             self._write(ser, command, payload)
+            # its bytes are out: owed its reply from here, even if the drain below fails (the
+            # controller may have the command; its reply then comes on the reopened port)
             written = True
+            ser.flush()
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
             if isinstance(exc, NoReply) or (written and isinstance(exc, _LINK_ERRORS)):
@@ -374,7 +396,8 @@ class SerialTransport:
         return reply
 
     def _write(self, ser, command: str, payload: bytes) -> None:
-        """Send ``payload``, timed out only while bytes are left unsent.
+        """Send ``payload``, timed out only while bytes are left unsent (the caller drains the
+        output, ``ser.flush()``, once the command counts as written).
 
         pyserial checks its write time-out after ``os.write`` has returned, so a process stalled
         right there (a loaded machine, the GIL held by another thread past ``write_timeout_s``)
@@ -403,7 +426,6 @@ class SerialTransport:
                     sent = len(payload) - len(view)
                     raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
                 select.select([], [fd], [], min(left, 0.05))
-        ser.flush()
 
     def _flush_late(self, ser) -> None:
         """Discard what has arrived before a command is sent (nothing is owed to it yet): each
@@ -460,10 +482,25 @@ class SerialTransport:
         self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
 
+    def _undecided(self, command: str, text: str) -> bool:
+        """Whether ``text`` fits both the command owed a late reply and ``command``, a different
+        command: a line that fits any command (a refusal, ``ERROR``) or two (B's ``XON``, the
+        echo and a state). Read as ``command``'s, a late refusal of a timed-out command made the
+        reconnect check refuse the controller; so it is not decided on at once (:meth:`_read_line`)."""
+        self._forget_overdue()
+        if not self._owed or self.reply_fits is None:
+            return False
+        owed = self._owed[0][0]
+        return owed.split(" ", 1)[0] != command.split(" ", 1)[0] and self.reply_fits(owed, text)
+
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
         buf = self._rx  # kept on self: an interrupted exchange's reply is completed from it (_drain_pending)
         drained = False
+        # a line that may be the late reply owed or this command's own (_undecided): another line
+        # within this reply's time-out is this command's (the controller answers in order), and
+        # the first was the late one; none, and the first is this command's
+        undecided = None
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
@@ -471,6 +508,20 @@ class SerialTransport:
                 self._rx = buf
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()
+                    if undecided is not None:
+                        (first, late), undecided = undecided, None
+                        self.log.debug(
+                            "%s < %s (late reply to %s, not %s's: discarded)", self.url, first, late, command
+                        )
+                    elif (
+                        self.reply_fits is not None
+                        and self.reply_fits(command, text)
+                        and self._undecided(command, text)
+                    ):
+                        # no longer owed either way (a signal may end this wait: nothing is left
+                        # owed for a line already read)
+                        undecided = (text, self._owed.pop(0)[0])
+                        continue
                     if self._is_late(command, text):
                         continue
                     return text
@@ -486,6 +537,9 @@ class SerialTransport:
                 drained = True
                 deadline = time.monotonic() + _READ_SLICE_S
                 continue
+            if left <= 0 and undecided is not None:
+                self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
+                return undecided[0]
             if left <= 0:
                 got = f"; partial reply {bytes(buf)!r}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)

@@ -36,6 +36,7 @@ from acquisition.l8121 import (
     RATINGS,
     Aging,
     Command,
+    Reidentify,
     SourceConfig,
     SourceState,
     SwitchedOff,
@@ -241,6 +242,21 @@ def test_an_explicit_reopen_is_a_reconnect_and_asks_on_reconnect():
             lnk.open()
         assert not lnk.is_open
     assert model.commands == ["STS", "TYP", "TYP"]
+
+
+def test_an_explicit_reopen_whose_check_meets_a_read_error_raises_a_device_error():
+    """``open()`` after ``close()``: the identity check's read fails (a real read error on the
+    pty). pyserial's SerialException escaped, naming no port (a traceback for the operator); now
+    a DeviceError naming the port, and the port is left closed as before."""
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=0.02) as lnk:
+        lnk.on_reconnect = Reidentify(DIALECT_A, "L8121-01", server.url)
+        assert lnk.query("STS") == "STS 2"
+        lnk.close()
+        model.inject_after("TYP", server.read_error)
+        with pytest.raises(DeviceError, match=f"{re.escape(server.url)}: link lost during the identity check"):
+            lnk.open()
+        assert not lnk.is_open
 
 
 def test_transport_gives_up_when_the_device_is_gone(tmp_path):
@@ -1144,15 +1160,18 @@ def test_a_controller_silent_after_a_reconnect_still_gets_the_switch_off(tmp_pat
     assert not src.tube_confirmed_off  # switched off, but nothing confirmed it: the warning
 
 
-def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect):
+def test_a_reconnect_to_the_same_controller_still_switches_off(tmp_path, dialect, caplog):
     """The same controller behind the path again (its adapter re-plugged, a new pty here): it
-    answers the identity query as at connect, and the switch-off goes on and is confirmed."""
+    answers the identity query as at connect, and the switch-off goes on and is confirmed -- by
+    the unit now at the port, which only its model vouches for (no serial number): the operator
+    is told so loudly, and the exit rule does not call the tube confirmed off."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
     with _on_then_reconnected(tmp_path, dialect, model, model) as src:
         assert src.off() == SourceState.STANDBY
         src.close()
     assert commands_after(model, "XON")[-3:] == [IDENTITY_QUERY[dialect], "XOF", "STS"]
-    assert not model.xray_on and src.tube_confirmed_off
+    assert not model.xray_on and src.unit_unverified and not src.tube_confirmed_off
+    assert any(r.levelno == logging.CRITICAL and "check by hand" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.parametrize("command", ["SIN", "XOF"])
@@ -1173,14 +1192,137 @@ def test_a_reply_late_across_a_reconnect_is_not_taken_for_the_identity_checks(wa
         model.hold_once(command)  # sent before the reply to the next line: the check's
         model.inject_after(command, server.read_error)
         n = len(model.log)
-        if command == "XOF":
-            assert src.off() == SourceState.STANDBY and src.tube_confirmed_off
+        if command == "XOF":  # confirmed, by a unit the reconnect knows only by its model
+            assert src.off() == SourceState.STANDBY and src.unit_unverified
         else:
             assert src.interlock_closed() is True
         sent = [e.command for e in model.log[n:]]
         assert sent[:3] == [command, check, command], sent
     assert not model.xray_on
     assert f"(late reply to {command}, not {check}'s: discarded)" in caplog.text
+
+
+def test_a_command_whose_drain_fails_after_its_bytes_went_out_is_owed_its_reply(warm, dialect, caplog):
+    """SIN's bytes written, then the drain (tcdrain) fails at a link glitch: the command counted as
+    written only once the drain returned, so it was not owed its reply, and its late answer, on
+    the reopened port, was read as the reconnect check's (B: "not trusted"). Now it is owed from
+    the moment its bytes are out. The failing drain is a stand-in (tcdrain cannot be made to fail
+    on a pty); the port, the emulator and the reconnect are real."""
+    import termios
+
+    model, server = warm
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    with driver(server, dialect) as src:
+        ser = src._transport._serial
+        drain = ser.flush
+
+        def failing_drain():
+            drain()
+            ser.flush = drain
+            raise termios.error(5, "Input/output error")
+
+        ser.flush = failing_drain
+        model.hold_once("SIN")  # its reply comes late, on the reopened port
+        n = len(model.log)
+        assert src.interlock_closed() is True
+        sent = [e.command for e in model.log[n:]]
+    assert sent == ["SIN", IDENTITY_QUERY[dialect], "SIN"], sent
+    assert f"(late reply to SIN, not {IDENTITY_QUERY[dialect]}'s: discarded)" in caplog.text
+
+
+@pytest.mark.parametrize("command", ["STS", "XOF"])
+def test_a_late_refusal_across_a_reconnect_is_not_taken_for_the_identity_checks(command, caplog):
+    """As above, with a late reply that is a refusal (B's ERROR: an STS that shows nothing, an XOF
+    refused with the operate switch on LOCAL). A refusal fits any command's grammar, so it was
+    taken for the check's answer and the controller refused as "not trusted". Now, with a reply
+    owed, a line that fits both it and the check is not decided on: the next line, within the
+    check's time-out, is the check's answer and the refusal the late reply."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=RAMP_S)
+    caplog.set_level(logging.DEBUG, logger="acquisition.transport")
+    with PtyServer(model) as server, driver(server, "B") as src:
+        if command == "STS":
+            model.sts_error()
+        else:
+            src.on(60, 250)
+            model.set_operate_switch("LOCAL")
+        model.hold_once(command)  # sent before the reply to the next line: the check's
+        model.inject_after(command, server.read_error, refused=True)
+        n = len(model.log)
+        if command == "STS":
+            assert src.status() == SourceState.PREHEATING  # B's ERROR, read as a state, not a refusal
+        else:
+            with pytest.raises(DeviceError, match="operate switch is LOCAL"):
+                src.off()
+        sent = [e.command for e in model.log[n:]]
+        model.sts_error(False)
+        model.set_operate_switch("REMOTE")
+    assert sent[:3] == [command, "SRL", command], sent
+    assert "not trusted" not in caplog.text
+    assert f"(late reply to {command}, not SRL's: discarded)" in caplog.text
+    assert not model.xray_on
+
+
+@pytest.mark.parametrize("what", ["xray_on", "preset_voltage"])
+def test_a_beam_command_lost_at_a_read_error_is_not_sent_again(warm, dialect, what, caplog):
+    """XON (or a setting) written, the controller acts, and a brief read error loses its reply:
+    the transport reopened the port, checked the model and sent the command again -- XON then
+    got ERROR (already on), and behind a repointed path a second unit was switched on. Now a
+    command that emits or changes the beam is never resent after a reconnect: the call fails
+    saying X-rays may be on, the driver switches off (XOF is resent, checked) and the operator is
+    told that the unit now at the port confirmed it."""
+    model, server = warm
+    word = {"xray_on": "XON", "preset_voltage": WIRE[dialect]["set_60_250"][0].split()[0]}[what]
+    with driver(server, dialect) as src:
+        model.hold_once(word)  # its reply comes late, on the reopened port
+        model.inject_after(word, server.read_error)
+        n = len(model.log)
+        with pytest.raises(DeviceError, match=f"{word}[^:]*: link lost .*not sent again after a reconnect"):
+            src.on(60, 250)
+        sent = [e.command.split()[0] for e in model.log[n:]]
+        assert sent.count(word) == 1 and not model.xray_on, sent
+        if word == "XON":  # switched off and confirmed, by a unit known only by its model: said loudly
+            assert sent[-2:] == ["XOF", "STS"] and not src.tube_confirmed_off, sent
+            warned = [r for r in caplog.records if r.levelno == logging.CRITICAL]
+            assert any("unit now at the port" in r.getMessage() for r in warned)
+
+
+def test_no_xon_after_a_reconnect_since_the_settings_were_sent(warm, dialect):
+    """A read error after the settings' read-back (the query is retried on the reopened port,
+    which passes the model check): XON went out to the unit now at the port, which may not be the
+    one that holds the settings (no serial number). Now on() refuses before XON; nothing emits."""
+    model, server = warm
+    setting, readback = WIRE[dialect]["set_60_250"][-1].split()[0], WIRE[dialect]["setpoint"][-1]
+    with driver(server, dialect) as src:
+        model.inject_after(setting, lambda: model.inject_after(readback, server.read_error))
+        n = len(model.log)
+        with pytest.raises(DeviceError, match="not switched on: the link was lost and reopened after the settings"):
+            src.on(60, 250)
+        sent = [e.command for e in model.log[n:]]
+        assert "XON" not in sent and IDENTITY_QUERY[dialect] in sent and not model.xray_on, sent
+        assert src.tube_confirmed_off  # nothing emitting was sent: the STS before it still vouches
+
+
+def test_xon_lost_at_a_read_error_never_reaches_another_unit_behind_the_path(tmp_path):
+    """The read error comes as the port's path is repointed to a second unit of the same model
+    (it passes TYP): the XON was resent to it, which emitted with settings this session never
+    sent, and unit 1, still on, was reported confirmed off. Now unit 2 gets only the check and
+    the switch-off, and the exit rule leaves the warning up (unit 1 must be checked by hand)."""
+    one, two = (L8121Model(warmed_up=True, ramp_s=RAMP_S) for _ in range(2))
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(one) as first, PtyServer(two) as second:
+        os.symlink(first.url, port)
+
+        def lose():
+            _repoint(port, second.url)
+            first.read_error()
+
+        src = L8121(str(port), dialect="A", **FAST)
+        one.inject_after("XON", lose)
+        with pytest.raises(DeviceError, match="not sent again"):
+            src.on(60, 250)
+        src.close()
+    assert two.commands == ["TYP", "XOF", "STS"] and not two.xray_on
+    assert one.xray_on and not src.tube_confirmed_off  # unit 1 was never reached again: the warning
 
 
 def test_after_auto_a_reconnect_checks_the_model_the_probe_found(tmp_path):
@@ -1212,6 +1354,19 @@ def test_resolve_gives_the_guardian_the_model_the_probe_found(warm):
     resolved = L8121(server.url, dialect="auto", model=None, connect=False, **FAST).resolve()
     assert resolved.dialect == model.dialect
     assert resolved.model == ("L8121-01" if model.dialect == "A" else None)
+
+
+def test_a_connect_with_the_resolved_model_that_finds_another_says_the_unit_changed():
+    """``model=None``; resolve() found the L8121-01, and the connect with that configuration (the
+    series' over the guardian) finds another model: refused, rightly, but the message said
+    "configure model=None to accept any model", which the user had done. It now says the probe
+    found the L8121-01 at this port moments before."""
+    with PtyServer(L8121Model(warmed_up=True)) as one, PtyServer(L8121Model(warmed_up=True, model="L9181-02")) as two:
+        resolved = L8121(one.url, dialect="auto", model=None, connect=False, **FAST).resolve()
+        with pytest.raises(DeviceError) as refused:
+            L8121(two.url, config=resolved, **FAST)
+    said = str(refused.value)
+    assert "the probe found 'L8121-01' at this port moments before" in said and "model=None" not in said, said
 
 
 def _check_into(src, errors):
@@ -1327,7 +1482,7 @@ def test_b_xof_refused_off_remote_ends_the_switch_off_at_once(switch):
             DeviceError, match=f"could not confirm X-rays off after 1 attempt.*operate switch is {switch}"
         ):
             src.off()
-        assert [e.command for e in model.log[n:]] == ["XOF", "STS", "SRL"]
+        assert [e.command for e in model.log[n:]] == ["XOF", "SRL", "STS"]
         assert model.xray_on and not src.tube_confirmed_off
         model.set_operate_switch("REMOTE")
 
@@ -1594,8 +1749,13 @@ def test_exit_does_not_mask_the_original_exception(warm, dialect):
 @pytest.mark.parametrize("baud", BAUDS)
 def test_probe_identifies_each_dialect_at_each_baud_rate(dialect, baud):
     model = L8121Model(dialect=dialect, baudrate=baud)  # cold: an XON would start the warm-up in B
+    # The reply wait is paid in full (and a quarter more) at each rate tried before the unit's,
+    # where nothing answers; at the unit's rate the replies come at once. 0.2 s flaked under load
+    # (a reply later than that at the right rate): 1 s where no wrong rate precedes costs nothing;
+    # at 38400 and 115200 it would add about 1.25 s per wrong rate, so 0.2 s stays there
+    wait = 1.0 if baud == BAUDS[0] else 0.2
     with PtyServer(model) as server:
-        result = probe(server.url, baudrates=BAUDS, timeout_s=0.2, min_interval_s=0.01)
+        result = probe(server.url, baudrates=BAUDS, timeout_s=wait, min_interval_s=0.01)
     assert (result.dialect, result.baudrate) == (dialect, baud), result.report()
     assert result.identity == ("L8121-01" if dialect == "A" else None)
     assert dict(result.details)["interlock"] == "closed"
@@ -2657,6 +2817,35 @@ def test_the_guardians_watch_is_not_disarmed_by_a_reply_the_driver_never_takes_a
     assert not watch.may_be_on
     watch.replied(query, "XON")
     assert watch.may_be_on
+
+
+def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
+    """The guardian's link reconnected (its check's count moved) while X-rays may have been on:
+    the STS that later reads off is the unit's now at the port, known only by its model. The
+    operator is told so, loudly, once, when that off comes through; a reconnect with the tube
+    off says nothing."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    said = []
+    note = lambda level, text: said.append((level, text))
+    watch = _Watch(SimpleNamespace(dialect="A"))
+    watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
+    watch.reidentify.reconnects += 1  # a reconnect with the tube off
+    watch.exchanged(0, False, note, "p")
+    watch.sent("XON")
+    watch.replied("XON", "XON")
+    watch.exchanged(1, False, note, "p")
+    watch.reidentify.reconnects += 1  # the XOF's query reopened the link
+    watch.replied("XOF", "XOF")
+    watch.exchanged(1, True, note, "p")
+    assert said == []
+    watch.replied("STS", "STS 2")
+    watch.exchanged(2, True, note, "p")
+    assert [level for level, _ in said] == ["CRITICAL"] and "check by hand" in said[0][1]
+    watch.exchanged(2, False, note, "p")
+    assert len(said) == 1
 
 
 @pytest.mark.parametrize(

@@ -118,7 +118,12 @@ def test_connect(dialect):
             r"speaking dialect A\? If it speaks dialect B",
         ),
         # B off REMOTE refuses its XOF (no exception to "remote control needs REMOTE"): STS shows off
-        ("B", [("SRL", "LOCAL"), ("STS", "STANDBY"), ("XOF", "ERROR"), ("STS", "STANDBY")], r"operate switch is LOCAL"),
+        # the refused XOF: SRL first (it names LOCAL: no ramp-down window), then one STS
+        (
+            "B",
+            [("SRL", "LOCAL"), ("STS", "STANDBY"), ("XOF", "ERROR"), ("SRL", "LOCAL"), ("STS", "STANDBY")],
+            r"operate switch is LOCAL",
+        ),
         ("B", [("SRL", "ERR"), *OFF["B"]], r"SRL refused by the controller \(ERR\)"),
         ("B", [("SRL", "REMOTE"), ("STS", "STS 2"), *OFF["B"]], r"unparseable reply to STS \(dialect B\): 'STS 2'"),
         (
@@ -347,7 +352,7 @@ def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
             "3 attempt.*STS still PREHEATING after XOF",
         ),
         # a refused XOF, and SRL says why: the controller will not act, so no further attempt
-        ("B", [("XOF", "ERROR"), ("STS", "XON"), ("SRL", "LOCAL")], "1 attempt.*the operate switch is LOCAL"),
+        ("B", [("XOF", "ERROR"), ("SRL", "LOCAL"), ("STS", "XON")], "1 attempt.*the operate switch is LOCAL"),
         ("B", [("XOF", None), ("STS", None)] * 3 + [("SRL", None)], "3 attempt.*no reply to STS"),
     ],
 )
@@ -357,6 +362,22 @@ def test_off_not_confirmed(dialect, pairs, message):
     with expected_protocol(dialect, CONNECT[dialect] + pairs) as src:
         with pytest.raises(DeviceError, match=f"could not confirm X-rays off after {message}"):
             src.off()
+
+
+@pytest.mark.parametrize(
+    "dialect, refusal, told", [("A", [("XOF", "ERR")], []), ("B", [("XOF", "ERROR")], [("SRL", "REMOTE")])]
+)
+def test_a_refused_xof_without_a_reason_keeps_the_ramp_down_window(dialect, refusal, told):
+    """A refused XOF whose reason the controller does not give (A has no SRL; B's says REMOTE)
+    may come while a first XOF ramps the supply down: the switch-off asked one STS and went on to
+    the next attempt, and a tube that went off a moment later ended on "could not confirm". Now
+    the window is kept; only SRL naming another position ends it at once. (A script: the emulator
+    never refuses A's XOF, which L8121.md says is always accepted.)"""
+    on, off = {"A": ("STS 3", "STS 2"), "B": ("XON", "STANDBY")}[dialect]
+    pairs = CONNECT[dialect] + refusal + told + [("STS", on), ("STS", off)]
+    # the window (off_confirm_s / off_attempts, 10 s) is left at the second STS: no wait in the test
+    with expected_protocol(dialect, pairs, off_confirm_s=30.0) as src:
+        assert src.off() == SourceState.STANDBY
 
 
 # -- faults while on ------------------------------------------------------------------------------

@@ -209,6 +209,7 @@ class L8121Model:
         self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
+        self._after_refused: set[str] = set()  # commands whose _after fault fires on a refusal too
         self._commands, self._takes_argument = self._front_end_a() if dialect == "A" else self._front_end_b()
 
     # -- the two front ends -----------------------------------------------------------------------
@@ -384,11 +385,16 @@ class L8121Model:
 
         self._at(at_s, fix)
 
-    def inject_after(self, command: str, fault: Callable[[], object]) -> None:
+    def inject_after(self, command: str, fault: Callable[[], object], *, refused: bool = False) -> None:
         """Call ``fault()`` once, right after the controller next executes ``command`` (a command
-        word such as ``"PCU"``): a state change that lands between two of the driver's commands."""
+        word such as ``"PCU"``): a state change that lands between two of the driver's commands.
+        ``refused``: after it next answers ``command`` at all, a refusal (``ERROR``) included --
+        a read error while a refusal is on its way."""
         with self._lock:
             self._after[command] = fault
+            self._after_refused.discard(command)
+            if refused:
+                self._after_refused.add(command)
 
     def set_operate_switch(self, position: str = "LOCAL") -> None:
         """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
@@ -533,21 +539,28 @@ class L8121Model:
         return exchange
 
     def _execute(self, line: str, t: float) -> str:
+        reply, acted = self._act(line, t)
+        word = (line.split() or [""])[0]
+        if acted or word in self._after_refused:
+            self._after_refused.discard(word)
+            fault = self._after.pop(word, None)
+            if fault is not None:
+                fault()
+        return reply
+
+    def _act(self, line: str, t: float) -> tuple[str, bool]:
+        """The reply to ``line``, and whether its action ran (not refused before it)."""
         word, *args = line.split()
         if word == "STS" and not args and self._sts_error:
-            return "ERROR"
+            return "ERROR", False
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
-            return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR")
+            return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR"), False
         # L8121.md, dialect A: "XOF ... always accepted" -- not in remote mode too. B's notes say
         # only that remote control needs REMOTE, with no exception: B refuses its XOF there
         if word in _CONTROL and self._switch != "REMOTE" and not (word == "XOF" and self.dialect == "A"):
-            return self._refuse(ErrorCode.LOCAL)
-        reply = action(t, *args)
-        fault = self._after.pop(word, None)
-        if fault is not None:
-            fault()
-        return reply
+            return self._refuse(ErrorCode.LOCAL), False
+        return action(t, *args), True
 
     def _refuse(self, code: ErrorCode, reply: str = "ERROR") -> str:
         self._error = code
