@@ -420,7 +420,7 @@ def _slow_not_lost(info, q, k) -> bool:
     (session 28)"). The checks then see the pair at a finer grid than the run did, and their
     residual is the better judge. Where the run's finest level is as fine as the checks' grid or
     finer, its own verdict stands: it sees what the binned checks miss (``default`` at 2240,
-    binned by 2, on a TRAINING picture's blank sky: px off, its residual within the line, flagged
+    binned by 2, on a TRAINING picture's blank sky: pixels off, its residual within the line, flagged
     only by this verdict; same section). The move stays reported (``converged`` False,
     ``Quality.note``)."""
     coarser = info.get("finest_binning", 1) * info.get("binned", 1) > k
