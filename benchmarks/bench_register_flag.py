@@ -63,7 +63,17 @@ def registered(out, label, name, opts, fixed, moving, fresh=False):
     path = _cache_path(out, label, name)
     if path.exists() and not fresh:
         z = np.load(path, allow_pickle=False)
-        return z["d"], json.loads(str(z["info"])), float(z["seconds"])
+        info = json.loads(str(z["info"]))
+        # caches written before session 28 lack rc's still_moving_px and finest_binning (_assess
+        # reads them): the message said the first ("still moving: ..." is _bspline._converged's
+        # alone), the options' pyramid gives the second
+        if not info.get("converged", True) and str(info.get("message", "")).startswith("still moving:"):
+            from radiokit.register import _bspline as B
+
+            info.setdefault("still_moving_px", float(info["message"].split()[2]))
+            o = B._options(opts.get("preset", "default"), {k: v for k, v in opts.items() if k != "preset"})
+            info.setdefault("finest_binning", B._pyramid(fixed.shape, o)[-1][0])
+        return z["d"], info, float(z["seconds"])
     method = _method_of(name)
     f, m, _ = _check(fixed, moving, None)
     t = time.perf_counter()

@@ -1449,7 +1449,7 @@ def _bspline_register(
         grids, levels = _checked_start(start_lattices, f.shape, affine), levels[-1:]
     # the thinning field: one coarse lattice for all levels, its coefficients carried down
     gain = None if not o["gain"] else [BSplineField(f.shape, o["gain"] * min(f.shape)), None]
-    total_its, converged, message, abandoned = 0, True, "", {}
+    total_its, converged, message, abandoned, still = 0, True, "", {}, {}
     # the checks' measure of a field's residual (coarse_residual_motion): built once, when first needed
     measured = functools.cache(lambda: _coarse_measure(fixed, moving, mask))
     for factor, n_it in levels:
@@ -1513,6 +1513,10 @@ def _bspline_register(
             converged, message, abandoned = False, why, {"abandoned": why}
         elif factor == finest:
             converged, message = _converged(res, move, o["converge_px"])
+            # the budget ended with the field still moving: register()'s checks judge whether that
+            # is slow or lost (radiokit.register._slow_not_lost), so they are told it was this and
+            # no other stop, and how coarse the level that moved was
+            still = {} if converged else {"still_moving_px": float(move), "finest_binning": int(finest)}
         elif last_coarse and (
             why := res.get("abandoned") or _far_off(measured(), grids, affine, o, "after the level before it")
         ):
@@ -1554,6 +1558,7 @@ def _bspline_register(
         lattices_whole=affine is None,  # the field is theirs alone (not a silhouette's map added)
         options=o,
         **abandoned,
+        **still,
     )
 
 
