@@ -316,6 +316,10 @@ def _switch_off(link, config, note) -> bool:
 
     driver = L8121(link, config=config, connect=False)
     driver.attach(link)
+    # switched off because X-rays may be on: a reconnect during this off (the link's on_reconnect
+    # counts it) leaves the confirmation the unit's now at the port, said as such (review s28-h6:
+    # a fresh driver thought the tube off, so its reconnect went unflagged)
+    driver._may_be_on = True
     try:
         state = driver.off()
     except DeviceError as exc:

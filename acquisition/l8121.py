@@ -1163,9 +1163,16 @@ class Reidentify:
         #: How often the check has been asked (each a reconnect): a driver compares it across an
         #: exchange to know that a confirmation may come from a unit other than the one switched on.
         self.reconnects = 0
+        #: Set by a transport that takes the port over from an X-ray guardian that held it open until
+        #: it died (acquisition.transport.PipeTransport): the next check is of a handover, not of a
+        #: link lost and found again (no unplugged adapter in between), so it is not counted.
+        self.handover = False
 
     def __call__(self, ask: Callable[[str], str]) -> None:
-        self.reconnects += 1
+        if self.handover:
+            self.handover = False
+        else:
+            self.reconnects += 1
         command = self.query.command
         refused = f"{self.port}: after a reconnect, the device at the port"
         try:
@@ -1818,8 +1825,8 @@ class L8121:
             min_interval_s=self.min_interval_s,
             timeout_s=self.timeout_s,
         )
-        if self.config.model is None:
-            resolved.probed_model = self.identity
+        # dataclasses.replace drops it (not a field): carried by hand, also from an earlier resolve()
+        resolved.probed_model = self.identity if self.config.model is None else self.config.probed_model
         return resolved
 
     def resolve(self) -> SourceConfig:
@@ -2233,6 +2240,7 @@ class L8121:
         self.warmup_joined = state == SourceState.WARMING_UP  # one already running: waited for, not set
         if not self._warm_up_needed(state, force):
             return 0.0
+        seen = self._reconnects()
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
@@ -2246,6 +2254,7 @@ class L8121:
         self._may_be_on = True  # the warm-up sequence runs the tube
         try:
             if state != SourceState.WARMING_UP:
+                self._refuse_after_reconnect(seen, "warm-up not started", "start it again")
                 self._do("warm_up")
                 logger.info(
                     "%s: warm-up started with %s (timeout %g s)",
@@ -2413,21 +2422,14 @@ class L8121:
         """
         kv_i, ua_i = self.validate(kv, ua)
         self._require_ready()
-        check = self._reidentify
-        seen = check.reconnects if check is not None else 0
+        seen = self._reconnects()
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
-            if check is not None and check.reconnects != seen:
-                # a query retried on a reopened link: the unit now at the port passed a check of
-                # its model only, and may not hold the settings sent (or read back) before
-                raise DeviceError(
-                    f"{self.port}: X-rays not switched on: the link was lost and reopened after the "
-                    "settings were sent, and the unit now at the port is known only by its model; switch on again"
-                )
+            self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()
@@ -2707,6 +2709,20 @@ class L8121:
                 self._off_thread, self._off_running = None, False
                 self._turns.notify_all()
         raise self.off_failed from last
+
+    def _reconnects(self) -> int:
+        """How often the link has been reopened (its :class:`Reidentify`'s count; 0 without one)."""
+        return self._reidentify.reconnects if self._reidentify is not None else 0
+
+    def _refuse_after_reconnect(self, seen: int, what: str, then: str) -> None:
+        """DeviceError when the link was reopened since ``seen`` (:meth:`_reconnects`), before a
+        command that emits: a query retried on a reopened link passed a check of the unit's model
+        only, and that unit may not hold the settings sent (or read back) before."""
+        if self._reconnects() != seen:
+            raise DeviceError(
+                f"{self.port}: {what}: the link was lost and reopened after the settings were sent, and "
+                f"the unit now at the port is known only by its model; {then}"
+            )
 
     def unverified_warning(self, state: SourceState) -> str:
         """The operator's warning after an off confirmed by a unit known only by its model."""

@@ -197,7 +197,9 @@ class SerialTransport:
                     self._reopen(None, None)
                 except _LINK_ERRORS as exc:
                     self.close()
-                    raise DeviceError(f"{self.url}: link lost during the identity check on opening ({exc})") from exc
+                    raise DeviceError(
+                        f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
+                    ) from exc
 
     def _open_port(self) -> None:
         try:
@@ -746,8 +748,12 @@ class PipeTransport:
             )
             self._direct.reply_fits = self.reply_fits
             self._direct.on_reconnect = self.on_reconnect
-            # the guardian had the port open: this first open here is a reconnect (checked)
+            # the guardian had the port open: this first open here is a reconnect (checked), but a
+            # handover (the port held until the guardian died), not a link lost: not counted as one
+            # whose confirmation may be another unit's (acquisition.l8121.Reidentify.handover)
             self._direct._opened_once = True
+            if hasattr(self.on_reconnect, "handover"):
+                self.on_reconnect.handover = True
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

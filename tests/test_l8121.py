@@ -254,7 +254,10 @@ def test_an_explicit_reopen_whose_check_meets_a_read_error_raises_a_device_error
         assert lnk.query("STS") == "STS 2"
         lnk.close()
         model.inject_after("TYP", server.read_error)
-        with pytest.raises(DeviceError, match=f"{re.escape(server.url)}: link lost during the identity check"):
+        with pytest.raises(
+            DeviceError,
+            match=f"{re.escape(server.url)}: link failed \\(lost, or a write timed out\\) during the identity check",
+        ):
             lnk.open()
         assert not lnk.is_open
 
@@ -2846,6 +2849,68 @@ def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     assert [level for level, _ in said] == ["CRITICAL"] and "check by hand" in said[0][1]
     watch.exchanged(2, False, note, "p")
     assert len(said) == 1
+
+
+def test_the_guardians_own_switch_off_after_a_reconnect_is_not_called_confirmed(dialect, capfd):
+    """The acquiring process dies with X-rays on; the guardian's XOF meets a read error, the link
+    is reopened (the model checked), XOF sent again and STS reads off: that confirms the unit now
+    at the port, known only by its model, so the guardian says so and exits 3 (review s28-h6: its
+    fresh driver thought the tube off, so the reconnect went unflagged and it said 'confirmed')."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)
+        model.hold_once("XOF")  # its reply lost at the read error: the transport sends XOF again
+        model.inject_after("XOF", server.read_error)
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 3
+        assert not model.xray_on  # this unit is off: the warning is for a unit that may differ
+    err = capfd.readouterr().err
+    assert "check by hand that the unit first connected is off" in err and "X-RAYS MAY STILL BE ON" in err
+
+
+def test_a_series_switch_off_confirmed_after_a_reconnect_is_not_counted_off(dialect):
+    """The series' last switch-off (compression_series._switch_off_once) took off()'s state as
+    the tube off; over a link reopened while X-rays were on it is the unit now at the port's, so
+    the series must not report the tube off (its last line and exit code; review s28-h6)."""
+    from types import SimpleNamespace
+
+    from acquisition.protocols.compression_series import _switch_off_once
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        source = L8121(server.url, dialect=dialect, **FAST)
+        source.on(60, 250)
+        model.hold_once("XOF")
+        model.inject_after("XOF", server.read_error)
+        run = SimpleNamespace(monitor=None, res=SimpleNamespace(tube_off=None, tube_state=None))
+        dev = SimpleNamespace(source=source, off_done=False, off_failed=False)
+        assert _switch_off_once(run, dev) is False
+        assert run.res.tube_off is False and dev.off_failed and not model.xray_on
+        source.close()
+
+
+def test_warm_up_sends_no_start_command_after_a_reconnect_since_its_settings(dialect):
+    """A read error during the warm-up settings' read-back: the query is retried on the reopened
+    port, whose unit passed a check of its model only and may not hold the settings; the start
+    command (A's WUP, B's XON) is not sent (as on() sends no XON), and the tube is switched off."""
+    model = L8121Model(dialect=dialect, warmed_up=False)
+    setting, readback = ("CUR", "SVI") if dialect == "A" else ("PCU", "SPC")
+    start = "WUP" if dialect == "A" else "XON"
+    with PtyServer(model) as server:
+        source = L8121(server.url, dialect=dialect, **FAST)
+        model.inject_after(setting, lambda: model.inject_after(readback, server.read_error))
+        n = len(model.log)
+        with pytest.raises(DeviceError, match="warm-up not started: the link was lost and reopened after the settings"):
+            source.warm_up(timeout_s=1.0, progress=False)
+        sent = [e.command for e in model.log[n:]]
+        assert start not in sent and sent[-2:] == ["XOF", "STS"], sent
+        source.close()
 
 
 @pytest.mark.parametrize(

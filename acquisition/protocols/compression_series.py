@@ -1476,6 +1476,13 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         r.res.tube_off, r.res.tube_state = False, name
         log.error("XOF sent, but the controller reports %s: the tube still emits", name)
         return False
+    if getattr(dev.source, "unit_unverified", False):
+        # confirmed over a link reopened while X-rays may have been on: the unit now at the port
+        # said so, known by its model only (the driver logged the operator's CRITICAL line)
+        dev.off_failed = True
+        r.res.tube_off, r.res.tube_state = False, name
+        log.error("X-rays off confirmed only by the unit now at the port (the link was reopened): check by hand")
+        return False
     r.res.tube_off, r.res.tube_state = True, name
     return True
 
