@@ -193,6 +193,18 @@ def test_transport_reconnects_after_a_lost_link(caplog):
     assert any("reconnecting" in r.getMessage() for r in caplog.records), caplog.text
 
 
+def _check_refusing_at(n, asked):
+    """An ``on_reconnect`` that asks ``TYP`` (its answers in ``asked``) and refuses the device at
+    its ``n``-th call (the test's own rule: the transport knows no instrument)."""
+
+    def check(ask):
+        asked.append(ask("TYP"))
+        if len(asked) == n:
+            raise DeviceError("not the one")
+
+    return check
+
+
 def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuses():
     """``on_reconnect`` runs after a reopen, not after the first open, before the command is sent
     again; a refusal (DeviceError) closes the port and fails the query as a lost link, and the
@@ -200,12 +212,7 @@ def test_transport_asks_on_reconnect_before_resending_and_refuses_what_it_refuse
     knows no instrument.)"""
     model = L8121Model(warmed_up=True)
     asked = []
-
-    def check(ask):
-        asked.append(ask("TYP"))
-        if len(asked) == 1:
-            raise DeviceError("not the one")
-
+    check = _check_refusing_at(1, asked)
     with SocketServer(model) as server, SerialTransport(server.url, retries=1) as lnk:
         lnk.on_reconnect = check
         assert lnk.query("STS") == "STS 2" and asked == []
@@ -225,12 +232,7 @@ def test_an_explicit_reopen_is_a_reconnect_and_asks_on_reconnect():
     to a device never checked). A refusal closes the port and raises from ``open()``."""
     model = L8121Model(warmed_up=True)
     asked = []
-
-    def check(ask):
-        asked.append(ask("TYP"))
-        if len(asked) == 2:
-            raise DeviceError("not the one")
-
+    check = _check_refusing_at(2, asked)
     with PtyServer(model) as server, SerialTransport(server.url, min_interval_s=0.02) as lnk:
         lnk.on_reconnect = check
         assert lnk.query("STS") == "STS 2" and asked == []
