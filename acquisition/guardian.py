@@ -307,19 +307,22 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config, note) -> bool:
+def _switch_off(link, config, note, watch: _Watch) -> bool:
     """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
     dialect the acquiring process resolved (``config``; no probe, no identity check: only what
-    switching off needs). Returns whether ``STS`` confirmed it."""
+    switching off needs). Returns whether ``STS`` confirmed it. ``watch``: what the exchanges passed
+    on showed (X-rays may be on; the link reopened while they may have been)."""
     from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
 
     driver = L8121(link, config=config, connect=False)
     driver.attach(link)
-    # switched off because X-rays may be on: a reconnect during this off (the link's on_reconnect
-    # counts it) leaves the confirmation the unit's now at the port, said as such (review s28-h6:
-    # a fresh driver thought the tube off, so its reconnect went unflagged)
-    driver._may_be_on = True
+    # what the passed-on exchanges showed: X-rays may be on, so that a reconnect during this off
+    # (the link's on_reconnect counts it) leaves the confirmation the unit's now at the port; and a
+    # reconnect already passed on while they may have been on (reviews s28-h6, s28-h7: a fresh
+    # driver thought the tube off, so either reconnect went unflagged and the off was "confirmed")
+    driver._may_be_on = watch.may_be_on or watch.unverified
+    driver.unit_unverified = watch.unverified
     try:
         state = driver.off()
     except DeviceError as exc:
@@ -421,7 +424,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
-    if _switch_off(link, config, note):
+    if _switch_off(link, config, note, watch):
         watch.may_be_on = False
         return
     # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
@@ -452,7 +455,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
                     "WARNING",
                     f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
                 )
-                ok = _switch_off(link, config, note)
+                ok = _switch_off(link, config, note, watch)
                 link.close()
                 if not ok:
                     _say(TUBE_WARNING)

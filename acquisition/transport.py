@@ -694,7 +694,14 @@ class PipeTransport:
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         with self._lock:
             if self._lost:
-                return self._take_over().query(command)
+                direct = self._take_over()
+                try:
+                    return direct.query(command)
+                finally:
+                    # the handover is the takeover's first open only: whether it was checked or
+                    # failed (the port gone), a later reopen is a link lost and found again (s28-h7)
+                    if getattr(self.on_reconnect, "handover", False):
+                        self.on_reconnect.handover = False
             if not self._open:
                 raise DeviceError(f"{self.url}: {command}: the port has been released")
             self._seq += 1

@@ -2876,6 +2876,70 @@ def test_the_guardians_own_switch_off_after_a_reconnect_is_not_called_confirmed(
     assert "check by hand that the unit first connected is off" in err and "X-RAYS MAY STILL BE ON" in err
 
 
+@contextlib.contextmanager
+def _two_units_behind_one_path(tmp_path, dialect):
+    """``(one, two, first, second, port)``: two units of the same model, each on its own pty,
+    and a port path (a symlink) leading to the first; switched on through the guardian."""
+    one, two = (L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2) for _ in range(2))
+    port = tmp_path / "ttyUSB0"
+    with PtyServer(one) as first, PtyServer(two) as second:
+        os.symlink(first.url, port)
+        yield one, two, first, second, port
+
+
+def _guarded_on(port, dialect):
+    """A source switched on through an X-ray guardian: ``(link, source)``."""
+    from acquisition.guardian import start_guardian
+
+    resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
+    link = start_guardian(str(port), resolved)
+    source = L8121(link, connect=False, config=resolved)
+    source.connect()
+    source.on(60, 250)
+    return link, source
+
+
+def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tmp_path, dialect, capfd):
+    """A poll passed on through the guardian meets a read error as the path moves to a second
+    unit (same model, off): retried there after the model check. The acquiring process then dies
+    before any STS: the guardian's switch-off is confirmed by unit 2, so it must not say
+    'confirmed' and exit 0 with unit 1 on (review s28-h7: it counted only a reconnect during its
+    own XOF)."""
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        link, source = _guarded_on(port, dialect)
+
+        def repoint():
+            os.symlink(second.url, port.with_name("new"))
+            os.replace(port.with_name("new"), port)
+            first.read_error()
+
+        one.hold_once("SIN")
+        one.inject_after("SIN", repoint)
+        assert source.interlock_closed()
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 3
+        assert one.xray_on and "XOF" in two.commands  # what the warning is for
+    assert "check by hand that the unit first connected is off" in capfd.readouterr().err
+
+
+def test_a_takeover_whose_port_is_gone_leaves_a_later_reopen_counted(tmp_path, dialect):
+    """The guardian dies and the adapter with it: the takeover's open fails, so its handover (a
+    first open not counted as a lost link) was never used up, and the path coming back to another
+    unit was then not counted either: its off read confirmed (review s28-h7)."""
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        link, source = _guarded_on(port, dialect)
+        link._process.kill()
+        link._process.wait()
+        os.unlink(port)
+        with pytest.raises(DeviceError):
+            source.off()
+        assert not link.on_reconnect.handover
+        os.symlink(second.url, port)
+        source.close()  # switches off again, now through the path to unit 2
+        assert one.xray_on and "XOF" in two.commands
+        assert source.unit_unverified and not source.tube_confirmed_off
+
+
 def test_a_series_switch_off_confirmed_after_a_reconnect_is_not_counted_off(dialect):
     """The series' last switch-off (compression_series._switch_off_once) took off()'s state as
     the tube off; over a link reopened while X-rays were on it is the unit now at the port's, so
