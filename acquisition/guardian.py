@@ -353,6 +353,7 @@ class _Watch:
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
         self.unverified = False
+        self.settings_at = None  # the check's count when the last setting was passed on (refusal)
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -372,6 +373,22 @@ class _Watch:
     def sent(self, command: str) -> None:
         if command.split(" ", 1)[0] in ("XON", "WUP"):
             self.may_be_on = True
+
+    def refusal(self, command: str, port: str) -> str | None:
+        """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened since the
+        last setting passed on, so the unit now at the port passed a check of its model only and
+        may not hold the settings (the driver's own on()/warm_up() rule, which cannot see this
+        process's reconnects; review s28-h7). Records the count at each setting passed on."""
+        head, count = command.split(" ", 1)[0], getattr(self.reidentify, "reconnects", 0)
+        if head in ("XON", "WUP"):
+            if self.settings_at is not None and count != self.settings_at:
+                return (
+                    f"{port}: {head} not sent: the link was lost and reopened after the settings were "
+                    "sent, and the unit now at the port is known only by its model; switch on again"
+                )
+        elif head in getattr(self.reidentify, "not_resent", ()) and head != "RST":
+            self.settings_at = count
+        return None
 
     def replied(self, command: str, reply: str) -> None:
         from acquisition.l8121 import _OFF_STATES
@@ -471,8 +488,12 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             continue
         seq, command = words[1], words[2]
         was_on, seen = watch.may_be_on, getattr(watch.reidentify, "reconnects", 0)
-        watch.sent(command)
+        refused = watch.refusal(command, link.port)
+        if not refused:
+            watch.sent(command)
         try:
+            if refused:
+                raise DeviceError(refused)
             reply = link.query(command)
             watch.replied(command, reply)
             out = f"R {seq} {reply}"

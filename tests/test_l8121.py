@@ -2922,6 +2922,34 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     assert "check by hand that the unit first connected is off" in capfd.readouterr().err
 
 
+def test_the_guardian_passes_on_no_xon_after_a_reconnect_since_the_settings(tmp_path, dialect):
+    """Through the guardian, the settings' read-back meets a read error as the path moves to a
+    second unit (same model, holding the same settings); the guardian's link retries it there. The
+    driver cannot see the guardian's reconnects, so the guardian refuses the XON itself: unit 2 is
+    never switched on (review s28-h7: it was), and the driver's error switches off."""
+    from acquisition.guardian import start_guardian
+
+    setting, readback = ("CUR", "SVI") if dialect == "A" else ("PCU", "SPC")
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        with L8121(second.url, dialect=dialect, **FAST) as other:
+            other.set_values(60, 250)  # a lab's usual settings: the read-back cannot tell the units apart
+        resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+
+        def repoint():
+            os.symlink(second.url, port.with_name("new"))
+            os.replace(port.with_name("new"), port)
+            first.read_error()
+
+        one.inject_after(setting, lambda: one.inject_after(readback, repoint))
+        with pytest.raises(DeviceError, match="XON not sent: the link was lost and reopened after the settings"):
+            source.on(60, 250)
+        assert "XON" not in one.commands + two.commands and not one.xray_on and not two.xray_on
+        source.close()
+
+
 def test_a_takeover_whose_port_is_gone_leaves_a_later_reopen_counted(tmp_path, dialect):
     """The guardian dies and the adapter with it: the takeover's open fails, so its handover (a
     first open not counted as a lost link) was never used up, and the path coming back to another
