@@ -501,6 +501,13 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
         watch.exchanged(seen, was_on, note, link.port)
+        moved = getattr(watch.reidentify, "reconnects", 0) - seen
+        if moved:
+            # the acquiring driver counts reconnects to tell whose off confirmation it has and to
+            # send no XON after one since its settings: it learns of this link's before the reply
+            # (review s28-h8: an STS reading off cleared the guardian's warning and the driver's
+            # off then read confirmed)
+            out = f"C {seq} {moved}\n{out}"
         try:
             os.write(wfd, (out + "\n").encode("utf-8", "replace"))  # a reply may hold "µA"
         except OSError:

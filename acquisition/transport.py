@@ -717,12 +717,25 @@ class PipeTransport:
             while True:  # replies to requests that were interrupted earlier carry older numbers
                 kind, _, rest = self._read_line(deadline, command).partition(" ")
                 got, _, text = rest.partition(" ")
-                if got == seq:
+                if kind == "C":  # the guardian's link was reopened (whichever request): counted here
+                    self._count_reconnects(text)
+                elif got == seq:
                     break
             self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))
             if kind == "R":
                 return text
             raise NoReply(text) if kind == "N" else DeviceError(text)
+
+    def _count_reconnects(self, text: str) -> None:
+        """Add the guardian's reconnects (a ``C`` line) to :attr:`on_reconnect`'s count, as if this
+        link had been reopened: the driver compares it across an exchange
+        (acquisition.l8121.Reidentify.reconnects)."""
+        check = self.on_reconnect
+        try:
+            if check is not None and hasattr(check, "reconnects"):
+                check.reconnects += max(int(text), 0)
+        except ValueError:
+            self.log.warning("%s: the X-ray guardian's reconnect line %r is not a count", self.url, text)
 
     def _take_over(self) -> SerialTransport:
         """The guardian died: open the port it held, here (once), so that the switch-off that

@@ -2922,6 +2922,28 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     assert "check by hand that the unit first connected is off" in capfd.readouterr().err
 
 
+def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
+    """Through the guardian a poll reconnects to a second unit (same model, off) as the path moves;
+    the next beam check reads it off and the driver switches off. The guardian's reconnect reaches
+    the driver (a ``C`` line before the reply), so its off is not called confirmed (review s28-h8:
+    the driver saw only its own link, and the guardian's warning ended at that STS)."""
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        link, source = _guarded_on(port, dialect)
+
+        def repoint():
+            os.symlink(second.url, port.with_name("new"))
+            os.replace(port.with_name("new"), port)
+            first.read_error()
+
+        one.hold_once("SIN")
+        one.inject_after("SIN", repoint)
+        assert source.interlock_closed()
+        with pytest.raises(SourceFault, match="beam dropped"):
+            source.check()
+        assert one.xray_on and source.unit_unverified and not source.tube_confirmed_off
+        source.close()
+
+
 def test_the_guardian_passes_on_no_xon_after_a_reconnect_since_the_settings(tmp_path, dialect):
     """Through the guardian, the settings' read-back meets a read error as the path moves to a
     second unit (same model, holding the same settings); the guardian's link retries it there. The
