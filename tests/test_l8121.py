@@ -2887,6 +2887,25 @@ def _two_units_behind_one_path(tmp_path, dialect):
         yield one, two, first, second, port
 
 
+def _repoint(port, first, second):
+    """A callable: the port path moved to the second unit, the first one's link meeting a read error."""
+
+    def repoint():
+        os.symlink(second.url, port.with_name("new"))
+        os.replace(port.with_name("new"), port)
+        first.read_error()
+
+    return repoint
+
+
+def _poll_as_the_path_moves(one, source, repoint):
+    """A poll (SIN) passed on while the path moves (``repoint``): its reply held by unit 1, the query
+    retried on the reopened port, at unit 2, after the model check."""
+    one.hold_once("SIN")
+    one.inject_after("SIN", repoint)
+    assert source.interlock_closed()
+
+
 def _guarded_on(port, dialect):
     """A source switched on through an X-ray guardian: ``(link, source)``."""
     from acquisition.guardian import start_guardian
@@ -2908,18 +2927,29 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         link, source = _guarded_on(port, dialect)
 
-        def repoint():
-            os.symlink(second.url, port.with_name("new"))
-            os.replace(port.with_name("new"), port)
-            first.read_error()
-
-        one.hold_once("SIN")
-        one.inject_after("SIN", repoint)
-        assert source.interlock_closed()
+        _poll_as_the_path_moves(one, source, _repoint(port, first, second))
         link._process.stdin.close()  # the acquiring process is gone, without a release
         assert link._process.wait(timeout=30) == 3
         assert one.xray_on and "XOF" in two.commands  # what the warning is for
     assert "check by hand that the unit first connected is off" in capfd.readouterr().err
+
+
+def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
+    """The guardian's own backstop: XON or WUP is not passed on when its link was reopened since
+    the last setting it passed on (the unit now at the port may not hold it); a setting passed on
+    after the reopen allows it again; RST is not a setting."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect="A"))
+    watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
+    assert watch.refusal("XON", "p") is None  # nothing set through it yet: the driver's rules
+    assert watch.refusal("HIV 60", "p") is None and watch.refusal("XON", "p") is None
+    watch.reidentify.reconnects += 1
+    assert watch.refusal("RST", "p") is None
+    assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
+    assert watch.refusal("CUR 250", "p") is None and watch.refusal("XON", "p") is None
 
 
 def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
@@ -2930,14 +2960,7 @@ def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         link, source = _guarded_on(port, dialect)
 
-        def repoint():
-            os.symlink(second.url, port.with_name("new"))
-            os.replace(port.with_name("new"), port)
-            first.read_error()
-
-        one.hold_once("SIN")
-        one.inject_after("SIN", repoint)
-        assert source.interlock_closed()
+        _poll_as_the_path_moves(one, source, _repoint(port, first, second))
         with pytest.raises(SourceFault, match="beam dropped"):
             source.check()
         assert one.xray_on and source.unit_unverified and not source.tube_confirmed_off
@@ -2946,9 +2969,8 @@ def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
 
 def test_the_guardian_passes_on_no_xon_after_a_reconnect_since_the_settings(tmp_path, dialect):
     """Through the guardian, the settings' read-back meets a read error as the path moves to a
-    second unit (same model, holding the same settings); the guardian's link retries it there. The
-    driver cannot see the guardian's reconnects, so the guardian refuses the XON itself: unit 2 is
-    never switched on (review s28-h7: it was), and the driver's error switches off."""
+    second unit (same model, holding the same settings); the guardian's link retries it there. No
+    XON reaches either unit (review s28-h7: unit 2 was switched on), and the error switches off."""
     from acquisition.guardian import start_guardian
 
     setting, readback = ("CUR", "SVI") if dialect == "A" else ("PCU", "SPC")
@@ -2960,13 +2982,11 @@ def test_the_guardian_passes_on_no_xon_after_a_reconnect_since_the_settings(tmp_
         source = L8121(link, connect=False, config=resolved)
         source.connect()
 
-        def repoint():
-            os.symlink(second.url, port.with_name("new"))
-            os.replace(port.with_name("new"), port)
-            first.read_error()
-
+        repoint = _repoint(port, first, second)
         one.inject_after(setting, lambda: one.inject_after(readback, repoint))
-        with pytest.raises(DeviceError, match="XON not sent: the link was lost and reopened after the settings"):
+        # the driver refuses, told of the guardian's reconnect (a C line); the guardian's own refusal
+        # is the backstop (test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings)
+        with pytest.raises(DeviceError, match="the link was lost and reopened after the settings"):
             source.on(60, 250)
         assert "XON" not in one.commands + two.commands and not one.xray_on and not two.xray_on
         source.close()
