@@ -2887,12 +2887,11 @@ def _two_units_behind_one_path(tmp_path, dialect):
         yield one, two, first, second, port
 
 
-def _repoint(port, first, second):
+def _path_moves(port, first, second):
     """A callable: the port path moved to the second unit, the first one's link meeting a read error."""
 
     def repoint():
-        os.symlink(second.url, port.with_name("new"))
-        os.replace(port.with_name("new"), port)
+        _repoint(port, second.url)
         first.read_error()
 
     return repoint
@@ -2927,7 +2926,7 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         link, source = _guarded_on(port, dialect)
 
-        _poll_as_the_path_moves(one, source, _repoint(port, first, second))
+        _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
         link._process.stdin.close()  # the acquiring process is gone, without a release
         assert link._process.wait(timeout=30) == 3
         assert one.xray_on and "XOF" in two.commands  # what the warning is for
@@ -2960,7 +2959,7 @@ def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         link, source = _guarded_on(port, dialect)
 
-        _poll_as_the_path_moves(one, source, _repoint(port, first, second))
+        _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
         with pytest.raises(SourceFault, match="beam dropped"):
             source.check()
         assert one.xray_on and source.unit_unverified and not source.tube_confirmed_off
@@ -2982,7 +2981,7 @@ def test_the_guardian_passes_on_no_xon_after_a_reconnect_since_the_settings(tmp_
         source = L8121(link, connect=False, config=resolved)
         source.connect()
 
-        repoint = _repoint(port, first, second)
+        repoint = _path_moves(port, first, second)
         one.inject_after(setting, lambda: one.inject_after(readback, repoint))
         # the driver refuses, told of the guardian's reconnect (a C line); the guardian's own refusal
         # is the backstop (test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings)
