@@ -801,7 +801,7 @@ def _registration_table(results):
             "time (s)",
         ]
         + (["EPE median / p95 (px)"] if has_epe else [])
-        + ["reason"]
+        + ["reason (flagged) or note"]
     )
     rows = []
     for p in results.pairs:
@@ -820,7 +820,9 @@ def _registration_table(results):
         if has_epe:
             epe = p.epe or {}
             row.append(f"{_fmt(epe.get('epe_median'), '.3f')} / {_fmt(epe.get('epe_p95'), '.3f')}")
-        rows.append(row + [p.reason])
+        # a trusted result's note (Quality.note: e.g. its budget ended still moving, slow, not
+        # lost) is what a reader deciding whether to trust it needs beside the verdict
+        rows.append(row + [p.reason or (f"note: {q['note']}" if q.get("note") else "")])
     return _table(header, rows)
 
 

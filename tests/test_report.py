@@ -44,7 +44,7 @@ def _record(ks, factors, *, truth, scene="block <stiff> & soft", control=None):
     quality = {
         "2->3": q,
         "1->3": {**q, "ok": False, "reason": "folding: 3 pixels with det J <= 0", "folds": 3},
-        "1->2": q,
+        "1->2": {**q, "note": "stopped at 60 iterations; not flagged for it <slow>"},
     }
     pairs = tuple(
         PairResult(int(n[0]), int(n[-1]), "rc", quality[n], {Domain.LOG: v[0], Domain.NEGATIVE: v[1]}, None, None, epe)
@@ -252,6 +252,7 @@ def test_text_is_escaped(full_report):
     assert SOURCE not in raw and "<stiff>" not in raw and "<1>" not in raw
     assert SOURCE in text and "block <stiff> & soft" in text  # and it reads back as written
     assert "folding: 3 pixels with det J &lt;= 0" in raw
+    assert "note: stopped at 60 iterations; not flagged for it &lt;slow&gt;" in raw  # a trusted result's note
 
 
 def _sentences(text):
