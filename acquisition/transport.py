@@ -24,6 +24,7 @@ import logging
 import os
 import re
 import select
+import signal
 import threading
 import time
 
@@ -65,6 +66,26 @@ def _text(raw: bytes) -> str:
     for micro in _MICRO[:-1]:
         raw = raw.replace(micro, _MICRO[-1])
     return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
+
+
+def _write_no_sigpipe(fd: int, data: bytes) -> int:
+    """``os.write`` to a pipe that fails with ``BrokenPipeError`` when the reader is gone, whatever
+    this process's SIGPIPE disposition: a Python-API user whose process imported gmsh has it at its
+    default (gmsh resets it), and the write to a dead guardian's pipe then killed that process on the
+    spot, before it could switch off (review s28-h8). The signal is blocked in this thread for the
+    write (any thread: ``signal.signal`` works only in the main one) and, raised by a failed write,
+    taken off this thread's pending signals before it is unblocked."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows has no SIGPIPE
+        return os.write(fd, data)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGPIPE})
+    try:
+        return os.write(fd, data)
+    except BrokenPipeError:
+        if signal.SIGPIPE not in old:  # (blocked by the caller already: its own to take)
+            signal.sigtimedwait({signal.SIGPIPE}, 0)
+        raise
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class SerialTransport:
@@ -666,7 +687,7 @@ class PipeTransport:
         self._open = False
         with self._lock:
             try:
-                os.write(self._wfd, b"X\n")
+                _write_no_sigpipe(self._wfd, b"X\n")
             except OSError:
                 pass
             self._finish()
@@ -714,7 +735,7 @@ class PipeTransport:
             self.log.debug("%s > %s (via guardian)", self.url, command)
             t0 = time.monotonic()
             try:
-                os.write(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
+                _write_no_sigpipe(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
                 self._open, self._lost = False, True
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
