@@ -19,7 +19,10 @@ accept. Two mechanisms cover the two ways a process ends:
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
   notebook, and exits. While X-rays may be on it also watches the acquiring process's polls: none
   for ``watchdog_s`` (the protocol's ``[source] watchdog_s``) and it switches off the same way,
-  says so, and keeps serving (the series then stops at its next beam check). It runs in its own session and ignores
+  says so, and keeps serving (the series then stops at its next beam check) -- unless that off was
+  confirmed only by another unit now at the port (the link reopened while X-rays may have been
+  on): then it says so once and exits 3, and the acquiring process, if it runs again, switches off
+  through the port itself. It runs in its own session and ignores
   SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
@@ -307,11 +310,13 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config, note, watch: _Watch) -> bool:
+def _switch_off(link, config, note, watch: _Watch) -> str:
     """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
     dialect the acquiring process resolved (``config``; no probe, no identity check: only what
-    switching off needs). Returns whether ``STS`` confirmed it. ``watch``: what the exchanges passed
-    on showed (X-rays may be on; the link reopened while they may have been)."""
+    switching off needs). Returns ``"off"`` (``STS`` confirmed it), ``"unverified"`` (confirmed by
+    the unit now at the port after the link was reopened while X-rays may have been on: the
+    operator has been told) or ``"failed"``. ``watch``: what the exchanges passed on showed (X-rays
+    may be on; the link reopened while they may have been)."""
     from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
 
@@ -327,15 +332,15 @@ def _switch_off(link, config, note, watch: _Watch) -> bool:
         state = driver.off()
     except DeviceError as exc:
         note("CRITICAL", f"{link.port}: {exc}")
-        return False
+        return "failed"
     if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
         note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
-        return False
+        return "failed"
     if driver.unit_unverified:  # reopened during this switch-off: the unit now at the port confirmed it
         note("CRITICAL", driver.unverified_warning(state))
-        return False
+        return "unverified"
     note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
-    return True
+    return "off"
 
 
 class _Watch:
@@ -435,21 +440,39 @@ def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | 
             return b""
 
 
-def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
+def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
+    """Switch off for the silent acquiring process; returns whether this guardian must end on the
+    warning (exit 3)."""
     note(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
-    if _switch_off(link, config, note, watch):
+    outcome = _switch_off(link, config, note, watch)
+    if outcome == "off":
         watch.may_be_on = False
-        return
+        return False
+    if outcome == "unverified":
+        # the unit now at the port is off; the one switched on may not be, and no XOF through this
+        # port reaches it: tried again every watchdog_s, the same warning came for ever (review
+        # s28-h8: 5 XOFs, 10 CRITICAL lines in 3 s), or a fresh driver called its next try
+        # confirmed. Told once, the guardian ends on the warning; the acquiring process, if it runs
+        # again, finds it gone and switches off through the port itself, warned as well
+        # (PipeTransport counts that open as a reconnect after an exit 3)
+        note(
+            "CRITICAL",
+            f"{link.port}: the X-ray guardian ends here; the acquiring process, if it runs again, "
+            "switches off through the port itself",
+        )
+        _say(TUBE_WARNING)
+        return True
     # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
     # silence (a controller silent for a second or two at the first attempt must not leave the
     # tube on for good); the operator's warning is printed once
     if not watch.warned:
         _say(TUBE_WARNING)
         watch.warned = True
+    return False
 
 
 def _serve(link, config, note, watchdog_s: float | None = None) -> int:
@@ -465,14 +488,16 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
         while b"\n" not in buf:
             data = _read_request(rfd, watch, watchdog_s)
             if data is None:
-                _watchdog_off(link, config, note, watch, watchdog_s)
+                if _watchdog_off(link, config, note, watch, watchdog_s):
+                    link.close()
+                    return 3
                 continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
                 note(
                     "WARNING",
                     f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
                 )
-                ok = _switch_off(link, config, note, watch)
+                ok = _switch_off(link, config, note, watch) == "off"
                 link.close()
                 if not ok:
                     _say(TUBE_WARNING)

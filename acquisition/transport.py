@@ -796,10 +796,12 @@ class PipeTransport:
             self._direct.on_reconnect = self.on_reconnect
             # the guardian had the port open: this first open here is a reconnect (checked), but a
             # handover (the port held until the guardian died), not a link lost: not counted as one
-            # whose confirmation may be another unit's (acquisition.l8121.Reidentify.handover)
+            # whose confirmation may be another unit's (acquisition.l8121.Reidentify.handover) --
+            # unless the guardian ended on the warning (exit 3): its own switch-off was confirmed
+            # only by the unit now at the port, which this process's driver must hear of too
             self._direct._opened_once = True
             if hasattr(self.on_reconnect, "handover"):
-                self.on_reconnect.handover = True
+                self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

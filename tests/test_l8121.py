@@ -2933,6 +2933,38 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     assert "check by hand that the unit first connected is off" in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("moved_in, dialect", [("poll", "A"), ("XOF", "B")])
+def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_another_unit(
+    tmp_path, moved_in, dialect, capfd
+):
+    """The acquiring process falls silent with X-rays on and the watchdog switches off, but the
+    path has moved to a second unit (same model) -- during a poll before, or during the watchdog's
+    own XOF -- so STS confirms that unit only. The guardian tried again every watchdog_s for ever
+    (review s28-h8: 5 XOFs, 10 CRITICAL lines in 3 s at 0.5 s; or, a fresh driver each time, called
+    its second try confirmed). Now it says so once and ends on the warning (exit 3); the acquiring
+    process, finding it gone, switches off through the port itself and is not told "confirmed"."""
+    from acquisition.guardian import TUBE_WARNING, start_guardian
+
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved, watchdog_s=0.5)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)  # (polled within the watchdog: the ramp is 0.2 s)
+        if moved_in == "poll":
+            _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
+        else:
+            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+            one.inject_after("XOF", _path_moves(port, first, second))
+        assert link._process.wait(timeout=20) == 3  # no poll from here on: the watchdog's turn
+        source.close()
+        assert not source.tube_confirmed_off and source.unit_unverified
+        assert one.xray_on == (moved_in == "poll") and not two.xray_on
+    err = capfd.readouterr().err
+    assert err.count("check by hand that the unit first connected is off") == 1, err
+    assert err.count(TUBE_WARNING) == 1 and "XOF" in two.commands, err
+
+
 def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     """The guardian's own backstop: XON or WUP is not passed on when its link was reopened since
     the last setting it passed on (the unit now at the port may not hold it); a setting passed on
