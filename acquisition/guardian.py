@@ -351,14 +351,22 @@ class _Watch:
     def __init__(self, config):
         from acquisition.l8121 import DIALECTS
 
-        self.state_query = DIALECTS[config.dialect].readings["state"]
+        dialect = DIALECTS[config.dialect]
+        self.state_query = dialect.readings["state"]
         self.may_be_on = False
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
         self.unverified = False
-        self.settings_at = None  # the check's count when the last setting was passed on (refusal)
+        # what XON emits at (L8121.md): the tube voltage and current -- B's presets while off, HIV
+        # and CUR while on -- by their command words, each with the check's count when last passed
+        # on (refusal: both are needed since the last reconnect; a focus setting is not enough)
+        self.beam_settings = {
+            what: {dialect.settings[name].command for name in (what, "preset_" + what)}
+            for what in ("voltage", "current")
+        }
+        self.settings_at: dict[str, int] = {}
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -380,19 +388,22 @@ class _Watch:
             self.may_be_on = True
 
     def refusal(self, command: str, port: str) -> str | None:
-        """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened since the
-        last setting passed on, so the unit now at the port passed a check of its model only and
-        may not hold the settings (the driver's own on()/warm_up() rule, which cannot see this
-        process's reconnects; review s28-h7). Records the count at each setting passed on."""
+        """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened and the
+        voltage and current have not both been passed on since, so the unit now at the port passed
+        a check of its model only and may not hold them (the driver's own on()/warm_up() rule, which
+        cannot see this process's reconnects; reviews s28-h7, s28-h8). Records the count at each
+        voltage or current passed on."""
         head, count = command.split(" ", 1)[0], getattr(self.reidentify, "reconnects", 0)
         if head in ("XON", "WUP"):
-            if self.settings_at is not None and count != self.settings_at:
+            if count and any(self.settings_at.get(what) != count for what in self.beam_settings):
                 return (
                     f"{port}: {head} not sent: the link was lost and reopened after the settings were "
-                    "sent, and the unit now at the port is known only by its model; switch on again"
+                    "sent (voltage and current not both sent since), and the unit now at the port is "
+                    "known only by its model; switch on again"
                 )
-        elif head in getattr(self.reidentify, "not_resent", ()) and head != "RST":
-            self.settings_at = count
+        for what, words in self.beam_settings.items():
+            if head in words:
+                self.settings_at[what] = count
         return None
 
     def replied(self, command: str, reply: str) -> None:

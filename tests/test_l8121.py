@@ -31,6 +31,7 @@ from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import (
     DIALECT_A,
     DIALECT_B,
+    DIALECTS,
     L8121,
     PROBE_QUERIES,
     RATINGS,
@@ -2980,7 +2981,32 @@ def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     watch.reidentify.reconnects += 1
     assert watch.refusal("RST", "p") is None
     assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
-    assert watch.refusal("CUR 250", "p") is None and watch.refusal("XON", "p") is None
+    assert watch.refusal("CUR 250", "p") is None and watch.refusal("HIV 60", "p") is None
+    assert watch.refusal("XON", "p") is None
+
+
+@pytest.mark.parametrize(
+    "dialect, voltage, current, other", [("A", "HIV 60", "CUR 250", "CFS 1"), ("B", "PHV 600", "PCU 250", "CFM")]
+)
+def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect, voltage, current, other):
+    """The refusal counted any setting: a lone current, or a focus setting, passed on after a
+    reconnect let XON through to a unit whose voltage this session never sent (review s28-h8).
+    XON and WUP now need both the voltage and the current (L8121.md: what XON emits at; B's
+    presets while off, HIV/CUR while on) passed on since the last reconnect."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect=dialect))
+    watch.reidentify = Reidentify(DIALECTS[dialect], None, "p")  # its count moved by hand: no link here
+    assert watch.refusal(voltage, "p") is None and watch.refusal(current, "p") is None
+    watch.reidentify.reconnects += 1
+    for setting in (other, current, other):
+        assert watch.refusal(setting, "p") is None
+        assert "XON not sent" in (watch.refusal("XON", "p") or "passed on"), setting
+    assert watch.refusal(voltage, "p") is None and watch.refusal("XON", "p") is None
+    watch.reidentify.reconnects += 1
+    assert watch.refusal(voltage, "p") is None and "XON not sent" in (watch.refusal("XON", "p") or "passed on")
 
 
 def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
