@@ -486,6 +486,22 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
     return False
 
 
+def _admit(link, watch: _Watch, command: str) -> None:
+    """Raise DeviceError when ``command`` is refused (:meth:`_Watch.refusal`), judged as of the
+    moment it is written: an XON or WUP on a link left closed (a reopen that failed) reopens it
+    first, so that the reconnect is counted before the refusal -- inside XON's own exchange it came
+    after, and XON reached a second unit of the model (review s28-h8). On an open link the query
+    writes at once, and a link lost during XON is never reopened for it (``not_resent``)."""
+    from acquisition.errors import DeviceError
+
+    if command.split(" ", 1)[0] in ("XON", "WUP") and not link.is_open:
+        link.open()  # its check's refusal or a lost link: a DeviceError, the link left closed
+    refused = watch.refusal(command, link.port)
+    if refused:
+        raise DeviceError(refused)
+    watch.sent(command)
+
+
 def _serve(link, config, note, watchdog_s: float | None = None) -> int:
     """Answer the acquiring process until it releases the port (0) or disappears (switch off);
     with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
@@ -524,12 +540,8 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             continue
         seq, command = words[1], words[2]
         was_on, seen = watch.may_be_on, getattr(watch.reidentify, "reconnects", 0)
-        refused = watch.refusal(command, link.port)
-        if not refused:
-            watch.sent(command)
         try:
-            if refused:
-                raise DeviceError(refused)
+            _admit(link, watch, command)
             reply = link.query(command)
             watch.replied(command, reply)
             out = f"R {seq} {reply}"

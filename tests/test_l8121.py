@@ -3009,6 +3009,35 @@ def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect
     assert watch.refusal(voltage, "p") is None and "XON not sent" in (watch.refusal("XON", "p") or "passed on")
 
 
+def test_the_guardians_xon_refusal_holds_when_the_xons_own_exchange_reopens_the_link(tmp_path):
+    """The settings passed on, then a poll's read error with the port path gone: the reopen fails
+    and leaves the guardian's link closed, its reconnect count unmoved. The path comes back, to a
+    second unit of the model, and XON arrives: its refusal was judged before its own exchange, which
+    then reopened the link (the check passed: same model) and wrote XON to unit 2 (review s28-h8).
+    Now a closed link is reopened before the refusal is judged, so XON is refused."""
+    from acquisition.guardian import start_guardian
+
+    def path_gone():
+        os.unlink(port)
+        first.read_error()
+
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved)
+        try:
+            assert link.query("HIV 60") == "HIV 60" and link.query("CUR 250") == "CUR 250"
+            one.hold_once("SIN")  # its reply not read before the read error
+            one.inject_after("SIN", path_gone)
+            with pytest.raises(DeviceError, match="reconnecting failed"):
+                link.query("SIN")
+            os.symlink(second.url, port)
+            with pytest.raises(DeviceError, match="XON not sent: the link was lost and reopened"):
+                link.query("XON")
+            assert "XON" not in one.commands + two.commands and not two.xray_on
+        finally:
+            link.close()
+
+
 def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
     """Through the guardian a poll reconnects to a second unit (same model, off) as the path moves;
     the next beam check reads it off and the driver switches off. The guardian's reconnect reaches
