@@ -237,8 +237,8 @@ def start_guardian(
     notebook : path, optional
         The lab notebook (``<output>.log``) the guardian appends to when it has to act.
     watchdog_s : float, optional
-        While X-rays may be on (an ``XON`` or ``WUP`` passed on, or an ``STS`` reply that says so,
-        and no ``STS`` reply since that says otherwise), the acquiring process polls the source
+        While X-rays may be on (from the start, an ``XON`` or ``WUP`` passed on, or an ``STS``
+        reply that says so, and no ``STS`` reply since that says otherwise), the acquiring process polls the source
         every beam-monitor period; silent for this long, it is suspended or hung, and the
         guardian switches off (and says so). None: no watchdog.
 
@@ -345,15 +345,18 @@ def _switch_off(link, config, note, watch: _Watch) -> str:
 
 class _Watch:
     """What the guardian knows of the tube from the exchanges it passes on: X-rays may be on from
-    an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says the tube emits, until an
-    ``STS`` reply says it does not."""
+    the start (nothing read yet), an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says
+    the tube emits, until an ``STS`` reply says it does not."""
 
     def __init__(self, config):
         from acquisition.l8121 import DIALECTS
 
         dialect = DIALECTS[config.dialect]
         self.state_query = dialect.readings["state"]
-        self.may_be_on = False
+        # unknown until an STS read through here says off: a tube left on by an earlier run (``source
+        # on``) may be on, and a reconnect before that read must be flagged (review s28-h8: it
+        # started False, and the guardian's off, confirmed by a second unit, read "confirmed")
+        self.may_be_on = True
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is

@@ -2838,6 +2838,7 @@ def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     note = lambda level, text: said.append((level, text))
     watch = _Watch(SimpleNamespace(dialect="A"))
     watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
+    watch.replied("STS", "STS 2")  # the tube read off (until then it may be on)
     watch.reidentify.reconnects += 1  # a reconnect with the tube off
     watch.exchanged(0, False, note, "p")
     watch.sent("XON")
@@ -2964,6 +2965,29 @@ def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_ano
     err = capfd.readouterr().err
     assert err.count("check by hand that the unit first connected is off") == 1, err
     assert err.count(TUBE_WARNING) == 1 and "XOF" in two.commands, err
+
+
+def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
+    """A tube left on by an earlier run (``source on``), never read through the guardian: a poll
+    meets a read error as the path moves to a second unit (same model, off), and the acquiring
+    process dies. The guardian's watch started at "off", so the reconnect went unflagged and its
+    switch-off, confirmed by unit 2, said "confirmed" (exit 0) with unit 1 on (review s28-h8). It
+    now starts unknown -- X-rays may be on -- until an STS reads them off."""
+    from acquisition.guardian import start_guardian
+
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved)
+        one.hold_once("SIN")  # its reply lost at the read error: retried at unit 2, after the model check
+        one.inject_after("SIN", _path_moves(port, first, second))
+        assert link.query("SIN") == "SIN 0"
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 3
+        assert one.xray_on and "XOF" in two.commands  # what the warning is for
+    assert "check by hand that the unit first connected is off" in capfd.readouterr().err
 
 
 def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
