@@ -19,7 +19,10 @@ accept. Two mechanisms cover the two ways a process ends:
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
   notebook, and exits. While X-rays may be on it also watches the acquiring process's polls: none
   for ``watchdog_s`` (the protocol's ``[source] watchdog_s``) and it switches off the same way,
-  says so, and keeps serving (the series then stops at its next beam check). It runs in its own session and ignores
+  says so, and keeps serving (the series then stops at its next beam check) -- unless that off was
+  confirmed only by another unit now at the port (the link reopened while X-rays may have been
+  on): then it says so once and exits 3, and the acquiring process, if it runs again, switches off
+  through the port itself. It runs in its own session and ignores
   SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
@@ -234,8 +237,8 @@ def start_guardian(
     notebook : path, optional
         The lab notebook (``<output>.log``) the guardian appends to when it has to act.
     watchdog_s : float, optional
-        While X-rays may be on (an ``XON`` or ``WUP`` passed on, or an ``STS`` reply that says so,
-        and no ``STS`` reply since that says otherwise), the acquiring process polls the source
+        While X-rays may be on (from the start, an ``XON`` or ``WUP`` passed on, or an ``STS``
+        reply that says so, and no ``STS`` reply since that says otherwise), the acquiring process polls the source
         every beam-monitor period; silent for this long, it is suspended or hung, and the
         guardian switches off (and says so). None: no watchdog.
 
@@ -307,11 +310,13 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config, note, watch: _Watch) -> bool:
+def _switch_off(link, config, note, watch: _Watch) -> str:
     """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
     dialect the acquiring process resolved (``config``; no probe, no identity check: only what
-    switching off needs). Returns whether ``STS`` confirmed it. ``watch``: what the exchanges passed
-    on showed (X-rays may be on; the link reopened while they may have been)."""
+    switching off needs). Returns ``"off"`` (``STS`` confirmed it), ``"unverified"`` (confirmed by
+    the unit now at the port after the link was reopened while X-rays may have been on: the
+    operator has been told) or ``"failed"``. ``watch``: what the exchanges passed on showed (X-rays
+    may be on; the link reopened while they may have been)."""
     from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
 
@@ -327,33 +332,44 @@ def _switch_off(link, config, note, watch: _Watch) -> bool:
         state = driver.off()
     except DeviceError as exc:
         note("CRITICAL", f"{link.port}: {exc}")
-        return False
+        return "failed"
     if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
         note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
-        return False
+        return "failed"
     if driver.unit_unverified:  # reopened during this switch-off: the unit now at the port confirmed it
         note("CRITICAL", driver.unverified_warning(state))
-        return False
+        return "unverified"
     note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
-    return True
+    return "off"
 
 
 class _Watch:
     """What the guardian knows of the tube from the exchanges it passes on: X-rays may be on from
-    an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says the tube emits, until an
-    ``STS`` reply says it does not."""
+    the start (nothing read yet), an ``XON`` (or A's ``WUP``) sent, or an ``STS`` reply that says
+    the tube emits, until an ``STS`` reply says it does not."""
 
     def __init__(self, config):
         from acquisition.l8121 import DIALECTS
 
-        self.state_query = DIALECTS[config.dialect].readings["state"]
-        self.may_be_on = False
+        dialect = DIALECTS[config.dialect]
+        self.state_query = dialect.readings["state"]
+        # unknown until an STS read through here says off: a tube left on by an earlier run (``source
+        # on``) may be on, and a reconnect before that read must be flagged (review s28-h8: it
+        # started False, and the guardian's off, confirmed by a second unit, read "confirmed")
+        self.may_be_on = True
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
         self.unverified = False
-        self.settings_at = None  # the check's count when the last setting was passed on (refusal)
+        # what XON emits at (L8121.md): the tube voltage and current -- B's presets while off, HIV
+        # and CUR while on -- by their command words, each with the check's count when last passed
+        # on (refusal: both are needed since the last reconnect; a focus setting is not enough)
+        self.beam_settings = {
+            what: {dialect.settings[name].command for name in (what, "preset_" + what)}
+            for what in ("voltage", "current")
+        }
+        self.settings_at: dict[str, int] = {}
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -375,19 +391,22 @@ class _Watch:
             self.may_be_on = True
 
     def refusal(self, command: str, port: str) -> str | None:
-        """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened since the
-        last setting passed on, so the unit now at the port passed a check of its model only and
-        may not hold the settings (the driver's own on()/warm_up() rule, which cannot see this
-        process's reconnects; review s28-h7). Records the count at each setting passed on."""
+        """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened and the
+        voltage and current have not both been passed on since, so the unit now at the port passed
+        a check of its model only and may not hold them (the driver's own on()/warm_up() rule, which
+        cannot see this process's reconnects; reviews s28-h7, s28-h8). Records the count at each
+        voltage or current passed on."""
         head, count = command.split(" ", 1)[0], getattr(self.reidentify, "reconnects", 0)
         if head in ("XON", "WUP"):
-            if self.settings_at is not None and count != self.settings_at:
+            if count and any(self.settings_at.get(what) != count for what in self.beam_settings):
                 return (
                     f"{port}: {head} not sent: the link was lost and reopened after the settings were "
-                    "sent, and the unit now at the port is known only by its model; switch on again"
+                    "sent (voltage and current not both sent since), and the unit now at the port is "
+                    "known only by its model; switch on again"
                 )
-        elif head in getattr(self.reidentify, "not_resent", ()) and head != "RST":
-            self.settings_at = count
+        for what, words in self.beam_settings.items():
+            if head in words:
+                self.settings_at[what] = count
         return None
 
     def replied(self, command: str, reply: str) -> None:
@@ -435,21 +454,55 @@ def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | 
             return b""
 
 
-def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> None:
+def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
+    """Switch off for the silent acquiring process; returns whether this guardian must end on the
+    warning (exit 3)."""
     note(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
-    if _switch_off(link, config, note, watch):
+    outcome = _switch_off(link, config, note, watch)
+    if outcome == "off":
         watch.may_be_on = False
-        return
+        return False
+    if outcome == "unverified":
+        # the unit now at the port is off; the one switched on may not be, and no XOF through this
+        # port reaches it: tried again every watchdog_s, the same warning came for ever (review
+        # s28-h8: 5 XOFs, 10 CRITICAL lines in 3 s), or a fresh driver called its next try
+        # confirmed. Told once, the guardian ends on the warning; the acquiring process, if it runs
+        # again, finds it gone and switches off through the port itself, warned as well
+        # (PipeTransport counts that open as a reconnect after an exit 3)
+        note(
+            "CRITICAL",
+            f"{link.port}: the X-ray guardian ends here; the acquiring process, if it runs again, "
+            "switches off through the port itself",
+        )
+        _say(TUBE_WARNING)
+        return True
     # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
     # silence (a controller silent for a second or two at the first attempt must not leave the
     # tube on for good); the operator's warning is printed once
     if not watch.warned:
         _say(TUBE_WARNING)
         watch.warned = True
+    return False
+
+
+def _admit(link, watch: _Watch, command: str) -> None:
+    """Raise DeviceError when ``command`` is refused (:meth:`_Watch.refusal`), judged as of the
+    moment it is written: an XON or WUP on a link left closed (a reopen that failed) reopens it
+    first, so that the reconnect is counted before the refusal -- inside XON's own exchange it came
+    after, and XON reached a second unit of the model (review s28-h8). On an open link the query
+    writes at once, and a link lost during XON is never reopened for it (``not_resent``)."""
+    from acquisition.errors import DeviceError
+
+    if command.split(" ", 1)[0] in ("XON", "WUP") and not link.is_open:
+        link.open()  # its check's refusal or a lost link: a DeviceError, the link left closed
+    refused = watch.refusal(command, link.port)
+    if refused:
+        raise DeviceError(refused)
+    watch.sent(command)
 
 
 def _serve(link, config, note, watchdog_s: float | None = None) -> int:
@@ -465,14 +518,16 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
         while b"\n" not in buf:
             data = _read_request(rfd, watch, watchdog_s)
             if data is None:
-                _watchdog_off(link, config, note, watch, watchdog_s)
+                if _watchdog_off(link, config, note, watch, watchdog_s):
+                    link.close()
+                    return 3
                 continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
                 note(
                     "WARNING",
                     f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
                 )
-                ok = _switch_off(link, config, note, watch)
+                ok = _switch_off(link, config, note, watch) == "off"
                 link.close()
                 if not ok:
                     _say(TUBE_WARNING)
@@ -488,12 +543,8 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             continue
         seq, command = words[1], words[2]
         was_on, seen = watch.may_be_on, getattr(watch.reidentify, "reconnects", 0)
-        refused = watch.refusal(command, link.port)
-        if not refused:
-            watch.sent(command)
         try:
-            if refused:
-                raise DeviceError(refused)
+            _admit(link, watch, command)
             reply = link.query(command)
             watch.replied(command, reply)
             out = f"R {seq} {reply}"

@@ -24,6 +24,7 @@ import logging
 import os
 import re
 import select
+import signal
 import threading
 import time
 
@@ -65,6 +66,26 @@ def _text(raw: bytes) -> str:
     for micro in _MICRO[:-1]:
         raw = raw.replace(micro, _MICRO[-1])
     return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
+
+
+def _write_no_sigpipe(fd: int, data: bytes) -> int:
+    """``os.write`` to a pipe that fails with ``BrokenPipeError`` when the reader is gone, whatever
+    this process's SIGPIPE disposition: a Python-API user whose process imported gmsh has it at its
+    default (gmsh resets it), and the write to a dead guardian's pipe then killed that process on the
+    spot, before it could switch off (review s28-h8). The signal is blocked in this thread for the
+    write (any thread: ``signal.signal`` works only in the main one) and, raised by a failed write,
+    taken off this thread's pending signals before it is unblocked."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows has no SIGPIPE
+        return os.write(fd, data)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGPIPE})
+    try:
+        return os.write(fd, data)
+    except BrokenPipeError:
+        if signal.SIGPIPE not in old:  # (blocked by the caller already: its own to take)
+            signal.sigtimedwait({signal.SIGPIPE}, 0)
+        raise
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class SerialTransport:
@@ -218,7 +239,12 @@ class SerialTransport:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self._opened_once = True
-        self._pending = None  # (a reconnect repeats the command itself)
+        if self._pending is not None:
+            # an exchange a signal cut short: its reply is still on its way and may come on the
+            # reopened port after the next command was written (dropped here, STS read SIN's reply;
+            # review s28-h8): owed as a command written before a read error is, from now
+            self._owed.append((self._pending[0], time.monotonic() + self.timeout_s))
+            self._pending = None
         # self._owed is kept: the same controller behind the port (a brief read error, a re-plugged
         # adapter, a terminal server) still answers the commands the old link wrote, and a reply
         # that comes now must not be read as the reconnect check's or the resent command's; each
@@ -661,7 +687,7 @@ class PipeTransport:
         self._open = False
         with self._lock:
             try:
-                os.write(self._wfd, b"X\n")
+                _write_no_sigpipe(self._wfd, b"X\n")
             except OSError:
                 pass
             self._finish()
@@ -709,7 +735,7 @@ class PipeTransport:
             self.log.debug("%s > %s (via guardian)", self.url, command)
             t0 = time.monotonic()
             try:
-                os.write(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
+                _write_no_sigpipe(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
                 self._open, self._lost = False, True
                 raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
@@ -770,10 +796,12 @@ class PipeTransport:
             self._direct.on_reconnect = self.on_reconnect
             # the guardian had the port open: this first open here is a reconnect (checked), but a
             # handover (the port held until the guardian died), not a link lost: not counted as one
-            # whose confirmation may be another unit's (acquisition.l8121.Reidentify.handover)
+            # whose confirmation may be another unit's (acquisition.l8121.Reidentify.handover) --
+            # unless the guardian ended on the warning (exit 3): its own switch-off was confirmed
+            # only by the unit now at the port, which this process's driver must hear of too
             self._direct._opened_once = True
             if hasattr(self.on_reconnect, "handover"):
-                self.on_reconnect.handover = True
+                self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
     def _read_line(self, deadline: float, command: str) -> str:

@@ -31,6 +31,7 @@ from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import (
     DIALECT_A,
     DIALECT_B,
+    DIALECTS,
     L8121,
     PROBE_QUERIES,
     RATINGS,
@@ -2837,6 +2838,7 @@ def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     note = lambda level, text: said.append((level, text))
     watch = _Watch(SimpleNamespace(dialect="A"))
     watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
+    watch.replied("STS", "STS 2")  # the tube read off (until then it may be on)
     watch.reidentify.reconnects += 1  # a reconnect with the tube off
     watch.exchanged(0, False, note, "p")
     watch.sent("XON")
@@ -2933,6 +2935,61 @@ def test_the_guardian_remembers_a_reconnect_it_passed_on_when_it_switches_off(tm
     assert "check by hand that the unit first connected is off" in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("moved_in, dialect", [("poll", "A"), ("XOF", "B")])
+def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_another_unit(
+    tmp_path, moved_in, dialect, capfd
+):
+    """The acquiring process falls silent with X-rays on and the watchdog switches off, but the
+    path has moved to a second unit (same model) -- during a poll before, or during the watchdog's
+    own XOF -- so STS confirms that unit only. The guardian tried again every watchdog_s for ever
+    (review s28-h8: 5 XOFs, 10 CRITICAL lines in 3 s at 0.5 s; or, a fresh driver each time, called
+    its second try confirmed). Now it says so once and ends on the warning (exit 3); the acquiring
+    process, finding it gone, switches off through the port itself and is not told "confirmed"."""
+    from acquisition.guardian import TUBE_WARNING, start_guardian
+
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved, watchdog_s=0.5)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)  # (polled within the watchdog: the ramp is 0.2 s)
+        if moved_in == "poll":
+            _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
+        else:
+            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+            one.inject_after("XOF", _path_moves(port, first, second))
+        assert link._process.wait(timeout=20) == 3  # no poll from here on: the watchdog's turn
+        source.close()
+        assert not source.tube_confirmed_off and source.unit_unverified
+        assert one.xray_on == (moved_in == "poll") and not two.xray_on
+    err = capfd.readouterr().err
+    assert err.count("check by hand that the unit first connected is off") == 1, err
+    assert err.count(TUBE_WARNING) == 1 and "XOF" in two.commands, err
+
+
+def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
+    """A tube left on by an earlier run (``source on``), never read through the guardian: a poll
+    meets a read error as the path moves to a second unit (same model, off), and the acquiring
+    process dies. The guardian's watch started at "off", so the reconnect went unflagged and its
+    switch-off, confirmed by unit 2, said "confirmed" (exit 0) with unit 1 on (review s28-h8). It
+    now starts unknown -- X-rays may be on -- until an STS reads them off."""
+    from acquisition.guardian import start_guardian
+
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved)
+        one.hold_once("SIN")  # its reply lost at the read error: retried at unit 2, after the model check
+        one.inject_after("SIN", _path_moves(port, first, second))
+        assert link.query("SIN") == "SIN 0"
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 3
+        assert one.xray_on and "XOF" in two.commands  # what the warning is for
+    assert "check by hand that the unit first connected is off" in capfd.readouterr().err
+
+
 def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     """The guardian's own backstop: XON or WUP is not passed on when its link was reopened since
     the last setting it passed on (the unit now at the port may not hold it); a setting passed on
@@ -2948,7 +3005,61 @@ def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     watch.reidentify.reconnects += 1
     assert watch.refusal("RST", "p") is None
     assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
-    assert watch.refusal("CUR 250", "p") is None and watch.refusal("XON", "p") is None
+    assert watch.refusal("CUR 250", "p") is None and watch.refusal("HIV 60", "p") is None
+    assert watch.refusal("XON", "p") is None
+
+
+@pytest.mark.parametrize(
+    "dialect, voltage, current, other", [("A", "HIV 60", "CUR 250", "CFS 1"), ("B", "PHV 600", "PCU 250", "CFM")]
+)
+def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect, voltage, current, other):
+    """The refusal counted any setting: a lone current, or a focus setting, passed on after a
+    reconnect let XON through to a unit whose voltage this session never sent (review s28-h8).
+    XON and WUP now need both the voltage and the current (L8121.md: what XON emits at; B's
+    presets while off, HIV/CUR while on) passed on since the last reconnect."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect=dialect))
+    watch.reidentify = Reidentify(DIALECTS[dialect], None, "p")  # its count moved by hand: no link here
+    assert watch.refusal(voltage, "p") is None and watch.refusal(current, "p") is None
+    watch.reidentify.reconnects += 1
+    for setting in (other, current, other):
+        assert watch.refusal(setting, "p") is None
+        assert "XON not sent" in (watch.refusal("XON", "p") or "passed on"), setting
+    assert watch.refusal(voltage, "p") is None and watch.refusal("XON", "p") is None
+    watch.reidentify.reconnects += 1
+    assert watch.refusal(voltage, "p") is None and "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+
+
+def test_the_guardians_xon_refusal_holds_when_the_xons_own_exchange_reopens_the_link(tmp_path):
+    """The settings passed on, then a poll's read error with the port path gone: the reopen fails
+    and leaves the guardian's link closed, its reconnect count unmoved. The path comes back, to a
+    second unit of the model, and XON arrives: its refusal was judged before its own exchange, which
+    then reopened the link (the check passed: same model) and wrote XON to unit 2 (review s28-h8).
+    Now a closed link is reopened before the refusal is judged, so XON is refused."""
+    from acquisition.guardian import start_guardian
+
+    def path_gone():
+        os.unlink(port)
+        first.read_error()
+
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved)
+        try:
+            assert link.query("HIV 60") == "HIV 60" and link.query("CUR 250") == "CUR 250"
+            one.hold_once("SIN")  # its reply not read before the read error
+            one.inject_after("SIN", path_gone)
+            with pytest.raises(DeviceError, match="reconnecting failed"):
+                link.query("SIN")
+            os.symlink(second.url, port)
+            with pytest.raises(DeviceError, match="XON not sent: the link was lost and reopened"):
+                link.query("XON")
+            assert "XON" not in one.commands + two.commands and not two.xray_on
+        finally:
+            link.close()
 
 
 def test_the_driver_learns_of_the_guardians_reconnects(tmp_path, dialect):
@@ -3017,6 +3128,44 @@ def _takeover_with_the_port_gone(tmp_path, dialect):
         source.close()  # switches off again, now through the path to unit 2
         assert one.xray_on and "XOF" in two.commands
         assert source.unit_unverified and not source.tube_confirmed_off
+
+
+# A Python-API user of start_guardian whose process imported gmsh (SIGPIPE at its default): the
+# guardian killed -9 with X-rays on, then the driver's off(). Run in its own process, whose SIGPIPE
+# disposition the test sets (this one's must stay as it is).
+_SIGPIPE_AT_DEFAULT = """
+import signal
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.guardian import start_guardian
+from acquisition.l8121 import L8121
+
+model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
+with PtyServer(model) as server:
+    resolved = L8121(server.url, dialect="A", connect=False, poll_s=0.05, min_interval_s=0.02).resolved_config()
+    link = start_guardian(server.url, resolved)
+    source = L8121(link, connect=False, config=resolved)
+    source.connect()
+    source.on(60, 250)
+    signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
+    link._process.kill()
+    link._process.wait()
+    state = source.off()
+    print("alive", state.name, model.xray_on, source.tube_confirmed_off)
+    source.close()
+"""
+
+
+def test_a_guardian_killed_under_sigpipe_at_its_default_does_not_take_the_api_user_with_it():
+    """The CLI ignores SIGPIPE, a Python-API user of ``start_guardian`` whose process imported
+    gmsh has it at its default: the write to the dead guardian's pipe killed that process on the
+    spot (exit -13), before it could switch off (review s28-h8). PipeTransport's writes now fail
+    with EPIPE whatever the disposition, and off() takes the port over and confirms."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    done = subprocess.run(
+        [sys.executable, "-c", _SIGPIPE_AT_DEFAULT], capture_output=True, text=True, timeout=60, env=env
+    )
+    assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
+    assert done.stdout.split() == ["alive", "STANDBY", "False", "True"], done.stdout
 
 
 def test_a_series_switch_off_confirmed_after_a_reconnect_is_not_counted_off(dialect):

@@ -222,3 +222,28 @@ def test_status_of_a_local_unit_found_on_that_then_fails_ends_on_the_warning(cap
         assert main(["acquire", "source", "status", *port]) == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert model.xray_on and "unparseable reply to SHV" in err[0] and err[-1] == TUBE_WARNING, err
+
+
+def test_a_reply_cut_short_by_an_interrupt_is_still_owed_after_the_port_is_reopened():
+    """Interrupted while ``SIN``'s reply is pending, the port is then closed and opened again (a
+    reconnect, or a caller's close and open): ``open()`` dropped the pending reply, so when it came,
+    after the next command was written, ``STS`` read ``SIN 0`` as its own (review s28-h8). It is now
+    owed a late reply across the reopen, as a command written before a read error is, and the
+    dialect's grammar discards it."""
+    from acquisition.l8121 import DIALECT_A
+    from acquisition.transport import SerialTransport
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, min_interval_s=0.02)
+        link.reply_fits = DIALECT_A.reply_fits
+        try:
+            model.hold_once("SIN")  # sent only when the next line arrives: after the reopen
+            with interrupt_when_received(model, "SIN", len(model.commands)):
+                with pytest.raises(KeyboardInterrupt):
+                    link.query("SIN")
+            link.close()
+            link.open()
+            assert link.query("STS") == "STS 2"
+        finally:
+            link.close()
