@@ -308,7 +308,8 @@ def straight(pairs, size, threads, reps):
     """``auto-fast`` as it is (``new``) and with ``_auto.STRAIGHT_BINNING`` out of reach (``old``:
     ``fast`` run first on every pair, as before session 29), in one process, interleaved, after a
     warm-up call of each on the pair: wall seconds (median and least of ``reps``), the preset
-    returned, median EPE inside the body, and whether the two fields are identical to the bit."""
+    returned, median EPE inside the body, and whether the two fields (and the confidence maps and
+    every quality number but the time: :func:`same`) are identical to the bit."""
     import radiokit.register as R
     from radiokit.register import _auto
 
@@ -316,9 +317,10 @@ def straight(pairs, size, threads, reps):
     line = _auto.STRAIGHT_BINNING
     print(f"auto-fast old (fast first) / new, warm, {threads} thread(s), {reps} interleaved calls each")
     print(
-        "| pair | size | wall old (median, least) | wall new | old returns | new returns | EPE old | EPE new | identical |"
+        "| pair | size | wall old (median, least) | wall new | old returns | new returns | EPE old | EPE new | field identical "
+        "| field, map, quality identical |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name in pairs:
         fixed, moving, truth, mask = make_pair(name, size)
         regs, t = {}, {"old": [], "new": []}
@@ -337,7 +339,7 @@ def straight(pairs, size, threads, reps):
         print(
             f"| {name} | {fixed.shape[0]} | {wall['old']} | {wall['new']} | {o.options['auto'].preset} "
             f"| {n.options['auto'].preset} | {epe(o.displacement, truth, mask):.3f} | {epe(n.displacement, truth, mask):.3f} "
-            f"| {np.array_equal(o.displacement, n.displacement)} |",
+            f"| {np.array_equal(o.displacement, n.displacement)} | {same(o, n)} |",
             flush=True,
         )
 

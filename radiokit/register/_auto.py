@@ -29,8 +29,8 @@ passes its checks and its residual moves less (:func:`finest_from_weak`, :func:`
 "The plain run's finest level on the weak run's field (session 27)"). ``auto``'s plain run may go past
 its finest level's budget when its field is still moving there but its residual already passes
 the checks (``EXTEND``): slow, not lost, as on natural images at 2240. ``auto-fast`` on a
-textured interior in a frame over ~0.4 Mpx skips its plain run and runs ``weak-fast`` alone
-(``STRAIGHT_BINNING``, :func:`straight_to_weak`): there ``fast``'s finest level is binned by 4 or
+textured interior in a frame over 1.6 Mpx skips its plain run and runs ``weak-fast`` alone
+(``STRAIGHT_BINNING``, :func:`straight_to_weak`): there ``fast``'s finest level is binned by 8 or
 more, and on the TRAINING pairs it was never the one returned. Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
 the body's interior**:
@@ -160,15 +160,17 @@ FINEST_ITERATIONS = 20
 # not separate the two: some pictures that gain read above it (same section, its widened training)
 FINEST_GAIN = 0.85
 # auto-fast on a textured interior (its fallback weak-fast) runs weak-fast alone, without fast first,
-# when fast's finest level is binned by this or more (:func:`straight_to_weak`): there fast was
-# never the one returned, so running it first only cost its time (at 2240 over a third of
-# auto-fast's). Chosen on TRAINING pairs (the family, texture 0.3-10x the noise, and the natural
-# pictures of bench_register_natural): at 840, 1120 and 2240 (fast binned by 4, 4, 8) auto-fast
-# returned weak-fast on every pair whose fallback it was; at 560 (binned by 2) it kept fast on a
-# sixth of them, on rich texture. The texture ratio alone cannot draw the line, it grows with the
-# frame: astronaut at 560 reads less than the weak family at 2240. benchmarks/README.md,
-# "auto-fast straight to weak-fast (session 29)"
-STRAIGHT_BINNING = 4
+# when fast's finest level is binned by this or more (:func:`straight_to_weak`; a control point
+# every 2 pixels of that level): there fast was never the one returned, so running it first only
+# cost its time (at 2240 over a third of auto-fast's). Chosen on TRAINING pairs (the family,
+# texture 0.3-10x the noise; the natural pictures of bench_register_natural; analytic_pair): at
+# 2240 (binned by 8) auto-fast returned weak-fast on every pair whose fallback it was; at 840 and
+# 1120 (by 4) it kept fast on 13 of 14 analytic pairs (rich texture under a smooth motion, where
+# fast is 1.5x better), at 560 (by 2) on a sixth of the family and natural pairs. The texture
+# ratio alone cannot draw the line, it grows with the frame: astronaut at 560 (fast kept) reads
+# less than the weak family at 2240. benchmarks/README.md, "auto-fast straight to weak-fast
+# (session 29)"
+STRAIGHT_BINNING = 8
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -349,9 +351,9 @@ def straight_to_weak(name, method, fallback, shape, options, retry) -> bool:
     ``rc`` (where it was measured), its fallback the weak preset (:func:`choose`: a textured
     interior, with noise), no ``retry`` (which is for the plain run), and ``fast``'s finest level
     binned by ``STRAIGHT_BINNING`` or more in this frame with these options (rc's presets: a
-    frame over 400,000 pixels, 633 px a side and larger; fast's levels hold at most 100,000).
-    There fast's finest level is twice as coarse as the checks' grid, and on the TRAINING pairs
-    it was never the one returned (``STRAIGHT_BINNING``'s comment). ``auto``'s plain run is not
+    frame over 1.6 Mpx, 1265 px a side and larger; fast's levels hold at most 100,000 pixels).
+    There, on the TRAINING pairs, fast was never the one returned (``STRAIGHT_BINNING``'s
+    comment). ``auto``'s plain run is not
     skipped: ``default``'s finest level is finer than the checks' and wins 1.3-4x on natural
     images at 2240 (``ABANDON``, ``EXTEND``)."""
     if name != "auto-fast" or method != "rc" or retry or fallback != AUTO_PRESETS[name][1]:
