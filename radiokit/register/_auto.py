@@ -353,9 +353,8 @@ def straight_to_weak(name, method, fallback, shape, options, retry) -> bool:
     binned by ``STRAIGHT_BINNING`` or more in this frame with these options (rc's presets: a
     frame over 1.6 Mpx, 1265 px a side and larger; fast's levels hold at most 100,000 pixels).
     There, on the TRAINING pairs, fast was never the one returned (``STRAIGHT_BINNING``'s
-    comment). ``auto``'s plain run is not
-    skipped: ``default``'s finest level is finer than the checks' and wins 1.3-4x on natural
-    images at 2240 (``ABANDON``, ``EXTEND``)."""
+    comment). ``auto``'s plain run is not skipped: ``default``'s finest level is finer than the
+    checks' and wins 1.3-4x on natural images at 2240 (``ABANDON``, ``EXTEND``)."""
     if name != "auto-fast" or method != "rc" or retry or fallback != AUTO_PRESETS[name][1]:
         return False
     return _finest_binning(AUTO_PRESETS[name][0], shape, options) >= STRAIGHT_BINNING
