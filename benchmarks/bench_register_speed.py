@@ -10,6 +10,7 @@ Run (from the repository root, a git checkout)::
     radiokit sim run --preset seed-breast -o /tmp/sb.h5
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --process /tmp/sb.h5 --reps 2
     python benchmarks/bench_register_speed.py --fresh /tmp/rk-old --process /tmp/sb.h5 --files 4
+    python benchmarks/bench_register_speed.py --straight --pairs weak family:0.006:1000 --threads 2 --reps 3
 
 The older revision's (``--old``, default a6e5868, before session 5) ``radiokit/register/
 _bspline.py`` and ``_common.py`` are loaded beside the current ones (the old module's
@@ -27,7 +28,9 @@ fields are apart (median, 99th percentile and largest |difference|, px). ``--ref
 the ``weak`` thinning refit's own work, old and new interleaved on the same inputs (the interior
 thinning of both rounds from a first pass's field, and ``_noise_alpha``, which every pass runs):
 the part of a whole run's difference that the optimiser's time, many times larger and noisier on a
-shared machine, hides.
+shared machine, hides. ``--straight`` times ``auto-fast`` with and without going straight to
+``weak-fast`` (``radiokit.register._auto.STRAIGHT_BINNING``, session 29) in one process, warm, and
+compares the two fields (see :func:`straight`).
 
 Pairs (``regdata``, test seeds): ``weak`` the family's weak texture (texture = noise = 0.01,
 1/10-frame correlation length, 1 % motion; ``weak-train`` the same on TRAINING seed 1), ``rich`` ``analytic_pair`` (the texture ten times the
@@ -37,7 +40,9 @@ stiffer disc) on weak texture, ``camera`` scikit-image's camera under a local mo
 (``bench_register_natural.py``'s test pair), ``astronaut`` scikit-image's astronaut under the
 TRAINING local motion (``bench_register_natural.py --split train``: what a rich-texture time is
 chosen on), ``retina`` / ``moon`` a TRAINING / TEST picture under the smooth motion (``sine``:
-where ``auto``'s plain run stops and its finest level then runs on the weak field, session 27).
+where ``auto``'s plain run stops and its finest level then runs on the weak field, session 27),
+``family:TEXTURE:SEED`` the weak pair's case at another texture or seed, ``pva-phantom`` /
+``seed-breast`` the simulated pairs (``regdata.sim_pair``, noisy; at the scene's own size).
 """
 
 from __future__ import annotations
@@ -59,6 +64,13 @@ from regdata import Case, analytic_pair, family_pair
 
 
 def make_pair(name, size):
+    if name.startswith("family:"):  # family:TEXTURE:SEED, the weak pair's case at another texture or seed
+        _, texture, seed = name.split(":")
+        return family_pair(Case(size=size, texture=float(texture), noise=0.01, corr=0.1, seed=int(seed)))
+    if name in ("pva-phantom", "seed-breast"):  # a simulated pair (noisy; simulated once, cached)
+        from regdata import sim_pair
+
+        return sim_pair(name, noisy=True)
     if name == "weak":
         return family_pair(Case(size=size, texture=0.01, noise=0.01, corr=0.1, seed=1000))
     if name == "weak-train":  # the same on a TRAINING seed (bench_register_weak2240.py's s1)
@@ -82,7 +94,8 @@ def make_pair(name, size):
 
         return natural("astronaut", size, "local", "train")
     raise ValueError(
-        f"pair {name!r}: expected weak, weak-train, weak1, weak1-train, rich, phys, camera, astronaut, retina or moon"
+        f"pair {name!r}: expected weak, weak-train, weak1, weak1-train, rich, phys, camera, astronaut, retina, moon, "
+        "pva-phantom, seed-breast or family:TEXTURE:SEED"
     )
 
 
@@ -291,6 +304,46 @@ def fresh(old_tree, pair, size, presets, threads, reps):
             )
 
 
+def straight(pairs, size, threads, reps):
+    """``auto-fast`` as it is (``new``) and with ``_auto.STRAIGHT_BINNING`` out of reach (``old``:
+    ``fast`` run first on every pair, as before session 29), in one process, interleaved, after a
+    warm-up call of each on the pair: wall seconds (median and least of ``reps``), the preset
+    returned, median EPE inside the body, and whether the two fields (and the confidence maps and
+    every quality number but the time: :func:`same`) are identical to the bit."""
+    import radiokit.register as R
+    from radiokit.register import _auto
+
+    set_threads(threads)
+    line = _auto.STRAIGHT_BINNING
+    print(f"auto-fast old (fast first) / new, warm, {threads} thread(s), {reps} interleaved calls each")
+    print(
+        "| pair | size | wall old (median, least) | wall new | old returns | new returns | EPE old | EPE new | field identical "
+        "| field, map, quality identical |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name in pairs:
+        fixed, moving, truth, mask = make_pair(name, size)
+        regs, t = {}, {"old": [], "new": []}
+        try:
+            for i in range(reps + 1):  # call 0 of each: the warm-up, not timed
+                for k in ("old", "new") if i % 2 == 0 else ("new", "old"):
+                    _auto.STRAIGHT_BINNING = line if k == "new" else 10**9
+                    t0 = time.perf_counter()
+                    regs[k] = R.register(fixed, moving, "rc", preset="auto-fast")
+                    if i:
+                        t[k].append(time.perf_counter() - t0)
+        finally:
+            _auto.STRAIGHT_BINNING = line
+        o, n = regs["old"], regs["new"]
+        wall = {k: f"{np.median(v):.2f}, {min(v):.2f}" for k, v in t.items()}
+        print(
+            f"| {name} | {fixed.shape[0]} | {wall['old']} | {wall['new']} | {o.options['auto'].preset} "
+            f"| {n.options['auto'].preset} | {epe(o.displacement, truth, mask):.3f} | {epe(n.displacement, truth, mask):.3f} "
+            f"| {np.array_equal(o.displacement, n.displacement)} | {same(o, n)} |",
+            flush=True,
+        )
+
+
 def _numbers(obj, path=""):
     """``{path: value}`` of a results.json's numbers and strings, but times and paths."""
     if isinstance(obj, dict):
@@ -404,6 +457,9 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--refit-parts", action="store_true", help="time the thinning refit's own parts instead")
     ap.add_argument("--fresh", metavar="OLD_TREE", help="time new processes against a checkout of the old revision")
+    ap.add_argument(
+        "--straight", action="store_true", help="auto-fast with and without going straight to weak-fast, warm"
+    )
     ap.add_argument("--process", metavar="FILE", help="with --fresh: time `radiokit process FILE` instead")
     ap.add_argument(
         "--files", type=int, default=0, help="with --process: N links of FILE, one after the other and on 2 workers"
@@ -417,6 +473,11 @@ def main(argv=None):
         return
     if a.fresh and a.process:
         process(a.fresh, a.process, a.threads, a.reps)
+        return
+    if a.straight:
+        with threadpool_limits(limits=1, user_api="blas"):
+            straight(a.pairs, a.size, a.threads[0], a.reps)
+        print(f"load average {os.getloadavg()}")
         return
     if a.fresh:
         fresh(a.fresh, a.pairs[0], a.size, a.presets, a.threads, a.reps)

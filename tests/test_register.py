@@ -942,6 +942,39 @@ def test_auto_checks_the_pair_once_and_each_run_as_alone(monkeypatch):
     np.testing.assert_array_equal(reg.confidence, alone.confidence)
 
 
+def test_auto_fast_goes_straight_to_weak_fast_where_fast_is_binned_coarse():
+    """``auto-fast`` skips ``fast`` on a textured interior (its fallback ``weak-fast``) once
+    fast's finest level is binned by ``STRAIGHT_BINNING`` (8) or more: a frame over 1.6 Mpx
+    (fast's 100,000 pixels a level times 64; 1265 px a side). Not below it (1120, binned by 4:
+    there fast was kept on rich texture), not for ``auto``, a silent body's fallback, ``retry``,
+    another similarity, and read from the run's own options (``max_pixels``)."""
+    from radiokit.register._auto import straight_to_weak
+
+    def straight(shape, name="auto-fast", method="rc", fallback="weak-fast", retry=False, **options):
+        return straight_to_weak(name, method, fallback, shape, {"preset": name, **options}, retry)
+
+    assert straight((1265, 1265)) and straight((2240, 2240)) and straight((1200, 1400))
+    assert not straight((1264, 1264)) and not straight((1120, 1120)) and not straight((560, 560))
+    assert not straight((2240, 2240), name="auto", fallback="weak")
+    assert not straight((2240, 2240), fallback="silent-fast") and not straight((2240, 2240), retry=True)
+    assert not straight((2240, 2240), method="ssd")
+    assert not straight((2240, 2240), max_pixels=400_000) and straight((1120, 1120), max_pixels=20_000)
+
+
+def test_auto_fast_runs_weak_fast_alone_where_it_goes_straight(monkeypatch):
+    """Where :func:`straight_to_weak` holds (here a 384 px weak-texture pair whose levels go down
+    to 48 px and hold at most 48 x 48 pixels, so that fast's finest level is binned by 8, as at
+    2240, and the test is cheap): ``auto-fast`` runs ``weak-fast`` once, no ``fast`` before it,
+    and says so; the time is its run's."""
+    fixed, moving, _, _ = _family_pair(size=384, texture=0.01, noise=0.01, corr=0.1, seed=8)
+    runs = _record_runs(monkeypatch)
+    reg = register(fixed, moving, "rc", preset="auto-fast", min_size=48, max_pixels=48 * 48)
+    why = reg.options["auto"]
+    assert why.preset == "weak-fast" and reg.options["preset"] == "weak-fast", why
+    assert "fast not run" in why.reason and "weak texture" in why.reason, why
+    assert len(runs) == 1 and reg.quality.seconds == runs[0]
+
+
 # -- a silent body: the silhouette's affine map and the stiff lattices (preset "silent") ----------
 
 

@@ -28,7 +28,10 @@ already moves clearly less than the weak run's (``FINEST_GAIN``), and is returne
 passes its checks and its residual moves less (:func:`finest_from_weak`, :func:`keeps_finest`;
 "The plain run's finest level on the weak run's field (session 27)"). ``auto``'s plain run may go past
 its finest level's budget when its field is still moving there but its residual already passes
-the checks (``EXTEND``): slow, not lost, as on natural images at 2240. Which
+the checks (``EXTEND``): slow, not lost, as on natural images at 2240. ``auto-fast`` on a
+textured interior in a frame over 1.6 Mpx skips its plain run and runs ``weak-fast`` alone
+(``STRAIGHT_BINNING``, :func:`straight_to_weak`): there ``fast``'s finest level is binned by 8 or
+more, and on the TRAINING pairs it was never the one returned. Which
 fallback is judged on the fixed image by one no-truth number, the **texture-to-noise ratio of
 the body's interior**:
 
@@ -91,6 +94,8 @@ __all__ = [
     "FINEST_FROM_WEAK",
     "FINEST_ITERATIONS",
     "FINEST_GAIN",
+    "STRAIGHT_BINNING",
+    "straight_to_weak",
 ]
 
 # name -> (the preset run first, the one a flagged result on a textured interior falls back to,
@@ -154,6 +159,18 @@ FINEST_ITERATIONS = 20
 # family's pairs where the level, kept on a smaller residual alone, lost accuracy and time. It does
 # not separate the two: some pictures that gain read above it (same section, its widened training)
 FINEST_GAIN = 0.85
+# auto-fast on a textured interior (its fallback weak-fast) runs weak-fast alone, without fast first,
+# when fast's finest level is binned by this or more (:func:`straight_to_weak`; a control point
+# every 2 pixels of that level): there fast was never the one returned, so running it first only
+# cost its time (at 2240 over a third of auto-fast's). Chosen on TRAINING pairs (the family,
+# texture 0.3-10x the noise; the natural pictures of bench_register_natural; analytic_pair): at
+# 2240 (binned by 8) auto-fast returned weak-fast on every pair whose fallback it was; at 840 and
+# 1120 (by 4) it kept fast on 13 of 14 analytic pairs (rich texture under a smooth motion, where
+# fast is 1.5x better), at 560 (by 2) on a sixth of the family and natural pairs. The texture
+# ratio alone cannot draw the line, it grows with the frame: astronaut at 560 (fast kept) reads
+# less than the weak family at 2240. benchmarks/README.md, "auto-fast straight to weak-fast
+# (session 29)"
+STRAIGHT_BINNING = 8
 _NOISE_WINDOW = 24.0  # px (binned): the noise level's window, as the confidence map's
 _BAND = (1.0, 6.0)  # px (binned): Gaussian sigmas of the band-pass
 _WINDOW = 4.0  # px (binned): the local variance's Gaussian window
@@ -318,6 +335,31 @@ def _finest(name, options, weak) -> dict:
     )
 
 
+def _finest_binning(preset, shape, options) -> int:
+    """The factor ``preset``'s finest level (with the caller's ``options``) is binned by on a
+    ``shape`` frame: the pyramid's, times ``bin_pixels``'s."""
+    from radiokit.register._bspline import PRESETS, _bin_factor, _options, _pyramid
+
+    o = _options(preset, {k: v for k, v in options.items() if k in PRESETS["default"]})
+    k = _bin_factor(shape, o["bin_pixels"])
+    binned = (shape[0] // k, shape[1] // k)
+    return _pyramid(binned, o)[-1][0] * k
+
+
+def straight_to_weak(name, method, fallback, shape, options, retry) -> bool:
+    """Whether ``name`` runs its weak preset alone, its plain run skipped: ``auto-fast`` with
+    ``rc`` (where it was measured), its fallback the weak preset (:func:`choose`: a textured
+    interior, with noise), no ``retry`` (which is for the plain run), and ``fast``'s finest level
+    binned by ``STRAIGHT_BINNING`` or more in this frame with these options (rc's presets: a
+    frame over 1.6 Mpx, 1265 px a side and larger; fast's levels hold at most 100,000 pixels).
+    There, on the TRAINING pairs, fast was never the one returned (``STRAIGHT_BINNING``'s
+    comment). ``auto``'s plain run is not skipped: ``default``'s finest level is finer than the
+    checks' and wins 1.3-4x on natural images at 2240 (``ABANDON``, ``EXTEND``)."""
+    if name != "auto-fast" or method != "rc" or retry or fallback != AUTO_PRESETS[name][1]:
+        return False
+    return _finest_binning(AUTO_PRESETS[name][0], shape, options) >= STRAIGHT_BINNING
+
+
 def _plain(name, options, early) -> dict:
     """The options of ``name``'s plain run: ``abandon_px`` (``ABANDON``) when ``early`` and
     ``extend`` (``EXTEND``, ``auto`` only), each unless the caller set it."""
@@ -333,10 +375,16 @@ def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
     checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
     the weak or silent preset too (:func:`choose`), and the one :func:`keeps_retry` prefers is
-    returned (its time is both runs'). ``options["auto"]`` records the choice and why."""
+    returned (its time is both runs'). ``auto-fast`` where :func:`straight_to_weak`: the weak
+    preset alone. ``options["auto"]`` records the choice and why."""
     name = options["preset"]
     plain = AUTO_PRESETS[name][0]
     fallback = choose(f, name, mask)  # judged where the caller's mask says the object is
+    if straight_to_weak(name, method, fallback.preset, f.shape, options, retry):
+        reg = register(f, m, method, mask, retry=False, **dict(options, preset=fallback.preset))
+        why = f"{fallback.reason}; {plain} not run (its finest level binned by {STRAIGHT_BINNING} or more)"
+        reg.options["auto"] = AutoChoice(fallback.preset, fallback.ratio, fallback.interior, why)
+        return reg
     # on a textured interior a plain run that is far off before its finest level stops there
     # (ABANDON): the weak preset follows anyway
     early = fallback.preset == AUTO_PRESETS[name][1] and not retry
