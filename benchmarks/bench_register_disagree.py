@@ -389,6 +389,8 @@ def main(argv=None) -> int:
         else:
             rows = heldout_rows(out, a.size, a.seeds)
         saved.write_text(json.dumps(rows))
+    for r in rows:  # rows saved by an earlier version of this script: the reason is what counts
+        r["interior_only"] = interior_only(r["reason"])
     keys = list(STAT)
     print(f"{a.source} {split}: {len(rows)} results; failed flagged, good trusted now: {fmt(confusion(rows))}")
     if a.rule is None:
