@@ -2102,3 +2102,48 @@ def test_excess_kept_is_judged_on_a_small_body():
     share, kept, left = _misaligned(_PairChecks(f, m, None), m, np.zeros((2, n, n), np.float32), obs)
     assert kept == pytest.approx(1.0, abs=1e-6)  # nothing explained
     assert left > 0.1 and share > 0.5
+
+
+def _judged(disagreement_px, second_ok=True):
+    """A trusted result (the identity on an unmoved textureless disc) judged against a planted
+    second registration that differs from it by ``disagreement_px`` everywhere."""
+    from radiokit.register import Quality, _judge_disagreement, _PairChecks
+
+    n = 160
+    yy, xx = np.mgrid[0:n, 0:n]
+    chord = np.sqrt(np.clip(1 - ((yy - 80) ** 2 + (xx - 80) ** 2) / 70.0**2, 0, None))
+    f = (chord + 0.01 * np.random.default_rng(0).standard_normal((n, n))).astype(np.float32)
+    p = _PairChecks(f, f.copy(), None)
+    assert p.inner.any()  # the disagreement is taken over the interior, not the whole object
+    reg = Registration(np.zeros((2, n, n), np.float32), "rc", Quality(), {"preset": "default"})
+    second = Registration(
+        np.full((2, n, n), disagreement_px / np.sqrt(2), np.float32), "rc", Quality(), {"preset": "weak"}
+    )
+    second.quality.ok = second_ok
+    _judge_disagreement(reg, second, p)
+    return reg
+
+
+def test_a_trusted_result_a_second_registration_disagrees_with_is_flagged():
+    """``regularisation_check``: two fields that both pass the checks yet differ over a silent interior are
+    the regularisers' guesses (benchmarks/README.md, "Two registrations' disagreement"). Over the
+    line (0.6 px) the trusted result is flagged, with the second run named; under it, or when the
+    second run failed its own checks (its disagreement says nothing of this one), it stays trusted."""
+    far = _judged(1.0)
+    assert far.quality.disagreement == pytest.approx(1.0, abs=1e-5)
+    assert not far.quality.ok and "second registration (rc, preset weak)" in far.quality.reason
+    assert far.options["regularisation_check"]["preset"] == "weak"
+    near = _judged(0.3)
+    assert near.quality.ok and near.quality.disagreement == pytest.approx(0.3, abs=1e-5)
+    assert _judged(1.0, second_ok=False).quality.ok
+
+
+def test_regularisation_check_registers_a_second_time_and_agrees_on_a_textured_pair():
+    """``register(..., regularisation_check=True)`` runs the second registration (``weak`` for a
+    ``fast`` result) and reports it; on a textured pair both fields find the one-pixel shift, so
+    the result stays trusted."""
+    moving = ndimage.gaussian_filter(np.random.default_rng(0).random((96, 96)), 2).astype(np.float32)
+    fixed = warp(moving, np.full((2, 96, 96), 1.0, np.float32))
+    reg = register(fixed, moving, preset="fast", regularisation_check=True)
+    assert reg.options["regularisation_check"]["preset"] == "weak" and reg.options["regularisation_check"]["ok"]
+    assert reg.quality.ok and reg.quality.disagreement < 0.2

@@ -96,6 +96,12 @@ class Quality:
     stiff regulariser fills the interior accordingly. NaN when the interior is observed, or
     when the observed rim does not surround it. ``note``: what is worth knowing of a result not
     flagged for it (empty, or the finest level still moving at the end of its budget).
+    ``disagreement`` (``register(..., regularisation_check=True)`` only; NaN otherwise): the median over
+    the object's interior of ``|d - d2|`` (full-resolution px), ``d2`` the field of a second
+    registration regularised differently (rc, preset ``weak``; ``default`` for a ``weak``
+    result); over 0.6 px, with the second run passing its own checks, a trusted result is
+    flagged: two fields that each pass the checks but differ there are the regularisers'
+    guesses, not the images'.
     """
 
     rc_before: float = float("nan")
@@ -113,6 +119,7 @@ class Quality:
     excess_kept: float = float("nan")
     residual_motion: float = float("nan")
     body_scale: float = float("nan")
+    disagreement: float = float("nan")
     noise: float = float("nan")
     ok: bool = True
     reason: str = ""
@@ -224,7 +231,9 @@ def _check_option_names(method, options):
         raise TypeError(f"unknown option {unknown[0]!r} for method {method!r}; its options: {', '.join(sorted(known))}")
 
 
-def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -> Registration:
+def register(
+    fixed, moving, method="rc", mask=None, *, retry=False, regularisation_check=False, **options
+) -> Registration:
     """Register ``moving`` onto ``fixed`` (2-D arrays of one shape).
 
     Input domain: line integrals (``-ln(I / I0)``, ``radiokit.calibrate``'s ``domain="log"``),
@@ -234,7 +243,10 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
     phantoms (``benchmarks/README.md``, the family's intensity-domain rows).
 
     ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
-    ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``options`` go
+    ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
+    registers the pair a second time, regularised differently, and flags a trusted result whose
+    field differs from that one's over the object's interior (``Quality.disagreement``; it costs
+    the second registration's time, ``options["regularisation_check"]``). ``options`` go
     to the method (see ``radiokit.register.METHODS[name].__doc__``).
 
     The result carries ``confidence`` (where the motion is observable from these images, see
@@ -269,7 +281,10 @@ def register(fixed, moving, method="rc", mask=None, *, retry=False, **options) -
         return _register(f, m, method, mask, retry, options)
     token = _PAIRS.set(_Memo((f, m, mask)))
     try:
-        return _register(f, m, method, mask, retry, options)
+        reg = _register(f, m, method, mask, retry, options)
+        if regularisation_check:
+            _regularisation_check(reg, f, m, mask)
+        return reg
     finally:
         _PAIRS.reset(token)
 
@@ -692,6 +707,52 @@ def _body_scale_text(v, preset) -> str:
     if v > _BODY_SCALE_PX:
         return f"the field is not body-scale ({v:.2f} px from a quadratic motion fitted to the observed edges, > {_BODY_SCALE_PX:g})"
     return f"the field is body-scale ({v:.2f} px) but from a free lattice (preset {preset or 'default'}), not a silent preset"
+
+
+# Quality.disagreement (register(..., regularisation_check=True)). Inside a silent interior the
+# field is the regulariser's interpolation of what the edges pin, and the checks cannot tell a
+# right fill from a wrong one (benchmarks/README.md, "Phantom-like pairs from an independent
+# generator"). Two fields that each pass the checks yet differ there cannot both be right: at
+# least one is a guess. (Agreement does not certify a fill: two wrong fills can agree, and on the
+# held-out generator right ones differed by up to 1.2 px; so this only flags, it never trusts.)
+# The second run is rc's ``weak`` (``default`` for a weak result); a disagreement with a second
+# run that fails its own checks says nothing of this one, so only a trusted second run counts.
+# 0.6 px chosen on TRAINING rows (the phantom seeds 6000-6029 and the family's training seeds at
+# 560, every preset and method): the phantoms' failed results flagged 35/46 -> 40/46 for 55/66 ->
+# 53/66 good trusted, the family's unchanged (262/262, 170/174); on the test rows the phantoms'
+# 29/36 -> 33/36 (good 68/71 both), the family's 156/158 -> 158/158 and 102/106 -> 100/106
+# (benchmarks/README.md, "Two registrations' disagreement (session 29)").
+_CROSS_PX = 0.6
+
+
+def _regularisation_check(reg, f, m, mask) -> None:
+    """Register ``f``, ``m`` again with rc's ``weak`` preset (``default`` when ``reg`` is a weak
+    result) and fill ``reg.quality.disagreement``; flag a trusted ``reg`` whose field differs from
+    the second one, itself trusted, by more than ``_CROSS_PX`` (median over the object's
+    interior as the checks see it, full-resolution px). ``reg.options["regularisation_check"]`` records
+    the second run's preset, verdict and time."""
+    preset = "default" if reg.options.get("preset") == "weak" else "weak"
+    _judge_disagreement(reg, _register(f, m, "rc", mask, False, {"preset": preset}), _pair_checks(f, m, mask))
+
+
+def _judge_disagreement(reg, second, p) -> None:
+    """:func:`_regularisation_check`'s verdict on ``reg`` from the ``second`` registration (its preset in
+    ``second.options``) and the pair's checks ``p`` (:class:`_PairChecks`)."""
+    preset = second.options.get("preset")
+    inner = p.inner if p.inner.any() else p.ob.object
+    diff = reg.displacement - second.displacement
+    if p.k > 1:
+        diff = _bin(diff, p.k)
+    q = reg.quality
+    q.disagreement = float(np.median(np.hypot(*diff)[inner])) if inner.any() else float("nan")
+    reg.options["regularisation_check"] = {"preset": preset, "ok": second.quality.ok, "seconds": second.quality.seconds}
+    if q.ok and second.quality.ok and q.disagreement > _CROSS_PX:
+        q.ok = False
+        q.reason = (
+            f"a second registration (rc, preset {preset}), which passes its own checks, differs from this one "
+            f"by {q.disagreement:.2f} px over the object's interior (median; > {_CROSS_PX:g}): the field there "
+            "is the regularisers' guess, not the images'"
+        )
 
 
 def _erode(mask, radius):
