@@ -14,8 +14,9 @@ regulariser, so two registrations regularised differently agree there; a local m
 edges do not pin inside is not, so they differ. The statistic: ``|u1 - u2|`` (median and 90th
 percentile, full-resolution px) over the object's interior as the flag sees it
 (``register._PairChecks``: the object, its interior two windows inside the edge, the observed
-part), ``u1`` the result's field and ``u2`` a second registration's: ``silent`` (stiff,
-silhouette-started), or ``default`` for a silent result itself.
+part), ``u1`` the result's field and ``u2`` a second registration's. Second runs measured:
+``silent`` (stiff, silhouette-started; ``default`` for a silent result itself) and ``weak``
+(``default`` for a weak result); the rule chosen (``CHOSEN``) and the library use ``weak``.
 
 Each source's results come with the flag's ``ok`` and reason and the truth's status (failed:
 median EPE > max(1 px, half the identity's); good: <= 0.5 px). Printed: the AUC (probability a

@@ -959,6 +959,10 @@ def test_auto_fast_goes_straight_to_weak_fast_where_fast_is_binned_coarse():
     assert not straight((2240, 2240), fallback="silent-fast") and not straight((2240, 2240), retry=True)
     assert not straight((2240, 2240), method="ssd")
     assert not straight((2240, 2240), max_pixels=400_000) and straight((1120, 1120), max_pixels=20_000)
+    # the caller's binning and pyramid count as register() would bin (review s29-h6: a version
+    # blind to bin_pixels passed the lines above): binned by 3, fast's finest level is binned by 6
+    assert straight((1300, 1300)) and not straight((1300, 1300), bin_pixels=200_000)
+    assert straight((1120, 1120), levels_skip=1)
 
 
 def test_auto_fast_runs_weak_fast_alone_where_it_goes_straight(monkeypatch):
@@ -2104,21 +2108,24 @@ def test_excess_kept_is_judged_on_a_small_body():
     assert left > 0.1 and share > 0.5
 
 
-def _judged(disagreement_px, second_ok=True):
-    """A trusted result (the identity on an unmoved textureless disc) judged against a planted
-    second registration that differs from it by ``disagreement_px`` everywhere."""
+def _judged(disagreement_px, second_ok=True, n=160, rim_only=False):
+    """A trusted result (the identity on an unmoved textureless disc of an ``n``-px frame) judged
+    against a planted second registration that differs from it by ``disagreement_px`` everywhere,
+    or (``rim_only``) only on the object outside the interior the checks judge."""
     from radiokit.register import Quality, _judge_disagreement, _PairChecks
 
-    n = 160
     yy, xx = np.mgrid[0:n, 0:n]
-    chord = np.sqrt(np.clip(1 - ((yy - 80) ** 2 + (xx - 80) ** 2) / 70.0**2, 0, None))
+    chord = np.sqrt(np.clip(1 - ((yy - n / 2) ** 2 + (xx - n / 2) ** 2) / (0.44 * n) ** 2, 0, None))
     f = (chord + 0.01 * np.random.default_rng(0).standard_normal((n, n))).astype(np.float32)
     p = _PairChecks(f, f.copy(), None)
     assert p.inner.any()  # the disagreement is taken over the interior, not the whole object
+    planted = np.full((2, n, n), disagreement_px / np.sqrt(2), np.float32)
+    if rim_only:  # the interior at full resolution, widened by a binned pixel: only the rim differs
+        inner = np.kron(p.inner, np.ones((p.k, p.k), bool))
+        inner = np.pad(inner, ((0, n - inner.shape[0]), (0, n - inner.shape[1])))
+        planted[:, ndimage.binary_dilation(inner, iterations=p.k + 1)] = 0.0
     reg = Registration(np.zeros((2, n, n), np.float32), "rc", Quality(), {"preset": "default"})
-    second = Registration(
-        np.full((2, n, n), disagreement_px / np.sqrt(2), np.float32), "rc", Quality(), {"preset": "weak"}
-    )
+    second = Registration(planted, "rc", Quality(), {"preset": "weak"})
     second.quality.ok = second_ok
     _judge_disagreement(reg, second, p)
     return reg
@@ -2136,6 +2143,43 @@ def test_a_trusted_result_a_second_registration_disagrees_with_is_flagged():
     near = _judged(0.3)
     assert near.quality.ok and near.quality.disagreement == pytest.approx(0.3, abs=1e-5)
     assert _judged(1.0, second_ok=False).quality.ok
+    # the interior only: a rim that differs (the edges' normal motion, which both runs see) is not
+    # a disagreement over the silent interior (review s29-h6: the whole object passed as well)
+    rim = _judged(1.0, rim_only=True)
+    assert rim.quality.ok and rim.quality.disagreement == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_second_run_is_chosen_from_the_preset_that_made_the_field():
+    """``auto``'s ``weak+default-finest`` is ``weak``'s field polished: checked against ``weak`` it
+    would be compared with itself (review s29-h6), so its second run is ``default``; and a result
+    already flagged is not registered again (the check can only flag a trusted one)."""
+    from radiokit.register import Quality, _base_preset, _regularisation_check
+    from radiokit.register._auto import AutoChoice
+
+    def reg(preset, chosen=None):
+        options = {"preset": preset} | ({"auto": AutoChoice(chosen, 1.0, 0.5, "")} if chosen else {})
+        return Registration(np.zeros((2, 8, 8), np.float32), "rc", Quality(), options)
+
+    assert _base_preset(reg("auto", "weak+default-finest")) == "weak"
+    assert _base_preset(reg("auto-fast", "weak-fast")) == "weak-fast"
+    assert _base_preset(reg("weak")) == "weak" and _base_preset(reg("fast")) == "fast"
+    flagged = reg("auto", "weak+default-finest")
+    flagged.quality.ok = False
+    _regularisation_check(flagged, None, None, None)  # would fail on None images had it registered
+    assert flagged.options["regularisation_check"] == {"preset": "default", "ok": False, "seconds": 0.0, "run": False}
+    assert np.isnan(flagged.quality.disagreement)
+
+
+def test_the_disagreement_is_taken_on_the_checks_binned_grid_in_full_resolution_px():
+    """Over ~0.4 Mpx the checks bin the pair (k > 1): the planted 1 px difference must still read
+    1 px (a field binned, not rescaled) over the binned interior, and a rim-only one 0."""
+    from radiokit.register import _assess_binning
+
+    n = 720
+    assert _assess_binning(n * n) > 1
+    far = _judged(1.0, n=n)
+    assert not far.quality.ok and far.quality.disagreement == pytest.approx(1.0, abs=1e-5)
+    assert _judged(1.0, n=n, rim_only=True).quality.disagreement == pytest.approx(0.0, abs=1e-6)
 
 
 def test_regularisation_check_registers_a_second_time_and_agrees_on_a_textured_pair():

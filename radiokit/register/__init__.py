@@ -99,8 +99,8 @@ class Quality:
     ``disagreement`` (``register(..., regularisation_check=True)`` only; NaN otherwise): the median over
     the object's interior of ``|d - d2|`` (full-resolution px), ``d2`` the field of a second
     registration regularised differently (rc, preset ``weak``; ``default`` for a ``weak``
-    result); over 0.6 px, with the second run passing its own checks, a trusted result is
-    flagged: two fields that each pass the checks but differ there are the regularisers'
+    result, ``auto``'s included; not run, NaN, for a result already flagged); over 0.6 px, with
+    the second run passing its own checks, a trusted result is flagged: two fields that each pass the checks but differ there are the regularisers'
     guesses, not the images'.
     """
 
@@ -731,8 +731,21 @@ def _regularisation_check(reg, f, m, mask) -> None:
     the second one, itself trusted, by more than ``_CROSS_PX`` (median over the object's
     interior as the checks see it, full-resolution px). ``reg.options["regularisation_check"]`` records
     the second run's preset, verdict and time."""
-    preset = "default" if reg.options.get("preset") == "weak" else "weak"
+    preset = "default" if _base_preset(reg) == "weak" else "weak"
+    if not reg.quality.ok:  # it can only flag a trusted result: not worth a second registration
+        reg.options["regularisation_check"] = {"preset": preset, "ok": False, "seconds": 0.0, "run": False}
+        return
     _judge_disagreement(reg, _register(f, m, "rc", mask, False, {"preset": preset}), _pair_checks(f, m, mask))
+
+
+def _base_preset(reg) -> str:
+    """The preset whose lattice and regularisation made ``reg``'s field: ``auto``'s choice up to its
+    ``+`` (``weak+default-finest`` is ``weak``'s field polished at the finest level: checked against
+    a ``weak`` run it would be compared with itself; review s29-h6), else the preset asked for."""
+    chosen = reg.options.get("auto")
+    if chosen is not None:
+        return chosen.preset.split("+")[0]
+    return reg.options.get("preset") or "default"
 
 
 def _judge_disagreement(reg, second, p) -> None:
@@ -745,7 +758,12 @@ def _judge_disagreement(reg, second, p) -> None:
         diff = _bin(diff, p.k)
     q = reg.quality
     q.disagreement = float(np.median(np.hypot(*diff)[inner])) if inner.any() else float("nan")
-    reg.options["regularisation_check"] = {"preset": preset, "ok": second.quality.ok, "seconds": second.quality.seconds}
+    reg.options["regularisation_check"] = {
+        "preset": preset,
+        "ok": second.quality.ok,
+        "seconds": second.quality.seconds,
+        "run": True,
+    }
     if q.ok and second.quality.ok and q.disagreement > _CROSS_PX:
         q.ok = False
         q.reason = (
