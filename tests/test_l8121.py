@@ -2949,15 +2949,17 @@ def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_ano
 
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
-        link = start_guardian(str(port), resolved, watchdog_s=0.5)
+        # the poll must come before the watchdog fires: 1 s, so that a stall on a loaded machine
+        # after on() does not fire it first (at 0.5 s it could); the XOF case is armed before on()
+        link = start_guardian(str(port), resolved, watchdog_s=1.0 if moved_in == "poll" else 0.5)
         source = L8121(link, connect=False, config=resolved)
         source.connect()
+        if moved_in == "XOF":
+            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+            one.inject_after("XOF", _path_moves(port, first, second))
         source.on(60, 250)  # (polled within the watchdog: the ramp is 0.2 s)
         if moved_in == "poll":
             _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
-        else:
-            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
-            one.inject_after("XOF", _path_moves(port, first, second))
         assert link._process.wait(timeout=20) == 3  # no poll from here on: the watchdog's turn
         source.close()
         assert not source.tube_confirmed_off and source.unit_unverified
