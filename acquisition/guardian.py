@@ -394,8 +394,8 @@ class _Watch:
         """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened and the
         voltage and current have not both been passed on since, so the unit now at the port passed
         a check of its model only and may not hold them (the driver's own on()/warm_up() rule, which
-        cannot see this process's reconnects; reviews s28-h7, s28-h8). Records the count at each
-        voltage or current passed on."""
+        cannot see this process's reconnects; reviews s28-h7, s28-h8). The settings are recorded
+        as the unit accepts them (:meth:`replied`)."""
         head, count = command.split(" ", 1)[0], getattr(self.reidentify, "reconnects", 0)
         if head in ("XON", "WUP"):
             if count and any(self.settings_at.get(what) != count for what in self.beam_settings):
@@ -404,13 +404,18 @@ class _Watch:
                     "sent (voltage and current not both sent since), and the unit now at the port is "
                     "known only by its model; switch on again"
                 )
-        for what, words in self.beam_settings.items():
-            if head in words:
-                self.settings_at[what] = count
         return None
 
     def replied(self, command: str, reply: str) -> None:
-        from acquisition.l8121 import _OFF_STATES
+        from acquisition.l8121 import _OFF_STATES, Command
+
+        head = command.split(" ", 1)[0]
+        for what, words in self.beam_settings.items():
+            # the count as the unit echoed it (it holds the value): one it refused (ERROR; B's HIV
+            # while off, without the PHV preset) set nothing, and counted, let XON through after a
+            # reconnect (review s29-h4)
+            if head in words and Command.is_echo(command, reply):
+                self.settings_at[what] = getattr(self.reidentify, "reconnects", 0)
 
         check = self.reidentify
         if check is not None and check.name == "identity" and command == check.query.command:

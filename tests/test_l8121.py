@@ -3003,12 +3003,21 @@ def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     watch = _Watch(SimpleNamespace(dialect="A"))
     watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
     assert watch.refusal("XON", "p") is None  # nothing set through it yet: the driver's rules
-    assert watch.refusal("HIV 60", "p") is None and watch.refusal("XON", "p") is None
-    watch.reidentify.reconnects += 1
-    assert watch.refusal("RST", "p") is None
-    assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
-    assert watch.refusal("CUR 250", "p") is None and watch.refusal("HIV 60", "p") is None
+    _passed_on(watch, "HIV 60")
     assert watch.refusal("XON", "p") is None
+    watch.reidentify.reconnects += 1
+    _passed_on(watch, "RST")
+    assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
+    _passed_on(watch, "CUR 250")
+    _passed_on(watch, "HIV 60")
+    assert watch.refusal("XON", "p") is None
+
+
+def _passed_on(watch, command, reply=None):
+    """``command`` through the guardian's watch as ``_serve`` passes it on: not refused, then
+    answered ``reply`` (its echo unless given)."""
+    assert watch.refusal(command, "p") is None
+    watch.replied(command, command if reply is None else reply)
 
 
 @pytest.mark.parametrize(
@@ -3025,14 +3034,36 @@ def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect
 
     watch = _Watch(SimpleNamespace(dialect=dialect))
     watch.reidentify = Reidentify(DIALECTS[dialect], None, "p")  # its count moved by hand: no link here
-    assert watch.refusal(voltage, "p") is None and watch.refusal(current, "p") is None
+    _passed_on(watch, voltage)
+    _passed_on(watch, current)
     watch.reidentify.reconnects += 1
     for setting in (other, current, other):
-        assert watch.refusal(setting, "p") is None
+        _passed_on(watch, setting)
         assert "XON not sent" in (watch.refusal("XON", "p") or "passed on"), setting
-    assert watch.refusal(voltage, "p") is None and watch.refusal("XON", "p") is None
+    _passed_on(watch, voltage)
+    assert watch.refusal("XON", "p") is None
     watch.reidentify.reconnects += 1
-    assert watch.refusal(voltage, "p") is None and "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+    _passed_on(watch, voltage)
+    assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+
+
+def test_the_guardians_watch_counts_only_a_setting_the_unit_accepted():
+    """The guardian recorded a voltage or current as it passed it on, whatever the unit answered:
+    in B, HIV while off is refused (ERROR; the PHV preset sets the voltage then), yet it counted,
+    and XON after a reconnect reached a unit whose voltage this session never set (review s29-h4).
+    Only an echoed setting counts now."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect="B"))
+    watch.reidentify = Reidentify(DIALECT_B, None, "p")  # its count moved by hand: no link here
+    watch.reidentify.reconnects += 1
+    _passed_on(watch, "HIV 60", "ERROR")
+    _passed_on(watch, "PCU 250")
+    assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+    _passed_on(watch, "PHV 600")
+    assert watch.refusal("XON", "p") is None
 
 
 def test_the_guardians_xon_refusal_holds_when_the_xons_own_exchange_reopens_the_link(tmp_path):
