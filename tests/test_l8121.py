@@ -2969,6 +2969,71 @@ def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_ano
     assert err.count(TUBE_WARNING) == 1 and "XOF" in two.commands, err
 
 
+def test_the_guardian_watchdog_keeps_a_reconnect_of_its_own_failed_try(tmp_path):
+    """The watchdog's switch-off reopens the guardian's link (left closed by a failed reopen) at a
+    second unit of the model, whose STS answers ERROR: the try fails, and the fresh driver's record
+    of the reconnect went with it. The next try, another fresh driver, called unit 2's STS
+    "confirmed" (and told the acquiring process nothing, whose own off then read confirmed too)
+    with unit 1 on (review s29-h4). The guardian now keeps the reconnect: the next try ends on the
+    warning, and the acquiring process hears of it with its next reply (its C line).
+
+    In process, as the guardian's main() builds its link (the watchdog's silence is not waited for:
+    _watchdog_off is what the silence calls)."""
+    from acquisition.guardian import _Watch, _watchdog_off
+    from acquisition.transport import SerialTransport
+
+    said = []
+    note = lambda level, text: said.append((level, text))
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # unit 1 on, as a run the acquiring process is silent in left it
+        config = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = SerialTransport(str(port), baudrate=config.baudrate, timeout_s=0.3, min_interval_s=0.02)
+        link.reply_fits = DIALECT_A.reply_fits
+        link.on_reconnect = Reidentify(DIALECT_A, config.model, str(port))
+        watch = _Watch(config)
+        watch.reidentify = link.on_reconnect
+        try:
+            link.close()  # as a poll's read error with the path gone leaves it
+            _repoint(port, second.url)
+            two.sts_error(True)  # unit 2 cannot confirm at first
+            assert not _watchdog_off(link, config, note, watch, 1.0)  # failed: the watchdog stays armed
+            assert link.on_reconnect.reconnects == 1 and "XOF" in two.commands
+            two.sts_error(False)
+            assert _watchdog_off(link, config, note, watch, 1.0)  # ends on the warning: exit 3
+            assert watch.to_tell(link.on_reconnect.reconnects) == 1  # the next reply's C line
+            assert watch.to_tell(link.on_reconnect.reconnects) == 0  # told once
+        finally:
+            link.close()
+        assert one.xray_on and not two.xray_on  # what the warning is for
+    assert not any("confirmed by STS" in text for _, text in said), said
+    assert any("check by hand that the unit first connected is off" in text for _, text in said), said
+
+
+@pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])
+def test_the_guardian_watchdog_waits_for_the_acquiring_processs_first_request(dialect, preheating, capfd):
+    """A Python-API user slow between start_guardian and its first exchange (building its detector),
+    the tube off all along: the watchdog, armed from the start, sent XOF to a unit nobody had
+    checked and said the process was "suspended or hung"; in B pre-heating (STS ERROR) it warned
+    "X-RAYS MAY STILL BE ON" and sent XOF again every period (review s29-h4). It is armed by the
+    first request now: silence before the acquiring process ever spoke is not a hang. (The idle
+    time is the user's, a few watchdog periods; a stall only lengthens it.)"""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    model.sts_error(preheating)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.15)
+        try:
+            time.sleep(0.5)
+            assert model.commands == [] and link._process.poll() is None
+        finally:
+            link.close()
+    assert "X-ray guardian" not in capfd.readouterr().err
+
+
 def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
     """A tube left on by an earlier run (``source on``), never read through the guardian: a poll
     meets a read error as the path moves to a second unit (same model, off), and the acquiring
