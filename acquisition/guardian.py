@@ -17,13 +17,13 @@ accept. Two mechanisms cover the two ways a process ends:
   with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
   baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
-  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls: none
-  for ``watchdog_s`` (the protocol's ``[source] watchdog_s``) and it switches off the same way,
-  says so, and keeps serving (the series then stops at its next beam check) -- unless that off was
-  confirmed only by another unit now at the port (the link reopened while X-rays may have been
-  on): then it says so once and exits 3, and the acquiring process, if it runs again, switches off
-  through the port itself. It runs in its own session and ignores
-  SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
+  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls, once
+  it has sent its first request: none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
+  and it switches off the same way, says so, and keeps serving (the series then stops at its next
+  beam check) -- unless that off was confirmed only by another unit now at the port (the link
+  reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
+  process, if it runs again, switches off through the port itself. It runs in its own session and
+  ignores SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
 
 The line protocol on the pipe (ASCII, one line each way; ``SEQ`` ties a reply to its request, so
@@ -240,7 +240,8 @@ def start_guardian(
         While X-rays may be on (from the start, an ``XON`` or ``WUP`` passed on, or an ``STS``
         reply that says so, and no ``STS`` reply since that says otherwise), the acquiring process polls the source
         every beam-monitor period; silent for this long, it is suspended or hung, and the
-        guardian switches off (and says so). None: no watchdog.
+        guardian switches off (and says so). Armed by the acquiring process's first request:
+        before it, its silence is a slow start, not a hang. None: no watchdog.
 
     Raises
     ------
@@ -370,6 +371,13 @@ class _Watch:
             for what in ("voltage", "current")
         }
         self.settings_at: dict[str, int] = {}
+        # reconnects of the guardian's own switch-offs (the watchdog's), not yet told to the
+        # acquiring process: they go out with its next reply's C line (review s29-h4)
+        self.untold = 0
+        # the watchdog is armed only once the acquiring process has sent a request: its silence
+        # before it ever spoke is a slow start (a Python-API user building its detector), not a
+        # hang, and an XOF then went to a unit nobody had checked (review s29-h4)
+        self.heard = False
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -386,6 +394,14 @@ class _Watch:
                 "connected is off",
             )
 
+    def to_tell(self, seen: int) -> int:
+        """The reconnects the acquiring process has not heard of (its next reply's ``C`` line):
+        those since ``seen`` (the check's count before the exchange passed on), and those of the
+        guardian's own switch-offs since the last reply."""
+        moved = getattr(self.reidentify, "reconnects", seen) - seen + self.untold
+        self.untold = 0
+        return moved
+
     def sent(self, command: str) -> None:
         if command.split(" ", 1)[0] in ("XON", "WUP"):
             self.may_be_on = True
@@ -394,8 +410,8 @@ class _Watch:
         """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened and the
         voltage and current have not both been passed on since, so the unit now at the port passed
         a check of its model only and may not hold them (the driver's own on()/warm_up() rule, which
-        cannot see this process's reconnects; reviews s28-h7, s28-h8). Records the count at each
-        voltage or current passed on."""
+        cannot see this process's reconnects; reviews s28-h7, s28-h8). The settings are recorded
+        as the unit accepts them (:meth:`replied`)."""
         head, count = command.split(" ", 1)[0], getattr(self.reidentify, "reconnects", 0)
         if head in ("XON", "WUP"):
             if count and any(self.settings_at.get(what) != count for what in self.beam_settings):
@@ -404,13 +420,18 @@ class _Watch:
                     "sent (voltage and current not both sent since), and the unit now at the port is "
                     "known only by its model; switch on again"
                 )
-        for what, words in self.beam_settings.items():
-            if head in words:
-                self.settings_at[what] = count
         return None
 
     def replied(self, command: str, reply: str) -> None:
-        from acquisition.l8121 import _OFF_STATES
+        from acquisition.l8121 import _OFF_STATES, Command
+
+        head = command.split(" ", 1)[0]
+        for what, words in self.beam_settings.items():
+            # the count as the unit echoed it (it holds the value): one it refused (ERROR; B's HIV
+            # while off, without the PHV preset) set nothing, and counted, let XON through after a
+            # reconnect (review s29-h4)
+            if head in words and Command.is_echo(command, reply):
+                self.settings_at[what] = getattr(self.reidentify, "reconnects", 0)
 
         check = self.reidentify
         if check is not None and check.name == "identity" and command == check.query.command:
@@ -439,7 +460,7 @@ def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | 
     import select
 
     while True:
-        wait = watchdog_s if watch.may_be_on and watchdog_s else None
+        wait = watchdog_s if watch.may_be_on and watch.heard and watchdog_s else None
         try:
             ready, _, _ = select.select([rfd], [], [], wait)
         except InterruptedError:
@@ -462,7 +483,16 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
+    before = getattr(watch.reidentify, "reconnects", 0)
     outcome = _switch_off(link, config, note, watch)
+    moved = getattr(watch.reidentify, "reconnects", 0) - before
+    if moved:
+        # reopened during this off, X-rays possibly on (the watchdog runs only then): a try that
+        # failed lost the fresh driver's record of it, and the next try -- another fresh driver --
+        # called the unit now at the port's STS confirmed, as did the acquiring process's own off
+        # later, with the first unit on (review s29-h4). Kept here, and told with the next reply
+        watch.unverified = True
+        watch.untold += moved
     if outcome == "off":
         watch.may_be_on = False
         return False
@@ -542,6 +572,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]
+        watch.heard = True
         was_on, seen = watch.may_be_on, getattr(watch.reidentify, "reconnects", 0)
         try:
             _admit(link, watch, command)
@@ -552,7 +583,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
             kind = "N" if isinstance(exc, NoReply) else "E"  # silence: the caller does not ask again
             out = f"{kind} {seq} {' '.join(str(exc).split())}"
         watch.exchanged(seen, was_on, note, link.port)
-        moved = getattr(watch.reidentify, "reconnects", 0) - seen
+        moved = watch.to_tell(seen)
         if moved:
             # the acquiring driver counts reconnects to tell whose off confirmation it has and to
             # send no XON after one since its settings: it learns of this link's before the reply

@@ -81,8 +81,11 @@ def _write_no_sigpipe(fd: int, data: bytes) -> int:
     try:
         return os.write(fd, data)
     except BrokenPipeError:
-        if signal.SIGPIPE not in old:  # (blocked by the caller already: its own to take)
-            signal.sigtimedwait({signal.SIGPIPE}, 0)
+        # (blocked by the caller already: its own to take). sigpending and sigwait, not
+        # sigtimedwait: macOS and OpenBSD have no sigtimedwait, and its AttributeError escaped
+        # PipeTransport's `except OSError` (review s29-h4)
+        if signal.SIGPIPE not in old and signal.SIGPIPE in signal.sigpending():
+            signal.sigwait({signal.SIGPIPE})
         raise
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
@@ -242,8 +245,11 @@ class SerialTransport:
         if self._pending is not None:
             # an exchange a signal cut short: its reply is still on its way and may come on the
             # reopened port after the next command was written (dropped here, STS read SIN's reply;
-            # review s28-h8): owed as a command written before a read error is, from now
-            self._owed.append((self._pending[0], time.monotonic() + self.timeout_s))
+            # review s28-h8): owed until its own deadline, as _drain_pending waits for it. Owed
+            # for a time-out from a late reopen instead, a reply that fits any command (ERROR)
+            # kept the next command waiting that long for a second line (review s29-h4)
+            if self._pending[1] > time.monotonic():
+                self._owed.append(self._pending)
             self._pending = None
         # self._owed is kept: the same controller behind the port (a brief read error, a re-plugged
         # adapter, a terminal server) still answers the commands the old link wrote, and a reply

@@ -2949,15 +2949,17 @@ def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_ano
 
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         resolved = L8121(str(port), dialect=dialect, connect=False, **FAST).resolved_config()
-        link = start_guardian(str(port), resolved, watchdog_s=0.5)
+        # the poll must come before the watchdog fires: 1 s, so that a stall on a loaded machine
+        # after on() does not fire it first (at 0.5 s it could); the XOF case is armed before on()
+        link = start_guardian(str(port), resolved, watchdog_s=1.0 if moved_in == "poll" else 0.5)
         source = L8121(link, connect=False, config=resolved)
         source.connect()
+        if moved_in == "XOF":
+            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+            one.inject_after("XOF", _path_moves(port, first, second))
         source.on(60, 250)  # (polled within the watchdog: the ramp is 0.2 s)
         if moved_in == "poll":
             _poll_as_the_path_moves(one, source, _path_moves(port, first, second))
-        else:
-            one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
-            one.inject_after("XOF", _path_moves(port, first, second))
         assert link._process.wait(timeout=20) == 3  # no poll from here on: the watchdog's turn
         source.close()
         assert not source.tube_confirmed_off and source.unit_unverified
@@ -2965,6 +2967,71 @@ def test_the_guardian_watchdog_ends_on_the_warning_after_an_off_confirmed_by_ano
     err = capfd.readouterr().err
     assert err.count("check by hand that the unit first connected is off") == 1, err
     assert err.count(TUBE_WARNING) == 1 and "XOF" in two.commands, err
+
+
+def test_the_guardian_watchdog_keeps_a_reconnect_of_its_own_failed_try(tmp_path):
+    """The watchdog's switch-off reopens the guardian's link (left closed by a failed reopen) at a
+    second unit of the model, whose STS answers ERROR: the try fails, and the fresh driver's record
+    of the reconnect went with it. The next try, another fresh driver, called unit 2's STS
+    "confirmed" (and told the acquiring process nothing, whose own off then read confirmed too)
+    with unit 1 on (review s29-h4). The guardian now keeps the reconnect: the next try ends on the
+    warning, and the acquiring process hears of it with its next reply (its C line).
+
+    In process, as the guardian's main() builds its link (the watchdog's silence is not waited for:
+    _watchdog_off is what the silence calls)."""
+    from acquisition.guardian import _Watch, _watchdog_off
+    from acquisition.transport import SerialTransport
+
+    said = []
+    note = lambda level, text: said.append((level, text))
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # unit 1 on, as a run the acquiring process is silent in left it
+        config = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = SerialTransport(str(port), baudrate=config.baudrate, timeout_s=0.3, min_interval_s=0.02)
+        link.reply_fits = DIALECT_A.reply_fits
+        link.on_reconnect = Reidentify(DIALECT_A, config.model, str(port))
+        watch = _Watch(config)
+        watch.reidentify = link.on_reconnect
+        try:
+            link.close()  # as a poll's read error with the path gone leaves it
+            _repoint(port, second.url)
+            two.sts_error(True)  # unit 2 cannot confirm at first
+            assert not _watchdog_off(link, config, note, watch, 1.0)  # failed: the watchdog stays armed
+            assert link.on_reconnect.reconnects == 1 and "XOF" in two.commands
+            two.sts_error(False)
+            assert _watchdog_off(link, config, note, watch, 1.0)  # ends on the warning: exit 3
+            assert watch.to_tell(link.on_reconnect.reconnects) == 1  # the next reply's C line
+            assert watch.to_tell(link.on_reconnect.reconnects) == 0  # told once
+        finally:
+            link.close()
+        assert one.xray_on and not two.xray_on  # what the warning is for
+    assert not any("confirmed by STS" in text for _, text in said), said
+    assert any("check by hand that the unit first connected is off" in text for _, text in said), said
+
+
+@pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])
+def test_the_guardian_watchdog_waits_for_the_acquiring_processs_first_request(dialect, preheating, capfd):
+    """A Python-API user slow between start_guardian and its first exchange (building its detector),
+    the tube off all along: the watchdog, armed from the start, sent XOF to a unit nobody had
+    checked and said the process was "suspended or hung"; in B pre-heating (STS ERROR) it warned
+    "X-RAYS MAY STILL BE ON" and sent XOF again every period (review s29-h4). It is armed by the
+    first request now: silence before the acquiring process ever spoke is not a hang. (The idle
+    time is the user's, a few watchdog periods; a stall only lengthens it.)"""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    model.sts_error(preheating)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.15)
+        try:
+            time.sleep(0.5)
+            assert model.commands == [] and link._process.poll() is None
+        finally:
+            link.close()
+    assert "X-ray guardian" not in capfd.readouterr().err
 
 
 def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
@@ -3001,12 +3068,21 @@ def test_the_guardians_watch_refuses_xon_after_a_reconnect_since_the_settings():
     watch = _Watch(SimpleNamespace(dialect="A"))
     watch.reidentify = Reidentify(DIALECT_A, "L8121-01", "p")  # its count moved by hand: no link here
     assert watch.refusal("XON", "p") is None  # nothing set through it yet: the driver's rules
-    assert watch.refusal("HIV 60", "p") is None and watch.refusal("XON", "p") is None
-    watch.reidentify.reconnects += 1
-    assert watch.refusal("RST", "p") is None
-    assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
-    assert watch.refusal("CUR 250", "p") is None and watch.refusal("HIV 60", "p") is None
+    _passed_on(watch, "HIV 60")
     assert watch.refusal("XON", "p") is None
+    watch.reidentify.reconnects += 1
+    _passed_on(watch, "RST")
+    assert "XON not sent" in watch.refusal("XON", "p") and "WUP not sent" in watch.refusal("WUP", "p")
+    _passed_on(watch, "CUR 250")
+    _passed_on(watch, "HIV 60")
+    assert watch.refusal("XON", "p") is None
+
+
+def _passed_on(watch, command, reply=None):
+    """``command`` through the guardian's watch as ``_serve`` passes it on: not refused, then
+    answered ``reply`` (its echo unless given)."""
+    assert watch.refusal(command, "p") is None
+    watch.replied(command, command if reply is None else reply)
 
 
 @pytest.mark.parametrize(
@@ -3023,14 +3099,36 @@ def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect
 
     watch = _Watch(SimpleNamespace(dialect=dialect))
     watch.reidentify = Reidentify(DIALECTS[dialect], None, "p")  # its count moved by hand: no link here
-    assert watch.refusal(voltage, "p") is None and watch.refusal(current, "p") is None
+    _passed_on(watch, voltage)
+    _passed_on(watch, current)
     watch.reidentify.reconnects += 1
     for setting in (other, current, other):
-        assert watch.refusal(setting, "p") is None
+        _passed_on(watch, setting)
         assert "XON not sent" in (watch.refusal("XON", "p") or "passed on"), setting
-    assert watch.refusal(voltage, "p") is None and watch.refusal("XON", "p") is None
+    _passed_on(watch, voltage)
+    assert watch.refusal("XON", "p") is None
     watch.reidentify.reconnects += 1
-    assert watch.refusal(voltage, "p") is None and "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+    _passed_on(watch, voltage)
+    assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+
+
+def test_the_guardians_watch_counts_only_a_setting_the_unit_accepted():
+    """The guardian recorded a voltage or current as it passed it on, whatever the unit answered:
+    in B, HIV while off is refused (ERROR; the PHV preset sets the voltage then), yet it counted,
+    and XON after a reconnect reached a unit whose voltage this session never set (review s29-h4).
+    Only an echoed setting counts now."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect="B"))
+    watch.reidentify = Reidentify(DIALECT_B, None, "p")  # its count moved by hand: no link here
+    watch.reidentify.reconnects += 1
+    _passed_on(watch, "HIV 60", "ERROR")
+    _passed_on(watch, "PCU 250")
+    assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+    _passed_on(watch, "PHV 600")
+    assert watch.refusal("XON", "p") is None
 
 
 def test_the_guardians_xon_refusal_holds_when_the_xons_own_exchange_reopens_the_link(tmp_path):
@@ -3130,42 +3228,40 @@ def _takeover_with_the_port_gone(tmp_path, dialect):
         assert source.unit_unverified and not source.tube_confirmed_off
 
 
-# A Python-API user of start_guardian whose process imported gmsh (SIGPIPE at its default): the
-# guardian killed -9 with X-rays on, then the driver's off(). Run in its own process, whose SIGPIPE
-# disposition the test sets (this one's must stay as it is).
-_SIGPIPE_AT_DEFAULT = """
-import signal
-from acquisition.emulators.l8121 import L8121Model, PtyServer
-from acquisition.guardian import start_guardian
-from acquisition.l8121 import L8121
-
-model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
-with PtyServer(model) as server:
-    resolved = L8121(server.url, dialect="A", connect=False, poll_s=0.05, min_interval_s=0.02).resolved_config()
-    link = start_guardian(server.url, resolved)
-    source = L8121(link, connect=False, config=resolved)
-    source.connect()
-    source.on(60, 250)
-    signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
-    link._process.kill()
-    link._process.wait()
-    state = source.off()
-    print("alive", state.name, model.xray_on, source.tube_confirmed_off)
-    source.close()
-"""
-
-
-def test_a_guardian_killed_under_sigpipe_at_its_default_does_not_take_the_api_user_with_it():
+@pytest.mark.parametrize("platform", ["linux", "no sigtimedwait"])
+def test_a_write_to_a_dead_guardians_pipe_fails_with_epipe_under_sigpipe_at_its_default(platform):
     """The CLI ignores SIGPIPE, a Python-API user of ``start_guardian`` whose process imported
     gmsh has it at its default: the write to the dead guardian's pipe killed that process on the
-    spot (exit -13), before it could switch off (review s28-h8). PipeTransport's writes now fail
-    with EPIPE whatever the disposition, and off() takes the port over and confirms."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
-    done = subprocess.run(
-        [sys.executable, "-c", _SIGPIPE_AT_DEFAULT], capture_output=True, text=True, timeout=60, env=env
-    )
-    assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
-    assert done.stdout.split() == ["alive", "STANDBY", "False", "True"], done.stdout
+    spot (-13), before it could switch off (review s28-h8). PipeTransport writes with
+    ``_write_no_sigpipe``, which fails with EPIPE whatever the disposition (what follows EPIPE --
+    the port taken over, off confirmed -- is the guardian-killed tests'). Without
+    ``signal.sigtimedwait`` (macOS, OpenBSD) it raised AttributeError, which escaped PipeTransport's
+    ``except OSError`` (review s29-h4).
+
+    In a forked child, whose SIGPIPE disposition is its own; deleting sigtimedwait there fakes a
+    platform the suite cannot run on. Exit 0: EPIPE raised and the signal consumed (still pending,
+    it killed the child as the mask was restored)."""
+    from acquisition.transport import _write_no_sigpipe
+
+    pid = os.fork()
+    if pid == 0:  # the child: nothing but os and signal calls, then _exit (no pytest teardown)
+        code = 1
+        try:
+            signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
+            if platform == "no sigtimedwait":
+                del signal.sigtimedwait
+            read_end, write_end = os.pipe()
+            os.close(read_end)  # the guardian is gone
+            try:
+                _write_no_sigpipe(write_end, b"Q 1 STS\n")
+            except BrokenPipeError:
+                code = 0 if signal.SIGPIPE not in signal.sigpending() else 2
+            except BaseException:
+                code = 3
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
 
 
 def test_a_series_switch_off_confirmed_after_a_reconnect_is_not_counted_off(dialect):

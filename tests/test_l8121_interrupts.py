@@ -247,3 +247,32 @@ def test_a_reply_cut_short_by_an_interrupt_is_still_owed_after_the_port_is_reope
             assert link.query("STS") == "STS 2"
         finally:
             link.close()
+
+
+def test_a_reply_cut_short_is_owed_only_until_its_own_deadline_across_a_late_reopen():
+    """SIN's reply genuinely lost (the controller silent), Ctrl-C while waiting, the port closed and
+    opened again after SIN's reply deadline: SIN was owed a late reply for a further time-out from
+    the reopen, so a next reply that fits any command (A's ERROR: XON refused, the interlock open)
+    waited that long for a second line (review s29-h4). Owed only until its own deadline, as
+    ``_drain_pending`` waits for it, nothing is owed after a late reopen."""
+    from acquisition.l8121 import DIALECT_A
+    from acquisition.transport import SerialTransport
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    model.open_interlock()
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, min_interval_s=0.02, timeout_s=0.3)
+        link.reply_fits = DIALECT_A.reply_fits
+        try:
+            model.silence(True)
+            with interrupt_when_received(model, "SIN", len(model.commands)):
+                with pytest.raises(KeyboardInterrupt):
+                    link.query("SIN")
+            model.silence(False)
+            link.close()
+            time.sleep(0.35)  # past SIN's deadline (sent at most this long before): a late reopen
+            link.open()
+            assert link._owed == []
+            assert link.query("XON") == "ERROR" and not model.xray_on
+        finally:
+            link.close()
