@@ -363,13 +363,12 @@ class _Watch:
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
         self.unverified = False
-        # what XON emits at (L8121.md): the tube voltage and current -- B's presets while off, HIV
-        # and CUR while on -- by their command words, each with the check's count when last passed
-        # on (refusal: both are needed since the last reconnect; a focus setting is not enough)
-        self.beam_settings = {
-            what: {dialect.settings[name].command for name in (what, "preset_" + what)}
-            for what in ("voltage", "current")
-        }
+        # what XON (and A's WUP) emits at, sent while X-rays are off (L8121.md): the preset voltage
+        # and current -- B's PHV and PCU, A's HIV and CUR -- by their command words, each with the
+        # check's count when last accepted (refusal: both are needed since the last reconnect; a
+        # focus setting is not enough). B's HIV and CUR set the beam while it is on: echoed after
+        # a reconnect they say nothing of the presets an XON would emit at (review s29-h7)
+        self.beam_settings = {what: {dialect.settings["preset_" + what].command} for what in ("voltage", "current")}
         self.settings_at: dict[str, int] = {}
         # reconnects of the guardian's own switch-offs (the watchdog's), not yet told to the
         # acquiring process: they go out with its next reply's C line (review s29-h4)

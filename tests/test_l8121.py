@@ -3011,6 +3011,38 @@ def test_the_guardian_watchdog_keeps_a_reconnect_of_its_own_failed_try(tmp_path)
     assert any("check by hand that the unit first connected is off" in text for _, text in said), said
 
 
+def test_the_guardians_serve_loop_tells_the_acquiring_process_of_its_watchdogs_reconnect(tmp_path):
+    """End to end, the guardian a real process: its watchdog's first try reconnects to a second unit
+    whose STS cannot confirm (the try fails), then the acquiring process resumes. Its next reply
+    must carry the reconnect (the C line, ``_Watch.to_tell``), so that the driver's own off is not
+    called confirmed with unit 1 on (review s29-h7: ``_serve`` counting only the reconnects of the
+    exchange it passed on passed every other test)."""
+    from acquisition.guardian import start_guardian
+
+    with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
+        resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(str(port), resolved, watchdog_s=0.5)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        two.sts_error(True)  # unit 2 cannot confirm at first: the watchdog's try fails
+        one.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+        one.inject_after("XOF", _path_moves(port, first, second))
+        source.on(60, 250)
+        deadline = time.monotonic() + 20  # no poll from here on: the watchdog's turn
+        while "XOF" not in two.commands and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "XOF" in two.commands and link._process.poll() is None
+        assert source._reconnects() == 0
+        source.interlock_closed()  # the next exchange's reply carries the watchdog's reconnect
+        assert source._reconnects() == 1 and source.unit_unverified
+        two.sts_error(False)
+        source.off()
+        assert not source.tube_confirmed_off  # unit 2's STS, not unit 1's
+        source.close()
+        link._process.wait(timeout=20)
+        assert not two.xray_on  # (unit 1 took the XOF whose reply was lost: off, but unconfirmed)
+
+
 @pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])
 def test_the_guardian_watchdog_waits_for_the_acquiring_processs_first_request(dialect, preheating, capfd):
     """A Python-API user slow between start_guardian and its first exchange (building its detector),
@@ -3091,8 +3123,8 @@ def _passed_on(watch, command, reply=None):
 def test_the_guardians_watch_needs_voltage_and_current_after_a_reconnect(dialect, voltage, current, other):
     """The refusal counted any setting: a lone current, or a focus setting, passed on after a
     reconnect let XON through to a unit whose voltage this session never sent (review s28-h8).
-    XON and WUP now need both the voltage and the current (L8121.md: what XON emits at; B's
-    presets while off, HIV/CUR while on) passed on since the last reconnect."""
+    XON and WUP now need both the voltage and the current (L8121.md: what XON emits at, sent while
+    off: B's presets, A's HIV/CUR) passed on since the last reconnect."""
     from types import SimpleNamespace
 
     from acquisition.guardian import _Watch
@@ -3128,6 +3160,26 @@ def test_the_guardians_watch_counts_only_a_setting_the_unit_accepted():
     _passed_on(watch, "PCU 250")
     assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
     _passed_on(watch, "PHV 600")
+    assert watch.refusal("XON", "p") is None
+
+
+def test_the_guardians_watch_counts_only_the_presets_xon_emits_at_in_dialect_b():
+    """In B an XON from off emits at the presets (PHV, PCU; L8121.md); HIV and CUR set the beam
+    while it is on. Echoed after a reconnect (the beam on at the unit now there), they counted as
+    the voltage and current, and a later XON reached that unit at presets this session never sent
+    (review s29-h7)."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect="B"))
+    watch.reidentify = Reidentify(DIALECT_B, None, "p")  # its count moved by hand: no link here
+    watch.reidentify.reconnects += 1
+    _passed_on(watch, "HIV 600")
+    _passed_on(watch, "CUR 250")
+    assert "XON not sent" in (watch.refusal("XON", "p") or "passed on")
+    _passed_on(watch, "PHV 600")
+    _passed_on(watch, "PCU 250")
     assert watch.refusal("XON", "p") is None
 
 
@@ -3247,6 +3299,7 @@ def test_a_write_to_a_dead_guardians_pipe_fails_with_epipe_under_sigpipe_at_its_
     if pid == 0:  # the child: nothing but os and signal calls, then _exit (no pytest teardown)
         code = 1
         try:
+            signal.alarm(10)  # a write that blocked would otherwise hang the suite in waitpid
             signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
             if platform == "no sigtimedwait":
                 del signal.sigtimedwait

@@ -235,7 +235,9 @@ def test_a_reply_cut_short_by_an_interrupt_is_still_owed_after_the_port_is_reope
 
     model = L8121Model(dialect="A", warmed_up=True)
     with PtyServer(model) as server:
-        link = SerialTransport(server.url, min_interval_s=0.02)
+        # owed until SIN's own deadline: a long time-out (nothing waits for it) so that a stall of
+        # the machine between the interrupt and the reopen does not end it (review s29-h7)
+        link = SerialTransport(server.url, min_interval_s=0.02, timeout_s=5.0)
         link.reply_fits = DIALECT_A.reply_fits
         try:
             model.hold_once("SIN")  # sent only when the next line arrives: after the reopen
