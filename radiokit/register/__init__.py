@@ -732,7 +732,7 @@ _CROSS_PX = 0.6
 # 0.6 px (phantoms 41/46, 54/66 against the full runs' 40/46, 53/66; ``weak-fast`` 37/46,
 # ``silent-fast`` 36/46; the family's unchanged for all), then read once on the test rows:
 # phantoms 32/36, 68/71 (the full runs' 33/36, 68/71), the family's the same as the full runs'
-# (benchmarks/README.md, "A cheaper second run").
+# (benchmarks/README.md, "A cheaper second run for the disagreement").
 _SECOND_RUN = {"preset": "weak", "bin_pixels": 100_000, "iterations": (60, 30, 20)}
 _SECOND_RUN_FOR_WEAK = {"preset": "fast"}
 
