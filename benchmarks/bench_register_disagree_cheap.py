@@ -5,6 +5,7 @@ fields (read only here; ``--src`` is that ``out`` directory)::
 
     python benchmarks/bench_register_disagree_cheap.py --source phantoms --split train --src out
     python benchmarks/bench_register_disagree_cheap.py --source family --split train --src out
+    python benchmarks/bench_register_disagree_cheap.py --source heldout --seeds 2 --src out   # its cache only
 
 The check (``register(..., regularisation_check=True)``, session 29) registers the pair again with
 rc's ``weak`` (``default`` for a weak result) and flags a trusted result whose field differs from
@@ -167,6 +168,38 @@ def family_rows(src, out, split, size, seeds):
     return res, times
 
 
+def heldout_rows(src, out, size, seeds):
+    """As ``D.heldout_rows``, from its cached fields only (a missing one is an error, not
+    registered into ``src``), with the fresh runs."""
+    import bench_register_heldout as H
+    from regdata import score
+
+    res, times = [], []
+    kinds = {"rc": "default", "rc-fast": "fast", "rc-weak": "weak", "rc-silent": "silent"}
+    for seed in H.SEEDS[:seeds]:
+        for noise in (0.01, 0.0025):
+            for t2n in (0.0, 0.3, 1.0, 3.0, 10.0):
+                f, m, d, mask = H.heldout_pair(size, seed, t2n, noise)
+                ident = score(np.zeros_like(d), d, mask)["epe_median"]
+                label = f"s{seed} noise {noise:g} t/n {t2n:g}"
+                p = D._checks(f, m)
+                regs = {}
+                for name in [*H.METHODS, "rc-silent"]:
+                    z = np.load(src / "fields" / f"{size}-{label.replace(' ', '_').replace('/', '')}-{name}.npz")
+                    regs[name] = (z["d"], D._Q(json.loads(str(z["q"]))), str(z["kind"]))
+                runs = fresh_runs(out / "cheap", f"heldout-{size}-{label}", f, m)
+                times.append({k: v[2] for k, v in runs.items()})
+                fields, trusted = _with_runs(
+                    runs, {k: regs[n][0] for n, k in kinds.items()}, {k: regs[n][1].ok for n, k in kinds.items()}
+                )
+                for name in H.METHODS:
+                    u, q, kind = regs[name]
+                    epe = float(np.median(np.hypot(*(u - d))[mask]))
+                    res.append(D.result(label, name, epe, ident, q, p, u, fields, kind, trusted))
+                print(f"  {label} " + " ".join(f"{k[2:]} {v[2]:.2f}s" for k, v in runs.items()), flush=True)
+    return res, times
+
+
 def second(r, cand):
     """The disagreement with the candidate's second run for this result when that run passed its
     own checks, else NaN (the result's verdict unchanged)."""
@@ -211,7 +244,7 @@ def tables(rows, times):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--source", choices=("phantoms", "family"), required=True)
+    ap.add_argument("--source", choices=("phantoms", "family", "heldout"), required=True)
     ap.add_argument("--split", choices=("train", "test"), default="train")
     ap.add_argument("--size", type=int, default=560)
     ap.add_argument("--seeds", type=int, default=2)
@@ -221,6 +254,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.source == "phantoms":
         rows, times = phantom_rows(a.src / "phantoms", a.out, a.split)
+    elif a.source == "heldout":
+        rows, times = heldout_rows(a.src / "heldout", a.out, a.size, a.seeds)
     else:
         rows, times = family_rows(
             a.src / "bench_register_flag" / f"{a.split}-{a.size}", a.out, a.split, a.size, a.seeds
