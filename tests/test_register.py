@@ -2125,7 +2125,9 @@ def _judged(disagreement_px, second_ok=True, n=160, rim_only=False):
         inner = np.pad(inner, ((0, n - inner.shape[0]), (0, n - inner.shape[1])))
         planted[:, ndimage.binary_dilation(inner, iterations=p.k + 1)] = 0.0
     reg = Registration(np.zeros((2, n, n), np.float32), "rc", Quality(), {"preset": "default"})
-    second = Registration(planted, "rc", Quality(), {"preset": "weak"})
+    second = Registration(
+        planted, "rc", Quality(), {"preset": "weak", "bin_pixels": 100_000, "iterations": (60, 30, 20)}
+    )
     second.quality.ok = second_ok
     _judge_disagreement(reg, second, p)
     return reg
@@ -2138,8 +2140,11 @@ def test_a_trusted_result_a_second_registration_disagrees_with_is_flagged():
     second run failed its own checks (its disagreement says nothing of this one), it stays trusted."""
     far = _judged(1.0)
     assert far.quality.disagreement == pytest.approx(1.0, abs=1e-5)
-    assert not far.quality.ok and "second registration (rc, preset weak)" in far.quality.reason
-    assert far.options["regularisation_check"]["preset"] == "weak"
+    # the reason names the second run as it was given (the cheap weak: binned, fewer iterations)
+    assert not far.quality.ok
+    assert "second registration (rc, preset weak, bin_pixels 100000, iterations (60, 30, 20))" in far.quality.reason
+    check = far.options["regularisation_check"]
+    assert check["preset"] == "weak" and check["options"]["bin_pixels"] == 100_000
     near = _judged(0.3)
     assert near.quality.ok and near.quality.disagreement == pytest.approx(0.3, abs=1e-5)
     assert _judged(1.0, second_ok=False).quality.ok
@@ -2151,7 +2156,7 @@ def test_a_trusted_result_a_second_registration_disagrees_with_is_flagged():
 
 def test_the_second_run_is_chosen_from_the_preset_that_made_the_field():
     """``auto``'s ``weak+default-finest`` is ``weak``'s field polished: checked against ``weak`` it
-    would be compared with itself (review s29-h6), so its second run is ``default``; and a result
+    would be compared with itself (review s29-h6), so its second run is ``fast``; and a result
     already flagged is not registered again (the check can only flag a trusted one)."""
     from radiokit.register import Quality, _base_preset, _regularisation_check
     from radiokit.register._auto import AutoChoice
@@ -2166,7 +2171,13 @@ def test_the_second_run_is_chosen_from_the_preset_that_made_the_field():
     flagged = reg("auto", "weak+default-finest")
     flagged.quality.ok = False
     _regularisation_check(flagged, None, None, None)  # would fail on None images had it registered
-    assert flagged.options["regularisation_check"] == {"preset": "default", "ok": False, "seconds": 0.0, "run": False}
+    assert flagged.options["regularisation_check"] == {
+        "preset": "fast",
+        "options": {"preset": "fast"},
+        "ok": False,
+        "seconds": 0.0,
+        "run": False,
+    }
     assert np.isnan(flagged.quality.disagreement)
 
 
@@ -2183,11 +2194,13 @@ def test_the_disagreement_is_taken_on_the_checks_binned_grid_in_full_resolution_
 
 
 def test_regularisation_check_registers_a_second_time_and_agrees_on_a_textured_pair():
-    """``register(..., regularisation_check=True)`` runs the second registration (``weak`` for a
-    ``fast`` result) and reports it; on a textured pair both fields find the one-pixel shift, so
-    the result stays trusted."""
+    """``register(..., regularisation_check=True)`` runs the second registration (the cheap
+    ``weak``: binned to 0.1 Mpx, a quarter of its iterations, for a ``fast`` result) and reports
+    it; on a textured pair both fields find the one-pixel shift, so the result stays trusted."""
     moving = ndimage.gaussian_filter(np.random.default_rng(0).random((96, 96)), 2).astype(np.float32)
     fixed = warp(moving, np.full((2, 96, 96), 1.0, np.float32))
     reg = register(fixed, moving, preset="fast", regularisation_check=True)
-    assert reg.options["regularisation_check"]["preset"] == "weak" and reg.options["regularisation_check"]["ok"]
+    check = reg.options["regularisation_check"]
+    assert check["preset"] == "weak" and check["ok"]
+    assert check["options"] == {"preset": "weak", "bin_pixels": 100_000, "iterations": (60, 30, 20)}
     assert reg.quality.ok and reg.quality.disagreement < 0.2

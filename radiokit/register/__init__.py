@@ -98,8 +98,9 @@ class Quality:
     flagged for it (empty, or the finest level still moving at the end of its budget).
     ``disagreement`` (``register(..., regularisation_check=True)`` only; NaN otherwise): the median over
     the object's interior of ``|d - d2|`` (full-resolution px), ``d2`` the field of a second
-    registration regularised differently (rc, preset ``weak``; ``default`` for a ``weak``
-    result, ``auto``'s included; not run, NaN, for a result already flagged); over 0.6 px, with
+    registration regularised differently (rc, preset ``weak`` area-averaged to 0.1 Mpx with a
+    quarter of its iterations; ``fast`` for a ``weak`` result, ``auto``'s included; not run, NaN,
+    for a result already flagged); over 0.6 px, with
     the second run passing its own checks, a trusted result is flagged: two fields that each pass the checks but differ there are the regularisers'
     guesses, not the images'.
     """
@@ -246,7 +247,8 @@ def register(
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
     registers the pair a second time, regularised differently, and flags a trusted result whose
     field differs from that one's over the object's interior (``Quality.disagreement``; it costs
-    the second registration's time, ``options["regularisation_check"]``). ``options`` go
+    the second registration's time, a cheap one's: 1-2x ``fast``'s at 560 px;
+    ``options["regularisation_check"]``). ``options`` go
     to the method (see ``radiokit.register.METHODS[name].__doc__``).
 
     The result carries ``confidence`` (where the motion is observable from these images, see
@@ -715,27 +717,44 @@ def _body_scale_text(v, preset) -> str:
 # generator"). Two fields that each pass the checks yet differ there cannot both be right: at
 # least one is a guess. (Agreement does not certify a fill: two wrong fills can agree, and on the
 # held-out generator right ones differed by up to 1.2 px; so this only flags, it never trusts.)
-# The second run is rc's ``weak`` (``default`` for a weak result); a disagreement with a second
-# run that fails its own checks says nothing of this one, so only a trusted second run counts.
-# 0.6 px chosen on TRAINING rows (the phantom seeds 6000-6029 and the family's training seeds at
-# 560, every preset and method): the phantoms' failed results flagged 35/46 -> 40/46 for 55/66 ->
-# 53/66 good trusted, the family's unchanged (262/262, 170/174); on the test rows the phantoms'
-# 29/36 -> 33/36 (good 68/71 both), the family's 156/158 -> 158/158 and 102/106 -> 100/106
-# (benchmarks/README.md, "Two registrations' disagreement (session 29)").
+# A disagreement with a second run that fails its own checks says nothing of this one, so only a
+# trusted second run counts. 0.6 px chosen on TRAINING rows (the phantom seeds 6000-6029 and the
+# family's training seeds at 560, every preset and method) with rc's full ``weak`` (``default``
+# for a weak result) as the second run: the phantoms' failed results flagged 35/46 -> 40/46 for
+# 55/66 -> 53/66 good trusted, the family's unchanged (262/262, 170/174); on the test rows the
+# phantoms' 29/36 -> 33/36 (good 68/71 both), the family's 156/158 -> 158/158 and 102/106 ->
+# 100/106 (benchmarks/README.md, "Two registrations' disagreement (session 29)").
 _CROSS_PX = 0.6
+# The second run (session 29, review s29-h8): ``weak`` area-averaged to at most 0.1 Mpx with a
+# quarter of its iterations, ``fast`` for a weak result: a fifth to a quarter of the full runs'
+# time (phantom training pairs median 0.31 s against 1.39 s, the family's at 560 0.83 s against
+# 3.41 s). Chosen among ``weak-fast``, this and ``silent-fast`` on the TRAINING rows at the same
+# 0.6 px (phantoms 41/46, 54/66 against the full runs' 40/46, 53/66; ``weak-fast`` 37/46,
+# ``silent-fast`` 36/46; the family's unchanged for all), then read once on the test rows:
+# phantoms 32/36, 68/71 (the full runs' 33/36, 68/71), the family's the same as the full runs'
+# (benchmarks/README.md, "A cheaper second run for the disagreement").
+_SECOND_RUN = {"preset": "weak", "bin_pixels": 100_000, "iterations": (60, 30, 20)}
+_SECOND_RUN_FOR_WEAK = {"preset": "fast"}
 
 
 def _regularisation_check(reg, f, m, mask) -> None:
-    """Register ``f``, ``m`` again with rc's ``weak`` preset (``default`` when ``reg`` is a weak
-    result) and fill ``reg.quality.disagreement``; flag a trusted ``reg`` whose field differs from
-    the second one, itself trusted, by more than ``_CROSS_PX`` (median over the object's
-    interior as the checks see it, full-resolution px). ``reg.options["regularisation_check"]`` records
-    the second run's preset, verdict and time."""
-    preset = "default" if _base_preset(reg) == "weak" else "weak"
+    """Register ``f``, ``m`` again with rc (``_SECOND_RUN``: ``weak`` binned to 0.1 Mpx with a
+    quarter of its iterations; ``fast`` when ``reg`` is a weak result) and fill
+    ``reg.quality.disagreement``; flag a trusted ``reg`` whose field differs from the second one,
+    itself trusted, by more than ``_CROSS_PX`` (median over the object's interior as the checks
+    see it, full-resolution px). ``reg.options["regularisation_check"]`` records the second run's
+    preset, options, verdict and time."""
+    opts = _SECOND_RUN_FOR_WEAK if _base_preset(reg) == "weak" else _SECOND_RUN
     if not reg.quality.ok:  # it can only flag a trusted result: not worth a second registration
-        reg.options["regularisation_check"] = {"preset": preset, "ok": False, "seconds": 0.0, "run": False}
+        reg.options["regularisation_check"] = {
+            "preset": opts["preset"],
+            "options": dict(opts),
+            "ok": False,
+            "seconds": 0.0,
+            "run": False,
+        }
         return
-    _judge_disagreement(reg, _register(f, m, "rc", mask, False, {"preset": preset}), _pair_checks(f, m, mask))
+    _judge_disagreement(reg, _register(f, m, "rc", mask, False, dict(opts)), _pair_checks(f, m, mask))
 
 
 def _base_preset(reg) -> str:
@@ -752,6 +771,8 @@ def _judge_disagreement(reg, second, p) -> None:
     """:func:`_regularisation_check`'s verdict on ``reg`` from the ``second`` registration (its preset in
     ``second.options``) and the pair's checks ``p`` (:class:`_PairChecks`)."""
     preset = second.options.get("preset")
+    # the overrides of the preset the second run was given (``_SECOND_RUN``'s binning, iterations)
+    extra = {k: v for k, v in second.options.items() if k in ("bin_pixels", "iterations")}
     inner = p.inner if p.inner.any() else p.ob.object
     diff = reg.displacement - second.displacement
     if p.k > 1:
@@ -760,14 +781,16 @@ def _judge_disagreement(reg, second, p) -> None:
     q.disagreement = float(np.median(np.hypot(*diff)[inner])) if inner.any() else float("nan")
     reg.options["regularisation_check"] = {
         "preset": preset,
+        "options": {"preset": preset, **extra},
         "ok": second.quality.ok,
         "seconds": second.quality.seconds,
         "run": True,
     }
     if q.ok and second.quality.ok and q.disagreement > _CROSS_PX:
+        named = preset + "".join(f", {k} {v}" for k, v in extra.items())
         q.ok = False
         q.reason = (
-            f"a second registration (rc, preset {preset}), which passes its own checks, differs from this one "
+            f"a second registration (rc, preset {named}), which passes its own checks, differs from this one "
             f"by {q.disagreement:.2f} px over the object's interior (median; > {_CROSS_PX:g}): the field there "
             "is the regularisers' guess, not the images'"
         )
