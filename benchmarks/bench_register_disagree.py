@@ -127,8 +127,10 @@ def _checks(fixed, moving):
     return _PairChecks(f, m, None)
 
 
-def phantom_rows(out, split):
-    """The phantom bench's results (its ``rows-SPLIT.json``) against its cached fields."""
+def phantom_rows(out, split, more=None):
+    """The phantom bench's results (its ``rows-SPLIT.json``) against its cached fields.
+    ``more(label, fixed, moving, fields, trusted) -> (fields, trusted)``, when given, adds other
+    second runs to a pair's before its rows are made (``bench_register_disagree_cheap.py``)."""
     import bench_register_phantoms as P
 
     rows = json.loads((out / f"rows-{split}.json").read_text())
@@ -143,6 +145,8 @@ def phantom_rows(out, split):
                 fields[name] = np.load(path)["d"]
         mine = [r for r in rows if r["seed"] == seed]
         trusted = {r["preset"]: r["quality"]["ok"] for r in mine}
+        if more:
+            fields, trusted = more(f"{seed}", fixed, moving, fields, trusted)
         for r in mine:
             use = (
                 r["preset"]
@@ -178,9 +182,9 @@ FAMILY_KIND = {
 }
 
 
-def family_rows(out, split, size, seeds):
+def family_rows(out, split, size, seeds, more=None):
     """The flag bench's results (its ``rows.json``) against its cached fields (re-assessed: the
-    rows carry the reason, not the quality's numbers)."""
+    rows carry the reason, not the quality's numbers); ``more`` as in :func:`phantom_rows`."""
     import bench_register_flag as F
 
     rows = json.loads((out / "rows.json").read_text())
@@ -202,6 +206,8 @@ def family_rows(out, split, size, seeds):
                 fields[kind] = np.load(path)["d"]
         inner = p.inner if p.inner.any() else p.ob.object
         trusted = {FAMILY_KIND[r["method"]]: r["ok"] for r in mine if r["method"] in FAMILY_KIND}
+        if more:
+            fields, trusted = more(label, fixed, moving, fields, trusted)
         for r in mine:
             use = r.get("returned") or r["method"]
             kind = FAMILY_KIND[use]
@@ -223,9 +229,11 @@ def family_rows(out, split, size, seeds):
     return res
 
 
-def heldout_rows(out, size, seeds):
+def heldout_rows(out, size, seeds, more=None, cached_only=False):
     """The held-out generator's pairs, registered here (as ``bench_register_heldout.py`` does,
-    ``register()`` per preset) with the fields cached, plus ``silent`` as the reference."""
+    ``register()`` per preset) with the fields cached, plus ``silent`` as the reference.
+    ``more`` as in :func:`phantom_rows`; ``cached_only``: a field not in ``out`` is an error,
+    not registered into it."""
     import bench_register_heldout as H
     from regdata import score
 
@@ -246,6 +254,8 @@ def heldout_rows(out, size, seeds):
                         z = np.load(path)
                         regs[name] = (z["d"], _Q(json.loads(str(z["q"]))), str(z["kind"]))
                         continue
+                    if cached_only:
+                        raise FileNotFoundError(f"{path}: not cached (run bench_register_disagree.py --source heldout)")
                     reg = register(f, m, "rc", preset=preset)
                     kind = reg.options.get("preset", preset)
                     if "auto" in reg.options:
@@ -259,6 +269,8 @@ def heldout_rows(out, size, seeds):
                 kinds = {"rc": "default", "rc-fast": "fast", "rc-weak": "weak", "rc-silent": "silent"}
                 fields = {k: regs[n][0] for n, k in kinds.items()}
                 trusted = {k: regs[n][1].ok for n, k in kinds.items()}
+                if more:
+                    fields, trusted = more(label, f, m, fields, trusted)
                 for name in H.METHODS:
                     u, q, kind = regs[name]
                     epe = float(np.median(np.hypot(*(u - d))[mask]))

@@ -95,109 +95,34 @@ def _with_runs(runs, fields, trusted):
     return fields, trusted
 
 
-def phantom_rows(src, out, split):
-    """As ``D.phantom_rows``, with the fresh runs' disagreements and times."""
-    import bench_register_phantoms as P
+class _Fresh:
+    """The ``more`` hook of ``D``'s row makers: every ``RUNS`` registration of a pair (cached in
+    ``OUT/cheap`` under ``prefix`` + the pair's label), added to its fields, with the times kept."""
 
-    rows = json.loads((src / f"rows-{split}.json").read_text())
-    res, times = [], []
-    for seed in sorted({r["seed"] for r in rows}):
-        fixed, moving, truth, body, info = P.make_pair(seed)
-        p = D._checks(fixed, moving)
-        fields = {n: np.load(q)["d"] for n in P.CONFIGS if (q := src / "fields" / f"{seed}-{n}.npz").exists()}
-        mine = [r for r in rows if r["seed"] == seed]
-        runs = fresh_runs(out / "cheap", f"{split}-{seed}", fixed, moving)
-        times.append({k: v[2] for k, v in runs.items()})
-        fields, trusted = _with_runs(runs, fields, {r["preset"]: r["quality"]["ok"] for r in mine})
-        for r in mine:
-            use = (
-                r["preset"]
-                if r["preset"] != "auto"
-                else ("auto-plain" if r["returned"] == "default" else r["returned"])
-            )
-            kind = {"auto-plain": "default"}.get(use, use)
-            q = D._Q(r["quality"])
-            row = D.result(
-                f"{seed}", r["preset"], r["epe_median"], r["identity"], q, p, fields[use], fields, kind, trusted
-            )
-            res.append(row)
-        print(f"  {seed} " + " ".join(f"{k[2:]} {v[2]:.2f}s" for k, v in runs.items()), flush=True)
-    return res, times
+    def __init__(self, out, prefix):
+        self.cache, self.prefix, self.times = out / "cheap", prefix, []
 
-
-def family_rows(src, out, split, size, seeds):
-    """As ``D.family_rows`` (the flag bench's rows, its cached fields), with the fresh runs."""
-    import bench_register_flag as F
-
-    rows = json.loads((src / "rows.json").read_text())
-    res, times, seen = [], [], set()
-    for label, _, thunk in F.pairs(split, size, seeds, ["seed-breast", "pva-phantom"]):
-        mine = [r for r in rows if r["case"] == label and r["method"] != "identity"]
-        if not mine or label in seen:
-            continue
-        seen.add(label)
-        fixed, moving, truth, mask = thunk()
-        p = D._checks(fixed, moving)
-        fields = {}
-        for name, kind in D.FAMILY_KIND.items():
-            path = F._cache_path(src, label, name)
-            if path.exists() and name != "rc-extend":
-                fields[kind] = np.load(path)["d"]
-        inner = p.inner if p.inner.any() else p.ob.object
-        trusted = {D.FAMILY_KIND[r["method"]]: r["ok"] for r in mine if r["method"] in D.FAMILY_KIND}
-        runs = fresh_runs(out / "cheap", f"{split}-{size}-{label}", fixed, moving)
-        times.append({k: v[2] for k, v in runs.items()})
-        fields, trusted = _with_runs(runs, fields, trusted)
-        for r in mine:
-            use = r.get("returned") or r["method"]
-            kind = D.FAMILY_KIND[use]
-            u = np.load(F._cache_path(src, label, use))["d"]
-            q = D._Q(
-                dict(
-                    ok=r["ok"],
-                    reason=r["reason"],
-                    residual_motion=r["step"],
-                    excess_kept=r["kept"],
-                    misaligned_fraction=r["misaligned"],
-                    interior_observed=float(p.obs[inner].mean()),
-                    body_scale=None,
-                )
-            )
-            res.append(D.result(label, r["method"], r["epe_median"], r["identity"], q, p, u, fields, kind, trusted))
+    def __call__(self, label, fixed, moving, fields, trusted):
+        runs = fresh_runs(self.cache, f"{self.prefix}{label}", fixed, moving)
+        self.times.append({k: v[2] for k, v in runs.items()})
         print(f"  {label} " + " ".join(f"{k[2:]} {v[2]:.2f}s" for k, v in runs.items()), flush=True)
-    return res, times
+        return _with_runs(runs, fields, trusted)
 
 
-def heldout_rows(src, out, size, seeds):
-    """As ``D.heldout_rows``, from its cached fields only (a missing one is an error, not
-    registered into ``src``), with the fresh runs."""
-    import bench_register_heldout as H
-    from regdata import score
-
-    res, times = [], []
-    kinds = {"rc": "default", "rc-fast": "fast", "rc-weak": "weak", "rc-silent": "silent"}
-    for seed in H.SEEDS[:seeds]:
-        for noise in (0.01, 0.0025):
-            for t2n in (0.0, 0.3, 1.0, 3.0, 10.0):
-                f, m, d, mask = H.heldout_pair(size, seed, t2n, noise)
-                ident = score(np.zeros_like(d), d, mask)["epe_median"]
-                label = f"s{seed} noise {noise:g} t/n {t2n:g}"
-                p = D._checks(f, m)
-                regs = {}
-                for name in [*H.METHODS, "rc-silent"]:
-                    z = np.load(src / "fields" / f"{size}-{label.replace(' ', '_').replace('/', '')}-{name}.npz")
-                    regs[name] = (z["d"], D._Q(json.loads(str(z["q"]))), str(z["kind"]))
-                runs = fresh_runs(out / "cheap", f"heldout-{size}-{label}", f, m)
-                times.append({k: v[2] for k, v in runs.items()})
-                fields, trusted = _with_runs(
-                    runs, {k: regs[n][0] for n, k in kinds.items()}, {k: regs[n][1].ok for n, k in kinds.items()}
-                )
-                for name in H.METHODS:
-                    u, q, kind = regs[name]
-                    epe = float(np.median(np.hypot(*(u - d))[mask]))
-                    res.append(D.result(label, name, epe, ident, q, p, u, fields, kind, trusted))
-                print(f"  {label} " + " ".join(f"{k[2:]} {v[2]:.2f}s" for k, v in runs.items()), flush=True)
-    return res, times
+def source_rows(a):
+    """``(rows, times)`` of ``a.source`` (``D``'s rows of the cached results in ``a.src``, read
+    only) with the fresh runs' disagreements."""
+    if a.source == "phantoms":
+        fresh = _Fresh(a.out, f"{a.split}-")
+        rows = D.phantom_rows(a.src / "phantoms", a.split, more=fresh)
+    elif a.source == "heldout":
+        fresh = _Fresh(a.out, f"heldout-{a.size}-")
+        rows = D.heldout_rows(a.src / "heldout", a.size, a.seeds, more=fresh, cached_only=True)
+    else:
+        fresh = _Fresh(a.out, f"{a.split}-{a.size}-")
+        src = a.src / "bench_register_flag" / f"{a.split}-{a.size}"
+        rows = D.family_rows(src, a.split, a.size, a.seeds, more=fresh)
+    return rows, fresh.times
 
 
 def second(r, cand):
@@ -252,14 +177,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out"))
     ap.add_argument("--rule", default=None, help=f"CANDIDATE:X, one rule's confusion per method (chosen: {CHOSEN!r})")
     a = ap.parse_args(argv)
-    if a.source == "phantoms":
-        rows, times = phantom_rows(a.src / "phantoms", a.out, a.split)
-    elif a.source == "heldout":
-        rows, times = heldout_rows(a.src / "heldout", a.out, a.size, a.seeds)
-    else:
-        rows, times = family_rows(
-            a.src / "bench_register_flag" / f"{a.split}-{a.size}", a.out, a.split, a.size, a.seeds
-        )
+    rows, times = source_rows(a)
     (a.out / "cheap" / f"rows-{a.source}-{a.split}.json").write_text(json.dumps(dict(rows=rows, times=times)))
     tables(rows, times)
     if a.rule:
