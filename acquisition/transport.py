@@ -20,6 +20,7 @@ pyserial's ``loop://`` sends every byte back, so a query returns the command its
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -68,27 +69,35 @@ def _text(raw: bytes) -> str:
     return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
 
 
-def _write_no_sigpipe(fd: int, data: bytes) -> int:
-    """``os.write`` to a pipe that fails with ``BrokenPipeError`` when the reader is gone, whatever
-    this process's SIGPIPE disposition: a Python-API user whose process imported gmsh has it at its
-    default (gmsh resets it), and the write to a dead guardian's pipe then killed that process on the
-    spot, before it could switch off (review s28-h8). The signal is blocked in this thread for the
-    write (any thread: ``signal.signal`` works only in the main one) and, raised by a failed write,
-    taken off this thread's pending signals before it is unblocked."""
+@contextlib.contextmanager
+def _sigpipe_held():
+    """SIGPIPE blocked in this thread for what runs inside, and one it raised taken off this
+    thread's pending signals before it is unblocked: a write to a pipe or socket whose reader is
+    gone then fails with EPIPE (``BrokenPipeError``; pyserial's socket:// link turns it into
+    ``SerialException``) whatever this process's SIGPIPE disposition. A Python-API user whose
+    process imported gmsh has it at its default (gmsh resets it), and such a write killed that
+    process on the spot, before it could switch off (review s28-h8). Blocked, not ignored:
+    ``signal.signal`` works only in the main thread."""
     if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows has no SIGPIPE
-        return os.write(fd, data)
+        yield
+        return
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGPIPE})
     try:
-        return os.write(fd, data)
-    except BrokenPipeError:
+        yield
+    finally:
         # (blocked by the caller already: its own to take). sigpending and sigwait, not
         # sigtimedwait: macOS and OpenBSD have no sigtimedwait, and its AttributeError escaped
         # PipeTransport's `except OSError` (review s29-h4)
         if signal.SIGPIPE not in old and signal.SIGPIPE in signal.sigpending():
             signal.sigwait({signal.SIGPIPE})
-        raise
-    finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _write_no_sigpipe(fd: int, data: bytes) -> int:
+    """``os.write`` to a pipe that fails with ``BrokenPipeError`` when the reader is gone, whatever
+    this process's SIGPIPE disposition (:func:`_sigpipe_held`)."""
+    with _sigpipe_held():
+        return os.write(fd, data)
 
 
 class SerialTransport:
@@ -443,7 +452,8 @@ class SerialTransport:
         Other links (sockets, RFC 2217, Windows) use pyserial's write: a time-out there stays one."""
         fd = getattr(ser, "fd", None)
         if os.name != "posix" or not isinstance(fd, int) or getattr(ser, "_rs485_mode", None) is not None:
-            ser.write(payload)
+            with _sigpipe_held():  # socket:// and rfc2217:// write to a TCP socket: EPIPE, not death
+                ser.write(payload)
         else:
             view, deadline = memoryview(payload), time.monotonic() + self.write_timeout_s
             while view:

@@ -17,6 +17,7 @@ import os
 import re
 import select
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -3315,6 +3316,52 @@ def test_a_write_to_a_dead_guardians_pipe_fails_with_epipe_under_sigpipe_at_its_
             os._exit(code)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+_SOCKET_CHILD = """
+import signal, sys, time
+signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
+import serial
+from acquisition.transport import SerialTransport
+url = sys.argv[1]
+transport = SerialTransport(url, timeout_s=0.3, write_timeout_s=0.3, open=False)
+ser = serial.serial_for_url(url, timeout=0.3, write_timeout=0.3)
+deadline = time.monotonic() + 20  # the peer resets the connection when its thread gets to it
+while time.monotonic() < deadline:  # written, then ECONNRESET, then EPIPE: what raised SIGPIPE
+    try:
+        transport._write(ser, "STS", b"STS\\r")
+    except serial.SerialException as exc:
+        print(exc)
+        if "Broken pipe" in str(exc):
+            break
+    time.sleep(0.05)
+"""
+
+
+def test_a_write_to_a_reset_socket_link_fails_with_epipe_under_sigpipe_at_its_default():
+    """A socket:// link (a terminal server) that the peer reset: pyserial's ``send`` then fails
+    with EPIPE, and under SIGPIPE at its default (a Python-API user whose process imported gmsh)
+    the signal killed the process (-13) before it could switch off, as the guardian's pipe did
+    (review s28-h8; noticed session 29). ``SerialTransport._write`` holds SIGPIPE for pyserial's
+    write. In a child process: SIGPIPE's disposition is per process."""
+    import struct
+
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def reset():
+        conn, _ = server.accept()
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # RST on close
+        conn.close()
+
+    thread = threading.Thread(target=reset, daemon=True)
+    thread.start()
+    try:
+        url = f"socket://127.0.0.1:{server.getsockname()[1]}"
+        child = subprocess.run([sys.executable, "-c", _SOCKET_CHILD, url], capture_output=True, text=True, timeout=60)
+    finally:
+        server.close()
+    assert child.returncode == 0, (child.returncode, child.stderr[-2000:])
+    assert "Broken pipe" in child.stdout  # the write that raised SIGPIPE was made, and failed
 
 
 def test_a_series_switch_off_confirmed_after_a_reconnect_is_not_counted_off(dialect):
