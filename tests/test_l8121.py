@@ -3326,6 +3326,7 @@ from acquisition.transport import SerialTransport
 url = sys.argv[1]
 transport = SerialTransport(url, timeout_s=0.3, write_timeout_s=0.3, open=False)
 ser = serial.serial_for_url(url, timeout=0.3, write_timeout=0.3)
+ser.write(b"R")  # open: the peer may reset now (it resets only after reading this)
 deadline = time.monotonic() + 20  # the peer resets the connection when its thread gets to it
 while time.monotonic() < deadline:  # written, then ECONNRESET, then EPIPE: what raised SIGPIPE
     try:
@@ -3350,6 +3351,7 @@ def test_a_write_to_a_reset_socket_link_fails_with_epipe_under_sigpipe_at_its_de
 
     def reset():
         conn, _ = server.accept()
+        conn.recv(1)  # the child's port is open (a reset during pyserial's open fails the open)
         conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # RST on close
         conn.close()
 
