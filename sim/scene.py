@@ -256,8 +256,15 @@ class Inclusion:
 
 @dataclass
 class Compression:
-    """Rigid plates normal to y, closing symmetrically to ``1 - ratio`` of the initial gap, one
-    state per ratio: strictly increasing, each in [0, 0.9) (0 is the uncompressed reference)."""
+    """Rigid plates normal to y, closing to ``1 - ratio`` of the initial gap, one state per
+    ratio: strictly increasing, each in [0, 0.9) (0 is the uncompressed reference).
+
+    Which plate moves depends on the model: where it is cut at y = 0 (body and inclusions
+    symmetric in y, ``MeshSpec.symmetry`` on) both close by half the step and the centre plane
+    stays; otherwise (the truncated cone, an inclusion off the centre plane, symmetry off) the
+    bottom plate stays and the top one closes the whole step, as the paper's phantom frame does
+    ("a movable plate"). Between frictionless plates the two differ by a rigid shift of half the
+    step along y, nothing else (tests/test_sim_mechanics.py)."""
 
     ratios: tuple = (0.15, 0.20, 0.25)
     contact: str = "frictionless"

@@ -340,3 +340,24 @@ def test_an_inverted_element_is_refused_for_every_material(model):
     s = Solver(scene)
     assert s.evaluate(np.zeros(s.ndof), None) is not None
     assert s.evaluate(-2.0 * s.dof_points.T.ravel(), None) is None
+
+
+def test_which_plate_moves_is_a_rigid_shift_of_half_the_step():
+    """Compression's docstring: cut at y = 0, both plates close by half the step (u_y = -e y);
+    uncut, the bottom plate stays (u_y = -e (y + H)). Between frictionless plates the homogeneous
+    block's fields then differ by the rigid shift e H along y and nothing else, and the plate
+    force and gap are the same (Newton's tolerance)."""
+    from sim.scene import MeshSpec
+
+    e, H = 0.2, 5.0
+    states = {}
+    for cut in (True, False):
+        scene = block_scene(size_mm=2 * H, E_kpa=5, nu=0.45, ratios=(e,))
+        scene.mesh = MeshSpec(2.5, 2.5, "3d", cut)
+        (states[cut],) = compress(scene)
+        X, u = states[cut].solver.dof_points, states[cut].displacement
+        y_still = 0.0 if cut else -H
+        np.testing.assert_allclose(u[1], -e * (X[1] - y_still), rtol=0, atol=1e-9)
+    assert "y" in states[True].solver.fem.symmetry and not states[False].solver.fem.symmetry
+    assert states[True].gap_mm == pytest.approx(states[False].gap_mm, rel=1e-12)
+    assert states[True].plate_force_n == pytest.approx(states[False].plate_force_n, rel=1e-9)
