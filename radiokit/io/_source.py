@@ -480,6 +480,15 @@ class FrameSource:
                 f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
                 f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}",
             )
+        # tifffile reads a strip or tile at offset 0 or of 0 bytes ("sparse": preallocated, never
+        # written) as zeros, silently; no compressed segment is empty, and a radiograph has no gaps
+        for k, (offset, nbytes) in enumerate(zip(page.dataoffsets, page.databytecounts)):
+            if not offset or not nbytes:
+                raise FormatError(
+                    self.path,
+                    f"TIFF page {i}: {'tile' if page.is_tiled else 'strip'} {k} of {expected} holds no data "
+                    f"(offset {offset}, {nbytes} bytes): never written, and would read as zeros; incomplete or corrupt",
+                )
         ratio = _MAX_RATIO.get(int(page.compression))
         need = rows * cols * page.bitspersample // 8
         if ratio and need > ratio * sum(page.databytecounts) + 4096:
