@@ -21,6 +21,7 @@ from radiokit.io._experiment import (
     FRAMES,
     IMAGE_KEY,
     ImageKey,
+    check_frame_written,
     check_image_keys,
     check_links,
     checked_dataset,
@@ -782,6 +783,8 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
+        if isinstance(self._ds, h5py.Dataset):
+            check_frame_written(self.path, self._ds, i)
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
