@@ -438,6 +438,38 @@ def test_nonfinite_pixels_are_filled_and_flagged_in_the_streaming_path(tmp_path)
     assert report.nonpositive.tolist() == [1, 1, 5]
 
 
+@pytest.mark.parametrize("hole", ["10x10 block", "column gap 12 px wide", "corner 8x8"])
+def test_nonfinite_regions_wider_than_the_fill_radius_are_filled_not_taken_for_opaque(hole, tmp_path):
+    """Float frames of other labs mark unknown pixels NaN: a masked region, a tiled detector's gap
+    (Eiger, Pilatus: 10-37 px). Filling reached 2 px from a valid pixel; inside, a NaN kept the
+    clamp of an opaque pixel (raw - dark = half a count: -ln 8.7 here), a bright blob to the
+    registration and the ROIs although the README says NaN pixels are filled. Unknown pixels now
+    take the nearest filled value: within the frame's real values, next to their neighbours. A
+    finite raw value at or below the dark still means opaque and keeps its clamp."""
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
+
+    rng = np.random.default_rng(0)
+    shape = (64, 80)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (8,) + shape).astype(np.float32), rng.normal(3100, 30, (8,) + shape).astype(np.float32)
+    )
+    raw = rng.normal(1600, 20, shape).astype(np.float32)  # transmission about 0.5
+    where = {
+        "10x10 block": np.s_[20:30, 30:40],
+        "column gap 12 px wide": np.s_[:, 34:46],
+        "corner 8x8": np.s_[:8, :8],
+    }[hole]
+    raw[where] = np.nan
+    raw[50:60, 5:15] = 90.0  # opaque: below the dark
+    out, report = correct_frames(cal, raw, return_report=True)
+    assert report.nonpositive[0] == np.isnan(raw).sum() + 100
+    good = np.isfinite(raw) & (raw > 200)
+    lo, hi = out[good].min(), out[good].max()
+    assert lo <= out[where].min() and out[where].max() <= hi, (out[where].min(), out[where].max(), lo, hi)
+    assert out[52:58, 7:13].min() > 5.0  # the opaque block keeps its clamp: -ln(0.5 / 3000)
+
+
 def test_a_frame_of_only_nan_is_refused(tmp_path):
     path = _experiment(tmp_path / "exp.h5")
     cal = tmp_path / "cal.h5"
