@@ -1415,6 +1415,79 @@ def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
     _refused(path, lambda: READERS[reader](path), "not a regular file")
 
 
+def _bound_by_file_modes():
+    """Make the child subject to file modes: root reads every file through CAP_DAC_OVERRIDE and
+    CAP_DAC_READ_SEARCH, so as root the child drops both from its capability bounding set (Linux
+    prctl PR_CAPBSET_DROP), and its exec keeps neither; a mode of 000 then stops it as any user."""
+    if os.geteuid() == 0:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        for cap in (1, 2):  # CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH
+            if libc.prctl(24, cap, 0, 0, 0):  # PR_CAPBSET_DROP
+                raise OSError(ctypes.get_errno(), "prctl(PR_CAPBSET_DROP)")
+
+
+@pytest.fixture
+def unreadable(tmp_path):
+    """A TIFF, an experiment and a calibration, each of mode 000, and readable copies."""
+    import shutil
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "frame.tif", rng.normal(1500, 10, (32, 40)).astype(np.uint16))
+    _experiment(tmp_path / "exp.h5")
+    Calibration.from_frames(
+        rng.normal(100, 2, (4, 32, 40)).astype(np.uint16), rng.normal(3000, 30, (4, 32, 40)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    for name in ("frame.tif", "exp.h5", "cal.h5"):
+        shutil.copy(tmp_path / name, tmp_path / f"ok-{name}")
+        os.chmod(tmp_path / name, 0)
+    try:
+        probe = subprocess.run(
+            [sys.executable, "-c", "open('frame.tif', 'rb')"], cwd=tmp_path, preexec_fn=_bound_by_file_modes
+        )
+    except (OSError, subprocess.SubprocessError):
+        probe = None
+    if probe is None or probe.returncode == 0:
+        pytest.skip("no way here to run a child that a file's mode 000 stops")
+    yield tmp_path
+    for name in ("frame.tif", "exp.h5", "cal.h5"):
+        os.chmod(tmp_path / name, 0o644)
+
+
+@pytest.mark.parametrize(
+    "args, name",
+    [
+        (["info", "frame.tif"], "frame.tif"),
+        (["info", "exp.h5"], "exp.h5"),
+        (["correct", "frame.tif", "--cal", "ok-cal.h5", "-o", "out.h5", "-q"], "frame.tif"),
+        (["correct", "ok-frame.tif", "--cal", "cal.h5", "-o", "out.h5", "-q"], "cal.h5"),
+        (["calibrate", "--dark", "frame.tif", "--flat", "ok-frame.tif", "-o", "c.h5", "-q"], "frame.tif"),
+        (["calibrate", "--experiment", "exp.h5", "-o", "c.h5", "-q"], "exp.h5"),
+        (["register", "frame.tif", "ok-frame.tif", "-o", "r.h5", "-q"], "frame.tif"),
+        (["process", "exp.h5", "-o", "res", "-q"], "exp.h5"),
+    ],
+)
+def test_an_input_without_read_permission_is_named_as_such(args, name, unreadable):
+    """A file the user may not read (another user's, mode 000): one line naming it and saying so.
+    It was Python's "[Errno 13] Permission denied: 'frame.tif'", or, for a calibration,
+    "cannot be opened as HDF5, so not a radiokit calibration file (truncated or another
+    format)" with libhdf5's flags: a diagnosis of the file that the file does not deserve."""
+    before = sorted(p.name for p in unreadable.iterdir())
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=unreadable,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        preexec_fn=_bound_by_file_modes,
+    )
+    one_line_error(res, f"radiokit {args[0]}: {name}: cannot be read: Permission denied")
+    assert sorted(p.name for p in unreadable.iterdir()) == before
+
+
 def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tmp_path):
     """300 results.json with a few bytes changed: each reads, or is one FormatError line."""
     import random

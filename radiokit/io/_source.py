@@ -29,7 +29,7 @@ from radiokit.io._experiment import (
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
-from radiokit.io._layout import open_h5, text
+from radiokit.io._layout import check_readable, open_h5, text
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
@@ -102,6 +102,7 @@ def _check_file(path) -> None:
         raise FormatError(path, "is a directory, not a frame file")
     if not stat.S_ISREG(st.st_mode):  # a FIFO would wait for a writer forever, /dev/zero never end
         raise FormatError(path, "is not a regular file (a FIFO, socket or device), not a frame file")
+    check_readable(path)
     if st.st_size == 0:
         raise FormatError(path, "file is empty")
 
@@ -120,6 +121,8 @@ def sniff(path) -> str:
         raise FormatError(path, "is a directory, not a frame file") from None
     except FileNotFoundError:
         raise FormatError(path, "no such file") from None
+    except OSError as exc:  # permission denied, an I/O error
+        raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
     head = start[:8]
     if head[:4] in _TIFF_MAGIC:
         return "tiff"
