@@ -180,6 +180,26 @@ def test_calibrate_takes_darks_and_flats_from_one_file_by_image_key(tmp_path):
     assert "from 3 darks and 3 flats" in res.stdout
 
 
+def test_calibrate_prints_a_noiseless_dark_as_zero_and_one_dark_as_unknown(tmp_path):
+    """The summary printed ``dark noise nan counts`` both for darks of no noise (0.0, falsy, was
+    taken for missing) and for one dark (no temporal noise to measure): 0.00 for the first, and
+    for the second words rather than a NaN the user must decode."""
+    exp = synthetic(tmp_path / "exp.h5", shape=(32, 32))  # three identical darks: noise exactly 0
+    res = run_cli("calibrate", "--experiment", exp, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "dark noise 0.00 counts" in res.stdout, res.stdout
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "dark.tif", rng.normal(100, 3, (32, 32)).astype(np.uint16))
+    tifffile.imwrite(
+        tmp_path / "flat.tif", rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16), photometric="minisblack"
+    )
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c1.h5"
+    )
+    assert res.returncode == 0, res.stderr
+    assert "dark noise not measured (one dark)" in res.stdout and "nan" not in res.stdout, res.stdout
+
+
 @pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
 def test_register_refuses_one_image_as_fixed_and_moving(how, tmp_path):
     img = _frames(tmp_path / "a.tif", 1000)
