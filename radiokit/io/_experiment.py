@@ -496,6 +496,24 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
 
 
+def _whole_numbers(path, values, name: str, what: str) -> np.ndarray:
+    """``values`` as integers when a float dataset holds whole numbers (another writer's float64
+    steps), else refused naming the first frame: frames are selected by ``steps == s``, so a step
+    of 1.5 matched none (process ended in a TypeError) and a key of 0.5 was no kind of frame."""
+    values = np.asarray(values)
+    if values.dtype.kind != "f":
+        return values
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~np.isfinite(values) | (values != np.round(values)) | (np.abs(values) >= 2**15))
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more frame(s))" if bad.size > 1 else ""
+        raise FormatError(
+            path, f"{name}[{i}]: frame {i} has {what} {float(values[i])!r}{more}; expected a whole number"
+        )
+    return values.astype(np.int16)
+
+
 def check_image_keys(path, keys, name) -> None:
     """Refuse, naming the first, a key that is none of NXtomo's four: every reader selects frames
     by ``keys == k``, so a frame keyed 7 was silently neither projection, flat nor dark (a step's
@@ -877,6 +895,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,), allow_external)[:n]
             if len(values) != n:
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
+            if name in ("image_key", "step"):
+                values = _whole_numbers(path, values, f"/{group}/{name}", name)
             meta[name] = values
             if name == "image_key":
                 check_image_keys(path, values, f"/{group}/{name}")
