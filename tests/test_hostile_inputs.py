@@ -470,6 +470,26 @@ def test_nonfinite_regions_wider_than_the_fill_radius_are_filled_not_taken_for_o
     assert out[52:58, 7:13].min() > 5.0  # the opaque block keeps its clamp: -ln(0.5 / 3000)
 
 
+def test_process_says_how_many_nan_pixels_it_filled_in_the_projections(tmp_path):
+    """Saturated projection pixels were named in a warning, NaN or inf ones filled in silence;
+    both are pixels whose intensity is unknown that a ROI or the registration may lean on."""
+    from radiokit.calibrate import CalibrationWarning
+    from radiokit.pipeline import load_steps
+
+    path = tmp_path / "exp.h5"
+    _experiment(path)
+    with h5py.File(path, "a") as h5:  # another lab's float frames, a 4x5 block of one masked
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[7, 10:14, 10:15] = np.nan
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    with pytest.warns(
+        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections, per frame \(step 2: 20\)"
+    ):
+        steps = load_steps(path)
+    assert all(np.isfinite(image).all() for image in steps.images)
+
+
 def test_a_frame_of_only_nan_is_refused(tmp_path):
     path = _experiment(tmp_path / "exp.h5")
     cal = tmp_path / "cal.h5"
