@@ -315,9 +315,9 @@ def cmd_calibrate(args) -> int:
     print(
         f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
     )
-    print(
-        f"  c = mean(flat - dark) over valid pixels = {cal.c:.1f} counts; dark noise {p.get('dark_noise_counts') or float('nan'):.2f} counts"
-    )
+    noise = p.get("dark_noise_counts")  # None from one dark: no temporal noise to measure (0.0 is a value)
+    noise = "not measured (one dark)" if noise is None else f"{noise:.2f} counts"
+    print(f"  c = mean(flat - dark) over valid pixels = {cal.c:.1f} counts; dark noise {noise}")
     print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
     if cal.defect_rows.size or cal.defect_columns.size:
         print(f"  defect lines: rows {cal.defect_rows.tolist()}, columns {cal.defect_columns.tolist()}")

@@ -304,8 +304,43 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
         from radiokit._correct_loop import fill_from_neighbours
 
         nonpos = nonpos[~k.invalid.ravel()[nonpos]]  # defect pixels: filled by the plan, counted as defects
+        unknown = _beyond_reach(raw2d, nonpos, k.invalid, 2)
         fill_from_neighbours(out2d, nonpos, k.invalid, 2)
+        _fill_nearest(out2d, unknown)
     return nonpos, sat
+
+
+def _beyond_reach(raw2d, nonpos, invalid, radius) -> np.ndarray:
+    """The non-finite raw pixels among ``nonpos`` with no valid pixel within ``radius``, which
+    :func:`fill_from_neighbours` leaves at their clamp.
+
+    Why apart from the other non-positive pixels: a finite ``raw - dark <= 0`` is a measurement
+    (nothing came through: opaque, and the clamp says as much), a NaN or inf is none. Float frames
+    mark masked regions and a tiled detector's gaps (10-37 px) NaN; clamped, they were bright
+    opaque blobs to the registration and the ROIs."""
+    if raw2d.dtype.kind != "f":
+        return nonpos[:0]
+    holes = nonpos[~np.isfinite(raw2d.ravel()[nonpos])]
+    if not holes.size:
+        return holes
+    from scipy import ndimage
+
+    known = ~invalid
+    known.ravel()[nonpos] = False
+    near = ndimage.maximum_filter(known, size=2 * radius + 1, mode="constant", cval=False)
+    return holes[~near.ravel()[holes]]
+
+
+def _fill_nearest(out2d, idx) -> None:
+    """Give each pixel ``idx`` (flat) the value of the nearest pixel not in ``idx`` (Euclidean)."""
+    if not idx.size:
+        return
+    from scipy import ndimage
+
+    mask = np.zeros(out2d.shape, bool)
+    mask.ravel()[idx] = True
+    rows, cols = ndimage.distance_transform_edt(mask, return_distances=False, return_indices=True)
+    out2d.ravel()[idx] = out2d[rows.ravel()[idx], cols.ravel()[idx]]
 
 
 def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
@@ -366,8 +401,10 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     -----
     Never NaN or inf: pixels of the defect map are filled from valid neighbours (lines from
     the two neighbouring valid lines, linearly weighted); pixels whose ``raw - dark <= 0``
-    are clamped to half a count, filled from valid neighbours where they have any, flagged
-    ``NONPOSITIVE`` and counted. Raw values at or above ``thresholds.saturation`` are
+    are clamped to half a count, filled from valid neighbours where they have any (within
+    2 px), flagged ``NONPOSITIVE`` and counted. NaN or inf raw pixels are flagged and counted
+    so too; beyond 2 px of a valid pixel they take the nearest filled value (unknown, not
+    opaque as a finite value at or below the dark is). Raw values at or above ``thresholds.saturation`` are
     flagged ``SATURATED`` and counted. Filling happens in the output domain. What does not
     depend on the frame is computed once per calibration (:class:`CorrectionKernel`).
 

@@ -180,6 +180,26 @@ def test_calibrate_takes_darks_and_flats_from_one_file_by_image_key(tmp_path):
     assert "from 3 darks and 3 flats" in res.stdout
 
 
+def test_calibrate_prints_a_noiseless_dark_as_zero_and_one_dark_as_unknown(tmp_path):
+    """The summary printed ``dark noise nan counts`` both for darks of no noise (0.0, falsy, was
+    taken for missing) and for one dark (no temporal noise to measure): 0.00 for the first, and
+    for the second words rather than a NaN the user must decode."""
+    exp = synthetic(tmp_path / "exp.h5", shape=(32, 32))  # three identical darks: noise exactly 0
+    res = run_cli("calibrate", "--experiment", exp, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "dark noise 0.00 counts" in res.stdout, res.stdout
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "dark.tif", rng.normal(100, 3, (32, 32)).astype(np.uint16))
+    tifffile.imwrite(
+        tmp_path / "flat.tif", rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16), photometric="minisblack"
+    )
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c1.h5"
+    )
+    assert res.returncode == 0, res.stderr
+    assert "dark noise not measured (one dark)" in res.stdout and "nan" not in res.stdout, res.stdout
+
+
 @pytest.mark.parametrize("how", ["twice", "symlink", "hardlink", "dotted"])
 def test_register_refuses_one_image_as_fixed_and_moving(how, tmp_path):
     img = _frames(tmp_path / "a.tif", 1000)
@@ -328,6 +348,45 @@ def test_an_image_key_outside_0_to_3_is_refused_naming_the_frame(cmd, value, tmp
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
     with pytest.raises(FormatError, match=f"frame 7 has image_key {value}"):  # acquire --resume's reader
         read_progress(exp)
+
+
+@pytest.mark.parametrize("name, value", [("step", 1.5), ("step", "nan"), ("step", 1e12), ("image_key", 0.5)])
+@pytest.mark.parametrize("cmd", ["info", "calibrate", "process"])
+def test_a_step_or_image_key_that_is_no_whole_number_is_refused_naming_the_frame(cmd, name, value, tmp_path):
+    """Another writer's float steps and keys: 2.0 is step 2, but 1.5 matched no step, and process
+    ended in a TypeError traceback (no frame of "step 1" to average); a key of 0.5 was neither
+    projection, flat nor dark. Refused naming the dataset, the frame and the value."""
+    exp = synthetic(tmp_path / "exp.h5")
+    path = {"step": "entry/sample/compression/step", "image_key": IMAGE_KEY}[name]
+    with h5py.File(exp, "a") as h5:
+        values = h5[path][()].astype(np.float64)
+        values[7] = float(value)  # a projection of step 2
+        del h5[path]
+        h5[path] = values
+    args = {
+        "info": ["info", exp],
+        "calibrate": ["calibrate", "--experiment", exp, "-o", tmp_path / "c.h5"],
+        "process": ["process", exp, "-o", tmp_path / "out", *FAST],
+    }[cmd]
+    one_line_error(run_cli(*args), "exp.h5", f"/{path}[7]", "frame 7", "whole number")
+    assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
+
+
+def test_steps_and_image_keys_stored_as_whole_floats_are_read(tmp_path):
+    """Float datasets holding whole numbers (another writer's float64 steps) read as those."""
+    exp = synthetic(tmp_path / "exp.h5")
+    with h5py.File(exp, "a") as h5:
+        for path in ("entry/sample/compression/step", IMAGE_KEY):
+            values = h5[path][()]
+            del h5[path]
+            h5[path] = values.astype(np.float64)
+        keys, steps = h5[IMAGE_KEY][()], h5["entry/sample/compression/step"][()]
+    f = read(exp)
+    np.testing.assert_array_equal(f.meta["image_key"], keys)
+    np.testing.assert_array_equal(f.meta["step"], steps)
+    assert f.meta["step"].dtype.kind == "i" and f.meta["image_key"].dtype.kind == "i"
+    res = run_cli("process", exp, "-o", tmp_path / "out", *FAST)
+    assert res.returncode == 0, res.stderr
 
 
 def test_an_image_key_beside_another_layouts_frames_is_checked_too(tmp_path):

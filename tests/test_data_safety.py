@@ -538,6 +538,20 @@ def test_an_output_whose_name_is_near_the_filesystem_limit_is_written(cmd, stem,
     no_temporaries(tmp_path)
 
 
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "register", "process"])
+def test_an_output_whose_name_is_past_the_filesystem_limit_is_one_line(cmd, experiment, images, tmp_path):
+    """A name of 300 bytes (over NAME_MAX, 255): one line naming the output and the problem in
+    the words of the other outputs that cannot be written, not Python's "[Errno 36] File name
+    too long: '...'" from a Path.exists() that Python 3.11 lets raise; nothing written."""
+    out = tmp_path / ("x" * 297 + ".h5")
+    folder = tmp_path / ("x" * 300)  # process writes a results folder
+    args = {**_commands(experiment, images, out), "process": ["process", experiment, "-q", "-o", folder, *ROI]}[cmd]
+    out = folder if cmd == "process" else out
+    line = one_line_error(run_cli(*args), out, "cannot be written: File name too long")
+    assert "Errno" not in line, line
+    no_temporaries(tmp_path)
+
+
 @pytest.mark.parametrize("stem", ["scan[1]", "a*b?", "[x]"])
 def test_a_killed_runs_temporary_is_found_whatever_its_name(tmp_path, stem):
     """Names with glob characters (``scan[1].h5``) are names, not patterns: the stale temporary

@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -81,16 +82,18 @@ def _experiment(path, shape=(32, 40), projections=True, step=True):
 # -- memory bombs ------------------------------------------------------------------------------
 @pytest.fixture
 def hdf5_bomb(tmp_path):
-    """A few KB declaring (10, 100000, 100000) uint16 frames: 186 GiB."""
+    """A few KB declaring (10, 100000, 100000) uint16 frames: 186 GiB. One chunk is written
+    through a filter whose ratio has no bound (scale-offset: a constant chunk takes a few bytes),
+    so the storage cannot prove the rest unwritten (check_written) and the budget must refuse it."""
     path = tmp_path / "bomb.h5"
     with h5py.File(path, "w") as h5:
         h5.create_dataset(
             "entry/instrument/detector/data",
             shape=(10, 100_000, 100_000),
             dtype="u2",
-            chunks=(1, 1000, 1000),
-            compression="gzip",
-        )
+            chunks=(1, 100, 100),
+            scaleoffset=0,
+        )[0, :100, :100] = 7
         h5["entry/instrument/detector/image_key"] = np.array([2, 2, 1, 1, 0, 0, 0, 0, 0, 0], np.int8)
         h5["entry/sample/compression/step"] = np.array([-1] * 4 + [1, 1, 2, 2, 3, 3], np.int16)
     assert path.stat().st_size < 20_000
@@ -142,13 +145,59 @@ def test_hdf5_memory_bomb_is_refused_by_the_default_budget(hdf5_bomb):
     one_line_error(res, "bomb.h5", "over the memory budget of 512.0 MiB")
 
 
+def test_hdf5_frames_never_written_are_refused_before_any_allocation(tmp_path):
+    """A 6 KB file declaring (2, 40000, 40000) uint16 frames, none of them written: within the
+    default budget of a large machine, so `info` read 6.4 GB of fill value (6 GB resident, 15 s).
+    Its storage says nothing was written: refused in one line, under 1 GiB of address space and
+    whatever the budget."""
+    path = tmp_path / "unwritten.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("scan/data", shape=(2, 40_000, 40_000), dtype="u2", chunks=(1, 40_000, 40_000))
+    assert path.stat().st_size < 20_000
+    res = run("info", path, "--dataset", "scan/data", limit=AS_LIMIT, env={"RADIOKIT_MEMORY_BUDGET": "1TiB"})
+    one_line_error(res, "radiokit info: ", "unwritten.h5", "/scan/data", "stores nothing: never written")
+
+
+@pytest.mark.parametrize("compression", [None, "gzip", "lzf"])
+def test_hdf5_preallocated_frames_partly_written_are_refused_not_read_as_zeros(compression, tmp_path):
+    """A writer that preallocated 6 frames and stopped after 2: the other 4 read as the fill value
+    (frames of zeros, dark frames to a calibration). More than one chunk short of what the
+    filters can have compressed is refused; the frames of a complete file read value for value."""
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 4096, (6, 64, 80)).astype(np.uint16)
+    path = tmp_path / "stopped.h5"
+    with h5py.File(path, "w") as h5:
+        ds = h5.create_dataset("data", shape=frames.shape, dtype="u2", chunks=(1, 64, 80), compression=compression)
+        ds[:2] = frames[:2]
+    # uncompressed, the storage shows it on opening; compressed, the first frame never written does
+    words = "/data declares 6x64x80 uint16 (61440 bytes) but stores 20480 bytes: parts never written"
+    words = re.escape(words if compression is None else "frame 2 of /data was never written")
+    with pytest.raises(FormatError, match=f"stopped.h5: {words}"):
+        read(path, dataset="data")
+    with h5py.File(path, "a") as h5:
+        h5["data"][2:] = frames[2:]
+    np.testing.assert_array_equal(read(path, dataset="data").data, frames)
+
+
+def test_hdf5_frames_of_zeros_compressed_as_far_as_deflate_goes_still_read(tmp_path):
+    """An honest stack of constant frames compresses about 1000:1 under gzip: within deflate's
+    bound, so not taken for unwritten storage."""
+    frames = np.zeros((8, 512, 512), np.uint16)
+    path = tmp_path / "zeros.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("data", data=frames, chunks=(1, 512, 512), compression="gzip", compression_opts=9)
+        assert h5["data"].id.get_storage_size() * 500 < frames.nbytes
+    np.testing.assert_array_equal(read(path, dataset="data").data, frames)
+
+
 @pytest.fixture
 def many_frames(tmp_path):
     """A 14 kB HDF5 file declaring 10**8 frames of 128 x 128 (a chunked dataset, one chunk
-    written): each frame is small, so no one frame is over the budget; the count is the bomb."""
+    written): each frame is small, so no one frame is over the budget; the count is the bomb.
+    Scale-offset (no bound on its ratio) keeps the storage from proving the rest unwritten."""
     path = tmp_path / "many.h5"
     with h5py.File(path, "w") as h5:
-        ds = h5.create_dataset("scan/data", shape=(10**8, 128, 128), dtype="u2", chunks=(1, 128, 128))
+        ds = h5.create_dataset("scan/data", shape=(10**8, 128, 128), dtype="u2", chunks=(1, 128, 128), scaleoffset=0)
         ds[0] = 1000
     assert path.stat().st_size < 50_000
     return path
@@ -179,8 +228,9 @@ def test_a_file_declaring_1e8_frames_is_refused_by_its_output_size_not_by_memory
             limit=AS_LIMIT,
         )
         one_line_error(res, out, "no space left", "needs about 6.0 TiB")
+    # info samples frames 0, 5e7 and 1e8 - 1: the middle one was never written (one chunk is)
     res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT)
-    assert res.returncode == 0 and "100000000 x 128 rows" in res.stdout, res.stderr
+    one_line_error(res, "many.h5", "frame 50000000 of /scan/data was never written")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "many.h5"]
 
 
@@ -386,6 +436,58 @@ def test_nonfinite_pixels_are_filled_and_flagged_in_the_streaming_path(tmp_path)
     got, report = correct_frames(Calibration.load(cal), proj, return_report=True)
     np.testing.assert_allclose(got, out, rtol=1e-6)
     assert report.nonpositive.tolist() == [1, 1, 5]
+
+
+@pytest.mark.parametrize("hole", ["10x10 block", "column gap 12 px wide", "corner 8x8"])
+def test_nonfinite_regions_wider_than_the_fill_radius_are_filled_not_taken_for_opaque(hole, tmp_path):
+    """Float frames of other labs mark unknown pixels NaN: a masked region, a tiled detector's gap
+    (Eiger, Pilatus: 10-37 px). Filling reached 2 px from a valid pixel; inside, a NaN kept the
+    clamp of an opaque pixel (raw - dark = half a count: -ln 8.7 here), a bright blob to the
+    registration and the ROIs although the README says NaN pixels are filled. Unknown pixels now
+    take the nearest filled value: within the frame's real values, next to their neighbours. A
+    finite raw value at or below the dark still means opaque and keeps its clamp."""
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_frames
+
+    rng = np.random.default_rng(0)
+    shape = (64, 80)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (8,) + shape).astype(np.float32), rng.normal(3100, 30, (8,) + shape).astype(np.float32)
+    )
+    raw = rng.normal(1600, 20, shape).astype(np.float32)  # transmission about 0.5
+    where = {
+        "10x10 block": np.s_[20:30, 30:40],
+        "column gap 12 px wide": np.s_[:, 34:46],
+        "corner 8x8": np.s_[:8, :8],
+    }[hole]
+    raw[where] = np.nan
+    raw[50:60, 5:15] = 90.0  # opaque: below the dark
+    out, report = correct_frames(cal, raw, return_report=True)
+    assert report.nonpositive[0] == np.isnan(raw).sum() + 100
+    good = np.isfinite(raw) & (raw > 200)
+    lo, hi = out[good].min(), out[good].max()
+    assert lo <= out[where].min() and out[where].max() <= hi, (out[where].min(), out[where].max(), lo, hi)
+    assert out[52:58, 7:13].min() > 5.0  # the opaque block keeps its clamp: -ln(0.5 / 3000)
+
+
+def test_process_says_how_many_nan_pixels_it_filled_in_the_projections(tmp_path):
+    """Saturated projection pixels were named in a warning, NaN or inf ones filled in silence;
+    both are pixels whose intensity is unknown that a ROI or the registration may lean on."""
+    from radiokit.calibrate import CalibrationWarning
+    from radiokit.pipeline import load_steps
+
+    path = tmp_path / "exp.h5"
+    _experiment(path)
+    with h5py.File(path, "a") as h5:  # another lab's float frames, a 4x5 block of one masked
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[7, 10:14, 10:15] = np.nan
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    with pytest.warns(
+        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections, per frame \(step 2: 20\)"
+    ):
+        steps = load_steps(path)
+    assert all(np.isfinite(image).all() for image in steps.images)
 
 
 def test_a_frame_of_only_nan_is_refused(tmp_path):
@@ -761,11 +863,14 @@ def _break(path, name, rank, dtype, case):
             _replace(h5, name, shape=valid_shape[:1], dtype=h5py.vlen_dtype(np.float32))
         elif case == "wrong rank":
             _replace(h5, name, data=np.zeros((2,) * (rank + 2), dtype))
-        elif case == "huge":  # a few KB declaring terabytes
+        elif case == "huge":  # a few KB declaring terabytes (one chunk written: see _huge)
             shape = {1: (10**12,), 2: (10**6, 10**6), 3: (10, 10**6, 10**6)}[rank]
-            _replace(h5, name, shape=shape, dtype=dtype, chunks=(1,) * (rank - 1) + (1000,))
+            del h5[name]
+            _huge(h5, name, shape, dtype)
             if "frames_complete" in h5["entry"].attrs if "entry" in h5 else False:
                 h5["entry"].attrs["frames_complete"] = shape[0]  # the progress file promises them all
+        elif case == "never written":  # allocated as written: libhdf5 reads the fill value
+            _replace(h5, name, shape=valid_shape, dtype=dtype, chunks=valid_shape)
         elif case == "a group":
             del h5[name]
             h5.create_group(name)
@@ -801,6 +906,7 @@ GENERIC = [
     "vlen",
     "wrong rank",
     "huge",
+    "never written",
     "a group",
     "external link",
     "external storage",
@@ -853,6 +959,7 @@ def test_each_layout_reader_follows_outside_data_when_allowed(layout, case, tmp_
         "compound",
         "wrong rank",
         "huge",
+        "never written",
         "external link",
         "virtual",
         "soft link circle",
@@ -875,10 +982,15 @@ def test_read_refuses_each_broken_layout_in_one_line(layout, case, tmp_path, mon
 
 
 def _huge(h5, name, shape, dtype="f4"):
-    """A dataset declaring ``shape`` (terabytes) in a file of a few KB."""
+    """A dataset declaring ``shape`` (terabytes) in a file of a few KB: one chunk written through
+    scale-offset, whose ratio has no bound, so that its storage cannot prove the rest unwritten
+    (check_written) and only the budget can refuse it."""
     if name in h5:
         del h5[name]
-    h5.create_dataset(name, shape=shape, dtype=dtype, chunks=(1,) * (len(shape) - 1) + (1000,))
+    chunks = (1,) * (len(shape) - 1) + (1000,)
+    scaleoffset = 0 if np.dtype(dtype).kind in "iu" else 2  # integers: minimum bits; floats: 2 decimals
+    ds = h5.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks, scaleoffset=scaleoffset)
+    ds[tuple(slice(0, c) for c in chunks)] = 0
 
 
 FRAME = (10**6, 10**6)  # 4 TB of float32
@@ -1321,6 +1433,79 @@ def test_a_fifo_or_a_device_is_refused_without_waiting(reader, kind, tmp_path):
     else:
         path = "/dev/zero"
     _refused(path, lambda: READERS[reader](path), "not a regular file")
+
+
+def _bound_by_file_modes():
+    """Make the child subject to file modes: root reads every file through CAP_DAC_OVERRIDE and
+    CAP_DAC_READ_SEARCH, so as root the child drops both from its capability bounding set (Linux
+    prctl PR_CAPBSET_DROP), and its exec keeps neither; a mode of 000 then stops it as any user."""
+    if os.geteuid() == 0:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        for cap in (1, 2):  # CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH
+            if libc.prctl(24, cap, 0, 0, 0):  # PR_CAPBSET_DROP
+                raise OSError(ctypes.get_errno(), "prctl(PR_CAPBSET_DROP)")
+
+
+@pytest.fixture
+def unreadable(tmp_path):
+    """A TIFF, an experiment and a calibration, each of mode 000, and readable copies."""
+    import shutil
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "frame.tif", rng.normal(1500, 10, (32, 40)).astype(np.uint16))
+    _experiment(tmp_path / "exp.h5")
+    Calibration.from_frames(
+        rng.normal(100, 2, (4, 32, 40)).astype(np.uint16), rng.normal(3000, 30, (4, 32, 40)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    for name in ("frame.tif", "exp.h5", "cal.h5"):
+        shutil.copy(tmp_path / name, tmp_path / f"ok-{name}")
+        os.chmod(tmp_path / name, 0)
+    try:
+        probe = subprocess.run(
+            [sys.executable, "-c", "open('frame.tif', 'rb')"], cwd=tmp_path, preexec_fn=_bound_by_file_modes
+        )
+    except (OSError, subprocess.SubprocessError):
+        probe = None
+    if probe is None or probe.returncode == 0:
+        pytest.skip("no way here to run a child that a file's mode 000 stops")
+    yield tmp_path
+    for name in ("frame.tif", "exp.h5", "cal.h5"):
+        os.chmod(tmp_path / name, 0o644)
+
+
+@pytest.mark.parametrize(
+    "args, name",
+    [
+        (["info", "frame.tif"], "frame.tif"),
+        (["info", "exp.h5"], "exp.h5"),
+        (["correct", "frame.tif", "--cal", "ok-cal.h5", "-o", "out.h5", "-q"], "frame.tif"),
+        (["correct", "ok-frame.tif", "--cal", "cal.h5", "-o", "out.h5", "-q"], "cal.h5"),
+        (["calibrate", "--dark", "frame.tif", "--flat", "ok-frame.tif", "-o", "c.h5", "-q"], "frame.tif"),
+        (["calibrate", "--experiment", "exp.h5", "-o", "c.h5", "-q"], "exp.h5"),
+        (["register", "frame.tif", "ok-frame.tif", "-o", "r.h5", "-q"], "frame.tif"),
+        (["process", "exp.h5", "-o", "res", "-q"], "exp.h5"),
+    ],
+)
+def test_an_input_without_read_permission_is_named_as_such(args, name, unreadable):
+    """A file the user may not read (another user's, mode 000): one line naming it and saying so.
+    It was Python's "[Errno 13] Permission denied: 'frame.tif'", or, for a calibration,
+    "cannot be opened as HDF5, so not a radiokit calibration file (truncated or another
+    format)" with libhdf5's flags: a diagnosis of the file that the file does not deserve."""
+    before = sorted(p.name for p in unreadable.iterdir())
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=unreadable,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        preexec_fn=_bound_by_file_modes,
+    )
+    one_line_error(res, f"radiokit {args[0]}: {name}: cannot be read: Permission denied")
+    assert sorted(p.name for p in unreadable.iterdir()) == before
 
 
 def test_load_results_on_bytes_flipped_at_random_reads_or_refuses_in_one_line(tmp_path):

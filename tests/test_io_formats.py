@@ -612,6 +612,34 @@ def test_tiff_ifd_chain_that_loops_is_named_a_loop(tmp_path):
         read(path)
 
 
+@pytest.mark.parametrize("compression", ["zlib", "lzw", "zstd"])
+@pytest.mark.parametrize("layout", ["strip", "tile"])
+def test_tiff_strip_or_tile_never_written_is_refused_not_read_as_zeros(tmp_path, compression, layout):
+    """A strip or tile with offset 0 and byte count 0 holds no data ("sparse", as a writer that
+    preallocated the page and stopped leaves it): tifffile fills it with 0, which a calibration
+    takes for a dead line and a correction for non-positive pixels. Compressed pages are not
+    covered by the byte count the page's pixels need, so the empty one is named."""
+    frame = _frames(1, 64, 80)[0]
+    path = tmp_path / "sparse.tif"
+    kw = dict(rowsperstrip=8) if layout == "strip" else dict(tile=(16, 16))
+    tifffile.imwrite(path, frame, compression=compression, **kw)
+    names = ("StripOffsets", "StripByteCounts") if layout == "strip" else ("TileOffsets", "TileByteCounts")
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        for name in names:
+            tag = tif.pages[0].tags[name]
+            tag.overwrite([0 if k == 3 else v for k, v in enumerate(tag.value)])
+    with pytest.raises(FormatError, match=f"sparse.tif: TIFF page 0: {layout} 3 of .* holds no data"):
+        read(path)
+
+
+def test_tiff_compressed_strips_all_written_still_read(tmp_path):
+    """The check above leaves a complete compressed page alone, value for value."""
+    frame = _frames(1, 64, 80)[0]
+    path = tmp_path / "full.tif"
+    tifffile.imwrite(path, frame, compression="zlib", rowsperstrip=8)
+    np.testing.assert_array_equal(read(path).data[0], frame)
+
+
 # ------------------------------------------------------------------------------------------------
 # HDF5 images and NeXus defaults of other software
 # ------------------------------------------------------------------------------------------------

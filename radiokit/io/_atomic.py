@@ -243,6 +243,15 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
     OutputError, OutputExistsError
     """
     path = Path(path)
+    try:
+        return _check_output(path, overwrite, inputs, folder)
+    except OutputError:
+        raise
+    except OSError as exc:  # Path.exists() raises on a name past NAME_MAX (ENAMETOOLONG) or a loop
+        raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
+
+
+def _check_output(path: Path, overwrite, inputs, folder) -> Path:
     for src in inputs:
         src = Path(src)
         if (

@@ -42,6 +42,7 @@ __all__ = [
     "checked_dataset",
     "check_local",
     "check_links",
+    "check_frame_written",
 ]
 
 ENTRY = "entry"
@@ -495,6 +496,24 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
 
 
+def _whole_numbers(path, values, name: str, what: str) -> np.ndarray:
+    """``values`` as integers when a float dataset holds whole numbers (another writer's float64
+    steps), else refused naming the first frame: frames are selected by ``steps == s``, so a step
+    of 1.5 matched none (process ended in a TypeError) and a key of 0.5 was no kind of frame."""
+    values = np.asarray(values)
+    if values.dtype.kind != "f":
+        return values
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~np.isfinite(values) | (values != np.round(values)) | (np.abs(values) >= 2**15))
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more frame(s))" if bad.size > 1 else ""
+        raise FormatError(
+            path, f"{name}[{i}]: frame {i} has {what} {float(values[i])!r}{more}; expected a whole number"
+        )
+    return values.astype(np.int16)
+
+
 def check_image_keys(path, keys, name) -> None:
     """Refuse, naming the first, a key that is none of NXtomo's four: every reader selects frames
     by ``keys == k``, so a frame keyed 7 was silently neither projection, flat nor dark (a step's
@@ -686,6 +705,7 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
     check_filters(path, ds)
+    check_written(path, ds)
     return ds
 
 
@@ -708,6 +728,66 @@ def check_filters(path, ds) -> None:
             path,
             f"{ds.name} is compressed with HDF5 filter {code} ({name.decode('latin-1') or 'unnamed'}), "
             "which is not available here: install hdf5plugin (pip install hdf5plugin)",
+        )
+
+
+#: HDF5 filters whose output is bounded: deflate expands at most 1032:1 (LZF less, about 88:1;
+#: shuffle and Fletcher32 not at all). Others (scale-offset, N-bit, SZIP, plugins such as zstd or
+#: Blosc) have no bound to check against, only whether anything was stored.
+_FILTERS_BOUNDED = {
+    h5py.h5z.FILTER_DEFLATE: 1032,
+    h5py.h5z.FILTER_LZF: 1032,
+    h5py.h5z.FILTER_SHUFFLE: 1,
+    h5py.h5z.FILTER_FLETCHER32: 1,
+}
+
+
+def check_written(path, ds) -> None:
+    """Refuse a dataset whose storage cannot hold what it declares: parts never written.
+
+    libhdf5 allocates a chunked (or contiguous, late-allocated) dataset's storage as it is
+    written, and reads what was never written as the fill value: a few-KB file declaring
+    (2, 40000, 40000) frames read 6 GB of zeros. Allowed short: one chunk (the frame a live
+    writer has in flight; the readers take only the frames it marks complete). What compression
+    hides (a preallocating writer stopped part-way) :func:`check_frame_written` finds frame by
+    frame. Virtual and external storage are checked where they are followed.
+    """
+    declared = int(ds.size) * ds.dtype.itemsize if ds.shape is not None else 0
+    plist = ds.id.get_create_plist()
+    if not declared or ds.is_virtual or plist.get_external_count():
+        return
+    stored = int(ds.id.get_storage_size())
+    codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+    ratio = max((_FILTERS_BOUNDED[c] for c in codes), default=1) if set(codes) <= _FILTERS_BOUNDED.keys() else None
+    chunk = math.prod(ds.chunks) * ds.dtype.itemsize if ds.chunks else 0
+    if stored and (ratio is None or stored * ratio + chunk + 4096 >= declared):
+        return
+    what = f"{ds.name} declares {'x'.join(map(str, ds.shape))} {ds.dtype} ({declared} bytes)"
+    if not stored:
+        raise FormatError(
+            path, f"{what} but stores nothing: never written (it would read as its fill value); incomplete or corrupt"
+        )
+    raise FormatError(
+        path,
+        f"{what} but stores {stored} bytes{f', compressed at most 1:{ratio}' if ratio > 1 else ''}: parts "
+        "never written (they would read as the fill value); incomplete or corrupt",
+    )
+
+
+def check_frame_written(path, ds, index: int) -> None:
+    """Refuse frame ``index`` of a chunked stack ``ds`` when its first chunk was never written.
+
+    A writer that preallocates its frames and stops leaves the rest unallocated, and libhdf5 reads
+    them as the fill value: frames of zeros, which a calibration takes for darks and a correction
+    for non-positive pixels. One chunk-index lookup, no data read."""
+    if ds.chunks is None or ds.is_virtual:
+        return
+    coord = ((index,) if ds.ndim == 3 else ()) + (0,) * (ds.ndim - (ds.ndim == 3))
+    if ds.id.get_chunk_info_by_coord(coord).byte_offset is None:
+        raise FormatError(
+            path,
+            f"frame {index} of {ds.name} was never written (no storage allocated: it would read as the "
+            "fill value); incomplete or corrupt",
         )
 
 
@@ -815,6 +895,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,), allow_external)[:n]
             if len(values) != n:
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
+            if name in ("image_key", "step"):
+                values = _whole_numbers(path, values, f"/{group}/{name}", name)
             meta[name] = values
             if name == "image_key":
                 check_image_keys(path, values, f"/{group}/{name}")

@@ -91,6 +91,18 @@ def check_regular_file(path, what: str) -> None:
         raise FormatError(path, f"is a directory, not {what}")
     if not stat.S_ISREG(mode):
         raise FormatError(path, f"is not a regular file (a FIFO, socket or device), so not {what}")
+    check_readable(path)
+
+
+def check_readable(path) -> None:
+    """Refuse a regular file this process may not read, saying so: otherwise Python's
+    "[Errno 13] Permission denied: 'x'" or libhdf5's "unable to open file ... errno = 13" after
+    "cannot be opened as HDF5, so not ... (truncated or another format)" misdiagnosed the file."""
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
 
 
 class ReadBudget:

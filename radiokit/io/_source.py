@@ -21,6 +21,7 @@ from radiokit.io._experiment import (
     FRAMES,
     IMAGE_KEY,
     ImageKey,
+    check_frame_written,
     check_image_keys,
     check_links,
     checked_dataset,
@@ -28,7 +29,7 @@ from radiokit.io._experiment import (
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
-from radiokit.io._layout import open_h5, text
+from radiokit.io._layout import check_readable, open_h5, text
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
@@ -101,6 +102,7 @@ def _check_file(path) -> None:
         raise FormatError(path, "is a directory, not a frame file")
     if not stat.S_ISREG(st.st_mode):  # a FIFO would wait for a writer forever, /dev/zero never end
         raise FormatError(path, "is not a regular file (a FIFO, socket or device), not a frame file")
+    check_readable(path)
     if st.st_size == 0:
         raise FormatError(path, "file is empty")
 
@@ -119,6 +121,8 @@ def sniff(path) -> str:
         raise FormatError(path, "is a directory, not a frame file") from None
     except FileNotFoundError:
         raise FormatError(path, "no such file") from None
+    except OSError as exc:  # permission denied, an I/O error
+        raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
     head = start[:8]
     if head[:4] in _TIFF_MAGIC:
         return "tiff"
@@ -480,6 +484,15 @@ class FrameSource:
                 f"TIFF page {i} ({rows}x{cols}) has {len(page.dataoffsets)} "
                 f"{'tiles' if page.is_tiled else 'strips'}; its layout needs {expected}",
             )
+        # tifffile reads a strip or tile at offset 0 or of 0 bytes ("sparse": preallocated, never
+        # written) as zeros, silently; no compressed segment is empty, and a radiograph has no gaps
+        for k, (offset, nbytes) in enumerate(zip(page.dataoffsets, page.databytecounts)):
+            if not offset or not nbytes:
+                raise FormatError(
+                    self.path,
+                    f"TIFF page {i}: {'tile' if page.is_tiled else 'strip'} {k} of {expected} holds no data "
+                    f"(offset {offset}, {nbytes} bytes): never written, and would read as zeros; incomplete or corrupt",
+                )
         ratio = _MAX_RATIO.get(int(page.compression))
         need = rows * cols * page.bitspersample // 8
         if ratio and need > ratio * sum(page.databytecounts) + 4096:
@@ -773,6 +786,8 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
+        if isinstance(self._ds, h5py.Dataset):
+            check_frame_written(self.path, self._ds, i)
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
