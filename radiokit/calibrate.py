@@ -56,6 +56,7 @@ class PixelFlag(enum.IntFlag):
     OVER_RESPONDING = 1 << 3
     NOISY = 1 << 4
     CLUSTER = 1 << 6  #: part of a defect line
+    USER = 1 << 8  #: NeXus's "user-defined mask": a recorded pixel_mask's bits beyond NeXus's 0-8
     SATURATED = 1 << 9  #: per frame: raw value at the ADC's top
     NONPOSITIVE = 1 << 10  #: per frame: raw - dark <= 0, value filled
 
@@ -442,6 +443,7 @@ class Calibration:
             )
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
+        _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"), transposed=getattr(src, "_transposed", False))
         cal.provenance["source"] = str(path)
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
             values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
@@ -731,6 +733,52 @@ def _defect_map(flat, dark_std, response, th):
 #: as a dark, another panel's frames) flag half the panel or more (line_fraction then turns every
 #: row and column into a line).
 MAX_DEFECTIVE_SHARE = 0.10
+
+
+def _merge_recorded_mask(cal: Calibration, path, recorded, transposed=False) -> None:
+    """Add the experiment file's own NeXus ``pixel_mask`` (NXdetector: the pixels its writer knew
+    bad, a tiled panel's gaps) to the defect map the darks and flats gave, so that correction fills
+    them as it fills its own defects. Why: a lab that records a mask expects it honoured; it was
+    read and dropped, and a gap's pixels were measured as data. NeXus's bits 0-8 are kept as they
+    are; any higher bit (bit 31: a virtual pixel, interpolated) counts as :attr:`PixelFlag.USER`.
+    All zeros (what radiokit's writers record) changes nothing."""
+    if recorded is None:
+        return
+    m = np.asarray(recorded)
+    if transposed:  # frames stored column-major and read transposed: the mask with them
+        m = m.T
+    where = f"its pixel_mask {m.shape} {m.dtype}"
+    if m.shape != cal.shape:
+        raise FormatError(path, f"{where} does not match the frames ({cal.shape[0]}x{cal.shape[1]})")
+    if m.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            if not (np.isfinite(m).all() and (m == np.round(m)).all() and (m >= 0).all() and (m < 2**32).all()):
+                raise FormatError(path, f"{where}: not whole numbers from 0 to 2^32 - 1 (NeXus bit flags)")
+    elif m.dtype.kind == "i" and (m < 0).any():
+        m = m.astype(np.int64) & 0xFFFFFFFF  # a signed int32 carries bit 31 as its sign
+    elif m.dtype.kind not in "iub":
+        raise FormatError(path, f"{where}: not integer bit flags")
+    m = m.astype(np.uint32)
+    if not m.any():
+        return
+    nexus = m & np.uint32(0x1FF)
+    added = np.where((m != 0) & (nexus == 0), np.uint32(PixelFlag.USER), nexus) | np.where(
+        m > 0x1FF, np.uint32(PixelFlag.USER), np.uint32(0)
+    )
+    cal.mask = (cal.mask | added).astype(cal.mask.dtype)
+    try:
+        _check_defect_share(cal.mask)
+    except ValueError:
+        n = int(np.count_nonzero(m))
+        raise FormatError(
+            path,
+            f"{where} marks {n} of {m.size} pixels ({100 * n / m.size:.1f} %) bad: with the calibration's own "
+            f"defects over the {100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most; is it a mask of good pixels?",
+        ) from None
+    good = cal.mask == 0
+    cal.c = float(np.mean((cal.flat - cal.dark)[good]))
+    # the CLI's "defects:" line and the report read this count
+    cal.provenance.setdefault("defects", {})["recorded in the file"] = int(np.count_nonzero(m))
 
 
 def _check_defect_share(mask) -> None:

@@ -170,6 +170,69 @@ def test_from_experiment_matches_from_frames(tmp_path):
     assert len(a.provenance["dark_times"]) == 5
 
 
+def _experiment_with_mask(path, panel, darks, flats, mask):
+    with ExperimentWriter(path, shape=panel.shape) as w:
+        for f in darks:
+            w.append(f, image_key=ImageKey.DARK)
+        for f in flats:
+            w.append(f, image_key=ImageKey.FLAT)
+        w.set_pixel_mask(mask)
+
+
+def test_from_experiment_honours_the_files_own_pixel_mask(tmp_path):
+    """A NeXus pixel_mask recorded in the experiment file (a tiled panel's gap, a pixel its writer
+    knew bad) joins the defect map, and correction fills those pixels from their neighbours: it
+    was read and dropped, so a gap column reading three times the flat came out as data (session
+    30's hostile-input review). Bit 31 (NeXus: a virtual pixel) counts as the user-defined bit."""
+    from radiokit.calibrate import PixelFlag
+    from radiokit.correct import correct_frames
+
+    panel = _panel(rows=48, cols=64)
+    rng = np.random.default_rng(7)
+    darks, flats = panel.dark_frames(5, rng), panel.flat_frames(5, 2000, rng)
+    recorded = np.zeros(panel.shape, np.uint32)
+    recorded[:, 30] = PixelFlag.GAP
+    recorded[10, 10] = np.uint32(1 << 31)
+    path = tmp_path / "exp.h5"
+    _experiment_with_mask(path, panel, darks, flats, recorded)
+    cal = Calibration.from_experiment(path)
+    plain = Calibration.from_frames(darks, flats)
+    assert np.all(cal.mask[:, 30] & PixelFlag.GAP) and cal.mask[10, 10] & PixelFlag.USER
+    np.testing.assert_array_equal(cal.mask[recorded == 0], plain.mask[recorded == 0])
+    assert cal.provenance["defects"]["recorded in the file"] == 49
+    # a projection through nothing, the gap column and the virtual pixel reading 3x the flat's signal
+    raw = flats[0].astype(np.float32)
+    raw[:, 30] = cal.dark[:, 30] + 3 * (cal.flat[:, 30] - cal.dark[:, 30])
+    raw[10, 10] = cal.dark[10, 10] + 3 * (cal.flat[10, 10] - cal.dark[10, 10])
+    out = correct_frames(cal, raw, domain="log")
+    # filled from neighbours that read the open beam: line integral ~0, not -ln 3 = -1.10
+    assert np.abs(out[:, 30]).max() < 0.1 and abs(out[10, 10]) < 0.1
+    assert np.abs(correct_frames(plain, raw, domain="log")[:, 30] + np.log(3)).max() < 0.1  # as it was
+
+
+def test_from_experiment_refuses_a_pixel_mask_that_cannot_be_one(tmp_path):
+    """A recorded pixel_mask of another shape, or one marking most of the panel bad (a mask of good
+    pixels, NeXus's sense inverted), is one line naming the file and the mask."""
+    import h5py
+
+    from radiokit import FormatError
+
+    panel = _panel(rows=32, cols=40)
+    rng = np.random.default_rng(8)
+    darks, flats = panel.dark_frames(4, rng), panel.flat_frames(4, 2000, rng)
+    path = tmp_path / "inverted.h5"
+    _experiment_with_mask(path, panel, darks, flats, np.ones(panel.shape, np.uint32))
+    with pytest.raises(FormatError, match=r"inverted.h5.*pixel_mask.*1280 of 1280 pixels"):
+        Calibration.from_experiment(path)
+    path = tmp_path / "shape.h5"
+    _experiment_with_mask(path, panel, darks, flats, np.zeros(panel.shape, np.uint32))
+    with h5py.File(path, "a") as h5:
+        del h5["entry/instrument/detector/pixel_mask"]
+        h5["entry/instrument/detector/pixel_mask"] = np.zeros((40, 32), np.uint32)
+    with pytest.raises(FormatError, match=r"shape.h5.*pixel_mask \(40, 32\).*does not match"):
+        Calibration.from_experiment(path)
+
+
 def test_from_experiment_without_darks(tmp_path):
     from radiokit import FormatError
 
