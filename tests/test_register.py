@@ -227,6 +227,8 @@ def test_divergence_is_reported():
         (lambda f: (f[None], f[None]), "2-D"),
         # finite float64 past float32's range: once "contains NaN or inf", which it did not
         (lambda f: (f.astype(np.float64) * 1e300, f), r"^fixed image has values beyond float32's range"),
+        # np.asarray dropped the mask: the masked pixels were registered as data, silently
+        (lambda f: (f, np.ma.masked_array(f, f > 0.5)), r"^moving is a masked array, whose mask would be ignored"),
     ],
 )
 def test_bad_inputs_are_refused_clearly(bad, match):
