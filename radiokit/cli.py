@@ -468,6 +468,12 @@ def cmd_register(args) -> int:
     )
     if "auto" in reg.options:  # preset auto: what it returned, and why
         print(f"preset {reg.options['auto'].preset} ({reg.options['auto'].reason})")
+    if "clipped" in reg.options:  # the field was measured on the pair with its extreme pixels clipped
+        n = reg.options["clipped"]
+        print(
+            "clipped before registering, lying over ten of the pair's 1-99 % ranges beyond it (hot or "
+            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
+        )
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
         with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:

@@ -2236,3 +2236,18 @@ def test_a_few_extreme_pixels_do_not_stall_or_fool_the_registration(where):
     assert np.median(epe) < 0.1
     assert reg.quality.ok, reg.quality.reason
     assert reg.options["clipped"] == {"fixed": 16 if static else 1, "moving": 16 if static else 0}
+
+
+def test_cli_register_says_what_it_clipped(tmp_path, capsys):
+    """``radiokit register`` names the extreme pixels clipped (the user's data, not the method's)."""
+    from radiokit.cli import main
+    from radiokit.io import write_tiff
+
+    fixed, moving, _, _ = _pair(96)
+    lo, hi = np.percentile(fixed, [1, 99])
+    fixed[40, 50] = hi + 500 * (hi - lo)
+    write_tiff(tmp_path / "fixed.tif", fixed)
+    write_tiff(tmp_path / "moving.tif", moving)
+    main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5"), "-q"])
+    out = capsys.readouterr().out
+    assert "clipped before registering" in out and f": 1 pixels of {tmp_path / 'fixed.tif'}, 0 of " in out
