@@ -412,6 +412,8 @@ def _register_inputs(args):
     mask = None
     if args.roi:
         r0, r1, c0, c1 = args.roi
+        if not (r0 < r1 and c0 < c1):  # once told "must lie inside the image", which it did
+            raise ValueError(f"--roi {args.roi}: an empty rectangle; expected R0 < R1 and C0 < C1")
         if not (0 <= r0 < r1 <= fixed.shape[0] and 0 <= c0 < c1 <= fixed.shape[1]):
             raise ValueError(f"--roi {args.roi}: must lie inside the {fixed.shape[0]}x{fixed.shape[1]} image")
         mask = np.zeros(fixed.shape, bool)

@@ -2251,3 +2251,25 @@ def test_cli_register_says_what_it_clipped(tmp_path, capsys):
     main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5"), "-q"])
     out = capsys.readouterr().out
     assert "clipped before registering" in out and f": 1 pixels of {tmp_path / 'fixed.tif'}, 0 of " in out
+
+
+@pytest.mark.parametrize(
+    "roi, says",
+    [
+        (["5", "5", "0", "10"], "an empty rectangle"),
+        (["9", "3", "0", "10"], "an empty rectangle"),
+        (["0", "999", "0", "10"], "must lie inside the 96x96 image"),
+    ],
+)
+def test_cli_register_says_what_is_wrong_with_a_roi(tmp_path, capsys, roi, says):
+    """An empty ``--roi`` inside the image was refused as lying outside it."""
+    from radiokit.cli import main
+    from radiokit.io import write_tiff
+
+    fixed, moving, _, _ = _pair(96)
+    write_tiff(tmp_path / "fixed.tif", fixed)
+    write_tiff(tmp_path / "moving.tif", moving)
+    args = ["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5")]
+    assert main([*args, "--roi", *roi]) == 2
+    assert f"--roi [{', '.join(roi)}]: {says}" in capsys.readouterr().err
+    assert not (tmp_path / "r.h5").exists()
