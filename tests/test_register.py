@@ -2273,3 +2273,12 @@ def test_cli_register_says_what_is_wrong_with_a_roi(tmp_path, capsys, roi, says)
     assert main([*args, "--roi", *roi]) == 2
     assert f"--roi [{', '.join(roi)}]: {says}" in capsys.readouterr().err
     assert not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("shape", [(32, 40), (80, 64)])
+def test_registration_warp_refuses_an_image_of_another_shape(shape):
+    """``reg.warp`` of a binned or transposed image returned the pair's shape, silently wrong."""
+    reg = Registration(np.zeros((2, 64, 80), np.float32), "planted", None)
+    with pytest.raises(ValueError, match=rf"^image \({shape[0]}, {shape[1]}\) is not of the registered pair's shape"):
+        reg.warp(np.zeros(shape, np.float32))
+    assert reg.warp(np.ones((64, 80), np.float32)).shape == (64, 80)

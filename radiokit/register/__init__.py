@@ -140,7 +140,17 @@ class Registration:
     lattices: list | None = field(default=None, repr=False, compare=False)
 
     def warp(self, image, order=1) -> np.ndarray:
-        """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid."""
+        """``image(x + d(x))``: an image on the moving grid brought onto the fixed grid.
+
+        Raises ValueError for an image not of the registered pair's shape (``warp`` samples any
+        image on the field's grid: a transposed or binned one came back the pair's shape, the
+        wrong pixels in it)."""
+        shape = np.shape(image)
+        if len(shape) == 2 and shape != self.displacement.shape[1:]:
+            raise ValueError(
+                f"image {shape} is not of the registered pair's shape {self.displacement.shape[1:]}: "
+                "the field maps that grid only"
+            )
         return warp(image, self.displacement, order=order)
 
 
