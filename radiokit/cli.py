@@ -473,7 +473,7 @@ def cmd_register(args) -> int:
     if "clipped" in reg.options:  # the field was measured on the pair with its extreme pixels clipped
         n = reg.options["clipped"]
         print(
-            "clipped before registering, lying over ten of the pair's 1-99 % ranges beyond it (hot or "
+            "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
             f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
         )
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))

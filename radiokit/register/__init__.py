@@ -222,26 +222,31 @@ def _check(fixed, moving, mask):
     return f, m, mask
 
 
-# A pixel this many of the pair's 1-99 % ranges beyond that range is clipped to it. Not chosen on
-# any benchmark: the farthest any pixel of the benchmark generators lies beyond the range is 0.6
-# of it (sharp inclusions of bench_register_phantoms' seeds 6000-6059, every third; the family's
-# 0.08), and a 4x4 static cluster of hot pixels 75 ranges out already cost a textured 1 px shift
-# 20x its error (0.003 -> 0.055 px), 235 ranges out all of it (rc's L-BFGS stopped after one
-# iteration with a zero field, its gradient all the cluster's edges; the checks' noise map, a
-# windowed mean square, read the cluster as the noise and trusted that field).
+# A pixel this many of the pair's 0.1-99.9 % ranges beyond that range is clipped to it. The range
+# is the 0.1-99.9 %, not the 1-99 % of rc's unit: a body under 1 % of the frame in the open beam
+# lies beyond the beam's 1-99 % (its noise alone), and would have been clipped as an outlier; what
+# is clipped is under a thousandth of the frame (hot pixels, a zinger, a defect left uncorrected).
+# Not chosen on any benchmark: the farthest any pixel of the benchmark generators lies beyond
+# even the 1-99 % range is 0.6 of it (sharp inclusions of bench_register_phantoms' seeds
+# 6000-6059, every third; the family's 0.08), and a 4x4 static cluster of hot pixels 75 ranges out
+# already cost a textured 1 px shift 20x its error (0.003 -> 0.055 px), 235 ranges out all of it
+# (rc's L-BFGS stopped after one iteration with a zero field, its gradient all the cluster's
+# edges; the checks' noise map, a windowed mean square, read the cluster as the noise and
+# trusted that field).
 _CLIP_RANGES = 10.0
+_CLIP_PERCENTILES = (0.1, 99.9)
 
 
 def _clip_extremes(f, m):
     """``(f, m, counts)``: the checked pair with pixels beyond ``_CLIP_RANGES`` of the pair's range
-    (the lower 1st and the upper 99th percentile of the two, ~250k samples each) from that range
-    clipped to that line, the same line for both images (a static hot pixel stays static); each
-    image itself when nothing of it is clipped. ``counts``: the pixels clipped, per image
+    (the lower 0.1st and the upper 99.9th percentile of the two, ~250k samples each) from that
+    range clipped to that line, the same line for both images (a static hot pixel stays static);
+    each image itself when nothing of it is clipped. ``counts``: the pixels clipped, per image
     (``Registration.options["clipped"]`` when any)."""
     from radiokit.register._confidence import sample_step
 
     step = sample_step(f.size)
-    (f1, f99), (m1, m99) = (np.percentile(a[::step, ::step], [1, 99]) for a in (f, m))
+    (f1, f99), (m1, m99) = (np.percentile(a[::step, ::step], _CLIP_PERCENTILES) for a in (f, m))
     lo, hi = min(f1, m1), max(f99, m99)
     counts = {"fixed": 0, "moving": 0}
     if not hi > lo:  # no range to measure by (a frame nearly all one level): nothing is an outlier
@@ -287,9 +292,9 @@ def register(
     transmission images (``domain="linear"``) register too, worse on nearly textureless
     phantoms (``benchmarks/README.md``, the family's intensity-domain rows).
 
-    Pixels more than ten of the pair's 1-99 % ranges beyond that range (a hot pixel, a zinger,
-    an uncorrected defect: a few of them once stalled rc with a zero field) are clipped to that
-    line for the registration and its checks; ``options["clipped"]`` counts them per image.
+    Pixels more than ten of the pair's 0.1-99.9 % ranges beyond that range (a hot pixel, a
+    zinger, an uncorrected defect: a few of them once stalled rc with a zero field) are clipped
+    to that line for the registration and its checks; ``options["clipped"]`` counts them per image.
 
     ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
