@@ -320,16 +320,14 @@ def load_steps(path, progress: bool = False) -> Steps:
         images, ratios = [], []
         n_frames = int(np.sum((keys == ImageKey.PROJECTION) & (steps >= 0)))
         bar = tqdm(total=n_frames, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
-        saturated, nonfinite = {}, {}
+        saturated = {}
         for s in numbers:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
-            factors = exposure_factors(cal, meta, path, idx)
-            image, saturated[s], nonfinite[s] = _step_image(cal, src, path, s, idx, factors, bar)
+            image, saturated[s] = _step_image(cal, src, path, s, idx, exposure_factors(cal, meta, path, idx), bar)
             images.append(image)
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
         _warn_saturated(path, saturated, cal.thresholds.saturation)
-        _warn_nonfinite(path, nonfinite)
         pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
     return Steps(
         np.stack(images),
@@ -367,7 +365,7 @@ def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
 def _step_image(cal, src, path, step, idx, factors, bar):
     """The line integral of one step's frames ``idx`` (each at the flats' tube current,
     ``factors``), ``-ln`` of their mean transmission, and how many saturated pixels a frame held
-    on average, and how many NaN or inf ones (filled by the correction).
+    on average.
 
     Why the transmissions are averaged, not the logs: the detector is linear in the dose, so N
     frames averaged are one N times longer exposure, and ``-ln`` of their mean is biased by
@@ -380,7 +378,7 @@ def _step_image(cal, src, path, step, idx, factors, bar):
     from radiokit.correct import check_above_dark, correct_frames
 
     domain = "log" if len(idx) == 1 else "linear"
-    acc, n_sat, n_bad = None, 0, 0
+    acc, n_sat = None, 0
     for i, factor in zip(idx, factors):
         raw = src[i]
         try:  # a frame with the beam off would pull its step's mean towards nothing
@@ -390,8 +388,6 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         top = frame_saturation(cal.thresholds.saturation, raw) if raw.dtype.kind in "ui" else None
         if top is not None:
             n_sat += int(np.count_nonzero(raw >= top))
-        if raw.dtype.kind == "f":
-            n_bad += int(raw.size - np.count_nonzero(np.isfinite(raw)))
         if domain == "log":
             image = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
         else:
@@ -399,28 +395,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
     if domain == "log":
-        return acc.astype(np.float32), n_sat, n_bad
+        return acc.astype(np.float32), n_sat
     # linear correction clamps raw - dark to half a count: every transmission and mean is > 0
-    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx), n_bad / len(idx)
-
-
-def _warn_nonfinite(path, nonfinite: dict) -> None:
-    """One line when projections hold NaN or inf pixels (another lab's float frames mark masked
-    regions and detector gaps so). Why: as saturated ones, their intensity is unknown; the
-    correction fills them from their neighbours, and a ROI or the registration leaning on them
-    measures the fill."""
-    import warnings
-
-    from radiokit.calibrate import CalibrationWarning
-
-    if any(n > 0 for n in nonfinite.values()):
-        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in nonfinite.items() if n > 0)
-        warnings.warn(
-            f"{path}: NaN or inf pixels in the projections, per frame ({per_step}): filled from their "
-            "neighbours; check that they lie outside the ROIs",
-            CalibrationWarning,
-            stacklevel=3,
-        )
+    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx)
 
 
 def _warn_saturated(path, saturated: dict, level) -> None:
