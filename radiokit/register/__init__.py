@@ -185,6 +185,14 @@ def _load_methods():
 
 
 def _check(fixed, moving, mask):
+    for name, a in (("fixed", fixed), ("moving", moving), ("mask", mask)):
+        # np.asarray drops a masked array's mask: its masked pixels (dead ones, a NaN border
+        # filled with anything) were registered as data, and no mask limited the similarity
+        if isinstance(a, np.ma.MaskedArray):
+            raise ValueError(
+                f"{name} is a masked array, whose mask would be ignored: pass a plain array, "
+                "with mask= (bool, True where the similarity is scored) for the pixels to leave out"
+            )
     f = np.asarray(fixed)
     m = np.asarray(moving)
     for name, a in (("fixed", f), ("moving", m)):
@@ -310,7 +318,7 @@ def register(
 
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
     finite (and within float32's range), non-constant, of one shape and at least 8 px a side, a
-    mask that is not a bool array of that shape selecting a pixel, an unknown method or preset,
+    mask that is not a bool array of that shape selecting a pixel, a masked array (``np.ma``), an unknown method or preset,
     or an option value out of its range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
     peer whose package is not installed.
 
