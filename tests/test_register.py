@@ -2298,3 +2298,25 @@ def test_a_small_body_in_the_open_beam_is_not_clipped():
     moving = body + 0.01 * rng.standard_normal(shape).astype(np.float32)
     reg = register(fixed, moving, preset="fast")
     assert "clipped" not in reg.options
+
+
+@pytest.mark.parametrize("scale", [1e-12, 1e12])
+def test_the_checks_do_not_depend_on_the_intensity_unit(scale):
+    """The same pair in other units (counts per square metre, a fluence of ~1e12; or 1e-12) got
+    the same field but was flagged "motion observable in only 0-1 %": the confidence map's
+    gradient covariance goes as the intensity to the fourth power, past float32's range. A pair
+    whose range is beyond 2^+-24 is registered and checked scaled by a power of two."""
+    rng = np.random.default_rng(2)
+    moving = ndimage.gaussian_filter(rng.random((160, 200)), 3).astype(np.float32)
+    fixed = warp(moving, np.full((2, 160, 200), 1.0, np.float32))
+    fixed += 0.002 * rng.standard_normal(fixed.shape).astype(np.float32)
+    moving += 0.002 * rng.standard_normal(fixed.shape).astype(np.float32)
+    ref = register(fixed, moving, preset="fast")
+    reg = register(fixed.astype(np.float64) * scale, moving.astype(np.float64) * scale, preset="fast")
+    assert reg.quality.ok, reg.quality.reason
+    assert reg.quality.interior_observed == pytest.approx(ref.quality.interior_observed, abs=0.02)
+    # in the image's own units, as documented (the noise added: 0.002, times the scale)
+    assert reg.quality.noise == pytest.approx(ref.quality.noise * scale, rel=0.01)
+    assert reg.quality.rc_after == pytest.approx(ref.quality.rc_after, rel=0.05)
+    # the same field but for float32 rounding along L-BFGS's path (the pair times 1e12 * 2^-40)
+    assert np.median(np.hypot(*(reg.displacement - ref.displacement))) < 0.01

@@ -251,11 +251,7 @@ def _clip_extremes(f, m):
     range clipped to that line, the same line for both images (a static hot pixel stays static);
     each image itself when nothing of it is clipped. ``counts``: the pixels clipped, per image
     (``Registration.options["clipped"]`` when any)."""
-    from radiokit.register._confidence import sample_step
-
-    step = sample_step(f.size)
-    (f1, f99), (m1, m99) = (np.percentile(a[::step, ::step], _CLIP_PERCENTILES) for a in (f, m))
-    lo, hi = min(f1, m1), max(f99, m99)
+    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
     counts = {"fixed": 0, "moving": 0}
     if not hi > lo:  # no range to measure by (a frame nearly all one level): nothing is an outlier
         return f, m, counts
@@ -267,6 +263,38 @@ def _clip_extremes(f, m):
             x = np.clip(x, a, b)
         out.append(x)
     return out[0], out[1], counts
+
+
+# A pair whose 0.1-99.9 % range lies beyond 2^+-24 is registered and checked scaled by a power of
+# two (exact in floating point) to a range near 1: the confidence map's gradient covariance goes
+# as the intensity to the fourth power, past float32's range (a pair in counts per square metre,
+# ~1e12, read 1 % observed; at 1e-12, 0 %), and the checks' floors are absolute. Nothing met in
+# practice comes near (counts, transmissions and line integrals span ~1e-3 to ~1e6), and a pair
+# within the bounds is not touched.
+_SAFE_RANGE = (2.0**-24, 2.0**24)
+
+
+def _pair_range(f, m, percentiles):
+    """The lower of the two images' lower and the higher of their upper ``percentiles``
+    (~250k samples each)."""
+    from radiokit.register._confidence import sample_step
+
+    step = sample_step(f.size)
+    (f1, f99), (m1, m99) = (np.percentile(a[::step, ::step], percentiles) for a in (f, m))
+    return min(f1, m1), max(f99, m99)
+
+
+def _rescale(f, m):
+    """``(f, m, scale)``: the pair times ``scale``, a power of two that brings its 0.1-99.9 % range
+    (``_CLIP_PERCENTILES``) near 1 when it lies beyond ``_SAFE_RANGE``; else the very arrays and
+    1 (see ``_SAFE_RANGE``)."""
+    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
+    span = float(hi) - float(lo)
+    if not span > 0 or _SAFE_RANGE[0] <= span <= _SAFE_RANGE[1]:
+        return f, m, 1.0
+    scale = 2.0 ** -round(np.log2(span))
+    # in float64: a subnormal pair's factor (2^146 at 1e-44) is past float32's range
+    return (f.astype(np.float64) * scale).astype(np.float32), (m.astype(np.float64) * scale).astype(np.float32), scale
 
 
 def _check_option_names(method, options):
@@ -303,6 +331,9 @@ def register(
     Pixels more than ten of the pair's 0.1-99.9 % ranges beyond that range (a hot pixel, a
     zinger, an uncorrected defect: a few of them once stalled rc with a zero field) are clipped
     to that line for the registration and its checks; ``options["clipped"]`` counts them per image.
+    A pair whose range lies beyond 2^+-24 (counts per square metre, ~1e12) is registered and
+    checked scaled by a power of two (the checks' fourth powers left float32's range);
+    ``quality.noise`` stays in the image's units.
 
     ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
@@ -341,9 +372,10 @@ def register(
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
     f, m, clipped = _clip_extremes(f, m)  # the very arrays when nothing is clipped (the memo below)
+    f, m, scale = _rescale(f, m)  # the same
     if _memo_of(f, m, mask) is not None:  # within a call that registers this pair again (auto, retry)
         return _register(f, m, method, mask, retry, options)
-    token = _PAIRS.set(_Memo((f, m, mask)))
+    token = _PAIRS.set(_Memo((f, m, mask), scale=scale))
     try:
         reg = _register(f, m, method, mask, retry, options)
         if regularisation_check:
@@ -466,7 +498,8 @@ def _assess(reg, f, m, mask, info, seconds):
     q.iterations = int(info.get("iterations", 0))
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
-    reasons, n_object = _observed(reg, p, np.nan_to_num(w), np.nan_to_num(db))
+    memo = _memo_of(f, m, mask)
+    reasons, n_object = _observed(reg, p, np.nan_to_num(w), np.nan_to_num(db), 1.0 if memo is None else memo.scale)
     n_object = mask.sum() if mask is not None else n_object * k * k  # full-resolution pixels
     if not np.all(np.isfinite(reg.displacement)):
         reasons.append("non-finite displacement")
@@ -518,6 +551,9 @@ def _slow_not_lost(info, q, k) -> bool:
 class _Memo:
     pair: tuple
     checks: _PairChecks | None = None
+    scale: float = (
+        1.0  # what register() multiplied the pair by (``_rescale``): the checks report noise in the image's units
+    )
 
 
 _PAIRS: contextvars.ContextVar[_Memo | None] = contextvars.ContextVar("radiokit_register_pair", default=None)
@@ -669,12 +705,13 @@ _MAX_KEPT = 0.5
 _MAX_FOLDS = 1e-3
 
 
-def _observed(reg, p, w, d):
+def _observed(reg, p, w, d, scale=1.0):
     """Fill ``reg.confidence`` (full resolution) and the quality's observability fields from
     the pair's checks ``p`` (:class:`_PairChecks`, binned by ``p.k``) and the warped moving image
     ``w`` and field ``d`` binned as they are; the reasons for not ok, and the object's size
     (binned pixels). The residual's motion is reported in full-resolution pixels, as the error
-    it stands for is judged (a 2240 frame's step is taken on the pair binned by 4)."""
+    it stands for is judged (a 2240 frame's step is taken on the pair binned by 4); the noise in
+    the image's units, ``scale`` what register() multiplied the pair by (``_rescale``)."""
     import cv2
 
     q = reg.quality
@@ -686,7 +723,7 @@ def _observed(reg, p, w, d):
     reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
     obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
-    q.noise = ob.sigma
+    q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, obs)
