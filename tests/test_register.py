@@ -2251,6 +2251,11 @@ def test_cli_register_says_what_it_clipped(tmp_path, capsys):
     main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5"), "-q"])
     out = capsys.readouterr().out
     assert "clipped before registering" in out and f": 1 pixels of {tmp_path / 'fixed.tif'}, 0 of " in out
+    from radiokit.io import read_registration
+
+    # and the file says so, as it says the preset that made the field
+    quality = read_registration(tmp_path / "r.h5").quality
+    assert (quality["clipped_fixed"], quality["clipped_moving"]) == (1, 0)
 
 
 @pytest.mark.parametrize(
