@@ -412,6 +412,8 @@ def _register_inputs(args):
     mask = None
     if args.roi:
         r0, r1, c0, c1 = args.roi
+        if not (r0 < r1 and c0 < c1):  # once told "must lie inside the image", which it did
+            raise ValueError(f"--roi {args.roi}: an empty rectangle; expected R0 < R1 and C0 < C1")
         if not (0 <= r0 < r1 <= fixed.shape[0] and 0 <= c0 < c1 <= fixed.shape[1]):
             raise ValueError(f"--roi {args.roi}: must lie inside the {fixed.shape[0]}x{fixed.shape[1]} image")
         mask = np.zeros(fixed.shape, bool)
@@ -453,6 +455,8 @@ def cmd_register(args) -> int:
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
     quality = vars(q) | _preset_record(reg)
+    if "clipped" in reg.options:  # the pixels clipped before registering (register()'s extremes)
+        quality |= {f"clipped_{k}": v for k, v in reg.options["clipped"].items()}
     write_registration(
         args.output,
         RegistrationRecord(
@@ -468,6 +472,12 @@ def cmd_register(args) -> int:
     )
     if "auto" in reg.options:  # preset auto: what it returned, and why
         print(f"preset {reg.options['auto'].preset} ({reg.options['auto'].reason})")
+    if "clipped" in reg.options:  # the field was measured on the pair with its extreme pixels clipped
+        n = reg.options["clipped"]
+        print(
+            "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
+            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
+        )
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
         with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:

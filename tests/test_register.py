@@ -227,6 +227,8 @@ def test_divergence_is_reported():
         (lambda f: (f[None], f[None]), "2-D"),
         # finite float64 past float32's range: once "contains NaN or inf", which it did not
         (lambda f: (f.astype(np.float64) * 1e300, f), r"^fixed image has values beyond float32's range"),
+        # np.asarray dropped the mask: the masked pixels were registered as data, silently
+        (lambda f: (f, np.ma.masked_array(f, f > 0.5)), r"^moving is a masked array, whose mask would be ignored"),
     ],
 )
 def test_bad_inputs_are_refused_clearly(bad, match):
@@ -2204,3 +2206,122 @@ def test_regularisation_check_registers_a_second_time_and_agrees_on_a_textured_p
     assert check["preset"] == "weak" and check["ok"]
     assert check["options"] == {"preset": "weak", "bin_pixels": 100_000, "iterations": (60, 30, 20)}
     assert reg.quality.ok and reg.quality.disagreement < 0.2
+
+
+@pytest.mark.parametrize("where", ["static cluster in both", "one hot pixel in fixed"])
+def test_a_few_extreme_pixels_do_not_stall_or_fool_the_registration(where):
+    """Pixels hundreds of the images' 1-99 % ranges away (a hot pixel, a zinger, a defect left
+    uncorrected) once dominated rc's gradient: a static 4x4 cluster stopped L-BFGS after 1-3
+    iterations with a zero field, which the checks, whose noise map the cluster inflated, trusted
+    (1.41 px off everywhere); one hot pixel in the fixed image alone left 0.75 px (flagged). They
+    are clipped to ten of the pair's 0.1-99.9 % ranges beyond it (a 4x4 cluster in one image only
+    is still a local change no motion explains: flagged, as it was)."""
+    rng = np.random.default_rng(3)
+    moving = ndimage.gaussian_filter(rng.random((160, 200)), 3).astype(np.float32)
+    truth = np.full((2, 160, 200), 1.0, np.float32)
+    fixed = warp(moving, truth)
+    lo, hi = np.percentile(fixed, [0.1, 99.9])
+    spike = hi + 500 * (hi - lo)
+    static = where.startswith("static")
+    cluster = (slice(60, 64), slice(70, 74)) if static else (60, 70)
+    fixed[cluster] = spike
+    if static:
+        moving[cluster] = spike
+    reg = register(fixed, moving, preset="fast")
+    inside = np.zeros((160, 200), bool)
+    inside[10:-10, 10:-10] = True  # off the frame's edge, where the shifted image repeats its border
+    inside[50:75, 60:85] = False  # the spike's own neighbourhood: static there
+    epe = np.hypot(*(reg.displacement - truth))[inside]
+    # a textured pair shifted 1 px registers to a few hundredths of a pixel (without the spike 0.006)
+    assert np.median(epe) < 0.1
+    assert reg.quality.ok, reg.quality.reason
+    assert reg.options["clipped"] == {"fixed": 16 if static else 1, "moving": 16 if static else 0}
+
+
+def test_cli_register_says_what_it_clipped(tmp_path, capsys):
+    """``radiokit register`` names the extreme pixels clipped (the user's data, not the method's)."""
+    from radiokit.cli import main
+    from radiokit.io import write_tiff
+
+    fixed, moving, _, _ = _pair(96)
+    lo, hi = np.percentile(fixed, [1, 99])
+    fixed[40, 50] = hi + 500 * (hi - lo)
+    write_tiff(tmp_path / "fixed.tif", fixed)
+    write_tiff(tmp_path / "moving.tif", moving)
+    main(["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5"), "-q"])
+    out = capsys.readouterr().out
+    assert "clipped before registering" in out and f": 1 pixels of {tmp_path / 'fixed.tif'}, 0 of " in out
+    from radiokit.io import read_registration
+
+    # and the file says so, as it says the preset that made the field
+    quality = read_registration(tmp_path / "r.h5").quality
+    assert (quality["clipped_fixed"], quality["clipped_moving"]) == (1, 0)
+
+
+@pytest.mark.parametrize(
+    "roi, says",
+    [
+        (["5", "5", "0", "10"], "an empty rectangle"),
+        (["9", "3", "0", "10"], "an empty rectangle"),
+        (["0", "999", "0", "10"], "must lie inside the 96x96 image"),
+    ],
+)
+def test_cli_register_says_what_is_wrong_with_a_roi(tmp_path, capsys, roi, says):
+    """An empty ``--roi`` inside the image was refused as lying outside it."""
+    from radiokit.cli import main
+    from radiokit.io import write_tiff
+
+    fixed, moving, _, _ = _pair(96)
+    write_tiff(tmp_path / "fixed.tif", fixed)
+    write_tiff(tmp_path / "moving.tif", moving)
+    args = ["register", str(tmp_path / "fixed.tif"), str(tmp_path / "moving.tif"), "-o", str(tmp_path / "r.h5")]
+    assert main([*args, "--roi", *roi]) == 2
+    assert f"--roi [{', '.join(roi)}]: {says}" in capsys.readouterr().err
+    assert not (tmp_path / "r.h5").exists()
+
+
+@pytest.mark.parametrize("shape", [(32, 40), (80, 64)])
+def test_registration_warp_refuses_an_image_of_another_shape(shape):
+    """``reg.warp`` of a binned or transposed image returned the pair's shape, silently wrong."""
+    reg = Registration(np.zeros((2, 64, 80), np.float32), "planted", None)
+    with pytest.raises(ValueError, match=rf"^image \({shape[0]}, {shape[1]}\) is not of the registered pair's shape"):
+        reg.warp(np.zeros(shape, np.float32))
+    assert reg.warp(np.ones((64, 80), np.float32)).shape == (64, 80)
+
+
+def test_a_small_body_in_the_open_beam_is_not_clipped():
+    """A body under 1 % of the frame lies beyond the frame's 1-99 % range (the open beam's noise
+    alone): the extremes' line is drawn from the 0.1-99.9 % range, which it sets, so it is not
+    clipped as a hot cluster would be."""
+    rng = np.random.default_rng(4)
+    shape = (256, 256)
+    body = np.zeros(shape, np.float32)
+    body[120:136, 110:126] = 1.0 + ndimage.gaussian_filter(rng.random((16, 16)), 2).astype(np.float32)
+    body = ndimage.gaussian_filter(body, 1.0)  # 0.4 % of the frame, line integrals 1-2
+    truth = np.full((2, *shape), 1.0, np.float32)
+    fixed = warp(body, truth) + 0.01 * rng.standard_normal(shape).astype(np.float32)
+    moving = body + 0.01 * rng.standard_normal(shape).astype(np.float32)
+    reg = register(fixed, moving, preset="fast")
+    assert "clipped" not in reg.options
+
+
+@pytest.mark.parametrize("scale", [1e-12, 1e12])
+def test_the_checks_do_not_depend_on_the_intensity_unit(scale):
+    """The same pair in other units (counts per square metre, a fluence of ~1e12; or 1e-12) got
+    the same field but was flagged "motion observable in only 0-1 %": the confidence map's
+    gradient covariance goes as the intensity to the fourth power, past float32's range. A pair
+    whose range is beyond 2^+-24 is registered and checked scaled by a power of two."""
+    rng = np.random.default_rng(2)
+    moving = ndimage.gaussian_filter(rng.random((160, 200)), 3).astype(np.float32)
+    fixed = warp(moving, np.full((2, 160, 200), 1.0, np.float32))
+    fixed += 0.002 * rng.standard_normal(fixed.shape).astype(np.float32)
+    moving += 0.002 * rng.standard_normal(fixed.shape).astype(np.float32)
+    ref = register(fixed, moving, preset="fast")
+    reg = register(fixed.astype(np.float64) * scale, moving.astype(np.float64) * scale, preset="fast")
+    assert reg.quality.ok, reg.quality.reason
+    assert reg.quality.interior_observed == pytest.approx(ref.quality.interior_observed, abs=0.02)
+    # in the image's own units, as documented (the noise added: 0.002, times the scale)
+    assert reg.quality.noise == pytest.approx(ref.quality.noise * scale, rel=0.01)
+    assert reg.quality.rc_after == pytest.approx(ref.quality.rc_after, rel=0.05)
+    # the same field but for float32 rounding along L-BFGS's path (the pair times 1e12 * 2^-40)
+    assert np.median(np.hypot(*(reg.displacement - ref.displacement))) < 0.01
