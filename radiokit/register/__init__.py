@@ -245,13 +245,12 @@ _CLIP_RANGES = 10.0
 _CLIP_PERCENTILES = (0.1, 99.9)
 
 
-def _clip_extremes(f, m):
+def _clip_extremes(f, m, lo, hi):
     """``(f, m, counts)``: the checked pair with pixels beyond ``_CLIP_RANGES`` of the pair's range
-    (the lower 0.1st and the upper 99.9th percentile of the two, ~250k samples each) from that
-    range clipped to that line, the same line for both images (a static hot pixel stays static);
-    each image itself when nothing of it is clipped. ``counts``: the pixels clipped, per image
-    (``Registration.options["clipped"]`` when any)."""
-    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
+    ``lo``-``hi`` (:func:`_pair_range`) from that range clipped to that line, the same line for
+    both images (a static hot pixel stays static); each image itself when nothing of it is
+    clipped. ``counts``: the pixels clipped, per image (``Registration.options["clipped"]`` when
+    any)."""
     counts = {"fixed": 0, "moving": 0}
     if not hi > lo:  # no range to measure by (a frame nearly all one level): nothing is an outlier
         return f, m, counts
@@ -284,11 +283,10 @@ def _pair_range(f, m, percentiles):
     return min(f1, m1), max(f99, m99)
 
 
-def _rescale(f, m):
-    """``(f, m, scale)``: the pair times ``scale``, a power of two that brings its 0.1-99.9 % range
-    (``_CLIP_PERCENTILES``) near 1 when it lies beyond ``_SAFE_RANGE``; else the very arrays and
-    1 (see ``_SAFE_RANGE``)."""
-    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
+def _rescale(f, m, lo, hi):
+    """``(f, m, scale)``: the pair times ``scale``, a power of two that brings its range ``lo``-``hi``
+    (:func:`_pair_range`; clipping leaves it as it was) near 1 when it lies beyond
+    ``_SAFE_RANGE``; else the very arrays and 1 (see ``_SAFE_RANGE``)."""
     span = float(hi) - float(lo)
     if not span > 0 or _SAFE_RANGE[0] <= span <= _SAFE_RANGE[1]:
         return f, m, 1.0
@@ -371,8 +369,9 @@ def register(
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
-    f, m, clipped = _clip_extremes(f, m)  # the very arrays when nothing is clipped (the memo below)
-    f, m, scale = _rescale(f, m)  # the same
+    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
+    f, m, clipped = _clip_extremes(f, m, lo, hi)  # the very arrays when nothing is clipped (the memo below)
+    f, m, scale = _rescale(f, m, lo, hi)  # the same
     if _memo_of(f, m, mask) is not None:  # within a call that registers this pair again (auto, retry)
         return _register(f, m, method, mask, retry, options)
     token = _PAIRS.set(_Memo((f, m, mask), scale=scale))
