@@ -455,8 +455,6 @@ def cmd_register(args) -> int:
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
     quality = vars(q) | _preset_record(reg)
-    if "clipped" in reg.options:  # the pixels clipped before registering (register()'s extremes)
-        quality |= {f"clipped_{k}": v for k, v in reg.options["clipped"].items()}
     write_registration(
         args.output,
         RegistrationRecord(

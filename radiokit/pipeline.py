@@ -796,7 +796,8 @@ def check_pairs(
 def _preset_record(reg) -> dict:
     """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
     and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
-    the flow peers, which have no presets."""
+    the flow peers, which have no presets. Any method: ``clipped_fixed``, ``clipped_moving``, the
+    extreme pixels register() clipped before registering (only when it clipped any)."""
     out = {}
     from radiokit.register import BSPLINE_METHODS
 
@@ -807,6 +808,7 @@ def _preset_record(reg) -> dict:
             out["preset_reason"] = chosen.reason
     if "initial" in reg.options:
         out["initial"] = reg.options["initial"]
+    out.update({f"clipped_{k}": v for k, v in reg.options.get("clipped", {}).items()})
     return out
 
 

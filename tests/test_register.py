@@ -2258,6 +2258,18 @@ def test_cli_register_says_what_it_clipped(tmp_path, capsys):
     assert (quality["clipped_fixed"], quality["clipped_moving"]) == (1, 0)
 
 
+def test_process_records_what_register_clipped():
+    """``radiokit process``'s results.json carries the clipped counts per pair as ``radiokit
+    register``'s file does (both through ``pipeline._preset_record``); none when nothing was."""
+    from radiokit.pipeline import _preset_record
+    from radiokit.register import Quality, Registration
+
+    field = np.zeros((2, 8, 8), np.float32)
+    reg = Registration(field, "dis", Quality(), {"clipped": {"fixed": 3, "moving": 0}})
+    assert _preset_record(reg) == {"clipped_fixed": 3, "clipped_moving": 0}
+    assert "clipped_fixed" not in _preset_record(Registration(field, "rc", Quality(), {"preset": "fast"}))
+
+
 @pytest.mark.parametrize(
     "roi, says",
     [
