@@ -266,6 +266,11 @@ class SourceConfig:
     # attempts spread over this window, STS asked every poll_s, before the operator is told
     off_confirm_s: float = 3.0
     beam_drop_fraction: float = 0.5
+    # dialect A: STS 2 (standby) counts as warmed up only when SWE says 0 (done), as B's STANDBY
+    # only with DAG's END. L8121.md does not relate A's STS and SWE; false is for a unit whose
+    # SWE reads 2 ("not started") when no warm-up was needed (the configuration absorbs a unit
+    # that differs, L8121.md), and then STS 2 alone lets XON go
+    standby_needs_warmup_done: bool = True
     # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
     # ``model`` from the probe's TYP when none was configured, so that a connect that finds
     # another says the unit changed, not "configure model=None" (which the user did)
@@ -328,6 +333,11 @@ class SourceConfig:
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
+        if not isinstance(self.standby_needs_warmup_done, bool):
+            raise ValueError(
+                "L8121 configuration: standby_needs_warmup_done must be true or false, "
+                f"got {self.standby_needs_warmup_done!r}"
+            )
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
             raise ValueError(
                 f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
@@ -1985,9 +1995,11 @@ class L8121:
         ``SWE``, B ``DAG``), so that a warm-up the controller reports not done reads WARMUP_NEEDED
         in both dialects. B's ``STS`` says ``STANDBY`` while ``DAG`` says ``YET``; L8121.md does not
         relate A's ``STS 2`` and ``SWE`` either (and a unit may mix the dialects), and its rule
-        is never ``XON`` "before warm-up is done": standby alone is not taken as done."""
+        is never ``XON`` "before warm-up is done": standby alone is not taken as done (in A,
+        unless ``config.standby_needs_warmup_done`` is false)."""
         state = self._read("state")
-        if state == SourceState.STANDBY and not self._warm_up_done():
+        asks = self.dialect is DIALECT_B or self.config.standby_needs_warmup_done
+        if state == SourceState.STANDBY and asks and not self._warm_up_done():
             return SourceState.WARMUP_NEEDED
         return state
 

@@ -956,6 +956,19 @@ def test_no_xon_while_the_warm_up_query_says_not_done(dialect):
     assert not model.xray_on
 
 
+def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration():
+    """The other reading of A's ``SWE 2`` ("not started": none ran, none needed): the configuration,
+    not the code, absorbs such a unit (L8121.md): ``standby_needs_warmup_done = false`` takes
+    ``STS 2`` alone for warmed up. Refused when it is not a boolean."""
+    model = L8121Model(dialect="A", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.standby_when_warm_up_due()
+    config = SourceConfig.from_toml("[source]\nstandby_needs_warmup_done = false")
+    with PtyServer(model) as server, driver(server, "A", config=config) as src:
+        assert src.status() == SourceState.STANDBY and model.commands[-1] == "STS"
+    with pytest.raises(ValueError, match="standby_needs_warmup_done must be true or false"):
+        SourceConfig(standby_needs_warmup_done="no")
+
+
 def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
     """The controller decides a warm-up is due between the driver's DAG and its XON: the XON
     meant as an exposure starts AGING; the driver switches off at its first poll."""
