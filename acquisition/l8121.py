@@ -18,9 +18,10 @@ each keeping the safety rules of the hardware notes:
   when it is needed and the interlock is closed, after setting the values it emits at (given, or
   the configuration's lowest) and reading them back, and waits for standby;
 - :meth:`L8121.on` checks voltage, current and power against :meth:`SourceConfig.check_exposure`
-  *before sending anything*, requires standby (B: ``STS STANDBY`` and ``DAG ... END``) and a closed
-  interlock, sets the values (A: ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them
-  back (A: ``SVI``; B: ``SPV``/``SPC``), switches on and waits for a stable beam;
+  *before sending anything*, requires standby with the warm-up done (A: ``STS 2`` and ``SWE 0``;
+  B: ``STS STANDBY`` and ``DAG ... END``) and a closed interlock, sets the values (A:
+  ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them back (A: ``SVI``; B:
+  ``SPV``/``SPC``), switches on and waits for a stable beam;
 - :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
   ``SCU``, ``SIN``) and, on overload, an open interlock or a dropped beam, switches off and raises
   :class:`~acquisition.errors.SourceFault`;
@@ -265,6 +266,11 @@ class SourceConfig:
     # attempts spread over this window, STS asked every poll_s, before the operator is told
     off_confirm_s: float = 3.0
     beam_drop_fraction: float = 0.5
+    # dialect A: STS 2 (standby) counts as warmed up only when SWE says 0 (done), as B's STANDBY
+    # only with DAG's END. L8121.md does not relate A's STS and SWE; false is for a unit whose
+    # SWE reads 2 ("not started") when no warm-up was needed (the configuration absorbs a unit
+    # that differs, L8121.md), and then STS 2 alone lets XON go
+    standby_needs_warmup_done: bool = True
     # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
     # ``model`` from the probe's TYP when none was configured, so that a connect that finds
     # another says the unit changed, not "configure model=None" (which the user did)
@@ -327,6 +333,11 @@ class SourceConfig:
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
+        if not isinstance(self.standby_needs_warmup_done, bool):
+            raise ValueError(
+                "L8121 configuration: standby_needs_warmup_done must be true or false, "
+                f"got {self.standby_needs_warmup_done!r}"
+            )
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
             raise ValueError(
                 f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
@@ -1980,12 +1991,22 @@ class L8121:
 
     # ---- readings ----
     def status(self) -> SourceState:
-        """The controller's state (A: ``STS``; B: ``STS``, and ``DAG`` when it says ``STANDBY``, so
-        that a warm-up that is needed reads WARMUP_NEEDED in both dialects)."""
+        """The controller's state: ``STS``, and when it says standby the warm-up query too (A
+        ``SWE``, B ``DAG``), so that a warm-up the controller reports not done reads WARMUP_NEEDED
+        in both dialects. B's ``STS`` says ``STANDBY`` while ``DAG`` says ``YET``; L8121.md does not
+        relate A's ``STS 2`` and ``SWE`` either (and a unit may mix the dialects), and its rule
+        is never ``XON`` "before warm-up is done": standby alone is not taken as done (in A,
+        unless ``config.standby_needs_warmup_done`` is false)."""
         state = self._read("state")
-        if state == SourceState.STANDBY and self.dialect is DIALECT_B and not self._read("warmup").done:
+        asks = self.dialect is DIALECT_B or self.config.standby_needs_warmup_done
+        if state == SourceState.STANDBY and asks and not self._warm_up_done():
             return SourceState.WARMUP_NEEDED
         return state
+
+    def _warm_up_done(self) -> bool:
+        """Whether the warm-up query (A ``SWE``, B ``DAG``) says the warm-up is done."""
+        value = self._read("warmup")
+        return value.done if isinstance(value, Aging) else value == WarmupState.DONE
 
     def settled_status(self, timeout_s: float | None = None) -> SourceState:
         """The controller's state once its power-on checks are over (:meth:`status` otherwise).
@@ -2396,7 +2417,7 @@ class L8121:
         """Switch X-rays on at ``kv`` kV and ``ua`` µA and wait for a stable beam.
 
         Order: validate the values (:meth:`SourceConfig.check_exposure`; nothing sent yet); require
-        standby with the warm-up done (B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
+        standby with the warm-up done (A: ``STS 2`` and ``SWE 0``; B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
         and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
         B: ``PHV``, ``PCU``); ``XON``; poll every ``poll_s`` until the measured values are within
         ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or interruption after

@@ -61,7 +61,7 @@ WIRE = {
         set_60_250=["HIV 60", "CUR 250"],
         warm="WUP",
         last_beam_read="SAR",
-        status=["STS"],
+        status=["STS", "SWE"],  # standby: the warm-up query too, as B's DAG
         measured=["SAR"],
         setpoint=["SVI"],
         warmup=["SWE"],
@@ -936,6 +936,40 @@ def test_b_never_forces_a_warm_up_with_xon():
     assert "XON" not in model.commands
 
 
+def test_no_xon_while_the_warm_up_query_says_not_done(dialect):
+    """L8121.md: never ``XON`` "before warm-up is done". A unit whose ``STS`` reads standby while its
+    warm-up query says the warm-up is not done -- B's always does (``STANDBY``, ``DAG`` ``YET``), and
+    an A unit may (``STS 2``, ``SWE 2``: the notes relate neither, and a unit may mix the
+    dialects) -- reads WARMUP_NEEDED in both dialects: ``on()`` refuses without ``XON``, and the
+    warm-up is started, not skipped as done."""
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.standby_when_warm_up_due()
+    with PtyServer(model) as server, driver(server, dialect) as src:
+        assert src.status() == SourceState.WARMUP_NEEDED
+        with pytest.raises(DeviceError, match="warm-up needed"):
+            src.on(60, 250)
+        assert "XON" not in model.commands
+        assert src.warm_up(timeout_s=10, progress=False) > 0
+        assert WIRE[dialect]["warm"] in model.commands
+        assert src.status() == SourceState.STANDBY
+        src.on(60, 250)
+        assert model.xray_on
+    assert not model.xray_on
+
+
+def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration():
+    """The other reading of A's ``SWE 2`` ("not started": none ran, none needed): the configuration,
+    not the code, absorbs such a unit (L8121.md): ``standby_needs_warmup_done = false`` takes
+    ``STS 2`` alone for warmed up. Refused when it is not a boolean."""
+    model = L8121Model(dialect="A", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.standby_when_warm_up_due()
+    config = SourceConfig.from_toml("[source]\nstandby_needs_warmup_done = false")
+    with PtyServer(model) as server, driver(server, "A", config=config) as src:
+        assert src.status() == SourceState.STANDBY and model.commands[-1] == "STS"
+    with pytest.raises(ValueError, match="standby_needs_warmup_done must be true or false"):
+        SourceConfig(standby_needs_warmup_done="no")
+
+
 def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
     """The controller decides a warm-up is due between the driver's DAG and its XON: the XON
     meant as an exposure starts AGING; the driver switches off at its first poll."""
@@ -1589,7 +1623,7 @@ def test_a_late_reply_after_a_time_out_is_not_taken_for_the_next_commands(warm, 
             src.interlock_closed()
         assert src.status() == SourceState.STANDBY
         assert src.interlock_closed() is True
-    sent = ["SIN", "STS", *(["DAG"] if dialect == "B" else []), "SIN"]
+    sent = ["SIN", "STS", {"A": "SWE", "B": "DAG"}[dialect], "SIN"]
     assert [e.command for e in model.log[-len(sent) :]] == sent
     assert "(late reply to SIN, not STS's: discarded)" in caplog.text  # the grammar's path, not the flush
 

@@ -60,6 +60,7 @@ CONNECT = {"A": [("TYP", "TYP L8121-01"), ("STS", "STS 2")], "B": [("SRL", "REMO
 ON_60_250 = {
     "A": [
         ("STS", "STS 2"),
+        ("SWE", "SWE 0"),  # standby is not taken for the warm-up done (as B's DAG)
         ("SIN", "SIN 0"),
         ("SVI", "SVI 40 0"),
         ("HIV 60", "HIV 60"),
@@ -184,6 +185,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("STS", "STS 1"),
                 ("SIN", "SIN 0"),  # the warm-up emits: the interlock is watched
                 ("STS", "STS 2"),
+                ("SWE", "SWE 0"),  # status(): standby with the warm-up done
                 ("SWE", "SWE 0"),
             ],
         ),
@@ -221,7 +223,7 @@ def test_warm_up(dialect, pairs):
 @pytest.mark.parametrize(
     "dialect, pairs",
     [
-        ("A", CONNECT["A"] + [("STS", "STS 2")]),
+        ("A", CONNECT["A"] + [("STS", "STS 2"), ("SWE", "SWE 0")]),
         ("B", CONNECT["B"] + [("STS", "STANDBY"), ("DAG", "AGING 0 0 END")]),
     ],
 )

@@ -203,6 +203,7 @@ class L8121Model:
         self._switch = "REMOTE"
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._silent_executes = False
+        self._standby_when_due = False  # A's STS reads 2 while a warm-up is due (standby_when_warm_up_due)
         self._delay_s = 0.0
         self._delay_once: tuple[float, str | None] | None = None
         self._hold_once: tuple[str | None] | None = None  # (command or None for any), once
@@ -222,8 +223,8 @@ class L8121Model:
             "WUP": self._wup,
             "RST": self._rst,
             "CFS": self._cfs,
-            "STS": lambda t: f"STS {self._state:d}",
-            "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state, *self._measured(t)),
+            "STS": lambda t: f"STS {self._state_a():d}",
+            "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state_a(), *self._measured(t)),
             "SVI": lambda t: f"SVI {self._set_kv} {self._set_ua}",
             "SHV": lambda t: f"SHV {self._measured(t)[0]:.0f}",
             "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}",
@@ -395,6 +396,20 @@ class L8121Model:
             self._after_refused.discard(command)
             if refused:
                 self._after_refused.add(command)
+
+    def standby_when_warm_up_due(self, on: bool = True) -> None:
+        """Let dialect A's ``STS`` (and ``SAR``) read 2, standby, while a warm-up is due, with ``SWE``
+        saying it is not done: what B's ``STS`` always does (``STANDBY`` beside ``DAG``'s ``YET``).
+        ``L8121.md`` lists both A queries without relating them, and says a real unit may speak a
+        mix of the dialects. The controller itself still refuses ``XON`` until the warm-up is done."""
+        with self._lock:
+            self._standby_when_due = bool(on)
+
+    def _state_a(self) -> SourceState:
+        """The state dialect A's ``STS`` and ``SAR`` report."""
+        if self._standby_when_due and self._state == SourceState.WARMUP_NEEDED:
+            return SourceState.STANDBY
+        return self._state
 
     def set_operate_switch(self, position: str = "LOCAL") -> None:
         """Turn the operate switch (``REMOTE``, ``LOCAL`` or ``OFF``). Other than ``REMOTE``, every
