@@ -693,10 +693,20 @@ class Choice(Command):
 
 
 def _whole(value: Any, what: str, unit: str) -> int:
-    """The controller takes whole kV and µA: round half up, and say so in the log."""
+    """Whole kV and µA, rounded half up, and said so in the log: dialect A's ``HIV``/``CUR`` take
+    integers (L8121.md); B's voltage is in 0.1 kV units, but one setting for both dialects keeps a
+    series' recorded values the same whichever the unit speaks."""
     whole = math.floor(value + 0.5)
     if whole != value:
-        logger.warning("%s %g %s rounded to %d %s: the L8121 takes whole %s", what, value, unit, whole, unit, unit)
+        logger.warning(
+            "%s %g %s rounded to %d %s: radiokit sets whole %s (dialect A's commands take integers)",
+            what,
+            value,
+            unit,
+            whole,
+            unit,
+            unit,
+        )
     return whole
 
 
