@@ -314,6 +314,22 @@ class SourceConfig:
             raise ValueError(
                 f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
             )
+        self._check_timeouts()
+        if not isinstance(self.standby_needs_warmup_done, bool):
+            raise ValueError(
+                "L8121 configuration: standby_needs_warmup_done must be true or false, "
+                f"got {self.standby_needs_warmup_done!r}"
+            )
+        # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
+        if not is_integer(self.off_attempts) or self.off_attempts < 1:
+            raise ValueError(
+                f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
+            )
+        self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
+        self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
+
+    def _check_timeouts(self) -> None:
+        """No time-out zero (the dialect's where None), none past ``REPLY_TIMEOUT_MAX_S``."""
         # a zero warm-up or stable time-out would switch the tube on only to switch it off again
         for name in (
             "timeout_s",
@@ -332,18 +348,6 @@ class SourceConfig:
                     f"L8121 configuration: {name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
-        # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
-        if not isinstance(self.standby_needs_warmup_done, bool):
-            raise ValueError(
-                "L8121 configuration: standby_needs_warmup_done must be true or false, "
-                f"got {self.standby_needs_warmup_done!r}"
-            )
-        if not is_integer(self.off_attempts) or self.off_attempts < 1:
-            raise ValueError(
-                f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
-            )
-        self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
-        self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
 
     def _check_ceiling(self) -> None:
         r = RATINGS
