@@ -786,7 +786,11 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
-        if isinstance(self._ds, h5py.Dataset):
+        keys = self.meta.get("image_key")
+        # a frame labelled INVALID may be unwritten (ExperimentWriter counts it before its pixels,
+        # and a crash in between leaves it so): its fill value is what its label says, no data
+        invalid = keys is not None and i < len(keys) and keys[i] == ImageKey.INVALID
+        if isinstance(self._ds, h5py.Dataset) and not invalid:
             check_frame_written(self.path, self._ds, i)
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
         if self._transposed:
