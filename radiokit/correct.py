@@ -166,8 +166,17 @@ def fill_plan(cal: Calibration) -> list[_Stage]:
     stage, left = _neighbour_stage(np.flatnonzero(isolated), flat_invalid, cal.shape, max_radius=8)
     stages = [stage]
     if left.size:
-        # Huge clusters: better a finite, flagged value than a hole.
-        stages.append(_Stage(left, np.zeros((left.size, 1), np.int64), np.zeros((left.size, 1), np.float32)))
+        # Clusters wider than 16 px (a tiled panel's gaps, 10-37 px, from a recorded pixel_mask):
+        # the nearest valid pixel's value, read after the neighbour stage. Weight 0 left them 0 in
+        # either domain: open beam in the log one, nothing through in the linear one
+        from scipy import ndimage
+
+        if (~invalid).any():
+            near = ndimage.distance_transform_edt(invalid, return_distances=False, return_indices=True)
+            src = np.ravel_multi_index((near[0].ravel()[left], near[1].ravel()[left]), cal.shape)
+            stages.append(_Stage(left, src[:, None].astype(np.int64), np.ones((left.size, 1), np.float32)))
+        else:
+            stages.append(_Stage(left, np.zeros((left.size, 1), np.int64), np.zeros((left.size, 1), np.float32)))
     if cal.defect_columns.size:
         stages.append(_line_stage(cal.defect_columns, cols, rows, 1, cal.shape))
     if cal.defect_rows.size:
