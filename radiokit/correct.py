@@ -336,8 +336,20 @@ def _beyond_reach(raw2d, nonpos, invalid, radius) -> np.ndarray:
 
     known = ~invalid
     known.ravel()[nonpos] = False
-    near = ndimage.maximum_filter(known, size=2 * radius + 1, mode="constant", cval=False)
-    return holes[~near.ravel()[holes]]
+    # on the holes' bounding box and ``radius`` around it, not the frame: a gap's column is a
+    # sliver of it (a 37 px NaN gap at 2240 cost 0.3 s a frame over the frame)
+    box, (r, c) = _box(holes, known.shape, radius)
+    near = ndimage.maximum_filter(known[box], size=2 * radius + 1, mode="constant", cval=False)
+    return holes[~near[r, c]]
+
+
+def _box(idx, shape, margin):
+    """The slices of the bounding box of flat indices ``idx`` widened by ``margin`` (within
+    ``shape``), and ``idx``'s (row, col) in that box."""
+    r, c = np.divmod(idx, shape[1])
+    r0, c0 = max(int(r.min()) - margin, 0), max(int(c.min()) - margin, 0)
+    box = (slice(r0, min(int(r.max()) + margin + 1, shape[0])), slice(c0, min(int(c.max()) + margin + 1, shape[1])))
+    return box, (r - r0, c - c0)
 
 
 def _fill_nearest(out2d, idx) -> None:
@@ -346,10 +358,16 @@ def _fill_nearest(out2d, idx) -> None:
         return
     from scipy import ndimage
 
-    mask = np.zeros(out2d.shape, bool)
-    mask.ravel()[idx] = True
+    # on the bounding box widened by 1 px: that margin holds none of ``idx``, so no pixel beyond it
+    # is nearer to one inside than the margin is (the frame's EDT cost 0.35 s at 2240)
+    box, (r, c) = _box(idx, out2d.shape, 1)
+    sub = out2d[box]
+    mask = np.zeros(sub.shape, bool)
+    mask[r, c] = True
+    if mask.all():  # every pixel of the frame: no value to take (the caller refuses such frames)
+        return
     rows, cols = ndimage.distance_transform_edt(mask, return_distances=False, return_indices=True)
-    out2d.ravel()[idx] = out2d[rows.ravel()[idx], cols.ravel()[idx]]
+    sub[r, c] = sub[rows[r, c], cols[r, c]]
 
 
 def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
