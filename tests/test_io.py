@@ -1712,6 +1712,10 @@ def test_experiment_killed_before_a_frames_pixels_and_resumed_twice_still_reads(
     np.testing.assert_array_equal(f.data[~good], 0)  # the fill value, labelled invalid
     res = run_cli("info", path)  # samples every frame
     assert res.returncode == 0, res.stderr
+    with h5py.File(path, "a") as h5:  # labelled a dark, the unwritten frame is refused, not read as zeros
+        h5["entry/instrument/detector/image_key"][2] = ImageKey.DARK
+    with pytest.raises(FormatError, match="frame 2 of /entry/instrument/detector/data was never written"):
+        read(path)  # reads every frame
 
 
 # ------------------------------------------------------------------------------------------------
