@@ -743,7 +743,7 @@ _FILTERS_BOUNDED = {
 }
 
 
-def check_written(path, ds, spare_chunks: int = 1) -> None:
+def check_written(path, ds, spare_bytes: int = 0) -> None:
     """Refuse a dataset whose storage cannot hold what it declares: parts never written.
 
     libhdf5 allocates a chunked (or contiguous, late-allocated) dataset's storage as it is
@@ -752,8 +752,8 @@ def check_written(path, ds, spare_chunks: int = 1) -> None:
     writer has in flight; the readers take only the frames it marks complete). What compression
     hides (a preallocating writer stopped part-way) :func:`check_frame_written` finds frame by
     frame. Virtual and external storage are checked where they are followed.
-    ``spare_chunks``: how many chunks may be unwritten (an experiment file's frames: one more per
-    frame its writer left labelled INVALID, see :func:`read_experiment_meta`).
+    ``spare_bytes``: how much more may be unwritten (an experiment file's frames: those its writer
+    left labelled INVALID, see :func:`read_experiment_meta`).
     """
     declared = int(ds.size) * ds.dtype.itemsize if ds.shape is not None else 0
     plist = ds.id.get_create_plist()
@@ -763,7 +763,7 @@ def check_written(path, ds, spare_chunks: int = 1) -> None:
     codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     ratio = max((_FILTERS_BOUNDED[c] for c in codes), default=1) if set(codes) <= _FILTERS_BOUNDED.keys() else None
     chunk = math.prod(ds.chunks) * ds.dtype.itemsize if ds.chunks else 0
-    if stored and (ratio is None or stored * ratio + spare_chunks * chunk + 4096 >= declared):
+    if stored and (ratio is None or stored * ratio + chunk + spare_bytes + 4096 >= declared):
         return
     what = f"{ds.name} declares {'x'.join(map(str, ds.shape))} {ds.dtype} ({declared} bytes)"
     if not stored:
@@ -909,7 +909,9 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     # in between leaves one such frame unwritten, and --resume appends after it (two crashes left
     # two chunks unwritten, and the whole file was refused); the frame in flight adds one more
     invalid = int(np.count_nonzero(meta["image_key"] == ImageKey.INVALID))
-    check_written(path, data, spare_chunks=1 + invalid)
+    frame = math.prod(data.shape[1:]) * data.dtype.itemsize
+    per_frame = max(frame, math.prod(data.chunks) * data.dtype.itemsize) if data.chunks else frame  # whole chunks
+    check_written(path, data, spare_bytes=invalid * per_frame)
     _read_pixel_sizes(path, h5, meta, allow_external)
     for name, ndim in (("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
