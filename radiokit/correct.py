@@ -426,8 +426,9 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
 
     Notes
     -----
-    Never NaN or inf: pixels of the defect map are filled from valid neighbours (lines from
-    the two neighbouring valid lines, linearly weighted); pixels whose ``raw - dark <= 0``
+    Never NaN or inf: pixels of the defect map are filled from valid neighbours within 8 px,
+    farther ones (a wide recorded gap) from the nearest valid pixel (lines from the two
+    neighbouring valid lines, linearly weighted); pixels whose ``raw - dark <= 0``
     are clamped to half a count, filled from valid neighbours where they have any (within
     2 px), flagged ``NONPOSITIVE`` and counted. NaN or inf raw pixels are flagged and counted
     so too; beyond 2 px of a valid pixel they take the nearest filled value (unknown, not
