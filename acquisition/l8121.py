@@ -2010,17 +2010,22 @@ class L8121:
         in both dialects. B's ``STS`` says ``STANDBY`` while ``DAG`` says ``YET``; L8121.md does not
         relate A's ``STS 2`` and ``SWE`` either (and a unit may mix the dialects), and its rule
         is never ``XON`` "before warm-up is done": standby alone is not taken as done (in A,
-        unless ``config.standby_needs_warmup_done`` is false)."""
+        unless ``config.standby_needs_warmup_done`` is false). A's ``STS 2`` beside ``SWE 1``
+        (running) reads WARMING_UP: a warm-up ending, ``SWE`` a poll behind ``STS``."""
         state = self._read("state")
         asks = self.dialect is DIALECT_B or self.config.standby_needs_warmup_done
-        if state == SourceState.STANDBY and asks and not self._warm_up_done():
-            return SourceState.WARMUP_NEEDED
+        if state == SourceState.STANDBY and asks:
+            value = self._read("warmup")
+            if isinstance(value, Aging):
+                return state if value.done else SourceState.WARMUP_NEEDED
+            if value == WarmupState.RUNNING:
+                # A's SWE 1 beside STS 2: a warm-up ending, its two queries a poll apart (the
+                # notes do not say they change together); read as needed, its wait took a
+                # finished warm-up for one that stopped. Not standby either: no XON until SWE 0
+                return SourceState.WARMING_UP
+            if value != WarmupState.DONE:
+                return SourceState.WARMUP_NEEDED
         return state
-
-    def _warm_up_done(self) -> bool:
-        """Whether the warm-up query (A ``SWE``, B ``DAG``) says the warm-up is done."""
-        value = self._read("warmup")
-        return value.done if isinstance(value, Aging) else value == WarmupState.DONE
 
     def settled_status(self, timeout_s: float | None = None) -> SourceState:
         """The controller's state once its power-on checks are over (:meth:`status` otherwise).

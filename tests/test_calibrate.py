@@ -461,3 +461,27 @@ def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
                 w.append(raw, image_key=ImageKey.PROJECTION, step=step)
     with pytest.warns(CalibrationWarning, match=r"saturated pixels \(>= 4095\).*step 1: 400, step 2: 400"):
         load_steps(path)
+
+
+@pytest.mark.parametrize("domain", ["log", "linear"])
+def test_a_recorded_gap_wider_than_the_fill_reach_takes_its_nearest_valid_value(domain, tmp_path):
+    """A tiled panel's gap (10-37 px) recorded in the file's pixel_mask joins the defect map, and
+    its pixels more than 8 px from a valid one were 'filled' with weight 0: 0 in either domain, an
+    open-beam stripe in the log one through a body (and nothing through in the linear one). They
+    take the nearest valid pixel's value; through a uniform body of transmission 1/2, that value."""
+    from radiokit.calibrate import PixelFlag
+    from radiokit.correct import correct_frames
+
+    panel = _panel(rows=48, cols=256)  # a 20 px gap is 7.8 % of it, under the 10 % refused
+    rng = np.random.default_rng(11)
+    darks, flats = panel.dark_frames(5, rng), panel.flat_frames(5, 2000, rng)
+    recorded = np.zeros(panel.shape, np.uint32)
+    recorded[:, 100:120] = PixelFlag.GAP  # 20 px: its middle 4 columns lie over 8 px from data
+    path = tmp_path / "gap.h5"
+    _experiment_with_mask(path, panel, darks, flats, recorded)
+    cal = Calibration.from_experiment(path)
+    raw = cal.dark + 0.5 * (cal.flat - cal.dark)  # transmission 1/2 everywhere
+    out = correct_frames(cal, raw, domain=domain)
+    expected = np.log(2) if domain == "log" else 0.5
+    # float32 arithmetic on ~2000 counts: exact to 1e-4; the gap's fill is the edge's value
+    np.testing.assert_allclose(out[:, 100:120], expected, atol=1e-3)

@@ -20,7 +20,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import ITEX_DIR, needs_itex
+from conftest import ITEX_DIR, needs_itex, run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -1662,6 +1662,60 @@ def test_experiment_survives_sigkill(tmp_path):
     np.testing.assert_array_equal(g.data[: f.n], f.data)
     assert int(g.data[-2].max()) == 7 and int(g.data[-1].min()) == 8
     np.testing.assert_array_equal(g.meta["image_key"][-2:], [2, 1])
+
+
+_KILL_BEFORE_PIXELS = textwrap.dedent("""
+    import os, signal, sys
+    import h5py
+    import numpy as np
+    from radiokit.io import ExperimentWriter
+    path, mode, first, kill_at = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    write = h5py.Dataset.__setitem__
+    def positioned(ds, key, value):
+        # a real SIGKILL, placed where a crash leaves the writer's own incomplete state: frame
+        # kill_at counted and labelled INVALID, its pixels never written (a random kill finds it
+        # only now and then)
+        if ds.name.endswith("/detector/data") and key == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return write(ds, key, value)
+    h5py.Dataset.__setitem__ = positioned
+    w = ExperimentWriter(path, shape=(64, 64), mode=mode)  # 8 KiB: two unwritten frames pass one chunk and 4 KiB
+    for i in range(first, first + 4):
+        w.append(np.full((64, 64), 100 + i, np.uint16), image_key=i % 3, step=i)
+    w.close()
+""")
+
+
+def test_experiment_killed_before_a_frames_pixels_and_resumed_twice_still_reads(tmp_path):
+    """ExperimentWriter's contract for a crash between counting a frame and writing its pixels:
+    the frame stays labelled INVALID, ``--resume`` appends after it. Its chunk is never written;
+    readers skip it by its key. Two such crashes left two chunks unwritten, and the whole file
+    was refused as "parts never written ... incomplete or corrupt" (one was already, by ``read``
+    and ``info``, which read every frame): the frames labelled INVALID are allowed unwritten,
+    read as the fill value, as before."""
+    path = tmp_path / "resumed.h5"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    for mode, first, kill_at in (("w", 0, 2), ("a", 3, 5), ("a", 6, -1)):
+        proc = subprocess.run(
+            [sys.executable, "-c", _KILL_BEFORE_PIXELS, str(path), mode, str(first), str(kill_at)],
+            env=env,
+            timeout=120,
+        )
+        assert proc.returncode == (-signal.SIGKILL if kill_at >= 0 else 0)
+    f = read(path)
+    keys = f.meta["image_key"]
+    np.testing.assert_array_equal(np.flatnonzero(keys == ImageKey.INVALID), [2, 5])
+    steps = f.meta["step"]
+    good = keys != ImageKey.INVALID
+    np.testing.assert_array_equal(f.data[good][:, 0, 0], 100 + steps[good])
+    np.testing.assert_array_equal(keys[good], steps[good] % 3)
+    np.testing.assert_array_equal(f.data[~good], 0)  # the fill value, labelled invalid
+    res = run_cli("info", path)  # samples every frame
+    assert res.returncode == 0, res.stderr
+    with h5py.File(path, "a") as h5:  # labelled a dark, the unwritten frame is refused, not read as zeros
+        h5["entry/instrument/detector/image_key"][2] = ImageKey.DARK
+    with pytest.raises(FormatError, match="frame 2 of /entry/instrument/detector/data was never written"):
+        read(path)  # reads every frame
 
 
 # ------------------------------------------------------------------------------------------------

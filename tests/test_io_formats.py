@@ -151,15 +151,21 @@ f = h5py.File(path, "w", libver="latest")
 ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
 f["entry"].attrs["NX_class"] = "NXentry"
 f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
-if mode == "lag":  # NXtomo keys, the writer one frame behind with them
+if mode in ("lag", "block"):  # NXtomo keys, the writer one frame behind with them
     keys = f.create_dataset("entry/data/image_key", shape=(0,), maxshape=(None,), dtype="i1", chunks=(4,))
 if mode not in ("plain", "plain-exit"):
     f.swmr_mode = True
 if mode == "lag":
     keys.resize((1,))
     keys[0] = 2
-ds.resize((2, 30, 40))
-ds[:] = frames
+if mode == "block":  # the frames extended 8 at a time ahead of what is written, keys as written
+    keys.resize((2,))
+    keys[:] = 2
+    ds.resize((8, 30, 40))
+    ds[:2] = frames
+else:
+    ds.resize((2, 30, 40))
+    ds[:] = frames
 f.flush()
 if mode in ("exit", "plain-exit"):
     os._exit(0)
@@ -191,6 +197,23 @@ def test_hdf5_written_in_swmr_mode_is_read_as_it_stands(tmp_path, mode):
         else:
             assert proc.stdout.readline() == "ready\n"
         f = read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    np.testing.assert_array_equal(f.data, np.arange(2 * 30 * 40).reshape(2, 30, 40))
+
+
+def test_hdf5_being_written_in_blocks_ahead_of_its_keys_reads_the_frames_both_hold(tmp_path):
+    """A SWMR writer that extends its frames 8 at a time, ahead of the frames and keys it has
+    written (2): the frames past the keys are not read, so their unwritten chunks are no reason to
+    refuse the file ("declares 8x30x40 ... parts never written", since the check of unwritten
+    storage); it reads the 2 frames both hold, with the warning of a file being written."""
+    path = tmp_path / "live.h5"
+    proc, watchdog = _open_writer(path, "block")
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        with pytest.warns(UserWarning, match=r"live\.h5: is marked as being written .* 2 image keys for 8 frames"):
+            f = read(path)
     finally:
         proc.communicate("")
         watchdog.cancel()

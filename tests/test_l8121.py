@@ -957,6 +957,21 @@ def test_no_xon_while_the_warm_up_query_says_not_done(dialect):
     assert not model.xray_on
 
 
+def test_a_warm_up_whose_swe_says_done_a_poll_after_sts_says_standby_is_done_not_stopped():
+    """A's ``STS 2`` with ``SWE 1`` (running) reads WARMING_UP, not WARMUP_NEEDED: a unit whose
+    ``STS`` says standby a poll before its ``SWE`` says done had its finished warm-up reported
+    "stopped" (a DeviceError) since standby counts as warmed up only with ``SWE 0``; ``on()``
+    still refuses, without ``XON``, until ``SWE`` says done."""
+    model = L8121Model(dialect="A", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.swe_lags(2.0)  # model seconds: several of the driver's polls
+    with PtyServer(model) as server, driver(server, "A") as src:
+        assert src.warm_up(timeout_s=10, progress=False) > 0
+        assert src.status() == SourceState.STANDBY
+        src.on(60, 250)
+        assert model.xray_on
+    assert not model.xray_on
+
+
 def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration():
     """The other reading of A's ``SWE 2`` ("not started": none ran, none needed): the configuration,
     not the code, absorbs such a unit (L8121.md): ``standby_needs_warmup_done = false`` takes

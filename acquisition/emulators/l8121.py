@@ -204,6 +204,7 @@ class L8121Model:
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._silent_executes = False
         self._standby_when_due = False  # A's STS reads 2 while a warm-up is due (standby_when_warm_up_due)
+        self._swe_lag_s = 0.0  # A's SWE still reads 1 this long after the warm-up ended (swe_lags)
         self._delay_s = 0.0
         self._delay_once: tuple[float, str | None] | None = None
         self._hold_once: tuple[str | None] | None = None  # (command or None for any), once
@@ -404,6 +405,13 @@ class L8121Model:
         mix of the dialects. The controller itself still refuses ``XON`` until the warm-up is done."""
         with self._lock:
             self._standby_when_due = bool(on)
+
+    def swe_lags(self, seconds: float) -> None:
+        """Let dialect A's ``SWE`` read 1 (running) for ``seconds`` of model time after a warm-up
+        ends, while ``STS`` already reads 2: two queries a real unit need not update together
+        (``L8121.md`` does not relate them)."""
+        with self._lock:
+            self._swe_lag_s = float(seconds)
 
     def _state_a(self) -> SourceState:
         """The state dialect A's ``STS`` and ``SAR`` report."""
@@ -668,7 +676,11 @@ class L8121Model:
 
         def done(t_done):
             if self._state == SourceState.WARMING_UP and self._warmup_t0 == started:
-                self._state, self._warmup = SourceState.STANDBY, WarmupState.DONE
+                self._state = SourceState.STANDBY
+                if self._swe_lag_s > 0:  # STS first, SWE a while later (swe_lags)
+                    self._schedule(t_done + self._swe_lag_s, lambda _t: setattr(self, "_warmup", WarmupState.DONE))
+                else:
+                    self._warmup = WarmupState.DONE
 
         self._schedule(t + self.warmup_s, done)
 

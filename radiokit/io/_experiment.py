@@ -685,7 +685,7 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
         )
 
 
-def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.Dataset:
+def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=True) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
     Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely,
@@ -705,7 +705,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False) -> h5py.
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
     check_filters(path, ds)
-    check_written(path, ds)
+    if written:  # else its caller checks it, knowing what may be unwritten (read_experiment_meta)
+        check_written(path, ds)
     return ds
 
 
@@ -742,7 +743,7 @@ _FILTERS_BOUNDED = {
 }
 
 
-def check_written(path, ds) -> None:
+def check_written(path, ds, spare_bytes: int = 0) -> None:
     """Refuse a dataset whose storage cannot hold what it declares: parts never written.
 
     libhdf5 allocates a chunked (or contiguous, late-allocated) dataset's storage as it is
@@ -751,6 +752,8 @@ def check_written(path, ds) -> None:
     writer has in flight; the readers take only the frames it marks complete). What compression
     hides (a preallocating writer stopped part-way) :func:`check_frame_written` finds frame by
     frame. Virtual and external storage are checked where they are followed.
+    ``spare_bytes``: how much more may be unwritten (an experiment file's frames: those its writer
+    left labelled INVALID, see :func:`read_experiment_meta`).
     """
     declared = int(ds.size) * ds.dtype.itemsize if ds.shape is not None else 0
     plist = ds.id.get_create_plist()
@@ -760,7 +763,7 @@ def check_written(path, ds) -> None:
     codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     ratio = max((_FILTERS_BOUNDED[c] for c in codes), default=1) if set(codes) <= _FILTERS_BOUNDED.keys() else None
     chunk = math.prod(ds.chunks) * ds.dtype.itemsize if ds.chunks else 0
-    if stored and (ratio is None or stored * ratio + chunk + 4096 >= declared):
+    if stored and (ratio is None or stored * ratio + chunk + spare_bytes + 4096 >= declared):
         return
     what = f"{ds.name} declares {'x'.join(map(str, ds.shape))} {ds.dtype} ({declared} bytes)"
     if not stored:
@@ -884,7 +887,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
             f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
             "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)",
         )
-    data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external)
+    data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
     n = min(_frames_complete(path, h5, data.shape[0]), data.shape[0])
@@ -902,6 +905,13 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
                 check_image_keys(path, values, f"/{group}/{name}")
         elif name == "image_key":
             raise FormatError(path, f"HDF5 file lacks /{IMAGE_KEY}")
+    # ExperimentWriter counts a frame, labelled INVALID, before it writes its pixels: each crash
+    # in between leaves one such frame unwritten, and --resume appends after it (two crashes left
+    # two chunks unwritten, and the whole file was refused); the frame in flight adds one more
+    invalid = int(np.count_nonzero(meta["image_key"] == ImageKey.INVALID))
+    frame = math.prod(data.shape[1:]) * data.dtype.itemsize
+    per_frame = max(frame, math.prod(data.chunks) * data.dtype.itemsize) if data.chunks else frame  # whole chunks
+    check_written(path, data, spare_bytes=invalid * per_frame)
     _read_pixel_sizes(path, h5, meta, allow_external)
     for name, ndim in (("pixel_mask", 2), ("bit_depth_readout", 0)):
         check_links(path, h5, f"{DETECTOR}/{name}", allow_external)

@@ -24,6 +24,7 @@ from radiokit.io._experiment import (
     check_frame_written,
     check_image_keys,
     check_links,
+    check_written,
     checked_dataset,
     read_experiment_meta,
 )
@@ -702,7 +703,8 @@ class FrameSource:
                 raise FormatError(
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
-            data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external)
+            # its storage checked below, once the frames to be read are known
+            data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
             _refuse_colour(self.path, data)
             self._invert = _white_is_zero(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
@@ -714,6 +716,11 @@ class FrameSource:
             else:
                 meta.update(self._keys_beside(dataset, n))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
+            # frames past the keys of a file being written (SWMR; a writer may extend its frames in
+            # blocks ahead of them) are not read: unwritten, they are no reason to refuse the rest
+            ahead = (1 if data.ndim == 2 else data.shape[0]) - n
+            frame = math.prod(data.shape[-2:]) * data.dtype.itemsize
+            check_written(self.path, data, spare_bytes=ahead * frame)
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
@@ -786,7 +793,11 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
-        if isinstance(self._ds, h5py.Dataset):
+        keys = self.meta.get("image_key")
+        # a frame labelled INVALID may be unwritten (ExperimentWriter counts it before its pixels,
+        # and a crash in between leaves it so): its fill value is what its label says, no data
+        invalid = keys is not None and i < len(keys) and keys[i] == ImageKey.INVALID
+        if isinstance(self._ds, h5py.Dataset) and not invalid:
             check_frame_written(self.path, self._ds, i)
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
         if self._transposed:
