@@ -2492,7 +2492,16 @@ class L8121:
     def _require_ready(self) -> None:
         state = self.settled_status()
         reasons = {
-            SourceState.WARMUP_NEEDED: "warm-up needed (call warm_up())",
+            # which query said so: an A unit whose SWE reads 2 when none is due is configured, not
+            # warmed up for nothing (standby_needs_warmup_done; review s30-h5)
+            SourceState.WARMUP_NEEDED: "warm-up needed, "
+            + (
+                "as DAG says (YET)"
+                if self.dialect is DIALECT_B
+                else "as STS (0) or, at standby, SWE (not 0) says; [source] standby_needs_warmup_done = false "
+                "for a unit whose SWE reads 2 when none is due"
+            )
+            + " (call warm_up())",
             SourceState.WARMING_UP: "warm-up still running",
             SourceState.XRAY_ON: "X-rays are already on (use set_values() or off())",
             SourceState.NOT_READY: None,  # asked below: the likeliest reason is the interlock

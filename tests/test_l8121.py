@@ -2258,7 +2258,8 @@ def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
         on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]
         assert main(on) == 1
         err = capsys.readouterr().err
-        assert f"warm-up needed (`radiokit acquire source warm-up --port {server.url}`)" in err and "()" not in err
+        assert "warm-up needed, " in err and f"(`radiokit acquire source warm-up --port {server.url}`)" in err
+        assert "()" not in err
         model.warm()
         model.overload()
         assert main(on) == 1
