@@ -443,7 +443,7 @@ class Calibration:
             )
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
-        _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"), transposed=getattr(src, "_transposed", False))
+        _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
         cal.provenance["source"] = str(path)
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
             values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
@@ -735,21 +735,32 @@ def _defect_map(flat, dark_std, response, th):
 MAX_DEFECTIVE_SHARE = 0.10
 
 
-def _merge_recorded_mask(cal: Calibration, path, recorded, transposed=False) -> None:
+#: A recorded pixel_mask marking more of the panel than this is not a mask of bad pixels (NeXus's
+#: sense inverted: a mask of good ones). Not MAX_DEFECTIVE_SHARE: a large tiled panel's gaps alone
+#: are 7-8 % of it, and the mask is the writer's statement, not a measurement to doubt.
+MAX_RECORDED_SHARE = 0.5
+
+
+def _merge_recorded_mask(cal: Calibration, path, recorded) -> None:
     """Add the experiment file's own NeXus ``pixel_mask`` (NXdetector: the pixels its writer knew
     bad, a tiled panel's gaps) to the defect map the darks and flats gave, so that correction fills
     them as it fills its own defects. Why: a lab that records a mask expects it honoured; it was
     read and dropped, and a gap's pixels were measured as data. NeXus's bits 0-8 are kept as they
     are; any higher bit (bit 31: a virtual pixel, interpolated) counts as :attr:`PixelFlag.USER`.
-    All zeros (what radiokit's writers record) changes nothing."""
+    All zeros (what radiokit's writers record) changes nothing. One of another shape (a native
+    mask beside binned frames) is left out with a warning: it was ignored before, and a file that
+    calibrated then calibrates now."""
     if recorded is None:
         return
     m = np.asarray(recorded)
-    if transposed:  # frames stored column-major and read transposed: the mask with them
-        m = m.T
     where = f"its pixel_mask {m.shape} {m.dtype}"
     if m.shape != cal.shape:
-        raise FormatError(path, f"{where} does not match the frames ({cal.shape[0]}x{cal.shape[1]})")
+        warnings.warn(
+            f"{path}: {where} does not match the frames ({cal.shape[0]}x{cal.shape[1]}): not used",
+            CalibrationWarning,
+            stacklevel=3,
+        )
+        return
     if m.dtype.kind == "f":
         with np.errstate(invalid="ignore"):
             if not (np.isfinite(m).all() and (m == np.round(m)).all() and (m >= 0).all() and (m < 2**32).all()):
@@ -765,20 +776,18 @@ def _merge_recorded_mask(cal: Calibration, path, recorded, transposed=False) -> 
     added = np.where((m != 0) & (nexus == 0), np.uint32(PixelFlag.USER), nexus) | np.where(
         m > 0x1FF, np.uint32(PixelFlag.USER), np.uint32(0)
     )
-    cal.mask = (cal.mask | added).astype(cal.mask.dtype)
-    try:
-        _check_defect_share(cal.mask)
-    except ValueError:
-        n = int(np.count_nonzero(m))
+    n = int(np.count_nonzero(m))
+    if n > MAX_RECORDED_SHARE * m.size:
         raise FormatError(
             path,
-            f"{where} marks {n} of {m.size} pixels ({100 * n / m.size:.1f} %) bad: with the calibration's own "
-            f"defects over the {100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most; is it a mask of good pixels?",
-        ) from None
+            f"{where} marks {n} of {m.size} pixels ({100 * n / m.size:.1f} %) bad, over "
+            f"{100 * MAX_RECORDED_SHARE:g} %: is it a mask of good pixels (NeXus marks the bad ones)?",
+        )
+    cal.mask = (cal.mask | added).astype(cal.mask.dtype)
     good = cal.mask == 0
     cal.c = float(np.mean((cal.flat - cal.dark)[good]))
     # the CLI's "defects:" line and the report read this count
-    cal.provenance.setdefault("defects", {})["recorded in the file"] = int(np.count_nonzero(m))
+    cal.provenance.setdefault("defects", {})["recorded in the file"] = n
 
 
 def _check_defect_share(mask) -> None:

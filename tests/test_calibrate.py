@@ -211,11 +211,13 @@ def test_from_experiment_honours_the_files_own_pixel_mask(tmp_path):
 
 
 def test_from_experiment_refuses_a_pixel_mask_that_cannot_be_one(tmp_path):
-    """A recorded pixel_mask of another shape, or one marking most of the panel bad (a mask of good
-    pixels, NeXus's sense inverted), is one line naming the file and the mask."""
+    """A recorded pixel_mask marking most of the panel bad (a mask of good pixels, NeXus's sense
+    inverted) is one line naming the file and the mask; one of another shape (a native mask beside
+    binned frames) is left out with a warning naming it, as it was ignored before."""
     import h5py
 
     from radiokit import FormatError
+    from radiokit.calibrate import CalibrationWarning
 
     panel = _panel(rows=32, cols=40)
     rng = np.random.default_rng(8)
@@ -229,8 +231,9 @@ def test_from_experiment_refuses_a_pixel_mask_that_cannot_be_one(tmp_path):
     with h5py.File(path, "a") as h5:
         del h5["entry/instrument/detector/pixel_mask"]
         h5["entry/instrument/detector/pixel_mask"] = np.zeros((40, 32), np.uint32)
-    with pytest.raises(FormatError, match=r"shape.h5.*pixel_mask \(40, 32\).*does not match"):
-        Calibration.from_experiment(path)
+    with pytest.warns(CalibrationWarning, match=r"shape.h5.*pixel_mask \(40, 32\).*does not match.*not used"):
+        cal = Calibration.from_experiment(path)
+    np.testing.assert_array_equal(cal.mask, Calibration.from_frames(darks, flats).mask)
 
 
 def test_from_experiment_without_darks(tmp_path):
