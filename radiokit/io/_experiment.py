@@ -872,6 +872,28 @@ def _plain_numbers(dtype, kinds="iuf") -> bool:
     return dtype.kind in kinds and dtype.fields is None and h5py.check_vlen_dtype(dtype) is None
 
 
+def _read_source(path, h5: h5py.File, meta: dict, allow_external: bool) -> None:
+    """``meta["source"]``: the source group's scalar numbers and strings (when the file has one)."""
+    check_links(path, h5, SOURCE, allow_external)
+    src = h5.get(SOURCE)
+    if src is None:
+        return
+    meta["source"] = {}
+    for key in src:
+        # only scalar numbers and strings: libhdf5 can crash on a corrupt variable-length type
+        check_links(path, h5, f"{src.name}/{key}", allow_external)
+        ds = src.get(key)
+        if (
+            not isinstance(ds, h5py.Dataset)
+            or ds.shape != ()
+            or not (ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None)
+        ):
+            continue
+        check_local(path, h5, ds, allow_external)
+        value = ds[()]
+        meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
+
+
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata.
 
@@ -924,23 +946,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     bits = meta.pop("bit_depth_readout", None)
     if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
         meta["bit_depth"] = int(bits)
-    check_links(path, h5, SOURCE, allow_external)
-    src = h5.get(SOURCE)
-    if src is not None:
-        meta["source"] = {}
-        for key in src:
-            # only scalar numbers and strings: libhdf5 can crash on a corrupt variable-length type
-            check_links(path, h5, f"{src.name}/{key}", allow_external)
-            ds = src.get(key)
-            if (
-                not isinstance(ds, h5py.Dataset)
-                or ds.shape != ()
-                or not (ds.dtype.kind in "iuf" or h5py.check_string_dtype(ds.dtype) is not None)
-            ):
-                continue
-            check_local(path, h5, ds, allow_external)
-            value = ds[()]
-            meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
+    _read_source(path, h5, meta, allow_external)
     from radiokit.io._simulation import SIMULATION
 
     if SIMULATION in h5:
