@@ -404,41 +404,36 @@ def _step_image(cal, src, path, step, idx, factors, bar):
     return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx), n_bad / len(idx)
 
 
-def _warn_nonfinite(path, nonfinite: dict) -> None:
-    """One line when projections hold NaN or inf pixels (another lab's float frames mark masked
-    regions and detector gaps so). Why: as saturated ones, their intensity is unknown; the
-    correction fills them from their neighbours, and a ROI or the registration leaning on them
-    measures the fill."""
+def _warn_per_step(path, counts: dict, what: str, advice: str) -> None:
+    """One line when projections hold pixels of unknown intensity (``counts``: per step, per
+    frame): saturated ones (a lower bound) or NaN/inf ones (another lab's float frames mark masked
+    regions and detector gaps so; the correction fills them from their neighbours). Why: a ROI or
+    a registration that leans on them measures the ADC or the fill, not the object, and nothing
+    said so."""
     import warnings
 
     from radiokit.calibrate import CalibrationWarning
 
-    if any(n > 0 for n in nonfinite.values()):
-        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in nonfinite.items() if n > 0)
+    if any(n > 0 for n in counts.values()):
+        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in counts.items() if n > 0)
         warnings.warn(
-            f"{path}: NaN or inf pixels in the projections, per frame ({per_step}): filled from their "
-            "neighbours; check that they lie outside the ROIs",
-            CalibrationWarning,
-            stacklevel=3,
+            f"{path}: {what} in the projections, per frame ({per_step}): {advice}", CalibrationWarning, stacklevel=4
         )
 
 
 def _warn_saturated(path, saturated: dict, level) -> None:
-    """One line when projections hold saturated pixels. Why: their intensity is unknown (a
-    lower bound), so a ROI or a registration that leans on them measures the ADC, not the
-    object, and nothing said so."""
-    import warnings
+    _warn_per_step(
+        path,
+        saturated,
+        f"saturated pixels (>= {level})",
+        "their intensity is unknown; check that they lie outside the ROIs, or lower the exposure",
+    )
 
-    from radiokit.calibrate import CalibrationWarning
 
-    if any(n > 0 for n in saturated.values()):
-        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in saturated.items() if n > 0)
-        warnings.warn(
-            f"{path}: saturated pixels (>= {level}) in the projections, per frame ({per_step}): their "
-            "intensity is unknown; check that they lie outside the ROIs, or lower the exposure",
-            CalibrationWarning,
-            stacklevel=3,
-        )
+def _warn_nonfinite(path, nonfinite: dict) -> None:
+    _warn_per_step(
+        path, nonfinite, "NaN or inf pixels", "filled from their neighbours; check that they lie outside the ROIs"
+    )
 
 
 def _sim_truth(path, numbers):
