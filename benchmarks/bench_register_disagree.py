@@ -371,12 +371,18 @@ def fmt(c):
     return f"{c[0]}/{c[1]} ({100 * c[0] / max(c[1], 1):.0f} %), {c[2]}/{c[3]} ({100 * c[2] / max(c[3], 1):.0f} %)"
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def source_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments that name the rows (this bench's and bench_register_disagree_cheap's)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
     ap.add_argument("--source", choices=("phantoms", "family", "heldout"), required=True)
     ap.add_argument("--split", choices=("train", "test"), default="train")
     ap.add_argument("--size", type=int, default=560)
     ap.add_argument("--seeds", type=int, default=2)
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = source_parser(__doc__)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--sweep", action="store_true", help="the rules' confusion over X and Y (training only)")
     ap.add_argument(

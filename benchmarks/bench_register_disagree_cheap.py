@@ -29,7 +29,6 @@ confusion per method (what the test rows are read with, once).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -168,11 +167,7 @@ def tables(rows, times):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--source", choices=("phantoms", "family", "heldout"), required=True)
-    ap.add_argument("--split", choices=("train", "test"), default="train")
-    ap.add_argument("--size", type=int, default=560)
-    ap.add_argument("--seeds", type=int, default=2)
+    ap = D.source_parser(__doc__)
     ap.add_argument("--src", type=Path, default=Path("out"), help="the source benches' out directory (read only)")
     ap.add_argument("--out", type=Path, default=Path("out"))
     ap.add_argument("--rule", default=None, help=f"CANDIDATE:X, one rule's confusion per method (chosen: {CHOSEN!r})")
