@@ -369,11 +369,13 @@ def register(
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
     f, m, mask = _check(fixed, moving, mask)
-    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
-    f, m, clipped = _clip_extremes(f, m, lo, hi)  # the very arrays when nothing is clipped (the memo below)
-    f, m, scale = _rescale(f, m, lo, hi)  # the same
-    if _memo_of(f, m, mask) is not None:  # within a call that registers this pair again (auto, retry)
+    # within a call that registers this pair again (auto, retry): the outer call's arrays, already
+    # clipped and scaled (its range was measured there, not again per preset)
+    if _memo_of(f, m, mask) is not None:
         return _register(f, m, method, mask, retry, options)
+    lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
+    f, m, clipped = _clip_extremes(f, m, lo, hi)
+    f, m, scale = _rescale(f, m, lo, hi)
     token = _PAIRS.set(_Memo((f, m, mask), scale=scale))
     try:
         reg = _register(f, m, method, mask, retry, options)
