@@ -41,11 +41,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import linalg
+from scipy import linalg, ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair
+from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair, gel_phantom
 
 BANDS = ((0, 50), (50, 100), (100, 200), (200, 400), (400, 10**6))
 
@@ -55,6 +55,36 @@ def _cell_sums(a, cells):
     n = a.shape[0] // cells * cells
     c = n // cells
     return a[:n, :n].reshape(cells, c, cells, c).sum(axis=(1, 3))
+
+
+def prior_kernels(n, cells, priors):
+    """``(p, cells^2, cells^2)``: each parameter's prior covariance between the cells' centres
+    of an ``n``-pixel frame's ``cells`` x ``cells`` grid, ``var exp(-r^2 / (4 sigma^2))`` for
+    ``priors`` p pairs ``(sigma px, var)`` (the covariance of white noise filtered by a Gaussian
+    of that sigma, ``regdata.random_motion``'s)."""
+    centre = (np.arange(cells) + 0.5) * (n // cells * cells) / cells
+    yy, xx = np.meshgrid(centre, centre, indexing="ij")
+    pos = np.stack([yy.ravel(), xx.ravel()], 1)
+    r2 = ((pos[:, None, :] - pos[None, :, :]) ** 2).sum(-1)
+    return np.stack([var * np.exp(-r2 / (4.0 * corr**2)) for corr, var in priors])
+
+
+def cell_information(features, noise, cells):
+    """``(cells^2, p, p)``: each cell's Fisher information ``sum f f^T / (2 noise^2)`` about the
+    ``p`` parameters whose unit changes do ``features`` (p, rows, cols) to the image (noise
+    ``noise`` in each of the two images)."""
+    p = len(features)
+    h = np.empty((cells * cells, p, p))
+    for a in range(p):
+        for b in range(a, p):
+            h[:, a, b] = h[:, b, a] = _cell_sums(features[a] * features[b], cells).ravel() / (2.0 * noise**2)
+    return h
+
+
+def information_roots(h):
+    """``S`` with ``H_k = S_k S_k^T`` for each cell's information block (clipped at 0)."""
+    vals, vecs = np.linalg.eigh(h)
+    return vecs * np.sqrt(np.clip(vals, 0, None))[:, None, :]
 
 
 def posterior_blocks(features, noise, priors, cells):
@@ -70,19 +100,10 @@ def posterior_blocks(features, noise, priors, cells):
     Gaussian kernel's ``C`` is far too ill-conditioned to invert, ``I + S^T C S`` is >= I."""
     n = features.shape[1]
     p = len(features)
-    w = 1.0 / (2.0 * noise**2)
-    h = np.empty((cells * cells, p, p))
-    for a in range(p):
-        for b in range(a, p):
-            h[:, a, b] = h[:, b, a] = _cell_sums(features[a] * features[b], cells).ravel() * w
-    vals, vecs = np.linalg.eigh(h)
-    s = vecs * np.sqrt(np.clip(vals, 0, None))[:, None, :]  # H_k = S_k S_k^T
-    centre = (np.arange(cells) + 0.5) * (n // cells * cells) / cells
-    yy, xx = np.meshgrid(centre, centre, indexing="ij")
-    pos = np.stack([yy.ravel(), xx.ravel()], 1)
-    r2 = ((pos[:, None, :] - pos[None, :, :]) ** 2).sum(-1)
-    kern = np.stack([var * np.exp(-r2 / (4.0 * corr**2)) for corr, var in priors])  # (p, m, m)
-    m = len(pos)
+    h = cell_information(features, noise, cells)
+    s = information_roots(h)
+    kern = prior_kernels(n, cells, priors)
+    m = cells * cells
     # (S^T C)[(k, a), (l, b)] = S_k[b, a] K^b_kl; (S^T C S)[(k, a), (l, b)] = sum_c K^c_kl S_k[c, a] S_l[c, b]
     stc = np.einsum("kba,bkl->kalb", s, kern).reshape(p * m, p * m)
     a = np.einsum("kca,ckl,lcb->kalb", s, kern, s).reshape(p * m, p * m)
@@ -94,6 +115,20 @@ def posterior_blocks(features, noise, priors, cells):
     reduce = np.einsum("jlb,jlc->lbc", wm, wm)
     prior = np.stack([np.diag(kern[0]), np.diag(kern[1])], -1)[:, :, None] * np.eye(2)[None]
     return (prior - reduce).reshape(cells, cells, 2, 2)
+
+
+def carter_share(texture, noise):
+    """The share of a texture's shift information that is left when the moving image is as noisy
+    as the fixed one (Carter's time-delay bound: each frequency's ``k^2 P`` scaled by ``2 SNR /
+    (1 + 2 SNR)``, ``SNR = P / noise^2``; the bound above takes the moving image noise-free).
+    ``texture``: a noise-free texture image, windowed to its support (no edge leakage)."""
+    n = texture.shape[0]
+    power = np.abs(np.fft.fft2(texture)) ** 2 / texture.size  # white noise of variance s^2 reads s^2
+    power = np.fft.ifftshift(ndimage.gaussian_filter(np.fft.fftshift(power), 3))  # the expected spectrum
+    k = np.fft.fftfreq(n)
+    k2 = k[:, None] ** 2 + k[None, :] ** 2
+    snr = power / noise**2
+    return float((k2 * power * 2 * snr / (1 + 2 * snr)).sum() / (k2 * power).sum())
 
 
 def sampled_epe(post, shape, rng):
@@ -150,11 +185,23 @@ def main(argv=None):
     ap.add_argument("--cells", type=int, default=48, help="the prior's grid (cells per side)")
     ap.add_argument("--texture", type=float, nargs="*", default=[0.01], help="texture std (noise 0.01)")
     ap.add_argument("--no-rc", action="store_true", help="only the bounds")
+    ap.add_argument("--carter", action="store_true", help="only the information a noisy moving image keeps")
     args = ap.parse_args(argv)
     from radiokit.register import register
 
     seeds = (TRAIN_SEEDS if args.split == "train" else TEST_SEEDS)[: args.seeds]
     rng = np.random.default_rng(0)
+    if args.carter:
+        for tex in args.texture:
+            q = (
+                gel_phantom(args.size, np.random.default_rng(seeds[0]), tex)[0]
+                - gel_phantom(args.size, np.random.default_rng(seeds[0]))[0]
+            )
+            share = carter_share(q, 0.01)
+            print(
+                f"texture {tex:g}: a noisy moving image keeps {share:.4f} of the information (EPE x{share**-0.5:.4f})"
+            )
+        return 0
     head = "all | " + " | ".join(f"{lo}-{hi if hi < 10**6 else ''} px" for lo, hi in BANDS)
     print(f"EPE median/p95 (px) over the scored body, by distance from its edge (px at 2240): {head}")
     for tex in args.texture:
