@@ -24,7 +24,8 @@ __all__ = ["run_demo", "add_demo"]
 def _exposure(scene, kv_min=40.0):
     """The source setting for a scene: its kV, raised to the L8121's 40 kV floor if lower (the
     seed-breast scene is a 28 kV mammogram), with the current lowered to keep the panel's open-beam
-    signal where the scene puts it (signal ~ uA kV^2 in the panel model)."""
+    signal where the scene puts it (signal ~ uA kV^2 in the panel model). A binned demo's scene
+    already has its current lowered by the binning squared (:func:`sim.scene.with_binning`)."""
     kv = max(float(scene.exposure.voltage_kv), kv_min)
     ua = float(scene.exposure.current_ua) * (float(scene.exposure.voltage_kv) / kv) ** 2
     return kv, round(ua)
@@ -136,7 +137,8 @@ def run_demo(
     """Run the demo (see the module docstring); returns the headline numbers and paths.
 
     The lab's settings by default: the full panel (``binning`` 1), the scene's own mesh, the
-    pipeline's registration preset (``auto``); ``binning=2``, ``coarse=True`` and
+    pipeline's registration preset (``auto``); ``binning=2`` (at a quarter of the tube current, as
+    the lab bins: the same counts per read-out pixel, a quarter of the dose), ``coarse=True`` and
     ``register_preset="auto-fast"`` are the cheaper ones. ``dialect`` ("A" or "B") is the L8121 command dialect the emulator and
     the driver speak. ``out_dir`` must be new, empty, or a previous demo's folder (replaced only
     with ``overwrite=True``): the demo never deletes a file it did not make. ``view`` is the beam
@@ -145,7 +147,7 @@ def run_demo(
     from acquisition.protocols import run, sim_devices
     from radiokit.pipeline import process
     from sim.bench import VirtualBench
-    from sim.scene import load_scene
+    from sim.scene import load_scene, with_binning
 
     t0 = time.perf_counter()
     scene = load_scene(preset)  # a bad preset is refused before the folder is claimed
@@ -159,7 +161,9 @@ def run_demo(
         from sim.scene import with_imaging
 
         scene = with_imaging(scene, imaging)
-    scene.detector.binning = int(binning) if binning else 1
+    # binned pixels sum binning^2 pixels' charge: the same current would saturate the 12-bit ADC,
+    # so the demo lowers it as the lab does and the read-out pixels keep the scene's counts
+    scene = with_binning(scene, int(binning) if binning else 1)
     if coarse:  # the demo's mesh: faster to solve (benchmarks/bench_sim.py measures what it costs)
         scene.mesh.size_inclusion_mm = max(scene.mesh.size_inclusion_mm, 1.4)
         scene.mesh.size_far_mm = max(scene.mesh.size_far_mm, 8.0)
@@ -270,7 +274,8 @@ def add_demo(subparsers):
         type=int,
         choices=[1, 2, 4],
         default=1,
-        help="detector binning (default 1: the full 2240 x 2240 panel; 2: 1120 x 1120, the 4 fps mode)",
+        help="detector binning (default 1: the full 2240 x 2240 panel; 2: 1120 x 1120, the 4 fps mode, at a "
+        "quarter of the tube current)",
     )
     p.add_argument("--coarse", action="store_true", help="a coarser finite-element mesh than the scene's (faster)")
     p.add_argument("--fine", action="store_true", help=argparse.SUPPRESS)  # the default now; kept for old scripts

@@ -56,11 +56,14 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=Path("out/bench_acquire"))
     args = ap.parse_args(argv)
     from acquisition.protocols import load_protocol, run
-    from sim.scene import block_scene
+    from sim.scene import Exposure, block_scene
 
     args.out.mkdir(parents=True, exist_ok=True)
     scene = block_scene(size_mm=10.0)
     scene.detector.binning = args.binning
+    # 2500 counts per read-out pixel at the protocol's 60 kV, 250 uA, whatever the binning (a
+    # binned pixel sums binning^2 pixels' charge): the frames this bench has always written
+    scene.exposure = Exposure(2500.0 / args.binning**2, 60.0, 250.0)
     tmp = Path(tempfile.mkdtemp(prefix="bench-acquire-", dir=args.out))
     p = load_protocol(
         {

@@ -13,6 +13,12 @@ all the protocol's ratios in one :meth:`prepare`, line integrals from
 :func:`sim.lab.project_state`, frames from :func:`sim.lab.make_panel`'s panel at
 :func:`sim.lab.open_beam_counts`.
 
+The bench is the panel, not a planned exposure: it never refuses a source setting. Binned, a
+read-out pixel sums ``binning**2`` pixels' charge of the dose the source gives (the scene's
+``i0_counts`` at its kV and µA, scaled by :meth:`VirtualBench.open_beam`), and an open beam past
+the 12-bit ADC clips at 4095 as the C7942's does; the calibration then flags or refuses the
+saturated flats (``radiokit.calibrate``). A protocol that bins lowers the current as the lab does.
+
 Examples
 --------
 >>> from sim.scene import block_scene
@@ -56,7 +62,9 @@ class VirtualBench:
     scene : Scene, preset name or TOML
         Copied: the bench never changes the caller's scene.
     binning : {1, 2, 4}, optional
-        Overrides ``scene.detector.binning`` (and so the projection grid).
+        Overrides ``scene.detector.binning`` (and so the projection grid) at the same source: the
+        read-out pixels sum ``binning**2`` pixels' charge (:func:`sim.scene.with_binning` keeps
+        their counts by lowering the current instead).
     seed : int
         The panel's fixed pattern (gain, offsets, defects), as in
         :func:`sim.lab.simulate_experiment`; also seeds the noise of :meth:`expose` calls
@@ -72,7 +80,8 @@ class VirtualBench:
         ``scene.body.half_height_mm``): the plate gap at ratio 0.
     panel : sim.detector.PanelModel
     i0 : float
-        Open-beam counts per unbinned pixel at the scene's exposure.
+        Open-beam counts per unbinned pixel at the scene's exposure, whatever the binning (a
+        read-out pixel collects ``i0 * binning**2``).
     sample_in : bool
         The phantom is in the beam (False: flats).
 
@@ -86,7 +95,9 @@ class VirtualBench:
     def __init__(self, scene, *, binning=None, seed=0, progress=False):
         scene = copy.deepcopy(load_scene(scene))
         if binning is not None:
-            scene.detector = Detector(scene.detector.preset, int(binning))  # validates the binning
+            # the binning alone (validated), at the same source: a dose the binned ADC cannot hold
+            # clips as on the panel, it is not refused here (scene.validate() would)
+            scene.detector = Detector(scene.detector.preset, int(binning))
         self.scene = scene
         self.seed = int(seed)
         self.progress = bool(progress)

@@ -26,7 +26,13 @@ def add_sim(subparsers):
         "scene's), e.g. 0.15 0.2 0.25",
     )
     r.add_argument("-o", "--output", type=Path, required=True, help="experiment file to write (.h5)")
-    r.add_argument("--binning", type=int, choices=[1, 2, 4], help="detector binning (default: the scene's)")
+    r.add_argument(
+        "--binning",
+        type=int,
+        choices=[1, 2, 4],
+        help="detector binning (default: the scene's); at the scene's source, so a binned pixel sums the charge "
+        "of binning^2 pixels (refused where that would saturate the 12-bit ADC)",
+    )
     r.add_argument("--view", choices=["through_plates", "side"], help="beam direction (default: the scene's)")
     r.add_argument(
         "--imaging",
@@ -59,6 +65,10 @@ def _run_sim(args) -> int:
     scene = load_scene(args.preset if args.preset is not None else str(args.scene))
     if args.binning:
         scene.detector.binning = args.binning
+        try:  # the scene's source binned: each read-out pixel sums binning**2 pixels' charge
+            scene.validate()
+        except ValueError as exc:
+            raise ValueError(f"--binning {args.binning}: {exc}") from None
     if args.ratios:  # the scene's rule: each in [0, 0.9), strictly increasing (also refuses nan)
         from sim.scene import Compression
 

@@ -5,7 +5,10 @@ N(0, read_noise), 0, 2**bits - 1)`` where ``q`` is counts per detected quantum (
 variance is ``q * signal``), ``gain`` a smooth non-uniformity times a small per-pixel spread, and
 ``dark`` a per-pixel offset. Defects are planted and known: dead pixels (no response),
 under-responding pixels, noisy pixels, and whole defect columns. Binning sums charge: a 2x2 binned
-pixel collects four pixels' signal and is read once.
+pixel collects four pixels' signal and is read once, so at one source (``I0`` per unbinned pixel,
+the dose) the read-out holds ``b^2`` times the counts and shot variance under one read noise -- an
+SNR about ``b`` times the unbinned pixel's -- and the same 12-bit ADC clips the sum at 4095: an
+open beam that fits 1x1 can saturate 2x2 or 4x4.
 
 The open beam ``I0`` is the same on every pixel: a point source's inverse-square and obliquity
 falloff on a flat panel (``cos^3`` of the ray's angle to the normal: 0.964 at the corners of the
@@ -113,7 +116,9 @@ class PanelModel:
         (``spread`` of its deviations) plus ``spread`` standard deviations of shot and read noise.
         The mean alone against the ceiling let a quarter of the flats clip at 4095 (their gain
         is up to ~5 % over the mean), which the calibration then marks defective or, once over
-        its 10 %, refuses; a clipped flat biases the line integral low where the gain is high."""
+        its 10 %, refuses; a clipped flat biases the line integral low where the gain is high.
+        Binned by ``b``, the dose per unbinned pixel may be at most this over ``b**2``
+        (``sim.scene.Scene.validate`` checks it)."""
         g = _smooth_gain(257, 257, cls.gain_variation).max() * (1 + spread * cls.pixel_gain_spread)
         top = (1 << cls.bits) - 1 - cls.dark_level - spread * cls.dark_spread
         # g i0 + spread sqrt(q g i0 + r^2) = top, a quadratic in sqrt(i0)-like form: solved by
@@ -185,11 +190,13 @@ class PanelModel:
         return self._read(np.zeros(self.shape, np.float32), n, rng)
 
     def flat_frames(self, n=10, i0=2500.0, rng=None) -> np.ndarray:
-        """``n`` open-beam frames of ``i0`` counts per (unbinned) pixel."""
+        """``n`` open-beam frames of ``i0`` counts per unbinned pixel (a read-out pixel sums
+        ``binning**2`` of them, clipped at the ADC's top)."""
         return self._read(np.full(self.shape, i0, np.float32), n, rng)
 
     def expose(self, line_integral, i0=2500.0, n=1, rng=None) -> np.ndarray:
-        """Frames of an object with line integral ``-ln(I/I0)`` per pixel, (n, rows, cols) uint16."""
+        """Frames of an object with line integral ``-ln(I/I0)`` per pixel, (n, rows, cols) uint16;
+        ``i0`` per unbinned pixel, as in :meth:`flat_frames`."""
         line_integral = np.asarray(line_integral, np.float32)
         if line_integral.shape != self.shape:
             raise ValueError(f"line integral is {line_integral.shape}; the panel is {self.shape}")

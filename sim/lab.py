@@ -73,13 +73,17 @@ def make_panel(scene: Scene, seed: int = 0) -> PanelModel:
 
 
 def open_beam_counts(scene: Scene) -> float:
-    """Open-beam counts per *unbinned* pixel, the ``i0`` of :class:`PanelModel`.
+    """Open-beam counts per *unbinned* pixel, the ``i0`` of :class:`PanelModel`: the scene's
+    ``exposure.i0_counts``, whatever the binning.
 
-    ``exposure.i0_counts`` is the open-beam signal of one read-out pixel; binning sums charge, so
-    the exposure per unbinned pixel is divided by ``binning**2`` to keep the ADC where the scene
-    puts it.
+    The dose per pixel is the source's (tube current, exposure time, distance); binning sums the
+    charge of ``binning**2`` pixels into one read-out, so the same source binned by 2 reads 4x the
+    counts with twice the SNR (the C7942 bins by summing charge). Until session 31 this divided by
+    ``binning**2`` to keep the ADC where the scene put it: a quarter of the dose per pixel and no
+    SNR gain at the same recorded kV and µA. A scene whose binned open beam would clip is refused
+    (:meth:`sim.scene.Scene.validate`); :func:`sim.scene.with_binning` lowers the current instead.
     """
-    return scene.exposure.i0_counts / scene.detector.binning**2
+    return scene.exposure.i0_counts
 
 
 def source_record(scene: Scene) -> dict:

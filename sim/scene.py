@@ -43,6 +43,7 @@ __all__ = [
     "block_scene",
     "with_view",
     "with_imaging",
+    "with_binning",
     "PRESETS",
     "VIEWS",
     "IMAGING_MODELS",
@@ -352,31 +353,50 @@ class Detector:
 
 @dataclass
 class Exposure:
-    """Open-beam counts of one read-out pixel (``i0_counts``, above the dark offset: binning does
-    not change it, see :func:`sim.lab.open_beam_counts`); kV and µA are recorded as metadata, and
-    the kV sets the polychromatic spectrum. The tube's and the panel's ranges are checked by
-    :meth:`Scene.validate` (they depend on the anode)."""
+    """The source: ``i0_counts`` is the open beam (counts above the dark offset) one *unbinned*
+    50 µm pixel collects at ``voltage_kv`` and ``current_ua`` -- the dose the tube current, the
+    exposure time and the distance give it, whatever the binning. A binned read-out pixel sums the
+    charge of ``binning**2`` of them (:func:`sim.lab.open_beam_counts`), so binning the same source
+    by 2 gives 4x the counts and twice the SNR, and may saturate the 12-bit ADC:
+    :meth:`Scene.validate` refuses a scene whose binned open beam would (:func:`with_binning` lowers
+    the current instead, as the lab does). kV and µA are recorded as metadata, and the kV sets the
+    polychromatic spectrum. The tube's and the panel's ranges are checked by :meth:`Scene.validate`
+    (they depend on the anode)."""
 
     i0_counts: float = 2500.0
     voltage_kv: float = 60.0
     current_ua: float = 250.0
 
     def __post_init__(self):
-        from sim.detector import PanelModel
-
         _positive("exposure voltage_kv", self.voltage_kv)
         _positive("exposure current_ua", self.current_ua)
         _positive("exposure i0_counts", self.i0_counts)
-        # the open beam's brightest pixels (gain, dark offset and noise included) must stay below
-        # the 12-bit ceiling: beyond it the flats, and every pixel the object does not shade,
-        # clip at 4095, the calibration marks them defective and the line integral reads low
-        ceiling = PanelModel.open_beam_ceiling()
-        if self.i0_counts > ceiling:
-            raise ValueError(
-                f"exposure i0_counts {self.i0_counts:g}: the open beam would saturate the C7942's 12-bit ADC "
-                f"(4095 counts: about {PanelModel.dark_level:g} of dark offset, and the brightest pixels' gain "
-                f"and noise above the mean): need at most {math.floor(ceiling):d}"
-            )
+        _check_open_beam(self.i0_counts, 1)  # the least any binning reads out
+
+
+def _check_open_beam(i0_counts: float, binning: int) -> None:
+    """ValueError unless the open beam of a read-out pixel, ``i0_counts`` per unbinned pixel summed
+    over ``binning**2`` of them, keeps its brightest pixels below the 12-bit ceiling
+    (:meth:`sim.detector.PanelModel.open_beam_ceiling`): beyond it the flats, and every pixel the
+    object does not shade, clip at 4095, the calibration marks them defective (or refuses the flat)
+    and the line integral reads low."""
+    from sim.detector import PanelModel
+
+    ceiling = PanelModel.open_beam_ceiling()
+    if i0_counts * binning**2 <= ceiling:
+        return
+    binned = ""
+    if binning > 1:
+        binned = (
+            f" at detector binning {binning} (a read-out pixel sums {binning**2} pixels' charge: "
+            f"{i0_counts * binning**2:g} counts)"
+        )
+    raise ValueError(
+        f"exposure i0_counts {i0_counts:g}{binned}: the open beam would saturate the C7942's 12-bit ADC "
+        f"(4095 counts: about {PanelModel.dark_level:g} of dark offset, and the brightest pixels' gain "
+        f"and noise above the mean): need at most {math.floor(ceiling / binning**2):d}"
+        + (" (a lower tube current or a shorter exposure), or less binning" if binning > 1 else "")
+    )
 
 
 #: Named imaging models: ``paper`` is the paper's (a monochromatic beam, no scatter; the line
@@ -486,10 +506,11 @@ class Scene:
 
     def validate(self) -> Scene:
         """Refuse what each part cannot see alone: an inclusion not strictly inside the body,
-        overlapping another or too small for its mesh size; a cone beam's source or detector
-        inside the body; kV and µA outside the tube's or the panel's ratings. Run on
-        construction and again before meshing (a scene's fields may be replaced). Returns the
-        scene."""
+            overlapping another or too small for its mesh size; a cone beam's source or detector
+            inside the body; kV and µA outside the tube's or the panel's ratings; an open beam that
+        would saturate the ADC once binned. Run on
+            construction and again before meshing (a scene's fields may be replaced). Returns the
+            scene."""
         for i, inc in enumerate(self.inclusions):
             where = f"inclusions[{i}] ({_describe(inc)})"
             if not self.body.contains(_hull_points(inc)).all():
@@ -523,6 +544,10 @@ class Scene:
                 f"a {self.body.geometry} has none (use wall = 'none')"
             )
         _check_tube(self.exposure, self.imaging.anode)
+        try:  # the binning is the detector's, the dose the exposure's: only the scene sees both
+            _check_open_beam(self.exposure.i0_counts, self.detector.binning)
+        except ValueError as exc:
+            raise ValueError(f"scene {self.name!r}: {exc}") from None
         return self
 
     # -- TOML ---------------------------------------------------------------------------------
@@ -817,6 +842,19 @@ def with_imaging(scene: Scene, model: str) -> Scene:
     return dataclasses.replace(scene, imaging=Imaging.named(model))
 
 
+def with_binning(scene: Scene, binning: int) -> Scene:
+    """A copy of ``scene`` read out at ``binning`` whose read-out pixels keep the open beam the
+    scene gives them: the tube current, and with it the dose per unbinned pixel (``i0_counts``),
+    scaled by the change in binned area -- what the lab does when it bins, since a binned pixel
+    sums ``binning**2`` pixels' charge and the same current would saturate the 12-bit ADC. A
+    quarter of the current at 2x2 from 1x1; kV, geometry and everything else are kept."""
+    detector = Detector(scene.detector.preset, binning)  # refuses a binning the C7942 lacks
+    k = (scene.detector.binning / detector.binning) ** 2
+    ex = scene.exposure
+    exposure = dataclasses.replace(ex, i0_counts=ex.i0_counts * k, current_ua=ex.current_ua * k)
+    return dataclasses.replace(scene, detector=detector, exposure=exposure)
+
+
 def block_scene(size_mm=10.0, E_kpa=5.0, nu=0.45, ratios=(0.15, 0.20, 0.25)) -> Scene:
     """A cube between frictionless plates, no inclusion: the validation scene with a closed form."""
     return Scene(
@@ -827,5 +865,8 @@ def block_scene(size_mm=10.0, E_kpa=5.0, nu=0.45, ratios=(0.15, 0.20, 0.25)) -> 
         compression=Compression(tuple(ratios)),
         beam=Beam("parallel", "y"),
         detector=Detector("c7942", 4),
+        # 2500 counts per 4x4 read-out pixel (the default exposure's at 1x1) at 60 kV, 250 µA:
+        # 2500 / 16 per unbinned pixel
+        exposure=Exposure(2500.0 / 16, 60.0, 250.0),
         mesh=MeshSpec(size_mm / 4, size_mm / 4, "3d", True),
     )

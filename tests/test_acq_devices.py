@@ -629,7 +629,7 @@ def bench():
     from sim.scene import block_scene
 
     scene = block_scene(size_mm=10, E_kpa=5, nu=0.45, ratios=(0.2,))
-    scene.exposure.i0_counts = 1500.0  # twice this still fits the 12-bit ADC
+    scene.exposure.i0_counts = 1500.0 / 16  # per unbinned pixel: twice the 4x4 read-out still fits 12 bits
     b = VirtualBench(scene, binning=4, seed=3)
     b.prepare([0.1, 0.2])
     return b

@@ -149,7 +149,9 @@ def golden_scene():
         compression=Compression((0.10, 0.15, 0.20), "frictionless"),
         beam=Beam("parallel", "y", source_distance_mm=500.0, detector_distance_mm=100.0),
         detector=Detector("c7942", 4),
-        exposure=Exposure(i0_counts=2500.0, voltage_kv=60.0, current_ua=250.0),
+        # 2500 counts per 4x4 read-out pixel: 2500 / 16 per unbinned pixel (the frames of before
+        # session 31, when i0_counts was the read-out pixel's)
+        exposure=Exposure(i0_counts=2500.0 / 16, voltage_kv=60.0, current_ua=250.0),
         mesh=MeshSpec(
             size_inclusion_mm=1.5, size_far_mm=3.0, model="auto", symmetry=True, curved=True, size_contact_mm=None
         ),

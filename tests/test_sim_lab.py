@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sim.mechanics import compress, uniaxial_block_force
-from sim.scene import Beam, Detector, block_scene
+from sim.scene import Beam, Detector, block_scene, with_binning
 from sim.truth import truth_displacement
 from sim.xray import Geometry
 
@@ -86,7 +86,7 @@ def test_axisymmetric_truth_agrees_with_3d():
     for model in ("axisymmetric", "3d"):
         scene = _cylinder(model, size=(2.0, 5.0))
         scene.beam = Beam("parallel", "z")
-        scene.detector = Detector("c7942", 4)
+        scene = with_binning(scene, 4)
         s15, s25 = compress(scene, ratios=(0.15, 0.25))
         fields.append(truth_displacement(scene, s25, s15))
     ax, full = fields
@@ -113,7 +113,7 @@ def test_fast_truth_equals_the_reference_evaluation(model, kind, factor):
 
     scene = _cylinder(model, size=(3.0, 8.0))
     scene.beam = Beam(kind, "z")
-    scene.detector = Detector("c7942", 4)
+    scene = with_binning(scene, 4)
     s15, s25 = compress(scene, ratios=(0.15, 0.25))
     body = _body(scene, project_state(scene, s25.solver, s25.displacement)[0])
     fast = truth_displacement(scene, s25, s15, factor=factor, body=body)
@@ -138,7 +138,7 @@ def sim_file(tmp_path_factory):
     from sim.lab import simulate_experiment
 
     scene = _block("z", ratios=(0.15, 0.25))
-    scene.exposure.i0_counts = 3000.0
+    scene.exposure.i0_counts = 3000.0 / 16  # per unbinned pixel: 3000 per 4x4 read-out pixel
     path = tmp_path_factory.mktemp("sim") / "block.h5"
     res = simulate_experiment(scene, path, n_darks=6, n_flats=8, frames_per_step=4, progress=False)
     return scene, path, res
@@ -196,7 +196,7 @@ def test_radiokit_recovers_the_simulated_line_integral_within_the_noise(sim_file
         corrected = correct_frames(cal, frames, domain="log").mean(axis=0)
         ok = (cal.mask == 0) & (truth[k] > 0.2)
         err = corrected[ok] - truth[k][ok]
-        n0 = scene.exposure.i0_counts / 16  # per unbinned pixel; binning 4 sums 16 of them
+        n0 = scene.exposure.i0_counts  # per unbinned pixel; binning 4 sums 16 of them
         counts = 16 * n0 * np.exp(-truth[k][ok])
         expected = np.sqrt(np.mean(1 / counts / 4 + 1 / (16 * n0) / 8))
         assert abs(err.mean()) < 0.1 * expected
@@ -279,3 +279,56 @@ def test_truth_of_homogeneous_compression_under_a_cone_beam(direction):
             err, ref_max = max(err, np.abs(field[:, i, j] - ref).max()), max(ref_max, np.abs(ref).max())
     assert len(rows) > 30 and len(cols) > 30 and ref_max > 1.0  # pixels of motion: a real check
     assert err < (2.5 / g.source_distance_mm) ** 2 * ref_max
+
+
+# -- the dose under binning ------------------------------------------------------------------------
+def test_the_same_source_binned_sums_the_charge_in_the_simulated_file(tmp_path):
+    """One scene, one source (the file records the same kV and µA), simulated at 2x2 and 4x4: the
+    open beam per read-out pixel (flats less darks) is 16 / 4 = 4 times larger at 4x4 (four times
+    the unbinned pixels' charge), not the same counts at a quarter of the dose. Over the pixels
+    without a planted defect (the 40 % defect column exists at 1120 columns only) each mean is of
+    ~1e6 or ~3e5 values with a shot variance of ~b^2 I0 (the gain's mean is 1 and its pixel spread
+    averages out to 1e-5): 0.1 % is tens of their errors."""
+    from radiokit.io import read, read_simulation
+    from sim.detector import DefectTruth
+    from sim.lab import simulate_experiment
+
+    scene = _block("y", ratios=(0.1,))
+    scene.exposure.i0_counts = 150.0  # per unbinned pixel: 2400 per 4x4 read-out pixel
+    above = {}
+    for b in (2, 4):
+        scene.detector = Detector("c7942", b)
+        path = tmp_path / f"b{b}.h5"
+        simulate_experiment(scene, path, n_darks=2, n_flats=2, progress=False)
+        f = read(path)
+        keys = f.meta["image_key"]
+        d = read_simulation(path).defects
+        good = ~DefectTruth(d.dead, d.under, d.noisy, d.columns).mask(f.data.shape[1:])
+        flats, darks = f.data[keys == 1][:, good].astype(float), f.data[keys == 2][:, good].astype(float)
+        above[b] = flats.mean() - darks.mean()
+        with h5py.File(path) as h5:
+            flat_rows = np.flatnonzero(keys == 1)
+            assert np.all(h5["entry/control/voltage"][flat_rows] == 60.0)
+            assert np.all(h5["entry/control/current"][flat_rows] == 250.0)
+    assert above[4] / above[2] == pytest.approx(4.0, rel=0.001)
+    assert above[4] == pytest.approx(16 * 150.0, rel=0.001)
+
+
+def test_with_binning_keeps_the_read_out_where_the_scene_puts_it_by_lowering_the_current():
+    """What the lab does when it bins: the tube current (and so the dose per unbinned pixel) falls
+    by the binning squared, the read-out pixels keep their counts, and the scene stays valid where
+    binning the same source would saturate the ADC."""
+    from sim.scene import load_scene
+
+    scene = load_scene("pva-phantom")  # 2500 counts per pixel at 60 kV, 250 µA, 1x1
+    for b in (2, 4):
+        binned = with_binning(scene, b)
+        assert binned.detector.binning == b and binned.detector.preset == scene.detector.preset
+        assert binned.exposure.current_ua == pytest.approx(250.0 / b**2)
+        assert binned.exposure.i0_counts * b**2 == pytest.approx(2500.0)  # per read-out pixel
+        assert binned.exposure.voltage_kv == 60.0
+        assert with_binning(binned, 1).exposure == scene.exposure  # and back
+    assert scene.detector.binning == 1 and scene.exposure.current_ua == 250.0  # the input is untouched
+    scene.detector.binning = 2  # the same source binned: 10000 counts per read-out pixel
+    with pytest.raises(ValueError, match="binning 2"):
+        scene.validate()

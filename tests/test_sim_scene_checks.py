@@ -71,6 +71,8 @@ CASES = [
     ("exposure.current_ua", -1.0, "current_ua -1.0: expected finite numbers > 0"),
     ("exposure.i0_counts", 4000.0, "i0_counts 4000: the open beam would saturate"),
     ("exposure.i0_counts", 0.0, "i0_counts 0.0: expected finite numbers > 0"),
+    # fits 1x1, but the base scene bins 4x4: 16 pixels' charge per read-out pixel
+    ("exposure.i0_counts", 1000.0, "i0_counts 1000 at detector binning 4 (a read-out pixel sums 16 pixels' charge"),
     ("mesh.size_far_mm", float("inf"), "need 0 < size_inclusion_mm <= size_far_mm, finite"),
     ("imaging.blur_sigma_mm", float("inf"), "blur_sigma_mm >= 0"),
     ("name", 5, "scene name: expected a string, got 5"),
@@ -123,6 +125,14 @@ def test_the_cli_refuses_an_invalid_scene_in_one_line_before_meshing(case, no_me
         (["--ratios", "0.25", "0.15"], "--ratios 0.25 0.15: compression ratios [0.25, 0.15] must increase strictly"),
         (["--ratios", "0.95"], "--ratios 0.95: compression ratios [0.95] must lie in [0, 0.9)"),
         (["--imaging", "paper", "--view", "side"], None),  # valid: reaches the (refused) meshing
+        # the preset's source (2500 counts per pixel) binned 2x2 sums 10000 per read-out pixel
+        (
+            ["--binning", "2"],
+            "--binning 2: scene 'pva-phantom': exposure i0_counts 2500 at detector binning 2 (a read-out pixel "
+            "sums 4 pixels' charge: 10000 counts): the open beam would saturate the C7942's 12-bit ADC (4095 "
+            "counts: about 120 of dark offset, and the brightest pixels' gain and noise above the mean): need at "
+            "most 890 (a lower tube current or a shorter exposure), or less binning",
+        ),
     ],
 )
 def test_cli_options_are_checked_with_the_scene(args, words, no_meshing, tmp_path, capsys):

@@ -596,7 +596,7 @@ def test_cone_beam_through_a_meshed_cylinder_scene(direction):
     sandwich on every pixel; from the side, rays at most 0.8 r from the axis err by at most
     ``1e-5 / 0.36`` relative, and through the plates rays that cross both flat faces are exact. The shadow ends where the chords do: from the side, at
     ``D r / sqrt(s^2 - r^2)`` on the detector (the tangents from the source)."""
-    from sim.scene import Beam, Body, Detector, Material, MeshSpec, Scene
+    from sim.scene import Beam, Body, Detector, Exposure, Material, MeshSpec, Scene
 
     r, h, mu = 20.0, 60.0, 0.77
     scene = Scene(
@@ -609,6 +609,7 @@ def test_cone_beam_through_a_meshed_cylinder_scene(direction):
         ),
         beam=Beam("cone", direction, source_distance_mm=400.0, detector_distance_mm=100.0),
         detector=Detector("c7942", 4),
+        exposure=Exposure(2500.0 / 16),  # per unbinned pixel: a 4x4 read-out pixel sums 16 (within 12 bits)
         mesh=MeshSpec(10.0, 10.0, "auto", True),
     )
     img = project(scene).astype(float)

@@ -180,6 +180,8 @@ class SimSettings:
     """The virtual bench used with ``--sim``."""
 
     scene: str = "seed-breast"  # preset name or TOML path
+    # the virtual panel's binning (None: the scene's) at [source]'s kV and uA: a binned pixel sums
+    # binning^2 pixels' charge and clips at 4095 as the C7942 does, so bin at a lower current
     binning: int | None = None
     seed: int = 0
     warmup_s: float = 2.0  # the emulated source's warm-up
