@@ -488,3 +488,24 @@ def test_a_recorded_gap_wider_than_the_fill_reach_takes_its_nearest_valid_value(
     expected = np.log(2) if domain == "log" else 0.5
     # float32 arithmetic on ~2000 counts: exact to 1e-4; the gap's fill is the edge's value
     np.testing.assert_allclose(out[:, 100:120], expected, atol=1e-3)
+
+
+def test_a_flat_saturated_in_a_fifth_of_the_panel_is_refused_for_its_saturation():
+    """Found binning a simulated source set for 1x1 (session 31): a flat clipped at 4095 in 12 % of
+    its pixels was refused as "not of one panel set-up (beam blocked for the flats? ...)", the
+    wrong cause and the wrong fix. The refusal now names the saturation and the exposure; a defect
+    map over the share for other reasons keeps the set-up message."""
+    rng = np.random.default_rng(12)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 40, 40))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 40, 40))).astype(np.uint16)
+    flats[:, :, :8] = 4095  # a fifth of the panel clipped (the bright side of a heel effect)
+    with pytest.raises(ValueError, match=r"saturated.*lower the flat exposure") as err:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", CalibrationWarning)
+            Calibration.from_frames(darks, flats)
+    assert "beam blocked" not in str(err.value)
+    flats = (100 + rng.poisson(3000, (4, 40, 40))).astype(np.uint16)
+    flats[:, :, :8] = 110  # the same share dark: blocked, not saturated
+    with pytest.raises(ValueError, match="beam blocked"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)
+        Calibration.from_frames(darks, flats)
