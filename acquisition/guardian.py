@@ -534,6 +534,17 @@ def _admit(link, watch: _Watch, command: str) -> None:
     watch.sent(command)
 
 
+def _orphaned(link, config, note, watch: _Watch, when: str = "without releasing the port") -> int:
+    """The acquiring process is gone: switch off, close the port, and return the exit status (0:
+    confirmed off; 3: not, the operator warned)."""
+    note("WARNING", f"{link.port}: the acquiring process ended {when}; switching X-rays off")
+    ok = _switch_off(link, config, note, watch) == "off"
+    link.close()
+    if not ok:
+        _say(TUBE_WARNING)
+    return 0 if ok else 3
+
+
 def _serve(link, config, note, watchdog_s: float | None = None) -> int:
     """Answer the acquiring process until it releases the port (0) or disappears (switch off);
     with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
@@ -552,15 +563,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
                     return 3
                 continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
-                note(
-                    "WARNING",
-                    f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
-                )
-                ok = _switch_off(link, config, note, watch) == "off"
-                link.close()
-                if not ok:
-                    _say(TUBE_WARNING)
-                return 0 if ok else 3
+                return _orphaned(link, config, note, watch)
             buf += data
         line, buf = buf.split(b"\n", 1)
         words = line.decode("ascii", "replace").split(" ", 2)
@@ -601,7 +604,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     from acquisition.errors import DeviceError
-    from acquisition.transport import SerialTransport
+    from acquisition.transport import SerialTransport, _write_no_sigpipe
 
     for sig in (signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
@@ -649,7 +652,16 @@ def main(argv: list[str] | None = None) -> int:
     # and a reconnect asks the controller who it is before its replies are passed on or its STS
     # confirms a switch-off (the model: configured, then what the connect's TYP read through here)
     link.on_reconnect = Reidentify(DIALECTS[config.dialect], config.model, args.url)
-    os.write(1, b"READY\n")
+    try:
+        _write_no_sigpipe(1, b"READY\n")
+    except OSError:
+        # the acquiring process died while this one started (kill -9 before READY): nobody reads
+        # the pipe or will release the port, and the tube may be on (left on by an earlier run; a
+        # run's probe may have read it so). The write's BrokenPipeError once ended this process
+        # with a traceback and no XOF, the tube left on and nobody told
+        watch = _Watch(config)
+        watch.reidentify = link.on_reconnect
+        return _orphaned(link, config, note, watch, "before the X-ray guardian was ready")
     return _serve(link, config, note, args.watchdog)
 
 

@@ -12,6 +12,7 @@ queries only, and refuses a device that speaks neither.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import re
@@ -3515,3 +3516,47 @@ def test_cli_warm_up_that_joins_a_running_one_says_so():
     assert "no warm-up needed" not in res.stdout + res.stderr
     assert not {"WUP", "XON", "HIV", "CUR"} & set(sent), sent
     assert model.state.name == "STANDBY"
+
+
+# the acquiring process: start_guardian, SIGKILLed by itself the moment the guardian is spawned
+# (before the guardian's READY); the hook only picks the instant, the kill and the guardian are real
+_KILLED_AT_START = """
+import json, os, signal, subprocess, sys
+from acquisition.guardian import start_guardian
+from acquisition.l8121 import SourceConfig
+
+class Popen(subprocess.Popen):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+subprocess.Popen = Popen
+start_guardian(sys.argv[1], SourceConfig.from_dict(json.loads(sys.argv[2])), notebook=sys.argv[3])
+"""
+
+
+def test_the_guardian_switches_off_for_a_process_killed_before_its_ready(tmp_path, dialect):
+    """The acquiring process is SIGKILLed after it started the guardian, before the guardian said
+    READY (it was importing, opening the port), with the tube left on by an earlier run (``source
+    on``; a run's probe finds it so). The watchdog plays no part here -- the pipe's end says the
+    process is gone, armed or not -- but the guardian's READY then went to a pipe with no reader:
+    BrokenPipeError, a traceback, and an exit without XOF, the tube left on and nobody told."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    notebook = tmp_path / "run.log"
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect=dialect, **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        args = [sys.executable, "-c", _KILLED_AT_START, server.url, json.dumps(resolved.to_dict()), str(notebook)]
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        with open(tmp_path / "stderr", "wb") as err:  # the guardian inherits it: its words to the operator
+            child = subprocess.run(args, stderr=err, env=env, timeout=60, check=False)
+        assert child.returncode == -signal.SIGKILL
+        deadline = time.monotonic() + 30  # the guardian (not this process's child) starts and acts
+        while not (notebook.exists() and "X-rays off (confirmed by STS" in notebook.read_text()):
+            assert time.monotonic() < deadline, (tmp_path / "stderr").read_text()
+            time.sleep(0.1)
+        assert not model.xray_on and "XOF" in model.commands
+    said = (tmp_path / "stderr").read_text()
+    assert "Traceback" not in said and "ended before the X-ray guardian was ready" in said, said
