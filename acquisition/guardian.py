@@ -17,8 +17,9 @@ accept. Two mechanisms cover the two ways a process ends:
   with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
   baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
-  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls, once
-  it has sent its first request: none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
+  notebook, and exits (also when it dies before the guardian is ready). While X-rays may be on it
+  also watches the acquiring process's polls, once it has sent its first request (from the start
+  when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
   and it switches off the same way, says so, and keeps serving (the series then stops at its next
   beam check) -- unless that off was confirmed only by another unit now at the port (the link
   reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
@@ -221,6 +222,7 @@ def start_guardian(
     notebook: str | Path | None = None,
     startup_timeout_s: float = 20.0,
     watchdog_s: float | None = None,
+    armed: bool = False,
 ):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
@@ -242,6 +244,12 @@ def start_guardian(
         every beam-monitor period; silent for this long, it is suspended or hung, and the
         guardian switches off (and says so). Armed by the acquiring process's first request:
         before it, its silence is a slow start, not a hang. None: no watchdog.
+    armed : bool
+        Arm the watchdog from the start, not at the first request: the caller knows the tube may
+        be on now (its probe read it on, or nothing read it off) and sends its first request at
+        once (``radiokit acquire``), so silence even before it is a process stopped (SIGSTOP, a
+        debugger) with the tube on. A death in that window needs no watchdog: the pipe's end
+        says it, armed or not.
 
     Raises
     ------
@@ -271,6 +279,8 @@ def start_guardian(
         cmd += ["--notebook", str(notebook)]
     if watchdog_s is not None:
         cmd += ["--watchdog", repr(float(watchdog_s))]
+        if armed:
+            cmd += ["--armed"]
     env = dict(os.environ)
     # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
     root = str(Path(__file__).resolve().parent.parent)
@@ -545,15 +555,17 @@ def _orphaned(link, config, note, watch: _Watch, when: str = "without releasing 
     return 0 if ok else 3
 
 
-def _serve(link, config, note, watchdog_s: float | None = None) -> int:
+def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = False) -> int:
     """Answer the acquiring process until it releases the port (0) or disappears (switch off);
-    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
+    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on
+    (from its first request, or from the start when ``armed``)."""
     from acquisition.errors import DeviceError, NoReply
 
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
     watch = _Watch(config)
     watch.reidentify = getattr(link, "on_reconnect", None)
+    watch.heard = armed
     while True:
         while b"\n" not in buf:
             data = _read_request(rfd, watch, watchdog_s)
@@ -618,6 +630,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", required=True)
     ap.add_argument("--notebook")
     ap.add_argument("--watchdog", type=float, help="switch off after this many seconds of silence with X-rays on")
+    ap.add_argument("--armed", action="store_true", help="the watchdog armed from the start, not at the first request")
     args = ap.parse_args(argv)
     from acquisition.l8121 import SourceConfig
 
@@ -662,7 +675,7 @@ def main(argv: list[str] | None = None) -> int:
         watch = _Watch(config)
         watch.reidentify = link.on_reconnect
         return _orphaned(link, config, note, watch, "before the X-ray guardian was ready")
-    return _serve(link, config, note, args.watchdog)
+    return _serve(link, config, note, args.watchdog, args.armed)
 
 
 if __name__ == "__main__":

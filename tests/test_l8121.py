@@ -3560,3 +3560,60 @@ def test_the_guardian_switches_off_for_a_process_killed_before_its_ready(tmp_pat
         assert not model.xray_on and "XOF" in model.commands
     said = (tmp_path / "stderr").read_text()
     assert "Traceback" not in said and "ended before the X-ray guardian was ready" in said, said
+
+
+_KILLED_BEFORE_ITS_FIRST_REQUEST = """
+import json, os, signal, sys
+from acquisition.guardian import start_guardian
+from acquisition.l8121 import SourceConfig
+
+start_guardian(sys.argv[1], SourceConfig.from_dict(json.loads(sys.argv[2])), notebook=sys.argv[3], watchdog_s=30.0)
+os.kill(os.getpid(), signal.SIGKILL)  # ready, and not a request sent
+"""
+
+
+def test_a_process_killed_before_its_first_request_needs_no_watchdog(tmp_path):
+    """Why the watchdog may wait for the first request where the process can die: SIGKILLed after
+    the guardian said READY and before any request, the tube on, the guardian's watchdog (30 s,
+    and not armed yet) is not what acts -- the pipe's end is, at once: XOF, confirmed. (A process
+    that is stopped instead is the watchdog's; ``armed`` covers that window, the next test.)"""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
+    notebook = tmp_path / "run.log"
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
+        args = [sys.executable, "-c", _KILLED_BEFORE_ITS_FIRST_REQUEST, server.url, json.dumps(resolved.to_dict())]
+        child = subprocess.run([*args, str(notebook)], env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=60)
+        assert child.returncode == -signal.SIGKILL
+        deadline = time.monotonic() + 20  # well within the watchdog's 30 s
+        while not (notebook.exists() and "X-rays off (confirmed by STS" in notebook.read_text()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert not model.xray_on
+    assert "ended without releasing the port" in notebook.read_text()
+
+
+def test_an_armed_guardian_switches_off_a_silent_process_before_its_first_request(capfd):
+    """``radiokit acquire`` starts the guardian armed when its probe did not read the tube off: a
+    process stopped (SIGSTOP, a debugger) before its first request, the tube left on by an earlier
+    run, is switched off after ``watchdog_s`` (unarmed, the watchdog waited for a request that
+    never came: the tube on for as long as the process stayed stopped)."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()
+        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.3, armed=True)
+        try:
+            deadline = time.monotonic() + 20  # no request from here on: the silent process
+            while model.xray_on and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not model.xray_on and link._process.poll() is None  # it keeps serving
+        finally:
+            link.close()
+    assert "sent nothing for 0.3 s" in capfd.readouterr().err
