@@ -20,7 +20,8 @@ accept. Two mechanisms cover the two ways a process ends:
   notebook, and exits (also when it dies before the guardian is ready). While X-rays may be on it
   also watches the acquiring process's polls, once it has sent its first request (from the start
   when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
-  and it switches off the same way, says so, and keeps serving (the series then stops at its next
+  and it switches off the same way, says so (a retry of an off it could not confirm in one short
+  line), and keeps serving (the series then stops at its next
   beam check) -- unless that off was confirmed only by another unit now at the port (the link
   reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
@@ -310,9 +311,13 @@ class _Notebook:
         self.path = path
 
     def __call__(self, level: str, text: str) -> None:
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
         if level in ("WARNING", "ERROR", "CRITICAL"):
             _say(f"X-ray guardian: {text}")
+        self.record(level, text)
+
+    def record(self, level: str, text: str) -> None:
+        """The notebook only (a line the operator's terminal has had already)."""
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
         if self.path:
             try:
                 with open(self.path, "a", encoding="utf-8") as fh:
@@ -321,15 +326,18 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config, note, watch: _Watch) -> str:
+def _switch_off(link, config, note, watch: _Watch, failure_note=None) -> str:
     """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
     dialect the acquiring process resolved (``config``; no probe, no identity check: only what
     switching off needs). Returns ``"off"`` (``STS`` confirmed it), ``"unverified"`` (confirmed by
     the unit now at the port after the link was reopened while X-rays may have been on: the
     operator has been told) or ``"failed"``. ``watch``: what the exchanges passed on showed (X-rays
-    may be on; the link reopened while they may have been)."""
+    may be on; the link reopened while they may have been). ``failure_note``: where a failure is
+    said instead of ``note`` (a watchdog's retry: the notebook only)."""
     from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
+
+    failed = failure_note or note
 
     driver = L8121(link, config=config, connect=False)
     driver.attach(link)
@@ -342,10 +350,10 @@ def _switch_off(link, config, note, watch: _Watch) -> str:
     try:
         state = driver.off()
     except DeviceError as exc:
-        note("CRITICAL", f"{link.port}: {exc}")
+        failed("CRITICAL", str(exc) if str(exc).startswith(link.port) else f"{link.port}: {exc}")
         return "failed"
     if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
-        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
+        failed("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
         return "failed"
     if driver.unit_unverified:  # reopened during this switch-off: the unit now at the port confirmed it
         note("CRITICAL", driver.unverified_warning(state))
@@ -369,6 +377,10 @@ class _Watch:
         # started False, and the guardian's off, confirmed by a second unit, read "confirmed")
         self.may_be_on = True
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
+        # when the acquiring process fell silent with X-rays possibly on (the watchdog's first try
+        # less watchdog_s), and the tries since: a retry's reminder says how long they may have been on
+        self.silent_since: float | None = None
+        self.retries = 0
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
@@ -486,14 +498,20 @@ def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | 
 
 def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
     """Switch off for the silent acquiring process; returns whether this guardian must end on the
-    warning (exit 3)."""
-    note(
+    warning (exit 3). A retry after a try that could not confirm is said in one short line on the
+    terminal (the first try's lines went there; the notebook keeps every line): a stuck relay
+    retried every watchdog_s filled the operator's terminal with the same WARNING and CRITICAL."""
+    retry = watch.warned
+    said = getattr(note, "record", note) if retry else note
+    if watch.silent_since is None:
+        watch.silent_since = time.monotonic() - watchdog_s
+    said(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
     before = getattr(watch.reidentify, "reconnects", 0)
-    outcome = _switch_off(link, config, note, watch)
+    outcome = _switch_off(link, config, note, watch, said)
     moved = getattr(watch.reidentify, "reconnects", 0) - before
     if moved:
         # reopened during this off, X-rays possibly on (the watchdog runs only then): a try that
@@ -503,7 +521,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         watch.unverified = True
         watch.untold += moved
     if outcome == "off":
-        watch.may_be_on = False
+        watch.may_be_on, watch.warned, watch.silent_since, watch.retries = False, False, None, 0
         return False
     if outcome == "unverified":
         # the unit now at the port is off; the one switched on may not be, and no XOF through this
@@ -521,10 +539,16 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         return True
     # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
     # silence (a controller silent for a second or two at the first attempt must not leave the
-    # tube on for good); the operator's warning is printed once
+    # tube on for good); the operator's warning is printed once, then a reminder per retry
     if not watch.warned:
         _say(TUBE_WARNING)
         watch.warned = True
+    else:
+        watch.retries += 1
+        _say(
+            f"X-ray guardian: {link.port}: X-rays still not confirmed off (retry {watch.retries}, every "
+            f"{watchdog_s:g} s); they may have been on for {time.monotonic() - watch.silent_since:.0f} s: switch off at the controller"
+        )
     return False
 
 

@@ -3617,3 +3617,39 @@ def test_an_armed_guardian_switches_off_a_silent_process_before_its_first_reques
         finally:
             link.close()
     assert "sent nothing for 0.3 s" in capfd.readouterr().err
+
+
+def test_the_guardian_watchdogs_retries_are_told_in_one_short_line_each(dialect, capfd):
+    """The acquiring process falls silent with X-rays on and the unit acknowledges XOF but keeps
+    emitting (a stuck relay): the watchdog tries again after every further ``watchdog_s``. Each try
+    printed the WARNING (silent process, switching off) and the CRITICAL (not confirmed) again, an
+    operator's terminal filling with the same lines. Now they are said once; each retry is one
+    short line naming the port and how long X-rays may have been on; the notebook keeps every
+    line; the acquiring process's death still ends on the loud warning and exit 3."""
+    from acquisition.guardian import TUBE_WARNING, start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        quick = dict(FAST, off_attempts=1, off_confirm_s=0.1)
+        resolved = L8121(server.url, dialect=dialect, connect=False, **quick).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.3)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)
+        model.stuck_on(True)
+        deadline = time.monotonic() + 30  # no poll from here on: the watchdog's turn, four tries
+        while model.commands.count("XOF") < 4:
+            assert time.monotonic() < deadline, model.commands
+            time.sleep(0.05)
+        link._process.stdin.close()  # the acquiring process is gone: the guardian's last word
+        assert link._process.wait(timeout=30) == 3
+        tries = model.commands.count("XOF") - 1  # (the last XOF: the guardian's own, at the end)
+        assert model.xray_on
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert err.count("sent nothing for 0.3 s") == 1, err
+    assert sum("could not confirm X-rays off" in ln for ln in lines) == 2, err  # the first try's, the last
+    reminders = [ln for ln in lines if "still not confirmed off" in ln]
+    assert len(reminders) in (tries - 1, tries), err  # (the try under way at the death is not told)
+    assert all(server.url in ln and "may have been on for" in ln and len(ln) < 200 for ln in reminders), err
+    assert lines[-1] == TUBE_WARNING and err.count(TUBE_WARNING) == 2, err  # the first try's, the last
