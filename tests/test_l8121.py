@@ -3653,3 +3653,26 @@ def test_the_guardian_watchdogs_retries_are_told_in_one_short_line_each(dialect,
     assert len(reminders) in (tries - 1, tries), err  # (the try under way at the death is not told)
     assert all(server.url in ln and "may have been on for" in ln and len(ln) < 200 for ln in reminders), err
     assert lines[-1] == TUBE_WARNING and err.count(TUBE_WARNING) == 2, err  # the first try's, the last
+
+
+def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(tmp_path, dialect, caplog):
+    """The direct link's form of what the guardian closed (review s28-h8): unit 1 left on by an
+    earlier run (``source on``); a new session's connect meets a read error during its first STS
+    as the path moves to unit 2 (same model, off), retried there after the model check. Until a
+    state is read the tube may be on, so that STS is the unit's now at the port: the driver said
+    ``tube_confirmed_off`` (``source status``/``off``: "tube off (confirmed)", exit 0) with unit 1
+    on. Now the reconnect is flagged as one while X-rays may have been on, and said."""
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect=dialect, **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        one.hold_once("STS")  # its reply lost at the read error: retried at unit 2, after the check
+        one.inject_after("STS", _path_moves(port, first, second))
+        with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
+            source = L8121(str(port), dialect=dialect, **FAST)
+        try:
+            assert "STS" in two.commands and one.xray_on and source.last_state.confirms_off
+            assert source.unit_unverified and not source.tube_confirmed_off
+        finally:
+            source.detach()
+    assert "check by hand that the unit first connected is off" in caplog.text
