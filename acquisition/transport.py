@@ -242,12 +242,15 @@ class SerialTransport:
             ser.parity = serial.PARITY_NONE
             ser.stopbits = serial.STOPBITS_ONE
             ser.timeout = min(_READ_SLICE_S, self.timeout_s)
-            ser.write_timeout = self.write_timeout_s
+            if not self.url.lower().startswith("rfc2217://"):
+                # pyserial's RFC 2217 client refuses a write time-out in open() (NotImplementedError:
+                # a traceback); its writes are bounded by its socket's own 5 s time-out instead
+                ser.write_timeout = self.write_timeout_s
             ser.xonxoff = ser.rtscts = ser.dsrdtr = False
             ser.dtr = True  # applied by open()
             ser.rts = True
             ser.open()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self._opened_once = True

@@ -3676,3 +3676,57 @@ def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(
         finally:
             source.detach()
     assert "check by hand that the unit first connected is off" in caplog.text
+
+
+@contextlib.contextmanager
+def _rfc2217_server(flood: threading.Event | None = None):
+    """``(url, done)``: pyserial's own RFC 2217 server (PortManager) over ``loop://``, which echoes
+    every byte, on a local port. ``flood`` set: it stops reading and sends ``IAC WILL 99`` (an
+    unknown option, each answered DONT by the client's reader thread), then waits for ``done``."""
+    from serial.rfc2217 import PortManager
+
+    server = socket.create_server(("127.0.0.1", 0))
+    done = threading.Event()
+
+    def serve():
+        conn, _ = server.accept()
+        with conn, serial.serial_for_url("loop://") as port:
+            manager = PortManager(port, type("Connection", (), {"write": staticmethod(conn.sendall)})())
+            conn.settimeout(0.05)
+            while not (flood is not None and flood.is_set()) and not done.is_set():
+                try:
+                    data = conn.recv(1024)
+                except TimeoutError:
+                    data = None
+                if data == b"":  # the client's end is shut (for writing, at least)
+                    break
+                for byte in manager.filter(data or b""):
+                    port.write(byte)
+                echoed = port.read(port.in_waiting)
+                if echoed:
+                    conn.sendall(b"".join(manager.escape(echoed)))
+            if flood is None or not flood.wait(30):
+                return
+            conn.settimeout(30)
+            try:
+                conn.sendall(b"\xff\xfb\x63" * 100)
+            except OSError:  # the client closed its end
+                pass
+            done.wait(60)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"rfc2217://127.0.0.1:{server.getsockname()[1]}", done
+    finally:
+        done.set()
+        server.close()
+
+
+def test_an_rfc2217_link_opens_and_answers():
+    """``--port rfc2217://host:port`` (a terminal server; the CLI's help offers it) never opened:
+    the transport set pyserial's write time-out, which its RFC 2217 client refuses in open() with
+    NotImplementedError -- a traceback, not the one-line error. Its writes are bounded by its
+    socket's own time-out (5 s) instead. Through pyserial's RFC 2217 server over ``loop://``."""
+    with _rfc2217_server() as (url, _), SerialTransport(url, timeout_s=2.0) as link:
+        assert link.query("TYP") == "TYP"  # loop:// sends every byte back
