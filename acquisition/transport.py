@@ -249,7 +249,12 @@ class SerialTransport:
             ser.xonxoff = ser.rtscts = ser.dsrdtr = False
             ser.dtr = True  # applied by open()
             ser.rts = True
-            ser.open()
+            with _sigpipe_held():
+                # rfc2217:// starts a reader thread here, which answers the server's telnet requests
+                # (socket sends) for the link's life: it inherits this thread's mask, so SIGPIPE
+                # stays blocked in it, and a send on a link closed or reset fails with EPIPE -- under
+                # SIGPIPE at its default (gmsh) it killed the whole process, whatever the tube's state
+                ser.open()
         except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser

@@ -3678,6 +3678,22 @@ def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(
     assert "check by hand that the unit first connected is off" in caplog.text
 
 
+_RFC2217_CHILD = """
+import signal, socket, sys, time
+signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
+signal.alarm(60)  # never hang the suite
+from acquisition.transport import SerialTransport
+link = SerialTransport(sys.argv[1], timeout_s=0.5)
+# pyserial's close() shuts the socket down, then closes it: a reader-thread send between the two
+# meets EPIPE. That window is a thread switch wide; here it is held open (pyserial's socket)
+link._serial._socket.shutdown(socket.SHUT_WR)
+print("open", flush=True)
+time.sleep(1.0)  # the peer sends telnet requests now: the reader thread answers the first
+link.close()
+print("closed", flush=True)
+"""
+
+
 @contextlib.contextmanager
 def _rfc2217_server(flood: threading.Event | None = None):
     """``(url, done)``: pyserial's own RFC 2217 server (PortManager) over ``loop://``, which echoes
@@ -3730,3 +3746,36 @@ def test_an_rfc2217_link_opens_and_answers():
     socket's own time-out (5 s) instead. Through pyserial's RFC 2217 server over ``loop://``."""
     with _rfc2217_server() as (url, _), SerialTransport(url, timeout_s=2.0) as link:
         assert link.query("TYP") == "TYP"  # loop:// sends every byte back
+
+
+def test_an_rfc2217_links_reader_thread_meets_epipe_not_sigpipe_death():
+    """pyserial's rfc2217:// link answers the server's telnet requests from its own reader thread
+    (a socket send), outside the SIGPIPE hold of ``SerialTransport``'s writes. SIGPIPE from a send
+    is delivered to the sending thread; under the default disposition (a Python-API user whose
+    process imported gmsh) the reader's send on a link shut down killed the whole process (-13),
+    X-rays on or not. pyserial's close() shuts the socket down and closes it at once, so a send
+    between the two -- an EPIPE, not the usual EBADF -- is a thread switch away: the shutdown is
+    made here and the window held open (the only fake: a race the test cannot time). The reader
+    thread now starts with SIGPIPE blocked (it inherits the mask of the ``open()`` that starts it),
+    so its send fails with EPIPE and the process lives.
+
+    The server is pyserial's own RFC 2217 PortManager over ``loop://``; once the child's port is
+    open it sends ``IAC WILL 99`` (an unknown option: answered DONT). In a child process: SIGPIPE's
+    disposition is per process."""
+    flood = threading.Event()
+    with _rfc2217_server(flood) as (url, done):
+        child = subprocess.Popen(
+            [sys.executable, "-c", _RFC2217_CHILD, url],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+        )
+        try:
+            opened = child.stdout.readline().strip()
+            flood.set()
+            out, err = child.communicate(timeout=60)
+        finally:
+            child.kill()
+    assert opened == "open", err[-2000:]
+    assert child.returncode == 0 and out.strip() == "closed", (child.returncode, err[-2000:])
