@@ -346,6 +346,9 @@ def _switch_off(link, config, note, watch: _Watch, failure_note=None) -> str:
     # reconnect already passed on while they may have been on (reviews s28-h6, s28-h7: a fresh
     # driver thought the tube off, so either reconnect went unflagged and the off was "confirmed")
     driver._may_be_on = watch.may_be_on or watch.unverified
+    # the watch's may_be_on starts unknown-means-on and ends only at an STS read through here: it
+    # stands for the fresh driver's own "no state read yet" (X-rays read off stay off: s28-h7)
+    driver._state_unread = False
     driver.unit_unverified = watch.unverified
     try:
         state = driver.off()

@@ -3779,3 +3779,26 @@ def test_an_rfc2217_links_reader_thread_meets_epipe_not_sigpipe_death():
             child.kill()
     assert opened == "open", err[-2000:]
     assert child.returncode == 0 and out.strip() == "closed", (child.returncode, err[-2000:])
+
+
+def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed(dialect, capfd):
+    """The other side of the driver's "no state read yet" rule: through the guardian the
+    acquiring process's connect read the tube off, then it died; the guardian's XOF meets a read
+    error and the link is reopened. X-rays were read off, so STS confirms the off (exit 0): the
+    guardian's fresh driver must take the watch's knowledge, not its own "nothing read yet"."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()  # its STS reads the tube off
+        assert source.tube_confirmed_off
+        model.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+        model.inject_after("XOF", server.read_error)
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 0
+        assert not model.xray_on and model.commands.count(IDENTITY_QUERY[dialect]) >= 2  # (reconnected)
+    err = capfd.readouterr().err
+    assert "X-rays off (confirmed by STS" in err and "check by hand" not in err, err
