@@ -19,9 +19,9 @@ accept. Two mechanisms cover the two ways a process ends:
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
   notebook, and exits (also when it dies before the guardian is ready). While X-rays may be on it
   also watches the acquiring process's polls, once it has sent its first request (from the start
-  when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
-  and it switches off the same way, says so (a retry of an off it could not confirm in one short
-  line), and keeps serving (the series then stops at its next
+  when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the
+  protocol's ``[source] watchdog_s``) and it switches off the same way, says so (a retry of an off
+  it could not confirm in one short line), and keeps serving (the series then stops at its next
   beam check) -- unless that off was confirmed only by another unit now at the port (the link
   reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
@@ -550,7 +550,8 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         watch.retries += 1
         _say(
             f"X-ray guardian: {link.port}: X-rays still not confirmed off (retry {watch.retries}, every "
-            f"{watchdog_s:g} s); they may have been on for {time.monotonic() - watch.silent_since:.0f} s: switch off at the controller"
+            f"{watchdog_s:g} s); they may have been on for {time.monotonic() - watch.silent_since:.0f} s: "
+            "switch off at the controller"
         )
     return False
 

@@ -1424,7 +1424,7 @@ class L8121:
                 else:
                     logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
                     self._may_be_on = True
-            elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS: another unit?
+            elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
                 logger.critical("%s", self.unverified_warning(self._last_state))
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
