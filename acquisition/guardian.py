@@ -17,9 +17,11 @@ accept. Two mechanisms cover the two ways a process ends:
   with the configuration the acquiring process resolved (``L8121.resolved_config()``: dialect,
   baud rate, command spacing, time-outs -- no probe, no connect checks) and calls ``off()``
   (``XOF``, confirmed by ``STS``, in that dialect), writes the outcome to stderr and the lab
-  notebook, and exits. While X-rays may be on it also watches the acquiring process's polls, once
-  it has sent its first request: none for ``watchdog_s`` (the protocol's ``[source] watchdog_s``)
-  and it switches off the same way, says so, and keeps serving (the series then stops at its next
+  notebook, and exits (also when it dies before the guardian is ready). While X-rays may be on it
+  also watches the acquiring process's polls, once it has sent its first request (from the start
+  when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the
+  protocol's ``[source] watchdog_s``) and it switches off the same way, says so (a retry of an off
+  it could not confirm in one short line), and keeps serving (the series then stops at its next
   beam check) -- unless that off was confirmed only by another unit now at the port (the link
   reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
@@ -221,6 +223,7 @@ def start_guardian(
     notebook: str | Path | None = None,
     startup_timeout_s: float = 20.0,
     watchdog_s: float | None = None,
+    armed: bool = False,
 ):
     """Start a guardian process on ``url`` and return the :class:`~acquisition.transport.PipeTransport`
     to talk through it.
@@ -242,6 +245,12 @@ def start_guardian(
         every beam-monitor period; silent for this long, it is suspended or hung, and the
         guardian switches off (and says so). Armed by the acquiring process's first request:
         before it, its silence is a slow start, not a hang. None: no watchdog.
+    armed : bool
+        Arm the watchdog from the start, not at the first request: the caller knows the tube may
+        be on now (its probe read it on, or nothing read it off) and sends its first request at
+        once (``radiokit acquire``), so silence even before it is a process stopped (SIGSTOP, a
+        debugger) with the tube on. A death in that window needs no watchdog: the pipe's end
+        says it, armed or not.
 
     Raises
     ------
@@ -271,6 +280,8 @@ def start_guardian(
         cmd += ["--notebook", str(notebook)]
     if watchdog_s is not None:
         cmd += ["--watchdog", repr(float(watchdog_s))]
+        if armed:
+            cmd += ["--armed"]
     env = dict(os.environ)
     # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
     root = str(Path(__file__).resolve().parent.parent)
@@ -300,9 +311,13 @@ class _Notebook:
         self.path = path
 
     def __call__(self, level: str, text: str) -> None:
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
         if level in ("WARNING", "ERROR", "CRITICAL"):
             _say(f"X-ray guardian: {text}")
+        self.record(level, text)
+
+    def record(self, level: str, text: str) -> None:
+        """The notebook only (a line the operator's terminal has had already)."""
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
         if self.path:
             try:
                 with open(self.path, "a", encoding="utf-8") as fh:
@@ -311,15 +326,18 @@ class _Notebook:
                 pass
 
 
-def _switch_off(link, config, note, watch: _Watch) -> str:
+def _switch_off(link, config, note, watch: _Watch, failure_note=None) -> str:
     """The acquiring process is gone: the driver's ``off()`` on the port this process holds, in the
     dialect the acquiring process resolved (``config``; no probe, no identity check: only what
     switching off needs). Returns ``"off"`` (``STS`` confirmed it), ``"unverified"`` (confirmed by
     the unit now at the port after the link was reopened while X-rays may have been on: the
     operator has been told) or ``"failed"``. ``watch``: what the exchanges passed on showed (X-rays
-    may be on; the link reopened while they may have been)."""
+    may be on; the link reopened while they may have been). ``failure_note``: where a failure is
+    said instead of ``note`` (a watchdog's retry: the notebook only)."""
     from acquisition.errors import DeviceError
     from acquisition.l8121 import L8121
+
+    failed = failure_note or note
 
     driver = L8121(link, config=config, connect=False)
     driver.attach(link)
@@ -328,14 +346,17 @@ def _switch_off(link, config, note, watch: _Watch) -> str:
     # reconnect already passed on while they may have been on (reviews s28-h6, s28-h7: a fresh
     # driver thought the tube off, so either reconnect went unflagged and the off was "confirmed")
     driver._may_be_on = watch.may_be_on or watch.unverified
+    # the watch's may_be_on starts unknown-means-on and ends only at an STS read through here: it
+    # stands for the fresh driver's own "no state read yet" (X-rays read off stay off: s28-h7)
+    driver._state_unread = False
     driver.unit_unverified = watch.unverified
     try:
         state = driver.off()
     except DeviceError as exc:
-        note("CRITICAL", f"{link.port}: {exc}")
+        failed("CRITICAL", str(exc) if str(exc).startswith(link.port) else f"{link.port}: {exc}")
         return "failed"
     if state.emitting:  # never the case after off() returns; kept as the one rule (AGING emits)
-        note("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
+        failed("CRITICAL", f"{link.port}: XOF sent, but the controller reports {state.name}")
         return "failed"
     if driver.unit_unverified:  # reopened during this switch-off: the unit now at the port confirmed it
         note("CRITICAL", driver.unverified_warning(state))
@@ -359,6 +380,10 @@ class _Watch:
         # started False, and the guardian's off, confirmed by a second unit, read "confirmed")
         self.may_be_on = True
         self.warned = False  # the watchdog's unconfirmed switch-off has been told to the operator
+        # when the acquiring process fell silent with X-rays possibly on (the watchdog's first try
+        # less watchdog_s), and the tries since: a retry's reminder says how long they may have been on
+        self.silent_since: float | None = None
+        self.retries = 0
         self.reidentify = None  # the link's on_reconnect (acquisition.l8121.Reidentify), if any
         # the link was reopened while X-rays may have been on: an STS that reads off afterwards is
         # the unit's now behind the port (the L8121 names only its model), told to the operator
@@ -476,14 +501,20 @@ def _read_request(rfd: int, watch: _Watch, watchdog_s: float | None) -> bytes | 
 
 def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
     """Switch off for the silent acquiring process; returns whether this guardian must end on the
-    warning (exit 3)."""
-    note(
+    warning (exit 3). A retry after a try that could not confirm is said in one short line on the
+    terminal (the first try's lines went there; the notebook keeps every line): a stuck relay
+    retried every watchdog_s filled the operator's terminal with the same WARNING and CRITICAL."""
+    retry = watch.warned
+    said = getattr(note, "record", note) if retry else note
+    if watch.silent_since is None:
+        watch.silent_since = time.monotonic() - watchdog_s
+    said(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
         f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
     )
     before = getattr(watch.reidentify, "reconnects", 0)
-    outcome = _switch_off(link, config, note, watch)
+    outcome = _switch_off(link, config, note, watch, said)
     moved = getattr(watch.reidentify, "reconnects", 0) - before
     if moved:
         # reopened during this off, X-rays possibly on (the watchdog runs only then): a try that
@@ -493,7 +524,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         watch.unverified = True
         watch.untold += moved
     if outcome == "off":
-        watch.may_be_on = False
+        watch.may_be_on, watch.warned, watch.silent_since, watch.retries = False, False, None, 0
         return False
     if outcome == "unverified":
         # the unit now at the port is off; the one switched on may not be, and no XOF through this
@@ -511,10 +542,17 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         return True
     # not confirmed: the watchdog stays armed and tries again after every further watchdog_s of
     # silence (a controller silent for a second or two at the first attempt must not leave the
-    # tube on for good); the operator's warning is printed once
+    # tube on for good); the operator's warning is printed once, then a reminder per retry
     if not watch.warned:
         _say(TUBE_WARNING)
         watch.warned = True
+    else:
+        watch.retries += 1
+        _say(
+            f"X-ray guardian: {link.port}: X-rays still not confirmed off (retry {watch.retries}, every "
+            f"{watchdog_s:g} s); they may have been on for {time.monotonic() - watch.silent_since:.0f} s: "
+            "switch off at the controller"
+        )
     return False
 
 
@@ -534,15 +572,28 @@ def _admit(link, watch: _Watch, command: str) -> None:
     watch.sent(command)
 
 
-def _serve(link, config, note, watchdog_s: float | None = None) -> int:
+def _orphaned(link, config, note, watch: _Watch, when: str = "without releasing the port") -> int:
+    """The acquiring process is gone: switch off, close the port, and return the exit status (0:
+    confirmed off; 3: not, the operator warned)."""
+    note("WARNING", f"{link.port}: the acquiring process ended {when}; switching X-rays off")
+    ok = _switch_off(link, config, note, watch) == "off"
+    link.close()
+    if not ok:
+        _say(TUBE_WARNING)
+    return 0 if ok else 3
+
+
+def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = False) -> int:
     """Answer the acquiring process until it releases the port (0) or disappears (switch off);
-    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on."""
+    with ``watchdog_s``, switch off when it falls silent for that long while X-rays may be on
+    (from its first request, or from the start when ``armed``)."""
     from acquisition.errors import DeviceError, NoReply
 
     rfd, wfd = sys.stdin.fileno(), sys.stdout.fileno()
     buf = b""
     watch = _Watch(config)
     watch.reidentify = getattr(link, "on_reconnect", None)
+    watch.heard = armed
     while True:
         while b"\n" not in buf:
             data = _read_request(rfd, watch, watchdog_s)
@@ -552,15 +603,7 @@ def _serve(link, config, note, watchdog_s: float | None = None) -> int:
                     return 3
                 continue
             if not data:  # the pipe closed without a release: the acquiring process is gone
-                note(
-                    "WARNING",
-                    f"{link.port}: the acquiring process ended without releasing the port; switching X-rays off",
-                )
-                ok = _switch_off(link, config, note, watch) == "off"
-                link.close()
-                if not ok:
-                    _say(TUBE_WARNING)
-                return 0 if ok else 3
+                return _orphaned(link, config, note, watch)
             buf += data
         line, buf = buf.split(b"\n", 1)
         words = line.decode("ascii", "replace").split(" ", 2)
@@ -601,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     from acquisition.errors import DeviceError
-    from acquisition.transport import SerialTransport
+    from acquisition.transport import SerialTransport, _write_no_sigpipe
 
     for sig in (signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
@@ -615,6 +658,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", required=True)
     ap.add_argument("--notebook")
     ap.add_argument("--watchdog", type=float, help="switch off after this many seconds of silence with X-rays on")
+    ap.add_argument("--armed", action="store_true", help="the watchdog armed from the start, not at the first request")
     args = ap.parse_args(argv)
     from acquisition.l8121 import SourceConfig
 
@@ -649,8 +693,17 @@ def main(argv: list[str] | None = None) -> int:
     # and a reconnect asks the controller who it is before its replies are passed on or its STS
     # confirms a switch-off (the model: configured, then what the connect's TYP read through here)
     link.on_reconnect = Reidentify(DIALECTS[config.dialect], config.model, args.url)
-    os.write(1, b"READY\n")
-    return _serve(link, config, note, args.watchdog)
+    try:
+        _write_no_sigpipe(1, b"READY\n")
+    except OSError:
+        # the acquiring process died while this one started (kill -9 before READY): nobody reads
+        # the pipe or will release the port, and the tube may be on (left on by an earlier run; a
+        # run's probe may have read it so). The write's BrokenPipeError once ended this process
+        # with a traceback and no XOF, the tube left on and nobody told
+        watch = _Watch(config)
+        watch.reidentify = link.on_reconnect
+        return _orphaned(link, config, note, watch, "before the X-ray guardian was ready")
+    return _serve(link, config, note, args.watchdog, args.armed)
 
 
 if __name__ == "__main__":

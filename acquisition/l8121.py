@@ -1304,6 +1304,11 @@ class L8121:
         # confirmation comes from the unit now behind the port, which only its model vouches for
         # (no serial numbers): the tube this session switched on is not confirmed off by it
         self.unit_unverified = False
+        # No state read yet on this driver's link: the tube may be on (left on by an earlier run), so
+        # a reconnect before the first STS counts as one while X-rays may have been on -- that STS
+        # is the unit's now at the port. Once a state is read, _may_be_on says (the guardian's
+        # watch starts so too; the driver's did not: `source off` said "confirmed" with unit 1 on)
+        self._state_unread = True
         # What this session knows of the tube, for the exit rule (README: exit codes): whether it
         # opened the port (the probe's included), and the state its last STS (or SAR) read
         self.port_opened = False
@@ -1419,6 +1424,8 @@ class L8121:
                 else:
                     logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
                     self._may_be_on = True
+            elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
+                logger.critical("%s", self.unverified_warning(self._last_state))
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
                 # (as the probe's: whether the controller has received anything from this connect)
@@ -1904,7 +1911,7 @@ class L8121:
             error = exc
             self._claim_off(me)  # before another thread's queued exchange gets the link
         finally:
-            if check is not None and check.reconnects != seen and self._may_be_on:
+            if check is not None and check.reconnects != seen and (self._may_be_on or self._state_unread):
                 self.unit_unverified = True
             with self._turns:
                 self._busy = False
@@ -1937,6 +1944,7 @@ class L8121:
             raise err from None
         if name in ("state", "beam"):
             self._last_state = value if name == "state" else value[0]
+            self._state_unread = False
         return value
 
     def _do(self, name: str, value=None) -> None:

@@ -242,12 +242,20 @@ class SerialTransport:
             ser.parity = serial.PARITY_NONE
             ser.stopbits = serial.STOPBITS_ONE
             ser.timeout = min(_READ_SLICE_S, self.timeout_s)
-            ser.write_timeout = self.write_timeout_s
+            if not self.url.lower().startswith("rfc2217://"):
+                # pyserial's RFC 2217 client refuses a write time-out in open() (NotImplementedError:
+                # a traceback); its writes are bounded by its socket's own 5 s time-out instead
+                ser.write_timeout = self.write_timeout_s
             ser.xonxoff = ser.rtscts = ser.dsrdtr = False
             ser.dtr = True  # applied by open()
             ser.rts = True
-            ser.open()
-        except (serial.SerialException, OSError, ValueError) as exc:
+            with _sigpipe_held():
+                # rfc2217:// starts a reader thread here, which answers the server's telnet requests
+                # (socket sends) for the link's life: it inherits this thread's mask, so SIGPIPE
+                # stays blocked in it, and a send on a link closed or reset fails with EPIPE -- under
+                # SIGPIPE at its default (gmsh) it killed the whole process, whatever the tube's state
+                ser.open()
+        except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
         self._serial = ser
         self._opened_once = True

@@ -12,6 +12,7 @@ queries only, and refuses a device that speaks neither.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import re
@@ -3515,3 +3516,289 @@ def test_cli_warm_up_that_joins_a_running_one_says_so():
     assert "no warm-up needed" not in res.stdout + res.stderr
     assert not {"WUP", "XON", "HIV", "CUR"} & set(sent), sent
     assert model.state.name == "STANDBY"
+
+
+# the acquiring process: start_guardian, SIGKILLed by itself the moment the guardian is spawned
+# (before the guardian's READY); the hook only picks the instant, the kill and the guardian are real
+_KILLED_AT_START = """
+import json, os, signal, subprocess, sys
+from acquisition.guardian import start_guardian
+from acquisition.l8121 import SourceConfig
+
+class Popen(subprocess.Popen):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+subprocess.Popen = Popen
+start_guardian(sys.argv[1], SourceConfig.from_dict(json.loads(sys.argv[2])), notebook=sys.argv[3])
+"""
+
+
+def test_the_guardian_switches_off_for_a_process_killed_before_its_ready(tmp_path, dialect):
+    """The acquiring process is SIGKILLed after it started the guardian, before the guardian said
+    READY (it was importing, opening the port), with the tube left on by an earlier run (``source
+    on``; a run's probe finds it so). The watchdog plays no part here -- the pipe's end says the
+    process is gone, armed or not -- but the guardian's READY then went to a pipe with no reader:
+    BrokenPipeError, a traceback, and an exit without XOF, the tube left on and nobody told."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    notebook = tmp_path / "run.log"
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect=dialect, **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        args = [sys.executable, "-c", _KILLED_AT_START, server.url, json.dumps(resolved.to_dict()), str(notebook)]
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        with open(tmp_path / "stderr", "wb") as err:  # the guardian inherits it: its words to the operator
+            child = subprocess.run(args, stderr=err, env=env, timeout=60, check=False)
+        assert child.returncode == -signal.SIGKILL
+        deadline = time.monotonic() + 30  # the guardian (not this process's child) starts and acts
+        while not (notebook.exists() and "X-rays off (confirmed by STS" in notebook.read_text()):
+            assert time.monotonic() < deadline, (tmp_path / "stderr").read_text()
+            time.sleep(0.1)
+        assert not model.xray_on and "XOF" in model.commands
+    said = (tmp_path / "stderr").read_text()
+    assert "Traceback" not in said and "ended before the X-ray guardian was ready" in said, said
+
+
+_KILLED_BEFORE_ITS_FIRST_REQUEST = """
+import json, os, signal, sys
+from acquisition.guardian import start_guardian
+from acquisition.l8121 import SourceConfig
+
+start_guardian(sys.argv[1], SourceConfig.from_dict(json.loads(sys.argv[2])), notebook=sys.argv[3], watchdog_s=30.0)
+os.kill(os.getpid(), signal.SIGKILL)  # ready, and not a request sent
+"""
+
+
+def test_a_process_killed_before_its_first_request_needs_no_watchdog(tmp_path):
+    """Why the watchdog may wait for the first request where the process can die: SIGKILLed after
+    the guardian said READY and before any request, the tube on, the guardian's watchdog (30 s,
+    and not armed yet) is not what acts -- the pipe's end is, at once: XOF, confirmed. (A process
+    that is stopped instead is the watchdog's; ``armed`` covers that window, the next test.)"""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
+    notebook = tmp_path / "run.log"
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
+        args = [sys.executable, "-c", _KILLED_BEFORE_ITS_FIRST_REQUEST, server.url, json.dumps(resolved.to_dict())]
+        child = subprocess.run([*args, str(notebook)], env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=60)
+        assert child.returncode == -signal.SIGKILL
+        deadline = time.monotonic() + 20  # well within the watchdog's 30 s
+        while not (notebook.exists() and "X-rays off (confirmed by STS" in notebook.read_text()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert not model.xray_on
+    assert "ended without releasing the port" in notebook.read_text()
+
+
+def test_an_armed_guardian_switches_off_a_silent_process_before_its_first_request(capfd):
+    """``radiokit acquire`` starts the guardian armed when its probe did not read the tube off: a
+    process stopped (SIGSTOP, a debugger) before its first request, the tube left on by an earlier
+    run, is switched off after ``watchdog_s`` (unarmed, the watchdog waited for a request that
+    never came: the tube on for as long as the process stayed stopped)."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        earlier = L8121(server.url, dialect="A", **FAST)
+        earlier.on(60, 250)
+        earlier.detach()
+        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.3, armed=True)
+        try:
+            deadline = time.monotonic() + 20  # no request from here on: the silent process
+            while model.xray_on and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not model.xray_on and link._process.poll() is None  # it keeps serving
+        finally:
+            link.close()
+    assert "sent nothing for 0.3 s" in capfd.readouterr().err
+
+
+def test_the_guardian_watchdogs_retries_are_told_in_one_short_line_each(dialect, capfd):
+    """The acquiring process falls silent with X-rays on and the unit acknowledges XOF but keeps
+    emitting (a stuck relay): the watchdog tries again after every further ``watchdog_s``. Each try
+    printed the WARNING (silent process, switching off) and the CRITICAL (not confirmed) again, an
+    operator's terminal filling with the same lines. Now they are said once; each retry is one
+    short line naming the port and how long X-rays may have been on; the notebook keeps every
+    line; the acquiring process's death still ends on the loud warning and exit 3."""
+    from acquisition.guardian import TUBE_WARNING, start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        quick = dict(FAST, off_attempts=1, off_confirm_s=0.1)
+        resolved = L8121(server.url, dialect=dialect, connect=False, **quick).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.3)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)
+        model.stuck_on(True)
+        deadline = time.monotonic() + 30  # no poll from here on: the watchdog's turn, four tries
+        while model.commands.count("XOF") < 4:
+            assert time.monotonic() < deadline, model.commands
+            time.sleep(0.05)
+        link._process.stdin.close()  # the acquiring process is gone: the guardian's last word
+        assert link._process.wait(timeout=30) == 3
+        tries = model.commands.count("XOF") - 1  # (the last XOF: the guardian's own, at the end)
+        assert model.xray_on
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert err.count("sent nothing for 0.3 s") == 1, err
+    assert sum("could not confirm X-rays off" in ln for ln in lines) == 2, err  # the first try's, the last
+    reminders = [ln for ln in lines if "still not confirmed off" in ln]
+    assert len(reminders) in (tries - 1, tries), err  # (the try under way at the death is not told)
+    assert all(server.url in ln and "may have been on for" in ln and len(ln) < 200 for ln in reminders), err
+    assert lines[-1] == TUBE_WARNING and err.count(TUBE_WARNING) == 2, err  # the first try's, the last
+
+
+def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(tmp_path, dialect, caplog):
+    """The direct link's form of what the guardian closed (review s28-h8): unit 1 left on by an
+    earlier run (``source on``); a new session's connect meets a read error during its first STS
+    as the path moves to unit 2 (same model, off), retried there after the model check. Until a
+    state is read the tube may be on, so that STS is the unit's now at the port: the driver said
+    ``tube_confirmed_off`` (``source status``/``off``: "tube off (confirmed)", exit 0) with unit 1
+    on. Now the reconnect is flagged as one while X-rays may have been on, and said."""
+    with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
+        earlier = L8121(first.url, dialect=dialect, **FAST)
+        earlier.on(60, 250)
+        earlier.detach()  # as `radiokit acquire source on` leaves it
+        one.hold_once("STS")  # its reply lost at the read error: retried at unit 2, after the check
+        one.inject_after("STS", _path_moves(port, first, second))
+        with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
+            source = L8121(str(port), dialect=dialect, **FAST)
+        try:
+            assert "STS" in two.commands and one.xray_on and source.last_state.confirms_off
+            assert source.unit_unverified and not source.tube_confirmed_off
+        finally:
+            source.detach()
+    assert "check by hand that the unit first connected is off" in caplog.text
+
+
+_RFC2217_CHILD = """
+import signal, socket, sys, time
+signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # as gmsh leaves it
+signal.alarm(60)  # never hang the suite
+from acquisition.transport import SerialTransport
+link = SerialTransport(sys.argv[1], timeout_s=0.5)
+# pyserial's close() shuts the socket down, then closes it: a reader-thread send between the two
+# meets EPIPE. That window is a thread switch wide; here it is held open (pyserial's socket)
+link._serial._socket.shutdown(socket.SHUT_WR)
+print("open", flush=True)
+time.sleep(1.0)  # the peer sends telnet requests now: the reader thread answers the first
+link.close()
+print("closed", flush=True)
+"""
+
+
+@contextlib.contextmanager
+def _rfc2217_server(flood: threading.Event | None = None):
+    """``(url, done)``: pyserial's own RFC 2217 server (PortManager) over ``loop://``, which echoes
+    every byte, on a local port. ``flood`` set: it stops reading and sends ``IAC WILL 99`` (an
+    unknown option, each answered DONT by the client's reader thread), then waits for ``done``."""
+    from serial.rfc2217 import PortManager
+
+    server = socket.create_server(("127.0.0.1", 0))
+    done = threading.Event()
+
+    def serve():
+        conn, _ = server.accept()
+        with conn, serial.serial_for_url("loop://") as port:
+            manager = PortManager(port, type("Connection", (), {"write": staticmethod(conn.sendall)})())
+            conn.settimeout(0.05)
+            while not (flood is not None and flood.is_set()) and not done.is_set():
+                try:
+                    data = conn.recv(1024)
+                except TimeoutError:
+                    data = None
+                if data == b"":  # the client's end is shut (for writing, at least)
+                    break
+                for byte in manager.filter(data or b""):
+                    port.write(byte)
+                echoed = port.read(port.in_waiting)
+                if echoed:
+                    conn.sendall(b"".join(manager.escape(echoed)))
+            if flood is None or not flood.wait(30):
+                return
+            conn.settimeout(30)
+            try:
+                conn.sendall(b"\xff\xfb\x63" * 100)
+            except OSError:  # the client closed its end
+                pass
+            done.wait(60)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"rfc2217://127.0.0.1:{server.getsockname()[1]}", done
+    finally:
+        done.set()
+        server.close()
+
+
+def test_an_rfc2217_link_opens_and_answers():
+    """``--port rfc2217://host:port`` (a terminal server; the CLI's help offers it) never opened:
+    the transport set pyserial's write time-out, which its RFC 2217 client refuses in open() with
+    NotImplementedError -- a traceback, not the one-line error. Its writes are bounded by its
+    socket's own time-out (5 s) instead. Through pyserial's RFC 2217 server over ``loop://``."""
+    with _rfc2217_server() as (url, _), SerialTransport(url, timeout_s=2.0) as link:
+        assert link.query("TYP") == "TYP"  # loop:// sends every byte back
+
+
+def test_an_rfc2217_links_reader_thread_meets_epipe_not_sigpipe_death():
+    """pyserial's rfc2217:// link answers the server's telnet requests from its own reader thread
+    (a socket send), outside the SIGPIPE hold of ``SerialTransport``'s writes. SIGPIPE from a send
+    is delivered to the sending thread; under the default disposition (a Python-API user whose
+    process imported gmsh) the reader's send on a link shut down killed the whole process (-13),
+    X-rays on or not. pyserial's close() shuts the socket down and closes it at once, so a send
+    between the two -- an EPIPE, not the usual EBADF -- is a thread switch away: the shutdown is
+    made here and the window held open (the only fake: a race the test cannot time). The reader
+    thread now starts with SIGPIPE blocked (it inherits the mask of the ``open()`` that starts it),
+    so its send fails with EPIPE and the process lives.
+
+    The server is pyserial's own RFC 2217 PortManager over ``loop://``; once the child's port is
+    open it sends ``IAC WILL 99`` (an unknown option: answered DONT). In a child process: SIGPIPE's
+    disposition is per process."""
+    flood = threading.Event()
+    with _rfc2217_server(flood) as (url, done):
+        child = subprocess.Popen(
+            [sys.executable, "-c", _RFC2217_CHILD, url],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+        )
+        try:
+            opened = child.stdout.readline().strip()
+            flood.set()
+            out, err = child.communicate(timeout=60)
+        finally:
+            child.kill()
+    assert opened == "open", err[-2000:]
+    assert child.returncode == 0 and out.strip() == "closed", (child.returncode, err[-2000:])
+
+
+def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed(dialect, capfd):
+    """The other side of the driver's "no state read yet" rule: through the guardian the
+    acquiring process's connect read the tube off, then it died; the guardian's XOF meets a read
+    error and the link is reopened. X-rays were read off, so STS confirms the off (exit 0): the
+    guardian's fresh driver must take the watch's knowledge, not its own "nothing read yet"."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()  # its STS reads the tube off
+        assert source.tube_confirmed_off
+        model.hold_once("XOF")  # its reply lost at the read error: the guardian's link reconnects
+        model.inject_after("XOF", server.read_error)
+        link._process.stdin.close()  # the acquiring process is gone, without a release
+        assert link._process.wait(timeout=30) == 0
+        assert not model.xray_on and model.commands.count(IDENTITY_QUERY[dialect]) >= 2  # (reconnected)
+    err = capfd.readouterr().err
+    assert "X-rays off (confirmed by STS" in err and "check by hand" not in err, err

@@ -580,8 +580,16 @@ def _guarded_source(url: str, p: Protocol):
     driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
     try:
         resolved = driver.resolve()
+        # the watchdog armed from the start unless the probe read the tube off: left on by an
+        # earlier run, it stays on until the run's first phase switches it off, and connect's
+        # requests (which arm it anyway) follow at once: silence before them is a process
+        # stopped (SIGSTOP) with the tube on, not a slow start (a death there closes the pipe)
         link = start_guardian(
-            url, resolved, notebook=Path(p.output).with_suffix(".log"), watchdog_s=p.source.watchdog_s or None
+            url,
+            resolved,
+            notebook=Path(p.output).with_suffix(".log"),
+            watchdog_s=p.source.watchdog_s or None,
+            armed=not driver.tube_confirmed_off,
         )
     except BaseException as exc:
         if isinstance(exc, PortUnavailable) and driver.probe_result is not None and driver.probe_result.found:
