@@ -705,6 +705,44 @@ def test_pure_noise_observes_nothing():
     assert np.mean(ob.confidence[80:-80, 80:-80] >= 0.5) < 0.01
 
 
+def _identical_pair():
+    """A textured body (texture 3x the noise) registered to itself: the same array twice."""
+    fixed, _, _, _ = _family_pair(size=256, texture=0.03, noise=0.01, corr=0.25, seed=3)
+    return fixed, fixed.copy()
+
+
+@pytest.mark.parametrize("method, options", [("farneback", {"prefilter": "highpass"}), ("elastix", {})])
+def test_an_image_registered_to_itself_has_not_diverged(method, options):
+    """A user's first sanity check: a radiograph registered to itself. A peer returns a near-
+    identity field (farneback on high-passed images up to 0.02 px, elastix up to 0.3 px here);
+    residual complexity before is exactly 0 (the images share their noise), so any sub-pixel
+    interpolation raised it and the result read 'diverged'. What it leaves is below what the noise
+    alone leaves a perfect registration of two independently noisy images, so it is not."""
+    if method == "elastix":
+        pytest.importorskip("itk").elastix_registration_method  # noqa: B018 (itk-elastix, not only itk)
+    fixed, moving = _identical_pair()
+    reg = register(fixed, moving, method, **options)
+    assert 0 < np.abs(reg.displacement).max() < 0.5  # a sub-pixel field, not exactly 0
+    assert reg.quality.ok and "diverged" not in reg.quality.reason, reg.quality.reason
+
+
+def test_a_sub_pixel_field_on_an_image_and_itself_has_not_diverged():
+    """The same with a planted smooth field of at most 0.25 px: not diverged, and trusted."""
+    fixed, moving = _identical_pair()
+    reg = _planted(fixed, moving, _smooth_field(256, 0.25, seed=7))
+    assert reg.quality.rc_after > reg.quality.rc_before == 0
+    assert reg.quality.ok, reg.quality.reason
+
+
+@pytest.mark.parametrize("amplitude", [2.0, 3.0])
+def test_a_field_moving_an_image_against_itself_by_pixels_has_diverged(amplitude):
+    """A guard for the allowance above: a smooth field of 2-3 px on the textured image and itself
+    leaves a residual far above the noise's share (its structure misaligned): still 'diverged'."""
+    fixed, moving = _identical_pair()
+    reg = _planted(fixed, moving, _smooth_field(256, amplitude, seed=7))
+    assert not reg.quality.ok and "diverged" in reg.quality.reason, reg.quality.reason
+
+
 # -- preset="auto": default; weak (textured interior) or silent (silent body) when it is flagged --
 # Margins from the training seeds (benchmarks/README.md, "Automatic preset choice (session 6)"):
 # silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it.
