@@ -743,6 +743,55 @@ def test_a_field_moving_an_image_against_itself_by_pixels_has_diverged(amplitude
     assert not reg.quality.ok and "diverged" in reg.quality.reason, reg.quality.reason
 
 
+def _dead_column(image, value):
+    """``image`` with one column (a third of the way across the body) set to ``value``: a dead
+    or stuck detector column."""
+    out = image.copy()
+    out[:, image.shape[1] // 3] = value
+    return out
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+@pytest.mark.parametrize("which", ["fixed", "moving"])
+def test_a_dead_column_in_one_image_is_not_misalignment(which, value):
+    """A pair that did not move nor change (independent noise), one image with a dead column: the identity
+    field is right, yet the column's residual (the body's whole line integral, ~200x the noise)
+    spread over every 24 px window within ~100 px of it and read ~90 % of the object
+    'misaligned', and its excess, there before as after, 'kept'. A lone line of residual is a
+    defect of one image, not structure left misaligned."""
+    fixed, moving, _, _ = _family_pair(size=256, texture=0.03, noise=0.01, amplitude=0.0, intensity=0.0, seed=3)
+    clean = _planted(fixed, moving, np.zeros((2, 256, 256), np.float32))
+    assert clean.quality.ok, clean.quality.reason
+    if which == "fixed":
+        fixed = _dead_column(fixed, value)
+    else:
+        moving = _dead_column(moving, value)
+    reg = _planted(fixed, moving, np.zeros((2, 256, 256), np.float32))
+    assert reg.quality.misaligned_fraction < 0.05, reg.quality.reason
+    assert reg.quality.ok, reg.quality.reason
+
+
+def test_a_misaligned_straight_edge_is_not_a_lone_line():
+    """The body's edge where it runs along a row or column, misaligned by the pair's ~2 px, is a
+    line of the residual too (1.6 % of the frame read so when the residual alone was judged), but
+    both images hold it: not a defect of one image."""
+    from radiokit.register._confidence import Consistency, lone_lines
+
+    fixed, moving, _, _ = _family_pair(size=320, texture=0.01, noise=0.01, corr=0.1, seed=3)
+    noise = Consistency(fixed, 24.0).sigma * np.sqrt(2.0)
+    assert lone_lines(moving - fixed, noise).mean() > 0.005  # the edges are lines of the residual
+    assert not lone_lines(moving - fixed, noise, (moving, fixed)).any()
+
+
+def test_a_dead_column_does_not_hide_misalignment():
+    """A guard: the pair left unregistered (about 2 px of motion, texture 3x the noise) is still
+    flagged misaligned with a dead column in the moving image."""
+    fixed, moving, d, _ = _family_pair(size=320, texture=0.03, noise=0.01, corr=0.25, seed=3)
+    reg = _planted(fixed, _dead_column(moving, 0.0), np.zeros_like(d))
+    assert not reg.quality.ok and "misaligned" in reg.quality.reason, reg.quality.reason
+    assert reg.quality.misaligned_fraction > 0.5
+
+
 # -- preset="auto": default; weak (textured interior) or silent (silent body) when it is flagged --
 # Margins from the training seeds (benchmarks/README.md, "Automatic preset choice (session 6)"):
 # silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it.

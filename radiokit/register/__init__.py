@@ -72,7 +72,8 @@ class Quality:
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
     of the frame, inside its edge; the whole object when it is narrower);
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
-    exceeds the noise's expected share by more than a tenth (structure left misaligned, see
+    exceeds the noise's expected share by more than a tenth (structure left misaligned; a lone
+    row or column of one image, a detector's dead line, left out; see
     ``radiokit.register._confidence``); ``residual_motion``: the median over the observed part
     of what one Gauss-Newton step on the residual would still move (full-resolution px, a
     detection statistic that underestimates large misalignments); ``excess_kept``: the mean
@@ -80,7 +81,8 @@ class Quality:
     observed windows that showed over a tenth before (0: all the misaligned structure explained;
     1 or more: none of it, or made worse; NaN when under 1 % of the observed part showed any); ``noise``: the noise level
     estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
-    object), divergence (similarity worse than not registering), non-convergence (but not when the
+    object), divergence (residual complexity worse than not registering, and than the noise alone
+    leaves a perfect registration: an image registered to itself starts from 0), non-convergence (but not when the
     budget merely ended with the field still moving at a finest level coarser than these checks'
     binning while the residual passes their line: slow, not lost; ``converged`` stays False and
     ``note`` says so), too little of
