@@ -72,7 +72,8 @@ class Quality:
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
     of the frame, inside its edge; the whole object when it is narrower);
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
-    exceeds the noise's expected share by more than a tenth (structure left misaligned, see
+    exceeds the noise's expected share by more than a tenth (structure left misaligned; a lone
+    row or column of one image, a detector's dead line, left out; see
     ``radiokit.register._confidence``); ``residual_motion``: the median over the observed part
     of what one Gauss-Newton step on the residual would still move (full-resolution px, a
     detection statistic that underestimates large misalignments); ``excess_kept``: the mean
@@ -80,7 +81,8 @@ class Quality:
     observed windows that showed over a tenth before (0: all the misaligned structure explained;
     1 or more: none of it, or made worse; NaN when under 1 % of the observed part showed any); ``noise``: the noise level
     estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
-    object), divergence (similarity worse than not registering), non-convergence (but not when the
+    object), divergence (residual complexity worse than not registering, and than the noise alone
+    leaves a perfect registration: an image registered to itself starts from 0), non-convergence (but not when the
     budget merely ended with the field still moving at a finest level coarser than these checks'
     binning while the residual passes their line: slow, not lost; ``converged`` stays False and
     ``note`` says so), too little of
@@ -474,6 +476,33 @@ def _rounding_rc(f, unit) -> float:
     return 0.5 * eps * eps * float(np.mean(np.square(f, dtype=np.float64))) / 0.05
 
 
+def _noise_rc(p, d) -> float:
+    """The residual complexity the noise alone leaves a perfect registration of two
+    independently noisy images of the pair (``p``: :class:`_PairChecks`, binned) by the field
+    ``d`` (binned px): white noise of the fixed image's local level (``model_floor`` under it)
+    times ``1 + interpolation_variance``, the moving image's share after bilinear
+    interpolation. Its orthonormal DCT coefficients are Gaussian of the mean variance, so the
+    measure is ``1/2 E log(1 + c z^2)`` (``c`` that variance over alpha, 0.05), taken on 2000
+    quantiles of the normal (within 1e-3 of the integral).
+
+    Why. ``diverged`` compares the residual after with the one before; when the images share
+    their noise (an image registered to itself) the one before is exactly 0, and a near-identity
+    field (a peer's 0.004-0.24 px) makes any interpolation of the noise and of the structure a
+    "divergence". A residual within what the noise leaves a perfect registration is not worse
+    than not registering; a field that moves a textured image by pixels leaves far more."""
+    from scipy.special import ndtri
+
+    from radiokit.register import _confidence as C
+
+    sigma = p.consistency.sigma
+    s2 = (sigma * sigma + C.model_floor(p.f) ** 2) * (1.0 + C.interpolation_variance(d, _WINDOW))
+    if p.mask is not None:
+        s2 = np.where(p.mask, s2, 0)
+    c = float(np.mean(s2, dtype=np.float64)) * float(p.unit) ** 2 / 0.05
+    z = ndtri((np.arange(2000) + 0.5) / 2000)
+    return float(0.5 * np.mean(np.log1p(c * z * z)))
+
+
 def _assess(reg, f, m, mask, info, seconds):
     """Fill ``reg.quality``. The similarities are measured on the pair (and field) area-averaged
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
@@ -507,8 +536,13 @@ def _assess(reg, f, m, mask, info, seconds):
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
-    if q.rc_after > q.rc_before + _rounding_rc(p.f, p.unit):
-        reasons.append(f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before")
+    # worse than before, and than the noise alone leaves (_noise_rc: the images may share their noise)
+    tol = _rounding_rc(p.f, p.unit)
+    if q.rc_after > q.rc_before + tol and q.rc_after > (noise_rc := _noise_rc(p, db)) + tol:
+        reasons.append(
+            f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before "
+            f"(and > {noise_rc:.3g}, the noise's alone)"
+        )
     if not q.converged and _slow_not_lost(info, q, k):
         q.note = (
             f"{info.get('message', 'did not converge')}; not flagged for it: the residual moves "

@@ -45,7 +45,11 @@ whole-pixel shifts, 1/4 at half a pixel in both directions; without it a perfect
 looks better than noise). A window's mean square of pure noise scatters by ``sqrt(2 / N)``
 around its expectation, ``N = 4 pi window^2`` the Gaussian window's effective number of pixels
 (about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
-deviations) is structure the pair carries left misaligned, not noise. ``quality.ok`` is False
+deviations) is structure the pair carries left misaligned, not noise. A lone row or column of
+the residual that one image alone holds (a detector's dead or stuck line: ``lone_lines``) is a
+defect of that image, not misalignment: it is left out of the residual and of the fixed image's
+high-pass (normalised blurs over the rest), else its energy, hundreds of times the noise's,
+reaches every window within ~100 px of it (``LINE_NOISE``). ``quality.ok`` is False
 when too little of the object's interior is observed (the field there is the regulariser's
 guess, whatever the similarity says), when the residual still moves (below), or when too much
 of the observed part is left misaligned.
@@ -363,6 +367,72 @@ def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0, suppor
     return Consistency(fixed, spacing, sigma_map)(warped, noise_factor, support)
 
 
+# A lone line (a dead, stuck or miscalibrated detector column or row in one image of the pair):
+# the residual along it stands out from its neighbours 2 px to either side by over LINE_NOISE
+# noise levels, consistently (the line's mean, over a Gaussian of LINE_LENGTH px along it,
+# squared, is over half its mean square: a texture's residual changes sign along any line), and
+# it is one image's line: the other shows no line half as strong within LINE_SHIFT px across (a
+# misaligned straight edge is a line of the residual too, but both images hold it, shifted; at
+# 320 px the family's body edges, where they run along a row or column, read as lines without
+# this; on the family's 27 TRAINING pairs at 560 unregistered, 25 read edge lines with 3 px, up
+# to 2.2 % of the frame, two with 8 px: 0.4 % of the 4 % amplitude pair, whose edges move up to
+# 22 px, and 0.02 % of another; none with the true field). Below 3 noise levels a line cannot reach the misalignment line on its own (a line is
+# 1/60 of a 24 px window's weight: 3^2 / 60 is about 0.15, at the line only); above it one column
+# of a body's whole line integral (~200x the noise) read 72-77 % of the object misaligned.
+LINE_NOISE = 3.0
+LINE_LENGTH = 6.0
+LINE_SHIFT = 8
+
+
+_LINE_DEV = np.array([-0.5, 0, 1, 0, -0.5], np.float32)  # a pixel less its neighbours 2 px away
+
+
+def _line_filter(a, axis, dev, along):
+    """``a`` filtered by ``dev`` across ``axis`` (1: across columns) and ``along`` along it."""
+    import cv2
+
+    kx, ky = (dev, along) if axis == 1 else (along, dev)
+    return cv2.sepFilter2D(np.asarray(a, np.float32), cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _line_kernel() -> np.ndarray:
+    """The mean along a line: a Gaussian of ``LINE_LENGTH`` px (cut as the map's window is)."""
+    g = _window_kernel(LINE_LENGTH)
+    return (g / g.sum()).astype(np.float32)
+
+
+def _line_mean(a, axis):
+    """The mean along each line (1: each column) of ``a`` less the mean of its neighbours 2 px to
+    either side across it."""
+    return _line_filter(a, axis, _LINE_DEV, _line_kernel())
+
+
+def lone_lines(r, noise, images=()):
+    """Pixels (bool) on a lone column or row of the residual ``r`` (see ``LINE_NOISE``), and the
+    pixel on either side of it (bilinear interpolation spreads a moving image's line over two
+    columns) and ``2 LINE_LENGTH`` px on along it (over its weak ends); ``noise`` the residual's
+    noise standard deviation (per pixel or a number); ``images`` the pair (``r`` their
+    difference): a line both hold within ``LINE_SHIFT`` px is not lone."""
+    import cv2
+
+    out = np.zeros(r.shape, bool)
+    for axis in (1, 0):  # across columns (lines along y), then across rows
+        mean = _line_mean(r, axis)
+        line = np.abs(mean) > LINE_NOISE * noise
+        if not line.any():  # nearly always: the rest is not needed
+            continue
+        dev = _line_filter(r, axis, _LINE_DEV, np.ones(1, np.float32))
+        line &= mean * mean > 0.5 * _line_filter(dev * dev, axis, np.ones(1, np.float32), _line_kernel())
+        across = np.ones((1, 2 * LINE_SHIFT + 1) if axis == 1 else (2 * LINE_SHIFT + 1, 1), np.uint8)
+        held = [cv2.dilate(np.abs(_line_mean(a, axis)), across) for a in images]
+        if held:
+            line &= ~np.all([h > 0.5 * np.abs(mean) for h in held], axis=0)
+        reach = 2 * int(round(2 * LINE_LENGTH)) + 1
+        kernel = np.ones((reach, 3) if axis == 1 else (3, reach), np.uint8)
+        out |= cv2.dilate(line.astype(np.uint8), kernel).astype(bool)
+    return out
+
+
 class Consistency:
     """:func:`consistency` against one fixed image: its high-pass, window power and noise map
     computed once (the checks judge the moving image and every run's warped image against it)."""
@@ -375,14 +445,33 @@ class Consistency:
         self.sigma = noise_map(f, spacing) if sigma_map is None else sigma_map
 
     def __call__(self, warped, noise_factor=2.0, support=None):
+        s = self.sigma
         r = np.asarray(warped, np.float32) - self.fixed
         if support is not None:
             r = np.where(support, r, np.float32(0))
-        r = r - _gauss(r, self.spacing)
-        rf = _gauss(r * self.fh, self.spacing)
-        left = np.maximum(_gauss(r * r, self.spacing) - rf * rf / self.ff, 0)
-        s = self.sigma
+        # a lone line is a defect of one image, not structure left misaligned: left out of the
+        # residual and of the fixed image's part (whose high-pass it would offset over a window)
+        lines = lone_lines(r, s * np.sqrt(noise_factor), (warped, self.fixed))
+        if lines.any():
+            r, fh, ff = _highpass_over(r, ~lines, self.spacing), *self._fixed_part(~lines)
+        else:
+            r, fh, ff = r - _gauss(r, self.spacing), self.fh, self.ff
+        rf = _gauss(r * fh, self.spacing)
+        left = np.maximum(_gauss(r * r, self.spacing) - rf * rf / ff, 0)
         return left / (noise_factor * s * s)
+
+    def _fixed_part(self, keep):
+        """The fixed image's high-pass and window power over ``keep`` only."""
+        fh = _highpass_over(self.fixed, keep, self.spacing)
+        return fh, _gauss(fh * fh, self.spacing) + 1e-30
+
+
+def _highpass_over(a, keep, spacing):
+    """``a`` less its Gaussian blur of ``spacing`` px, both over ``keep`` only (a normalised blur;
+    0 outside ``keep``): a line left out neither leaves a notch nor offsets its neighbours."""
+    k = keep.astype(np.float32)
+    blur = _gauss(a * k, spacing) / np.maximum(_gauss(k, spacing), np.float32(1e-6))
+    return (a - blur) * k
 
 
 def _window_mean(a, window):
