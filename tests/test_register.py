@@ -2424,3 +2424,24 @@ def test_the_checks_do_not_depend_on_the_intensity_unit(scale):
     assert reg.quality.rc_after == pytest.approx(ref.quality.rc_after, rel=0.05)
     # the same field but for float32 rounding along L-BFGS's path (the pair times 1e12 * 2^-40)
     assert np.median(np.hypot(*(reg.displacement - ref.displacement))) < 0.01
+
+
+def test_a_plate_edge_misaligned_by_many_pixels_is_not_a_lone_line():
+    """A compression plate's straight edge along a row (the side view), left 20 px apart by a
+    failed registration: each image holds its edge, but not within LINE_SHIFT px of the other's,
+    so each was a "lone" line of the residual and excused as a detector defect. A step is not a
+    line: a defect line stands out on both sides alike, a misaligned edge's residual is high on one
+    side only (session 31 review of the lone-line rule)."""
+    from radiokit.register._confidence import Consistency, lone_lines
+
+    rng = np.random.default_rng(4)
+    n = 256
+    rows = np.arange(n)[:, None] * np.ones((1, n))
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0)
+    tex *= 0.03 / tex.std()
+    fixed = (np.where(rows < 100, 1.5, 0.5) + tex + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    moving = (np.where(rows < 120, 1.5, 0.5) + tex + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+    noise = Consistency(fixed, 24.0).sigma * np.sqrt(2.0)
+    assert not lone_lines(moving - fixed, noise, (moving, fixed)).any()
+    reg = _planted(fixed, moving, np.zeros((2, n, n), np.float32))
+    assert not reg.quality.ok, reg.quality.reason

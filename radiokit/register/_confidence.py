@@ -385,6 +385,7 @@ LINE_SHIFT = 8
 
 
 _LINE_DEV = np.array([-0.5, 0, 1, 0, -0.5], np.float32)  # a pixel less its neighbours 2 px away
+_LINE_SIDE = np.array([-1, 0, 0, 0, 1], np.float32)  # its neighbour 2 px after less the one before
 
 
 def _line_filter(a, axis, dev, along):
@@ -423,6 +424,10 @@ def lone_lines(r, noise, images=()):
             continue
         dev = _line_filter(r, axis, _LINE_DEV, np.ones(1, np.float32))
         line &= mean * mean > 0.5 * _line_filter(dev * dev, axis, np.ones(1, np.float32), _line_kernel())
+        # a line stands out on both sides alike; a step (an edge misaligned by more than
+        # LINE_SHIFT: a plate's, along a row in the side view) is high on one side only, and its
+        # response here is half the step, the two sides' difference the whole of it
+        line &= np.abs(_line_filter(r, axis, _LINE_SIDE, _line_kernel())) < 0.5 * np.abs(mean)
         across = np.ones((1, 2 * LINE_SHIFT + 1) if axis == 1 else (2 * LINE_SHIFT + 1, 1), np.uint8)
         held = [cv2.dilate(np.abs(_line_mean(a, axis)), across) for a in images]
         if held:
