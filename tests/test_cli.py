@@ -16,6 +16,7 @@ import pytest
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
 from conftest import needs_itex, run_cli
+from scipy import ndimage
 
 from radiokit.io import ExperimentWriter, ImageKey, read
 from sim.detector import PanelModel
@@ -744,3 +745,32 @@ def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
     res = run_cli("info", "missing.h5", cwd=tmp_path, env={"RADIOKIT_THREADS": "1"})
     assert res.returncode == 2 and res.stderr == "radiokit info: missing.h5: no such file\n", res.stderr
     assert state() == before
+
+
+def test_register_regularisation_check_from_the_command_line(tmp_path, capsys):
+    """``register(..., regularisation_check=True)`` was the library's alone: the command line and
+    ``radiokit process`` could not ask for the second, differently regularised registration. With
+    ``--regularisation-check`` the second run is made, printed, and recorded in the file (its
+    preset and time, and the fields' disagreement); without it, none of that."""
+    import tifffile
+
+    from radiokit.cli import main
+    from radiokit.io import read_registration
+
+    rng = np.random.default_rng(5)
+    tex = ndimage.gaussian_filter(rng.standard_normal((192, 192)), 3.0)
+    img = (tex / tex.std()).astype(np.float32)
+    tifffile.imwrite(tmp_path / "f.tif", img + 0.05 * rng.standard_normal(img.shape).astype(np.float32))
+    tifffile.imwrite(
+        tmp_path / "m.tif", np.roll(img, 1, axis=1) + 0.05 * rng.standard_normal(img.shape).astype(np.float32)
+    )
+    args = ["register", str(tmp_path / "f.tif"), str(tmp_path / "m.tif"), "--preset", "fast", "-q"]
+    main([*args, "-o", str(tmp_path / "plain.h5")])
+    main([*args, "--regularisation-check", "-o", str(tmp_path / "checked.h5")])
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("regularisation check: "))
+    plain, checked = (read_registration(tmp_path / n).quality for n in ("plain.h5", "checked.h5"))
+    assert "regularisation_check" not in plain and not np.isfinite(plain["disagreement"])
+    assert checked["regularisation_check"] == "weak" and checked["regularisation_check_seconds"] > 0
+    # a rich texture's 1 px shift: both fields right, so they agree well under the flag's 0.6 px
+    assert 0 <= checked["disagreement"] < 0.3 and f"{checked['disagreement']:.2f} px" in line

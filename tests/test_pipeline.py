@@ -424,3 +424,22 @@ def test_a_local_cluster_never_has_more_workers_than_files(asked, files, cores, 
     from radiokit.pipeline import local_workers
 
     assert local_workers(asked, files, cores) == expect
+
+
+def test_process_can_ask_for_the_regularisation_check(tmp_path):
+    """``Config(regularisation_check=True)`` (``radiokit process --regularisation-check``): every pair
+    registered a second time, the second run's preset and the fields' disagreement in the results;
+    off by default (the pipeline could not ask for it before)."""
+    from radiokit.pipeline import Config, process
+
+    _synthetic(tmp_path / "a.h5")
+    rois = {"inclusion": (75, 86, 75, 86), "background": (75, 86, 40, 51)}
+    common = dict(crop_mm=None, report=False, progress=False, register_options={"preset": "fast"}, **rois)
+    plain = process(tmp_path / "a.h5", Config(**common), out_dir=tmp_path / "plain").record
+    checked = process(tmp_path / "a.h5", Config(**common, regularisation_check=True), out_dir=tmp_path / "c").record
+    for name in ("1->3", "2->3", "1->2"):
+        assert "regularisation_check" not in plain.pair(name).quality
+        q = checked.pair(name).quality
+        # the slab's fields are trusted, so the second run is made (0.016-0.018 px apart)
+        assert q["regularisation_check"] == "weak" and q["regularisation_check_seconds"] > 0, q
+        assert 0 <= q["disagreement"] < 0.3
