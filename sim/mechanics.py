@@ -259,6 +259,7 @@ class Solver:
         else:  # axisymmetric weights hold 2 pi r; a plane-strain section is the half x >= 0
             self.force_multiplicity = 2 if self.model == "plane-strain" else 1
         self._setup_boundary(FacetBasis, elem, penalty_factor)
+        self._rigid = self._free_rigid_modes()
         self._lu = None
         self._krylov_spent = 0  # GMRES iterations preconditioned by the current factorisation
         self.factorisations = 0
@@ -354,6 +355,50 @@ class Solver:
                 if bonded:
                     for k in lateral:
                         fixed[n * dim + k] = 0.0
+
+    def _free_rigid_modes(self):
+        """The rigid motions no boundary condition holds, as W-orthonormal columns (ndof, k), and
+        the weights W; None when there are none.
+
+        Frictionless plates hold only u_y, so a 3-D body with neither a symmetry plane across x or
+        z nor a chest wall may slide along x and z and turn about y at no cost in energy: the
+        tangent is singular there and the solve's rounding chose the placement (a 20 mm block
+        with an off-centre inclusion turned by 10.5 degrees and slid 4.7 mm at 25 %). The
+        placement is a convention, not physics; the one kept is that of a symmetric set-up (a
+        frame holding the phantom): the body's centroid does not move sideways and the body does
+        not turn as a whole. Each vertex carries a quarter of its tetrahedra's volume (exact
+        centroid for affine fields), edge nodes nothing."""
+        if self.model != "3d":  # the axis (r = 0) or the x = 0 plane holds the 2-D models
+            return None
+        X = self.dof_points
+        modes = np.zeros((self.ndof, 3))
+        modes[0::3, 0], modes[2::3, 1] = 1.0, 1.0
+        modes[0::3, 2], modes[2::3, 2] = X[2], -X[0]  # e_y x X: a turn about y
+        held = modes[self.fixed_dofs_all]
+        size = float(np.max(X.max(axis=1) - X.min(axis=1)))
+        if held.size:
+            _, sv, vt = np.linalg.svd(held, full_matrices=True)
+            rank = int(np.sum(sv > 1e-9 * size * math.sqrt(len(held))))
+            free = vt[rank:].T
+        else:
+            free = np.eye(3)
+        if free.shape[1] == 0:
+            return None
+        cells = self.fem.cells
+        vol = np.zeros(self.n_nodes)
+        np.add.at(vol, cells.ravel(), np.tile(self.Ve / cells.shape[0], cells.shape[0]))
+        W = np.repeat(vol, 3)
+        R = modes @ free
+        R = R @ np.linalg.inv(np.linalg.cholesky(R.T @ (W[:, None] * R))).T
+        return R, W
+
+    def _without_rigid_motion(self, u):
+        """``u`` less its part in the free rigid motions (:meth:`_free_rigid_modes`): the energy,
+        the plate force and every strain are unchanged."""
+        if self._rigid is None:
+            return u
+        R, W = self._rigid
+        return u - R @ (R.T @ (W * u))
 
     def _contact_setup(self, FacetBasis, elem, penalty_factor):
         """Penalty contact of a curved body with the plate, on the boundary facets that can reach
@@ -807,7 +852,7 @@ class Solver:
                             self._stall_message(r_try, r_now, target, min_step, history[-1], unstable, exc)
                         ) from exc
                     continue
-                u, r_now, unstable = u_new, r_try, False
+                u, r_now, unstable = self._without_rigid_motion(u_new), r_try, False
                 history = [history[-1], (delta, u, energy, rate)]
                 total_steps += 1
                 if on_step is not None:
