@@ -201,3 +201,63 @@ def test_a_compressed_block_and_its_inclusions_shadow_follow_the_volume_kept(twi
     assert rows.size > 300 and abs(rows.size - erows.size) <= (~same).sum()
     assert abs(rows.mean() - erows.mean()) < 0.05 and abs(cols.mean() - ecols.mean()) < 0.05
     assert (rows.min(), rows.max(), cols.min(), cols.max()) == (erows.min(), erows.max(), ecols.min(), ecols.max())
+
+
+# -- the polychromatic beam ------------------------------------------------------------------------
+@pytest.mark.parametrize("kv, anode", [(60.0, "W"), (28.0, "Mo")])
+def test_the_polychromatic_line_integral_is_concave_in_the_thickness(kv, anode):
+    """``T(x) = sum_E w_E exp(-c_E x)`` is a mixture of exponentials, so ``ln T`` is convex
+    (Cauchy-Schwarz: ``T T'' >= T'^2``) and ``-ln T`` concave in the thickness, its second
+    derivative minus the spectral variance of the coefficient of the beam hardened that far:
+    the log signal grows sub-linearly and each extra millimetre of gel attenuates less than the
+    last. Both tubes of the scenes: the L8121-01's tungsten anode at the paper's 60 kV, and the
+    molybdenum mammography tube at seed-breast's 28 kV (the second differences of 5 mm steps,
+    direct sums over the spectrum; the monochromatic limit, exactly linear, is
+    tests/test_sim_imaging.py's)."""
+    from sim import imaging
+
+    beam = imaging.tube(kv, anode, 50.0)
+    mu = 0.077
+    t = np.arange(0.0, 155.0, 5.0)
+    L = beam(np.stack([t, np.zeros_like(t)])[:, None, :], [mu, 0.085])[0]
+    second = np.diff(L, 2)
+    assert np.all(second < 0), second.max()
+    assert np.all(np.diff(L) > 0)  # and still increasing: more gel, less light
+    assert L[10] == pytest.approx(mu * 50.0, rel=1e-9)  # the scene's coefficient where it is matched
+
+
+# -- the panel's defects -----------------------------------------------------------------------------
+def test_the_planted_defects_respond_as_the_panel_model_states():
+    """``sim.detector``'s stated defects against dark and open-beam frames: a dead pixel collects
+    no signal (only its offset and read noise), an under-responding one 30 % of its neighbours'
+    signal, a defect line 40 % of the columns beside it, a noisy pixel ten times the read noise.
+    The signal is the mean open beam less the mean dark over 40 frames each; a pixel's ratio to
+    the median of its eight neighbours scatters by the pixel-to-pixel gain spread (1 %, both
+    sides: 1.5 %) and the shot noise of 40 frames (0.5 %), so 0.3 is allowed 0.03; the line's
+    median ratio over 256 rows 0.01; the noisy pixels' read noise a 20 % band (40 frames)."""
+    from sim.detector import PanelModel
+
+    panel = PanelModel(rows=256, cols=256, defect_columns=(101,), seed=3)
+    rng = np.random.default_rng(5)
+    n, i0 = 40, 2000.0
+    dark = panel.dark_frames(n, rng).astype(float)
+    signal = panel.flat_frames(n, i0, rng).astype(float).mean(axis=0) - dark.mean(axis=0)
+    t = panel.truth
+    assert len(t.dead) == len(t.under) == len(t.noisy) == 12
+
+    def neighbours(r, c):
+        patch = signal[r - 1 : r + 2, c - 1 : c + 2].ravel()
+        return np.median(np.delete(patch, 4))
+
+    noise_of_mean = np.sqrt(2 * (panel.read_noise**2 + 1 / 12) / n)
+    for r, c in t.dead:
+        assert abs(signal[r, c]) < 5 * noise_of_mean
+    for r, c in t.under:
+        assert signal[r, c] / neighbours(r, c) == pytest.approx(0.3, abs=0.03)
+    line = signal[:, 101] / (0.5 * (signal[:, 100] + signal[:, 102]))
+    assert np.median(line) == pytest.approx(0.4, abs=0.01)
+    read = dark.std(axis=0, ddof=1)
+    normal = np.median(read)
+    assert normal == pytest.approx(np.sqrt(panel.read_noise**2 + 1 / 12), rel=0.05)
+    for r, c in t.noisy:
+        assert read[r, c] / normal == pytest.approx(10.0, rel=0.2)
