@@ -366,8 +366,9 @@ class Solver:
         with an off-centre inclusion turned by 10.5 degrees and slid 4.7 mm at 25 %). The
         placement is a convention, not physics; the one kept is that of a symmetric set-up (a
         frame holding the phantom): the body's centroid does not move sideways and the body does
-        not turn as a whole. Each vertex carries a quarter of its tetrahedra's volume (exact
-        centroid for affine fields), edge nodes nothing."""
+        not turn as a whole (to first order: no linearised rigid part in the displacement). Each
+        vertex carries a quarter of its tetrahedra's volume (exact centroid for affine fields),
+        edge nodes nothing."""
         if self.model != "3d":  # the axis (r = 0) or the x = 0 plane holds the 2-D models
             return None
         X = self.dof_points
@@ -392,13 +393,16 @@ class Solver:
         R = R @ np.linalg.inv(np.linalg.cholesky(R.T @ (W[:, None] * R))).T
         return R, W
 
-    def _without_rigid_motion(self, u):
-        """``u`` less its part in the free rigid motions (:meth:`_free_rigid_modes`): the energy,
-        the plate force and every strain are unchanged."""
+    def _update(self, K, rhs):
+        """A Newton update on the free dofs (:meth:`_linsolve`) less its part in the free rigid
+        motions (:meth:`_free_rigid_modes`), along which the tangent is singular: the
+        displacement then never holds any, and Newton solves for the one equilibrium without."""
+        du = self._linsolve(K, rhs)
         if self._rigid is None:
-            return u
+            return du
         R, W = self._rigid
-        return u - R @ (R.T @ (W * u))
+        Rf, Wf = R[self.free], W[self.free]  # the free motions move no prescribed dof
+        return du - Rf @ (Rf.T @ (Wf * du))
 
     def _contact_setup(self, FacetBasis, elem, penalty_factor):
         """Penalty contact of a curved body with the plate, on the boundary facets that can reach
@@ -605,7 +609,7 @@ class Solver:
         load = c["eps"] * (y > h_old) * c["w"] * (h_old - h)  # the penalty force's change, old patch
         dR = np.bincount(c["dofs"].ravel(), np.einsum("fq,fqa->fa", load, c["N"]).ravel(), minlength=self.ndof)
         out = u.copy()
-        out[self.free] += self._linsolve(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
+        out[self.free] += self._update(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
         return out
 
     def _contact_start(self, u, delta, guess, delta_prev):
@@ -644,7 +648,7 @@ class Solver:
                 raise ConvergenceError("inverted elements at the start of the step")
             K = ev0["K"].tocsr()
             rhs = -(ev0["R"] + K @ du_d)[self.free]
-            du_f = self._linsolve(K[self.free][:, self.free], rhs)
+            du_f = self._update(K[self.free][:, self.free], rhs)
             u = target.copy()
             u[self.free] += du_f
         else:
@@ -658,7 +662,7 @@ class Solver:
             return u, ev, 0
         for it in range(1, max_iter + 1):
             Rf = ev["R"][self.free]
-            du_f = self._linsolve(ev["K"][self.free][:, self.free], -Rf)
+            du_f = self._update(ev["K"][self.free][:, self.free], -Rf)
             slope = float(Rf @ du_f)
             alpha = 1.0
             for _ in range(12):
@@ -852,7 +856,7 @@ class Solver:
                             self._stall_message(r_try, r_now, target, min_step, history[-1], unstable, exc)
                         ) from exc
                     continue
-                u, r_now, unstable = self._without_rigid_motion(u_new), r_try, False
+                u, r_now, unstable = u_new, r_try, False
                 history = [history[-1], (delta, u, energy, rate)]
                 total_steps += 1
                 if on_step is not None:
