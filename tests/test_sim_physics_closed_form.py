@@ -6,7 +6,8 @@ Each expected value here comes from geometry or a physical law and the facts in 
 cone's source ``s`` before the isocentre and the panel ``d`` behind it) is the only thing taken
 from sim, and the rays are built here from it.
 
-- a uniform slab in the C7942/L8121 cone beam: the oblique path ``T |P - S| / D``;
+- a uniform slab in the C7942/L8121 cone beam: the oblique path ``T |P - S| / D``; a thin
+  square's shadow magnified by ``D / (s + depth)`` (the pixel at the object ``p / M``);
 - a block compressed between frictionless plates with an inclusion of its own stiffness: the
   whole body deforms homogeneously, by ``s = 1 - ratio`` along the plates' axis and, volume kept
   (the incompressible limit), ``1 / sqrt(s)`` across; its line integral and its inclusion's
@@ -86,6 +87,32 @@ def test_a_slab_in_the_cone_beam_is_crossed_obliquely_by_the_off_axis_rays(direc
     np.testing.assert_allclose(L, expected, rtol=1e-11, atol=0)
     assert L[0, 0] == pytest.approx(T * np.hypot(D, np.hypot(u[0], u[0])) / D, rel=1e-12)
     assert L[0, 0] / L[n // 2, n // 2] > 1.012  # the corner ray's obliquity is not negligible
+
+
+@pytest.mark.parametrize("depth", [-25.0, 0.0, 25.0])
+@pytest.mark.parametrize("direction", ["y", "z"])
+def test_a_thin_square_is_magnified_by_the_source_detector_over_the_source_object_distance(direction, depth):
+    """The same set-up: a 4 mm square 0.02 mm thick, ``depth`` mm beyond the isocentre (towards
+    the panel), casts a shadow ``M = D / (s + depth)`` times its size: 1.25 at the isocentre
+    (the pixel there is 50 / 1.25 = 40 um), 1.316 25 mm nearer the source, 1.190 25 mm nearer
+    the panel. Its shadow is that of its near face, the larger: the pixels whose centres lie
+    within ``2 D / (s + depth - T / 2)`` of the axis, in rows and columns alike."""
+    from sim.xray import Geometry, path_lengths
+
+    a, T, s, d, p, n = 4.0, 0.02, 400.0, 100.0, 0.05, 160
+    k = "xyz".index(direction)
+    half = np.array([a / 2] * 3)
+    half[k] = T / 2
+    centre = np.zeros(3)
+    centre[k] = depth
+    g = Geometry("cone", direction, (n, n), p, (0.0, 0.0, 0.0), s, d)
+    shadow = path_lengths(box_mesh(centre - half, centre + half), g)[0] > 0
+    u = (np.arange(n) - (n - 1) / 2) * p
+    reach = (a / 2) * (s + d) / (s + depth - T / 2)
+    inside = np.abs(u) < reach
+    assert np.array_equal(shadow, inside[:, None] & inside[None, :])
+    width_px = inside.sum()
+    assert width_px == pytest.approx(a * (s + d) / (s + depth) / p, abs=1.0)  # 100 px at the isocentre
 
 
 # -- a homogeneously compressed block and its inclusion's shadow ------------------------------------
