@@ -259,6 +259,7 @@ class Solver:
         else:  # axisymmetric weights hold 2 pi r; a plane-strain section is the half x >= 0
             self.force_multiplicity = 2 if self.model == "plane-strain" else 1
         self._setup_boundary(FacetBasis, elem, penalty_factor)
+        self._rigid = self._free_rigid_modes()
         self._lu = None
         self._krylov_spent = 0  # GMRES iterations preconditioned by the current factorisation
         self.factorisations = 0
@@ -354,6 +355,54 @@ class Solver:
                 if bonded:
                     for k in lateral:
                         fixed[n * dim + k] = 0.0
+
+    def _free_rigid_modes(self):
+        """The rigid motions no boundary condition holds, as W-orthonormal columns (ndof, k), and
+        the weights W; None when there are none.
+
+        Frictionless plates hold only u_y, so a 3-D body with neither a symmetry plane across x or
+        z nor a chest wall may slide along x and z and turn about y at no cost in energy: the
+        tangent is singular there and the solve's rounding chose the placement (a 20 mm block
+        with an off-centre inclusion turned by 10.5 degrees and slid 4.7 mm at 25 %). The
+        placement is a convention, not physics; the one kept is that of a symmetric set-up (a
+        frame holding the phantom): the body's centroid does not move sideways and the body does
+        not turn as a whole (to first order: no linearised rigid part in the displacement). Each
+        vertex carries a quarter of its tetrahedra's volume (exact centroid for affine fields),
+        edge nodes nothing."""
+        if self.model != "3d":  # the axis (r = 0) or the x = 0 plane holds the 2-D models
+            return None
+        X = self.dof_points
+        modes = np.zeros((self.ndof, 3))
+        modes[0::3, 0], modes[2::3, 1] = 1.0, 1.0
+        modes[0::3, 2], modes[2::3, 2] = X[2], -X[0]  # e_y x X: a turn about y
+        held = modes[self.fixed_dofs_all]
+        size = float(np.max(X.max(axis=1) - X.min(axis=1)))
+        if held.size:
+            _, sv, vt = np.linalg.svd(held, full_matrices=True)
+            rank = int(np.sum(sv > 1e-9 * size * math.sqrt(len(held))))
+            free = vt[rank:].T
+        else:
+            free = np.eye(3)
+        if free.shape[1] == 0:
+            return None
+        cells = self.fem.cells
+        vol = np.zeros(self.n_nodes)
+        np.add.at(vol, cells.ravel(), np.tile(self.Ve / cells.shape[0], cells.shape[0]))
+        W = np.repeat(vol, 3)
+        R = modes @ free
+        R = R @ np.linalg.inv(np.linalg.cholesky(R.T @ (W[:, None] * R))).T
+        return R, W
+
+    def _update(self, K, rhs):
+        """A Newton update on the free dofs (:meth:`_linsolve`) less its part in the free rigid
+        motions (:meth:`_free_rigid_modes`), along which the tangent is singular: the
+        displacement then never holds any, and Newton solves for the one equilibrium without."""
+        du = self._linsolve(K, rhs)
+        if self._rigid is None:
+            return du
+        R, W = self._rigid
+        Rf, Wf = R[self.free], W[self.free]  # the free motions move no prescribed dof
+        return du - Rf @ (Rf.T @ (Wf * du))
 
     def _contact_setup(self, FacetBasis, elem, penalty_factor):
         """Penalty contact of a curved body with the plate, on the boundary facets that can reach
@@ -560,7 +609,7 @@ class Solver:
         load = c["eps"] * (y > h_old) * c["w"] * (h_old - h)  # the penalty force's change, old patch
         dR = np.bincount(c["dofs"].ravel(), np.einsum("fq,fqa->fa", load, c["N"]).ravel(), minlength=self.ndof)
         out = u.copy()
-        out[self.free] += self._linsolve(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
+        out[self.free] += self._update(ev0["K"][self.free][:, self.free], -(ev0["R"] + dR)[self.free])
         return out
 
     def _contact_start(self, u, delta, guess, delta_prev):
@@ -599,7 +648,7 @@ class Solver:
                 raise ConvergenceError("inverted elements at the start of the step")
             K = ev0["K"].tocsr()
             rhs = -(ev0["R"] + K @ du_d)[self.free]
-            du_f = self._linsolve(K[self.free][:, self.free], rhs)
+            du_f = self._update(K[self.free][:, self.free], rhs)
             u = target.copy()
             u[self.free] += du_f
         else:
@@ -613,7 +662,7 @@ class Solver:
             return u, ev, 0
         for it in range(1, max_iter + 1):
             Rf = ev["R"][self.free]
-            du_f = self._linsolve(ev["K"][self.free][:, self.free], -Rf)
+            du_f = self._update(ev["K"][self.free][:, self.free], -Rf)
             slope = float(Rf @ du_f)
             alpha = 1.0
             for _ in range(12):
