@@ -5,7 +5,7 @@ and manual frame, or the virtual bench with the L8121 emulator on a pseudo-termi
 order of work is fixed::
 
     connect -> checks (TYP, interlock, warm-up state) -> warm up if needed
-    -> darks (tube off) -> flats (phantom out, tube on, tube off, phantom in)
+    -> darks (tube off), judged -> flats (phantom out, tube on, tube off), judged, phantom in
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
 
@@ -33,6 +33,11 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
   step, ratio, measured gap, the measured kV and uA at that moment and its time stamp. It is
   labelled invalid until its pixels are on disk, so a crash or a full disk leaves at most one
   invalid frame, never a blank one labelled complete;
+- the darks, then the darks with the flats, are judged as soon as they are taken by the rules
+  ``radiokit calibrate`` applies (:func:`radiokit.calibrate.judge_frames`): a warning is told; a
+  refusal (a flat clipped at the ADC's top, flats not brighter than the darks, most of the panel
+  defective) labels them invalid (kept) and stops the series before any compression step, the
+  tube off, with :class:`~acquisition.errors.FramesRefused` saying what to change;
 - ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol
   (the stored TOML, never read as a path), and takes only what is missing: frames labelled
   invalid are taken again.
