@@ -27,3 +27,9 @@ class NoReply(DeviceError):
 class PortUnavailable(DeviceError):
     """The port could not be opened at all (a mistyped name, a cable not plugged in): no byte
     was sent, so nothing was switched on or off through it."""
+
+
+class FramesRefused(DeviceError):
+    """Darks or flats just taken that radiokit's calibration would refuse (a flat clipped at the
+    ADC's top, flats not brighter than the darks, most of the panel defective): the series stops
+    before the compression steps, the frames kept but labelled invalid."""

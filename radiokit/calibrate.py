@@ -35,6 +35,8 @@ __all__ = [
     "exposure_factors",
     "adc_top",
     "frame_saturation",
+    "judge_frames",
+    "judge_darks",
 ]
 
 
@@ -826,3 +828,36 @@ def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) ->
         "n_flat_saturated": n_flat_saturated,
         "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in flags},
     }
+
+
+def judge_frames(darks, flats, *, saturation=None) -> list[str]:
+    """Judge darks and flats by the rules a calibration from them applies, before anything else is
+    done with them: raises the ValueError :meth:`Calibration.from_frames` would (flats not brighter
+    than darks, a flat saturated at the ADC's top, a defect map over :data:`MAX_DEFECTIVE_SHARE`),
+    else returns the messages of the :class:`CalibrationWarning` s it would give. Why: the
+    acquisition judges its flats as they are taken (acquisition.protocols.compression_series), and
+    a second set of rules there would drift from the ones ``radiokit process`` applies later.
+    ``saturation``: the panel's ADC top when known (None: inferred, as from_frames does)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CalibrationWarning)
+        Calibration.from_frames(darks, flats, saturation=saturation)
+    return [str(w.message) for w in caught if issubclass(w.category, CalibrationWarning)]
+
+
+def judge_darks(darks, *, saturation=None) -> None:
+    """Refuse darks that no flat could be brighter than: :meth:`Calibration.from_frames` refuses
+    flats whose median ``flat - dark`` is at most ``eps``, and no pixel reads above the ADC's top,
+    so darks whose median is within ``eps`` of it are refused whatever flats follow. Judged right
+    after the darks, that saves the flats' X-rays and names the darks, not the flats (a light leak
+    or the beam on for them). ``saturation``: the panel's ADC top (None: inferred from the darks)."""
+    darks = _as_stack(darks, "darks")
+    th = Thresholds(saturation=saturation)
+    top = adc_top(darks) if th.saturation is None else th.saturation
+    if top is None:
+        return
+    median = float(np.median(robust_average(darks, clip_sigma=th.clip_sigma)))
+    if median >= top - th.eps:
+        raise ValueError(
+            f"the darks read {median:.0f} counts (median), at the ADC's top ({top}): no flat can be brighter "
+            "than these darks; was the beam on or light reaching the panel for the darks?"
+        )

@@ -914,3 +914,77 @@ def test_no_log_line_reaches_the_terminal_after_the_operators_last_line(capsys):
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert code == 3 and err[-1] == TUBE_WARNING, err
     assert not any("late: link lost" in ln for ln in err)
+
+
+def test_flats_clipped_at_the_adc_top_stop_the_series_before_the_steps_tube_off(tmp_path, scene_toml, capsys):
+    """Too much current for the panel's binning: at 500 uA the 4x4-binned virtual C7942's open
+    beam is twice the 250 uA flat (about 5100 counts), past its 12-bit ADC. The flats were judged
+    only at processing, after the phantom had been compressed; now the series stops after them,
+    with the tube off (confirmed by STS), the frames kept, and one line saying what to change."""
+    from sim.bench import VirtualBench
+    from sim.scene import load_scene
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    p.source.current_ua = 500
+    bench = VirtualBench(load_scene(scene_toml), seed=0)
+    i0 = bench.open_beam(60, 500) * bench.panel.binning**2
+    assert bench.panel.offset.mean() + i0 > 4095 * 1.2  # the physics that makes these flats clip
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    code = _cli("acquire", str(path), "--sim", "-q")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert re.match(rf"^error: {re.escape(p.output)}: the flats just taken would be refused", err[0]), err
+    assert "saturated" in err[0] and "lower the flat exposure" in err[0] and "--resume" in err[0], err[0]
+    assert err[-1].startswith("tube off (confirmed by STS"), err
+    c = contents(p.output)
+    assert np.sum(c["key"] == ImageKey.DARK) == DARKS
+    assert np.sum(c["key"] == ImageKey.INVALID) == FLATS  # kept, never used
+    assert not np.any(c["key"] == ImageKey.PROJECTION) and not np.any(c["key"] == ImageKey.FLAT)
+    assert np.median(c["data"][c["key"] == ImageKey.INVALID]) >= 4095  # the clipped flats themselves, kept
+    notebook = (tmp_path / "series.log").read_text()
+    assert "would be refused by radiokit calibrate" in notebook and "phase step 1" not in notebook
+
+
+def test_good_flats_are_judged_usable_and_the_series_is_unchanged(tmp_path, scene_toml, bench, caplog):
+    p = protocol(tmp_path, scene_toml, link_s=0.01, darks=3, flats=3, frames_per_step=1)
+    with caplog.at_level("INFO", logger="acquisition.protocol"):
+        res = run(p, devices=sim_devices(p, bench=bench), progress=False)
+    assert res.phase == "done" and res.tube_off is True and res.frames_total == 3 + 3 + len(STEPS)
+    said = [rec for rec in caplog.records if "judged" in rec.getMessage() or "would be refused" in rec.getMessage()]
+    assert [rec.levelname for rec in said] == ["INFO", "INFO"], [rec.getMessage() for rec in said]  # darks, flats
+    assert not [rec for rec in caplog.records if rec.levelname == "WARNING"]
+    c = contents(p.output)
+    assert not np.any(c["key"] == ImageKey.INVALID)
+
+
+def test_a_resume_after_refused_flats_takes_new_flats_and_keeps_the_darks(tmp_path, scene_toml, bench):
+    """The panel collects twice the charge the exposure was set for (as a panel binned 2x2 behind a
+    source set for 1x1 does): the bench's open beam doubled, the protocol unchanged, so the same
+    file can be resumed once the panel is set right (the bench restored)."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    i0 = bench.i0
+    bench.i0 = 2 * i0
+    try:
+        dev = sim_devices(p, bench=bench)
+        with pytest.raises(FramesRefused, match="saturated") as info:
+            run(p, devices=dev, progress=False)
+    finally:
+        bench.i0 = i0
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    assert info.value.result.phase == "flats"
+    first = contents(p.output)
+    assert list(first["key"]) == [ImageKey.DARK] * DARKS + [ImageKey.INVALID] * FLATS
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True
+    assert res.frames_written == FLATS + PER_STEP * len(STEPS)  # the darks were not taken again
+    c = contents(p.output)
+    assert np.array_equal(c["data"][:DARKS], first["data"][:DARKS])  # nothing lost, nothing rewritten
+    assert np.array_equal(c["data"][DARKS : DARKS + FLATS], first["data"][DARKS:])
+    assert list(c["key"][DARKS : DARKS + FLATS]) == [ImageKey.INVALID] * FLATS
+    flats = c["data"][c["key"] == ImageKey.FLAT]
+    assert flats.shape[0] == FLATS and flats.max() < 4095  # new flats, within the ADC
+    for i in range(1, len(STEPS) + 1):
+        assert np.sum((c["key"] == ImageKey.PROJECTION) & (c["step"] == i)) == PER_STEP

@@ -66,13 +66,17 @@ class Operator:
 class Vendor(threading.Thread):
     """HiPic saving continuously: integrate ``period_s``, then write ``frame_NNNNN.tif``. Pixel
     (0, k) records, at the start and at the end of the integration: the tube on (0, 1), the
-    phantom in (2, 3), the gap in 0.01 mm (4, 5)."""
+    phantom in (2, 3), the gap in 0.01 mm (4, 5). The others read ``fill`` counts, plus ``beam``
+    with the tube on at the end (half with the phantom in): flats brighter than darks, as the run
+    now judges them (constant frames of ``fill`` were refused as "flats not brighter than darks")."""
 
-    def __init__(self, folder, model, operator, period_s=0.04, name=lambda k: f"frame_{k:05d}.tif", fill=100):
+    def __init__(
+        self, folder, model, operator, period_s=0.04, name=lambda k: f"frame_{k:05d}.tif", fill=100, beam=1000
+    ):
         super().__init__(daemon=True)
         self.folder, self.model, self.operator, self.period_s = Path(folder), model, operator, period_s
         self.naming = name
-        self.fill = fill
+        self.fill, self.beam = fill, beam
         self.halt = threading.Event()
         self.error = None
 
@@ -86,7 +90,8 @@ class Vendor(threading.Thread):
                 start = self._state()
                 time.sleep(self.period_s)
                 end = self._state()
-                a = np.full(SHAPE, self.fill, np.uint16)
+                lit = self.beam * end[0] // (1 + end[1])
+                a = np.full(SHAPE, self.fill + lit, np.uint16)
                 a[0, 0:6] = [start[0], end[0], start[1], end[1], start[2], end[2]]
                 tifffile.imwrite(self.folder / self.naming(k), a)
                 k += 1
@@ -406,7 +411,7 @@ def test_a_14_bit_panel_named_in_the_protocol_runs_and_is_recorded(tmp_path):
         out = tmp_path / f"bits{bits}"
         out.mkdir()
         p, dev, operator = _lab(out, series, bits=bits, timeout_s=2.0)
-        vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, fill=16000)
+        vendor = Vendor(Path(p.detector.folder), dev.emulator, operator, fill=16000, beam=200)
         vendor.start()
         try:
             if bits == 12:

@@ -509,3 +509,37 @@ def test_a_flat_saturated_in_a_fifth_of_the_panel_is_refused_for_its_saturation(
     with pytest.raises(ValueError, match="beam blocked"), warnings.catch_warnings():
         warnings.simplefilter("ignore", CalibrationWarning)
         Calibration.from_frames(darks, flats)
+
+
+def test_judge_frames_refuses_and_warns_as_from_frames_does():
+    """The acquisition judges its frames with this (no second set of rules): the same refusal
+    text as a calibration from them, and its warnings returned rather than emitted."""
+    from radiokit.calibrate import judge_frames
+
+    rng = np.random.default_rng(3)
+    darks = rng.normal(100, 2, (4, 64, 64)).astype(np.uint16)
+    clipped = np.minimum(rng.normal(5000, 30, (4, 64, 64)), 4095).astype(np.uint16)  # 12-bit ADC top
+    with pytest.raises(ValueError) as judged:
+        judge_frames(darks, clipped)
+    with pytest.raises(ValueError) as calibrated:
+        Calibration.from_frames(darks, clipped)
+    assert str(judged.value) == str(calibrated.value) and "saturated" in str(judged.value)
+    flats = rng.normal(3000, 20, (4, 64, 64)).astype(np.uint16)
+    flats[:, :2, :3] = 4095  # 6 pixels clipped: flagged, and warned of
+    told = judge_frames(darks, flats)
+    assert len(told) == 1 and "6 pixels of the averaged flat are saturated" in told[0], told
+    assert judge_frames(darks, rng.normal(3000, 20, (4, 64, 64)).astype(np.uint16)) == []
+
+
+def test_judge_darks_refuses_darks_no_flat_could_be_brighter_than():
+    from radiokit.calibrate import judge_darks
+
+    rng = np.random.default_rng(4)
+    lit = np.minimum(rng.normal(4200, 30, (4, 64, 64)), 4095).astype(np.uint16)  # darks at the ADC's top
+    with pytest.raises(ValueError, match=r"darks read 4095 counts .*ADC's top \(4095\)"):
+        judge_darks(lit)
+    # the rule it anticipates: any flat the ADC can give is refused against these darks
+    with pytest.raises(ValueError, match="not brighter than darks"):
+        Calibration.from_frames(lit, np.full((4, 64, 64), 4095, np.uint16))
+    judge_darks(rng.normal(100, 2, (4, 64, 64)).astype(np.uint16))  # real darks pass
+    judge_darks(rng.normal(4000, 2, (4, 64, 64)).astype(np.uint16), saturation=16383)  # a 14-bit panel's

@@ -5,7 +5,7 @@ and manual frame, or the virtual bench with the L8121 emulator on a pseudo-termi
 order of work is fixed::
 
     connect -> checks (TYP, interlock, warm-up state) -> warm up if needed
-    -> darks (tube off) -> flats (phantom out, tube on, tube off, phantom in)
+    -> darks (tube off), judged -> flats (phantom out, tube on, tube off), judged, phantom in
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
 
@@ -33,6 +33,11 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
   step, ratio, measured gap, the measured kV and uA at that moment and its time stamp. It is
   labelled invalid until its pixels are on disk, so a crash or a full disk leaves at most one
   invalid frame, never a blank one labelled complete;
+- the darks, then the darks with the flats, are judged as soon as they are taken by the rules
+  ``radiokit calibrate`` applies (:func:`radiokit.calibrate.judge_frames`): a warning is told; a
+  refusal (a flat clipped at the ADC's top, flats not brighter than the darks, most of the panel
+  defective) labels them invalid (kept) and stops the series before any compression step, the
+  tube off, with :class:`~acquisition.errors.FramesRefused` saying what to change;
 - ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol
   (the stored TOML, never read as a path), and takes only what is missing: frames labelled
   invalid are taken again.
@@ -1108,6 +1113,7 @@ def _phase_darks(r: _Run):
     if n > 0:
         r.source.off()
         _take(r, n, ImageKey.DARK)
+        _judge(r, "darks")
 
 
 def _phase_flats(r: _Run):
@@ -1122,7 +1128,64 @@ def _phase_flats(r: _Run):
         _beam_on(r, n, "the flats")
         _take(r, n, ImageKey.FLAT, beam=True)
         _beam_off(r)
+        # judged with the tube off and before the phantom goes back in: a refusal stops here
+        _judge(r, "flats")
         frm.sample_in()
+
+
+def _judge(r: _Run, what: str) -> None:
+    """Judge the darks (``what`` "darks") or the darks and flats ("flats") just taken by the rules
+    ``radiokit calibrate`` and ``process`` will apply (:func:`radiokit.calibrate.judge_frames`):
+    a warning goes to the operator and the notebook; a refusal labels the judged frames invalid
+    (image_key 3: kept, never used, and taken again by ``--resume``) and stops the series with
+    :class:`FramesRefused` -- the tube off -- before any compression step. Why: a flat clipped
+    at the ADC's top or taken with the beam blocked was found only at processing, after the
+    phantom had been compressed and the session was over."""
+    from radiokit.calibrate import judge_darks, judge_frames
+    from radiokit.io import ImageKey
+
+    bits = r.p.detector.bits
+    top = (1 << bits) - 1 if bits != 12 else None  # as the file records it and processing reads it
+    dark_idx, darks = r.writer.frames_labelled(ImageKey.DARK)
+    if not dark_idx.size:  # a protocol without darks: its calibration needs darks taken elsewhere
+        log.info("%s not judged: the file holds no darks", what)
+        return
+    flat_idx, flats = dark_idx[:0], darks[:0]
+    try:
+        if what == "darks":
+            judge_darks(darks, saturation=top)
+        else:
+            flat_idx, flats = r.writer.frames_labelled(ImageKey.FLAT)
+            told = judge_frames(darks, flats, saturation=top)
+    except ValueError as exc:
+        raise _refused(r, what, exc, dark_idx if what == "darks" else flat_idx) from None
+    if what == "darks":
+        log.info("%s: %d darks judged usable for calibration", r.out, darks.shape[0])
+        return
+    for line in told:
+        log.warning("%s: the %d darks and %d flats: %s", r.out, darks.shape[0], flats.shape[0], line)
+    log.info("%s: %d darks and %d flats judged usable for calibration", r.out, darks.shape[0], flats.shape[0])
+
+
+def _refused(r: _Run, what: str, exc: ValueError, bad) -> Exception:
+    """The judged frames ``bad`` labelled invalid, and the operator's one line (:func:`_judge`)."""
+    from acquisition.errors import FramesRefused
+
+    try:
+        r.writer.mark_invalid(bad.tolist())
+        kept = "they are kept labelled invalid (image_key 3)"
+    except Exception as mark_exc:  # the refusal is what the operator must read; the file's fault is logged
+        log.error("could not mark frames %s invalid: %s", bad.tolist(), mark_exc)
+        kept = "they are kept but NOT labelled invalid (see the notebook)"
+    if what == "darks":
+        later, change = "no flat and no compression step", ""
+    else:  # the resume rule (_existing): the protocol's exposure is the file's
+        later, change = "no compression step", " (a new tube current or voltage needs a new file: -o)"
+    # the notebook gets this line from _stop; logged here too it would show twice on the console
+    return FramesRefused(
+        f"{r.out}: the {what} just taken would be refused by radiokit calibrate: {exc}; {kept} and {later} "
+        f"was taken; fix that, then `--resume` takes new {what}{change}"
+    )
 
 
 def _phase_steps(r: _Run):

@@ -405,6 +405,13 @@ class ExperimentWriter:
         self._h5[ENTRY].attrs["devices"] = strict_json.dumps(devices, default=str)  # no NaN/Infinity words
         self._h5.flush()
 
+    def frames_labelled(self, key) -> tuple[np.ndarray, np.ndarray]:
+        """The indices and pixels of the frames written so far labelled ``key`` (those of the run a
+        resume continues too): the acquisition judges its darks and flats from them as it goes."""
+        idx = np.flatnonzero(self._h5[IMAGE_KEY][: self._n] == key)
+        data = self._h5[FRAMES]
+        return idx, data[idx] if idx.size else np.zeros((0, *data.shape[1:]), data.dtype)
+
     def mark_invalid(self, indices) -> None:
         """Label frames ``indices`` ``ImageKey.INVALID``: kept, never taken for a projection or a flat."""
         ds = self._h5[IMAGE_KEY]
