@@ -10,6 +10,8 @@ defect fill plan touches only its pixels. Everything that does not depend on the
 from __future__ import annotations
 
 import functools
+import queue
+import sys
 import threading
 import time
 import weakref
@@ -481,16 +483,20 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     return out, report
 
 
+#: How long an interrupted run waits for its background writer to finish the frame it is writing
+#: before it is left behind (a daemon thread: it ends with the process); a frame of 2240 x 2240
+#: float32 is written in well under a second.
+STOP_WAIT_S = 10.0
+
+
 class _BackgroundWriter:
     """Write frames on a second thread while the next one is corrected; errors (a full disk)
     surface in the producer at the next ``put`` or at exit. Three rotating buffers: one being
     corrected, one queued, one being written."""
 
-    def __init__(self, writer, depth=1):
-        import queue
-        import threading
-
+    def __init__(self, writer, depth=1, stop_wait_s=STOP_WAIT_S):
         self._writer = writer
+        self._stop_wait_s = stop_wait_s
         self._queue = queue.Queue(maxsize=depth)
         self._buffers = [np.empty(writer.frame_shape, writer.dtype) for _ in range(depth + 2)]
         self._next = 0
@@ -528,16 +534,28 @@ class _BackgroundWriter:
         # The writer thread must have stopped before its file is closed and removed: a second
         # Ctrl-C or SIGTERM arriving here waits for it too, then is raised.
         interrupt, sent = None, False
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+            interrupt = exc
         while True:
             try:
                 if not sent:
-                    self._queue.put(None)
+                    self._queue.put(None, timeout=self._stop_wait_s if interrupt is not None else None)
                     sent = True
-                self._thread.join()
+                # after an interrupt the wait is bounded (STOP_WAIT_S): a writer stuck for good (an
+                # HDF5 lock left taken where the interrupt landed held a `correct` for minutes)
+                self._thread.join(self._stop_wait_s if interrupt is not None else None)
                 break
             except KeyboardInterrupt as again:
                 interrupt = again
                 self._error = self._error or again
+            except queue.Full:  # the writer never took its last frame: it is stuck too
+                break
+        if self._thread.is_alive():
+            print(
+                f"radiokit: the frame writer did not stop within {self._stop_wait_s:g} s of the interrupt; "
+                "left behind (the output being written is removed)",
+                file=sys.stderr,
+            )
         if interrupt is not None:
             raise interrupt
         if self._error is not None and exc_type is None:

@@ -934,3 +934,40 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_pat
     res = run("process", experiment, twin, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
     one_line_error(res, "no-port-here")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "twin.h5"]
+
+
+def test_an_interrupted_correct_does_not_wait_forever_for_a_stuck_writer():
+    """An interrupt unwinding ``radiokit correct`` waits for its background writer thread before
+    the output is removed; a writer that never returns (seen once: a ``correct`` child stuck on a
+    thread lock for six minutes after SIGTERM, most likely HDF5's library lock left taken where
+    the interrupt landed) held the process forever. Now the wait after an interrupt is bounded and
+    the interrupt still raised. The stuck writer is a fake (an ``append`` that blocks on an event):
+    the lock race itself cannot be caused on demand."""
+    import threading
+
+    from radiokit.correct import _BackgroundWriter
+
+    release = threading.Event()
+
+    class Stuck:
+        frame_shape, dtype = (4, 4), np.float32
+
+        def append(self, frame, **series):
+            release.wait()
+
+    outcome = []
+
+    def interrupted():
+        try:
+            with _BackgroundWriter(Stuck(), stop_wait_s=0.5) as bg:
+                bg.put(bg.buffer())
+                time.sleep(0.1)  # the writer has taken the frame and is stuck in append
+                raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            outcome.append("interrupt raised")
+
+    t = threading.Thread(target=interrupted, daemon=True)
+    t.start()
+    t.join(30)
+    release.set()
+    assert outcome == ["interrupt raised"], "the interrupted run waited for its stuck writer"
