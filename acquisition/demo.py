@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -305,7 +306,43 @@ def add_demo(subparsers):
 
 
 def _run(args) -> int:
-    summary = run_demo(
+    out = Path(args.output)
+    made_here = not out.exists() and not out.is_symlink()
+    try:
+        summary = _run_demo(args)
+    except KeyboardInterrupt:
+        # not the other commands' "no partial output was left": the acquisitions append frame by
+        # frame (not atomic), so an interrupted demo may leave its experiment files behind
+        print(_interrupted_line(out, made_here), file=sys.stderr)
+        return 130
+    print()
+    print(headline(summary))
+    return 0
+
+
+def _interrupted_line(out: Path, made_here: bool) -> str:
+    """What an interrupted demo left: a folder this run made, holding nothing but its marker, is
+    removed (it refused the next run, "exists; pass --overwrite", though nothing was in it)."""
+    from radiokit.io import RESULTS_MARKER
+
+    try:
+        left = sorted(p.name for p in out.iterdir() if p.name != RESULTS_MARKER)
+    except OSError:  # never claimed: interrupted before the folder was made
+        left = []
+    if not left:
+        if made_here and out.is_dir():
+            (out / RESULTS_MARKER).unlink(missing_ok=True)
+            out.rmdir()
+        return "radiokit demo: interrupted; no partial output was left"
+    folder = shlex.quote(str(out))
+    return (
+        f"radiokit demo: interrupted; {out} keeps what it had written ({', '.join(left)}; an interrupted "
+        f"acquisition keeps the frames it flushed): `radiokit demo -o {folder} --overwrite` starts again"
+    )
+
+
+def _run_demo(args) -> dict:
+    return run_demo(
         args.output,
         preset=args.preset,
         binning=args.binning,
@@ -319,6 +356,3 @@ def _run(args) -> int:
         view=args.view,
         imaging=args.imaging,
     )
-    print()
-    print(headline(summary))
-    return 0

@@ -934,3 +934,51 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_pat
     res = run("process", experiment, twin, "-q", "--scheduler", "no-port-here", "-o", tmp_path / "new" / "res")
     one_line_error(res, "no-port-here")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "twin.h5"]
+
+
+def _demo_interrupted_when(out: Path, seen) -> tuple[int, str]:
+    """``radiokit demo`` (the cheapest settings) sent Ctrl-C as soon as ``seen(out)`` holds."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "demo", "-q", "--binning", "4", "--coarse", "--fast", "--frames", "1"]
+        + ["-o", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_as_from_a_terminal,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        t_end = time.monotonic() + 240
+        while not seen(out) and proc.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.01)
+        assert proc.poll() is None, "the demo ended before the moment to interrupt it"
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, as the terminal sends it
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, err
+
+
+def test_demo_interrupted_before_any_file_leaves_no_folder(tmp_path):
+    """Ctrl-C while the demo solved its first scene said "no partial output was left", yet left
+    the folder it had claimed (its marker alone), and the next `radiokit demo` was refused:
+    `exists; pass --overwrite`. A folder this run made and nothing else went into is removed."""
+    out = tmp_path / "demo"
+    code, err = _demo_interrupted_when(out, lambda o: (o / RESULTS_MARKER).exists())
+    assert code == 130, err
+    assert err.strip() == "radiokit demo: interrupted; no partial output was left", err
+    assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+
+
+def test_demo_interrupted_mid_acquisition_says_what_it_left(tmp_path):
+    """Ctrl-C once the experiment file was being written: the demo's acquisition flushes frame by
+    frame (not atomic), so a partial experiment file stays in the demo's folder. The line said
+    "no partial output was left"; it names the folder and how to start again instead."""
+    out = tmp_path / "demo"
+    code, err = _demo_interrupted_when(out, lambda o: (o / "experiment.h5").exists())
+    assert code == 130, err
+    assert (out / "experiment.h5").exists() and (out / RESULTS_MARKER).exists()
+    assert len(err.strip().splitlines()) == 1, err
+    assert "no partial output" not in err and str(out) in err and "--overwrite" in err, err
