@@ -632,7 +632,7 @@ def cmd_process(args) -> int:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
-            if str(args.files[0]) in str(exc):
+            if any(str(f) in str(exc) for f in inputs):  # named already (the control, say)
                 raise
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)

@@ -395,3 +395,13 @@ def test_an_image_key_beside_another_layouts_frames_is_checked_too(tmp_path):
         h5["scan/data"] = np.zeros((4, 8, 8), np.uint16)
         h5["scan/image_key"] = np.array([2, 1, 0, 9], np.int8)
     one_line_error(run_cli("info", path, "--dataset", "scan/data"), "other.h5", "/scan/image_key[3]", "image_key 9")
+
+
+def test_process_names_a_control_that_is_not_an_experiment_file(tmp_path):
+    """A TIFF given as --control was "not an control experiment", after the experiment file's name
+    ("exp.h5: ctl.tif: ...", as if the experiment were at fault): one line, naming the control."""
+    exp = synthetic(tmp_path / "exp.h5")
+    write_tiff(tmp_path / "ctl.tif", read(exp).data[:2])
+    res = run_cli("process", exp, "--control", tmp_path / "ctl.tif", "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "ctl.tif", "holds tiff data, not a control experiment")
+    assert "exp.h5" not in res.stderr, res.stderr
