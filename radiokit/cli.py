@@ -1098,7 +1098,7 @@ def _main(argv) -> int:
             f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
         )
     _one_warning_per_file()
-    if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
+    if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)
     try:

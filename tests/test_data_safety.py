@@ -936,8 +936,8 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "twin.h5"]
 
 
-def _demo_interrupted_when(out: Path, seen) -> tuple[int, str]:
-    """``radiokit demo`` (the cheapest settings) sent Ctrl-C as soon as ``seen(out)`` holds."""
+def _demo_interrupted_when(out: Path, seen, sig=signal.SIGINT) -> tuple[int, str]:
+    """``radiokit demo`` (the cheapest settings) sent ``sig`` as soon as ``seen(out)`` holds."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "radiokit.cli", "demo", "-q", "--binning", "4", "--coarse", "--fast", "--frames", "1"]
         + ["-o", str(out)],
@@ -953,7 +953,7 @@ def _demo_interrupted_when(out: Path, seen) -> tuple[int, str]:
         while not seen(out) and proc.poll() is None and time.monotonic() < t_end:
             time.sleep(0.01)
         assert proc.poll() is None, "the demo ended before the moment to interrupt it"
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, as the terminal sends it
+        os.killpg(proc.pid, sig)  # the whole group, as the terminal sends Ctrl-C
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
@@ -961,12 +961,15 @@ def _demo_interrupted_when(out: Path, seen) -> tuple[int, str]:
     return proc.returncode, err
 
 
-def test_demo_interrupted_before_any_file_leaves_no_folder(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_demo_interrupted_before_any_file_leaves_no_folder(sig, tmp_path):
     """Ctrl-C while the demo solved its first scene said "no partial output was left", yet left
     the folder it had claimed (its marker alone), and the next `radiokit demo` was refused:
-    `exists; pass --overwrite`. A folder this run made and nothing else went into is removed."""
+    `exists; pass --overwrite`. A folder this run made and nothing else went into is removed.
+    SIGTERM (`kill`) then killed the demo without a word: it stops as Ctrl-C does, as every
+    other command does (the acquisitions' own handlers take over while they run)."""
     out = tmp_path / "demo"
-    code, err = _demo_interrupted_when(out, lambda o: (o / RESULTS_MARKER).exists())
+    code, err = _demo_interrupted_when(out, lambda o: (o / RESULTS_MARKER).exists(), sig)
     assert code == 130, err
     assert err.strip() == "radiokit demo: interrupted; no partial output was left", err
     assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
