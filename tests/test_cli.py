@@ -15,7 +15,7 @@ import pytest
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, run_cli
+from conftest import needs_itex, run_cli, synthetic
 
 from radiokit.io import ExperimentWriter, ImageKey, read
 from sim.detector import PanelModel
@@ -744,3 +744,19 @@ def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
     res = run_cli("info", "missing.h5", cwd=tmp_path, env={"RADIOKIT_THREADS": "1"})
     assert res.returncode == 2 and res.stderr == "radiokit info: missing.h5: no such file\n", res.stderr
     assert state() == before
+
+
+@pytest.mark.parametrize("command", [["acquire"], ["sim", "run"]])
+def test_a_folder_or_a_binary_file_given_as_the_toml_is_named_as_such(command, tmp_path):
+    """A new user's slips, given where a protocol or a scene TOML belongs: a folder was "cannot
+    read the protocol (Is a directory)" or "unknown scene '...'", and the experiment file itself
+    "('utf-8' codec can't decode byte 0x89 in position 0: invalid start byte)"."""
+    exp = synthetic(tmp_path / "exp.h5")
+    tail = ["--dry-run"] if command == ["acquire"] else ["-o", str(tmp_path / "sim.h5")]
+    for given, says in ((tmp_path, "is a folder"), (exp, "not TOML text")):
+        res = run_cli(*command, str(given), *tail)
+        assert res.returncode == 2, (res.stdout, res.stderr)
+        line = res.stderr.strip()
+        assert len(line.splitlines()) == 1 and f"{given}: " in line and says in line, line
+        assert "codec" not in line and "unknown scene" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
