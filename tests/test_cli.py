@@ -760,3 +760,14 @@ def test_a_folder_or_a_binary_file_given_as_the_toml_is_named_as_such(command, t
         assert len(line.splitlines()) == 1 and f"{given}: " in line and says in line, line
         assert "codec" not in line and "unknown scene" not in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+def test_an_existing_output_names_the_option_only(tmp_path):
+    """The command line said "exists; pass --overwrite (overwrite=True) to replace it": the
+    Python keyword means nothing to a user at the shell (the API's error keeps it)."""
+    exp = synthetic(tmp_path / "exp.h5")
+    out = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", out).returncode == 0
+    res = run_cli("calibrate", "--experiment", exp, "-o", out)
+    assert res.returncode == 2
+    assert res.stderr.strip() == f"radiokit calibrate: {out}: exists; pass --overwrite to replace it", res.stderr
