@@ -184,7 +184,9 @@ def cmd_info(args) -> int:
         print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
         of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
         if rep["range"] is not None:
-            print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
+            # float32 carries about 7 significant digits; float64's repr printed nine more of noise
+            lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
+            print(f"  range      {lo} .. {hi}{of}")
         if rep["saturated"] is not None:
             print(f"  saturated  {rep['saturated']} pixel(s){of}")
         if rep["nonfinite"]:

@@ -771,3 +771,17 @@ def test_an_existing_output_names_the_option_only(tmp_path):
     res = run_cli("calibrate", "--experiment", exp, "-o", out)
     assert res.returncode == 2
     assert res.stderr.strip() == f"radiokit calibrate: {out}: exists; pass --overwrite to replace it", res.stderr
+
+
+def test_info_prints_a_float_stacks_range_to_its_precision(tmp_path):
+    """A corrected stack's range read "0.6216492652893066 .. 0.8507928848266602": float32 values
+    printed with float64's 16 digits, nine of them noise. float32 carries about 7."""
+    from radiokit.io import write_tiff
+
+    path = write_tiff(tmp_path / "mu.tif", np.array([[[0.1, 0.25], [1 / 3, 2.0]]], np.float32))
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    line = next(ln for ln in res.stdout.splitlines() if ln.split()[:1] == ["range"])
+    lo, hi = (float(v) for v in line.split()[1::2][:2])
+    assert line.split()[1:4] == ["0.1", "..", "2"], line  # digits float32 does not carry are gone
+    assert abs(lo - 0.1) <= 1e-7 * 0.1 and hi == 2.0
