@@ -363,14 +363,30 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False):
+def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
+        _a_projection(path, src.meta.get("image_key"), index, option)
         return np.asarray(src[index], np.float32)
+
+
+def _a_projection(path, keys, index, option) -> None:
+    """An experiment file's frame 0 is a dark: `register exp.h5 ctl.h5` registered two darks and
+    printed "NCC 1.0000 -> 1.0000" as if two radiographs had been. Only projections are taken."""
+    if keys is None or int(np.asarray(keys)[index]) == 0:
+        return
+    key = int(np.asarray(keys)[index])
+    kind = {1: "a flat", 2: "a dark", 3: "an invalid frame"}.get(key, f"image_key {key}")
+    projections = np.flatnonzero(np.asarray(keys) == 0)
+    which = f"the first projection is frame {projections[0]}" if projections.size else "the file holds no projection"
+    raise ValueError(
+        f"{path}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
+        f"({option} N picks one)"
+    )
 
 
 def _check_preset(args) -> None:
@@ -402,7 +418,7 @@ def _register_inputs(args):
     from radiokit.io import check_output
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
+    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame")
     # after the reads (a file that cannot be read says so first), before anything else is judged
     if args.fixed_frame == args.moving_frame and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
