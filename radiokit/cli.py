@@ -835,8 +835,18 @@ def _add_register(sub):
         metavar=("R0", "R1", "C0", "C1"),
         help="score the similarity only inside rows R0:R1, columns C0:C1",
     )
-    p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
-    p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
+    p.add_argument(
+        "--fixed-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame fixed file (default 0; of an experiment file, a projection)",
+    )
+    p.add_argument(
+        "--moving-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
+    )
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
     p.add_argument(
