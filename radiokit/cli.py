@@ -1119,11 +1119,13 @@ def _main(argv) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # `radiokit sim run`, named whole as argparse's own errors and --help name it (not "radiokit sim")
+    name = " ".join(filter(None, (args.command, getattr(args, "sim_command", None))))
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
+            f"radiokit {name}: {category.__name__}: {' '.join(str(message).split())}\n"
         )
     _one_warning_per_file()
     if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
@@ -1134,7 +1136,7 @@ def _main(argv) -> int:
             _check_environment()
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+        print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
         return 130
     except Exception as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_gone():
@@ -1145,9 +1147,9 @@ def _main(argv) -> int:
         if not _user_error(exc) or _debug(args):
             raise
         if _interrupted(exc):  # a C extension turned the interrupt into its own error
-            print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+            print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
             return 130
-        print(_error_line(args.command, exc), file=sys.stderr)
+        print(_error_line(name, exc), file=sys.stderr)
         return 2
 
 
