@@ -209,6 +209,18 @@ def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["experiment.h5"]
 
 
+def test_demo_refuses_a_results_folder_of_radiokit_process(experiment, tmp_path):
+    """`radiokit demo -o exp/results --overwrite` took a `radiokit process` results folder for its
+    own (radiokit made it): it wrote over the folder's list of files with its own marker and ran
+    its demo beside the old report.html and results.json, a folder mixing two runs."""
+    out = tmp_path / "results"
+    assert run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode in (0, 1)
+    before = tree_sha(out)
+    for extra in ([], ["--overwrite"]):
+        one_line_error(run_cli("demo", "-o", out, "-q", *extra), str(out), "radiokit process", "not a demo")
+    assert tree_sha(out) == before
+
+
 def test_demo_replaces_only_its_own_outputs(tmp_path):
     from acquisition.demo import _demo_folder
 
