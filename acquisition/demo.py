@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -54,6 +55,9 @@ def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats
     )
 
 
+#: how a demo's folder's marker begins (a results folder's begins "made by radiokit;")
+_DEMO_MARKER = "made by radiokit demo"
+
 #: the files and folders a demo makes in its folder, and nothing else
 _DEMO_OUTPUTS = ("experiment.h5", "experiment.log", "control.h5", "control.log", "results")
 
@@ -65,6 +69,13 @@ def _demo_folder(out_dir, overwrite) -> Path:
 
     from radiokit.io import RESULTS_MARKER, check_output
 
+    marker = Path(out_dir) / RESULTS_MARKER
+    if marker.is_file() and not _starts_with(marker, _DEMO_MARKER):
+        # radiokit made it, but as a results folder: the demo wrote its marker over that folder's
+        # list of files and ran beside its report, one folder mixing two runs
+        raise FileExistsError(
+            f"{out_dir}: a results folder of radiokit process, not a demo's folder; choose another output"
+        )
     out = check_output(out_dir, overwrite=overwrite, folder=True)
     out.mkdir(parents=True, exist_ok=True)
     for name in _DEMO_OUTPUTS:
@@ -73,8 +84,13 @@ def _demo_folder(out_dir, overwrite) -> Path:
             shutil.rmtree(old)
         elif old.exists() or old.is_symlink():
             old.unlink()
-    (out / RESULTS_MARKER).write_text("made by radiokit demo; may be replaced by `radiokit demo --overwrite`\n")
+    (out / RESULTS_MARKER).write_text(f"{_DEMO_MARKER}; may be replaced by `radiokit demo --overwrite`\n")
     return out
+
+
+def _starts_with(path: Path, text: str) -> bool:
+    with open(path, "rb") as f:  # its first bytes only: a marker is a line, whatever the file holds
+        return f.read(len(text.encode())) == text.encode()
 
 
 def control_scene(scene):
@@ -305,7 +321,43 @@ def add_demo(subparsers):
 
 
 def _run(args) -> int:
-    summary = run_demo(
+    out = Path(args.output)
+    made_here = not out.exists() and not out.is_symlink()
+    try:
+        summary = _run_demo(args)
+    except KeyboardInterrupt:
+        # not the other commands' "no partial output was left": the acquisitions append frame by
+        # frame (not atomic), so an interrupted demo may leave its experiment files behind
+        print(_interrupted_line(out, made_here), file=sys.stderr)
+        return 130
+    print()
+    print(headline(summary))
+    return 0
+
+
+def _interrupted_line(out: Path, made_here: bool) -> str:
+    """What an interrupted demo left: a folder this run made, holding nothing but its marker, is
+    removed (it refused the next run, "exists; pass --overwrite", though nothing was in it)."""
+    from radiokit.io import RESULTS_MARKER
+
+    try:
+        left = sorted(p.name for p in out.iterdir() if p.name != RESULTS_MARKER)
+    except OSError:  # never claimed: interrupted before the folder was made
+        left = []
+    if not left:
+        if made_here and out.is_dir():
+            (out / RESULTS_MARKER).unlink(missing_ok=True)
+            out.rmdir()
+        return "radiokit demo: interrupted; no partial output was left"
+    folder = shlex.quote(str(out))
+    return (
+        f"radiokit demo: interrupted; {out} keeps what it had written ({', '.join(left)}; an interrupted "
+        f"acquisition keeps the frames it flushed): `radiokit demo -o {folder} --overwrite` starts again"
+    )
+
+
+def _run_demo(args) -> dict:
+    return run_demo(
         args.output,
         preset=args.preset,
         binning=args.binning,
@@ -319,6 +371,3 @@ def _run(args) -> int:
         view=args.view,
         imaging=args.imaging,
     )
-    print()
-    print(headline(summary))
-    return 0

@@ -38,6 +38,7 @@ a reply that arrives after its requester was interrupted is discarded)::
 
 from __future__ import annotations
 
+import _thread
 import json
 import os
 import signal
@@ -117,6 +118,8 @@ class SignalGuard:
         self._depth = 0
         self._listeners: list = []
         self._wake = None  # (read fd, write fd, the previous wakeup fd, watcher thread)
+        self._cleaning = False  # cleanup() entered: the switch-off owns the run
+        self._old_hook = None  # sys.unraisablehook while the guard is installed
 
     def __enter__(self) -> SignalGuard:
         self._depth += 1
@@ -124,6 +127,7 @@ class SignalGuard:
             for sig in _SIGNALS:
                 self._old[sig] = signal.signal(sig, self._handle)
             self._start_watch()
+            self._old_hook, sys.unraisablehook = sys.unraisablehook, self._unraisable
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -133,6 +137,8 @@ class SignalGuard:
             for sig, old in self._old.items():
                 signal.signal(sig, old)
             self._old.clear()
+            if self._old_hook is not None:
+                sys.unraisablehook, self._old_hook = self._old_hook, None
 
     def on_signal(self, callback) -> None:
         """Call ``callback()`` (no arguments, from the watcher thread) as soon as a guarded signal
@@ -201,8 +207,24 @@ class SignalGuard:
 
     def cleanup(self) -> SignalGuard:
         """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
-        self.stopping = True
+        self.stopping = self._cleaning = True
         return self
+
+    def _unraisable(self, unraisable) -> None:
+        """Python drops an exception raised while a finalizer runs (h5py's weak references die
+        during every frame write): a :class:`StopSignal` raised there was lost, and the guard,
+        stopping already, only printed "please wait" at every later signal while the series
+        went on. Before the switch-off has begun, the stop is delivered again to the main thread."""
+        exc = unraisable.exc_value
+        if isinstance(exc, StopSignal) and not self._cleaning:
+            self.stopping = False  # the stop never reached the run: the next delivery raises
+            # from another thread, a moment later: here, still inside the finalizer (or this
+            # hook), it would be dropped again; should it land in another finalizer, this repeats
+            timer = threading.Timer(0.05, _thread.interrupt_main, (exc.signum,))
+            timer.daemon = True
+            timer.start()
+            return
+        (self._old_hook or sys.__unraisablehook__)(unraisable)
 
     def _handle(self, signum, frame) -> None:
         self.received.append(signum)

@@ -184,7 +184,9 @@ def cmd_info(args) -> int:
         print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
         of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
         if rep["range"] is not None:
-            print(f"  range      {rep['range'][0]} .. {rep['range'][1]}{of}")
+            # float32 carries about 7 significant digits; float64's repr printed nine more of noise
+            lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
+            print(f"  range      {lo} .. {hi}{of}")
         if rep["saturated"] is not None:
             print(f"  saturated  {rep['saturated']} pixel(s){of}")
         if rep["nonfinite"]:
@@ -361,14 +363,30 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False):
+def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
+        _a_projection(path, src.meta.get("image_key"), index, option)
         return np.asarray(src[index], np.float32)
+
+
+def _a_projection(path, keys, index, option) -> None:
+    """An experiment file's frame 0 is a dark: `register exp.h5 ctl.h5` registered two darks and
+    printed "NCC 1.0000 -> 1.0000" as if two radiographs had been. Only projections are taken."""
+    if keys is None or int(np.asarray(keys)[index]) == 0:
+        return
+    key = int(np.asarray(keys)[index])
+    kind = {1: "a flat", 2: "a dark", 3: "an invalid frame"}.get(key, f"image_key {key}")
+    projections = np.flatnonzero(np.asarray(keys) == 0)
+    which = f"the first projection is frame {projections[0]}" if projections.size else "the file holds no projection"
+    raise ValueError(
+        f"{path}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
+        f"({option} N picks one)"
+    )
 
 
 def _check_preset(args) -> None:
@@ -400,7 +418,7 @@ def _register_inputs(args):
     from radiokit.io import check_output
 
     fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external)
+    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame")
     # after the reads (a file that cannot be read says so first), before anything else is judged
     if args.fixed_frame == args.moving_frame and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
@@ -649,7 +667,7 @@ def cmd_process(args) -> int:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
-            if str(args.files[0]) in str(exc):
+            if any(str(f) in str(exc) for f in inputs):  # named already (the control, say)
                 raise
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
@@ -834,8 +852,18 @@ def _add_register(sub):
         metavar=("R0", "R1", "C0", "C1"),
         help="score the similarity only inside rows R0:R1, columns C0:C1",
     )
-    p.add_argument("--fixed-frame", type=int, default=0, help="frame index in a multi-frame fixed file (default 0)")
-    p.add_argument("--moving-frame", type=int, default=0, help="frame index in a multi-frame moving file (default 0)")
+    p.add_argument(
+        "--fixed-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame fixed file (default 0; of an experiment file, a projection)",
+    )
+    p.add_argument(
+        "--moving-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
+    )
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
     p.add_argument(
@@ -1120,14 +1148,16 @@ def _main(argv) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # `radiokit sim run`, named whole as argparse's own errors and --help name it (not "radiokit sim")
+    name = " ".join(filter(None, (args.command, getattr(args, "sim_command", None))))
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {args.command}: {category.__name__}: {' '.join(str(message).split())}\n"
+            f"radiokit {name}: {category.__name__}: {' '.join(str(message).split())}\n"
         )
     _one_warning_per_file()
-    if args.command not in ("acquire", "demo"):  # those own their signals (the tube goes off first)
+    if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)
     try:
@@ -1135,7 +1165,7 @@ def _main(argv) -> int:
             _check_environment()
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+        print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
         return 130
     except Exception as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_gone():
@@ -1146,15 +1176,17 @@ def _main(argv) -> int:
         if not _user_error(exc) or _debug(args):
             raise
         if _interrupted(exc):  # a C extension turned the interrupt into its own error
-            print(f"radiokit {args.command}: interrupted; no partial output was left", file=sys.stderr)
+            print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
             return 130
-        print(_error_line(args.command, exc), file=sys.stderr)
+        print(_error_line(name, exc), file=sys.stderr)
         return 2
 
 
 def _error_line(command: str, exc: BaseException) -> str:
     """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``."""
     message = str(exc) or type(exc).__name__
+    # the API's words name its keyword too; at the shell only the option means anything
+    message = message.replace("--overwrite (overwrite=True)", "--overwrite")
     if isinstance(exc, MemoryError):
         message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
     return f"radiokit {command}: {' '.join(message.split())}"

@@ -854,7 +854,7 @@ def _check_inputs(path: Path, control) -> None:
             if kind != "experiment":
                 raise FormatError(
                     p,
-                    f"holds {kind} data, not an {what} (darks, flats and projections by step, as "
+                    f"holds {kind} data, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             shapes.append(src.frame_shape)

@@ -814,16 +814,31 @@ def load_scene(name_or_toml) -> Scene:
     if text in PRESETS:
         return PRESETS[text]()
     path = Path(text)
-    if "\n" not in text and path.suffix == ".toml":
+    if "\n" not in text and path.suffix == ".toml" or _names_a_file(text):
+        if path.is_dir():
+            raise ValueError(f"{path}: is a folder, not a scene file (presets: {', '.join(PRESETS)})")
         if not path.exists():
             raise FileNotFoundError(f"{path}: no such scene file (presets: {', '.join(PRESETS)})")
         try:
             return Scene.from_toml(path.read_text())
+        except UnicodeDecodeError:  # an experiment file or an image given for the scene
+            raise ValueError(f"{path}: not TOML text (binary data): not a scene file") from None
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from exc
     if "=" in text or "[" in text:
         return Scene.from_toml(text)
     raise ValueError(f"unknown scene {text!r}: a preset ({', '.join(PRESETS)}), a .toml file or TOML text")
+
+
+def _names_a_file(text: str) -> bool:
+    """One line naming something on disk (a folder, a scene file not named .toml, an experiment
+    file given by mistake): named as such, not as an unknown scene or TOML text."""
+    if "\n" in text or "=" in text:
+        return False
+    try:
+        return Path(text).exists()
+    except (OSError, ValueError):  # too long or not a path at all: not a file
+        return False
 
 
 def with_view(scene: Scene, view: str) -> Scene:

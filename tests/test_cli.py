@@ -15,7 +15,7 @@ import pytest
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, run_cli
+from conftest import needs_itex, run_cli, synthetic
 from scipy import ndimage
 
 from radiokit.io import ExperimentWriter, ImageKey, read
@@ -774,3 +774,44 @@ def test_register_regularisation_check_from_the_command_line(tmp_path, capsys):
     assert checked["regularisation_check"] == "weak" and checked["regularisation_check_seconds"] > 0
     # a rich texture's 1 px shift: both fields right, so they agree well under the flag's 0.6 px
     assert 0 <= checked["disagreement"] < 0.3 and f"{checked['disagreement']:.2f} px" in line
+
+
+@pytest.mark.parametrize("command", [["acquire"], ["sim", "run"]])
+def test_a_folder_or_a_binary_file_given_as_the_toml_is_named_as_such(command, tmp_path):
+    """A new user's slips, given where a protocol or a scene TOML belongs: a folder was "cannot
+    read the protocol (Is a directory)" or "unknown scene '...'", and the experiment file itself
+    "('utf-8' codec can't decode byte 0x89 in position 0: invalid start byte)"."""
+    exp = synthetic(tmp_path / "exp.h5")
+    tail = ["--dry-run"] if command == ["acquire"] else ["-o", str(tmp_path / "sim.h5")]
+    for given, says in ((tmp_path, "is a folder"), (exp, "not TOML text")):
+        res = run_cli(*command, str(given), *tail)
+        assert res.returncode == 2, (res.stdout, res.stderr)
+        line = res.stderr.strip()
+        assert len(line.splitlines()) == 1 and f"{given}: " in line and says in line, line
+        assert "codec" not in line and "unknown scene" not in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+def test_an_existing_output_names_the_option_only(tmp_path):
+    """The command line said "exists; pass --overwrite (overwrite=True) to replace it": the
+    Python keyword means nothing to a user at the shell (the API's error keeps it)."""
+    exp = synthetic(tmp_path / "exp.h5")
+    out = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", out).returncode == 0
+    res = run_cli("calibrate", "--experiment", exp, "-o", out)
+    assert res.returncode == 2
+    assert res.stderr.strip() == f"radiokit calibrate: {out}: exists; pass --overwrite to replace it", res.stderr
+
+
+def test_info_prints_a_float_stacks_range_to_its_precision(tmp_path):
+    """A corrected stack's range read "0.6216492652893066 .. 0.8507928848266602": float32 values
+    printed with float64's 16 digits, nine of them noise. float32 carries about 7."""
+    from radiokit.io import write_tiff
+
+    path = write_tiff(tmp_path / "mu.tif", np.array([[[0.1, 0.25], [1 / 3, 2.0]]], np.float32))
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    line = next(ln for ln in res.stdout.splitlines() if ln.split()[:1] == ["range"])
+    lo, hi = (float(v) for v in line.split()[1::2][:2])
+    assert line.split()[1:4] == ["0.1", "..", "2"], line  # digits float32 does not carry are gone
+    assert abs(lo - 0.1) <= 1e-7 * 0.1 and hi == 2.0

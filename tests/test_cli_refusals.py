@@ -395,3 +395,32 @@ def test_an_image_key_beside_another_layouts_frames_is_checked_too(tmp_path):
         h5["scan/data"] = np.zeros((4, 8, 8), np.uint16)
         h5["scan/image_key"] = np.array([2, 1, 0, 9], np.int8)
     one_line_error(run_cli("info", path, "--dataset", "scan/data"), "other.h5", "/scan/image_key[3]", "image_key 9")
+
+
+def test_process_names_a_control_that_is_not_an_experiment_file(tmp_path):
+    """A TIFF given as --control was "not an control experiment", after the experiment file's name
+    ("exp.h5: ctl.tif: ...", as if the experiment were at fault): one line, naming the control."""
+    exp = synthetic(tmp_path / "exp.h5")
+    write_tiff(tmp_path / "ctl.tif", read(exp).data[:2])
+    res = run_cli("process", exp, "--control", tmp_path / "ctl.tif", "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "ctl.tif", "holds tiff data, not a control experiment")
+    assert "exp.h5" not in res.stderr, res.stderr
+
+
+def test_register_refuses_a_dark_or_flat_frame_of_an_experiment_file(tmp_path):
+    """`radiokit register exp.h5 ctl.h5` registered frame 0 of each, a dark (image_key 2), and
+    reported "NCC 1.0000 -> 1.0000" as if two radiographs had been registered. A frame an
+    experiment file marks other than a projection is refused, naming its kind and a projection."""
+    exp = synthetic(tmp_path / "exp.h5")
+    keys = read(exp).meta["image_key"]
+    first = int(np.flatnonzero(keys == 0)[0])
+    res = run_cli("register", exp, exp, "--moving-frame", "1", "-o", tmp_path / "reg.h5")
+    one_line_error(res, "exp.h5", "frame 0 is a dark", f"frame {first}", "--fixed-frame")
+    flat = int(np.flatnonzero(keys == 1)[0])
+    res = run_cli("register", exp, exp, "--fixed-frame", first, "--moving-frame", flat, "-o", tmp_path / "reg.h5")
+    one_line_error(res, "exp.h5", f"frame {flat} is a flat", "--moving-frame")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+    # two projections of the file register (the last step onto the first, as the tutorial's pair)
+    last = int(np.flatnonzero(keys == 0)[-1])
+    res = run_cli("register", exp, exp, "--fixed-frame", last, "--moving-frame", first, "-o", tmp_path / "reg.h5")
+    assert res.returncode in (0, 1) and (tmp_path / "reg.h5").exists(), res.stderr

@@ -209,6 +209,18 @@ def test_demo_refuses_a_folder_it_did_not_make(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["experiment.h5"]
 
 
+def test_demo_refuses_a_results_folder_of_radiokit_process(experiment, tmp_path):
+    """`radiokit demo -o exp/results --overwrite` took a `radiokit process` results folder for its
+    own (radiokit made it): it wrote over the folder's list of files with its own marker and ran
+    its demo beside the old report.html and results.json, a folder mixing two runs."""
+    out = tmp_path / "results"
+    assert run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode in (0, 1)
+    before = tree_sha(out)
+    for extra in ([], ["--overwrite"]):
+        one_line_error(run_cli("demo", "-o", out, "-q", *extra), str(out), "radiokit process", "not a demo")
+    assert tree_sha(out) == before
+
+
 def test_demo_replaces_only_its_own_outputs(tmp_path):
     from acquisition.demo import _demo_folder
 
@@ -971,3 +983,54 @@ def test_an_interrupted_correct_does_not_wait_forever_for_a_stuck_writer():
     t.join(30)
     release.set()
     assert outcome == ["interrupt raised"], "the interrupted run waited for its stuck writer"
+
+
+def _demo_interrupted_when(out: Path, seen, sig=signal.SIGINT) -> tuple[int, str]:
+    """``radiokit demo`` (the cheapest settings) sent ``sig`` as soon as ``seen(out)`` holds."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", "demo", "-q", "--binning", "4", "--coarse", "--fast", "--frames", "1"]
+        + ["-o", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_as_from_a_terminal,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    try:
+        t_end = time.monotonic() + 240
+        while not seen(out) and proc.poll() is None and time.monotonic() < t_end:
+            time.sleep(0.01)
+        assert proc.poll() is None, "the demo ended before the moment to interrupt it"
+        os.killpg(proc.pid, sig)  # the whole group, as the terminal sends Ctrl-C
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_demo_interrupted_before_any_file_leaves_no_folder(sig, tmp_path):
+    """Ctrl-C while the demo solved its first scene said "no partial output was left", yet left
+    the folder it had claimed (its marker alone), and the next `radiokit demo` was refused:
+    `exists; pass --overwrite`. A folder this run made and nothing else went into is removed.
+    SIGTERM (`kill`) then killed the demo without a word: it stops as Ctrl-C does, as every
+    other command does (the acquisitions' own handlers take over while they run)."""
+    out = tmp_path / "demo"
+    code, err = _demo_interrupted_when(out, lambda o: (o / RESULTS_MARKER).exists(), sig)
+    assert code == 130, err
+    assert err.strip() == "radiokit demo: interrupted; no partial output was left", err
+    assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+
+
+def test_demo_interrupted_mid_acquisition_says_what_it_left(tmp_path):
+    """Ctrl-C once the experiment file was being written: the demo's acquisition flushes frame by
+    frame (not atomic), so a partial experiment file stays in the demo's folder. The line said
+    "no partial output was left"; it names the folder and how to start again instead."""
+    out = tmp_path / "demo"
+    code, err = _demo_interrupted_when(out, lambda o: (o / "experiment.h5").exists())
+    assert code == 130, err
+    assert (out / "experiment.h5").exists() and (out / RESULTS_MARKER).exists()
+    assert len(err.strip().splitlines()) == 1, err
+    assert "no partial output" not in err and str(out) in err and "--overwrite" in err, err

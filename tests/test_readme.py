@@ -134,3 +134,19 @@ def test_readme_command_lines_use_options_that_exist():
                 if action.choices is not None and i + 1 < len(rest):
                     value = action.type(rest[i + 1]) if action.type else rest[i + 1]
                     assert value in action.choices, f"{where}: {w} {value} is not one of {action.choices}"
+
+
+def test_the_protocol_file_the_acquire_commands_name_is_shown_and_plans(tmp_path):
+    """`radiokit acquire protocol.toml --dry-run` was the README's first acquisition command, but
+    no protocol file was shown anywhere (only the Python dict): the one shown plans as written,
+    for the lab and for the virtual bench."""
+    from conftest import run_cli
+
+    blocks = [b for b in re.findall(r"```toml\n(.*?)```", README.read_text(), re.S) if b.startswith("# protocol.toml")]
+    assert len(blocks) == 1, "README shows no protocol.toml"
+    (tmp_path / "protocol.toml").write_text(blocks[0])
+    for extra in ([], ["--sim"]):
+        res = run_cli("acquire", "protocol.toml", "--dry-run", *extra, cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        assert "32 frames" in res.stdout and "-> series.h5" in res.stdout, res.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["protocol.toml"]  # a dry run touches nothing

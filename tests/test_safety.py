@@ -801,6 +801,31 @@ def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     assert signal.set_wakeup_fd(-1) == -1
 
 
+def test_a_stop_lost_in_a_finalizer_is_delivered_again():
+    """Python drops an exception raised while a finalizer runs ("Exception ignored in:
+    WeakValueDictionary...remove", h5py's object registry, during a frame write). A Ctrl-C whose
+    StopSignal landed there was lost, and the guard, stopping already, turned every later Ctrl-C
+    into "switching the X-ray tube off first, please wait" while the series went on to its end
+    (`radiokit demo` interrupted mid-acquisition ended with exit code 0). The guard now delivers
+    the lost stop again. The finalizer here is real; the signal is raised inside it, where Python
+    runs the handler at once."""
+    from acquisition.guardian import SignalGuard, StopSignal
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGINT)
+
+    with SignalGuard() as guard:
+        with pytest.raises(StopSignal) as stop:
+            Finalised()  # dies at once: its __del__ takes the signal, and Python drops the raise
+            for _ in range(100):  # the stop delivered again lands here, in plain bytecode
+                time.sleep(0.01)
+        assert guard.stopping and stop.value.signum == signal.SIGINT
+        with guard.cleanup():  # the switch-off: from then on nothing interrupts, lost or not
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(0.05)
+
+
 def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):
     """A previous run killed with the beam on (or a hand left it on): the next run asks STS and
     switches off, confirmed, before any other command and before asking anyone for anything;

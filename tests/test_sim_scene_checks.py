@@ -144,7 +144,8 @@ def test_cli_options_are_checked_with_the_scene(args, words, no_meshing, tmp_pat
             main(["sim", "run", "--preset", "pva-phantom", "-o", str(out), "-q", *args])
         return
     assert main(["sim", "run", "--preset", "pva-phantom", "-o", str(out), "-q", *args]) == 2
-    assert capsys.readouterr().err.strip() == f"radiokit sim: {words}"
+    # the subcommand named whole, as argparse's own errors and `--help` name it
+    assert capsys.readouterr().err.strip() == f"radiokit sim run: {words}"
     assert not out.exists()
 
 

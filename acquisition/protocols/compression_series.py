@@ -409,10 +409,12 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             where = text_
             try:
                 text_ = Path(text_).read_text()
-            except (OSError, UnicodeDecodeError) as exc:
-                raise ProtocolError(
-                    f"{where}: cannot read the protocol ({getattr(exc, 'strerror', None) or exc})"
-                ) from None
+            except IsADirectoryError:
+                raise ProtocolError(f"{where}: is a folder, not a protocol file (TOML)") from None
+            except UnicodeDecodeError:  # the experiment file itself, a TIFF: the codec's words helped no one
+                raise ProtocolError(f"{where}: not TOML text (binary data): not a protocol file") from None
+            except OSError as exc:
+                raise ProtocolError(f"{where}: cannot read the protocol ({exc.strerror or exc})") from None
         try:
             data = tomllib.loads(text_)
         except tomllib.TOMLDecodeError as exc:
