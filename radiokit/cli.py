@@ -820,6 +820,21 @@ def _add_correct(sub):
     p.set_defaults(func=cmd_correct)
 
 
+def _add_register_checks(p):
+    """``radiokit register``'s second tries: ``--retry`` and ``--regularisation-check``."""
+    p.add_argument(
+        "--retry",
+        action="store_true",
+        help="B-spline methods: retry a registration flagged not ok with 10x stronger regularisation",
+    )
+    p.add_argument(
+        "--regularisation-check",
+        action="store_true",
+        help="register again, differently regularised (rc weak at 0.1 Mpx), and flag a trusted result that "
+        "differs from it by over 0.6 px inside the object (0.3-1 s more)",
+    )
+
+
 def _add_register(sub):
     p = sub.add_parser(
         "register",
@@ -866,17 +881,7 @@ def _add_register(sub):
     )
     p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
     p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
-    p.add_argument(
-        "--retry",
-        action="store_true",
-        help="B-spline methods: retry a registration flagged not ok with 10x stronger regularisation",
-    )
-    p.add_argument(
-        "--regularisation-check",
-        action="store_true",
-        help="register again, differently regularised (rc weak at 0.1 Mpx), and flag a trusted result that "
-        "differs from it by over 0.6 px inside the object (0.3-1 s more)",
-    )
+    _add_register_checks(p)
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"
     )
