@@ -992,15 +992,56 @@ def test_auto_ratio_is_the_texture_against_the_noise():
 
 
 def test_auto_without_an_interior_keeps_default():
-    """A body too small to have pixels 48 binned px inside its edge: nothing to judge the
-    texture by, so ``default``, with the reason."""
-    from radiokit.register._auto import choose
+    """A body too small to have pixels 48 binned px inside its edge on an empty beam: no texture
+    to judge inside it, none in the frame's interior either, so ``default``, with the reason."""
+    from radiokit.register._auto import TEXTURE_LOW, choose
 
     img = np.zeros((200, 200), np.float32)
     img[80:120, 80:120] = 1.0
     img += 0.01 * np.random.default_rng(2).standard_normal(img.shape).astype(np.float32)
     c = choose(img)
-    assert c.preset == "default" and c.interior == 0.0 and "no interior" in c.reason
+    assert c.preset == "default" and "no interior" in c.reason
+    # the frame's interior judged instead: the empty beam around the square, no texture for weak
+    assert c.ratio < TEXTURE_LOW and "carries no texture" in c.reason, c
+
+
+def _texture_frame(n=320, texture=0.01, noise=0.01, amplitude=2.0, seed=0):
+    """A texture filling the frame around a level (correlated over ~2 px, ``texture`` against the
+    noise), no body, moved by a local motion correlated over a tenth of the frame (at most
+    ``amplitude`` px; cubic interpolation), independent noise in each image.
+    ``(fixed, moving, d, inside)``."""
+    rng = np.random.default_rng(seed)
+    m, c = n + 64, (slice(32, -32), slice(32, -32))
+    t = ndimage.gaussian_filter(rng.standard_normal((m, m)), 2.0)
+    img = (1.0 + texture * t / t.std()).astype(np.float32)
+    d = np.stack([ndimage.gaussian_filter(rng.standard_normal((m, m)), n / 10) for _ in range(2)])
+    d = (d / np.abs(d).max(axis=(1, 2), keepdims=True) * amplitude).astype(np.float32)
+    fixed = warp(img, d, order=3)[c] + noise * rng.standard_normal((n, n)).astype(np.float32)
+    moving = img[c] + noise * rng.standard_normal((n, n)).astype(np.float32)
+    inside = np.zeros((n, n), bool)
+    inside[40:-40, 40:-40] = True
+    return fixed, moving, np.ascontiguousarray(d[(slice(None), *c)]), inside
+
+
+def test_auto_judges_a_texture_filling_the_frame_on_the_frames_interior():
+    """A texture filling the frame lies around the border's level, so the object (what differs
+    from that level) is a few patches with no interior: ``auto`` chose ``default`` for 'no
+    interior' and never retried it, whatever its checks said. The frame's interior carries the
+    texture (ratio above TEXTURE_LOW), so the fallback is ``weak``: ``default`` passes its checks
+    here with its residual still moving (0.19 px, over POLISH), ``weak``'s moves less and is kept,
+    at about half ``default``'s error (0.11 against 0.21 px measured)."""
+    from radiokit.register._auto import POLISH, TEXTURE_LOW, choose
+
+    fixed, moving, d, inside = _texture_frame()
+    c = choose(fixed)
+    assert c.preset == "weak" and c.ratio >= 1.2 * TEXTURE_LOW and "frame's interior" in c.reason, c
+    assert choose(fixed, "auto-fast").preset == "weak-fast"
+    default = register(fixed, moving, "rc")
+    assert default.quality.residual_motion > POLISH  # what a retry is for
+    reg = register(fixed, moving, "rc", preset="auto")
+    assert reg.options["auto"].preset == "weak", reg.options["auto"]
+    assert reg.quality.residual_motion < default.quality.residual_motion
+    assert _epe(reg.displacement, d, inside)[0] < 0.75 * _epe(default.displacement, d, inside)[0]
 
 
 def _plate_and_gel():
