@@ -80,7 +80,8 @@ class Quality:
     excess of that residual over the noise's share after registering against before, over the
     observed windows that showed over a tenth before (0: all the misaligned structure explained;
     1 or more: none of it, or made worse; NaN when under 1 % of the observed part showed any); ``noise``: the noise level
-    estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
+    the confidence map used (its units): the fixed image's estimate, or, where lower, the residual's
+    where the registered images agree (a texture both hold is not noise; ``_confidence.pair_noise_map``). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
     object), divergence (residual complexity worse than not registering, and than the noise alone
     leaves a perfect registration: an image registered to itself starts from 0), non-convergence (but not when the
     budget merely ended with the field still moving at a finest level coarser than these checks'
