@@ -80,7 +80,8 @@ class Quality:
     excess of that residual over the noise's share after registering against before, over the
     observed windows that showed over a tenth before (0: all the misaligned structure explained;
     1 or more: none of it, or made worse; NaN when under 1 % of the observed part showed any); ``noise``: the noise level
-    estimated from the fixed image (its units). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
+    the confidence map used (its units): the fixed image's estimate, or, where lower, the residual's
+    where the registered images agree (a texture both hold is not noise; ``_confidence.pair_noise_map``). ``ok`` is False, with a ``reason``, on folding (over 0.1 % of the
     object), divergence (residual complexity worse than not registering, and than the noise alone
     leaves a perfect registration: an image registered to itself starts from 0), non-convergence (but not when the
     budget merely ended with the field still moving at a finest level coarser than these checks'
@@ -631,6 +632,21 @@ class _PairChecks:
         self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k)
         self.obs = (self.ob.confidence >= 0.5) & self.ob.object
 
+    def observed_by(self, w, d):
+        """``(confidence, observed, sigma)`` of the map against the pair's noise once the moving
+        image is warped to ``w`` by ``d`` (binned; ``_confidence.pair_noise_map``): a texture
+        common to both images is structure, not noise, where they agree. The fixed image's map
+        (``ob``, ``obs``) where the residual nowhere says less than the fixed image's noise."""
+        from radiokit.register import _confidence as C
+
+        ob = self.ob
+        sig = C.pair_noise_map(ob.sigma_map, self.f, w, d, _WINDOW)
+        # lower by more than the window mean's accuracy (0.1 %): else the fixed image's map, as is
+        if not np.any(sig[ob.object] < 0.999 * ob.sigma_map[ob.object]):
+            return ob.confidence, self.obs, ob.sigma
+        conf, _ = C.confidence_map(self.f, _WINDOW, sig, bound_scale=self.k, moments=ob.moments)
+        return conf, (conf >= 0.5) & ob.object, float(np.median(sig[ob.object]))
+
     @functools.cached_property
     def unit(self) -> np.float32:
         """Alpha is in the range's units, whatever the image's (:func:`_range_unit`)."""
@@ -752,13 +768,13 @@ def _observed(reg, p, w, d, scale=1.0):
     q = reg.quality
     ob, k = p.ob, p.k
     rows, cols = reg.displacement.shape[1:]
-    conf = ob.confidence
+    conf, obs, sigma = p.observed_by(w, d)
     if conf.shape != (rows, cols):
         conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
     reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
-    obs, inner = p.obs, p.inner
+    inner = p.inner
     n_obj = int(ob.object.sum())
-    q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
+    q.noise = sigma / scale  # the image's units (register() registered the pair times ``scale``)
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, obs)

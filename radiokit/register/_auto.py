@@ -202,13 +202,14 @@ def _band_gain(band):
     return _GAIN[band]
 
 
-def interior_texture_to_noise(image, mask=None) -> tuple[float, float, float]:
+def interior_texture_to_noise(image, mask=None, frame=False) -> tuple[float, float, float]:
     """``(ratio, interior, noise)``: the median texture-to-noise ratio of the body's interior,
     the share of the binned frame the interior covers (see the module docstring), and the
     interior's median noise per full-resolution pixel over the model floor; ``(0, 0, inf)`` when
     no pixel lies ``_ERODE`` binned pixels inside the object (nothing to judge the texture by).
     ``mask`` (bool, the image's shape; ``register``'s ``mask=``): the object only where it holds,
-    as ``register``'s checks take it."""
+    as ``register``'s checks take it. ``frame``: the whole frame is the object (see
+    :func:`choose`)."""
     from radiokit.register import _assess_binning, _bin, _erode
     from radiokit.register import _confidence as C
 
@@ -216,7 +217,7 @@ def interior_texture_to_noise(image, mask=None) -> tuple[float, float, float]:
     binning = _assess_binning(f.size)
     fb = _bin(f, binning)
     sig = C.noise_map(fb, _NOISE_WINDOW)
-    obj = C._object(fb, float(np.median(sig)))
+    obj = np.ones(fb.shape, bool) if frame else C._object(fb, float(np.median(sig)))
     # the caller's object, as register()'s checks take it (a mask pixel kept where over half its
     # bin was): a textured structure the mask leaves out is not the body's texture
     if mask is not None:
@@ -231,7 +232,8 @@ def interior_texture_to_noise(image, mask=None) -> tuple[float, float, float]:
     noise2 = sig[inner] ** 2 + floor**2  # a noise-free image: see MODEL_FLOOR
     ratio = np.sqrt(np.maximum(var[inner] / (_band_gain(_BAND) * noise2) - 1.0, 0.0))
     quiet = binning * float(np.median(sig[inner])) / floor if floor > 0 else 0.0
-    return float(np.median(ratio)), float(inner.mean()), quiet
+    # the frame's: its lower quartile (see _without_interior)
+    return float(np.percentile(ratio, 25 if frame else 50)), float(inner.mean()), quiet
 
 
 def choose(fixed, name="auto", mask=None) -> AutoChoice:
@@ -239,18 +241,47 @@ def choose(fixed, name="auto", mask=None) -> AutoChoice:
     its plain preset fails its own checks: the weak preset when the interior carries texture
     (ratio >= ``TEXTURE_LOW``, with noise); the silent preset when it does not (a silent or
     noise-free body: only its edges and inclusions observe the motion, and ``weak``'s free
-    coarse levels would follow the edges' thickness change); the plain one when there is no
-    interior to judge by. ``mask``: ``register``'s, the object the texture is judged on."""
+    coarse levels would follow the edges' thickness change); without an interior inside the
+    object, the weak preset when the frame's interior carries texture, else the plain one
+    (:func:`_without_interior`). ``mask``: ``register``'s, the object the texture is judged on."""
     plain, weak, silent = AUTO_PRESETS[name]
     ratio, interior, noise = interior_texture_to_noise(fixed, mask)
     if interior == 0.0:
-        return AutoChoice(plain, ratio, interior, f"no interior {_ERODE} px (binned) inside the body")
+        return _without_interior(fixed, name, mask)
     if noise < NOISE_FREE:
         why = f"noise-free image: interior noise {noise:.2f} x the model floor (< {NOISE_FREE:g}), texture/noise moot"
         return AutoChoice(silent, ratio, interior, why)
     if ratio < TEXTURE_LOW:
         return AutoChoice(silent, ratio, interior, f"silent body: interior texture/noise {ratio:.2f} < {TEXTURE_LOW:g}")
     return AutoChoice(weak, ratio, interior, f"weak texture: interior texture/noise {ratio:.2f} >= {TEXTURE_LOW:g}")
+
+
+def _without_interior(fixed, name, mask) -> AutoChoice:
+    """:func:`choose` when no pixel lies ``_ERODE`` binned pixels inside the object: the texture
+    judged on the frame's interior instead (the frame, inside ``mask``, less ``_ERODE`` from its
+    edges), by the ratio's lower quartile, not its median: a small body's edges reach up to half
+    of that interior (a 40 px square in a 200 px frame of empty beam: median 2.8, quartile 0), a
+    texture filling it is everywhere (at 1x the noise: median 2.5, quartile 2.1). The weak preset
+    when it carries texture (quartile >= ``TEXTURE_LOW``, with noise), otherwise the plain one,
+    with the reason.
+
+    Why. The object is what differs from the frame's border level (``_confidence._object``), and a
+    texture filling the frame lies around that level: only its extremes differ from it, in patches
+    too small to have an interior (a 384 px frame of texture 1-3x the noise: 0.6-55 % of it, no
+    interior), so the plain run was kept flagged or still moving, never retried, where ``weak``
+    registers it better. Not silent there: the silent preset starts from the body's silhouette,
+    and a frame whose interior is quiet holds no body wider than ``2 _ERODE`` binned pixels, only
+    a small one on an empty beam (or nothing), for which no preset was chosen by measurement."""
+    plain, weak, _ = AUTO_PRESETS[name]
+    ratio, interior, noise = interior_texture_to_noise(fixed, mask, frame=True)
+    where = f"no interior {_ERODE} px (binned) inside the body"
+    if interior == 0.0:
+        return AutoChoice(plain, ratio, interior, f"{where} nor inside the frame")
+    if noise < NOISE_FREE or ratio < TEXTURE_LOW:
+        why = f"{where}, and the frame's interior carries no texture for {weak} (texture/noise {ratio:.2f}, noise {noise:.2f} x the model floor)"
+        return AutoChoice(plain, ratio, interior, why)
+    why = f"weak texture: {where}, the frame's interior texture/noise {ratio:.2f} >= {TEXTURE_LOW:g}"
+    return AutoChoice(weak, ratio, interior, why)
 
 
 def keeps_retry(plain, retry, silent=False) -> bool:
@@ -373,7 +404,7 @@ def _plain(name, options, early) -> dict:
 
 def register_auto(register, f, m, method, mask, retry, options):
     """``register(..., preset="auto")``: the plain preset first; kept when it passes its own
-    checks (``quality.ok``) or when there is no interior to judge by (:func:`choose`); otherwise
+    checks (``quality.ok``) or when :func:`choose` falls back to it (no interior, nor texture in the frame's); otherwise
     the weak or silent preset too (:func:`choose`), and the one :func:`keeps_retry` prefers is
     returned (its time is both runs'). ``auto-fast`` where :func:`straight_to_weak`: the weak
     preset alone. ``options["auto"]`` records the choice and why."""
