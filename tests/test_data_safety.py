@@ -262,9 +262,15 @@ def _as_from_a_terminal():
 def _process_from_a_terminal(a, b, out, workers):
     """``radiokit process a b -o out --workers N`` in its own process group and session (as a
     terminal gives a command), its signals at their defaults, stdout and stderr piped."""
+    return _cli_from_a_terminal(["process", a, b, "-q", "-o", out, "--workers", str(workers), *ROI])
+
+
+def _cli_from_a_terminal(args, stdout=subprocess.PIPE):
+    """``radiokit ARGS`` in its own process group and session, as a terminal starts a command
+    (:func:`_as_from_a_terminal`), stderr piped as text."""
     return subprocess.Popen(
-        [sys.executable, "-m", "radiokit.cli", "process", a, b, "-q", "-o", out, "--workers", str(workers), *ROI],
-        stdout=subprocess.PIPE,
+        [sys.executable, "-m", "radiokit.cli", *args],
+        stdout=stdout,
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
@@ -987,15 +993,8 @@ def test_an_interrupted_correct_does_not_wait_forever_for_a_stuck_writer():
 
 def _demo_interrupted_when(out: Path, seen, sig=signal.SIGINT) -> tuple[int, str]:
     """``radiokit demo`` (the cheapest settings) sent ``sig`` as soon as ``seen(out)`` holds."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "radiokit.cli", "demo", "-q", "--binning", "4", "--coarse", "--fast", "--frames", "1"]
-        + ["-o", str(out)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=_as_from_a_terminal,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    proc = _cli_from_a_terminal(
+        ["demo", "-q", "--binning", "4", "--coarse", "--fast", "--frames", "1", "-o", str(out)], subprocess.DEVNULL
     )
     try:
         t_end = time.monotonic() + 240
