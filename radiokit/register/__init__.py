@@ -641,10 +641,9 @@ class _PairChecks:
 
         ob = self.ob
         sig = C.pair_noise_map(ob.sigma_map, self.f, w, d, _WINDOW)
-        # lower by more than the window mean's accuracy (0.1 %): else the fixed image's map, as is
-        if not np.any(sig[ob.object] < 0.999 * ob.sigma_map[ob.object]):
+        if not np.any(sig[ob.object] < ob.sigma_map[ob.object]):
             return ob.confidence, self.obs, ob.sigma
-        conf, _ = C.confidence_map(self.f, _WINDOW, sig, bound_scale=self.k, moments=ob.moments)
+        conf, _ = C.confidence_map(self.f, _WINDOW, sig, bound_scale=self.k)
         return conf, (conf >= 0.5) & ob.object, float(np.median(sig[ob.object]))
 
     @functools.cached_property
