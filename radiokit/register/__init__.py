@@ -632,20 +632,6 @@ class _PairChecks:
         self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k)
         self.obs = (self.ob.confidence >= 0.5) & self.ob.object
 
-    def observed_by(self, w, d):
-        """``(confidence, observed, sigma)`` of the map against the pair's noise once the moving
-        image is warped to ``w`` by ``d`` (binned; ``_confidence.pair_noise_map``): a texture
-        common to both images is structure, not noise, where they agree. The fixed image's map
-        (``ob``, ``obs``) where the residual nowhere says less than the fixed image's noise."""
-        from radiokit.register import _confidence as C
-
-        ob = self.ob
-        sig = C.pair_noise_map(ob.sigma_map, self.f, w, d, _WINDOW)
-        if not np.any(sig[ob.object] < ob.sigma_map[ob.object]):
-            return ob.confidence, self.obs, ob.sigma
-        conf, _ = C.confidence_map(self.f, _WINDOW, sig, bound_scale=self.k)
-        return conf, (conf >= 0.5) & ob.object, float(np.median(sig[ob.object]))
-
     @functools.cached_property
     def unit(self) -> np.float32:
         """Alpha is in the range's units, whatever the image's (:func:`_range_unit`)."""
@@ -767,13 +753,13 @@ def _observed(reg, p, w, d, scale=1.0):
     q = reg.quality
     ob, k = p.ob, p.k
     rows, cols = reg.displacement.shape[1:]
-    conf, obs, sigma = p.observed_by(w, d)
+    conf = ob.confidence
     if conf.shape != (rows, cols):
         conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
     reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
-    inner = p.inner
+    obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
-    q.noise = sigma / scale  # the image's units (register() registered the pair times ``scale``)
+    q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, obs)

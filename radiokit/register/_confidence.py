@@ -87,9 +87,6 @@ __all__ = [
     "interpolation_variance",
     "noise_sigma",
     "object_noise",
-    "confidence_map",
-    "pair_noise_map",
-    "differenced_variance",
     "OBSERVED_PX",
 ]
 
@@ -109,14 +106,12 @@ _NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on uni
 class Observability:
     """``confidence`` (rows, cols) float32 in [0, 1]; ``bound_px`` the Cramer-Rao bound (px);
     ``sigma`` the noise level estimated from the data (image units, median over the object);
-    ``object`` the pixels that are not background (bool); ``sigma_map`` the noise level per
-    pixel the map used."""
+    ``object`` the pixels that are not background (bool)."""
 
     confidence: np.ndarray
     bound_px: np.ndarray
     sigma: float
     object: np.ndarray
-    sigma_map: np.ndarray | None = None
 
 
 def _gauss(a, s):
@@ -335,18 +330,6 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
-    conf, bound = confidence_map(f, spacing, sig_map, bound_scale, highpass)
-    obj = _object(f, float(np.median(sig_map)))
-    if mask is not None:
-        obj &= np.asarray(mask, bool)
-    sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf, bound, sigma, obj, sig_map)
-
-
-def confidence_map(f, spacing, sig_map, bound_scale=1.0, highpass=0.25):
-    """``(confidence, bound_px)`` (float32) of :func:`observability` against the noise
-    standard deviation ``sig_map`` (per pixel): the fixed image's alone, or the pair's
-    (:func:`pair_noise_map`)."""
     floor2 = model_floor(f) ** 2
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
@@ -354,53 +337,11 @@ def confidence_map(f, spacing, sig_map, bound_scale=1.0, highpass=0.25):
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
     bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
     conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
-    return conf.astype(np.float32), bound.astype(np.float32)
-
-
-def differenced_variance(displacement, spacing):
-    """``u``: the share of white noise's variance that the diagonal second difference (``noise_map``'s
-    ``h``) keeps after bilinear interpolation at ``x + d(x)``: ``(3a^2 - 3a + 1) (3b^2 - 3b + 1)``,
-    ``a``, ``b`` the fractional parts of ``d`` (one axis: ``[1, -1] / sqrt(2)`` convolved with
-    ``[1 - a, a]``), averaged over a Gaussian window of ``spacing`` px. Interpolation is a
-    low-pass: at half a pixel it keeps 1/16 of ``h``'s variance and 1/4 of the noise's
-    (``interpolation_variance``)."""
-    d = np.asarray(displacement, np.float32)
-    a, b = d[0] - np.floor(d[0]), d[1] - np.floor(d[1])
-    return _gauss((3 * a * a - 3 * a + 1) * (3 * b * b - 3 * b + 1), spacing)
-
-
-def _pair_scatter(spacing) -> float:
-    """The 1st percentile, over windows of pure noise, of the pair's variance estimate
-    (``noise_map`` of the difference of two independent unit-noise images, over 2) against the
-    fixed image's own: below it the two differ by more than their scatter. Measured once."""
-    key = ("pair", float(spacing))
-    if key not in _NOISE_DERIV:
-        n = int(max(256, 16 * spacing))
-        rng = np.random.default_rng(0)
-        z1, z2 = (rng.standard_normal((n, n)).astype(np.float32) for _ in range(2))
-        q = noise_map(z2 - z1, spacing) ** 2 / (2 * noise_map(z1, spacing) ** 2)
-        m = int(3 * spacing)
-        _NOISE_DERIV[key] = float(np.percentile(q[m:-m, m:-m], 1))
-    return _NOISE_DERIV[key]
-
-
-def pair_noise_map(sig_map, fixed, warped, displacement, spacing):
-    """The noise standard deviation per pixel from the pair: the fixed image's own (``sig_map``,
-    :func:`noise_map`) or, where lower, what the residual ``warped - fixed`` leaves (its
-    ``noise_map`` over ``1 + differenced_variance``: the two images' independent noise, the
-    moving one's interpolated by the field ``displacement``), raised by what pure noise scatters
-    it below the fixed image's estimate 1 % of the time (:func:`_pair_scatter`).
-
-    Why. A texture at the pixel scale is white, and a single image's noise estimate takes it for
-    noise (a white-noise texture 5x the noise read the whole interior unobserved and flagged a
-    registration within 0.05 px). A texture is common to both images and the noise is not: where
-    the images agree after registering, their residual bounds the noise from above; where they do
-    not (a field off by a pixel or more on that texture, an edge misaligned) the residual is
-    larger and the fixed image's estimate stands. With independent noise only the two agree."""
-    r = np.asarray(warped, np.float32) - np.asarray(fixed, np.float32)
-    u = differenced_variance(displacement, spacing)
-    res = noise_map(r, spacing) / np.sqrt((1.0 + u) * _pair_scatter(spacing))
-    return np.minimum(sig_map, res)
+    obj = _object(f, float(np.median(sig_map)))
+    if mask is not None:
+        obj &= np.asarray(mask, bool)
+    sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
+    return Observability(conf.astype(np.float32), bound.astype(np.float32), sigma, obj)
 
 
 def interpolation_variance(displacement, spacing):
