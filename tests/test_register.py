@@ -2505,3 +2505,21 @@ def test_a_straight_edge_misaligned_by_a_pixel_or_two_is_not_a_lone_line(shift):
     noise = Consistency(fixed, 24.0).sigma * np.sqrt(2.0)
     assert lone_lines(moving - fixed, noise).any()  # a line of the residual, judged alone
     assert not lone_lines(moving - fixed, noise, (moving, fixed)).any()
+
+
+def test_a_pattern_fixed_to_the_detector_does_not_make_a_failed_registration_trusted():
+    """Every frame flat-corrected by one flat carries that flat's noise at the same pixels: a
+    pattern common to both images that does not move with the object. A registration that failed
+    at the identity leaves it aligned; the checks must still flag it (a map that took the pair's
+    agreement for the noise read such a pair's interior observed and trusted it; review, session 31)."""
+    rng = np.random.default_rng(8)
+    n = 256
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    body = ((yy - n / 2) ** 2 + (xx - n / 2) ** 2 < 70**2).astype(np.float32) * 0.1 + 0.002 * xx
+    body = ndimage.gaussian_filter(body, 3.0)  # a soft disc on a slope: its edges alone do not flag it
+    pattern = 0.03 * rng.standard_normal((n, n)).astype(np.float32)  # the flat's noise, 3x the frames'
+    fixed = body + pattern + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    moving = np.roll(body, 2, axis=1) + pattern + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    reg = _planted(fixed, moving, np.zeros((2, n, n), np.float32))  # failed: the identity, 2 px off
+    assert not reg.quality.ok, reg.quality.reason
+    assert reg.quality.interior_observed < 0.5  # the pattern is not the object's structure
