@@ -2523,3 +2523,28 @@ def test_a_pattern_fixed_to_the_detector_does_not_make_a_failed_registration_tru
     reg = _planted(fixed, moving, np.zeros((2, n, n), np.float32))  # failed: the identity, 2 px off
     assert not reg.quality.ok, reg.quality.reason
     assert reg.quality.interior_observed < 0.5  # the pattern is not the object's structure
+
+
+@pytest.mark.parametrize("shift", [20, 40])
+def test_a_thin_wire_misaligned_by_many_pixels_is_not_two_lone_lines(shift):
+    """A marker wire (1-2 px) along the columns, left ``shift`` px from its place by a failed
+    registration, is a positive line of the residual at one place and a negative one at the other:
+    each image holds only its own, more than LINE_SHIFT apart, so both read as detector lines and the
+    misalignment was excused (misaligned 0.00 at 20 px; review, session 31). A dead line of one
+    image has no partner of the opposite sign; a misplaced thin feature has."""
+    from radiokit.register._confidence import Consistency, lone_lines
+
+    rng = np.random.default_rng(9)
+    n = 256
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0).astype(np.float32)
+    tex *= 0.03 / tex.std()
+
+    def wire(col):
+        img = tex.copy()
+        img[:, col : col + 2] += 0.5
+        return ndimage.gaussian_filter(img, 0.5)
+
+    fixed = wire(100) + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    moving = wire(100 + shift) + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    noise = Consistency(fixed, 24.0).sigma * np.sqrt(2.0)
+    assert not lone_lines(moving - fixed, noise, (moving, fixed)).any()

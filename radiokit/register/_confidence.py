@@ -408,6 +408,25 @@ def _line_mean(a, axis):
     return _line_filter(a, axis, _LINE_DEV, _line_kernel())
 
 
+#: How far across (px of the checked images) a lone line's opposite-signed partner is looked for:
+#: a thin feature (a wire, a plate gap) misplaced by a failed registration is a positive line of
+#: the residual at one place and a negative one at the other, each image holding only its own; a
+#: detector's dead line has no partner. Two opposite defects of the two images this close are rare.
+LINE_PARTNER = 64
+
+
+def _partnered(line, mean, axis):
+    """Where a candidate lone line (``line``, its along-line mean ``mean``) has a line of the
+    opposite sign and at least half its strength within :data:`LINE_PARTNER` px across ``axis``."""
+    import cv2
+
+    across = np.ones((1, 2 * LINE_PARTNER + 1) if axis == 1 else (2 * LINE_PARTNER + 1, 1), np.uint8)
+    strength = np.abs(mean).astype(np.float32)
+    pos = cv2.dilate(np.where(line & (mean > 0), strength, 0).astype(np.float32), across)
+    neg = cv2.dilate(np.where(line & (mean < 0), strength, 0).astype(np.float32), across)
+    return np.where(mean > 0, neg, pos) > 0.5 * strength
+
+
 def _held(a, axis):
     """How strongly ``a`` holds a line or an edge at each pixel, across ``axis`` (1: a column):
     the larger of its line response and its step (the neighbours 2 px after less before), each
@@ -445,6 +464,7 @@ def lone_lines(r, noise, images=()):
         held = [cv2.dilate(_held(a, axis), across) for a in images]
         if held:
             line &= ~np.all([h > 0.5 * np.abs(mean) for h in held], axis=0)
+        line &= ~_partnered(line, mean, axis)
         reach = 2 * int(round(2 * LINE_LENGTH)) + 1
         kernel = np.ones((reach, 3) if axis == 1 else (3, reach), np.uint8)
         out |= cv2.dilate(line.astype(np.uint8), kernel).astype(bool)
