@@ -506,11 +506,10 @@ class Scene:
 
     def validate(self) -> Scene:
         """Refuse what each part cannot see alone: an inclusion not strictly inside the body,
-            overlapping another or too small for its mesh size; a cone beam's source or detector
-            inside the body; kV and µA outside the tube's or the panel's ratings; an open beam that
-        would saturate the ADC once binned. Run on
-            construction and again before meshing (a scene's fields may be replaced). Returns the
-            scene."""
+        overlapping another or too small for its mesh size; a cone beam's source or detector
+        inside the body; kV and µA outside the tube's or the panel's ratings; an open beam that
+        would saturate the ADC once binned. Run on construction and again before meshing (a
+        scene's fields may be replaced). Returns the scene."""
         for i, inc in enumerate(self.inclusions):
             where = f"inclusions[{i}] ({_describe(inc)})"
             if not self.body.contains(_hull_points(inc)).all():

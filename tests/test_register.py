@@ -2548,3 +2548,21 @@ def test_a_thin_wire_misaligned_by_many_pixels_is_not_two_lone_lines(shift):
     moving = wire(100 + shift) + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
     noise = Consistency(fixed, 24.0).sigma * np.sqrt(2.0)
     assert not lone_lines(moving - fixed, noise, (moving, fixed)).any()
+
+
+@pytest.mark.parametrize("amplitude", [2.0, 3.0])
+def test_a_field_of_pixels_on_a_white_texture_has_diverged(amplitude):
+    """The noise's allowance of 'diverged' (an image registered to itself starts from 0) is for
+    a field under a pixel: on a pixel-scale texture the fixed image's noise estimate counts the
+    texture as noise, and a wrong field of 2-3 px on a pair that did not move (residual complexity
+    10x the one before) stayed under the allowance (review, session 31)."""
+    rng = np.random.default_rng(10)
+    n = 256
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    body = 2.0 * np.sqrt(np.clip(1 - ((yy - n / 2) ** 2 + (xx - n / 2) ** 2) / 100**2, 0, None))
+    tex = 0.05 * rng.standard_normal((n, n)).astype(np.float32) * (body > 0)
+    fixed = body + tex + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    moving = body + tex + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    reg = _planted(fixed, moving, _smooth_field(n, amplitude, seed=7))
+    assert reg.quality.rc_after > 3 * reg.quality.rc_before
+    assert "diverged" in reg.quality.reason, reg.quality.reason

@@ -477,6 +477,30 @@ def _rounding_rc(f, unit) -> float:
     return 0.5 * eps * eps * float(np.mean(np.square(f, dtype=np.float64))) / 0.05
 
 
+#: A field whose 99th percentile |d| is under this (full-resolution px) may leave a residual up to
+#: the noise's share without "diverging" (:func:`_noise_rc`: an image registered to itself starts
+#: from 0); a larger one may not: on a pixel-scale texture, which the fixed image's noise estimate
+#: counts as noise, a wrong field of 2-3 px stayed under that share (review, session 31).
+_NOISE_RC_PX = 1.0
+
+
+def _diverged(q, p, db, k) -> str:
+    """``diverged``'s reason, or "": residual complexity after worse than before and, for a field
+    under :data:`_NOISE_RC_PX`, than the noise alone leaves (the images may share their noise)."""
+    tol = _rounding_rc(p.f, p.unit)
+    if q.rc_after <= q.rc_before + tol:
+        return ""
+    if k * float(np.percentile(np.hypot(*db), 99)) > _NOISE_RC_PX:
+        return f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before"
+    noise_rc = _noise_rc(p, db)
+    if q.rc_after <= noise_rc + tol:
+        return ""
+    return (
+        f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before "
+        f"(and > {noise_rc:.3g}, the noise's alone)"
+    )
+
+
 def _noise_rc(p, d) -> float:
     """The residual complexity the noise alone leaves a perfect registration of two
     independently noisy images of the pair (``p``: :class:`_PairChecks`, binned) by the field
@@ -537,13 +561,9 @@ def _assess(reg, f, m, mask, info, seconds):
         reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
-    # worse than before, and than the noise alone leaves (_noise_rc: the images may share their noise)
-    tol = _rounding_rc(p.f, p.unit)
-    if q.rc_after > q.rc_before + tol and q.rc_after > (noise_rc := _noise_rc(p, db)) + tol:
-        reasons.append(
-            f"diverged: residual complexity {q.rc_after:.6g} after > {q.rc_before:.6g} before "
-            f"(and > {noise_rc:.3g}, the noise's alone)"
-        )
+    diverged = _diverged(q, p, db, k)
+    if diverged:
+        reasons.append(diverged)
     if not q.converged and _slow_not_lost(info, q, k):
         q.note = (
             f"{info.get('message', 'did not converge')}; not flagged for it: the residual moves "
