@@ -1191,7 +1191,9 @@ def _error_line(command: str, exc: BaseException) -> str:
     """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``."""
     message = str(exc) or type(exc).__name__
     # the API's words name its keyword too; at the shell only the option means anything
-    message = message.replace("--overwrite (overwrite=True)", "--overwrite")
+    from radiokit.io import OutputExistsError
+
+    message = message.replace(OutputExistsError.HOW, "--overwrite")
     if isinstance(exc, MemoryError):
         message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
     return f"radiokit {command}: {' '.join(message.split())}"

@@ -57,8 +57,13 @@ class OutputError(RadiokitError, OSError):
 class OutputExistsError(OutputError, FileExistsError):
     """The output exists and ``overwrite`` was not given."""
 
+    #: How the message names the way to replace it, for the API and the shell at once; the command
+    #: line replaces it with the option alone (``radiokit.cli._error_line``), wherever the message
+    #: ends up (a batch's line names the file first)
+    HOW = "--overwrite (overwrite=True)"
+
     def __init__(self, path):
-        super().__init__(path, "exists; pass --overwrite (overwrite=True) to replace it", errno.EEXIST)
+        super().__init__(path, f"exists; pass {self.HOW} to replace it", errno.EEXIST)
 
 
 class DiskFullError(OutputError):
