@@ -936,6 +936,8 @@ def test_flats_clipped_at_the_adc_top_stop_the_series_before_the_steps_tube_off(
     assert code == 1, err
     assert re.match(rf"^error: {re.escape(p.output)}: the flats just taken would be refused", err[0]), err
     assert "saturated" in err[0] and "lower the flat exposure" in err[0] and "--resume" in err[0], err[0]
+    # the resume keeps the file's exposure (README: the file is append-only): the one line says how
+    assert err[0].endswith("edit the protocol and start a new file with -o)"), err[0]
     assert err[-1].startswith("tube off (confirmed by STS"), err
     c = contents(p.output)
     assert np.sum(c["key"] == ImageKey.DARK) == DARKS

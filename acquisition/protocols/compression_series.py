@@ -1181,8 +1181,13 @@ def _refused(r: _Run, what: str, exc: ValueError, named, bad, n_flats: int) -> E
         log.error("could not mark frames %s invalid: %s", bad.tolist(), mark_exc)
         kept = f"the {retake} kept but NOT labelled invalid (see the notebook)"
     later = "no compression step" if n_flats else "no flat and no compression step"
-    # the resume rule (_existing): the protocol's exposure is the file's; only new flats could use another
-    change = " (a new tube current or voltage needs a new file: -o)" if named == ["flats"] else ""
+    # the resume rule (_existing): the protocol's exposure is the file's, recorded once with its
+    # first frames (NXsource, @protocol); README says why a resume does not change it
+    change = (
+        " (for another tube current or voltage, edit the protocol and start a new file with -o)"
+        if named == ["flats"]
+        else ""
+    )
     # the notebook gets this line from _stop; logged here too it would show twice on the console
     return FramesRefused(
         f"{r.out}: the {what} just taken would be refused by radiokit calibrate: {exc}; {kept}, {later} "
