@@ -1010,7 +1010,7 @@ def _lit_darks(bench, counts):
     return hook, restore
 
 
-def test_darks_brighter_than_the_flats_are_the_ones_refused_and_a_resume_completes(tmp_path, scene_toml, bench):
+def test_darks_brighter_than_the_flats_are_the_ones_refused_and_a_resume_completes(tmp_path, scene_toml, bench, caplog):
     """Light on the panel for the darks: they read about the flats' level plus 700 counts, the
     flats (taken dark again) read the offset plus the beam. The refusal named and invalidated the
     FLATS, so `--resume` took new flats against the same lit darks and was refused again, every
@@ -1024,10 +1024,13 @@ def test_darks_brighter_than_the_flats_are_the_ones_refused_and_a_resume_complet
     assert flat_level + 700 < 4095 - 100  # lit, yet not at the ADC's top: judge_darks alone passes them
     try:
         dev = sim_devices(p, bench=bench)
-        with pytest.raises(FramesRefused) as info:
+        with pytest.raises(FramesRefused) as info, caplog.at_level("WARNING", logger="acquisition.protocol"):
             run(p, devices=dev, progress=False, on_phase=hook)
     finally:
         restore()
+    # told as soon as the darks were judged (over half the 12-bit range), before the flats' X-rays
+    told = [rec.getMessage() for rec in caplog.records if "over half the ADC's range" in rec.getMessage()]
+    assert len(told) == 1 and f"the {DARKS} darks:" in told[0], told
     msg = str(info.value)
     assert "the darks kept labelled invalid" in msg and "light reached the panel" in msg, msg
     assert msg.endswith("`--resume` takes new darks"), msg
