@@ -1047,6 +1047,36 @@ def test_darks_brighter_than_the_flats_are_the_ones_refused_and_a_resume_complet
     assert darks.shape[0] == DARKS and abs(np.median(darks) - np.median(bench.panel.offset)) < noise
 
 
+def test_lit_darks_then_blocked_flats_are_each_refused_in_turn_and_the_series_completes(tmp_path, scene_toml, bench):
+    """Two faults at once: light on the darks, and the beam blocked for the flats (the bench's open
+    beam zero: they read the panel's offset). The lit darks are named first (the flats kept);
+    the resume's new darks, judged with those kept flats, show the flats unlit and name them; the
+    next resume takes new flats and completes. Each resume takes only what was at fault, and no
+    refusal repeats: the loop the old rule made (always the flats) cannot form."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    hook, restore = _lit_darks(bench, 1500)
+    i0 = bench.i0
+    bench.i0 = 0.0
+    try:
+        with pytest.raises(FramesRefused, match="the darks kept labelled invalid"):
+            run(p, devices=sim_devices(p, bench=bench), progress=False, on_phase=hook)
+        restore()
+        with pytest.raises(FramesRefused) as info:
+            run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    finally:
+        restore()
+        bench.i0 = i0
+    msg = str(info.value)
+    assert "the darks just taken, with the flats the file holds, would be refused" in msg, msg
+    assert "not brighter than darks" in msg and msg.split("; ")[-1].startswith("then `--resume` takes new flats"), msg
+    keys = list(contents(p.output)["key"])
+    assert keys == [ImageKey.INVALID] * (DARKS + FLATS) + [ImageKey.DARK] * DARKS, keys
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True and res.frames_written == FLATS + PER_STEP * len(STEPS)
+
+
 def test_an_offset_near_the_adc_top_refuses_darks_and_flats_not_the_exposure(tmp_path, scene_toml, bench):
     """The panel's offset near the 12-bit ADC's top (the read-out set wrong): the darks read about
     3950 counts, any beam clips the flats at 4095. The refusal said "lower the flat exposure" and

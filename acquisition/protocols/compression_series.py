@@ -1181,6 +1181,7 @@ def _refused(r: _Run, what: str, exc: ValueError, named, bad, n_flats: int) -> E
         log.error("could not mark frames %s invalid: %s", bad.tolist(), mark_exc)
         kept = f"the {retake} kept but NOT labelled invalid (see the notebook)"
     later = "no compression step" if n_flats else "no flat and no compression step"
+    with_flats = ", with the flats the file holds," if what == "darks" and n_flats else ""
     # the resume rule (_existing): the protocol's exposure is the file's, recorded once with its
     # first frames (NXsource, @protocol); README says why a resume does not change it
     change = (
@@ -1190,7 +1191,7 @@ def _refused(r: _Run, what: str, exc: ValueError, named, bad, n_flats: int) -> E
     )
     # the notebook gets this line from _stop; logged here too it would show twice on the console
     return FramesRefused(
-        f"{r.out}: the {what} just taken would be refused by radiokit calibrate: {exc}; {kept}, {later} "
+        f"{r.out}: the {what} just taken{with_flats} would be refused by radiokit calibrate: {exc}; {kept}, {later} "
         f"taken; then `--resume` takes new {retake}{change}"
     )
 
