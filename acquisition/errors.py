@@ -32,4 +32,5 @@ class PortUnavailable(DeviceError):
 class FramesRefused(DeviceError):
     """Darks or flats just taken that radiokit's calibration would refuse (a flat clipped at the
     ADC's top, flats not brighter than the darks, most of the panel defective): the series stops
-    before the compression steps, the frames kept but labelled invalid."""
+    before the compression steps, the frames at fault (flats, darks or both, as
+    :class:`radiokit.calibrate.CalibrationRefused` names them) kept but labelled invalid."""

@@ -30,6 +30,7 @@ import threading
 import time
 
 import serial
+import serial.rfc2217
 
 from acquisition.errors import DeviceError, NoReply, PortUnavailable
 
@@ -67,6 +68,42 @@ def _text(raw: bytes) -> str:
     for micro in _MICRO[:-1]:
         raw = raw.replace(micro, _MICRO[-1])
     return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
+
+
+class _Rfc2217(serial.rfc2217.Serial):
+    """pyserial's RFC 2217 client, its reader thread's end told in one log line on ``link_log``.
+
+    Why a subclass: that thread answers the server's telnet requests with socket sends, and one on
+    a link shut or reset raised BrokenPipeError out of the thread -- threading's excepthook printed
+    pyserial's traceback on stderr (the process lived). Its own end of the loop (a recv error)
+    puts None in the read buffer, so the next read raises SerialException and the transport
+    reopens the link; a failed send now ends the same way. A subclass, not a patch of pyserial's
+    class: other users of pyserial in the process keep its behaviour."""
+
+    link_log = logger
+
+    def _telnet_read_loop(self):
+        try:
+            super()._telnet_read_loop()
+        except OSError as exc:
+            self._read_buffer.put(None)
+            # while closing, a send racing the shutdown is expected: only a live link's loss is news
+            self.link_log.log(
+                logging.WARNING if self.is_open else logging.DEBUG,
+                "%s: the RFC 2217 link's reader thread ended (%s): the next exchange finds the link lost",
+                self.portstr,
+                exc,
+            )
+
+
+def _serial_for_url(url: str, log: logging.Logger) -> serial.SerialBase:
+    """:func:`serial.serial_for_url` not yet opened, an ``rfc2217://`` link as :class:`_Rfc2217`."""
+    if not url.lower().startswith("rfc2217://"):
+        return serial.serial_for_url(url, do_not_open=True)
+    ser = _Rfc2217(None)  # as serial_for_url builds it: no port, then the URL
+    ser.port = url
+    ser.link_log = log
+    return ser
 
 
 @contextlib.contextmanager
@@ -236,7 +273,7 @@ class SerialTransport:
 
     def _open_port(self) -> None:
         try:
-            ser = serial.serial_for_url(self.url, do_not_open=True)
+            ser = _serial_for_url(self.url, self.log)
             ser.baudrate = self.baudrate
             ser.bytesize = serial.EIGHTBITS
             ser.parity = serial.PARITY_NONE

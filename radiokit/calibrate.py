@@ -32,6 +32,7 @@ __all__ = [
     "Calibration",
     "robust_average",
     "CalibrationWarning",
+    "CalibrationRefused",
     "exposure_factors",
     "adc_top",
     "frame_saturation",
@@ -42,6 +43,18 @@ __all__ = [
 
 class CalibrationWarning(UserWarning):
     """The calibration frames are too few or partly unusable; the result may be poor."""
+
+
+class CalibrationRefused(ValueError):
+    """Darks and flats no calibration can be made from. ``culprits`` names the frames to take again
+    -- ``("flats",)``, ``("darks",)`` or both -- as the frames themselves show it (:func:`_blame`);
+    the message says what to change. Why: the acquisition invalidates and retakes what this names,
+    and a refusal that always named the flats had a ``--resume`` retake good flats against bright
+    darks, refused again every time."""
+
+    def __init__(self, message: str, culprits=("flats",)):
+        super().__init__(message)
+        self.culprits = tuple(culprits)
 
 
 class PixelFlag(enum.IntFlag):
@@ -393,13 +406,19 @@ class Calibration:
             # every frame); from 4 darks on, none.
             dark_std = None
         response = flat - dark
-        if float(np.median(response)) <= th.eps:
-            raise ValueError(
-                f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
-                "counts): was the beam on for the flats?"
-            )
-        mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
-        _check_defect_share(mask, n_flat_saturated, th.saturation)
+        try:
+            if float(np.median(response)) <= th.eps:
+                raise ValueError(
+                    f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
+                    "counts): was the beam on for the flats?"
+                )
+            mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
+            _check_defect_share(mask, n_flat_saturated, th.saturation)
+        except ValueError as exc:
+            raise _blame(str(exc), dark, flat, _dark_noise(darks), th) from None
+        bright = _bright_darks(float(np.median(dark)), th.saturation)
+        if bright:
+            warnings.warn(bright, CalibrationWarning, stacklevel=3)
         good = mask == 0
         return cls(
             dark,
@@ -812,9 +831,17 @@ def _check_defect_share(mask, n_saturated=0, saturation=None) -> None:
         )
 
 
+def _dark_noise(darks) -> float | None:
+    """One dark frame's temporal noise (counts rms, the median over a sample of rows; None from a
+    single dark)."""
+    if darks.shape[0] < 2:
+        return None
+    sample = darks[:, :: max(1, darks.shape[1] // 64)]
+    return float(np.median(np.std(sample, axis=0, ddof=1)))
+
+
 def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) -> dict:
     """What a calibration was made from, and how many pixels of each defect it found."""
-    sample = darks[:, :: max(1, darks.shape[1] // 64)]
     flags = (PixelFlag.DEAD, PixelFlag.UNDER_RESPONDING, PixelFlag.OVER_RESPONDING, PixelFlag.NOISY, PixelFlag.CLUSTER)
     return {
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -824,10 +851,53 @@ def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) ->
         "averaging": "median-clipped mean",
         "dark_times": [float(t) for t in dark_times] if dark_times is not None else [],
         "flat_times": [float(t) for t in flat_times] if flat_times is not None else [],
-        "dark_noise_counts": float(np.median(np.std(sample, axis=0, ddof=1))) if darks.shape[0] > 1 else None,
+        "dark_noise_counts": _dark_noise(darks),
         "n_flat_saturated": n_flat_saturated,
         "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in flags},
     }
+
+
+def _bright_darks(dark_median: float, top: int | None) -> str | None:
+    """What to say of darks whose median is over half the ADC's range (None: they are not).
+
+    Why half: the C7942's ~2.2 Me- full well over its ~1100 e- noise (dynamic range ~2000, C7942.md)
+    fills its 12-bit range at about 2 counts rms, so the panel's own offset -- a hundred-odd
+    counts, +200 after 1 MR of dose -- is a small part of the range. Darks over half of it carry
+    light (a leak, the beam on), or the read-out's offset or bit depth is set wrong: either way
+    they leave the flats less than half the panel's range."""
+    if top is None or dark_median <= top / 2:
+        return None
+    return (
+        f"the darks read {dark_median:.0f} counts (median), over half the ADC's range (0-{top}), leaving the "
+        f"flats {max(top - dark_median, 0):.0f} counts: a C7942's offset is a few hundred; light reached the "
+        "panel for the darks (a leak, the beam on) or the read-out's offset or bit depth is set wrong"
+    )
+
+
+def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds) -> CalibrationRefused:
+    """The refusal ``refusal`` of these averaged darks and flats, naming the frames at fault.
+
+    A flat reads the panel's dark plus the beam's signal, never less. So flats darker than the
+    darks by more than ``eps`` plus five single-frame noise sigmas (``noise``, counts rms) mean the
+    darks are not the panel's dark now (light on them, or an offset that drifted): new darks, the
+    flats kept and judged again with them. Darks over half the ADC's range (:func:`_bright_darks`)
+    leave flats no room whatever their exposure: new darks and flats once the light or offset is
+    fixed. Otherwise the flats are at fault, as the refusal says (beam off or blocked, clipped)."""
+    d, f = float(np.median(dark)), float(np.median(flat))
+    if d - f > th.eps + 5 * (noise or 0.0):  # one dark: eps alone
+        return CalibrationRefused(
+            f"the darks read {d:.0f} counts (median), brighter than the flats' {f:.0f}: a flat reads at least "
+            "the panel's dark, so light reached the panel for the darks (a leak, the beam on) or its offset "
+            "drifted since: shield the panel, then take new darks",
+            ("darks",),
+        )
+    bright = _bright_darks(d, th.saturation)
+    if bright:
+        return CalibrationRefused(
+            f"{bright}; hence {refusal.split(':')[0]} (median {f:.0f}): fix that, then take new darks and flats",
+            ("darks", "flats"),
+        )
+    return CalibrationRefused(refusal, ("flats",))
 
 
 def judge_frames(darks, flats, *, saturation=None) -> list[str]:
@@ -844,20 +914,26 @@ def judge_frames(darks, flats, *, saturation=None) -> list[str]:
     return [str(w.message) for w in caught if issubclass(w.category, CalibrationWarning)]
 
 
-def judge_darks(darks, *, saturation=None) -> None:
+def judge_darks(darks, *, saturation=None) -> list[str]:
     """Refuse darks that no flat could be brighter than: :meth:`Calibration.from_frames` refuses
     flats whose median ``flat - dark`` is at most ``eps``, and no pixel reads above the ADC's top,
-    so darks whose median is within ``eps`` of it are refused whatever flats follow. Judged right
-    after the darks, that saves the flats' X-rays and names the darks, not the flats (a light leak
-    or the beam on for them). ``saturation``: the panel's ADC top (None: inferred from the darks)."""
+    so darks whose median is within ``eps`` of it are refused (:class:`CalibrationRefused`, the
+    darks named) whatever flats follow. Judged right after the darks, that saves the flats'
+    X-rays and names the darks, not the flats (a light leak or the beam on for them). Returns what
+    to warn of: darks over half the ADC's range (:func:`_bright_darks`), which leave the flats
+    little room but are not refused here (the flats may still fit). ``saturation``: the panel's
+    ADC top (None: inferred from the darks)."""
     darks = _as_stack(darks, "darks")
     th = Thresholds(saturation=saturation)
     top = adc_top(darks) if th.saturation is None else th.saturation
     if top is None:
-        return
+        return []
     median = float(np.median(robust_average(darks, clip_sigma=th.clip_sigma)))
     if median >= top - th.eps:
-        raise ValueError(
+        raise CalibrationRefused(
             f"the darks read {median:.0f} counts (median), at the ADC's top ({top}): no flat can be brighter "
-            "than these darks; was the beam on or light reaching the panel for the darks?"
+            "than these darks; was the beam on or light reaching the panel for the darks?",
+            ("darks",),
         )
+    bright = _bright_darks(median, top)
+    return [bright] if bright else []

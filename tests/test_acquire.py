@@ -936,6 +936,8 @@ def test_flats_clipped_at_the_adc_top_stop_the_series_before_the_steps_tube_off(
     assert code == 1, err
     assert re.match(rf"^error: {re.escape(p.output)}: the flats just taken would be refused", err[0]), err
     assert "saturated" in err[0] and "lower the flat exposure" in err[0] and "--resume" in err[0], err[0]
+    # the resume keeps the file's exposure (README: the file is append-only): the one line says how
+    assert err[0].endswith("edit the protocol and start a new file with -o)"), err[0]
     assert err[-1].startswith("tube off (confirmed by STS"), err
     c = contents(p.output)
     assert np.sum(c["key"] == ImageKey.DARK) == DARKS
@@ -988,3 +990,113 @@ def test_a_resume_after_refused_flats_takes_new_flats_and_keeps_the_darks(tmp_pa
     assert flats.shape[0] == FLATS and flats.max() < 4095  # new flats, within the ADC
     for i in range(1, len(STEPS) + 1):
         assert np.sum((c["key"] == ImageKey.PROJECTION) & (c["step"] == i)) == PER_STEP
+
+
+def _lit_darks(bench, counts):
+    """An on_phase hook that adds ``counts`` to the virtual panel's offset for the darks only and
+    restores it as the flats begin: light reaching the panel while the darks are read (a cabinet
+    door open, a lamp), which the bench cannot otherwise cause. Returns (hook, restore)."""
+    saved = bench.panel.offset.copy()
+
+    def restore():
+        bench.panel.offset = saved
+
+    def hook(phase, info=None):
+        if phase == "darks":
+            bench.panel.offset = saved + np.float32(counts)
+        elif phase != "frame":
+            restore()
+
+    return hook, restore
+
+
+def test_darks_brighter_than_the_flats_are_the_ones_refused_and_a_resume_completes(tmp_path, scene_toml, bench, caplog):
+    """Light on the panel for the darks: they read about the flats' level plus 700 counts, the
+    flats (taken dark again) read the offset plus the beam. The refusal named and invalidated the
+    FLATS, so `--resume` took new flats against the same lit darks and was refused again, every
+    time. Now the darks are named (the flats kept), the operator is told to shield the panel, and a
+    resume takes new darks only, judges them with the kept flats, and completes the series."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    flat_level = float(bench.panel.offset.mean() + bench.open_beam(60, 250) * bench.panel.binning**2)
+    hook, restore = _lit_darks(bench, flat_level + 700 - bench.panel.offset.mean())
+    assert flat_level + 700 < 4095 - 100  # lit, yet not at the ADC's top: judge_darks alone passes them
+    try:
+        dev = sim_devices(p, bench=bench)
+        with pytest.raises(FramesRefused) as info, caplog.at_level("WARNING", logger="acquisition.protocol"):
+            run(p, devices=dev, progress=False, on_phase=hook)
+    finally:
+        restore()
+    # told as soon as the darks were judged (over half the 12-bit range), before the flats' X-rays
+    told = [rec.getMessage() for rec in caplog.records if "over half the ADC's range" in rec.getMessage()]
+    assert len(told) == 1 and f"the {DARKS} darks:" in told[0], told
+    msg = str(info.value)
+    assert "the darks kept labelled invalid" in msg and "light reached the panel" in msg, msg
+    assert msg.endswith("`--resume` takes new darks"), msg
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    first = contents(p.output)
+    assert list(first["key"]) == [ImageKey.INVALID] * DARKS + [ImageKey.FLAT] * FLATS  # the flats kept
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True
+    assert res.frames_written == DARKS + PER_STEP * len(STEPS)  # the flats were not taken again
+    c = contents(p.output)
+    assert np.array_equal(c["data"][: DARKS + FLATS], first["data"])  # nothing rewritten
+    darks = c["data"][c["key"] == ImageKey.DARK]
+    noise = 5 * bench.panel.read_noise  # the new darks read the panel's own offset
+    assert darks.shape[0] == DARKS and abs(np.median(darks) - np.median(bench.panel.offset)) < noise
+
+
+def test_lit_darks_then_blocked_flats_are_each_refused_in_turn_and_the_series_completes(tmp_path, scene_toml, bench):
+    """Two faults at once: light on the darks, and the beam blocked for the flats (the bench's open
+    beam zero: they read the panel's offset). The lit darks are named first (the flats kept);
+    the resume's new darks, judged with those kept flats, show the flats unlit and name them; the
+    next resume takes new flats and completes. Each resume takes only what was at fault, and no
+    refusal repeats: the loop the old rule made (always the flats) cannot form."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    hook, restore = _lit_darks(bench, 1500)
+    i0 = bench.i0
+    bench.i0 = 0.0
+    try:
+        with pytest.raises(FramesRefused, match="the darks kept labelled invalid"):
+            run(p, devices=sim_devices(p, bench=bench), progress=False, on_phase=hook)
+        restore()
+        with pytest.raises(FramesRefused) as info:
+            run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    finally:
+        restore()
+        bench.i0 = i0
+    msg = str(info.value)
+    assert "the darks just taken, with the flats the file holds, would be refused" in msg, msg
+    assert "not brighter than darks" in msg and msg.split("; ")[-1].startswith("then `--resume` takes new flats"), msg
+    keys = list(contents(p.output)["key"])
+    assert keys == [ImageKey.INVALID] * (DARKS + FLATS) + [ImageKey.DARK] * DARKS, keys
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True and res.frames_written == FLATS + PER_STEP * len(STEPS)
+
+
+def test_an_offset_near_the_adc_top_refuses_darks_and_flats_not_the_exposure(tmp_path, scene_toml, bench):
+    """The panel's offset near the 12-bit ADC's top (the read-out set wrong): the darks read about
+    3950 counts, any beam clips the flats at 4095. The refusal said "lower the flat exposure" and
+    invalidated the flats only; the exposure was never the fault. Now both are invalid and the
+    line names the offset; a resume with the panel set right takes both again."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    saved = bench.panel.offset.copy()
+    bench.panel.offset = saved + np.float32(3950 - saved.mean())
+    try:
+        dev = sim_devices(p, bench=bench)
+        with pytest.raises(FramesRefused) as info:
+            run(p, devices=dev, progress=False)
+    finally:
+        bench.panel.offset = saved
+    msg = str(info.value)
+    assert "the darks and flats kept labelled invalid" in msg and "offset" in msg, msg
+    assert "lower the flat exposure" not in msg and msg.endswith("takes new darks and flats"), msg
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    assert list(contents(p.output)["key"]) == [ImageKey.INVALID] * (DARKS + FLATS)
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True and res.frames_written == TOTAL

@@ -543,3 +543,68 @@ def test_judge_darks_refuses_darks_no_flat_could_be_brighter_than():
         Calibration.from_frames(lit, np.full((4, 64, 64), 4095, np.uint16))
     judge_darks(rng.normal(100, 2, (4, 64, 64)).astype(np.uint16))  # real darks pass
     judge_darks(rng.normal(4000, 2, (4, 64, 64)).astype(np.uint16), saturation=16383)  # a 14-bit panel's
+
+
+def _judged(darks, flats):
+    """judge_frames' refusal of these frames (pytest.fail when it accepts them)."""
+    from radiokit.calibrate import judge_frames
+
+    with pytest.raises(ValueError) as refused:
+        judge_frames(darks, flats)
+    return refused.value
+
+
+def test_a_refusal_names_the_darks_when_they_are_brighter_than_the_flats():
+    """A light leak on the darks (the cabinet open, the beam on): the C7942's own darks read its
+    hundred-odd count offset, these 1500 counts more, and the flats (1000 counts of beam over the
+    offset) are darker than them. The refusal said "flats not brighter than darks: was the beam
+    on for the flats?" and the acquisition retook the flats against the same darks, refused again
+    at every resume. A flat reads at least the panel's dark: the darks are at fault."""
+    panel = PanelModel(rows=64, cols=64, seed=3)
+    rng = np.random.default_rng(0)
+    leak = 1500.0
+    darks = (panel.dark_frames(4, rng) + leak).astype(np.uint16)
+    flats = panel.flat_frames(4, 1000.0, rng)
+    assert np.median(flats) < np.median(darks) - 100  # the physics: flats under the lit darks
+    refused = _judged(darks, flats)
+    assert refused.culprits == ("darks",), str(refused)
+    assert "darks read" in str(refused) and "light reached the panel" in str(refused), str(refused)
+    # the same flats with the panel's own darks pass: the flats were never the fault
+    from radiokit.calibrate import judge_frames
+
+    judge_frames(panel.dark_frames(4, rng), flats)
+
+
+def test_a_refusal_names_darks_and_flats_when_the_offset_leaves_no_room():
+    """An offset near the 12-bit ADC's top (3950 counts: the read-out's offset set wrong, or light on
+    the panel throughout): any beam clips the flats at 4095. The refusal said "lower the flat
+    exposure", which cannot help while the darks leave 145 counts; both are taken again."""
+    panel = PanelModel(rows=64, cols=64, dark_level=3950.0, seed=3)
+    rng = np.random.default_rng(1)
+    darks, flats = panel.dark_frames(4, rng), panel.flat_frames(4, 1000.0, rng)
+    assert np.median(flats) == panel.saturation  # clipped, as the ADC does
+    refused = _judged(darks, flats)
+    assert refused.culprits == ("darks", "flats"), str(refused)
+    assert "over half the ADC's range (0-4095)" in str(refused) and "offset" in str(refused), str(refused)
+    assert "lower the flat exposure" not in str(refused)
+
+
+def test_a_refusal_still_names_the_flats_when_the_beam_was_blocked():
+    """Flats taken with the beam off read the panel's darks: the flats are at fault, as before."""
+    panel = PanelModel(rows=64, cols=64, seed=3)
+    rng = np.random.default_rng(2)
+    refused = _judged(panel.dark_frames(4, rng), panel.dark_frames(4, rng))
+    assert refused.culprits == ("flats",) and "was the beam on for the flats?" in str(refused), str(refused)
+    clipped = _judged(panel.dark_frames(4, rng), panel.flat_frames(4, 5000.0, rng))
+    assert clipped.culprits == ("flats",) and "lower the flat exposure" in str(clipped), str(clipped)
+
+
+def test_judge_darks_warns_of_darks_over_half_the_adc_range():
+    """Darks at 3000 counts on a 12-bit panel leave the flats 1095: said at once (the flats may
+    still fit, so not refused); a C7942's own darks are not warned of."""
+    from radiokit.calibrate import judge_darks
+
+    rng = np.random.default_rng(5)
+    told = judge_darks(PanelModel(rows=64, cols=64, dark_level=3000.0).dark_frames(4, rng))
+    assert len(told) == 1 and "over half the ADC's range (0-4095)" in told[0], told
+    assert judge_darks(PanelModel(rows=64, cols=64).dark_frames(4, rng)) == []

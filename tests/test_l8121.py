@@ -3779,6 +3779,11 @@ def test_an_rfc2217_links_reader_thread_meets_epipe_not_sigpipe_death():
             child.kill()
     assert opened == "open", err[-2000:]
     assert child.returncode == 0 and out.strip() == "closed", (child.returncode, err[-2000:])
+    # the reader thread's end is one line naming the link, not pyserial's thread traceback
+    # (threading's excepthook printed "Exception in thread ..." and the BrokenPipeError's stack)
+    assert "Traceback" not in err and "Exception in thread" not in err, err[-2000:]
+    said = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(said) == 1 and url in said[0] and "reader thread" in said[0] and "Broken pipe" in said[0], said
 
 
 def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed(dialect, capfd):

@@ -36,8 +36,10 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
 - the darks, then the darks with the flats, are judged as soon as they are taken by the rules
   ``radiokit calibrate`` applies (:func:`radiokit.calibrate.judge_frames`): a warning is told; a
   refusal (a flat clipped at the ADC's top, flats not brighter than the darks, most of the panel
-  defective) labels them invalid (kept) and stops the series before any compression step, the
-  tube off, with :class:`~acquisition.errors.FramesRefused` saying what to change;
+  defective) labels the frames it names invalid (kept) -- the flats, the darks when they read
+  brighter than the flats, both when the darks fill over half the ADC's range -- and stops the
+  series before any compression step, the tube off, with :class:`~acquisition.errors.FramesRefused`
+  saying what to change;
 - ``resume=True`` reopens an interrupted file, checks that it was written by the same protocol
   (the stored TOML, never read as a path), and takes only what is missing: frames labelled
   invalid are taken again.
@@ -1138,11 +1140,12 @@ def _phase_flats(r: _Run):
 def _judge(r: _Run, what: str) -> None:
     """Judge the darks (``what`` "darks") or the darks and flats ("flats") just taken by the rules
     ``radiokit calibrate`` and ``process`` will apply (:func:`radiokit.calibrate.judge_frames`):
-    a warning goes to the operator and the notebook; a refusal labels the judged frames invalid
+    a warning goes to the operator and the notebook; a refusal labels the frames it names invalid
     (image_key 3: kept, never used, and taken again by ``--resume``) and stops the series with
     :class:`FramesRefused` -- the tube off -- before any compression step. Why: a flat clipped
     at the ADC's top or taken with the beam blocked was found only at processing, after the
-    phantom had been compressed and the session was over."""
+    phantom had been compressed and the session was over. Darks taken by a resume that kept the
+    flats (a refusal that named the darks) are judged with those flats, as processing will."""
     from radiokit.calibrate import judge_darks, judge_frames
     from radiokit.io import ImageKey
 
@@ -1152,41 +1155,44 @@ def _judge(r: _Run, what: str) -> None:
     if not dark_idx.size:  # a protocol without darks: its calibration needs darks taken elsewhere
         log.info("%s not judged: the file holds no darks", what)
         return
-    flat_idx, flats = dark_idx[:0], darks[:0]
+    flat_idx, flats = r.writer.frames_labelled(ImageKey.FLAT)
     try:
-        if what == "darks":
-            judge_darks(darks, saturation=top)
-        else:
-            flat_idx, flats = r.writer.frames_labelled(ImageKey.FLAT)
-            told = judge_frames(darks, flats, saturation=top)
+        told = judge_frames(darks, flats, saturation=top) if flat_idx.size else judge_darks(darks, saturation=top)
     except ValueError as exc:
-        raise _refused(r, what, exc, dark_idx if what == "darks" else flat_idx) from None
-    if what == "darks":
-        log.info("%s: %d darks judged usable for calibration", r.out, darks.shape[0])
-        return
+        frames = {"darks": dark_idx, "flats": flat_idx}
+        named = [c for c in getattr(exc, "culprits", (what,)) if frames[c].size]
+        raise _refused(r, what, exc, named, np.concatenate([frames[c] for c in named]), flat_idx.size) from None
+    judged = f"{darks.shape[0]} darks" + (f" and {flats.shape[0]} flats" if flat_idx.size else "")
     for line in told:
-        log.warning("%s: the %d darks and %d flats: %s", r.out, darks.shape[0], flats.shape[0], line)
-    log.info("%s: %d darks and %d flats judged usable for calibration", r.out, darks.shape[0], flats.shape[0])
+        log.warning("%s: the %s: %s", r.out, judged, line)
+    log.info("%s: %s judged usable for calibration", r.out, judged)
 
 
-def _refused(r: _Run, what: str, exc: ValueError, bad) -> Exception:
-    """The judged frames ``bad`` labelled invalid, and the operator's one line (:func:`_judge`)."""
+def _refused(r: _Run, what: str, exc: ValueError, named, bad, n_flats: int) -> Exception:
+    """The frames ``bad`` (the ``named`` kinds: "darks", "flats") labelled invalid, and the
+    operator's one line (:func:`_judge`; ``n_flats``: the flats the file holds)."""
     from acquisition.errors import FramesRefused
 
+    retake = " and ".join(named)
     try:
         r.writer.mark_invalid(bad.tolist())
-        kept = "they are kept labelled invalid (image_key 3)"
+        kept = f"the {retake} kept labelled invalid (image_key 3)"
     except Exception as mark_exc:  # the refusal is what the operator must read; the file's fault is logged
         log.error("could not mark frames %s invalid: %s", bad.tolist(), mark_exc)
-        kept = "they are kept but NOT labelled invalid (see the notebook)"
-    if what == "darks":
-        later, change = "no flat and no compression step", ""
-    else:  # the resume rule (_existing): the protocol's exposure is the file's
-        later, change = "no compression step", " (a new tube current or voltage needs a new file: -o)"
+        kept = f"the {retake} kept but NOT labelled invalid (see the notebook)"
+    later = "no compression step" if n_flats else "no flat and no compression step"
+    with_flats = ", with the flats the file holds," if what == "darks" and n_flats else ""
+    # the resume rule (_existing): the protocol's exposure is the file's, recorded once with its
+    # first frames (NXsource, @protocol); README says why a resume does not change it
+    change = (
+        " (for another tube current or voltage, edit the protocol and start a new file with -o)"
+        if named == ["flats"]
+        else ""
+    )
     # the notebook gets this line from _stop; logged here too it would show twice on the console
     return FramesRefused(
-        f"{r.out}: the {what} just taken would be refused by radiokit calibrate: {exc}; {kept} and {later} "
-        f"was taken; fix that, then `--resume` takes new {what}{change}"
+        f"{r.out}: the {what} just taken{with_flats} would be refused by radiokit calibrate: {exc}; {kept}, {later} "
+        f"taken; then `--resume` takes new {retake}{change}"
     )
 
 
