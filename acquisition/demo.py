@@ -321,15 +321,17 @@ def add_demo(subparsers):
 
 
 def _run(args) -> int:
+    from radiokit.interrupts import exit_status
+
     out = Path(args.output)
     made_here = not out.exists() and not out.is_symlink()
     try:
         summary = _run_demo(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         # not the other commands' "no partial output was left": the acquisitions append frame by
         # frame (not atomic), so an interrupted demo may leave its experiment files behind
         print(_interrupted_line(out, made_here), file=sys.stderr)
-        return 130
+        return exit_status(exc)  # 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP
     print()
     print(headline(summary))
     return 0

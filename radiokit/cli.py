@@ -1017,31 +1017,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _terminated(signum, frame):
     """SIGTERM/SIGHUP (a closed terminal, ``kill``): unwind like Ctrl-C, so that every output being
-    written is removed rather than left half-written under its temporary name.
+    written is removed rather than left half-written under its temporary name. Should it land in
+    a finalizer, where Python drops it, ``_main`` delivers it again (radiokit.interrupts)."""
+    from radiokit.interrupts import Interrupted
 
-    Python drops an exception raised while a finalizer runs; should this one land there, the
-    interrupt is repeated a second later (a daemon timer: it dies with the process)."""
-    import _thread
-    import threading
-
-    timer = threading.Timer(1.0, _thread.interrupt_main)
-    timer.daemon = True
-    timer.start()
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    raise Interrupted(signum)
 
 
-def _interrupted(exc) -> bool:
+def _interrupted(exc) -> KeyboardInterrupt | None:
+    """The interrupt behind ``exc`` (itself, or one a library turned into its own error)."""
     while exc is not None:
         if isinstance(exc, KeyboardInterrupt):
-            return True
+            return exc
         exc = exc.__cause__ or exc.__context__
-    return False
+    return None
 
 
 def _user_error(exc) -> bool:
     """Errors a user causes (a file, a parameter, the disk, the memory), or an interrupt some
     library re-raised as its own error; anything else is a bug and keeps its traceback."""
-    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
+    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc) is not None
 
 
 def _stdout_gone() -> bool:
@@ -1148,6 +1143,8 @@ def _one_warning_per_file() -> None:
 
 
 def _main(argv) -> int:
+    from radiokit.interrupts import exit_status, lost_stops_redelivered
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -1168,10 +1165,11 @@ def _main(argv) -> int:
     try:
         if args.command != "acquire":  # never in the way of a switch-off (acquire source off)
             _check_environment()
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
+        with lost_stops_redelivered():  # acquire's own guard takes over while it runs
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
         print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
-        return 130
+        return exit_status(exc)
     except Exception as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_gone():
             # the reader of the output went away (`radiokit info *.img | head -1`): not an error of
@@ -1180,9 +1178,9 @@ def _main(argv) -> int:
             return 128 + signal.SIGPIPE
         if not _user_error(exc) or _debug(args):
             raise
-        if _interrupted(exc):  # a C extension turned the interrupt into its own error
+        if _interrupted(exc) is not None:  # a C extension turned the interrupt into its own error
             print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
-            return 130
+            return exit_status(_interrupted(exc))
         print(_error_line(name, exc), file=sys.stderr)
         return 2
 

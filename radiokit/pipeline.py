@@ -1298,8 +1298,8 @@ def _deferring(*signals):
 
     Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
     come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
-    and a second signal (radiokit's SIGTERM handler repeats its interrupt after a second) cut it
-    short and left the workers' temporaries. Only the main thread may set handlers: elsewhere,
+    and a second signal (or a first one lost in a finalizer and delivered again) cut it short and
+    left the workers' temporaries. Only the main thread may set handlers: elsewhere,
     nothing is held off."""
     if threading.current_thread() is not threading.main_thread():
         yield
