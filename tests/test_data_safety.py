@@ -217,8 +217,33 @@ def test_demo_refuses_a_results_folder_of_radiokit_process(experiment, tmp_path)
     assert run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI).returncode in (0, 1)
     before = tree_sha(out)
     for extra in ([], ["--overwrite"]):
-        one_line_error(run_cli("demo", "-o", out, "-q", *extra), str(out), "radiokit process", "not a demo")
+        one_line_error(
+            run_cli("demo", "-o", out, "-q", *extra), str(out), "made by radiokit process, not by radiokit demo"
+        )
     assert tree_sha(out) == before
+
+
+@pytest.mark.parametrize("holding", [["experiment.h5", "results/report.html"], []])
+def test_process_refuses_a_demo_folder(holding, experiment, tmp_path):
+    """`radiokit process -o out/demo` said "exists; pass --overwrite", and with --overwrite that the
+    folder held files "radiokit did not write there" (the demo's own) -- or, a demo folder
+    holding only its marker, replaced it. Either kind of folder is refused by the other command,
+    --overwrite or not, in one line that says what the folder is."""
+    from acquisition.demo import _demo_folder
+
+    out = _demo_folder(tmp_path / "demo", overwrite=False)
+    for name in holding:
+        (out / name).parent.mkdir(exist_ok=True)
+        (out / name).write_text("the demo's")
+    before = tree_sha(out)
+    for extra in ([], ["--overwrite"]):
+        one_line_error(
+            run_cli("process", experiment, "-o", out, "--no-report", "-q", *ROI, *extra),
+            str(out),
+            "made by radiokit demo, not by radiokit process",
+        )
+    assert tree_sha(out) == before and (out / RESULTS_MARKER).exists()
+    no_temporaries(tmp_path)
 
 
 def test_demo_replaces_only_its_own_outputs(tmp_path):
