@@ -635,6 +635,8 @@ def cmd_process(args) -> int:
     # nor radiokit.register (scipy and more, 0.4 s), and a slip is refused before those load
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers {args.workers}: expected at least one worker")
+    if not args.scheduler_timeout > 0:
+        raise ValueError(f"--scheduler-timeout {args.scheduler_timeout:g}: expected a positive number of seconds")
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
             raise ValueError(f"{f}: is a folder, not an experiment file")
@@ -672,8 +674,21 @@ def cmd_process(args) -> int:
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
+    if args.scheduler and not args.quiet:  # a dead address is a wait: say what it waits for, at once
+        print(
+            f"radiokit process: connecting to the Dask scheduler at {args.scheduler} "
+            f"(waiting up to {args.scheduler_timeout:g} s)",
+            file=sys.stderr,
+            flush=True,
+        )
     results = process_many(
-        args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers, overwrite=args.overwrite
+        args.files,
+        cfg,
+        out_root=args.output,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        overwrite=args.overwrite,
+        connect_timeout_s=args.scheduler_timeout,
     )
     failed = 0
     for r in results:
@@ -971,6 +986,13 @@ def _add_process_options(p):
         "(0.3-1 s more per pair)",
     )
     p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
+    p.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="how long to wait for --scheduler to answer (default 10 s)",
+    )
     p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
     p.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"

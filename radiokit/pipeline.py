@@ -1119,13 +1119,21 @@ def _limit_this_process(share: WorkerThreads):
 
 
 def process_many(
-    paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None, overwrite=False
+    paths,
+    config: Config | None = None,
+    *,
+    out_root=None,
+    scheduler=None,
+    workers=None,
+    overwrite=False,
+    connect_timeout_s: float = 10.0,
 ) -> list:
     """Process many experiment files in parallel on Dask, one progress bar over all.
 
     ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default one per
     core up to the number of files, one file at a time each), an address (``tcp://host:8786``)
-    connects to a running one. Each worker's threads are sized to its share of the cores
+    connects to a running one, waiting ``connect_timeout_s`` for it to answer (a ``ConnectionError``
+    naming the address then). Each worker's threads are sized to its share of the cores
     (:func:`worker_threads`; for a scheduler, from the workers' hosts and Dask threads), so that
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
     Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
@@ -1159,7 +1167,7 @@ def process_many(
     try:
         if scheduler is None:
             _local_cluster(local_workers(workers, len(paths), cores()), ours)
-        client = Client(ours["cluster"] if ours else scheduler)  # a scheduler that does not answer raises
+        client = Client(ours["cluster"]) if ours else _connect(Client, scheduler, connect_timeout_s)
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
         made = _missing_folders(out_root) if out_root is not None else []
@@ -1200,6 +1208,20 @@ def process_many(
                 for out in outs:
                     _remove_stale(out, folder=True, kinds=("tmp",))
             remove_empty_folders(made)  # every file failed: no empty folder left behind
+
+
+def _connect(client_class, scheduler: str, timeout_s: float):
+    """A client of the scheduler at ``scheduler``; one that does not answer within ``timeout_s`` is
+    a ``ConnectionError`` naming it (Dask's own wait is 30 s, and its message names no remedy)."""
+    if not timeout_s > 0:
+        raise ValueError(f"a scheduler time-out of {timeout_s!r} s: expected a positive number of seconds")
+    try:
+        return client_class(scheduler, timeout=timeout_s)
+    except OSError:  # Dask retries a refused or unreachable address until its time-out
+        raise ConnectionError(
+            f"Dask scheduler {scheduler}: did not answer within {timeout_s:g} s (is `dask scheduler` running "
+            "there, and reachable from here?)"
+        ) from None
 
 
 def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:

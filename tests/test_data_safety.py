@@ -1036,6 +1036,27 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_folder(experiment, tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "twin.h5"]
 
 
+def test_a_scheduler_that_does_not_answer_is_said_at_once_and_bounded(experiment, tmp_path):
+    """`process --scheduler tcp://host:1` (nothing listening there) waited Dask's 30 s without a
+    word, then said "Timed out trying to connect". The command says at once where it connects and
+    how long it waits, and fails after that wait with one line naming the address. The address is
+    a real port bound and not listening: every connection to it is refused, as at a dead host's."""
+    import socket
+
+    from radiokit.cli import build_parser
+
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{closed.getsockname()[1]}"
+        res = run("process", experiment, "-o", tmp_path / "res", "--scheduler", address, "--scheduler-timeout", "0.5")
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 2 and "Traceback" not in res.stderr, res.stderr
+    assert lines[0] == f"radiokit process: connecting to the Dask scheduler at {address} (waiting up to 0.5 s)"
+    assert lines[1].startswith(f"radiokit process: Dask scheduler {address}: did not answer within 0.5 s"), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+    assert build_parser().parse_args(["process", "a.h5", "--scheduler", address]).scheduler_timeout == 10.0
+
+
 def test_an_interrupted_correct_does_not_wait_forever_for_a_stuck_writer():
     """An interrupt unwinding ``radiokit correct`` waits for its background writer thread before
     the output is removed; a writer that never returns (seen once: a ``correct`` child stuck on a
