@@ -648,8 +648,7 @@ def cmd_process(args) -> int:
     if args.preset:  # it refuses only a preset given (with a peer method); it imports radiokit.register
         _check_preset(args)
     from radiokit.io import check_output
-    from radiokit.pipeline import output_folders, process, process_many
-    from radiokit.results import Results
+    from radiokit.pipeline import output_folders, process
 
     opts = {"preset": args.preset} if args.preset else {}
     try:
@@ -674,6 +673,14 @@ def cmd_process(args) -> int:
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
+    return _process_many(args, cfg)
+
+
+def _process_many(args, cfg) -> int:
+    """``radiokit process`` of many files, or of any on a scheduler: Dask, one headline per file."""
+    from radiokit.pipeline import process_many
+    from radiokit.results import Results
+
     if args.scheduler and not args.quiet:  # a dead address is a wait: say what it waits for, at once
         print(
             f"radiokit process: connecting to the Dask scheduler at {args.scheduler} "
