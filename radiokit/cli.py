@@ -235,9 +235,8 @@ def _progress(args) -> bool:
 
 
 def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
-    from tqdm.auto import tqdm
-
     from radiokit.io import FormatError, check_budget, open_frames
+    from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
@@ -528,7 +527,7 @@ def _levels_bar(args, options):
     if args.method not in BSPLINE_METHODS or not _progress(args):
         yield options
         return
-    from tqdm.auto import tqdm
+    from radiokit.progress import tqdm
 
     with tqdm(desc=f"register {args.method}", unit="level") as bar:
 

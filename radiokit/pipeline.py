@@ -301,10 +301,9 @@ def load_steps(path, progress: bool = False) -> Steps:
     """Calibrate from the file's darks and flats; the corrected line integral of each step
     (``-ln`` of its frames' mean transmission), least compressed first, step numbers, ratios,
     pixel size (:class:`Steps`)."""
-    from tqdm.auto import tqdm
-
     from radiokit.calibrate import Calibration, exposure_factors
     from radiokit.io import ImageKey, open_frames
+    from radiokit.progress import tqdm
 
     t = time.perf_counter()
     cal = Calibration.from_experiment(path)
@@ -668,8 +667,7 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
     little but the inclusion to register on); fields, confidence and warped steps are then
     cropped. The main pair (the step before the reference) is registered again with
     ``cfg.cross_check`` and the two compared (:func:`cross_check`)."""
-    from tqdm.auto import tqdm
-
+    from radiokit.progress import tqdm
     from radiokit.register import register, with_default_preset
 
     images, n = steps.images, len(steps.numbers)
@@ -1143,10 +1141,9 @@ def process_many(
         from dask.distributed import Client, as_completed
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
-    from tqdm.auto import tqdm
-
     from radiokit._threads import cores
     from radiokit.io._atomic import RESULTS_MARKER, OutputError, _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.progress import tqdm
 
     if out_root is not None and (Path(out_root) / RESULTS_MARKER).exists():
         # one run's results folder: the files' folders would be written beside its report, a folder

@@ -1283,10 +1283,9 @@ def run(
         names the fault, and the exception carries ``.result`` (what was saved, and whether the
         tube was confirmed off: ``result.tube_off``).
     """
-    from tqdm.auto import tqdm
-
     from acquisition.guardian import SignalGuard
     from radiokit.io import ExperimentWriter
+    from radiokit.progress import tqdm
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)
