@@ -145,8 +145,9 @@ def test_the_protocol_file_the_acquire_commands_name_is_shown_and_plans(tmp_path
     blocks = [b for b in re.findall(r"```toml\n(.*?)```", README.read_text(), re.S) if b.startswith("# protocol.toml")]
     assert len(blocks) == 1, "README shows no protocol.toml"
     (tmp_path / "protocol.toml").write_text(blocks[0])
-    for extra in ([], ["--sim"]):
+    for extra, settle in (([], 60), (["--sim"], 0)):  # the virtual bench waits its own [sim] settle_s
         res = run_cli("acquire", "protocol.toml", "--dry-run", *extra, cwd=tmp_path)
         assert res.returncode == 0, res.stderr
         assert "32 frames" in res.stdout and "-> series.h5" in res.stdout, res.stdout
+        assert f"settle {settle} s per step" in res.stdout, res.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["protocol.toml"]  # a dry run touches nothing
