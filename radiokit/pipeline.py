@@ -1142,17 +1142,11 @@ def process_many(
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
     from radiokit._threads import cores
-    from radiokit.io._atomic import RESULTS_MARKER, OutputError, _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
     from radiokit.progress import tqdm
 
-    if out_root is not None and (Path(out_root) / RESULTS_MARKER).exists():
-        # one run's results folder: the files' folders would be written beside its report, a folder
-        # mixing two runs that neither could then replace
-        raise OutputError(
-            out_root,
-            f"holds the results of one run ({RESULTS_MARKER}); several files each get a folder under "
-            "-o (out_root): choose another folder",
-        )
+    if out_root is not None:
+        _check_out_root(Path(out_root))
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
@@ -1205,6 +1199,21 @@ def process_many(
                 for out in outs:
                     _remove_stale(out, folder=True, kinds=("tmp",))
             remove_empty_folders(made)  # every file failed: no empty folder left behind
+
+
+def _check_out_root(out_root: Path) -> None:
+    """Refuse a folder radiokit made as the root of several files' folders."""
+    from radiokit.io._atomic import RESULTS_MARKER, OutputError, refuse_another_commands
+
+    if (out_root / RESULTS_MARKER).exists():
+        refuse_another_commands(out_root, "process")  # a demo's folder says so, not "one run's results"
+        # one run's results folder: the files' folders would be written beside its report, a folder
+        # mixing two runs that neither could then replace
+        raise OutputError(
+            out_root,
+            f"holds the results of one run ({RESULTS_MARKER}); several files each get a folder under "
+            "-o (out_root): choose another folder",
+        )
 
 
 def _connect(client_class, scheduler: str, timeout_s: float):

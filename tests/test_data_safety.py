@@ -244,6 +244,16 @@ def test_process_refuses_a_demo_folder(holding, experiment, tmp_path):
         )
     assert tree_sha(out) == before and (out / RESULTS_MARKER).exists()
     no_temporaries(tmp_path)
+    # several files, each a folder under -o: not under a demo's folder either (it said "holds the
+    # results of one run")
+    twin = tmp_path / "twin.h5"
+    twin.write_bytes(experiment.read_bytes())
+    one_line_error(
+        run_cli("process", experiment, twin, "-o", out, "-q", *ROI),
+        str(out),
+        "made by radiokit demo, not by radiokit process",
+    )
+    assert tree_sha(out) == before
 
 
 def test_demo_replaces_only_its_own_outputs(tmp_path):

@@ -51,6 +51,18 @@ def folder_marker(command: str) -> str:
     return f"made by radiokit {command}; may be replaced by a run with --overwrite."
 
 
+def refuse_another_commands(folder: Path, command: str) -> None:
+    """Raise :class:`OutputError` if ``folder``'s marker says another command than ``radiokit
+    COMMAND`` made it: a command never writes into, nor replaces, another's folder."""
+    found = _made_by(folder) if (folder / RESULTS_MARKER).is_file() else None
+    if found not in (None, command):
+        raise OutputError(
+            folder,
+            f"made by radiokit {found}, not by radiokit {command}: a command never replaces another's folder; "
+            "choose another output",
+        )
+
+
 def _made_by(folder: Path) -> str | None:
     """The command whose marker ``folder`` holds (None: not one radiokit wrote in this form).
     Folders before the marker named it were results folders: ``made by radiokit;``."""
@@ -298,13 +310,7 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
     if folder:
         if not path.is_dir() or path.is_symlink():
             raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
-        found = _made_by(path) if (path / RESULTS_MARKER).is_file() else None
-        if found not in (None, folder):
-            raise OutputError(
-                path,
-                f"made by radiokit {found}, not by radiokit {folder}: a command never replaces another's folder; "
-                "choose another output",
-            )
+        refuse_another_commands(path, folder)
         if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
             raise OutputError(
                 path, "exists, is not empty and was not made by radiokit; it is never replaced: choose a new folder"
