@@ -19,8 +19,9 @@ import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Callable
 
-__all__ = ["Interrupted", "exit_status", "redeliver", "lost_stops_redelivered"]
+__all__ = ["Interrupted", "exit_status", "redeliver", "lost_stops_redelivered", "deferred"]
 
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.
@@ -96,6 +97,22 @@ def redeliver(exc: BaseException) -> _Redelivery | None:
 
 
 @contextlib.contextmanager
+def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | None]):
+    """Run the block, then ``undo()``; then raise ``stop()`` (a stop the block's time held back,
+    or None) -- unless the block raised, whose exception goes out instead."""
+    unwinding = False
+    try:
+        yield
+    except BaseException:
+        unwinding = True
+        raise
+    finally:
+        undo()
+        held = stop()
+        if held is not None and not unwinding:
+            raise held
+
+
 def lost_stops_redelivered():
     """While the block runs, a stop (a ``KeyboardInterrupt``) Python dropped in a finalizer is
     delivered again (:func:`redeliver`); any other dropped exception goes to the hook as before.
@@ -110,15 +127,38 @@ def lost_stops_redelivered():
         else:
             pending.append(delivery)
 
-    sys.unraisablehook = hook
-    unwinding = False
-    try:
-        yield
-    except BaseException:
-        unwinding = True
-        raise
-    finally:
+    def undo():
         sys.unraisablehook = before
+
+    def stop():
         waiting = [delivery.signum for delivery in pending if delivery.cancel()]
-        if waiting and not unwinding:
-            raise Interrupted(waiting[0])
+        return Interrupted(waiting[0]) if waiting else None
+
+    sys.unraisablehook = hook
+    return _then_raise(undo, stop)
+
+
+def deferred(*signals):
+    """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is an
+    :class:`Interrupted` once the block is done (an exception of the block's own goes out instead).
+
+    Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
+    come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
+    and a second signal (or a first one lost in a finalizer and delivered again) cut it short and
+    left the workers' temporaries. Only the main thread may set handlers: elsewhere,
+    nothing is held off."""
+    if threading.current_thread() is not threading.main_thread():
+        return contextlib.nullcontext()
+    came = []
+
+    def note(signum, frame):
+        came.append(signum)
+
+    # a signal the command was started ignoring (`make test &` starts it so) stays ignored
+    before = {sig: signal.signal(sig, note) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
+
+    def undo():
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+    return _then_raise(undo, lambda: Interrupted(came[0]) if came else None)

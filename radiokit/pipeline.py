@@ -69,6 +69,7 @@ from radiokit._json import strict as strict_json
 from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
+from radiokit.interrupts import deferred
 from radiokit.measure import PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
@@ -1178,7 +1179,7 @@ def process_many(
         return results
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
         logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             if ours:  # stopped now, not after each busy worker's grace period
                 _kill_workers(ours["cluster"])
             elif (
@@ -1188,8 +1189,8 @@ def process_many(
                     client.run(_quiet_worker)
         raise
     finally:
-        # A signal while the workers stop is acted on once they have (see _deferring)
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        # A signal while the workers stop is acted on once they have (see radiokit.interrupts.deferred)
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             if client is not None:
                 client.close()
             if ours:
@@ -1281,7 +1282,7 @@ def _local_cluster(n_workers: int, made: dict | None = None):
     try:
         done.wait()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
     except BaseException:
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             done.wait()
             if "cluster" in made:
                 _kill_workers(made["cluster"])
@@ -1317,39 +1318,6 @@ def _blocked(*signals):
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
-
-
-@contextlib.contextmanager
-def _deferring(*signals):
-    """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is a
-    KeyboardInterrupt once the block is done (an exception of the block's own goes out instead).
-
-    Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
-    come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
-    and a second signal (or a first one lost in a finalizer and delivered again) cut it short and
-    left the workers' temporaries. Only the main thread may set handlers: elsewhere,
-    nothing is held off."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    came = []
-
-    def note(signum, frame):
-        came.append(signum)
-
-    # a signal the command was started ignoring (`make test &` starts it so) stays ignored
-    before = {sig: signal.signal(sig, note) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
-    unwinding = False
-    try:
-        yield
-    except BaseException:
-        unwinding = True
-        raise
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
-        if came and not unwinding:
-            raise KeyboardInterrupt(signal.Signals(came[0]).name)
 
 
 def _quiet_worker():

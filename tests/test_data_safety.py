@@ -289,7 +289,7 @@ def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIG
 def _as_from_a_terminal():
     """A command's child starts with SIGINT and SIGHUP as a terminal gives them (their default
     actions): under ``make test &`` the suite inherits them ignored, a run keeps a signal it was
-    started ignoring ignored (radiokit.pipeline._deferring), and a test's Ctrl-C went nowhere."""
+    started ignoring ignored (radiokit.interrupts.deferred), and a test's Ctrl-C went nowhere."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
