@@ -187,7 +187,7 @@ def _dry_run(args, p, done) -> int:
     print(
         f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
         f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
-        f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.series.settle_s:g} s per step"
+        f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.settle_s(args.sim):g} s per step"
         f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
     )
     return 0

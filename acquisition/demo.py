@@ -55,9 +55,6 @@ def _protocol(scene, output, *, initial_height_mm, frames_per_step, darks, flats
     )
 
 
-#: how a demo's folder's marker begins (a results folder's begins "made by radiokit;")
-_DEMO_MARKER = "made by radiokit demo"
-
 #: the files and folders a demo makes in its folder, and nothing else
 _DEMO_OUTPUTS = ("experiment.h5", "experiment.log", "control.h5", "control.log", "results")
 
@@ -67,16 +64,11 @@ def _demo_folder(out_dir, overwrite) -> Path:
     remove a previous demo's own outputs (and only those)."""
     import shutil
 
-    from radiokit.io import RESULTS_MARKER, check_output
+    from radiokit.io import RESULTS_MARKER, check_output, folder_marker
 
-    marker = Path(out_dir) / RESULTS_MARKER
-    if marker.is_file() and not _starts_with(marker, _DEMO_MARKER):
-        # radiokit made it, but as a results folder: the demo wrote its marker over that folder's
-        # list of files and ran beside its report, one folder mixing two runs
-        raise FileExistsError(
-            f"{out_dir}: a results folder of radiokit process, not a demo's folder; choose another output"
-        )
-    out = check_output(out_dir, overwrite=overwrite, folder=True)
+    # a results folder of `radiokit process` is refused there, --overwrite or not: the demo wrote
+    # its marker over that folder's list of files and ran beside its report, one folder mixing two runs
+    out = check_output(out_dir, overwrite=overwrite, folder=True, made_by="demo")
     out.mkdir(parents=True, exist_ok=True)
     for name in _DEMO_OUTPUTS:
         old = out / name
@@ -84,13 +76,8 @@ def _demo_folder(out_dir, overwrite) -> Path:
             shutil.rmtree(old)
         elif old.exists() or old.is_symlink():
             old.unlink()
-    (out / RESULTS_MARKER).write_text(f"{_DEMO_MARKER}; may be replaced by `radiokit demo --overwrite`\n")
+    (out / RESULTS_MARKER).write_text(folder_marker("demo") + "\n")
     return out
-
-
-def _starts_with(path: Path, text: str) -> bool:
-    with open(path, "rb") as f:  # its first bytes only: a marker is a line, whatever the file holds
-        return f.read(len(text.encode())) == text.encode()
 
 
 def control_scene(scene):
@@ -321,15 +308,17 @@ def add_demo(subparsers):
 
 
 def _run(args) -> int:
+    from radiokit.interrupts import exit_status
+
     out = Path(args.output)
     made_here = not out.exists() and not out.is_symlink()
     try:
         summary = _run_demo(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         # not the other commands' "no partial output was left": the acquisitions append frame by
         # frame (not atomic), so an interrupted demo may leave its experiment files behind
         print(_interrupted_line(out, made_here), file=sys.stderr)
-        return 130
+        return exit_status(exc)  # 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP
     print()
     print(headline(summary))
     return 0

@@ -38,7 +38,6 @@ a reply that arrives after its requester was interrupted is discarded)::
 
 from __future__ import annotations
 
-import _thread
 import json
 import os
 import signal
@@ -47,6 +46,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+from radiokit.interrupts import Interrupted, redeliver
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -58,18 +59,11 @@ TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGTSTP") if hasattr(signal, name))
 
 
-class StopSignal(KeyboardInterrupt):
+class StopSignal(Interrupted):
     """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP or SIGTSTP); ``signum`` says which.
 
-    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles them all alike."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = int(signum)
-
-    @property
-    def name(self) -> str:
-        return signal.Signals(self.signum).name
+    A ``KeyboardInterrupt`` (radiokit's :class:`~radiokit.interrupts.Interrupted`), so code that
+    handles Ctrl-C handles them all alike, and ``radiokit demo`` exits 128 + ``signum`` on it."""
 
 
 def _say(text: str) -> None:
@@ -216,14 +210,11 @@ class SignalGuard:
         stopping already, only printed "please wait" at every later signal while the series
         went on. Before the switch-off has begun, the stop is delivered again to the main thread."""
         exc = unraisable.exc_value
-        if isinstance(exc, StopSignal) and not self._cleaning:
-            self.stopping = False  # the stop never reached the run: the next delivery raises
-            # from another thread, a moment later: here, still inside the finalizer (or this
-            # hook), it would be dropped again; should it land in another finalizer, this repeats
-            timer = threading.Timer(0.05, _thread.interrupt_main, (exc.signum,))
-            timer.daemon = True
-            timer.start()
-            return
+        if isinstance(exc, StopSignal):
+            if not self._cleaning:
+                self.stopping = False  # the stop never reached the run: the next delivery raises
+                redeliver(exc)
+            return  # during the switch-off a stop is only acknowledged, never raised again
         (self._old_hook or sys.__unraisablehook__)(unraisable)
 
     def _handle(self, signum, frame) -> None:

@@ -2295,7 +2295,7 @@ class L8121:
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
         bar = None
         if progress is True:
-            from tqdm.auto import tqdm
+            from radiokit.progress import tqdm
 
             bar = tqdm(total=round(timeout_s), desc=f"L8121 warm-up ({self.port})", unit="s", leave=False)
         t0 = time.monotonic()

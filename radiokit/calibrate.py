@@ -677,7 +677,7 @@ def frame_saturation(saturation, raw) -> int | None:
 
 def _bar(progress: bool, total, desc: str, unit: str):
     """A tqdm bar on stderr, or one that shows nothing (``progress`` False), as radiokit process's."""
-    from tqdm.auto import tqdm
+    from radiokit.progress import tqdm
 
     return tqdm(total=total, desc=desc, unit=unit, disable=not progress)
 

@@ -235,9 +235,8 @@ def _progress(args) -> bool:
 
 
 def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
-    from tqdm.auto import tqdm
-
     from radiokit.io import FormatError, check_budget, open_frames
+    from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
@@ -528,7 +527,7 @@ def _levels_bar(args, options):
     if args.method not in BSPLINE_METHODS or not _progress(args):
         yield options
         return
-    from tqdm.auto import tqdm
+    from radiokit.progress import tqdm
 
     with tqdm(desc=f"register {args.method}", unit="level") as bar:
 
@@ -635,6 +634,8 @@ def cmd_process(args) -> int:
     # nor radiokit.register (scipy and more, 0.4 s), and a slip is refused before those load
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers {args.workers}: expected at least one worker")
+    if not args.scheduler_timeout > 0:
+        raise ValueError(f"--scheduler-timeout {args.scheduler_timeout:g}: expected a positive number of seconds")
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
             raise ValueError(f"{f}: is a folder, not an experiment file")
@@ -646,8 +647,7 @@ def cmd_process(args) -> int:
     if args.preset:  # it refuses only a preset given (with a peer method); it imports radiokit.register
         _check_preset(args)
     from radiokit.io import check_output
-    from radiokit.pipeline import output_folders, process, process_many
-    from radiokit.results import Results
+    from radiokit.pipeline import output_folders, process
 
     opts = {"preset": args.preset} if args.preset else {}
     try:
@@ -672,8 +672,29 @@ def cmd_process(args) -> int:
             raise ValueError(f"{args.files[0]}: {exc}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
+    return _process_many(args, cfg)
+
+
+def _process_many(args, cfg) -> int:
+    """``radiokit process`` of many files, or of any on a scheduler: Dask, one headline per file."""
+    from radiokit.pipeline import process_many
+    from radiokit.results import Results
+
+    if args.scheduler and not args.quiet:  # a dead address is a wait: say what it waits for, at once
+        print(
+            f"radiokit process: connecting to the Dask scheduler at {args.scheduler} "
+            f"(waiting up to {args.scheduler_timeout:g} s)",
+            file=sys.stderr,
+            flush=True,
+        )
     results = process_many(
-        args.files, cfg, out_root=args.output, scheduler=args.scheduler, workers=args.workers, overwrite=args.overwrite
+        args.files,
+        cfg,
+        out_root=args.output,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        overwrite=args.overwrite,
+        connect_timeout_s=args.scheduler_timeout,
     )
     failed = 0
     for r in results:
@@ -971,6 +992,13 @@ def _add_process_options(p):
         "(0.3-1 s more per pair)",
     )
     p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
+    p.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="how long to wait for --scheduler to answer (default 10 s)",
+    )
     p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
     p.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
@@ -1017,31 +1045,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _terminated(signum, frame):
     """SIGTERM/SIGHUP (a closed terminal, ``kill``): unwind like Ctrl-C, so that every output being
-    written is removed rather than left half-written under its temporary name.
+    written is removed rather than left half-written under its temporary name. Should it land in
+    a finalizer, where Python drops it, ``_main`` delivers it again (radiokit.interrupts)."""
+    from radiokit.interrupts import Interrupted
 
-    Python drops an exception raised while a finalizer runs; should this one land there, the
-    interrupt is repeated a second later (a daemon timer: it dies with the process)."""
-    import _thread
-    import threading
-
-    timer = threading.Timer(1.0, _thread.interrupt_main)
-    timer.daemon = True
-    timer.start()
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    raise Interrupted(signum)
 
 
-def _interrupted(exc) -> bool:
+def _interrupted(exc) -> KeyboardInterrupt | None:
+    """The interrupt behind ``exc`` (itself, or one a library turned into its own error)."""
     while exc is not None:
         if isinstance(exc, KeyboardInterrupt):
-            return True
+            return exc
         exc = exc.__cause__ or exc.__context__
-    return False
+    return None
 
 
 def _user_error(exc) -> bool:
     """Errors a user causes (a file, a parameter, the disk, the memory), or an interrupt some
     library re-raised as its own error; anything else is a bug and keeps its traceback."""
-    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc)
+    return isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError)) or _interrupted(exc) is not None
 
 
 def _stdout_gone() -> bool:
@@ -1148,6 +1171,8 @@ def _one_warning_per_file() -> None:
 
 
 def _main(argv) -> int:
+    from radiokit.interrupts import exit_status, lost_stops_redelivered
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -1168,10 +1193,11 @@ def _main(argv) -> int:
     try:
         if args.command != "acquire":  # never in the way of a switch-off (acquire source off)
             _check_environment()
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
+        with lost_stops_redelivered():  # acquire's own guard takes over while it runs
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
         print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
-        return 130
+        return exit_status(exc)
     except Exception as exc:
         if isinstance(exc, BrokenPipeError) and _stdout_gone():
             # the reader of the output went away (`radiokit info *.img | head -1`): not an error of
@@ -1180,9 +1206,9 @@ def _main(argv) -> int:
             return 128 + signal.SIGPIPE
         if not _user_error(exc) or _debug(args):
             raise
-        if _interrupted(exc):  # a C extension turned the interrupt into its own error
+        if _interrupted(exc) is not None:  # a C extension turned the interrupt into its own error
             print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
-            return 130
+            return exit_status(_interrupted(exc))
         print(_error_line(name, exc), file=sys.stderr)
         return 2
 

@@ -632,9 +632,8 @@ def correct_files(
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
     """
-    from tqdm.auto import tqdm
-
     from radiokit.io import StackWriter, open_frames
+    from radiokit.progress import tqdm
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     sources = [open_frames(p, **hints) for p in inputs]

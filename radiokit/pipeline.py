@@ -69,6 +69,7 @@ from radiokit._json import strict as strict_json
 from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
+from radiokit.interrupts import deferred
 from radiokit.measure import PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
@@ -301,10 +302,9 @@ def load_steps(path, progress: bool = False) -> Steps:
     """Calibrate from the file's darks and flats; the corrected line integral of each step
     (``-ln`` of its frames' mean transmission), least compressed first, step numbers, ratios,
     pixel size (:class:`Steps`)."""
-    from tqdm.auto import tqdm
-
     from radiokit.calibrate import Calibration, exposure_factors
     from radiokit.io import ImageKey, open_frames
+    from radiokit.progress import tqdm
 
     t = time.perf_counter()
     cal = Calibration.from_experiment(path)
@@ -668,8 +668,7 @@ def register_pairs(steps: Steps, rois: RoiChoice, cfg: Config, label: str = "") 
     little but the inclusion to register on); fields, confidence and warped steps are then
     cropped. The main pair (the step before the reference) is registered again with
     ``cfg.cross_check`` and the two compared (:func:`cross_check`)."""
-    from tqdm.auto import tqdm
-
+    from radiokit.progress import tqdm
     from radiokit.register import register, with_default_preset
 
     images, n = steps.images, len(steps.numbers)
@@ -1119,13 +1118,21 @@ def _limit_this_process(share: WorkerThreads):
 
 
 def process_many(
-    paths, config: Config | None = None, *, out_root=None, scheduler=None, workers=None, overwrite=False
+    paths,
+    config: Config | None = None,
+    *,
+    out_root=None,
+    scheduler=None,
+    workers=None,
+    overwrite=False,
+    connect_timeout_s: float = 10.0,
 ) -> list:
     """Process many experiment files in parallel on Dask, one progress bar over all.
 
     ``scheduler``: ``None`` starts a local cluster (processes, ``workers`` of them, default one per
     core up to the number of files, one file at a time each), an address (``tcp://host:8786``)
-    connects to a running one. Each worker's threads are sized to its share of the cores
+    connects to a running one, waiting ``connect_timeout_s`` for it to answer (a ``ConnectionError``
+    naming the address then). Each worker's threads are sized to its share of the cores
     (:func:`worker_threads`; for a scheduler, from the workers' hosts and Dask threads), so that
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
     Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
@@ -1135,19 +1142,12 @@ def process_many(
         from dask.distributed import Client, as_completed
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
-    from tqdm.auto import tqdm
-
     from radiokit._threads import cores
-    from radiokit.io._atomic import RESULTS_MARKER, OutputError, _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.progress import tqdm
 
-    if out_root is not None and (Path(out_root) / RESULTS_MARKER).exists():
-        # one run's results folder: the files' folders would be written beside its report, a folder
-        # mixing two runs that neither could then replace
-        raise OutputError(
-            out_root,
-            f"holds the results of one run ({RESULTS_MARKER}); several files each get a folder under "
-            "-o (out_root): choose another folder",
-        )
+    if out_root is not None:
+        _check_out_root(Path(out_root))
     cfg = dataclasses.replace(config or Config(), progress=False)
     paths = [Path(p) for p in paths]
     outs = output_folders(paths, out_root)
@@ -1159,7 +1159,7 @@ def process_many(
     try:
         if scheduler is None:
             _local_cluster(local_workers(workers, len(paths), cores()), ours)
-        client = Client(ours["cluster"] if ours else scheduler)  # a scheduler that does not answer raises
+        client = Client(ours["cluster"]) if ours else _connect(Client, scheduler, connect_timeout_s)
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
         made = _missing_folders(out_root) if out_root is not None else []
@@ -1179,7 +1179,7 @@ def process_many(
         return results
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
         logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             if ours:  # stopped now, not after each busy worker's grace period
                 _kill_workers(ours["cluster"])
             elif (
@@ -1189,8 +1189,8 @@ def process_many(
                     client.run(_quiet_worker)
         raise
     finally:
-        # A signal while the workers stop is acted on once they have (see _deferring)
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        # A signal while the workers stop is acted on once they have (see radiokit.interrupts.deferred)
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             if client is not None:
                 client.close()
             if ours:
@@ -1200,6 +1200,35 @@ def process_many(
                 for out in outs:
                     _remove_stale(out, folder=True, kinds=("tmp",))
             remove_empty_folders(made)  # every file failed: no empty folder left behind
+
+
+def _check_out_root(out_root: Path) -> None:
+    """Refuse a folder radiokit made as the root of several files' folders."""
+    from radiokit.io._atomic import RESULTS_MARKER, OutputError, refuse_another_commands
+
+    if (out_root / RESULTS_MARKER).exists():
+        refuse_another_commands(out_root, "process")  # a demo's folder says so, not "one run's results"
+        # one run's results folder: the files' folders would be written beside its report, a folder
+        # mixing two runs that neither could then replace
+        raise OutputError(
+            out_root,
+            f"holds the results of one run ({RESULTS_MARKER}); several files each get a folder under "
+            "-o (out_root): choose another folder",
+        )
+
+
+def _connect(client_class, scheduler: str, timeout_s: float):
+    """A client of the scheduler at ``scheduler``; one that does not answer within ``timeout_s`` is
+    a ``ConnectionError`` naming it (Dask's own wait is 30 s, and its message names no remedy)."""
+    if not timeout_s > 0:
+        raise ValueError(f"a scheduler time-out of {timeout_s!r} s: expected a positive number of seconds")
+    try:
+        return client_class(scheduler, timeout=timeout_s)
+    except OSError:  # Dask retries a refused or unreachable address until its time-out
+        raise ConnectionError(
+            f"Dask scheduler {scheduler}: did not answer within {timeout_s:g} s (is `dask scheduler` running "
+            "there, and reachable from here?)"
+        ) from None
 
 
 def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
@@ -1253,7 +1282,7 @@ def _local_cluster(n_workers: int, made: dict | None = None):
     try:
         done.wait()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
     except BaseException:
-        with _deferring(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             done.wait()
             if "cluster" in made:
                 _kill_workers(made["cluster"])
@@ -1289,39 +1318,6 @@ def _blocked(*signals):
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
-
-
-@contextlib.contextmanager
-def _deferring(*signals):
-    """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is a
-    KeyboardInterrupt once the block is done (an exception of the block's own goes out instead).
-
-    Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
-    come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
-    and a second signal (radiokit's SIGTERM handler repeats its interrupt after a second) cut it
-    short and left the workers' temporaries. Only the main thread may set handlers: elsewhere,
-    nothing is held off."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    came = []
-
-    def note(signum, frame):
-        came.append(signum)
-
-    # a signal the command was started ignoring (`make test &` starts it so) stays ignored
-    before = {sig: signal.signal(sig, note) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
-    unwinding = False
-    try:
-        yield
-    except BaseException:
-        unwinding = True
-        raise
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
-        if came and not unwinding:
-            raise KeyboardInterrupt(signal.Signals(came[0]).name)
 
 
 def _quiet_worker():

@@ -142,9 +142,8 @@ def simulate_experiment(
     >>> res["states"][0]["ratio"], round(res["states"][0]["gap_mm"], 3)
     (0.1, 9.0)
     """
-    from tqdm.auto import tqdm
-
     from radiokit.io import ExperimentWriter, ImageKey
+    from radiokit.progress import tqdm
     from sim.mechanics import compress
     from sim.truth import truth_displacement
 

@@ -814,7 +814,7 @@ class Solver:
 
         ``on_step(ratio, newton_iterations, seconds)`` is called after each converged load step,
         ``on_state(state)`` as each requested ratio is reached."""
-        from tqdm.auto import tqdm
+        from radiokit.progress import tqdm
 
         ratios = sorted(float(r) for r in ratios)
         per_plate = 0.5 if "y" in self.fem.symmetry else 1.0  # each plate moves half the closure

@@ -235,6 +235,26 @@ def test_the_runs_x_rays_on_time_counts_the_warm_up(tmp_path, scene_toml, bench)
     assert res.beam_on_s >= exposures + p.sim.warmup_s, (res.beam_on_s, exposures)
 
 
+def test_the_virtual_bench_settles_in_its_own_time(tmp_path, scene_toml, bench, monkeypatch):
+    """`[series] settle_s` (60 s by default, the gel's relaxation in the lab) was waited on the
+    virtual bench too: the README's protocol rehearsed with --sim sat three minutes on a scene
+    that is in equilibrium once solved. The virtual bench waits `[sim] settle_s` (none by
+    default; set it to rehearse the lab's waits), and its dry run plans that. The waits are
+    recorded, not slept (the run's own wait, with its countdown, is _settle)."""
+    import acquisition.protocols.compression_series as cs
+
+    waited = []
+    monkeypatch.setattr(cs, "_settle", lambda seconds, bar, progress: waited.append(seconds))
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1, settle_s=60.0)
+    assert p.sim.settle_s == 0.0
+    run(p, devices=sim_devices(p, bench=bench), progress=False)
+    assert waited == [p.sim.settle_s] * len(STEPS)
+    lab, virtual = plan(p, warm=True), plan(p, warm=True, sim=True)
+    assert lab.duration_s - virtual.duration_s == pytest.approx(len(STEPS) * (p.series.settle_s - p.sim.settle_s))
+    p.sim.settle_s = 1.5  # a rehearsal of the lab's waits, shorter
+    assert plan(p, warm=True, sim=True).duration_s - virtual.duration_s == pytest.approx(len(STEPS) * 1.5)
+
+
 def test_protocol_errors_are_clear(tmp_path, scene_toml):
     with pytest.raises(DeviceError, match=r"unknown key\(s\) in \[series\]: fames"):
         load_protocol({"series": {"fames": 3}})

@@ -739,6 +739,7 @@ def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
             sys.stdout,
             sys.stderr,
             list(logging.root.handlers),
+            sys.unraisablehook,
         )
 
     before = state()
@@ -815,3 +816,28 @@ def test_info_prints_a_float_stacks_range_to_its_precision(tmp_path):
     lo, hi = (float(v) for v in line.split()[1::2][:2])
     assert line.split()[1:4] == ["0.1", "..", "2"], line  # digits float32 does not carry are gone
     assert abs(lo - 0.1) <= 1e-7 * 0.1 and hi == 2.0
+
+
+def test_a_stop_lost_just_before_the_command_ends_is_not_lost():
+    """A stop Python dropped in a finalizer is delivered again a moment later
+    (radiokit.interrupts); a command that ends within that moment raised it nowhere, or at its
+    caller after the command's own handling. The block raises it as it ends instead, and
+    nothing comes later. The finalizer is real; the signal is raised inside it."""
+    import signal
+
+    from radiokit.interrupts import Interrupted, lost_stops_redelivered
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGTERM)
+
+    def terminated(signum, frame):
+        raise Interrupted(signum)
+
+    before = signal.signal(signal.SIGTERM, terminated)
+    try:
+        with pytest.raises(Interrupted) as stop, lost_stops_redelivered():
+            Finalised()  # its __del__ takes the signal, and Python drops the raise; the block ends at once
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert stop.value.signum == signal.SIGTERM

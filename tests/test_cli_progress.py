@@ -19,16 +19,17 @@ from radiokit.io import ExperimentWriter, ImageKey
 from sim.detector import PanelModel
 
 
-def _run(args, stderr_tty: bool):
-    """The command with stderr on a pseudo-terminal (or a pipe): (exit code, stdout, stderr)."""
+def _run(args, stderr_tty: bool, columns: int = 100, env=None):
+    """The command with stderr on a pseudo-terminal ``columns`` wide (or a pipe): (exit code,
+    stdout, stderr)."""
     cmd = [sys.executable, "-m", "radiokit.cli", *map(str, args)]
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})}
     if not stderr_tty:
         res = subprocess.run(cmd, capture_output=True, text=True, env=env)
         return res.returncode, res.stdout, res.stderr
     master, slave = pty.openpty()
-    # a new pty is 0 x 0: tqdm would fit its bar into no columns and print nothing
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    # a new pty is 0 x 0 unless told otherwise, as some CI shells' terminals are
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=slave, text=True, env=env)
     os.close(slave)
     chunks = []
@@ -92,3 +93,20 @@ def test_long_commands_show_progress_on_a_terminal_only(case, how, files, tmp_pa
             assert word in stderr, (word, stderr)
     else:
         assert stderr.strip() == "", stderr
+
+
+@pytest.mark.parametrize("columns_env", [None, "0", "60"])
+def test_a_terminal_of_no_columns_still_shows_the_bars(columns_env, files, tmp_path):
+    """A terminal that reports 0 columns (a fresh pseudo-terminal, `stty cols 0` in some CI shells)
+    showed no bar to speak of: tqdm squeezed each into one cell and cut its last character
+    (`read exp.h5: 100%|█| 6/6 [00:00<00:00, 3734.91frame/s`). The bars fall back to COLUMNS
+    when it is a positive width, else 80 columns."""
+    args = ["calibrate", "--experiment", files / "exp.h5", "-o", tmp_path / "out.h5"]
+    env = {} if columns_env is None else {"COLUMNS": columns_env}
+    rc, stdout, stderr = _run(args, stderr_tty=True, columns=0, env=env)
+    assert rc == 0, (stdout, stderr)
+    assert "calibrate defects" in stderr and "100%" in stderr, stderr
+    width = int(columns_env) if columns_env not in (None, "0") else 80
+    drawn = [line for line in stderr.replace("\r", "\n").splitlines() if "100%" in line]
+    assert drawn and all(len(line.rstrip()) <= width for line in drawn), drawn
+    assert max(len(line.rstrip()) for line in drawn) >= width - 10, drawn  # the bar fills the width

@@ -568,6 +568,8 @@ def test_register_bad_arguments(args, words, tmp_path):
         (["--cross-check", "nosuch"], "--cross-check 'nosuch'"),  # only after the main registration
         (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # a traceback
         (["--workers", "0"], "--workers 0"),
+        (["--scheduler-timeout", "0"], "--scheduler-timeout 0"),
+        (["--scheduler-timeout", "nan"], "--scheduler-timeout nan"),
         (["--control", "missing.h5"], "--control missing.h5"),  # only after the main file's work
         (["--control", "."], "is a folder"),
     ],

@@ -145,8 +145,39 @@ def test_the_protocol_file_the_acquire_commands_name_is_shown_and_plans(tmp_path
     blocks = [b for b in re.findall(r"```toml\n(.*?)```", README.read_text(), re.S) if b.startswith("# protocol.toml")]
     assert len(blocks) == 1, "README shows no protocol.toml"
     (tmp_path / "protocol.toml").write_text(blocks[0])
-    for extra in ([], ["--sim"]):
+    for extra, settle in (([], 60), (["--sim"], 0)):  # the virtual bench waits its own [sim] settle_s
         res = run_cli("acquire", "protocol.toml", "--dry-run", *extra, cwd=tmp_path)
         assert res.returncode == 0, res.stderr
         assert "32 frames" in res.stdout and "-> series.h5" in res.stdout, res.stdout
+        assert f"settle {settle} s per step" in res.stdout, res.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["protocol.toml"]  # a dry run touches nothing
+
+
+def test_the_process_option_examples_run(tmp_path):
+    """The README's `radiokit process experiment.h5 --no-report` and `--cross-check ssd` lines run
+    as shown on an experiment file, and do what the text beside them says. The file is a small
+    synthetic one, so the ROIs are given (its square is too small for the automatic search)."""
+    import json
+
+    from conftest import run_cli, synthetic
+
+    block = re.search(r"### Process: from an experiment file.*?```sh\n(.*?)```", README.read_text(), re.S).group(1)
+    lines = {
+        ln.split("#")[0].split()[-1]: ln.split("#")[0].split() for ln in block.splitlines() if "experiment.h5 --" in ln
+    }
+    assert set(lines) == {"--no-report", "ssd"}, lines
+    synthetic(tmp_path / "experiment.h5")
+    rois = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0", "-q"]
+    res = run_cli(*lines["--no-report"][1:], *rois, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "experiment").iterdir()) == [
+        ".radiokit-output",
+        "results.h5",
+        "results.json",
+    ]
+    res = run_cli(*lines["ssd"][1:], *rois, "--overwrite", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    record = json.loads((tmp_path / "experiment" / "results.json").read_text())
+    check = record["registration"][record["main_pair"]]["cross_check"]
+    assert check["method"] == "ssd" and check["agree"] and check["median_px"] <= check["p95_px"], check
+    assert (tmp_path / "experiment" / "report.html").exists()

@@ -99,7 +99,7 @@ def controller(request):
 ONE_DIALECT = pytest.mark.parametrize("controller", ["A"], indirect=True)
 
 
-def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, output=None):
+def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, sim=None, output=None):
     """The protocol for ``server`` (a PtyServer, whose model's dialect goes into ``[source]``, or a
     port name)."""
     port = getattr(server, "url", server)
@@ -122,7 +122,7 @@ def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, ou
         "flats": FLATS,
         "frames_per_step": PER_STEP,
         "steps": list(STEPS),
-        "settle_s": 0.0,  # none but in the settle row (SETTLE_ROW_S); 0.3 s cost every row 0.3-0.6 s
+        "settle_s": 0.0,  # the lab's; the virtual bench waits [sim] settle_s (SETTLE_ROW_S in the settle row)
         **(series or {}),
     }
     path = tmp_path / "protocol.toml"
@@ -135,7 +135,7 @@ def write_protocol(tmp_path, scene_file, server, *, source=None, series=None, ou
                 "detector": {"kind": "sim", "timeout_s": 2.0},
                 "frame": {"kind": "sim", "initial_height_mm": 10.0},
                 "series": ser,
-                "sim": {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": port},
+                "sim": {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": port, **(sim or {})},
             }
         )
     )
@@ -319,8 +319,8 @@ def warning_after(acq, t0):
 @pytest.mark.parametrize("sig", list(SIGNALS))
 def test_signal_in_phase_leaves_the_tube_off(tmp_path, scene_file, controller, sig, phase):
     model, server = controller(warmed_up=phase != "warm-up")
-    series = {"settle_s": SETTLE_ROW_S} if phase.startswith("settle") else None
-    proto = write_protocol(tmp_path, scene_file, server, series=series)
+    sim = {"settle_s": SETTLE_ROW_S} if phase.startswith("settle") else None
+    proto = write_protocol(tmp_path, scene_file, server, sim=sim)
     acq = Acquire(proto, "--sim", "-q")
     reach(phase, model, tmp_path, acq)
     watch = OffWatch(model)
@@ -725,7 +725,7 @@ def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene
     the tube on and the guardian rightly switched off (session 20)."""
     model, server = controller()
     proto = write_protocol(
-        tmp_path, scene_file, server, source={"watchdog_s": 1.0}, series={"steps": [0.15], "settle_s": 2.5}
+        tmp_path, scene_file, server, source={"watchdog_s": 1.0}, series={"steps": [0.15]}, sim={"settle_s": 2.5}
     )
     acq = Acquire(proto, "--sim", "-q")
     assert acq.wait(timeout=60) == 0, acq.output

@@ -192,6 +192,9 @@ class SimSettings:
     binning: int | None = None
     seed: int = 0
     warmup_s: float = 2.0  # the emulated source's warm-up
+    # the wait after each compression on the virtual bench, in place of [series] settle_s: a solved
+    # scene is in equilibrium at once (nothing relaxes), so none unless a rehearsal of the lab's waits
+    settle_s: float = 0.0
     ramp_s: float = 0.3  # its kV / uA ramp after XON
     warmed_up: bool = False  # start the emulator already warm
     frame_period_s: float = 0.0  # SimDetector's pace (0: as fast as it renders)
@@ -262,6 +265,11 @@ class Protocol:
                 f"[source] voltage_kv = {self.source.voltage_kv:g} exceeds the panel's rating "
                 f"([detector] kvp_max = {d.kvp_max:g} kVp; the C7942SK-02 is rated 20-100 kVp)"
             )
+
+    def settle_s(self, virtual: bool) -> float:
+        """The wait after each compression, tube off: the gel's relaxation in the lab (``[series]``),
+        the virtual bench's own (``[sim]``)."""
+        return self.sim.settle_s if virtual else self.series.settle_s
 
     def to_toml(self) -> str:
         """The protocol as TOML (what the experiment file stores, and what ``--resume`` checks)."""
@@ -488,7 +496,8 @@ OVERRUN_FACTOR, OVERRUN_S = 2.0, 10.0
 def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False, sim: bool = False) -> Plan:
     """The run's phases with estimated durations and beam-on time. ``done`` (from a file being
     resumed) removes what is already there; ``warm=True`` leaves out the warm-up; ``sim=True``
-    plans the virtual bench, whose source warms up in ``[sim] warmup_s``."""
+    plans the virtual bench, whose source warms up in ``[sim] warmup_s`` and whose steps settle in
+    ``[sim] settle_s``."""
     p = protocol
     done = done or {}
     period = p.detector.frame_period_s
@@ -515,7 +524,7 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False, si
                 t,
             )
         )
-    h0 = p.frame.initial_height_mm
+    h0, settle = p.frame.initial_height_mm, p.settle_s(sim)
     for i, r in enumerate(p.series.steps, start=1):
         n = max(0, p.series.frames_per_step - done.get("steps", {}).get(i, 0))
         if n:
@@ -523,9 +532,9 @@ def plan(protocol: Protocol, done: dict | None = None, *, warm: bool = False, si
             rows.append(
                 (
                     f"step {i}",
-                    f"{100 * r:g} %: gap {h0 * (1 - r):.3f} mm, settle {p.series.settle_s:g} s",
+                    f"{100 * r:g} %: gap {h0 * (1 - r):.3f} mm, settle {settle:g} s",
                     n,
-                    p.frame.move_estimate_s + p.series.settle_s + t,
+                    p.frame.move_estimate_s + settle + t,
                     t,
                 )
             )
@@ -1220,7 +1229,7 @@ def _phase_steps(r: _Run):
                 *before,
             )
         before = (i, 1 - gap / h0)
-        _settle(p.series.settle_s, r.bar, r.progress)
+        _settle(p.settle_s(r.devices.bench is not None), r.bar, r.progress)
         _beam_on(r, n, f"step {i}")
         _take(r, n, ImageKey.PROJECTION, step=i, ratio=1 - gap / h0, gap=gap, beam=True)
         _beam_off(r)
@@ -1289,10 +1298,9 @@ def run(
         names the fault, and the exception carries ``.result`` (what was saved, and whether the
         tube was confirmed off: ``result.tube_off``).
     """
-    from tqdm.auto import tqdm
-
     from acquisition.guardian import SignalGuard
     from radiokit.io import ExperimentWriter
+    from radiokit.progress import tqdm
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)

@@ -24,6 +24,7 @@ from radiokit.io._atomic import (
     atomic_path,
     check_free_space,
     check_output,
+    folder_marker,
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
 from radiokit.io._experiment import PIXEL_SIZE_RANGE_M, ExperimentProgress, ExperimentWriter, ImageKey, read_progress
@@ -64,6 +65,7 @@ __all__ = [
     "DiskFullError",
     "FileTooLargeError",
     "RESULTS_MARKER",
+    "folder_marker",
     "memory_budget",
     "check_budget",
     "parse_size",

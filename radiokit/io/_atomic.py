@@ -32,6 +32,7 @@ __all__ = [
     "OutputError",
     "OutputExistsError",
     "RESULTS_MARKER",
+    "folder_marker",
     "DiskFullError",
     "FileTooLargeError",
     "is_disk_full",
@@ -41,6 +42,34 @@ __all__ = [
 
 #: written into every results folder radiokit assembles: only such folders may be replaced
 RESULTS_MARKER = ".radiokit-output"
+
+
+def folder_marker(command: str) -> str:
+    """The first line of :data:`RESULTS_MARKER` in a folder ``radiokit COMMAND`` made: it names the
+    command, whose folders alone that command replaces (``radiokit demo``'s folder holds the
+    results folder of its own ``process`` run, and is not one)."""
+    return f"made by radiokit {command}; may be replaced by a run with --overwrite."
+
+
+def refuse_another_commands(folder: Path, command: str) -> None:
+    """Raise :class:`OutputError` if ``folder``'s marker says another command than ``radiokit
+    COMMAND`` made it: a command never writes into, nor replaces, another's folder."""
+    found = _made_by(folder) if (folder / RESULTS_MARKER).is_file() else None
+    if found not in (None, command):
+        raise OutputError(
+            folder,
+            f"made by radiokit {found}, not by radiokit {command}: a command never replaces another's folder; "
+            "choose another output",
+        )
+
+
+def _made_by(folder: Path) -> str | None:
+    """The command whose marker ``folder`` holds (None: not one radiokit wrote in this form).
+    Folders before the marker named it were results folders: ``made by radiokit;``."""
+    with open(folder / RESULTS_MARKER, "rb") as f:  # its first line only, whatever the file holds
+        head = f.read(256).split(b"\n", 1)[0].decode("utf-8", "replace")
+    found = re.match(r"made by radiokit(?:;| ([\w-]+);)", head)
+    return None if found is None else found.group(1) or "process"
 
 
 class OutputError(RadiokitError, OSError):
@@ -227,7 +256,7 @@ def _inside(inner: Path, outer: Path) -> bool:
     return inner == outer or outer in inner.parents
 
 
-def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
+def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="process") -> Path:
     """Refuse an output that is an input (even with ``overwrite``), or exists without ``overwrite``.
 
     Parameters
@@ -242,6 +271,9 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
     folder : bool
         ``path`` is a results folder: it may be replaced only if it is empty or radiokit made it
         (it holds :data:`RESULTS_MARKER`).
+    made_by : str
+        The command writing the folder: a folder another command made (its marker's
+        :func:`folder_marker` names it) is refused, with ``overwrite`` too.
 
     Raises
     ------
@@ -249,14 +281,15 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False) -> Path:
     """
     path = Path(path)
     try:
-        return _check_output(path, overwrite, inputs, folder)
+        return _check_output(path, overwrite, inputs, folder and made_by)
     except OutputError:
         raise
     except OSError as exc:  # Path.exists() raises on a name past NAME_MAX (ENAMETOOLONG) or a loop
         raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
 
 
-def _check_output(path: Path, overwrite, inputs, folder) -> Path:
+def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
+    """:func:`check_output`; ``folder`` is the command writing the folder, or False (a file)."""
     for src in inputs:
         src = Path(src)
         if (
@@ -277,6 +310,7 @@ def _check_output(path: Path, overwrite, inputs, folder) -> Path:
     if folder:
         if not path.is_dir() or path.is_symlink():
             raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
+        refuse_another_commands(path, folder)
         if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
             raise OutputError(
                 path, "exists, is not empty and was not made by radiokit; it is never replaced: choose a new folder"
@@ -489,14 +523,15 @@ def atomic_h5(path, *, overwrite=False, inputs=()):
 
 
 @contextlib.contextmanager
-def atomic_dir(path, *, overwrite=False, inputs=()):
+def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
     """Yield a temporary sibling folder; on success swap it in for ``path``, else remove it.
 
-    The previous folder (only replaced with ``overwrite``, and only if radiokit made it) is
+    The previous folder (only replaced with ``overwrite``, and only if ``radiokit made_by`` made
+    it: :func:`check_output`; the new one's marker names that command) is
     renamed aside, the new one renamed into place, then the old one removed: at every instant
     ``path`` is the previous complete output, the new complete output, or absent.
     """
-    path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True)
+    path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True, made_by=made_by)
     strangers = sorted(_files(path) - _manifest(path)) if (path / RESULTS_MARKER).exists() else []
     if strangers:
         raise OutputError(
@@ -512,8 +547,7 @@ def atomic_dir(path, *, overwrite=False, inputs=()):
         tmp.mkdir()
         yield tmp
         (tmp / RESULTS_MARKER).write_text(
-            "made by radiokit; may be replaced by a run with --overwrite. Files:\n"
-            + "".join(f"{name}\n" for name in sorted(_files(tmp)))
+            f"{folder_marker(made_by)} Files:\n" + "".join(f"{name}\n" for name in sorted(_files(tmp)))
         )
         old = None
         if path.exists():

@@ -1,0 +1,164 @@
+"""Stop signals as exceptions that say which signal, the exit status they give, and a stop Python
+dropped in a finalizer delivered again.
+
+Every command unwinds on Ctrl-C, SIGTERM and SIGHUP as on Ctrl-C (its outputs are removed, not
+left half-written) and exits as a shell reports a command a signal ended: 128 + the signal's
+number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP). ``acquisition.guardian.StopSignal`` is an
+:class:`Interrupted` too.
+
+Python drops an exception raised while a finalizer runs ("Exception ignored in: ...": h5py's
+object registry is a ``WeakValueDictionary`` whose weak-reference callbacks run during every
+dataset write), and a signal's handler runs wherever the main thread is: a Ctrl-C landing there
+was lost, and the command went on to its end. :func:`redeliver` raises it again, a moment later.
+"""
+
+from __future__ import annotations
+
+import _thread
+import contextlib
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+__all__ = ["Interrupted", "exit_status", "redeliver", "lost_stops_redelivered", "deferred"]
+
+#: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
+#: hook) to have returned, where it would be dropped again, and short beside a person's patience.
+REDELIVER_AFTER_S = 0.05
+
+
+class Interrupted(KeyboardInterrupt):
+    """A signal asked the command to stop; ``signum`` says which.
+
+    A ``KeyboardInterrupt``, so code that handles Ctrl-C handles them all alike."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+def signal_number(exc: BaseException) -> int:
+    """The signal behind an interrupt: its ``signum``, else the signal its message names (a
+    ``KeyboardInterrupt("SIGTERM")`` raised after a deferred signal), else SIGINT (Python's own
+    Ctrl-C, or one a library raised)."""
+    signum = getattr(exc, "signum", None)
+    if signum is not None:
+        return int(signum)
+    name = str(exc.args[0]) if exc.args else ""
+    try:
+        return int(signal.Signals[name]) if name.startswith("SIG") else int(signal.SIGINT)
+    except KeyError:
+        return int(signal.SIGINT)
+
+
+def exit_status(exc: BaseException) -> int:
+    """128 + the number of the signal that stopped the command (see :func:`signal_number`)."""
+    return 128 + signal_number(exc)
+
+
+class _Redelivery:
+    """A stop raised again from a timer thread, unless cancelled first."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self._lock = threading.Lock()
+        self._done = False  # fired or cancelled
+        timer = threading.Timer(REDELIVER_AFTER_S, self._fire)
+        timer.daemon = True  # dies with the process
+        timer.start()
+
+    def _fire(self) -> None:
+        with self._lock:  # held while it trips the flag: cancel() then knows the stop is on its way
+            if not self._done:
+                self._done = True
+                _thread.interrupt_main(self.signum)
+
+    def cancel(self) -> bool:
+        """Keep it from firing; True if it had not fired (the stop is then the caller's to raise)."""
+        with self._lock:
+            pending, self._done = not self._done, True
+            return pending
+
+
+def redeliver(exc: BaseException) -> _Redelivery | None:
+    """Raise the stop ``exc`` again in the main thread, from a timer thread after
+    :data:`REDELIVER_AFTER_S` (here, still inside the finalizer or the hook, it would be dropped
+    again; should it land in another finalizer, this repeats). It runs the handler of its signal
+    as the process has it then: a block that defers signals notes it. Returns the pending
+    delivery (None if ``exc`` is not a stop)."""
+    if not isinstance(exc, KeyboardInterrupt):
+        return None
+    return _Redelivery(signal_number(exc))
+
+
+@contextlib.contextmanager
+def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | None]):
+    """Run the block, then ``undo()``; then raise ``stop()`` (a stop the block's time held back,
+    or None) -- unless the block raised, whose exception goes out instead."""
+    unwinding = False
+    try:
+        yield
+    except BaseException:
+        unwinding = True
+        raise
+    finally:
+        undo()
+        held = stop()
+        if held is not None and not unwinding:
+            raise held
+
+
+def lost_stops_redelivered():
+    """While the block runs, a stop (a ``KeyboardInterrupt``) Python dropped in a finalizer is
+    delivered again (:func:`redeliver`); any other dropped exception goes to the hook as before.
+    A stop still waiting for its timer when the block ends is raised as it leaves (the command
+    finished meanwhile: the stop must not reach the caller after the command's own handling)."""
+    before, pending = sys.unraisablehook, []
+
+    def hook(unraisable):
+        delivery = redeliver(unraisable.exc_value)
+        if delivery is None:
+            before(unraisable)
+        else:
+            pending.append(delivery)
+
+    def undo():
+        sys.unraisablehook = before
+
+    def stop():
+        waiting = [delivery.signum for delivery in pending if delivery.cancel()]
+        return Interrupted(waiting[0]) if waiting else None
+
+    sys.unraisablehook = hook
+    return _then_raise(undo, stop)
+
+
+def deferred(*signals):
+    """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is an
+    :class:`Interrupted` once the block is done (an exception of the block's own goes out instead).
+
+    Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
+    come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,
+    and a second signal (or a first one lost in a finalizer and delivered again) cut it short and
+    left the workers' temporaries. Only the main thread may set handlers: elsewhere,
+    nothing is held off."""
+    if threading.current_thread() is not threading.main_thread():
+        return contextlib.nullcontext()
+    came = []
+
+    def note(signum, frame):
+        came.append(signum)
+
+    # a signal the command was started ignoring (`make test &` starts it so) stays ignored
+    before = {sig: signal.signal(sig, note) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
+
+    def undo():
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+    return _then_raise(undo, lambda: Interrupted(came[0]) if came else None)
