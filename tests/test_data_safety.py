@@ -269,6 +269,29 @@ def test_demo_replaces_only_its_own_outputs(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted([RESULTS_MARKER, "notes.txt"])
 
 
+@pytest.mark.parametrize("marker", ["", "made by RadioKit;", "results of radiokit process", None])
+def test_a_marker_radiokit_does_not_recognise_is_never_replaced(marker, experiment, tmp_path):
+    """A folder whose marker's first line names no command radiokit knows (written by hand, by
+    another tool, or a folder where the marker's name is a folder) was taken as the command's own:
+    `radiokit demo --overwrite` deleted its experiment.h5 and results/ (review s32-r1). Neither
+    command replaces it, --overwrite or not."""
+    from acquisition.demo import _demo_folder
+
+    out = tmp_path / "theirs"
+    (out / "results").mkdir(parents=True)
+    (out / "experiment.h5").write_text("someone's")
+    (out / "results" / "x").write_text("someone's")
+    if marker is None:
+        (out / RESULTS_MARKER).mkdir()
+    else:
+        (out / RESULTS_MARKER).write_text(marker + "\n")
+    before = tree_sha(out)
+    with pytest.raises(OSError, match="not recognise"):
+        _demo_folder(out, overwrite=True)
+    one_line_error(run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI), str(out), "not recognise")
+    assert tree_sha(out) == before
+
+
 # -- interrupted writes ------------------------------------------------------------------------
 def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIGKILL):
     """Send ``sig`` to ``proc`` as soon as a path matching ``glob`` appears in ``pattern_dir``."""

@@ -53,9 +53,20 @@ def folder_marker(command: str) -> str:
 
 def refuse_another_commands(folder: Path, command: str) -> None:
     """Raise :class:`OutputError` if ``folder``'s marker says another command than ``radiokit
-    COMMAND`` made it: a command never writes into, nor replaces, another's folder."""
-    found = _made_by(folder) if (folder / RESULTS_MARKER).is_file() else None
-    if found not in (None, command):
+    COMMAND`` made it, or is one radiokit does not recognise: a command never writes into, nor
+    replaces, another's folder, and a marker of no form radiokit wrote (by hand, another tool's)
+    says nothing of whose the files beside it are."""
+    marker = folder / RESULTS_MARKER
+    if not os.path.lexists(marker):
+        return
+    found = _made_by(folder) if marker.is_file() and not marker.is_symlink() else None
+    if found is None:
+        raise OutputError(
+            folder,
+            f"holds a {RESULTS_MARKER} radiokit does not recognise (its first line names no radiokit command); "
+            "it is never replaced: choose another output",
+        )
+    if found != command:
         raise OutputError(
             folder,
             f"made by radiokit {found}, not by radiokit {command}: a command never replaces another's folder; "
