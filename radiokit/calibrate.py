@@ -384,7 +384,8 @@ class Calibration:
         """
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
-        if th.saturation is None:
+        given = th.saturation is not None
+        if not given:
             th = replace(th, saturation=adc_top(darks, flats))
         rows = darks.shape[1]
         with _bar(progress, 3 * rows, "calibrate darks", "row") as bar:
@@ -392,13 +393,14 @@ class Calibration:
             bar.set_description("calibrate flats")
             flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
             bar.set_description("calibrate defects")
-            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times)
+            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given)
             bar.update(rows)
         return cal
 
     @classmethod
-    def _from_averages(cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times) -> Calibration:
-        """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`)."""
+    def _from_averages(cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given) -> Calibration:
+        """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
+        ``given``: ``th.saturation`` was the caller's, not guessed from the frames)."""
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
             # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
@@ -415,8 +417,10 @@ class Calibration:
             mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
             _check_defect_share(mask, n_flat_saturated, th.saturation)
         except ValueError as exc:
-            raise _blame(str(exc), dark, flat, _dark_noise(darks), th) from None
-        bright = _bright_darks(float(np.median(dark)), th.saturation)
+            raise _blame(
+                str(exc), dark, flat, _dark_noise(darks), th, _known_top(th.saturation, given, dark, flat)
+            ) from None
+        bright = _bright_darks(float(np.median(dark)), _known_top(th.saturation, given, dark, flat))
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
         good = mask == 0
@@ -874,7 +878,19 @@ def _bright_darks(dark_median: float, top: int | None) -> str | None:
     )
 
 
-def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds) -> CalibrationRefused:
+def _known_top(top: int | None, given: bool, *averages) -> int | None:
+    """``top`` if the caller gave it or the averaged frames reach it (clipped there), else None.
+
+    Why: :func:`adc_top` guesses the smallest top the frames do not exceed, so a 16-bit panel's
+    frames that stay under 4095 are guessed 12-bit; the half-range rule (:func:`_bright_darks`)
+    against that guess called a 16-bit panel's 2500-count darks bright and blamed them. The
+    saturation rules keep the guess (a pixel can only clip at a top it reaches)."""
+    if top is None or given or max(float(np.max(a)) for a in averages) >= top:
+        return top
+    return None
+
+
+def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds, top: int | None) -> CalibrationRefused:
     """The refusal ``refusal`` of these averaged darks and flats, naming the frames at fault.
 
     A flat reads the panel's dark plus the beam's signal, never less. So flats darker than the
@@ -891,7 +907,7 @@ def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds) -> Cal
             "drifted since: shield the panel, then take new darks",
             ("darks",),
         )
-    bright = _bright_darks(d, th.saturation)
+    bright = _bright_darks(d, top)
     if bright:
         return CalibrationRefused(
             f"{bright}; hence {refusal.split(':')[0]} (median {f:.0f}): fix that, then take new darks and flats",
@@ -935,5 +951,5 @@ def judge_darks(darks, *, saturation=None) -> list[str]:
             "than these darks; was the beam on or light reaching the panel for the darks?",
             ("darks",),
         )
-    bright = _bright_darks(median, top)
+    bright = _bright_darks(median, top if saturation is not None else None)  # a guessed top: _known_top
     return [bright] if bright else []

@@ -605,6 +605,24 @@ def test_judge_darks_warns_of_darks_over_half_the_adc_range():
     from radiokit.calibrate import judge_darks
 
     rng = np.random.default_rng(5)
-    told = judge_darks(PanelModel(rows=64, cols=64, dark_level=3000.0).dark_frames(4, rng))
+    told = judge_darks(PanelModel(rows=64, cols=64, dark_level=3000.0).dark_frames(4, rng), saturation=4095)
     assert len(told) == 1 and "over half the ADC's range (0-4095)" in told[0], told
-    assert judge_darks(PanelModel(rows=64, cols=64).dark_frames(4, rng)) == []
+    assert judge_darks(PanelModel(rows=64, cols=64).dark_frames(4, rng), saturation=4095) == []
+
+
+def test_darks_are_not_called_bright_against_a_top_only_guessed_from_the_frames():
+    """A 16-bit panel at a low dose: darks at 2500 counts, flats at 3800, nothing over 4095. The
+    ADC's top guessed from the frames is then 4095 (adc_top), and the darks were called "over half
+    the ADC's range ... a C7942's offset is a few hundred"; with flats taken through a blocked
+    beam the refusal named the darks too ("no flat exposure helps"). Against a guessed top the
+    half-range rule says nothing: its warning and blame need the top given (the panel's bits) or
+    seen (frames clipped at it). Review s32-r1."""
+    from radiokit.calibrate import judge_darks, judge_frames
+
+    rng = np.random.default_rng(8)
+    darks = rng.normal(2500, 5, (4, 64, 64)).astype(np.uint16)
+    flats = rng.normal(3800, 20, (4, 64, 64)).astype(np.uint16)
+    assert judge_frames(darks, flats) == [] and judge_darks(darks) == []
+    assert any("over half" in w for w in judge_frames(darks, flats, saturation=4095))  # a 12-bit panel's: said
+    blocked = _judged(darks, rng.normal(2500, 5, (4, 64, 64)).astype(np.uint16))
+    assert blocked.culprits == ("flats",), str(blocked)

@@ -1166,7 +1166,11 @@ def _judge(r: _Run, what: str) -> None:
         return
     flat_idx, flats = r.writer.frames_labelled(ImageKey.FLAT)
     try:
-        told = judge_frames(darks, flats, saturation=top) if flat_idx.size else judge_darks(darks, saturation=top)
+        # the darks alone against the panel's own top when they fit in its bits: the half-range
+        # warning needs a top known, not guessed (calibrate._known_top); darks over it are a
+        # read-out storing counts in the top bits of 16, whose top processing infers
+        own = (1 << bits) - 1 if top is None and int(darks.max()) <= (1 << bits) - 1 else top
+        told = judge_frames(darks, flats, saturation=top) if flat_idx.size else judge_darks(darks, saturation=own)
     except ValueError as exc:
         frames = {"darks": dark_idx, "flats": flat_idx}
         named = [c for c in getattr(exc, "culprits", (what,)) if frames[c].size]
