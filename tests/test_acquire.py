@@ -1097,6 +1097,34 @@ def test_lit_darks_then_blocked_flats_are_each_refused_in_turn_and_the_series_co
     assert res.phase == "done" and res.tube_off is True and res.frames_written == FLATS + PER_STEP * len(STEPS)
 
 
+def test_darks_named_again_against_the_same_flats_name_the_flats_too(tmp_path, scene_toml, bench):
+    """Flats that read a little under every set of darks (the beam blocked for them, and the darks
+    a few tens of counts over the flats' level each time: an offset that drifts, light that stays):
+    each refusal named the darks alone, and each `--resume` took new darks against the same kept
+    flats, refused again, forever (review s32-r1). Named again against the flats the file holds,
+    the darks and the flats are both taken again, and once the fault is mended the series completes."""
+    from acquisition.errors import FramesRefused
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    hook, restore = _lit_darks(bench, 40 * bench.panel.read_noise)
+    i0, bench.i0 = bench.i0, 0.0
+    try:
+        with pytest.raises(FramesRefused, match="the darks kept labelled invalid"):
+            run(p, devices=sim_devices(p, bench=bench), progress=False, on_phase=hook)
+        with pytest.raises(FramesRefused) as info:
+            run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True, on_phase=hook)
+    finally:
+        restore()
+        bench.i0 = i0
+    msg = str(info.value)
+    assert "the darks and flats kept labelled invalid" in msg and msg.endswith("takes new darks and flats"), msg
+    keys = list(contents(p.output)["key"])
+    assert keys == [ImageKey.INVALID] * (2 * DARKS + FLATS), keys
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done" and res.tube_off is True
+    assert res.frames_written == DARKS + FLATS + PER_STEP * len(STEPS)
+
+
 def test_an_offset_near_the_adc_top_refuses_darks_and_flats_not_the_exposure(tmp_path, scene_toml, bench):
     """The panel's offset near the 12-bit ADC's top (the read-out set wrong): the darks read about
     3950 counts, any beam clips the flats at 4095. The refusal said "lower the flat exposure" and

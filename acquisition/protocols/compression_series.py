@@ -1174,6 +1174,11 @@ def _judge(r: _Run, what: str) -> None:
     except ValueError as exc:
         frames = {"darks": dark_idx, "flats": flat_idx}
         named = [c for c in getattr(exc, "culprits", (what,)) if frames[c].size]
+        if what == "darks" and named == ["darks"] and flat_idx.size:
+            # new darks named again against the flats a refusal of darks kept: flats that read
+            # under any darks (the beam blocked while the offset drifts) were never retaken, and
+            # each resume took darks only, refused forever; both are taken again
+            named = ["darks", "flats"]
         raise _refused(r, what, exc, named, np.concatenate([frames[c] for c in named]), flat_idx.size) from None
     judged = f"{darks.shape[0]} darks" + (f" and {flats.shape[0]} flats" if flat_idx.size else "")
     for line in told:
