@@ -960,3 +960,50 @@ def test_imagej_miniswhite_is_its_inverting_lut_and_reads_as_stored(tmp_path):
     np.testing.assert_array_equal(src.data, stored)
     np.testing.assert_array_equal(_both_ways(path), stored)
     assert src.meta["imagej_inverted_lut"] is True
+
+
+@pytest.mark.parametrize(
+    "name, kw, what",
+    [
+        ("hyper.tif", {"imagej": True, "metadata": {"axes": "TCYX"}}, "an ImageJ hyperstack of 2 channels"),
+        ("stack.ome.tif", {"metadata": {"axes": "TCYX"}}, "an OME-TIFF of 2 channels"),
+    ],
+)
+def test_a_tiff_of_several_channels_is_refused_not_read_as_one_stack(tmp_path, name, kw, what):
+    """s32-h4: a two-channel hyperstack (3 time points x 2 channels) read as 6 frames, the channels
+    interleaved: calibrate would average one channel's frames with the other's. Each page is a
+    greyscale image, so nothing else tells a stack from a hyperstack."""
+    path = tmp_path / name
+    tifffile.imwrite(path, _frames(6).reshape(3, 2, 30, 40), **kw)
+    with pytest.raises(FormatError, match=rf"{name}: {what}, 6 images: .*save each channel as its own file"):
+        read(path)
+
+
+def test_an_ome_tiff_of_several_images_is_refused_not_read_as_one_stack(tmp_path):
+    """s32-h4: an OME-TIFF holding two images (series) of one size, such as the darks and the flats,
+    read as one stack of 4 frames."""
+    path = tmp_path / "two.ome.tif"
+    with tifffile.TiffWriter(path, ome=True) as tif:
+        tif.write(_frames(2), metadata={"axes": "TYX"})
+        tif.write(_frames(2, seed=1), metadata={"axes": "TYX"})
+    with pytest.raises(FormatError, match=r"two\.ome\.tif: an OME-TIFF of 2 images \(series\), 4 pages: "):
+        read(path)
+
+
+@pytest.mark.parametrize("axes", ["ZYX", "TZYX"])
+def test_an_ome_or_imagej_stack_of_one_channel_still_reads_in_page_order(tmp_path, axes):
+    frames = _frames(6)
+    for path, kw in ((tmp_path / "s.ome.tif", {}), (tmp_path / "s.tif", {"imagej": True})):
+        tifffile.imwrite(
+            path, frames.reshape(2, 3, 30, 40) if axes == "TZYX" else frames, metadata={"axes": axes}, **kw
+        )
+        np.testing.assert_array_equal(read(path).data, frames)
+
+
+@pytest.mark.parametrize("kw", [{"imagej": True}, {"ome": True}])
+def test_a_plain_stack_tifffile_labels_as_channels_still_reads(tmp_path, kw):
+    """tifffile writes a 3-D array's first axis as C (channels) in ImageJ and OME files: those
+    are the stacks users write, and read as frames."""
+    frames = _frames(3)
+    tifffile.imwrite(tmp_path / "s.tif", frames, **kw)
+    np.testing.assert_array_equal(read(tmp_path / "s.tif").data, frames)

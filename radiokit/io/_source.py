@@ -265,6 +265,7 @@ class FrameSource:
         if not index:
             raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
         self._pages = [all_pages[i] for i in index]
+        self._refuse_several_images(len(self._pages))
         first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
@@ -314,6 +315,38 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+
+    def _refuse_several_images(self, pages: int) -> None:
+        """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
+        of several images (series).
+
+        Why: every page is a greyscale image of one size, so the pages read as one stack with the
+        channels interleaved (or the darks' series followed by the flats'), and calibrate averaged
+        them together. Channels alone are read as frames: tifffile labels a plain 3-D stack's
+        axis C in both ImageJ and OME files. A page's own samples (RGB) are refused as colour."""
+        tif, what, advice = self._tif, "", "save each channel as its own file"
+        if tif.is_imagej:
+            ij = tif.imagej_metadata or {}
+            # images = channels x slices x frames: channels beside slices or frames interleave
+            channels, *others = (
+                v if isinstance(v := ij.get(k, 1), int) else 1 for k in ("channels", "slices", "frames")
+            )
+            if channels > 1 and math.prod(others) > 1:
+                what = f"an ImageJ hyperstack of {channels} channels, {ij.get('images', pages)} images"
+                advice += " (ImageJ: Image > Color > Split Channels)"
+        elif tif.is_ome:
+            series = tif.series
+            sizes = dict(zip(series[0].axes, series[0].shape))
+            others = math.prod(n for axis, n in sizes.items() if axis not in "CYXS")
+            if len(series) > 1:
+                what, advice = (
+                    f"an OME-TIFF of {len(series)} images (series), {pages} pages",
+                    "save each image as its own file",
+                )
+            elif sizes.get("C", 1) > 1 and others > 1:
+                what = f"an OME-TIFF of {sizes['C']} channels, {pages} images"
+        if what:
+            raise FormatError(self.path, f"{what}: not one stack of frames; {advice}")
 
     def _not_greyscale(self, first) -> FormatError:
         """The refusal of a page that is not one (rows, cols) image, naming what it is."""
