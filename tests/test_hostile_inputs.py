@@ -1738,3 +1738,18 @@ def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value
     with h5py.File(exp, "r") as h5:
         assert h5[FRAMES].shape[0] == 9
     assert hashlib.sha256(exp.read_bytes()).hexdigest() == before
+
+
+@pytest.mark.parametrize("dtype", ["u1", "i1"])
+def test_correct_refuses_frames_whose_type_cannot_reach_the_flats(dtype, tmp_path):
+    """s32-h4: an 8-bit copy of a radiograph (a viewer's export, 12-bit counts divided by 16)
+    corrected against the panel's calibration (flats about 3000 counts) was written as a uniform
+    image, every pixel "non-positive (filled)", exit code 0. No 8-bit pixel reaches the flats."""
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal, "-q").returncode == 0
+    frames = np.random.default_rng(1).integers(900, 1100, (2, 32, 40)) // 16
+    tifffile.imwrite(tmp_path / "view.tif", frames.astype(dtype), photometric="minisblack")
+    res = run_cli("correct", tmp_path / "view.tif", "--cal", cal, "-q", "-o", tmp_path / "out.h5")
+    one_line_error(res, "view.tif", f"{np.dtype(dtype)} pixels", "flats")
+    assert not (tmp_path / "out.h5").exists()
