@@ -370,7 +370,13 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
-        return np.asarray(src[index], np.float32)
+        image = src[index]
+    top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
+    if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
+        raise ValueError(
+            f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
+        )
+    return np.asarray(image, np.float32)
 
 
 def _a_projection(path, keys, index, option) -> None:

@@ -1753,3 +1753,15 @@ def test_correct_refuses_frames_whose_type_cannot_reach_the_flats(dtype, tmp_pat
     res = run_cli("correct", tmp_path / "view.tif", "--cal", cal, "-q", "-o", tmp_path / "out.h5")
     one_line_error(res, "view.tif", f"{np.dtype(dtype)} pixels", "flats")
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_register_names_float64_values_beyond_float32_not_nan(tmp_path):
+    """s32-h4: a float64 image with values near 1e300 was cast to float32 (a RuntimeWarning) and
+    refused as "fixed image contains NaN or inf (5917 pixels)", of a file holding neither."""
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "big.tif", rng.random((32, 40)) * 1e300)
+    tifffile.imwrite(tmp_path / "other.tif", rng.random((32, 40)).astype(np.float32))
+    res = run_cli("register", tmp_path / "big.tif", tmp_path / "other.tif", "-q", "-o", tmp_path / "r.h5")
+    line = one_line_error(res, "big.tif", "float32")
+    assert "NaN" not in line
+    assert not (tmp_path / "r.h5").exists()
