@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
+from conftest import ITEX_DIR, needs_itex
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -1007,3 +1008,16 @@ def test_a_plain_stack_tifffile_labels_as_channels_still_reads(tmp_path, kw):
     frames = _frames(3)
     tifffile.imwrite(tmp_path / "s.tif", frames, **kw)
     np.testing.assert_array_equal(read(tmp_path / "s.tif").data, frames)
+
+
+@needs_itex
+@pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
+def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):
+    """s32-h4: a HiPic .img saved or renamed as .tif was refused as "wrong magic b'IMz\\n': a TIFF
+    starts with ...", leaving the user to guess what the file is; --format itex reads it."""
+    vendor = ITEX_DIR / "photon_counting.img"
+    path = tmp_path / name
+    path.write_bytes(vendor.read_bytes())
+    with pytest.raises(FormatError, match=rf"{name}: starts as a Hamamatsu ITEX \.img does .*format='itex'"):
+        read(path)
+    np.testing.assert_array_equal(read(path, format="itex").data, read(vendor).data)

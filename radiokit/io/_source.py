@@ -142,6 +142,12 @@ def sniff(path) -> str:
                 path,
                 f"{what}, which radiokit does not read: {advice} (format='raw', on the command line --format raw, reads its bytes as pixels)",
             )
+    if head[:2] == b"IM" and ext in ("tiff", "hdf5"):  # a HiPic file renamed, or saved under another name
+        raise FormatError(
+            path,
+            f"starts as a Hamamatsu ITEX .img does ({head[:2]!r}), not as its .{path.suffix.lower().lstrip('.')} "
+            "name says: rename it .img, or pass format='itex' (on the command line --format itex)",
+        )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
