@@ -1765,3 +1765,37 @@ def test_register_names_float64_values_beyond_float32_not_nan(tmp_path):
     line = one_line_error(res, "big.tif", "float32")
     assert "NaN" not in line
     assert not (tmp_path / "r.h5").exists()
+
+
+def _calls_to_open(path) -> int:
+    """Function calls (Python and builtin) made opening ``path`` and reading its first frame."""
+    from radiokit.io import open_frames
+
+    calls = 0
+
+    def count(frame, event, arg):
+        nonlocal calls
+        calls += event in ("call", "c_call")
+
+    sys.setprofile(count)
+    try:
+        with open_frames(path) as src:
+            src[0]
+    finally:
+        sys.setprofile(None)
+    return calls
+
+
+def test_opening_a_tiff_of_many_pages_written_one_by_one_takes_work_linear_in_its_pages(tmp_path):
+    """s32-h4: a 4.8 MB TIFF of 20 000 one-pixel pages, each written by its own TiffWriter.write
+    (as a frame-by-frame writer does), took 76 s of CPU in `radiokit info`: tifffile's series of
+    such a file compares every page with every other (quadratic), and it was built only to look
+    for a one-IFD stack, which a file of many pages is not. 16x the pages must cost about 16x."""
+    counts = []
+    for n in (100, 1600):
+        path = tmp_path / f"p{n}.tif"
+        with tifffile.TiffWriter(path) as tif:
+            for _ in range(n):
+                tif.write(np.zeros((1, 1), np.uint8), photometric="minisblack", contiguous=False)
+        counts.append(_calls_to_open(path))
+    assert counts[1] < 24 * counts[0], counts  # linear: 16x; quadratic: 256x on the pages' part

@@ -466,7 +466,9 @@ class FrameSource:
         tif, images, what = self._tif, 1, ""
         if tif.is_imagej:
             images, what = (tif.imagej_metadata or {}).get("images", 1), "ImageJ description says images="
-        elif tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+        elif len(pages) == 1 and tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+            # (only for one page: tifffile's series of a file of many, each written on its own,
+            # compares every page with every other; 20 000 one-pixel pages took 76 s)
             shape = tif.shaped_metadata[0].get("shape", [])
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
