@@ -626,13 +626,14 @@ def _check_type_reaches_flats(src, cal: Calibration) -> None:
     calibration clamped every pixel at the dark and was written as a uniform image, exit code 0;
     no such frame can be the calibration's counts."""
     dtype = np.dtype(src.dtype)
-    if dtype.kind not in "iu":
+    if dtype.kind not in "biu":
         return
+    top = 1 if dtype.kind == "b" else np.iinfo(dtype).max  # bool: a 1-bit TIFF, a mask
     level = float(np.median(cal.flat[::4, ::4]))
-    if np.iinfo(dtype).max < level:
+    if top < level:
         raise FormatError(
             src.path,
-            f"{dtype} pixels (at most {np.iinfo(dtype).max}) cannot reach the calibration's flats (about "
+            f"{dtype} pixels (at most {top}) cannot reach the calibration's flats (about "
             f"{level:.0f} counts): frames of another bit depth than the darks and flats (an 8-bit display copy?)",
         )
 

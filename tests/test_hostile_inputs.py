@@ -1740,7 +1740,7 @@ def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value
     assert hashlib.sha256(exp.read_bytes()).hexdigest() == before
 
 
-@pytest.mark.parametrize("dtype", ["u1", "i1"])
+@pytest.mark.parametrize("dtype", ["u1", "i1", "bool"])  # bool: a 1-bit TIFF, a mask
 def test_correct_refuses_frames_whose_type_cannot_reach_the_flats(dtype, tmp_path):
     """s32-h4: an 8-bit copy of a radiograph (a viewer's export, 12-bit counts divided by 16)
     corrected against the panel's calibration (flats about 3000 counts) was written as a uniform
