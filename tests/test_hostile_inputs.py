@@ -1799,3 +1799,25 @@ def test_opening_a_tiff_of_many_pages_written_one_by_one_takes_work_linear_in_it
                 tif.write(np.zeros((1, 1), np.uint8), photometric="minisblack", contiguous=False)
         counts.append(_calls_to_open(path))
     assert counts[1] < 24 * counts[0], counts  # linear: 16x; quadratic: 256x on the pages' part
+
+
+def test_correct_runs_where_numba_can_write_its_cache_nowhere(tmp_path):
+    """s32-h4: run as a user with no writable home (HOME=/nonexistent, as `nobody` or a container's
+    arbitrary uid) on an install it cannot write, `radiokit correct` died in a 40-line traceback,
+    numba's "cannot cache function '_ln': no locator available". The compiled loop then runs
+    uncached (compiled at each start). The same fault is made here without another user: numba's
+    own settings leave it one cache location only, under a regular file, which no one can create."""
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal, "-q").returncode == 0
+    frames = np.random.default_rng(2).integers(900, 1100, (2, 32, 40)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "p.tif", frames, photometric="minisblack")
+    (tmp_path / "afile").write_text("")
+    env = {"NUMBA_CACHE_LOCATOR_CLASSES": "UserProvidedCacheLocator", "NUMBA_CACHE_DIR": str(tmp_path / "afile" / "c")}
+    res = run("correct", tmp_path / "p.tif", "--cal", cal, "-q", "--domain", "linear", "-o", tmp_path / "t.h5", env=env)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    from radiokit.calibrate import Calibration
+
+    c = Calibration.load(cal)
+    expected = (frames - c.dark.astype(np.float64)) / (c.flat.astype(np.float64) - c.dark)
+    np.testing.assert_allclose(read(tmp_path / "t.h5").data, expected, rtol=1e-5)
