@@ -234,11 +234,14 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
+def _stack(paths, hints, key=None, progress=False, origins=None) -> np.ndarray:
+    """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
+    when given, gets each frame's (file, index in it)."""
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
+    origins = [] if origins is None else origins
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
     with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
         for p in paths:
@@ -254,6 +257,7 @@ def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
                 for i in range(len(src)):
                     if key is None or keys is None or keys[i] == key:
                         frames.append(src[i])
+                        origins.append((p, i))
                         bar.update()
                         if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
@@ -270,8 +274,8 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration
-    from radiokit.io import atomic_path, check_output
+    from radiokit.calibrate import Calibration, FrameLevelError
+    from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
@@ -291,8 +295,9 @@ def cmd_calibrate(args) -> int:
         # experiment-style file holds darks and flats, told apart by image_key
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints = _raw_hints(args)
-        darks, flats = _stack(args.dark, hints, 2, _progress(args)), _stack(args.flat, hints, 1, _progress(args))
+        hints, origins = _raw_hints(args), {"dark": [], "flat": []}
+        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"])
+        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"])
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
@@ -300,6 +305,9 @@ def cmd_calibrate(args) -> int:
             )
         try:
             cal = Calibration.from_frames(darks, flats, progress=_progress(args), **th)
+        except FrameLevelError as exc:  # the stack's index, named as the file's frame
+            path, index = origins[exc.kind][exc.index]
+            raise FormatError(path, f"frame {index} ({exc})") from exc
         except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
             raise ValueError(
                 f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"

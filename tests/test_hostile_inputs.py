@@ -1821,3 +1821,34 @@ def test_correct_runs_where_numba_can_write_its_cache_nowhere(tmp_path):
     c = Calibration.load(cal)
     expected = (frames - c.dark.astype(np.float64)) / (c.flat.astype(np.float64) - c.dark)
     np.testing.assert_allclose(read(tmp_path / "t.h5").data, expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("among", ["flat", "dark"])
+def test_calibrate_refuses_a_frame_of_the_other_kind_among_darks_or_flats(among, tmp_path):
+    """s32-h4: `calibrate --dark d.tif --flat f.tif d.tif` (a dark file caught by a glob) averaged
+    4 darks into 8 "flats": every pixel's samples spread over 2900 counts, so none was clipped, the
+    flat came out halfway (c = 1450 against 2900) and every transmission twice too high, exit 0.
+    A flat at the dark's level, or a dark at the flats', is named by file and frame."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(100, 2, (4, 24, 32)).astype(np.uint16)
+    f = rng.normal(3000, 30, (4, 24, 32)).astype(np.uint16)
+    for name, frames in (("d.tif", d), ("f.tif", f)):
+        tifffile.imwrite(tmp_path / name, frames, photometric="minisblack")
+    darks, flats = (["d.tif", "f.tif"], ["f.tif"]) if among == "dark" else (["d.tif"], ["f.tif", "d.tif"])
+    res = run_cli("calibrate", "--dark", *darks, "--flat", *flats, "-q", "-o", "cal.h5", cwd=tmp_path)
+    line = one_line_error(res, "radiokit calibrate: ", f"{among} 5 of 8")
+    wrong = "d.tif" if among == "flat" else "f.tif"
+    assert line.startswith(f"radiokit calibrate: {wrong}: frame 0 ("), line
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_calibration_from_frames_of_one_exposure_each_is_kept(tmp_path):
+    """The check above leaves frames of one set-up alone: the tube's drift of a few per cent
+    between flats, and the darks' own noise."""
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(4)
+    darks = rng.normal(100, 2, (5, 24, 32))
+    flats = rng.normal(3000, 30, (5, 24, 32)) * np.linspace(0.95, 1.05, 5)[:, None, None]
+    cal = Calibration.from_frames(darks, flats)
+    assert abs(cal.c - 2900) < 30
