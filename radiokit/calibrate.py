@@ -464,6 +464,9 @@ class Calibration:
                 progress=progress,
                 **thresholds,
             )
+        except FrameLevelError as exc:  # named by its frame in the file
+            frame = sel[ImageKey.DARK if exc.kind == "dark" else ImageKey.FLAT][exc.index]
+            raise FormatError(path, f"frame {frame} ({exc})") from exc
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))

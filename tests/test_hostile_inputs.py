@@ -1852,3 +1852,18 @@ def test_calibration_from_frames_of_one_exposure_each_is_kept(tmp_path):
     flats = rng.normal(3000, 30, (5, 24, 32)) * np.linspace(0.95, 1.05, 5)[:, None, None]
     cal = Calibration.from_frames(darks, flats)
     assert abs(cal.c - 2900) < 30
+
+
+def test_process_names_the_file_frame_of_a_dark_labelled_as_a_flat(tmp_path):
+    """The same check on an experiment file: a dark its writer labelled a flat (frame 4) is named
+    by its frame in the file, not by its place among the flats."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(path, shape=(32, 40)) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.DARK, 100), (ImageKey.FLAT, 3000), (ImageKey.FLAT, 3000)):
+            w.append(rng.integers(level - 10, level + 10, (32, 40)), image_key=key)
+        w.append(rng.integers(90, 110, (32, 40)), image_key=ImageKey.FLAT)  # the beam was off
+        for s in (1, 2, 3):
+            w.append(rng.integers(900, 1100, (32, 40)), image_key=ImageKey.PROJECTION, step=s)
+    one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "res"), "exp.h5: frame 4 (flat 3 of 3 ")
+    assert not (tmp_path / "res").exists()
