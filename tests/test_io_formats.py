@@ -1021,3 +1021,14 @@ def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):
     with pytest.raises(FormatError, match=rf"{name}: starts as a Hamamatsu ITEX \.img does .*format='itex'"):
         read(path)
     np.testing.assert_array_equal(read(path, format="itex").data, read(vendor).data)
+
+
+def test_a_tiff_with_its_full_image_in_a_subifd_says_so(tmp_path):
+    """s32-h4: a TIFF whose top-level page is a preview and whose full image lies in a SubIFD
+    (DNG's layout) was refused as holding "only reduced-resolution or mask pages, no full image"."""
+    path = tmp_path / "sub.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((8, 8), np.uint8), photometric="minisblack", subfiletype=1, subifds=1)
+        tif.write(_frames(1)[0], photometric="minisblack")
+    with pytest.raises(FormatError, match=r"sub\.tif: .*full image lies in a SubIFD"):
+        read(path)

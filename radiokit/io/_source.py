@@ -265,11 +265,7 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
-        # NewSubfileType bits 0 and 2: a reduced-resolution preview or a mask of another image,
-        # whatever its shape or place, is not a frame
-        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
-        if not index:
-            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        index = self._full_image_pages(all_pages)
         self._pages = [all_pages[i] for i in index]
         self._refuse_several_images(len(self._pages))
         first = self._pages[0]
@@ -321,6 +317,20 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+
+    def _full_image_pages(self, all_pages) -> list[int]:
+        """The indices of the pages that are frames. NewSubfileType bits 0 and 2: a
+        reduced-resolution preview or a mask of another image, whatever its shape or place, is not."""
+        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
+        if not index and any(getattr(p, "subifds", None) for p in all_pages):
+            raise FormatError(
+                self.path,
+                "TIFF's pages are reduced-resolution previews and its full image lies in a SubIFD (as in a "
+                "DNG), which radiokit does not read: save the frames as a plain TIFF",
+            )
+        if not index:
+            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        return index
 
     def _refuse_several_images(self, pages: int) -> None:
         """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
