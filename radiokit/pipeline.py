@@ -328,6 +328,7 @@ def load_steps(path, progress: bool = False) -> Steps:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             factors = exposure_factors(cal, meta, path, idx)
             image, saturated[s], nonfinite[s] = _step_image(cal, src, path, s, idx, factors, bar)
+            _check_below_the_flats(path, s, image)
             images.append(image)
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
@@ -341,6 +342,25 @@ def load_steps(path, progress: bool = False) -> Steps:
         pixel_size_mm,
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
     )
+
+
+#: a step whose median transmission is above this is brighter than the open beam, which no
+#: object can make it: a tube's drift between flats and projections is a few per cent
+MAX_MEDIAN_TRANSMISSION = 1.1
+
+
+def _check_below_the_flats(path, step, image) -> None:
+    """Refuse a step whose line integral ``image`` says most of the frame is brighter than the
+    flats. Why: flats at a quarter of the projections' tube current, no currents recorded, gave
+    negative line integrals everywhere, an empty body, and a traceback in the cross-check."""
+    transmission = float(np.exp(-np.median(image)))
+    if transmission > MAX_MEDIAN_TRANSMISSION:
+        raise FormatError(
+            path,
+            f"step {step}'s projections are brighter than the flats, {transmission:.2f}x their level (median "
+            "transmission), which no object makes them: the flats were taken at a lower exposure (tube current or time) than "
+            "the projections, and no recorded currents correct it",
+        )
 
 
 def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:

@@ -1867,3 +1867,26 @@ def test_process_names_the_file_frame_of_a_dark_labelled_as_a_flat(tmp_path):
             w.append(rng.integers(900, 1100, (32, 40)), image_key=ImageKey.PROJECTION, step=s)
     one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "res"), "exp.h5: frame 4 (flat 3 of 3 ")
     assert not (tmp_path / "res").exists()
+
+
+def test_process_refuses_projections_brighter_than_the_flats(tmp_path):
+    """s32-h4: flats taken at a quarter of the projections' tube current, no currents recorded:
+    every line integral came out negative, the body mask empty, and `radiokit process` died in a
+    traceback (numpy's percentile of nothing, in the cross-check). Nothing can be brighter than
+    the open beam: the step is named with how much brighter, in one line."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(path, shape=(48, 48)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(800, 10, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
+        for s in (1, 2, 3):
+            counts = 100 + 2800 * np.exp(-0.4) + rng.normal(0, 5, (48, 48))
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=s)
+    roi = ["--inclusion", "20", "28", "20", "28", "--background", "20", "28", "5", "13", "--crop-mm", "0"]
+    line = one_line_error(
+        run_cli("process", path, *roi, "-q", "-o", tmp_path / "res"), "exp.h5", "brighter than the flats"
+    )
+    expected = (2800 * math.exp(-0.4)) / 700  # (raw - dark) / (flat - dark)
+    assert re.search(r"(\d+\.\d+)x", line) and abs(float(re.search(r"(\d+\.\d+)x", line)[1]) - expected) < 0.05, line
+    assert not (tmp_path / "res").exists()
