@@ -453,7 +453,7 @@ def _register_inputs(args):
         if out is not None:
             check_output(out, overwrite=args.overwrite, inputs=[args.fixed, args.moving])
     _hdf5_name(args.output)
-    if args.png is not None and args.png.resolve() == args.output.resolve():
+    if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
         raise ValueError(f"--png {args.png}: the same file as -o")
     if args.png is not None:  # matplotlib refused it only after the registration and -o were written
         from matplotlib.backend_bases import FigureCanvasBase
@@ -610,7 +610,9 @@ def _same_file(a, b) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
-        return Path(a).resolve() == Path(b).resolve()
+        from radiokit.io._atomic import resolved
+
+        return resolved(a) == resolved(b)
 
 
 def _refuse_repeats(files, what: str, why: str = "") -> None:

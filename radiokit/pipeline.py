@@ -847,8 +847,12 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
 
     cfg = config or Config()
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such experiment file")
+    try:
+        os.stat(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such experiment file") from None
+    except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
+        raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     _check_inputs(path, cfg.control)  # before any work
     out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
@@ -1029,14 +1033,16 @@ def output_folders(paths, out_root=None) -> list[Path]:
     """One distinct results folder per input: ``out_root/STEM`` (default: beside each file, named
     after it); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ... in the order given,
     so no run ever merges into or replaces another's folder."""
+    from radiokit.io._atomic import resolved
+
     outs, taken = [], set()
     for p in map(Path, paths):
         base = (Path(out_root) / p.stem) if out_root is not None else p.with_suffix("")
         out, k = base, 1
-        while out.resolve() in taken:
+        while resolved(out) in taken:
             k += 1
             out = base.with_name(f"{base.name}-{k}")
-        taken.add(out.resolve())
+        taken.add(resolved(out))
         outs.append(out)
     return outs
 
