@@ -1917,3 +1917,41 @@ def test_a_symlink_in_a_loop_is_one_line(args, words, tmp_path):
             (tmp_path / f"{name}{ext}").symlink_to(f"{other}{ext}")
     one_line_error(run_cli(*args, "-q", cwd=tmp_path), words)
     assert not (tmp_path / "res").exists() and not (tmp_path / "out.h5").exists()
+
+
+def test_process_of_steps_that_did_not_move_prints_no_warnings(tmp_path):
+    """s32-h4: steps whose registration found no motion (a zero field: the same frames given for
+    every step, or an image too small to move) printed matplotlib's "RuntimeWarning: divide by
+    zero" and "Mean of empty slice" under the results, from the report's arrows scaled to
+    nothing. The run is otherwise complete: its only lines on stderr are radiokit's."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    rr, cc = np.mgrid[:48, :48]
+    inclusion = (abs(rr - 24) < 5) & (abs(cc - 24) < 5)
+    with ExperimentWriter(path, shape=(48, 48)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(2900, 20, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
+        for s in (1, 2, 3):  # the slab thins, nothing moves
+            counts = 100 + 2800 * np.exp(-0.5 + 0.05 * s - 0.3 * inclusion)
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=s)
+    roi = [
+        "--inclusion",
+        "21",
+        "27",
+        "21",
+        "27",
+        "--background",
+        "21",
+        "27",
+        "5",
+        "11",
+        "--crop-mm",
+        "0",
+        "--method",
+        "ssd",
+    ]
+    res = run("process", path, *roi, "-q", "-o", tmp_path / "res", env={"PYTHONWARNINGS": "default"})
+    assert res.returncode in (0, 1), res.stderr
+    assert "RuntimeWarning" not in res.stderr, res.stderr
+    assert (tmp_path / "res" / "report.html").exists()
