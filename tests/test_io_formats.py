@@ -1032,3 +1032,16 @@ def test_a_tiff_with_its_full_image_in_a_subifd_says_so(tmp_path):
         tif.write(_frames(1)[0], photometric="minisblack")
     with pytest.raises(FormatError, match=r"sub\.tif: .*full image lies in a SubIFD"):
         read(path)
+
+
+@pytest.mark.parametrize(
+    "name, what", [("results.json", "a JSON file"), ("report.html", "an HTML page"), ("notes.txt", "a text file")]
+)
+def test_a_text_file_is_named_not_measured_against_raw_geometries(tmp_path, name, what):
+    """s32-h4: `radiokit info results.json` (what radiokit process writes beside results.h5) said
+    "size 5298 bytes matches no C7942 geometry ... pass shape=", as if the text were pixels."""
+    path = tmp_path / name
+    path.write_text('{"schema_version": "1.2"}\n' if name.endswith(".json") else "<html></html>\n")
+    with pytest.raises(FormatError, match=rf"{name}: {what}, not frames"):
+        read(path)
+    assert read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1").data.size == path.stat().st_size

@@ -54,6 +54,15 @@ _EXTENSIONS = {
     ".dat": "raw",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
+#: text files a user may hand a frame reader (radiokit process writes the first two beside
+#: results.h5): named, not measured against the raw geometries as if their bytes were pixels
+_TEXT = {
+    ".json": "a JSON file",
+    ".html": "an HTML page",
+    ".htm": "an HTML page",
+    ".txt": "a text file",
+    ".csv": "a text file",
+}
 #: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
@@ -147,6 +156,12 @@ def sniff(path) -> str:
             path,
             f"starts as a Hamamatsu ITEX .img does ({head[:2]!r}), not as its .{path.suffix.lower().lstrip('.')} "
             "name says: rename it .img, or pass format='itex' (on the command line --format itex)",
+        )
+    if path.suffix.lower() in _TEXT:
+        raise FormatError(
+            path,
+            f"{_TEXT[path.suffix.lower()]}, not frames (radiokit process's images are in results.h5; "
+            "format='raw', on the command line --format raw, reads its bytes as pixels)",
         )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
