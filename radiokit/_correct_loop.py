@@ -61,6 +61,20 @@ P0, P1, P2, P3, P4, P5, P6, P7, P8 = _P
 _JIT = dict(nogil=True, cache=True, boundscheck=False, fastmath={"contract"})
 
 
+def _njit(func):
+    """``nb.njit(**_JIT)``, uncached where numba finds nowhere to write its cache.
+
+    Why: a user with no writable home (``nobody``, a container's arbitrary uid) running an install
+    it cannot write got numba's "cannot cache function: no locator available" as a traceback from
+    every command that corrects; uncached, the loop is compiled again at each start (seconds)."""
+    try:
+        return nb.njit(**_JIT)(func)
+    except RuntimeError as exc:
+        if "no locator available" not in str(exc):
+            raise
+        return nb.njit(**(_JIT | {"cache": False}))(func)
+
+
 @intrinsic
 def _bits(typingctx, x):
     """The int32 whose bits are float32 ``x`` (a register move, as C's memcpy or a union)."""
@@ -81,7 +95,7 @@ def _float(typingctx, k):
     return types.float32(types.int32), codegen
 
 
-@nb.njit(**_JIT)
+@_njit
 def _ln(x):
     """ln of a positive normal float32 (Cephes logf)."""
     k = _bits(x) - _SQRT_HALF_BITS
@@ -93,14 +107,14 @@ def _ln(x):
     return m + y + e * _LN2_HI
 
 
-@nb.njit(**_JIT)
+@_njit
 def _good(t):
     """``raw - dark`` usable for the log: a positive, normal, finite float32 (False for NaN, inf
     and anything <= 0)."""
     return (t >= _TINY) & (t <= _HUGE)
 
 
-@nb.njit(**_JIT)
+@_njit
 def _record(row, i, j0, j1, value, found, pos):
     """Write the flat indices of ``row[j0:j1] == value`` (row ``i``) at ``found[pos:]``, while
     there is room; returns the new ``pos`` (counting past the room, so the caller sees overflow)."""
@@ -113,7 +127,7 @@ def _record(row, i, j0, j1, value, found, pos):
     return pos
 
 
-@nb.njit(**_JIT)
+@_njit
 def _record_row(row, i, value, found, pos):
     """:func:`_record` over a whole row, skipping its CHUNK-column chunks that hold no ``value``
     (each chunk's test is one vectorised pass over 64 floats already in L1)."""
@@ -128,7 +142,7 @@ def _record_row(row, i, value, found, pos):
     return pos
 
 
-@nb.njit(**_JIT)
+@_njit
 def correct_rows(raw, dark, coef, out, r0, r1, log_domain, scale, saturation, count_saturated, bad, sat):
     """Correct rows ``r0..r1`` of one frame into ``out`` (float32).
 
@@ -175,7 +189,7 @@ def correct_rows(raw, dark, coef, out, r0, r1, log_domain, scale, saturation, co
     return n_bad, n_sat
 
 
-@nb.njit(**_JIT)
+@_njit
 def find(raw, dark, r0, r1, saturation, count_saturated, n_bad, n_sat):
     """All flat indices (``n_bad`` and ``n_sat`` of them) of the clamped and saturated pixels of
     rows ``r0..r1``, by the tests of :func:`correct_rows`: for when they overflowed its arrays."""
@@ -196,7 +210,7 @@ def find(raw, dark, r0, r1, saturation, count_saturated, n_bad, n_sat):
     return bad, sat
 
 
-@nb.njit(**_JIT)
+@_njit
 def gather(flat, dst, src, w):
     """``flat[dst[i]] = sum_k w[i, k] * flat[src[i, k]]``, every value read before any is written."""
     values = np.empty(dst.size, np.float32)
@@ -209,7 +223,7 @@ def gather(flat, dst, src, w):
         flat[dst[i]] = values[i]
 
 
-@nb.njit(**_JIT)
+@_njit
 def fill_from_neighbours(img, idx, invalid, max_radius):
     """Replace each pixel ``idx`` (flat, of C-contiguous ``img``) by the mean of the pixels in
     the smallest square around it (radius 1, then 2, ... ``max_radius``) that has any valid one;

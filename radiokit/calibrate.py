@@ -33,6 +33,7 @@ __all__ = [
     "robust_average",
     "CalibrationWarning",
     "CalibrationRefused",
+    "FrameLevelError",
     "exposure_factors",
     "adc_top",
     "frame_saturation",
@@ -384,6 +385,7 @@ class Calibration:
         """
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
+        _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
         if not given:
             th = replace(th, saturation=adc_top(darks, flats))
@@ -466,6 +468,9 @@ class Calibration:
                 progress=progress,
                 **thresholds,
             )
+        except FrameLevelError as exc:  # named by its frame in the file
+            frame = sel[ImageKey.DARK if exc.kind == "dark" else ImageKey.FLAT][exc.index]
+            raise FormatError(path, f"frame {frame} ({exc})") from exc
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
@@ -693,6 +698,45 @@ def _read_counted(src, indices, bar) -> np.ndarray:
         frames.append(src[i])
         bar.update()
     return np.stack(frames)
+
+
+class FrameLevelError(CalibrationRefused):
+    """A dark or flat frame at the other kind's level: ``kind`` ("dark" or "flat") and ``index``
+    (0-based, in its stack) say which, for a caller that knows its file; its kind's frames are
+    the ones to take again (``culprits``)."""
+
+    def __init__(self, kind: str, index: int, message: str):
+        super().__init__(message, (f"{kind}s",))
+        self.kind, self.index = kind, index
+
+
+def _check_levels(darks, flats, eps) -> None:
+    """Refuse a flat frame closer to the darks' level than to the brightest flat's, or a dark frame
+    closer to the flats' than to the darkest dark's (each frame's median).
+
+    Why: a dark file among the flats (a glob) gave each pixel samples 2900 counts apart, none
+    clipped by :func:`robust_average`, and a flat halfway up: every transmission twice too high,
+    exit 0. The darkest dark and the brightest flat anchor the levels, not the medians, which half
+    the frames of the wrong kind would move."""
+    sample = (slice(None), slice(None, None, 4), slice(None, None, 4))
+    levels = {k: np.median(s[sample].reshape(len(s), -1), axis=1) for k, s in (("dark", darks), ("flat", flats))}
+    dark = float(levels["dark"].min())
+    signal = float(levels["flat"].max()) - dark
+    if signal <= eps:  # no flat level to compare with: refused as "not brighter" further on
+        return
+    why = {
+        "flat": "a dark, not a flat (a dark file among the flats, a closed shutter or the beam off)",
+        "dark": "a flat, not a dark (a flat file among the darks, or the beam on)",
+    }
+    for kind, wrong in (("flat", levels["flat"] - dark < signal / 2), ("dark", levels["dark"] - dark > signal / 2)):
+        if wrong.any():
+            i = int(np.argmax(wrong))
+            raise FrameLevelError(
+                kind,
+                i,
+                f"{kind} {i + 1} of {len(wrong)} reads {levels[kind][i] - dark:.0f} counts above the darkest dark, "
+                f"the brightest flat {signal:.0f}: {why[kind]}",
+            )
 
 
 def _check_stacks(darks, flats):

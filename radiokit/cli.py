@@ -234,11 +234,14 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
+def _stack(paths, hints, key=None, progress=False, origins=None) -> np.ndarray:
+    """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
+    when given, gets each frame's (file, index in it)."""
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
+    origins = [] if origins is None else origins
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
     with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
         for p in paths:
@@ -254,6 +257,7 @@ def _stack(paths, hints, key=None, progress=False) -> np.ndarray:
                 for i in range(len(src)):
                     if key is None or keys is None or keys[i] == key:
                         frames.append(src[i])
+                        origins.append((p, i))
                         bar.update()
                         if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
@@ -270,8 +274,8 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration
-    from radiokit.io import atomic_path, check_output
+    from radiokit.calibrate import Calibration, FrameLevelError
+    from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
@@ -291,8 +295,9 @@ def cmd_calibrate(args) -> int:
         # experiment-style file holds darks and flats, told apart by image_key
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints = _raw_hints(args)
-        darks, flats = _stack(args.dark, hints, 2, _progress(args)), _stack(args.flat, hints, 1, _progress(args))
+        hints, origins = _raw_hints(args), {"dark": [], "flat": []}
+        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"])
+        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"])
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
@@ -300,6 +305,9 @@ def cmd_calibrate(args) -> int:
             )
         try:
             cal = Calibration.from_frames(darks, flats, progress=_progress(args), **th)
+        except FrameLevelError as exc:  # the stack's index, named as the file's frame
+            path, index = origins[exc.kind][exc.index]
+            raise FormatError(path, f"frame {index} ({exc})") from exc
         except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
             raise ValueError(
                 f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
@@ -370,7 +378,13 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
-        return np.asarray(src[index], np.float32)
+        image = src[index]
+    top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
+    if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
+        raise ValueError(
+            f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
+        )
+    return np.asarray(image, np.float32)
 
 
 def _a_projection(path, keys, index, option) -> None:
@@ -439,7 +453,7 @@ def _register_inputs(args):
         if out is not None:
             check_output(out, overwrite=args.overwrite, inputs=[args.fixed, args.moving])
     _hdf5_name(args.output)
-    if args.png is not None and args.png.resolve() == args.output.resolve():
+    if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
         raise ValueError(f"--png {args.png}: the same file as -o")
     if args.png is not None:  # matplotlib refused it only after the registration and -o were written
         from matplotlib.backend_bases import FigureCanvasBase
@@ -596,7 +610,9 @@ def _same_file(a, b) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
-        return Path(a).resolve() == Path(b).resolve()
+        from radiokit.io._atomic import resolved
+
+        return resolved(a) == resolved(b)
 
 
 def _refuse_repeats(files, what: str, why: str = "") -> None:

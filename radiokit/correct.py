@@ -607,6 +607,7 @@ def _segments(sources, cal: Calibration, image_keys) -> list:
             raise FormatError(src.path, "no frames")
         if src.frame_shape != cal.shape:
             raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
+        _check_type_reaches_flats(src, cal)
         keys = src.meta.get("image_key")
         steps = src.meta.get("step")
         if keys is None:
@@ -616,6 +617,25 @@ def _segments(sources, cal: Calibration, image_keys) -> list:
         factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
         segments.append((si, picked, steps, factors))
     return segments
+
+
+def _check_type_reaches_flats(src, cal: Calibration) -> None:
+    """Refuse integer frames whose type cannot hold the flats' level.
+
+    Why: an 8-bit copy of a radiograph (a viewer's export) corrected against the panel's
+    calibration clamped every pixel at the dark and was written as a uniform image, exit code 0;
+    no such frame can be the calibration's counts."""
+    dtype = np.dtype(src.dtype)
+    if dtype.kind not in "biu":
+        return
+    top = 1 if dtype.kind == "b" else np.iinfo(dtype).max  # bool: a 1-bit TIFF, a mask
+    level = float(np.median(cal.flat[::4, ::4]))
+    if top < level:
+        raise FormatError(
+            src.path,
+            f"{dtype} pixels (at most {top}) cannot reach the calibration's flats (about "
+            f"{level:.0f} counts): frames of another bit depth than the darks and flats (an 8-bit display copy?)",
+        )
 
 
 def correct_files(

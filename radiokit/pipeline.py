@@ -328,6 +328,7 @@ def load_steps(path, progress: bool = False) -> Steps:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             factors = exposure_factors(cal, meta, path, idx)
             image, saturated[s], nonfinite[s] = _step_image(cal, src, path, s, idx, factors, bar)
+            _check_below_the_flats(path, s, image)
             images.append(image)
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
@@ -341,6 +342,25 @@ def load_steps(path, progress: bool = False) -> Steps:
         pixel_size_mm,
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
     )
+
+
+#: a step whose median transmission is above this is brighter than the open beam, which no
+#: object can make it: a tube's drift between flats and projections is a few per cent
+MAX_MEDIAN_TRANSMISSION = 1.1
+
+
+def _check_below_the_flats(path, step, image) -> None:
+    """Refuse a step whose line integral ``image`` says most of the frame is brighter than the
+    flats. Why: flats at a quarter of the projections' tube current, no currents recorded, gave
+    negative line integrals everywhere, an empty body, and a traceback in the cross-check."""
+    transmission = float(np.exp(-np.median(image)))
+    if transmission > MAX_MEDIAN_TRANSMISSION:
+        raise FormatError(
+            path,
+            f"step {step}'s projections are brighter than the flats, {transmission:.2f}x their level (median "
+            "transmission), which no object makes them: the flats were taken at a lower exposure (tube current or time) than "
+            "the projections, and no recorded currents correct it",
+        )
 
 
 def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
@@ -827,8 +847,12 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
 
     cfg = config or Config()
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such experiment file")
+    try:
+        os.stat(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such experiment file") from None
+    except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
+        raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     _check_inputs(path, cfg.control)  # before any work
     out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
@@ -1009,14 +1033,16 @@ def output_folders(paths, out_root=None) -> list[Path]:
     """One distinct results folder per input: ``out_root/STEM`` (default: beside each file, named
     after it); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ... in the order given,
     so no run ever merges into or replaces another's folder."""
+    from radiokit.io._atomic import resolved
+
     outs, taken = [], set()
     for p in map(Path, paths):
         base = (Path(out_root) / p.stem) if out_root is not None else p.with_suffix("")
         out, k = base, 1
-        while out.resolve() in taken:
+        while resolved(out) in taken:
             k += 1
             out = base.with_name(f"{base.name}-{k}")
-        taken.add(out.resolve())
+        taken.add(resolved(out))
         outs.append(out)
     return outs
 

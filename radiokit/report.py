@@ -456,10 +456,11 @@ def _panel_displacement(fig, ax, disp):
     im = ax.imshow(mag, cmap="viridis", interpolation="nearest")
     step = max(1, max(mag.shape) // 14)
     rr, cc = np.mgrid[step // 2 : mag.shape[0] : step, step // 2 : mag.shape[1] : step]
-    # pull field: the registered pixel at x came from x + d(x), so the arrow points there
-    ax.quiver(
-        cc, rr, d[1][rr, cc], -d[0][rr, cc], color="white", angles="xy", scale_units="xy", scale=None, width=0.004
-    )
+    # pull field: the registered pixel at x came from x + d(x), so the arrow points there; no
+    # arrows where none has a length (matplotlib's autoscale divided by zero, in warnings on stderr)
+    u, v = d[1][rr, cc], -d[0][rr, cc]
+    if np.any(np.isfinite(u) & np.isfinite(v) & ((u != 0) | (v != 0))):
+        ax.quiver(cc, rr, u, v, color="white", angles="xy", scale_units="xy", scale=None, width=0.004)
     ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}", fontsize=9)
     fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
 

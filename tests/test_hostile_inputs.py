@@ -1738,3 +1738,220 @@ def test_a_frames_complete_that_is_no_count_is_refused_and_never_truncates(value
     with h5py.File(exp, "r") as h5:
         assert h5[FRAMES].shape[0] == 9
     assert hashlib.sha256(exp.read_bytes()).hexdigest() == before
+
+
+@pytest.mark.parametrize("dtype", ["u1", "i1", "bool"])  # bool: a 1-bit TIFF, a mask
+def test_correct_refuses_frames_whose_type_cannot_reach_the_flats(dtype, tmp_path):
+    """s32-h4: an 8-bit copy of a radiograph (a viewer's export, 12-bit counts divided by 16)
+    corrected against the panel's calibration (flats about 3000 counts) was written as a uniform
+    image, every pixel "non-positive (filled)", exit code 0. No 8-bit pixel reaches the flats."""
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal, "-q").returncode == 0
+    frames = np.random.default_rng(1).integers(900, 1100, (2, 32, 40)) // 16
+    tifffile.imwrite(tmp_path / "view.tif", frames.astype(dtype), photometric="minisblack")
+    res = run_cli("correct", tmp_path / "view.tif", "--cal", cal, "-q", "-o", tmp_path / "out.h5")
+    one_line_error(res, "view.tif", f"{np.dtype(dtype)} pixels", "flats")
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_register_names_float64_values_beyond_float32_not_nan(tmp_path):
+    """s32-h4: a float64 image with values near 1e300 was cast to float32 (a RuntimeWarning) and
+    refused as "fixed image contains NaN or inf (5917 pixels)", of a file holding neither."""
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "big.tif", rng.random((32, 40)) * 1e300)
+    tifffile.imwrite(tmp_path / "other.tif", rng.random((32, 40)).astype(np.float32))
+    res = run_cli("register", tmp_path / "big.tif", tmp_path / "other.tif", "-q", "-o", tmp_path / "r.h5")
+    line = one_line_error(res, "big.tif", "float32")
+    assert "NaN" not in line
+    assert not (tmp_path / "r.h5").exists()
+
+
+def _calls_to_open(path) -> int:
+    """Function calls (Python and builtin) made opening ``path`` and reading its first frame."""
+    from radiokit.io import open_frames
+
+    calls = 0
+
+    def count(frame, event, arg):
+        nonlocal calls
+        calls += event in ("call", "c_call")
+
+    sys.setprofile(count)
+    try:
+        with open_frames(path) as src:
+            src[0]
+    finally:
+        sys.setprofile(None)
+    return calls
+
+
+def test_opening_a_tiff_of_many_pages_written_one_by_one_takes_work_linear_in_its_pages(tmp_path):
+    """s32-h4: a 4.8 MB TIFF of 20 000 one-pixel pages, each written by its own TiffWriter.write
+    (as a frame-by-frame writer does), took 76 s of CPU in `radiokit info`: tifffile's series of
+    such a file compares every page with every other (quadratic), and it was built only to look
+    for a one-IFD stack, which a file of many pages is not. 16x the pages must cost about 16x."""
+    counts = []
+    for n in (100, 1600):
+        path = tmp_path / f"p{n}.tif"
+        with tifffile.TiffWriter(path) as tif:
+            for _ in range(n):
+                tif.write(np.zeros((1, 1), np.uint8), photometric="minisblack", contiguous=False)
+        counts.append(_calls_to_open(path))
+    assert counts[1] < 24 * counts[0], counts  # linear: 16x; quadratic: 256x on the pages' part
+
+
+def test_correct_runs_where_numba_can_write_its_cache_nowhere(tmp_path):
+    """s32-h4: run as a user with no writable home (HOME=/nonexistent, as `nobody` or a container's
+    arbitrary uid) on an install it cannot write, `radiokit correct` died in a 40-line traceback,
+    numba's "cannot cache function '_ln': no locator available". The compiled loop then runs
+    uncached (compiled at each start). The same fault is made here without another user: numba's
+    own settings leave it one cache location only, under a regular file, which no one can create."""
+    exp = _experiment(tmp_path / "exp.h5")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", exp, "-o", cal, "-q").returncode == 0
+    frames = np.random.default_rng(2).integers(900, 1100, (2, 32, 40)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "p.tif", frames, photometric="minisblack")
+    (tmp_path / "afile").write_text("")
+    env = {"NUMBA_CACHE_LOCATOR_CLASSES": "UserProvidedCacheLocator", "NUMBA_CACHE_DIR": str(tmp_path / "afile" / "c")}
+    res = run("correct", tmp_path / "p.tif", "--cal", cal, "-q", "--domain", "linear", "-o", tmp_path / "t.h5", env=env)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    from radiokit.calibrate import Calibration
+
+    c = Calibration.load(cal)
+    expected = (frames - c.dark.astype(np.float64)) / (c.flat.astype(np.float64) - c.dark)
+    np.testing.assert_allclose(read(tmp_path / "t.h5").data, expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("among", ["flat", "dark"])
+def test_calibrate_refuses_a_frame_of_the_other_kind_among_darks_or_flats(among, tmp_path):
+    """s32-h4: `calibrate --dark d.tif --flat f.tif d.tif` (a dark file caught by a glob) averaged
+    4 darks into 8 "flats": every pixel's samples spread over 2900 counts, so none was clipped, the
+    flat came out halfway (c = 1450 against 2900) and every transmission twice too high, exit 0.
+    A flat at the dark's level, or a dark at the flats', is named by file and frame."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(100, 2, (4, 24, 32)).astype(np.uint16)
+    f = rng.normal(3000, 30, (4, 24, 32)).astype(np.uint16)
+    for name, frames in (("d.tif", d), ("f.tif", f)):
+        tifffile.imwrite(tmp_path / name, frames, photometric="minisblack")
+    darks, flats = (["d.tif", "f.tif"], ["f.tif"]) if among == "dark" else (["d.tif"], ["f.tif", "d.tif"])
+    res = run_cli("calibrate", "--dark", *darks, "--flat", *flats, "-q", "-o", "cal.h5", cwd=tmp_path)
+    line = one_line_error(res, "radiokit calibrate: ", f"{among} 5 of 8")
+    wrong = "d.tif" if among == "flat" else "f.tif"
+    assert line.startswith(f"radiokit calibrate: {wrong}: frame 0 ("), line
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_calibration_from_frames_of_one_exposure_each_is_kept(tmp_path):
+    """The check above leaves frames of one set-up alone: the tube's drift of a few per cent
+    between flats, and the darks' own noise."""
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(4)
+    darks = rng.normal(100, 2, (5, 24, 32))
+    flats = rng.normal(3000, 30, (5, 24, 32)) * np.linspace(0.95, 1.05, 5)[:, None, None]
+    cal = Calibration.from_frames(darks, flats)
+    assert abs(cal.c - 2900) < 30
+
+
+def test_process_names_the_file_frame_of_a_dark_labelled_as_a_flat(tmp_path):
+    """The same check on an experiment file: a dark its writer labelled a flat (frame 4) is named
+    by its frame in the file, not by its place among the flats."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(path, shape=(32, 40)) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.DARK, 100), (ImageKey.FLAT, 3000), (ImageKey.FLAT, 3000)):
+            w.append(rng.integers(level - 10, level + 10, (32, 40)), image_key=key)
+        w.append(rng.integers(90, 110, (32, 40)), image_key=ImageKey.FLAT)  # the beam was off
+        for s in (1, 2, 3):
+            w.append(rng.integers(900, 1100, (32, 40)), image_key=ImageKey.PROJECTION, step=s)
+    one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "res"), "exp.h5: frame 4 (flat 3 of 3 ")
+    assert not (tmp_path / "res").exists()
+
+
+def test_process_refuses_projections_brighter_than_the_flats(tmp_path):
+    """s32-h4: flats taken at a quarter of the projections' tube current, no currents recorded:
+    every line integral came out negative, the body mask empty, and `radiokit process` died in a
+    traceback (numpy's percentile of nothing, in the cross-check). Nothing can be brighter than
+    the open beam: the step is named with how much brighter, in one line."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(path, shape=(48, 48)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(800, 10, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
+        for s in (1, 2, 3):
+            counts = 100 + 2800 * np.exp(-0.4) + rng.normal(0, 5, (48, 48))
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=s)
+    roi = ["--inclusion", "20", "28", "20", "28", "--background", "20", "28", "5", "13", "--crop-mm", "0"]
+    line = one_line_error(
+        run_cli("process", path, *roi, "-q", "-o", tmp_path / "res"), "exp.h5", "brighter than the flats"
+    )
+    expected = (2800 * math.exp(-0.4)) / 700  # (raw - dark) / (flat - dark)
+    assert re.search(r"(\d+\.\d+)x", line) and abs(float(re.search(r"(\d+\.\d+)x", line)[1]) - expected) < 0.05, line
+    assert not (tmp_path / "res").exists()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["correct", "p.tif", "--cal", "cal.h5", "-o", "loop.h5"], "loop.h5: exists"),
+        (["correct", "loop.h5", "--cal", "cal.h5", "-o", "out.h5"], "loop.h5: cannot be opened"),
+        (["calibrate", "--experiment", "exp.h5", "-o", "loop.h5"], "loop.h5: exists"),
+        (["register", "p.tif", "p.tif", "--moving-frame", "1", "-o", "r.h5", "--png", "loop.png"], "loop.png: exists"),
+        (["process", "loop.h5", "-o", "res"], "loop.h5: cannot be opened"),
+        (["process", "exp.h5", "--control", "loop.h5", "-o", "res"], "loop.h5"),
+    ],
+)
+def test_a_symlink_in_a_loop_is_one_line(args, words, tmp_path):
+    """s32-h4: an output or input that is a symbolic link in a loop (a -> b -> a) gave a traceback,
+    "RuntimeError: Symlink loop from ..." (Python 3.11's Path.resolve, in the output checks). As
+    an input it cannot be opened; as an output it is taken for an existing name, as a dangling link is."""
+    exp = _experiment(tmp_path / "exp.h5")
+    assert run_cli("calibrate", "--experiment", exp, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    tifffile.imwrite(
+        tmp_path / "p.tif", np.random.default_rng(0).random((2, 32, 40), np.float32), photometric="minisblack"
+    )
+    for name, other in (("loop", "pool"), ("pool", "loop")):
+        for ext in (".h5", ".png"):
+            (tmp_path / f"{name}{ext}").symlink_to(f"{other}{ext}")
+    one_line_error(run_cli(*args, "-q", cwd=tmp_path), words)
+    assert not (tmp_path / "res").exists() and not (tmp_path / "out.h5").exists()
+
+
+def test_process_of_steps_that_did_not_move_prints_no_warnings(tmp_path):
+    """s32-h4: steps whose registration found no motion (a zero field: the same frames given for
+    every step, or an image too small to move) printed matplotlib's "RuntimeWarning: divide by
+    zero" and "Mean of empty slice" under the results, from the report's arrows scaled to
+    nothing. The run is otherwise complete: its only lines on stderr are radiokit's."""
+    path = tmp_path / "exp.h5"
+    rng = np.random.default_rng(0)
+    rr, cc = np.mgrid[:48, :48]
+    inclusion = (abs(rr - 24) < 5) & (abs(cc - 24) < 5)
+    with ExperimentWriter(path, shape=(48, 48)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(2900, 20, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
+        for s in (1, 2, 3):  # the slab thins, nothing moves
+            counts = 100 + 2800 * np.exp(-0.5 + 0.05 * s - 0.3 * inclusion)
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=s)
+    roi = [
+        "--inclusion",
+        "21",
+        "27",
+        "21",
+        "27",
+        "--background",
+        "21",
+        "27",
+        "5",
+        "11",
+        "--crop-mm",
+        "0",
+        "--method",
+        "ssd",
+    ]
+    res = run("process", path, *roi, "-q", "-o", tmp_path / "res", env={"PYTHONWARNINGS": "default"})
+    assert res.returncode in (0, 1), res.stderr
+    assert "RuntimeWarning" not in res.stderr, res.stderr
+    assert (tmp_path / "res" / "report.html").exists()

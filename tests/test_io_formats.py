@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
+from conftest import ITEX_DIR, needs_itex
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -960,3 +961,87 @@ def test_imagej_miniswhite_is_its_inverting_lut_and_reads_as_stored(tmp_path):
     np.testing.assert_array_equal(src.data, stored)
     np.testing.assert_array_equal(_both_ways(path), stored)
     assert src.meta["imagej_inverted_lut"] is True
+
+
+@pytest.mark.parametrize(
+    "name, kw, what",
+    [
+        ("hyper.tif", {"imagej": True, "metadata": {"axes": "TCYX"}}, "an ImageJ hyperstack of 2 channels"),
+        ("stack.ome.tif", {"metadata": {"axes": "TCYX"}}, "an OME-TIFF of 2 channels"),
+    ],
+)
+def test_a_tiff_of_several_channels_is_refused_not_read_as_one_stack(tmp_path, name, kw, what):
+    """s32-h4: a two-channel hyperstack (3 time points x 2 channels) read as 6 frames, the channels
+    interleaved: calibrate would average one channel's frames with the other's. Each page is a
+    greyscale image, so nothing else tells a stack from a hyperstack."""
+    path = tmp_path / name
+    tifffile.imwrite(path, _frames(6).reshape(3, 2, 30, 40), **kw)
+    with pytest.raises(FormatError, match=rf"{name}: {what}, 6 images: .*save each channel as its own file"):
+        read(path)
+
+
+def test_an_ome_tiff_of_several_images_is_refused_not_read_as_one_stack(tmp_path):
+    """s32-h4: an OME-TIFF holding two images (series) of one size, such as the darks and the flats,
+    read as one stack of 4 frames."""
+    path = tmp_path / "two.ome.tif"
+    with tifffile.TiffWriter(path, ome=True) as tif:
+        tif.write(_frames(2), metadata={"axes": "TYX"})
+        tif.write(_frames(2, seed=1), metadata={"axes": "TYX"})
+    with pytest.raises(FormatError, match=r"two\.ome\.tif: an OME-TIFF of 2 images \(series\), 4 pages: "):
+        read(path)
+
+
+@pytest.mark.parametrize("axes", ["ZYX", "TZYX"])
+def test_an_ome_or_imagej_stack_of_one_channel_still_reads_in_page_order(tmp_path, axes):
+    frames = _frames(6)
+    for path, kw in ((tmp_path / "s.ome.tif", {}), (tmp_path / "s.tif", {"imagej": True})):
+        tifffile.imwrite(
+            path, frames.reshape(2, 3, 30, 40) if axes == "TZYX" else frames, metadata={"axes": axes}, **kw
+        )
+        np.testing.assert_array_equal(read(path).data, frames)
+
+
+@pytest.mark.parametrize("kw", [{"imagej": True}, {"ome": True}])
+def test_a_plain_stack_tifffile_labels_as_channels_still_reads(tmp_path, kw):
+    """tifffile writes a 3-D array's first axis as C (channels) in ImageJ and OME files: those
+    are the stacks users write, and read as frames."""
+    frames = _frames(3)
+    tifffile.imwrite(tmp_path / "s.tif", frames, **kw)
+    np.testing.assert_array_equal(read(tmp_path / "s.tif").data, frames)
+
+
+@needs_itex
+@pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
+def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):
+    """s32-h4: a HiPic .img saved or renamed as .tif was refused as "wrong magic b'IMz\\n': a TIFF
+    starts with ...", leaving the user to guess what the file is; --format itex reads it."""
+    vendor = ITEX_DIR / "photon_counting.img"
+    path = tmp_path / name
+    path.write_bytes(vendor.read_bytes())
+    with pytest.raises(FormatError, match=rf"{name}: starts as a Hamamatsu ITEX \.img does .*format='itex'"):
+        read(path)
+    np.testing.assert_array_equal(read(path, format="itex").data, read(vendor).data)
+
+
+def test_a_tiff_with_its_full_image_in_a_subifd_says_so(tmp_path):
+    """s32-h4: a TIFF whose top-level page is a preview and whose full image lies in a SubIFD
+    (DNG's layout) was refused as holding "only reduced-resolution or mask pages, no full image"."""
+    path = tmp_path / "sub.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((8, 8), np.uint8), photometric="minisblack", subfiletype=1, subifds=1)
+        tif.write(_frames(1)[0], photometric="minisblack")
+    with pytest.raises(FormatError, match=r"sub\.tif: .*full image lies in a SubIFD"):
+        read(path)
+
+
+@pytest.mark.parametrize(
+    "name, what", [("results.json", "a JSON file"), ("report.html", "an HTML page"), ("notes.txt", "a text file")]
+)
+def test_a_text_file_is_named_not_measured_against_raw_geometries(tmp_path, name, what):
+    """s32-h4: `radiokit info results.json` (what radiokit process writes beside results.h5) said
+    "size 5298 bytes matches no C7942 geometry ... pass shape=", as if the text were pixels."""
+    path = tmp_path / name
+    path.write_text('{"schema_version": "1.2"}\n' if name.endswith(".json") else "<html></html>\n")
+    with pytest.raises(FormatError, match=rf"{name}: {what}, not frames"):
+        read(path)
+    assert read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1").data.size == path.stat().st_size

@@ -252,9 +252,18 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
+def resolved(path) -> Path:
+    """``path`` with its links resolved, as far as they go.
+
+    Why not ``Path.resolve``: before Python 3.13 it raises RuntimeError on a symbolic link in a
+    loop (a -> b -> a), which reached the user as a traceback from the output checks. A loop is
+    left unresolved here; opening it then fails with "Too many levels of symbolic links"."""
+    return Path(os.path.realpath(path))
+
+
 def _same(a: Path, b: Path) -> bool:
     """``a`` and ``b`` name the same file: same path after resolving links, or same inode (hard link)."""
-    if a.resolve() == b.resolve():
+    if resolved(a) == resolved(b):
         return True
     try:
         return os.path.samefile(a, b)
@@ -263,7 +272,7 @@ def _same(a: Path, b: Path) -> bool:
 
 
 def _inside(inner: Path, outer: Path) -> bool:
-    inner, outer = inner.resolve(), outer.resolve()
+    inner, outer = resolved(inner), resolved(outer)
     return inner == outer or outer in inner.parents
 
 
@@ -306,11 +315,11 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
         if (
             (folder and _inside(src, path))
             or (not folder and src.exists() and path.exists() and _same(src, path))
-            or src.resolve() == path.resolve()
+            or resolved(src) == resolved(path)
         ):
             raise OutputError(
                 path,
-                f"{'holds' if folder and src.resolve() != path.resolve() else 'is'} the "
+                f"{'holds' if folder and resolved(src) != resolved(path) else 'is'} the "
                 f"input {src}: an input is never overwritten; choose another output",
             )
     holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work

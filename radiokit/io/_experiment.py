@@ -27,7 +27,7 @@ import numpy as np
 from radiokit import _json as strict_json
 from radiokit.checks import is_number
 from radiokit.errors import FormatError
-from radiokit.io._atomic import file_size_limit
+from radiokit.io._atomic import file_size_limit, resolved
 
 __all__ = [
     "ExperimentWriter",
@@ -660,7 +660,7 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
             path, f"{ds.name} is a virtual dataset whose first source {missing} is missing or unreadable: no frames"
         )
     folders = {
-        _found_source(path, ds, folder, expand(name, k), expand(dset, k)).parent.resolve() for k in range(covered)
+        resolved(_found_source(path, ds, folder, expand(name, k), expand(dset, k)).parent) for k in range(covered)
     }
     if len(folders) > 1:
         raise FormatError(

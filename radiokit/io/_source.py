@@ -54,6 +54,15 @@ _EXTENSIONS = {
     ".dat": "raw",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
+#: text files a user may hand a frame reader (radiokit process writes the first two beside
+#: results.h5): named, not measured against the raw geometries as if their bytes were pixels
+_TEXT = {
+    ".json": "a JSON file",
+    ".html": "an HTML page",
+    ".htm": "an HTML page",
+    ".txt": "a text file",
+    ".csv": "a text file",
+}
 #: the most a compressed TIFF strip can expand: deflate 1032:1, LZW (12-bit codes, strings up to
 #: 4096 bytes) 2731:1, PackBits 64:1. A page declaring more pixels than that is corrupt or a bomb.
 _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
@@ -142,6 +151,18 @@ def sniff(path) -> str:
                 path,
                 f"{what}, which radiokit does not read: {advice} (format='raw', on the command line --format raw, reads its bytes as pixels)",
             )
+    if head[:2] == b"IM" and ext in ("tiff", "hdf5"):  # a HiPic file renamed, or saved under another name
+        raise FormatError(
+            path,
+            f"starts as a Hamamatsu ITEX .img does ({head[:2]!r}), not as its .{path.suffix.lower().lstrip('.')} "
+            "name says: rename it .img, or pass format='itex' (on the command line --format itex)",
+        )
+    if path.suffix.lower() in _TEXT:
+        raise FormatError(
+            path,
+            f"{_TEXT[path.suffix.lower()]}, not frames (radiokit process's images are in results.h5; "
+            "format='raw', on the command line --format raw, reads its bytes as pixels)",
+        )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
     if ext == "itex":
@@ -259,12 +280,9 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
-        # NewSubfileType bits 0 and 2: a reduced-resolution preview or a mask of another image,
-        # whatever its shape or place, is not a frame
-        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
-        if not index:
-            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        index = self._full_image_pages(all_pages)
         self._pages = [all_pages[i] for i in index]
+        self._refuse_several_images(len(self._pages))
         first = self._pages[0]
         shape = first.shape
         if len(shape) != 2:
@@ -314,6 +332,52 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+
+    def _full_image_pages(self, all_pages) -> list[int]:
+        """The indices of the pages that are frames. NewSubfileType bits 0 and 2: a
+        reduced-resolution preview or a mask of another image, whatever its shape or place, is not."""
+        index = [i for i, p in enumerate(all_pages) if not (getattr(p, "subfiletype", 0) & 0b101)]
+        if not index and any(getattr(p, "subifds", None) for p in all_pages):
+            raise FormatError(
+                self.path,
+                "TIFF's pages are reduced-resolution previews and its full image lies in a SubIFD (as in a "
+                "DNG), which radiokit does not read: save the frames as a plain TIFF",
+            )
+        if not index:
+            raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
+        return index
+
+    def _refuse_several_images(self, pages: int) -> None:
+        """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
+        of several images (series).
+
+        Why: every page is a greyscale image of one size, so the pages read as one stack with the
+        channels interleaved (or the darks' series followed by the flats'), and calibrate averaged
+        them together. Channels alone are read as frames: tifffile labels a plain 3-D stack's
+        axis C in both ImageJ and OME files. A page's own samples (RGB) are refused as colour."""
+        tif, what, advice = self._tif, "", "save each channel as its own file"
+        if tif.is_imagej:
+            ij = tif.imagej_metadata or {}
+            # images = channels x slices x frames: channels beside slices or frames interleave
+            channels, *others = (
+                v if isinstance(v := ij.get(k, 1), int) else 1 for k in ("channels", "slices", "frames")
+            )
+            if channels > 1 and math.prod(others) > 1:
+                what = f"an ImageJ hyperstack of {channels} channels, {ij.get('images', pages)} images"
+                advice += " (ImageJ: Image > Color > Split Channels)"
+        elif tif.is_ome:
+            series = tif.series
+            sizes = dict(zip(series[0].axes, series[0].shape))
+            others = math.prod(n for axis, n in sizes.items() if axis not in "CYXS")
+            if len(series) > 1:
+                what, advice = (
+                    f"an OME-TIFF of {len(series)} images (series), {pages} pages",
+                    "save each image as its own file",
+                )
+            elif sizes.get("C", 1) > 1 and others > 1:
+                what = f"an OME-TIFF of {sizes['C']} channels, {pages} images"
+        if what:
+            raise FormatError(self.path, f"{what}: not one stack of frames; {advice}")
 
     def _not_greyscale(self, first) -> FormatError:
         """The refusal of a page that is not one (rows, cols) image, naming what it is."""
@@ -427,7 +491,9 @@ class FrameSource:
         tif, images, what = self._tif, 1, ""
         if tif.is_imagej:
             images, what = (tif.imagej_metadata or {}).get("images", 1), "ImageJ description says images="
-        elif tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+        elif len(pages) == 1 and tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+            # (only for one page: tifffile's series of a file of many, each written on its own,
+            # compares every page with every other; 20 000 one-pixel pages took 76 s)
             shape = tif.shaped_metadata[0].get("shape", [])
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
