@@ -452,6 +452,7 @@ def _source_command(args, guard) -> int:
             **{key: value for key, value in times.items() if value is not None},
         )
         try:
+            src = _guarded(src) if args.action == "warm-up" else src  # the warm-up emits: a guardian holds the port
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
             if getattr(exc, "off_failed", None) is not None:
@@ -506,6 +507,24 @@ def _source_command(args, guard) -> int:
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         return _source_error_code(exc, src, args)
+
+
+def _guarded(src):
+    """``src``'s controller behind a guardian process (:mod:`acquisition.guardian`), as a series'
+    is: the warm-up emits X-rays for minutes, and L8121.md has an interrupted warm-up switched off
+    like an exposure, ``kill -9`` of this process included, which only another process can do (it
+    left B's warm-up, which may run on into X-rays on, on for good). The dialect is resolved first
+    (``auto`` probes), the guardian opens the port in it; the returned driver is not connected
+    yet and knows what the probe read (``take_over``)."""
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+    from acquisition.protocols.compression_series import SourceSettings
+
+    resolved = src.resolve()
+    link = start_guardian(src.port, resolved, watchdog_s=SourceSettings.watchdog_s, armed=not src.tube_confirmed_off)
+    guarded = L8121(link, connect=False, config=resolved)
+    guarded.take_over(src)
+    return guarded
 
 
 def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True) -> bool:
