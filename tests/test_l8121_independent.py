@@ -141,3 +141,47 @@ def test_a_killed_or_stopped_source_warm_up_leaves_the_tube_off(dialect, sig):
             proc.kill()
             out = proc.communicate()[0]
         assert "X-rays off (confirmed by STS" in out
+
+
+@pytest.mark.parametrize("fault", ["interlock", "SIGKILL"])
+def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect, fault, tmp_path):
+    """``radiokit acquire P --sim`` with ``[sim] source_port`` = the model: the interlock opening
+    during the first exposure stops the series (exit 1, tube confirmed off, the frame taken kept);
+    ``kill -9`` of the run leaves it to the guardian, which switches off and says so."""
+    import tomli_w
+
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=(0.15,))
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0  # a coarse mesh: solved again by the run
+    protocol = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"voltage_kv": 60, "current_ua": 250, "dialect": dialect},
+        "detector": {"kind": "sim", "timeout_s": 2.0},
+        "frame": {"kind": "sim", "initial_height_mm": 10.0},
+        "series": {"darks": 1, "flats": 2, "frames_per_step": 1, "steps": [0.15], "settle_s": 0.0},
+        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.3},
+    }
+    with Controller(dialect, warmup_s=0.5, ramp_s=0.3) as unit:
+        unit.ready()
+        protocol["sim"]["source_port"] = unit.port
+        (tmp_path / "p.toml").write_text(tomli_w.dumps(protocol))
+        proc = _radiokit("acquire", str(tmp_path / "p.toml"), "--sim", "-q")
+        try:
+            # the warm-up, then the flats' XON (in B the warm-up is an XON too)
+            assert _wait(lambda: len(unit.emissions) >= 2 and unit.emitting, 120), "no exposure"
+            time.sleep(0.5)
+            if fault == "interlock":
+                unit.open_interlock()
+            else:
+                proc.send_signal(signal.SIGKILL)
+            out = proc.communicate(timeout=60)[0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert _wait(lambda: not unit.emitting, 5), out
+        assert "X-rays off (confirmed by STS" in out or "tube off (confirmed by STS" in out, out
+    assert proc.returncode == (1 if fault == "interlock" else -signal.SIGKILL), out
+    assert unit.lost == [] and all(e.set_this_session and not e.interlock_open for e in unit.emissions)
