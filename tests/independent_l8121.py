@@ -57,6 +57,7 @@ class Controller:
     dialect: str = "A"
     reply_s: float = 0.12
     chunks: int = 3
+    chunk_gap_s: float = 0.01
     gap_s: float = 0.045
     self_test_s: float = 0.3
     preheat_s: float = 0.3
@@ -303,14 +304,15 @@ class Controller:
         good_link = self._link_ok()
         reply = self._reply(line) if good_link else None
         self.log.append((t, line, reply))
-        out = (reply + ("\r\n" if self.dialect == "A" else "\r")).encode() if good_link else b"\xfe\x7f\x80"
+        text = reply.encode() if good_link else b"\xfe\x7f\x80"  # a baud mismatch: junk, no line end
+        end = (b"\r\n" if self.dialect == "A" else b"\r") if good_link else b""
         time.sleep(self.reply_s)
-        step = max(1, -(-len(out) // self.chunks))
-        for i in range(0, len(out), step):
+        # the text in pieces; the line end with the last one (a UART sends CR LF back to back)
+        step = max(1, -(-len(text) // self.chunks))
+        pieces = [text[i : i + step] for i in range(0, len(text), step)]
+        pieces[-1] += end
+        for i, piece in enumerate(pieces):
             if i:
-                time.sleep(0.01)
-            os.write(self._master, out[i : i + step])
-            if b"\r" in out[i : i + step]:  # the reply's end as a driver reading up to CR sees it
-                self._last_reply_end = time.monotonic()
-        if b"\r" not in out:
-            self._last_reply_end = time.monotonic()
+                time.sleep(self.chunk_gap_s)
+            os.write(self._master, piece)
+        self._last_reply_end = time.monotonic()
