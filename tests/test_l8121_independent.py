@@ -185,3 +185,21 @@ def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect,
         assert "X-rays off (confirmed by STS" in out or "tube off (confirmed by STS" in out, out
     assert proc.returncode == (1 if fault == "interlock" else -signal.SIGKILL), out
     assert unit.lost == [] and all(e.set_this_session and not e.interlock_open for e in unit.emissions)
+
+
+def test_source_warm_up_after_source_on_says_in_command_line_terms_that_the_tube_is_off(dialect):
+    """``source warm-up`` on a tube an earlier ``source on`` left on refuses (a warm-up is not an
+    exposure) and switches off. Found: its error line named Python calls (``call off() before
+    warm_up()``) and said nothing of the tube, which close() had switched off, confirmed."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        port = ["--port", unit.port, "--dialect", dialect]
+        on = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+        on.communicate(timeout=60)
+        assert on.returncode == 0 and unit.emitting
+        proc = _radiokit("acquire", "source", "warm-up", *port)
+        out = proc.communicate(timeout=60)[0]
+        assert not unit.emitting
+    last = out.strip().splitlines()[-1]
+    assert proc.returncode == 1, out
+    assert "()" not in last and "off, confirmed by STS: STANDBY" in last, out
