@@ -452,6 +452,7 @@ def _source_command(args, guard) -> int:
             **{key: value for key, value in times.items() if value is not None},
         )
         try:
+            src = _guarded(src) if args.action == "warm-up" else src  # the warm-up emits: a guardian holds the port
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
             if getattr(exc, "off_failed", None) is not None:
@@ -506,6 +507,24 @@ def _source_command(args, guard) -> int:
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         return _source_error_code(exc, src, args)
+
+
+def _guarded(src):
+    """``src``'s controller behind a guardian process (:mod:`acquisition.guardian`), as a series'
+    is: the warm-up emits X-rays for minutes, and L8121.md has an interrupted warm-up switched off
+    like an exposure, ``kill -9`` of this process included, which only another process can do (it
+    left B's warm-up, which may run on into X-rays on, on for good). The dialect is resolved first
+    (``auto`` probes), the guardian opens the port in it; the returned driver is not connected
+    yet and knows what the probe read (``take_over``)."""
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+    from acquisition.protocols.compression_series import SourceSettings
+
+    resolved = src.resolve()
+    link = start_guardian(src.port, resolved, watchdog_s=SourceSettings.watchdog_s, armed=not src.tube_confirmed_off)
+    guarded = L8121(link, connect=False, config=resolved)
+    guarded.take_over(src)
+    return guarded
 
 
 def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True) -> bool:
@@ -567,9 +586,10 @@ def _source_error_code(exc, src, args) -> int:
 
 
 def _after_failed_on(src, args) -> str:
-    """What a refused or failed ``on`` left the tube in, for the end of its error line. on()
-    switches off (confirmed) after any failure past its XON; a tube already on when it began
-    (an earlier `source on`: on() refuses to change a beam it did not start) is switched off here,
+    """What a refused or failed ``on`` (or ``warm-up``) left the tube in, for the end of its error
+    line. on() switches off (confirmed) after any failure past its XON; a tube already on when it
+    began (an earlier `source on`: on() refuses to change a beam it did not start, warm_up() to
+    start a warm-up) is switched off here,
     not left to close(): the project's rule is the tube off on every exit but a successful `on`'s,
     and the operator asked for other values, not for the old beam to go on. The line says so; a
     switch-off not confirmed raises, and the caller ends on the X-rays warning (exit 3)."""
@@ -580,7 +600,8 @@ def _after_failed_on(src, args) -> str:
         return (
             f"; they were (or may have been) on from before this command (an earlier `source on`) and are now "
             f"off, confirmed "
-            f"by STS: {state.name}; run the same command again to switch them on at {args.kv:g} kV {args.ua:g} uA"
+            f"by STS: {state.name}; run the same command again to "
+            + (f"switch them on at {args.kv:g} kV {args.ua:g} uA" if args.action == "on" else "warm up")
         )
     state = src.confirmed_off
     return f"; X-rays off, confirmed by STS: {state.name}" if state is not None else ""
@@ -606,6 +627,7 @@ def _warm_up_line(src, args, seconds: float) -> str:
 #: Python calls the driver's messages name, and what a command-line user does instead.
 _CLI_TERMS = (
     (" (use set_values() or off())", ""),
+    ("; call off() before warm_up()", ""),  # the CLI switches off, and says so (_after_failed_on)
     ("(call warm_up())", "(`radiokit acquire source warm-up --port {port}`)"),
     ("(or raise [source] ready_timeout_s)", "(or raise --ready-timeout)"),
     # there is no reset action: an overload needs a person at the tube first (L8121.md: no automatic RST)
@@ -694,9 +716,12 @@ def _source_action(src, args) -> int:
         if code is not None:
             return code
     elif args.action == "warm-up":
-        seconds = src.warm_up(
-            timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
-        )
+        try:
+            seconds = src.warm_up(
+                timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
+            )
+        except DeviceError as exc:
+            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         try:

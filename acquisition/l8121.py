@@ -1554,12 +1554,14 @@ class L8121:
         if self.is_connected:
             self._may_be_on = True
             return self.off()
-        if not isinstance(self.url, str):
+        # a guardian's link (``source warm-up``) released the port when the connect failed: open it here
+        url = self.url if isinstance(self.url, str) else getattr(self.url, "url", None)
+        if not isinstance(url, str) or getattr(self.url, "is_open", False):
             raise DeviceError(f"{self.port}: the link is closed: no switch-off could be sent")
         if self.dialect is None:
             return self._off_in_either_dialect(after_interrupt)
         link = SerialTransport(
-            self.url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
+            url, baudrate=self.baudrate, timeout_s=self.timeout_s, min_interval_s=self.min_interval_s
         )
         if after_interrupt:
             time.sleep(self.timeout_s)

@@ -1,0 +1,205 @@
+"""radiokit's L8121 driver and source commands against ``tests/independent_l8121.py``: a controller
+written from ``L8121.md`` alone, before reading the driver or its emulator, taking the harder
+reading wherever the notes leave a choice (slow replies in pieces, commands lost when sent sooner
+than ~50 ms after a reply, retained settings at the ratings' top, B's warm-up that runs on into
+X-rays on, B's ``XON`` not refused for an open interlock). See that module's docstring."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import independent_l8121  # tests/ is on sys.path: pytest's rootdir-relative import of this module
+import pytest
+from independent_l8121 import Controller
+
+from acquisition.errors import DeviceError, SourceFault
+from acquisition.l8121 import L8121
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    return request.param
+
+
+def _wait(predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def _radiokit(*args) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def test_a_session_sets_every_value_before_any_x_ray_command(dialect):
+    """Connect (through the power-on checks), warm up, switch on, poll, switch off on a link that
+    is slow and splits its replies: no command lost to the ~50 ms rule, every ``XON``/``WUP`` at
+    values set in this session (never the retained 150 kV 500 uA) with the interlock closed, no
+    ``RST``, and the tube off at the end."""
+    with Controller(dialect, warmup_s=0.6, ramp_s=0.3) as unit:
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            src.warm_up(timeout_s=10, progress=False)
+            assert not unit.emitting  # B's warm-up ran on into X-rays on: switched off
+            src.on(60, 250)
+            kv, ua = src.measured()
+            assert kv == pytest.approx(60, abs=0.5) and ua == pytest.approx(250, abs=0.5)
+            src.check()
+        assert not unit.emitting
+    assert unit.lost == []
+    assert [(e.kv, e.ua) for e in unit.emissions] == [(40, 0), (60, 250)]  # the warm-up's: the lowest allowed
+    assert all(e.set_this_session and not e.interlock_open for e in unit.emissions)
+    assert "RST" not in [line for _, line, _ in unit.log]
+
+
+@pytest.mark.parametrize("kv, ua", [(151, 250), (39, 250), (60, 501)])
+def test_settings_outside_the_ratings_are_refused_before_anything_is_sent(dialect, kv, ua):
+    with Controller(dialect) as unit:
+        unit.ready(warmed=True)
+        proc = _radiokit(
+            "acquire", "source", "on", "--port", unit.port, "--dialect", dialect, "--kv", str(kv), "--ua", str(ua)
+        )
+        out = proc.communicate(timeout=60)[0]
+        assert proc.returncode == 2, out
+        assert unit.log == [] and not unit.emitting
+
+
+def test_an_interlock_opening_during_the_exposure_stops_it_confirmed(dialect):
+    """B's ``STS`` shows no door (it falls back to ``STANDBY``): the driver must see the dropped
+    beam or ``SIN`` and still switch off and confirm."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            src.on(60, 250)
+            unit.open_interlock()
+            before = len(unit.log)
+            with pytest.raises(SourceFault, match="interlock"):
+                src.check()
+            assert src.tube_confirmed_off and not unit.emitting
+            after = [line for _, line, _ in unit.log[before:]]
+            assert after[after.index("XOF") + 1] == "STS"
+
+
+def test_a_controller_that_stops_answering_is_an_error_not_a_hang(dialect):
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect=dialect, poll_s=0.05)
+        src.on(60, 250)
+        unit.silent = True
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError):
+            src.check()
+        # one poll, then XOF and STS, each waiting out its reply time-out (A 1 s, B 2 s), at most
+        # two polls' worth of queries in B's cycle of four
+        assert time.monotonic() - t0 < 8 * src.timeout_s
+        assert not src.tube_confirmed_off
+        src.detach()
+
+
+def test_a_setting_the_controller_refuses_stops_before_any_x_ray_command(dialect, monkeypatch):
+    """A unit rated lower than the driver's configuration answers the setting ``ERR``/``ERROR``."""
+    monkeypatch.setattr(independent_l8121, "KV_RANGE", (40, 100))
+    with Controller(dialect) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src, pytest.raises(DeviceError, match="refused"):
+            src.on(120, 250)
+    assert unit.emissions == [] and not unit.emitting
+
+
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGSTOP"])
+def test_a_killed_or_stopped_source_warm_up_leaves_the_tube_off(dialect, sig):
+    """``L8121.md``: the warm-up emits X-rays and "an interrupted warm-up is switched off like an
+    exposure", on every exit path. ``kill -9`` cannot be handled in the process, nor ``kill
+    -STOP``: like a series, ``source warm-up`` needs the guardian that holds the port (its
+    watchdog: 5 s without a poll). The model's warm-up lasts 30 s (B's then runs on into X-rays
+    on, for good): a tube still emitting seconds after the signal was left on. Found: both were."""
+    with Controller(dialect, warmup_s=30.0) as unit:
+        unit.ready()
+        proc = _radiokit("acquire", "source", "warm-up", "--port", unit.port, "--dialect", dialect)
+        try:
+            assert _wait(lambda: unit.emitting, 30), "the warm-up did not start"
+            time.sleep(0.3)
+            proc.send_signal(getattr(signal, sig))
+            assert _wait(lambda: not unit.emitting, 10), f"X-rays still on after {sig}"
+        finally:
+            proc.kill()
+            out = proc.communicate()[0]
+        assert "X-rays off (confirmed by STS" in out
+
+
+@pytest.mark.parametrize("fault", ["interlock", "SIGKILL"])
+def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect, fault, tmp_path):
+    """``radiokit acquire P --sim`` with ``[sim] source_port`` = the model: the interlock opening
+    during the first exposure stops the series (exit 1, tube confirmed off, the frame taken kept);
+    ``kill -9`` of the run leaves it to the guardian, which switches off and says so."""
+    import tomli_w
+
+    from sim.scene import block_scene
+
+    scene = block_scene(size_mm=10.0, ratios=(0.15,))
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0  # a coarse mesh: solved again by the run
+    protocol = {
+        "output": str(tmp_path / "series.h5"),
+        "source": {"voltage_kv": 60, "current_ua": 250, "dialect": dialect},
+        "detector": {"kind": "sim", "timeout_s": 2.0},
+        "frame": {"kind": "sim", "initial_height_mm": 10.0},
+        "series": {"darks": 1, "flats": 2, "frames_per_step": 1, "steps": [0.15], "settle_s": 0.0},
+        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.3},
+    }
+    with Controller(dialect, warmup_s=0.5, ramp_s=0.3) as unit:
+        unit.ready()
+        protocol["sim"]["source_port"] = unit.port
+        (tmp_path / "p.toml").write_text(tomli_w.dumps(protocol))
+        proc = _radiokit("acquire", str(tmp_path / "p.toml"), "--sim", "-q")
+        try:
+            # the warm-up, then the flats' XON (in B the warm-up is an XON too)
+            assert _wait(lambda: len(unit.emissions) >= 2 and unit.emitting, 120), "no exposure"
+            time.sleep(0.5)
+            if fault == "interlock":
+                unit.open_interlock()
+            else:
+                proc.send_signal(signal.SIGKILL)
+            out = proc.communicate(timeout=60)[0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert _wait(lambda: not unit.emitting, 5), out
+        assert "X-rays off (confirmed by STS" in out or "tube off (confirmed by STS" in out, out
+    assert proc.returncode == (1 if fault == "interlock" else -signal.SIGKILL), out
+    assert unit.lost == [] and all(e.set_this_session and not e.interlock_open for e in unit.emissions)
+
+
+def test_source_warm_up_after_source_on_says_in_command_line_terms_that_the_tube_is_off(dialect):
+    """``source warm-up`` on a tube an earlier ``source on`` left on refuses (a warm-up is not an
+    exposure) and switches off. Found: its error line named Python calls (``call off() before
+    warm_up()``) and said nothing of the tube, which close() had switched off, confirmed."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        port = ["--port", unit.port, "--dialect", dialect]
+        on = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+        on.communicate(timeout=60)
+        assert on.returncode == 0 and unit.emitting
+        proc = _radiokit("acquire", "source", "warm-up", *port)
+        out = proc.communicate(timeout=60)[0]
+        assert not unit.emitting
+    last = out.strip().splitlines()[-1]
+    assert proc.returncode == 1, out
+    assert "()" not in last and "off, confirmed by STS: STANDBY" in last, out
