@@ -21,7 +21,7 @@ import sys
 import threading
 from collections.abc import Callable
 
-__all__ = ["Interrupted", "exit_status", "redeliver", "lost_stops_redelivered", "deferred"]
+__all__ = ["Interrupted", "exit_status", "redeliver", "raise_stop", "lost_stops_redelivered", "deferred"]
 
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.
@@ -96,21 +96,29 @@ def redeliver(exc: BaseException) -> _Redelivery | None:
     return _Redelivery(signal_number(exc))
 
 
+def raise_stop(held: BaseException | None, error: BaseException | None = None) -> None:
+    """Raise ``held``, a stop that came while a block ran (None: none came), once the block is
+    done. ``error`` is what the block raised: an error is chained to the stop, which wins (the
+    command was stopped, and its exit status must say so: a lost SIGTERM followed within
+    :data:`REDELIVER_AFTER_S` by an error exited 2, not 143); a stop or an exit of the block's own
+    goes out as it is."""
+    if held is not None and (error is None or isinstance(error, Exception)):
+        raise held from error
+
+
 @contextlib.contextmanager
 def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | None]):
     """Run the block, then ``undo()``; then raise ``stop()`` (a stop the block's time held back,
-    or None) -- unless the block raised, whose exception goes out instead."""
-    unwinding = False
+    or None) as :func:`raise_stop` says."""
+    error = None
     try:
         yield
-    except BaseException:
-        unwinding = True
+    except BaseException as exc:
+        error = exc
         raise
     finally:
         undo()
-        held = stop()
-        if held is not None and not unwinding:
-            raise held
+        raise_stop(stop(), error)
 
 
 def lost_stops_redelivered():
@@ -140,7 +148,8 @@ def lost_stops_redelivered():
 
 def deferred(*signals):
     """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is an
-    :class:`Interrupted` once the block is done (an exception of the block's own goes out instead).
+    :class:`Interrupted` once the block is done (an error of the block's is chained to it:
+    :func:`raise_stop`).
 
     Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
     come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,

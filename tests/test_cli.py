@@ -841,3 +841,36 @@ def test_a_stop_lost_just_before_the_command_ends_is_not_lost():
     finally:
         signal.signal(signal.SIGTERM, before)
     assert stop.value.signum == signal.SIGTERM
+
+
+@pytest.mark.parametrize("how", ["lost in a finalizer", "deferred"])
+def test_a_stop_followed_by_an_error_still_stops_the_command(how):
+    """A stop that came while the block ran, then an error of the block's within the moment
+    before the stop is raised (a lost stop's redelivery, or a signal held off by a clean-up): the
+    error went out and the command exited 2, not 143, as if no one had stopped it. The stop wins,
+    the error chained to it. The signal is real; for the lost stop, so is the finalizer it is
+    raised in."""
+    import signal
+
+    from radiokit.interrupts import Interrupted, deferred, lost_stops_redelivered
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGTERM)
+
+    def terminated(signum, frame):
+        raise Interrupted(signum)
+
+    before = signal.signal(signal.SIGTERM, terminated)
+    try:
+        with pytest.raises(Interrupted) as stop:
+            if how == "deferred":
+                with deferred(signal.SIGTERM):
+                    signal.raise_signal(signal.SIGTERM)  # held off until the block is done
+                    raise ValueError("the clean-up failed")
+            with lost_stops_redelivered():
+                Finalised()  # its __del__ takes the signal, and Python drops the raise
+                raise ValueError("the command failed")
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert stop.value.signum == signal.SIGTERM and isinstance(stop.value.__cause__, ValueError)
