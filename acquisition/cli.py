@@ -215,53 +215,76 @@ def _tube_line(res) -> tuple[str, bool]:
     return TUBE_WARNING, False
 
 
+def _guarded(command, *args) -> int:
+    """``command(guard, *args)`` under one signal guard, kept until its last line is printed.
+
+    A stop Python dropped in a finalizer is delivered again a moment later (the guard's
+    :meth:`~acquisition.guardian.SignalGuard.settle`); one still on its way as the command ends
+    is raised only as the guard is left, after the command decided its exit code and said its
+    last line. That line stays the last (the tube's state), and the exit code says the command
+    was stopped -- unless it is 3, the tube not confirmed off, which nothing replaces."""
+    from acquisition.guardian import SignalGuard, StopSignal
+
+    code = None
+    try:
+        with SignalGuard() as guard:
+            code = command(guard, *args)
+    except StopSignal as exc:
+        if code is None:  # the command's own, not the guard's as it was left
+            raise
+        return code if code == 3 else 128 + exc.signum
+    return code
+
+
 def _run_series(args, p) -> int:
     """Run the series under one signal guard, kept until the last line is printed: no signal can
     interrupt the switch-off or the report of it. Exit codes: 0 done, 1 error, 128 + signal
     number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 148 Ctrl-Z), 3 whenever the tube
     could not be confirmed off (the last line then says to switch off at the controller)."""
+    return _guarded(_series, args, p)
+
+
+def _series(guard, args, p) -> int:
     from acquisition.errors import DeviceError
-    from acquisition.guardian import SignalGuard, StopSignal
+    from acquisition.guardian import StopSignal
     from acquisition.protocols.compression_series import run
 
     again = f"`{resume_command(args)}`"
-    with SignalGuard() as guard:
-        try:
-            res = run(
-                p,
-                sim=args.sim,
-                resume=args.resume,
-                progress=not args.quiet and sys.stderr.isatty(),
-                overwrite=args.overwrite,
-                guard=guard,
-            )
-        except KeyboardInterrupt as exc:
-            r = getattr(exc, "result", None)
-            name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
-            saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-            _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
-            return _finish(r, 128 + getattr(exc, "signum", 2))
-        except Exception as exc:
-            r = getattr(exc, "result", None)
-            known = isinstance(exc, (DeviceError, OSError, ValueError))
-            _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
-            if r is not None and r.phase != "connect":
-                _say(
-                    f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; "
-                    f"{again} completes the series"
-                )
-            return _finish(r, 1)
-        if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
-            _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
-            return 0
-        oh = sorted(res.per_frame_overhead_s)
-        med = oh[len(oh) // 2] * 1000 if oh else float("nan")
-        _say(
-            f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
-            f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
-            err=False,
+    try:
+        res = run(
+            p,
+            sim=args.sim,
+            resume=args.resume,
+            progress=not args.quiet and sys.stderr.isatty(),
+            overwrite=args.overwrite,
+            guard=guard,
         )
-        return _finish(res, 0, err=False)
+    except KeyboardInterrupt as exc:
+        r = getattr(exc, "result", None)
+        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+        saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+        _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
+        return _finish(r, 128 + getattr(exc, "signum", 2))
+    except Exception as exc:
+        r = getattr(exc, "result", None)
+        known = isinstance(exc, (DeviceError, OSError, ValueError))
+        _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
+        if r is not None and r.phase != "connect":
+            _say(
+                f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
+            )
+        return _finish(r, 1)
+    if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
+        _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
+        return 0
+    oh = sorted(res.per_frame_overhead_s)
+    med = oh[len(oh) // 2] * 1000 if oh else float("nan")
+    _say(
+        f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
+        f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
+        err=False,
+    )
+    return _finish(res, 0, err=False)
 
 
 def resume_command(args) -> str:
@@ -415,21 +438,24 @@ def _source(args) -> int:
             return 1
         print(result.report())
         return 0 if result.found else 1
-    from acquisition.guardian import TUBE_WARNING, SignalGuard, StopSignal
-
     # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
     # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
     # switches off first, and defers any further signal until that is done
-    with SignalGuard() as guard:
-        try:
-            return _source_command(args, guard)
-        except KeyboardInterrupt as exc:
-            name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
-            _say(f"stopped by {name}; {getattr(exc, 'tube', TUBE_WARNING)}")  # tube: what is known
-            if getattr(exc, "off_failed", None) is not None or getattr(exc, "may_be_on", False):
-                _say(TUBE_WARNING)
-                return 3
-            return 128 + getattr(exc, "signum", 2)
+    return _guarded(_source_guarded, args)
+
+
+def _source_guarded(guard, args) -> int:
+    from acquisition.guardian import TUBE_WARNING, StopSignal
+
+    try:
+        return _source_command(args, guard)
+    except KeyboardInterrupt as exc:
+        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+        _say(f"stopped by {name}; {getattr(exc, 'tube', TUBE_WARNING)}")  # tube: what is known
+        if getattr(exc, "off_failed", None) is not None or getattr(exc, "may_be_on", False):
+            _say(TUBE_WARNING)
+            return 3
+        return 128 + getattr(exc, "signum", 2)
 
 
 def _source_command(args, guard) -> int:
@@ -481,6 +507,7 @@ def _source_command(args, guard) -> int:
             raise
         try:
             code = _source_action(src, args)
+            guard.settle()  # a stop lost meanwhile switches off like any other, before `on` leaves the tube on
         except KeyboardInterrupt as exc:
             # XOF whatever this command had begun (always accepted): the line then states the tube.
             # Not confirmed: off() raises the error that says to switch off at the controller, and

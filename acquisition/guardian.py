@@ -47,7 +47,7 @@ import threading
 import time
 from pathlib import Path
 
-from radiokit.interrupts import Interrupted, redeliver
+from radiokit.interrupts import Interrupted, raise_stop, redeliver
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -87,7 +87,9 @@ class SignalGuard:
     SIGINT ignored, and a Ctrl-C sent to it must still stop the series with the tube off. Set :attr:`stopping` (or enter
     :meth:`cleanup`) before a switch-off sequence: from then on a signal only prints that the
     tube is being switched off. Once a signal has raised, the guard stays stopping, so the
-    cleanup that follows it cannot be interrupted either.
+    cleanup that follows it cannot be interrupted either. A stop lost in a finalizer is delivered
+    again (:meth:`_unraisable`); one still on its way when the guard is left (or at
+    :meth:`settle`) is raised there, before the switch-off only.
 
     Python runs a handler only when the main thread next executes bytecode, which may be a frame
     write or a C call later. Callbacks given to :meth:`on_signal` run at once instead, from a thread
@@ -114,6 +116,7 @@ class SignalGuard:
         self._wake = None  # (read fd, write fd, the previous wakeup fd, watcher thread)
         self._cleaning = False  # cleanup() entered: the switch-off owns the run
         self._old_hook = None  # sys.unraisablehook while the guard is installed
+        self._redelivered: list = []  # stops lost in a finalizer, being delivered again
 
     def __enter__(self) -> SignalGuard:
         self._depth += 1
@@ -127,12 +130,31 @@ class SignalGuard:
     def __exit__(self, *exc_info) -> None:
         self._depth -= 1
         if self._depth == 0:
+            # before the handlers go: a stop delivered again after them would reach the caller
+            # after the run's own handling (its exit code and last line said), or not at all
+            held = self._held()
             self._stop_watch()
             for sig, old in self._old.items():
                 signal.signal(sig, old)
             self._old.clear()
             if self._old_hook is not None:
                 sys.unraisablehook, self._old_hook = self._old_hook, None
+            raise_stop(held, exc_info[1])
+
+    def settle(self) -> None:
+        """Raise now a stop lost in a finalizer that is still on its way (:meth:`_unraisable`),
+        unless the switch-off has begun. Call it before the run's outcome is decided (the tube
+        left on, the last line said): leaving the guard raises it too, but only after those."""
+        raise_stop(self._held())
+
+    def _held(self) -> StopSignal | None:
+        """The stop lost in a finalizer and not yet delivered again, its delivery cancelled."""
+        pending = [delivery.signum for delivery in self._redelivered if delivery.cancel()]
+        self._redelivered.clear()
+        if not pending or self._cleaning:  # during the switch-off a stop is only acknowledged
+            return None
+        self.stopping = True
+        return StopSignal(pending[0])
 
     def on_signal(self, callback) -> None:
         """Call ``callback()`` (no arguments, from the watcher thread) as soon as a guarded signal
@@ -213,7 +235,7 @@ class SignalGuard:
         if isinstance(exc, StopSignal):
             if not self._cleaning:
                 self.stopping = False  # the stop never reached the run: the next delivery raises
-                redeliver(exc)
+                self._redelivered.append(redeliver(exc))
             return  # during the switch-off a stop is only acknowledged, never raised again
         (self._old_hook or sys.__unraisablehook__)(unraisable)
 

@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import ctypes
+import functools
 import signal
 import sys
 import threading
 from collections.abc import Callable
 
-__all__ = ["Interrupted", "exit_status", "redeliver", "lost_stops_redelivered", "deferred"]
+__all__ = ["Interrupted", "exit_status", "redeliver", "raise_stop", "lost_stops_redelivered", "deferred"]
 
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.
@@ -66,6 +68,7 @@ class _Redelivery:
 
     def __init__(self, signum: int):
         self.signum = signum
+        self._handler = _kernel_handler(signum)  # Python's: its handler raised the stop just now
         self._lock = threading.Lock()
         self._done = False  # fired or cancelled
         timer = threading.Timer(REDELIVER_AFTER_S, self._fire)
@@ -73,16 +76,58 @@ class _Redelivery:
         timer.start()
 
     def _fire(self) -> None:
-        with self._lock:  # held while it trips the flag: cancel() then knows the stop is on its way
+        with self._lock:  # held while it sends: cancel() then knows the stop is on its way
             if not self._done:
-                self._done = True
-                _thread.interrupt_main(self.signum)
+                self._done = _deliver(self.signum, self._handler)
 
     def cancel(self) -> bool:
-        """Keep it from firing; True if it had not fired (the stop is then the caller's to raise)."""
+        """Keep it from firing; True if it had not fired, or could not be delivered (the stop is
+        then the caller's to raise)."""
         with self._lock:
             pending, self._done = not self._done, True
             return pending
+
+
+def _deliver(signum: int, handler: int | None) -> bool:
+    """Deliver ``signum`` to the main thread, where its Python handler runs; False (nothing
+    delivered) unless the process handles it in Python now. ``handler``: the kernel's handler
+    for it when the stop was lost (Python's, which had just raised it).
+
+    A real signal where the kernel still runs that handler, not only Python's flag
+    (``_thread.interrupt_main``): a wait in C (``Event.wait``, ``as_completed``, a Dask cluster's
+    ``done.wait()``) is cut short by the one and left to its end by the other (2.00 s late for a
+    2 s wait). But a real signal runs the kernel's handler: the default (SIGTERM's and SIGHUP's
+    kill the process, SIGTSTP's suspends it) or ignore, where Python's is that, or where a C
+    library reset it behind Python's back (gmsh resets SIGTERM: ``SignalGuard.reinstall``). So
+    the kernel's is read first; another than Python's, the flag alone; Python's the default or
+    ignore, nothing, and the stop waits for its block's end. Left: a handler changed between
+    that reading and the delivery, a few microseconds, which a signal from outside meets too."""
+    if not callable(signal.getsignal(signum)):
+        return False
+    now = _kernel_handler(signum)
+    if hasattr(signal, "pthread_kill") and now is not None and now == handler:
+        signal.pthread_kill(threading.main_thread().ident, signum)
+    else:
+        _thread.interrupt_main(signum)
+    return True
+
+
+def _kernel_handler(signum: int) -> int | None:
+    """The address of the handler the kernel runs for ``signum``; None where it is the default
+    action or ignore, or cannot be asked."""
+    try:
+        action = ctypes.create_string_buffer(1024)  # struct sigaction, its handler first (Linux, macOS)
+        if _libc().sigaction(int(signum), None, action) != 0:
+            return None
+    except (OSError, AttributeError):  # no sigaction to ask
+        return None
+    address = ctypes.c_void_p.from_buffer(action).value or 0
+    return None if address in (int(signal.SIG_DFL), int(signal.SIG_IGN)) else address
+
+
+@functools.cache
+def _libc():
+    return ctypes.CDLL(None)
 
 
 def redeliver(exc: BaseException) -> _Redelivery | None:
@@ -90,27 +135,36 @@ def redeliver(exc: BaseException) -> _Redelivery | None:
     :data:`REDELIVER_AFTER_S` (here, still inside the finalizer or the hook, it would be dropped
     again; should it land in another finalizer, this repeats). It runs the handler of its signal
     as the process has it then: a block that defers signals notes it. Returns the pending
-    delivery (None if ``exc`` is not a stop)."""
+    delivery (None if ``exc`` is not a stop): its owner cancels it when its block ends, and
+    raises the stop if it was not delivered (too late, or its signal not handled in Python)."""
     if not isinstance(exc, KeyboardInterrupt):
         return None
     return _Redelivery(signal_number(exc))
 
 
+def raise_stop(held: BaseException | None, error: BaseException | None = None) -> None:
+    """Raise ``held``, a stop that came while a block ran (None: none came), once the block is
+    done. ``error`` is what the block raised: an error is chained to the stop, which wins (the
+    command was stopped, and its exit status must say so: a lost SIGTERM followed within
+    :data:`REDELIVER_AFTER_S` by an error exited 2, not 143); a stop or an exit of the block's own
+    goes out as it is."""
+    if held is not None and (error is None or isinstance(error, Exception)):
+        raise held from error
+
+
 @contextlib.contextmanager
 def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | None]):
     """Run the block, then ``undo()``; then raise ``stop()`` (a stop the block's time held back,
-    or None) -- unless the block raised, whose exception goes out instead."""
-    unwinding = False
+    or None) as :func:`raise_stop` says."""
+    error = None
     try:
         yield
-    except BaseException:
-        unwinding = True
+    except BaseException as exc:
+        error = exc
         raise
     finally:
         undo()
-        held = stop()
-        if held is not None and not unwinding:
-            raise held
+        raise_stop(stop(), error)
 
 
 def lost_stops_redelivered():
@@ -140,7 +194,8 @@ def lost_stops_redelivered():
 
 def deferred(*signals):
     """Hold ``signals`` off while the block cleans up, then act on them: one that arrived is an
-    :class:`Interrupted` once the block is done (an exception of the block's own goes out instead).
+    :class:`Interrupted` once the block is done (an error of the block's is chained to it:
+    :func:`raise_stop`).
 
     Why not ignore them: an interrupt during the clean-up was lost, the run ended as if none had
     come (exit 0 after a Ctrl-C). Why not let them through: stopping the workers takes a moment,

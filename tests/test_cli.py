@@ -3,6 +3,7 @@ for every command (the entry point itself), the rest through ``main`` in this pr
 (``conftest.run_cli``), and in a subprocess what needs one (warnings as the interpreter prints
 them, a traceback, a reader closing the pipe)."""
 
+import contextlib
 import json
 import os
 import re
@@ -818,6 +819,37 @@ def test_info_prints_a_float_stacks_range_to_its_precision(tmp_path):
     assert abs(lo - 0.1) <= 1e-7 * 0.1 and hi == 2.0
 
 
+class _Finalised:
+    """Made and dropped at once: its finalizer takes a real signal, and Python drops what the
+    signal's handler raises there."""
+
+    def __init__(self, signum):
+        self.signum = signum
+
+    def __del__(self):
+        import signal
+
+        signal.raise_signal(self.signum)
+
+
+@contextlib.contextmanager
+def _raising_on(signum, handler=None):
+    """``signum``'s handler raises (an ``Interrupted``, unless ``handler`` says otherwise) while
+    the block runs, as the command line's do."""
+    import signal
+
+    from radiokit.interrupts import Interrupted
+
+    def stop(number, frame):
+        raise Interrupted(number)
+
+    before = signal.signal(signum, handler or stop)
+    try:
+        yield
+    finally:
+        signal.signal(signum, before)
+
+
 def test_a_stop_lost_just_before_the_command_ends_is_not_lost():
     """A stop Python dropped in a finalizer is delivered again a moment later
     (radiokit.interrupts); a command that ends within that moment raised it nowhere, or at its
@@ -827,17 +859,106 @@ def test_a_stop_lost_just_before_the_command_ends_is_not_lost():
 
     from radiokit.interrupts import Interrupted, lost_stops_redelivered
 
-    class Finalised:
-        def __del__(self):
-            signal.raise_signal(signal.SIGTERM)
-
-    def terminated(signum, frame):
-        raise Interrupted(signum)
-
-    before = signal.signal(signal.SIGTERM, terminated)
-    try:
-        with pytest.raises(Interrupted) as stop, lost_stops_redelivered():
-            Finalised()  # its __del__ takes the signal, and Python drops the raise; the block ends at once
-    finally:
-        signal.signal(signal.SIGTERM, before)
+    with _raising_on(signal.SIGTERM), pytest.raises(Interrupted) as stop, lost_stops_redelivered():
+        _Finalised(signal.SIGTERM)  # its __del__ takes the signal, and Python drops the raise; the block ends at once
     assert stop.value.signum == signal.SIGTERM
+
+
+@pytest.mark.parametrize("how", ["lost in a finalizer", "deferred"])
+def test_a_stop_followed_by_an_error_still_stops_the_command(how):
+    """A stop that came while the block ran, then an error of the block's within the moment
+    before the stop is raised (a lost stop's redelivery, or a signal held off by a clean-up): the
+    error went out and the command exited 2, not 143, as if no one had stopped it. The stop wins,
+    the error chained to it. The signal is real; for the lost stop, so is the finalizer it is
+    raised in."""
+    import signal
+
+    from radiokit.interrupts import Interrupted, deferred, lost_stops_redelivered
+
+    with _raising_on(signal.SIGTERM), pytest.raises(Interrupted) as stop:
+        if how == "deferred":
+            with deferred(signal.SIGTERM):
+                signal.raise_signal(signal.SIGTERM)  # held off until the block is done
+                raise ValueError("the clean-up failed")
+        with lost_stops_redelivered():
+            _Finalised(signal.SIGTERM)  # its __del__ takes the signal, and Python drops the raise
+            raise ValueError("the command failed")
+    assert stop.value.signum == signal.SIGTERM and isinstance(stop.value.__cause__, ValueError)
+
+
+def test_a_stop_delivered_again_wakes_a_wait_in_c():
+    """A lost stop was delivered again by setting Python's flag only: a main thread waiting in C
+    (an Event, as_completed, a Dask cluster's done.wait()) saw it when the wait ended (2.00 s
+    for a 2 s wait). It is a real signal to the main thread now, which cuts the wait short. The
+    finalizer and the signal are real."""
+    import signal
+    import threading
+    import time
+
+    from radiokit.interrupts import lost_stops_redelivered
+
+    wait_s = 20.0
+    with _raising_on(signal.SIGINT, signal.default_int_handler):  # a terminal's Ctrl-C
+        t0 = time.monotonic()
+        with pytest.raises(KeyboardInterrupt), lost_stops_redelivered():
+            _Finalised(signal.SIGINT)  # its __del__ takes the signal, and Python drops the raise
+            threading.Event().wait(wait_s)
+        waited = time.monotonic() - t0
+    assert waited < wait_s / 2, waited
+
+
+_DELIVERED_AGAIN_TO = """
+import contextlib, ctypes, signal, sys, threading
+from radiokit.interrupts import REDELIVER_AFTER_S, Interrupted, deferred, exit_status, lost_stops_redelivered
+
+how = sys.argv[1]
+
+
+def terminated(signum, frame):
+    raise Interrupted(signum)
+
+
+class Finalised:
+    def __del__(self):
+        signal.raise_signal(signal.SIGTERM)  # the handler runs here, and Python drops what it raises
+
+
+signal.signal(signal.SIGTERM, terminated)
+ran, held = [], contextlib.nullcontext()
+try:
+    with lost_stops_redelivered():
+        Finalised()
+        if how == "deferred":
+            held = deferred(signal.SIGTERM)
+        elif how == "reset in C":  # behind Python's back, as gmsh does: Python still names the handler
+            ctypes.CDLL(None).signal(int(signal.SIGTERM), None)
+        else:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN if how == "ignored" else signal.SIG_DFL)
+        with held:
+            threading.Event().wait(20 * REDELIVER_AFTER_S)  # the stop is delivered again meanwhile
+            ran.append("to its end")
+except KeyboardInterrupt as exc:
+    print("stopped", type(exc).__name__, exc, *ran)
+    sys.exit(exit_status(exc))
+print("not stopped")
+"""
+
+
+@pytest.mark.parametrize("how", ["ignored", "default", "reset in C", "deferred"])
+def test_a_stop_delivered_again_neither_kills_nor_is_lost(how):
+    """The stop is delivered again as a real signal only where the process handles that signal
+    in Python: one the process now ignores, or whose default action (SIGTERM's: die) would run
+    -- Python's setting, or a C library's behind Python's back -- would have been lost (exit 0)
+    or kill it (no line, status -15). It is raised as the block ends instead; a block that
+    defers signals (a clean-up) notes it and raises it when done. Real signals and finalizer."""
+    res = subprocess.run(
+        [sys.executable, "-c", _DELIVERED_AGAIN_TO, how],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert res.returncode == 143, (res.returncode, res.stdout, res.stderr)
+    words = res.stdout.split()
+    assert words[:3] == ["stopped", "Interrupted", "SIGTERM"], res.stdout
+    assert how != "deferred" or words[3:] == ["to", "its", "end"], res.stdout

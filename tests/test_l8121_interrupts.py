@@ -282,3 +282,65 @@ def test_a_reply_cut_short_is_owed_only_until_its_own_deadline_across_a_late_reo
             assert link.query("XON") == "ERROR" and not model.xray_on
         finally:
             link.close()
+
+
+class _DropsAStop:
+    """Its finalizer takes a real SIGINT, whose handler's StopSignal Python drops ("Exception
+    ignored in"): a Ctrl-C lost as h5py's weak-reference callbacks lose one."""
+
+    def __del__(self):
+        signal.raise_signal(signal.SIGINT)
+
+
+def _then_drop_a_stop(function):
+    def wrapped(*args, **kwargs):
+        result = function(*args, **kwargs)
+        _DropsAStop()  # dies at once, taking the signal into its finalizer
+        return result
+
+    return wrapped
+
+
+@pytest.mark.parametrize("action", ["status", "on"])
+def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkeypatch, capsys):
+    """A Ctrl-C lost in a finalizer as a source command ends (fault injection: the action, or the
+    last line of a ``status`` whose connect failed, then drops one; the signal and the finalizer
+    are real). The
+    stop was delivered again after the command had returned: a KeyboardInterrupt at the caller
+    after the last line (and `on` had left the tube on, exit 0). Now ``on`` switches off as for
+    any stop (confirmed, exit 130), and ``status``, which ended on the warning, still ends on it
+    with exit 3 and nothing after. The moment before the stop is delivered again is made long
+    (1 s), so that the command surely ends within it."""
+    import acquisition.cli
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    monkeypatch.setattr("radiokit.interrupts.REDELIVER_AFTER_S", 1.0)
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    late, codes = [], []
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        if action == "status":  # a tube left on, then garbled replies: the connect fails, the warning, exit 3
+            assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0
+            model.garbage(True)
+            port += ["--reply-timeout", "0.5"]
+            where = "_source_error_code"
+        else:
+            where = "_source_action"
+        monkeypatch.setattr(acquisition.cli, where, _then_drop_a_stop(getattr(acquisition.cli, where)))
+        capsys.readouterr()
+        try:
+            codes.append(
+                main(["acquire", "source", action, *port, *(["--kv", "60", "--ua", "250"] * (action == "on"))])
+            )
+            for _ in range(200):  # twice the moment: a stop delivered after the command lands here
+                time.sleep(0.01)
+        except KeyboardInterrupt as exc:
+            late.append(exc)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert late == [], err
+    if action == "status":
+        assert codes == [3] and model.xray_on and err[-1] == TUBE_WARNING, err
+    else:
+        assert codes == [130] and not model.xray_on, err
+        assert err[-1] == "stopped by SIGINT; tube off (confirmed by STS: STANDBY)", err

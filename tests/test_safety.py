@@ -29,6 +29,7 @@ command is started with SIGINT ignored in some rows, as ``make test &`` starts i
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
@@ -824,6 +825,39 @@ def test_a_stop_lost_in_a_finalizer_is_delivered_again():
         with guard.cleanup():  # the switch-off: from then on nothing interrupts, lost or not
             signal.raise_signal(signal.SIGINT)
             time.sleep(0.05)
+
+
+@pytest.mark.parametrize("switching_off", [False, True])
+def test_a_lost_stop_still_on_its_way_as_the_guard_ends_is_raised_there(switching_off, monkeypatch):
+    """A stop lost in a finalizer is delivered again a moment later; a guarded block that ended
+    within that moment returned (3: "the tube may be on") and the stop reached its caller later,
+    after the command's exit code and last line -- as a traceback. It is raised as the guard is
+    left instead, and nothing comes later; during the switch-off it is only acknowledged, never
+    raised. The finalizer and the signal are real; the moment is made long (1 s) so that the
+    block surely ends within it."""
+    from acquisition.guardian import SignalGuard, StopSignal
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr("radiokit.interrupts.REDELIVER_AFTER_S", 1.0)
+    returned, late = [], []
+    try:
+        with contextlib.ExitStack() as raised:
+            if not switching_off:
+                stop = raised.enter_context(pytest.raises(StopSignal))
+            with SignalGuard() as guard:
+                Finalised()  # dies at once: its __del__ takes the signal, and Python drops the raise
+                if switching_off:
+                    guard.cleanup()
+                returned.append(3)
+        for _ in range(200):  # twice the moment: a stop delivered after the block would land here
+            time.sleep(0.01)
+    except KeyboardInterrupt as exc:
+        late.append(exc)
+    assert returned == [3] and late == []
+    assert switching_off or stop.value.signum == signal.SIGINT
 
 
 def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):
