@@ -478,7 +478,9 @@ def _source_command(args, guard) -> int:
             **{key: value for key, value in times.items() if value is not None},
         )
         try:
-            src = _guarded(src) if args.action == "warm-up" else src  # the warm-up emits: a guardian holds the port
+            src = (
+                _behind_guardian(src) if args.action == "warm-up" else src
+            )  # the warm-up emits: a guardian holds the port
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
             if getattr(exc, "off_failed", None) is not None:
@@ -536,7 +538,7 @@ def _source_command(args, guard) -> int:
         return _source_error_code(exc, src, args)
 
 
-def _guarded(src):
+def _behind_guardian(src):
     """``src``'s controller behind a guardian process (:mod:`acquisition.guardian`), as a series'
     is: the warm-up emits X-rays for minutes, and L8121.md has an interrupted warm-up switched off
     like an exposure, ``kill -9`` of this process included, which only another process can do (it
