@@ -458,6 +458,18 @@ def _source_guarded(guard, args) -> int:
         return 128 + getattr(exc, "signum", 2)
 
 
+def _connect_interrupted(exc) -> str:
+    """What an interrupted connect knew of the tube, for the operator's line (``exc`` the
+    interrupt, carrying what connect found: ``off_failed``, ``tube_state``, ``probe_sent``)."""
+    if getattr(exc, "off_failed", None) is not None:
+        return f"X-rays were on; switching them off failed ({exc.off_failed})"  # + the warning
+    if getattr(exc, "tube_state", None) is not None:
+        return f"X-rays were on: tube off (confirmed by STS: {exc.tube_state.name})"
+    if getattr(exc, "probe_sent", None) is False:
+        return "radiokit never reached the X-ray controller: nothing was sent"
+    return "interrupted while connecting: no X-ray command was sent"
+
+
 def _source_command(args, guard) -> int:
     """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
@@ -478,19 +490,11 @@ def _source_command(args, guard) -> int:
             **{key: value for key, value in times.items() if value is not None},
         )
         try:
-            src = (
-                _behind_guardian(src) if args.action == "warm-up" else src
-            )  # the warm-up emits: a guardian holds the port
+            # the warm-up emits: a guardian holds the port
+            src = _behind_guardian(src) if args.action == "warm-up" else src
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
-            if getattr(exc, "off_failed", None) is not None:
-                exc.tube = f"X-rays were on; switching them off failed ({exc.off_failed})"  # + the warning
-            elif getattr(exc, "tube_state", None) is not None:
-                exc.tube = f"X-rays were on: tube off (confirmed by STS: {exc.tube_state.name})"
-            elif getattr(exc, "probe_sent", None) is False:
-                exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
-            else:
-                exc.tube = "interrupted while connecting: no X-ray command was sent"
+            exc.tube = _connect_interrupted(exc)
             if getattr(exc, "tube_state", None) is None and getattr(exc, "off_failed", None) is None:
                 # no switch-off in connect: one is tried now (signals deferred: the guard stays
                 # stopping) by a command that controls the tube -- `off` asked for it, and every
