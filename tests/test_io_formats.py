@@ -991,6 +991,25 @@ def test_an_ome_tiff_of_several_images_is_refused_not_read_as_one_stack(tmp_path
         read(path)
 
 
+def test_an_ome_tiff_written_one_frame_at_a_time_reads_as_its_frames(tmp_path):
+    """An acquisition script's loop of ``TiffWriter(..., ome=True).write(frame)`` makes one OME
+    image (series) per frame: read as frames before s32-h4's refusal of several images, then
+    refused (review s32-r2). Series of one 2-D plane each, of one shape and type, are its frames;
+    a series of several planes, or of another size, is still refused."""
+    frames = _frames(5)
+    path = tmp_path / "darks.ome.tif"
+    with tifffile.TiffWriter(path, ome=True) as tif:
+        for frame in frames:
+            tif.write(frame)
+    np.testing.assert_array_equal(read(path).data, frames)
+    mixed = tmp_path / "mixed.ome.tif"
+    with tifffile.TiffWriter(mixed, ome=True) as tif:
+        tif.write(frames[0])
+        tif.write(frames[1:3], metadata={"axes": "TYX"})
+    with pytest.raises(FormatError, match=r"mixed\.ome\.tif: an OME-TIFF of 2 images \(series\)"):
+        read(mixed)
+
+
 @pytest.mark.parametrize("axes", ["ZYX", "TZYX"])
 def test_an_ome_or_imagej_stack_of_one_channel_still_reads_in_page_order(tmp_path, axes):
     frames = _frames(6)

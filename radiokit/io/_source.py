@@ -354,7 +354,9 @@ class FrameSource:
         Why: every page is a greyscale image of one size, so the pages read as one stack with the
         channels interleaved (or the darks' series followed by the flats'), and calibrate averaged
         them together. Channels alone are read as frames: tifffile labels a plain 3-D stack's
-        axis C in both ImageJ and OME files. A page's own samples (RGB) are refused as colour."""
+        axis C in both ImageJ and OME files; so are OME series of one 2-D plane each, all of one
+        shape and type (a script writing one frame per call). A page's own samples (RGB) are
+        refused as colour."""
         tif, what, advice = self._tif, "", "save each channel as its own file"
         if tif.is_imagej:
             ij = tif.imagej_metadata or {}
@@ -369,7 +371,9 @@ class FrameSource:
             series = tif.series
             sizes = dict(zip(series[0].axes, series[0].shape))
             others = math.prod(n for axis, n in sizes.items() if axis not in "CYXS")
-            if len(series) > 1:
+            # one 2-D plane per series, all alike: an acquisition loop's one write per frame
+            planes = {(tuple(ser.shape), ser.dtype) for ser in series}
+            if len(series) > 1 and not (len(planes) == 1 and len(series[0].shape) == 2):
                 what, advice = (
                     f"an OME-TIFF of {len(series)} images (series), {pages} pages",
                     "save each image as its own file",
