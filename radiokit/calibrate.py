@@ -710,6 +710,12 @@ class FrameLevelError(CalibrationRefused):
         self.kind, self.index = kind, index
 
 
+#: A flat refused by :func:`_check_levels` reading over this share of the brightest flat's signal
+#: is lit (another exposure), not a dark: a dark among flats reads ~0 of it, within its noise, and
+#: a flat caught in a tube's warm-up or a current spike reads a fair share of it
+LIT_SHARE = 0.1
+
+
 def _check_levels(darks, flats, eps) -> None:
     """Refuse a flat frame closer to the darks' level than to the brightest flat's, or a dark frame
     closer to the flats' than to the darkest dark's (each frame's median).
@@ -717,7 +723,8 @@ def _check_levels(darks, flats, eps) -> None:
     Why: a dark file among the flats (a glob) gave each pixel samples 2900 counts apart, none
     clipped by :func:`robust_average`, and a flat halfway up: every transmission twice too high,
     exit 0. The darkest dark and the brightest flat anchor the levels, not the medians, which half
-    the frames of the wrong kind would move."""
+    the frames of the wrong kind would move. A refused flat that is lit (:data:`LIT_SHARE`) is
+    named as one of another exposure, not as a dark."""
     sample = (slice(None), slice(None, None, 4), slice(None, None, 4))
     levels = {k: np.median(s[sample].reshape(len(s), -1), axis=1) for k, s in (("dark", darks), ("flat", flats))}
     dark = float(levels["dark"].min())
@@ -731,11 +738,19 @@ def _check_levels(darks, flats, eps) -> None:
     for kind, wrong in (("flat", levels["flat"] - dark < signal / 2), ("dark", levels["dark"] - dark > signal / 2)):
         if wrong.any():
             i = int(np.argmax(wrong))
+            share = (levels[kind][i] - dark) / signal
+            if kind == "flat" and share > LIT_SHARE:  # lit, at another exposure: not a dark
+                reason = (
+                    f"{100 * share:.0f} % of the brightest: flats of another exposure (another tube current "
+                    "or time, a current spike), whose average mixes two; take the flats at one exposure"
+                )
+            else:
+                reason = why[kind]
             raise FrameLevelError(
                 kind,
                 i,
                 f"{kind} {i + 1} of {len(wrong)} reads {levels[kind][i] - dark:.0f} counts above the darkest dark, "
-                f"the brightest flat {signal:.0f}: {why[kind]}",
+                f"the brightest flat {signal:.0f}: {reason}",
             )
 
 

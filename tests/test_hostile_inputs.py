@@ -1854,6 +1854,26 @@ def test_calibration_from_frames_of_one_exposure_each_is_kept(tmp_path):
     assert abs(cal.c - 2900) < 30
 
 
+@pytest.mark.parametrize("levels", [[1400] * 8 + [3500] * 2, [1400] * 9 + [3080]])
+def test_flats_of_two_exposures_are_refused_as_such_not_as_a_dark(levels):
+    """Flats at two tube currents (8 at 1400 counts, 2 at 3500), or one caught in a current
+    spike (2.2x): refused as before (their average mixes two exposures), but the line called the
+    dimmer ones "a dark, not a flat (a dark file among the flats ...)" (review s32-r2). A flat
+    clearly lit is one of another exposure, and the line gives its share of the brightest."""
+    from radiokit.calibrate import Calibration, FrameLevelError
+
+    rng = np.random.default_rng(6)
+    darks = rng.normal(100, 2, (4, 24, 32))
+    flats = np.stack([rng.normal(level, 20, (24, 32)) for level in levels])
+    with pytest.raises(FrameLevelError) as refused:
+        Calibration.from_frames(darks, flats)
+    text = str(refused.value)
+    share = (levels[0] - 100) / (max(levels) - 100)
+    assert "another exposure" in text and "a dark" not in text, text
+    assert f"{100 * share:.0f} % of the brightest" in text, text
+    assert refused.value.culprits == ("flats",)
+
+
 def test_process_names_the_file_frame_of_a_dark_labelled_as_a_flat(tmp_path):
     """The same check on an experiment file: a dark its writer labelled a flat (frame 4) is named
     by its frame in the file, not by its place among the flats."""
