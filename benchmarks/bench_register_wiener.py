@@ -51,13 +51,9 @@ from bench_register_bound import _cell_sums, cell_information, information_roots
 from regdata import TEST_SEEDS, TRAIN_SEEDS, Case, family_pair, family_thinning, score
 
 
-def posterior_mean(features, residual, noise, kern, cells, theta0):
-    """``(cells^2, p)``: the posterior mean ``(H + C^-1)^-1 (H theta0 + g)`` of the linear model
-    ``residual = sum_c features[c] (theta_c - theta0_c) + noise`` about ``theta0`` (cells^2, p),
-    each parameter a Gaussian process with covariance ``kern[c]`` (cells^2, cells^2).
-
-    Through ``C y - C S (I + S^T C S)^-1 S^T C y`` with ``H = S S^T`` cell by cell (the Gaussian
-    kernel's ``C`` is far too ill-conditioned to invert; ``I + S^T C S`` is >= I)."""
+def _information_form(features, residual, noise, kern, cells, theta0):
+    """``(S, y, C y, A)`` of the linear model of :func:`posterior_mean`: the roots ``S`` of the
+    cells' information ``H``, ``y = H theta0 + g``, and ``A = I + S^T C S`` (p*cells^2 square)."""
     p, m = len(features), cells * cells
     h = cell_information(features, noise, cells)
     g = np.stack([_cell_sums(f * residual, cells).ravel() for f in features], 1) / (2.0 * noise**2)
@@ -66,6 +62,18 @@ def posterior_mean(features, residual, noise, kern, cells, theta0):
     cy = np.einsum("akl,la->ka", kern, y)
     a = np.einsum("kca,ckl,lcb->kalb", s, kern, s).reshape(p * m, p * m)
     a[np.diag_indices_from(a)] += 1.0
+    return s, y, cy, a
+
+
+def posterior_mean(features, residual, noise, kern, cells, theta0):
+    """``(cells^2, p)``: the posterior mean ``(H + C^-1)^-1 (H theta0 + g)`` of the linear model
+    ``residual = sum_c features[c] (theta_c - theta0_c) + noise`` about ``theta0`` (cells^2, p),
+    each parameter a Gaussian process with covariance ``kern[c]`` (cells^2, cells^2).
+
+    Through ``C y - C S (I + S^T C S)^-1 S^T C y`` with ``H = S S^T`` cell by cell (the Gaussian
+    kernel's ``C`` is far too ill-conditioned to invert; ``I + S^T C S`` is >= I)."""
+    p, m = len(features), cells * cells
+    s, y, cy, a = _information_form(features, residual, noise, kern, cells, theta0)
     z = linalg.solve(a, np.einsum("kba,kb->ka", s, cy).ravel(), assume_a="pos", check_finite=False)
     sz = np.einsum("kab,kb->ka", s, z.reshape(m, p))
     return cy - np.einsum("akl,la->ka", kern, sz)
@@ -102,14 +110,7 @@ def log_evidence(features, residual, noise, kern, cells, theta0):
     """The log marginal likelihood (up to a constant of the data) of :func:`posterior_mean`'s
     model under the prior ``kern``: ``-log|A| / 2 + y^T (H + C^-1)^-1 y / 2``, ``A = I + S^T C S``
     and ``y = H theta0 + g`` (the likelihood in information form, ``theta`` integrated out)."""
-    p, m = len(features), cells * cells
-    h = cell_information(features, noise, cells)
-    g = np.stack([_cell_sums(f * residual, cells).ravel() for f in features], 1) / (2.0 * noise**2)
-    s = information_roots(h)
-    y = np.einsum("kab,kb->ka", h, theta0) + g
-    cy = np.einsum("akl,la->ka", kern, y)
-    a = np.einsum("kca,ckl,lcb->kalb", s, kern, s).reshape(p * m, p * m)
-    a[np.diag_indices_from(a)] += 1.0
+    s, y, cy, a = _information_form(features, residual, noise, kern, cells, theta0)
     chol = linalg.cholesky(a, lower=True, check_finite=False)
     b = np.einsum("kba,kb->ka", s, cy).ravel()
     z = linalg.cho_solve((chol, True), b, check_finite=False)
