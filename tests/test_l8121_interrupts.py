@@ -344,3 +344,49 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
     else:
         assert codes == [130] and not model.xray_on, err
         assert err[-1] == "stopped by SIGINT; tube off (confirmed by STS: STANDBY)", err
+
+
+@pytest.mark.parametrize("given", ["auto", "B"])
+def test_a_warm_up_interrupted_while_its_guardian_starts_ends_with_the_guardian(given):
+    """``source warm-up`` on a unit left on by ``source on``, a real SIGINT while the command waits
+    for its guardian to start (the guardian held there, see ``guardian_held_at_start``). Found in
+    review: nobody stopped the guardian it had launched; with ``auto`` the command switched off
+    through the port itself while the guardian still held it, exited 130, and the guardian
+    switched off again after the last line; with B it said "no X-ray command was sent", exit 130,
+    the tube on until the orphaned guardian switched it off after the prompt. Now the guardian
+    switches off, is waited for, and the command's last line states the confirmed tube, exit 130;
+    nothing is left holding the port."""
+    import re
+    import select
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import guardian_held_at_start
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        src.on(60, 250)
+        src.detach()
+        n = len(model.commands)
+        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
+        cmd += ["--kv", "60", "--ua", "250", "--reply-timeout", "1"] + ([] if given == "auto" else ["--dialect", given])
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+        def printed():
+            return bool(select.select([p.stderr], [], [], 0)[0])
+
+        with guardian_held_at_start(p, printed) as guardian:
+            p.send_signal(signal.SIGINT)
+        code = p.wait(timeout=120)
+        guardian_left = Path(f"/proc/{guardian}").exists()  # reaped by the command, or still running
+        err = p.stderr.read()  # to the end: the guardian writes to the same stderr
+    lines = err.strip().splitlines()
+    assert not guardian_left, err
+    assert code == 130 and lines[-1].startswith("stopped by SIGINT"), (code, err)
+    assert re.search(r"tube off \(confirmed by STS: \w+\)$", lines[-1]), err
+    assert TUBE_WARNING not in err and not model.xray_on, (model.commands[n:], err)
+    assert not {"XON", "WUP", "PHV", "PCU"} & {c.split()[0] for c in model.commands[n:]}, model.commands[n:]
