@@ -21,9 +21,10 @@ accept. Two mechanisms cover the two ways a process ends:
   also watches the acquiring process's polls, once it has sent its first request (from the start
   when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the
   protocol's ``[source] watchdog_s``) and it switches off the same way, says so (a retry of an off
-  it could not confirm in one short line), and keeps serving (the series then stops at its next
-  beam check) -- unless that off was confirmed only by another unit now at the port (the link
-  reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
+  it could not confirm in one short line), and keeps serving (the series or warm-up then stops
+  when it next reads the source: a beam check, a warm-up poll) -- unless that off was confirmed
+  only by another unit now at the port (the link reopened while X-rays may have been on): then it
+  says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
   ignores SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
@@ -617,7 +618,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
     said(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
-        f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
+        f"(suspended or hung): switching X-rays off; the series or warm-up stops when it next reads the source",
     )
     before = getattr(watch.reidentify, "reconnects", 0)
     outcome = _switch_off(link, config, note, watch, said)

@@ -390,3 +390,33 @@ def test_a_warm_up_interrupted_while_its_guardian_starts_ends_with_the_guardian(
     assert re.search(r"tube off \(confirmed by STS: \w+\)$", lines[-1]), err
     assert TUBE_WARNING not in err and not model.xray_on, (model.commands[n:], err)
     assert not {"XON", "WUP", "PHV", "PCU"} & {c.split()[0] for c in model.commands[n:]}, model.commands[n:]
+
+
+def test_a_suspended_warm_up_is_switched_off_by_its_guardian_and_stops_at_its_next_poll():
+    """``source warm-up`` (dialect B, whose warm-up may run on into X-rays on), suspended mid-warm-up
+    (SIGSTOP): its guardian's watchdog switches off after ``watchdog_s`` and says what follows --
+    it said "the series stops at its next beam check" to the operator of a warm-up. Resumed, the
+    warm-up reads the source at its next poll and stops: an error naming it, exit 1, the tube off."""
+    import subprocess
+    import sys
+
+    from acquisition.protocols.compression_series import SourceSettings
+
+    model = L8121Model(dialect="B", warmed_up=False, warmup_s=600, ramp_s=0.1)
+    with PtyServer(model) as server:
+        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
+        p = subprocess.Popen(cmd + ["--dialect", "B"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        end = time.monotonic() + 60
+        while model.state != 1 and p.poll() is None and time.monotonic() < end:  # 1: WARMING_UP
+            time.sleep(0.02)
+        assert model.state == 1, p.communicate(timeout=60)
+        os.kill(p.pid, signal.SIGSTOP)
+        end = time.monotonic() + 60 + SourceSettings.watchdog_s
+        while model.state == 1 and time.monotonic() < end:
+            time.sleep(0.02)
+        os.kill(p.pid, signal.SIGCONT)
+        _, err = p.communicate(timeout=60)
+    said = [line for line in err.splitlines() if "has sent nothing" in line]
+    assert len(said) == 1 and "the series or warm-up stops when it next reads the source" in said[0], err
+    assert p.returncode == 1 and "warm-up stopped" in err.strip().splitlines()[-1], err
+    assert model.state != 1 and not model.xray_on
