@@ -458,18 +458,6 @@ def _source_guarded(guard, args) -> int:
         return 128 + getattr(exc, "signum", 2)
 
 
-def _connect_interrupted(exc) -> str:
-    """What an interrupted connect knew of the tube, for the operator's line (``exc`` the
-    interrupt, carrying what connect found: ``off_failed``, ``tube_state``, ``probe_sent``)."""
-    if getattr(exc, "off_failed", None) is not None:
-        return f"X-rays were on; switching them off failed ({exc.off_failed})"  # + the warning
-    if getattr(exc, "tube_state", None) is not None:
-        return f"X-rays were on: tube off (confirmed by STS: {exc.tube_state.name})"
-    if getattr(exc, "probe_sent", None) is False:
-        return "radiokit never reached the X-ray controller: nothing was sent"
-    return "interrupted while connecting: no X-ray command was sent"
-
-
 def _source_command(args, guard) -> int:
     """Connect and run one source action. Any exception switches off (signals deferred meanwhile)
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
@@ -494,7 +482,7 @@ def _source_command(args, guard) -> int:
             src = _behind_guardian(src) if args.action == "warm-up" else src
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
-            exc.tube = _connect_interrupted(exc)
+            exc.tube = _interrupted_connect(exc)
             if getattr(exc, "tube_state", None) is None and getattr(exc, "off_failed", None) is None:
                 # no switch-off in connect: one is tried now (signals deferred: the guard stays
                 # stopping) by a command that controls the tube -- `off` asked for it, and every
@@ -540,6 +528,20 @@ def _source_command(args, guard) -> int:
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
         return _source_error_code(exc, src, args)
+
+
+def _interrupted_connect(exc) -> str:
+    """What an interrupted connect (its ``exc``) left of the tube, for the last line."""
+    # who switched off: the connect's own driver (it read X-rays on), or the guardian whose start was cut short
+    guardian = getattr(exc, "guardian_off", False)
+    if getattr(exc, "off_failed", None) is not None:  # + the warning
+        return f"{'X-rays may be on' if guardian else 'X-rays were on'}; switching them off failed ({exc.off_failed})"
+    if getattr(exc, "tube_state", None) is not None:
+        who = "switched off by the X-ray guardian" if guardian else "X-rays were on"
+        return f"{who}: tube off (confirmed by STS: {exc.tube_state.name})"
+    if getattr(exc, "probe_sent", None) is False:
+        return "radiokit never reached the X-ray controller: nothing was sent"
+    return "interrupted while connecting: no X-ray command was sent"
 
 
 def _behind_guardian(src):

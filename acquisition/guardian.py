@@ -21,9 +21,10 @@ accept. Two mechanisms cover the two ways a process ends:
   also watches the acquiring process's polls, once it has sent its first request (from the start
   when the caller says the tube may be on: ``radiokit acquire``): none for ``watchdog_s`` (the
   protocol's ``[source] watchdog_s``) and it switches off the same way, says so (a retry of an off
-  it could not confirm in one short line), and keeps serving (the series then stops at its next
-  beam check) -- unless that off was confirmed only by another unit now at the port (the link
-  reopened while X-rays may have been on): then it says so once and exits 3, and the acquiring
+  it could not confirm in one short line), and keeps serving (the series or warm-up then stops
+  when it next reads the source: a beam check, a warm-up poll) -- unless that off was confirmed
+  only by another unit now at the port (the link reopened while X-rays may have been on): then it
+  says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
   ignores SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
   does not take it down with the acquiring process.
@@ -34,6 +35,8 @@ a reply that arrives after its requester was interrupted is discarded)::
     Q SEQ COMMAND   ->  R SEQ REPLY  |  E SEQ MESSAGE     one exchange with the controller
                     |  N SEQ MESSAGE                      (N: the controller did not reply)
     X               ->  (exit)                            orderly release: close the port, no XOF
+    O               ->  O 0 STATE  |  O 3 MESSAGE, (exit)  the start was cut short: switch off, say how
+                                                          (0: confirmed by STS reading STATE; 3: not)
 """
 
 from __future__ import annotations
@@ -295,6 +298,11 @@ def start_guardian(
         The guardian did not start.
     ValueError
         ``config`` leaves the dialect or the baud rate open.
+
+    A stop signal (Ctrl-C) or an error while the guardian starts: the guardian launched switches
+    off and exits before this raises (waited for, killed if it hangs), and the exception carries
+    what it said (``guardian_off``, with ``tube_state`` or ``off_failed``): only one process holds
+    the port at a time, and nothing the guardian says comes after the caller's last line.
     """
     from acquisition.errors import DeviceError
     from acquisition.transport import PipeTransport
@@ -321,6 +329,9 @@ def start_guardian(
     # the guardian imports acquisition from wherever this process did (a checkout, not only site-packages)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    # a stop signal is held until the guardian is in hand: raised inside Popen, after the fork, it
+    # left a guardian nobody could stop or wait for (it switched off after the caller's last line)
+    held = _Held()
     try:
         # its own session: the terminal's Ctrl-C (sent to the foreground process group) and its
         # hang-up do not reach it; stdin/stdout are the pipe, stderr the operator's terminal
@@ -328,12 +339,71 @@ def start_guardian(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True, close_fds=True
         )
     except OSError as exc:
+        held.release()
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
+    except BaseException:
+        held.release()
+        raise
     link = PipeTransport(
         url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate, min_interval_s=config.min_interval_s
     )
-    link.wait_ready(startup_timeout_s)
+    try:
+        held.release()  # a signal held meanwhile raises here
+        link.wait_ready(startup_timeout_s)
+    except BaseException as exc:
+        # Ctrl-C while it starts (or a start that failed): the guardian launched must not live on
+        # beside the caller's own switch-off on the same port, nor speak after its last line
+        _end_start(link, config, exc, startup_timeout_s)
+        raise
     return link
+
+
+class _Held:
+    """The stop signals recorded, not acted on, from now until :meth:`release`, which puts the
+    handlers back and delivers the first one held through them (their own rules: the guard's
+    raises, or defers once stopping). Python's handlers, in the main thread only (where they run):
+    a mask (``pthread_sigmask``) holds a signal only from the thread that sets it, and a process's
+    signal goes to any thread that does not (the guard's watcher)."""
+
+    def __init__(self):
+        self.held: list[int] = []
+        self.old = {}
+        if threading.current_thread() is threading.main_thread():
+            self.old = {sig: signal.signal(sig, self._record) for sig in _SIGNALS}
+
+    def _record(self, signum, frame) -> None:
+        self.held.append(signum)
+
+    def release(self) -> None:
+        old, self.old = self.old, {}
+        for sig, handler in old.items():
+            if handler is not None:  # None: installed outside Python, which cannot put it back
+                signal.signal(sig, handler)
+        if old and self.held:
+            signal.raise_signal(self.held[0])
+
+
+def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> None:
+    """Have the guardian whose start ``exc`` cut short switch off and exit, waited for; what it
+    said goes on ``exc`` as a connect's outcome does (README's one rule): ``tube_state`` (the
+    state its STS confirmed), or ``off_failed`` -- or nothing, when it never held the port (the
+    caller's own rule then holds: it may switch off through the port itself, now free)."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import SourceState
+
+    # its start, then the switch-off: every attempt's XOF and STS (each a reply time-out and a
+    # reconnect, :class:`~acquisition.transport.PipeTransport`'s wait) and the confirmation window
+    per_exchange = 2 * (config.timeout_s + 1.0) + 2.0
+    bound = startup_timeout_s + config.off_confirm_s + 2 * config.off_attempts * per_exchange
+    said = link.end_start(bound)
+    if said is None:
+        return
+    code, _, text = said.partition(" ")
+    exc.guardian_off = True  # the guardian's switch-off, not the caller's
+    if code == "0" and text in SourceState.__members__:
+        exc.tube_state = SourceState[text]
+    else:
+        exc.off_failed = DeviceError(f"{link.port}: the X-ray guardian's switch-off: {text or said}")
 
 
 # -- the guardian process ---------------------------------------------------------------------------
@@ -397,6 +467,7 @@ def _switch_off(link, config, note, watch: _Watch, failure_note=None) -> str:
         note("CRITICAL", driver.unverified_warning(state))
         return "unverified"
     note("WARNING", f"{link.port}: X-rays off (confirmed by STS: {state.name})")
+    watch.off_state = state.name
     return "off"
 
 
@@ -437,6 +508,7 @@ class _Watch:
         # before it ever spoke is a slow start (a Python-API user building its detector), not a
         # hang, and an XOF then went to a unit nobody had checked (review s29-h4)
         self.heard = False
+        self.off_state = ""  # what the STS that confirmed this guardian's last switch-off read
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -546,7 +618,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
     said(
         "WARNING",
         f"{link.port}: the acquiring process has sent nothing for {watchdog_s:g} s with X-rays possibly on "
-        f"(suspended or hung): switching X-rays off; the series stops at its next beam check",
+        f"(suspended or hung): switching X-rays off; the series or warm-up stops when it next reads the source",
     )
     before = getattr(watch.reidentify, "reconnects", 0)
     outcome = _switch_off(link, config, note, watch, said)
@@ -607,14 +679,20 @@ def _admit(link, watch: _Watch, command: str) -> None:
     watch.sent(command)
 
 
-def _orphaned(link, config, note, watch: _Watch, when: str = "without releasing the port") -> int:
-    """The acquiring process is gone: switch off, close the port, and return the exit status (0:
-    confirmed off; 3: not, the operator warned)."""
-    note("WARNING", f"{link.port}: the acquiring process ended {when}; switching X-rays off")
+def _orphaned(link, config, note, watch: _Watch, why: str = "ended without releasing the port", tell=None) -> int:
+    """The acquiring process is gone (or gives up the start, ``tell``: its pipe, which gets the
+    outcome's ``O`` line): switch off, close the port, and return the exit status (0: confirmed
+    off; 3: not, the operator warned)."""
+    note("WARNING", f"{link.port}: the acquiring process {why}; switching X-rays off")
     ok = _switch_off(link, config, note, watch) == "off"
     link.close()
     if not ok:
         _say(TUBE_WARNING)
+    if tell is not None:
+        try:
+            os.write(tell, (f"O 0 {watch.off_state}\n" if ok else "O 3 X-rays not confirmed off\n").encode())
+        except OSError:
+            pass  # it died meanwhile: the exit status is all there is
     return 0 if ok else 3
 
 
@@ -646,6 +724,8 @@ def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = Fa
             link.close()
             note("INFO", f"{link.port}: released by the acquiring process")
             return 0
+        if words[0] == "O":  # its start was cut short (Ctrl-C): it waits to hear how the tube was left
+            return _orphaned(link, config, note, watch, "was stopped while the X-ray guardian started", tell=wfd)
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]
@@ -737,7 +817,7 @@ def main(argv: list[str] | None = None) -> int:
         # with a traceback and no XOF, the tube left on and nobody told
         watch = _Watch(config)
         watch.reidentify = link.on_reconnect
-        return _orphaned(link, config, note, watch, "before the X-ray guardian was ready")
+        return _orphaned(link, config, note, watch, "ended before the X-ray guardian was ready")
     return _serve(link, config, note, args.watchdog, args.armed)
 
 

@@ -26,6 +26,7 @@ import os
 import re
 import select
 import signal
+import subprocess
 import threading
 import time
 
@@ -732,6 +733,39 @@ class PipeTransport:
             raise error(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
         self._open = True
         self.log.info("%s opened through the X-ray guardian (pid %d)", self.url, self._process.pid)
+
+    def end_start(self, timeout_s: float) -> str | None:
+        """The start was cut short (Ctrl-C in :meth:`wait_ready`, or it failed): ask the guardian
+        to switch off and exit (``O``; before ``READY`` the request waits in the pipe), and wait up
+        to ``timeout_s`` for it to say how it left the tube and exit -- killed if it has not: only
+        then may the caller open the port itself, and what the guardian says (on stderr) comes
+        before the caller's last line. Returns its ``O`` line's rest (``0 STATE``: off, confirmed
+        by STS; ``3 MESSAGE``: not), or None: it never held the port, or died, or was killed."""
+        self._open = False
+        said = None
+        if not self._process.stdout.closed:  # (wait_ready's _finish closed it: the guardian is gone)
+            try:
+                _write_no_sigpipe(self._wfd, b"O\n")
+            except OSError:
+                pass
+            try:
+                self._process.stdin.close()  # and a guardian not yet serving reads its end after the O
+            except OSError:
+                pass
+            deadline = time.monotonic() + timeout_s
+            try:
+                while said is None:
+                    line = self._read_line(deadline, "start")
+                    said = line[2:] if line.startswith("O ") else None
+            except DeviceError:  # its end of the pipe closed, or the deadline passed
+                pass
+        try:
+            self._process.wait(timeout=0.5 if said is None else 5.0)
+        except subprocess.TimeoutExpired:
+            self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
+            self._process.wait()
+        self._finish()
+        return said
 
     def open(self) -> None:
         """A no-op while the guardian serves; after :meth:`close` a new guardian is needed."""

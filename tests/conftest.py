@@ -4,6 +4,7 @@ The vendor files live in ``../shared`` beside the repository (the only place the
 tests that need them are marked ``needs_itex`` and skip with a message naming the missing folder.
 """
 
+import contextlib
 import io
 import locale
 import logging
@@ -12,6 +13,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -191,3 +193,56 @@ def run_cli(*args, env=None, cwd=None) -> subprocess.CompletedProcess:
     stdout = _decode(out_bytes.getvalue() + fd_out, encoding)
     stderr = _decode(err_bytes.getvalue() + fd_err, encoding)
     return subprocess.CompletedProcess(["radiokit", *argv], code, stdout, stderr)
+
+
+# -- the X-ray guardian of a command under test ------------------------------------------------------
+
+
+def guardian_of(pid):
+    """The pid of the X-ray guardian process that ``pid`` started (from /proc), or None."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and b"acquisition.guardian" in cmdline:
+            return int(entry.name)
+    return None
+
+
+def _pipe_holds_bytes(path) -> bool:
+    import fcntl
+    import struct
+    import termios
+
+    try:
+        with open(path, "rb", buffering=0) as pipe:
+            return struct.unpack("i", fcntl.ioctl(pipe, termios.FIONREAD, b"\0\0\0\0"))[0] > 0
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def guardian_held_at_start(proc, acted, timeout_s=60.0):
+    """Hold the X-ray guardian that ``proc`` starts (SIGSTOP as soon as it appears in /proc, before
+    it can open the port and say READY), so that what the body does to ``proc`` (a signal) lands
+    while ``proc`` waits for the guardian to start. On leaving, the guardian runs on (SIGCONT) once
+    ``proc`` has acted on it: written to the guardian, ``acted()`` true (it printed), or ended.
+    Yields the guardian's pid. The freeze is the start-up window made wide, not a fake."""
+    end = time.monotonic() + timeout_s
+    guardian = None
+    while guardian is None and proc.poll() is None and time.monotonic() < end:
+        guardian = guardian_of(proc.pid)
+    assert guardian is not None, f"no X-ray guardian started by pid {proc.pid}"
+    os.kill(guardian, signal.SIGSTOP)
+    try:
+        yield guardian
+        while time.monotonic() < end and proc.poll() is None and not acted():
+            if _pipe_holds_bytes(f"/proc/{guardian}/fd/0"):
+                break
+            time.sleep(0.01)
+    finally:
+        os.kill(guardian, signal.SIGCONT)

@@ -344,3 +344,79 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
     else:
         assert codes == [130] and not model.xray_on, err
         assert err[-1] == "stopped by SIGINT; tube off (confirmed by STS: STANDBY)", err
+
+
+@pytest.mark.parametrize("given", ["auto", "B"])
+def test_a_warm_up_interrupted_while_its_guardian_starts_ends_with_the_guardian(given):
+    """``source warm-up`` on a unit left on by ``source on``, a real SIGINT while the command waits
+    for its guardian to start (the guardian held there, see ``guardian_held_at_start``). Found in
+    review: nobody stopped the guardian it had launched; with ``auto`` the command switched off
+    through the port itself while the guardian still held it, exited 130, and the guardian
+    switched off again after the last line; with B it said "no X-ray command was sent", exit 130,
+    the tube on until the orphaned guardian switched it off after the prompt. Now the guardian
+    switches off, is waited for, and the command's last line states the confirmed tube, exit 130;
+    nothing is left holding the port."""
+    import re
+    import select
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import guardian_held_at_start
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        src.on(60, 250)
+        src.detach()
+        n = len(model.commands)
+        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
+        cmd += ["--kv", "60", "--ua", "250", "--reply-timeout", "1"] + ([] if given == "auto" else ["--dialect", given])
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+        def printed():
+            return bool(select.select([p.stderr], [], [], 0)[0])
+
+        with guardian_held_at_start(p, printed) as guardian:
+            p.send_signal(signal.SIGINT)
+        code = p.wait(timeout=120)
+        guardian_left = Path(f"/proc/{guardian}").exists()  # reaped by the command, or still running
+        err = p.stderr.read()  # to the end: the guardian writes to the same stderr
+    lines = err.strip().splitlines()
+    assert not guardian_left, err
+    assert code == 130 and lines[-1].startswith("stopped by SIGINT"), (code, err)
+    assert re.search(r"tube off \(confirmed by STS: \w+\)$", lines[-1]), err
+    assert TUBE_WARNING not in err and not model.xray_on, (model.commands[n:], err)
+    assert not {"XON", "WUP", "PHV", "PCU"} & {c.split()[0] for c in model.commands[n:]}, model.commands[n:]
+
+
+def test_a_suspended_warm_up_is_switched_off_by_its_guardian_and_stops_at_its_next_poll():
+    """``source warm-up`` (dialect B, whose warm-up may run on into X-rays on), suspended mid-warm-up
+    (SIGSTOP): its guardian's watchdog switches off after ``watchdog_s`` and says what follows --
+    it said "the series stops at its next beam check" to the operator of a warm-up. Resumed, the
+    warm-up reads the source at its next poll and stops: an error naming it, exit 1, the tube off."""
+    import subprocess
+    import sys
+
+    from acquisition.protocols.compression_series import SourceSettings
+
+    model = L8121Model(dialect="B", warmed_up=False, warmup_s=600, ramp_s=0.1)
+    with PtyServer(model) as server:
+        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
+        p = subprocess.Popen(cmd + ["--dialect", "B"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        end = time.monotonic() + 60
+        while model.state != 1 and p.poll() is None and time.monotonic() < end:  # 1: WARMING_UP
+            time.sleep(0.02)
+        assert model.state == 1, p.communicate(timeout=60)
+        os.kill(p.pid, signal.SIGSTOP)
+        end = time.monotonic() + 60 + SourceSettings.watchdog_s
+        while model.state == 1 and time.monotonic() < end:
+            time.sleep(0.02)
+        os.kill(p.pid, signal.SIGCONT)
+        _, err = p.communicate(timeout=60)
+    said = [line for line in err.splitlines() if "has sent nothing" in line]
+    assert len(said) == 1 and "the series or warm-up stops when it next reads the source" in said[0], err
+    assert p.returncode == 1 and "warm-up stopped" in err.strip().splitlines()[-1], err
+    assert model.state != 1 and not model.xray_on

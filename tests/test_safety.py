@@ -44,6 +44,7 @@ import h5py
 import numpy as np
 import pytest
 import tomli_w
+from conftest import guardian_held_at_start, guardian_of
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.l8121 import DIALECT_A, DIALECT_B, SourceConfig
@@ -734,21 +735,6 @@ def test_the_guardian_watchdog_stays_quiet_while_the_tube_is_off(tmp_path, scene
     assert CONFIRMED.search(acq.last_line)
 
 
-def guardian_of(pid):
-    """The pid of the X-ray guardian process that ``pid`` started (from /proc)."""
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmdline = (entry / "cmdline").read_bytes()
-        except (OSError, ValueError, IndexError):
-            continue
-        if ppid == pid and b"acquisition.guardian" in cmdline:
-            return int(entry.name)
-    raise AssertionError(f"no X-ray guardian started by pid {pid}")
-
-
 @ONE_DIALECT
 def test_the_guardian_killed_mid_exposure_the_run_switches_off_itself(tmp_path, scene_file, controller):
     """Found: kill -9 of the guardian with X-rays on killed the acquiring process too, silently
@@ -761,7 +747,9 @@ def test_the_guardian_killed_mid_exposure_the_run_switches_off_itself(tmp_path, 
     acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
     reach("projection (beam on)", model, tmp_path, acq)
     watch = OffWatch(model)
-    os.kill(guardian_of(acq.proc.pid), signal.SIGKILL)
+    guardian = guardian_of(acq.proc.pid)
+    assert guardian is not None, acq.output
+    os.kill(guardian, signal.SIGKILL)
     code = acq.wait()
     off_s = watch.seconds()
     record("guardian killed (-9) in projection", model, acq, off_s, code)
@@ -770,6 +758,29 @@ def test_the_guardian_killed_mid_exposure_the_run_switches_off_itself(tmp_path, 
     assert "X-ray guardian" in acq.output and "died" in acq.output and "Traceback" not in acq.output
     with h5py.File(tmp_path / "series.h5", "r") as h5:
         assert int(h5["entry"].attrs["frames_complete"]) >= DARKS + FLATS + 1
+
+
+def test_a_series_interrupted_while_its_guardian_starts_ends_with_the_guardian(tmp_path, scene_file, controller):
+    """The tube left on, Ctrl-C while the run waits for its guardian to start (the guardian held
+    there, see ``guardian_held_at_start``). Found in review (``source warm-up``, the same start-up):
+    nobody stopped the guardian the run had launched; the run ended on the warning and the orphaned
+    guardian switched off after the last line. Now the guardian switches off, is waited for, and
+    the run's last line is the confirmed tube, exit 130."""
+    model, server = controller()
+    for cmd in ("HIV 60", "CUR 250", "XON") if model.dialect == "A" else ("PHV 600", "PCU 250", "XON"):
+        assert model.handle(cmd) == cmd
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
+    said = len(acq.lines)
+    with guardian_held_at_start(acq.proc, lambda: len(acq.lines) > said) as guardian:
+        said = len(acq.lines)
+        acq.signal(signal.SIGINT)
+    acq.proc.wait(timeout=120)
+    guardian_left = Path(f"/proc/{guardian}").exists()  # reaped by the run, or still running
+    code = acq.wait()
+    record("SIGINT while the guardian starts", model, acq, None, code)
+    assert not guardian_left, acq.output
+    assert code == 130 and CONFIRMED.search(acq.last_line), f"exit {code}:\n{acq.output}"
+    assert not model.xray_on and "Traceback" not in acq.output
 
 
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
