@@ -50,7 +50,7 @@ import threading
 import time
 from pathlib import Path
 
-from radiokit.interrupts import Interrupted, raise_stop, redeliver
+from radiokit.interrupts import Interrupted, deferred, raise_stop, redeliver
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -395,7 +395,16 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
     # reconnect, :class:`~acquisition.transport.PipeTransport`'s wait) and the confirmation window
     per_exchange = 2 * (config.timeout_s + 1.0) + 2.0
     bound = startup_timeout_s + config.off_confirm_s + 2 * config.off_attempts * per_exchange
-    said = link.end_start(bound)
+    if not isinstance(exc, KeyboardInterrupt):  # a stop says so itself; a failed start is silent
+        _say(f"{link.port}: waiting up to {bound:.0f} s for the X-ray guardian to switch off and exit")
+    # stops held off for the wait: a Ctrl-C there (the likeliest moment, after a silent failed
+    # start) escaped it, and the guardian, neither waited for nor killed, held the port while the
+    # caller's own switch-off opened it (review s32-r3); the start's end is what a stop asks for
+    try:
+        with deferred(*_SIGNALS):
+            said = link.end_start(bound)
+    except Interrupted:  # held during the wait: already done
+        said = link.said_at_end
     if said is None:
         return
     code, _, text = said.partition(" ")

@@ -742,6 +742,21 @@ class PipeTransport:
         before the caller's last line. Returns its ``O`` line's rest (``0 STATE``: off, confirmed
         by STS; ``3 MESSAGE``: not), or None: it never held the port, or died, or was killed."""
         self._open = False
+        self.said_at_end = said = None
+        try:
+            said = self._ask_to_end(timeout_s)
+        finally:  # whatever cut the wait short: the guardian must not hold the port after this
+            try:
+                self._process.wait(timeout=0.5 if said is None else 5.0)
+            except subprocess.TimeoutExpired:
+                self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
+                self._process.wait()
+            self._finish()
+        self.said_at_end = said
+        return said
+
+    def _ask_to_end(self, timeout_s: float) -> str | None:
+        """:meth:`end_start`'s request and wait: the ``O`` line's rest, or None."""
         said = None
         if not self._process.stdout.closed:  # (wait_ready's _finish closed it: the guardian is gone)
             try:
@@ -759,12 +774,6 @@ class PipeTransport:
                     said = line[2:] if line.startswith("O ") else None
             except DeviceError:  # its end of the pipe closed, or the deadline passed
                 pass
-        try:
-            self._process.wait(timeout=0.5 if said is None else 5.0)
-        except subprocess.TimeoutExpired:
-            self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
-            self._process.wait()
-        self._finish()
         return said
 
     def open(self) -> None:

@@ -3807,3 +3807,59 @@ def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed
         assert not model.xray_on and model.commands.count(IDENTITY_QUERY[dialect]) >= 2  # (reconnected)
     err = capfd.readouterr().err
     assert "X-rays off (confirmed by STS" in err and "check by hand" not in err, err
+
+
+def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
+    """The guardian did not say READY in time (here held with SIGSTOP: a slow start made wide,
+    not a fake), so start_guardian has it switch off and waits for it. A Ctrl-C in that wait --
+    the likeliest moment for one, up to a minute of silence -- escaped from the wait (review
+    s32-r3): the guardian was neither waited for nor killed and held the port while the caller's
+    own switch-off opened it. The wait now holds stop signals off: it ends with the guardian gone
+    and the start's own error, carrying what the guardian said."""
+    from conftest import guardian_of
+
+    from acquisition.guardian import SignalGuard, StopSignal, start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
+    found = []
+
+    def hold_then_interrupt():
+        end = time.monotonic() + 30
+        while not found and time.monotonic() < end:
+            pid = guardian_of(os.getpid())
+            if pid is not None:
+                os.kill(pid, signal.SIGSTOP)
+                found.append(pid)
+        time.sleep(2.0)  # start_guardian's 1 s start has failed: it waits in _end_start
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.5)
+        os.kill(found[0], signal.SIGCONT)  # a slow guardian, not a dead one: it answers the O
+
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        helper = threading.Thread(target=hold_then_interrupt, daemon=True)
+        failed = None
+        try:  # a stop that escapes must fail this test, not end the test session
+            with SignalGuard():
+                helper.start()
+                try:
+                    start_guardian(server.url, resolved, startup_timeout_s=1.0)
+                except BaseException as exc:
+                    failed = exc
+                left = found and Path(f"/proc/{found[0]}").exists() and not _zombie(found[0])
+                helper.join(timeout=30)
+        except StopSignal as exc:
+            failed = failed or exc
+        if found:
+            os.kill(found[0], signal.SIGCONT) if Path(f"/proc/{found[0]}").exists() else None
+        assert isinstance(failed, DeviceError) and not isinstance(failed, StopSignal), repr(failed)
+        assert not left, "the guardian still ran after start_guardian raised"
+        assert getattr(failed, "guardian_off", False) and not model.xray_on, failed
+
+
+def _zombie(pid) -> bool:
+    """``pid`` ended and awaits its parent's wait (no longer running)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
+    except OSError:
+        return True
