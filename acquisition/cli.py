@@ -222,7 +222,8 @@ def _guarded(command, *args) -> int:
     :meth:`~acquisition.guardian.SignalGuard.settle`); one still on its way as the command ends
     is raised only as the guard is left, after the command decided its exit code and said its
     last line. That line stays the last (the tube's state), and the exit code says the command
-    was stopped -- unless it is 3, the tube not confirmed off, which nothing replaces."""
+    was stopped -- unless it is 3, the tube not confirmed off, which nothing replaces, or 0, the
+    command done before the stop came."""
     from acquisition.guardian import SignalGuard, StopSignal
 
     code = None
@@ -232,7 +233,9 @@ def _guarded(command, *args) -> int:
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
-        return code if code == 3 else 128 + exc.signum
+        # 0: the command had finished when the stop came (`source on` leaves the tube on by
+        # design, and 128 + N says "stopped, tube off or never reached"; review s32-r3)
+        return code if code in (0, 3) else 128 + exc.signum
     return code
 
 

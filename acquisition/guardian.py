@@ -135,13 +135,16 @@ class SignalGuard:
         if self._depth == 0:
             # before the handlers go: a stop delivered again after them would reach the caller
             # after the run's own handling (its exit code and last line said), or not at all
-            held = self._held()
-            self._stop_watch()
-            for sig, old in self._old.items():
-                signal.signal(sig, old)
-            self._old.clear()
-            if self._old_hook is not None:
-                sys.unraisablehook, self._old_hook = self._old_hook, None
+            held = None
+            try:
+                held = self._held()
+            finally:  # a delivery firing inside _held() raises there: the guard is still taken down
+                self._stop_watch()
+                for sig, old in self._old.items():
+                    signal.signal(sig, old)
+                self._old.clear()
+                if self._old_hook is not None:
+                    sys.unraisablehook, self._old_hook = self._old_hook, None
             raise_stop(held, exc_info[1])
 
     def settle(self) -> None:
@@ -369,7 +372,8 @@ class _Held:
         self.held: list[int] = []
         self.old = {}
         if threading.current_thread() is threading.main_thread():
-            self.old = {sig: signal.signal(sig, self._record) for sig in _SIGNALS}
+            # a handler installed outside Python (getsignal None) could not be put back: not held
+            self.old = {sig: signal.signal(sig, self._record) for sig in _SIGNALS if signal.getsignal(sig) is not None}
 
     def _record(self, signum, frame) -> None:
         self.held.append(signum)
@@ -388,14 +392,14 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
     said goes on ``exc`` as a connect's outcome does (README's one rule): ``tube_state`` (the
     state its STS confirmed), or ``off_failed`` -- or nothing, when it never held the port (the
     caller's own rule then holds: it may switch off through the port itself, now free)."""
-    from acquisition.errors import DeviceError
+    from acquisition.errors import DeviceError, NoReply
     from acquisition.l8121 import SourceState
 
     # its start, then the switch-off: every attempt's XOF and STS (each a reply time-out and a
     # reconnect, :class:`~acquisition.transport.PipeTransport`'s wait) and the confirmation window
     per_exchange = 2 * (config.timeout_s + 1.0) + 2.0
     bound = startup_timeout_s + config.off_confirm_s + 2 * config.off_attempts * per_exchange
-    if not isinstance(exc, KeyboardInterrupt):  # a stop says so itself; a failed start is silent
+    if isinstance(exc, NoReply):  # a guardian silent past its start's time: the wait may be long
         _say(f"{link.port}: waiting up to {bound:.0f} s for the X-ray guardian to switch off and exit")
     # stops held off for the wait: a Ctrl-C there (the likeliest moment, after a silent failed
     # start) escaped it, and the guardian, neither waited for nor killed, held the port while the
