@@ -381,8 +381,7 @@ class _Held:
     def release(self) -> None:
         old, self.old = self.old, {}
         for sig, handler in old.items():
-            if handler is not None:  # None: installed outside Python, which cannot put it back
-                signal.signal(sig, handler)
+            signal.signal(sig, handler)
         if old and self.held:
             signal.raise_signal(self.held[0])
 
@@ -404,11 +403,12 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
     # stops held off for the wait: a Ctrl-C there (the likeliest moment, after a silent failed
     # start) escaped it, and the guardian, neither waited for nor killed, held the port while the
     # caller's own switch-off opened it (review s32-r3); the start's end is what a stop asks for
+    said = None
     try:
         with deferred(*_SIGNALS):
             said = link.end_start(bound)
-    except Interrupted:  # held during the wait: already done
-        said = link.said_at_end
+    except Interrupted:  # held during the wait, raised after it: what it asks for is done
+        pass
     if said is None:
         return
     code, _, text = said.partition(" ")

@@ -742,7 +742,7 @@ class PipeTransport:
         before the caller's last line. Returns its ``O`` line's rest (``0 STATE``: off, confirmed
         by STS; ``3 MESSAGE``: not), or None: it never held the port, or died, or was killed."""
         self._open = False
-        self.said_at_end = said = None
+        said = None
         try:
             said = self._ask_to_end(timeout_s)
         finally:  # whatever cut the wait short: the guardian must not hold the port after this
@@ -752,7 +752,6 @@ class PipeTransport:
                 self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
                 self._process.wait()
             self._finish()
-        self.said_at_end = said
         return said
 
     def _ask_to_end(self, timeout_s: float) -> str | None:
