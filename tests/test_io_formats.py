@@ -1064,3 +1064,58 @@ def test_a_text_file_is_named_not_measured_against_raw_geometries(tmp_path, name
     with pytest.raises(FormatError, match=rf"{name}: {what}, not frames"):
         read(path)
     assert read(path, format="raw", shape=(1, path.stat().st_size), dtype="u1").data.size == path.stat().st_size
+
+
+# ------------------------------------------------------------------------------------------------
+# CF packing (netCDF-4 and xarray files are HDF5): scale_factor, add_offset, _FillValue
+# ------------------------------------------------------------------------------------------------
+
+
+def _cf_packed(path, physical, scale, offset, fill=None, attr_dtype=np.float32):
+    """Physical values packed into int16 as the CF conventions say (netCDF4-python, xarray's
+    ``encoding``): ``packed = round((value - add_offset) / scale_factor)``."""
+    packed = np.round((np.nan_to_num(physical) - offset) / scale).astype(np.int16)
+    if fill is not None:
+        packed[np.isnan(physical)] = fill
+    with h5py.File(path, "w") as f:
+        ds = f.create_dataset("transmission", data=packed)
+        ds.attrs["scale_factor"] = attr_dtype(scale)
+        ds.attrs["add_offset"] = attr_dtype(offset)
+        if fill is not None:
+            ds.attrs["_FillValue"] = np.int16(fill)
+    return packed
+
+
+@pytest.mark.parametrize("attr_dtype", [np.float32, np.float64])
+def test_hdf5_cf_packed_frames_read_as_their_physical_values(tmp_path, attr_dtype):
+    """A packed int16 read as stored was silently off by the packing: a transmission of 0.5 read as
+    -5000. Unpacked, each value is within half a packing step of the one written, in the
+    attributes' type (CF: the unpacked type is theirs)."""
+    rng = np.random.default_rng(0)
+    physical = rng.uniform(0.05, 1.2, (3, 20, 32))
+    path = tmp_path / "cf.h5"
+    _cf_packed(path, physical, 1e-4, 1.0, attr_dtype=attr_dtype)
+    frames = read(path, dataset="transmission")
+    assert frames.data.dtype == attr_dtype
+    # half a packing step, and the rounding of the type near 1
+    np.testing.assert_allclose(frames.data, physical, rtol=0, atol=0.5e-4 + 2 * np.finfo(attr_dtype).eps)
+
+
+def test_hdf5_cf_fill_value_reads_as_nan_not_as_a_number(tmp_path):
+    """A pixel marked missing (``_FillValue``, in packed units) has no value: NaN, which correction
+    fills and flags, never the number the fill code unpacks to."""
+    physical = np.full((1, 8, 8), 0.7)
+    physical[0, 2, 3] = np.nan
+    path = tmp_path / "cf.h5"
+    _cf_packed(path, physical, 1e-4, 1.0, fill=-32767)
+    data = read(path, dataset="transmission").data
+    assert np.isnan(data[0, 2, 3]) and np.isfinite(data).sum() == 63
+
+
+@pytest.mark.parametrize("scale", [0.0, np.nan, "0.001"])
+def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
+    path = tmp_path / "cf.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("frames", data=np.zeros((2, 4, 4), np.int16)).attrs["scale_factor"] = scale
+    with pytest.raises(FormatError, match="scale_factor"):
+        read(path, dataset="frames")

@@ -205,6 +205,7 @@ class FrameSource:
         self._fh = self._tif = self._h5 = None
         self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self._invert = None  # what a white-is-zero image's values are subtracted from (TIFF, HDF5)
+        self._packing = None  # an HDF5 dataset's CF scale_factor / add_offset (_cf_packing)
         self.meta: dict = {}
         try:
             getattr(self, f"_open_{self.format}")(dataset=dataset, **hints)
@@ -777,8 +778,11 @@ class FrameSource:
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
             _refuse_colour(self.path, data)
             self._invert = _white_is_zero(self.path, data)
+            self._packing = _cf_packing(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
             meta = {"format": "hdf5", "dataset": dataset}
+            if self._packing is not None:  # unpacked to the values the file's writer packed
+                meta["cf_packing"] = {k: self._packing[k] for k in ("scale_factor", "add_offset")}
             if self._invert is not None:
                 meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
             if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
@@ -804,6 +808,8 @@ class FrameSource:
         shape = tuple(data.shape[-2:])[:: -1 if self._transposed else 1]
         # h5py hands through the byte order the file stores; read() promises native order
         self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
+        if self._packing is not None:
+            self.dtype = self._packing["dtype"]
         # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
@@ -870,6 +876,8 @@ class FrameSource:
         if isinstance(self._ds, h5py.Dataset) and not invalid:
             check_frame_written(self.path, self._ds, i)
         frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+        if self._packing is not None:
+            frame = _unpack(frame, self._packing)
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
         frame = frame.astype(self.dtype, copy=False)
@@ -1138,6 +1146,40 @@ def _white_is_zero(path, data):
             "is defined for unsigned integers only; save the frames with 0 as black",
         )
     return True if kind == "b" else np.iinfo(data.dtype).max
+
+
+def _cf_packing(path, data) -> dict | None:
+    """The CF conventions' packing of ``data`` (netCDF-4 files, xarray's ``encoding``, are HDF5):
+    ``value = stored * scale_factor + add_offset``, in the attributes' type, with the stored
+    ``_FillValue`` and ``missing_value`` codes missing (NaN); None when it has neither attribute.
+    Read as stored, a packed transmission of 0.5 was -5000: a silent wrong value in every pixel."""
+    attrs = data.attrs
+    if "scale_factor" not in attrs and "add_offset" not in attrs:
+        return None
+    found = {}
+    for name, default in (("scale_factor", 1.0), ("add_offset", 0.0)):
+        value = np.asarray(attrs.get(name, np.float32(default)))
+        if value.size != 1 or value.dtype.kind not in "iuf" or not np.isfinite(value).all():
+            raise FormatError(path, f"{data.name}@{name} is {value.tolist()!r}: CF packing needs one finite number")
+        found[name] = value.reshape(())
+    if found["scale_factor"] == 0:
+        raise FormatError(path, f"{data.name}@scale_factor is 0: every pixel would read as add_offset")
+    missing = [np.asarray(attrs[k]).ravel() for k in ("_FillValue", "missing_value") if k in attrs]
+    return {
+        "scale_factor": found["scale_factor"].item(),
+        "add_offset": found["add_offset"].item(),
+        "dtype": np.result_type(np.float32, found["scale_factor"].dtype, found["add_offset"].dtype),
+        "missing": np.concatenate(missing) if missing else np.empty(0),
+    }
+
+
+def _unpack(frame, packing) -> np.ndarray:
+    """A CF-packed frame's values (:func:`_cf_packing`)."""
+    dtype = packing["dtype"]
+    out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
+    if packing["missing"].size:
+        out[np.isin(frame, packing["missing"])] = np.nan
+    return out
 
 
 #: TIFF 6.0's Orientation: where the stored 0th row and 0th column are on the visual image
