@@ -636,6 +636,10 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
 
 #: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.
 ADC_TOPS = (4095, 16383, 65535)
+#: The share of values above an ADC's top that frames of that ADC may hold: stuck or hot pixels, a
+#: vendor's defect marker (65535), up to two marked defect lines of a 2240-px panel. A 16-bit
+#: panel's frames pass 4095 in most of their pixels once its flats reach a sixteenth of its range.
+ADC_OUTLIER_SHARE = 1e-3
 
 
 def adc_top(*stacks) -> int | None:
@@ -646,9 +650,16 @@ def adc_top(*stacks) -> int | None:
     Why: a fixed 4095 called every pixel of a 16-bit panel's flat saturated, and the calibration
     refused the lab's data ("lower the flat exposure"). And a 12-bit panel whose software stores
     its counts in the top bits of 16 (``value << 4``: TIFFs from several frame grabbers) saturates
-    at 65520, never 65535: against 65535 its saturated flat pixels were not flagged at all."""
+    at 65520, never 65535: against 65535 its saturated flat pixels were not flagged at all.
+    A lower top is kept while no more than :data:`ADC_OUTLIER_SHARE` of the values pass it: one
+    stuck pixel at 65535 made a 12-bit panel's clipped flats "16-bit", never saturated."""
     peak = max(float(np.max(s)) for s in stacks)
     top = next((top for top in ADC_TOPS if peak <= top), None)
+    allowed = ADC_OUTLIER_SHARE * sum(np.asarray(s).size for s in stacks)
+    for lower in (t for t in ADC_TOPS if top is None or t < top):  # only when the peak passed 4095
+        if sum(int(np.count_nonzero(np.asarray(s) > lower)) for s in stacks) <= allowed:
+            top = lower
+            break
     if top is None:
         return None
     return top & ~((1 << _unused_low_bits(stacks)) - 1)

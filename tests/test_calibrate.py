@@ -335,6 +335,30 @@ def test_a_frame_above_the_inferred_adc_top_is_not_reported_saturated():
     assert report.saturated.tolist() == [9]
 
 
+def test_a_hot_pixel_above_the_adc_top_does_not_lift_the_saturation_level():
+    """Found by trying other labs' files: one stuck pixel at 65535 (or a vendor's defect marker) in
+    one flat of a 12-bit panel made the frames' ADC "16-bit", so flats clipped at 4095 everywhere
+    were taken as a good calibration, silently (without it they are refused). A few values above
+    a top are defects of that ADC; the top moves only when more of the frames pass it."""
+    rng = np.random.default_rng(5)
+    darks = np.rint(150 + rng.normal(0, 2, (6, 64, 64))).astype(np.uint16)
+    clipped = np.clip(np.rint(150 + 4100 + rng.normal(0, 30, (6, 64, 64))), 0, 4095).astype(np.uint16)
+    clipped[2, 40, 40] = 65535
+    assert adc_top(darks, clipped) == 4095
+    with pytest.raises(ValueError, match="saturated"):
+        Calibration.from_frames(darks, clipped)
+    flats = (150 + rng.poisson(3000, (6, 64, 64))).astype(np.uint16)
+    flats[:, 10, 10] = 65535  # a stuck pixel, in every flat
+    with pytest.warns(CalibrationWarning, match="1 pixels of the averaged flat are saturated"):
+        cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 4095 and cal.mask[10, 10] & PixelFlag.OVER_RESPONDING
+    frame = (150 + rng.poisson(2000, (64, 64))).astype(np.uint16)
+    frame[:4, :5] = 4095  # clipped where the beam is brightest
+    frame[10, 10] = 65535
+    _, report = correct_frames(cal, frame, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [21]  # the 20 clipped and the stuck one
+
+
 def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
     """Found by trying other labs' files: frame grabbers often store a 12-bit panel's counts in the
     top bits of 16 (``value << 4``). Its top is 65520, under the 65535 of a 16-bit ADC, so the
