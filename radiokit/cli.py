@@ -106,6 +106,9 @@ def _summary(meta: dict) -> dict:
         ).strip()
     elif fmt == "tiff":
         out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
+    elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
+        keys = np.asarray(meta.get("image_key", []))
+        out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 

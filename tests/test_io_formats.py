@@ -1119,3 +1119,55 @@ def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
         f.create_dataset("frames", data=np.zeros((2, 4, 4), np.int16)).attrs["scale_factor"] = scale
     with pytest.raises(FormatError, match="scale_factor"):
         read(path, dataset="frames")
+
+
+# ------------------------------------------------------------------------------------------------
+# Data Exchange (DXchange: tomopy, APS beamlines): /exchange/data, data_dark, data_white
+# ------------------------------------------------------------------------------------------------
+
+
+def _dxchange(path, proj, darks=None, flats=None):
+    """A file as dxchange.write_dxf / tomopy's readers lay it out: projections, darks and flats as
+    three datasets of one group, no image keys."""
+    with h5py.File(path, "w") as f:
+        f.create_dataset("implements", data="exchange")
+        x = f.create_group("exchange")
+        x.create_dataset("data", data=proj, chunks=(1,) + proj.shape[1:], compression="gzip")
+        if darks is not None:
+            x.create_dataset("data_dark", data=darks)
+        if flats is not None:
+            x.create_dataset("data_white", data=flats)
+        x.create_dataset("theta", data=np.linspace(0, 180, len(proj)))
+
+
+def test_dxchange_reads_its_darks_flats_and_projections_told_apart(tmp_path):
+    """A DXchange file was refused as lacking radiokit's layout, and with --dataset a calibration
+    could take its darks and flats only as the same frames (one --dataset for both): "flats are not
+    brighter than darks". Its three datasets now read as one stack, keyed as NXtomo keys them, so
+    calibrate and correct take its darks, flats and projections as an experiment file's."""
+    rng = np.random.default_rng(8)
+    darks = rng.normal(100, 2, (3, 24, 32)).round().astype(np.uint16)
+    flats = rng.normal(3000, 30, (4, 24, 32)).round().astype(np.uint16)
+    proj = rng.normal(1500, 20, (2, 24, 32)).round().astype(np.uint16)
+    path = tmp_path / "scan.h5"
+    _dxchange(path, proj, darks, flats)
+    f = read(path)
+    np.testing.assert_array_equal(f.data, np.concatenate([darks, flats, proj]))
+    assert f.meta["image_key"].tolist() == [ImageKey.DARK] * 3 + [ImageKey.FLAT] * 4 + [ImageKey.PROJECTION] * 2
+    cal = Calibration.from_experiment(path)
+    expected = Calibration.from_frames(darks, flats)
+    np.testing.assert_allclose(cal.flat, expected.flat)
+    np.testing.assert_allclose(cal.dark, expected.dark)
+    np.testing.assert_array_equal(read(path, dataset="exchange/data").data, proj)  # one dataset, as before
+
+
+def test_dxchange_of_projections_only_or_of_mismatched_frames(tmp_path):
+    proj = _frames(2, 24, 32)
+    path = tmp_path / "proj.h5"
+    _dxchange(path, proj)
+    f = read(path)
+    np.testing.assert_array_equal(f.data, proj)
+    assert f.meta["image_key"].tolist() == [ImageKey.PROJECTION] * 2
+    _dxchange(path, proj, darks=_frames(2, 24, 30))
+    with pytest.raises(FormatError, match="data_dark.*24x30.*data.*24x32"):
+        read(path)

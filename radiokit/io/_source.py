@@ -38,6 +38,7 @@ __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMAT
 FORMATS = ("raw", "tiff", "itex", "hdf5")
 #: the group ``radiokit.calibrate.Calibration.save`` writes by default
 CALIBRATION = "calibration"
+DXCHANGE = "exchange"  # Data Exchange's group: data, data_dark, data_white
 _TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _EXTENSIONS = {
@@ -764,6 +765,8 @@ class FrameSource:
                 dataset = dataset or (f"/{FRAMES}" if FRAMES in self._h5 else None)
                 if dataset is None and CALIBRATION in self._h5:
                     return self._open_calibration()
+                if dataset is None and isinstance(self._h5.get(f"{DXCHANGE}/data"), h5py.Dataset):
+                    return self._open_dxchange()
                 if dataset is None and missing:
                     raise FormatError(self.path, missing)
         if dataset:
@@ -847,6 +850,37 @@ class FrameSource:
             keys = keys[()]
         check_image_keys(self.path, keys, keys_name)
         return {"image_key": keys}
+
+    def _open_dxchange(self):
+        """A Data Exchange file (tomopy's DXchange, APS beamlines): projections at ``/exchange/data``,
+        darks at ``data_dark`` and flats at ``data_white`` beside them, read as one stack (darks,
+        flats, projections) keyed as NXtomo keys them, so that calibrate and correct take each kind
+        as an experiment file's. Read as ``--dataset exchange/data`` alone, a calibration could only
+        take one dataset as both its darks and its flats."""
+        parts, keys = [], []
+        for name, key in (("data_dark", ImageKey.DARK), ("data_white", ImageKey.FLAT), ("data", ImageKey.PROJECTION)):
+            if f"{DXCHANGE}/{name}" not in self._h5:
+                continue
+            ds = checked_dataset(self.path, self._h5, f"{DXCHANGE}/{name}", "buif", (2, 3), self._allow_external)
+            _refuse_colour(self.path, ds)
+            if parts and ds.shape[-2:] != parts[0].shape[-2:]:
+                sizes = " and ".join(f"{d.name} {'x'.join(map(str, d.shape[-2:]))}" for d in (parts[0], ds))
+                raise FormatError(self.path, f"DXchange frames of two sizes, {sizes}: not one detector's")
+            if ds.chunks is not None:
+                chunk = int(np.prod(ds.chunks, dtype=np.float64)) * ds.dtype.itemsize
+                check_budget(self.path, chunk, f"one {ds.chunks} chunk of {ds.name}", self._budget)
+            parts.append(ds)
+            keys += [key] * (1 if ds.ndim == 2 else ds.shape[0])
+        self._ds = _DatasetStack(parts)
+        self.n, self.frame_shape, self.dtype, self.bits = len(keys), tuple(parts[0].shape[-2:]), self._ds.dtype, None
+        self.meta.update(
+            format="dxchange",
+            image_key=np.array(keys, np.int8),
+            n=self.n,
+            rows=self.frame_shape[0],
+            cols=self.frame_shape[1],
+            dtype=str(self.dtype),
+        )
 
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
@@ -1024,16 +1058,22 @@ def iter_frames(path, /, **hints):
 
 
 class _DatasetStack:
-    """Equal-shaped 2D datasets read as one (n, rows, cols) stack, a frame at a time."""
+    """Datasets of equal-shaped frames, (rows, cols) or (n, rows, cols) each, read as one
+    (n, rows, cols) stack, a frame at a time."""
 
     ndim = 3
 
     def __init__(self, datasets):
         self._datasets = datasets
-        self.dtype = np.result_type(*(ds.dtype for ds in datasets))
+        # where each dataset's frames start: a list of every frame would be as long as a corrupt
+        # header declares
+        self._starts = np.cumsum([0] + [1 if ds.ndim == 2 else ds.shape[0] for ds in datasets])
+        self.dtype = np.result_type(*(ds.dtype.newbyteorder("=") for ds in datasets))
 
     def __getitem__(self, i):
-        return self._datasets[i][()].astype(self.dtype, copy=False)
+        k = int(np.searchsorted(self._starts, i, side="right")) - 1
+        ds = self._datasets[k]
+        return (ds[()] if ds.ndim == 2 else ds[i - self._starts[k]]).astype(self.dtype, copy=False)
 
 
 def _is_experiment(h5: h5py.File) -> bool:
