@@ -1171,3 +1171,22 @@ def test_dxchange_of_projections_only_or_of_mismatched_frames(tmp_path):
     _dxchange(path, proj, darks=_frames(2, 24, 30))
     with pytest.raises(FormatError, match="data_dark.*24x30.*data.*24x32"):
         read(path)
+
+
+def test_an_hdf5_file_of_another_layout_names_the_datasets_that_could_be_frames(tmp_path):
+    """Another program's HDF5 file without NeXus or DXchange names was refused with "pass
+    --dataset", leaving the user to find the path with another tool: the refusal names the 2-D and
+    3-D datasets of numbers the file holds, a few at most, and not its 1-D ones."""
+    path = tmp_path / "beamline.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("scan/images", data=_frames(3, 20, 24))
+        f.create_dataset("scan/angles", data=np.arange(3.0))
+        f.create_dataset("scan/labels", data=np.array([b"a", b"b"]))
+    with pytest.raises(FormatError, match=r"it holds /scan/images \(3x20x24 uint16\): pass --dataset") as info:
+        read(path)
+    assert "angles" not in str(info.value) and "labels" not in str(info.value)
+    with h5py.File(path, "a") as f:
+        for i in range(6):
+            f.create_dataset(f"more/img{i}", data=np.zeros((4, 4), np.float32))
+    with pytest.raises(FormatError, match=r"/scan/images \(3x20x24 uint16\).* and 3 more"):
+        read(path)

@@ -901,6 +901,31 @@ def _read_source(path, h5: h5py.File, meta: dict, allow_external: bool) -> None:
         meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
 
 
+def _frame_candidates(h5: h5py.File, shown=4) -> str:
+    """Where the frames of a file of another layout may be: its 2-D and 3-D datasets of numbers,
+    largest first, as the end of a refusal that asks for ``--dataset`` (the user otherwise needs
+    another tool to find the path)."""
+    found, seen = [], [0]
+    generic = " (pass dataset='/path/to/frames', on the command line --dataset, to read another layout)"
+
+    def visit(name, obj):
+        seen[0] += 1
+        if isinstance(obj, h5py.Dataset) and obj.ndim in (2, 3) and obj.dtype.kind in "buif":
+            found.append((obj.size, f"/{name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
+        return True if seen[0] >= 10_000 else None  # a file of many objects: a look, not a survey
+
+    try:
+        h5.visititems(visit)  # hard links only: nothing outside the file is opened
+    except Exception:  # a corrupt file: the refusal stands without the list
+        return generic
+    if not found:
+        return " and holds no 2-D or 3-D dataset of numbers"
+    found.sort(key=lambda item: -item[0])
+    more = f" and {len(found) - shown} more" if len(found) > shown else ""
+    listed = ", ".join(text for _, text in found[:shown])
+    return f"; it holds {listed}{more}: pass --dataset PATH (dataset= in Python) to read one"
+
+
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata.
 
@@ -911,11 +936,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
 
     check_links(path, h5, FRAMES, allow_external)
     if FRAMES not in h5:
-        raise FormatError(
-            path,
-            f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file "
-            "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)",
-        )
+        raise FormatError(path, f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file{_frame_candidates(h5)}")
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
