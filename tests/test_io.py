@@ -1227,6 +1227,18 @@ def test_tiff_of_three_or_four_frames_written_as_colour_planes_says_how(tmp_path
     _raises_format(path, "greyscale", "photometric='minisblack'")
 
 
+@pytest.mark.parametrize("n", [2, 4, 5])
+def test_tiff_of_frames_written_as_grey_samples_of_one_page_says_so(tmp_path, n):
+    """Found by trying other labs' files: frames written as the planes of one greyscale page
+    (tifffile.imwrite with planarconfig='separate', photometric='minisblack') were called "one
+    colour image ... unless given photometric='minisblack'", advice the file already followed."""
+    path = tmp_path / "planes.tif"
+    tifffile.imwrite(path, np.zeros((n, 6, 7), np.uint16), photometric="minisblack", planarconfig="separate")
+    with pytest.raises(FormatError, match=f"one greyscale page of {n} samples per pixel") as info:
+        read(path)
+    assert "unless given photometric='minisblack'" not in str(info.value)
+
+
 def test_tiff_truncated_at_page_boundary(tmp_path):
     """A multi-page TIFF cut right after a page must not read as a shorter stack."""
     data = _rand12((3, 6, 7), seed=18)

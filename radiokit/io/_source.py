@@ -388,7 +388,15 @@ class FrameSource:
     def _not_greyscale(self, first) -> FormatError:
         """The refusal of a page that is not one (rows, cols) image, naming what it is."""
         hint = ""
-        if first.planarconfig == 2 and first.samplesperpixel in (3, 4):  # colour planes, as tifffile writes
+        n = first.samplesperpixel
+        if first.photometric == 1 and n > 1 and not any(int(e) in (1, 2) for e in first.extrasamples):
+            # grey samples that are not alpha: images kept as one page's samples, not as pages
+            hint = (
+                f": one greyscale page of {n} samples per pixel, {n} images in one page rather than {n} pages; "
+                "radiokit reads a frame per page: write each frame as a page of its own (tifffile.imwrite with "
+                "photometric='minisblack' and no planarconfig)"
+            )
+        elif first.planarconfig == 2 and n in (3, 4):  # colour planes, as tifffile writes
             hint = (
                 f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
                 f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
