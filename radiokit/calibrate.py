@@ -417,7 +417,7 @@ class Calibration:
                     "counts): was the beam on for the flats?"
                 )
             mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
-            _check_defect_share(mask, n_flat_saturated, th.saturation)
+            _check_defect_share(mask, n_flat_saturated, th.saturation, (response, th.dead_below))
         except ValueError as exc:
             raise _blame(
                 str(exc), dark, flat, _dark_noise(darks), th, _known_top(th.saturation, given, dark, flat)
@@ -885,12 +885,41 @@ def _merge_recorded_mask(cal: Calibration, path, recorded) -> None:
     cal.provenance.setdefault("defects", {})["recorded in the file"] = n
 
 
-def _check_defect_share(mask, n_saturated=0, saturation=None) -> None:
+def _exposed_field(response, dead_below) -> tuple[int, int, int, int] | None:
+    """The rectangle ``(r0, r1, c0, c1)`` (inclusive) outside which the flats are unexposed, as
+    behind a collimator, else None (the beam reached the whole panel, or not as one rectangle).
+    Unexposed: a response under ``dead_below`` of the lit level (the 90th percentile, in the field
+    whatever share of the panel the shadow takes)."""
+    exposed = response > dead_below * float(np.percentile(response, 90))
+    rows, cols = np.flatnonzero(exposed.mean(axis=1) > 0.5), np.flatnonzero(exposed.mean(axis=0) > 0.5)
+    if not rows.size or not cols.size:
+        return None
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+    inside = np.zeros(exposed.shape, bool)
+    inside[r0 : r1 + 1, c0 : c1 + 1] = True
+    if inside.all() or exposed[~inside].mean() > 0.1 or (~exposed[inside]).mean() > MAX_DEFECTIVE_SHARE:
+        return None
+    return r0, r1, c0, c1
+
+
+def _check_defect_share(mask, n_saturated=0, saturation=None, response=None) -> None:
     """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
     calibration "corrects" by filling most pixels from their neighbours, and was exiting 0. When
     the flat's saturated pixels are most of it, the refusal says so: a flat clipped in 12 % of the
-    panel (a source set for 1x1, binned) was sent looking for a blocked beam."""
+    panel (a source set for 1x1, binned) was sent looking for a blocked beam. So it does when the
+    flats are unexposed outside a rectangle (:func:`_exposed_field` of ``response``, the flat's
+    response and ``dead_below``): a collimator's shadow was called frames of another set-up."""
     n = int(np.count_nonzero(mask))
+    over = n > MAX_DEFECTIVE_SHARE * mask.size
+    field = _exposed_field(*response) if over and response is not None else None
+    if field is not None:
+        r0, r1, c0, c1 = field
+        raise ValueError(
+            f"the flats are unexposed outside rows {r0}-{r1}, columns {c0}-{c1} ({100 * n / mask.size:.1f} % of the "
+            f"panel flagged, over the {100 * MAX_DEFECTIVE_SHARE:g} % a defect map may mark): the beam blocked "
+            "there (a collimator's shadow, the frame or a shutter in the way?); clear its path, or crop the darks, "
+            "flats and frames to that field"
+        )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(
             f"the averaged flat is saturated (>= {saturation}) in {n_saturated} of {mask.size} pixels "

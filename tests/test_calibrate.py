@@ -359,6 +359,21 @@ def test_a_hot_pixel_above_the_adc_top_does_not_lift_the_saturation_level():
     assert report.saturated.tolist() == [21]  # the 20 clipped and the stuck one
 
 
+def test_flats_unexposed_outside_a_collimated_field_are_refused_naming_the_field():
+    """Found by trying other labs' files: a collimator shading a 16-px border of a 256-px panel
+    (24 % of it) was refused as darks and flats "not of one panel set-up (beam blocked for the
+    flats? frames swapped ...)". The refusal now names the exposed field, to crop the frames to."""
+    rng = np.random.default_rng(9)
+    offset = 150 + rng.normal(0, 3, (256, 256))
+    darks = np.rint(offset + rng.normal(0, 2, (4, 256, 256))).astype(np.uint16)
+    lit = np.zeros((256, 256), bool)
+    lit[16:240, 16:240] = True
+    flats = np.rint(offset + np.where(lit, rng.poisson(3000, (4, 256, 256)), rng.normal(0, 2, (4, 256, 256))))
+    with pytest.raises(ValueError, match=r"unexposed outside rows 16-239, columns 16-239 .*collimator") as info:
+        Calibration.from_frames(darks, flats.astype(np.uint16))
+    assert "frames swapped" not in str(info.value)
+
+
 def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
     """Found by trying other labs' files: frame grabbers often store a 12-bit panel's counts in the
     top bits of 16 (``value << 4``). Its top is 65520, under the 65535 of a 16-bit ADC, so the
