@@ -261,9 +261,18 @@ def _local_median(image: np.ndarray, block: int) -> np.ndarray:
     return up[:rows, :cols]
 
 
+#: The fewest pixels a row or column must have to be judged as a line: a line's median response
+#: and noise over a few pixels are those pixels' own (each 1-pixel column of a 1 x 300 frame was
+#: judged a line by its own noise, and the calibration refused), and its pixels are judged anyway.
+MIN_LINE_PIXELS = 16
+
+
 def _line_flags(rel, std, flagged, th: Thresholds, axis):
-    """Indices of defect lines along ``axis`` (0: rows, 1: columns) and their flag bits."""
+    """Indices of defect lines along ``axis`` (0: rows, 1: columns) and their flag bits; none
+    when a line has fewer than :data:`MIN_LINE_PIXELS` pixels."""
     other = 1 - axis
+    if rel.shape[other] < MIN_LINE_PIXELS:
+        return np.zeros(0, np.intp), np.zeros(0, np.uint32)
     med = np.median(rel, axis=other)
     frac = flagged.mean(axis=other)
     bits = np.zeros(rel.shape[axis], np.uint32)

@@ -6,7 +6,14 @@ import warnings
 import numpy as np
 import pytest
 
-from radiokit.calibrate import Calibration, CalibrationWarning, PixelFlag, adc_top, robust_average
+from radiokit.calibrate import (
+    MAX_DEFECTIVE_SHARE,
+    Calibration,
+    CalibrationWarning,
+    PixelFlag,
+    adc_top,
+    robust_average,
+)
 from radiokit.correct import correct_frames
 from radiokit.io import ExperimentWriter, ImageKey
 from sim.detector import PanelModel
@@ -372,6 +379,20 @@ def test_flats_unexposed_outside_a_collimated_field_are_refused_naming_the_field
     with pytest.raises(ValueError, match=r"unexposed outside rows 16-239, columns 16-239 .*collimator") as info:
         Calibration.from_frames(darks, flats.astype(np.uint16))
     assert "frames swapped" not in str(info.value)
+
+
+@pytest.mark.parametrize("shape", [(1, 300), (300, 1), (3, 3)])
+def test_frames_too_small_for_lines_are_calibrated_pixel_by_pixel(shape):
+    """Found by trying other labs' files: a 1 x 300 line-scan frame (and a 3 x 3 one) was refused
+    as darks and flats "not of one panel set-up": each 1-pixel column was judged as a defect line,
+    its noise against 1.5x the panel's and its one pixel as more than half of it flagged. A line
+    of a few pixels says nothing its pixels do not."""
+    rng = np.random.default_rng(13)
+    darks = np.rint(150 + rng.normal(0, 2, (6, *shape))).astype(np.uint16)
+    flats = (150 + rng.poisson(3000, (6, *shape))).astype(np.uint16)
+    cal = Calibration.from_frames(darks, flats)
+    assert cal.defect_rows.size == cal.defect_columns.size == 0
+    assert np.count_nonzero(cal.mask) <= MAX_DEFECTIVE_SHARE * cal.mask.size
 
 
 def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
