@@ -382,7 +382,7 @@ def test_flats_unexposed_outside_a_collimated_field_are_refused_naming_the_field
 
 
 @pytest.mark.parametrize("shape", [(1, 300), (300, 1), (3, 3)])
-def test_frames_too_small_for_lines_are_calibrated_pixel_by_pixel(shape):
+def test_frames_too_small_for_lines_have_no_defect_lines(shape):
     """Found by trying other labs' files: a 1 x 300 line-scan frame (and a 3 x 3 one) was refused
     as darks and flats "not of one panel set-up": each 1-pixel column was judged as a defect line,
     its noise against 1.5x the panel's and its one pixel as more than half of it flagged. A line
