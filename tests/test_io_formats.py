@@ -1190,3 +1190,15 @@ def test_an_hdf5_file_of_another_layout_names_the_datasets_that_could_be_frames(
             f.create_dataset(f"more/img{i}", data=np.zeros((4, 4), np.float32))
     with pytest.raises(FormatError, match=r"/scan/images \(3x20x24 uint16\).* and 3 more"):
         read(path)
+
+
+def test_a_dataset_hint_naming_a_group_names_the_frames_it_holds(tmp_path):
+    """``--dataset entry/data`` (an NXdata group, as a viewer shows it) said only "no dataset
+    'entry/data'", as if nothing were there: it is a group, and the refusal names what it holds."""
+    path = tmp_path / "scan.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("entry/data/counts", data=_frames(2, 20, 24))
+    with pytest.raises(FormatError, match=r"no dataset 'entry/data': a group, holding /entry/data/counts \(2x20x24"):
+        read(path, dataset="entry/data")
+    with pytest.raises(FormatError, match="no dataset 'entry/nothing'"):
+        read(path, dataset="entry/nothing")

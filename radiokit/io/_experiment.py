@@ -901,29 +901,39 @@ def _read_source(path, h5: h5py.File, meta: dict, allow_external: bool) -> None:
         meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
 
 
-def _frame_candidates(h5: h5py.File, shown=4) -> str:
-    """Where the frames of a file of another layout may be: its 2-D and 3-D datasets of numbers,
-    largest first, as the end of a refusal that asks for ``--dataset`` (the user otherwise needs
-    another tool to find the path)."""
+def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
+    """Where the frames of a file of another layout may be: the 2-D and 3-D datasets of numbers in
+    ``h5`` (a file or a group), largest first, ``shown`` at most ("/a (3x20x24 uint16), ... and 3
+    more"; "" when there are none; None when the file cannot be looked through), for a refusal that
+    asks for ``--dataset`` (the user otherwise needs another tool to find the path)."""
     found, seen = [], [0]
-    generic = " (pass dataset='/path/to/frames', on the command line --dataset, to read another layout)"
 
     def visit(name, obj):
         seen[0] += 1
         if isinstance(obj, h5py.Dataset) and obj.ndim in (2, 3) and obj.dtype.kind in "buif":
-            found.append((obj.size, f"/{name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
+            found.append((obj.size, f"{obj.name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
         return True if seen[0] >= 10_000 else None  # a file of many objects: a look, not a survey
 
     try:
         h5.visititems(visit)  # hard links only: nothing outside the file is opened
-    except Exception:  # a corrupt file: the refusal stands without the list
-        return generic
-    if not found:
-        return " and holds no 2-D or 3-D dataset of numbers"
+    except Exception:  # a corrupt file: its refusal stands without the list
+        return None
     found.sort(key=lambda item: -item[0])
     more = f" and {len(found) - shown} more" if len(found) > shown else ""
-    listed = ", ".join(text for _, text in found[:shown])
-    return f"; it holds {listed}{more}: pass --dataset PATH (dataset= in Python) to read one"
+    return ", ".join(text for _, text in found[:shown]) + more
+
+
+def _not_an_experiment(h5: h5py.File) -> str:
+    """Why ``h5`` is no experiment file, and where its frames may be (:func:`frame_candidates`)."""
+    listed = frame_candidates(h5)
+    if listed is None:
+        return f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file (pass dataset='/path/to/frames', on the command line --dataset, to read another layout)"
+    if not listed:
+        return f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file and holds no 2-D or 3-D dataset of numbers"
+    return (
+        f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file; it holds {listed}: pass --dataset PATH "
+        "(dataset= in Python) to read one"
+    )
 
 
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
@@ -936,7 +946,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
 
     check_links(path, h5, FRAMES, allow_external)
     if FRAMES not in h5:
-        raise FormatError(path, f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file{_frame_candidates(h5)}")
+        raise FormatError(path, _not_an_experiment(h5))
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")

@@ -26,6 +26,7 @@ from radiokit.io._experiment import (
     check_links,
     check_written,
     checked_dataset,
+    frame_candidates,
     read_experiment_meta,
 )
 from radiokit.io._frames import Frames, check_bit_depth
@@ -779,6 +780,11 @@ class FrameSource:
                     raise FormatError(self.path, missing)
         if dataset:
             check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
+            if isinstance(self._h5.get(dataset), h5py.Group):  # an NXdata group, as a viewer shows it
+                listed = frame_candidates(self._h5[dataset])
+                raise FormatError(
+                    self.path, f"no dataset {dataset!r}: a group" + (f", holding {listed}" if listed else "")
+                )
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
                 raise FormatError(self.path, f"no dataset {dataset!r}")
             if self._h5[dataset].ndim not in (2, 3):
