@@ -5,6 +5,7 @@ value and in the same orientation (rows, columns), not only that the file opens.
 import subprocess
 import sys
 import threading
+import warnings
 
 import h5py
 import numpy as np
@@ -1202,3 +1203,22 @@ def test_a_dataset_hint_naming_a_group_names_the_frames_it_holds(tmp_path):
         read(path, dataset="entry/data")
     with pytest.raises(FormatError, match="no dataset 'entry/nothing'"):
         read(path, dataset="entry/nothing")
+
+
+def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
+    """Found by trying other labs' files: frames stacked along the last axis (numpy's dstack,
+    IDL, Fortran writers) read as rows-many narrow frames, (64, 80, 5) as 64 frames of 80 x 5,
+    with no word; every command then worked on strips. A stack whose last axis is far the shortest
+    is warned of, naming the reading; a plain (n, rows, cols) stack is not."""
+    frames = _frames(5, 64, 80)
+    path = tmp_path / "dstack.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("stack", data=np.dstack(list(frames)))
+        f.create_dataset("plain", data=frames)
+        f.create_dataset("few", data=frames[:2])
+    with pytest.warns(UserWarning, match=r"64 frames of 80x5.*rows x cols x n"):
+        read(path, dataset="stack")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read(path, dataset="plain").data, frames)
+        np.testing.assert_array_equal(read(path, dataset="few").data, frames[:2])

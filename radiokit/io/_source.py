@@ -794,6 +794,7 @@ class FrameSource:
             # its storage checked below, once the frames to be read are known
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
             _refuse_colour(self.path, data)
+            _warn_frames_last(self.path, data)
             self._invert = _white_is_zero(self.path, data)
             self._packing = _cf_packing(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
@@ -1200,6 +1201,22 @@ def _white_is_zero(path, data):
             "is defined for unsigned integers only; save the frames with 0 as black",
         )
     return True if kind == "b" else np.iinfo(data.dtype).max
+
+
+def _warn_frames_last(path, data) -> None:
+    """Warn of a 3-D stack whose last axis is far its shortest, as frames stacked along it (numpy's
+    ``dstack``, IDL and Fortran writers) store rows x cols x n: read as (n, rows, cols), each
+    "frame" is a strip of every image, and every command then worked on strips without a word."""
+    if data.ndim != 3 or "MATLAB_class" in data.attrs:  # MATLAB's own order is read as MATLAB shows it
+        return
+    a, b, c = data.shape
+    if c < 16 and min(a, b) >= 64 and 8 * c <= min(a, b):
+        warnings.warn(
+            f"{path}: {data.name} of shape {data.shape} reads as {a} frames of {b}x{c}; if it is a stack stored "
+            f"rows x cols x n ({c} frames of {a}x{b}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
+            UserWarning,
+            stacklevel=5,
+        )
 
 
 def _cf_packing(path, data) -> dict | None:
