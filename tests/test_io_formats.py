@@ -1209,7 +1209,8 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
     """Found by trying other labs' files: frames stacked along the last axis (numpy's dstack,
     IDL, Fortran writers) read as rows-many narrow frames, (64, 80, 5) as 64 frames of 80 x 5,
     with no word; every command then worked on strips. A stack whose last axis is far the shortest
-    is warned of, naming the reading; a plain (n, rows, cols) stack is not."""
+    is warned of, naming the reading (a TIFF written from such an array too); a plain (n, rows,
+    cols) stack is not."""
     frames = _frames(5, 64, 80)
     path = tmp_path / "dstack.h5"
     with h5py.File(path, "w") as f:
@@ -1218,6 +1219,9 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
         f.create_dataset("few", data=frames[:2])
     with pytest.warns(UserWarning, match=r"64 frames of 80x5.*rows x cols x n"):
         read(path, dataset="stack")
+    tifffile.imwrite(tmp_path / "dstack.tif", np.dstack(list(frames)), photometric="minisblack")  # 64 pages
+    with pytest.warns(UserWarning, match=r"64 frames of 80x5"):
+        read(tmp_path / "dstack.tif")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         np.testing.assert_array_equal(read(path, dataset="plain").data, frames)

@@ -217,6 +217,8 @@ class FrameSource:
                 raise FormatError(
                     self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
                 )
+            if self.format in ("tiff", "hdf5") and not self._transposed:  # MATLAB's order is read as MATLAB shows it
+                _warn_frames_last(self.path, self.n, self.frame_shape)
             if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
                 raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
             check_budget(
@@ -794,7 +796,6 @@ class FrameSource:
             # its storage checked below, once the frames to be read are known
             data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
             _refuse_colour(self.path, data)
-            _warn_frames_last(self.path, data)
             self._invert = _white_is_zero(self.path, data)
             self._packing = _cf_packing(self.path, data)
             n = 1 if data.ndim == 2 else data.shape[0]
@@ -1203,19 +1204,18 @@ def _white_is_zero(path, data):
     return True if kind == "b" else np.iinfo(data.dtype).max
 
 
-def _warn_frames_last(path, data) -> None:
-    """Warn of a 3-D stack whose last axis is far its shortest, as frames stacked along it (numpy's
-    ``dstack``, IDL and Fortran writers) store rows x cols x n: read as (n, rows, cols), each
+def _warn_frames_last(path, n, shape) -> None:
+    """Warn of a stack of ``n`` frames of ``shape`` whose columns are far fewer than its frames and
+    rows, as frames stacked along the last axis (numpy's ``dstack``, IDL and Fortran writers; a
+    TIFF tifffile wrote from such an array) store rows x cols x n: read as (n, rows, cols), each
     "frame" is a strip of every image, and every command then worked on strips without a word."""
-    if data.ndim != 3 or "MATLAB_class" in data.attrs:  # MATLAB's own order is read as MATLAB shows it
-        return
-    a, b, c = data.shape
-    if c < 16 and min(a, b) >= 64 and 8 * c <= min(a, b):
+    rows, cols = shape
+    if cols < 16 and min(n, rows) >= 64 and 8 * cols <= min(n, rows):
         warnings.warn(
-            f"{path}: {data.name} of shape {data.shape} reads as {a} frames of {b}x{c}; if it is a stack stored "
-            f"rows x cols x n ({c} frames of {a}x{b}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
+            f"{path}: reads as {n} frames of {rows}x{cols}; if it is a stack stored rows x cols x n ({cols} frames "
+            f"of {n}x{rows}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
             UserWarning,
-            stacklevel=5,
+            stacklevel=4,
         )
 
 
