@@ -28,6 +28,7 @@ __all__ = [
     "correct_frames",
     "correct_files",
     "check_above_dark",
+    "check_below_flats",
     "CorrectionReport",
     "CorrectionKernel",
     "DOMAINS",
@@ -570,11 +571,32 @@ def _correct_planned(cal, src, fi, frame, domain, factor):
         nonpos, sat = _correct_checked(cal, raw, frame, domain)
         if raw.dtype.kind == "f":
             check_above_dark(cal, raw)  # float frames already corrected, not raw counts
+        if factor != 1:
+            _rescale(frame, domain, factor)
+        check_below_flats(cal, frame, domain)
     except ValueError as exc:
         raise FormatError(src.path, f"frame {fi}: {exc}") from exc
-    if factor != 1:
-        _rescale(frame, domain, factor)
     return nonpos, sat
+
+
+#: a frame whose median transmission is above this is brighter than the open beam, which no
+#: object can make it: a tube's drift between flats and projections is a few per cent
+MAX_MEDIAN_TRANSMISSION = 1.1
+
+
+def check_below_flats(cal: Calibration, corrected, domain) -> None:
+    """Refuse a corrected frame (in ``domain``) whose median transmission (every 4th row and
+    column) passes :data:`MAX_MEDIAN_TRANSMISSION`. Why: a 12-bit panel's projections saved
+    MSB-aligned (``counts << 4``) against LSB-aligned darks and flats were written as a line
+    integral of -2.77 everywhere, exit code 0; so were frames at a higher exposure than the flats."""
+    median = float(np.median(corrected[::4, ::4]))
+    transmission = {"log": float(np.exp(-median)), "linear": median, "counts": median / cal.c}[domain]
+    if transmission > MAX_MEDIAN_TRANSMISSION:
+        raise ValueError(
+            f"brighter than the flats, {transmission:.2f}x their level (median transmission), which no object makes "
+            "a frame: frames of another exposure (tube current or time) or bit alignment (counts << 4: 16x) than "
+            "the darks and flats"
+        )
 
 
 def _rescale(frame, domain, factor) -> None:

@@ -344,15 +344,12 @@ def load_steps(path, progress: bool = False) -> Steps:
     )
 
 
-#: a step whose median transmission is above this is brighter than the open beam, which no
-#: object can make it: a tube's drift between flats and projections is a few per cent
-MAX_MEDIAN_TRANSMISSION = 1.1
-
-
 def _check_below_the_flats(path, step, image) -> None:
     """Refuse a step whose line integral ``image`` says most of the frame is brighter than the
     flats. Why: flats at a quarter of the projections' tube current, no currents recorded, gave
     negative line integrals everywhere, an empty body, and a traceback in the cross-check."""
+    from radiokit.correct import MAX_MEDIAN_TRANSMISSION
+
     transmission = float(np.exp(-np.median(image)))
     if transmission > MAX_MEDIAN_TRANSMISSION:
         raise FormatError(

@@ -428,3 +428,31 @@ def test_nearest_fill_on_the_holes_box_takes_a_nearest_pixel_of_the_whole_frame(
     nearest = ndimage.distance_transform_edt(holes)[holes]
     np.testing.assert_allclose(taken, nearest, rtol=0, atol=1e-12)
     assert np.array_equal(image[~holes], np.arange(holes.size).reshape(shape)[~holes])
+
+
+@pytest.mark.parametrize("domain", ["log", "linear", "counts"])
+def test_correct_files_refuses_frames_brighter_than_the_flats(tmp_path, domain):
+    """Found by trying other labs' files: a 12-bit panel's projections saved MSB-aligned
+    (``counts << 4``, another frame grabber setting) against darks and flats saved LSB-aligned were
+    corrected to a transmission of 16, a line integral of -2.77 everywhere, exit code 0. No object
+    makes a frame brighter than the open beam: as radiokit process refuses such a step, correct
+    refuses the frame, naming it and how much brighter; one within the tube's drift is corrected."""
+    import tifffile
+
+    from radiokit.correct import correct_files
+    from radiokit.errors import FormatError
+
+    rng = np.random.default_rng(21)
+    dark = np.full((32, 40), 100.0, np.float32)
+    cal = Calibration(dark, dark + 2000, np.zeros((32, 40), np.uint32))
+    frames = (100 + rng.poisson(1000, (2, 32, 40))).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "lsb.tif", frames, photometric="minisblack")
+    tifffile.imwrite(tmp_path / "msb.tif", frames << 4, photometric="minisblack")
+    bright = (100 + rng.poisson(2100, (1, 32, 40))).astype(np.uint16)  # 5 % over the flats: drift
+    tifffile.imwrite(tmp_path / "drift.tif", bright, photometric="minisblack")
+    correct_files(
+        [tmp_path / "lsb.tif", tmp_path / "drift.tif"], cal, tmp_path / "ok.h5", domain=domain, progress=False
+    )
+    with pytest.raises(FormatError, match=r"msb.tif: frame 0: brighter than the flats, 8.\d+x their level"):
+        correct_files(tmp_path / "msb.tif", cal, tmp_path / "out.h5", domain=domain, progress=False)
+    assert not (tmp_path / "out.h5").exists()
