@@ -1113,6 +1113,20 @@ def test_hdf5_cf_fill_value_reads_as_nan_not_as_a_number(tmp_path):
     assert np.isnan(data[0, 2, 3]) and np.isfinite(data).sum() == 63
 
 
+def test_hdf5_float_frames_with_a_cf_fill_value_read_it_as_nan(tmp_path):
+    """netCDF-4 marks a float variable's missing pixels with ``_FillValue`` (9.97e36 by default)
+    without any packing: read as a number, each such pixel was a transmission of 1e33, silently."""
+    frames = np.full((2, 8, 8), 1500.0, np.float32)
+    frames[1, 4, 5] = 9.969209968386869e36
+    path = tmp_path / "nc.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("counts", data=frames).attrs["_FillValue"] = np.float32(9.969209968386869e36)
+        f.create_dataset("plain", data=frames)
+    data = read(path, dataset="counts").data
+    assert data.dtype == np.float32 and np.isnan(data[1, 4, 5]) and np.isfinite(data).sum() == 127
+    assert np.isfinite(read(path, dataset="plain").data).all()  # no attribute: read as stored
+
+
 @pytest.mark.parametrize("scale", [0.0, np.nan, "0.001"])
 def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
     path = tmp_path / "cf.h5"

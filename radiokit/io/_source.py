@@ -1222,11 +1222,20 @@ def _warn_frames_last(path, n, shape) -> None:
 def _cf_packing(path, data) -> dict | None:
     """The CF conventions' packing of ``data`` (netCDF-4 files, xarray's ``encoding``, are HDF5):
     ``value = stored * scale_factor + add_offset``, in the attributes' type, with the stored
-    ``_FillValue`` and ``missing_value`` codes missing (NaN); None when it has neither attribute.
-    Read as stored, a packed transmission of 0.5 was -5000: a silent wrong value in every pixel."""
+    ``_FillValue`` and ``missing_value`` codes missing (NaN), float data with such a code and no
+    packing too (netCDF's default float fill, 9.97e36, read as a number); else None. Read as
+    stored, a packed transmission of 0.5 was -5000: a silent wrong value in every pixel."""
     attrs = data.attrs
+    codes = [k for k in ("_FillValue", "missing_value") if k in attrs]
     if "scale_factor" not in attrs and "add_offset" not in attrs:
-        return None
+        if not codes or data.dtype.kind != "f":  # an integer without packing has no NaN to mark with
+            return None
+        return {
+            "scale_factor": 1.0,
+            "add_offset": 0.0,
+            "dtype": data.dtype.newbyteorder("="),
+            "missing": _codes(attrs, codes),
+        }
     found = {}
     for name, default in (("scale_factor", 1.0), ("add_offset", 0.0)):
         value = np.asarray(attrs.get(name, np.float32(default)))
@@ -1235,21 +1244,29 @@ def _cf_packing(path, data) -> dict | None:
         found[name] = value.reshape(())
     if found["scale_factor"] == 0:
         raise FormatError(path, f"{data.name}@scale_factor is 0: every pixel would read as add_offset")
-    missing = [np.asarray(attrs[k]).ravel() for k in ("_FillValue", "missing_value") if k in attrs]
     return {
         "scale_factor": found["scale_factor"].item(),
         "add_offset": found["add_offset"].item(),
         "dtype": np.result_type(np.float32, found["scale_factor"].dtype, found["add_offset"].dtype),
-        "missing": np.concatenate(missing) if missing else np.empty(0),
+        "missing": _codes(attrs, codes),
     }
+
+
+def _codes(attrs, names) -> np.ndarray:
+    """The stored values the CF attributes ``names`` (``_FillValue``, ``missing_value``) mark
+    missing; numbers only (a text code marks nothing a pixel can hold)."""
+    found = [np.asarray(attrs[k]).ravel() for k in names]
+    found = [v for v in found if v.dtype.kind in "biuf"]
+    return np.concatenate(found) if found else np.empty(0)
 
 
 def _unpack(frame, packing) -> np.ndarray:
     """A CF-packed frame's values (:func:`_cf_packing`)."""
     dtype = packing["dtype"]
     out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
-    if packing["missing"].size:
-        out[np.isin(frame, packing["missing"])] = np.nan
+    if packing["missing"].size:  # float codes compared as stored (a float64 attribute on float32 data)
+        codes = packing["missing"].astype(frame.dtype) if frame.dtype.kind == "f" else packing["missing"]
+        out[np.isin(frame, codes)] = np.nan
     return out
 
 
