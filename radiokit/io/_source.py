@@ -1265,7 +1265,9 @@ def _unpack(frame, packing) -> np.ndarray:
     dtype = packing["dtype"]
     out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
     if packing["missing"].size:  # float codes compared as stored (a float64 attribute on float32 data)
-        codes = packing["missing"].astype(frame.dtype) if frame.dtype.kind == "f" else packing["missing"]
+        with np.errstate(over="ignore"):  # a code beyond the stored type's range marks no pixel it can hold
+            codes = packing["missing"].astype(frame.dtype) if frame.dtype.kind == "f" else packing["missing"]
+        codes = codes[np.isfinite(codes)] if codes.dtype.kind == "f" else codes
         out[np.isin(frame, codes)] = np.nan
     return out
 
