@@ -1127,6 +1127,18 @@ def test_hdf5_float_frames_with_a_cf_fill_value_read_it_as_nan(tmp_path):
     assert np.isfinite(read(path, dataset="plain").data).all()  # no attribute: read as stored
 
 
+def test_hdf5_cf_fill_value_beyond_the_stored_type_marks_no_pixel(tmp_path):
+    """A float64 fill code of 1e300 on float32 frames overflowed to inf (a RuntimeWarning) and
+    would have marked the frame's inf pixels missing: no float32 pixel holds that code."""
+    frames = np.full((1, 4, 4), 7.0, np.float32)
+    frames[0, 1, 1] = np.inf
+    path = tmp_path / "nc.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("x", data=frames).attrs["_FillValue"] = 1e300
+    data = read(path, dataset="x").data
+    assert np.isposinf(data[0, 1, 1]) and (data[np.isfinite(data)] == 7).sum() == 15
+
+
 @pytest.mark.parametrize("scale", [0.0, np.nan, "0.001"])
 def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
     path = tmp_path / "cf.h5"
