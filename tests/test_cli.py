@@ -962,27 +962,3 @@ def test_a_stop_delivered_again_neither_kills_nor_is_lost(how):
     words = res.stdout.split()
     assert words[:3] == ["stopped", "Interrupted", "SIGTERM"], res.stdout
     assert how != "deferred" or words[3:] == ["to", "its", "end"], res.stdout
-
-
-def test_a_dxchange_file_is_corrected_from_its_own_darks_and_flats(tmp_path):
-    """A beamline's DXchange file through the commands a user types: info counts its frames of
-    each kind, and correct calibrates from its darks and flats and corrects its projections alone,
-    to -ln of the transmission the frames were made with."""
-    import h5py
-
-    rng = np.random.default_rng(2)
-    transmission = np.exp(-np.linspace(0.2, 1.5, 48))[None, :].repeat(40, 0)
-    darks = np.rint(100 + rng.normal(0, 1, (4, 40, 48))).astype(np.uint16)
-    flats = np.rint(100 + 3000 + rng.normal(0, 5, (4, 40, 48))).astype(np.uint16)
-    proj = np.rint(100 + 3000 * transmission + rng.normal(0, 5, (2, 40, 48))).astype(np.uint16)
-    path = tmp_path / "tomo.h5"
-    with h5py.File(path, "w") as f:
-        f["exchange/data"], f["exchange/data_dark"], f["exchange/data_white"] = proj, darks, flats
-    res = run_cli("info", path)
-    assert res.returncode == 0 and re.search(r"projections\s+2", res.stdout) and re.search(r"darks\s+4", res.stdout)
-    res = run_cli("correct", path, "-o", tmp_path / "out.h5", "-q")
-    assert res.returncode == 0, res.stderr
-    out = read(tmp_path / "out.h5").data
-    assert out.shape == (2, 40, 48)
-    # 5 counts of noise on 3000 x T: a frame's -ln errs by about 5 / (3000 T) <= 0.008 rms
-    np.testing.assert_allclose(out.mean(axis=(0, 1)), -np.log(transmission[0]), atol=0.005)

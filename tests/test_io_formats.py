@@ -2,6 +2,7 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import re
 import subprocess
 import sys
 import threading
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex
+from conftest import ITEX_DIR, needs_itex, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -1186,6 +1187,28 @@ def test_dxchange_reads_its_darks_flats_and_projections_told_apart(tmp_path):
     np.testing.assert_allclose(cal.flat, expected.flat)
     np.testing.assert_allclose(cal.dark, expected.dark)
     np.testing.assert_array_equal(read(path, dataset="exchange/data").data, proj)  # one dataset, as before
+
+
+def test_a_dxchange_file_is_corrected_from_its_own_darks_and_flats(tmp_path):
+    """A beamline's DXchange file through the commands a user types: info counts its frames of
+    each kind, and correct calibrates from its darks and flats and corrects its projections alone,
+    to -ln of the transmission the frames were made with."""
+    rng = np.random.default_rng(2)
+    transmission = np.exp(-np.linspace(0.2, 1.5, 48))[None, :].repeat(40, 0)
+    darks = np.rint(100 + rng.normal(0, 1, (4, 40, 48))).astype(np.uint16)
+    flats = np.rint(100 + 3000 + rng.normal(0, 5, (4, 40, 48))).astype(np.uint16)
+    proj = np.rint(100 + 3000 * transmission + rng.normal(0, 5, (2, 40, 48))).astype(np.uint16)
+    path = tmp_path / "tomo.h5"
+    with h5py.File(path, "w") as f:
+        f["exchange/data"], f["exchange/data_dark"], f["exchange/data_white"] = proj, darks, flats
+    res = run_cli("info", path)
+    assert res.returncode == 0 and re.search(r"projections\s+2", res.stdout) and re.search(r"darks\s+4", res.stdout)
+    res = run_cli("correct", path, "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 0, res.stderr
+    out = read(tmp_path / "out.h5").data
+    assert out.shape == (2, 40, 48)
+    # 5 counts of noise on 3000 x T: a frame's -ln errs by about 5 / (3000 T) <= 0.008 rms
+    np.testing.assert_allclose(out.mean(axis=(0, 1)), -np.log(transmission[0]), atol=0.005)
 
 
 def test_dxchange_of_projections_only_or_of_mismatched_frames(tmp_path):
