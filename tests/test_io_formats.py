@@ -2,18 +2,16 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
-import re
 import subprocess
 import sys
 import threading
-import warnings
 
 import h5py
 import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex, run_cli
+from conftest import ITEX_DIR, needs_itex
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -1193,6 +1191,10 @@ def test_a_dxchange_file_is_corrected_from_its_own_darks_and_flats(tmp_path):
     """A beamline's DXchange file through the commands a user types: info counts its frames of
     each kind, and correct calibrates from its darks and flats and corrects its projections alone,
     to -ln of the transmission the frames were made with."""
+    import re
+
+    from conftest import run_cli
+
     rng = np.random.default_rng(2)
     transmission = np.exp(-np.linspace(0.2, 1.5, 48))[None, :].repeat(40, 0)
     darks = np.rint(100 + rng.normal(0, 1, (4, 40, 48))).astype(np.uint16)
@@ -1260,6 +1262,8 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
     with no word; every command then worked on strips. A stack whose last axis is far the shortest
     is warned of, naming the reading (a TIFF written from such an array too); a plain (n, rows,
     cols) stack is not."""
+    import warnings
+
     frames = _frames(5, 64, 80)
     path = tmp_path / "dstack.h5"
     with h5py.File(path, "w") as f:
