@@ -269,7 +269,9 @@ def test_demo_replaces_only_its_own_outputs(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted([RESULTS_MARKER, "notes.txt"])
 
 
-@pytest.mark.parametrize("marker", ["", "made by RadioKit;", "results of radiokit process", None])
+@pytest.mark.parametrize(
+    "marker", ["", "made by RadioKit;", "results of radiokit process", None, "made by radiokit;", "made by radiokit; x"]
+)
 def test_a_marker_radiokit_does_not_recognise_is_never_replaced(marker, experiment, tmp_path):
     """A folder whose marker's first line names no command radiokit knows (written by hand, by
     another tool, or a folder where the marker's name is a folder) was taken as the command's own:
@@ -290,6 +292,38 @@ def test_a_marker_radiokit_does_not_recognise_is_never_replaced(marker, experime
         _demo_folder(out, overwrite=True)
     one_line_error(run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI), str(out), "not recognise")
     assert tree_sha(out) == before
+
+
+def test_a_bare_old_style_marker_listing_its_files_is_never_replaced(experiment, tmp_path):
+    """A marker whose first line is only ``made by radiokit;`` (by hand, or a shortened copy of
+    the form process wrote before markers named the command) was read as process's: a folder
+    whose marker listed its files was replaced by `process --overwrite`. Only the exact line
+    radiokit wrote is recognised."""
+    out = tmp_path / "old"
+    (out / "results").mkdir(parents=True)
+    (out / "experiment.h5").write_text("someone's")
+    (out / "results" / "x").write_text("someone's")
+    (out / RESULTS_MARKER).write_text("made by radiokit;\nexperiment.h5\nresults/x\n")
+    before = tree_sha(out)
+    one_line_error(run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI), str(out), "not recognise")
+    assert tree_sha(out) == before
+
+
+@pytest.mark.parametrize(
+    "first, command",
+    [
+        ("made by radiokit; may be replaced by a run with --overwrite. Files:", "process"),  # before named markers
+        ("made by radiokit demo; may be replaced by `radiokit demo --overwrite`", "demo"),  # demo's first marker
+    ],
+)
+def test_the_markers_radiokit_wrote_before_are_still_recognised(first, command, tmp_path):
+    from radiokit.io._atomic import refuse_another_commands
+
+    (tmp_path / RESULTS_MARKER).write_text(first + "\n")
+    refuse_another_commands(tmp_path, command)
+    other = {"process": "demo", "demo": "process"}[command]
+    with pytest.raises(OSError, match=f"made by radiokit {command}, not by radiokit {other}"):
+        refuse_another_commands(tmp_path, other)
 
 
 # -- interrupted writes ------------------------------------------------------------------------

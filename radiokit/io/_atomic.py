@@ -74,13 +74,24 @@ def refuse_another_commands(folder: Path, command: str) -> None:
         )
 
 
+#: the first line of a results folder's marker before markers named the command (only process
+#: wrote one then); any other line without a command's name is not radiokit's
+_UNNAMED_MARKER = "made by radiokit; may be replaced by a run with --overwrite. Files:"
+
+
 def _made_by(folder: Path) -> str | None:
     """The command whose marker ``folder`` holds (None: not one radiokit wrote in this form).
-    Folders before the marker named it were results folders: ``made by radiokit;``."""
+    A line is recognised whole, as radiokit wrote it: ``made by radiokit;`` alone (a hand-made
+    or cut copy) says nothing of whose the files are."""
     with open(folder / RESULTS_MARKER, "rb") as f:  # its first line only, whatever the file holds
-        head = f.read(256).split(b"\n", 1)[0].decode("utf-8", "replace")
-    found = re.match(r"made by radiokit(?:;| ([\w-]+);)", head)
-    return None if found is None else found.group(1) or "process"
+        head = f.read(256).split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r")
+    if head == _UNNAMED_MARKER:
+        return "process"
+    # demo's first form went on "`radiokit demo --overwrite`", the present one "a run with --overwrite."
+    found = re.fullmatch(
+        r"made by radiokit ([\w-]+); may be replaced by (?:a run with --overwrite\.|`.*`)(?: Files:)?", head
+    )
+    return None if found is None else found.group(1)
 
 
 class OutputError(RadiokitError, OSError):
