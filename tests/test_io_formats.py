@@ -2,6 +2,7 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import os
 import subprocess
 import sys
 import threading
@@ -713,6 +714,36 @@ def test_tiff_compressed_strips_all_written_still_read(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # HDF5 images and NeXus defaults of other software
 # ------------------------------------------------------------------------------------------------
+
+
+def _bytes_read() -> int:
+    """What this process has read through read() system calls (Linux's /proc/self/io rchar)."""
+    with open("/proc/self/io") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("rchar:"))
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/io"), reason="needs Linux's /proc/self/io")
+@pytest.mark.parametrize("chunks", [(10, 1, 700), (4, 5, 700), (3, 64, 100)])
+def test_hdf5_chunks_spanning_frames_are_read_once_each(chunks, tmp_path):
+    """A stack whose chunks hold a row (or a block) of several frames, more of them than
+    libhdf5's chunk cache holds (8 MiB, h5py's default with HDF5 2.0): read() read and
+    decompressed every chunk once per frame it holds, 10 times the file here. Read in
+    chunk-aligned blocks, the file's bytes are read about once; every value as stored, inverted
+    as its attribute says, and cut by an n= hint."""
+    counts = _frames(10, rows=640, cols=700)
+    path = tmp_path / "rows.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("data", data=counts, chunks=chunks, compression="gzip")
+    size = path.stat().st_size
+    before = _bytes_read()
+    frames = read(path, dataset="data").data
+    assert _bytes_read() - before < 3 * size
+    np.testing.assert_array_equal(frames, counts)
+    np.testing.assert_array_equal(_both_ways(path, dataset="data", n=7), counts[:7])
+    with h5py.File(path, "a") as h5:
+        h5["data"].attrs["IMAGE_WHITE_IS_ZERO"] = 1
+        h5["data"].attrs["CLASS"] = np.bytes_("IMAGE")
+    np.testing.assert_array_equal(_both_ways(path, dataset="data"), 65535 - counts)
 
 
 def test_hdf5_image_with_a_palette_is_refused_and_one_without_is_read(tmp_path):

@@ -957,9 +957,37 @@ class FrameSource:
                 "in memory: a corrupt header, or read them one by one with "
                 "open_frames()",
             ) from None
-        for i in range(self.n):
+        for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
             out[i] = self[i]
         return Frames(out, dict(self.meta), self.path)
+
+    def _read_hdf5_blocks(self, out) -> int:
+        """Read the stack into ``out`` in blocks of whole chunks when its chunks span frames; the
+        frames read (0: frame by frame it is). Read frame by frame, a chunk holding k frames is
+        read and decompressed k times once a frame's chunks outgrow libhdf5's chunk cache
+        (benchmarks/bench_hdf5_chunks.py); read straight into ``out``, no more memory is used."""
+        ds = self._ds
+        if not isinstance(ds, h5py.Dataset) or ds.ndim != 3 or not ds.chunks or ds.chunks[0] == 1:
+            return 0
+        if self._transposed or (ds.dtype.kind, ds.dtype.itemsize) != (self.dtype.kind, self.dtype.itemsize):
+            return 0
+        keys = self.meta.get("image_key")
+        for i in range(self.n):  # as _read_hdf5 checks each
+            if keys is None or i >= len(keys) or keys[i] != ImageKey.INVALID:
+                check_frame_written(self.path, ds, i)
+        for a in range(0, self.n, ds.chunks[0]):
+            b = min(a + ds.chunks[0], self.n)
+            try:
+                ds.read_direct(out, np.s_[a:b], np.s_[a:b])
+            except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
+                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
+        for i in range(self.n if self._invert is not None else 0):
+            out[i] = ~out[i] if out.dtype.kind == "b" else self._invert - out[i]
+        for i in range(self.n if not self._bits_warned else 0):
+            if check_bit_depth(self.path, out[i], self.bits):
+                self._bits_warned = True
+                break
+        return self.n
 
     def close(self):
         for attr in ("_fh", "_tif", "_h5"):
