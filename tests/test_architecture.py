@@ -8,6 +8,7 @@ named int constants enums.
 """
 
 import ast
+import contextlib
 from pathlib import Path
 
 import pytest
@@ -47,15 +48,22 @@ def test_no_private_name_is_imported_across_packages(package):
     assert not found, "private names imported across packages:\n" + "\n".join(found)
 
 
-def test_the_check_can_fail(tmp_path):
-    (tmp_path / "m.py").write_text("from radiokit.io._itex import parse_comment\nimport radiokit._version\n")
+@contextlib.contextmanager
+def _repo_at(folder: Path):
+    """The checks' paths taken relative to ``folder`` while the block runs."""
     global REPO
-    saved, REPO = REPO, tmp_path
+    saved, REPO = REPO, folder
     try:
-        assert len(_cross_package_private_imports(tmp_path / "m.py", "sim")) == 2
-        assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
+        yield
     finally:
         REPO = saved
+
+
+def test_the_check_can_fail(tmp_path):
+    (tmp_path / "m.py").write_text("from radiokit.io._itex import parse_comment\nimport radiokit._version\n")
+    with _repo_at(tmp_path):
+        assert len(_cross_package_private_imports(tmp_path / "m.py", "sim")) == 2
+        assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
 
 
 # -- functions stay short ------------------------------------------------------------------------
@@ -228,9 +236,5 @@ def test_progress_bars_come_from_radiokit_progress():
 
 def test_the_tqdm_check_can_fail(tmp_path):
     (tmp_path / "m.py").write_text("from tqdm.auto import tqdm\nimport tqdm\nfrom radiokit.progress import tqdm\n")
-    global REPO
-    saved, REPO = REPO, tmp_path
-    try:
+    with _repo_at(tmp_path):
         assert len(_direct_tqdm_imports(tmp_path / "m.py")) == 2
-    finally:
-        REPO = saved
