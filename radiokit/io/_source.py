@@ -604,8 +604,8 @@ class FrameSource:
         self._words = words
 
     def _decoded_bytes(self, page, rows, cols) -> int:
-        """The length page ``page``'s first compressed strip decodes to, at most one more than
-        16-bit words would fill (the decoder allocates no more: a bomb stops there)."""
+        """The length ``page``'s first compressed strip decodes to, at most one more than 16-bit
+        words would fill (the decoder allocates no more: a bomb stops there)."""
         per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
         fh = self._tif.filehandle
         fh.seek(page.dataoffsets[0])
@@ -656,7 +656,7 @@ class FrameSource:
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
         elif self._words:
-            frame = self._read_words(self._pages[i])
+            frame = self._read_words(i)
         else:
             frame = self._pages[i].asarray()
         if frame.shape != self._stored_shape:
@@ -669,9 +669,9 @@ class FrameSource:
             frame = frame.astype(dtype)
         return _ORIENT[self._orientation](frame)
 
-    def _read_words(self, page) -> np.ndarray:
-        """A page whose strips hold one 8- or 16-bit word per pixel although BitsPerSample says fewer."""
-        fh, rows, cols = self._tif.filehandle, *self._stored_shape
+    def _read_words(self, i) -> np.ndarray:
+        """Frame ``i``, whose strips hold one 8- or 16-bit word per pixel although BitsPerSample says fewer."""
+        page, fh, (rows, cols) = self._pages[i], self._tif.filehandle, self._stored_shape
         per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
         decode = tifffile.TIFF.DECOMPRESSORS[int(page.compression)] if page.compression != 1 else None
         parts = []
@@ -683,7 +683,8 @@ class FrameSource:
         if len(data) != rows * cols * self._words:  # the other pages are not checked at open
             raise FormatError(
                 self.path,
-                f"TIFF page holds {len(data)} bytes of words; {rows}x{cols} needs {rows * cols * self._words}",
+                f"TIFF frame {i} decodes to {len(data)} bytes, not the {rows * cols * self._words} of page 0's "
+                f"{_stored(self._words)} for {rows}x{cols}: not one stack of frames",
             )
         words = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{self._words}")).reshape(rows, cols)
         if page.predictor == 2:  # horizontal differencing, undone in the words' own (wrapping) type
