@@ -484,6 +484,7 @@ class Calibration:
             raise FormatError(path, str(exc)) from exc
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
         cal.provenance["source"] = str(path)
+        check_currents(path, src.meta, sel[ImageKey.FLAT])
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
             values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
             if np.isfinite(values).any():
@@ -582,6 +583,9 @@ def _check_numbers(path, group, provenance: dict) -> None:
             raise FormatError(
                 path, f"{group.name}@provenance: {key} is {json.dumps(value)}: expected a number ({unit}) or null"
             )
+    value = provenance.get("flat_current_ua")
+    if value is not None and not np.isnan(value) and not _TUBE_UA[0] <= value <= _TUBE_UA[1]:
+        raise FormatError(path, f"{group.name}@provenance: flat_current_ua is {value!r} uA: {_NO_TUBE}")
 
 
 def _json_attr(path, group, name) -> dict:
@@ -602,6 +606,33 @@ def _json_attr(path, group, name) -> dict:
 
 #: Tube currents of a frame and of the flats closer than this (relative) are one setting.
 CURRENT_TOLERANCE = 0.05
+#: The tube currents, uA, a recorded value may be: 1 nA to 1 A, far beyond any X-ray tube's at
+#: either end (the L8121 gives up to 500 uA; a CT tube's peak is about 1 A). Outside, the value is
+#: corrupt or in other units, and scaling transmissions by it ends in nonsense (a "zero reference
+#: contrast" after 1e308 uA).
+_TUBE_UA = (1e-3, 1e6)
+_NO_TUBE = "no X-ray tube gives that (a recorded current is between 1 nA and 1 A, NaN where not recorded)"
+
+
+def check_currents(path, meta: dict, frames) -> None:
+    """Refuse, naming the file, the field and the frame, a tube current recorded for ``frames``
+    (flats or projections: the tube on) outside :data:`_TUBE_UA`; NaN is not recorded."""
+    from radiokit.io._experiment import CONTROL
+
+    if "current" not in meta:
+        return
+    frames = np.asarray(frames, int)
+    cur = np.asarray(meta["current"], float)[frames]
+    bad = np.flatnonzero(~np.isnan(cur) & ~((cur >= _TUBE_UA[0]) & (cur <= _TUBE_UA[1])))
+    if bad.size:
+        k = int(frames[bad[0]])
+        keys = meta.get("image_key")
+        kind = {0: "projection", 1: "flat"}.get(int(keys[k]), "frame") if keys is not None else "frame"
+        raise FormatError(
+            path,
+            f"/{CONTROL}/current of frame {k} (a {kind}) is {float(cur[bad[0]])!r} uA"
+            f"{f' ({bad.size} such frames)' if bad.size > 1 else ''}: {_NO_TUBE}",
+        )
 
 
 def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
@@ -622,6 +653,7 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
     if "current" not in meta and "voltage" not in meta:  # not an experiment file, or nothing recorded
         return out
     n = int(frames.max()) + 1 if frames.size else 0
+    check_currents(path, meta, frames)
     flat_ua = cal.provenance.get("flat_current_ua")
     cur = np.asarray(meta.get("current", np.full(n, np.nan)), float)[frames]
     if flat_ua is not None and np.isfinite(flat_ua) and flat_ua > 0:

@@ -1169,6 +1169,42 @@ def _check_environment() -> None:
     memory_budget()
 
 
+def _writable_folder(folder: Path) -> bool:
+    """Whether ``folder`` is, or could be made as, a folder this user writes into: it or its
+    nearest existing parent is a folder with write access (as matplotlib will try)."""
+    for path in (folder, *folder.parents):
+        if os.path.lexists(path):
+            return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
+    return False
+
+
+def _quiet_matplotlib() -> None:
+    """Give matplotlib a temporary folder (``MPLCONFIGDIR``, removed at exit) when it cannot make
+    its own under the home folder or ``XDG_*``, and only then: a user without a home folder (a
+    service account's /nonexistent, a read-only container) got two lines of matplotlib's about
+    it on every command that draws. Before matplotlib is imported: it reads them once."""
+    if os.environ.get("MPLCONFIGDIR") or "matplotlib" in sys.modules:
+        return
+    try:
+        home = Path.home()
+    except (RuntimeError, KeyError):  # no HOME and no entry in the password database
+        home = None
+    folders = [os.environ.get(xdg) or (home and home / default) for xdg, default in _XDG]
+    if all(f and _writable_folder(Path(f) / "matplotlib") for f in folders):
+        return
+    import atexit
+    import shutil
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="radiokit-matplotlib-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    os.environ["MPLCONFIGDIR"] = folder
+
+
+#: where matplotlib keeps its configuration and its font cache (Linux), beside the variables naming them
+_XDG = (("XDG_CONFIG_HOME", ".config"), ("XDG_CACHE_HOME", ".cache"))
+
+
 def _one_warning_per_file() -> None:
     """A warning about a file (it carries ``path``) shown once per command: `radiokit correct
     exp.h5` opens the file to calibrate and again to correct, and each open warned (with the peak
@@ -1206,6 +1242,7 @@ def _main(argv) -> int:
             f"radiokit {name}: {category.__name__}: {' '.join(str(message).split())}\n"
         )
     _one_warning_per_file()
+    _quiet_matplotlib()
     if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _terminated)

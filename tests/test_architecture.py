@@ -8,6 +8,7 @@ named int constants enums.
 """
 
 import ast
+import contextlib
 from pathlib import Path
 
 import pytest
@@ -47,15 +48,22 @@ def test_no_private_name_is_imported_across_packages(package):
     assert not found, "private names imported across packages:\n" + "\n".join(found)
 
 
-def test_the_check_can_fail(tmp_path):
-    (tmp_path / "m.py").write_text("from radiokit.io._itex import parse_comment\nimport radiokit._version\n")
+@contextlib.contextmanager
+def _repo_at(folder: Path):
+    """The checks' paths taken relative to ``folder`` while the block runs."""
     global REPO
-    saved, REPO = REPO, tmp_path
+    saved, REPO = REPO, folder
     try:
-        assert len(_cross_package_private_imports(tmp_path / "m.py", "sim")) == 2
-        assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
+        yield
     finally:
         REPO = saved
+
+
+def test_the_check_can_fail(tmp_path):
+    (tmp_path / "m.py").write_text("from radiokit.io._itex import parse_comment\nimport radiokit._version\n")
+    with _repo_at(tmp_path):
+        assert len(_cross_package_private_imports(tmp_path / "m.py", "sim")) == 2
+        assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
 
 
 # -- functions stay short ------------------------------------------------------------------------
@@ -200,3 +208,33 @@ def test_the_docstring_check_can_fail(tmp_path):
         "def f():\n    x = 1\n    '''Late.'''\n    return x\ndef g():\n    '''Fine.'''\n    return 1\n"
     )
     assert _misplaced_docstrings(tmp_path, ("pkg",)) == ["pkg/m.py:3"]
+
+
+def _direct_tqdm_imports(path: Path) -> list[str]:
+    """Imports of tqdm itself (``import tqdm``, ``from tqdm... import``) in ``path``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+        modules = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+        if isinstance(node, ast.ImportFrom) and node.level == 0:
+            modules = [node.module or ""]
+        found += [f"{path.relative_to(REPO)}:{node.lineno}: {m}" for m in modules if m.split(".")[0] == "tqdm"]
+    return found
+
+
+def test_progress_bars_come_from_radiokit_progress():
+    """A bar made by tqdm directly misses radiokit.progress's width on a terminal reporting 0
+    columns (squeezed into one cell, its last character cut): only that module imports tqdm."""
+    found = [
+        hit
+        for package in PACKAGES
+        for path in sorted((REPO / package).rglob("*.py"))
+        if path != REPO / "radiokit" / "progress.py"
+        for hit in _direct_tqdm_imports(path)
+    ]
+    assert not found, "tqdm imported directly (use radiokit.progress.tqdm):\n" + "\n".join(found)
+
+
+def test_the_tqdm_check_can_fail(tmp_path):
+    (tmp_path / "m.py").write_text("from tqdm.auto import tqdm\nimport tqdm\nfrom radiokit.progress import tqdm\n")
+    with _repo_at(tmp_path):
+        assert len(_direct_tqdm_imports(tmp_path / "m.py")) == 2

@@ -962,3 +962,38 @@ def test_a_stop_delivered_again_neither_kills_nor_is_lost(how):
     words = res.stdout.split()
     assert words[:3] == ["stopped", "Interrupted", "SIGTERM"], res.stdout
     assert how != "deferred" or words[3:] == ["to", "its", "end"], res.stdout
+
+
+@pytest.mark.parametrize("home", ["under-a-file", "unset"])
+def test_a_user_without_a_home_folder_gets_no_matplotlib_lines(home, tmp_path):
+    """HOME where no folder can be made (a service account's /nonexistent, a container's
+    read-only root; here a path under a regular file, which root cannot make either): matplotlib
+    printed two lines about its cache folder on every command that draws. The figure is still
+    written, nothing is left in the temporary folder, and stderr holds nothing."""
+    import tifffile
+
+    rr, cc = np.mgrid[0:64, 0:64]
+    fixed, moving = tmp_path / "fixed.tif", tmp_path / "moving.tif"
+    tifffile.imwrite(fixed, np.exp(-((rr - 32) ** 2 + (cc - 30) ** 2) / 200.0).astype(np.float32))
+    tifffile.imwrite(moving, np.exp(-((rr - 33) ** 2 + (cc - 31) ** 2) / 200.0).astype(np.float32))
+    (tmp_path / "file").write_text("not a folder")
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("HOME", "MPLCONFIGDIR", "XDG_CONFIG_HOME", "XDG_CACHE_HOME")
+    }
+    if home == "under-a-file":
+        env["HOME"] = str(tmp_path / "file" / "home")
+    else:  # the password database's home then: unwritable only through XDG_*, set under the file
+        env["XDG_CONFIG_HOME"] = env["XDG_CACHE_HOME"] = str(tmp_path / "file" / "xdg")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env.update(TMPDIR=str(scratch), PYTHONWARNINGS="ignore")
+    res = subprocess.run(
+        [RADIOKIT, "register", fixed, moving, "-o", tmp_path / "f.h5", "--png", tmp_path / "f.png"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert res.returncode in (0, 1), res.stderr  # 1: a field the checks do not trust
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "matplotlib" not in res.stderr.lower() and "MPLCONFIGDIR" not in res.stderr, res.stderr
+    assert list(scratch.iterdir()) == []

@@ -424,3 +424,69 @@ def test_register_refuses_a_dark_or_flat_frame_of_an_experiment_file(tmp_path):
     last = int(np.flatnonzero(keys == 0)[-1])
     res = run_cli("register", exp, exp, "--fixed-frame", last, "--moving-frame", first, "-o", tmp_path / "reg.h5")
     assert res.returncode in (0, 1) and (tmp_path / "reg.h5").exists(), res.stderr
+
+
+# -- recorded tube currents out of any tube's range ----------------------------------------------
+def _with_currents(path, flat_ua, projection_ua, shape=(160, 160)):
+    """synthetic()'s experiment with the tube currents the flats and projections recorded."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
+    with ExperimentWriter(path, shape=shape) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK, current_ua=0.0)  # the tube off
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=flat_ua)
+        for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):
+            counts = 100 + 3000 * np.exp(-(0.08 * tb + 0.03 * ti * sq))
+            w.append(
+                counts.astype(np.uint16),
+                image_key=ImageKey.PROJECTION,
+                step=step,
+                ratio=0.1 * step,
+                current_ua=projection_ua,
+            )
+    return path
+
+
+ABSURD_UA = [1e308, math.inf, -5.0, 0.0, 1e-300]
+
+
+@pytest.mark.parametrize("which", ["flat", "projection"])
+@pytest.mark.parametrize("absurd", ABSURD_UA)
+@pytest.mark.parametrize("cmd", ["process", "correct", "calibrate"])
+def test_a_recorded_tube_current_no_tube_gives_is_refused_naming_the_field(cmd, absurd, which, tmp_path):
+    """A flat or projection current of 1e308, inf, 0 or -5 uA was taken as not recorded (factor 1,
+    in silence) or scaled every transmission by it: process ended in "the reference contrast is
+    zero", misleading. One line names the file, the field and the frame's kind."""
+    flat, projection = (absurd, 200.0) if which == "flat" else (200.0, absurd)
+    exp = _with_currents(tmp_path / "exp.h5", flat, projection)
+    args = {
+        "process": ["process", exp, "-o", tmp_path / "r", *FAST],
+        "correct": ["correct", exp, "-q", "-o", tmp_path / "c.h5"],
+        "calibrate": ["calibrate", "--experiment", exp, "-o", tmp_path / "cal.h5"],
+    }[cmd]
+    if cmd == "calibrate" and which == "projection":  # calibrate reads the darks and flats alone
+        assert run_cli(*args).returncode == 0
+        return
+    one_line_error(run_cli(*args), "exp.h5", "entry/control/current", which, "uA")
+    assert not (tmp_path / "r").exists() and not (tmp_path / "c.h5").exists()
+
+
+def test_recorded_tube_currents_in_range_and_not_recorded_still_process(tmp_path):
+    """NaN is "not recorded" and 0 uA on a dark is the tube off: neither is refused."""
+    for flat, projection in ((200.0, 100.0), (math.nan, 100.0), (200.0, math.nan)):
+        exp = _with_currents(tmp_path / "exp.h5", flat, projection)
+        res = run_cli("process", exp, "-o", tmp_path / "r", *FAST, "--overwrite")
+        assert res.returncode == 0, res.stderr
+        exp.unlink()
+
+
+@pytest.mark.parametrize("absurd", [1e308, -5.0, 0.0])
+def test_a_calibration_recording_a_flat_current_no_tube_gives_is_refused(absurd, tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    cal = Calibration.from_experiment(exp)
+    cal.provenance["flat_current_ua"] = absurd
+    cal.save(tmp_path / "cal.h5")
+    res = run_cli("correct", exp, "-q", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5")
+    one_line_error(res, "cal.h5", "flat_current_ua", "uA")

@@ -113,6 +113,70 @@ def test_an_existing_output_needs_overwrite(cmd, experiment, images, tmp_path):
     no_temporaries(tmp_path)
 
 
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
+def test_a_read_only_output_is_refused_even_with_overwrite(cmd, experiment, images, tmp_path):
+    """A file its owner made read-only (chmod a-w) was replaced by --overwrite, as a writable
+    file with mode 0644: radiokit renames its new output into place, which the file's own mode
+    does not stop, where writing into it would have failed."""
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    out.write_bytes(b"a result the user protected")
+    out.chmod(0o444)
+    for extra in ([], ["--overwrite"]):
+        one_line_error(run_cli(*args, *extra), out.name, "read-only", "chmod u+w")
+    assert out.read_bytes() == b"a result the user protected"
+    assert stat.S_IMODE(out.stat().st_mode) == 0o444
+    no_temporaries(tmp_path)
+
+
+def test_a_read_only_results_folder_is_refused_even_with_overwrite(experiment, tmp_path):
+    out = tmp_path / "res"
+    args = ["process", experiment, "-o", out, "-q", "--no-report", *ROI]
+    assert run_cli(*args).returncode in (0, 1)
+    before = tree_sha(out)
+    out.chmod(0o555)
+    try:
+        one_line_error(run_cli(*args, "--overwrite"), str(out), "read-only", "chmod u+w")
+        assert tree_sha(out) == before
+    finally:
+        out.chmod(0o755)
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png", "process"])
+def test_an_output_replaced_with_overwrite_keeps_its_mode(cmd, experiment, images, tmp_path):
+    """A replaced output keeps the permissions its owner gave it (0640: not for other users; a
+    folder 0750), as writing into it would; it got the umask's 0644 (0755)."""
+    commands = {**_commands(experiment, images, tmp_path / "out"), "process": ["process", experiment, "-q", *ROI]}
+    args = commands[cmd] + (["-o", tmp_path / "res", "--no-report"] if cmd == "process" else [])
+    out = tmp_path / "res" if cmd == "process" else Path(args[-1])
+    old = os.umask(0o022)
+    try:
+        assert run_cli(*args).returncode in (0, 1)
+        mode = 0o750 if cmd == "process" else 0o640
+        out.chmod(mode)
+        assert run_cli(*args, "--overwrite").returncode in (0, 1)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(out.stat().st_mode) == mode
+
+
+@pytest.mark.parametrize("umask", [0o077, 0o002])
+@pytest.mark.parametrize("cmd", ["correct", "correct-tiff", "register-png", "process"])
+def test_a_new_output_gets_the_mode_the_umask_gives(cmd, umask, experiment, images, tmp_path):
+    """Written under a temporary name and renamed: the new file (folder) has the mode a plain
+    write (mkdir) gives, 0666 (0777) less the umask, not a temporary file's 0600."""
+    commands = {**_commands(experiment, images, tmp_path / "out"), "process": ["process", experiment, "-q", *ROI]}
+    args = commands[cmd] + (["-o", tmp_path / "res", "--no-report"] if cmd == "process" else [])
+    out = tmp_path / "res" if cmd == "process" else Path(args[-1])
+    old = os.umask(umask)
+    try:
+        assert run_cli(*args).returncode in (0, 1)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(out.stat().st_mode) == (0o777 if cmd == "process" else 0o666) & ~umask
+
+
 @pytest.mark.parametrize("how", ["same", "symlink", "hardlink"])
 @pytest.mark.parametrize("cmd", ["calibrate", "correct", "register"])
 def test_an_output_that_is_an_input_is_refused_even_with_overwrite(cmd, how, experiment, images, tmp_path):
@@ -269,7 +333,9 @@ def test_demo_replaces_only_its_own_outputs(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == sorted([RESULTS_MARKER, "notes.txt"])
 
 
-@pytest.mark.parametrize("marker", ["", "made by RadioKit;", "results of radiokit process", None])
+@pytest.mark.parametrize(
+    "marker", ["", "made by RadioKit;", "results of radiokit process", None, "made by radiokit;", "made by radiokit; x"]
+)
 def test_a_marker_radiokit_does_not_recognise_is_never_replaced(marker, experiment, tmp_path):
     """A folder whose marker's first line names no command radiokit knows (written by hand, by
     another tool, or a folder where the marker's name is a folder) was taken as the command's own:
@@ -290,6 +356,38 @@ def test_a_marker_radiokit_does_not_recognise_is_never_replaced(marker, experime
         _demo_folder(out, overwrite=True)
     one_line_error(run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI), str(out), "not recognise")
     assert tree_sha(out) == before
+
+
+def test_a_bare_old_style_marker_listing_its_files_is_never_replaced(experiment, tmp_path):
+    """A marker whose first line is only ``made by radiokit;`` (by hand, or a shortened copy of
+    the form process wrote before markers named the command) was read as process's: a folder
+    whose marker listed its files was replaced by `process --overwrite`. Only the exact line
+    radiokit wrote is recognised."""
+    out = tmp_path / "old"
+    (out / "results").mkdir(parents=True)
+    (out / "experiment.h5").write_text("someone's")
+    (out / "results" / "x").write_text("someone's")
+    (out / RESULTS_MARKER).write_text("made by radiokit;\nexperiment.h5\nresults/x\n")
+    before = tree_sha(out)
+    one_line_error(run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI), str(out), "not recognise")
+    assert tree_sha(out) == before
+
+
+@pytest.mark.parametrize(
+    "first, command",
+    [
+        ("made by radiokit; may be replaced by a run with --overwrite. Files:", "process"),  # before named markers
+        ("made by radiokit demo; may be replaced by `radiokit demo --overwrite`", "demo"),  # demo's first marker
+    ],
+)
+def test_the_markers_radiokit_wrote_before_are_still_recognised(first, command, tmp_path):
+    from radiokit.io._atomic import refuse_another_commands
+
+    (tmp_path / RESULTS_MARKER).write_text(first + "\n")
+    refuse_another_commands(tmp_path, command)
+    other = {"process": "demo", "demo": "process"}[command]
+    with pytest.raises(OSError, match=f"made by radiokit {command}, not by radiokit {other}"):
+        refuse_another_commands(tmp_path, other)
 
 
 # -- interrupted writes ------------------------------------------------------------------------

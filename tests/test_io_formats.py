@@ -2,6 +2,7 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import os
 import subprocess
 import sys
 import threading
@@ -571,6 +572,52 @@ def test_tiff_12_bit_counts_in_16_bit_words_read_as_words(tmp_path):
     np.testing.assert_array_equal(frames, counts)
 
 
+@pytest.mark.parametrize("bits", [1, 4, 7])
+@pytest.mark.parametrize("word", ["<u1", "<u2"])
+def test_tiff_low_bit_counts_in_whole_words_read_as_words(tmp_path, bits, word):
+    """BitsPerSample 1..7 over 8- or 16-bit words (a byte a pixel, as the 12-bit case above):
+    every count as stored, in the word's dtype; unpacking them as packed bits gives garbage."""
+    counts = np.random.default_rng(bits).integers(0, 1 << bits, (1, 30, 41)).astype(word)
+    path = tmp_path / "w.tif"
+    tifffile.imwrite(path, counts[0], photometric="minisblack", rowsperstrip=7)
+    _set_short_tag(path, 258, bits)
+    bytes_ = np.dtype(word).itemsize
+    with pytest.warns(UserWarning, match=f"BitsPerSample {bits} but its strips hold one {8 * bytes_}-bit word"):
+        frames = _both_ways(path)
+    assert frames.dtype == np.dtype(word).newbyteorder("=")
+    np.testing.assert_array_equal(frames, counts)
+
+
+@pytest.mark.parametrize("bits", [1, 2, 4, 6, 7])
+def test_tiff_packed_low_bit_counts_unpack(tmp_path, bits):
+    """Genuinely packed 1..7-bit samples (tifffile writes them, rows padded to whole bytes) read
+    value for value: 41 columns leave every row's last byte part-filled."""
+    counts = np.random.default_rng(bits).integers(0, 1 << bits, (2, 30, 41)).astype(np.uint8)
+    path = tmp_path / "p.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for frame in counts:
+            tif.write(frame, photometric="minisblack", bitspersample=bits, rowsperstrip=4)
+    frames = _both_ways(path)
+    np.testing.assert_array_equal(frames.astype(np.uint8), counts)
+
+
+@pytest.mark.parametrize("predictor", [False, True])
+@pytest.mark.parametrize("compression", ["zlib", "lzw", "packbits", "zstd"])
+def test_tiff_12_bit_counts_in_compressed_16_bit_words_read_as_words(tmp_path, compression, predictor):
+    """Compressed strips decoding to one 16-bit word a pixel under BitsPerSample 12 (tifffile
+    would unpack them as packed bits): every count as stored, the horizontal predictor undone."""
+    counts = _frames(2)
+    path = tmp_path / "z.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for frame in counts:
+            tif.write(frame, photometric="minisblack", rowsperstrip=7, compression=compression, predictor=predictor)
+    for page in range(2):
+        _set_short_tag(path, 258, 12, page=page)
+    with pytest.warns(UserWarning, match="BitsPerSample 12 but its strips hold one 16-bit word"):
+        frames = _both_ways(path)
+    np.testing.assert_array_equal(frames, counts)
+
+
 def test_tiff_12_bit_packed_still_unpacks(tmp_path):
     counts = _frames(1, cols=41)  # odd width: each row padded to a whole byte
     path = tmp_path / "p.tif"
@@ -667,6 +714,36 @@ def test_tiff_compressed_strips_all_written_still_read(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # HDF5 images and NeXus defaults of other software
 # ------------------------------------------------------------------------------------------------
+
+
+def _bytes_read() -> int:
+    """What this process has read through read() system calls (Linux's /proc/self/io rchar)."""
+    with open("/proc/self/io") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("rchar:"))
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/io"), reason="needs Linux's /proc/self/io")
+@pytest.mark.parametrize("chunks", [(10, 1, 700), (4, 5, 700), (3, 64, 100)])
+def test_hdf5_chunks_spanning_frames_are_read_once_each(chunks, tmp_path):
+    """A stack whose chunks hold a row (or a block) of several frames, more of them than
+    libhdf5's chunk cache holds (8 MiB, h5py's default with HDF5 2.0): read() read and
+    decompressed every chunk once per frame it holds, 10 times the file here. Read in
+    chunk-aligned blocks, the file's bytes are read about once; every value as stored, inverted
+    as its attribute says, and cut by an n= hint."""
+    counts = _frames(10, rows=640, cols=700)
+    path = tmp_path / "rows.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("data", data=counts, chunks=chunks, compression="gzip")
+    size = path.stat().st_size
+    before = _bytes_read()
+    frames = read(path, dataset="data").data
+    assert _bytes_read() - before < 3 * size
+    np.testing.assert_array_equal(frames, counts)
+    np.testing.assert_array_equal(_both_ways(path, dataset="data", n=7), counts[:7])
+    with h5py.File(path, "a") as h5:
+        h5["data"].attrs["IMAGE_WHITE_IS_ZERO"] = 1
+        h5["data"].attrs["CLASS"] = np.bytes_("IMAGE")
+    np.testing.assert_array_equal(_both_ways(path, dataset="data"), 65535 - counts)
 
 
 def test_hdf5_image_with_a_palette_is_refused_and_one_without_is_read(tmp_path):

@@ -74,13 +74,24 @@ def refuse_another_commands(folder: Path, command: str) -> None:
         )
 
 
+#: the first line of a results folder's marker before markers named the command (only process
+#: wrote one then); any other line without a command's name is not radiokit's
+_UNNAMED_MARKER = "made by radiokit; may be replaced by a run with --overwrite. Files:"
+
+
 def _made_by(folder: Path) -> str | None:
     """The command whose marker ``folder`` holds (None: not one radiokit wrote in this form).
-    Folders before the marker named it were results folders: ``made by radiokit;``."""
+    A line is recognised whole, as radiokit wrote it: ``made by radiokit;`` alone (a hand-made
+    or cut copy) says nothing of whose the files are."""
     with open(folder / RESULTS_MARKER, "rb") as f:  # its first line only, whatever the file holds
-        head = f.read(256).split(b"\n", 1)[0].decode("utf-8", "replace")
-    found = re.match(r"made by radiokit(?:;| ([\w-]+);)", head)
-    return None if found is None else found.group(1) or "process"
+        head = f.read(256).split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r")
+    if head == _UNNAMED_MARKER:
+        return "process"
+    # demo's first form went on "`radiokit demo --overwrite`", the present one "a run with --overwrite."
+    found = re.fullmatch(
+        r"made by radiokit ([\w-]+); may be replaced by (?:a run with --overwrite\.|`.*`)(?: Files:)?", head
+    )
+    return None if found is None else found.group(1)
 
 
 class OutputError(RadiokitError, OSError):
@@ -331,6 +342,13 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
         if not path.is_dir() or path.is_symlink():
             raise OutputError(path, "exists and is not a folder radiokit made; choose another output")
         refuse_another_commands(path, folder)
+        if _read_only(path):
+            raise OutputError(
+                path,
+                "is a read-only folder: radiokit never replaces it, --overwrite or not; make it writable "
+                "(chmod u+w) or choose another output",
+                errno.EACCES,
+            )
         if any(path.iterdir()) and not (path / RESULTS_MARKER).exists():
             raise OutputError(
                 path, "exists, is not empty and was not made by radiokit; it is never replaced: choose a new folder"
@@ -345,9 +363,43 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
         raise OutputError(
             path, f"is {_kind(path.stat().st_mode)}, not a regular file: radiokit never replaces it; choose a file name"
         )
+    elif path.exists() and _read_only(path):
+        # even with --overwrite: the rename into place is not stopped by the file's own mode, so a
+        # file its owner protected would be replaced where writing into it fails
+        raise OutputError(
+            path,
+            "is read-only: radiokit never replaces it, --overwrite or not; make it writable (chmod u+w) "
+            "or choose another output",
+            errno.EACCES,
+        )
     if not overwrite:
         raise OutputExistsError(path)
     return path
+
+
+def _read_only(path: Path) -> bool:
+    """Whether writing into ``path`` is not allowed: by its owner's write bit for one's own file
+    (root included, whom access() lets write anything), else as access() says."""
+    st = path.stat()
+    if st.st_uid == os.geteuid():
+        return not st.st_mode & stat.S_IWUSR
+    return not os.access(path, os.W_OK)
+
+
+def _keep_mode(tmp: Path, path: Path) -> None:
+    """Give ``tmp``, about to replace ``path``, the permissions (and owner and group, where
+    allowed) ``path`` has: a replaced output is one written into, for whoever may read it."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    for uid in (st.st_uid, -1):  # another's file keeps its owner only for root
+        try:
+            os.chown(tmp, uid, st.st_gid)
+            return
+        except OSError:  # a group one is not in: the umask's group, as a new file gets
+            continue
 
 
 def _kind(mode: int) -> str:
@@ -479,6 +531,7 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         if not (tmp.exists() or tmp.is_symlink()):
             raise OutputError(path, "the writer produced no file")
         _fsync(tmp)  # the bytes are on disk before the name is: a power cut leaves old or new
+        _keep_mode(tmp, path)
         os.replace(tmp, path)
         _fsync(path.parent)
     except BaseException as exc:
@@ -571,6 +624,7 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
         )
         old = None
         if path.exists():
+            _keep_mode(tmp, path)
             old = _temporary_name(path, folder=True, kind="old")
             os.rename(path, old)
         os.rename(tmp, path)

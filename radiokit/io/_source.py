@@ -303,7 +303,7 @@ class FrameSource:
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._contiguous_stack(first, all_pages)
-        self._words = False  # BitsPerSample 12 (or 9..15) held in 16-bit words, not packed
+        self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
@@ -319,8 +319,11 @@ class FrameSource:
                         f"{first.tags.valueof(code, default)}: not one stack of frames",
                     )
         self.n, self.frame_shape, self.dtype = len(self._pages), tuple(shape), np.dtype(first.dtype)
+        if self._words:
+            self.dtype = np.dtype(f"u{self._words}")
         if self._contiguous:
             self.n = self._contiguous["n"]
+            self._contiguous["dtype"] = self.dtype.newbyteorder(self._tif.byteorder)
         if self._contiguous and first.bitspersample % 8 and not self._words:
             raise FormatError(
                 self.path,
@@ -595,57 +598,78 @@ class FrameSource:
                     self.path,
                     f"TIFF page {i} holds {have} bytes of pixels; {rows}x{cols} {page.bitspersample}-bit needs {need}",
                 )
-            if 8 < page.bitspersample < 16:
-                words = self._words_not_packed(i, page, rows, cols)
-                if i and words != self._words:  # one way of reading serves every page
-                    raise FormatError(
-                        self.path,
-                        f"TIFF page {i} holds {'16-bit words' if words else 'packed rows'}, page 0 "
-                        f"{'16-bit words' if self._words else 'packed rows'}: not one stack of frames",
-                    )
-                self._words = words
+        if page.bitspersample < 16 and page.bitspersample % 8 and not page.is_tiled:
+            self._check_words(i, page, rows, cols)
 
-    def _words_not_packed(self, i, page, rows, cols) -> bool:
-        """Whether an uncompressed 9..15-bit page holds 16-bit words rather than packed bits.
+    def _check_words(self, i, page, rows, cols) -> None:
+        """Set ``self._words`` from page 0's strips, and check that page ``i`` is stored alike."""
+        if page.compression == 1:
+            words = self._word_bytes(i, page, rows, cols, page.databytecounts)
+        elif not i:  # decoding costs a read: the other pages are taken to be stored as page 0
+            words = self._word_bytes(i, page, rows, cols, [self._decoded_bytes(page, rows, cols)])
+        else:
+            return
+        if i and words != self._words:  # one way of reading serves every page
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} holds {_stored(words)}, page 0 {_stored(self._words)}: not one stack of frames",
+            )
+        self._words = words
+
+    def _decoded_bytes(self, page, rows, cols) -> int:
+        """The length ``page``'s first compressed strip decodes to, at most one more than 16-bit
+        words would fill (the decoder allocates no more: a bomb stops there)."""
+        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+        fh = self._tif.filehandle
+        fh.seek(page.dataoffsets[0])
+        decode = tifffile.TIFF.DECOMPRESSORS[int(page.compression)]
+        return len(decode(fh.read(page.databytecounts[0]), out=per_strip * cols * 2 + 1))
+
+    def _word_bytes(self, i, page, rows, cols, sizes) -> int:
+        """0 when a 1..15-bit page's strips hold packed bits, else the bytes of the word holding
+        each pixel (1 or 2). ``sizes`` are the strips' byte counts, decoded (only the first strip's
+        for a compressed page).
 
         TIFF packs such samples, each row starting on a byte boundary: a strip of r rows holds
-        r * ceil(cols * bits / 8) bytes. Some writers store the 12-bit counts in 16-bit words and
-        still say BitsPerSample 12; their strips hold r * cols * 2 bytes, which unpacking as packed
-        bits turns to garbage. The strip byte counts tell which; neither is an error.
+        r * ceil(cols * bits / 8) bytes. Some writers store 12-bit counts in 16-bit words (or
+        4-bit ones in bytes) and still say BitsPerSample 12 (or 4); their strips hold
+        r * cols * 2 (or r * cols) bytes, which unpacking as packed bits turns to garbage. The
+        strip sizes tell which; neither is an error.
         """
         bits = int(page.bitspersample)
         per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
         row_bytes = (cols * bits + 7) // 8
-        packed = words = 0
-        for k, nbytes in enumerate(page.databytecounts):
+        fits = dict.fromkeys((0, 1, 2), 0)
+        for k, nbytes in enumerate(sizes):
             r = min(per_strip, rows - k * per_strip)
             # packed: a short last strip may be padded to a whole strip, any strip to an even length;
             # a size that fits both readings (very narrow rows) is packed, as TIFF says
-            packed += r * row_bytes <= nbytes <= per_strip * row_bytes + 1
-            words += nbytes == r * cols * 2
-        n = len(page.databytecounts)
-        if packed == n:
-            return False
-        if words == n and page.fillorder == 1 and page.samplesperpixel == 1:
+            fits[0] += r * row_bytes <= nbytes <= per_strip * row_bytes + 1
+            for word in (1, 2) if bits < 8 else (2,):
+                fits[word] += nbytes == r * cols * word
+        word = next((w for w in (0, 1, 2) if fits[w] == len(sizes)), None)
+        if word == 0:
+            return 0
+        if word and page.fillorder == 1 and page.samplesperpixel == 1:
             if not self._words:
                 warnings.warn(
-                    f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one 16-bit word per pixel: "
-                    f"read as 16-bit words",
+                    f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {8 * word}-bit word "
+                    f"per pixel: read as {8 * word}-bit words",
                     UserWarning,
-                    stacklevel=6,  # the caller of read() / open_frames(),
+                    stacklevel=7,  # the caller of read() / open_frames(),
                 )
-            return True
+            return word
         raise FormatError(
             self.path,
-            f"TIFF page {i}: its strip byte counts {list(page.databytecounts)[:4]} fit neither packed {bits}-bit "
-            f"rows nor 16-bit words for {rows}x{cols} pixels",
+            f"TIFF page {i}: its strip byte counts {list(sizes)[:4]} fit neither packed {bits}-bit "
+            f"rows nor {'8- or 16-bit' if bits < 8 else '16-bit'} words for {rows}x{cols} pixels",
         )
 
     def _read_tiff(self, i):
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
         elif self._words:
-            frame = self._read_words(self._pages[i])
+            frame = self._read_words(i)
         else:
             frame = self._pages[i].asarray()
         if frame.shape != self._stored_shape:
@@ -658,15 +682,29 @@ class FrameSource:
             frame = frame.astype(dtype)
         return _ORIENT[self._orientation](frame)
 
-    def _read_words(self, page) -> np.ndarray:
-        """A page whose strips hold one 16-bit word per pixel although BitsPerSample says fewer."""
-        fh = self._tif.filehandle
+    def _read_words(self, i) -> np.ndarray:
+        """Frame ``i``, whose strips hold one 8- or 16-bit word per pixel although BitsPerSample says fewer."""
+        page, fh, (rows, cols) = self._pages[i], self._tif.filehandle, self._stored_shape
+        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+        decode = tifffile.TIFF.DECOMPRESSORS[int(page.compression)] if page.compression != 1 else None
         parts = []
         for offset, nbytes in zip(page.dataoffsets, page.databytecounts):
             fh.seek(offset)
-            parts.append(fh.read(nbytes))
-        words = np.frombuffer(b"".join(parts), np.dtype(self._tif.byteorder + "u2"))
-        return words.reshape(self._stored_shape).astype(np.uint16)
+            part = fh.read(nbytes)
+            parts.append(decode(part, out=per_strip * cols * self._words + 1) if decode else part)
+        data = b"".join(parts)
+        if len(data) != rows * cols * self._words:  # the other pages are not checked at open
+            raise FormatError(
+                self.path,
+                f"TIFF frame {i} decodes to {len(data)} bytes, not the {rows * cols * self._words} of page 0's "
+                f"{_stored(self._words)} for {rows}x{cols}: not one stack of frames",
+            )
+        words = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{self._words}")).reshape(rows, cols)
+        if page.predictor == 2:  # horizontal differencing, undone in the words' own (wrapping) type
+            return np.cumsum(words, axis=1, dtype=f"u{self._words}")
+        if page.predictor != 1:
+            raise FormatError(self.path, f"TIFF predictor {page.predictor} over integer words: not read")
+        return words.astype(f"u{self._words}")
 
     def _tiff_inversion(self, page):
         """The value TIFF 6.0's WhiteIsZero (PhotometricInterpretation 0) subtracts from, else None.
@@ -704,7 +742,7 @@ class FrameSource:
             )
         if self._words:
             raise FormatError(
-                self.path, "TIFF is MinIsWhite and holds 16-bit words where BitsPerSample says fewer: ambiguous"
+                self.path, "TIFF is MinIsWhite and holds whole words where BitsPerSample says fewer: ambiguous"
             )
         top = (1 << int(page.bitspersample)) - 1
         stored_max = page.tags.valueof(281)
@@ -978,9 +1016,37 @@ class FrameSource:
                 "in memory: a corrupt header, or read them one by one with "
                 "open_frames()",
             ) from None
-        for i in range(self.n):
+        for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
             out[i] = self[i]
         return Frames(out, dict(self.meta), self.path)
+
+    def _read_hdf5_blocks(self, out) -> int:
+        """Read the stack into ``out`` in blocks of whole chunks when its chunks span frames; the
+        frames read (0: frame by frame it is). Read frame by frame, a chunk holding k frames is
+        read and decompressed k times once a frame's chunks outgrow libhdf5's chunk cache
+        (benchmarks/bench_hdf5_chunks.py); read straight into ``out``, no more memory is used."""
+        ds = self._ds
+        if not isinstance(ds, h5py.Dataset) or ds.ndim != 3 or not ds.chunks or ds.chunks[0] == 1:
+            return 0
+        if self._transposed or (ds.dtype.kind, ds.dtype.itemsize) != (self.dtype.kind, self.dtype.itemsize):
+            return 0
+        keys = self.meta.get("image_key")
+        for i in range(self.n):  # as _read_hdf5 checks each
+            if keys is None or i >= len(keys) or keys[i] != ImageKey.INVALID:
+                check_frame_written(self.path, ds, i)
+        for a in range(0, self.n, ds.chunks[0]):
+            b = min(a + ds.chunks[0], self.n)
+            try:
+                ds.read_direct(out, np.s_[a:b], np.s_[a:b])
+            except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
+                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
+        for i in range(self.n if self._invert is not None else 0):
+            out[i] = ~out[i] if out.dtype.kind == "b" else self._invert - out[i]
+        for i in range(self.n if not self._bits_warned else 0):
+            if check_bit_depth(self.path, out[i], self.bits):
+                self._bits_warned = True
+                break
+        return self.n
 
     def close(self):
         for attr in ("_fh", "_tif", "_h5"):
@@ -1285,6 +1351,10 @@ _ORIENT = {
     7: lambda a: np.ascontiguousarray(a.T[::-1, ::-1]),
     8: lambda a: np.ascontiguousarray(a.T[::-1, :]),
 }
+
+
+def _stored(word: int) -> str:
+    return f"{8 * word}-bit words" if word else "packed rows"
 
 
 def _nx_class(group) -> str:
