@@ -1203,6 +1203,19 @@ def test_hdf5_float_frames_with_a_cf_fill_value_read_it_as_nan(tmp_path):
     assert np.isfinite(read(path, dataset="plain").data).all()  # no attribute: read as stored
 
 
+@pytest.mark.parametrize("chunks", [None, (2, 8, 8)])
+def test_hdf5_cf_fill_value_reads_as_nan_whatever_the_chunks(tmp_path, chunks):
+    """Chunks spanning frames are read in blocks straight into the stack (read_direct): the fill
+    code was left there as the number 9.97e36, where frame by frame it reads as NaN."""
+    frames = np.full((4, 8, 8), 1500.0, np.float32)
+    frames[1, 4, 5] = frames[3, 0, 0] = 9.969209968386869e36
+    path = tmp_path / "nc.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("counts", data=frames, chunks=chunks).attrs["_FillValue"] = np.float32(9.969209968386869e36)
+    data = read(path, dataset="counts").data
+    assert np.isnan(data[1, 4, 5]) and np.isnan(data[3, 0, 0]) and np.isfinite(data).sum() == frames.size - 2
+
+
 def test_hdf5_cf_fill_value_beyond_the_stored_type_marks_no_pixel(tmp_path):
     """A float64 fill code of 1e300 on float32 frames overflowed to inf (a RuntimeWarning) and
     would have marked the frame's inf pixels missing: no float32 pixel holds that code."""

@@ -1030,6 +1030,8 @@ class FrameSource:
             return 0
         if self._transposed or (ds.dtype.kind, ds.dtype.itemsize) != (self.dtype.kind, self.dtype.itemsize):
             return 0
+        if self._packing is not None:  # its fill codes become NaN frame by frame (_unpack)
+            return 0
         keys = self.meta.get("image_key")
         for i in range(self.n):  # as _read_hdf5 checks each
             if keys is None or i >= len(keys) or keys[i] != ImageKey.INVALID:
