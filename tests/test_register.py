@@ -2566,3 +2566,35 @@ def test_a_field_of_pixels_on_a_white_texture_has_diverged(amplitude):
     reg = _planted(fixed, moving, _smooth_field(n, amplitude, seed=7))
     assert reg.quality.rc_after > 3 * reg.quality.rc_before
     assert "diverged" in reg.quality.reason, reg.quality.reason
+
+
+@pytest.mark.parametrize("preset", ["default", "auto"])
+@pytest.mark.parametrize("masked", [np.s_[128, 40:216], np.s_[60:200, 130], np.s_[128, 128]])
+def test_a_mask_thinner_than_a_coarse_level_registers(preset, masked):
+    """A mask of one row, one column or one pixel (``--roi 128 129 40 216``) selects pixels, as
+    register() asks, but area-averaged to a coarse level no bin was over half masked: that level
+    scored nothing and rc divided by its zero pixel count (ZeroDivisionError, the command line's
+    traceback). The coarse levels keep the bins the mask touches; along a line the motion is
+    seen, and its error there stays well under the half-pixel line (the checks') where one
+    pixel alone says nothing (flagged, not trusted)."""
+    fixed, moving, truth, _ = _pair(256, amplitude=1.5)
+    mask = np.zeros(fixed.shape, bool)
+    mask[masked] = True
+    reg = register(fixed, moving, mask=mask, preset=preset)
+    assert np.all(np.isfinite(reg.displacement))
+    if mask.sum() > 1:
+        assert _epe(reg.displacement, truth, mask)[0] < 0.5
+    else:
+        assert not reg.quality.ok
+
+
+def test_the_checks_of_a_binned_pair_judge_a_one_row_mask():
+    """Over ~0.4 Mpx the checks bin the pair by 2, and a one-row mask had no bin over half masked:
+    their similarities were means of an empty slice and the object was empty (0 % observed, the
+    motion along a textured row flagged unobservable). The binned mask keeps the bins it touches."""
+    fixed, moving, truth, _ = _pair(640, amplitude=1.5)
+    mask = np.zeros(fixed.shape, bool)
+    mask[320, 160:480] = True
+    reg = register(fixed, moving, mask=mask, preset="fast")
+    assert reg.quality.observed_fraction > 0.5
+    assert np.isfinite(reg.quality.ncc_after)
