@@ -2598,3 +2598,24 @@ def test_the_checks_of_a_binned_pair_judge_a_one_row_mask():
     reg = register(fixed, moving, mask=mask, preset="fast")
     assert reg.quality.observed_fraction > 0.5
     assert np.isfinite(reg.quality.ncc_after)
+
+
+@pytest.mark.parametrize("method", ["rc", "dis"])
+def test_structure_outside_the_mask_does_not_observe_the_motion_inside_it(method):
+    """``mask`` limits the similarity to its pixels, but the confidence map took the structure
+    tensor of the whole frame: a mask over a flat band 4-36 px beside a texture read 100 %
+    observed, and dis (whose field there is extrapolated from outside) was trusted 2.2 px off a
+    3.6 px shift. Inside the mask there is noise alone: nothing there observes the motion."""
+    rng = np.random.default_rng(4)
+    n = 256
+    tex = ndimage.gaussian_filter(rng.standard_normal((n + 16, n + 16)), 2.0)
+    tex[:, : 100 + 8] = 0.0  # flat left of column 100 (in the frame's columns)
+    shift = (3.0, 2.0)
+    fixed = ndimage.shift(tex, (-shift[0], -shift[1]), order=3)[8:-8, 8:-8]  # fixed(x) = moving(x + d)
+    moving = tex[8:-8, 8:-8]
+    fixed, moving = (a + 0.01 * tex.std() * rng.standard_normal(a.shape) for a in (fixed, moving))
+    mask = np.zeros((n, n), bool)
+    mask[20:200, 64:96] = True
+    reg = register(fixed.astype(np.float32), moving.astype(np.float32), method, mask=mask)
+    assert reg.quality.observed_fraction < 0.05
+    assert not reg.quality.ok
