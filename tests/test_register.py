@@ -2566,3 +2566,56 @@ def test_a_field_of_pixels_on_a_white_texture_has_diverged(amplitude):
     reg = _planted(fixed, moving, _smooth_field(n, amplitude, seed=7))
     assert reg.quality.rc_after > 3 * reg.quality.rc_before
     assert "diverged" in reg.quality.reason, reg.quality.reason
+
+
+@pytest.mark.parametrize("preset", ["default", "auto"])
+@pytest.mark.parametrize("masked", [np.s_[128, 40:216], np.s_[60:200, 130], np.s_[128, 128]])
+def test_a_mask_thinner_than_a_coarse_level_registers(preset, masked):
+    """A mask of one row, one column or one pixel (``--roi 128 129 40 216``) selects pixels, as
+    register() asks, but area-averaged to a coarse level no bin was over half masked: that level
+    scored nothing and rc divided by its zero pixel count (ZeroDivisionError, the command line's
+    traceback). The coarse levels keep the bins the mask touches; along a line the motion is
+    seen, and its error there stays well under the half-pixel line (the checks') where one
+    pixel alone says nothing (flagged, not trusted)."""
+    fixed, moving, truth, _ = _pair(256, amplitude=1.5)
+    mask = np.zeros(fixed.shape, bool)
+    mask[masked] = True
+    reg = register(fixed, moving, mask=mask, preset=preset)
+    assert np.all(np.isfinite(reg.displacement))
+    if mask.sum() > 1:
+        assert _epe(reg.displacement, truth, mask)[0] < 0.5
+    else:
+        assert not reg.quality.ok
+
+
+def test_the_checks_of_a_binned_pair_judge_a_one_row_mask():
+    """Over ~0.4 Mpx the checks bin the pair by 2, and a one-row mask had no bin over half masked:
+    their similarities were means of an empty slice and the object was empty (0 % observed, the
+    motion along a textured row flagged unobservable). The binned mask keeps the bins it touches."""
+    fixed, moving, truth, _ = _pair(640, amplitude=1.5)
+    mask = np.zeros(fixed.shape, bool)
+    mask[320, 160:480] = True
+    reg = register(fixed, moving, mask=mask, preset="fast")
+    assert reg.quality.observed_fraction > 0.5
+    assert np.isfinite(reg.quality.ncc_after)
+
+
+@pytest.mark.parametrize("method", ["rc", "dis"])
+def test_structure_outside_the_mask_does_not_observe_the_motion_inside_it(method):
+    """``mask`` limits the similarity to its pixels, but the confidence map took the structure
+    tensor of the whole frame: a mask over a flat band 4-36 px beside a texture read 100 %
+    observed, and dis (whose field there is extrapolated from outside) was trusted 2.2 px off a
+    3.6 px shift. Inside the mask there is noise alone: nothing there observes the motion."""
+    rng = np.random.default_rng(4)
+    n = 256
+    tex = ndimage.gaussian_filter(rng.standard_normal((n + 16, n + 16)), 2.0)
+    tex[:, : 100 + 8] = 0.0  # flat left of column 100 (in the frame's columns)
+    shift = (3.0, 2.0)
+    fixed = ndimage.shift(tex, (-shift[0], -shift[1]), order=3)[8:-8, 8:-8]  # fixed(x) = moving(x + d)
+    moving = tex[8:-8, 8:-8]
+    fixed, moving = (a + 0.01 * tex.std() * rng.standard_normal(a.shape) for a in (fixed, moving))
+    mask = np.zeros((n, n), bool)
+    mask[20:200, 64:96] = True
+    reg = register(fixed.astype(np.float32), moving.astype(np.float32), method, mask=mask)
+    assert reg.quality.observed_fraction < 0.05
+    assert not reg.quality.ok

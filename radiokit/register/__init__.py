@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from radiokit.register._auto import AUTO_PRESETS
-from radiokit.register._common import jacobian_determinant, monomials, ncc, residual_complexity, warp
+from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
 
 __all__ = [
@@ -450,8 +450,8 @@ def _bin(a, k):
 
 def _bin_pair(f, m, mask, k):
     """``(fixed, moving, mask)`` area-averaged by ``k`` as the checks see them (a mask pixel is
-    kept where over half its bin was)."""
-    maskb = None if mask is None else _bin(np.asarray(mask, np.float32), k) > 0.5
+    kept where over half its bin was: :func:`~radiokit.register._common.binned_mask`)."""
+    maskb = None if mask is None else binned_mask(_bin(np.asarray(mask, np.float32), k))
     return _bin(f, k), _bin(m, k), maskb
 
 

@@ -130,7 +130,7 @@ from scipy.optimize import minimize
 
 from radiokit.checks import is_integer, is_number
 from radiokit.register import _method
-from radiokit.register._common import _field, _warp_rows
+from radiokit.register._common import _field, _warp_rows, binned_mask
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
@@ -489,7 +489,7 @@ class _Level:
             self.fixed = cv2.GaussianBlur(self.fixed, (0, 0), smooth, borderType=cv2.BORDER_REFLECT)
             self.moving = cv2.GaussianBlur(self.moving, (0, 0), smooth, borderType=cv2.BORDER_REFLECT)
         # (a float32 mask is not copied: the caller converts it once for all levels)
-        self.mask = None if mask is None else _downsample(mask.astype(np.float32, copy=False), factor) > 0.5
+        self.mask = None if mask is None else binned_mask(_downsample(mask.astype(np.float32, copy=False), factor))
         self.shape = self.fixed.shape
         dt = self.fixed.dtype
         self._row = np.arange(self.shape[0], dtype=dt)[:, None]  # pixel positions, broadcast
@@ -1161,7 +1161,7 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
             f"bin_pixels={overrides.get('bin_pixels')}: bins the {fixed.shape} pair by {k} to {shape}, "
             "too small to register (8 px a side at least)"
         )
-    small = None if mask is None else _bin(mask.astype(np.float32), k) > 0.5
+    small = None if mask is None else binned_mask(_bin(mask.astype(np.float32), k))
     d, info = _bspline_register(_bin(fixed, k), _bin(moving, k), small, **how, **dict(overrides, bin_pixels=0))
     info["binned"] = k
     return _upsample_field(d, k, fixed.shape), info

@@ -26,6 +26,15 @@ def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     return _warp_rows(image, d, 0, order, cval)
 
 
+def binned_mask(fraction) -> np.ndarray:
+    """A bool mask binned, from ``fraction``, the masked share of each bin (the mask area-averaged):
+    the bins over half masked, or, when no bin is (a mask of one row, one column or a few pixels,
+    which ``register`` takes), the bins it touches. With no bin left a coarse level scored nothing:
+    rc divided by its zero pixel count (ZeroDivisionError), and the checks judged an empty object."""
+    kept = fraction > 0.5
+    return kept if kept.any() else fraction > 0
+
+
 def _warp_rows(image, d, row0, order=1, cval=None) -> np.ndarray:
     """:func:`warp` of the rows ``row0, row0 + 1, ...`` of a frame whose field there is ``d``
     (``image`` float32 and 2-D, ``d`` as :func:`_field` gives it): ``warp(image, full)[row0:row0 +

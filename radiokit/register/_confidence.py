@@ -17,6 +17,8 @@ the data alone:
 - ``sigma`` per pixel from the diagonal second difference ``(f00 - f01 - f10 + f11) / 2``, whose
   standard deviation is ``sigma`` for white noise and which a texture coarser than ~2 px hardly
   reaches; its square averaged over the window, so Poisson-like noise gives a local level;
+- with a mask (``register(..., mask=)``), the gradients inside it alone: the similarity scores
+  nothing else, and a flat band beside a texture read observed through the window's reach;
 - ``W`` a Gaussian window of the lattice spacing (the scale at which the B-spline field is free),
   cut at ``WINDOW_REACH`` (2) spacings: structure farther away pins the field here only through
   the regulariser (the field is free to vary over a few spacings), and a full Gaussian's tails
@@ -283,13 +285,19 @@ def _open_beam_level(fs, obj, level, line):
     return beam
 
 
-def _lmin(f, spacing, highpass, sig2):
+def _lmin(f, spacing, highpass, sig2, mask=None):
     """The smaller eigenvalue of the window's gradient covariance of ``f`` high-passed at
     ``highpass x spacing`` and smoothed by 1 px, less the noise's own share (``sig2`` its
-    variance per pixel)."""
+    variance per pixel); with ``mask`` (bool), of the gradients inside it alone."""
     hp = f - _gauss(f, highpass * spacing)
     gy, gx = np.gradient(_gauss(hp, 1.0))
     bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
+    if mask is not None:
+        # a masked similarity sees no structure outside the mask: a flat band beside a texture
+        # read 100 % observed through the windows' reach, and a field 2 px off was trusted there
+        inside = np.asarray(mask, np.float32)
+        gy, gx = gy * inside, gx * inside
+        bias = bias * _window(inside, spacing)
     # the gradient's local covariance, not its mean square: a gradient that is the same across
     # the window (a smooth body's slope) moves the window's residual by a constant, which an
     # intensity change explains as well as motion does
@@ -333,7 +341,7 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25) -> 
     floor2 = model_floor(f) ** 2
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
-    lmin = np.maximum(_lmin(f, spacing, highpass, sig2) - _noise_lmin(spacing, highpass) * sig2, 0)
+    lmin = np.maximum(_lmin(f, spacing, highpass, sig2, mask) - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
     bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
     conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)

@@ -55,6 +55,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -583,7 +584,8 @@ def _elastix(
     ``resolutions`` (``None``: halve down to ~64 px, at most
     5), ``bending_weight`` (the bending-energy penalty; 0 = off), ``seed``; ``parameters``: a
     dict of further elastix parameters (values: strings or lists) that override all of these.
-    ``mask`` limits the metric (elastix's fixed mask)."""
+    ``mask`` limits the metric (elastix's fixed mask; one its erosion would leave empty, a ROI
+    a few pixels across, is used uneroded: ``ErodeMask`` false, unless ``parameters`` set it)."""
     _check_ranges(
         "elastix",
         spacing=(spacing, _POSITIVE, np.inf),
@@ -608,16 +610,34 @@ def _elastix(
     p["WriteResultImage"] = ["false"]
     for k, v in (parameters or {}).items():
         p[k] = [str(x) for x in v] if isinstance(v, (list, tuple)) else [str(v)]
-    po.AddParameterMap(p)
     kw = {}
     if mask is not None:
         kw["fixed_mask"] = itk.GetImageFromArray(mask.astype(np.uint8))
     # elastix and transformix write files (transformix its deformationField.nii) into the
     # current directory unless told otherwise: a temporary one
     with tempfile.TemporaryDirectory(prefix="radiokit-elastix-") as tmp:
-        _, tp = itk.elastix_registration_method(
-            F, M, parameter_object=po, log_to_console=False, output_directory=tmp, **kw
-        )
+        tp = _elastix_transform(itk, F, M, p, kw, tmp)
         field = itk.transformix_deformation_field(M, tp, output_directory=tmp)
         d = _from_xy(np.asarray(field))
     return d, {"iterations": int(iterations) * n_res}
+
+
+def _elastix_transform(itk, F, M, p, kw, tmp):
+    """elastix's transform parameters for the map ``p`` (``kw``: its fixed mask, if any), logging
+    into ``tmp``. elastix erodes a fixed mask at each resolution (``ErodeMask``, on by default),
+    and a ROI a few pixels across vanished: its sampler found "No valid voxels" and itk raised
+    "Internal elastix error: See elastix log" (a traceback of `radiokit register --roi`). Such a
+    mask is used again uneroded; a map that sets ``ErodeMask`` itself keeps it, and its error."""
+    po = itk.ParameterObject.New()
+    po.AddParameterMap(p)
+    try:
+        return itk.elastix_registration_method(
+            F, M, parameter_object=po, log_to_console=False, log_to_file=True, output_directory=tmp, **kw
+        )[1]
+    except RuntimeError:
+        log = Path(tmp, "elastix.log")
+        vanished = log.is_file() and "No valid voxels" in log.read_text(errors="replace")
+        if "fixed_mask" not in kw or "ErodeMask" in p or not vanished:
+            raise
+    p["ErodeMask"] = ["false"]
+    return _elastix_transform(itk, F, M, p, kw, tmp)
