@@ -213,8 +213,8 @@ class SourceConfig:
     the pause between two commands, ``None`` means the dialect's (0.06 s in both: ``L8121.md``'s
     link rule "a controller may need ~50 ms between commands" holds for both dialects, although
     the L8121-02 driver polls 20 ms apart; "~50" leaves room above 50, so 20 % is added).
-    ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (A 1 s; B 2 s, the
-    L8121-02 driver's wait before a missed reply). ``off_confirm_s``: how long a switch-off's
+    ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (2 s in both: the
+    L8121-02 driver's wait before a missed reply; L8121.md gives A none). ``off_confirm_s``: how long a switch-off's
     attempts may take for ``STS`` to read off (a supply ramping down). ``ready_timeout_s``: how long
     :meth:`L8121.settled_status` (and so :meth:`L8121.warm_up` and :meth:`L8121.on`) waits for the
     controller's power-on checks to finish.
@@ -805,8 +805,11 @@ DIALECT_A = Dialect(
     # L8121.md: "a controller may need ~50 ms between commands"; at exactly 50 ms a unit that
     # needs a little more (55 ms is "~50") loses commands, so the spacing has a margin
     min_interval_s=0.06,
-    # L8121.md gives dialect A no reply time: a second, long beside a serial exchange
-    timeout_s=1.0,
+    # L8121.md gives dialect A no reply time; B's driver, for the same source family, waits 2 s
+    # before it calls a reply missed. 1 s read an A unit answering in 1.5 s, within what the notes
+    # document for the family, as silent (the connect failed, and its switch-off could not be
+    # confirmed); a unit slower still is [source] timeout_s (at most REPLY_TIMEOUT_MAX_S)
+    timeout_s=2.0,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
@@ -1353,7 +1356,7 @@ class L8121:
 
     @property
     def timeout_s(self) -> float:
-        """The longest wait for a reply (configuration, else the dialect's: A 1 s, B 2 s)."""
+        """The longest wait for a reply (configuration, else the dialect's: 2 s in both)."""
         return self.dialect.timeout_s if self.config.timeout_s is None else self.config.timeout_s
 
     @property
