@@ -1425,7 +1425,12 @@ class L8121:
                     self.emitting_at_connect = True
                     logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
                 else:
-                    logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
+                    logger.warning(
+                        "%s: X-rays are ON at connect (an earlier `source on`, or switched on at the controller); "
+                        "radiokit switches them off before it lets the port go and says whether the controller "
+                        "confirmed it: if no confirmation follows, switch off at the controller",
+                        self.port,
+                    )
                     self._may_be_on = True
             elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
                 logger.critical("%s", self.unverified_warning(self._last_state))

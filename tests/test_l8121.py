@@ -2398,6 +2398,23 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
+def test_the_warning_of_x_rays_on_at_connect_tells_the_operator_what_happens(dialect, caplog):
+    """`source status` on a tube an earlier `source on` left on: the connect's warning is read by
+    an operator. Found: it said "close() will switch them off", a Python call."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
+            assert main(["acquire", "source", "status", *port]) == 0
+    said = [r.getMessage() for r in caplog.records if "at connect" in r.getMessage()]
+    assert len(said) == 1 and not model.xray_on
+    assert "()" not in said[0] and "ON at connect" in said[0] and "switch off at the controller" in said[0]
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
 def test_cli_status_of_a_unit_found_on_then_read_off_switches_off_and_says_so(dialect, capsys):
     """X-rays on at connect (an earlier `source on`), then the beam tripped at the controller before
     status read STS: STANDBY was printed, then the warning, exit 3, while close() confirmed the
