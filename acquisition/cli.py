@@ -613,6 +613,16 @@ def _source_error_code(exc, src, args) -> int:
 
     if src is None:  # the driver refused its configuration: nothing was opened
         return 1
+    if getattr(exc, "guardian_off", False):
+        # a guardian whose start failed held the port and switched off before it exited: its own
+        # STS read the tube off (trusted as a connect's), or it could not confirm (the warning,
+        # even when this process never opened the port: the guardian did)
+        state = getattr(exc, "tube_state", None)
+        if getattr(exc, "off_failed", None) is None and state is not None and state.confirms_off:
+            _say(f"{src.port}: switched off by the X-ray guardian: tube off (confirmed by STS: {state.name})")
+            return 1
+        _say(TUBE_WARNING)
+        return 3
     if not src.port_opened and args.action != "off":
         # not a byte sent: the same last line and exit code as a series that could not open its port
         _say(NEVER_REACHED)

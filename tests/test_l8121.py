@@ -3881,3 +3881,45 @@ def _zombie(pid) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
     except OSError:
         return True
+
+
+@pytest.mark.parametrize("probed", [False, True], ids=["dialect-given", "probed"])
+def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirmed_off(
+    dialect, probed, capfd, monkeypatch
+):
+    """`source warm-up`'s guardian does not say READY in time (held with SIGSTOP past a start
+    time-out shortened to 1 s: a slow start made wide, not a fake), so its start fails and the
+    guardian switches off, confirmed by its own STS, and exits. Found: the command ignored that
+    confirmation and ended on "X-RAYS MAY STILL BE ON", exit 3, after its probe (on "radiokit never
+    reached the X-ray controller", exit 1, with the dialect given, though the guardian had); it now
+    says the guardian's confirmed state and exits 1, as any failed command with the tube off."""
+    from conftest import guardian_of
+
+    from acquisition import guardian
+    from radiokit.cli import main
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    model = L8121Model(dialect=dialect, warmed_up=False, ramp_s=0.2)
+    held = []
+
+    def hold_the_guardian():
+        end = time.monotonic() + 30
+        while not held and time.monotonic() < end:
+            pid = guardian_of(os.getpid())
+            if pid is not None:
+                os.kill(pid, signal.SIGSTOP)
+                held.append(pid)
+        time.sleep(2.0)  # past the 1 s start: start_guardian has it switch off
+        os.kill(held[0], signal.SIGCONT)
+
+    with PtyServer(model) as server:
+        helper = threading.Thread(target=hold_the_guardian, daemon=True)
+        helper.start()
+        given = [] if probed else ["--dialect", dialect]
+        code = main(["acquire", "source", "warm-up", "--port", server.url, *given])
+        helper.join(timeout=30)
+        assert held and not model.xray_on
+    err = capfd.readouterr().err
+    assert "MAY STILL BE ON" not in err and "switched off by the X-ray guardian: tube off (confirmed by STS" in err, err
+    assert code == 1, err
