@@ -772,6 +772,13 @@ def _source_action(src, args) -> int:
             raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
+        # said before XON: this command leaves the beam on, and killed in the ramp (kill -9, no
+        # handler runs) it has no later line to say so
+        src.before_xon = lambda kv, ua: print(
+            f"{args.port}: switching X-rays ON at {kv} kV {ua} uA: they stay on when this command ends; "
+            f"`radiokit acquire source off --port {args.port}` switches them off",
+            flush=True,
+        )
         try:
             r = src.on(args.kv, args.ua)
         except DeviceError as exc:

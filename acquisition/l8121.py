@@ -1342,6 +1342,10 @@ class L8121:
         #: Whether the last :meth:`warm_up` found one already running (started by hand or by an
         #: earlier command) and waited for it: nothing set, nothing sent that emits.
         self.warmup_joined = False
+        #: ``before_xon(kv, ua)``, called by :meth:`on` with the values set and read back, right
+        #: before its ``XON``: a caller that leaves the beam on (``source on``) tells the operator
+        #: there, since a ``kill -9`` in the ramp that follows leaves it on with no word after.
+        self.before_xon: Callable[[int, int], None] | None = None
         if connect:
             self.connect()
 
@@ -2488,6 +2492,8 @@ class L8121:
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
+            if self.before_xon is not None:
+                self.before_xon(kv_i, ua_i)
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()

@@ -267,3 +267,29 @@ def test_a_reply_just_after_the_time_out_is_never_read_as_the_next_commands(dial
             assert any(line == "STS" for line, _ in log[acted + 1 :])
             assert src.interlock_closed() is True
             assert src.status().name == "STANDBY"
+
+
+def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
+    """``source on`` leaves the beam on by design; ``kill -9`` in its ramp (no handler runs) ends it
+    before its last line. Found: nothing at all had been printed, so the operator was not told
+    that X-rays were on. Now a line before ``XON`` says so and names ``source off``; ``source
+    status`` then reads the beam on and switches it off, confirmed (already so)."""
+    with Controller(dialect, ramp_s=30.0) as unit:
+        unit.ready(warmed=True)
+        port = ["--port", unit.port, "--dialect", dialect]
+        proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+        try:
+            assert _wait(lambda: unit.emitting, 60), "XON never came"
+            time.sleep(0.3)  # in the ramp (30 s)
+            proc.send_signal(signal.SIGKILL)
+            out = proc.communicate(timeout=30)[0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert unit.emitting
+        assert "switching X-rays ON at 60 kV 250 uA" in out and "acquire source off --port" in out, out
+        status = _radiokit("acquire", "source", "status", *port)
+        said = status.communicate(timeout=60)[0]
+        assert status.returncode == 0 and not unit.emitting, said
+    assert "state XRAY_ON" in said and "switched off (confirmed: state STANDBY)" in said, said
