@@ -149,6 +149,24 @@ def test_transport_reads_cr_and_crlf_replies(ending):
     assert not lnk.is_open
 
 
+def test_emulator_takes_only_cr_as_a_command_end():
+    """L8121.md: commands end in CR. The emulator also took LF, which would hide a driver that
+    sent LF (no reply from a unit) or CR LF (its LF then begins the next command, which the unit
+    does not know). Now a line holds whatever came before its CR."""
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server, serial.serial_for_url(server.url, baudrate=DEFAULT_BAUD["A"], timeout=0.5) as port:
+        port.write(b"TYP\n")
+        assert port.read_until(b"\r") == b""  # no CR: not a command yet
+        port.write(b"\r")  # "TYP\n" is no command (dialect A refuses it ERR)
+        assert port.read_until(b"\r") == b"ERR\r"
+        port.write(b"STS\r\n")
+        assert port.read_until(b"\r") == b"STS 2\r"
+        port.write(b"STS\r")  # "\nSTS" is no command either
+        assert port.read_until(b"\r") == b"ERR\r"
+        port.write(b"STS\r")
+        assert port.read_until(b"\r") == b"STS 2\r"
+
+
 def test_transport_logs_every_exchange(caplog):
     model = L8121Model(warmed_up=True)
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
