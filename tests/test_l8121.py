@@ -3845,6 +3845,19 @@ def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed
     assert "X-rays off (confirmed by STS" in err and "check by hand" not in err, err
 
 
+def _stop_the_guardian(found: list) -> None:
+    """SIGSTOP the X-ray guardian this process starts, as soon as it exists (within 30 s), its pid
+    appended to ``found``: a slow guardian start made wide."""
+    from conftest import guardian_of
+
+    end = time.monotonic() + 30
+    while not found and time.monotonic() < end:
+        pid = guardian_of(os.getpid())
+        if pid is not None:
+            os.kill(pid, signal.SIGSTOP)
+            found.append(pid)
+
+
 def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
     """The guardian did not say READY in time (here held with SIGSTOP: a slow start made wide,
     not a fake), so start_guardian has it switch off and waits for it. A Ctrl-C in that wait --
@@ -3852,7 +3865,6 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
     s32-r3): the guardian was neither waited for nor killed and held the port while the caller's
     own switch-off opened it. The wait now holds stop signals off: it ends with the guardian gone
     and the start's own error, carrying what the guardian said."""
-    from conftest import guardian_of
 
     from acquisition.guardian import SignalGuard, StopSignal, start_guardian
 
@@ -3860,12 +3872,7 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
     found = []
 
     def hold_then_interrupt():
-        end = time.monotonic() + 30
-        while not found and time.monotonic() < end:
-            pid = guardian_of(os.getpid())
-            if pid is not None:
-                os.kill(pid, signal.SIGSTOP)
-                found.append(pid)
+        _stop_the_guardian(found)
         time.sleep(2.0)  # start_guardian's 1 s start has failed: it waits in _end_start
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.5)
@@ -3911,7 +3918,6 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     confirmation and ended on "X-RAYS MAY STILL BE ON", exit 3, after its probe (on "radiokit never
     reached the X-ray controller", exit 1, with the dialect given, though the guardian had); it now
     says the guardian's confirmed state and exits 1, as any failed command with the tube off."""
-    from conftest import guardian_of
 
     from acquisition import guardian
     from radiokit.cli import main
@@ -3922,12 +3928,7 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     held = []
 
     def hold_the_guardian():
-        end = time.monotonic() + 30
-        while not held and time.monotonic() < end:
-            pid = guardian_of(os.getpid())
-            if pid is not None:
-                os.kill(pid, signal.SIGSTOP)
-                held.append(pid)
+        _stop_the_guardian(held)
         time.sleep(2.0)  # past the 1 s start: start_guardian has it switch off
         os.kill(held[0], signal.SIGCONT)
 

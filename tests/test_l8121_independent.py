@@ -38,6 +38,20 @@ def _wait(predicate, timeout_s: float) -> bool:
     return predicate()
 
 
+def _act_when(proc: subprocess.Popen, ready, act, *, wait_s: float, settle_s: float) -> str:
+    """Once ``ready()`` (within ``wait_s``) and ``settle_s`` later, ``act()``; the run's output.
+    The run is killed if it is still going at a failure."""
+    try:
+        assert _wait(ready, wait_s), "the run never got there"
+        time.sleep(settle_s)
+        act()
+        return proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def _radiokit(*args) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "radiokit.cli", *args],
@@ -172,19 +186,9 @@ def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect,
     with Controller(dialect, warmup_s=0.5, ramp_s=0.3) as unit:
         unit.ready()
         proc = _radiokit("acquire", _series_protocol(tmp_path, dialect, unit.port), "--sim", "-q")
-        try:
-            # the warm-up, then the flats' XON (in B the warm-up is an XON too)
-            assert _wait(lambda: len(unit.emissions) >= 2 and unit.emitting, 120), "no exposure"
-            time.sleep(0.5)
-            if fault == "interlock":
-                unit.open_interlock()
-            else:
-                proc.send_signal(signal.SIGKILL)
-            out = proc.communicate(timeout=60)[0]
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        fail = unit.open_interlock if fault == "interlock" else lambda: proc.send_signal(signal.SIGKILL)
+        # the warm-up, then the flats' XON (in B the warm-up is an XON too)
+        out = _act_when(proc, lambda: len(unit.emissions) >= 2 and unit.emitting, fail, wait_s=120, settle_s=0.5)
         assert _wait(lambda: not unit.emitting, 5), out
         assert "X-rays off (confirmed by STS" in out or "tube off (confirmed by STS" in out, out
     assert proc.returncode == (1 if fault == "interlock" else -signal.SIGKILL), out
@@ -278,15 +282,8 @@ def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the
         unit.ready(warmed=True)
         port = ["--port", unit.port, "--dialect", dialect]
         proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
-        try:
-            assert _wait(lambda: unit.emitting, 60), "XON never came"
-            time.sleep(0.3)  # in the ramp (30 s)
-            proc.send_signal(signal.SIGKILL)
-            out = proc.communicate(timeout=30)[0]
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        # in the ramp (30 s)
+        out = _act_when(proc, lambda: unit.emitting, lambda: proc.send_signal(signal.SIGKILL), wait_s=60, settle_s=0.3)
         assert unit.emitting
         assert "switching X-rays ON at 60 kV 250 uA" in out and "acquire source off --port" in out, out
         status = _radiokit("acquire", "source", "status", *port)
