@@ -613,6 +613,16 @@ def _source_error_code(exc, src, args) -> int:
 
     if src is None:  # the driver refused its configuration: nothing was opened
         return 1
+    if getattr(exc, "guardian_off", False):
+        # a guardian whose start failed held the port and switched off before it exited: its own
+        # STS read the tube off (trusted as a connect's), or it could not confirm (the warning,
+        # even when this process never opened the port: the guardian did)
+        state = getattr(exc, "tube_state", None)
+        if getattr(exc, "off_failed", None) is None and state is not None and state.confirms_off:
+            _say(f"{src.port}: switched off by the X-ray guardian: tube off (confirmed by STS: {state.name})")
+            return 1
+        _say(TUBE_WARNING)
+        return 3
     if not src.port_opened and args.action != "off":
         # not a byte sent: the same last line and exit code as a series that could not open its port
         _say(NEVER_REACHED)
@@ -762,6 +772,13 @@ def _source_action(src, args) -> int:
             raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
+        # said before XON: this command leaves the beam on, and killed in the ramp (kill -9, no
+        # handler runs) it has no later line to say so
+        src.before_xon = lambda kv, ua: print(
+            f"{args.port}: switching X-rays ON at {kv} kV {ua} uA: they stay on when this command ends; "
+            f"`radiokit acquire source off --port {args.port}` switches them off",
+            flush=True,
+        )
         try:
             r = src.on(args.kv, args.ua)
         except DeviceError as exc:

@@ -213,8 +213,8 @@ class SourceConfig:
     the pause between two commands, ``None`` means the dialect's (0.06 s in both: ``L8121.md``'s
     link rule "a controller may need ~50 ms between commands" holds for both dialects, although
     the L8121-02 driver polls 20 ms apart; "~50" leaves room above 50, so 20 % is added).
-    ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (A 1 s; B 2 s, the
-    L8121-02 driver's wait before a missed reply). ``off_confirm_s``: how long a switch-off's
+    ``timeout_s``, the longest wait for a reply, ``None`` means the dialect's (2 s in both: the
+    L8121-02 driver's wait before a missed reply; L8121.md gives A none). ``off_confirm_s``: how long a switch-off's
     attempts may take for ``STS`` to read off (a supply ramping down). ``ready_timeout_s``: how long
     :meth:`L8121.settled_status` (and so :meth:`L8121.warm_up` and :meth:`L8121.on`) waits for the
     controller's power-on checks to finish.
@@ -805,8 +805,11 @@ DIALECT_A = Dialect(
     # L8121.md: "a controller may need ~50 ms between commands"; at exactly 50 ms a unit that
     # needs a little more (55 ms is "~50") loses commands, so the spacing has a margin
     min_interval_s=0.06,
-    # L8121.md gives dialect A no reply time: a second, long beside a serial exchange
-    timeout_s=1.0,
+    # L8121.md gives dialect A no reply time; B's driver, for the same source family, waits 2 s
+    # before it calls a reply missed. 1 s read an A unit answering in 1.5 s, within what the notes
+    # document for the family, as silent (the connect failed, and its switch-off could not be
+    # confirmed); a unit slower still is [source] timeout_s (at most REPLY_TIMEOUT_MAX_S)
+    timeout_s=2.0,
     evidence="public drivers for the L9181, L9181-02, L9191, L9421 and C8033 controllers",
     readings={
         "identity": Query("TYP", str, rest=True, doc="The controller's model (TYP L8121-01)."),
@@ -1339,6 +1342,10 @@ class L8121:
         #: Whether the last :meth:`warm_up` found one already running (started by hand or by an
         #: earlier command) and waited for it: nothing set, nothing sent that emits.
         self.warmup_joined = False
+        #: ``before_xon(kv, ua)``, called by :meth:`on` with the values set and read back, right
+        #: before its ``XON``: a caller that leaves the beam on (``source on``) tells the operator
+        #: there, since a ``kill -9`` in the ramp that follows leaves it on with no word after.
+        self.before_xon: Callable[[int, int], None] | None = None
         if connect:
             self.connect()
 
@@ -1353,7 +1360,7 @@ class L8121:
 
     @property
     def timeout_s(self) -> float:
-        """The longest wait for a reply (configuration, else the dialect's: A 1 s, B 2 s)."""
+        """The longest wait for a reply (configuration, else the dialect's: 2 s in both)."""
         return self.dialect.timeout_s if self.config.timeout_s is None else self.config.timeout_s
 
     @property
@@ -1422,7 +1429,12 @@ class L8121:
                     self.emitting_at_connect = True
                     logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
                 else:
-                    logger.warning("%s: X-rays are on at connect; close() will switch them off", self.port)
+                    logger.warning(
+                        "%s: X-rays are ON at connect (an earlier `source on`, or switched on at the controller); "
+                        "radiokit switches them off before it lets the port go and says whether the controller "
+                        "confirmed it: if no confirmation follows, switch off at the controller",
+                        self.port,
+                    )
                     self._may_be_on = True
             elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
                 logger.critical("%s", self.unverified_warning(self._last_state))
@@ -2480,6 +2492,8 @@ class L8121:
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
+            if self.before_xon is not None:
+                self.before_xon(kv_i, ua_i)
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()

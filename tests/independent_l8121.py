@@ -4,7 +4,8 @@ A test asset, kept apart from ``acquisition.emulators`` on purpose: it was writt
 radiokit's driver or emulator, so the two cannot share a misreading. Where the notes leave a choice
 it takes the reading that is harder on a driver, and says so (``# harder:``):
 
-- every reply comes ``reply_s`` late and in ``chunks`` separate writes;
+- every reply comes ``reply_s`` late (once its command word's delay in ``slow``) and in ``chunks``
+  separate writes;
 - a command that follows the previous reply by less than ``gap_s`` ("may need ~50 ms between
   commands") is lost, unanswered, and one sent before the last reply went out ("never pipeline")
   too;
@@ -68,6 +69,10 @@ class Controller:
     baudrate: int = 9600
     remote: str = "REMOTE"
     silent: bool = False
+    # command word -> the delay of its next reply only, in place of reply_s (a unit busy for a
+    # moment: a reply that comes just after the driver's time-out must not be read as the next
+    # command's)
+    slow: dict = field(default_factory=dict)
     log: list = field(default_factory=list)
     emissions: list = field(default_factory=list)
     lost: list = field(default_factory=list)
@@ -306,7 +311,7 @@ class Controller:
         self.log.append((t, line, reply))
         text = reply.encode() if good_link else b"\xfe\x7f\x80"  # a baud mismatch: junk, no line end
         end = (b"\r\n" if self.dialect == "A" else b"\r") if good_link else b""
-        time.sleep(self.reply_s)
+        time.sleep(self.slow.pop(line.partition(" ")[0], self.reply_s))
         # the text in pieces; the line end with the last one (a UART sends CR LF back to back)
         step = max(1, -(-len(text) // self.chunks))
         pieces = [text[i : i + step] for i in range(0, len(text), step)]

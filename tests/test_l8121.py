@@ -149,6 +149,24 @@ def test_transport_reads_cr_and_crlf_replies(ending):
     assert not lnk.is_open
 
 
+def test_emulator_takes_only_cr_as_a_command_end():
+    """L8121.md: commands end in CR. The emulator also took LF, which would hide a driver that
+    sent LF (no reply from a unit) or CR LF (its LF then begins the next command, which the unit
+    does not know). Now a line holds whatever came before its CR."""
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server, serial.serial_for_url(server.url, baudrate=DEFAULT_BAUD["A"], timeout=0.5) as port:
+        port.write(b"TYP\n")
+        assert port.read_until(b"\r") == b""  # no CR: not a command yet
+        port.write(b"\r")  # "TYP\n" is no command (dialect A refuses it ERR)
+        assert port.read_until(b"\r") == b"ERR\r"
+        port.write(b"STS\r\n")
+        assert port.read_until(b"\r") == b"STS 2\r"
+        port.write(b"STS\r")  # "\nSTS" is no command either
+        assert port.read_until(b"\r") == b"ERR\r"
+        port.write(b"STS\r")
+        assert port.read_until(b"\r") == b"STS 2\r"
+
+
 def test_transport_logs_every_exchange(caplog):
     model = L8121Model(warmed_up=True)
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
@@ -1089,14 +1107,15 @@ def test_off_is_not_confirmed_while_sts_says_on(source):
 def test_a_b_unit_answering_within_the_l8121_02_drivers_wait_is_not_silent():
     """L8121.md: the L8121-02 driver "treats 2 s without a reply as a missed reply". A B unit
     answering every command in 1.2 s is within that, and is talked to; at the former 1 s wait it
-    read as a silent controller. A keeps 1 s (L8121.md gives it no reply time)."""
+    read as a silent controller. A waits as long (L8121.md gives it no reply time; at 1 s an A unit
+    answering in 1.5 s read as silent: tests/test_l8121_independent.py)."""
     model = L8121Model(dialect="B", warmed_up=True)
     with PtyServer(model) as server:
         model.slow(1.2)
         with L8121(server.url, dialect="B", **FAST) as src:
             assert src.timeout_s == 2.0 and src.resolved_config().timeout_s == 2.0
             assert src.status() == SourceState.STANDBY
-    assert L8121("unused", dialect="A", connect=False).resolved_config().timeout_s == 1.0
+    assert L8121("unused", dialect="A", connect=False).resolved_config().timeout_s == 2.0
 
 
 def test_the_guardian_refuses_a_configuration_without_its_reply_time_out():
@@ -1613,7 +1632,7 @@ def test_silent_controller_times_out(warm, dialect, wire):
     with driver(server, dialect) as src:
         model.silence()
         t0 = time.monotonic()
-        wait = src.timeout_s  # the dialect's: A 1 s, B 2 s
+        wait = src.timeout_s  # the dialect's: 2 s in both
         with pytest.raises(DeviceError, match=rf"{server.url}: no reply to STS within {wait:g} s"):
             src.status()
         elapsed = time.monotonic() - t0
@@ -2394,6 +2413,23 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         model.sts_error(False)
         assert main(["acquire", "source", "status", *port]) == 0  # STS answers again: STANDBY
         assert "state STANDBY" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_the_warning_of_x_rays_on_at_connect_tells_the_operator_what_happens(dialect, caplog):
+    """`source status` on a tube an earlier `source on` left on: the connect's warning is read by
+    an operator. Found: it said "close() will switch them off", a Python call."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
+            assert main(["acquire", "source", "status", *port]) == 0
+    said = [r.getMessage() for r in caplog.records if "at connect" in r.getMessage()]
+    assert len(said) == 1 and not model.xray_on
+    assert "()" not in said[0] and "ON at connect" in said[0] and "switch off at the controller" in said[0]
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -3809,6 +3845,19 @@ def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed
     assert "X-rays off (confirmed by STS" in err and "check by hand" not in err, err
 
 
+def _stop_the_guardian(found: list) -> None:
+    """SIGSTOP the X-ray guardian this process starts, as soon as it exists (within 30 s), its pid
+    appended to ``found``: a slow guardian start made wide."""
+    from conftest import guardian_of
+
+    end = time.monotonic() + 30
+    while not found and time.monotonic() < end:
+        pid = guardian_of(os.getpid())
+        if pid is not None:
+            os.kill(pid, signal.SIGSTOP)
+            found.append(pid)
+
+
 def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
     """The guardian did not say READY in time (here held with SIGSTOP: a slow start made wide,
     not a fake), so start_guardian has it switch off and waits for it. A Ctrl-C in that wait --
@@ -3816,7 +3865,6 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
     s32-r3): the guardian was neither waited for nor killed and held the port while the caller's
     own switch-off opened it. The wait now holds stop signals off: it ends with the guardian gone
     and the start's own error, carrying what the guardian said."""
-    from conftest import guardian_of
 
     from acquisition.guardian import SignalGuard, StopSignal, start_guardian
 
@@ -3824,12 +3872,7 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
     found = []
 
     def hold_then_interrupt():
-        end = time.monotonic() + 30
-        while not found and time.monotonic() < end:
-            pid = guardian_of(os.getpid())
-            if pid is not None:
-                os.kill(pid, signal.SIGSTOP)
-                found.append(pid)
+        _stop_the_guardian(found)
         time.sleep(2.0)  # start_guardian's 1 s start has failed: it waits in _end_start
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.5)
@@ -3863,3 +3906,39 @@ def _zombie(pid) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
     except OSError:
         return True
+
+
+@pytest.mark.parametrize("probed", [False, True], ids=["dialect-given", "probed"])
+def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirmed_off(
+    dialect, probed, capfd, monkeypatch
+):
+    """`source warm-up`'s guardian does not say READY in time (held with SIGSTOP past a start
+    time-out shortened to 1 s: a slow start made wide, not a fake), so its start fails and the
+    guardian switches off, confirmed by its own STS, and exits. Found: the command ignored that
+    confirmation and ended on "X-RAYS MAY STILL BE ON", exit 3, after its probe (on "radiokit never
+    reached the X-ray controller", exit 1, with the dialect given, though the guardian had); it now
+    says the guardian's confirmed state and exits 1, as any failed command with the tube off."""
+
+    from acquisition import guardian
+    from radiokit.cli import main
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    model = L8121Model(dialect=dialect, warmed_up=False, ramp_s=0.2)
+    held = []
+
+    def hold_the_guardian():
+        _stop_the_guardian(held)
+        time.sleep(2.0)  # past the 1 s start: start_guardian has it switch off
+        os.kill(held[0], signal.SIGCONT)
+
+    with PtyServer(model) as server:
+        helper = threading.Thread(target=hold_the_guardian, daemon=True)
+        helper.start()
+        given = [] if probed else ["--dialect", dialect]
+        code = main(["acquire", "source", "warm-up", "--port", server.url, *given])
+        helper.join(timeout=30)
+        assert held and not model.xray_on
+    err = capfd.readouterr().err
+    assert "MAY STILL BE ON" not in err and "switched off by the X-ray guardian: tube off (confirmed by STS" in err, err
+    assert code == 1, err

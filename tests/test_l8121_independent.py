@@ -38,6 +38,20 @@ def _wait(predicate, timeout_s: float) -> bool:
     return predicate()
 
 
+def _act_when(proc: subprocess.Popen, ready, act, *, wait_s: float, settle_s: float) -> str:
+    """Once ``ready()`` (within ``wait_s``) and ``settle_s`` later, ``act()``; the run's output.
+    The run is killed if it is still going at a failure."""
+    try:
+        assert _wait(ready, wait_s), "the run never got there"
+        time.sleep(settle_s)
+        act()
+        return proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def _radiokit(*args) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "radiokit.cli", *args],
@@ -62,7 +76,7 @@ def test_a_session_sets_every_value_before_any_x_ray_command(dialect):
             assert kv == pytest.approx(60, abs=0.5) and ua == pytest.approx(250, abs=0.5)
             src.check()
         assert not unit.emitting
-    assert unit.lost == []
+    assert unit.lost == [] and not any("\n" in line for _, line, _ in unit.log)  # CR alone ends a command
     assert [(e.kv, e.ua) for e in unit.emissions] == [(40, 0), (60, 250)]  # the warm-up's: the lowest allowed
     assert all(e.set_this_session and not e.interlock_open for e in unit.emissions)
     assert "RST" not in [line for _, line, _ in unit.log]
@@ -105,7 +119,7 @@ def test_a_controller_that_stops_answering_is_an_error_not_a_hang(dialect):
         t0 = time.monotonic()
         with pytest.raises(DeviceError):
             src.check()
-        # one poll, then XOF and STS, each waiting out its reply time-out (A 1 s, B 2 s), at most
+        # one poll, then XOF and STS, each waiting out its reply time-out (2 s in both dialects), at most
         # two polls' worth of queries in B's cycle of four
         assert time.monotonic() - t0 < 8 * src.timeout_s
         assert not src.tube_confirmed_off
@@ -143,11 +157,8 @@ def test_a_killed_or_stopped_source_warm_up_leaves_the_tube_off(dialect, sig):
         assert "X-rays off (confirmed by STS" in out
 
 
-@pytest.mark.parametrize("fault", ["interlock", "SIGKILL"])
-def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect, fault, tmp_path):
-    """``radiokit acquire P --sim`` with ``[sim] source_port`` = the model: the interlock opening
-    during the first exposure stops the series (exit 1, tube confirmed off, the frame taken kept);
-    ``kill -9`` of the run leaves it to the guardian, which switches off and says so."""
+def _series_protocol(tmp_path, dialect: str, port: str) -> str:
+    """A small ``--sim`` series (one step, binned 4x, a coarse mesh) whose source is the model."""
     import tomli_w
 
     from sim.scene import block_scene
@@ -161,26 +172,23 @@ def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect,
         "detector": {"kind": "sim", "timeout_s": 2.0},
         "frame": {"kind": "sim", "initial_height_mm": 10.0},
         "series": {"darks": 1, "flats": 2, "frames_per_step": 1, "steps": [0.15], "settle_s": 0.0},
-        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.3},
+        "sim": {"scene": scene.to_toml(), "frame_period_s": 0.3, "source_port": port},
     }
+    (tmp_path / "p.toml").write_text(tomli_w.dumps(protocol))
+    return str(tmp_path / "p.toml")
+
+
+@pytest.mark.parametrize("fault", ["interlock", "SIGKILL"])
+def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect, fault, tmp_path):
+    """``radiokit acquire P --sim`` with ``[sim] source_port`` = the model: the interlock opening
+    during the first exposure stops the series (exit 1, tube confirmed off, the frame taken kept);
+    ``kill -9`` of the run leaves it to the guardian, which switches off and says so."""
     with Controller(dialect, warmup_s=0.5, ramp_s=0.3) as unit:
         unit.ready()
-        protocol["sim"]["source_port"] = unit.port
-        (tmp_path / "p.toml").write_text(tomli_w.dumps(protocol))
-        proc = _radiokit("acquire", str(tmp_path / "p.toml"), "--sim", "-q")
-        try:
-            # the warm-up, then the flats' XON (in B the warm-up is an XON too)
-            assert _wait(lambda: len(unit.emissions) >= 2 and unit.emitting, 120), "no exposure"
-            time.sleep(0.5)
-            if fault == "interlock":
-                unit.open_interlock()
-            else:
-                proc.send_signal(signal.SIGKILL)
-            out = proc.communicate(timeout=60)[0]
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        proc = _radiokit("acquire", _series_protocol(tmp_path, dialect, unit.port), "--sim", "-q")
+        fail = unit.open_interlock if fault == "interlock" else lambda: proc.send_signal(signal.SIGKILL)
+        # the warm-up, then the flats' XON (in B the warm-up is an XON too)
+        out = _act_when(proc, lambda: len(unit.emissions) >= 2 and unit.emitting, fail, wait_s=120, settle_s=0.5)
         assert _wait(lambda: not unit.emitting, 5), out
         assert "X-rays off (confirmed by STS" in out or "tube off (confirmed by STS" in out, out
     assert proc.returncode == (1 if fault == "interlock" else -signal.SIGKILL), out
@@ -203,3 +211,82 @@ def test_source_warm_up_after_source_on_says_in_command_line_terms_that_the_tube
     last = out.strip().splitlines()[-1]
     assert proc.returncode == 1, out
     assert "()" not in last and "off, confirmed by STS: STANDBY" in last, out
+
+
+# A unit that answers in 1.5 s: L8121.md gives dialect A no reply time, and dialect B's driver
+# allows 2 s, so an A unit this slow is within what the notes document for the source family.
+SLOW_REPLY_S = 1.5
+
+
+def test_a_session_against_a_slow_dialect_a_unit():
+    """Probe (auto), settings, on, a poll, off against an A unit answering in 1.5 s.
+    Found: the driver waited 1 s for A's replies, so the connect read the unit as silent."""
+    with Controller("A", reply_s=SLOW_REPLY_S, chunks=1, ramp_s=0.2) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect="auto", poll_s=0.05) as src:
+            assert src.dialect.name == "A"
+            src.on(60, 250)
+            kv, ua = src.measured()
+            assert kv == pytest.approx(60, abs=0.5) and ua == pytest.approx(250, abs=0.5)
+            src.check()
+        assert src.tube_confirmed_off and not unit.emitting
+    assert unit.lost == []
+    assert [(e.kv, e.ua) for e in unit.emissions] == [(60, 250)]
+
+
+def test_a_series_against_a_slow_dialect_a_unit(tmp_path):
+    """A whole ``radiokit acquire P --sim`` series (warm-up, darks, flats, one step) through the
+    guardian, against an A unit answering every command in 1.5 s: exit 0, the tube confirmed off."""
+    with Controller("A", reply_s=SLOW_REPLY_S, chunks=1, warmup_s=0.5, ramp_s=0.2) as unit:
+        unit.ready()
+        proc = _radiokit("acquire", _series_protocol(tmp_path, "A", unit.port), "--sim", "-q")
+        try:
+            out = proc.communicate(timeout=900)[0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert not unit.emitting, out
+    assert proc.returncode == 0, out
+    assert "tube off (confirmed by STS" in out or "X-rays off (confirmed by STS" in out, out
+    assert unit.lost == [] and all(e.set_this_session and not e.interlock_open for e in unit.emissions)
+
+
+def test_a_reply_just_after_the_time_out_is_never_read_as_the_next_commands(dialect):
+    """The poll's reply comes 0.3 s after the driver stopped waiting for it: the poll fails (a
+    silent controller is an error), the switch-off that follows does not take the late reply for
+    its own (``XOF`` confirmed by an ``STS`` the unit sent after acting on an ``XOF``), and the
+    readings after it are the unit's own answers to them, in step."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            src.on(60, 250)
+            poll = src.dialect.readings[src.dialect.poll[0]].command
+            unit.slow[poll] = src.timeout_s + 0.3
+            with pytest.raises(DeviceError, match=f"no reply to {poll}"):
+                src.check()
+            assert src.tube_confirmed_off and not unit.emitting
+            log = [(line, reply) for _, line, reply in unit.log]
+            acted = max(i for i, (line, reply) in enumerate(log) if line == "XOF" and reply == "XOF")
+            assert any(line == "STS" for line, _ in log[acted + 1 :])
+            assert src.interlock_closed() is True
+            assert src.status().name == "STANDBY"
+
+
+def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
+    """``source on`` leaves the beam on by design; ``kill -9`` in its ramp (no handler runs) ends it
+    before its last line. Found: nothing at all had been printed, so the operator was not told
+    that X-rays were on. Now a line before ``XON`` says so and names ``source off``; ``source
+    status`` then reads the beam on and switches it off, confirmed (already so)."""
+    with Controller(dialect, ramp_s=30.0) as unit:
+        unit.ready(warmed=True)
+        port = ["--port", unit.port, "--dialect", dialect]
+        proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+        # in the ramp (30 s)
+        out = _act_when(proc, lambda: unit.emitting, lambda: proc.send_signal(signal.SIGKILL), wait_s=60, settle_s=0.3)
+        assert unit.emitting
+        assert "switching X-rays ON at 60 kV 250 uA" in out and "acquire source off --port" in out, out
+        status = _radiokit("acquire", "source", "status", *port)
+        said = status.communicate(timeout=60)[0]
+        assert status.returncode == 0 and not unit.emitting, said
+    assert "state XRAY_ON" in said and "switched off (confirmed: state STANDBY)" in said, said

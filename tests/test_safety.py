@@ -393,7 +393,7 @@ CONTROLLER_FAULTS = [
 ]
 
 
-# The driver's defaults (SourceConfig: the dialect's reply time-out, A 1 s, B 2 s; 3 XOF attempts
+# The driver's defaults (SourceConfig: the dialect's reply time-out, 2 s in both; 3 XOF attempts
 # over off_confirm_s; the dialect's command spacing; SourceSettings: the beam monitor polls every
 # 0.25 s): what a lab runs with.
 DRIVER_DEFAULTS = {"poll_s": 0.25, "timeout_s": None, "off_attempts": None, "min_interval_s": None}
@@ -404,7 +404,7 @@ def warning_bound_s(dialect, name):
     """The longest the operator may wait for the warning, at those defaults. A silent controller:
     the monitor's poll (0.25 s) and the time-out of the first query that meets the silence, then
     one switch-off attempt (XOF and STS, a time-out each), not repeated, which goes before any
-    other thread's queued query (A 3.25 s, B 6.25 s). One that answers but stays on: the poll, the
+    other thread's queued query (6.25 s in both dialects). One that answers but stays on: the poll, the
     switch-off's window (off_confirm_s) and its last exchanges (0.5 s). Plus 1.5 s for a loaded
     machine. (Each layer retrying with the full budget -- driver fail-safe, beam monitor, the
     panel's beam query -- took ~15 s.)"""

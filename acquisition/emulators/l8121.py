@@ -537,7 +537,7 @@ class L8121Model:
 
     def receive(self, line: str, baudrate: int | None = None) -> Exchange | None:
         """As :meth:`handle`, returning the whole :class:`Exchange` (None for an empty line)."""
-        line = line.strip()
+        line = line.strip(" \t")  # not CR or LF: the link's line end is CR alone (L8121.md)
         if not line:
             return None
         with self._lock:
@@ -574,6 +574,8 @@ class L8121Model:
     def _act(self, line: str, t: float) -> tuple[str, bool]:
         """The reply to ``line``, and whether its action ran (not refused before it)."""
         word, *args = line.split()
+        if "\n" in line or "\r" in line:  # a line end inside the command: no command the unit knows
+            word = ""
         if word == "STS" and not args and self._sts_error:
             return "ERROR", False
         action = self._commands.get(word)
@@ -760,8 +762,10 @@ _SPEEDS = {
 
 # -- servers --------------------------------------------------------------------------------------
 class _LineServer:
-    """Reads CR- (or LF-) terminated lines, answers each with the model; replies end with
-    ``reply_terminator`` (CR, as the controller; ``"\\r\\n"`` to test a client against CR LF)."""
+    """Reads CR-terminated lines, answers each with the model; replies end with
+    ``reply_terminator`` (CR, as the controller; ``"\\r\\n"`` to test a client against CR LF).
+    L8121.md ends commands in CR only: an LF is part of the line it comes in (a command the
+    controller does not know), so a client that sent LF or CR LF fails here as at a unit."""
 
     def __init__(self, model: L8121Model, *, reply_terminator: str = "\r"):
         self.model = model
@@ -774,10 +778,10 @@ class _LineServer:
     def _answer(self, buf: bytearray, data: bytes, write: Callable[[bytes], object]) -> None:
         buf += data
         while True:
-            cuts = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
-            if not cuts:
+            cut = buf.find(b"\r")
+            if cut < 0:
                 return
-            line, buf[:] = bytes(buf[: min(cuts)]), buf[min(cuts) + 1 :]
+            line, buf[:] = bytes(buf[:cut]), buf[cut + 1 :]
             if self._held is not None and line.strip():  # the next command is here: the late reply goes first
                 write(self._held)
                 self._held = None
