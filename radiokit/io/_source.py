@@ -957,13 +957,23 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
+        self._check_hdf5_written(i)
+        return self._hdf5_frame(self._ds[()] if self._ds.ndim == 2 else self._ds[i])
+
+    def _check_hdf5_written(self, i) -> None:
+        """Refuse frame ``i`` if its storage was never written, unless it is labelled INVALID:
+        such a frame may be unwritten (ExperimentWriter counts it before its pixels, and a crash
+        in between leaves it so), its fill value is what its label says, no data."""
         keys = self.meta.get("image_key")
-        # a frame labelled INVALID may be unwritten (ExperimentWriter counts it before its pixels,
-        # and a crash in between leaves it so): its fill value is what its label says, no data
         invalid = keys is not None and i < len(keys) and keys[i] == ImageKey.INVALID
         if isinstance(self._ds, h5py.Dataset) and not invalid:
             check_frame_written(self.path, self._ds, i)
-        frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+
+    def _hdf5_frame(self, frame) -> np.ndarray:
+        """A frame as read from its values as the dataset stores them: CF-unpacked (fill codes
+        NaN), MATLAB's transposed back, in the read type, white-is-zero counts inverted. Both
+        :meth:`_read_hdf5` and :meth:`_read_hdf5_blocks` take each frame through it: their own
+        copies of these steps drifted apart once. ``frame`` itself when nothing changes it."""
         if self._packing is not None:
             frame = _unpack(frame, self._packing)
         if self._transposed:
@@ -989,9 +999,13 @@ class FrameSource:
             raise
         except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
             raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
+        self._check_bits(frame)
+        return frame
+
+    def _check_bits(self, frame) -> None:
+        """The bit-depth warning (:func:`check_bit_depth`), once per open file, not once per frame."""
         if not self._bits_warned:
             self._bits_warned = check_bit_depth(self.path, frame, self.bits)
-        return frame
 
     def __iter__(self):
         for i in range(self.n):
@@ -1032,22 +1046,20 @@ class FrameSource:
             return 0
         if self._packing is not None:  # its fill codes become NaN frame by frame (_unpack)
             return 0
-        keys = self.meta.get("image_key")
-        for i in range(self.n):  # as _read_hdf5 checks each
-            if keys is None or i >= len(keys) or keys[i] != ImageKey.INVALID:
-                check_frame_written(self.path, ds, i)
+        for i in range(self.n):
+            self._check_hdf5_written(i)
         for a in range(0, self.n, ds.chunks[0]):
             b = min(a + ds.chunks[0], self.n)
             try:
                 ds.read_direct(out, np.s_[a:b], np.s_[a:b])
             except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
                 raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
-        for i in range(self.n if self._invert is not None else 0):
-            out[i] = ~out[i] if out.dtype.kind == "b" else self._invert - out[i]
-        for i in range(self.n if not self._bits_warned else 0):
-            if check_bit_depth(self.path, out[i], self.bits):
-                self._bits_warned = True
-                break
+        for i in range(self.n):
+            stored = out[i]
+            frame = self._hdf5_frame(stored)
+            if frame is not stored:  # no copy of a frame onto itself
+                out[i] = frame
+            self._check_bits(out[i])
         return self.n
 
     def close(self):
