@@ -1228,6 +1228,24 @@ def test_hdf5_cf_fill_value_beyond_the_stored_type_marks_no_pixel(tmp_path):
     assert np.isposinf(data[0, 1, 1]) and (data[np.isfinite(data)] == 7).sum() == 15
 
 
+def test_hdf5_cf_packed_white_is_zero_counts_are_inverted_before_unpacking(tmp_path):
+    """Found in review: with CF packing on a white-is-zero image the unpacked value was inverted
+    (65535 - 0.5) instead of the stored counts ((65535 - 500) * 0.001 = 65.035). The counts are
+    inverted as stored, then unpacked; a ``_FillValue`` code is one of the stored values."""
+    stored = np.full((2, 8, 8), 500, np.uint16)
+    stored[1, 3, 4] = 0  # the fill code
+    path = tmp_path / "cfwiz.h5"
+    _hdf5_image(path, "x", stored, 1)
+    with h5py.File(path, "a") as f:
+        f["x"].attrs["scale_factor"] = np.float32(0.001)
+        f["x"].attrs["_FillValue"] = np.uint16(0)
+    data = _both_ways(path, dataset="/x")
+    expect = (np.iinfo(np.uint16).max - stored.astype(np.float64)) * 0.001
+    missing = stored == 0
+    assert np.isnan(data[missing]).all() and np.isfinite(data[~missing]).all()
+    np.testing.assert_allclose(data[~missing], expect[~missing], rtol=2 * np.finfo(np.float32).eps)
+
+
 @pytest.mark.parametrize("scale", [0.0, np.nan, "0.001"])
 def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
     path = tmp_path / "cf.h5"

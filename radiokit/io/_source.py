@@ -970,18 +970,18 @@ class FrameSource:
             check_frame_written(self.path, self._ds, i)
 
     def _hdf5_frame(self, frame) -> np.ndarray:
-        """A frame as read from its values as the dataset stores them: CF-unpacked (fill codes
-        NaN), MATLAB's transposed back, in the read type, white-is-zero counts inverted. Both
+        """A frame as read from its values as the dataset stores them: white-is-zero counts
+        inverted, CF-unpacked (fill codes NaN), MATLAB's transposed back, in the read type. Both
         :meth:`_read_hdf5` and :meth:`_read_hdf5_blocks` take each frame through it: their own
         copies of these steps drifted apart once. ``frame`` itself when nothing changes it."""
+        stored = frame
+        if self._invert is not None:  # the stored counts: packing scales the inverted ones, not its float
+            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
         if self._packing is not None:
-            frame = _unpack(frame, self._packing)
+            frame = _unpack(frame, self._packing, stored)
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
-        frame = frame.astype(self.dtype, copy=False)
-        if self._invert is not None:
-            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
-        return frame
+        return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self):
@@ -1340,15 +1340,16 @@ def _codes(attrs, names) -> np.ndarray:
     return np.concatenate(found) if found else np.empty(0)
 
 
-def _unpack(frame, packing) -> np.ndarray:
-    """A CF-packed frame's values (:func:`_cf_packing`)."""
+def _unpack(frame, packing, stored) -> np.ndarray:
+    """A CF-packed frame's values (:func:`_cf_packing`): ``frame`` unpacked, NaN where ``stored``
+    (its values as the file holds them, before a white-is-zero inversion) holds a fill code."""
     dtype = packing["dtype"]
     out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
     if packing["missing"].size:  # float codes compared as stored (a float64 attribute on float32 data)
         with np.errstate(over="ignore"):  # a code beyond the stored type's range marks no pixel it can hold
-            codes = packing["missing"].astype(frame.dtype) if frame.dtype.kind == "f" else packing["missing"]
+            codes = packing["missing"].astype(stored.dtype) if stored.dtype.kind == "f" else packing["missing"]
         codes = codes[np.isfinite(codes)] if codes.dtype.kind == "f" else codes
-        out[np.isin(frame, codes)] = np.nan
+        out[np.isin(stored, codes)] = np.nan
     return out
 
 
