@@ -1342,14 +1342,28 @@ def _codes(attrs, names) -> np.ndarray:
 
 def _unpack(frame, packing, stored) -> np.ndarray:
     """A CF-packed frame's values (:func:`_cf_packing`): ``frame`` unpacked, NaN where ``stored``
-    (its values as the file holds them, before a white-is-zero inversion) holds a fill code."""
-    dtype = packing["dtype"]
-    out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
+    (its values as the file holds them, before a white-is-zero inversion) holds a fill code.
+    Values the packing takes past the unpacked type's range are refused (ValueError): a scale of
+    1e308 gave frames of inf and two RuntimeWarning lines naming no file."""
+    dtype, scale, offset = packing["dtype"], packing["scale_factor"], packing["add_offset"]
+    with np.errstate(over="ignore", invalid="ignore"):  # judged below, the fill codes aside
+        out = frame.astype(dtype) * dtype.type(scale) + dtype.type(offset)
+    missing = None
     if packing["missing"].size:  # float codes compared as stored (a float64 attribute on float32 data)
         with np.errstate(over="ignore"):  # a code beyond the stored type's range marks no pixel it can hold
             codes = packing["missing"].astype(stored.dtype) if stored.dtype.kind == "f" else packing["missing"]
         codes = codes[np.isfinite(codes)] if codes.dtype.kind == "f" else codes
-        out[np.isin(stored, codes)] = np.nan
+        missing = np.isin(stored, codes)
+    past = ~np.isfinite(out)
+    if past.any():  # only then the costlier test: the pixels stored finite, fill codes aside
+        past &= np.isfinite(frame) if missing is None else np.isfinite(frame) & ~missing
+        if past.any():
+            raise ValueError(
+                f"scale_factor {scale:g} and add_offset {offset:g} take {int(past.sum())} stored value(s) past "
+                f"{dtype}'s range: not a CF packing of these values"
+            )
+    if missing is not None:
+        out[missing] = np.nan
     return out
 
 
