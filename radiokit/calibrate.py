@@ -677,10 +677,19 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
 
 #: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.
 ADC_TOPS = (4095, 16383, 65535)
-#: The share of values above an ADC's top that frames of that ADC may hold: stuck or hot pixels, a
-#: vendor's defect marker (65535), up to two marked defect lines of a 2240-px panel. A 16-bit
-#: panel's frames pass 4095 in most of their pixels once its flats reach a sixteenth of its range.
+#: The share of values above an ADC's top that a stack of frames of that ADC may hold: stuck or
+#: hot pixels, a vendor's defect marker (65535), up to two marked defect lines of a 2240-px panel.
+#: A 16-bit panel's frames pass 4095 in most of their pixels once its flats reach a sixteenth of
+#: its range. Taken per stack: over darks and flats together, more darks meant more tolerance, and
+#: a 16-bit panel's flats passing 4095 in a bright corner (0.3 % of them) were called 12-bit.
 ADC_OUTLIER_SHARE = 1e-3
+#: Trailing zero bits of each byte value (8 for 0): the low bits a value leaves unused.
+_TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 256)], np.uint8)
+
+
+def _covering_top(peak: float) -> int | None:
+    """The smallest of :data:`ADC_TOPS` that ``peak`` does not exceed (None above 65535)."""
+    return next((top for top in ADC_TOPS if peak <= top), None)
 
 
 def adc_top(*stacks) -> int | None:
@@ -692,13 +701,12 @@ def adc_top(*stacks) -> int | None:
     refused the lab's data ("lower the flat exposure"). And a 12-bit panel whose software stores
     its counts in the top bits of 16 (``value << 4``: TIFFs from several frame grabbers) saturates
     at 65520, never 65535: against 65535 its saturated flat pixels were not flagged at all.
-    A lower top is kept while no more than :data:`ADC_OUTLIER_SHARE` of the values pass it: one
-    stuck pixel at 65535 made a 12-bit panel's clipped flats "16-bit", never saturated."""
-    peak = max(float(np.max(s)) for s in stacks)
-    top = next((top for top in ADC_TOPS if peak <= top), None)
-    allowed = ADC_OUTLIER_SHARE * sum(np.asarray(s).size for s in stacks)
+    A lower top is kept while no stack has more than :data:`ADC_OUTLIER_SHARE` of its values above
+    it: one stuck pixel at 65535 made a 12-bit panel's clipped flats "16-bit", never saturated."""
+    stacks = [np.asarray(s) for s in stacks]
+    top = _covering_top(max(float(np.max(s)) for s in stacks))
     for lower in (t for t in ADC_TOPS if top is None or t < top):  # only when the peak passed 4095
-        if sum(int(np.count_nonzero(np.asarray(s) > lower)) for s in stacks) <= allowed:
+        if all(np.count_nonzero(s > lower) <= ADC_OUTLIER_SHARE * s.size for s in stacks):
             top = lower
             break
     if top is None:
@@ -707,33 +715,43 @@ def adc_top(*stacks) -> int | None:
 
 
 def _unused_low_bits(stacks, most=8) -> int:
-    """How many low bits every value of the integer ``stacks`` leaves 0 (at most ``most``, so that
-    8 significant bits remain; 0 for float stacks or all-zero ones). Real frames' noise sets every
-    bit of an LSB-aligned ADC, so only MSB-aligned data (``counts << b``) leaves low bits unused."""
-    if any(np.asarray(s).dtype.kind not in "ui" for s in stacks):
+    """How many low bits the integer ``stacks`` leave 0 in all but :data:`ADC_OUTLIER_SHARE` of
+    each stack's values (at most ``most``, so that 8 significant bits remain; 0 for float stacks
+    or all-zero ones). Real frames' noise sets every bit of an LSB-aligned ADC, so only MSB-aligned
+    data (``counts << b``) leaves low bits unused. The share: one stuck pixel at 65535 hid a 12-bit
+    MSB-aligned panel's top (65520), as it hid a 12-bit one's (:func:`adc_top`)."""
+    stacks = [np.asarray(s) for s in stacks]
+    if any(s.dtype.kind not in "ui" for s in stacks):
         return 0
-    used = 0
+    sample = np.concatenate([s.ravel()[:: max(1, s.size // 50_000)] for s in stacks])
+    if np.count_nonzero(sample & 1) > 10 * ADC_OUTLIER_SHARE * sample.size:  # LSB-aligned: no full count
+        return 0
+    bits = most
     for s in stacks:
-        used |= int(np.bitwise_or.reduce(np.asarray(s), axis=None))
-    if used == 0:
-        return 0
-    bits = min((used & -used).bit_length() - 1, most)
+        zeros = np.bincount(_TRAILING_ZEROS[(s & 0xFF).astype(np.uint8)].ravel(), minlength=9)
+        bits = min(bits, next(b for b in range(most, -1, -1) if zeros[:b].sum() <= ADC_OUTLIER_SHARE * s.size))
     # Noise-free frames (synthetic, or a constant flat at a round number such as 4064 = 0xFE0)
     # leave low bits unused too, and would put the top at their own level: every pixel
     # "saturated". MSB-aligned frames of a real panel vary over many levels of their counts.
-    sample = np.concatenate([np.asarray(s).ravel()[:: max(1, np.asarray(s).size // 50_000)] for s in stacks])
-    return bits if np.unique(sample >> bits).size >= 32 else 0
+    return bits if bits and np.unique(sample >> bits).size >= 32 else 0
 
 
-def frame_saturation(saturation, raw) -> int | None:
+def frame_saturation(saturation, raw, defects=None) -> int | None:
     """The saturation level to count ``raw``'s pixels against: ``saturation``, unless the frame
     holds values above it, which no ADC of that depth gives -- the level was inferred from darks
     and flats that never reached the top (flats at a lower current than the projections on a
-    16-bit panel read as 12-bit), and the frame's own range then decides (:func:`adc_top`).
-    Without this every pixel of such a projection was reported saturated."""
+    16-bit panel read as 12-bit), and the frame's own range then decides. Without this every pixel
+    of such a projection was reported saturated.
+
+    Values above ``saturation`` only at the calibration's defects (``defects``, its mask: a stuck
+    pixel at 65535) keep it. No share of the frame's own values is ignored: a 16-bit projection
+    with a small patch above 4095 kept a guessed 4095 and reported the patch saturated."""
     if saturation is None or not raw.size or raw.max() <= saturation:
         return saturation
-    return adc_top(raw)
+    if defects is not None and not np.any((raw > saturation) & (defects == 0)):
+        return saturation
+    top = _covering_top(float(raw.max()))
+    return None if top is None else top & ~((1 << _unused_low_bits([raw])) - 1)
 
 
 def _bar(progress: bool, total, desc: str, unit: str):

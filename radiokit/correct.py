@@ -380,7 +380,7 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
     scale = cal.c if domain == "counts" else 1.0
     saturation = None
     if raw2d.dtype.kind in "ui" and count_saturated:
-        saturation = frame_saturation(cal.thresholds.saturation, raw2d)
+        saturation = frame_saturation(cal.thresholds.saturation, raw2d, cal.mask)
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
         raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)

@@ -366,6 +366,57 @@ def test_a_hot_pixel_above_the_adc_top_does_not_lift_the_saturation_level():
     assert report.saturated.tolist() == [21]  # the 20 clipped and the stuck one
 
 
+def test_the_outlier_share_is_taken_per_stack_not_over_darks_and_flats_together():
+    """Found in review: the share of values allowed above a lower ADC top (ADC_OUTLIER_SHARE) was
+    counted over darks and flats together, so 20 darks let a 16-bit panel's flats pass 4095 in
+    0.4 % of their values and still be called 12-bit: the bright corner masked as saturated. The
+    share is now each stack's own; a stuck pixel stays an outlier of its stack."""
+    rng = np.random.default_rng(21)
+    darks = np.rint(200 + rng.normal(0, 3, (20, 128, 128))).astype(np.uint16)
+    flats = (200 + rng.poisson(3400, (4, 128, 128))).astype(np.uint16)
+    flats[:, :8, :8] += 700  # a brighter corner (heel effect): ~4300 counts in 0.4 % of a flat
+    assert np.count_nonzero(flats > 4095) > 2 * 1e-3 * flats.size
+    assert np.count_nonzero(flats > 4095) < 1e-3 * (darks.size + flats.size)  # what hid it
+    assert adc_top(darks, flats) == 16383  # the smallest top none of the values passes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationWarning)  # no "lower the flat exposure"
+        cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 16383 and not (cal.mask[:8, :8] & PixelFlag.OVER_RESPONDING).any()
+
+
+def test_a_projection_passing_a_guessed_top_in_few_pixels_is_not_reported_saturated():
+    """Found in review: the outlier share reached frame_saturation, so a projection of a 16-bit
+    panel (calibrated 12-bit from flats under 4095) with a small bright patch at 9000 counts kept
+    4095 and reported the patch saturated. A frame's own values above the calibration's top are
+    outliers only where the calibration knows a defect; elsewhere the frame's range decides."""
+    rng = np.random.default_rng(22)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 128, 128))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 128, 128))).astype(np.uint16)
+    cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 4095
+    frame = (100 + rng.poisson(2000, (128, 128))).astype(np.uint16)
+    frame[60:63, 60:63] = 9000  # 9 px of 16384: under the outlier share, above 4095
+    _, report = correct_frames(cal, frame, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [0]
+
+
+def test_a_stuck_pixel_does_not_hide_an_msb_aligned_panels_top():
+    """Found in review: the unused low bits of MSB-aligned frames (``counts << 4``) were counted
+    with every value, so one stuck pixel at 65535 left the top at 65535 and the flats' pixels
+    clipped at 65520 unflagged. The low bits now ignore the same share of values as the top."""
+    rng = np.random.default_rng(23)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 64, 64))).astype(np.uint16) << 4
+    flats = (100 + rng.poisson(3000, (4, 64, 64))).astype(np.uint16)
+    flats[:, :8, :8] = 4095  # 64 saturated pixels
+    flats = flats << 4
+    flats[1, 30, 30] = 65535  # a stuck pixel in one flat
+    assert adc_top(darks, flats) == 65520
+    with pytest.warns(CalibrationWarning, match="saturated"):
+        cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 65520
+    assert np.count_nonzero(cal.mask[:8, :8] & PixelFlag.OVER_RESPONDING) == 64
+
+
 def test_flats_unexposed_outside_a_collimated_field_are_refused_naming_the_field():
     """Found by trying other labs' files: a collimator shading a 16-px border of a 256-px panel
     (24 % of it) was refused as darks and flats "not of one panel set-up (beam blocked for the

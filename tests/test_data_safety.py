@@ -10,6 +10,7 @@ terminal's encoding, a faked ``shutil.disk_usage``), else its ``main`` in this p
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -26,7 +27,7 @@ import pytest
 import tifffile
 from conftest import one_line_error, run_cli, synthetic
 
-from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, read
+from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path, read
 
 ROOT = Path(__file__).resolve().parents[1]
 ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
@@ -159,6 +160,25 @@ def test_an_output_replaced_with_overwrite_keeps_its_mode(cmd, experiment, image
     finally:
         os.umask(old)
     assert stat.S_IMODE(out.stat().st_mode) == mode
+
+
+def test_an_overwrite_is_kept_where_the_filesystem_refuses_chmod(tmp_path, monkeypatch):
+    """Found in review: keeping a replaced output's mode was not best-effort as keeping its owner
+    is, so on a filesystem whose chmod fails with EPERM (vfat, some FUSE and SMB mounts) a
+    finished --overwrite output was thrown away. A fake chmod stands for such a mount: as root on
+    this filesystem, chmod cannot be made to fail."""
+    out = tmp_path / "out.txt"
+    out.write_text("old")
+
+    def refuse(path, *args, **kwargs):
+        raise PermissionError(errno.EPERM, "Operation not permitted", str(path))
+
+    monkeypatch.setattr(os, "chmod", refuse)
+    with atomic_path(out, overwrite=True) as tmp:
+        tmp.write_text("new")
+    monkeypatch.undo()
+    assert out.read_text() == "new"
+    no_temporaries(tmp_path)
 
 
 @pytest.mark.parametrize("umask", [0o077, 0o002])

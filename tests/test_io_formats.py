@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import threading
+import warnings
 
 import h5py
 import numpy as np
@@ -1228,6 +1229,43 @@ def test_hdf5_cf_fill_value_beyond_the_stored_type_marks_no_pixel(tmp_path):
     assert np.isposinf(data[0, 1, 1]) and (data[np.isfinite(data)] == 7).sum() == 15
 
 
+def test_hdf5_cf_packed_white_is_zero_counts_are_inverted_before_unpacking(tmp_path):
+    """Found in review: with CF packing on a white-is-zero image the unpacked value was inverted
+    (65535 - 0.5) instead of the stored counts ((65535 - 500) * 0.001 = 65.035). The counts are
+    inverted as stored, then unpacked; a ``_FillValue`` code is one of the stored values."""
+    stored = np.full((2, 8, 8), 500, np.uint16)
+    stored[1, 3, 4] = 0  # the fill code
+    path = tmp_path / "cfwiz.h5"
+    _hdf5_image(path, "x", stored, 1)
+    with h5py.File(path, "a") as f:
+        f["x"].attrs["scale_factor"] = np.float32(0.001)
+        f["x"].attrs["_FillValue"] = np.uint16(0)
+    data = _both_ways(path, dataset="/x")
+    expect = (np.iinfo(np.uint16).max - stored.astype(np.float64)) * 0.001
+    missing = stored == 0
+    assert np.isnan(data[missing]).all() and np.isfinite(data[~missing]).all()
+    np.testing.assert_allclose(data[~missing], expect[~missing], rtol=2 * np.finfo(np.float32).eps)
+
+
+def test_hdf5_cf_packing_past_the_unpacked_types_range_is_one_line_naming_the_file(tmp_path):
+    """Found in review: a scale_factor of 1e308 gave two RuntimeWarning overflow lines that named
+    no file, and frames of inf. Now one error naming the file and the packing; a fill code that
+    would overflow is not counted (it reads as NaN)."""
+    path = tmp_path / "huge.h5"
+    with h5py.File(path, "w") as f:
+        ds = f.create_dataset("x", data=np.arange(128, dtype=np.int16).reshape(2, 8, 8))
+        ds.attrs["scale_factor"], ds.attrs["add_offset"] = 1e308, 1e308
+        fine = f.create_dataset("fill", data=np.full((1, 4, 4), 3.0, np.float32))
+        fine[0, 1, 1] = 3e38
+        fine.attrs["scale_factor"], fine.attrs["_FillValue"] = np.float32(2.0), np.float32(3e38)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(FormatError, match=r"huge\.h5.*scale_factor 1e\+308 .*float64's range"):
+            read(path, dataset="/x")
+        data = read(path, dataset="/fill").data
+    assert np.isnan(data[0, 1, 1]) and (data[np.isfinite(data)] == 6).sum() == 15
+
+
 @pytest.mark.parametrize("scale", [0.0, np.nan, "0.001"])
 def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
     path = tmp_path / "cf.h5"
@@ -1301,6 +1339,17 @@ def test_a_dxchange_file_is_corrected_from_its_own_darks_and_flats(tmp_path):
     assert out.shape == (2, 40, 48)
     # 5 counts of noise on 3000 x T: a frame's -ln errs by about 5 / (3000 T) <= 0.008 rms
     np.testing.assert_allclose(out.mean(axis=(0, 1)), -np.log(transmission[0]), atol=0.005)
+
+
+def test_a_dxchange_dataset_of_other_dimensions_names_the_ones_accepted(tmp_path):
+    """Found in review: a 4-D data_dark was refused as "expected 2 dimension(s)", though a 3-D
+    stack is read: the message now names both."""
+    path = tmp_path / "dx.h5"
+    with h5py.File(path, "w") as f:
+        f["exchange/data"] = np.ones((2, 8, 8), np.uint16)
+        f["exchange/data_dark"] = np.ones((1, 2, 8, 8), np.uint16)
+    with pytest.raises(FormatError, match=r"dx\.h5.*data_dark has shape \(1, 2, 8, 8\); expected 2 or 3 dimensions"):
+        read(path)
 
 
 def test_dxchange_of_projections_only_or_of_mismatched_frames(tmp_path):

@@ -393,7 +393,10 @@ def _keep_mode(tmp: Path, path: Path) -> None:
         st = path.stat()
     except FileNotFoundError:
         return
-    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    try:
+        os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    except OSError:  # vfat, some FUSE and SMB mounts refuse it (EPERM): the output matters more
+        pass
     for uid in (st.st_uid, -1):  # another's file keeps its owner only for root
         try:
             os.chown(tmp, uid, st.st_gid)

@@ -710,11 +710,22 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=
             path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
         )
     if ds.ndim not in ndims:
-        raise FormatError(path, f"/{name} has shape {ds.shape}; expected {ndims[0]} dimension(s)")
+        raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
     if written:  # else its caller checks it, knowing what may be unwritten (read_experiment_meta)
         check_written(path, ds)
     return ds
+
+
+def _dimensions(ndims) -> str:
+    """``ndims`` in words: "1 dimension", "2 or 3 dimensions", "0 to 32 dimensions". Why: a 4-D
+    stack was refused as "expected 2 dimension(s)" where 3-D ones are read."""
+    n = sorted(ndims)
+    if len(n) == 1:
+        return f"{n[0]} dimension{'' if n[0] == 1 else 's'}"
+    if len(n) > 2 and n == list(range(n[0], n[-1] + 1)):
+        return f"{n[0]} to {n[-1]} dimensions"
+    return f"{', '.join(map(str, n[:-1]))} or {n[-1]} dimensions"
 
 
 def check_filters(path, ds) -> None:

@@ -957,21 +957,31 @@ class FrameSource:
         )
 
     def _read_hdf5(self, i):
+        self._check_hdf5_written(i)
+        return self._hdf5_frame(self._ds[()] if self._ds.ndim == 2 else self._ds[i])
+
+    def _check_hdf5_written(self, i) -> None:
+        """Refuse frame ``i`` if its storage was never written, unless it is labelled INVALID:
+        such a frame may be unwritten (ExperimentWriter counts it before its pixels, and a crash
+        in between leaves it so), its fill value is what its label says, no data."""
         keys = self.meta.get("image_key")
-        # a frame labelled INVALID may be unwritten (ExperimentWriter counts it before its pixels,
-        # and a crash in between leaves it so): its fill value is what its label says, no data
         invalid = keys is not None and i < len(keys) and keys[i] == ImageKey.INVALID
         if isinstance(self._ds, h5py.Dataset) and not invalid:
             check_frame_written(self.path, self._ds, i)
-        frame = self._ds[()] if self._ds.ndim == 2 else self._ds[i]
+
+    def _hdf5_frame(self, frame) -> np.ndarray:
+        """A frame as read from its values as the dataset stores them: white-is-zero counts
+        inverted, CF-unpacked (fill codes NaN), MATLAB's transposed back, in the read type. Both
+        :meth:`_read_hdf5` and :meth:`_read_hdf5_blocks` take each frame through it: their own
+        copies of these steps drifted apart once. ``frame`` itself when nothing changes it."""
+        stored = frame
+        if self._invert is not None:  # the stored counts: packing scales the inverted ones, not its float
+            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
         if self._packing is not None:
-            frame = _unpack(frame, self._packing)
+            frame = _unpack(frame, self._packing, stored)
         if self._transposed:
             frame = np.ascontiguousarray(frame.T)
-        frame = frame.astype(self.dtype, copy=False)
-        if self._invert is not None:
-            frame = ~frame if frame.dtype.kind == "b" else self._invert - frame
-        return frame
+        return frame.astype(self.dtype, copy=False)
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self):
@@ -989,9 +999,13 @@ class FrameSource:
             raise
         except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
             raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
+        self._check_bits(frame)
+        return frame
+
+    def _check_bits(self, frame) -> None:
+        """The bit-depth warning (:func:`check_bit_depth`), once per open file, not once per frame."""
         if not self._bits_warned:
             self._bits_warned = check_bit_depth(self.path, frame, self.bits)
-        return frame
 
     def __iter__(self):
         for i in range(self.n):
@@ -1032,22 +1046,20 @@ class FrameSource:
             return 0
         if self._packing is not None:  # its fill codes become NaN frame by frame (_unpack)
             return 0
-        keys = self.meta.get("image_key")
-        for i in range(self.n):  # as _read_hdf5 checks each
-            if keys is None or i >= len(keys) or keys[i] != ImageKey.INVALID:
-                check_frame_written(self.path, ds, i)
+        for i in range(self.n):
+            self._check_hdf5_written(i)
         for a in range(0, self.n, ds.chunks[0]):
             b = min(a + ds.chunks[0], self.n)
             try:
                 ds.read_direct(out, np.s_[a:b], np.s_[a:b])
             except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
                 raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
-        for i in range(self.n if self._invert is not None else 0):
-            out[i] = ~out[i] if out.dtype.kind == "b" else self._invert - out[i]
-        for i in range(self.n if not self._bits_warned else 0):
-            if check_bit_depth(self.path, out[i], self.bits):
-                self._bits_warned = True
-                break
+        for i in range(self.n):
+            stored = out[i]
+            frame = self._hdf5_frame(stored)
+            if frame is not stored:  # no copy of a frame onto itself
+                out[i] = frame
+            self._check_bits(out[i])
         return self.n
 
     def close(self):
@@ -1328,15 +1340,30 @@ def _codes(attrs, names) -> np.ndarray:
     return np.concatenate(found) if found else np.empty(0)
 
 
-def _unpack(frame, packing) -> np.ndarray:
-    """A CF-packed frame's values (:func:`_cf_packing`)."""
-    dtype = packing["dtype"]
-    out = frame.astype(dtype) * dtype.type(packing["scale_factor"]) + dtype.type(packing["add_offset"])
+def _unpack(frame, packing, stored) -> np.ndarray:
+    """A CF-packed frame's values (:func:`_cf_packing`): ``frame`` unpacked, NaN where ``stored``
+    (its values as the file holds them, before a white-is-zero inversion) holds a fill code.
+    Values the packing takes past the unpacked type's range are refused (ValueError): a scale of
+    1e308 gave frames of inf and two RuntimeWarning lines naming no file."""
+    dtype, scale, offset = packing["dtype"], packing["scale_factor"], packing["add_offset"]
+    with np.errstate(over="ignore", invalid="ignore"):  # judged below, the fill codes aside
+        out = frame.astype(dtype) * dtype.type(scale) + dtype.type(offset)
+    missing = None
     if packing["missing"].size:  # float codes compared as stored (a float64 attribute on float32 data)
         with np.errstate(over="ignore"):  # a code beyond the stored type's range marks no pixel it can hold
-            codes = packing["missing"].astype(frame.dtype) if frame.dtype.kind == "f" else packing["missing"]
+            codes = packing["missing"].astype(stored.dtype) if stored.dtype.kind == "f" else packing["missing"]
         codes = codes[np.isfinite(codes)] if codes.dtype.kind == "f" else codes
-        out[np.isin(frame, codes)] = np.nan
+        missing = np.isin(stored, codes)
+    past = ~np.isfinite(out)
+    if past.any():  # only then the costlier test: the pixels stored finite, fill codes aside
+        past &= np.isfinite(frame) if missing is None else np.isfinite(frame) & ~missing
+        if past.any():
+            raise ValueError(
+                f"scale_factor {scale:g} and add_offset {offset:g} take {int(past.sum())} stored value(s) past "
+                f"{dtype}'s range: not a CF packing of these values"
+            )
+    if missing is not None:
+        out[missing] = np.nan
     return out
 
 
