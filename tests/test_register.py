@@ -2600,6 +2600,44 @@ def test_the_checks_of_a_binned_pair_judge_a_one_row_mask():
     assert np.isfinite(reg.quality.ncc_after)
 
 
+def _textured_pair(n, amplitude=1.5, seed=3):
+    """``(fixed, moving, truth)``: texture over the whole frame (to its last row and column)."""
+    rng = np.random.default_rng(seed)
+    moving = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.5).astype(np.float32)
+    truth = _smooth_field(n, amplitude, seed + 1)
+    fixed = warp(moving, truth, order=3) + 0.01 * rng.standard_normal((n, n)).astype(np.float32)
+    return fixed, moving + 0.01 * rng.standard_normal((n, n)).astype(np.float32), truth
+
+
+@pytest.mark.parametrize("masked", [np.s_[256, 40:216], np.s_[40:216, 256]])
+def test_a_mask_on_the_last_row_of_an_odd_frame_registers_binned(masked):
+    """``bin_pixels`` bins a 257 px pair by 2, and the binning crops the frame to a multiple of 2:
+    a mask on its last row or column was cropped away before the thin-mask rule saw it, so no
+    bin was left and rc divided by its zero pixel count (ZeroDivisionError). The cropped margin
+    counts in the last bin: the motion along the textured line is observed, and a result the
+    checks trust is within their half pixel there."""
+    n = 257
+    fixed, moving, truth = _textured_pair(n)
+    mask = np.zeros(fixed.shape, bool)
+    mask[masked] = True
+    reg = register(fixed, moving, mask=mask, preset="default", bin_pixels=n * n // 3)
+    assert reg.options["binned"] == 2
+    assert reg.quality.observed_fraction > 0.5
+    assert not reg.quality.ok or _epe(reg.displacement, truth, mask)[0] < 0.5, reg.quality.reason
+
+
+def test_the_checks_of_a_binned_odd_frame_judge_a_mask_on_its_last_row():
+    """Over ~0.4 Mpx the checks bin the pair by 2; a 641 px frame loses its last row to the
+    crop, and a mask there was no pixel of theirs (0 % observed, the motion along a textured
+    row flagged unobservable). The cropped margin counts in the last bin."""
+    fixed, moving, _ = _textured_pair(641)
+    mask = np.zeros(fixed.shape, bool)
+    mask[640, 100:500] = True
+    reg = register(fixed, moving, mask=mask, preset="fast")
+    assert reg.quality.observed_fraction > 0.5
+    assert np.isfinite(reg.quality.ncc_after)
+
+
 @pytest.mark.parametrize("method", ["rc", "dis"])
 def test_structure_outside_the_mask_does_not_observe_the_motion_inside_it(method):
     """``mask`` limits the similarity to its pixels, but the confidence map took the structure

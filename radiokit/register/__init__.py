@@ -448,10 +448,24 @@ def _bin(a, k):
     return cv2.resize(a[: r * k, : c * k], (c, r), interpolation=cv2.INTER_AREA)  # exact k x k means
 
 
+def _bin_mask(mask, k):
+    """``mask`` binned by ``k`` to :func:`_bin`'s shape by
+    :func:`~radiokit.register._common.binned_mask`'s rule, the rows and columns :func:`_bin`
+    crops folded into the last bin: a mask only there (the last row of an odd-sized frame) was
+    gone before the rule saw it, and no bin was left."""
+    m = np.asarray(mask, np.float32)
+    if k == 1:
+        return m > 0.5
+    starts = [np.arange(n // k) * k for n in m.shape]
+    sums = np.add.reduceat(np.add.reduceat(m, starts[0], axis=0), starts[1], axis=1)  # exact: counts
+    sizes = [np.diff(s, append=n) for s, n in zip(starts, m.shape, strict=True)]
+    return binned_mask(sums / np.outer(*sizes))
+
+
 def _bin_pair(f, m, mask, k):
-    """``(fixed, moving, mask)`` area-averaged by ``k`` as the checks see them (a mask pixel is
-    kept where over half its bin was: :func:`~radiokit.register._common.binned_mask`)."""
-    maskb = None if mask is None else binned_mask(_bin(np.asarray(mask, np.float32), k))
+    """``(fixed, moving, mask)`` area-averaged by ``k`` as the checks see them (the mask by
+    :func:`_bin_mask`)."""
+    maskb = None if mask is None else _bin_mask(mask, k)
     return _bin(f, k), _bin(m, k), maskb
 
 

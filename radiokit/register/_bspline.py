@@ -1153,7 +1153,7 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
     """:func:`_bspline_register` of the pair area-averaged by ``k`` (``how``: its similarity,
     preset and callback; ``bin_pixels`` off), the field upsampled to ``fixed``'s shape;
     ``info["binned"]`` is ``k``."""
-    from radiokit.register import _bin
+    from radiokit.register import _bin, _bin_mask
 
     shape = (fixed.shape[0] // k, fixed.shape[1] // k)
     if min(shape) < 8:  # register()'s own least size: OpenCV asserted on an empty pair
@@ -1161,7 +1161,7 @@ def _register_binned(fixed, moving, mask, k, how, overrides):
             f"bin_pixels={overrides.get('bin_pixels')}: bins the {fixed.shape} pair by {k} to {shape}, "
             "too small to register (8 px a side at least)"
         )
-    small = None if mask is None else binned_mask(_bin(mask.astype(np.float32), k))
+    small = None if mask is None else _bin_mask(mask, k)
     d, info = _bspline_register(_bin(fixed, k), _bin(moving, k), small, **how, **dict(overrides, bin_pixels=0))
     info["binned"] = k
     return _upsample_field(d, k, fixed.shape), info
