@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import re
 import tempfile
 from pathlib import Path
 
@@ -622,22 +623,44 @@ def _elastix(
     return d, {"iterations": int(iterations) * n_res}
 
 
+#: What elastix's log says when its eroded fixed mask left no pixel to sample: the ASGD
+#: optimizer's (the default) and the sampler's under the others (RegularStepGradientDescent,
+#: QuasiNewtonLBFGS, ...)
+_MASK_EMPTIED = ("No valid voxels", "Could not find enough image samples")
+
+
 def _elastix_transform(itk, F, M, p, kw, tmp):
     """elastix's transform parameters for the map ``p`` (``kw``: its fixed mask, if any), logging
     into ``tmp``. elastix erodes a fixed mask at each resolution (``ErodeMask``, on by default),
-    and a ROI a few pixels across vanished: its sampler found "No valid voxels" and itk raised
-    "Internal elastix error: See elastix log" (a traceback of `radiokit register --roi`). Such a
-    mask is used again uneroded; a map that sets ``ErodeMask`` itself keeps it, and its error."""
+    and a ROI a few pixels across vanished: its sampler found no pixel (:data:`_MASK_EMPTIED`)
+    and itk raised "Internal elastix error: See elastix log" (a traceback of `radiokit register
+    --roi`). Such a mask is used once more uneroded; a map that sets ``ErodeMask`` itself keeps
+    it. A failure is a ValueError with the log's description (the log goes with ``tmp``)."""
+    try:
+        return _elastix_run(itk, F, M, p, kw, tmp)
+    except RuntimeError as exc:
+        why = _elastix_description(tmp)
+        if "fixed_mask" not in kw or "ErodeMask" in p or not any(s in why for s in _MASK_EMPTIED):
+            raise ValueError(f"elastix failed: {why}") from exc
+    p["ErodeMask"] = ["false"]
+    try:
+        return _elastix_run(itk, F, M, p, kw, tmp)
+    except RuntimeError as exc:
+        raise ValueError(f"elastix failed with its mask uneroded: {_elastix_description(tmp)}") from exc
+
+
+def _elastix_run(itk, F, M, p, kw, tmp):
     po = itk.ParameterObject.New()
     po.AddParameterMap(p)
-    try:
-        return itk.elastix_registration_method(
-            F, M, parameter_object=po, log_to_console=False, log_to_file=True, output_directory=tmp, **kw
-        )[1]
-    except RuntimeError:
-        log = Path(tmp, "elastix.log")
-        vanished = log.is_file() and "No valid voxels" in log.read_text(errors="replace")
-        if "fixed_mask" not in kw or "ErodeMask" in p or not vanished:
-            raise
-    p["ErodeMask"] = ["false"]
-    return _elastix_transform(itk, F, M, p, kw, tmp)
+    return itk.elastix_registration_method(
+        F, M, parameter_object=po, log_to_console=False, log_to_file=True, output_directory=tmp, **kw
+    )[1]
+
+
+def _elastix_description(tmp) -> str:
+    """The last ``Description:`` of elastix's log in ``tmp`` (itk's own error only says "See
+    elastix log"), without itk's "ITK ERROR: Class(0x...):" prefix."""
+    log = Path(tmp, "elastix.log")
+    lines = log.read_text(errors="replace").splitlines() if log.is_file() else []
+    found = [x.split("Description:", 1)[1] for x in lines if "Description:" in x]
+    return re.sub(r"^\s*ITK ERROR: \w+\(0x[0-9a-f]+\):", "", found[-1]).strip() if found else "see its log"
