@@ -1030,6 +1030,24 @@ def test_auto_judges_the_texture_inside_the_callers_mask():
     assert c.ratio < TEXTURE_LOW and c.interior > 0 and c.preset == "silent", c
 
 
+def test_auto_takes_a_mask_as_the_checks_bin_it():
+    """``auto`` judges the texture inside the caller's mask as ``register``'s checks bin it
+    (:func:`~radiokit.register._common.binned_mask`), but kept its own older rule (bins over half
+    masked): a mask every other row of a 640 px frame (binned by 2 there) left it no object,
+    no texture (ratio 0), while the checks took the rows' region. The same region masked whole
+    is read the same."""
+    from radiokit.register._auto import interior_texture_to_noise
+
+    fixed, _, _, _ = _pair(640)
+    region = np.zeros(fixed.shape, bool)
+    region[100:540, 120:520] = True
+    striped = region.copy()
+    striped[1::2] = False
+    whole = interior_texture_to_noise(fixed, mask=region)
+    assert whole[0] > 0 and whole[1] > 0
+    assert interior_texture_to_noise(fixed, mask=striped) == whole
+
+
 def test_auto_checks_the_pair_once_and_each_run_as_alone(monkeypatch):
     """``auto`` registers one pair two or three times; what its checks measure on the pair alone
     (the binned pair, the confidence map, the fixed image's part of the residual tests:

@@ -210,7 +210,7 @@ def interior_texture_to_noise(image, mask=None, frame=False) -> tuple[float, flo
     ``mask`` (bool, the image's shape; ``register``'s ``mask=``): the object only where it holds,
     as ``register``'s checks take it. ``frame``: the whole frame is the object (see
     :func:`choose`)."""
-    from radiokit.register import _assess_binning, _bin, _erode
+    from radiokit.register import _assess_binning, _bin, _bin_mask, _erode
     from radiokit.register import _confidence as C
 
     f = np.asarray(image, np.float32)
@@ -218,10 +218,10 @@ def interior_texture_to_noise(image, mask=None, frame=False) -> tuple[float, flo
     fb = _bin(f, binning)
     sig = C.noise_map(fb, _NOISE_WINDOW)
     obj = np.ones(fb.shape, bool) if frame else C._object(fb, float(np.median(sig)))
-    # the caller's object, as register()'s checks take it (a mask pixel kept where over half its
-    # bin was): a textured structure the mask leaves out is not the body's texture
+    # the caller's object, binned as register()'s checks bin it: a textured structure the mask
+    # leaves out is not the body's texture
     if mask is not None:
-        obj &= _bin(np.asarray(mask, np.float32), binning) > 0.5
+        obj &= _bin_mask(mask, binning)
     inner = _erode(obj, _ERODE)
     if not inner.any():
         return 0.0, 0.0, float("inf")
