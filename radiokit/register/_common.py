@@ -27,10 +27,26 @@ def warp(image, displacement, order=1, cval=None) -> np.ndarray:
 
 
 def binned_mask(fraction) -> np.ndarray:
-    """A bool mask binned, from ``fraction``, the masked share of each bin (the mask area-averaged):
-    the bins over half masked, or, when no bin is (a mask of one row, one column or a few pixels,
-    which ``register`` takes), the bins it touches. With no bin left a coarse level scored nothing:
-    rc divided by its zero pixel count (ZeroDivisionError), and the checks judged an empty object."""
+    """A bool mask at a coarser grid, from the share of each bin it covered.
+
+    Parameters
+    ----------
+    fraction : ndarray
+        The mask area-averaged to the coarse grid: per bin, the share of its pixels masked
+        (0 to 1).
+
+    Returns
+    -------
+    ndarray of bool
+        The bins over half masked, or, when no bin is, every bin the mask touches.
+
+    Notes
+    -----
+    Over half keeps a broad mask's edge where it is. A mask of one row, one column or a few
+    pixels (``register`` takes them, ``--roi``) covers no bin by half; without the bins it
+    touches a coarse level would have no pixel to score (rc's mean over none) and the checks
+    no object to judge.
+    """
     kept = fraction > 0.5
     return kept if kept.any() else fraction > 0
 
