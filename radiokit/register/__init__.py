@@ -456,6 +456,8 @@ def _bin_mask(mask, k):
     m = np.asarray(mask, np.float32)
     if k == 1:
         return m > 0.5
+    if not (m.shape[0] % k or m.shape[1] % k):  # nothing cropped: _bin's means, 5x faster at 2240
+        return binned_mask(_bin(m, k))
     starts = [np.arange(n // k) * k for n in m.shape]
     sums = np.add.reduceat(np.add.reduceat(m, starts[0], axis=0), starts[1], axis=1)  # exact: counts
     sizes = [np.diff(s, append=n) for s, n in zip(starts, m.shape, strict=True)]
