@@ -1307,6 +1307,9 @@ def _cf_packing(path, data) -> dict | None:
     stored, a packed transmission of 0.5 was -5000: a silent wrong value in every pixel."""
     attrs = data.attrs
     codes = [k for k in ("_FillValue", "missing_value") if k in attrs]
+    fill = np.asarray(attrs.get("_FillValue", 0))
+    if fill.size != 1:  # CF: one value (missing_value alone may be a vector); 8000 made every pixel NaN
+        raise FormatError(path, f"{data.name}@_FillValue holds {fill.size} values: CF's fill value is one value")
     if "scale_factor" not in attrs and "add_offset" not in attrs:
         if not codes or data.dtype.kind != "f":  # an integer without packing has no NaN to mark with
             return None
@@ -1322,8 +1325,16 @@ def _cf_packing(path, data) -> dict | None:
         if value.size != 1 or value.dtype.kind not in "iuf" or not np.isfinite(value).all():
             raise FormatError(path, f"{data.name}@{name} is {value.tolist()!r}: CF packing needs one finite number")
         found[name] = value.reshape(())
-    if found["scale_factor"] == 0:
+    scale = found["scale_factor"]
+    if scale == 0:
         raise FormatError(path, f"{data.name}@scale_factor is 0: every pixel would read as add_offset")
+    if scale.dtype.kind == "f" and abs(scale) < np.finfo(scale.dtype).tiny:
+        # a subnormal keeps a few significant bits (float32's 1e-45 is 1.4e-45, one bit): no packing
+        raise FormatError(
+            path,
+            f"{data.name}@scale_factor is {scale.item():g}, subnormal in {scale.dtype} (below "
+            f"{np.finfo(scale.dtype).tiny:g}): not a CF packing, every pixel would lose its precision",
+        )
     return {
         "scale_factor": found["scale_factor"].item(),
         "add_offset": found["add_offset"].item(),
