@@ -1,9 +1,10 @@
 """Stop signals as exceptions that say which signal, the exit status they give, and a stop Python
 dropped in a finalizer delivered again.
 
-Every command unwinds on Ctrl-C, SIGTERM and SIGHUP as on Ctrl-C (its outputs are removed, not
-left half-written) and exits as a shell reports a command a signal ended: 128 + the signal's
-number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP). ``acquisition.guardian.StopSignal`` is an
+Every command unwinds on Ctrl-C, SIGTERM, SIGHUP and Ctrl-\\ (SIGQUIT) as on Ctrl-C
+(:data:`STOP_SIGNALS`: its outputs are removed, not left half-written) and exits as a shell reports
+a command a signal ended: 128 + the signal's number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 131
+SIGQUIT). ``acquisition.guardian.StopSignal`` is an
 :class:`Interrupted` too.
 
 Python drops an exception raised while a finalizer runs ("Exception ignored in: ...": h5py's
@@ -23,7 +24,23 @@ import sys
 import threading
 from collections.abc import Callable
 
-__all__ = ["Interrupted", "exit_status", "redeliver", "raise_stop", "lost_stops_redelivered", "deferred"]
+__all__ = [
+    "STOP_SIGNALS",
+    "Interrupted",
+    "exit_status",
+    "redeliver",
+    "raise_stop",
+    "lost_stops_redelivered",
+    "deferred",
+]
+
+#: The signals every command stops on as on Ctrl-C. SIGQUIT (Ctrl-\) too: the terminal sends it to
+#: the foreground group as it sends Ctrl-C, and its default action (a core dump) ended ``acquire
+#: source on`` in its ramp as ``kill -9`` does, X-rays left on, and other commands without their
+#: clean-up. A stop the process can handle is handled; a core dump is kill -9's business.
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, name)
+)
 
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.

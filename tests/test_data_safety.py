@@ -480,9 +480,9 @@ def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
     assert not out.exists() and sha(exp) == inputs
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT, signal.SIGQUIT])
 def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
-    """A catchable signal (a closed terminal, ``kill``, Ctrl-C) unwinds: the previous output
+    """A catchable signal (a closed terminal, ``kill``, Ctrl-C, Ctrl-\\) unwinds: the previous output
     stays, and no temporary file is left either. (Python drops an exception raised while a
     finalizer runs; a signal landing there is lost and the run completes: then the output is the
     new complete one. Both are whole outputs, never a mix.)"""
@@ -1005,10 +1005,12 @@ def test_names_that_are_not_utf8_print_under_a_strict_utf8_terminal(tmp_path):
     one_line_error(run("correct", exp, "-q", "--cal", out, "-o", tif, env=strict), "o\\xfe.tif", "--overwrite")
 
 
-def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_path):
-    """Ctrl-C goes to the terminal's whole process group (SIGHUP too, when it closes): the Dask
-    workers died mid-file, each printing tracebacks and leaving its temporary results folder.
-    Now the command stops them: one line, exit code 130, no temporary, no process of the run left."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGQUIT])
+def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_path, sig):
+    """Ctrl-C goes to the terminal's whole process group (Ctrl-\\ and SIGHUP too): the Dask
+    workers died mid-file, each printing tracebacks (SIGQUIT: dumping core) and leaving its
+    temporary results folder. Now the command stops them: one line, exit code 128 + the signal's
+    number, no temporary, no process of the run left."""
     a, b = (synthetic(tmp_path / name, shape=(384, 384), n_per_step=2, noise=30.0) for name in ("a.h5", "b.h5"))
     out = tmp_path / "many"
     proc = _process_from_a_terminal(a, b, out, workers=4)
@@ -1020,12 +1022,12 @@ def test_process_on_dask_interrupted_leaves_no_temporaries_and_no_workers(tmp_pa
             ["pgrep", "-P", str(proc.pid), "-f", "multiprocessing"], capture_output=True, text=True
         )
         assert list(out.glob(".*.tmp-*")), "the run ended before its temporary folders were seen"
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the whole group, as the terminal sends it
+        os.killpg(proc.pid, sig)  # Ctrl-C or Ctrl-\: the whole group, as the terminal sends it
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + sig, err
     assert err.strip() == "radiokit process: interrupted; no partial output was left", err
     # the workers: two (one per file, though four were asked), and none outlives the command
     assert len(workers.stdout.split()) == 2 + 1, workers.stdout  # and multiprocessing's resource tracker
