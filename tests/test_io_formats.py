@@ -633,7 +633,21 @@ def test_tiff_12_bit_pages_packed_and_in_words_are_refused(tmp_path):
         tif.write(counts[0], photometric="minisblack", bitspersample=12)  # packed
         tif.write(counts[1], photometric="minisblack")
     _set_short_tag(path, 258, 12, page=1)  # words saying 12 bits
-    with pytest.warns(UserWarning, match="16-bit word"), pytest.raises(FormatError, match="not one stack"):
+    # one error, not "read as 16-bit words" first (said before the stack was refused, review s33)
+    with warnings.catch_warnings(), pytest.raises(FormatError, match="not one stack"):
+        warnings.simplefilter("error")
+        read(path)
+
+
+def test_tiff_stack_whose_first_page_claims_fewer_bits_is_one_error(tmp_path):
+    """A 16-bit stack whose page 0 BitsPerSample byte was hit (16 -> 4): page 0 alone reads as
+    16-bit words, but pages 1 and 2 say 16 bits: the stack is refused in one error. It warned
+    "read as 16-bit words" first, of a file it then refused."""
+    path = tmp_path / "hit.tif"
+    tifffile.imwrite(path, _frames(3), photometric="minisblack")
+    _set_short_tag(path, 258, 4, page=0)
+    with warnings.catch_warnings(), pytest.raises(FormatError, match=r"hit\.tif: TIFF frame 1 .*not one stack"):
+        warnings.simplefilter("error")
         read(path)
 
 

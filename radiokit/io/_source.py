@@ -329,8 +329,7 @@ class FrameSource:
                 self.path,
                 f"stack of {self.n} images after one IFD holding packed {first.bitspersample}-bit pixels: not read",
             )
-        # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
-        self.bits = int(first.bitspersample) if self._words else None
+        self.bits = self._words_read(first)
         self._stored_shape = self.frame_shape
         self._invert = self._tiff_inversion(first)
         self._line = self._imagej_calibration(first)
@@ -616,6 +615,22 @@ class FrameSource:
             )
         self._words = words
 
+    def _words_read(self, first) -> int | None:
+        """The BitsPerSample of pages read as whole words (else None), said once every page has
+        passed the checks: said as page 0 was checked, a corrupt stack (its BitsPerSample byte
+        hit) gave this warning and then the error."""
+        if not self._words:
+            return None
+        bits, word = int(first.bitspersample), 8 * self._words
+        warnings.warn(
+            f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {word}-bit word per pixel: "
+            f"read as {word}-bit words",
+            UserWarning,
+            stacklevel=5,  # the caller of read() / open_frames()
+        )
+        # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
+        return bits
+
     def _decoded_bytes(self, page, rows, cols) -> int:
         """The length ``page``'s first compressed strip decodes to, at most one more than 16-bit
         words would fill (the decoder allocates no more: a bomb stops there)."""
@@ -651,13 +666,6 @@ class FrameSource:
         if word == 0:
             return 0
         if word and page.fillorder == 1 and page.samplesperpixel == 1:
-            if not self._words:
-                warnings.warn(
-                    f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {8 * word}-bit word "
-                    f"per pixel: read as {8 * word}-bit words",
-                    UserWarning,
-                    stacklevel=7,  # the caller of read() / open_frames(),
-                )
             return word
         raise FormatError(
             self.path,
