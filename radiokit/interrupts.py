@@ -31,6 +31,7 @@ __all__ = [
     "redeliver",
     "raise_stop",
     "lost_stops_redelivered",
+    "settle",
     "deferred",
 ]
 
@@ -184,11 +185,26 @@ def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | Non
         raise_stop(stop(), error)
 
 
+#: the pending deliveries of each :func:`lost_stops_redelivered` block now running (:func:`settle`)
+_PENDING: list[list[_Redelivery]] = []
+
+
+def settle() -> None:
+    """Raise now a stop lost in a finalizer whose delivery is still waiting for its timer (an
+    :class:`Interrupted`); nothing if none is. Called before an output is renamed into place:
+    on a loaded machine the timer ran after `correct` had committed its output, and the command
+    then said "interrupted; no partial output was left" beside it. The stop came first."""
+    waiting = [delivery.signum for pending in _PENDING for delivery in pending if delivery.cancel()]
+    if waiting:
+        raise Interrupted(waiting[0])
+
+
 def lost_stops_redelivered():
     """While the block runs, a stop (a ``KeyboardInterrupt``) Python dropped in a finalizer is
     delivered again (:func:`redeliver`); any other dropped exception goes to the hook as before.
     A stop still waiting for its timer when the block ends is raised as it leaves (the command
-    finished meanwhile: the stop must not reach the caller after the command's own handling)."""
+    finished meanwhile: the stop must not reach the caller after the command's own handling);
+    :func:`settle` raises it sooner."""
     before, pending = sys.unraisablehook, []
 
     def hook(unraisable):
@@ -200,12 +216,14 @@ def lost_stops_redelivered():
 
     def undo():
         sys.unraisablehook = before
+        _PENDING[:] = [other for other in _PENDING if other is not pending]  # this block's, not an equal one
 
     def stop():
         waiting = [delivery.signum for delivery in pending if delivery.cancel()]
         return Interrupted(waiting[0]) if waiting else None
 
     sys.unraisablehook = hook
+    _PENDING.append(pending)
     return _then_raise(undo, stop)
 
 
