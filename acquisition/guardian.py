@@ -3,8 +3,8 @@
 A protocol that leaves X-rays on because its process died is the one failure the lab cannot
 accept. Two mechanisms cover the two ways a process ends:
 
-- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session, Ctrl-Z:
-  SIGINT, SIGTERM, SIGHUP, SIGTSTP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
+- **Signals it can handle** (Ctrl-C, ``kill``, a closed terminal or dropped ssh session, Ctrl-\\,
+  Ctrl-Z: SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGTSTP): :class:`SignalGuard` turns the first one into :class:`StopSignal`
   (a ``KeyboardInterrupt``), so the protocol's own exit path switches the tube off and confirms
   it; every further signal, and any signal during that switch-off, is only acknowledged on
   stderr -- the switch-off sequence is never interrupted.
@@ -27,7 +27,8 @@ accept. Two mechanisms cover the two ways a process ends:
   says so once and exits 3, and the acquiring
   process, if it runs again, switches off through the port itself. It runs in its own session and
   ignores SIGINT and SIGHUP, so the Ctrl-C of the terminal's process group, or the terminal closing,
-  does not take it down with the acquiring process.
+  does not take it down with the acquiring process; SIGTERM and SIGQUIT sent to it are taken as
+  the acquiring process gone (switch off, then exit).
 
 The line protocol on the pipe (ASCII, one line each way; ``SEQ`` ties a reply to its request, so
 a reply that arrives after its requester was interrupted is discarded)::
@@ -50,7 +51,7 @@ import threading
 import time
 from pathlib import Path
 
-from radiokit.interrupts import Interrupted, deferred, raise_stop, redeliver
+from radiokit.interrupts import STOP_SIGNALS, Interrupted, deferred, raise_stop, redeliver
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -59,11 +60,11 @@ TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller
 
 # SIGTSTP (Ctrl-Z) too: its default suspends the process -- beam monitor and all -- with the tube
 # on, and the guardian, whose pipe stays open, would not act
-_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGTSTP") if hasattr(signal, name))
+_SIGNALS = STOP_SIGNALS + tuple(getattr(signal, name) for name in ("SIGTSTP",) if hasattr(signal, name))
 
 
 class StopSignal(Interrupted):
-    """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP or SIGTSTP); ``signum`` says which.
+    """A signal asked the run to stop (SIGINT, SIGTERM, SIGHUP, SIGQUIT or SIGTSTP); ``signum`` says which.
 
     A ``KeyboardInterrupt`` (radiokit's :class:`~radiokit.interrupts.Interrupted`), so code that
     handles Ctrl-C handles them all alike, and ``radiokit demo`` exits 128 + ``signum`` on it."""
@@ -79,7 +80,7 @@ def _say(text: str) -> None:
 
 
 class SignalGuard:
-    """SIGINT, SIGTERM, SIGHUP, SIGTSTP: the first raises :class:`StopSignal`; the rest are deferred.
+    """SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGTSTP: the first raises :class:`StopSignal`; the rest are deferred.
 
     Ctrl-Z (SIGTSTP) stops the run like Ctrl-C instead of suspending it: a suspended process
     keeps the tube on and its beam monitor still.
@@ -780,7 +781,9 @@ def main(argv: list[str] | None = None) -> int:
     def terminated(signum, frame):  # someone stops the guardian itself: behave as if orphaned
         os.close(0)
 
-    signal.signal(signal.SIGTERM, terminated)
+    # SIGQUIT's default (a core dump) ended it as kill -9 does, with no switch-off of its own
+    for sig in (s for s in STOP_SIGNALS if s not in (signal.SIGINT, signal.SIGHUP)):
+        signal.signal(sig, terminated)
     ap = argparse.ArgumentParser(prog="python -m acquisition.guardian")
     ap.add_argument("url")
     ap.add_argument("--config", required=True)

@@ -1063,7 +1063,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _terminated(signum, frame):
-    """SIGTERM/SIGHUP (a closed terminal, ``kill``): unwind like Ctrl-C, so that every output being
+    """SIGTERM/SIGHUP/SIGQUIT (a closed terminal, ``kill``, Ctrl-\\): unwind like Ctrl-C, so that every output being
     written is removed rather than left half-written under its temporary name. Should it land in
     a finalizer, where Python drops it, ``_main`` delivers it again (radiokit.interrupts)."""
     from radiokit.interrupts import Interrupted
@@ -1226,7 +1226,7 @@ def _one_warning_per_file() -> None:
 
 
 def _main(argv) -> int:
-    from radiokit.interrupts import exit_status, lost_stops_redelivered
+    from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1244,8 +1244,9 @@ def _main(argv) -> int:
     _one_warning_per_file()
     _quiet_matplotlib()
     if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
-        for sig in (signal.SIGTERM, signal.SIGHUP):
-            signal.signal(sig, _terminated)
+        for sig in STOP_SIGNALS:
+            if sig != signal.SIGINT:  # Python's own Ctrl-C raises KeyboardInterrupt already
+                signal.signal(sig, _terminated)
     try:
         if args.command != "acquire":  # never in the way of a switch-off (acquire source off)
             _check_environment()

@@ -1,9 +1,10 @@
 """Stop signals as exceptions that say which signal, the exit status they give, and a stop Python
 dropped in a finalizer delivered again.
 
-Every command unwinds on Ctrl-C, SIGTERM and SIGHUP as on Ctrl-C (its outputs are removed, not
-left half-written) and exits as a shell reports a command a signal ended: 128 + the signal's
-number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP). ``acquisition.guardian.StopSignal`` is an
+Every command unwinds on Ctrl-C, SIGTERM, SIGHUP and Ctrl-\\ (SIGQUIT) as on Ctrl-C
+(:data:`STOP_SIGNALS`: its outputs are removed, not left half-written) and exits as a shell reports
+a command a signal ended: 128 + the signal's number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 131
+SIGQUIT). ``acquisition.guardian.StopSignal`` is an
 :class:`Interrupted` too.
 
 Python drops an exception raised while a finalizer runs ("Exception ignored in: ...": h5py's
@@ -23,7 +24,24 @@ import sys
 import threading
 from collections.abc import Callable
 
-__all__ = ["Interrupted", "exit_status", "redeliver", "raise_stop", "lost_stops_redelivered", "deferred"]
+__all__ = [
+    "STOP_SIGNALS",
+    "Interrupted",
+    "exit_status",
+    "redeliver",
+    "raise_stop",
+    "lost_stops_redelivered",
+    "settle",
+    "deferred",
+]
+
+#: The signals every command stops on as on Ctrl-C. SIGQUIT (Ctrl-\) too: the terminal sends it to
+#: the foreground group as it sends Ctrl-C, and its default action (a core dump) ended ``acquire
+#: source on`` in its ramp as ``kill -9`` does, X-rays left on, and other commands without their
+#: clean-up. A stop the process can handle is handled; a core dump is kill -9's business.
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, name)
+)
 
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.
@@ -167,11 +185,26 @@ def _then_raise(undo: Callable[[], None], stop: Callable[[], BaseException | Non
         raise_stop(stop(), error)
 
 
+#: the pending deliveries of each :func:`lost_stops_redelivered` block now running (:func:`settle`)
+_PENDING: list[list[_Redelivery]] = []
+
+
+def settle() -> None:
+    """Raise now a stop lost in a finalizer whose delivery is still waiting for its timer (an
+    :class:`Interrupted`); nothing if none is. Called before an output is renamed into place:
+    on a loaded machine the timer ran after `correct` had committed its output, and the command
+    then said "interrupted; no partial output was left" beside it. The stop came first."""
+    waiting = [delivery.signum for pending in _PENDING for delivery in pending if delivery.cancel()]
+    if waiting:
+        raise Interrupted(waiting[0])
+
+
 def lost_stops_redelivered():
     """While the block runs, a stop (a ``KeyboardInterrupt``) Python dropped in a finalizer is
     delivered again (:func:`redeliver`); any other dropped exception goes to the hook as before.
     A stop still waiting for its timer when the block ends is raised as it leaves (the command
-    finished meanwhile: the stop must not reach the caller after the command's own handling)."""
+    finished meanwhile: the stop must not reach the caller after the command's own handling);
+    :func:`settle` raises it sooner."""
     before, pending = sys.unraisablehook, []
 
     def hook(unraisable):
@@ -183,12 +216,14 @@ def lost_stops_redelivered():
 
     def undo():
         sys.unraisablehook = before
+        _PENDING[:] = [other for other in _PENDING if other is not pending]  # this block's, not an equal one
 
     def stop():
         waiting = [delivery.signum for delivery in pending if delivery.cancel()]
         return Interrupted(waiting[0]) if waiting else None
 
     sys.unraisablehook = hook
+    _PENDING.append(pending)
     return _then_raise(undo, stop)
 
 

@@ -69,7 +69,7 @@ from radiokit._json import strict as strict_json
 from radiokit.checks import is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
-from radiokit.interrupts import deferred
+from radiokit.interrupts import STOP_SIGNALS, deferred
 from radiokit.measure import PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
@@ -1202,7 +1202,7 @@ def process_many(
         return results
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
         logging.getLogger("distributed").setLevel(logging.CRITICAL)  # the one line is the command's
-        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(*STOP_SIGNALS):
             if ours:  # stopped now, not after each busy worker's grace period
                 _kill_workers(ours["cluster"])
             elif (
@@ -1213,7 +1213,7 @@ def process_many(
         raise
     finally:
         # A signal while the workers stop is acted on once they have (see radiokit.interrupts.deferred)
-        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(*STOP_SIGNALS):
             if client is not None:
                 client.close()
             if ours:
@@ -1261,14 +1261,19 @@ def local_workers(asked: int | None, n_files: int, n_cores: int) -> int:
     return max(1, min(asked or n_cores, n_files))
 
 
+#: The stops a terminal sends to its whole process group (Ctrl-C, Ctrl-\, the hang-up when it
+#: closes): the workers start with them blocked, and leave them to this process
+_GROUP_SIGNALS = {getattr(signal, name) for name in ("SIGINT", "SIGQUIT", "SIGHUP") if hasattr(signal, name)}
+
+
 def _local_cluster(n_workers: int, made: dict | None = None):
     """A local cluster of ``n_workers`` single-threaded worker processes, each started with its
     share of this machine's cores in its environment; also put in ``made["cluster"]`` as soon as
     it exists (the caller's clean-up finds it there even if an interrupt comes before this
     returns), and taken out again if it is stopped here.
 
-    Ctrl-C (and a closed terminal's SIGHUP) reaches the terminal's whole process group, the workers
-    too: each died mid-file with tracebacks and left its temporary folder. So the workers start
+    Ctrl-C (and Ctrl-\\, and a closed terminal's SIGHUP) reaches the terminal's whole process group,
+    the workers too: each died mid-file with tracebacks and left its temporary folder. So the workers start
     with both *blocked*: the cluster is started from a thread that blocks them, whose mask the
     threads Dask starts there inherit (its event loop, the ones that start the workers), and a
     process keeps its mask across exec. They leave the signal to this process, which stops them
@@ -1282,12 +1287,14 @@ def _local_cluster(n_workers: int, made: dict | None = None):
     from radiokit._threads import cores
 
     share = worker_threads(cores(), n_workers)
-    with _blocked(signal.SIGHUP):  # the tracker blocks, then ignores, SIGINT itself (and unblocks it here)
+    with _blocked(
+        *_GROUP_SIGNALS - {signal.SIGINT}
+    ):  # the tracker blocks, then ignores, SIGINT itself (and unblocks it here)
         _quiet_resource_tracker()
     made, done = ({} if made is None else made), threading.Event()
 
     def start():
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGHUP})
+        signal.pthread_sigmask(signal.SIG_BLOCK, _GROUP_SIGNALS)
         try:
             made["cluster"] = LocalCluster(
                 n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, env=share.environ()
@@ -1305,7 +1312,7 @@ def _local_cluster(n_workers: int, made: dict | None = None):
     try:
         done.wait()  # the main thread keeps its signals: a Ctrl-C ends this wait at once
     except BaseException:
-        with deferred(signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with deferred(*STOP_SIGNALS):
             done.wait()
             if "cluster" in made:
                 _kill_workers(made["cluster"])

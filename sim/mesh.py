@@ -102,7 +102,7 @@ def _symmetry_planes(scene: Scene) -> tuple:
 
 
 def _keeping_signal_handlers(init) -> None:
-    """Run ``init`` and put back the handlers of SIGTERM and SIGHUP: gmsh's initialisation resets
+    """Run ``init`` and put back the handlers of SIGTERM, SIGHUP and SIGQUIT: gmsh's initialisation resets
     them to the default at the C level (Python's ``getsignal`` does not see it), so a ``kill`` or a
     closed terminal then ended ``radiokit sim run`` at once, leaving its temporary file behind,
     instead of through the command's handler, which removes it (README, "Your data is safe")."""
@@ -112,7 +112,9 @@ def _keeping_signal_handlers(init) -> None:
     if threading.current_thread() is not threading.main_thread():  # handlers live on the main thread
         init()
         return
-    kept = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    from radiokit.interrupts import STOP_SIGNALS
+
+    kept = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS if sig != signal.SIGINT}
     try:
         init()
     finally:

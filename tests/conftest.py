@@ -75,7 +75,9 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
 # warnings ignored (the helpers set PYTHONWARNINGS=ignore), stdout and stderr not terminals (no
 # progress bars). Tests that need a process of their own (signals, rlimits, a possible hang, the
 # encodings set through the environment, imports, the console script) keep the subprocess.
-_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGPIPE") if hasattr(signal, name))
+_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGPIPE") if hasattr(signal, name)
+)
 
 
 #: the loggers radiokit's commands set levels on (radiokit.cli, radiokit.pipeline): made before

@@ -720,7 +720,7 @@ def test_process_refuses_a_slip_before_loading_the_pipeline(tmp_path):
 
 
 def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
-    """conftest.run_cli runs main in the test's process: what main changes (its SIGTERM and SIGHUP
+    """conftest.run_cli runs main in the test's process: what main changes (its SIGTERM, SIGHUP, SIGQUIT
     handlers, tifffile's log level, the warnings' format) and what run_cli sets for it (the
     environment, the working directory, the streams) are back afterwards, or every later test in
     the worker would run under them."""
@@ -732,6 +732,7 @@ def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
         return (
             signal.getsignal(signal.SIGTERM),
             signal.getsignal(signal.SIGHUP),
+            signal.getsignal(signal.SIGQUIT),
             logging.getLogger("tifffile").level,
             warnings.formatwarning,
             dict(os.environ),

@@ -633,7 +633,21 @@ def test_tiff_12_bit_pages_packed_and_in_words_are_refused(tmp_path):
         tif.write(counts[0], photometric="minisblack", bitspersample=12)  # packed
         tif.write(counts[1], photometric="minisblack")
     _set_short_tag(path, 258, 12, page=1)  # words saying 12 bits
-    with pytest.warns(UserWarning, match="16-bit word"), pytest.raises(FormatError, match="not one stack"):
+    # one error, not "read as 16-bit words" first (said before the stack was refused, review s33)
+    with warnings.catch_warnings(), pytest.raises(FormatError, match="not one stack"):
+        warnings.simplefilter("error")
+        read(path)
+
+
+def test_tiff_stack_whose_first_page_claims_fewer_bits_is_one_error(tmp_path):
+    """A 16-bit stack whose page 0 BitsPerSample byte was hit (16 -> 4): page 0 alone reads as
+    16-bit words, but pages 1 and 2 say 16 bits: the stack is refused in one error. It warned
+    "read as 16-bit words" first, of a file it then refused."""
+    path = tmp_path / "hit.tif"
+    tifffile.imwrite(path, _frames(3), photometric="minisblack")
+    _set_short_tag(path, 258, 4, page=0)
+    with warnings.catch_warnings(), pytest.raises(FormatError, match=r"hit\.tif: TIFF frame 1 .*not one stack"):
+        warnings.simplefilter("error")
         read(path)
 
 
@@ -1273,6 +1287,38 @@ def test_hdf5_cf_packing_that_cannot_be_applied_is_one_line(tmp_path, scale):
         f.create_dataset("frames", data=np.zeros((2, 4, 4), np.int16)).attrs["scale_factor"] = scale
     with pytest.raises(FormatError, match="scale_factor"):
         read(path, dataset="frames")
+
+
+@pytest.mark.parametrize("scale", [np.float32(1e-45), np.float64(5e-324), np.float32(1e-39)])
+def test_hdf5_cf_scale_factor_below_its_types_normal_range_is_refused(tmp_path, scale):
+    """Found in review: a subnormal scale_factor (1e-45 in float32, which stores it as 1.4e-45 with
+    one significant bit) was taken silently: every pixel then holds a few bits of precision at
+    best, a value of 1e-40 no transmission has. Refused in one line naming the file and the
+    attribute, as a scale of 0 is."""
+    path = tmp_path / "tiny.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("frames", data=np.arange(32, dtype=np.int16).reshape(2, 4, 4)).attrs["scale_factor"] = scale
+    with pytest.raises(FormatError, match=r"tiny\.h5: /frames@scale_factor is .*subnormal") as info:
+        read(path, dataset="frames")
+    assert "\n" not in str(info.value)
+
+
+def test_hdf5_cf_fill_value_of_many_values_is_refused(tmp_path):
+    """CF: ``_FillValue`` is one value of the variable's type (``missing_value`` alone may be a
+    vector). Found in review: an array of 8000 codes was taken as that many fill values, and every
+    pixel of frames of ones read as NaN. Refused in one line naming the file and the attribute;
+    a vector ``missing_value`` still marks each of its codes."""
+    path = tmp_path / "fills.h5"
+    frames = np.ones((2, 8, 8), np.float32)
+    frames[1, 2, 3] = 5.0
+    with h5py.File(path, "w") as f:
+        f.create_dataset("x", data=frames).attrs["_FillValue"] = np.arange(8000, dtype=np.float64)
+        f.create_dataset("vector", data=frames).attrs["missing_value"] = np.array([5.0, 7.0], np.float32)
+    with pytest.raises(FormatError, match=r"fills\.h5: /x@_FillValue holds 8000 values") as info:
+        read(path, dataset="x")
+    assert "\n" not in str(info.value)
+    data = read(path, dataset="vector").data
+    assert np.isnan(data[1, 2, 3]) and np.isfinite(data).sum() == frames.size - 1
 
 
 # ------------------------------------------------------------------------------------------------

@@ -2966,6 +2966,27 @@ def test_the_guardians_own_switch_off_after_a_reconnect_is_not_called_confirmed(
     assert "check by hand that the unit first connected is off" in err and "X-RAYS MAY STILL BE ON" in err
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT])
+def test_a_guardian_told_to_stop_switches_off_before_it_exits(sig, capfd):
+    """``kill`` (SIGTERM) or ``kill -QUIT`` sent to the guardian itself while X-rays are on: it
+    takes it as the acquiring process gone -- XOF, confirmed by STS, exit 0. Found: SIGQUIT was
+    left at its default (a core dump), which ended the guardian as kill -9 does, without its
+    switch-off: the tube stayed on."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect="B", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)
+        link._process.send_signal(sig)
+        code = link._process.wait(timeout=30)
+        assert not model.xray_on, (code, capfd.readouterr().err)
+    assert code == 0 and "X-rays off (confirmed by STS" in capfd.readouterr().err
+
+
 @contextlib.contextmanager
 def _two_units_behind_one_path(tmp_path, dialect):
     """``(one, two, first, second, port)``: two units of the same model, each on its own pty,

@@ -291,3 +291,20 @@ def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the
         said = status.communicate(timeout=60)[0]
         assert status.returncode == 0 and not unit.emitting, said
     assert "state XRAY_ON" in said and "switched off (confirmed: state STANDBY)" in said, said
+
+
+def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
+    """Ctrl-\\ (SIGQUIT) is a stop the process can handle, sent by the terminal to its foreground
+    group like Ctrl-C. Found: it was not among the guarded signals, so its default action (a core
+    dump) ended ``source on`` in its ramp as ``kill -9`` does, X-rays left on. Now it stops as
+    Ctrl-C does: XOF, confirmed by STS, exit 128 + 3 on the confirmed line."""
+    with Controller(dialect, ramp_s=30.0) as unit:
+        unit.ready(warmed=True)
+        proc = _radiokit(
+            "acquire", "source", "on", "--port", unit.port, "--dialect", dialect, "--kv", "60", "--ua", "250"
+        )
+        out = _act_when(proc, lambda: unit.emitting, lambda: proc.send_signal(signal.SIGQUIT), wait_s=60, settle_s=0.3)
+        assert not unit.emitting, out
+    assert proc.returncode == 128 + signal.SIGQUIT, out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("stopped by SIGQUIT; tube off (confirmed by STS") and "Traceback" not in out, out

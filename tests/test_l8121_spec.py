@@ -432,11 +432,11 @@ def test_a_zero_time_out_is_not_a_configuration(key):
 
 
 # -- the bench-top commands: a signal switches the tube off too ------------------------------------
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT, signal.SIGQUIT])
 def test_a_signal_during_source_warm_up_switches_the_tube_off(dialect, sig):
     """``L8121.md``: X-rays are switched off "on every exit path" and "an interrupted warm-up is
     switched off like an exposure". ``radiokit acquire source warm-up`` killed (SIGTERM), hung up
-    on (SIGHUP) or interrupted (Ctrl-C) while the warm-up runs must leave the tube off, confirmed,
+    on (SIGHUP) or interrupted (Ctrl-C, Ctrl-\\) while the warm-up runs must leave the tube off, confirmed,
     and say so in one line, without a traceback."""
     model = SpecModel(dialect, warmup_s=60.0)
     code = "import sys; from radiokit.cli import main; sys.exit(main())"

@@ -20,7 +20,7 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
 - the first thing a run or resume does is ask ``STS`` and switch X-rays off if they are on (a
   resume of a complete file opens no device);
 - the tube is switched off (``XOF``, confirmed by ``STS``) on every exit path -- normal end,
-  exception, Ctrl-C, Ctrl-Z, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
+  exception, Ctrl-C, Ctrl-\\, Ctrl-Z, SIGTERM, SIGHUP, lost detector, full disk, unparseable reply -- and before
   every wait for a person (moving the screws, taking the phantom out). No signal interrupts the
   switch-off (:class:`acquisition.guardian.SignalGuard`). ``Result.tube_off`` says whether it was
   confirmed. On the lab's port (and ``[sim] source_port``), a guardian process holds the link and
@@ -1297,7 +1297,7 @@ def run(
         How the experiment file is opened (tests pass one whose disk fills).
     guard : acquisition.guardian.SignalGuard, optional
         The signal guard to run under (the command line keeps one until its last line is
-        printed); by default the run installs its own: SIGINT, SIGTERM, SIGHUP and SIGTSTP stop the series
+        printed); by default the run installs its own: SIGINT, SIGTERM, SIGHUP, SIGQUIT and SIGTSTP stop the series
         with :class:`~acquisition.guardian.StopSignal`, and none interrupts the switch-off.
 
     Raises

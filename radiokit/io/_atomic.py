@@ -24,6 +24,7 @@ import stat
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
+from radiokit.interrupts import settle
 
 __all__ = [
     "atomic_path",
@@ -533,6 +534,7 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         yield tmp
         if not (tmp.exists() or tmp.is_symlink()):
             raise OutputError(path, "the writer produced no file")
+        settle()  # a stop lost while it was written, its delivery not run yet: not renamed into place
         _fsync(tmp)  # the bytes are on disk before the name is: a power cut leaves old or new
         _keep_mode(tmp, path)
         os.replace(tmp, path)
@@ -625,6 +627,7 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
         (tmp / RESULTS_MARKER).write_text(
             f"{folder_marker(made_by)} Files:\n" + "".join(f"{name}\n" for name in sorted(_files(tmp)))
         )
+        settle()  # a stop lost while it was written, its delivery not run yet: not swapped in
         old = None
         if path.exists():
             _keep_mode(tmp, path)

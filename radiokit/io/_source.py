@@ -329,8 +329,7 @@ class FrameSource:
                 self.path,
                 f"stack of {self.n} images after one IFD holding packed {first.bitspersample}-bit pixels: not read",
             )
-        # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
-        self.bits = int(first.bitspersample) if self._words else None
+        self.bits = self._words_read(first)
         self._stored_shape = self.frame_shape
         self._invert = self._tiff_inversion(first)
         self._line = self._imagej_calibration(first)
@@ -616,6 +615,22 @@ class FrameSource:
             )
         self._words = words
 
+    def _words_read(self, first) -> int | None:
+        """The BitsPerSample of pages read as whole words (else None), said once every page has
+        passed the checks: said as page 0 was checked, a corrupt stack (its BitsPerSample byte
+        hit) gave this warning and then the error."""
+        if not self._words:
+            return None
+        bits, word = int(first.bitspersample), 8 * self._words
+        warnings.warn(
+            f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {word}-bit word per pixel: "
+            f"read as {word}-bit words",
+            UserWarning,
+            stacklevel=5,  # the caller of read() / open_frames()
+        )
+        # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
+        return bits
+
     def _decoded_bytes(self, page, rows, cols) -> int:
         """The length ``page``'s first compressed strip decodes to, at most one more than 16-bit
         words would fill (the decoder allocates no more: a bomb stops there)."""
@@ -651,13 +666,6 @@ class FrameSource:
         if word == 0:
             return 0
         if word and page.fillorder == 1 and page.samplesperpixel == 1:
-            if not self._words:
-                warnings.warn(
-                    f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {8 * word}-bit word "
-                    f"per pixel: read as {8 * word}-bit words",
-                    UserWarning,
-                    stacklevel=7,  # the caller of read() / open_frames(),
-                )
             return word
         raise FormatError(
             self.path,
@@ -1307,6 +1315,9 @@ def _cf_packing(path, data) -> dict | None:
     stored, a packed transmission of 0.5 was -5000: a silent wrong value in every pixel."""
     attrs = data.attrs
     codes = [k for k in ("_FillValue", "missing_value") if k in attrs]
+    fill = np.asarray(attrs.get("_FillValue", 0))
+    if fill.size != 1:  # CF: one value (missing_value alone may be a vector); 8000 made every pixel NaN
+        raise FormatError(path, f"{data.name}@_FillValue holds {fill.size} values: CF's fill value is one value")
     if "scale_factor" not in attrs and "add_offset" not in attrs:
         if not codes or data.dtype.kind != "f":  # an integer without packing has no NaN to mark with
             return None
@@ -1322,8 +1333,16 @@ def _cf_packing(path, data) -> dict | None:
         if value.size != 1 or value.dtype.kind not in "iuf" or not np.isfinite(value).all():
             raise FormatError(path, f"{data.name}@{name} is {value.tolist()!r}: CF packing needs one finite number")
         found[name] = value.reshape(())
-    if found["scale_factor"] == 0:
+    scale = found["scale_factor"]
+    if scale == 0:
         raise FormatError(path, f"{data.name}@scale_factor is 0: every pixel would read as add_offset")
+    if scale.dtype.kind == "f" and abs(scale) < np.finfo(scale.dtype).tiny:
+        # a subnormal keeps a few significant bits (float32's 1e-45 is 1.4e-45, one bit): no packing
+        raise FormatError(
+            path,
+            f"{data.name}@scale_factor is {scale.item():g}, subnormal in {scale.dtype} (below "
+            f"{np.finfo(scale.dtype).tiny:g}): not a CF packing, every pixel would lose its precision",
+        )
     return {
         "scale_factor": found["scale_factor"].item(),
         "add_offset": found["add_offset"].item(),
