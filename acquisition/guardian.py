@@ -409,6 +409,10 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
             said = link.end_start(bound)
     except Interrupted:  # held during the wait, raised after it: what it asks for is done
         pass
+    if said is None and link.may_have_sent:
+        # it held the port (READY) or hung and was killed, perhaps in its switch-off: whatever an
+        # earlier reading said, nobody confirms the tube off now (review s33-r2)
+        said = "3 it held the port and ended without saying how it left the tube"
     if said is None:
         return
     code, _, text = said.partition(" ")

@@ -696,6 +696,10 @@ class PipeTransport:
         self._buf = b""
         self._seq = 0
         self._open = False
+        #: The guardian said READY (it opened the port), or had to be killed at the end of a
+        #: failed start: it may have sent to the controller (its switch-off), so without its word
+        #: on the tube (:meth:`end_start` None) nobody vouches for the tube (the warning)
+        self.may_have_sent = False
         self._lock = threading.Lock()
         #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
         #: its own; this one goes to the link this process opens if the guardian dies.
@@ -725,6 +729,7 @@ class PipeTransport:
     def wait_ready(self, timeout_s: float) -> None:
         """Wait for the guardian to report the port open (``READY``) or why not."""
         line = self._read_line(time.monotonic() + timeout_s, "start")
+        self.may_have_sent = line == "READY"
         if line != "READY":
             self._finish()
             opened = not line.startswith("E 0 ")  # E 0: the guardian could not open the port at all
@@ -751,6 +756,7 @@ class PipeTransport:
             except subprocess.TimeoutExpired:
                 self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
                 self._process.wait()
+                self.may_have_sent = True  # perhaps cut short in its switch-off, the port held
             self._finish()
         return said
 
@@ -770,6 +776,7 @@ class PipeTransport:
             try:
                 while said is None:
                     line = self._read_line(deadline, "start")
+                    self.may_have_sent = self.may_have_sent or line == "READY"
                     said = line[2:] if line.startswith("O ") else None
             except DeviceError:  # its end of the pipe closed, or the deadline passed
                 pass
