@@ -167,6 +167,26 @@ def test_emulator_takes_only_cr_as_a_command_end():
         assert port.read_until(b"\r") == b"STS 2\r"
 
 
+@pytest.mark.parametrize("dialect_", ["A", "B"])
+def test_emulator_answers_a_line_holding_only_an_lf_as_no_command(dialect_):
+    """A CR LF client that also sends a bare CR leaves a line holding only its LF. Found (review
+    s33-r2): the emulator unpacked that line's words (there are none), and its server thread died:
+    every later command went unanswered. The unit knows no such command: refused, and the next
+    command answered."""
+    model = L8121Model(dialect=dialect_, warmed_up=True)
+    refused = "ERR" if dialect_ == "A" else "ERROR"
+    with (
+        PtyServer(model) as server,
+        serial.serial_for_url(server.url, baudrate=DEFAULT_BAUD[dialect_], timeout=1.0) as port,
+    ):
+        status = model.handle("STS").encode() + b"\r"  # (a unit at rest: its state stays)
+        port.write(b"STS\r\n\r")  # a CR LF command, then a bare CR: "STS", then "\n"
+        assert port.read_until(b"\r") == status
+        assert port.read_until(b"\r") == refused.encode() + b"\r"
+        port.write(b"STS\r")
+        assert port.read_until(b"\r") == status
+
+
 def test_transport_logs_every_exchange(caplog):
     model = L8121Model(warmed_up=True)
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
