@@ -742,7 +742,9 @@ def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = Fa
             note("INFO", f"{link.port}: released by the acquiring process")
             return 0
         if words[0] == "O":  # its start was cut short (Ctrl-C): it waits to hear how the tube was left
-            return _orphaned(link, config, note, watch, "was stopped while the X-ray guardian started", tell=wfd)
+            return _orphaned(
+                link, config, note, watch, "gave up on the X-ray guardian's start (stopped, or it was slow)", tell=wfd
+            )
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]

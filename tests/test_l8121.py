@@ -1194,6 +1194,23 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert src.off() == SourceState.STANDBY and src.off_failed is None
 
 
+def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
+    """The beam on, the controller falls silent (its reply path lost): the poll fails and the
+    driver switches off. Found (review s33-r2): its ERROR and CRITICAL lines named the port twice
+    ("/dev/pts/1: /dev/pts/1: no reply to SAR ..."): the transport's message names it already."""
+    src, model = source
+    src.on(60, 250)
+    model.silence(execute=True)
+    src.config.timeout_s = 0.2
+    src._transport.timeout_s = 0.2
+    with pytest.raises(DeviceError):
+        src.check()
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR and r.name == "acquisition.l8121"]
+    assert any("no reply to" in m for m in said) and any("could not confirm X-rays off" in m for m in said), said
+    assert all(m.count(src.port) == 1 for m in said), said
+    model.silence(False)  # (the fixture's close() then confirms off)
+
+
 # The device another process or adapter may put behind the port's path: in A another model; in B
 # (no identity query, only SRL's grammar) a unit that does not speak B.
 OTHER_DEVICE = {"A": dict(dialect="A", model="L9181-02"), "B": dict(dialect="A")}
@@ -3999,6 +4016,10 @@ def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(e
     err = capfd.readouterr().err
     assert "never reached" not in err and "confirmed by STS" not in err, err
     assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
+    # and the lines before: the start's own time-out (it said the pipe's 8 s and "start:"), what to
+    # do, and the guardian's reason as it was (it called a slow start "stopped")
+    assert "within 1 s of its start" in err and "run the command again" in err and ": start:" not in err, err
+    assert "gave up on the X-ray guardian's start" in err, err
 
 
 def _zombie(pid) -> bool:
