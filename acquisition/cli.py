@@ -57,7 +57,7 @@ def add_acquire(subparsers):
     s.add_argument(
         "--reply-timeout",
         type=float,
-        help="the longest wait for each reply, s (default: the dialect's, A 1, B 2); not for 'probe'",
+        help="the longest wait for each reply, s (default 2, both dialects'); not for 'probe'",
     )
     s.add_argument(
         "--ready-timeout",

@@ -410,6 +410,10 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
             said = link.end_start(bound)
     except Interrupted:  # held during the wait, raised after it: what it asks for is done
         pass
+    if said is None and link.may_have_sent:
+        # it held the port (READY) or hung and was killed, perhaps in its switch-off: whatever an
+        # earlier reading said, nobody confirms the tube off now (review s33-r2)
+        said = "3 it held the port and ended without saying how it left the tube"
     if said is None:
         return
     code, _, text = said.partition(" ")
@@ -739,7 +743,9 @@ def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = Fa
             note("INFO", f"{link.port}: released by the acquiring process")
             return 0
         if words[0] == "O":  # its start was cut short (Ctrl-C): it waits to hear how the tube was left
-            return _orphaned(link, config, note, watch, "was stopped while the X-ray guardian started", tell=wfd)
+            return _orphaned(
+                link, config, note, watch, "gave up on the X-ray guardian's start (stopped, or it was slow)", tell=wfd
+            )
         if words[0] != "Q" or len(words) < 3:
             continue
         seq, command = words[1], words[2]

@@ -1785,8 +1785,9 @@ class L8121:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
 
         After a switch-off that failed (:attr:`off_failed`) this tries once more -- ``XOF`` and
-        ``STS`` again, each waiting out its reply time-out with a silent controller (about 2 s in A,
-        4 s in B) -- before it raises; a caller that must not wait again uses :meth:`detach`.
+        ``STS`` again, each waiting out its reply time-out with a silent controller (2 s each by
+        default, in both dialects) -- before it raises; a caller that must not wait again uses
+        :meth:`detach`.
 
         Raises
         ------
@@ -2017,13 +2018,29 @@ class L8121:
             return
         if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
             self._release_off(me)
-            logger.error("%s: %s; X-rays were not confirmed off before (%s)", self.port, cause, self.off_failed)
+            logger.error(
+                "%s: %s; X-rays were not confirmed off before (%s)",
+                self.port,
+                self._unported(cause),
+                self._unported(self.off_failed),
+            )
             return
-        logger.error("%s: %s; switching X-rays off", self.port, cause)
+        logger.error("%s: %s; switching X-rays off", self.port, self._unported(cause))
         try:
             self.off()
         except DeviceError as exc:
-            logger.critical("%s: could not confirm X-rays off: %s", self.port, exc)
+            logger.critical("%s: %s", self.port, self._off_not_confirmed(exc))
+
+    def _unported(self, exc) -> str:
+        """``exc``'s message without the port it begins with (the transport's and the driver's
+        name it): a line that names the port itself names it once."""
+        text = str(exc)
+        return text[len(self.port) + 2 :] if text.startswith(f"{self.port}: ") else text
+
+    def _off_not_confirmed(self, exc) -> str:
+        """A failed switch-off's line after the port (off_failed says it already)."""
+        text = self._unported(exc)
+        return text if text.startswith("could not confirm X-rays off") else f"could not confirm X-rays off: {text}"
 
     # ---- readings ----
     def status(self) -> SourceState:
@@ -2774,7 +2791,7 @@ class L8121:
             tried = f"{attempt + 1} attempt(s)"
             self.off_failed = DeviceError(
                 f"{self.port}: could not confirm X-rays off after {tried} "
-                f"(last: {last}){why}; switch the source off at the controller"
+                f"(last: {self._unported(last)}){why}; switch the source off at the controller"
             )
             self.off_failed.__cause__ = last
         finally:
@@ -2844,7 +2861,7 @@ class L8121:
         try:
             self.off()
         except Exception as exc:
-            logger.critical("%s: could not confirm X-rays off: %s", self.port, exc)
+            logger.critical("%s: %s", self.port, self._off_not_confirmed(exc))
 
     def reset(self) -> SourceState:
         """Send ``RST`` (clears an overload) and return the new state. Never called automatically:

@@ -696,6 +696,10 @@ class PipeTransport:
         self._buf = b""
         self._seq = 0
         self._open = False
+        #: The guardian said READY (it opened the port), or had to be killed at the end of a
+        #: failed start: it may have sent to the controller (its switch-off), so without its word
+        #: on the tube (:meth:`end_start` None) nobody vouches for the tube (the warning)
+        self.may_have_sent = False
         self._lock = threading.Lock()
         #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
         #: its own; this one goes to the link this process opens if the guardian dies.
@@ -724,7 +728,8 @@ class PipeTransport:
 
     def wait_ready(self, timeout_s: float) -> None:
         """Wait for the guardian to report the port open (``READY``) or why not."""
-        line = self._read_line(time.monotonic() + timeout_s, "start")
+        line = self._read_line(time.monotonic() + timeout_s, "start", timeout_s)
+        self.may_have_sent = line == "READY"
         if line != "READY":
             self._finish()
             opened = not line.startswith("E 0 ")  # E 0: the guardian could not open the port at all
@@ -751,6 +756,7 @@ class PipeTransport:
             except subprocess.TimeoutExpired:
                 self._process.kill()  # hung or stopped: it must not hold the port while the caller opens it
                 self._process.wait()
+                self.may_have_sent = True  # perhaps cut short in its switch-off, the port held
             self._finish()
         return said
 
@@ -769,7 +775,8 @@ class PipeTransport:
             deadline = time.monotonic() + timeout_s
             try:
                 while said is None:
-                    line = self._read_line(deadline, "start")
+                    line = self._read_line(deadline, "start", timeout_s)
+                    self.may_have_sent = self.may_have_sent or line == "READY"
                     said = line[2:] if line.startswith("O ") else None
             except DeviceError:  # its end of the pipe closed, or the deadline passed
                 pass
@@ -907,14 +914,20 @@ class PipeTransport:
                 self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
-    def _read_line(self, deadline: float, command: str) -> str:
+    def _read_line(self, deadline: float, command: str, wait_s: float | None = None) -> str:
+        """The guardian's next line, by ``deadline`` (``wait_s`` from its start: named in the error;
+        ``command`` "start": its start or its end after a failed start)."""
         while b"\n" not in self._buf:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise NoReply(
-                    f"{self.url}: {command}: no answer from the X-ray guardian "
-                    f"(pid {self._process.pid}) within {self._reply_wait_s:g} s"
-                )
+                who = f"the X-ray guardian (pid {self._process.pid})"
+                wait_s = self._reply_wait_s if wait_s is None else wait_s
+                if command == "start":
+                    raise NoReply(
+                        f"{self.url}: {who} did not report the port open within {wait_s:g} s of its start "
+                        "(a slow start: the computer may be busy); run the command again"
+                    )
+                raise NoReply(f"{self.url}: {command}: no answer from {who} within {wait_s:g} s")
             ready, _, _ = select.select([self._rfd], [], [], left)
             if not ready:
                 continue
@@ -922,7 +935,8 @@ class PipeTransport:
             if not data:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
-                raise DeviceError(f"{self.url}: {command}: the X-ray guardian exited (code {self._process.poll()})")
+                what = "as it started" if command == "start" else f"in {command}"
+                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._process.poll()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")

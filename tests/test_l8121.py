@@ -167,6 +167,26 @@ def test_emulator_takes_only_cr_as_a_command_end():
         assert port.read_until(b"\r") == b"STS 2\r"
 
 
+@pytest.mark.parametrize("dialect_", ["A", "B"])
+def test_emulator_answers_a_line_holding_only_an_lf_as_no_command(dialect_):
+    """A CR LF client that also sends a bare CR leaves a line holding only its LF. Found (review
+    s33-r2): the emulator unpacked that line's words (there are none), and its server thread died:
+    every later command went unanswered. The unit knows no such command: refused, and the next
+    command answered."""
+    model = L8121Model(dialect=dialect_, warmed_up=True)
+    refused = "ERR" if dialect_ == "A" else "ERROR"
+    with (
+        PtyServer(model) as server,
+        serial.serial_for_url(server.url, baudrate=DEFAULT_BAUD[dialect_], timeout=1.0) as port,
+    ):
+        status = model.handle("STS").encode() + b"\r"  # (a unit at rest: its state stays)
+        port.write(b"STS\r\n\r")  # a CR LF command, then a bare CR: "STS", then "\n"
+        assert port.read_until(b"\r") == status
+        assert port.read_until(b"\r") == refused.encode() + b"\r"
+        port.write(b"STS\r")
+        assert port.read_until(b"\r") == status
+
+
 def test_transport_logs_every_exchange(caplog):
     model = L8121Model(warmed_up=True)
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
@@ -1172,6 +1192,23 @@ def test_off_raises_when_it_cannot_confirm(source):
     assert len(model.log) == n0 + 2
     model.silence(False)
     assert src.off() == SourceState.STANDBY and src.off_failed is None
+
+
+def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
+    """The beam on, the controller falls silent (its reply path lost): the poll fails and the
+    driver switches off. Found (review s33-r2): its ERROR and CRITICAL lines named the port twice
+    ("/dev/pts/1: /dev/pts/1: no reply to SAR ..."): the transport's message names it already."""
+    src, model = source
+    src.on(60, 250)
+    model.silence(execute=True)
+    src.config.timeout_s = 0.2
+    src._transport.timeout_s = 0.2
+    with pytest.raises(DeviceError):
+        src.check()
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR and r.name == "acquisition.l8121"]
+    assert any("no reply to" in m for m in said) and any("could not confirm X-rays off" in m for m in said), said
+    assert all(m.count(src.port) == 1 for m in said), said
+    model.silence(False)  # (the fixture's close() then confirms off)
 
 
 # The device another process or adapter may put behind the port's path: in A another model; in B
@@ -3877,6 +3914,8 @@ def _stop_the_guardian(found: list) -> None:
         if pid is not None:
             os.kill(pid, signal.SIGSTOP)
             found.append(pid)
+        else:  # a guardian's interpreter takes far longer than this to start: it is not missed
+            time.sleep(0.002)
 
 
 def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
@@ -3919,6 +3958,91 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
         assert isinstance(failed, DeviceError) and not isinstance(failed, StopSignal), repr(failed)
         assert not left, "the guardian still ran after start_guardian raised"
         assert getattr(failed, "guardian_off", False) and not model.xray_on, failed
+
+
+#: What a person at the controller sends to switch the tube on (the same words as the driver's).
+_ON_AT_THE_CONTROLLER = {"A": ["HIV 60", "CUR 250", "XON"], "B": ["PHV 600", "PCU 250", "XON"]}
+
+
+def _a_failed_start_meets_a_stuck_tube(model, monkeypatch, *, on_at_the_controller=False, kill_after_xof=False):
+    """A helper thread for a guardian whose start fails: held (SIGSTOP) past a start time-out
+    shortened to 1 s (a slow start made wide, not a fake), then let go with the tube stuck on
+    (``XOF`` acknowledged, ``STS`` still on: a failed relay, the emulator's ``stuck_on``) --
+    switched on at the controller meanwhile if ``on_at_the_controller`` -- and, if
+    ``kill_after_xof``, killed (SIGKILL) as soon as its switch-off's ``XOF`` reached the
+    controller: it dies holding the port, without its ``O`` line."""
+    from acquisition import guardian
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    held = []
+
+    def run():
+        _stop_the_guardian(held)
+        time.sleep(2.0)  # past the 1 s start: start_guardian has it switch off
+        if on_at_the_controller:
+            assert all(model.handle(c) == c for c in _ON_AT_THE_CONTROLLER[model.dialect])
+        sent = model.commands.count("XOF")
+        model.stuck_on()
+        os.kill(held[0], signal.SIGCONT)
+        while kill_after_xof and model.commands.count("XOF") == sent:
+            time.sleep(0.005)
+        if kill_after_xof:
+            os.kill(held[0], signal.SIGKILL)
+
+    helper = threading.Thread(target=run, daemon=True)
+    helper.start()
+    return helper
+
+
+def test_a_series_whose_guardian_could_not_switch_off_ends_on_the_warning(tmp_path, capfd, monkeypatch):
+    """``radiokit acquire P --sim`` (``[sim] source_port``, dialect auto: the probe reads STS and
+    finds the tube off), whose guardian's start fails; meanwhile the tube is switched on at the
+    controller and sticks, so the guardian's own switch-off is not confirmed (it warns). Found
+    (review s33-r2): the run still trusted the probe's earlier reading and ended on "tube off
+    (confirmed by STS: STANDBY)", exit 1, the tube on. The later failure wins: the warning, exit 3."""
+    from test_l8121_independent import _series_protocol
+
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, on_at_the_controller=True)
+        code = main(["acquire", _series_protocol(tmp_path, "auto", server.url), "--sim", "-q"])
+        helper.join(timeout=30)
+        assert model.xray_on  # the fault made: nobody can switch this tube off from here
+    err = capfd.readouterr().err
+    assert "confirmed by STS" not in err, err
+    assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
+
+
+@pytest.mark.parametrize("end", ["says-not-confirmed", "killed-after-its-xof"])
+def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(end, capfd, monkeypatch):
+    """`source warm-up` on a tube an earlier `source on` left on; its guardian's start fails and
+    its switch-off meets a stuck tube. It says so (``O 3``): the warning, exit 3. Or it dies right
+    after its ``XOF`` (it had opened the port: READY), without a word on the tube. Found (review
+    s33-r2): that ended on "radiokit never reached the X-ray controller (its port could not be
+    opened), so it sent no command", exit 1, the tube on; now the warning, exit 3, too."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()  # (what `on` said)
+        helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, kill_after_xof=end != "says-not-confirmed")
+        code = main(["acquire", "source", "warm-up", *port])
+        helper.join(timeout=30)
+        assert model.xray_on
+    err = capfd.readouterr().err
+    assert "never reached" not in err and "confirmed by STS" not in err, err
+    assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
+    # and the lines before: the start's own time-out (it said the pipe's 8 s and "start:"), what to
+    # do, and the guardian's reason as it was (it called a slow start "stopped")
+    assert "within 1 s of its start" in err and "run the command again" in err and ": start:" not in err, err
+    assert "gave up on the X-ray guardian's start" in err, err
 
 
 def _zombie(pid) -> bool:
