@@ -485,6 +485,7 @@ def _source_command(args, guard) -> int:
             src = _behind_guardian(src) if args.action == "warm-up" else src
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
+            _guardian_gone(src, exc)
             exc.tube = _interrupted_connect(exc)
             if getattr(exc, "tube_state", None) is None and getattr(exc, "off_failed", None) is None:
                 # no switch-off in connect: one is tried now (signals deferred: the guard stays
@@ -497,10 +498,11 @@ def _source_command(args, guard) -> int:
                 confirmed = tried or src.tube_confirmed_off
                 exc.may_be_on = not confirmed and (src.port_opened or args.action == "off")
             raise
-        except DeviceError:
+        except DeviceError as exc:
             if args.action == "off":
                 guard.cleanup()  # the switch-off asked for, whatever the connect found
                 _off_anyway(src)
+            _guardian_gone(src, exc)  # then switched off after the error line (below)
             raise
         try:
             code = _source_action(src, args)
@@ -530,6 +532,9 @@ def _source_command(args, guard) -> int:
         return code
     except (DeviceError, ValueError) as exc:
         print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
+        if getattr(exc, "guardian_gone", False):
+            guard.cleanup()  # a switch-off nobody confirmed: a signal must not cut it short
+            _off_anyway(src)  # its outcome the last line; not confirmed, the exit rule's warning
         return _source_error_code(exc, src, args)
 
 
@@ -545,6 +550,17 @@ def _interrupted_connect(exc) -> str:
     if getattr(exc, "probe_sent", None) is False:
         return "radiokit never reached the X-ray controller: nothing was sent"
     return "interrupted while connecting: no X-ray command was sent"
+
+
+def _guardian_gone(src, exc) -> bool:
+    """Whether ``exc`` is a guardian's failed start that held the port (it said READY, or was
+    killed) and ended without a word on the tube, perhaps cut short in its switch-off. The port is
+    free again and was opened (by the guardian), so this process switches off through it, confirmed
+    by STS, or ends on the warning (:func:`_off_anyway`, the exit rule)."""
+    gone = getattr(exc, "guardian_gone", False)
+    if gone:
+        src.port_opened = True
+    return gone
 
 
 def _behind_guardian(src):

@@ -410,11 +410,11 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
             said = link.end_start(bound)
     except Interrupted:  # held during the wait, raised after it: what it asks for is done
         pass
-    if said is None and link.may_have_sent:
-        # it held the port (READY) or hung and was killed, perhaps in its switch-off: whatever an
-        # earlier reading said, nobody confirms the tube off now (review s33-r2)
-        said = "3 it held the port and ended without saying how it left the tube"
     if said is None:
+        # it held the port (READY) or hung and was killed, perhaps in its switch-off, without a word
+        # on the tube: the port is free again, and the caller switches off through it, or warns
+        # (review s33-r2; recording that as a failed switch-off stopped the caller's, s33-r4)
+        exc.guardian_gone = link.may_have_sent
         return
     code, _, text = said.partition(" ")
     exc.guardian_off = True  # the guardian's switch-off, not the caller's
@@ -784,11 +784,18 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
 
+    stoppers = [s for s in STOP_SIGNALS if s not in (signal.SIGINT, signal.SIGHUP)]
+
     def terminated(signum, frame):  # someone stops the guardian itself: behave as if orphaned
+        # once: a second stop closed fd 0 again, an EBADF raised inside the switch-off the first
+        # began (read as a lost link: reconnected, unverified, the warning; review s33-r4), or the
+        # close of whatever reused fd 0 since
+        for sig in stoppers:
+            signal.signal(sig, signal.SIG_IGN)
         os.close(0)
 
     # SIGQUIT's default (a core dump) ended it as kill -9 does, with no switch-off of its own
-    for sig in (s for s in STOP_SIGNALS if s not in (signal.SIGINT, signal.SIGHUP)):
+    for sig in stoppers:
         signal.signal(sig, terminated)
     ap = argparse.ArgumentParser(prog="python -m acquisition.guardian")
     ap.add_argument("url")

@@ -3024,6 +3024,33 @@ def test_a_guardian_told_to_stop_switches_off_before_it_exits(sig, capfd):
     assert code == 0 and "X-rays off (confirmed by STS" in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT], ids=["SIGTERM", "SIGQUIT"])
+def test_a_guardian_told_to_stop_twice_finishes_its_switch_off(sig, capfd):
+    """The same, the signal sent again while the guardian's switch-off waits for XOF's reply (made
+    slow: ``delay_once``). Found (review s33-r4): each signal closed fd 0 again, so the second raised
+    EBADF inside the serial exchange, read as a lost link: reconnected, "unverified", the warning and
+    exit 3 with the tube off. The first stop is acted on, later ones are ignored."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved)
+        source = L8121(link, connect=False, config=resolved)
+        source.connect()
+        source.on(60, 250)
+        model.delay_once(1.0, "XOF")
+        link._process.send_signal(sig)
+        deadline = time.monotonic() + 10
+        while "XOF" not in model.commands[-3:] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        link._process.send_signal(sig)  # within XOF's slow reply
+        code = link._process.wait(timeout=30)
+        assert not model.xray_on, (code, capfd.readouterr().err)
+    err = capfd.readouterr().err
+    assert code == 0 and "X-rays off (confirmed by STS" in err and "unverified" not in err, err
+
+
 @contextlib.contextmanager
 def _two_units_behind_one_path(tmp_path, dialect):
     """``(one, two, first, second, port)``: two units of the same model, each on its own pty,
@@ -4043,6 +4070,58 @@ def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(e
     # do, and the guardian's reason as it was (it called a slow start "stopped")
     assert "within 1 s of its start" in err and "run the command again" in err and ": start:" not in err, err
     assert "gave up on the X-ray guardian's start" in err, err
+
+
+@pytest.mark.parametrize("stop", [None, signal.SIGINT], ids=["failed-start", "ctrl-c"])
+def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(stop, capfd, monkeypatch):
+    """`source warm-up` on a tube an earlier `source on` left on; its guardian's start fails (held
+    past a 1 s start, or a Ctrl-C while it starts) and the guardian dies (SIGKILL) as its
+    switch-off's ``XOF`` goes out, that ``XOF`` lost on the line (the one fake here: a byte lost as
+    a process dies cannot be caused on a pseudo-terminal). Found (review s33-r4): recording such a
+    guardian as a failed switch-off stopped the command's own, so it warned with the tube on and
+    free to be switched off; now the command switches off through the freed port, confirmed."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    held, armed = [], threading.Event()
+    receive = model.receive
+
+    def losing_the_guardians_xof(line, baudrate=None):
+        if armed.is_set() and line.strip() == "XOF":
+            armed.clear()
+            os.kill(held[0], signal.SIGKILL)
+            return None
+        return receive(line, baudrate)
+
+    monkeypatch.setattr(model, "receive", losing_the_guardians_xof)
+    from acquisition import guardian
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+
+    def run():
+        _stop_the_guardian(held)
+        time.sleep(0.5 if stop else 2.0)
+        if stop:
+            os.kill(os.getpid(), stop)  # while it starts
+            time.sleep(0.5)
+        armed.set()
+        os.kill(held[0], signal.SIGCONT)
+
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()
+        helper = threading.Thread(target=run, daemon=True)
+        helper.start()
+        code = main(["acquire", "source", "warm-up", *port])
+        helper.join(timeout=30)
+        assert held and not armed.is_set(), "the guardian's XOF was lost"
+        assert not model.xray_on
+    err = capfd.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert "XOF sent anyway: X-rays off (confirmed by STS: STANDBY)" in last, err
+    assert code == (128 + stop if stop else 1), err
 
 
 def _zombie(pid) -> bool:

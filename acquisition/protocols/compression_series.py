@@ -638,9 +638,10 @@ def _what_was_reached(exc: BaseException, driver) -> None:
 
     exc.port_never_opened = isinstance(exc, PortUnavailable) and not driver.port_opened
     exc.nothing_sent = getattr(exc, "probe_sent", None) is False
-    if getattr(exc, "off_failed", None) is not None:
-        # a later switch-off (the guardian's, after its failed start) was not confirmed: the tube
-        # may have been switched on since the probe's reading, which then vouches for nothing
+    if getattr(exc, "off_failed", None) is not None or getattr(exc, "guardian_gone", False):
+        # a later switch-off (the guardian's, after its failed start) was not confirmed, or the
+        # guardian held the port and ended without a word: the tube may have been switched on
+        # since the probe's reading, which then vouches for nothing
         exc.tube_state = None
     elif getattr(exc, "tube_state", None) is None and driver.tube_confirmed_off:
         # the last STS (the probe's, or the refused connect's after its XOF) read the tube off and
