@@ -185,6 +185,11 @@ def test_emulator_answers_a_line_holding_only_an_lf_as_no_command(dialect_):
         assert port.read_until(b"\r") == refused.encode() + b"\r"
         port.write(b"STS\r")
         assert port.read_until(b"\r") == status
+        for line in (b"\x0b", b"\x1c", b"\x0c STS"):  # whitespace to str.split() (review s33-r4)
+            port.write(line + b"\r")
+            assert port.read_until(b"\r") == refused.encode() + b"\r", line
+        port.write(b"STS\r")
+        assert port.read_until(b"\r") == status
 
 
 def test_transport_logs_every_exchange(caplog):

@@ -573,9 +573,9 @@ class L8121Model:
 
     def _act(self, line: str, t: float) -> tuple[str, bool]:
         """The reply to ``line``, and whether its action ran (not refused before it)."""
-        # an LF inside the line (CR alone ends one: a CR LF client's LF begins its next line, or is
-        # all of it) makes no command the unit knows
-        word, *args = line.split() if "\n" not in line else [""]
+        # an LF or another control character inside the line (CR alone ends one: a CR LF client's LF
+        # begins its next line, or is all of it) makes no command the unit knows
+        word, *args = (line.split() if line.isprintable() else None) or [""]
         if word == "STS" and not args and self._sts_error:
             return "ERROR", False
         action = self._commands.get(word)
