@@ -2985,20 +2985,26 @@ def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     assert len(said) == 1
 
 
+def _on_behind_a_guardian(server, dialect):
+    """The guardian's link to ``server``'s unit, X-rays switched on through it (60 kV, 250 uA)."""
+    from acquisition.guardian import start_guardian
+
+    resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+    link = start_guardian(server.url, resolved)
+    source = L8121(link, connect=False, config=resolved)
+    source.connect()
+    source.on(60, 250)
+    return link
+
+
 def test_the_guardians_own_switch_off_after_a_reconnect_is_not_called_confirmed(dialect, capfd):
     """The acquiring process dies with X-rays on; the guardian's XOF meets a read error, the link
     is reopened (the model checked), XOF sent again and STS reads off: that confirms the unit now
     at the port, known only by its model, so the guardian says so and exits 3 (review s28-h6: its
     fresh driver thought the tube off, so the reconnect went unflagged and it said 'confirmed')."""
-    from acquisition.guardian import start_guardian
-
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
     with PtyServer(model) as server:
-        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
-        link = start_guardian(server.url, resolved)
-        source = L8121(link, connect=False, config=resolved)
-        source.connect()
-        source.on(60, 250)
+        link = _on_behind_a_guardian(server, dialect)
         model.hold_once("XOF")  # its reply lost at the read error: the transport sends XOF again
         model.inject_after("XOF", server.read_error)
         link._process.stdin.close()  # the acquiring process is gone, without a release
@@ -3008,48 +3014,27 @@ def test_the_guardians_own_switch_off_after_a_reconnect_is_not_called_confirmed(
     assert "check by hand that the unit first connected is off" in err and "X-RAYS MAY STILL BE ON" in err
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT])
-def test_a_guardian_told_to_stop_switches_off_before_it_exits(sig, capfd):
+@pytest.mark.parametrize("twice", [False, True], ids=["once", "twice"])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT], ids=["SIGTERM", "SIGQUIT"])
+def test_a_guardian_told_to_stop_switches_off_before_it_exits(sig, twice, capfd):
     """``kill`` (SIGTERM) or ``kill -QUIT`` sent to the guardian itself while X-rays are on: it
     takes it as the acquiring process gone -- XOF, confirmed by STS, exit 0. Found: SIGQUIT was
     left at its default (a core dump), which ended the guardian as kill -9 does, without its
-    switch-off: the tube stayed on."""
-    from acquisition.guardian import start_guardian
-
-    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    switch-off: the tube stayed on. ``twice``: the signal sent again while the switch-off waits for
+    XOF's reply (made slow). Found (review s33-r4): each signal closed fd 0 again, so the second
+    raised EBADF inside the serial exchange, read as a lost link: reconnected, "unverified", the
+    warning and exit 3 with the tube off. The first stop is acted on, later ones are ignored."""
+    dialect = "A" if twice else "B"
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
-        resolved = L8121(server.url, dialect="B", connect=False, **FAST).resolved_config()
-        link = start_guardian(server.url, resolved)
-        source = L8121(link, connect=False, config=resolved)
-        source.connect()
-        source.on(60, 250)
-        link._process.send_signal(sig)
-        code = link._process.wait(timeout=30)
-        assert not model.xray_on, (code, capfd.readouterr().err)
-    assert code == 0 and "X-rays off (confirmed by STS" in capfd.readouterr().err
-
-
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT], ids=["SIGTERM", "SIGQUIT"])
-def test_a_guardian_told_to_stop_twice_finishes_its_switch_off(sig, capfd):
-    """The same, the signal sent again while the guardian's switch-off waits for XOF's reply (made
-    slow: ``delay_once``). Found (review s33-r4): each signal closed fd 0 again, so the second raised
-    EBADF inside the serial exchange, read as a lost link: reconnected, "unverified", the warning and
-    exit 3 with the tube off. The first stop is acted on, later ones are ignored."""
-    from acquisition.guardian import start_guardian
-
-    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
-    with PtyServer(model) as server:
-        resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
-        link = start_guardian(server.url, resolved)
-        source = L8121(link, connect=False, config=resolved)
-        source.connect()
-        source.on(60, 250)
-        model.delay_once(1.0, "XOF")
+        link = _on_behind_a_guardian(server, dialect)
+        model.delay_once(1.0 if twice else 0.0, "XOF")
         link._process.send_signal(sig)
         deadline = time.monotonic() + 10
-        while "XOF" not in model.commands[-3:] and time.monotonic() < deadline:
+        while twice and "XOF" not in model.commands[-3:] and time.monotonic() < deadline:
             time.sleep(0.01)
-        link._process.send_signal(sig)  # within XOF's slow reply
+        if twice:
+            link._process.send_signal(sig)  # within XOF's slow reply
         code = link._process.wait(timeout=30)
         assert not model.xray_on, (code, capfd.readouterr().err)
     err = capfd.readouterr().err
