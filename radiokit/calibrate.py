@@ -426,7 +426,7 @@ class Calibration:
                     "counts): was the beam on for the flats?"
                 )
             mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
-            _check_defect_share(mask, n_flat_saturated, th.saturation, (response, th.dead_below))
+            _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
         except ValueError as exc:
             raise _blame(
                 str(exc), dark, flat, _dark_noise(darks), th, _known_top(th.saturation, given, dark, flat)
@@ -961,7 +961,7 @@ def _exposed_field(response, dead_below) -> tuple[int, int, int, int] | None:
     return r0, r1, c0, c1
 
 
-def _check_defect_share(mask, n_saturated=0, saturation=None, response=None) -> None:
+def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dead_below=0.0) -> None:
     """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
     calibration "corrects" by filling most pixels from their neighbours, and was exiting 0. When
     the flat's saturated pixels are most of it, the refusal says so: a flat clipped in 12 % of the
@@ -970,7 +970,7 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None) -> 
     response and ``dead_below``): a collimator's shadow was called frames of another set-up."""
     n = int(np.count_nonzero(mask))
     over = n > MAX_DEFECTIVE_SHARE * mask.size
-    field = _exposed_field(*response) if over and response is not None else None
+    field = _exposed_field(response, dead_below) if over and response is not None else None
     if field is not None:
         r0, r1, c0, c1 = field
         raise ValueError(
