@@ -36,6 +36,7 @@ __all__ = [
     "FrameLevelError",
     "exposure_factors",
     "adc_top",
+    "declared_saturation",
     "frame_saturation",
     "judge_frames",
     "judge_darks",
@@ -392,6 +393,12 @@ class Calibration:
         dark noise exceeds ``line_noise_factor`` times the panel's, or more than
         ``line_fraction`` of their pixels are flagged.
         """
+        if thresholds.get("saturation") is None:  # the frames' own word for their ADC, where they give one
+            declared = {
+                f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth")
+                for what, f in (("darks", darks), ("flats", flats))
+            }
+            thresholds = {**thresholds, "saturation": declared_saturation(declared)}
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
@@ -690,6 +697,23 @@ _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 25
 def _covering_top(peak: float) -> int | None:
     """The smallest of :data:`ADC_TOPS` that ``peak`` does not exceed (None above 65535)."""
     return next((top for top in ADC_TOPS if peak <= top), None)
+
+
+def declared_saturation(bit_depths: dict) -> int | None:
+    """The ADC top ``2**bits - 1`` the frames' files declare (``bit_depths``: each file's name and
+    its ``meta["bit_depth"]``, None where it says nothing), else None: :func:`adc_top` guesses.
+
+    Why first: the guess keeps a lower top while no stack passes it in more than
+    :data:`ADC_OUTLIER_SHARE` of its values, so a 16-bit panel's flats passing 4095 in a bright
+    corner of 0.1 % were taken for a 12-bit panel's with stuck pixels, the corner masked as
+    saturated. An experiment's ``bit_depth_readout`` and a TIFF's BitsPerSample below its word
+    (12 in 16-bit words, or packed) say which; a TIFF's BitsPerSample 16 does not (12-bit panels
+    write 16-bit TIFFs), nor does a raw file. Files declaring different depths are refused."""
+    found = {name: int(bits) for name, bits in bit_depths.items() if bits is not None}
+    if len(set(found.values())) > 1:
+        named = ", ".join(f"{name.strip()} {bits}-bit" for name, bits in found.items())
+        raise ValueError(f"the darks' and flats' files declare different ADC bit depths ({named}): not one panel")
+    return (1 << found.popitem()[1]) - 1 if found else None
 
 
 def adc_top(*stacks) -> int | None:

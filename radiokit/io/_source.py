@@ -428,6 +428,9 @@ class FrameSource:
             if tag.name in _TIFF_TAGS
         }
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
+        bits = int(first.bitspersample)
+        if self.dtype.kind == "u" and bits < 8 * self.dtype.itemsize:  # the ADC's, said below its word
+            self.meta["bit_depth"] = bits  # (16 says nothing: a 12-bit panel's TIFFs are 16-bit too)
         if self._orientation != 1:
             self.meta["orientation"] = self._orientation  # applied: row 0 is the top as viewers show it
         if self._invert is not None:
