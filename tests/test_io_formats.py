@@ -300,11 +300,44 @@ def test_matlab_v73_stack_reads_in_matlabs_orientation(tmp_path, rows, cols):
     image = _frames(n=1, rows=rows, cols=cols, seed=1)[0]
     path = tmp_path / "frames.mat"
     _matlab_v73(path, frames=stack, image=image)
-    f = read(path, dataset="frames")
+    with pytest.warns(
+        UserWarning, match=r"frames\.mat: /frames is a MATLAB array \(@MATLAB_class uint16\).*transposed"
+    ):
+        f = read(path, dataset="frames")
     assert f.data.shape == (3, rows, cols) and f.meta["matlab_class"] == "uint16"
     for k in range(3):
         np.testing.assert_array_equal(f.data[k], stack[:, :, k])
-    np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+    with pytest.warns(UserWarning, match="MATLAB array"):
+        np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+
+
+def test_a_dataset_without_matlab_class_in_a_mat_file_reads_as_matlab_shows_it(tmp_path):
+    """``h5write`` into a -v7.3 .mat file writes a dataset without @MATLAB_class, column-major as
+    every MATLAB array: it read as (n, cols, rows), each frame transposed, silently. The file's
+    MAT-file header says whose it is: read as MATLAB shows it, with a warning naming why."""
+    stack = _frames(n=3, rows=30, cols=40).transpose(1, 2, 0)
+    path = tmp_path / "frames.mat"
+    _matlab_v73(path, image=stack[:, :, 0])
+    with h5py.File(path, "a") as h5:
+        h5["written"] = np.transpose(stack)  # h5write's dimensions, reversed, no attribute
+    with pytest.warns(UserWarning, match=r"/written is a MATLAB array \(the file's MATLAB 7\.3 MAT-file header\)"):
+        f = _both_ways(path, dataset="written")
+    assert f.shape == (3, 30, 40)
+    for k in range(3):
+        np.testing.assert_array_equal(f[k], stack[:, :, k])
+
+
+def test_an_hdf5_file_with_no_matlab_mark_is_read_row_major(tmp_path):
+    """``h5write`` into a plain HDF5 file leaves nothing to tell its column-major order by: its
+    frames are read as stored, row-major, as every other HDF5 writer's (the README says so), with
+    no MATLAB warning."""
+    stored = _frames(n=3, rows=30, cols=40)
+    path = tmp_path / "plain.h5"
+    with h5py.File(path, "w") as h5:
+        h5["frames"] = stored
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read(path, dataset="frames").data, stored)
 
 
 def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):

@@ -876,8 +876,11 @@ class FrameSource:
                 meta["cf_packing"] = {k: self._packing[k] for k in ("scale_factor", "add_offset")}
             if self._invert is not None:
                 meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
-            if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
-                meta["matlab_class"] = text(data.attrs["MATLAB_class"])
+            column_major = _matlab_array(self.path, self._h5, data)
+            if column_major:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
+                meta["column_major"] = column_major
+                if "MATLAB_class" in data.attrs:
+                    meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:
                 meta.update(self._keys_beside(dataset, n))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
@@ -895,7 +898,7 @@ class FrameSource:
         self._ds = data
         # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
         # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
-        self._transposed = "matlab_class" in meta
+        self._transposed = "column_major" in meta
         shape = tuple(data.shape[-2:])[:: -1 if self._transposed else 1]
         # h5py hands through the byte order the file stores; read() promises native order
         self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
@@ -1257,6 +1260,38 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
         return None, None
     return f"{data.name}/{signal}", None
+
+
+#: the text MATLAB's ``save -v7.3`` begins its 512-byte userblock with
+_MAT_HEADER = b"MATLAB 7.3 MAT-file"
+
+
+def _matlab_array(path, h5: h5py.File, data) -> str | None:
+    """What says ``data`` is a MATLAB array, else None; a warning says it is read transposed.
+
+    MATLAB stores its arrays column-major and HDF5 row-major, so it writes each with its
+    dimensions reversed: a rows x cols x n stack reads as (n, cols, rows), every frame transposed
+    (a square one silently so). A variable ``save -v7.3`` wrote carries ``@MATLAB_class``; a
+    dataset in a .mat file without it (``h5write`` into one) is known by the file's MAT-file
+    header. ``h5write`` into a plain HDF5 file leaves no mark at all: such frames are read as
+    stored, row-major (README)."""
+    if "MATLAB_class" in data.attrs:
+        why = f"@MATLAB_class {text(data.attrs['MATLAB_class'])}"
+    elif h5.userblock_size >= len(_MAT_HEADER):
+        with open(path, "rb") as fh:
+            head = fh.read(len(_MAT_HEADER))
+        if head != _MAT_HEADER:
+            return None
+        why = "the file's MATLAB 7.3 MAT-file header"
+    else:
+        return None
+    warnings.warn(
+        f"{path}: {data.name} is a MATLAB array ({why}), stored column-major: its frames are read "
+        "transposed, as MATLAB shows them (a rows x cols x n stack as n frames of rows x cols)",
+        UserWarning,
+        stacklevel=5,  # the caller of read() / open_frames()
+    )
+    return why
 
 
 def _refuse_colour(path, data) -> None:
