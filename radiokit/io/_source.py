@@ -612,7 +612,9 @@ class FrameSource:
         if page.compression == 1:
             words = self._word_bytes(i, page, rows, cols, page.databytecounts)
         elif not i:
-            words = self._word_bytes(i, page, rows, cols, [len(self._decoded_segment(page, 0, rows, cols))])
+            words = self._word_bytes(
+                i, page, rows, cols, [len(self._decoded_segment(page, 0, _segments(page, rows, cols)[0]))]
+            )
         else:
             return
         if i:
@@ -646,9 +648,10 @@ class FrameSource:
         # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
         return bits
 
-    def _decoded_segment(self, page, k, rows, cols) -> bytes:
+    def _decoded_segment(self, page, k, shape) -> bytes:
         """Strip or tile ``k`` of ``page`` as stored, decompressed: at most one byte more than
-        16-bit words would fill (the decoder allocates no more: a bomb stops there)."""
+        16-bit words of its ``shape`` (rows, cols) would fill (the decoder allocates no more: a
+        bomb stops there)."""
         fh = self._tif.filehandle
         fh.seek(page.dataoffsets[k])
         data = fh.read(page.databytecounts[k])
@@ -656,8 +659,7 @@ class FrameSource:
             return data
         if page.fillorder == 2:  # bits reversed in the stored bytes, before decoding (libtiff, tifffile)
             data = imagecodecs.bitorder_decode(data)
-        r, c = _segments(page, rows, cols)[k]
-        return tifffile.TIFF.DECOMPRESSORS[int(page.compression)](data, out=r * c * 2 + 1)
+        return tifffile.TIFF.DECOMPRESSORS[int(page.compression)](data, out=shape[0] * shape[1] * 2 + 1)
 
     def _word_bytes(self, i, page, rows, cols, sizes) -> int:
         """0 when a 1..15-bit page's strips or tiles hold packed bits, else the bytes of the word
@@ -715,7 +717,8 @@ class FrameSource:
         decoded strip by strip (or tile by tile) here: how each page holds them is told by its
         decoded sizes, checked against page 0's, so that no page is read the other way."""
         page, (rows, cols) = self._pages[i], self._stored_shape
-        parts = [self._decoded_segment(page, k, rows, cols) for k in range(len(page.dataoffsets))]
+        shapes = _segments(page, rows, cols)
+        parts = [self._decoded_segment(page, k, shape) for k, shape in enumerate(shapes)]
         words = self._word_bytes(i, page, rows, cols, [len(part) for part in parts])
         self._check_stored_alike(i, page, words)
         if page.predictor not in (1, 2) or (page.predictor == 2 and not words):
@@ -723,23 +726,26 @@ class FrameSource:
             raise FormatError(
                 self.path, f"TIFF predictor {page.predictor} over {_storage(page.bitspersample, words)}: not read"
             )
-        dtype = np.dtype(f"u{words}") if words else np.dtype(page.dtype)
-        shapes = _segments(page, rows, cols)
-        pieces = []
-        for part, (r, c) in zip(parts, shapes):
-            if words:
-                piece = np.frombuffer(part, np.dtype(f"{self._tif.byteorder}u{words}")).reshape(r, c)
-            else:
-                piece = imagecodecs.packints_decode(part, dtype, int(page.bitspersample), runlen=c)[: r * c]
-                piece = piece.reshape(r, c)
-            if page.predictor == 2:  # horizontal differencing, undone in the words' own (wrapping) type
-                piece = np.cumsum(piece, axis=1, dtype=dtype)
-            pieces.append(piece.astype(dtype, copy=False))
-        if not page.is_tiled:
-            return np.concatenate(pieces)
+        if not page.is_tiled:  # strips hold whole rows: joined (a padded strip cut), decoded at once
+            need = [r * (c * words if words else (c * int(page.bitspersample) + 7) // 8) for r, c in shapes]
+            return self._samples(page, b"".join(part[:n] for part, n in zip(parts, need)), rows, cols, words)
+        pieces = [self._samples(page, part, r, c, words) for part, (r, c) in zip(parts, shapes)]
         across = -(-cols // shapes[0][1])
         grid = [np.concatenate(pieces[k : k + across], axis=1) for k in range(0, len(pieces), across)]
         return np.ascontiguousarray(np.concatenate(grid)[:rows, :cols])
+
+    def _samples(self, page, data, rows, cols, words) -> np.ndarray:
+        """The ``rows`` x ``cols`` samples decoded ``data`` holds, in whole words of ``words``
+        bytes or packed rows, the horizontal predictor undone in their own (wrapping) type."""
+        dtype = np.dtype(f"u{words}") if words else np.dtype(page.dtype)
+        if words:
+            out = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{words}")).reshape(rows, cols)
+        else:
+            out = imagecodecs.packints_decode(data, dtype, int(page.bitspersample), runlen=cols)
+            out = out[: rows * cols].reshape(rows, cols)
+        if page.predictor == 2:
+            return np.cumsum(out, axis=1, dtype=dtype)
+        return out.astype(dtype)
 
     def _tiff_inversion(self, page):
         """The value TIFF 6.0's WhiteIsZero (PhotometricInterpretation 0) subtracts from, else None.
