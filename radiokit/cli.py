@@ -280,7 +280,7 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, declared_saturation
+    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -311,8 +311,9 @@ def cmd_calibrate(args) -> int:
             )
         try:
             # the files' own bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess
-            th = th if "saturation" in th else {**th, "saturation": declared_saturation(bits)}
-            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **th)
+            cal = Calibration.from_frames(
+                darks, flats, progress=_progress(args), bit_depth=declared_bit_depth(bits), **th
+            )
         except FrameLevelError as exc:  # the stack's index, named as the file's frame
             path, index = origins[exc.kind][exc.index]
             raise FormatError(path, f"frame {index} ({exc})") from exc

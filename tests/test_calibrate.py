@@ -776,27 +776,50 @@ def test_tiff_frames_declaring_14_bits_in_16_bit_words_saturate_at_16383(tmp_pat
     0.1 % of values: read() now says ``meta["bit_depth"] = 14`` and the calibration takes the
     frames' own word for their ADC (16383) over the share rule (which said 4095: the corner
     flagged saturated)."""
+
+    darks, flats = _heel_corner_frames(np.random.default_rng(5))
+    frames = {
+        name: _words_tiff(tmp_path / f"{name}.tif", stack, 14) for name, stack in (("dark", darks), ("flat", flats))
+    }
+    assert frames["dark"].meta["bit_depth"] == frames["flat"].meta["bit_depth"] == 14
+    cal = Calibration.from_frames(frames["dark"], frames["flat"])
+    assert cal.thresholds.saturation == 16383
+    assert not cal.mask[:4, :4].any()
+
+
+def _words_tiff(path, stack, bits):
+    """``stack`` written as 16-bit words saying BitsPerSample ``bits`` on every page, as some
+    panels' software writes, and read back."""
     import struct
 
     from radiokit.io import read
 
-    darks, flats = _heel_corner_frames(np.random.default_rng(5))
-    frames = {}
-    for name, stack in (("dark", darks), ("flat", flats)):
-        path = tmp_path / f"{name}.tif"
-        tifffile.imwrite(path, stack, photometric="minisblack")
-        data = bytearray(path.read_bytes())
-        ifd = struct.unpack_from("<I", data, 4)[0]
-        while ifd:  # BitsPerSample 14 on every page, as the panel's software writes
-            count = struct.unpack_from("<H", data, ifd)[0]
-            for k in range(count):
-                if struct.unpack_from("<H", data, ifd + 2 + 12 * k)[0] == 258:
-                    struct.pack_into("<H", data, ifd + 2 + 12 * k + 8, 14)
-            ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * count)[0]
-        path.write_bytes(bytes(data))
-        with pytest.warns(UserWarning, match="BitsPerSample 14"):
-            frames[name] = read(path)
-        assert frames[name].meta["bit_depth"] == 14
-    cal = Calibration.from_frames(frames["dark"], frames["flat"])
-    assert cal.thresholds.saturation == 16383
-    assert not cal.mask[:4, :4].any()
+    tifffile.imwrite(path, stack, photometric="minisblack")
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    while ifd:
+        count = struct.unpack_from("<H", data, ifd)[0]
+        for k in range(count):
+            if struct.unpack_from("<H", data, ifd + 2 + 12 * k)[0] == 258:
+                struct.pack_into("<H", data, ifd + 2 + 12 * k + 8, bits)
+        ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * count)[0]
+    path.write_bytes(bytes(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "read as 16-bit words", and a BitDepthWarning for MSB-aligned data
+        return read(path)
+
+
+def test_a_declared_bit_depth_the_frames_contradict_is_not_taken(tmp_path):
+    """Words saying BitsPerSample 12 that hold a 12-bit panel's counts MSB-aligned (``<< 4``, up
+    to 65520: read() warns of it): the declared 4095 would call every flat pixel saturated and
+    refuse the calibration; frames above the depth their files declare are judged by their own
+    range, as without a declaration (65520, the clipped corner alone flagged)."""
+    rng = np.random.default_rng(11)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 32, 32))).astype(np.uint16) << 4
+    flats = (100 + rng.poisson(3000, (4, 32, 32))).astype(np.uint16)
+    flats[:, :8, :8] = 4095  # 64 saturated pixels
+    frames = [_words_tiff(tmp_path / f"{k}.tif", s, 12) for k, s in enumerate((darks, flats << 4))]
+    with pytest.warns(CalibrationWarning, match="saturated"):
+        cal = Calibration.from_frames(*frames)
+    assert cal.thresholds.saturation == 65520
+    assert np.count_nonzero(cal.mask & PixelFlag.OVER_RESPONDING) == 64
