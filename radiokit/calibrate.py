@@ -36,6 +36,7 @@ __all__ = [
     "FrameLevelError",
     "exposure_factors",
     "adc_top",
+    "declared_bit_depth",
     "frame_saturation",
     "judge_frames",
     "judge_darks",
@@ -361,7 +362,7 @@ class Calibration:
     # -- building -----------------------------------------------------------------------------
     @classmethod
     def from_frames(
-        cls, darks, flats, *, dark_times=None, flat_times=None, progress=False, **thresholds
+        cls, darks, flats, *, dark_times=None, flat_times=None, progress=False, bit_depth=None, **thresholds
     ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
 
@@ -374,6 +375,11 @@ class Calibration:
         progress : bool
             A progress bar on stderr over the rows averaged and mapped (a 2240 x 2240 panel's
             averages take seconds per ten frames of each).
+        bit_depth : int, optional
+            The ADC bits the frames' files declare (:func:`declared_bit_depth`); by default
+            those :class:`radiokit.io.Frames` give say (``meta["bit_depth"]``). Without
+            ``saturation``, ``2**bit_depth - 1`` is the saturation unless the frames pass it;
+            else :func:`adc_top` guesses it from the frames.
         **thresholds
             Any field of :class:`Thresholds`.
 
@@ -392,12 +398,22 @@ class Calibration:
         dark noise exceeds ``line_noise_factor`` times the panel's, or more than
         ``line_fraction`` of their pixels are flagged.
         """
+        if bit_depth is None:  # the frames' own word for their ADC, where they give one
+            bit_depth = declared_bit_depth(
+                {
+                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth")
+                    for what, f in (("darks", darks), ("flats", flats))
+                }
+            )
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
         if not given:
-            th = replace(th, saturation=adc_top(darks, flats))
+            declared = None if bit_depth is None else (1 << int(bit_depth)) - 1
+            # a depth the frames pass (MSB-aligned counts, read() warned) is no ADC of theirs
+            given = declared is not None and max(float(np.max(darks)), float(np.max(flats))) <= declared
+            th = replace(th, saturation=declared if given else adc_top(darks, flats))
         rows = darks.shape[1]
         with _bar(progress, 3 * rows, "calibrate darks", "row") as bar:
             dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True, callback=bar.update)
@@ -690,6 +706,24 @@ _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 25
 def _covering_top(peak: float) -> int | None:
     """The smallest of :data:`ADC_TOPS` that ``peak`` does not exceed (None above 65535)."""
     return next((top for top in ADC_TOPS if peak <= top), None)
+
+
+def declared_bit_depth(bit_depths: dict) -> int | None:
+    """The ADC bits the frames' files declare (``bit_depths``: each file's name and its
+    ``meta["bit_depth"]``, None where it says nothing), else None: :func:`adc_top` guesses.
+
+    Why first: the guess keeps a lower top while no stack passes it in more than
+    :data:`ADC_OUTLIER_SHARE` of its values, so a 16-bit panel's flats passing 4095 in a bright
+    corner of 0.1 % were taken for a 12-bit panel's with stuck pixels, the corner masked as
+    saturated. An experiment's ``bit_depth_readout`` and a TIFF's BitsPerSample below its word
+    (12 in 16-bit words, or packed) say which; a TIFF's BitsPerSample 16 does not (12-bit panels
+    write 16-bit TIFFs), nor does a raw file. Files declaring different depths are refused;
+    frames passing the declared top (MSB-aligned counts) are judged by their own range."""
+    found = {name: int(bits) for name, bits in bit_depths.items() if bits is not None}
+    if len(set(found.values())) > 1:
+        named = ", ".join(f"{name.strip()} {bits}-bit" for name, bits in found.items())
+        raise ValueError(f"the darks' and flats' files declare different ADC bit depths ({named}): not one panel")
+    return found.popitem()[1] if found else None
 
 
 def adc_top(*stacks) -> int | None:

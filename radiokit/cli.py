@@ -237,9 +237,10 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _stack(paths, hints, key=None, progress=False, origins=None) -> np.ndarray:
+def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
-    when given, gets each frame's (file, index in it)."""
+    when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
+    bits (``meta["bit_depth"]``, None where it says nothing)."""
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
@@ -255,6 +256,8 @@ def _stack(paths, hints, key=None, progress=False, origins=None) -> np.ndarray:
                 if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
                     raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
                 total += len(src) * src.frame_bytes
+                if bit_depths is not None:
+                    bit_depths[str(p)] = src.meta.get("bit_depth")
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
                 keys = src.meta.get("image_key")
                 for i in range(len(src)):
@@ -277,7 +280,7 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError
+    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -298,16 +301,19 @@ def cmd_calibrate(args) -> int:
         # experiment-style file holds darks and flats, told apart by image_key
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints, origins = _raw_hints(args), {"dark": [], "flat": []}
-        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"])
-        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"])
+        hints, origins, bits = _raw_hints(args), {"dark": [], "flat": []}, {}
+        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits)
+        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits)
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
                 f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
             )
         try:
-            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **th)
+            # the files' own bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess
+            cal = Calibration.from_frames(
+                darks, flats, progress=_progress(args), bit_depth=declared_bit_depth(bits), **th
+            )
         except FrameLevelError as exc:  # the stack's index, named as the file's frame
             path, index = origins[exc.kind][exc.index]
             raise FormatError(path, f"frame {index} ({exc})") from exc

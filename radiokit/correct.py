@@ -29,6 +29,7 @@ __all__ = [
     "correct_files",
     "check_above_dark",
     "check_below_flats",
+    "brighter_than_flats",
     "CorrectionReport",
     "CorrectionKernel",
     "DOMAINS",
@@ -584,16 +585,26 @@ def _correct_planned(cal, src, fi, frame, domain, factor):
 MAX_MEDIAN_TRANSMISSION = 1.1
 
 
-def check_below_flats(cal: Calibration, corrected, domain) -> None:
-    """Refuse a corrected frame (in ``domain``) whose median transmission (over about 128 x 128
-    pixels: every 4th row and column took 5 ms of a 2240 x 2240 frame, a fifth of the streaming
-    budget) passes :data:`MAX_MEDIAN_TRANSMISSION`. Why: a 12-bit panel's projections saved
-    MSB-aligned (``counts << 4``) against LSB-aligned darks and flats were written as a line
-    integral of -2.77 everywhere, exit code 0; so were frames at a higher exposure than the flats."""
+def brighter_than_flats(corrected, domain, c=1.0) -> float | None:
+    """The median transmission of a corrected image (in ``domain``; ``c`` the flats' level, for
+    ``"counts"``) when it passes :data:`MAX_MEDIAN_TRANSMISSION`, else None. The median is taken
+    over about 128 x 128 pixels: every 4th row and column took 5 ms of a 2240 x 2240 frame, a
+    fifth of the streaming budget. Shared by :func:`check_below_flats` (a frame) and ``radiokit
+    process`` (a step's mean line integral), each of which says why in its own words."""
     step = max(1, min(corrected.shape) // 128)
     median = float(np.median(corrected[::step, ::step]))
-    transmission = {"log": float(np.exp(-median)), "linear": median, "counts": median / cal.c}[domain]
-    if transmission > MAX_MEDIAN_TRANSMISSION:
+    transmission = {"log": float(np.exp(-median)), "linear": median, "counts": median / c}[domain]
+    return transmission if transmission > MAX_MEDIAN_TRANSMISSION else None
+
+
+def check_below_flats(cal: Calibration, corrected, domain) -> None:
+    """Refuse a corrected frame (in ``domain``) whose median transmission passes
+    :data:`MAX_MEDIAN_TRANSMISSION` (:func:`brighter_than_flats`). Why: a 12-bit panel's
+    projections saved MSB-aligned (``counts << 4``) against LSB-aligned darks and flats were
+    written as a line integral of -2.77 everywhere, exit code 0; so were frames at a higher
+    exposure than the flats."""
+    transmission = brighter_than_flats(corrected, domain, cal.c)
+    if transmission is not None:
         raise ValueError(
             f"brighter than the flats, {transmission:.2f}x their level (median transmission), which no object makes "
             "a frame: frames of another exposure (tube current or time) or bit alignment (counts << 4: 16x) than "

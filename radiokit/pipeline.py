@@ -348,10 +348,10 @@ def _check_below_the_flats(path, step, image) -> None:
     """Refuse a step whose line integral ``image`` says most of the frame is brighter than the
     flats. Why: flats at a quarter of the projections' tube current, no currents recorded, gave
     negative line integrals everywhere, an empty body, and a traceback in the cross-check."""
-    from radiokit.correct import MAX_MEDIAN_TRANSMISSION
+    from radiokit.correct import brighter_than_flats
 
-    transmission = float(np.exp(-np.median(image)))
-    if transmission > MAX_MEDIAN_TRANSMISSION:
+    transmission = brighter_than_flats(image, "log")
+    if transmission is not None:
         raise FormatError(
             path,
             f"step {step}'s projections are brighter than the flats, {transmission:.2f}x their level (median "

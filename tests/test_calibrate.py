@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+import tifffile
 
 from radiokit.calibrate import (
     MAX_DEFECTIVE_SHARE,
@@ -737,3 +738,88 @@ def test_darks_are_not_called_bright_against_a_top_only_guessed_from_the_frames(
     assert any("over half" in w for w in judge_frames(darks, flats, saturation=4095))  # a 12-bit panel's: said
     blocked = _judged(darks, rng.normal(2500, 5, (4, 64, 64)).astype(np.uint16))
     assert blocked.culprits == ("flats",), str(blocked)
+
+
+def _heel_corner_frames(rng, top=4095):
+    """A 16-bit panel's darks and flats whose brighter corner (heel effect) passes ``top`` in
+    16 pixels of 16 384 (0.098 %): within the share the ADC-top rule takes for stuck pixels."""
+    darks = np.rint(200 + rng.normal(0, 3, (4, 128, 128))).astype(np.uint16)
+    flats = (200 + rng.poisson(3400, (4, 128, 128))).astype(np.uint16)
+    flats[:, :4, :4] += 700 + (top - 4095)  # ~4300 counts over a 12-bit ADC's top: no defect, no saturation
+    assert 0 < np.count_nonzero(flats > top) <= 1e-3 * flats.size
+    return darks, flats
+
+
+def test_a_16_bit_experiment_given_as_dark_and_flat_files_keeps_its_recorded_bit_depth(tmp_path):
+    """`calibrate --dark exp.h5 --flat exp.h5` of an experiment recording bit_depth_readout 16:
+    the frames' own record was dropped on the way, and the ADC-top rule took the flats' bright
+    corner (0.1 % of them above 4095) for a 12-bit panel's stuck pixels: saturation 4095, the
+    corner masked as saturated. The files' bit depth now settles it, as --experiment does."""
+    from conftest import run_cli
+
+    darks, flats = _heel_corner_frames(np.random.default_rng(3))
+    path = tmp_path / "exp16.h5"
+    with ExperimentWriter(path, shape=darks.shape[1:], bit_depth=16) as w:
+        for frame in darks:
+            w.append(frame, image_key=ImageKey.DARK)
+        for frame in flats:
+            w.append(frame, image_key=ImageKey.FLAT)
+    res = run_cli("calibrate", "--dark", path, "--flat", path, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    cal = Calibration.load(tmp_path / "cal.h5")
+    assert cal.thresholds.saturation == Calibration.from_experiment(path).thresholds.saturation == 65535
+    assert not cal.mask[:4, :4].any()
+
+
+def test_tiff_frames_declaring_14_bits_in_16_bit_words_saturate_at_16383(tmp_path):
+    """TIFF flats saying BitsPerSample 14 over 16-bit words whose bright corner passes 4095 in
+    0.1 % of values: read() now says ``meta["bit_depth"] = 14`` and the calibration takes the
+    frames' own word for their ADC (16383) over the share rule (which said 4095: the corner
+    flagged saturated)."""
+
+    darks, flats = _heel_corner_frames(np.random.default_rng(5))
+    frames = {
+        name: _words_tiff(tmp_path / f"{name}.tif", stack, 14) for name, stack in (("dark", darks), ("flat", flats))
+    }
+    assert frames["dark"].meta["bit_depth"] == frames["flat"].meta["bit_depth"] == 14
+    cal = Calibration.from_frames(frames["dark"], frames["flat"])
+    assert cal.thresholds.saturation == 16383
+    assert not cal.mask[:4, :4].any()
+
+
+def _words_tiff(path, stack, bits):
+    """``stack`` written as 16-bit words saying BitsPerSample ``bits`` on every page, as some
+    panels' software writes, and read back."""
+    import struct
+
+    from radiokit.io import read
+
+    tifffile.imwrite(path, stack, photometric="minisblack")
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    while ifd:
+        count = struct.unpack_from("<H", data, ifd)[0]
+        for k in range(count):
+            if struct.unpack_from("<H", data, ifd + 2 + 12 * k)[0] == 258:
+                struct.pack_into("<H", data, ifd + 2 + 12 * k + 8, bits)
+        ifd = struct.unpack_from("<I", data, ifd + 2 + 12 * count)[0]
+    path.write_bytes(bytes(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "read as 16-bit words", and a BitDepthWarning for MSB-aligned data
+        return read(path)
+
+
+def test_a_declared_bit_depth_the_frames_contradict_is_not_taken(tmp_path):
+    """Words saying BitsPerSample 12 that hold a 12-bit panel's counts MSB-aligned (``<< 4``, up
+    to 65520: read() warns of it): the declared 4095 would call every flat pixel saturated and
+    refuse the calibration; frames above the depth their files declare are judged by their own
+    range, as without a declaration (65520, the clipped corner alone flagged)."""
+    rng = np.random.default_rng(11)
+    darks = np.rint(100 + rng.normal(0, 2, (4, 32, 32))).astype(np.uint16) << 4
+    flats = (100 + rng.poisson(3000, (4, 32, 32))).astype(np.uint16)
+    flats[:, :8, :8] = 4095  # 64 saturated pixels
+    frames = [_words_tiff(tmp_path / f"{k}.tif", s, 12) for k, s in enumerate((darks, flats << 4))]
+    with pytest.warns(CalibrationWarning, match="saturated"):
+        cal = Calibration.from_frames(*frames)
+    assert cal.thresholds.saturation == 65520
+    assert np.count_nonzero(cal.mask & PixelFlag.OVER_RESPONDING) == 64

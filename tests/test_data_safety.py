@@ -222,6 +222,92 @@ def test_an_output_that_is_an_input_is_refused_even_with_overwrite(cmd, how, exp
     assert {p: sha(p) for p in before} == before
 
 
+def _output_is(out: Path, cmd: str) -> None:
+    """``out`` holds a complete output of ``cmd``."""
+    if out.suffix == ".png":
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    elif out.suffix == ".tif":
+        assert read(out).n == 3  # the three projections
+    else:
+        assert h5py.is_hdf5(out)
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
+def test_an_output_that_is_a_symlink_is_written_to_its_target(cmd, experiment, images, tmp_path):
+    """``-o link`` pointing at a file on another folder (a results disk): the output was renamed
+    over the link itself, which became a regular file, and the file it points at, the one the
+    user meant, was left stale. The target is written now, atomically in its own folder, the
+    --overwrite rule applied to it; the link stays the link it was."""
+    store = tmp_path / "store"
+    store.mkdir()
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    target = store / f"kept{out.suffix}"
+    target.write_bytes(b"last week's output")
+    out.symlink_to(os.path.relpath(target, out.parent))
+    link = os.readlink(out)
+    one_line_error(run_cli(*args), out.name, target.name, "exists", "--overwrite")
+    assert target.read_bytes() == b"last week's output"
+    assert run_cli(*args, "--overwrite").returncode in (0, 1), cmd  # register exits 1 for an untrustworthy field
+    assert out.is_symlink() and os.readlink(out) == link
+    _output_is(target, cmd)
+    no_temporaries(tmp_path)
+    no_temporaries(store)
+
+
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
+def test_an_output_that_is_a_dangling_symlink_writes_its_target(cmd, experiment, images, tmp_path):
+    """A link to a file not yet written (a placeholder into a results disk): the target is
+    written, as the shell's ``>`` writes it, without --overwrite (nothing is replaced); a link
+    into a folder that does not exist is refused in one line naming both."""
+    store = tmp_path / "store"
+    store.mkdir()
+    args = _commands(experiment, images, tmp_path / "out")[cmd]
+    out = Path(args[-1])
+    out.symlink_to(store / f"new{out.suffix}")
+    assert run_cli(*args).returncode in (0, 1), cmd
+    assert out.is_symlink()
+    _output_is(store / f"new{out.suffix}", cmd)
+    no_temporaries(tmp_path)
+    out.unlink()
+    out.symlink_to(tmp_path / "nowhere" / f"new{out.suffix}")
+    one_line_error(run_cli(*args, "--overwrite"), out.name, "nowhere", "does not exist")
+    assert not (tmp_path / "nowhere").exists() and out.is_symlink()
+
+
+def test_a_results_folder_that_is_a_symlink_is_replaced_at_its_target(experiment, tmp_path):
+    """``process -o res`` where ``res`` links to a results folder radiokit made elsewhere: it was
+    refused as "not a folder radiokit made"; the target folder is replaced now (with
+    --overwrite, as any results folder), the link kept; a dangling link makes its target."""
+    store = tmp_path / "store"
+    store.mkdir()
+    args = ["process", experiment, "--no-report", "-q", *ROI]
+    assert run_cli(*args, "-o", store / "res").returncode == 0
+    before = os.stat(store / "res").st_ino
+    out = tmp_path / "res"
+    out.symlink_to(store / "res")
+    one_line_error(run_cli(*args, "-o", out), "res", "--overwrite")
+    assert os.stat(store / "res").st_ino == before
+    assert run_cli(*args, "-o", out, "--overwrite").returncode == 0
+    assert out.is_symlink() and os.stat(store / "res").st_ino != before
+    assert set(tree_sha(store / "res")) == {RESULTS_MARKER, "results.h5", "results.json"}
+    fresh = tmp_path / "fresh"
+    fresh.symlink_to(store / "fresh")
+    assert run_cli(*args, "-o", fresh).returncode == 0
+    assert fresh.is_symlink() and (store / "fresh" / "results.h5").is_file()
+    no_temporaries(tmp_path)
+    no_temporaries(store)
+
+
+def test_an_output_that_is_a_symlink_loop_is_one_line(experiment, tmp_path):
+    out, other = tmp_path / "cal.h5", tmp_path / "other.h5"
+    out.symlink_to(other)
+    other.symlink_to(out)
+    for extra in ([], ["--overwrite"]):
+        one_line_error(run_cli("calibrate", "--experiment", experiment, "-o", out, *extra), "cal.h5", "loop")
+    assert out.is_symlink() and other.is_symlink()
+
+
 def test_correct_refuses_to_write_over_its_calibration(experiment, tmp_path):
     cal = tmp_path / "cal.h5"
     assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0

@@ -1915,10 +1915,13 @@ def test_process_refuses_projections_brighter_than_the_flats(tmp_path):
 @pytest.mark.parametrize(
     "args, words",
     [
-        (["correct", "p.tif", "--cal", "cal.h5", "-o", "loop.h5"], "loop.h5: exists"),
+        (["correct", "p.tif", "--cal", "cal.h5", "-o", "loop.h5"], "loop.h5: is a symbolic link in a loop"),
         (["correct", "loop.h5", "--cal", "cal.h5", "-o", "out.h5"], "loop.h5: cannot be opened"),
-        (["calibrate", "--experiment", "exp.h5", "-o", "loop.h5"], "loop.h5: exists"),
-        (["register", "p.tif", "p.tif", "--moving-frame", "1", "-o", "r.h5", "--png", "loop.png"], "loop.png: exists"),
+        (["calibrate", "--experiment", "exp.h5", "-o", "loop.h5"], "loop.h5: is a symbolic link in a loop"),
+        (
+            ["register", "p.tif", "p.tif", "--moving-frame", "1", "-o", "r.h5", "--png", "loop.png"],
+            "loop.png: is a symbolic link in a loop",
+        ),
         (["process", "loop.h5", "-o", "res"], "loop.h5: cannot be opened"),
         (["process", "exp.h5", "--control", "loop.h5", "-o", "res"], "loop.h5"),
     ],
@@ -1926,7 +1929,8 @@ def test_process_refuses_projections_brighter_than_the_flats(tmp_path):
 def test_a_symlink_in_a_loop_is_one_line(args, words, tmp_path):
     """s32-h4: an output or input that is a symbolic link in a loop (a -> b -> a) gave a traceback,
     "RuntimeError: Symlink loop from ..." (Python 3.11's Path.resolve, in the output checks). As
-    an input it cannot be opened; as an output it is taken for an existing name, as a dangling link is."""
+    an input it cannot be opened; as an output it is refused as a loop (s34: a dangling link's
+    target is written, a loop has none)."""
     exp = _experiment(tmp_path / "exp.h5")
     assert run_cli("calibrate", "--experiment", exp, "-o", tmp_path / "cal.h5", "-q").returncode == 0
     tifffile.imwrite(

@@ -447,6 +447,41 @@ def test_itex_header_promises_more_than_file(tmp_path, change):
 
 
 @pytest.mark.parametrize(
+    "stored, change",
+    [
+        ((3, 4, 8), dict(n_images=0)),  # 0, which HiPic writes for one image, over three
+        ((3, 4, 8), dict(n_images=2)),
+        ((1, 4, 8), dict(width=4, height=2)),  # a quarter of the pixels declared: three more "images"
+    ],
+    ids=["0-images-over-3", "2-images-over-3", "size-smaller-than-stored"],
+)
+def test_itex_header_declaring_fewer_pixels_than_the_file_holds_is_refused(tmp_path, stored, change):
+    """A header whose count or size declares less than the pixels after its comment (a count of
+    0 over a stack, a size edited or from another binning): the first images' bytes read as the
+    declared ones, silently, the rest ignored or each frame sheared. Bytes past the declared
+    images that no [Scaling] axis accounts for, an image's worth or more, are refused in one line
+    naming the file; HPD-TA's own files (their axes after the pixels) read as before."""
+    pix = np.arange(np.prod(stored), dtype=np.uint16).reshape(stored)
+    path = tmp_path / "stack.img"
+    path.write_bytes(_itex_bytes(pix, 2, b"[A],b=1", **change))
+    _raises_format(path, "ITEX header declares", "no [Scaling] axis accounts for", "disagrees with the file")
+    res = run_cli("info", path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert [line for line in res.stderr.splitlines() if line.strip()] == [
+        line for line in res.stderr.splitlines() if "stack.img" in line
+    ]
+
+
+def test_itex_with_a_few_bytes_after_its_pixels_still_reads(tmp_path):
+    """Padding short of an image after the pixels (a writer rounding the file up) is no header
+    disagreement: read as declared."""
+    pix = np.arange(32, dtype=np.uint16).reshape(4, 8)
+    path = tmp_path / "padded.img"
+    path.write_bytes(_itex_bytes(pix, 2, b"[A],b=1", tail=bytes(62)))
+    np.testing.assert_array_equal(read(path).data[0], pix)
+
+
+@pytest.mark.parametrize(
     "change, fragment",
     [
         (dict(width=0), "0x4"),

@@ -300,11 +300,44 @@ def test_matlab_v73_stack_reads_in_matlabs_orientation(tmp_path, rows, cols):
     image = _frames(n=1, rows=rows, cols=cols, seed=1)[0]
     path = tmp_path / "frames.mat"
     _matlab_v73(path, frames=stack, image=image)
-    f = read(path, dataset="frames")
+    with pytest.warns(
+        UserWarning, match=r"frames\.mat: /frames is a MATLAB array \(@MATLAB_class uint16\).*transposed"
+    ):
+        f = read(path, dataset="frames")
     assert f.data.shape == (3, rows, cols) and f.meta["matlab_class"] == "uint16"
     for k in range(3):
         np.testing.assert_array_equal(f.data[k], stack[:, :, k])
-    np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+    with pytest.warns(UserWarning, match="MATLAB array"):
+        np.testing.assert_array_equal(read(path, dataset="image").data[0], image)
+
+
+def test_a_dataset_without_matlab_class_in_a_mat_file_reads_as_matlab_shows_it(tmp_path):
+    """``h5write`` into a -v7.3 .mat file writes a dataset without @MATLAB_class, column-major as
+    every MATLAB array: it read as (n, cols, rows), each frame transposed, silently. The file's
+    MAT-file header says whose it is: read as MATLAB shows it, with a warning naming why."""
+    stack = _frames(n=3, rows=30, cols=40).transpose(1, 2, 0)
+    path = tmp_path / "frames.mat"
+    _matlab_v73(path, image=stack[:, :, 0])
+    with h5py.File(path, "a") as h5:
+        h5["written"] = np.transpose(stack)  # h5write's dimensions, reversed, no attribute
+    with pytest.warns(UserWarning, match=r"/written is a MATLAB array \(the file's MATLAB 7\.3 MAT-file header\)"):
+        f = _both_ways(path, dataset="written")
+    assert f.shape == (3, 30, 40)
+    for k in range(3):
+        np.testing.assert_array_equal(f[k], stack[:, :, k])
+
+
+def test_an_hdf5_file_with_no_matlab_mark_is_read_row_major(tmp_path):
+    """``h5write`` into a plain HDF5 file leaves nothing to tell its column-major order by: its
+    frames are read as stored, row-major, as every other HDF5 writer's (the README says so), with
+    no MATLAB warning."""
+    stored = _frames(n=3, rows=30, cols=40)
+    path = tmp_path / "plain.h5"
+    with h5py.File(path, "w") as h5:
+        h5["frames"] = stored
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read(path, dataset="frames").data, stored)
 
 
 def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):
@@ -457,8 +490,8 @@ def test_tiff_variants_read_value_for_value(tmp_path, dtype, byteorder, kw):
 
 
 def _set_short_tag(path, code, value, page=0):
-    """Overwrite a SHORT tag's value in an IFD of a little-endian classic TIFF (to make files
-    tifffile will not write, as other software does)."""
+    """Overwrite a SHORT (or LONG) tag's value in an IFD of a little-endian classic TIFF (to make
+    files tifffile will not write, as other software does)."""
     import struct
 
     data = bytearray(path.read_bytes())
@@ -468,7 +501,9 @@ def _set_short_tag(path, code, value, page=0):
     for k in range(struct.unpack_from("<H", data, ifd)[0]):
         entry = ifd + 2 + 12 * k
         if struct.unpack_from("<H", data, entry)[0] == code:
-            struct.pack_into("<H", data, entry + 8, value)
+            struct.pack_into(
+                "<H" if struct.unpack_from("<H", data, entry + 2)[0] == 3 else "<I", data, entry + 8, value
+            )
             path.write_bytes(bytes(data))
             return
     raise AssertionError(f"tag {code} not in the first IFD")
@@ -649,6 +684,80 @@ def test_tiff_stack_whose_first_page_claims_fewer_bits_is_one_error(tmp_path):
     with warnings.catch_warnings(), pytest.raises(FormatError, match=r"hit\.tif: TIFF frame 1 .*not one stack"):
         warnings.simplefilter("error")
         read(path)
+
+
+def _packed(counts, bits=12):
+    """``counts`` (rows, cols) packed as TIFF packs samples of ``bits`` bits: most significant bit
+    first, each row starting on a byte (numpy's own bit handling, independent of the reader's)."""
+    planes = (counts.astype(np.uint16)[..., None] >> np.arange(bits - 1, -1, -1)) & 1
+    return np.packbits(planes.astype(np.uint8).reshape(counts.shape[0], -1), axis=1)
+
+
+def _packed_or_words_pages(path, counts, packed, compression, tile=None):
+    """A TIFF whose pages say BitsPerSample 12, page k holding packed 12-bit rows if
+    ``packed[k]`` else 16-bit words (tifffile writes no compressed packed samples: the packed
+    bytes are written as 8-bit pixels and the width and bit tags set after)."""
+    cols = counts.shape[-1]
+    with tifffile.TiffWriter(path) as tif:
+        for frame, pack in zip(counts, packed):
+            shape = {"rowsperstrip": 5} if tile is None else {"tile": (tile[0], tile[1] * (3 if pack else 2) // 2)}
+            tif.write(_packed(frame) if pack else frame, photometric="minisblack", compression=compression, **shape)
+    for page, pack in enumerate(packed):
+        _set_short_tag(path, 256, cols, page=page)
+        _set_short_tag(path, 258, 12, page=page)
+        if tile is not None and pack:
+            _set_short_tag(path, 322, tile[1], page=page)
+
+
+@pytest.mark.parametrize("packed", [(True, False), (False, True)], ids=["packed-then-words", "words-then-packed"])
+@pytest.mark.parametrize("compression", ["lzw", "zlib", "lzma"])
+def test_tiff_compressed_pages_packed_and_in_words_are_refused(tmp_path, compression, packed):
+    """BitsPerSample 12 on every page, compressed, page 0 holding packed rows and page 1 16-bit
+    words (or the reverse): only page 0 was decoded at open, so page 1's words were unpacked as
+    packed bits, silently garbage. Every compressed page's decoded strips now say how it is
+    stored, and a page unlike page 0 is refused in one line naming both."""
+    counts = _frames(2, rows=20)
+    path = tmp_path / "mixed.tif"
+    _packed_or_words_pages(path, counts, packed, compression)
+    pages = "12-bit counts in 16-bit words, page 0 packed 12-bit rows"
+    pages = pages if packed[0] else "packed 12-bit rows, page 0 12-bit counts in 16-bit words"
+    with warnings.catch_warnings(), pytest.raises(FormatError, match=rf"mixed\.tif: TIFF page 1 holds {pages}"):
+        warnings.simplefilter("ignore")
+        _both_ways(path)
+
+
+@pytest.mark.parametrize("compression", [None, "lzw", "zlib", "lzma"])
+def test_tiff_compressed_packed_12_bit_pages_unpack(tmp_path, compression):
+    """Packed 12-bit rows under each compression (odd width: rows end part-way into a byte),
+    strips or tiles: every count as written."""
+    counts = _frames(3, rows=20, cols=41)
+    path = tmp_path / "packed.tif"
+    _packed_or_words_pages(path, counts, (True,) * 3, compression)
+    np.testing.assert_array_equal(_both_ways(path), counts)
+    tiled = _frames(3, rows=40, cols=50)
+    _packed_or_words_pages(path, tiled, (True,) * 3, compression, tile=(16, 32))
+    np.testing.assert_array_equal(_both_ways(path), tiled)
+
+
+@pytest.mark.parametrize("compression, predictor", [(None, False), ("lzw", False), ("zlib", True), ("zstd", True)])
+@pytest.mark.parametrize("bits, word", [(12, "<u2"), (4, "<u1")])
+def test_tiff_tiled_counts_in_whole_words_read_as_words(tmp_path, bits, word, compression, predictor):
+    """Tiles holding one 8- or 16-bit word a pixel under BitsPerSample 12 (or 4), 40 x 50 in
+    16 x 16 tiles (the right and bottom ones padded): the tiles went to tifffile, which unpacked
+    the words as packed bits, silently garbage. Every count as stored, the predictor undone."""
+    counts = np.random.default_rng(bits).integers(0, 1 << bits, (2, 40, 50)).astype(word)
+    path = tmp_path / "tiled.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for frame in counts:
+            tif.write(frame, photometric="minisblack", tile=(16, 16), compression=compression, predictor=predictor)
+    for page in range(2):
+        _set_short_tag(path, 258, bits, page=page)
+    with pytest.warns(
+        UserWarning, match=f"BitsPerSample {bits} but its tiles hold one {8 * np.dtype(word).itemsize}-bit word"
+    ):
+        frames = _both_ways(path)
+    assert frames.dtype == np.dtype(word).newbyteorder("=")
+    np.testing.assert_array_equal(frames, counts)
 
 
 def test_tiff_12_bit_strips_of_neither_size_are_refused(tmp_path):

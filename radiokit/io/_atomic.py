@@ -2,7 +2,8 @@
 
 Every file radiokit writes goes to a temporary name beside its destination and is renamed into
 place (``os.replace``, atomic within one filesystem) only once complete; a results folder is
-assembled in a temporary sibling folder and swapped in. An interrupted run therefore leaves the
+assembled in a temporary sibling folder and swapped in. An output that is a symbolic link is
+written at its target, beside which its temporary is made; the link is kept. An interrupted run therefore leaves the
 previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
 -9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
 for output, and the next run writing the same output on that host removes it once its process is
@@ -294,7 +295,9 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
     Parameters
     ----------
     path : path-like
-        The file (or, with ``folder=True``, the results folder) to be written.
+        The file (or, with ``folder=True``, the results folder) to be written. A symbolic link
+        stands for its target: the target is checked, and returned to be written (the link is
+        kept); a link in a loop, or into a folder that does not exist, is refused.
     overwrite : bool
         Allow replacing an existing output radiokit made.
     inputs : iterable of path-like
@@ -307,17 +310,51 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
         The command writing the folder: a folder another command made (its marker's
         :func:`folder_marker` names it) is refused, with ``overwrite`` too.
 
+    Returns
+    -------
+    Path
+        The path to write: ``path``, or the target of the link it is.
+
     Raises
     ------
     OutputError, OutputExistsError
     """
     path = Path(path)
     try:
-        return _check_output(path, overwrite, inputs, folder and made_by)
+        target = _link_target(path, folder)
+        try:
+            _check_output(target, overwrite, inputs, folder and made_by)
+            if not folder and target.suffix.lower() != path.suffix.lower():  # writers go by the name given
+                raise OutputError(target, f"its name's {target.suffix or 'missing'} suffix is not {path.suffix}")
+        except OutputError as exc:
+            if target != path:  # named as the user gave it, and what it points at
+                exc.path = f"{path} (a link to {target})"
+            raise
+        return target
     except OutputError:
         raise
     except OSError as exc:  # Path.exists() raises on a name past NAME_MAX (ENAMETOOLONG) or a loop
         raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
+
+
+def _link_target(path: Path, folder: bool) -> Path:
+    """The output ``path`` names: itself, or the file or folder the symbolic link it is points at.
+
+    Why: renamed into place over the link, the output replaced the link itself with a regular
+    file and left the file it points at, the one the user meant, stale. The target is written
+    instead, its temporary beside it (a rename stays on one file system), and every rule
+    (--overwrite, read-only, a folder radiokit made) applies to it; a dangling link writes its
+    target, as the shell's ``>`` does, if the folder it names exists."""
+    if not path.is_symlink():
+        return path
+    target = resolved(path)
+    if target.is_symlink():  # realpath leaves a loop unresolved
+        raise OutputError(path, "is a symbolic link in a loop (it never reaches a file); choose another output")
+    if not target.parent.is_dir():
+        raise OutputError(
+            path, f"is a symbolic link to {target}, whose folder {target.parent} does not exist; choose another output"
+        )
+    return target
 
 
 def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:

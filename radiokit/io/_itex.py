@@ -15,7 +15,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["parse_itex_header", "parse_comment", "ITEX_TYPES"]
+__all__ = ["parse_itex_header", "parse_comment", "check_tail", "ITEX_TYPES"]
 
 # The comment length is unsigned: HiPic writes comments over 32767 bytes (read signed, a valid
 # 40 000-byte one was "negative"); width and height stay signed, a negative one is corrupt.
@@ -220,3 +220,31 @@ def read_scaling(path, fh, comment: dict, size: int) -> dict:
             entry["name"] = str(ref)
         axes[axis.lower()] = entry
     return axes
+
+
+def check_tail(path, geo: dict, comment: dict) -> None:
+    """Refuse a file holding an image's worth of bytes or more after its declared images that no
+    ``[Scaling]`` axis accounts for: a header whose count or size declares less than the pixels
+    stored (a count of 0, which means one image, over a stack; a size edited or from another
+    binning) read the first bytes as the declared images, silently, and ignored the rest.
+    HPD-TA's files hold exactly their axes there; padding short of an image is let be."""
+    image = geo["rows"] * geo["cols"] * geo["dtype"].itemsize
+    pixels_end = geo["offset"] + geo["n"] * image
+    size = geo["file_size"]
+    spans = []
+    for axis in ("X", "Y"):  # the byte ranges the axes take, where they lie after the pixels
+        m = _POINTER.match(str(comment.get("Scaling", {}).get(f"Scaling{axis}ScalingFile", "")))
+        if m:
+            spans.append((max(int(m.group(1)), pixels_end), min(int(m.group(1)) + 4 * int(m.group(2)), size)))
+    explained, reached = 0, pixels_end
+    for start, stop in sorted(spans):  # overlapping axes counted once
+        explained += max(0, stop - max(start, reached))
+        reached = max(reached, stop)
+    unexplained = size - pixels_end - explained
+    if unexplained >= image:
+        raise FormatError(
+            path,
+            f"ITEX header declares {geo['n']} image(s) of {geo['cols']}x{geo['rows']} {8 * geo['dtype'].itemsize}-bit "
+            f"(a count of 0 is one), but {unexplained} bytes follow them that no [Scaling] axis accounts for, "
+            f"room for {unexplained // image} more: the header disagrees with the file (a wrong count or size); not read",
+        )

@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 
 import h5py
+import imagecodecs
 import numpy as np
 import tifffile
 
@@ -30,7 +31,7 @@ from radiokit.io._experiment import (
     read_experiment_meta,
 )
 from radiokit.io._frames import Frames, check_bit_depth
-from radiokit.io._itex import HEADER_BYTES, parse_comment, parse_itex_header, read_scaling
+from radiokit.io._itex import HEADER_BYTES, check_tail, parse_comment, parse_itex_header, read_scaling
 from radiokit.io._layout import check_readable, open_h5, text
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
@@ -266,6 +267,7 @@ class FrameSource:
         geo = parse_itex_header(self.path, head, size)
         comment = self._fh.read(geo["comment_length"]).decode("latin-1").rstrip("\0")
         parsed = parse_comment(comment)
+        check_tail(self.path, geo, parsed)
         self._geo = geo
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"]
         self.bits = None
@@ -427,6 +429,9 @@ class FrameSource:
             if tag.name in _TIFF_TAGS
         }
         self.meta.update(n=self.n, rows=shape[0], cols=shape[1], dtype=str(self.dtype), tags=tags)
+        bits = int(first.bitspersample)
+        if self.dtype.kind == "u" and bits < 8 * self.dtype.itemsize:  # the ADC's, said below its word
+            self.meta["bit_depth"] = bits  # (16 says nothing: a 12-bit panel's TIFFs are 16-bit too)
         if self._orientation != 1:
             self.meta["orientation"] = self._orientation  # applied: row 0 is the top as viewers show it
         if self._invert is not None:
@@ -597,23 +602,35 @@ class FrameSource:
                     self.path,
                     f"TIFF page {i} holds {have} bytes of pixels; {rows}x{cols} {page.bitspersample}-bit needs {need}",
                 )
-        if page.bitspersample < 16 and page.bitspersample % 8 and not page.is_tiled:
+        if page.bitspersample < 16 and page.bitspersample % 8:
             self._check_words(i, page, rows, cols)
 
     def _check_words(self, i, page, rows, cols) -> None:
-        """Set ``self._words`` from page 0's strips, and check that page ``i`` is stored alike."""
+        """Set ``self._words`` from page 0's strips or tiles, and check that page ``i`` is stored
+        alike. A compressed page other than page 0 is checked as it is read (:meth:`_read_segments`
+        decodes it then anyway): decoding every page here would read the stack twice."""
         if page.compression == 1:
             words = self._word_bytes(i, page, rows, cols, page.databytecounts)
-        elif not i:  # decoding costs a read: the other pages are taken to be stored as page 0
-            words = self._word_bytes(i, page, rows, cols, [self._decoded_bytes(page, rows, cols)])
+        elif not i:
+            words = self._word_bytes(
+                i, page, rows, cols, [len(self._decoded_segment(page, 0, _segments(page, rows, cols)[0]))]
+            )
         else:
             return
-        if i and words != self._words:  # one way of reading serves every page
+        if i:
+            self._check_stored_alike(i, page, words)
+        self._words = words
+
+    def _check_stored_alike(self, i, page, words) -> None:
+        """Refuse page ``i`` stored otherwise (packed rows or whole words) than page 0: one way of
+        reading serves every page, and the other way reads the page as garbage."""
+        first = self._pages[0]
+        if words != self._words:
             raise FormatError(
                 self.path,
-                f"TIFF page {i} holds {_stored(words)}, page 0 {_stored(self._words)}: not one stack of frames",
+                f"TIFF page {i} holds {_storage(page.bitspersample, words)}, page 0 "
+                f"{_storage(first.bitspersample, self._words)}: not one stack of frames",
             )
-        self._words = words
 
     def _words_read(self, first) -> int | None:
         """The BitsPerSample of pages read as whole words (else None), said once every page has
@@ -623,45 +640,50 @@ class FrameSource:
             return None
         bits, word = int(first.bitspersample), 8 * self._words
         warnings.warn(
-            f"{self.path}: TIFF says BitsPerSample {bits} but its strips hold one {word}-bit word per pixel: "
-            f"read as {word}-bit words",
+            f"{self.path}: TIFF says BitsPerSample {bits} but its {'tiles' if first.is_tiled else 'strips'} hold "
+            f"one {word}-bit word per pixel: read as {word}-bit words",
             UserWarning,
             stacklevel=5,  # the caller of read() / open_frames()
         )
         # words above the range BitsPerSample declares then warn (MSB-aligned data, another model)
         return bits
 
-    def _decoded_bytes(self, page, rows, cols) -> int:
-        """The length ``page``'s first compressed strip decodes to, at most one more than 16-bit
-        words would fill (the decoder allocates no more: a bomb stops there)."""
-        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+    def _decoded_segment(self, page, k, shape) -> bytes:
+        """Strip or tile ``k`` of ``page`` as stored, decompressed: at most one byte more than
+        16-bit words of its ``shape`` (rows, cols) would fill (the decoder allocates no more: a
+        bomb stops there)."""
         fh = self._tif.filehandle
-        fh.seek(page.dataoffsets[0])
-        decode = tifffile.TIFF.DECOMPRESSORS[int(page.compression)]
-        return len(decode(fh.read(page.databytecounts[0]), out=per_strip * cols * 2 + 1))
+        fh.seek(page.dataoffsets[k])
+        data = fh.read(page.databytecounts[k])
+        if page.compression == 1:
+            return data
+        if page.fillorder == 2:  # bits reversed in the stored bytes, before decoding (libtiff, tifffile)
+            data = imagecodecs.bitorder_decode(data)
+        return tifffile.TIFF.DECOMPRESSORS[int(page.compression)](data, out=shape[0] * shape[1] * 2 + 1)
 
     def _word_bytes(self, i, page, rows, cols, sizes) -> int:
-        """0 when a 1..15-bit page's strips hold packed bits, else the bytes of the word holding
-        each pixel (1 or 2). ``sizes`` are the strips' byte counts, decoded (only the first strip's
-        for a compressed page).
+        """0 when a 1..15-bit page's strips or tiles hold packed bits, else the bytes of the word
+        holding each pixel (1 or 2). ``sizes`` are their byte counts, decoded (only the first
+        one's for a compressed page at open).
 
         TIFF packs such samples, each row starting on a byte boundary: a strip of r rows holds
-        r * ceil(cols * bits / 8) bytes. Some writers store 12-bit counts in 16-bit words (or
-        4-bit ones in bytes) and still say BitsPerSample 12 (or 4); their strips hold
+        r * ceil(cols * bits / 8) bytes, a tile (always whole, padded at the image's edges)
+        tilelength * ceil(tilewidth * bits / 8). Some writers store 12-bit counts in 16-bit words
+        (or 4-bit ones in bytes) and still say BitsPerSample 12 (or 4); their strips hold
         r * cols * 2 (or r * cols) bytes, which unpacking as packed bits turns to garbage. The
-        strip sizes tell which; neither is an error.
+        sizes tell which; neither is an error.
         """
         bits = int(page.bitspersample)
-        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
-        row_bytes = (cols * bits + 7) // 8
+        shapes = _segments(page, rows, cols)
+        whole = shapes[0][0]  # the rows of a whole strip or tile
         fits = dict.fromkeys((0, 1, 2), 0)
-        for k, nbytes in enumerate(sizes):
-            r = min(per_strip, rows - k * per_strip)
+        for (r, c), nbytes in zip(shapes, sizes):
+            row_bytes = (c * bits + 7) // 8
             # packed: a short last strip may be padded to a whole strip, any strip to an even length;
             # a size that fits both readings (very narrow rows) is packed, as TIFF says
-            fits[0] += r * row_bytes <= nbytes <= per_strip * row_bytes + 1
+            fits[0] += r * row_bytes <= nbytes <= whole * row_bytes + 1
             for word in (1, 2) if bits < 8 else (2,):
-                fits[word] += nbytes == r * cols * word
+                fits[word] += nbytes == r * c * word
         word = next((w for w in (0, 1, 2) if fits[w] == len(sizes)), None)
         if word == 0:
             return 0
@@ -669,15 +691,15 @@ class FrameSource:
             return word
         raise FormatError(
             self.path,
-            f"TIFF page {i}: its strip byte counts {list(sizes)[:4]} fit neither packed {bits}-bit "
-            f"rows nor {'8- or 16-bit' if bits < 8 else '16-bit'} words for {rows}x{cols} pixels",
+            f"TIFF page {i}: its {'tile' if page.is_tiled else 'strip'} byte counts {list(sizes)[:4]} fit neither "
+            f"packed {bits}-bit rows nor {'8- or 16-bit' if bits < 8 else '16-bit'} words for {rows}x{cols} pixels",
         )
 
     def _read_tiff(self, i):
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
-        elif self._words:
-            frame = self._read_words(i)
+        elif self._words or _packed_and_compressed(self._pages[i]):
+            frame = self._read_segments(i)
         else:
             frame = self._pages[i].asarray()
         if frame.shape != self._stored_shape:
@@ -690,29 +712,40 @@ class FrameSource:
             frame = frame.astype(dtype)
         return _ORIENT[self._orientation](frame)
 
-    def _read_words(self, i) -> np.ndarray:
-        """Frame ``i``, whose strips hold one 8- or 16-bit word per pixel although BitsPerSample says fewer."""
-        page, fh, (rows, cols) = self._pages[i], self._tif.filehandle, self._stored_shape
-        per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
-        decode = tifffile.TIFF.DECOMPRESSORS[int(page.compression)] if page.compression != 1 else None
-        parts = []
-        for offset, nbytes in zip(page.dataoffsets, page.databytecounts):
-            fh.seek(offset)
-            part = fh.read(nbytes)
-            parts.append(decode(part, out=per_strip * cols * self._words + 1) if decode else part)
-        data = b"".join(parts)
-        if len(data) != rows * cols * self._words:  # the other pages are not checked at open
+    def _read_segments(self, i) -> np.ndarray:
+        """Frame ``i`` of 1..15-bit samples, in whole 8- or 16-bit words or compressed packed rows,
+        decoded strip by strip (or tile by tile) here: how each page holds them is told by its
+        decoded sizes, checked against page 0's, so that no page is read the other way."""
+        page, (rows, cols) = self._pages[i], self._stored_shape
+        shapes = _segments(page, rows, cols)
+        parts = [self._decoded_segment(page, k, shape) for k, shape in enumerate(shapes)]
+        words = self._word_bytes(i, page, rows, cols, [len(part) for part in parts])
+        self._check_stored_alike(i, page, words)
+        if page.predictor not in (1, 2) or (page.predictor == 2 and not words):
+            # libtiff differences 8-, 16-, 32- and 64-bit samples only
             raise FormatError(
-                self.path,
-                f"TIFF frame {i} decodes to {len(data)} bytes, not the {rows * cols * self._words} of page 0's "
-                f"{_stored(self._words)} for {rows}x{cols}: not one stack of frames",
+                self.path, f"TIFF predictor {page.predictor} over {_storage(page.bitspersample, words)}: not read"
             )
-        words = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{self._words}")).reshape(rows, cols)
-        if page.predictor == 2:  # horizontal differencing, undone in the words' own (wrapping) type
-            return np.cumsum(words, axis=1, dtype=f"u{self._words}")
-        if page.predictor != 1:
-            raise FormatError(self.path, f"TIFF predictor {page.predictor} over integer words: not read")
-        return words.astype(f"u{self._words}")
+        if not page.is_tiled:  # strips hold whole rows: joined (a padded strip cut), decoded at once
+            need = [r * (c * words if words else (c * int(page.bitspersample) + 7) // 8) for r, c in shapes]
+            return self._samples(page, b"".join(part[:n] for part, n in zip(parts, need)), rows, cols, words)
+        pieces = [self._samples(page, part, r, c, words) for part, (r, c) in zip(parts, shapes)]
+        across = -(-cols // shapes[0][1])
+        grid = [np.concatenate(pieces[k : k + across], axis=1) for k in range(0, len(pieces), across)]
+        return np.ascontiguousarray(np.concatenate(grid)[:rows, :cols])
+
+    def _samples(self, page, data, rows, cols, words) -> np.ndarray:
+        """The ``rows`` x ``cols`` samples decoded ``data`` holds, in whole words of ``words``
+        bytes or packed rows, the horizontal predictor undone in their own (wrapping) type."""
+        dtype = np.dtype(f"u{words}") if words else np.dtype(page.dtype)
+        if words:
+            out = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{words}")).reshape(rows, cols)
+        else:
+            out = imagecodecs.packints_decode(data, dtype, int(page.bitspersample), runlen=cols)
+            out = out[: rows * cols].reshape(rows, cols)
+        if page.predictor == 2:
+            return np.cumsum(out, axis=1, dtype=dtype)
+        return out.astype(dtype)
 
     def _tiff_inversion(self, page):
         """The value TIFF 6.0's WhiteIsZero (PhotometricInterpretation 0) subtracts from, else None.
@@ -850,8 +883,11 @@ class FrameSource:
                 meta["cf_packing"] = {k: self._packing[k] for k in ("scale_factor", "add_offset")}
             if self._invert is not None:
                 meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
-            if "MATLAB_class" in data.attrs:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
-                meta["matlab_class"] = text(data.attrs["MATLAB_class"])
+            column_major = _matlab_array(self.path, self._h5, data)
+            if column_major:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
+                meta["column_major"] = column_major
+                if "MATLAB_class" in data.attrs:
+                    meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:
                 meta.update(self._keys_beside(dataset, n))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
@@ -869,7 +905,7 @@ class FrameSource:
         self._ds = data
         # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
         # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
-        self._transposed = "matlab_class" in meta
+        self._transposed = "column_major" in meta
         shape = tuple(data.shape[-2:])[:: -1 if self._transposed else 1]
         # h5py hands through the byte order the file stores; read() promises native order
         self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
@@ -1233,6 +1269,38 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     return f"{data.name}/{signal}", None
 
 
+#: the text MATLAB's ``save -v7.3`` begins its 512-byte userblock with
+_MAT_HEADER = b"MATLAB 7.3 MAT-file"
+
+
+def _matlab_array(path, h5: h5py.File, data) -> str | None:
+    """What says ``data`` is a MATLAB array, else None; a warning says it is read transposed.
+
+    MATLAB stores its arrays column-major and HDF5 row-major, so it writes each with its
+    dimensions reversed: a rows x cols x n stack reads as (n, cols, rows), every frame transposed
+    (a square one silently so). A variable ``save -v7.3`` wrote carries ``@MATLAB_class``; a
+    dataset in a .mat file without it (``h5write`` into one) is known by the file's MAT-file
+    header. ``h5write`` into a plain HDF5 file leaves no mark at all: such frames are read as
+    stored, row-major (README)."""
+    if "MATLAB_class" in data.attrs:
+        why = f"@MATLAB_class {text(data.attrs['MATLAB_class'])}"
+    elif h5.userblock_size >= len(_MAT_HEADER):
+        with open(path, "rb") as fh:
+            head = fh.read(len(_MAT_HEADER))
+        if head != _MAT_HEADER:
+            return None
+        why = "the file's MATLAB 7.3 MAT-file header"
+    else:
+        return None
+    warnings.warn(
+        f"{path}: {data.name} is a MATLAB array ({why}), stored column-major: its frames are read "
+        "transposed, as MATLAB shows them (a rows x cols x n stack as n frames of rows x cols)",
+        UserWarning,
+        stacklevel=5,  # the caller of read() / open_frames()
+    )
+    return why
+
+
 def _refuse_colour(path, data) -> None:
     """A colour image is no radiograph: HDF5's Image spec (``CLASS=IMAGE``) marks a truecolour one
     ``IMAGE_TRUECOLOR`` ((rows, cols, 3) pixel-interlaced or (3, rows, cols) planes; read as frames
@@ -1401,8 +1469,26 @@ _ORIENT = {
 }
 
 
-def _stored(word: int) -> str:
-    return f"{8 * word}-bit words" if word else "packed rows"
+def _storage(bits, word: int) -> str:
+    """How a page holds its ``bits``-bit samples: in whole words of ``word`` bytes, else packed."""
+    if word:
+        return f"{bits}-bit counts in {8 * word}-bit words"
+    return f"packed {bits}-bit rows" if int(bits) % 8 else f"{bits}-bit samples"
+
+
+def _segments(page, rows, cols) -> list[tuple[int, int]]:
+    """The (rows, cols) each strip or tile of a ``rows`` x ``cols`` page holds: tiles whole (TIFF
+    pads those at the right and bottom edges), strips RowsPerStrip rows, the last the rows left."""
+    if page.is_tiled:
+        return [(int(page.tilelength), int(page.tilewidth))] * len(page.dataoffsets)
+    per_strip = page.rowsperstrip if 0 < page.rowsperstrip < rows else rows
+    return [(min(per_strip, rows - k * per_strip), cols) for k in range(len(page.dataoffsets))]
+
+
+def _packed_and_compressed(page) -> bool:
+    """``page`` holds 1..15-bit samples (packed, or in whole words) in compressed strips or tiles:
+    how is told only by decoding them (:meth:`FrameSource._read_segments`)."""
+    return page.compression != 1 and page.bitspersample < 16 and bool(page.bitspersample % 8)
 
 
 def _nx_class(group) -> str:
