@@ -783,6 +783,27 @@ def test_a_series_interrupted_while_its_guardian_starts_ends_with_the_guardian(t
     assert not model.xray_on and "Traceback" not in acq.output
 
 
+def test_the_guardian_watch_sleeps_between_its_scans_of_proc(monkeypatch):
+    """``guardian_held_at_start`` scans /proc for the guardian until it appears. Found: it scanned
+    without a pause, a whole core of the machine's two, starving the command and its guardian under
+    ``-n 4`` (the tests using it were flaky under load). Every scan that finds nothing is now
+    followed by a short sleep. Here the command starts no guardian and ends: the watch gives up."""
+    import conftest
+
+    scans, sleeps, real_sleep = [], [], time.sleep
+    monkeypatch.setattr(conftest, "guardian_of", lambda pid: scans.append(pid))
+    monkeypatch.setattr(conftest.time, "sleep", lambda s: (sleeps.append(s), real_sleep(s)))
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
+    try:
+        with pytest.raises(AssertionError, match="no X-ray guardian started"):
+            with guardian_held_at_start(proc, lambda: False):
+                pass
+    finally:
+        proc.wait(timeout=30)
+    assert len(scans) >= 2, scans
+    assert len(sleeps) >= len(scans) - 1 and all(s > 0 for s in sleeps), (len(scans), sleeps[:5])
+
+
 def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     """A stop signal reaches :meth:`SignalGuard.on_signal`'s callbacks from the watcher thread,
     without the main thread's help. The main thread blocks the signal here, as a frame write in a C
