@@ -284,6 +284,29 @@ def test_a_reply_just_after_the_time_out_is_never_read_as_the_next_commands(dial
             assert src.status().name == "STANDBY"
 
 
+def test_the_switch_off_after_a_time_out_waits_for_the_late_reply_and_is_not_lost(dialect):
+    """The poll's reply comes 0.3 s after the driver stopped waiting for it, and the unit loses a
+    command that reaches it while it still owes a reply (the model's reading; L8121.md is silent).
+    Found: the driver sent ``XOF`` 60 ms after the time-out, into the late reply: it was lost, and
+    the tube was confirmed off only through a further attempt (seconds later, and not at all had the
+    ``STS`` after it been lost too). Now, after a time-out, the next command waits (a quarter of
+    the reply time-out at most) for the late reply to come and the line to fall quiet: the first
+    ``XOF`` is acted on, no command is lost, and the late reply is not read as ``XOF``'s."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            src.on(60, 250)
+            poll = src.dialect.readings[src.dialect.poll[0]].command
+            unit.slow[poll] = src.timeout_s + 0.3
+            with pytest.raises(DeviceError, match=f"no reply to {poll}"):
+                src.check()
+            assert src.tube_confirmed_off and not unit.emitting
+            xofs = [reply for _, line, reply in unit.log if line == "XOF"]
+            assert unit.lost == [], unit.lost
+            assert xofs == ["XOF"], unit.log
+            assert src.status().name == "STANDBY"
+
+
 def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
     """``source on`` leaves the beam on by design; ``kill -9`` in its ramp (no handler runs) ends it
     before its last line. Found: nothing at all had been printed, so the operator was not told
