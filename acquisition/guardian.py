@@ -415,13 +415,32 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
         # on the tube: the port is free again, and the caller switches off through it, or warns
         # (review s33-r2; recording that as a failed switch-off stopped the caller's, s33-r4)
         exc.guardian_gone = link.may_have_sent
+        _advise(
+            exc,
+            "; if the last line does not confirm the tube off, switch it off at the controller "
+            "before running the command again"
+            if exc.guardian_gone
+            else "; run the command again",
+        )
         return
     code, _, text = said.partition(" ")
     exc.guardian_off = True  # the guardian's switch-off, not the caller's
     if code == "0" and text in SourceState.__members__:
         exc.tube_state = SourceState[text]
+        _advise(exc, "; run the command again")
     else:
         exc.off_failed = DeviceError(f"{link.port}: the X-ray guardian's switch-off: {text or said}")
+        _advise(exc, "; switch the source off at the controller before running the command again")
+
+
+def _advise(exc: BaseException, advice: str) -> None:
+    """End a slow start's error (the start time-out, :class:`~acquisition.errors.NoReply`) with
+    what to do, known only now: "run the command again" said before the X-RAYS MAY STILL BE ON
+    warning told the operator to switch on again a tube that may be on."""
+    from acquisition.errors import NoReply
+
+    if isinstance(exc, NoReply) and exc.args and isinstance(exc.args[0], str):
+        exc.args = (exc.args[0] + advice, *exc.args[1:])
 
 
 # -- the guardian process ---------------------------------------------------------------------------

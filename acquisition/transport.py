@@ -966,7 +966,7 @@ class PipeTransport:
                 if command == "start":
                     raise NoReply(
                         f"{self.url}: {who} did not report the port open within {wait_s:g} s of its start "
-                        "(a slow start: the computer may be busy); run the command again"
+                        "(a slow start: the computer may be busy)"  # what to do: once the tube's state is known (_end_start)
                     )
                 raise NoReply(f"{self.url}: {command}: no answer from {who} within {wait_s:g} s")
             ready, _, _ = select.select([self._rfd], [], [], left)
