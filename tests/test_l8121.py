@@ -3981,13 +3981,16 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
 _ON_AT_THE_CONTROLLER = {"A": ["HIV 60", "CUR 250", "XON"], "B": ["PHV 600", "PCU 250", "XON"]}
 
 
-def _a_failed_start_meets_a_stuck_tube(model, monkeypatch, *, on_at_the_controller=False, kill_after_xof=False):
+def _a_failed_start_meets_a_stuck_tube(
+    model, monkeypatch, *, on_at_the_controller=False, kill_after_xof=False, slow_s=0.0
+):
     """A helper thread for a guardian whose start fails: held (SIGSTOP) past a start time-out
     shortened to 1 s (a slow start made wide, not a fake), then let go with the tube stuck on
     (``XOF`` acknowledged, ``STS`` still on: a failed relay, the emulator's ``stuck_on``) --
     switched on at the controller meanwhile if ``on_at_the_controller`` -- and, if
     ``kill_after_xof``, killed (SIGKILL) as soon as its switch-off's ``XOF`` reached the
-    controller: it dies holding the port, without its ``O`` line."""
+    controller: it dies holding the port, without its ``O`` line. ``slow_s``: every reply from
+    then on that late."""
     from acquisition import guardian
 
     monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
@@ -4001,6 +4004,7 @@ def _a_failed_start_meets_a_stuck_tube(model, monkeypatch, *, on_at_the_controll
             assert all(model.handle(c) == c for c in _ON_AT_THE_CONTROLLER[model.dialect])
         sent = model.commands.count("XOF")
         model.stuck_on()
+        model.slow(slow_s)
         os.kill(held[0], signal.SIGCONT)
         while kill_after_xof and model.commands.count("XOF") == sent:
             time.sleep(0.005)
@@ -4063,6 +4067,88 @@ def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(e
     assert "at the controller before running the command again" in err, err
     assert "; run the command again" not in err, err
     assert "gave up on the X-ray guardian's start" in err, err
+
+
+#: a reply time-out short enough for the two tests below to wait out a guardian's whole switch-off
+_SHORT_REPLY_S = 0.5
+
+
+def _guardian_switch_off_worst_s(reply_s: float) -> float:
+    """The guardian's own switch-off at its worst, from the documented times (SourceConfig's
+    defaults; the reply time-out ``reply_s``): each XOF attempt's XOF and STS answered just within
+    the time-out, over the confirmation window, the pauses between attempts."""
+    c = SourceConfig()
+    return c.off_attempts * (2 * (reply_s + DIALECT_A.min_interval_s) + c.poll_s) + c.off_confirm_s
+
+
+def test_a_guardian_hung_after_a_failed_start_is_killed_within_its_switch_offs_time(monkeypatch, capfd):
+    """`source warm-up`'s guardian does not start in time (held with SIGSTOP past a start time-out
+    shortened to 1 s) and never runs again (hung). Found: the command waited 52 s (reply time-out
+    2 s; 34 s at 0.5 s) before killing it -- each XOF and STS counted as the pipe's own wait, two
+    time-outs and a reconnect. Now the wait is the guardian's start and its switch-off at its worst
+    (plus margins): the command then switches off through the freed port itself, confirmed."""
+    from acquisition import guardian
+    from radiokit.cli import main
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    model = L8121Model(dialect="A", warmed_up=False, ramp_s=RAMP_S)
+    held = []
+    helper = threading.Thread(target=_stop_the_guardian, args=(held,), daemon=True)
+    with PtyServer(model) as server:
+        helper.start()
+        t0 = time.monotonic()
+        try:
+            code = main(
+                [
+                    "acquire",
+                    "source",
+                    "warm-up",
+                    "--port",
+                    server.url,
+                    "--dialect",
+                    "A",
+                    "--reply-timeout",
+                    str(_SHORT_REPLY_S),
+                ]
+            )
+        finally:
+            for pid in held:  # (killed by the command; if not, not left stopped)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        took = time.monotonic() - t0
+        helper.join(timeout=30)
+        assert held and not model.xray_on
+    err = capfd.readouterr().err
+    assert "XOF sent anyway: X-rays off (confirmed by STS" in err.strip().splitlines()[-1] and code == 1, err
+    # the start, the guardian's switch-off at its worst (and a margin of half of it for the waits
+    # after a time-out), then the command's own XOF and STS; 5 s for its connect and a loaded machine
+    limit = 1.0 + 1.5 * _guardian_switch_off_worst_s(_SHORT_REPLY_S) + 2 * _SHORT_REPLY_S + 5.0
+    assert took <= limit, (took, limit, err)
+
+
+def test_a_guardian_slow_in_its_switch_off_after_a_failed_start_is_not_killed(monkeypatch, capfd):
+    """The other side of the bound above: the guardian's start fails, and its switch-off meets a
+    stuck tube whose every reply comes at nine tenths of the reply time-out -- its whole worst case
+    (its off() through every attempt). It is not killed: it says the tube is not confirmed off, and
+    the command ends on the warning without a switch-off of its own."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A", "--reply-timeout", str(_SHORT_REPLY_S)]
+        assert main(["acquire", "source", "on", *port[:4], "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()
+        helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, slow_s=0.9 * _SHORT_REPLY_S)
+        code = main(["acquire", "source", "warm-up", *port])
+        helper.join(timeout=30)
+        assert model.xray_on
+    err = capfd.readouterr().err
+    # its word (O 3), not its kill: what to do follows from it, and no switch-off of the command's
+    assert "switch the source off at the controller before running the command again" in err, err
+    assert "sending XOF anyway" not in err and "if the last line does not confirm" not in err, err
+    assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
 
 
 @pytest.mark.parametrize("stop", [None, signal.SIGINT], ids=["failed-start", "ctrl-c"])
