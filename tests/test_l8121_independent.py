@@ -19,6 +19,7 @@ from independent_l8121 import Controller
 
 from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import L8121
+from acquisition.transport import SerialTransport
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 ROOT = Path(__file__).resolve().parent.parent
@@ -305,6 +306,35 @@ def test_the_switch_off_after_a_time_out_waits_for_the_late_reply_and_is_not_los
             assert unit.lost == [], unit.lost
             assert xofs == ["XOF"], unit.log
             assert src.status().name == "STANDBY"
+
+
+def test_the_model_loses_no_command_for_its_own_pause_after_a_reply(dialect, monkeypatch):
+    """The model's own rule, checked: a command the driver sends 60 ms after the reply (as the
+    notes ask) is answered even when the model's thread pauses right after writing the reply (a
+    loaded machine deschedules it; here a 0.3 s sleep after each reply's last write stands for
+    that, the one way to cause it at will). Found: the model looked for a next command only after
+    the pause, took the one already there for pipelined and lost it (the likeliest cause of a
+    session test's "no reply to SVI" at load 7)."""
+    real_os = independent_l8121.os
+
+    class PausingOs:
+        def __getattr__(self, name):
+            return getattr(real_os, name)
+
+        @staticmethod
+        def write(fd, data):
+            n = real_os.write(fd, data)
+            if data.endswith((b"\r", b"\n")):
+                time.sleep(0.3)
+            return n
+
+    monkeypatch.setattr(independent_l8121, "os", PausingOs())
+    with Controller(dialect, chunks=1) as unit:
+        unit.ready(warmed=True)
+        with SerialTransport(unit.port, timeout_s=2.0, min_interval_s=0.06) as link:
+            replies = [link.query("STS"), link.query("SIN")]
+        assert unit.lost == [], unit.lost
+    assert [reply for _, _, reply in unit.log] == replies
 
 
 def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
