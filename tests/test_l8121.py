@@ -3935,7 +3935,29 @@ def _stop_the_guardian(found: list) -> None:
             time.sleep(0.002)
 
 
-def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
+def _a_slow_guardian_start(monkeypatch) -> None:
+    """The guardian's start time-out shortened to 1 s, and the guardian process stopped (SIGSTOP,
+    by itself) before its interpreter runs, for :func:`_stop_the_guardian` to find and hold: a slow
+    start made wide, not a fake. Found: caught from outside only, a guardian on a loaded machine
+    (load 7) sometimes said READY first, and the test saw a start that had not failed."""
+    from acquisition import guardian
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    real = guardian.subprocess
+
+    class StoppedAtStart:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        @staticmethod
+        def Popen(cmd, *args, **kwargs):
+            return real.Popen(["/bin/sh", "-c", 'kill -STOP $$; exec "$@"', "sh", *cmd], *args, **kwargs)
+
+    monkeypatch.setattr(guardian, "subprocess", StoppedAtStart())
+
+
+def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect, monkeypatch):
     """The guardian did not say READY in time (here held with SIGSTOP: a slow start made wide,
     not a fake), so start_guardian has it switch off and waits for it. A Ctrl-C in that wait --
     the likeliest moment for one, up to a minute of silence -- escaped from the wait (review
@@ -3945,6 +3967,7 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
 
     from acquisition.guardian import SignalGuard, StopSignal, start_guardian
 
+    _a_slow_guardian_start(monkeypatch)
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
     found = []
 
@@ -3991,10 +4014,8 @@ def _a_failed_start_meets_a_stuck_tube(
     ``kill_after_xof``, killed (SIGKILL) as soon as its switch-off's ``XOF`` reached the
     controller: it dies holding the port, without its ``O`` line. ``slow_s``: every reply from
     then on that late."""
-    from acquisition import guardian
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
     held = []
 
     def run():
@@ -4087,11 +4108,9 @@ def test_a_guardian_hung_after_a_failed_start_is_killed_within_its_switch_offs_t
     2 s; 34 s at 0.5 s) before killing it -- each XOF and STS counted as the pipe's own wait, two
     time-outs and a reconnect. Now the wait is the guardian's start and its switch-off at its worst
     (plus margins): the command then switches off through the freed port itself, confirmed."""
-    from acquisition import guardian
     from radiokit.cli import main
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
     model = L8121Model(dialect="A", warmed_up=False, ramp_s=RAMP_S)
     held = []
     helper = threading.Thread(target=_stop_the_guardian, args=(held,), daemon=True)
@@ -4173,10 +4192,8 @@ def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(
         return receive(line, baudrate)
 
     monkeypatch.setattr(model, "receive", losing_the_guardians_xof)
-    from acquisition import guardian
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
 
     def run():
         _stop_the_guardian(held)
@@ -4222,11 +4239,9 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     reached the X-ray controller", exit 1, with the dialect given, though the guardian had); it now
     says the guardian's confirmed state and exits 1, as any failed command with the tube off."""
 
-    from acquisition import guardian
     from radiokit.cli import main
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
     model = L8121Model(dialect=dialect, warmed_up=False, ramp_s=0.2)
     held = []
 
