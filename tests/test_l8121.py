@@ -3921,18 +3921,19 @@ def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed
 
 
 def _stop_the_guardian(found: list) -> None:
-    """SIGSTOP the X-ray guardian this process starts, as soon as it exists (within 30 s), its pid
-    appended to ``found``: a slow guardian start made wide."""
+    """Find the X-ray guardian this process starts (within 30 s) stopped by itself before its
+    interpreter runs (:func:`_a_slow_guardian_start`), its pid appended to ``found``: a slow
+    guardian start made wide, which one SIGCONT ends. (Sent a SIGSTOP of its own here as well, a
+    guardian caught before it stopped itself stopped again after that SIGCONT, for good: hung.)"""
     from conftest import guardian_of
 
     end = time.monotonic() + 30
     while not found and time.monotonic() < end:
         pid = guardian_of(os.getpid())
-        if pid is not None:
-            os.kill(pid, signal.SIGSTOP)
+        if pid is not None and _proc_state(pid) == "T":
             found.append(pid)
-        else:  # a guardian's interpreter takes far longer than this to start: it is not missed
-            time.sleep(0.002)
+        else:
+            time.sleep(0.01)
 
 
 def _a_slow_guardian_start(monkeypatch) -> None:
@@ -4222,10 +4223,15 @@ def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(
 
 def _zombie(pid) -> bool:
     """``pid`` ended and awaits its parent's wait (no longer running)."""
+    return _proc_state(pid) in (None, "Z")
+
+
+def _proc_state(pid) -> str | None:
+    """``pid``'s state letter in /proc (T stopped, Z ended and not waited for), None when gone."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
-    except OSError:
-        return True
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1][:1]
+    except (OSError, IndexError):
+        return None
 
 
 @pytest.mark.parametrize("probed", [False, True], ids=["dialect-given", "probed"])
