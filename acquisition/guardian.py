@@ -395,10 +395,7 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
     from acquisition.errors import DeviceError, NoReply
     from acquisition.l8121 import SourceState
 
-    # its start, then the switch-off: every attempt's XOF and STS (each a reply time-out and a
-    # reconnect, :class:`~acquisition.transport.PipeTransport`'s wait) and the confirmation window
-    per_exchange = 2 * (config.timeout_s + 1.0) + 2.0
-    bound = startup_timeout_s + config.off_confirm_s + 2 * config.off_attempts * per_exchange
+    bound = _end_start_bound_s(config, startup_timeout_s)
     if isinstance(exc, NoReply):  # a guardian silent past its start's time: the wait may be long
         _say(f"{link.port}: waiting up to {bound:.0f} s for the X-ray guardian to switch off and exit")
     # stops held off for the wait: a Ctrl-C there (the likeliest moment, after a silent failed
@@ -415,13 +412,48 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
         # on the tube: the port is free again, and the caller switches off through it, or warns
         # (review s33-r2; recording that as a failed switch-off stopped the caller's, s33-r4)
         exc.guardian_gone = link.may_have_sent
+        _advise(
+            exc,
+            "; if the last line does not confirm the tube off, switch it off at the controller "
+            "before running the command again"
+            if exc.guardian_gone
+            else "; run the command again",
+        )
         return
     code, _, text = said.partition(" ")
     exc.guardian_off = True  # the guardian's switch-off, not the caller's
     if code == "0" and text in SourceState.__members__:
         exc.tube_state = SourceState[text]
+        _advise(exc, "; run the command again")
     else:
         exc.off_failed = DeviceError(f"{link.port}: the X-ray guardian's switch-off: {text or said}")
+        _advise(exc, "; switch the source off at the controller before running the command again")
+
+
+def _end_start_bound_s(config, startup_timeout_s: float) -> float:
+    """How long a guardian whose start failed may take to switch off and exit before it is
+    killed: its start again, then one ``off()`` at its worst -- each attempt's ``XOF`` and last
+    ``STS`` and B's closing ``SRL`` answered just within the reply time-out (plus the wait for a
+    late reply after one, a quarter more; the command spacing; two read slices), the confirmation
+    window and the pauses between attempts -- and 2 s for a loaded machine. It counted each of
+    those exchanges as the pipe's wait (two time-outs, a reconnect, slack: 8 s at 2 s), 52 s for a
+    1 s start (71 s at the 20 s default) before a hung guardian was killed. A link lost in the
+    switch-off may get a guardian killed that was still working: the port is then free and the
+    caller switches off through it itself (``guardian_gone``), confirmed by STS or the warning."""
+    exchanges = 2 * config.off_attempts + 1
+    per_exchange = 1.25 * config.timeout_s + config.min_interval_s + 0.1
+    pauses = config.off_attempts * config.poll_s
+    return startup_timeout_s + exchanges * per_exchange + config.off_confirm_s + pauses + 2.0
+
+
+def _advise(exc: BaseException, advice: str) -> None:
+    """End a slow start's error (the start time-out, :class:`~acquisition.errors.NoReply`) with
+    what to do, known only now: "run the command again" said before the X-RAYS MAY STILL BE ON
+    warning told the operator to switch on again a tube that may be on."""
+    from acquisition.errors import NoReply
+
+    if isinstance(exc, NoReply) and exc.args and isinstance(exc.args[0], str):
+        exc.args = (exc.args[0] + advice, *exc.args[1:])
 
 
 # -- the guardian process ---------------------------------------------------------------------------

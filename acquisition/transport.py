@@ -217,6 +217,10 @@ class SerialTransport:
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
+        # The last exchange timed out (NoReply): the controller may still be answering it, and a
+        # unit busy answering may lose the next command (L8121.md is silent); the next exchange
+        # first waits, briefly, for that reply and a quiet line (_await_late_reply)
+        self._timed_out = False
         # Commands whose reply was not read -- timed out (NoReply), or written before a link error
         # (a read error: the port is reopened) -- oldest first, each with the time after which its
         # late reply is no longer waited for: the controller answers in order, so the next lines
@@ -451,6 +455,7 @@ class SerialTransport:
     def _exchange(self, command: str, payload: bytes) -> str:
         ser = self._serial
         self._drain_pending()
+        self._await_late_reply()
         wait = self._last_exchange + self.min_interval_s - time.monotonic()
         if wait > 0:
             time.sleep(wait)
@@ -474,6 +479,7 @@ class SerialTransport:
                 # reply time-out from now (not from the send: the wait's last slice and a stall
                 # before the next command ate into a window counted from there)
                 self._owed.append((command, time.monotonic() + self.timeout_s))
+            self._timed_out = isinstance(exc, NoReply)
             if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
                 self._pending = (command, t0 + self.timeout_s)
@@ -571,6 +577,41 @@ class SerialTransport:
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
         self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
+
+    def _await_late_reply(self) -> None:
+        """After a reply time-out, before the next command: wait for the late reply to come (up to
+        a quarter of ``timeout_s`` for its first byte, as the probe waits between rates) and the
+        line to fall quiet (one read slice without a byte after a whole line; at most one more
+        ``timeout_s`` in all), and discard it. Sent at once, 60 ms after the time-out, a command
+        reached a unit still answering (a reply 0.3 s late): a unit that loses it then lost the
+        switch-off's ``XOF``, confirmed only by a further attempt seconds later. A silent
+        controller costs the quarter per command after a time-out; a reply later still is left
+        to the flush before the command and to :meth:`_is_late`."""
+        if not self._timed_out:
+            return
+        self._timed_out = False  # once: an interrupt here loses nothing but the wait
+        ser, buf = self._serial, bytearray(self._rx)  # a partial reply: the unit is mid-answer
+        t0 = time.monotonic()
+        first_by, cap = t0 + self.timeout_s / 4, t0 + self.timeout_s
+        heard = t0 if buf else None
+        while True:
+            data = ser.read(max(1, ser.in_waiting))  # blocks one slice at most
+            now = time.monotonic()
+            if data:
+                buf += data
+                heard = now
+            elif heard is None and now >= first_by:
+                return  # nothing came: a silent controller, not one still answering
+            elif heard is not None and any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
+                break  # a whole line, then a slice of quiet
+            if now >= cap:
+                break
+        for line in (line for line in re.split(rb"[\r\n]", bytes(buf))[:-1] if line.strip()):
+            self._forget_overdue()
+            late = self._owed.pop(0)[0] if self._owed else "an earlier command"
+            self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
+        self._rx = bytearray()
+        self._last_exchange = heard  # the spacing counts from the controller's last byte
 
     def _undecided(self, command: str, text: str) -> bool:
         """Whether ``text`` fits both the command owed a late reply and ``command``, a different
@@ -925,7 +966,7 @@ class PipeTransport:
                 if command == "start":
                     raise NoReply(
                         f"{self.url}: {who} did not report the port open within {wait_s:g} s of its start "
-                        "(a slow start: the computer may be busy); run the command again"
+                        "(a slow start: the computer may be busy)"  # what to do: once the tube's state is known (_end_start)
                     )
                 raise NoReply(f"{self.url}: {command}: no answer from {who} within {wait_s:g} s")
             ready, _, _ = select.select([self._rfd], [], [], left)

@@ -238,6 +238,11 @@ def guardian_held_at_start(proc, acted, timeout_s=60.0):
     guardian = None
     while guardian is None and proc.poll() is None and time.monotonic() < end:
         guardian = guardian_of(proc.pid)
+        if guardian is None:
+            # a short sleep, not a spin: the spin took a whole core of the two (the command and its
+            # guardian starved, flaky under -n 4); the guardian's interpreter needs far longer than
+            # this to import and open the port, so it is still caught before it says READY
+            time.sleep(0.01)
     assert guardian is not None, f"no X-ray guardian started by pid {proc.pid}"
     os.kill(guardian, signal.SIGSTOP)
     try:

@@ -3921,21 +3921,44 @@ def test_the_guardians_off_after_a_reconnect_with_the_tube_read_off_is_confirmed
 
 
 def _stop_the_guardian(found: list) -> None:
-    """SIGSTOP the X-ray guardian this process starts, as soon as it exists (within 30 s), its pid
-    appended to ``found``: a slow guardian start made wide."""
+    """Find the X-ray guardian this process starts (within 30 s) stopped by itself before its
+    interpreter runs (:func:`_a_slow_guardian_start`), its pid appended to ``found``: a slow
+    guardian start made wide, which one SIGCONT ends. (Sent a SIGSTOP of its own here as well, a
+    guardian caught before it stopped itself stopped again after that SIGCONT, for good: hung.)"""
     from conftest import guardian_of
 
     end = time.monotonic() + 30
     while not found and time.monotonic() < end:
         pid = guardian_of(os.getpid())
-        if pid is not None:
-            os.kill(pid, signal.SIGSTOP)
+        if pid is not None and _proc_state(pid) == "T":
             found.append(pid)
-        else:  # a guardian's interpreter takes far longer than this to start: it is not missed
-            time.sleep(0.002)
+        else:
+            time.sleep(0.01)
 
 
-def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect):
+def _a_slow_guardian_start(monkeypatch) -> None:
+    """The guardian's start time-out shortened to 1 s, and the guardian process stopped (SIGSTOP,
+    by itself) before its interpreter runs, for :func:`_stop_the_guardian` to find and hold: a slow
+    start made wide, not a fake. Found: caught from outside only, a guardian on a loaded machine
+    (load 7) sometimes said READY first, and the test saw a start that had not failed."""
+    from acquisition import guardian
+
+    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
+    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    real = guardian.subprocess
+
+    class StoppedAtStart:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        @staticmethod
+        def Popen(cmd, *args, **kwargs):
+            return real.Popen(["/bin/sh", "-c", 'kill -STOP $$; exec "$@"', "sh", *cmd], *args, **kwargs)
+
+    monkeypatch.setattr(guardian, "subprocess", StoppedAtStart())
+
+
+def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian(dialect, monkeypatch):
     """The guardian did not say READY in time (here held with SIGSTOP: a slow start made wide,
     not a fake), so start_guardian has it switch off and waits for it. A Ctrl-C in that wait --
     the likeliest moment for one, up to a minute of silence -- escaped from the wait (review
@@ -3945,6 +3968,7 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
 
     from acquisition.guardian import SignalGuard, StopSignal, start_guardian
 
+    _a_slow_guardian_start(monkeypatch)
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.2)
     found = []
 
@@ -3981,17 +4005,18 @@ def test_a_ctrl_c_while_a_failed_start_waits_for_its_guardian_leaves_no_guardian
 _ON_AT_THE_CONTROLLER = {"A": ["HIV 60", "CUR 250", "XON"], "B": ["PHV 600", "PCU 250", "XON"]}
 
 
-def _a_failed_start_meets_a_stuck_tube(model, monkeypatch, *, on_at_the_controller=False, kill_after_xof=False):
+def _a_failed_start_meets_a_stuck_tube(
+    model, monkeypatch, *, on_at_the_controller=False, kill_after_xof=False, slow_s=0.0
+):
     """A helper thread for a guardian whose start fails: held (SIGSTOP) past a start time-out
     shortened to 1 s (a slow start made wide, not a fake), then let go with the tube stuck on
     (``XOF`` acknowledged, ``STS`` still on: a failed relay, the emulator's ``stuck_on``) --
     switched on at the controller meanwhile if ``on_at_the_controller`` -- and, if
     ``kill_after_xof``, killed (SIGKILL) as soon as its switch-off's ``XOF`` reached the
-    controller: it dies holding the port, without its ``O`` line."""
-    from acquisition import guardian
+    controller: it dies holding the port, without its ``O`` line. ``slow_s``: every reply from
+    then on that late."""
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
     held = []
 
     def run():
@@ -4001,6 +4026,7 @@ def _a_failed_start_meets_a_stuck_tube(model, monkeypatch, *, on_at_the_controll
             assert all(model.handle(c) == c for c in _ON_AT_THE_CONTROLLER[model.dialect])
         sent = model.commands.count("XOF")
         model.stuck_on()
+        model.slow(slow_s)
         os.kill(held[0], signal.SIGCONT)
         while kill_after_xof and model.commands.count("XOF") == sent:
             time.sleep(0.005)
@@ -4057,9 +4083,92 @@ def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(e
     assert "never reached" not in err and "confirmed by STS" not in err, err
     assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
     # and the lines before: the start's own time-out (it said the pipe's 8 s and "start:"), what to
-    # do, and the guardian's reason as it was (it called a slow start "stopped")
-    assert "within 1 s of its start" in err and "run the command again" in err and ": start:" not in err, err
+    # do, and the guardian's reason as it was (it called a slow start "stopped"). What to do must
+    # not contradict the warning: it said "run the command again" with the tube perhaps on
+    assert "within 1 s of its start" in err and ": start:" not in err, err
+    assert "at the controller before running the command again" in err, err
+    assert "; run the command again" not in err, err
     assert "gave up on the X-ray guardian's start" in err, err
+
+
+#: a reply time-out short enough for the two tests below to wait out a guardian's whole switch-off
+_SHORT_REPLY_S = 0.5
+
+
+def _guardian_switch_off_worst_s(reply_s: float) -> float:
+    """The guardian's own switch-off at its worst, from the documented times (SourceConfig's
+    defaults; the reply time-out ``reply_s``): each XOF attempt's XOF and STS answered just within
+    the time-out, over the confirmation window, the pauses between attempts."""
+    c = SourceConfig()
+    return c.off_attempts * (2 * (reply_s + DIALECT_A.min_interval_s) + c.poll_s) + c.off_confirm_s
+
+
+def test_a_guardian_hung_after_a_failed_start_is_killed_within_its_switch_offs_time(monkeypatch, capfd):
+    """`source warm-up`'s guardian does not start in time (held with SIGSTOP past a start time-out
+    shortened to 1 s) and never runs again (hung). Found: the command waited 52 s (reply time-out
+    2 s; 34 s at 0.5 s) before killing it -- each XOF and STS counted as the pipe's own wait, two
+    time-outs and a reconnect. Now the wait is the guardian's start and its switch-off at its worst
+    (plus margins): the command then switches off through the freed port itself, confirmed."""
+    from radiokit.cli import main
+
+    _a_slow_guardian_start(monkeypatch)
+    model = L8121Model(dialect="A", warmed_up=False, ramp_s=RAMP_S)
+    held = []
+    helper = threading.Thread(target=_stop_the_guardian, args=(held,), daemon=True)
+    with PtyServer(model) as server:
+        helper.start()
+        t0 = time.monotonic()
+        try:
+            code = main(
+                [
+                    "acquire",
+                    "source",
+                    "warm-up",
+                    "--port",
+                    server.url,
+                    "--dialect",
+                    "A",
+                    "--reply-timeout",
+                    str(_SHORT_REPLY_S),
+                ]
+            )
+        finally:
+            for pid in held:  # (killed by the command; if not, not left stopped)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        took = time.monotonic() - t0
+        helper.join(timeout=30)
+        assert held and not model.xray_on
+    err = capfd.readouterr().err
+    assert "XOF sent anyway: X-rays off (confirmed by STS" in err.strip().splitlines()[-1] and code == 1, err
+    # the start, the guardian's switch-off at its worst (and a margin of half of it for the waits
+    # after a time-out), then the command's own XOF and STS; 5 s for its connect and a loaded machine
+    limit = 1.0 + 1.5 * _guardian_switch_off_worst_s(_SHORT_REPLY_S) + 2 * _SHORT_REPLY_S + 5.0
+    assert took <= limit, (took, limit, err)
+
+
+def test_a_guardian_slow_in_its_switch_off_after_a_failed_start_is_not_killed(monkeypatch, capfd):
+    """The other side of the bound above: the guardian's start fails, and its switch-off meets a
+    stuck tube whose every reply comes at nine tenths of the reply time-out -- its whole worst case
+    (its off() through every attempt). It is not killed: it says the tube is not confirmed off, and
+    the command ends on the warning without a switch-off of its own."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A", "--reply-timeout", str(_SHORT_REPLY_S)]
+        assert main(["acquire", "source", "on", *port[:4], "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()
+        helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, slow_s=0.9 * _SHORT_REPLY_S)
+        code = main(["acquire", "source", "warm-up", *port])
+        helper.join(timeout=30)
+        assert model.xray_on
+    err = capfd.readouterr().err
+    # its word (O 3), not its kill: what to do follows from it, and no switch-off of the command's
+    assert "switch the source off at the controller before running the command again" in err, err
+    assert "sending XOF anyway" not in err and "if the last line does not confirm" not in err, err
+    assert err.strip().splitlines()[-1] == TUBE_WARNING and code == 3, err
 
 
 @pytest.mark.parametrize("stop", [None, signal.SIGINT], ids=["failed-start", "ctrl-c"])
@@ -4084,10 +4193,8 @@ def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(
         return receive(line, baudrate)
 
     monkeypatch.setattr(model, "receive", losing_the_guardians_xof)
-    from acquisition import guardian
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
 
     def run():
         _stop_the_guardian(held)
@@ -4116,10 +4223,15 @@ def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(
 
 def _zombie(pid) -> bool:
     """``pid`` ended and awaits its parent's wait (no longer running)."""
+    return _proc_state(pid) in (None, "Z")
+
+
+def _proc_state(pid) -> str | None:
+    """``pid``'s state letter in /proc (T stopped, Z ended and not waited for), None when gone."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
-    except OSError:
-        return True
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1][:1]
+    except (OSError, IndexError):
+        return None
 
 
 @pytest.mark.parametrize("probed", [False, True], ids=["dialect-given", "probed"])
@@ -4133,11 +4245,9 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     reached the X-ray controller", exit 1, with the dialect given, though the guardian had); it now
     says the guardian's confirmed state and exits 1, as any failed command with the tube off."""
 
-    from acquisition import guardian
     from radiokit.cli import main
 
-    monkeypatch.setattr(guardian.start_guardian, "__kwdefaults__", {**guardian.start_guardian.__kwdefaults__})
-    guardian.start_guardian.__kwdefaults__["startup_timeout_s"] = 1.0
+    _a_slow_guardian_start(monkeypatch)
     model = L8121Model(dialect=dialect, warmed_up=False, ramp_s=0.2)
     held = []
 
@@ -4156,3 +4266,4 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     err = capfd.readouterr().err
     assert "MAY STILL BE ON" not in err and "switched off by the X-ray guardian: tube off (confirmed by STS" in err, err
     assert code == 1, err
+    assert "(a slow start: the computer may be busy); run the command again" in err, err  # the tube is off

@@ -19,6 +19,7 @@ from independent_l8121 import Controller
 
 from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import L8121
+from acquisition.transport import SerialTransport
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 ROOT = Path(__file__).resolve().parent.parent
@@ -267,7 +268,13 @@ def test_a_reply_just_after_the_time_out_is_never_read_as_the_next_commands(dial
     """The poll's reply comes 0.3 s after the driver stopped waiting for it: the poll fails (a
     silent controller is an error), the switch-off that follows does not take the late reply for
     its own (``XOF`` confirmed by an ``STS`` the unit sent after acting on an ``XOF``), and the
-    readings after it are the unit's own answers to them, in step."""
+    readings after it are the unit's own answers to them, in step. The unit loses a command that
+    reaches it while it still owes a reply (the model's reading; L8121.md is silent). Found: the
+    driver sent ``XOF`` 60 ms after the time-out, into the late reply: it was lost, and the tube
+    was confirmed off only through a further attempt (seconds later, and not at all had the ``STS``
+    after it been lost too). Now, after a time-out, the next command waits (a quarter of the reply
+    time-out at most) for the late reply and a quiet line: the first ``XOF`` is acted on, no
+    command is lost."""
     with Controller(dialect, ramp_s=0.1) as unit:
         unit.ready(warmed=True)
         with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
@@ -280,8 +287,38 @@ def test_a_reply_just_after_the_time_out_is_never_read_as_the_next_commands(dial
             log = [(line, reply) for _, line, reply in unit.log]
             acted = max(i for i, (line, reply) in enumerate(log) if line == "XOF" and reply == "XOF")
             assert any(line == "STS" for line, _ in log[acted + 1 :])
+            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
             assert src.interlock_closed() is True
             assert src.status().name == "STANDBY"
+
+
+def test_the_model_loses_no_command_for_its_own_pause_after_a_reply(dialect, monkeypatch):
+    """The model's own rule, checked: a command the driver sends 60 ms after the reply (as the
+    notes ask) is answered even when the model's thread pauses right after writing the reply (a
+    loaded machine deschedules it; here a 0.3 s sleep after each reply's last write stands for
+    that, the one way to cause it at will). Found: the model looked for a next command only after
+    the pause, took the one already there for pipelined and lost it (the likeliest cause of a
+    session test's "no reply to SVI" at load 7)."""
+    real_os = independent_l8121.os
+
+    class PausingOs:
+        def __getattr__(self, name):
+            return getattr(real_os, name)
+
+        @staticmethod
+        def write(fd, data):
+            n = real_os.write(fd, data)
+            if data.endswith((b"\r", b"\n")):
+                time.sleep(0.3)
+            return n
+
+    monkeypatch.setattr(independent_l8121, "os", PausingOs())
+    with Controller(dialect, chunks=1) as unit:
+        unit.ready(warmed=True)
+        with SerialTransport(unit.port, timeout_s=2.0, min_interval_s=0.06) as link:
+            replies = [link.query("STS"), link.query("SIN")]
+        assert unit.lost == [], unit.lost
+    assert [reply for _, _, reply in unit.log] == replies
 
 
 def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
