@@ -692,9 +692,17 @@ def _pair_sentences(results, paper):
             )
         out.append(s + ".")
     if main.ok:
+        # a trusted run can stop short of convergence (its budget ended, the residual within the
+        # line): "converged" would then be false, and the note says what happened instead
+        slow = main.quality.get("converged") is False
         s = (
             f"The registration of step {main.moving} onto step {main.reference} passed its checks (similarity "
-            "improved, no folding, converged)"
+            + (
+                "improved, no folding; not converged: " + main.quality.get("note", "")
+                if slow
+                else "improved, no folding, converged"
+            )
+            + ")"
         )
         if main.epe:
             s += f"; its median end-point error against the simulation's truth is {_fmt(main.epe['epe_median'], '.3f')} px"
