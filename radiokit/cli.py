@@ -337,6 +337,22 @@ def cmd_calibrate(args) -> int:
 
 
 # -- correct -----------------------------------------------------------------------------------
+def _an_experiment(path, hints) -> None:
+    """Without ``--cal`` the one file given calibrates itself, so it must hold darks and flats.
+    Frames without them (a TIFF, a raw stack) were told "holds no darks (image_key 2): cannot
+    calibrate", or, for a raw file given with ``--shape``, to pass ``--shape``: --cal is missing."""
+    from radiokit.io import FormatError, ImageKey, open_frames
+
+    with open_frames(path, **hints) as src:
+        keys = np.asarray(src.meta.get("image_key", []))
+    if not (np.any(keys == ImageKey.DARK) and np.any(keys == ImageKey.FLAT)):
+        raise FormatError(
+            path,
+            "holds no darks and flats to calibrate from (not an experiment file): give --cal CAL.h5, "
+            "made by radiokit calibrate --dark DARKS --flat FLATS",
+        )
+
+
 def cmd_correct(args) -> int:
     from radiokit.calibrate import Calibration
     from radiokit.correct import correct_files
@@ -348,6 +364,7 @@ def cmd_correct(args) -> int:
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
+        _an_experiment(args.frames[0], _raw_hints(args))
         cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
         print(f"calibrated from the darks and flats of {args.frames[0]}")
     else:

@@ -662,6 +662,18 @@ def _check_type_reaches_flats(src, cal: Calibration) -> None:
         )
 
 
+_KINDS = {0: "projection", 1: "flat", 2: "dark", 3: "invalid frame"}
+
+
+def _nothing_to_correct(sources, image_keys) -> str:
+    """What the files hold instead of the frames asked for: "(image_keys=(0,))" named no kind,
+    and a calibration file given as the frames (its dark and flat) read as an empty stack."""
+    wanted = " or ".join(f"{_KINDS.get(int(k), 'frame')} (image_key {int(k)})" for k in image_keys)
+    held = sorted({int(k) for src in sources for k in np.asarray(src.meta.get("image_key", []))})
+    kinds = ", ".join(f"{_KINDS.get(k, f'image_key {k}')}s" for k in held)
+    return f"no {wanted} to correct" + (f"; only {kinds}" if kinds else "")
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -685,7 +697,7 @@ def correct_files(
         segments = _segments(sources, cal, image_keys)
         n_plan = sum(len(picked) for _, picked, _, _ in segments)
         if not n_plan:
-            raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
+            raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(sources, image_keys)}")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = 0

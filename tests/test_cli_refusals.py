@@ -490,3 +490,34 @@ def test_a_calibration_recording_a_flat_current_no_tube_gives_is_refused(absurd,
     cal.save(tmp_path / "cal.h5")
     res = run_cli("correct", exp, "-q", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5")
     one_line_error(res, "cal.h5", "flat_current_ua", "uA")
+
+
+def test_correct_without_cal_on_frames_that_are_no_experiment_asks_for_cal(tmp_path):
+    """`radiokit correct` calibrates from the file itself only when it is an experiment file. A
+    newcomer's TIFF or raw frames without --cal got "holds no darks (image_key 2): cannot
+    calibrate", and a raw file given with --shape was told to pass --shape (the geometry was not
+    passed on): each is now told that --cal is what is missing."""
+    rng = np.random.default_rng(0)
+    tif = tmp_path / "proj.tif"
+    tifffile.imwrite(tif, rng.normal(1500, 20, (2, 32, 32)).astype(np.uint16), photometric="minisblack")
+    raw = tmp_path / "proj.raw"
+    rng.normal(1500, 20, (2, 32, 32)).astype("<u2").tofile(raw)
+    for args in ([tif], [raw, "--shape", "32", "32"]):
+        res = run_cli("correct", *args, "-o", tmp_path / "out.h5")
+        line = one_line_error(res, args[0].name, "--cal")
+        assert "--shape" not in line, line
+        assert not (tmp_path / "out.h5").exists()
+
+
+def test_correct_of_a_file_without_projections_says_so(tmp_path):
+    """A calibration file given as the frames (it reads as its dark and flat) ended on "no frames
+    to correct in cal.h5 (image_keys=(0,))", a tuple a user cannot act on: the line now says that
+    the file holds no projection, and what it does hold."""
+    rng = np.random.default_rng(0)
+    darks = rng.normal(100, 2, (3, 32, 32)).astype(np.uint16)
+    flats = rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
+    Calibration.from_frames(darks, flats).save(tmp_path / "cal.h5")
+    res = run_cli("correct", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    line = one_line_error(res, "cal.h5", "no projection")
+    assert "image_keys=" not in line, line
+    assert not (tmp_path / "out.h5").exists()
