@@ -672,6 +672,10 @@ def cmd_process(args) -> int:
         raise ValueError(f"--workers {args.workers}: expected at least one worker")
     if not args.scheduler_timeout > 0:
         raise ValueError(f"--scheduler-timeout {args.scheduler_timeout:g}: expected a positive number of seconds")
+    if not (np.isfinite(args.crop_mm) and args.crop_mm >= 0):  # Config's line says None, Python's 0
+        raise ValueError(f"--crop-mm {args.crop_mm:g}: expected the crop's side in mm, > 0 (0: the whole frame)")
+    if args.mm and not (args.inclusion or args.background):  # it was accepted and changed nothing
+        raise ValueError("--mm: reads --inclusion and --background in mm; give one of them, or leave --mm out")
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
             raise ValueError(f"{f}: is a folder, not an experiment file")

@@ -521,3 +521,15 @@ def test_correct_of_a_file_without_projections_says_so(tmp_path):
     line = one_line_error(res, "cal.h5", "no projection")
     assert "image_keys=" not in line, line
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_process_crop_and_mm_slips_are_told_in_the_command_lines_terms(tmp_path):
+    """`--crop-mm -5` was answered "(None: the whole frame)", Python's word for what the command
+    line spells 0; and `--mm` without a rectangle was accepted and did nothing (a newcomer reading
+    it as "report in mm"): both are one line in the options' own terms, before any work."""
+    exp = synthetic(tmp_path / "exp.h5")
+    for bad in ("-5", "nan", "inf"):
+        line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "--crop-mm", bad), "--crop-mm")
+        assert "None" not in line and "0: the whole frame" in line, line
+    line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "--mm"), "--mm", "--inclusion")
+    assert not (tmp_path / "res").exists()
