@@ -533,3 +533,16 @@ def test_process_crop_and_mm_slips_are_told_in_the_command_lines_terms(tmp_path)
         assert "None" not in line and "0: the whole frame" in line, line
     line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "--mm"), "--mm", "--inclusion")
     assert not (tmp_path / "res").exists()
+
+
+def test_sim_run_zero_frames_is_told_why_frames_not_why_darks(tmp_path):
+    """`sim run --frames 0` was refused with the darks' and flats' reason ("the experiment is
+    corrected with its own darks and flats"), which says nothing about projections."""
+    line = one_line_error(
+        run_cli("sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", tmp_path / "s.h5"), "--frames 0"
+    )
+    assert "darks" not in line and "projection" in line, line
+    line = one_line_error(
+        run_cli("sim", "run", "--preset", "seed-breast", "--darks", "0", "-o", tmp_path / "s.h5"), "--darks 0"
+    )
+    assert "darks and flats" in line, line
