@@ -775,10 +775,11 @@ def _print_headline(record, files, prefix=""):
         parts = [
             f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
             + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
-            + f", CNR {x.cnr:.3g}"
+            + f", CNR {x.cnr:#.3g}"
             for x in m.per_k
         ]
-        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
+        # '#': three significant digits kept ("10.0" beside "16.6", not "10"; "3.10", not "3.1")
+        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:#.3g}; " + "; ".join(parts))
     # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
     # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
     for pair in record.pairs:

@@ -619,9 +619,9 @@ def _bound_cnr_rows(results):
         rows.append(
             (
                 f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
-                " \u2192 ".join(_fmt(v, ".3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
+                " \u2192 ".join(_fmt(v, "#.3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
                 "",
-                " \u2192 ".join(_fmt(v, ".3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
+                " \u2192 ".join(_fmt(v, "#.3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
             )
         )
     if results.bound.basis:
@@ -764,7 +764,7 @@ def _measurement_table(results, paper):
                 dom,
                 "reference",
                 _fmt(m.contrast_reference, ".4g"),
-                _fmt(m.cnr_reference, ".3g"),
+                _fmt(m.cnr_reference, "#.3g"),
                 _fmt(m.weber_reference, ".4g"),
                 "1",
                 "",
@@ -775,7 +775,7 @@ def _measurement_table(results, paper):
                 dom,
                 f"enhanced, {_k_label(x.k)}",
                 _fmt(x.contrast, ".4g"),
-                _fmt(x.cnr, ".3g"),
+                _fmt(x.cnr, "#.3g"),
                 _fmt(x.weber, ".4g"),
                 _fmt(x.improvement_factor),
                 _fmt(_paper_if(paper, x.k), ".1f", ""),
