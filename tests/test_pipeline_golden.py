@@ -50,7 +50,7 @@ PRINTED = (
     "  negative: CNR reference 5.42; k=1: IF 1.038 (bound 1.025), CNR 2.92; k=2: IF 1.075 (bound 1.049), CNR 1.98\n"
     "  WARNING: pair 1->3 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.64 px (median over "
     "the observed object; > 0.35)\n"
-    "  WARNING: pair 1->2 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.35 px (median over "
+    "  WARNING: pair 1->2 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.351 px (median over "
     "the observed object; > 0.35)\n"
     "  results.json: {out}/results.json\n"
 )
