@@ -150,8 +150,11 @@ def _describe(path, src, every: bool, sample: int) -> dict:
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
-    if args.sample < 1:
-        raise ValueError(f"--sample {args.sample}: expected at least one frame")
+    if args.all and args.sample is not None:  # --all read every frame and dropped --sample in silence
+        raise ValueError(f"--all --sample {args.sample}: give one: every frame, or N of them")
+    sample = 8 if args.sample is None else args.sample
+    if sample < 1:
+        raise ValueError(f"--sample {sample}: expected at least one frame")
     reports, failed = [], 0
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
@@ -159,7 +162,7 @@ def cmd_info(args) -> int:
     for path in args.files:
         try:
             with open_frames(path, **_raw_hints(args)) as src:
-                reports.append(_describe(path, src, args.all, args.sample))
+                reports.append(_describe(path, src, args.all, sample))
         except Exception as exc:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
                 raise
@@ -810,7 +813,7 @@ def _add_info(sub):
     p.add_argument(
         "--sample",
         type=int,
-        default=8,
+        default=None,  # 8; None tells an explicit --sample from the default, which --all refuses
         metavar="N",
         help="frames read for the range and saturation, evenly spaced (default 8)",
     )

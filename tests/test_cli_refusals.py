@@ -546,3 +546,14 @@ def test_sim_run_zero_frames_is_told_why_frames_not_why_darks(tmp_path):
         run_cli("sim", "run", "--preset", "seed-breast", "--darks", "0", "-o", tmp_path / "s.h5"), "--darks 0"
     )
     assert "darks and flats" in line, line
+
+
+def test_info_all_with_sample_is_refused(tmp_path):
+    """`info --all --sample 3` read every frame and dropped --sample in silence: the two say
+    opposite things, so the command asks for one of them."""
+    tif = tmp_path / "s.tif"
+    tifffile.imwrite(tif, np.zeros((3, 8, 8), np.uint16), photometric="minisblack")
+    for n in ("3", "8"):  # 8, the default, given explicitly too
+        one_line_error(run_cli("info", tif, "--all", "--sample", n), "--all", "--sample")
+    assert run_cli("info", tif, "--all").returncode == 0
+    assert run_cli("info", tif, "--sample", "2").returncode == 0
