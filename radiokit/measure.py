@@ -254,9 +254,11 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
     else:
         m = np.asarray(region)
         if m.dtype != bool:
+            # four numbers are how Config and --inclusion take a rectangle: show the ROI to write
+            hint = f": write ROI{tuple(m.tolist())}" if m.shape == (4,) and m.dtype.kind in "iu" else ""
             raise ValueError(
                 f"{name} must be an ROI or a boolean mask, got {type(region).__name__} "
-                f"of dtype {getattr(m, 'dtype', None)}"
+                f"of dtype {getattr(m, 'dtype', None)}{hint}"
             )
         if m.shape != image.shape:
             raise ValueError(f"{name} mask has shape {m.shape}, {image_name} has {image.shape}")

@@ -534,3 +534,11 @@ def test_to_domain_refuses_line_integrals_whose_transmission_overflows(domain):
     came back inf, silently."""
     with pytest.raises(ValueError, match="overflows"):
         to_domain(np.array([[0.0, -100.0]]), domain)
+
+
+def test_a_rectangle_given_as_a_tuple_is_told_how_to_write_it():
+    """``contrast(img, (r0, r1, c0, c1), ...)`` -- how Config, --inclusion and roi_observed take
+    a rectangle -- was told "got tuple of dtype int64"; the line now shows the ROI to write."""
+    img = np.zeros((8, 8))
+    with pytest.raises(ValueError, match=r"inclusion .*ROI\(0, 2, 0, 2\)"):
+        contrast(img, (0, 2, 0, 2), ROI(4, 6, 4, 6))
