@@ -103,12 +103,23 @@ if TYPE_CHECKING:
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 
 
+def _ks(ks) -> tuple:
+    """The enhancement factors as floats: one number is one k (``compression_contrast``'s ``k=1``
+    raised "'int' object is not iterable" here), and text is refused ("12" ran k = 1 and 2)."""
+    if isinstance(ks, (str, bytes)):
+        raise ValueError(f"ks={ks!r}: expected numbers, e.g. ks=(1, 2)")
+    if is_number(ks):
+        return (float(ks),)
+    return tuple(float(k) for k in ks)
+
+
 @dataclass
 class Config:
     """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in pixels of
     the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
     (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
-    (the paper's ``-I/I0``, default) or ``"log"``; both are computed."""
+    (the paper's ``-I/I0``, default) or ``"log"``; both are computed. ``ks``: the enhancement
+    factors k, each in (0, 100] (one number, or several: ``(1, 2)``, the paper's)."""
 
     ks: tuple = (1.0, 2.0)
     domain: Domain = Domain.NEGATIVE
@@ -135,7 +146,7 @@ class Config:
             )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
-        self.ks = tuple(float(k) for k in self.ks)
+        self.ks = _ks(self.ks)
         if not self.ks or not all(np.isfinite(self.ks)):
             raise ValueError(f"ks={self.ks}: expected finite enhancement factors")
         if len(set(self.ks)) != len(self.ks):
