@@ -10,6 +10,7 @@ defect fill plan touches only its pixels. Everything that does not depend on the
 from __future__ import annotations
 
 import functools
+import os
 import queue
 import sys
 import threading
@@ -455,6 +456,8 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     """
     if domain not in DOMAINS:
         raise ValueError(f"domain={domain!r}: expected one of {DOMAINS}")
+    if isinstance(raw, (str, os.PathLike)):  # was "raw frames of shape () do not match ..."
+        raise ValueError(f"raw={str(raw)!r}: expected frames (an array), not a file name: radiokit.io.read(path).data")
     raw = np.asarray(raw)
     if raw.ndim not in (2, 3) or raw.shape[-2:] != cal.shape:
         raise ValueError(f"raw frames of shape {raw.shape} do not match the calibration's {cal.shape}")
