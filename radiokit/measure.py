@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from radiokit.checks import is_number
+from radiokit.checks import image_hint, is_number
 
 __all__ = [
     "ROI",
@@ -238,7 +238,9 @@ def _shape2(shape) -> tuple[int, int]:
 def _image(image, name="image") -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}")
+        raise ValueError(
+            f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}{image_hint(image, arr.shape)}"
+        )
     if arr.size == 0:
         raise ValueError(f"{name} is empty (shape {arr.shape})")
     if not (np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)):

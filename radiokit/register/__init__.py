@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from radiokit.checks import image_hint
 from radiokit.register._auto import AUTO_PRESETS
 from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
@@ -198,9 +199,9 @@ def _check(fixed, moving, mask):
             )
     f = np.asarray(fixed)
     m = np.asarray(moving)
-    for name, a in (("fixed", f), ("moving", m)):
+    for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
         if a.ndim != 2:
-            raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}")
+            raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}{image_hint(given, a.shape)}")
         if a.dtype.kind not in "uif":
             raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
         if min(a.shape) < 8:
