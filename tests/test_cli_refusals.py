@@ -557,3 +557,15 @@ def test_info_all_with_sample_is_refused(tmp_path):
         one_line_error(run_cli("info", tif, "--all", "--sample", n), "--all", "--sample")
     assert run_cli("info", tif, "--all").returncode == 0
     assert run_cli("info", tif, "--sample", "2").returncode == 0
+
+
+def test_a_text_file_given_as_frames_is_not_pointed_at_results_h5(tmp_path):
+    """A ``.txt`` or ``.csv`` given as frames was told "radiokit process's images are in
+    results.h5", advice for a ``results.json`` or ``report.html`` given by mistake, which those
+    two still get."""
+    for name, text in (("notes.txt", "hello\n"), ("table.csv", "a,b\n1,2\n")):
+        (tmp_path / name).write_text(text)
+        line = one_line_error(run_cli("info", tmp_path / name), name, "a text file, not frames")
+        assert "results.h5" not in line, line
+    (tmp_path / "results.json").write_text("{}")
+    one_line_error(run_cli("info", tmp_path / "results.json"), "results.json", "results.h5")
