@@ -653,6 +653,13 @@ def _background_beside(ref, inc, pixel_size_mm):
         ) from None
 
 
+def _inside_frame(named_rois, shape) -> None:
+    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``."""
+    for name, roi in named_rois:
+        if roi is not None and not (0 <= roi.row0 < roi.row1 <= shape[0] and 0 <= roi.col0 < roi.col1 <= shape[1]):
+            raise ValueError(f"{name} ROI {roi} lies outside the {shape} frame")
+
+
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
     on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
@@ -663,6 +670,8 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     ref = steps.images[-1]
     inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm, "inclusion")
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
+    # the given ones first: an inclusion off the frame given alone was told that no background fits beside it
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         try:
@@ -678,9 +687,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
                 auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
         inc = inc or auto_inc
         bg = bg or auto_bg
-    for name, roi in (("inclusion", inc), ("background", bg)):
-        if not (0 <= roi.row0 < roi.row1 <= ref.shape[0] and 0 <= roi.col0 < roi.col1 <= ref.shape[1]):
-            raise ValueError(f"{name} ROI {roi} lies outside the {ref.shape} frame")
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
     r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))

@@ -569,3 +569,16 @@ def test_a_text_file_given_as_frames_is_not_pointed_at_results_h5(tmp_path):
         assert "results.h5" not in line, line
     (tmp_path / "results.json").write_text("{}")
     one_line_error(run_cli("info", tmp_path / "results.json"), "results.json", "results.h5")
+
+
+def test_an_inclusion_given_alone_outside_the_frame_is_told_so(tmp_path):
+    """`--inclusion 0 500 0 5` on a 160 x 160 frame, without --background, was told that "no
+    background of its shape fits beside it" and to give the background: the rectangle itself
+    lies outside the frame, as the same line said when a background was given."""
+    exp = synthetic(tmp_path / "exp.h5")
+    line = one_line_error(
+        run_cli("process", exp, "-o", tmp_path / "res", "--inclusion", "0", "500", "0", "5", *FAST[:4]),
+        "inclusion",
+        "outside the (160, 160) frame",
+    )
+    assert "background" not in line, line
