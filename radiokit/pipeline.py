@@ -147,14 +147,13 @@ class Config:
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
         self.ks = _ks(self.ks)
+        shown = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
         if not self.ks or not all(np.isfinite(self.ks)):
-            raise ValueError(f"ks={self.ks}: expected finite enhancement factors")
+            raise ValueError(f"ks={shown}: expected finite enhancement factors")
         if len(set(self.ks)) != len(self.ks):
-            raise ValueError(f"ks={self.ks}: each enhancement factor once")
+            raise ValueError(f"ks={shown}: each enhancement factor once")
         if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
-            raise ValueError(
-                f"ks={' '.join(f'{k:g}' for k in self.ks)}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)"
-            )
+            raise ValueError(f"ks={shown}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
         if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
             raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
         _check_methods(self.method, self.cross_check, self.register_options)

@@ -582,3 +582,13 @@ def test_an_inclusion_given_alone_outside_the_frame_is_told_so(tmp_path):
         "outside the (160, 160) frame",
     )
     assert "background" not in line, line
+
+
+def test_k_slips_are_echoed_as_typed(tmp_path):
+    """`--k 1 1` was answered "--k (1.0, 1.0): ...", a Python tuple, where `--k 0` is answered
+    "--k 0: ..." as typed."""
+    exp = synthetic(tmp_path / "exp.h5")
+    for ks, why in ((["1", "1"], "each enhancement factor once"), (["nan"], "finite")):
+        res = run_cli("process", exp, "--k", *ks, "-o", tmp_path / "res")
+        line = one_line_error(res, f"--k {' '.join(ks)}: ", why)
+        assert "(" not in line.split(":")[1], line
