@@ -287,6 +287,19 @@ def _line_flags(rel, std, flagged, th: Thresholds, axis):
     return lines, bits[lines] | np.uint32(PixelFlag.CLUSTER)
 
 
+def _what_instead(h5) -> str:
+    """An experiment file given where a calibration belongs (``--cal exp.h5``) holds what one is
+    made from: say how, rather than only what it is not."""
+    from radiokit.io._experiment import IMAGE_KEY
+
+    if h5.get(IMAGE_KEY, getlink=True) is None:
+        return ""
+    return (
+        " (an experiment file: make one from its darks and flats with radiokit calibrate --experiment FILE "
+        "-o cal.h5, or correct the file itself without --cal)"
+    )
+
+
 @dataclass
 class Calibration:
     """Averaged dark and flat of one panel set-up, with its defect map.
@@ -531,7 +544,7 @@ class Calibration:
 
         with open_layout(path, "a radiokit calibration file") as h5:
             if group not in h5:
-                raise FormatError(path, f"no /{group} group: not a radiokit calibration file")
+                raise FormatError(path, f"no /{group} group: not a radiokit calibration file{_what_instead(h5)}")
             g = h5[group]
             missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
             if missing:

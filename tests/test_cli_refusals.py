@@ -592,3 +592,14 @@ def test_k_slips_are_echoed_as_typed(tmp_path):
         res = run_cli("process", exp, "--k", *ks, "-o", tmp_path / "res")
         line = one_line_error(res, f"--k {' '.join(ks)}: ", why)
         assert "(" not in line.split(":")[1], line
+
+
+def test_an_experiment_file_given_as_cal_says_how_to_calibrate_from_it(tmp_path):
+    """`correct frames.tif --cal exp.h5` was told "no /calibration group: not a radiokit
+    calibration file"; an experiment file holds what a calibration is made from, and the line
+    now says how."""
+    exp = synthetic(tmp_path / "exp.h5")
+    tif = tmp_path / "proj.tif"
+    tifffile.imwrite(tif, np.full((1, 160, 160), 1500, np.uint16), photometric="minisblack")
+    res = run_cli("correct", tif, "--cal", exp, "-o", tmp_path / "out.h5")
+    one_line_error(res, "exp.h5", "an experiment file", "radiokit calibrate --experiment")
