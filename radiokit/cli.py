@@ -1043,7 +1043,7 @@ def _add_process_options(p):
         metavar="SECONDS",
         help="how long to wait for --scheduler to answer (default 10 s)",
     )
-    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
+    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core; never more than the files)")
     p.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
     )
