@@ -426,14 +426,20 @@ def _a_projection(path, keys, index, option) -> None:
 
 
 def _check_preset(args) -> None:
-    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process)."""
+    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process),
+    and so is register's ``--retry`` (a stronger B-spline regularisation: a peer ignored it)."""
     from radiokit.register import BSPLINE_METHODS
 
-    if args.preset and args.method not in BSPLINE_METHODS:
-        raise ValueError(
-            f"--preset {args.preset}: presets are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), "
-            f"not --method {args.method}"
-        )
+    if args.method in BSPLINE_METHODS:
+        return
+    for given, what in (
+        (args.preset and f"--preset {args.preset}", "presets"),
+        (getattr(args, "retry", False) and "--retry", "retries"),
+    ):
+        if given:
+            raise ValueError(
+                f"{given}: {what} are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), not --method {args.method}"
+            )
 
 
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors

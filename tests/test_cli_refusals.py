@@ -603,3 +603,16 @@ def test_an_experiment_file_given_as_cal_says_how_to_calibrate_from_it(tmp_path)
     tifffile.imwrite(tif, np.full((1, 160, 160), 1500, np.uint16), photometric="minisblack")
     res = run_cli("correct", tif, "--cal", exp, "-o", tmp_path / "out.h5")
     one_line_error(res, "exp.h5", "an experiment file", "radiokit calibrate --experiment")
+
+
+def test_register_retry_with_a_peer_method_is_refused(tmp_path):
+    """`--retry` strengthens a B-spline method's regularisation; with `--method dis` it was
+    accepted and did nothing, where `--preset` with a peer is refused."""
+    rng = np.random.default_rng(0)
+    for name in ("f.tif", "m.tif"):
+        tifffile.imwrite(tmp_path / name, rng.random((32, 32)).astype(np.float32))
+    res = run_cli(
+        "register", tmp_path / "f.tif", tmp_path / "m.tif", "-o", tmp_path / "r.h5", "--method", "dis", "--retry"
+    )
+    one_line_error(res, "--retry", "--method dis")
+    assert not (tmp_path / "r.h5").exists()
