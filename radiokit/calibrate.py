@@ -467,6 +467,10 @@ class Calibration:
         from radiokit.io import ImageKey, open_frames
 
         with open_frames(path, allow_external=allow_external) as src:
+            if src.meta.get("format") == "calibration":  # its averages read as one dark and one flat
+                raise FormatError(
+                    path, "is a radiokit calibration, not an experiment file: use it as it is (radiokit correct --cal)"
+                )
             keys = np.asarray(src.meta.get("image_key", []))
             times = np.asarray(src.meta.get("time", np.full(len(keys), np.nan)))
             sel = {k: np.flatnonzero(keys == k) for k in (ImageKey.DARK, ImageKey.FLAT)}

@@ -510,15 +510,18 @@ def test_correct_without_cal_on_frames_that_are_no_experiment_asks_for_cal(tmp_p
 
 
 def test_correct_of_a_file_without_projections_says_so(tmp_path):
-    """A calibration file given as the frames (it reads as its dark and flat) ended on "no frames
-    to correct in cal.h5 (image_keys=(0,))", a tuple a user cannot act on: the line now says that
-    the file holds no projection, and what it does hold."""
+    """An experiment file holding only darks and flats (an acquisition stopped before its first
+    step) ended on "no frames to correct in exp.h5 (image_keys=(0,))", a tuple a user cannot act
+    on: the line now says that the file holds no projection, and what it does hold."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
     rng = np.random.default_rng(0)
-    darks = rng.normal(100, 2, (3, 32, 32)).astype(np.uint16)
-    flats = rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
-    Calibration.from_frames(darks, flats).save(tmp_path / "cal.h5")
-    res = run_cli("correct", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
-    line = one_line_error(res, "cal.h5", "no projection")
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (32, 32)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(3000, 30, (32, 32)).astype(np.uint16), image_key=ImageKey.FLAT)
+    res = run_cli("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5")
+    line = one_line_error(res, "exp.h5", "no projection", "darks")
     assert "image_keys=" not in line, line
     assert not (tmp_path / "out.h5").exists()
 
@@ -616,3 +619,16 @@ def test_register_retry_with_a_peer_method_is_refused(tmp_path):
     )
     one_line_error(res, "--retry", "--method dis")
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_a_calibration_file_given_as_an_experiment_is_refused(tmp_path):
+    """`calibrate --experiment cal.h5` calibrated again from a calibration's averaged dark and flat
+    as one dark and one flat (two warnings, exit 0), and `correct cal.h5` calibrated from it
+    before finding nothing to correct: a calibration is used as it is, with --cal."""
+    rng = np.random.default_rng(0)
+    darks = rng.normal(100, 2, (3, 32, 32)).astype(np.uint16)
+    flats = rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
+    cal = Calibration.from_frames(darks, flats).save(tmp_path / "cal.h5")
+    for args in (("calibrate", "--experiment", cal), ("correct", cal)):
+        one_line_error(run_cli(*args, "-o", tmp_path / "out.h5"), "cal.h5", "calibration", "--cal")
+        assert not (tmp_path / "out.h5").exists()
