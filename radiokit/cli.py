@@ -364,6 +364,7 @@ def cmd_correct(args) -> int:
     check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+    _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:

@@ -632,3 +632,17 @@ def test_a_calibration_file_given_as_an_experiment_is_refused(tmp_path):
     for args in (("calibrate", "--experiment", cal), ("correct", cal)):
         one_line_error(run_cli(*args, "-o", tmp_path / "out.h5"), "cal.h5", "calibration", "--cal")
         assert not (tmp_path / "out.h5").exists()
+
+
+def test_correct_refuses_a_frame_file_given_twice(tmp_path):
+    """`correct a.tif a.tif` wrote every frame twice into one stack, exit 0, where `process` and
+    `calibrate --dark` refuse a file given twice."""
+    tif = tmp_path / "a.tif"
+    tifffile.imwrite(tif, np.full((2, 32, 32), 1500, np.uint16), photometric="minisblack")
+    rng = np.random.default_rng(0)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (3, 32, 32)).astype(np.uint16), rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    res = run_cli("correct", tif, tif, "--cal", cal, "-o", tmp_path / "out.h5")
+    one_line_error(res, "a.tif", "twice")
+    assert not (tmp_path / "out.h5").exists()
