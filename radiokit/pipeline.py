@@ -876,6 +876,20 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     return res
 
 
+def _output_kind(dataset, kind) -> str:
+    """What a file ``read`` opened at ``dataset`` holds: radiokit's own outputs by name ("holds
+    hdf5 data" named none of them), else its format's."""
+    from radiokit.io._registration import REGISTERED
+    from radiokit.io._results import RESULTS_STEPS
+    from radiokit.io._write import STACK_FRAMES
+
+    return {
+        f"/{RESULTS_STEPS}/line_integral": "radiokit process's results (results.h5)",
+        f"/{REGISTERED}": "a registration (radiokit register)",
+        f"/{STACK_FRAMES}": "a stack of frames without darks and flats (radiokit correct's output, or another program's)",
+    }.get(dataset, f"{kind} data")
+
+
 def _check_inputs(path: Path, control) -> None:
     """An experiment file, and a control imaged on the same grid. A calibration or results file
     was read as frames (two warnings, then "no steps"); a control of another frame size was
@@ -889,9 +903,10 @@ def _check_inputs(path: Path, control) -> None:
         with open_frames(p) as src:
             kind = src.meta.get("format", src.format)
             if kind != "experiment":
+                kind = _output_kind(src.meta.get("dataset"), kind)
                 raise FormatError(
                     p,
-                    f"holds {kind} data, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
+                    f"holds {kind}, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             shapes.append(src.frame_shape)

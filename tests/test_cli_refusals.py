@@ -646,3 +646,16 @@ def test_correct_refuses_a_frame_file_given_twice(tmp_path):
     res = run_cli("correct", tif, tif, "--cal", cal, "-o", tmp_path / "out.h5")
     one_line_error(res, "a.tif", "twice")
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_process_names_radiokits_own_outputs_given_as_the_experiment(tmp_path):
+    """`process results/results.h5` (or a registration, or a corrected stack) was told "holds
+    hdf5 data, not an experiment": each is radiokit's own output, and the line says which."""
+    exp = synthetic(tmp_path / "exp.h5")
+    assert run_cli("process", exp, "-o", tmp_path / "res", *FAST).returncode == 0
+    assert run_cli("correct", exp, "-o", tmp_path / "corr.h5").returncode == 0
+    for path, what in (
+        (tmp_path / "res" / "results.h5", "radiokit process's results"),
+        (tmp_path / "corr.h5", "a stack of frames"),
+    ):
+        one_line_error(run_cli("process", path, "-o", tmp_path / "again"), path.name, what, "not an experiment")
