@@ -288,6 +288,19 @@ def _line_flags(rel, std, flagged, th: Thresholds, axis):
     return lines, bits[lines] | np.uint32(PixelFlag.CLUSTER)
 
 
+def _what_instead(h5) -> str:
+    """An experiment file given where a calibration belongs (``--cal exp.h5``) holds what one is
+    made from: say how, rather than only what it is not."""
+    from radiokit.io._experiment import IMAGE_KEY
+
+    if h5.get(IMAGE_KEY, getlink=True) is None:
+        return ""
+    return (
+        " (an experiment file: make one from its darks and flats with radiokit calibrate --experiment FILE "
+        "-o cal.h5, or correct the file itself without --cal)"
+    )
+
+
 @dataclass
 class Calibration:
     """Averaged dark and flat of one panel set-up, with its defect map.
@@ -470,6 +483,10 @@ class Calibration:
         from radiokit.io import ImageKey, open_frames
 
         with open_frames(path, allow_external=allow_external) as src:
+            if src.meta.get("format") == "calibration":  # its averages read as one dark and one flat
+                raise FormatError(
+                    path, "is a radiokit calibration, not an experiment file: use it as it is (radiokit correct --cal)"
+                )
             keys = np.asarray(src.meta.get("image_key", []))
             times = np.asarray(src.meta.get("time", np.full(len(keys), np.nan)))
             sel = {k: np.flatnonzero(keys == k) for k in (ImageKey.DARK, ImageKey.FLAT)}
@@ -547,7 +564,7 @@ class Calibration:
 
         with open_layout(path, "a radiokit calibration file") as h5:
             if group not in h5:
-                raise FormatError(path, f"no /{group} group: not a radiokit calibration file")
+                raise FormatError(path, f"no /{group} group: not a radiokit calibration file{_what_instead(h5)}")
             g = h5[group]
             missing = [n for n in ("dark", "flat", "pixel_mask") if n not in g]
             if missing:

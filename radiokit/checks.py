@@ -11,8 +11,9 @@ two tests refuse it and take numpy's integers and floats (readers of HDF5 get ``
 from __future__ import annotations
 
 import numbers
+import os
 
-__all__ = ["is_integer", "is_number"]
+__all__ = ["image_hint", "is_integer", "is_number"]
 
 
 def is_number(value) -> bool:
@@ -36,3 +37,20 @@ def is_integer(value) -> bool:
     (True, True, False, False, False)
     """
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def image_hint(value, shape) -> str:
+    """What to pass instead, for ``value`` (of ``shape``) given where one ``(rows, cols)`` image
+    belongs: ``radiokit.io.read`` gives ``(n, rows, cols)`` always, so a newcomer's first call
+    passes ``read(path).data`` (a stack of one frame) or the path itself. "" otherwise.
+
+    >>> image_hint("a.tif", ())
+    ': a file name, not an image: radiokit.io.read(path).data[0] reads its first frame'
+    >>> image_hint(None, (1, 8, 8)), image_hint(None, (3, 8, 8))
+    (': a stack of one frame, as radiokit.io.read gives: pass .data[0]', '')
+    """
+    if isinstance(value, (str, bytes, os.PathLike)):
+        return ": a file name, not an image: radiokit.io.read(path).data[0] reads its first frame"
+    if len(shape) == 3 and shape[0] == 1:
+        return ": a stack of one frame, as radiokit.io.read gives: pass .data[0]"
+    return ""

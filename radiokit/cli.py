@@ -150,8 +150,11 @@ def _describe(path, src, every: bool, sample: int) -> dict:
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
-    if args.sample < 1:
-        raise ValueError(f"--sample {args.sample}: expected at least one frame")
+    if args.all and args.sample is not None:  # --all read every frame and dropped --sample in silence
+        raise ValueError(f"--all --sample {args.sample}: give one: every frame, or N of them")
+    sample = 8 if args.sample is None else args.sample
+    if sample < 1:
+        raise ValueError(f"--sample {sample}: expected at least one frame")
     reports, failed = [], 0
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
@@ -159,7 +162,7 @@ def cmd_info(args) -> int:
     for path in args.files:
         try:
             with open_frames(path, **_raw_hints(args)) as src:
-                reports.append(_describe(path, src, args.all, args.sample))
+                reports.append(_describe(path, src, args.all, sample))
         except Exception as exc:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
                 raise
@@ -343,6 +346,22 @@ def cmd_calibrate(args) -> int:
 
 
 # -- correct -----------------------------------------------------------------------------------
+def _an_experiment(path, hints) -> None:
+    """Without ``--cal`` the one file given calibrates itself, so it must hold darks and flats.
+    Frames without them (a TIFF, a raw stack) were told "holds no darks (image_key 2): cannot
+    calibrate", or, for a raw file given with ``--shape``, to pass ``--shape``: --cal is missing."""
+    from radiokit.io import FormatError, ImageKey, open_frames
+
+    with open_frames(path, **hints) as src:
+        keys = np.asarray(src.meta.get("image_key", []))
+    if not (np.any(keys == ImageKey.DARK) and np.any(keys == ImageKey.FLAT)):
+        raise FormatError(
+            path,
+            "holds no darks and flats to calibrate from (not an experiment file): give --cal CAL.h5, "
+            "made by radiokit calibrate --dark DARKS --flat FLATS",
+        )
+
+
 def cmd_correct(args) -> int:
     from radiokit.calibrate import Calibration
     from radiokit.correct import correct_files
@@ -351,9 +370,11 @@ def cmd_correct(args) -> int:
     check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+    _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
+        _an_experiment(args.frames[0], _raw_hints(args))
         cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
         print(f"calibrated from the darks and flats of {args.frames[0]}")
     else:
@@ -412,14 +433,20 @@ def _a_projection(path, keys, index, option) -> None:
 
 
 def _check_preset(args) -> None:
-    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process)."""
+    """A ``--preset`` with a peer method is refused, not dropped (register) or a traceback (process),
+    and so is register's ``--retry`` (a stronger B-spline regularisation: a peer ignored it)."""
     from radiokit.register import BSPLINE_METHODS
 
-    if args.preset and args.method not in BSPLINE_METHODS:
-        raise ValueError(
-            f"--preset {args.preset}: presets are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), "
-            f"not --method {args.method}"
-        )
+    if args.method in BSPLINE_METHODS:
+        return
+    for given, what in (
+        (args.preset and f"--preset {args.preset}", "presets"),
+        (getattr(args, "retry", False) and "--retry", "retries"),
+    ):
+        if given:
+            raise ValueError(
+                f"{given}: {what} are for the B-spline methods ({', '.join(BSPLINE_METHODS)}), not --method {args.method}"
+            )
 
 
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors
@@ -661,6 +688,10 @@ def cmd_process(args) -> int:
         raise ValueError(f"--workers {args.workers}: expected at least one worker")
     if not args.scheduler_timeout > 0:
         raise ValueError(f"--scheduler-timeout {args.scheduler_timeout:g}: expected a positive number of seconds")
+    if not (np.isfinite(args.crop_mm) and args.crop_mm >= 0):  # Config's line says None, Python's 0
+        raise ValueError(f"--crop-mm {args.crop_mm:g}: expected the crop's side in mm, > 0 (0: the whole frame)")
+    if args.mm and not (args.inclusion or args.background):  # it was accepted and changed nothing
+        raise ValueError("--mm: reads --inclusion and --background in mm; give one of them, or leave --mm out")
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
             raise ValueError(f"{f}: is a folder, not an experiment file")
@@ -760,10 +791,11 @@ def _print_headline(record, files, prefix=""):
         parts = [
             f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
             + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
-            + f", CNR {x.cnr:.3g}"
+            + f", CNR {x.cnr:#.3g}"
             for x in m.per_k
         ]
-        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:.3g}; " + "; ".join(parts))
+        # '#': three significant digits kept ("10.0" beside "16.6", not "10"; "3.10", not "3.1")
+        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:#.3g}; " + "; ".join(parts))
     # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
     # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
     for pair in record.pairs:
@@ -794,7 +826,7 @@ def _add_info(sub):
     p.add_argument(
         "--sample",
         type=int,
-        default=8,
+        default=None,  # 8; None tells an explicit --sample from the default, which --all refuses
         metavar="N",
         help="frames read for the range and saturation, evenly spaced (default 8)",
     )
@@ -1024,7 +1056,7 @@ def _add_process_options(p):
         metavar="SECONDS",
         help="how long to wait for --scheduler to answer (default 10 s)",
     )
-    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
+    p.add_argument("--workers", type=int, help="local Dask workers (default: one per core; never more than the files)")
     p.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
     )

@@ -10,6 +10,7 @@ defect fill plan touches only its pixels. Everything that does not depend on the
 from __future__ import annotations
 
 import functools
+import os
 import queue
 import sys
 import threading
@@ -456,6 +457,8 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     """
     if domain not in DOMAINS:
         raise ValueError(f"domain={domain!r}: expected one of {DOMAINS}")
+    if isinstance(raw, (str, os.PathLike)):  # was "raw frames of shape () do not match ..."
+        raise ValueError(f"raw={str(raw)!r}: expected frames (an array), not a file name: radiokit.io.read(path).data")
     raw = np.asarray(raw)
     if raw.ndim not in (2, 3) or raw.shape[-2:] != cal.shape:
         raise ValueError(f"raw frames of shape {raw.shape} do not match the calibration's {cal.shape}")
@@ -673,6 +676,18 @@ def _check_type_reaches_flats(src, cal: Calibration) -> None:
         )
 
 
+_KINDS = {0: "projection", 1: "flat", 2: "dark", 3: "invalid frame"}
+
+
+def _nothing_to_correct(sources, image_keys) -> str:
+    """What the files hold instead of the frames asked for: "(image_keys=(0,))" named no kind,
+    and a calibration file given as the frames (its dark and flat) read as an empty stack."""
+    wanted = " or ".join(f"{_KINDS.get(int(k), 'frame')} (image_key {int(k)})" for k in image_keys)
+    held = sorted({int(k) for src in sources for k in np.asarray(src.meta.get("image_key", []))})
+    kinds = ", ".join(f"{_KINDS.get(k, f'image_key {k}')}s" for k in held)
+    return f"no {wanted} to correct" + (f"; only {kinds}" if kinds else "")
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -696,7 +711,7 @@ def correct_files(
         segments = _segments(sources, cal, image_keys)
         n_plan = sum(len(picked) for _, picked, _, _ in segments)
         if not n_plan:
-            raise ValueError(f"no frames to correct in {', '.join(map(str, inputs))} (image_keys={image_keys})")
+            raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(sources, image_keys)}")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = 0

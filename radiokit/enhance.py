@@ -29,7 +29,7 @@ import enum
 
 import numpy as np
 
-from radiokit.checks import is_number
+from radiokit.checks import image_hint, is_number
 from radiokit.measure import ROI
 
 __all__ = ["Domain", "compression_contrast", "difference", "to_domain", "DOMAINS"]
@@ -58,7 +58,9 @@ DOMAINS = tuple(d.value for d in Domain)
 def _image(image, name) -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}")
+        raise ValueError(
+            f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}{image_hint(image, arr.shape)}"
+        )
     if arr.size == 0:
         raise ValueError(f"{name} is empty (shape {arr.shape})")
     if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from radiokit.checks import is_number
+from radiokit.checks import image_hint, is_number
 
 __all__ = [
     "ROI",
@@ -238,7 +238,9 @@ def _shape2(shape) -> tuple[int, int]:
 def _image(image, name="image") -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}")
+        raise ValueError(
+            f"{name} must be a 2-D (rows, cols) array, got shape {arr.shape}{image_hint(image, arr.shape)}"
+        )
     if arr.size == 0:
         raise ValueError(f"{name} is empty (shape {arr.shape})")
     if not (np.issubdtype(arr.dtype, np.number) and not np.issubdtype(arr.dtype, np.complexfloating)):
@@ -254,9 +256,11 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
     else:
         m = np.asarray(region)
         if m.dtype != bool:
+            # four numbers are how Config and --inclusion take a rectangle: show the ROI to write
+            hint = f": write ROI{tuple(m.tolist())}" if m.shape == (4,) and m.dtype.kind in "iu" else ""
             raise ValueError(
                 f"{name} must be an ROI or a boolean mask, got {type(region).__name__} "
-                f"of dtype {getattr(m, 'dtype', None)}"
+                f"of dtype {getattr(m, 'dtype', None)}{hint}"
             )
         if m.shape != image.shape:
             raise ValueError(f"{name} mask has shape {m.shape}, {image_name} has {image.shape}")

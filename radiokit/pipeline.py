@@ -103,12 +103,23 @@ if TYPE_CHECKING:
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 
 
+def _ks(ks) -> tuple:
+    """The enhancement factors as floats: one number is one k (``compression_contrast``'s ``k=1``
+    raised "'int' object is not iterable" here), and text is refused ("12" ran k = 1 and 2)."""
+    if isinstance(ks, (str, bytes)):
+        raise ValueError(f"ks={ks!r}: expected numbers, e.g. ks=(1, 2)")
+    if is_number(ks):
+        return (float(ks),)
+    return tuple(float(k) for k in ks)
+
+
 @dataclass
 class Config:
     """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in pixels of
     the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
     (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
-    (the paper's ``-I/I0``, default) or ``"log"``; both are computed."""
+    (the paper's ``-I/I0``, default) or ``"log"``; both are computed. ``ks``: the enhancement
+    factors k, each in (0, 100] (one number, or several: ``(1, 2)``, the paper's)."""
 
     ks: tuple = (1.0, 2.0)
     domain: Domain = Domain.NEGATIVE
@@ -135,15 +146,14 @@ class Config:
             )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
-        self.ks = tuple(float(k) for k in self.ks)
+        self.ks = _ks(self.ks)
+        shown = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
         if not self.ks or not all(np.isfinite(self.ks)):
-            raise ValueError(f"ks={self.ks}: expected finite enhancement factors")
+            raise ValueError(f"ks={shown}: expected finite enhancement factors")
         if len(set(self.ks)) != len(self.ks):
-            raise ValueError(f"ks={self.ks}: each enhancement factor once")
+            raise ValueError(f"ks={shown}: each enhancement factor once")
         if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
-            raise ValueError(
-                f"ks={' '.join(f'{k:g}' for k in self.ks)}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)"
-            )
+            raise ValueError(f"ks={shown}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
         if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
             raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
         _check_methods(self.method, self.cross_check, self.register_options)
@@ -642,6 +652,13 @@ def _background_beside(ref, inc, pixel_size_mm):
         ) from None
 
 
+def _inside_frame(named_rois, shape) -> None:
+    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``."""
+    for name, roi in named_rois:
+        if roi is not None and not (0 <= roi.row0 < roi.row1 <= shape[0] and 0 <= roi.col0 < roi.col1 <= shape[1]):
+            raise ValueError(f"{name} ROI {roi} lies outside the {shape} frame")
+
+
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
     on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
@@ -652,6 +669,8 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     ref = steps.images[-1]
     inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm, "inclusion")
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
+    # the given ones first: an inclusion off the frame given alone was told that no background fits beside it
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         try:
@@ -667,9 +686,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
                 auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
         inc = inc or auto_inc
         bg = bg or auto_bg
-    for name, roi in (("inclusion", inc), ("background", bg)):
-        if not (0 <= roi.row0 < roi.row1 <= ref.shape[0] and 0 <= roi.col0 < roi.col1 <= ref.shape[1]):
-            raise ValueError(f"{name} ROI {roi} lies outside the {ref.shape} frame")
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
     r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))
@@ -859,6 +876,20 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     return res
 
 
+def _output_kind(dataset, kind) -> str:
+    """What a file ``read`` opened at ``dataset`` holds: radiokit's own outputs by name ("holds
+    hdf5 data" named none of them), else its format's."""
+    from radiokit.io._registration import REGISTERED
+    from radiokit.io._results import RESULTS_STEPS
+    from radiokit.io._write import STACK_FRAMES
+
+    return {
+        f"/{RESULTS_STEPS}/line_integral": "radiokit process's results (results.h5)",
+        f"/{REGISTERED}": "a registration (radiokit register)",
+        f"/{STACK_FRAMES}": "a stack of frames without darks and flats (radiokit correct's output, or another program's)",
+    }.get(dataset, f"{kind} data")
+
+
 def _check_inputs(path: Path, control) -> None:
     """An experiment file, and a control imaged on the same grid. A calibration or results file
     was read as frames (two warnings, then "no steps"); a control of another frame size was
@@ -872,9 +903,10 @@ def _check_inputs(path: Path, control) -> None:
         with open_frames(p) as src:
             kind = src.meta.get("format", src.format)
             if kind != "experiment":
+                kind = _output_kind(src.meta.get("dataset"), kind)
                 raise FormatError(
                     p,
-                    f"holds {kind} data, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
+                    f"holds {kind}, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             shapes.append(src.frame_shape)

@@ -619,9 +619,9 @@ def _bound_cnr_rows(results):
         rows.append(
             (
                 f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
-                " \u2192 ".join(_fmt(v, ".3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
+                " \u2192 ".join(_fmt(v, "#.3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
                 "",
-                " \u2192 ".join(_fmt(v, ".3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
+                " \u2192 ".join(_fmt(v, "#.3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
             )
         )
     if results.bound.basis:
@@ -692,9 +692,17 @@ def _pair_sentences(results, paper):
             )
         out.append(s + ".")
     if main.ok:
+        # a trusted run can stop short of convergence (its budget ended, the residual within the
+        # line): "converged" would then be false, and the note says what happened instead
+        slow = main.quality.get("converged") is False
         s = (
             f"The registration of step {main.moving} onto step {main.reference} passed its checks (similarity "
-            "improved, no folding, converged)"
+            + (
+                "improved, no folding; not converged: " + main.quality.get("note", "")
+                if slow
+                else "improved, no folding, converged"
+            )
+            + ")"
         )
         if main.epe:
             s += f"; its median end-point error against the simulation's truth is {_fmt(main.epe['epe_median'], '.3f')} px"
@@ -756,7 +764,7 @@ def _measurement_table(results, paper):
                 dom,
                 "reference",
                 _fmt(m.contrast_reference, ".4g"),
-                _fmt(m.cnr_reference, ".3g"),
+                _fmt(m.cnr_reference, "#.3g"),
                 _fmt(m.weber_reference, ".4g"),
                 "1",
                 "",
@@ -767,7 +775,7 @@ def _measurement_table(results, paper):
                 dom,
                 f"enhanced, {_k_label(x.k)}",
                 _fmt(x.contrast, ".4g"),
-                _fmt(x.cnr, ".3g"),
+                _fmt(x.cnr, "#.3g"),
                 _fmt(x.weber, ".4g"),
                 _fmt(x.improvement_factor),
                 _fmt(_paper_if(paper, x.k), ".1f", ""),

@@ -82,10 +82,12 @@ def _run_sim(args) -> int:
         # 0 darks or flats wrote a file (25 s at full size) that `process` and `correct` then
         # refused: "holds no darks (image_key 2): cannot calibrate"
         if getattr(args, name) < 1:
-            raise ValueError(
-                f"--{name} {getattr(args, name)}: expected a count of at least 1 (the experiment is "
-                "corrected with its own darks and flats)"
+            why = (
+                "each step needs a projection"
+                if name == "frames"
+                else "the experiment is corrected with its own darks and flats"
             )
+            raise ValueError(f"--{name} {getattr(args, name)}: expected a count of at least 1 ({why})")
     if args.view:
         from sim.scene import with_view
 

@@ -490,3 +490,172 @@ def test_a_calibration_recording_a_flat_current_no_tube_gives_is_refused(absurd,
     cal.save(tmp_path / "cal.h5")
     res = run_cli("correct", exp, "-q", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5")
     one_line_error(res, "cal.h5", "flat_current_ua", "uA")
+
+
+def test_correct_without_cal_on_frames_that_are_no_experiment_asks_for_cal(tmp_path):
+    """`radiokit correct` calibrates from the file itself only when it is an experiment file. A
+    newcomer's TIFF or raw frames without --cal got "holds no darks (image_key 2): cannot
+    calibrate", and a raw file given with --shape was told to pass --shape (the geometry was not
+    passed on): each is now told that --cal is what is missing."""
+    rng = np.random.default_rng(0)
+    tif = tmp_path / "proj.tif"
+    tifffile.imwrite(tif, rng.normal(1500, 20, (2, 32, 32)).astype(np.uint16), photometric="minisblack")
+    raw = tmp_path / "proj.raw"
+    rng.normal(1500, 20, (2, 32, 32)).astype("<u2").tofile(raw)
+    for args in ([tif], [raw, "--shape", "32", "32"]):
+        res = run_cli("correct", *args, "-o", tmp_path / "out.h5")
+        line = one_line_error(res, args[0].name, "--cal")
+        assert "--shape" not in line, line
+        assert not (tmp_path / "out.h5").exists()
+
+
+def test_correct_of_a_file_without_projections_says_so(tmp_path):
+    """An experiment file holding only darks and flats (an acquisition stopped before its first
+    step) ended on "no frames to correct in exp.h5 (image_keys=(0,))", a tuple a user cannot act
+    on: the line now says that the file holds no projection, and what it does hold."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32)) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, (32, 32)).astype(np.uint16), image_key=ImageKey.DARK)
+            w.append(rng.normal(3000, 30, (32, 32)).astype(np.uint16), image_key=ImageKey.FLAT)
+    res = run_cli("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5")
+    line = one_line_error(res, "exp.h5", "no projection", "darks")
+    assert "image_keys=" not in line, line
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_process_crop_and_mm_slips_are_told_in_the_command_lines_terms(tmp_path):
+    """`--crop-mm -5` was answered "(None: the whole frame)", Python's word for what the command
+    line spells 0; and `--mm` without a rectangle was accepted and did nothing (a newcomer reading
+    it as "report in mm"): both are one line in the options' own terms, before any work."""
+    exp = synthetic(tmp_path / "exp.h5")
+    for bad in ("-5", "nan", "inf"):
+        line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "--crop-mm", bad), "--crop-mm")
+        assert "None" not in line and "0: the whole frame" in line, line
+    line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "--mm"), "--mm", "--inclusion")
+    assert not (tmp_path / "res").exists()
+
+
+def test_sim_run_zero_frames_is_told_why_frames_not_why_darks(tmp_path):
+    """`sim run --frames 0` was refused with the darks' and flats' reason ("the experiment is
+    corrected with its own darks and flats"), which says nothing about projections."""
+    line = one_line_error(
+        run_cli("sim", "run", "--preset", "seed-breast", "--frames", "0", "-o", tmp_path / "s.h5"), "--frames 0"
+    )
+    assert "darks" not in line and "projection" in line, line
+    line = one_line_error(
+        run_cli("sim", "run", "--preset", "seed-breast", "--darks", "0", "-o", tmp_path / "s.h5"), "--darks 0"
+    )
+    assert "darks and flats" in line, line
+
+
+def test_info_all_with_sample_is_refused(tmp_path):
+    """`info --all --sample 3` read every frame and dropped --sample in silence: the two say
+    opposite things, so the command asks for one of them."""
+    tif = tmp_path / "s.tif"
+    tifffile.imwrite(tif, np.zeros((3, 8, 8), np.uint16), photometric="minisblack")
+    for n in ("3", "8"):  # 8, the default, given explicitly too
+        one_line_error(run_cli("info", tif, "--all", "--sample", n), "--all", "--sample")
+    assert run_cli("info", tif, "--all").returncode == 0
+    assert run_cli("info", tif, "--sample", "2").returncode == 0
+
+
+def test_a_text_file_given_as_frames_is_not_pointed_at_results_h5(tmp_path):
+    """A ``.txt`` or ``.csv`` given as frames was told "radiokit process's images are in
+    results.h5", advice for a ``results.json`` or ``report.html`` given by mistake, which those
+    two still get."""
+    for name, text in (("notes.txt", "hello\n"), ("table.csv", "a,b\n1,2\n")):
+        (tmp_path / name).write_text(text)
+        line = one_line_error(run_cli("info", tmp_path / name), name, "a text file, not frames")
+        assert "results.h5" not in line, line
+    (tmp_path / "results.json").write_text("{}")
+    one_line_error(run_cli("info", tmp_path / "results.json"), "results.json", "results.h5")
+
+
+def test_an_inclusion_given_alone_outside_the_frame_is_told_so(tmp_path):
+    """`--inclusion 0 500 0 5` on a 160 x 160 frame, without --background, was told that "no
+    background of its shape fits beside it" and to give the background: the rectangle itself
+    lies outside the frame, as the same line said when a background was given."""
+    exp = synthetic(tmp_path / "exp.h5")
+    line = one_line_error(
+        run_cli("process", exp, "-o", tmp_path / "res", "--inclusion", "0", "500", "0", "5", *FAST[:4]),
+        "inclusion",
+        "outside the (160, 160) frame",
+    )
+    assert "background" not in line, line
+
+
+def test_k_slips_are_echoed_as_typed(tmp_path):
+    """`--k 1 1` was answered "--k (1.0, 1.0): ...", a Python tuple, where `--k 0` is answered
+    "--k 0: ..." as typed."""
+    exp = synthetic(tmp_path / "exp.h5")
+    for ks, why in ((["1", "1"], "each enhancement factor once"), (["nan"], "finite")):
+        res = run_cli("process", exp, "--k", *ks, "-o", tmp_path / "res")
+        line = one_line_error(res, f"--k {' '.join(ks)}: ", why)
+        assert "(" not in line.split(":")[1], line
+
+
+def test_an_experiment_file_given_as_cal_says_how_to_calibrate_from_it(tmp_path):
+    """`correct frames.tif --cal exp.h5` was told "no /calibration group: not a radiokit
+    calibration file"; an experiment file holds what a calibration is made from, and the line
+    now says how."""
+    exp = synthetic(tmp_path / "exp.h5")
+    tif = tmp_path / "proj.tif"
+    tifffile.imwrite(tif, np.full((1, 160, 160), 1500, np.uint16), photometric="minisblack")
+    res = run_cli("correct", tif, "--cal", exp, "-o", tmp_path / "out.h5")
+    one_line_error(res, "exp.h5", "an experiment file", "radiokit calibrate --experiment")
+
+
+def test_register_retry_with_a_peer_method_is_refused(tmp_path):
+    """`--retry` strengthens a B-spline method's regularisation; with `--method dis` it was
+    accepted and did nothing, where `--preset` with a peer is refused."""
+    rng = np.random.default_rng(0)
+    for name in ("f.tif", "m.tif"):
+        tifffile.imwrite(tmp_path / name, rng.random((32, 32)).astype(np.float32))
+    res = run_cli(
+        "register", tmp_path / "f.tif", tmp_path / "m.tif", "-o", tmp_path / "r.h5", "--method", "dis", "--retry"
+    )
+    one_line_error(res, "--retry", "--method dis")
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_a_calibration_file_given_as_an_experiment_is_refused(tmp_path):
+    """`calibrate --experiment cal.h5` calibrated again from a calibration's averaged dark and flat
+    as one dark and one flat (two warnings, exit 0), and `correct cal.h5` calibrated from it
+    before finding nothing to correct: a calibration is used as it is, with --cal."""
+    rng = np.random.default_rng(0)
+    darks = rng.normal(100, 2, (3, 32, 32)).astype(np.uint16)
+    flats = rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
+    cal = Calibration.from_frames(darks, flats).save(tmp_path / "cal.h5")
+    for args in (("calibrate", "--experiment", cal), ("correct", cal)):
+        one_line_error(run_cli(*args, "-o", tmp_path / "out.h5"), "cal.h5", "calibration", "--cal")
+        assert not (tmp_path / "out.h5").exists()
+
+
+def test_correct_refuses_a_frame_file_given_twice(tmp_path):
+    """`correct a.tif a.tif` wrote every frame twice into one stack, exit 0, where `process` and
+    `calibrate --dark` refuse a file given twice."""
+    tif = tmp_path / "a.tif"
+    tifffile.imwrite(tif, np.full((2, 32, 32), 1500, np.uint16), photometric="minisblack")
+    rng = np.random.default_rng(0)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (3, 32, 32)).astype(np.uint16), rng.normal(3000, 30, (3, 32, 32)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    res = run_cli("correct", tif, tif, "--cal", cal, "-o", tmp_path / "out.h5")
+    one_line_error(res, "a.tif", "twice")
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_process_names_radiokits_own_outputs_given_as_the_experiment(tmp_path):
+    """`process results/results.h5` (or a registration, or a corrected stack) was told "holds
+    hdf5 data, not an experiment": each is radiokit's own output, and the line says which."""
+    exp = synthetic(tmp_path / "exp.h5")
+    assert run_cli("process", exp, "-o", tmp_path / "res", *FAST).returncode == 0
+    assert run_cli("correct", exp, "-o", tmp_path / "corr.h5").returncode == 0
+    for path, what in (
+        (tmp_path / "res" / "results.h5", "radiokit process's results"),
+        (tmp_path / "corr.h5", "a stack of frames"),
+    ):
+        one_line_error(run_cli("process", path, "-o", tmp_path / "again"), path.name, what, "not an experiment")

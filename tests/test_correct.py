@@ -456,3 +456,15 @@ def test_correct_files_refuses_frames_brighter_than_the_flats(tmp_path, domain):
     with pytest.raises(FormatError, match=r"msb.tif: frame 0: brighter than the flats, 8.\d+x their level"):
         correct_files(tmp_path / "msb.tif", cal, tmp_path / "out.h5", domain=domain, progress=False)
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_correct_frames_given_a_file_name_says_to_read_it():
+    """``correct_frames(cal, "frame.tif")`` -- a newcomer's first try -- was told "raw frames of
+    shape () do not match the calibration's"; the line now says that it takes arrays and how to
+    read a file into one."""
+    from pathlib import Path
+
+    cal = Calibration.from_frames(np.full((3, 16, 16), 100, np.uint16), np.full((3, 16, 16), 3100, np.uint16))
+    for name in ("frame.tif", Path("frame.tif")):
+        with pytest.raises(ValueError, match=r"frame\.tif.*radiokit\.io\.read"):
+            correct_frames(cal, name)

@@ -534,3 +534,30 @@ def test_to_domain_refuses_line_integrals_whose_transmission_overflows(domain):
     came back inf, silently."""
     with pytest.raises(ValueError, match="overflows"):
         to_domain(np.array([[0.0, -100.0]]), domain)
+
+
+def test_a_rectangle_given_as_a_tuple_is_told_how_to_write_it():
+    """``contrast(img, (r0, r1, c0, c1), ...)`` -- how Config, --inclusion and roi_observed take
+    a rectangle -- was told "got tuple of dtype int64"; the line now shows the ROI to write."""
+    img = np.zeros((8, 8))
+    with pytest.raises(ValueError, match=r"inclusion .*ROI\(0, 2, 0, 2\)"):
+        contrast(img, (0, 2, 0, 2), ROI(4, 6, 4, 6))
+
+
+def test_a_one_frame_stack_or_a_file_name_where_an_image_belongs_is_told_what_to_pass():
+    """``radiokit.io.read`` gives ``(n, rows, cols)`` always, so a newcomer's first call passes
+    ``read(path).data`` -- a stack of one frame -- or the path itself where one image belongs,
+    and was told only "must be a 2-D (rows, cols) array, got shape (1, 8, 8)" (or ``()``)."""
+    from radiokit.register import register
+
+    stack = np.random.default_rng(0).random((1, 16, 16))
+    for call in (
+        lambda: contrast(stack, ROI(0, 2, 0, 2), ROI(4, 6, 4, 6)),
+        lambda: compression_contrast(stack, stack, 1),
+        lambda: register(stack, stack),
+    ):
+        with pytest.raises(ValueError, match=r"\.data\[0\]"):
+            call()
+    for call in (lambda: compression_contrast("ref.tif", "reg.tif", 1), lambda: register("f.tif", "m.tif")):
+        with pytest.raises(ValueError, match=r"file name.*radiokit\.io\.read"):
+            call()

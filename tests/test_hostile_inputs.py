@@ -1979,3 +1979,18 @@ def test_process_of_steps_that_did_not_move_prints_no_warnings(tmp_path):
     assert res.returncode in (0, 1), res.stderr
     assert "RuntimeWarning" not in res.stderr, res.stderr
     assert (tmp_path / "res" / "report.html").exists()
+
+
+def test_a_truncated_hdf5_file_is_named_truncated_with_its_sizes(tmp_path):
+    """An experiment file cut short (an interrupted copy) was refused with libhdf5's words:
+    "cannot be read as hdf5: Unable to synchronously open file (truncated file: eof = 20000,
+    sblock->base_addr = 0, stored_eof = ...)": the line now says truncated, and how much is there."""
+    exp = synthetic(tmp_path / "exp.h5")
+    size = exp.stat().st_size
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(exp.read_bytes()[:20000])
+    with pytest.raises(FormatError, match=rf"truncated: it holds 20000 of the {size} bytes") as info:
+        read(cut)
+    assert "synchronously" not in str(info.value)
+    line = run_cli("process", cut, "-o", tmp_path / "res").stderr.strip()
+    assert "truncated: it holds 20000" in line and "synchronously" not in line, line

@@ -443,3 +443,15 @@ def test_process_can_ask_for_the_regularisation_check(tmp_path):
         # the slab's fields are trusted, so the second run is made (0.016-0.018 px apart)
         assert q["regularisation_check"] == "weak" and q["regularisation_check_seconds"] > 0, q
         assert 0 <= q["disagreement"] < 0.3
+
+
+def test_config_takes_one_k_as_a_number_and_refuses_text():
+    """``Config(ks=1)`` -- one enhancement factor, as ``compression_contrast(..., k=1)`` takes it
+    -- raised "TypeError: 'int' object is not iterable" from inside the dataclass, and
+    ``Config(ks="12")`` ran k = 1 and 2, one per character."""
+    from radiokit.pipeline import Config
+
+    assert Config(ks=1).ks == (1.0,)
+    assert Config(ks=2.5).ks == (2.5,)
+    with pytest.raises(ValueError, match="ks="):
+        Config(ks="12")

@@ -46,11 +46,11 @@ RTOL = 1e-9
 #: ``radiokit process`` on the golden file, as printed before the refactor.
 PRINTED = (
     "{path}: improvement factor (negative) k=1: 1.04, k=2: 1.08; change ratio 2->3 0.767; registration ok\n"
-    "  log     : CNR reference 5.91; k=1: IF 1.013 (bound 1.000), CNR 3.1; k=2: IF 1.027 (bound 1.000), CNR 2.06\n"
+    "  log     : CNR reference 5.91; k=1: IF 1.013 (bound 1.000), CNR 3.10; k=2: IF 1.027 (bound 1.000), CNR 2.06\n"
     "  negative: CNR reference 5.42; k=1: IF 1.038 (bound 1.025), CNR 2.92; k=2: IF 1.075 (bound 1.049), CNR 1.98\n"
     "  WARNING: pair 1->3 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.64 px (median over "
     "the observed object; > 0.35)\n"
-    "  WARNING: pair 1->2 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.35 px (median over "
+    "  WARNING: pair 1->2 NOT ok: the residual still moves: a Gauss-Newton step on it gives 0.351 px (median over "
     "the observed object; > 0.35)\n"
     "  results.json: {out}/results.json\n"
 )

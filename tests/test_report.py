@@ -419,3 +419,19 @@ def test_the_stated_definitions_reproduce_the_table(tmp_path):
     _, _, text = _parse(write_report(tmp_path, results, images))
     assert "Weber: contrast over |mean of the background ROI|" in text
     assert "CNR: contrast over the background ROI's (population) standard deviation" in text
+
+
+def test_a_trusted_registration_that_did_not_converge_is_not_called_converged():
+    """A pair its checks trust though its finest level was still moving when the budget ended
+    (``converged`` False, the reason in ``note``) was described as having passed "(similarity
+    improved, no folding, converged)"; the sentence now gives the note instead."""
+    results = _record(("1", "2"), {"1": 1.1, "2": 1.2}, truth=False)
+    note = "stopped at 60 iterations; not flagged for it: the residual moves 0.12 px (slow, not lost)"
+    main = results.pair("2->3")
+    slow = dataclasses.replace(main, quality={**main.quality, "converged": False, "note": note})
+    results = dataclasses.replace(results, pairs=tuple(slow if p is main else p for p in results.pairs))
+    text = " ".join(R._pair_sentences(results, R.PAPER))
+    assert "passed its checks" in text and "converged)" not in text
+    assert note in text
+    # a converged one keeps the word
+    assert "converged)" in " ".join(R._pair_sentences(_record(("1", "2"), {"1": 1.1, "2": 1.2}, truth=False), R.PAPER))

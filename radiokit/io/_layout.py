@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import math
 import os
+import re
 import stat
 from contextlib import contextmanager
 
@@ -65,6 +66,13 @@ def open_h5(path) -> h5py.File:
             raise FormatError(
                 path,
                 "is open for writing by another program (it holds the HDF5 file lock): read it once that is closed",
+            ) from None
+        cut = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", str(exc))
+        if cut:  # libhdf5's words were the line: "Unable to synchronously open file (truncated file: eof = ..."
+            raise FormatError(
+                path,
+                f"truncated: it holds {cut[1]} of the {cut[2]} bytes its header declares (an interrupted copy, "
+                "transfer or write): copy it again from where it was made",
             ) from None
         if "already open for write" not in str(exc):
             raise

@@ -161,10 +161,14 @@ def sniff(path) -> str:
             "name says: rename it .img, or pass format='itex' (on the command line --format itex)",
         )
     if path.suffix.lower() in _TEXT:
+        # results.json or report.html given for the images they describe; a .txt or .csv is no output of radiokit
+        where = (
+            "radiokit process's images are in results.h5; " if path.suffix.lower() in (".json", ".html", ".htm") else ""
+        )
         raise FormatError(
             path,
-            f"{_TEXT[path.suffix.lower()]}, not frames (radiokit process's images are in results.h5; "
-            "format='raw', on the command line --format raw, reads its bytes as pixels)",
+            f"{_TEXT[path.suffix.lower()]}, not frames ({where}format='raw', on the command line --format raw, "
+            "reads its bytes as pixels)",
         )
     if ext == "tiff":
         raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")

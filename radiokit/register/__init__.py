@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from radiokit.checks import image_hint
 from radiokit.register._auto import AUTO_PRESETS
 from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
@@ -198,9 +199,9 @@ def _check(fixed, moving, mask):
             )
     f = np.asarray(fixed)
     m = np.asarray(moving)
-    for name, a in (("fixed", f), ("moving", m)):
+    for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
         if a.ndim != 2:
-            raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}")
+            raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}{image_hint(given, a.shape)}")
         if a.dtype.kind not in "uif":
             raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
         if min(a.shape) < 8:
@@ -751,6 +752,22 @@ _BODY_SCALE_PRESETS = ("silent", "silent-fast")
 _BODY_SECTORS = 16
 _BODY_COVER = 0.75
 _MAX_RESIDUAL_MOTION = 0.35  # px: the step's median; it underestimates a larger misalignment
+
+
+def _past(value: float, line: float) -> str:
+    """``value`` (above ``line``) with the fewest decimals, two at least, that print it above
+    the line: 0.354 at two read "0.35 px (...; > 0.35)", a reason that contradicts itself.
+
+    >>> _past(0.354, 0.35), _past(0.64, 0.35), _past(0.35004, 0.35)
+    ('0.354', '0.64', '0.35004')
+    """
+    for decimals in range(2, 7):
+        text = f"{value:.{decimals}f}"
+        if float(text) > line:
+            return text
+    return f"{value:.7g}"
+
+
 # the step's window: half the map's, so that motion varying over the family's shortest
 # correlation length (1/20 of the frame, 28 px at 560) is not averaged away inside it (on the
 # training seeds 12 px flagged 205/205 failed results where 24 px flagged 201/205)
@@ -812,7 +829,7 @@ def _observed(reg, p, w, d, scale=1.0):
             )
     if obs.any() and q.residual_motion > _MAX_RESIDUAL_MOTION:
         reasons.append(
-            f"the residual still moves: a Gauss-Newton step on it gives {q.residual_motion:.2f} px "
+            f"the residual still moves: a Gauss-Newton step on it gives {_past(q.residual_motion, _MAX_RESIDUAL_MOTION)} px "
             f"(median over the observed object; > {_MAX_RESIDUAL_MOTION:g})"
         )
     if q.excess_kept > _MAX_KEPT and left > _EXCESS:
