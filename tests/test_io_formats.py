@@ -327,6 +327,24 @@ def test_a_dataset_without_matlab_class_in_a_mat_file_reads_as_matlab_shows_it(t
         np.testing.assert_array_equal(f[k], stack[:, :, k])
 
 
+def test_nxtomo_keys_beside_frames_h5write_put_in_a_mat_file_are_read(tmp_path):
+    """Frames ``h5write`` put in a .mat file, with NXtomo's ``image_key`` beside them: the frames
+    are MATLAB's (transposed back), the 1-D keys are the same either way and still tell darks and
+    flats from projections (review s34-r1: they were dropped, and calibrate averaged the file's
+    projections into its flats, exit 0)."""
+    stack = _frames(n=4, rows=30, cols=40).transpose(1, 2, 0)
+    keys = np.array([2, 1, 0, 0], dtype=np.int32)
+    path = tmp_path / "frames.mat"
+    _matlab_v73(path, image=stack[:, :, 0])
+    with h5py.File(path, "a") as h5:
+        h5["entry/data/data"] = np.transpose(stack)
+        h5["entry/data/image_key"] = keys
+    with pytest.warns(UserWarning, match="MATLAB array"):
+        f = read(path, dataset="entry/data/data")
+    np.testing.assert_array_equal(f.meta["image_key"], keys)
+    np.testing.assert_array_equal(f.data[2], stack[:, :, 2])
+
+
 def test_an_hdf5_file_with_no_matlab_mark_is_read_row_major(tmp_path):
     """``h5write`` into a plain HDF5 file leaves nothing to tell its column-major order by: its
     frames are read as stored, row-major, as every other HDF5 writer's (the README says so), with

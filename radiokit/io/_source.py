@@ -888,11 +888,11 @@ class FrameSource:
             if self._invert is not None:
                 meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
             column_major = _matlab_array(self.path, self._h5, data)
-            if column_major:  # a MATLAB v7.3 .mat variable: no NXtomo keys beside it
+            if column_major:
                 meta["column_major"] = column_major
-                if "MATLAB_class" in data.attrs:
-                    meta["matlab_class"] = text(data.attrs["MATLAB_class"])
-            else:
+            if "MATLAB_class" in data.attrs:  # a save -v7.3 variable: its neighbours are 2-D variables
+                meta["matlab_class"] = text(data.attrs["MATLAB_class"])
+            else:  # 1-D keys read the same in either order (h5write may have put them in a .mat)
                 meta.update(self._keys_beside(dataset, n))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
             # frames past the keys of a file being written (SWMR; a writer may extend its frames in
