@@ -308,6 +308,20 @@ def test_an_output_that_is_a_symlink_loop_is_one_line(experiment, tmp_path):
     assert out.is_symlink() and other.is_symlink()
 
 
+def test_a_symlink_to_a_name_of_the_same_format_is_written_another_format_refused(experiment, tmp_path):
+    """The writer goes by the name given: ``cal.h5`` linked to ``cal.hdf5`` writes HDF5 either way
+    (review s34-r1: it was refused for the suffix's spelling); linked to a .tif, the file would be
+    HDF5 under a TIFF's name, refused in one line naming both."""
+    out = tmp_path / "cal.h5"
+    out.symlink_to(tmp_path / "cal.hdf5")
+    assert run_cli("calibrate", "--experiment", experiment, "-o", out).returncode == 0
+    assert out.is_symlink() and h5py.is_hdf5(tmp_path / "cal.hdf5")
+    tif = tmp_path / "cal2.h5"
+    tif.symlink_to(tmp_path / "cal2.tif")
+    one_line_error(run_cli("calibrate", "--experiment", experiment, "-o", tif), "cal2.h5", "cal2.tif", "suffix")
+    assert not (tmp_path / "cal2.tif").exists()
+
+
 def test_correct_refuses_to_write_over_its_calibration(experiment, tmp_path):
     cal = tmp_path / "cal.h5"
     assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0

@@ -324,7 +324,7 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
         target = _link_target(path, folder)
         try:
             _check_output(target, overwrite, inputs, folder and made_by)
-            if not folder and target.suffix.lower() != path.suffix.lower():  # writers go by the name given
+            if not folder and _written_as(target) != _written_as(path):  # writers go by the name given
                 raise OutputError(target, f"its name's {target.suffix or 'missing'} suffix is not {path.suffix}")
         except OutputError as exc:
             if target != path:  # named as the user gave it, and what it points at
@@ -335,6 +335,14 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
         raise
     except OSError as exc:  # Path.exists() raises on a name past NAME_MAX (ENAMETOOLONG) or a loop
         raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
+
+
+def _written_as(path: Path) -> str:
+    """What a writer makes of ``path``'s suffix: .h5 and .hdf5 (or .tif and .tiff) write the same."""
+    from radiokit.io._source import _EXTENSIONS  # imported late: the readers need not load to write
+
+    suffix = path.suffix.lower()
+    return _EXTENSIONS.get(suffix, suffix)
 
 
 def _link_target(path: Path, folder: bool) -> Path:
