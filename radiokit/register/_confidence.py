@@ -49,9 +49,9 @@ shifts, 1/4 at half a pixel in both directions; without it a perfect registratio
 than noise). The gain is fitted with the fixed image's noise taken out of its moments and bounded
 to +-``MAX_GAIN`` (a thinning): a least-squares gain is diluted by that noise towards -1, and where
 the fixed image is far noisier than its texture it took the fixed image's whole content out of
-the residual, misaligned structure included (session 34). A window's mean square of pure noise scatters by ``sqrt(2 / N)``
-around its expectation, ``N = 4 pi window^2`` the Gaussian window's effective number of pixels
-(about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
+the residual, misaligned structure included (session 34). A window's mean square of pure noise
+scatters by ``sqrt(2 / N)`` around its expectation, ``N = 4 pi window^2`` the Gaussian window's
+effective number of pixels (about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
 deviations) is structure the pair carries left misaligned, not noise. A lone row or column of
 the residual that one image alone holds (a detector's dead or stuck line: ``lone_lines``) is a
 defect of that image, not misalignment: it is left out of the residual and of the fixed image's
