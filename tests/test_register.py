@@ -2676,3 +2676,47 @@ def test_structure_outside_the_mask_does_not_observe_the_motion_inside_it(method
     reg = register(fixed.astype(np.float32), moving.astype(np.float32), method, mask=mask)
     assert reg.quality.observed_fraction < 0.05
     assert not reg.quality.ok
+
+
+def _noisy_fixed_pair(shift, seed=8):
+    """A smooth body (an ellipse's chord) carrying a brick texture of a tenth of it, moved by
+    ``shift`` (px; ``fixed(x) = moving(x + shift)``); the fixed image's noise a tenth of the body's
+    peak, the moving image's 0.5 %: the fixed image far noisier than its texture. 320 px."""
+    import cv2
+    from skimage import data
+
+    n, rng = 320, np.random.default_rng(seed)
+    t = cv2.resize(data.brick()[100:356, 100:356].astype(np.float32), (n, n), interpolation=cv2.INTER_CUBIC)
+    t -= ndimage.gaussian_filter(t, n / 8)
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n - 0.5
+    chord = np.sqrt(np.clip(1 - (x / 0.34) ** 2 - (y / 0.30) ** 2, 0, None))
+    moving = ndimage.gaussian_filter(chord * (1 + 0.1 * t / t.std()), 1.0)
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    fixed = ndimage.map_coordinates(moving, [yy + shift[0], xx + shift[1]], order=3, mode="nearest")
+    body = ndimage.map_coordinates((chord > 0.3).astype(float), [yy + shift[0], xx + shift[1]], order=1) > 0.5
+    fixed = (fixed + 0.1 * rng.standard_normal((n, n))).astype(np.float32)
+    moving = (moving + 0.005 * rng.standard_normal((n, n))).astype(np.float32)
+    return fixed, moving, body
+
+
+def test_a_noisy_fixed_image_does_not_hide_a_motion_beyond_capture_range():
+    """Found by a hostile trial (session 33): when the fixed image is far noisier than its texture
+    (noise 10 % against a 10 % texture, the moving image's 0.5 %), a 25-30 px shift beyond rc's
+    capture range was trusted. The residual test's local gain, fitted by least squares, is diluted by
+    the fixed image's own noise towards -1 and took the fixed image's whole content out of the
+    residual, and the noise it expected was twice the fixed image's, so no misaligned structure
+    showed even before registering. A field that did not move (the identity, planted: what a
+    registration stuck outside its capture range returns) is now flagged; the true field under the
+    same noise, and rc's own registration of a 2 px shift, are still trusted."""
+    shift = (18.0, 27.0)
+    fixed, moving, body = _noisy_fixed_pair(shift)
+    zero = np.zeros((2, *fixed.shape), np.float32)
+    stuck = _planted(fixed, moving, zero).quality
+    assert not stuck.ok and "did not find the motion" in stuck.reason, stuck.reason
+    truth = zero + np.array(shift, np.float32)[:, None, None]
+    right = _planted(fixed, moving, truth).quality
+    assert right.ok and right.excess_kept < 0.1, right.reason
+    fixed, moving, body = _noisy_fixed_pair((1.2, 1.6))
+    reg = register(fixed, moving, "rc")
+    assert np.median(np.hypot(reg.displacement[0] - 1.2, reg.displacement[1] - 1.6)[body]) < 0.5  # a good result
+    assert reg.quality.ok, reg.quality.reason

@@ -690,11 +690,11 @@ class _PairChecks:
     def consistency(self):
         from radiokit.register import _confidence as C
 
-        return C.Consistency(self.f, _WINDOW)
+        return C.Consistency(self.f, _WINDOW, moving=self.m)
 
     @functools.cached_property
     def before(self) -> np.ndarray:
-        """The moving image's excess over the noise (``consistency - 1``), two noisy images."""
+        """The moving image's excess over the noise (``consistency - 1``), unwarped."""
         return self.consistency(self.m, support=self.mask) - 1.0
 
     @functools.cached_property

@@ -41,12 +41,17 @@ Consistency (no truth)
 ----------------------
 After registration the residual ``warped - fixed``, high-passed like the image and less the
 part a local thinning or gain explains, should be noise where the motion is observed: its local
-mean square against the noise's expected share, ``sigma^2 (1 + v)``, ``v`` the variance that
-bilinear interpolation leaves of the moving image's noise (``interpolation_variance``: 1 on
-whole-pixel shifts, 1/4 at half a pixel in both directions; without it a perfect registration
-looks better than noise). A window's mean square of pure noise scatters by ``sqrt(2 / N)``
-around its expectation, ``N = 4 pi window^2`` the Gaussian window's effective number of pixels
-(about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
+mean square against the noise's expected share, ``(1 + a)^2 sigma_f^2 + v sigma_m^2``, each
+image's noise estimated on its own (the moving image's as the fixed image's map times the ratio of
+their ``noise_sigma``), ``a`` the local gain removed and ``v`` the variance that bilinear
+interpolation leaves of the moving image's noise (``interpolation_variance``: 1 on whole-pixel
+shifts, 1/4 at half a pixel in both directions; without it a perfect registration looks better
+than noise). The gain is fitted with the fixed image's noise taken out of its moments and bounded
+to +-``MAX_GAIN`` (a thinning): a least-squares gain is diluted by that noise towards -1, and where
+the fixed image is far noisier than its texture it took the fixed image's whole content out of
+the residual, misaligned structure included (session 34). A window's mean square of pure noise
+scatters by ``sqrt(2 / N)`` around its expectation, ``N = 4 pi window^2`` the Gaussian window's
+effective number of pixels (about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
 deviations) is structure the pair carries left misaligned, not noise. A lone row or column of
 the residual that one image alone holds (a detector's dead or stuck line: ``lone_lines``) is a
 defect of that image, not misalignment: it is left out of the residual and of the fixed image's
@@ -361,18 +366,20 @@ def interpolation_variance(displacement, spacing):
     return _gauss(((1 - a) ** 2 + a * a) * ((1 - b) ** 2 + b * b), spacing)
 
 
-def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0, support=None):
+def consistency(fixed, warped, spacing, sigma_map=None, noise_factor=2.0, support=None, moving=None):
     """Local mean square of the residual ``warped - fixed`` that a slow intensity change cannot
-    explain, over the noise's expected share ``noise_factor x sigma^2`` (about 1 for noise
-    alone; ``noise_factor`` 2 for two independent noisy images, ``1 + interpolation_variance``
-    for a warped one): both high-passed at ``spacing`` px, then, in a Gaussian window of
-    ``spacing`` px, the part proportional to the high-passed fixed image removed (a thinning or
-    gain change locally scales the image's structure; a misalignment ``d . grad f`` is not
-    proportional to it). ``support`` (bool, optional): the residual outside it is taken as 0, so
+    explain, over the noise's expected share (about 1 for noise alone): ``(1 + a)^2 sigma^2 +
+    (noise_factor - 1) sigma_m^2``, ``noise_factor`` 2 for two images unwarped, ``1 +
+    interpolation_variance`` for a warped one; ``sigma_m`` the moving image's noise (``moving``:
+    ``sigma`` times the ratio of the two images' ``noise_sigma``; without it ``sigma``). Both
+    high-passed at ``spacing`` px, then, in a Gaussian window of ``spacing`` px, the part ``a``
+    times the high-passed fixed image removed (a thinning or gain change locally scales the
+    image's structure; a misalignment ``d . grad f`` is not proportional to it; ``a`` from
+    :func:`_gain`). ``support`` (bool, optional): the residual outside it is taken as 0, so
     that what the caller's mask excludes (a collimator's static edge, which a field warps out of
     place) does not reach the windows inside it. :class:`Consistency` keeps the fixed image's
     part for several warped images."""
-    return Consistency(fixed, spacing, sigma_map)(warped, noise_factor, support)
+    return Consistency(fixed, spacing, sigma_map, moving)(warped, noise_factor, support)
 
 
 # A lone line (a dead, stuck or miscalibrated detector column or row in one image of the pair):
@@ -481,35 +488,63 @@ def lone_lines(r, noise, images=()):
 
 class Consistency:
     """:func:`consistency` against one fixed image: its high-pass, window power and noise map
-    computed once (the checks judge the moving image and every run's warped image against it)."""
+    computed once (the checks judge the moving image and every run's warped image against it);
+    ``moving``, the pair's moving image, for its noise level."""
 
-    def __init__(self, fixed, spacing, sigma_map=None):
+    def __init__(self, fixed, spacing, sigma_map=None, moving=None):
         f = np.asarray(fixed, np.float32)
         self.fixed, self.spacing = f, spacing
         self.fh = f - _gauss(f, spacing)
         self.ff = _gauss(self.fh * self.fh, spacing) + 1e-30
         self.sigma = noise_map(f, spacing) if sigma_map is None else sigma_map
+        # the moving image's noise against the fixed image's (one number: the fixed image's map
+        # keeps its local, Poisson-like shape); 1 without a moving image, as before session 34
+        nf = noise_sigma(f) if moving is not None else 0.0
+        self.moving_ratio = np.float32(noise_sigma(moving) / nf) if nf > 0 else np.float32(1.0)
 
     def __call__(self, warped, noise_factor=2.0, support=None):
-        s = self.sigma
+        s2 = self.sigma * self.sigma
+        # the noise's expected share: the fixed image's (scaled by the gain removed, below) and
+        # the warped moving image's, ``noise_factor - 1`` of its own (interpolation_variance)
+        moving2 = (noise_factor - 1) * self.moving_ratio**2 * s2
         r = np.asarray(warped, np.float32) - self.fixed
         if support is not None:
             r = np.where(support, r, np.float32(0))
         # a lone line is a defect of one image, not structure left misaligned: left out of the
         # residual and of the fixed image's part (whose high-pass it would offset over a window)
-        lines = lone_lines(r, s * np.sqrt(noise_factor), (warped, self.fixed))
+        lines = lone_lines(r, np.sqrt(s2 + moving2), (warped, self.fixed))
         if lines.any():
             r, fh, ff = _highpass_over(r, ~lines, self.spacing), *self._fixed_part(~lines)
         else:
             r, fh, ff = r - _gauss(r, self.spacing), self.fh, self.ff
         rf = _gauss(r * fh, self.spacing)
-        left = np.maximum(_gauss(r * r, self.spacing) - rf * rf / ff, 0)
-        return left / (noise_factor * s * s)
+        a = _gain(rf, ff, s2)
+        left = np.maximum(_gauss(r * r, self.spacing) - 2 * a * rf + a * a * ff, 0)
+        return left / ((1 + a) ** 2 * s2 + moving2)
 
     def _fixed_part(self, keep):
         """The fixed image's high-pass and window power over ``keep`` only."""
         fh = _highpass_over(self.fixed, keep, self.spacing)
         return fh, _gauss(fh * fh, self.spacing) + 1e-30
+
+
+# The most a local gain may scale the fixed image's structure: a thinning or an intensity change
+# of up to 20 % (the issue's bound on the slow intensity change).
+MAX_GAIN = 0.2
+
+
+def _gain(rf, ff, s2):
+    """The local gain ``a`` of the residual on the high-passed fixed image (``r ~ a fh``), from
+    their window moments ``rf``, ``ff`` and the fixed image's noise variance ``s2``. The least-
+    squares gain ``rf / ff`` is diluted by the fixed image's own noise, which is in both ``r`` and
+    ``fh``: where that noise outweighs the texture it tends to -1 whatever the alignment, and
+    takes the fixed image's whole content (noise and misaligned structure alike) out of the
+    residual. So the noise's share is taken out of both moments (errors in variables), and the
+    gain bounded to what a thinning can do (``MAX_GAIN``); the residual's expected noise share
+    then keeps ``(1 + a)^2`` of the fixed image's noise."""
+    num, den = rf + s2, ff - s2
+    a = np.where(den > 0, num / np.where(den > 0, den, 1), np.sign(num) * MAX_GAIN)
+    return np.clip(a, -MAX_GAIN, MAX_GAIN).astype(np.float32)
 
 
 def _highpass_over(a, keep, spacing):
