@@ -4,13 +4,14 @@ A phantom with a stiff inclusion is radiographed at several compression steps; a
 compressed steps are registered onto the most compressed one, their difference carries
 *compression-induced contrast*. The modules, in the order the chain uses them:
 
-- :mod:`radiokit.io` -- ``read(path)`` any frame file (raw, TIFF, HDF5, ITEX ``.img``) as
-  ``(n, rows, cols)``; ``ExperimentWriter`` packs darks, flats and the steps' projections into
+- :mod:`radiokit.io` -- ``read(path)`` any frame file (raw, TIFF, HDF5, ITEX ``.img``): its
+  ``.data`` is ``(n, rows, cols)``, its ``.meta`` what the file says; ``ExperimentWriter`` packs darks, flats and the steps' projections into
   one experiment file.
 - :mod:`radiokit.calibrate` -- ``Calibration.from_frames(darks, flats)`` or
   ``Calibration.from_experiment(path)``: averaged dark and flat, defect map.
 - :mod:`radiokit.correct` -- ``correct_frames(cal, raw, domain="log")``: offset, gain and defects,
-  to line integrals ``-ln(I/I0)`` (or ``I/I0``, ``"linear"``).
+  to line integrals ``-ln(I/I0)`` (or ``I/I0``, ``"linear"``; or ``"counts"``, the manual's
+  gain-corrected grey levels).
 - :mod:`radiokit.register` -- ``register(fixed, moving)``: residual-complexity B-spline
   registration (and peers), a pull field in pixels and quality checks; ``warp`` applies a field.
 - :mod:`radiokit.enhance` -- ``compression_contrast(reference, registered, k)``:

@@ -354,7 +354,8 @@ def _an_experiment(path, hints) -> None:
 
     with open_frames(path, **hints) as src:
         keys = np.asarray(src.meta.get("image_key", []))
-    if not (np.any(keys == ImageKey.DARK) and np.any(keys == ImageKey.FLAT)):
+    # an experiment file lacking one kind is told which by the calibration (review s34-r3)
+    if not (np.any(keys == ImageKey.DARK) or np.any(keys == ImageKey.FLAT)):
         raise FormatError(
             path,
             "holds no darks and flats to calibrate from (not an experiment file): give --cal CAL.h5, "
@@ -779,7 +780,7 @@ def _print_headline(record, files, prefix=""):
     """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
     for its control after them (``prefix`` "control "); the domains by radiokit's names
     (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0)."""
-    from radiokit.results import k_label
+    from radiokit.results import k_label, sig3
 
     ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
     main = record.pair(record.main_pair)
@@ -791,11 +792,10 @@ def _print_headline(record, files, prefix=""):
         parts = [
             f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
             + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
-            + f", CNR {x.cnr:#.3g}"
+            + f", CNR {sig3(x.cnr)}"
             for x in m.per_k
         ]
-        # '#': three significant digits kept ("10.0" beside "16.6", not "10"; "3.10", not "3.1")
-        print(f"  {dom.value:<8}: CNR reference {m.cnr_reference:#.3g}; " + "; ".join(parts))
+        print(f"  {dom.value:<8}: CNR reference {sig3(m.cnr_reference)}; " + "; ".join(parts))
     # the exit code is 1 when any pair is flagged: say which, or "registration ok" above was all
     # a user saw of a run that exited 1 (the main pair was fine, 1->3 was not)
     for pair in record.pairs:

@@ -43,7 +43,7 @@ import numpy as np
 
 from radiokit._version import __version__
 from radiokit.measure import PAPER  # used where results.paper does not give them
-from radiokit.results import Images, Results, k_label
+from radiokit.results import Images, Results, k_label, sig3
 
 __all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
@@ -83,6 +83,12 @@ def _num(x):
 def _fmt(x, spec=".2f", missing="\u2014"):
     v = _num(x)
     return missing if v is None else format(v, spec)
+
+
+def _sig(x, missing="\u2014"):
+    """A CNR's three significant digits (:func:`radiokit.results.sig3`), or ``missing``."""
+    v = _num(x)
+    return missing if v is None else sig3(v)
 
 
 def _main_k(ks):
@@ -619,9 +625,9 @@ def _bound_cnr_rows(results):
         rows.append(
             (
                 f"{dom}: CNR reference \u2192 " + ", ".join(_k_label(x.k) for x in m.per_k),
-                " \u2192 ".join(_fmt(v, "#.3g") for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
+                " \u2192 ".join(_sig(v) for v in [m.cnr_reference, *(x.cnr for x in m.per_k)]),
                 "",
-                " \u2192 ".join(_fmt(v, "#.3g") for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
+                " \u2192 ".join(_sig(v) for v in [cm.cnr_reference, *(x.cnr for x in cm.per_k)]) if cm else "",
             )
         )
     if results.bound.basis:
@@ -764,7 +770,7 @@ def _measurement_table(results, paper):
                 dom,
                 "reference",
                 _fmt(m.contrast_reference, ".4g"),
-                _fmt(m.cnr_reference, "#.3g"),
+                _sig(m.cnr_reference),
                 _fmt(m.weber_reference, ".4g"),
                 "1",
                 "",
@@ -775,7 +781,7 @@ def _measurement_table(results, paper):
                 dom,
                 f"enhanced, {_k_label(x.k)}",
                 _fmt(x.contrast, ".4g"),
-                _fmt(x.cnr, "#.3g"),
+                _sig(x.cnr),
                 _fmt(x.weber, ".4g"),
                 _fmt(x.improvement_factor),
                 _fmt(_paper_if(paper, x.k), ".1f", ""),

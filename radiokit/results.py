@@ -58,6 +58,12 @@ def k_label(k) -> str:
     return f"{float(k):g}"
 
 
+def sig3(x: float) -> str:
+    """Three significant digits, trailing zeros kept ("10.0" beside "16.6", not "10"; "3.10") and
+    no bare point ("126", not "126.")."""
+    return f"{float(x):#.3g}".rstrip(".")
+
+
 @dataclass(frozen=True)
 class KMeasure:
     """The enhanced image's measurements at one k (``bound``: None where no bound holds)."""

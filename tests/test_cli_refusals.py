@@ -509,6 +509,20 @@ def test_correct_without_cal_on_frames_that_are_no_experiment_asks_for_cal(tmp_p
         assert not (tmp_path / "out.h5").exists()
 
 
+def test_correct_without_cal_on_an_experiment_lacking_its_flats_names_the_flats(tmp_path):
+    """An experiment file with darks and projections but no flats (the shutter stayed shut) is
+    an experiment file: it is told what it lacks, not "not an experiment file" (review s34-r3)."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rng = np.random.default_rng(0)
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32)) as w:
+        for key in (ImageKey.DARK, ImageKey.DARK, ImageKey.PROJECTION):
+            w.append(rng.normal(100, 2, (32, 32)).astype(np.uint16), image_key=key)
+    line = one_line_error(run_cli("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5"), "exp.h5", "no flats")
+    assert "not an experiment" not in line, line
+    assert not (tmp_path / "out.h5").exists()
+
+
 def test_correct_of_a_file_without_projections_says_so(tmp_path):
     """An experiment file holding only darks and flats (an acquisition stopped before its first
     step) ended on "no frames to correct in exp.h5 (image_keys=(0,))", a tuple a user cannot act

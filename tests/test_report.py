@@ -435,3 +435,13 @@ def test_a_trusted_registration_that_did_not_converge_is_not_called_converged():
     assert note in text
     # a converged one keeps the word
     assert "converged)" in " ".join(R._pair_sentences(_record(("1", "2"), {"1": 1.1, "2": 1.2}, truth=False), R.PAPER))
+
+
+@pytest.mark.parametrize(
+    "x, text", [(126.4, "126"), (1264.0, "1.26e+03"), (10.0, "10.0"), (3.1, "3.10"), (0.001234, "0.00123")]
+)
+def test_cnrs_keep_three_significant_digits_without_a_bare_point(x, text):
+    """'#.3g' kept "10.0" beside "16.6" but wrote a CNR of 126 as "126." (review s34-r3)."""
+    from radiokit.results import sig3
+
+    assert sig3(x) == text
