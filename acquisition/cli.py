@@ -686,7 +686,13 @@ def _after_failed_on(src, args) -> str:
             + (f"switch them on at {args.kv:g} kV {args.ua:g} uA" if args.action == "on" else "warm up")
         )
     state = src.confirmed_off
-    return f"; X-rays off, confirmed by STS: {state.name}" if state is not None else ""
+    if state is not None:
+        return f"; X-rays off, confirmed by STS: {state.name}"
+    if src.tube_confirmed_off:
+        # refused before anything that emits was sent (warm-up needed, interlock open): the line
+        # ended on the controller's state, not on whether X-rays are off (README: exit code 1)
+        return f"; nothing that emits was sent: X-rays off, confirmed by STS: {src.last_state.name}"
+    return ""
 
 
 def _warm_up_line(src, args, seconds: float) -> str:
