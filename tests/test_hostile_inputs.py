@@ -660,7 +660,9 @@ def test_debug_shows_the_traceback(tmp_path):
             ],
             "no space left",
         ),
-        (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
+        # before claiming its folder, the option named (found by a new user: "unknown scene 'nosuch'")
+        (["demo", "--preset", "nosuch", "-o", "demo"], "--preset nosuch: unknown scene"),
+        (["demo", "--preset", "none.toml", "-o", "demo"], "--preset none.toml: no such scene file"),
         (["demo", "--frames", "0", "-o", "demo"], "--frames 0"),  # the claimed folder was left behind
         (["demo", "--method", "tvl1", "-o", "demo"], "--method tvl1"),  # found after both acquisitions
         (["demo", "--frames", "10000000", "-o", "demo"], "no space left"),  # terabytes of frames
