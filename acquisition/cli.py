@@ -691,7 +691,7 @@ def _after_failed_on(src, args) -> str:
     if src.tube_confirmed_off:
         # refused before anything that emits was sent (warm-up needed, interlock open): the line
         # ended on the controller's state, not on whether X-rays are off (README: exit code 1)
-        return f"; nothing that emits was sent: X-rays off, confirmed by STS: {src.last_state.name}"
+        return f"; X-rays off, confirmed by STS: {src.last_state.name} (nothing that emits sent since)"
     return ""
 
 

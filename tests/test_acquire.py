@@ -750,7 +750,7 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert "warm-up" in err[-1] and not model.xray_on
         # found by a new user: the refusal's line ended on "(state WARMUP_NEEDED)", not on whether
         # X-rays are off, which README's exit code 1 promises is confirmed
-        assert err[-1].endswith("X-rays off, confirmed by STS: WARMUP_NEEDED"), err
+        assert err[-1].endswith("X-rays off, confirmed by STS: WARMUP_NEEDED (nothing that emits sent since)"), err
         assert _cli("acquire", "source", "warm-up", *port, "-q") == 0
         assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 0
         assert model.xray_on  # bench work: on until told otherwise
