@@ -101,6 +101,11 @@ def _run(args) -> int:
         except DeviceError as exc:
             print(f"error: {args.protocol}: {exc}", file=sys.stderr)
             return 2
+    if args.resume and not Path(p.output).exists():
+        # said here in one line, and the new file checked as any new file (the run's own log
+        # warning reached the terminal with a timestamp and a logger's name)
+        _say(NO_FILE.format(out=p.output, then="the plan is the whole series" if args.dry_run else "starting it"))
+        args.resume = False
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
         from radiokit.io import check_output
 
@@ -122,6 +127,10 @@ def _run(args) -> int:
 
 #: ``--resume`` on a file that holds every frame (the run and the dry run alike).
 COMPLETE = "{out}: already complete ({n} frames); nothing to resume, the file and the devices were not touched"
+
+
+#: ``--resume`` on a file that does not exist (the run and the dry run alike).
+NO_FILE = "{out}: nothing to resume (no file: the series stopped before its first frame); {then}"
 
 
 def _resumable(args, p) -> tuple[int | None, dict | None]:
@@ -180,17 +189,26 @@ def _dry_run(args, p, done) -> int:
     from acquisition.protocols.compression_series import plan
 
     pl = plan(p, done, sim=args.sim)
-    warm = p.sim.warmup_s if args.sim else p.source.warmup_estimate_s  # the virtual bench's own
     where = "the virtual bench" if args.sim else f"source {p.source.port}"
     print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
     print(pl.table())
     print(
         f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
-        f"(the warm-up's {warm / 60:.1f} min included, if the source needs it; "
+        f"({_warm_up_words(pl)}; "
         f"estimates: {p.detector.frame_period_s:g} s per frame, settle {p.settle_s(args.sim):g} s per step"
         f"{', operator ' + format(p.frame.move_estimate_s, 'g') + ' s per move' if p.frame.kind == 'manual' else ''})"
     )
     return 0
+
+
+def _warm_up_words(pl) -> str:
+    """The plan's warm-up, in words that stay true: the virtual bench's takes seconds ("0.0 min"
+    was printed), and a plan without one (a resume's, the bench's warm source) has none."""
+    warm = next((row[3] for row in pl.rows if row[0] == "warm-up"), 0.0)
+    if warm <= 0:
+        return "no time planned for a warm-up"
+    shown = f"{warm:g} s" if warm < 60 else f"{warm / 60:.1f} min"
+    return f"the warm-up's {shown} included, if the source needs it"
 
 
 #: An existing experiment file, without --resume or --overwrite (the run and the dry run alike).
@@ -668,7 +686,13 @@ def _after_failed_on(src, args) -> str:
             + (f"switch them on at {args.kv:g} kV {args.ua:g} uA" if args.action == "on" else "warm up")
         )
     state = src.confirmed_off
-    return f"; X-rays off, confirmed by STS: {state.name}" if state is not None else ""
+    if state is not None:
+        return f"; X-rays off, confirmed by STS: {state.name}"
+    if src.tube_confirmed_off:
+        # refused before anything that emits was sent (warm-up needed, interlock open): the line
+        # ended on the controller's state, not on whether X-rays are off (README: exit code 1)
+        return f"; X-rays off, confirmed by STS: {src.last_state.name} (nothing that emits sent since)"
+    return ""
 
 
 def _warm_up_line(src, args, seconds: float) -> str:

@@ -346,9 +346,15 @@ def _interrupted_line(out: Path, made_here: bool) -> str:
 
 
 def _run_demo(args) -> dict:
+    from sim.scene import load_scene
+
+    try:  # the option named, as `sim run --preset` names it: "unknown scene 'nope'" did not say where
+        scene = load_scene(args.preset)
+    except (ValueError, OSError) as exc:
+        raise type(exc)(f"--preset {args.preset}: {str(exc).removeprefix(f'{args.preset}: ')}") from None
     return run_demo(
         args.output,
-        preset=args.preset,
+        preset=scene,
         binning=args.binning,
         frames_per_step=args.frames,
         coarse=args.coarse,

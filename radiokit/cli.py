@@ -143,8 +143,34 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "frames_read": len(picks),
         "saturated": saturated if top is not None else None,
         "nonfinite": nonfinite,
-        "metadata": _summary(src.meta),
+        "metadata": _summary(src.meta) | _stack_domain(path, src.meta),
     }
+
+
+#: What a corrected stack's pixels are (radiokit.correct's domains): the numbers alone do not say.
+_DOMAINS = {
+    "log": "log: line integrals -ln(I/I0)",
+    "linear": "linear: transmission I/I0",
+    "counts": "counts: gain-corrected grey levels",
+}
+
+
+def _stack_domain(path, meta: dict) -> dict:
+    """``{"domain": words}`` for a stack ``radiokit correct`` wrote (it records its domain in the
+    TIFF's description, or its HDF5 frames' group), else nothing."""
+    value = None
+    if meta.get("format") == "tiff" and isinstance(meta.get("description"), dict):
+        value = meta["description"].get("domain")
+    elif meta.get("format") == "hdf5":
+        from radiokit.io._write import STACK, STACK_FRAMES
+
+        if meta.get("dataset") == f"/{STACK_FRAMES}":
+            import h5py
+
+            with h5py.File(path, "r") as h5:
+                value = h5[STACK].attrs.get("domain")
+    value = value.decode(errors="replace") if isinstance(value, bytes) else value
+    return {"domain": _DOMAINS.get(value, value)} if isinstance(value, str) and value else {}
 
 
 def cmd_info(args) -> int:

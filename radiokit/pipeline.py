@@ -302,6 +302,10 @@ def _roi(value, units, pixel_size_mm, name):
     r0, r1, c0, c1 = _roi_numbers(value, units, name)
     if units == "mm":
         r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
+    else:  # a fractional pixel was rounded without a word; mm are rounded to pixels (README)
+        part = [f"{v:g}" for v in (r0, r1, c0, c1) if v != int(v)]
+        if part:
+            raise ValueError(f"{what}: pixel bounds are whole numbers, not {', '.join(part)} (mm, rounded: --mm)")
     try:
         return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
     except ValueError as exc:

@@ -841,6 +841,17 @@ def _registration_table(results):
     return _table(header, rows)
 
 
+def _auto_choices(results) -> str:
+    """One line: the preset ``auto`` chose for each pair and why (results.json's ``preset_reason``;
+    the table showed the preset, not the reason). Nothing when no pair recorded one."""
+    chosen = [
+        f"{_e(_pair_label(p.name))}: {_e(p.quality['preset'])} ({_e(p.quality['preset_reason'])})"
+        for p in results.pairs
+        if p.quality.get("preset_reason") and p.quality.get("preset")
+    ]
+    return f"<p>Preset auto chose, per pair: {'; '.join(chosen)}.</p>" if chosen else ""
+
+
 def _control_section(results):
     control = results.control
     if control is None:
@@ -1052,6 +1063,7 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
         "<h2>Registration quality</h2>",
         fig_html["registration.png"],
         _registration_table(results),
+        _auto_choices(results),
         "<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
         "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>",
         "<h2>Timings</h2>",

@@ -555,6 +555,21 @@ def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, c
     assert not os.path.exists(p.output)
 
 
+@pytest.mark.parametrize(
+    "warmup_s, said", [(2.0, "the warm-up's 2 s included"), (0.0, "no time planned for a warm-up")]
+)
+def test_cli_dry_run_states_the_virtual_benchs_warm_up_in_seconds(tmp_path, scene_toml, capsys, warmup_s, said):
+    """Found by a new user: the virtual bench's warm-up (2 s by default) was said in minutes to one
+    decimal, "the warm-up's 0.0 min included", and so was a plan with no time for one."""
+    p = protocol(tmp_path, scene_toml)
+    p.sim.warmup_s = warmup_s
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    assert _cli("acquire", str(path), "--dry-run", "--sim") == 0
+    out = capsys.readouterr().out
+    assert said in out and "0.0 min included" not in out, out
+
+
 @pytest.mark.parametrize("relative", [False, True])
 def test_cli_a_protocol_path_holding_an_equals_sign_is_read_as_a_file(
     tmp_path, scene_toml, capsys, monkeypatch, relative
@@ -600,6 +615,26 @@ def test_cli_runs_the_virtual_bench_and_resumes(tmp_path, scene_toml, capsys):
 
 
 NOT_TOUCHED = "nothing to resume, the file and the devices were not touched"
+
+
+def test_cli_resume_of_a_missing_file_says_so_in_one_line_and_starts_the_series(tmp_path, scene_toml, capsys, caplog):
+    """Found by a new user: `--resume` on a file never written printed a logging line (a timestamp,
+    the logger's name, WARNING) on the terminal. It is the command's own line now, the run and the
+    dry run alike, and the series then starts as a new one."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    said = f"{p.output}: nothing to resume (no file: the series stopped before its first frame); "
+    assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == [said + "the plan is the whole series"], err
+    assert re.search(rf"total\s+{TOTAL - 3 * (PER_STEP - 1)}\b", out) and not os.path.exists(p.output)
+    caplog.clear()
+    assert _cli("acquire", str(path), "--sim", "--resume", "-q") == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines()[0] == said + "starting it", err
+    assert not [r for r in caplog.records if "nothing to resume" in r.getMessage()], caplog.records
+    assert f"{DARKS + FLATS + 3} frames written" in out
 
 
 @pytest.mark.parametrize("flags", [["-q"], ["--dry-run"]])
@@ -711,7 +746,11 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert "dialect A at 9600 baud" in out and "WARMUP_NEEDED" in out
         port = ("--port", server.url, "--dialect", "A")
         assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 1
-        assert "warm-up" in capsys.readouterr().err and not model.xray_on
+        err = capsys.readouterr().err.splitlines()
+        assert "warm-up" in err[-1] and not model.xray_on
+        # found by a new user: the refusal's line ended on "(state WARMUP_NEEDED)", not on whether
+        # X-rays are off, which README's exit code 1 promises is confirmed
+        assert err[-1].endswith("X-rays off, confirmed by STS: WARMUP_NEEDED (nothing that emits sent since)"), err
         assert _cli("acquire", "source", "warm-up", *port, "-q") == 0
         assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 0
         assert model.xray_on  # bench work: on until told otherwise

@@ -238,3 +238,57 @@ def test_the_tqdm_check_can_fail(tmp_path):
     (tmp_path / "m.py").write_text("from tqdm.auto import tqdm\nimport tqdm\nfrom radiokit.progress import tqdm\n")
     with _repo_at(tmp_path):
         assert len(_direct_tqdm_imports(tmp_path / "m.py")) == 2
+
+
+# -- importing a module changes nothing ------------------------------------------------------------
+# pytest imports every module of sim/ and acquisition/ to collect their doctests (pyproject's
+# testpaths): a handler installed, a logger configured, a file or a thread left by an import would
+# change every test after it in that worker. A fresh interpreter imports them all and reports what
+# changed, in a scratch folder.
+_IMPORT_ALL = """
+import importlib, logging, os, pkgutil, signal, sys, threading
+sys.path.insert(0, sys.argv[1])
+signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+before = ({s: signal.getsignal(s) for s in signals}, set(os.listdir(".")), threading.active_count())
+for name in sys.argv[2:]:
+    package = importlib.import_module(name)
+    for m in pkgutil.walk_packages(package.__path__, name + "."):
+        if not m.name.endswith("__main__"):
+            importlib.import_module(m.name)
+loggers = [n for n, lg in logging.Logger.manager.loggerDict.items() if getattr(lg, "handlers", None)]
+changed = {
+    "signal handlers": {s: signal.getsignal(s) for s in signals} != before[0],
+    "files": sorted(set(os.listdir(".")) - before[1]),
+    "threads": threading.active_count() - before[2],
+    "root logger": logging.getLogger().handlers or None,
+    "loggers with handlers": loggers,
+}
+print({k: v for k, v in changed.items() if v})
+"""
+
+
+def _import_side_effects(root: Path, packages, cwd: Path) -> str:
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-c", _IMPORT_ALL, str(root), *packages], cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+    assert res.returncode == 0, res.stderr
+    return res.stdout.strip()
+
+
+def test_importing_sim_and_acquisition_has_no_side_effects(tmp_path):
+    assert _import_side_effects(REPO, ("sim", "acquisition"), tmp_path) == "{}"
+
+
+def test_the_side_effect_check_can_fail(tmp_path):
+    pkg = tmp_path / "src" / "noisy"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "m.py").write_text(
+        "import logging, signal\nlogging.basicConfig()\nsignal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "open('left.txt', 'w').close()\n"
+    )
+    said = _import_side_effects(tmp_path / "src", ("noisy",), tmp_path)
+    assert all(k in said for k in ("signal handlers", "left.txt", "root logger")), said

@@ -806,6 +806,20 @@ def test_an_existing_output_names_the_option_only(tmp_path):
     assert res.stderr.strip() == f"radiokit calibrate: {out}: exists; pass --overwrite to replace it", res.stderr
 
 
+@pytest.mark.parametrize("domain, words", [("log", "line integrals"), ("linear", "transmission")])
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_info_shows_the_domain_a_corrected_stack_records(experiment, tmp_path, domain, words, suffix):
+    """Found by a new user: `info` on a corrected stack showed its range, not whether its pixels
+    are line integrals or transmissions, though `correct` records the domain in the file."""
+    path, _ = experiment
+    out = tmp_path / f"c{suffix}"
+    assert run_cli("correct", path, "-q", "--domain", domain, "-o", out).returncode == 0
+    res = run_cli("info", out)
+    assert res.returncode == 0, res.stderr
+    assert re.search(rf"^  domain\s+{domain}: {words}", res.stdout, re.M), res.stdout
+    assert json.loads(run_cli("info", "--json", out).stdout)[0]["metadata"]["domain"].startswith(f"{domain}: ")
+
+
 def test_info_prints_a_float_stacks_range_to_its_precision(tmp_path):
     """A corrected stack's range read "0.6216492652893066 .. 0.8507928848266602": float32 values
     printed with float64's 16 digits, nine of them noise. float32 carries about 7."""

@@ -660,7 +660,9 @@ def test_debug_shows_the_traceback(tmp_path):
             ],
             "no space left",
         ),
-        (["demo", "--preset", "nosuch", "-o", "demo"], "nosuch"),  # before claiming its folder
+        # before claiming its folder, the option named (found by a new user: "unknown scene 'nosuch'")
+        (["demo", "--preset", "nosuch", "-o", "demo"], "--preset nosuch: unknown scene"),
+        (["demo", "--preset", "none.toml", "-o", "demo"], "--preset none.toml: no such scene file"),
         (["demo", "--frames", "0", "-o", "demo"], "--frames 0"),  # the claimed folder was left behind
         (["demo", "--method", "tvl1", "-o", "demo"], "--method tvl1"),  # found after both acquisitions
         (["demo", "--frames", "10000000", "-o", "demo"], "no space left"),  # terabytes of frames
@@ -1704,6 +1706,9 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
         (["--inclusion", "5", "1", "2", "3"], ("--inclusion", "empty")),
         (["--mm", "--inclusion", "5", "1", "2", "3"], ("--inclusion", "(mm)", "empty")),
         (["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"], ("--background", "zero")),
+        # found by a new user: fractional pixels were rounded without a word (README: pixels, mm with --mm)
+        (["--inclusion", "1", "9.5", "1", "9"], ("--inclusion [1.0, 9.5, 1.0, 9.0]", "whole", "9.5", "--mm")),
+        (["--background", "1.25", "9", "1", "9"], ("--background", "whole", "1.25")),
     ],
 )
 def test_process_refuses_a_rectangle_it_cannot_use_before_correcting(args, words, tmp_path):

@@ -181,3 +181,31 @@ def test_the_process_option_examples_run(tmp_path):
     check = record["registration"][record["main_pair"]]["cross_check"]
     assert check["method"] == "ssd" and check["agree"] and check["median_px"] <= check["p95_px"], check
     assert (tmp_path / "experiment" / "report.html").exists()
+
+
+def test_the_first_hour_commands_run_as_written(tmp_path):
+    """The "First hour" section's radiokit lines run as shown, in a folder holding what they name:
+    the demo's experiment file (a small synthetic one here: `make demo` takes minutes) and a darks,
+    flats and frames TIFF. Only `process` gets more: ROIs, as the synthetic square is too small for
+    the automatic search. The corrected frames are -ln(I/I0) as the comment says."""
+    from conftest import run_cli, synthetic
+
+    from radiokit.io import read, write_tiff
+
+    block = re.search(r"## First hour\n\n```sh\n(.*?)```", README.read_text(), re.S).group(1)
+    lines = [ln.split("#")[0].split() for ln in block.splitlines()]
+    assert [w[0] for w in lines] == ["make", ".", "radiokit", "radiokit", "radiokit", "radiokit"], lines
+    (tmp_path / "out" / "demo").mkdir(parents=True)
+    synthetic(tmp_path / "out" / "demo" / "experiment.h5")
+    shape = (3, 32, 48)
+    write_tiff(tmp_path / "darks.tif", np.full(shape, 100, np.uint16))
+    write_tiff(tmp_path / "flats.tif", np.full(shape, 3100, np.uint16))
+    write_tiff(tmp_path / "frames.tif", np.full(shape, 1600, np.uint16))  # I/I0 = 1500 / 3000
+    rois = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0", "-q"]
+    for words in lines[2:]:
+        extra = rois if words[1] == "process" else ["-q"] if words[1] == "correct" else []
+        res = run_cli(*words[1:], *extra, cwd=tmp_path)
+        assert res.returncode == 0, (words, res.stderr)
+    assert (tmp_path / "mine" / "report.html").exists() and (tmp_path / "mine" / "results.json").exists()
+    corrected = read(tmp_path / "corrected.h5").data
+    assert corrected.shape == shape and np.allclose(corrected, np.log(2), atol=1e-5)

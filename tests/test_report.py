@@ -445,3 +445,19 @@ def test_cnrs_keep_three_significant_digits_without_a_bare_point(x, text):
     from radiokit.results import sig3
 
     assert sig3(x) == text
+
+
+def test_the_report_gives_autos_reason_for_its_preset(tmp_path):
+    """Found by a new user: the report named the preset auto chose, not why (only results.json
+    had ``preset_reason``). One line below the registration table gives it, escaped."""
+    results, images = _synthetic()
+    reason = "weak texture: interior texture/noise 0.80 >= 0.5 <x>"
+    main = results.pair("2->3")
+    chosen = dataclasses.replace(main, quality={**main.quality, "preset": "weak", "preset_reason": reason})
+    results = dataclasses.replace(results, pairs=tuple(chosen if p is main else p for p in results.pairs))
+    raw, _, text = _parse(write_report(tmp_path, results, images))
+    assert f"Preset auto chose, per pair: {R._pair_label('2->3')}: weak ({reason})." in text, text
+    assert "<x>" not in raw
+    # a pair without auto's record (a preset given, a peer method): no line
+    results, images = _synthetic()
+    assert "Preset auto chose" not in _parse(write_report(tmp_path / "plain", results, images))[2]
