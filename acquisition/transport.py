@@ -589,8 +589,10 @@ class SerialTransport:
         to the flush before the command and to :meth:`_is_late`."""
         if not self._timed_out:
             return
-        self._timed_out = False  # once: an interrupt here loses nothing but the wait
-        ser, buf = self._serial, bytearray(self._rx)  # a partial reply: the unit is mid-answer
+        # the flag is cleared only once the wait is over: a Ctrl-C cutting it short left the
+        # switch-off that follows to go out at once, into the unit still answering (review s34-r2)
+        ser, buf = self._serial, self._rx  # a partial reply: the unit is mid-answer; kept on self,
+        # what an interrupted wait read is there for the next one
         t0 = time.monotonic()
         first_by, cap = t0 + self.timeout_s / 4, t0 + self.timeout_s
         heard = t0 if buf else None
@@ -601,6 +603,7 @@ class SerialTransport:
                 buf += data
                 heard = now
             elif heard is None and now >= first_by:
+                self._timed_out = False
                 return  # nothing came: a silent controller, not one still answering
             elif heard is not None and any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
                 break  # a whole line, then a slice of quiet
@@ -610,7 +613,7 @@ class SerialTransport:
             self._forget_overdue()
             late = self._owed.pop(0)[0] if self._owed else "an earlier command"
             self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
-        self._rx = bytearray()
+        self._rx, self._timed_out = bytearray(), False
         self._last_exchange = heard  # the spacing counts from the controller's last byte
 
     def _undecided(self, command: str, text: str) -> bool:

@@ -355,3 +355,45 @@ def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
     assert proc.returncode == 128 + signal.SIGQUIT, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("stopped by SIGQUIT; tube off (confirmed by STS") and "Traceback" not in out, out
+
+
+def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof(dialect):
+    """The poll's reply comes 0.2 s after its time-out; a Ctrl-C lands in the wait for that late
+    reply (a real SIGINT, sent by this process from the wait's first read of the port: the one way
+    to hit that instant), and the caller then switches off, as the command line does. Found: the
+    wait had already forgotten the time-out, so the switch-off's ``XOF`` went out at once into the
+    unit still answering and was lost (confirmed off only by a second attempt, and not at all had
+    the ``STS`` after it been lost too). Now the interrupted wait is done again before ``XOF``."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
+        try:
+            src.on(60, 250)
+            poll = src.dialect.readings[src.dialect.poll[0]].command
+            link = src._transport
+            real_wait, real_read, waiting, interrupted = link._await_late_reply, link._serial.read, [], []
+
+            def wait():
+                waiting.append(True)
+                try:
+                    real_wait()
+                finally:
+                    waiting.pop()
+
+            def read(n=1):
+                if waiting and not interrupted:
+                    interrupted.append(time.monotonic())
+                    os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
+                return real_read(n)
+
+            link._await_late_reply, link._serial.read = wait, read
+            unit.slow[poll] = 1.2 * src.timeout_s
+            with pytest.raises(KeyboardInterrupt):
+                src.check()
+            assert interrupted, "the Ctrl-C did not land in the wait"
+            src.off()
+            assert src.tube_confirmed_off and not unit.emitting
+            log = [(line, reply) for _, line, reply in unit.log]
+            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
+        finally:
+            src.detach()
