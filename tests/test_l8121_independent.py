@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -397,3 +398,50 @@ def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof
             assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
         finally:
             src.detach()
+
+
+@pytest.mark.parametrize(
+    "noise, period_s, after_s",
+    [(b"STS ", None, 0.5), (b"\x00", 0.01, 0.0)],
+    ids=["a-fragment-then-quiet", "a-stuck-line-streaming-nuls"],
+)
+def test_the_wait_for_a_late_reply_after_a_time_out_is_a_quarter_of_it(noise, period_s, after_s):
+    """After ``on()`` the unit falls silent and the line carries only noise: a reply's fragment
+    without a line end, then quiet; or NUL bytes without end (a stuck line). Each exchange times
+    out, and the next command waits for a late reply first -- a quarter of the reply time-out for
+    it to begin, and the line quiet for one read slice, or a read slice more at most. Found: a
+    fragment then quiet, or a line never quiet, was waited for a whole time-out (``XOF`` at 4.1 s
+    instead of 2.6 s; the warning at 10.4 s instead of 7.4 s). Times are the unit's own log's."""
+    from acquisition import transport
+
+    with Controller("A", ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect="A", poll_s=0.05, timeout_s=2.0)
+        stop = threading.Event()
+
+        def spew():
+            stop.wait(after_s)
+            while not stop.is_set():
+                os.write(unit._master, noise)
+                if period_s is None or stop.wait(period_s):
+                    break
+
+        try:
+            src.on(60, 250)
+            unit.silent, t0 = True, time.monotonic()
+            threading.Thread(target=spew, daemon=True).start()
+            with pytest.raises(DeviceError, match="no reply to"):
+                src.check()
+            assert not src.tube_confirmed_off
+        finally:
+            stop.set()
+            src.detach()
+    sent = [(t, line) for t, line, _ in unit.log if t >= t0]
+    assert [line for _, line in sent][1:] == ["XOF", "STS"], sent
+    # each exchange: its time-out and at most two read slices past it (the grace for a stalled
+    # process); then the wait at its longest, a read slice past its cap; the command spacing;
+    # and 0.3 s for a loaded machine (the wait this bounds was 1.5 s longer)
+    slice_s = transport._READ_SLICE_S
+    step_s = src.timeout_s + 2 * slice_s + transport.late_reply_wait_s(src.timeout_s) + slice_s + 0.06 + 0.3
+    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
+    assert all(gap <= step_s for gap in gaps), (gaps, step_s)
