@@ -62,6 +62,15 @@ def late_reply_wait_s(timeout_s: float) -> float:
     return timeout_s / 4 + _READ_SLICE_S
 
 
+def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
+    """One :meth:`SerialTransport.query` at its longest on a link that stays up (a reconnect
+    repeats it, after the port's reopening and the identity check): the wait for a late reply after
+    a time-out (:func:`late_reply_wait_s`, its last read a slice past it), the command spacing, the
+    reply time-out and two read slices past it (the grace for a stalled process, the last read's
+    overrun)."""
+    return late_reply_wait_s(timeout_s) + _READ_SLICE_S + min_interval_s + timeout_s + 2 * _READ_SLICE_S
+
+
 #: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
 #: Greek mu Unicode normalisation makes of it)
 _MICRO = (b"\xc2\xb5", b"\xce\xbc", b"\xb5")
