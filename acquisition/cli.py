@@ -571,12 +571,13 @@ def _interrupted_connect(exc) -> str:
 
 
 def _guardian_gone(src, exc) -> bool:
-    """Whether ``exc`` is a guardian's failed start that held the port (it said READY, or was
-    killed) and ended without a word on the tube, perhaps cut short in its switch-off. The port is
-    free again and was opened (by the guardian), so this process switches off through it, confirmed
-    by STS, or ends on the warning (:func:`_off_anyway`, the exit rule)."""
+    """Whether ``exc`` is a guardian's failed start that ended without a word on a tube that may
+    be on: it held the port (it said READY, or was killed), perhaps cut short in its switch-off,
+    or it never did (killed before READY) while the tube was not known off. The port is free
+    again; opened by the guardian, or by this process's probe, this process switches off through
+    it, confirmed by STS, or ends on the warning (:func:`_off_anyway`, the exit rule)."""
     gone = getattr(exc, "guardian_gone", False)
-    if gone:
+    if gone and getattr(exc, "guardian_sent", True):  # (one killed before READY sent nothing)
         src.port_opened = True
     return gone
 

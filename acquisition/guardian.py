@@ -357,7 +357,7 @@ def start_guardian(
     except BaseException as exc:
         # Ctrl-C while it starts (or a start that failed): the guardian launched must not live on
         # beside the caller's own switch-off on the same port, nor speak after its last line
-        _end_start(link, config, exc, startup_timeout_s)
+        _end_start(link, config, exc, startup_timeout_s, armed=armed)
         raise
     return link
 
@@ -387,11 +387,12 @@ class _Held:
             signal.raise_signal(self.held[0])
 
 
-def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> None:
+def _end_start(link, config, exc: BaseException, startup_timeout_s: float, *, armed: bool = True) -> None:
     """Have the guardian whose start ``exc`` cut short switch off and exit, waited for; what it
     said goes on ``exc`` as a connect's outcome does (README's one rule): ``tube_state`` (the
-    state its STS confirmed), or ``off_failed`` -- or nothing, when it never held the port (the
-    caller's own rule then holds: it may switch off through the port itself, now free)."""
+    state its STS confirmed), or ``off_failed`` -- or, when it ended without a word on a tube that
+    may be on (it held the port, or the caller had not found the tube off: ``armed``),
+    ``guardian_gone``: the caller switches off through the port, now free, if it can."""
     from acquisition.errors import DeviceError, NoReply
     from acquisition.l8121 import SourceState
 
@@ -411,7 +412,9 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
         # it held the port (READY) or hung and was killed, perhaps in its switch-off, without a word
         # on the tube: the port is free again, and the caller switches off through it, or warns
         # (review s33-r2; recording that as a failed switch-off stopped the caller's, s33-r4)
-        exc.guardian_gone = link.may_have_sent
+        # (killed or crashed before READY -- the OOM killer -- it sent nothing, but a tube an
+        # earlier `source on` left on is still on: the caller's to switch off, review s34-r2)
+        exc.guardian_gone, exc.guardian_sent = link.may_have_sent or armed, link.may_have_sent
         _advise(
             exc,
             "; if the last line does not confirm the tube off, switch it off at the controller "
@@ -432,16 +435,19 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float) -> No
 
 def _end_start_bound_s(config, startup_timeout_s: float) -> float:
     """How long a guardian whose start failed may take to switch off and exit before it is
-    killed: its start again, then one ``off()`` at its worst -- each attempt's ``XOF`` and last
-    ``STS`` and B's closing ``SRL`` answered just within the reply time-out (plus the wait for a
-    late reply after one, a quarter more; the command spacing; two read slices), the confirmation
-    window and the pauses between attempts -- and 2 s for a loaded machine. It counted each of
-    those exchanges as the pipe's wait (two time-outs, a reconnect, slack: 8 s at 2 s), 52 s for a
-    1 s start (71 s at the 20 s default) before a hung guardian was killed. A link lost in the
-    switch-off may get a guardian killed that was still working: the port is then free and the
-    caller switches off through it itself (``guardian_gone``), confirmed by STS or the warning."""
+    killed: its start again, then one ``off()`` at its longest on a link that stays up -- each
+    attempt's ``XOF`` and last ``STS`` and B's closing ``SRL``, each exchange at its longest
+    (:func:`~acquisition.transport.exchange_longest_s`: a late reply's wait, the spacing, the reply
+    time-out), the confirmation window and the pauses between attempts -- and 2 s for a loaded
+    machine. Not the worst case: a link lost in the switch-off (its reopening, the identity check,
+    the exchange again) is not counted, and may get a guardian killed that was still working; the
+    port is then free and the caller switches off through it itself (``guardian_gone``), confirmed
+    by STS or the warning. (Each exchange counted as the pipe's wait -- two time-outs, a reconnect,
+    slack: 8 s at 2 s -- a hung guardian was killed only after 52 s for a 1 s start.)"""
+    from acquisition.transport import exchange_longest_s
+
     exchanges = 2 * config.off_attempts + 1
-    per_exchange = 1.25 * config.timeout_s + config.min_interval_s + 0.1
+    per_exchange = exchange_longest_s(config.timeout_s, config.min_interval_s)
     pauses = config.off_attempts * config.poll_s
     return startup_timeout_s + exchanges * per_exchange + config.off_confirm_s + pauses + 2.0
 

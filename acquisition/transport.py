@@ -55,6 +55,22 @@ _READ_SLICE_S = 0.05
 _LINE_ENDS = (b"\r", b"\n")
 
 
+def late_reply_wait_s(timeout_s: float) -> float:
+    """The cap on :meth:`SerialTransport._await_late_reply`'s wait after a reply time-out of
+    ``timeout_s``: a quarter of it for the late reply to begin, and one read slice more for it to
+    end (a whole reply at 9600 baud takes about 20 ms). Its last read may overrun it by a slice."""
+    return timeout_s / 4 + _READ_SLICE_S
+
+
+def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
+    """One :meth:`SerialTransport.query` at its longest on a link that stays up (a reconnect
+    repeats it, after the port's reopening and the identity check): the wait for a late reply after
+    a time-out (:func:`late_reply_wait_s`, its last read a slice past it), the command spacing, the
+    reply time-out and two read slices past it (the grace for a stalled process, the last read's
+    overrun)."""
+    return late_reply_wait_s(timeout_s) + _READ_SLICE_S + min_interval_s + timeout_s + 2 * _READ_SLICE_S
+
+
 #: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
 #: Greek mu Unicode normalisation makes of it)
 _MICRO = (b"\xc2\xb5", b"\xce\xbc", b"\xb5")
@@ -579,20 +595,24 @@ class SerialTransport:
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
 
     def _await_late_reply(self) -> None:
-        """After a reply time-out, before the next command: wait for the late reply to come (up to
-        a quarter of ``timeout_s`` for its first byte, as the probe waits between rates) and the
-        line to fall quiet (one read slice without a byte after a whole line; at most one more
-        ``timeout_s`` in all), and discard it. Sent at once, 60 ms after the time-out, a command
-        reached a unit still answering (a reply 0.3 s late): a unit that loses it then lost the
-        switch-off's ``XOF``, confirmed only by a further attempt seconds later. A silent
-        controller costs the quarter per command after a time-out; a reply later still is left
-        to the flush before the command and to :meth:`_is_late`."""
+        """After a reply time-out, before the next command: wait for the late reply to come (a
+        quarter of ``timeout_s`` for its first byte, as the probe waits between rates) and the line
+        to fall quiet for one read slice -- after a whole line or a fragment alike -- and discard
+        it; at most :func:`late_reply_wait_s` in all (a line never quiet, a stuck one sending NULs,
+        is noise, not a reply). Sent at once, 60 ms after the time-out, a command reached a unit
+        still answering (a reply 0.3 s late): a unit that loses it then lost the switch-off's
+        ``XOF``, confirmed only by a further attempt seconds later. A silent controller costs the
+        quarter per command after a time-out; a reply later still is left to the flush before the
+        command and to :meth:`_is_late`. (Waiting for a line end, a fragment then quiet was waited
+        for until a whole time-out had passed, review s34-r2.)"""
         if not self._timed_out:
             return
-        self._timed_out = False  # once: an interrupt here loses nothing but the wait
-        ser, buf = self._serial, bytearray(self._rx)  # a partial reply: the unit is mid-answer
+        # the flag is cleared only once the wait is over: a Ctrl-C cutting it short left the
+        # switch-off that follows to go out at once, into the unit still answering (review s34-r2)
+        ser, buf = self._serial, self._rx  # a partial reply: the unit is mid-answer; kept on self,
+        # what an interrupted wait read is there for the next one
         t0 = time.monotonic()
-        first_by, cap = t0 + self.timeout_s / 4, t0 + self.timeout_s
+        first_by, cap = t0 + self.timeout_s / 4, t0 + late_reply_wait_s(self.timeout_s)
         heard = t0 if buf else None
         while True:
             data = ser.read(max(1, ser.in_waiting))  # blocks one slice at most
@@ -600,17 +620,18 @@ class SerialTransport:
             if data:
                 buf += data
                 heard = now
-            elif heard is None and now >= first_by:
+            elif heard is not None:
+                break  # what came, then a slice of quiet: the unit is done
+            elif now >= first_by:
+                self._timed_out = False
                 return  # nothing came: a silent controller, not one still answering
-            elif heard is not None and any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
-                break  # a whole line, then a slice of quiet
             if now >= cap:
                 break
         for line in (line for line in re.split(rb"[\r\n]", bytes(buf))[:-1] if line.strip()):
             self._forget_overdue()
             late = self._owed.pop(0)[0] if self._owed else "an earlier command"
             self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
-        self._rx = bytearray()
+        self._rx, self._timed_out = bytearray(), False
         self._last_exchange = heard  # the spacing counts from the controller's last byte
 
     def _undecided(self, command: str, text: str) -> bool:

@@ -4267,3 +4267,66 @@ def test_source_warm_up_whose_guardian_start_failed_trusts_the_guardians_confirm
     assert "MAY STILL BE ON" not in err and "switched off by the X-ray guardian: tube off (confirmed by STS" in err, err
     assert code == 1, err
     assert "(a slow start: the computer may be busy); run the command again" in err, err  # the tube is off
+
+
+@pytest.mark.parametrize("probed", [True, False], ids=["probed", "dialect-given"])
+def test_a_guardian_killed_before_ready_leaves_the_command_to_switch_off_a_tube_left_on(probed, capfd, monkeypatch):
+    """`source on` left the tube on; `source warm-up`'s guardian is slow (held with SIGSTOP past a
+    start time-out shortened to 1 s) and is then killed before it said READY (SIGKILL: the OOM
+    killer), so it never says how it left the tube. Found, after the probe (``--dialect auto``):
+    the error line said "run the command again", the next "X-RAYS MAY STILL BE ON" (exit 3), and
+    the command had made no switch-off of its own though the port was free. Now it switches off
+    through that port, confirmed by STS, and the advice does not contradict the last line. With
+    the dialect given the command never opened the port (nor did the guardian): it says so."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    held = []
+
+    def kill_the_guardian():
+        _stop_the_guardian(held)
+        time.sleep(2.0)  # past the 1 s start: start_guardian waits for it to switch off
+        os.kill(held[0], signal.SIGKILL)
+
+    with PtyServer(model) as server:
+        port = ["--port", server.url]
+        assert main(["acquire", "source", "on", *port, "--dialect", "A", "--kv", "60", "--ua", "250"]) == 0
+        assert model.xray_on
+        capfd.readouterr()
+        _a_slow_guardian_start(monkeypatch)
+        helper = threading.Thread(target=kill_the_guardian, daemon=True)
+        helper.start()
+        code = main(["acquire", "source", "warm-up", *port, *([] if probed else ["--dialect", "A"])])
+        helper.join(timeout=30)
+        assert held
+        on = model.xray_on
+    err = capfd.readouterr().err
+    assert "within 1 s of its start" in err and "; run the command again" not in err, err
+    if probed:
+        assert not on and code == 1, err
+        assert "XOF sent anyway: X-rays off (confirmed by STS" in err.strip().splitlines()[-1], err
+    else:  # nothing was sent by anyone: the port's state is said, and what the advice asks
+        assert on and "switch it off at the controller before running the command again" in err, err
+        assert code in (1, 3) and err.strip().splitlines()[-1] != "", err
+    assert TUBE_WARNING not in err or not probed, err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("reply_s", [0.5, 2.0])
+def test_the_guardians_kill_bound_allows_each_exchange_its_longest_on_the_link(reply_s):
+    """A guardian whose start failed is killed if its switch-off takes longer than
+    ``_end_start_bound_s``, which counts its exchanges (each attempt's ``XOF`` and ``STS``, B's
+    closing ``SRL``). One exchange on a link that stays up takes at most: the wait for a late
+    reply after a time-out (a read slice past its cap), the command spacing, the reply time-out
+    and two read slices past it (the grace for a stalled process, the last read's overrun).
+    Found: it allowed 1.25 time-outs, the spacing and 0.1 s: the slices were not all counted."""
+    from acquisition import transport
+    from acquisition.guardian import _end_start_bound_s
+
+    c = SourceConfig(timeout_s=reply_s, min_interval_s=DIALECT_A.min_interval_s)
+    slice_s = transport._READ_SLICE_S
+    exchange_s = transport.late_reply_wait_s(reply_s) + slice_s + c.min_interval_s + reply_s + 2 * slice_s
+    start_s = 1.0
+    least = start_s + (2 * c.off_attempts + 1) * exchange_s + c.off_confirm_s + c.off_attempts * c.poll_s
+    assert _end_start_bound_s(c, start_s) >= least, (_end_start_bound_s(c, start_s), least)

@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -355,3 +356,92 @@ def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
     assert proc.returncode == 128 + signal.SIGQUIT, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("stopped by SIGQUIT; tube off (confirmed by STS") and "Traceback" not in out, out
+
+
+def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof(dialect):
+    """The poll's reply comes 0.2 s after its time-out; a Ctrl-C lands in the wait for that late
+    reply (a real SIGINT, sent by this process from the wait's first read of the port: the one way
+    to hit that instant), and the caller then switches off, as the command line does. Found: the
+    wait had already forgotten the time-out, so the switch-off's ``XOF`` went out at once into the
+    unit still answering and was lost (confirmed off only by a second attempt, and not at all had
+    the ``STS`` after it been lost too). Now the interrupted wait is done again before ``XOF``."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
+        try:
+            src.on(60, 250)
+            poll = src.dialect.readings[src.dialect.poll[0]].command
+            link = src._transport
+            real_wait, real_read, waiting, interrupted = link._await_late_reply, link._serial.read, [], []
+
+            def wait():
+                waiting.append(True)
+                try:
+                    real_wait()
+                finally:
+                    waiting.pop()
+
+            def read(n=1):
+                if waiting and not interrupted:
+                    interrupted.append(time.monotonic())
+                    os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
+                return real_read(n)
+
+            link._await_late_reply, link._serial.read = wait, read
+            unit.slow[poll] = 1.2 * src.timeout_s
+            with pytest.raises(KeyboardInterrupt):
+                src.check()
+            assert interrupted, "the Ctrl-C did not land in the wait"
+            src.off()
+            assert src.tube_confirmed_off and not unit.emitting
+            log = [(line, reply) for _, line, reply in unit.log]
+            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
+        finally:
+            src.detach()
+
+
+@pytest.mark.parametrize(
+    "noise, period_s, after_s",
+    [(b"STS ", None, 0.5), (b"\x00", 0.01, 0.0)],
+    ids=["a-fragment-then-quiet", "a-stuck-line-streaming-nuls"],
+)
+def test_the_wait_for_a_late_reply_after_a_time_out_is_a_quarter_of_it(noise, period_s, after_s):
+    """After ``on()`` the unit falls silent and the line carries only noise: a reply's fragment
+    without a line end, then quiet; or NUL bytes without end (a stuck line). Each exchange times
+    out, and the next command waits for a late reply first -- a quarter of the reply time-out for
+    it to begin, and the line quiet for one read slice, or a read slice more at most. Found: a
+    fragment then quiet, or a line never quiet, was waited for a whole time-out (``XOF`` at 4.1 s
+    instead of 2.6 s; the warning at 10.4 s instead of 7.4 s). Times are the unit's own log's."""
+    from acquisition import transport
+
+    with Controller("A", ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect="A", poll_s=0.05, timeout_s=2.0)
+        stop = threading.Event()
+
+        def spew():
+            stop.wait(after_s)
+            while not stop.is_set():
+                os.write(unit._master, noise)
+                if period_s is None or stop.wait(period_s):
+                    break
+
+        try:
+            src.on(60, 250)
+            unit.silent, t0 = True, time.monotonic()
+            threading.Thread(target=spew, daemon=True).start()
+            with pytest.raises(DeviceError, match="no reply to"):
+                src.check()
+            assert not src.tube_confirmed_off
+        finally:
+            stop.set()
+            src.detach()
+    sent = [(t, line) for t, line, _ in unit.log if t >= t0]
+    assert [line for _, line in sent][1:] == ["XOF", "STS"], sent
+    # each exchange: its time-out and at most two read slices past it (the grace for a stalled
+    # process); then the wait at its longest, a read slice past its cap; the command spacing;
+    # and 0.3 s for a loaded machine (the wait this bounds was 1.5 s longer)
+    slice_s = transport._READ_SLICE_S
+    step_s = src.timeout_s + 2 * slice_s + transport.late_reply_wait_s(src.timeout_s) + slice_s + 0.06 + 0.3
+    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
+    assert all(gap <= step_s for gap in gaps), (gaps, step_s)
