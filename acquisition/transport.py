@@ -693,12 +693,18 @@ class SerialTransport:
                 self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
                 return undecided[0]
             if left <= 0:
-                got = f"; partial reply {bytes(buf)!r}" if buf else ""
+                got = f"; partial reply {_quoted(bytes(buf))}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
                 raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
             buf += ser.read(max(1, ser.in_waiting))
+
+
+def _quoted(data: bytes, head: int = 24) -> str:
+    """``data`` quoted for an error line: whole when short, else its start and its length (a line
+    streaming NULs sent hundreds)."""
+    return repr(data) if len(data) <= head else f"{data[:head]!r}... ({len(data)} bytes)"
 
 
 class PipeTransport:

@@ -420,6 +420,19 @@ def test_a_command_written_whole_is_not_a_write_time_out_whatever_the_clock():
         stop()
 
 
+def test_a_long_partial_reply_is_quoted_short():
+    """A line streaming NULs (a stuck UART, a wrong baud rate) quoted every byte it sent in the
+    error line, hundreds of ``\\x00`` (review s34-h6): its start and its length are quoted."""
+    name, stop = _pty_answering(b"\x00" * 500)
+    try:
+        with SerialTransport(name, timeout_s=0.3, min_interval_s=0) as lnk:
+            with pytest.raises(DeviceError, match=r"partial reply b'(\\x00)+'\.\.\. \(500 bytes\)") as info:
+                lnk.query("STS")
+    finally:
+        stop()
+    assert len(str(info.value)) < 200, str(info.value)
+
+
 def test_a_command_the_port_does_not_take_is_a_write_time_out_not_sent():
     """A port that takes no byte (its output suspended, as a device holding CTS low or sending
     XOFF does: here ``tcflow(TCOOFF)`` on a real pty); pyserial's output queue still reads 0 there,
