@@ -2682,11 +2682,19 @@ def _noisy_fixed_pair(shift, seed=8):
     """A smooth body (an ellipse's chord) carrying a brick texture of a tenth of it, moved by
     ``shift`` (px; ``fixed(x) = moving(x + shift)``); the fixed image's noise a tenth of the body's
     peak, the moving image's 0.5 %: the fixed image far noisier than its texture. 320 px."""
+    return _textured_body_pair(shift, 0.1, 0.005, seed=seed)
+
+
+def _textured_body_pair(shift, fixed_noise, moving_noise, gain=1.0, texture="brick", seed=8, n=320):
+    """:func:`_noisy_fixed_pair`'s body with the texture of skimage's ``texture`` picture, each
+    image's noise given (fractions of the body's peak), the moving image ``gain`` x the fixed
+    image's intensity (line integrals of a body thinner or thicker overall)."""
     import cv2
     from skimage import data
 
-    n, rng = 320, np.random.default_rng(seed)
-    t = cv2.resize(data.brick()[100:356, 100:356].astype(np.float32), (n, n), interpolation=cv2.INTER_CUBIC)
+    rng = np.random.default_rng(seed)
+    t = getattr(data, texture)()[100:356, 100:356].astype(np.float32)
+    t = cv2.resize(t, (n, n), interpolation=cv2.INTER_CUBIC)
     t -= ndimage.gaussian_filter(t, n / 8)
     y, x = (np.mgrid[0:n, 0:n] + 0.5) / n - 0.5
     chord = np.sqrt(np.clip(1 - (x / 0.34) ** 2 - (y / 0.30) ** 2, 0, None))
@@ -2694,8 +2702,8 @@ def _noisy_fixed_pair(shift, seed=8):
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
     fixed = ndimage.map_coordinates(moving, [yy + shift[0], xx + shift[1]], order=3, mode="nearest")
     body = ndimage.map_coordinates((chord > 0.3).astype(float), [yy + shift[0], xx + shift[1]], order=1) > 0.5
-    fixed = (fixed + 0.1 * rng.standard_normal((n, n))).astype(np.float32)
-    moving = (moving + 0.005 * rng.standard_normal((n, n))).astype(np.float32)
+    fixed = (fixed + fixed_noise * rng.standard_normal((n, n))).astype(np.float32)
+    moving = (gain * moving + moving_noise * rng.standard_normal((n, n))).astype(np.float32)
     return fixed, moving, body
 
 
@@ -2720,3 +2728,34 @@ def test_a_noisy_fixed_image_does_not_hide_a_motion_beyond_capture_range():
     reg = register(fixed, moving, "rc")
     assert np.median(np.hypot(reg.displacement[0] - 1.2, reg.displacement[1] - 1.6)[body]) < 0.5  # a good result
     assert reg.quality.ok, reg.quality.reason
+
+
+def test_a_global_intensity_change_does_not_distrust_a_good_registration():
+    """Found by a review (session 34): with the local gain bounded to +-0.2 (a thinning), a body
+    40 % thinner overall in the moving image (line integrals x 0.6; an exposure change in counts
+    does the same) left its whole texture x 0.4 in the residual, and the right field was flagged
+    misaligned. A global change of intensity is not misalignment: the true field is trusted at a
+    gain of 0.6 and of 1.5, on two textures; the identity (a field that did not move, 2.3 px
+    off) is still flagged."""
+    shift = (2.3, 1.7)
+    for texture, gain in (("camera", 0.6), ("brick", 0.6), ("camera", 1.5)):
+        fixed, moving, body = _textured_body_pair(shift, 0.01, 0.01, gain, texture, n=240)
+        zero = np.zeros((2, *fixed.shape), np.float32)
+        right = _planted(fixed, moving, zero + np.array(shift, np.float32)[:, None, None]).quality
+        assert right.ok, (texture, gain, right.reason)
+        assert not _planted(fixed, moving, zero).quality.ok, (texture, gain)
+
+
+def test_a_noise_free_fixed_image_still_flags_a_stuck_field():
+    """Found by a review (session 34): a noise-free fixed image (an exact render) against a noisy
+    moving one made the two images' noise ratio overflow float32 (a RuntimeWarning, an error under
+    pytest's filterwarnings) and the expected noise meaningless. The identity 1.5 px off is flagged
+    as misaligned (not only by the residual step), and the true field trusted, with no warning."""
+    shift = (1.5, 1.0)
+    for noise in (0.0, 1e-4):
+        fixed, moving, body = _textured_body_pair(shift, noise, 0.01, texture="camera", n=200)
+        zero = np.zeros((2, *fixed.shape), np.float32)
+        stuck = _planted(fixed, moving, zero).quality
+        assert not stuck.ok and stuck.misaligned_fraction > 0.5, (noise, stuck.misaligned_fraction, stuck.reason)
+        right = _planted(fixed, moving, zero + np.array(shift, np.float32)[:, None, None]).quality
+        assert right.ok and right.misaligned_fraction < 0.1, (noise, right.reason)

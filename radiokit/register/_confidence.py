@@ -43,13 +43,15 @@ After registration the residual ``warped - fixed``, high-passed like the image a
 part a local thinning or gain explains, should be noise where the motion is observed: its local
 mean square against the noise's expected share, ``(1 + a)^2 sigma_f^2 + v sigma_m^2``, each
 image's noise estimated on its own (the moving image's as the fixed image's map times the ratio of
-their ``noise_sigma``), ``a`` the local gain removed and ``v`` the variance that bilinear
-interpolation leaves of the moving image's noise (``interpolation_variance``: 1 on whole-pixel
-shifts, 1/4 at half a pixel in both directions; without it a perfect registration looks better
-than noise). The gain is fitted with the fixed image's noise taken out of its moments and bounded
-to +-``MAX_GAIN`` (a thinning): a least-squares gain is diluted by that noise towards -1, and where
-the fixed image is far noisier than its texture it took the fixed image's whole content out of
-the residual, misaligned structure included (session 34). A window's mean square of pure noise
+their ``noise_sigma`` while that ratio is within 2, else its own ``noise_sigma``), ``a`` the
+local gain removed and ``v`` the variance that bilinear interpolation leaves of the moving
+image's noise (``interpolation_variance``: 1 on whole-pixel shifts, 1/4 at half a pixel in both
+directions; without it a perfect registration looks better than noise). The gain is fitted with
+the fixed image's noise taken out of its moments, one global gain (the median of the windows'
+gains: an exposure or an overall thinning, unbounded) and each window's departure from it bounded
+to +-``MAX_GAIN`` (a local thinning): a least-squares gain is diluted by that noise towards -1,
+and where the fixed image is far noisier than its texture it took the fixed image's whole content
+out of the residual, misaligned structure included (session 34). A window's mean square of pure noise
 scatters by ``sqrt(2 / N)`` around its expectation, ``N = 4 pi window^2`` the Gaussian window's
 effective number of pixels (about 7000 at 24 px: 1.7 %), so an excess of a tenth of the expectation (6 such standard
 deviations) is structure the pair carries left misaligned, not noise. A lone row or column of
@@ -497,16 +499,29 @@ class Consistency:
         self.fh = f - _gauss(f, spacing)
         self.ff = _gauss(self.fh * self.fh, spacing) + 1e-30
         self.sigma = noise_map(f, spacing) if sigma_map is None else sigma_map
-        # the moving image's noise against the fixed image's (one number: the fixed image's map
-        # keeps its local, Poisson-like shape); 1 without a moving image, as before session 34
-        nf = noise_sigma(f) if moving is not None else 0.0
-        self.moving_ratio = np.float32(noise_sigma(moving) / nf) if nf > 0 else np.float32(1.0)
+        # the moving image's own noise level; None without a moving image (its noise taken as
+        # the fixed image's, as before session 34)
+        self.moving_sigma = None if moving is None else noise_sigma(moving)
+        self.fixed_sigma = noise_sigma(f)
+
+    def _moving_noise(self, s2):
+        """The moving image's noise variance map. The fixed image's map keeps a radiograph's
+        local, Poisson-like shape, scaled by the ratio of the two images' ``noise_sigma`` while
+        they are alike; far apart (one image over twice the other's noise) the fixed map's
+        texture leakage, times a large ratio, would swamp any misalignment, and a noise-free
+        fixed image has no ratio at all: the moving image's own level instead."""
+        if self.moving_sigma is None:
+            return s2
+        ratio = self.moving_sigma / max(self.fixed_sigma, 1e-30)
+        if 0.5 <= ratio <= 2.0:
+            return np.float32(ratio * ratio) * s2
+        return np.full_like(s2, max(self.moving_sigma, 1e-30) ** 2)
 
     def __call__(self, warped, noise_factor=2.0, support=None):
         s2 = self.sigma * self.sigma
         # the noise's expected share: the fixed image's (scaled by the gain removed, below) and
         # the warped moving image's, ``noise_factor - 1`` of its own (interpolation_variance)
-        moving2 = (noise_factor - 1) * self.moving_ratio**2 * s2
+        moving2 = (noise_factor - 1) * self._moving_noise(s2)
         r = np.asarray(warped, np.float32) - self.fixed
         if support is not None:
             r = np.where(support, r, np.float32(0))
@@ -518,7 +533,7 @@ class Consistency:
         else:
             r, fh, ff = r - _gauss(r, self.spacing), self.fh, self.ff
         rf = _gauss(r * fh, self.spacing)
-        a = _gain(rf, ff, s2)
+        a = _gain(rf, ff, s2, support)
         left = np.maximum(_gauss(r * r, self.spacing) - 2 * a * rf + a * a * ff, 0)
         return left / ((1 + a) ** 2 * s2 + moving2)
 
@@ -533,18 +548,28 @@ class Consistency:
 MAX_GAIN = 0.2
 
 
-def _gain(rf, ff, s2):
+def _gain(rf, ff, s2, support=None):
     """The local gain ``a`` of the residual on the high-passed fixed image (``r ~ a fh``), from
     their window moments ``rf``, ``ff`` and the fixed image's noise variance ``s2``. The least-
     squares gain ``rf / ff`` is diluted by the fixed image's own noise, which is in both ``r`` and
     ``fh``: where that noise outweighs the texture it tends to -1 whatever the alignment, and
     takes the fixed image's whole content (noise and misaligned structure alike) out of the
-    residual. So the noise's share is taken out of both moments (errors in variables), and the
-    gain bounded to what a thinning can do (``MAX_GAIN``); the residual's expected noise share
-    then keeps ``(1 + a)^2`` of the fixed image's noise."""
+    residual. So the noise's share is taken out of both moments (errors in variables). A global
+    change of intensity (an exposure, a body thinner overall) is one gain over the whole image,
+    any size: the median of the windows' gains where the texture outweighs the noise (over
+    ``support``), unbounded; only each window's departure from it is bounded to what a local
+    thinning can do (``MAX_GAIN``). The residual's expected noise share then keeps ``(1 + a)^2``
+    of the fixed image's noise."""
     num, den = rf + s2, ff - s2
-    a = np.where(den > 0, num / np.where(den > 0, den, 1), np.sign(num) * MAX_GAIN)
-    return np.clip(a, -MAX_GAIN, MAX_GAIN).astype(np.float32)
+    textured = den > s2
+    if support is not None:
+        textured &= support
+    local = num / np.where(den > 0, den, 1)
+    step = sample_step(local.size)
+    sample = local[::step, ::step][textured[::step, ::step]]
+    g = float(np.median(sample)) if sample.size else 0.0
+    a = np.where(den > 0, local, g + np.sign(num - g * den) * MAX_GAIN)
+    return np.clip(a, g - MAX_GAIN, g + MAX_GAIN).astype(np.float32)
 
 
 def _highpass_over(a, keep, spacing):
