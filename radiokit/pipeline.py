@@ -303,9 +303,14 @@ def _roi(value, units, pixel_size_mm, name):
     if units == "mm":
         r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
     else:  # a fractional pixel was rounded without a word; mm are rounded to pixels (README)
-        part = [f"{v:g}" for v in (r0, r1, c0, c1) if v != int(v)]
+        # a bound computed in floating point (0.1 * 300 = 30.000000000000004) is that whole
+        # number: the tolerance is far above float64's rounding and far below any real fraction
+        part = [repr(v) for v in (r0, r1, c0, c1) if abs(v - round(v)) > 1e-6 * max(1.0, abs(v))]
         if part:
-            raise ValueError(f"{what}: pixel bounds are whole numbers, not {', '.join(part)} (mm, rounded: --mm)")
+            raise ValueError(
+                f"{what}: pixel bounds are whole numbers, not {', '.join(part)}"
+                " (millimetres, rounded to pixels: --mm, or roi_units='mm')"
+            )
     try:
         return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
     except ValueError as exc:

@@ -455,3 +455,15 @@ def test_config_takes_one_k_as_a_number_and_refuses_text():
     assert Config(ks=2.5).ks == (2.5,)
     with pytest.raises(ValueError, match="ks="):
         Config(ks="12")
+
+
+def test_config_takes_pixel_bounds_computed_in_floating_point():
+    """A pixel bound that is a whole number up to floating-point rounding ((0.1 + 0.2) * 100) is that
+    number; a real fraction is refused, printed exactly (repr), pointing Python users to
+    ``roi_units="mm"`` (review s34-r6: 30.000000000000004 was refused as "not 30")."""
+    from radiokit.pipeline import Config
+
+    cfg = Config(inclusion=((0.1 + 0.2) * 100, 40, 30, 40), background=(60, 70, 0.57 * 100, 90))
+    assert cfg.inclusion[0] != 30 and round(cfg.inclusion[0]) == 30
+    with pytest.raises(ValueError, match=r"not 30\.5\b.*roi_units='mm'"):
+        Config(inclusion=(30.5, 40, 30, 40))
