@@ -2759,3 +2759,44 @@ def test_a_noise_free_fixed_image_still_flags_a_stuck_field():
         assert not stuck.ok and stuck.misaligned_fraction > 0.5, (noise, stuck.misaligned_fraction, stuck.reason)
         right = _planted(fixed, moving, zero + np.array(shift, np.float32)[:, None, None]).quality
         assert right.ok and right.misaligned_fraction < 0.1, (noise, right.reason)
+
+
+def test_a_texture_inverted_by_the_motion_does_not_hide_a_stuck_field():
+    """Found by a review (session 34, s34-r6): with the global gain unbounded, a periodic texture
+    (a checkerboard over a uniform slab) moved by half its period is the fixed image's texture
+    inverted, which a gain of -2 explains entirely: a field that did not move was trusted. An
+    exposure or overall thinning scales the texture by a factor of 2 at most either way, so the
+    global gain is bounded to that, and the stuck field shows misaligned."""
+    n = 240
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    rng = np.random.default_rng(1)
+    for period in (16, 32):
+        k = 2 * np.pi / period
+        shift = (0.0, period / 2)
+        fixed = 1 + 0.1 * np.cos(k * (xx + shift[1])) * np.cos(k * (yy + shift[0]))
+        fixed = (fixed + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+        moving = (1 + 0.1 * np.cos(k * xx) * np.cos(k * yy) + 0.01 * rng.standard_normal((n, n))).astype(np.float32)
+        stuck = _planted(fixed, moving, np.zeros((2, n, n), np.float32)).quality
+        assert not stuck.ok and stuck.misaligned_fraction > 0.5, (period, stuck.misaligned_fraction, stuck.reason)
+
+
+def test_a_noisier_moving_image_with_radiograph_like_noise_keeps_a_right_field():
+    """Found by a review (session 34, s34-r6): the moving image 3x noisier than the fixed one,
+    both with a radiograph's noise (line integrals of Poisson counts: noisier where the body is
+    denser), had its expected noise taken as one level over the whole image, too low on the
+    dense body: the true field read 79 % misaligned (camera texture) and was distrusted. The
+    moving image's own local noise map keeps it trusted; the identity 2.9 px off is flagged."""
+    shift, n = (1.7, 2.3), 240
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n - 0.5
+    chord = np.sqrt(np.clip(1 - (x / 0.34) ** 2 - (y / 0.30) ** 2, 0, None))
+    sigma = np.exp(1.5 * chord)  # the noise of -ln(counts) grows as exp(line integral / 2)
+    sigma *= 0.01 / np.median(sigma)
+    for texture in ("camera", "brick"):
+        fixed, moving, _ = _textured_body_pair(shift, 0.0, 0.0, texture=texture, seed=5, n=n)
+        rng = np.random.default_rng(5)
+        fixed = (fixed + sigma * rng.standard_normal((n, n))).astype(np.float32)
+        moving = (moving + 3 * sigma * rng.standard_normal((n, n))).astype(np.float32)
+        zero = np.zeros((2, n, n), np.float32)
+        right = _planted(fixed, moving, zero + np.array(shift, np.float32)[:, None, None]).quality
+        assert right.ok and right.misaligned_fraction < 0.1, (texture, right.misaligned_fraction, right.reason)
+        assert not _planted(fixed, moving, zero).quality.ok, texture

@@ -42,13 +42,14 @@ Consistency (no truth)
 After registration the residual ``warped - fixed``, high-passed like the image and less the
 part a local thinning or gain explains, should be noise where the motion is observed: its local
 mean square against the noise's expected share, ``(1 + a)^2 sigma_f^2 + v sigma_m^2``, each
-image's noise estimated on its own (the moving image's as the fixed image's map times the ratio of
-their ``noise_sigma`` while that ratio is within 2, else its own ``noise_sigma``), ``a`` the
+image's noise estimated on its own (each image's local ``noise_map``: a radiograph's noise
+varies with the body's density), ``a`` the
 local gain removed and ``v`` the variance that bilinear interpolation leaves of the moving
 image's noise (``interpolation_variance``: 1 on whole-pixel shifts, 1/4 at half a pixel in both
 directions; without it a perfect registration looks better than noise). The gain is fitted with
 the fixed image's noise taken out of its moments, one global gain (the median of the windows'
-gains: an exposure or an overall thinning, unbounded) and each window's departure from it bounded
+gains: an exposure or an overall thinning, bounded to a factor of 2 either way,
+``MAX_GLOBAL_GAIN``: past it the gain is a texture the motion inverted) and each window's departure from it bounded
 to +-``MAX_GAIN`` (a local thinning): a least-squares gain is diluted by that noise towards -1,
 and where the fixed image is far noisier than its texture it took the fixed image's whole content
 out of the residual, misaligned structure included (session 34). A window's mean square of pure noise
@@ -499,23 +500,18 @@ class Consistency:
         self.fh = f - _gauss(f, spacing)
         self.ff = _gauss(self.fh * self.fh, spacing) + 1e-30
         self.sigma = noise_map(f, spacing) if sigma_map is None else sigma_map
-        # the moving image's own noise level; None without a moving image (its noise taken as
-        # the fixed image's, as before session 34)
-        self.moving_sigma = None if moving is None else noise_sigma(moving)
-        self.fixed_sigma = noise_sigma(f)
+        # the moving image's own local noise map; None without a moving image (its noise taken
+        # as the fixed image's, as before session 34)
+        self.moving_sigma = None if moving is None else noise_map(np.asarray(moving, np.float32), spacing)
 
     def _moving_noise(self, s2):
-        """The moving image's noise variance map. The fixed image's map keeps a radiograph's
-        local, Poisson-like shape, scaled by the ratio of the two images' ``noise_sigma`` while
-        they are alike; far apart (one image over twice the other's noise) the fixed map's
-        texture leakage, times a large ratio, would swamp any misalignment, and a noise-free
-        fixed image has no ratio at all: the moving image's own level instead."""
-        if self.moving_sigma is None:
-            return s2
-        ratio = self.moving_sigma / max(self.fixed_sigma, 1e-30)
-        if 0.5 <= ratio <= 2.0:
-            return np.float32(ratio * ratio) * s2
-        return np.full_like(s2, max(self.moving_sigma, 1e-30) ** 2)
+        """The moving image's noise variance map, from the moving image itself: its local,
+        Poisson-like shape and level. The fixed image's map scaled by the ratio of the two
+        images' levels amplified the fixed map's texture leakage where the fixed image is the
+        quieter (a stuck field hidden), and one level for the whole moving image missed the
+        bright body's noise where it is the noisier (a right field distrusted; review s34-r6).
+        The moving image is not yet aligned, but its map varies over the window's scale."""
+        return s2 if self.moving_sigma is None else self.moving_sigma * self.moving_sigma
 
     def __call__(self, warped, noise_factor=2.0, support=None):
         s2 = self.sigma * self.sigma
@@ -546,6 +542,8 @@ class Consistency:
 # The most a local gain may scale the fixed image's structure: a thinning or an intensity change
 # of up to 20 % (the issue's bound on the slow intensity change).
 MAX_GAIN = 0.2
+#: the most a global gain may scale the texture by, up (1 + 1) or down (1 - 1/2): a factor of 2
+MAX_GLOBAL_GAIN = 1.0
 
 
 def _gain(rf, ff, s2, support=None):
@@ -557,7 +555,8 @@ def _gain(rf, ff, s2, support=None):
     residual. So the noise's share is taken out of both moments (errors in variables). A global
     change of intensity (an exposure, a body thinner overall) is one gain over the whole image,
     any size: the median of the windows' gains where the texture outweighs the noise (over
-    ``support``), unbounded; only each window's departure from it is bounded to what a local
+    ``support``), bounded only to a factor of 2 either way (``MAX_GLOBAL_GAIN``); each window's
+    departure from it is bounded to what a local
     thinning can do (``MAX_GAIN``). The residual's expected noise share then keeps ``(1 + a)^2``
     of the fixed image's noise."""
     num, den = rf + s2, ff - s2
@@ -567,7 +566,10 @@ def _gain(rf, ff, s2, support=None):
     local = num / np.where(den > 0, den, 1)
     step = sample_step(local.size)
     sample = local[::step, ::step][textured[::step, ::step]]
-    g = float(np.median(sample)) if sample.size else 0.0
+    # an exposure or overall thinning changes the texture by a factor of 2 at most either way;
+    # a gain past it is a pattern the motion inverted (a periodic one shifted by half a period
+    # fits -2), not an intensity change (review s34-r6)
+    g = float(np.clip(np.median(sample), -MAX_GLOBAL_GAIN / 2, MAX_GLOBAL_GAIN)) if sample.size else 0.0
     a = np.where(den > 0, local, g + np.sign(num - g * den) * MAX_GAIN)
     return np.clip(a, g - MAX_GAIN, g + MAX_GAIN).astype(np.float32)
 
