@@ -417,8 +417,6 @@ def _source_refusal(args) -> str | None:
 
 
 def _source(args) -> int:
-    from acquisition.l8121 import SourceConfig, probe
-
     if not args.action:
         print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
         return 2
@@ -446,6 +444,32 @@ def _source(args) -> int:
                 file=sys.stderr,
             )
             return 2
+    from acquisition.errors import PortBusy
+    from acquisition.guardian import TUBE_WARNING
+    from acquisition.transport import hold_port
+
+    try:
+        # the port held from before the probe to this command's end, its guardian's life included
+        # (the guardian inherits the lock): no other radiokit process reads this controller's
+        # replies meanwhile, and this one's switch-off never meets a port taken between its links
+        hold = hold_port(args.port)
+    except PortBusy as exc:
+        if args.action == "off":  # a switch-off not sent: said loudly, as any the command cannot confirm
+            print(f"error: {exc}; XOF not sent: stop that program (it switches off as it ends)", file=sys.stderr)
+            _say(TUBE_WARNING)
+            return 3
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    try:
+        return _source_held(args)
+    finally:
+        if hold is not None:
+            hold.release()
+
+
+def _source_held(args) -> int:
+    from acquisition.l8121 import SourceConfig, probe
+
     if args.action == "probe":
         c = SourceConfig(baudrate=args.baudrate)
         result = probe(

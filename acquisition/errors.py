@@ -34,3 +34,9 @@ class FramesRefused(DeviceError):
     ADC's top, flats not brighter than the darks, most of the panel defective): the series stops
     before the compression steps, the frames at fault (flats, darks or both, as
     :class:`radiokit.calibrate.CalibrationRefused` names them) kept but labelled invalid."""
+
+
+class PortBusy(PortUnavailable):
+    """Another program (another radiokit process: a series, a source command, their X-ray
+    guardian) holds the port's exclusive lock: this process sent nothing through it, and must not,
+    or each would read replies meant for the other."""

@@ -322,7 +322,14 @@ def start_guardian(
             f"baudrate {config.baudrate!r}, command spacing {config.min_interval_s!r}, reply time-out "
             f"{config.timeout_s!r}); pass driver.resolved_config()"
         )
+    from acquisition.transport import hold_port
+
+    # the port's lock before the guardian starts (PortBusy: another program holds it, nothing
+    # sent), its descriptor inherited: one lock from this process's probe to the guardian's end
+    hold = hold_port(str(url))
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
+    if hold is not None:
+        cmd += ["--lock-fd", str(hold.fd)]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
     if watchdog_s is not None:
@@ -340,16 +347,26 @@ def start_guardian(
         # its own session: the terminal's Ctrl-C (sent to the foreground process group) and its
         # hang-up do not reach it; stdin/stdout are the pipe, stderr the operator's terminal
         proc = subprocess.Popen(
-            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True, close_fds=True
+            cmd,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+            start_new_session=True,
+            close_fds=True,
+            pass_fds=() if hold is None else (hold.fd,),
         )
     except OSError as exc:
         held.release()
+        if hold is not None:
+            hold.release()
         raise DeviceError(f"{url}: cannot start the X-ray guardian process ({exc})") from exc
     except BaseException:
         held.release()
+        if hold is not None:
+            hold.release()
         raise
     link = PipeTransport(
-        url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate, min_interval_s=config.min_interval_s
+        url, proc, timeout_s=config.timeout_s, baudrate=config.baudrate, min_interval_s=config.min_interval_s, hold=hold
     )
     try:
         held.release()  # a signal held meanwhile raises here
@@ -841,7 +858,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--notebook")
     ap.add_argument("--watchdog", type=float, help="switch off after this many seconds of silence with X-rays on")
     ap.add_argument("--armed", action="store_true", help="the watchdog armed from the start, not at the first request")
+    ap.add_argument("--lock-fd", type=int, help="the port's exclusive lock, inherited from the acquiring process")
     args = ap.parse_args(argv)
+    if args.lock_fd is not None:
+        from acquisition.transport import adopt_hold
+
+        # the acquiring process's lock is this process's too: its links open the port without
+        # taking another (which the inherited one would refuse), and it holds after that one dies
+        adopt_hold(args.url, args.lock_fd)
     from acquisition.l8121 import SourceConfig
 
     config = SourceConfig.from_dict(json.loads(args.config))

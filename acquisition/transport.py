@@ -33,9 +33,9 @@ import time
 import serial
 import serial.rfc2217
 
-from acquisition.errors import DeviceError, NoReply, PortUnavailable
+from acquisition.errors import DeviceError, NoReply, PortBusy, PortUnavailable
 
-__all__ = ["SerialTransport", "PipeTransport"]
+__all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +111,182 @@ class _Rfc2217(serial.rfc2217.Serial):
                 self.portstr,
                 exc,
             )
+
+
+# -- one process per controller: the port's exclusive lock ----------------------------------------
+#
+# Two processes on one controller's port each read what it sends, and a reply -- a "tube off"
+# confirmation included -- may be consumed by the one that did not ask. So a local port is held
+# with flock(LOCK_EX | LOCK_NB), the lock pyserial's ``exclusive=True`` takes (other programs that
+# use it, or flock(1), are refused alike). It is taken on a descriptor of its own, not on
+# pyserial's: a transport's reconnect closes and reopens its port, and the probe's links close
+# before the guardian opens the port -- the lock must outlive both. One lock per process and
+# device, shared by every link of the process (a process never refuses itself: its switch-off
+# opens the port while its probe's or guardian's hold is there) and passed to the guardian, which
+# inherits the descriptor (one lock: it outlives a kill -9 of the process that took it).
+# Advisory: a program that opens the port without flock (screen, minicom) is not kept out. URLs
+# (socket://, rfc2217://, loop://) have no device here to lock.
+
+
+class _Lock:
+    def __init__(self, fd: int):
+        self.fd, self.count = fd, 0
+
+
+_LOCKS: dict[str, _Lock] = {}
+_LOCKS_GUARD = threading.Lock()
+
+
+def _lock_key(url: str) -> str | None:
+    """The device a local port names (symlinks resolved: /dev/serial/by-id/... and /dev/ttyUSB0
+    are one lock), or None for a URL or where flock does not exist."""
+    if os.name != "posix" or "://" in url:
+        return None
+    return os.path.realpath(url)
+
+
+def _holder_pid(fd: int) -> int | None:
+    """The live process that took the flock on ``fd``'s file, from /proc/locks (Linux), or None."""
+    try:
+        st = os.fstat(fd)
+        want = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        with open("/proc/locks") as f:
+            for line in f:
+                words = line.split()
+                if len(words) > 5 and words[1] == "FLOCK" and words[5] == want and os.path.exists(f"/proc/{words[4]}"):
+                    return int(words[4])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _lock_device(url: str, key: str) -> int | None:
+    """A new descriptor of ``key`` holding its exclusive lock; None where there is nothing to lock
+    (the port's own open then says why: missing, permission) or flock is not supported.
+
+    Raises
+    ------
+    PortBusy
+        Another process holds the lock."""
+    import errno
+    import fcntl
+
+    try:
+        # O_NONBLOCK: a modem-control line must not hold the open; O_NOCTTY: never our terminal
+        fd = os.open(key, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        pid = _holder_pid(fd) if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN) else None
+        os.close(fd)
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+            return None
+        who = f" (pid {pid})" if pid is not None else ""
+        raise PortBusy(
+            f"{url}: another program{who} holds this port (a radiokit series or source command in "
+            "another terminal, or its X-ray guardian); radiokit sent nothing through it"
+        ) from None
+    return fd
+
+
+def _stale(lock: _Lock, key: str) -> bool:
+    """Whether ``lock`` is on a file that is no longer the device ``key`` names (an adapter
+    unplugged and plugged again: a new device node, unlocked)."""
+    try:
+        held, now = os.fstat(lock.fd), os.stat(key)
+    except OSError:  # gone: the port's open says so
+        return False
+    return (held.st_dev, held.st_ino) != (now.st_dev, now.st_ino)
+
+
+class PortHold:
+    """This process's share of the exclusive lock on a local port (:func:`hold_port`): the lock
+    is let go when the last share is released (or at the process's end). A context manager."""
+
+    def __init__(self, url: str, key: str, lock: _Lock):
+        self.url, self._key, self._lock = url, key, lock
+        lock.count += 1
+
+    @property
+    def fd(self) -> int:
+        """The descriptor holding the lock (for a child to inherit: :func:`adopt_hold`)."""
+        return self._lock.fd
+
+    def renew(self) -> None:
+        """Before the port is opened again: if the path now names another device node (re-plugged),
+        the lock moves to it -- refused (:class:`PortBusy`) when another program took that one."""
+        with _LOCKS_GUARD:
+            lock = self._lock
+            if lock is None or not _stale(lock, self._key):
+                return
+            fd = _lock_device(self.url, self._key)
+            if fd is not None:
+                os.close(lock.fd)
+                lock.fd = fd
+
+    def release(self) -> None:
+        with _LOCKS_GUARD:
+            lock, self._lock = self._lock, None
+            if lock is None:
+                return
+            lock.count -= 1
+            if lock.count <= 0 and _LOCKS.get(self._key) is lock:
+                del _LOCKS[self._key]
+                os.close(lock.fd)
+
+    def __enter__(self) -> PortHold:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()
+
+    def __del__(self):
+        try:
+            self.release()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+
+def hold_port(url: str) -> PortHold | None:
+    """Take (or share, within this process) the exclusive lock on the local port ``url``; None
+    for a URL, or a port that cannot be opened (its own open says why).
+
+    Raises
+    ------
+    PortBusy
+        Another process holds it: nothing was sent."""
+    key = _lock_key(str(url))
+    if key is None:
+        return None
+    with _LOCKS_GUARD:
+        lock = _LOCKS.get(key)
+        if lock is None:
+            fd = _lock_device(str(url), key)
+            if fd is None:
+                return None
+            lock = _LOCKS[key] = _Lock(fd)
+        hold = PortHold(str(url), key, lock)
+    hold.renew()
+    return hold
+
+
+def adopt_hold(url: str, fd: int) -> PortHold | None:
+    """The lock on ``url`` inherited from the process that took it (the guardian's: the command
+    passes its descriptor), as this process's own; kept for the process's life."""
+    key = _lock_key(str(url))
+    if key is None:
+        return None
+    with _LOCKS_GUARD:
+        os.set_inheritable(fd, False)
+        lock = _LOCKS.setdefault(key, _Lock(fd))
+        hold = PortHold(str(url), key, lock)
+    _ADOPTED.append(hold)  # never released: a link's close must not let it go
+    return hold
+
+
+_ADOPTED: list[PortHold] = []
 
 
 def _serial_for_url(url: str, log: logging.Logger) -> serial.SerialBase:
@@ -259,6 +435,9 @@ class SerialTransport:
         #: during them: the query fails instead (a check of the model cannot tell two units apart).
         self.on_reconnect = None
         self._opened_once = False  # a later open is a reconnect: on_reconnect checks the device
+        # this link's share of the port's exclusive lock (hold_port): from its first open to close(),
+        # kept across a reconnect's close and reopen, where another process must not get in
+        self._hold: PortHold | None = None
         #: Commands this link has begun to write (counted before the write): 0 means the device
         #: has received nothing from it -- what an interrupted caller may tell the operator.
         self.commands_written = 0
@@ -287,12 +466,17 @@ class SerialTransport:
                 try:
                     self._reopen(None, None)
                 except _LINK_ERRORS as exc:
-                    self.close()
+                    self._close_port()
                     raise DeviceError(
                         f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
                     ) from exc
 
     def _open_port(self) -> None:
+        # before pyserial opens the port (DTR, RTS, a flush): held by another process, nothing is touched
+        if self._hold is None:
+            self._hold = hold_port(self.url)
+        else:
+            self._hold.renew()
         try:
             ser = _serial_for_url(self.url, self.log)
             ser.baudrate = self.baudrate
@@ -338,7 +522,14 @@ class SerialTransport:
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
     def close(self) -> None:
-        """Close the port; safe to call more than once."""
+        """Close the port and let go of this link's share of its lock; safe to call more than once."""
+        self._close_port()
+        hold, self._hold = self._hold, None
+        if hold is not None:
+            hold.release()
+
+    def _close_port(self) -> None:
+        """Close the port, its lock kept (a reconnect reopens it)."""
         ser, self._serial = self._serial, None
         if ser is not None:
             try:
@@ -396,7 +587,7 @@ class SerialTransport:
                             f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
                         ) from exc
                     attempt += 1
-                    self.close()
+                    self._close_port()
                     if command.split(" ", 1)[0] in getattr(self.on_reconnect, "not_resent", ()):
                         # it may have reached the controller, and the device behind the reopened
                         # port is known only to be of the model: resent, XON switched on a second
@@ -433,10 +624,10 @@ class SerialTransport:
                 except BaseException as exc:  # a write time-out, a signal too: a link left open unchecked
                     if isinstance(exc, NoReply) and command in getattr(self.on_reconnect, "blind", ()):
                         self._send_blind(command)
-                    self.close()  # would be trusted by the next query; reopened, it is asked again
+                    self._close_port()  # would be trusted by the next query; reopened, it is asked again
                     raise
         except DeviceError as reopen:
-            self.close()
+            self._close_port()
             if lost is None:
                 raise
             # a silent device stays NoReply (a switch-off does not ask it again); a port that
@@ -750,12 +941,16 @@ class PipeTransport:
         baudrate: int = 9600,
         min_interval_s: float = 0.06,  # the dialects' (acquisition.l8121.DIALECT_A)
         log: logging.Logger = logger,
+        hold: PortHold | None = None,
     ):
         self.url = str(url)
         self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
         self.min_interval_s = float(min_interval_s)
         self.log = log
+        # the port's lock, shared with the guardian (it inherited the descriptor): kept until
+        # close(), so that the port this process opens if the guardian dies is still its own
+        self._hold = hold
         self._lost = False  # the guardian died (not released): the port is free for this process
         self._direct: SerialTransport | None = None
         self._process = process
@@ -860,6 +1055,9 @@ class PipeTransport:
         direct, self._direct, self._lost = self._direct, None, False
         if direct is not None:
             direct.close()
+        hold, self._hold = self._hold, None
+        if hold is not None:
+            hold.release()  # the guardian's copy of the lock goes when it exits
         if not self._open:
             return
         self._open = False

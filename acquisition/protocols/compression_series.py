@@ -594,9 +594,15 @@ def _guarded_source(url: str, p: Protocol):
     from acquisition.errors import PortUnavailable
     from acquisition.guardian import start_guardian
     from acquisition.l8121 import L8121
+    from acquisition.transport import hold_port
 
     driver = L8121(url, baudrate=p.source.baudrate, connect=False, config=_source_config(p))
+    hold = None
     try:
+        # the port's lock from before the probe until the guardian holds it too (the link's own
+        # share, inherited by the guardian): no other process gets in between the probe's links
+        # and the guardian's open. PortBusy (another program holds it): nothing sent, "never reached"
+        hold = hold_port(url)
         resolved = driver.resolve()
         # the watchdog armed from the start unless the probe read the tube off: left on by an
         # earlier run, it stays on until the run's first phase switches it off, and connect's
@@ -618,6 +624,9 @@ def _guarded_source(url: str, p: Protocol):
             raise lost from exc
         _what_was_reached(exc, driver)
         raise
+    finally:
+        if hold is not None:
+            hold.release()
     source = L8121(link, connect=False, config=resolved)
     try:
         # what "auto" found, for the file's record -- and for connect(): interrupted after the
