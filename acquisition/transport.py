@@ -580,7 +580,10 @@ class SerialTransport:
         pipeline"): wait for its reply, up to that reply's own deadline, and discard it, so the next
         command reads its own reply. A switch-off after Ctrl-C waits at most one reply time-out more;
         sent at once instead, each command read the previous one's reply (XOF read SIN's, STS read
-        XOF's) and the switch-off could never be confirmed."""
+        XOF's) and the switch-off could never be confirmed. No reply by then is that command's
+        time-out: it is owed, and the wait for a late reply (:meth:`_await_late_reply`) follows,
+        as after any time-out (review s35r1: a Ctrl-C in the read of a reply 1.2 time-outs late
+        sent ``XOF`` at once, into the unit still answering: lost, the late reply read as its)."""
         if self._pending is None:
             return
         (command, deadline), self._pending = self._pending, None
@@ -588,6 +591,8 @@ class SerialTransport:
         while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
             if time.monotonic() >= deadline:
                 self.log.debug("%s: no late reply to the interrupted %s within its time-out", self.url, command)
+                self._owed.append((command, time.monotonic() + self.timeout_s))
+                self._timed_out = True
                 return
             buf += ser.read(max(1, ser.in_waiting))
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
