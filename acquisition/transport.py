@@ -987,6 +987,15 @@ class PipeTransport:
                 self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
+    def _exit_code(self) -> int | None:
+        """The guardian's exit status, its end of the pipe closed: reaped first (the pipe closes as
+        it dies, and polled at once, the error line said "code None" or "code -9" by a race; review
+        s35r1). None: it has not exited within a second."""
+        try:
+            return self._process.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            return None
+
     def _read_line(self, deadline: float, command: str, wait_s: float | None = None) -> str:
         """The guardian's next line, by ``deadline`` (``wait_s`` from its start: named in the error;
         ``command`` "start": its start or its end after a failed start)."""
@@ -1009,7 +1018,7 @@ class PipeTransport:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
                 what = "as it started" if command == "start" else f"in {command}"
-                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._process.poll()})")
+                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._exit_code()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")
