@@ -598,10 +598,18 @@ def _guardian_gone(src, exc) -> bool:
     """Whether ``exc`` is a guardian's failed start that ended without a word on a tube that may
     be on: it held the port (it said READY, or was killed), perhaps cut short in its switch-off,
     or it never did (killed before READY) while the tube was not known off. The port is free
-    again; opened by the guardian, or by this process's probe, this process switches off through
-    it, confirmed by STS, or ends on the warning (:func:`_off_anyway`, the exit rule)."""
+    again, and this process switches off through it, confirmed by STS, or ends on the warning
+    (:func:`_off_anyway`, the exit rule) -- also when neither the guardian nor a probe had opened
+    it (the dialect given): a tube an earlier `source on` left on is on still, and the command
+    that was to warm up (or switch on) leaves it off. Counted as reached for that: the guardian
+    may have opened the port before it died, so "never reached" would not be known true, and a
+    switch-off that then fails ends on the warning (review s35r1: the tube was left on, and the
+    last line said the port could not be opened). Not after the guardian's own word that the port
+    cannot be opened (PortUnavailable): that one is "never reached", as for any such port."""
+    from acquisition.errors import PortUnavailable
+
     gone = getattr(exc, "guardian_gone", False)
-    if gone and getattr(exc, "guardian_sent", True):  # (one killed before READY sent nothing)
+    if gone and not isinstance(exc, PortUnavailable):
         src.port_opened = True
     return gone
 

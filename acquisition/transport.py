@@ -771,7 +771,10 @@ class SerialTransport:
         pipeline"): wait for its reply, up to that reply's own deadline, and discard it, so the next
         command reads its own reply. A switch-off after Ctrl-C waits at most one reply time-out more;
         sent at once instead, each command read the previous one's reply (XOF read SIN's, STS read
-        XOF's) and the switch-off could never be confirmed."""
+        XOF's) and the switch-off could never be confirmed. No reply by then is that command's
+        time-out: it is owed, and the wait for a late reply (:meth:`_await_late_reply`) follows,
+        as after any time-out (review s35r1: a Ctrl-C in the read of a reply 1.2 time-outs late
+        sent ``XOF`` at once, into the unit still answering: lost, the late reply read as its)."""
         if self._pending is None:
             return
         (command, deadline), self._pending = self._pending, None
@@ -779,6 +782,8 @@ class SerialTransport:
         while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
             if time.monotonic() >= deadline:
                 self.log.debug("%s: no late reply to the interrupted %s within its time-out", self.url, command)
+                self._owed.append((command, time.monotonic() + self.timeout_s))
+                self._timed_out = True
                 return
             buf += ser.read(max(1, ser.in_waiting))
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
@@ -1180,6 +1185,15 @@ class PipeTransport:
                 self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
+    def _exit_code(self) -> int | None:
+        """The guardian's exit status, its end of the pipe closed: reaped first (the pipe closes as
+        it dies, and polled at once, the error line said "code None" or "code -9" by a race; review
+        s35r1). None: it has not exited within a second."""
+        try:
+            return self._process.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            return None
+
     def _read_line(self, deadline: float, command: str, wait_s: float | None = None) -> str:
         """The guardian's next line, by ``deadline`` (``wait_s`` from its start: named in the error;
         ``command`` "start": its start or its end after a failed start)."""
@@ -1202,7 +1216,7 @@ class PipeTransport:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
                 what = "as it started" if command == "start" else f"in {command}"
-                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._process.poll()})")
+                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._exit_code()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")

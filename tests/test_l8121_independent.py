@@ -400,6 +400,47 @@ def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof
             src.detach()
 
 
+def test_a_ctrl_c_while_a_poll_waits_for_a_reply_that_comes_late_does_not_lose_the_xof(dialect):
+    """The poll's reply comes 0.1 s after its time-out; a Ctrl-C lands while the poll still waits
+    for it (half its time-out after the send: a real SIGINT, sent by this process from a read of
+    the port then), and the caller switches off, as the command line does. Found (review s35r1):
+    the switch-off first waited for the interrupted poll's reply only up to the poll's own
+    deadline, then sent ``XOF`` at once into the unit still answering: lost (the late reply read
+    as XOF's), the tube confirmed off only by a second attempt. Now a reply not come by then is
+    waited for as after a time-out before ``XOF``: the first one is acted on, nothing is lost."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
+        try:
+            src.on(60, 250)
+            poll = src.dialect.readings[src.dialect.poll[0]].command
+            link = src._transport
+            real_write, real_read, sent, interrupted = link._write, link._serial.read, [], []
+
+            def write(ser, command, payload):
+                real_write(ser, command, payload)
+                if command == poll and not sent:
+                    sent.append(time.monotonic())
+
+            def read(n=1):
+                if sent and not interrupted and time.monotonic() - sent[0] >= 0.5 * src.timeout_s:
+                    interrupted.append(time.monotonic() - sent[0])
+                    os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
+                return real_read(n)
+
+            unit.slow[poll] = 1.1 * src.timeout_s
+            link._write, link._serial.read = write, read
+            with pytest.raises(KeyboardInterrupt):
+                src.check()
+            assert interrupted and interrupted[0] < src.timeout_s, "the Ctrl-C did not land in the poll's wait"
+            src.off()
+            assert src.tube_confirmed_off and not unit.emitting
+            log = [(line, reply) for _, line, reply in unit.log]
+            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
+        finally:
+            src.detach()
+
+
 @pytest.mark.parametrize(
     "noise, period_s, after_s",
     [(b"STS ", None, 0.5), (b"\x00", 0.01, 0.0)],
