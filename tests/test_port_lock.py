@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import guardian_of, run_cli
 
@@ -136,3 +137,86 @@ def test_one_process_never_refuses_itself_and_urls_are_not_locked():
             assert first.is_open and second.is_open
     with SerialTransport("loop://") as a, SerialTransport("loop://") as b:
         assert a.is_open and b.is_open
+
+
+def _series_protocol(tmp_path, url, kind):
+    """A compression series on ``url``: the lab's (``kind="lab"``: the port in ``[source]``, the
+    vendor folder, the manual frame) or the virtual bench's with ``[sim] source_port``. Its output
+    folder, empty, is returned with it."""
+    import tomli_w
+
+    out = tmp_path / "out"
+    out.mkdir()
+    series = {"darks": 1, "flats": 1, "frames_per_step": 1, "steps": [0.1], "settle_s": 0.0}
+    proto = {
+        "output": str(out / "series.h5"),
+        "name": "busy port",
+        "source": {"voltage_kv": 60, "current_ua": 250, "dialect": "A"},
+        "series": series,
+    }
+    if kind == "lab":
+        frames = tmp_path / "frames"
+        frames.mkdir()
+        proto["source"]["port"] = url
+        proto["detector"] = {"kind": "folder", "folder": str(frames), "shape": [8, 8]}
+        proto["frame"] = {"kind": "manual", "initial_height_mm": 10.0}
+    else:
+        from sim.scene import block_scene
+
+        scene = block_scene(size_mm=10.0, ratios=(0.1,))
+        scene.detector.binning = 4
+        scene.mesh.size_far_mm = 8.0
+        scene_file = tmp_path / "scene.toml"
+        scene_file.write_text(scene.to_toml())
+        proto["detector"] = {"kind": "sim"}
+        proto["frame"] = {"kind": "sim", "initial_height_mm": 10.0}
+        proto["sim"] = {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": url}
+    path = tmp_path / "protocol.toml"
+    path.write_text(tomli_w.dumps(proto))
+    return path, out
+
+
+def _acquire_on_a_held_port(model, server, *args):
+    holder = _holder(server.url)
+    try:
+        res = run_cli("acquire", *args)
+        return res, list(model.commands)
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=10)
+
+
+@pytest.mark.parametrize("kind", ["lab", "sim"])
+def test_a_series_on_a_held_port_is_refused_in_one_line_and_leaves_nothing_behind(tmp_path, kind):
+    """`radiokit acquire PROTOCOL` while another program holds the controller's port: one line
+    naming the port, exit 1, and not a file in the output folder -- a notebook left there was a
+    half series, and the re-run once that program ended needed --overwrite or a clean-up."""
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        path, out = _series_protocol(tmp_path, server.url, kind)
+        res, sent = _acquire_on_a_held_port(model, server, path, *(["--sim"] if kind == "sim" else []))
+    assert res.returncode == 1, res.stderr
+    assert len(_refusal(res.stderr, server.url)) == 1, res.stderr
+    assert sent == [], sent
+    assert sorted(p.name for p in out.iterdir()) == [], res.stderr
+
+
+def test_a_resume_on_a_held_port_leaves_the_series_untouched(tmp_path):
+    """`--resume` refused by another program's hold: the file and its notebook as they were."""
+    from acquisition.protocols.compression_series import load_protocol
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        path, out = _series_protocol(tmp_path, server.url, "lab")
+        h5, notebook = out / "series.h5", out / "series.log"
+        with ExperimentWriter(h5, shape=(8, 8)) as w:
+            w.record_run(load_protocol(path).to_toml(), {})
+            w.append(np.zeros((8, 8), np.uint16), image_key=ImageKey.DARK)
+        notebook.write_text("2026-12-05 18:00:00.000 acquisition INFO phase darks\n")
+        before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()}
+        res, sent = _acquire_on_a_held_port(model, server, path, "--resume")
+    assert res.returncode == 1, res.stderr
+    assert len(_refusal(res.stderr, server.url)) == 1, res.stderr
+    assert sent == [], sent
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()} == before

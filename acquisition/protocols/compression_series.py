@@ -1320,6 +1320,9 @@ def run(
         After the tube is off and the file is closed with every completed frame in it; the message
         names the fault, and the exception carries ``.result`` (what was saved, and whether the
         tube was confirmed off: ``result.tube_off``).
+    PortBusy
+        Another program holds the controller's port: raised before the run writes anything (its
+        notebook included) or sends a byte, without ``.result``.
     """
     from acquisition.guardian import SignalGuard
     from radiokit.io import ExperimentWriter
@@ -1330,54 +1333,70 @@ def run(
     resume, done, complete = _what_to_take(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
     if complete is not None:
         return complete
+    # the source's port held before the first file is written (the notebook is): refused by
+    # another program's hold (PortBusy), the run leaves no notebook of a series that never began,
+    # which a re-run would then meet, nor a line in a resumed one's. The devices' links share it
+    hold = _hold_source_port(p, sim=sim, devices=devices)
     try:
         notebook = _open_notebook(out)
-    except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
-        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
-        raise OSError(
-            exc.errno or errno.EIO,
-            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
-            f"({where}); nothing was sent to the devices",
-        ) from None
-    res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
-    bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
-    r = _Run(
-        p,
-        out,
-        sim,
-        resume,
-        overwrite,
-        progress,
-        guard or SignalGuard(),
-        res,
-        bar,
-        on_phase or (lambda phase, info=None: None),
-        writer_factory or ExperimentWriter,
-        devices=devices,
-    )
-    if done:
-        r.done = done
-    with r.guard:
-        watch = getattr(r.guard, "on_signal", None)
-        if watch is not None:
-            watch(r.on_signal)
-        try:
-            for name, phase in _PHASES:
-                if name != "steps":
-                    r.enter(name)
-                phase(r)
-        except BaseException as exc:
-            _stop(r, exc)
-            raise
-        finally:
-            _release(r, notebook)
+        res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
+        bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
+        r = _Run(
+            p,
+            out,
+            sim,
+            resume,
+            overwrite,
+            progress,
+            guard or SignalGuard(),
+            res,
+            bar,
+            on_phase or (lambda phase, info=None: None),
+            writer_factory or ExperimentWriter,
+            devices=devices,
+        )
+        if done:
+            r.done = done
+        with r.guard:
+            watch = getattr(r.guard, "on_signal", None)
             if watch is not None:
-                r.guard.forget(r.on_signal)
-    res.phase = "done"
-    res.frames_total = r.writer.n_frames if r.writer is not None else 0
-    res.seconds = time.perf_counter() - r.t0
-    res.beam_on_s = r.beam_on_s
-    return res
+                watch(r.on_signal)
+            try:
+                for name, phase in _PHASES:
+                    if name != "steps":
+                        r.enter(name)
+                    phase(r)
+            except BaseException as exc:
+                _stop(r, exc)
+                raise
+            finally:
+                _release(r, notebook)
+                if watch is not None:
+                    r.guard.forget(r.on_signal)
+        res.phase = "done"
+        res.frames_total = r.writer.n_frames if r.writer is not None else 0
+        res.seconds = time.perf_counter() - r.t0
+        res.beam_on_s = r.beam_on_s
+        return res
+    finally:
+        if hold is not None:
+            hold.release()
+
+
+def _hold_source_port(p: Protocol, *, sim, devices):
+    """This process's hold on the controller's local port (:func:`acquisition.transport.hold_port`),
+    when the run opens one: the lab's ``[source] port``, or ``[sim] source_port``; None otherwise.
+
+    Raises
+    ------
+    PortBusy
+        Another program holds it: nothing was sent, and nothing written."""
+    port = p.sim.source_port if sim else p.source.port
+    if devices is not None or not port:
+        return None
+    from acquisition.transport import hold_port
+
+    return hold_port(port)
 
 
 def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
@@ -1435,7 +1454,15 @@ class _Notebook(logging.FileHandler):
 
 def _open_notebook(out: Path) -> logging.Handler:
     """The lab notebook: every serial exchange, phase and fault, beside the experiment file."""
-    notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
+    try:
+        notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
+    except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
+        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
+        raise OSError(
+            exc.errno or errno.EIO,
+            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
+            f"({where}); nothing was sent to the devices",
+        ) from None
     notebook.setLevel(logging.DEBUG)
     notebook.setFormatter(
         logging.Formatter("%(asctime)s.%(msecs)03d %(name)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S")
