@@ -1591,3 +1591,71 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
         warnings.simplefilter("error")
         np.testing.assert_array_equal(read(path, dataset="plain").data, frames)
         np.testing.assert_array_equal(read(path, dataset="few").data, frames[:2])
+
+
+# ------------------------------------------------------------------------------------------------
+# FillOrder 2 (bits reversed in every stored byte) and signed samples
+# ------------------------------------------------------------------------------------------------
+
+
+def _one_strip_tiff(path, pixels: bytes, rows, cols, *, bits=16, fillorder=None, sampleformat=None, desc=None):
+    """A little-endian classic TIFF, one IFD and one uncompressed strip holding ``pixels``, with
+    tags tifffile does not write (FillOrder) as the other software writing them does."""
+    import struct
+
+    tags = [(256, 3, 1, cols), (257, 3, 1, rows), (258, 3, 1, bits), (259, 3, 1, 1), (262, 3, 1, 1)]
+    if fillorder is not None:
+        tags.append((266, 3, 1, fillorder))
+    text = b"" if desc is None else desc.encode() + b"\0"
+    if text:
+        tags.append((270, 2, len(text), 8))
+    start = 8 + len(text) + len(text) % 2
+    tags += [(273, 4, 1, start), (277, 3, 1, 1), (278, 3, 1, rows), (279, 4, 1, len(pixels))]
+    if sampleformat is not None:
+        tags.append((339, 3, 1, sampleformat))
+    ifd = start + len(pixels) + len(pixels) % 2
+    out = bytearray(b"II*\0" + struct.pack("<I", ifd) + text + b"\0" * (len(text) % 2))
+    out += pixels + b"\0" * (len(pixels) % 2) + struct.pack("<H", len(tags))
+    for code, kind, count, value in tags:
+        out += struct.pack("<HHI", code, kind, count) + struct.pack(
+            "<HH" if kind == 3 else "<I", *((value, 0) if kind == 3 else (value,))
+        )
+    path.write_bytes(bytes(out + struct.pack("<I", 0)))
+    return path
+
+
+def _bits_reversed(data: bytes) -> bytes:
+    table = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
+    return data.translate(table)
+
+
+def test_fillorder_2_tiff_one_page_reads_as_libtiff_does(tmp_path):
+    """FillOrder 2: each stored byte's bits reversed; libtiff and tifffile reverse them back."""
+    counts = _frames(1)[0]
+    path = _one_strip_tiff(tmp_path / "f.tif", _bits_reversed(counts.tobytes()), *counts.shape, fillorder=2)
+    with tifffile.TiffFile(path) as tif:
+        np.testing.assert_array_equal(tif.pages[0].asarray(), counts)
+    np.testing.assert_array_equal(_both_ways(path)[0], counts)
+
+
+def test_fillorder_2_imagej_stack_after_one_ifd_reads_bits_reversed_back(tmp_path):
+    """An ImageJ stack stored after its one IFD is read as raw frames: with FillOrder 2 they were
+    read with their bits reversed, silently wrong pixels (4095 read as 65295)."""
+    counts = _frames(3)
+    path = _one_strip_tiff(
+        tmp_path / "ij.tif",
+        _bits_reversed(counts.tobytes()),
+        *counts.shape[1:],
+        fillorder=2,
+        desc="ImageJ=1.54f\nimages=3\n",
+    )
+    np.testing.assert_array_equal(_both_ways(path), counts)
+
+
+def test_fillorder_2_tiff_of_12_bit_counts_in_16_bit_words_reads_them(tmp_path):
+    """BitsPerSample 12 in whole 16-bit words with FillOrder 2 was refused as "fit neither packed
+    12-bit rows nor 16-bit words", which they do fit: the bits are reversed back, as for any page."""
+    counts = _frames(1)[0]
+    path = _one_strip_tiff(tmp_path / "w.tif", _bits_reversed(counts.tobytes()), *counts.shape, bits=12, fillorder=2)
+    with pytest.warns(UserWarning, match="16-bit words"):
+        np.testing.assert_array_equal(_both_ways(path)[0], counts)

@@ -659,10 +659,10 @@ class FrameSource:
         fh = self._tif.filehandle
         fh.seek(page.dataoffsets[k])
         data = fh.read(page.databytecounts[k])
-        if page.compression == 1:
-            return data
         if page.fillorder == 2:  # bits reversed in the stored bytes, before decoding (libtiff, tifffile)
             data = imagecodecs.bitorder_decode(data)
+        if page.compression == 1:
+            return data
         return tifffile.TIFF.DECOMPRESSORS[int(page.compression)](data, out=shape[0] * shape[1] * 2 + 1)
 
     def _word_bytes(self, i, page, rows, cols, sizes) -> int:
@@ -691,7 +691,7 @@ class FrameSource:
         word = next((w for w in (0, 1, 2) if fits[w] == len(sizes)), None)
         if word == 0:
             return 0
-        if word and page.fillorder == 1 and page.samplesperpixel == 1:
+        if word and page.samplesperpixel == 1:
             return word
         raise FormatError(
             self.path,
@@ -702,6 +702,8 @@ class FrameSource:
     def _read_tiff(self, i):
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
+            if self._pages[0].fillorder == 2:  # read past tifffile, so undone here as libtiff does
+                frame = _bits_reversed(frame)
         elif self._words or _packed_and_compressed(self._pages[i]):
             frame = self._read_segments(i)
         else:
@@ -1142,6 +1144,12 @@ def open_frames(path, /, **hints) -> FrameSource:
     (3, (4, 5), 40)
     """
     return FrameSource(path, **hints)
+
+
+def _bits_reversed(frame: np.ndarray) -> np.ndarray:
+    """``frame`` with the bits of each of its bytes reversed (TIFF FillOrder 2 undone; per byte,
+    so the same in either byte order)."""
+    return np.frombuffer(bytearray(imagecodecs.bitorder_decode(frame.tobytes())), frame.dtype).reshape(frame.shape)
 
 
 def read(path, /, **hints) -> Frames:
