@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex
+from conftest import ITEX_DIR, needs_itex, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -1659,3 +1659,46 @@ def test_fillorder_2_tiff_of_12_bit_counts_in_16_bit_words_reads_them(tmp_path):
     path = _one_strip_tiff(tmp_path / "w.tif", _bits_reversed(counts.tobytes()), *counts.shape, bits=12, fillorder=2)
     with pytest.warns(UserWarning, match="16-bit words"):
         np.testing.assert_array_equal(_both_ways(path)[0], counts)
+
+
+def _packed_12(values) -> bytes:
+    """Rows of 12-bit two's-complement samples packed MSB first, each row on a byte boundary."""
+    out = bytearray()
+    for row in values:
+        bits = "".join(f"{int(v) & 0xFFF:012b}" for v in row)
+        bits += "0" * (-len(bits) % 8)
+        out += bytes(int(bits[k : k + 8], 2) for k in range(0, len(bits), 8))
+    return bytes(out)
+
+
+@pytest.mark.parametrize(
+    "stored",
+    [
+        pytest.param(lambda v: v.astype("<i2").tobytes(), id="16-bit words sign-extended"),
+        pytest.param(lambda v: (v & 0xFFF).astype("<u2").tobytes(), id="16-bit words, 12-bit two's complement"),
+        pytest.param(_packed_12, id="packed"),
+    ],
+)
+def test_signed_12_bit_tiff_is_refused_in_one_line(tmp_path, stored):
+    """SampleFormat 2 (signed) with BitsPerSample 12: no raw frame of the C7942, whose 12-bit ADC
+    gives unsigned counts 0..4095 (hardware/C7942.md). Read as unsigned 16-bit words, -150 became
+    65386 (with a warning blaming another detector) or, stored as 12-bit two's complement, 3946
+    without a word; packed, a riddle ("page 0 decodes to (0,)"). Refused, naming the file and why."""
+    values = (np.arange(30 * 40).reshape(30, 40) % 300 - 150).astype(np.int64)
+    path = _one_strip_tiff(tmp_path / "signed.tif", stored(values), 30, 40, bits=12, sampleformat=2)
+    with pytest.raises(FormatError, match=r"signed.tif: .*signed \(SampleFormat 2\) 12-bit.*0\.\.4095"):
+        read(path)
+    res = run_cli("info", path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "signed.tif" in lines[0] and "SampleFormat 2" in lines[0], res.stderr
+
+
+def test_signed_16_bit_tiff_is_still_read_as_stored(tmp_path):
+    """int16 pixels (BitsPerSample 16, SampleFormat 2) hold their sign in the word: read exactly,
+    negatives included, as before."""
+    values = (np.arange(30 * 40).reshape(30, 40) % 300 - 150).astype("<i2")
+    path = _one_strip_tiff(tmp_path / "s16.tif", values.tobytes(), 30, 40, bits=16, sampleformat=2)
+    f = read(path)
+    assert f.data.dtype == np.int16
+    np.testing.assert_array_equal(f.data[0], values)

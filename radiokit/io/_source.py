@@ -311,6 +311,7 @@ class FrameSource:
         self._contiguous = self._contiguous_stack(first, all_pages)
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
+            self._refuse_signed_below_a_word(index[i], page)
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
                 raise FormatError(
@@ -550,6 +551,25 @@ class FrameSource:
             )
         self._fh = open(self.path, "rb")
         return geo
+
+    def _refuse_signed_below_a_word(self, i, page) -> None:
+        """Refuse signed samples (SampleFormat 2) of fewer bits than their word, such as 12.
+
+        Why: read as the unsigned 16-bit words they are stored in, -150 became 65386 (a warning
+        then blamed another detector) or, stored as 12-bit two's complement, 3946 without a word;
+        packed, tifffile has no type for them. They are no raw frame of the C7942, whose 12-bit ADC
+        gives unsigned counts (hardware/C7942.md), and how their sign is stored is a guess: not made.
+        int16 (BitsPerSample 16) holds its sign in the word, and is read as stored."""
+        bits = int(page.bitspersample)
+        if int(page.sampleformat) != 2 or bits in (8, 16, 32, 64):
+            return
+        raise FormatError(
+            self.path,
+            f"TIFF page {i} holds signed (SampleFormat 2) {bits}-bit samples: not the C7942's raw counts, "
+            f"which are unsigned 0..4095, and how their sign is stored ({bits}-bit two's complement or "
+            "extended to a 16-bit word) is not known; not read: save the panel's raw (unsigned) frames, "
+            "or signed pixels as 16-bit integers (int16)",
+        )
 
     def _check_page_layout(self, i, page, shape):
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
