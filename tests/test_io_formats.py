@@ -1702,3 +1702,54 @@ def test_signed_16_bit_tiff_is_still_read_as_stored(tmp_path):
     f = read(path)
     assert f.data.dtype == np.int16
     np.testing.assert_array_equal(f.data[0], values)
+
+
+def _nexus_detector(path, frames, bits, linked=False):
+    """Another program's NeXus file: frames in an NXdetector with its ``bit_depth_readout``
+    (NeXus's word for the ADC's bits), found there or through NXdata's soft link."""
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1, *frames.shape[1:]))
+        if bits is not None:
+            det["bit_depth_readout"] = bits
+        if linked:
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = h5py.SoftLink("/entry/instrument/detector/data")
+    return path
+
+
+@pytest.mark.parametrize("linked", [False, True])
+def test_nexus_bit_depth_readout_is_the_declared_bit_depth(tmp_path, linked):
+    """A 16-bit panel's NeXus darks and flats (bit_depth_readout 16) whose bright corner passes 4095
+    in 0.1 % of the flats' values: the file's bit depth was ignored outside radiokit's own
+    experiment files, and the ADC-top rule took the corner for a 12-bit panel's stuck pixels:
+    saturation 4095, the corner masked as saturated. Declared, it settles the range, as an
+    experiment file's and a TIFF's BitsPerSample do."""
+    rng = np.random.default_rng(3)
+    darks = np.rint(200 + rng.normal(0, 3, (4, 128, 128))).astype(np.uint16)
+    flats = (200 + rng.poisson(3400, (4, 128, 128))).astype(np.uint16)
+    flats[:, :4, :4] += 700  # ~4300 counts: over a 12-bit ADC's top, nothing to a 16-bit one
+    assert 0 < np.count_nonzero(flats > 4095) <= 1e-3 * flats.size
+    dark = read(_nexus_detector(tmp_path / "dark.nxs", darks, 16, linked))
+    flat = read(_nexus_detector(tmp_path / "flat.nxs", flats, 16, linked))
+    assert dark.meta["bit_depth"] == flat.meta["bit_depth"] == 16
+    cal = Calibration.from_frames(dark, flat)
+    assert cal.thresholds.saturation == 65535
+    assert not cal.mask[:4, :4].any()
+
+
+def test_nexus_bit_depth_readout_warns_of_values_past_it(tmp_path):
+    """Values a declared 12-bit ADC cannot give warn, as an experiment file's do; a file without
+    bit_depth_readout says nothing of its ADC (no warning, no bit_depth)."""
+    from radiokit.io import BitDepthWarning
+
+    frames = _frames()
+    frames[0, 0, 0] = 5000
+    with pytest.warns(BitDepthWarning, match="12-bit range"):
+        read(_nexus_detector(tmp_path / "d12.nxs", frames, 12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(_nexus_detector(tmp_path / "none.nxs", frames, None))
+    assert "bit_depth" not in f.meta

@@ -49,6 +49,7 @@ __all__ = [
     "IMAGE_KEY",
     "STEP",
     "read_experiment_meta",
+    "read_bit_depth",
     "checked_dataset",
     "check_local",
     "check_links",
@@ -1007,6 +1008,23 @@ def _not_an_experiment(h5: h5py.File) -> str:
     )
 
 
+def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int | None:
+    """The ADC bits ``group`` (an NXdetector) declares in ``bit_depth_readout``, where that is one
+    whole number 1..32; else None. Optional: anything else (text, an array, 12.5) is left out, as
+    an experiment file's other optional fields are, and the frames' range is judged on its own."""
+    name = f"{group.rstrip('/')}/bit_depth_readout"
+    check_links(path, h5, name, allow_external)
+    try:
+        ds = h5.get(name)
+    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+        return None
+    if not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype)):
+        return None
+    check_local(path, h5, ds, allow_external)
+    bits = ds[()]
+    return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
+
+
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata.
 
@@ -1044,17 +1062,17 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     per_frame = max(frame, math.prod(data.chunks) * data.dtype.itemsize) if data.chunks else frame  # whole chunks
     check_written(path, data, spare_bytes=invalid * per_frame)
     _read_pixel_sizes(path, h5, meta, allow_external)
-    for name, ndim in (("pixel_mask", 2), ("bit_depth_readout", 0)):
-        check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
-        ds = h5[DETECTOR].get(name)
-        # optional: left out unless plain numbers of the expected rank
-        if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
-            check_local(path, h5, ds, allow_external)
-            check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
-            meta[name] = ds[()]
-    bits = meta.pop("bit_depth_readout", None)
-    if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
-        meta["bit_depth"] = int(bits)
+    name = "pixel_mask"
+    check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
+    ds = h5[DETECTOR].get(name)
+    # optional: left out unless plain numbers of the expected rank
+    if isinstance(ds, h5py.Dataset) and ds.ndim == 2 and _plain_numbers(ds.dtype):
+        check_local(path, h5, ds, allow_external)
+        check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
+        meta[name] = ds[()]
+    bits = read_bit_depth(path, h5, DETECTOR, allow_external)
+    if bits is not None:  # else: the C7942's 12
+        meta["bit_depth"] = bits
     _read_source(path, h5, meta, allow_external)
     from radiokit.io._simulation import SIMULATION
 

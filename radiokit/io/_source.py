@@ -28,6 +28,7 @@ from radiokit.io._experiment import (
     check_written,
     checked_dataset,
     frame_candidates,
+    read_bit_depth,
     read_experiment_meta,
 )
 from radiokit.io._frames import Frames, check_bit_depth
@@ -915,7 +916,7 @@ class FrameSource:
             if "MATLAB_class" in data.attrs:  # a save -v7.3 variable: its neighbours are 2-D variables
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:  # 1-D keys read the same in either order (h5write may have put them in a .mat)
-                meta.update(self._keys_beside(dataset, n))
+                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
             # frames past the keys of a file being written (SWMR; a writer may extend its frames in
             # blocks ahead of them) are not read: unwritten, they are no reason to refuse the rest
@@ -937,20 +938,33 @@ class FrameSource:
         self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
         if self._packing is not None:
             self.dtype = self._packing["dtype"]
-        # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
-        self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
+        # the bit depth the file records; without one an experiment file's panel is the C7942 (12)
+        self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else meta.get("bit_depth")
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
-    def _keys_beside(self, dataset: str, n: int) -> dict:
-        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
-        NXdata), so that darks and flats are told from projections as in an experiment file."""
+    def _groups_beside(self, dataset: str) -> list[str]:
+        """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
+        points at (NXdata may link the frames alone, their NXdetector's fields left behind)."""
         link = self._h5.get(dataset, getlink=True)
-        # beside the frames where the signal's soft link points (NXdata may link the frames alone)
         places = [dataset]
         if isinstance(link, h5py.SoftLink):  # a relative link is resolved from the link's group
             target = link.path
             places.append(target if target.startswith("/") else f"{dataset.rpartition('/')[0]}/{target}")
-        names = [f"{p.rstrip('/').rpartition('/')[0]}/image_key" for p in places]
+        return [p.rstrip("/").rpartition("/")[0] or "/" for p in places]
+
+    def _bits_beside(self, dataset: str) -> dict:
+        """``bit_depth``: the ADC bits the frames' NXdetector declares (``bit_depth_readout``), the
+        declared depth as an experiment file's and a TIFF's BitsPerSample below its word are."""
+        for group in self._groups_beside(dataset):
+            bits = read_bit_depth(self.path, self._h5, group, self._allow_external)
+            if bits is not None:
+                return {"bit_depth": bits}
+        return {}
+
+    def _keys_beside(self, dataset: str, n: int) -> dict:
+        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
+        NXdata), so that darks and flats are told from projections as in an experiment file."""
+        names = [f"{g.rstrip('/')}/image_key" for g in self._groups_beside(dataset)]
         name = next((k for k in names if self._h5.get(k, getlink=True) is not None), None)
         if name is None:
             return {}
