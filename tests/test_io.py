@@ -2072,3 +2072,69 @@ def test_read_gives_a_calibration_as_its_dark_and_flat(tmp_path):
         h5["calibration/flat"] = np.ones((16, 25), np.float32)
     with pytest.raises(FormatError, match="dark .* and flat .* differ"):
         read(tmp_path / "cal.h5")
+
+
+_OVERWRITE_KILLED = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from radiokit.io import ExperimentWriter
+    w = ExperimentWriter(sys.argv[1], shape=(6, 5), overwrite=True)
+    w.append(np.full((6, 5), 4000, np.uint16), image_key=2)
+    print("ready", flush=True)
+    sys.stdin.read()  # killed here, the new file half written
+""")
+
+
+def test_experiment_overwrite_through_a_symlink_killed_leaves_the_old_file(tmp_path):
+    """``ExperimentWriter(link, overwrite=True)``: the new file is built beside the link's target
+    and renamed over it at close, as every other radiokit output is (radiokit.io._atomic): a run
+    killed part-way truncated the old file the link points at, its frames lost, and left a half
+    file under its name."""
+    store = tmp_path / "store"
+    store.mkdir()
+    target = _write_experiment(store / "exp.h5", shape=EXP_SHAPE)
+    before = target.read_bytes()
+    link = tmp_path / "exp.h5"
+    link.symlink_to(target)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _OVERWRITE_KILLED, str(link)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    watchdog = threading.Timer(60, proc.kill)
+    watchdog.start()
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+    finally:
+        watchdog.cancel()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+        proc.stdin.close()
+    assert link.is_symlink() and link.resolve() == target
+    assert target.read_bytes() == before  # the old file, whole
+    assert read(link).n == len(FRAME_META)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5", "store"]  # nothing beside the link
+
+    # completed, the new file replaces the target; the link stays a link
+    with ExperimentWriter(link, shape=EXP_SHAPE, overwrite=True) as w:
+        w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    assert link.is_symlink() and link.resolve() == target
+    assert read(target).n == 1 and int(read(link).data.max()) == 7
+    assert [p.name for p in store.iterdir() if not p.name.startswith(".exp.tmp-")] == ["exp.h5"]
+
+
+def test_experiment_overwrite_failing_inside_the_with_keeps_the_old_file(tmp_path):
+    """An exception inside ``with ExperimentWriter(..., overwrite=True)`` is a run that did not
+    finish: the old file stays and the partial new one is removed."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    with pytest.raises(RuntimeError, match="stopped"):
+        with ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True) as w:
+            w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+            raise RuntimeError("stopped")
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex
+from conftest import ITEX_DIR, needs_itex, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -1591,3 +1591,165 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
         warnings.simplefilter("error")
         np.testing.assert_array_equal(read(path, dataset="plain").data, frames)
         np.testing.assert_array_equal(read(path, dataset="few").data, frames[:2])
+
+
+# ------------------------------------------------------------------------------------------------
+# FillOrder 2 (bits reversed in every stored byte) and signed samples
+# ------------------------------------------------------------------------------------------------
+
+
+def _one_strip_tiff(path, pixels: bytes, rows, cols, *, bits=16, fillorder=None, sampleformat=None, desc=None):
+    """A little-endian classic TIFF, one IFD and one uncompressed strip holding ``pixels``, with
+    tags tifffile does not write (FillOrder) as the other software writing them does."""
+    import struct
+
+    tags = [(256, 3, 1, cols), (257, 3, 1, rows), (258, 3, 1, bits), (259, 3, 1, 1), (262, 3, 1, 1)]
+    if fillorder is not None:
+        tags.append((266, 3, 1, fillorder))
+    text = b"" if desc is None else desc.encode() + b"\0"
+    if text:
+        tags.append((270, 2, len(text), 8))
+    start = 8 + len(text) + len(text) % 2
+    tags += [(273, 4, 1, start), (277, 3, 1, 1), (278, 3, 1, rows), (279, 4, 1, len(pixels))]
+    if sampleformat is not None:
+        tags.append((339, 3, 1, sampleformat))
+    ifd = start + len(pixels) + len(pixels) % 2
+    out = bytearray(b"II*\0" + struct.pack("<I", ifd) + text + b"\0" * (len(text) % 2))
+    out += pixels + b"\0" * (len(pixels) % 2) + struct.pack("<H", len(tags))
+    for code, kind, count, value in tags:
+        out += struct.pack("<HHI", code, kind, count) + struct.pack(
+            "<HH" if kind == 3 else "<I", *((value, 0) if kind == 3 else (value,))
+        )
+    path.write_bytes(bytes(out + struct.pack("<I", 0)))
+    return path
+
+
+def _bits_reversed(data: bytes) -> bytes:
+    table = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
+    return data.translate(table)
+
+
+def test_fillorder_2_tiff_one_page_reads_as_libtiff_does(tmp_path):
+    """FillOrder 2: each stored byte's bits reversed; libtiff and tifffile reverse them back."""
+    counts = _frames(1)[0]
+    path = _one_strip_tiff(tmp_path / "f.tif", _bits_reversed(counts.tobytes()), *counts.shape, fillorder=2)
+    with tifffile.TiffFile(path) as tif:
+        np.testing.assert_array_equal(tif.pages[0].asarray(), counts)
+    np.testing.assert_array_equal(_both_ways(path)[0], counts)
+
+
+def test_fillorder_2_imagej_stack_after_one_ifd_reads_bits_reversed_back(tmp_path):
+    """An ImageJ stack stored after its one IFD is read as raw frames: with FillOrder 2 they were
+    read with their bits reversed, silently wrong pixels (4095 read as 65295)."""
+    counts = _frames(3)
+    path = _one_strip_tiff(
+        tmp_path / "ij.tif",
+        _bits_reversed(counts.tobytes()),
+        *counts.shape[1:],
+        fillorder=2,
+        desc="ImageJ=1.54f\nimages=3\n",
+    )
+    np.testing.assert_array_equal(_both_ways(path), counts)
+
+
+def test_fillorder_2_tiff_of_12_bit_counts_in_16_bit_words_reads_them(tmp_path):
+    """BitsPerSample 12 in whole 16-bit words with FillOrder 2 was refused as "fit neither packed
+    12-bit rows nor 16-bit words", which they do fit: the bits are reversed back, as for any page."""
+    counts = _frames(1)[0]
+    path = _one_strip_tiff(tmp_path / "w.tif", _bits_reversed(counts.tobytes()), *counts.shape, bits=12, fillorder=2)
+    with pytest.warns(UserWarning, match="16-bit words"):
+        np.testing.assert_array_equal(_both_ways(path)[0], counts)
+
+
+def _packed_12(values) -> bytes:
+    """Rows of 12-bit two's-complement samples packed MSB first, each row on a byte boundary."""
+    out = bytearray()
+    for row in values:
+        bits = "".join(f"{int(v) & 0xFFF:012b}" for v in row)
+        bits += "0" * (-len(bits) % 8)
+        out += bytes(int(bits[k : k + 8], 2) for k in range(0, len(bits), 8))
+    return bytes(out)
+
+
+@pytest.mark.parametrize(
+    "stored",
+    [
+        pytest.param(lambda v: v.astype("<i2").tobytes(), id="16-bit words sign-extended"),
+        pytest.param(lambda v: (v & 0xFFF).astype("<u2").tobytes(), id="16-bit words, 12-bit two's complement"),
+        pytest.param(_packed_12, id="packed"),
+    ],
+)
+def test_signed_12_bit_tiff_is_refused_in_one_line(tmp_path, stored):
+    """SampleFormat 2 (signed) with BitsPerSample 12: no raw frame of the C7942, whose 12-bit ADC
+    gives unsigned counts 0..4095 (hardware/C7942.md). Read as unsigned 16-bit words, -150 became
+    65386 (with a warning blaming another detector) or, stored as 12-bit two's complement, 3946
+    without a word; packed, a riddle ("page 0 decodes to (0,)"). Refused, naming the file and why."""
+    values = (np.arange(30 * 40).reshape(30, 40) % 300 - 150).astype(np.int64)
+    path = _one_strip_tiff(tmp_path / "signed.tif", stored(values), 30, 40, bits=12, sampleformat=2)
+    with pytest.raises(FormatError, match=r"signed.tif: .*signed \(SampleFormat 2\) 12-bit.*0\.\.4095"):
+        read(path)
+    res = run_cli("info", path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "signed.tif" in lines[0] and "SampleFormat 2" in lines[0], res.stderr
+
+
+def test_signed_16_bit_tiff_is_still_read_as_stored(tmp_path):
+    """int16 pixels (BitsPerSample 16, SampleFormat 2) hold their sign in the word: read exactly,
+    negatives included, as before."""
+    values = (np.arange(30 * 40).reshape(30, 40) % 300 - 150).astype("<i2")
+    path = _one_strip_tiff(tmp_path / "s16.tif", values.tobytes(), 30, 40, bits=16, sampleformat=2)
+    f = read(path)
+    assert f.data.dtype == np.int16
+    np.testing.assert_array_equal(f.data[0], values)
+
+
+def _nexus_detector(path, frames, bits, linked=False):
+    """Another program's NeXus file: frames in an NXdetector with its ``bit_depth_readout``
+    (NeXus's word for the ADC's bits), found there or through NXdata's soft link."""
+    with h5py.File(path, "w") as h5:
+        entry = _nx_class(h5.create_group("entry"), "NXentry")
+        det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+        det.create_dataset("data", data=frames, chunks=(1, *frames.shape[1:]))
+        if bits is not None:
+            det["bit_depth_readout"] = bits
+        if linked:
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = h5py.SoftLink("/entry/instrument/detector/data")
+    return path
+
+
+@pytest.mark.parametrize("linked", [False, True])
+def test_nexus_bit_depth_readout_is_the_declared_bit_depth(tmp_path, linked):
+    """A 16-bit panel's NeXus darks and flats (bit_depth_readout 16) whose bright corner passes 4095
+    in 0.1 % of the flats' values: the file's bit depth was ignored outside radiokit's own
+    experiment files, and the ADC-top rule took the corner for a 12-bit panel's stuck pixels:
+    saturation 4095, the corner masked as saturated. Declared, it settles the range, as an
+    experiment file's and a TIFF's BitsPerSample do."""
+    rng = np.random.default_rng(3)
+    darks = np.rint(200 + rng.normal(0, 3, (4, 128, 128))).astype(np.uint16)
+    flats = (200 + rng.poisson(3400, (4, 128, 128))).astype(np.uint16)
+    flats[:, :4, :4] += 700  # ~4300 counts: over a 12-bit ADC's top, nothing to a 16-bit one
+    assert 0 < np.count_nonzero(flats > 4095) <= 1e-3 * flats.size
+    dark = read(_nexus_detector(tmp_path / "dark.nxs", darks, 16, linked))
+    flat = read(_nexus_detector(tmp_path / "flat.nxs", flats, 16, linked))
+    assert dark.meta["bit_depth"] == flat.meta["bit_depth"] == 16
+    cal = Calibration.from_frames(dark, flat)
+    assert cal.thresholds.saturation == 65535
+    assert not cal.mask[:4, :4].any()
+
+
+def test_nexus_bit_depth_readout_warns_of_values_past_it(tmp_path):
+    """Values a declared 12-bit ADC cannot give warn, as an experiment file's do; a file without
+    bit_depth_readout says nothing of its ADC (no warning, no bit_depth)."""
+    from radiokit.io import BitDepthWarning
+
+    frames = _frames()
+    frames[0, 0, 0] = 5000
+    with pytest.warns(BitDepthWarning, match="12-bit range"):
+        read(_nexus_detector(tmp_path / "d12.nxs", frames, 12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(_nexus_detector(tmp_path / "none.nxs", frames, None))
+    assert "bit_depth" not in f.meta

@@ -1037,6 +1037,10 @@ def _open_experiment(r: _Run):
         },
         title=f"radiokit compression series: {p.name}",
         bit_depth=p.detector.bits if p.detector.bits != 12 else None,  # 12: the readers' default
+        # --overwrite truncates the old file at once: the file is the run's journal, and a run
+        # killed part-way must leave its frames under the name --resume continues (built beside
+        # it and renamed at the end, they were in a hidden temporary the next run removes)
+        in_place=True,
     )
     existed = r.out.exists()
     _warn_if_short_of_room(r, existed)

@@ -27,7 +27,17 @@ import numpy as np
 from radiokit import _json as strict_json
 from radiokit.checks import is_number
 from radiokit.errors import FormatError
-from radiokit.io._atomic import file_size_limit, resolved
+from radiokit.interrupts import settle
+from radiokit.io._atomic import (
+    _fsync,
+    _keep_mode,
+    _remove,
+    _remove_stale,
+    _temporary_name,
+    check_output,
+    file_size_limit,
+    resolved,
+)
 
 __all__ = [
     "ExperimentWriter",
@@ -39,6 +49,7 @@ __all__ = [
     "IMAGE_KEY",
     "STEP",
     "read_experiment_meta",
+    "read_bit_depth",
     "checked_dataset",
     "check_local",
     "check_links",
@@ -104,6 +115,14 @@ class ExperimentWriter:
         Not given: not recorded; readers assume the C7942's 12 bits for that warning, and the
         calibration infers the range from the darks and flats
         (:func:`radiokit.calibrate.adc_top`).
+    in_place : bool
+        With ``overwrite``, truncate an existing file at once and write the new one under its
+        name. By default the new file is built beside it (beside a symbolic link's target, the
+        link kept) and renamed over it only when closed without an error, as every radiokit
+        output is (:func:`radiokit.io.atomic_path`): a run killed or failed part-way leaves the
+        old file whole. The acquisition passes True: its file is the run's journal, and a run
+        killed part-way must leave its frames under the name ``--resume`` continues.
+        A new file is always written under its own name, frame by frame, for the same reason.
 
     Examples
     --------
@@ -130,6 +149,7 @@ class ExperimentWriter:
         detector_name="Hamamatsu C7942SK-02",
         title="radiokit experiment",
         bit_depth=None,
+        in_place=False,
     ):
         self.path = Path(path)
         if mode not in ("w", "a"):
@@ -142,7 +162,8 @@ class ExperimentWriter:
         if mode == "w" and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
-        self._h5 = h5py.File(self.path, "w" if mode == "w" else "r+")
+        self._file, self._replaces = self._where(mode, overwrite, in_place)
+        self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
         try:
             if mode == "w":
                 if shape is None:
@@ -156,7 +177,23 @@ class ExperimentWriter:
                 self._reopen(shape)
         except Exception:
             self._h5.close()
+            if self._replaces is not None:
+                _remove(self._file)
             raise
+
+    def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
+        """The file to write, and the file it replaces when closed (None: written in place).
+
+        Why the link's target: renamed over a symbolic link, the new file would replace the link
+        and leave the file it points at stale; its temporary is made beside the target so the
+        rename stays on one file system."""
+        if mode == "a":
+            return resolved(self.path), None
+        target = check_output(self.path, overwrite=overwrite)  # a link's target; loops, folders refused
+        if in_place or not target.exists():
+            return target, None
+        _remove_stale(target)  # a killed overwrite's temporary, its process gone
+        return _temporary_name(target), target
 
     # -- layout -------------------------------------------------------------------------------
     def _create(self, shape, pixel_size_mm, source, detector_name, title):
@@ -349,16 +386,18 @@ class ExperimentWriter:
 
     def _free_bytes(self) -> int:
         """Bytes free for this file on its file system."""
-        return shutil.disk_usage(self.path.parent).free
+        return shutil.disk_usage(self._file.parent).free
 
     def _size_and_limit(self) -> tuple[int, float]:
         """The file's size, and the largest it may grow to: the process's ``RLIMIT_FSIZE`` and, on
         a FAT file system, 4 GiB - 1, whichever is lower."""
-        return self.path.stat().st_size, file_size_limit(self.path.parent)
+        return self._file.stat().st_size, file_size_limit(self._file.parent)
 
     @property
     def _ballast_path(self) -> Path:
-        return self.path.with_name(f".{self.path.name}.reserve")
+        # named after the file kept, beside it on its disk (a link's folder may be on another)
+        dest = self._replaces or self._file
+        return dest.with_name(f".{dest.name}.reserve")
 
     def _hold_ballast(self, nbytes: int) -> int:
         """Hold ``nbytes`` of disk in the ballast file (allocated, not sparse); returns the bytes
@@ -427,7 +466,10 @@ class ExperimentWriter:
 
         write_simulation(self._h5, record)
 
-    def close(self):
+    def close(self, *, keep=True):
+        """Close the file. Overwriting (not ``in_place``), the new file then replaces the old one,
+        unless a frame failed or ``keep`` is False (the ``with`` block ended in an exception): the
+        old file stays and the new one is removed."""
         if self._h5.id.valid:
             try:
                 if not getattr(self, "_failed", None):
@@ -435,12 +477,31 @@ class ExperimentWriter:
             finally:
                 self._h5.close()
                 self._drop_ballast()
+                self._finish(keep and not getattr(self, "_failed", None))
+
+    def _finish(self, keep: bool) -> None:
+        """Rename the new file over the one it replaces (``keep``), else remove it."""
+        tmp, target, self._replaces = self._file, self._replaces, None
+        if target is None:
+            return
+        if not keep:
+            _remove(tmp)
+            return
+        try:
+            settle()  # a stop lost while it was written, its delivery not run yet: not renamed into place
+            _fsync(tmp)  # the bytes on disk before the name: a power cut leaves the old file or the new
+            _keep_mode(tmp, target)
+            os.replace(tmp, target)
+            _fsync(target.parent)
+        except BaseException:
+            _remove(tmp)
+            raise
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, exc_type, *exc):
+        self.close(keep=exc_type is None)
 
 
 def _refuse_external(path, what):
@@ -947,6 +1008,23 @@ def _not_an_experiment(h5: h5py.File) -> str:
     )
 
 
+def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int | None:
+    """The ADC bits ``group`` (an NXdetector) declares in ``bit_depth_readout``, where that is one
+    whole number 1..32; else None. Optional: anything else (text, an array, 12.5) is left out, as
+    an experiment file's other optional fields are, and the frames' range is judged on its own."""
+    name = f"{group.rstrip('/')}/bit_depth_readout"
+    check_links(path, h5, name, allow_external)
+    try:
+        ds = h5.get(name)
+    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+        return None
+    if not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype)):
+        return None
+    check_local(path, h5, ds, allow_external)
+    bits = ds[()]
+    return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
+
+
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata.
 
@@ -984,17 +1062,17 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     per_frame = max(frame, math.prod(data.chunks) * data.dtype.itemsize) if data.chunks else frame  # whole chunks
     check_written(path, data, spare_bytes=invalid * per_frame)
     _read_pixel_sizes(path, h5, meta, allow_external)
-    for name, ndim in (("pixel_mask", 2), ("bit_depth_readout", 0)):
-        check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
-        ds = h5[DETECTOR].get(name)
-        # optional: left out unless plain numbers of the expected rank
-        if isinstance(ds, h5py.Dataset) and ds.ndim == ndim and _plain_numbers(ds.dtype):
-            check_local(path, h5, ds, allow_external)
-            check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
-            meta[name] = ds[()]
-    bits = meta.pop("bit_depth_readout", None)
-    if bits is not None and float(bits).is_integer() and 1 <= bits <= 32:  # else: the C7942's 12
-        meta["bit_depth"] = int(bits)
+    name = "pixel_mask"
+    check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
+    ds = h5[DETECTOR].get(name)
+    # optional: left out unless plain numbers of the expected rank
+    if isinstance(ds, h5py.Dataset) and ds.ndim == 2 and _plain_numbers(ds.dtype):
+        check_local(path, h5, ds, allow_external)
+        check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
+        meta[name] = ds[()]
+    bits = read_bit_depth(path, h5, DETECTOR, allow_external)
+    if bits is not None:  # else: the C7942's 12
+        meta["bit_depth"] = bits
     _read_source(path, h5, meta, allow_external)
     from radiokit.io._simulation import SIMULATION
 

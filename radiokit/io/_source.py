@@ -28,6 +28,7 @@ from radiokit.io._experiment import (
     check_written,
     checked_dataset,
     frame_candidates,
+    read_bit_depth,
     read_experiment_meta,
 )
 from radiokit.io._frames import Frames, check_bit_depth
@@ -311,6 +312,7 @@ class FrameSource:
         self._contiguous = self._contiguous_stack(first, all_pages)
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
+            self._refuse_signed_below_a_word(index[i], page)
             self._check_page_layout(i, page, shape)
             if page.dtype != first.dtype:  # stacked into page 0's dtype, it would be cast silently
                 raise FormatError(
@@ -551,6 +553,25 @@ class FrameSource:
         self._fh = open(self.path, "rb")
         return geo
 
+    def _refuse_signed_below_a_word(self, i, page) -> None:
+        """Refuse signed samples (SampleFormat 2) of fewer bits than their word, such as 12.
+
+        Why: read as the unsigned 16-bit words they are stored in, -150 became 65386 (a warning
+        then blamed another detector) or, stored as 12-bit two's complement, 3946 without a word;
+        packed, tifffile has no type for them. They are no raw frame of the C7942, whose 12-bit ADC
+        gives unsigned counts (hardware/C7942.md), and how their sign is stored is a guess: not made.
+        int16 (BitsPerSample 16) holds its sign in the word, and is read as stored."""
+        bits = int(page.bitspersample)
+        if int(page.sampleformat) != 2 or bits in (8, 16, 32, 64):
+            return
+        raise FormatError(
+            self.path,
+            f"TIFF page {i} holds signed (SampleFormat 2) {bits}-bit samples: not the C7942's raw counts, "
+            f"which are unsigned 0..4095, and how their sign is stored ({bits}-bit two's complement or "
+            "extended to a 16-bit word) is not known; not read: save the panel's raw (unsigned) frames, "
+            "or signed pixels as 16-bit integers (int16)",
+        )
+
     def _check_page_layout(self, i, page, shape):
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
@@ -659,10 +680,10 @@ class FrameSource:
         fh = self._tif.filehandle
         fh.seek(page.dataoffsets[k])
         data = fh.read(page.databytecounts[k])
-        if page.compression == 1:
-            return data
         if page.fillorder == 2:  # bits reversed in the stored bytes, before decoding (libtiff, tifffile)
             data = imagecodecs.bitorder_decode(data)
+        if page.compression == 1:
+            return data
         return tifffile.TIFF.DECOMPRESSORS[int(page.compression)](data, out=shape[0] * shape[1] * 2 + 1)
 
     def _word_bytes(self, i, page, rows, cols, sizes) -> int:
@@ -691,7 +712,7 @@ class FrameSource:
         word = next((w for w in (0, 1, 2) if fits[w] == len(sizes)), None)
         if word == 0:
             return 0
-        if word and page.fillorder == 1 and page.samplesperpixel == 1:
+        if word and page.samplesperpixel == 1:
             return word
         raise FormatError(
             self.path,
@@ -702,6 +723,8 @@ class FrameSource:
     def _read_tiff(self, i):
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
+            if self._pages[0].fillorder == 2:  # read past tifffile, so undone here as libtiff does
+                frame = _bits_reversed(frame)
         elif self._words or _packed_and_compressed(self._pages[i]):
             frame = self._read_segments(i)
         else:
@@ -893,7 +916,7 @@ class FrameSource:
             if "MATLAB_class" in data.attrs:  # a save -v7.3 variable: its neighbours are 2-D variables
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:  # 1-D keys read the same in either order (h5write may have put them in a .mat)
-                meta.update(self._keys_beside(dataset, n))
+                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
             # frames past the keys of a file being written (SWMR; a writer may extend its frames in
             # blocks ahead of them) are not read: unwritten, they are no reason to refuse the rest
@@ -915,20 +938,33 @@ class FrameSource:
         self.n, self.frame_shape, self.dtype = n, shape, data.dtype.newbyteorder("=")
         if self._packing is not None:
             self.dtype = self._packing["dtype"]
-        # an experiment file's panel: the bit depth it records, else the C7942's 12 bits
-        self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else None
+        # the bit depth the file records; without one an experiment file's panel is the C7942 (12)
+        self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else meta.get("bit_depth")
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
-    def _keys_beside(self, dataset: str, n: int) -> dict:
-        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
-        NXdata), so that darks and flats are told from projections as in an experiment file."""
+    def _groups_beside(self, dataset: str) -> list[str]:
+        """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
+        points at (NXdata may link the frames alone, their NXdetector's fields left behind)."""
         link = self._h5.get(dataset, getlink=True)
-        # beside the frames where the signal's soft link points (NXdata may link the frames alone)
         places = [dataset]
         if isinstance(link, h5py.SoftLink):  # a relative link is resolved from the link's group
             target = link.path
             places.append(target if target.startswith("/") else f"{dataset.rpartition('/')[0]}/{target}")
-        names = [f"{p.rstrip('/').rpartition('/')[0]}/image_key" for p in places]
+        return [p.rstrip("/").rpartition("/")[0] or "/" for p in places]
+
+    def _bits_beside(self, dataset: str) -> dict:
+        """``bit_depth``: the ADC bits the frames' NXdetector declares (``bit_depth_readout``), the
+        declared depth as an experiment file's and a TIFF's BitsPerSample below its word are."""
+        for group in self._groups_beside(dataset):
+            bits = read_bit_depth(self.path, self._h5, group, self._allow_external)
+            if bits is not None:
+                return {"bit_depth": bits}
+        return {}
+
+    def _keys_beside(self, dataset: str, n: int) -> dict:
+        """NXtomo's ``image_key`` beside the frames (in their NXdetector, or linked into their
+        NXdata), so that darks and flats are told from projections as in an experiment file."""
+        names = [f"{g.rstrip('/')}/image_key" for g in self._groups_beside(dataset)]
         name = next((k for k in names if self._h5.get(k, getlink=True) is not None), None)
         if name is None:
             return {}
@@ -1142,6 +1178,12 @@ def open_frames(path, /, **hints) -> FrameSource:
     (3, (4, 5), 40)
     """
     return FrameSource(path, **hints)
+
+
+def _bits_reversed(frame: np.ndarray) -> np.ndarray:
+    """``frame`` with the bits of each of its bytes reversed (TIFF FillOrder 2 undone; per byte,
+    so the same in either byte order)."""
+    return np.frombuffer(bytearray(imagecodecs.bitorder_decode(frame.tobytes())), frame.dtype).reshape(frame.shape)
 
 
 def read(path, /, **hints) -> Frames:
