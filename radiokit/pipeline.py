@@ -59,6 +59,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -66,7 +67,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from radiokit._json import strict as strict_json
-from radiokit.checks import is_number
+from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.interrupts import STOP_SIGNALS, deferred
@@ -105,12 +106,31 @@ DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 
 def _ks(ks) -> tuple:
     """The enhancement factors as floats: one number is one k (``compression_contrast``'s ``k=1``
-    raised "'int' object is not iterable" here), and text is refused ("12" ran k = 1 and 2)."""
-    if isinstance(ks, (str, bytes)):
-        raise ValueError(f"ks={ks!r}: expected numbers, e.g. ks=(1, 2)")
-    if is_number(ks):
-        return (float(ks),)
-    return tuple(float(k) for k in ks)
+    raised "'int' object is not iterable" here), a 0-d array one number too ("iteration over a
+    0-d array"), and anything else that is no number refused, text included ("12" ran k = 1 and 2)."""
+    expected = "expected enhancement factors as numbers, e.g. ks=(1, 2) or ks=2"
+    one = scalar(ks)
+    if is_number(one):
+        return (float(one),)
+    if isinstance(ks, (str, bytes)) or not isinstance(ks, Iterable) or getattr(ks, "ndim", 1) == 0:
+        raise ValueError(f"ks={ks!r}: {expected}")
+    out = []
+    for k in ks:
+        if not is_number(scalar(k)):  # float("2") took text, float([1, 2]) raised a TypeError
+            raise ValueError(f"ks={ks!r}: {k!r} is not a number; {expected}")
+        out.append(float(scalar(k)))
+    return tuple(out)
+
+
+def _crop_mm(value) -> float | None:
+    """``crop_mm`` as a float (a 0-d array is its number), or None; a ValueError naming anything else
+    (text or a list reached numpy's ``isfinite`` and raised a TypeError, ``True`` ran as a 1 mm crop)."""
+    if value is None:
+        return None
+    crop = scalar(value)
+    if not (is_number(crop) and np.isfinite(crop) and crop > 0):
+        raise ValueError(f"crop_mm={value!r}: expected the crop's side in mm, a number > 0 (None: the whole frame)")
+    return float(crop)
 
 
 @dataclass
@@ -154,8 +174,13 @@ class Config:
             raise ValueError(f"ks={shown}: each enhancement factor once")
         if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
             raise ValueError(f"ks={shown}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
-        if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
-            raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
+        self.crop_mm = _crop_mm(self.crop_mm)
+        if not isinstance(self.register_options, Mapping):  # a str was read as option names, one per character
+            raise ValueError(
+                f"register_options={self.register_options!r}: expected a dict of option names and values, "
+                "e.g. {'preset': 'fast'}"
+            )
+        self.register_options = {name: scalar(v) for name, v in self.register_options.items()}
         _check_methods(self.method, self.cross_check, self.register_options)
         self._check_rectangles()
 
@@ -190,10 +215,12 @@ K_MAX = 100.0
 
 
 def _check_methods(method, cross_check, options) -> None:
-    """Refuse, before any work, an unknown method or cross-check and an option ``method`` does
-    not take (a B-spline ``preset`` given to a peer), as ``ValueError`` in one line: found only
-    at the first registration they cost the correction, and a peer's ``TypeError`` a traceback."""
-    from radiokit.register import METHODS, _check_option_names, _load_methods
+    """Refuse, before any work, an unknown method or cross-check, an option ``method`` does
+    not take (a B-spline ``preset`` given to a peer) and a B-spline option's value of the wrong
+    kind or range, as ``ValueError`` in one line: found only at the first registration they cost
+    the correction, and a peer's ``TypeError`` a traceback."""
+    from radiokit.register import BSPLINE_METHODS, METHODS, _check_option_names, _load_methods
+    from radiokit.register._bspline import check_option_values
 
     _load_methods()
     for what, name in (("method", method), ("cross_check", cross_check)):
@@ -203,6 +230,8 @@ def _check_methods(method, cross_check, options) -> None:
         _check_option_names(method, options)
     except TypeError as exc:
         raise ValueError(str(exc)) from None
+    if method in BSPLINE_METHODS:
+        check_option_values(options)
 
 
 def _cross_check_options(cfg) -> dict:
@@ -277,14 +306,27 @@ class Result:
 
 
 def _roi_numbers(value, units, name) -> tuple[float, float, float, float]:
-    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it."""
+    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it and what its
+    bounds are in ``units`` (pixels whole numbers, mm any number); a bound given as text or a bool
+    is refused (``float`` took ``"1"``, and ``True`` as row 1)."""
     what = f"{name} ROI {value!r}"
+    bounds = "four whole numbers of pixels" if units == "px" else "four numbers in mm"
+    expected = f"expected (row0, row1, col0, col1), {bounds}"
     try:
         if isinstance(value, dict):
             value = (value["row0"], value["row1"], value["col0"], value["col1"])
-        r0, r1, c0, c1 = (float(v) for v in value)
+        if isinstance(value, (str, bytes)):
+            raise TypeError
+        items = list(value)
     except (TypeError, ValueError, KeyError):
-        raise ValueError(f"{what}: expected (row0, row1, col0, col1), four numbers in {units}") from None
+        raise ValueError(f"{what}: {expected}") from None
+    if len(items) != 4:
+        raise ValueError(f"{what}: {expected}")
+    numbers = [scalar(v) for v in items]
+    for given, v in zip(items, numbers):
+        if not is_number(v):
+            raise ValueError(f"{what}: {given!r} is not a number; {expected}")
+    r0, r1, c0, c1 = (float(v) for v in numbers)
     if not np.all(np.isfinite([r0, r1, c0, c1])):
         raise ValueError(f"{what}: its bounds must be finite")
     return r0, r1, c0, c1
