@@ -351,7 +351,7 @@ def _roi(value, units, pixel_size_mm, name):
         if part:
             raise ValueError(
                 f"{what}: pixel bounds are whole numbers, not {', '.join(part)}"
-                " (millimetres, rounded to pixels: --mm, or roi_units='mm')"
+                " (for millimetres, rounded to pixels: roi_units='mm')"
             )
     try:
         return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
@@ -683,7 +683,7 @@ def _overlap(a, b) -> bool:
     return a.row0 < b.row1 and b.row0 < a.row1 and a.col0 < b.col1 and b.col0 < a.col1
 
 
-def _background_beside(ref, inc, pixel_size_mm):
+def _background_beside(ref, inc, pixel_size_mm, named=None):
     """A background ROI of ``inc``'s shape beside the inclusion given as ``inc`` (where detection
     found none there, or none at all: it was placed beside the detected one, or the run stopped
     asking for the --inclusion it had been given). ``inc`` is taken as the automatic ROI would be,
@@ -698,16 +698,31 @@ def _background_beside(ref, inc, pixel_size_mm):
         return find_rois(ref, inclusion_mask=mask, pixel_size_mm=pixel_size_mm, background_size=size)[1]
     except ValueError:  # find_rois names its grown inclusion, which the user never gave
         raise ValueError(
-            f"inclusion ROI {inc} given alone: no background of its shape fits beside it inside the frame and "
+            f"{named or f'inclusion ROI {inc}'} given alone: no background of its shape fits beside it inside the frame and "
             "the body; give the background too (radiokit process --background R0 R1 C0 C1)"
         ) from None
 
 
-def _inside_frame(named_rois, shape) -> None:
-    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``."""
+def _given_roi(cfg, name, roi) -> str:
+    """``name``'s ROI as the user gave it to ``cfg`` (in mm: ``(mm)`` after it), else as ``roi``."""
+    given = getattr(cfg, name)
+    if given is None or isinstance(given, ROI):
+        return f"{name} ROI {roi}"
+    return f"{name} ROI {given!r}" + (" (mm)" if cfg.roi_units == "mm" else "")
+
+
+def _inside_frame(named_rois, shape, cfg=None, pixel_size_mm=None) -> None:
+    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``; one
+    ``cfg`` gives is named as given, in mm with the frame's size in mm (it was named in pixels the
+    user never typed: ``ROI(row0=0, row1=10000, ...)`` for ``--mm --inclusion 0 500 0 5``)."""
     for name, roi in named_rois:
         if roi is not None and not (0 <= roi.row0 < roi.row1 <= shape[0] and 0 <= roi.col0 < roi.col1 <= shape[1]):
-            raise ValueError(f"{name} ROI {roi} lies outside the {shape} frame")
+            named = f"{name} ROI {roi}" if cfg is None else _given_roi(cfg, name, roi)
+            if named.endswith("(mm)"):
+                h, w = (n * pixel_size_mm for n in shape)
+                named += f" lies outside the {shape} frame, {h:g} x {w:g} mm at {pixel_size_mm:g} mm per pixel"
+                raise ValueError(named)
+            raise ValueError(f"{named} lies outside the {shape} frame")
 
 
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
@@ -721,7 +736,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm, "inclusion")
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
     # the given ones first: an inclusion off the frame given alone was told that no background fits beside it
-    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape, cfg, steps.pixel_size_mm)
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         try:
@@ -734,7 +749,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
             # the detected inclusion's background where the given rectangle is in that inclusion
             # and clear of it (a rectangle drawn around the inclusion held it: review)
             if not _within_inclusion(auto_inc, inc.center) or _overlap(auto_bg, inc):
-                auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
+                auto_bg = _background_beside(ref, inc, steps.pixel_size_mm, _given_roi(cfg, "inclusion", inc))
         inc = inc or auto_inc
         bg = bg or auto_bg
     _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
