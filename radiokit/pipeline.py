@@ -166,6 +166,15 @@ class Config:
             )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
+        for name in ("use_truth_rois", "report", "progress", "regularisation_check"):
+            value = getattr(self, name)
+            if not isinstance(value, (bool, np.bool_)):  # "no" is truthy: report="no" wrote the report
+                raise ValueError(f"{name}={value!r}: expected True or False")
+            setattr(self, name, bool(value))
+        if self.control is not None:
+            if not isinstance(self.control, (str, os.PathLike)):  # refused only after the file's run
+                raise ValueError(f"control={self.control!r}: expected a control experiment file's path")
+            self.control = os.fspath(self.control)
         self.ks = _ks(self.ks)
         shown = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
         if not self.ks or not all(np.isfinite(self.ks)):

@@ -536,3 +536,27 @@ def test_config_refuses_a_value_of_the_wrong_kind_in_one_line_naming_the_field(g
     assert "\n" not in text
     for word in words:
         assert word in text, (word, text)
+
+
+@pytest.mark.parametrize(
+    "given, words",
+    [
+        (dict(report="no"), ["report='no'", "True or False"]),
+        (dict(progress=None), ["progress=None", "True or False"]),
+        (dict(use_truth_rois="yes"), ["use_truth_rois='yes'", "True or False"]),
+        (dict(regularisation_check=1), ["regularisation_check=1", "True or False"]),
+        (dict(control=3), ["control=3", "experiment file"]),
+    ],
+)
+def test_config_refuses_a_flag_that_is_no_bool_and_a_control_that_is_no_path(given, words):
+    """``report="no"`` is truthy: the report was written, as ``use_truth_rois="no"`` used the truth;
+    a control of 3 failed only after the whole file's run."""
+    from pathlib import Path
+
+    from radiokit.pipeline import Config
+
+    with pytest.raises(ValueError) as info:
+        Config(**given)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+    assert Config(report=np.bool_(False), control=Path("c.h5")).report is False
