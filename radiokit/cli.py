@@ -1066,8 +1066,8 @@ def _add_process(sub):
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in pixels (mm with --mm) "
-        "(default: found automatically)",
+        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in whole pixels of the full frame "
+        "(with --mm: millimetres, any number, rounded to pixels) (default: found automatically)",
     )
     p.add_argument(
         "--background",
@@ -1082,7 +1082,11 @@ def _add_process(sub):
 
 def _add_process_options(p):
     """The process options beyond the science: ROI units, control, report, cross-check, Dask."""
-    p.add_argument("--mm", action="store_true", help="rectangles in mm from the frame's top-left corner, not pixels")
+    p.add_argument(
+        "--mm",
+        action="store_true",
+        help="rectangles in mm from the frame's top-left corner (any number, rounded to pixels), not whole pixels",
+    )
     p.add_argument("--control", type=Path, help="a control experiment (inclusion as soft as the background)")
     p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
     p.add_argument(

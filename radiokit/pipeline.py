@@ -135,9 +135,10 @@ def _crop_mm(value) -> float | None:
 
 @dataclass
 class Config:
-    """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in pixels of
-    the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
-    (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
+    """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in whole pixels
+    of the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
+    (``"mm"``: any number, rounded to pixels); ``None`` finds them automatically. Numbers may be
+    numpy's, a 0-d array included; text is refused, not parsed. ``domain``: the headline domain, ``"negative"``
     (the paper's ``-I/I0``, default) or ``"log"``; both are computed. ``ks``: the enhancement
     factors k, each in (0, 100] (one number, or several: ``(1, 2)``, the paper's)."""
 
