@@ -234,7 +234,7 @@ def _check_methods(method, cross_check, options) -> None:
 
     _load_methods()
     for what, name in (("method", method), ("cross_check", cross_check)):
-        if name is not None and name not in METHODS:
+        if name is not None and not (isinstance(name, str) and name in METHODS):  # a list: TypeError unhashable
             raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(METHODS))}")
     try:
         _check_option_names(method, options)

@@ -521,6 +521,8 @@ def test_config_takes_a_0d_numeric_array_as_the_number_it_holds(given, expect):
         (dict(register_options={"preset": 3}), ["preset 3", "expected one of"]),
         (dict(register_options={"preset": ["fast"]}), ["preset ['fast']", "auto-fast"]),
         (dict(method="ncc", register_options={"alpha": [1]}), ["alpha=[1]", "number"]),
+        (dict(method=["rc"]), ["method=['rc']", "unknown registration method"]),
+        (dict(cross_check=["ncc"]), ["cross_check=['ncc']", "unknown registration method"]),
     ],
 )
 def test_config_refuses_a_value_of_the_wrong_kind_in_one_line_naming_the_field(given, words):
