@@ -13,7 +13,7 @@ from __future__ import annotations
 import numbers
 import os
 
-__all__ = ["image_hint", "is_integer", "is_number"]
+__all__ = ["image_hint", "is_integer", "is_number", "scalar"]
 
 
 def is_number(value) -> bool:
@@ -27,6 +27,23 @@ def is_number(value) -> bool:
     (False, False, False, False, False)
     """
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def scalar(value):
+    """A 0-d numeric numpy array as the numpy number it holds, anything else as given: ``np.array(2.0)``
+    (what ``np.asarray(x)`` or a reduction of an array expression gives) is a number, though no
+    ``numbers.Real``, so :func:`is_number` refused it and ``tuple(k for k in ks)`` raised "iteration over
+    a 0-d array". A 0-d bool or text array stays an array, refused by the caller's check. Duck-typed:
+    numpy is not imported here.
+
+    >>> import numpy as np
+    >>> scalar(np.array(2.0)), scalar(np.array([2.0])), scalar(np.array(True)), scalar("2")
+    (np.float64(2.0), array([2.]), array(True), '2')
+    """
+    kind = getattr(getattr(value, "dtype", None), "kind", None)
+    if getattr(value, "ndim", None) == 0 and kind in ("i", "u", "f") and hasattr(value, "__getitem__"):
+        return value[()]
+    return value
 
 
 def is_integer(value) -> bool:

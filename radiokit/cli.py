@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -476,6 +477,28 @@ def _check_preset(args) -> None:
             )
 
 
+def _as_typed(bounds):
+    """``--inclusion``/``--background``'s bounds (argparse's floats) as the user typed them, whole
+    ones as ints, so Config's line echoes ``(10.5, 20, 10, 20)``, not ``[10.5, 20.0, 10.0, 20.0]``."""
+    if bounds is None:
+        return None
+    return tuple(int(v) if math.isfinite(v) and v.is_integer() and abs(v) < 2**53 else v for v in bounds)
+
+
+def _process_error(text, args) -> str:
+    """A ``Config`` or pipeline line in the command line's words: its fields as the options, a
+    given ROI echoed as typed (``--inclusion 10.5 20 10 20``), ``roi_units='mm'`` as ``--mm``."""
+    for field, option in _PROCESS_OPTIONS.items():
+        if text.startswith(field):
+            text = option + text[len(field) :]
+    for name in ("inclusion", "background"):
+        bounds = _as_typed(getattr(args, name))
+        if bounds is not None:
+            typed = f"--{name} {' '.join(str(v) for v in bounds)}"
+            text = text.replace(f"{name} ROI {bounds!r}", typed).replace(f"--{name} {bounds!r}", typed)
+    return text.replace("roi_units='mm'", "--mm")
+
+
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors
 _PROCESS_OPTIONS = {
     "ks=": "--k ",
@@ -651,8 +674,8 @@ def _process_config(args, opts):
         method=args.method,
         register_options=opts,
         crop_mm=args.crop_mm or None,
-        inclusion=args.inclusion,
-        background=args.background,
+        inclusion=_as_typed(args.inclusion),
+        background=_as_typed(args.background),
         roi_units="mm" if args.mm else "px",
         report=not args.no_report,
         progress=_progress(args),
@@ -736,11 +759,7 @@ def cmd_process(args) -> int:
     try:
         cfg = _process_config(args, opts)
     except ValueError as exc:  # Config names its fields; the user typed the options
-        text = str(exc)
-        for field, option in _PROCESS_OPTIONS.items():
-            if text.startswith(field):
-                text = option + text[len(field) :]
-        raise ValueError(text) from None
+        raise ValueError(_process_error(str(exc), args)) from None
     inputs = [*args.files, *([args.control] if args.control else [])]
     single = len(args.files) == 1 and not args.scheduler
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
@@ -750,9 +769,12 @@ def cmd_process(args) -> int:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
-            if any(str(f) in str(exc) for f in inputs):  # named already (the control, say)
-                raise
-            raise ValueError(f"{args.files[0]}: {exc}") from exc
+            text = _process_error(str(exc), args)
+            if any(str(f) in text for f in inputs):  # named already (the control, say)
+                if text == str(exc):
+                    raise
+                raise ValueError(text) from exc
+            raise ValueError(f"{args.files[0]}: {text}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
     return _process_many(args, cfg)
@@ -783,7 +805,7 @@ def _process_many(args, cfg) -> int:
     for r in results:
         if "error" in r:
             failed += 1
-            print(f"{r['source']}: error: {r['error']}", file=sys.stderr)
+            print(f"{r['source']}: error: {_process_error(r['error'], args)}", file=sys.stderr)
         else:
             files = {}
             if "output" in r:  # as one file's run prints them
@@ -1044,8 +1066,8 @@ def _add_process(sub):
         type=float,
         nargs=4,
         metavar=("R0", "R1", "C0", "C1"),
-        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in pixels (mm with --mm) "
-        "(default: found automatically)",
+        help="inclusion rectangle: rows R0:R1, columns C0:C1, half-open, in whole pixels of the full frame "
+        "(with --mm: millimetres, any number, rounded to pixels) (default: found automatically)",
     )
     p.add_argument(
         "--background",
@@ -1060,7 +1082,11 @@ def _add_process(sub):
 
 def _add_process_options(p):
     """The process options beyond the science: ROI units, control, report, cross-check, Dask."""
-    p.add_argument("--mm", action="store_true", help="rectangles in mm from the frame's top-left corner, not pixels")
+    p.add_argument(
+        "--mm",
+        action="store_true",
+        help="rectangles in mm from the frame's top-left corner (any number, rounded to pixels), not whole pixels",
+    )
     p.add_argument("--control", type=Path, help="a control experiment (inclusion as soft as the background)")
     p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
     p.add_argument(

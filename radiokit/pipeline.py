@@ -59,6 +59,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -66,7 +67,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from radiokit._json import strict as strict_json
-from radiokit.checks import is_number
+from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.interrupts import STOP_SIGNALS, deferred
@@ -105,19 +106,39 @@ DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 
 def _ks(ks) -> tuple:
     """The enhancement factors as floats: one number is one k (``compression_contrast``'s ``k=1``
-    raised "'int' object is not iterable" here), and text is refused ("12" ran k = 1 and 2)."""
-    if isinstance(ks, (str, bytes)):
-        raise ValueError(f"ks={ks!r}: expected numbers, e.g. ks=(1, 2)")
-    if is_number(ks):
-        return (float(ks),)
-    return tuple(float(k) for k in ks)
+    raised "'int' object is not iterable" here), a 0-d array one number too ("iteration over a
+    0-d array"), and anything else that is no number refused, text included ("12" ran k = 1 and 2)."""
+    expected = "expected enhancement factors as numbers, e.g. ks=(1, 2) or ks=2"
+    one = scalar(ks)
+    if is_number(one):
+        return (float(one),)
+    if isinstance(ks, (str, bytes)) or not isinstance(ks, Iterable) or getattr(ks, "ndim", 1) == 0:
+        raise ValueError(f"ks={ks!r}: {expected}")
+    out = []
+    for k in ks:
+        if not is_number(scalar(k)):  # float("2") took text, float([1, 2]) raised a TypeError
+            raise ValueError(f"ks={ks!r}: {k!r} is not a number; {expected}")
+        out.append(float(scalar(k)))
+    return tuple(out)
+
+
+def _crop_mm(value) -> float | None:
+    """``crop_mm`` as a float (a 0-d array is its number), or None; a ValueError naming anything else
+    (text or a list reached numpy's ``isfinite`` and raised a TypeError, ``True`` ran as a 1 mm crop)."""
+    if value is None:
+        return None
+    crop = scalar(value)
+    if not (is_number(crop) and np.isfinite(crop) and crop > 0):
+        raise ValueError(f"crop_mm={value!r}: expected the crop's side in mm, a number > 0 (None: the whole frame)")
+    return float(crop)
 
 
 @dataclass
 class Config:
-    """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in pixels of
-    the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
-    (``"mm"``); ``None`` finds them automatically. ``domain``: the headline domain, ``"negative"``
+    """What :func:`process` does. ROIs are ``(row0, row1, col0, col1)`` half-open, in whole pixels
+    of the full frame (``roi_units="px"``) or millimetres from the frame's top-left corner
+    (``"mm"``: any number, rounded to pixels); ``None`` finds them automatically. Numbers may be
+    numpy's, a 0-d array included; text is refused, not parsed. ``domain``: the headline domain, ``"negative"``
     (the paper's ``-I/I0``, default) or ``"log"``; both are computed. ``ks``: the enhancement
     factors k, each in (0, 100] (one number, or several: ``(1, 2)``, the paper's)."""
 
@@ -146,6 +167,15 @@ class Config:
             )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
+        for name in ("use_truth_rois", "report", "progress", "regularisation_check"):
+            value = getattr(self, name)
+            if not isinstance(value, (bool, np.bool_)):  # "no" is truthy: report="no" wrote the report
+                raise ValueError(f"{name}={value!r}: expected True or False")
+            setattr(self, name, bool(value))
+        if self.control is not None:
+            if not isinstance(self.control, (str, os.PathLike)):  # refused only after the file's run
+                raise ValueError(f"control={self.control!r}: expected a control experiment file's path")
+            self.control = os.fspath(self.control)
         self.ks = _ks(self.ks)
         shown = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
         if not self.ks or not all(np.isfinite(self.ks)):
@@ -154,8 +184,13 @@ class Config:
             raise ValueError(f"ks={shown}: each enhancement factor once")
         if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
             raise ValueError(f"ks={shown}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
-        if self.crop_mm is not None and not (np.isfinite(self.crop_mm) and self.crop_mm > 0):
-            raise ValueError(f"crop_mm={self.crop_mm}: expected the crop's side in mm, > 0 (None: the whole frame)")
+        self.crop_mm = _crop_mm(self.crop_mm)
+        if not isinstance(self.register_options, Mapping):  # a str was read as option names, one per character
+            raise ValueError(
+                f"register_options={self.register_options!r}: expected a dict of option names and values, "
+                "e.g. {'preset': 'fast'}"
+            )
+        self.register_options = {name: scalar(v) for name, v in self.register_options.items()}
         _check_methods(self.method, self.cross_check, self.register_options)
         self._check_rectangles()
 
@@ -190,19 +225,23 @@ K_MAX = 100.0
 
 
 def _check_methods(method, cross_check, options) -> None:
-    """Refuse, before any work, an unknown method or cross-check and an option ``method`` does
-    not take (a B-spline ``preset`` given to a peer), as ``ValueError`` in one line: found only
-    at the first registration they cost the correction, and a peer's ``TypeError`` a traceback."""
-    from radiokit.register import METHODS, _check_option_names, _load_methods
+    """Refuse, before any work, an unknown method or cross-check, an option ``method`` does
+    not take (a B-spline ``preset`` given to a peer) and a B-spline option's value of the wrong
+    kind or range, as ``ValueError`` in one line: found only at the first registration they cost
+    the correction, and a peer's ``TypeError`` a traceback."""
+    from radiokit.register import BSPLINE_METHODS, METHODS, _check_option_names, _load_methods
+    from radiokit.register._bspline import check_option_values
 
     _load_methods()
     for what, name in (("method", method), ("cross_check", cross_check)):
-        if name is not None and name not in METHODS:
+        if name is not None and not (isinstance(name, str) and name in METHODS):  # a list: TypeError unhashable
             raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(METHODS))}")
     try:
         _check_option_names(method, options)
     except TypeError as exc:
         raise ValueError(str(exc)) from None
+    if method in BSPLINE_METHODS:
+        check_option_values(options)
 
 
 def _cross_check_options(cfg) -> dict:
@@ -277,14 +316,27 @@ class Result:
 
 
 def _roi_numbers(value, units, name) -> tuple[float, float, float, float]:
-    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it."""
+    """``Config``'s ``name`` ROI as four finite floats, or a ValueError naming it and what its
+    bounds are in ``units`` (pixels whole numbers, mm any number); a bound given as text or a bool
+    is refused (``float`` took ``"1"``, and ``True`` as row 1)."""
     what = f"{name} ROI {value!r}"
+    bounds = "four whole numbers of pixels" if units == "px" else "four numbers in mm"
+    expected = f"expected (row0, row1, col0, col1), {bounds}"
     try:
         if isinstance(value, dict):
             value = (value["row0"], value["row1"], value["col0"], value["col1"])
-        r0, r1, c0, c1 = (float(v) for v in value)
+        if isinstance(value, (str, bytes)):
+            raise TypeError
+        items = list(value)
     except (TypeError, ValueError, KeyError):
-        raise ValueError(f"{what}: expected (row0, row1, col0, col1), four numbers in {units}") from None
+        raise ValueError(f"{what}: {expected}") from None
+    if len(items) != 4:
+        raise ValueError(f"{what}: {expected}")
+    numbers = [scalar(v) for v in items]
+    for given, v in zip(items, numbers):
+        if not is_number(v):
+            raise ValueError(f"{what}: {given!r} is not a number; {expected}")
+    r0, r1, c0, c1 = (float(v) for v in numbers)
     if not np.all(np.isfinite([r0, r1, c0, c1])):
         raise ValueError(f"{what}: its bounds must be finite")
     return r0, r1, c0, c1
@@ -309,7 +361,7 @@ def _roi(value, units, pixel_size_mm, name):
         if part:
             raise ValueError(
                 f"{what}: pixel bounds are whole numbers, not {', '.join(part)}"
-                " (millimetres, rounded to pixels: --mm, or roi_units='mm')"
+                " (for millimetres, rounded to pixels: roi_units='mm')"
             )
     try:
         return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
@@ -641,7 +693,7 @@ def _overlap(a, b) -> bool:
     return a.row0 < b.row1 and b.row0 < a.row1 and a.col0 < b.col1 and b.col0 < a.col1
 
 
-def _background_beside(ref, inc, pixel_size_mm):
+def _background_beside(ref, inc, pixel_size_mm, named=None):
     """A background ROI of ``inc``'s shape beside the inclusion given as ``inc`` (where detection
     found none there, or none at all: it was placed beside the detected one, or the run stopped
     asking for the --inclusion it had been given). ``inc`` is taken as the automatic ROI would be,
@@ -656,16 +708,31 @@ def _background_beside(ref, inc, pixel_size_mm):
         return find_rois(ref, inclusion_mask=mask, pixel_size_mm=pixel_size_mm, background_size=size)[1]
     except ValueError:  # find_rois names its grown inclusion, which the user never gave
         raise ValueError(
-            f"inclusion ROI {inc} given alone: no background of its shape fits beside it inside the frame and "
+            f"{named or f'inclusion ROI {inc}'} given alone: no background of its shape fits beside it inside the frame and "
             "the body; give the background too (radiokit process --background R0 R1 C0 C1)"
         ) from None
 
 
-def _inside_frame(named_rois, shape) -> None:
-    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``."""
+def _given_roi(cfg, name, roi) -> str:
+    """``name``'s ROI as the user gave it to ``cfg`` (in mm: ``(mm)`` after it), else as ``roi``."""
+    given = getattr(cfg, name)
+    if given is None or isinstance(given, ROI):
+        return f"{name} ROI {roi}"
+    return f"{name} ROI {given!r}" + (" (mm)" if cfg.roi_units == "mm" else "")
+
+
+def _inside_frame(named_rois, shape, cfg=None, pixel_size_mm=None) -> None:
+    """A ValueError naming the first ROI (None: not given) that does not lie inside ``shape``; one
+    ``cfg`` gives is named as given, in mm with the frame's size in mm (it was named in pixels the
+    user never typed: ``ROI(row0=0, row1=10000, ...)`` for ``--mm --inclusion 0 500 0 5``)."""
     for name, roi in named_rois:
         if roi is not None and not (0 <= roi.row0 < roi.row1 <= shape[0] and 0 <= roi.col0 < roi.col1 <= shape[1]):
-            raise ValueError(f"{name} ROI {roi} lies outside the {shape} frame")
+            named = f"{name} ROI {roi}" if cfg is None else _given_roi(cfg, name, roi)
+            if named.endswith("(mm)"):
+                h, w = (n * pixel_size_mm for n in shape)
+                named += f" lies outside the {shape} frame, {h:g} x {w:g} mm at {pixel_size_mm:g} mm per pixel"
+                raise ValueError(named)
+            raise ValueError(f"{named} lies outside the {shape} frame")
 
 
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
@@ -679,7 +746,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     inc = _roi(cfg.inclusion, cfg.roi_units, steps.pixel_size_mm, "inclusion")
     bg = _roi(cfg.background, cfg.roi_units, steps.pixel_size_mm, "background")
     # the given ones first: an inclusion off the frame given alone was told that no background fits beside it
-    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
+    _inside_frame((("inclusion", inc), ("background", bg)), ref.shape, cfg, steps.pixel_size_mm)
     if inc is None or bg is None:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         try:
@@ -692,7 +759,7 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
             # the detected inclusion's background where the given rectangle is in that inclusion
             # and clear of it (a rectangle drawn around the inclusion held it: review)
             if not _within_inclusion(auto_inc, inc.center) or _overlap(auto_bg, inc):
-                auto_bg = _background_beside(ref, inc, steps.pixel_size_mm)
+                auto_bg = _background_beside(ref, inc, steps.pixel_size_mm, _given_roi(cfg, "inclusion", inc))
         inc = inc or auto_inc
         bg = bg or auto_bg
     _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)

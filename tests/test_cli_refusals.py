@@ -673,3 +673,41 @@ def test_process_names_radiokits_own_outputs_given_as_the_experiment(tmp_path):
         (tmp_path / "corr.h5", "a stack of frames"),
     ):
         one_line_error(run_cli("process", path, "-o", tmp_path / "again"), path.name, what, "not an experiment")
+
+
+@pytest.mark.parametrize(
+    "given, echo, words",
+    [
+        # a fractional pixel: the way to give millimetres is --mm, a command-line option (roi_units is Python's)
+        (["--inclusion", "10.5", "20", "10", "20"], "--inclusion 10.5 20 10 20: ", ["whole numbers", "--mm"]),
+        (["--inclusion", "20", "10", "10", "20"], "--inclusion 20 10 10 20 (px): ", ["empty"]),
+        (["--inclusion", "10", "20", "10", "20", "--background", "0.5", "5", "5", "9"], "--background 0.5 5 5 9: ", []),
+        (["--inclusion", "1", "2", "3", "4", "--background", "1", "2", "3", "4", "--mm"], "--background 1 2 3 4: ", []),
+        (["--inclusion", "1", "1.02", "3", "4", "--mm"], "--inclusion 1 1.02 3 4 (mm): ", ["empty"]),
+    ],
+)
+def test_process_echoes_a_refused_roi_as_typed_with_the_hint_for_its_units(given, echo, words, tmp_path):
+    """A refused --inclusion/--background was echoed as a Python list of floats
+    ("--inclusion [10.5, 20.0, 10.0, 20.0]") and its fractional pixel pointed to "roi_units='mm'",
+    which a command-line user cannot give; it is echoed as typed and points to --mm."""
+    exp = synthetic(tmp_path / "exp.h5")
+    line = one_line_error(run_cli("process", exp, "-o", tmp_path / "res", "-q", "--no-report", *given), echo, *words)
+    assert ".0, " not in line and "roi_units" not in line and "ROI(" not in line, line
+
+
+def test_an_roi_in_mm_outside_the_frame_is_named_in_mm_with_the_frames_size(tmp_path):
+    """`--mm --inclusion 0 500 0 5` was told "inclusion ROI ROI(row0=0, row1=10000, ...) lies outside
+    the (160, 160) frame": pixels the user never typed, and no word of the frame's size in mm."""
+    exp = synthetic(tmp_path / "exp.h5")
+    res = run_cli("process", exp, "-o", tmp_path / "res", "-q", "--no-report", "--mm", "--inclusion", 0, 500, 0, 5)
+    line = one_line_error(res, "--inclusion 0 500 0 5 (mm)", "outside the", "8 x 8 mm")
+    assert "ROI(" not in line, line
+
+
+def test_an_roi_given_alone_with_no_background_beside_it_is_named_as_typed(tmp_path):
+    """`--mm --inclusion 1 7 1 7` (most of the 8 x 8 mm frame: no room beside it) was told
+    "--inclusion ROI(row0=20, row1=140, ...) given alone": the pixel record, under the option's name."""
+    exp = synthetic(tmp_path / "exp.h5")
+    res = run_cli("process", exp, "-o", tmp_path / "res", "-q", "--no-report", "--mm", "--inclusion", 1, 7, 1, 7)
+    line = one_line_error(res, "--inclusion 1 7 1 7 (mm) given alone", "--background")
+    assert "ROI(" not in line, line

@@ -1702,12 +1702,12 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
 @pytest.mark.parametrize(
     "args, words",
     [
-        (["--inclusion", "nan", "1", "2", "3"], ("--inclusion [nan, 1.0, 2.0, 3.0]", "finite")),
+        (["--inclusion", "nan", "1", "2", "3"], ("--inclusion nan 1 2 3:", "finite")),
         (["--inclusion", "5", "1", "2", "3"], ("--inclusion", "empty")),
         (["--mm", "--inclusion", "5", "1", "2", "3"], ("--inclusion", "(mm)", "empty")),
         (["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"], ("--background", "zero")),
         # found by a new user: fractional pixels were rounded without a word (README: pixels, mm with --mm)
-        (["--inclusion", "1", "9.5", "1", "9"], ("--inclusion [1.0, 9.5, 1.0, 9.0]", "whole", "9.5", "--mm")),
+        (["--inclusion", "1", "9.5", "1", "9"], ("--inclusion 1 9.5 1 9:", "whole", "9.5", "--mm")),
         (["--background", "1.25", "9", "1", "9"], ("--background", "whole", "1.25")),
     ],
 )

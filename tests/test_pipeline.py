@@ -467,3 +467,98 @@ def test_config_takes_pixel_bounds_computed_in_floating_point():
     assert cfg.inclusion[0] != 30 and round(cfg.inclusion[0]) == 30
     with pytest.raises(ValueError, match=r"not 30\.5\b.*roi_units='mm'"):
         Config(inclusion=(30.5, 40, 30, 40))
+
+
+@pytest.mark.parametrize(
+    "given, expect",
+    [
+        (dict(ks=np.array(2.0)), dict(ks=(2.0,))),
+        (dict(ks=[np.array(1), 2]), dict(ks=(1.0, 2.0))),
+        (dict(ks=np.array([1.0, 2.0])), dict(ks=(1.0, 2.0))),
+        (dict(crop_mm=np.array(30.0)), dict(crop_mm=30.0)),
+        (dict(crop_mm=np.float32(20)), dict(crop_mm=20.0)),
+        (dict(inclusion=(np.array(30), 40, 30, 40)), dict(inclusion=(30, 40, 30, 40))),
+        (dict(register_options={"spacing": np.array(16)}), dict(register_options={"spacing": 16})),
+    ],
+)
+def test_config_takes_a_0d_numeric_array_as_the_number_it_holds(given, expect):
+    """A 0-d array (``np.array(2.0)``, what ``a.mean()`` of an array expression or ``np.asarray(x)`` gives)
+    is a number: ``Config(ks=np.array(2.0))`` raised "TypeError: iteration over a 0-d array", and
+    ``crop_mm=np.array(30.0)`` was stored as the array."""
+    from radiokit.pipeline import Config
+
+    cfg = Config(**given)
+    for name, value in expect.items():
+        got = getattr(cfg, name)
+        assert got == value and type(got) is type(value), (name, got)
+        if name == "crop_mm":
+            assert type(got) is float
+
+
+@pytest.mark.parametrize(
+    "given, words",
+    [
+        (dict(ks="2"), ["ks='2'", "numbers"]),
+        (dict(ks=None), ["ks=None", "numbers"]),
+        (dict(ks=True), ["ks=True", "numbers"]),
+        (dict(ks=1 + 2j), ["ks=(1+2j)", "numbers"]),
+        (dict(ks=[1, "2"]), ["ks=[1, '2']", "'2'", "numbers"]),
+        (dict(ks=[[1, 2]]), ["ks=[[1, 2]]", "numbers"]),
+        (dict(ks=np.array([[1.0, 2.0]])), ["ks=", "numbers"]),
+        (dict(crop_mm="30"), ["crop_mm='30'", "mm"]),
+        (dict(crop_mm=[30]), ["crop_mm=[30]", "mm"]),
+        (dict(crop_mm=True), ["crop_mm=True", "mm"]),
+        (dict(crop_mm=np.array([30.0])), ["crop_mm=array([30.])", "mm"]),
+        (dict(crop_mm=1 + 0j), ["crop_mm=(1+0j)", "mm"]),
+        (dict(inclusion=("1", 2, 3, 4)), ["inclusion ROI ('1', 2, 3, 4)", "'1'"]),
+        (dict(inclusion=(True, 2, 3, 4)), ["inclusion ROI (True, 2, 3, 4)", "True"]),
+        (dict(background=(1, 2, 3, "4"), roi_units="mm"), ["background ROI (1, 2, 3, '4')", "mm"]),
+        (dict(register_options="fast"), ["register_options='fast'", "dict"]),
+        (dict(register_options={"spacing": "8"}), ["spacing='8'", "number"]),
+        (dict(register_options={"spacing": np.nan}), ["spacing=nan", "finite"]),
+        (dict(register_options={"iterations": "10"}), ["iterations='10'", "count"]),
+        (dict(register_options={"joint": "yes"}), ["joint='yes'", "True or False"]),
+        (dict(register_options={"preset": 3}), ["preset 3", "expected one of"]),
+        (dict(register_options={"preset": ["fast"]}), ["preset ['fast']", "auto-fast"]),
+        (dict(method="ncc", register_options={"alpha": [1]}), ["alpha=[1]", "number"]),
+        (dict(method=["rc"]), ["method=['rc']", "unknown registration method"]),
+        (dict(cross_check=["ncc"]), ["cross_check=['ncc']", "unknown registration method"]),
+    ],
+)
+def test_config_refuses_a_value_of_the_wrong_kind_in_one_line_naming_the_field(given, words):
+    """Text, None, a bool, a complex number or a list where a number is expected, for every numeric
+    field (ks, crop_mm, the ROIs' bounds, the B-spline register_options): one ValueError naming the
+    field, the value and what is expected, at Config (a TypeError traceback from numpy, or a
+    registration option found wrong only after the whole correction)."""
+    from radiokit.pipeline import Config
+
+    with pytest.raises(ValueError) as info:
+        Config(**given)
+    text = str(info.value)
+    assert "\n" not in text
+    for word in words:
+        assert word in text, (word, text)
+
+
+@pytest.mark.parametrize(
+    "given, words",
+    [
+        (dict(report="no"), ["report='no'", "True or False"]),
+        (dict(progress=None), ["progress=None", "True or False"]),
+        (dict(use_truth_rois="yes"), ["use_truth_rois='yes'", "True or False"]),
+        (dict(regularisation_check=1), ["regularisation_check=1", "True or False"]),
+        (dict(control=3), ["control=3", "experiment file"]),
+    ],
+)
+def test_config_refuses_a_flag_that_is_no_bool_and_a_control_that_is_no_path(given, words):
+    """``report="no"`` is truthy: the report was written, as ``use_truth_rois="no"`` used the truth;
+    a control of 3 failed only after the whole file's run."""
+    from pathlib import Path
+
+    from radiokit.pipeline import Config
+
+    with pytest.raises(ValueError) as info:
+        Config(**given)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+    assert Config(report=np.bool_(False), control=Path("c.h5")).report is False

@@ -173,10 +173,11 @@ def test_the_pipeline_runs_auto_and_records_what_it_returned(tmp_path):
 @pytest.mark.parametrize(
     "inclusion, units, words",
     [
-        ((1, 2, 3), "px", "four numbers"),  # was "not enough values to unpack"
-        (5, "px", "four numbers"),  # was "'int' object is not iterable"
-        (("a", 35, 30, 40), "px", "four numbers"),  # was "could not convert string to float"
-        ({"row0": 1}, "px", "four numbers"),  # was KeyError 'row1'
+        ((1, 2, 3), "px", "four whole numbers of pixels"),  # was "not enough values to unpack"
+        (5, "px", "four whole numbers of pixels"),  # was "'int' object is not iterable"
+        (("a", 35, 30, 40), "px", "four whole numbers of pixels"),  # was "could not convert string to float"
+        ({"row0": 1}, "px", "four whole numbers of pixels"),  # was KeyError 'row1'
+        (("a", 35, 30, 40), "mm", "four numbers in mm"),  # mm take any number, pixels whole ones
         ((25, 35, 30, float("nan")), "px", "finite"),  # was "cannot convert float NaN to integer"
         ((35, 25, 30, 40), "px", "empty"),
         ((2.5, 2.52, 3.0, 4.0), "mm", "empty"),  # 0.2 px rounds to nothing

@@ -128,7 +128,7 @@ import scipy.sparse as sp
 from scipy import fft as sfft
 from scipy.optimize import minimize
 
-from radiokit.checks import is_integer, is_number
+from radiokit.checks import is_integer, is_number, scalar
 from radiokit.register import _method
 from radiokit.register._common import _field, _warp_rows, binned_mask
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
@@ -851,18 +851,14 @@ def _options(preset, overrides) -> dict:
         raise ValueError(
             f"preset {preset!r}: expected one of {', '.join(PRESETS)} (or, through register(), auto, auto-fast)"
         )
+    overrides = {k: scalar(v) for k, v in overrides.items()}  # np.array(16) is the number 16
     o = dict(PRESETS[preset])
     if overrides.get("alpha") is not None and overrides.get("noise_alpha") is None:
         o["noise_alpha"] = 0.0  # an alpha asked for is used as it is
     o.update({k: v for k, v in overrides.items() if v is not None})
     if "highpass" in overrides and overrides["highpass"] is None:  # documented: "0 or None: off"
         o["highpass"] = 0.0
-    if o["balance"] not in ("lattice", "frame"):
-        raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
-    if o["init"] not in ("none", "silhouette"):
-        raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
-    if o["highpass_on"] not in ("images", "residual"):
-        raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
+    _check_choices(o)
     _check_values(o)
     if overrides.get("refit_again") and not o["refit_thinning"]:  # asked for, it would do nothing
         raise ValueError(f"refit_again={o['refit_again']!r}: needs refit_thinning=True (it repeats that refit)")
@@ -871,6 +867,35 @@ def _options(preset, overrides) -> dict:
     if not o["rim"] < 0.5:  # no pixel lies half the smaller side from every edge: no data left
         raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
     return o
+
+
+def _check_choices(o):
+    """ValueError naming the first of ``o``'s text options that is none of its choices."""
+    if o["balance"] not in ("lattice", "frame"):
+        raise ValueError(f"balance={o['balance']!r}: expected 'lattice' or 'frame'")
+    if o["init"] not in ("none", "silhouette"):
+        raise ValueError(f"init={o['init']!r}: expected 'none' or 'silhouette'")
+    if o["highpass_on"] not in ("images", "residual"):
+        raise ValueError(f"highpass_on={o['highpass_on']!r}: expected 'images' or 'residual'")
+
+
+def check_option_values(options) -> None:
+    """ValueError naming the first of ``options`` (register's, a preset's name among them) whose value
+    is of the wrong kind or out of its range, each checked alone: for a caller to refuse it before
+    any work (``radiokit.pipeline.Config``: ``spacing="8"`` was found at the first registration,
+    after the whole correction). Whether an option goes with the preset (``rim`` needs
+    ``refit_thinning``) waits for the preset ``auto`` picks."""
+    from radiokit.register._auto import AUTO_PRESETS
+
+    preset = options.get("preset")
+    if preset is not None and not (isinstance(preset, str) and (preset in PRESETS or preset in AUTO_PRESETS)):
+        raise ValueError(f"preset {preset!r}: expected one of {', '.join([*PRESETS, *AUTO_PRESETS])}")
+    given = {k: scalar(v) for k, v in options.items() if k in PRESETS["default"] and v is not None}
+    o = dict(PRESETS["default"], **given)  # the defaults pass: what fails is an option given
+    _check_choices(o)
+    _check_values(o)
+    if not o["rim"] < 0.5:
+        raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
 
 
 # each numeric option's least value and whether it may equal it; every one must be a finite real
