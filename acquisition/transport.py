@@ -138,7 +138,10 @@ class _Lock:
 
 
 _LOCKS: dict[str, _Lock] = {}
-_LOCKS_GUARD = threading.Lock()
+# re-entrant: a share dropped unreferenced is released by its __del__, which the garbage collector
+# may run inside a section that holds the guard (a plain Lock deadlocked there, in the thread
+# taking the lock again after its guardian's death)
+_LOCKS_GUARD = threading.RLock()
 
 
 def _lock_key(url: str) -> str | None:
@@ -305,7 +308,8 @@ class PortHold:
 
     def __del__(self):
         try:
-            self.release()
+            if self._lock is not None:
+                self.release()
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 

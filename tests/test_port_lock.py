@@ -415,3 +415,27 @@ def test_after_its_guardians_death_the_command_takes_the_lock_again_or_is_refuse
                         holder.wait(timeout=10)
             finally:
                 link.close()
+
+
+def test_a_share_collected_while_the_lock_table_is_busy_does_not_deadlock():
+    """The garbage collector may run a dropped share's __del__ inside a section holding the lock
+    table's guard (it did, in _lock_device, while a command took its lock again after its
+    guardian's death: the process hung). A daemon thread: a regression fails, never hangs."""
+    import threading
+
+    from acquisition import transport
+
+    with PtyServer(L8121Model(dialect="A", warmed_up=True)) as server:
+        hold = transport.hold_port(server.url)
+        done = []
+
+        def collect():
+            with transport._LOCKS_GUARD:
+                hold.__del__()
+            done.append(True)
+
+        worker = threading.Thread(target=collect, daemon=True)
+        worker.start()
+        worker.join(10)
+        assert done
+        assert transport._lock_key(server.url) not in transport._LOCKS
