@@ -328,8 +328,9 @@ def start_guardian(
     # sent), its descriptor inherited: one lock from this process's probe to the guardian's end
     hold = hold_port(str(url))
     cmd = [sys.executable, "-m", "acquisition.guardian", str(url), "--config", json.dumps(config.to_dict())]
-    if hold is not None:
-        cmd += ["--lock-fd", str(hold.fd)]
+    lock_fd = None if hold is None else hold.fd  # None: the node is gone (the guardian's open says so)
+    if lock_fd is not None:
+        cmd += ["--lock-fd", str(lock_fd)]
     if notebook is not None:
         cmd += ["--notebook", str(notebook)]
     if watchdog_s is not None:
@@ -353,7 +354,7 @@ def start_guardian(
             env=env,
             start_new_session=True,
             close_fds=True,
-            pass_fds=() if hold is None else (hold.fd,),
+            pass_fds=() if lock_fd is None else (lock_fd,),
         )
     except OSError as exc:
         held.release()

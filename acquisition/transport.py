@@ -129,17 +129,25 @@ class _Rfc2217(serial.rfc2217.Serial):
 
 
 class _Lock:
-    def __init__(self, fd: int):
-        self.fd, self.count = fd, 0
+    """This process's lock on one device: ``fd`` the descriptor holding it, or None while this
+    process keeps none (its node gone with a lost link, or the lock handed to the guardian);
+    ``key`` the node it was taken on; ``count`` the shares (:class:`PortHold`) using it."""
+
+    def __init__(self, fd: int | None, key: str):
+        self.fd, self.key, self.count = fd, key, 0
 
 
 _LOCKS: dict[str, _Lock] = {}
-_LOCKS_GUARD = threading.Lock()
+# re-entrant: a share dropped unreferenced is released by its __del__, which the garbage collector
+# may run inside a section that holds the guard (a plain Lock deadlocked there, in the thread
+# taking the lock again after its guardian's death)
+_LOCKS_GUARD = threading.RLock()
 
 
 def _lock_key(url: str) -> str | None:
     """The device a local port names (symlinks resolved: /dev/serial/by-id/... and /dev/ttyUSB0
-    are one lock), or None for a URL or where flock does not exist."""
+    are one lock), or None for a URL or where flock does not exist. Resolved again at every
+    (re)open: a re-plugged adapter's by-id link names its new node."""
     if os.name != "posix" or "://" in url:
         return None
     return os.path.realpath(url)
@@ -160,9 +168,10 @@ def _holder_pid(fd: int) -> int | None:
     return None
 
 
-def _lock_device(url: str, key: str) -> int | None:
+def _lock_device(url: str, key: str, *, again: bool = False) -> int | None:
     """A new descriptor of ``key`` holding its exclusive lock; None where there is nothing to lock
     (the port's own open then says why: missing, permission) or flock is not supported.
+    ``again``: this process held the port before (a link lost, or its guardian's), said so.
 
     Raises
     ------
@@ -184,6 +193,11 @@ def _lock_device(url: str, key: str) -> int | None:
         if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
             return None
         who = f" (pid {pid})" if pid is not None else ""
+        if again:  # mid-session: this process did send through it, before the link was lost
+            raise PortBusy(
+                f"{url}: another program{who} took this port while this radiokit process was not "
+                "holding it (its link lost, or its X-ray guardian ending); nothing more was sent through it"
+            ) from None
         raise PortBusy(
             f"{url}: another program{who} holds this port (a radiokit series or source command in "
             "another terminal, or its X-ray guardian); radiokit sent nothing through it"
@@ -191,50 +205,100 @@ def _lock_device(url: str, key: str) -> int | None:
     return fd
 
 
-def _stale(lock: _Lock, key: str) -> bool:
-    """Whether ``lock`` is on a file that is no longer the device ``key`` names (an adapter
-    unplugged and plugged again: a new device node, unlocked)."""
+def _moved(fd: int, key: str) -> bool:
+    """Whether the lock on ``fd`` is no longer on the device ``key`` names: the node is gone (an
+    adapter unplugged) or is another device (plugged again)."""
     try:
-        held, now = os.fstat(lock.fd), os.stat(key)
-    except OSError:  # gone: the port's open says so
-        return False
-    return (held.st_dev, held.st_ino) != (now.st_dev, now.st_ino)
+        held, now = os.fstat(fd), os.stat(key)
+    except OSError:
+        return True
+    return (held.st_dev, held.st_ino, held.st_rdev) != (now.st_dev, now.st_ino, now.st_rdev)
+
+
+def _let_go(lock: _Lock) -> None:
+    """Close this process's descriptor of ``lock`` (the shares stay counted; :meth:`PortHold.renew`
+    takes it again)."""
+    fd, lock.fd = lock.fd, None
+    if fd is not None:
+        os.close(fd)
 
 
 class PortHold:
     """This process's share of the exclusive lock on a local port (:func:`hold_port`): the lock
-    is let go when the last share is released (or at the process's end). A context manager."""
+    is let go when the last share is released (or at the process's end). A context manager.
 
-    def __init__(self, url: str, key: str, lock: _Lock):
-        self.url, self._key, self._lock = url, key, lock
+    Why the lock's descriptor is closed when the link is lost with its node gone
+    (:meth:`let_go_if_gone`): on Linux a USB serial adapter keeps its device minor until the last
+    descriptor of its node closes, so an open lock made the re-plugged adapter come back under a
+    new name (ttyUSB1), and the reconnect, and the operator's switch-off on the old name, failed."""
+
+    def __init__(self, url: str, lock: _Lock):
+        self.url, self._lock = url, lock
         lock.count += 1
 
     @property
-    def fd(self) -> int:
-        """The descriptor holding the lock (for a child to inherit: :func:`adopt_hold`)."""
-        return self._lock.fd
+    def fd(self) -> int | None:
+        """The descriptor holding the lock (for a child to inherit: :func:`adopt_hold`); None
+        while this process keeps none."""
+        return None if self._lock is None else self._lock.fd
 
-    def renew(self) -> None:
-        """Before the port is opened again: if the path now names another device node (re-plugged),
-        the lock moves to it -- refused (:class:`PortBusy`) when another program took that one."""
+    def let_go_if_gone(self) -> None:
+        """The link was lost: if the node the lock is on is gone, or the path names another device,
+        close the lock's descriptor (every share's: one per process), so that the node is not
+        pinned; :meth:`renew` takes the lock again before the port is reopened."""
         with _LOCKS_GUARD:
             lock = self._lock
-            if lock is None or not _stale(lock, self._key):
+            if lock is not None and lock.fd is not None and _moved(lock.fd, _lock_key(self.url)):
+                _let_go(lock)
+
+    def hand_over(self) -> None:
+        """The guardian, which inherited the descriptor, holds the lock now: this process closes
+        its copy (every share's), so that it does not pin the node should the adapter be
+        unplugged; :meth:`renew` takes the lock again if this process opens the port itself."""
+        with _LOCKS_GUARD:
+            if self._lock is not None:
+                _let_go(self._lock)
+
+    def renew(self) -> None:
+        """Before the port is opened again: the lock on the node the path names now (a by-id link
+        resolved again), taken anew if this process keeps none or it is on another node --
+        refused (:class:`PortBusy`) when another program took that one meanwhile."""
+        with _LOCKS_GUARD:
+            lock = self._lock
+            if lock is None:
                 return
-            fd = _lock_device(self.url, self._key)
-            if fd is not None:
-                os.close(lock.fd)
-                lock.fd = fd
+            key = _lock_key(self.url)
+            if lock.fd is not None and not _moved(lock.fd, key):
+                return
+            _let_go(lock)
+            other = _LOCKS.get(key)
+            if other is not None and other is not lock and other.fd is not None and not _moved(other.fd, key):
+                # another link of this process (another spelling of the path) holds that node
+                self._leave()
+                self._lock = other
+                other.count += 1
+                return
+            fd = _lock_device(self.url, key, again=True)
+            if fd is None:
+                return  # nothing to lock now: the port's own open says why
+            if _LOCKS.get(lock.key) is lock:
+                del _LOCKS[lock.key]
+            lock.fd, lock.key = fd, key
+            _LOCKS[key] = lock
+
+    def _leave(self) -> None:
+        """This share's end (:data:`_LOCKS_GUARD` held): the last one lets the lock go."""
+        lock, self._lock = self._lock, None
+        lock.count -= 1
+        if lock.count <= 0:
+            if _LOCKS.get(lock.key) is lock:
+                del _LOCKS[lock.key]
+            _let_go(lock)
 
     def release(self) -> None:
         with _LOCKS_GUARD:
-            lock, self._lock = self._lock, None
-            if lock is None:
-                return
-            lock.count -= 1
-            if lock.count <= 0 and _LOCKS.get(self._key) is lock:
-                del _LOCKS[self._key]
-                os.close(lock.fd)
+            if self._lock is not None:
+                self._leave()
 
     def __enter__(self) -> PortHold:
         return self
@@ -244,7 +308,8 @@ class PortHold:
 
     def __del__(self):
         try:
-            self.release()
+            if self._lock is not None:
+                self.release()
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
@@ -266,22 +331,27 @@ def hold_port(url: str) -> PortHold | None:
             fd = _lock_device(str(url), key)
             if fd is None:
                 return None
-            lock = _LOCKS[key] = _Lock(fd)
-        hold = PortHold(str(url), key, lock)
-    hold.renew()
+            lock = _LOCKS[key] = _Lock(fd, key)
+        hold = PortHold(str(url), lock)
+    try:
+        hold.renew()
+    except BaseException:
+        hold.release()
+        raise
     return hold
 
 
 def adopt_hold(url: str, fd: int) -> PortHold | None:
     """The lock on ``url`` inherited from the process that took it (the guardian's: the command
-    passes its descriptor), as this process's own; kept for the process's life."""
+    passes its descriptor), as this process's own; kept for the process's life (but closed as
+    any lock is when the link is lost with its node gone: :meth:`PortHold.let_go_if_gone`)."""
     key = _lock_key(str(url))
     if key is None:
         return None
     with _LOCKS_GUARD:
         os.set_inheritable(fd, False)
-        lock = _LOCKS.setdefault(key, _Lock(fd))
-        hold = PortHold(str(url), key, lock)
+        lock = _LOCKS.setdefault(key, _Lock(fd, key))
+        hold = PortHold(str(url), lock)
     _ADOPTED.append(hold)  # never released: a link's close must not let it go
     return hold
 
@@ -529,7 +599,9 @@ class SerialTransport:
             hold.release()
 
     def _close_port(self) -> None:
-        """Close the port, its lock kept (a reconnect reopens it)."""
+        """Close the port, its lock kept (a reconnect reopens it) -- unless its node is gone (an
+        adapter unplugged): then its descriptor is closed too, or the re-plugged adapter would
+        come back under another name (:meth:`PortHold.let_go_if_gone`)."""
         ser, self._serial = self._serial, None
         if ser is not None:
             try:
@@ -537,6 +609,8 @@ class SerialTransport:
             except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
                 pass
             self.log.info("%s closed", self.url)
+        if self._hold is not None:
+            self._hold.let_go_if_gone()
 
     def __enter__(self) -> SerialTransport:
         return self
@@ -953,8 +1027,9 @@ class PipeTransport:
         self.timeout_s = float(timeout_s)
         self.min_interval_s = float(min_interval_s)
         self.log = log
-        # the port's lock, shared with the guardian (it inherited the descriptor): kept until
-        # close(), so that the port this process opens if the guardian dies is still its own
+        # the port's lock, shared with the guardian (it inherited the descriptor): this process's
+        # descriptor closed once the guardian is READY (hand_over), the share kept until close():
+        # the port this process opens if the guardian dies takes it again, or is refused
         self._hold = hold
         self._lost = False  # the guardian died (not released): the port is free for this process
         self._direct: SerialTransport | None = None
@@ -1005,6 +1080,11 @@ class PipeTransport:
             error = DeviceError if opened else PortUnavailable
             raise error(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
         self._open = True
+        if self._hold is not None:
+            # the guardian's inherited copy holds the lock: this process's would pin the node of an
+            # adapter unplugged, which then came back under another name. The share stays: a
+            # port this process opens after the guardian's death takes the lock again (renew)
+            self._hold.hand_over()
         self.log.info("%s opened through the X-ray guardian (pid %d)", self.url, self._process.pid)
 
     def end_start(self, timeout_s: float) -> str | None:

@@ -220,3 +220,222 @@ def test_a_resume_on_a_held_port_leaves_the_series_untouched(tmp_path):
     assert len(_refusal(res.stderr, server.url)) == 1, res.stderr
     assert sent == [], sent
     assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()} == before
+
+
+# -- a link lost with its device node gone: the lock must not pin the node ------------------------
+#
+# On Linux a USB serial adapter (usb-serial, cdc-acm) keeps its device minor until the last
+# descriptor of its node closes: a lock descriptor kept open after the adapter was unplugged made
+# the re-plugged adapter come back under a new name (ttyUSB1), and the recovery on the old name
+# (`radiokit acquire source off --port /dev/ttyUSB0`) failed while the tube might be on (review
+# s35r2). A pseudo-terminal behaves alike: its index is reused only once no descriptor pins it.
+# The observable here is the descriptor table (a held node reads "/dev/pts/N (deleted)"): the
+# pty index itself may be taken by another test's pty meanwhile.
+
+_TRY = """
+import sys
+from acquisition.errors import PortBusy
+from acquisition.transport import SerialTransport
+try:
+    SerialTransport(sys.argv[1], timeout_s=0.5).close()
+    print("opened")
+except PortBusy as exc:
+    print("refused:", exc)
+"""
+
+
+def _fds_on(pid, node, but=()):
+    """The descriptors of process ``pid`` open on the device node ``node``, gone or not, but
+    ``but`` (the emulator's own end, in this process)."""
+    found = []
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        if fd.name in {str(b) for b in but}:
+            continue
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target in (node, f"{node} (deleted)"):
+            found.append(fd.name)
+    return found
+
+
+def _other_process(url):
+    """What another process gets on ``url``: "opened" or "refused: MESSAGE"."""
+    res = subprocess.run([sys.executable, "-c", _TRY, url], capture_output=True, text=True, env=ENV, timeout=60)
+    assert res.returncode == 0, res.stderr
+    return res.stdout.strip()
+
+
+def _replug(byid, server):
+    """The adapter plugged in again: udev points the by-id link at its (new) node."""
+    os.unlink(byid)
+    os.symlink(server.url, byid)
+
+
+def test_a_lost_link_whose_node_vanished_keeps_no_descriptor_on_it():
+    from acquisition.errors import DeviceError
+    from acquisition.transport import SerialTransport
+
+    a = PtyServer(L8121Model(dialect="A", warmed_up=True)).__enter__()
+    node = a.url
+    link = SerialTransport(node, timeout_s=0.5, retries=1)
+    try:
+        assert link.query("STS") == "STS 2"
+        a.__exit__(None, None, None)  # unplugged
+        with pytest.raises(DeviceError):
+            link.query("STS")
+        assert _fds_on(os.getpid(), node) == []
+    finally:
+        link.close()
+
+
+def test_a_replugged_adapter_behind_a_by_id_link_is_locked_again_on_its_new_node(tmp_path):
+    """The link reopens the node the by-id link now names, and holds its lock there: another
+    process is refused (the lock once stayed on the vanished node, and one got in)."""
+    from acquisition.errors import DeviceError
+    from acquisition.transport import SerialTransport
+
+    byid = str(tmp_path / "usb-ctl-if00-port0")
+    a = PtyServer(L8121Model(dialect="A", warmed_up=True)).__enter__()
+    os.symlink(a.url, byid)
+    link = SerialTransport(byid, timeout_s=0.5, retries=1)
+    try:
+        assert link.query("STS") == "STS 2"
+        a.__exit__(None, None, None)
+        with pytest.raises(DeviceError):
+            link.query("STS")
+        model = L8121Model(dialect="A", warmed_up=True)
+        with PtyServer(model) as b:
+            _replug(byid, b)
+            assert link.query("XOF") == "XOF"
+            assert _other_process(byid).startswith("refused:")
+            assert _other_process(b.url).startswith("refused:")
+            assert model.commands == ["XOF"], model.commands  # the others were refused before sending
+    finally:
+        link.close()
+
+
+def test_a_port_taken_while_the_link_was_lost_is_refused_in_words_true_mid_session(tmp_path):
+    from acquisition.errors import DeviceError, PortBusy
+    from acquisition.transport import SerialTransport
+
+    byid = str(tmp_path / "usb-ctl-if00-port0")
+    a = PtyServer(L8121Model(dialect="A", warmed_up=True)).__enter__()
+    os.symlink(a.url, byid)
+    link = SerialTransport(byid, timeout_s=0.5, retries=1)
+    try:
+        assert link.query("STS") == "STS 2"
+        a.__exit__(None, None, None)
+        with pytest.raises(DeviceError):
+            link.query("STS")
+        model = L8121Model(dialect="A", warmed_up=True)
+        with PtyServer(model) as b:
+            _replug(byid, b)
+            holder = _holder(byid)
+            try:
+                with pytest.raises(PortBusy) as refused:
+                    link.query("XOF")
+                sent = list(model.commands)
+            finally:
+                holder.stdin.close()
+                holder.wait(timeout=10)
+        message = str(refused.value)
+        assert byid in message and "took this port while" in message, message
+        assert "sent nothing" not in message, message
+        assert sent == [], sent
+    finally:
+        link.close()
+
+
+def test_neither_the_command_nor_its_guardian_pins_a_vanished_node_and_the_guardian_relocks(tmp_path):
+    """After READY the command's copy of the lock is closed (its guardian's holds); the guardian,
+    its link lost with the node gone, closes the inherited descriptor before it reconnects, and
+    reopens the port the by-id link names once it is back, its lock taken again there."""
+    from acquisition.errors import DeviceError
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+
+    byid = str(tmp_path / "usb-ctl-if00-port0")
+    a = PtyServer(L8121Model(dialect="A", warmed_up=True)).__enter__()
+    node = a.url
+    os.symlink(node, byid)
+    resolved = L8121(byid, dialect="A", connect=False, poll_s=0.05, min_interval_s=0.02).resolved_config()
+    link = start_guardian(byid, resolved)
+    try:
+        assert link.query("STS") == "STS 2"
+        assert _fds_on(os.getpid(), node, but=[a._slave]) == []
+        a.__exit__(None, None, None)
+        with pytest.raises(DeviceError):
+            link.query("STS")
+        assert _fds_on(link.pid, node) == []
+        model = L8121Model(dialect="A", warmed_up=True)
+        with PtyServer(model) as b:
+            _replug(byid, b)
+            assert link.query("STS") == "STS 2"
+            assert _other_process(byid).startswith("refused:")
+            assert _fds_on(os.getpid(), b.url, but=[b._slave]) == []
+            link.close()
+            assert _other_process(byid) == "opened"
+    finally:
+        link.close()
+
+
+def test_after_its_guardians_death_the_command_takes_the_lock_again_or_is_refused_in_one_line():
+    """The command closed its copy of the lock at READY: once its guardian is dead it takes the
+    lock again before its own exchanges -- refused, sending nothing, if another program took the
+    port in between (the caller's switch-off then ends on the tube warning)."""
+    from acquisition.errors import DeviceError, PortBusy
+    from acquisition.guardian import start_guardian
+    from acquisition.l8121 import L8121
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect="A", connect=False, poll_s=0.05, min_interval_s=0.02).resolved_config()
+        for taken in (False, True):
+            link = start_guardian(server.url, resolved)
+            try:
+                assert link.query("STS") == "STS 2"
+                os.kill(link.pid, signal.SIGKILL)
+                with pytest.raises(DeviceError):
+                    link.query("STS")
+                holder = _holder(server.url) if taken else None
+                try:
+                    before = len(model.commands)
+                    if taken:
+                        with pytest.raises(PortBusy, match="took this port while"):
+                            link.query("XOF")
+                        assert model.commands[before:] == []
+                    else:
+                        assert link.query("XOF") == "XOF"
+                        assert _other_process(server.url).startswith("refused:")
+                finally:
+                    if holder is not None:
+                        holder.stdin.close()
+                        holder.wait(timeout=10)
+            finally:
+                link.close()
+
+
+def test_a_share_collected_while_the_lock_table_is_busy_does_not_deadlock():
+    """The garbage collector may run a dropped share's __del__ inside a section holding the lock
+    table's guard (it did, in _lock_device, while a command took its lock again after its
+    guardian's death: the process hung). A daemon thread: a regression fails, never hangs."""
+    import threading
+
+    from acquisition import transport
+
+    with PtyServer(L8121Model(dialect="A", warmed_up=True)) as server:
+        hold = transport.hold_port(server.url)
+        done = []
+
+        def collect():
+            with transport._LOCKS_GUARD:
+                hold.__del__()
+            done.append(True)
+
+        worker = threading.Thread(target=collect, daemon=True)
+        worker.start()
+        worker.join(10)
+        assert done
+        assert transport._lock_key(server.url) not in transport._LOCKS
