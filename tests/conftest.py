@@ -253,3 +253,13 @@ def guardian_held_at_start(proc, acted, timeout_s=60.0):
             time.sleep(0.01)
     finally:
         os.kill(guardian, signal.SIGCONT)
+
+
+@pytest.fixture
+def sigint_default():
+    """Python's own Ctrl-C handler while the test sends SIGINT to this process: under ``make test &``
+    the process inherits SIGINT ignored, and the signal would otherwise go nowhere before the run
+    installs its guard. Restored afterwards."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)

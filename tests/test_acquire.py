@@ -63,16 +63,6 @@ def bench(scene_toml):
     return b
 
 
-@pytest.fixture
-def sigint_default():
-    """Python's own Ctrl-C handler while the test sends SIGINT to this process: under ``make test &``
-    the process inherits SIGINT ignored, and the signal would otherwise go nowhere before the run
-    installs its guard. Restored afterwards."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)
-
-
 def protocol(tmp_path, scene_toml, dialect="A", link_s=None, timeout_s=TIMEOUT_S, **series):
     """The module's series; ``link_s``: the command spacing, when not the dialect's (50 ms in both)."""
     link = {} if link_s is None else {"min_interval_s": link_s}

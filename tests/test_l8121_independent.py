@@ -358,7 +358,7 @@ def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
     assert last.startswith("stopped by SIGQUIT; tube off (confirmed by STS") and "Traceback" not in out, out
 
 
-def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof(dialect):
+def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof(dialect, sigint_default):
     """The poll's reply comes 0.2 s after its time-out; a Ctrl-C lands in the wait for that late
     reply (a real SIGINT, sent by this process from the wait's first read of the port: the one way
     to hit that instant), and the caller then switches off, as the command line does. Found: the
@@ -400,7 +400,7 @@ def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof
             src.detach()
 
 
-def test_a_ctrl_c_while_a_poll_waits_for_a_reply_that_comes_late_does_not_lose_the_xof(dialect):
+def test_a_ctrl_c_while_a_poll_waits_for_a_reply_that_comes_late_does_not_lose_the_xof(dialect, sigint_default):
     """The poll's reply comes 0.1 s after its time-out; a Ctrl-C lands while the poll still waits
     for it (half its time-out after the send: a real SIGINT, sent by this process from a read of
     the port then), and the caller switches off, as the command line does. Found (review s35r1):
