@@ -6,6 +6,7 @@ X-rays on, B's ``XON`` not refused for an open interlock). See that module's doc
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -358,6 +359,29 @@ def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
     assert last.startswith("stopped by SIGQUIT; tube off (confirmed by STS") and "Traceback" not in out, out
 
 
+@contextlib.contextmanager
+def _on_and_polling(dialect):
+    """A unit ready and warmed up, switched on by the driver (poll every 50 ms, replies within
+    1 s): yields (unit, driver, the poll's command, the driver's link); detached at the end."""
+    with Controller(dialect, ramp_s=0.1) as unit:
+        unit.ready(warmed=True)
+        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
+        try:
+            src.on(60, 250)
+            yield unit, src, src.dialect.readings[src.dialect.poll[0]].command, src._transport
+        finally:
+            src.detach()
+
+
+def _switch_off_acted_on_once(src, unit):
+    """The caller's switch-off after a Ctrl-C, as the command line does: confirmed, the first
+    ``XOF`` acted on, no command lost by the unit."""
+    src.off()
+    assert src.tube_confirmed_off and not unit.emitting
+    log = [(line, reply) for _, line, reply in unit.log]
+    assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
+
+
 def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof(dialect, sigint_default):
     """The poll's reply comes 0.2 s after its time-out; a Ctrl-C lands in the wait for that late
     reply (a real SIGINT, sent by this process from the wait's first read of the port: the one way
@@ -365,39 +389,28 @@ def test_a_ctrl_c_in_the_wait_for_a_late_reply_does_not_lose_the_switch_offs_xof
     wait had already forgotten the time-out, so the switch-off's ``XOF`` went out at once into the
     unit still answering and was lost (confirmed off only by a second attempt, and not at all had
     the ``STS`` after it been lost too). Now the interrupted wait is done again before ``XOF``."""
-    with Controller(dialect, ramp_s=0.1) as unit:
-        unit.ready(warmed=True)
-        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
-        try:
-            src.on(60, 250)
-            poll = src.dialect.readings[src.dialect.poll[0]].command
-            link = src._transport
-            real_wait, real_read, waiting, interrupted = link._await_late_reply, link._serial.read, [], []
+    with _on_and_polling(dialect) as (unit, src, poll, link):
+        real_wait, real_read, waiting, interrupted = link._await_late_reply, link._serial.read, [], []
 
-            def wait():
-                waiting.append(True)
-                try:
-                    real_wait()
-                finally:
-                    waiting.pop()
+        def wait():
+            waiting.append(True)
+            try:
+                real_wait()
+            finally:
+                waiting.pop()
 
-            def read(n=1):
-                if waiting and not interrupted:
-                    interrupted.append(time.monotonic())
-                    os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
-                return real_read(n)
+        def read(n=1):
+            if waiting and not interrupted:
+                interrupted.append(time.monotonic())
+                os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
+            return real_read(n)
 
-            link._await_late_reply, link._serial.read = wait, read
-            unit.slow[poll] = 1.2 * src.timeout_s
-            with pytest.raises(KeyboardInterrupt):
-                src.check()
-            assert interrupted, "the Ctrl-C did not land in the wait"
-            src.off()
-            assert src.tube_confirmed_off and not unit.emitting
-            log = [(line, reply) for _, line, reply in unit.log]
-            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
-        finally:
-            src.detach()
+        link._await_late_reply, link._serial.read = wait, read
+        unit.slow[poll] = 1.2 * src.timeout_s
+        with pytest.raises(KeyboardInterrupt):
+            src.check()
+        assert interrupted, "the Ctrl-C did not land in the wait"
+        _switch_off_acted_on_once(src, unit)
 
 
 def test_a_ctrl_c_while_a_poll_waits_for_a_reply_that_comes_late_does_not_lose_the_xof(dialect, sigint_default):
@@ -408,37 +421,26 @@ def test_a_ctrl_c_while_a_poll_waits_for_a_reply_that_comes_late_does_not_lose_t
     deadline, then sent ``XOF`` at once into the unit still answering: lost (the late reply read
     as XOF's), the tube confirmed off only by a second attempt. Now a reply not come by then is
     waited for as after a time-out before ``XOF``: the first one is acted on, nothing is lost."""
-    with Controller(dialect, ramp_s=0.1) as unit:
-        unit.ready(warmed=True)
-        src = L8121(unit.port, dialect=dialect, poll_s=0.05, timeout_s=1.0)
-        try:
-            src.on(60, 250)
-            poll = src.dialect.readings[src.dialect.poll[0]].command
-            link = src._transport
-            real_write, real_read, sent, interrupted = link._write, link._serial.read, [], []
+    with _on_and_polling(dialect) as (unit, src, poll, link):
+        real_write, real_read, sent, interrupted = link._write, link._serial.read, [], []
 
-            def write(ser, command, payload):
-                real_write(ser, command, payload)
-                if command == poll and not sent:
-                    sent.append(time.monotonic())
+        def write(ser, command, payload):
+            real_write(ser, command, payload)
+            if command == poll and not sent:
+                sent.append(time.monotonic())
 
-            def read(n=1):
-                if sent and not interrupted and time.monotonic() - sent[0] >= 0.5 * src.timeout_s:
-                    interrupted.append(time.monotonic() - sent[0])
-                    os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
-                return real_read(n)
+        def read(n=1):
+            if sent and not interrupted and time.monotonic() - sent[0] >= 0.5 * src.timeout_s:
+                interrupted.append(time.monotonic() - sent[0])
+                os.kill(os.getpid(), signal.SIGINT)  # raised as KeyboardInterrupt at once
+            return real_read(n)
 
-            unit.slow[poll] = 1.1 * src.timeout_s
-            link._write, link._serial.read = write, read
-            with pytest.raises(KeyboardInterrupt):
-                src.check()
-            assert interrupted and interrupted[0] < src.timeout_s, "the Ctrl-C did not land in the poll's wait"
-            src.off()
-            assert src.tube_confirmed_off and not unit.emitting
-            log = [(line, reply) for _, line, reply in unit.log]
-            assert unit.lost == [] and [reply for line, reply in log if line == "XOF"] == ["XOF"], unit.log
-        finally:
-            src.detach()
+        unit.slow[poll] = 1.1 * src.timeout_s
+        link._write, link._serial.read = write, read
+        with pytest.raises(KeyboardInterrupt):
+            src.check()
+        assert interrupted and interrupted[0] < src.timeout_s, "the Ctrl-C did not land in the poll's wait"
+        _switch_off_acted_on_once(src, unit)
 
 
 @pytest.mark.parametrize(

@@ -10,6 +10,7 @@ pseudo-terminal; the holder is another process (a lock held by this one would no
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -293,6 +294,18 @@ def test_a_lost_link_whose_node_vanished_keeps_no_descriptor_on_it():
 def test_a_replugged_adapter_behind_a_by_id_link_is_locked_again_on_its_new_node(tmp_path):
     """The link reopens the node the by-id link now names, and holds its lock there: another
     process is refused (the lock once stayed on the vanished node, and one got in)."""
+    with _replugged_behind_a_by_id_link(tmp_path) as (byid, link, model, b):
+        assert link.query("XOF") == "XOF"
+        assert _other_process(byid).startswith("refused:")
+        assert _other_process(b.url).startswith("refused:")
+        assert model.commands == ["XOF"], model.commands  # the others were refused before sending
+
+
+@contextlib.contextmanager
+def _replugged_behind_a_by_id_link(tmp_path):
+    """A link opened through a by-id link whose controller went away (the link lost) and came
+    back on another pty, the by-id link moved to it: yields (by-id path, link, new model, new
+    server); the link closed at the end."""
     from acquisition.errors import DeviceError
     from acquisition.transport import SerialTransport
 
@@ -308,44 +321,27 @@ def test_a_replugged_adapter_behind_a_by_id_link_is_locked_again_on_its_new_node
         model = L8121Model(dialect="A", warmed_up=True)
         with PtyServer(model) as b:
             _replug(byid, b)
-            assert link.query("XOF") == "XOF"
-            assert _other_process(byid).startswith("refused:")
-            assert _other_process(b.url).startswith("refused:")
-            assert model.commands == ["XOF"], model.commands  # the others were refused before sending
+            yield byid, link, model, b
     finally:
         link.close()
 
 
 def test_a_port_taken_while_the_link_was_lost_is_refused_in_words_true_mid_session(tmp_path):
-    from acquisition.errors import DeviceError, PortBusy
-    from acquisition.transport import SerialTransport
+    from acquisition.errors import PortBusy
 
-    byid = str(tmp_path / "usb-ctl-if00-port0")
-    a = PtyServer(L8121Model(dialect="A", warmed_up=True)).__enter__()
-    os.symlink(a.url, byid)
-    link = SerialTransport(byid, timeout_s=0.5, retries=1)
-    try:
-        assert link.query("STS") == "STS 2"
-        a.__exit__(None, None, None)
-        with pytest.raises(DeviceError):
-            link.query("STS")
-        model = L8121Model(dialect="A", warmed_up=True)
-        with PtyServer(model) as b:
-            _replug(byid, b)
-            holder = _holder(byid)
-            try:
-                with pytest.raises(PortBusy) as refused:
-                    link.query("XOF")
-                sent = list(model.commands)
-            finally:
-                holder.stdin.close()
-                holder.wait(timeout=10)
-        message = str(refused.value)
-        assert byid in message and "took this port while" in message, message
-        assert "sent nothing" not in message, message
-        assert sent == [], sent
-    finally:
-        link.close()
+    with _replugged_behind_a_by_id_link(tmp_path) as (byid, link, model, _):
+        holder = _holder(byid)
+        try:
+            with pytest.raises(PortBusy) as refused:
+                link.query("XOF")
+            sent = list(model.commands)
+        finally:
+            holder.stdin.close()
+            holder.wait(timeout=10)
+    message = str(refused.value)
+    assert byid in message and "took this port while" in message, message
+    assert "sent nothing" not in message, message
+    assert sent == [], sent
 
 
 def test_neither_the_command_nor_its_guardian_pins_a_vanished_node_and_the_guardian_relocks(tmp_path):
