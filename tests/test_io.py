@@ -3,9 +3,11 @@ ITEX files, raw round trips for every C7942 preset, TIFF, the experiment HDF5 (i
 killed with SIGKILL), and properties: truncated, corrupted or random files raise FormatError and
 nothing else."""
 
+import errno
 import json
 import os
 import re
+import shutil
 import signal
 import struct
 import subprocess
@@ -2138,3 +2140,188 @@ def test_experiment_overwrite_failing_inside_the_with_keeps_the_old_file(tmp_pat
             raise RuntimeError("stopped")
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A 6 MiB tmpfs (needs root: mount); None where mounting is not permitted."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)], capture_output=True)
+    if ok.returncode != 0:
+        yield None
+        return
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
+
+
+def _with_free(monkeypatch, small_tmpfs, free):
+    """Where no tmpfs can be mounted, the writer's free-space probe reports ``free`` bytes (the
+    only way to fill a disk without privileges); on a real small disk nothing is faked."""
+    if small_tmpfs is None:
+        monkeypatch.setattr(ExperimentWriter, "_free_bytes", lambda self: free)
+
+
+def _fill(path, n, value=1, **kw):
+    with ExperimentWriter(path, shape=(256, 256), **kw) as w:
+        for _ in range(n):
+            w.append(np.full((256, 256), value, np.uint16), image_key=ImageKey.PROJECTION)
+
+
+def test_experiment_overwrite_that_fills_the_disk_says_the_old_file_is_kept(small_tmpfs, tmp_path, monkeypatch):
+    """Overwriting a 2.1 MB file with 3.9 MB free: the new file is built beside the old one, which
+    stays until the new one is complete, so the disk fills part-way. The refusal said "the 14
+    frame(s) before it are complete" and then removed them (the ``with`` ended in the error): it
+    must say that the old file is kept unchanged, the new frames discarded, and why (room for both).
+    On a real 6 MiB tmpfs where root can mount one; else the writer's free-space probe is faked
+    to shrink as frames are written (ENOSPC cannot be caused for real without privileges)."""
+    disk = small_tmpfs or tmp_path / "disk"
+    path = disk / "exp.h5"
+    _fill(path, 16, 1, overwrite=True, in_place=True)
+    before = path.read_bytes()
+    if small_tmpfs is None:  # 6 MiB less what the files in the folder take (old, new, reserve)
+        monkeypatch.setattr(
+            ExperimentWriter, "_free_bytes", lambda self: (6 << 20) - sum(p.stat().st_size for p in disk.iterdir())
+        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the warning at opening is another test's
+        with pytest.raises(OSError, match="disk full") as err:
+            _fill(path, 16, 2, overwrite=True)
+    msg = str(err.value)
+    assert "are complete" not in msg, msg
+    assert re.search(r"old file .*kept unchanged", msg) and "discarded" in msg and "room for both" in msg, msg
+    assert str(path) in msg
+    assert path.read_bytes() == before and sorted(p.name for p in disk.iterdir()) == ["exp.h5"]
+
+
+def test_experiment_overwrite_that_cannot_fit_warns_or_refuses_before_writing(small_tmpfs, tmp_path, monkeypatch):
+    """The old file is not freed until the new one replaces it: with less free than the old
+    file's size (and the reserve), a replacement as large will not fit, which is said at opening,
+    naming both sizes; with no room for one frame the overwrite is refused before anything is
+    written. Faked free space where no tmpfs can be mounted."""
+    disk = small_tmpfs or tmp_path / "disk"
+    path = disk / "exp.h5"
+    _fill(path, 16, 1)
+    before = path.read_bytes()
+    _with_free(monkeypatch, small_tmpfs, (6 << 20) - len(before))
+    with pytest.warns(UserWarning, match=r"old file .* not freed .*room for both") as rec:
+        _fill(path, 2, 2, overwrite=True)
+    assert str(path) in str(rec[0].message)
+    assert read(path).n == 2
+    # no room for even one frame: refused at opening, nothing beside the file
+    blob = disk / "blob"
+    if small_tmpfs is not None:
+        blob.write_bytes(b"\0" * (shutil.disk_usage(disk).free - (512 << 10)))
+    else:
+        monkeypatch.setattr(ExperimentWriter, "_free_bytes", lambda self: 512 << 10)
+    before = path.read_bytes()
+    with pytest.raises(OSError, match=r"disk full.*old file .*kept unchanged") as err:
+        ExperimentWriter(path, shape=(256, 256), overwrite=True)
+    assert err.value.errno == errno.ENOSPC
+    assert path.read_bytes() == before and sorted(p.name for p in disk.iterdir() if p != blob) == ["exp.h5"]
+
+
+_UNCLOSED = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from radiokit.io import ExperimentWriter
+    w = ExperimentWriter(sys.argv[1], shape=(6, 5), overwrite=True, in_place=sys.argv[2] == "1")
+    w.append(np.full((6, 5), 4000, np.uint16), image_key=2)
+""")
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_experiment_overwrite_never_closed_warns_naming_both_files(in_place, tmp_path):
+    """A script that overwrites without ``with`` and ends without ``close()``: built beside the
+    old file, the new frames stayed in a hidden temporary and the old file under the name, with no
+    word. It is not renamed into place (an unclosed writer may be a crash), but a warning names
+    the old file kept and the temporary holding the new frames. In place, the frames are under
+    the name: nothing to say. Either way the reserve held beside the file is removed."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    res = subprocess.run(
+        [sys.executable, "-c", _UNCLOSED, str(path), str(int(in_place))],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert res.returncode == 0, res.stderr
+    assert not (tmp_path / ".exp.h5.reserve").exists()  # the reserve's space given back
+    if in_place:
+        assert res.stderr == "" and read(path).n == 1
+        return
+    tmp = [p for p in tmp_path.iterdir() if p.name.startswith(".exp.tmp-")]
+    assert path.read_bytes() == before and len(tmp) == 1
+    assert "never closed" in res.stderr and str(path) in res.stderr and str(tmp[0]) in res.stderr, res.stderr
+
+
+def test_experiment_overwrite_garbage_collected_unclosed_warns(tmp_path):
+    """The same when the writer is dropped mid-script (garbage-collected) without ``close()``."""
+    import gc
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    w = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True)
+    w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    with pytest.warns(UserWarning, match="never closed") as rec:
+        del w
+        gc.collect()
+    assert str(path) in str(rec[0].message) and ".exp.tmp-" in str(rec[0].message)
+    assert read(path).n == len(FRAME_META)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # closed: no word
+        with ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True) as w:
+            w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+        del w
+        gc.collect()
+
+
+def _drop_file_mode_override():
+    """Root writes into any folder (CAP_DAC_OVERRIDE): the child drops it from its bounding set,
+    and its exec keeps it not, so a folder's mode stops it as any user (Linux prctl)."""
+    if os.geteuid() == 0:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        for cap in (1, 2):  # CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH
+            if libc.prctl(24, cap, 0, 0, 0):  # PR_CAPBSET_DROP
+                raise OSError(ctypes.get_errno(), "prctl(PR_CAPBSET_DROP)")
+
+
+def test_experiment_overwrite_in_a_read_only_folder_is_one_line_naming_the_file(tmp_path):
+    """A writable file in a read-only folder: the new file cannot be built beside it to be renamed
+    over it. The error was h5py's raw PermissionError naming the hidden temporary; it is one line
+    naming the file asked for and why, and the file is untouched."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    path = _write_experiment(folder / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    code = textwrap.dedent("""
+        import sys
+        from radiokit.io import ExperimentWriter
+        try:
+            ExperimentWriter(sys.argv[1], shape=(6, 5), overwrite=True)
+        except OSError as exc:
+            print(type(exc).__name__, exc)
+    """)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    folder.chmod(0o555)
+    try:
+        res = subprocess.run(
+            [sys.executable, "-c", code, str(path)],
+            capture_output=True,
+            text=True,
+            env=env,
+            preexec_fn=_drop_file_mode_override,
+            timeout=120,
+        )
+    finally:
+        folder.chmod(0o755)
+    out = res.stdout.strip()
+    assert res.returncode == 0 and len(out.splitlines()) == 1, (res.stdout, res.stderr)
+    assert out.startswith("OutputError ") and str(path) in out and ".tmp-" not in out, out
+    assert "folder" in out and "not writable" in out and "in_place" in out, out
+    assert path.read_bytes() == before and sorted(p.name for p in folder.iterdir()) == ["exp.h5"]

@@ -17,6 +17,8 @@ import os
 import re
 import shutil
 import time
+import warnings
+import weakref
 from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
@@ -29,7 +31,9 @@ from radiokit.checks import is_number
 from radiokit.errors import FormatError
 from radiokit.interrupts import settle
 from radiokit.io._atomic import (
+    OutputError,
     _fsync,
+    _human,
     _keep_mode,
     _remove,
     _remove_stale,
@@ -93,7 +97,15 @@ def _set_class(group, nx_class):
 
 
 class ExperimentWriter:
-    """Append frames to an experiment file, flushing after each so a crash loses at most one.
+    """Append frames to an experiment file, flushing after each.
+
+    A new file, or one overwritten ``in_place``, is written under its own name: a crash loses at
+    most the frame in flight, and the rest stay there for ``--resume``. An overwrite that is not
+    ``in_place`` builds the new file in a hidden temporary beside the old one, which it replaces
+    only when closed without an error: a crash, an error, or a writer never closed leaves the old
+    file unchanged and the new frames in the temporary (a writer garbage-collected or alive at
+    interpreter exit without :meth:`close` warns, naming both); and the disk must hold both files
+    until then. Use it in a ``with`` block, which closes it.
 
     Parameters
     ----------
@@ -123,6 +135,9 @@ class ExperimentWriter:
         old file whole. The acquisition passes True: its file is the run's journal, and a run
         killed part-way must leave its frames under the name ``--resume`` continues.
         A new file is always written under its own name, frame by frame, for the same reason.
+        Built beside, the old file takes its space until the new one replaces it: an overwrite
+        that would need more than is free is refused at opening if not even one frame fits, and
+        warned about if a new file as large as the old one would not.
 
     Examples
     --------
@@ -163,7 +178,14 @@ class ExperimentWriter:
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._file, self._replaces = self._where(mode, overwrite, in_place)
-        self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
+        if self._replaces is not None and shape is not None:
+            self._check_overwrite_room(math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize)
+        try:
+            self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
+        except OSError as exc:
+            if self._replaces is not None and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+                raise self._unwritable_folder(exc.errno) from None
+            raise
         try:
             if mode == "w":
                 if shape is None:
@@ -180,6 +202,16 @@ class ExperimentWriter:
             if self._replaces is not None:
                 _remove(self._file)
             raise
+        # Never closed (garbage-collected, or alive at interpreter exit): the reserve's space is
+        # given back, and an overwrite built beside the old file is not renamed into place (it
+        # may be a crash) but never silent: the user would go on with the old file as the new one
+        self._unclosed = weakref.finalize(
+            self,
+            _unclosed,
+            str(self.path),
+            None if self._replaces is None else str(self._file),
+            self._ballast_path if self.ballast else None,
+        )
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
         """The file to write, and the file it replaces when closed (None: written in place).
@@ -194,6 +226,48 @@ class ExperimentWriter:
             return target, None
         _remove_stale(target)  # a killed overwrite's temporary, its process gone
         return _temporary_name(target), target
+
+    def _kept(self) -> str:
+        """What an overwrite built beside the old file leaves when it stops, for a refusal."""
+        return (
+            "; the old file is kept unchanged and the new frames are discarded: an overwrite builds the new "
+            "file beside the old one and needs room for both until it completes; free space or write elsewhere"
+        )
+
+    def _check_overwrite_room(self, frame_bytes: int) -> None:
+        """Before the temporary is made: refuse an overwrite built beside the old file when not even
+        one frame fits (ENOSPC), and warn when a new file as large as the old one will not (the old
+        one is not freed until the new one replaces it; truncated ``in_place``, it was)."""
+        free, old = self._free_bytes(), self._replaces.stat().st_size
+        first = frame_bytes + self.reserve_bytes
+        if free < first:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, a frame needs {frame_bytes} plus "
+                f"{self.reserve_bytes} in reserve; nothing was written" + self._kept(),
+            )
+        need = old + self.reserve_bytes + (first if self.ballast else 0)
+        if free < need:
+            warnings.warn(
+                f"{self.path}: overwriting: the old file ({_human(old)}) is not freed until the new one is "
+                f"complete and renamed over it, and {_human(free)} are free: a new file as large will not fit "
+                "(an overwrite needs room for both until it completes); free space or write elsewhere",
+                UserWarning,
+                stacklevel=3,
+            )
+
+    def _unwritable_folder(self, err: int) -> OutputError:
+        """The one-line error of an overwrite whose temporary cannot be made beside the file."""
+        folder = self._replaces.parent
+        if err == errno.EROFS:
+            return OutputError(self._replaces, f"is on a read-only file system ({folder}); choose another output", err)
+        return OutputError(
+            self._replaces,
+            f"cannot be replaced: its folder {folder} is not writable, so the new file cannot be built beside it "
+            "and renamed over it; make the folder writable, write to another folder, or pass in_place=True to "
+            "write over the file itself (its old frames are lost at once)",
+            err,
+        )
 
     # -- layout -------------------------------------------------------------------------------
     def _create(self, shape, pixel_size_mm, source, detector_name, title):
@@ -358,30 +432,42 @@ class ExperimentWriter:
                 else errno.EIO
             )
             raise OSError(
-                code, f"{self.path}: frame {i} could not be written ({self._failed}); it stays labelled invalid"
+                code,
+                f"{self.path}: frame {i} could not be written ({self._failed})"
+                + (self._kept() if self._replaces is not None else "; it stays labelled invalid"),
             ) from None
         return i
 
     def _check_room(self, nbytes: int, i: int) -> None:
         """Refuse frame ``i`` (``nbytes``) while the file is whole when the disk or the file's size
         limit has no room for it and :attr:`reserve_bytes`: ENOSPC or EFBIG, naming the file and frame."""
+        # built beside the old file, the new one is discarded on a refusal, even if the caller goes
+        # on to close() without an error: a part of it never replaces a complete old file
+        kept = f"; the {i} frame(s) before it are complete"
+        if self._replaces is not None:
+            kept = self._kept()
         free = self._free_bytes()
         if free < nbytes + self.reserve_bytes:
+            if self._replaces is not None:
+                self._failed = "disk full"
             raise OSError(
                 errno.ENOSPC,
                 f"{self.path}: disk full: {free} bytes free, frame {i} needs {nbytes} "
-                f"plus {self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+                f"plus {self.reserve_bytes} in reserve" + kept,
             )
         size, limit = self._size_and_limit()
         if size + nbytes + self.reserve_bytes > limit:
             # a file-size limit (ulimit -f, or a FAT32-formatted disk's 4 GiB) fails the
             # write half-way just as a full disk does, and libhdf5 then leaves a file that does not
             # open: refused while the file is whole
+            if self._replaces is not None:
+                self._failed = "file size limit"
+                kept = "; the old file is kept unchanged and the new frames are discarded"
             raise OSError(
                 errno.EFBIG,
                 f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
                 f"(the process's file-size limit or the file system's); frame {i} needs {nbytes} plus "
-                f"{self.reserve_bytes} in reserve; the {i} frame(s) before it are complete",
+                f"{self.reserve_bytes} in reserve" + kept,
             )
 
     def _free_bytes(self) -> int:
@@ -482,6 +568,8 @@ class ExperimentWriter:
     def _finish(self, keep: bool) -> None:
         """Rename the new file over the one it replaces (``keep``), else remove it."""
         tmp, target, self._replaces = self._file, self._replaces, None
+        if getattr(self, "_unclosed", None) is not None:
+            self._unclosed.detach()  # closed: whatever becomes of the file, it was said
         if target is None:
             return
         if not keep:
@@ -502,6 +590,25 @@ class ExperimentWriter:
 
     def __exit__(self, exc_type, *exc):
         self.close(keep=exc_type is None)
+
+
+def _unclosed(path: str, tmp: str | None, ballast: Path | None) -> None:
+    """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, and for an
+    overwrite built beside the old file (``tmp``), a warning naming both files."""
+    if ballast is not None:
+        try:
+            ballast.unlink()
+        except OSError:
+            pass
+    if tmp is None:
+        return
+    warnings.warn(
+        f"{path}: ExperimentWriter never closed: {path} is still the old file, unchanged; the new frames are in "
+        f"{tmp}, not renamed over it (an unclosed writer may be a crash; the next overwrite of {path} removes it). "
+        "Use `with ExperimentWriter(...) as w:` or call close(); to keep these frames, rename the file by hand",
+        UserWarning,
+        stacklevel=1,  # no caller of the user's to name: the garbage collector or interpreter exit calls it
+    )
 
 
 def _refuse_external(path, what):
