@@ -263,3 +263,19 @@ def sigint_default():
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, old)
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(folder, size):
+    """A tmpfs of ``size`` (mount's notation, "1m") mounted on the new folder ``folder`` (needs
+    root), unmounted at the end; None where mounting is not permitted: a full disk is caused for
+    real where it can be."""
+    folder.mkdir()
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True)
+    if ok.returncode != 0:
+        yield None
+        return
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)

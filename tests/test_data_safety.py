@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import one_line_error, run_cli, synthetic
+from conftest import mounted_tmpfs, one_line_error, run_cli, synthetic
 
 from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path, read
 
@@ -680,16 +680,8 @@ def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
 @pytest.fixture
 def small_disk(tmp_path):
     """A 1 MiB tmpfs (needs root); None where mounting is not permitted."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True)
-    if ok.returncode != 0:
-        yield None
-        return
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "1m") as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], check=True)
 
 
 def _full_disk_run(small_disk, *args):

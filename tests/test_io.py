@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import ITEX_DIR, needs_itex, run_cli
+from conftest import ITEX_DIR, mounted_tmpfs, needs_itex, run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -2145,16 +2145,8 @@ def test_experiment_overwrite_failing_inside_the_with_keeps_the_old_file(tmp_pat
 @pytest.fixture
 def small_tmpfs(tmp_path):
     """A 6 MiB tmpfs (needs root: mount); None where mounting is not permitted."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)], capture_output=True)
-    if ok.returncode != 0:
-        yield None
-        return
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "6m") as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], check=True)
 
 
 def _with_free(monkeypatch, small_tmpfs, free):
