@@ -449,9 +449,11 @@ def _source(args) -> int:
     from acquisition.transport import hold_port
 
     try:
-        # the port held from before the probe to this command's end, its guardian's life included
-        # (the guardian inherits the lock): no other radiokit process reads this controller's
-        # replies meanwhile, and this one's switch-off never meets a port taken between its links
+        # the port held from before the probe; the guardian inherits the lock and this command
+        # lets its own copy go at the guardian's READY. No other radiokit process reads this
+        # controller's replies meanwhile -- but between the guardian's end (or death) and this
+        # command's next open the port is unlocked: a program that takes it then gets this
+        # command's switch-off refused (PortBusy), which ends loudly (the tube warning, exit 3)
         hold = hold_port(args.port)
     except PortBusy as exc:
         if args.action == "off":  # a switch-off not sent: said loudly, as any the command cannot confirm

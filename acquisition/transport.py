@@ -569,6 +569,12 @@ class SerialTransport:
                 ser.open()
         except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
             raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
+        try:
+            self._hold_opened(ser)
+        except BaseException:
+            with contextlib.suppress(serial.SerialException, OSError):
+                ser.close()
+            raise
         self._serial = ser
         self._opened_once = True
         if self._pending is not None:
@@ -590,6 +596,47 @@ class SerialTransport:
         # opened, so the first command waits min_interval_s as if one had ended now.
         self._last_exchange = time.monotonic()
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
+
+    def _hold_opened(self, ser) -> None:
+        """The lock held on the very device ``ser`` opened, taken now if the lock found nothing to
+        take before the open (the node, or its by-id link, came -- udev a moment late -- between
+        the two: the link ran unlocked for its whole session and a second process got in; review
+        s35r4).
+
+        Raises
+        ------
+        PortBusy
+            Another program took the port in that moment (nothing was sent on this open).
+        PortUnavailable
+            The path named another device by the time the lock was taken."""
+        if _lock_key(self.url) is None:
+            return
+        try:
+            opened = os.fstat(ser.fileno())
+        except (AttributeError, OSError, ValueError, serial.SerialException):
+            return
+        if self._on(opened):
+            return
+        if self._hold is None:
+            self._hold = hold_port(self.url)
+        else:
+            self._hold.renew()
+        if self._hold is None or self._hold.fd is None:
+            # still nothing to lock (the node gone again, or flock unsupported there): as before
+            return
+        if not self._on(opened):
+            raise PortUnavailable(f"{self.url}: the port changed while it was being opened; nothing was sent")
+
+    def _on(self, opened: os.stat_result) -> bool:
+        """Whether this link's lock is held on the device ``opened`` (an fstat) names."""
+        fd = None if self._hold is None else self._hold.fd
+        if fd is None:
+            return False
+        try:
+            held = os.fstat(fd)
+        except OSError:
+            return False
+        return (held.st_rdev, held.st_ino, held.st_dev) == (opened.st_rdev, opened.st_ino, opened.st_dev)
 
     def close(self) -> None:
         """Close the port and let go of this link's share of its lock; safe to call more than once."""

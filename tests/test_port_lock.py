@@ -435,3 +435,41 @@ def test_a_share_collected_while_the_lock_table_is_busy_does_not_deadlock():
         worker.join(10)
         assert done
         assert transport._lock_key(server.url) not in transport._LOCKS
+
+
+@pytest.mark.parametrize("taken", [False, True])
+def test_a_node_appearing_after_the_lock_was_tried_is_locked_once_open(tmp_path, monkeypatch, taken):
+    """The re-plugged adapter's by-id link appears (udev, a moment late) after the lock found
+    nothing to take but before the port's own open: the link once ran unlocked for the rest of
+    its session and a second process got in (review s35r4). It holds the lock on the device it
+    opened -- or, another program having taken it in that moment, is refused sending nothing."""
+    from acquisition import transport
+    from acquisition.errors import PortBusy
+
+    with _replugged_behind_a_by_id_link(tmp_path) as (byid, link, model, b):
+        os.unlink(byid)  # the link not there yet when the lock is tried
+        real, holder = transport._serial_for_url, []
+
+        def late(url, log):
+            if not os.path.lexists(byid):
+                os.symlink(b.url, byid)
+                if taken:
+                    holder.append(_holder(byid))
+            return real(url, log)
+
+        monkeypatch.setattr(transport, "_serial_for_url", late)
+        try:
+            if taken:
+                with pytest.raises(PortBusy, match="took this port while") as refused:
+                    link.query("XOF")
+                assert "sent nothing" not in str(refused.value)
+                assert not link.is_open
+                assert model.commands == [], model.commands
+            else:
+                assert link.query("XOF") == "XOF"
+                assert _other_process(byid).startswith("refused:")
+                assert _other_process(b.url).startswith("refused:")
+        finally:
+            for proc in holder:
+                proc.stdin.close()
+                proc.wait(timeout=10)

@@ -601,7 +601,10 @@ def _guarded_source(url: str, p: Protocol):
     try:
         # the port's lock from before the probe until the guardian holds it too (the link's own
         # share, inherited by the guardian): no other process gets in between the probe's links
-        # and the guardian's open. PortBusy (another program holds it): nothing sent, "never reached"
+        # and the guardian's open. PortBusy (another program holds it): nothing sent, "never reached".
+        # This process lets its copy go at the guardian's READY: between the guardian's end (or
+        # death) and this process's next open the port is unlocked, and a program that takes it
+        # then gets the switch-off refused, which ends loudly (not confirmed off: the tube warning)
         hold = hold_port(url)
         resolved = driver.resolve()
         # the watchdog armed from the start unless the probe read the tube off: left on by an
