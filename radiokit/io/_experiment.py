@@ -230,7 +230,8 @@ class ExperimentWriter:
     def _kept(self) -> str:
         """What an overwrite built beside the old file leaves when it stops, for a refusal."""
         return (
-            "; the old file is kept unchanged and the new frames are discarded: an overwrite builds the new "
+            "; the old file is kept unchanged and the new frames are discarded as the writer closes: an "
+            "overwrite builds the new "
             "file beside the old one and needs room for both until it completes; free space or write elsewhere"
         )
 
@@ -462,7 +463,7 @@ class ExperimentWriter:
             # open: refused while the file is whole
             if self._replaces is not None:
                 self._failed = "file size limit"
-                kept = "; the old file is kept unchanged and the new frames are discarded"
+                kept = "; the old file is kept unchanged and the new frames are discarded as the writer closes"
             raise OSError(
                 errno.EFBIG,
                 f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
@@ -604,8 +605,10 @@ def _unclosed(path: str, tmp: str | None, ballast: Path | None) -> None:
         return
     warnings.warn(
         f"{path}: ExperimentWriter never closed: {path} is still the old file, unchanged; the new frames are in "
-        f"{tmp}, not renamed over it (an unclosed writer may be a crash; the next overwrite of {path} removes it). "
-        "Use `with ExperimentWriter(...) as w:` or call close(); to keep these frames, rename the file by hand",
+        f"{tmp}, not renamed over it (an unclosed writer may be a crash, or a refused one hold part of a run). "
+        "Use `with ExperimentWriter(...) as w:` or call close(). Remove that file (an overwrite of "
+        f"{path} by a later process removes it; this process's do not), or rename it over {path} by hand only if "
+        "it holds the whole run",
         UserWarning,
         stacklevel=1,  # no caller of the user's to name: the garbage collector or interpreter exit calls it
     )
