@@ -510,6 +510,7 @@ def _source_command(args, guard) -> int:
     before it propagates; an interrupt carries in ``tube`` what is known of the tube (unconfirmed,
     it becomes the switch-off error instead)."""
     from acquisition.errors import DeviceError
+    from acquisition.guardian import guardian_gone
     from acquisition.l8121 import L8121
 
     src = None
@@ -529,7 +530,7 @@ def _source_command(args, guard) -> int:
             src = _behind_guardian(src) if args.action == "warm-up" else src
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
-            _guardian_gone(src, exc)
+            guardian_gone(src, exc)
             exc.tube = _interrupted_connect(exc)
             if getattr(exc, "tube_state", None) is None and getattr(exc, "off_failed", None) is None:
                 # no switch-off in connect: one is tried now (signals deferred: the guard stays
@@ -546,7 +547,7 @@ def _source_command(args, guard) -> int:
             if args.action == "off":
                 guard.cleanup()  # the switch-off asked for, whatever the connect found
                 _off_anyway(src)
-            _guardian_gone(src, exc)  # then switched off after the error line (below)
+            guardian_gone(src, exc)  # then switched off after the error line (below)
             raise
         try:
             code = _source_action(src, args)
@@ -596,26 +597,6 @@ def _interrupted_connect(exc) -> str:
     return "interrupted while connecting: no X-ray command was sent"
 
 
-def _guardian_gone(src, exc) -> bool:
-    """Whether ``exc`` is a guardian's failed start that ended without a word on a tube that may
-    be on: it held the port (it said READY, or was killed), perhaps cut short in its switch-off,
-    or it never did (killed before READY) while the tube was not known off. The port is free
-    again, and this process switches off through it, confirmed by STS, or ends on the warning
-    (:func:`_off_anyway`, the exit rule) -- also when neither the guardian nor a probe had opened
-    it (the dialect given): a tube an earlier `source on` left on is on still, and the command
-    that was to warm up (or switch on) leaves it off. Counted as reached for that: the guardian
-    may have opened the port before it died, so "never reached" would not be known true, and a
-    switch-off that then fails ends on the warning (review s35r1: the tube was left on, and the
-    last line said the port could not be opened). Not after the guardian's own word that the port
-    cannot be opened (PortUnavailable): that one is "never reached", as for any such port."""
-    from acquisition.errors import PortUnavailable
-
-    gone = getattr(exc, "guardian_gone", False)
-    if gone and not isinstance(exc, PortUnavailable):
-        src.port_opened = True
-    return gone
-
-
 def _behind_guardian(src):
     """``src``'s controller behind a guardian process (:mod:`acquisition.guardian`), as a series'
     is: the warm-up emits X-rays for minutes, and L8121.md has an interrupted warm-up switched off
@@ -635,40 +616,10 @@ def _behind_guardian(src):
 
 
 def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True) -> bool:
-    """A source command whose connect failed (`off`) or was interrupted (`off`, `on`, `warm-up`):
-    the switch-off is sent with whatever link there is and confirmed by STS -- by the connect
-    itself when the port opened in a known dialect (its refusal sends XOF in a session that
-    controls the tube), else here (:meth:`L8121.off_unconnected`: the port opened again; with
-    ``blind``, the one XOF both dialects share when the probe found no dialect). Nothing when the
-    port never opened, nor a second round after a switch-off that failed (its error is said; a
-    silent controller would cost each round its time-outs). Says the outcome (an ``interrupt``
-    gets it in ``tube``); returns whether STS confirmed it. The exit rule reads the driver."""
-    from acquisition.errors import DeviceError
+    """:func:`acquisition.guardian.off_anyway`, its error in command-line terms."""
+    from acquisition.guardian import off_anyway
 
-    if src is None or not src.port_opened or (src.dialect is None and not blind):
-        return False
-    state = src.confirmed_off
-    if state is None and src.off_failed is None:
-        # said now: with a silent controller the attempt takes its time-outs (seconds), and the
-        # operator who pressed Ctrl-C or saw the connect fail would otherwise wait in silence
-        why = "interrupted while connecting" if interrupt is not None else "the connect failed"
-        _say(f"{src.port}: {why}: sending XOF anyway and confirming by STS (a few seconds)")
-        try:
-            state = src.off_unconnected(after_interrupt=interrupt is not None)
-        except DeviceError as exc:
-            if interrupt is None:
-                _say(f"error: switching off anyway: {_one_line(exc)}")
-            else:
-                interrupt.tube = f"switching off anyway failed ({_one_line(exc)})"
-            return False
-    if state is None:
-        return False
-    line = f"XOF sent anyway: X-rays off (confirmed by STS: {state.name})"
-    if interrupt is not None:
-        interrupt.tube = line
-    else:
-        _say(f"{src.port}: {line}")
-    return True
+    return off_anyway(src, interrupt, blind=blind, describe=_one_line)
 
 
 def _source_error_code(exc, src, args) -> int:

@@ -58,6 +58,73 @@ __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"
 #: The last line the operator reads when switching off could not be confirmed.
 TUBE_WARNING = "WARNING: X-RAYS MAY STILL BE ON — switch off at the controller (key switch) now"
 
+
+def guardian_gone(src, exc) -> bool:
+    """Whether ``exc`` is a guardian's failed start that ended without a word on a tube that may
+    be on: it held the port (it said READY, or was killed), perhaps cut short in its switch-off,
+    or it never did (killed before READY) while the tube was not known off. The port is free
+    again, and this process switches off through it, confirmed by STS, or ends on the warning
+    (:func:`off_anyway`, the exit rule) -- also when neither the guardian nor a probe had opened
+    it (the dialect given): a tube an earlier `source on` left on is on still, and the command
+    that was to warm up (or switch on) leaves it off. Counted as reached for that: the guardian
+    may have opened the port before it died, so "never reached" would not be known true, and a
+    switch-off that then fails ends on the warning (review s35r1: the tube was left on, and the
+    last line said the port could not be opened). Not after the guardian's own word that the port
+    cannot be opened (PortUnavailable): that one is "never reached", as for any such port."""
+    from acquisition.errors import PortUnavailable
+
+    gone = getattr(exc, "guardian_gone", False)
+    if gone and not isinstance(exc, PortUnavailable):
+        src.port_opened = True
+    return gone
+
+
+def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True, describe=None) -> bool:
+    """A source command whose connect failed (`off`) or was interrupted (`off`, `on`, `warm-up`),
+    or a series whose guardian ended before READY (:func:`guardian_gone`):
+    the switch-off is sent with whatever link there is and confirmed by STS -- by the connect
+    itself when the port opened in a known dialect (its refusal sends XOF in a session that
+    controls the tube), else here (:meth:`L8121.off_unconnected`: the port opened again; with
+    ``blind``, the one XOF both dialects share when the probe found no dialect). Nothing when the
+    port never opened, nor a second round after a switch-off that failed (its error is said; a
+    silent controller would cost each round its time-outs). Says the outcome (an ``interrupt``
+    gets it in ``tube``; ``describe`` words an error, by default its text on one line); returns
+    whether STS confirmed it. The exit rule reads the driver. Shared by the source commands and a
+    series (one switch-off through the freed port, not one each)."""
+    from acquisition.errors import DeviceError
+
+    if src is None or not src.port_opened or (src.dialect is None and not blind):
+        return False
+    state = src.confirmed_off
+    if state is None and src.off_failed is None:
+        # said now: with a silent controller the attempt takes its time-outs (seconds), and the
+        # operator who pressed Ctrl-C or saw the connect fail would otherwise wait in silence
+        why = "interrupted while connecting" if interrupt is not None else "the connect failed"
+        _say(f"{src.port}: {why}: sending XOF anyway and confirming by STS (a few seconds)")
+        try:
+            state = src.off_unconnected(after_interrupt=interrupt is not None)
+        except DeviceError as exc:
+            why = (describe or _one_line)(exc)
+            if interrupt is None:
+                _say(f"error: switching off anyway: {why}")
+            else:
+                interrupt.tube = f"switching off anyway failed ({why})"
+            return False
+    if state is None:
+        return False
+    line = f"XOF sent anyway: X-rays off (confirmed by STS: {state.name})"
+    if interrupt is not None:
+        interrupt.tube = line
+    else:
+        _say(f"{src.port}: {line}")
+    return True
+
+
+def _one_line(exc) -> str:
+    """``exc``'s text on one line, for the operator."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 # SIGTSTP (Ctrl-Z) too: its default suspends the process -- beam monitor and all -- with the tube
 # on, and the guardian, whose pipe stays open, would not act
 _SIGNALS = STOP_SIGNALS + tuple(getattr(signal, name) for name in ("SIGTSTP",) if hasattr(signal, name))

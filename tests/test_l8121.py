@@ -4374,6 +4374,75 @@ def test_a_guardian_killed_as_it_starts_with_the_dialect_given_leaves_the_comman
         assert last.startswith(f"{url}: XOF sent anyway: X-rays off (confirmed by STS"), err
 
 
+@pytest.mark.parametrize("port_gone", [False, True], ids=["port-free", "port-gone"])
+def test_a_series_whose_guardian_is_killed_as_it_starts_switches_off_through_the_freed_port(
+    port_gone, capfd, monkeypatch, tmp_path
+):
+    """`source on` left the tube on; a series (`radiokit acquire PROTOCOL --sim`, the controller on
+    ``[sim] source_port``, dialect given) starts its guardian, which is killed (SIGKILL) before it
+    said READY. Found: the series ended on the warning, exit 3, without trying the port the
+    guardian left free, as the source commands do. Now it switches off through that port under its
+    own lock, confirmed by STS (exit 1, "tube off"); when it cannot (the port's path gone), the
+    warning and exit 3 as before."""
+    import tomli_w
+
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+    from sim.scene import block_scene
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
+    held = []
+    scene = block_scene(size_mm=10.0, ratios=(0.1,))
+    scene.detector.binning = 4
+    scene.mesh.size_far_mm = 8.0
+    scene_file = tmp_path / "scene.toml"
+    scene_file.write_text(scene.to_toml())
+    with PtyServer(model) as server:
+        url = tmp_path / "ttyUSB0"
+        url.symlink_to(server.url)
+        proto = {
+            "output": str(tmp_path / "series.h5"),
+            "name": "guardian killed",
+            "source": {"voltage_kv": 60, "current_ua": 250, "dialect": "A", "timeout_s": 0.5, "off_attempts": 2},
+            "detector": {"kind": "sim"},
+            "frame": {"kind": "sim", "initial_height_mm": 10.0},
+            "series": {"darks": 1, "flats": 1, "frames_per_step": 1, "steps": [0.1], "settle_s": 0.0},
+            "sim": {"scene": str(scene_file), "frame_period_s": 0.1, "source_port": str(url)},
+        }
+        path = tmp_path / "protocol.toml"
+        path.write_text(tomli_w.dumps(proto))
+
+        def kill_the_guardian():
+            _stop_the_guardian(held)
+            if port_gone:
+                url.unlink()
+            os.kill(held[0], signal.SIGKILL)
+
+        port = ["--port", str(url), "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()
+        _a_slow_guardian_start(monkeypatch, startup_timeout_s=20.0)  # killed well within its start
+        helper = threading.Thread(target=kill_the_guardian, daemon=True)
+        helper.start()
+        code = main(["acquire", str(path), "--sim"])
+        helper.join(timeout=30)
+        assert held
+        on = model.xray_on
+    err = capfd.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and "never reached" not in err, err
+    assert f"{url}: the X-ray guardian exited as it started (code -{int(signal.SIGKILL)})" in err, err
+    if port_gone:
+        assert on and code == 3 and last == TUBE_WARNING, err
+        assert f"error: switching off anyway: {url}" in err, err
+    else:
+        assert not on and code == 1, err
+        # through the port under the series' own lock: shared, not refused by it
+        assert f"{url}: XOF sent anyway: X-rays off (confirmed by STS" in err, err
+        assert last.startswith("tube off (confirmed by STS"), err
+        assert TUBE_WARNING not in err, err
+
+
 @pytest.mark.parametrize("reply_s", [0.5, 2.0])
 def test_the_guardians_kill_bound_allows_each_exchange_its_longest_on_the_link(reply_s):
     """A guardian whose start failed is killed if its switch-off takes longer than

@@ -655,6 +655,8 @@ def _what_was_reached(exc: BaseException, driver) -> None:
         # guardian held the port and ended without a word: the tube may have been switched on
         # since the probe's reading, which then vouches for nothing
         exc.tube_state = None
+        if getattr(exc, "guardian_gone", False):
+            exc.left_by_guardian = driver  # for the switch-off through the port it freed (_stop)
     elif getattr(exc, "tube_state", None) is None and driver.tube_confirmed_off:
         # the last STS (the probe's, or the refused connect's after its XOF) read the tube off and
         # nothing that emits went out after it: confirmed, as the source commands say it
@@ -1500,6 +1502,8 @@ def _stop(r: _Run, exc: BaseException):
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     _stop_frame(r)
+    if res.tube_off is None:
+        _off_where_the_guardian_left(exc)
     if res.tube_off is None and getattr(exc, "tube_state", None) is not None:
         # not connected, but the controller's last STS read the tube off (README's one rule): an
         # interrupted connect that switched a unit found on off, a refused connect's XOF, or the
@@ -1539,6 +1543,28 @@ def _stop(r: _Run, exc: BaseException):
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
         )
+
+
+def _off_where_the_guardian_left(exc: BaseException) -> None:
+    """A guardian that ended before READY (killed: the OOM killer) said nothing of the tube, which
+    an earlier `source on` may have left on: switched off through the port it freed, confirmed by
+    STS, as the source commands do (:func:`acquisition.guardian.off_anyway`); confirmed, the error
+    carries that state (README's one rule: "tube off"), else the warning stays. Under this run's
+    own lock on the port (:func:`run` holds it to the end): the switch-off's link shares it (one
+    process), so it is never refused by it. Before READY this process never let its copy go
+    (``hand_over``), so no other program got in between; after READY the link takes the lock
+    again, refused -- the warning -- only if another program took the port meanwhile."""
+    from acquisition.guardian import guardian_gone, off_anyway
+
+    src = getattr(exc, "left_by_guardian", None)
+    if src is None or not guardian_gone(src, exc):
+        return
+    interrupt = exc if isinstance(exc, KeyboardInterrupt) else None
+    if off_anyway(src, interrupt):
+        exc.tube_state = src.confirmed_off
+        exc.source_unreached = False
+    elif interrupt is not None and getattr(exc, "tube", None):
+        log.warning("%s: %s", src.port, exc.tube)  # why not confirmed: said before the warning
 
 
 def _before_source(r: _Run, exc: BaseException) -> bool:
