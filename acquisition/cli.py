@@ -619,7 +619,7 @@ def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tr
     """:func:`acquisition.guardian.off_anyway`, its error in command-line terms."""
     from acquisition.guardian import off_anyway
 
-    return off_anyway(src, interrupt, blind=blind, describe=_one_line)
+    return off_anyway(src, interrupt, blind=blind, describe=_one_line, say=_say)
 
 
 def _source_error_code(exc, src, args) -> int:

@@ -79,7 +79,7 @@ def guardian_gone(src, exc) -> bool:
     return gone
 
 
-def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True, describe=None) -> bool:
+def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = True, describe=None, say=None) -> bool:
     """A source command whose connect failed (`off`) or was interrupted (`off`, `on`, `warm-up`),
     or a series whose guardian ended before READY (:func:`guardian_gone`):
     the switch-off is sent with whatever link there is and confirmed by STS -- by the connect
@@ -88,11 +88,14 @@ def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tru
     ``blind``, the one XOF both dialects share when the probe found no dialect). Nothing when the
     port never opened, nor a second round after a switch-off that failed (its error is said; a
     silent controller would cost each round its time-outs). Says the outcome (an ``interrupt``
-    gets it in ``tube``; ``describe`` words an error, by default its text on one line); returns
+    gets it in ``tube``; ``describe`` words an error, by default its text on one line; ``say``
+    writes a line, by default straight to stderr's descriptor -- the command line passes its own
+    print to ``sys.stderr``, so that these lines keep their place among its others); returns
     whether STS confirmed it. The exit rule reads the driver. Shared by the source commands and a
     series (one switch-off through the freed port, not one each)."""
     from acquisition.errors import DeviceError
 
+    say = say or _say
     if src is None or not src.port_opened or (src.dialect is None and not blind):
         return False
     state = src.confirmed_off
@@ -100,13 +103,13 @@ def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tru
         # said now: with a silent controller the attempt takes its time-outs (seconds), and the
         # operator who pressed Ctrl-C or saw the connect fail would otherwise wait in silence
         why = "interrupted while connecting" if interrupt is not None else "the connect failed"
-        _say(f"{src.port}: {why}: sending XOF anyway and confirming by STS (a few seconds)")
+        say(f"{src.port}: {why}: sending XOF anyway and confirming by STS (a few seconds)")
         try:
             state = src.off_unconnected(after_interrupt=interrupt is not None)
         except DeviceError as exc:
             why = (describe or _one_line)(exc)
             if interrupt is None:
-                _say(f"error: switching off anyway: {why}")
+                say(f"error: switching off anyway: {why}")
             else:
                 interrupt.tube = f"switching off anyway failed ({why})"
             return False
@@ -116,7 +119,7 @@ def off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tru
     if interrupt is not None:
         interrupt.tube = line
     else:
-        _say(f"{src.port}: {line}")
+        say(f"{src.port}: {line}")
     return True
 
 
