@@ -864,9 +864,14 @@ def _options(preset, overrides) -> dict:
         raise ValueError(f"refit_again={o['refit_again']!r}: needs refit_thinning=True (it repeats that refit)")
     if overrides.get("rim") and not o["refit_thinning"]:  # measured only in the refit's passes
         raise ValueError(f"rim={o['rim']!r}: needs refit_thinning=True (the rim is left out of its passes)")
-    if not o["rim"] < 0.5:  # no pixel lies half the smaller side from every edge: no data left
-        raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
+    _check_rim(o)
     return o
+
+
+def _check_rim(o):
+    """ValueError when ``o``'s rim leaves no data: no pixel lies half the smaller side from every edge."""
+    if not o["rim"] < 0.5:
+        raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
 
 
 def _check_choices(o):
@@ -894,8 +899,7 @@ def check_option_values(options) -> None:
     o = dict(PRESETS["default"], **given)  # the defaults pass: what fails is an option given
     _check_choices(o)
     _check_values(o)
-    if not o["rim"] < 0.5:
-        raise ValueError(f"rim={o['rim']!r}: must be under 0.5 (a fraction of the smaller side)")
+    _check_rim(o)
 
 
 # each numeric option's least value and whether it may equal it; every one must be a finite real
