@@ -101,6 +101,10 @@ def _run(args) -> int:
         except DeviceError as exc:
             print(f"error: {args.protocol}: {exc}", file=sys.stderr)
             return 2
+    from radiokit.io import restore_previous
+
+    for _, line in restore_previous(p.output):  # before every check: they are about that file
+        _say(line)
     if args.resume and not Path(p.output).exists():
         # said here in one line, and the new file checked as any new file (the run's own log
         # warning reached the terminal with a timestamp and a logger's name)
@@ -284,13 +288,18 @@ def _series(guard, args, p) -> int:
         r = getattr(exc, "result", None)
         name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
         saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-        _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
+        if r is not None and r.previous_kept:
+            _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
+        else:
+            _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
         return _finish(r, 128 + getattr(exc, "signum", 2))
     except Exception as exc:
         r = getattr(exc, "result", None)
         known = isinstance(exc, (DeviceError, OSError, ValueError))
         _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
-        if r is not None and r.phase != "connect":
+        if r is not None and r.phase != "connect" and r.previous_kept:
+            _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
+        elif r is not None and r.phase != "connect":
             _say(
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
             )
@@ -306,6 +315,11 @@ def _series(guard, args, p) -> int:
         err=False,
     )
     return _finish(res, 0, err=False)
+
+
+#: An --overwrite stopped before its first frame: the file it was to replace is there, as it was
+#: (a `--resume` would go on with that series, not start the new one).
+_KEPT = "no frame taken: {out} holds the previous series, unchanged"
 
 
 def resume_command(args) -> str:

@@ -1177,3 +1177,144 @@ def test_an_offset_near_the_adc_top_refuses_darks_and_flats_not_the_exposure(tmp
     assert list(contents(p.output)["key"]) == [ImageKey.INVALID] * (DARKS + FLATS)
     res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
     assert res.phase == "done" and res.tube_off is True and res.frames_written == TOTAL
+
+
+# -- --overwrite: the old series survives a run stopped before its first frame ---------------------
+
+
+def _old_series(path):
+    """A previous series at ``path`` (two darks of another shape: its bytes are all that is checked)."""
+    with ExperimentWriter(path, shape=(4, 4)) as w:
+        for v in (100, 101):
+            w.append(np.full((4, 4), v, np.uint16), image_key=ImageKey.DARK)
+    return path.read_bytes()
+
+
+def _beside(path):
+    """What the folder holds beside the series and its notebook (hidden siblings included)."""
+    ours = (path.name, path.with_suffix(".log").name, "protocol.toml")
+    return sorted(p.name for p in path.parent.iterdir() if p.name not in ours)
+
+
+def _in_warm_up_then(dev, what):
+    """Once the emulated tube is warming up (the experiment file opened before it), ``what()``."""
+
+    def wait():
+        for _ in range(400):
+            if dev.emulator.state == 1:  # WARMING_UP
+                break
+            time.sleep(0.01)
+        what()
+
+    t = threading.Thread(target=wait, daemon=True)
+    t.start()
+    return t
+
+
+OVERWRITE_STOPS = {
+    # Ctrl-C while the tube warms up (the experiment file is opened before the warm-up)
+    "Ctrl-C in the warm-up": (
+        lambda dev: _in_warm_up_then(dev, lambda: os.kill(os.getpid(), signal.SIGINT)),
+        KeyboardInterrupt,
+    ),
+    # the tube does not start: the interlock opens as the warm-up runs
+    "the warm-up fails": (lambda dev: _in_warm_up_then(dev, dev.emulator.open_interlock), SourceFault),
+    # the panel gives no frame
+    "the detector fails": (lambda dev: dev.detector.fail_after(0), DetectorTimeout),
+}
+
+
+@pytest.mark.parametrize("stop", list(OVERWRITE_STOPS))
+def test_an_overwrite_stopped_before_its_first_frame_leaves_the_old_series_as_it_was(
+    tmp_path, scene_toml, bench, stop, sigint_default
+):
+    """`acquire --overwrite` truncated the old experiment file as it opened it, before the warm-up:
+    a run that then failed (the tube did not start, the panel gave nothing, Ctrl-C) lost the
+    previous series and left nothing in its place. It survives, byte for byte, every run that
+    ends before the new one has a frame of its own; nothing is left beside it."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    p.sim.warmed_up, p.sim.warmup_s = False, 3.0
+    out = Path(p.output)
+    before = _old_series(out)
+    dev = sim_devices(p, bench=bench)
+    inject, exc_type = OVERWRITE_STOPS[stop]
+    t = inject(dev)
+    with pytest.raises(exc_type) as info:
+        run(p, devices=dev, progress=False, overwrite=True)
+    if t is not None:
+        t.join()
+    assert not dev.emulator.xray_on and info.value.result.frames_total == 0
+    assert info.value.result.phase in ("warm-up", "darks"), info.value.result.phase
+    assert out.read_bytes() == before, stop
+    assert _beside(out) == [], _beside(out)
+    assert info.value.result.previous_kept is True
+    assert "previous series" in " ".join(getattr(info.value, "__notes__", [])), info.value.__notes__
+
+
+def test_an_overwrite_that_completes_replaces_the_old_series(tmp_path, scene_toml, bench):
+    """The run that takes its frames replaces the old series; nothing of it stays beside."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    out = Path(p.output)
+    before = _old_series(out)
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, overwrite=True)
+    assert res.phase == "done" and res.previous_kept is False
+    assert out.read_bytes() != before
+    assert_complete(out)
+    assert _beside(out) == [], _beside(out)
+
+
+def test_an_overwrite_stopped_after_its_first_frame_keeps_its_own_frames(tmp_path, scene_toml, bench, sigint_default):
+    """Once the new run has a frame of its own the old series is gone: the file is the new run's
+    journal, and `--resume` completes it."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    out = Path(p.output)
+    _old_series(out)
+    seen = []
+
+    def hook(phase, info=None):
+        if phase == "frame":
+            seen.append(info)
+            # the old series went with the first frame (the reserve is the writer's, removed on close)
+            assert [n for n in _beside(out) if not n.endswith(".reserve")] == [], _beside(out)
+            if len(seen) == 2:
+                signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt) as info:
+        run(p, devices=sim_devices(p, bench=bench), progress=False, overwrite=True, on_phase=hook)
+    assert info.value.result.frames_total == 2 and info.value.result.previous_kept is False
+    assert list(contents(out)["key"]) == [ImageKey.DARK] * 2
+    res = run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True)
+    assert res.phase == "done"
+    assert_complete(out)
+
+
+def test_cli_an_overwrite_stopped_in_the_warm_up_says_the_previous_series_is_unchanged(
+    tmp_path, scene_toml, capsys, sigint_default
+):
+    """The stop line said "0 frames saved in series.h5; `... --resume` completes it": the file
+    holds the previous series, which that resume would have gone on with."""
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    p.sim.warmed_up, p.sim.warmup_s = False, 5.0
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    before = _old_series(out)
+    notebook = out.with_suffix(".log")
+
+    def ctrl_c_in_the_warm_up():
+        for _ in range(600):
+            if notebook.exists() and re.search(r"> (STS 1|WUP|XON)", notebook.read_text(errors="replace")):
+                break
+            time.sleep(0.05)
+        time.sleep(0.2)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c_in_the_warm_up)
+    t.start()
+    code = _cli("acquire", str(path), "--sim", "-q", "--overwrite")
+    t.join()
+    err = capsys.readouterr().err
+    assert code == 130, err
+    assert f"no frame taken: {out} holds the previous series, unchanged" in err, err
+    assert "--resume" not in err, err
+    assert out.read_bytes() == before and _beside(out) == []

@@ -2321,3 +2321,89 @@ def test_experiment_overwrite_in_a_read_only_folder_is_one_line_naming_the_file(
     assert out.startswith("OutputError ") and str(path) in out and ".tmp-" not in out, out
     assert "folder" in out and "not writable" in out and "in_place" in out, out
     assert path.read_bytes() == before and sorted(p.name for p in folder.iterdir()) == ["exp.h5"]
+
+
+# -- an in-place overwrite keeps the old file aside until its first frame ---------------------------
+
+
+def _previous(folder):
+    return sorted(p.name for p in folder.iterdir() if ".previous-" in p.name)
+
+
+@pytest.mark.parametrize("how", ["closed", "an exception", "never closed"])
+def test_experiment_in_place_overwrite_without_a_frame_puts_the_old_file_back(tmp_path, how):
+    """``in_place=True`` truncated the old file as the writer opened: a writer closed (or dropped)
+    before its first frame left an empty file where a series was. The old file is kept aside,
+    hidden, and put back byte for byte; once a frame is on disk it is removed."""
+    import gc
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    w = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    assert w.previous is not None and _previous(tmp_path) == [w.previous.name]
+    assert re.fullmatch(r"\.exp\.previous-.+-\d+-[0-9a-f]{8}\.h5", w.previous.name), w.previous.name
+    if how == "closed":
+        w.close()
+    elif how == "an exception":
+        with pytest.raises(RuntimeError), w:
+            raise RuntimeError("the tube did not start")
+    else:
+        del w
+        gc.collect()
+    assert path.read_bytes() == before and _previous(tmp_path) == []
+    with ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True) as w:
+        w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+        assert w.previous is None and _previous(tmp_path) == []
+    assert read(path).n == 1 and not w.restored_previous
+
+
+def test_experiment_in_place_overwrite_refused_when_its_first_frame_cannot_fit_beside(tmp_path, monkeypatch):
+    """Kept until the first frame, the old file takes its space until then: a disk without room
+    for that frame beside it is refused at opening, the old file untouched."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    monkeypatch.setattr(ExperimentWriter, "_free_bytes", lambda self: 1000)
+    with pytest.raises(OSError, match=r"disk full.*old file is unchanged") as err:
+        ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    assert err.value.errno == errno.ENOSPC
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
+
+
+def _dead_pid():
+    proc = subprocess.Popen([sys.executable, "-c", ""])
+    proc.wait()
+    return proc.pid
+
+
+def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_its_own(tmp_path):
+    """A run killed (kill -9) between setting the old file aside and its first frame: the next run
+    puts it back. Not over a file holding frames (it is named instead), nor one a live run keeps."""
+    import socket
+
+    from radiokit.io import restore_previous
+
+    host = socket.gethostname().split(".")[0]
+    path = tmp_path / "exp.h5"
+    old = _write_experiment(tmp_path / "old.h5", shape=EXP_SHAPE)
+    before = old.read_bytes()
+    aside = tmp_path / f".exp.previous-{host}-{_dead_pid()}-0123abcd.h5"
+    # the name holds the killed run's file with no frame: put back
+    old.rename(aside)
+    ExperimentWriter(path, shape=EXP_SHAPE).close()
+    said = restore_previous(path)
+    assert said == [(True, said[0][1])] and aside.name in said[0][1] and "restored" in said[0][1], said
+    assert path.read_bytes() == before and not aside.exists()
+    # nothing under the name (killed between the rename and the new file): put back
+    path.rename(aside)
+    assert restore_previous(path)[0][0] is True and path.read_bytes() == before
+    # the name holds frames: kept, and named
+    path.rename(aside)
+    _write_experiment(path, shape=EXP_SHAPE)
+    after = path.read_bytes()
+    said = restore_previous(path)
+    assert len(said) == 1 and said[0][0] is False and str(aside) in said[0][1], said
+    assert aside.read_bytes() == before and path.read_bytes() == after
+    # a live run's: its own to put back, nothing said
+    live = tmp_path / f".exp.previous-{host}-{os.getppid()}-0123abcd.h5"
+    aside.rename(live)
+    assert restore_previous(path) == [] and live.exists()

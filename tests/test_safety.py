@@ -939,6 +939,36 @@ def test_a_lost_stop_still_on_its_way_as_the_guard_ends_is_raised_there(switchin
     assert switching_off or stop.value.signum == signal.SIGINT
 
 
+@ONE_DIALECT
+def test_an_overwrite_killed_before_its_first_frame_leaves_the_old_series_and_the_next_run_restores_it(
+    tmp_path, scene_file, controller
+):
+    """`acquire --overwrite` truncated the previous series as it opened the file, before the
+    warm-up: kill -9 in the warm-up left an empty file under the name and the old frames nowhere.
+    The old file is kept beside it, hidden, until the new run's first frame; the next run on that
+    file (here a plain one, refused as the file exists) puts it back, byte for byte, and says so in
+    one line."""
+    model, server = controller(warmed_up=False)
+    proto = write_protocol(tmp_path, scene_file, server)
+    out = tmp_path / "series.h5"
+    with ExperimentWriter(out, shape=(4, 4)) as w:
+        w.append(np.full((4, 4), 100, np.uint16), image_key=ImageKey.DARK)
+    before = out.read_bytes()
+    acq = Acquire(proto, "--sim", "-q", "--overwrite")
+    reach("warm-up", model, tmp_path, acq)
+    acq.signal(signal.SIGKILL)
+    assert acq.wait() == -signal.SIGKILL
+    wait_until(lambda: not model.xray_on and model.state != 1, what="the guardian's switch-off")
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith(".series.") and p.name.endswith(".h5")]
+    assert len(kept) == 1 and kept[0].read_bytes() == before, sorted(p.name for p in tmp_path.iterdir())
+    again = Acquire(proto, "--sim", "-q")
+    assert again.wait() == 2, again.output
+    said = [ln for ln in again.lines if ln.strip()]
+    assert len(said) == 2 and said[0].startswith(f"{out}: restored the previous series from {kept[0].name}"), said
+    assert said[1].startswith(f"error: {out}: exists"), said
+    assert out.read_bytes() == before and not kept[0].exists()
+
+
 def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):
     """A previous run killed with the beam on (or a hand left it on): the next run asks STS and
     switches off, confirmed, before any other command and before asking anyone for anything;

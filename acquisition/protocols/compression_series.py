@@ -872,6 +872,7 @@ class Result:
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
+    previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
@@ -920,6 +921,7 @@ class _Run:
     user_notify: object
     writer_factory: object
     devices: Devices | None = None
+    replacing: bool = False  # an overwrite of an existing file: the old one is kept until the first frame
     writer: object = None
     monitor: _BeamMonitor | None = None
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
@@ -1014,7 +1016,9 @@ def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
 
     p = r.p
     series = p.series.darks + p.series.flats + p.series.frames_per_step * len(p.series.steps)
-    held = r.out.stat().st_size if r.resume and existed else 0
+    # resumed, the file holds part of the series; overwritten, the old file is freed with the
+    # first frame (the writer refuses one that would not fit beside it)
+    held = r.out.stat().st_size if (r.resume or r.overwrite) and existed else 0
     need = series * 2 * int(np.prod(r.devices.detector.shape)) - held
     try:
         free = shutil.disk_usage(r.out.parent).free
@@ -1042,9 +1046,10 @@ def _open_experiment(r: _Run):
         },
         title=f"radiokit compression series: {p.name}",
         bit_depth=p.detector.bits if p.detector.bits != 12 else None,  # 12: the readers' default
-        # --overwrite truncates the old file at once: the file is the run's journal, and a run
-        # killed part-way must leave its frames under the name --resume continues (built beside
-        # it and renamed at the end, they were in a hidden temporary the next run removes)
+        # the file is the run's journal: a run killed part-way must leave its frames under the
+        # name --resume continues (built beside it and renamed at the end, they were in a hidden
+        # temporary the next run removes). The old file is kept aside until the first frame: a
+        # run stopped before it (the warm-up failed, Ctrl-C, no panel) leaves it as it was
         in_place=True,
     )
     existed = r.out.exists()
@@ -1363,6 +1368,7 @@ def run(
             on_phase or (lambda phase, info=None: None),
             writer_factory or ExperimentWriter,
             devices=devices,
+            replacing=bool(overwrite and not resume and out.exists()),
         )
         if done:
             r.done = done
@@ -1412,6 +1418,12 @@ def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
     """The checks before a run writes or opens anything: ``(resume, done, complete)``, where
     ``done`` is what a resumed file holds and ``complete`` the :class:`Result` of a resume that
     has nothing to take (then nothing was touched)."""
+    from radiokit.io import restore_previous
+
+    # an --overwrite killed before its first frame left the old file aside: put back first, it is
+    # the file every check below is about (the command line has said this already)
+    for restored, line in restore_previous(out):
+        log.log(logging.WARNING if restored else logging.INFO, "%s", line)
     if resume and not out.exists():
         log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
         resume = False
@@ -1527,6 +1539,7 @@ def _stop(r: _Run, exc: BaseException):
         res.frames_total = r.writer.n_frames
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
+    kept = r.replacing and (r.writer is None or getattr(r.writer, "previous", None) is not None)
     what = (
         f"stopped by {exc.name}"
         if hasattr(exc, "signum")
@@ -1538,7 +1551,11 @@ def _stop(r: _Run, exc: BaseException):
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
-    if hasattr(exc, "add_note"):
+    if hasattr(exc, "add_note") and kept:
+        exc.add_note(
+            f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
+        )
+    elif hasattr(exc, "add_note"):
         exc.add_note(
             f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
             f"`radiokit acquire PROTOCOL --resume` completes the series"
@@ -1596,6 +1613,8 @@ def _release(r: _Run, notebook):
             r.writer.close()
         except Exception as exc:
             log.error("closing %s: %s", r.out, exc)
+    # no frame of its own: the writer put the old file back (or never set it aside)
+    r.res.previous_kept = r.replacing and (r.writer is None or getattr(r.writer, "restored_previous", False))
     if r.devices is not None:
         _tube_off(r)
         r.devices.close()

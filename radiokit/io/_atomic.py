@@ -488,12 +488,12 @@ def _owner_tag() -> str:
 _NAME_MAX = 255
 
 
-def _head(path: Path, folder: bool) -> str:
+def _head(path: Path, folder: bool, kind: str = "tmp") -> str:
     """The part of ``path``'s name its temporaries begin with: the name (a folder) or the stem,
-    cut so that ``.HEAD.tmp-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
+    cut so that ``.HEAD.KIND-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
     (room for a 10-digit PID: the same head for every process, so stale ones are found)."""
     head, tail = (path.name, "") if folder else (path.stem, path.suffix)
-    room = _NAME_MAX - len(os.fsencode(f"..tmp-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
+    room = _NAME_MAX - len(os.fsencode(f"..{kind}-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
     while head and len(os.fsencode(head)) > room:  # cut whole characters, not bytes of one
         head = head[:-1]
     return head
@@ -503,7 +503,7 @@ def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     """``.NAME.tmp-HOST-PID-RANDOM`` beside ``path`` (``old`` for a folder being replaced); a file
     keeps its suffix last, since writers choose the format from it (StackWriter, matplotlib)."""
     tag = f"{kind}-{_owner_tag()}-{secrets.token_hex(4)}"
-    return path.with_name(f".{_head(path, folder)}.{tag}{'' if folder else path.suffix}")
+    return path.with_name(f".{_head(path, folder, kind)}.{tag}{'' if folder else path.suffix}")
 
 
 def _remove_stale(path: Path, folder=False, kinds=("tmp", "old")) -> None:
@@ -512,7 +512,7 @@ def _remove_stale(path: Path, folder=False, kinds=("tmp", "old")) -> None:
     host = socket.gethostname().split(".")[0]
     for kind in kinds if folder else ("tmp",):
         # the name's own characters taken literally: "scan[1]" is no character class
-        head, suffix = glob.escape(_head(path, folder)), "" if folder else glob.escape(path.suffix)
+        head, suffix = glob.escape(_head(path, folder, kind)), "" if folder else glob.escape(path.suffix)
         pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
         for old in path.parent.glob(pattern):
             m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)

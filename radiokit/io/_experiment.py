@@ -11,11 +11,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import glob
 import math
 import os
 import re
 import shutil
+import socket
 import time
 import warnings
 import weakref
@@ -32,7 +35,9 @@ from radiokit.errors import FormatError
 from radiokit.interrupts import settle
 from radiokit.io._atomic import (
     OutputError,
+    _alive,
     _fsync,
+    _head,
     _human,
     _keep_mode,
     _remove,
@@ -48,6 +53,7 @@ __all__ = [
     "ImageKey",
     "ExperimentProgress",
     "read_progress",
+    "restore_previous",
     "DETECTOR",
     "FRAMES",
     "IMAGE_KEY",
@@ -100,7 +106,8 @@ class ExperimentWriter:
     """Append frames to an experiment file, flushing after each.
 
     A new file, or one overwritten ``in_place``, is written under its own name: a crash loses at
-    most the frame in flight, and the rest stay there for ``--resume``. An overwrite that is not
+    most the frame in flight, and the rest stay there for ``--resume``. Overwritten ``in_place``,
+    the old file is kept aside, hidden, until the first new frame is on disk. An overwrite that is not
     ``in_place`` builds the new file in a hidden temporary beside the old one, which it replaces
     only when closed without an error: a crash, an error, or a writer never closed leaves the old
     file unchanged and the new frames in the temporary (a writer garbage-collected or alive at
@@ -128,8 +135,13 @@ class ExperimentWriter:
         calibration infers the range from the darks and flats
         (:func:`radiokit.calibrate.adc_top`).
     in_place : bool
-        With ``overwrite``, truncate an existing file at once and write the new one under its
-        name. By default the new file is built beside it (beside a symbolic link's target, the
+        With ``overwrite``, write the new file under the existing file's name, frame by frame.
+        The old file is first renamed to a hidden sibling, ``.NAME.previous-HOST-PID-XXXXXXXX.h5``
+        (the same folder: an atomic rename), put back by :meth:`close` (or a failed opening) while
+        the new file has no frame, and removed once the first frame is on disk: a run that ends
+        before it has a frame of its own (an error, Ctrl-C) leaves the old file as it was, and one
+        killed then (kill -9, a power cut) leaves it in the sibling, which
+        :func:`restore_previous` puts back. Its folder must be writable. By default the new file is built beside it (beside a symbolic link's target, the
         link kept) and renamed over it only when closed without an error, as every radiokit
         output is (:func:`radiokit.io.atomic_path`): a run killed or failed part-way leaves the
         old file whole. The acquisition passes True: its file is the run's journal, and a run
@@ -137,7 +149,8 @@ class ExperimentWriter:
         A new file is always written under its own name, frame by frame, for the same reason.
         Built beside, the old file takes its space until the new one replaces it: an overwrite
         that would need more than is free is refused at opening if not even one frame fits, and
-        warned about if a new file as large as the old one would not.
+        warned about if a new file as large as the old one would not. In place, it takes its
+        space until the first frame: refused at opening if that frame does not fit beside it.
 
     Examples
     --------
@@ -178,14 +191,21 @@ class ExperimentWriter:
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._file, self._replaces = self._where(mode, overwrite, in_place)
-        if self._replaces is not None and shape is not None:
-            self._check_overwrite_room(math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize)
+        frame_bytes = None if shape is None else math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize
+        if self._replaces is not None and frame_bytes is not None:
+            self._check_overwrite_room(frame_bytes)
+        self._previous, self.restored_previous = None, False
+        if in_place and mode == "w" and os.path.lexists(self._file):
+            self._previous = self._set_aside(frame_bytes)
         try:
             self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
-        except OSError as exc:
-            if self._replaces is not None and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        except BaseException as exc:
+            self._put_back()
+            if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise self._unwritable_folder(exc.errno) from None
             raise
+        if self._previous is not None:
+            _keep_mode(self._file, self._previous)  # as writing into the old file would have
         try:
             if mode == "w":
                 if shape is None:
@@ -197,10 +217,11 @@ class ExperimentWriter:
                     self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
             else:
                 self._reopen(shape)
-        except Exception:
+        except BaseException:  # Ctrl-C too: the old file kept aside goes back
             self._h5.close()
             if self._replaces is not None:
                 _remove(self._file)
+            self._put_back()
             raise
         # Never closed (garbage-collected, or alive at interpreter exit): the reserve's space is
         # given back, and an overwrite built beside the old file is not renamed into place (it
@@ -211,6 +232,7 @@ class ExperimentWriter:
             str(self.path),
             None if self._replaces is None else str(self._file),
             self._ballast_path if self.ballast else None,
+            self._previous,
         )
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
@@ -226,6 +248,58 @@ class ExperimentWriter:
             return target, None
         _remove_stale(target)  # a killed overwrite's temporary, its process gone
         return _temporary_name(target), target
+
+    @property
+    def previous(self) -> Path | None:
+        """The old file an ``in_place`` overwrite keeps aside until the first frame is on disk
+        (None: there is none, or it has gone)."""
+        return self._previous
+
+    def _set_aside(self, frame_bytes: int | None) -> Path:
+        """Rename the old file to its hidden sibling; refused (the old file untouched) when the
+        first frame cannot fit beside it or the folder takes no rename."""
+        old = self._file
+        if frame_bytes is not None:
+            free = self._free_bytes()
+            if free < frame_bytes + self.reserve_bytes:
+                raise OSError(
+                    errno.ENOSPC,
+                    f"{self.path}: disk full: {free} bytes free, a frame needs {frame_bytes} plus "
+                    f"{self.reserve_bytes} in reserve beside the old file, which is kept until the new file's "
+                    "first frame; nothing was written, the old file is unchanged; free space or write elsewhere",
+                )
+        aside = _temporary_name(old, kind="previous")
+        try:
+            os.rename(old, aside)
+        except OSError as exc:
+            if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+                raise OutputError(
+                    old,
+                    f"cannot be overwritten: its folder {old.parent} is not writable, so the old file cannot "
+                    "be kept beside it until the new file's first frame; make the folder writable or write "
+                    "to another folder",
+                    exc.errno,
+                ) from None
+            raise
+        _fsync(old.parent)
+        return aside
+
+    def _put_back(self) -> None:
+        """No frame of the new file: the old file kept aside goes back under its name."""
+        aside, self._previous = self._previous, None
+        if aside is None:
+            return
+        os.replace(aside, self._file)
+        _fsync(self._file.parent)
+        self.restored_previous = True
+
+    def _drop_previous(self) -> None:
+        """The first frame is on disk: the old file kept aside may go."""
+        aside, self._previous = self._previous, None
+        _fsync(self._file)  # the frame on disk before the old file leaves it: a power cut keeps one
+        with contextlib.suppress(OSError):  # left beside, it is named by the next run
+            _remove(aside)
+            _fsync(aside.parent)
 
     def _kept(self) -> str:
         """What an overwrite built beside the old file leaves when it stops, for a refusal."""
@@ -265,8 +339,8 @@ class ExperimentWriter:
         return OutputError(
             self._replaces,
             f"cannot be replaced: its folder {folder} is not writable, so the new file cannot be built beside it "
-            "and renamed over it; make the folder writable, write to another folder, or pass in_place=True to "
-            "write over the file itself (its old frames are lost at once)",
+            "and renamed over it (nor, in_place, the old one kept aside); make the folder writable or write to "
+            "another folder",
             err,
         )
 
@@ -420,6 +494,8 @@ class ExperimentWriter:
             self._h5.flush()  # the pixels are on disk
             self._h5[DETECTOR]["image_key"][i] = int(image_key)
             self._h5.flush()  # only now is the frame what it claims to be
+            if self._previous is not None:
+                self._drop_previous()
         except Exception as exc:
             self._failed = " ".join(str(exc).split())[:200]
             self._drop_ballast()
@@ -564,7 +640,10 @@ class ExperimentWriter:
             finally:
                 self._h5.close()
                 self._drop_ballast()
-                self._finish(keep and not getattr(self, "_failed", None))
+                try:
+                    self._finish(keep and not getattr(self, "_failed", None))
+                finally:
+                    self._put_back()
 
     def _finish(self, keep: bool) -> None:
         """Rename the new file over the one it replaces (``keep``), else remove it."""
@@ -593,14 +672,18 @@ class ExperimentWriter:
         self.close(keep=exc_type is None)
 
 
-def _unclosed(path: str, tmp: str | None, ballast: Path | None) -> None:
-    """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, and for an
-    overwrite built beside the old file (``tmp``), a warning naming both files."""
+def _unclosed(path: str, tmp: str | None, ballast: Path | None, previous: Path | None = None) -> None:
+    """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, the old
+    file an in-place overwrite kept aside put back if it is still there (no frame was written),
+    and for an overwrite built beside the old file (``tmp``), a warning naming both files."""
     if ballast is not None:
         try:
             ballast.unlink()
         except OSError:
             pass
+    if previous is not None and previous.exists():
+        with contextlib.suppress(OSError):
+            os.replace(previous, resolved(path))
     if tmp is None:
         return
     warnings.warn(
@@ -639,6 +722,58 @@ class ExperimentProgress:
     step: np.ndarray
     protocol: str | None = None
     devices: str | None = None
+
+
+def restore_previous(path) -> list[tuple[bool, str]]:
+    """Put back the file an ``in_place`` overwrite of ``path`` kept aside when the process that
+    kept it is gone and left no frame of its own under the name (killed before its first frame:
+    kill -9, a power cut). Every run on an experiment file calls it first.
+
+    Returns
+    -------
+    list of (restored, line)
+        One per file found: ``(True, line)`` when it was put back, ``(False, line)`` when it stays
+        beside (the name holds the new file's frames, or another host's process kept it), the
+        line naming it for the operator. A file kept by a process still running is its own.
+    """
+    target = resolved(path)
+    host = socket.gethostname().split(".")[0]
+    head = _head(target, False, "previous")
+    said = []
+    for old in sorted(target.parent.glob(f".{glob.escape(head)}.previous-*{glob.escape(target.suffix)}")):
+        m = re.fullmatch(rf"\.{re.escape(head)}\.previous-(.+)-(\d+)-[0-9a-f]{{8}}{re.escape(target.suffix)}", old.name)
+        if m is None:
+            continue
+        here, pid = m.group(1) == host, int(m.group(2))
+        if here and (pid == os.getpid() or _alive(pid)):
+            continue  # a run in progress: until its first frame, the old file is its to put back
+        if here and not _holds_a_frame(target):
+            os.replace(old, target)
+            _fsync(target.parent)
+            said.append(
+                (
+                    True,
+                    f"{path}: restored the previous series from {old.name} (an --overwrite stopped before its "
+                    "first frame had set it aside)",
+                )
+            )
+        else:
+            said.append(
+                (
+                    False,
+                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite that was "
+                    "stopped as it took its first frame); move it back or remove it",
+                )
+            )
+    return said
+
+
+def _holds_a_frame(path: Path) -> bool:
+    """``path`` holds a frame that is not labelled invalid (unreadable, it holds none to keep)."""
+    try:
+        return bool(np.any(read_progress(path).image_key != ImageKey.INVALID))
+    except Exception:
+        return False
 
 
 def read_progress(path, allow_external=False) -> ExperimentProgress:
