@@ -2369,6 +2369,27 @@ def test_experiment_in_place_overwrite_refused_when_its_first_frame_cannot_fit_b
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"]
 
 
+def test_an_unclosed_in_place_writer_never_puts_the_old_file_back_over_its_own_frames(tmp_path, monkeypatch):
+    """The old file kept aside outlives the first frame only if its removal failed; a writer then
+    dropped unclosed must not rename it back over the frames it wrote. A removal that fails is a
+    fault this test cannot cause as root (a read-only folder does not stop root), hence the fake."""
+    import gc
+
+    import radiokit.io._experiment as exp_mod
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    monkeypatch.setattr(exp_mod, "_remove", lambda p: (_ for _ in ()).throw(PermissionError(13, "fake")))
+    w = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    aside = w.previous
+    w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    w._h5.flush()
+    del w
+    gc.collect()
+    assert aside.exists() and aside.read_bytes() == before
+    assert read(path).n == 1
+
+
 def _dead_pid():
     proc = subprocess.Popen([sys.executable, "-c", ""])
     proc.wait()

@@ -681,7 +681,9 @@ def _unclosed(path: str, tmp: str | None, ballast: Path | None, previous: Path |
             ballast.unlink()
         except OSError:
             pass
-    if previous is not None and previous.exists():
+    # the sibling outlives the first frame only where its removal failed: then the name holds
+    # the new run's frames, which putting the old file back would destroy
+    if previous is not None and previous.exists() and not _holds_a_frame(resolved(path)):
         with contextlib.suppress(OSError):
             os.replace(previous, resolved(path))
     if tmp is None:
