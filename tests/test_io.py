@@ -426,6 +426,26 @@ def test_itex_scaling_pointer_beyond_end(tmp_path):
     _raises_format(path, "Scaling", "beyond the end")
 
 
+@needs_itex
+@pytest.mark.parametrize(
+    "name, change",
+    [("photon_counting.img", d) for d in (-2, -1, 1, 2)] + [("xaxis_other.img", -1), ("focus_mode.img", 1)],
+)
+def test_itex_comment_length_off_by_a_few_bytes_is_refused(tmp_path, name, change):
+    """A header's comment length a byte or two off moves the pixels' start: the photon-counting
+    file's 0..35 read as 0..45824 (a review's edit, +1), silently. The [Scaling] pointer says where
+    the writer's pixels end, and HPD-TA's comment ends in a quoted value: either disagreeing with
+    the header is refused in one line naming the file."""
+    raw = bytearray((ITEX_DIR / name).read_bytes())
+    struct.pack_into("<H", raw, 2, struct.unpack_from("<H", raw, 2)[0] + change)
+    path = tmp_path / name
+    path.write_bytes(bytes(raw))
+    _raises_format(path, "comment length disagrees" if change < 0 and name == "xaxis_other.img" else "disagrees")
+    res = run_cli("info", path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr and str(path) in res.stderr, res.stderr
+    assert len([line for line in res.stderr.splitlines() if line.strip()]) == 1, res.stderr
+
+
 def test_itex_compressed_type_raises(tmp_path):
     path = tmp_path / "packed.img"
     path.write_bytes(_itex_bytes(np.zeros((4, 4), np.uint16), 1))

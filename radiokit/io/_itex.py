@@ -15,7 +15,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["parse_itex_header", "parse_comment", "check_tail", "ITEX_TYPES"]
+__all__ = ["parse_itex_header", "parse_comment", "check_comment_end", "check_tail", "ITEX_TYPES"]
 
 # The comment length is unsigned: HiPic writes comments over 32767 bytes (read signed, a valid
 # 40 000-byte one was "negative"); width and height stay signed, a negative one is corrupt.
@@ -222,6 +222,18 @@ def read_scaling(path, fh, comment: dict, size: int) -> dict:
     return axes
 
 
+def check_comment_end(path, geo: dict, text: str) -> None:
+    """Refuse a comment whose declared length cuts a quoted value: HPD-TA quotes text values and
+    ends its comment with one (``UserComment=""``), so a length a byte short leaves the comment
+    ending inside quotes, and the closing quote read as the first pixel's byte shifts every pixel."""
+    if text.count('"') % 2:
+        raise FormatError(
+            path,
+            f"ITEX comment of {geo['comment_length']} bytes (the header's length) ends inside a quoted value: "
+            "the header's comment length disagrees with the text (pixels read after it would be shifted); not read",
+        )
+
+
 def check_tail(path, geo: dict, comment: dict) -> None:
     """Refuse a file holding an image's worth of bytes or more after its declared images that no
     ``[Scaling]`` axis accounts for: a header whose count or size declares less than the pixels
@@ -231,11 +243,26 @@ def check_tail(path, geo: dict, comment: dict) -> None:
     image = geo["rows"] * geo["cols"] * geo["dtype"].itemsize
     pixels_end = geo["offset"] + geo["n"] * image
     size = geo["file_size"]
-    spans = []
+    spans, starts = [], []
     for axis in ("X", "Y"):  # the byte ranges the axes take, where they lie after the pixels
         m = _POINTER.match(str(comment.get("Scaling", {}).get(f"Scaling{axis}ScalingFile", "")))
         if m:
+            if int(m.group(1)) + 4 * int(m.group(2)) <= size:  # beyond the end: read_scaling says so
+                starts.append((int(m.group(1)), axis))
             spans.append((max(int(m.group(1)), pixels_end), min(int(m.group(1)) + 4 * int(m.group(2)), size)))
+    # The writer's own pointer says where its pixels end: HPD-TA stores the first axis right after
+    # them (all five vendor files, to the byte). A comment length off by a byte or two moves the
+    # pixels' start, and every pixel is then read byte-shifted (0..35 read as 0..45824), with
+    # nothing else in the file to tell: the pointer is the one witness, so any mismatch is refused.
+    if starts and min(starts)[0] != pixels_end:
+        first, axis = min(starts)
+        raise FormatError(
+            path,
+            f"ITEX [Scaling] {axis} axis begins at byte {first}, but the header's {geo['comment_length']}-byte "
+            f"comment and {geo['n']} image(s) of {geo['cols']}x{geo['rows']} {8 * geo['dtype'].itemsize}-bit end "
+            f"the pixels at byte {pixels_end}: the header's comment length or size disagrees with the file "
+            "(pixels read from there would be shifted); not read",
+        )
     explained, reached = 0, pixels_end
     for start, stop in sorted(spans):  # overlapping axes counted once
         explained += max(0, stop - max(start, reached))

@@ -32,7 +32,14 @@ from radiokit.io._experiment import (
     read_experiment_meta,
 )
 from radiokit.io._frames import Frames, check_bit_depth
-from radiokit.io._itex import HEADER_BYTES, check_tail, parse_comment, parse_itex_header, read_scaling
+from radiokit.io._itex import (
+    HEADER_BYTES,
+    check_comment_end,
+    check_tail,
+    parse_comment,
+    parse_itex_header,
+    read_scaling,
+)
 from radiokit.io._layout import check_readable, open_h5, text
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
@@ -271,6 +278,7 @@ class FrameSource:
         head = self._fh.read(HEADER_BYTES)
         geo = parse_itex_header(self.path, head, size)
         comment = self._fh.read(geo["comment_length"]).decode("latin-1").rstrip("\0")
+        check_comment_end(self.path, geo, comment)
         parsed = parse_comment(comment)
         check_tail(self.path, geo, parsed)
         self._geo = geo
