@@ -429,6 +429,8 @@ def cmd_correct(args) -> int:
 
 # -- register ----------------------------------------------------------------------------------
 def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
+    """Frame ``index`` of ``path`` as float32, and the index counted from the start (-1 is the
+    last frame: the same-image check compares frames, not how they were written)."""
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
@@ -436,13 +438,13 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
-        image = src[index]
+        image, index = src[index], index % len(src)
     top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
     if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
         raise ValueError(
             f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )
-    return np.asarray(image, np.float32)
+    return np.asarray(image, np.float32), index
 
 
 def _a_projection(path, keys, index, option) -> None:
@@ -516,14 +518,16 @@ def _register_inputs(args):
     output onto an input, a figure matplotlib cannot write)."""
     from radiokit.io import check_output
 
-    fixed = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
-    moving = _one_image(args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame")
+    fixed, fixed_frame = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    moving, moving_frame = _one_image(
+        args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame"
+    )
     # after the reads (a file that cannot be read says so first), before anything else is judged
-    if args.fixed_frame == args.moving_frame and _same_file(args.fixed, args.moving):
+    if fixed_frame == moving_frame and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
         same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
         raise ValueError(
-            f"{args.moving}: fixed and moving are the same image ({same}, frame {args.fixed_frame}); "
+            f"{args.moving}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
             "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"
         )
     mask = None

@@ -208,6 +208,17 @@ def test_register_refuses_one_image_as_fixed_and_moving(how, tmp_path):
     assert not (tmp_path / "reg.h5").exists()
 
 
+def test_register_refuses_one_frame_named_from_both_ends(tmp_path):
+    """Frame -4 of a four-frame stack is frame 0: the same image, registered onto itself unless
+    the indices are compared as frames (a review found it registered and flagged, exit 1)."""
+    rng = np.random.default_rng(1)
+    img = tmp_path / "stack.tif"
+    tifffile.imwrite(img, rng.normal(1000, 30, (4, 32, 32)).astype(np.uint16), photometric="minisblack")
+    res = run_cli("register", img, img, "--moving-frame", "-4", "-o", tmp_path / "reg.h5")
+    one_line_error(res, "fixed and moving are the same image", "frame 0")
+    assert not (tmp_path / "reg.h5").exists()
+
+
 def test_register_takes_two_frames_of_one_file(tmp_path):
     """Two frames of one stack are two images: not a repeat."""
     rr, cc = np.mgrid[0:64, 0:64].astype(np.float32)
