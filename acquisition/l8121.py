@@ -91,7 +91,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
-from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
 from radiokit.checks import is_integer, is_number
 
@@ -1735,6 +1735,11 @@ class L8121:
         first = "identity" if "identity" in self.dialect.readings else "operate_switch"
         try:
             value = self._read(first)
+        except GuardianLost:
+            # the guardian died under the query (kill -9 right after READY): the controller was
+            # not heard either way, and a baud rate or dialect to check would send the operator
+            # after the wrong fault
+            raise
         except DeviceError as exc:
             other = "B" if self.dialect is DIALECT_A else "A"
             err = DeviceError(

@@ -33,7 +33,7 @@ import time
 import serial
 import serial.rfc2217
 
-from acquisition.errors import DeviceError, NoReply, PortBusy, PortUnavailable
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable
 
 __all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
 
@@ -1246,7 +1246,7 @@ class PipeTransport:
                 _write_no_sigpipe(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
                 self._open, self._lost = False, True
-                raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
+                raise GuardianLost(f"{self.url}: {command}: {self._died()} ({exc})") from exc
             deadline = t0 + self._reply_wait_s
             while True:  # replies to requests that were interrupted earlier carry older numbers
                 kind, _, rest = self._read_line(deadline, command).partition(" ")
@@ -1312,6 +1312,25 @@ class PipeTransport:
                 self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
+    def _died(self) -> str:
+        """The guardian's death in an exchange, for the operator: which process, and how it ended
+        (a signal by its name). Said as the cause: the exchange's own words (no reply, a baud rate
+        or dialect to check) would blame the controller."""
+        code = self._exit_code()
+        if code is None:
+            how = "its end of the pipe closed"
+        elif code < 0:
+            try:
+                how = f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"killed by signal {-code}"
+        else:
+            how = f"exit code {code}"
+        return (
+            f"the X-ray guardian (pid {self._process.pid}), which held the port for this command, died "
+            f"({how}); the port it freed is used directly from here"
+        )
+
     def _exit_code(self) -> int | None:
         """The guardian's exit status, its end of the pipe closed: reaped first (the pipe closes as
         it dies, and polled at once, the error line said "code None" or "code -9" by a race; review
@@ -1342,8 +1361,9 @@ class PipeTransport:
             if not data:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
-                what = "as it started" if command == "start" else f"in {command}"
-                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._exit_code()})")
+                if command != "start":
+                    raise GuardianLost(f"{self.url}: {command}: {self._died()}")
+                raise DeviceError(f"{self.url}: the X-ray guardian exited as it started (code {self._exit_code()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")
