@@ -34,6 +34,7 @@ import serial
 import serial.rfc2217
 
 from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable
+from radiokit.interrupts import STOP_SIGNALS, held
 
 __all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
 
@@ -142,6 +143,12 @@ _LOCKS: dict[str, _Lock] = {}
 # may run inside a section that holds the guard (a plain Lock deadlocked there, in the thread
 # taking the lock again after its guardian's death)
 _LOCKS_GUARD = threading.RLock()
+
+# The signals whose handlers may raise (a command's guard turns Ctrl-Z into a stop too): held off
+# from the moment flock takes a lock to the moment the lock is recorded for release. Between the
+# two, the descriptor holding it was a bare int: a Ctrl-C there left the lock held by nothing this
+# process would close, and its next open of the port refused "another program (this pid)".
+_STOPS = STOP_SIGNALS + tuple(getattr(signal, name) for name in ("SIGTSTP",) if hasattr(signal, name))
 
 
 def _lock_key(url: str) -> str | None:
@@ -263,7 +270,7 @@ class PortHold:
         """Before the port is opened again: the lock on the node the path names now (a by-id link
         resolved again), taken anew if this process keeps none or it is on another node --
         refused (:class:`PortBusy`) when another program took that one meanwhile."""
-        with _LOCKS_GUARD:
+        with held(*_STOPS), _LOCKS_GUARD:  # taken and recorded in one step for a stop signal
             lock = self._lock
             if lock is None:
                 return
@@ -325,18 +332,24 @@ def hold_port(url: str) -> PortHold | None:
     key = _lock_key(str(url))
     if key is None:
         return None
-    with _LOCKS_GUARD:
-        lock = _LOCKS.get(key)
-        if lock is None:
-            fd = _lock_device(str(url), key)
-            if fd is None:
-                return None
-            lock = _LOCKS[key] = _Lock(fd, key)
-        hold = PortHold(str(url), lock)
+    hold = None
     try:
-        hold.renew()
+        # taken and recorded in one step for a stop signal, which comes after it: the share made
+        # is then never returned, so it is let go here, not left to the garbage collector (the
+        # traceback keeps this frame, and the lock, alive)
+        with held(*_STOPS):
+            with _LOCKS_GUARD:
+                lock = _LOCKS.get(key)
+                if lock is None:
+                    fd = _lock_device(str(url), key)
+                    if fd is None:
+                        return None
+                    lock = _LOCKS[key] = _Lock(fd, key)
+                hold = PortHold(str(url), lock)
+            hold.renew()
     except BaseException:
-        hold.release()
+        if hold is not None:
+            hold.release()
         raise
     return hold
 
