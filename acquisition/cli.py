@@ -219,13 +219,61 @@ def _warm_up_words(pl) -> str:
 EXISTS = "{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
 
 
+#: What a source command has said on the terminal (_say), so that its last lines do not say a
+#: failed switch-off again (:func:`_tube_warning`). Emptied as each source command begins.
+_SAID: list[str] = []
+
+
 def _say(*lines, err=True) -> None:
     """Print, surviving a closed terminal (SIGHUP): the tube has been dealt with already."""
     for line in lines:
+        _SAID.append(line)
         try:
             print(line, file=sys.stderr if err else sys.stdout, flush=True)
         except (OSError, ValueError):
             pass
+
+
+class _OffFailureSaidLast(logging.Filter):
+    """Keeps the driver's unconfirmed switch-offs (:data:`acquisition.l8121.OFF_FAILURE`) off the
+    terminal of a source command, which says the failure itself, once, right above the X-RAYS
+    warning (:func:`_tube_warning`): the driver's fail-safe, an error path's best effort and
+    close() each logged their own copy, and the operator read it up to three times, the first
+    among other log lines. The records still reach any other handler."""
+
+    def filter(self, record) -> bool:
+        from acquisition.l8121 import OFF_FAILURE
+
+        return not getattr(record, OFF_FAILURE, False)
+
+
+def _off_failures_said_last() -> None:
+    """Install :class:`_OffFailureSaidLast` on the terminal's log handlers, and forget what an
+    earlier command in this process said."""
+    _SAID.clear()
+    for h in logging.getLogger().handlers:
+        if not isinstance(h, logging.FileHandler) and getattr(h, "stream", None) in (sys.stderr, sys.stdout):
+            h.addFilter(_OffFailureSaidLast())
+
+
+def _one_spaced(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _tube_warning(src=None) -> None:
+    """The X-RAYS warning, the source command's last line. Above it, the switch-off that was not
+    confirmed (``src.off_failed``, kept off the terminal's log), unless a line of this command
+    said it already (its error line often is that failure)."""
+    from acquisition.guardian import TUBE_WARNING
+
+    failed = getattr(src, "off_failed", None)
+    if failed is not None:
+        port = src.port
+        text = _cli_terms(_one_spaced(failed), port)
+        core = text.removeprefix(f"{port}: ")
+        if not any(core in _one_spaced(line) for line in _SAID):
+            _say(f"error: {text}")
+    _say(TUBE_WARNING)
 
 
 def _tube_line(res) -> tuple[str, bool]:
@@ -462,6 +510,8 @@ def _source(args) -> int:
     from acquisition.guardian import TUBE_WARNING
     from acquisition.transport import hold_port
 
+    _off_failures_said_last()
+
     try:
         # the port held from before the probe; the guardian inherits the lock and this command
         # lets its own copy go at the guardian's READY. No other radiokit process reads this
@@ -590,7 +640,7 @@ def _source_command(args, guard) -> int:
             src.close()
         return code
     except (DeviceError, ValueError) as exc:
-        print(f"error: {_cli_terms(str(exc), args.port)}", file=sys.stderr)
+        _say(f"error: {_cli_terms(str(exc), args.port)}")
         if getattr(exc, "guardian_gone", False):
             guard.cleanup()  # a switch-off nobody confirmed: a signal must not cut it short
             _off_anyway(src)  # its outcome the last line; not confirmed, the exit rule's warning
@@ -643,8 +693,6 @@ def _source_error_code(exc, src, args) -> int:
     is on still); the port opened and the controller did not confirm the tube off (no reply, a
     refused or garbled STS, a switch-off not confirmed, X-rays found on and left on) -- the
     warning and 3, whoever switched the tube on; else 1."""
-    from acquisition.guardian import TUBE_WARNING
-
     if src is None:  # the driver refused its configuration: nothing was opened
         return 1
     if getattr(exc, "guardian_off", False):
@@ -655,14 +703,14 @@ def _source_error_code(exc, src, args) -> int:
         if getattr(exc, "off_failed", None) is None and state is not None and state.confirms_off:
             _say(f"{src.port}: switched off by the X-ray guardian: tube off (confirmed by STS: {state.name})")
             return 1
-        _say(TUBE_WARNING)
+        _tube_warning(src)
         return 3
     if not src.port_opened and args.action != "off":
         # not a byte sent: the same last line and exit code as a series that could not open its port
         _say(NEVER_REACHED)
         return 1
     if not src.tube_confirmed_off:
-        _say(TUBE_WARNING)
+        _tube_warning(src)
         return 3
     return 1
 
@@ -754,9 +802,7 @@ def _source_status(src, args) -> int | None:
                 f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
                 f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
             )
-            from acquisition.guardian import TUBE_WARNING
-
-            _say(TUBE_WARNING)
+            _tube_warning(src)
             return 3
         print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
         return 0
@@ -832,8 +878,6 @@ def _source_action(src, args) -> int:
         src.off()
         print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
     if args.action != "on" and not src.tube_confirmed_off:  # the exit rule (README: exit codes)
-        from acquisition.guardian import TUBE_WARNING
-
-        _say(TUBE_WARNING)
+        _tube_warning(src)
         return 3
     return 0

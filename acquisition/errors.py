@@ -40,3 +40,10 @@ class PortBusy(PortUnavailable):
     """Another program (another radiokit process: a series, a source command, their X-ray
     guardian) holds the port's exclusive lock: this process sent nothing through it, and must not,
     or each would read replies meant for the other."""
+
+
+class GuardianLost(DeviceError):
+    """The X-ray guardian process, which held the port for this one, died (``kill -9``, the OOM
+    killer) while an exchange went through it: the exchange failed because of that death, not
+    because of anything the controller did or said, so it says nothing of the controller's baud
+    rate or dialect. The port is free, and the next exchange goes to it directly."""

@@ -91,7 +91,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
-from acquisition.errors import DeviceError, NoReply, PortUnavailable, SourceFault
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault
 from acquisition.transport import SerialTransport
 from radiokit.checks import is_integer, is_number
 
@@ -117,6 +117,11 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+#: Set (True) on the log record of a switch-off the controller did not confirm. A command line
+#: that ends by saying that failure itself, right above the X-RAYS warning, keeps these records off
+#: the terminal (each layer that tried logged its own copy, and the operator read it three times).
+OFF_FAILURE = "tube_off_failure"
 
 
 class SwitchedOff(DeviceError):
@@ -1336,6 +1341,7 @@ class L8121:
         #: said to switch off at the controller, and asking a silent controller again only delays
         #: that message.
         self.off_failed: DeviceError | None = None
+        self._off_failure_logged: str | None = None  # the text last logged by _log_off_failure
         #: What the last :meth:`warm_up` set (and read back) before starting its warm-up: ``(kV,
         #: µA, given)``, given False for the configuration's lowest; None when it started none.
         self.warmup_values: tuple[int, int, bool] | None = None
@@ -1544,7 +1550,7 @@ class L8121:
         try:
             self.off()
         except DeviceError as err:
-            logger.critical("%s: %s", self.port, err)
+            self._log_off_failure(err)
 
     def off_unconnected(self, *, after_interrupt: bool = False) -> SourceState:
         """``radiokit acquire source off`` after a connect that failed: switch off with whatever
@@ -1686,7 +1692,7 @@ class L8121:
             exc.tube_state = self.off()
         except DeviceError as err:
             exc.off_failed = err
-            logger.critical("%s: %s", self.port, err)
+            self._log_off_failure(err)
 
     def _probe(self) -> None:
         c = self.config
@@ -1729,6 +1735,11 @@ class L8121:
         first = "identity" if "identity" in self.dialect.readings else "operate_switch"
         try:
             value = self._read(first)
+        except GuardianLost:
+            # the guardian died under the query (kill -9 right after READY): the controller was
+            # not heard either way, and a baud rate or dialect to check would send the operator
+            # after the wrong fault
+            raise
         except DeviceError as exc:
             other = "B" if self.dialect is DIALECT_A else "A"
             err = DeviceError(
@@ -2029,13 +2040,23 @@ class L8121:
         try:
             self.off()
         except DeviceError as exc:
-            logger.critical("%s: %s", self.port, self._off_not_confirmed(exc))
+            self._log_off_failure(exc)
 
     def _unported(self, exc) -> str:
         """``exc``'s message without the port it begins with (the transport's and the driver's
         name it): a line that names the port itself names it once."""
         text = str(exc)
         return text[len(self.port) + 2 :] if text.startswith(f"{self.port}: ") else text
+
+    def _log_off_failure(self, exc) -> None:
+        """Log a switch-off that was not confirmed, loud (CRITICAL, marked :data:`OFF_FAILURE`),
+        but not again in the same words: the fail-safe, an error path's best effort and close()
+        may each try once more and fail alike, and the log then read as three failures."""
+        text = self._off_not_confirmed(exc)
+        if text == self._off_failure_logged:
+            return
+        self._off_failure_logged = text
+        logger.critical("%s: %s", self.port, text, extra={OFF_FAILURE: True})
 
     def _off_not_confirmed(self, exc) -> str:
         """A failed switch-off's line after the port (off_failed says it already)."""
@@ -2772,6 +2793,7 @@ class L8121:
                 state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
+                    self._off_failure_logged = None  # a later failure is news again
                     logger.info("%s: X-rays off (state %s)", self.port, state.name)
                     if self.unit_unverified:
                         logger.critical("%s", self.unverified_warning(state))
@@ -2861,7 +2883,7 @@ class L8121:
         try:
             self.off()
         except Exception as exc:
-            logger.critical("%s: %s", self.port, self._off_not_confirmed(exc))
+            self._log_off_failure(exc)
 
     def reset(self) -> SourceState:
         """Send ``RST`` (clears an overload) and return the new state. Never called automatically:

@@ -33,7 +33,8 @@ import time
 import serial
 import serial.rfc2217
 
-from acquisition.errors import DeviceError, NoReply, PortBusy, PortUnavailable
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable
+from radiokit.interrupts import STOP_SIGNALS, held
 
 __all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
 
@@ -142,6 +143,12 @@ _LOCKS: dict[str, _Lock] = {}
 # may run inside a section that holds the guard (a plain Lock deadlocked there, in the thread
 # taking the lock again after its guardian's death)
 _LOCKS_GUARD = threading.RLock()
+
+# The signals whose handlers may raise (a command's guard turns Ctrl-Z into a stop too): held off
+# from the moment flock takes a lock to the moment the lock is recorded for release. Between the
+# two, the descriptor holding it was a bare int: a Ctrl-C there left the lock held by nothing this
+# process would close, and its next open of the port refused "another program (this pid)".
+_STOPS = STOP_SIGNALS + tuple(getattr(signal, name) for name in ("SIGTSTP",) if hasattr(signal, name))
 
 
 def _lock_key(url: str) -> str | None:
@@ -263,7 +270,7 @@ class PortHold:
         """Before the port is opened again: the lock on the node the path names now (a by-id link
         resolved again), taken anew if this process keeps none or it is on another node --
         refused (:class:`PortBusy`) when another program took that one meanwhile."""
-        with _LOCKS_GUARD:
+        with held(*_STOPS), _LOCKS_GUARD:  # taken and recorded in one step for a stop signal
             lock = self._lock
             if lock is None:
                 return
@@ -325,18 +332,24 @@ def hold_port(url: str) -> PortHold | None:
     key = _lock_key(str(url))
     if key is None:
         return None
-    with _LOCKS_GUARD:
-        lock = _LOCKS.get(key)
-        if lock is None:
-            fd = _lock_device(str(url), key)
-            if fd is None:
-                return None
-            lock = _LOCKS[key] = _Lock(fd, key)
-        hold = PortHold(str(url), lock)
+    hold = None
     try:
-        hold.renew()
+        # taken and recorded in one step for a stop signal, which comes after it: the share made
+        # is then never returned, so it is let go here, not left to the garbage collector (the
+        # traceback keeps this frame, and the lock, alive)
+        with held(*_STOPS):
+            with _LOCKS_GUARD:
+                lock = _LOCKS.get(key)
+                if lock is None:
+                    fd = _lock_device(str(url), key)
+                    if fd is None:
+                        return None
+                    lock = _LOCKS[key] = _Lock(fd, key)
+                hold = PortHold(str(url), lock)
+            hold.renew()
     except BaseException:
-        hold.release()
+        if hold is not None:
+            hold.release()
         raise
     return hold
 
@@ -1246,7 +1259,7 @@ class PipeTransport:
                 _write_no_sigpipe(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
                 self._open, self._lost = False, True
-                raise DeviceError(f"{self.url}: {command}: the X-ray guardian is gone ({exc})") from exc
+                raise GuardianLost(f"{self.url}: {command}: {self._died()} ({exc})") from exc
             deadline = t0 + self._reply_wait_s
             while True:  # replies to requests that were interrupted earlier carry older numbers
                 kind, _, rest = self._read_line(deadline, command).partition(" ")
@@ -1312,6 +1325,25 @@ class PipeTransport:
                 self.on_reconnect.handover = self._process.returncode != 3
         return self._direct
 
+    def _died(self) -> str:
+        """The guardian's death in an exchange, for the operator: which process, and how it ended
+        (a signal by its name). Said as the cause: the exchange's own words (no reply, a baud rate
+        or dialect to check) would blame the controller."""
+        code = self._exit_code()
+        if code is None:
+            how = "its end of the pipe closed"
+        elif code < 0:
+            try:
+                how = f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"killed by signal {-code}"
+        else:
+            how = f"exit code {code}"
+        return (
+            f"the X-ray guardian (pid {self._process.pid}), which held the port for this command, died "
+            f"({how}); the port it freed is used directly from here"
+        )
+
     def _exit_code(self) -> int | None:
         """The guardian's exit status, its end of the pipe closed: reaped first (the pipe closes as
         it dies, and polled at once, the error line said "code None" or "code -9" by a race; review
@@ -1342,8 +1374,9 @@ class PipeTransport:
             if not data:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
-                what = "as it started" if command == "start" else f"in {command}"
-                raise DeviceError(f"{self.url}: the X-ray guardian exited {what} (code {self._exit_code()})")
+                if command != "start":
+                    raise GuardianLost(f"{self.url}: {command}: {self._died()}")
+                raise DeviceError(f"{self.url}: the X-ray guardian exited as it started (code {self._exit_code()})")
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")

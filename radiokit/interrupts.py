@@ -33,6 +33,7 @@ __all__ = [
     "lost_stops_redelivered",
     "settle",
     "deferred",
+    "held",
 ]
 
 #: The signals every command stops on as on Ctrl-C. SIGQUIT (Ctrl-\) too: the terminal sends it to
@@ -252,3 +253,39 @@ def deferred(*signals):
             signal.signal(sig, handler)
 
     return _then_raise(undo, lambda: Interrupted(came[0]) if came else None)
+
+
+@contextlib.contextmanager
+def held(*signals):
+    """Hold ``signals`` off while the block runs, then deliver the first that came through the
+    handler in place as the block ends (``signal.raise_signal``): that handler's own rules apply
+    -- Python's raises ``KeyboardInterrupt``, a guard already stopping only says "please wait", an
+    ignored one stays ignored. For a step that must not be cut in two, such as taking a resource
+    and recording it for release: a stop that lands between them leaked the resource.
+
+    Why not :func:`deferred`: it raises an :class:`Interrupted` of its own, past the handler the
+    command installed (acquisition's X-ray guard, which marks itself stopping so that a second
+    signal cannot cut its switch-off short). Why not ``pthread_sigmask``: it holds a signal off
+    this thread only, and a process's signal then goes to another thread, whose handler flag
+    still raises in the main thread at once. Only the main thread runs Python's handlers: in any
+    other, nothing can interrupt the block, and nothing is held."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+
+    def note(signum, frame):
+        came.append(signum)
+
+    before = {}
+    try:
+        for sig in signals:
+            handler = signal.getsignal(sig)
+            if handler is not None and handler is not signal.SIG_IGN:  # None: set outside Python
+                before[sig] = signal.signal(sig, note)
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+        if came:
+            signal.raise_signal(came[0])

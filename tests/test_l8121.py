@@ -4324,6 +4324,54 @@ def test_a_guardian_killed_before_ready_leaves_the_command_to_switch_off_a_tube_
     assert "Traceback" not in err
 
 
+def test_a_guardian_killed_in_the_first_exchange_after_ready_is_named_not_the_dialect(dialect, capfd):
+    """`source on` left the tube on; `source warm-up --dialect A|B` starts its guardian, which says
+    READY and is killed (SIGKILL) while the connect's first query (A's TYP, B's SRL) waits for its
+    reply. Found (s36): the error line said the guardian exited, then asked whether the unit is
+    on 9600 baud and speaking that dialect, and to try the other one -- a unit that answers that
+    very query on the next line. Now the line names the guardian's death and no dialect; the tube
+    is still switched off through the port the guardian freed, confirmed by STS (exit 1)."""
+    from conftest import guardian_of
+
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    first = "TYP" if dialect == "A" else "SRL"
+    killed = []
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capfd.readouterr()
+        n = len(model.commands)
+        model.delay_once(1.0, first)  # its reply on its way while the guardian dies: an event, not a race
+
+        def kill_the_guardian():
+            end = time.monotonic() + 30
+            while first not in [c.split()[0] for c in model.commands[n:]] and time.monotonic() < end:
+                time.sleep(0.002)
+            pid = guardian_of(os.getpid())
+            if pid is not None:
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+        helper = threading.Thread(target=kill_the_guardian, daemon=True)
+        helper.start()
+        code = main(["acquire", "source", "warm-up", *port])
+        helper.join(timeout=30)
+        on = model.xray_on
+        sent = model.commands[n:]
+    err = capfd.readouterr().err
+    assert killed and sent[0] == first, (killed, sent)
+    error = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(error) == 1 and f"the X-ray guardian (pid {killed[0]})" in error[0], err
+    assert "killed by SIGKILL" in error[0], err
+    assert "dialect" not in error[0] and "baud" not in error[0], err
+    # the tube-off path as before: XOF and STS through the freed port, confirmed
+    assert not on and code == 1 and "XOF" in sent, (err, sent)
+    assert TUBE_WARNING not in err and "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("port_gone", [False, True], ids=["port-free", "port-gone"])
 def test_a_guardian_killed_as_it_starts_with_the_dialect_given_leaves_the_command_to_switch_off(
     dialect, port_gone, capfd, monkeypatch, tmp_path

@@ -473,3 +473,64 @@ def test_a_node_appearing_after_the_lock_was_tried_is_locked_once_open(tmp_path,
             for proc in holder:
                 proc.stdin.close()
                 proc.wait(timeout=10)
+
+
+@contextlib.contextmanager
+def _ctrl_c_as_the_lock_is_taken(monkeypatch):
+    """A real SIGINT, raised in this process the moment ``flock`` has taken a port's lock, before
+    radiokit has recorded it for release: the window a terminal's Ctrl-C can hit, made certain.
+    The signal and its handler (Python's own, raising KeyboardInterrupt) are real; only the moment
+    is chosen, by wrapping ``fcntl.flock``. Yields the number of locks taken."""
+    import fcntl
+
+    real, taken = fcntl.flock, []
+
+    def flock_then_ctrl_c(fd, operation):
+        real(fd, operation)
+        if operation & fcntl.LOCK_EX:
+            taken.append(fd)
+            signal.raise_signal(signal.SIGINT)
+
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    monkeypatch.setattr(fcntl, "flock", flock_then_ctrl_c)
+    try:
+        yield taken
+    finally:
+        monkeypatch.setattr(fcntl, "flock", real)
+        signal.signal(signal.SIGINT, old)
+
+
+@pytest.mark.parametrize("where", ["hold_port", "renew"])
+def test_a_ctrl_c_as_the_lock_is_taken_leaks_neither_lock_nor_descriptor(monkeypatch, where):
+    """Found (s36): a Ctrl-C between ``flock`` and the lock's recording (the descriptor a bare
+    int in _lock_device) left the lock held by a descriptor nothing would close: every later
+    open of the port in this process (the Python API's next session, or the command's own
+    switch-off after its guardian's death, which renews the lock) was refused as "another
+    program (pid <this one>) holds this port", and another process was kept out for good. The
+    taking and its recording are one step for a stop signal now: it comes after, with the lock
+    recorded (``renew``: held by its share, released with it) or let go (``hold_port``: the
+    share it made was never returned)."""
+    from acquisition import transport
+
+    with PtyServer(L8121Model(dialect="A", warmed_up=True)) as server:
+        node, mine = server.url, [server._slave]
+        hold = transport.hold_port(node) if where == "renew" else None
+        if hold is not None:
+            hold.hand_over()  # its guardian holds the lock now: renew() takes it again
+        with _ctrl_c_as_the_lock_is_taken(monkeypatch) as taken:
+            with pytest.raises(KeyboardInterrupt):
+                if hold is None:
+                    transport.hold_port(node)
+                else:
+                    hold.renew()
+        assert taken, "the lock was not taken"
+        if hold is not None:
+            assert hold.fd is not None and _fds_on(os.getpid(), node, but=mine) == [str(hold.fd)]
+            hold.release()
+        assert _fds_on(os.getpid(), node, but=mine) == []
+        assert _other_process(node) == "opened"
+        again = transport.hold_port(node)  # and this process opens it again, as its API would
+        try:
+            assert again is not None and again.fd is not None
+        finally:
+            again.release()

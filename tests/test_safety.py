@@ -656,6 +656,63 @@ def test_a_controller_reached_but_not_read_as_off_ends_on_the_warning(tmp_path, 
     assert not {"XON", "WUP"} & {c.split()[0] for c in model.commands}, model.commands
 
 
+def _after_xon(model, act):
+    """``act()`` in a thread as soon as the model has received an ``XON``."""
+
+    def watch():
+        deadline = time.monotonic() + 30
+        while not any(c.split()[0] == "XON" for c in model.commands) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        act()
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+# (action, fault): each ends on a switch-off the controller did not confirm
+UNCONFIRMED = {
+    # on's fail-safe, its error path and its close() each tried a vanished port and each said so
+    "on, port gone after XON": (
+        ["on", "--kv", "60", "--ua", "250"],
+        lambda model, server, port: _after_xon(model, lambda: (model.silence(), port.unlink(), server.stop())),
+    ),
+    "on, controller silent after XON": (
+        ["on", "--kv", "60", "--ua", "250"],
+        lambda model, server, port: _after_xon(model, model.silence),
+    ),
+    # the connect's XOF all the same: its failure was a log line above the connect's error line
+    "off, controller silent": (["off"], lambda model, server, port: model.silence()),
+}
+
+
+@pytest.mark.parametrize("case", list(UNCONFIRMED))
+@ONE_DIALECT
+def test_a_switch_off_not_confirmed_is_said_once_and_last(tmp_path, controller, case):
+    """Found (s36): `source on` whose port vanished right after XON printed "could not confirm
+    X-rays off" three times (the driver's fail-safe, on()'s error path and the command's error
+    line), and a silent controller's twice, the first a log line among others. Said once, by the
+    command, right above the X-RAYS warning, exit 3."""
+    from conftest import run_cli
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    port = tmp_path / "ttyUSB0"
+    port.symlink_to(server.url)
+    args, inject = UNCONFIRMED[case]
+    watcher = inject(model, server, port)
+    res = run_cli("acquire", "source", *args, "--port", port, "--dialect", "A", "--reply-timeout", "0.3")
+    if watcher is not None:
+        watcher.join(5)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 3, res.stderr
+    assert lines[-1] == TUBE_WARNING, res.stderr
+    assert res.stderr.count("could not confirm X-rays off") == 1, res.stderr
+    assert lines[-2].startswith(f"error: {port}: could not confirm X-rays off"), res.stderr
+    assert f"{port}: {port}:" not in res.stderr, res.stderr  # the port named once a line
+
+
 @ONE_DIALECT
 def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, controller):
     """Started as ``make test &`` starts it (SIGINT ignored): the command installs its own handlers,
