@@ -192,10 +192,13 @@ class ExperimentWriter:
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
         self._file, self._replaces = self._where(mode, overwrite, in_place)
         frame_bytes = None if shape is None else math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize
+        set_aside = in_place and mode == "w" and os.path.lexists(self._file)
         if self._replaces is not None and frame_bytes is not None:
             self._check_overwrite_room(frame_bytes)
+        elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
+            self._check_opening_room(mode)
         self._previous, self.restored_previous = None, False
-        if in_place and mode == "w" and os.path.lexists(self._file):
+        if set_aside:
             self._previous = self._set_aside(frame_bytes)
         try:
             self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
@@ -259,15 +262,14 @@ class ExperimentWriter:
         """Rename the old file to its hidden sibling; refused (the old file untouched) when the
         first frame cannot fit beside it or the folder takes no rename."""
         old = self._file
-        if frame_bytes is not None:
-            free = self._free_bytes()
-            if free < frame_bytes + self.reserve_bytes:
-                raise OSError(
-                    errno.ENOSPC,
-                    f"{self.path}: disk full: {free} bytes free, a frame needs {frame_bytes} plus "
-                    f"{self.reserve_bytes} in reserve beside the old file, which is kept until the new file's "
-                    "first frame; nothing was written, the old file is unchanged; free space or write elsewhere",
-                )
+        free, need = self._free_bytes(), (frame_bytes or 0) + self._LAYOUT_BYTES
+        if free < need + self.reserve_bytes:  # the file's layout too: libhdf5 crashed beginning one on a full disk
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, the new file's layout and first frame need {need} plus "
+                f"{self.reserve_bytes} in reserve beside the old file, which is kept until the new file's "
+                "first frame; nothing was written, the old file is unchanged; free space or write elsewhere",
+            )
         aside = _temporary_name(old, kind="previous")
         try:
             os.rename(old, aside)
@@ -329,6 +331,20 @@ class ExperimentWriter:
                 "(an overwrite needs room for both until it completes); free space or write elsewhere",
                 UserWarning,
                 stacklevel=3,
+            )
+
+    def _check_opening_room(self, mode: str) -> None:
+        """Before the file is created, truncated or reopened: refuse (ENOSPC) when the disk has no
+        room for the file's layout and :attr:`reserve_bytes`. libhdf5 began a new file with 4 KiB
+        free, failed half-way through its layout and crashed the process (SIGSEGV) freeing it."""
+        free = self._free_bytes()
+        need = self._LAYOUT_BYTES + self.reserve_bytes
+        if free < need:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, "
+                + ("a new experiment file" if mode == "w" else "appending")
+                + f" needs {need} ({self.reserve_bytes} of them in reserve); nothing was written",
             )
 
     def _unwritable_folder(self, err: int) -> OutputError:
@@ -432,6 +448,8 @@ class ExperimentWriter:
     #: cannot survive a write that fails half-way -- the file it leaves does not open, and closing
     #: it crashes the process -- so a frame that might not fit is refused while the file is whole.
     reserve_bytes = 1 << 20
+    #: What a new file's layout (groups, attributes, empty datasets) takes, at most, before a frame.
+    _LAYOUT_BYTES = 1 << 16
     #: Space held beside the file (``.<name>.reserve``) while frames are written, one frame plus
     #: :attr:`reserve_bytes`: if another program fills the disk between the check and the write
     #: (the vendor software writes its frames to the same disk), it is released so libhdf5 can
@@ -497,23 +515,51 @@ class ExperimentWriter:
             if self._previous is not None:
                 self._drop_previous()
         except Exception as exc:
-            self._failed = " ".join(str(exc).split())[:200]
-            self._drop_ballast()
-            try:  # with the ballast's room, libhdf5 writes what it holds: the file is whole again
-                self._h5.flush()
-            except Exception:
-                pass
-            code = (
-                errno.ENOSPC
-                if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC
-                else errno.EIO
-            )
-            raise OSError(
-                code,
-                f"{self.path}: frame {i} could not be written ({self._failed})"
-                + (self._kept() if self._replaces is not None else "; it stays labelled invalid"),
+            raise self._write_failed(
+                exc,
+                f"frame {i}",
+                self._kept() if self._replaces is not None else "; it stays labelled invalid",
             ) from None
         return i
+
+    def _write_failed(self, exc: BaseException, what: str, kept: str) -> OSError:
+        """After a write that failed inside libhdf5: the ballast's room given back so libhdf5 can
+        write what it holds (the file is whole again), no more writes taken, and the one-line
+        error naming the file and ``what``."""
+        self._failed = " ".join(str(exc).split())[:200]
+        self._drop_ballast()
+        try:
+            self._h5.flush()
+        except Exception:
+            pass
+        code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC else errno.EIO
+        return OSError(code, f"{self.path}: {what} could not be written ({self._failed})" + kept)
+
+    def _guarded_write(self, nbytes: int, what: str):
+        """A context for a write of about ``nbytes`` besides a frame (``what``, for the message):
+        refused (ENOSPC) before any of it is written when the disk has no room for it and
+        :attr:`reserve_bytes`, as a frame is -- libhdf5 cannot survive a write that fails half-way
+        -- and, if the disk fills in between, handled as a frame cut short."""
+        if getattr(self, "_failed", None):
+            raise OSError(errno.EIO, f"{self.path}: takes no more writes after a failed write ({self._failed})")
+        # the frames' ballast, not one sized for this write: a simulation record's (90 MB raw on
+        # the full panel) would double the room it needs; it covers a write up to a frame's size
+        self._hold_ballast(self._frame_bytes + self.reserve_bytes)
+        free = self._free_bytes()
+        if free < nbytes + self.reserve_bytes:
+            if self._replaces is not None:
+                self._failed = "disk full"
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: disk full: {free} bytes free, {what} needs {nbytes} plus {self.reserve_bytes} in "
+                "reserve; nothing of it was written"
+                + (self._kept() if self._replaces is not None else f"; the {self._n} frame(s) before it are complete"),
+            )
+        return _Guard(self, what)
+
+    @property
+    def _frame_bytes(self) -> int:
+        return math.prod(self._h5[FRAMES].shape[1:]) * np.dtype(np.uint16).itemsize
 
     def _check_room(self, nbytes: int, i: int) -> None:
         """Refuse frame ``i`` (``nbytes``) while the file is whole when the disk or the file's size
@@ -597,15 +643,19 @@ class ExperimentWriter:
         ds = self._h5[f"{DETECTOR}/pixel_mask"]
         if mask.shape != ds.shape:
             raise ValueError(f"pixel_mask shape {mask.shape} does not match frames {ds.shape}")
-        ds[...] = mask
-        self._h5.flush()
+        with self._guarded_write(mask.nbytes, "the pixel mask"):  # gzip: at worst its raw size
+            ds[...] = mask
+            self._h5.flush()
 
     def record_run(self, protocol_toml: str, devices: dict) -> None:
         """Record what wrote the file: the protocol (TOML text, so ``--resume`` can check it) and
         the devices (JSON)."""
-        self._h5[ENTRY].attrs["protocol"] = protocol_toml
-        self._h5[ENTRY].attrs["devices"] = strict_json.dumps(devices, default=str)  # no NaN/Infinity words
-        self._h5.flush()
+        devices_json = strict_json.dumps(devices, default=str)  # no NaN/Infinity words
+        nbytes = len(protocol_toml.encode("utf-8", "surrogatepass")) + len(devices_json.encode("utf-8"))
+        with self._guarded_write(nbytes, "the run's record (protocol and devices)"):
+            self._h5[ENTRY].attrs["protocol"] = protocol_toml
+            self._h5[ENTRY].attrs["devices"] = devices_json
+            self._h5.flush()
 
     def frames_labelled(self, key) -> tuple[np.ndarray, np.ndarray]:
         """The indices and pixels of the frames written so far labelled ``key`` (those of the run a
@@ -617,33 +667,55 @@ class ExperimentWriter:
     def mark_invalid(self, indices) -> None:
         """Label frames ``indices`` ``ImageKey.INVALID``: kept, never taken for a projection or a flat."""
         ds = self._h5[IMAGE_KEY]
+        indices = [int(i) for i in indices]
         for i in indices:
-            if not 0 <= int(i) < self._n:
+            if not 0 <= i < self._n:
                 raise IndexError(f"{self.path}: frame {i} out of range (0..{self._n - 1})")
-            ds[int(i)] = ImageKey.INVALID
-        self._h5.flush()
+        # never refused for room, unlike the other writes: these labels are what keeps a suspect
+        # frame from being taken for a good one, and they rewrite chunks already on disk; the
+        # ballast's room is given back first for what libhdf5 writes besides
+        self._drop_ballast()
+        with _Guard(self, "the invalid labels"):
+            for i in indices:
+                ds[i] = ImageKey.INVALID
+            self._h5.flush()
 
     def write_simulation(self, record) -> None:
         """Add ``/entry/simulation`` (a :class:`radiokit.io.SimulationRecord`) to a simulated file."""
         from radiokit.io._simulation import write_simulation
 
-        write_simulation(self._h5, record)
+        # lzf may not shrink a field: at worst the arrays' raw size, and the scene's text
+        arrays = (record.line_integral, record.inclusion_mask, *record.displacement.values())
+        nbytes = sum(np.asarray(a).nbytes for a in arrays) + len(record.scene_toml.encode("utf-8")) + (64 << 10)
+        with self._guarded_write(nbytes, "the simulation record"):
+            write_simulation(self._h5, record)
 
     def close(self, *, keep=True):
         """Close the file. Overwriting (not ``in_place``), the new file then replaces the old one,
         unless a frame failed or ``keep`` is False (the ``with`` block ended in an exception): the
         old file stays and the new one is removed."""
         if self._h5.id.valid:
+            # libhdf5 writes as it closes: the room held for it is given back first (dropped after,
+            # a disk another program had filled since the last frame made the close fail half-way,
+            # and the file no longer opened: every frame lost)
+            self._drop_ballast()
+            failed = None
             try:
-                if not getattr(self, "_failed", None):
+                # the end time is a nicety: not written where it might meet a full disk
+                if not getattr(self, "_failed", None) and self._free_bytes() >= self._LAYOUT_BYTES:
                     self._h5[ENTRY].attrs["end_time"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
             finally:
-                self._h5.close()
-                self._drop_ballast()
                 try:
-                    self._finish(keep and not getattr(self, "_failed", None))
+                    try:
+                        self._h5.close()
+                    except Exception as exc:  # a built-beside overwrite is then discarded, not renamed
+                        failed = " ".join(str(exc).split())[:200]
+                    self._finish(keep and not getattr(self, "_failed", None) and failed is None)
                 finally:
                     self._put_back()
+            if failed is not None:
+                code = errno.ENOSPC if "No space left" in failed else errno.EIO
+                raise OSError(code, f"{self.path}: could not be closed ({failed})")
 
     def _finish(self, keep: bool) -> None:
         """Rename the new file over the one it replaces (``keep``), else remove it."""
@@ -670,6 +742,25 @@ class ExperimentWriter:
 
     def __exit__(self, exc_type, *exc):
         self.close(keep=exc_type is None)
+
+
+class _Guard:
+    """:meth:`ExperimentWriter._guarded_write`'s context: a write that fails inside libhdf5 ends
+    as a frame cut short does."""
+
+    def __init__(self, writer: ExperimentWriter, what: str):
+        self.writer, self.what = writer, what
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        # what libhdf5 raises when a write fails (OSError, RuntimeError); not the refusals of the
+        # code inside, said before it wrote (a second simulation record: FileExistsError)
+        if not isinstance(exc, (OSError, RuntimeError)) or isinstance(exc, FileExistsError):
+            return False
+        w = self.writer
+        raise w._write_failed(exc, self.what, w._kept() if w._replaces is not None else "") from None
 
 
 def _unclosed(path: str, tmp: str | None, ballast: Path | None, previous: Path | None = None) -> None:
