@@ -446,6 +446,17 @@ def test_itex_comment_length_off_by_a_few_bytes_is_refused(tmp_path, name, chang
     assert len([line for line in res.stderr.splitlines() if line.strip()]) == 1, res.stderr
 
 
+def test_itex_stray_quote_in_a_comment_of_the_right_length_still_reads(tmp_path):
+    """A quote typed into a user's comment leaves an odd count, but the comment still ends as
+    HPD-TA ends it: no sign of a wrong length, read as before; cut inside its last value, refused."""
+    pix = np.arange(32, dtype=np.uint16).reshape(4, 8)
+    path = tmp_path / "stray.img"
+    path.write_bytes(_itex_bytes(pix, 2, b'[Camera],CameraName="Orca R2,Serial="S/N 1"\r\n[Comment],UserComment=""'))
+    np.testing.assert_array_equal(read(path).data[0], pix)
+    path.write_bytes(_itex_bytes(pix, 2, b'[Camera],CameraName="Orca R2"\r\n[Comment],UserComment="'))
+    _raises_format(path, "ends inside a quoted value")
+
+
 def test_itex_compressed_type_raises(tmp_path):
     path = tmp_path / "packed.img"
     path.write_bytes(_itex_bytes(np.zeros((4, 4), np.uint16), 1))

@@ -226,7 +226,10 @@ def check_comment_end(path, geo: dict, text: str) -> None:
     """Refuse a comment whose declared length cuts a quoted value: HPD-TA quotes text values and
     ends its comment with one (``UserComment=""``), so a length a byte short leaves the comment
     ending inside quotes, and the closing quote read as the first pixel's byte shifts every pixel."""
-    if text.count('"') % 2:
+    last = text.rfind('"')
+    # the last quote opening a value (after "="), never closed: a stray quote earlier in a user's
+    # comment, the comment ending as HPD-TA ends it, is no sign of a wrong length
+    if text.count('"') % 2 and last > 0 and text[last - 1] == "=":
         raise FormatError(
             path,
             f"ITEX comment of {geo['comment_length']} bytes (the header's length) ends inside a quoted value: "
