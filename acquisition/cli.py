@@ -3,6 +3,7 @@ commands (entry-point group ``radiokit.commands``)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import sys
@@ -247,13 +248,24 @@ class _OffFailureSaidLast(logging.Filter):
         return not getattr(record, OFF_FAILURE, False)
 
 
-def _off_failures_said_last() -> None:
-    """Install :class:`_OffFailureSaidLast` on the terminal's log handlers, and forget what an
-    earlier command in this process said."""
+@contextlib.contextmanager
+def _off_failures_said_last():
+    """:class:`_OffFailureSaidLast` on the terminal's log handlers while a source command runs,
+    what an earlier command in this process said forgotten. Taken off as the command ends: left
+    on, a program that ran a command through :func:`main` and then drove the source through the
+    Python API lost the driver's only "could not confirm X-rays off" line."""
     _SAID.clear()
+    installed = []
     for h in logging.getLogger().handlers:
         if not isinstance(h, logging.FileHandler) and getattr(h, "stream", None) in (sys.stderr, sys.stdout):
-            h.addFilter(_OffFailureSaidLast())
+            f = _OffFailureSaidLast()
+            h.addFilter(f)
+            installed.append((h, f))
+    try:
+        yield
+    finally:
+        for h, f in installed:
+            h.removeFilter(f)
 
 
 def _one_spaced(text: str) -> str:
@@ -479,6 +491,11 @@ def _source_refusal(args) -> str | None:
 
 
 def _source(args) -> int:
+    with _off_failures_said_last():
+        return _source_said_last(args)
+
+
+def _source_said_last(args) -> int:
     if not args.action:
         print("error: radiokit acquire source needs an action: probe, status, warm-up, on or off", file=sys.stderr)
         return 2
@@ -509,8 +526,6 @@ def _source(args) -> int:
     from acquisition.errors import PortBusy
     from acquisition.guardian import TUBE_WARNING
     from acquisition.transport import hold_port
-
-    _off_failures_said_last()
 
     try:
         # the port held from before the probe; the guardian inherits the lock and this command

@@ -713,6 +713,42 @@ def test_a_switch_off_not_confirmed_is_said_once_and_last(tmp_path, controller, 
     assert f"{port}: {port}:" not in res.stderr, res.stderr  # the port named once a line
 
 
+_API_AFTER_A_COMMAND = """
+import logging, sys, threading, time
+logging.basicConfig(format="LOG %(levelname)s: %(message)s")
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.l8121 import L8121
+from radiokit.cli import main
+model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.05, warmed_up=True)
+server = PtyServer(model).start()
+print("status exit", main(["acquire", "source", "status", "--port", server.url, "--dialect", "A"]), file=sys.stderr)
+src = L8121(server.url, dialect="A", timeout_s=0.3)
+def silence_after_xon():
+    while not any(c.split()[0] == "XON" for c in model.commands):
+        time.sleep(0.001)
+    model.silence()
+threading.Thread(target=silence_after_xon, daemon=True).start()
+try:
+    src.on(60, 250)
+except Exception as exc:
+    print("on() raised", type(exc).__name__, file=sys.stderr)
+print("X-rays on", model.xray_on, file=sys.stderr)
+server.stop()
+"""
+
+
+def test_a_source_command_leaves_the_python_apis_switch_off_warning_on_the_terminal():
+    """Found (review s36r2): the filter that keeps the driver's unconfirmed switch-off off a source
+    command's terminal (the command says it once itself) stayed on the root logger's handlers. A
+    program that ran a command through main() and then drove the source through the Python API
+    saw only "no reply to SAR", with the tube on, never the CRITICAL "could not confirm" line."""
+    res = subprocess.run(
+        [sys.executable, "-c", _API_AFTER_A_COMMAND], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+    assert "status exit 0" in res.stderr and "X-rays on True" in res.stderr, res.stderr
+    assert re.search(r"LOG CRITICAL: .*could not confirm X-rays off", res.stderr), res.stderr
+
+
 @ONE_DIALECT
 def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, controller):
     """Started as ``make test &`` starts it (SIGINT ignored): the command installs its own handlers,
