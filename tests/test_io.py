@@ -4,6 +4,7 @@ killed with SIGKILL), and properties: truncated, corrupted or random files raise
 nothing else."""
 
 import errno
+import hashlib
 import json
 import os
 import re
@@ -2501,12 +2502,57 @@ def test_an_unclosed_in_place_writer_never_puts_the_old_file_back_over_its_own_f
     monkeypatch.setattr(exp_mod, "_remove", lambda p: (_ for _ in ()).throw(PermissionError(13, "fake")))
     w = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
     aside = w.previous
-    w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    with pytest.warns(UserWarning, match=r"previous series, kept in .*could not be removed.*rename it to keep it"):
+        w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
     w._h5.flush()
     del w
     gc.collect()
     assert aside.exists() and aside.read_bytes() == before
     assert read(path).n == 1
+
+
+@pytest.mark.parametrize("first", ["an overwrite", "a resume"])
+def test_an_in_place_overwrite_of_a_file_another_writer_has_open_is_refused(tmp_path, first):
+    """Found (review s36r2): the rename that keeps the old file aside got round libhdf5's lock, so
+    a second --overwrite moved the first run's open file away and deleted it at its own first
+    frame; both runs said "8 frames written", one run's frames were gone. It is refused, as the
+    truncation that came before was ("already open")."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    n0 = read(path).n
+    if first == "an overwrite":
+        w1 = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    else:
+        w1 = ExperimentWriter(path, mode="a")
+    with w1:
+        w1.append(np.full(EXP_SHAPE, 5, np.uint16), image_key=ImageKey.DARK)
+        with pytest.raises(OSError, match="open in another program") as err:
+            ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+        assert err.value.errno == errno.EBUSY
+        w1.append(np.full(EXP_SHAPE, 6, np.uint16), image_key=ImageKey.DARK)
+    assert _previous(tmp_path) == []
+    assert read(path).n == (2 if first == "an overwrite" else n0 + 2)
+    np.testing.assert_array_equal(read(path).data[-1], np.full(EXP_SHAPE, 6, np.uint16))
+
+
+def test_a_stop_as_the_old_file_is_set_aside_puts_it_back(tmp_path, monkeypatch):
+    """Found (review s36r2): a Ctrl-C just after the rename (in the folder's fsync) left the old
+    file hidden while the run said "holds the previous series, unchanged". The SIGINT is real;
+    only its moment is chosen, by raising it from the rename, a moment no test can hit by timing."""
+    import radiokit.io._experiment as exp_mod
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    real_rename = os.rename
+
+    def rename_then_sigint(a, b):
+        real_rename(a, b)
+        signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(exp_mod.os, "rename", rename_then_sigint)
+    with pytest.raises(KeyboardInterrupt):
+        ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and _previous(tmp_path) == []
 
 
 def _dead_pid():
@@ -2517,16 +2563,19 @@ def _dead_pid():
 
 def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_its_own(tmp_path):
     """A run killed (kill -9) between setting the old file aside and its first frame: the next run
-    puts it back. Not over a file holding frames (it is named instead), nor one a live run keeps."""
+    puts it back. Not over a file holding frames (it is named instead), nor one a live run keeps
+    (its lock held: a PID alive says nothing after a reboot, which reuses PIDs)."""
+    import fcntl
     import socket
 
     from radiokit.io import restore_previous
 
     host = socket.gethostname().split(".")[0]
     path = tmp_path / "exp.h5"
+    digest = hashlib.sha256(b"exp.h5").hexdigest()[:8]
     old = _write_experiment(tmp_path / "old.h5", shape=EXP_SHAPE)
     before = old.read_bytes()
-    aside = tmp_path / f".exp.previous-{host}-{_dead_pid()}-0123abcd.h5"
+    aside = tmp_path / f".exp.previous-{host}-{os.getppid()}-{digest}.h5"  # a live PID, reused: no lock
     # the name holds the killed run's file with no frame: put back
     old.rename(aside)
     ExperimentWriter(path, shape=EXP_SHAPE).close()
@@ -2543,7 +2592,16 @@ def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_i
     said = restore_previous(path)
     assert len(said) == 1 and said[0][0] is False and str(aside) in said[0][1], said
     assert aside.read_bytes() == before and path.read_bytes() == after
-    # a live run's: its own to put back, nothing said
-    live = tmp_path / f".exp.previous-{host}-{os.getppid()}-0123abcd.h5"
+    # a live run's (its lock held): its own to put back, nothing said
+    live = tmp_path / f".exp.previous-{host}-{_dead_pid()}-{digest}.h5"
     aside.rename(live)
-    assert restore_previous(path) == [] and live.exists()
+    fd = os.open(live, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        assert restore_previous(path) == [] and live.exists()
+    finally:
+        os.close(fd)
+    # another name sharing the cut head is not this one's (a name past NAME_MAX's room is cut)
+    other = tmp_path / f".exp.previous-{host}-{_dead_pid()}-{hashlib.sha256(b'exp2.h5').hexdigest()[:8]}.h5"
+    live.rename(other)
+    assert restore_previous(path) == [] and other.exists()

@@ -48,7 +48,7 @@ from conftest import guardian_held_at_start, guardian_of
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.l8121 import DIALECT_A, DIALECT_B, SourceConfig
-from radiokit.io import ExperimentWriter, ImageKey
+from radiokit.io import ExperimentWriter, ImageKey, read
 
 ROOT = Path(__file__).resolve().parents[1]
 DARKS, FLATS, PER_STEP, STEPS = 2, 3, 3, (0.15, 0.25)
@@ -1060,6 +1060,34 @@ def test_an_overwrite_killed_before_its_first_frame_leaves_the_old_series_and_th
     assert len(said) == 2 and said[0].startswith(f"{out}: restored the previous series from {kept[0].name}"), said
     assert said[1].startswith(f"error: {out}: exists"), said
     assert out.read_bytes() == before and not kept[0].exists()
+
+
+def test_a_second_overwrite_while_a_run_writes_the_file_is_refused_and_the_first_keeps_its_frames(
+    tmp_path, scene_file, controller
+):
+    """Found (review s36r2): with the old file kept aside by a rename, a second `acquire
+    --overwrite` of the same file (another controller, another terminal) moved the first run's
+    open file away and deleted it at its own first frame: both said "written", one run's frames
+    were lost. The second is refused in one line naming the file; the first completes."""
+    model_a, server_a = controller()
+    model_b, server_b = controller()
+    out = tmp_path / "series.h5"
+    with ExperimentWriter(out, shape=(4, 4)) as w:
+        w.append(np.full((4, 4), 100, np.uint16), image_key=ImageKey.DARK)
+    (tmp_path / "b").mkdir()
+    proto_a = write_protocol(tmp_path, scene_file, server_a, output=out)
+    proto_b = write_protocol(tmp_path / "b", scene_file, server_b, output=out)
+    first = Acquire(proto_a, "--sim", "-q", "--overwrite")
+    reach("projection (beam on)", model_a, tmp_path, first)
+    second = Acquire(proto_b, "--sim", "-q", "--overwrite")
+    assert second.wait() != 0, second.output
+    assert any(f"{out}: is open in another program" in ln for ln in second.lines), second.output
+    assert "Traceback" not in second.output
+    assert first.wait() == 0, first.output
+    assert not model_a.xray_on and not model_b.xray_on
+    n = read(out).n
+    assert n == DARKS + FLATS + PER_STEP * len(STEPS), n
+    assert [p.name for p in tmp_path.iterdir() if ".previous-" in p.name] == []
 
 
 def test_tube_on_at_start_is_switched_off_before_anything_else(tmp_path, scene_file, controller):

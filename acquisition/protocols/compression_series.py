@@ -1059,7 +1059,13 @@ def _open_experiment(r: _Run):
     except OSError as exc:
         if not existed:  # a file this run began and could not finish: it would block the next run
             r.out.unlink(missing_ok=True)
+        from radiokit.io import OutputError
+
         code = exc.errno or errno.EIO
+        if isinstance(
+            exc, OutputError
+        ):  # the writer's own line (open in another program, a folder it cannot rename in)
+            raise OSError(code, str(exc)) from None
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})

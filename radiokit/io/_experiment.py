@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import glob
+import hashlib
 import math
 import os
 import re
@@ -32,14 +34,14 @@ import numpy as np
 from radiokit import _json as strict_json
 from radiokit.checks import is_number
 from radiokit.errors import FormatError
-from radiokit.interrupts import settle
+from radiokit.interrupts import STOP_SIGNALS, held, settle
 from radiokit.io._atomic import (
     OutputError,
-    _alive,
     _fsync,
     _head,
     _human,
     _keep_mode,
+    _owner_tag,
     _remove,
     _remove_stale,
     _temporary_name,
@@ -197,19 +199,22 @@ class ExperimentWriter:
             self._check_overwrite_room(frame_bytes)
         elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
             self._check_opening_room(mode)
-        self._previous, self.restored_previous = None, False
-        if set_aside:
-            self._previous = self._set_aside(frame_bytes)
+        self._previous, self._aside_lock, self.restored_previous = None, [None], False
         try:
+            if set_aside:
+                # a stop between the rename and its record left the old file hidden while the
+                # run said "unchanged": it is delivered once the file is recorded, to be put back
+                with held(*STOP_SIGNALS):
+                    self._previous = self._set_aside(frame_bytes)
             self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
         except BaseException as exc:
             self._put_back()
             if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise self._unwritable_folder(exc.errno) from None
             raise
-        if self._previous is not None:
-            _keep_mode(self._file, self._previous)  # as writing into the old file would have
         try:
+            if self._previous is not None:
+                _keep_mode(self._file, self._previous)  # as writing into the old file would have
             if mode == "w":
                 if shape is None:
                     raise ValueError("shape=(rows, cols) is required for a new experiment file")
@@ -236,6 +241,7 @@ class ExperimentWriter:
             None if self._replaces is None else str(self._file),
             self._ballast_path if self.ballast else None,
             self._previous,
+            self._aside_lock,
         )
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
@@ -270,11 +276,28 @@ class ExperimentWriter:
                 f"{self.reserve_bytes} in reserve beside the old file, which is kept until the new file's "
                 "first frame; nothing was written, the old file is unchanged; free space or write elsewhere",
             )
-        aside = _temporary_name(old, kind="previous")
+        # Locked as libhdf5 locks a file it writes (flock): a run writing or resuming the file holds
+        # it, and renaming it from under that run (two overwrites at once) lost one run's frames
+        # while both said "written". The lock then stays on the set-aside file, the inode it
+        # follows, until it goes back or away: it says its run is alive (a PID can be reused)
+        fd = os.open(old, os.O_RDONLY | os.O_CLOEXEC)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise
+            raise OutputError(
+                old,
+                "is open in another program (a run writing or resuming it, or a viewer): not overwritten while it is",
+                errno.EBUSY,
+            ) from None
+        aside = _previous_name(old)
         try:
             os.rename(old, aside)
-        except OSError as exc:
-            if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        except BaseException as exc:
+            os.close(fd)
+            if isinstance(exc, OSError) and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise OutputError(
                     old,
                     f"cannot be overwritten: its folder {old.parent} is not writable, so the old file cannot "
@@ -283,25 +306,42 @@ class ExperimentWriter:
                     exc.errno,
                 ) from None
             raise
+        self._aside_lock[0] = fd
         _fsync(old.parent)
         return aside
+
+    def _unlock_previous(self) -> None:
+        fd, self._aside_lock[0] = self._aside_lock[0], None
+        if fd is not None:
+            os.close(fd)
 
     def _put_back(self) -> None:
         """No frame of the new file: the old file kept aside goes back under its name."""
         aside, self._previous = self._previous, None
         if aside is None:
             return
-        os.replace(aside, self._file)
-        _fsync(self._file.parent)
+        try:
+            os.replace(aside, self._file)
+            _fsync(self._file.parent)
+        finally:
+            self._unlock_previous()
         self.restored_previous = True
 
     def _drop_previous(self) -> None:
         """The first frame is on disk: the old file kept aside may go."""
         aside, self._previous = self._previous, None
         _fsync(self._file)  # the frame on disk before the old file leaves it: a power cut keeps one
-        with contextlib.suppress(OSError):  # left beside, it is named by the next run
+        try:
             _remove(aside)
             _fsync(aside.parent)
+        except OSError as exc:  # the run goes on; the file is named now, and by every later run
+            warnings.warn(
+                f"{self.path}: the previous series, kept in {aside} until this run's first frame, could not "
+                f"be removed ({exc.strerror or exc}); rename it to keep it, or remove it",
+                stacklevel=3,
+            )
+        finally:
+            self._unlock_previous()
 
     def _kept(self) -> str:
         """What an overwrite built beside the old file leaves when it stops, for a refusal."""
@@ -763,7 +803,9 @@ class _Guard:
         raise w._write_failed(exc, self.what, w._kept() if w._replaces is not None else "") from None
 
 
-def _unclosed(path: str, tmp: str | None, ballast: Path | None, previous: Path | None = None) -> None:
+def _unclosed(
+    path: str, tmp: str | None, ballast: Path | None, previous: Path | None = None, aside_lock: list | None = None
+) -> None:
     """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, the old
     file an in-place overwrite kept aside put back if it is still there (no frame was written),
     and for an overwrite built beside the old file (``tmp``), a warning naming both files."""
@@ -777,6 +819,9 @@ def _unclosed(path: str, tmp: str | None, ballast: Path | None, previous: Path |
     if previous is not None and previous.exists() and not _holds_a_frame(resolved(path)):
         with contextlib.suppress(OSError):
             os.replace(previous, resolved(path))
+    if aside_lock is not None and aside_lock[0] is not None:
+        fd, aside_lock[0] = aside_lock[0], None
+        os.close(fd)
     if tmp is None:
         return
     warnings.warn(
@@ -831,18 +876,23 @@ def restore_previous(path) -> list[tuple[bool, str]]:
     """
     target = resolved(path)
     host = socket.gethostname().split(".")[0]
-    head = _head(target, False, "previous")
+    head, digest = _head(target, False, "previous"), _name_digest(target)
     said = []
     for old in sorted(target.parent.glob(f".{glob.escape(head)}.previous-*{glob.escape(target.suffix)}")):
-        m = re.fullmatch(rf"\.{re.escape(head)}\.previous-(.+)-(\d+)-[0-9a-f]{{8}}{re.escape(target.suffix)}", old.name)
+        m = re.fullmatch(rf"\.{re.escape(head)}\.previous-(.+)-(\d+)-{digest}{re.escape(target.suffix)}", old.name)
         if m is None:
-            continue
-        here, pid = m.group(1) == host, int(m.group(2))
-        if here and (pid == os.getpid() or _alive(pid)):
-            continue  # a run in progress: until its first frame, the old file is its to put back
-        if here and not _holds_a_frame(target):
-            os.replace(old, target)
-            _fsync(target.parent)
+            continue  # another file's (a long name's head is cut: the digest tells them apart)
+        here = m.group(1) == host
+        with _locked(old) as free:
+            if not free:
+                continue  # a run in progress: until its first frame, the old file is its to put back
+            if here and not _holds_a_frame(target):
+                os.replace(old, target)
+                _fsync(target.parent)
+                restored = True
+            else:
+                restored = False
+        if restored:
             said.append(
                 (
                     True,
@@ -854,11 +904,48 @@ def restore_previous(path) -> list[tuple[bool, str]]:
             said.append(
                 (
                     False,
-                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite that was "
-                    "stopped as it took its first frame); move it back or remove it",
+                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite whose new "
+                    f"series has frames of its own under the name, or by another host); rename it to keep it "
+                    f"(not over {target.name}: that is the new series), or remove it",
                 )
             )
     return said
+
+
+def _name_digest(path: Path) -> str:
+    """Eight hex digits of the whole name: a name longer than a temporary's room is cut to its
+    head, and two names sharing it took each other's set-aside file for their own."""
+    return hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
+
+
+def _previous_name(path: Path) -> Path:
+    """``.HEAD.previous-HOST-PID-DIGEST.SUFFIX`` beside ``path``: where an in-place overwrite keeps
+    the old file until its first frame."""
+    return path.with_name(
+        f".{_head(path, False, 'previous')}.previous-{_owner_tag()}-{_name_digest(path)}{path.suffix}"
+    )
+
+
+@contextlib.contextmanager
+def _locked(path: Path):
+    """Whether the set-aside file ``path`` is free (its run gone: the lock dies with its process,
+    a reboot too), holding its lock meanwhile so that no other run takes it as well."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        yield False  # gone meanwhile (another run put it back)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)
 
 
 def _holds_a_frame(path: Path) -> bool:
