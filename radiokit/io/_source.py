@@ -16,7 +16,7 @@ import tifffile
 
 from radiokit import _json as strict_json
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
+from radiokit.io._budget import check_budget, check_proportion
 from radiokit.io._experiment import (
     ENTRY,
     FRAMES,
@@ -347,6 +347,27 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+        self._check_tiff_proportion()
+
+    def _check_tiff_proportion(self) -> None:
+        """Refuse compressed pages decoding to far more than their strips or tiles could hold as
+        frames (:func:`check_proportion`). _check_page_layout refuses only what a codec cannot
+        expand to, and zstd or LZMA have no such bound."""
+        pages = [p for p in self._pages if p.compression != 1]
+        if not pages:
+            return
+        frame = math.prod(int(v) for v in pages[0].shape) * np.dtype(pages[0].dtype).itemsize
+        rows, cols = pages[0].shape
+        codecs = "/".join(sorted({p.compression.name.lower() for p in pages}))
+        check_proportion(
+            self.path,
+            f"{len(pages)} frame{'s' if len(pages) > 1 else ''} of {rows}x{cols} {np.dtype(pages[0].dtype)}",
+            frame * len(pages),
+            frame,
+            sum(int(b) for p in pages for b in p.databytecounts),
+            codecs,
+            self._budget,
+        )
 
     def _full_image_pages(self, all_pages) -> list[int]:
         """The indices of the pages that are frames. NewSubfileType bits 0 and 2: a
@@ -900,7 +921,7 @@ class FrameSource:
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             # its storage checked below, once the frames to be read are known
-            data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
+            data = self._checked(dataset, "buif", (2, 3), written=False)
             _refuse_colour(self.path, data)
             self._invert = _white_is_zero(self.path, data)
             self._packing = _cf_packing(self.path, data)
@@ -942,6 +963,11 @@ class FrameSource:
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else meta.get("bit_depth")
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
+    def _checked(self, name, kinds, ndims, written=True) -> h5py.Dataset:
+        """:func:`checked_dataset` under this file's ``allow_external`` and budget: a dataset checked
+        without the budget the user gave refused what they had allowed (check_proportion)."""
+        return checked_dataset(self.path, self._h5, name, kinds, ndims, self._allow_external, written, self._budget)
+
     def _groups_beside(self, dataset: str) -> list[str]:
         """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
         points at (NXdata may link the frames alone, their NXdetector's fields left behind)."""
@@ -968,7 +994,7 @@ class FrameSource:
         name = next((k for k in names if self._h5.get(k, getlink=True) is not None), None)
         if name is None:
             return {}
-        keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
+        keys = self._checked(name, "iu", (1,))
         keys_name = keys.name
         if keys.shape != (n,) and not self._h5.swmr_mode:
             raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
@@ -999,7 +1025,7 @@ class FrameSource:
         for name, key in (("data_dark", ImageKey.DARK), ("data_white", ImageKey.FLAT), ("data", ImageKey.PROJECTION)):
             if f"{DXCHANGE}/{name}" not in self._h5:
                 continue
-            ds = checked_dataset(self.path, self._h5, f"{DXCHANGE}/{name}", "buif", (2, 3), self._allow_external)
+            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3))
             _refuse_colour(self.path, ds)
             if parts and ds.shape[-2:] != parts[0].shape[-2:]:
                 sizes = " and ".join(f"{d.name} {'x'.join(map(str, d.shape[-2:]))}" for d in (parts[0], ds))
@@ -1023,10 +1049,7 @@ class FrameSource:
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
         ``ImageKey.DARK`` and ``ImageKey.FLAT``."""
-        pair = [
-            checked_dataset(self.path, self._h5, f"{CALIBRATION}/{name}", "iuf", (2,), self._allow_external)
-            for name in ("dark", "flat")
-        ]
+        pair = [self._checked(f"{CALIBRATION}/{name}", "iuf", (2,)) for name in ("dark", "flat")]
         if pair[0].shape != pair[1].shape:
             raise FormatError(self.path, f"/{CALIBRATION}: dark {pair[0].shape} and flat {pair[1].shape} differ")
         self._ds = _DatasetStack(pair)
