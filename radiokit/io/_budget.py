@@ -26,8 +26,8 @@ BUDGET_ENV = "RADIOKIT_MEMORY_BUDGET"
 DEFAULT_FRACTION = 0.5
 # What compressed frames expand to, measured on 2240 x 2240 uint16 frames (deflate, deflate with
 # predictor 2, zstd 3 and 19, LZW, LZMA): darks of 1-2 counts' noise 2.8-6.9:1, a shaded flat
-# 1.2-3.0:1, the vendor's ITEX files 1.4-5.3:1 and a photon-counting one 12-19:1; a saturated frame
-# with 1 % of its pixels below 77-101:1. Only a constant frame goes beyond: 650-1030:1 under
+# 1.2-3.0:1, the vendor's ITEX files 1.4-5.3:1 and its photon-counting one 12-19:1; a saturated frame
+# with 1 % of its pixels below 77-101:1. Only a constant frame goes beyond: 650-1180:1 under
 # deflate and LZW (deflate's own bound is about 1032:1), 6300:1 (LZMA) to 31000:1 (zstd of zeros).
 # So past BOMB_RATIO the data is nearly constant, and real only at an experiment's size: 200 such
 # darks are 1.9 GiB. Like Pillow's pixel limit per image, the rule is a size beyond which such a
