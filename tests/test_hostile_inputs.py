@@ -2140,3 +2140,19 @@ def test_a_stack_out_of_proportion_is_refused_beyond_the_file_threshold(tmp_path
     with pytest.raises(FormatError, match=r"many.tif: 3 frames.*6.0 MiB"):
         read(path)
     assert read(path, budget="1GiB").data.shape == (3, 1024, 1024)
+
+
+def test_register_is_refused_when_its_working_memory_is_over_the_budget(tmp_path):
+    """The budget held the reads (two 256 x 256 uint16 images, 128 KiB each) but not the
+    registration after them, about 16 times as much: 8000 x 8000 under a 200 MB budget peaked at
+    3.6 GB. Refused in one line before it starts; read within a budget that holds both, it runs."""
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        tifffile.imwrite(tmp_path / f"{name}.tif", rng.normal(1000, 50, (256, 256)).astype(np.uint16))
+    args = ("register", tmp_path / "a.tif", tmp_path / "b.tif", "--preset", "fast", "-o", tmp_path / "r.h5")
+    res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "2MiB"})
+    one_line_error(res, "radiokit register: ", "a.tif", "b.tif", "two 256x256 images", "4.0 MiB", "2.0 MiB")
+    assert not (tmp_path / "r.h5").exists()
+    res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "64MiB"})
+    assert res.returncode in (0, 1), res.stderr
+    assert (tmp_path / "r.h5").exists()
