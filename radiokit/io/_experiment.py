@@ -1202,6 +1202,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     if isinstance(ds, h5py.Dataset) and ds.ndim == 2 and _plain_numbers(ds.dtype):
         check_local(path, h5, ds, allow_external)
         check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
+        _check_proportion(path, ds, budget)  # read whole, and compressed (gzip) as radiokit writes it
         meta[name] = ds[()]
     bits = read_bit_depth(path, h5, DETECTOR, allow_external)
     if bits is not None:  # else: the C7942's 12
