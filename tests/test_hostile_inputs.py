@@ -2156,3 +2156,56 @@ def test_register_is_refused_when_its_working_memory_is_over_the_budget(tmp_path
     res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "64MiB"})
     assert res.returncode in (0, 1), res.stderr
     assert (tmp_path / "r.h5").exists()
+
+
+def test_an_experiment_files_pixel_mask_bomb_is_refused_on_a_big_machine(tmp_path):
+    """The pixel mask beside an experiment's frames is read whole, outside checked_dataset: a
+    30000 x 30000 uint32 mask of zstd zeros (3.4 GiB) in a few hundred KB."""
+    import hdf5plugin
+    import imagecodecs
+
+    path = _experiment(tmp_path / "exp.h5")
+    data = imagecodecs.zstd_encode(np.zeros((3000, 3000), np.uint32).tobytes())
+    with h5py.File(path, "a") as h5:
+        del h5["entry/instrument/detector/pixel_mask"]
+        ds = h5.create_dataset(
+            "entry/instrument/detector/pixel_mask", (30_000, 30_000), "u4", chunks=(3000, 3000), **hdf5plugin.Zstd()
+        )
+        for r, c in np.ndindex(10, 10):
+            ds.id.write_direct_chunk((r * 3000, c * 3000), data)
+    assert path.stat().st_size < 1_000_000
+    one_line_error(run_on_a_big_machine("info", path), "exp.h5", "pixel_mask", "3.4 GiB", "RADIOKIT_MEMORY_BUDGET")
+
+
+def test_a_calibrations_defect_list_bomb_is_refused(tmp_path):
+    """defect_rows and defect_columns were read with no check at all: 400 million zstd zeros
+    (3 GiB) in a 127 KB calibration file, a traceback under 2 GiB of address space."""
+    import hdf5plugin
+    import imagecodecs
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    Calibration.from_frames(
+        rng.normal(100, 2, (4, 64, 64)).astype(np.uint16), rng.normal(3000, 30, (4, 64, 64)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    data = imagecodecs.zstd_encode(np.zeros(10_000_000, np.int64).tobytes())
+    with h5py.File(tmp_path / "cal.h5", "a") as h5:
+        del h5["calibration/defect_rows"]
+        ds = h5.create_dataset(
+            "calibration/defect_rows", (400_000_000,), "i8", chunks=(10_000_000,), **hdf5plugin.Zstd()
+        )
+        for i in range(40):
+            ds.id.write_direct_chunk((i * 10_000_000,), data)
+    code = (
+        "import resource; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))\n"
+        "import radiokit.io._budget as b; b._available_bytes = lambda: 64 << 30\n"
+        "from radiokit.calibrate import Calibration\n"
+        "from radiokit.errors import FormatError\n"
+        "try:\n    Calibration.load(__import__('sys').argv[1])\n"
+        "except FormatError as exc:\n    print(exc)\n"
+    )
+    clean = {k: v for k, v in os.environ.items() if k != "RADIOKIT_MEMORY_BUDGET"}
+    res = subprocess.run([sys.executable, "-c", code, tmp_path / "cal.h5"], capture_output=True, text=True, env=clean)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert "cal.h5" in res.stdout and "defect_rows" in res.stdout and "3.0 GiB" in res.stdout, res.stdout
