@@ -884,8 +884,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
-    _check_proportion(path, ds, budget)
-    if written:  # else its caller checks it, knowing what may be unwritten (read_experiment_meta)
+    if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
+        check_proportion_of(path, ds, budget)
         check_written(path, ds)
     return ds
 
@@ -928,9 +928,10 @@ _FILTER_NAMES = {1: "deflate", 4: "szip", 5: "n-bit", 6: "scale-offset", 32000: 
 _FILTER_NAMES.update({32008: "bitshuffle", 32013: "zfp", 32015: "zstd", 32017: "sz", 32026: "blosc2"})
 
 
-def _check_proportion(path, ds, budget) -> None:
-    """:func:`check_proportion` for a filtered dataset: what it declares against what it stores.
-    Unfiltered data stores what it declares, or check_written finds it unwritten."""
+def check_proportion_of(path, ds, budget=None, frames=None) -> None:
+    """:func:`check_proportion` for a filtered dataset: what it declares (or its first ``frames``,
+    those to be read: a live writer extends a stack far ahead of what it has written) against
+    what it stores. Unfiltered data stores what it declares, or check_written finds it unwritten."""
     from radiokit.io._budget import check_proportion
 
     plist = ds.id.get_create_plist()
@@ -938,8 +939,8 @@ def _check_proportion(path, ds, budget) -> None:
         return
     codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     codecs = "+".join(_FILTER_NAMES.get(c, f"filter {c}") for c in codes if c not in (2, 3)) or "filtered"
-    declared = int(ds.size) * ds.dtype.itemsize
     frame = math.prod(int(v) for v in ds.shape[-2:]) * ds.dtype.itemsize
+    declared = int(ds.size) * ds.dtype.itemsize if frames is None or ds.ndim < 3 else frames * frame
     what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
     check_proportion(path, what, declared, frame, int(ds.id.get_storage_size()), codecs, budget)
 
@@ -1202,7 +1203,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     if isinstance(ds, h5py.Dataset) and ds.ndim == 2 and _plain_numbers(ds.dtype):
         check_local(path, h5, ds, allow_external)
         check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
-        _check_proportion(path, ds, budget)  # read whole, and compressed (gzip) as radiokit writes it
+        check_proportion_of(path, ds, budget)  # read whole, and compressed (gzip) as radiokit writes it
         meta[name] = ds[()]
     bits = read_bit_depth(path, h5, DETECTOR, allow_external)
     if bits is not None:  # else: the C7942's 12

@@ -25,6 +25,7 @@ from radiokit.io._experiment import (
     check_frame_written,
     check_image_keys,
     check_links,
+    check_proportion_of,
     check_written,
     checked_dataset,
     frame_candidates,
@@ -947,9 +948,7 @@ class FrameSource:
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
-        if data.chunks is not None:  # a frame is read by decompressing the whole chunks it lies in
-            chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
-            check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
+        self._check_decoding(data, n)
         self._ds = data
         # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
         # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
@@ -962,6 +961,15 @@ class FrameSource:
         # the bit depth the file records; without one an experiment file's panel is the C7942 (12)
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else meta.get("bit_depth")
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
+
+    def _check_decoding(self, data, n) -> None:
+        """What reading the first ``n`` frames of ``data`` decodes: held to the bytes storing it
+        (frames a live writer has extended ahead are not read, nor counted) and, a chunk at a
+        time, to the budget: a frame is read by decompressing the whole chunks it lies in."""
+        check_proportion_of(self.path, data, self._budget, frames=n)
+        if data.chunks is not None:
+            chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
+            check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
 
     def _checked(self, name, kinds, ndims, written=True) -> h5py.Dataset:
         """:func:`checked_dataset` under this file's ``allow_external`` and budget: a dataset checked
