@@ -34,6 +34,7 @@ DEFAULT_FRACTION = 0.5
 # ratio is refused: a frame above BOMB_FRAME_BYTES (a 23000 x 23000 uint16 one; every decode
 # allocates at least a frame) or a file above BOMB_FILE_BYTES (read() allocates all its frames).
 # An explicit budget lifts it: the user then says how much memory the read may take.
+# (benchmarks/bench_compression_ratios.py reproduces the measurements; benchmarks/README.md)
 #: decoded : stored beyond which compressed frame data is nearly constant (measurements above)
 BOMB_RATIO = 200
 #: decoded bytes of one frame beyond which data compressed past BOMB_RATIO is refused
