@@ -515,7 +515,7 @@ _PROCESS_OPTIONS = {
 def _register_inputs(args):
     """``register``'s two images and ``--roi`` mask, and its outputs checked: everything refused
     before the registration, not after it (an image against itself, a ROI off the image, an
-    output onto an input, a figure matplotlib cannot write)."""
+    output onto an input, a figure matplotlib cannot write, a registration over the budget)."""
     from radiokit.io import check_output
 
     fixed, fixed_frame = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
@@ -551,7 +551,29 @@ def _register_inputs(args):
         kinds = FigureCanvasBase.get_supported_filetypes()
         if args.png.suffix.lower().lstrip(".") not in kinds:
             raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+    _check_register_memory(args, fixed)
     return fixed, moving, mask
+
+
+#: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
+#: /usr/bin/time -v: rc --preset fast 51-53 bytes (476 MB at 2240 x 2240, 1.03 GB at 4000 x 4000,
+#: 3.58 GB at 8000 x 8000), the default preset 63 (562 MB, 1.25 GB): 14-16 times the two uint16
+#: images, which alone the reads held to the budget (8000 x 8000 under 200M peaked at 3.6 GB)
+REGISTER_BYTES_PER_PIXEL = 64
+
+
+def _check_register_memory(args, fixed) -> None:
+    """Refuse, before it starts, a registration whose working memory is over the budget."""
+    from radiokit.io import memory_budget
+    from radiokit.io._budget import BUDGET_ENV, _human
+
+    need, limit = REGISTER_BYTES_PER_PIXEL * fixed.size, memory_budget()
+    if need > limit:
+        raise ValueError(
+            f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
+            f"needs about {_human(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
+            f"{_human(limit)}: raise {BUDGET_ENV}, or register a cropped region"
+        )
 
 
 def cmd_register(args) -> int:

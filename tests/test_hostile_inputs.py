@@ -26,7 +26,7 @@ from conftest import ITEX_DIR as ITEX
 from conftest import needs_itex, run_cli, synthetic
 
 from radiokit.errors import FormatError
-from radiokit.io import ExperimentWriter, ImageKey, memory_budget, parse_size, read
+from radiokit.io import ExperimentWriter, ImageKey, memory_budget, open_frames, parse_size, read
 from radiokit.io._itex import parse_comment
 
 AS_LIMIT = 1 << 30  # 1 GiB of address space: python, numpy, h5py and scipy fit; the bombs do not
@@ -132,11 +132,14 @@ def test_hdf5_memory_bomb_is_refused_within_the_budget(cmd, hdf5_bomb, tmp_path)
     assert not any(p.name not in ("bomb.h5",) for p in tmp_path.iterdir())
 
 
-def test_hdf5_memory_bomb_is_refused_by_the_default_budget(hdf5_bomb):
-    # no variable: half the available memory (or of the address-space limit, here 1 GiB)
+def test_hdf5_memory_bomb_is_refused_by_the_default_budget(tmp_path):
+    # no variable: half the available memory (or of the address-space limit, here 1 GiB). A frame
+    # of 763 MiB, every chunk stored (1:1026, below the thresholds of check_proportion, which
+    # would refuse hdf5_bomb before the budget is asked)
+    path = _zstd_chunks(tmp_path / "bomb.h5", (1, 20_000, 20_000), (1, 2000, 2000), 0, codec="gzip")
     env = {k: v for k, v in os.environ.items() if k != "RADIOKIT_MEMORY_BUDGET"}
     res = subprocess.run(
-        [sys.executable, "-m", "radiokit.cli", "info", hdf5_bomb],
+        [sys.executable, "-m", "radiokit.cli", "info", "--dataset", "data", path],
         capture_output=True,
         text=True,
         env=env,
@@ -206,9 +209,12 @@ def many_frames(tmp_path):
 def test_a_file_declaring_1e8_frames_is_refused_by_its_output_size_not_by_memory(many_frames, tmp_path):
     """``correct`` planned every frame as a Python tuple before anything else (10**8 tuples, ~10 GB):
     MemoryError under 1 GiB of address space, and on a big machine minutes of allocation. Now the
-    frames are planned lazily and the 6 TiB float32 output is refused in one line, in bounded memory."""
+    frames are planned lazily and the 6 TiB float32 output is refused in one line, in bounded memory.
+    The budget is given (the default's, under AS_LIMIT): else check_proportion refuses the
+    file at once (3 TiB from 14 kB), before what this test is about."""
     from radiokit.calibrate import Calibration
 
+    budget = {"RADIOKIT_MEMORY_BUDGET": "512MiB"}
     rng = np.random.default_rng(0)
     cal = Calibration.from_frames(
         rng.normal(100, 2, (4, 128, 128)).astype(np.uint16), rng.normal(3000, 30, (4, 128, 128)).astype(np.uint16)
@@ -226,11 +232,14 @@ def test_a_file_declaring_1e8_frames_is_refused_by_its_output_size_not_by_memory
             "-o",
             tmp_path / out,
             limit=AS_LIMIT,
+            env=budget,
         )
         one_line_error(res, out, "no space left", "needs about 6.0 TiB")
     # info samples frames 0, 5e7 and 1e8 - 1: the middle one was never written (one chunk is)
-    res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT)
+    res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT, env=budget)
     one_line_error(res, "many.h5", "frame 50000000 of /scan/data was never written")
+    res = run("info", many_frames, "--dataset", "scan/data", "--sample", "3", limit=AS_LIMIT)
+    one_line_error(res, "many.h5", "3.0 TiB from", "decompression bomb")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "many.h5"]
 
 
@@ -1999,3 +2008,204 @@ def test_a_truncated_hdf5_file_is_named_truncated_with_its_sizes(tmp_path):
     assert "synchronously" not in str(info.value)
     line = run_cli("process", cut, "-o", tmp_path / "res").stderr.strip()
     assert "truncated: it holds 20000" in line and "synchronously" not in line, line
+
+
+# -- out of all proportion: decoded sizes a real frame never compresses to -------------------------
+# The budget alone is half the available memory: 11.5 GB on a 23 GB machine, so a 220 KB zstd TIFF
+# declaring 60000 x 60000 decoded 7 GB. These run "on a 64 GiB machine" (the budget's measure of
+# available memory replaced) inside 1 GiB of address space: a reader that decoded first dies there.
+_BIG_MACHINE = """
+import resource, sys
+resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))
+import radiokit.io._budget as budget
+budget._available_bytes = lambda: 64 << 30
+from radiokit.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def run_on_a_big_machine(*args, env=None):
+    clean = {k: v for k, v in os.environ.items() if k != "RADIOKIT_MEMORY_BUDGET"}
+    return subprocess.run(
+        [sys.executable, "-c", _BIG_MACHINE.format(limit=AS_LIMIT), *map(str, args)],
+        capture_output=True,
+        text=True,
+        env={**clean, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1", **(env or {})},
+    )
+
+
+def _zstd_chunks(path, shape, chunks, value, codec="zstd"):
+    """An HDF5 stack of ``shape`` whose every chunk is written (one compressed chunk of ``value``
+    stored at each place, as a writer would have): honest storage, nothing unwritten."""
+    import hdf5plugin
+    import imagecodecs
+
+    block = np.full(chunks, value, np.uint16).tobytes()
+    if codec == "zstd":
+        opts, data = hdf5plugin.Zstd(), imagecodecs.zstd_encode(block)
+    else:
+        opts, data = {"compression": "gzip"}, imagecodecs.zlib_encode(block)
+    with h5py.File(path, "w") as h5:
+        ds = h5.create_dataset("data", shape=shape, dtype="u2", chunks=chunks, **opts)
+        for index in np.ndindex(*(s // c for s, c in zip(shape, chunks))):
+            ds.id.write_direct_chunk(tuple(i * c for i, c in zip(index, chunks)), data)
+    return path
+
+
+@pytest.fixture
+def zstd_tiff_bomb(tmp_path):
+    """A few-hundred-byte zstd TIFF declaring one 40000 x 40000 uint16 page (3.0 GiB): zstd's
+    ratio has no bound, so no codec limit refuses it."""
+    path = tmp_path / "zbomb.tif"
+    tifffile.imwrite(path, np.zeros((16, 16), np.uint16), compression="zstd", rowsperstrip=16)
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        for name in ("ImageWidth", "ImageLength", "RowsPerStrip"):
+            tif.pages[0].tags[name].overwrite(40_000)
+    return path
+
+
+def test_a_zstd_tiff_bomb_is_refused_on_a_big_machine(zstd_tiff_bomb):
+    size = zstd_tiff_bomb.stat().st_size
+    line = one_line_error(run_on_a_big_machine("info", zstd_tiff_bomb), "zbomb.tif", "40000x40000", "3.0 GiB")
+    assert re.search(r"\b\d+ bytes\b", line) and "RADIOKIT_MEMORY_BUDGET" in line, line
+    assert size < 1000
+
+
+def test_an_hdf5_zstd_bomb_is_refused_on_a_big_machine(tmp_path):
+    path = _zstd_chunks(tmp_path / "zbomb.h5", (1, 40_000, 40_000), (1, 4000, 4000), 7)
+    assert path.stat().st_size < 400_000
+    res = run_on_a_big_machine("info", "--dataset", "data", path)
+    one_line_error(res, "zbomb.h5", "3.0 GiB", "RADIOKIT_MEMORY_BUDGET")
+
+
+def test_a_deflate_bomb_within_deflates_bound_is_refused_on_a_big_machine(tmp_path):
+    # 1026:1 is below deflate's 1032:1, so no lie about the codec: the proportion refuses it
+    path = _zstd_chunks(tmp_path / "gbomb.h5", (1, 30_000, 30_000), (1, 3000, 3000), 0, codec="gzip")
+    res = run_on_a_big_machine("info", "--dataset", "data", path)
+    one_line_error(res, "gbomb.h5", "1.7 GiB", "RADIOKIT_MEMORY_BUDGET")
+
+
+def test_a_stack_of_200_constant_frames_still_reads(tmp_path, monkeypatch):
+    """200 dark frames of 2240 x 2240 (1.9 GiB) compress 1:1000 (deflate) to 1:30000 (zstd) when
+    constant: a real experiment's size, read as always."""
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    tif = tmp_path / "darks.tif"
+    frame = np.full((2240, 2240), 101, np.uint16)
+    with tifffile.TiffWriter(tif) as w:
+        for _ in range(200):
+            w.write(frame, compression="zstd", photometric="minisblack", contiguous=False)
+    h5 = _zstd_chunks(tmp_path / "darks.h5", (200, 2240, 2240), (1, 2240, 2240), 101, codec="gzip")
+    for path, extra in ((tif, {}), (h5, {"dataset": "data"})):
+        with open_frames(path, **extra) as src:
+            assert len(src) == 200
+            assert (src[199] == 101).all()
+
+
+def test_a_file_out_of_proportion_reads_with_an_explicit_budget(tmp_path, monkeypatch):
+    """The rule's thresholds lowered to 1 MiB a frame: a 2048 x 2048 frame of zeros (8 MiB from
+    a few hundred bytes) is refused, and read when the user gives a budget, as a real file
+    beyond the thresholds would be; noisy frames and uncompressed ones never meet the rule."""
+    from radiokit.io import _budget
+
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FRAME_BYTES", 2**20)
+    zeros = np.zeros((2048, 2048), np.uint16)
+    noisy = np.random.default_rng(0).normal(100, 2, (2048, 2048)).astype(np.uint16)
+    for name, data, compression in (("zeros", zeros, "zstd"), ("zerosd", zeros, "zlib"), ("noisy", noisy, "zstd")):
+        tifffile.imwrite(tmp_path / f"{name}.tif", data, compression=compression)
+    tifffile.imwrite(tmp_path / "plain.tif", zeros)
+    for name in ("zeros", "zerosd"):
+        with pytest.raises(FormatError, match=rf"{name}.tif: .*8.0 MiB.* from \d+ bytes.*budget"):
+            read(tmp_path / f"{name}.tif")
+        assert read(tmp_path / f"{name}.tif", budget="64MiB").data.shape == (1, 2048, 2048)
+        monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "64MiB")
+        assert read(tmp_path / f"{name}.tif").data.shape == (1, 2048, 2048)
+        monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET")
+    for name in ("noisy", "plain"):
+        assert read(tmp_path / f"{name}.tif").data.shape == (1, 2048, 2048)
+    h5 = _zstd_chunks(tmp_path / "zeros.h5", (1, 2048, 2048), (1, 512, 512), 0)
+    with pytest.raises(FormatError, match=r"zeros.h5: .*8.0 MiB.* from \d+ bytes.*budget"):
+        read(h5, dataset="data")
+    assert read(h5, dataset="data", budget="64MiB").data.shape == (1, 2048, 2048)
+
+
+def test_a_stack_out_of_proportion_is_refused_beyond_the_file_threshold(tmp_path, monkeypatch):
+    """Frames each below the frame threshold, but all of them together beyond the file's."""
+    from radiokit.io import _budget
+
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 4 * 2**20)
+    path = tmp_path / "many.tif"
+    tifffile.imwrite(path, np.zeros((3, 1024, 1024), np.uint16), compression="zstd", photometric="minisblack")
+    with pytest.raises(FormatError, match=r"many.tif: 3 frames.*6.0 MiB"):
+        read(path)
+    assert read(path, budget="1GiB").data.shape == (3, 1024, 1024)
+
+
+def test_register_is_refused_when_its_working_memory_is_over_the_budget(tmp_path):
+    """The budget held the reads (two 256 x 256 uint16 images, 128 KiB each) but not the
+    registration after them, about 16 times as much: 8000 x 8000 under a 200 MB budget peaked at
+    3.6 GB. Refused in one line before it starts; read within a budget that holds both, it runs."""
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        tifffile.imwrite(tmp_path / f"{name}.tif", rng.normal(1000, 50, (256, 256)).astype(np.uint16))
+    args = ("register", tmp_path / "a.tif", tmp_path / "b.tif", "--preset", "fast", "-o", tmp_path / "r.h5")
+    res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "2MiB"})
+    one_line_error(res, "radiokit register: ", "a.tif", "b.tif", "two 256x256 images", "4.0 MiB", "2.0 MiB")
+    assert not (tmp_path / "r.h5").exists()
+    res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "64MiB"})
+    assert res.returncode in (0, 1), res.stderr
+    assert (tmp_path / "r.h5").exists()
+
+
+def test_an_experiment_files_pixel_mask_bomb_is_refused_on_a_big_machine(tmp_path):
+    """The pixel mask beside an experiment's frames is read whole, outside checked_dataset: a
+    30000 x 30000 uint32 mask of zstd zeros (3.4 GiB) in a few hundred KB."""
+    import hdf5plugin
+    import imagecodecs
+
+    path = _experiment(tmp_path / "exp.h5")
+    data = imagecodecs.zstd_encode(np.zeros((3000, 3000), np.uint32).tobytes())
+    with h5py.File(path, "a") as h5:
+        del h5["entry/instrument/detector/pixel_mask"]
+        ds = h5.create_dataset(
+            "entry/instrument/detector/pixel_mask", (30_000, 30_000), "u4", chunks=(3000, 3000), **hdf5plugin.Zstd()
+        )
+        for r, c in np.ndindex(10, 10):
+            ds.id.write_direct_chunk((r * 3000, c * 3000), data)
+    assert path.stat().st_size < 1_000_000
+    one_line_error(run_on_a_big_machine("info", path), "exp.h5", "pixel_mask", "3.4 GiB", "RADIOKIT_MEMORY_BUDGET")
+
+
+def test_a_calibrations_defect_list_bomb_is_refused(tmp_path):
+    """defect_rows and defect_columns were read with no check at all: 400 million zstd zeros
+    (3 GiB) in a 127 KB calibration file, a traceback under 2 GiB of address space."""
+    import hdf5plugin
+    import imagecodecs
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(0)
+    Calibration.from_frames(
+        rng.normal(100, 2, (4, 64, 64)).astype(np.uint16), rng.normal(3000, 30, (4, 64, 64)).astype(np.uint16)
+    ).save(tmp_path / "cal.h5")
+    data = imagecodecs.zstd_encode(np.zeros(10_000_000, np.int64).tobytes())
+    with h5py.File(tmp_path / "cal.h5", "a") as h5:
+        del h5["calibration/defect_rows"]
+        ds = h5.create_dataset(
+            "calibration/defect_rows", (400_000_000,), "i8", chunks=(10_000_000,), **hdf5plugin.Zstd()
+        )
+        for i in range(40):
+            ds.id.write_direct_chunk((i * 10_000_000,), data)
+    code = (
+        "import resource; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))\n"
+        "import radiokit.io._budget as b; b._available_bytes = lambda: 64 << 30\n"
+        "from radiokit.calibrate import Calibration\n"
+        "from radiokit.errors import FormatError\n"
+        "try:\n    Calibration.load(__import__('sys').argv[1])\n"
+        "except FormatError as exc:\n    print(exc)\n"
+    )
+    clean = {k: v for k, v in os.environ.items() if k != "RADIOKIT_MEMORY_BUDGET"}
+    res = subprocess.run([sys.executable, "-c", code, tmp_path / "cal.h5"], capture_output=True, text=True, env=clean)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert "cal.h5" in res.stdout and "defect_rows" in res.stdout and "3.0 GiB" in res.stdout, res.stdout

@@ -151,20 +151,26 @@ import os, sys, h5py, numpy as np
 path, mode = sys.argv[1], sys.argv[2]
 frames = np.arange(2 * 30 * 40, dtype="<u2").reshape(2, 30, 40)
 f = h5py.File(path, "w", libver="latest")
-ds = f.create_dataset("entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40))
+zstd = {}
+if mode == "block-zstd":  # compressed, extended 800 frames ahead: far beyond what it stores
+    import hdf5plugin
+    zstd = hdf5plugin.Zstd()
+ds = f.create_dataset(
+    "entry/data/data", shape=(0, 30, 40), maxshape=(None, 30, 40), dtype="<u2", chunks=(1, 30, 40), **zstd
+)
 f["entry"].attrs["NX_class"] = "NXentry"
 f["entry/data"].attrs.update(NX_class="NXdata", signal="data")
-if mode in ("lag", "block"):  # NXtomo keys, the writer one frame behind with them
+if mode in ("lag", "block", "block-zstd"):  # NXtomo keys, the writer one frame behind with them
     keys = f.create_dataset("entry/data/image_key", shape=(0,), maxshape=(None,), dtype="i1", chunks=(4,))
 if mode not in ("plain", "plain-exit"):
     f.swmr_mode = True
 if mode == "lag":
     keys.resize((1,))
     keys[0] = 2
-if mode == "block":  # the frames extended 8 at a time ahead of what is written, keys as written
+if mode in ("block", "block-zstd"):  # the frames extended 8 at a time ahead of what is written, keys as written
     keys.resize((2,))
     keys[:] = 2
-    ds.resize((8, 30, 40))
+    ds.resize((800 if zstd else 8, 30, 40))
     ds[:2] = frames
 else:
     ds.resize((2, 30, 40))
@@ -216,6 +222,26 @@ def test_hdf5_being_written_in_blocks_ahead_of_its_keys_reads_the_frames_both_ho
     try:
         assert proc.stdout.readline() == "ready\n"
         with pytest.warns(UserWarning, match=r"live\.h5: is marked as being written .* 2 image keys for 8 frames"):
+            f = read(path)
+    finally:
+        proc.communicate("")
+        watchdog.cancel()
+    np.testing.assert_array_equal(f.data, np.arange(2 * 30 * 40).reshape(2, 30, 40))
+
+
+def test_a_compressed_live_file_extended_ahead_is_not_taken_for_a_bomb(tmp_path, monkeypatch):
+    """Its frames extended 800 ahead of the 2 written: declared far beyond what zstd stores, but
+    what is read is the 2 frames the keys hold, and those are held to check_proportion (its
+    thresholds lowered to 1 MiB for the 1.9 MB the file declares)."""
+    from radiokit.io import _budget
+
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 2**20)
+    path = tmp_path / "live.h5"
+    proc, watchdog = _open_writer(path, "block-zstd")
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        with pytest.warns(UserWarning, match=r"live\.h5: is marked as being written .* 2 image keys for 800 frames"):
             f = read(path)
     finally:
         proc.communicate("")

@@ -26,7 +26,7 @@ from radiokit.io._atomic import (
     check_output,
     folder_marker,
 )
-from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
+from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, memory_budget, parse_size
 from radiokit.io._experiment import (
     PIXEL_SIZE_RANGE_M,
     ExperimentProgress,
@@ -76,6 +76,7 @@ __all__ = [
     "folder_marker",
     "memory_budget",
     "check_budget",
+    "check_proportion",
     "parse_size",
     "BUDGET_ENV",
     "ExperimentProgress",

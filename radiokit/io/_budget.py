@@ -4,6 +4,11 @@ A file's header is a promise, not a fact: a 9 KB HDF5 file can declare (10, 1000
 frames and a small zlib TIFF a 60000 x 60000 page. Every reader multiplies what is declared
 out and refuses, with a message naming the file, anything beyond the budget, before the
 allocation that would exhaust the machine.
+
+The budget is a fraction of the machine, so on a large one it lets through what no frame file
+holds: a 227 KB zstd TIFF declaring 60000 x 60000 decoded 7 GB within an 11.5 GB budget.
+:func:`check_proportion` therefore also refuses compressed data that would decode to far more than
+real frames do, unless the user gave a budget of their own.
 """
 
 from __future__ import annotations
@@ -13,12 +18,29 @@ import re
 
 from radiokit.errors import FormatError
 
-__all__ = ["memory_budget", "parse_size", "check_budget", "BUDGET_ENV"]
+__all__ = ["memory_budget", "parse_size", "check_budget", "check_proportion", "BUDGET_ENV"]
 
 #: environment variable holding the budget, e.g. "2GiB", "500M", "1e9"
 BUDGET_ENV = "RADIOKIT_MEMORY_BUDGET"
 #: default budget: this fraction of the machine's available physical memory
 DEFAULT_FRACTION = 0.5
+# What compressed frames expand to, measured on 2240 x 2240 uint16 frames (deflate, deflate with
+# predictor 2, zstd 3 and 19, LZW, LZMA): darks of 1-2 counts' noise 2.8-6.9:1, a shaded flat
+# 1.2-3.0:1, the vendor's ITEX files 1.4-5.3:1 and its photon-counting one 12-19:1; a saturated frame
+# with 1 % of its pixels below 77-101:1. Only a constant frame goes beyond: 650-1180:1 under
+# deflate and LZW (deflate's own bound is about 1032:1), 6300:1 (LZMA) to 31000:1 (zstd of zeros).
+# So past BOMB_RATIO the data is nearly constant, and real only at an experiment's size: 200 such
+# darks are 1.9 GiB. Like Pillow's pixel limit per image, the rule is a size beyond which such a
+# ratio is refused: a frame above BOMB_FRAME_BYTES (a 23000 x 23000 uint16 one; every decode
+# allocates at least a frame) or a file above BOMB_FILE_BYTES (read() allocates all its frames).
+# An explicit budget lifts it: the user then says how much memory the read may take.
+# (benchmarks/bench_compression_ratios.py reproduces the measurements; benchmarks/README.md)
+#: decoded : stored beyond which compressed frame data is nearly constant (measurements above)
+BOMB_RATIO = 200
+#: decoded bytes of one frame beyond which data compressed past BOMB_RATIO is refused
+BOMB_FRAME_BYTES = 2**30
+#: decoded bytes of a file's frames beyond which data compressed past BOMB_RATIO is refused
+BOMB_FILE_BYTES = 4 * 2**30
 _UNITS = {
     "": 1,
     "b": 1,
@@ -95,3 +117,36 @@ def check_budget(path, nbytes: int, what: str, budget=None) -> None:
             f"{what} would need {_human(int(nbytes))}, over the memory budget of "
             f"{_human(limit)} (a corrupt header, or raise {BUDGET_ENV})",
         )
+
+
+def explicit_budget(budget=None) -> bool:
+    """Whether the user gave a budget: ``budget`` or the environment variable :data:`BUDGET_ENV`."""
+    return budget is not None or bool(os.environ.get(BUDGET_ENV))
+
+
+def _suggested(nbytes: int) -> str:
+    """A budget a quarter above ``nbytes``, in whole MiB or GiB, to quote in a refusal."""
+    unit, name = (2**30, "GiB") if nbytes >= 2**30 else (2**20, "MiB")
+    return f"{-(-nbytes * 5 // 4 // unit) or 1}{name}"
+
+
+def check_proportion(path, what: str, decoded: int, frame: int, stored: int, codec: str, budget=None) -> None:
+    """Refuse compressed data out of all proportion to the bytes it is stored in, before decoding.
+
+    ``decoded`` bytes (``frame`` of them the largest one decode allocates at once) from ``stored``
+    bytes of ``codec`` data are refused when they expand more than :data:`BOMB_RATIO` and exceed
+    :data:`BOMB_FRAME_BYTES` a frame or :data:`BOMB_FILE_BYTES` in all (the module's comment gives
+    the measurements), unless the user gave a budget (:func:`explicit_budget`).
+    """
+    if not stored or decoded <= BOMB_RATIO * stored or explicit_budget(budget):
+        return
+    if frame <= BOMB_FRAME_BYTES and decoded <= BOMB_FILE_BYTES:
+        return
+    raise FormatError(
+        path,
+        f"{what} would decode to {_human(decoded)} from {stored} bytes of {codec} data "
+        f"(1:{decoded // stored}): out of all proportion for frames (noisy ones compress 1:20 at most, "
+        f"only nearly constant ones past 1:{BOMB_RATIO}), taken for a decompression bomb; to read it "
+        f"all the same, give the memory it may use: {BUDGET_ENV}={_suggested(decoded)} "
+        "(read(..., budget=...))",
+    )

@@ -1178,11 +1178,12 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
         )
 
 
-def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=True) -> h5py.Dataset:
+def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=True, budget=None) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
     Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely,
-    and a dataset can point at other files (refused unless ``allow_external``).
+    a dataset can point at other files (refused unless ``allow_external``), and compressed data
+    can declare far more than it could hold (:func:`check_proportion`, lifted by a ``budget``).
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
@@ -1198,7 +1199,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=
     if ds.ndim not in ndims:
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
-    if written:  # else its caller checks it, knowing what may be unwritten (read_experiment_meta)
+    if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
+        check_proportion_of(path, ds, budget)
         check_written(path, ds)
     return ds
 
@@ -1234,6 +1236,28 @@ def check_filters(path, ds) -> None:
             f"{ds.name} is compressed with HDF5 filter {code} ({name.decode('latin-1') or 'unnamed'}), "
             "which is not available here: install hdf5plugin (pip install hdf5plugin)",
         )
+
+
+#: the names of HDF5 filters in a refusal (libhdf5's own are long sentences for plugins)
+_FILTER_NAMES = {1: "deflate", 4: "szip", 5: "n-bit", 6: "scale-offset", 32000: "lzf", 32001: "blosc", 32004: "lz4"}
+_FILTER_NAMES.update({32008: "bitshuffle", 32013: "zfp", 32015: "zstd", 32017: "sz", 32026: "blosc2"})
+
+
+def check_proportion_of(path, ds, budget=None, frames=None) -> None:
+    """:func:`check_proportion` for a filtered dataset: what it declares (or its first ``frames``,
+    those to be read: a live writer extends a stack far ahead of what it has written) against
+    what it stores. Unfiltered data stores what it declares, or check_written finds it unwritten."""
+    from radiokit.io._budget import check_proportion
+
+    plist = ds.id.get_create_plist()
+    if ds.shape is None or ds.is_virtual or not plist.get_nfilters():
+        return
+    codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+    codecs = "+".join(_FILTER_NAMES.get(c, f"filter {c}") for c in codes if c not in (2, 3)) or "filtered"
+    frame = math.prod(int(v) for v in ds.shape[-2:]) * ds.dtype.itemsize
+    declared = int(ds.size) * ds.dtype.itemsize if frames is None or ds.ndim < 3 else frames * frame
+    what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
+    check_proportion(path, what, declared, frame, int(ds.id.get_storage_size()), codecs, budget)
 
 
 #: HDF5 filters whose output is bounded: deflate expands at most 1032:1 (LZF less, about 88:1;
@@ -1461,7 +1485,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     check_links(path, h5, FRAMES, allow_external)
     if FRAMES not in h5:
         raise FormatError(path, _not_an_experiment(h5))
-    data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False)
+    data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False, budget=budget)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")
     n = min(_frames_complete(path, h5, data.shape[0]), data.shape[0])
@@ -1494,6 +1518,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     if isinstance(ds, h5py.Dataset) and ds.ndim == 2 and _plain_numbers(ds.dtype):
         check_local(path, h5, ds, allow_external)
         check_budget(path, ds.size * ds.dtype.itemsize, f"/{DETECTOR}/{name} {ds.shape}", budget)
+        check_proportion_of(path, ds, budget)  # read whole, and compressed (gzip) as radiokit writes it
         meta[name] = ds[()]
     bits = read_bit_depth(path, h5, DETECTOR, allow_external)
     if bits is not None:  # else: the C7942's 12

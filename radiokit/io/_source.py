@@ -16,7 +16,7 @@ import tifffile
 
 from radiokit import _json as strict_json
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
+from radiokit.io._budget import check_budget, check_proportion
 from radiokit.io._experiment import (
     ENTRY,
     FRAMES,
@@ -25,6 +25,7 @@ from radiokit.io._experiment import (
     check_frame_written,
     check_image_keys,
     check_links,
+    check_proportion_of,
     check_written,
     checked_dataset,
     frame_candidates,
@@ -355,6 +356,27 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+        self._check_tiff_proportion()
+
+    def _check_tiff_proportion(self) -> None:
+        """Refuse compressed pages decoding to far more than their strips or tiles could hold as
+        frames (:func:`check_proportion`). _check_page_layout refuses only what a codec cannot
+        expand to, and zstd or LZMA have no such bound."""
+        pages = [p for p in self._pages if p.compression != 1]
+        if not pages:
+            return
+        frame = math.prod(int(v) for v in pages[0].shape) * np.dtype(pages[0].dtype).itemsize
+        rows, cols = pages[0].shape
+        codecs = "/".join(sorted({p.compression.name.lower() for p in pages}))
+        check_proportion(
+            self.path,
+            f"{len(pages)} frame{'s' if len(pages) > 1 else ''} of {rows}x{cols} {np.dtype(pages[0].dtype)}",
+            frame * len(pages),
+            frame,
+            sum(int(b) for p in pages for b in p.databytecounts),
+            codecs,
+            self._budget,
+        )
 
     def _full_image_pages(self, all_pages) -> list[int]:
         """The indices of the pages that are frames. NewSubfileType bits 0 and 2: a
@@ -908,7 +930,7 @@ class FrameSource:
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             # its storage checked below, once the frames to be read are known
-            data = checked_dataset(self.path, self._h5, dataset, "buif", (2, 3), self._allow_external, written=False)
+            data = self._checked(dataset, "buif", (2, 3), written=False)
             _refuse_colour(self.path, data)
             self._invert = _white_is_zero(self.path, data)
             self._packing = _cf_packing(self.path, data)
@@ -934,9 +956,7 @@ class FrameSource:
         else:
             data, meta = read_experiment_meta(self.path, self._h5, self._allow_external, self._budget)
             n = meta.pop("n_complete")
-        if data.chunks is not None:  # a frame is read by decompressing the whole chunks it lies in
-            chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
-            check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
+        self._check_decoding(data, n)
         self._ds = data
         # MATLAB writes its column-major arrays with the dimensions reversed: its rows x cols x n
         # stack reads as (n, cols, rows), each frame transposed (a square one silently so)
@@ -949,6 +969,20 @@ class FrameSource:
         # the bit depth the file records; without one an experiment file's panel is the C7942 (12)
         self.bits = meta.get("bit_depth", 12) if meta.get("format") == "experiment" else meta.get("bit_depth")
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
+
+    def _check_decoding(self, data, n) -> None:
+        """What reading the first ``n`` frames of ``data`` decodes: held to the bytes storing it
+        (frames a live writer has extended ahead are not read, nor counted) and, a chunk at a
+        time, to the budget: a frame is read by decompressing the whole chunks it lies in."""
+        check_proportion_of(self.path, data, self._budget, frames=n)
+        if data.chunks is not None:
+            chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
+            check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
+
+    def _checked(self, name, kinds, ndims, written=True) -> h5py.Dataset:
+        """:func:`checked_dataset` under this file's ``allow_external`` and budget: a dataset checked
+        without the budget the user gave refused what they had allowed (check_proportion)."""
+        return checked_dataset(self.path, self._h5, name, kinds, ndims, self._allow_external, written, self._budget)
 
     def _groups_beside(self, dataset: str) -> list[str]:
         """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
@@ -976,7 +1010,7 @@ class FrameSource:
         name = next((k for k in names if self._h5.get(k, getlink=True) is not None), None)
         if name is None:
             return {}
-        keys = checked_dataset(self.path, self._h5, name, "iu", (1,), self._allow_external)
+        keys = self._checked(name, "iu", (1,))
         keys_name = keys.name
         if keys.shape != (n,) and not self._h5.swmr_mode:
             raise FormatError(self.path, f"{keys.name} holds {keys.shape[0]} image keys for {n} frames")
@@ -1007,7 +1041,7 @@ class FrameSource:
         for name, key in (("data_dark", ImageKey.DARK), ("data_white", ImageKey.FLAT), ("data", ImageKey.PROJECTION)):
             if f"{DXCHANGE}/{name}" not in self._h5:
                 continue
-            ds = checked_dataset(self.path, self._h5, f"{DXCHANGE}/{name}", "buif", (2, 3), self._allow_external)
+            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3))
             _refuse_colour(self.path, ds)
             if parts and ds.shape[-2:] != parts[0].shape[-2:]:
                 sizes = " and ".join(f"{d.name} {'x'.join(map(str, d.shape[-2:]))}" for d in (parts[0], ds))
@@ -1031,10 +1065,7 @@ class FrameSource:
     def _open_calibration(self):
         """A calibration file (``radiokit calibrate``): its dark and flat, as two frames labelled
         ``ImageKey.DARK`` and ``ImageKey.FLAT``."""
-        pair = [
-            checked_dataset(self.path, self._h5, f"{CALIBRATION}/{name}", "iuf", (2,), self._allow_external)
-            for name in ("dark", "flat")
-        ]
+        pair = [self._checked(f"{CALIBRATION}/{name}", "iuf", (2,)) for name in ("dark", "flat")]
         if pair[0].shape != pair[1].shape:
             raise FormatError(self.path, f"/{CALIBRATION}: dark {pair[0].shape} and flat {pair[1].shape} differ")
         self._ds = _DatasetStack(pair)
