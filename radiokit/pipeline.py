@@ -968,11 +968,11 @@ def _output_kind(dataset, kind) -> str:
 
 def _check_inputs(path: Path, control) -> None:
     """An experiment file, and a control imaged on the same grid. A calibration or results file
-    was read as frames (two warnings, then "no steps"); a control of another frame size was
-    measured in the main file's pixel ROIs, on whatever lay there."""
-    from radiokit.io import open_frames
+    was read as frames (two warnings, then "no steps"); a control of another frame size or
+    pixel size was measured in the main file's pixel ROIs, on whatever lay there."""
+    from radiokit.io import check_same_pixel_size, open_frames
 
-    shapes = []
+    shapes, metas = [], []
     for p, what in ((path, "experiment"), *(((Path(control), "control experiment"),) if control else ())):
         if not p.exists():
             raise FileNotFoundError(f"{p}: no such {what} file")
@@ -986,12 +986,15 @@ def _check_inputs(path: Path, control) -> None:
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             shapes.append(src.frame_shape)
+            metas.append(src.meta)
     if len(shapes) == 2 and shapes[0] != shapes[1]:
         raise FormatError(
             control,
             f"frames are {shapes[1][0]}x{shapes[1][1]}, the experiment's {shapes[0][0]}x{shapes[0][1]}: "
             "the control must be imaged as the experiment",
         )
+    if len(metas) == 2:
+        check_same_pixel_size(control, metas[1], path, metas[0], "the control must be imaged as the experiment")
 
 
 def _timed(timings, name, fn, *args, **kwargs):

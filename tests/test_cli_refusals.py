@@ -711,3 +711,35 @@ def test_an_roi_given_alone_with_no_background_beside_it_is_named_as_typed(tmp_p
     res = run_cli("process", exp, "-o", tmp_path / "res", "-q", "--no-report", "--mm", "--inclusion", 1, 7, 1, 7)
     line = one_line_error(res, "--inclusion 1 7 1 7 (mm) given alone", "--background")
     assert "ROI(" not in line, line
+
+
+def _with_pixel_size(src, dst, metres):
+    """A copy of experiment ``src`` recording another pixel pitch (a binned panel's, say)."""
+    import shutil
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            f[f"entry/instrument/detector/{axis}"][()] = metres
+    return dst
+
+
+def test_process_refuses_a_control_of_another_pixel_size(tmp_path):
+    """A control at 0.1 mm per pixel beside an experiment at 0.05 mm: only the frame shapes were
+    compared, and the experiment's pixel ROIs were measured on the control's twice-as-large scene."""
+    exp = synthetic(tmp_path / "exp.h5")
+    ctl = _with_pixel_size(exp, tmp_path / "ctl.h5", 1e-4)
+    res = run_cli("process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "ctl.h5", "0.1 mm", "0.05 mm")
+    assert not (tmp_path / "out").exists()
+    # the same pitch written in float32 (its rounding) is the same pitch
+    same = _with_pixel_size(exp, tmp_path / "ctl32.h5", np.float32(5e-5))
+    assert run_cli("process", exp, "--control", same, "-o", tmp_path / "out32", *FAST).returncode == 0
+
+
+def test_register_refuses_images_of_another_pixel_size(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    other = _with_pixel_size(exp, tmp_path / "binned.h5", 1e-4)
+    res = run_cli("register", exp, other, "--fixed-frame", "6", "--moving-frame", "7", "-o", tmp_path / "reg.h5")
+    one_line_error(res, "binned.h5", "0.1 mm", "0.05 mm")
+    assert not (tmp_path / "reg.h5").exists()

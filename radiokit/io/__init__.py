@@ -27,7 +27,14 @@ from radiokit.io._atomic import (
     folder_marker,
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, memory_budget, parse_size
-from radiokit.io._experiment import PIXEL_SIZE_RANGE_M, ExperimentProgress, ExperimentWriter, ImageKey, read_progress
+from radiokit.io._experiment import (
+    PIXEL_SIZE_RANGE_M,
+    ExperimentProgress,
+    ExperimentWriter,
+    ImageKey,
+    check_same_pixel_size,
+    read_progress,
+)
 from radiokit.io._frames import BitDepthWarning, Frames, bit_depth_cause
 from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
@@ -38,6 +45,7 @@ from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = [
     "PIXEL_SIZE_RANGE_M",
+    "check_same_pixel_size",
     "read",
     "open_frames",
     "iter_frames",

@@ -1003,6 +1003,22 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+#: Two recorded pitches closer than this (relative) are one: float32's rounding of 5e-05 m is 3e-08
+PIXEL_SIZE_RTOL = 1e-6
+
+
+def check_same_pixel_size(path, meta: dict, other, other_meta: dict, rule: str) -> None:
+    """Refuse ``path`` (its ``meta``) when it and ``other`` both record a pixel size
+    (``x_pixel_size``, ``y_pixel_size``) and they differ, with ``rule`` said last. Why: a control
+    at 0.1 mm per pixel beside an experiment at 0.05 mm, of one frame shape, was measured in the
+    experiment's pixel ROIs, on a scene twice as large; ``register`` matched such images too."""
+    for name in ("x_pixel_size", "y_pixel_size"):
+        mine, theirs = meta.get(name), other_meta.get(name)
+        if mine is None or theirs is None or math.isclose(mine, theirs, rel_tol=PIXEL_SIZE_RTOL):
+            continue
+        raise FormatError(path, f"pixels of {mine * 1e3:g} mm ({name}), {other}'s {theirs * 1e3:g} mm: {rule}")
+
+
 #: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says
 _LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "\u00b5m": 1e-6, "micron": 1e-6, "nm": 1e-9}
 
