@@ -372,6 +372,21 @@ def test_a_step_or_image_key_that_is_no_whole_number_is_refused_naming_the_frame
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("sign, scale", [(-1, 1), (1, 100)])
+@pytest.mark.parametrize("cmd", ["info", "process"])
+def test_a_compression_ratio_outside_0_to_1_is_refused_naming_the_frame(cmd, sign, scale, tmp_path):
+    """Ratios recorded negative (a finite element code's sign convention) or in per cent, by
+    another writer: process ordered the steps by them and registered onto the least compressed
+    step ("main pair 2->1"), exit code 0."""
+    exp = synthetic(tmp_path / "exp.h5")
+    path = "entry/sample/compression/ratio"
+    with h5py.File(exp, "a") as h5:
+        h5[path][...] = sign * scale * h5[path][()]  # darks' and flats' NaN stay NaN
+    args = {"info": ["info", exp], "process": ["process", exp, "-o", tmp_path / "out", *FAST]}[cmd]
+    one_line_error(run_cli(*args), "exp.h5", f"/{path}[6]", "frame 6", "compression ratio in [0, 1)")
+    assert not (tmp_path / "out").exists()
+
+
 def test_steps_and_image_keys_stored_as_whole_floats_are_read(tmp_path):
     """Float datasets holding whole numbers (another writer's float64 steps) read as those."""
     exp = synthetic(tmp_path / "exp.h5")

@@ -393,6 +393,8 @@ class ExperimentWriter:
             frame = frame.astype(np.uint16)
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
+        if ratio is not None and not _ratio_ok(ratio):
+            raise ValueError(f"{self.path}: ratio={ratio!r}: {RATIO_RULE}")
         i = self._n
         if getattr(self, "_failed", None):
             raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
@@ -672,6 +674,28 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
             )
         notes = {k: None if attrs.get(k) is None else text(attrs[k]) for k in ("protocol", "devices")}
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
+
+
+#: A compression ratio is the thickness's fractional reduction: 0 uncompressed, below 1 (flat).
+RATIO_RULE = "expected a compression ratio in [0, 1) (the thickness's fractional reduction; NaN: not recorded)"
+
+
+def _ratio_ok(value) -> bool:
+    """``value`` a ratio :data:`RATIO_RULE` takes, or NaN (not recorded). Why refused: a finite
+    element code's sign convention (-0.15 for 15 %) or a percentage (15) ordered process's steps
+    backwards, and the least compressed step was taken for the reference ("main pair 2->1")."""
+    return is_number(value) and (math.isnan(value) or 0 <= value < 1)
+
+
+def _check_ratios(path, values, name: str) -> None:
+    """Refuse, naming the first frame, a recorded ratio outside :data:`RATIO_RULE`'s range."""
+    values = np.asarray(values, np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~np.isnan(values) & ~((values >= 0) & (values < 1)))
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more frame(s))" if bad.size > 1 else ""
+        raise FormatError(path, f"{name}[{i}]: frame {i} has ratio {float(values[i]):.6g}{more}; {RATIO_RULE}")
 
 
 def _whole_numbers(path, values, name: str, what: str) -> np.ndarray:
@@ -1175,6 +1199,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
             if name in ("image_key", "step"):
                 values = _whole_numbers(path, values, f"/{group}/{name}", name)
+            elif name == "ratio":
+                _check_ratios(path, values, f"/{group}/{name}")
             meta[name] = values
             if name == "image_key":
                 check_image_keys(path, values, f"/{group}/{name}")
