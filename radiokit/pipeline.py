@@ -212,11 +212,8 @@ class Config:
             if not (r0 < r1 and c0 < c1):
                 raise ValueError(f"{name} ROI {value!r} (mm): ROI is empty (need row1 > row0 and col1 > col0)")
             given[name] = (r0, r1, c0, c1)
-        if len(given) == 2 and given["inclusion"] == given["background"]:
-            raise ValueError(
-                f"background ROI {self.background!r}: the inclusion's rectangle; the contrast between them is "
-                "zero: give two regions"
-            )
+        if len(given) == 2 and _overlap_bounds(given["inclusion"], given["background"]):
+            raise ValueError(_overlap_words(self.background, f"the inclusion ROI {self.inclusion!r}"))
 
 
 #: The largest enhancement factor: ``IF(k) - 1`` is linear in k, so a larger k shows nothing new,
@@ -690,7 +687,22 @@ def _within_inclusion(found, centre) -> bool:
 
 def _overlap(a, b) -> bool:
     """Whether ROIs ``a`` and ``b`` share a pixel."""
-    return a.row0 < b.row1 and b.row0 < a.row1 and a.col0 < b.col1 and b.col0 < a.col1
+    return _overlap_bounds((a.row0, a.row1, a.col0, a.col1), (b.row0, b.row1, b.col0, b.col1))
+
+
+def _overlap_bounds(a, b) -> bool:
+    """Whether rectangles ``(row0, row1, col0, col1)`` ``a`` and ``b`` (ends excluded) share area."""
+    return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
+
+
+def _overlap_words(background, inclusion: str) -> str:
+    """The refusal of a background on the inclusion (``inclusion`` says which): the contrast would
+    compare the inclusion with itself (``--background`` inside ``--inclusion`` gave IF 0.60 / 0.20,
+    exit code 0)."""
+    return (
+        f"background ROI {background!r}: overlaps {inclusion}; the contrast compares the inclusion with "
+        "background beside it: give a background clear of the inclusion"
+    )
 
 
 def _background_beside(ref, inc, pixel_size_mm, named=None):
@@ -763,6 +775,13 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         inc = inc or auto_inc
         bg = bg or auto_bg
     _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
+    if cfg.background is not None and _overlap(inc, bg):  # given in mm, or beside a detected inclusion
+        which = (
+            f"the inclusion ROI {cfg.inclusion!r}"
+            if cfg.inclusion is not None
+            else f"the inclusion detected at rows {inc.row0}-{inc.row1}, cols {inc.col0}-{inc.col1} (px)"
+        )
+        raise ValueError(_overlap_words(cfg.background, which))
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
     r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))

@@ -758,3 +758,40 @@ def test_register_refuses_images_of_another_pixel_size(tmp_path):
     res = run_cli("register", exp, other, "--fixed-frame", "6", "--moving-frame", "7", "-o", tmp_path / "reg.h5")
     one_line_error(res, "binned.h5", "0.1 mm", "0.05 mm")
     assert not (tmp_path / "reg.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "background",
+    [
+        ["75", "86", "75", "86"],  # the inclusion's own rectangle (refused before)
+        ["77", "84", "77", "84"],  # inside it
+        ["80", "90", "80", "90"],  # across its corner
+        ["60", "100", "60", "100"],  # around it
+    ],
+)
+def test_a_background_overlapping_the_inclusion_is_refused(background, tmp_path):
+    """`--inclusion 118 138 118 138 --background 120 130 120 130` measured IF 0.60 / 0.20, exit
+    code 0: a contrast of the inclusion against itself. Only the same rectangle was refused."""
+    exp = synthetic(tmp_path / "exp.h5")
+    args = ["--inclusion", "75", "86", "75", "86", "--background", *background, "--crop-mm", "0"]
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", *args)
+    one_line_error(res, f"--background {' '.join(background)}", "overlaps", "--inclusion 75 86 75 86")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_background_given_alone_on_the_detected_inclusion_is_refused(tmp_path, monkeypatch):
+    import radiokit.measure
+    from radiokit.measure import ROI
+
+    exp = synthetic(tmp_path / "exp.h5")  # noiseless: the detection is stood in for (the square, 70-90)
+    monkeypatch.setattr(radiokit.measure, "find_rois", lambda *a, **k: (ROI(70, 90, 70, 90), ROI(70, 90, 30, 50)))
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", "--background", "75", "86", "75", "86")
+    one_line_error(res, "--background 75 86 75 86", "overlaps the inclusion detected at rows 70-90, cols 70-90")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_background_touching_the_inclusion_is_taken(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    args = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "86", "97", "--crop-mm", "0"]
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", "--cross-check", "none", *args)
+    assert res.returncode == 0, res.stderr
