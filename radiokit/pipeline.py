@@ -827,7 +827,9 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         raise ValueError(_overlap_words(cfg.background, which))
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
-    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))
+    # clamped to the frame before int(): 1e308 mm / 0.05 mm is inf pixels (an OverflowError traceback)
+    side_px = min(cfg.crop_mm / steps.pixel_size_mm, max(ref.shape))
+    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(side_px)))
     # keep the background rectangle inside the crop
     r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
     c0, c1 = min(c0, bg.col0), max(c1, bg.col1)

@@ -567,6 +567,19 @@ def test_process_crop_and_mm_slips_are_told_in_the_command_lines_terms(tmp_path)
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.parametrize("crop", ["1e308", "1000"])
+def test_a_crop_larger_than_the_frame_keeps_the_whole_frame(crop, tmp_path):
+    """`--crop-mm 1e308` was an OverflowError traceback with exit code 1, the code of a flagged
+    run (1e308 / 0.05 mm is inf pixels, which int() refused). A crop larger than the frame is the
+    whole frame, as the default 30 mm is on a frame smaller than that."""
+    exp = synthetic(tmp_path / "exp.h5")
+    args = [a if a != "0" else crop for a in FAST]  # FAST ends "--crop-mm 0"
+    assert args[-2:] == ["--crop-mm", crop]
+    res = run_cli("process", exp, "-o", tmp_path / "res", *args)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert json.loads((tmp_path / "res" / "results.json").read_text())["rois"]["crop"] == [0, 160, 0, 160]
+
+
 def test_sim_run_zero_frames_is_told_why_frames_not_why_darks(tmp_path):
     """`sim run --frames 0` was refused with the darks' and flats' reason ("the experiment is
     corrected with its own darks and flats"), which says nothing about projections."""
