@@ -429,8 +429,8 @@ def cmd_correct(args) -> int:
 
 # -- register ----------------------------------------------------------------------------------
 def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
-    """Frame ``index`` of ``path`` as float32, and the index counted from the start (-1 is the
-    last frame: the same-image check compares frames, not how they were written)."""
+    """Frame ``index`` of ``path`` as float32, the index counted from the start (-1 is the last
+    frame: the same-image check compares frames, not how they were written), and the file's metadata."""
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
@@ -439,12 +439,13 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
         image, index = src[index], index % len(src)
+        meta = src.meta
     top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
     if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
         raise ValueError(
             f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )
-    return np.asarray(image, np.float32), index
+    return np.asarray(image, np.float32), index, meta
 
 
 def _a_projection(path, keys, index, option) -> None:
@@ -515,12 +516,17 @@ _PROCESS_OPTIONS = {
 def _register_inputs(args):
     """``register``'s two images and ``--roi`` mask, and its outputs checked: everything refused
     before the registration, not after it (an image against itself, a ROI off the image, an
-    output onto an input, a figure matplotlib cannot write, a registration over the budget)."""
-    from radiokit.io import check_output
+    output onto an input, a figure matplotlib cannot write, a registration over the budget, two
+    pixel sizes)."""
+    from radiokit.io import check_output, check_same_pixel_size
 
-    fixed, fixed_frame = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
-    moving, moving_frame = _one_image(
+    fixed, fixed_frame, fixed_meta = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    moving, moving_frame, moving_meta = _one_image(
         args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame"
+    )
+    # a field in pixels between two pitches is a scaling, not the sample's motion
+    check_same_pixel_size(
+        args.moving, moving_meta, args.fixed, fixed_meta, "register images of one pixel size (bin or resample one)"
     )
     # after the reads (a file that cannot be read says so first), before anything else is judged
     if fixed_frame == moving_frame and _same_file(args.fixed, args.moving):
@@ -1085,7 +1091,8 @@ def _add_process(sub):
         "--crop-mm",
         type=float,
         default=30.0,
-        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0: the whole frame)",
+        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0, or more than the "
+        "frame: the whole frame)",
     )
     p.add_argument(
         "--inclusion",

@@ -212,11 +212,8 @@ class Config:
             if not (r0 < r1 and c0 < c1):
                 raise ValueError(f"{name} ROI {value!r} (mm): ROI is empty (need row1 > row0 and col1 > col0)")
             given[name] = (r0, r1, c0, c1)
-        if len(given) == 2 and given["inclusion"] == given["background"]:
-            raise ValueError(
-                f"background ROI {self.background!r}: the inclusion's rectangle; the contrast between them is "
-                "zero: give two regions"
-            )
+        if len(given) == 2 and _overlap_bounds(given["inclusion"], given["background"]):
+            raise ValueError(_overlap_words(self.background, f"the inclusion ROI {self.inclusion!r}"))
 
 
 #: The largest enhancement factor: ``IF(k) - 1`` is linear in k, so a larger k shows nothing new,
@@ -257,13 +254,18 @@ def _cross_check_options(cfg) -> dict:
 class Steps:
     """The corrected line integral of each compression step (``-ln`` of its frames' mean
     transmission), least compressed first (by the recorded ratios, else gaps, else step
-    numbers), with the step numbers, compression ratios, pixel size and the seconds spent."""
+    numbers), with the step numbers, compression ratios, pixel size and the seconds spent;
+    ``unknown`` maps a step number to where its frames held NaN or inf pixels (the correction
+    filled them): ``(rows, cols)`` int32, the first such frame's index per pixel, -1 elsewhere
+    (only steps that held any), and ``nonfinite`` their count per frame, per step."""
 
     images: np.ndarray
     numbers: tuple[int, ...]
     ratios: tuple[float, ...]
     pixel_size_mm: float
     timings: dict
+    unknown: dict = field(default_factory=dict)
+    nonfinite: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -373,6 +375,14 @@ def load_steps(path, progress: bool = False) -> Steps:
     """Calibrate from the file's darks and flats; the corrected line integral of each step
     (``-ln`` of its frames' mean transmission), least compressed first, step numbers, ratios,
     pixel size (:class:`Steps`)."""
+    steps = _load_steps(path, progress)
+    _warn_nonfinite(path, steps.nonfinite)
+    return steps
+
+
+def _load_steps(path, progress: bool) -> Steps:
+    """:func:`load_steps` without its NaN warning: :func:`process` refuses such pixels inside a
+    ROI (:func:`_check_unknown_in_rois`) and warns of them only once they pass."""
     from radiokit.calibrate import Calibration, exposure_factors
     from radiokit.io import ImageKey, open_frames
     from radiokit.progress import tqdm
@@ -394,17 +404,18 @@ def load_steps(path, progress: bool = False) -> Steps:
         images, ratios = [], []
         n_frames = int(np.sum((keys == ImageKey.PROJECTION) & (steps >= 0)))
         bar = tqdm(total=n_frames, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
-        saturated, nonfinite = {}, {}
+        saturated, nonfinite, unknown = {}, {}, {}
         for s in numbers:
             idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
             factors = exposure_factors(cal, meta, path, idx)
-            image, saturated[s], nonfinite[s] = _step_image(cal, src, path, s, idx, factors, bar)
+            image, saturated[s], nonfinite[s], where = _step_image(cal, src, path, s, idx, factors, bar)
+            if where is not None:
+                unknown[s] = where
             _check_below_the_flats(path, s, image)
             images.append(image)
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
         _warn_saturated(path, saturated, cal.thresholds.saturation)
-        _warn_nonfinite(path, nonfinite)
         pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
     return Steps(
         np.stack(images),
@@ -412,7 +423,29 @@ def load_steps(path, progress: bool = False) -> Steps:
         tuple(ratios),
         pixel_size_mm,
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
+        unknown,
+        nonfinite,
     )
+
+
+def _check_unknown_in_rois(path, steps: Steps, rois: RoiChoice) -> None:
+    """Refuse NaN or inf projection pixels inside the inclusion or background ROI, naming the
+    first frame and the ROI. Why: the correction fills them from their neighbours, and a ROI on
+    them measures the fill (a 10 x 10 NaN block in the inclusion moved the change ratio from
+    -5.9 to -23.3, exit code 0, under a warning asking the user to check what radiokit knew).
+    Checked where each step's frames hold them; a moving step's pixels shift by its field, a
+    few pixels, when registered onto the reference."""
+    for name, roi in (("inclusion", rois.inclusion), ("background", rois.background)):
+        for s, where in steps.unknown.items():
+            inside = where[roi.slices]
+            hit = inside[inside >= 0]
+            if hit.size:
+                raise FormatError(
+                    path,
+                    f"frame {int(hit.min())} (step {s}): {hit.size} NaN or inf pixels inside the {name} ROI "
+                    f"(rows {roi.row0}-{roi.row1}, cols {roi.col0}-{roi.col1}), which the correction fills from "
+                    "their neighbours: the ROI would measure the fill, not the object; give ROIs clear of them",
+                )
 
 
 def _check_below_the_flats(path, step, image) -> None:
@@ -471,7 +504,7 @@ def _step_image(cal, src, path, step, idx, factors, bar):
     from radiokit.correct import check_above_dark, correct_frames
 
     domain = "log" if len(idx) == 1 else "linear"
-    acc, n_sat, n_bad = None, 0, 0
+    acc, n_sat, n_bad, where = None, 0, 0, None
     for i, factor in zip(idx, factors):
         raw = src[i]
         try:  # a frame with the beam off would pull its step's mean towards nothing
@@ -482,7 +515,11 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         if top is not None:
             n_sat += int(np.count_nonzero(raw >= top))
         if raw.dtype.kind == "f":
-            n_bad += int(raw.size - np.count_nonzero(np.isfinite(raw)))
+            bad = ~np.isfinite(raw)
+            if bad.any():
+                n_bad += int(np.count_nonzero(bad))
+                where = np.full(raw.shape, -1, np.int32) if where is None else where
+                where[bad & (where < 0)] = i
         if domain == "log":
             image = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
         else:
@@ -490,9 +527,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
     if domain == "log":
-        return acc.astype(np.float32), n_sat, n_bad
+        return acc.astype(np.float32), n_sat, n_bad, where
     # linear correction clamps raw - dark to half a count: every transmission and mean is > 0
-    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx), n_bad / len(idx)
+    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx), n_bad / len(idx), where
 
 
 def _warn_per_step(path, counts: dict, what: str, advice: str) -> None:
@@ -523,7 +560,10 @@ def _warn_saturated(path, saturated: dict, level) -> None:
 
 def _warn_nonfinite(path, nonfinite: dict) -> None:
     _warn_per_step(
-        path, nonfinite, "NaN or inf pixels", "filled from their neighbours; check that they lie outside the ROIs"
+        path,
+        nonfinite,
+        "NaN or inf pixels",
+        "filled from their neighbours (radiokit process refuses them inside a ROI)",
     )
 
 
@@ -690,7 +730,22 @@ def _within_inclusion(found, centre) -> bool:
 
 def _overlap(a, b) -> bool:
     """Whether ROIs ``a`` and ``b`` share a pixel."""
-    return a.row0 < b.row1 and b.row0 < a.row1 and a.col0 < b.col1 and b.col0 < a.col1
+    return _overlap_bounds((a.row0, a.row1, a.col0, a.col1), (b.row0, b.row1, b.col0, b.col1))
+
+
+def _overlap_bounds(a, b) -> bool:
+    """Whether rectangles ``(row0, row1, col0, col1)`` ``a`` and ``b`` (ends excluded) share area."""
+    return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
+
+
+def _overlap_words(background, inclusion: str) -> str:
+    """The refusal of a background on the inclusion (``inclusion`` says which): the contrast would
+    compare the inclusion with itself (``--background`` inside ``--inclusion`` gave IF 0.60 / 0.20,
+    exit code 0)."""
+    return (
+        f"background ROI {background!r}: overlaps {inclusion}; the contrast compares the inclusion with "
+        "background beside it: give a background clear of the inclusion"
+    )
 
 
 def _background_beside(ref, inc, pixel_size_mm, named=None):
@@ -763,9 +818,18 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         inc = inc or auto_inc
         bg = bg or auto_bg
     _inside_frame((("inclusion", inc), ("background", bg)), ref.shape)
+    if cfg.background is not None and _overlap(inc, bg):  # given in mm, or beside a detected inclusion
+        which = (
+            f"the inclusion ROI {cfg.inclusion!r}"
+            if cfg.inclusion is not None
+            else f"the inclusion detected at rows {inc.row0}-{inc.row1}, cols {inc.col0}-{inc.col1} (px)"
+        )
+        raise ValueError(_overlap_words(cfg.background, which))
     if not cfg.crop_mm:
         return RoiChoice(inc, bg, (0, ref.shape[0], 0, ref.shape[1]))
-    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(cfg.crop_mm / steps.pixel_size_mm)))
+    # clamped to the frame before int(): 1e308 mm / 0.05 mm is inf pixels (an OverflowError traceback)
+    side_px = min(cfg.crop_mm / steps.pixel_size_mm, max(ref.shape))
+    r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(side_px)))
     # keep the background rectangle inside the crop
     r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
     c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
@@ -968,11 +1032,11 @@ def _output_kind(dataset, kind) -> str:
 
 def _check_inputs(path: Path, control) -> None:
     """An experiment file, and a control imaged on the same grid. A calibration or results file
-    was read as frames (two warnings, then "no steps"); a control of another frame size was
-    measured in the main file's pixel ROIs, on whatever lay there."""
-    from radiokit.io import open_frames
+    was read as frames (two warnings, then "no steps"); a control of another frame size or
+    pixel size was measured in the main file's pixel ROIs, on whatever lay there."""
+    from radiokit.io import check_same_pixel_size, open_frames
 
-    shapes = []
+    shapes, metas = [], []
     for p, what in ((path, "experiment"), *(((Path(control), "control experiment"),) if control else ())):
         if not p.exists():
             raise FileNotFoundError(f"{p}: no such {what} file")
@@ -986,12 +1050,15 @@ def _check_inputs(path: Path, control) -> None:
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             shapes.append(src.frame_shape)
+            metas.append(src.meta)
     if len(shapes) == 2 and shapes[0] != shapes[1]:
         raise FormatError(
             control,
             f"frames are {shapes[1][0]}x{shapes[1][1]}, the experiment's {shapes[0][0]}x{shapes[0][1]}: "
             "the control must be imaged as the experiment",
         )
+    if len(metas) == 2:
+        check_same_pixel_size(control, metas[1], path, metas[0], "the control must be imaged as the experiment")
 
 
 def _timed(timings, name, fn, *args, **kwargs):
@@ -1004,10 +1071,12 @@ def _timed(timings, name, fn, *args, **kwargs):
 def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     """:func:`process` writing into ``out_dir``, a fresh folder: the steps composed."""
     t0 = time.perf_counter()
-    steps = load_steps(path, cfg.progress)
+    steps = _load_steps(path, cfg.progress)
     timings = dict(steps.timings)
     truth = _sim_truth(path, list(steps.numbers))
     rois = choose_rois(steps, cfg, truth)
+    _check_unknown_in_rois(path, steps, rois)
+    _warn_nonfinite(path, steps.nonfinite)
     pairs = _timed(timings, "register_s", register_pairs, steps, rois, cfg, path.name)
     steps_c = np.ascontiguousarray(steps.images[(slice(None), *rois.slices())])
     inc_c, bg_c = rois.cropped()

@@ -629,6 +629,32 @@ def test_correct_refuses_frames_already_corrected(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "t.tif"]
 
 
+@pytest.mark.parametrize("level", ["darks", "zeros", "drift"])
+def test_correct_refuses_integer_frames_without_signal(tmp_path, level):
+    """Darks given as the frames, all-zero frames and frames a few noise sigmas above the dark (the
+    beam off while the dark drifts): `correct` checked for signal only in float frames, and wrote
+    each as data (53430 "non-positive (filled)" pixels, or a uniform image), exit code 0, while
+    `process` refused the same frames. Now one line naming the file and the frame, no output."""
+    import tifffile
+
+    from radiokit.calibrate import Calibration
+
+    rng = np.random.default_rng(2)
+    darks = rng.normal(100, 2, (4, 64, 80)).astype(np.uint16)
+    Calibration.from_frames(darks, rng.normal(3000, 30, (4, 64, 80)).astype(np.uint16)).save(tmp_path / "cal.h5")
+    frames = {
+        "darks": rng.normal(100, 2, (3, 64, 80)),
+        "zeros": np.zeros((3, 64, 80)),
+        "drift": np.stack([rng.normal(1600, 30, (64, 80)), rng.normal(106, 2, (64, 80))]),  # 3 sigmas up
+    }[level]
+    tifffile.imwrite(tmp_path / "t.tif", np.rint(frames).astype(np.uint16), photometric="minisblack")
+    res = run_cli("correct", tmp_path / "t.tif", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    frame = 1 if level == "drift" else 0
+    assert f"t.tif: frame {frame}: no signal above the dark" in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "t.tif"]
+
+
 def test_process_says_which_pair_made_its_exit_code_1(capsys):
     """A run exits 1 when any registered pair is flagged; its output said only "registration ok"
     (the main pair's) when another pair (1->3) was the one flagged. Each flagged pair is named."""

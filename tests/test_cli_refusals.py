@@ -383,6 +383,21 @@ def test_a_step_or_image_key_that_is_no_whole_number_is_refused_naming_the_frame
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("sign, scale", [(-1, 1), (1, 100)])
+@pytest.mark.parametrize("cmd", ["info", "process"])
+def test_a_compression_ratio_outside_0_to_1_is_refused_naming_the_frame(cmd, sign, scale, tmp_path):
+    """Ratios recorded negative (a finite element code's sign convention) or in per cent, by
+    another writer: process ordered the steps by them and registered onto the least compressed
+    step ("main pair 2->1"), exit code 0."""
+    exp = synthetic(tmp_path / "exp.h5")
+    path = "entry/sample/compression/ratio"
+    with h5py.File(exp, "a") as h5:
+        h5[path][...] = sign * scale * h5[path][()]  # darks' and flats' NaN stay NaN
+    args = {"info": ["info", exp], "process": ["process", exp, "-o", tmp_path / "out", *FAST]}[cmd]
+    one_line_error(run_cli(*args), "exp.h5", f"/{path}[6]", "frame 6", "compression ratio in [0, 1)")
+    assert not (tmp_path / "out").exists()
+
+
 def test_steps_and_image_keys_stored_as_whole_floats_are_read(tmp_path):
     """Float datasets holding whole numbers (another writer's float64 steps) read as those."""
     exp = synthetic(tmp_path / "exp.h5")
@@ -563,6 +578,19 @@ def test_process_crop_and_mm_slips_are_told_in_the_command_lines_terms(tmp_path)
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.parametrize("crop", ["1e308", "1000"])
+def test_a_crop_larger_than_the_frame_keeps_the_whole_frame(crop, tmp_path):
+    """`--crop-mm 1e308` was an OverflowError traceback with exit code 1, the code of a flagged
+    run (1e308 / 0.05 mm is inf pixels, which int() refused). A crop larger than the frame is the
+    whole frame, as the default 30 mm is on a frame smaller than that."""
+    exp = synthetic(tmp_path / "exp.h5")
+    args = [a if a != "0" else crop for a in FAST]  # FAST ends "--crop-mm 0"
+    assert args[-2:] == ["--crop-mm", crop]
+    res = run_cli("process", exp, "-o", tmp_path / "res", *args)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert json.loads((tmp_path / "res" / "results.json").read_text())["rois"]["crop"] == [0, 160, 0, 160]
+
+
 def test_sim_run_zero_frames_is_told_why_frames_not_why_darks(tmp_path):
     """`sim run --frames 0` was refused with the darks' and flats' reason ("the experiment is
     corrected with its own darks and flats"), which says nothing about projections."""
@@ -722,3 +750,105 @@ def test_an_roi_given_alone_with_no_background_beside_it_is_named_as_typed(tmp_p
     res = run_cli("process", exp, "-o", tmp_path / "res", "-q", "--no-report", "--mm", "--inclusion", 1, 7, 1, 7)
     line = one_line_error(res, "--inclusion 1 7 1 7 (mm) given alone", "--background")
     assert "ROI(" not in line, line
+
+
+def _with_pixel_size(src, dst, metres):
+    """A copy of experiment ``src`` recording another pixel pitch (a binned panel's, say)."""
+    import shutil
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            f[f"entry/instrument/detector/{axis}"][()] = metres
+    return dst
+
+
+def test_process_refuses_a_control_of_another_pixel_size(tmp_path):
+    """A control at 0.1 mm per pixel beside an experiment at 0.05 mm: only the frame shapes were
+    compared, and the experiment's pixel ROIs were measured on the control's twice-as-large scene."""
+    exp = synthetic(tmp_path / "exp.h5")
+    ctl = _with_pixel_size(exp, tmp_path / "ctl.h5", 1e-4)
+    res = run_cli("process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "ctl.h5", "0.1 mm", "0.05 mm")
+    assert not (tmp_path / "out").exists()
+    # the same pitch written in float32 (its rounding) is the same pitch
+    same = _with_pixel_size(exp, tmp_path / "ctl32.h5", np.float32(5e-5))
+    assert run_cli("process", exp, "--control", same, "-o", tmp_path / "out32", *FAST).returncode == 0
+
+
+def test_register_refuses_images_of_another_pixel_size(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    other = _with_pixel_size(exp, tmp_path / "binned.h5", 1e-4)
+    res = run_cli("register", exp, other, "--fixed-frame", "6", "--moving-frame", "7", "-o", tmp_path / "reg.h5")
+    one_line_error(res, "binned.h5", "0.1 mm", "0.05 mm")
+    assert not (tmp_path / "reg.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "background",
+    [
+        ["75", "86", "75", "86"],  # the inclusion's own rectangle (refused before)
+        ["77", "84", "77", "84"],  # inside it
+        ["80", "90", "80", "90"],  # across its corner
+        ["60", "100", "60", "100"],  # around it
+    ],
+)
+def test_a_background_overlapping_the_inclusion_is_refused(background, tmp_path):
+    """`--inclusion 118 138 118 138 --background 120 130 120 130` measured IF 0.60 / 0.20, exit
+    code 0: a contrast of the inclusion against itself. Only the same rectangle was refused."""
+    exp = synthetic(tmp_path / "exp.h5")
+    args = ["--inclusion", "75", "86", "75", "86", "--background", *background, "--crop-mm", "0"]
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", *args)
+    one_line_error(res, f"--background {' '.join(background)}", "overlaps", "--inclusion 75 86 75 86")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_background_given_alone_on_the_detected_inclusion_is_refused(tmp_path, monkeypatch):
+    import radiokit.measure
+    from radiokit.measure import ROI
+
+    exp = synthetic(tmp_path / "exp.h5")  # noiseless: the detection is stood in for (the square, 70-90)
+    monkeypatch.setattr(radiokit.measure, "find_rois", lambda *a, **k: (ROI(70, 90, 70, 90), ROI(70, 90, 30, 50)))
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", "--background", "75", "86", "75", "86")
+    one_line_error(res, "--background 75 86 75 86", "overlaps the inclusion detected at rows 70-90, cols 70-90")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_background_touching_the_inclusion_is_taken(tmp_path):
+    exp = synthetic(tmp_path / "exp.h5")
+    args = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "86", "97", "--crop-mm", "0"]
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", "--cross-check", "none", *args)
+    assert res.returncode == 0, res.stderr
+
+
+def _float_with_nan(exp, frame, where):
+    """``exp``'s frames as another lab's float32, ``where`` of ``frame`` NaN (a masked region)."""
+    with h5py.File(exp, "a") as h5:
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[(frame, *where)] = np.nan
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    return exp
+
+
+@pytest.mark.parametrize(
+    "where, roi",
+    [
+        (np.s_[78:82, 78:82], "inclusion ROI (rows 75-86, cols 75-86)"),
+        (np.s_[84:90, 48:52], "background ROI (rows 75-86, cols 40-51)"),
+    ],
+)
+def test_nan_pixels_inside_a_roi_are_refused_naming_the_frame_and_the_roi(where, roi, tmp_path):
+    """A 10 x 10 NaN block inside the inclusion was filled from its neighbours and measured
+    (change ratio -5.9 -> -23.3, exit code 0), with a warning asking the user to check that the
+    NaN pixels lie outside the ROIs, which radiokit knows."""
+    exp = _float_with_nan(synthetic(tmp_path / "exp.h5"), 7, where)
+    res = run_cli("process", exp, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "exp.h5", "frame 7 (step 2)", "NaN or inf pixels inside the " + roi)
+    assert not (tmp_path / "out").exists()
+
+
+def test_nan_pixels_outside_the_rois_are_filled_and_told(tmp_path):
+    exp = _float_with_nan(synthetic(tmp_path / "exp.h5"), 7, np.s_[10:20, 10:20])
+    res = run_cli("process", exp, "-o", tmp_path / "out", *FAST)
+    assert res.returncode == 0, res.stderr  # (the warning's line: run_cli ignores warnings)

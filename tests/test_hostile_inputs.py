@@ -1714,7 +1714,10 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
         (["--inclusion", "nan", "1", "2", "3"], ("--inclusion nan 1 2 3:", "finite")),
         (["--inclusion", "5", "1", "2", "3"], ("--inclusion", "empty")),
         (["--mm", "--inclusion", "5", "1", "2", "3"], ("--inclusion", "(mm)", "empty")),
-        (["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"], ("--background", "zero")),
+        (
+            ["--inclusion", "1", "9", "1", "9", "--background", "1", "9", "1", "9"],
+            ("--background", "overlaps the --inclusion 1 9 1 9"),
+        ),
         # found by a new user: fractional pixels were rounded without a word (README: pixels, mm with --mm)
         (["--inclusion", "1", "9.5", "1", "9"], ("--inclusion 1 9.5 1 9:", "whole", "9.5", "--mm")),
         (["--background", "1.25", "9", "1", "9"], ("--background", "whole", "1.25")),

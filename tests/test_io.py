@@ -1477,6 +1477,18 @@ def test_experiment_append_validation(tmp_path):
     np.testing.assert_array_equal(f.meta["pixel_mask"], np.eye(*EXP_SHAPE, dtype=np.uint32) * 8)
 
 
+@pytest.mark.parametrize("ratio", [-0.15, 1.0, 15.0, float("inf")])
+def test_experiment_append_refuses_a_compression_ratio_outside_0_to_1(ratio, tmp_path):
+    """A finite element code's sign convention (-0.15 for 15 %) or a percentage (15) was written,
+    and process then took the least compressed step for the reference. NaN, or none, is "not recorded"."""
+    with ExperimentWriter(tmp_path / "v.h5", shape=EXP_SHAPE) as w:
+        with pytest.raises(ValueError, match=r"v.h5: ratio=.*expected a compression ratio in \[0, 1\)"):
+            w.append(np.zeros(EXP_SHAPE, np.uint16), image_key=0, step=1, ratio=ratio)
+        assert w.n_frames == 0
+        w.append(np.zeros(EXP_SHAPE, np.uint16), image_key=0, step=1, ratio=float("nan"))
+        w.append(np.zeros(EXP_SHAPE, np.uint16), image_key=0, step=2, ratio=0.0)
+
+
 def test_experiment_bit_depth_warning(tmp_path):
     path = tmp_path / "hot.h5"
     with ExperimentWriter(path, shape=EXP_SHAPE) as w:

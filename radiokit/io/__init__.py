@@ -32,6 +32,7 @@ from radiokit.io._experiment import (
     ExperimentProgress,
     ExperimentWriter,
     ImageKey,
+    check_same_pixel_size,
     read_progress,
     restore_previous,
 )
@@ -45,6 +46,7 @@ from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = [
     "PIXEL_SIZE_RANGE_M",
+    "check_same_pixel_size",
     "read",
     "open_frames",
     "iter_frames",

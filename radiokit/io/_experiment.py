@@ -525,6 +525,8 @@ class ExperimentWriter:
             frame = frame.astype(np.uint16)
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
+        if ratio is not None and not _ratio_ok(ratio):
+            raise ValueError(f"{self.path}: ratio={ratio!r}: {RATIO_RULE}")
         i = self._n
         if getattr(self, "_failed", None):
             raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
@@ -989,6 +991,28 @@ def read_progress(path, allow_external=False) -> ExperimentProgress:
     return ExperimentProgress(n, np.asarray(keys), np.asarray(steps), **notes)
 
 
+#: A compression ratio is the thickness's fractional reduction: 0 uncompressed, below 1 (flat).
+RATIO_RULE = "expected a compression ratio in [0, 1) (the thickness's fractional reduction; NaN: not recorded)"
+
+
+def _ratio_ok(value) -> bool:
+    """``value`` a ratio :data:`RATIO_RULE` takes, or NaN (not recorded). Why refused: a finite
+    element code's sign convention (-0.15 for 15 %) or a percentage (15) ordered process's steps
+    backwards, and the least compressed step was taken for the reference ("main pair 2->1")."""
+    return is_number(value) and (math.isnan(value) or 0 <= value < 1)
+
+
+def _check_ratios(path, values, name: str) -> None:
+    """Refuse, naming the first frame, a recorded ratio outside :data:`RATIO_RULE`'s range."""
+    values = np.asarray(values, np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~np.isnan(values) & ~((values >= 0) & (values < 1)))
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more frame(s))" if bad.size > 1 else ""
+        raise FormatError(path, f"{name}[{i}]: frame {i} has ratio {float(values[i]):.6g}{more}; {RATIO_RULE}")
+
+
 def _whole_numbers(path, values, name: str, what: str) -> np.ndarray:
     """``values`` as integers when a float dataset holds whole numbers (another writer's float64
     steps), else refused naming the first frame: frames are selected by ``steps == s``, so a step
@@ -1342,6 +1366,22 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+#: Two recorded pitches closer than this (relative) are one: float32's rounding of 5e-05 m is 3e-08
+PIXEL_SIZE_RTOL = 1e-6
+
+
+def check_same_pixel_size(path, meta: dict, other, other_meta: dict, rule: str) -> None:
+    """Refuse ``path`` (its ``meta``) when it and ``other`` both record a pixel size
+    (``x_pixel_size``, ``y_pixel_size``) and they differ, with ``rule`` said last. Why: a control
+    at 0.1 mm per pixel beside an experiment at 0.05 mm, of one frame shape, was measured in the
+    experiment's pixel ROIs, on a scene twice as large; ``register`` matched such images too."""
+    for name in ("x_pixel_size", "y_pixel_size"):
+        mine, theirs = meta.get(name), other_meta.get(name)
+        if mine is None or theirs is None or math.isclose(mine, theirs, rel_tol=PIXEL_SIZE_RTOL):
+            continue
+        raise FormatError(path, f"pixels of {mine * 1e3:g} mm ({name}), {other}'s {theirs * 1e3:g} mm: {rule}")
+
+
 #: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says
 _LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "\u00b5m": 1e-6, "micron": 1e-6, "nm": 1e-9}
 
@@ -1498,6 +1538,8 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
                 raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
             if name in ("image_key", "step"):
                 values = _whole_numbers(path, values, f"/{group}/{name}", name)
+            elif name == "ratio":
+                _check_ratios(path, values, f"/{group}/{name}")
             meta[name] = values
             if name == "image_key":
                 check_image_keys(path, values, f"/{group}/{name}")
