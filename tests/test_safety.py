@@ -1075,18 +1075,22 @@ def test_a_second_overwrite_while_a_run_writes_the_file_is_refused_and_the_first
     with ExperimentWriter(out, shape=(4, 4)) as w:
         w.append(np.full((4, 4), 100, np.uint16), image_key=ImageKey.DARK)
     (tmp_path / "b").mkdir()
-    proto_a = write_protocol(tmp_path, scene_file, server_a, output=out)
-    proto_b = write_protocol(tmp_path / "b", scene_file, server_b, output=out)
+    # one step, and a settle long enough for the second run to start and be refused inside it
+    # (started at the first's projections, it once came after the first had finished)
+    one_step = {"steps": [STEPS[0]]}
+    proto_a = write_protocol(tmp_path, scene_file, server_a, output=out, series=one_step, sim={"settle_s": 8.0})
+    proto_b = write_protocol(tmp_path / "b", scene_file, server_b, output=out, series=one_step)
     first = Acquire(proto_a, "--sim", "-q", "--overwrite")
-    reach("projection (beam on)", model_a, tmp_path, first)
+    reach("settle (operator/compression wait)", model_a, tmp_path, first)
     second = Acquire(proto_b, "--sim", "-q", "--overwrite")
     assert second.wait() != 0, second.output
+    assert first.proc.poll() is None, "the first run ended before the second was refused: no overlap tested"
     assert any(f"{out}: is open in another program" in ln for ln in second.lines), second.output
     assert "Traceback" not in second.output
     assert first.wait() == 0, first.output
     assert not model_a.xray_on and not model_b.xray_on
     n = read(out).n
-    assert n == DARKS + FLATS + PER_STEP * len(STEPS), n
+    assert n == DARKS + FLATS + PER_STEP, n
     assert [p.name for p in tmp_path.iterdir() if ".previous-" in p.name] == []
 
 

@@ -587,17 +587,22 @@ class ExperimentWriter:
         # the frames' ballast, not one sized for this write: a simulation record's (90 MB raw on
         # the full panel) would double the room it needs; it covers a write up to a frame's size
         self._hold_ballast(self._frame_bytes + self.reserve_bytes)
+        self._refuse_without_room(nbytes, f"{what} needs {nbytes}", "; nothing of it was written", self._n)
+        return _Guard(self, what)
+
+    def _refuse_without_room(self, nbytes: int, needs: str, then: str, n_before: int) -> None:
+        """ENOSPC, naming the file, when the disk has no room for ``nbytes`` and the reserve
+        (``needs``: what needs them, for the message); built beside an old file, the new one is then
+        discarded as it closes, even after a close without an error."""
         free = self._free_bytes()
         if free < nbytes + self.reserve_bytes:
             if self._replaces is not None:
                 self._failed = "disk full"
+            kept = self._kept() if self._replaces is not None else f"; the {n_before} frame(s) before it are complete"
             raise OSError(
                 errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, {what} needs {nbytes} plus {self.reserve_bytes} in "
-                "reserve; nothing of it was written"
-                + (self._kept() if self._replaces is not None else f"; the {self._n} frame(s) before it are complete"),
+                f"{self.path}: disk full: {free} bytes free, {needs} plus {self.reserve_bytes} in reserve{then}{kept}",
             )
-        return _Guard(self, what)
 
     @property
     def _frame_bytes(self) -> int:
@@ -611,15 +616,7 @@ class ExperimentWriter:
         kept = f"; the {i} frame(s) before it are complete"
         if self._replaces is not None:
             kept = self._kept()
-        free = self._free_bytes()
-        if free < nbytes + self.reserve_bytes:
-            if self._replaces is not None:
-                self._failed = "disk full"
-            raise OSError(
-                errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, frame {i} needs {nbytes} "
-                f"plus {self.reserve_bytes} in reserve" + kept,
-            )
+        self._refuse_without_room(nbytes, f"frame {i} needs {nbytes}", "", i)
         size, limit = self._size_and_limit()
         if size + nbytes + self.reserve_bytes > limit:
             # a file-size limit (ulimit -f, or a FAT32-formatted disk's 4 GiB) fails the
