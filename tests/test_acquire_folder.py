@@ -115,7 +115,9 @@ def _lab(tmp_path, series=None, operator=None, **detector):
     p = load_protocol(
         {
             "output": str(tmp_path / "series.h5"),
-            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 0.5, "port": "emulated"},
+            # the driver's reply time-out at 1 s, as test_safety's: at 0.5 s the emulator (a thread
+            # of this process) once answered late on a loaded machine (load ~7), read as no reply
+            "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "port": "emulated"},
             "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "timeout_s": 5.0, **detector},
             "frame": {"kind": "manual", "initial_height_mm": H0},
             "series": series or {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
@@ -125,7 +127,7 @@ def _lab(tmp_path, series=None, operator=None, **detector):
     server = PtyServer(model)
     server.start()
     try:
-        source = L8121(server.url, poll_s=0.1, timeout_s=0.5)
+        source = L8121(server.url, poll_s=0.1, timeout_s=1.0)
     except Exception:
         server.stop()
         raise

@@ -2567,6 +2567,58 @@ def test_a_stop_as_the_old_file_is_set_aside_puts_it_back(tmp_path, monkeypatch)
     assert path.read_bytes() == before and _previous(tmp_path) == []
 
 
+def test_restore_previous_never_writes_over_a_file_a_run_is_writing(tmp_path):
+    """Found (review s36r3): a free set-aside file (its run killed as its first frame was written)
+    was put back over a run writing the name, which read_progress could not read (the run's lock)
+    and so was taken to hold no frame: that run then said "8 frames written" into an unlinked file."""
+    import socket
+
+    from radiokit.io import restore_previous
+
+    host = socket.gethostname().split(".")[0]
+    path = tmp_path / "exp.h5"
+    old = _write_experiment(tmp_path / "old.h5", shape=EXP_SHAPE)
+    aside = tmp_path / f".exp.previous-{host}-{_dead_pid()}-{hashlib.sha256(b'exp.h5').hexdigest()[:8]}.h5"
+    old.rename(aside)
+    with ExperimentWriter(path, shape=EXP_SHAPE) as w:  # a run in its warm-up: no frame yet
+        said = restore_previous(path)
+        assert len(said) == 1 and said[0][0] is False and str(aside) in said[0][1], said
+        w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    assert read(path).n == 1 and aside.exists()
+
+
+_UNLOCKED_HDF5 = """
+import sys
+import numpy as np
+from radiokit.io import ExperimentWriter, ImageKey, read
+path = sys.argv[1]
+with ExperimentWriter(path, shape=(6, 5), overwrite=True, in_place=True) as w1:
+    w1.append(np.full((6, 5), 5, np.uint16), image_key=ImageKey.DARK)
+    try:
+        ExperimentWriter(path, shape=(6, 5), overwrite=True, in_place=True)
+        print("second: opened")
+    except OSError as exc:
+        print("second: refused", exc)
+    w1.append(np.full((6, 5), 6, np.uint16), image_key=ImageKey.DARK)
+print("frames", read(path).n)
+"""
+
+
+def test_an_in_place_overwrite_is_refused_while_a_writer_has_the_file_without_hdf5_locks(tmp_path):
+    """Found (review s36r3): with HDF5_USE_FILE_LOCKING=FALSE (common on NFS lab machines) libhdf5
+    locks nothing, and a second overwrite set the first run's file aside from under it: the first
+    run's frames were lost. The writer then holds a lock of its own."""
+    assert EXP_SHAPE == (6, 5)
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    env = dict(os.environ, HDF5_USE_FILE_LOCKING="FALSE")
+    res = subprocess.run(
+        [sys.executable, "-c", _UNLOCKED_HDF5, str(path)], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert res.returncode == 0, res.stderr
+    assert "second: refused" in res.stdout and "open in another program" in res.stdout, res.stdout
+    assert "frames 2" in res.stdout, res.stdout
+
+
 def _dead_pid():
     proc = subprocess.Popen([sys.executable, "-c", ""])
     proc.wait()

@@ -199,7 +199,7 @@ class ExperimentWriter:
             self._check_overwrite_room(frame_bytes)
         elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
             self._check_opening_room(mode)
-        self._previous, self._aside_lock, self.restored_previous = None, [None], False
+        self._previous, self._aside_lock, self._own_lock, self.restored_previous = None, [None], [None], False
         try:
             if set_aside:
                 # a stop between the rename and its record left the old file hidden while the
@@ -207,7 +207,9 @@ class ExperimentWriter:
                 with held(*STOP_SIGNALS):
                     self._previous = self._set_aside(frame_bytes)
             self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
+            self._own_lock[0] = _lock_unless_locked(self._file)
         except BaseException as exc:
+            _unlock(self._own_lock)
             self._put_back()
             if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise self._unwritable_folder(exc.errno) from None
@@ -227,6 +229,7 @@ class ExperimentWriter:
                 self._reopen(shape)
         except BaseException:  # Ctrl-C too: the old file kept aside goes back
             self._h5.close()
+            _unlock(self._own_lock)
             if self._replaces is not None:
                 _remove(self._file)
             self._put_back()
@@ -242,6 +245,7 @@ class ExperimentWriter:
             self._ballast_path if self.ballast else None,
             self._previous,
             self._aside_lock,
+            self._own_lock,
         )
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
@@ -285,18 +289,23 @@ class ExperimentWriter:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             os.close(fd)
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+            fd = None
+            if exc.errno in _NO_LOCKS:
+                pass  # a file system without locks (libhdf5 then needs HDF5_USE_FILE_LOCKING=FALSE too)
+            elif exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
                 raise
-            raise OutputError(
-                old,
-                "is open in another program (a run writing or resuming it, or a viewer): not overwritten while it is",
-                errno.EBUSY,
-            ) from None
+            else:
+                raise OutputError(
+                    old,
+                    "is open in another program (a run writing or resuming it, or a viewer): not overwritten while it is",
+                    errno.EBUSY,
+                ) from None
         aside = _previous_name(old)
         try:
             os.rename(old, aside)
         except BaseException as exc:
-            os.close(fd)
+            if fd is not None:
+                os.close(fd)
             if isinstance(exc, OSError) and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise OutputError(
                     old,
@@ -311,9 +320,7 @@ class ExperimentWriter:
         return aside
 
     def _unlock_previous(self) -> None:
-        fd, self._aside_lock[0] = self._aside_lock[0], None
-        if fd is not None:
-            os.close(fd)
+        _unlock(self._aside_lock)
 
     def _put_back(self) -> None:
         """No frame of the new file: the old file kept aside goes back under its name."""
@@ -751,6 +758,7 @@ class ExperimentWriter:
                         failed = " ".join(str(exc).split())[:200]
                     self._finish(keep and not getattr(self, "_failed", None) and failed is None)
                 finally:
+                    _unlock(self._own_lock)
                     self._put_back()
             if failed is not None:
                 code = errno.ENOSPC if "No space left" in failed else errno.EIO
@@ -803,7 +811,12 @@ class _Guard:
 
 
 def _unclosed(
-    path: str, tmp: str | None, ballast: Path | None, previous: Path | None = None, aside_lock: list | None = None
+    path: str,
+    tmp: str | None,
+    ballast: Path | None,
+    previous: Path | None = None,
+    aside_lock: list | None = None,
+    own_lock: list | None = None,
 ) -> None:
     """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, the old
     file an in-place overwrite kept aside put back if it is still there (no frame was written),
@@ -818,9 +831,9 @@ def _unclosed(
     if previous is not None and previous.exists() and not _holds_a_frame(resolved(path)):
         with contextlib.suppress(OSError):
             os.replace(previous, resolved(path))
-    if aside_lock is not None and aside_lock[0] is not None:
-        fd, aside_lock[0] = aside_lock[0], None
-        os.close(fd)
+    for lock in (aside_lock, own_lock):
+        if lock is not None:
+            _unlock(lock)
     if tmp is None:
         return
     warnings.warn(
@@ -885,12 +898,18 @@ def restore_previous(path) -> list[tuple[bool, str]]:
         with _locked(old) as free:
             if not free:
                 continue  # a run in progress: until its first frame, the old file is its to put back
+            restored = False
+            # never over frames, nor over a run writing the name (its file, locked, unreadable to
+            # read_progress, counts as holding frames; where libhdf5 locks nothing, the writer's
+            # own lock refuses the second look), which is held while the file is put back: a run
+            # starting meanwhile meets it. (One look with the lock held: libhdf5's own, in
+            # read_progress, would meet it.)
             if here and not _holds_a_frame(target):
-                os.replace(old, target)
-                _fsync(target.parent)
-                restored = True
-            else:
-                restored = False
+                with _locked(target, absent=True) as target_free:
+                    if target_free:
+                        os.replace(old, target)
+                        _fsync(target.parent)
+                        restored = True
         if restored:
             said.append(
                 (
@@ -911,6 +930,10 @@ def restore_previous(path) -> list[tuple[bool, str]]:
     return said
 
 
+#: flock's errors where the file system keeps no locks (some network mounts)
+_NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EINVAL}
+
+
 def _name_digest(path: Path) -> str:
     """Eight hex digits of the whole name: a name longer than a temporary's room is cut to its
     head, and two names sharing it took each other's set-aside file for their own."""
@@ -926,18 +949,26 @@ def _previous_name(path: Path) -> Path:
 
 
 @contextlib.contextmanager
-def _locked(path: Path):
-    """Whether the set-aside file ``path`` is free (its run gone: the lock dies with its process,
-    a reboot too), holding its lock meanwhile so that no other run takes it as well."""
+def _locked(path: Path, absent=False):
+    """Whether ``path`` is free -- a set-aside file's run gone (the lock dies with its process, a
+    reboot too), an experiment file no run writes -- holding its lock meanwhile so that no other
+    run takes it as well. A file that is not there is ``absent`` (gone meanwhile: another run put
+    it back)."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        yield absent
+        return
     except OSError:
-        yield False  # gone meanwhile (another run put it back)
+        yield False
         return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
+            if exc.errno in _NO_LOCKS:  # nothing can tell: as before locks, free
+                yield True
+                return
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
                 raise
             yield False
@@ -948,11 +979,38 @@ def _locked(path: Path):
 
 
 def _holds_a_frame(path: Path) -> bool:
-    """``path`` holds a frame that is not labelled invalid (unreadable, it holds none to keep)."""
+    """``path`` holds a frame that is not labelled invalid. Not there, it holds none; there but
+    unreadable, it may (a run writing it, a file of the user's): never written over."""
+    if not os.path.lexists(path):
+        return False
     try:
         return bool(np.any(read_progress(path).image_key != ImageKey.INVALID))
     except Exception:
-        return False
+        return True
+
+
+def _lock_unless_locked(path: Path) -> int | None:
+    """A descriptor holding ``path``'s flock, where libhdf5 holds none (``HDF5_USE_FILE_LOCKING=FALSE``,
+    common on NFS lab machines): without it a second overwrite set the file aside from under the
+    run writing it and that run's frames were lost. None where libhdf5 locks it (refused here as
+    any other lock is, in this process too) or the file system has no locks."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _unlock(holder: list) -> None:
+    """Close the descriptor ``holder[0]`` (its lock with it), once."""
+    fd, holder[0] = holder[0], None
+    if fd is not None:
+        os.close(fd)
 
 
 def read_progress(path, allow_external=False) -> ExperimentProgress:
