@@ -2295,3 +2295,21 @@ def test_a_streamed_frame_is_held_to_its_own_bytes_not_the_whole_stack(tmp_path,
     with pytest.raises(FormatError) as err:
         read(tmp_path / "sparse.h5", dataset="data")
     assert "1:20 at most" not in str(err.value) and "sparse" in str(err.value), err.value
+
+
+def test_a_streamed_dxchange_frame_is_held_to_its_own_chunks(tmp_path, monkeypatch):
+    """DXchange's datasets were judged whole on opening: 5 constant 1024 x 1024 projections past
+    the file threshold (lowered to 4 MiB) refused the one frame streamed; read() still refuses."""
+    from radiokit.io import _budget
+
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 4 * 2**20)
+    path = _zstd_chunks(tmp_path / "dx.h5", (5, 1024, 1024), (1, 1024, 1024), 50, codec="gzip")
+    with h5py.File(path, "a") as h5:
+        h5.move("data", "exchange/data")
+        h5.create_dataset("exchange/data_dark", data=np.full((1, 1024, 1024), 5, np.uint16))
+    with open_frames(path) as src:
+        assert src.meta["format"] == "dxchange" and len(src) == 6
+        assert (src[3] == 50).all()
+    with pytest.raises(FormatError, match=r"dx.h5: .*10.0 MiB from \d+ bytes .*decompression bomb"):
+        read(path)

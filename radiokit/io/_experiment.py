@@ -1199,12 +1199,15 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
         )
 
 
-def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=True, budget=None) -> h5py.Dataset:
+def checked_dataset(
+    path, h5, name, kinds, ndims, allow_external=False, written=True, budget=None, whole=True
+) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
     Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely,
     a dataset can point at other files (refused unless ``allow_external``), and compressed data
-    can declare far more than it could hold (:func:`check_proportion`, lifted by a ``budget``).
+    can declare far more than it could hold (:func:`check_proportion`, lifted by a ``budget``;
+    judged here if it is read ``whole``, else frame by frame by its reader).
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
@@ -1221,7 +1224,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
     if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
-        check_proportion_of(path, ds, budget)
+        if whole:
+            check_proportion_of(path, ds, budget)
         check_written(path, ds)
     return ds
 

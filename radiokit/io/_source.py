@@ -987,10 +987,11 @@ class FrameSource:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
 
-    def _checked(self, name, kinds, ndims, written=True) -> h5py.Dataset:
+    def _checked(self, name, kinds, ndims, written=True, whole=True) -> h5py.Dataset:
         """:func:`checked_dataset` under this file's ``allow_external`` and budget: a dataset checked
         without the budget the user gave refused what they had allowed (check_proportion)."""
-        return checked_dataset(self.path, self._h5, name, kinds, ndims, self._allow_external, written, self._budget)
+        h5, path = self._h5, self.path
+        return checked_dataset(path, h5, name, kinds, ndims, self._allow_external, written, self._budget, whole)
 
     def _groups_beside(self, dataset: str) -> list[str]:
         """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
@@ -1049,7 +1050,8 @@ class FrameSource:
         for name, key in (("data_dark", ImageKey.DARK), ("data_white", ImageKey.FLAT), ("data", ImageKey.PROJECTION)):
             if f"{DXCHANGE}/{name}" not in self._h5:
                 continue
-            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3))
+            # streamed: held to check_proportion a frame at a time (_read_hdf5), or all in read_all
+            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3), whole=False)
             _refuse_colour(self.path, ds)
             if parts and ds.shape[-2:] != parts[0].shape[-2:]:
                 sizes = " and ".join(f"{d.name} {'x'.join(map(str, d.shape[-2:]))}" for d in (parts[0], ds))
@@ -1089,8 +1091,9 @@ class FrameSource:
 
     def _read_hdf5(self, i):
         self._check_hdf5_written(i)
-        if isinstance(self._ds, h5py.Dataset) and not self._reading_all:  # read_all judged them all
-            check_proportion_of(self.path, self._ds, self._budget, index=i)
+        if not self._reading_all:  # read_all judged them all
+            ds, j = self._ds.part(i) if isinstance(self._ds, _DatasetStack) else (self._ds, i)
+            check_proportion_of(self.path, ds, self._budget, index=j)
         return self._hdf5_frame(self._ds[()] if self._ds.ndim == 2 else self._ds[i])
 
     def _check_hdf5_written(self, i) -> None:
@@ -1170,6 +1173,9 @@ class FrameSource:
             for i in range(self.n):  # a frame never written is refused as such, not taken for a bomb
                 self._check_hdf5_written(i)
             check_proportion_of(self.path, self._ds, self._budget, frames=self.n)
+        elif self.format == "hdf5":  # DXchange's or a calibration's datasets, each whole
+            for ds in self._ds.datasets:
+                check_proportion_of(self.path, ds, self._budget)
         self._reading_all = True
         try:
             for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
@@ -1315,6 +1321,15 @@ class _DatasetStack:
         # header declares
         self._starts = np.cumsum([0] + [1 if ds.ndim == 2 else ds.shape[0] for ds in datasets])
         self.dtype = np.result_type(*(ds.dtype.newbyteorder("=") for ds in datasets))
+
+    @property
+    def datasets(self) -> list:
+        return list(self._datasets)
+
+    def part(self, i) -> tuple:
+        """The dataset frame ``i`` is in, and its index there."""
+        k = int(np.searchsorted(self._starts, i, side="right")) - 1
+        return self._datasets[k], int(i - self._starts[k])
 
     def __getitem__(self, i):
         k = int(np.searchsorted(self._starts, i, side="right")) - 1
