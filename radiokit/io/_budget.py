@@ -29,8 +29,8 @@ DEFAULT_FRACTION = 0.5
 # 1.2-3.0:1, the vendor's ITEX files 1.4-5.3:1 and its photon-counting one 12-19:1; a saturated frame
 # with 1 % of its pixels below 77-101:1. Only a constant frame goes beyond: 650-1180:1 under
 # deflate and LZW (deflate's own bound is about 1032:1), 6300:1 (LZMA) to 31000:1 (zstd of zeros).
-# Sparse frames go beyond too (review s36r3, 4000 x 4000 uint16): 0.2 % of pixels hit 276-295:1,
-# 1 % 78-94:1. So past BOMB_RATIO the data is nearly constant or sparse, and real only at an
+# Sparse frames go beyond too (review s36r3; 2240 and 4000 square): 0.2 % of pixels hit 269-385:1,
+# 1 % 78-113:1. So past BOMB_RATIO the data is nearly constant or sparse, and real only at an
 # experiment's size: 200 constant darks are 1.9 GiB. What is judged is what one read decodes: a
 # frame streamed (open_frames) against its own strips or chunks, read()'s frames against theirs.
 # Like Pillow's pixel limit per image, the rule is a size beyond which such a ratio is refused:
@@ -168,7 +168,7 @@ def check_proportion(path, what: str, decoded: int, frame: int, stored: int, cod
         path,
         f"{what} would decode to {_human(decoded)} from {stored} bytes of {codec} data "
         f"(1:{decoded // stored}): past 1:{BOMB_RATIO} frames are nearly constant or sparse (noisy ones "
-        "compress 1:1.2-1:19, with 1 % of pixels hit 1:78-1:94, with 0.2 % up to 1:295), and so much of "
+        "compress 1:1.2-1:19, with 1 % of pixels hit 1:78-1:113, with 0.2 % up to 1:385), and so much of "
         f"them is taken for a decompression bomb; to read it all the same, give the memory it may use: "
         f"{BUDGET_ENV}={_suggested(decoded)} (read(..., budget=...))",
     )
