@@ -2313,3 +2313,10 @@ def test_a_streamed_dxchange_frame_is_held_to_its_own_chunks(tmp_path, monkeypat
         assert (src[3] == 50).all()
     with pytest.raises(FormatError, match=r"dx.h5: .*10.0 MiB from \d+ bytes .*decompression bomb"):
         read(path)
+    # split into datasets each within the threshold, read() decodes them together: judged together
+    with h5py.File(path, "a") as h5:
+        h5.copy("exchange/data", "exchange/data_white")
+        del h5["exchange/data_dark"]
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 16 * 2**20)
+    with pytest.raises(FormatError, match=r"dx.h5: /exchange/data_white and /exchange/data, read together, .*20.0 MiB"):
+        read(path)

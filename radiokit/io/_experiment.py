@@ -1272,47 +1272,68 @@ def check_proportion_of(path, ds, budget=None, frames=None, index=None) -> None:
     """:func:`check_proportion` for a filtered dataset, over what one read decodes: the whole
     dataset, its first ``frames`` (read(): a live writer extends a stack far ahead of what it has
     written) or frame ``index`` alone (streamed: 300 sparse frames, 8.9 GiB at 1:267, were refused
-    when one was read). Only allocated chunks decode anything: a writer that preallocated 200
+    when one was read); ``ds`` a list: those datasets whole, read together (DXchange's darks,
+    flats and projections). Only allocated chunks decode anything: a writer that preallocated 200
     frames and stopped after 2 is check_written's and check_frame_written's to refuse, not a bomb.
     Unfiltered data stores what it declares, or check_written finds it unwritten."""
     from radiokit.io._budget import check_proportion, proportion_can_refuse, stored_extent
 
+    plans = [plan for d in (ds if isinstance(ds, list) else [ds]) if (plan := _chunks_read(d, frames, index))]
+    most = sum(plan[0] for plan in plans)  # every chunk of those frames allocated
+    frame = max((plan[1] for plan in plans), default=0)
+    if not plans or not proportion_can_refuse(most, frame, budget):
+        return  # the common case: no chunk listed
+    decoded, ranges, codecs = 0, [], []
+    for _most, _frame, chunk, listed, codec in plans:
+        infos = [i for i in listed() if i.byte_offset is not None]
+        decoded += len(infos) * chunk
+        ranges += [(i.byte_offset, i.size) for i in infos]
+        codecs += [codec] if codec not in codecs else []
+    if isinstance(ds, list):
+        what = f"{' and '.join(d.name for d in ds)}, read together,"
+    else:
+        what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
+        what = f"frame {index} of {what}" if index is not None and ds.ndim >= 3 else what
+    frame = min(frame, decoded)
+    check_proportion(path, what, decoded, frame, stored_extent(ranges), "+".join(codecs), budget)
+
+
+def _chunks_read(ds, frames=None, index=None) -> tuple | None:
+    """What reading ``ds`` (whole, its first ``frames`` or frame ``index``) decodes if all its
+    chunks are there, the bytes of a frame and of a chunk, a function listing the chunks' storage
+    and the codecs' names; None if unfiltered (:func:`check_proportion_of`)."""
     plist = ds.id.get_create_plist()
     if ds.shape is None or ds.is_virtual or not plist.get_nfilters() or not ds.chunks or ds.size == 0:
-        return
+        return None
     frame = math.prod(int(v) for v in ds.shape[-2:]) * ds.dtype.itemsize
     chunk = math.prod(int(v) for v in ds.chunks) * ds.dtype.itemsize
     grid = [-(-int(s) // int(c)) for s, c in zip(ds.shape, ds.chunks)]
     if ds.ndim < 3 or (frames is None and index is None):
-        first, stop = 0, grid[0] if ds.ndim else 1
+        first, stop = 0, grid[0]
     elif index is not None:
         first = int(index) // int(ds.chunks[0])
         stop = first + 1
     else:
         first, stop = 0, -(-int(frames) // int(ds.chunks[0]))
-    per_row = math.prod(grid[1:]) if ds.ndim else 1
-    most = (stop - first) * per_row * chunk  # every chunk of those frames allocated
-    if not proportion_can_refuse(most, min(frame, most), budget):
-        return  # the common case: no chunk listed
-    if ds.ndim >= 3 and index is not None and per_row <= 4096:  # looked up, no more than decoding reads
-        origin = first * int(ds.chunks[0])
-        infos = [
-            ds.id.get_chunk_info_by_coord((origin, *(k * int(c) for k, c in zip(at, ds.chunks[1:]))))
-            for at in np.ndindex(*grid[1:])
-        ]
-    else:  # listed: as many as the file stores, where a frame of tiny chunks could declare billions
-        infos = []
+    per_row = math.prod(grid[1:])
+
+    def listed() -> list:
+        if ds.ndim >= 3 and index is not None and per_row <= 4096:  # looked up, no more than decoding reads
+            origin = first * int(ds.chunks[0])
+            return [
+                ds.id.get_chunk_info_by_coord((origin, *(k * int(c) for k, c in zip(at, ds.chunks[1:]))))
+                for at in np.ndindex(*grid[1:])
+            ]
+        infos: list = []  # listed: as many as the file stores, where tiny chunks could declare billions
         ds.id.chunk_iter(infos.append)
         if ds.ndim >= 3:
             infos = [i for i in infos if first * ds.chunks[0] <= i.chunk_offset[0] < stop * ds.chunks[0]]
-    infos = [i for i in infos if i.byte_offset is not None]
+        return infos
+
     codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     codecs = "+".join(_FILTER_NAMES.get(c, f"filter {c}") for c in codes if c not in (2, 3)) or "filtered"
-    what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
-    if index is not None and ds.ndim >= 3:
-        what = f"frame {index} of {what}"
-    stored = stored_extent((i.byte_offset, i.size) for i in infos)
-    check_proportion(path, what, len(infos) * chunk, min(frame, len(infos) * chunk), stored, codecs, budget)
+    most = (stop - first) * per_row * chunk
+    return most, min(frame, most), chunk, listed, codecs
 
 
 #: HDF5 filters whose output is bounded: deflate expands at most 1032:1 (LZF less, about 88:1;

@@ -1173,9 +1173,8 @@ class FrameSource:
             for i in range(self.n):  # a frame never written is refused as such, not taken for a bomb
                 self._check_hdf5_written(i)
             check_proportion_of(self.path, self._ds, self._budget, frames=self.n)
-        elif self.format == "hdf5":  # DXchange's or a calibration's datasets, each whole
-            for ds in self._ds.datasets:
-                check_proportion_of(self.path, ds, self._budget)
+        elif self.format == "hdf5":  # DXchange's or a calibration's datasets, read whole together
+            check_proportion_of(self.path, self._ds.datasets, self._budget)
         self._reading_all = True
         try:
             for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
