@@ -2320,3 +2320,12 @@ def test_a_streamed_dxchange_frame_is_held_to_its_own_chunks(tmp_path, monkeypat
     monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 16 * 2**20)
     with pytest.raises(FormatError, match=r"dx.h5: /exchange/data_white and /exchange/data, read together, .*20.0 MiB"):
         read(path)
+
+
+def test_stored_bytes_count_each_byte_once():
+    """Pages or chunks pointing at one range, or at overlapping ones, store it once."""
+    from radiokit.io._budget import stored_extent
+
+    assert stored_extent([(100, 50)] * 10) == 50
+    assert stored_extent([(100, 50), (120, 50), (400, 10), (0, 0)]) == 80
+    assert stored_extent([(0, 10), (2, 3), (10, 5)]) == 15
