@@ -1,7 +1,7 @@
 """What realistic frames compress to: the numbers behind ``radiokit.io._budget.BOMB_RATIO``.
 
 Synthetic 2240 x 2240 uint16 frames of the C7942 (darks of 1-2 counts' read noise, a shaded flat,
-a constant frame, zeros, a saturated frame with 1 % speckle) and frame 0 of each vendor ITEX file
+a constant frame, zeros, a saturated frame with 1 % speckle, sparse photon-counting frames) and frame 0 of each vendor ITEX file
 in /work/shared/data, compressed with deflate (with and without TIFF predictor 2), zstd (3, 19),
 LZW and LZMA; prints decoded : stored for each. Slow (zstd 19 and LZMA: about 2 minutes).
 
@@ -33,6 +33,9 @@ def frames() -> dict[str, np.ndarray]:
         "constant 1000": np.full(shape, 1000),
         "zeros": np.zeros(shape),
         "saturated 4095, 1 % at 4000": np.where(rng.random(shape) < 0.01, 4000, 4095),
+        # photon counting at low flux: most pixels 0, a few hit once (review s36r3)
+        "sparse, 0.2 % of pixels at 1": (rng.random(shape) < 0.002).astype(np.uint16),
+        "sparse, 1 % of pixels at 1": (rng.random(shape) < 0.01).astype(np.uint16),
     }
     out = {name: np.round(a).astype(np.uint16) for name, a in out.items()}
     for path in sorted(glob.glob(ITEX)):

@@ -578,7 +578,9 @@ def _check_register_memory(args, fixed) -> None:
         raise ValueError(
             f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
             f"needs about {_human(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
-            f"{_human(limit)}: raise {BUDGET_ENV}, or register a cropped region"
+            f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
+            "images, cropped or binned beforehand (register has no crop of its own, and --roi narrows "
+            "the score, not the images registered)"
         )
 
 

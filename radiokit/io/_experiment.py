@@ -1257,12 +1257,15 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
         )
 
 
-def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=True, budget=None) -> h5py.Dataset:
+def checked_dataset(
+    path, h5, name, kinds, ndims, allow_external=False, written=True, budget=None, whole=True
+) -> h5py.Dataset:
     """The dataset ``name``, if it holds plain numbers (dtype kind in ``kinds``) in ``ndims`` dimensions.
 
     Checked before reading: a corrupt file can declare odd types that libhdf5 cannot read safely,
     a dataset can point at other files (refused unless ``allow_external``), and compressed data
-    can declare far more than it could hold (:func:`check_proportion`, lifted by a ``budget``).
+    can declare far more than it could hold (:func:`check_proportion`, lifted by a ``budget``;
+    judged here if it is read ``whole``, else frame by frame by its reader).
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
@@ -1279,7 +1282,8 @@ def checked_dataset(path, h5, name, kinds, ndims, allow_external=False, written=
         raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
     if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
-        check_proportion_of(path, ds, budget)
+        if whole:
+            check_proportion_of(path, ds, budget)
         check_written(path, ds)
     return ds
 
@@ -1322,21 +1326,72 @@ _FILTER_NAMES = {1: "deflate", 4: "szip", 5: "n-bit", 6: "scale-offset", 32000: 
 _FILTER_NAMES.update({32008: "bitshuffle", 32013: "zfp", 32015: "zstd", 32017: "sz", 32026: "blosc2"})
 
 
-def check_proportion_of(path, ds, budget=None, frames=None) -> None:
-    """:func:`check_proportion` for a filtered dataset: what it declares (or its first ``frames``,
-    those to be read: a live writer extends a stack far ahead of what it has written) against
-    what it stores. Unfiltered data stores what it declares, or check_written finds it unwritten."""
-    from radiokit.io._budget import check_proportion
+def check_proportion_of(path, ds, budget=None, frames=None, index=None) -> None:
+    """:func:`check_proportion` for a filtered dataset, over what one read decodes: the whole
+    dataset, its first ``frames`` (read(): a live writer extends a stack far ahead of what it has
+    written) or frame ``index`` alone (streamed: 300 sparse frames, 8.9 GiB at 1:267, were refused
+    when one was read); ``ds`` a list: those datasets whole, read together (DXchange's darks,
+    flats and projections). Only allocated chunks decode anything: a writer that preallocated 200
+    frames and stopped after 2 is check_written's and check_frame_written's to refuse, not a bomb.
+    Unfiltered data stores what it declares, or check_written finds it unwritten."""
+    from radiokit.io._budget import check_proportion, proportion_can_refuse, stored_extent
 
+    plans = [plan for d in (ds if isinstance(ds, list) else [ds]) if (plan := _chunks_read(d, frames, index))]
+    most = sum(plan[0] for plan in plans)  # every chunk of those frames allocated
+    frame = max((plan[1] for plan in plans), default=0)
+    if not plans or not proportion_can_refuse(most, frame, budget):
+        return  # the common case: no chunk listed
+    decoded, ranges, codecs = 0, [], []
+    for _most, _frame, chunk, listed, codec in plans:
+        infos = [i for i in listed() if i.byte_offset is not None]
+        decoded += len(infos) * chunk
+        ranges += [(i.byte_offset, i.size) for i in infos]
+        codecs += [codec] if codec not in codecs else []
+    if isinstance(ds, list):
+        what = f"{' and '.join(d.name for d in ds)}, read together,"
+    else:
+        what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
+        what = f"frame {index} of {what}" if index is not None and ds.ndim >= 3 else what
+    frame = min(frame, decoded)
+    check_proportion(path, what, decoded, frame, stored_extent(ranges), "+".join(codecs), budget)
+
+
+def _chunks_read(ds, frames=None, index=None) -> tuple | None:
+    """What reading ``ds`` (whole, its first ``frames`` or frame ``index``) decodes if all its
+    chunks are there, the bytes of a frame and of a chunk, a function listing the chunks' storage
+    and the codecs' names; None if unfiltered (:func:`check_proportion_of`)."""
     plist = ds.id.get_create_plist()
-    if ds.shape is None or ds.is_virtual or not plist.get_nfilters():
-        return
+    if ds.shape is None or ds.is_virtual or not plist.get_nfilters() or not ds.chunks or ds.size == 0:
+        return None
+    frame = math.prod(int(v) for v in ds.shape[-2:]) * ds.dtype.itemsize
+    chunk = math.prod(int(v) for v in ds.chunks) * ds.dtype.itemsize
+    grid = [-(-int(s) // int(c)) for s, c in zip(ds.shape, ds.chunks)]
+    if ds.ndim < 3 or (frames is None and index is None):
+        first, stop = 0, grid[0]
+    elif index is not None:
+        first = int(index) // int(ds.chunks[0])
+        stop = first + 1
+    else:
+        first, stop = 0, -(-int(frames) // int(ds.chunks[0]))
+    per_row = math.prod(grid[1:])
+
+    def listed() -> list:
+        if ds.ndim >= 3 and index is not None and per_row <= 4096:  # looked up, no more than decoding reads
+            origin = first * int(ds.chunks[0])
+            return [
+                ds.id.get_chunk_info_by_coord((origin, *(k * int(c) for k, c in zip(at, ds.chunks[1:]))))
+                for at in np.ndindex(*grid[1:])
+            ]
+        infos: list = []  # listed: as many as the file stores, where tiny chunks could declare billions
+        ds.id.chunk_iter(infos.append)
+        if ds.ndim >= 3:
+            infos = [i for i in infos if first * ds.chunks[0] <= i.chunk_offset[0] < stop * ds.chunks[0]]
+        return infos
+
     codes = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     codecs = "+".join(_FILTER_NAMES.get(c, f"filter {c}") for c in codes if c not in (2, 3)) or "filtered"
-    frame = math.prod(int(v) for v in ds.shape[-2:]) * ds.dtype.itemsize
-    declared = int(ds.size) * ds.dtype.itemsize if frames is None or ds.ndim < 3 else frames * frame
-    what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
-    check_proportion(path, what, declared, frame, int(ds.id.get_storage_size()), codecs, budget)
+    most = (stop - first) * per_row * chunk
+    return most, min(frame, most), chunk, listed, codecs
 
 
 #: HDF5 filters whose output is bounded: deflate expands at most 1032:1 (LZF less, about 88:1;

@@ -16,7 +16,7 @@ import tifffile
 
 from radiokit import _json as strict_json
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget, check_proportion
+from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
     ENTRY,
     FRAMES,
@@ -198,6 +198,7 @@ class FrameSource:
     def __init__(self, path, *, format=None, dataset=None, allow_external=False, budget=None, **hints):
         self.path = Path(path)
         self._bits_warned = False  # the bit-depth warning, once per open file, not once per frame
+        self._reading_all = False  # read_all: the proportion judged over every frame, not each
         self._allow_external = bool(allow_external)
         self._budget = budget
         unknown = set(hints) - _RAW_HINTS
@@ -356,24 +357,30 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
-        self._check_tiff_proportion()
 
-    def _check_tiff_proportion(self) -> None:
-        """Refuse compressed pages decoding to far more than their strips or tiles could hold as
-        frames (:func:`check_proportion`). _check_page_layout refuses only what a codec cannot
-        expand to, and zstd or LZMA have no such bound."""
-        pages = [p for p in self._pages if p.compression != 1]
+    def _check_tiff_proportion(self, first: int, stop: int) -> None:
+        """Refuse compressed pages ``first``..``stop - 1`` (what one read decodes: a frame streamed,
+        or every frame read() takes) decoding to far more than the bytes their strips or tiles
+        cover, each byte once (:func:`check_proportion`, :func:`stored_extent`). Judged at open
+        over the whole file, 300 sparse frames refused the one a user streamed. _check_page_layout
+        refuses only what a codec cannot expand to, and zstd or LZMA have no such bound."""
+        if self._contiguous:  # one uncompressed run of frames
+            return
+        pages = [p for p in self._pages[first:stop] if p.compression != 1]
         if not pages:
             return
         frame = math.prod(int(v) for v in pages[0].shape) * np.dtype(pages[0].dtype).itemsize
+        if not proportion_can_refuse(frame * len(pages), frame, self._budget):
+            return
         rows, cols = pages[0].shape
         codecs = "/".join(sorted({p.compression.name.lower() for p in pages}))
+        what = f"{len(pages)} frames" if len(pages) > 1 else f"frame {first}"
         check_proportion(
             self.path,
-            f"{len(pages)} frame{'s' if len(pages) > 1 else ''} of {rows}x{cols} {np.dtype(pages[0].dtype)}",
+            f"{what} of {rows}x{cols} {np.dtype(pages[0].dtype)}",
             frame * len(pages),
             frame,
-            sum(int(b) for p in pages for b in p.databytecounts),
+            stored_extent((o, b) for p in pages for o, b in zip(p.dataoffsets, p.databytecounts)),
             codecs,
             self._budget,
         )
@@ -751,6 +758,8 @@ class FrameSource:
         )
 
     def _read_tiff(self, i):
+        if not self._reading_all:  # read_all judged every frame it reads at once
+            self._check_tiff_proportion(i, i + 1)
         if self._contiguous:
             frame = read_raw_frame(self._fh, self._contiguous, i)
             if self._pages[0].fillorder == 2:  # read past tifffile, so undone here as libtiff does
@@ -971,18 +980,18 @@ class FrameSource:
         self.meta.update(meta, n=n, rows=self.frame_shape[0], cols=self.frame_shape[1], dtype=str(data.dtype))
 
     def _check_decoding(self, data, n) -> None:
-        """What reading the first ``n`` frames of ``data`` decodes: held to the bytes storing it
-        (frames a live writer has extended ahead are not read, nor counted) and, a chunk at a
-        time, to the budget: a frame is read by decompressing the whole chunks it lies in."""
-        check_proportion_of(self.path, data, self._budget, frames=n)
+        """What reading a frame of ``data`` decodes, a chunk at a time, held to the budget: a frame
+        is read by decompressing the whole chunks it lies in. Held to the bytes storing it as it
+        is read (:meth:`_read_hdf5`, :meth:`read_all`)."""
         if data.chunks is not None:
             chunk = int(np.prod(data.chunks, dtype=np.float64)) * data.dtype.itemsize
             check_budget(self.path, chunk, f"one {data.chunks} chunk of {data.name}", self._budget)
 
-    def _checked(self, name, kinds, ndims, written=True) -> h5py.Dataset:
+    def _checked(self, name, kinds, ndims, written=True, whole=True) -> h5py.Dataset:
         """:func:`checked_dataset` under this file's ``allow_external`` and budget: a dataset checked
         without the budget the user gave refused what they had allowed (check_proportion)."""
-        return checked_dataset(self.path, self._h5, name, kinds, ndims, self._allow_external, written, self._budget)
+        h5, path = self._h5, self.path
+        return checked_dataset(path, h5, name, kinds, ndims, self._allow_external, written, self._budget, whole)
 
     def _groups_beside(self, dataset: str) -> list[str]:
         """The groups holding the frames: ``dataset``'s, then that of the frames its soft link
@@ -1041,7 +1050,8 @@ class FrameSource:
         for name, key in (("data_dark", ImageKey.DARK), ("data_white", ImageKey.FLAT), ("data", ImageKey.PROJECTION)):
             if f"{DXCHANGE}/{name}" not in self._h5:
                 continue
-            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3))
+            # streamed: held to check_proportion a frame at a time (_read_hdf5), or all in read_all
+            ds = self._checked(f"{DXCHANGE}/{name}", "buif", (2, 3), whole=False)
             _refuse_colour(self.path, ds)
             if parts and ds.shape[-2:] != parts[0].shape[-2:]:
                 sizes = " and ".join(f"{d.name} {'x'.join(map(str, d.shape[-2:]))}" for d in (parts[0], ds))
@@ -1081,6 +1091,9 @@ class FrameSource:
 
     def _read_hdf5(self, i):
         self._check_hdf5_written(i)
+        if not self._reading_all:  # read_all judged them all
+            ds, j = self._ds.part(i) if isinstance(self._ds, _DatasetStack) else (self._ds, i)
+            check_proportion_of(self.path, ds, self._budget, index=j)
         return self._hdf5_frame(self._ds[()] if self._ds.ndim == 2 else self._ds[i])
 
     def _check_hdf5_written(self, i) -> None:
@@ -1153,8 +1166,21 @@ class FrameSource:
                 "in memory: a corrupt header, or read them one by one with "
                 "open_frames()",
             ) from None
-        for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
-            out[i] = self[i]
+        # what is decoded is every frame: judged together, once, not each frame again on its own
+        if self.format == "tiff":
+            self._check_tiff_proportion(0, self.n)
+        elif self.format == "hdf5" and isinstance(self._ds, h5py.Dataset):
+            for i in range(self.n):  # a frame never written is refused as such, not taken for a bomb
+                self._check_hdf5_written(i)
+            check_proportion_of(self.path, self._ds, self._budget, frames=self.n)
+        elif self.format == "hdf5":  # DXchange's or a calibration's datasets, read whole together
+            check_proportion_of(self.path, self._ds.datasets, self._budget)
+        self._reading_all = True
+        try:
+            for i in range(self._read_hdf5_blocks(out) if self.format == "hdf5" else 0, self.n):
+                out[i] = self[i]
+        finally:
+            self._reading_all = False
         return Frames(out, dict(self.meta), self.path)
 
     def _read_hdf5_blocks(self, out) -> int:
@@ -1294,6 +1320,15 @@ class _DatasetStack:
         # header declares
         self._starts = np.cumsum([0] + [1 if ds.ndim == 2 else ds.shape[0] for ds in datasets])
         self.dtype = np.result_type(*(ds.dtype.newbyteorder("=") for ds in datasets))
+
+    @property
+    def datasets(self) -> list:
+        return list(self._datasets)
+
+    def part(self, i) -> tuple:
+        """The dataset frame ``i`` is in, and its index there."""
+        k = int(np.searchsorted(self._starts, i, side="right")) - 1
+        return self._datasets[k], int(i - self._starts[k])
 
     def __getitem__(self, i):
         k = int(np.searchsorted(self._starts, i, side="right")) - 1
