@@ -2619,6 +2619,26 @@ def test_an_in_place_overwrite_is_refused_while_a_writer_has_the_file_without_hd
     assert "frames 2" in res.stdout, res.stdout
 
 
+def test_a_put_back_never_replaces_a_file_another_run_made_under_the_name(tmp_path):
+    """Found (review s36r4, two processes each overwriting 300 times): a run whose opening failed
+    after it had set the old file aside (the name taken meanwhile by another run's new file)
+    renamed the old file over that run's file, whose frames then went into an unlinked file while
+    it said "written". The other run's file is put under the name here by hand (the interleaving
+    is a few milliseconds wide: no test can hit it by timing); the put-back keeps the old file
+    aside, warns, and leaves the other file alone."""
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    w = ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    aside = w.previous
+    other = _write_experiment(tmp_path / "other.h5", rows=FRAME_META[:2], shape=EXP_SHAPE)
+    theirs = other.read_bytes()
+    other.rename(path)  # another run's file, under the name
+    with pytest.warns(UserWarning, match=r"another program made a file under this name.*stays in"):
+        w.close()
+    assert path.read_bytes() == theirs and aside.read_bytes() == before and not w.restored_previous
+    assert theirs != before and read(path).n == 2
+
+
 def _dead_pid():
     proc = subprocess.Popen([sys.executable, "-c", ""])
     proc.wait()
@@ -2648,6 +2668,10 @@ def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_i
     assert path.read_bytes() == before and not aside.exists()
     # nothing under the name (killed between the rename and the new file): put back
     path.rename(aside)
+    assert restore_previous(path)[0][0] is True and path.read_bytes() == before
+    # the new file's first bytes only (killed, or a power cut, as libhdf5 began it): put back
+    path.rename(aside)
+    path.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(88))
     assert restore_previous(path)[0][0] is True and path.read_bytes() == before
     # the name holds frames: kept, and named
     path.rename(aside)

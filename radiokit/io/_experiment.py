@@ -200,6 +200,7 @@ class ExperimentWriter:
         elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
             self._check_opening_room(mode)
         self._previous, self._aside_lock, self._own_lock, self.restored_previous = None, [None], [None], False
+        self._created = None
         try:
             if set_aside:
                 # a stop between the rename and its record left the old file hidden while the
@@ -207,6 +208,7 @@ class ExperimentWriter:
                 with held(*STOP_SIGNALS):
                     self._previous = self._set_aside(frame_bytes)
             self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
+            self._created = _identity(self._file)  # the file a put-back may replace: this writer's own
             self._own_lock[0] = _lock_unless_locked(self._file)
         except BaseException as exc:
             _unlock(self._own_lock)
@@ -246,6 +248,7 @@ class ExperimentWriter:
             self._previous,
             self._aside_lock,
             self._own_lock,
+            self._created,
         )
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
@@ -268,7 +271,7 @@ class ExperimentWriter:
         (None: there is none, or it has gone)."""
         return self._previous
 
-    def _set_aside(self, frame_bytes: int | None) -> Path:
+    def _set_aside(self, frame_bytes: int | None) -> Path | None:
         """Rename the old file to its hidden sibling; refused (the old file untouched) when the
         first frame cannot fit beside it or the folder takes no rename."""
         old = self._file
@@ -284,7 +287,10 @@ class ExperimentWriter:
         # it, and renaming it from under that run (two overwrites at once) lost one run's frames
         # while both said "written". The lock then stays on the set-aside file, the inode it
         # follows, until it goes back or away: it says its run is alive (a PID can be reused)
-        fd = os.open(old, os.O_RDONLY | os.O_CLOEXEC)
+        try:
+            fd = os.open(old, os.O_RDONLY | os.O_CLOEXEC)
+        except FileNotFoundError:  # gone since it was seen (another run set it aside): nothing to keep
+            return None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -323,16 +329,21 @@ class ExperimentWriter:
         _unlock(self._aside_lock)
 
     def _put_back(self) -> None:
-        """No frame of the new file: the old file kept aside goes back under its name."""
+        """No frame of the new file: the old file kept aside goes back under its name -- over this
+        writer's own new file only, never over one another run made there meanwhile."""
         aside, self._previous = self._previous, None
         if aside is None:
             return
         try:
-            os.replace(aside, self._file)
-            _fsync(self._file.parent)
+            self.restored_previous = _put_back_file(aside, self._file, getattr(self, "_created", None))
         finally:
             self._unlock_previous()
-        self.restored_previous = True
+        if not self.restored_previous:
+            warnings.warn(
+                f"{self.path}: another program made a file under this name meanwhile; the previous series "
+                f"stays in {aside} (rename it to keep it)",
+                stacklevel=3,
+            )
 
     def _drop_previous(self) -> None:
         """The first frame is on disk: the old file kept aside may go."""
@@ -817,6 +828,7 @@ def _unclosed(
     previous: Path | None = None,
     aside_lock: list | None = None,
     own_lock: list | None = None,
+    created: tuple | None = None,
 ) -> None:
     """A writer garbage-collected or at interpreter exit unclosed: its reserve removed, the old
     file an in-place overwrite kept aside put back if it is still there (no frame was written),
@@ -830,7 +842,7 @@ def _unclosed(
     # the new run's frames, which putting the old file back would destroy
     if previous is not None and previous.exists() and not _holds_a_frame(resolved(path)):
         with contextlib.suppress(OSError):
-            os.replace(previous, resolved(path))
+            _put_back_file(previous, resolved(path), created)
     for lock in (aside_lock, own_lock):
         if lock is not None:
             _unlock(lock)
@@ -978,6 +990,10 @@ def _locked(path: Path, absent=False):
         os.close(fd)
 
 
+#: below this, an unreadable file is a new file's start, not a file that held frames
+_HEADER_ONLY_BYTES = 4096
+
+
 def _holds_a_frame(path: Path) -> bool:
     """``path`` holds a frame that is not labelled invalid. Not there, it holds none; there but
     unreadable, it may (a run writing it, a file of the user's): never written over."""
@@ -986,7 +1002,44 @@ def _holds_a_frame(path: Path) -> bool:
     try:
         return bool(np.any(read_progress(path).image_key != ImageKey.INVALID))
     except Exception:
-        return True
+        # a run killed (or a power cut) as libhdf5 began the file leaves 0 to a few hundred bytes,
+        # less than the layout of an experiment file without a frame (25 KB): no frame there
+        try:
+            return os.path.getsize(path) >= _HEADER_ONLY_BYTES
+        except OSError:
+            return True
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file ``path`` names, or None where nothing is there."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _put_back_file(aside: Path, target: Path, mine: tuple | None) -> bool:
+    """Rename ``aside`` to ``target`` where ``target`` is absent or is the file ``mine`` names (a
+    writer's own new file, holding no frame); False, ``aside`` kept, where another run made a file
+    there meanwhile. os.replace put the old file over a second run's new one, whose frames went
+    into an unlinked file while it said "written" (review s36r4): a hard link takes the name only
+    where it is free."""
+    here = _identity(target)
+    if here is not None:
+        if here != mine:
+            return False
+        os.unlink(target)
+    try:
+        os.link(aside, target)
+    except FileExistsError:
+        return False  # made meanwhile, between the unlink and the link
+    except OSError:  # no hard links on this file system (FAT, some network mounts): the rename
+        os.replace(aside, target)
+    else:
+        os.unlink(aside)
+    _fsync(target.parent)
+    return True
 
 
 def _lock_unless_locked(path: Path) -> int | None:
