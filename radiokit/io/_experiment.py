@@ -192,30 +192,7 @@ class ExperimentWriter:
         if mode == "w" and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
-        self._file, self._replaces = self._where(mode, overwrite, in_place)
-        frame_bytes = None if shape is None else math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize
-        set_aside = in_place and mode == "w" and os.path.lexists(self._file)
-        if self._replaces is not None and frame_bytes is not None:
-            self._check_overwrite_room(frame_bytes)
-        elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
-            self._check_opening_room(mode)
-        self._previous, self._aside_lock, self._own_lock, self.restored_previous = None, [None], [None], False
-        self._created = None
-        try:
-            if set_aside:
-                # a stop between the rename and its record left the old file hidden while the
-                # run said "unchanged": it is delivered once the file is recorded, to be put back
-                with held(*STOP_SIGNALS):
-                    self._previous = self._set_aside(frame_bytes)
-            self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
-            self._created = _identity(self._file)  # the file a put-back may replace: this writer's own
-            self._own_lock[0] = _lock_unless_locked(self._file)
-        except BaseException as exc:
-            _unlock(self._own_lock)
-            self._put_back()
-            if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
-                raise self._unwritable_folder(exc.errno) from None
-            raise
+        self._open(mode, overwrite, in_place, shape)
         try:
             if self._previous is not None:
                 _keep_mode(self._file, self._previous)  # as writing into the old file would have
@@ -250,6 +227,34 @@ class ExperimentWriter:
             self._own_lock,
             self._created,
         )
+
+    def _open(self, mode, overwrite, in_place, shape) -> None:
+        """Open the file to write (:meth:`_where`), its room checked, an old file overwritten in
+        place first set aside (:meth:`_set_aside`) and put back if the opening fails."""
+        self._file, self._replaces = self._where(mode, overwrite, in_place)
+        frame_bytes = None if shape is None else math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize
+        set_aside = in_place and mode == "w" and os.path.lexists(self._file)
+        if self._replaces is not None and frame_bytes is not None:
+            self._check_overwrite_room(frame_bytes)
+        elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
+            self._check_opening_room(mode)
+        self._previous, self._aside_lock, self._own_lock, self.restored_previous = None, [None], [None], False
+        self._created = None
+        try:
+            if set_aside:
+                # a stop between the rename and its record left the old file hidden while the
+                # run said "unchanged": it is delivered once the file is recorded, to be put back
+                with held(*STOP_SIGNALS):
+                    self._previous = self._set_aside(frame_bytes)
+            self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
+            self._created = _identity(self._file)  # the file a put-back may replace: this writer's own
+            self._own_lock[0] = _lock_unless_locked(self._file)
+        except BaseException as exc:
+            _unlock(self._own_lock)
+            self._put_back()
+            if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
+                raise self._unwritable_folder(exc.errno) from None
+            raise
 
     def _where(self, mode, overwrite, in_place) -> tuple[Path, Path | None]:
         """The file to write, and the file it replaces when closed (None: written in place).
