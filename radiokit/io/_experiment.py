@@ -292,25 +292,15 @@ class ExperimentWriter:
         # it, and renaming it from under that run (two overwrites at once) lost one run's frames
         # while both said "written". The lock then stays on the set-aside file, the inode it
         # follows, until it goes back or away: it says its run is alive (a PID can be reused)
-        try:
-            fd = os.open(old, os.O_RDONLY | os.O_CLOEXEC)
-        except FileNotFoundError:  # gone since it was seen (another run set it aside): nothing to keep
+        fd, state = _try_lock(old)
+        if state == "absent":  # gone since it was seen (another run set it aside): nothing to keep
             return None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            fd = None
-            if exc.errno in _NO_LOCKS:
-                pass  # a file system without locks (libhdf5 then needs HDF5_USE_FILE_LOCKING=FALSE too)
-            elif exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
-                raise
-            else:
-                raise OutputError(
-                    old,
-                    "is open in another program (a run writing or resuming it, or a viewer): not overwritten while it is",
-                    errno.EBUSY,
-                ) from None
+        if state == "busy":
+            raise OutputError(
+                old,
+                "is open in another program (a run writing or resuming it, or a viewer): not overwritten while it is",
+                errno.EBUSY,
+            )
         aside = _previous_name(old)
         try:
             os.rename(old, aside)
@@ -972,27 +962,15 @@ def _locked(path: Path, absent=False):
     run takes it as well. A file that is not there is ``absent`` (gone meanwhile: another run put
     it back)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
-    except FileNotFoundError:
-        yield absent
-        return
+        fd, state = _try_lock(path)
     except OSError:
-        yield False
-        return
+        fd, state = None, "busy"
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno in _NO_LOCKS:  # nothing can tell: as before locks, free
-                yield True
-                return
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
-                raise
-            yield False
-            return
-        yield True
+        # without locks on the file system nothing can tell: free, as before locks
+        yield {"locked": True, "no locks": True, "absent": absent, "busy": False}[state]
     finally:
-        os.close(fd)
+        if fd is not None:
+            os.close(fd)
 
 
 #: below this, an unreadable file is a new file's start, not a file that held frames
@@ -1053,15 +1031,29 @@ def _lock_unless_locked(path: Path) -> int | None:
     run writing it and that run's frames were lost. None where libhdf5 locks it (refused here as
     any other lock is, in this process too) or the file system has no locks."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+        return _try_lock(path)[0]
     except OSError:
         return None
+
+
+def _try_lock(path: Path) -> tuple[int | None, str]:
+    """flock ``path`` exclusively, without waiting: (the descriptor holding it, "locked"), or
+    (None, "busy") where another holds it (libhdf5's lock in this process too), "absent" where
+    nothing is there, "no locks" where the file system keeps none (some network mounts)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return None, "absent"
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except OSError as exc:
         os.close(fd)
-        return None
-    return fd
+        if exc.errno in _NO_LOCKS:
+            return None, "no locks"
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+            return None, "busy"
+        raise
+    return fd, "locked"
 
 
 def _unlock(holder: list) -> None:
