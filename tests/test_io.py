@@ -2639,6 +2639,23 @@ def test_a_put_back_never_replaces_a_file_another_run_made_under_the_name(tmp_pa
     assert theirs != before and read(path).n == 2
 
 
+def test_discard_unbegun_removes_only_a_file_nobody_holds(tmp_path):
+    """The acquisition removes the file a failed opening left on a new name (it would block the
+    next run); two runs started at once on one new name, the second's opening failed on the
+    first's lock and its clean-up unlinked the file the first was writing. A held file stays."""
+    from radiokit.io import discard_unbegun
+
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=EXP_SHAPE) as w:
+        discard_unbegun(path)
+        assert path.exists()
+        w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+    assert read(path).n == 1
+    discard_unbegun(path)
+    assert not path.exists()
+    discard_unbegun(path)  # nothing there: nothing to do
+
+
 def _dead_pid():
     proc = subprocess.Popen([sys.executable, "-c", ""])
     proc.wait()

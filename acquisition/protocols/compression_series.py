@@ -1057,14 +1057,13 @@ def _open_experiment(r: _Run):
     try:
         r.writer = r.writer_factory(r.out, tuple(det.shape), mode="a" if r.resume else "w", overwrite=r.overwrite, **kw)
     except OSError as exc:
-        if not existed:  # a file this run began and could not finish: it would block the next run
-            r.out.unlink(missing_ok=True)
-        from radiokit.io import OutputError
+        from radiokit.io import OutputError, discard_unbegun
 
+        if not existed:  # a file this run began and could not finish: it would block the next run
+            discard_unbegun(r.out)
         code = exc.errno or errno.EIO
-        if isinstance(
-            exc, OutputError
-        ):  # the writer's own line (open in another program, a folder it cannot rename in)
+        # the writer's own line (open in another program, a folder it cannot rename in)
+        if isinstance(exc, OutputError):
             raise OSError(code, str(exc)) from None
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
     if not r.resume:

@@ -33,6 +33,7 @@ from radiokit.io._experiment import (
     ExperimentWriter,
     ImageKey,
     check_same_pixel_size,
+    discard_unbegun,
     read_progress,
     restore_previous,
 )
@@ -60,6 +61,7 @@ __all__ = [
     "ExperimentWriter",
     "ImageKey",
     "restore_previous",
+    "discard_unbegun",
     "StackWriter",
     "write_tiff",
     "FormatError",

@@ -56,6 +56,7 @@ __all__ = [
     "ExperimentProgress",
     "read_progress",
     "restore_previous",
+    "discard_unbegun",
     "DETECTOR",
     "FRAMES",
     "IMAGE_KEY",
@@ -1034,6 +1035,22 @@ def _lock_unless_locked(path: Path) -> int | None:
         return _try_lock(path)[0]
     except OSError:
         return None
+
+
+def discard_unbegun(path) -> None:
+    """Remove the experiment file a failed opening left at ``path``, unless another program holds
+    it: two runs started at once on one new name, the second's opening failed on the first's lock,
+    and its clean-up unlinked the first run's file while that run wrote its frames into it."""
+    try:
+        fd, state = _try_lock(Path(path))
+    except OSError:
+        return
+    try:
+        if state in ("locked", "no locks"):
+            Path(path).unlink(missing_ok=True)
+    finally:
+        if fd is not None:
+            os.close(fd)
 
 
 def _try_lock(path: Path) -> tuple[int | None, str]:
