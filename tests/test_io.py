@@ -2656,6 +2656,59 @@ def test_discard_unbegun_removes_only_a_file_nobody_holds(tmp_path):
     discard_unbegun(path)  # nothing there: nothing to do
 
 
+def test_an_in_place_overwrite_never_truncates_a_file_another_run_made_meanwhile(tmp_path, monkeypatch):
+    """Found (review s36r5): between setting the old file aside and opening the new one ("w",
+    truncating), another run made the name its own and wrote 3 frames; the opening emptied that
+    file, and the other run's series was lost though it said "closed OK". The opening only
+    creates ("w-"). The other run is made at that moment by wrapping _set_aside, a moment no test
+    can hit by timing."""
+    import radiokit.io._experiment as exp_mod
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    others = []
+    real = exp_mod.ExperimentWriter._set_aside
+
+    def set_aside_then_another_run(self, frame_bytes):
+        aside = real(self, frame_bytes)
+        w = ExperimentWriter(path, shape=EXP_SHAPE)
+        w.append(np.full(EXP_SHAPE, 5, np.uint16), image_key=ImageKey.DARK)
+        others.append(w)
+        return aside
+
+    monkeypatch.setattr(exp_mod.ExperimentWriter, "_set_aside", set_aside_then_another_run)
+    with pytest.warns(UserWarning, match="another program made a file under this name"):
+        with pytest.raises(OSError) as err:
+            ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    monkeypatch.undo()
+    assert err.value.previous_kept_in.read_bytes() == before
+    others[0].append(np.full(EXP_SHAPE, 6, np.uint16), image_key=ImageKey.DARK)
+    others[0].close()
+    assert read(path).n == 2
+
+
+def test_an_in_place_overwrite_whose_new_file_is_moved_away_as_it_opens_is_refused(tmp_path, monkeypatch):
+    """Found (review s36r5, HDF5_USE_FILE_LOCKING=FALSE): between libhdf5's opening and the
+    writer's own lock, a second overwrite set the new file aside; the first run then wrote its
+    frames into a file the second removed. The writer locks the file libhdf5 opened and checks the
+    name still names it. The move is made at that moment by wrapping the check."""
+    import radiokit.io._experiment as exp_mod
+
+    path = _write_experiment(tmp_path / "exp.h5", shape=EXP_SHAPE)
+    before = path.read_bytes()
+    real = exp_mod._hold_what_was_opened
+
+    def moved_first(h5, name):
+        os.rename(name, tmp_path / "moved.h5")
+        return real(h5, name)
+
+    monkeypatch.setattr(exp_mod, "_hold_what_was_opened", moved_first)
+    with pytest.raises(OSError, match="moved the new file away"):
+        ExperimentWriter(path, shape=EXP_SHAPE, overwrite=True, in_place=True)
+    # the name free again, the old series went back under it
+    assert path.read_bytes() == before and _previous(tmp_path) == []
+
+
 def _dead_pid():
     proc = subprocess.Popen([sys.executable, "-c", ""])
     proc.wait()

@@ -922,6 +922,7 @@ class _Run:
     writer_factory: object
     devices: Devices | None = None
     replacing: bool = False  # an overwrite of an existing file: the old one is kept until the first frame
+    previous_aside: Path | None = None  # the old file, left hidden: another program took the name meanwhile
     writer: object = None
     monitor: _BeamMonitor | None = None
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
@@ -1059,6 +1060,7 @@ def _open_experiment(r: _Run):
     except OSError as exc:
         from radiokit.io import OutputError, discard_unbegun
 
+        r.previous_aside = getattr(exc, "previous_kept_in", None)
         if not existed:  # a file this run began and could not finish: it would block the next run
             discard_unbegun(r.out)
         code = exc.errno or errno.EIO
@@ -1544,7 +1546,8 @@ def _stop(r: _Run, exc: BaseException):
         res.frames_total = r.writer.n_frames
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
-    kept = r.replacing and (r.writer is None or getattr(r.writer, "previous", None) is not None)
+    kept = r.replacing and r.previous_aside is None
+    kept = kept and (r.writer is None or getattr(r.writer, "previous", None) is not None)
     what = (
         f"stopped by {exc.name}"
         if hasattr(exc, "signum")
@@ -1556,7 +1559,12 @@ def _stop(r: _Run, exc: BaseException):
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
-    if hasattr(exc, "add_note") and kept:
+    if hasattr(exc, "add_note") and r.previous_aside is not None:
+        exc.add_note(
+            f"{what} in phase '{r.phase}': {tube}; no frame taken: another program made {r.out} meanwhile, and the "
+            f"previous series is kept in {r.previous_aside}"
+        )
+    elif hasattr(exc, "add_note") and kept:
         exc.add_note(
             f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
         )
@@ -1619,7 +1627,9 @@ def _release(r: _Run, notebook):
         except Exception as exc:
             log.error("closing %s: %s", r.out, exc)
     # no frame of its own: the writer put the old file back (or never set it aside)
-    r.res.previous_kept = r.replacing and (r.writer is None or getattr(r.writer, "restored_previous", False))
+    r.res.previous_kept = (
+        r.replacing and r.previous_aside is None and (r.writer is None or getattr(r.writer, "restored_previous", False))
+    )
     if r.devices is not None:
         _tube_off(r)
         r.devices.close()

@@ -247,12 +247,18 @@ class ExperimentWriter:
                 # run said "unchanged": it is delivered once the file is recorded, to be put back
                 with held(*STOP_SIGNALS):
                     self._previous = self._set_aside(frame_bytes)
-            self._h5 = h5py.File(self._file, "w" if mode == "w" else "r+")
-            self._created = _identity(self._file)  # the file a put-back may replace: this writer's own
-            self._own_lock[0] = _lock_unless_locked(self._file)
+            # "w-": never truncate a file another run made under the name since it was seen (a
+            # second overwrite emptied a running run's file, review s36r5)
+            self._h5 = h5py.File(self._file, "w-" if mode == "w" else "r+")
+            self._own_lock[0], self._created = _hold_what_was_opened(self._h5, self._file)
         except BaseException as exc:
+            h5, aside = getattr(self, "_h5", None), self._previous
+            if h5 is not None and h5.id.valid:
+                h5.close()
             _unlock(self._own_lock)
             self._put_back()
+            if aside is not None and not self.restored_previous:
+                exc.previous_kept_in = aside  # for the caller's last line: not back under its name
             if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise self._unwritable_folder(exc.errno) from None
             raise
@@ -1026,15 +1032,31 @@ def _put_back_file(aside: Path, target: Path, mine: tuple | None) -> bool:
     return True
 
 
-def _lock_unless_locked(path: Path) -> int | None:
-    """A descriptor holding ``path``'s flock, where libhdf5 holds none (``HDF5_USE_FILE_LOCKING=FALSE``,
-    common on NFS lab machines): without it a second overwrite set the file aside from under the
-    run writing it and that run's frames were lost. None where libhdf5 locks it (refused here as
-    any other lock is, in this process too) or the file system has no locks."""
+def _hold_what_was_opened(h5, path: Path) -> tuple[int | None, tuple[int, int]]:
+    """Lock the file libhdf5 opened, through a copy of its own descriptor, and check that ``path``
+    still names it: (the copy holding the lock, the file's (device, inode)). OSError where another
+    program holds that file, or moved it away, between the opening and now.
+
+    Why: where libhdf5 locks nothing (``HDF5_USE_FILE_LOCKING=FALSE``, common on NFS lab machines)
+    a second overwrite could set the file aside from under the run writing it, and that run's
+    frames went into a file that was then removed (reviews s36r3, s36r5); locked by its name, the
+    lock could land on another run's file. Through libhdf5's own open file it is the same lock
+    libhdf5 holds, where it holds one."""
+    fd = os.dup(h5.id.get_vfd_handle())
     try:
-        return _try_lock(path)[0]
-    except OSError:
-        return None
+        st = os.fstat(fd)
+        mine = (st.st_dev, st.st_ino)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in _NO_LOCKS:
+                raise OSError(errno.EBUSY, f"{path}: another program took the new file as it was opened") from None
+        if _identity(path) != mine:
+            raise OSError(errno.EBUSY, f"{path}: another program moved the new file away as it was opened")
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, mine
 
 
 def discard_unbegun(path) -> None:
