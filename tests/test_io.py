@@ -2743,6 +2743,13 @@ def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_i
     path.rename(aside)
     path.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(88))
     assert restore_previous(path)[0][0] is True and path.read_bytes() == before
+    # a small file of another program's (not HDF5's start): never written over, the old one named
+    path.rename(aside)
+    path.write_bytes(b"notes of the day\n")
+    said = restore_previous(path)
+    assert said[0][0] is False and str(aside) in said[0][1] and path.read_bytes() == b"notes of the day\n", said
+    path.unlink()
+    aside.rename(path)
     # the name holds frames: kept, and named
     path.rename(aside)
     _write_experiment(path, shape=EXP_SHAPE)

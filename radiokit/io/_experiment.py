@@ -936,9 +936,10 @@ def restore_previous(path) -> list[tuple[bool, str]]:
             said.append(
                 (
                     False,
-                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite whose new "
-                    f"series has frames of its own under the name, or by another host); rename it to keep it "
-                    f"(not over {target.name}: that is the new series), or remove it",
+                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite; the name now "
+                    f"holds another file -- the new series' frames, a run writing, or a file of another program -- "
+                    f"or it was set aside on another host); rename it to keep it (not over {target.name}), or "
+                    "remove it",
                 )
             )
     return said
@@ -980,8 +981,9 @@ def _locked(path: Path, absent=False):
             os.close(fd)
 
 
-#: below this, an unreadable file is a new file's start, not a file that held frames
+#: below this, an unreadable file that begins as HDF5 does is a new file's start, not a file that held frames
 _HEADER_ONLY_BYTES = 4096
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def _holds_a_frame(path: Path) -> bool:
@@ -992,12 +994,15 @@ def _holds_a_frame(path: Path) -> bool:
     try:
         return bool(np.any(read_progress(path).image_key != ImageKey.INVALID))
     except Exception:
-        # a run killed (or a power cut) as libhdf5 began the file leaves 0 to a few hundred bytes,
-        # less than the layout of an experiment file without a frame (25 KB): no frame there
+        # a run killed (or a power cut) as libhdf5 began the file leaves 0 to a few hundred bytes
+        # of HDF5's start, less than the layout of an experiment file without a frame (25 KB): no
+        # frame there. Anything else (another program's file) is not written over
         try:
-            return os.path.getsize(path) >= _HEADER_ONLY_BYTES
+            with open(path, "rb") as fh:
+                head = fh.read(_HEADER_ONLY_BYTES)
         except OSError:
             return True
+        return not (len(head) < _HEADER_ONLY_BYTES and (not head or head.startswith(_HDF5_SIGNATURE[: len(head)])))
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
