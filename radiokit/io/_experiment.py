@@ -208,11 +208,15 @@ class ExperimentWriter:
             else:
                 self._reopen(shape)
         except BaseException:  # Ctrl-C too: the old file kept aside goes back
-            self._h5.close()
+            # a clean-up's own error (libhdf5 closing a file cut short) must not replace the
+            # first: a Ctrl-C turned into an OSError was no longer taken for an interrupt
+            with contextlib.suppress(Exception):
+                self._h5.close()
             _unlock(self._own_lock)
-            if self._replaces is not None:
-                _remove(self._file)
-            self._put_back()
+            with contextlib.suppress(Exception):
+                if self._replaces is not None:
+                    _remove(self._file)
+                self._put_back()
             raise
         # Never closed (garbage-collected, or alive at interpreter exit): the reserve's space is
         # given back, and an overwrite built beside the old file is not renamed into place (it
@@ -253,10 +257,12 @@ class ExperimentWriter:
             self._own_lock[0], self._created = _hold_what_was_opened(self._h5, self._file)
         except BaseException as exc:
             h5, aside = getattr(self, "_h5", None), self._previous
-            if h5 is not None and h5.id.valid:
-                h5.close()
+            with contextlib.suppress(Exception):  # (as above: the first error is the one to say)
+                if h5 is not None and h5.id.valid:
+                    h5.close()
             _unlock(self._own_lock)
-            self._put_back()
+            with contextlib.suppress(Exception):
+                self._put_back()
             if aside is not None and not self.restored_previous:
                 exc.previous_kept_in = aside  # for the caller's last line: not back under its name
             if self._replaces is not None and getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM, errno.EROFS):
