@@ -118,7 +118,10 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
     spaced frames (``every``: all of them)."""
     lo, hi, saturated, nonfinite = None, None, 0, 0
-    top = (1 << src.bits) - 1 if src.bits else None
+    # a TIFF's BitsPerSample below its word (12 in 16) is its meta's bit_depth, not src.bits (which
+    # only a TIFF read as whole words sets): its saturated pixels went uncounted
+    bits = src.bits or src.meta.get("bit_depth")
+    top = (1 << bits) - 1 if bits else None
     n_read = len(src) if every else min(len(src), sample)
     # --all: a range, not an array of every index (a small file may declare 10**8 frames)
     picks = range(len(src)) if every else np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int))

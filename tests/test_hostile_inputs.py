@@ -2329,3 +2329,16 @@ def test_stored_bytes_count_each_byte_once():
     assert stored_extent([(100, 50)] * 10) == 50
     assert stored_extent([(100, 50), (120, 50), (400, 10), (0, 0)]) == 80
     assert stored_extent([(0, 10), (2, 3), (10, 5)]) == 15
+
+
+# -- small faults the hostile trials of session 36 found ------------------------------------------
+def test_info_counts_saturated_pixels_of_a_tiff_whose_bit_depth_it_knows(tmp_path):
+    """A 12-bit TIFF (BitsPerSample 12) printed no saturation line; an ITEX or NeXus file's does.
+    A 16-bit one says nothing of its ADC (a 12-bit panel's TIFFs are 16-bit too): no line."""
+    frames = np.full((2, 16, 16), 1000, np.uint16)
+    frames[0, 0, :5] = 4095
+    tifffile.imwrite(tmp_path / "p12.tif", frames, bitspersample=12)
+    tifffile.imwrite(tmp_path / "p16.tif", frames)
+    res = run_cli("info", tmp_path / "p12.tif")
+    assert res.returncode == 0 and "saturated  5 pixel(s)" in res.stdout, res.stdout + res.stderr
+    assert "  saturated  " not in run_cli("info", tmp_path / "p16.tif").stdout
