@@ -177,6 +177,13 @@ def _stack_domain(path, meta: dict) -> dict:
     return {"domain": _DOMAINS.get(value, value)} if isinstance(value, str) and value else {}
 
 
+def _escaped(value) -> str:
+    """``value`` as text, its control characters escaped as Python writes them (``\\x00``, ``\\x1b``):
+    a header comment's NUL or escape sequence reached the terminal raw (``ESC [31m`` turned the
+    rest of the output red)."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+
+
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
@@ -228,7 +235,7 @@ def cmd_info(args) -> int:
         if rep["nonfinite"]:
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
-            print(f"  {key:<10} {value}")
+            print(f"  {key:<10} {_escaped(value)}")
     return status
 
 

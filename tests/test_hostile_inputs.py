@@ -2342,3 +2342,18 @@ def test_info_counts_saturated_pixels_of_a_tiff_whose_bit_depth_it_knows(tmp_pat
     res = run_cli("info", tmp_path / "p12.tif")
     assert res.returncode == 0 and "saturated  5 pixel(s)" in res.stdout, res.stdout + res.stderr
     assert "  saturated  " not in run_cli("info", tmp_path / "p16.tif").stdout
+
+
+def test_info_prints_control_characters_of_an_itex_comment_escaped(tmp_path):
+    """A NUL, an escape sequence or a bell in a header comment reached the terminal raw: ESC [31m
+    turned the rest of the output red, a NUL vanished or cut the line in other programs."""
+    import struct
+
+    comment = b'[Application],Software="HiPic\x00\x1b[31mred",SoftwareVersion=9.1\r\n[Camera],CameraName="C7942\x07"'
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", len(comment), 8, 4, 0, 0, 2, 1, 1, 0, 0.0, b"", b"")
+    path = tmp_path / "nul.img"
+    path.write_bytes(head + comment + np.full((4, 8), 100, "<u2").tobytes())
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    assert not any(c in res.stdout for c in "\x00\x1b\x07"), repr(res.stdout)
+    assert r"HiPic\x00\x1b[31mred 9.1" in res.stdout and r"C7942\x07" in res.stdout, res.stdout
