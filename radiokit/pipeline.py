@@ -520,10 +520,14 @@ def _step_image(cal, src, path, step, idx, factors, bar):
                 n_bad += int(np.count_nonzero(bad))
                 where = np.full(raw.shape, -1, np.int32) if where is None else where
                 where[bad & (where < 0)] = i
+        try:  # its refusal names the frame (one of only NaN was "a raw frame" of dozens)
+            image = correct_frames(cal, raw, domain=domain)
+        except ValueError as exc:
+            raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
         if domain == "log":
-            image = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
+            image = image - np.float32(np.log(factor))  # the flats' current
         else:
-            image = correct_frames(cal, raw, domain="linear") * np.float32(factor)
+            image = image * np.float32(factor)
         acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
     if domain == "log":

@@ -2357,3 +2357,15 @@ def test_info_prints_control_characters_of_an_itex_comment_escaped(tmp_path):
     assert res.returncode == 0, res.stderr
     assert not any(c in res.stdout for c in "\x00\x1b\x07"), repr(res.stdout)
     assert r"HiPic\x00\x1b[31mred 9.1" in res.stdout and r"C7942\x07" in res.stdout, res.stdout
+
+
+def test_process_names_the_frame_that_holds_only_nan(tmp_path):
+    """``correct`` named the frame; ``process`` said "a raw frame holds only NaN or inf" of a file
+    of dozens, leaving the user to search them."""
+    path = _experiment(tmp_path / "exp.h5")
+    with h5py.File(path, "a") as h5:  # another lab's float frames, projection 7 (step 2) all masked
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[7] = np.nan
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "out"), "exp.h5", "frame 7 (step 2)", "only NaN")
