@@ -2369,3 +2369,17 @@ def test_process_names_the_frame_that_holds_only_nan(tmp_path):
         del h5["entry/instrument/detector/data"]
         h5["entry/instrument/detector/data"] = frames
     one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "out"), "exp.h5", "frame 7 (step 2)", "only NaN")
+
+
+def test_a_virtual_dataset_over_its_own_file_is_not_said_to_be_in_other_files(tmp_path):
+    """A virtual dataset mapping another dataset of the same file was refused as "its data are in
+    other files": untrue, and the user went looking for files that do not exist."""
+    path = tmp_path / "vds.h5"
+    with h5py.File(path, "w") as h5:
+        h5["src"] = np.zeros((2, 8, 8), np.uint16)
+        layout = h5py.VirtualLayout(shape=(2, 8, 8), dtype=np.uint16)
+        layout[:] = h5py.VirtualSource(h5["src"])
+        h5.create_virtual_dataset("data", layout)
+    line = one_line_error(run_cli("info", path, "--dataset", "data"), "vds.h5", "/data", "virtual dataset", "/src")
+    assert "other files" not in line and "outside this file" not in line, line
+    assert "--allow-external" in line, line
