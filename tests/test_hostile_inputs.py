@@ -2383,3 +2383,21 @@ def test_a_virtual_dataset_over_its_own_file_is_not_said_to_be_in_other_files(tm
     line = one_line_error(run_cli("info", path, "--dataset", "data"), "vds.h5", "/data", "virtual dataset", "/src")
     assert "other files" not in line and "outside this file" not in line, line
     assert "--allow-external" in line, line
+
+
+@pytest.mark.parametrize(
+    "shape, planar, found",
+    [
+        ((5, 16, 16), "separate", "5 samples per pixel (RGB, in planes)"),
+        ((16, 16, 5), None, "5 samples per pixel (RGB)"),
+        ((3, 16, 16), "separate", "one colour image of 3 planes"),
+    ],
+)
+def test_a_colour_tiff_is_refused_with_the_reason(shape, planar, found, tmp_path):
+    """RGB with two extra samples was refused as "TIFF page has shape (5, 16, 16); expected a
+    greyscale (rows, cols) image" and no more: no word of what was found nor why it is refused;
+    planar RGB said what was found, not why it is refused."""
+    path = tmp_path / "rgb.tif"
+    extra = [0] * (min(shape) - 3)
+    tifffile.imwrite(path, np.zeros(shape, np.uint8), planarconfig=planar, photometric="rgb", extrasamples=extra)
+    one_line_error(run_cli("info", path), "rgb.tif", found, "a radiograph is one channel")
