@@ -451,7 +451,9 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
         image, index = src[index], index % len(src)
         meta = src.meta
     top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
-    if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
+    # cast, they became inf and were refused as NaN or inf in the file; compared as Python floats
+    # (against numpy's float32 the comparison cast top, with an "overflow in cast" warning)
+    if top > float(np.finfo(np.float32).max):
         raise ValueError(
             f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )

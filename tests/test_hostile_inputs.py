@@ -2401,3 +2401,31 @@ def test_a_colour_tiff_is_refused_with_the_reason(shape, planar, found, tmp_path
     extra = [0] * (min(shape) - 3)
     tifffile.imwrite(path, np.zeros(shape, np.uint8), planarconfig=planar, photometric="rgb", extrasamples=extra)
     one_line_error(run_cli("info", path), "rgb.tif", found, "a radiograph is one channel")
+
+
+def _scaled(path, frames, scale):
+    """``path``'s frames from ``frames`` on (a slice) as float64 times ``scale``."""
+    with h5py.File(path, "a") as h5:
+        data = h5["entry/instrument/detector/data"][()].astype(np.float64)
+        data[frames] *= scale
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = data
+    return path
+
+
+def test_float64_counts_beyond_float32s_range_are_one_line_not_a_flood_of_warnings(tmp_path):
+    """float64 frames at 1e300, beyond float32's range that the correction and calibration compute
+    in: numpy's RuntimeWarnings (overflow in cast, invalid value in subtract) came one after
+    another, then "the averaged flat is saturated (>= None)"; projections at 1e300 were counted
+    non-positive and filled, a radiograph brighter than anything made opaque, exit code 0."""
+    loud = {"PYTHONWARNINGS": "default"}  # the user's warnings, not the tests' silence
+    everything = _scaled(_experiment(tmp_path / "all.h5"), slice(None), 1e297)
+    one_line_error(run("calibrate", "--experiment", everything, "-o", tmp_path / "c.h5", env=loud), "darks", "float32")
+    projections = _scaled(_experiment(tmp_path / "proj.h5"), slice(6, None), 1e297)
+    one_line_error(run("process", projections, "-q", "-o", tmp_path / "out", env=loud), "frame 6 (step 1)", "float32")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", _experiment(tmp_path / "exp.h5"), "-o", cal).returncode == 0
+    tif = tmp_path / "big.tif"
+    tifffile.imwrite(tif, np.full((2, 32, 40), 1e300), photometric="minisblack")
+    one_line_error(run("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "o.h5", env=loud), "frame 0", "float32")
+    one_line_error(run("register", tif, tif, "--moving-frame", "1", "-o", tmp_path / "r.h5", env=loud), "float32")
