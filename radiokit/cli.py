@@ -777,6 +777,45 @@ def _check_process_files(args) -> None:
         )
 
 
+#: process's peak memory per pixel of a frame, beyond the interpreter's 380 MB, measured with
+#: /usr/bin/time -v on tests' synthetic files (3 steps, one frame each, the default method and
+#: preset): with the default 600 x 600 crop 488 MB at 1024 x 1024, 814 MB at 2048 x 2048, 106 bytes a
+#: frame pixel; keeping the whole frame (--crop-mm 0) 649 MB and 1385 MB, 240 bytes, so 134 more a
+#: kept pixel. tracemalloc's peak of the same runs (numpy's share) split them 71 + 162 (232); each
+#: figure is the larger, rounded up. A file of more steps holds more (a step's image and two more
+#: pairs' crops each): not measured.
+PROCESS_BYTES_PER_PIXEL = 110
+#: process's peak memory per pixel of the crop it keeps (the enhanced images, fields, figures)
+PROCESS_BYTES_PER_KEPT_PIXEL = 170
+
+
+def _check_process_memory(files, cfg) -> None:
+    """Refuse, before any work, a file whose processing would need more memory than the budget,
+    as ``register`` refuses a registration: ``process`` registers the same frames and holds more."""
+    from radiokit.io import memory_budget, open_frames
+    from radiokit.io._budget import BUDGET_ENV, _human
+
+    limit = memory_budget()
+    for path in files:
+        try:
+            with open_frames(path) as src:
+                (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+        except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
+            continue
+        # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
+        side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
+        kept = min(side, rows) * min(side, cols)
+        need = int(PROCESS_BYTES_PER_PIXEL * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
+        if need > limit:
+            raise ValueError(
+                f"{path}: processing its {rows}x{cols} frames needs about {_human(need)} "
+                f"({PROCESS_BYTES_PER_PIXEL} bytes a pixel, {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the "
+                f"{int(min(side, rows))}x{int(min(side, cols))} crop kept), over the memory budget of "
+                f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or process smaller "
+                "frames, binned or cropped beforehand (--crop-mm narrows only what is kept)"
+            )
+
+
 def cmd_process(args) -> int:
     # the checks of the command line and the files' names first: they need neither radiokit.pipeline
     # nor radiokit.register (scipy and more, 0.4 s), and a slip is refused before those load
@@ -811,6 +850,7 @@ def cmd_process(args) -> int:
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
+    _check_process_memory(args.files, cfg)
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)

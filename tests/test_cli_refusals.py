@@ -852,3 +852,18 @@ def test_nan_pixels_outside_the_rois_are_filled_and_told(tmp_path):
     exp = _float_with_nan(synthetic(tmp_path / "exp.h5"), 7, np.s_[10:20, 10:20])
     res = run_cli("process", exp, "-o", tmp_path / "out", *FAST)
     assert res.returncode == 0, res.stderr  # (the warning's line: run_cli ignores warnings)
+
+
+@pytest.mark.parametrize("crop", [[], ["--crop-mm", "0"]])
+def test_process_refuses_a_run_whose_working_memory_is_over_the_budget(crop, tmp_path):
+    """``register`` refused a registration over the memory budget before it began; ``process``,
+    which registers the same frames and holds more, had no such check: it ran into the machine's
+    memory (or swap) with no word. Refused before any work, naming the file and the figures."""
+    path = synthetic(tmp_path / "exp.h5")
+    out = tmp_path / "out"
+    res = run_cli("process", path, "-o", out, *FAST, *crop, env={"RADIOKIT_MEMORY_BUDGET": "2MB"})
+    one_line_error(
+        res, "exp.h5", "160x160", "bytes a pixel", "over the memory budget of 1.9 MiB", "RADIOKIT_MEMORY_BUDGET"
+    )
+    assert not out.exists()
+    assert run_cli("process", path, "-o", out, *FAST, *crop, env={"RADIOKIT_MEMORY_BUDGET": "20MB"}).returncode == 0
