@@ -161,6 +161,21 @@ class Thresholds:
         return cls(**kwargs)
 
 
+#: the largest float32: calibration and correction compute in float32, where a float64 frame's
+#: larger values become inf
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def beyond_float32(frames) -> float | None:
+    """The largest magnitude among float64 ``frames``' finite values when it is past
+    :data:`FLOAT32_MAX`, else None. Why: cast, they became inf, with a flood of numpy's
+    RuntimeWarnings, and then a flat "saturated (>= None)" or projections filled as non-positive."""
+    if frames.dtype.kind != "f" or frames.dtype.itemsize <= 4:
+        return None
+    top = float(np.max(np.abs(frames), initial=0, where=np.isfinite(frames)))
+    return top if top > FLOAT32_MAX else None
+
+
 def _as_stack(frames, what) -> np.ndarray:
     data = getattr(frames, "data", frames)
     data = np.asarray(data)
@@ -172,6 +187,12 @@ def _as_stack(frames, what) -> np.ndarray:
         raise ValueError(f"{what}: expected numeric frames, got dtype {data.dtype}")
     if data.dtype.kind == "f" and not np.isfinite(data).all():
         raise ValueError(f"{what}: frames contain NaN or inf")
+    top = beyond_float32(data)
+    if top is not None:
+        raise ValueError(
+            f"{what}: frames hold values up to {top:.3g}, beyond float32's range ({FLOAT32_MAX:.2g}) the "
+            "calibration computes in: no detector's counts; rescale them"
+        )
     return data
 
 

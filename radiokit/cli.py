@@ -118,7 +118,10 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
     spaced frames (``every``: all of them)."""
     lo, hi, saturated, nonfinite = None, None, 0, 0
-    top = (1 << src.bits) - 1 if src.bits else None
+    # a TIFF's BitsPerSample below its word (12 in 16) is its meta's bit_depth, not src.bits (which
+    # only a TIFF read as whole words sets): its saturated pixels went uncounted
+    bits = src.bits or src.meta.get("bit_depth")
+    top = (1 << bits) - 1 if bits else None
     n_read = len(src) if every else min(len(src), sample)
     # --all: a range, not an array of every index (a small file may declare 10**8 frames)
     picks = range(len(src)) if every else np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int))
@@ -174,6 +177,13 @@ def _stack_domain(path, meta: dict) -> dict:
     return {"domain": _DOMAINS.get(value, value)} if isinstance(value, str) and value else {}
 
 
+def _escaped(value) -> str:
+    """``value`` as text, its control characters escaped as Python writes them (``\\x00``, ``\\x1b``):
+    a header comment's NUL or escape sequence reached the terminal raw (``ESC [31m`` turned the
+    rest of the output red)."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+
+
 def cmd_info(args) -> int:
     from radiokit.io import open_frames
 
@@ -225,7 +235,7 @@ def cmd_info(args) -> int:
         if rep["nonfinite"]:
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
-            print(f"  {key:<10} {value}")
+            print(f"  {key:<10} {_escaped(value)}")
     return status
 
 
@@ -441,7 +451,9 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
         image, index = src[index], index % len(src)
         meta = src.meta
     top = float(np.max(np.abs(image), initial=0, where=np.isfinite(image))) if image.dtype.kind == "f" else 0
-    if top > np.finfo(np.float32).max:  # cast, they became inf and were refused as NaN or inf in the file
+    # cast, they became inf and were refused as NaN or inf in the file; compared as Python floats
+    # (against numpy's float32 the comparison cast top, with an "overflow in cast" warning)
+    if top > float(np.finfo(np.float32).max):
         raise ValueError(
             f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )
@@ -765,6 +777,45 @@ def _check_process_files(args) -> None:
         )
 
 
+#: process's peak memory per pixel of a frame, beyond the interpreter's 380 MB, measured with
+#: /usr/bin/time -v on tests' synthetic files (3 steps, one frame each, the default method and
+#: preset): with the default 600 x 600 crop 488 MB at 1024 x 1024, 814 MB at 2048 x 2048, 106 bytes a
+#: frame pixel; keeping the whole frame (--crop-mm 0) 649 MB and 1385 MB, 240 bytes, so 134 more a
+#: kept pixel. tracemalloc's peak of the same runs (numpy's share) split them 71 + 162 (232); each
+#: figure is the larger, rounded up. A file of more steps holds more (a step's image and two more
+#: pairs' crops each): not measured.
+PROCESS_BYTES_PER_PIXEL = 110
+#: process's peak memory per pixel of the crop it keeps (the enhanced images, fields, figures)
+PROCESS_BYTES_PER_KEPT_PIXEL = 170
+
+
+def _check_process_memory(files, cfg) -> None:
+    """Refuse, before any work, a file whose processing would need more memory than the budget,
+    as ``register`` refuses a registration: ``process`` registers the same frames and holds more."""
+    from radiokit.io import memory_budget, open_frames
+    from radiokit.io._budget import BUDGET_ENV, _human
+
+    limit = memory_budget()
+    for path in files:
+        try:
+            with open_frames(path) as src:
+                (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+        except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
+            continue
+        # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
+        side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
+        kept = min(side, rows) * min(side, cols)
+        need = int(PROCESS_BYTES_PER_PIXEL * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
+        if need > limit:
+            raise ValueError(
+                f"{path}: processing its {rows}x{cols} frames needs about {_human(need)} "
+                f"({PROCESS_BYTES_PER_PIXEL} bytes a pixel, {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the "
+                f"{int(min(side, rows))}x{int(min(side, cols))} crop kept), over the memory budget of "
+                f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or process smaller "
+                "frames, binned or cropped beforehand (--crop-mm narrows only what is kept)"
+            )
+
+
 def cmd_process(args) -> int:
     # the checks of the command line and the files' names first: they need neither radiokit.pipeline
     # nor radiokit.register (scipy and more, 0.4 s), and a slip is refused before those load
@@ -799,6 +850,7 @@ def cmd_process(args) -> int:
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
+    _check_process_memory(args.files, cfg)
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)

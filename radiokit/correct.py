@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from radiokit._threads import pool, threads
-from radiokit.calibrate import Calibration, PixelFlag, frame_saturation
+from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, frame_saturation
 from radiokit.checks import is_number
 from radiokit.errors import FormatError
 
@@ -387,6 +387,12 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
         saturation = frame_saturation(cal.thresholds.saturation, raw2d, cal.mask)
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
         raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
+    top = beyond_float32(raw2d)
+    if top is not None:  # cast, they became inf and were filled as non-positive: a bright frame made opaque
+        raise ValueError(
+            f"a raw frame holds values up to {top:.3g}, beyond float32's range ({FLOAT32_MAX:.2g}) the "
+            "correction computes in: no detector's counts; rescale them"
+        )
     return _correct_one(raw2d, k, out2d, domain, scale, saturation)
 
 
@@ -430,7 +436,8 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
     step = max(1, min(raw2d.shape) // 128)  # as brighter_than_flats: a fraction of a frame's budget
     s = (slice(None, None, step), slice(None, None, step))
     valid = cal.mask[s] == 0
-    signal = (np.asarray(raw2d[s], np.float32) - cal.dark[s])[valid]
+    with np.errstate(over="ignore"):  # float64 past float32's range: refused as such by the correction
+        signal = (np.asarray(raw2d[s], np.float32) - cal.dark[s])[valid]
     signal = signal[np.isfinite(signal)]  # a NaN made the median NaN, and the frame passed
     if not signal.size:
         return

@@ -448,6 +448,36 @@ def _check_unknown_in_rois(path, steps: Steps, rois: RoiChoice) -> None:
                 )
 
 
+def _check_unknown_moved_into_rois(path, steps: Steps, rois: RoiChoice, pairs) -> None:
+    """Refuse NaN or inf pixels of a moving step that its registration carries into a ROI, naming
+    the steps and the ROI. Why: :func:`_check_unknown_in_rois` judges them where the file holds
+    them, and the field moves them (a block 3 columns beside the inclusion was registered into
+    it, its fill measured, exit code 0). A registered pixel counts as one when its nearest sample
+    is one (the bilinear share of unknown pixels at least half): with no motion, the same pixels as
+    the file's."""
+    from radiokit.register import warp
+
+    inc_c, bg_c = rois.cropped()
+    offset = np.array([rois.crop[0], rois.crop[2]], np.float32)[:, None, None]
+    for p in pairs:
+        moving, reference = steps.numbers[p.moving], steps.numbers[p.reference]
+        where = steps.unknown.get(moving)
+        if where is None:
+            continue
+        # the fields are cropped: sample the whole frame's pixels at the crop's positions
+        moved = warp((where >= 0).astype(np.float32), p.registration.displacement + offset) >= 0.5
+        for name, roi, full in (("inclusion", inc_c, rois.inclusion), ("background", bg_c, rois.background)):
+            hit = int(np.count_nonzero(moved[roi.slices]))
+            if hit:
+                raise FormatError(
+                    path,
+                    f"step {moving} registered onto step {reference}: its field moves {hit} NaN or inf pixels into "
+                    f"the {name} ROI (rows {full.row0}-{full.row1}, cols {full.col0}-{full.col1}), which the "
+                    "correction filled from their neighbours: the ROI would measure the fill, not the object; "
+                    "give ROIs clear of them",
+                )
+
+
 def _check_below_the_flats(path, step, image) -> None:
     """Refuse a step whose line integral ``image`` says most of the frame is brighter than the
     flats. Why: flats at a quarter of the projections' tube current, no currents recorded, gave
@@ -520,10 +550,14 @@ def _step_image(cal, src, path, step, idx, factors, bar):
                 n_bad += int(np.count_nonzero(bad))
                 where = np.full(raw.shape, -1, np.int32) if where is None else where
                 where[bad & (where < 0)] = i
+        try:  # its refusal names the frame (one of only NaN was "a raw frame" of dozens)
+            image = correct_frames(cal, raw, domain=domain)
+        except ValueError as exc:
+            raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
         if domain == "log":
-            image = correct_frames(cal, raw, domain="log") - np.float32(np.log(factor))  # the flats' current
+            image = image - np.float32(np.log(factor))  # the flats' current
         else:
-            image = correct_frames(cal, raw, domain="linear") * np.float32(factor)
+            image = image * np.float32(factor)
         acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
     if domain == "log":
@@ -1091,6 +1125,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     _check_unknown_in_rois(path, steps, rois)
     _warn_nonfinite(path, steps.nonfinite)
     pairs = _timed(timings, "register_s", register_pairs, steps, rois, cfg, path.name)
+    _check_unknown_moved_into_rois(path, steps, rois, pairs)
     steps_c = np.ascontiguousarray(steps.images[(slice(None), *rois.slices())])
     inc_c, bg_c = rois.cropped()
     n = len(steps.numbers)  # the paper's pair: the step before the reference, onto it

@@ -848,7 +848,60 @@ def test_nan_pixels_inside_a_roi_are_refused_naming_the_frame_and_the_roi(where,
     assert not (tmp_path / "out").exists()
 
 
+def _drifting(path):
+    """A smooth texture whose steps lie 3 columns apart (step 3, the reference, leftmost): each
+    moving step is registered 3 or 6 columns to the left."""
+    from scipy import ndimage
+
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    texture = ndimage.gaussian_filter(np.random.default_rng(1).random((128, 160)), 3)
+    texture = (texture - texture.min()) / (texture.max() - texture.min())
+    with ExperimentWriter(path, shape=(128, 128)) as w:
+        for _ in range(3):
+            w.append(np.full((128, 128), 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full((128, 128), 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step in (1, 2, 3):
+            shift = (3 - step) * 3
+            line_integral = 0.5 + texture[:, 16 - shift : 144 - shift] * (1.0 - 0.05 * step)
+            counts = (100 + 3000 * np.exp(-line_integral)).astype(np.uint16)
+            w.append(counts, image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
+    return path
+
+
+@pytest.mark.parametrize(
+    "cols, refused", [(np.s_[80:83], "inclusion ROI (rows 50-70, cols 60-80)"), (np.s_[100:103], None)]
+)
+def test_nan_pixels_the_registration_moves_into_a_roi_are_refused_naming_the_roi(cols, refused, tmp_path):
+    """NaN pixels of a moving step just beside the inclusion, clear of it as the file holds them,
+    were carried into it by the registration (3 columns): the ROI measured their fill, exit code
+    0, under a warning saying radiokit refuses them inside a ROI. Those the field leaves outside pass."""
+    exp = _float_with_nan(_drifting(tmp_path / "exp.h5"), 7, np.s_[50:70, cols])  # frame 7: step 2
+    rois = ["--inclusion", "50", "70", "60", "80", "--background", "20", "40", "60", "80"]
+    res = run_cli("process", exp, "-o", tmp_path / "out", "-q", "--no-report", "--cross-check", "none", *rois)
+    if refused is None:
+        assert res.returncode == 0, res.stderr
+        return
+    one_line_error(res, "exp.h5", "step 2", "registered onto step 3", refused)
+    assert not (tmp_path / "out").exists()
+
+
 def test_nan_pixels_outside_the_rois_are_filled_and_told(tmp_path):
     exp = _float_with_nan(synthetic(tmp_path / "exp.h5"), 7, np.s_[10:20, 10:20])
     res = run_cli("process", exp, "-o", tmp_path / "out", *FAST)
     assert res.returncode == 0, res.stderr  # (the warning's line: run_cli ignores warnings)
+
+
+@pytest.mark.parametrize("crop", [[], ["--crop-mm", "0"]])
+def test_process_refuses_a_run_whose_working_memory_is_over_the_budget(crop, tmp_path):
+    """``register`` refused a registration over the memory budget before it began; ``process``,
+    which registers the same frames and holds more, had no such check: it ran into the machine's
+    memory (or swap) with no word. Refused before any work, naming the file and the figures."""
+    path = synthetic(tmp_path / "exp.h5")
+    out = tmp_path / "out"
+    res = run_cli("process", path, "-o", out, *FAST, *crop, env={"RADIOKIT_MEMORY_BUDGET": "2MB"})
+    one_line_error(
+        res, "exp.h5", "160x160", "bytes a pixel", "over the memory budget of 1.9 MiB", "RADIOKIT_MEMORY_BUDGET"
+    )
+    assert not out.exists()
+    assert run_cli("process", path, "-o", out, *FAST, *crop, env={"RADIOKIT_MEMORY_BUDGET": "20MB"}).returncode == 0

@@ -2329,3 +2329,103 @@ def test_stored_bytes_count_each_byte_once():
     assert stored_extent([(100, 50)] * 10) == 50
     assert stored_extent([(100, 50), (120, 50), (400, 10), (0, 0)]) == 80
     assert stored_extent([(0, 10), (2, 3), (10, 5)]) == 15
+
+
+# -- small faults the hostile trials of session 36 found ------------------------------------------
+def test_info_counts_saturated_pixels_of_a_tiff_whose_bit_depth_it_knows(tmp_path):
+    """A 12-bit TIFF (BitsPerSample 12) printed no saturation line; an ITEX or NeXus file's does.
+    A 16-bit one says nothing of its ADC (a 12-bit panel's TIFFs are 16-bit too): no line."""
+    frames = np.full((2, 16, 16), 1000, np.uint16)
+    frames[0, 0, :5] = 4095
+    tifffile.imwrite(tmp_path / "p12.tif", frames, bitspersample=12)
+    tifffile.imwrite(tmp_path / "p16.tif", frames)
+    res = run_cli("info", tmp_path / "p12.tif")
+    assert res.returncode == 0 and "saturated  5 pixel(s)" in res.stdout, res.stdout + res.stderr
+    assert "  saturated  " not in run_cli("info", tmp_path / "p16.tif").stdout
+
+
+def test_info_prints_control_characters_of_an_itex_comment_escaped(tmp_path):
+    """A NUL, an escape sequence or a bell in a header comment reached the terminal raw: ESC [31m
+    turned the rest of the output red, a NUL vanished or cut the line in other programs."""
+    import struct
+
+    comment = b'[Application],Software="HiPic\x00\x1b[31mred",SoftwareVersion=9.1\r\n[Camera],CameraName="C7942\x07"'
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", len(comment), 8, 4, 0, 0, 2, 1, 1, 0, 0.0, b"", b"")
+    path = tmp_path / "nul.img"
+    path.write_bytes(head + comment + np.full((4, 8), 100, "<u2").tobytes())
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    assert not any(c in res.stdout for c in "\x00\x1b\x07"), repr(res.stdout)
+    assert r"HiPic\x00\x1b[31mred 9.1" in res.stdout and r"C7942\x07" in res.stdout, res.stdout
+
+
+def test_process_names_the_frame_that_holds_only_nan(tmp_path):
+    """``correct`` named the frame; ``process`` said "a raw frame holds only NaN or inf" of a file
+    of dozens, leaving the user to search them."""
+    path = _experiment(tmp_path / "exp.h5")
+    with h5py.File(path, "a") as h5:  # another lab's float frames, projection 7 (step 2) all masked
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[7] = np.nan
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "out"), "exp.h5", "frame 7 (step 2)", "only NaN")
+
+
+def test_a_virtual_dataset_over_its_own_file_is_not_said_to_be_in_other_files(tmp_path):
+    """A virtual dataset mapping another dataset of the same file was refused as "its data are in
+    other files": untrue, and the user went looking for files that do not exist."""
+    path = tmp_path / "vds.h5"
+    with h5py.File(path, "w") as h5:
+        h5["src"] = np.zeros((2, 8, 8), np.uint16)
+        layout = h5py.VirtualLayout(shape=(2, 8, 8), dtype=np.uint16)
+        layout[:] = h5py.VirtualSource(h5["src"])
+        h5.create_virtual_dataset("data", layout)
+    line = one_line_error(run_cli("info", path, "--dataset", "data"), "vds.h5", "/data", "virtual dataset", "/src")
+    assert "other files" not in line and "outside this file" not in line, line
+    assert "--allow-external" in line, line
+
+
+@pytest.mark.parametrize(
+    "shape, planar, found",
+    [
+        ((5, 16, 16), "separate", "5 samples per pixel (RGB, in planes)"),
+        ((16, 16, 5), None, "5 samples per pixel (RGB)"),
+        ((3, 16, 16), "separate", "one colour image of 3 planes"),
+    ],
+)
+def test_a_colour_tiff_is_refused_with_the_reason(shape, planar, found, tmp_path):
+    """RGB with two extra samples was refused as "TIFF page has shape (5, 16, 16); expected a
+    greyscale (rows, cols) image" and no more: no word of what was found nor why it is refused;
+    planar RGB said what was found, not why it is refused."""
+    path = tmp_path / "rgb.tif"
+    extra = [0] * (min(shape) - 3)
+    tifffile.imwrite(path, np.zeros(shape, np.uint8), planarconfig=planar, photometric="rgb", extrasamples=extra)
+    one_line_error(run_cli("info", path), "rgb.tif", found, "a radiograph is one channel")
+
+
+def _scaled(path, frames, scale):
+    """``path``'s frames from ``frames`` on (a slice) as float64 times ``scale``."""
+    with h5py.File(path, "a") as h5:
+        data = h5["entry/instrument/detector/data"][()].astype(np.float64)
+        data[frames] *= scale
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = data
+    return path
+
+
+def test_float64_counts_beyond_float32s_range_are_one_line_not_a_flood_of_warnings(tmp_path):
+    """float64 frames at 1e300, beyond float32's range that the correction and calibration compute
+    in: numpy's RuntimeWarnings (overflow in cast, invalid value in subtract) came one after
+    another, then "the averaged flat is saturated (>= None)"; projections at 1e300 were counted
+    non-positive and filled, a radiograph brighter than anything made opaque, exit code 0."""
+    loud = {"PYTHONWARNINGS": "default"}  # the user's warnings, not the tests' silence
+    everything = _scaled(_experiment(tmp_path / "all.h5"), slice(None), 1e297)
+    one_line_error(run("calibrate", "--experiment", everything, "-o", tmp_path / "c.h5", env=loud), "darks", "float32")
+    projections = _scaled(_experiment(tmp_path / "proj.h5"), slice(6, None), 1e297)
+    one_line_error(run("process", projections, "-q", "-o", tmp_path / "out", env=loud), "frame 6 (step 1)", "float32")
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", _experiment(tmp_path / "exp.h5"), "-o", cal).returncode == 0
+    tif = tmp_path / "big.tif"
+    tifffile.imwrite(tif, np.full((2, 32, 40), 1e300), photometric="minisblack")
+    one_line_error(run("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "o.h5", env=loud), "frame 0", "float32")
+    one_line_error(run("register", tif, tif, "--moving-frame", "1", "-o", tmp_path / "r.h5", env=loud), "float32")

@@ -1226,6 +1226,16 @@ def check_local(path, h5, ds, allow_external=False) -> None:
     if ds.file.filename != h5.filename:
         _refuse_external(path, f"{ds.name} lives in another file ({ds.file.filename})")
     if ds.is_virtual:
+        sources = ds.virtual_sources()
+        if sources and all(src.file_name == "." for src in sources):  # "." is libhdf5's "this file"
+            # not "in other files": the user went looking for files that do not exist
+            names = sorted({src.dset_name for src in sources})
+            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            raise FormatError(
+                path,
+                f"{ds.name} is a virtual dataset mapping {shown} of this file: virtual datasets are not read "
+                "unless asked for (allow_external=True; --allow-external), or read the source dataset itself",
+            )
         _refuse_external(path, f"{ds.name} is a virtual dataset (its data are in other files)")
     if ds.id.get_create_plist().get_external_count():
         _refuse_external(path, f"{ds.name} is stored in external raw files")

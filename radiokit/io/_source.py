@@ -448,15 +448,22 @@ class FrameSource:
             )
         elif first.planarconfig == 2 and n in (3, 4):  # colour planes, as tifffile writes
             hint = (
-                f": one colour image of {first.samplesperpixel} planes, which is how tifffile.imwrite stores a "
-                f"stack of {first.samplesperpixel} frames unless given photometric='minisblack'; write it "
-                "again with that"
+                f": one colour image of {first.samplesperpixel} planes (a radiograph is one channel), which is how "
+                f"tifffile.imwrite stores a stack of {first.samplesperpixel} frames unless given "
+                "photometric='minisblack'; write it again with that"
             )
         elif first.samplesperpixel in (2, 3, 4) and first.photometric in (1, 2):  # interleaved colour
             what = {2: "a grey image with alpha", 3: "an RGB image", 4: "an RGBA image"}[first.samplesperpixel]
             hint = (
                 f": {what}, a viewer's display copy rather than the detector's counts; read the "
                 "frames the detector software saved"
+            )
+        elif n > 1:  # more samples than the cases above (RGB with extra samples): was no reason at all
+            kind = getattr(first.photometric, "name", first.photometric)
+            planes = ", in planes" if first.planarconfig == 2 else ""
+            hint = (
+                f": {n} samples per pixel ({kind}{planes}), a colour or multi-channel image; a radiograph is one "
+                "channel of counts per pixel: read the frames the detector software saved"
             )
         return FormatError(
             self.path, f"TIFF page has shape {first.shape}; expected a greyscale (rows, cols) image{hint}"
