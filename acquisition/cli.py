@@ -104,7 +104,7 @@ def _run(args) -> int:
             return 2
     from radiokit.io import restore_previous
 
-    for _, line in restore_previous(p.output):  # before every check: they are about that file
+    for _, line in restore_previous(p.output, dry_run=args.dry_run):  # before every check: they are about that file
         _say(line)
     if args.resume and not Path(p.output).exists():
         # said here in one line, and the new file checked as any new file (the run's own log

@@ -1318,3 +1318,28 @@ def test_cli_an_overwrite_stopped_in_the_warm_up_says_the_previous_series_is_unc
     assert f"no frame taken: {out} holds the previous series, unchanged" in err, err
     assert "--resume" not in err, err
     assert out.read_bytes() == before and _beside(out) == []
+
+
+def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml, capsys):
+    """A series an --overwrite set aside (the run killed before its first frame) is put back by
+    the next run, which says so; the dry run promises to touch nothing, so it says what the run
+    would do and leaves both names as they are (it renamed the file back)."""
+    import hashlib
+    import socket
+    import subprocess
+    import sys
+
+    p = protocol(tmp_path, scene_toml, settle_s=60.0)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    dead = subprocess.Popen([sys.executable, "-c", ""])
+    dead.wait()
+    host = socket.gethostname().split(".")[0]
+    digest = hashlib.sha256(out.name.encode()).hexdigest()[:8]
+    aside = out.parent / f".{out.stem}.previous-{host}-{dead.pid}-{digest}{out.suffix}"
+    aside.write_bytes(b"the old series")
+    assert _cli("acquire", str(path), "--dry-run", "--sim") == 0
+    said = capsys.readouterr()
+    assert aside.read_bytes() == b"the old series" and not out.exists()
+    assert aside.name in said.err and "a run would first restore" in said.err, said.err

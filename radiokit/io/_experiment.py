@@ -894,10 +894,11 @@ class ExperimentProgress:
     devices: str | None = None
 
 
-def restore_previous(path) -> list[tuple[bool, str]]:
+def restore_previous(path, *, dry_run=False) -> list[tuple[bool, str]]:
     """Put back the file an ``in_place`` overwrite of ``path`` kept aside when the process that
     kept it is gone and left no frame of its own under the name (killed before its first frame:
-    kill -9, a power cut). Every run on an experiment file calls it first.
+    kill -9, a power cut). Every run on an experiment file calls it first. ``dry_run``: decide
+    the same, move nothing, and say what a run would do (a dry run promises to touch nothing).
 
     Returns
     -------
@@ -926,11 +927,20 @@ def restore_previous(path) -> list[tuple[bool, str]]:
             # read_progress, would meet it.)
             if here and not _holds_a_frame(target):
                 with _locked(target, absent=True) as target_free:
-                    if target_free:
+                    if target_free and not dry_run:
                         os.replace(old, target)
                         _fsync(target.parent)
-                        restored = True
-        if restored:
+                    restored = target_free
+        if restored and dry_run:
+            said.append(
+                (
+                    True,
+                    f"{path}: a run would first restore the previous series from {old.name} (an --overwrite "
+                    "stopped before its first frame had set it aside); this dry run moved nothing and plans "
+                    "for the name as it stands",
+                )
+            )
+        elif restored:
             said.append(
                 (
                     True,

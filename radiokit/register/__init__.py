@@ -98,7 +98,12 @@ class Quality:
     ``silent-fast``: stiff lattices started from the silhouettes) is trusted there: a compressed
     homogeneous body moves smoothly at its own scale, its observed edges test that and the
     stiff regulariser fills the interior accordingly. NaN when the interior is observed, or
-    when the observed rim does not surround it. ``note``: what is worth knowing of a result not
+    when the observed rim does not surround it. ``affine_bound``: measured for that waiver only
+    (NaN otherwise), the Cramer-Rao bound (full-resolution px) of the worst-determined affine
+    motion of the object from the fixed image alone (``_confidence.affine_bound``); over 0.5 px
+    the waiver does not hold: a round body's rim shows no turn about its centre, an ellipse's no
+    shear along its axes, and a silent field that fits such a rim is body-scale whatever the truth
+    (an inclusion off the centre, or corners, pin it). ``note``: what is worth knowing of a result not
     flagged for it (empty, or the finest level still moving at the end of its budget).
     ``disagreement`` (``register(..., regularisation_check=True)`` only; NaN otherwise): the median over
     the object's interior of ``|d - d2|`` (full-resolution px), ``d2`` the field of a second
@@ -124,6 +129,7 @@ class Quality:
     excess_kept: float = float("nan")
     residual_motion: float = float("nan")
     body_scale: float = float("nan")
+    affine_bound: float = float("nan")
     disagreement: float = float("nan")
     noise: float = float("nan")
     ok: bool = True
@@ -749,6 +755,15 @@ _BODY_SCALE_PX = 0.3
 # (a dome not moved at all, 256 px: `default` 0.64 px off, body_scale 0.05 px, residual clean;
 # `silent` 0.03 px; tests/test_cli.py)
 _BODY_SCALE_PRESETS = ("silent", "silent-fast")
+# ... and only where the object's edges determine a body-scale motion at all
+# (Quality.affine_bound <= _confidence.OBSERVED_PX, the map's own line): a textureless sphere
+# turned 4 degrees was trusted 5.5 px off (session 33), its rim moving along itself. The
+# gradients' smoothing (2 px) chosen on TRAINING seeds of benchmarks/bench_register_turned.py
+# (1, 2 and 3 px gave the same confusion there; 1 px credits a sampled rim's aliasing), where
+# it took failed results flagged 6/14 -> 9/14 for good trusted 8/8 -> 7/8 (an unturned round
+# body, whose turn no rim shows); on the family's textureless physical pairs (TRAINING, 100
+# seeds at 560, an off-centre disc) the bound reads 0.13-0.36 px, none over the line
+# (benchmarks/README.md, "A textureless body turned in the image plane")
 _BODY_SECTORS = 16
 _BODY_COVER = 0.75
 _MAX_RESIDUAL_MOTION = 0.35  # px: the step's median; it underestimates a larger misalignment
@@ -820,11 +835,17 @@ def _observed(reg, p, w, d, scale=1.0):
     reasons = []
     if q.interior_observed < _MIN_OBSERVED:
         q.body_scale = k * _body_scale(d, ob.object, obs, inner)
-        if not (q.body_scale <= _BODY_SCALE_PX and reg.options.get("preset") in _BODY_SCALE_PRESETS):
+        waived = q.body_scale <= _BODY_SCALE_PX and reg.options.get("preset") in _BODY_SCALE_PRESETS
+        if waived:
+            from radiokit.register import _confidence as C
+
+            q.affine_bound = k * C.affine_bound(p.f, ob.object, ob.sigma)
+            waived = q.affine_bound <= C.OBSERVED_PX
+        if not waived:
             reasons.append(
                 f"motion observable in only {100 * q.interior_observed:.0f} % of the object's interior "
                 f"({100 * q.observed_fraction:.0f} % of the object; confidence map, noise {q.noise:.3g}) "
-                f"and {_body_scale_text(q.body_scale, reg.options.get('preset'))}: elsewhere "
+                f"and {_body_scale_text(q.body_scale, reg.options.get('preset'), q.affine_bound)}: elsewhere "
                 "the field is the regulariser's guess"
             )
     if obs.any() and q.residual_motion > _MAX_RESIDUAL_MOTION:
@@ -892,8 +913,16 @@ def _body_scale(d, obj, obs, inner) -> float:
     return float(max(np.sqrt(np.mean(np.square(v))) for v in dev))
 
 
-def _body_scale_text(v, preset) -> str:
-    """Why the silent interior is not trusted for a body-scale field (``Quality.body_scale``)."""
+def _body_scale_text(v, preset, affine=float("nan")) -> str:
+    """Why the silent interior is not trusted for a body-scale field (``Quality.body_scale``;
+    ``affine``: ``Quality.affine_bound``, measured only for a silent preset's body-scale field)."""
+    from radiokit.register._confidence import OBSERVED_PX
+
+    if affine > OBSERVED_PX:
+        return (
+            f"the field is body-scale ({v:.2f} px), but the object's edges do not determine a body-scale motion: "
+            f"a turn or a shear of it would show nothing (the worst affine mode's bound {affine:.2g} px, > {OBSERVED_PX:g})"
+        )
     if np.isnan(v):
         return "the field is not body-scale (the observed edges do not surround the interior)"
     if v > _BODY_SCALE_PX:

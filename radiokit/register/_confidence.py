@@ -98,6 +98,7 @@ __all__ = [
     "noise_sigma",
     "object_noise",
     "OBSERVED_PX",
+    "affine_bound",
 ]
 
 OBSERVED_PX = 0.5  # the bound (px) at which confidence is 0.5: "observed"
@@ -645,6 +646,46 @@ class ResidualMotion:
         uy, ux = ry - self.syf * rf / self.sff, rx - self.sxf * rf / self.sff
         jyy, jxx, jxy, det = self.jyy, self.jxx, self.jxy, self.det
         return np.hypot((jxx * uy - jxy * ux) / det, (jyy * ux - jxy * uy) / det).astype(np.float32)
+
+
+def affine_basis(yy, xx) -> np.ndarray:
+    """(3, n) float64: 1, y and x about the centroid of the pixels ``(yy, xx)``, scaled so that a
+    linear mode moves the farthest of them by 1 px."""
+    cy, cx = yy.mean(), xx.mean()
+    reach = max(float(np.sqrt(((yy - cy) ** 2 + (xx - cx) ** 2).max())), 1.0)
+    return np.stack([np.ones(yy.size), (yy - cy) / reach, (xx - cx) / reach])
+
+
+def affine_bound(f, obj, sigma, smooth=2.0) -> float:
+    """How well the fixed image ``f`` determines an affine motion of the object ``obj`` (bool):
+    the Cramer-Rao bound (px) of its worst-determined mode, a translation or a linear map scaled
+    to move the object's farthest pixel from its centroid by 1 px. The same Fisher information as
+    the map's (``grad t grad t^T / (2 sigma^2)``, the noise's own share of each pixel's tensor
+    taken out), summed over the whole object instead of a window. A round body without inner
+    structure determines no turn about its centre (its rim moves along itself), an ellipse no
+    "elliptic rotation" and no shear along its axes: the bound there is large however sharp the
+    rim, while an inclusion off the centre, or texture, pins every mode.
+
+    ``smooth``: the gradients' Gaussian (px). A sampled rim is not band-limited, and at 1 px its
+    pixel steps show a turn of a round body through aliasing that no registration's
+    interpolation models (session 33: 0.14-0.4 px "determined"); at 2 px that leaves the
+    structure a registration can use (benchmarks/README.md, "A textureless body turned in the
+    image plane"). NaN for an object of under 100 pixels."""
+    f = np.asarray(f, np.float32)
+    obj = np.asarray(obj, bool)
+    yy, xx = np.nonzero(obj)
+    if yy.size < 100 or not sigma > 0:
+        return float("nan")
+    g = _gauss(f, smooth) if smooth > 0 else f
+    gy, gx = (a[obj].astype(np.float64) for a in np.gradient(g))
+    floor = _deriv_noise_var(smooth) * sigma**2
+    basis = affine_basis(yy, xx)
+    info = np.zeros((6, 6))
+    for (i, a), (j, b) in ((p, q) for p in enumerate((gy, gx)) for q in enumerate((gy, gx))):
+        tensor = a * b - (floor if i == j else 0.0)
+        info[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] = (basis * tensor) @ basis.T
+    weakest = float(np.linalg.eigvalsh(info / (2 * sigma**2))[0])
+    return float(1 / np.sqrt(weakest)) if weakest > 0 else float("inf")
 
 
 def roi_observed(confidence, roi) -> float:
