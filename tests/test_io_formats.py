@@ -1150,6 +1150,31 @@ def test_nexus_signal_naming_a_missing_dataset_says_so(tmp_path):
         read(path)
 
 
+def test_nexus_signal_that_is_an_external_link_is_refused_by_name_or_read_when_allowed(tmp_path):
+    """Dectris/Eiger-style masters and many beamline writers make the NXdata's @signal an
+    external link to the file holding the frames. The signal was passed over as if the file named
+    no frames: refused as holding "no 2-D or 3-D dataset" (wrong, and not naming the link), and
+    still so with allow_external=True, which is there to read it."""
+    stack = _frames(3)
+    with h5py.File(tmp_path / "data_000001.h5", "w") as f:
+        f["data"] = stack
+    path = tmp_path / "master.h5"
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry"), "NXentry")
+        plot = _nx_class(entry.create_group("data"), "NXdata")
+        plot.attrs["signal"] = "data"
+        plot["data"] = h5py.ExternalLink("data_000001.h5", "/data")
+        entry.attrs["default"] = "data"
+        f.attrs["default"] = "entry"
+    with pytest.raises(
+        FormatError, match=r"/entry/data/data is an external link to data_000001\.h5:/data.*--allow-external"
+    ):
+        read(path)
+    f = read(path, allow_external=True)
+    assert f.meta["dataset"] == "/entry/data/data"
+    np.testing.assert_array_equal(f.data, stack)
+
+
 def test_imagej_calibration_passed_on_with_signed_pixels_is_not_applied_again(tmp_path):
     """tifffile writes int16 pixels with an ImageJ description copied from a signed 16-bit file
     (cf=0, c0=-32768): the pixels already hold the signed values; ImageJ calibrates only what it

@@ -1383,8 +1383,11 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     if isinstance(signal, str) and data.get(signal, getlink=True) is None:
         return None, f"NeXus {data.name}@signal names {signal!r}, which {data.name} does not hold"
     # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
-    # frames so); an external one is left to the caller's check_links, which refuses it
-    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
+    # frames so); an external one (Eiger masters, many beamline writers) is named all the same and
+    # left to the caller's check_links, which refuses it unless allow_external: passed over here,
+    # the file was said to hold no frames, with or without allow_external
+    link = (h5py.HardLink, h5py.SoftLink, h5py.ExternalLink)
+    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), link):
         return None, None
     return f"{data.name}/{signal}", None
 
