@@ -35,6 +35,7 @@ from radiokit.io._experiment import (
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import (
     HEADER_BYTES,
+    adc_bits,
     check_comment_end,
     check_tail,
     parse_comment,
@@ -285,7 +286,9 @@ class FrameSource:
         check_tail(self.path, geo, parsed)
         self._geo = geo
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"]
-        self.bits = None
+        self.bits = adc_bits(parsed, geo["file_type"])  # a named 12-bit panel's values are checked
+        if self.bits is not None:
+            self.meta["bit_depth"] = self.bits
         self.meta.update(
             {k: v for k, v in geo.items() if k != "dtype"},
             dtype=str(geo["dtype"]),
