@@ -110,6 +110,11 @@ def _summary(meta: dict) -> dict:
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
+    # the pitch wherever the file states it (an experiment's, ImageJ's, OME's, an NXdetector's):
+    # register holds two images to it, so the user sees what it will be held to
+    if out.get("pixel_size_mm") is None and meta.get("x_pixel_size") is not None:
+        x, y = meta["x_pixel_size"] * 1e3, meta.get("y_pixel_size", meta["x_pixel_size"]) * 1e3
+        out["pixel_size_mm"] = f"{x:g}" if math.isclose(x, y, rel_tol=1e-6) else f"{x:g} (x) {y:g} (y)"
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 

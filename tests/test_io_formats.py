@@ -1804,3 +1804,57 @@ def test_nexus_bit_depth_readout_warns_of_values_past_it(tmp_path):
         warnings.simplefilter("error")
         f = read(_nexus_detector(tmp_path / "none.nxs", frames, None))
     assert "bit_depth" not in f.meta
+
+
+def _stated_pixel(path, how, mm):
+    """An image as a lab's software writes it with its pitch stated (``mm`` per pixel)."""
+    image = np.random.default_rng(1).integers(100, 4000, (40, 50)).astype(np.uint16)
+    if how == "imagej-mm":
+        tifffile.imwrite(path, image, imagej=True, resolution=(1 / mm, 1 / mm), metadata={"unit": "mm"})
+    elif how == "imagej-micron":  # ImageJ writes µm escaped in its description
+        res = 1 / (mm * 1e3)
+        tifffile.imwrite(path, image, imagej=True, resolution=(res, res), metadata={"unit": "\\u00B5m"})
+    elif how == "ome":
+        meta = {"PhysicalSizeX": mm * 1e3, "PhysicalSizeXUnit": "µm", "PhysicalSizeY": mm * 1e3}
+        tifffile.imwrite(path, image, metadata=meta)  # PhysicalSizeYUnit left out: OME's default, µm
+    elif how == "nexus":
+        with h5py.File(path, "w") as f:
+            entry = _nx_class(f.create_group("entry"), "NXentry")
+            det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+            det["data"] = image[None]
+            for axis in ("x_pixel_size", "y_pixel_size"):
+                det[axis] = mm * 1e3
+                det[axis].attrs["units"] = "um"
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = h5py.SoftLink("/entry/instrument/detector/data")
+    return path
+
+
+@pytest.mark.parametrize(
+    "how, suffix", [("imagej-mm", ".tif"), ("imagej-micron", ".tif"), ("ome", ".ome.tif"), ("nexus", ".nxs")]
+)
+def test_a_pixel_size_the_file_states_is_read_and_register_holds_to_it(tmp_path, how, suffix):
+    """ImageJ (its unit and resolution), OME-TIFF (PhysicalSizeX/Y) and an NXdetector beside
+    another program's NeXus frames state the pitch. It was read only from radiokit's experiment
+    files, so `radiokit info` did not show it and `register` matched an image at 0.1 mm per pixel
+    onto one at 0.05 mm (a field in pixels between two pitches is a scaling, not a motion)."""
+    fine = read(_stated_pixel(tmp_path / f"fine{suffix}", how, 0.05))
+    assert fine.meta["x_pixel_size"] == pytest.approx(5e-5) and fine.meta["y_pixel_size"] == pytest.approx(5e-5)
+    _stated_pixel(tmp_path / f"binned{suffix}", how, 0.1)
+    res = run_cli("register", tmp_path / f"fine{suffix}", tmp_path / f"binned{suffix}", "-o", tmp_path / "reg.h5")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert f"binned{suffix}" in res.stderr and "0.1 mm" in res.stderr and "0.05 mm" in res.stderr
+    assert not (tmp_path / "reg.h5").exists()
+    info = run_cli("info", tmp_path / f"fine{suffix}")
+    assert "pixel_size_mm 0.05" in " ".join(info.stdout.split()), info.stdout
+
+
+def test_a_tiff_stating_no_length_has_no_pixel_size(tmp_path):
+    """Resolution in a TIFF without ImageJ's or OME's length (72 dpi, ImageJ's 'pixel') is a
+    display's, not the detector's pitch: no pixel size is made of it."""
+    image = np.zeros((6, 7), np.uint16)
+    tifffile.imwrite(tmp_path / "dpi.tif", image, resolution=(72, 72), resolutionunit="INCH")
+    tifffile.imwrite(tmp_path / "ij.tif", image, imagej=True, resolution=(1, 1), metadata={"unit": "pixel"})
+    for name in ("dpi.tif", "ij.tif"):
+        assert "x_pixel_size" not in read(tmp_path / name).meta

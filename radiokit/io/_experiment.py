@@ -1724,6 +1724,32 @@ def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int
     return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
 
 
+def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> dict:
+    """``x_pixel_size`` / ``y_pixel_size`` (metres) that ``group`` (another program's NXdetector)
+    states, each where it is one positive finite number in a length unit NeXus names (``@units``,
+    metres when absent); the rest is left out, as :func:`read_bit_depth` leaves an unreadable depth.
+    Why: ``register`` holds two images to one pitch only where both files record it."""
+    out = {}
+    for axis in ("x_pixel_size", "y_pixel_size"):
+        name = f"{group.rstrip('/')}/{axis}"
+        check_links(path, h5, name, allow_external)
+        try:
+            ds = h5.get(name)
+        except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+            continue
+        if not (isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype)):
+            continue
+        check_local(path, h5, ds, allow_external)
+        units = ds.attrs.get("units", "m")
+        units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
+        value = float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M.get(units, math.nan)
+        if math.isfinite(value) and value > 0:
+            out[axis] = value
+    if "x_pixel_size" in out:
+        out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
+    return out
+
+
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:
     """Find the frames of an experiment file and collect its per-frame metadata.
 

@@ -31,6 +31,7 @@ from radiokit.io._experiment import (
     frame_candidates,
     read_bit_depth,
     read_experiment_meta,
+    read_pixel_sizes,
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import (
@@ -484,12 +485,33 @@ class FrameSource:
             self.meta["photometric"] = "miniswhite"  # inverted to counts (MinIsBlack)
         if self._line is not None:
             self.meta["imagej_calibration"] = {"c0": self._line[0], "c1": self._line[1]}
+        self.meta.update(self._tiff_pixel_size(first))
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
                 self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
             except (ValueError, RecursionError):  # free text, however it looks
                 pass
+
+    def _tiff_pixel_size(self, first) -> dict:
+        """``x_pixel_size`` / ``y_pixel_size`` (metres) where the file states a length per pixel:
+        ImageJ's ``unit`` with the page's resolution (pixels per unit), or OME's PhysicalSizeX/Y
+        (µm unless a unit is given). A bare TIFF resolution is a display's dots per inch, not the
+        detector's pitch, and is not taken. Why: ``register`` holds two images to one pitch only
+        where both files record it, and this was read from experiment files alone."""
+        x = y = None
+        if self._tif.is_imagej:
+            unit = _TIFF_LENGTH_M.get(str((self._tif.imagej_metadata or {}).get("unit", "")).strip())
+            if unit is not None:
+                x, y = (_per_pixel(first.tags.valueof(code), unit) for code in (282, 283))
+        elif self._tif.is_ome:
+            x, y = _ome_physical_size(self._tif.ome_metadata)
+        if self._orientation >= 5:  # the transposing orientations swap rows and columns
+            x, y = y, x
+        out = {name: v for name, v in (("x_pixel_size", x), ("y_pixel_size", y)) if v is not None}
+        if "x_pixel_size" in out:
+            out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
+        return out
 
     def _check_ifd_chain(self, pages):
         """Everything the IFDs point at must lie inside the file.
@@ -958,7 +980,7 @@ class FrameSource:
             if "MATLAB_class" in data.attrs:  # a save -v7.3 variable: its neighbours are 2-D variables
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:  # 1-D keys read the same in either order (h5write may have put them in a .mat)
-                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset))
+                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset), **self._pixels_beside(dataset))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
             # frames past the keys of a file being written (SWMR; a writer may extend its frames in
             # blocks ahead of them) are not read: unwritten, they are no reason to refuse the rest
@@ -1013,6 +1035,15 @@ class FrameSource:
             bits = read_bit_depth(self.path, self._h5, group, self._allow_external)
             if bits is not None:
                 return {"bit_depth": bits}
+        return {}
+
+    def _pixels_beside(self, dataset: str) -> dict:
+        """The pitch the frames' NXdetector states (``x_pixel_size``, ``y_pixel_size``), as an
+        experiment file's is read, so that ``register`` holds two such files to one pitch."""
+        for group in self._groups_beside(dataset):
+            sizes = read_pixel_sizes(self.path, self._h5, group, self._allow_external)
+            if sizes:
+                return sizes
         return {}
 
     def _keys_beside(self, dataset: str, n: int) -> dict:
@@ -1615,6 +1646,55 @@ def _packed_and_compressed(page) -> bool:
     """``page`` holds 1..15-bit samples (packed, or in whole words) in compressed strips or tiles:
     how is told only by decoding them (:meth:`FrameSource._read_segments`)."""
     return page.compression != 1 and page.bitspersample < 16 and bool(page.bitspersample % 8)
+
+
+#: a length unit as ImageJ's description (``unit=``, µm escaped as ImageJ writes it) and OME
+#: (PhysicalSizeXUnit) name it, in metres; ImageJ's "pixel" and anything else state no length
+_TIFF_LENGTH_M = {
+    "m": 1.0,
+    "cm": 1e-2,
+    "mm": 1e-3,
+    "micron": 1e-6,
+    "microns": 1e-6,
+    "um": 1e-6,
+    "\u00b5m": 1e-6,
+    "\u03bcm": 1e-6,
+    "\\u00B5m": 1e-6,
+    "nm": 1e-9,
+    "inch": 0.0254,
+}
+
+
+def _per_pixel(resolution, unit_m: float) -> float | None:
+    """A TIFF resolution (pixels per unit, a rational) as metres per pixel; None when it is none."""
+    try:
+        num, den = (float(v) for v in resolution)
+    except (TypeError, ValueError):
+        return None
+    size = den / num * unit_m if num > 0 and den > 0 else math.nan
+    return size if math.isfinite(size) and size > 0 else None
+
+
+def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None]:
+    """The first image's PhysicalSizeX and PhysicalSizeY in metres (OME's default unit µm)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return None, None
+    pixels = next((el for el in root.iter() if el.tag.rpartition("}")[2] == "Pixels"), None)
+    if pixels is None:
+        return None, None
+    sizes = []
+    for axis in "XY":
+        unit = _TIFF_LENGTH_M.get(pixels.get(f"PhysicalSize{axis}Unit", "\u00b5m").strip())
+        try:
+            value = float(pixels.get(f"PhysicalSize{axis}", "nan")) * (unit or math.nan)
+        except ValueError:
+            value = math.nan
+        sizes.append(value if math.isfinite(value) and value > 0 else None)
+    return sizes[0], sizes[1]
 
 
 def _nx_class(group) -> str:
