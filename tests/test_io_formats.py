@@ -420,9 +420,14 @@ def _fits(path, frame):
     path.write_bytes(b"".join(c.ljust(80) for c in card).ljust(2880) + frame.astype(">i2").tobytes())
 
 
+def _dcimg(path, frame):  # Hamamatsu DCAM-API's own file (HCImage's default): "DCIMG", a header, frames
+    path.write_bytes(b"DCIMG\x00\x00\x00" + bytes(224) + frame.tobytes())
+
+
 @pytest.mark.parametrize(
     "writer, name, what",
     [
+        (_dcimg, "f.dcimg", "a Hamamatsu DCIMG file"),
         (_png, "f.png", "a PNG image"),
         (_jpeg, "f.jpg", "a JPEG image"),
         (_dicom, "f.dcm", "a DICOM file"),

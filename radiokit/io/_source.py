@@ -86,6 +86,8 @@ _MHD = "read the ElementDataFile it names with shape= and dtype= as it gives the
 _FOREIGN = (
     (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
     (128, b"DICM", "a DICOM file", "export its frames as TIFF, or read them with pydicom"),
+    # HCImage's and DCAM-API's own format: its header, session and frame footers read as pixels
+    (0, b"DCIMG", "a Hamamatsu DCIMG file", "export its frames from HCImage as TIFF"),
     (0, b"\x89PNG\r\n\x1a\n", "a PNG image", "save the frames as TIFF"),
     (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
     (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
