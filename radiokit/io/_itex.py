@@ -282,7 +282,10 @@ def check_tail(path, geo: dict, comment: dict) -> None:
 
 # Hamamatsu flat panels by model number and the bits of their ADC (C7942.md): C7921/C7942/C7943
 # are 12-bit, C9730DK/C9732DK 14-bit. Other cameras (HPD-TA's Orcas, streak cameras) say nothing.
-_PANEL_BITS = ((re.compile(r"\bC79(?:21|42|43)", re.IGNORECASE), 12), (re.compile(r"\bC973[02]", re.IGNORECASE), 14))
+_PANEL_BITS = (
+    (re.compile(r"(?<![A-Za-z0-9])C79(?:21|42|43)(?![0-9])", re.IGNORECASE), 12),
+    (re.compile(r"(?<![A-Za-z0-9])C973[02](?![0-9])", re.IGNORECASE), 14),
+)
 
 
 def adc_bits(comment: dict, file_type: int) -> int | None:
