@@ -113,8 +113,8 @@ def _summary(meta: dict) -> dict:
     # the pitch wherever the file states it (an experiment's, ImageJ's, OME's, an NXdetector's):
     # register holds two images to it, so the user sees what it will be held to
     if out.get("pixel_size_mm") is None and meta.get("x_pixel_size") is not None:
-        # 9 digits: 50 um in metres times 1e3 is 0.049999999999999996 mm
-        x, y = (float(f"{v * 1e3:.9g}") for v in (meta["x_pixel_size"], meta.get("y_pixel_size", meta["x_pixel_size"])))
+        # 6 digits: 50 um in metres times 1e3 is 0.049999999999999996 mm, a float32 0.05 mm 0.0500000007
+        x, y = (float(f"{v * 1e3:.6g}") for v in (meta["x_pixel_size"], meta.get("y_pixel_size", meta["x_pixel_size"])))
         # a number, as a raw preset's is (JSON readers get one type); (x, y) where they differ
         out["pixel_size_mm"] = x if math.isclose(x, y, rel_tol=1e-6) else [x, y]
     return {k: v for k, v in out.items() if v not in (None, "", {})}
