@@ -32,6 +32,18 @@ PRESET_NAMES = ("default", "fast", "weak", "weak-fast", "silent", "silent-fast",
 __all__ = ["main", "build_parser"]
 
 
+def _inputs(args, paths) -> list:
+    """``paths`` and, under ``--allow-external``, the files their HDF5 frames are read from
+    (external links, virtual sources, external raw storage): an output onto one of those replaced
+    an input's frames (:func:`radiokit.io.data_files`)."""
+    from radiokit.io import data_files
+
+    paths = [p for p in paths if p]
+    if not getattr(args, "allow_external", False):
+        return paths
+    return paths + [f for p in paths for f in data_files(p, allow_external=True)]
+
+
 def _raw_hints(args) -> dict:
     hints = {}
     for name in ("preset", "dtype", "byteorder", "offset", "format", "dataset"):
@@ -322,7 +334,7 @@ def cmd_calibrate(args) -> int:
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
-    check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
+    check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, inputs))  # before the work, not after
     _hdf5_name(args.output)
     if args.experiment and (args.dark or args.flat):  # the files given were silently not used
         raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
@@ -402,7 +414,7 @@ def cmd_correct(args) -> int:
     from radiokit.correct import correct_files
     from radiokit.io import check_output
 
-    check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
+    check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, [*args.frames, args.cal]))
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
@@ -554,7 +566,7 @@ def _register_inputs(args):
         mask[r0:r1, c0:c1] = True
     for out in (args.output, args.png):
         if out is not None:
-            check_output(out, overwrite=args.overwrite, inputs=[args.fixed, args.moving])
+            check_output(out, overwrite=args.overwrite, inputs=_inputs(args, [args.fixed, args.moving]))
     _hdf5_name(args.output)
     if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
         raise ValueError(f"--png {args.png}: the same file as -o")

@@ -1245,6 +1245,59 @@ def _source_places(folder: Path, name: str) -> list[Path]:
     return places
 
 
+def data_files(path, allow_external=False, _depth=0) -> list[Path]:
+    """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
+    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it matches) and
+    external raw storage, each at every place libhdf5 may look for it that exists; ``[]`` for a
+    file that is not HDF5, or without ``allow_external`` (nothing outside the file is then read).
+
+    Why: an output onto one of them replaces an input's frames. `correct master.h5
+    --allow-external -o frames_000001.h5 --overwrite` wrote over the detector's frames, since
+    only the files named on the command line were held to be inputs.
+    """
+    if not allow_external or _depth > 4:
+        return []
+    try:
+        if not h5py.is_hdf5(path):
+            return []
+        h5 = h5py.File(path, "r")
+    except (OSError, ValueError):  # unreadable: the read itself says so
+        return []
+    folder, names = Path(path).parent, []
+    with h5:
+
+        def visit(name, link):
+            if isinstance(link, h5py.ExternalLink):
+                names.append((link.filename, True))
+                return
+            if not isinstance(link, h5py.HardLink):
+                return
+            try:
+                obj = h5[name]
+            except (KeyError, OSError):
+                return
+            if not isinstance(obj, h5py.Dataset):
+                return
+            if obj.is_virtual:
+                names.extend((vs.file_name, True) for vs in obj.virtual_sources() if vs.file_name != ".")
+            plist = obj.id.get_create_plist()
+            names.extend(
+                (plist.get_external(i)[0].decode("utf-8", "replace"), False) for i in range(plist.get_external_count())
+            )
+
+        h5.visititems_links(visit)
+    found: list[Path] = []
+    for name, hdf5 in names:
+        for place in _source_places(folder, name):
+            matches = glob.glob(glob.escape(str(place)).replace("%b", "*")) if "%b" in name else [str(place)]
+            for match in map(Path, matches):
+                if match.is_file() and match not in found:
+                    found.append(match)
+                    if hdf5:  # its own links, sources and raw files are read too
+                        found.extend(p for p in data_files(match, True, _depth + 1) if p not in found)
+    return found
+
+
 def check_virtual_sources(path, ds) -> None:
     """Refuse a virtual dataset whose source file or dataset is missing: libhdf5 reads the
     unmapped parts as the fill value, so a moved or deleted source read as frames of zeros.
