@@ -94,6 +94,10 @@ def _summary(meta: dict) -> dict:
             "camera": cam.get("CameraName"),
             "exposure": acq.get("ExposureTime"),
             "file_type": meta.get("file_type"),
+            # a sub-array's place on the sensor: else it reads as a whole (binned) frame
+            "offset": f"x {meta.get('x_offset', 0)}, y {meta.get('y_offset', 0)}"
+            if meta.get("x_offset") or meta.get("y_offset")
+            else None,
             "scaling": {
                 k: (f"{len(v['values'])} values [{v.get('unit', '')}]" if "values" in v else v.get("name"))
                 for k, v in meta.get("scaling", {}).items()
