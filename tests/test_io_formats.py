@@ -1863,3 +1863,23 @@ def test_a_tiff_stating_no_length_has_no_pixel_size(tmp_path):
     tifffile.imwrite(tmp_path / "ij.tif", image, imagej=True, resolution=(1, 1), metadata={"unit": "pixel"})
     for name in ("dpi.tif", "ij.tif"):
         assert "x_pixel_size" not in read(tmp_path / name).meta
+
+
+@pytest.mark.parametrize("missing", ["file", "dataset"])
+def test_an_external_link_to_nothing_is_named_when_allowed(tmp_path, missing):
+    """allow_external=True over an external link whose file is gone, or holds no such dataset (a
+    master file beside another run's data files): "cannot be read as hdf5: Unable to synchronously
+    open object (can't open file)" named neither the link nor its target."""
+    with h5py.File(tmp_path / "frames_000001.h5", "w") as f:
+        f["other"] = _frames(2)
+    path = tmp_path / "master.h5"
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry"), "NXentry")
+        plot = _nx_class(entry.create_group("data"), "NXdata")
+        plot.attrs["signal"] = "data"
+        target = "gone.h5" if missing == "file" else "frames_000001.h5"
+        plot["data"] = h5py.ExternalLink(target, "/data")
+    with pytest.raises(
+        FormatError, match=rf"/entry/data/data is an external link to {target}:/data, which cannot be opened"
+    ):
+        read(path, allow_external=True)

@@ -1203,9 +1203,9 @@ def check_image_keys(path, keys, name) -> None:
 
 
 def check_links(path, h5, name, allow_external, depth=0):
-    """Refuse an external link anywhere on the way to ``name`` (checked before it is followed)."""
-    if allow_external:
-        return
+    """Refuse an external link anywhere on the way to ``name`` (checked before it is followed);
+    with ``allow_external``, one whose target cannot be opened, named (libhdf5's "can't open file"
+    named neither the link nor its target)."""
     parts = [p for p in name.strip("/").split("/") if p]
     for i in range(1, len(parts) + 1):
         prefix = "/" + "/".join(parts[:i])
@@ -1213,7 +1213,16 @@ def check_links(path, h5, name, allow_external, depth=0):
         if link is None:
             return
         if isinstance(link, h5py.ExternalLink):
-            _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+            if not allow_external:
+                _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+            try:
+                h5[prefix]
+            except (KeyError, OSError) as exc:
+                why = str(exc).split("(", 1)[-1].rstrip(")\"' ") or "not found"
+                raise FormatError(
+                    path, f"{prefix} is an external link to {link.filename}:{link.path}, which cannot be opened ({why})"
+                ) from None
+            return  # beyond it lies another file, whose own links are its own
         if isinstance(link, h5py.SoftLink) and depth < 8:
             target = link.path if link.path.startswith("/") else prefix.rsplit("/", 1)[0] + "/" + link.path
             check_links(path, h5, target, allow_external, depth + 1)
