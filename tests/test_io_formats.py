@@ -1883,3 +1883,26 @@ def test_an_external_link_to_nothing_is_named_when_allowed(tmp_path, missing):
         FormatError, match=rf"/entry/data/data is an external link to {target}:/data, which cannot be opened"
     ):
         read(path, allow_external=True)
+
+
+def test_ome_planes_mapped_to_ifds_out_of_file_order_read_in_ome_order(tmp_path):
+    """OME's TiffData may put plane T=0 in IFD 2 and T=2 in IFD 0. Fiji (Bio-Formats) and tifffile
+    read the time points in OME's order; radiokit read the pages in file order, so the stack came
+    out reversed with nothing said."""
+    stack = _frames(3, rows=4, cols=5)
+    tiffdata = "".join(f'<TiffData IFD="{2 - t}" FirstT="{t}" PlaneCount="1"/>' for t in range(3))
+    xml = (
+        '<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06">'
+        '<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYCZT" Type="uint16" SizeX="5" SizeY="4" '
+        'SizeC="1" SizeZ="1" SizeT="3"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+        f"{tiffdata}</Pixels></Image></OME>"
+    )
+    path = tmp_path / "planes.ome.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for t in (2, 1, 0):
+            tw.write(stack[t], photometric="minisblack", description=xml if t == 2 else None, metadata=None)
+    np.testing.assert_array_equal(read(path).data, stack)
+    from radiokit.io import open_frames
+
+    with open_frames(path) as src:
+        np.testing.assert_array_equal(np.stack(list(src)), stack)

@@ -308,7 +308,7 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
-        index = self._full_image_pages(all_pages)
+        index = self._ome_plane_order(self._full_image_pages(all_pages))
         self._pages = [all_pages[i] for i in index]
         self._refuse_several_images(len(self._pages))
         first = self._pages[0]
@@ -404,6 +404,20 @@ class FrameSource:
         if not index:
             raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
         return index
+
+    def _ome_plane_order(self, index: list[int]) -> list[int]:
+        """The frame pages ``index`` in the order an OME-TIFF's planes have. Why: OME's TiffData
+        may map plane T=0 to IFD 2 and T=2 to IFD 0; Bio-Formats (Fiji) and tifffile read them in
+        OME's order, and file order gave the stack reversed, silently. Anything but a reordering
+        of the same pages (planes missing, other pages) leaves the file's order, and the checks
+        that follow judge the file."""
+        if not self._tif.is_ome:
+            return index
+        try:
+            order = [int(page.index) for series in self._tif.series for page in series.pages if page is not None]
+        except (TypeError, ValueError, AttributeError):  # a SubIFD's tuple index, a series without pages
+            return index
+        return order if sorted(order) == sorted(index) else index
 
     def _refuse_several_images(self, pages: int) -> None:
         """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
