@@ -32,6 +32,18 @@ PRESET_NAMES = ("default", "fast", "weak", "weak-fast", "silent", "silent-fast",
 __all__ = ["main", "build_parser"]
 
 
+def _inputs(args, paths) -> list:
+    """``paths`` and, under ``--allow-external``, the files their HDF5 frames are read from
+    (external links, virtual sources, external raw storage): an output onto one of those replaced
+    an input's frames (:func:`radiokit.io.data_files`)."""
+    from radiokit.io import data_files
+
+    paths = [p for p in paths if p]
+    if not getattr(args, "allow_external", False):
+        return paths
+    return paths + [f for p in paths for f in data_files(p, allow_external=True)]
+
+
 def _raw_hints(args) -> dict:
     hints = {}
     for name in ("preset", "dtype", "byteorder", "offset", "format", "dataset"):
@@ -82,6 +94,10 @@ def _summary(meta: dict) -> dict:
             "camera": cam.get("CameraName"),
             "exposure": acq.get("ExposureTime"),
             "file_type": meta.get("file_type"),
+            # a sub-array's place on the sensor: else it reads as a whole (binned) frame
+            "offset": f"x {meta.get('x_offset', 0)}, y {meta.get('y_offset', 0)}"
+            if meta.get("x_offset") or meta.get("y_offset")
+            else None,
             "scaling": {
                 k: (f"{len(v['values'])} values [{v.get('unit', '')}]" if "values" in v else v.get("name"))
                 for k, v in meta.get("scaling", {}).items()
@@ -110,6 +126,13 @@ def _summary(meta: dict) -> dict:
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
+    # the pitch wherever the file states it (an experiment's, ImageJ's, OME's, an NXdetector's):
+    # register holds two images to it, so the user sees what it will be held to
+    if out.get("pixel_size_mm") is None and meta.get("x_pixel_size") is not None:
+        # 6 digits: 50 um in metres times 1e3 is 0.049999999999999996 mm, a float32 0.05 mm 0.0500000007
+        x, y = (float(f"{v * 1e3:.6g}") for v in (meta["x_pixel_size"], meta.get("y_pixel_size", meta["x_pixel_size"])))
+        # a number, as a raw preset's is (JSON readers get one type); (x, y) where they differ
+        out["pixel_size_mm"] = x if math.isclose(x, y, rel_tol=1e-6) else [x, y]
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
@@ -325,7 +348,7 @@ def cmd_calibrate(args) -> int:
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
-    check_output(args.output, overwrite=args.overwrite, inputs=inputs)  # before the work, not after
+    check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, inputs))  # before the work, not after
     _hdf5_name(args.output)
     if args.experiment and (args.dark or args.flat):  # the files given were silently not used
         raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
@@ -405,7 +428,7 @@ def cmd_correct(args) -> int:
     from radiokit.correct import correct_files
     from radiokit.io import check_output
 
-    check_output(args.output, overwrite=args.overwrite, inputs=[*args.frames, *([args.cal] if args.cal else [])])
+    check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, [*args.frames, args.cal]))
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
@@ -559,7 +582,7 @@ def _register_inputs(args):
         mask[r0:r1, c0:c1] = True
     for out in (args.output, args.png):
         if out is not None:
-            check_output(out, overwrite=args.overwrite, inputs=[args.fixed, args.moving])
+            check_output(out, overwrite=args.overwrite, inputs=_inputs(args, [args.fixed, args.moving]))
     _hdf5_name(args.output)
     if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
         raise ValueError(f"--png {args.png}: the same file as -o")

@@ -68,6 +68,22 @@ def test_info_itex_json():
     assert reps[1]["dtype"] == "uint32"
 
 
+def test_info_itex_shows_where_a_subarray_lies_on_the_sensor(tmp_path):
+    """An ITEX image of a sub-array (HiPic's x and y offsets, as a 700 x 500 region 200 columns in
+    and 100 rows down) was described only as 500 x 700: nothing told it from a whole binned frame,
+    nor where to crop a full-panel calibration for it."""
+    import struct
+
+    pix = np.arange(500 * 700, dtype="<u2").reshape(500, 700) % 4096
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", 0, 700, 500, 200, 100, 2, 0, 0, 0, 0.0, b"", b"")
+    (tmp_path / "roi.img").write_bytes(head + pix.tobytes())
+    res = run_cli("info", tmp_path / "roi.img")
+    assert res.returncode == 0, res.stderr
+    assert "offset     x 200, y 100" in res.stdout, res.stdout
+    whole = run_cli("info", ITEX / "photon_counting.img") if ITEX.exists() else None
+    assert whole is None or "offset" not in whole.stdout
+
+
 def test_info_experiment_text(experiment):
     path, _ = experiment
     res = run("info", path)

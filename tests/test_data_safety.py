@@ -1390,3 +1390,45 @@ def test_demo_interrupted_mid_acquisition_says_what_it_left(tmp_path):
     assert (out / "experiment.h5").exists() and (out / RESULTS_MARKER).exists()
     assert len(err.strip().splitlines()) == 1, err
     assert "no partial output" not in err and str(out) in err and "--overwrite" in err, err
+
+
+def _stored_elsewhere(tmp_path, how):
+    """A file whose frames live in ``frames_000001.h5``, as a detector's master file links them:
+    an external link (Eiger) or a virtual dataset; or in external raw storage, here under a name
+    an output could have (libhdf5 takes any)."""
+    stack = np.random.default_rng(0).integers(1000, 3000, (2, 20, 30)).astype(np.uint16)
+    master, data = tmp_path / "master.h5", tmp_path / "frames_000001.h5"
+    if how == "raw":
+        data.write_bytes(stack.tobytes())
+        with h5py.File(master, "w") as f:
+            f.create_dataset("frames", shape=stack.shape, dtype=stack.dtype, external=[(data.name, 0, stack.nbytes)])
+        return master, data
+    with h5py.File(data, "w") as f:
+        f["data"] = stack
+    with h5py.File(master, "w") as f:
+        if how == "link":
+            f["frames"] = h5py.ExternalLink(data.name, "/data")
+        else:
+            layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+            layout[:] = h5py.VirtualSource(data.name, "data", shape=stack.shape)
+            f.create_virtual_dataset("frames", layout)
+    return master, data
+
+
+@pytest.mark.parametrize("how", ["link", "virtual", "raw"])
+def test_an_output_onto_the_file_an_inputs_frames_live_in_is_refused(how, tmp_path, monkeypatch):
+    """With --allow-external an input's frames are read from another file, which is as much an
+    input: `correct master.h5 --dataset frames --allow-external -o frames_000001.h5 --overwrite`
+    replaced the detector's frames with the corrected ones (only master.h5 was compared)."""
+    monkeypatch.chdir(tmp_path)  # libhdf5 finds external raw files from the working directory
+    master, data = _stored_elsewhere(tmp_path, how)
+    darks, flats, cal = tmp_path / "d.tif", tmp_path / "f.tif", tmp_path / "cal.h5"
+    tifffile.imwrite(darks, np.full((2, 20, 30), 100, np.uint16), photometric="minisblack")
+    tifffile.imwrite(flats, np.full((2, 20, 30), 3800, np.uint16), photometric="minisblack")
+    assert run_cli("calibrate", "--dark", darks, "--flat", flats, "-o", cal, "-q").returncode == 0
+    before = sha(data)
+    given = [master, "--dataset", "frames", "--allow-external"]
+    one_line_error(run_cli("correct", *given, "--cal", cal, "-o", data, "-q", "--overwrite"), data.name, "input")
+    one_line_error(run_cli("register", master, *given, "--moving-frame", "1", "-o", data, "--overwrite"), data.name)
+    one_line_error(run_cli("calibrate", "--dark", *given, "--flat", flats, "-o", data, "--overwrite"), data.name)
+    assert sha(data) == before

@@ -597,6 +597,41 @@ def test_itex_unknown_type_and_wrong_magic(tmp_path):
     _raises_format(short, "64 bytes")
 
 
+@pytest.mark.parametrize(
+    "stored, cause",
+    [(lambda p: p.byteswap(), "byte-swapped values fit"), (lambda p: p << 4, "MSB-aligned")],
+)
+def test_itex_of_a_12_bit_flat_panel_is_checked_against_its_adc(tmp_path, stored, cause):
+    """An ITEX file whose comment names a Hamamatsu C7942 (12-bit ADC, C7942.md) holding values
+    no 12-bit ADC gives: its own writer's byte order or bit alignment. Read silently, a set of
+    byte-swapped darks, flats and frames calibrated to c = 29438 counts and corrected to noise
+    with no word of it; a raw C7942 frame warns so. The file's camera says what its ADC is."""
+    from radiokit.io import BitDepthWarning
+
+    rng = np.random.default_rng(5)
+    pix = rng.integers(100, 4096, (30, 40)).astype(np.uint16)
+    comment = b'[Application],Software="XVS-FPD"\r\n[Camera],CameraName="C7942CA-02"'
+    good, bad = tmp_path / "good.img", tmp_path / "bad.img"
+    good.write_bytes(_itex_bytes(pix, 2, comment))
+    bad.write_bytes(_itex_bytes(stored(pix), 2, comment))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(good)
+    assert f.meta["bit_depth"] == 12
+    np.testing.assert_array_equal(f.data[0], pix)
+    with pytest.warns(BitDepthWarning, match=f"12-bit range.*{cause}"):
+        read(bad)
+
+
+@needs_itex
+def test_itex_of_another_camera_says_nothing_of_its_adc():
+    """HPD-TA's Orca R2 files (summed, 32-bit) name no 12-bit panel: no bit depth is assumed."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = read(ITEX_DIR / "shading_file.img")
+    assert "bit_depth" not in f.meta
+
+
 def test_itex_magic_without_extension_is_itex(tmp_path):
     pix = np.arange(6, dtype=np.uint16).reshape(2, 3)
     path = tmp_path / "noext"

@@ -420,9 +420,14 @@ def _fits(path, frame):
     path.write_bytes(b"".join(c.ljust(80) for c in card).ljust(2880) + frame.astype(">i2").tobytes())
 
 
+def _dcimg(path, frame):  # Hamamatsu DCAM-API's own file (HCImage's default): "DCIMG", a header, frames
+    path.write_bytes(b"DCIMG\x00\x00\x00" + bytes(224) + frame.tobytes())
+
+
 @pytest.mark.parametrize(
     "writer, name, what",
     [
+        (_dcimg, "f.dcimg", "a Hamamatsu DCIMG file"),
         (_png, "f.png", "a PNG image"),
         (_jpeg, "f.jpg", "a JPEG image"),
         (_dicom, "f.dcm", "a DICOM file"),
@@ -1150,6 +1155,31 @@ def test_nexus_signal_naming_a_missing_dataset_says_so(tmp_path):
         read(path)
 
 
+def test_nexus_signal_that_is_an_external_link_is_refused_by_name_or_read_when_allowed(tmp_path):
+    """Dectris/Eiger-style masters and many beamline writers make the NXdata's @signal an
+    external link to the file holding the frames. The signal was passed over as if the file named
+    no frames: refused as holding "no 2-D or 3-D dataset" (wrong, and not naming the link), and
+    still so with allow_external=True, which is there to read it."""
+    stack = _frames(3)
+    with h5py.File(tmp_path / "data_000001.h5", "w") as f:
+        f["data"] = stack
+    path = tmp_path / "master.h5"
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry"), "NXentry")
+        plot = _nx_class(entry.create_group("data"), "NXdata")
+        plot.attrs["signal"] = "data"
+        plot["data"] = h5py.ExternalLink("data_000001.h5", "/data")
+        entry.attrs["default"] = "data"
+        f.attrs["default"] = "entry"
+    with pytest.raises(
+        FormatError, match=r"/entry/data/data is an external link to data_000001\.h5:/data.*--allow-external"
+    ):
+        read(path)
+    f = read(path, allow_external=True)
+    assert f.meta["dataset"] == "/entry/data/data"
+    np.testing.assert_array_equal(f.data, stack)
+
+
 def test_imagej_calibration_passed_on_with_signed_pixels_is_not_applied_again(tmp_path):
     """tifffile writes int16 pixels with an ImageJ description copied from a signed 16-bit file
     (cf=0, c0=-32768): the pixels already hold the signed values; ImageJ calibrates only what it
@@ -1779,3 +1809,100 @@ def test_nexus_bit_depth_readout_warns_of_values_past_it(tmp_path):
         warnings.simplefilter("error")
         f = read(_nexus_detector(tmp_path / "none.nxs", frames, None))
     assert "bit_depth" not in f.meta
+
+
+def _stated_pixel(path, how, mm):
+    """An image as a lab's software writes it with its pitch stated (``mm`` per pixel)."""
+    image = np.random.default_rng(1).integers(100, 4000, (40, 50)).astype(np.uint16)
+    if how == "imagej-mm":
+        tifffile.imwrite(path, image, imagej=True, resolution=(1 / mm, 1 / mm), metadata={"unit": "mm"})
+    elif how == "imagej-micron":  # ImageJ writes µm escaped in its description
+        res = 1 / (mm * 1e3)
+        tifffile.imwrite(path, image, imagej=True, resolution=(res, res), metadata={"unit": "\\u00B5m"})
+    elif how == "ome":
+        meta = {"PhysicalSizeX": mm * 1e3, "PhysicalSizeXUnit": "µm", "PhysicalSizeY": mm * 1e3}
+        tifffile.imwrite(path, image, metadata=meta)  # PhysicalSizeYUnit left out: OME's default, µm
+    elif how == "nexus":
+        with h5py.File(path, "w") as f:
+            entry = _nx_class(f.create_group("entry"), "NXentry")
+            det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+            det["data"] = image[None]
+            for axis in ("x_pixel_size", "y_pixel_size"):
+                det[axis] = mm * 1e3
+                det[axis].attrs["units"] = "um"
+            data = _nx_class(entry.create_group("data"), "NXdata")
+            data.attrs["signal"] = "data"
+            data["data"] = h5py.SoftLink("/entry/instrument/detector/data")
+    return path
+
+
+@pytest.mark.parametrize(
+    "how, suffix", [("imagej-mm", ".tif"), ("imagej-micron", ".tif"), ("ome", ".ome.tif"), ("nexus", ".nxs")]
+)
+def test_a_pixel_size_the_file_states_is_read_and_register_holds_to_it(tmp_path, how, suffix):
+    """ImageJ (its unit and resolution), OME-TIFF (PhysicalSizeX/Y) and an NXdetector beside
+    another program's NeXus frames state the pitch. It was read only from radiokit's experiment
+    files, so `radiokit info` did not show it and `register` matched an image at 0.1 mm per pixel
+    onto one at 0.05 mm (a field in pixels between two pitches is a scaling, not a motion)."""
+    fine = read(_stated_pixel(tmp_path / f"fine{suffix}", how, 0.05))
+    assert fine.meta["x_pixel_size"] == pytest.approx(5e-5) and fine.meta["y_pixel_size"] == pytest.approx(5e-5)
+    _stated_pixel(tmp_path / f"binned{suffix}", how, 0.1)
+    res = run_cli("register", tmp_path / f"fine{suffix}", tmp_path / f"binned{suffix}", "-o", tmp_path / "reg.h5")
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert f"binned{suffix}" in res.stderr and "0.1 mm" in res.stderr and "0.05 mm" in res.stderr
+    assert not (tmp_path / "reg.h5").exists()
+    info = run_cli("info", tmp_path / f"fine{suffix}")
+    assert "pixel_size_mm 0.05" in " ".join(info.stdout.split()), info.stdout
+
+
+def test_a_tiff_stating_no_length_has_no_pixel_size(tmp_path):
+    """Resolution in a TIFF without ImageJ's or OME's length (72 dpi, ImageJ's 'pixel') is a
+    display's, not the detector's pitch: no pixel size is made of it."""
+    image = np.zeros((6, 7), np.uint16)
+    tifffile.imwrite(tmp_path / "dpi.tif", image, resolution=(72, 72), resolutionunit="INCH")
+    tifffile.imwrite(tmp_path / "ij.tif", image, imagej=True, resolution=(1, 1), metadata={"unit": "pixel"})
+    for name in ("dpi.tif", "ij.tif"):
+        assert "x_pixel_size" not in read(tmp_path / name).meta
+
+
+@pytest.mark.parametrize("missing", ["file", "dataset"])
+def test_an_external_link_to_nothing_is_named_when_allowed(tmp_path, missing):
+    """allow_external=True over an external link whose file is gone, or holds no such dataset (a
+    master file beside another run's data files): "cannot be read as hdf5: Unable to synchronously
+    open object (can't open file)" named neither the link nor its target."""
+    with h5py.File(tmp_path / "frames_000001.h5", "w") as f:
+        f["other"] = _frames(2)
+    path = tmp_path / "master.h5"
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry"), "NXentry")
+        plot = _nx_class(entry.create_group("data"), "NXdata")
+        plot.attrs["signal"] = "data"
+        target = "gone.h5" if missing == "file" else "frames_000001.h5"
+        plot["data"] = h5py.ExternalLink(target, "/data")
+    with pytest.raises(
+        FormatError, match=rf"/entry/data/data is an external link to {target}:/data, which cannot be opened"
+    ):
+        read(path, allow_external=True)
+
+
+def test_ome_planes_mapped_to_ifds_out_of_file_order_read_in_ome_order(tmp_path):
+    """OME's TiffData may put plane T=0 in IFD 2 and T=2 in IFD 0. Fiji (Bio-Formats) and tifffile
+    read the time points in OME's order; radiokit read the pages in file order, so the stack came
+    out reversed with nothing said."""
+    stack = _frames(3, rows=4, cols=5)
+    tiffdata = "".join(f'<TiffData IFD="{2 - t}" FirstT="{t}" PlaneCount="1"/>' for t in range(3))
+    xml = (
+        '<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06">'
+        '<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYCZT" Type="uint16" SizeX="5" SizeY="4" '
+        'SizeC="1" SizeZ="1" SizeT="3"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+        f"{tiffdata}</Pixels></Image></OME>"
+    )
+    path = tmp_path / "planes.ome.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for t in (2, 1, 0):
+            tw.write(stack[t], photometric="minisblack", description=xml if t == 2 else None, metadata=None)
+    np.testing.assert_array_equal(read(path).data, stack)
+    from radiokit.io import open_frames
+
+    with open_frames(path) as src:
+        np.testing.assert_array_equal(np.stack(list(src)), stack)

@@ -33,6 +33,7 @@ from radiokit.io._experiment import (
     ExperimentWriter,
     ImageKey,
     check_same_pixel_size,
+    data_files,
     discard_unbegun,
     read_progress,
     restore_previous,
@@ -48,6 +49,7 @@ from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 __all__ = [
     "PIXEL_SIZE_RANGE_M",
     "check_same_pixel_size",
+    "data_files",
     "read",
     "open_frames",
     "iter_frames",

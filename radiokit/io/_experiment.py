@@ -1213,9 +1213,9 @@ def check_image_keys(path, keys, name) -> None:
 
 
 def check_links(path, h5, name, allow_external, depth=0):
-    """Refuse an external link anywhere on the way to ``name`` (checked before it is followed)."""
-    if allow_external:
-        return
+    """Refuse an external link anywhere on the way to ``name`` (checked before it is followed);
+    with ``allow_external``, one whose target cannot be opened, named (libhdf5's "can't open file"
+    named neither the link nor its target)."""
     parts = [p for p in name.strip("/").split("/") if p]
     for i in range(1, len(parts) + 1):
         prefix = "/" + "/".join(parts[:i])
@@ -1223,7 +1223,16 @@ def check_links(path, h5, name, allow_external, depth=0):
         if link is None:
             return
         if isinstance(link, h5py.ExternalLink):
-            _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+            if not allow_external:
+                _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+            try:
+                h5[prefix]
+            except (KeyError, OSError) as exc:
+                why = str(exc).split("(", 1)[-1].rstrip(")\"' ") or "not found"
+                raise FormatError(
+                    path, f"{prefix} is an external link to {link.filename}:{link.path}, which cannot be opened ({why})"
+                ) from None
+            return  # beyond it lies another file, whose own links are its own
         if isinstance(link, h5py.SoftLink) and depth < 8:
             target = link.path if link.path.startswith("/") else prefix.rsplit("/", 1)[0] + "/" + link.path
             check_links(path, h5, target, allow_external, depth + 1)
@@ -1263,6 +1272,59 @@ def _source_places(folder: Path, name: str) -> list[Path]:
             0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
         )
     return places
+
+
+def data_files(path, allow_external=False, _depth=0) -> list[Path]:
+    """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
+    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it matches) and
+    external raw storage, each at every place libhdf5 may look for it that exists; ``[]`` for a
+    file that is not HDF5, or without ``allow_external`` (nothing outside the file is then read).
+
+    Why: an output onto one of them replaces an input's frames. `correct master.h5
+    --allow-external -o frames_000001.h5 --overwrite` wrote over the detector's frames, since
+    only the files named on the command line were held to be inputs.
+    """
+    if not allow_external or _depth > 4:
+        return []
+    try:
+        if not h5py.is_hdf5(path):
+            return []
+        h5 = h5py.File(path, "r")
+    except (OSError, ValueError):  # unreadable: the read itself says so
+        return []
+    folder, names = Path(path).parent, []
+    with h5:
+
+        def visit(name, link):
+            if isinstance(link, h5py.ExternalLink):
+                names.append((link.filename, True))
+                return
+            if not isinstance(link, h5py.HardLink):
+                return
+            try:
+                obj = h5[name]
+            except (KeyError, OSError):
+                return
+            if not isinstance(obj, h5py.Dataset):
+                return
+            if obj.is_virtual:
+                names.extend((vs.file_name, True) for vs in obj.virtual_sources() if vs.file_name != ".")
+            plist = obj.id.get_create_plist()
+            names.extend(
+                (plist.get_external(i)[0].decode("utf-8", "replace"), False) for i in range(plist.get_external_count())
+            )
+
+        h5.visititems_links(visit)
+    found: list[Path] = []
+    for name, hdf5 in names:
+        for place in _source_places(folder, name):
+            matches = glob.glob(glob.escape(str(place)).replace("%b", "*")) if "%b" in name else [str(place)]
+            for match in map(Path, matches):
+                if match.is_file() and match not in found:
+                    found.append(match)
+                    if hdf5:  # its own links, sources and raw files are read too
+                        found.extend(p for p in data_files(match, True, _depth + 1) if p not in found)
+    return found
 
 
 def check_virtual_sources(path, ds) -> None:
@@ -1742,6 +1804,32 @@ def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int
     check_local(path, h5, ds, allow_external)
     bits = ds[()]
     return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
+
+
+def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> dict:
+    """``x_pixel_size`` / ``y_pixel_size`` (metres) that ``group`` (another program's NXdetector)
+    states, each where it is one positive finite number in a length unit NeXus names (``@units``,
+    metres when absent); the rest is left out, as :func:`read_bit_depth` leaves an unreadable depth.
+    Why: ``register`` holds two images to one pitch only where both files record it."""
+    out = {}
+    for axis in ("x_pixel_size", "y_pixel_size"):
+        name = f"{group.rstrip('/')}/{axis}"
+        check_links(path, h5, name, allow_external)
+        try:
+            ds = h5.get(name)
+        except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+            continue
+        if not (isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype)):
+            continue
+        check_local(path, h5, ds, allow_external)
+        units = ds.attrs.get("units", "m")
+        units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
+        value = float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M.get(units, math.nan)
+        if math.isfinite(value) and value > 0:
+            out[axis] = value
+    if "x_pixel_size" in out:
+        out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
+    return out
 
 
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["parse_itex_header", "parse_comment", "check_comment_end", "check_tail", "ITEX_TYPES"]
+__all__ = ["parse_itex_header", "parse_comment", "check_comment_end", "check_tail", "adc_bits", "ITEX_TYPES"]
 
 # The comment length is unsigned: HiPic writes comments over 32767 bytes (read signed, a valid
 # 40 000-byte one was "negative"); width and height stay signed, a negative one is corrupt.
@@ -278,3 +278,34 @@ def check_tail(path, geo: dict, comment: dict) -> None:
             f"(a count of 0 is one), but {unexplained} bytes follow them that no [Scaling] axis accounts for, "
             f"room for {unexplained // image} more: the header disagrees with the file (a wrong count or size); not read",
         )
+
+
+# Hamamatsu flat panels by model number and the bits of their ADC (C7942.md): C7921/C7942/C7943
+# are 12-bit, C9730DK/C9732DK 14-bit. Other cameras (HPD-TA's Orcas, streak cameras) say nothing.
+_PANEL_BITS = (
+    (re.compile(r"(?<![A-Za-z0-9])C79(?:21|42|43)(?![0-9])", re.IGNORECASE), 12),
+    (re.compile(r"(?<![A-Za-z0-9])C973[02](?![0-9])", re.IGNORECASE), 14),
+)
+
+
+def adc_bits(comment: dict, file_type: int) -> int | None:
+    """The ADC bits of the panel the comment's ``[Camera] CameraName`` names, for a 16-bit
+    (type 2) file of single exposures; else None.
+
+    Why: a C7942's counts end at 4095, and a value past it means the writer's byte order or bit
+    alignment (a set of byte-swapped darks, flats and frames calibrated and corrected to noise
+    with no word of it). A summed acquisition (``[Acquisition] NrExposure`` over 1, as HPD-TA's
+    integrations) passes the ADC's top by design, and 8- or 32-bit files are not its words.
+    """
+    if file_type != 2:
+        return None
+    exposures = comment.get("Acquisition", {}).get("NrExposure", 1)
+    if not isinstance(exposures, int) or exposures > 1:
+        return None
+    name = comment.get("Camera", {}).get("CameraName")
+    if not isinstance(name, str):
+        return None
+    for pattern, bits in _PANEL_BITS:
+        if pattern.search(name):
+            return bits
+    return None

@@ -31,10 +31,12 @@ from radiokit.io._experiment import (
     frame_candidates,
     read_bit_depth,
     read_experiment_meta,
+    read_pixel_sizes,
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import (
     HEADER_BYTES,
+    adc_bits,
     check_comment_end,
     check_tail,
     parse_comment,
@@ -84,6 +86,8 @@ _MHD = "read the ElementDataFile it names with shape= and dtype= as it gives the
 _FOREIGN = (
     (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
     (128, b"DICM", "a DICOM file", "export its frames as TIFF, or read them with pydicom"),
+    # HCImage's and DCAM-API's own format: its header, session and frame footers read as pixels
+    (0, b"DCIMG", "a Hamamatsu DCIMG file", "export its frames from HCImage as TIFF"),
     (0, b"\x89PNG\r\n\x1a\n", "a PNG image", "save the frames as TIFF"),
     (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
     (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
@@ -285,7 +289,9 @@ class FrameSource:
         check_tail(self.path, geo, parsed)
         self._geo = geo
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"]
-        self.bits = None
+        self.bits = adc_bits(parsed, geo["file_type"])  # a named 12-bit panel's values are checked
+        if self.bits is not None:
+            self.meta["bit_depth"] = self.bits
         self.meta.update(
             {k: v for k, v in geo.items() if k != "dtype"},
             dtype=str(geo["dtype"]),
@@ -302,7 +308,7 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
-        index = self._full_image_pages(all_pages)
+        index = self._ome_plane_order(self._full_image_pages(all_pages))
         self._pages = [all_pages[i] for i in index]
         self._refuse_several_images(len(self._pages))
         first = self._pages[0]
@@ -399,6 +405,20 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
         return index
 
+    def _ome_plane_order(self, index: list[int]) -> list[int]:
+        """The frame pages ``index`` in the order an OME-TIFF's planes have. Why: OME's TiffData
+        may map plane T=0 to IFD 2 and T=2 to IFD 0; Bio-Formats (Fiji) and tifffile read them in
+        OME's order, and file order gave the stack reversed, silently. Anything but a reordering
+        of the same pages (planes missing, other pages) leaves the file's order, and the checks
+        that follow judge the file."""
+        if not self._tif.is_ome:
+            return index
+        try:
+            order = [int(page.index) for series in self._tif.series for page in series.pages if page is not None]
+        except (TypeError, ValueError, AttributeError):  # a SubIFD's tuple index, a series without pages
+            return index
+        return order if sorted(order) == sorted(index) else index
+
     def _refuse_several_images(self, pages: int) -> None:
         """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
         of several images (series).
@@ -488,12 +508,33 @@ class FrameSource:
             self.meta["photometric"] = "miniswhite"  # inverted to counts (MinIsBlack)
         if self._line is not None:
             self.meta["imagej_calibration"] = {"c0": self._line[0], "c1": self._line[1]}
+        self.meta.update(self._tiff_pixel_size(first))
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
                 self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
             except (ValueError, RecursionError):  # free text, however it looks
                 pass
+
+    def _tiff_pixel_size(self, first) -> dict:
+        """``x_pixel_size`` / ``y_pixel_size`` (metres) where the file states a length per pixel:
+        ImageJ's ``unit`` with the page's resolution (pixels per unit), or OME's PhysicalSizeX/Y
+        (µm unless a unit is given). A bare TIFF resolution is a display's dots per inch, not the
+        detector's pitch, and is not taken. Why: ``register`` holds two images to one pitch only
+        where both files record it, and this was read from experiment files alone."""
+        x = y = None
+        if self._tif.is_imagej:
+            unit = _TIFF_LENGTH_M.get(str((self._tif.imagej_metadata or {}).get("unit", "")).strip())
+            if unit is not None:
+                x, y = (_per_pixel(first.tags.valueof(code), unit) for code in (282, 283))
+        elif self._tif.is_ome:
+            x, y = _ome_physical_size(self._tif.ome_metadata)
+        if self._orientation >= 5:  # the transposing orientations swap rows and columns
+            x, y = y, x
+        out = {name: v for name, v in (("x_pixel_size", x), ("y_pixel_size", y)) if v is not None}
+        if "x_pixel_size" in out:
+            out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
+        return out
 
     def _check_ifd_chain(self, pages):
         """Everything the IFDs point at must lie inside the file.
@@ -962,7 +1003,7 @@ class FrameSource:
             if "MATLAB_class" in data.attrs:  # a save -v7.3 variable: its neighbours are 2-D variables
                 meta["matlab_class"] = text(data.attrs["MATLAB_class"])
             else:  # 1-D keys read the same in either order (h5write may have put them in a .mat)
-                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset))
+                meta.update(self._keys_beside(dataset, n), **self._bits_beside(dataset), **self._pixels_beside(dataset))
                 n = min(n, len(meta.get("image_key", range(n))))  # a live writer's keys may lag
             # frames past the keys of a file being written (SWMR; a writer may extend its frames in
             # blocks ahead of them) are not read: unwritten, they are no reason to refuse the rest
@@ -1017,6 +1058,15 @@ class FrameSource:
             bits = read_bit_depth(self.path, self._h5, group, self._allow_external)
             if bits is not None:
                 return {"bit_depth": bits}
+        return {}
+
+    def _pixels_beside(self, dataset: str) -> dict:
+        """The pitch the frames' NXdetector states (``x_pixel_size``, ``y_pixel_size``), as an
+        experiment file's is read, so that ``register`` holds two such files to one pitch."""
+        for group in self._groups_beside(dataset):
+            sizes = read_pixel_sizes(self.path, self._h5, group, self._allow_external)
+            if sizes:
+                return sizes
         return {}
 
     def _keys_beside(self, dataset: str, n: int) -> dict:
@@ -1390,8 +1440,11 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     if isinstance(signal, str) and data.get(signal, getlink=True) is None:
         return None, f"NeXus {data.name}@signal names {signal!r}, which {data.name} does not hold"
     # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
-    # frames so); an external one is left to the caller's check_links, which refuses it
-    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), (h5py.HardLink, h5py.SoftLink)):
+    # frames so); an external one (Eiger masters, many beamline writers) is named all the same and
+    # left to the caller's check_links, which refuses it unless allow_external: passed over here,
+    # the file was said to hold no frames, with or without allow_external
+    link = (h5py.HardLink, h5py.SoftLink, h5py.ExternalLink)
+    if not isinstance(signal, str) or not isinstance(data.get(signal, getlink=True), link):
         return None, None
     return f"{data.name}/{signal}", None
 
@@ -1616,6 +1669,55 @@ def _packed_and_compressed(page) -> bool:
     """``page`` holds 1..15-bit samples (packed, or in whole words) in compressed strips or tiles:
     how is told only by decoding them (:meth:`FrameSource._read_segments`)."""
     return page.compression != 1 and page.bitspersample < 16 and bool(page.bitspersample % 8)
+
+
+#: a length unit as ImageJ's description (``unit=``, µm escaped as ImageJ writes it) and OME
+#: (PhysicalSizeXUnit) name it, in metres; ImageJ's "pixel" and anything else state no length
+_TIFF_LENGTH_M = {
+    "m": 1.0,
+    "cm": 1e-2,
+    "mm": 1e-3,
+    "micron": 1e-6,
+    "microns": 1e-6,
+    "um": 1e-6,
+    "\u00b5m": 1e-6,
+    "\u03bcm": 1e-6,
+    "\\u00B5m": 1e-6,
+    "nm": 1e-9,
+    "inch": 0.0254,
+}
+
+
+def _per_pixel(resolution, unit_m: float) -> float | None:
+    """A TIFF resolution (pixels per unit, a rational) as metres per pixel; None when it is none."""
+    try:
+        num, den = (float(v) for v in resolution)
+    except (TypeError, ValueError):
+        return None
+    size = den / num * unit_m if num > 0 and den > 0 else math.nan
+    return size if math.isfinite(size) and size > 0 else None
+
+
+def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None]:
+    """The first image's PhysicalSizeX and PhysicalSizeY in metres (OME's default unit µm)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return None, None
+    pixels = next((el for el in root.iter() if el.tag.rpartition("}")[2] == "Pixels"), None)
+    if pixels is None:
+        return None, None
+    sizes = []
+    for axis in "XY":
+        unit = _TIFF_LENGTH_M.get(pixels.get(f"PhysicalSize{axis}Unit", "\u00b5m").strip())
+        try:
+            value = float(pixels.get(f"PhysicalSize{axis}", "nan")) * (unit or math.nan)
+        except ValueError:
+            value = math.nan
+        sizes.append(value if math.isfinite(value) and value > 0 else None)
+    return sizes[0], sizes[1]
 
 
 def _nx_class(group) -> str:
