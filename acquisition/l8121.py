@@ -2207,6 +2207,11 @@ class L8121:
     @focus.setter
     def focus(self, value: int) -> None:
         self._do("focus", value)
+        # an echo says the command arrived, not that the unit took it: a series must not expose (and
+        # record) a focal spot the unit is not using, so the setting is read back as kV and µA are
+        got = self._read("focus")
+        if got != value:
+            raise DeviceError(f"{self.port}: focus: the controller reads back {got} after {value} was set")
 
     def check_focus(self, value: int) -> None:
         """Refuse a focus mode this dialect and configuration cannot set (``ValueError``); nothing

@@ -524,8 +524,8 @@ def test_identity_and_operate_switch(source, dialect):
 
 def test_settings_read_like_the_manual(source, wire):
     src, model = source
-    src.focus = 2
-    assert model.commands[-1] == wire["focus_2"] and src.focus == 2
+    src.focus = 2  # read back at once, as the kV and µA are
+    assert model.commands[-2:] == [wire["focus_2"], *wire["focus_get"]] and src.focus == 2
     assert src.set_values(60, 250) == (60, 250)
     n = len(wire["setpoint"])  # tube off: the values are read back after they are set
     assert model.commands[-2 - n :] == wire["set_60_250"] + wire["setpoint"]
@@ -601,6 +601,21 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
             L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
     # queries, and the XOF every refused connect sends (the same line in both dialects: off)
     assert set(model.commands) <= PROBE_QUERIES | {"SRL", "XOF"} and "XOF" in model.commands
+
+
+def test_a_focus_the_controller_does_not_take_is_refused_by_its_read_back(source, dialect, monkeypatch):
+    """The brief's rule for settings (read back where the dialect can: A's SFC, B's SFS) holds for
+    the focus too: a unit that echoes CFS 2 (B: CFL) but keeps its old focus would have the series
+    expose, and record, a focal spot it is not using (found by helper s37a's independent model)."""
+    src, model = source
+    assert src.focus == 0
+    if dialect == "A":  # echoed, not taken
+        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+    else:
+        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 2 was set"):
+        src.focus = 2
+    assert model.commands[-1] == WIRE[dialect]["focus_get"][0]
 
 
 def test_unparseable_replies_raise(source, dialect):
