@@ -2207,6 +2207,11 @@ class L8121:
     @focus.setter
     def focus(self, value: int) -> None:
         self._do("focus", value)
+        # an echo says the command arrived, not that the unit took it: a series must not expose (and
+        # record) a focal spot the unit is not using, so the setting is read back as kV and µA are
+        got = self._read("focus")
+        if got != value:
+            raise DeviceError(f"{self.port}: focus: the controller reads back {got} after {value} was set")
 
     def check_focus(self, value: int) -> None:
         """Refuse a focus mode this dialect and configuration cannot set (``ValueError``); nothing
@@ -2744,7 +2749,8 @@ class L8121:
         Confirmed by a state that cannot emit (not X-rays on, not warming up / ``AGING``, not dialect
         B's ambiguous ``ERROR``). Tries ``off_attempts`` times: ``XOF``, then ``STS`` every
         ``poll_s`` while it still reads on, for ``off_confirm_s / off_attempts`` (a supply ramping
-        down), but not again after an attempt that got no reply to either (a silent controller:
+        down; an attempt that fails sooner, the port gone for a moment, waits that long before
+        the next), but not again after an attempt that got no reply to either (a silent controller:
         each further attempt would cost two reply time-outs before the operator is told), nor
         after a refused ``XOF`` whose reason the controller gives (``SRL``, asked first, names
         B's operate switch off ``REMOTE``: it acts on no XOF until someone turns it; one ``STS``,
@@ -2807,6 +2813,12 @@ class L8121:
                     # further XOF is refused alike until someone turns it; the operator must hear it now
                     why = told
                     break
+                # an attempt that failed early (a port gone for a moment, a USB adapter coming back
+                # under its name; a refused or garbled STS) waits its window out: the attempts span
+                # off_confirm_s as a supply ramping down gets them, not 2 x poll_s all spent while
+                # the node is still missing, the tube then left on although it could be reached
+                if attempt + 1 < attempts:
+                    time.sleep(max(0.0, until - time.monotonic() - self.config.poll_s))
             # still inside: a failed query here must not call off() again; a silent one is not asked
             if why is None:
                 why = "; the controller does not answer" if silent else self._why_not_remote()

@@ -524,8 +524,8 @@ def test_identity_and_operate_switch(source, dialect):
 
 def test_settings_read_like_the_manual(source, wire):
     src, model = source
-    src.focus = 2
-    assert model.commands[-1] == wire["focus_2"] and src.focus == 2
+    src.focus = 2  # read back at once, as the kV and µA are
+    assert model.commands[-2:] == [wire["focus_2"], *wire["focus_get"]] and src.focus == 2
     assert src.set_values(60, 250) == (60, 250)
     n = len(wire["setpoint"])  # tube off: the values are read back after they are set
     assert model.commands[-2 - n :] == wire["set_60_250"] + wire["setpoint"]
@@ -601,6 +601,21 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
             L8121(server.url, baudrate=DEFAULT_BAUD[dialect], dialect=other, **FAST)
     # queries, and the XOF every refused connect sends (the same line in both dialects: off)
     assert set(model.commands) <= PROBE_QUERIES | {"SRL", "XOF"} and "XOF" in model.commands
+
+
+def test_a_focus_the_controller_does_not_take_is_refused_by_its_read_back(source, dialect, monkeypatch):
+    """The brief's rule for settings (read back where the dialect can: A's SFC, B's SFS) holds for
+    the focus too: a unit that echoes CFS 2 (B: CFL) but keeps its old focus would have the series
+    expose, and record, a focal spot it is not using (found by helper s37a's independent model)."""
+    src, model = source
+    assert src.focus == 0
+    if dialect == "A":  # echoed, not taken
+        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+    else:
+        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 2 was set"):
+        src.focus = 2
+    assert model.commands[-1] == WIRE[dialect]["focus_get"][0]
 
 
 def test_unparseable_replies_raise(source, dialect):
@@ -4508,3 +4523,37 @@ def test_the_guardians_kill_bound_allows_each_exchange_its_longest_on_the_link(r
     start_s = 1.0
     least = start_s + (2 * c.off_attempts + 1) * exchange_s + c.off_confirm_s + c.off_attempts * c.poll_s
     assert _end_start_bound_s(c, start_s) >= least, (_end_start_bound_s(c, start_s), least)
+
+
+def test_a_switch_off_whose_port_is_gone_for_a_moment_keeps_trying_for_off_confirm_s(tmp_path, dialect):
+    """A USB serial adapter that drops out (the port's node gone) and comes back under its name
+    within ``off_confirm_s``: the switch-off's attempts span that window, as its docstring says,
+    and reach the unit. They came ``poll_s`` apart whatever failed, so all three were spent in
+    0.4 s while the node was still gone, and the tube was left on with the warning although it
+    could have been switched off a moment later (helper s37a: a series whose adapter was back
+    1 s later ended on exit 3, the tube on)."""
+    model = L8121Model(dialect=dialect, warmup_s=WARMUP_S, ramp_s=RAMP_S, warmed_up=True)
+    first = PtyServer(model).__enter__()
+    port = tmp_path / "ttyUSB0"
+    port.symlink_to(first.url)
+    servers = [first]
+    try:
+        src = L8121(str(port), dialect=dialect, off_confirm_s=3.0, **FAST)
+        src.on(60, 250)
+        assert model.xray_on
+        first.__exit__(None, None, None)  # unplugged: the node goes, the unit stays on
+        port.unlink()
+
+        def replug():
+            time.sleep(0.6)
+            servers.append(PtyServer(model).__enter__())
+            port.symlink_to(servers[-1].url)
+
+        threading.Thread(target=replug, daemon=True).start()
+        t0 = time.monotonic()
+        assert not src.off().emitting and not model.xray_on
+        assert time.monotonic() - t0 < 3.5
+        src.detach()
+    finally:
+        for server in servers[1:]:
+            server.__exit__(None, None, None)
