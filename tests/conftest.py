@@ -279,3 +279,15 @@ def mounted_tmpfs(folder, size):
         yield folder
     finally:
         subprocess.run(["umount", str(folder)], check=True)
+
+
+def square_pair(n=160):
+    """``(reference, moving, mask)``: flat images, transmission 1.0 (reference) and 0.9 (moving),
+    with a 40 px square at 1.3 and 1.25 in their middle (``mask``): the CNR tests' pair, whose
+    contrast and noise have closed forms."""
+    inside = (slice(60, 100), slice(60, 100))
+    reference, moving = np.full((n, n), 1.0), np.full((n, n), 0.9)
+    reference[inside], moving[inside] = 1.3, 1.25
+    mask = np.zeros((n, n), bool)
+    mask[inside] = True
+    return reference, moving, mask

@@ -25,6 +25,7 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import square_pair
 
 
 def _interp_variance_factor(field):
@@ -46,11 +47,7 @@ def test_predicted_cnr_counts_the_registrations_interpolation_of_the_moving_nois
     from sim import study
 
     n, counts, samples = 160, 2000.0, 24
-    inside = (slice(60, 100), slice(60, 100))
-    reference, moving = np.full((n, n), 1.0), np.full((n, n), 0.9)
-    reference[inside], moving[inside] = 1.3, 1.25
-    mask = np.zeros((n, n), bool)
-    mask[inside] = True
+    reference, moving, mask = square_pair(n)
     field = np.empty((2, n, n), np.float32)
     field[0], field[1] = offset
     registered = warp(moving.astype(np.float32), field).astype(np.float64)

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import square_pair
 
 from sim.detector import PanelModel
 
@@ -70,11 +71,7 @@ def test_predicted_cnr_matches_sampled_poisson_noise(domain):
     from sim import study
 
     n, counts, samples = 160, 2000.0, 24
-    inside = (slice(60, 100), slice(60, 100))
-    reference, moving = np.full((n, n), 1.0), np.full((n, n), 0.9)
-    reference[inside], moving[inside] = 1.3, 1.25
-    mask = np.zeros((n, n), bool)
-    mask[inside] = True
+    reference, moving, mask = square_pair(n)
     zero = np.zeros((2, n, n), np.float32)
     pair = study.ImagePair(reference, moving, moving.copy(), zero, zero, mask, 0.25, None, "side")
     h = study.headline(pair)
