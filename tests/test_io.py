@@ -2581,7 +2581,7 @@ def test_an_in_place_overwrite_of_a_file_another_writer_has_open_is_refused(tmp_
     np.testing.assert_array_equal(read(path).data[-1], np.full(EXP_SHAPE, 6, np.uint16))
 
 
-def test_a_stop_as_the_old_file_is_set_aside_puts_it_back(tmp_path, monkeypatch):
+def test_a_stop_as_the_old_file_is_set_aside_puts_it_back(tmp_path, monkeypatch, sigint_default):
     """Found (review s36r2): a Ctrl-C just after the rename (in the folder's fsync) left the old
     file hidden while the run said "holds the previous series, unchanged". The SIGINT is real;
     only its moment is chosen, by raising it from the rename, a moment no test can hit by timing."""
