@@ -3,6 +3,7 @@ TIFF and ITEX variants. Every check compares the pixels read with the array writ
 value and in the same orientation (rows, columns), not only that the file opens."""
 
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -1906,3 +1907,35 @@ def test_ome_planes_mapped_to_ifds_out_of_file_order_read_in_ome_order(tmp_path)
 
     with open_frames(path) as src:
         np.testing.assert_array_equal(np.stack(list(src)), stack)
+
+
+def _itex_bytes(pixels, comment=b'[Camera],CameraName="C7942"'):
+    import struct
+
+    n, rows, cols = pixels.shape
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", len(comment), cols, rows, 0, 0, 2, n, 1, 0, 0.0, b"", b"")
+    return head + comment + pixels.astype("<u2").tobytes()
+
+
+def test_a_byte_swapped_itex_file_is_given_advice_the_user_can_follow(tmp_path):
+    """s37: a C7942 .img whose writer swapped the bytes was told "try byteorder='>'", which ITEX
+    refuses ("hints apply to raw files only"). The advice now reads the pixels as raw, and doing
+    what it says gives the counts."""
+    frames = _frames(2, rows=4, cols=8)
+    path = tmp_path / "swap.img"
+    path.write_bytes(_itex_bytes(frames.byteswap()))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    assert "byte-swapped values fit" in res.stderr and "try byteorder" not in res.stderr, res.stderr
+    offset = 64 + len(b'[Camera],CameraName="C7942"')
+    flags = f"--format raw --offset {offset} --shape 4 8 --byteorder '>'"
+    assert flags in res.stderr, res.stderr
+    res = run_cli("info", path, "--format", "raw", "--offset", offset, "--shape", 4, 8, "--byteorder", ">")
+    assert res.returncode == 0 and f"range      {frames.min()} .. {frames.max()}" in res.stdout, res.stdout + res.stderr
+    api = f"format='raw', offset={offset}, shape=(2, 4, 8), byteorder='>'"
+    with pytest.warns(UserWarning, match=re.escape(api)):
+        read(path)
+    np.testing.assert_array_equal(read(path, format="raw", offset=offset, shape=(2, 4, 8), byteorder=">").data, frames)

@@ -33,7 +33,7 @@ from radiokit.io._experiment import (
     read_experiment_meta,
     read_pixel_sizes,
 )
-from radiokit.io._frames import Frames, check_bit_depth
+from radiokit.io._frames import RAW_SWAP_ADVICE, Frames, check_bit_depth
 from radiokit.io._itex import (
     HEADER_BYTES,
     adc_bits,
@@ -1198,7 +1198,25 @@ class FrameSource:
     def _check_bits(self, frame) -> None:
         """The bit-depth warning (:func:`check_bit_depth`), once per open file, not once per frame."""
         if not self._bits_warned:
-            self._bits_warned = check_bit_depth(self.path, frame, self.bits)
+            self._bits_warned = check_bit_depth(self.path, frame, self.bits, swap_advice=self._swap_advice())
+
+    def _swap_advice(self) -> str:
+        """What the user can do about big-endian pixels in this file: ``byteorder=`` is refused
+        outside raw reads, so "try byteorder='>'" sent an ITEX user to a refusal."""
+        if self.format == "raw":
+            return RAW_SWAP_ADVICE
+        if self.format == "itex":
+            geo = self._geo
+            n, rows, cols, offset = geo["n"], geo["rows"], geo["cols"], geo["offset"]
+            advice = (
+                f"an ITEX header cannot say so: read the pixels as raw, "
+                f"read(..., format='raw', offset={offset}, shape=({n}, {rows}, {cols}), byteorder='>')"
+            )
+            if offset + n * rows * cols * geo["dtype"].itemsize == geo["file_size"]:
+                # the command line takes no frame count: the size gives it only when nothing follows the pixels
+                advice += f" (--format raw --offset {offset} --shape {rows} {cols} --byteorder '>')"
+            return advice
+        return "its writer swapped every word's bytes against the file's own byte order; swap them back (numpy's byteswap())"
 
     def __iter__(self):
         for i in range(self.n):
