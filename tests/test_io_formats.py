@@ -1939,3 +1939,51 @@ def test_a_byte_swapped_itex_file_is_given_advice_the_user_can_follow(tmp_path):
     with pytest.warns(UserWarning, match=re.escape(api)):
         read(path)
     np.testing.assert_array_equal(read(path, format="raw", offset=offset, shape=(2, 4, 8), byteorder=">").data, frames)
+
+
+def _nxdata_file(path, frames):
+    h5 = h5py.File(path, "w")
+    data = _nx_class(_nx_class(h5.create_group("entry"), "NXentry").create_group("data"), "NXdata")
+    data["counts"] = frames
+    data["other"] = frames[:, :, :4].copy()  # a second candidate: without @signal the file is refused
+    return h5, data
+
+
+@pytest.mark.parametrize(
+    "how",
+    ["dataset int 1", "dataset str 1", "group str array", "group bytes array", "group bytes"],
+)
+def test_a_nexus_signal_of_an_older_or_looser_writer_is_followed(tmp_path, how):
+    """s37: the NeXus v1 ``@signal=1`` on the dataset, or the group's ``@signal`` stored as a
+    one-element array (h5py writes a list so, as do IDL and MATLAB writers), was refused with a
+    list of datasets to choose from, though it names the frames as plainly as ``@signal="counts"``."""
+    frames = _frames(3)
+    path = tmp_path / "nx.h5"
+    h5, data = _nxdata_file(path, frames)
+    with h5:
+        if how == "dataset int 1":
+            data["counts"].attrs["signal"] = np.int32(1)
+        elif how == "dataset str 1":
+            data["counts"].attrs["signal"] = "1"
+        elif how == "group str array":
+            data.attrs["signal"] = np.array(["counts"], dtype=h5py.string_dtype())
+        elif how == "group bytes array":
+            data.attrs["signal"] = np.array([b"counts"])
+        else:
+            data.attrs["signal"] = np.bytes_(b"counts")
+    got = read(path)
+    assert got.meta["dataset"] == "/entry/data/counts"
+    np.testing.assert_array_equal(got.data, frames)
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "3 x 30 rows x 40 cols" in res.stdout, res.stdout + res.stderr
+
+
+def test_two_datasets_marked_signal_1_are_not_guessed_between(tmp_path):
+    """The old-style mark on two datasets names neither: the list to choose from, as before."""
+    frames = _frames(3)
+    h5, data = _nxdata_file(tmp_path / "nx.h5", frames)
+    with h5:
+        data["counts"].attrs["signal"] = 1
+        data["other"].attrs["signal"] = 1
+    with pytest.raises(FormatError, match="/entry/data/counts .*/entry/data/other"):
+        read(tmp_path / "nx.h5")

@@ -1420,6 +1420,32 @@ def _is_experiment(h5: h5py.File) -> bool:
     return h5.get(IMAGE_KEY, getlink=True) is not None or "frames_complete" in h5[ENTRY].attrs
 
 
+def _attr_text(value):
+    """A text attribute as str, however its writer stored it: bytes (fixed-length strings), or a
+    one-element array (h5py stores a list so; IDL and MATLAB writers do too). Anything else as is."""
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(-1)[0]
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    return str(value) if isinstance(value, np.str_) else value
+
+
+def _old_style_signal(data: h5py.Group) -> str | None:
+    """The dataset NeXus v1 marks ``@signal=1`` (on the dataset, not the group), when exactly one
+    is: older writers (and some still) mark the plotted data so, and NeXus readers follow it."""
+    marked = []
+    for name in data:
+        if not isinstance(data.get(name, getlink=True), h5py.HardLink) or not isinstance(data[name], h5py.Dataset):
+            continue
+        value = _attr_text(data[name].attrs.get("signal"))
+        try:
+            if value is not None and int(value) == 1:
+                marked.append(name)
+        except (TypeError, ValueError):
+            continue
+    return marked[0] if len(marked) == 1 else None
+
+
 def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
     an NXentry and on to an NXdata (a name, or a path such as ``measurement/pco`` as silx follows),
@@ -1428,8 +1454,7 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     that the ``@signal`` names nothing there."""
 
     def follow(group, name):  # only hard links: nothing outside the file is ever followed
-        if isinstance(name, bytes):
-            name = name.decode("utf-8", "replace")
+        name = _attr_text(name)
         if not isinstance(name, str) or not name.strip("/"):
             return None
         node = group.file if name.startswith("/") else group
@@ -1452,9 +1477,9 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     data = entry if entry is not None and _nx_class(entry) == "NXdata" else None
     if data is None and entry is not None:
         data = child(entry, "NXdata")
-    signal = data.attrs.get("signal") if data is not None else None
-    if isinstance(signal, bytes):
-        signal = signal.decode("utf-8", "replace")
+    signal = _attr_text(data.attrs.get("signal")) if data is not None else None
+    if signal is None and data is not None:
+        signal = _old_style_signal(data)
     if isinstance(signal, str) and data.get(signal, getlink=True) is None:
         return None, f"NeXus {data.name}@signal names {signal!r}, which {data.name} does not hold"
     # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
