@@ -363,6 +363,29 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
+        self._tiff_max_sample_bits(first)
+
+    def _tiff_max_sample_bits(self, first) -> None:
+        """A 16-bit TIFF's (S)MaxSampleValue of 2**n - 1 (4095, 16383) as its ADC's bit depth, as
+        BitsPerSample 12 is: detector software writes its ADC's top there, and without it a
+        saturated 12-bit pixel went uncounted. Other values are the data's maximum (statistics).
+        Used only when frame 0 fits under it (a tag its pixels pass is wrong about them); a later
+        frame that passes it gets the bit-depth warning."""
+        if "bit_depth" in self.meta or self._invert is not None or self._line is not None:
+            return
+        if self.dtype.kind not in "ui":
+            return
+        stored = first.tags.valueof(341 if self.dtype.kind == "i" else 281)
+        if stored is None:
+            return
+        top = int(np.max(stored))
+        bits = (top + 1).bit_length() - 1
+        if top <= 0 or top != (1 << bits) - 1 or not 8 <= bits < 8 * self.dtype.itemsize:
+            return
+        if int(self._read_tiff(0).max()) > top:
+            return
+        self.bits = self.meta["bit_depth"] = bits
+        self.meta["bit_depth_from"] = "MaxSampleValue" if self.dtype.kind == "u" else "SMaxSampleValue"
 
     def _check_tiff_proportion(self, first: int, stop: int) -> None:
         """Refuse compressed pages ``first``..``stop - 1`` (what one read decodes: a frame streamed,
