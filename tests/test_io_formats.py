@@ -1305,6 +1305,46 @@ def test_a_plain_stack_tifffile_labels_as_channels_still_reads(tmp_path, kw):
     np.testing.assert_array_equal(read(tmp_path / "s.tif").data, frames)
 
 
+def test_a_tifffile_file_of_several_series_is_refused_as_an_ome_one_is(tmp_path):
+    """s37: tifffile writing (3, R, C) then (2, R, C) read as one stack of 5, without a word: the
+    darks' series followed by the flats', calibrated together. An OME-TIFF of several images is
+    refused so; this is the same file without the OME XML."""
+    frames = _frames(5)
+    path = tmp_path / "two.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(frames[:3], photometric="minisblack")
+        tif.write(frames[3:], photometric="minisblack")
+    with pytest.raises(
+        FormatError, match=r"two\.tif: a TIFF of 2 images \(series\) of shapes \(3, 30, 40\), \(2, 30, 40\)"
+    ):
+        read(path)
+    res = run_cli("info", path)
+    assert res.returncode != 0 and "2 images (series)" in res.stderr and "save each" in res.stderr, res.stderr
+
+
+def test_a_tifffile_file_of_one_frame_per_series_still_reads(tmp_path):
+    """An acquisition loop's one write per frame makes a series per frame, all alike: frames."""
+    frames = _frames(3)
+    path = tmp_path / "loop.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for frame in frames:
+            tif.write(frame)
+    np.testing.assert_array_equal(read(path).data, frames)
+
+
+@pytest.mark.parametrize("kw", [{}, {"imagej": True, "metadata": {"axes": "TZYX"}}])
+def test_a_4d_tiff_series_is_read_flat_and_info_says_so(tmp_path, kw):
+    """s37: a (2, 5, R, C) series read as 10 frames without a note; as an ImageJ hyperstack of
+    slices and time points is read (frames in the file's order), now with a line in info."""
+    frames = _frames(10).reshape(2, 5, 30, 40)
+    path = tmp_path / "four.tif"
+    tifffile.imwrite(path, frames, **kw)
+    got = read(path)
+    np.testing.assert_array_equal(got.data, frames.reshape(10, 30, 40))
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "read flat" in res.stdout and "2 x 5" in res.stdout, res.stdout
+
+
 @needs_itex
 @pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
 def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):

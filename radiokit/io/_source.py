@@ -363,7 +363,30 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
-        self._tiff_max_sample_bits(first)
+
+    def _tiff_stacked(self) -> None:
+        """``meta["stacked"]``: the axes a series of more than one besides rows and columns
+        (tifffile's (2, 5, rows, cols), an ImageJ hyperstack of slices and time points) is read
+        flat across, in the file's order, as one stack: said, so a user knows frame 6 is (1, 1).
+        Not from tifffile's series, which cost time quadratic in the pages of a file written
+        frame by frame (test_hostile_inputs): from the page descriptions, already read."""
+        tif, shape, axes = self._tif, (), ""
+        if tif.is_imagej:
+            ij = tif.imagej_metadata or {}
+            sizes = [(k, ij.get(name, 1)) for k, name in (("T", "frames"), ("Z", "slices"), ("C", "channels"))]
+            sizes = [(k, v) for k, v in sizes if isinstance(v, int) and v > 1]
+            shape, axes = tuple(v for _, v in sizes), "".join(k for k, _ in sizes)
+        elif tif.is_ome:
+            series = tif.series  # built already to refuse an OME file of several images
+            if len(series) == 1 and series[0].axes[-2:] == "YX":
+                shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_shaped:
+            series = _shaped_series(self._pages)
+            if len(series) == 1 and len(series[0][0]) > 2:
+                shape, axes = series[0][0][:-2], series[0][1][:-2]
+        if len(shape) < 2 or math.prod(shape) != self.n:
+            return
+        self.meta["stacked"] = {"shape": [int(v) for v in shape], "axes": axes}
 
     def _tiff_max_sample_bits(self, first) -> None:
         """A 16-bit TIFF's (S)MaxSampleValue of 2**n - 1 (4095, 16383) as its ADC's bit depth, as
@@ -475,6 +498,15 @@ class FrameSource:
                 )
             elif sizes.get("C", 1) > 1 and others > 1:
                 what = f"an OME-TIFF of {sizes['C']} channels, {pages} images"
+        elif tif.is_shaped:
+            # tifffile's own files: one series per write, as an OME-TIFF's images, refused alike
+            series = [shape for shape, _ in _shaped_series(self._pages)]
+            if len(series) > 1 and not (len(set(series)) == 1 and len(series[0]) == 2):
+                shapes = ", ".join(str(shape) for shape in series[:4]) + (", ..." if len(series) > 4 else "")
+                what, advice = (
+                    f"a TIFF of {len(series)} images (series) of shapes {shapes} (tifffile makes one per write)",
+                    "save each image as its own file",
+                )
         if what:
             raise FormatError(self.path, f"{what}: not one stack of frames; {advice}")
 
@@ -532,6 +564,8 @@ class FrameSource:
         if self._line is not None:
             self.meta["imagej_calibration"] = {"c0": self._line[0], "c1": self._line[1]}
         self.meta.update(self._tiff_pixel_size(first))
+        self._tiff_max_sample_bits(first)
+        self._tiff_stacked()
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
@@ -1467,6 +1501,27 @@ def _old_style_signal(data: h5py.Group) -> str | None:
         except (TypeError, ValueError):
             continue
     return marked[0] if len(marked) == 1 else None
+
+
+def _shaped_series(pages) -> list[tuple[tuple, str]]:
+    """The (shape, axes) of each series of a tifffile-written file, from the JSON description
+    tifffile puts on a series' first page (axes "Q" where it gives none); none when a description
+    does not fit its page's rows and columns (the pixels rewritten since)."""
+    found = []
+    for page in pages:
+        desc = page.shaped_description
+        if not desc:
+            continue
+        try:
+            meta = strict_json.loads(desc)
+            shape = tuple(int(v) for v in meta["shape"])
+            axes = str(meta.get("axes") or "")
+        except (ValueError, TypeError, KeyError, AttributeError):  # the older "shape=(...)" form, or damaged
+            continue
+        if shape[-2:] != tuple(page.shape):  # a description another program left on other pixels
+            return []
+        found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
+    return found
 
 
 def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
