@@ -123,6 +123,11 @@ def _summary(meta: dict) -> dict:
         ).strip()
     elif fmt == "tiff":
         out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
+        if meta.get("stacked"):  # frame k of a (2, 5, rows, cols) series is (k // 5, k % 5)
+            st = meta["stacked"]
+            out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in the file's order"
+        if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
+            out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}

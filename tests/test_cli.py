@@ -428,6 +428,17 @@ def test_shape_takes_two_numbers_and_leaves_the_file(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
 
 
+def test_a_12_bit_packed_frame_size_is_named_as_such(tmp_path):
+    """s37: one 2240 x 2240 frame packed two pixels in three bytes (7 526 400 bytes) was called
+    ambiguous between 2x2- and 4x4-binned 16-bit frames only, never naming what it most likely is;
+    radiokit reads no packed raw frames, so the message says to unpack them."""
+    (tmp_path / "packed.raw").write_bytes(bytes(2240 * 2240 * 3 // 2))
+    res = run_cli("info", tmp_path / "packed.raw")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "1 12-bit-packed frame of 2240x2240 (c7942)" in res.stderr, res.stderr
+    assert "not read" in res.stderr and "unpack" in res.stderr, res.stderr
+
+
 def test_ambiguous_raw_size_is_refused_naming_the_geometries(tmp_path):
     """Four 2x2-binned frames have the bytes of one 2240 x 2240 frame: refused in one line naming
     each reading and the option, and read as the one --preset names."""

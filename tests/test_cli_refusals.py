@@ -905,3 +905,14 @@ def test_process_refuses_a_run_whose_working_memory_is_over_the_budget(crop, tmp
     )
     assert not out.exists()
     assert run_cli("process", path, "-o", out, *FAST, *crop, env={"RADIOKIT_MEMORY_BUDGET": "20MB"}).returncode == 0
+
+
+@pytest.mark.parametrize("dataset", ["/entry/data/c", "entry/data/c"])
+def test_a_dataset_path_given_with_its_leading_slash_is_named_once_slashed(tmp_path, dataset):
+    """s37: `--dataset /entry/data/c` of complex pixels was refused as "//entry/data/c has type
+    complex64": the message put its own "/" before the one the user typed."""
+    path = tmp_path / "c.h5"
+    with h5py.File(path, "w") as h5:
+        h5["entry/data/c"] = np.zeros((2, 4, 5), np.complex64)
+    line = one_line_error(run_cli("info", path, "--dataset", dataset), "/entry/data/c has type complex64")
+    assert "//" not in line, line

@@ -2344,6 +2344,41 @@ def test_info_counts_saturated_pixels_of_a_tiff_whose_bit_depth_it_knows(tmp_pat
     assert "  saturated  " not in run_cli("info", tmp_path / "p16.tif").stdout
 
 
+@pytest.mark.parametrize(
+    "tag, value, dtype, bits",
+    [(281, 4095, np.uint16, 12), (281, 16383, np.uint16, 14), (341, 4095, np.int16, 12), (281, 4000, np.uint16, None)],
+)
+def test_a_tiff_max_sample_value_of_an_adc_is_its_bit_depth(tmp_path, tag, value, dtype, bits):
+    """s37: a 16-bit TIFF whose MaxSampleValue (or SMaxSampleValue) is 4095 says its ADC is 12-bit,
+    as BitsPerSample 12 does, yet `info` counted no saturated pixels and calibration took no bit
+    depth from it. A maximum that is no 2**n - 1 is the data's own (statistics): not a bit depth."""
+    frames = np.full((2, 16, 16), 1000, dtype)
+    frames[0, 0, :5] = min(value, 4095)
+    path = tmp_path / "m.tif"
+    tifffile.imwrite(path, frames, extratags=[(tag, "H" if tag == 281 else "h", 1, value, True)])
+    assert read(path).meta.get("bit_depth") == bits
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    if bits is not None:
+        assert f"bit_depth  {bits} ({'MaxSampleValue' if tag == 281 else 'SMaxSampleValue'})" in res.stdout
+    if bits == 12:
+        assert "saturated  5 pixel(s)" in res.stdout, res.stdout
+    elif bits == 14:
+        assert "saturated  0 pixel(s)" in res.stdout, res.stdout
+    else:
+        assert "  saturated  " not in res.stdout, res.stdout
+
+
+def test_a_tiff_max_sample_value_its_pixels_exceed_is_not_a_bit_depth(tmp_path):
+    """A MaxSampleValue of 4095 over pixels up to 5000 is wrong about them: not used."""
+    frames = np.full((2, 16, 16), 1000, np.uint16)
+    frames[0, 0, 0] = 5000
+    path = tmp_path / "m.tif"
+    tifffile.imwrite(path, frames, extratags=[(281, "H", 1, 4095, True)])
+    assert "bit_depth" not in read(path).meta
+    assert "  saturated  " not in run_cli("info", path).stdout
+
+
 def test_info_prints_control_characters_of_an_itex_comment_escaped(tmp_path):
     """A NUL, an escape sequence or a bell in a header comment reached the terminal raw: ESC [31m
     turned the rest of the output red, a NUL vanished or cut the line in other programs."""

@@ -3,6 +3,7 @@ TIFF and ITEX variants. Every check compares the pixels read with the array writ
 value and in the same orientation (rows, columns), not only that the file opens."""
 
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -1304,6 +1305,46 @@ def test_a_plain_stack_tifffile_labels_as_channels_still_reads(tmp_path, kw):
     np.testing.assert_array_equal(read(tmp_path / "s.tif").data, frames)
 
 
+def test_a_tifffile_file_of_several_series_is_refused_as_an_ome_one_is(tmp_path):
+    """s37: tifffile writing (3, R, C) then (2, R, C) read as one stack of 5, without a word: the
+    darks' series followed by the flats', calibrated together. An OME-TIFF of several images is
+    refused so; this is the same file without the OME XML."""
+    frames = _frames(5)
+    path = tmp_path / "two.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(frames[:3], photometric="minisblack")
+        tif.write(frames[3:], photometric="minisblack")
+    with pytest.raises(
+        FormatError, match=r"two\.tif: a TIFF of 2 images \(series\) of shapes \(3, 30, 40\), \(2, 30, 40\)"
+    ):
+        read(path)
+    res = run_cli("info", path)
+    assert res.returncode != 0 and "2 images (series)" in res.stderr and "save each" in res.stderr, res.stderr
+
+
+def test_a_tifffile_file_of_one_frame_per_series_still_reads(tmp_path):
+    """An acquisition loop's one write per frame makes a series per frame, all alike: frames."""
+    frames = _frames(3)
+    path = tmp_path / "loop.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for frame in frames:
+            tif.write(frame)
+    np.testing.assert_array_equal(read(path).data, frames)
+
+
+@pytest.mark.parametrize("kw", [{}, {"imagej": True, "metadata": {"axes": "TZYX"}}])
+def test_a_4d_tiff_series_is_read_flat_and_info_says_so(tmp_path, kw):
+    """s37: a (2, 5, R, C) series read as 10 frames without a note; as an ImageJ hyperstack of
+    slices and time points is read (frames in the file's order), now with a line in info."""
+    frames = _frames(10).reshape(2, 5, 30, 40)
+    path = tmp_path / "four.tif"
+    tifffile.imwrite(path, frames, **kw)
+    got = read(path)
+    np.testing.assert_array_equal(got.data, frames.reshape(10, 30, 40))
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "read flat" in res.stdout and "2 x 5" in res.stdout, res.stdout
+
+
 @needs_itex
 @pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
 def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):
@@ -1906,3 +1947,83 @@ def test_ome_planes_mapped_to_ifds_out_of_file_order_read_in_ome_order(tmp_path)
 
     with open_frames(path) as src:
         np.testing.assert_array_equal(np.stack(list(src)), stack)
+
+
+def _itex_bytes(pixels, comment=b'[Camera],CameraName="C7942"'):
+    import struct
+
+    n, rows, cols = pixels.shape
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", len(comment), cols, rows, 0, 0, 2, n, 1, 0, 0.0, b"", b"")
+    return head + comment + pixels.astype("<u2").tobytes()
+
+
+def test_a_byte_swapped_itex_file_is_given_advice_the_user_can_follow(tmp_path):
+    """s37: a C7942 .img whose writer swapped the bytes was told "try byteorder='>'", which ITEX
+    refuses ("hints apply to raw files only"). The advice now reads the pixels as raw, and doing
+    what it says gives the counts."""
+    frames = _frames(2, rows=4, cols=8)
+    path = tmp_path / "swap.img"
+    path.write_bytes(_itex_bytes(frames.byteswap()))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    assert "byte-swapped values fit" in res.stderr and "try byteorder" not in res.stderr, res.stderr
+    offset = 64 + len(b'[Camera],CameraName="C7942"')
+    flags = f"--format raw --offset {offset} --shape 4 8 --byteorder '>'"
+    assert flags in res.stderr, res.stderr
+    res = run_cli("info", path, "--format", "raw", "--offset", offset, "--shape", 4, 8, "--byteorder", ">")
+    assert res.returncode == 0 and f"range      {frames.min()} .. {frames.max()}" in res.stdout, res.stdout + res.stderr
+    api = f"format='raw', offset={offset}, shape=(2, 4, 8), byteorder='>'"
+    with pytest.warns(UserWarning, match=re.escape(api)):
+        read(path)
+    np.testing.assert_array_equal(read(path, format="raw", offset=offset, shape=(2, 4, 8), byteorder=">").data, frames)
+
+
+def _nxdata_file(path, frames):
+    h5 = h5py.File(path, "w")
+    data = _nx_class(_nx_class(h5.create_group("entry"), "NXentry").create_group("data"), "NXdata")
+    data["counts"] = frames
+    data["other"] = frames[:, :, :4].copy()  # a second candidate: without @signal the file is refused
+    return h5, data
+
+
+@pytest.mark.parametrize(
+    "how",
+    ["dataset int 1", "dataset str 1", "group str array", "group bytes array", "group bytes"],
+)
+def test_a_nexus_signal_of_an_older_or_looser_writer_is_followed(tmp_path, how):
+    """s37: the NeXus v1 ``@signal=1`` on the dataset, or the group's ``@signal`` stored as a
+    one-element array (h5py writes a list so, as do IDL and MATLAB writers), was refused with a
+    list of datasets to choose from, though it names the frames as plainly as ``@signal="counts"``."""
+    frames = _frames(3)
+    path = tmp_path / "nx.h5"
+    h5, data = _nxdata_file(path, frames)
+    with h5:
+        if how == "dataset int 1":
+            data["counts"].attrs["signal"] = np.int32(1)
+        elif how == "dataset str 1":
+            data["counts"].attrs["signal"] = "1"
+        elif how == "group str array":
+            data.attrs["signal"] = np.array(["counts"], dtype=h5py.string_dtype())
+        elif how == "group bytes array":
+            data.attrs["signal"] = np.array([b"counts"])
+        else:
+            data.attrs["signal"] = np.bytes_(b"counts")
+    got = read(path)
+    assert got.meta["dataset"] == "/entry/data/counts"
+    np.testing.assert_array_equal(got.data, frames)
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "3 x 30 rows x 40 cols" in res.stdout, res.stdout + res.stderr
+
+
+def test_two_datasets_marked_signal_1_are_not_guessed_between(tmp_path):
+    """The old-style mark on two datasets names neither: the list to choose from, as before."""
+    frames = _frames(3)
+    h5, data = _nxdata_file(tmp_path / "nx.h5", frames)
+    with h5:
+        data["counts"].attrs["signal"] = 1
+        data["other"].attrs["signal"] = 1
+    with pytest.raises(FormatError, match="/entry/data/counts .*/entry/data/other"):
+        read(tmp_path / "nx.h5")

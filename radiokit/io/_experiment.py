@@ -1451,17 +1451,18 @@ def checked_dataset(
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
+    shown = "/" + name.lstrip("/")  # a user's --dataset /entry/data came out "//entry/data"
     if not isinstance(ds, h5py.Dataset):
-        raise FormatError(path, f"/{name} is not a dataset")
+        raise FormatError(path, f"{shown} is not a dataset")
     check_local(path, h5, ds, allow_external)
     if ds.is_virtual:  # allowed: its sources must be there, or libhdf5 gives the fill value
         check_virtual_sources(path, ds)
     if not _plain_numbers(ds.dtype, kinds):
         raise FormatError(
-            path, f"/{name} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
+            path, f"{shown} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
         )
     if ds.ndim not in ndims:
-        raise FormatError(path, f"/{name} has shape {ds.shape}; expected {_dimensions(ndims)}")
+        raise FormatError(path, f"{shown} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
     if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
         if whole:

@@ -84,12 +84,18 @@ def _msb_aligned(frame: np.ndarray, bits: int) -> bool:
     return bool(np.count_nonzero(nonzero & low) <= 0.01 * nonzero.size)
 
 
-def bit_depth_cause(frame: np.ndarray, bits: int) -> str | None:
+#: what a raw file's reader can do about big-endian words; other formats pass their own
+RAW_SWAP_ADVICE = "try byteorder='>' (or '<')"
+
+
+def bit_depth_cause(frame: np.ndarray, bits: int, *, swap_advice: str = RAW_SWAP_ADVICE) -> str | None:
     """Why a frame holds values above ``2**bits - 1``, when the frame itself shows it, else None.
 
     Named only on evidence: the words pair up into float32 numbers (a float file read as 16-bit),
     the byte-swapped values fit (byte order), or the low bits are 0 in (nearly) every pixel
-    (MSB-aligned data). Shared by :func:`check_bit_depth` and the acquisition's detector folder."""
+    (MSB-aligned data). Shared by :func:`check_bit_depth` and the acquisition's detector folder.
+    ``swap_advice`` follows the byte-order cause: only raw reads take ``byteorder=``, so a
+    format with a header of its own says what works for it."""
     if frame.dtype.itemsize != 2 or frame.dtype.kind not in "ui" or frame.size == 0:
         return None
     top = (1 << bits) - 1
@@ -100,7 +106,7 @@ def bit_depth_cause(frame: np.ndarray, bits: int) -> str | None:
             "panel's 16-bit counts; read it with dtype='<f4' and shape=(rows, cols) (--dtype '<f4' --shape ROWS COLS)"
         )
     if int(frame.byteswap().max()) <= top:
-        return "the byte-swapped values fit: the file is big-endian; try byteorder='>' (or '<')"
+        return f"the byte-swapped values fit: the file is big-endian; {swap_advice}"
     if bits < 16 and _msb_aligned(frame, bits):
         return (
             f"the low {16 - bits} bits are 0 in (nearly) every pixel: {bits}-bit data stored MSB-aligned "
@@ -109,7 +115,7 @@ def bit_depth_cause(frame: np.ndarray, bits: int) -> str | None:
     return None
 
 
-def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> bool:
+def check_bit_depth(path, frame: np.ndarray, bits: int | None, *, swap_advice: str = RAW_SWAP_ADVICE) -> bool:
     """Warn when a frame holds values the ADC cannot produce; whether it warned.
 
     The warning names a cause only on evidence (:func:`bit_depth_cause`). Otherwise it says what
@@ -121,7 +127,7 @@ def check_bit_depth(path, frame: np.ndarray, bits: int | None) -> bool:
     peak = int(frame.max())
     if peak <= top:
         return False
-    cause = bit_depth_cause(frame, bits) or (
+    cause = bit_depth_cause(frame, bits, swap_advice=swap_advice) or (
         "another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data rescaled "
         "before saving, or a wrong geometry, offset or byte order; the values are read as stored"
     )

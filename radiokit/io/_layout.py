@@ -153,7 +153,8 @@ def check_finite(path, name: str, values: np.ndarray, *, nan_ok: bool = False) -
     bad = np.isinf(values) if nan_ok else ~np.isfinite(values)
     if np.any(bad):
         raise FormatError(
-            path, f"/{name} holds {'inf' if nan_ok else 'NaN or inf'} (at index {int(np.flatnonzero(bad.ravel())[0])})"
+            path,
+            f"/{name.lstrip('/')} holds {'inf' if nan_ok else 'NaN or inf'} (at index {int(np.flatnonzero(bad.ravel())[0])})",
         )
 
 

@@ -72,6 +72,21 @@ def _frame_count(path, n) -> int:
     return n
 
 
+def _packed_note(payload: int) -> str:
+    """The unbinned panels whose 12-bit-packed frames (two pixels in three bytes, as some
+    frame grabbers store them) fill ``payload``: such a file's size also fits 16-bit binned
+    frames, and reading it so gives garbage. radiokit has no packed raw reader."""
+    fits = [
+        (payload // (p.rows * p.cols * 3 // 2), p)
+        for p in PRESETS.values()
+        if p.binning == 1 and p.bits == 12 and payload % (p.rows * p.cols * 3 // 2) == 0
+    ]
+    if not fits:
+        return ""
+    named = " or ".join(f"{k} 12-bit-packed frame{'s' * (k > 1)} of {p.rows}x{p.cols} ({p.name})" for k, p in fits)
+    return f"; it also fits {named}, which radiokit does not read: unpack the file to 16-bit words first"
+
+
 def _preset_for(path, payload: int, preset) -> RawPreset:
     """The preset named, else the one the payload's size implies (see :func:`raw_geometry`)."""
     if preset is not None:
@@ -86,7 +101,8 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
         raise FormatError(
             path,
             f"size {payload} bytes matches no C7942 geometry (one 2240x2240 frame is "
-            f"{full.frame_bytes} bytes); pass shape=(rows, cols) or preset= (on the command line --shape ROWS COLS or --preset)",
+            f"{full.frame_bytes} bytes); pass shape=(rows, cols) or preset= (on the command line --shape ROWS COLS or --preset)"
+            + _packed_note(payload),
         )
     # One 2240 x 2240 frame has the bytes of four 2x2-binned and sixteen 4x4-binned ones: the size
     # cannot tell them apart, and the hardware notes ask for inference only where it is unambiguous.
@@ -95,7 +111,7 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
     raise FormatError(
         path,
         f"size {payload} bytes is ambiguous, it fits {fits}; name the panel's geometry with preset= or "
-        f"shape= (on the command line e.g. --preset {dividing[0].name}, or --shape ROWS COLS)",
+        f"shape= (on the command line e.g. --preset {dividing[0].name}, or --shape ROWS COLS)" + _packed_note(payload),
     )
 
 

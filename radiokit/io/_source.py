@@ -33,7 +33,7 @@ from radiokit.io._experiment import (
     read_experiment_meta,
     read_pixel_sizes,
 )
-from radiokit.io._frames import Frames, check_bit_depth
+from radiokit.io._frames import RAW_SWAP_ADVICE, Frames, check_bit_depth
 from radiokit.io._itex import (
     HEADER_BYTES,
     adc_bits,
@@ -364,6 +364,52 @@ class FrameSource:
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
 
+    def _tiff_stacked(self) -> None:
+        """``meta["stacked"]``: the axes a series of more than one besides rows and columns
+        (tifffile's (2, 5, rows, cols), an ImageJ hyperstack of slices and time points) is read
+        flat across, in the file's order, as one stack: said, so a user knows frame 6 is (1, 1).
+        Not from tifffile's series, which cost time quadratic in the pages of a file written
+        frame by frame (test_hostile_inputs): from the page descriptions, already read."""
+        tif, shape, axes = self._tif, (), ""
+        if tif.is_imagej:
+            ij = tif.imagej_metadata or {}
+            sizes = [(k, ij.get(name, 1)) for k, name in (("T", "frames"), ("Z", "slices"), ("C", "channels"))]
+            sizes = [(k, v) for k, v in sizes if isinstance(v, int) and v > 1]
+            shape, axes = tuple(v for _, v in sizes), "".join(k for k, _ in sizes)
+        elif tif.is_ome:
+            series = tif.series  # built already to refuse an OME file of several images
+            if len(series) == 1 and series[0].axes[-2:] == "YX":
+                shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_shaped:
+            series = _shaped_series(self._pages)
+            if len(series) == 1 and len(series[0][0]) > 2:
+                shape, axes = series[0][0][:-2], series[0][1][:-2]
+        if len(shape) < 2 or math.prod(shape) != self.n:
+            return
+        self.meta["stacked"] = {"shape": [int(v) for v in shape], "axes": axes}
+
+    def _tiff_max_sample_bits(self, first) -> None:
+        """A 16-bit TIFF's (S)MaxSampleValue of 2**n - 1 (4095, 16383) as its ADC's bit depth, as
+        BitsPerSample 12 is: detector software writes its ADC's top there, and without it a
+        saturated 12-bit pixel went uncounted. Other values are the data's maximum (statistics).
+        Used only when frame 0 fits under it (a tag its pixels pass is wrong about them); a later
+        frame that passes it gets the bit-depth warning."""
+        if "bit_depth" in self.meta or self._invert is not None or self._line is not None:
+            return
+        if self.dtype.kind not in "ui":
+            return
+        stored = first.tags.valueof(341 if self.dtype.kind == "i" else 281)
+        if stored is None:
+            return
+        top = int(np.max(stored))
+        bits = (top + 1).bit_length() - 1
+        if top <= 0 or top != (1 << bits) - 1 or not 8 <= bits < 8 * self.dtype.itemsize:
+            return
+        if int(self._read_tiff(0).max()) > top:
+            return
+        self.bits = self.meta["bit_depth"] = bits
+        self.meta["bit_depth_from"] = "MaxSampleValue" if self.dtype.kind == "u" else "SMaxSampleValue"
+
     def _check_tiff_proportion(self, first: int, stop: int) -> None:
         """Refuse compressed pages ``first``..``stop - 1`` (what one read decodes: a frame streamed,
         or every frame read() takes) decoding to far more than the bytes their strips or tiles
@@ -452,6 +498,15 @@ class FrameSource:
                 )
             elif sizes.get("C", 1) > 1 and others > 1:
                 what = f"an OME-TIFF of {sizes['C']} channels, {pages} images"
+        elif tif.is_shaped:
+            # tifffile's own files: one series per write, as an OME-TIFF's images, refused alike
+            series = [shape for shape, _ in _shaped_series(self._pages)]
+            if len(series) > 1 and not (len(set(series)) == 1 and len(series[0]) == 2):
+                shapes = ", ".join(str(shape) for shape in series[:4]) + (", ..." if len(series) > 4 else "")
+                what, advice = (
+                    f"a TIFF of {len(series)} images (series) of shapes {shapes} (tifffile makes one per write)",
+                    "save each image as its own file",
+                )
         if what:
             raise FormatError(self.path, f"{what}: not one stack of frames; {advice}")
 
@@ -509,6 +564,8 @@ class FrameSource:
         if self._line is not None:
             self.meta["imagej_calibration"] = {"c0": self._line[0], "c1": self._line[1]}
         self.meta.update(self._tiff_pixel_size(first))
+        self._tiff_max_sample_bits(first)
+        self._tiff_stacked()
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
@@ -1198,7 +1255,25 @@ class FrameSource:
     def _check_bits(self, frame) -> None:
         """The bit-depth warning (:func:`check_bit_depth`), once per open file, not once per frame."""
         if not self._bits_warned:
-            self._bits_warned = check_bit_depth(self.path, frame, self.bits)
+            self._bits_warned = check_bit_depth(self.path, frame, self.bits, swap_advice=self._swap_advice())
+
+    def _swap_advice(self) -> str:
+        """What the user can do about big-endian pixels in this file: ``byteorder=`` is refused
+        outside raw reads, so "try byteorder='>'" sent an ITEX user to a refusal."""
+        if self.format == "raw":
+            return RAW_SWAP_ADVICE
+        if self.format == "itex":
+            geo = self._geo
+            n, rows, cols, offset = geo["n"], geo["rows"], geo["cols"], geo["offset"]
+            advice = (
+                f"an ITEX header cannot say so: read the pixels as raw, "
+                f"read(..., format='raw', offset={offset}, shape=({n}, {rows}, {cols}), byteorder='>')"
+            )
+            if offset + n * rows * cols * geo["dtype"].itemsize == geo["file_size"]:
+                # the command line takes no frame count: the size gives it only when nothing follows the pixels
+                advice += f" (--format raw --offset {offset} --shape {rows} {cols} --byteorder '>')"
+            return advice
+        return "its writer swapped every word's bytes against the file's own byte order; swap them back (numpy's byteswap())"
 
     def __iter__(self):
         for i in range(self.n):
@@ -1402,6 +1477,53 @@ def _is_experiment(h5: h5py.File) -> bool:
     return h5.get(IMAGE_KEY, getlink=True) is not None or "frames_complete" in h5[ENTRY].attrs
 
 
+def _attr_text(value):
+    """A text attribute as str, however its writer stored it: bytes (fixed-length strings), or a
+    one-element array (h5py stores a list so; IDL and MATLAB writers do too). Anything else as is."""
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(-1)[0]
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    return str(value) if isinstance(value, np.str_) else value
+
+
+def _old_style_signal(data: h5py.Group) -> str | None:
+    """The dataset NeXus v1 marks ``@signal=1`` (on the dataset, not the group), when exactly one
+    is: older writers (and some still) mark the plotted data so, and NeXus readers follow it."""
+    marked = []
+    for name in data:
+        if not isinstance(data.get(name, getlink=True), h5py.HardLink) or not isinstance(data[name], h5py.Dataset):
+            continue
+        value = _attr_text(data[name].attrs.get("signal"))
+        try:
+            if value is not None and int(value) == 1:
+                marked.append(name)
+        except (TypeError, ValueError):
+            continue
+    return marked[0] if len(marked) == 1 else None
+
+
+def _shaped_series(pages) -> list[tuple[tuple, str]]:
+    """The (shape, axes) of each series of a tifffile-written file, from the JSON description
+    tifffile puts on a series' first page (axes "Q" where it gives none); none when a description
+    does not fit its page's rows and columns (the pixels rewritten since)."""
+    found = []
+    for page in pages:
+        desc = page.shaped_description
+        if not desc:
+            continue
+        try:
+            meta = strict_json.loads(desc)
+            shape = tuple(int(v) for v in meta["shape"])
+            axes = str(meta.get("axes") or "")
+        except (ValueError, TypeError, KeyError, AttributeError):  # the older "shape=(...)" form, or damaged
+            continue
+        if shape[-2:] != tuple(page.shape):  # a description another program left on other pixels
+            return []
+        found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
+    return found
+
+
 def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     """The frames a NeXus reader (silx, NeXpy) would plot: follow ``@default`` from the root to
     an NXentry and on to an NXdata (a name, or a path such as ``measurement/pco`` as silx follows),
@@ -1410,8 +1532,7 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     that the ``@signal`` names nothing there."""
 
     def follow(group, name):  # only hard links: nothing outside the file is ever followed
-        if isinstance(name, bytes):
-            name = name.decode("utf-8", "replace")
+        name = _attr_text(name)
         if not isinstance(name, str) or not name.strip("/"):
             return None
         node = group.file if name.startswith("/") else group
@@ -1434,9 +1555,9 @@ def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
     data = entry if entry is not None and _nx_class(entry) == "NXdata" else None
     if data is None and entry is not None:
         data = child(entry, "NXdata")
-    signal = data.attrs.get("signal") if data is not None else None
-    if isinstance(signal, bytes):
-        signal = signal.decode("utf-8", "replace")
+    signal = _attr_text(data.attrs.get("signal")) if data is not None else None
+    if signal is None and data is not None:
+        signal = _old_style_signal(data)
     if isinstance(signal, str) and data.get(signal, getlink=True) is None:
         return None, f"NeXus {data.name}@signal names {signal!r}, which {data.name} does not hold"
     # a soft link stays inside the file (radiokit's experiment NXdata and NXtomo's link their
