@@ -1775,10 +1775,14 @@ class L8121:
             switch = self.switch_at_connect = value
             if switch != "REMOTE" and self.control:
                 self._read_state_for_the_record()
-                raise DeviceError(
+                err = DeviceError(
                     f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"
                 )
+                # the refused connect's XOF, refused alike, ends on an error naming the switch too:
+                # a command line that says that one says everything this one does (one line, not two)
+                err.operate_switch = switch
+                raise err
 
     def _read_state_for_the_record(self) -> None:
         """Before a connect is refused (another model, B's operate switch off REMOTE): ``STS``
@@ -2882,7 +2886,9 @@ class L8121:
             switch = self.operate_switch()
         except DeviceError:
             return ""
-        return f"; the operate switch is {switch}" if switch != "REMOTE" else ""
+        if switch == "REMOTE":
+            return ""
+        return f"; the operate switch is {switch} (SRL): remote commands are refused until it is turned to REMOTE"
 
     def _off_quietly(self) -> None:
         """Best-effort off on an error path: log, never raise over the original exception."""

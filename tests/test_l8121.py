@@ -2391,6 +2391,35 @@ def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(swi
         assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
 
 
+@pytest.mark.parametrize("dialect_", ["B", "auto"])
+@pytest.mark.parametrize("action", ["off", "on"])
+def test_cli_source_command_with_b_operate_switch_local_and_x_rays_on_says_one_error_line(dialect_, action, capsys):
+    """Found (hostile trial, LOW): X-rays on, B's operate switch then turned to LOCAL: `source off`
+    printed two `error:` lines -- the connect's refusal (operate switch LOCAL) and the refused
+    switch-off's (could not confirm, the operate switch is LOCAL) -- which say one thing. One line
+    that names the switch, how to fix it and that X-rays are not confirmed off, then the warning."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect_]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.set_operate_switch("LOCAL")
+        capsys.readouterr()
+        more = ["--kv", "60", "--ua", "250"] if action == "on" else []
+        assert main(["acquire", "source", action, *port, *more]) == 3
+        err = capsys.readouterr().err.strip().splitlines()
+        errors = [line for line in err if line.startswith("error:")]
+        assert len(errors) == 1, err
+        assert "could not confirm X-rays off" in errors[0] and "operate switch is LOCAL" in errors[0]
+        assert "REMOTE" in errors[0] and "switch the source off at the controller" in errors[0]
+        assert err[-1] == TUBE_WARNING
+        assert model.xray_on  # refused: nothing else could be done from here
+        model.set_operate_switch("REMOTE")
+        assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
+
+
 # -- STS answered ERROR (B's pre-heating word, A's refusal) ----------------------------------------
 def test_emulator_can_answer_sts_with_error(dialect):
     """L8121.md lists ERROR among B's STS words (pre-heating); the emulator never used it. The
