@@ -1002,8 +1002,9 @@ def probe(
 
     At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too
     (a unit that answers ``STS 2`` and ``INTER LOCK ON`` fits neither), then the identity or state
-    queries of that dialect (A: ``TYP``, ``SWE``; B: ``SRL``, ``DAG``). Stops at the first baud
-    rate where the replies fit a dialect. Only queries in :data:`PROBE_QUERIES` are sent.
+    queries of that dialect (A: ``TYP``, ``SWE``; B: ``SRL``, ``DAG``). An ``STS`` or ``SIN`` reply
+    that fits no dialect (one garbled by noise) is asked again, once, before it counts. Stops at
+    the first baud rate where the replies fit a dialect. Only queries in :data:`PROBE_QUERIES` are sent.
 
     Parameters
     ----------
@@ -1088,6 +1089,17 @@ def _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, 
     return ProbeResult(port, None, None, None, (), tuple(exchange), tuple(notes))
 
 
+def _fits(dialect: Dialect, name: str, reply: str | None) -> bool:
+    """Whether ``reply`` parses as ``dialect``'s reading ``name``."""
+    if reply is None:
+        return False
+    try:
+        dialect.readings[name].parse(reply)
+        return True
+    except ValueError:
+        return False
+
+
 def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None):
     seen = {} if seen is None else seen  # for an interrupt: the dialect and state read
 
@@ -1101,27 +1113,30 @@ def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None)
         exchange.append(ProbeExchange(baud, command, reply))
         return reply
 
-    def fits(dialect: Dialect, name: str, reply: str | None) -> bool:
-        if reply is None:
-            return False
-        try:
-            dialect.readings[name].parse(reply)
-            return True
-        except ValueError:
-            return False
+    def ask_fitting(command: str, name: str, dialects) -> str | None:
+        """``ask``; a reply that fits none of ``dialects`` is asked again, once: one garbled reply
+        (noise on the line) ended the probe as "neither dialect", and a connect with it. A second
+        misfit is the answer (a silence is not asked again: a wrong rate would cost a time-out more)."""
+        reply = ask(command)
+        if reply is None or any(_fits(d, name, reply) for d in dialects):
+            return reply
+        again = ask(command)
+        if any(_fits(d, name, again) for d in dialects):
+            notes.append(f"{command} answered {reply!r} at {baud} baud, then {again!r} when asked again")
+        return again
 
-    sts = ask("STS")
+    sts = ask_fitting("STS", "state", (DIALECT_A, DIALECT_B))
     if sts is None:
         return None
-    candidates = [d for d in (DIALECT_A, DIALECT_B) if fits(d, "state", sts)]
+    candidates = [d for d in (DIALECT_A, DIALECT_B) if _fits(d, "state", sts)]
     if not candidates:
         notes.append(f"STS answered {sts!r} at {baud} baud")
         return None
     dialect = candidates[0]
     seen["dialect"], seen["state"] = dialect.name, dialect.readings["state"].parse(sts)
-    sin = ask("SIN")
-    if not fits(dialect, "interlock_closed", sin):
-        other = [d.name for d in DIALECTS.values() if d is not dialect and fits(d, "interlock_closed", sin)]
+    sin = ask_fitting("SIN", "interlock_closed", (dialect,))
+    if not _fits(dialect, "interlock_closed", sin):
+        other = [d.name for d in DIALECTS.values() if d is not dialect and _fits(d, "interlock_closed", sin)]
         mix = f" (dialect {other[0]}'s shape: a mix of dialects)" if other else ""
         notes.append(f"STS {sts!r} fits dialect {dialect.name} but SIN answered {sin!r}{mix} at {baud} baud")
         return None
@@ -1131,21 +1146,21 @@ def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None)
     identity = None
     if dialect is DIALECT_A:
         typ = ask("TYP")
-        if fits(dialect, "identity", typ):
+        if _fits(dialect, "identity", typ):
             identity = dialect.readings["identity"].parse(typ)
         else:
             notes.append(f"TYP answered {typ!r}: identity unknown")
         swe = ask("SWE")
-        if fits(dialect, "warmup", swe):
+        if _fits(dialect, "warmup", swe):
             details.append(("warm-up", dialect.readings["warmup"].parse(swe).name))
     else:
         srl = ask("SRL")
-        if fits(dialect, "operate_switch", srl):
+        if _fits(dialect, "operate_switch", srl):
             details.append(("operate switch", srl))
             if srl != "REMOTE":
                 notes.append(f"the operate switch is {srl}: remote control needs REMOTE")
         dag = ask("DAG")
-        if fits(dialect, "warmup", dag):
+        if _fits(dialect, "warmup", dag):
             details.append(("warm-up", "done" if dialect.readings["warmup"].parse(dag).done else "needed (YET)"))
     return dialect.name, identity, tuple(details)
 

@@ -2011,6 +2011,31 @@ def test_auto_says_so_when_the_operate_switch_is_local():
     assert not model.xray_on
 
 
+@pytest.mark.parametrize("command", ["STS", "SIN"])
+def test_probe_asks_again_once_after_one_garbled_reply(dialect, command, capsys):
+    """Found (hostile trial, LOW): one garbled STS reply (noise on the line) ended the probe -- at
+    this rate "fits neither dialect", the next rates junk -- and `source status` ended on exit 3
+    with the advice to probe. A reply that fits no dialect is asked again, once (the probe's
+    queries are harmless); a unit that answers so twice still fits neither."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    with PtyServer(model) as server:
+        model.garble_once(command)
+        result = probe(server.url, baudrates=BAUDS, timeout_s=0.5, min_interval_s=0.02)
+        assert result.dialect == dialect and result.baudrate == 9600, result.report()
+        assert [e.sent for e in result.exchange].count(command) == 2
+        assert f"{command} answered" in result.report() and "when asked again" in result.report()
+        assert set(model.commands) <= PROBE_QUERIES  # never an X-ray command
+        model.garble_once(command)
+        assert main(["acquire", "source", "status", "--port", server.url]) == 0
+        assert "state STANDBY" in capsys.readouterr().out
+        model.garbage()  # every reply: asked twice, then neither dialect, as before
+        result = probe(server.url, baudrates=(9600,), timeout_s=0.5, min_interval_s=0.02)
+        assert not result.found and [e.sent for e in result.exchange] == ["STS", "STS"]
+    assert not {c.split()[0] for c in model.commands} & {"XON", "WUP", "HIV", "CUR", "PHV", "PCU", "RST"}
+
+
 def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     from radiokit.cli import main
 
