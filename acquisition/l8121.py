@@ -155,6 +155,15 @@ class SourceState(IntEnum):
         return self in (SourceState.XRAY_ON, SourceState.WARMING_UP)
 
     @property
+    def said(self) -> str:
+        """The state for an operator's message: its name, but B's ``STS ERROR`` with both of its
+        readings, since the driver cannot tell which (called pre-heating alone, a refused query
+        while the beam was on read as a beam that had dropped)."""
+        if self is SourceState.PREHEATING:
+            return "ERROR (PREHEATING, or a refused query: dialect B does not say which)"
+        return self.name
+
+    @property
     def confirms_off(self) -> bool:
         """Whether this state shows the tube cannot emit (what confirms a switch-off; B's
         ambiguous ``ERROR`` does not)."""
@@ -2470,7 +2479,7 @@ class L8121:
                     self._warm_up_stopped(elapsed, seen_running)
             if elapsed > timeout_s:
                 raise DeviceError(
-                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
+                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.said}); X-rays switched off"
                 )
             time.sleep(self.config.poll_s)
 
@@ -2662,6 +2671,8 @@ class L8121:
             interlock_closed = self.interlock_closed()
         if not interlock_closed:
             return "interlock open"
+        if state == SourceState.PREHEATING:  # not a state the beam is known to be off in
+            return f"STS {state.said} instead of XON: the beam may have dropped or be on still"
         if state != SourceState.XRAY_ON:
             return f"beam dropped: state {state.name} instead of XRAY_ON"
         if not ramping and beam is not None:
@@ -2691,7 +2702,7 @@ class L8121:
                 why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=closed, beam=beam)
             except DeviceError:
                 why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=True, beam=beam)
-            return why or f"beam fault: state {state.name}, measured {kv:g} kV {ua:g} µA"
+            return why or f"beam fault: state {state.said}, measured {kv:g} kV {ua:g} µA"
 
         return reason
 
@@ -2888,7 +2899,7 @@ class L8121:
                 return None, exc, silent and isinstance(exc, NoReply)
             if state in _OFF_STATES:
                 return state, last, False
-            last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
+            last = DeviceError(f"{self.port}: STS still {state.said} after XOF")
             if time.monotonic() + self.config.poll_s > until:
                 return None, last, False
             time.sleep(self.config.poll_s)

@@ -2470,7 +2470,10 @@ def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dial
     n = len(model.log)
     try:
         if dialect == "B":
-            with pytest.raises(SourceFault, match=r"state PREHEATING.*switching X-rays off could not be confirmed"):
+            with pytest.raises(
+                SourceFault,
+                match=r"STS ERROR \(PREHEATING, or a refused query.*switching X-rays off could not be confirmed",
+            ):
                 src.check()
         else:
             src.check()  # SAR: the beam reads on, as it is
@@ -2481,6 +2484,34 @@ def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dial
         assert "XOF" in after and "STS" in after[after.index("XOF") :] and not model.xray_on
     finally:
         src.detach()
+
+
+@pytest.mark.parametrize("when", ["check", "ramp"])
+def test_b_sts_error_during_an_exposure_says_pre_heating_or_refused(when):
+    """Found (hostile trial, LOW): B's STS ERROR while the beam was on was reported "beam dropped:
+    state PREHEATING", and the switch-off's "STS still PREHEATING after XOF": ERROR is both the
+    notes' pre-heating and how B refuses a query, and the driver cannot tell which. The messages
+    say both (and that the beam may be on still); the tube is switched off all the same."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.5 if when == "ramp" else RAMP_S)
+    with PtyServer(model) as server:
+        src = driver(server, "B", off_confirm_s=0.3)
+        try:
+            if when == "ramp":
+                model.inject_after("XON", model.sts_error)
+                call = lambda: src.on(60, 250)
+            else:
+                src.on(60, 250)
+                model.sts_error()
+                call = src.check
+            with pytest.raises(SourceFault) as info:
+                call()
+            text = str(info.value)
+            assert "beam dropped" not in text and "state PREHEATING" not in text, text
+            assert "STS ERROR (PREHEATING, or a refused query" in text, text
+            assert "still ERROR (PREHEATING, or a refused query" in text, text  # the unconfirmed switch-off
+            assert src.off_failed is not None and "XOF" in model.commands and not model.xray_on
+        finally:
+            src.detach()
 
 
 @pytest.mark.parametrize("action", ["on", "warm_up"])
