@@ -655,11 +655,22 @@ def _source_command(args, guard) -> int:
             src.close()
         return code
     except (DeviceError, ValueError) as exc:
-        _say(f"error: {_cli_terms(str(exc), args.port)}")
+        _say(f"error: {_cli_terms(str(_one_fault(exc, src)), args.port)}")
         if getattr(exc, "guardian_gone", False):
             guard.cleanup()  # a switch-off nobody confirmed: a signal must not cut it short
             _off_anyway(src)  # its outcome the last line; not confirmed, the exit rule's warning
         return _source_error_code(exc, src, args)
+
+
+def _one_fault(exc, src):
+    """What a source command's error line says for ``exc``: ``exc``, or, when B's operate switch
+    off REMOTE refused the connect and then its XOF, the switch-off's error, which names the
+    switch and what to do, and says the tube is not confirmed off. The connect's said only the
+    first half, and on a line of its own: two `error:` lines for one fault."""
+    failed = getattr(src, "off_failed", None)
+    if getattr(exc, "operate_switch", None) and failed is not None and "operate switch is" in str(failed):
+        return failed
+    return exc
 
 
 def _interrupted_connect(exc) -> str:

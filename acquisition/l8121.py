@@ -155,6 +155,15 @@ class SourceState(IntEnum):
         return self in (SourceState.XRAY_ON, SourceState.WARMING_UP)
 
     @property
+    def said(self) -> str:
+        """The state for an operator's message: its name, but B's ``STS ERROR`` with both of its
+        readings, since the driver cannot tell which (called pre-heating alone, a refused query
+        while the beam was on read as a beam that had dropped)."""
+        if self is SourceState.PREHEATING:
+            return "ERROR (PREHEATING, or a refused query: dialect B does not say which)"
+        return self.name
+
+    @property
     def confirms_off(self) -> bool:
         """Whether this state shows the tube cannot emit (what confirms a switch-off; B's
         ambiguous ``ERROR`` does not)."""
@@ -1002,8 +1011,9 @@ def probe(
 
     At each baud rate in turn: ``STS``; if its reply has the shape of one dialect, ``SIN`` must too
     (a unit that answers ``STS 2`` and ``INTER LOCK ON`` fits neither), then the identity or state
-    queries of that dialect (A: ``TYP``, ``SWE``; B: ``SRL``, ``DAG``). Stops at the first baud
-    rate where the replies fit a dialect. Only queries in :data:`PROBE_QUERIES` are sent.
+    queries of that dialect (A: ``TYP``, ``SWE``; B: ``SRL``, ``DAG``). An ``STS`` or ``SIN`` reply
+    that fits no dialect (one garbled by noise) is asked again, once, before it counts. Stops at
+    the first baud rate where the replies fit a dialect. Only queries in :data:`PROBE_QUERIES` are sent.
 
     Parameters
     ----------
@@ -1088,6 +1098,17 @@ def _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, 
     return ProbeResult(port, None, None, None, (), tuple(exchange), tuple(notes))
 
 
+def _fits(dialect: Dialect, name: str, reply: str | None) -> bool:
+    """Whether ``reply`` parses as ``dialect``'s reading ``name``."""
+    if reply is None:
+        return False
+    try:
+        dialect.readings[name].parse(reply)
+        return True
+    except ValueError:
+        return False
+
+
 def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None):
     seen = {} if seen is None else seen  # for an interrupt: the dialect and state read
 
@@ -1101,27 +1122,30 @@ def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None)
         exchange.append(ProbeExchange(baud, command, reply))
         return reply
 
-    def fits(dialect: Dialect, name: str, reply: str | None) -> bool:
-        if reply is None:
-            return False
-        try:
-            dialect.readings[name].parse(reply)
-            return True
-        except ValueError:
-            return False
+    def ask_fitting(command: str, name: str, dialects) -> str | None:
+        """``ask``; a reply that fits none of ``dialects`` is asked again, once: one garbled reply
+        (noise on the line) ended the probe as "neither dialect", and a connect with it. A second
+        misfit is the answer (a silence is not asked again: a wrong rate would cost a time-out more)."""
+        reply = ask(command)
+        if reply is None or any(_fits(d, name, reply) for d in dialects):
+            return reply
+        again = ask(command)
+        if any(_fits(d, name, again) for d in dialects):
+            notes.append(f"{command} answered {reply!r} at {baud} baud, then {again!r} when asked again")
+        return again
 
-    sts = ask("STS")
+    sts = ask_fitting("STS", "state", (DIALECT_A, DIALECT_B))
     if sts is None:
         return None
-    candidates = [d for d in (DIALECT_A, DIALECT_B) if fits(d, "state", sts)]
+    candidates = [d for d in (DIALECT_A, DIALECT_B) if _fits(d, "state", sts)]
     if not candidates:
         notes.append(f"STS answered {sts!r} at {baud} baud")
         return None
     dialect = candidates[0]
     seen["dialect"], seen["state"] = dialect.name, dialect.readings["state"].parse(sts)
-    sin = ask("SIN")
-    if not fits(dialect, "interlock_closed", sin):
-        other = [d.name for d in DIALECTS.values() if d is not dialect and fits(d, "interlock_closed", sin)]
+    sin = ask_fitting("SIN", "interlock_closed", (dialect,))
+    if not _fits(dialect, "interlock_closed", sin):
+        other = [d.name for d in DIALECTS.values() if d is not dialect and _fits(d, "interlock_closed", sin)]
         mix = f" (dialect {other[0]}'s shape: a mix of dialects)" if other else ""
         notes.append(f"STS {sts!r} fits dialect {dialect.name} but SIN answered {sin!r}{mix} at {baud} baud")
         return None
@@ -1131,21 +1155,21 @@ def _probe_at(link, baud, exchange: list, notes: list, seen: dict | None = None)
     identity = None
     if dialect is DIALECT_A:
         typ = ask("TYP")
-        if fits(dialect, "identity", typ):
+        if _fits(dialect, "identity", typ):
             identity = dialect.readings["identity"].parse(typ)
         else:
             notes.append(f"TYP answered {typ!r}: identity unknown")
         swe = ask("SWE")
-        if fits(dialect, "warmup", swe):
+        if _fits(dialect, "warmup", swe):
             details.append(("warm-up", dialect.readings["warmup"].parse(swe).name))
     else:
         srl = ask("SRL")
-        if fits(dialect, "operate_switch", srl):
+        if _fits(dialect, "operate_switch", srl):
             details.append(("operate switch", srl))
             if srl != "REMOTE":
                 notes.append(f"the operate switch is {srl}: remote control needs REMOTE")
         dag = ask("DAG")
-        if fits(dialect, "warmup", dag):
+        if _fits(dialect, "warmup", dag):
             details.append(("warm-up", "done" if dialect.readings["warmup"].parse(dag).done else "needed (YET)"))
     return dialect.name, identity, tuple(details)
 
@@ -1775,10 +1799,14 @@ class L8121:
             switch = self.switch_at_connect = value
             if switch != "REMOTE" and self.control:
                 self._read_state_for_the_record()
-                raise DeviceError(
+                err = DeviceError(
                     f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"
                 )
+                # the refused connect's XOF, refused alike, ends on an error naming the switch too:
+                # a command line that says that one says everything this one does (one line, not two)
+                err.operate_switch = switch
+                raise err
 
     def _read_state_for_the_record(self) -> None:
         """Before a connect is refused (another model, B's operate switch off REMOTE): ``STS``
@@ -2451,7 +2479,7 @@ class L8121:
                     self._warm_up_stopped(elapsed, seen_running)
             if elapsed > timeout_s:
                 raise DeviceError(
-                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.name}); X-rays switched off"
+                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.said}); X-rays switched off"
                 )
             time.sleep(self.config.poll_s)
 
@@ -2643,6 +2671,8 @@ class L8121:
             interlock_closed = self.interlock_closed()
         if not interlock_closed:
             return "interlock open"
+        if state == SourceState.PREHEATING:  # not a state the beam is known to be off in
+            return f"STS {state.said} instead of XON: the beam may have dropped or be on still"
         if state != SourceState.XRAY_ON:
             return f"beam dropped: state {state.name} instead of XRAY_ON"
         if not ramping and beam is not None:
@@ -2672,7 +2702,7 @@ class L8121:
                 why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=closed, beam=beam)
             except DeviceError:
                 why = self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=True, beam=beam)
-            return why or f"beam fault: state {state.name}, measured {kv:g} kV {ua:g} µA"
+            return why or f"beam fault: state {state.said}, measured {kv:g} kV {ua:g} µA"
 
         return reason
 
@@ -2869,7 +2899,7 @@ class L8121:
                 return None, exc, silent and isinstance(exc, NoReply)
             if state in _OFF_STATES:
                 return state, last, False
-            last = DeviceError(f"{self.port}: STS still {state.name} after XOF")
+            last = DeviceError(f"{self.port}: STS still {state.said} after XOF")
             if time.monotonic() + self.config.poll_s > until:
                 return None, last, False
             time.sleep(self.config.poll_s)
@@ -2882,7 +2912,9 @@ class L8121:
             switch = self.operate_switch()
         except DeviceError:
             return ""
-        return f"; the operate switch is {switch}" if switch != "REMOTE" else ""
+        if switch == "REMOTE":
+            return ""
+        return f"; the operate switch is {switch} (SRL): remote commands are refused until it is turned to REMOTE"
 
     def _off_quietly(self) -> None:
         """Best-effort off on an error path: log, never raise over the original exception."""

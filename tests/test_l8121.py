@@ -2011,6 +2011,31 @@ def test_auto_says_so_when_the_operate_switch_is_local():
     assert not model.xray_on
 
 
+@pytest.mark.parametrize("command", ["STS", "SIN"])
+def test_probe_asks_again_once_after_one_garbled_reply(dialect, command, capsys):
+    """Found (hostile trial, LOW): one garbled STS reply (noise on the line) ended the probe -- at
+    this rate "fits neither dialect", the next rates junk -- and `source status` ended on exit 3
+    with the advice to probe. A reply that fits no dialect is asked again, once (the probe's
+    queries are harmless); a unit that answers so twice still fits neither."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    with PtyServer(model) as server:
+        model.garble_once(command)
+        result = probe(server.url, baudrates=BAUDS, timeout_s=0.5, min_interval_s=0.02)
+        assert result.dialect == dialect and result.baudrate == 9600, result.report()
+        assert [e.sent for e in result.exchange].count(command) == 2
+        assert f"{command} answered" in result.report() and "when asked again" in result.report()
+        assert set(model.commands) <= PROBE_QUERIES  # never an X-ray command
+        model.garble_once(command)
+        assert main(["acquire", "source", "status", "--port", server.url]) == 0
+        assert "state STANDBY" in capsys.readouterr().out
+        model.garbage()  # every reply: asked twice, then neither dialect, as before
+        result = probe(server.url, baudrates=(9600,), timeout_s=0.5, min_interval_s=0.02)
+        assert not result.found and [e.sent for e in result.exchange] == ["STS", "STS"]
+    assert not {c.split()[0] for c in model.commands} & {"XON", "WUP", "HIV", "CUR", "PHV", "PCU", "RST"}
+
+
 def test_cli_source_probe_prints_the_result_and_the_exchange(dialect, capsys):
     from radiokit.cli import main
 
@@ -2391,6 +2416,35 @@ def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(swi
         assert "state STANDBY" in out and f"the operate switch is {switch}" in out.splitlines()[-1]
 
 
+@pytest.mark.parametrize("dialect_", ["B", "auto"])
+@pytest.mark.parametrize("action", ["off", "on"])
+def test_cli_source_command_with_b_operate_switch_local_and_x_rays_on_says_one_error_line(dialect_, action, capsys):
+    """Found (hostile trial, LOW): X-rays on, B's operate switch then turned to LOCAL: `source off`
+    printed two `error:` lines -- the connect's refusal (operate switch LOCAL) and the refused
+    switch-off's (could not confirm, the operate switch is LOCAL) -- which say one thing. One line
+    that names the switch, how to fix it and that X-rays are not confirmed off, then the warning."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect_]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.set_operate_switch("LOCAL")
+        capsys.readouterr()
+        more = ["--kv", "60", "--ua", "250"] if action == "on" else []
+        assert main(["acquire", "source", action, *port, *more]) == 3
+        err = capsys.readouterr().err.strip().splitlines()
+        errors = [line for line in err if line.startswith("error:")]
+        assert len(errors) == 1, err
+        assert "could not confirm X-rays off" in errors[0] and "operate switch is LOCAL" in errors[0]
+        assert "REMOTE" in errors[0] and "switch the source off at the controller" in errors[0]
+        assert err[-1] == TUBE_WARNING
+        assert model.xray_on  # refused: nothing else could be done from here
+        model.set_operate_switch("REMOTE")
+        assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
+
+
 # -- STS answered ERROR (B's pre-heating word, A's refusal) ----------------------------------------
 def test_emulator_can_answer_sts_with_error(dialect):
     """L8121.md lists ERROR among B's STS words (pre-heating); the emulator never used it. The
@@ -2416,7 +2470,10 @@ def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dial
     n = len(model.log)
     try:
         if dialect == "B":
-            with pytest.raises(SourceFault, match=r"state PREHEATING.*switching X-rays off could not be confirmed"):
+            with pytest.raises(
+                SourceFault,
+                match=r"STS ERROR \(PREHEATING, or a refused query.*switching X-rays off could not be confirmed",
+            ):
                 src.check()
         else:
             src.check()  # SAR: the beam reads on, as it is
@@ -2427,6 +2484,34 @@ def test_sts_error_while_on_switches_off_and_says_it_is_not_confirmed(warm, dial
         assert "XOF" in after and "STS" in after[after.index("XOF") :] and not model.xray_on
     finally:
         src.detach()
+
+
+@pytest.mark.parametrize("when", ["check", "ramp"])
+def test_b_sts_error_during_an_exposure_says_pre_heating_or_refused(when):
+    """Found (hostile trial, LOW): B's STS ERROR while the beam was on was reported "beam dropped:
+    state PREHEATING", and the switch-off's "STS still PREHEATING after XOF": ERROR is both the
+    notes' pre-heating and how B refuses a query, and the driver cannot tell which. The messages
+    say both (and that the beam may be on still); the tube is switched off all the same."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.5 if when == "ramp" else RAMP_S)
+    with PtyServer(model) as server:
+        src = driver(server, "B", off_confirm_s=0.3)
+        try:
+            if when == "ramp":
+                model.inject_after("XON", model.sts_error)
+                call = lambda: src.on(60, 250)
+            else:
+                src.on(60, 250)
+                model.sts_error()
+                call = src.check
+            with pytest.raises(SourceFault) as info:
+                call()
+            text = str(info.value)
+            assert "beam dropped" not in text and "state PREHEATING" not in text, text
+            assert "STS ERROR (PREHEATING, or a refused query" in text, text
+            assert "still ERROR (PREHEATING, or a refused query" in text, text  # the unconfirmed switch-off
+            assert src.off_failed is not None and "XOF" in model.commands and not model.xray_on
+        finally:
+            src.detach()
 
 
 @pytest.mark.parametrize("action", ["on", "warm_up"])

@@ -11,7 +11,8 @@ commands ``ERR``/``ERROR``) or ``dialect="B"`` (``STS`` words, ``INTER LOCK ON``
 
 Faults, injected from any thread, now or at a given model time, in both dialects:
 :meth:`~L8121Model.open_interlock`, :meth:`~L8121Model.overload`, :meth:`~L8121Model.drop_beam`,
-:meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`,
+:meth:`~L8121Model.stuck_on`, :meth:`~L8121Model.silence`, :meth:`~L8121Model.garbage`
+(:meth:`~L8121Model.garble_once`: one reply),
 :meth:`~L8121Model.sts_error` (``STS`` answered ``ERROR``: B's pre-heating word, A's refusal),
 :meth:`~L8121Model.slow`, :meth:`~L8121Model.delay_once` (one reply after the client's time-out), :meth:`~L8121Model.hold_once` (one reply held until the client's next line),
 :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
@@ -208,6 +209,7 @@ class L8121Model:
         self._delay_s = 0.0
         self._delay_once: tuple[float, str | None] | None = None
         self._hold_once: tuple[str | None] | None = None  # (command or None for any), once
+        self._garble_once: tuple[str | None] | None = None  # (command or None for any), once
         self._off_delay_s, self._ramping_down = 0.0, False
         self._log: list[Exchange] = []
         self._after: dict[str, Callable[[], object]] = {}
@@ -465,6 +467,13 @@ class L8121Model:
         with self._lock:
             self._garbage = bool(on)
 
+    def garble_once(self, command: str | None = None) -> None:
+        """Answer one command (the next one, or the next ``command``, a command word such as
+        ``"STS"``) with random junk instead of its reply, executed as usual: noise on the line,
+        once (:meth:`garbage` garbles every reply)."""
+        with self._lock:
+            self._garble_once = (command,)
+
     def foreign(self, on: bool = True) -> None:
         """Answer every line with ``OK`` and execute nothing: another instrument on the port, which
         speaks neither dialect."""
@@ -554,6 +563,10 @@ class L8121Model:
                 reply = "OK"
             else:
                 reply = self._execute(line, t)
+                once = self._garble_once
+                if once is not None and once[0] in (None, (line.split() or [""])[0]):
+                    self._garble_once = None
+                    reply = "".join(self._rng.choice(_JUNK) for _ in range(self._rng.randint(1, 12)))
                 if self._garbage:
                     reply = "".join(self._rng.choice(_JUNK) for _ in range(self._rng.randint(1, 12)))
             exchange = Exchange(t, line, reply, understood)
