@@ -133,6 +133,8 @@ def _summary(meta: dict) -> dict:
         x, y = (float(f"{v * 1e3:.6g}") for v in (meta["x_pixel_size"], meta.get("y_pixel_size", meta["x_pixel_size"])))
         # a number, as a raw preset's is (JSON readers get one type); (x, y) where they differ
         out["pixel_size_mm"] = x if math.isclose(x, y, rel_tol=1e-6) else [x, y]
+    elif out.get("pixel_size_mm") is None and meta.get("pixel_size_unusable"):  # read and ignored: why
+        out["pixel_size"] = f"unusable, {meta['pixel_size_unusable']}"
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 

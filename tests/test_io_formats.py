@@ -1906,3 +1906,21 @@ def test_ome_planes_mapped_to_ifds_out_of_file_order_read_in_ome_order(tmp_path)
 
     with open_frames(path) as src:
         np.testing.assert_array_equal(np.stack(list(src)), stack)
+
+
+@pytest.mark.parametrize("how, suffix", [("imagej-mm", ".tif"), ("ome", ".ome.tif"), ("nexus", ".nxs")])
+@pytest.mark.parametrize("mm", [1e3, 1e-6])
+def test_a_stated_pixel_size_no_panel_has_is_ignored_with_a_note(tmp_path, how, suffix, mm):
+    """An experiment file's pitch must lie in 0.1 um..10 mm; ImageJ's, OME's and an NXdetector's
+    had no such check: `info` showed pixel_size_mm 1e+27 and `register` refused a pair on it. Such
+    a value is ignored with a one-line note (info says it is unusable), and the image is read."""
+    path = _stated_pixel(tmp_path / f"odd{suffix}", how, mm)
+    with pytest.warns(UserWarning, match="pixel size.*ignored") as caught:
+        frames = read(path)
+    assert len([w for w in caught if "pixel size" in str(w.message)]) == 1
+    assert not {"x_pixel_size", "y_pixel_size", "pixel_size_mm"} & set(frames.meta)
+    info = run_cli("info", path)
+    assert info.returncode == 0 and "pixel_size_mm" not in info.stdout and "unusable" in info.stdout, info.stdout
+    fine = _stated_pixel(tmp_path / f"fine{suffix}", how, 0.05)
+    res = run_cli("register", fine, path, "-o", tmp_path / "reg.h5")
+    assert "pixels of" not in res.stderr and "mm" not in res.stderr, res.stderr

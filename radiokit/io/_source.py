@@ -32,6 +32,7 @@ from radiokit.io._experiment import (
     read_bit_depth,
     read_experiment_meta,
     read_pixel_sizes,
+    usable_pixel_sizes,
 )
 from radiokit.io._frames import Frames, check_bit_depth
 from radiokit.io._itex import (
@@ -523,6 +524,7 @@ class FrameSource:
         detector's pitch, and is not taken. Why: ``register`` holds two images to one pitch only
         where both files record it, and this was read from experiment files alone."""
         x = y = None
+        where = "ImageJ's unit and resolution" if self._tif.is_imagej else "OME's PhysicalSizeX/Y"
         if self._tif.is_imagej:
             unit = _TIFF_LENGTH_M.get(str((self._tif.imagej_metadata or {}).get("unit", "")).strip())
             if unit is not None:
@@ -532,9 +534,7 @@ class FrameSource:
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             x, y = y, x
         out = {name: v for name, v in (("x_pixel_size", x), ("y_pixel_size", y)) if v is not None}
-        if "x_pixel_size" in out:
-            out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
-        return out
+        return usable_pixel_sizes(self.path, where, out) if out else {}
 
     def _check_ifd_chain(self, pages):
         """Everything the IFDs point at must lie inside the file.
@@ -1716,7 +1716,7 @@ def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None]:
             value = float(pixels.get(f"PhysicalSize{axis}", "nan")) * (unit or math.nan)
         except ValueError:
             value = math.nan
-        sizes.append(value if math.isfinite(value) and value > 0 else None)
+        sizes.append(None if pixels.get(f"PhysicalSize{axis}") is None else value)
     return sizes[0], sizes[1]
 
 
