@@ -1701,7 +1701,22 @@ def check_same_pixel_size(path, meta: dict, other, other_meta: dict, rule: str) 
 
 
 #: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says
-_LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "\u00b5m": 1e-6, "micron": 1e-6, "nm": 1e-9}
+#: (and OME's): the micro sign or Greek mu, the angstrom as OME's symbol, Unicode's or a word
+_LENGTH_UNITS_M = {
+    "m": 1.0,
+    "cm": 1e-2,
+    "mm": 1e-3,
+    "um": 1e-6,
+    "\u00b5m": 1e-6,
+    "\u03bcm": 1e-6,
+    "micron": 1e-6,
+    "microns": 1e-6,
+    "nm": 1e-9,
+    "\u00c5": 1e-10,
+    "\u212b": 1e-10,
+    "angstrom": 1e-10,
+    "Angstrom": 1e-10,
+}
 
 
 def _pixel_metres(path, name: str, ds) -> float:
