@@ -138,6 +138,8 @@ def _summary(meta: dict) -> dict:
         x, y = (float(f"{v * 1e3:.6g}") for v in (meta["x_pixel_size"], meta.get("y_pixel_size", meta["x_pixel_size"])))
         # a number, as a raw preset's is (JSON readers get one type); (x, y) where they differ
         out["pixel_size_mm"] = x if math.isclose(x, y, rel_tol=1e-6) else [x, y]
+    elif out.get("pixel_size_mm") is None and meta.get("pixel_size_unusable"):  # read and ignored: why
+        out["pixel_size"] = f"unusable, {meta['pixel_size_unusable']}"
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
@@ -810,11 +812,19 @@ def _check_process_files(args) -> None:
 #: preset): with the default 600 x 600 crop 488 MB at 1024 x 1024, 814 MB at 2048 x 2048, 106 bytes a
 #: frame pixel; keeping the whole frame (--crop-mm 0) 649 MB and 1385 MB, 240 bytes, so 134 more a
 #: kept pixel. tracemalloc's peak of the same runs (numpy's share) split them 71 + 162 (232); each
-#: figure is the larger, rounded up. A file of more steps holds more (a step's image and two more
-#: pairs' crops each): not measured.
+#: figure is the larger, rounded up. A file of more steps holds more: PROCESS_BYTES_PER_STEP_PIXEL.
 PROCESS_BYTES_PER_PIXEL = 110
 #: process's peak memory per pixel of the crop it keeps (the enhanced images, fields, figures)
 PROCESS_BYTES_PER_KEPT_PIXEL = 170
+#: the steps the two figures above were measured on (tests' synthetic files)
+PROCESS_MEASURED_STEPS = 3
+#: process's peak memory per frame pixel of each step beyond those 3 (a step's image, its pairs'
+#: fields and crops), measured with /usr/bin/time -v on synthetic's slab and square over 3 and 12
+#: steps, one frame each, --crop-mm 0 (the whole frame kept), -q --no-report --cross-check none:
+#: 380 and 455 MB at 512 x 512 (32 bytes a pixel a step), 477 and 870 MB at 1024 x 1024 (42; review
+#: s37r1 measured 537 and 896 MB there, 38); with the report and cross-check, 416 and 520 MB at
+#: 512 x 512 (44): the largest, rounded up
+PROCESS_BYTES_PER_STEP_PIXEL = 45
 
 
 def _check_process_memory(files, cfg) -> None:
@@ -828,16 +838,27 @@ def _check_process_memory(files, cfg) -> None:
         try:
             with open_frames(path) as src:
                 (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+                # the steps from the file's index (read with its metadata), no frame read
+                keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
         except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
             continue
+        n_steps = len(set(steps[(keys == 0) & (steps >= 0)].tolist())) if steps.shape == keys.shape else 0
+        more = max(0, n_steps - PROCESS_MEASURED_STEPS)
         # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
         side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
         kept = min(side, rows) * min(side, cols)
-        need = int(PROCESS_BYTES_PER_PIXEL * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
+        per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
+        need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
         if need > limit:
             raise ValueError(
-                f"{path}: processing its {rows}x{cols} frames needs about {_human(need)} "
-                f"({PROCESS_BYTES_PER_PIXEL} bytes a pixel, {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the "
+                f"{path}: processing its {rows}x{cols} frames of {n_steps} steps needs about {_human(need)} "
+                f"({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
+                + (
+                    f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}"
+                    if more
+                    else ""
+                )
+                + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the "
                 f"{int(min(side, rows))}x{int(min(side, cols))} crop kept), over the memory budget of "
                 f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or process smaller "
                 "frames, binned or cropped beforehand (--crop-mm narrows only what is kept)"

@@ -18,7 +18,7 @@ from conftest import one_line_error, run_cli, synthetic
 from radiokit import _json as strict_json
 from radiokit.calibrate import MAX_DEFECTIVE_SHARE, Calibration
 from radiokit.errors import FormatError
-from radiokit.io import StackWriter, read, read_stack, write_tiff
+from radiokit.io import ExperimentWriter, ImageKey, StackWriter, read, read_stack, write_tiff
 from radiokit.io._experiment import IMAGE_KEY, read_progress
 from radiokit.results import load_results
 from sim.detector import PanelModel
@@ -916,3 +916,29 @@ def test_a_dataset_path_given_with_its_leading_slash_is_named_once_slashed(tmp_p
         h5["entry/data/c"] = np.zeros((2, 4, 5), np.complex64)
     line = one_line_error(run_cli("info", path, "--dataset", dataset), "/entry/data/c has type complex64")
     assert "//" not in line, line
+
+
+def _many_steps(path, n_steps, shape=(160, 160)):
+    """synthetic()'s slab and square over ``n_steps`` steps of compression."""
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
+    with ExperimentWriter(path, shape=shape) as w:
+        for _ in range(3):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step in range(1, n_steps + 1):
+            counts = 100 + 3000 * np.exp(-(0.08 * (20.0 - 0.5 * step) + 0.03 * (8.0 - 0.02 * step) * sq))
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.05 * step)
+    return path
+
+
+def test_process_counts_the_steps_in_its_working_memory(tmp_path):
+    """The memory check was of the frame's size alone, measured on 3 steps; each step more holds
+    about 40 bytes a pixel more (1024 x 1024 whole frame: 477 MB at 3 steps, 870 MB at 12), so a
+    file of many steps passed a budget it then ran over."""
+    budget = {"RADIOKIT_MEMORY_BUDGET": "10MB"}
+    res = run_cli("process", _many_steps(tmp_path / "exp12.h5", 12), "-o", tmp_path / "out", *FAST, env=budget)
+    one_line_error(res, "exp12.h5", "160x160", "12 steps", "over the memory budget")
+    assert not (tmp_path / "out").exists()
+    res = run_cli("process", _many_steps(tmp_path / "exp3.h5", 3), "-o", tmp_path / "out", *FAST, env=budget)
+    assert "memory budget" not in res.stderr, res.stderr

@@ -2027,3 +2027,76 @@ def test_two_datasets_marked_signal_1_are_not_guessed_between(tmp_path):
         data["other"].attrs["signal"] = 1
     with pytest.raises(FormatError, match="/entry/data/counts .*/entry/data/other"):
         read(tmp_path / "nx.h5")
+
+
+@pytest.mark.parametrize("how, suffix", [("imagej-mm", ".tif"), ("ome", ".ome.tif"), ("nexus", ".nxs")])
+@pytest.mark.parametrize("mm", [1e3, 1e-6])
+def test_a_stated_pixel_size_no_panel_has_is_ignored_with_a_note(tmp_path, how, suffix, mm):
+    """An experiment file's pitch must lie in 0.1 um..10 mm; ImageJ's, OME's and an NXdetector's
+    had no such check: `info` showed pixel_size_mm 1e+27 and `register` refused a pair on it. Such
+    a value is ignored with a one-line note (info says it is unusable), and the image is read."""
+    path = _stated_pixel(tmp_path / f"odd{suffix}", how, mm)
+    with pytest.warns(UserWarning, match="pixel size.*ignored") as caught:
+        frames = read(path)
+    assert len([w for w in caught if "pixel size" in str(w.message)]) == 1
+    assert not {"x_pixel_size", "y_pixel_size", "pixel_size_mm"} & set(frames.meta)
+    info = run_cli("info", path)
+    assert info.returncode == 0 and "pixel_size_mm" not in info.stdout and "unusable" in info.stdout, info.stdout
+    fine = _stated_pixel(tmp_path / f"fine{suffix}", how, 0.05)
+    res = run_cli("register", fine, path, "-o", tmp_path / "reg.h5")
+    assert "pixels of" not in res.stderr and "mm" not in res.stderr, res.stderr
+
+
+def _nexus_pixel(path, value, units):
+    with h5py.File(path, "w") as f:
+        entry = _nx_class(f.create_group("entry"), "NXentry")
+        det = _nx_class(entry.create_group("instrument/detector"), "NXdetector")
+        det["data"] = np.zeros((1, 6, 7), np.uint16)
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            det[axis] = value
+            det[axis].attrs["units"] = units
+        data = _nx_class(entry.create_group("data"), "NXdata")
+        data.attrs["signal"] = "data"
+        data["data"] = h5py.SoftLink("/entry/instrument/detector/data")
+    return path
+
+
+@pytest.mark.parametrize(
+    "value, units", [(50, "microns"), (50, "\u03bcm"), (5e5, "\u00c5"), (5e5, "\u212b"), (5e5, "angstrom")]
+)
+def test_other_spellings_of_a_length_unit_are_understood(tmp_path, value, units):
+    """'microns', Greek mu (U+03BC) and the angstrom (as NeXus and OME write them) left the pitch
+    out with nothing said, where 'micron' and the micro sign were read."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        nexus = read(_nexus_pixel(tmp_path / "px.nxs", value, units))
+        tifffile.imwrite(
+            tmp_path / "px.ome.tif",
+            np.zeros((6, 7), np.uint16),
+            metadata={k: v for a in "XY" for k, v in ((f"PhysicalSize{a}", value), (f"PhysicalSize{a}Unit", units))},
+        )
+        ome = read(tmp_path / "px.ome.tif")
+    for frames in (nexus, ome):
+        assert frames.meta["pixel_size_mm"] == pytest.approx(0.05)
+
+
+def test_a_length_unit_not_understood_is_said(tmp_path):
+    """A unit radiokit does not know left the pitch out silently; the note names it."""
+    image = np.zeros((6, 7), np.uint16)
+    tifffile.imwrite(tmp_path / "ij.tif", image, imagej=True, resolution=(20, 20), metadata={"unit": "furlong"})
+    meta = {"PhysicalSizeX": 1, "PhysicalSizeXUnit": "furlong", "PhysicalSizeY": 1, "PhysicalSizeYUnit": "furlong"}
+    tifffile.imwrite(tmp_path / "o.ome.tif", image, metadata=meta)
+    for path in (tmp_path / "ij.tif", tmp_path / "o.ome.tif", _nexus_pixel(tmp_path / "n.nxs", 1.0, "furlong")):
+        with pytest.warns(UserWarning, match="'furlong'.*pixel size is ignored"):
+            assert "pixel_size_mm" not in read(path).meta
+
+
+@pytest.mark.parametrize("dpi", [72, 96])
+def test_imagej_inches_at_a_screens_dpi_state_no_pixel_size(tmp_path, dpi):
+    """ImageJ's unit=inch at 72 dpi (which ImageJ itself reads as no calibration) or 96 dpi, the
+    screens' defaults, was taken as a pitch of 0.353 mm; a plain 72-dpi TIFF already states none."""
+    path = tmp_path / "ij.tif"
+    tifffile.imwrite(path, np.zeros((6, 7), np.uint16), imagej=True, resolution=(dpi, dpi), metadata={"unit": "inch"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert "x_pixel_size" not in read(path).meta

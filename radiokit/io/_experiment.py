@@ -1659,6 +1659,32 @@ def _check_pixel_size(path, name: str, value) -> None:
         )
 
 
+def usable_pixel_sizes(path, where: str, sizes: dict, problems=()) -> dict:
+    """``sizes`` (``x_pixel_size`` / ``y_pixel_size``, metres) that another program's file states
+    (``where``: ImageJ's resolution, OME's PhysicalSize, an NXdetector), with ``pixel_size_mm``, where
+    each is a panel's pitch (:data:`PIXEL_SIZE_RANGE_M`, as an experiment file's must be). Else, or
+    with ``problems`` (a unit not understood), none of them but ``pixel_size_unusable`` (why), said
+    in a one-line note. Why: 1e+27 mm was shown by info and ``register`` refused a pair on it; the
+    pitch is optional there, so the image is read all the same."""
+    lo, hi = PIXEL_SIZE_RANGE_M
+    problems = list(problems)
+    odd = [
+        f"{name} {value * 1e3:g} mm"
+        for name, value in sizes.items()
+        if not (math.isfinite(value) and lo <= value <= hi)
+    ]
+    if odd:
+        problems.append(f"{', '.join(odd)}: not a panel's pixel ({lo * 1e3:g} to {hi * 1e3:g} mm)")
+    if problems:
+        why = f"{where}: {'; '.join(problems)}"
+        warnings.warn(f"{path}: {why}; its pixel size is ignored", UserWarning, stacklevel=3)
+        return {"pixel_size_unusable": why}
+    out = dict(sizes)
+    if "x_pixel_size" in out:
+        out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
+    return out
+
+
 #: Two recorded pitches closer than this (relative) are one: float32's rounding of 5e-05 m is 3e-08
 PIXEL_SIZE_RTOL = 1e-6
 
@@ -1676,7 +1702,22 @@ def check_same_pixel_size(path, meta: dict, other, other_meta: dict, rule: str) 
 
 
 #: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says
-_LENGTH_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "\u00b5m": 1e-6, "micron": 1e-6, "nm": 1e-9}
+#: (and OME's): the micro sign or Greek mu, the angstrom as OME's symbol, Unicode's or a word
+_LENGTH_UNITS_M = {
+    "m": 1.0,
+    "cm": 1e-2,
+    "mm": 1e-3,
+    "um": 1e-6,
+    "\u00b5m": 1e-6,
+    "\u03bcm": 1e-6,
+    "micron": 1e-6,
+    "microns": 1e-6,
+    "nm": 1e-9,
+    "\u00c5": 1e-10,
+    "\u212b": 1e-10,
+    "angstrom": 1e-10,
+    "Angstrom": 1e-10,
+}
 
 
 def _pixel_metres(path, name: str, ds) -> float:
@@ -1812,7 +1853,7 @@ def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> d
     states, each where it is one positive finite number in a length unit NeXus names (``@units``,
     metres when absent); the rest is left out, as :func:`read_bit_depth` leaves an unreadable depth.
     Why: ``register`` holds two images to one pitch only where both files record it."""
-    out = {}
+    out, problems = {}, []
     for axis in ("x_pixel_size", "y_pixel_size"):
         name = f"{group.rstrip('/')}/{axis}"
         check_links(path, h5, name, allow_external)
@@ -1825,12 +1866,11 @@ def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> d
         check_local(path, h5, ds, allow_external)
         units = ds.attrs.get("units", "m")
         units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
-        value = float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M.get(units, math.nan)
-        if math.isfinite(value) and value > 0:
-            out[axis] = value
-    if "x_pixel_size" in out:
-        out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
-    return out
+        if units not in _LENGTH_UNITS_M:
+            problems.append(f"{axis}'s units {units!r} are no length unit radiokit knows")
+            continue
+        out[axis] = float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M[units]
+    return usable_pixel_sizes(path, group, out, problems) if out or problems else {}
 
 
 def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None) -> tuple[h5py.Dataset, dict]:

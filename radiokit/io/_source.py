@@ -18,6 +18,7 @@ from radiokit import _json as strict_json
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
+    _LENGTH_UNITS_M,
     ENTRY,
     FRAMES,
     IMAGE_KEY,
@@ -32,6 +33,7 @@ from radiokit.io._experiment import (
     read_bit_depth,
     read_experiment_meta,
     read_pixel_sizes,
+    usable_pixel_sizes,
 )
 from radiokit.io._frames import RAW_SWAP_ADVICE, Frames, check_bit_depth
 from radiokit.io._itex import (
@@ -580,18 +582,23 @@ class FrameSource:
         detector's pitch, and is not taken. Why: ``register`` holds two images to one pitch only
         where both files record it, and this was read from experiment files alone."""
         x = y = None
+        problems = []
+        where = "ImageJ's unit and resolution" if self._tif.is_imagej else "OME's PhysicalSizeX/Y"
         if self._tif.is_imagej:
-            unit = _TIFF_LENGTH_M.get(str((self._tif.imagej_metadata or {}).get("unit", "")).strip())
+            name = str((self._tif.imagej_metadata or {}).get("unit", "")).strip()
+            unit = _TIFF_LENGTH_M.get(name)
             if unit is not None:
                 x, y = (_per_pixel(first.tags.valueof(code), unit) for code in (282, 283))
+                if name == "inch" and all(v is not None and round(0.0254 / v, 6) in _SCREEN_DPI for v in (x, y)):
+                    x = y = None  # a screen's default dpi, not a pitch (0.353 mm at 72)
+            elif name.lower() not in _IMAGEJ_NO_LENGTH:
+                problems.append(f"unit {name!r} is no length unit radiokit knows")
         elif self._tif.is_ome:
-            x, y = _ome_physical_size(self._tif.ome_metadata)
+            x, y, problems = _ome_physical_size(self._tif.ome_metadata)
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             x, y = y, x
         out = {name: v for name, v in (("x_pixel_size", x), ("y_pixel_size", y)) if v is not None}
-        if "x_pixel_size" in out:
-            out["pixel_size_mm"] = out["x_pixel_size"] * 1e3
-        return out
+        return usable_pixel_sizes(self.path, where, out, problems) if out or problems else {}
 
     def _check_ifd_chain(self, pages):
         """Everything the IFDs point at must lie inside the file.
@@ -1793,20 +1800,12 @@ def _packed_and_compressed(page) -> bool:
 
 
 #: a length unit as ImageJ's description (``unit=``, µm escaped as ImageJ writes it) and OME
-#: (PhysicalSizeXUnit) name it, in metres; ImageJ's "pixel" and anything else state no length
-_TIFF_LENGTH_M = {
-    "m": 1.0,
-    "cm": 1e-2,
-    "mm": 1e-3,
-    "micron": 1e-6,
-    "microns": 1e-6,
-    "um": 1e-6,
-    "\u00b5m": 1e-6,
-    "\u03bcm": 1e-6,
-    "\\u00B5m": 1e-6,
-    "nm": 1e-9,
-    "inch": 0.0254,
-}
+#: (PhysicalSizeXUnit) name it, in metres
+_TIFF_LENGTH_M = {**_LENGTH_UNITS_M, "\\u00B5m": 1e-6, "inch": 0.0254}
+#: ImageJ's units of an uncalibrated image: no length is stated
+_IMAGEJ_NO_LENGTH = {"", "pixel", "pixels"}
+#: the dots per inch a screen's image says by default (ImageJ itself reads 72 as no calibration)
+_SCREEN_DPI = (72.0, 96.0)
 
 
 def _per_pixel(resolution, unit_m: float) -> float | None:
@@ -1819,26 +1818,30 @@ def _per_pixel(resolution, unit_m: float) -> float | None:
     return size if math.isfinite(size) and size > 0 else None
 
 
-def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None]:
-    """The first image's PhysicalSizeX and PhysicalSizeY in metres (OME's default unit µm)."""
+def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None, list[str]]:
+    """The first image's PhysicalSizeX and PhysicalSizeY in metres (OME's default unit µm), and
+    what could not be understood (a unit)."""
     import xml.etree.ElementTree as ET
 
     try:
         root = ET.fromstring(xml or "")
     except (ET.ParseError, ValueError):
-        return None, None
+        return None, None, []
     pixels = next((el for el in root.iter() if el.tag.rpartition("}")[2] == "Pixels"), None)
     if pixels is None:
-        return None, None
-    sizes = []
+        return None, None, []
+    sizes, problems = [], []
     for axis in "XY":
-        unit = _TIFF_LENGTH_M.get(pixels.get(f"PhysicalSize{axis}Unit", "\u00b5m").strip())
+        name = pixels.get(f"PhysicalSize{axis}Unit", "\u00b5m").strip()
+        unit = _TIFF_LENGTH_M.get(name)
+        if unit is None and pixels.get(f"PhysicalSize{axis}") is not None:
+            problems.append(f"PhysicalSize{axis}Unit {name!r} is no length unit radiokit knows")
         try:
             value = float(pixels.get(f"PhysicalSize{axis}", "nan")) * (unit or math.nan)
         except ValueError:
             value = math.nan
-        sizes.append(value if math.isfinite(value) and value > 0 else None)
-    return sizes[0], sizes[1]
+        sizes.append(None if pixels.get(f"PhysicalSize{axis}") is None or unit is None else value)
+    return sizes[0], sizes[1], problems
 
 
 def _nx_class(group) -> str:
