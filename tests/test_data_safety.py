@@ -1432,3 +1432,26 @@ def test_an_output_onto_the_file_an_inputs_frames_live_in_is_refused(how, tmp_pa
     one_line_error(run_cli("register", master, *given, "--moving-frame", "1", "-o", data, "--overwrite"), data.name)
     one_line_error(run_cli("calibrate", "--dark", *given, "--flat", flats, "-o", data, "--overwrite"), data.name)
     assert sha(data) == before
+
+
+@pytest.mark.parametrize("how", ["link", "virtual", "raw"])
+def test_the_library_refuses_an_output_onto_the_file_an_inputs_frames_live_in(how, tmp_path, monkeypatch):
+    """The check was the CLI's alone: `correct_files(['master.h5'], cal, 'frames_000001.h5',
+    dataset='frames', allow_external=True, overwrite=True)` replaced the detector's frames.
+    check_output, which every writer calls (correct_files, write_registration, atomic_path),
+    now refuses it itself."""
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_files
+    from radiokit.io import OutputError, check_output
+
+    monkeypatch.chdir(tmp_path)
+    master, data = _stored_elsewhere(tmp_path, how)
+    cal = Calibration.from_frames(np.full((3, 20, 30), 100, np.uint16), np.full((3, 20, 30), 3800, np.uint16))
+    before = sha(data)
+    with pytest.raises(OutputError, match=data.name):
+        correct_files([master], cal, data, dataset="frames", allow_external=True, overwrite=True, progress=False)
+    with pytest.raises(OutputError, match=f"{data.name}.*{master.name}"):
+        check_output(data, overwrite=True, inputs=[master])
+    with pytest.raises(OutputError, match=data.name), atomic_path(data, overwrite=True, inputs=[master]) as tmp:
+        tmp.write_bytes(b"x")
+    assert sha(data) == before
