@@ -1455,3 +1455,36 @@ def test_the_library_refuses_an_output_onto_the_file_an_inputs_frames_live_in(ho
     with pytest.raises(OutputError, match=data.name), atomic_path(data, overwrite=True, inputs=[master]) as tmp:
         tmp.write_bytes(b"x")
     assert sha(data) == before
+
+
+def _virtual(path, source, stack, name="data"):
+    with h5py.File(path, "w") as f:
+        layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+        layout[:] = h5py.VirtualSource(source, name, shape=stack.shape)
+        f.create_virtual_dataset("frames", layout)
+
+
+def test_a_virtual_sources_printf_name_is_read_as_libhdf5_reads_it(tmp_path):
+    """libhdf5 reads a source file name printf-style: `pct_100%%.h5` is the file `pct_100%.h5`,
+    which data_files did not find, so `-o 'pct_100%.h5' --overwrite` replaced it; a `%b` (a
+    block number, one file per block of an unlimited mapping) names every `blk_<digits>.h5`."""
+    from radiokit.io import data_files
+
+    stack = np.zeros((2, 4, 5), np.uint16)
+    with h5py.File(tmp_path / "pct_100%.h5", "w") as f:
+        f["data"] = stack
+    _virtual(tmp_path / "vpct.h5", "pct_100%%.h5", stack)
+    assert np.array_equal(h5py.File(tmp_path / "vpct.h5")["frames"][:], stack)  # as libhdf5 reads it
+    assert data_files(tmp_path / "vpct.h5", allow_external=True) == [tmp_path / "pct_100%.h5"]
+    for name in ("blk_0.h5", "blk_17.h5", "blk_x.h5", "blk_%b.h5"):
+        with h5py.File(tmp_path / name, "w") as f:
+            f["data"] = stack[:1]
+    with h5py.File(tmp_path / "vblk.h5", "w", libver="latest") as f:
+        vsp = h5py.h5s.create_simple((2, 4, 5), (h5py.h5s.UNLIMITED, 4, 5))
+        vsp.select_hyperslab(start=(0, 0, 0), stride=(1, 1, 1), count=(h5py.h5s.UNLIMITED, 1, 1), block=(1, 4, 5))
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.VIRTUAL)
+        dcpl.set_virtual(vsp, b"blk_%b.h5", b"data", h5py.h5s.create_simple((1, 4, 5)))
+        h5py.h5d.create(f.id, name=b"frames", tid=h5py.h5t.NATIVE_UINT16, space=vsp, dcpl=dcpl)
+    found = sorted(p.name for p in data_files(tmp_path / "vblk.h5", allow_external=True))
+    assert found == ["blk_0.h5", "blk_17.h5"], found

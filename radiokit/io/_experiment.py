@@ -1274,9 +1274,20 @@ def _source_places(folder: Path, name: str) -> list[Path]:
     return places
 
 
+def _printf_files(place: Path) -> list[Path]:
+    """The existing files a virtual source's printf-style name ``place`` names, as libhdf5 reads
+    it: ``%%`` a literal ``%``, ``%b`` any block number (plain decimal)."""
+    tokens = re.split(r"(%%|%b)", str(place))
+    if "%b" not in tokens:
+        return [Path("".join("%" if t == "%%" else t for t in tokens))]
+    pattern = re.compile("".join({"%%": "%", "%b": "(0|[1-9][0-9]*)"}.get(t) or re.escape(t) for t in tokens))
+    candidates = glob.glob("".join({"%%": "%", "%b": "*"}.get(t) or glob.escape(t) for t in tokens))
+    return sorted(Path(c) for c in candidates if pattern.fullmatch(c))
+
+
 def data_files(path, allow_external=False, _depth=0) -> list[Path]:
     """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
-    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it matches) and
+    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it names) and
     external raw storage, each at every place libhdf5 may look for it that exists; ``[]`` for a
     file that is not HDF5, or without ``allow_external`` (nothing outside the file is then read).
 
@@ -1297,7 +1308,7 @@ def data_files(path, allow_external=False, _depth=0) -> list[Path]:
 
         def visit(name, link):
             if isinstance(link, h5py.ExternalLink):
-                names.append((link.filename, True))
+                names.append((link.filename, "link"))
                 return
             if not isinstance(link, h5py.HardLink):
                 return
@@ -1308,21 +1319,20 @@ def data_files(path, allow_external=False, _depth=0) -> list[Path]:
             if not isinstance(obj, h5py.Dataset):
                 return
             if obj.is_virtual:
-                names.extend((vs.file_name, True) for vs in obj.virtual_sources() if vs.file_name != ".")
+                names.extend((vs.file_name, "virtual") for vs in obj.virtual_sources() if vs.file_name != ".")
             plist = obj.id.get_create_plist()
             names.extend(
-                (plist.get_external(i)[0].decode("utf-8", "replace"), False) for i in range(plist.get_external_count())
+                (plist.get_external(i)[0].decode("utf-8", "replace"), "raw") for i in range(plist.get_external_count())
             )
 
         h5.visititems_links(visit)
     found: list[Path] = []
-    for name, hdf5 in names:
+    for name, kind in names:
         for place in _source_places(folder, name):
-            matches = glob.glob(glob.escape(str(place)).replace("%b", "*")) if "%b" in name else [str(place)]
-            for match in map(Path, matches):
+            for match in _printf_files(place) if kind == "virtual" else [place]:
                 if match.is_file() and match not in found:
                     found.append(match)
-                    if hdf5:  # its own links, sources and raw files are read too
+                    if kind != "raw":  # its own links, sources and raw files are read too
                         found.extend(p for p in data_files(match, True, _depth + 1) if p not in found)
     return found
 
