@@ -1488,3 +1488,23 @@ def test_a_virtual_sources_printf_name_is_read_as_libhdf5_reads_it(tmp_path):
         h5py.h5d.create(f.id, name=b"frames", tid=h5py.h5t.NATIVE_UINT16, space=vsp, dcpl=dcpl)
     found = sorted(p.name for p in data_files(tmp_path / "vblk.h5", allow_external=True))
     assert found == ["blk_0.h5", "blk_17.h5"], found
+
+
+def test_a_long_chain_of_external_links_is_followed_to_its_end(tmp_path):
+    """libhdf5 follows a chain of external links (up to 16 traversals by default); data_files
+    stopped after 5 files, so the 6th, the one the frames were read from, could be overwritten."""
+    from radiokit.io import data_files
+
+    stack = np.zeros((2, 4, 5), np.uint16)
+    for i in range(8, 0, -1):
+        with h5py.File(tmp_path / f"l{i}.h5", "w") as f:
+            f["x"] = stack if i == 8 else h5py.ExternalLink(f"l{i + 1}.h5", "/x")
+    with h5py.File(tmp_path / "chain.h5", "w") as f:
+        f["frames"] = h5py.ExternalLink("l1.h5", "/x")
+    assert np.array_equal(h5py.File(tmp_path / "chain.h5")["frames"][:], stack)
+    found = {p.name for p in data_files(tmp_path / "chain.h5", allow_external=True)}
+    assert found == {f"l{i}.h5" for i in range(1, 9)}, found
+    with h5py.File(tmp_path / "l8.h5", "a") as f:  # a loop ends too
+        del f["x"]
+        f["x"] = h5py.ExternalLink("l1.h5", "/x")
+    assert len(data_files(tmp_path / "chain.h5", allow_external=True)) == 8

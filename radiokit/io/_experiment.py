@@ -1285,25 +1285,32 @@ def _printf_files(place: Path) -> list[Path]:
     return sorted(Path(c) for c in candidates if pattern.fullmatch(c))
 
 
-def data_files(path, allow_external=False, _depth=0) -> list[Path]:
+def data_files(path, allow_external=False) -> list[Path]:
     """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
-    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it names) and
-    external raw storage, each at every place libhdf5 may look for it that exists; ``[]`` for a
-    file that is not HDF5, or without ``allow_external`` (nothing outside the file is then read).
+    links' targets (to the end of a chain), virtual datasets' sources (a ``%b`` pattern: every
+    file it names) and external raw storage, each at every place libhdf5 may look for it that
+    exists; ``[]`` for a file that is not HDF5, or without ``allow_external`` (nothing outside
+    the file is then read).
 
     Why: an output onto one of them replaces an input's frames. `correct master.h5
     --allow-external -o frames_000001.h5 --overwrite` wrote over the detector's frames, since
     only the files named on the command line were held to be inputs.
     """
-    if not allow_external or _depth > 4:
-        return []
+    found: list[Path] = []
+    if allow_external:
+        _data_files(Path(path), found, {resolved(path)})
+    return found
+
+
+def _referred(path: Path) -> list[tuple[str, str]]:
+    """The names of the files ``path`` refers to, each with its kind: "link", "virtual" or "raw"."""
     try:
         if not h5py.is_hdf5(path):
             return []
         h5 = h5py.File(path, "r")
     except (OSError, ValueError):  # unreadable: the read itself says so
         return []
-    folder, names = Path(path).parent, []
+    names = []
     with h5:
 
         def visit(name, link):
@@ -1326,15 +1333,21 @@ def data_files(path, allow_external=False, _depth=0) -> list[Path]:
             )
 
         h5.visititems_links(visit)
-    found: list[Path] = []
-    for name, kind in names:
-        for place in _source_places(folder, name):
+    return names
+
+
+def _data_files(path: Path, found: list[Path], seen: set) -> None:
+    """:func:`data_files`, into ``found``. Every HDF5 file reached is followed in turn, however
+    long the chain (``seen`` ends a loop): a limit of 5 files left the 6th, the one a chain of
+    links read the frames from, to be overwritten (libhdf5 follows 16 links by default)."""
+    for name, kind in _referred(path):
+        for place in _source_places(path.parent, name):
             for match in _printf_files(place) if kind == "virtual" else [place]:
                 if match.is_file() and match not in found:
                     found.append(match)
-                    if kind != "raw":  # its own links, sources and raw files are read too
-                        found.extend(p for p in data_files(match, True, _depth + 1) if p not in found)
-    return found
+                if kind != "raw" and match.is_file() and resolved(match) not in seen:
+                    seen.add(resolved(match))
+                    _data_files(match, found, seen)  # its own links, sources and raw files are read too
 
 
 def check_virtual_sources(path, ds) -> None:
