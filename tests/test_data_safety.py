@@ -1508,3 +1508,47 @@ def test_a_long_chain_of_external_links_is_followed_to_its_end(tmp_path):
         del f["x"]
         f["x"] = h5py.ExternalLink("l1.h5", "/x")
     assert len(data_files(tmp_path / "chain.h5", allow_external=True)) == 8
+
+
+@pytest.mark.parametrize(
+    "how, prefix",
+    [  # as libhdf5 2.0.0 reads each (measured): a list for links and sources, a leading ${ORIGIN} for raw files
+        ("link", "{tmp}/nowhere:{tmp}/data"),
+        ("virtual", "{tmp}/nowhere:{tmp}/data"),
+        ("raw", "${{ORIGIN}}/../data"),
+    ],
+)
+def test_libhdf5s_search_prefixes_are_followed(how, prefix, tmp_path, monkeypatch):
+    """HDF5_EXT_PREFIX (external links), HDF5_VDS_PREFIX (virtual sources) and
+    HDF5_EXTFILE_PREFIX (external raw files) send libhdf5 to other folders (a `:`-separated
+    list, `${ORIGIN}` the file's own), where data_files did not look: `-o ../data/frames.h5
+    --overwrite` replaced the frames."""
+    from radiokit.io import data_files
+
+    stack = np.arange(40, dtype=np.uint16).reshape(2, 4, 5)
+    (tmp_path / "m").mkdir()
+    (tmp_path / "data").mkdir()
+    master, data = tmp_path / "m" / "master.h5", tmp_path / "data" / "frames.h5"
+    if how == "raw":
+        data.write_bytes(stack.tobytes())
+        with h5py.File(master, "w") as f:
+            f.create_dataset("frames", shape=stack.shape, dtype=stack.dtype, external=[("frames.h5", 0, stack.nbytes)])
+    else:
+        with h5py.File(data, "w") as f:
+            f["data"] = stack
+        if how == "link":
+            with h5py.File(master, "w") as f:
+                f["frames"] = h5py.ExternalLink("frames.h5", "/data")
+        else:
+            _virtual(master, "frames.h5", stack)
+    env = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "raw": "HDF5_EXTFILE_PREFIX"}[how]
+    prefix = prefix.format(tmp=tmp_path)
+    # libhdf5 reads HDF5_EXTFILE_PREFIX once, when it starts: asked in a process of its own
+    read = "import h5py, sys; print(int(h5py.File(sys.argv[1])['frames'][:].sum()))"
+    res = subprocess.run(
+        [sys.executable, "-c", read, master], env={**os.environ, env: prefix}, cwd=master.parent, capture_output=True
+    )
+    assert res.stdout.strip() == str(int(stack.sum())).encode(), res.stderr  # libhdf5 finds it so
+    monkeypatch.chdir(master.parent)
+    monkeypatch.setenv(env, prefix)
+    assert data.resolve() in [p.resolve() for p in data_files(master, allow_external=True)]

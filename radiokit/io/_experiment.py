@@ -1260,18 +1260,27 @@ def check_local(path, h5, ds, allow_external=False) -> None:
         _refuse_external(path, f"{ds.name} is stored in external raw files")
 
 
-def _source_places(folder: Path, name: str) -> list[Path]:
-    """Where libhdf5 looks for a virtual dataset's source file ``name``, in its order: a relative
-    name beside the virtual file (its ``${ORIGIN}``), then from the working directory; an absolute
-    name as given, then its base name beside the virtual file; ``HDF5_VDS_PREFIX`` before all."""
+#: the variables through which libhdf5 resolves a relative name, by what the name is (a
+#: ``:``-separated list of folders, ``${ORIGIN}`` the referring file's own)
+_PREFIX_VARIABLES = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "raw": "HDF5_EXTFILE_PREFIX"}
+
+
+def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
+    """Where libhdf5 looks for a file ``name`` that a file in ``folder`` refers to, in its order:
+    a relative name beside the referring file (its ``${ORIGIN}``), then from the working
+    directory; an absolute name as given, then its base name beside the referring file; before all,
+    under each folder of the prefix variable for ``kind`` (:data:`_PREFIX_VARIABLES`)."""
     given = Path(name)
     places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
-    prefix = os.environ.get("HDF5_VDS_PREFIX")
-    if prefix:
-        places.insert(
-            0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
-        )
-    return places
+    # libhdf5 2.0.0 splits HDF5_EXT_PREFIX and HDF5_VDS_PREFIX at ":" but not HDF5_EXTFILE_PREFIX,
+    # and expands ${ORIGIN} in the latter two only (measured): every reading is taken, since a
+    # place looked at needlessly costs a refused output name, one missed an input's frames
+    value = os.environ.get(_PREFIX_VARIABLES[kind], "")
+    prefixes = dict.fromkeys(p.replace("${ORIGIN}", str(folder)) for p in [value, *value.split(":")] if p)
+    return [
+        Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
+        for prefix in prefixes
+    ] + places
 
 
 def _printf_files(place: Path) -> list[Path]:
@@ -1303,7 +1312,7 @@ def data_files(path, allow_external=False) -> list[Path]:
 
 
 def _referred(path: Path) -> list[tuple[str, str]]:
-    """The names of the files ``path`` refers to, each with its kind: "link", "virtual" or "raw"."""
+    """The names of the files ``path`` refers to, each with its kind (:data:`_PREFIX_VARIABLES`)."""
     try:
         if not h5py.is_hdf5(path):
             return []
@@ -1341,7 +1350,7 @@ def _data_files(path: Path, found: list[Path], seen: set) -> None:
     long the chain (``seen`` ends a loop): a limit of 5 files left the 6th, the one a chain of
     links read the frames from, to be overwritten (libhdf5 follows 16 links by default)."""
     for name, kind in _referred(path):
-        for place in _source_places(path.parent, name):
+        for place in _source_places(path.parent, name, kind):
             for match in _printf_files(place) if kind == "virtual" else [place]:
                 if match.is_file() and match not in found:
                     found.append(match)
