@@ -1821,19 +1821,34 @@ def _not_an_experiment(h5: h5py.File) -> str:
     )
 
 
+def _optional_dataset(path, h5: h5py.File, name: str, allow_external: bool):
+    """``h5[name]`` for an optional field of another program's file (its pitch, its bit depth),
+    or None where it is absent, or where its data are in another file that is not to be read or
+    cannot be: that field is left out, with a note, and the frames are read without it.
+
+    Why: such a field linked to another file refused the whole file without --allow-external
+    (frames read before the field was looked for), and one whose link's file was gone refused it
+    with --allow-external too."""
+    try:
+        check_links(path, h5, name, allow_external)
+        ds = h5.get(name)
+        if isinstance(ds, h5py.Dataset):
+            check_local(path, h5, ds, allow_external)
+        return ds
+    except FormatError as exc:
+        warnings.warn(f"{exc}; {name.rsplit('/', 1)[-1]} left out", UserWarning, stacklevel=4)
+        return None
+    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+        return None
+
+
 def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int | None:
     """The ADC bits ``group`` (an NXdetector) declares in ``bit_depth_readout``, where that is one
     whole number 1..32; else None. Optional: anything else (text, an array, 12.5) is left out, as
     an experiment file's other optional fields are, and the frames' range is judged on its own."""
-    name = f"{group.rstrip('/')}/bit_depth_readout"
-    check_links(path, h5, name, allow_external)
-    try:
-        ds = h5.get(name)
-    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
-        return None
+    ds = _optional_dataset(path, h5, f"{group.rstrip('/')}/bit_depth_readout", allow_external)
     if not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype)):
         return None
-    check_local(path, h5, ds, allow_external)
     bits = ds[()]
     return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
 
@@ -1845,15 +1860,9 @@ def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> d
     Why: ``register`` holds two images to one pitch only where both files record it."""
     out = {}
     for axis in ("x_pixel_size", "y_pixel_size"):
-        name = f"{group.rstrip('/')}/{axis}"
-        check_links(path, h5, name, allow_external)
-        try:
-            ds = h5.get(name)
-        except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
-            continue
+        ds = _optional_dataset(path, h5, f"{group.rstrip('/')}/{axis}", allow_external)
         if not (isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype)):
             continue
-        check_local(path, h5, ds, allow_external)
         units = ds.attrs.get("units", "m")
         units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
         value = float(np.asarray(ds[()]).reshape(())) * _LENGTH_UNITS_M.get(units, math.nan)
