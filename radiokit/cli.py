@@ -33,15 +33,10 @@ __all__ = ["main", "build_parser"]
 
 
 def _inputs(args, paths) -> list:
-    """``paths`` and, under ``--allow-external``, the files their HDF5 frames are read from
-    (external links, virtual sources, external raw storage): an output onto one of those replaced
-    an input's frames (:func:`radiokit.io.data_files`)."""
-    from radiokit.io import data_files
-
-    paths = [p for p in paths if p]
-    if not getattr(args, "allow_external", False):
-        return paths
-    return paths + [f for p in paths for f in data_files(p, allow_external=True)]
+    """``paths`` given. The files their HDF5 frames are read from (external links, virtual
+    sources, external raw storage) are inputs too: :func:`radiokit.io.check_output` refuses an
+    output onto one of them itself, for the library's callers as for these commands."""
+    return [p for p in paths if p]
 
 
 def _raw_hints(args) -> dict:

@@ -1432,3 +1432,123 @@ def test_an_output_onto_the_file_an_inputs_frames_live_in_is_refused(how, tmp_pa
     one_line_error(run_cli("register", master, *given, "--moving-frame", "1", "-o", data, "--overwrite"), data.name)
     one_line_error(run_cli("calibrate", "--dark", *given, "--flat", flats, "-o", data, "--overwrite"), data.name)
     assert sha(data) == before
+
+
+@pytest.mark.parametrize("how", ["link", "virtual", "raw"])
+def test_the_library_refuses_an_output_onto_the_file_an_inputs_frames_live_in(how, tmp_path, monkeypatch):
+    """The check was the CLI's alone: `correct_files(['master.h5'], cal, 'frames_000001.h5',
+    dataset='frames', allow_external=True, overwrite=True)` replaced the detector's frames.
+    check_output, which every writer calls (correct_files, write_registration, atomic_path),
+    now refuses it itself."""
+    from radiokit.calibrate import Calibration
+    from radiokit.correct import correct_files
+    from radiokit.io import OutputError, check_output
+
+    monkeypatch.chdir(tmp_path)
+    master, data = _stored_elsewhere(tmp_path, how)
+    cal = Calibration.from_frames(np.full((3, 20, 30), 100, np.uint16), np.full((3, 20, 30), 3800, np.uint16))
+    before = sha(data)
+    with pytest.raises(OutputError, match=data.name):
+        correct_files([master], cal, data, dataset="frames", allow_external=True, overwrite=True, progress=False)
+    with pytest.raises(OutputError, match=f"{data.name}.*{master.name}"):
+        check_output(data, overwrite=True, inputs=[master])
+    with pytest.raises(OutputError, match=data.name), atomic_path(data, overwrite=True, inputs=[master]) as tmp:
+        tmp.write_bytes(b"x")
+    assert sha(data) == before
+
+
+def _virtual(path, source, stack, name="data"):
+    with h5py.File(path, "w") as f:
+        layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+        layout[:] = h5py.VirtualSource(source, name, shape=stack.shape)
+        f.create_virtual_dataset("frames", layout)
+
+
+def test_a_virtual_sources_printf_name_is_read_as_libhdf5_reads_it(tmp_path):
+    """libhdf5 reads a source file name printf-style: `pct_100%%.h5` is the file `pct_100%.h5`,
+    which data_files did not find, so `-o 'pct_100%.h5' --overwrite` replaced it; a `%b` (a
+    block number, one file per block of an unlimited mapping) names every `blk_<digits>.h5`."""
+    from radiokit.io import data_files
+
+    stack = np.zeros((2, 4, 5), np.uint16)
+    with h5py.File(tmp_path / "pct_100%.h5", "w") as f:
+        f["data"] = stack
+    _virtual(tmp_path / "vpct.h5", "pct_100%%.h5", stack)
+    assert np.array_equal(h5py.File(tmp_path / "vpct.h5")["frames"][:], stack)  # as libhdf5 reads it
+    assert data_files(tmp_path / "vpct.h5", allow_external=True) == [tmp_path / "pct_100%.h5"]
+    for name in ("blk_0.h5", "blk_17.h5", "blk_x.h5", "blk_%b.h5"):
+        with h5py.File(tmp_path / name, "w") as f:
+            f["data"] = stack[:1]
+    with h5py.File(tmp_path / "vblk.h5", "w", libver="latest") as f:
+        vsp = h5py.h5s.create_simple((2, 4, 5), (h5py.h5s.UNLIMITED, 4, 5))
+        vsp.select_hyperslab(start=(0, 0, 0), stride=(1, 1, 1), count=(h5py.h5s.UNLIMITED, 1, 1), block=(1, 4, 5))
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.VIRTUAL)
+        dcpl.set_virtual(vsp, b"blk_%b.h5", b"data", h5py.h5s.create_simple((1, 4, 5)))
+        h5py.h5d.create(f.id, name=b"frames", tid=h5py.h5t.NATIVE_UINT16, space=vsp, dcpl=dcpl)
+    found = sorted(p.name for p in data_files(tmp_path / "vblk.h5", allow_external=True))
+    assert found == ["blk_0.h5", "blk_17.h5"], found
+
+
+def test_a_long_chain_of_external_links_is_followed_to_its_end(tmp_path):
+    """libhdf5 follows a chain of external links (up to 16 traversals by default); data_files
+    stopped after 5 files, so the 6th, the one the frames were read from, could be overwritten."""
+    from radiokit.io import data_files
+
+    stack = np.zeros((2, 4, 5), np.uint16)
+    for i in range(8, 0, -1):
+        with h5py.File(tmp_path / f"l{i}.h5", "w") as f:
+            f["x"] = stack if i == 8 else h5py.ExternalLink(f"l{i + 1}.h5", "/x")
+    with h5py.File(tmp_path / "chain.h5", "w") as f:
+        f["frames"] = h5py.ExternalLink("l1.h5", "/x")
+    assert np.array_equal(h5py.File(tmp_path / "chain.h5")["frames"][:], stack)
+    found = {p.name for p in data_files(tmp_path / "chain.h5", allow_external=True)}
+    assert found == {f"l{i}.h5" for i in range(1, 9)}, found
+    with h5py.File(tmp_path / "l8.h5", "a") as f:  # a loop ends too
+        del f["x"]
+        f["x"] = h5py.ExternalLink("l1.h5", "/x")
+    assert len(data_files(tmp_path / "chain.h5", allow_external=True)) == 8
+
+
+@pytest.mark.parametrize(
+    "how, prefix",
+    [  # as libhdf5 2.0.0 reads each (measured): a list for links and sources, a leading ${ORIGIN} for raw files
+        ("link", "{tmp}/nowhere:{tmp}/data"),
+        ("virtual", "{tmp}/nowhere:{tmp}/data"),
+        ("raw", "${{ORIGIN}}/../data"),
+    ],
+)
+def test_libhdf5s_search_prefixes_are_followed(how, prefix, tmp_path, monkeypatch):
+    """HDF5_EXT_PREFIX (external links), HDF5_VDS_PREFIX (virtual sources) and
+    HDF5_EXTFILE_PREFIX (external raw files) send libhdf5 to other folders (a `:`-separated
+    list, `${ORIGIN}` the file's own), where data_files did not look: `-o ../data/frames.h5
+    --overwrite` replaced the frames."""
+    from radiokit.io import data_files
+
+    stack = np.arange(40, dtype=np.uint16).reshape(2, 4, 5)
+    (tmp_path / "m").mkdir()
+    (tmp_path / "data").mkdir()
+    master, data = tmp_path / "m" / "master.h5", tmp_path / "data" / "frames.h5"
+    if how == "raw":
+        data.write_bytes(stack.tobytes())
+        with h5py.File(master, "w") as f:
+            f.create_dataset("frames", shape=stack.shape, dtype=stack.dtype, external=[("frames.h5", 0, stack.nbytes)])
+    else:
+        with h5py.File(data, "w") as f:
+            f["data"] = stack
+        if how == "link":
+            with h5py.File(master, "w") as f:
+                f["frames"] = h5py.ExternalLink("frames.h5", "/data")
+        else:
+            _virtual(master, "frames.h5", stack)
+    env = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "raw": "HDF5_EXTFILE_PREFIX"}[how]
+    prefix = prefix.format(tmp=tmp_path)
+    # libhdf5 reads HDF5_EXTFILE_PREFIX once, when it starts: asked in a process of its own
+    read = "import h5py, sys; print(int(h5py.File(sys.argv[1])['frames'][:].sum()))"
+    res = subprocess.run(
+        [sys.executable, "-c", read, master], env={**os.environ, env: prefix}, cwd=master.parent, capture_output=True
+    )
+    assert res.stdout.strip() == str(int(stack.sum())).encode(), res.stderr  # libhdf5 finds it so
+    monkeypatch.chdir(master.parent)
+    monkeypatch.setenv(env, prefix)
+    assert data.resolve() in [p.resolve() for p in data_files(master, allow_external=True)]

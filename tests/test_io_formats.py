@@ -1896,6 +1896,34 @@ def test_a_pixel_size_the_file_states_is_read_and_register_holds_to_it(tmp_path,
     assert "pixel_size_mm 0.05" in " ".join(info.stdout.split()), info.stdout
 
 
+@pytest.mark.parametrize("field", ["x_pixel_size", "bit_depth_readout"])
+def test_an_optional_detector_field_behind_an_external_link_is_left_out_not_refused(tmp_path, field):
+    """An NXdetector's x_pixel_size (optional: the pitch, once not read at all) linked to
+    another file made `info` and `register` refuse the whole file without --allow-external, and
+    with it refuse it when the link's file was gone. Such a field is left out, with a note; the
+    frames are read as before. With --allow-external a link that reaches a value is read."""
+    path = _stated_pixel(tmp_path / "linked.nxs", "nexus", 0.05)
+    with h5py.File(tmp_path / "pitch.h5", "w") as f:
+        f["v"] = 50.0 if field == "x_pixel_size" else 12
+        f["v"].attrs["units"] = "um"
+    with h5py.File(path, "a") as f:
+        det = f["entry/instrument/detector"]
+        if field in det:
+            del det[field]
+        det[field] = h5py.ExternalLink("pitch.h5", "/v")
+    meta_key = "x_pixel_size" if field == "x_pixel_size" else "bit_depth"
+    with pytest.warns(UserWarning, match=f"{field}.*external link.*left out"):
+        frames = read(path)
+    assert frames.data.shape == (1, 40, 50) and meta_key not in frames.meta
+    info = run_cli("info", path)  # (run_cli hides warnings: the note is checked above)
+    assert info.returncode == 0 and "1 x 40 rows x 50 cols" in info.stdout, info.stderr
+    assert read(path, allow_external=True).meta[meta_key] == pytest.approx(5e-5 if meta_key == "x_pixel_size" else 12)
+    (tmp_path / "pitch.h5").unlink()
+    with pytest.warns(UserWarning, match=f"{field}.*cannot be opened.*left out"):
+        frames = read(path, allow_external=True)
+    assert meta_key not in frames.meta
+
+
 def test_a_tiff_stating_no_length_has_no_pixel_size(tmp_path):
     """Resolution in a TIFF without ImageJ's or OME's length (72 dpi, ImageJ's 'pixel') is a
     display's, not the detector's pitch: no pixel size is made of it."""

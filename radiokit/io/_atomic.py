@@ -324,6 +324,7 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
         target = _link_target(path, folder)
         try:
             _check_output(target, overwrite, inputs, folder and made_by)
+            _check_data_files(target, inputs, folder)
             if not folder and _written_as(target) != _written_as(path):  # writers go by the name given
                 raise OutputError(target, f"its name's {target.suffix or 'missing'} suffix is not {path.suffix}")
         except OutputError as exc:
@@ -335,6 +336,28 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
         raise
     except OSError as exc:  # Path.exists() raises on a name past NAME_MAX (ENAMETOOLONG) or a loop
         raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
+
+
+def _check_data_files(path: Path, inputs, folder) -> None:
+    """Refuse an output onto (or, for a folder, holding) a file an input's HDF5 frames are read
+    from: external links' targets, virtual datasets' sources, external raw storage.
+
+    Why here, for every writer and whether or not the run follows links: the check was the
+    CLI's alone, and `correct_files(['master.h5'], cal, 'frames_000001.h5', allow_external=True,
+    overwrite=True)` replaced the detector's frames. Refusing a file an input merely names costs
+    a choice of another output name; allowing it cost the data."""
+    from radiokit.io._experiment import data_files  # late: _experiment imports this module
+
+    for src in inputs:
+        if not src or Path(src).is_dir():
+            continue
+        for data in data_files(src, allow_external=True):
+            if _inside(data, path) if folder else _same(data, path):
+                raise OutputError(
+                    path,
+                    f"{'holds' if folder else 'is'} {data}, which input {src}'s frames are read from: "
+                    "an input is never overwritten; choose another output",
+                )
 
 
 def _written_as(path: Path) -> str:

@@ -1260,44 +1260,71 @@ def check_local(path, h5, ds, allow_external=False) -> None:
         _refuse_external(path, f"{ds.name} is stored in external raw files")
 
 
-def _source_places(folder: Path, name: str) -> list[Path]:
-    """Where libhdf5 looks for a virtual dataset's source file ``name``, in its order: a relative
-    name beside the virtual file (its ``${ORIGIN}``), then from the working directory; an absolute
-    name as given, then its base name beside the virtual file; ``HDF5_VDS_PREFIX`` before all."""
+#: the variables through which libhdf5 resolves a relative name, by what the name is (a
+#: ``:``-separated list of folders, ``${ORIGIN}`` the referring file's own)
+_PREFIX_VARIABLES = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "raw": "HDF5_EXTFILE_PREFIX"}
+
+
+def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
+    """Where libhdf5 looks for a file ``name`` that a file in ``folder`` refers to, in its order:
+    a relative name beside the referring file (its ``${ORIGIN}``), then from the working
+    directory; an absolute name as given, then its base name beside the referring file; before all,
+    under each folder of the prefix variable for ``kind`` (:data:`_PREFIX_VARIABLES`)."""
     given = Path(name)
     places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
-    prefix = os.environ.get("HDF5_VDS_PREFIX")
-    if prefix:
-        places.insert(
-            0, Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
-        )
-    return places
+    # libhdf5 2.0.0 splits HDF5_EXT_PREFIX and HDF5_VDS_PREFIX at ":" but not HDF5_EXTFILE_PREFIX,
+    # and expands ${ORIGIN} in the latter two only (measured): every reading is taken, since a
+    # place looked at needlessly costs a refused output name, one missed an input's frames
+    value = os.environ.get(_PREFIX_VARIABLES[kind], "")
+    prefixes = dict.fromkeys(p.replace("${ORIGIN}", str(folder)) for p in [value, *value.split(":")] if p)
+    return [
+        Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
+        for prefix in prefixes
+    ] + places
 
 
-def data_files(path, allow_external=False, _depth=0) -> list[Path]:
+def _printf_files(place: Path) -> list[Path]:
+    """The existing files a virtual source's printf-style name ``place`` names, as libhdf5 reads
+    it: ``%%`` a literal ``%``, ``%b`` any block number (plain decimal)."""
+    tokens = re.split(r"(%%|%b)", str(place))
+    if "%b" not in tokens:
+        return [Path("".join("%" if t == "%%" else t for t in tokens))]
+    pattern = re.compile("".join({"%%": "%", "%b": "(0|[1-9][0-9]*)"}.get(t) or re.escape(t) for t in tokens))
+    candidates = glob.glob("".join({"%%": "%", "%b": "*"}.get(t) or glob.escape(t) for t in tokens))
+    return sorted(Path(c) for c in candidates if pattern.fullmatch(c))
+
+
+def data_files(path, allow_external=False) -> list[Path]:
     """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
-    links' targets, virtual datasets' sources (a ``%b`` pattern: every file it matches) and
-    external raw storage, each at every place libhdf5 may look for it that exists; ``[]`` for a
-    file that is not HDF5, or without ``allow_external`` (nothing outside the file is then read).
+    links' targets (to the end of a chain), virtual datasets' sources (a ``%b`` pattern: every
+    file it names) and external raw storage, each at every place libhdf5 may look for it that
+    exists; ``[]`` for a file that is not HDF5, or without ``allow_external`` (nothing outside
+    the file is then read).
 
     Why: an output onto one of them replaces an input's frames. `correct master.h5
     --allow-external -o frames_000001.h5 --overwrite` wrote over the detector's frames, since
     only the files named on the command line were held to be inputs.
     """
-    if not allow_external or _depth > 4:
-        return []
+    found: list[Path] = []
+    if allow_external:
+        _data_files(Path(path), found, {resolved(path)})
+    return found
+
+
+def _referred(path: Path) -> list[tuple[str, str]]:
+    """The names of the files ``path`` refers to, each with its kind (:data:`_PREFIX_VARIABLES`)."""
     try:
         if not h5py.is_hdf5(path):
             return []
         h5 = h5py.File(path, "r")
     except (OSError, ValueError):  # unreadable: the read itself says so
         return []
-    folder, names = Path(path).parent, []
+    names = []
     with h5:
 
         def visit(name, link):
             if isinstance(link, h5py.ExternalLink):
-                names.append((link.filename, True))
+                names.append((link.filename, "link"))
                 return
             if not isinstance(link, h5py.HardLink):
                 return
@@ -1308,23 +1335,28 @@ def data_files(path, allow_external=False, _depth=0) -> list[Path]:
             if not isinstance(obj, h5py.Dataset):
                 return
             if obj.is_virtual:
-                names.extend((vs.file_name, True) for vs in obj.virtual_sources() if vs.file_name != ".")
+                names.extend((vs.file_name, "virtual") for vs in obj.virtual_sources() if vs.file_name != ".")
             plist = obj.id.get_create_plist()
             names.extend(
-                (plist.get_external(i)[0].decode("utf-8", "replace"), False) for i in range(plist.get_external_count())
+                (plist.get_external(i)[0].decode("utf-8", "replace"), "raw") for i in range(plist.get_external_count())
             )
 
         h5.visititems_links(visit)
-    found: list[Path] = []
-    for name, hdf5 in names:
-        for place in _source_places(folder, name):
-            matches = glob.glob(glob.escape(str(place)).replace("%b", "*")) if "%b" in name else [str(place)]
-            for match in map(Path, matches):
+    return names
+
+
+def _data_files(path: Path, found: list[Path], seen: set) -> None:
+    """:func:`data_files`, into ``found``. Every HDF5 file reached is followed in turn, however
+    long the chain (``seen`` ends a loop): a limit of 5 files left the 6th, the one a chain of
+    links read the frames from, to be overwritten (libhdf5 follows 16 links by default)."""
+    for name, kind in _referred(path):
+        for place in _source_places(path.parent, name, kind):
+            for match in _printf_files(place) if kind == "virtual" else [place]:
                 if match.is_file() and match not in found:
                     found.append(match)
-                    if hdf5:  # its own links, sources and raw files are read too
-                        found.extend(p for p in data_files(match, True, _depth + 1) if p not in found)
-    return found
+                if kind != "raw" and match.is_file() and resolved(match) not in seen:
+                    seen.add(resolved(match))
+                    _data_files(match, found, seen)  # its own links, sources and raw files are read too
 
 
 def check_virtual_sources(path, ds) -> None:
@@ -1831,19 +1863,34 @@ def _not_an_experiment(h5: h5py.File) -> str:
     )
 
 
+def _optional_dataset(path, h5: h5py.File, name: str, allow_external: bool):
+    """``h5[name]`` for an optional field of another program's file (its pitch, its bit depth),
+    or None where it is absent, or where its data are in another file that is not to be read or
+    cannot be: that field is left out, with a note, and the frames are read without it.
+
+    Why: such a field linked to another file refused the whole file without --allow-external
+    (frames read before the field was looked for), and one whose link's file was gone refused it
+    with --allow-external too."""
+    try:
+        check_links(path, h5, name, allow_external)
+        ds = h5.get(name)
+        if isinstance(ds, h5py.Dataset):
+            check_local(path, h5, ds, allow_external)
+        return ds
+    except FormatError as exc:
+        warnings.warn(f"{exc}; {name.rsplit('/', 1)[-1]} left out", UserWarning, stacklevel=4)
+        return None
+    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
+        return None
+
+
 def read_bit_depth(path, h5: h5py.File, group: str, allow_external=False) -> int | None:
     """The ADC bits ``group`` (an NXdetector) declares in ``bit_depth_readout``, where that is one
     whole number 1..32; else None. Optional: anything else (text, an array, 12.5) is left out, as
     an experiment file's other optional fields are, and the frames' range is judged on its own."""
-    name = f"{group.rstrip('/')}/bit_depth_readout"
-    check_links(path, h5, name, allow_external)
-    try:
-        ds = h5.get(name)
-    except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
-        return None
+    ds = _optional_dataset(path, h5, f"{group.rstrip('/')}/bit_depth_readout", allow_external)
     if not (isinstance(ds, h5py.Dataset) and ds.ndim == 0 and _plain_numbers(ds.dtype)):
         return None
-    check_local(path, h5, ds, allow_external)
     bits = ds[()]
     return int(bits) if float(bits).is_integer() and 1 <= bits <= 32 else None
 
@@ -1855,15 +1902,9 @@ def read_pixel_sizes(path, h5: h5py.File, group: str, allow_external=False) -> d
     Why: ``register`` holds two images to one pitch only where both files record it."""
     out, problems = {}, []
     for axis in ("x_pixel_size", "y_pixel_size"):
-        name = f"{group.rstrip('/')}/{axis}"
-        check_links(path, h5, name, allow_external)
-        try:
-            ds = h5.get(name)
-        except (KeyError, TypeError, ValueError):  # a part of the way is a dataset, not a group
-            continue
+        ds = _optional_dataset(path, h5, f"{group.rstrip('/')}/{axis}", allow_external)
         if not (isinstance(ds, h5py.Dataset) and ds.ndim <= 1 and ds.size == 1 and _plain_numbers(ds.dtype)):
             continue
-        check_local(path, h5, ds, allow_external)
         units = ds.attrs.get("units", "m")
         units = (units.decode("utf-8", "replace") if isinstance(units, bytes) else str(units)).strip()
         if units not in _LENGTH_UNITS_M:
