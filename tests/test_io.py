@@ -2805,3 +2805,18 @@ def test_restore_previous_puts_back_only_what_a_dead_run_left_with_no_frame_of_i
     other = tmp_path / f".exp.previous-{host}-{_dead_pid()}-{hashlib.sha256(b'exp2.h5').hexdigest()[:8]}.h5"
     live.rename(other)
     assert restore_previous(path) == [] and other.exists()
+
+
+def test_the_output_check_survives_an_input_whose_link_names_are_not_utf8(tmp_path):
+    """Every writer's output check lists the files an HDF5 input's frames come from, before any
+    reader has judged the input. A name that is not UTF-8 (a corrupt link table: 23 of 300
+    fuzzed files) made h5py's visit raise SystemError there, a traceback where the reader would
+    have named the file's problem in one line."""
+    from radiokit.io import check_output, data_files
+
+    path = tmp_path / "odd.h5"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset(b"\xd6x", data=np.arange(3))
+        h5["ext"] = h5py.ExternalLink("other.h5", "/x")
+    assert data_files(path, allow_external=True) == []
+    check_output(tmp_path / "out.h5", inputs=[path])  # nothing to refuse, nothing raised
