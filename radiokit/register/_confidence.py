@@ -670,11 +670,14 @@ def affine_bound(f, obj, sigma, smooth=2.0) -> float:
     pixel steps show a turn of a round body through aliasing that no registration's
     interpolation models (session 33: 0.14-0.4 px "determined"); at 2 px that leaves the
     structure a registration can use (benchmarks/README.md, "A textureless body turned in the
-    image plane"). NaN for an object of under 100 pixels."""
+    image plane"). ``sigma``: the noise; the information is charged with it and the map's
+    ``model_floor`` together, as the map's is (a noise-free image read NaN here, its silent
+    body-scale field flagged). NaN for an object of under 100 pixels, or a flat image."""
     f = np.asarray(f, np.float32)
     obj = np.asarray(obj, bool)
     yy, xx = np.nonzero(obj)
-    if yy.size < 100 or not sigma > 0:
+    total = float(np.hypot(sigma, model_floor(f)))
+    if yy.size < 100 or not total > 0:
         return float("nan")
     g = _gauss(f, smooth) if smooth > 0 else f
     gy, gx = (a[obj].astype(np.float64) for a in np.gradient(g))
@@ -684,7 +687,7 @@ def affine_bound(f, obj, sigma, smooth=2.0) -> float:
     for (i, a), (j, b) in ((p, q) for p in enumerate((gy, gx)) for q in enumerate((gy, gx))):
         tensor = a * b - (floor if i == j else 0.0)
         info[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] = (basis * tensor) @ basis.T
-    weakest = float(np.linalg.eigvalsh(info / (2 * sigma**2))[0])
+    weakest = float(np.linalg.eigvalsh(info / (2 * total**2))[0])
     return float(1 / np.sqrt(weakest)) if weakest > 0 else float("inf")
 
 
