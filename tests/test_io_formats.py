@@ -2128,3 +2128,38 @@ def test_imagej_inches_at_a_screens_dpi_state_no_pixel_size(tmp_path, dpi):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert "x_pixel_size" not in read(path).meta
+
+
+def _drop_tags(path, codes):
+    """Remove tags ``codes`` from the first IFD of a little-endian classic TIFF (tifffile always
+    writes XResolution and YResolution, 1/1 when given none; other writers leave them out)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    n = struct.unpack_from("<H", data, ifd)[0]
+    entries = [bytes(data[ifd + 2 + 12 * k : ifd + 14 + 12 * k]) for k in range(n)]
+    kept = [e for e in entries if struct.unpack_from("<H", e)[0] not in codes]
+    following = bytes(data[ifd + 2 + 12 * n : ifd + 6 + 12 * n])
+    struct.pack_into("<H", data, ifd, len(kept))
+    data[ifd + 2 : ifd + 6 + 12 * len(kept)] = b"".join(kept) + following
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("resolution", ["placeholder", "absent"])
+def test_an_imagej_unit_without_a_resolution_states_no_pixel_size(tmp_path, resolution):
+    """s38a: ImageJ's unit=mm with no XResolution/YResolution stated (tifffile's 1/1 placeholder,
+    which it writes when given none; ImageJ writes a 1 mm pixel as 1000000/1000000 and leaves the
+    tags out when it has no scale) read as a pitch of 1.0 mm, and `register` refused a 0.05 mm
+    image beside it. No pitch is stated: none is read, with the note an unusable size gets."""
+    path = tmp_path / "ij.tif"
+    tifffile.imwrite(path, np.zeros((6, 7), np.uint16), imagej=True, metadata={"unit": "mm"})
+    if resolution == "absent":
+        _drop_tags(path, {282, 283, 296})
+    with tifffile.TiffFile(path) as tif:  # the file is as meant
+        assert tif.is_imagej and tif.pages[0].tags.valueof(282) == (None if resolution == "absent" else (1, 1))
+    with pytest.warns(UserWarning, match=r"ij\.tif: ImageJ's unit and resolution: unit 'mm' .*pixel size is ignored"):
+        meta = read(path).meta
+    assert not {"x_pixel_size", "y_pixel_size", "pixel_size_mm"} & set(meta)
+    info = run_cli("info", path)
+    assert info.returncode == 0 and "pixel_size_mm" not in info.stdout and "unusable" in info.stdout, info.stdout

@@ -587,8 +587,15 @@ class FrameSource:
         if self._tif.is_imagej:
             name = str((self._tif.imagej_metadata or {}).get("unit", "")).strip()
             unit = _TIFF_LENGTH_M.get(name)
-            if unit is not None:
-                x, y = (_per_pixel(first.tags.valueof(code), unit) for code in (282, 283))
+            resolution = [first.tags.valueof(code) for code in (282, 283)]
+            if unit is not None and (None in resolution or all(tuple(r) == (1, 1) for r in resolution)):
+                # a unit with no scale: tifffile writes 1/1 when given no resolution, and ImageJ
+                # (1000000/1000000 for a 1-unit pixel) leaves the tags out then; read as a pitch,
+                # 1 mm made register refuse a pair on it
+                stored = "absent" if None in resolution else "1/1, tifffile's placeholder"
+                problems.append(f"unit {name!r} without a scale (XResolution/YResolution {stored})")
+            elif unit is not None:
+                x, y = (_per_pixel(value, unit) for value in resolution)
                 if name == "inch" and all(v is not None and round(0.0254 / v, 6) in _SCREEN_DPI for v in (x, y)):
                     x = y = None  # a screen's default dpi, not a pitch (0.353 mm at 72)
             elif name.lower() not in _IMAGEJ_NO_LENGTH:
