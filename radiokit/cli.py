@@ -69,7 +69,8 @@ def _add_raw_hints(p):
     g.add_argument(
         "--allow-external",
         action="store_true",
-        help="follow external links, external raw storage and virtual datasets (data in other files)",
+        help="read data in other files: HDF5 external links, external raw storage and virtual datasets, "
+        "and the planes a multi-file OME-TIFF keeps in the files beside it",
     )
 
 
