@@ -656,11 +656,13 @@ class FrameSource:
             name = str((self._tif.imagej_metadata or {}).get("unit", "")).strip()
             unit = _TIFF_LENGTH_M.get(name)
             resolution = [first.tags.valueof(code) for code in (282, 283)]
-            if unit is not None and (None in resolution or all(tuple(r) == (1, 1) for r in resolution)):
+            if unit is not None and (
+                any(r is None for r in resolution) or all(isinstance(r, tuple) and r == (1, 1) for r in resolution)
+            ):
                 # a unit with no scale: tifffile writes 1/1 when given no resolution, and ImageJ
                 # (1000000/1000000 for a 1-unit pixel) leaves the tags out then; read as a pitch,
                 # 1 mm made register refuse a pair on it
-                stored = "absent" if None in resolution else "1/1, tifffile's placeholder"
+                stored = "absent" if any(r is None for r in resolution) else "1/1, tifffile's placeholder"
                 problems.append(f"unit {name!r} without a scale (XResolution/YResolution {stored})")
             elif unit is not None:
                 x, y = (_per_pixel(value, unit) for value in resolution)
