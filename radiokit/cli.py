@@ -69,7 +69,8 @@ def _add_raw_hints(p):
     g.add_argument(
         "--allow-external",
         action="store_true",
-        help="follow external links, external raw storage and virtual datasets (data in other files)",
+        help="read data in other files: HDF5 external links, external raw storage and virtual datasets, "
+        "and the planes a multi-file OME-TIFF keeps in the files beside it",
     )
 
 
@@ -557,9 +558,11 @@ def _register_inputs(args):
     pixel sizes)."""
     from radiokit.io import check_output, check_same_pixel_size
 
-    fixed, fixed_frame, fixed_meta = _one_image(args.fixed, args.fixed_frame, args.dataset, args.allow_external)
+    fixed, fixed_frame, fixed_meta = _one_image(
+        args.fixed, args.fixed_frame, args.fixed_dataset or args.dataset, args.allow_external
+    )
     moving, moving_frame, moving_meta = _one_image(
-        args.moving, args.moving_frame, args.dataset, args.allow_external, "--moving-frame"
+        args.moving, args.moving_frame, args.moving_dataset or args.dataset, args.allow_external, "--moving-frame"
     )
     # a field in pixels between two pitches is a scaling, not the sample's motion
     check_same_pixel_size(
@@ -1091,6 +1094,36 @@ def _add_register_checks(p):
     )
 
 
+def _add_register_inputs(p):
+    """``radiokit register``'s choice of frames and datasets in its two files."""
+    p.add_argument(
+        "--fixed-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame fixed file (default 0; of an experiment file, a projection)",
+    )
+    p.add_argument(
+        "--moving-frame",
+        type=int,
+        default=0,
+        help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
+    )
+    p.add_argument(
+        "--dataset",
+        help="HDF5 dataset holding the frames of both images (e.g. entry/data/data of `radiokit correct`); "
+        "--fixed-dataset / --moving-dataset name one image's",
+    )
+    # one --dataset for both: a TIFF beside an HDF5 file of another layout, or two HDF5 files of
+    # different layouts, could not be registered at all (the TIFF refuses a dataset)
+    p.add_argument("--fixed-dataset", help="the fixed image's HDF5 dataset (instead of --dataset for it)")
+    p.add_argument("--moving-dataset", help="the moving image's HDF5 dataset (instead of --dataset for it)")
+    p.add_argument(
+        "--allow-external",
+        action="store_true",
+        help="read data in other files: HDF5 links and storage, a multi-file OME-TIFF's other files",
+    )
+
+
 def _add_register(sub):
     p = sub.add_parser(
         "register",
@@ -1123,20 +1156,7 @@ def _add_register(sub):
         metavar=("R0", "R1", "C0", "C1"),
         help="score the similarity only inside rows R0:R1, columns C0:C1",
     )
-    p.add_argument(
-        "--fixed-frame",
-        type=int,
-        default=0,
-        help="frame index in a multi-frame fixed file (default 0; of an experiment file, a projection)",
-    )
-    p.add_argument(
-        "--moving-frame",
-        type=int,
-        default=0,
-        help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
-    )
-    p.add_argument("--dataset", help="HDF5 dataset holding the frames (e.g. entry/data/data of `radiokit correct`)")
-    p.add_argument("--allow-external", action="store_true", help="follow HDF5 links and storage in other files")
+    _add_register_inputs(p)
     _add_register_checks(p)
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="result file (.h5): field, registered image, quality"

@@ -313,6 +313,35 @@ def test_nonfinite_darks_or_flats_are_refused_naming_the_file(tmp_path):
     assert not (tmp_path / "cal.h5").exists()
 
 
+def test_register_names_each_images_dataset(tmp_path):
+    """s38a: register's --dataset names the dataset of both images, so a TIFF could not be
+    registered with an HDF5 file of another layout (the TIFF refused it), nor two HDF5 files of
+    different layouts. --fixed-dataset and --moving-dataset name one image's; the help says
+    --dataset is both's."""
+    import h5py
+    import tifffile
+
+    image = np.random.default_rng(0).integers(1000, 3000, (48, 56)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "fixed.tif", image)
+    with h5py.File(tmp_path / "moving.h5", "w") as h5:
+        h5["scan/frames"] = image[None]
+    with h5py.File(tmp_path / "other.h5", "w") as h5:
+        h5["data/images"] = image[None] + 1
+    given = ("--method", "ncc", "-q", "--overwrite", "-o", tmp_path / "reg.h5")
+    res = run_cli("register", tmp_path / "fixed.tif", tmp_path / "moving.h5", "--dataset", "scan/frames", *given)
+    assert res.returncode == 2 and "fixed.tif" in res.stderr, res.stderr  # as before: --dataset is both's
+    for fixed, extra in (
+        ("fixed.tif", ("--moving-dataset", "scan/frames")),
+        ("other.h5", ("--fixed-dataset", "data/images", "--moving-dataset", "scan/frames")),
+        ("other.h5", ("--dataset", "scan/frames", "--fixed-dataset", "data/images")),  # one image's wins
+    ):
+        (tmp_path / "reg.h5").unlink(missing_ok=True)
+        res = run_cli("register", tmp_path / fixed, tmp_path / "moving.h5", *extra, *given)
+        assert res.returncode in (0, 1) and (tmp_path / "reg.h5").exists(), (extra, res.stderr)
+    helps = " ".join(run_cli("register", "--help").stdout.split())
+    assert "both images" in helps and "--fixed-dataset" in helps and "--moving-dataset" in helps, helps
+
+
 def test_frames_of_any_hdf5_layout_are_read_with_dataset(tmp_path):
     """An HDF5 file of another layout: the one line says how to name its frames, and the way it
     says exists on the command line."""

@@ -1552,3 +1552,21 @@ def test_libhdf5s_search_prefixes_are_followed(how, prefix, tmp_path, monkeypatc
     monkeypatch.chdir(master.parent)
     monkeypatch.setenv(env, prefix)
     assert data.resolve() in [p.resolve() for p in data_files(master, allow_external=True)]
+
+
+def test_an_output_onto_a_file_of_a_multi_file_ome_tiff_is_refused(tmp_path):
+    """s38a: a multi-file OME-TIFF read with allow_external takes planes from the files beside
+    it; like an HDF5 link's target, an output onto one of them is refused, whether or not the
+    run follows them (as data_files is for HDF5)."""
+    from test_io_formats import _multifile_ome
+
+    from radiokit.io import OutputError, check_output, data_files
+
+    first, second = _multifile_ome(tmp_path, np.arange(4 * 6 * 8, dtype=np.uint16).reshape(4, 6, 8))
+    assert data_files(first, allow_external=True) == [second]
+    before = sha(second)
+    with pytest.raises(OutputError, match=f"{second.name}.*{first.name}"):
+        check_output(second, overwrite=True, inputs=[first])
+    res = run_cli("register", first, first, "--allow-external", "--moving-frame", "1", "-o", second, "--overwrite")
+    one_line_error(res, second.name)
+    assert sha(second) == before

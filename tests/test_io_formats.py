@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex, run_cli
+from conftest import ITEX_DIR, needs_itex, one_line_error, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -2128,3 +2128,113 @@ def test_imagej_inches_at_a_screens_dpi_state_no_pixel_size(tmp_path, dpi):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert "x_pixel_size" not in read(path).meta
+
+
+def _drop_tags(path, codes):
+    """Remove tags ``codes`` from the first IFD of a little-endian classic TIFF (tifffile always
+    writes XResolution and YResolution, 1/1 when given none; other writers leave them out)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    n = struct.unpack_from("<H", data, ifd)[0]
+    entries = [bytes(data[ifd + 2 + 12 * k : ifd + 14 + 12 * k]) for k in range(n)]
+    kept = [e for e in entries if struct.unpack_from("<H", e)[0] not in codes]
+    following = bytes(data[ifd + 2 + 12 * n : ifd + 6 + 12 * n])
+    struct.pack_into("<H", data, ifd, len(kept))
+    data[ifd + 2 : ifd + 6 + 12 * len(kept)] = b"".join(kept) + following
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("resolution", ["placeholder", "absent"])
+def test_an_imagej_unit_without_a_resolution_states_no_pixel_size(tmp_path, resolution):
+    """s38a: ImageJ's unit=mm with no XResolution/YResolution stated (tifffile's 1/1 placeholder,
+    which it writes when given none; ImageJ writes a 1 mm pixel as 1000000/1000000 and leaves the
+    tags out when it has no scale) read as a pitch of 1.0 mm, and `register` refused a 0.05 mm
+    image beside it. No pitch is stated: none is read, with the note an unusable size gets."""
+    path = tmp_path / "ij.tif"
+    tifffile.imwrite(path, np.zeros((6, 7), np.uint16), imagej=True, metadata={"unit": "mm"})
+    if resolution == "absent":
+        _drop_tags(path, {282, 283, 296})
+    with tifffile.TiffFile(path) as tif:  # the file is as meant
+        assert tif.is_imagej and tif.pages[0].tags.valueof(282) == (None if resolution == "absent" else (1, 1))
+    with pytest.warns(UserWarning, match=r"ij\.tif: ImageJ's unit and resolution: unit 'mm' .*pixel size is ignored"):
+        meta = read(path).meta
+    assert not {"x_pixel_size", "y_pixel_size", "pixel_size_mm"} & set(meta)
+    info = run_cli("info", path)
+    assert info.returncode == 0 and "pixel_size_mm" not in info.stdout and "unusable" in info.stdout, info.stdout
+
+
+def _multifile_ome(folder, frames, names=("a.ome.tif", "b.ome.tif"), root_uuid=True, **write):
+    """A multi-file OME-TIFF as Bio-Formats and Micro-Manager write one: each file holds some of
+    the image's planes and the whole OME-XML, whose TiffData/UUID elements say which file holds
+    which planes (each file's own UUID on its OME root)."""
+    n, rows, cols = frames.shape
+    per = n // len(names)
+    uuids = [f"urn:uuid:0000000{k}-0000-0000-0000-000000000000" for k in range(len(names))]
+    tiffdata = "".join(
+        f'<TiffData FirstT="{k * per}" IFD="0" PlaneCount="{per}"><UUID FileName="{name}">{uuid}</UUID></TiffData>'
+        for k, (name, uuid) in enumerate(zip(names, uuids))
+    )
+    for k, (name, uuid) in enumerate(zip(names, uuids)):
+        xml = (
+            '<?xml version="1.0" encoding="UTF-8"?>'
+            '<OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"'
+            f"{f' UUID={uuid!r}' if root_uuid else ''}>"
+            f'<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYCZT" Type="uint16" SizeX="{cols}" '
+            f'SizeY="{rows}" SizeC="1" SizeZ="1" SizeT="{n}"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+            f"{tiffdata}</Pixels></Image></OME>"
+        )
+        with tifffile.TiffWriter(folder / name) as tif:
+            for i, frame in enumerate(frames[k * per : (k + 1) * per]):
+                tif.write(frame, photometric="minisblack", description=xml if i == 0 else None, metadata=None, **write)
+    return [folder / name for name in names]
+
+
+@pytest.mark.parametrize("given", [0, 1])
+def test_a_multi_file_ome_tiff_is_refused_unless_external_data_is_allowed(tmp_path, given):
+    """s38a: a multi-file OME-TIFF (its OME-XML places planes 2 and 3 in b.ome.tif) read as the
+    2 planes of the file given, silently: half the frames. Planes in other files are data outside
+    the file, as an HDF5 external link's: refused in one line naming them, unless allowed."""
+    frames = _frames(4)
+    paths = _multifile_ome(tmp_path, frames)
+    other = paths[1 - given]
+    with pytest.raises(FormatError, match=rf"{paths[given].name}: .*4 planes.* in {other.name}.*allow_external=True"):
+        read(paths[given])
+    res = run_cli("info", paths[given])
+    one_line_error(res, paths[given].name, other.name, "--allow-external")
+
+
+@pytest.mark.parametrize("compression", [None, "zlib"])
+@pytest.mark.parametrize("given", [0, 1])
+def test_a_multi_file_ome_tiff_reads_every_plane_when_external_data_is_allowed(tmp_path, given, compression):
+    """With allow_external (--allow-external) the planes in the files beside it are read, in
+    OME's order, whichever file of the set is given; a file of the set that is missing is named."""
+    frames = _frames(4)
+    paths = _multifile_ome(tmp_path, frames, compression=compression)
+    np.testing.assert_array_equal(_both_ways(paths[given], allow_external=True), frames)
+    info = run_cli("info", "--allow-external", paths[given])
+    assert info.returncode == 0 and "4 x 30 rows x 40 cols" in info.stdout, info.stdout + info.stderr
+    paths[1 - given].unlink()
+    with pytest.raises(FormatError, match=rf"{paths[given].name}: .*{paths[1 - given].name}.*missing"):
+        read(paths[given], allow_external=True)
+
+
+def test_a_renamed_single_file_ome_tiff_without_a_root_uuid_still_reads(tmp_path):
+    """An OME root without a UUID names its file by TiffData's FileName only: renamed, the one
+    file it names is itself (a set has two files at least), not planes elsewhere to refuse."""
+    frames = _frames(2)
+    (path,) = _multifile_ome(tmp_path, frames, names=("orig.ome.tif",), root_uuid=False)
+    renamed = path.rename(tmp_path / "renamed.ome.tif")
+    with tifffile.TiffFile(renamed) as tif:  # as meant: no root UUID, FileName not its own
+        assert "<OME xmlns" in tif.ome_metadata and ' UUID="' not in tif.ome_metadata.split(">")[1]
+    np.testing.assert_array_equal(read(renamed).data, frames)
+
+
+def test_a_truncated_file_of_a_multi_file_ome_tiff_is_named_not_read_short(tmp_path):
+    """The files beside it are held to the checks the file given is: one cut short is refused
+    in one line naming it, not read as zeros or fewer frames."""
+    first, second = _multifile_ome(tmp_path, _frames(4))
+    second.write_bytes(second.read_bytes()[:-100])
+    with pytest.raises(FormatError, match=r"b\.ome\.tif: TIFF .* lies beyond the end .* truncated or corrupt"):
+        read(first, allow_external=True)

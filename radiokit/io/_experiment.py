@@ -1309,7 +1309,8 @@ def data_files(path, allow_external=False) -> list[Path]:
     found: list[Path] = []
     if allow_external:
         _data_files(Path(path), found, {resolved(path)})
-    return found
+    # the files of a multi-file OME-TIFF name one another: the input is no other file of its own
+    return [match for match in found if resolved(match) != resolved(path)]
 
 
 def _referred(path: Path) -> list[tuple[str, str]]:
@@ -1335,6 +1336,8 @@ def _referred_in(path: str, version: tuple) -> tuple[tuple[str, str], ...]:
 def _read_referred(path: Path) -> list[tuple[str, str]]:
     """:func:`_referred`, read from the file."""
     try:
+        if _ome_tiff_referred(path, names := []):
+            return names
         if not h5py.is_hdf5(path):
             return []
         h5 = h5py.File(path, "r")
@@ -1372,12 +1375,33 @@ def _read_referred(path: Path) -> list[tuple[str, str]]:
     return names
 
 
+def _ome_tiff_referred(path: Path, names: list) -> bool:
+    """Whether ``path`` is a TIFF; into ``names``, the other files of a multi-file OME-TIFF its
+    OME-XML places planes in (kind ``"tiff"``), which a read with allow_external takes frames from."""
+    import tifffile  # late: only a TIFF input needs it here
+
+    from radiokit.io._ome import external_planes
+
+    with open(path, "rb") as fh:
+        if fh.read(4) not in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
+            return False
+    try:
+        with tifffile.TiffFile(path) as tif:
+            xml = tif.ome_metadata if tif.is_ome else None
+    except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
+        return True
+    names.extend((name, "tiff") for name in external_planes(xml, path.name)[1])
+    return True
+
+
 def _data_files(path: Path, found: list[Path], seen: set) -> None:
     """:func:`data_files`, into ``found``. Every HDF5 file reached is followed in turn, however
     long the chain (``seen`` ends a loop): a limit of 5 files left the 6th, the one a chain of
     links read the frames from, to be overwritten (libhdf5 follows 16 links by default)."""
     for name, kind in _referred(path):
-        for place in _source_places(path.parent, name, kind):
+        # tifffile reads a multi-file OME-TIFF's files from the folder of the one it opened
+        places = [path.parent / name] if kind == "tiff" else _source_places(path.parent, name, kind)
+        for place in places:
             for match in _printf_files(place) if kind == "virtual" else [place]:
                 if match.is_file() and match not in found:
                     found.append(match)

@@ -23,6 +23,7 @@ from radiokit.io._experiment import (
     FRAMES,
     IMAGE_KEY,
     ImageKey,
+    _refuse_external,
     check_frame_written,
     check_image_keys,
     check_links,
@@ -46,6 +47,7 @@ from radiokit.io._itex import (
     read_scaling,
 )
 from radiokit.io._layout import check_readable, open_h5, text
+from radiokit.io._ome import count_planes, describe_planes, external_planes
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
@@ -226,6 +228,7 @@ class FrameSource:
                 f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
+        self._siblings = {}  # a multi-file OME-TIFF's other files, by path, open while this is
         self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self._invert = None  # what a white-is-zero image's values are subtracted from (TIFF, HDF5)
         self._packing = None  # an HDF5 dataset's CF scale_factor / add_offset (_cf_packing)
@@ -310,8 +313,7 @@ class FrameSource:
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
-        index = self._ome_plane_order(self._full_image_pages(all_pages))
-        self._pages = [all_pages[i] for i in index]
+        self._pages, index = self._frame_pages(all_pages)
         self._refuse_several_images(len(self._pages))
         first = self._pages[0]
         shape = first.shape
@@ -319,11 +321,11 @@ class FrameSource:
             raise self._not_greyscale(first)
         if 0 in shape:  # before the layout checks divide by it
             raise FormatError(self.path, f"TIFF page {index[0]} is {shape[0]}x{shape[1]}: no pixels")
-        for i in index:
-            if all_pages[i].shape != shape:  # a corrupt frame is an error, never a silently shorter stack
+        for i, page in zip(index, self._pages):
+            if page.shape != shape:  # a corrupt frame is an error, never a silently shorter stack
                 raise FormatError(
                     self.path,
-                    f"TIFF page {i} is {all_pages[i].shape}, page {index[0]} is {shape}: a corrupt page, "
+                    f"TIFF page {i} is {page.shape}, page {index[0]} is {shape}: a corrupt page, "
                     "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
@@ -434,7 +436,11 @@ class FrameSource:
             f"{what} of {rows}x{cols} {np.dtype(pages[0].dtype)}",
             frame * len(pages),
             frame,
-            stored_extent((o, b) for p in pages for o, b in zip(p.dataoffsets, p.databytecounts)),
+            # each file's bytes once: a multi-file OME-TIFF's files hold their planes at like offsets
+            sum(
+                stored_extent((o, b) for p in pages if p.parent is tif for o, b in zip(p.dataoffsets, p.databytecounts))
+                for tif in {id(p.parent): p.parent for p in pages}.values()
+            ),
             codecs,
             self._budget,
         )
@@ -452,6 +458,68 @@ class FrameSource:
         if not index:
             raise FormatError(self.path, "TIFF holds only reduced-resolution or mask pages, no full image")
         return index
+
+    def _frame_pages(self, all_pages) -> tuple[list, list]:
+        """The pages that are frames, in their planes' order, with their names in messages: a
+        page's number, or "3 of b.ome.tif" for a multi-file OME-TIFF's page in another file."""
+        spread = self._ome_multifile_pages()
+        if spread is not None:
+            return spread
+        index = self._ome_plane_order(self._full_image_pages(all_pages))
+        return [all_pages[i] for i in index], index
+
+    def _ome_multifile_pages(self) -> tuple[list, list[str]] | None:
+        """A multi-file OME-TIFF's pages in OME's plane order across its files, with their names
+        for messages; None when the OME-XML places every plane in this file (or it is no OME).
+
+        Planes in other files are data outside this file, as an HDF5 external link's: refused
+        unless ``allow_external``, judged from the XML before tifffile opens any of them (read
+        alone, the file gave its own planes, silently: half a two-file set). Allowed, every file
+        must be there and hold its planes (tifffile zero-fills what is missing), and each is
+        checked as this one is; data_files lists them, so that no output overwrites one."""
+        tif = self._tif
+        if not tif.is_ome:
+            return None
+        total, others = external_planes(tif.ome_metadata, self.path.name)
+        if not others:
+            return None
+        where = "; ".join(f"{describe_planes(planes)} in {name}" for name, planes in others.items())
+        if all(others.values()):
+            what = f"{sum(count_planes(p) for p in others.values())} of its {total} planes lie in other files"
+        else:
+            what = f"of its {total} planes, some lie in other files"
+        what = f"a multi-file OME-TIFF: {what} ({where})"
+        if not self._allow_external:
+            _refuse_external(self.path, what)
+        missing = [name for name in others if not (self.path.parent / name).is_file()]
+        if missing:
+            raise FormatError(
+                self.path,
+                f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
+                "a multi-file OME-TIFF's files are read from the folder it is in",
+            )
+        pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
+        if not pages or any(page is None for page in pages):
+            gone = sum(page is None for page in pages) or total
+            raise FormatError(
+                self.path,
+                f"{what}: {gone} of them are not in the files it names (a file cut short, or of another set)",
+            )
+        out, names = [], []
+        for page in pages:
+            if page.parent is tif:
+                out.append(page.aspage())
+                names.append(str(page.index))
+                continue
+            name = page.parent.filehandle.path  # opened afresh: tifffile closes the files it followed
+            if name not in self._siblings:
+                self._siblings[name] = tifffile.TiffFile(name)
+            out.append(self._siblings[name].pages[page.index].aspage())
+            names.append(f"{page.index} of {Path(name).name}")
+        for sibling in self._siblings.values():  # each file of the set is held to the same
+            self._check_ifd_chain([page.aspage() for page in sibling.pages], sibling)
+        self.meta["ome_files"] = [str(self.path), *self._siblings]
+        return out, names
 
     def _ome_plane_order(self, index: list[int]) -> list[int]:
         """The frame pages ``index`` in the order an OME-TIFF's planes have. Why: OME's TiffData
@@ -587,8 +655,17 @@ class FrameSource:
         if self._tif.is_imagej:
             name = str((self._tif.imagej_metadata or {}).get("unit", "")).strip()
             unit = _TIFF_LENGTH_M.get(name)
-            if unit is not None:
-                x, y = (_per_pixel(first.tags.valueof(code), unit) for code in (282, 283))
+            resolution = [first.tags.valueof(code) for code in (282, 283)]
+            if unit is not None and (
+                any(r is None for r in resolution) or all(isinstance(r, tuple) and r == (1, 1) for r in resolution)
+            ):
+                # a unit with no scale: tifffile writes 1/1 when given no resolution, and ImageJ
+                # (1000000/1000000 for a 1-unit pixel) leaves the tags out then; read as a pitch,
+                # 1 mm made register refuse a pair on it
+                stored = "absent" if any(r is None for r in resolution) else "1/1, tifffile's placeholder"
+                problems.append(f"unit {name!r} without a scale (XResolution/YResolution {stored})")
+            elif unit is not None:
+                x, y = (_per_pixel(value, unit) for value in resolution)
                 if name == "inch" and all(v is not None and round(0.0254 / v, 6) in _SCREEN_DPI for v in (x, y)):
                     x = y = None  # a screen's default dpi, not a pitch (0.353 mm at 72)
             elif name.lower() not in _IMAGEJ_NO_LENGTH:
@@ -600,23 +677,23 @@ class FrameSource:
         out = {name: v for name, v in (("x_pixel_size", x), ("y_pixel_size", y)) if v is not None}
         return usable_pixel_sizes(self.path, where, out, problems) if out or problems else {}
 
-    def _check_ifd_chain(self, pages):
-        """Everything the IFDs point at must lie inside the file.
+    def _check_ifd_chain(self, pages, tif=None):
+        """Everything the IFDs point at must lie inside the file (``tif``: another file of a
+        multi-file OME-TIFF, named in the errors; this one by default).
 
         tifffile only logs an error and carries on when a next-IFD offset or a tag's value lies
         beyond the end of the file; a multi-page file cut at a page boundary then reads as a
         shorter stack. A truncated or corrupt file is an error here, not fewer pages.
         """
-        tif = self._tif
+        tif = tif or self._tif
+        path = self.path if tif is self._tif else Path(tif.filehandle.path)
         if tif.is_lsm or tif.is_scanimage or tif.is_ndpi:  # page lists tifffile builds itself
             return
         t, fh = tif.tiff, tif.filehandle
         size = fh.size
 
         def broken(what):
-            return FormatError(
-                self.path, f"TIFF {what} lies beyond the end of the {size}-byte file: truncated or corrupt"
-            )
+            return FormatError(path, f"TIFF {what} lies beyond the end of the {size}-byte file: truncated or corrupt")
 
         entries = b""
         for index, page in enumerate(pages):
@@ -648,14 +725,14 @@ class FrameSource:
         if following in {page.offset for page in pages}:  # tifffile stops at the circle
             back = [page.offset for page in pages].index(following)
             raise FormatError(
-                self.path,
+                path,
                 f"TIFF IFD chain loops: the IFD after page {len(pages) - 1} is page {back}'s again (offset {following}): corrupt",
             )
         if following >= size:
             raise broken(f"IFD after page {len(pages) - 1}")
         if following:
             raise FormatError(
-                self.path,
+                path,
                 f"TIFF IFD after page {len(pages) - 1} (offset {following}) is not a readable IFD: corrupt",
             )
 
@@ -826,7 +903,7 @@ class FrameSource:
         """Strip or tile ``k`` of ``page`` as stored, decompressed: at most one byte more than
         16-bit words of its ``shape`` (rows, cols) would fill (the decoder allocates no more: a
         bomb stops there)."""
-        fh = self._tif.filehandle
+        fh = page.parent.filehandle  # (another file's, for a multi-file OME-TIFF's planes there)
         fh.seek(page.dataoffsets[k])
         data = fh.read(page.databytecounts[k])
         if page.fillorder == 2:  # bits reversed in the stored bytes, before decoding (libtiff, tifffile)
@@ -917,7 +994,7 @@ class FrameSource:
         bytes or packed rows, the horizontal predictor undone in their own (wrapping) type."""
         dtype = np.dtype(f"u{words}") if words else np.dtype(page.dtype)
         if words:
-            out = np.frombuffer(data, np.dtype(f"{self._tif.byteorder}u{words}")).reshape(rows, cols)
+            out = np.frombuffer(data, np.dtype(f"{page.parent.byteorder}u{words}")).reshape(rows, cols)
         else:
             out = imagecodecs.packints_decode(data, dtype, int(page.bitspersample), runlen=cols)
             out = out[: rows * cols].reshape(rows, cols)
@@ -1351,6 +1428,8 @@ class FrameSource:
         return self.n
 
     def close(self):
+        for sibling in getattr(self, "_siblings", {}).values():
+            sibling.close()
         for attr in ("_fh", "_tif", "_h5"):
             obj = getattr(self, attr, None)
             if obj is not None:
@@ -1403,7 +1482,8 @@ def read(path, /, **hints) -> Frames:
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
         ``byteorder`` ("<" or ">"), ``offset`` (bytes to skip) and ``n`` (frames to read);
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
-        datasets (refused by default: they make a file read other files); ``budget`` (bytes or
+        datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
+        default: they make a file read other files); ``budget`` (bytes or
         "2GiB") to override the memory budget (default ``RADIOKIT_MEMORY_BUDGET``, else half the
         available memory), which declared sizes are checked against before any allocation.
 

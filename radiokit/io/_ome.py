@@ -1,0 +1,91 @@
+"""Multi-file OME-TIFF: which of an OME-XML image's planes lie in files other than its own.
+
+Bio-Formats and Micro-Manager split a long image over several TIFF files; each carries the
+OME-XML, whose TiffData elements name (by UUID and FileName) the file holding each run of planes.
+Read alone, one file gave its own planes only, silently: half the frames of a two-file set.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+
+__all__ = ["external_planes", "describe_planes", "count_planes"]
+
+
+def _local(element) -> str:
+    return element.tag.rpartition("}")[2]
+
+
+def external_planes(xml: str | None, filename: str) -> tuple[int, dict[str, list[range] | None]]:
+    """The planes of the OME-XML's images and, for each other file its TiffData names, the runs
+    of planes it holds (numbered within their image as OME's DimensionOrder numbers them; None
+    where no PlaneCount says how many: all that file's pages from its IFD on). Runs, not lists
+    of planes: a corrupt PlaneCount of 10**9 is a number here, not gigabytes of them.
+
+    A TiffData names this file by the OME root's own UUID, or, where the root has none, by
+    ``filename`` (case aside), as tifffile and Bio-Formats judge it; one without a UUID is this
+    file's. Where the root has no UUID and every TiffData names one file, that file is this one
+    renamed (a set has two files at least; tifffile then reads none of its planes, and radiokit
+    read them all before). ``(0, {})`` for XML that does not parse."""
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return 0, {}
+    own = root.get("UUID")
+    if not own:
+        named = {el.get("FileName", "").lower() for el in root.iter() if _local(el) == "UUID"}
+        filename = named.pop() if len(named) == 1 else filename
+    total, found = 0, {}
+    for pixels in (el for el in root.iter() if _local(el) == "Pixels"):
+        axes = "".join(reversed(pixels.get("DimensionOrder", "XYCZT")))[:-2]
+        try:
+            shape = [int(pixels.get(f"Size{axis}", 1)) for axis in axes]
+        except ValueError:
+            continue
+        total += math.prod(shape)
+        for data in (el for el in pixels if _local(el) == "TiffData"):
+            uuid = next((el for el in data if _local(el) == "UUID"), None)
+            if uuid is None:
+                continue
+            name = uuid.get("FileName") or f"the file of UUID {uuid.text}"
+            if (own and (uuid.text or "").strip() == own.strip()) or (not own and name.lower() == filename.lower()):
+                continue
+            try:
+                first = sum(int(data.get(f"First{axis}", 0)) * math.prod(shape[k + 1 :]) for k, axis in enumerate(axes))
+                count = int(data.get("PlaneCount", data.get("NumPlanes", 1 if "IFD" in data.attrib else 0)))
+            except ValueError:
+                first, count = 0, 0
+            runs = found.setdefault(name, [])
+            if runs is not None and count > 0:
+                runs.append(range(first, first + count))
+            else:
+                found[name] = None
+    return total, found
+
+
+def describe_planes(runs: list[range] | None) -> str:
+    """The runs of planes :func:`external_planes` gives as a person reads them: "planes 2-3",
+    "plane 5", "planes 0-1, 4"."""
+    if not runs:
+        return "planes not counted"
+    merged: list[list[int]] = []
+    for run in sorted(runs, key=lambda r: r.start):
+        if merged and run.start <= merged[-1][1] + 1:
+            merged[-1][1] = max(merged[-1][1], run.stop - 1)
+        else:
+            merged.append([run.start, run.stop - 1])
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in merged[:4]) + (", ..." if len(merged) > 4 else "")
+    return f"plane{'s' if len(merged) > 1 or merged[0][0] != merged[0][1] else ''} {text}"
+
+
+def count_planes(runs: list[range] | None) -> int | None:
+    """How many planes the runs hold (overlaps once); None when not counted."""
+    if not runs:
+        return None
+    total, end = 0, None
+    for run in sorted(runs, key=lambda r: r.start):
+        start = run.start if end is None else max(run.start, end)
+        total += max(run.stop - start, 0)
+        end = run.stop if end is None else max(end, run.stop)
+    return total
