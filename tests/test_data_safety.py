@@ -1552,3 +1552,145 @@ def test_libhdf5s_search_prefixes_are_followed(how, prefix, tmp_path, monkeypatc
     monkeypatch.chdir(master.parent)
     monkeypatch.setenv(env, prefix)
     assert data.resolve() in [p.resolve() for p in data_files(master, allow_external=True)]
+
+
+def _calibration_file(tmp_path, shape=(20, 30)) -> Path:
+    darks, flats, cal = tmp_path / "d.tif", tmp_path / "f.tif", tmp_path / "cal.h5"
+    tifffile.imwrite(darks, np.full((2, *shape), 100, np.uint16), photometric="minisblack")
+    tifffile.imwrite(flats, np.full((2, *shape), 3800, np.uint16), photometric="minisblack")
+    assert run_cli("calibrate", "--dark", darks, "--flat", flats, "-o", cal, "-q").returncode == 0
+    return cal
+
+
+def test_a_link_name_that_is_not_utf8_does_not_end_the_listing_of_an_inputs_data_files(tmp_path, monkeypatch):
+    """h5py cannot decode a link name that is not UTF-8, and data_files ended its listing there:
+    the frames' own external link, listed after it, was never seen, and `correct master.h5
+    --dataset entry/data --allow-external -o frames.h5 --overwrite` replaced the input's frames."""
+    from radiokit.io import data_files
+
+    monkeypatch.chdir(tmp_path)
+    stack = np.arange(2 * 20 * 30, dtype=np.uint16).reshape(2, 20, 30) + 200
+    frames, master = tmp_path / "frames.h5", tmp_path / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = stack
+    odd = tmp_path / os.fsdecode(b"fr\xffames.h5")  # a file whose name is not UTF-8 either
+    with h5py.File(odd, "w") as f:
+        f["data"] = stack
+    with h5py.File(master, "w") as f:
+        f.id.links.create_soft(b"a\xff\xfe", b"/nowhere")  # listed before entry/ (names in byte order)
+        f.create_group(b"a\xfe")
+        f.id.links.create_external(b"a\xfe/odd", b"fr\xffames.h5", b"/data")
+        f["entry/data"] = h5py.ExternalLink(frames.name, "/data")
+    assert np.array_equal(h5py.File(master)["entry/data"][:], stack)  # libhdf5 reads the frames so
+    assert {p.resolve() for p in data_files(master, allow_external=True)} == {frames, odd}
+    cal, before = _calibration_file(tmp_path), sha(frames)
+    given = [master, "--cal", cal, "--dataset", "entry/data", "--allow-external", "-q", "--overwrite"]
+    one_line_error(run_cli("correct", *given, "-o", frames), frames.name, "input")
+    one_line_error(run_cli("correct", *given, "-o", odd), "input")
+    assert sha(frames) == before
+
+
+def test_a_virtual_source_named_in_bytes_that_are_not_utf8_is_listed(tmp_path, monkeypatch):
+    """h5py's virtual_sources() raised UnicodeDecodeError on such a source file name, which ended
+    the listing: the source is a file the frames are read from all the same."""
+    from radiokit.io import data_files
+
+    monkeypatch.chdir(tmp_path)
+    source = tmp_path / os.fsdecode(b"s\xff.h5")
+    with h5py.File(source, "w") as f:
+        f["data"] = np.arange(3)
+    master = tmp_path / "master.h5"
+    with h5py.File(master, "w") as f:
+        space = h5py.h5s.create_simple((3,))
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.VIRTUAL)
+        dcpl.set_virtual(space, b"s\xff.h5", b"data", h5py.h5s.create_simple((3,)))
+        h5py.h5d.create(f.id, name=b"frames", tid=h5py.h5t.NATIVE_INT64, space=space, dcpl=dcpl)
+        f["later"] = h5py.ExternalLink("frames.h5", "/data")
+    (tmp_path / "frames.h5").write_bytes(b"")
+    assert list(h5py.File(master)["frames"][:]) == [0, 1, 2]  # libhdf5 reads the source so
+    assert {p.resolve() for p in data_files(master, allow_external=True)} == {source, tmp_path / "frames.h5"}
+
+
+def test_an_input_whose_links_cannot_all_be_listed_refuses_an_existing_output(tmp_path):
+    """A link table libhdf5 cannot walk (a corrupt B-tree) ended the listing quietly, while
+    libhdf5 still read the frames through a link the walk never reached: an output onto them was
+    allowed. Where the listing cannot be completed, an output that exists is refused, naming the
+    input and why; a new output, which can be no input's file, is not."""
+    import re
+
+    from radiokit.io import OutputError, atomic_dir, check_output
+
+    frames, master = tmp_path / "frames.h5", tmp_path / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = np.arange(3)
+    with h5py.File(master, "w") as f:
+        for i in range(3):
+            f[f"a/x{i}"] = np.arange(3)
+        f["z/data"] = h5py.ExternalLink(str(frames), "/data")
+    raw = bytearray(master.read_bytes())
+    tree = [m.start() for m in re.finditer(b"TREE", raw)][1]  # group a's B-tree
+    raw[tree : tree + 4] = b"XXXX"
+    master.write_bytes(bytes(raw))
+    with h5py.File(master, "r") as f:  # the walk fails, libhdf5 reads the frames all the same
+        with pytest.raises(RuntimeError):
+            f.id.links.visit(lambda name, info: None, info=True)
+        assert list(f["z/data"][:]) == [0, 1, 2]
+    before = sha(frames)
+    with pytest.raises(OutputError, match=f"{master.name}.*cannot be listed"):
+        check_output(frames, overwrite=True, inputs=[master])
+    results = tmp_path / "results"
+    with atomic_dir(results) as tmp:
+        (tmp / "results.json").write_text("{}")
+    with pytest.raises(OutputError, match=f"{master.name}.*cannot be listed"):
+        check_output(results, overwrite=True, inputs=[master], folder=True)
+    check_output(tmp_path / "new.h5", inputs=[master])  # nothing there to lose
+    assert sha(frames) == before
+
+
+def test_a_chain_of_external_links_longer_than_pythons_recursion_limit_is_listed(tmp_path):
+    """data_files followed a chain file by file recursively: past ~980 files Python's
+    RecursionError, caught as an ordinary error, ended the listing quietly."""
+    from radiokit.io import data_files
+
+    n = 1200
+    for i in range(n, 0, -1):
+        with h5py.File(tmp_path / f"c{i}.h5", "w") as f:
+            f["x"] = np.arange(3) if i == n else h5py.ExternalLink(f"c{i + 1}.h5", "/x")
+    with h5py.File(tmp_path / "c0.h5", "w") as f:
+        f["x"] = h5py.ExternalLink("c1.h5", "/x")
+    found = data_files(tmp_path / "c0.h5", allow_external=True)
+    assert len(found) == n and (tmp_path / f"c{n}.h5") in found
+
+
+@pytest.mark.parametrize("how", ["link", "virtual"])
+def test_an_absolute_name_that_is_missing_is_looked_for_in_the_working_directory(how, tmp_path, monkeypatch):
+    """libhdf5, not finding an external link's (or a virtual source's) absolute file name, tries
+    its bare name beside the referring file and then in the working directory; data_files missed
+    the latter, so a frames.h5 in the working directory, read as the input's frames, was replaced
+    by `-o frames.h5 --overwrite`."""
+    from radiokit.io import data_files
+
+    (tmp_path / "master").mkdir()
+    (tmp_path / "cwd").mkdir()
+    stack = np.arange(2 * 20 * 30, dtype=np.uint16).reshape(2, 20, 30) + 100
+    frames, master = tmp_path / "cwd" / "frames.h5", tmp_path / "master" / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = stack
+    missing = str(tmp_path / "nonexistent" / "frames.h5")
+    if how == "link":
+        with h5py.File(master, "w") as f:
+            f["entry/data"] = h5py.ExternalLink(missing, "/data")
+    else:
+        with h5py.File(master, "w") as f:
+            layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+            layout[:] = h5py.VirtualSource(missing, "data", shape=stack.shape)
+            f.create_virtual_dataset("entry/data", layout)
+    cal = _calibration_file(tmp_path)
+    monkeypatch.chdir(frames.parent)
+    assert np.array_equal(h5py.File(master)["entry/data"][:], stack)  # libhdf5 reads ./frames.h5
+    assert [p.resolve() for p in data_files(master, allow_external=True)] == [frames]
+    before = sha(frames)
+    given = [master, "--cal", cal, "--dataset", "entry/data", "--allow-external", "-q", "--overwrite"]
+    one_line_error(run_cli("correct", *given, "-o", "frames.h5"), "frames.h5", "input")
+    assert sha(frames) == before

@@ -346,12 +346,24 @@ def _check_data_files(path: Path, inputs, folder) -> None:
     CLI's alone, and `correct_files(['master.h5'], cal, 'frames_000001.h5', allow_external=True,
     overwrite=True)` replaced the detector's frames. Refusing a file an input merely names costs
     a choice of another output name; allowing it cost the data."""
-    from radiokit.io._experiment import data_files  # late: _experiment imports this module
+    from radiokit.io._experiment import IncompleteListingError, data_files  # late: _experiment imports this module
 
     for src in inputs:
         if not src or Path(src).is_dir():
             continue
-        for data in data_files(src, allow_external=True):
+        try:
+            listed = data_files(src, allow_external=True)
+        except IncompleteListingError as exc:
+            # libhdf5 may still read the frames through a link the walk never reached: an output
+            # that exists could be them. One that does not exist can be no input's file
+            if os.path.lexists(path) and not (folder and path.is_dir() and not any(path.iterdir())):
+                raise OutputError(
+                    path,
+                    f"cannot tell whether input {src}'s frames are read from it: {exc.path}: {exc.problem}, "
+                    "so its links cannot be listed; choose an output that does not exist yet",
+                ) from None
+            continue
+        for data in listed:
             if _inside(data, path) if folder else _same(data, path):
                 raise OutputError(
                     path,
