@@ -1694,3 +1694,134 @@ def test_an_absolute_name_that_is_missing_is_looked_for_in_the_working_directory
     given = [master, "--cal", cal, "--dataset", "entry/data", "--allow-external", "-q", "--overwrite"]
     one_line_error(run_cli("correct", *given, "-o", "frames.h5"), "frames.h5", "input")
     assert sha(frames) == before
+
+
+def test_a_file_output_that_appears_during_the_run_is_not_replaced_without_overwrite(tmp_path):
+    """The output was checked at the start only, and the final rename replaced whatever was there
+    by then: two `correct` runs to one name, neither with --overwrite, both said done and one's
+    result was lost. The commit now takes only a free name."""
+    from radiokit.io import OutputError
+
+    out = tmp_path / "out.h5"
+    with pytest.raises(OutputError, match="appeared during the run") as caught:
+        with atomic_path(out) as tmp:
+            tmp.write_bytes(b"mine")
+            out.write_bytes(b"another run's")
+    assert isinstance(caught.value, FileExistsError)
+    assert out.read_bytes() == b"another run's"
+    no_temporaries(tmp_path)
+    link = tmp_path / "link.h5"  # a symbolic link (dangling too) is something there as well
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_path(link) as tmp:
+            tmp.write_bytes(b"mine")
+            link.symlink_to(tmp_path / "nowhere.h5")
+    assert link.is_symlink() and not (tmp_path / "nowhere.h5").exists()
+    with atomic_path(out, overwrite=True) as tmp:  # asked for: replaced
+        tmp.write_bytes(b"mine")
+    assert out.read_bytes() == b"mine"
+    no_temporaries(tmp_path)
+
+
+def test_two_corrects_to_one_new_name_without_overwrite_do_not_both_succeed(experiment, tmp_path):
+    """The reviewer's race, end to end: of two `correct` runs started together onto one new
+    name, neither with --overwrite, one may write it; the other says so and exits non-zero."""
+    out = tmp_path / "race.h5"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "radiokit.cli", "correct", str(experiment), "-q", "-o", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        )
+        for _ in range(2)
+    ]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    assert sorted(rc for rc, _ in results) == [0, 2], results
+    err = next(e for rc, e in results if rc)
+    assert "race.h5" in err and ("appeared during the run" in err or "exists" in err), err
+    assert read(out).n == 3  # one run's whole output
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("what", ["file", "folder with a file", "empty folder"])
+def test_a_results_folder_that_appears_during_the_run_is_not_replaced_without_overwrite(what, tmp_path):
+    """`process` renamed whatever stood at the output name by its end aside and deleted it: a
+    folder the user made there during the run was lost. Without --overwrite the folder is only
+    put where nothing is (an empty folder, which holds nothing to lose, gives way)."""
+    from radiokit.io import OutputError, atomic_dir
+
+    out = tmp_path / "results"
+
+    def appear():
+        if what == "file":
+            out.write_bytes(b"notes")
+        else:
+            out.mkdir()
+            if what == "folder with a file":
+                (out / "notes.txt").write_text("mine")
+
+    if what == "empty folder":
+        with atomic_dir(out) as tmp:
+            (tmp / "results.json").write_text("{}")
+            appear()
+        assert (out / "results.json").exists()
+        return
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_dir(out) as tmp:
+            (tmp / "results.json").write_text("{}")
+            appear()
+    if what == "file":
+        assert out.read_bytes() == b"notes"
+    else:
+        assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    no_temporaries(tmp_path)
+
+
+def test_files_added_to_a_results_folder_during_an_overwrite_are_not_deleted(experiment, tmp_path):
+    """With --overwrite, the old results folder was checked for files radiokit did not write at
+    the start only: a file the user put into it during the run was deleted with it."""
+    from radiokit.io import OutputError, atomic_dir
+
+    out = tmp_path / "results"
+    with atomic_dir(out) as tmp:
+        (tmp / "results.json").write_text("{}")
+    before = tree_sha(out)
+    with pytest.raises(OutputError, match="notes.txt"):
+        with atomic_dir(out, overwrite=True) as tmp:
+            (tmp / "results.json").write_text('{"new": 1}')
+            (out / "notes.txt").write_text("mine")
+    assert tree_sha(out) == {**before, "notes.txt": sha(out / "notes.txt")}
+    no_temporaries(tmp_path)
+    (out / "notes.txt").unlink()
+    with atomic_dir(out, overwrite=True) as tmp:  # and without them it is replaced
+        (tmp / "results.json").write_text('{"new": 1}')
+    assert (out / "results.json").read_text() == '{"new": 1}'
+    no_temporaries(tmp_path)
+
+
+def test_an_output_that_appears_is_not_replaced_where_renameat2_is_missing(tmp_path, monkeypatch):
+    """Where the kernel or C library has no renameat2 (not Linux, old glibc), a file is
+    hard-linked into place, which fails on a name taken; a folder is renamed, which fails onto a
+    file or a folder holding anything."""
+    from radiokit.io import OutputError, _atomic, atomic_dir
+
+    monkeypatch.setattr(_atomic, "_renameat2", lambda: None)
+    out = tmp_path / "out.h5"
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_path(out) as tmp:
+            tmp.write_bytes(b"mine")
+            out.write_bytes(b"another run's")
+    assert out.read_bytes() == b"another run's"
+    new = tmp_path / "new.h5"
+    with atomic_path(new) as tmp:
+        tmp.write_bytes(b"mine")
+    assert new.read_bytes() == b"mine" and new.stat().st_nlink == 1
+    folder = tmp_path / "results"
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_dir(folder) as tmp:
+            (tmp / "results.json").write_text("{}")
+            folder.mkdir()
+            (folder / "notes.txt").write_text("mine")
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+    no_temporaries(tmp_path)
