@@ -1570,3 +1570,276 @@ def test_an_output_onto_a_file_of_a_multi_file_ome_tiff_is_refused(tmp_path):
     res = run_cli("register", first, first, "--allow-external", "--moving-frame", "1", "-o", second, "--overwrite")
     one_line_error(res, second.name)
     assert sha(second) == before
+
+
+def _calibration_file(tmp_path, shape=(20, 30)) -> Path:
+    darks, flats, cal = tmp_path / "d.tif", tmp_path / "f.tif", tmp_path / "cal.h5"
+    tifffile.imwrite(darks, np.full((2, *shape), 100, np.uint16), photometric="minisblack")
+    tifffile.imwrite(flats, np.full((2, *shape), 3800, np.uint16), photometric="minisblack")
+    assert run_cli("calibrate", "--dark", darks, "--flat", flats, "-o", cal, "-q").returncode == 0
+    return cal
+
+
+def test_a_link_name_that_is_not_utf8_does_not_end_the_listing_of_an_inputs_data_files(tmp_path, monkeypatch):
+    """h5py cannot decode a link name that is not UTF-8, and data_files ended its listing there:
+    the frames' own external link, listed after it, was never seen, and `correct master.h5
+    --dataset entry/data --allow-external -o frames.h5 --overwrite` replaced the input's frames."""
+    from radiokit.io import data_files
+
+    monkeypatch.chdir(tmp_path)
+    stack = np.arange(2 * 20 * 30, dtype=np.uint16).reshape(2, 20, 30) + 200
+    frames, master = tmp_path / "frames.h5", tmp_path / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = stack
+    odd = tmp_path / os.fsdecode(b"fr\xffames.h5")  # a file whose name is not UTF-8 either
+    with h5py.File(odd, "w") as f:
+        f["data"] = stack
+    with h5py.File(master, "w") as f:
+        f.id.links.create_soft(b"a\xff\xfe", b"/nowhere")  # listed before entry/ (names in byte order)
+        f.create_group(b"a\xfe")
+        f.id.links.create_external(b"a\xfe/odd", b"fr\xffames.h5", b"/data")
+        f["entry/data"] = h5py.ExternalLink(frames.name, "/data")
+    assert np.array_equal(h5py.File(master)["entry/data"][:], stack)  # libhdf5 reads the frames so
+    assert {p.resolve() for p in data_files(master, allow_external=True)} == {frames, odd}
+    cal, before = _calibration_file(tmp_path), sha(frames)
+    given = [master, "--cal", cal, "--dataset", "entry/data", "--allow-external", "-q", "--overwrite"]
+    one_line_error(run_cli("correct", *given, "-o", frames), frames.name, "input")
+    one_line_error(run_cli("correct", *given, "-o", odd), "input")
+    assert sha(frames) == before
+
+
+def test_a_virtual_source_named_in_bytes_that_are_not_utf8_is_listed(tmp_path, monkeypatch):
+    """h5py's virtual_sources() raised UnicodeDecodeError on such a source file name, which ended
+    the listing: the source is a file the frames are read from all the same."""
+    from radiokit.io import data_files
+
+    monkeypatch.chdir(tmp_path)
+    source = tmp_path / os.fsdecode(b"s\xff.h5")
+    with h5py.File(source, "w") as f:
+        f["data"] = np.arange(3)
+    master = tmp_path / "master.h5"
+    with h5py.File(master, "w") as f:
+        space = h5py.h5s.create_simple((3,))
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.VIRTUAL)
+        dcpl.set_virtual(space, b"s\xff.h5", b"data", h5py.h5s.create_simple((3,)))
+        h5py.h5d.create(f.id, name=b"frames", tid=h5py.h5t.NATIVE_INT64, space=space, dcpl=dcpl)
+        f["later"] = h5py.ExternalLink("frames.h5", "/data")
+    (tmp_path / "frames.h5").write_bytes(b"")
+    assert list(h5py.File(master)["frames"][:]) == [0, 1, 2]  # libhdf5 reads the source so
+    assert {p.resolve() for p in data_files(master, allow_external=True)} == {source, tmp_path / "frames.h5"}
+
+
+def test_an_input_whose_links_cannot_all_be_listed_refuses_an_existing_output(tmp_path):
+    """A link table libhdf5 cannot walk (a corrupt B-tree) ended the listing quietly, while
+    libhdf5 still read the frames through a link the walk never reached: an output onto them was
+    allowed. Where the listing cannot be completed, an output that exists is refused, naming the
+    input and why; a new output, which can be no input's file, is not."""
+    import re
+
+    from radiokit.io import OutputError, atomic_dir, check_output
+
+    frames, master = tmp_path / "frames.h5", tmp_path / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = np.arange(3)
+    with h5py.File(master, "w") as f:
+        for i in range(3):
+            f[f"a/x{i}"] = np.arange(3)
+        f["z/data"] = h5py.ExternalLink(str(frames), "/data")
+    raw = bytearray(master.read_bytes())
+    tree = [m.start() for m in re.finditer(b"TREE", raw)][1]  # group a's B-tree
+    raw[tree : tree + 4] = b"XXXX"
+    master.write_bytes(bytes(raw))
+    with h5py.File(master, "r") as f:  # the walk fails, libhdf5 reads the frames all the same
+        with pytest.raises(RuntimeError):
+            f.id.links.visit(lambda name, info: None, info=True)
+        assert list(f["z/data"][:]) == [0, 1, 2]
+    before = sha(frames)
+    with pytest.raises(OutputError, match=f"{master.name}.*cannot be listed"):
+        check_output(frames, overwrite=True, inputs=[master])
+    results = tmp_path / "results"
+    with atomic_dir(results) as tmp:
+        (tmp / "results.json").write_text("{}")
+    with pytest.raises(OutputError, match=f"{master.name}.*cannot be listed"):
+        check_output(results, overwrite=True, inputs=[master], folder=True)
+    check_output(tmp_path / "new.h5", inputs=[master])  # nothing there to lose
+    assert sha(frames) == before
+
+
+def test_a_chain_of_external_links_longer_than_pythons_recursion_limit_is_listed(tmp_path):
+    """data_files followed a chain file by file recursively: past ~980 files Python's
+    RecursionError, caught as an ordinary error, ended the listing quietly."""
+    from radiokit.io import data_files
+
+    n = 1200
+    for i in range(n, 0, -1):
+        with h5py.File(tmp_path / f"c{i}.h5", "w") as f:
+            f["x"] = np.arange(3) if i == n else h5py.ExternalLink(f"c{i + 1}.h5", "/x")
+    with h5py.File(tmp_path / "c0.h5", "w") as f:
+        f["x"] = h5py.ExternalLink("c1.h5", "/x")
+    found = data_files(tmp_path / "c0.h5", allow_external=True)
+    assert len(found) == n and (tmp_path / f"c{n}.h5") in found
+
+
+@pytest.mark.parametrize("how", ["link", "virtual"])
+def test_an_absolute_name_that_is_missing_is_looked_for_in_the_working_directory(how, tmp_path, monkeypatch):
+    """libhdf5, not finding an external link's (or a virtual source's) absolute file name, tries
+    its bare name beside the referring file and then in the working directory; data_files missed
+    the latter, so a frames.h5 in the working directory, read as the input's frames, was replaced
+    by `-o frames.h5 --overwrite`."""
+    from radiokit.io import data_files
+
+    (tmp_path / "master").mkdir()
+    (tmp_path / "cwd").mkdir()
+    stack = np.arange(2 * 20 * 30, dtype=np.uint16).reshape(2, 20, 30) + 100
+    frames, master = tmp_path / "cwd" / "frames.h5", tmp_path / "master" / "master.h5"
+    with h5py.File(frames, "w") as f:
+        f["data"] = stack
+    missing = str(tmp_path / "nonexistent" / "frames.h5")
+    if how == "link":
+        with h5py.File(master, "w") as f:
+            f["entry/data"] = h5py.ExternalLink(missing, "/data")
+    else:
+        with h5py.File(master, "w") as f:
+            layout = h5py.VirtualLayout(shape=stack.shape, dtype=stack.dtype)
+            layout[:] = h5py.VirtualSource(missing, "data", shape=stack.shape)
+            f.create_virtual_dataset("entry/data", layout)
+    cal = _calibration_file(tmp_path)
+    monkeypatch.chdir(frames.parent)
+    assert np.array_equal(h5py.File(master)["entry/data"][:], stack)  # libhdf5 reads ./frames.h5
+    assert [p.resolve() for p in data_files(master, allow_external=True)] == [frames]
+    before = sha(frames)
+    given = [master, "--cal", cal, "--dataset", "entry/data", "--allow-external", "-q", "--overwrite"]
+    one_line_error(run_cli("correct", *given, "-o", "frames.h5"), "frames.h5", "input")
+    assert sha(frames) == before
+
+
+def test_a_file_output_that_appears_during_the_run_is_not_replaced_without_overwrite(tmp_path):
+    """The output was checked at the start only, and the final rename replaced whatever was there
+    by then: two `correct` runs to one name, neither with --overwrite, both said done and one's
+    result was lost. The commit now takes only a free name."""
+    from radiokit.io import OutputError
+
+    out = tmp_path / "out.h5"
+    with pytest.raises(OutputError, match="appeared during the run") as caught:
+        with atomic_path(out) as tmp:
+            tmp.write_bytes(b"mine")
+            out.write_bytes(b"another run's")
+    assert isinstance(caught.value, FileExistsError)
+    assert out.read_bytes() == b"another run's"
+    no_temporaries(tmp_path)
+    link = tmp_path / "link.h5"  # a symbolic link (dangling too) is something there as well
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_path(link) as tmp:
+            tmp.write_bytes(b"mine")
+            link.symlink_to(tmp_path / "nowhere.h5")
+    assert link.is_symlink() and not (tmp_path / "nowhere.h5").exists()
+    with atomic_path(out, overwrite=True) as tmp:  # asked for: replaced
+        tmp.write_bytes(b"mine")
+    assert out.read_bytes() == b"mine"
+    no_temporaries(tmp_path)
+
+
+def test_two_corrects_to_one_new_name_without_overwrite_do_not_both_succeed(experiment, tmp_path):
+    """The reviewer's race, end to end: of two `correct` runs started together onto one new
+    name, neither with --overwrite, one may write it; the other says so and exits non-zero."""
+    out = tmp_path / "race.h5"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "radiokit.cli", "correct", str(experiment), "-q", "-o", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        )
+        for _ in range(2)
+    ]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    assert sorted(rc for rc, _ in results) == [0, 2], results
+    err = next(e for rc, e in results if rc)
+    assert "race.h5" in err and ("appeared during the run" in err or "exists" in err), err
+    assert read(out).n == 3  # one run's whole output
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.parametrize("what", ["file", "folder with a file", "empty folder"])
+def test_a_results_folder_that_appears_during_the_run_is_not_replaced_without_overwrite(what, tmp_path):
+    """`process` renamed whatever stood at the output name by its end aside and deleted it: a
+    folder the user made there during the run was lost. Without --overwrite the folder is only
+    put where nothing is (an empty folder, which holds nothing to lose, gives way)."""
+    from radiokit.io import OutputError, atomic_dir
+
+    out = tmp_path / "results"
+
+    def appear():
+        if what == "file":
+            out.write_bytes(b"notes")
+        else:
+            out.mkdir()
+            if what == "folder with a file":
+                (out / "notes.txt").write_text("mine")
+
+    if what == "empty folder":
+        with atomic_dir(out) as tmp:
+            (tmp / "results.json").write_text("{}")
+            appear()
+        assert (out / "results.json").exists()
+        return
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_dir(out) as tmp:
+            (tmp / "results.json").write_text("{}")
+            appear()
+    if what == "file":
+        assert out.read_bytes() == b"notes"
+    else:
+        assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    no_temporaries(tmp_path)
+
+
+def test_files_added_to_a_results_folder_during_an_overwrite_are_not_deleted(experiment, tmp_path):
+    """With --overwrite, the old results folder was checked for files radiokit did not write at
+    the start only: a file the user put into it during the run was deleted with it."""
+    from radiokit.io import OutputError, atomic_dir
+
+    out = tmp_path / "results"
+    with atomic_dir(out) as tmp:
+        (tmp / "results.json").write_text("{}")
+    before = tree_sha(out)
+    with pytest.raises(OutputError, match="notes.txt"):
+        with atomic_dir(out, overwrite=True) as tmp:
+            (tmp / "results.json").write_text('{"new": 1}')
+            (out / "notes.txt").write_text("mine")
+    assert tree_sha(out) == {**before, "notes.txt": sha(out / "notes.txt")}
+    no_temporaries(tmp_path)
+    (out / "notes.txt").unlink()
+    with atomic_dir(out, overwrite=True) as tmp:  # and without them it is replaced
+        (tmp / "results.json").write_text('{"new": 1}')
+    assert (out / "results.json").read_text() == '{"new": 1}'
+    no_temporaries(tmp_path)
+
+
+def test_an_output_that_appears_is_not_replaced_where_renameat2_is_missing(tmp_path, monkeypatch):
+    """Where the kernel or C library has no renameat2 (not Linux, old glibc), a file is
+    hard-linked into place, which fails on a name taken; a folder is renamed, which fails onto a
+    file or a folder holding anything."""
+    from radiokit.io import OutputError, _atomic, atomic_dir
+
+    monkeypatch.setattr(_atomic, "_renameat2", lambda: None)
+    out = tmp_path / "out.h5"
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_path(out) as tmp:
+            tmp.write_bytes(b"mine")
+            out.write_bytes(b"another run's")
+    assert out.read_bytes() == b"another run's"
+    new = tmp_path / "new.h5"
+    with atomic_path(new) as tmp:
+        tmp.write_bytes(b"mine")
+    assert new.read_bytes() == b"mine" and new.stat().st_nlink == 1
+    folder = tmp_path / "results"
+    with pytest.raises(OutputError, match="appeared during the run"):
+        with atomic_dir(folder) as tmp:
+            (tmp / "results.json").write_text("{}")
+            folder.mkdir()
+            (folder / "notes.txt").write_text("mine")
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+    no_temporaries(tmp_path)

@@ -1,8 +1,9 @@
 """Outputs that appear whole or not at all, and never replace what radiokit did not make.
 
 Every file radiokit writes goes to a temporary name beside its destination and is renamed into
-place (``os.replace``, atomic within one filesystem) only once complete; a results folder is
-assembled in a temporary sibling folder and swapped in. An output that is a symbolic link is
+place (atomic within one filesystem) only once complete; a results folder is assembled in a
+temporary sibling folder and swapped in. Without ``overwrite`` the rename takes the name only if
+it is still free (:func:`_publish`): what appeared there during the run is never replaced. An output that is a symbolic link is
 written at its target, beside which its temporary is made; the link is kept. An interrupted run therefore leaves the
 previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
 -9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import glob
 import math
 import os
@@ -117,6 +119,19 @@ class OutputExistsError(OutputError, FileExistsError):
 
     def __init__(self, path):
         super().__init__(path, f"exists; pass {self.HOW} to replace it", errno.EEXIST)
+
+
+class OutputAppearedError(OutputError, FileExistsError):
+    """Something appeared at the output's name while the run was writing it (checked free at the
+    start), and ``overwrite`` was not given: it was not replaced, the run's output discarded."""
+
+    def __init__(self, path):
+        super().__init__(
+            path,
+            "appeared during the run (another run or program made it meanwhile); it was not replaced and "
+            f"this run's output was discarded: choose another output, or pass {OutputExistsError.HOW} to replace it",
+            errno.EEXIST,
+        )
 
 
 class DiskFullError(OutputError):
@@ -346,12 +361,24 @@ def _check_data_files(path: Path, inputs, folder) -> None:
     CLI's alone, and `correct_files(['master.h5'], cal, 'frames_000001.h5', allow_external=True,
     overwrite=True)` replaced the detector's frames. Refusing a file an input merely names costs
     a choice of another output name; allowing it cost the data."""
-    from radiokit.io._experiment import data_files  # late: _experiment imports this module
+    from radiokit.io._experiment import IncompleteListingError, data_files  # late: _experiment imports this module
 
     for src in inputs:
         if not src or Path(src).is_dir():
             continue
-        for data in data_files(src, allow_external=True):
+        try:
+            listed = data_files(src, allow_external=True)
+        except IncompleteListingError as exc:
+            # libhdf5 may still read the frames through a link the walk never reached: an output
+            # that exists could be them. One that does not exist can be no input's file
+            if os.path.lexists(path) and not (folder and path.is_dir() and not any(path.iterdir())):
+                raise OutputError(
+                    path,
+                    f"cannot tell whether input {src}'s frames are read from it: {exc.path}: {exc.problem}, "
+                    "so its links cannot be listed; choose an output that does not exist yet",
+                ) from None
+            continue
+        for data in listed:
             if _inside(data, path) if folder else _same(data, path):
                 raise OutputError(
                     path,
@@ -576,6 +603,99 @@ def _remove(path: Path) -> None:
             path.unlink()
 
 
+#: renameat2's flag: fail with EEXIST rather than replace what is at the new name
+_RENAME_NOREPLACE = 1
+_AT_FDCWD = -100
+#: errors by which a file system (or kernel) says it does not do a rename's flags, or hard links
+_UNSUPPORTED = {errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EPERM, errno.EXDEV}
+
+
+@functools.lru_cache(maxsize=1)
+def _renameat2():
+    """libc's renameat2 (Linux, glibc 2.28+), or None."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError, ImportError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def _rename_noreplace(src: Path, dst: Path) -> bool:
+    """Rename ``src`` to ``dst`` only where nothing is at ``dst``, in one step: True when done,
+    FileExistsError when something is there, False where the system offers no such rename."""
+    import ctypes
+
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), _RENAME_NOREPLACE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err == errno.EEXIST:
+        raise FileExistsError(err, os.strerror(err), str(dst))
+    if err in _UNSUPPORTED:
+        return False
+    raise OSError(err, os.strerror(err), str(src), None, str(dst))
+
+
+def _publish(tmp: Path, path: Path, folder=False) -> None:
+    """Rename ``tmp`` to ``path`` only where nothing is there, else :class:`OutputAppearedError`
+    (``tmp`` left for the caller to remove).
+
+    Why: the output was checked free at the start only, and the final ``os.replace`` replaced
+    whatever had appeared since: two `correct` runs to one new name, neither with --overwrite,
+    both said done and one result was lost; a folder made at `process`'s output name during the
+    run was renamed aside and deleted. renameat2(RENAME_NOREPLACE) takes the name only if free;
+    without it, a file is hard-linked into place (link fails on an existing name) and a folder
+    renamed (which fails onto a file or a folder holding anything). An empty folder holds
+    nothing to lose and gives way, as it did at the start; only with neither renameat2 nor hard
+    links (FAT) is a file's name looked at just before an ordinary rename."""
+    try:
+        try:
+            done = _rename_noreplace(tmp, path)
+        except FileExistsError:
+            if not (folder and _remove_empty_folder(path) and _rename_noreplace(tmp, path)):
+                raise
+            done = True
+        if done:
+            return
+        if folder:
+            os.rename(tmp, path)
+            return
+        try:
+            os.link(tmp, path, follow_symlinks=False)
+        except FileExistsError:
+            raise
+        except OSError as exc:
+            if exc.errno not in _UNSUPPORTED | {errno.EMLINK}:
+                raise
+            if os.path.lexists(path):
+                raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path)) from None
+            os.rename(tmp, path)
+            return
+        os.unlink(tmp)
+    except OSError as exc:
+        if exc.errno in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR, errno.EISDIR):
+            raise OutputAppearedError(path) from None
+        raise
+
+
+def _remove_empty_folder(path: Path) -> bool:
+    """Remove ``path`` if it is an empty folder (rmdir refuses one that holds anything, at once)."""
+    if path.is_symlink() or not path.is_dir():
+        return False
+    try:
+        path.rmdir()
+    except OSError:
+        return False
+    return True
+
+
 @contextlib.contextmanager
 def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
     """Yield a temporary name beside ``path``; on success rename it to ``path``, else remove it.
@@ -604,8 +724,13 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
             raise OutputError(path, "the writer produced no file")
         settle()  # a stop lost while it was written, its delivery not run yet: not renamed into place
         _fsync(tmp)  # the bytes are on disk before the name is: a power cut leaves old or new
-        _keep_mode(tmp, path)
-        os.replace(tmp, path)
+        if overwrite:
+            if os.path.lexists(path):  # what is there now, perhaps made during the run: is it replaceable?
+                _check_output(path, overwrite, inputs, False)
+            _keep_mode(tmp, path)
+            os.replace(tmp, path)
+        else:
+            _publish(tmp, path)
         _fsync(path.parent)
     except BaseException as exc:
         too_large = _is_too_large(exc, tmp)  # before the temporary, whose size may tell, is removed
@@ -678,7 +803,7 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
     ``path`` is the previous complete output, the new complete output, or absent.
     """
     path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True, made_by=made_by)
-    strangers = sorted(_files(path) - _manifest(path)) if (path / RESULTS_MARKER).exists() else []
+    strangers = _strangers(path) if (path / RESULTS_MARKER).exists() else []
     if strangers:
         raise OutputError(
             path,
@@ -696,14 +821,12 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
             f"{folder_marker(made_by)} Files:\n" + "".join(f"{name}\n" for name in sorted(_files(tmp)))
         )
         settle()  # a stop lost while it was written, its delivery not run yet: not swapped in
-        old = None
-        if path.exists():
+        if path.is_dir() and not path.is_symlink():
             _keep_mode(tmp, path)
-            old = _temporary_name(path, folder=True, kind="old")
-            os.rename(path, old)
-        os.rename(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        if overwrite:
+            _swap_in(tmp, path, inputs, made_by)
+        else:
+            _publish(tmp, path, folder=True)
     except BaseException as exc:
         too_large = _is_too_large(exc, tmp)  # before the temporary, whose size may tell, is removed
         _remove(tmp)
@@ -714,3 +837,48 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
             raise DiskFullError(path) from exc
         _raise_unwritable(exc, tmp, path)
         raise
+
+
+def _strangers(folder: Path) -> list[str]:
+    """The files under ``folder`` radiokit did not write there: those its marker does not list
+    (all of them where it has none)."""
+    listed = _manifest(folder) if (folder / RESULTS_MARKER).is_file() else set()
+    return sorted(_files(folder) - listed)
+
+
+def _swap_in(tmp: Path, path: Path, inputs, made_by: str) -> None:
+    """Put the folder ``tmp`` at ``path`` in place of the results folder there (``overwrite``).
+
+    What is at ``path`` is looked at again now, not only at the start: a file the user put into
+    the old folder during the run was deleted with it. The old folder is renamed aside first and
+    looked into there, where nothing more can be added under its name; holding a file radiokit
+    did not write, it is put back and the run's results discarded."""
+    if not os.path.lexists(path) or _remove_empty_folder(path):
+        _publish(tmp, path, folder=True)
+        return
+    _check_output(path, True, inputs, made_by)  # a folder, radiokit's, of this command, writable
+    old = _temporary_name(path, folder=True, kind="old")
+    os.rename(path, old)
+    strangers = _strangers(old)
+    if strangers:
+        try:
+            _publish(old, path, folder=True)
+            kept = ""
+        except OutputError:  # something took the name in between: the old folder stays aside
+            kept = f"; the previous folder is kept in {old}"
+        raise OutputError(
+            path,
+            f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...), added during "
+            f"the run; it was not replaced and this run's results were discarded{kept}: move them and run again, "
+            "or choose a new folder",
+        )
+    try:
+        _publish(tmp, path, folder=True)
+    except OutputError:
+        raise OutputError(
+            path,
+            f"appeared during the run (another run or program made it meanwhile); it was not replaced and this "
+            f"run's results were discarded; the previous folder is kept in {old}",
+            errno.EEXIST,
+        ) from None
+    shutil.rmtree(old, ignore_errors=True)

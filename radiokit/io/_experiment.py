@@ -1267,21 +1267,26 @@ _PREFIX_VARIABLES = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "r
 
 
 def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
-    """Where libhdf5 looks for a file ``name`` that a file in ``folder`` refers to, in its order:
-    a relative name beside the referring file (its ``${ORIGIN}``), then from the working
-    directory; an absolute name as given, then its base name beside the referring file; before all,
-    under each folder of the prefix variable for ``kind`` (:data:`_PREFIX_VARIABLES`)."""
+    """Every place libhdf5 may look for a file ``name`` that a file in ``folder`` refers to, in its
+    order (libhdf5's H5F_prefix_open_file, for external links and virtual sources alike): an
+    absolute name as given, then, as for a relative name, under each folder of the prefix
+    variable for ``kind`` (:data:`_PREFIX_VARIABLES`), beside the referring file (its
+    ``${ORIGIN}``) and from the working directory -- an absolute name that is missing by its base
+    name in each. libhdf5 opens the first it can; all are listed, since a place looked at
+    needlessly costs a refused output name, one missed an input's frames: an absolute name's base
+    name in the working directory was missed, and a ``frames.h5`` there read as the input's frames
+    was replaced by ``-o frames.h5 --overwrite``. External raw files (``raw``) are read where the
+    name leads, under the prefix variable's folders: an absolute one nowhere else (measured)."""
     given = Path(name)
-    places = [given, folder / given.name] if given.is_absolute() else [folder / given, given]
+    relative = Path(given.name) if given.is_absolute() else given
     # libhdf5 2.0.0 splits HDF5_EXT_PREFIX and HDF5_VDS_PREFIX at ":" but not HDF5_EXTFILE_PREFIX,
-    # and expands ${ORIGIN} in the latter two only (measured): every reading is taken, since a
-    # place looked at needlessly costs a refused output name, one missed an input's frames
+    # and expands ${ORIGIN} in the latter two only (measured): every reading is taken
     value = os.environ.get(_PREFIX_VARIABLES[kind], "")
     prefixes = dict.fromkeys(p.replace("${ORIGIN}", str(folder)) for p in [value, *value.split(":")] if p)
-    return [
-        Path(prefix.replace("${ORIGIN}", str(folder))) / (given.name if given.is_absolute() else given)
-        for prefix in prefixes
-    ] + places
+    under = [Path(prefix) / relative for prefix in prefixes]
+    if given.is_absolute():
+        return [given, *under] if kind == "raw" else [given, *under, folder / relative, relative]
+    return [*under, folder / relative, relative]
 
 
 def _printf_files(place: Path) -> list[Path]:
@@ -1295,6 +1300,11 @@ def _printf_files(place: Path) -> list[Path]:
     return sorted(Path(c) for c in candidates if pattern.fullmatch(c))
 
 
+class IncompleteListingError(FormatError):
+    """The files an HDF5 file's data may be read from cannot all be listed: its link table or
+    an object header cannot be read whole (a corrupt file)."""
+
+
 def data_files(path, allow_external=False) -> list[Path]:
     """The other files ``path``'s HDF5 data may be read from when ``allow_external``: external
     links' targets (to the end of a chain), virtual datasets' sources (a ``%b`` pattern: every
@@ -1305,74 +1315,96 @@ def data_files(path, allow_external=False) -> list[Path]:
     Why: an output onto one of them replaces an input's frames. `correct master.h5
     --allow-external -o frames_000001.h5 --overwrite` wrote over the detector's frames, since
     only the files named on the command line were held to be inputs.
+
+    Raises
+    ------
+    IncompleteListingError
+        The listing cannot be completed (a link table libhdf5 cannot walk, in ``path`` or a file
+        it leads to): a partial list would pass an output onto a file it left out, which libhdf5
+        may still reach through a link the walk never got to.
     """
     found: list[Path] = []
-    if allow_external:
-        _data_files(Path(path), found, {resolved(path)})
+    if not allow_external:
+        return found
+    # a worklist, not recursion: a chain of ~980 files ran into Python's RecursionError, which
+    # ended the listing quietly
+    todo, seen, listed = [Path(path)], {resolved(path)}, set()
+    while todo:
+        here = todo.pop()
+        names, problem = _referred(here)
+        if problem is not None:
+            raise IncompleteListingError(here, problem)
+        for name, kind in names:
+            # tifffile reads a multi-file OME-TIFF's files from the folder of the one it opened
+            places = [here.parent / name] if kind == "tiff" else _source_places(here.parent, name, kind)
+            for place in places:
+                for match in _printf_files(place) if kind == "virtual" else [place]:
+                    if not match.is_file():
+                        continue
+                    if resolved(match) not in listed:  # once, by the first name it was found under
+                        listed.add(resolved(match))
+                        found.append(match)
+                    if kind != "raw" and resolved(match) not in seen:  # its own links and sources too
+                        seen.add(resolved(match))
+                        todo.append(match)
     # the files of a multi-file OME-TIFF name one another: the input is no other file of its own
     return [match for match in found if resolved(match) != resolved(path)]
 
 
-def _referred(path: Path) -> list[tuple[str, str]]:
-    """The names of the files ``path`` refers to, each with its kind (:data:`_PREFIX_VARIABLES`).
+def _referred(path: Path) -> tuple[list[tuple[str, str]], str | None]:
+    """The names of the files ``path`` refers to, each with its kind (:data:`_PREFIX_VARIABLES`),
+    and why the list is incomplete (None: it is whole).
 
     Read once per version of the file (its device, inode, size and times): every writer's output
     check lists each input's data files, and `process` checks each of N output folders against
     all N inputs, N^2 readings of 6 ms (a 100-file batch spent a minute before any work). Where
-    the names lead is looked up afresh each time (:func:`_data_files`)."""
+    the names lead is looked up afresh each time (:func:`data_files`)."""
     try:
         st = path.stat()
     except OSError:
-        return []
-    return list(_referred_in(str(path), (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)))
+        return [], None
+    names, problem = _referred_in(str(path), (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
+    return list(names), problem
 
 
 @functools.lru_cache(maxsize=256)
-def _referred_in(path: str, version: tuple) -> tuple[tuple[str, str], ...]:
+def _referred_in(path: str, version: tuple) -> tuple[tuple[tuple[str, str], ...], str | None]:
     """:func:`_referred` of one version of ``path``."""
-    return tuple(_read_referred(Path(path)))
+    names, problem = _read_referred(Path(path))
+    return tuple(dict.fromkeys(names)), problem
 
 
-def _read_referred(path: Path) -> list[tuple[str, str]]:
-    """:func:`_referred`, read from the file."""
+def _read_referred(path: Path) -> tuple[list[tuple[str, str]], str | None]:
+    """:func:`_referred`, read from the file.
+
+    Walked with h5py's low-level API, which gives names as bytes: its high-level visit decodes
+    each link name as UTF-8, and one that is not (a corrupt link table, or a name written in
+    another encoding) raised SystemError; the listing ended there, so a link after it -- the
+    frames' own -- was never listed and an output replaced the frames."""
     try:
         if _ome_tiff_referred(path, names := []):
-            return names
+            return names, None
         if not h5py.is_hdf5(path):
-            return []
+            return [], None
         h5 = h5py.File(path, "r")
-    except (OSError, ValueError):  # unreadable: the read itself says so
-        return []
-    names = []
+    except (OSError, ValueError):  # libhdf5 cannot open it: nothing is read through it either
+        return [], None
+    names: list[tuple[str, str]] = []
     with h5:
+        root = h5.id
 
-        def visit(name, link):
-            if isinstance(link, h5py.ExternalLink):
-                names.append((link.filename, "link"))
-                return
-            if not isinstance(link, h5py.HardLink):
-                return
-            try:
-                obj = h5[name]
-            except (KeyError, OSError, ValueError):
-                return
-            if not isinstance(obj, h5py.Dataset):
-                return
-            if obj.is_virtual:
-                names.extend((vs.file_name, "virtual") for vs in obj.virtual_sources() if vs.file_name != ".")
-            plist = obj.id.get_create_plist()
-            names.extend(
-                (plist.get_external(i)[0].decode("utf-8", "replace"), "raw") for i in range(plist.get_external_count())
-            )
+        def visit(name: bytes, info) -> None:
+            if info.type == h5py.h5l.TYPE_EXTERNAL:
+                names.append((os.fsdecode(root.links.get_val(name)[0]), "link"))
+            elif info.type == h5py.h5l.TYPE_HARD:
+                names.extend(_stored_elsewhere(root, name))
 
         try:
-            h5.visititems_links(visit)
-        except (OSError, RuntimeError, ValueError, KeyError, TypeError, SystemError):
-            # a corrupt link table or object header (a name that is not UTF-8 came out of h5py's
-            # visit as a SystemError, 23 of 300 fuzzed files): every writer's output check reaches here
-            # before the readers' own checks, which name the file's problem in one line
-            return names
-    return names
+            root.links.visit(visit, info=True)
+        except Exception as exc:  # a corrupt link table or object header, in whatever form h5py gives it
+            why = " ".join(str(exc).split())[:200] or type(exc).__name__
+            return names, f"its links cannot be listed whole ({why})"
+    return names, None
 
 
 def _ome_tiff_referred(path: Path, names: list) -> bool:
@@ -1394,20 +1426,27 @@ def _ome_tiff_referred(path: Path, names: list) -> bool:
     return True
 
 
-def _data_files(path: Path, found: list[Path], seen: set) -> None:
-    """:func:`data_files`, into ``found``. Every HDF5 file reached is followed in turn, however
-    long the chain (``seen`` ends a loop): a limit of 5 files left the 6th, the one a chain of
-    links read the frames from, to be overwritten (libhdf5 follows 16 links by default)."""
-    for name, kind in _referred(path):
-        # tifffile reads a multi-file OME-TIFF's files from the folder of the one it opened
-        places = [path.parent / name] if kind == "tiff" else _source_places(path.parent, name, kind)
-        for place in places:
-            for match in _printf_files(place) if kind == "virtual" else [place]:
-                if match.is_file() and match not in found:
-                    found.append(match)
-                if kind != "raw" and match.is_file() and resolved(match) not in seen:
-                    seen.add(resolved(match))
-                    _data_files(match, found, seen)  # its own links, sources and raw files are read too
+def _stored_elsewhere(root, name: bytes) -> list[tuple[str, str]]:
+    """The files the object at ``name`` (a dataset's virtual sources and external raw files)
+    takes its data from; [] for a group, or an object libhdf5 cannot open (nor then read)."""
+    try:
+        obj = h5py.h5o.open(root, name)
+    except (KeyError, OSError, ValueError, RuntimeError):
+        return []
+    if not isinstance(obj, h5py.h5d.DatasetID):
+        return []
+    dcpl = obj.get_create_plist()
+    out = []
+    if dcpl.get_layout() == h5py.h5d.VIRTUAL:
+        for i in range(dcpl.get_virtual_count()):
+            try:
+                name = dcpl.get_virtual_filename(i)
+            except UnicodeDecodeError as exc:  # h5py decodes it as UTF-8; the bytes are the name
+                name = os.fsdecode(exc.object)
+            if name != ".":  # libhdf5's "this file"
+                out.append((name, "virtual"))
+    out.extend((os.fsdecode(dcpl.get_external(i)[0]), "raw") for i in range(dcpl.get_external_count()))
+    return out
 
 
 def check_virtual_sources(path, ds) -> None:
