@@ -76,7 +76,7 @@ data observe, and the fine lattices, pinned by little data, would refit the nois
 
 A global start. ``init="silhouette"`` (presets ``silent``, ``silent-fast``) adds the affine map
 between the two images' silhouettes (``radiokit.register._global``: centroid and second
-moments) under every level's lattices: a compressed phantom's slab moves tens of pixels at its
+moments, refined on the images) under every level's lattices: a compressed phantom's slab moves tens of pixels at its
 ends with nothing inside to see it by, and the lattices, which the bending energy never charges
 for an affine field, then refine around it. Dropped, and said so in the result's
 ``options["initial"]``, when the body is not wholly inside the frame or the silhouettes disagree.
