@@ -776,6 +776,35 @@ def test_process_refuses_a_control_of_another_pixel_size(tmp_path):
     assert run_cli("process", exp, "--control", same, "-o", tmp_path / "out32", *FAST).returncode == 0
 
 
+def test_process_refuses_pixels_that_are_not_square(tmp_path):
+    """x 0.05 mm, y 0.2 mm: `--mm --inclusion 3.5 4.5 3.5 4.5` was converted with x's pitch on both
+    axes (rows 70-90, not 17.5-22.5), as was --crop-mm; results.json recorded 0.05 alone, and the
+    report draws and scales square pixels, the registration smooths in pixels."""
+    from radiokit.pipeline import Config, process
+
+    exp = synthetic(tmp_path / "exp.h5")
+    aniso = tmp_path / "aniso.h5"
+    aniso.write_bytes(exp.read_bytes())
+    with h5py.File(aniso, "r+") as f:
+        f["entry/instrument/detector/y_pixel_size"][()] = 2e-4
+    quick = ["-q", "--no-report", "--cross-check", "none"]
+    for roi in (ROI, ["--mm", "--inclusion", 3.5, 4.5, 3.5, 4.5], ["--crop-mm", 2]):
+        res = run_cli("process", aniso, *roi, "-o", tmp_path / "out", *quick)
+        one_line_error(res, "aniso.h5", "0.05 x 0.2 mm", "square")
+        assert not (tmp_path / "out").exists()
+    with pytest.raises(FormatError, match=r"aniso.h5: pixels of 0.05 x 0.2 mm"):
+        process(aniso, Config(report=False, crop_mm=None), out_dir=tmp_path / "api")
+    # as a control too (beside an experiment that records no pitch, the pitches are not compared)
+    bare = tmp_path / "bare.h5"
+    bare.write_bytes(exp.read_bytes())
+    with h5py.File(bare, "r+") as f:
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            del f[f"entry/instrument/detector/{axis}"]
+    res = run_cli("process", bare, "--control", aniso, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "aniso.h5", "0.05 x 0.2 mm", "square")
+    assert run_cli("info", aniso).returncode == 0  # read and shown: only process measures in mm
+
+
 def test_register_refuses_images_of_another_pixel_size(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     other = _with_pixel_size(exp, tmp_path / "binned.h5", 1e-4)
