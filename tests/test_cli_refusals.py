@@ -971,3 +971,31 @@ def test_process_counts_the_steps_in_its_working_memory(tmp_path):
     assert not (tmp_path / "out").exists()
     res = run_cli("process", _many_steps(tmp_path / "exp3.h5", 3), "-o", tmp_path / "out", *FAST, env=budget)
     assert "memory budget" not in res.stderr, res.stderr
+
+
+def test_process_counts_the_control_in_its_working_memory(tmp_path):
+    """The memory check skipped --control: a control of 12 steps (17.5 MB by the check's figures)
+    was processed under a budget that refused the same file as the input. The control is processed
+    while the input's images are held, so the two are charged together."""
+    exp = synthetic(tmp_path / "exp.h5")  # 7.2 MB by the same figures
+    ctl = _many_steps(tmp_path / "ctl12.h5", 12)
+    res = run_cli(
+        "process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST, env={"RADIOKIT_MEMORY_BUDGET": "10MB"}
+    )
+    one_line_error(res, "--control", "ctl12.h5", "12 steps", "over the memory budget of 9.5 MiB")
+    res = run_cli(
+        "process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST, env={"RADIOKIT_MEMORY_BUDGET": "20MB"}
+    )
+    one_line_error(res, "exp.h5", "and its control", "ctl12.h5", "over the memory budget of 19.1 MiB")
+    assert not (tmp_path / "out").exists()
+
+
+def test_files_processed_at_once_share_the_memory_budget(tmp_path):
+    """Each file was checked against the whole budget, and the local cluster's workers process one
+    file each at once: two workers could take twice the budget."""
+    files = [synthetic(tmp_path / f"exp{i}.h5") for i in (1, 2)]  # 7.2 MB each by the check's figures
+    budget = {"RADIOKIT_MEMORY_BUDGET": "10MB"}
+    res = run_cli("process", *files, "--workers", 2, "-o", tmp_path / "out", *FAST, env=budget)
+    one_line_error(res, "exp1.h5", "shared by the 2 files processed at once (4.8 MiB each", "--workers 1")
+    res = run_cli("process", *files, "--workers", 1, "-o", tmp_path / "out", *FAST, env=budget)
+    assert res.returncode == 0, res.stderr
