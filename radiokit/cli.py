@@ -825,42 +825,66 @@ PROCESS_MEASURED_STEPS = 3
 PROCESS_BYTES_PER_STEP_PIXEL = 45
 
 
-def _check_process_memory(files, cfg) -> None:
+def _process_need(path, cfg) -> tuple[int, str] | None:
+    """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
+    index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
+    from radiokit.io import open_frames
+    from radiokit.io._budget import _human
+
+    try:
+        with open_frames(path) as src:
+            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+            # the steps from the file's index (read with its metadata), no frame read
+            keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
+    except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
+        return None
+    n_steps = len(set(steps[(keys == 0) & (steps >= 0)].tolist())) if steps.shape == keys.shape else 0
+    more = max(0, n_steps - PROCESS_MEASURED_STEPS)
+    # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
+    side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
+    kept = min(side, rows) * min(side, cols)
+    per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
+    need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
+    words = (
+        f"its {rows}x{cols} frames of {n_steps} steps need about {_human(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
+        + (f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}" if more else "")
+        + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the {int(min(side, rows))}x{int(min(side, cols))} crop kept)"
+    )
+    return need, words
+
+
+def _check_process_memory(files, cfg, at_once: int = 1) -> None:
     """Refuse, before any work, a file whose processing would need more memory than the budget,
-    as ``register`` refuses a registration: ``process`` registers the same frames and holds more."""
-    from radiokit.io import memory_budget, open_frames
+    as ``register`` refuses a registration: ``process`` registers the same frames and holds more.
+    A file's control is processed while the file's own images are held (the control's record is
+    made last), so the two are charged together, and the control alone first; ``at_once`` files
+    processed at once (the local cluster's workers) share the budget: each was checked against
+    all of it, so two workers could take twice the budget."""
+    from radiokit.io import memory_budget
     from radiokit.io._budget import BUDGET_ENV, _human
 
     limit = memory_budget()
+    share = limit // max(1, at_once)
+    budget = f"the memory budget of {_human(limit)}" + (
+        f" shared by the {at_once} files processed at once ({_human(share)} each; --workers 1 takes one at a time)"
+        if at_once > 1
+        else ""
+    )
+    advice = (
+        f": raise {BUDGET_ENV} if the machine has that memory, or process smaller frames, binned or cropped "
+        "beforehand (--crop-mm narrows only what is kept)"
+    )
+    control = _process_need(cfg.control, cfg) if cfg.control else None
+    if control is not None and control[0] > share:
+        raise ValueError(f"--control {cfg.control}: processing {control[1]}, over {budget}{advice}")
     for path in files:
-        try:
-            with open_frames(path) as src:
-                (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
-                # the steps from the file's index (read with its metadata), no frame read
-                keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
-        except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
+        mine = _process_need(path, cfg)
+        if mine is None:
             continue
-        n_steps = len(set(steps[(keys == 0) & (steps >= 0)].tolist())) if steps.shape == keys.shape else 0
-        more = max(0, n_steps - PROCESS_MEASURED_STEPS)
-        # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
-        side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
-        kept = min(side, rows) * min(side, cols)
-        per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
-        need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
-        if need > limit:
-            raise ValueError(
-                f"{path}: processing its {rows}x{cols} frames of {n_steps} steps needs about {_human(need)} "
-                f"({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
-                + (
-                    f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}"
-                    if more
-                    else ""
-                )
-                + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the "
-                f"{int(min(side, rows))}x{int(min(side, cols))} crop kept), over the memory budget of "
-                f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or process smaller "
-                "frames, binned or cropped beforehand (--crop-mm narrows only what is kept)"
-            )
+        need = mine[0] + (control[0] if control else 0)
+        if need > share:
+            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
+            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {budget}{advice}")
 
 
 def cmd_process(args) -> int:
@@ -884,8 +908,9 @@ def cmd_process(args) -> int:
     _check_process_files(args)
     if args.preset:  # it refuses only a preset given (with a peer method); it imports radiokit.register
         _check_preset(args)
+    from radiokit._threads import cores
     from radiokit.io import check_output
-    from radiokit.pipeline import output_folders, process
+    from radiokit.pipeline import local_workers, output_folders, process
 
     opts = {"preset": args.preset} if args.preset else {}
     try:
@@ -897,7 +922,9 @@ def cmd_process(args) -> int:
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
-    _check_process_memory(args.files, cfg)
+    # the local cluster's workers each process a file at once (a scheduler's run on their own hosts)
+    at_once = 1 if single or args.scheduler else local_workers(args.workers, len(args.files), cores())
+    _check_process_memory(args.files, cfg, at_once)
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)

@@ -393,6 +393,7 @@ def _load_steps(path, progress: bool) -> Steps:
     t = time.perf_counter()
     with open_frames(path) as src:
         meta = src.meta
+        _check_square_pixels(path, meta)  # Steps records one pitch (process checked before any work)
         keys = np.asarray(meta["image_key"])
         steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
         ratios_all = np.asarray(meta.get("ratio", np.full(len(keys), np.nan)), float)
@@ -1077,6 +1078,27 @@ def _output_kind(dataset, kind) -> str:
     }.get(dataset, f"{kind} data")
 
 
+def _check_square_pixels(path, meta: dict) -> None:
+    """Refuse an experiment whose pixels are not square (``x_pixel_size`` and ``y_pixel_size``
+    differ). Why: the chain measures in square pixels: ROIs and the crop in mm are converted with
+    one pitch, results.json records one, the report draws pixels square and scales rows and
+    columns alike, and the registration smooths in pixels. x 0.05 mm, y 0.2 mm put
+    ``--mm --inclusion 3.5 4.5 ...`` at rows 70-90, not 17.5-22.5, exit code 0. The panel bins
+    square (1x1, 2x2, 4x4) and ExperimentWriter writes one pitch for both axes: such a file was
+    written or edited by another program."""
+    from radiokit.io._experiment import PIXEL_SIZE_RTOL
+
+    x, y = meta.get("x_pixel_size"), meta.get("y_pixel_size")
+    if x is None or y is None or math.isclose(x, y, rel_tol=PIXEL_SIZE_RTOL):
+        return
+    raise FormatError(
+        path,
+        f"pixels of {x * 1e3:g} x {y * 1e3:g} mm (x_pixel_size, y_pixel_size): process measures, records "
+        "and reports square pixels (ROIs and the crop in mm, the report's scales, one pitch in results.json); "
+        "resample the frames to square pixels first",
+    )
+
+
 def _check_inputs(path: Path, control) -> None:
     """An experiment file, and a control imaged on the same grid. A calibration or results file
     was read as frames (two warnings, then "no steps"); a control of another frame size or
@@ -1096,6 +1118,7 @@ def _check_inputs(path: Path, control) -> None:
                     f"holds {kind}, not {'a' if what[0] == 'c' else 'an'} {what} (darks, flats and projections by step, as "
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
+            _check_square_pixels(p, src.meta)
             shapes.append(src.frame_shape)
             metas.append(src.meta)
     if len(shapes) == 2 and shapes[0] != shapes[1]:

@@ -776,6 +776,35 @@ def test_process_refuses_a_control_of_another_pixel_size(tmp_path):
     assert run_cli("process", exp, "--control", same, "-o", tmp_path / "out32", *FAST).returncode == 0
 
 
+def test_process_refuses_pixels_that_are_not_square(tmp_path):
+    """x 0.05 mm, y 0.2 mm: `--mm --inclusion 3.5 4.5 3.5 4.5` was converted with x's pitch on both
+    axes (rows 70-90, not 17.5-22.5), as was --crop-mm; results.json recorded 0.05 alone, and the
+    report draws and scales square pixels, the registration smooths in pixels."""
+    from radiokit.pipeline import Config, process
+
+    exp = synthetic(tmp_path / "exp.h5")
+    aniso = tmp_path / "aniso.h5"
+    aniso.write_bytes(exp.read_bytes())
+    with h5py.File(aniso, "r+") as f:
+        f["entry/instrument/detector/y_pixel_size"][()] = 2e-4
+    quick = ["-q", "--no-report", "--cross-check", "none"]
+    for roi in (ROI, ["--mm", "--inclusion", 3.5, 4.5, 3.5, 4.5], ["--crop-mm", 2]):
+        res = run_cli("process", aniso, *roi, "-o", tmp_path / "out", *quick)
+        one_line_error(res, "aniso.h5", "0.05 x 0.2 mm", "square")
+        assert not (tmp_path / "out").exists()
+    with pytest.raises(FormatError, match=r"aniso.h5: pixels of 0.05 x 0.2 mm"):
+        process(aniso, Config(report=False, crop_mm=None), out_dir=tmp_path / "api")
+    # as a control too (beside an experiment that records no pitch, the pitches are not compared)
+    bare = tmp_path / "bare.h5"
+    bare.write_bytes(exp.read_bytes())
+    with h5py.File(bare, "r+") as f:
+        for axis in ("x_pixel_size", "y_pixel_size"):
+            del f[f"entry/instrument/detector/{axis}"]
+    res = run_cli("process", bare, "--control", aniso, "-o", tmp_path / "out", *FAST)
+    one_line_error(res, "aniso.h5", "0.05 x 0.2 mm", "square")
+    assert run_cli("info", aniso).returncode == 0  # read and shown: only process measures in mm
+
+
 def test_register_refuses_images_of_another_pixel_size(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     other = _with_pixel_size(exp, tmp_path / "binned.h5", 1e-4)
@@ -942,3 +971,31 @@ def test_process_counts_the_steps_in_its_working_memory(tmp_path):
     assert not (tmp_path / "out").exists()
     res = run_cli("process", _many_steps(tmp_path / "exp3.h5", 3), "-o", tmp_path / "out", *FAST, env=budget)
     assert "memory budget" not in res.stderr, res.stderr
+
+
+def test_process_counts_the_control_in_its_working_memory(tmp_path):
+    """The memory check skipped --control: a control of 12 steps (17.5 MB by the check's figures)
+    was processed under a budget that refused the same file as the input. The control is processed
+    while the input's images are held, so the two are charged together."""
+    exp = synthetic(tmp_path / "exp.h5")  # 7.2 MB by the same figures
+    ctl = _many_steps(tmp_path / "ctl12.h5", 12)
+    res = run_cli(
+        "process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST, env={"RADIOKIT_MEMORY_BUDGET": "10MB"}
+    )
+    one_line_error(res, "--control", "ctl12.h5", "12 steps", "over the memory budget of 9.5 MiB")
+    res = run_cli(
+        "process", exp, "--control", ctl, "-o", tmp_path / "out", *FAST, env={"RADIOKIT_MEMORY_BUDGET": "20MB"}
+    )
+    one_line_error(res, "exp.h5", "and its control", "ctl12.h5", "over the memory budget of 19.1 MiB")
+    assert not (tmp_path / "out").exists()
+
+
+def test_files_processed_at_once_share_the_memory_budget(tmp_path):
+    """Each file was checked against the whole budget, and the local cluster's workers process one
+    file each at once: two workers could take twice the budget."""
+    files = [synthetic(tmp_path / f"exp{i}.h5") for i in (1, 2)]  # 7.2 MB each by the check's figures
+    budget = {"RADIOKIT_MEMORY_BUDGET": "10MB"}
+    res = run_cli("process", *files, "--workers", 2, "-o", tmp_path / "out", *FAST, env=budget)
+    one_line_error(res, "exp1.h5", "shared by the 2 files processed at once (4.8 MiB each", "--workers 1")
+    res = run_cli("process", *files, "--workers", 1, "-o", tmp_path / "out", *FAST, env=budget)
+    assert res.returncode == 0, res.stderr

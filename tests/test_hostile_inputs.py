@@ -274,6 +274,53 @@ def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
     assert res.returncode == 0, res.stderr
 
 
+def _one_pixel_pages(path, n, back=None):
+    """A classic TIFF of ``n`` IFDs of a 1 x 1 uint16 page, all on one 2-byte strip (100 bytes a
+    page); with ``back``, the last IFD's next is page ``back``'s again (a loop)."""
+    import struct
+
+    tags = [(256, 3, 1), (257, 3, 1), (258, 3, 16), (259, 3, 1), (262, 3, 1), (273, 4, 8), (278, 3, 1), (279, 4, 2)]
+    ifd = 2 + 12 * len(tags) + 4
+    data = bytearray(b"II*\x00" + struct.pack("<I", 12) + struct.pack("<H", 1000) + b"\0\0")
+    for i in range(n):
+        data += struct.pack("<H", len(tags))
+        for code, kind, value in tags:
+            data += struct.pack("<HHI", code, kind, 1)
+            data += struct.pack("<HH", value, 0) if kind == 3 else struct.pack("<I", value)
+        following = 12 + (i + 1) * ifd if i < n - 1 else (0 if back is None else 12 + back * ifd)
+        data += struct.pack("<I", following)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_a_tiff_of_many_small_pages_is_refused_before_its_pages_are_built(tmp_path):
+    """300,000 one-pixel pages (a 30 MB file) took 860 MB and 25 s to open, under any budget: no
+    frame is larger than a pixel, the pages themselves are the bomb (about 3 KB each, open)."""
+    path = _one_pixel_pages(tmp_path / "pages.tif", 3000)
+    cal = tmp_path / "cal.h5"
+    for name, level in (("dark", 100), ("flat", 3000)):
+        frames = np.random.default_rng(0).normal(level, 5, (5, 1, 1)).astype(np.uint16)
+        tifffile.imwrite(tmp_path / f"{name}.tif", frames, photometric="minisblack")
+    calibrate = ("calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", cal)
+    assert run_cli(*calibrate).returncode == 0
+    for cmd in ("info", "correct"):
+        args = ("--cal", cal, "-o", tmp_path / "o.h5") if cmd == "correct" else ()
+        res = run_cli(cmd, path, *args, env={"RADIOKIT_MEMORY_BUDGET": "8MiB"})
+        one_line_error(res, "pages.tif: TIFF of at least 2", " pages", "more than the memory budget of 8.0 MiB")
+    with pytest.raises(FormatError, match="pages.tif: TIFF of at least"):
+        open_frames(path, budget="8MiB")
+    with open_frames(path, budget="16MiB") as src:  # 3000 pages of 8 tags: 9 MB
+        assert (len(src), src.frame_shape) == (3000, (1, 1))
+
+
+def test_a_tiff_ifd_chain_leading_back_after_100_pages_is_named_a_loop(tmp_path):
+    """tifffile looks for a loop at its 100th IFD only: a 20 KB file whose 200th IFD led back to the
+    150th was followed until memory ran out (`radiokit info` never returned)."""
+    path = _one_pixel_pages(tmp_path / "loop.tif", 200, back=150)
+    with pytest.raises(FormatError, match="IFD chain loops: the IFD after page 199 is page 150's again"):
+        open_frames(path)
+
+
 @pytest.mark.parametrize(
     "text, expected", [("2GiB", 2 * 2**30), ("500M", 500 * 10**6), ("1e9", 10**9), ("64 kib", 64 * 1024), ("123", 123)]
 )

@@ -49,6 +49,7 @@ from radiokit.io._itex import (
 from radiokit.io._layout import check_readable, open_h5, text
 from radiokit.io._ome import count_planes, describe_planes, external_planes
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
+from radiokit.io._tiff_ifds import check_tiff_pages
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
@@ -308,6 +309,7 @@ class FrameSource:
     _read_itex = _read_raw
 
     def _open_tiff(self, dataset=None, **hints):
+        check_tiff_pages(self.path, self._budget)  # before tifffile builds a page (its pages are the bomb)
         self._tif = tifffile.TiffFile(self.path)
         if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
             raise FormatError(self.path, "TIFF holds no image")
