@@ -2238,3 +2238,60 @@ def test_a_truncated_file_of_a_multi_file_ome_tiff_is_named_not_read_short(tmp_p
     second.write_bytes(second.read_bytes()[:-100])
     with pytest.raises(FormatError, match=r"b\.ome\.tif: TIFF .* lies beyond the end .* truncated or corrupt"):
         read(first, allow_external=True)
+
+
+def _ome_xml(planes, rows, cols, tiffdata="", root=""):
+    """OME-XML of one image of ``planes`` time points of (rows, cols) uint16."""
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>'
+        f'<OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"{root}>'
+        f'<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYCZT" Type="uint16" SizeX="{cols}" '
+        f'SizeY="{rows}" SizeC="1" SizeZ="1" SizeT="{planes}"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+        f"{tiffdata}</Pixels></Image></OME>"
+    )
+
+
+def _write_pages(path, frames, description):
+    with tifffile.TiffWriter(path) as tif:
+        for i, frame in enumerate(frames):
+            tif.write(frame, photometric="minisblack", description=description if i == 0 else None, metadata=None)
+
+
+@pytest.mark.parametrize(
+    "tiffdata", ["", '<TiffData IFD="0" PlaneCount="4"/>', "<TiffData/>"], ids=["none", "count", "bare"]
+)
+def test_an_ome_tiff_holding_fewer_pages_than_its_planes_is_read_with_a_warning(tmp_path, tiffdata):
+    """s38-h4: an OME-TIFF whose OME-XML says 4 planes (SizeT=4) but whose writer stopped after 2
+    pages read as 2 frames with nothing said (tifffile logs it only). An ImageJ file so cut short
+    warns; so does this, with the counts."""
+    frames = _frames(2)
+    path = tmp_path / "short.ome.tif"
+    _write_pages(path, frames, _ome_xml(4, 30, 40, tiffdata))
+    with pytest.warns(
+        UserWarning, match=r"short\.ome\.tif: its OME-XML says 4 planes but it holds 2 pages .*reading the 2"
+    ):
+        np.testing.assert_array_equal(read(path).data, frames)
+    whole = tmp_path / "whole.ome.tif"
+    _write_pages(whole, _frames(4), _ome_xml(4, 30, 40, tiffdata))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read(whole).n == 4
+
+
+def test_a_binary_only_ome_tiff_says_its_description_was_not_read(tmp_path):
+    """s38-h4: a "BinaryOnly" OME-TIFF keeps its description (plane order, pixel size, the set's
+    other files) in a companion file; its own pages read in file order with nothing said. Now a
+    warning names the companion file that was not read."""
+    frames = _frames(3)
+    path = tmp_path / "part.ome.tif"
+    xml = (
+        '<?xml version="1.0" encoding="UTF-8"?>'
+        '<OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" '
+        'UUID="urn:uuid:00000001-0000-0000-0000-000000000000">'
+        '<BinaryOnly MetadataFile="set.companion.ome" UUID="urn:uuid:00000009-0000-0000-0000-000000000000"/></OME>'
+    )
+    _write_pages(path, frames, xml)
+    with tifffile.TiffFile(path) as tif:  # as meant: tifffile sees OME
+        assert tif.is_ome
+    with pytest.warns(UserWarning, match=r"part\.ome\.tif: .*BinaryOnly.* set\.companion\.ome.* not read"):
+        np.testing.assert_array_equal(read(path).data, frames)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 
-__all__ = ["external_planes", "describe_planes", "count_planes"]
+__all__ = ["external_planes", "describe_planes", "count_planes", "ome_pages", "binary_only"]
 
 
 def _local(element) -> str:
@@ -89,3 +89,34 @@ def count_planes(runs: list[range] | None) -> int | None:
         total += max(run.stop - start, 0)
         end = run.stop if end is None else max(end, run.stop)
     return total
+
+
+def ome_pages(xml: str | None) -> int | None:
+    """The pages the OME-XML's images fill: each image's SizeZ x SizeC x SizeT planes, a page
+    holding SamplesPerPixel of its channels (an RGB image is one page, not three); None for XML
+    that does not parse or has no image (a BinaryOnly file's)."""
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return None
+    total = None
+    for pixels in (el for el in root.iter() if _local(el) == "Pixels"):
+        channel = next((el for el in pixels if _local(el) == "Channel"), None)
+        try:
+            z, c, t = (int(pixels.get(f"Size{axis}", 1)) for axis in "ZCT")
+            samples = max(int(channel.get("SamplesPerPixel", 1)) if channel is not None else 1, 1)
+        except ValueError:
+            return None
+        total = (total or 0) + z * t * max(c // samples, 1)
+    return total
+
+
+def binary_only(xml: str | None) -> str | None:
+    """The MetadataFile a "BinaryOnly" OME-XML names (the companion file, or the set's first
+    file, holding the description this file's pages lack); None for any other XML."""
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return None
+    found = next((el for el in root if _local(el) == "BinaryOnly"), None)
+    return None if found is None else found.get("MetadataFile") or "a file it does not name"

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import glob
 import math
 import os
+import re
 import stat
 import struct
 import warnings
@@ -47,7 +49,7 @@ from radiokit.io._itex import (
     read_scaling,
 )
 from radiokit.io._layout import check_readable, open_h5, text
-from radiokit.io._ome import count_planes, describe_planes, external_planes
+from radiokit.io._ome import binary_only, count_planes, describe_planes, external_planes, ome_pages
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 from radiokit.io._tiff_ifds import check_tiff_pages
 
@@ -332,6 +334,7 @@ class FrameSource:
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._contiguous_stack(first, all_pages)
+        self._warn_ome_unread()
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
             self._refuse_signed_below_a_word(index[i], page)
@@ -780,6 +783,48 @@ class FrameSource:
             )
         self._fh = open(self.path, "rb")
         return geo
+
+    def _warn_ome_unread(self) -> None:
+        """Warn where an OME-TIFF read alone holds fewer pages than its OME-XML describes, or
+        describes nothing itself (BinaryOnly), as an ImageJ file of fewer pages than its images=.
+
+        Why: tifffile only logs either, and the pages there are read as the whole stack: a writer
+        that stopped after 2 of SizeT=4 planes, a Micro-Manager stack split at 4 GB whose XML does
+        not name its other files, or one file of a set whose description (plane order, pixel size,
+        the other files) lies in a companion file, all read short or unordered with nothing said.
+        Warned rather than refused, as ImageJ's count is: the pages there are whole and readable.
+        A multi-file set read whole (allow_external) was checked plane by plane already."""
+        tif, n = self._tif, len(self._pages)
+        if not tif.is_ome or "ome_files" in self.meta:
+            return
+        xml = tif.ome_metadata
+        companion = binary_only(xml)
+        if companion is not None:
+            warnings.warn(
+                f"{self.path}: its OME-XML is BinaryOnly: the plane order, pixel size and the set's other files "
+                f"are described in {companion}, which radiokit has not read: reading this file's {n} pages "
+                "in file order",
+                UserWarning,
+                stacklevel=3,
+            )
+            return
+        planes = ome_pages(xml)
+        if planes is None or planes <= n:
+            return
+        stem = re.sub(r"\.ome\.tiff?$", "", self.path.name, flags=re.IGNORECASE)
+        # Micro-Manager names the files after the first of a split stack <stem>_1.ome.tif, _2, ...
+        split = re.compile(rf"{re.escape(stem)}_\d+\.ome\.tiff?", re.IGNORECASE)
+        parts = sorted(p.name for p in self.path.parent.glob(f"{glob.escape(stem)}_*") if split.fullmatch(p.name))
+        beside = ""
+        if parts:
+            names = ", ".join(parts[:3]) + (", ..." if len(parts) > 3 else "")
+            beside = f"; {names} beside it may hold the rest, which its OME-XML does not name"
+        warnings.warn(
+            f"{self.path}: its OME-XML says {planes} planes but it holds {n} pages "
+            f"(cut short or edited?{beside}): reading the {n}",
+            UserWarning,
+            stacklevel=3,
+        )
 
     def _refuse_signed_below_a_word(self, i, page) -> None:
         """Refuse signed samples (SampleFormat 2) of fewer bits than their word, such as 12.
