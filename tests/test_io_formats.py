@@ -2295,3 +2295,97 @@ def test_a_binary_only_ome_tiff_says_its_description_was_not_read(tmp_path):
         assert tif.is_ome
     with pytest.warns(UserWarning, match=r"part\.ome\.tif: .*BinaryOnly.* set\.companion\.ome.* not read"):
         np.testing.assert_array_equal(read(path).data, frames)
+
+
+def _mmstack_file(path, frames, first_t, total, description=None):
+    """A Micro-Manager multipage TIFF ("MMStack", MM 1.4/2.0), written byte by byte as tifffile
+    writes none: its header at byte 8 (the summary, and an index map of each plane's IFD), IFDs
+    of 13 entries with the pixels straight after (tifffile looks 162 bytes past the IFD), the
+    OME-XML in page 0's description. Its planes are time points first_t, first_t + 1, ..."""
+    import json
+    import struct
+
+    n, rows, cols = frames.shape
+    summary = json.dumps({"MicroManagerVersion": "2.0.0", "Frames": total, "Channels": 1, "Slices": 1}).encode()
+    out = bytearray(b"II*\0\0\0\0\0" + bytes(32) + summary)
+    display = len(out)
+    out += struct.pack("<II", 347834724, 2) + b"[]"
+    index_at = len(out)
+    out += bytes(8 + 20 * n)
+    offsets, link = [], 4
+    for k, frame in enumerate(frames):
+        out += bytes(len(out) % 2)
+        offsets.append(at := len(out))
+        struct.pack_into("<I", out, link, at)
+        values = [(270, description.encode() + b"\0")] if k == 0 and description else []
+        values += [(51123, json.dumps({"Frame": first_t + k}).encode() + b"\0")]
+        count = 12 + len(values)
+        pixels = at + 2 + 12 * count + 4
+        extra, place = bytearray(), {}
+        for code, blob in values + [(282, struct.pack("<II", 1, 1)), (283, struct.pack("<II", 1, 1))]:
+            place[code] = pixels + rows * cols * 2 + len(extra)
+            extra += blob + bytes(len(blob) % 2)
+        entries = [(256, 4, 1, cols), (257, 4, 1, rows), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, 1)]
+        entries += [(270, 2, len(values[0][1]), place[270])] if k == 0 and description else []
+        entries += [(273, 4, 1, pixels), (277, 3, 1, 1), (278, 4, 1, rows), (279, 4, 1, rows * cols * 2)]
+        entries += [(282, 5, 1, place[282]), (283, 5, 1, place[283]), (296, 3, 1, 1)]
+        entries += [(51123, 2, len(values[-1][1]), place[51123])]
+        out += struct.pack("<H", count) + b"".join(struct.pack("<HHII", *e) for e in entries)
+        link = len(out)
+        out += bytes(4) + frame.astype("<u2").tobytes() + extra
+    struct.pack_into("<8I", out, 8, 54773648, index_at, 483765892, display, 0, 0, 2355492, len(summary))
+    struct.pack_into("<II", out, index_at, 3453623, n)
+    for k, offset in enumerate(offsets):
+        struct.pack_into("<5I", out, index_at + 8 + 20 * k, 0, 0, first_t + k, 0, offset)
+    path.write_bytes(bytes(out))
+
+
+def _mmstack_set(folder, frames, uuids=True):
+    """Micro-Manager's stack split at 4 GB (here at 2 planes): exp_MMStack_Pos0.ome.tif with the
+    OME-XML of every plane (its TiffData naming each plane's file by UUID, or not at all, as
+    some versions write), and exp_MMStack_Pos0_1.ome.tif, BinaryOnly, naming the first."""
+    rows, cols = frames.shape[1:]
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
+    ids = [f"urn:uuid:0000000{k}-0000-0000-0000-000000000000" for k in (1, 2)]
+    if uuids:
+        tiffdata = "".join(
+            f'<TiffData FirstT="{t}" IFD="{t % 2}" PlaneCount="1"><UUID FileName="{names[t // 2]}">{ids[t // 2]}</UUID>'
+            "</TiffData>"
+            for t in range(4)
+        )
+    else:
+        tiffdata = "".join(f'<TiffData FirstT="{t}" IFD="{t}" PlaneCount="1"/>' for t in range(4))
+    binary = (
+        '<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" '
+        f'UUID="{ids[1]}"><BinaryOnly MetadataFile="{names[0]}" UUID="{ids[0]}"/></OME>'
+    )
+    root = f' UUID="{ids[0]}"' if uuids else ""
+    _mmstack_file(folder / names[0], frames[:2], 0, 4, _ome_xml(4, rows, cols, tiffdata, root))
+    _mmstack_file(folder / names[1], frames[2:], 2, 4, binary)
+    return [folder / name for name in names]
+
+
+@pytest.mark.parametrize("uuids", [True, False], ids=["uuids", "no-uuids"])
+@pytest.mark.parametrize("given", [0, 1])
+def test_a_micro_manager_stack_split_over_files_is_refused_or_read_whole(tmp_path, given, uuids):
+    """s38-h4: Micro-Manager splits a stack at 4 GB (exp_MMStack_Pos0.ome.tif, ..._Pos0_1.ome.tif).
+    tifffile reads the set whole from either file by its index maps. radiokit read the first
+    file's planes alone (its OME-XML naming no file: nothing said), refused the set with
+    allow_external ("index out of range": a plane's place in the stack taken for its page in its
+    file), and read the second file's alone. Now refused as other external data, naming the other
+    file, and read whole with allow_external; data_files lists the other file."""
+    from radiokit.io import data_files
+
+    frames = _frames(4)
+    paths = _mmstack_set(tmp_path, frames, uuids)
+    with tifffile.TiffFile(paths[given]) as tif:  # as meant: tifffile takes it for a Micro-Manager set
+        assert tif.is_mmstack and tif.series[0].is_multifile and tif.series[0].shape == frames.shape
+    other = paths[1 - given]
+    with pytest.raises(
+        FormatError, match=rf"{paths[given].name}: a Micro-Manager stack .*2 in {other.name}.*allow_ext"
+    ):
+        read(paths[given])
+    np.testing.assert_array_equal(_both_ways(paths[given], allow_external=True), frames)
+    assert data_files(paths[given], allow_external=True) == [other]
+    res = run_cli("info", paths[given])
+    one_line_error(res, paths[given].name, other.name, "--allow-external")

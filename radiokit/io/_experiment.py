@@ -1409,10 +1409,11 @@ def _read_referred(path: Path) -> tuple[list[tuple[str, str]], str | None]:
 
 def _ome_tiff_referred(path: Path, names: list) -> bool:
     """Whether ``path`` is a TIFF; into ``names``, the other files of a multi-file OME-TIFF its
-    OME-XML places planes in (kind ``"tiff"``), which a read with allow_external takes frames from."""
+    OME-XML places planes in, or of a Micro-Manager stack split over files (kind ``"tiff"``),
+    which a read with allow_external takes frames from."""
     import tifffile  # late: only a TIFF input needs it here
 
-    from radiokit.io._ome import external_planes
+    from radiokit.io._ome import external_planes, mmstack_split
 
     with open(path, "rb") as fh:
         if fh.read(4) not in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
@@ -1420,9 +1421,14 @@ def _ome_tiff_referred(path: Path, names: list) -> bool:
     try:
         with tifffile.TiffFile(path) as tif:
             xml = tif.ome_metadata if tif.is_ome else None
+            split = mmstack_split(tif) or []
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
         return True
     names.extend((name, "tiff") for name in external_planes(xml, path.name)[1])
+    # a Micro-Manager stack's other files, which tifffile finds by name whatever the XML says
+    names.extend(
+        (os.path.basename(p.parent.filehandle.path), "tiff") for p in split if p is not None and p.parent is not tif
+    )
     return True
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 
-__all__ = ["external_planes", "describe_planes", "count_planes", "ome_pages", "binary_only"]
+__all__ = ["external_planes", "describe_planes", "count_planes", "ome_pages", "binary_only", "mmstack_split"]
 
 
 def _local(element) -> str:
@@ -120,3 +120,23 @@ def binary_only(xml: str | None) -> str | None:
         return None
     found = next((el for el in root if _local(el) == "BinaryOnly"), None)
     return None if found is None else found.get("MetadataFile") or "a file it does not name"
+
+
+def mmstack_split(tif) -> list | None:
+    """A Micro-Manager stack's planes, in its order, where tifffile's series of it spans other
+    files (None where it is no such stack): a TiffFrame each, in the file it lies in, or None
+    where no file holds it.
+
+    Micro-Manager splits a stack at 4 GB into <name>_MMStack_Pos0.ome.tif, ..._Pos0_1.ome.tif,
+    each with an index map of its planes; tifffile finds the others by that name, whatever the
+    OME-XML says (or without one), from any file of the set. Read alone, the file given gave its
+    own planes, with nothing said where the OME-XML names no file."""
+    if not tif.is_mmstack:
+        return None
+    try:
+        series = tif.series
+    except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
+        return None
+    if len(series) != 1 or series[0].kind != "mmstack" or not series[0].is_multifile:
+        return None
+    return list(series[0].pages)

@@ -49,7 +49,7 @@ from radiokit.io._itex import (
     read_scaling,
 )
 from radiokit.io._layout import check_readable, open_h5, text
-from radiokit.io._ome import binary_only, count_planes, describe_planes, external_planes, ome_pages
+from radiokit.io._ome import binary_only, count_planes, describe_planes, external_planes, mmstack_split, ome_pages
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 from radiokit.io._tiff_ifds import check_tiff_pages
 
@@ -474,8 +474,9 @@ class FrameSource:
         return [all_pages[i] for i in index], index
 
     def _ome_multifile_pages(self) -> tuple[list, list[str]] | None:
-        """A multi-file OME-TIFF's pages in OME's plane order across its files, with their names
-        for messages; None when the OME-XML places every plane in this file (or it is no OME).
+        """A multi-file OME-TIFF's pages in OME's plane order across its files (or a Micro-Manager
+        stack's split over files, :func:`mmstack_split`), with their names for messages; None when
+        the OME-XML places every plane in this file (or it is no OME).
 
         Planes in other files are data outside this file, as an HDF5 external link's: refused
         unless ``allow_external``, judged from the XML before tifffile opens any of them (read
@@ -483,48 +484,81 @@ class FrameSource:
         must be there and hold its planes (tifffile zero-fills what is missing), and each is
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
-        if not tif.is_ome:
-            return None
-        total, others = external_planes(tif.ome_metadata, self.path.name)
-        if not others:
-            return None
-        where = "; ".join(f"{describe_planes(planes)} in {name}" for name, planes in others.items())
-        if all(others.values()):
-            what = f"{sum(count_planes(p) for p in others.values())} of its {total} planes lie in other files"
+        pages = mmstack_split(tif)
+        if pages is not None:
+            total, what = len(pages), self._mmstack_what(pages)
         else:
-            what = f"of its {total} planes, some lie in other files"
-        what = f"a multi-file OME-TIFF: {what} ({where})"
-        if not self._allow_external:
-            _refuse_external(self.path, what)
-        missing = [name for name in others if not (self.path.parent / name).is_file()]
-        if missing:
-            raise FormatError(
-                self.path,
-                f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
-                "a multi-file OME-TIFF's files are read from the folder it is in",
-            )
-        pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
+            if not tif.is_ome:
+                return None
+            total, others = external_planes(tif.ome_metadata, self.path.name)
+            if not others:
+                return None
+            where = "; ".join(f"{describe_planes(planes)} in {name}" for name, planes in others.items())
+            if all(others.values()):
+                what = f"{sum(count_planes(p) for p in others.values())} of its {total} planes lie in other files"
+            else:
+                what = f"of its {total} planes, some lie in other files"
+            what = f"a multi-file OME-TIFF: {what} ({where})"
+            if not self._allow_external:
+                _refuse_external(self.path, what)
+            missing = [name for name in others if not (self.path.parent / name).is_file()]
+            if missing:
+                raise FormatError(
+                    self.path,
+                    f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
+                    "a multi-file OME-TIFF's files are read from the folder it is in",
+                )
+            pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
         if not pages or any(page is None for page in pages):
             gone = sum(page is None for page in pages) or total
             raise FormatError(
                 self.path,
                 f"{what}: {gone} of them are not in the files it names (a file cut short, or of another set)",
             )
-        out, names = [], []
+        # each plane found by its IFD's offset in the file it lies in: the index tifffile gives a
+        # Micro-Manager stack's plane is its place in the stack, not in its file (page 2 of a
+        # two-file set's second file was looked for as its page 2, which it has not)
+        out, names, at = [], [], {}
         for page in pages:
             if page.parent is tif:
-                out.append(page.aspage())
-                names.append(str(page.index))
-                continue
-            name = page.parent.filehandle.path  # opened afresh: tifffile closes the files it followed
-            if name not in self._siblings:
-                self._siblings[name] = tifffile.TiffFile(name)
-            out.append(self._siblings[name].pages[page.index].aspage())
-            names.append(f"{page.index} of {Path(name).name}")
+                parent = tif
+            else:
+                name = page.parent.filehandle.path  # opened afresh: tifffile closes the files it followed
+                if name not in self._siblings:
+                    self._siblings[name] = tifffile.TiffFile(name)
+                parent = self._siblings[name]
+            if id(parent) not in at:
+                at[id(parent)] = {int(p.offset): i for i, p in enumerate(parent.pages)}
+            i = at[id(parent)].get(int(page.offset))
+            where = self.path if parent is tif else Path(parent.filehandle.path)
+            if i is None:
+                raise FormatError(
+                    where, f"{what}: a plane's IFD (offset {page.offset}) is none of this file's: corrupt"
+                )
+            out.append(parent.pages[i].aspage())
+            names.append(str(i) if parent is tif else f"{i} of {where.name}")
         for sibling in self._siblings.values():  # each file of the set is held to the same
             self._check_ifd_chain([page.aspage() for page in sibling.pages], sibling)
         self.meta["ome_files"] = [str(self.path), *self._siblings]
         return out, names
+
+    def _mmstack_what(self, pages) -> str:
+        """What a Micro-Manager stack split over files is, for messages; refused unless
+        ``allow_external``, as a multi-file OME-TIFF is."""
+        tif = self._tif
+        counts: dict[str, int] = {}
+        for page in pages:
+            if page is not None and page.parent is not tif:
+                name = Path(page.parent.filehandle.path).name
+                counts[name] = counts.get(name, 0) + 1
+        where = "; ".join(f"{n} in {name}" for name, n in counts.items())
+        what = (
+            f"a Micro-Manager stack split over files: {sum(counts.values())} of its {len(pages)} planes "
+            f"lie in other files ({where})"
+        )
+        if not self._allow_external:
+            _refuse_external(self.path, what)
+        return what
 
     def _ome_plane_order(self, index: list[int]) -> list[int]:
         """The frame pages ``index`` in the order an OME-TIFF's planes have. Why: OME's TiffData
