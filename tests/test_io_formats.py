@@ -2297,16 +2297,19 @@ def test_a_binary_only_ome_tiff_says_its_description_was_not_read(tmp_path):
         np.testing.assert_array_equal(read(path).data, frames)
 
 
-def _mmstack_file(path, frames, first_t, total, description=None):
+def _mmstack_file(path, frames, first_t, total, description=None, position=0, positions=1):
     """A Micro-Manager multipage TIFF ("MMStack", MM 1.4/2.0), written byte by byte as tifffile
     writes none: its header at byte 8 (the summary, and an index map of each plane's IFD), IFDs
     of 13 entries with the pixels straight after (tifffile looks 162 bytes past the IFD), the
-    OME-XML in page 0's description. Its planes are time points first_t, first_t + 1, ..."""
+    OME-XML in page 0's description. Its planes are time points first_t, first_t + 1, ... of
+    stage position ``position`` of ``positions``."""
     import json
     import struct
 
     n, rows, cols = frames.shape
-    summary = json.dumps({"MicroManagerVersion": "2.0.0", "Frames": total, "Channels": 1, "Slices": 1}).encode()
+    summary = json.dumps(
+        {"MicroManagerVersion": "2.0.0", "Frames": total, "Channels": 1, "Slices": 1, "Positions": positions}
+    ).encode()
     out = bytearray(b"II*\0\0\0\0\0" + bytes(32) + summary)
     display = len(out)
     out += struct.pack("<II", 347834724, 2) + b"[]"
@@ -2336,7 +2339,7 @@ def _mmstack_file(path, frames, first_t, total, description=None):
     struct.pack_into("<8I", out, 8, 54773648, index_at, 483765892, display, 0, 0, 2355492, len(summary))
     struct.pack_into("<II", out, index_at, 3453623, n)
     for k, offset in enumerate(offsets):
-        struct.pack_into("<5I", out, index_at + 8 + 20 * k, 0, 0, first_t + k, 0, offset)
+        struct.pack_into("<5I", out, index_at + 8 + 20 * k, 0, 0, first_t + k, position, offset)
     path.write_bytes(bytes(out))
 
 
@@ -2389,3 +2392,39 @@ def test_a_micro_manager_stack_split_over_files_is_refused_or_read_whole(tmp_pat
     assert data_files(paths[given], allow_external=True) == [other]
     res = run_cli("info", paths[given])
     one_line_error(res, paths[given].name, other.name, "--allow-external")
+
+
+@pytest.mark.parametrize("xml", [False, True], ids=["bare", "ome"])
+def test_each_stage_position_of_a_micro_manager_acquisition_reads_as_its_own_stack(tmp_path, xml):
+    """Micro-Manager writes each stage position to files of its own (exp_MMStack_Pos0.ome.tif,
+    ..._Pos1.ome.tif), whose OME-XML names the others' as other images. tifffile's series of
+    either takes in both positions: read through it, the two fields of view came interleaved as
+    one stack of frames. Each file reads as its own position's frames, and nothing else."""
+    from radiokit.io import data_files
+
+    frames = _frames(4)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos1.ome.tif"]
+    ids = [f"urn:uuid:0000000{k}-0000-0000-0000-000000000000" for k in (1, 2)]
+    images = "".join(
+        f'<Image ID="Image:{p}"><Pixels ID="Pixels:{p}" DimensionOrder="XYCZT" Type="uint16" SizeX="40" SizeY="30" '
+        'SizeC="1" SizeZ="1" SizeT="2"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+        f'<TiffData IFD="0" PlaneCount="2"><UUID FileName="{names[p]}">{ids[p]}</UUID></TiffData></Pixels></Image>'
+        for p in (0, 1)
+    )
+    for p in (0, 1):
+        description = (
+            f'<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" '
+            f'UUID="{ids[p]}">{images}</OME>'
+        )
+        _mmstack_file(tmp_path / names[p], frames[2 * p : 2 * p + 2], 0, 2, description if xml else None, p, 2)
+    with tifffile.TiffFile(tmp_path / names[0]) as tif:  # as meant: tifffile's series takes in both
+        assert tif.is_mmstack and tif.series[0].axes == "TRYX" and tif.series[0].is_multifile
+    for p in (0, 1):
+        for allow in (False, True):
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                np.testing.assert_array_equal(
+                    _both_ways(tmp_path / names[p], allow_external=allow), frames[2 * p : 2 * p + 2]
+                )
+        # (the OME-XML names the other position's file: listed, so no output replaces it)
+        assert data_files(tmp_path / names[p], allow_external=True) == ([tmp_path / names[1 - p]] if xml else [])

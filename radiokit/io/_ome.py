@@ -123,9 +123,10 @@ def binary_only(xml: str | None) -> str | None:
 
 
 def mmstack_split(tif) -> list | None:
-    """A Micro-Manager stack's planes, in its order, where tifffile's series of it spans other
-    files (None where it is no such stack): a TiffFrame each, in the file it lies in, or None
-    where no file holds it.
+    """The planes of this file's stage positions in a Micro-Manager stack, in its order, where
+    tifffile's series of it spans other files (None where it is no such stack): a TiffFrame
+    each, in the file it lies in, or None where no file holds it; all in this file where it
+    holds its positions whole.
 
     Micro-Manager splits a stack at 4 GB into <name>_MMStack_Pos0.ome.tif, ..._Pos0_1.ome.tif,
     each with an index map of its planes; tifffile finds the others by that name, whatever the
@@ -139,4 +140,14 @@ def mmstack_split(tif) -> list | None:
         return None
     if len(series) != 1 or series[0].kind != "mmstack" or not series[0].is_multifile:
         return None
-    return list(series[0].pages)
+    pages = list(series[0].pages)
+    axes, shape = series[0].get_axes(False), series[0].get_shape(False)
+    if "R" in axes:
+        # Micro-Manager writes each stage position to files of its own (<name>_MMStack_Pos1...)
+        # and tifffile's series takes in every position beside it: read as one stack, the
+        # fields of view came interleaved as frames. This file's positions are its own stack.
+        r = axes.index("R")
+        stride, size = math.prod(shape[r + 1 : len(shape) - len(series[0].keyframe.shape)]), shape[r]
+        own = {k // stride % size for k, page in enumerate(pages) if page is not None and page.parent is tif}
+        pages = [page for k, page in enumerate(pages) if k // stride % size in own]
+    return pages

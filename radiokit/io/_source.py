@@ -485,6 +485,10 @@ class FrameSource:
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
         pages = mmstack_split(tif)
+        if pages is not None and all(page is not None and page.parent is tif for page in pages):
+            # its positions whole here: the files beside it hold other positions, which an
+            # OME-XML names as other images (tifffile's series would interleave them)
+            return None
         if pages is not None:
             total, what = len(pages), self._mmstack_what(pages)
         else:
@@ -843,8 +847,8 @@ class FrameSource:
             )
             return
         planes = ome_pages(xml)
-        if planes is None or planes <= n:
-            return
+        if planes is None or planes <= n or external_planes(xml, self.path.name)[1]:
+            return  # (planes named in other files: read whole, refused, or other positions')
         stem = re.sub(r"\.ome\.tiff?$", "", self.path.name, flags=re.IGNORECASE)
         # Micro-Manager names the files after the first of a split stack <stem>_1.ome.tif, _2, ...
         split = re.compile(rf"{re.escape(stem)}_\d+\.ome\.tiff?", re.IGNORECASE)
