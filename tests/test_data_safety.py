@@ -1843,3 +1843,79 @@ def test_an_output_that_appears_is_not_replaced_where_renameat2_is_missing(tmp_p
             (folder / "notes.txt").write_text("mine")
     assert [p.name for p in folder.iterdir()] == ["notes.txt"]
     no_temporaries(tmp_path)
+
+
+def _linked_master(tmp_path, kind):
+    """``Y/master.h5``, a symbolic link to ``X/master.h5``, whose frames (an external link, or a
+    virtual dataset's source) are the relative ``frames.h5``, present in X only."""
+    (tmp_path / "X").mkdir()
+    (tmp_path / "Y").mkdir()
+    stack = np.full((3, 8, 8), 1000, np.uint16)
+    with h5py.File(tmp_path / "X" / "frames.h5", "w") as f:
+        f["data"] = stack
+    if kind == "link":
+        with h5py.File(tmp_path / "X" / "master.h5", "w") as f:
+            f["frames"] = h5py.ExternalLink("frames.h5", "/data")
+    else:
+        _virtual(tmp_path / "X" / "master.h5", "frames.h5", stack)
+    os.symlink(tmp_path / "X" / "master.h5", tmp_path / "Y" / "master.h5")
+    with h5py.File(tmp_path / "Y" / "master.h5", "r") as f:  # libhdf5 reads them from X
+        assert np.array_equal(f["frames"][:], stack)
+    return tmp_path / "Y" / "master.h5", stack
+
+
+@pytest.mark.parametrize("kind", ["link", "virtual"])
+def test_a_symlinked_masters_data_files_beside_its_real_path_are_listed(kind, tmp_path):
+    """libhdf5 looks for a relative link target (or virtual source) beside the file's real path
+    too: ``Y/master.h5 -> X/master.h5`` reads ``X/frames.h5``, which data_files missed, so
+    `correct Y/master.h5 --allow-external -o X/frames.h5 --overwrite` replaced the input's frames."""
+    from radiokit.io import data_files
+
+    master, _ = _linked_master(tmp_path, kind)
+    assert data_files(master, allow_external=True) == [tmp_path / "X" / "frames.h5"]
+    before = sha(tmp_path / "X" / "frames.h5")
+    res = run_cli(
+        "correct",
+        master,
+        "--dataset",
+        "frames",
+        "--allow-external",
+        "-q",
+        "-o",
+        tmp_path / "X" / "frames.h5",
+        "--overwrite",
+    )
+    one_line_error(res, "frames.h5", "frames are read from")
+    assert sha(tmp_path / "X" / "frames.h5") == before
+
+
+def test_a_symlinked_masters_virtual_source_beside_its_real_path_is_not_said_missing(tmp_path):
+    master, stack = _linked_master(tmp_path, "virtual")
+    np.testing.assert_array_equal(read(master, dataset="frames", allow_external=True).data, stack)
+
+
+def test_a_fifo_input_is_refused_not_waited_on(experiment, tmp_path):
+    """The listing of an input's data files opened a FIFO to read its first bytes, which waits
+    for a writer: `correct fifo.tif --cal cal.h5` hung before the reader's refusal."""
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    os.mkfifo(tmp_path / "ff.tif")
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "radiokit.cli",
+            "correct",
+            tmp_path / "ff.tif",
+            "--cal",
+            cal,
+            "-q",
+            "-o",
+            tmp_path / "p.h5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    one_line_error(res, "ff.tif", "not a regular file")
