@@ -821,19 +821,120 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
     assert (tmp_path / "x.txt").read_text() == "whole"
 
 
-def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, tmp_path):
+def test_a_killed_process_runs_temporary_folder_is_removed_by_the_next_run(experiment, tmp_path):
     import socket
 
     host = socket.gethostname().split(".")[0]
     dead = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
     ).stdout.strip()
-    stale = [tmp_path / f".res.{kind}-{host}-{dead}-0123abcd" for kind in ("tmp", "old")]
-    for folder in stale:
-        folder.mkdir()
-        (folder / "results.h5").write_bytes(b"half")
+    stale = tmp_path / f".res.tmp-{host}-{dead}-0123abcd"
+    stale.mkdir()
+    (stale / "results.h5").write_bytes(b"half")
     assert run_cli("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
-    assert not any(folder.exists() for folder in stale)
+    assert not stale.exists()
+    no_temporaries(tmp_path)
+
+
+_SWAP_KILLED = """
+import os, signal, sys
+from pathlib import Path
+from radiokit.io import _atomic
+out = Path(sys.argv[1])
+real, calls = _atomic._strangers, []
+def strangers(folder):  # the second look is _swap_in's, the old folder just renamed aside
+    calls.append(folder)
+    if len(calls) == 2:
+        os.kill(os.getpid(), signal.Signals[sys.argv[2]])
+    return real(folder)
+_atomic._strangers = strangers
+with _atomic.atomic_dir(out, overwrite=True) as tmp:
+    (tmp / "results.txt").write_text("run 2")
+"""
+
+
+def _results_folder(out: Path, text="run 1") -> dict:
+    from radiokit.io._atomic import atomic_dir
+
+    with atomic_dir(out) as tmp:
+        (tmp / "results.txt").write_text(text)
+    return tree_sha(out)
+
+
+@pytest.mark.parametrize("next_run", ["fails", "overwrites"])
+def test_a_results_folder_a_killed_run_left_aside_is_put_back_not_deleted(next_run, experiment, tmp_path):
+    """A run killed between renaming the previous folder aside and swapping its own in left the
+    name missing and the previous results (and the user's notes) in ``.res.old-...``, which the
+    next run to that name deleted, even one that failed. The next run puts it back."""
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    killed = subprocess.run([sys.executable, "-c", _SWAP_KILLED, out, "SIGKILL"], capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    (aside,) = tmp_path.glob(".res.old-*")
+    assert not out.exists()
+    if next_run == "fails":  # no --overwrite: the folder is back, so it exists
+        one_line_error(run_cli("process", experiment, "-o", out, "-q", *ROI), "exists")
+        assert tree_sha(out) == previous
+    else:
+        assert run_cli("process", experiment, "-o", out, "-q", "--overwrite", "--no-report", *ROI).returncode == 0
+        assert "results.h5" in tree_sha(out)
+        no_temporaries(tmp_path)  # the killed run's temporary too, once a run gets that far
+    assert not aside.exists() and not list(tmp_path.glob(".res.old-*"))
+
+
+def test_two_results_folders_left_aside_are_refused_and_kept(experiment, tmp_path):
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    aside = [tmp_path / f".res.old-{host}-{dead}-{tag}" for tag in ("0123abcd", "4567ef01")]
+    for folder in aside:
+        folder.mkdir()
+        (folder / "notes.txt").write_text("the user's")
+    res = run_cli("process", experiment, "-o", tmp_path / "res", "-q", "--overwrite", *ROI)
+    one_line_error(res, "res", aside[0].name, aside[1].name)
+    assert all((folder / "notes.txt").read_text() == "the user's" for folder in aside)
+    assert not (tmp_path / "res").exists()
+
+
+def test_a_results_folder_kept_aside_is_never_deleted_by_a_later_run(experiment, tmp_path):
+    """The message said "the previous folder is kept in .res.old-...", and the next run to that
+    name deleted it: one left aside while the name is taken is left alone."""
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    out = tmp_path / "res"
+    _results_folder(out)
+    kept = tmp_path / f".res.old-{host}-{dead}-0123abcd"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the user's")
+    assert run_cli("process", experiment, "-o", out, "-q", "--overwrite", "--no-report", *ROI).returncode == 0
+    assert (kept / "notes.txt").read_text() == "the user's"
+
+
+def test_a_results_folder_interrupted_while_aside_is_put_back(tmp_path, monkeypatch):
+    """Ctrl-C while the previous folder is aside: it is back at its name before the interrupt goes on."""
+    from radiokit.io import _atomic
+
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    real, calls = _atomic._strangers, []
+
+    def strangers(folder):
+        calls.append(folder)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(folder)
+
+    monkeypatch.setattr(_atomic, "_strangers", strangers)
+    with pytest.raises(KeyboardInterrupt), _atomic.atomic_dir(out, overwrite=True) as tmp:
+        (tmp / "results.txt").write_text("run 2")
+    assert tree_sha(out) == previous
     no_temporaries(tmp_path)
 
 
