@@ -2020,3 +2020,27 @@ def test_a_fifo_input_is_refused_not_waited_on(experiment, tmp_path):
         env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
     one_line_error(res, "ff.tif", "not a regular file")
+
+
+@pytest.mark.parametrize("added", ["empty folder", "link to a folder"])
+def test_a_folder_added_to_an_old_results_folder_is_refused_as_a_file_is(added, experiment, tmp_path):
+    """--overwrite refused an old results folder holding a file radiokit did not write, but
+    deleted one holding an empty folder or a symbolic link to a folder, which it did not look at."""
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    if added == "empty folder":
+        (out / "mine").mkdir()
+    else:
+        os.symlink(elsewhere, out / "mine")
+    res = run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI)
+    one_line_error(res, "mine", "radiokit did not write")
+    assert tree_sha(out) == previous and os.path.lexists(out / "mine")
+
+
+def test_an_output_under_a_dangling_symlink_is_not_said_to_be_under_a_file(experiment, tmp_path):
+    os.symlink(tmp_path / "nowhere", tmp_path / "dangling")
+    res = run_cli("calibrate", "--experiment", experiment, "-o", tmp_path / "dangling" / "cal.h5")
+    line = one_line_error(res, "dangling", "does not exist")
+    assert "is a file" not in line

@@ -436,6 +436,12 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
             )
     holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
     if holder is not None and not holder.is_dir():
+        if holder.is_symlink() and not holder.exists():  # not "a file": a link to nothing
+            raise OutputError(
+                path,
+                f"{holder} is a symbolic link to {os.readlink(holder)}, which does not exist: no folder to hold "
+                "the output; choose another output",
+            )
         raise OutputError(path, f"{holder} is a file, not a folder to hold the output; choose another output")
     if not (path.exists() or path.is_symlink()):
         return path
@@ -520,11 +526,23 @@ def _kind(mode: int) -> str:
 
 
 def _files(folder: Path) -> set[str]:
-    """Every file under ``folder`` (relative, "/"-separated), the marker left out."""
+    """Every file under ``folder`` (relative, "/"-separated), the marker left out; an empty
+    folder and a symbolic link to a folder count as files. Why: they were not looked at, so one
+    the user put into an old results folder was deleted with it by --overwrite, where a file
+    was refused."""
     out = set()
-    for root, _, names in os.walk(folder):
+    for root, dirs, names in os.walk(folder):
         for name in names:
             out.add(Path(root, name).relative_to(folder).as_posix())
+        for name in dirs:  # os.walk lists a link to a folder here, and does not enter it
+            sub = Path(root, name)
+            try:
+                with os.scandir(sub) as entries:
+                    shown = sub.is_symlink() or not any(entries)
+            except OSError:  # unreadable: os.walk does not enter it, so what it holds is unknown
+                shown = True
+            if shown:
+                out.add(sub.relative_to(folder).as_posix())
     out.discard(RESULTS_MARKER)
     return out
 
