@@ -569,9 +569,13 @@ def _register_inputs(args):
         args.moving, moving_meta, args.fixed, fixed_meta, "register images of one pixel size (bin or resample one)"
     )
     # after the reads (a file that cannot be read says so first), before anything else is judged
-    if fixed_frame == moving_frame and _same_file(args.fixed, args.moving):
+    # the dataset each was read from: two datasets of one file (`pair.h5 pair.h5 --fixed-dataset
+    # fix --moving-dataset mov`) are two images, which were refused as one
+    fixed_ds, moving_ds = (str(m.get("dataset") or "").strip("/") for m in (fixed_meta, moving_meta))
+    if fixed_frame == moving_frame and fixed_ds == moving_ds and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
         same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
+        same += f", dataset {fixed_ds}" if fixed_ds else ""
         raise ValueError(
             f"{args.moving}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
             "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"

@@ -1414,7 +1414,7 @@ def process_many(
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, _remove_stale, remove_empty_folders
+    from radiokit.io._atomic import _missing_folders, _remove_stale, _restore_interrupted, remove_empty_folders
     from radiokit.progress import tqdm
 
     if out_root is not None:
@@ -1469,7 +1469,9 @@ def process_many(
                 # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
                 # results folder's temporary: removed once its process is gone, as the next run would
                 for out in outs:
-                    _remove_stale(out, folder=True, kinds=("tmp",))
+                    _remove_stale(out, folder=True)
+                    with contextlib.suppress(OSError):  # one stopped while its old folder was aside
+                        _restore_interrupted(out)
             remove_empty_folders(made)  # every file failed: no empty folder left behind
 
 

@@ -219,6 +219,22 @@ def test_register_refuses_one_frame_named_from_both_ends(tmp_path):
     assert not (tmp_path / "reg.h5").exists()
 
 
+def test_register_takes_two_datasets_of_one_file(tmp_path):
+    """`register pair.h5 pair.h5 --fixed-dataset fix --moving-dataset mov` was refused as "the
+    same image": the check compared files and frames, not the datasets read. One dataset named
+    for both is still one image."""
+    rr, cc = np.mgrid[0:64, 0:64]
+    pair = tmp_path / "pair.h5"
+    with h5py.File(pair, "w") as f:
+        f["fix"] = (1000 * np.exp(-((rr - 32) ** 2 + (cc - 30) ** 2) / 200.0)).astype(np.float32)
+        f["mov"] = (1000 * np.exp(-((rr - 33) ** 2 + (cc - 31) ** 2) / 200.0)).astype(np.float32)
+    res = run_cli("register", pair, pair, "--fixed-dataset", "fix", "--moving-dataset", "mov", "-o", tmp_path / "r.h5")
+    assert res.returncode in (0, 1), res.stderr  # registered (1: flagged), not refused
+    assert "same image" not in res.stderr and (tmp_path / "r.h5").exists()
+    res = run_cli("register", pair, pair, "--fixed-dataset", "fix", "--moving-dataset", "/fix", "-o", tmp_path / "s.h5")
+    one_line_error(res, "fixed and moving are the same image", "dataset fix")
+
+
 def test_register_takes_two_frames_of_one_file(tmp_path):
     """Two frames of one stack are two images: not a repeat."""
     rr, cc = np.mgrid[0:64, 0:64].astype(np.float32)

@@ -821,19 +821,120 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
     assert (tmp_path / "x.txt").read_text() == "whole"
 
 
-def test_a_killed_process_runs_folders_are_removed_by_the_next_run(experiment, tmp_path):
+def test_a_killed_process_runs_temporary_folder_is_removed_by_the_next_run(experiment, tmp_path):
     import socket
 
     host = socket.gethostname().split(".")[0]
     dead = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
     ).stdout.strip()
-    stale = [tmp_path / f".res.{kind}-{host}-{dead}-0123abcd" for kind in ("tmp", "old")]
-    for folder in stale:
-        folder.mkdir()
-        (folder / "results.h5").write_bytes(b"half")
+    stale = tmp_path / f".res.tmp-{host}-{dead}-0123abcd"
+    stale.mkdir()
+    (stale / "results.h5").write_bytes(b"half")
     assert run_cli("process", experiment, "-o", tmp_path / "res", "--no-report", "-q", *ROI).returncode == 0
-    assert not any(folder.exists() for folder in stale)
+    assert not stale.exists()
+    no_temporaries(tmp_path)
+
+
+_SWAP_KILLED = """
+import os, signal, sys
+from pathlib import Path
+from radiokit.io import _atomic
+out = Path(sys.argv[1])
+real, calls = _atomic._strangers, []
+def strangers(folder):  # the second look is _swap_in's, the old folder just renamed aside
+    calls.append(folder)
+    if len(calls) == 2:
+        os.kill(os.getpid(), signal.Signals[sys.argv[2]])
+    return real(folder)
+_atomic._strangers = strangers
+with _atomic.atomic_dir(out, overwrite=True) as tmp:
+    (tmp / "results.txt").write_text("run 2")
+"""
+
+
+def _results_folder(out: Path, text="run 1") -> dict:
+    from radiokit.io._atomic import atomic_dir
+
+    with atomic_dir(out) as tmp:
+        (tmp / "results.txt").write_text(text)
+    return tree_sha(out)
+
+
+@pytest.mark.parametrize("next_run", ["fails", "overwrites"])
+def test_a_results_folder_a_killed_run_left_aside_is_put_back_not_deleted(next_run, experiment, tmp_path):
+    """A run killed between renaming the previous folder aside and swapping its own in left the
+    name missing and the previous results (and the user's notes) in ``.res.old-...``, which the
+    next run to that name deleted, even one that failed. The next run puts it back."""
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    killed = subprocess.run([sys.executable, "-c", _SWAP_KILLED, out, "SIGKILL"], capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    (aside,) = tmp_path.glob(".res.old-*")
+    assert not out.exists()
+    if next_run == "fails":  # no --overwrite: the folder is back, so it exists
+        one_line_error(run_cli("process", experiment, "-o", out, "-q", *ROI), "exists")
+        assert tree_sha(out) == previous
+    else:
+        assert run_cli("process", experiment, "-o", out, "-q", "--overwrite", "--no-report", *ROI).returncode == 0
+        assert "results.h5" in tree_sha(out)
+        no_temporaries(tmp_path)  # the killed run's temporary too, once a run gets that far
+    assert not aside.exists() and not list(tmp_path.glob(".res.old-*"))
+
+
+def test_two_results_folders_left_aside_are_refused_and_kept(experiment, tmp_path):
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    aside = [tmp_path / f".res.old-{host}-{dead}-{tag}" for tag in ("0123abcd", "4567ef01")]
+    for folder in aside:
+        folder.mkdir()
+        (folder / "notes.txt").write_text("the user's")
+    res = run_cli("process", experiment, "-o", tmp_path / "res", "-q", "--overwrite", *ROI)
+    one_line_error(res, "res", aside[0].name, aside[1].name)
+    assert all((folder / "notes.txt").read_text() == "the user's" for folder in aside)
+    assert not (tmp_path / "res").exists()
+
+
+def test_a_results_folder_kept_aside_is_never_deleted_by_a_later_run(experiment, tmp_path):
+    """The message said "the previous folder is kept in .res.old-...", and the next run to that
+    name deleted it: one left aside while the name is taken is left alone."""
+    import socket
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    out = tmp_path / "res"
+    _results_folder(out)
+    kept = tmp_path / f".res.old-{host}-{dead}-0123abcd"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the user's")
+    assert run_cli("process", experiment, "-o", out, "-q", "--overwrite", "--no-report", *ROI).returncode == 0
+    assert (kept / "notes.txt").read_text() == "the user's"
+
+
+def test_a_results_folder_interrupted_while_aside_is_put_back(tmp_path, monkeypatch):
+    """Ctrl-C while the previous folder is aside: it is back at its name before the interrupt goes on."""
+    from radiokit.io import _atomic
+
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    real, calls = _atomic._strangers, []
+
+    def strangers(folder):
+        calls.append(folder)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(folder)
+
+    monkeypatch.setattr(_atomic, "_strangers", strangers)
+    with pytest.raises(KeyboardInterrupt), _atomic.atomic_dir(out, overwrite=True) as tmp:
+        (tmp / "results.txt").write_text("run 2")
+    assert tree_sha(out) == previous
     no_temporaries(tmp_path)
 
 
@@ -1843,3 +1944,103 @@ def test_an_output_that_appears_is_not_replaced_where_renameat2_is_missing(tmp_p
             (folder / "notes.txt").write_text("mine")
     assert [p.name for p in folder.iterdir()] == ["notes.txt"]
     no_temporaries(tmp_path)
+
+
+def _linked_master(tmp_path, kind):
+    """``Y/master.h5``, a symbolic link to ``X/master.h5``, whose frames (an external link, or a
+    virtual dataset's source) are the relative ``frames.h5``, present in X only."""
+    (tmp_path / "X").mkdir()
+    (tmp_path / "Y").mkdir()
+    stack = np.full((3, 8, 8), 1000, np.uint16)
+    with h5py.File(tmp_path / "X" / "frames.h5", "w") as f:
+        f["data"] = stack
+    if kind == "link":
+        with h5py.File(tmp_path / "X" / "master.h5", "w") as f:
+            f["frames"] = h5py.ExternalLink("frames.h5", "/data")
+    else:
+        _virtual(tmp_path / "X" / "master.h5", "frames.h5", stack)
+    os.symlink(tmp_path / "X" / "master.h5", tmp_path / "Y" / "master.h5")
+    with h5py.File(tmp_path / "Y" / "master.h5", "r") as f:  # libhdf5 reads them from X
+        assert np.array_equal(f["frames"][:], stack)
+    return tmp_path / "Y" / "master.h5", stack
+
+
+@pytest.mark.parametrize("kind", ["link", "virtual"])
+def test_a_symlinked_masters_data_files_beside_its_real_path_are_listed(kind, tmp_path):
+    """libhdf5 looks for a relative link target (or virtual source) beside the file's real path
+    too: ``Y/master.h5 -> X/master.h5`` reads ``X/frames.h5``, which data_files missed, so
+    `correct Y/master.h5 --allow-external -o X/frames.h5 --overwrite` replaced the input's frames."""
+    from radiokit.io import data_files
+
+    master, _ = _linked_master(tmp_path, kind)
+    assert data_files(master, allow_external=True) == [tmp_path / "X" / "frames.h5"]
+    before = sha(tmp_path / "X" / "frames.h5")
+    res = run_cli(
+        "correct",
+        master,
+        "--dataset",
+        "frames",
+        "--allow-external",
+        "-q",
+        "-o",
+        tmp_path / "X" / "frames.h5",
+        "--overwrite",
+    )
+    one_line_error(res, "frames.h5", "frames are read from")
+    assert sha(tmp_path / "X" / "frames.h5") == before
+
+
+def test_a_symlinked_masters_virtual_source_beside_its_real_path_is_not_said_missing(tmp_path):
+    master, stack = _linked_master(tmp_path, "virtual")
+    np.testing.assert_array_equal(read(master, dataset="frames", allow_external=True).data, stack)
+
+
+def test_a_fifo_input_is_refused_not_waited_on(experiment, tmp_path):
+    """The listing of an input's data files opened a FIFO to read its first bytes, which waits
+    for a writer: `correct fifo.tif --cal cal.h5` hung before the reader's refusal."""
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", experiment, "-o", cal).returncode == 0
+    os.mkfifo(tmp_path / "ff.tif")
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "radiokit.cli",
+            "correct",
+            tmp_path / "ff.tif",
+            "--cal",
+            cal,
+            "-q",
+            "-o",
+            tmp_path / "p.h5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    one_line_error(res, "ff.tif", "not a regular file")
+
+
+@pytest.mark.parametrize("added", ["empty folder", "link to a folder"])
+def test_a_folder_added_to_an_old_results_folder_is_refused_as_a_file_is(added, experiment, tmp_path):
+    """--overwrite refused an old results folder holding a file radiokit did not write, but
+    deleted one holding an empty folder or a symbolic link to a folder, which it did not look at."""
+    out = tmp_path / "res"
+    previous = _results_folder(out)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    if added == "empty folder":
+        (out / "mine").mkdir()
+    else:
+        os.symlink(elsewhere, out / "mine")
+    res = run_cli("process", experiment, "-o", out, "-q", "--overwrite", *ROI)
+    one_line_error(res, "mine", "radiokit did not write")
+    assert tree_sha(out) == previous and os.path.lexists(out / "mine")
+
+
+def test_an_output_under_a_dangling_symlink_is_not_said_to_be_under_a_file(experiment, tmp_path):
+    os.symlink(tmp_path / "nowhere", tmp_path / "dangling")
+    res = run_cli("calibrate", "--experiment", experiment, "-o", tmp_path / "dangling" / "cal.h5")
+    line = one_line_error(res, "dangling", "does not exist")
+    assert "is a file" not in line

@@ -8,7 +8,10 @@ written at its target, beside which its temporary is made; the link is kept. An 
 previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
 -9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
 for output, and the next run writing the same output on that host removes it once its process is
-gone.
+gone. A results folder being replaced is renamed aside (``.NAME.old-HOST-PID-XXXXXXXX``) while the
+new one is swapped in: that one is the user's previous results, never removed but by the run that
+put it aside once its new folder is in place; a kill -9 in between leaves it, and the next run to
+that output puts it back at its name.
 """
 
 from __future__ import annotations
@@ -337,6 +340,8 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
     path = Path(path)
     try:
         target = _link_target(path, folder)
+        if folder:
+            _restore_interrupted(target)
         try:
             _check_output(target, overwrite, inputs, folder and made_by)
             _check_data_files(target, inputs, folder)
@@ -431,6 +436,12 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
             )
     holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
     if holder is not None and not holder.is_dir():
+        if holder.is_symlink() and not holder.exists():  # not "a file": a link to nothing
+            raise OutputError(
+                path,
+                f"{holder} is a symbolic link to {os.readlink(holder)}, which does not exist: no folder to hold "
+                "the output; choose another output",
+            )
         raise OutputError(path, f"{holder} is a file, not a folder to hold the output; choose another output")
     if not (path.exists() or path.is_symlink()):
         return path
@@ -515,11 +526,23 @@ def _kind(mode: int) -> str:
 
 
 def _files(folder: Path) -> set[str]:
-    """Every file under ``folder`` (relative, "/"-separated), the marker left out."""
+    """Every file under ``folder`` (relative, "/"-separated), the marker left out; an empty
+    folder and a symbolic link to a folder count as files. Why: they were not looked at, so one
+    the user put into an old results folder was deleted with it by --overwrite, where a file
+    was refused."""
     out = set()
-    for root, _, names in os.walk(folder):
+    for root, dirs, names in os.walk(folder):
         for name in names:
             out.add(Path(root, name).relative_to(folder).as_posix())
+        for name in dirs:  # os.walk lists a link to a folder here, and does not enter it
+            sub = Path(root, name)
+            try:
+                with os.scandir(sub) as entries:
+                    shown = sub.is_symlink() or not any(entries)
+            except OSError:  # unreadable: os.walk does not enter it, so what it holds is unknown
+                shown = True
+            if shown:
+                out.add(sub.relative_to(folder).as_posix())
     out.discard(RESULTS_MARKER)
     return out
 
@@ -556,18 +579,51 @@ def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
     return path.with_name(f".{_head(path, folder, kind)}.{tag}{'' if folder else path.suffix}")
 
 
-def _remove_stale(path: Path, folder=False, kinds=("tmp", "old")) -> None:
+def _remove_stale(path: Path, folder=False) -> None:
     """Remove temporaries of ``path`` that a killed radiokit on this host left (its process is
-    gone): only names radiokit makes, never anything else."""
+    gone): only names radiokit makes, never anything else.
+
+    Only ``tmp`` ones, which hold nothing but what that run wrote. Why never an ``old`` one (a
+    replaced results folder renamed aside): a run killed between renaming it aside and
+    swapping its new folder in leaves the user's previous results (and any notes added to
+    them) there alone, and removing it here deleted them on the next run to that name, failing
+    or not. It is put back instead (:func:`_restore_interrupted`)."""
+    for stale in _leftovers(path, folder, "tmp"):
+        _remove(stale)
+
+
+def _leftovers(path: Path, folder: bool, kind: str) -> list[Path]:
+    """The ``kind`` temporaries of ``path`` left by a radiokit on this host whose process is gone."""
     host = socket.gethostname().split(".")[0]
-    for kind in kinds if folder else ("tmp",):
-        # the name's own characters taken literally: "scan[1]" is no character class
-        head, suffix = glob.escape(_head(path, folder, kind)), "" if folder else glob.escape(path.suffix)
-        pattern = f".{head}.{kind}-{glob.escape(host)}-*{suffix}"
-        for old in path.parent.glob(pattern):
-            m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", old.name)
-            if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
-                _remove(old)
+    # the name's own characters taken literally: "scan[1]" is no character class
+    head, suffix = glob.escape(_head(path, folder, kind)), "" if folder else glob.escape(path.suffix)
+    found = []
+    for left in sorted(path.parent.glob(f".{head}.{kind}-{glob.escape(host)}-*{suffix}")):
+        m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", left.name)
+        if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+            found.append(left)
+    return found
+
+
+def _restore_interrupted(path: Path) -> None:
+    """Put back at ``path`` the previous results folder a killed run left renamed aside
+    (``.NAME.old-HOST-PID-X``) before its new one took the name: the name is missing only then.
+
+    With two or more such folders which one is the user's latest is not known: refused, naming
+    them, rather than guessed. Where the name is there, a leftover is kept as it is (never
+    removed: it may hold notes the user added)."""
+    if os.path.lexists(path) or not path.parent.is_dir():
+        return
+    aside = _leftovers(path, True, "old")
+    if len(aside) == 1:
+        with contextlib.suppress(OutputError):  # the name taken meanwhile: that one stays
+            _publish(aside[0], path, folder=True)
+    elif aside:
+        raise OutputError(
+            path,
+            f"is missing, and {len(aside)} previous results folders of interrupted runs are kept beside it "
+            f"({', '.join(p.name for p in aside)}): rename the one to keep back to {path.name}, then run again",
+        )
 
 
 def _alive(pid: int) -> bool:
@@ -859,6 +915,28 @@ def _swap_in(tmp: Path, path: Path, inputs, made_by: str) -> None:
     _check_output(path, True, inputs, made_by)  # a folder, radiokit's, of this command, writable
     old = _temporary_name(path, folder=True, kind="old")
     os.rename(path, old)
+    try:
+        _replace_aside(tmp, path, old)
+    except BaseException:
+        # Ctrl-C (or any failure) while the previous folder is aside: put back, else the
+        # output's name was left missing and the results only in a hidden folder
+        if os.path.lexists(old) and not os.path.lexists(path):
+            with contextlib.suppress(OSError):
+                _publish(old, path, folder=True)
+        raise
+    # renamed to a temporary's name before its removal: a removal cut short leaves a `tmp`
+    # leftover, which the next run removes, not an `old` one taken for the user's results
+    gone = _temporary_name(path, folder=True)
+    try:
+        os.rename(old, gone)
+    except OSError:
+        gone = old
+    shutil.rmtree(gone, ignore_errors=True)
+
+
+def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
+    """Put ``tmp`` at ``path`` once the previous folder is renamed aside to ``old``, unless
+    that holds files added during the run (then it goes back)."""
     strangers = _strangers(old)
     if strangers:
         try:
@@ -881,4 +959,3 @@ def _swap_in(tmp: Path, path: Path, inputs, made_by: str) -> None:
             f"run's results were discarded; the previous folder is kept in {old}",
             errno.EEXIST,
         ) from None
-    shutil.rmtree(old, ignore_errors=True)

@@ -22,6 +22,7 @@ import os
 import re
 import shutil
 import socket
+import stat
 import time
 import warnings
 import weakref
@@ -1266,7 +1267,7 @@ def check_local(path, h5, ds, allow_external=False) -> None:
 _PREFIX_VARIABLES = {"link": "HDF5_EXT_PREFIX", "virtual": "HDF5_VDS_PREFIX", "raw": "HDF5_EXTFILE_PREFIX"}
 
 
-def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
+def _source_places(folder: Path, name: str, kind="virtual", real: Path | None = None) -> list[Path]:
     """Every place libhdf5 may look for a file ``name`` that a file in ``folder`` refers to, in its
     order (libhdf5's H5F_prefix_open_file, for external links and virtual sources alike): an
     absolute name as given, then, as for a relative name, under each folder of the prefix
@@ -1276,7 +1277,13 @@ def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
     needlessly costs a refused output name, one missed an input's frames: an absolute name's base
     name in the working directory was missed, and a ``frames.h5`` there read as the input's frames
     was replaced by ``-o frames.h5 --overwrite``. External raw files (``raw``) are read where the
-    name leads, under the prefix variable's folders: an absolute one nowhere else (measured)."""
+    name leads, under the prefix variable's folders: an absolute one nowhere else (measured).
+
+    ``real`` is the folder of the referring file's real path (its links resolved): libhdf5 2.0.0
+    looks there too, after beside the name it was opened by (measured: ``Y/master.h5``, a link to
+    ``X/master.h5``, reads its ``frames.h5`` from Y, else from X; not from a link's folder between
+    them). Missed, ``-o X/frames.h5 --overwrite`` replaced the frames ``Y/master.h5`` is read from.
+    External raw files are read from neither (measured)."""
     given = Path(name)
     relative = Path(given.name) if given.is_absolute() else given
     # libhdf5 2.0.0 splits HDF5_EXT_PREFIX and HDF5_VDS_PREFIX at ":" but not HDF5_EXTFILE_PREFIX,
@@ -1284,9 +1291,12 @@ def _source_places(folder: Path, name: str, kind="virtual") -> list[Path]:
     value = os.environ.get(_PREFIX_VARIABLES[kind], "")
     prefixes = dict.fromkeys(p.replace("${ORIGIN}", str(folder)) for p in [value, *value.split(":")] if p)
     under = [Path(prefix) / relative for prefix in prefixes]
+    beside = [folder / relative]
+    if kind != "raw" and real is not None and real != folder:
+        beside.append(real / relative)
     if given.is_absolute():
-        return [given, *under] if kind == "raw" else [given, *under, folder / relative, relative]
-    return [*under, folder / relative, relative]
+        return [given, *under] if kind == "raw" else [given, *under, *beside, relative]
+    return [*under, *beside, relative]
 
 
 def _printf_files(place: Path) -> list[Path]:
@@ -1336,7 +1346,11 @@ def data_files(path, allow_external=False) -> list[Path]:
             raise IncompleteListingError(here, problem)
         for name, kind in names:
             # tifffile reads a multi-file OME-TIFF's files from the folder of the one it opened
-            places = [here.parent / name] if kind == "tiff" else _source_places(here.parent, name, kind)
+            places = (
+                [here.parent / name]
+                if kind == "tiff"
+                else _source_places(here.parent, name, kind, resolved(here).parent)
+            )
             for place in places:
                 for match in _printf_files(place) if kind == "virtual" else [place]:
                     if not match.is_file():
@@ -1362,6 +1376,10 @@ def _referred(path: Path) -> tuple[list[tuple[str, str]], str | None]:
     try:
         st = path.stat()
     except OSError:
+        return [], None
+    if not stat.S_ISREG(st.st_mode):
+        # a FIFO (or device) is not opened to be looked into: its open() waited for a writer, and
+        # `correct fifo.tif` hung there before the reader's "not a regular file" refusal
         return [], None
     names, problem = _referred_in(str(path), (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
     return list(names), problem
@@ -1464,6 +1482,7 @@ def check_virtual_sources(path, ds) -> None:
     selection) is checked by :func:`_check_block_sources`.
     """
     folder = Path(ds.file.filename).parent
+    real = resolved(ds.file.filename).parent  # where libhdf5 looks too (_source_places)
     seen = set()
     for source in ds.virtual_sources():
         name, dset = source.file_name, source.dset_name
@@ -1471,15 +1490,15 @@ def check_virtual_sources(path, ds) -> None:
             continue
         seen.add((name, dset))
         if "%" in name or "%" in dset:
-            _check_block_sources(path, ds, source, folder)
+            _check_block_sources(path, ds, source, folder, real)
             continue
-        _found_source(path, ds, folder, name, dset)
+        _found_source(path, ds, folder, name, dset, real)
 
 
-def _found_source(path, ds, folder: Path, name: str, dset: str) -> Path:
+def _found_source(path, ds, folder: Path, name: str, dset: str, real: Path | None = None) -> Path:
     """Where the source file ``name`` is, found as libhdf5 finds it; refused when it is missing,
     cannot be opened or holds no dataset ``dset``."""
-    found = next((p for p in _source_places(folder, name) if p.is_file()), None)
+    found = next((p for p in _source_places(folder, name, real=real) if p.is_file()), None)
     if found is None:
         raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
     try:
@@ -1495,7 +1514,7 @@ def _found_source(path, ds, folder: Path, name: str, dset: str) -> Path:
 _PRINTF = re.compile(r"%(%|b)")
 
 
-def _check_block_sources(path, ds, source, folder: Path) -> None:
+def _check_block_sources(path, ds, source, folder: Path, real: Path | None = None) -> None:
     """Refuse a ``%b`` mapping (source ``k`` of a printf-style name feeds block ``k`` of an
     unlimited selection) that libhdf5 read short or filled from elsewhere.
 
@@ -1524,7 +1543,7 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
 
     if len(axes) != 1:
         if not any(m.group(1) == "b" for t in (name, dset) for m in _PRINTF.finditer(t)):  # "a%%b": no block
-            _found_source(path, ds, folder, expand(name, 0), expand(dset, 0))
+            _found_source(path, ds, folder, expand(name, 0), expand(dset, 0), real)
         return
     axis = axes[0]
     extent = ds.shape[axis]
@@ -1535,7 +1554,7 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
             path, f"{ds.name} is a virtual dataset whose first source {missing} is missing or unreadable: no frames"
         )
     folders = {
-        resolved(_found_source(path, ds, folder, expand(name, k), expand(dset, k)).parent) for k in range(covered)
+        resolved(_found_source(path, ds, folder, expand(name, k), expand(dset, k), real).parent) for k in range(covered)
     }
     if len(folders) > 1:
         raise FormatError(
@@ -1550,7 +1569,7 @@ def _check_block_sources(path, ds, source, folder: Path) -> None:
     # libhdf5 prints the block number in plain decimal: src_01.h5 is not source 1
     number = re.compile("".join({"%%": "%", "%b": "(0|[1-9][0-9]*)"}.get(t) or re.escape(t) for t in tokens))
     later = []
-    for place in {p.parent for p in _source_places(folder, name)}:
+    for place in {p.parent for p in _source_places(folder, name, real=real)}:
         if "%" in str(place) or not place.is_dir():
             continue
         with os.scandir(place) as entries:  # one folder, not its tree (a "%b%b" glob is "**")
