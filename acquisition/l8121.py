@@ -1376,6 +1376,11 @@ class L8121:
         #: before its ``XON``: a caller that leaves the beam on (``source on``) tells the operator
         #: there, since a ``kill -9`` in the ramp that follows leaves it on with no word after.
         self.before_xon: Callable[[int, int], None] | None = None
+        #: The focus last asked for (:attr:`focus`), set and read back again before every ``XON``
+        #: of :meth:`on`: a controller reset between beam periods (a power cycle) puts the unit's
+        #: own default back without a word, and the series would expose, and record, a focal spot
+        #: nobody asked for (review s38b). None: never set, left as the unit has it.
+        self.focus_wanted: int | None = None
         if connect:
             self.connect()
 
@@ -2234,6 +2239,13 @@ class L8121:
 
     @focus.setter
     def focus(self, value: int) -> None:
+        self.check_focus(value)
+        # remembered before it is sent: a setting that fails here is tried again, and refused
+        # again, before the next XON rather than forgotten
+        self.focus_wanted = value
+        self._set_focus(value)
+
+    def _set_focus(self, value: int) -> None:
         self._do("focus", value)
         # an echo says the command arrived, not that the unit took it: a series must not expose (and
         # record) a focal spot the unit is not using, so the setting is read back as kV and µA are
@@ -2558,6 +2570,8 @@ class L8121:
         seen = self._reconnects()
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
+            if self.focus_wanted is not None:  # every XON, not the first: a reset says nothing
+                self._set_focus(self.focus_wanted)
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():

@@ -618,6 +618,42 @@ def test_a_focus_the_controller_does_not_take_is_refused_by_its_read_back(source
     assert model.commands[-1] == WIRE[dialect]["focus_get"][0]
 
 
+def test_the_focus_is_set_and_read_back_before_every_xon_not_only_the_first(source, dialect):
+    """A controller reset (a power cycle) between two beam periods puts the focus back to the
+    unit's default; the kV and µA were set again before each XON, the focus only once, so the
+    second exposure went out (and was recorded) at a focal spot the protocol did not ask for
+    (review s38b, F1). Every XON now follows the focus setting and its read-back."""
+    src, model = source
+    focus_1 = WIRE[dialect]["focus_2"].replace("CFS 2", "CFS 1").replace("CFL", "CFM")
+    src.focus = 1
+    src.on(60, 250)
+    src.off()
+    model._focus = 0  # the reset: the unit's own default, nothing said on the wire
+    src.on(60, 250)
+    try:
+        assert model._focus == 1
+        since_off = commands_after(model, "XOF")
+        xon = since_off.index("XON")
+        sent = since_off[:xon]
+        assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
+    finally:
+        src.off()
+
+
+def test_a_focus_the_unit_does_not_read_back_before_an_xon_stops_the_xon(source, dialect, monkeypatch):
+    """The focus read back wrong before an XON: no X-ray command goes out."""
+    src, model = source
+    src.focus = 1
+    if dialect == "A":
+        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+    else:
+        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    model._focus = 0
+    with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 1 was set"):
+        src.on(60, 250)
+    assert "XON" not in model.commands and not model.xray_on
+
+
 def test_unparseable_replies_raise(source, dialect):
     src, model = source
     model.garbage()
