@@ -574,7 +574,8 @@ def _words(mapping: Mapping[str, Any]) -> Callable[[str], Any]:
 def _with_unit(unit: str) -> Callable[[str], float]:
     """Dialect B's measured values: ``60.0kV``, ``250uA`` (``µA`` and a space before the unit accepted)."""
     units = {"uA": "(?:uA|µA)"}.get(unit, re.escape(unit))
-    pattern = re.compile(rf"([+-]?\d+(?:\.\d*)?)\s*{units}")
+    # any case: the transport reads every reply in upper case (60.0KV), a unit may write kV
+    pattern = re.compile(rf"([+-]?\d+(?:\.\d*)?)\s*{units}", re.IGNORECASE | re.ASCII)
 
     def parse(text: str) -> float:
         m = pattern.fullmatch(text.strip())

@@ -654,6 +654,20 @@ def test_a_focus_the_unit_does_not_read_back_before_an_xon_stops_the_xon(source,
     assert "XON" not in model.commands and not model.xray_on
 
 
+def test_a_unit_answering_in_lower_case_is_read_and_switched_off(source, dialect):
+    """L8121.md says the commands are upper case, not the replies: a unit answering ``sts 2``
+    (B: ``standby``, ``spv 60.0kv``) was refused as garbled at every reading, its XOF's echo
+    included, so `source off` could not confirm a switch-off (review s38b, F7). Read as the same
+    words in any case; a garbled reply is still refused (test_unparseable_replies_raise)."""
+    src, model = source
+    model.lower_case()
+    assert src.status() == SourceState.STANDBY and src.interlock_closed()
+    src.focus = 1
+    src.on(60, 250)
+    assert model.xray_on and src.measured()[0] == pytest.approx(60.0, abs=1.0)
+    assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
 def test_unparseable_replies_raise(source, dialect):
     src, model = source
     model.garbage()
