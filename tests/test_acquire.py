@@ -1343,3 +1343,31 @@ def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml,
     said = capsys.readouterr()
     assert aside.read_bytes() == b"the old series" and not out.exists()
     assert aside.name in said.err and "a run would first restore" in said.err, said.err
+
+
+@pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])
+def test_ctrl_c_while_radiokit_starts_is_one_line_exit_130(tmp_path, module):
+    """Ctrl-C in the first second of `radiokit acquire` -- radiokit.cli's own imports (numpy), or
+    the acquire command's, loaded as the parser is built -- printed a KeyboardInterrupt
+    traceback, though nothing had been sent (review s38b, F5). One line, exit 130. The SIGINT
+    comes from an import hook as ``module`` starts loading: the console script's own steps."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # a worker may pass it on ignored
+        "class Stop:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "sys.meta_path.insert(0, Stop())\n"
+        f"sys.argv = ['radiokit', 'acquire', {str(tmp_path / 'p.toml')!r}, '--dry-run']\n"
+        "from radiokit.cli import main\n"
+        "sys.exit(main())\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "interrupted" in res.stderr and res.stdout == "", res.stderr
+
