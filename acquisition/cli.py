@@ -738,7 +738,27 @@ def _source_error_code(exc, src, args) -> int:
     if not src.tube_confirmed_off:
         _tube_warning(src)
         return 3
+    state = src.confirmed_off or src.last_state
+    after_all = "could not confirm X-rays off" in str(exc)
+    said = getattr(exc, "tube_said", False) or (args.action == "off" and not after_all)  # (off: "XOF sent anyway")
+    if args.action != "status" and not said and state is not None:
+        # the error line alone was the last: an `on` or `warm-up` whose connect failed and then
+        # sent XOF (one STS late), or an `off` whose attempts ran out before close()'s last one
+        # was confirmed (review s38b): the tube's state is the last line, as the exit rule reads it
+        how = "X-rays off after all (a last XOF as the port closed): " if after_all else ""
+        _say(f"{src.port}: {how}tube off (confirmed by STS: {state.name})")
     return 1
+
+
+def _failed_on(exc, src, args):
+    """The error a failed ``on`` or ``warm-up`` ends on: ``exc`` in command-line terms and what
+    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state."""
+    from acquisition.errors import DeviceError
+
+    after = _after_failed_on(src, args)
+    err = DeviceError(_cli_terms(str(exc), args.port) + after)
+    err.tube_said = bool(after)
+    return err
 
 
 def _after_failed_on(src, args) -> str:
@@ -881,7 +901,7 @@ def _source_action(src, args) -> int:
                 timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
             )
         except DeviceError as exc:
-            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
+            raise _failed_on(exc, src, args) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         # said before XON: this command leaves the beam on, and killed in the ramp (kill -9, no
@@ -894,7 +914,7 @@ def _source_action(src, args) -> int:
         try:
             r = src.on(args.kv, args.ua)
         except DeviceError as exc:
-            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
+            raise _failed_on(exc, src, args) from exc
         print(
             f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
             f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "

@@ -2413,6 +2413,47 @@ def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
     assert not model.xray_on and "XOF" in model.commands
 
 
+@pytest.mark.parametrize("action", ["on", "warm-up"])
+def test_cli_source_on_whose_connect_sent_xof_ends_on_the_tubes_state(capsys, dialect, action):
+    """One STS reply late at connect: the connect failed, sent XOF and confirmed it by STS, but
+    the command ended on `error: no reply to STS within ...` alone (review s38b, F4): every failed
+    `on` and `warm-up` ends on the tube's state."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=action == "on", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        model.inject_after(WIRE[dialect]["connect_last"], lambda: model.delay_once(1.0, "STS"))
+        args = ["--port", server.url, "--dialect", dialect, "--reply-timeout", "0.5", "--kv", "60", "--ua", "250"]
+        assert main(["acquire", "source", action, *args]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "no reply to STS within 0.5 s" in err[-2], err
+    assert re.fullmatch(rf"{re.escape(server.url)}: tube off \(confirmed by STS: \w+\)", err[-1]), err
+    assert not model.xray_on and model.commands[-2:] == ["XOF", "STS"]
+
+
+def test_cli_source_off_confirmed_by_its_last_attempt_says_the_tube_is_off(capsys):
+    """A unit that reads off 4.5 s after XOF: off()'s three attempts ran out, close()'s last XOF
+    was confirmed, and the command still ended on `could not confirm X-rays off after 3
+    attempt(s)` (review s38b, F3). The last line states the confirmed state; exit 1 (an error,
+    the tube confirmed off)."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        model.ramp_down(4.5)
+        assert main(["acquire", "source", "off", *port]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "could not confirm X-rays off after 3 attempt(s)" in err[-2], err
+    assert (
+        err[-1]
+        == f"{server.url}: X-rays off after all (a last XOF as the port closed): tube off (confirmed by STS: STANDBY)"
+    )
+    assert not model.xray_on
+
+
 def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
     """Found: command-line errors said "(call warm_up())", "reset() by hand" and "configure
     model=None", Python the operator at a terminal cannot type."""
