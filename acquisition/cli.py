@@ -836,7 +836,7 @@ def _source_status(src, args) -> int | None:
     state = src.status()
     switch = src.switch_at_connect
     print(
-        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
+        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.said}, "
         f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
         f"{', operate switch ' + switch if switch else ''}"
     )

@@ -1097,6 +1097,9 @@ class PipeTransport:
         # the port this process opens if the guardian dies takes it again, or is refused
         self._hold = hold
         self._lost = False  # the guardian died (not released): the port is free for this process
+        #: What the guardian's watchdog said when it switched X-rays off (its ``W`` line; the
+        #: driver clears it at its next XON): the run's error names it, not a dropped beam.
+        self.watchdog_off: str | None = None
         self._direct: SerialTransport | None = None
         self._process = process
         self._rfd = process.stdout.fileno()
@@ -1271,6 +1274,8 @@ class PipeTransport:
                 got, _, text = rest.partition(" ")
                 if kind == "C":  # the guardian's link was reopened (whichever request): counted here
                     self._count_reconnects(text)
+                elif kind == "W":  # its watchdog switched off while this process was silent
+                    self.watchdog_off = text
                 elif got == seq:
                     break
             self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))

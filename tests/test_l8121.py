@@ -2619,7 +2619,10 @@ def test_b_sts_error_that_outlasts_the_power_on_checks_is_switched_off_at_close(
         src = driver(server, "B", ready_timeout_s=0.3, off_confirm_s=0.2)
         model.sts_error()
         call = (lambda: src.on(60, 250)) if action == "on" else (lambda: src.warm_up(progress=False))
-        with pytest.raises(DeviceError, match=r"still PREHEATING, which does not show X-rays off, with 60 kV 0 µA"):
+        with pytest.raises(
+            DeviceError,
+            match=r"still ERROR \(PREHEATING, or a refused query.*\), which does not show X-rays off, with 60 kV 0 µA",
+        ):
             call()
         assert src.may_be_on and "XON" not in model.commands[n:]
         with pytest.raises(DeviceError, match="could not confirm X-rays off"):
@@ -2647,13 +2650,14 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         n = len(model.log)
         assert main(["acquire", "source", "status", *port]) == 3
         out, err = capsys.readouterr()
-        assert "state PREHEATING" in out and "does not show X-rays off and a beam is measured" in out, out
+        assert "state ERROR (PREHEATING, or a refused query" in out, out  # both readings (review s38b)
+        assert "does not show X-rays off and a beam is measured" in out, out
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
         n = len(model.log)
         assert main(["acquire", "source", "status", *port]) == 3  # nothing measured: said, and not confirmed off
         out, err = capsys.readouterr()
-        assert "state PREHEATING, measured 0 kV 0 uA" in out and "nothing is measured, but" in err
+        assert "does not say which), measured 0 kV 0 uA" in out and "nothing is measured, but" in err
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" not in model.commands[n:]
         model.sts_error(False)
@@ -3408,6 +3412,31 @@ def test_the_guardians_serve_loop_tells_the_acquiring_process_of_its_watchdogs_r
         source.close()
         link._process.wait(timeout=20)
         assert not two.xray_on  # (unit 1 took the XOF whose reply was lost: off, but unconfirmed)
+
+
+def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect):
+    """The acquiring process stalls with the beam on; the guardian's watchdog switches off,
+    confirmed. When the process reads the source again, its error said `beam dropped: state
+    STANDBY instead of XRAY_ON`, a fault of the tube, where the guardian had switched it off
+    (review s38b, F6). The guardian tells it with the next reply; the error names the watchdog."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.5)
+        with L8121(link, connect=False, config=resolved) as source:
+            source.connect()
+            source.on(60, 250)
+            deadline = time.monotonic() + 20  # no poll from here on: the watchdog's turn
+            while model.xray_on and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not model.xray_on
+            with pytest.raises(SourceFault) as info:
+                source.check()
+        link._process.wait(timeout=20)
+    text = str(info.value)
+    assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
 
 
 @pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])
