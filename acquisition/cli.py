@@ -765,7 +765,9 @@ def _source_error_code(exc, src, args) -> int:
         return 3
     state = src.confirmed_off or src.last_state
     after_all = "could not confirm X-rays off" in str(exc)
-    said = getattr(exc, "tube_said", False) or (args.action == "off" and not after_all)  # (off: "XOF sent anyway")
+    # said already: by the error line, or by "XOF sent anyway" (off's connect, a guardian gone)
+    said = getattr(exc, "tube_said", False) or getattr(exc, "guardian_gone", False)
+    said = said or (args.action == "off" and not after_all)
     if args.action != "status" and not said and state is not None:
         # the error line alone was the last: an `on` or `warm-up` whose connect failed and then
         # sent XOF (one STS late), or an `off` whose attempts ran out before close()'s last one
