@@ -104,8 +104,13 @@ def _run(args) -> int:
             return 2
     from radiokit.io import restore_previous
 
-    for _, line in restore_previous(p.output, dry_run=args.dry_run):  # before every check: they are about that file
+    would = []
+    # before every check: they are about that file
+    for _, line in restore_previous(p.output, dry_run=args.dry_run, found=would):
         _say(line)
+    # the dry run plans from what the run would find: the old series it puts back first, not the
+    # file under the name now (an --overwrite's empty one: its resume was planned, review s38b)
+    held = would[-1] if args.dry_run and would else Path(p.output)
     if args.resume and not Path(p.output).exists():
         # said here in one line, and the new file checked as any new file (the run's own log
         # warning reached the terminal with a timestamp and a logger's name)
@@ -122,7 +127,7 @@ def _run(args) -> int:
         if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
             print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
             return 2
-    code, done = _resumable(args, p)
+    code, done = _resumable(args, p, held)
     if code is not None:
         return code
     if args.dry_run:
@@ -138,22 +143,24 @@ COMPLETE = "{out}: already complete ({n} frames); nothing to resume, the file an
 NO_FILE = "{out}: nothing to resume (no file: the series stopped before its first frame); {then}"
 
 
-def _resumable(args, p) -> tuple[int | None, dict | None]:
+def _resumable(args, p, held: Path | None = None) -> tuple[int | None, dict | None]:
     """With ``--resume`` on an existing file: ``(exit code or None, what it holds)``. The run and
     the dry run alike, before any device is opened: a file not to resume from (another protocol's,
     not an experiment file) is refused, exit 2, and a complete one is reported, exit 0 (the dry run
-    planned its warm-up, 10 min of X-rays, where the run touches nothing)."""
-    if not (args.resume and Path(p.output).exists()):
+    planned its warm-up, 10 min of X-rays, where the run touches nothing). ``held``: the file the
+    run would find under the name (default the name's own)."""
+    held = Path(p.output) if held is None else held
+    if not (args.resume and held.exists()):
         return None, None
     from acquisition.errors import DeviceError
     from acquisition.protocols.compression_series import _existing, plan
     from radiokit.io import read_progress
 
     try:
-        done = _existing(Path(p.output), p)
+        done = _existing(held, p)
         if plan(p, done, warm=True).n_frames:
             return None, done
-        n = read_progress(Path(p.output)).frames_complete
+        n = read_progress(held).frames_complete
     except (DeviceError, OSError, ValueError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2, None
@@ -348,7 +355,9 @@ def _series(guard, args, p) -> int:
         r = getattr(exc, "result", None)
         name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
         saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-        if r is not None and r.previous_kept:
+        if r is not None and getattr(r, "previous_aside", None) is not None:
+            _say(f"\nstopped by {name} in phase {r.phase}; {_aside(r, args)}")
+        elif r is not None and r.previous_kept:
             _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
         else:
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
@@ -357,7 +366,9 @@ def _series(guard, args, p) -> int:
         r = getattr(exc, "result", None)
         known = isinstance(exc, (DeviceError, OSError, ValueError))
         _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
-        if r is not None and r.phase != "connect" and r.previous_kept:
+        if r is not None and r.phase != "connect" and getattr(r, "previous_aside", None) is not None:
+            _say(f"stopped in phase {r.phase}; {_aside(r, args)}")
+        elif r is not None and r.phase != "connect" and r.previous_kept:
             _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
         elif r is not None and r.phase != "connect":
             _say(
@@ -380,6 +391,20 @@ def _series(guard, args, p) -> int:
 #: An --overwrite stopped before its first frame: the file it was to replace is there, as it was
 #: (a `--resume` would go on with that series, not start the new one).
 _KEPT = "no frame taken: {out} holds the previous series, unchanged"
+
+
+def _aside(r, args) -> str:
+    """An --overwrite stopped before its first frame whose old file could not be put back (the
+    folder turned unwritable): where it is, and how it comes back. Not `--resume`: the name holds
+    the new run's empty file, and the next run of it puts the old series back first."""
+    import shlex
+
+    plain = resume_command(args).removesuffix(" --resume")
+    return (
+        f"no frame taken: the previous series could not be put back under {r.output}; it is kept in "
+        f"{r.previous_aside}. Once the folder is writable, the next `{plain}` (plain, --resume or --overwrite) "
+        f"puts it back first; or `mv -f {shlex.quote(str(r.previous_aside))} {shlex.quote(str(r.output))}`"
+    )
 
 
 def resume_command(args) -> str:
@@ -738,7 +763,29 @@ def _source_error_code(exc, src, args) -> int:
     if not src.tube_confirmed_off:
         _tube_warning(src)
         return 3
+    state = src.confirmed_off or src.last_state
+    after_all = "could not confirm X-rays off" in str(exc)
+    # said already: by the error line, or by "XOF sent anyway" (off's connect, a guardian gone)
+    said = getattr(exc, "tube_said", False) or getattr(exc, "guardian_gone", False)
+    said = said or (args.action == "off" and not after_all)
+    if args.action != "status" and not said and state is not None:
+        # the error line alone was the last: an `on` or `warm-up` whose connect failed and then
+        # sent XOF (one STS late), or an `off` whose attempts ran out before close()'s last one
+        # was confirmed (review s38b): the tube's state is the last line, as the exit rule reads it
+        how = "X-rays off after all (a last XOF as the port closed): " if after_all else ""
+        _say(f"{src.port}: {how}tube off (confirmed by STS: {state.name})")
     return 1
+
+
+def _failed_on(exc, src, args):
+    """The error a failed ``on`` or ``warm-up`` ends on: ``exc`` in command-line terms and what
+    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state."""
+    from acquisition.errors import DeviceError
+
+    after = _after_failed_on(src, args)
+    err = DeviceError(_cli_terms(str(exc), args.port) + after)
+    err.tube_said = bool(after)
+    return err
 
 
 def _after_failed_on(src, args) -> str:
@@ -816,7 +863,7 @@ def _source_status(src, args) -> int | None:
     state = src.status()
     switch = src.switch_at_connect
     print(
-        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.name}, "
+        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.said}, "
         f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
         f"{', operate switch ' + switch if switch else ''}"
     )
@@ -881,7 +928,7 @@ def _source_action(src, args) -> int:
                 timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
             )
         except DeviceError as exc:
-            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
+            raise _failed_on(exc, src, args) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
         # said before XON: this command leaves the beam on, and killed in the ramp (kill -9, no
@@ -894,7 +941,7 @@ def _source_action(src, args) -> int:
         try:
             r = src.on(args.kv, args.ua)
         except DeviceError as exc:
-            raise DeviceError(_cli_terms(str(exc), args.port) + _after_failed_on(src, args)) from exc
+            raise _failed_on(exc, src, args) from exc
         print(
             f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
             f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "

@@ -653,6 +653,9 @@ class _Watch:
         # hang, and an XOF then went to a unit nobody had checked (review s29-h4)
         self.heard = False
         self.off_state = ""  # what the STS that confirmed this guardian's last switch-off read
+        # the watchdog's confirmed switch-off, not yet told to the acquiring process: it goes out
+        # with its next reply's W line, so that its error names the guardian, not a dropped beam
+        self.watchdog_untold = ""
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -776,6 +779,10 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         watch.untold += moved
     if outcome == "off":
         watch.may_be_on, watch.warned, watch.silent_since, watch.retries = False, False, None, 0
+        watch.watchdog_untold = (
+            f"the X-ray guardian's watchdog switched X-rays off (confirmed by STS: {watch.off_state}): the "
+            f"acquiring process had sent nothing for {watchdog_s:g} s with X-rays on (suspended or hung)"
+        )
         return False
     if outcome == "unverified":
         # the unit now at the port is off; the one switched on may not be, and no XOF through this
@@ -893,6 +900,8 @@ def _serve(link, config, note, watchdog_s: float | None = None, armed: bool = Fa
             # (review s28-h8: an STS reading off cleared the guardian's warning and the driver's
             # off then read confirmed)
             out = f"C {seq} {moved}\n{out}"
+        if watch.watchdog_untold:
+            out, watch.watchdog_untold = f"W {seq} {watch.watchdog_untold}\n{out}", ""
         try:
             os.write(wfd, (out + "\n").encode("utf-8", "replace"))  # a reply may hold "µA"
         except OSError:

@@ -574,7 +574,8 @@ def _words(mapping: Mapping[str, Any]) -> Callable[[str], Any]:
 def _with_unit(unit: str) -> Callable[[str], float]:
     """Dialect B's measured values: ``60.0kV``, ``250uA`` (``µA`` and a space before the unit accepted)."""
     units = {"uA": "(?:uA|µA)"}.get(unit, re.escape(unit))
-    pattern = re.compile(rf"([+-]?\d+(?:\.\d*)?)\s*{units}")
+    # any case: the transport reads every reply in upper case (60.0KV), a unit may write kV
+    pattern = re.compile(rf"([+-]?\d+(?:\.\d*)?)\s*{units}", re.IGNORECASE | re.ASCII)
 
     def parse(text: str) -> float:
         m = pattern.fullmatch(text.strip())
@@ -1376,6 +1377,11 @@ class L8121:
         #: before its ``XON``: a caller that leaves the beam on (``source on``) tells the operator
         #: there, since a ``kill -9`` in the ramp that follows leaves it on with no word after.
         self.before_xon: Callable[[int, int], None] | None = None
+        #: The focus last asked for (:attr:`focus`), set and read back again before every ``XON``
+        #: of :meth:`on`: a controller reset between beam periods (a power cycle) puts the unit's
+        #: own default back without a word, and the series would expose, and record, a focal spot
+        #: nobody asked for (review s38b). None: never set, left as the unit has it.
+        self.focus_wanted: int | None = None
         if connect:
             self.connect()
 
@@ -2141,13 +2147,13 @@ class L8121:
                 beam = self._beam_measured(state)
                 raise DeviceError(
                     f"{self.port}: the controller's power-on checks did not finish within ready_timeout_s = "
-                    f"{limit:g} s (still {state.name}{beam}); look at the controller (or raise [source] ready_timeout_s)"
+                    f"{limit:g} s (still {state.said}{beam}); look at the controller (or raise [source] ready_timeout_s)"
                 )
             if not told:
                 logger.warning(
                     "%s: controller still in its power-on checks (state %s): waiting up to %g s",
                     self.port,
-                    state.name,
+                    state.said,
                     limit,
                 )
                 told = True
@@ -2234,6 +2240,13 @@ class L8121:
 
     @focus.setter
     def focus(self, value: int) -> None:
+        self.check_focus(value)
+        # remembered before it is sent: a setting that fails here is tried again, and refused
+        # again, before the next XON rather than forgotten
+        self.focus_wanted = value
+        self._set_focus(value)
+
+    def _set_focus(self, value: int) -> None:
         self._do("focus", value)
         # an echo says the command arrived, not that the unit took it: a series must not expose (and
         # record) a focal spot the unit is not using, so the setting is read back as kV and µA are
@@ -2531,7 +2544,7 @@ class L8121:
         Order: validate the values (:meth:`SourceConfig.check_exposure`; nothing sent yet); require
         standby with the warm-up done (A: ``STS 2`` and ``SWE 0``; B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
         and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
-        B: ``PHV``, ``PCU``); ``XON``; poll every ``poll_s`` until the measured values are within
+        B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; ``XON``; poll every ``poll_s`` until the measured values are within
         ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or interruption after
         ``XON`` switches off before the exception propagates, and so does a controller that
         answers the ``XON`` with a warm-up (``AGING``).
@@ -2558,6 +2571,8 @@ class L8121:
         seen = self._reconnects()
         try:
             self.set_values(kv_i, ua_i)  # the beam is off: presets in B, no waiting
+            if self.focus_wanted is not None:  # every XON, not the first: a reset says nothing
+                self._set_focus(self.focus_wanted)
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
@@ -2565,6 +2580,8 @@ class L8121:
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
             if self.before_xon is not None:
                 self.before_xon(kv_i, ua_i)
+            if getattr(self._transport, "watchdog_off", None):
+                self._transport.watchdog_off = None  # told of the last beam, not of this one
             self._may_be_on = True
             self._do("xray_on")
             t0 = time.monotonic()
@@ -2601,13 +2618,14 @@ class L8121:
             SourceState.XRAY_ON: "X-rays are already on (use set_values() or off())",
             SourceState.NOT_READY: None,  # asked below: the likeliest reason is the interlock
             SourceState.SELF_TEST: "controller in self-test",
-            SourceState.PREHEATING: "controller pre-heating (STS ERROR)",
+            # B's ERROR is also how B refuses a query: called pre-heating alone, a refusal was misread
+            SourceState.PREHEATING: "STS answers ERROR: pre-heating, or a refused query (dialect B does not say which)",
         }
         if state == SourceState.OVERLOAD:
             raise SourceFault(f"{self.port}: overload; X-rays not switched on. Inspect the tube, then reset() by hand")
         if state != SourceState.STANDBY:
             why = reasons[state] or self._not_ready()
-            raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.name})")
+            raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.said})")
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
@@ -2674,6 +2692,10 @@ class L8121:
         if state == SourceState.PREHEATING:  # not a state the beam is known to be off in
             return f"STS {state.said} instead of XON: the beam may have dropped or be on still"
         if state != SourceState.XRAY_ON:
+            # off because the guardian switched off for this process's silence: say so, not a fault of the tube
+            told = getattr(self._transport, "watchdog_off", None)
+            if told and state.confirms_off:
+                return f"{told}; state {state.name}"
             return f"beam dropped: state {state.name} instead of XRAY_ON"
         if not ramping and beam is not None:
             f = self.config.beam_drop_fraction

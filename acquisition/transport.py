@@ -82,10 +82,15 @@ def _text(raw: bytes) -> str:
     read as ``µ``, and every other byte above 127 a replacement character. Why not a permissive
     decoding: the parsers read digits and spaces with Unicode-aware patterns, so a garbled line
     decoded as UTF-8 or Latin-1 could read as a valid state (``STS \xd9\xa2`` is an Arabic-Indic
-    2, "X-rays off"), and a confirmation must never come from a garbled reply."""
+    2, "X-rays off"), and a confirmation must never come from a garbled reply.
+
+    Upper case, the micro sign kept: L8121.md writes the commands in upper case and says nothing
+    of the replies' case, and a unit answering ``sts 2`` was refused at every reading, its XOF's
+    echo included, so that nothing could switch it off (review s38b). ASCII letters only change,
+    so a garbled line stays garbled; the units' own case (``kV``, ``uA``) is read in any case."""
     for micro in _MICRO[:-1]:
         raw = raw.replace(micro, _MICRO[-1])
-    return "µ".join(part.decode("ascii", "replace") for part in raw.split(_MICRO[-1]))
+    return "µ".join(part.decode("ascii", "replace").upper() for part in raw.split(_MICRO[-1]))
 
 
 class _Rfc2217(serial.rfc2217.Serial):
@@ -1092,6 +1097,9 @@ class PipeTransport:
         # the port this process opens if the guardian dies takes it again, or is refused
         self._hold = hold
         self._lost = False  # the guardian died (not released): the port is free for this process
+        #: What the guardian's watchdog said when it switched X-rays off (its ``W`` line; the
+        #: driver clears it at its next XON): the run's error names it, not a dropped beam.
+        self.watchdog_off: str | None = None
         self._direct: SerialTransport | None = None
         self._process = process
         self._rfd = process.stdout.fileno()
@@ -1266,6 +1274,8 @@ class PipeTransport:
                 got, _, text = rest.partition(" ")
                 if kind == "C":  # the guardian's link was reopened (whichever request): counted here
                     self._count_reconnects(text)
+                elif kind == "W":  # its watchdog switched off while this process was silent
+                    self.watchdog_off = text
                 elif got == seq:
                     break
             self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))

@@ -20,10 +20,14 @@ import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
-import numpy as np
+try:  # the second the imports take: Ctrl-C there printed an import's traceback (review s38b)
+    import numpy as np
 
-from radiokit import __version__
-from radiokit.errors import RadiokitError
+    from radiokit import __version__
+    from radiokit.errors import RadiokitError
+except KeyboardInterrupt:
+    print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
+    raise SystemExit(130) from None
 
 #: radiokit.register's B-spline presets and rc's automatic choice between them; a literal so that
 #: --help does not import scipy (tests/test_cli.py checks it against the registry)
@@ -1500,8 +1504,14 @@ def _one_warning_per_file() -> None:
 def _main(argv) -> int:
     from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        # a command's own module (acquire's: the X-ray driver) is imported as the parser is built:
+        # a stop here is one line too, nothing opened yet (the command's handlers come later)
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt as exc:
+        print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
+        return exit_status(exc)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

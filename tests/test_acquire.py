@@ -19,6 +19,7 @@ monitor's next poll (``poll_s`` 0.1 s); a silent controller needs the reply time
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
@@ -1343,3 +1344,109 @@ def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml,
     said = capsys.readouterr()
     assert aside.read_bytes() == b"the old series" and not out.exists()
     assert aside.name in said.err and "a run would first restore" in said.err, said.err
+
+
+@pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])
+def test_ctrl_c_while_radiokit_starts_is_one_line_exit_130(tmp_path, module):
+    """Ctrl-C in the first second of `radiokit acquire` -- radiokit.cli's own imports (numpy), or
+    the acquire command's, loaded as the parser is built -- printed a KeyboardInterrupt
+    traceback, though nothing had been sent (review s38b, F5). One line, exit 130. The SIGINT
+    comes from an import hook as ``module`` starts loading: the console script's own steps."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # a worker may pass it on ignored
+        "class Stop:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "sys.meta_path.insert(0, Stop())\n"
+        f"sys.argv = ['radiokit', 'acquire', {str(tmp_path / 'p.toml')!r}, '--dry-run']\n"
+        "from radiokit.cli import main\n"
+        "sys.exit(main())\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "interrupted" in res.stderr and res.stdout == "", res.stderr
+
+
+@contextlib.contextmanager
+def _no_renames_in(folder):
+    """``folder`` immutable (chattr +i, as root on ext4): no file in it renamed, made or removed,
+    the files open in it still written -- a folder that turned unwritable under a run, which root
+    (whom a folder's mode does not stop) meets only this way."""
+    import shutil
+    import subprocess
+
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(folder)]).returncode:
+        pytest.skip("chattr +i not available here")
+    try:
+        yield
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+def test_cli_an_overwrite_whose_folder_turns_unwritable_names_the_previous_series_and_its_restore(
+    tmp_path, scene_toml, capsys, sigint_default
+):
+    """`--overwrite` set the old series aside (`.series.previous-*.h5`); the folder then turned
+    unwritable before the first frame, so the stop could not put it back. The last lines said
+    nothing of it (README: every run says where it is), and `--resume --dry-run` then planned a
+    resume of the empty new file, where the run would first restore the old series (review s38b,
+    F2). Now the stop names the hidden file and the command that restores it, and the dry run
+    plans what that run would do."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    p = protocol(folder, scene_toml, link_s=0.01)
+    p.sim.warmed_up, p.sim.warmup_s = False, 5.0
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    before = _old_series(out)
+    notebook = out.with_suffix(".log")
+    locked = threading.Event()
+
+    def unwritable_then_ctrl_c():
+        for _ in range(600):
+            if notebook.exists() and re.search(r"> (STS 1|WUP|XON)", notebook.read_text(errors="replace")):
+                break
+            time.sleep(0.05)
+        with _no_renames_in(folder):
+            locked.set()
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(600):
+                if stopped.is_set():
+                    break
+                time.sleep(0.05)
+
+    stopped = threading.Event()
+    t = threading.Thread(target=unwritable_then_ctrl_c)
+    t.start()
+    try:
+        code = _cli("acquire", str(path), "--sim", "-q", "--overwrite")
+    finally:
+        stopped.set()
+        t.join()
+    err = capsys.readouterr().err
+    assert locked.is_set() and code == 130, err
+    aside = [n for n in _beside(out) if ".previous-" in n]
+    assert len(aside) == 1 and (folder / aside[0]).read_bytes() == before, _beside(out)
+    tail = "\n".join(err.strip().splitlines()[-3:])
+    assert aside[0] in tail and "holds the previous series, unchanged" not in tail, err
+    assert f"radiokit acquire {path}" in tail, err  # the command that puts it back
+    # the dry run plans what --resume would do: put the old series back first, then resume it
+    # (here another shape's file: refused, exit 2, as the run refuses it)
+    code = _cli("acquire", str(path), "--sim", "--resume", "--dry-run")
+    said = capsys.readouterr()
+    assert "a run would first restore the previous series" in said.err, said.err
+    assert code == 2 and "0 of" not in said.out, (said.out, said.err)
+    assert (folder / aside[0]).read_bytes() == before  # the dry run moved nothing
+    code = _cli("acquire", str(path), "--sim", "--resume", "--dry-run")
+    assert code == 2
+    capsys.readouterr()
+    assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 2  # the run: restored, then refused alike
+    # (the stopped run's reserve could not be removed from the immutable folder either)
+    assert out.read_bytes() == before and [n for n in _beside(out) if ".previous-" in n] == [], _beside(out)

@@ -618,6 +618,56 @@ def test_a_focus_the_controller_does_not_take_is_refused_by_its_read_back(source
     assert model.commands[-1] == WIRE[dialect]["focus_get"][0]
 
 
+def test_the_focus_is_set_and_read_back_before_every_xon_not_only_the_first(source, dialect):
+    """A controller reset (a power cycle) between two beam periods puts the focus back to the
+    unit's default; the kV and µA were set again before each XON, the focus only once, so the
+    second exposure went out (and was recorded) at a focal spot the protocol did not ask for
+    (review s38b, F1). Every XON now follows the focus setting and its read-back."""
+    src, model = source
+    focus_1 = WIRE[dialect]["focus_2"].replace("CFS 2", "CFS 1").replace("CFL", "CFM")
+    src.focus = 1
+    src.on(60, 250)
+    src.off()
+    model._focus = 0  # the reset: the unit's own default, nothing said on the wire
+    src.on(60, 250)
+    try:
+        assert model._focus == 1
+        since_off = commands_after(model, "XOF")
+        xon = since_off.index("XON")
+        sent = since_off[:xon]
+        assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
+    finally:
+        src.off()
+
+
+def test_a_focus_the_unit_does_not_read_back_before_an_xon_stops_the_xon(source, dialect, monkeypatch):
+    """The focus read back wrong before an XON: no X-ray command goes out."""
+    src, model = source
+    src.focus = 1
+    if dialect == "A":
+        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+    else:
+        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    model._focus = 0
+    with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 1 was set"):
+        src.on(60, 250)
+    assert "XON" not in model.commands and not model.xray_on
+
+
+def test_a_unit_answering_in_lower_case_is_read_and_switched_off(source, dialect):
+    """L8121.md says the commands are upper case, not the replies: a unit answering ``sts 2``
+    (B: ``standby``, ``spv 60.0kv``) was refused as garbled at every reading, its XOF's echo
+    included, so `source off` could not confirm a switch-off (review s38b, F7). Read as the same
+    words in any case; a garbled reply is still refused (test_unparseable_replies_raise)."""
+    src, model = source
+    model.lower_case()
+    assert src.status() == SourceState.STANDBY and src.interlock_closed()
+    src.focus = 1
+    src.on(60, 250)
+    assert model.xray_on and src.measured()[0] == pytest.approx(60.0, abs=1.0)
+    assert src.off() == SourceState.STANDBY and not model.xray_on
+
+
 def test_unparseable_replies_raise(source, dialect):
     src, model = source
     model.garbage()
@@ -2363,6 +2413,47 @@ def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
     assert not model.xray_on and "XOF" in model.commands
 
 
+@pytest.mark.parametrize("action", ["on", "warm-up"])
+def test_cli_source_on_whose_connect_sent_xof_ends_on_the_tubes_state(capsys, dialect, action):
+    """One STS reply late at connect: the connect failed, sent XOF and confirmed it by STS, but
+    the command ended on `error: no reply to STS within ...` alone (review s38b, F4): every failed
+    `on` and `warm-up` ends on the tube's state."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=action == "on", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        model.inject_after(WIRE[dialect]["connect_last"], lambda: model.delay_once(1.0, "STS"))
+        args = ["--port", server.url, "--dialect", dialect, "--reply-timeout", "0.5", "--kv", "60", "--ua", "250"]
+        assert main(["acquire", "source", action, *args]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "no reply to STS within 0.5 s" in err[-2], err
+    assert re.fullmatch(rf"{re.escape(server.url)}: tube off \(confirmed by STS: \w+\)", err[-1]), err
+    assert not model.xray_on and model.commands[-2:] == ["XOF", "STS"]
+
+
+def test_cli_source_off_confirmed_by_its_last_attempt_says_the_tube_is_off(capsys):
+    """A unit that reads off 4.5 s after XOF: off()'s three attempts ran out, close()'s last XOF
+    was confirmed, and the command still ended on `could not confirm X-rays off after 3
+    attempt(s)` (review s38b, F3). The last line states the confirmed state; exit 1 (an error,
+    the tube confirmed off)."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        model.ramp_down(4.5)
+        assert main(["acquire", "source", "off", *port]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "could not confirm X-rays off after 3 attempt(s)" in err[-2], err
+    assert (
+        err[-1]
+        == f"{server.url}: X-rays off after all (a last XOF as the port closed): tube off (confirmed by STS: STANDBY)"
+    )
+    assert not model.xray_on
+
+
 def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
     """Found: command-line errors said "(call warm_up())", "reset() by hand" and "configure
     model=None", Python the operator at a terminal cannot type."""
@@ -2528,7 +2619,10 @@ def test_b_sts_error_that_outlasts_the_power_on_checks_is_switched_off_at_close(
         src = driver(server, "B", ready_timeout_s=0.3, off_confirm_s=0.2)
         model.sts_error()
         call = (lambda: src.on(60, 250)) if action == "on" else (lambda: src.warm_up(progress=False))
-        with pytest.raises(DeviceError, match=r"still PREHEATING, which does not show X-rays off, with 60 kV 0 µA"):
+        with pytest.raises(
+            DeviceError,
+            match=r"still ERROR \(PREHEATING, or a refused query.*\), which does not show X-rays off, with 60 kV 0 µA",
+        ):
             call()
         assert src.may_be_on and "XON" not in model.commands[n:]
         with pytest.raises(DeviceError, match="could not confirm X-rays off"):
@@ -2556,13 +2650,14 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
         n = len(model.log)
         assert main(["acquire", "source", "status", *port]) == 3
         out, err = capsys.readouterr()
-        assert "state PREHEATING" in out and "does not show X-rays off and a beam is measured" in out, out
+        assert "state ERROR (PREHEATING, or a refused query" in out, out  # both readings (review s38b)
+        assert "does not show X-rays off and a beam is measured" in out, out
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" in model.commands[n:] and not model.xray_on  # the attempt reached it
         n = len(model.log)
         assert main(["acquire", "source", "status", *port]) == 3  # nothing measured: said, and not confirmed off
         out, err = capsys.readouterr()
-        assert "state PREHEATING, measured 0 kV 0 uA" in out and "nothing is measured, but" in err
+        assert "does not say which), measured 0 kV 0 uA" in out and "nothing is measured, but" in err
         assert err.strip().splitlines()[-1] == TUBE_WARNING, err
         assert "XOF" not in model.commands[n:]
         model.sts_error(False)
@@ -3317,6 +3412,31 @@ def test_the_guardians_serve_loop_tells_the_acquiring_process_of_its_watchdogs_r
         source.close()
         link._process.wait(timeout=20)
         assert not two.xray_on  # (unit 1 took the XOF whose reply was lost: off, but unconfirmed)
+
+
+def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect):
+    """The acquiring process stalls with the beam on; the guardian's watchdog switches off,
+    confirmed. When the process reads the source again, its error said `beam dropped: state
+    STANDBY instead of XRAY_ON`, a fault of the tube, where the guardian had switched it off
+    (review s38b, F6). The guardian tells it with the next reply; the error names the watchdog."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.5)
+        with L8121(link, connect=False, config=resolved) as source:
+            source.connect()
+            source.on(60, 250)
+            deadline = time.monotonic() + 20  # no poll from here on: the watchdog's turn
+            while model.xray_on and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not model.xray_on
+            with pytest.raises(SourceFault) as info:
+                source.check()
+        link._process.wait(timeout=20)
+    text = str(info.value)
+    assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
 
 
 @pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])

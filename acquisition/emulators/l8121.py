@@ -203,6 +203,7 @@ class L8121Model:
         self._error = ErrorCode.NONE
         self._switch = "REMOTE"
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
+        self._lower_case = False
         self._silent_executes = False
         self._standby_when_due = False  # A's STS reads 2 while a warm-up is due (standby_when_warm_up_due)
         self._swe_lag_s = 0.0  # A's SWE still reads 1 this long after the warm-up ended (swe_lags)
@@ -467,6 +468,12 @@ class L8121Model:
         with self._lock:
             self._garbage = bool(on)
 
+    def lower_case(self, on: bool = True) -> None:
+        """Answer every command in lower case (``sts 2``, ``standby``, ``spv 60.0kv``): L8121.md
+        says commands are upper case and does not say what case a reply is in."""
+        with self._lock:
+            self._lower_case = bool(on)
+
     def garble_once(self, command: str | None = None) -> None:
         """Answer one command (the next one, or the next ``command``, a command word such as
         ``"STS"``) with random junk instead of its reply, executed as usual: noise on the line,
@@ -569,6 +576,8 @@ class L8121Model:
                     reply = "".join(self._rng.choice(_JUNK) for _ in range(self._rng.randint(1, 12)))
                 if self._garbage:
                     reply = "".join(self._rng.choice(_JUNK) for _ in range(self._rng.randint(1, 12)))
+                if self._lower_case:
+                    reply = reply.lower()
             exchange = Exchange(t, line, reply, understood)
             self._log.append(exchange)
         logger.debug("L8121 emulator %.3f s: %s -> %s", t, line, reply)

@@ -873,6 +873,9 @@ class Result:
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
     previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
+    #: overwrite=True stopped before its first frame, and the old file could not be put back under
+    #: its name (the folder turned unwritable): where it is kept, hidden
+    previous_aside: Path | None = None
 
 
 def _existing(path: Path, protocol: Protocol) -> dict:
@@ -923,6 +926,7 @@ class _Run:
     devices: Devices | None = None
     replacing: bool = False  # an overwrite of an existing file: the old one is kept until the first frame
     previous_aside: Path | None = None  # the old file, left hidden: another program took the name meanwhile
+    stopped_by: BaseException | None = None  # what stopped the run (_stop), for the notes of its end
     writer: object = None
     monitor: _BeamMonitor | None = None
     done: dict = field(default_factory=lambda: {"darks": 0, "flats": 0, "steps": {}})
@@ -1389,6 +1393,7 @@ def run(
                         r.enter(name)
                     phase(r)
             except BaseException as exc:
+                r.stopped_by = exc
                 _stop(r, exc)
                 raise
             finally:
@@ -1626,6 +1631,17 @@ def _release(r: _Run, notebook):
             r.writer.close()
         except Exception as exc:
             log.error("closing %s: %s", r.out, exc)
+    aside = getattr(r.writer, "previous_kept_in", None)
+    if aside is not None and r.previous_aside is None:
+        # the put-back failed as the writer closed, after _stop's note said "unchanged"
+        r.previous_aside = aside
+        notes = getattr(r.stopped_by, "__notes__", None)
+        if notes:
+            notes[-1] = (
+                f"no frame taken: the previous series could not be put back under {r.out}; it is kept in "
+                f"{aside} (the next run of this file puts it back first, once the folder is writable)"
+            )
+    r.res.previous_aside = r.previous_aside
     # no frame of its own: the writer put the old file back (or never set it aside)
     r.res.previous_kept = (
         r.replacing and r.previous_aside is None and (r.writer is None or getattr(r.writer, "restored_previous", False))

@@ -246,6 +246,9 @@ class ExperimentWriter:
         elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
             self._check_opening_room(mode)
         self._previous, self._aside_lock, self._own_lock, self.restored_previous = None, [None], [None], False
+        #: The old file an in-place overwrite could not put back (another program took the name, or
+        #: the folder took no rename): still hidden beside it, where the caller's last line names it.
+        self.previous_kept_in: Path | None = None
         self._created = None
         try:
             if set_aside:
@@ -346,9 +349,19 @@ class ExperimentWriter:
             return
         try:
             self.restored_previous = _put_back_file(aside, self._file, getattr(self, "_created", None))
+        except OSError as exc:
+            # the folder turned unwritable (or the file system refused) before the first frame:
+            # the old file stays hidden, unlocked so that the next run of this name puts it back
+            self.previous_kept_in = aside
+            warnings.warn(
+                f"{self.path}: the previous series could not be put back ({exc.strerror or exc}); it stays in {aside}",
+                stacklevel=3,
+            )
+            return
         finally:
             self._unlock_previous()
         if not self.restored_previous:
+            self.previous_kept_in = aside
             warnings.warn(
                 f"{self.path}: another program made a file under this name meanwhile; the previous series "
                 f"stays in {aside} (rename it to keep it)",
@@ -896,11 +909,13 @@ class ExperimentProgress:
     devices: str | None = None
 
 
-def restore_previous(path, *, dry_run=False) -> list[tuple[bool, str]]:
+def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[tuple[bool, str]]:
     """Put back the file an ``in_place`` overwrite of ``path`` kept aside when the process that
     kept it is gone and left no frame of its own under the name (killed before its first frame:
     kill -9, a power cut). Every run on an experiment file calls it first. ``dry_run``: decide
     the same, move nothing, and say what a run would do (a dry run promises to touch nothing).
+    ``found``: a list the files put back (or, ``dry_run``, that a run would put back) are appended
+    to -- a dry run plans from the file the run would find under the name.
 
     Returns
     -------
@@ -933,6 +948,8 @@ def restore_previous(path, *, dry_run=False) -> list[tuple[bool, str]]:
                         os.replace(old, target)
                         _fsync(target.parent)
                     restored = target_free
+        if restored and found is not None:
+            found.append(old)
         if restored and dry_run:
             said.append(
                 (
