@@ -2562,3 +2562,20 @@ def test_an_ome_tiff_alone_naming_planes_by_the_million_is_refused_before_tifffi
     _write_pages(path, _frames(2), _ome_xml(20_000_000, 30, 40))
     with pytest.raises(FormatError, match=r"one\.ome\.tif: its OME-XML's 20000000 planes .*memory budget"):
         read(path, budget="10MiB")
+
+
+def test_an_ome_tiff_naming_another_file_without_a_uuid_reads_that_file_or_is_refused(tmp_path):
+    """s38-h6: a file with no root UUID, its own planes in a TiffData without a UUID and planes
+    2-3 in b.ome.tif under a UUID element with no text, read its own 2 planes (b taken for this
+    file renamed; warned short), and once b was counted as another file, [0, 1, 0, 1]: tifffile
+    keys files by the UUID text, and this file's is none too. Each plane must come from the
+    file its TiffData names."""
+    tiffdata = '<TiffData FirstT="0" IFD="0" PlaneCount="2"/><TiffData FirstT="2" IFD="0" PlaneCount="2">'
+    tiffdata += '<UUID FileName="b.ome.tif"/></TiffData>'
+    frames = _frames(4)
+    for name, part in (("a.ome.tif", frames[:2]), ("b.ome.tif", frames[2:])):
+        _write_pages(tmp_path / name, part, _ome_xml(4, 30, 40, tiffdata))
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*planes 2-3 in b\.ome\.tif.*allow_external"):
+        read(tmp_path / "a.ome.tif")
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*plane 2 .*b\.ome\.tif.* read it from a\.ome\.tif"):
+        read(tmp_path / "a.ome.tif", allow_external=True)

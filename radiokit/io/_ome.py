@@ -58,9 +58,12 @@ def tiffdata(xml: str | None, filename: str) -> tuple[str | None, list[int], lis
         return None, [], []
     own = (root.get("UUID") or "").strip() or None
     uuids = [el for el in root.iter() if _local(el) == "UUID" and el is not root]
-    if not own:
+    datas = [el for el in root.iter() if _local(el) == "TiffData"]
+    if not own and all(any(_local(el) == "UUID" for el in data) for data in datas):
+        # (a TiffData without a UUID is this file's: then the one file named is another)
         named = {el.get("FileName", "").lower() for el in uuids}
         filename = named.pop() if len(named) == 1 else filename
+    if not own:
         own = next(
             (
                 el.text.strip()

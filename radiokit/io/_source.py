@@ -574,9 +574,34 @@ class FrameSource:
                 f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
                 "a multi-file OME-TIFF's files are read from the folder it is in",
             )
-        self._check_ome_set(what, own, totals, found)
+        runs = self._check_ome_set(what, own, totals, found)
         pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
+        self._check_ome_files_read(what, runs, totals, pages)
         return total, what, pages
+
+    def _check_ome_files_read(self, what, runs, totals, pages) -> None:
+        """Refuse a plane tifffile's series took from another file than its TiffData names. Why:
+        tifffile keys the files by the UUID element's text, and where that is empty and this
+        file has no UUID either, it took this file for the one named: b.ome.tif's planes read as
+        this file's again ([0, 1, 0, 1]). Judged where the series holds each image's planes."""
+        if len(pages) != sum(totals):
+            return  # (planes missing: refused by the caller)
+        starts = [sum(totals[:k]) for k in range(len(totals))]
+        folder, names = self.path.parent, {}
+        for image, run, name in runs:
+            for plane in range(max(run.start, 0), min(run.stop, totals[image])):
+                page = pages[starts[image] + plane]
+                if page is None:
+                    continue
+                parent = page.parent
+                if id(parent) not in names:
+                    names[id(parent)] = self.path if parent is self._tif else Path(parent.filehandle.path)
+                if not _same_file(names[id(parent)], folder / name):
+                    raise FormatError(
+                        self.path,
+                        f"{what}: plane {plane} lies in {name} by its OME-XML, but tifffile read it from "
+                        f"{names[id(parent)].name} (it finds a file by its UUID, and names none here): corrupt",
+                    )
 
     def _walk_set(self, paths) -> dict:
         """The pages of each of a set's other files (``paths``), walked before tifffile builds
@@ -590,13 +615,14 @@ class FrameSource:
         self._tiff_walk = (self._tiff_walk[0], spent)
         return counted
 
-    def _check_ome_set(self, what, own, totals, found) -> None:
+    def _check_ome_set(self, what, own, totals, found) -> list[tuple[int, range, str]]:
         """Refuse a multi-file OME-TIFF whose TiffData tifffile would resolve to other planes than
         they name, before tifffile opens the other files (its series builds all their pages).
 
         Why: tifffile finds a file by FileName and keys it by the UUID named, unchecked: a
         b.ome.tif of another acquisition gave its planes, and planes mapped to this file's own
-        name under another UUID gave this file's planes twice ([0, 1, 0, 1]), exit 0 both."""
+        name under another UUID gave this file's planes twice ([0, 1, 0, 1]), exit 0
+        both. Returns the runs of planes (:meth:`_ome_runs`)."""
         folder, mine = self.path.parent, self.path.name.lower()
         for data in found:
             if data.file is not None and (data.file.lower() == mine or _same_file(folder / data.file, self.path)):
@@ -609,7 +635,8 @@ class FrameSource:
         names = list(dict.fromkeys(data.file for data in found if data.file is not None))
         walked = self._walk_set([folder / name for name in names])
         pages = {None: self._tiff_walk[0], **{name: walked[folder / name] for name in names}}
-        self._check_ome_coverage(what, self._ome_runs(what, found, totals, pages), totals)
+        runs = self._ome_runs(what, found, totals, pages)
+        self._check_ome_coverage(what, runs, totals)
         named: dict[str, set] = {}
         for name, uuid in dict.fromkeys((data.file, data.uuid) for data in found if data.file and data.uuid):
             named.setdefault(uuid, set()).add(name)
@@ -623,6 +650,7 @@ class FrameSource:
                     f"{what}: its OME-XML names {name} as UUID {uuid}{also}, but {name} has {has}: a file of "
                     "another set (tifffile finds the files by name alone)",
                 )
+        return runs
 
     def _ome_runs(self, what, found, totals, pages, whole_set=True) -> list[tuple[int, range, str]]:
         """Each TiffData's run of planes (image, planes, file), its PlaneCount held to the pages
