@@ -19,6 +19,7 @@ from conftest import ITEX_DIR, needs_itex, one_line_error, run_cli
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
 from radiokit.io import ImageKey, read
+from radiokit.io._tiff_ifds import check_tiff_pages
 
 
 def _frames(n=4, rows=30, cols=40, dtype="<u2", seed=0):
@@ -2428,3 +2429,153 @@ def test_each_stage_position_of_a_micro_manager_acquisition_reads_as_its_own_sta
                 )
         # (the OME-XML names the other position's file: listed, so no output replaces it)
         assert data_files(tmp_path / names[p], allow_external=True) == ([tmp_path / names[1 - p]] if xml else [])
+
+
+def _ome_files(folder, files, tiffdata, planes=4, rows=30, cols=40):
+    """OME-TIFF files of one OME-XML's TiffData (``tiffdata``: (FirstT, PlaneCount, FileName,
+    UUID) each, the UUID element's text), the XML in each with that file's own root UUID:
+    ``files`` maps each name to (its root UUID or None, its frames)."""
+    elements = "".join(
+        f'<TiffData FirstT="{first}" IFD="0" PlaneCount="{count}"><UUID FileName="{name}">{uuid}</UUID></TiffData>'
+        for first, count, name, uuid in tiffdata
+    )
+    for name, (uuid, frames) in files.items():
+        root = f' UUID="{uuid}"' if uuid else ""
+        _write_pages(folder / name, frames, _ome_xml(planes, rows, cols, elements, root))
+    return [folder / name for name in files]
+
+
+def _uuid(k):
+    return f"urn:uuid:0000000{k}-0000-0000-0000-000000000000"
+
+
+@pytest.mark.parametrize("theirs", [_uuid(9), None], ids=["other-set", "no-uuid"])
+def test_a_multi_file_ome_tiff_refuses_a_file_of_another_set_by_its_uuid(tmp_path, theirs):
+    """s38-h6 (HIGH): tifffile finds an OME-TIFF set's other files by FileName alone, so a
+    b.ome.tif of another acquisition (its OME root UUID not the one a.ome.tif's TiffData names)
+    gave a.ome.tif's planes 2-3, exit 0. Each other file's root UUID must be the one named, or
+    the set is refused in one line naming both files and both UUIDs."""
+    frames = _frames(4)
+    mine = [(0, 2, "a.ome.tif", _uuid(1)), (2, 2, "b.ome.tif", _uuid(2))]
+    (a,) = _ome_files(tmp_path, {"a.ome.tif": (_uuid(1), frames[:2])}, mine)
+    # b.ome.tif of another acquisition: its own XML names its own set
+    theirs_set = [(0, 2, "x.ome.tif", _uuid(8)), (2, 2, "b.ome.tif", theirs or _uuid(9))]
+    _ome_files(tmp_path, {"b.ome.tif": (theirs, frames[2:] + 100)}, theirs_set)
+    with pytest.raises(FormatError, match=rf"a\.ome\.tif: .*b\.ome\.tif.*{_uuid(2)}.*{theirs or 'no OME UUID'}"):
+        read(a, allow_external=True)
+    one_line_error(run_cli("info", "--allow-external", a), "a.ome.tif", "b.ome.tif", _uuid(2), theirs or "no OME UUID")
+    # the same set with b's own UUID reads whole
+    _ome_files(tmp_path, {"b.ome.tif": (_uuid(2), frames[2:])}, mine)
+    np.testing.assert_array_equal(read(a, allow_external=True).data, frames)
+
+
+def test_an_ome_tiff_mapping_planes_to_its_own_name_under_another_uuid_is_refused(tmp_path):
+    """s38-h6 (HIGH): a file giving planes 2-3 to its own FileName under a UUID not its own read
+    its planes 0-1 twice ([0, 1, 0, 1]): tifffile opened it again as the file of that UUID."""
+    frames = _frames(2)
+    tiffdata = [(0, 2, "self.ome.tif", _uuid(1)), (2, 2, "self.ome.tif", _uuid(7))]
+    (path,) = _ome_files(tmp_path, {"self.ome.tif": (_uuid(1), frames)}, tiffdata)
+    with pytest.raises(FormatError, match=rf"self\.ome\.tif: .*planes 2-3.*its own name.*{_uuid(7)}.*{_uuid(1)}"):
+        read(path, allow_external=True)
+
+
+def test_an_ome_tiff_plane_mapped_twice_or_not_at_all_is_refused(tmp_path):
+    """s38-h6 (MEDIUM): planes 2-3 mapped to both b.ome.tif and c.ome.tif read from one of them,
+    silently. A plane mapped twice is refused in one line; so is a plane of the image (SizeT)
+    that no TiffData maps, where other files hold some (tifffile zero-fills it)."""
+    frames = _frames(6)
+    names = ["a.ome.tif", "b.ome.tif", "c.ome.tif"]
+    tiffdata = [(0, 2, names[0], _uuid(0)), (2, 2, names[1], _uuid(1)), (2, 2, names[2], _uuid(2))]
+    files = {name: (_uuid(k), frames[2 * k : 2 * k + 2]) for k, name in enumerate(names)}
+    a, b, c = _ome_files(tmp_path, files, tiffdata)
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*planes 2-3 .*b\.ome\.tif.*c\.ome\.tif"):
+        read(a, allow_external=True)
+    one_line_error(run_cli("info", "--allow-external", a), "a.ome.tif", "planes 2-3", "b.ome.tif", "c.ome.tif")
+    tiffdata = [(0, 2, names[0], _uuid(0)), (4, 2, names[2], _uuid(2))]  # planes 2-3 nowhere
+    a, _, _ = _ome_files(tmp_path, files, tiffdata, planes=6)
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*planes 2-3 .*no file"):
+        read(a, allow_external=True)
+
+
+def test_the_other_files_of_an_ome_tiff_set_are_charged_their_pages(tmp_path):
+    """s38-h6 (MEDIUM): the IFD walk charging a TIFF's pages against the memory budget ran on
+    the file given only: tifffile built every page of the set's other files first (a 3,002-page
+    sibling read under a 1 MB budget; an IFD chain looping in one was followed until killed).
+    Every file of the set is walked first, their pages charged together."""
+    import struct
+
+    frames = _frames(300, rows=2, cols=2)
+    tiffdata = [(0, 2, "a.ome.tif", _uuid(1)), (2, 298, "b.ome.tif", _uuid(2))]
+    files = {"a.ome.tif": (_uuid(1), frames[:2]), "b.ome.tif": (_uuid(2), frames[2:])}
+    a, b = _ome_files(tmp_path, files, tiffdata, planes=300, rows=2, cols=2)
+    budget = 250 * 3000  # b's pages (about 298 x (1000 + 10 x 250) bytes) alone pass over it
+    with pytest.raises(FormatError, match=r"b\.ome\.tif: TIFF of at least \d+ pages.*memory budget"):
+        read(a, allow_external=True, budget=budget)
+    assert read(a, allow_external=True, budget=100 * budget).n == 300
+    # b's last IFD leads back to its 150th: tifffile follows it for ever past its 100th
+    data = bytearray(b.read_bytes())
+    offsets, at = [], struct.unpack_from("<I", data, 4)[0]
+    while at:
+        offsets.append(at)
+        end = at + 2 + 12 * struct.unpack_from("<H", data, at)[0]
+        at = struct.unpack_from("<I", data, end)[0]
+    struct.pack_into("<I", data, end, offsets[150])
+    b.write_bytes(bytes(data))
+    with pytest.raises(FormatError, match=r"b\.ome\.tif: TIFF IFD chain loops"):
+        read(a, allow_external=True)
+
+
+@pytest.mark.parametrize("count", [3, 10**9])
+def test_an_ome_tiff_plane_count_beyond_the_pages_of_its_file_is_refused(tmp_path, count):
+    """s38-h6 (MEDIUM): a TiffData's PlaneCount of 10**9 for b.ome.tif (2 pages) took 13 GB and
+    a minute (tifffile builds a list of that many planes). A PlaneCount beyond the pages of the
+    file it names is refused in one line before any list of planes is built."""
+    frames = _frames(4)
+    tiffdata = [(0, 2, "a.ome.tif", _uuid(1)), (2, count, "b.ome.tif", _uuid(2))]
+    files = {"a.ome.tif": (_uuid(1), frames[:2]), "b.ome.tif": (_uuid(2), frames[2:])}
+    a, _ = _ome_files(tmp_path, files, tiffdata)
+    with pytest.raises(FormatError, match=rf"a\.ome\.tif: .*{count} planes .*b\.ome\.tif.* 2 pages"):
+        read(a, allow_external=True)
+    one_line_error(run_cli("info", "--allow-external", a), "a.ome.tif", "b.ome.tif", f"{count} planes")
+
+
+def test_the_other_files_of_a_micro_manager_stack_are_charged_their_pages(tmp_path):
+    """s38-h6 (MEDIUM): as an OME-TIFF set's, a split Micro-Manager stack's other file had its
+    pages built unwalked and uncharged: its pages are charged with the first file's."""
+    first, second = _mmstack_set(tmp_path, _frames(4))
+    alone = check_tiff_pages(first, budget=10**9)[1]
+    with pytest.raises(FormatError, match=r"exp_MMStack_Pos0_1\.ome\.tif: TIFF of at least .*memory budget"):
+        read(first, allow_external=True, budget=alone + 1000)
+    assert read(first, allow_external=True, budget=3 * alone).n == 4
+
+
+def test_an_ome_tiff_alone_naming_planes_by_the_million_is_refused_before_tifffile_lists_them(tmp_path):
+    """s38-h6: tifffile lists a slot for each plane a TiffData's PlaneCount or the image's size
+    names before it reads a page (8 bytes each: 8 GB for 10**9). A file alone whose PlaneCount
+    passes both its pages and its image's planes is refused, and so is an image of more planes
+    than the memory budget lists; a writer that stopped early (PlaneCount = SizeT, fewer pages)
+    still reads with a warning (test above)."""
+    path = tmp_path / "one.ome.tif"
+    _write_pages(path, _frames(2), _ome_xml(4, 30, 40, '<TiffData IFD="0" PlaneCount="1000000"/>'))
+    with pytest.raises(FormatError, match=r"one\.ome\.tif: .*1000000 planes from IFD 0 of one\.ome\.tif.* 2 pages"):
+        read(path)
+    _write_pages(path, _frames(2), _ome_xml(20_000_000, 30, 40))
+    with pytest.raises(FormatError, match=r"one\.ome\.tif: its OME-XML's 20000000 planes .*memory budget"):
+        read(path, budget="10MiB")
+
+
+def test_an_ome_tiff_naming_another_file_without_a_uuid_reads_that_file_or_is_refused(tmp_path):
+    """s38-h6: a file with no root UUID, its own planes in a TiffData without a UUID and planes
+    2-3 in b.ome.tif under a UUID element with no text, read its own 2 planes (b taken for this
+    file renamed; warned short), and once b was counted as another file, [0, 1, 0, 1]: tifffile
+    keys files by the UUID text, and this file's is none too. Each plane must come from the
+    file its TiffData names."""
+    tiffdata = '<TiffData FirstT="0" IFD="0" PlaneCount="2"/><TiffData FirstT="2" IFD="0" PlaneCount="2">'
+    tiffdata += '<UUID FileName="b.ome.tif"/></TiffData>'
+    frames = _frames(4)
+    for name, part in (("a.ome.tif", frames[:2]), ("b.ome.tif", frames[2:])):
+        _write_pages(tmp_path / name, part, _ome_xml(4, 30, 40, tiffdata))
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*planes 2-3 in b\.ome\.tif.*allow_external"):
+        read(tmp_path / "a.ome.tif")
+    with pytest.raises(FormatError, match=r"a\.ome\.tif: .*plane 2 .*b\.ome\.tif.* read it from a\.ome\.tif"):
+        read(tmp_path / "a.ome.tif", allow_external=True)

@@ -9,59 +9,116 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from typing import NamedTuple
 
-__all__ = ["external_planes", "describe_planes", "count_planes", "ome_pages", "binary_only", "mmstack_split"]
+__all__ = [
+    "TiffData",
+    "tiffdata",
+    "ome_root_uuid",
+    "external_planes",
+    "describe_planes",
+    "count_planes",
+    "ome_pages",
+    "binary_only",
+    "mmstack_split",
+]
 
 
 def _local(element) -> str:
     return element.tag.rpartition("}")[2]
 
 
-def external_planes(xml: str | None, filename: str) -> tuple[int, dict[str, list[range] | None]]:
-    """The planes of the OME-XML's images and, for each other file its TiffData names, the runs
-    of planes it holds (numbered within their image as OME's DimensionOrder numbers them; None
-    where no PlaneCount says how many: all that file's pages from its IFD on). Runs, not lists
-    of planes: a corrupt PlaneCount of 10**9 is a number here, not gigabytes of them.
+class TiffData(NamedTuple):
+    """One TiffData element: the run of planes ``first``.. (numbered within image ``image`` as
+    OME's DimensionOrder numbers them) held in ``file`` (None: this file) from its page ``ifd``
+    on; ``count`` None where no PlaneCount says how many (all that file's pages from ``ifd`` on).
+    ``uuid``: the UUID element's text, by which tifffile finds the file."""
 
-    A TiffData names this file by the OME root's own UUID, or, where the root has none, by
-    ``filename`` (case aside), as tifffile and Bio-Formats judge it; one without a UUID is this
-    file's. Where the root has no UUID and every TiffData names one file, that file is this one
-    renamed (a set has two files at least; tifffile then reads none of its planes, and radiokit
-    read them all before). ``(0, {})`` for XML that does not parse."""
+    image: int
+    file: str | None
+    uuid: str | None
+    first: int
+    count: int | None
+    ifd: int
+
+
+def tiffdata(xml: str | None, filename: str) -> tuple[str | None, list[int], list[TiffData]]:
+    """This file's UUID (the OME root's, else the first UUID naming ``filename``, as tifffile
+    takes it), the planes of each of the OME-XML's images, and its TiffData elements. Numbers,
+    not lists of planes: a corrupt PlaneCount of 10**9 is a number here, not gigabytes of them.
+
+    A TiffData names this file by that UUID, or, where there is none, by ``filename`` (case
+    aside), as tifffile and Bio-Formats judge it; one without a UUID is this file's. Where the
+    root has no UUID and every TiffData names one file, that file is this one renamed (a set has
+    two files at least; tifffile then reads none of its planes, and radiokit read them all
+    before). ``(None, [], [])`` for XML that does not parse."""
     try:
         root = ET.fromstring(xml or "")
     except (ET.ParseError, ValueError):
-        return 0, {}
-    own = root.get("UUID")
-    if not own:
-        named = {el.get("FileName", "").lower() for el in root.iter() if _local(el) == "UUID"}
+        return None, [], []
+    own = (root.get("UUID") or "").strip() or None
+    uuids = [el for el in root.iter() if _local(el) == "UUID" and el is not root]
+    datas = [el for el in root.iter() if _local(el) == "TiffData"]
+    if not own and all(any(_local(el) == "UUID" for el in data) for data in datas):
+        # (a TiffData without a UUID is this file's: then the one file named is another)
+        named = {el.get("FileName", "").lower() for el in uuids}
         filename = named.pop() if len(named) == 1 else filename
-    total, found = 0, {}
+    if not own:
+        own = next(
+            (
+                el.text.strip()
+                for el in uuids
+                if el.get("FileName", "").lower() == filename.lower() and (el.text or "").strip()
+            ),
+            None,
+        )
+    totals, found = [], []
     for pixels in (el for el in root.iter() if _local(el) == "Pixels"):
         axes = "".join(reversed(pixels.get("DimensionOrder", "XYCZT")))[:-2]
         try:
             shape = [int(pixels.get(f"Size{axis}", 1)) for axis in axes]
         except ValueError:
             continue
-        total += math.prod(shape)
+        totals.append(math.prod(shape))
         for data in (el for el in pixels if _local(el) == "TiffData"):
             uuid = next((el for el in data if _local(el) == "UUID"), None)
-            if uuid is None:
-                continue
-            name = uuid.get("FileName") or f"the file of UUID {uuid.text}"
-            if (own and (uuid.text or "").strip() == own.strip()) or (not own and name.lower() == filename.lower()):
-                continue
+            text = None if uuid is None else (uuid.text or "").strip() or None
+            name = None if uuid is None else uuid.get("FileName") or f"the file of UUID {text}"
+            if uuid is None or (own and text == own) or (not own and name.lower() == filename.lower()):
+                name = None
             try:
                 first = sum(int(data.get(f"First{axis}", 0)) * math.prod(shape[k + 1 :]) for k, axis in enumerate(axes))
                 count = int(data.get("PlaneCount", data.get("NumPlanes", 1 if "IFD" in data.attrib else 0)))
+                ifd = int(data.get("IFD", 0))
             except ValueError:
-                first, count = 0, 0
-            runs = found.setdefault(name, [])
-            if runs is not None and count > 0:
-                runs.append(range(first, first + count))
-            else:
-                found[name] = None
-    return total, found
+                first, count, ifd = 0, 0, 0
+            found.append(TiffData(len(totals) - 1, name, text, first, count or None, ifd))
+    return own, totals, found
+
+
+def external_planes(xml: str | None, filename: str) -> tuple[int, dict[str, list[range] | None]]:
+    """The planes of the OME-XML's images and, for each other file its TiffData names
+    (:func:`tiffdata`), the runs of planes it holds; None where no PlaneCount says how many."""
+    _, totals, found = tiffdata(xml, filename)
+    runs: dict[str, list[range] | None] = {}
+    for data in found:
+        if data.file is None:
+            continue
+        held = runs.setdefault(data.file, [])
+        if held is not None and data.count is not None and data.count > 0:
+            held.append(range(data.first, data.first + data.count))
+        else:
+            runs[data.file] = None
+    return sum(totals), runs
+
+
+def ome_root_uuid(xml: str | None) -> str | None:
+    """The UUID on an OME-XML's root (the file's own); None where it has none or does not parse."""
+    try:
+        root = ET.fromstring(xml or "")
+    except (ET.ParseError, ValueError):
+        return None
+    return (root.get("UUID") or "").strip() or None
 
 
 def describe_planes(runs: list[range] | None) -> str:

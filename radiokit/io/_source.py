@@ -49,7 +49,16 @@ from radiokit.io._itex import (
     read_scaling,
 )
 from radiokit.io._layout import check_readable, open_h5, text
-from radiokit.io._ome import binary_only, count_planes, describe_planes, external_planes, mmstack_split, ome_pages
+from radiokit.io._ome import (
+    binary_only,
+    count_planes,
+    describe_planes,
+    external_planes,
+    mmstack_split,
+    ome_pages,
+    ome_root_uuid,
+    tiffdata,
+)
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
 from radiokit.io._tiff_ifds import check_tiff_pages
 
@@ -311,7 +320,9 @@ class FrameSource:
     _read_itex = _read_raw
 
     def _open_tiff(self, dataset=None, **hints):
-        check_tiff_pages(self.path, self._budget)  # before tifffile builds a page (its pages are the bomb)
+        # before tifffile builds a page (its pages are the bomb); (pages, bytes charged) kept for
+        # a multi-file set's other files, charged with it
+        self._tiff_walk = check_tiff_pages(self.path, self._budget)
         self._tif = tifffile.TiffFile(self.path)
         if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
             raise FormatError(self.path, "TIFF holds no image")
@@ -491,28 +502,16 @@ class FrameSource:
             return None
         if pages is not None:
             total, what = len(pages), self._mmstack_what(pages)
+            # tifffile's Micro-Manager series reads the index maps only; the walk below builds
+            # every page of each file
+            self._walk_set(
+                {Path(p.parent.filehandle.path): None for p in pages if p is not None and p.parent is not tif}
+            )
         else:
-            if not tif.is_ome:
+            found = self._ome_set_pages()
+            if found is None:
                 return None
-            total, others = external_planes(tif.ome_metadata, self.path.name)
-            if not others:
-                return None
-            where = "; ".join(f"{describe_planes(planes)} in {name}" for name, planes in others.items())
-            if all(others.values()):
-                what = f"{sum(count_planes(p) for p in others.values())} of its {total} planes lie in other files"
-            else:
-                what = f"of its {total} planes, some lie in other files"
-            what = f"a multi-file OME-TIFF: {what} ({where})"
-            if not self._allow_external:
-                _refuse_external(self.path, what)
-            missing = [name for name in others if not (self.path.parent / name).is_file()]
-            if missing:
-                raise FormatError(
-                    self.path,
-                    f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
-                    "a multi-file OME-TIFF's files are read from the folder it is in",
-                )
-            pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
+            total, what, pages = found
         if not pages or any(page is None for page in pages):
             gone = sum(page is None for page in pages) or total
             raise FormatError(
@@ -545,6 +544,157 @@ class FrameSource:
             self._check_ifd_chain([page.aspage() for page in sibling.pages], sibling)
         self.meta["ome_files"] = [str(self.path), *self._siblings]
         return out, names
+
+    def _ome_set_pages(self) -> tuple[int, str, list] | None:
+        """A multi-file OME-TIFF's planes (total), what it is for messages, and its pages as
+        tifffile's series gives them, the set checked first (:meth:`_check_ome_set`); None where
+        the OME-XML places every plane in this file (or it is no OME)."""
+        tif = self._tif
+        if not tif.is_ome:
+            return None
+        own, totals, found = tiffdata(tif.ome_metadata, self.path.name)
+        # tifffile lists a slot for each plane the XML names before it reads a page
+        check_budget(self.path, 8 * sum(totals), f"its OME-XML's {sum(totals)} planes", self._budget)
+        total, others = external_planes(tif.ome_metadata, self.path.name)
+        if not others:
+            self._ome_runs("an OME-TIFF", found, totals, {None: self._tiff_walk[0]}, whole_set=False)
+            return None
+        where = "; ".join(f"{describe_planes(planes)} in {name}" for name, planes in others.items())
+        if all(others.values()):
+            what = f"{sum(count_planes(p) for p in others.values())} of its {total} planes lie in other files"
+        else:
+            what = f"of its {total} planes, some lie in other files"
+        what = f"a multi-file OME-TIFF: {what} ({where})"
+        if not self._allow_external:
+            _refuse_external(self.path, what)
+        missing = [name for name in others if not (self.path.parent / name).is_file()]
+        if missing:
+            raise FormatError(
+                self.path,
+                f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
+                "a multi-file OME-TIFF's files are read from the folder it is in",
+            )
+        runs = self._check_ome_set(what, own, totals, found)
+        pages = [page for series in tif.series for page in series.pages]  # tifffile follows the XML
+        self._check_ome_files_read(what, runs, totals, pages)
+        return total, what, pages
+
+    def _check_ome_files_read(self, what, runs, totals, pages) -> None:
+        """Refuse a plane tifffile's series took from another file than its TiffData names. Why:
+        tifffile keys the files by the UUID element's text, and where that is empty and this
+        file has no UUID either, it took this file for the one named: b.ome.tif's planes read as
+        this file's again ([0, 1, 0, 1]). Judged where the series holds each image's planes."""
+        if len(pages) != sum(totals):
+            return  # (planes missing: refused by the caller)
+        starts = [sum(totals[:k]) for k in range(len(totals))]
+        folder, names = self.path.parent, {}
+        for image, run, name in runs:
+            for plane in range(max(run.start, 0), min(run.stop, totals[image])):
+                page = pages[starts[image] + plane]
+                if page is None:
+                    continue
+                parent = page.parent
+                if id(parent) not in names:
+                    names[id(parent)] = self.path if parent is self._tif else Path(parent.filehandle.path)
+                if not _same_file(names[id(parent)], folder / name):
+                    raise FormatError(
+                        self.path,
+                        f"{what}: plane {plane} lies in {name} by its OME-XML, but tifffile read it from "
+                        f"{names[id(parent)].name} (it finds a file by its UUID, and names none here): corrupt",
+                    )
+
+    def _walk_set(self, paths) -> dict:
+        """The pages of each of a set's other files (``paths``), walked before tifffile builds
+        any (:func:`check_tiff_pages`), charged with this file's against the one budget: the
+        files are open at once. tifffile built every page of an OME-TIFF set's other files
+        first, unchecked: a 3,002-page file beside it read under a 1 MB budget, and one whose
+        IFD chain loops was followed until killed."""
+        counted, spent = {}, self._tiff_walk[1]
+        for path in paths:
+            counted[path], spent = check_tiff_pages(path, self._budget, spent)
+        self._tiff_walk = (self._tiff_walk[0], spent)
+        return counted
+
+    def _check_ome_set(self, what, own, totals, found) -> list[tuple[int, range, str]]:
+        """Refuse a multi-file OME-TIFF whose TiffData tifffile would resolve to other planes than
+        they name, before tifffile opens the other files (its series builds all their pages).
+
+        Why: tifffile finds a file by FileName and keys it by the UUID named, unchecked: a
+        b.ome.tif of another acquisition gave its planes, and planes mapped to this file's own
+        name under another UUID gave this file's planes twice ([0, 1, 0, 1]), exit 0
+        both. Returns the runs of planes (:meth:`_ome_runs`)."""
+        folder, mine = self.path.parent, self.path.name.lower()
+        for data in found:
+            if data.file is not None and (data.file.lower() == mine or _same_file(folder / data.file, self.path)):
+                planes = describe_planes([range(data.first, data.first + max(data.count or 1, 1))])
+                raise FormatError(
+                    self.path,
+                    f"{what}: {planes} are mapped to {data.file}, its own name, under UUID {data.uuid}, not its "
+                    f"own ({own}): corrupt",
+                )
+        names = list(dict.fromkeys(data.file for data in found if data.file is not None))
+        walked = self._walk_set([folder / name for name in names])
+        pages = {None: self._tiff_walk[0], **{name: walked[folder / name] for name in names}}
+        runs = self._ome_runs(what, found, totals, pages)
+        self._check_ome_coverage(what, runs, totals)
+        named: dict[str, set] = {}
+        for name, uuid in dict.fromkeys((data.file, data.uuid) for data in found if data.file and data.uuid):
+            named.setdefault(uuid, set()).add(name)
+            with tifffile.TiffFile(folder / name) as other:
+                theirs = ome_root_uuid(other.ome_metadata if other.is_ome else None)
+            if theirs != uuid or len(named[uuid]) > 1:
+                has = f"OME UUID {theirs}" if theirs else "no OME UUID"
+                also = f" (as it names {' and '.join(sorted(named[uuid]))})" if len(named[uuid]) > 1 else ""
+                raise FormatError(
+                    self.path,
+                    f"{what}: its OME-XML names {name} as UUID {uuid}{also}, but {name} has {has}: a file of "
+                    "another set (tifffile finds the files by name alone)",
+                )
+        return runs
+
+    def _ome_runs(self, what, found, totals, pages, whole_set=True) -> list[tuple[int, range, str]]:
+        """Each TiffData's run of planes (image, planes, file), its PlaneCount held to the pages
+        of the file it names (``pages``: by FileName, None for this file) before tifffile lists
+        that many: a PlaneCount of 10**9 for a file of 2 pages took 13 GB and a minute. This
+        file's may name more planes than it holds where the image has them (a writer that
+        stopped early, warned of later). A file alone (not ``whole_set``) is refused that only:
+        its other flaws tifffile passes over with a warning, as it did before."""
+        runs = []
+        for data in found:
+            held = pages[data.file]
+            count = held - data.ifd if data.count is None else data.count
+            name = data.file or self.path.name
+            total = totals[data.image]
+            beyond = data.ifd + count > held and (data.file is not None or data.first + count > total)
+            if beyond or (whole_set and min(data.ifd, count, data.first) < 0):
+                raise FormatError(
+                    self.path,
+                    f"{what}: its OME-XML puts {count} planes from IFD {data.ifd} of {name} at plane {data.first}, "
+                    f"and {name} holds {held} pages: corrupt",
+                )
+            runs.append((data.image, range(data.first, data.first + count), name))
+        return runs
+
+    def _check_ome_coverage(self, what, runs, totals) -> None:
+        """Refuse a plane of a multi-file OME-TIFF mapped twice (tifffile takes one, silently) or
+        mapped to no file where its image has it (zero-filled)."""
+        for image, total in enumerate(totals):
+            end, last, gaps = 0, None, []
+            for _, run, name in sorted((r for r in runs if r[0] == image), key=lambda r: r[1].start):
+                if run.start < end:
+                    twice = describe_planes([range(run.start, min(run.stop, end))])
+                    raise FormatError(self.path, f"{what}: {twice} are mapped twice, to {last} and to {name}: corrupt")
+                if run.start > end:
+                    gaps.append(range(end, min(run.start, total)))
+                end, last = max(end, run.stop), name
+            if end < total:
+                gaps.append(range(end, total))
+            gaps = [gap for gap in gaps if len(gap)]
+            if gaps:
+                raise FormatError(
+                    self.path,
+                    f"{what}: {describe_planes(gaps)} of its {total} are mapped to no file (no TiffData names them)",
+                )
 
     def _mmstack_what(self, pages) -> str:
         """What a Micro-Manager stack split over files is, for messages; refused unless
@@ -1552,6 +1702,15 @@ def _bits_reversed(frame: np.ndarray) -> np.ndarray:
     """``frame`` with the bits of each of its bytes reversed (TIFF FillOrder 2 undone; per byte,
     so the same in either byte order)."""
     return np.frombuffer(bytearray(imagecodecs.bitorder_decode(frame.tobytes())), frame.dtype).reshape(frame.shape)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` are one file (a link, or a name given otherwise); False where
+    either cannot be looked at (a missing file is named elsewhere)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def read(path, /, **hints) -> Frames:

@@ -44,27 +44,31 @@ def _first_ifd(m) -> tuple[str, tuple, int] | None:
     return order, layout, struct.unpack_from(order + layout[3], m, 4 if version == 42 else 8)[0]
 
 
-def check_tiff_pages(path, budget=None) -> None:
+def check_tiff_pages(path, budget=None, spent=0) -> tuple[int, int]:
     """Refuse ``path``, a TIFF, when building its pages would take more than the memory budget
-    (``budget``, else :func:`radiokit.io._budget.memory_budget`'s): each page
+    (``budget``, else :func:`radiokit.io._budget.memory_budget`'s) less ``spent`` (the pages of
+    the files of its set walked before it, open at once with it): each page
     :data:`TIFF_BYTES_PER_PAGE` and :data:`TIFF_BYTES_PER_TAG` a tag, counted down the IFD chain
     before tifffile builds any, the walk ending where the budget is spent; and refuse a chain that
     leads back to an IFD already walked. A chain that ends otherwise (an offset past the end, a
-    torn IFD) ends the count, and the reader names it (tifffile stops there too)."""
+    torn IFD) ends the count, and the reader names it (tifffile stops there too).
+
+    Returns the pages counted and ``spent`` with their cost added ((0, spent) where tifffile is
+    left to judge the file)."""
     limit = memory_budget(budget)
     with open(path, "rb") as fh:
         try:
             m = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
         except (ValueError, OSError):  # empty, or not mappable: tifffile's own reading judges it
-            return
+            return 0, spent
     with m:
         head = _first_ifd(m)
         if head is None:
-            return
+            return 0, spent
         order, (count_fmt, count_size, entry_size, next_fmt, next_size), offset = head
         count_fmt, next_fmt, size = order + count_fmt, order + next_fmt, len(m)
         seen: dict[int, int] = {}  # offset -> page: at most the budget's pages, 0.1 KB each
-        cost = tags = 0
+        cost, tags = spent, 0
         while 0 < offset and offset + count_size <= size:
             if offset in seen:
                 raise FormatError(
@@ -75,15 +79,17 @@ def check_tiff_pages(path, budget=None) -> None:
             n_tags = struct.unpack_from(count_fmt, m, offset)[0]
             end = offset + count_size + n_tags * entry_size
             if n_tags > _MOST_TAGS or end + next_size > size:
-                return
+                break
             seen[offset] = len(seen)
             tags += n_tags
             cost += TIFF_BYTES_PER_PAGE + TIFF_BYTES_PER_TAG * n_tags
             if cost > limit:
+                alone = "alone" if not spent else f"with the {_human(spent)} of its set's files before it"
                 raise FormatError(
                     path,
-                    f"TIFF of at least {len(seen)} pages ({tags / len(seen):.3g} tags each): open, its pages alone "
+                    f"TIFF of at least {len(seen)} pages ({tags / len(seen):.3g} tags each): open, its pages {alone} "
                     f"would take more than the memory budget of {_human(limit)} ({TIFF_BYTES_PER_PAGE} bytes a "
                     f"page, {TIFF_BYTES_PER_TAG} a tag; a corrupt file, or raise {BUDGET_ENV})",
                 )
             offset = struct.unpack_from(next_fmt, m, end)[0]
+        return len(seen), cost
