@@ -20,8 +20,10 @@ import tempfile
 BASE_TAGS = [(256, 3, 1), (257, 3, 1), (258, 3, 16), (259, 3, 1), (262, 3, 1), (273, 4, 8), (278, 3, 1), (279, 4, 2)]
 
 
-def one_pixel_pages(path: str, n: int, extra: int) -> None:
-    """``n`` IFDs of a 1 x 1 uint16 page with ``extra`` private tags each, all on one 2-byte strip."""
+def one_pixel_pages(path, n: int, extra: int = 0, back: int | None = None) -> None:
+    """``n`` IFDs of a 1 x 1 uint16 page with ``extra`` private tags each, all on one 2-byte strip
+    (100 bytes a page without extras); with ``back``, the last IFD's next is page ``back``'s again
+    (a loop). Also the hostile-input tests' file (tests/test_hostile_inputs.py)."""
     tags = sorted(BASE_TAGS + [(65000 + k, 3, k) for k in range(extra)])
     ifd = 2 + 12 * len(tags) + 4
     data = bytearray(b"II*\x00" + struct.pack("<I", 12) + struct.pack("<H", 1000) + b"\0\0")
@@ -30,7 +32,8 @@ def one_pixel_pages(path: str, n: int, extra: int) -> None:
         for code, kind, value in tags:
             data += struct.pack("<HHI", code, kind, 1)
             data += struct.pack("<HH", value, 0) if kind == 3 else struct.pack("<I", value)
-        data += struct.pack("<I", 12 + (i + 1) * ifd if i < n - 1 else 0)
+        following = 12 + (i + 1) * ifd if i < n - 1 else (0 if back is None else 12 + back * ifd)
+        data += struct.pack("<I", following)
     with open(path, "wb") as fh:
         fh.write(data)
 

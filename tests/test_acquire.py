@@ -1289,18 +1289,23 @@ def test_an_overwrite_stopped_after_its_first_frame_keeps_its_own_frames(tmp_pat
     assert_complete(out)
 
 
+def _cold_protocol_over_an_old_series(tmp_path, folder, scene_toml):
+    """A protocol writing into ``folder`` whose source must warm up (5 s: time to stop it there),
+    over an old series: (protocol file, output, the old series' digest, notebook)."""
+    p = protocol(folder, scene_toml, link_s=0.01)
+    p.sim.warmed_up, p.sim.warmup_s = False, 5.0
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    return path, out, _old_series(out), out.with_suffix(".log")
+
+
 def test_cli_an_overwrite_stopped_in_the_warm_up_says_the_previous_series_is_unchanged(
     tmp_path, scene_toml, capsys, sigint_default
 ):
     """The stop line said "0 frames saved in series.h5; `... --resume` completes it": the file
     holds the previous series, which that resume would have gone on with."""
-    p = protocol(tmp_path, scene_toml, link_s=0.01)
-    p.sim.warmed_up, p.sim.warmup_s = False, 5.0
-    path = tmp_path / "protocol.toml"
-    path.write_text(p.to_toml())
-    out = Path(p.output)
-    before = _old_series(out)
-    notebook = out.with_suffix(".log")
+    path, out, before, notebook = _cold_protocol_over_an_old_series(tmp_path, tmp_path, scene_toml)
 
     def ctrl_c_in_the_warm_up():
         for _ in range(600):
@@ -1400,13 +1405,7 @@ def test_cli_an_overwrite_whose_folder_turns_unwritable_names_the_previous_serie
     plans what that run would do."""
     folder = tmp_path / "out"
     folder.mkdir()
-    p = protocol(folder, scene_toml, link_s=0.01)
-    p.sim.warmed_up, p.sim.warmup_s = False, 5.0
-    path = tmp_path / "protocol.toml"
-    path.write_text(p.to_toml())
-    out = Path(p.output)
-    before = _old_series(out)
-    notebook = out.with_suffix(".log")
+    path, out, before, notebook = _cold_protocol_over_an_old_series(tmp_path, folder, scene_toml)
     locked = threading.Event()
 
     def unwritable_then_ctrl_c():

@@ -277,19 +277,10 @@ def test_an_honest_large_tiff_is_refused_over_a_small_budget(tmp_path):
 def _one_pixel_pages(path, n, back=None):
     """A classic TIFF of ``n`` IFDs of a 1 x 1 uint16 page, all on one 2-byte strip (100 bytes a
     page); with ``back``, the last IFD's next is page ``back``'s again (a loop)."""
-    import struct
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+    from bench_tiff_pages import one_pixel_pages
 
-    tags = [(256, 3, 1), (257, 3, 1), (258, 3, 16), (259, 3, 1), (262, 3, 1), (273, 4, 8), (278, 3, 1), (279, 4, 2)]
-    ifd = 2 + 12 * len(tags) + 4
-    data = bytearray(b"II*\x00" + struct.pack("<I", 12) + struct.pack("<H", 1000) + b"\0\0")
-    for i in range(n):
-        data += struct.pack("<H", len(tags))
-        for code, kind, value in tags:
-            data += struct.pack("<HHI", code, kind, 1)
-            data += struct.pack("<HH", value, 0) if kind == 3 else struct.pack("<I", value)
-        following = 12 + (i + 1) * ifd if i < n - 1 else (0 if back is None else 12 + back * ifd)
-        data += struct.pack("<I", following)
-    path.write_bytes(bytes(data))
+    one_pixel_pages(path, n, back=back)
     return path
 
 
