@@ -1449,9 +1449,10 @@ def _ome_tiff_referred(path: Path, names: list) -> bool:
     import tifffile  # late: only a TIFF input needs it here
 
     from radiokit.io._ome import external_planes, mmstack_split
+    from radiokit.io._source import _TIFF_MAGIC  # late: _source imports this module
 
     with open(path, "rb") as fh:
-        if fh.read(4) not in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
+        if fh.read(4) not in _TIFF_MAGIC:
             return False
     try:
         with tifffile.TiffFile(path) as tif:
