@@ -19,6 +19,7 @@ import stat
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import h5py
@@ -915,6 +916,35 @@ def test_a_results_folder_kept_aside_is_never_deleted_by_a_later_run(experiment,
     (kept / "notes.txt").write_text("the user's")
     assert run_cli("process", experiment, "-o", out, "-q", "--overwrite", "--no-report", *ROI).returncode == 0
     assert (kept / "notes.txt").read_text() == "the user's"
+
+
+def test_a_results_folder_kept_aside_beside_its_name_is_pointed_to(tmp_path):
+    """A run killed after swapping its new folder in, before removing the old one, leaves the
+    previous results in ``.res.old-...`` beside ``res``: hidden, and kept for ever. Each later
+    run to that name says where they are (once), rather than leaving them unnoticed."""
+    import socket
+
+    from radiokit.io._atomic import check_output
+
+    host = socket.gethostname().split(".")[0]
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    out = tmp_path / "res"
+    _results_folder(out)
+    kept = tmp_path / f".res.old-{host}-{dead}-0123abcd"
+    kept.mkdir()
+    with pytest.warns(UserWarning) as caught:
+        check_output(out, overwrite=True, folder=True)
+    (message,) = [str(w.message) for w in caught]
+    assert str(out) in message and kept.name in message and "interrupted" in message
+    assert kept.is_dir()
+    # a live run's folder aside (this process's own) is its business, not a leftover
+    (tmp_path / f".res.old-{host}-{os.getpid()}-89abcdef").mkdir()
+    kept.rename(tmp_path / "elsewhere")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_output(out, overwrite=True, folder=True)
 
 
 def test_a_results_folder_interrupted_while_aside_is_put_back(tmp_path, monkeypatch):

@@ -27,6 +27,7 @@ import secrets
 import shutil
 import socket
 import stat
+import warnings
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
@@ -611,8 +612,20 @@ def _restore_interrupted(path: Path) -> None:
 
     With two or more such folders which one is the user's latest is not known: refused, naming
     them, rather than guessed. Where the name is there, a leftover is kept as it is (never
-    removed: it may hold notes the user added)."""
-    if os.path.lexists(path) or not path.parent.is_dir():
+    removed: it may hold notes the user added), and named in a warning: a hidden folder nothing
+    points to is results the user believes gone."""
+    if not path.parent.is_dir():
+        return
+    if os.path.lexists(path):
+        kept = _leftovers(path, True, "old")
+        if kept:
+            message = UserWarning(
+                f"{path}: previous results of an interrupted run are kept beside it in "
+                f"{', '.join(p.name for p in kept)}; remove {'it' if len(kept) == 1 else 'them'} "
+                "once nothing there is needed"
+            )
+            message.path = str(path)  # once per command: the output is checked again before it is written
+            warnings.warn(message, stacklevel=4)
         return
     aside = _leftovers(path, True, "old")
     if len(aside) == 1:
