@@ -2421,11 +2421,17 @@ class L8121:
         return elapsed
 
     def _warm_up_values(self, wanted: tuple[int, int] | None) -> tuple[int, int, bool]:
-        """Set, and read back, the values a warm-up will emit at, before its start command: ``wanted``
-        (validated already), else the lowest-power ones the configuration allows (the tube off: A
-        ``HIV``/``CUR``, B the presets ``PHV``/``PCU``). Raises before any X-ray command when the
-        controller refuses them or reads back others."""
+        """Set, and read back, the values a warm-up will emit at, before its start command: the focus
+        last asked for (:attr:`focus_wanted`), if any, and ``wanted`` (validated already), else the
+        lowest-power ones the configuration allows (the tube off: A ``HIV``/``CUR``, B the presets
+        ``PHV``/``PCU``). Raises before any X-ray command when the controller refuses them or reads
+        back others."""
         given = wanted is not None
+        if self.focus_wanted is not None:  # the warm-up emits at the unit's focal spot too (as every XON)
+            try:
+                self._set_focus(self.focus_wanted)
+            except DeviceError as exc:
+                raise DeviceError(f"{exc}; warm-up not started") from None
         if not given:
             c = self.config
             wanted = self.validate(math.ceil(max(c.kv_min, RATINGS.kv_min)), math.ceil(max(c.ua_min, 0.0)))

@@ -878,6 +878,40 @@ def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, w
     assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
 
 
+def test_warm_up_sets_and_reads_back_the_focus_asked_for_before_it_emits(cold, dialect, wire):
+    """A warm-up emits (B's is an XON), and the focus asked for was set only after it: the
+    warm-up ran at whatever focal spot the unit had. The focus last asked for is now set and read
+    back before the start command, with the kV and µA."""
+    model, server = cold
+    focus_1 = WIRE[dialect]["focus_2"].replace("CFS 2", "CFS 1").replace("CFL", "CFM")
+    with driver(server, dialect) as src:
+        src.check_focus(1)
+        src.focus = 1
+        model._focus = 0  # a reset before the warm-up: the unit's default again, nothing said
+        n = len(model.commands)
+        src.warm_up(timeout_s=10, progress=False, kv=60, ua=250)
+        assert model._focus == 1 and src.focus == 1
+    sent = before_the_start(model, wire)[n:]
+    assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
+    assert sent[-1] == "SIN"
+
+
+def test_a_focus_not_read_back_before_a_warm_up_stops_it_before_it_emits(cold, dialect, wire, monkeypatch):
+    model, server = cold
+    with driver(server, dialect) as src:
+        src.focus = 1
+        if dialect == "A":
+            monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+        else:
+            monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+        model._focus = 0
+        with pytest.raises(
+            DeviceError, match=r"focus: the controller reads back 0 after 1 was set.*warm-up not started"
+        ):
+            src.warm_up(timeout_s=10, progress=False, kv=60, ua=250)
+    assert wire["warm"] not in model.commands and not model.xray_on
+
+
 @pytest.mark.parametrize("action", ["on", "warm_up"])
 def test_an_interlock_opened_while_the_settings_are_read_back_stops_the_start(cold, dialect, wire, action):
     """The interlock is read before the settings, and the start command follows their read-back

@@ -32,6 +32,7 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo
 
 _SPEEDS = {termios.B9600: 9600, termios.B38400: 38400, termios.B115200: 115200}
 _A_CODES = {"WUPNEED": 0, "WARMING": 1, "STANDBY": 2, "XON": 3, "OVER": 4, "NOTREADY": 5}
+_B_FOCUS = ("CFS", "CFM", "CFL")
 _B_WORDS = {"WUPNEED": "STANDBY", "WARMING": "AGING", "STANDBY": "STANDBY", "XON": "XON", "OVER": "OVER"}
 
 
@@ -57,6 +58,7 @@ class SpecModel:
         # in this encoding ("latin-1" or "utf-8"), as the notes' own prose does ("µA")
         self.micro_sign: str | None = None
         self.set_kv = self.set_ua = 0
+        self.focus = 0  # A: CFS n / SFC n; B: CFS, CFM, CFL / SFS SMALL, MIDDLE, LARGE (0, 1, 2)
         self.t_on = self.t_warm = 0.0
         self.received: list[str] = []  # what was understood, in order
         self.lost: list[str] = []  # what arrived at the wrong rate or too soon
@@ -113,7 +115,10 @@ class SpecModel:
                 return None
             self.set_ua = value
             return line
-        return line if word == "CFS" and not b and value <= 3 else None
+        if word == "CFS" and not b and value <= 3:
+            self.focus = value
+            return line
+        return None
 
     def _action(self, word):
         if word == "XOF":
@@ -133,6 +138,9 @@ class SpecModel:
                 return None
             self.state, self.t_on = "XON", time.monotonic()
             return "XON"
+        if self.dialect == "B" and word in _B_FOCUS:
+            self.focus = _B_FOCUS.index(word)
+            return word
         if word == "WUP" and self.dialect == "A":
             if self.state not in ("WUPNEED", "STANDBY") or not self.interlock_closed:
                 return None
@@ -151,6 +159,7 @@ class SpecModel:
             "SIN": f"SIN {0 if self.interlock_closed else 1}",
             "SWE": f"SWE {done}",
             "SER": "SER 0",
+            "SFC": f"SFC {self.focus}",
             "TYP": "TYP L8121-01",
         }.get(word)
 
@@ -168,6 +177,7 @@ class SpecModel:
             "SER": "SER 0",
             "SRL": "REMOTE",
             "SRB": "READY",
+            "SFS": ("SMALL", "MIDDLE", "LARGE")[self.focus],
         }.get(word)
 
 
@@ -504,6 +514,24 @@ def test_a_focus_the_probed_dialect_lacks_is_refused_before_the_warm_up(tmp_path
         with pytest.raises(ValueError, match="focus"):
             run(p, sim=True, progress=False)
     assert "XON" not in model.received, model.received
+
+
+def test_a_series_sets_and_reads_back_its_focus_before_the_warm_up_emits(dialect, tmp_path):
+    """The series set its focus only after the warm-up, which emits (B's is an XON): the warm-up
+    ran at whatever focal spot the unit had. The focus is now a setting like kV and µA: set and
+    read back before the warm-up's start command, and again before every XON."""
+    from acquisition.protocols.compression_series import load_protocol, run
+
+    model = SpecModel(dialect)  # warm-up needed
+    with served(model) as pty:
+        p = load_protocol(_series(pty.url, dialect, 1))
+        p.output = str(tmp_path / "series.h5")
+        run(p, sim=True, progress=False)
+    got = model.received
+    focus, read, start = {"A": ("CFS 1", "SFC", "WUP"), "B": ("CFM", "SFS", "XON")}[dialect]
+    assert focus in got and start in got, got
+    assert got.index(focus) < got.index(read, got.index(focus)) < got.index(start), got
+    assert not model.emitting
 
 
 @pytest.mark.parametrize("nth_xof", [4, 7])

@@ -988,13 +988,15 @@ def _phase_connect(r: _Run):
 
 
 def _phase_warm_up(r: _Run):
-    """Open the experiment file, then warm up if the source needs it, set the focus, arm the
+    """Open the experiment file, set the focus, then warm up if the source needs it, arm the
     panel. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
     full disk, a read-only folder) must not have started it."""
     src, p = r.source, r.p
-    if p.source.focus is not None:  # a setting: valid before the warm-up emits, though set after it
+    if p.source.focus is not None:  # a setting: checked before anything is opened or sent
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
+    if p.source.focus is not None:  # before the warm-up, which emits (B's is an XON); set again before each XON
+        src.focus = int(p.source.focus)
     if _needs_warm_up(src):
         t = time.perf_counter()
         try:
@@ -1008,8 +1010,6 @@ def _phase_warm_up(r: _Run):
             )
         finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
             r.beam_on_s += time.perf_counter() - t
-    if p.source.focus is not None:
-        src.focus = int(p.source.focus)
     r.devices.detector.arm()
 
 
