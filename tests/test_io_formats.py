@@ -2643,3 +2643,35 @@ def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is
     _mmstack_file(path, frames[:2], 0, 10**15)
     _mm_patch(path, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
     np.testing.assert_array_equal(read(path).data, frames[:2])
+
+
+@pytest.mark.parametrize(
+    "counts, coords, what",
+    [
+        ({"Channels": 2, "Frames": 2}, [(0, 0, 0, 0), (1, 0, 0, 0), (0, 0, 1, 0), (1, 0, 1, 0)], "2 channels"),
+        ({"Channels": 2, "Slices": 2}, [(0, 0, 0, 0), (1, 0, 0, 0), (0, 1, 0, 0), (1, 1, 0, 0)], "2 channels"),
+        ({"Positions": 2, "Frames": 2}, [(0, 0, 0, 0), (0, 0, 0, 1), (0, 0, 1, 0), (0, 0, 1, 1)], "2 stage positions"),
+    ],
+    ids=["channels-frames", "channels-slices", "positions-frames"],
+)
+def test_a_micro_manager_file_of_several_channels_or_positions_is_refused(tmp_path, counts, coords, what):
+    """s39 review (MEDIUM): a Micro-Manager file without OME-XML holding 2 channels (or 2 stage
+    positions) at each of 2 time points or slices read as one stack of 4 frames, the channels
+    interleaved as successive frames, silently; with OME-XML it is refused as a multi-channel
+    OME-TIFF is. Refused alike, from tifffile's reading of its summary and index map. Channels
+    (or positions) alone still read as frames, as an OME-TIFF's or ImageJ's do."""
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(4)
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(path, {"Frames": 1, "Channels": 1, "Slices": 1, "Positions": 1, **counts}, coords)
+    with tifffile.TiffFile(path) as tif:  # as meant: tifffile sees the axes, no OME
+        assert tif.is_mmstack and not tif.is_ome and tif.series[0].shape == (2, 2, 30, 40)
+    with pytest.raises(FormatError, match=rf"exp_MMStack_Pos0\.ome\.tif: .*{what}.*not one stack of frames"):
+        read(path)
+    one_line_error(run_cli("info", path), path.name, what)
+
+    alone = tmp_path / "alone_MMStack_Pos0.ome.tif"
+    _mmstack_file(alone, frames[:2], 0, 10**15)
+    axis = "Channels" if "channels" in what else "Positions"
+    _mm_patch(alone, {"Frames": 1, "Channels": 1, "Slices": 1, "Positions": 1, axis: 2}, [c for c in coords[:2]])
+    np.testing.assert_array_equal(read(alone).data, frames[:2])
