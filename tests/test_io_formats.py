@@ -2630,6 +2630,8 @@ def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is
     _mm_patch(path, coords=[(0, 0, 0, 0), (0, 0, 10**6 - 1, 0)])
     with pytest.raises(FormatError, match=r"one\.tif: .*Micro-Manager stack of 1000000 planes.* can hold"):
         read(path)
+    line = one_line_error(run_cli("info", "one.tif", cwd=alone), "Micro-Manager stack of 1000000 planes")
+    assert line.startswith("radiokit info: one.tif: "), line  # the file as the user named it
 
     # a name tifffile's glob of the set (*_MMStack*.tif) misses: it lists the summary's slots
     path = alone / "tiff_MMStack_Pos0.ome.tiff"

@@ -185,7 +185,7 @@ def binary_only(xml: str | None) -> str | None:
     return None if found is None else found.get("MetadataFile") or "a file it does not name"
 
 
-def mmstack_split(tif) -> list | None:
+def mmstack_split(tif, path=None) -> list | None:
     """The planes of this file's stage positions in a Micro-Manager stack, in its order, where
     tifffile's series of it spans other files (None where it is no such stack): a TiffFrame
     each, in the file it lies in, or None where no file holds it; all in this file where it
@@ -194,10 +194,11 @@ def mmstack_split(tif) -> list | None:
     Micro-Manager splits a stack at 4 GB into <name>_MMStack_Pos0.ome.tif, ..._Pos0_1.ome.tif,
     each with an index map of its planes; tifffile finds the others by that name, whatever the
     OME-XML says (or without one), from any file of the set. Read alone, the file given gave its
-    own planes, with nothing said where the OME-XML names no file."""
+    own planes, with nothing said where the OME-XML names no file. ``path``: the file as the
+    user named it, for messages."""
     if not tif.is_mmstack:
         return None
-    check_mmstack_slots(tif)
+    check_mmstack_slots(tif, path)
     try:
         series = tif.series
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
@@ -235,9 +236,10 @@ def _mmstack_files(tif, summary: dict) -> list[str] | None:
     return glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
 
 
-def check_mmstack_slots(tif) -> None:
+def check_mmstack_slots(tif, path=None) -> None:
     """Refuse a Micro-Manager stack whose summary's counts (Channels x Slices x Frames x
     Positions) or index map's coordinates declare more planes than its files can hold.
+    ``path``: the file as the user named it, for the message.
 
     Why: tifffile's series of it lists a slot for every plane declared (8 bytes each), before
     radiokit's IFD walk or page budget sees a page: two 5 KB files of a set whose summary said
@@ -273,7 +275,7 @@ def check_mmstack_slots(tif) -> None:
         shape = " x ".join(f"{axis} {n}" for (_, axis), n in zip(_MM_COUNTS, sizes))
         where = f"its {held} bytes" if len(files) == 1 else f"the {held} bytes of its set's {len(files)} files"
         raise FormatError(
-            Path(tif.filehandle.path),
+            Path(path or tif.filehandle.path),
             f"a Micro-Manager stack of {slots} planes ({shape}, by its summary and index map), more than "
             f"{where} can hold ({_MM_ENTRY_BYTES} bytes of index map a plane): corrupt",
         )

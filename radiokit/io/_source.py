@@ -495,7 +495,7 @@ class FrameSource:
         must be there and hold its planes (tifffile zero-fills what is missing), and each is
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
-        pages = mmstack_split(tif)
+        pages = mmstack_split(tif, self.path)
         if pages is not None and all(page is not None and page.parent is tif for page in pages):
             # its positions whole here: the files beside it hold other positions, which an
             # OME-XML names as other images (tifffile's series would interleave them)
