@@ -2579,3 +2579,101 @@ def test_an_ome_tiff_naming_another_file_without_a_uuid_reads_that_file_or_is_re
         read(tmp_path / "a.ome.tif")
     with pytest.raises(FormatError, match=r"a\.ome\.tif: .*plane 2 .*b\.ome\.tif.* read it from a\.ome\.tif"):
         read(tmp_path / "a.ome.tif", allow_external=True)
+
+
+def _mm_patch(path, summary=None, coords=None):
+    """Rewrite a :func:`_mmstack_file`'s summary (padded to its length: written with a long
+    ``total`` to leave room) and its index map's (channel, slice, frame, position) of each plane."""
+    import json
+    import struct
+
+    out = bytearray(path.read_bytes())
+    _, index_at, *_, length = struct.unpack_from("<8I", out, 8)
+    if summary is not None:
+        text = json.dumps({"MicroManagerVersion": "2.0.0", **summary}).encode()
+        assert len(text) <= length
+        out[40 : 40 + length] = text.ljust(length)
+    for k, coord in enumerate(coords or ()):
+        struct.pack_into("<4I", out, index_at + 8 + 20 * k, *coord)
+    path.write_bytes(bytes(out))
+
+
+def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is_refused(tmp_path):
+    """s39 review (MEDIUM): tifffile's Micro-Manager series lists a slot for every plane the
+    summary's counts (Frames x Slices x Channels x Positions) or the index map's coordinates
+    declare, before radiokit's IFD walk or page budget: two 5 KB files of a split set whose
+    summary said Frames 4*10**8 took `radiokit info` 214 s and 7.8 GB; one 5 KB file whose
+    index map put a plane at T = 4*10**8 - 1, 42 s and 6.3 GB (then read as 2 frames). Refused
+    now, naming the file, before tifffile lists them; an acquisition stopped early (a summary
+    planning more frames than the file holds) still reads. (10**6 here: a million slots are
+    cheap to list, and past what 5 KB can hold as the millions are.)"""
+    from radiokit.io import data_files
+
+    frames = _frames(4)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
+    for k, name in enumerate(names):
+        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 10**15)
+        _mm_patch(tmp_path / name, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+    first = tmp_path / names[0]
+    for allow in (False, True):
+        with pytest.raises(
+            FormatError, match=r"exp_MMStack_Pos0\.ome\.tif: .*Micro-Manager stack of 1000000 planes.* can hold"
+        ):
+            read(first, allow_external=allow)
+    one_line_error(run_cli("info", first), names[0], "Micro-Manager stack of 1000000 planes")
+    data_files(first, allow_external=True)  # (the read judges it; listing it must not list the slots)
+
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    path = alone / "one.tif"
+    _mmstack_file(path, frames[:2], 0, 2)
+    _mm_patch(path, coords=[(0, 0, 0, 0), (0, 0, 10**6 - 1, 0)])
+    with pytest.raises(FormatError, match=r"one\.tif: .*Micro-Manager stack of 1000000 planes.* can hold"):
+        read(path)
+    line = one_line_error(run_cli("info", "one.tif", cwd=alone), "Micro-Manager stack of 1000000 planes")
+    assert line.startswith("radiokit info: one.tif: "), line  # the file as the user named it
+
+    # a name tifffile's glob of the set (*_MMStack*.tif) misses: it lists the summary's slots
+    path = alone / "tiff_MMStack_Pos0.ome.tiff"
+    _mmstack_file(path, frames[:2], 0, 10**15)
+    _mm_patch(path, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+    with pytest.raises(FormatError, match=r"Pos0\.ome\.tiff: .*Micro-Manager stack of 1000000 planes.* can hold"):
+        read(path)
+
+    # stopped early: the summary planned 10**6 frames, the file (alone) holds 2
+    path = alone / "stopped_MMStack_Pos0.ome.tif"
+    _mmstack_file(path, frames[:2], 0, 10**15)
+    _mm_patch(path, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+    np.testing.assert_array_equal(read(path).data, frames[:2])
+
+
+@pytest.mark.parametrize(
+    "counts, coords, what",
+    [
+        ({"Channels": 2, "Frames": 2}, [(0, 0, 0, 0), (1, 0, 0, 0), (0, 0, 1, 0), (1, 0, 1, 0)], "2 channels"),
+        ({"Channels": 2, "Slices": 2}, [(0, 0, 0, 0), (1, 0, 0, 0), (0, 1, 0, 0), (1, 1, 0, 0)], "2 channels"),
+        ({"Positions": 2, "Frames": 2}, [(0, 0, 0, 0), (0, 0, 0, 1), (0, 0, 1, 0), (0, 0, 1, 1)], "2 stage positions"),
+    ],
+    ids=["channels-frames", "channels-slices", "positions-frames"],
+)
+def test_a_micro_manager_file_of_several_channels_or_positions_is_refused(tmp_path, counts, coords, what):
+    """s39 review (MEDIUM): a Micro-Manager file without OME-XML holding 2 channels (or 2 stage
+    positions) at each of 2 time points or slices read as one stack of 4 frames, the channels
+    interleaved as successive frames, silently; with OME-XML it is refused as a multi-channel
+    OME-TIFF is. Refused alike, from tifffile's reading of its summary and index map. Channels
+    (or positions) alone still read as frames, as an OME-TIFF's or ImageJ's do."""
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(4)
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(path, {"Frames": 1, "Channels": 1, "Slices": 1, "Positions": 1, **counts}, coords)
+    with tifffile.TiffFile(path) as tif:  # as meant: tifffile sees the axes, no OME
+        assert tif.is_mmstack and not tif.is_ome and tif.series[0].shape == (2, 2, 30, 40)
+    with pytest.raises(FormatError, match=rf"exp_MMStack_Pos0\.ome\.tif: .*{what}.*not one stack of frames"):
+        read(path)
+    one_line_error(run_cli("info", path), path.name, what)
+
+    alone = tmp_path / "alone_MMStack_Pos0.ome.tif"
+    _mmstack_file(alone, frames[:2], 0, 10**15)
+    axis = "Channels" if "channels" in what else "Positions"
+    _mm_patch(alone, {"Frames": 1, "Channels": 1, "Slices": 1, "Positions": 1, axis: 2}, [c for c in coords[:2]])
+    np.testing.assert_array_equal(read(alone).data, frames[:2])

@@ -7,9 +7,14 @@ Read alone, one file gave its own planes only, silently: half the frames of a tw
 
 from __future__ import annotations
 
+import glob
 import math
+import os
 import xml.etree.ElementTree as ET
+from pathlib import Path
 from typing import NamedTuple
+
+from radiokit.errors import FormatError
 
 __all__ = [
     "TiffData",
@@ -21,6 +26,7 @@ __all__ = [
     "ome_pages",
     "binary_only",
     "mmstack_split",
+    "check_mmstack_slots",
 ]
 
 
@@ -179,7 +185,7 @@ def binary_only(xml: str | None) -> str | None:
     return None if found is None else found.get("MetadataFile") or "a file it does not name"
 
 
-def mmstack_split(tif) -> list | None:
+def mmstack_split(tif, path=None) -> list | None:
     """The planes of this file's stage positions in a Micro-Manager stack, in its order, where
     tifffile's series of it spans other files (None where it is no such stack): a TiffFrame
     each, in the file it lies in, or None where no file holds it; all in this file where it
@@ -188,9 +194,11 @@ def mmstack_split(tif) -> list | None:
     Micro-Manager splits a stack at 4 GB into <name>_MMStack_Pos0.ome.tif, ..._Pos0_1.ome.tif,
     each with an index map of its planes; tifffile finds the others by that name, whatever the
     OME-XML says (or without one), from any file of the set. Read alone, the file given gave its
-    own planes, with nothing said where the OME-XML names no file."""
+    own planes, with nothing said where the OME-XML names no file. ``path``: the file as the
+    user named it, for messages."""
     if not tif.is_mmstack:
         return None
+    check_mmstack_slots(tif, path)
     try:
         series = tif.series
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
@@ -208,3 +216,66 @@ def mmstack_split(tif) -> list | None:
         own = {k // stride % size for k, page in enumerate(pages) if page is not None and page.parent is tif}
         pages = [page for k, page in enumerate(pages) if k // stride % size in own]
     return pages
+
+
+#: the bytes a Micro-Manager file holds for each of its planes at the least: its index map entry
+_MM_ENTRY_BYTES = 20
+#: the summary's count of each of the index map's first four columns, and its axis as tifffile names it
+_MM_COUNTS = (("Channels", "C"), ("Slices", "Z"), ("Frames", "T"), ("Positions", "R"))
+
+
+def _mmstack_files(tif, summary: dict) -> list[str] | None:
+    """The files of a Micro-Manager set tifffile's series looks for beside this one, found as it
+    finds them (a "_MMStack" name, the summary's Prefix, a glob of *.tif that may miss this file
+    itself); None where it reads this one alone."""
+    prefix = summary.get("Prefix", tif.filename.split("_MMStack")[0])
+    if not tif.filehandle.is_file or "_MMStack" not in tif.filename or not isinstance(prefix, str):
+        return None
+    if not tif.filename.startswith(prefix):
+        return None
+    return glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
+
+
+def check_mmstack_slots(tif, path=None) -> None:
+    """Refuse a Micro-Manager stack whose summary's counts (Channels x Slices x Frames x
+    Positions) or index map's coordinates declare more planes than its files can hold.
+    ``path``: the file as the user named it, for the message.
+
+    Why: tifffile's series of it lists a slot for every plane declared (8 bytes each), before
+    radiokit's IFD walk or page budget sees a page: two 5 KB files of a set whose summary said
+    Frames 4*10**8 took 214 s and 7.8 GB to open, one whose index map put a plane at T = 4*10**8
+    - 1, 42 s and 6.3 GB. Each real plane has a 20-byte index map entry in some file, so more
+    planes than the files' bytes / 20 are declared, never written. The slots are counted as
+    tifffile does: the summary's counts, or the index map's, where it reads a set of files;
+    the span of this file's index map where it reads this file alone (a summary planning more
+    frames than an acquisition stopped early wrote is no fault)."""
+    meta = tif.micromanager_metadata or {}
+    summary, index = meta.get("Summary"), meta.get("IndexMap")
+    if not isinstance(summary, dict) or "MicroManagerVersion" not in summary or "Frames" not in summary:
+        return  # no Micro-Manager series: tifffile lists nothing
+    if index is None or not len(index):
+        return
+    try:
+        counts = [int(summary.get(key, 1)) for key, _ in _MM_COUNTS]
+    except (TypeError, ValueError):  # tifffile's series fails on it; the read says so
+        return
+    high = [int(v) + 1 for v in index[:, :4].max(axis=0)]
+    low = [int(v) for v in index[:, :4].min(axis=0)]
+    sizes = [max(h, c) for h, c in zip(high, counts)]
+    files = [tif.filehandle.path]
+    if math.prod(sizes) > len(index):  # tifffile looks for the set's other files
+        found = _mmstack_files(tif, summary)
+        if found is None or len(found) == 1:  # read alone: squeezed to the span of its index map
+            sizes = [h - lo for h, lo in zip(high, low)]
+        elif found:  # (none found, tifffile lists the slots all the same)
+            files = found
+    slots = math.prod(sizes)
+    held = sum(os.path.getsize(name) for name in files)
+    if slots * _MM_ENTRY_BYTES > held:
+        shape = " x ".join(f"{axis} {n}" for (_, axis), n in zip(_MM_COUNTS, sizes))
+        where = f"its {held} bytes" if len(files) == 1 else f"the {held} bytes of its set's {len(files)} files"
+        raise FormatError(
+            Path(path or tif.filehandle.path),
+            f"a Micro-Manager stack of {slots} planes ({shape}, by its summary and index map), more than "
+            f"{where} can hold ({_MM_ENTRY_BYTES} bytes of index map a plane): corrupt",
+        )

@@ -495,7 +495,7 @@ class FrameSource:
         must be there and hold its planes (tifffile zero-fills what is missing), and each is
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
-        pages = mmstack_split(tif)
+        pages = mmstack_split(tif, self.path)
         if pages is not None and all(page is not None and page.parent is tif for page in pages):
             # its positions whole here: the files beside it hold other positions, which an
             # OME-XML names as other images (tifffile's series would interleave them)
@@ -739,7 +739,9 @@ class FrameSource:
         shape and type (a script writing one frame per call). A page's own samples (RGB) are
         refused as colour."""
         tif, what, advice = self._tif, "", "save each channel as its own file"
-        if tif.is_imagej:
+        if tif.is_mmstack and (found := self._mmstack_several(pages)):
+            what, advice = found
+        elif tif.is_imagej:
             ij = tif.imagej_metadata or {}
             # images = channels x slices x frames: channels beside slices or frames interleave
             channels, *others = (
@@ -772,6 +774,33 @@ class FrameSource:
                 )
         if what:
             raise FormatError(self.path, f"{what}: not one stack of frames; {advice}")
+
+    def _mmstack_several(self, pages: int) -> tuple[str, str] | None:
+        """A Micro-Manager stack's channels beside its slices or time points, or this file's stage
+        positions beside anything, as (what, advice) to refuse; None where its planes are one stack.
+
+        Why: without OME-XML or ImageJ metadata nothing else said so, and the pages read as one
+        stack, the channels interleaved as frames. Its axes are tifffile's, from the summary and
+        index map; positions counted in this file's own index map (Micro-Manager writes each
+        position to files of its own, which tifffile's series takes in beside it)."""
+        tif = self._tif
+        try:
+            series = tif.series[0]
+            if series.kind != "mmstack":
+                return None
+            sizes = dict(zip(series.get_axes(False), series.get_shape(False)))
+            positions = len(set(tif.micromanager_metadata["IndexMap"][:, 3].tolist()))
+        except Exception:  # (tifffile fails on a corrupt file in many ways) the checks that follow judge it
+            return None
+        channels, others = sizes.get("C", 1), sizes.get("Z", 1) * sizes.get("T", 1)
+        if positions > 1 and channels * others > 1:
+            return (
+                f"a Micro-Manager stack of {positions} stage positions, {pages} images",
+                "save each stage position as its own file",
+            )
+        if channels > 1 and others > 1:
+            return f"a Micro-Manager stack of {channels} channels, {pages} images", "save each channel as its own file"
+        return None
 
     def _not_greyscale(self, first) -> FormatError:
         """The refusal of a page that is not one (rows, cols) image, naming what it is."""
