@@ -2126,33 +2126,51 @@ def test_an_all_true_mask_is_no_mask():
     np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-4)
 
 
-@pytest.mark.parametrize(
-    "shape, options",
-    [
-        ((10, 40), {}),
-        ((40, 14), {}),
-        ((24, 100), {"preset": "fast"}),
-        ((2000, 40), {}),
-        ((9, 11), {"finest_scale": 0}),
-    ],
-)
-def test_dis_refuses_a_working_image_too_small_for_its_patches(shape, options):
-    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
-    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
-    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
-    child process, so a crash fails this test instead of the run."""
+_DIS_TOO_SMALL = [
+    ((10, 40), {}),
+    ((40, 14), {}),
+    ((24, 100), {"preset": "fast"}),
+    ((2000, 40), {}),
+    ((9, 11), {"finest_scale": 0}),
+]
+
+
+@pytest.fixture(scope="module")
+def dis_too_small_outputs():
+    """The cases of ``test_dis_refuses_a_working_image_too_small_for_its_patches`` in one child
+    process, in turn, each one's answer on its own line as it comes (a child per case cost ~0.7 CPU
+    s of interpreter and imports each). A crash ends the child: the case that crashed and those
+    after it find no line and fail with its exit code."""
     import subprocess
     import sys
 
     code = (
-        "import numpy as np\nfrom radiokit.register import register\n"
-        f"f = np.random.default_rng(0).random({shape!r}).astype(np.float32)\n"
-        f"try:\n    register(f, np.roll(f, 1, axis=0), 'dis', **{options!r})\n"
-        "except ValueError as e:\n    print('ValueError:', e)\n"
+        "import sys\nimport numpy as np\nfrom radiokit.register import register\n"
+        f"for i, (shape, options) in enumerate({_DIS_TOO_SMALL!r}):\n"
+        "    f = np.random.default_rng(0).random(shape).astype(np.float32)\n"
+        "    try:\n        register(f, np.roll(f, 1, axis=0), 'dis', **options)\n        out = 'no error'\n"
+        "    except ValueError as e:\n        out = 'ValueError: ' + str(e).replace('\\n', ' ')\n"
+        "    print(f'case {i}: {out}', flush=True)\n"
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-300:]}"
-    assert run.stdout.startswith("ValueError: dis:") and "too small" in run.stdout, run.stdout
+    lines = dict(line.split(": ", 1) for line in run.stdout.splitlines() if line.startswith("case "))
+    return run, lines
+
+
+@pytest.mark.parametrize(
+    "case",
+    range(len(_DIS_TOO_SMALL)),
+    ids=["x".join(map(str, s)) + "".join(f"-{k}={v}" for k, v in o.items()) for s, o in _DIS_TOO_SMALL],
+)
+def test_dis_refuses_a_working_image_too_small_for_its_patches(case, dis_too_small_outputs):
+    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
+    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
+    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
+    child process, so a crash fails this test instead of the run."""
+    run, lines = dis_too_small_outputs
+    out = lines.get(f"case {case}")
+    assert out is not None, f"exit {run.returncode}: {run.stderr[-300:]}"
+    assert out.startswith("ValueError: dis:") and "too small" in out, out
 
 
 @pytest.mark.parametrize(
