@@ -1,6 +1,7 @@
 """Residual-complexity B-spline registration: gradients, known warps, intensity change, failures."""
 
 import contextlib
+import functools
 import importlib.util
 import types
 
@@ -1673,6 +1674,37 @@ def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass(weak_runs):
 # finer than the checks' and the stop can apply
 
 
+@pytest.fixture(scope="module")
+def stopped_704():
+    """Texture = noise, a local motion of 3 % of the frame, 704 px, and ``auto``'s plain run on it
+    (``default`` with ``ABANDON`` and ``EXTEND``), which stops halfway through the level before
+    its finest: three auto tests start from this same deterministic run (1.5 s each at 704 px).
+    :func:`_auto_register` serves it to them."""
+    from radiokit.register._auto import ABANDON, EXTEND
+
+    pair = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    options = {"preset": "default", "abandon_px": ABANDON, "extend": EXTEND}
+    return dict(pair=pair, options=options, stopped=register(*pair[:2], "rc", **options))
+
+
+def _auto_register(stopped_704, f, m, method, mask, retry=False, **options):
+    """``register`` as ``register_auto`` calls it, but its plain run on ``stopped_704``'s pair
+    (those very arrays, those options, no mask, no retry) is that fixture's, copied: auto writes
+    its record into the result it returns. Any other call runs: a change in what auto asks for
+    runs for real, and a changed field shows."""
+    import copy
+
+    fixed, moving = stopped_704["pair"][:2]
+    if (
+        f is fixed
+        and m is moving
+        and (method, mask, retry) == ("rc", None, False)
+        and options == stopped_704["options"]
+    ):
+        return copy.deepcopy(stopped_704["stopped"])
+    return register(f, m, method, mask, retry=retry, **options)
+
+
 def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
     """Texture = noise, motion correlated over a tenth of the frame: ``default`` is far off
     halfway through its 352 px level, so with ``abandon_px`` it stops there, not converged, says why,
@@ -1722,27 +1754,32 @@ def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
     np.testing.assert_array_equal(checked.displacement, plain.displacement)
 
 
-def test_auto_stops_default_early_on_weak_texture_and_returns_weak():
+def test_auto_stops_default_early_on_weak_texture_and_returns_weak(stopped_704):
     """Texture = noise and a local motion of 3 % of the frame through ``auto``: the interior
     carries texture, so ``default`` runs with ``ABANDON`` (a pixel), is over twice that far off
     halfway through the level before its finest, stops there, and ``weak`` (which follows anyway)
     is returned, its residual moving less; the reason records the stop."""
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
-    reg = register(fixed, moving, "rc", preset="auto")
+    from radiokit.register._auto import register_auto
+
+    fixed, moving, d, mask = stopped_704["pair"]
+    # register(fixed, moving, "rc", preset="auto") with its plain run the fixture's (the same run)
+    reg = register_auto(
+        functools.partial(_auto_register, stopped_704), fixed, moving, "rc", None, False, {"preset": "auto"}
+    )
     why = reg.options["auto"]
     assert why.preset == "weak" and "abandoned before the finest level" in why.reason, why
     identity = _epe(np.zeros_like(d), d, mask)[0]
     assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] < 0.2 * identity
 
 
-def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it():
+def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it(stopped_704):
     """A fault injected (a weak run whose residual moves without bound: no pair here makes one
     on purpose): ``auto`` must not return the stopped run's field but finish the plain run after
     all and return it, as if it had never stopped."""
     from radiokit.register import Quality, Registration
     from radiokit.register._auto import EXTEND, register_auto
 
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    fixed, moving, d, mask = stopped_704["pair"]
     calls = []
 
     returned = []
@@ -1751,7 +1788,7 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
         calls.append(dict(options))
         if options["preset"] == "weak":
             return Registration(np.zeros((2,) + f.shape, np.float32), method, Quality(residual_motion=np.inf), options)
-        returned.append(register(f, m, method, mask, retry=retry, **options))
+        returned.append(_auto_register(stopped_704, f, m, method, mask, retry=retry, **options))
         return returned[-1]
 
     reg = register_auto(losing_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
@@ -1764,7 +1801,7 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     np.testing.assert_array_equal(reg.displacement, returned[-1].displacement)  # its field, untouched
 
 
-def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without_finishing_it():
+def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without_finishing_it(stopped_704):
     """After a stopped plain run, a weak result that passes its checks but whose residual still
     moves by more than ``POLISH`` (as on the family's texture = noise at 2240: 0.15-0.17 px, the
     stopped run 3.9-5.4 px) is returned, and the plain run is not finished to compare finals: on
@@ -1774,7 +1811,7 @@ def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without
     from radiokit.register import Quality, Registration
     from radiokit.register._auto import POLISH, register_auto, settled
 
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    fixed, moving, d, mask = stopped_704["pair"]
     calls, stopped = [], []
     moving_weak = Quality(residual_motion=0.17)
 
@@ -1782,7 +1819,7 @@ def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without
         calls.append(options["preset"])
         if options["preset"] == "weak":
             return Registration(np.zeros((2,) + f.shape, np.float32), method, moving_weak, options)
-        stopped.append(register(f, m, method, mask, retry=retry, **options))
+        stopped.append(_auto_register(stopped_704, f, m, method, mask, retry=retry, **options))
         return stopped[-1]
 
     reg = register_auto(still_moving_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
