@@ -1,5 +1,7 @@
 """Residual-complexity B-spline registration: gradients, known warps, intensity change, failures."""
 
+import contextlib
+import functools
 import importlib.util
 import types
 
@@ -46,6 +48,19 @@ def _pair(n=256, amplitude=None, bias=0.10, noise=0.005, seed=0):
 def _epe(d, truth, mask):
     e = np.sqrt(((d - truth) ** 2).sum(axis=0))[mask]
     return float(np.median(e)), float(np.percentile(e, 95))
+
+
+@contextlib.contextmanager
+def _as_register_runs_it():
+    """BLAS and OpenCV held to one thread, as ``bspline_register`` (what ``register`` calls) holds
+    them around ``_bspline_register``, for the tests that must call ``_bspline_register`` itself
+    (the real one under a recording wrapper). Called bare it ran with OpenBLAS's threads spinning
+    between its small matrix calls: twice the CPU for the same field (a 384 px weak run: 5.7 s
+    against 2.9 s). Tests that only want the info call ``B.bspline_register``."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"), B._opencv_threads(1):
+        yield
 
 
 @pytest.mark.parametrize("similarity", ["rc", "ssd", "ncc", "mi"])
@@ -1540,7 +1555,8 @@ def weak_runs():
         refit = register(fixed, moving, "rc", preset="weak", grid_jitter=False, callback=callback)
     (info,) = outer
     plain = register(fixed, moving, "rc", preset="weak", refit_thinning=False, grid_jitter=False)
-    once = real(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
+    with _as_register_runs_it():
+        once = real(fixed, moving, None, preset="weak", grid_jitter=False, refit_again=0)
     return dict(pair=pair, refit=refit, info=info, runs=runs, plain=plain, once=once)
 
 
@@ -1576,7 +1592,7 @@ def test_weak_keeps_the_second_pass_when_the_thinning_measured_again_is_declined
 
     once, info_once = weak_runs["once"]
     monkeypatch.setattr(B, "_interior_thinning", declined_again)
-    field, info = B._bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
+    field, info = B.bspline_register(fixed, moving, None, preset="weak", grid_jitter=False)
     assert len(calls) == 2 and info["thinning_refit"].endswith("measured again: not refitted: forced")
     assert info["iterations"] == info_once["iterations"]
     np.testing.assert_array_equal(field, once)
@@ -1602,7 +1618,8 @@ def test_rim_leaves_the_bodys_edge_out_of_the_refit_passes(monkeypatch):
         return real(f, m, data_mask, **kw)
 
     monkeypatch.setattr(B, "_bspline_register", recorded)
-    field, info = real(fixed, moving, None, preset="weak", rim=0.02)
+    with _as_register_runs_it():
+        field, info = real(fixed, moving, None, preset="weak", rim=0.02)
     assert masks[0] is None and len(masks) == 3  # the first pass, then the two refit passes
     dist = B._fixed_side(fixed, None)[2]
     expected = dist >= 0.02 * 256  # the body's rim (~5 px) and the open beam outside it are left out
@@ -1639,9 +1656,53 @@ def test_weak_refits_the_thinning_from_the_interior(weak_runs):
     assert _epe(refit.displacement, d, mask)[0] < 0.9 * _epe(plain.displacement, d, mask)[0]
 
 
+def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass(weak_runs):
+    """``refit_thinning``'s second pass starts from the first pass's lattices and runs only the
+    finest level, for at most ``REFIT_ITERATIONS`` (the coarse levels exist to reach a field the
+    first pass has already reached); its field is still the better one against the truth."""
+    d, mask = weak_runs["pair"][2:]
+    # grid_jitter off, as in test_weak_refits_the_thinning_from_the_interior (the same runs)
+    field, info, first = weak_runs["refit"].displacement, weak_runs["info"], weak_runs["plain"].displacement
+    assert info["thinning_refit"].startswith("thinning refitted")
+    (level,) = info["levels"]  # one level: the finest, started warm
+    assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
+    assert _epe(field, d, mask)[0] < 0.9 * _epe(first, d, mask)[0]
+
+
 # -- abandon_px: a plain run far off before its finest level stops there (auto's ABANDON) --
 # 704 px: the smallest family frame the checks bin (by 2), so the default's finest level is
 # finer than the checks' and the stop can apply
+
+
+@pytest.fixture(scope="module")
+def stopped_704():
+    """Texture = noise, a local motion of 3 % of the frame, 704 px, and ``auto``'s plain run on it
+    (``default`` with ``ABANDON`` and ``EXTEND``), which stops halfway through the level before
+    its finest: three auto tests start from this same deterministic run (1.5 s each at 704 px).
+    :func:`_auto_register` serves it to them."""
+    from radiokit.register._auto import ABANDON, EXTEND
+
+    pair = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    options = {"preset": "default", "abandon_px": ABANDON, "extend": EXTEND}
+    return dict(pair=pair, options=options, stopped=register(*pair[:2], "rc", **options))
+
+
+def _auto_register(stopped_704, f, m, method, mask, retry=False, **options):
+    """``register`` as ``register_auto`` calls it, but its plain run on ``stopped_704``'s pair
+    (those very arrays, those options, no mask, no retry) is that fixture's, copied: auto writes
+    its record into the result it returns. Any other call runs: a change in what auto asks for
+    runs for real, and a changed field shows."""
+    import copy
+
+    fixed, moving = stopped_704["pair"][:2]
+    if (
+        f is fixed
+        and m is moving
+        and (method, mask, retry) == ("rc", None, False)
+        and options == stopped_704["options"]
+    ):
+        return copy.deepcopy(stopped_704["stopped"])
+    return register(f, m, method, mask, retry=retry, **options)
 
 
 def test_abandon_px_stops_a_far_off_run_before_its_finest_level():
@@ -1693,27 +1754,32 @@ def test_abandon_px_leaves_a_run_that_is_on_track_as_it_was():
     np.testing.assert_array_equal(checked.displacement, plain.displacement)
 
 
-def test_auto_stops_default_early_on_weak_texture_and_returns_weak():
+def test_auto_stops_default_early_on_weak_texture_and_returns_weak(stopped_704):
     """Texture = noise and a local motion of 3 % of the frame through ``auto``: the interior
     carries texture, so ``default`` runs with ``ABANDON`` (a pixel), is over twice that far off
     halfway through the level before its finest, stops there, and ``weak`` (which follows anyway)
     is returned, its residual moving less; the reason records the stop."""
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
-    reg = register(fixed, moving, "rc", preset="auto")
+    from radiokit.register._auto import register_auto
+
+    fixed, moving, d, mask = stopped_704["pair"]
+    # register(fixed, moving, "rc", preset="auto") with its plain run the fixture's (the same run)
+    reg = register_auto(
+        functools.partial(_auto_register, stopped_704), fixed, moving, "rc", None, False, {"preset": "auto"}
+    )
     why = reg.options["auto"]
     assert why.preset == "weak" and "abandoned before the finest level" in why.reason, why
     identity = _epe(np.zeros_like(d), d, mask)[0]
     assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] < 0.2 * identity
 
 
-def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it():
+def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it(stopped_704):
     """A fault injected (a weak run whose residual moves without bound: no pair here makes one
     on purpose): ``auto`` must not return the stopped run's field but finish the plain run after
     all and return it, as if it had never stopped."""
     from radiokit.register import Quality, Registration
     from radiokit.register._auto import EXTEND, register_auto
 
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    fixed, moving, d, mask = stopped_704["pair"]
     calls = []
 
     returned = []
@@ -1722,7 +1788,7 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
         calls.append(dict(options))
         if options["preset"] == "weak":
             return Registration(np.zeros((2,) + f.shape, np.float32), method, Quality(residual_motion=np.inf), options)
-        returned.append(register(f, m, method, mask, retry=retry, **options))
+        returned.append(_auto_register(stopped_704, f, m, method, mask, retry=retry, **options))
         return returned[-1]
 
     reg = register_auto(losing_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
@@ -1735,7 +1801,7 @@ def test_auto_finishes_an_abandoned_plain_run_when_the_fallback_does_not_beat_it
     np.testing.assert_array_equal(reg.displacement, returned[-1].displacement)  # its field, untouched
 
 
-def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without_finishing_it():
+def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without_finishing_it(stopped_704):
     """After a stopped plain run, a weak result that passes its checks but whose residual still
     moves by more than ``POLISH`` (as on the family's texture = noise at 2240: 0.15-0.17 px, the
     stopped run 3.9-5.4 px) is returned, and the plain run is not finished to compare finals: on
@@ -1745,7 +1811,7 @@ def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without
     from radiokit.register import Quality, Registration
     from radiokit.register._auto import POLISH, register_auto, settled
 
-    fixed, moving, d, mask = _family_pair(size=704, texture=0.01, noise=0.01, corr=0.1, amplitude=0.03, seed=9)
+    fixed, moving, d, mask = stopped_704["pair"]
     calls, stopped = [], []
     moving_weak = Quality(residual_motion=0.17)
 
@@ -1753,7 +1819,7 @@ def test_auto_keeps_a_weak_run_still_moving_after_an_abandoned_plain_run_without
         calls.append(options["preset"])
         if options["preset"] == "weak":
             return Registration(np.zeros((2,) + f.shape, np.float32), method, moving_weak, options)
-        stopped.append(register(f, m, method, mask, retry=retry, **options))
+        stopped.append(_auto_register(stopped_704, f, m, method, mask, retry=retry, **options))
         return stopped[-1]
 
     reg = register_auto(still_moving_weak, fixed, moving, "rc", None, False, {"preset": "auto"})
@@ -1909,8 +1975,8 @@ def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_
     the same field to the bit. ``fast`` and the presets that chose their own levels do not polish."""
     fixed, moving, d, mask = _family_pair(size=352, texture=0.1, noise=0.01, corr=0.25, seed=9)
     cut = dict(max_pixels=40_000)  # 352 px: the 176 px level is the finest run
-    plain, plain_info = B._bspline_register(fixed, moving, None, polish=0, **cut)
-    polished, info = B._bspline_register(fixed, moving, None, **cut)
+    plain, plain_info = B.bspline_register(fixed, moving, None, polish=0, **cut)
+    polished, info = B.bspline_register(fixed, moving, None, **cut)
     assert [lv["factor"] for lv in plain_info["levels"]][-1] == 2
     last = info["levels"][-1]
     assert last["factor"] == 1 and last.get("polish") and 1 <= last["iterations"] <= B.PRESETS["default"]["polish"]
@@ -1918,12 +1984,12 @@ def test_polish_runs_the_full_resolution_images_only_on_a_field_that_passes_the_
     assert info["lattices"][0][0].spacing == plain_info["lattices"][0][0].spacing
     assert _epe(polished, d, mask)[0] < 0.8 * _epe(plain, d, mask)[0]
     lost = _family_pair(size=352, texture=0.01, noise=0.01, corr=0.05, amplitude=0.03, seed=9)[:2]
-    left, left_info = B._bspline_register(*lost, None, polish=0, **cut)
-    asked, asked_info = B._bspline_register(*lost, None, **cut)
+    left, left_info = B.bspline_register(*lost, None, polish=0, **cut)
+    asked, asked_info = B.bspline_register(*lost, None, **cut)
     assert not any(lv.get("polish") for lv in asked_info["levels"])
     np.testing.assert_array_equal(asked, left)
     assert all(B.PRESETS[p]["polish"] == 0 for p in ("fast", "weak", "weak-fast", "silent", "silent-fast"))
-    _, ncc_info = B._bspline_register(fixed, moving, None, similarity="ncc", **cut)  # measured for rc only
+    _, ncc_info = B.bspline_register(fixed, moving, None, similarity="ncc", **cut)  # measured for rc only
     assert not any(lv.get("polish") for lv in ncc_info["levels"])
     with pytest.raises(ValueError, match="polish"):
         register(*lost, "rc", polish=-1)
@@ -1939,19 +2005,6 @@ def test_the_still_check_decides_as_the_percentile_does():
         v = rng.exponential(size=n).astype(np.float32) if t % 3 else np.round(rng.random(n) * 4) / 4
         limit = float(np.quantile(v, rng.uniform(0.9, 1.0))) if t % 2 else float(rng.uniform(0, 3))
         assert B._p99_below(v, limit) == (np.percentile(v, 99) < limit), (n, limit)
-
-
-def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass(weak_runs):
-    """``refit_thinning``'s second pass starts from the first pass's lattices and runs only the
-    finest level, for at most ``REFIT_ITERATIONS`` (the coarse levels exist to reach a field the
-    first pass has already reached); its field is still the better one against the truth."""
-    d, mask = weak_runs["pair"][2:]
-    # grid_jitter off, as in test_weak_refits_the_thinning_from_the_interior (the same runs)
-    field, info, first = weak_runs["refit"].displacement, weak_runs["info"], weak_runs["plain"].displacement
-    assert info["thinning_refit"].startswith("thinning refitted")
-    (level,) = info["levels"]  # one level: the finest, started warm
-    assert level["factor"] == 1 and level["iterations"] <= B.REFIT_ITERATIONS
-    assert _epe(field, d, mask)[0] < 0.9 * _epe(first, d, mask)[0]
 
 
 def _within(seconds, fn):
@@ -2110,33 +2163,51 @@ def test_an_all_true_mask_is_no_mask():
     np.testing.assert_allclose(b.displacement, a.displacement, atol=1e-4)
 
 
-@pytest.mark.parametrize(
-    "shape, options",
-    [
-        ((10, 40), {}),
-        ((40, 14), {}),
-        ((24, 100), {"preset": "fast"}),
-        ((2000, 40), {}),
-        ((9, 11), {"finest_scale": 0}),
-    ],
-)
-def test_dis_refuses_a_working_image_too_small_for_its_patches(shape, options):
-    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
-    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
-    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
-    child process, so a crash fails this test instead of the run."""
+_DIS_TOO_SMALL = [
+    ((10, 40), {}),
+    ((40, 14), {}),
+    ((24, 100), {"preset": "fast"}),
+    ((2000, 40), {}),
+    ((9, 11), {"finest_scale": 0}),
+]
+
+
+@pytest.fixture(scope="module")
+def dis_too_small_outputs():
+    """The cases of ``test_dis_refuses_a_working_image_too_small_for_its_patches`` in one child
+    process, in turn, each one's answer on its own line as it comes (a child per case cost ~0.7 CPU
+    s of interpreter and imports each). A crash ends the child: the case that crashed and those
+    after it find no line and fail with its exit code."""
     import subprocess
     import sys
 
     code = (
-        "import numpy as np\nfrom radiokit.register import register\n"
-        f"f = np.random.default_rng(0).random({shape!r}).astype(np.float32)\n"
-        f"try:\n    register(f, np.roll(f, 1, axis=0), 'dis', **{options!r})\n"
-        "except ValueError as e:\n    print('ValueError:', e)\n"
+        "import sys\nimport numpy as np\nfrom radiokit.register import register\n"
+        f"for i, (shape, options) in enumerate({_DIS_TOO_SMALL!r}):\n"
+        "    f = np.random.default_rng(0).random(shape).astype(np.float32)\n"
+        "    try:\n        register(f, np.roll(f, 1, axis=0), 'dis', **options)\n        out = 'no error'\n"
+        "    except ValueError as e:\n        out = 'ValueError: ' + str(e).replace('\\n', ' ')\n"
+        "    print(f'case {i}: {out}', flush=True)\n"
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-300:]}"
-    assert run.stdout.startswith("ValueError: dis:") and "too small" in run.stdout, run.stdout
+    lines = dict(line.split(": ", 1) for line in run.stdout.splitlines() if line.startswith("case "))
+    return run, lines
+
+
+@pytest.mark.parametrize(
+    "case",
+    range(len(_DIS_TOO_SMALL)),
+    ids=["x".join(map(str, s)) + "".join(f"-{k}={v}" for k, v in o.items()) for s, o in _DIS_TOO_SMALL],
+)
+def test_dis_refuses_a_working_image_too_small_for_its_patches(case, dis_too_small_outputs):
+    """OpenCV's DIS needs its finest pyramid level's smaller side to hold a patch (patch_size x
+    2^finest_scale px) and the larger side over patch_size x sqrt(2); below that it crashed the
+    interpreter (10 x 40: segmentation fault), returned NaN or raised its own error. Run in a
+    child process, so a crash fails this test instead of the run."""
+    run, lines = dis_too_small_outputs
+    out = lines.get(f"case {case}")
+    assert out is not None, f"exit {run.returncode}: {run.stderr[-300:]}"
+    assert out.startswith("ValueError: dis:") and "too small" in out, out
 
 
 @pytest.mark.parametrize(
