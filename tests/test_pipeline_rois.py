@@ -206,7 +206,16 @@ def test_an_inclusion_given_alone_gets_its_background_beside_it(tmp_path):
 
     exp = synthetic(tmp_path / "exp.h5")  # a denser square, rows and cols 71-89, on a flat slab
     given = (75, 86, 75, 86)
-    cfg = Config(inclusion=given, crop_mm=None, progress=False, cross_check=None)
+    # the ROIs are chosen before any registration: the fast preset and no report leave them as
+    # they are (the default preset and the report cost 3 CPU s more)
+    cfg = Config(
+        inclusion=given,
+        crop_mm=None,
+        progress=False,
+        cross_check=None,
+        report=False,
+        register_options={"preset": "fast"},
+    )
     rois = process(exp, cfg, out_dir=tmp_path / "out").record.rois.to_json()
     r0, r1, c0, c1 = rois["background"]
     assert rois["inclusion"] == list(given)
@@ -239,7 +248,14 @@ def test_a_small_inclusion_roi_on_a_detected_inclusion_keeps_the_background_off_
     from radiokit.pipeline import Config, process
 
     exp, disc = _disc_experiment(tmp_path / "exp.h5")
-    cfg = Config(inclusion=(96, 104, 96, 104), crop_mm=None, progress=False, cross_check=None)
+    cfg = Config(  # no report, the fast preset: the ROIs are chosen before any registration
+        inclusion=(96, 104, 96, 104),
+        crop_mm=None,
+        progress=False,
+        cross_check=None,
+        report=False,
+        register_options={"preset": "fast"},
+    )
     rois = process(exp, cfg, out_dir=tmp_path / "out").record.rois.to_json()
     r0, r1, c0, c1 = rois["background"]
     assert rois["inclusion"] == [96, 104, 96, 104]

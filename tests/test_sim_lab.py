@@ -1,5 +1,7 @@
 """The virtual experiment: truth displacement, the simulated experiment file, and the CLI."""
 
+import functools
+
 import h5py
 import numpy as np
 import pytest
@@ -77,17 +79,28 @@ def test_truth_pulls_the_moving_silhouette_onto_the_fixed_one():
     assert after <= perimeter and after < 0.15 * before, (before, after, perimeter)  # measured 76 of 672
 
 
-def test_axisymmetric_truth_agrees_with_3d():
-    """The revolved axisymmetric field against the 3D eighth model's mirrored one, cylinder seen
-    from the side: they must agree to the models' own difference (about 1 % of the motion)."""
+@functools.cache
+def _cylinder_side(model):
+    """The cylinder seen from the side (parallel beam along z, 4x4 binning), compressed 15 and
+    25 %, with the states: one solve per model for the tests below, which only read them (the
+    beam does not enter the mechanics; the cone-beam cases set their own scene's beam)."""
     from tests.test_sim_mechanics import _cylinder
 
+    # 3 / 8 mm: the two models' fields agree to 0.12 % of the motion (p99) here, 0.09 % at
+    # 2 / 5 mm, against the 3 % asked below; 2 against 5.7 CPU s
+    scene = _cylinder(model, size=(3.0, 8.0))
+    scene.beam = Beam("parallel", "z")
+    scene = with_binning(scene, 4)
+    return scene, compress(scene, ratios=(0.15, 0.25))
+
+
+def test_axisymmetric_truth_agrees_with_3d():
+    """The revolved axisymmetric field against the 3D eighth model's mirrored one, cylinder seen
+    from the side: they must agree to the models' own difference (measured 0.12 % of the motion
+    at the 99th percentile)."""
     fields = []
     for model in ("axisymmetric", "3d"):
-        scene = _cylinder(model, size=(2.0, 5.0))
-        scene.beam = Beam("parallel", "z")
-        scene = with_binning(scene, 4)
-        s15, s25 = compress(scene, ratios=(0.15, 0.25))
+        scene, (s15, s25) = _cylinder_side(model)
         fields.append(truth_displacement(scene, s25, s15))
     ax, full = fields
     both = (np.abs(ax).sum(axis=0) > 0) & (np.abs(full).sum(axis=0) > 0)
@@ -108,13 +121,12 @@ def test_fast_truth_equals_the_reference_evaluation(model, kind, factor):
     """The fast path (one rasterisation for all the images, shared faces once, OpenCV's
     interpolation, the silhouette from the projection) computes the same sums as the original
     evaluation kept as the reference: equal to 0.01 px (the acceptance), measured 1e-7 px."""
-    from sim.lab import _body, project_state
-    from tests.test_sim_mechanics import _cylinder
+    from dataclasses import replace
 
-    scene = _cylinder(model, size=(3.0, 8.0))
-    scene.beam = Beam(kind, "z")
-    scene = with_binning(scene, 4)
-    s15, s25 = compress(scene, ratios=(0.15, 0.25))
+    from sim.lab import _body, project_state
+
+    side, (s15, s25) = _cylinder_side(model)
+    scene = replace(side, beam=Beam(kind, "z"))
     body = _body(scene, project_state(scene, s25.solver, s25.displacement)[0])
     fast = truth_displacement(scene, s25, s15, factor=factor, body=body)
     ref = truth_displacement(scene, s25, s15, factor=factor, _reference=True)

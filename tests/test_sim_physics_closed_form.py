@@ -138,7 +138,11 @@ def twin_block():
         beam=Beam("parallel", "y"),
         detector=Detector("c7942", 4),
         exposure=Exposure(2500.0 / 16, 60.0, 250.0),
-        mesh=MeshSpec(2.0, 5.0, "3d", False),
+        # far elements as large as the body: every check here is of an affine motion, which P2
+        # elements hold exactly on any mesh (residual from affine 1e-13 mm at these sizes, as at
+        # 2 / 5 mm; 0.9 against 12.5 CPU s); the inclusion's size is the least validate allows,
+        # and the rigid-motion bug still shows here (a 0.023 turn, a 1.4 mm slide without the fix)
+        mesh=MeshSpec(2.0, 20.0, "3d", False),
     )
     (state,) = compress(scene, progress=False)
     return scene, state
