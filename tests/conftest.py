@@ -67,6 +67,38 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
     return path
 
 
+# -- inputs built once per module -------------------------------------------------------------------
+# An input that costs seconds to build (a long experiment, a `process` run) and that several tests
+# only read is built once by a module-scoped fixture: read_only() marks it so that a test writing
+# into it fails (where the suite does not run as root) instead of handing its neighbours another
+# input; a test that changes its input works on writable_copy() of it in its own tmp_path.
+
+
+def read_only(path):
+    """``path`` (a file, or every file under a folder) made read-only; returned."""
+    path = Path(path)
+    for p in [path, *path.rglob("*")] if path.is_dir() else [path]:
+        if p.is_file():
+            p.chmod(p.stat().st_mode & ~0o222)
+    return path
+
+
+def writable_copy(src, dst):
+    """A copy of the file or folder ``src`` at ``dst`` (contents and times), its files writable by
+    their owner again; returns ``dst``."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    if src.is_dir():
+        shutil.copytree(src, dst)
+    else:
+        shutil.copy2(src, dst)
+    for p in [dst, *dst.rglob("*")] if dst.is_dir() else [dst]:
+        if p.is_file():
+            p.chmod(p.stat().st_mode | 0o200)
+    return dst
+
+
 # -- the command run in this process -------------------------------------------------------------
 # Starting `python -m radiokit.cli` costs 0.4-0.9 s of CPU (imports) per call, and most CLI tests
 # only check what a bad input prints and returns. run_cli runs radiokit.cli.main(argv) here
