@@ -4,6 +4,7 @@ The vendor files live in ``../shared`` beside the repository (the only place the
 tests that need them are marked ``needs_itex`` and skip with a message naming the missing folder.
 """
 
+import atexit
 import contextlib
 import io
 import locale
@@ -47,10 +48,37 @@ def one_line_error(res, *needles):
     return lines[0]
 
 
+#: synthetic()'s experiments as first written in this process, by their arguments
+_SYNTHETIC_BUILT: dict[tuple, Path] = {}
+
+
 def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
     """A slab thinned by compression with a denser square (pipeline's test experiment; noiseless, the
     background's standard deviation is exactly zero, so every CNR is infinite); with
-    ``noise`` counts of Gaussian noise, so that outputs do not compress to nothing."""
+    ``noise`` counts of Gaussian noise, so that outputs do not compress to nothing.
+
+    Its frames are the same for the same arguments (the noise is seeded), so each experiment is
+    written once per process and copied afterwards (a file's bytes; only the times recorded in
+    it are the first writing's): about 150 tests each wrote one, 40 ms to a few seconds each.
+    A name already taken (a file, a link, a dangling link) gets the writer itself, which refuses
+    it or writes through the link as it does."""
+    import shutil
+
+    path = Path(path)
+    key = (float(scale), tuple(shape), int(n_per_step), float(noise))
+    built = _SYNTHETIC_BUILT.get(key)
+    if built is None or not built.is_file():
+        built = Path(tempfile.mkdtemp(prefix="radiokit-synthetic-")) / "exp.h5"
+        _write_synthetic(built, scale, shape, n_per_step, noise)
+        atexit.register(shutil.rmtree, built.parent, True)
+        _SYNTHETIC_BUILT[key] = built
+    if path.exists() or path.is_symlink():
+        return _write_synthetic(path, scale, shape, n_per_step, noise)
+    shutil.copyfile(built, path)
+    return path
+
+
+def _write_synthetic(path, scale, shape, n_per_step, noise):
     rng = np.random.default_rng(0)
     rows, cols = shape
     rr, cc = np.mgrid[0:rows, 0:cols]
@@ -65,6 +93,38 @@ def synthetic(path, scale=1.0, shape=(160, 160), n_per_step=1, noise=0.0):
                 counts = 100 + 3000 * np.exp(-L) + rng.normal(0, noise, shape)
                 w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
     return path
+
+
+# -- inputs built once per module -------------------------------------------------------------------
+# An input that costs seconds to build (a long experiment, a `process` run) and that several tests
+# only read is built once by a module-scoped fixture: read_only() marks it so that a test writing
+# into it fails (where the suite does not run as root) instead of handing its neighbours another
+# input; a test that changes its input works on writable_copy() of it in its own tmp_path.
+
+
+def read_only(path):
+    """``path`` (a file, or every file under a folder) made read-only; returned."""
+    path = Path(path)
+    for p in [path, *path.rglob("*")] if path.is_dir() else [path]:
+        if p.is_file():
+            p.chmod(p.stat().st_mode & ~0o222)
+    return path
+
+
+def writable_copy(src, dst):
+    """A copy of the file or folder ``src`` at ``dst`` (contents and times), its files writable by
+    their owner again; returns ``dst``."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    if src.is_dir():
+        shutil.copytree(src, dst)
+    else:
+        shutil.copy2(src, dst)
+    for p in [dst, *dst.rglob("*")] if dst.is_dir() else [dst]:
+        if p.is_file():
+            p.chmod(p.stat().st_mode | 0o200)
+    return dst
 
 
 # -- the command run in this process -------------------------------------------------------------

@@ -14,6 +14,7 @@ import termios
 import numpy as np
 import pytest
 import tifffile
+from conftest import run_cli
 
 from radiokit.io import ExperimentWriter, ImageKey
 from sim.detector import PanelModel
@@ -22,11 +23,13 @@ from sim.detector import PanelModel
 def _run(args, stderr_tty: bool, columns: int = 100, env=None):
     """The command with stderr on a pseudo-terminal ``columns`` wide (or a pipe): (exit code,
     stdout, stderr)."""
+    if not stderr_tty:
+        # the bars are drawn only where sys.stderr.isatty(): a pipe's and run_cli's stderr both say
+        # no, so this case needs no process of its own (the terminal cases below do: a pty)
+        res = run_cli(*args, env=env)
+        return res.returncode, res.stdout, res.stderr
     cmd = [sys.executable, "-m", "radiokit.cli", *map(str, args)]
     env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})}
-    if not stderr_tty:
-        res = subprocess.run(cmd, capture_output=True, text=True, env=env)
-        return res.returncode, res.stdout, res.stderr
     master, slave = pty.openpty()
     # a new pty is 0 x 0 unless told otherwise, as some CI shells' terminals are
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))

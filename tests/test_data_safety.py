@@ -26,7 +26,7 @@ import h5py
 import numpy as np
 import pytest
 import tifffile
-from conftest import mounted_tmpfs, one_line_error, run_cli, synthetic
+from conftest import mounted_tmpfs, one_line_error, read_only, run_cli, synthetic, writable_copy
 
 from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path, read
 
@@ -565,10 +565,21 @@ def _popen(*args):
     )
 
 
-def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
-    exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
-    out = tmp_path / "out.h5"
+@pytest.fixture(scope="module")
+def long_correct(tmp_path_factory):
+    """``(experiment, output)``: an experiment long enough (60 frames of 512 x 512) for `correct`'s
+    temporary file to be seen before the run ends, and a previous complete output of it (another
+    domain, so that a new output would differ). Both read-only, built once for the tests below:
+    each copies the output into its own folder, where the interrupted run writes."""
+    tmp = tmp_path_factory.mktemp("long")
+    exp = synthetic(tmp / "long.h5", shape=(512, 512), n_per_step=20)
+    out = tmp / "previous.h5"
     assert run_cli("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    return read_only(exp), read_only(out)
+
+
+def test_correct_killed_mid_write_leaves_the_previous_complete_output(long_correct, tmp_path):
+    exp, out = long_correct[0], writable_copy(long_correct[1], tmp_path / "out.h5")
     previous, inputs = sha(out), sha(exp)
     proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
     assert _kill_when(proc, tmp_path, ".out.tmp-*"), "the run ended before its temporary file was seen"
@@ -582,14 +593,12 @@ def test_correct_killed_mid_write_leaves_the_previous_complete_output(tmp_path):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT, signal.SIGQUIT])
-def test_correct_terminated_mid_write_cleans_up(sig, tmp_path):
+def test_correct_terminated_mid_write_cleans_up(sig, long_correct, tmp_path):
     """A catchable signal (a closed terminal, ``kill``, Ctrl-C, Ctrl-\\) unwinds: the previous output
     stays, and no temporary file is left either. (Python drops an exception raised while a
     finalizer runs; a signal landing there is lost and the run completes: then the output is the
     new complete one. Both are whole outputs, never a mix.)"""
-    exp = synthetic(tmp_path / "long.h5", shape=(512, 512), n_per_step=20)
-    out = tmp_path / "out.h5"
-    assert run_cli("correct", exp, "-o", out, "-q", "--domain", "linear").returncode == 0
+    exp, out = long_correct[0], writable_copy(long_correct[1], tmp_path / "out.h5")
     previous, inputs = sha(out), sha(exp)
     proc = _popen("correct", exp, "-o", out, "-q", "--overwrite")
     assert _kill_when(proc, tmp_path, ".out.tmp-*", sig=sig)
