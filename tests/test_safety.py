@@ -285,6 +285,11 @@ def _in_projection(model, tmp_path):
     assert model.xray_on
 
 
+def _in_first_frame_a_projection(model, tmp_path):
+    wait_until(notebook_has(tmp_path, r"frame 0 written"), what="the first projection")
+    assert model.xray_on
+
+
 def _in_settle(model, tmp_path):
     # step 1 compresses and settles (SETTLE_ROW_S) with the tube off; the virtual frame moves at once
     wait_until(notebook_has(tmp_path, r"phase step 1"), what="step 1")
@@ -300,13 +305,15 @@ PHASES = {
     "projection (beam on)": _in_projection,
     "settle (operator/compression wait)": _in_settle,
 }
+# not a row of the signal matrix: a series without darks and flats, whose first frame is a projection
+OTHER_PHASES = {"the first frame, a projection (beam on)": _in_first_frame_a_projection}
 SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP, "SIGKILL": signal.SIGKILL}
 
 
 def reach(phase, model, tmp_path, acq):
     """Wait until the command is in ``phase`` (failing with what it printed if it never gets there)."""
     try:
-        PHASES[phase](model, tmp_path)
+        {**PHASES, **OTHER_PHASES}[phase](model, tmp_path)
     except AssertionError as exc:
         acq.proc.kill()
         acq.wait()
@@ -475,9 +482,14 @@ def test_controller_fault_gives_the_warning(tmp_path, scene_file, controller, na
     model, server = controller()
     port = tmp_path / "ttyUSB0"  # the port by a name the test controls (the unplugged row removes it)
     port.symlink_to(server.url)
-    proto = write_protocol(tmp_path, scene_file, str(port), source={**DRIVER_DEFAULTS, "dialect": model.dialect})
+    # no darks and no flats: the claim is what follows a fault mid-projection; at the driver's
+    # defaults their beam-off and beam-on periods took about 2 s of each row's wall before it
+    series = {"darks": 0, "flats": 0}
+    proto = write_protocol(
+        tmp_path, scene_file, str(port), source={**DRIVER_DEFAULTS, "dialect": model.dialect}, series=series
+    )
     acq = Acquire(proto, "--sim", "-q")
-    reach("projection (beam on)", model, tmp_path, acq)
+    reach("the first frame, a projection (beam on)", model, tmp_path, acq)
     watch = OffWatch(model)
     t0 = time.monotonic()
     inject(model, server, port)
