@@ -1091,6 +1091,7 @@ def test_an_overwrite_killed_before_its_first_frame_leaves_the_old_series_and_th
     assert out.read_bytes() == before and not kept[0].exists()
 
 
+@ONE_DIALECT  # the writer's lock on the file: the controller's dialect plays no part
 def test_a_second_overwrite_while_a_run_writes_the_file_is_refused_and_the_first_keeps_its_frames(
     tmp_path, scene_file, controller
 ):
