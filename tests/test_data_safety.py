@@ -15,6 +15,7 @@ import hashlib
 import json
 import os
 import signal
+import socket
 import stat
 import subprocess
 import sys
@@ -832,12 +833,7 @@ def test_a_killed_runs_temporary_is_removed_by_the_next_run(experiment, tmp_path
 
 
 def test_a_killed_process_runs_temporary_folder_is_removed_by_the_next_run(experiment, tmp_path):
-    import socket
-
-    host = socket.gethostname().split(".")[0]
-    dead = subprocess.run(
-        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
-    ).stdout.strip()
+    host, dead = socket.gethostname().split(".")[0], _dead_pid()
     stale = tmp_path / f".res.tmp-{host}-{dead}-0123abcd"
     stale.mkdir()
     (stale / "results.h5").write_bytes(b"half")
@@ -871,6 +867,11 @@ def _results_folder(out: Path, text="run 1") -> dict:
     return tree_sha(out)
 
 
+def _dead_pid() -> int:
+    """The process number of a process that has ended (as a killed run's is)."""
+    return int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True).stdout)
+
+
 @pytest.mark.parametrize("next_run", ["fails", "overwrites"])
 def test_a_results_folder_a_killed_run_left_aside_is_put_back_not_deleted(next_run, experiment, tmp_path):
     """A run killed between renaming the previous folder aside and swapping its own in left the
@@ -893,12 +894,7 @@ def test_a_results_folder_a_killed_run_left_aside_is_put_back_not_deleted(next_r
 
 
 def test_two_results_folders_left_aside_are_refused_and_kept(experiment, tmp_path):
-    import socket
-
-    host = socket.gethostname().split(".")[0]
-    dead = subprocess.run(
-        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
-    ).stdout.strip()
+    host, dead = socket.gethostname().split(".")[0], _dead_pid()
     aside = [tmp_path / f".res.old-{host}-{dead}-{tag}" for tag in ("0123abcd", "4567ef01")]
     for folder in aside:
         folder.mkdir()
@@ -912,12 +908,7 @@ def test_two_results_folders_left_aside_are_refused_and_kept(experiment, tmp_pat
 def test_a_results_folder_kept_aside_is_never_deleted_by_a_later_run(experiment, tmp_path):
     """The message said "the previous folder is kept in .res.old-...", and the next run to that
     name deleted it: one left aside while the name is taken is left alone."""
-    import socket
-
-    host = socket.gethostname().split(".")[0]
-    dead = subprocess.run(
-        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
-    ).stdout.strip()
+    host, dead = socket.gethostname().split(".")[0], _dead_pid()
     out = tmp_path / "res"
     _results_folder(out)
     kept = tmp_path / f".res.old-{host}-{dead}-0123abcd"

@@ -603,16 +603,21 @@ def test_the_wrong_dialect_is_refused_at_connect_with_a_hint(dialect):
     assert set(model.commands) <= PROBE_QUERIES | {"SRL", "XOF"} and "XOF" in model.commands
 
 
+def focus_echoed_not_taken(model: L8121Model, dialect, monkeypatch) -> None:
+    """The model echoes a focus command (A ``CFS n``, B ``CFS``/``CFM``/``CFL``) and keeps its focus."""
+    if dialect == "A":
+        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
+    else:
+        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+
+
 def test_a_focus_the_controller_does_not_take_is_refused_by_its_read_back(source, dialect, monkeypatch):
     """The brief's rule for settings (read back where the dialect can: A's SFC, B's SFS) holds for
     the focus too: a unit that echoes CFS 2 (B: CFL) but keeps its old focus would have the series
     expose, and record, a focal spot it is not using (found by helper s37a's independent model)."""
     src, model = source
     assert src.focus == 0
-    if dialect == "A":  # echoed, not taken
-        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
-    else:
-        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    focus_echoed_not_taken(model, dialect, monkeypatch)
     with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 2 was set"):
         src.focus = 2
     assert model.commands[-1] == WIRE[dialect]["focus_get"][0]
@@ -644,10 +649,7 @@ def test_a_focus_the_unit_does_not_read_back_before_an_xon_stops_the_xon(source,
     """The focus read back wrong before an XON: no X-ray command goes out."""
     src, model = source
     src.focus = 1
-    if dialect == "A":
-        monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
-    else:
-        monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+    focus_echoed_not_taken(model, dialect, monkeypatch)
     model._focus = 0
     with pytest.raises(DeviceError, match=r"focus: the controller reads back 0 after 1 was set"):
         src.on(60, 250)
@@ -900,10 +902,7 @@ def test_a_focus_not_read_back_before_a_warm_up_stops_it_before_it_emits(cold, d
     model, server = cold
     with driver(server, dialect) as src:
         src.focus = 1
-        if dialect == "A":
-            monkeypatch.setitem(model._commands, "CFS", lambda t, arg: f"CFS {arg}")
-        else:
-            monkeypatch.setattr(model, "_cf", lambda mode, word: word)
+        focus_echoed_not_taken(model, dialect, monkeypatch)
         model._focus = 0
         with pytest.raises(
             DeviceError, match=r"focus: the controller reads back 0 after 1 was set.*warm-up not started"
