@@ -59,6 +59,9 @@ class SpecModel:
         self.micro_sign: str | None = None
         self.set_kv = self.set_ua = 0
         self.focus = 0  # A: CFS n / SFC n; B: CFS, CFM, CFL / SFS SMALL, MIDDLE, LARGE (0, 1, 2)
+        # a unit that refuses a focus command during its power-on checks ("wrong state": L8121.md
+        # says nothing of which commands a unit takes then)
+        self.focus_waits_for_checks = False
         self.t_on = self.t_warm = 0.0
         self.received: list[str] = []  # what was understood, in order
         self.lost: list[str] = []  # what arrived at the wrong rate or too soon
@@ -115,10 +118,13 @@ class SpecModel:
                 return None
             self.set_ua = value
             return line
-        if word == "CFS" and not b and value <= 3:
+        if word == "CFS" and not b and value <= 3 and not self._checking_refuses_focus():
             self.focus = value
             return line
         return None
+
+    def _checking_refuses_focus(self) -> bool:
+        return self.focus_waits_for_checks and time.monotonic() < self.checks_end
 
     def _action(self, word):
         if word == "XOF":
@@ -138,7 +144,7 @@ class SpecModel:
                 return None
             self.state, self.t_on = "XON", time.monotonic()
             return "XON"
-        if self.dialect == "B" and word in _B_FOCUS:
+        if self.dialect == "B" and word in _B_FOCUS and not self._checking_refuses_focus():
             self.focus = _B_FOCUS.index(word)
             return word
         if word == "WUP" and self.dialect == "A":
@@ -522,7 +528,9 @@ def test_a_series_sets_and_reads_back_its_focus_before_the_warm_up_emits(dialect
     read back before the warm-up's start command, and again before every XON."""
     from acquisition.protocols.compression_series import load_protocol, run
 
-    model = SpecModel(dialect)  # warm-up needed
+    # warm-up needed, just switched on: its checks run for 1 s, and it takes no focus meanwhile
+    model = SpecModel(dialect, checking_s=1.0)
+    model.focus_waits_for_checks = True
     with served(model) as pty:
         p = load_protocol(_series(pty.url, dialect, 1))
         p.output = str(tmp_path / "series.h5")

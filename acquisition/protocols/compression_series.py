@@ -995,9 +995,10 @@ def _phase_warm_up(r: _Run):
     if p.source.focus is not None:  # a setting: checked before anything is opened or sent
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
+    needed = _needs_warm_up(src)  # after the controller's power-on checks: a setting sent during them may be refused
     if p.source.focus is not None:  # before the warm-up, which emits (B's is an XON); set again before each XON
         src.focus = int(p.source.focus)
-    if _needs_warm_up(src):
+    if needed:
         t = time.perf_counter()
         try:
             # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
