@@ -2647,6 +2647,32 @@ def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is
     np.testing.assert_array_equal(read(path).data, frames[:2])
 
 
+def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memory_budget(tmp_path, monkeypatch):
+    """s39 review (MEDIUM): a set's file truncated to gigabytes (sparse: no disk taken) passed the
+    bytes-per-plane bound, and tifffile listed 10**8 slots (850 MB). The slots are charged to the
+    memory budget too. A summary's count of 1e400 (infinity) is no crash."""
+    import os
+
+    frames = _frames(4)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
+    for k, name in enumerate(names):
+        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 10**15)
+        _mm_patch(tmp_path / name, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+    os.truncate(tmp_path / names[1], 64 * 2**20)  # 64 MiB, holes: room for 3 million index entries
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "4MiB")  # under the 1000000 slots' ~20 MB
+    with pytest.raises(FormatError, match=r"listing a Micro-Manager stack of 1000000 planes.*memory budget"):
+        read(tmp_path / names[0], allow_external=True)
+    one_line_error(run_cli("info", tmp_path / names[0]), names[0], "memory budget")
+
+    path = tmp_path / "inf" / "one_MMStack_Pos0.ome.tif"
+    path.parent.mkdir()
+    _mmstack_file(path, frames[:2], 0, 10**15)
+    _mm_patch(path, {"Frames": 123456789, "Channels": 1, "Slices": 1, "Positions": 1})
+    path.write_bytes(path.read_bytes().replace(b'"Frames": 123456789', b'"Frames": 1e400    ', 1))
+    res = run_cli("info", path)
+    assert "Traceback" not in res.stderr and "infinity" not in res.stderr, res.stderr
+
+
 @pytest.mark.parametrize(
     "counts, coords, what",
     [
