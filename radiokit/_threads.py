@@ -45,5 +45,23 @@ def pool() -> ThreadPoolExecutor:
     n = threads()
     with _POOLS_LOCK:
         if n not in _POOLS:
-            _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix=f"radiokit-{n}")
+            _POOLS[n] = _started_pool(n)
         return _POOLS[n]
+
+
+def _started_pool(n: int) -> ThreadPoolExecutor:
+    """A pool of ``n`` threads whose first thread is made, and registered for the interpreter's
+    exit, while stop signals are held (then delivered: :func:`radiokit.interrupts.held`).
+
+    Why: the pool makes its threads on demand and registers each, to be woken at exit, only after
+    ``Thread.start()`` returns; a stop that landed inside ``start()`` (it waits for the new thread)
+    left a thread nobody wakes, and the process hung for good at its end, in
+    ``threading._shutdown``, after printing "interrupted" (a stop lost in a finalizer, delivered
+    again 50 ms later, at `correct`'s first frame). Threads made later share the registered
+    one's queue, which the exit wakes in a chain."""
+    from radiokit.interrupts import STOP_SIGNALS, held
+
+    with held(*STOP_SIGNALS):
+        executor = ThreadPoolExecutor(n, thread_name_prefix=f"radiokit-{n}")
+        executor.submit(int).result()
+    return executor

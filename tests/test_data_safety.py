@@ -676,6 +676,41 @@ def test_a_stop_lost_in_a_finalizer_stops_the_command(command, sig, timer, tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.h5"] and sha(exp) == inputs
 
 
+_STOP_IN_A_POOL_THREADS_START = """
+import signal, sys, threading
+from radiokit import _threads
+
+def stop(signum, frame):
+    raise KeyboardInterrupt("SIGTERM")
+
+signal.signal(signal.SIGTERM, stop)
+real = threading.Thread.start
+
+def start(self):
+    real(self)
+    if self.name.startswith("radiokit-"):
+        signal.raise_signal(signal.SIGTERM)  # lands before the pool has registered the thread
+
+threading.Thread.start = start
+try:
+    print(sum(_threads.pool().map(abs, range(-4, 4))))
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(143)
+"""
+
+
+def test_a_stop_while_the_thread_pool_starts_its_thread_does_not_hang_the_exit():
+    """A stop landing inside ``Thread.start()`` of the pool's first thread (a lost stop delivered
+    again 50 ms later did, at `correct`'s first frame) left a thread the interpreter's exit never
+    woke: the command printed "interrupted" and hung for good in ``threading._shutdown``. The first
+    thread is now made with stops held, and the stop is delivered right after."""
+    res = subprocess.run(
+        [sys.executable, "-c", _STOP_IN_A_POOL_THREADS_START], capture_output=True, text=True, timeout=60
+    )
+    assert (res.returncode, res.stdout.strip()) == (143, "interrupted"), (res.returncode, res.stdout, res.stderr)
+
+
 def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
     exp = synthetic(tmp_path / "exp.h5")
     out = tmp_path / "res"
