@@ -616,18 +616,17 @@ def _restore_interrupted(path: Path) -> None:
     points to is results the user believes gone."""
     if not path.parent.is_dir():
         return
+    aside = _leftovers(path, True, "old")
     if os.path.lexists(path):
-        kept = _leftovers(path, True, "old")
-        if kept:
+        if aside:
             message = UserWarning(
                 f"{path}: previous results of an interrupted run are kept beside it in "
-                f"{', '.join(p.name for p in kept)}; remove {'it' if len(kept) == 1 else 'them'} "
+                f"{', '.join(p.name for p in aside)}; remove {'it' if len(aside) == 1 else 'them'} "
                 "once nothing there is needed"
             )
             message.path = str(path)  # once per command: the output is checked again before it is written
             warnings.warn(message, stacklevel=4)
         return
-    aside = _leftovers(path, True, "old")
     if len(aside) == 1:
         with contextlib.suppress(OutputError):  # the name taken meanwhile: that one stays
             _publish(aside[0], path, folder=True)
