@@ -2820,3 +2820,27 @@ def test_the_output_check_survives_an_input_whose_link_names_are_not_utf8(tmp_pa
         h5["ext"] = h5py.ExternalLink("other.h5", "/x")
     assert data_files(path, allow_external=True) == []
     check_output(tmp_path / "out.h5", inputs=[path])  # nothing to refuse, nothing raised
+
+
+def test_a_master_file_whose_frames_are_external_links_names_them(tmp_path):
+    """A Dectris-style master file keeps its frames in data files it links to (entry/data/data_000001
+    -> a second file); the refusal names those links and --allow-external, not "holds no 2-D or 3-D
+    dataset of numbers" (a user read that as an empty file). Nothing outside the file is opened."""
+    for i in (1, 2):
+        with h5py.File(tmp_path / f"m_data_00000{i}.h5", "w") as f:
+            f["entry/data/data"] = np.zeros((3, 8, 8), np.uint16)
+    with h5py.File(tmp_path / "m_master.h5", "w") as f:
+        for i in (1, 2):
+            f[f"entry/data/data_00000{i}"] = h5py.ExternalLink(f"m_data_00000{i}.h5", "/entry/data/data")
+    (tmp_path / "m_data_000002.h5").unlink()  # a dangling link must not matter: the links are only listed
+    with pytest.raises(FormatError) as err:
+        read(tmp_path / "m_master.h5")
+    msg = str(err.value)
+    assert "/entry/data/data_000001 (in m_data_000001.h5)" in msg and "--allow-external" in msg, msg
+    assert "holds no 2-D or 3-D dataset" not in msg
+    with h5py.File(tmp_path / "m_master.h5", "a") as f:
+        f["entry/local"] = np.zeros((4, 4), np.float32)
+    with pytest.raises(
+        FormatError, match=r"/entry/local \(4x4 float32\).*/entry/data/data_000001 \(in m_data_000001\.h5\)"
+    ):
+        read(tmp_path / "m_master.h5")

@@ -1965,7 +1965,9 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
     """Where the frames of a file of another layout may be: the 2-D and 3-D datasets of numbers in
     ``h5`` (a file or a group), largest first, ``shown`` at most ("/a (3x20x24 uint16), ... and 3
     more"; "" when there are none; None when the file cannot be looked through), for a refusal that
-    asks for ``--dataset`` (the user otherwise needs another tool to find the path)."""
+    asks for ``--dataset`` (the user otherwise needs another tool to find the path). External links
+    (a detector's master file linking its data files) are listed after them, with the file each
+    points into, and not followed."""
     found, seen = [], [0]
 
     def visit(name, obj):
@@ -1974,13 +1976,28 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
             found.append((obj.size, f"{obj.name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
         return True if seen[0] >= 10_000 else None  # a file of many objects: a look, not a survey
 
+    linked = []
+
+    def visit_link(name, link):
+        seen[0] += 1
+        if isinstance(link, h5py.ExternalLink):
+            linked.append(f"{h5.name.rstrip('/')}/{name} (in {link.filename})")
+        return True if seen[0] >= 20_000 else None
+
     try:
         h5.visititems(visit)  # hard links only: nothing outside the file is opened
+        # a detector's master file (Dectris, NeXus writers) keeps its frames in files it links to;
+        # the links are listed, not followed
+        h5.visititems_links(visit_link)
     except Exception:  # a corrupt file: its refusal stands without the list
         return None
     found.sort(key=lambda item: -item[0])
+    if linked:
+        linked.sort()
+        found += [(-1, text) for text in linked]
     more = f" and {len(found) - shown} more" if len(found) > shown else ""
-    return ", ".join(text for _, text in found[:shown]) + more
+    outside = "; a link into another file is read with --allow-external (allow_external=True)" if linked else ""
+    return ", ".join(text for _, text in found[:shown]) + more + outside
 
 
 def _not_an_experiment(h5: h5py.File) -> str:
