@@ -552,6 +552,7 @@ _PROCESS_OPTIONS = {
     "cross_check=": "--cross-check ",
     "inclusion ROI ": "--inclusion ",
     "background ROI ": "--background ",
+    "control=": "--control ",
 }
 
 
@@ -883,9 +884,10 @@ def cmd_process(args) -> int:
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
-    # the local cluster's workers each process a file at once (a scheduler's run on their own hosts)
-    at_once = 1 if single or args.scheduler else local_workers(args.workers, len(args.files), cores())
-    _check_process_memory(args.files, cfg, at_once)
+    # the local cluster's workers each process a file at once; a scheduler's run on hosts only
+    # process_many sees, which checks each file against its workers' share of their memory there
+    if not args.scheduler:
+        _check_process_memory(args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores()))
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
@@ -913,15 +915,18 @@ def _process_many(args, cfg) -> int:
             file=sys.stderr,
             flush=True,
         )
-    results = process_many(
-        args.files,
-        cfg,
-        out_root=args.output,
-        scheduler=args.scheduler,
-        workers=args.workers,
-        overwrite=args.overwrite,
-        connect_timeout_s=args.scheduler_timeout,
-    )
+    try:
+        results = process_many(
+            args.files,
+            cfg,
+            out_root=args.output,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            overwrite=args.overwrite,
+            connect_timeout_s=args.scheduler_timeout,
+        )
+    except ValueError as exc:  # a refusal before any work (the workers' memory): in the options' words
+        raise ValueError(_process_error(str(exc), args)) from None
     failed = 0
     for r in results:
         if "error" in r:

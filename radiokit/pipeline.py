@@ -1406,6 +1406,68 @@ def _scheduler_shares(client) -> dict:
     return shares
 
 
+def _memory_shares(client) -> dict:
+    """Each connected worker's share of memory for one file, ``(bytes, words saying how)``: its
+    host's budget (:func:`radiokit.io.memory_budget` there: that host's ``RADIOKIT_MEMORY_BUDGET``
+    or half its available memory; a budget given to this process stands for every host) divided
+    among the files the host's workers process at once (their Dask threads), and no more than the
+    worker's own Dask ``memory_limit`` divided among its threads (its nanny stops it past that)."""
+    from radiokit.io._budget import _human, explicit_budget, memory_budget
+
+    info = _all_workers(client)
+    given = memory_budget() if explicit_budget() else None
+    # measured there, not here: a scheduler's workers may run on other machines
+    reported = {} if given is not None else client.run(memory_budget, workers=list(info))
+    per_host: dict = {}
+    for addr, w in info.items():
+        per_host.setdefault(w["host"], []).append(addr)
+    shares = {}
+    for host, addrs in per_host.items():
+        at_once = sum(int(info[a]["nthreads"]) for a in addrs)
+        seen = [reported[a] for a in addrs if a in reported]
+        budget = given if given is not None else min(seen) if seen else memory_budget()
+        for a in addrs:
+            share = budget // at_once
+            words = f"the memory budget of {_human(budget)} on host {host}" + (
+                f", shared by the {at_once} files its Dask workers process at once ({_human(share)} each)"
+                if at_once > 1
+                else ""
+            )
+            n, limit = int(info[a]["nthreads"]), int(info[a].get("memory_limit") or 0)
+            if limit and limit // n < share:
+                share = limit // n
+                words = f"Dask's memory_limit of {_human(limit)} for worker {a}" + (
+                    f", shared by the {n} files it processes at once ({_human(share)} each)" if n > 1 else ""
+                )
+            shares[a] = (share, words)
+    return shares
+
+
+def _check_worker_memory(paths, cfg: Config, shares: dict) -> None:
+    """Refuse, before any work, a file whose processing would need more memory than the smallest
+    worker's share (:func:`_memory_shares`; Dask may give any file to any worker), as ``radiokit
+    process`` refuses one file over the budget. Its control is processed beside it, so charged
+    with it."""
+    from radiokit.io._budget import BUDGET_ENV, _human
+
+    share, budget = min(shares.values(), key=lambda s: s[0])
+    advice = (
+        f": raise {BUDGET_ENV} if the workers' hosts have that memory, process fewer files at once "
+        "(fewer workers or Dask threads a host; on the command line --workers 1 takes one at a time), "
+        "or process smaller frames, binned or cropped beforehand"
+    )
+    control = _process_need(cfg.control, cfg) if cfg.control else None
+    if control is not None and control[0] > share:
+        raise ValueError(f"control={cfg.control}: processing {control[1]}, over {budget}{advice}")
+    for path in paths:
+        mine = _process_need(path, cfg)
+        if mine is None:  # the file's own error is said in its slot, as process says it
+            continue
+        if mine[0] + (control[0] if control else 0) > share:
+            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
+            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {budget}{advice}")
+
+
 def _all_workers(client) -> dict:
     try:
         return client.scheduler_info(n_workers=-1)["workers"]  # recent Dask lists 5 by default
@@ -1454,7 +1516,9 @@ def process_many(
     naming the address then). Each worker's threads are sized to its share of the cores
     (:func:`worker_threads`; for a scheduler, from the workers' hosts and Dask threads), so that
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
-    Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
+    Their memory is shared likewise: a file (with ``config.control``) whose processing would need
+    more than a worker's share of its host's budget (:func:`_memory_shares`) refuses the whole run
+    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
     failed (the others go on). Output folders are :func:`output_folders`; each is written as
     :func:`process` writes."""
     try:
@@ -1479,12 +1543,16 @@ def process_many(
         if scheduler is None:
             _local_cluster(local_workers(workers, len(paths), cores()), ours)
         client = Client(ours["cluster"]) if ours else _connect(Client, scheduler, connect_timeout_s)
+        shares = _scheduler_shares(client)
+        # each file against its worker's share of the memory, before any work: the workers of a
+        # host each hold a file at once, and the command line sees neither a scheduler's hosts
+        # nor the budget a worker's own environment gives
+        _check_worker_memory(paths, cfg, _memory_shares(client))
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
         made = _missing_folders(out_root) if out_root is not None else []
         if made:
             Path(out_root).mkdir(parents=True)
-        shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)
         futures = {
             client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i
