@@ -1361,6 +1361,9 @@ class WorkerThreads:
 
     tasks: int
     threads: int
+    #: the bytes its reads may take (its share of its host's memory budget, :func:`_memory_shares`);
+    #: None: the host's whole budget
+    memory: int | None = None
 
     def environ(self) -> dict:
         """Environment for a worker process started for this share (read by the libraries at load)."""
@@ -1408,16 +1411,17 @@ def _scheduler_shares(client) -> dict:
 
 def _memory_shares(client) -> dict:
     """Each connected worker's share of memory for one file, ``(bytes, words saying how)``: its
-    host's budget (:func:`radiokit.io.memory_budget` there: that host's ``RADIOKIT_MEMORY_BUDGET``
+    host's budget (:func:`radiokit.io._budget.host_budget` there: that host's ``RADIOKIT_MEMORY_BUDGET``
     or half its available memory; a budget given to this process stands for every host) divided
     among the files the host's workers process at once (their Dask threads), and no more than the
     worker's own Dask ``memory_limit`` divided among its threads (its nanny stops it past that)."""
-    from radiokit.io._budget import _human, explicit_budget, memory_budget
+    from radiokit.io._budget import _human, explicit_budget, host_budget
 
     info = _all_workers(client)
-    given = memory_budget() if explicit_budget() else None
-    # measured there, not here: a scheduler's workers may run on other machines
-    reported = {} if given is not None else client.run(memory_budget, workers=list(info))
+    given = host_budget() if explicit_budget() else None
+    # measured there, not here: a scheduler's workers may run on other machines; their whole
+    # budget, not the share an earlier run left them
+    reported = {} if given is not None else client.run(host_budget, workers=list(info))
     per_host: dict = {}
     for addr, w in info.items():
         per_host.setdefault(w["host"], []).append(addr)
@@ -1425,7 +1429,7 @@ def _memory_shares(client) -> dict:
     for host, addrs in per_host.items():
         at_once = sum(int(info[a]["nthreads"]) for a in addrs)
         seen = [reported[a] for a in addrs if a in reported]
-        budget = given if given is not None else min(seen) if seen else memory_budget()
+        budget = given if given is not None else min(seen) if seen else host_budget()
         for a in addrs:
             share = budget // at_once
             words = f"the memory budget of {_human(budget)} on host {host}" + (
@@ -1487,7 +1491,10 @@ def _limit_this_process(share: WorkerThreads):
     import scipy.linalg  # noqa: F401  (loads scipy's BLAS, so that threadpoolctl can limit it)
     from threadpoolctl import threadpool_limits
 
+    from radiokit.io._budget import set_share
+
     os.environ["RADIOKIT_THREADS"] = str(share.threads)
+    set_share(share.memory)
     cv2.setNumThreads(share.threads)
     threadpool_limits(limits=1, user_api="blas")
     try:
@@ -1547,7 +1554,10 @@ def process_many(
         # each file against its worker's share of the memory, before any work: the workers of a
         # host each hold a file at once, and the command line sees neither a scheduler's hosts
         # nor the budget a worker's own environment gives
-        _check_worker_memory(paths, cfg, _memory_shares(client))
+        memory = _memory_shares(client)
+        _check_worker_memory(paths, cfg, memory)
+        # and each worker's reads held to its share (the calibration's darks and flats, say)
+        shares = {a: dataclasses.replace(s, memory=memory[a][0]) if a in memory else s for a, s in shares.items()}
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
         made = _missing_folders(out_root) if out_root is not None else []

@@ -436,6 +436,36 @@ def test_a_local_clusters_workers_share_the_memory_budget(tmp_path, monkeypatch)
     assert not (tmp_path / "out").exists()
 
 
+def test_each_worker_reads_within_its_share_of_the_memory_budget(tmp_path, monkeypatch):
+    """The files a host's workers pass hold the workers' whole budget between them, and so must
+    every read inside them: each worker's readers were held to its host's whole budget (two
+    workers of one host: twice it summed). After a run each worker's budget is its share."""
+    from dask.distributed import Client, LocalCluster
+
+    from radiokit.io import memory_budget
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    budget = 3 * _one_file_need()  # two files at once fit
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))  # the workers' environment too
+    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        assert sum(client.run(memory_budget).values()) == 2 * budget  # each its host's whole budget
+        res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+        assert "error" not in res[0], res[0]
+        after = client.run(memory_budget)
+        # a second run divides the host's budget again, not the share the first one left
+        res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address, overwrite=True)
+        assert "error" not in res[0], res[0]
+        again = client.run(memory_budget)
+    assert len(after) == 2 and set(after.values()) == {budget // 2}, after
+    assert again == after
+
+
 def test_the_steps_compose_and_a_zero_reference_contrast_is_an_error(tmp_path):
     """The public steps run one by one give what process gives; a reference without contrast
     between the ROIs is refused (the improvement factor is undefined), naming file and domain."""
