@@ -552,6 +552,7 @@ _PROCESS_OPTIONS = {
     "cross_check=": "--cross-check ",
     "inclusion ROI ": "--inclusion ",
     "background ROI ": "--background ",
+    "control=": "--control ",
 }
 
 
@@ -813,54 +814,6 @@ def _check_process_files(args) -> None:
         )
 
 
-#: process's peak memory per pixel of a frame, beyond the interpreter's 380 MB, measured with
-#: /usr/bin/time -v on tests' synthetic files (3 steps, one frame each, the default method and
-#: preset): with the default 600 x 600 crop 488 MB at 1024 x 1024, 814 MB at 2048 x 2048, 106 bytes a
-#: frame pixel; keeping the whole frame (--crop-mm 0) 649 MB and 1385 MB, 240 bytes, so 134 more a
-#: kept pixel. tracemalloc's peak of the same runs (numpy's share) split them 71 + 162 (232); each
-#: figure is the larger, rounded up. A file of more steps holds more: PROCESS_BYTES_PER_STEP_PIXEL.
-PROCESS_BYTES_PER_PIXEL = 110
-#: process's peak memory per pixel of the crop it keeps (the enhanced images, fields, figures)
-PROCESS_BYTES_PER_KEPT_PIXEL = 170
-#: the steps the two figures above were measured on (tests' synthetic files)
-PROCESS_MEASURED_STEPS = 3
-#: process's peak memory per frame pixel of each step beyond those 3 (a step's image, its pairs'
-#: fields and crops), measured with /usr/bin/time -v on synthetic's slab and square over 3 and 12
-#: steps, one frame each, --crop-mm 0 (the whole frame kept), -q --no-report --cross-check none:
-#: 380 and 455 MB at 512 x 512 (32 bytes a pixel a step), 477 and 870 MB at 1024 x 1024 (42; review
-#: s37r1 measured 537 and 896 MB there, 38); with the report and cross-check, 416 and 520 MB at
-#: 512 x 512 (44): the largest, rounded up
-PROCESS_BYTES_PER_STEP_PIXEL = 45
-
-
-def _process_need(path, cfg) -> tuple[int, str] | None:
-    """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
-    index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
-    from radiokit.io import open_frames
-    from radiokit.io._budget import _human
-
-    try:
-        with open_frames(path) as src:
-            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
-            # the steps from the file's index (read with its metadata), no frame read
-            keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
-    except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
-        return None
-    n_steps = len(set(steps[(keys == 0) & (steps >= 0)].tolist())) if steps.shape == keys.shape else 0
-    more = max(0, n_steps - PROCESS_MEASURED_STEPS)
-    # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
-    side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
-    kept = min(side, rows) * min(side, cols)
-    per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
-    need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
-    words = (
-        f"its {rows}x{cols} frames of {n_steps} steps need about {_human(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
-        + (f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}" if more else "")
-        + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the {int(min(side, rows))}x{int(min(side, cols))} crop kept)"
-    )
-    return need, words
-
-
 def _check_process_memory(files, cfg, at_once: int = 1) -> None:
     """Refuse, before any work, a file whose processing would need more memory than the budget,
     as ``register`` refuses a registration: ``process`` registers the same frames and holds more.
@@ -870,6 +823,7 @@ def _check_process_memory(files, cfg, at_once: int = 1) -> None:
     all of it, so two workers could take twice the budget."""
     from radiokit.io import memory_budget
     from radiokit.io._budget import BUDGET_ENV, _human
+    from radiokit.pipeline import _process_need
 
     limit = memory_budget()
     share = limit // max(1, at_once)
@@ -930,9 +884,10 @@ def cmd_process(args) -> int:
     outs = [args.output] if single and args.output else output_folders(args.files, args.output)
     for out in outs:  # refuse before any work, not after the first file
         check_output(out, overwrite=args.overwrite, inputs=inputs, folder=True)
-    # the local cluster's workers each process a file at once (a scheduler's run on their own hosts)
-    at_once = 1 if single or args.scheduler else local_workers(args.workers, len(args.files), cores())
-    _check_process_memory(args.files, cfg, at_once)
+    # the local cluster's workers each process a file at once; a scheduler's run on hosts only
+    # process_many sees, which checks each file against its workers' share of their memory there
+    if not args.scheduler:
+        _check_process_memory(args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores()))
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
@@ -960,15 +915,18 @@ def _process_many(args, cfg) -> int:
             file=sys.stderr,
             flush=True,
         )
-    results = process_many(
-        args.files,
-        cfg,
-        out_root=args.output,
-        scheduler=args.scheduler,
-        workers=args.workers,
-        overwrite=args.overwrite,
-        connect_timeout_s=args.scheduler_timeout,
-    )
+    try:
+        results = process_many(
+            args.files,
+            cfg,
+            out_root=args.output,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            overwrite=args.overwrite,
+            connect_timeout_s=args.scheduler_timeout,
+        )
+    except ValueError as exc:  # a refusal before any work (the workers' memory): in the options' words
+        raise ValueError(_process_error(str(exc), args)) from None
     failed = 0
     for r in results:
         if "error" in r:

@@ -1292,6 +1292,54 @@ def output_folders(paths, out_root=None) -> list[Path]:
     return outs
 
 
+#: process's peak memory per pixel of a frame, beyond the interpreter's 380 MB, measured with
+#: /usr/bin/time -v on tests' synthetic files (3 steps, one frame each, the default method and
+#: preset): with the default 600 x 600 crop 488 MB at 1024 x 1024, 814 MB at 2048 x 2048, 106 bytes a
+#: frame pixel; keeping the whole frame (--crop-mm 0) 649 MB and 1385 MB, 240 bytes, so 134 more a
+#: kept pixel. tracemalloc's peak of the same runs (numpy's share) split them 71 + 162 (232); each
+#: figure is the larger, rounded up. A file of more steps holds more: PROCESS_BYTES_PER_STEP_PIXEL.
+PROCESS_BYTES_PER_PIXEL = 110
+#: process's peak memory per pixel of the crop it keeps (the enhanced images, fields, figures)
+PROCESS_BYTES_PER_KEPT_PIXEL = 170
+#: the steps the two figures above were measured on (tests' synthetic files)
+PROCESS_MEASURED_STEPS = 3
+#: process's peak memory per frame pixel of each step beyond those 3 (a step's image, its pairs'
+#: fields and crops), measured with /usr/bin/time -v on synthetic's slab and square over 3 and 12
+#: steps, one frame each, --crop-mm 0 (the whole frame kept), -q --no-report --cross-check none:
+#: 380 and 455 MB at 512 x 512 (32 bytes a pixel a step), 477 and 870 MB at 1024 x 1024 (42; review
+#: s37r1 measured 537 and 896 MB there, 38); with the report and cross-check, 416 and 520 MB at
+#: 512 x 512 (44): the largest, rounded up
+PROCESS_BYTES_PER_STEP_PIXEL = 45
+
+
+def _process_need(path, cfg) -> tuple[int, str] | None:
+    """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
+    index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
+    from radiokit.io import open_frames
+    from radiokit.io._budget import _human
+
+    try:
+        with open_frames(path) as src:
+            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+            # the steps from the file's index (read with its metadata), no frame read
+            keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
+    except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order
+        return None
+    n_steps = len(set(steps[(keys == 0) & (steps >= 0)].tolist())) if steps.shape == keys.shape else 0
+    more = max(0, n_steps - PROCESS_MEASURED_STEPS)
+    # as choose_rois crops (None: the whole frame); a pixel size it would refuse, the whole frame
+    side = cfg.crop_mm / pixel_mm if cfg.crop_mm is not None and pixel_mm > 0 else max(rows, cols)
+    kept = min(side, rows) * min(side, cols)
+    per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
+    need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
+    words = (
+        f"its {rows}x{cols} frames of {n_steps} steps need about {_human(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
+        + (f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}" if more else "")
+        + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the {int(min(side, rows))}x{int(min(side, cols))} crop kept)"
+    )
+    return need, words
+
+
 # Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 (its pre-spawn-environ).
 # Setting any malloc threshold turns off glibc's sliding mmap threshold, so every array over 128 kB
 # is mmapped and unmapped on each allocation and its pages faulted in again: on a 560 x 560
@@ -1313,6 +1361,9 @@ class WorkerThreads:
 
     tasks: int
     threads: int
+    #: the bytes its reads may take (its share of its host's memory budget, :func:`_memory_shares`);
+    #: None: the host's whole budget
+    memory: int | None = None
 
     def environ(self) -> dict:
         """Environment for a worker process started for this share (read by the libraries at load)."""
@@ -1358,6 +1409,69 @@ def _scheduler_shares(client) -> dict:
     return shares
 
 
+def _memory_shares(client) -> dict:
+    """Each connected worker's share of memory for one file, ``(bytes, words saying how)``: its
+    host's budget (:func:`radiokit.io._budget.host_budget` there: that host's ``RADIOKIT_MEMORY_BUDGET``
+    or half its available memory; a budget given to this process stands for every host) divided
+    among the files the host's workers process at once (their Dask threads), and no more than the
+    worker's own Dask ``memory_limit`` divided among its threads (its nanny stops it past that)."""
+    from radiokit.io._budget import _human, explicit_budget, host_budget
+
+    info = _all_workers(client)
+    given = host_budget() if explicit_budget() else None
+    # measured there, not here: a scheduler's workers may run on other machines; their whole
+    # budget, not the share an earlier run left them
+    reported = {} if given is not None else client.run(host_budget, workers=list(info))
+    per_host: dict = {}
+    for addr, w in info.items():
+        per_host.setdefault(w["host"], []).append(addr)
+    shares = {}
+    for host, addrs in per_host.items():
+        at_once = sum(int(info[a]["nthreads"]) for a in addrs)
+        seen = [reported[a] for a in addrs if a in reported]
+        budget = given if given is not None else min(seen) if seen else host_budget()
+        for a in addrs:
+            share = budget // at_once
+            words = f"the memory budget of {_human(budget)} on host {host}" + (
+                f", shared by the {at_once} files its Dask workers process at once ({_human(share)} each)"
+                if at_once > 1
+                else ""
+            )
+            n, limit = int(info[a]["nthreads"]), int(info[a].get("memory_limit") or 0)
+            if limit and limit // n < share:
+                share = limit // n
+                words = f"Dask's memory_limit of {_human(limit)} for worker {a}" + (
+                    f", shared by the {n} files it processes at once ({_human(share)} each)" if n > 1 else ""
+                )
+            shares[a] = (share, words)
+    return shares
+
+
+def _check_worker_memory(paths, cfg: Config, shares: dict) -> None:
+    """Refuse, before any work, a file whose processing would need more memory than the smallest
+    worker's share (:func:`_memory_shares`; Dask may give any file to any worker), as ``radiokit
+    process`` refuses one file over the budget. Its control is processed beside it, so charged
+    with it."""
+    from radiokit.io._budget import BUDGET_ENV, _human
+
+    share, budget = min(shares.values(), key=lambda s: s[0])
+    advice = (
+        f": raise {BUDGET_ENV} if the workers' hosts have that memory, process fewer files at once "
+        "(fewer workers or Dask threads a host; on the command line --workers 1 takes one at a time), "
+        "or process smaller frames, binned or cropped beforehand"
+    )
+    control = _process_need(cfg.control, cfg) if cfg.control else None
+    if control is not None and control[0] > share:
+        raise ValueError(f"control={cfg.control}: processing {control[1]}, over {budget}{advice}")
+    for path in paths:
+        mine = _process_need(path, cfg)
+        if mine is None:  # the file's own error is said in its slot, as process says it
+            continue
+        if mine[0] + (control[0] if control else 0) > share:
+            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
+            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {budget}{advice}")
+
+
 def _all_workers(client) -> dict:
     try:
         return client.scheduler_info(n_workers=-1)["workers"]  # recent Dask lists 5 by default
@@ -1377,7 +1491,10 @@ def _limit_this_process(share: WorkerThreads):
     import scipy.linalg  # noqa: F401  (loads scipy's BLAS, so that threadpoolctl can limit it)
     from threadpoolctl import threadpool_limits
 
+    from radiokit.io._budget import set_share
+
     os.environ["RADIOKIT_THREADS"] = str(share.threads)
+    set_share(share.memory)
     cv2.setNumThreads(share.threads)
     threadpool_limits(limits=1, user_api="blas")
     try:
@@ -1406,7 +1523,9 @@ def process_many(
     naming the address then). Each worker's threads are sized to its share of the cores
     (:func:`worker_threads`; for a scheduler, from the workers' hosts and Dask threads), so that
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
-    Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
+    Their memory is shared likewise: a file (with ``config.control``) whose processing would need
+    more than a worker's share of its host's budget (:func:`_memory_shares`) refuses the whole run
+    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
     failed (the others go on). Output folders are :func:`output_folders`; each is written as
     :func:`process` writes."""
     try:
@@ -1431,12 +1550,19 @@ def process_many(
         if scheduler is None:
             _local_cluster(local_workers(workers, len(paths), cores()), ours)
         client = Client(ours["cluster"]) if ours else _connect(Client, scheduler, connect_timeout_s)
+        shares = _scheduler_shares(client)
+        # each file against its worker's share of the memory, before any work: the workers of a
+        # host each hold a file at once, and the command line sees neither a scheduler's hosts
+        # nor the budget a worker's own environment gives
+        memory = _memory_shares(client)
+        _check_worker_memory(paths, cfg, memory)
+        # and each worker's reads held to its share (the calibration's darks and flats, say)
+        shares = {a: dataclasses.replace(s, memory=memory[a][0]) if a in memory else s for a, s in shares.items()}
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
         made = _missing_folders(out_root) if out_root is not None else []
         if made:
             Path(out_root).mkdir(parents=True)
-        shares = _scheduler_shares(client)
         client.run(_limit_worker, shares)
         futures = {
             client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i

@@ -1025,3 +1025,38 @@ def test_files_processed_at_once_share_the_memory_budget(tmp_path):
     one_line_error(res, "exp1.h5", "shared by the 2 files processed at once (4.8 MiB each", "--workers 1")
     res = run_cli("process", *files, "--workers", 1, "-o", tmp_path / "out", *FAST, env=budget)
     assert res.returncode == 0, res.stderr
+
+
+def test_a_schedulers_workers_share_their_hosts_memory_budget(tmp_path):
+    """With --scheduler each file was checked against the whole budget of the machine the command
+    ran on: two workers on one host, each processing a file, took twice its budget. Each worker's
+    share is its host's budget divided among the files its workers process at once."""
+    from dask.distributed import LocalCluster
+
+    files = [synthetic(tmp_path / f"exp{i}.h5") for i in (1, 2)]  # 7.2 MB each by the check's figures
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        res = run_cli(
+            "process",
+            *files,
+            "--scheduler",
+            address,
+            "-o",
+            tmp_path / "out",
+            *FAST,
+            env={"RADIOKIT_MEMORY_BUDGET": "10MB"},
+        )
+        one_line_error(res, "exp1.h5", "shared by the 2 files its Dask workers process at once (4.8 MiB each")
+        assert not (tmp_path / "out").exists()
+        res = run_cli(
+            "process",
+            *files,
+            "--scheduler",
+            address,
+            "-o",
+            tmp_path / "out",
+            *FAST,
+            env={"RADIOKIT_MEMORY_BUDGET": "20MB"},
+        )
+        assert res.returncode == 0, res.stderr
+        assert all((tmp_path / "out" / f"exp{i}" / "results.json").exists() for i in (1, 2))

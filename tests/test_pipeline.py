@@ -346,6 +346,126 @@ def test_a_scheduler_without_workers_is_one_clear_error(tmp_path):
             process_many([path], Config(progress=False), scheduler=cluster.scheduler_address)
 
 
+_ROIS = {"inclusion": (75, 86, 75, 86), "background": (75, 86, 40, 51)}
+
+
+def _one_file_need() -> int:
+    """The working memory process is charged for one of _synthetic's files: 3 steps of 160 x 160,
+    the whole frame kept (its figures' definition, radiokit.pipeline)."""
+    from radiokit.pipeline import PROCESS_BYTES_PER_KEPT_PIXEL, PROCESS_BYTES_PER_PIXEL
+
+    return (PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_KEPT_PIXEL) * 160 * 160
+
+
+def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
+    """A scheduler's workers checked no file's working memory (the command line checked each
+    against the whole budget of the machine it ran on, with one file at a time): two workers of
+    one host, each holding a file, could take twice its budget. A budget one file fits and two do
+    not now refuses the run, in one line naming the file, before any work."""
+    from dask.distributed import LocalCluster
+
+    from radiokit.io._budget import _human
+    from radiokit.pipeline import Config, process_many
+
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for p in paths:
+        _synthetic(p)
+    budget = int(1.5 * _one_file_need())
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
+    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    # in-process workers (one host; the run is refused before any task or limit reaches them)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with pytest.raises(ValueError) as err:
+            process_many(paths, cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{paths[0]}: "), message
+    assert f"memory budget of {_human(budget)}" in message, message
+    assert f"shared by the 2 files its Dask workers process at once ({_human(budget // 2)} each" in message, message
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_workers_dask_memory_limit_bounds_its_share(tmp_path, monkeypatch):
+    """Dask's own memory_limit of a worker (its nanny stops a worker past it) is shared by the
+    files it processes at once, and a file over that share is refused though the host's budget
+    holds it."""
+    import dask
+    from dask.distributed import LocalCluster
+
+    from radiokit.io._budget import _human
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    monkeypatch.delenv("RADIOKIT_MEMORY_BUDGET", raising=False)
+    limit = int(1.5 * _one_file_need())
+    quiet = {f"distributed.worker.memory.{k}": False for k in ("target", "spill", "pause", "terminate")}
+    # a limit below this process's own size: Dask's pause at 80 % of it turned off, else it pauses
+    with (
+        dask.config.set(quiet),
+        LocalCluster(
+            n_workers=1, threads_per_worker=2, memory_limit=limit, processes=False, dashboard_address=None
+        ) as cluster,
+    ):
+        with pytest.raises(ValueError) as err:
+            process_many(
+                [path], Config(crop_mm=None, report=False, progress=False, **_ROIS), scheduler=cluster.scheduler_address
+            )
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{path}: "), message
+    assert f"memory_limit of {_human(limit)}" in message, message
+    assert f"shared by the 2 files it processes at once ({_human(limit // 2)} each" in message, message
+
+
+def test_a_local_clusters_workers_share_the_memory_budget(tmp_path, monkeypatch):
+    """process_many on its own local cluster checked no file's memory either (only the command
+    line did): two files, each within the budget, processed at once, over it together."""
+    from radiokit.io._budget import _human
+    from radiokit.pipeline import Config, process_many
+
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for p in paths:
+        _synthetic(p)
+    budget = int(1.5 * _one_file_need())
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
+    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    with pytest.raises(ValueError) as err:
+        process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{paths[0]}: "), message
+    assert f"({_human(budget // 2)} each" in message, message
+    assert not (tmp_path / "out").exists()
+
+
+def test_each_worker_reads_within_its_share_of_the_memory_budget(tmp_path, monkeypatch):
+    """The files a host's workers pass hold the workers' whole budget between them, and so must
+    every read inside them: each worker's readers were held to its host's whole budget (two
+    workers of one host: twice it summed). After a run each worker's budget is its share."""
+    from dask.distributed import Client, LocalCluster
+
+    from radiokit.io import memory_budget
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    budget = 3 * _one_file_need()  # two files at once fit
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))  # the workers' environment too
+    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        assert sum(client.run(memory_budget).values()) == 2 * budget  # each its host's whole budget
+        res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+        assert "error" not in res[0], res[0]
+        after = client.run(memory_budget)
+        # a second run divides the host's budget again, not the share the first one left
+        res = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address, overwrite=True)
+        assert "error" not in res[0], res[0]
+        again = client.run(memory_budget)
+    assert len(after) == 2 and set(after.values()) == {budget // 2}, after
+    assert again == after
+
+
 def test_the_steps_compose_and_a_zero_reference_contrast_is_an_error(tmp_path):
     """The public steps run one by one give what process gives; a reference without contrast
     between the ROIs is refused (the improvement factor is undefined), naming file and domain."""

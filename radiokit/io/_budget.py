@@ -92,15 +92,36 @@ def _available_bytes() -> int:
     return avail
 
 
-def memory_budget(budget=None) -> int:
-    """The budget in bytes: ``budget`` if given (bytes or a size string), else the environment
-    variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available physical memory
-    (or of the address-space limit, ``ulimit -v``, where that is lower)."""
+#: this process's share of its host's budget while it is a Dask worker of radiokit.pipeline
+#: (None: all of it): the files its host's workers process at once hold the host's budget
+#: between them, so each worker's reads are held to its share
+_share: int | None = None
+
+
+def set_share(nbytes: int | None) -> None:
+    """Hold this process's budget (not one given to a call) to ``nbytes``; None lifts it."""
+    global _share
+    _share = None if nbytes is None else int(nbytes)
+
+
+def host_budget(budget=None) -> int:
+    """The budget in bytes before any worker's share: ``budget`` if given (bytes or a size string),
+    else the environment variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available
+    physical memory (or of the address-space limit, ``ulimit -v``, where that is lower)."""
     if budget is None:
         budget = os.environ.get(BUDGET_ENV) or None
     if budget is None:
         return int(_available_bytes() * DEFAULT_FRACTION)
     return parse_size(budget) if isinstance(budget, str) else int(budget)
+
+
+def memory_budget(budget=None) -> int:
+    """The budget in bytes: ``budget`` if given (bytes or a size string), else the environment
+    variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available physical memory
+    (or of the address-space limit, ``ulimit -v``, where that is lower); in a Dask worker of
+    ``radiokit.pipeline.process_many``, no more than the worker's share (:func:`set_share`)."""
+    limit = host_budget(budget)
+    return limit if budget is not None or _share is None else min(limit, _share)
 
 
 def _human(n: int) -> str:
