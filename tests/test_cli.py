@@ -152,6 +152,8 @@ def test_correct_without_cal_uses_the_files_darks_and_flats(experiment, tmp_path
         (b"", "empty.raw", "empty"),
         (b"\x00" * 1001, "odd.raw", "matches no C7942 geometry"),
         (b"GARBAGE!" * 20, "x.tif", "wrong magic"),
+        # a raw dump saved under .tif (vendor software's "export" does it): the way to read it is named
+        (b"GARBAGE!" * 20, "dump.tif", "--format raw"),
     ],
 )
 def test_bad_files_give_one_line_errors(tmp_path, content, name, message):

@@ -200,7 +200,11 @@ def sniff(path) -> str:
             "reads its bytes as pixels)",
         )
     if ext == "tiff":
-        raise FormatError(path, f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*'")
+        raise FormatError(
+            path,
+            f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*' (headerless pixels saved "
+            "under a TIFF name: format='raw', on the command line --format raw with --shape and --dtype)",
+        )
     if ext == "itex":
         raise FormatError(path, f"wrong magic {head[:2]!r}: an ITEX .img starts with b'IM'")
     if ext == "hdf5":
