@@ -240,6 +240,7 @@ class FrameSource:
                 f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
+        self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
         self._siblings = {}  # a multi-file OME-TIFF's other files, by path, open while this is
         self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self._invert = None  # what a white-is-zero image's values are subtracted from (TIFF, HDF5)
@@ -345,7 +346,7 @@ class FrameSource:
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._contiguous_stack(first, all_pages)
-        self._warn_ome_unread()
+        self._warn_unread()
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
             self._refuse_signed_below_a_word(index[i], page)
@@ -495,7 +496,7 @@ class FrameSource:
         must be there and hold its planes (tifffile zero-fills what is missing), and each is
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
-        pages = mmstack_split(tif, self.path)
+        pages = mmstack_split(tif, self.path, self._mm_notes)
         if pages is not None and all(page is not None and page.parent is tif for page in pages):
             # its positions whole here: the files beside it hold other positions, which an
             # OME-XML names as other images (tifffile's series would interleave them)
@@ -1001,9 +1002,11 @@ class FrameSource:
         self._fh = open(self.path, "rb")
         return geo
 
-    def _warn_ome_unread(self) -> None:
-        """Warn where an OME-TIFF read alone holds fewer pages than its OME-XML describes, or
-        describes nothing itself (BinaryOnly), as an ImageJ file of fewer pages than its images=.
+    def _warn_unread(self) -> None:
+        """Warn where a Micro-Manager summary planned more planes than were written (an
+        acquisition stopped early: :func:`check_mmstack_slots`), and where an OME-TIFF read alone
+        holds fewer pages than its OME-XML describes, or describes nothing itself (BinaryOnly), as
+        an ImageJ file of fewer pages than its images=.
 
         Why: tifffile only logs either, and the pages there are read as the whole stack: a writer
         that stopped after 2 of SizeT=4 planes, a Micro-Manager stack split at 4 GB whose XML does
@@ -1012,6 +1015,8 @@ class FrameSource:
         Warned rather than refused, as ImageJ's count is: the pages there are whole and readable.
         A multi-file set read whole (allow_external) was checked plane by plane already."""
         tif, n = self._tif, len(self._pages)
+        for note in self._mm_notes:  # (tifffile only logs it, if anything)
+            warnings.warn(f"{self.path}: {note}: reading the {n} written", UserWarning, stacklevel=3)
         if not tif.is_ome or "ome_files" in self.meta:
             return
         xml = tif.ome_metadata
