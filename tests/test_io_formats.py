@@ -2688,6 +2688,27 @@ def test_a_micro_manager_file_alone_stopped_early_says_so(tmp_path):
         np.testing.assert_array_equal(read(path).data, frames)
 
 
+@pytest.mark.parametrize("kind", ["micro-manager", "ome"])
+def test_a_dangling_symlink_named_as_a_file_of_a_set_is_named_as_such(tmp_path, kind):
+    """s39 review (LOW): a dangling symbolic link named as one of a set's files was said to be
+    "missing" (OME) or gave "[Errno 2] No such file or directory" (Micro-Manager), while `ls`
+    shows it there. The one line names the link and says it points nowhere."""
+    frames = _frames(4)
+    if kind == "ome":
+        given, link = tmp_path / "a.ome.tif", tmp_path / "b.ome.tif"
+        tiffdata = [(0, 2, given.name, _uuid(1)), (2, 2, link.name, _uuid(2))]
+        _ome_files(tmp_path, {given.name: (_uuid(1), frames[:2])}, tiffdata)
+    else:
+        given, link = tmp_path / "exp_MMStack_Pos0.ome.tif", tmp_path / "exp_MMStack_Pos0_1.ome.tif"
+        _mmstack_file(given, frames[:2], 0, 4)
+    os.symlink("gone.ome.tif", link)
+    for flags in ([], ["--allow-external"]) if kind != "ome" else (["--allow-external"],):
+        line = one_line_error(run_cli("info", *flags, given), given.name, link.name, "gone.ome.tif")
+        assert "symbolic link" in line and "points nowhere" in line and "Errno" not in line, line
+        with pytest.raises(FormatError, match=rf"{link.name} is a symbolic link to gone\.ome\.tif"):
+            read(given, allow_external=bool(flags))
+
+
 def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memory_budget(tmp_path, monkeypatch):
     """s39 review (MEDIUM): a set's file truncated to gigabytes (sparse: no disk taken) passed the
     bytes-per-plane bound, and tifffile listed 10**8 slots (850 MB). The slots are charged to the

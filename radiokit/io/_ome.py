@@ -27,6 +27,7 @@ __all__ = [
     "binary_only",
     "mmstack_split",
     "check_mmstack_slots",
+    "not_there",
 ]
 
 
@@ -230,16 +231,37 @@ _MM_SLOT_BYTES = 20
 _MM_COUNTS = (("Channels", "C"), ("Slices", "Z"), ("Frames", "T"), ("Positions", "R"))
 
 
-def _mmstack_files(tif, summary: dict) -> list[str] | None:
+def not_there(path) -> str:
+    """Why the file ``path`` a set names is not there, for messages: "NAME is missing", or, where
+    NAME is a symbolic link to nothing, that. Why: "missing" (or "No such file or directory")
+    of a name `ls` lists sent the user looking for a file that is there."""
+    path = Path(path)
+    if not path.is_symlink():
+        return f"{path.name} is missing"
+    try:
+        target = os.readlink(path)
+    except OSError:  # (gone between the two looks) as good as missing
+        return f"{path.name} is missing"
+    return f"{path.name} is a symbolic link to {target}, which points nowhere (no file is there)"
+
+
+def _mmstack_files(tif, summary: dict, path=None) -> list[str] | None:
     """The files of a Micro-Manager set tifffile's series looks for beside this one, found as it
     finds them (a "_MMStack" name, the summary's Prefix, a glob of *.tif that may miss this file
-    itself); None where it reads this one alone."""
+    itself); None where it reads this one alone. One that is a symbolic link to nothing is
+    refused, named (``path``: the file as the user named it)."""
     prefix = summary.get("Prefix", tif.filename.split("_MMStack")[0])
     if not tif.filehandle.is_file or "_MMStack" not in tif.filename or not isinstance(prefix, str):
         return None
     if not tif.filename.startswith(prefix):
         return None
-    return glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
+    found = glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
+    for name in found:  # tifffile opens each: a dangling link's "No such file" named no link
+        if not os.path.exists(name):
+            raise FormatError(
+                Path(path or tif.filehandle.path), f"a file of its Micro-Manager stack by its name: {not_there(name)}"
+            )
+    return found
 
 
 def _index_span(names: list[str], own: list[int]) -> tuple[list[int], int]:
@@ -313,7 +335,7 @@ def check_mmstack_slots(tif, path=None) -> str | None:
     low = [int(v) for v in index[:, :4].min(axis=0)]
     files, written, entries, where, found = [tif.filehandle.path], high, len(index), "it holds", None
     if math.prod(max(h, c) for h, c in zip(high, counts)) > len(index):  # tifffile looks for the set's other files
-        found = _mmstack_files(tif, summary)
+        found = _mmstack_files(tif, summary, path)
         if found is not None and len(found) > 1:
             files, where = found, f"its set's {len(found)} files hold"
             written, entries = _index_span(found, high)

@@ -55,6 +55,7 @@ from radiokit.io._ome import (
     describe_planes,
     external_planes,
     mmstack_split,
+    not_there,
     ome_pages,
     ome_root_uuid,
     tiffdata,
@@ -572,7 +573,7 @@ class FrameSource:
         if missing:
             raise FormatError(
                 self.path,
-                f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
+                f"{what}, and {', '.join(not_there(self.path.parent / name) for name in missing)}: "
                 "a multi-file OME-TIFF's files are read from the folder it is in",
             )
         runs = self._check_ome_set(what, own, totals, found)
