@@ -2709,6 +2709,33 @@ def test_a_dangling_symlink_named_as_a_file_of_a_set_is_named_as_such(tmp_path, 
             read(given, allow_external=bool(flags))
 
 
+@pytest.mark.parametrize("written", ["slices-outer", "frames-outer"])
+def test_a_micro_manager_file_of_slices_and_frames_reads_in_its_planes_order_and_says_so(tmp_path, written):
+    """s39 review (LOW): a Micro-Manager file without OME-XML holding 2 slices at each of 2 time
+    points read in file order with nothing said, whatever order the acquisition wrote them in:
+    as the planes lie in tifffile's series of it (time points outer, slices inner, from the
+    index map), as an ImageJ or OME hyperstack's do, and ``stacked`` says so."""
+    from radiokit.io import open_frames
+
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(4)
+    # (channel, slice, frame, position) of each plane in file order
+    if written == "slices-outer":
+        coords, order = [(0, 0, 0, 0), (0, 0, 1, 0), (0, 1, 0, 0), (0, 1, 1, 0)], [0, 2, 1, 3]
+    else:
+        coords, order = [(0, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 1, 1, 0)], [0, 1, 2, 3]
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(path, {"Frames": 2, "Channels": 1, "Slices": 2, "Positions": 1}, coords)
+    with tifffile.TiffFile(path) as tif:  # as meant: tifffile sees the axes, no OME
+        assert tif.is_mmstack and not tif.is_ome and tif.series[0].axes == "TZYX"
+        np.testing.assert_array_equal(tif.series[0].asarray().reshape(4, 30, 40), frames[order])
+    np.testing.assert_array_equal(_both_ways(path), frames[order])
+    with open_frames(path) as src:
+        assert src.meta["stacked"] == {"shape": [2, 2], "axes": "TZ"}
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "2 x 2 (TZ), read flat in that order" in res.stdout, res.stdout
+
+
 def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memory_budget(tmp_path, monkeypatch):
     """s39 review (MEDIUM): a set's file truncated to gigabytes (sparse: no disk taken) passed the
     bytes-per-plane bound, and tifffile listed 10**8 slots (850 MB). The slots are charged to the

@@ -402,6 +402,13 @@ class FrameSource:
             series = tif.series  # built already to refuse an OME file of several images
             if len(series) == 1 and series[0].axes[-2:] == "YX":
                 shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_mmstack:
+            try:
+                series = tif.series  # built already, from its index map, to order its planes
+            except Exception:  # (a summary's count of 1e400) read in file order: nothing to say
+                series = []
+            if len(series) == 1 and series[0].kind == "mmstack" and series[0].axes[-2:] == "YX":
+                shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
         elif tif.is_shaped:
             series = _shaped_series(self._pages)
             if len(series) == 1 and len(series[0][0]) > 2:
@@ -483,7 +490,7 @@ class FrameSource:
         spread = self._ome_multifile_pages()
         if spread is not None:
             return spread
-        index = self._ome_plane_order(self._full_image_pages(all_pages))
+        index = self._mmstack_plane_order(self._ome_plane_order(self._full_image_pages(all_pages)))
         return [all_pages[i] for i in index], index
 
     def _ome_multifile_pages(self) -> tuple[list, list[str]] | None:
@@ -729,6 +736,28 @@ class FrameSource:
         except (TypeError, ValueError, AttributeError):  # a SubIFD's tuple index, a series without pages
             return index
         return order if sorted(order) == sorted(index) else index
+
+    def _mmstack_plane_order(self, index: list[int]) -> list[int]:
+        """The frame pages ``index`` in the order of a Micro-Manager file's planes in tifffile's
+        series of it (time points outer, slices inner, by its index map), where it has neither
+        OME-XML nor ImageJ metadata to order them by. Why: Micro-Manager writes the planes in
+        the order they are acquired, slices outer if so set, and file order gave a stack of 2
+        slices x 2 time points as (Z, T) where Fiji and tifffile show (T, Z), with nothing
+        said (``stacked`` says it now). Anything but a reordering of the same pages leaves the
+        file's order, as :meth:`_ome_plane_order` does."""
+        tif = self._tif
+        if not tif.is_mmstack or tif.is_ome or tif.is_imagej:
+            return index
+        try:
+            series = tif.series[0]
+            if series.kind != "mmstack" or series.is_multifile:
+                return index  # (a set's planes are ordered by mmstack_split)
+            # tifffile's page.index of such a series is the plane's place in it, not in the file
+            at = {int(tif.pages[i].offset): i for i in index}
+            order = [at.get(int(page.offset)) for page in series.pages if page is not None]
+        except Exception:  # (tifffile fails on a corrupt file in many ways) the checks that follow judge it
+            return index
+        return order if None not in order and sorted(order) == sorted(index) else index
 
     def _refuse_several_images(self, pages: int) -> None:
         """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
