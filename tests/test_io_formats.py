@@ -2736,6 +2736,21 @@ def test_a_micro_manager_file_of_slices_and_frames_reads_in_its_planes_order_and
     assert res.returncode == 0 and "2 x 2 (TZ), read flat in that order" in res.stdout, res.stdout
 
 
+def test_micro_manager_positions_stopped_early_at_different_time_points_each_read_theirs(tmp_path):
+    """Stopped between two stage positions of one time point, position 0 holds 3 time points and
+    position 1 only 2 of the set's span: each file reads its own planes, with the warning (the
+    missing last one was refused as a plane not in the files)."""
+    frames = _frames(5)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos1.ome.tif"]
+    _mmstack_file(tmp_path / names[0], frames[:3], 0, 10**15, position=0, positions=2)
+    _mmstack_file(tmp_path / names[1], frames[3:], 0, 10**15, position=1, positions=2)
+    for name in names:
+        _mm_patch(tmp_path / name, {"Frames": 100, "Channels": 1, "Slices": 1, "Positions": 2})
+    for name, own in zip(names, (frames[:3], frames[3:])):
+        with pytest.warns(UserWarning, match=rf"{name}: .*summary planned 200 planes .*stopped early"):
+            np.testing.assert_array_equal(_both_ways(tmp_path / name, allow_external=True), own)
+
+
 def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memory_budget(tmp_path, monkeypatch):
     """s39 review (MEDIUM): a set's file truncated to gigabytes (sparse: no disk taken) passed the
     bytes-per-plane bound, and tifffile listed 10**8 slots (850 MB). The slots are charged to the

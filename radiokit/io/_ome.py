@@ -219,6 +219,11 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
         stride, size = math.prod(shape[r + 1 : len(shape) - len(series[0].keyframe.shape)]), shape[r]
         own = {k // stride % size for k, page in enumerate(pages) if page is not None and page.parent is tif}
         pages = [page for k, page in enumerate(pages) if k // stride % size in own]
+    if note is not None:
+        # stopped early between positions (or slices) of its last time point: this file's last
+        # planes were never written, not lost
+        while pages and pages[-1] is None:
+            pages.pop()
     return pages
 
 
