@@ -2654,6 +2654,8 @@ def test_a_micro_manager_set_stopped_early_reads_the_planes_written_with_a_warni
     plan and what was found; planning 4*10**8 costs nothing (tifffile lists the planes found)."""
     import time
 
+    from radiokit.io import data_files
+
     frames = _frames(4)
     names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
     for k, name in enumerate(names):
@@ -2669,6 +2671,7 @@ def test_a_micro_manager_set_stopped_early_reads_the_planes_written_with_a_warni
         read(first)
     res = run_cli("info", "--allow-external", first)  # (run_cli hides warnings: the one above is checked)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert data_files(first, allow_external=True) == [tmp_path / names[1]]  # (was []: no output may replace it)
 
     # a plane missing inside the written ones (T 2 of 0-4) is no stop: refused, as a file cut short
     _mmstack_file(tmp_path / names[1], frames[2:], 3, 10**15)
