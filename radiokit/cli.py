@@ -125,7 +125,8 @@ def _summary(meta: dict) -> dict:
         out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
         if meta.get("stacked"):  # frame k of a (2, 5, rows, cols) series is (k // 5, k % 5)
             st = meta["stacked"]
-            out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in the file's order"
+            # (in that order, not the file's: an OME or Micro-Manager file's planes are put in it)
+            out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames

@@ -14,6 +14,7 @@ import errno
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
 import stat
@@ -980,6 +981,75 @@ def test_a_results_folder_kept_aside_beside_its_name_is_pointed_to(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_output(out, overwrite=True, folder=True)
+
+
+def _left_aside(out: Path, monkeypatch) -> Path:
+    """The results folder a run killed while replacing ``out`` leaves aside, named by radiokit's
+    own scheme as a process that has ended (its number) would name it."""
+    from radiokit.io import _atomic
+
+    with monkeypatch.context() as m:
+        m.setattr(_atomic, "_owner_tag", lambda: f"{socket.gethostname().split('.')[0]}-{_dead_pid()}")
+        aside = _atomic._temporary_name(out, folder=True, kind="old")
+    _results_folder(out.parent / "built")
+    (out.parent / "built").rename(aside)
+    return aside
+
+
+def test_a_results_folder_kept_aside_is_pointed_to_by_the_link_the_user_named(tmp_path, monkeypatch):
+    """s39 review (LOW): ``-o latest``, a link to ``res``: the warning of results left aside
+    named ``res``, which the user did not type, and so did the refusal of two left aside. Both
+    name the link, and what it points at."""
+    from radiokit.io._atomic import OutputError, check_output
+
+    out, link = tmp_path / "res", tmp_path / "latest"
+    _results_folder(out)
+    link.symlink_to(out)
+    kept = _left_aside(out, monkeypatch)
+    with pytest.warns(UserWarning) as caught:
+        check_output(link, overwrite=True, folder=True)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith(f"{link} (a link to {out}): ") and kept.name in message, message
+    shutil.rmtree(out)
+    again = _left_aside(out, monkeypatch)
+    with pytest.raises(OutputError) as refused:
+        check_output(link, overwrite=True, folder=True)
+    assert str(refused.value).startswith(f"{link} (a link to {out}): ") and again.name in str(refused.value)
+
+
+@pytest.mark.parametrize("stem", ["r" * 240, "\u7a7a" * 80], ids=["ascii", "3-byte"])
+def test_outputs_alike_in_their_first_bytes_never_take_each_others_results_left_aside(tmp_path, monkeypatch, stem):
+    """s39 review (LOW): the name of a folder left aside is cut to fit NAME_MAX, so two outputs
+    whose names share their first ~227 bytes had one such name: ``a`` missing, ``b``'s previous
+    results were put back at ``a``'s name; ``a`` there, they were named as ``a``'s. Each now
+    finds only its own; one left aside by a radiokit before this change (the name cut alone) is
+    still put back at the one name it fits."""
+    from radiokit.io._atomic import check_output
+
+    a, b = tmp_path / (stem + "a"), tmp_path / (stem + "b")
+    assert len(os.fsencode(b.name)) <= 255
+    kept = _left_aside(b, monkeypatch)
+    (kept / "notes.txt").write_text("b's")
+    check_output(a, folder=True)
+    assert not a.exists() and (kept / "notes.txt").exists()
+    _results_folder(a)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_output(a, overwrite=True, folder=True)
+    check_output(b, overwrite=True, folder=True)
+    assert (b / "notes.txt").read_text() == "b's" and not kept.exists()
+
+    # the scheme before: the name cut to what leaves room for ..old-HOST-<10 digits>-<8 hex>
+    host, c = socket.gethostname().split(".")[0], tmp_path / (stem + "c")
+    room, head = 255 - len(os.fsencode(f"..old-{host}-{10 * '0'}-{8 * '0'}")), c.name
+    while len(os.fsencode(head)) > room:
+        head = head[:-1]
+    legacy = tmp_path / f".{head}.old-{host}-{_dead_pid()}-0123abcd"
+    _results_folder(tmp_path / "built")
+    (tmp_path / "built").rename(legacy)
+    (legacy / "notes.txt").write_text("c's")
+    check_output(c, overwrite=True, folder=True)
+    assert (c / "notes.txt").read_text() == "c's"
 
 
 def test_a_results_folder_interrupted_while_aside_is_put_back(tmp_path, monkeypatch):

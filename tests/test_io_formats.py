@@ -2605,15 +2605,17 @@ def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is
     summary said Frames 4*10**8 took `radiokit info` 214 s and 7.8 GB; one 5 KB file whose
     index map put a plane at T = 4*10**8 - 1, 42 s and 6.3 GB (then read as 2 frames). Refused
     now, naming the file, before tifffile lists them; an acquisition stopped early (a summary
-    planning more frames than the file holds) still reads. (10**6 here: a million slots are
-    cheap to list, and past what 5 KB can hold as the millions are.)"""
+    planning more frames than the files hold) reads what was written, with a warning (s40: the
+    summary is a plan, the index maps what was written). (10**6 here: a million slots are cheap
+    to list, and past what 5 KB can hold as the millions are.)"""
     from radiokit.io import data_files
 
     frames = _frames(4)
     names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
     for k, name in enumerate(names):
-        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 10**15)
-        _mm_patch(tmp_path / name, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 4)
+    # the second file's index map puts its last plane at T = 10**6 - 1
+    _mm_patch(tmp_path / names[1], coords=[(0, 0, 2, 0), (0, 0, 10**6 - 1, 0)])
     first = tmp_path / names[0]
     for allow in (False, True):
         with pytest.raises(
@@ -2633,18 +2635,123 @@ def test_a_micro_manager_summary_or_index_map_declaring_planes_by_the_million_is
     line = one_line_error(run_cli("info", "one.tif", cwd=alone), "Micro-Manager stack of 1000000 planes")
     assert line.startswith("radiokit info: one.tif: "), line  # the file as the user named it
 
-    # a name tifffile's glob of the set (*_MMStack*.tif) misses: it lists the summary's slots
+    # a name tifffile's glob of the set (*_MMStack*.tif) misses: it listed the summary's slots,
+    # and lists the index map's now
     path = alone / "tiff_MMStack_Pos0.ome.tiff"
     _mmstack_file(path, frames[:2], 0, 10**15)
     _mm_patch(path, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
-    with pytest.raises(FormatError, match=r"Pos0\.ome\.tiff: .*Micro-Manager stack of 1000000 planes.* can hold"):
-        read(path)
+    with pytest.warns(UserWarning, match=r"Pos0\.ome\.tiff: .*summary planned 1000000 planes .*stopped early"):
+        np.testing.assert_array_equal(read(path).data, frames[:2])
 
-    # stopped early: the summary planned 10**6 frames, the file (alone) holds 2
-    path = alone / "stopped_MMStack_Pos0.ome.tif"
-    _mmstack_file(path, frames[:2], 0, 10**15)
+
+@pytest.mark.parametrize("planned", [100, 4 * 10**8], ids=["planned-100", "planned-4e8"])
+def test_a_micro_manager_set_stopped_early_reads_the_planes_written_with_a_warning(tmp_path, planned):
+    """s39 review (LOW): Micro-Manager writes the summary, with the acquisition's planned counts,
+    as it opens each file and never again; the index map records each plane as it is written
+    (MultipageTiffWriter). A set of files whose acquisition was stopped early was refused as
+    "corrupt" (its files' bytes too few for the planned planes' index entries) or as planes "not
+    in the files it names". Its written planes are read, in order, with one warning naming the
+    plan and what was found; planning 4*10**8 costs nothing (tifffile lists the planes found)."""
+    import time
+
+    from radiokit.io import data_files
+
+    frames = _frames(4)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
+    for k, name in enumerate(names):
+        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 10**15)
+        _mm_patch(tmp_path / name, {"Frames": planned, "Channels": 1, "Slices": 1, "Positions": 1})
+    first = tmp_path / names[0]
+    start = time.perf_counter()
+    with pytest.warns(UserWarning, match=rf"Pos0\.ome\.tif: .*summary planned {planned} .*4 .*stopped early") as got:
+        np.testing.assert_array_equal(_both_ways(first, allow_external=True), frames)
+    assert time.perf_counter() - start < 5, "the planned slots were listed"  # 4e8 of them: 214 s
+    assert len({str(w.message) for w in got}) == 1, [str(w.message) for w in got]
+    with pytest.raises(FormatError, match=r"Pos0\.ome\.tif: a Micro-Manager stack .*2 in .*Pos0_1.*allow_ext"):
+        read(first)
+    res = run_cli("info", "--allow-external", first)  # (run_cli hides warnings: the one above is checked)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert data_files(first, allow_external=True) == [tmp_path / names[1]]  # (was []: no output may replace it)
+
+    # a plane missing inside the written ones (T 2 of 0-4) is no stop: refused, as a file cut short
+    _mmstack_file(tmp_path / names[1], frames[2:], 3, 10**15)
+    _mm_patch(tmp_path / names[1], {"Frames": planned, "Channels": 1, "Slices": 1, "Positions": 1})
+    with pytest.raises(FormatError, match=r"Pos0\.ome\.tif: .*1 of them are not in the files"):
+        read(first, allow_external=True)
+
+
+def test_a_micro_manager_file_alone_stopped_early_says_so(tmp_path):
+    """As a set's: the one file of an acquisition stopped early read its planes silently
+    (tifffile only logs); now with the warning."""
+    path = tmp_path / "stopped_MMStack_Pos0.ome.tif"
+    frames = _frames(2)
+    _mmstack_file(path, frames, 0, 10**15)
     _mm_patch(path, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
-    np.testing.assert_array_equal(read(path).data, frames[:2])
+    with pytest.warns(UserWarning, match=r"Pos0\.ome\.tif: .*summary planned 1000000 .*2 .*stopped early"):
+        np.testing.assert_array_equal(read(path).data, frames)
+
+
+@pytest.mark.parametrize("kind", ["micro-manager", "ome"])
+def test_a_dangling_symlink_named_as_a_file_of_a_set_is_named_as_such(tmp_path, kind):
+    """s39 review (LOW): a dangling symbolic link named as one of a set's files was said to be
+    "missing" (OME) or gave "[Errno 2] No such file or directory" (Micro-Manager), while `ls`
+    shows it there. The one line names the link and says it points nowhere."""
+    frames = _frames(4)
+    if kind == "ome":
+        given, link = tmp_path / "a.ome.tif", tmp_path / "b.ome.tif"
+        tiffdata = [(0, 2, given.name, _uuid(1)), (2, 2, link.name, _uuid(2))]
+        _ome_files(tmp_path, {given.name: (_uuid(1), frames[:2])}, tiffdata)
+    else:
+        given, link = tmp_path / "exp_MMStack_Pos0.ome.tif", tmp_path / "exp_MMStack_Pos0_1.ome.tif"
+        _mmstack_file(given, frames[:2], 0, 4)
+    os.symlink("gone.ome.tif", link)
+    for flags in ([], ["--allow-external"]) if kind != "ome" else (["--allow-external"],):
+        line = one_line_error(run_cli("info", *flags, given), given.name, link.name, "gone.ome.tif")
+        assert "symbolic link" in line and "points nowhere" in line and "Errno" not in line, line
+        with pytest.raises(FormatError, match=rf"{link.name} is a symbolic link to gone\.ome\.tif"):
+            read(given, allow_external=bool(flags))
+
+
+@pytest.mark.parametrize("written", ["slices-outer", "frames-outer"])
+def test_a_micro_manager_file_of_slices_and_frames_reads_in_its_planes_order_and_says_so(tmp_path, written):
+    """s39 review (LOW): a Micro-Manager file without OME-XML holding 2 slices at each of 2 time
+    points read in file order with nothing said, whatever order the acquisition wrote them in:
+    as the planes lie in tifffile's series of it (time points outer, slices inner, from the
+    index map), as an ImageJ or OME hyperstack's do, and ``stacked`` says so."""
+    from radiokit.io import open_frames
+
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(4)
+    # (channel, slice, frame, position) of each plane in file order
+    if written == "slices-outer":
+        coords, order = [(0, 0, 0, 0), (0, 0, 1, 0), (0, 1, 0, 0), (0, 1, 1, 0)], [0, 2, 1, 3]
+    else:
+        coords, order = [(0, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 1, 1, 0)], [0, 1, 2, 3]
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(path, {"Frames": 2, "Channels": 1, "Slices": 2, "Positions": 1}, coords)
+    with tifffile.TiffFile(path) as tif:  # as meant: tifffile sees the axes, no OME
+        assert tif.is_mmstack and not tif.is_ome and tif.series[0].axes == "TZYX"
+        np.testing.assert_array_equal(tif.series[0].asarray().reshape(4, 30, 40), frames[order])
+    np.testing.assert_array_equal(_both_ways(path), frames[order])
+    with open_frames(path) as src:
+        assert src.meta["stacked"] == {"shape": [2, 2], "axes": "TZ"}
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "2 x 2 (TZ), read flat in that order" in res.stdout, res.stdout
+
+
+def test_micro_manager_positions_stopped_early_at_different_time_points_each_read_theirs(tmp_path):
+    """Stopped between two stage positions of one time point, position 0 holds 3 time points and
+    position 1 only 2 of the set's span: each file reads its own planes, with the warning (the
+    missing last one was refused as a plane not in the files)."""
+    frames = _frames(5)
+    names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos1.ome.tif"]
+    _mmstack_file(tmp_path / names[0], frames[:3], 0, 10**15, position=0, positions=2)
+    _mmstack_file(tmp_path / names[1], frames[3:], 0, 10**15, position=1, positions=2)
+    for name in names:
+        _mm_patch(tmp_path / name, {"Frames": 100, "Channels": 1, "Slices": 1, "Positions": 2})
+    for name, own in zip(names, (frames[:3], frames[3:])):
+        with pytest.warns(UserWarning, match=rf"{name}: .*summary planned 200 planes .*stopped early"):
+            np.testing.assert_array_equal(_both_ways(tmp_path / name, allow_external=True), own)
 
 
 def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memory_budget(tmp_path, monkeypatch):
@@ -2656,8 +2763,8 @@ def test_a_micro_manager_set_with_a_sparse_file_is_charged_its_slots_to_the_memo
     frames = _frames(4)
     names = ["exp_MMStack_Pos0.ome.tif", "exp_MMStack_Pos0_1.ome.tif"]
     for k, name in enumerate(names):
-        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 10**15)
-        _mm_patch(tmp_path / name, {"Frames": 10**6, "Channels": 1, "Slices": 1, "Positions": 1})
+        _mmstack_file(tmp_path / name, frames[2 * k : 2 * k + 2], 2 * k, 4)
+    _mm_patch(tmp_path / names[1], coords=[(0, 0, 2, 0), (0, 0, 10**6 - 1, 0)])  # a plane at T = 10**6 - 1
     os.truncate(tmp_path / names[1], 64 * 2**20)  # 64 MiB, holes: room for 3 million index entries
     monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", "4MiB")  # under the 1000000 slots' ~20 MB
     with pytest.raises(FormatError, match=r"listing a Micro-Manager stack of 1000000 planes.*memory budget"):

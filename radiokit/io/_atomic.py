@@ -20,6 +20,7 @@ import contextlib
 import errno
 import functools
 import glob
+import hashlib
 import math
 import os
 import re
@@ -342,7 +343,7 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
     try:
         target = _link_target(path, folder)
         if folder:
-            _restore_interrupted(target)
+            _restore_interrupted(target, path)
         try:
             _check_output(target, overwrite, inputs, folder and made_by)
             _check_data_files(target, inputs, folder)
@@ -562,15 +563,23 @@ def _owner_tag() -> str:
 _NAME_MAX = 255
 
 
-def _head(path: Path, folder: bool, kind: str = "tmp") -> str:
+def _head(path: Path, folder: bool, kind: str = "tmp", legacy: bool = False) -> str:
     """The part of ``path``'s name its temporaries begin with: the name (a folder) or the stem,
     cut so that ``.HEAD.KIND-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
-    (room for a 10-digit PID: the same head for every process, so stale ones are found)."""
+    (room for a 10-digit PID: the same head for every process, so stale ones are found). A cut
+    head ends ``~`` and 8 hex digits of the whole name's SHA-256 (``legacy``: as before it did
+    not, cut alone).
+
+    Why the digest: cut alone, two names alike in their first ~227 bytes had one head, and the
+    results one left aside were put back at the other's name, or named in its warning."""
     head, tail = (path.name, "") if folder else (path.stem, path.suffix)
     room = _NAME_MAX - len(os.fsencode(f"..{kind}-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
-    while head and len(os.fsencode(head)) > room:  # cut whole characters, not bytes of one
+    if len(os.fsencode(head)) <= room:
+        return head
+    mark = "" if legacy else "~" + hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
+    while head and len(os.fsencode(head + mark)) > room:  # cut whole characters, not bytes of one
         head = head[:-1]
-    return head
+    return head + mark
 
 
 def _temporary_name(path: Path, folder=False, kind="tmp") -> Path:
@@ -594,37 +603,45 @@ def _remove_stale(path: Path, folder=False) -> None:
 
 
 def _leftovers(path: Path, folder: bool, kind: str) -> list[Path]:
-    """The ``kind`` temporaries of ``path`` left by a radiokit on this host whose process is gone."""
+    """The ``kind`` temporaries of ``path`` left by a radiokit on this host whose process is gone,
+    by the name :func:`_head` gives them now or gave them before (a cut name without its digest:
+    what a run killed before this change left is still found, alike names' too)."""
     host = socket.gethostname().split(".")[0]
-    # the name's own characters taken literally: "scan[1]" is no character class
-    head, suffix = glob.escape(_head(path, folder, kind)), "" if folder else glob.escape(path.suffix)
+    suffix = "" if folder else path.suffix
     found = []
-    for left in sorted(path.parent.glob(f".{head}.{kind}-{glob.escape(host)}-*{suffix}")):
-        m = re.search(rf"\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}", left.name)
-        if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
-            found.append(left)
+    for head in dict.fromkeys((_head(path, folder, kind), _head(path, folder, kind, legacy=True))):
+        # the name's own characters taken literally: "scan[1]" is no character class
+        pattern = f".{glob.escape(head)}.{kind}-{glob.escape(host)}-*{glob.escape(suffix)}"
+        whole = rf"\.{re.escape(head)}\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}{re.escape(suffix)}"
+        for left in sorted(path.parent.glob(pattern)):
+            m = re.fullmatch(whole, left.name)
+            if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+                found.append(left)
     return found
 
 
-def _restore_interrupted(path: Path) -> None:
+def _restore_interrupted(path: Path, named: Path | None = None) -> None:
     """Put back at ``path`` the previous results folder a killed run left renamed aside
     (``.NAME.old-HOST-PID-X``) before its new one took the name: the name is missing only then.
 
     With two or more such folders which one is the user's latest is not known: refused, naming
     them, rather than guessed. Where the name is there, a leftover is kept as it is (never
     removed: it may hold notes the user added), and named in a warning: a hidden folder nothing
-    points to is results the user believes gone."""
+    points to is results the user believes gone. ``named``: the output as the user named it, a
+    symbolic link to ``path``, for messages."""
     if not path.parent.is_dir():
         return
+    shown = path if named is None or named == path else f"{named} (a link to {path})"
     aside = _leftovers(path, True, "old")
     if os.path.lexists(path):
         if aside:
+            beside = "it" if shown is path else path.name  # (the leftovers lie beside the link's target)
             message = UserWarning(
-                f"{path}: previous results of an interrupted run are kept beside it in "
+                f"{shown}: previous results of an interrupted run are kept beside {beside} in "
                 f"{', '.join(p.name for p in aside)}; remove {'it' if len(aside) == 1 else 'them'} "
                 "once nothing there is needed"
             )
-            message.path = str(path)  # once per command: the output is checked again before it is written
+            message.path = str(shown)  # once per command: the output is checked again before it is written
             warnings.warn(message, stacklevel=4)
         return
     if len(aside) == 1:
@@ -632,7 +649,7 @@ def _restore_interrupted(path: Path) -> None:
             _publish(aside[0], path, folder=True)
     elif aside:
         raise OutputError(
-            path,
+            shown,
             f"is missing, and {len(aside)} previous results folders of interrupted runs are kept beside it "
             f"({', '.join(p.name for p in aside)}): rename the one to keep back to {path.name}, then run again",
         )

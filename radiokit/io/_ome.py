@@ -27,6 +27,7 @@ __all__ = [
     "binary_only",
     "mmstack_split",
     "check_mmstack_slots",
+    "not_there",
 ]
 
 
@@ -185,7 +186,7 @@ def binary_only(xml: str | None) -> str | None:
     return None if found is None else found.get("MetadataFile") or "a file it does not name"
 
 
-def mmstack_split(tif, path=None) -> list | None:
+def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
     """The planes of this file's stage positions in a Micro-Manager stack, in its order, where
     tifffile's series of it spans other files (None where it is no such stack): a TiffFrame
     each, in the file it lies in, or None where no file holds it; all in this file where it
@@ -195,10 +196,13 @@ def mmstack_split(tif, path=None) -> list | None:
     each with an index map of its planes; tifffile finds the others by that name, whatever the
     OME-XML says (or without one), from any file of the set. Read alone, the file given gave its
     own planes, with nothing said where the OME-XML names no file. ``path``: the file as the
-    user named it, for messages."""
+    user named it, for messages; ``notes``: where what :func:`check_mmstack_slots` says of an
+    acquisition stopped early is put, for the reader to warn."""
     if not tif.is_mmstack:
         return None
-    check_mmstack_slots(tif, path)
+    note = check_mmstack_slots(tif, path)
+    if note is not None and notes is not None:
+        notes.append(note)
     try:
         series = tif.series
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
@@ -215,6 +219,11 @@ def mmstack_split(tif, path=None) -> list | None:
         stride, size = math.prod(shape[r + 1 : len(shape) - len(series[0].keyframe.shape)]), shape[r]
         own = {k // stride % size for k, page in enumerate(pages) if page is not None and page.parent is tif}
         pages = [page for k, page in enumerate(pages) if k // stride % size in own]
+    if note is not None:
+        # stopped early between positions (or slices) of its last time point: this file's last
+        # planes were never written, not lost
+        while pages and pages[-1] is None:
+            pages.pop()
     return pages
 
 
@@ -227,21 +236,87 @@ _MM_SLOT_BYTES = 20
 _MM_COUNTS = (("Channels", "C"), ("Slices", "Z"), ("Frames", "T"), ("Positions", "R"))
 
 
-def _mmstack_files(tif, summary: dict) -> list[str] | None:
+def not_there(path) -> str:
+    """Why the file ``path`` a set names is not there, for messages: "NAME is missing", or, where
+    NAME is a symbolic link to nothing, that. Why: "missing" (or "No such file or directory")
+    of a name `ls` lists sent the user looking for a file that is there."""
+    path = Path(path)
+    if not path.is_symlink():
+        return f"{path.name} is missing"
+    try:
+        target = os.readlink(path)
+    except OSError:  # (gone between the two looks) as good as missing
+        return f"{path.name} is missing"
+    return f"{path.name} is a symbolic link to {target}, which points nowhere (no file is there)"
+
+
+def _mmstack_files(tif, summary: dict, path=None) -> list[str] | None:
     """The files of a Micro-Manager set tifffile's series looks for beside this one, found as it
     finds them (a "_MMStack" name, the summary's Prefix, a glob of *.tif that may miss this file
-    itself); None where it reads this one alone."""
+    itself); None where it reads this one alone. One that is a symbolic link to nothing is
+    refused, named (``path``: the file as the user named it)."""
     prefix = summary.get("Prefix", tif.filename.split("_MMStack")[0])
     if not tif.filehandle.is_file or "_MMStack" not in tif.filename or not isinstance(prefix, str):
         return None
     if not tif.filename.startswith(prefix):
         return None
-    return glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
+    found = glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
+    for name in found:  # tifffile opens each: a dangling link's "No such file" named no link
+        if not os.path.exists(name):
+            raise FormatError(
+                Path(path or tif.filehandle.path), f"a file of its Micro-Manager stack by its name: {not_there(name)}"
+            )
+    return found
 
 
-def check_mmstack_slots(tif, path=None) -> None:
+def _index_span(names: list[str], own: list[int]) -> tuple[list[int], int]:
+    """The (channel, slice, frame, position) span of the planes the index maps of the files
+    ``names`` record, at least ``own``, and how many entries they hold; a file whose index map
+    cannot be read adds nothing (tifffile's reading of it says what is wrong)."""
+    import tifffile  # late: only a Micro-Manager set needs it here
+
+    span, entries = list(own), 0
+    for name in names:
+        try:
+            with tifffile.FileHandle(name) as fh:
+                index = tifffile.read_micromanager_metadata(fh, {"IndexMap"})["IndexMap"]
+        except Exception:  # (a corrupt index map fails in many ways) the read itself says so
+            continue
+        if len(index):
+            span = [max(s, int(v) + 1) for s, v in zip(span, index[:, :4].max(axis=0))]
+            entries += len(index)
+    return span, entries
+
+
+def _drop_the_plan(summary: dict, counts: list[int], written: list[int], entries: int, where: str) -> str | None:
+    """Where the summary planned more channels, slices or time points than the index maps record
+    written, set its counts to those written (tifffile's series then lists only them), and say
+    so; None where it planned no more.
+
+    Why: Micro-Manager writes the summary, with the acquisition's planned counts, as it opens
+    each file and never again, and an index map entry as it writes each plane
+    (MultipageTiffWriter): an acquisition stopped early leaves a summary planning more than was
+    written. tifffile lists a slot for every plane planned (20 bytes each, 4*10**8 planned: 7.8
+    GB), reads the set's missing ones as zeros, and radiokit refused them. Positions are left as
+    planned: each is written to files of its own, which tifffile's series takes in beside it."""
+    cut = [(key, axis, c, w) for (key, axis), c, w in zip(_MM_COUNTS[:3], counts, written) if c > w]
+    if not cut:
+        return None
+    for key, _, _, w in cut:
+        summary[key] = w
+    planned = " x ".join(f"{axis} {c}" for _, axis, c, _ in cut)
+    found = " x ".join(f"{axis} {w}" for _, axis, _, w in cut)
+    return (
+        f"its Micro-Manager summary planned {math.prod(counts)} planes ({planned}) but {where} "
+        f"{entries} ({found}): the acquisition looks stopped early"
+    )
+
+
+def check_mmstack_slots(tif, path=None) -> str | None:
     """Refuse a Micro-Manager stack whose summary's counts (Channels x Slices x Frames x
-    Positions) or index map's coordinates declare more planes than its files can hold.
+    Positions) or index map's coordinates declare more planes than its files can hold; where
+    the summary planned more than the index maps record written (an acquisition stopped early),
+    count only those written (:func:`_drop_the_plan`) and return what to warn of, else None.
     ``path``: the file as the user named it, for the message.
 
     Why: tifffile's series of it lists a slot for every plane declared (8 bytes each), before
@@ -249,29 +324,31 @@ def check_mmstack_slots(tif, path=None) -> None:
     Frames 4*10**8 took 214 s and 7.8 GB to open, one whose index map put a plane at T = 4*10**8
     - 1, 42 s and 6.3 GB. Each real plane has a 20-byte index map entry in some file, so more
     planes than the files' bytes / 20 are declared, never written. The slots are counted as
-    tifffile does: the summary's counts, or the index map's, where it reads a set of files;
-    the span of this file's index map where it reads this file alone (a summary planning more
-    frames than an acquisition stopped early wrote is no fault)."""
+    tifffile does: the index maps' span, or the set's where it reads a set of files; the span of
+    this file's index map where it reads this file alone."""
     meta = tif.micromanager_metadata or {}
     summary, index = meta.get("Summary"), meta.get("IndexMap")
     if not isinstance(summary, dict) or "MicroManagerVersion" not in summary or "Frames" not in summary:
-        return  # no Micro-Manager series: tifffile lists nothing
+        return None  # no Micro-Manager series: tifffile lists nothing
     if index is None or not len(index):
-        return
+        return None
     try:
         counts = [int(summary.get(key, 1)) for key, _ in _MM_COUNTS]
     except (TypeError, ValueError, OverflowError):  # (1e400: infinity) tifffile's series says what it makes of it
-        return
+        return None
     high = [int(v) + 1 for v in index[:, :4].max(axis=0)]
     low = [int(v) for v in index[:, :4].min(axis=0)]
-    sizes = [max(h, c) for h, c in zip(high, counts)]
-    files = [tif.filehandle.path]
-    if math.prod(sizes) > len(index):  # tifffile looks for the set's other files
-        found = _mmstack_files(tif, summary)
-        if found is None or len(found) == 1:  # read alone: squeezed to the span of its index map
-            sizes = [h - lo for h, lo in zip(high, low)]
-        elif found:  # (none found, tifffile lists the slots all the same)
-            files = found
+    files, written, entries, where, found = [tif.filehandle.path], high, len(index), "it holds", None
+    if math.prod(max(h, c) for h, c in zip(high, counts)) > len(index):  # tifffile looks for the set's other files
+        found = _mmstack_files(tif, summary, path)
+        if found is not None and len(found) > 1:
+            files, where = found, f"its set's {len(found)} files hold"
+            written, entries = _index_span(found, high)
+    note = _drop_the_plan(summary, counts, written, entries, where)
+    counts = [int(summary.get(key, 1)) for key, _ in _MM_COUNTS]
+    sizes = [max(w, c) for w, c in zip(written, counts)]
+    if math.prod(sizes) > len(index) and (found is None or len(found) == 1):
+        sizes = [h - lo for h, lo in zip(high, low)]  # read alone: squeezed to the span of its index map
     slots = math.prod(sizes)
     shape = " x ".join(f"{axis} {n}" for (_, axis), n in zip(_MM_COUNTS, sizes))
     # the files' sizes are no bound where a set's file is sparse (a 2 GB truncated file takes no
@@ -291,3 +368,4 @@ def check_mmstack_slots(tif, path=None) -> None:
             f"a Micro-Manager stack of {slots} planes ({shape}, by its summary and index map), more than "
             f"{where} can hold ({_MM_ENTRY_BYTES} bytes of index map a plane): corrupt",
         )
+    return note

@@ -55,6 +55,7 @@ from radiokit.io._ome import (
     describe_planes,
     external_planes,
     mmstack_split,
+    not_there,
     ome_pages,
     ome_root_uuid,
     tiffdata,
@@ -244,6 +245,7 @@ class FrameSource:
                 f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
+        self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
         self._siblings = {}  # a multi-file OME-TIFF's other files, by path, open while this is
         self._transposed = False  # frames stored column-major (MATLAB), read transposed
         self._invert = None  # what a white-is-zero image's values are subtracted from (TIFF, HDF5)
@@ -349,7 +351,7 @@ class FrameSource:
                 )
         self._check_ifd_chain(all_pages)
         self._contiguous = self._contiguous_stack(first, all_pages)
-        self._warn_ome_unread()
+        self._warn_unread()
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
             self._refuse_signed_below_a_word(index[i], page)
@@ -403,6 +405,13 @@ class FrameSource:
         elif tif.is_ome:
             series = tif.series  # built already to refuse an OME file of several images
             if len(series) == 1 and series[0].axes[-2:] == "YX":
+                shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_mmstack:
+            try:
+                series = tif.series  # built already, from its index map, to order its planes
+            except Exception:  # (a summary's count of 1e400) read in file order: nothing to say
+                series = []
+            if len(series) == 1 and series[0].kind == "mmstack" and series[0].axes[-2:] == "YX":
                 shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
         elif tif.is_shaped:
             series = _shaped_series(self._pages)
@@ -485,7 +494,7 @@ class FrameSource:
         spread = self._ome_multifile_pages()
         if spread is not None:
             return spread
-        index = self._ome_plane_order(self._full_image_pages(all_pages))
+        index = self._mmstack_plane_order(self._ome_plane_order(self._full_image_pages(all_pages)))
         return [all_pages[i] for i in index], index
 
     def _ome_multifile_pages(self) -> tuple[list, list[str]] | None:
@@ -499,7 +508,7 @@ class FrameSource:
         must be there and hold its planes (tifffile zero-fills what is missing), and each is
         checked as this one is; data_files lists them, so that no output overwrites one."""
         tif = self._tif
-        pages = mmstack_split(tif, self.path)
+        pages = mmstack_split(tif, self.path, self._mm_notes)
         if pages is not None and all(page is not None and page.parent is tif for page in pages):
             # its positions whole here: the files beside it hold other positions, which an
             # OME-XML names as other images (tifffile's series would interleave them)
@@ -575,7 +584,7 @@ class FrameSource:
         if missing:
             raise FormatError(
                 self.path,
-                f"{what}, and {', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing: "
+                f"{what}, and {', '.join(not_there(self.path.parent / name) for name in missing)}: "
                 "a multi-file OME-TIFF's files are read from the folder it is in",
             )
         runs = self._check_ome_set(what, own, totals, found)
@@ -731,6 +740,28 @@ class FrameSource:
         except (TypeError, ValueError, AttributeError):  # a SubIFD's tuple index, a series without pages
             return index
         return order if sorted(order) == sorted(index) else index
+
+    def _mmstack_plane_order(self, index: list[int]) -> list[int]:
+        """The frame pages ``index`` in the order of a Micro-Manager file's planes in tifffile's
+        series of it (time points outer, slices inner, by its index map), where it has neither
+        OME-XML nor ImageJ metadata to order them by. Why: Micro-Manager writes the planes in
+        the order they are acquired, slices outer if so set, and file order gave a stack of 2
+        slices x 2 time points as (Z, T) where Fiji and tifffile show (T, Z), with nothing
+        said (``stacked`` says it now). Anything but a reordering of the same pages leaves the
+        file's order, as :meth:`_ome_plane_order` does."""
+        tif = self._tif
+        if not tif.is_mmstack or tif.is_ome or tif.is_imagej:
+            return index
+        try:
+            series = tif.series[0]
+            if series.kind != "mmstack" or series.is_multifile:
+                return index  # (a set's planes are ordered by mmstack_split)
+            # tifffile's page.index of such a series is the plane's place in it, not in the file
+            at = {int(tif.pages[i].offset): i for i in index}
+            order = [at.get(int(page.offset)) for page in series.pages if page is not None]
+        except Exception:  # (tifffile fails on a corrupt file in many ways) the checks that follow judge it
+            return index
+        return order if None not in order and sorted(order) == sorted(index) else index
 
     def _refuse_several_images(self, pages: int) -> None:
         """Refuse a hyperstack of several channels at each time point or slice, and an OME-TIFF
@@ -1005,9 +1036,11 @@ class FrameSource:
         self._fh = open(self.path, "rb")
         return geo
 
-    def _warn_ome_unread(self) -> None:
-        """Warn where an OME-TIFF read alone holds fewer pages than its OME-XML describes, or
-        describes nothing itself (BinaryOnly), as an ImageJ file of fewer pages than its images=.
+    def _warn_unread(self) -> None:
+        """Warn where a Micro-Manager summary planned more planes than were written (an
+        acquisition stopped early: :func:`check_mmstack_slots`), and where an OME-TIFF read alone
+        holds fewer pages than its OME-XML describes, or describes nothing itself (BinaryOnly), as
+        an ImageJ file of fewer pages than its images=.
 
         Why: tifffile only logs either, and the pages there are read as the whole stack: a writer
         that stopped after 2 of SizeT=4 planes, a Micro-Manager stack split at 4 GB whose XML does
@@ -1016,6 +1049,8 @@ class FrameSource:
         Warned rather than refused, as ImageJ's count is: the pages there are whole and readable.
         A multi-file set read whole (allow_external) was checked plane by plane already."""
         tif, n = self._tif, len(self._pages)
+        for note in self._mm_notes:  # (tifffile only logs it, if anything)
+            warnings.warn(f"{self.path}: {note}: reading the {n} written", UserWarning, stacklevel=3)
         if not tif.is_ome or "ome_files" in self.meta:
             return
         xml = tif.ome_metadata
