@@ -2844,3 +2844,32 @@ def test_a_master_file_whose_frames_are_external_links_names_them(tmp_path):
         FormatError, match=r"/entry/local \(4x4 float32\).*/entry/data/data_000001 \(in m_data_000001\.h5\)"
     ):
         read(tmp_path / "m_master.h5")
+
+
+def test_the_writer_warns_of_values_above_the_adcs_top_once_per_kind(tmp_path):
+    """s40rev: 16-bit frames written without bit_depth (the README's recipe for vendor TIFFs) went in
+    silently, and only reads warned afterwards. The writer says it at the first frame of each kind,
+    naming bit_depth=; frames within the range, or a bit_depth that holds them, say nothing."""
+    from radiokit.io import BitDepthWarning
+
+    rng = np.random.default_rng(0)
+    sixteen = rng.integers(20000, 60000, (8, 8)).astype(np.uint16)
+    with pytest.warns(
+        BitDepthWarning,
+        match=r"frame 0 \(image_key 2\) has values up to \d+, above 0..4095 \(no bit_depth given.*bit_depth=",
+    ):
+        with ExperimentWriter(tmp_path / "a.h5", shape=(8, 8)) as w:
+            w.append(sixteen, image_key=ImageKey.DARK)
+            w.append(sixteen, image_key=ImageKey.DARK)  # the same kind: not said again
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with ExperimentWriter(tmp_path / "b.h5", shape=(8, 8), bit_depth=16) as w:
+            w.append(sixteen, image_key=ImageKey.DARK)
+        with ExperimentWriter(tmp_path / "c.h5", shape=(8, 8)) as w:
+            w.append(np.full((8, 8), 4095, np.uint16), image_key=ImageKey.FLAT)
+    twelve = rng.integers(100, 4000, (8, 8)).astype(np.uint16)
+    with pytest.warns(BitDepthWarning, match="byte-swapped values fit") as caught:
+        with ExperimentWriter(tmp_path / "d.h5", shape=(8, 8), bit_depth=12) as w:
+            w.append(twelve, image_key=ImageKey.DARK)  # right: nothing
+            w.append(twelve.byteswap(), image_key=ImageKey.PROJECTION, step=1)
+    assert len(caught) == 1

@@ -51,6 +51,7 @@ from radiokit.io._atomic import (
     file_size_limit,
     resolved,
 )
+from radiokit.io._frames import BitDepthWarning, bit_depth_cause
 
 __all__ = [
     "ExperimentWriter",
@@ -537,6 +538,37 @@ class ExperimentWriter:
     #: finish what it started and the file stays whole.
     ballast = True
 
+    def _check_range(self, frame: np.ndarray, key: int) -> None:
+        """Warn, as the readers will, of values above the ADC's top: the file's ``bit_depth`` or,
+        not given, the C7942's 12 bits the readers assume. Said at writing, where the frames can
+        still be written right (a byte order, a 16-bit panel without ``bit_depth=16``), not at
+        every read after. The first frame of each kind only: a full pass over each frame would add
+        ~15 % to the acquisition's bookkeeping, and a wrong layout shows in every frame."""
+        checked = self.__dict__.setdefault("_range_checked", set())
+        if key in checked:
+            return
+        checked.add(key)
+        bits = self.__dict__.get("_bits")
+        if bits is None:
+            ds = self._h5[DETECTOR].get("bit_depth_readout")
+            bits = self._bits = int(ds[()]) if isinstance(ds, h5py.Dataset) and ds.shape == () else 0
+        top = (1 << (bits or 12)) - 1
+        if frame.size == 0 or int(frame.max()) <= top:
+            return
+        swap = "byte-swap the frames before appending them (frame.byteswap())"
+        cause = bit_depth_cause(frame, bits or 12, swap_advice=swap) or (
+            "another panel's range: pass bit_depth= its ADC bits (16 for one that saturates at 65535)"
+            if not bits
+            else "another panel's range, data rescaled, or a wrong byte or bit order"
+        )
+        declared = f"bit_depth={bits}" if bits else "no bit_depth given: the C7942's 12 bits, as readers assume"
+        message = BitDepthWarning(
+            f"{self.path}: frame {self._n} (image_key {key}) has values up to {int(frame.max())}, above "
+            f"0..{top} ({declared}); {cause}. Readers will warn of it too"
+        )
+        message.path = str(self.path)
+        warnings.warn(message, stacklevel=3)
+
     def append(
         self, frame, *, image_key, step=-1, ratio=None, gap_mm=None, time_s=None, voltage_kv=None, current_ua=None
     ) -> int:
@@ -566,6 +598,7 @@ class ExperimentWriter:
             frame = frame.astype(np.uint16)
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
+        self._check_range(frame, int(image_key))
         if ratio is not None and not _ratio_ok(ratio):
             raise ValueError(f"{self.path}: ratio={ratio!r}: {RATIO_RULE}")
         i = self._n
