@@ -267,15 +267,41 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, 
     return (mean, std) if return_std else mean
 
 
-def _local_median(image: np.ndarray, block: int) -> np.ndarray:
+def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None) -> np.ndarray:
     """Median over ``block``-sized tiles, interpolated back to full size: a smooth model that
-    isolated defects and single lines cannot pull."""
+    isolated defects and single lines cannot pull.
+
+    ``valid``: the pixels the medians are taken over (all by default). A tile with fewer than an
+    eighth of its pixels valid takes the median of the nearest tile that has enough. Why: a band
+    of dead pixels filling half a tile (a tiled detector's gap between modules) dragged the
+    tile's median to half the response, and the good rows beside it were flagged as twice it."""
     rows, cols = image.shape
     block = max(1, min(block, rows, cols))
     nr, nc = -(-rows // block), -(-cols // block)
-    padded = np.pad(image, ((0, nr * block - rows), (0, nc * block - cols)), mode="edge")
-    tiles = padded.reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, block * block)
-    med = np.median(tiles, axis=2).astype(np.float32)
+    pad = ((0, nr * block - rows), (0, nc * block - cols))
+
+    def tiled(a):
+        return np.pad(a, pad, mode="edge").reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, -1)
+
+    tiles = tiled(image)
+    if valid is None or valid.all():
+        med = np.median(tiles, axis=2).astype(np.float32)
+    else:
+        ok = tiled(valid)
+        count = ok.sum(axis=2)
+        # invalid pixels sorted past the valid ones: the median of the first ``count`` of each tile
+        srt = np.sort(np.where(ok, tiles.astype(np.float32), np.inf), axis=2)
+        lo = np.take_along_axis(srt, np.maximum((count - 1) // 2, 0)[..., None], axis=2)[..., 0]
+        hi = np.take_along_axis(srt, np.maximum(count // 2, 0)[..., None], axis=2)[..., 0]
+        med = (0.5 * (lo.astype(np.float64) + hi)).astype(np.float32)
+        enough = count >= max(1, block * block // 8)
+        if not enough.any():  # nothing to go on: the plain median, as before
+            med = np.median(tiles, axis=2).astype(np.float32)
+        elif not enough.all():
+            from scipy.ndimage import distance_transform_edt
+
+            idx = distance_transform_edt(~enough, return_distances=False, return_indices=True)
+            med = med[idx[0], idx[1]]
     if nr == 1 and nc == 1:
         return np.full((rows, cols), med[0, 0], np.float32)
     # Tile centres sit at block/2; resize with INTER_LINEAR maps centres to centres.
@@ -916,11 +942,28 @@ def _check_stacks(darks, flats):
     return darks, flats
 
 
+def _reference_response(response, th: Thresholds) -> np.ndarray:
+    """The local response each pixel is judged against (:func:`_local_median`), taken over the
+    pixels that are not already defects by a first look: those with a response (over ``eps`` and
+    over ``dead_below`` of the lit level, the 90th percentile, as :func:`_exposed_field` says lit),
+    then of those the ones within ``[under_below, over_above]`` of that first reference. Why: the
+    defects were part of their own reference, so a gap or dead band filling half a tile pulled the
+    tile's median to half, and the good rows beside it, at twice "the local response", were
+    flagged (58 rows for a 16-row band, a Pilatus's module gaps refused at 12.4 % for 5.5 %)."""
+    lit = float(np.percentile(response, 90))
+    valid = response > max(th.eps, th.dead_below * lit)
+    first = _local_median(response, th.smooth_block, valid)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(first > th.eps, response / first, 0)
+    valid &= (rel >= th.under_below) & (rel <= th.over_above)
+    return _local_median(response, th.smooth_block, valid)
+
+
 def _defect_map(flat, dark_std, response, th):
     """The pixel mask (:class:`PixelFlag` bits), the defect rows and columns, and how many pixels
     of the flat are saturated (see :meth:`Calibration.from_frames`' notes)."""
     mask = np.zeros(flat.shape, np.uint32)
-    local = _local_median(response, th.smooth_block)
+    local = _reference_response(response, th)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(local > th.eps, response / local, 0).astype(np.float32)
     mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
@@ -1036,6 +1079,57 @@ def _exposed_field(response, dead_below) -> tuple[int, int, int, int] | None:
     return r0, r1, c0, c1
 
 
+def _exposed_disc(response, dead_below):
+    """``((row, col, radius), (r0, r1, c0, c1))``: the disc outside which the flats are unexposed
+    (as :func:`_exposed_field` judges it), as an image intensifier's round field leaves a square
+    frame, and the square inside it (inclusive, within the frame); None when the lit pixels are no
+    disc (within 3 % of the frame). The radius is the lit pixels' furthest from their centroid
+    (the 99.9th percentile: a few hot pixels outside do not count), so a disc the frame cuts off
+    is measured whole."""
+    exposed = response > dead_below * float(np.percentile(response, 90))
+    if exposed.sum() < 16 or exposed.all():
+        return None
+    rr, cc = np.nonzero(exposed)
+    cy, cx = float(rr.mean()), float(cc.mean())
+    radius = float(np.percentile(np.hypot(rr - cy, cc - cx), 99.9))
+    gy, gx = np.ogrid[: response.shape[0], : response.shape[1]]
+    disc = (gy - cy) ** 2 + (gx - cx) ** 2 <= radius**2
+    if disc.all() or (disc != exposed).mean() > 0.03:
+        return None
+    half = radius / np.sqrt(2)
+    rows, cols = response.shape
+    square = (
+        max(0, int(np.ceil(cy - half))),
+        min(rows - 1, int(np.floor(cy + half))),
+        max(0, int(np.ceil(cx - half))),
+        min(cols - 1, int(np.floor(cx + half))),
+    )
+    return (cy, cx, radius), square
+
+
+def _runs(index) -> str:
+    """``[3, 4, 5, 9]`` as "3-5, 9"; the first eight runs, then how many more."""
+    runs = np.split(index, np.flatnonzero(np.diff(index) != 1) + 1)
+    text = [f"{r[0]}-{r[-1]}" if r.size > 1 else f"{r[0]}" for r in runs[:8]]
+    return ", ".join(text) + (f" and {len(runs) - 8} more" if len(runs) > 8 else "")
+
+
+def _dead_lines(mask) -> str | None:
+    """What whole rows and columns of dead pixels (nine tenths of them or more) the defect map
+    holds -- "51 whole rows (40-56, 97-113, 154-170)" -- when they are at least half of its flagged
+    pixels, else None. Dead lines that wide are no panel's defect lines but the gaps between a
+    tiled detector's modules, and the refusal says so."""
+    dead = (mask & np.uint32(PixelFlag.DEAD)) != 0
+    rows, cols = np.flatnonzero(dead.mean(axis=1) >= 0.9), np.flatnonzero(dead.mean(axis=0) >= 0.9)
+    lines = np.zeros(mask.shape, bool)
+    lines[rows] = True
+    lines[:, cols] = True
+    if not (rows.size or cols.size) or 2 * np.count_nonzero(lines & (mask != 0)) < np.count_nonzero(mask):
+        return None
+    parts = [f"{idx.size} whole {name} ({_runs(idx)})" for name, idx in (("rows", rows), ("columns", cols)) if idx.size]
+    return " and ".join(parts)
+
+
 def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dead_below=0.0) -> None:
     """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
     calibration "corrects" by filling most pixels from their neighbours, and was exiting 0. When
@@ -1053,6 +1147,23 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dea
             f"panel flagged, over the {100 * MAX_DEFECTIVE_SHARE:g} % a defect map may mark): the beam blocked "
             "there (a collimator's shadow, the frame or a shutter in the way?); clear its path, or crop the darks, "
             "flats and frames to that field"
+        )
+    disc = _exposed_disc(response, dead_below) if over and response is not None and field is None else None
+    if disc is not None:
+        (cy, cx, radius), (r0, r1, c0, c1) = disc
+        raise ValueError(
+            f"the flats are lit only inside a disc of radius {radius:.0f} px centred at row {cy:.0f}, column "
+            f"{cx:.0f} ({100 * n / mask.size:.1f} % of the panel flagged, over the {100 * MAX_DEFECTIVE_SHARE:g} % a "
+            "defect map may mark): an image intensifier's circular field? crop the darks, flats and frames to the "
+            f"square inside it, rows {r0}-{r1}, columns {c0}-{c1}"
+        )
+    gaps = _dead_lines(mask) if over else None
+    if gaps is not None:
+        raise ValueError(
+            f"the defect map marks {n} of {mask.size} pixels ({100 * n / mask.size:.1f} %) defective, over the "
+            f"{100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most (up to 20 defect lines), {gaps} reading no "
+            "response in the darks and flats: the gaps between a tiled detector's modules? a defect map is one "
+            "panel's; crop the darks, flats and frames to one module"
         )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(
