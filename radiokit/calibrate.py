@@ -37,6 +37,9 @@ __all__ = [
     "exposure_factors",
     "adc_top",
     "declared_bit_depth",
+    "pixel_layout",
+    "declared_layout",
+    "check_layout",
     "frame_saturation",
     "judge_frames",
     "judge_darks",
@@ -422,7 +425,16 @@ class Calibration:
     # -- building -----------------------------------------------------------------------------
     @classmethod
     def from_frames(
-        cls, darks, flats, *, dark_times=None, flat_times=None, progress=False, bit_depth=None, **thresholds
+        cls,
+        darks,
+        flats,
+        *,
+        dark_times=None,
+        flat_times=None,
+        progress=False,
+        bit_depth=None,
+        layout=None,
+        **thresholds,
     ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
 
@@ -440,6 +452,11 @@ class Calibration:
             those :class:`radiokit.io.Frames` give say (``meta["bit_depth"]``). Without
             ``saturation``, ``2**bit_depth - 1`` is the saturation unless the frames pass it;
             else :func:`adc_top` guesses it from the frames.
+        layout : dict, optional
+            Where the frames' pixels lie on the sensor as their files were read
+            (:func:`pixel_layout`, :func:`declared_layout`); by default what :class:`radiokit.io.Frames`
+            say, nothing for plain arrays. Kept in the provenance (``orientation``,
+            ``sensor_offset``): frames read otherwise are refused on correction (:func:`check_layout`).
         **thresholds
             Any field of :class:`Thresholds`.
 
@@ -465,6 +482,13 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
+        if layout is None:  # as the frames' files were read, where the frames say
+            layout = declared_layout(
+                {
+                    f"{what} {getattr(f, 'path', '')}": pixel_layout(f.meta) if hasattr(f, "meta") else None
+                    for what, f in (("darks", darks), ("flats", flats))
+                }
+            )
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
@@ -482,6 +506,7 @@ class Calibration:
             bar.set_description("calibrate defects")
             cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given)
             bar.update(rows)
+        cal.provenance.update(layout or {})
         return cal
 
     @classmethod
@@ -563,6 +588,7 @@ class Calibration:
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
+        cal.provenance.update(pixel_layout(src.meta))
         cal.provenance["source"] = str(path)
         check_currents(path, src.meta, sel[ImageKey.FLAT])
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
@@ -773,6 +799,86 @@ _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 25
 def _covering_top(peak: float) -> int | None:
     """The smallest of :data:`ADC_TOPS` that ``peak`` does not exceed (None above 65535)."""
     return next((top for top in ADC_TOPS if peak <= top), None)
+
+
+#: TIFF 6.0's Orientation values as the reader applies them (radiokit.io's ``_ORIENT``)
+_ORIENTATION_NAMES = {
+    1: "as stored",
+    2: "mirrored left-right",
+    3: "turned 180 degrees",
+    4: "mirrored top-bottom",
+    5: "transposed",
+    6: "turned 90 degrees clockwise",
+    7: "transposed across the other diagonal",
+    8: "turned 90 degrees counter-clockwise",
+}
+
+
+def pixel_layout(meta: dict) -> dict:
+    """Where a frame file's pixels lie on the sensor, as its reader placed them (``meta``, a
+    :class:`radiokit.io.Frames`' or a source's): ``orientation``, the TIFF Orientation applied (1:
+    row 0 as stored), and ``sensor_offset``, a sub-array's ``[x, y]`` on the sensor (an ITEX
+    file's; ``[0, 0]``: the whole frame). Why: a dark/flat correction is pixel by pixel, and frames
+    read turned (a viewer's lossless turn only tags them) or cut elsewhere from the sensor, at the
+    calibration's size, met other sensor pixels' darks and flats, silently. A MATLAB array read
+    transposed is not here: that restores the array MATLAB held (and shows), the sensor's grid,
+    from its column-major storage; it does not move pixels."""
+    return {
+        "orientation": int(meta.get("orientation", 1)),
+        "sensor_offset": [int(meta.get("x_offset", 0)), int(meta.get("y_offset", 0))],
+    }
+
+
+def _layout_text(key: str, value) -> str:
+    if key == "orientation":
+        return f"TIFF Orientation {value} ({_ORIENTATION_NAMES.get(value, 'unknown')})"
+    return "the whole sensor" if not any(value) else f"a sub-array at x {value[0]}, y {value[1]} on the sensor"
+
+
+def declared_layout(layouts: dict) -> dict | None:
+    """The one :func:`pixel_layout` of the darks' and flats' files (``layouts``: each file's name
+    and its layout), else None (no file named: plain arrays). Files read differently are refused
+    (ValueError naming each): averaged together, or flats against darks, they pair different
+    sensor pixels."""
+    found = {name.strip(): lay for name, lay in layouts.items() if lay is not None}
+    for key in ("orientation", "sensor_offset"):
+        values = {name: lay[key] for name, lay in found.items()}
+        if len({json.dumps(v) for v in values.values()}) > 1:
+            named = ", ".join(f"{name} {_layout_text(key, v)}" for name, v in values.items())
+            raise ValueError(
+                f"the darks' and flats' files are read differently ({named}): their pixels would pair different "
+                "sensor pixels; give darks and flats written alike"
+            )
+    return next(iter(found.values()), None)
+
+
+def check_layout(cal: Calibration, meta: dict, path) -> None:
+    """Refuse (:class:`FormatError` naming ``path``) frames whose :func:`pixel_layout` differs
+    from the one the calibration's darks and flats were read in: corrected, each pixel would take
+    another sensor pixel's dark and flat. Refused rather than corrected in the stored grid: a
+    tag-only turn (a viewer's) leaves the stored grids alike, but a turn baked into the pixels
+    with the tag reset leaves the viewed ones alike, and a file cannot say which. A calibration
+    recording none (written before radiokit recorded it, or built from plain arrays) is taken for
+    frames read as stored; frames declaring otherwise are refused, as their darks and flats may
+    have been read either way."""
+    layout = pixel_layout(meta)
+    for key, default in (("orientation", 1), ("sensor_offset", [0, 0])):
+        mine, theirs = layout[key], cal.provenance.get(key)
+        if theirs is None and mine != default:
+            raise FormatError(
+                path,
+                f"frames read in {_layout_text(key, mine)}, and the calibration does not record how its darks and "
+                "flats were read (made before radiokit recorded it): make it again with radiokit calibrate from "
+                "darks and flats read as these frames",
+            )
+        if theirs is not None and list(np.atleast_1d(theirs)) != list(np.atleast_1d(mine)):
+            raise FormatError(
+                path,
+                f"frames read in {_layout_text(key, mine)}, the calibration's darks and flats in "
+                f"{_layout_text(key, theirs if key == 'orientation' else list(theirs))}: each pixel would be corrected "
+                "with another sensor pixel's dark and flat; calibrate from darks and flats written as these frames "
+                "(or write the frames as the darks and flats: a viewer's turn may have only tagged them)",
+            )
 
 
 def declared_bit_depth(bit_depths: dict) -> int | None:
