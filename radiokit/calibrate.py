@@ -695,6 +695,20 @@ def _check_numbers(path, group, provenance: dict) -> None:
     value = provenance.get("flat_current_ua")
     if value is not None and not np.isnan(value) and not _TUBE_UA[0] <= value <= _TUBE_UA[1]:
         raise FormatError(path, f"{group.name}@provenance: flat_current_ua is {value!r} uA: {_NO_TUBE}")
+    # how the darks and flats were read (pixel_layout), compared with every frame file's: a value no
+    # reader gives would be compared as another layout, or fail in the message (a dict, unhashable)
+    for key, ok, expected in (
+        ("orientation", lambda v: type(v) is int and v in _ORIENTATION_NAMES, "a TIFF Orientation, 1 to 8"),
+        (
+            "sensor_offset",
+            lambda v: isinstance(v, list) and len(v) == 2 and all(type(x) is int and x >= 0 for x in v),
+            "[x, y], whole pixels >= 0",
+        ),
+    ):
+        if key in provenance and not ok(provenance[key]):
+            raise FormatError(
+                path, f"{group.name}@provenance: {key} is {json.dumps(provenance[key])}: expected {expected}"
+            )
 
 
 def _json_attr(path, group, name) -> dict:

@@ -1,5 +1,8 @@
 """Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
 
+import json
+
+import h5py
 import numpy as np
 import pytest
 from conftest import run_cli
@@ -549,10 +552,6 @@ def test_a_calibration_that_does_not_record_its_orientation_still_corrects_untag
     as before, without a word; frames declaring another orientation cannot be paired with them
     safely (their darks and flats may have been read either way) and are refused, saying to
     make the calibration again."""
-    import json
-
-    import h5py
-
     d, f, fr = _orientation_files(tmp_path)
     assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
     with h5py.File(tmp_path / "cal.h5", "a") as h5:
@@ -602,3 +601,32 @@ def test_frames_cut_elsewhere_from_the_sensor_than_the_calibration_are_refused(t
     whole = _itex(tmp_path / "whole.img", frame)
     res = run_cli("correct", whole, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5", "-q")
     assert res.returncode == 2 and "the whole sensor" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("orientation", 9),
+        ("orientation", "3"),
+        ("orientation", True),
+        ("orientation", {}),
+        ("sensor_offset", 5),
+        ("sensor_offset", [1, 2, 3]),
+        ("sensor_offset", [-1, 0]),
+        ("sensor_offset", [0.5, 0]),
+    ],
+)
+def test_a_calibration_recording_no_orientation_or_offset_radiokit_writes_is_refused(tmp_path, key, value):
+    """A calibration file's provenance says how its darks and flats were read; a value no reader
+    gives (Orientation 9, a string, an offset of three numbers) is refused on load naming the
+    field, never a traceback (a dict was unhashable in the message) nor compared as another."""
+    from radiokit.errors import FormatError
+
+    d, f, _ = _orientation_files(tmp_path)
+    assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    with h5py.File(tmp_path / "cal.h5", "a") as h5:
+        prov = json.loads(h5["calibration"].attrs["provenance"])
+        prov[key] = value
+        h5["calibration"].attrs["provenance"] = json.dumps(prov)
+    with pytest.raises(FormatError, match=f"provenance: {key} is"):
+        Calibration.load(tmp_path / "cal.h5")
