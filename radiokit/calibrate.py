@@ -37,6 +37,9 @@ __all__ = [
     "exposure_factors",
     "adc_top",
     "declared_bit_depth",
+    "pixel_layout",
+    "declared_layout",
+    "check_layout",
     "frame_saturation",
     "judge_frames",
     "judge_darks",
@@ -267,15 +270,44 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, 
     return (mean, std) if return_std else mean
 
 
-def _local_median(image: np.ndarray, block: int) -> np.ndarray:
+def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None) -> np.ndarray:
     """Median over ``block``-sized tiles, interpolated back to full size: a smooth model that
-    isolated defects and single lines cannot pull."""
+    isolated defects and single lines cannot pull.
+
+    ``valid``: the pixels the medians are taken over (all by default). A tile with fewer than an
+    eighth of its pixels valid takes the median of the nearest tile that has enough. Why: a band
+    of dead pixels filling half a tile (a tiled detector's gap between modules) dragged the
+    tile's median to half the response, and the good rows beside it were flagged as twice it."""
     rows, cols = image.shape
     block = max(1, min(block, rows, cols))
     nr, nc = -(-rows // block), -(-cols // block)
-    padded = np.pad(image, ((0, nr * block - rows), (0, nc * block - cols)), mode="edge")
-    tiles = padded.reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, block * block)
-    med = np.median(tiles, axis=2).astype(np.float32)
+    pad = ((0, nr * block - rows), (0, nc * block - cols))
+
+    def tiled(a):
+        return np.pad(a, pad, mode="edge").reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, -1)
+
+    tiles = tiled(image)
+    if valid is None or valid.all():
+        med = np.median(tiles, axis=2).astype(np.float32)
+    else:
+        ok = tiled(valid)
+        count = ok.sum(axis=2)
+        med = np.median(tiles, axis=2).astype(np.float32)
+        part = count < ok.shape[2]  # sorted only where needed: a full sort of every tile took 1 s at 2240
+        # invalid pixels sorted past the valid ones: the median of the first ``count`` of each tile
+        srt = np.sort(np.where(ok[part], tiles[part].astype(np.float32), np.inf), axis=1)
+        n = count[part]
+        lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+        hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[:, None], axis=1)[:, 0]
+        med[part] = (0.5 * (lo.astype(np.float64) + hi)).astype(np.float32)
+        enough = count >= max(1, block * block // 8)
+        if not enough.any():  # nothing to go on: the plain median, as before
+            med = np.median(tiles, axis=2).astype(np.float32)
+        elif not enough.all():
+            from scipy.ndimage import distance_transform_edt
+
+            idx = distance_transform_edt(~enough, return_distances=False, return_indices=True)
+            med = med[idx[0], idx[1]]
     if nr == 1 and nc == 1:
         return np.full((rows, cols), med[0, 0], np.float32)
     # Tile centres sit at block/2; resize with INTER_LINEAR maps centres to centres.
@@ -396,7 +428,16 @@ class Calibration:
     # -- building -----------------------------------------------------------------------------
     @classmethod
     def from_frames(
-        cls, darks, flats, *, dark_times=None, flat_times=None, progress=False, bit_depth=None, **thresholds
+        cls,
+        darks,
+        flats,
+        *,
+        dark_times=None,
+        flat_times=None,
+        progress=False,
+        bit_depth=None,
+        layout=None,
+        **thresholds,
     ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
 
@@ -414,6 +455,11 @@ class Calibration:
             those :class:`radiokit.io.Frames` give say (``meta["bit_depth"]``). Without
             ``saturation``, ``2**bit_depth - 1`` is the saturation unless the frames pass it;
             else :func:`adc_top` guesses it from the frames.
+        layout : dict, optional
+            Where the frames' pixels lie on the sensor as their files were read
+            (:func:`pixel_layout`, :func:`declared_layout`); by default what :class:`radiokit.io.Frames`
+            say, nothing for plain arrays. Kept in the provenance (``orientation``,
+            ``sensor_offset``): frames read otherwise are refused on correction (:func:`check_layout`).
         **thresholds
             Any field of :class:`Thresholds`.
 
@@ -439,6 +485,13 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
+        if layout is None:  # as the frames' files were read, where the frames say
+            layout = declared_layout(
+                {
+                    f"{what} {getattr(f, 'path', '')}": pixel_layout(f.meta) if hasattr(f, "meta") else None
+                    for what, f in (("darks", darks), ("flats", flats))
+                }
+            )
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
@@ -456,6 +509,7 @@ class Calibration:
             bar.set_description("calibrate defects")
             cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given)
             bar.update(rows)
+        cal.provenance.update(layout or {})
         return cal
 
     @classmethod
@@ -537,6 +591,7 @@ class Calibration:
         except ValueError as exc:  # its darks and flats are this file's: name it
             raise FormatError(path, str(exc)) from exc
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
+        cal.provenance.update(pixel_layout(src.meta))
         cal.provenance["source"] = str(path)
         check_currents(path, src.meta, sel[ImageKey.FLAT])
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
@@ -643,6 +698,20 @@ def _check_numbers(path, group, provenance: dict) -> None:
     value = provenance.get("flat_current_ua")
     if value is not None and not np.isnan(value) and not _TUBE_UA[0] <= value <= _TUBE_UA[1]:
         raise FormatError(path, f"{group.name}@provenance: flat_current_ua is {value!r} uA: {_NO_TUBE}")
+    # how the darks and flats were read (pixel_layout), compared with every frame file's: a value no
+    # reader gives would be compared as another layout, or fail in the message (a dict, unhashable)
+    for key, ok, expected in (
+        ("orientation", lambda v: type(v) is int and v in _ORIENTATION_NAMES, "a TIFF Orientation, 1 to 8"),
+        (
+            "sensor_offset",
+            lambda v: isinstance(v, list) and len(v) == 2 and all(type(x) is int and x >= 0 for x in v),
+            "[x, y], whole pixels >= 0",
+        ),
+    ):
+        if key in provenance and not ok(provenance[key]):
+            raise FormatError(
+                path, f"{group.name}@provenance: {key} is {json.dumps(provenance[key])}: expected {expected}"
+            )
 
 
 def _json_attr(path, group, name) -> dict:
@@ -747,6 +816,86 @@ _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 25
 def _covering_top(peak: float) -> int | None:
     """The smallest of :data:`ADC_TOPS` that ``peak`` does not exceed (None above 65535)."""
     return next((top for top in ADC_TOPS if peak <= top), None)
+
+
+#: TIFF 6.0's Orientation values as the reader applies them (radiokit.io's ``_ORIENT``)
+_ORIENTATION_NAMES = {
+    1: "as stored",
+    2: "mirrored left-right",
+    3: "turned 180 degrees",
+    4: "mirrored top-bottom",
+    5: "transposed",
+    6: "turned 90 degrees clockwise",
+    7: "transposed across the other diagonal",
+    8: "turned 90 degrees counter-clockwise",
+}
+
+
+def pixel_layout(meta: dict) -> dict:
+    """Where a frame file's pixels lie on the sensor, as its reader placed them (``meta``, a
+    :class:`radiokit.io.Frames`' or a source's): ``orientation``, the TIFF Orientation applied (1:
+    row 0 as stored), and ``sensor_offset``, a sub-array's ``[x, y]`` on the sensor (an ITEX
+    file's; ``[0, 0]``: the whole frame). Why: a dark/flat correction is pixel by pixel, and frames
+    read turned (a viewer's lossless turn only tags them) or cut elsewhere from the sensor, at the
+    calibration's size, met other sensor pixels' darks and flats, silently. A MATLAB array read
+    transposed is not here: that restores the array MATLAB held (and shows), the sensor's grid,
+    from its column-major storage; it does not move pixels."""
+    return {
+        "orientation": int(meta.get("orientation", 1)),
+        "sensor_offset": [int(meta.get("x_offset", 0)), int(meta.get("y_offset", 0))],
+    }
+
+
+def _layout_text(key: str, value) -> str:
+    if key == "orientation":
+        return f"TIFF Orientation {value} ({_ORIENTATION_NAMES.get(value, 'unknown')})"
+    return "the whole sensor" if not any(value) else f"a sub-array at x {value[0]}, y {value[1]} on the sensor"
+
+
+def declared_layout(layouts: dict) -> dict | None:
+    """The one :func:`pixel_layout` of the darks' and flats' files (``layouts``: each file's name
+    and its layout), else None (no file named: plain arrays). Files read differently are refused
+    (ValueError naming each): averaged together, or flats against darks, they pair different
+    sensor pixels."""
+    found = {name.strip(): lay for name, lay in layouts.items() if lay is not None}
+    for key in ("orientation", "sensor_offset"):
+        values = {name: lay[key] for name, lay in found.items()}
+        if len({json.dumps(v) for v in values.values()}) > 1:
+            named = ", ".join(f"{name} {_layout_text(key, v)}" for name, v in values.items())
+            raise ValueError(
+                f"the darks' and flats' files are read differently ({named}): their pixels would pair different "
+                "sensor pixels; give darks and flats written alike"
+            )
+    return next(iter(found.values()), None)
+
+
+def check_layout(cal: Calibration, meta: dict, path) -> None:
+    """Refuse (:class:`FormatError` naming ``path``) frames whose :func:`pixel_layout` differs
+    from the one the calibration's darks and flats were read in: corrected, each pixel would take
+    another sensor pixel's dark and flat. Refused rather than corrected in the stored grid: a
+    tag-only turn (a viewer's) leaves the stored grids alike, but a turn baked into the pixels
+    with the tag reset leaves the viewed ones alike, and a file cannot say which. A calibration
+    recording none (written before radiokit recorded it, or built from plain arrays) is taken for
+    frames read as stored; frames declaring otherwise are refused, as their darks and flats may
+    have been read either way."""
+    layout = pixel_layout(meta)
+    for key, default in (("orientation", 1), ("sensor_offset", [0, 0])):
+        mine, theirs = layout[key], cal.provenance.get(key)
+        if theirs is None and mine != default:
+            raise FormatError(
+                path,
+                f"frames read in {_layout_text(key, mine)}, and the calibration does not record how its darks and "
+                "flats were read (made before radiokit recorded it): make it again with radiokit calibrate from "
+                "darks and flats read as these frames",
+            )
+        if theirs is not None and list(np.atleast_1d(theirs)) != list(np.atleast_1d(mine)):
+            raise FormatError(
+                path,
+                f"frames read in {_layout_text(key, mine)}, the calibration's darks and flats in "
+                f"{_layout_text(key, theirs if key == 'orientation' else list(theirs))}: each pixel would be corrected "
+                "with another sensor pixel's dark and flat; calibrate from darks and flats written as these frames "
+                "(or write the frames as the darks and flats: a viewer's turn may have only tagged them)",
+            )
 
 
 def declared_bit_depth(bit_depths: dict) -> int | None:
@@ -916,11 +1065,28 @@ def _check_stacks(darks, flats):
     return darks, flats
 
 
+def _reference_response(response, th: Thresholds) -> np.ndarray:
+    """The local response each pixel is judged against (:func:`_local_median`), taken over the
+    pixels that are not already defects by a first look: those with a response (over ``eps`` and
+    over ``dead_below`` of the lit level, the 90th percentile, as :func:`_exposed_field` says lit),
+    then of those the ones within ``[under_below, over_above]`` of that first reference. Why: the
+    defects were part of their own reference, so a gap or dead band filling half a tile pulled the
+    tile's median to half, and the good rows beside it, at twice "the local response", were
+    flagged (58 rows for a 16-row band, a Pilatus's module gaps refused at 12.4 % for 5.5 %)."""
+    lit = float(np.percentile(response, 90))
+    valid = response > max(th.eps, th.dead_below * lit)
+    first = _local_median(response, th.smooth_block, valid)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(first > th.eps, response / first, 0)
+    valid &= (rel >= th.under_below) & (rel <= th.over_above)
+    return _local_median(response, th.smooth_block, valid)
+
+
 def _defect_map(flat, dark_std, response, th):
     """The pixel mask (:class:`PixelFlag` bits), the defect rows and columns, and how many pixels
     of the flat are saturated (see :meth:`Calibration.from_frames`' notes)."""
     mask = np.zeros(flat.shape, np.uint32)
-    local = _local_median(response, th.smooth_block)
+    local = _reference_response(response, th)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(local > th.eps, response / local, 0).astype(np.float32)
     mask[(rel < th.under_below)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
@@ -1036,6 +1202,57 @@ def _exposed_field(response, dead_below) -> tuple[int, int, int, int] | None:
     return r0, r1, c0, c1
 
 
+def _exposed_disc(response, dead_below):
+    """``((row, col, radius), (r0, r1, c0, c1))``: the disc outside which the flats are unexposed
+    (as :func:`_exposed_field` judges it), as an image intensifier's round field leaves a square
+    frame, and the square inside it (inclusive, within the frame); None when the lit pixels are no
+    disc (within 3 % of the frame). The radius is the lit pixels' furthest from their centroid
+    (the 99.9th percentile: a few hot pixels outside do not count), so a disc the frame cuts off
+    is measured whole."""
+    exposed = response > dead_below * float(np.percentile(response, 90))
+    if exposed.sum() < 16 or exposed.all():
+        return None
+    rr, cc = np.nonzero(exposed)
+    cy, cx = float(rr.mean()), float(cc.mean())
+    radius = float(np.percentile(np.hypot(rr - cy, cc - cx), 99.9))
+    gy, gx = np.ogrid[: response.shape[0], : response.shape[1]]
+    disc = (gy - cy) ** 2 + (gx - cx) ** 2 <= radius**2
+    if disc.all() or (disc != exposed).mean() > 0.03:
+        return None
+    half = radius / np.sqrt(2)
+    rows, cols = response.shape
+    square = (
+        max(0, int(np.ceil(cy - half))),
+        min(rows - 1, int(np.floor(cy + half))),
+        max(0, int(np.ceil(cx - half))),
+        min(cols - 1, int(np.floor(cx + half))),
+    )
+    return (cy, cx, radius), square
+
+
+def _runs(index) -> str:
+    """``[3, 4, 5, 9]`` as "3-5, 9"; the first eight runs, then how many more."""
+    runs = np.split(index, np.flatnonzero(np.diff(index) != 1) + 1)
+    text = [f"{r[0]}-{r[-1]}" if r.size > 1 else f"{r[0]}" for r in runs[:8]]
+    return ", ".join(text) + (f" and {len(runs) - 8} more" if len(runs) > 8 else "")
+
+
+def _dead_lines(mask) -> str | None:
+    """What whole rows and columns of dead pixels (nine tenths of them or more) the defect map
+    holds -- "51 whole rows (40-56, 97-113, 154-170)" -- when they are at least half of its flagged
+    pixels, else None. Dead lines that wide are no panel's defect lines but the gaps between a
+    tiled detector's modules, and the refusal says so."""
+    dead = (mask & np.uint32(PixelFlag.DEAD)) != 0
+    rows, cols = np.flatnonzero(dead.mean(axis=1) >= 0.9), np.flatnonzero(dead.mean(axis=0) >= 0.9)
+    lines = np.zeros(mask.shape, bool)
+    lines[rows] = True
+    lines[:, cols] = True
+    if not (rows.size or cols.size) or 2 * np.count_nonzero(lines & (mask != 0)) < np.count_nonzero(mask):
+        return None
+    parts = [f"{idx.size} whole {name} ({_runs(idx)})" for name, idx in (("rows", rows), ("columns", cols)) if idx.size]
+    return " and ".join(parts)
+
+
 def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dead_below=0.0) -> None:
     """Refuse a defect map that marks more than :data:`MAX_DEFECTIVE_SHARE` of the panel: such a
     calibration "corrects" by filling most pixels from their neighbours, and was exiting 0. When
@@ -1053,6 +1270,23 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dea
             f"panel flagged, over the {100 * MAX_DEFECTIVE_SHARE:g} % a defect map may mark): the beam blocked "
             "there (a collimator's shadow, the frame or a shutter in the way?); clear its path, or crop the darks, "
             "flats and frames to that field"
+        )
+    disc = _exposed_disc(response, dead_below) if over and response is not None and field is None else None
+    if disc is not None:
+        (cy, cx, radius), (r0, r1, c0, c1) = disc
+        raise ValueError(
+            f"the flats are lit only inside a disc of radius {radius:.0f} px centred at row {cy:.0f}, column "
+            f"{cx:.0f} ({100 * n / mask.size:.1f} % of the panel flagged, over the {100 * MAX_DEFECTIVE_SHARE:g} % a "
+            "defect map may mark): an image intensifier's circular field? crop the darks, flats and frames to the "
+            f"square inside it, rows {r0}-{r1}, columns {c0}-{c1}"
+        )
+    gaps = _dead_lines(mask) if over else None
+    if gaps is not None:
+        raise ValueError(
+            f"the defect map marks {n} of {mask.size} pixels ({100 * n / mask.size:.1f} %) defective, over the "
+            f"{100 * MAX_DEFECTIVE_SHARE:g} % a panel has at most (up to 20 defect lines), {gaps} reading no "
+            "response in the darks and flats: the gaps between a tiled detector's modules? a defect map is one "
+            "panel's; crop the darks, flats and frames to one module"
         )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(

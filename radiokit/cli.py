@@ -308,10 +308,12 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None) -> np.ndarray:
+def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
-    bits (``meta["bit_depth"]``, None where it says nothing)."""
+    bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
+    pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`)."""
+    from radiokit.calibrate import pixel_layout
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
@@ -329,6 +331,8 @@ def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None
                 total += len(src) * src.frame_bytes
                 if bit_depths is not None:
                     bit_depths[str(p)] = src.meta.get("bit_depth")
+                if layouts is not None:
+                    layouts[str(p)] = pixel_layout(src.meta)
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
                 keys = src.meta.get("image_key")
                 for i in range(len(src)):
@@ -351,7 +355,7 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth
+    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -372,9 +376,10 @@ def cmd_calibrate(args) -> int:
         # experiment-style file holds darks and flats, told apart by image_key
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints, origins, bits = _raw_hints(args), {"dark": [], "flat": []}, {}
-        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits)
-        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits)
+        hints, origins, bits, layouts = _raw_hints(args), {"dark": [], "flat": []}, {}, {}
+        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts)
+        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts)
+        layout = declared_layout(layouts)  # before averaging: darks and flats read alike
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
@@ -383,7 +388,7 @@ def cmd_calibrate(args) -> int:
         try:
             # the files' own bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess
             cal = Calibration.from_frames(
-                darks, flats, progress=_progress(args), bit_depth=declared_bit_depth(bits), **th
+                darks, flats, progress=_progress(args), bit_depth=declared_bit_depth(bits), layout=layout, **th
             )
         except FrameLevelError as exc:  # the stack's index, named as the file's frame
             path, index = origins[exc.kind][exc.index]

@@ -687,12 +687,13 @@ def _segments(sources, cal: Calibration, image_keys) -> list:
     frame of a file without image keys as a range, not a list -- a 14 kB HDF5 file declaring 10**8
     frames made a list of 10**8 tuples (GBs) before the output's size could be refused. Keyed
     files' records fit the memory budget."""
-    from radiokit.calibrate import exposure_factors
+    from radiokit.calibrate import check_layout, exposure_factors
 
     segments = []
     for si, src in enumerate(sources):
         if not len(src):  # as `radiokit info` and `calibrate` say it
             raise FormatError(src.path, "no frames")
+        check_layout(cal, src.meta, src.path)  # first: a quarter turn is no other frame size
         if src.frame_shape != cal.shape:
             raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
         _check_type_reaches_flats(src, cal)

@@ -823,3 +823,68 @@ def test_a_declared_bit_depth_the_frames_contradict_is_not_taken(tmp_path):
         cal = Calibration.from_frames(*frames)
     assert cal.thresholds.saturation == 65520
     assert np.count_nonzero(cal.mask & PixelFlag.OVER_RESPONDING) == 64
+
+
+def _gapped(panel, gap_rows, fill, n=10, seed=1):
+    """Darks and flats of ``panel`` (int32, as tiled detectors write them) with ``gap_rows`` reading
+    ``fill`` in every frame: the gaps between a tiled detector's modules, or a dead band."""
+    rng = np.random.default_rng(seed)
+    darks = panel.dark_frames(n, rng).astype(np.int32)
+    flats = panel.flat_frames(n, 2500.0, rng).astype(np.int32)
+    darks[:, gap_rows] = fill
+    flats[:, gap_rows] = fill
+    return darks, flats
+
+
+def test_a_wide_dead_band_flags_its_own_rows_and_no_others():
+    """Found by a reviewer feeding other detectors' files (session 40): a 16-row band reading 0,
+    half a 32-px tile, dragged those tiles' median response to half, so the good rows beside it
+    read twice the "local" response: 58 rows flagged for 16, and 42 good rows refilled in every
+    frame. The band's rows alone are defect lines now, and every other row keeps the defect map
+    it has without the band (the planted defects, nothing more)."""
+    panel = _panel()
+    band = np.arange(96, 112)
+    clean = Calibration.from_frames(*_gapped(panel, [], 0))
+    cal = Calibration.from_frames(*_gapped(panel, band, 0))
+    assert cal.defect_rows.tolist() == band.tolist()
+    assert (cal.mask[band] & PixelFlag.DEAD).all()
+    others = np.setdiff1d(np.arange(SHAPE[0]), band)
+    assert np.array_equal(cal.mask[others] != 0, clean.mask[others] != 0)
+
+
+def test_a_tiled_detectors_module_gaps_are_flagged_alone():
+    """A Pilatus-300K-like layout: three modules of 195 rows with 17-row gaps between them
+    reading -1 (5.5 % of the pixels). Refused at "12.4 %" as frames "not of one panel set-up",
+    the gaps having spread to the rows around them; now the gaps are the defect lines, and the
+    share flagged is theirs plus the planted defects."""
+    panel = PanelModel(rows=619, cols=96, defect_columns=(), n_dead=5, n_under=5, n_noisy=0)
+    gaps = np.r_[195:212, 407:424]
+    cal = Calibration.from_frames(*_gapped(panel, gaps, -1))
+    assert cal.defect_rows.tolist() == gaps.tolist()
+    assert np.count_nonzero(cal.mask) <= gaps.size * 96 + 10
+
+
+def test_a_refusal_over_the_defect_limit_names_the_gaps():
+    """Gaps between modules taking 24 % of the frame are over the share a panel's defects may
+    take: the refusal says they are whole rows without response (gaps), not frames "of another
+    set-up (beam blocked?)", which sent the user looking for a fault that was not there."""
+    panel = PanelModel(rows=211, cols=96, defect_columns=(), n_dead=5, n_under=5, n_noisy=0)
+    gaps = np.r_[40:57, 97:114, 154:171]
+    with pytest.raises(ValueError, match=r"51 whole rows.*gaps") as err:
+        Calibration.from_frames(*_gapped(panel, gaps, -1))
+    assert "beam blocked" not in str(err.value)
+
+
+def test_a_circular_field_is_refused_with_advice_to_crop():
+    """An image intensifier's round field on a square frame: the corners, unexposed, are 21 % of
+    it. Refused at 47 % (the disc's edge spread into the good pixels beside it) as frames of
+    another set-up; now the refusal names the disc, its centre and radius, and the square
+    inside it to crop to (half its side 128 / sqrt 2 = 90.5 px about the centre 127.5)."""
+    panel = PanelModel(rows=256, cols=256, defect_columns=(), n_dead=5, n_under=5, n_noisy=0)
+    rr, cc = np.mgrid[:256, :256]
+    outside = (rr - 127.5) ** 2 + (cc - 127.5) ** 2 > 128**2
+    rng = np.random.default_rng(1)
+    darks = panel.dark_frames(10, rng)
+    flats = panel.expose(np.where(outside, 30.0, 0.0), 2500.0, n=10, rng=rng)
+    with pytest.raises(ValueError, match=r"radius 12[6-9].*circular field.*crop.*rows 3[78]-21[78]"):
+        Calibration.from_frames(darks, flats)

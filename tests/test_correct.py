@@ -1,7 +1,11 @@
 """Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
 
+import json
+
+import h5py
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from radiokit.calibrate import Calibration, PixelFlag
 from radiokit.correct import correct_frames
@@ -468,3 +472,161 @@ def test_correct_frames_given_a_file_name_says_to_read_it():
     for name in ("frame.tif", Path("frame.tif")):
         with pytest.raises(ValueError, match=r"frame\.tif.*radiokit\.io\.read"):
             correct_frames(cal, name)
+
+
+# -- the orientation frames are read in, against the calibration's ------------------------------
+def _orientation_files(tmp_path, dark_tag=1, flat_tag=1, frame_tag=1):
+    """Darks, flats and one frame file of a small panel (48 x 64, a defect column at 10) as TIFFs
+    carrying TIFF Orientation tags (1: none written); the frame reads half the flats' signal."""
+    import tifffile
+
+    from sim.detector import PanelModel
+
+    panel = PanelModel(rows=48, cols=64, defect_columns=(10,), n_dead=3, n_under=0, n_noisy=0)
+    rng = np.random.default_rng(5)
+    stacks = {
+        "d.tif": (panel.dark_frames(6, rng), dark_tag),
+        "f.tif": (panel.flat_frames(6, 2500.0, rng), flat_tag),
+        "fr.tif": (panel.expose(np.full(panel.shape, np.log(2), np.float32), 2500.0, 3, rng), frame_tag),
+    }
+    for name, (stack, tag) in stacks.items():
+        extra = [(274, 3, 1, tag, True)] if tag != 1 else []
+        with tifffile.TiffWriter(tmp_path / name) as tif:
+            for frame in stack:  # each page tagged: tifffile writes a stack's extratags on page 0 only
+                tif.write(frame, photometric="minisblack", extratags=extra)
+    return tmp_path / "d.tif", tmp_path / "f.tif", tmp_path / "fr.tif"
+
+
+@pytest.mark.parametrize("tag", [3, 6])
+def test_frames_read_in_another_orientation_than_the_calibration_are_refused(tmp_path, tag):
+    """Found by a reviewer (session 40): frames tagged TIFF Orientation 3 (a viewer's lossless
+    180-degree turn) against a calibration of untagged darks and flats exited 0; read turned, each
+    frame pixel met another sensor pixel's dark and flat (the defect column at 10 filled, its
+    mirror at 53 left reading 1.9 for ln 2). The calibration records the orientation its frames
+    were read in, and frames read otherwise are refused in one line naming both; turned a quarter
+    (Orientation 6), as a turn, not as frames of another size."""
+
+    d, f, fr = _orientation_files(tmp_path, frame_tag=tag)
+    assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    assert Calibration.load(tmp_path / "cal.h5").provenance["orientation"] == 1
+    res = run_cli("correct", fr, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert str(fr) in res.stderr and f"Orientation {tag}" in res.stderr and "Orientation 1" in res.stderr
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_frames_and_calibration_read_in_one_orientation_correct_as_untagged_ones_turned(tmp_path):
+    """Darks, flats and frames all tagged Orientation 3 pair the same sensor pixels as untagged
+    ones: the corrected frames are the untagged files' turned by 180 degrees (float rounding
+    apart), every pixel at ln 2 within the noise."""
+
+    from radiokit.io import read
+
+    outs = {}
+    for tag in (1, 3):
+        sub = tmp_path / f"or{tag}"
+        sub.mkdir()
+        d, f, fr = _orientation_files(sub, tag, tag, tag)
+        assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", sub / "cal.h5", "-q").returncode == 0
+        assert Calibration.load(sub / "cal.h5").provenance["orientation"] == tag
+        res = run_cli("correct", fr, "--cal", sub / "cal.h5", "-o", sub / "out.tif", "-q")
+        assert res.returncode == 0, res.stderr
+        outs[tag] = read(sub / "out.tif").data
+    np.testing.assert_allclose(outs[3], outs[1][:, ::-1, ::-1], atol=1e-5)
+    assert abs(float(np.median(outs[3])) - np.log(2)) < 0.02
+
+
+def test_darks_and_flats_read_in_different_orientations_are_refused(tmp_path):
+    """Untagged darks with flats tagged Orientation 3 would pair each flat pixel with another
+    sensor pixel's dark: refused, naming both files' orientations."""
+
+    d, f, _ = _orientation_files(tmp_path, flat_tag=3)
+    res = run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "Orientation 3" in res.stderr and "Orientation 1" in res.stderr
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_a_calibration_that_does_not_record_its_orientation_still_corrects_untagged_frames(tmp_path):
+    """Calibrations written before the orientation was recorded load and correct untagged frames
+    as before, without a word; frames declaring another orientation cannot be paired with them
+    safely (their darks and flats may have been read either way) and are refused, saying to
+    make the calibration again."""
+    d, f, fr = _orientation_files(tmp_path)
+    assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    with h5py.File(tmp_path / "cal.h5", "a") as h5:
+        prov = json.loads(h5["calibration"].attrs["provenance"])
+        del prov["orientation"]
+        h5["calibration"].attrs["provenance"] = json.dumps(prov)
+    res = run_cli("correct", fr, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5", "-q")
+    assert res.returncode == 0 and res.stderr == "", res.stderr
+    (tmp_path / "t").mkdir()
+    _, _, turned = _orientation_files(tmp_path / "t", frame_tag=3)
+    res = run_cli("correct", turned, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out3.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "Orientation 3" in res.stderr and "does not record" in res.stderr
+
+
+def _itex(path, stack, x0=0, y0=0):
+    """An ITEX .img of ``stack`` (n, rows, cols) uint16, a sub-array at ``x0``, ``y0`` on the sensor
+    (HiPic's header fields)."""
+    import struct
+
+    n, rows, cols = stack.shape
+    head = struct.pack("<2sHhhhhhihhd4s30s", b"IM", 0, cols, rows, x0, y0, 2, n, 0, 0, 0.0, b"", b"")
+    path.write_bytes(head + stack.astype("<u2").tobytes())
+    return path
+
+
+def test_frames_cut_elsewhere_from_the_sensor_than_the_calibration_are_refused(tmp_path):
+    """A sub-array of the calibration's size at another place on the sensor (an ITEX file's x and
+    y offsets) holds other sensor pixels: the calibration records the darks' and flats' offset,
+    and frames cut elsewhere are refused in one line naming both places; frames cut where the
+    darks and flats were are corrected."""
+    from sim.detector import PanelModel
+
+    panel = PanelModel(rows=40, cols=48, defect_columns=(), n_dead=0, n_under=0, n_noisy=0)
+    rng = np.random.default_rng(2)
+    d = _itex(tmp_path / "d.img", panel.dark_frames(5, rng), 200, 100)
+    f = _itex(tmp_path / "f.img", panel.flat_frames(5, 2500.0, rng), 200, 100)
+    frame = panel.expose(np.full(panel.shape, np.log(2), np.float32), 2500.0, 1, rng)
+    assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    assert Calibration.load(tmp_path / "cal.h5").provenance["sensor_offset"] == [200, 100]
+    same = _itex(tmp_path / "same.img", frame, 200, 100)
+    assert run_cli("correct", same, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "a.h5", "-q").returncode == 0
+    moved = _itex(tmp_path / "moved.img", frame, 0, 100)
+    res = run_cli("correct", moved, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "b.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "x 0, y 100" in res.stderr and "x 200, y 100" in res.stderr
+    whole = _itex(tmp_path / "whole.img", frame)
+    res = run_cli("correct", whole, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5", "-q")
+    assert res.returncode == 2 and "the whole sensor" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("orientation", 9),
+        ("orientation", "3"),
+        ("orientation", True),
+        ("orientation", {}),
+        ("sensor_offset", 5),
+        ("sensor_offset", [1, 2, 3]),
+        ("sensor_offset", [-1, 0]),
+        ("sensor_offset", [0.5, 0]),
+    ],
+)
+def test_a_calibration_recording_no_orientation_or_offset_radiokit_writes_is_refused(tmp_path, key, value):
+    """A calibration file's provenance says how its darks and flats were read; a value no reader
+    gives (Orientation 9, a string, an offset of three numbers) is refused on load naming the
+    field, never a traceback (a dict was unhashable in the message) nor compared as another."""
+    from radiokit.errors import FormatError
+
+    d, f, _ = _orientation_files(tmp_path)
+    assert run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5", "-q").returncode == 0
+    with h5py.File(tmp_path / "cal.h5", "a") as h5:
+        prov = json.loads(h5["calibration"].attrs["provenance"])
+        prov[key] = value
+        h5["calibration"].attrs["provenance"] = json.dumps(prov)
+    with pytest.raises(FormatError, match=f"provenance: {key} is"):
+        Calibration.load(tmp_path / "cal.h5")
