@@ -167,3 +167,22 @@ def test_float_frames_are_counted_against_their_calibrations_level():
     holes[20, :5], holes[21, :5] = np.inf, np.nan  # no values: counted as NaN or inf, not saturated
     _, report = correct_frames(cal, holes, domain="linear", return_report=True)
     assert report.saturated.tolist() == [100]
+
+
+@pytest.mark.filterwarnings("ignore::radiokit.io.BitDepthWarning")  # values above 4095: read() says MSB-aligned
+def test_an_experiment_file_declaring_12_bits_over_msb_aligned_counts_is_judged_as_a_tiff_is(tmp_path):
+    """from_experiment forced the recorded depth's 4095 whatever the frames held, so MSB-aligned
+    12-bit counts were refused as darks "over half the ADC's range" and flats saturated in every
+    pixel, while the same frames in TIFFs declaring 12 bits calibrated at 65520."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rng = np.random.default_rng(10)
+    darks = _darks(rng, n=4, level=150.0) << 4
+    flats = _flats(rng, 3000.0, 4095, n=4, spread=0.05) << 4
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=SHAPE, pixel_size_mm=0.05, bit_depth=12) as w:
+        for frame in darks:
+            w.append(frame, image_key=ImageKey.DARK)
+        for frame in flats:
+            w.append(frame, image_key=ImageKey.FLAT)
+    assert Calibration.from_experiment(path).thresholds.saturation == 65520
