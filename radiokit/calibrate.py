@@ -750,6 +750,9 @@ PILEUP_LEVELS = 4
 #: its range. Taken per stack: over darks and flats together, more darks meant more tolerance, and
 #: a 16-bit panel's flats passing 4095 in a bright corner (0.3 % of them) were called 12-bit.
 ADC_OUTLIER_SHARE = 1e-3
+#: The fewest distinct levels (of the counts, low bits dropped) frames must hold for their unused
+#: low bits to be taken for MSB alignment, not noise-free frames at round numbers (:func:`_unused_low_bits`).
+_MSB_LEVELS = 8
 #: Trailing zero bits of each byte value (8 for 0): the low bits a value leaves unused.
 _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 256)], np.uint8)
 
@@ -869,8 +872,11 @@ def _unused_low_bits(stacks, most=8) -> int:
         bits = min(bits, next(b for b in range(most, -1, -1) if zeros[:b].sum() <= ADC_OUTLIER_SHARE * s.size))
     # Noise-free frames (synthetic, or a constant flat at a round number such as 4064 = 0xFE0)
     # leave low bits unused too, and would put the top at their own level: every pixel
-    # "saturated". MSB-aligned frames of a real panel vary over many levels of their counts.
-    return bits if bits and np.unique(sample >> bits).size >= 32 else 0
+    # "saturated". MSB-aligned frames of a real panel vary over several levels of their counts:
+    # quiet darks (2 counts rms, the C7942's) over a dozen, whatever the flats do. 32 levels were
+    # asked for once, and flats clipped in nearly every pixel (2 levels) beside such darks kept
+    # the top at 65535: never saturated, the calibration accepted.
+    return bits if bits and np.unique(sample >> bits).size >= _MSB_LEVELS else 0
 
 
 def frame_saturation(saturation, raw, defects=None) -> int | None:

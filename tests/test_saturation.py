@@ -186,3 +186,21 @@ def test_an_experiment_file_declaring_12_bits_over_msb_aligned_counts_is_judged_
         for frame in flats:
             w.append(frame, image_key=ImageKey.FLAT)
     assert Calibration.from_experiment(path).thresholds.saturation == 65520
+
+
+@pytest.mark.filterwarnings("ignore::radiokit.calibrate.CalibrationWarning")  # "N pixels ... saturated", then refused
+@pytest.mark.parametrize("bits", [10, 12])
+def test_msb_aligned_flats_clipped_nearly_everywhere_are_refused(bits):
+    """Found while writing the rule: flats clipped in nearly every pixel, stored in the high bits of
+    16 (``counts << (16 - bits)``), hold 2 levels and quiet darks (2 counts rms, the C7942's) a
+    dozen, under the 32 the unused-low-bits test wanted before believing them: the top stayed
+    65535, the flats at 65520 (65472) were never saturated, and the calibration was accepted."""
+    rng = np.random.default_rng(11)
+    top = (1 << bits) - 1
+    shift = 16 - bits
+    darks = np.rint(60 + rng.normal(0, 2, (6, *SHAPE))).astype(np.uint16)
+    flats = _flats(rng, 1.3 * top, top, spread=0.05)
+    assert np.mean(flats == top) > 0.99 and np.unique(np.concatenate([darks, flats])).size < 32
+    assert adc_top(darks << shift, flats << shift) == top << shift
+    with pytest.raises(ValueError, match=rf"saturated \(>= {top << shift}\)"):
+        Calibration.from_frames(darks << shift, flats << shift)
