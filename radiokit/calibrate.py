@@ -453,8 +453,8 @@ class Calibration:
         bit_depth : int, optional
             The ADC bits the frames' files declare (:func:`declared_bit_depth`); by default
             those :class:`radiokit.io.Frames` give say (``meta["bit_depth"]``). Without
-            ``saturation``, ``2**bit_depth - 1`` is the saturation unless the frames pass it;
-            else :func:`adc_top` guesses it from the frames.
+            ``saturation``, :func:`saturation_level` decides (``2**bit_depth - 1`` unless the
+            frames pass it, else the frames' own values).
         layout : dict, optional
             Where the frames' pixels lie on the sensor as their files were read
             (:func:`pixel_layout`, :func:`declared_layout`); by default what :class:`radiokit.io.Frames`
@@ -497,10 +497,9 @@ class Calibration:
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
         if not given:
-            declared = None if bit_depth is None else (1 << int(bit_depth)) - 1
-            # a depth the frames pass (MSB-aligned counts, read() warned) is no ADC of theirs
-            given = declared is not None and max(float(np.max(darks)), float(np.max(flats))) <= declared
-            th = replace(th, saturation=declared if given else adc_top(darks, flats))
+            th = replace(th, saturation=saturation_level(darks, flats, bit_depth=bit_depth))
+            # the file's word, not a guess (a depth the frames pass is no ADC of theirs: guessed)
+            given = bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1
         rows = darks.shape[1]
         with _bar(progress, 3 * rows, "calibrate darks", "row") as bar:
             dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True, callback=bar.update)
@@ -572,8 +571,7 @@ class Calibration:
 
             n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
-            if thresholds.get("saturation") is None and "bit_depth" in src.meta:  # the panel's, as recorded
-                thresholds = {**thresholds, "saturation": (1 << src.meta["bit_depth"]) - 1}
+            bit_depth = src.meta.get("bit_depth")  # the panel's, as recorded (saturation_level)
             with _bar(progress, n_cal, f"read {Path(path).name}", "frame") as bar:
                 darks, flats = (_read_counted(src, sel[k], bar) for k in (ImageKey.DARK, ImageKey.FLAT))
         try:
@@ -583,6 +581,7 @@ class Calibration:
                 dark_times=times[sel[ImageKey.DARK]],
                 flat_times=times[sel[ImageKey.FLAT]],
                 progress=progress,
+                bit_depth=bit_depth,
                 **thresholds,
             )
         except FrameLevelError as exc:  # named by its frame in the file
@@ -803,12 +802,26 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
 
 #: The ADC ranges a panel's frames come in: 12-bit (the C7942), 14-bit (C9730DK, C9732DK), 16-bit.
 ADC_TOPS = (4095, 16383, 65535)
+#: ADC tops under the 12-bit one (10-bit panels and cameras: 1023) that the guess takes only where
+#: the values pile up at them (:func:`_piled_up`). Why not as ADC_TOPS are: a 12-bit panel's flats
+#: at a low tube current stay under 1023, and against 1023 their brightest pixels -- a tail thinning
+#: out towards it, not a clip -- were called saturated.
+CLIPPED_TOPS = (1023,)
+#: A clipped top holds at least this many times the values of each of the :data:`PILEUP_LEVELS`
+#: levels just under it: every value the ADC would have given above it lands on it. A tail that
+#: merely reaches it holds no more than its neighbours (a wide code of the ADC's differential
+#: non-linearity, +-0.5 LSB, at most about twice as many).
+PILEUP_RATIO = 3
+PILEUP_LEVELS = 4
 #: The share of values above an ADC's top that a stack of frames of that ADC may hold: stuck or
 #: hot pixels, a vendor's defect marker (65535), up to two marked defect lines of a 2240-px panel.
 #: A 16-bit panel's frames pass 4095 in most of their pixels once its flats reach a sixteenth of
 #: its range. Taken per stack: over darks and flats together, more darks meant more tolerance, and
 #: a 16-bit panel's flats passing 4095 in a bright corner (0.3 % of them) were called 12-bit.
 ADC_OUTLIER_SHARE = 1e-3
+#: The fewest distinct levels (of the counts, low bits dropped) frames must hold for their unused
+#: low bits to be taken for MSB alignment, not noise-free frames at round numbers (:func:`_unused_low_bits`).
+_MSB_LEVELS = 8
 #: Trailing zero bits of each byte value (8 for 0): the low bits a value leaves unused.
 _TRAILING_ZEROS = np.array([8] + [(i & -i).bit_length() - 1 for i in range(1, 256)], np.uint8)
 
@@ -916,10 +929,40 @@ def declared_bit_depth(bit_depths: dict) -> int | None:
     return found.popitem()[1] if found else None
 
 
+def saturation_level(*stacks, bit_depth=None) -> int | None:
+    """The saturation level of frames ``stacks`` (the ADC value at and above which a pixel is
+    clipped): radiokit's one rule, applied by ``calibrate`` (recorded in the calibration, which
+    ``correct`` counts every frame against, integer or float), and ``info``.
+
+    1. The bit depth the frames' file declares (``bit_depth``: a TIFF's BitsPerSample or
+       MaxSampleValue below its word, an ITEX header's panel, an experiment file's or NXdetector's
+       ``bit_depth_readout``; :func:`declared_bit_depth`): ``2**bit_depth - 1``, unless the frames
+       pass it (MSB-aligned counts: ``read()`` warned), when they are judged as undeclared ones.
+    2. Else :func:`adc_top`: 8-bit integers the type's top (255), wider frames the smallest usual
+       ADC top their values fit (all but :data:`ADC_OUTLIER_SHARE` of each stack's), 1023 only
+       where the values pile up there, less the low bits MSB-aligned frames leave unused (65520).
+
+    Float frames of no declared depth get the top their values fit, as wider integers do
+    (``info`` shows no saturation for them: floats are no ADC's words; ``correct`` counts them
+    against their calibration's level). None: no level (floats beyond 65535)."""
+    if bit_depth is not None:
+        declared = (1 << int(bit_depth)) - 1
+        if max(float(np.max(s)) for s in stacks) <= declared:
+            return declared
+    return adc_top(*stacks)
+
+
 def adc_top(*stacks) -> int | None:
-    """The saturation level the frames imply: the smallest of :data:`ADC_TOPS` that none of their
-    values exceeds (None above 65535: float frames of no ADC), less the low bits that integer
-    frames never set (:func:`_unused_low_bits`).
+    """The saturation level the frames imply (:func:`saturation_level` without a declared depth).
+
+    8-bit integer frames (every stack): the type's top, 255 (127 signed): such files come from
+    8-bit ADCs and cameras, and against the 12-bit 4095 a flat clipped at 255 in half its pixels
+    was accepted, its projections' clipped pixels uncounted.
+
+    Else the smallest of :data:`ADC_TOPS` that none of their values exceeds (None above 65535:
+    float frames of no ADC), less the low bits that integer frames never set
+    (:func:`_unused_low_bits`), or a lower one of :data:`CLIPPED_TOPS` (1023) that the values fit
+    and pile up at (:func:`_piled_up`).
 
     Why: a fixed 4095 called every pixel of a 16-bit panel's flat saturated, and the calibration
     refused the lab's data ("lower the flat exposure"). And a 12-bit panel whose software stores
@@ -928,14 +971,36 @@ def adc_top(*stacks) -> int | None:
     A lower top is kept while no stack has more than :data:`ADC_OUTLIER_SHARE` of its values above
     it: one stuck pixel at 65535 made a 12-bit panel's clipped flats "16-bit", never saturated."""
     stacks = [np.asarray(s) for s in stacks]
+    if stacks and all(s.dtype.kind in "ui" and s.dtype.itemsize == 1 for s in stacks):
+        return max(int(np.iinfo(s.dtype).max) for s in stacks)
     top = _covering_top(max(float(np.max(s)) for s in stacks))
     for lower in (t for t in ADC_TOPS if top is None or t < top):  # only when the peak passed 4095
-        if all(np.count_nonzero(s > lower) <= ADC_OUTLIER_SHARE * s.size for s in stacks):
+        if _fits(stacks, lower):
             top = lower
             break
     if top is None:
         return None
-    return top & ~((1 << _unused_low_bits(stacks)) - 1)
+    top &= ~((1 << _unused_low_bits(stacks)) - 1)
+    if top == ADC_TOPS[0]:  # LSB-aligned counts under 4096: a 10-bit ADC's only if clipped
+        return next((t for t in CLIPPED_TOPS if _fits(stacks, t) and _piled_up(stacks, t)), top)
+    return top
+
+
+def _fits(stacks, top) -> bool:
+    """No stack has more than :data:`ADC_OUTLIER_SHARE` of its values above ``top``."""
+    return all(np.count_nonzero(s > top) <= ADC_OUTLIER_SHARE * s.size for s in stacks)
+
+
+def _piled_up(stacks, top) -> bool:
+    """Whether ``stacks`` pile up at ``top``, as values clipped there do: more of them there than
+    :data:`ADC_OUTLIER_SHARE` of all (a stuck pixel or two are not a clip) and than
+    :data:`PILEUP_RATIO` times the most at any of the :data:`PILEUP_LEVELS` levels just below,
+    plus five Poisson sigmas of that (a handful of values at a top their neighbours miss is chance)."""
+    near = np.concatenate([s[(s >= top - PILEUP_LEVELS) & (s <= top)].ravel() for s in stacks])
+    counts = [int(np.count_nonzero(near == top - k)) for k in range(PILEUP_LEVELS + 1)]
+    at, below = counts[0], max(counts[1:])
+    total = sum(s.size for s in stacks)
+    return at > max(PILEUP_RATIO * below + 5 * np.sqrt(below + 1), ADC_OUTLIER_SHARE * total)
 
 
 def _unused_low_bits(stacks, most=8) -> int:
@@ -956,8 +1021,11 @@ def _unused_low_bits(stacks, most=8) -> int:
         bits = min(bits, next(b for b in range(most, -1, -1) if zeros[:b].sum() <= ADC_OUTLIER_SHARE * s.size))
     # Noise-free frames (synthetic, or a constant flat at a round number such as 4064 = 0xFE0)
     # leave low bits unused too, and would put the top at their own level: every pixel
-    # "saturated". MSB-aligned frames of a real panel vary over many levels of their counts.
-    return bits if bits and np.unique(sample >> bits).size >= 32 else 0
+    # "saturated". MSB-aligned frames of a real panel vary over several levels of their counts:
+    # quiet darks (2 counts rms, the C7942's) over a dozen, whatever the flats do. 32 levels were
+    # asked for once, and flats clipped in nearly every pixel (2 levels) beside such darks kept
+    # the top at 65535: never saturated, the calibration accepted.
+    return bits if bits and np.unique(sample >> bits).size >= _MSB_LEVELS else 0
 
 
 def frame_saturation(saturation, raw, defects=None) -> int | None:
@@ -969,12 +1037,17 @@ def frame_saturation(saturation, raw, defects=None) -> int | None:
 
     Values above ``saturation`` only at the calibration's defects (``defects``, its mask: a stuck
     pixel at 65535) keep it. No share of the frame's own values is ignored: a 16-bit projection
-    with a small patch above 4095 kept a guessed 4095 and reported the patch saturated."""
-    if saturation is None or not raw.size or raw.max() <= saturation:
+    with a small patch above 4095 kept a guessed 4095 and reported the patch saturated.
+
+    Float frames alike, their NaN and inf pixels no values (counted and filled apart)."""
+    if saturation is None or not raw.size or (raw.dtype.kind in "ui" and raw.max() <= saturation):
         return saturation
-    if defects is not None and not np.any((raw > saturation) & (defects == 0)):
+    over = raw > saturation  # NaN: False
+    if raw.dtype.kind == "f":
+        over &= np.isfinite(raw)
+    if not over.any() or (defects is not None and not np.any(over & (defects == 0))):
         return saturation
-    top = _covering_top(float(raw.max()))
+    top = _covering_top(float(raw[over].max()))
     return None if top is None else top & ~((1 << _unused_low_bits([raw])) - 1)
 
 

@@ -144,20 +144,42 @@ def _summary(meta: dict) -> dict:
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
+#: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
+_SATURATION_FRAMES = 8
+
+
 def _describe(path, src, every: bool, sample: int) -> dict:
     """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
     spaced frames (``every``: all of them)."""
+    from radiokit.calibrate import saturation_level
+
     lo, hi, saturated, nonfinite = None, None, 0, 0
-    # a TIFF's BitsPerSample below its word (12 in 16) is its meta's bit_depth, not src.bits (which
-    # only a TIFF read as whole words sets): its saturated pixels went uncounted
-    bits = src.bits or src.meta.get("bit_depth")
-    top = (1 << bits) - 1 if bits else None
     n_read = len(src) if every else min(len(src), sample)
     # --all: a range, not an array of every index (a small file may declare 10**8 frames)
-    picks = range(len(src)) if every else np.unique(np.linspace(0, len(src) - 1, n_read).round().astype(int))
+    picks = range(len(src)) if every else _spaced(len(src), n_read)
+    # the level by the rule calibrate applies (saturation_level), judged on up to 8 evenly spaced
+    # frames: its own guess (or the declared 4095 over MSB-aligned counts) called every pixel of a
+    # 12-bit TIFF in the high bits saturated, and 8-bit files' 255s went uncounted. Floats are no
+    # ADC's words: a level only where the file declares a depth.
+    held, top, basis = {}, None, None
+    bits = src.meta.get("bit_depth")
+    if len(src) and (src.dtype.kind in "ui" or bits is not None):
+        held = {int(i): src[int(i)] for i in _spaced(len(src), min(len(src), sample, _SATURATION_FRAMES))}
+        stack = np.concatenate([f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()])
+        top = saturation_level(stack, bit_depth=bits) if stack.size else None
+        declared = bits is not None and top == (1 << int(bits)) - 1
+        basis = (
+            f"declared {bits}-bit"
+            if declared
+            else f"from the values, above the declared {bits}-bit range"
+            if bits is not None
+            else "the 8-bit type's top"
+            if src.dtype.itemsize == 1
+            else "from the values"
+        )
     for i in picks:
-        frame = src[i]
+        frame = held.pop(int(i)) if int(i) in held else src[i]
         if frame.dtype.kind == "f":
             finite = np.isfinite(frame)
             nonfinite += int(frame.size - np.count_nonzero(finite))
@@ -177,9 +199,16 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "range": [lo.item(), hi.item()] if lo is not None else None,
         "frames_read": len(picks),
         "saturated": saturated if top is not None else None,
+        "saturation": top,
+        "saturation_from": basis if top is not None else None,
         "nonfinite": nonfinite,
         "metadata": _summary(src.meta) | _stack_domain(path, src.meta),
     }
+
+
+def _spaced(n: int, k: int) -> np.ndarray:
+    """``k`` evenly spaced indices of ``n`` frames, first and last included."""
+    return np.unique(np.linspace(0, n - 1, k).round().astype(int)) if k else np.zeros(0, int)
 
 
 #: What a corrected stack's pixels are (radiokit.correct's domains): the numbers alone do not say.
@@ -262,7 +291,7 @@ def cmd_info(args) -> int:
             lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
             print(f"  range      {lo} .. {hi}{of}")
         if rep["saturated"] is not None:
-            print(f"  saturated  {rep['saturated']} pixel(s){of}")
+            print(f"  saturated  {rep['saturated']} pixel(s) >= {rep['saturation']} ({rep['saturation_from']}){of}")
         if rep["nonfinite"]:
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
         for key, value in rep["metadata"].items():
@@ -1036,7 +1065,7 @@ def _add_calibrate(sub):
         metavar="NAME=VALUE",
         help="a defect threshold, repeatable: dead_below, under_below, over_above (relative response), "
         "noisy_factor, line_deviation, line_noise_factor, line_fraction, clip_sigma, eps (counts), "
-        "saturation (ADC value; default: the top of the 12-, 14- or 16-bit range the darks and flats fit), smooth_block (px); radiokit.calibrate.Thresholds has each "
+        "saturation (ADC value; default: the bit depth the files declare, else 255 for 8-bit frames, else the top of the 12-, 14- or 16-bit range the darks and flats fit, or 1023 where they pile up there), smooth_block (px); radiokit.calibrate.Thresholds has each "
         "default",
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.h5)")

@@ -280,8 +280,14 @@ def _native(raw2d: np.ndarray) -> np.ndarray:
 
 def _saturation_in(dtype, saturation) -> tuple:
     """``(threshold in raw's dtype, whether to count)``: nothing counts when the dtype cannot
-    reach the threshold (or saturation is not counted)."""
-    if saturation is None or dtype.kind not in "ui" or saturation > np.iinfo(dtype).max:
+    reach the threshold (or saturation is not counted). Float frames count against the
+    calibration's level as integer ones do: a float32 copy of a projection reported none of the
+    pixels its uint16 twin counted."""
+    if saturation is None:
+        return dtype.type(0), False
+    if dtype.kind == "f":
+        return dtype.type(saturation), True
+    if dtype.kind not in "ui" or saturation > np.iinfo(dtype).max:
         return dtype.type(0), False
     return dtype.type(max(saturation, np.iinfo(dtype).min)), True
 
@@ -313,6 +319,8 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     parts = list(pool().map(lambda i: _correct_range(raw2d, k, coef, out2d, edges[i], edges[i + 1], *args), range(nt)))
     nonpos = np.concatenate([p[0] for p in parts])
     sat = np.concatenate([p[1] for p in parts])
+    if raw2d.dtype.kind == "f" and sat.size:  # +inf passes any level: no value, counted as NaN or inf
+        sat = sat[np.isfinite(raw2d.ravel()[sat])]
     flat_out = out2d.reshape(-1)
     for stage in k.stages:
         stage.apply(flat_out)
@@ -383,10 +391,10 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
     k = CorrectionKernel.of(cal)
     scale = cal.c if domain == "counts" else 1.0
     saturation = None
-    if raw2d.dtype.kind in "ui" and count_saturated:
-        saturation = frame_saturation(cal.thresholds.saturation, raw2d, cal.mask)
     if raw2d.dtype.kind == "f" and raw2d.size and not np.isfinite(raw2d).any():
         raise ValueError("a raw frame holds only NaN or inf: nothing to correct or fill from")
+    if raw2d.dtype.kind in "uif" and count_saturated:
+        saturation = frame_saturation(cal.thresholds.saturation, raw2d, cal.mask)
     top = beyond_float32(raw2d)
     if top is not None:  # cast, they became inf and were filled as non-positive: a bright frame made opaque
         raise ValueError(

@@ -542,9 +542,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
             check_above_dark(cal, raw)
         except ValueError as exc:
             raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
-        top = frame_saturation(cal.thresholds.saturation, raw, cal.mask) if raw.dtype.kind in "ui" else None
-        if top is not None:
-            n_sat += int(np.count_nonzero(raw >= top))
+        top = frame_saturation(cal.thresholds.saturation, raw, cal.mask) if raw.dtype.kind in "uif" else None
+        if top is not None:  # +inf passes any level: no value, counted below as NaN or inf
+            n_sat += int(np.count_nonzero((raw >= top) & np.isfinite(raw) if raw.dtype.kind == "f" else raw >= top))
         if raw.dtype.kind == "f":
             bad = ~np.isfinite(raw)
             if bad.any():
