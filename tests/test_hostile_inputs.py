@@ -335,19 +335,26 @@ def test_the_default_budget_counts_reclaimable_cache_and_a_containers_limit(tmp_
     monkeypatch.setattr(budget, "_CGROUP_ROOT", tmp_path / "nothing")
     assert budget._physical_available() == 20000000 * 1024
     cgroup = tmp_path / "cg"
-    (cgroup / "lab").mkdir(parents=True)
-    (cgroup / "lab" / "memory.max").write_text("8000000000\n")
-    (cgroup / "lab" / "memory.current").write_text("3000000000\n")
+    (cgroup / "lab" / "job").mkdir(parents=True)
+    (cgroup / "lab" / "job" / "memory.max").write_text("max\n")
+    (cgroup / "lab" / "job" / "memory.current").write_text("7000000000\n")
+    (cgroup / "lab" / "memory.max").write_text("8000000000\n")  # the limit is the parent's (a slice, a job)
+    (cgroup / "lab" / "memory.current").write_text("7500000000\n")
     self_cgroup = tmp_path / "self_cgroup"
-    self_cgroup.write_text("0::/lab\n")
+    self_cgroup.write_text("0::/lab/job\n")
     monkeypatch.setattr(budget, "_CGROUP_ROOT", cgroup)
     monkeypatch.setattr(budget, "_SELF_CGROUP", self_cgroup)
-    assert budget._physical_available() == 5_000_000_000  # the container's headroom, below MemAvailable
+    assert budget._physical_available() == 500_000_000  # no cache said: all of the usage counts
+    # s40rr: usage counts the page cache the kernel drops first; a container that has read more
+    # frames than its limit sits at it, and its budget read 2 KiB
+    (cgroup / "lab" / "memory.stat").write_text("anon 1000000000\nfile 6500000000\n")
+    assert budget._physical_available() == 7_000_000_000
     (cgroup / "lab" / "memory.max").write_text("max\n")
     assert budget._physical_available() == 20000000 * 1024
     (cgroup / "memory" / "lab").mkdir(parents=True)  # cgroup v1: the memory controller's own tree
     (cgroup / "memory" / "lab" / "memory.limit_in_bytes").write_text("6000000000\n")
-    (cgroup / "memory" / "lab" / "memory.usage_in_bytes").write_text("2000000000\n")
+    (cgroup / "memory" / "lab" / "memory.usage_in_bytes").write_text("5900000000\n")
+    (cgroup / "memory" / "lab" / "memory.stat").write_text("cache 100\ntotal_cache 3900000000\n")
     self_cgroup.write_text("4:memory:/lab\n1:cpu:/\n")
     assert budget._physical_available() == 4_000_000_000
     (cgroup / "memory" / "lab" / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "none"

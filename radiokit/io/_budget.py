@@ -93,32 +93,50 @@ def _meminfo_available() -> int | None:
     return None
 
 
+def _cgroup_stat(group: Path, keys: tuple[str, ...]) -> int:
+    """The first of ``keys`` in ``group``'s memory.stat (bytes); 0 where none is there."""
+    try:
+        stat = dict(line.split() for line in (group / "memory.stat").read_text().splitlines() if len(line.split()) == 2)
+    except (OSError, ValueError):
+        return 0
+    return next((int(stat[k]) for k in keys if k in stat and stat[k].isdigit()), 0)
+
+
 def _cgroup_headroom() -> int | None:
-    """What this process's cgroup may still take: v2's memory.max less memory.current, or v1's
-    memory.limit_in_bytes less memory.usage_in_bytes; None without a limit. A container's limit is
-    far below what the host's kernel reports available. A container sees its own group at the
-    mount's root, so the root's files are read where the path /proc/self/cgroup names is not there."""
+    """What this process's cgroup may still take before its own or an ancestor's limit: v2's
+    memory.max, v1's memory.limit_in_bytes, less what the group holds beyond its page cache
+    (memory.current / usage_in_bytes count the cache, which the kernel drops first: a container
+    that has read more frames than its limit sits at its limit); None without a limit. A
+    container sees its own group at the mount's root, so where the path /proc/self/cgroup names is
+    not there, the root's files are read."""
     try:
         lines = _SELF_CGROUP.read_text().splitlines()
     except OSError:
         return None
+    found = []
     for line in lines:
         _, controllers, rel = (line.split(":", 2) + ["", ""])[:3]
         if controllers == "":
-            base, files = _CGROUP_ROOT, ("memory.max", "memory.current")
+            base, files, cache = _CGROUP_ROOT, ("memory.max", "memory.current"), ("file",)
         elif "memory" in controllers.split(","):
-            base, files = _CGROUP_ROOT / "memory", ("memory.limit_in_bytes", "memory.usage_in_bytes")
+            base = _CGROUP_ROOT / "memory"
+            files, cache = ("memory.limit_in_bytes", "memory.usage_in_bytes"), ("total_cache", "cache")
         else:
             continue
-        for group in (base / rel.strip().lstrip("/"), base):
+        parts = [p for p in rel.strip().split("/") if p]
+        if not (base.joinpath(*parts)).is_dir():
+            parts = []
+        for depth in range(len(parts), -1, -1):  # the group, then each ancestor: a job's or slice's limit
+            group = base.joinpath(*parts[:depth])
             try:
                 limit = (group / files[0]).read_text().strip()
                 if limit == "max" or int(limit) >= 2**60:  # v1 writes "no limit" as a page-rounded 2^63
-                    break
-                return max(0, int(limit) - int((group / files[1]).read_text()))
+                    continue
+                used = int((group / files[1]).read_text()) - _cgroup_stat(group, cache)
+                found.append(max(0, int(limit) - max(0, used)))
             except (OSError, ValueError):
                 continue
-    return None
+    return min(found) if found else None
 
 
 def _physical_available() -> int:
