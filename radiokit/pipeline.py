@@ -1427,7 +1427,7 @@ def _memory_shares(client) -> dict:
         per_host.setdefault(w["host"], []).append(addr)
     shares = {}
     for host, addrs in per_host.items():
-        at_once = sum(int(info[a]["nthreads"]) for a in addrs)
+        at_once = max(1, sum(int(info[a]["nthreads"]) for a in addrs))  # a worker may report 0 threads
         seen = [reported[a] for a in addrs if a in reported]
         budget = given if given is not None else min(seen) if seen else host_budget()
         for a in addrs:
@@ -1437,7 +1437,7 @@ def _memory_shares(client) -> dict:
                 if at_once > 1
                 else ""
             )
-            n, limit = int(info[a]["nthreads"]), int(info[a].get("memory_limit") or 0)
+            n, limit = max(1, int(info[a]["nthreads"])), int(info[a].get("memory_limit") or 0)
             if limit and limit // n < share:
                 share = limit // n
                 words = f"Dask's memory_limit of {_human(limit)} for worker {a}" + (
@@ -1546,6 +1546,7 @@ def process_many(
     # would leave its workers running with no owner
     ours: dict = {}
     client, made = None, []
+    restore = _process_limits()  # a worker in this process (processes=False) sets them for it
     try:
         if scheduler is None:
             _local_cluster(local_workers(workers, len(paths), cores()), ours)
@@ -1599,6 +1600,34 @@ def process_many(
                     with contextlib.suppress(OSError):  # one stopped while its old folder was aside
                         _restore_interrupted(out)
             remove_empty_folders(made)  # every file failed: no empty folder left behind
+            restore()
+
+
+def _process_limits():
+    """A function putting back what :func:`_limit_this_process` sets, as it is now: a worker of an
+    in-process cluster (``LocalCluster(processes=False)``) runs in the caller's process, and its
+    share (a fraction of the memory budget, one thread) outlived the run, refusing the caller's
+    later reads (review s40rr). glibc's malloc thresholds are left: they change speed only."""
+    import cv2
+    from threadpoolctl import ThreadpoolController
+
+    from radiokit.io import _budget
+
+    threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), _budget._share, cv2.getNumThreads()
+    libraries = [(lib, lib.num_threads) for lib in ThreadpoolController().lib_controllers]
+
+    def restore():
+        if threads is None:
+            os.environ.pop("RADIOKIT_THREADS", None)
+        else:
+            os.environ["RADIOKIT_THREADS"] = threads
+        _budget.set_share(share)
+        cv2.setNumThreads(cv_threads)
+        for lib, n in libraries:
+            with contextlib.suppress(Exception):
+                lib.set_num_threads(n)
+
+    return restore
 
 
 def _check_out_root(out_root: Path) -> None:

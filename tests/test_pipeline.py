@@ -384,6 +384,30 @@ def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_in_process_workers_limits_do_not_outlive_the_run(tmp_path, monkeypatch):
+    """Review s40rr: a worker of an in-process cluster runs in the caller's process, and the share it
+    was held to (half the budget, one thread) stayed the caller's after the run: a read the
+    budget holds was then refused. The run's limits are put back as they were."""
+    import os
+
+    from dask.distributed import LocalCluster
+
+    from radiokit.io import memory_budget
+    from radiokit.pipeline import Config, process_many
+
+    path = tmp_path / "a.h5"
+    _synthetic(path)
+    budget = 4 * _one_file_need()
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
+    monkeypatch.delenv("RADIOKIT_THREADS", raising=False)
+    cfg = Config(crop_mm=None, report=False, progress=False, cross_check=None, **_ROIS)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        (res,) = process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+    assert "error" not in res, res
+    assert memory_budget() == budget  # not the worker's half
+    assert "RADIOKIT_THREADS" not in os.environ
+
+
 def test_a_workers_dask_memory_limit_bounds_its_share(tmp_path, monkeypatch):
     """Dask's own memory_limit of a worker (its nanny stops a worker past it) is shared by the
     files it processes at once, and a file over that share is refused though the host's budget
