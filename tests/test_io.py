@@ -2873,3 +2873,29 @@ def test_the_writer_warns_of_values_above_the_adcs_top_once_per_kind(tmp_path):
             w.append(twelve, image_key=ImageKey.DARK)  # right: nothing
             w.append(twelve.byteswap(), image_key=ImageKey.PROJECTION, step=1)
     assert len(caught) == 1
+
+
+def test_a_writer_appending_records_or_checks_the_bit_depth(tmp_path):
+    """Review s40rr: ``bit_depth`` given with mode='a' was ignored (the writer's own warning then
+    asked for it); a file's unreadable bit_depth_readout made append fail on a bare shift error."""
+    from radiokit.io import BitDepthWarning
+
+    sixteen = np.full((8, 8), 50000, np.uint16)
+    path = tmp_path / "a.h5"
+    with ExperimentWriter(path, shape=(8, 8)) as w:
+        w.append(np.zeros((8, 8), np.uint16), image_key=ImageKey.DARK)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with ExperimentWriter(path, mode="a", bit_depth=16) as w:
+            w.append(sixteen, image_key=ImageKey.FLAT)
+    assert read(path).meta["bit_depth"] == 16
+    with pytest.raises(ValueError, match="records bit_depth_readout 16; bit_depth=12 given"):
+        ExperimentWriter(path, mode="a", bit_depth=12)
+    odd = tmp_path / "odd.h5"
+    with ExperimentWriter(odd, shape=(8, 8)) as w:
+        w.append(np.zeros((8, 8), np.uint16), image_key=ImageKey.DARK)
+    with h5py.File(odd, "a") as f:
+        f["entry/instrument/detector/bit_depth_readout"] = "12 bits"
+    with pytest.warns(BitDepthWarning, match="no bit_depth given"):
+        with ExperimentWriter(odd, mode="a") as w:
+            w.append(sixteen, image_key=ImageKey.FLAT)

@@ -140,6 +140,7 @@ class ExperimentWriter:
         Not given: not recorded; readers assume the C7942's 12 bits for that warning, and the
         calibration infers the range from the darks and flats
         (:func:`radiokit.calibrate.adc_top`).
+        With ``mode="a"``: recorded where the file has none, refused where it records another.
     in_place : bool
         With ``overwrite``, write the new file under the existing file's name, frame by frame.
         The old file is first renamed to a hidden sibling, ``.NAME.previous-HOST-PID-XXXXXXXX.h5``
@@ -200,16 +201,17 @@ class ExperimentWriter:
         try:
             if self._previous is not None:
                 _keep_mode(self._file, self._previous)  # as writing into the old file would have
+            if bit_depth is not None and not (isinstance(bit_depth, (int, np.integer)) and 1 <= bit_depth <= 16):
+                raise ValueError(f"bit_depth={bit_depth!r}: frames are stored as uint16, 1 to 16 bits")
             if mode == "w":
                 if shape is None:
                     raise ValueError("shape=(rows, cols) is required for a new experiment file")
-                if bit_depth is not None and not (isinstance(bit_depth, (int, np.integer)) and 1 <= bit_depth <= 16):
-                    raise ValueError(f"bit_depth={bit_depth!r}: frames are stored as uint16, 1 to 16 bits")
                 self._create(tuple(int(s) for s in shape), pixel_size_mm, source or {}, detector_name, title)
                 if bit_depth is not None:
                     self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
             else:
                 self._reopen(shape)
+                self._reopen_bit_depth(bit_depth)
         except BaseException:  # Ctrl-C too: the old file kept aside goes back
             # a clean-up's own error (libhdf5 closing a file cut short) must not replace the
             # first: a Ctrl-C turned into an OSError was no longer taken for an interrupt
@@ -515,6 +517,19 @@ class ExperimentWriter:
                 ds.resize(n, axis=0)
         self._n = n
 
+    def _reopen_bit_depth(self, bit_depth) -> None:
+        """``bit_depth`` given to append to a file: recorded where the file has none (it was
+        ignored, and the readers and the writer's own warning went on assuming 12 bits); refused
+        where the file records another, which its frames so far were judged by."""
+        if bit_depth is None:
+            return
+        recorded = read_bit_depth(self.path, self._h5, DETECTOR)
+        if recorded is None and "bit_depth_readout" not in self._h5[DETECTOR]:
+            self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
+        elif recorded != int(bit_depth):
+            shown = recorded if recorded is not None else "an unreadable value"
+            raise ValueError(f"{self.path}: records bit_depth_readout {shown}; bit_depth={bit_depth} given to append")
+
     # -- writing ------------------------------------------------------------------------------
     @property
     def n_frames(self) -> int:
@@ -549,9 +564,9 @@ class ExperimentWriter:
             return
         checked.add(key)
         bits = self.__dict__.get("_bits")
-        if bits is None:
-            ds = self._h5[DETECTOR].get("bit_depth_readout")
-            bits = self._bits = int(ds[()]) if isinstance(ds, h5py.Dataset) and ds.shape == () else 0
+        if bits is None:  # as the readers take it: an unreadable value is none (0: the 12 they assume)
+            recorded = read_bit_depth(self.path, self._h5, DETECTOR)
+            bits = self._bits = recorded if recorded is not None and recorded <= 16 else 0
         top = (1 << (bits or 12)) - 1
         if frame.size == 0 or int(frame.max()) <= top:
             return
