@@ -1022,8 +1022,7 @@ def test_outputs_alike_in_their_first_bytes_never_take_each_others_results_left_
     """s39 review (LOW): the name of a folder left aside is cut to fit NAME_MAX, so two outputs
     whose names share their first ~227 bytes had one such name: ``a`` missing, ``b``'s previous
     results were put back at ``a``'s name; ``a`` there, they were named as ``a``'s. Each now
-    finds only its own; one left aside by a radiokit before this change (the name cut alone) is
-    still put back at the one name it fits."""
+    finds only its own."""
     from radiokit.io._atomic import check_output
 
     a, b = tmp_path / (stem + "a"), tmp_path / (stem + "b")
@@ -1039,17 +1038,22 @@ def test_outputs_alike_in_their_first_bytes_never_take_each_others_results_left_
     check_output(b, overwrite=True, folder=True)
     assert (b / "notes.txt").read_text() == "b's" and not kept.exists()
 
-    # the scheme before: the name cut to what leaves room for ..old-HOST-<10 digits>-<8 hex>
-    host, c = socket.gethostname().split(".")[0], tmp_path / (stem + "c")
-    room, head = 255 - len(os.fsencode(f"..old-{host}-{10 * '0'}-{8 * '0'}")), c.name
-    while len(os.fsencode(head)) > room:
-        head = head[:-1]
-    legacy = tmp_path / f".{head}.old-{host}-{_dead_pid()}-0123abcd"
-    _results_folder(tmp_path / "built")
-    (tmp_path / "built").rename(legacy)
-    (legacy / "notes.txt").write_text("c's")
-    check_output(c, overwrite=True, folder=True)
-    assert (c / "notes.txt").read_text() == "c's"
+    # review s40rr: a name of exactly the room (not cut), and a longer one beginning with it, whose
+    # head cut without the digest (the scheme before) was the first's whole name
+    host = socket.gethostname().split(".")[0]
+    room = 255 - len(os.fsencode(f"..old-{host}-{10 * '0'}-{8 * '0'}"))
+    exact = stem
+    while len(os.fsencode(exact)) > room:
+        exact = exact[:-1]
+    while len(os.fsencode(exact)) < room:
+        exact += "x"
+    short, long = tmp_path / exact, tmp_path / (exact + "-and-more")
+    kept = _left_aside(short, monkeypatch)
+    (kept / "notes.txt").write_text("short's")
+    check_output(long, folder=True)
+    assert not long.exists() and (kept / "notes.txt").read_text() == "short's"
+    check_output(short, overwrite=True, folder=True)
+    assert (short / "notes.txt").read_text() == "short's"
 
 
 def test_a_results_folder_interrupted_while_aside_is_put_back(tmp_path, monkeypatch):

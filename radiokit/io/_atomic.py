@@ -563,12 +563,11 @@ def _owner_tag() -> str:
 _NAME_MAX = 255
 
 
-def _head(path: Path, folder: bool, kind: str = "tmp", legacy: bool = False) -> str:
+def _head(path: Path, folder: bool, kind: str = "tmp") -> str:
     """The part of ``path``'s name its temporaries begin with: the name (a folder) or the stem,
     cut so that ``.HEAD.KIND-HOST-PID-RANDOM.SUFFIX`` fits in NAME_MAX bytes as ``path`` does
     (room for a 10-digit PID: the same head for every process, so stale ones are found). A cut
-    head ends ``~`` and 8 hex digits of the whole name's SHA-256 (``legacy``: as before it did
-    not, cut alone).
+    head ends ``~`` and 8 hex digits of the whole name's SHA-256.
 
     Why the digest: cut alone, two names alike in their first ~227 bytes had one head, and the
     results one left aside were put back at the other's name, or named in its warning."""
@@ -576,7 +575,7 @@ def _head(path: Path, folder: bool, kind: str = "tmp", legacy: bool = False) -> 
     room = _NAME_MAX - len(os.fsencode(f"..{kind}-{socket.gethostname().split('.')[0]}-{10 * '0'}-{8 * '0'}{tail}"))
     if len(os.fsencode(head)) <= room:
         return head
-    mark = "" if legacy else "~" + hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
+    mark = "~" + hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
     while head and len(os.fsencode(head + mark)) > room:  # cut whole characters, not bytes of one
         head = head[:-1]
     return head + mark
@@ -604,19 +603,20 @@ def _remove_stale(path: Path, folder=False) -> None:
 
 def _leftovers(path: Path, folder: bool, kind: str) -> list[Path]:
     """The ``kind`` temporaries of ``path`` left by a radiokit on this host whose process is gone,
-    by the name :func:`_head` gives them now or gave them before (a cut name without its digest:
-    what a run killed before this change left is still found, alike names' too)."""
+    by the name :func:`_head` gives them. One a radiokit before session 40 left under a cut name
+    without its digest is not looked for: that name may be another output's whole name (one of
+    227 bytes, and a longer one beginning with it), whose results would be put back here."""
     host = socket.gethostname().split(".")[0]
     suffix = "" if folder else path.suffix
+    head = _head(path, folder, kind)
+    # the name's own characters taken literally: "scan[1]" is no character class
+    pattern = f".{glob.escape(head)}.{kind}-{glob.escape(host)}-*{glob.escape(suffix)}"
+    whole = rf"\.{re.escape(head)}\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}{re.escape(suffix)}"
     found = []
-    for head in dict.fromkeys((_head(path, folder, kind), _head(path, folder, kind, legacy=True))):
-        # the name's own characters taken literally: "scan[1]" is no character class
-        pattern = f".{glob.escape(head)}.{kind}-{glob.escape(host)}-*{glob.escape(suffix)}"
-        whole = rf"\.{re.escape(head)}\.{kind}-{re.escape(host)}-(\d+)-[0-9a-f]{{8}}{re.escape(suffix)}"
-        for left in sorted(path.parent.glob(pattern)):
-            m = re.fullmatch(whole, left.name)
-            if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
-                found.append(left)
+    for left in sorted(path.parent.glob(pattern)):
+        m = re.fullmatch(whole, left.name)
+        if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+            found.append(left)
     return found
 
 
