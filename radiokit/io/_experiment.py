@@ -2016,21 +2016,27 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
     asks for ``--dataset`` (the user otherwise needs another tool to find the path). External links
     (a detector's master file linking its data files) are listed after them, with the file each
     points into, and not followed."""
-    found, seen = [], [0]
+    found, seen, cut = [], [0, 0], []
 
     def visit(name, obj):
         seen[0] += 1
         if isinstance(obj, h5py.Dataset) and obj.ndim in (2, 3) and obj.dtype.kind in "buif":
             found.append((obj.size, f"{obj.name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
-        return True if seen[0] >= 10_000 else None  # a file of many objects: a look, not a survey
+        if seen[0] >= 10_000:  # a file of many objects: a look, not a survey
+            cut.append(True)
+            return True
+        return None
 
     linked = []
 
     def visit_link(name, link):
-        seen[0] += 1
+        seen[1] += 1
         if isinstance(link, h5py.ExternalLink):
             linked.append(f"{h5.name.rstrip('/')}/{name} (in {link.filename})")
-        return True if seen[0] >= 20_000 else None
+        if seen[1] >= 10_000:
+            cut.append(True)
+            return True
+        return None
 
     try:
         h5.visititems(visit)  # hard links only: nothing outside the file is opened
@@ -2043,7 +2049,10 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
     if linked:
         linked.sort()
         found += [(-1, text) for text in linked]
-    more = f" and {len(found) - shown} more" if len(found) > shown else ""
+    if cut:  # the look stopped short: how many more is not known
+        more = f" and {'more' if len(found) <= shown else f'at least {len(found) - shown} more'}"
+    else:
+        more = f" and {len(found) - shown} more" if len(found) > shown else ""
     outside = "; a link into another file is read with --allow-external (allow_external=True)" if linked else ""
     return ", ".join(text for _, text in found[:shown]) + more + outside
 
