@@ -2739,6 +2739,25 @@ def test_a_micro_manager_set_whose_file_has_no_index_map_written_is_refused_nami
     assert data_files(second, allow_external=True) == [first]
 
 
+def test_a_micro_manager_file_alone_missing_a_plane_inside_the_written_ones_is_refused(tmp_path):
+    """s40 review (LOW): one file holding T 0, 1, 3 of a summary planning 100 read as 3
+    consecutive frames with the "stopped early" warning, while the same gap across a set is
+    refused: a plane missing inside the written ones is no acquisition stopped early."""
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(3)
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(
+        path, {"Frames": 100, "Channels": 1, "Slices": 1, "Positions": 1}, [(0, 0, 0, 0), (0, 0, 1, 0), (0, 0, 3, 0)]
+    )
+    with pytest.raises(FormatError, match=r"Pos0\.ome\.tif: .*none at T 2\b.*missing"):
+        read(path)
+    one_line_error(run_cli("info", path), path.name, "T 2")
+    # the written ones without a gap still read, with the warning
+    _mm_patch(path, coords=[(0, 0, 0, 0), (0, 0, 1, 0), (0, 0, 2, 0)])
+    with pytest.warns(UserWarning, match=r"Pos0\.ome\.tif: .*summary planned 100 .*stopped early"):
+        np.testing.assert_array_equal(read(path).data, frames)
+
+
 @pytest.mark.parametrize("kind", ["micro-manager", "ome"])
 def test_a_dangling_symlink_named_as_a_file_of_a_set_is_named_as_such(tmp_path, kind):
     """s39 review (LOW): a dangling symbolic link named as one of a set's files was said to be

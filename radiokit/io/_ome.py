@@ -209,10 +209,13 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
         series = tif.series
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
         return None
-    if len(series) != 1 or series[0].kind != "mmstack" or not series[0].is_multifile:
+    if len(series) != 1 or series[0].kind != "mmstack":
         return None
     pages = list(series[0].pages)
     axes, shape = series[0].get_axes(False), series[0].get_shape(False)
+    if not series[0].is_multifile:
+        _check_no_plane_between(pages, axes, shape, len(series[0].keyframe.shape), path or tif.filehandle.path)
+        return None
     if "R" in axes:
         # Micro-Manager writes each stage position to files of its own (<name>_MMStack_Pos1...)
         # and tifffile's series takes in every position beside it: read as one stack, the
@@ -241,6 +244,29 @@ def _check_own_index_map(tif, path=None) -> None:
     found = _mmstack_files(tif, summary, path)
     if found is not None and len(found) > 1:
         _index_span(found, [0, 0, 0, 0], tif.filehandle.path, path)
+
+
+def _check_no_plane_between(pages: list, axes: str, shape: tuple, plane_dims: int, path) -> None:
+    """Refuse a Micro-Manager file read alone whose index map leaves a plane out before the last
+    it records (tifffile's series of it: None there). Why: the planes after the gap were read
+    as the frames straight after those before it, with the warning that the acquisition was
+    stopped early where the summary planned more; a set with the same gap is refused. Planes
+    left out after the last are what an acquisition stopped early leaves, and are no gap."""
+    import numpy  # late: only a Micro-Manager file needs it here
+
+    last = max((k for k, page in enumerate(pages) if page is not None), default=-1)
+    gaps = [k for k in range(last) if pages[k] is None]
+    if not gaps:
+        return
+    dims = shape[: len(shape) - plane_dims]
+    at = numpy.unravel_index(gaps[0], dims)
+    where = ", ".join(f"{axis} {int(i)}" for axis, i, n in zip(axes, at, dims) if n > 1)
+    raise FormatError(
+        Path(path),
+        f"its Micro-Manager index map records {last + 1 - len(gaps)} planes up to the last but none at "
+        f"{where}{f' (and {len(gaps) - 1} more)' if len(gaps) > 1 else ''}: a plane missing among those "
+        "written, not an acquisition stopped early: corrupt",
+    )
 
 
 #: the bytes a Micro-Manager file holds for each of its planes at the least: its index map entry
