@@ -2691,6 +2691,73 @@ def test_a_micro_manager_file_alone_stopped_early_says_so(tmp_path):
         np.testing.assert_array_equal(read(path).data, frames)
 
 
+def _mm_index_at(path):
+    """Where a :func:`_mmstack_file`'s index map lies (its header: magic, count; then 20 bytes a plane)."""
+    import struct
+
+    return struct.unpack_from("<8I", path.read_bytes(), 8)[1]
+
+
+@pytest.mark.parametrize("planned", [100, 4 * 10**8], ids=["planned-100", "planned-4e8"])
+@pytest.mark.parametrize("damage", ["never-written", "entries-zero", "count-4e8", "count-0"])
+def test_a_micro_manager_set_whose_file_has_no_index_map_written_is_refused_naming_it(tmp_path, damage, planned):
+    """s40 review (MEDIUM): a set whose second file's index map was never written (an acquisition
+    that crashed: left zero, or its entries zero, which tifffile takes for plane (0, 0, 0, 0) at
+    offset 0), or counts 4*10**8 entries, read the first file's 2 of 4 frames with the "stopped
+    early: reading the 2 written" warning, dropping the second file's 2 written pages silently,
+    and data_files left that file out (an output could replace it). Refused in one line naming
+    the file and its index map, fast; data_files lists it."""
+    import struct
+    import time
+
+    from radiokit.io import data_files
+
+    frames = _frames(4)
+    first, second = tmp_path / "exp_MMStack_Pos0.ome.tif", tmp_path / "exp_MMStack_Pos0_1.ome.tif"
+    _mmstack_file(first, frames[:2], 0, 10**15)
+    _mmstack_file(second, frames[2:], 2, 10**15)
+    for path in (first, second):
+        _mm_patch(path, {"Frames": planned, "Channels": 1, "Slices": 1, "Positions": 1})
+    out, at = bytearray(second.read_bytes()), _mm_index_at(second)
+    if damage == "never-written":
+        out[at : at + 8 + 20 * 2] = bytes(8 + 20 * 2)
+    elif damage == "entries-zero":
+        out[at + 8 + 20 : at + 8 + 20 * 2] = bytes(20)  # its last plane's entry, pre-allocated, never filled
+    else:
+        struct.pack_into("<I", out, at + 4, 4 * 10**8 if damage == "count-4e8" else 0)
+    second.write_bytes(bytes(out))
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match=r"exp_MMStack_Pos0_1\.ome\.tif: .*index map .*crashed"):
+        read(first, allow_external=True)
+    assert time.perf_counter() - start < 2
+    one_line_error(run_cli("info", "--allow-external", first), second.name, "index map")
+    assert data_files(first, allow_external=True) == [second]
+    # named itself, the file is no plain TIFF of its own pages (the set's first file left out)
+    for allow in (False, True):
+        with pytest.raises(FormatError, match=r"exp_MMStack_Pos0_1\.ome\.tif: .*index map .*crashed"):
+            read(second, allow_external=allow)
+    assert data_files(second, allow_external=True) == [first]
+
+
+def test_a_micro_manager_file_alone_missing_a_plane_inside_the_written_ones_is_refused(tmp_path):
+    """s40 review (LOW): one file holding T 0, 1, 3 of a summary planning 100 read as 3
+    consecutive frames with the "stopped early" warning, while the same gap across a set is
+    refused: a plane missing inside the written ones is no acquisition stopped early."""
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    frames = _frames(3)
+    _mmstack_file(path, frames, 0, 10**15)
+    _mm_patch(
+        path, {"Frames": 100, "Channels": 1, "Slices": 1, "Positions": 1}, [(0, 0, 0, 0), (0, 0, 1, 0), (0, 0, 3, 0)]
+    )
+    with pytest.raises(FormatError, match=r"Pos0\.ome\.tif: .*none at T 2\b.*missing"):
+        read(path)
+    one_line_error(run_cli("info", path), path.name, "T 2")
+    # the written ones without a gap still read, with the warning
+    _mm_patch(path, coords=[(0, 0, 0, 0), (0, 0, 1, 0), (0, 0, 2, 0)])
+    with pytest.warns(UserWarning, match=r"Pos0\.ome\.tif: .*summary planned 100 .*stopped early"):
+        np.testing.assert_array_equal(read(path).data, frames)
+
+
 @pytest.mark.parametrize("kind", ["micro-manager", "ome"])
 def test_a_dangling_symlink_named_as_a_file_of_a_set_is_named_as_such(tmp_path, kind):
     """s39 review (LOW): a dangling symbolic link named as one of a set's files was said to be

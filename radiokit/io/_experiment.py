@@ -1496,7 +1496,7 @@ def _ome_tiff_referred(path: Path, names: list) -> bool:
     which a read with allow_external takes frames from."""
     import tifffile  # late: only a TIFF input needs it here
 
-    from radiokit.io._ome import external_planes, mmstack_split
+    from radiokit.io._ome import external_planes, mmstack_set_files, mmstack_split
     from radiokit.io._source import _TIFF_MAGIC  # late: _source imports this module
 
     with open(path, "rb") as fh:
@@ -1505,6 +1505,9 @@ def _ome_tiff_referred(path: Path, names: list) -> bool:
     try:
         with tifffile.TiffFile(path) as tif:
             xml = tif.ome_metadata if tif.is_ome else None
+            # every file of a Micro-Manager set, listed before its planes are looked for: a file
+            # whose index map was never written holds none tifffile finds, and the read refuses it
+            names.extend((os.path.basename(name), "tiff") for name in mmstack_set_files(tif))
             split = mmstack_split(tif) or []
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
         return True

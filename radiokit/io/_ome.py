@@ -27,6 +27,7 @@ __all__ = [
     "binary_only",
     "mmstack_split",
     "check_mmstack_slots",
+    "mmstack_set_files",
     "not_there",
 ]
 
@@ -198,6 +199,7 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
     own planes, with nothing said where the OME-XML names no file. ``path``: the file as the
     user named it, for messages; ``notes``: where what :func:`check_mmstack_slots` says of an
     acquisition stopped early is put, for the reader to warn."""
+    _check_own_index_map(tif, path)
     if not tif.is_mmstack:
         return None
     note = check_mmstack_slots(tif, path)
@@ -207,10 +209,13 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
         series = tif.series
     except Exception:  # (tifffile fails on a corrupt file in many ways) the read itself says so
         return None
-    if len(series) != 1 or series[0].kind != "mmstack" or not series[0].is_multifile:
+    if len(series) != 1 or series[0].kind != "mmstack":
         return None
     pages = list(series[0].pages)
     axes, shape = series[0].get_axes(False), series[0].get_shape(False)
+    if not series[0].is_multifile:
+        _check_no_plane_between(pages, axes, shape, len(series[0].keyframe.shape), path or tif.filehandle.path)
+        return None
     if "R" in axes:
         # Micro-Manager writes each stage position to files of its own (<name>_MMStack_Pos1...)
         # and tifffile's series takes in every position beside it: read as one stack, the
@@ -225,6 +230,43 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
         while pages and pages[-1] is None:
             pages.pop()
     return pages
+
+
+def _check_own_index_map(tif, path=None) -> None:
+    """Refuse a file of a Micro-Manager set whose own index map is missing or empty, named (as
+    :func:`_index_span` refuses one of its other files). Why: tifffile then takes it for no
+    Micro-Manager file and it read as a plain TIFF of its own pages, the set's other files
+    left out, silently. A file alone (no other file of its name) still reads its pages so."""
+    meta = tif.micromanager_metadata or {}
+    summary, index = meta.get("Summary"), meta.get("IndexMap")
+    if not isinstance(summary, dict) or "MicroManagerVersion" not in summary or (index is not None and len(index)):
+        return
+    found = _mmstack_files(tif, summary, path)
+    if found is not None and len(found) > 1:
+        _index_span(found, [0, 0, 0, 0], tif.filehandle.path, path)
+
+
+def _check_no_plane_between(pages: list, axes: str, shape: tuple, plane_dims: int, path) -> None:
+    """Refuse a Micro-Manager file read alone whose index map leaves a plane out before the last
+    it records (tifffile's series of it: None there). Why: the planes after the gap were read
+    as the frames straight after those before it, with the warning that the acquisition was
+    stopped early where the summary planned more; a set with the same gap is refused. Planes
+    left out after the last are what an acquisition stopped early leaves, and are no gap."""
+    import numpy  # late: only a Micro-Manager file needs it here
+
+    last = max((k for k, page in enumerate(pages) if page is not None), default=-1)
+    gaps = [k for k in range(last) if pages[k] is None]
+    if not gaps:
+        return
+    dims = shape[: len(shape) - plane_dims]
+    at = numpy.unravel_index(gaps[0], dims)
+    where = ", ".join(f"{axis} {int(i)}" for axis, i, n in zip(axes, at, dims) if n > 1)
+    raise FormatError(
+        Path(path),
+        f"its Micro-Manager index map records {last + 1 - len(gaps)} planes up to the last but none at "
+        f"{where}{f' (and {len(gaps) - 1} more)' if len(gaps) > 1 else ''}: a plane missing among those "
+        "written, not an acquisition stopped early: corrupt",
+    )
 
 
 #: the bytes a Micro-Manager file holds for each of its planes at the least: its index map entry
@@ -250,18 +292,18 @@ def not_there(path) -> str:
     return f"{path.name} is a symbolic link to {target}, which points nowhere (no file is there)"
 
 
-def _mmstack_files(tif, summary: dict, path=None) -> list[str] | None:
+def _mmstack_files(tif, summary: dict, path=None, check=True) -> list[str] | None:
     """The files of a Micro-Manager set tifffile's series looks for beside this one, found as it
     finds them (a "_MMStack" name, the summary's Prefix, a glob of *.tif that may miss this file
     itself); None where it reads this one alone. One that is a symbolic link to nothing is
-    refused, named (``path``: the file as the user named it)."""
+    refused, named (``path``: the file as the user named it), unless not ``check``."""
     prefix = summary.get("Prefix", tif.filename.split("_MMStack")[0])
     if not tif.filehandle.is_file or "_MMStack" not in tif.filename or not isinstance(prefix, str):
         return None
     if not tif.filename.startswith(prefix):
         return None
     found = glob.glob(os.path.join(tif.filehandle.dirname, prefix + "_MMStack*.tif"))
-    for name in found:  # tifffile opens each: a dangling link's "No such file" named no link
+    for name in found if check else ():  # tifffile opens each: a dangling link's "No such file" named no link
         if not os.path.exists(name):
             raise FormatError(
                 Path(path or tif.filehandle.path), f"a file of its Micro-Manager stack by its name: {not_there(name)}"
@@ -269,21 +311,97 @@ def _mmstack_files(tif, summary: dict, path=None) -> list[str] | None:
     return found
 
 
-def _index_span(names: list[str], own: list[int]) -> tuple[list[int], int]:
+def mmstack_set_files(tif) -> list[str]:
+    """The other files of this file's Micro-Manager set, which a read with allow_external may
+    take frames from: every file tifffile's series of it looks for, but those whose index map
+    records only stage positions this file's does not (another position's stack, not read with
+    it); [] where it is no Micro-Manager file.
+
+    Why: listed from the planes tifffile's series found, a file whose index map was never
+    written (an acquisition that crashed) was left out, and an output could replace it."""
+    meta = tif.micromanager_metadata or {}
+    summary, index = meta.get("Summary"), meta.get("IndexMap")
+    if not isinstance(summary, dict):
+        return []
+    found = _mmstack_files(tif, summary, check=False) or []
+    own = None if index is None or not len(index) else set(index[:, 3].tolist())
+    others = []
+    for name in found:
+        if os.path.basename(name) == tif.filename:
+            continue
+        try:
+            theirs, _ = _read_index_map(name)
+        except OSError:  # (unreadable) listed: nothing says it is not of the set
+            theirs = None
+        if own is None or not theirs or own & {entry[3] for entry in theirs}:
+            others.append(name)
+    return others
+
+
+def _read_index_map(name: str) -> tuple[list | None, str]:
+    """The (channel, slice, frame, position, IFD offset) entries of the Micro-Manager index map
+    of the file ``name``, or None and what is wrong with it (for messages). Read here, not by
+    tifffile: tifffile reads the count's 20 bytes an entry at once, 8 GB asked of a 5 KB file
+    declaring 4*10**8 entries."""
+    import struct
+
+    with open(name, "rb") as fh:
+        head = fh.read(16)
+        order = {b"II": "<", b"MM": ">"}.get(head[:2])
+        if order is None or len(head) < 16:
+            return None, "cannot be found (no Micro-Manager header)"
+        magic, at = struct.unpack_from(order + "II", head, 8)
+        size = os.fstat(fh.fileno()).st_size
+        fh.seek(at)
+        header = fh.read(8)
+        if magic != 54773648 or len(header) < 8 or struct.unpack_from(order + "I", header)[0] != 3453623:
+            return None, "was never written (no index map header where the file's header points)"
+        count = struct.unpack_from(order + "I", header, 4)[0]
+        if at + 8 + 20 * count > size:
+            return None, f"declares {count} entries, more than the file's {size} bytes hold"
+        data = fh.read(20 * count)
+    return [struct.unpack_from(order + "5I", data, 20 * k) for k in range(count)], ""
+
+
+def _index_span(names: list[str], own: list[int], given, path=None) -> tuple[list[int], int]:
     """The (channel, slice, frame, position) span of the planes the index maps of the files
-    ``names`` record, at least ``own``, and how many entries they hold; a file whose index map
-    cannot be read adds nothing (tifffile's reading of it says what is wrong)."""
-    import tifffile  # late: only a Micro-Manager set needs it here
+    ``names`` of a set record, at least ``own``, and how many entries they hold; a file whose
+    index map does not account for each of its pages, one by one, is refused, named (``given``:
+    the file read, as ``path`` names it for messages).
+
+    Why: Micro-Manager fills a file's index map as it closes the file, so an acquisition that
+    crashed leaves it zero or part filled (tifffile takes a zero entry for plane (0, 0, 0, 0) at
+    offset 0). Its pages' planes then count for nothing: a set whose second file had none read
+    the first file's 2 of 4 frames as "stopped early", dropping 2 written frames silently.
+    Refused rather than read in page order: a page's plane (channel, slice, time point) and its
+    place among the other files' are what the index map records; guessed, the frames could come
+    misordered with nothing said."""
+    from radiokit.io._tiff_ifds import check_tiff_pages  # late: only a Micro-Manager set needs it
 
     span, entries = list(own), 0
     for name in names:
-        try:
-            with tifffile.FileHandle(name) as fh:
-                index = tifffile.read_micromanager_metadata(fh, {"IndexMap"})["IndexMap"]
-        except Exception:  # (a corrupt index map fails in many ways) the read itself says so
-            continue
-        if len(index):
-            span = [max(s, int(v) + 1) for s, v in zip(span, index[:, :4].max(axis=0))]
+        where = Path(path or name) if os.path.samefile(name, given) else Path(name)
+        index, problem = _read_index_map(name)
+        pages: list[int] = []
+        # each file walked alone: other positions' files are not opened with this one, and the
+        # read charges those it opens together (_walk_set)
+        check_tiff_pages(name, offsets=pages)
+        if index is not None:
+            indexed = {entry[4] for entry in index}
+            unindexed, stray = len(set(pages) - indexed), len(indexed - set(pages))
+            if unindexed or stray:
+                problem = f"records {len(pages) - unindexed} of its {len(pages)} pages"
+                problem += f", and points {stray} entr{'ies' if stray > 1 else 'y'} where no page is" if stray else ""
+        if problem:
+            of = "" if where.name == Path(path or given).name else f" read from {Path(path or given).name}"
+            raise FormatError(
+                where,
+                f"a file of the Micro-Manager set{of}: its index map {problem}: the acquisition likely crashed "
+                "before the file was closed (Micro-Manager fills the index map then), so which plane each page "
+                "holds is unknown: refused rather than guessed",
+            )
+        if index:
+            span = [max(s, max(entry[k] for entry in index) + 1) for k, s in enumerate(span)]
             entries += len(index)
     return span, entries
 
@@ -343,7 +461,7 @@ def check_mmstack_slots(tif, path=None) -> str | None:
         found = _mmstack_files(tif, summary, path)
         if found is not None and len(found) > 1:
             files, where = found, f"its set's {len(found)} files hold"
-            written, entries = _index_span(found, high)
+            written, entries = _index_span(found, high, tif.filehandle.path, path)
     note = _drop_the_plan(summary, counts, written, entries, where)
     counts = [int(summary.get(key, 1)) for key, _ in _MM_COUNTS]
     sizes = [max(w, c) for w, c in zip(written, counts)]

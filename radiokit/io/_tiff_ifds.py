@@ -44,7 +44,7 @@ def _first_ifd(m) -> tuple[str, tuple, int] | None:
     return order, layout, struct.unpack_from(order + layout[3], m, 4 if version == 42 else 8)[0]
 
 
-def check_tiff_pages(path, budget=None, spent=0) -> tuple[int, int]:
+def check_tiff_pages(path, budget=None, spent=0, offsets: list | None = None) -> tuple[int, int]:
     """Refuse ``path``, a TIFF, when building its pages would take more than the memory budget
     (``budget``, else :func:`radiokit.io._budget.memory_budget`'s) less ``spent`` (the pages of
     the files of its set walked before it, open at once with it): each page
@@ -54,7 +54,7 @@ def check_tiff_pages(path, budget=None, spent=0) -> tuple[int, int]:
     torn IFD) ends the count, and the reader names it (tifffile stops there too).
 
     Returns the pages counted and ``spent`` with their cost added ((0, spent) where tifffile is
-    left to judge the file)."""
+    left to judge the file); into ``offsets``, each counted page's IFD offset."""
     limit = memory_budget(budget)
     with open(path, "rb") as fh:
         try:
@@ -92,4 +92,6 @@ def check_tiff_pages(path, budget=None, spent=0) -> tuple[int, int]:
                     f"page, {TIFF_BYTES_PER_TAG} a tag; a corrupt file, or raise {BUDGET_ENV})",
                 )
             offset = struct.unpack_from(next_fmt, m, end)[0]
+        if offsets is not None:
+            offsets.extend(seen)
         return len(seen), cost
