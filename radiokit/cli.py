@@ -851,14 +851,13 @@ def _check_process_files(args) -> None:
 
 def _check_process_memory(files, cfg, at_once: int = 1) -> None:
     """Refuse, before any work, a file whose processing would need more memory than the budget,
-    as ``register`` refuses a registration: ``process`` registers the same frames and holds more.
-    A file's control is processed while the file's own images are held (the control's record is
-    made last), so the two are charged together, and the control alone first; ``at_once`` files
-    processed at once (the local cluster's workers) share the budget: each was checked against
-    all of it, so two workers could take twice the budget."""
+    as ``register`` refuses a registration: ``process`` registers the same frames and holds more
+    (:func:`radiokit.pipeline.refuse_over_memory`). ``at_once`` files processed at once (the local
+    cluster's workers) share the budget: each was checked against all of it, so two workers could
+    take twice the budget."""
     from radiokit.io import memory_budget
     from radiokit.io._budget import BUDGET_ENV, _human
-    from radiokit.pipeline import _process_need
+    from radiokit.pipeline import refuse_over_memory
 
     limit = memory_budget()
     share = limit // max(1, at_once)
@@ -871,17 +870,7 @@ def _check_process_memory(files, cfg, at_once: int = 1) -> None:
         f": raise {BUDGET_ENV} if the machine has that memory, or process smaller frames, binned or cropped "
         "beforehand (--crop-mm narrows only what is kept)"
     )
-    control = _process_need(cfg.control, cfg) if cfg.control else None
-    if control is not None and control[0] > share:
-        raise ValueError(f"--control {cfg.control}: processing {control[1]}, over {budget}{advice}")
-    for path in files:
-        mine = _process_need(path, cfg)
-        if mine is None:
-            continue
-        need = mine[0] + (control[0] if control else 0)
-        if need > share:
-            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
-            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {budget}{advice}")
+    refuse_over_memory(files, cfg, share, budget + advice, control_name="--control ")
 
 
 def cmd_process(args) -> int:

@@ -1450,9 +1450,8 @@ def _memory_shares(client) -> dict:
 def _check_worker_memory(paths, cfg: Config, shares: dict) -> None:
     """Refuse, before any work, a file whose processing would need more memory than the smallest
     worker's share (:func:`_memory_shares`; Dask may give any file to any worker), as ``radiokit
-    process`` refuses one file over the budget. Its control is processed beside it, so charged
-    with it."""
-    from radiokit.io._budget import BUDGET_ENV, _human
+    process`` refuses one file over the budget."""
+    from radiokit.io._budget import BUDGET_ENV
 
     share, budget = min(shares.values(), key=lambda s: s[0])
     advice = (
@@ -1460,16 +1459,25 @@ def _check_worker_memory(paths, cfg: Config, shares: dict) -> None:
         "(fewer workers or Dask threads a host; on the command line --workers 1 takes one at a time), "
         "or process smaller frames, binned or cropped beforehand"
     )
+    refuse_over_memory(paths, cfg, share, budget + advice, control_name="control=")
+
+
+def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: str) -> None:
+    """A ``ValueError`` naming the first of ``paths`` whose processing (:func:`_process_need`) needs
+    more than ``share`` bytes, ``over`` saying whose budget and what to do. A file's control is
+    processed while the file's own images are held (the control's record is made last), so the two
+    are charged together, and the control alone first, named ``control_name`` (``--control `` on
+    the command line). A file that cannot be opened is passed: its own error is said in its turn."""
+    from radiokit.io._budget import _human
+
     control = _process_need(cfg.control, cfg) if cfg.control else None
     if control is not None and control[0] > share:
-        raise ValueError(f"control={cfg.control}: processing {control[1]}, over {budget}{advice}")
+        raise ValueError(f"{control_name}{cfg.control}: processing {control[1]}, over {over}")
     for path in paths:
         mine = _process_need(path, cfg)
-        if mine is None:  # the file's own error is said in its slot, as process says it
-            continue
-        if mine[0] + (control[0] if control else 0) > share:
+        if mine is not None and mine[0] + (control[0] if control else 0) > share:
             beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
-            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {budget}{advice}")
+            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {over}")
 
 
 def _all_workers(client) -> dict:
