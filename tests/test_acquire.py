@@ -156,17 +156,21 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
 
 
 def test_a_slow_controller_keeping_the_beam_on_past_the_plan_is_told(tmp_path, scene_toml, bench, caplog):
-    """Replies of 1.2 s are within L8121.md (dialect B counts a reply as missed after 2 s), so
+    """Replies of 1 s are within L8121.md (dialect B counts a reply as missed after 2 s), so
     nothing fails, but every exchange of a beam-on period (the checks before XON, set values, XON,
     the ramp's polls, the beam monitor, XOF) costs that: a 3-frame step planned at 6.5 s kept
-    X-rays on about 24 s, and the operator was not told. One warning line names the period, the
-    time and the plan.
+    X-rays on about 24 s (at 1.2 s a reply), and the operator was not told. One warning line names
+    the period, the time and the plan.
 
     Session 25, for the suite's time (38 s -> 24 s): one frame (planned 5.5 s: below 10 s the rule's
     "and by 10 s" decides, as at 6.5 s, so the threshold moves by a second), and the controller
     slow from the step's start to the close only: the connection's dozen exchanges before the
     step are not part of any beam-on period, and cost 15 s at 1.2 s each. The period itself still
-    runs at least 19 exchanges of 1.2 s (about 24 s, the threshold 15.5 s)."""
+    runs at least 19 exchanges of over 1 s (over 19 s, the threshold 15.5 s).
+
+    Session 40: 1 s a reply, not 1.2 s: the emulator answers from a thread of this process, which
+    a loaded machine starves, and the 0.8 s left of the 2 s deadline was overrun at load 13-18
+    (a SIN of the beam monitor went unanswered). A loaded machine only lengthens the period."""
     from acquisition.protocols.compression_series import OVERRUN_FACTOR, OVERRUN_S, RAMP_ESTIMATE_S
 
     p = protocol(tmp_path, scene_toml, "B", timeout_s=2.0, darks=0, flats=0, steps=[STEPS[0]], frames_per_step=1)
@@ -174,7 +178,7 @@ def test_a_slow_controller_keeping_the_beam_on_past_the_plan_is_told(tmp_path, s
 
     def slow_for_the_step(phase, info=None):
         if phase == "step 1":
-            dev.emulator.slow(1.2)
+            dev.emulator.slow(1.0)
         elif phase == "close":
             dev.emulator.slow(0.0)
 
