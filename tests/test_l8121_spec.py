@@ -395,14 +395,22 @@ def test_a_series_warms_up_after_the_power_on_checks_and_through_a_warm_up_that_
 
 # -- X-rays on means the interlock is watched, the warm-up and the ramp included -------------------
 def _open_interlock_once_emitting(model, after_s=0.2):
+    """Open the interlock ``after_s`` after the model starts emitting; returns a dict whose
+    ``"n"`` is then how many commands the model had received (under its lock: the opening and
+    the count are one instant of the controller)."""
+    opened = {}
+
     def watch():
         deadline = time.monotonic() + 10
         while not model.emitting and time.monotonic() < deadline:
             time.sleep(0.01)
         time.sleep(after_s)
-        model.interlock_closed = False
+        with model.lock:
+            opened["n"] = len(model.received)
+            model.interlock_closed = False
 
     threading.Thread(target=watch, daemon=True).start()
+    return opened
 
 
 @pytest.mark.parametrize("phase", ["warm-up", "ramp"])
@@ -412,18 +420,30 @@ def test_an_interlock_opening_while_emitting_stops_the_tube(dialect, phase):
     ``SCU``, ``SIN``) and stops on "an interlock opening". A controller that only reports the open
     interlock (the notes do not say it switches off by itself) must be switched off by the driver
     within a few polls, not when the warm-up ends or the beam is stable."""
-    model = SpecModel(dialect, warm=phase == "ramp", warmup_s=3.0, ramp_s=3.0)
+    # The warm-up and the ramp take 20 s, and the driver is given longer to wait for them (its
+    # warm-up and stability time-outs 60 s): a driver that waited either out would be seen after
+    # 20 s. A bound of 2 s on a 3 s ramp measured the machine's load (2.19 s at load 15).
+    model = SpecModel(dialect, warm=phase == "ramp", warmup_s=20.0, ramp_s=20.0)
     model.interlock_stops_beam = False
-    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05) as src:
-        _open_interlock_once_emitting(model)
+    with served(model) as pty, L8121(pty.url, dialect=dialect, poll_s=0.05, stable_timeout_s=60) as src:
+        opened = _open_interlock_once_emitting(model)
         t0 = time.monotonic()
         with pytest.raises(SourceFault, match="interlock open"):
             if phase == "warm-up":
-                src.warm_up(timeout_s=10, progress=False)
+                src.warm_up(timeout_s=60, progress=False)
             else:
                 src.on(60, 250)
-        assert time.monotonic() - t0 < 2.0  # the warm-up or the ramp would take 3 s
+        assert time.monotonic() - t0 < 10.0  # half the 20 s it would take to wait out either
         assert not model.emitting
+    # "within a few polls", counted in the controller's own commands rather than in seconds: from
+    # the opening to the XOF only the rest of the polling round in flight (no query twice), and
+    # the first SIN to read the interlock open is the last command before the XOF
+    after = model.received[opened["n"] :]
+    assert "XOF" in after, after
+    before = after[: after.index("XOF")]
+    polled = {"A": {"STS", "SWE", "SAR", "SIN"}, "B": {"STS", "DAG", "SHV", "SCU", "SIN"}}[dialect]
+    assert set(before) <= polled and len(set(before)) == len(before), before
+    assert before[-1:] == ["SIN"], before
 
 
 # -- no X-ray command before every setting is valid ------------------------------------------------
