@@ -1035,28 +1035,15 @@ def test_a_schedulers_workers_share_their_hosts_memory_budget(tmp_path):
 
     files = [synthetic(tmp_path / f"exp{i}.h5") for i in (1, 2)]  # 7.2 MB each by the check's figures
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        address = cluster.scheduler_address
-        res = run_cli(
-            "process",
-            *files,
-            "--scheduler",
-            address,
-            "-o",
-            tmp_path / "out",
-            *FAST,
-            env={"RADIOKIT_MEMORY_BUDGET": "10MB"},
-        )
-        one_line_error(res, "exp1.h5", "shared by the 2 files its Dask workers process at once (4.8 MiB each")
+
+        def run(budget):
+            return run_cli(
+                "process", *files, "--scheduler", cluster.scheduler_address, "-o", tmp_path / "out", *FAST,
+                env={"RADIOKIT_MEMORY_BUDGET": budget},
+            )  # fmt: skip
+
+        one_line_error(run("10MB"), "exp1.h5", "shared by the 2 files its Dask workers process at once (4.8 MiB each")
         assert not (tmp_path / "out").exists()
-        res = run_cli(
-            "process",
-            *files,
-            "--scheduler",
-            address,
-            "-o",
-            tmp_path / "out",
-            *FAST,
-            env={"RADIOKIT_MEMORY_BUDGET": "20MB"},
-        )
+        res = run("20MB")
         assert res.returncode == 0, res.stderr
         assert all((tmp_path / "out" / f"exp{i}" / "results.json").exists() for i in (1, 2))

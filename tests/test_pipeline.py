@@ -357,6 +357,18 @@ def _one_file_need() -> int:
     return (PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_KEPT_PIXEL) * 160 * 160
 
 
+def _two_files_one_share_fits(tmp_path, monkeypatch):
+    """Two experiment files and a budget one of them fits and both together do not."""
+    from radiokit.pipeline import Config
+
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for p in paths:
+        _synthetic(p)
+    budget = int(1.5 * _one_file_need())
+    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
+    return paths, budget, Config(crop_mm=None, report=False, progress=False, **_ROIS)
+
+
 def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
     """A scheduler's workers checked no file's working memory (the command line checked each
     against the whole budget of the machine it ran on, with one file at a time): two workers of
@@ -365,14 +377,9 @@ def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
     from dask.distributed import LocalCluster
 
     from radiokit.io._budget import _human
-    from radiokit.pipeline import Config, process_many
+    from radiokit.pipeline import process_many
 
-    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
-    for p in paths:
-        _synthetic(p)
-    budget = int(1.5 * _one_file_need())
-    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
-    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    paths, budget, cfg = _two_files_one_share_fits(tmp_path, monkeypatch)
     # in-process workers (one host; the run is refused before any task or limit reaches them)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
         with pytest.raises(ValueError) as err:
@@ -444,14 +451,9 @@ def test_a_local_clusters_workers_share_the_memory_budget(tmp_path, monkeypatch)
     """process_many on its own local cluster checked no file's memory either (only the command
     line did): two files, each within the budget, processed at once, over it together."""
     from radiokit.io._budget import _human
-    from radiokit.pipeline import Config, process_many
+    from radiokit.pipeline import process_many
 
-    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
-    for p in paths:
-        _synthetic(p)
-    budget = int(1.5 * _one_file_need())
-    monkeypatch.setenv("RADIOKIT_MEMORY_BUDGET", str(budget))
-    cfg = Config(crop_mm=None, report=False, progress=False, **_ROIS)
+    paths, budget, cfg = _two_files_one_share_fits(tmp_path, monkeypatch)
     with pytest.raises(ValueError) as err:
         process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
     message = str(err.value)
