@@ -798,7 +798,8 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
         Beam, detector and attenuation (``attenuation_per_mm`` of the body, then the inclusions).
     state : sim.mechanics.State, optional
         A state from ``compress``; its mesh is ``state.solver.fem`` unless ``fem`` is given.
-        ``None``: the undeformed mesh (``fem``, or ``build_mesh(scene)``).
+        ``None``: the undeformed mesh (``fem``, or the one a state of the scene is projected on,
+        :func:`sim.mesh.undeformed_projection_mesh`: the same geometry as a state at no load).
     fem : FEMesh, optional
     supersample : int
         ``s x s`` sub-rays per pixel; their line integrals are averaged. A pixel integrates
@@ -823,9 +824,9 @@ def project(scene, state=None, *, fem=None, supersample: int = 1, revolve_tol: f
     if fem is None:
         if state is not None:
             raise ValueError("state has no solver.fem: pass the mesh it was computed on as fem=")
-        from sim.mesh import build_mesh
+        from sim.mesh import undeformed_projection_mesh
 
-        fem = build_mesh(scene)
+        fem = undeformed_projection_mesh(scene)
     displacement = None
     if state is not None:
         displacement = state.displacement
