@@ -875,8 +875,8 @@ def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, w
         assert src.warmup_values == (kv, ua, given is not None)
     sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
     sent = before_the_start(model, wire)
-    assert sent[-1] == "SIN"  # the interlock, read again last before the start command
-    assert sent[-len(sets) - len(wire["setpoint"]) - 1 : -1] == sets + wire["setpoint"]
+    assert sent[-2:] == ["SIN", "SER"]  # the interlock and the error code, read again last before the start
+    assert sent[-len(sets) - len(wire["setpoint"]) - 2 : -2] == sets + wire["setpoint"]
     assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
 
 
@@ -895,7 +895,7 @@ def test_warm_up_sets_and_reads_back_the_focus_asked_for_before_it_emits(cold, d
         assert model._focus == 1 and src.focus == 1
     sent = before_the_start(model, wire)[n:]
     assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
-    assert sent[-1] == "SIN"
+    assert sent[-2:] == ["SIN", "SER"]
 
 
 def test_a_focus_not_read_back_before_a_warm_up_stops_it_before_it_emits(cold, dialect, wire, monkeypatch):
