@@ -2738,10 +2738,17 @@ class L8121:
         if not ramping and beam is not None:
             f = self.config.beam_drop_fraction
             set_kv, set_ua = beam
+            dropped = None
             if ua < f * set_ua:
-                return f"beam dropped: measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
-            if kv < f * set_kv:
-                return f"beam dropped: measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
+                dropped = f"measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
+            elif kv < f * set_kv:
+                dropped = f"measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
+            if dropped is not None:
+                # B reads state, voltage and current in separate exchanges: a process stopped
+                # after its STS read XON measures the beam the guardian's watchdog switched off
+                # meanwhile (its word came with this reading's replies): the cause is known
+                told = getattr(self._transport, "watchdog_off", None)
+                return f"{told}; then {dropped}" if told else f"beam dropped: {dropped}"
         return None
 
     def _evident_fault(self, state: SourceState, kv: float, ua: float) -> bool:

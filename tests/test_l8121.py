@@ -3472,6 +3472,42 @@ def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_be
     assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
 
 
+def test_a_stall_between_bs_state_and_its_current_names_the_watchdog_not_a_dropped_beam():
+    """B reads a poll in separate exchanges (STS, SHV, SCU). A process stopped (SIGSTOP) right
+    after its STS read XON comes back to SHV and SCU reading 0 -- the guardian's watchdog had
+    switched off meanwhile -- and its error said `beam dropped: measured current 0 µA`, where A's
+    (one SAR) named the watchdog (review s40dial, SIGSTOP in B). The stall is this thread
+    sleeping past watchdog_s after the STS reply: to the guardian, the same silence."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect="B", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.5)
+        query, stall = link.query, threading.Event()
+
+        def stalling_query(line, *args, **kwargs):
+            reply = query(line, *args, **kwargs)
+            if line == "STS" and stall.is_set():
+                stall.clear()
+                deadline = time.monotonic() + 20
+                while model.xray_on and time.monotonic() < deadline:
+                    time.sleep(0.05)
+            return reply
+
+        link.query = stalling_query
+        with L8121(link, connect=False, config=resolved) as source:
+            source.connect()
+            source.on(60, 250)
+            stall.set()
+            with pytest.raises(SourceFault) as info:
+                source.check()
+            assert not stall.is_set() and not model.xray_on
+        link._process.wait(timeout=20)
+    text = str(info.value)
+    assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
+
+
 @pytest.mark.parametrize("dialect, preheating", [("A", False), ("B", True)])
 def test_the_guardian_watchdog_waits_for_the_acquiring_processs_first_request(dialect, preheating, capfd):
     """A Python-API user slow between start_guardian and its first exchange (building its detector),
