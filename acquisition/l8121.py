@@ -2247,7 +2247,6 @@ class L8121:
             )
         else:
             meaning = "L8121.md gives dialect A's error codes no meaning beyond 0, none"
-        logger.error("%s: %s: the controller reports error code %d", self.port, what, code)
         raise SourceFault(
             f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {meaning}); "
             f"no X-ray command was sent and nothing was reset. L8121.md does not say how the code clears: "
