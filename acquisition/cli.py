@@ -588,11 +588,44 @@ def _source_held(args) -> int:
             _say(NEVER_REACHED)
             return 1
         print(result.report())
-        return 0 if result.found else 1
+        if not result.found:
+            return 1
+        return _probe_found(result, args)
     # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
     # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
     # switches off first, and defers any further signal until that is done
     return _guarded(_source_guarded, args)
+
+
+def _probe_found(result, args) -> int:
+    """The end of a ``source probe`` whose replies fit a dialect. Exit 0 says the tube confirmed
+    off (README: exit codes), and the probe's ``STS`` is what read it: a state that emits (X-rays
+    on, B's ``AGING``) is said loudly and switched off as ``source status`` does -- ``source off``
+    in the dialect and at the rate found, ``XOF`` confirmed by ``STS`` (exit 0), or not (the
+    warning, exit 3). Only ``source on`` leaves a tube on; the probe sent queries only (no
+    ``XOF`` within it: it does not know the dialect until it ends). B's ``STS ERROR`` (pre-heating,
+    or a refused query) shows nothing of the tube: the warning, exit 3, with nothing sent (the
+    notes' pre-heating, after power-on, is no beam to switch off)."""
+    import argparse
+
+    from acquisition.guardian import TUBE_WARNING
+    from acquisition.l8121 import SourceState
+
+    state = SourceState.__members__.get(dict(result.details).get("state", ""))
+    if state is not None and state.confirms_off:
+        return 0
+    if state is not None and state.emitting:
+        _say(
+            f"{args.port}: X-RAYS ARE ON (the probe's STS read state {state.name}): switching them off "
+            "(`source off`, confirmed by STS); only `radiokit acquire source on` leaves them on"
+        )
+        off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
+        off.baudrate = result.baudrate
+        return _guarded(_source_guarded, off)
+    said = state.said if state is not None else "unknown"
+    _say(f"{args.port}: the probe's STS read state {said}: the controller has not confirmed the tube off")
+    _say(TUBE_WARNING)
+    return 3
 
 
 def _source_guarded(guard, args) -> int:

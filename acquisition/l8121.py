@@ -2229,6 +2229,30 @@ class L8121:
         """The controller's error code (``SER``), 0 for none."""
         return self._read("error")
 
+    def _require_no_controller_error(self, what: str) -> None:
+        """Raise :class:`SourceFault` (``what``: "X-rays not switched on", "warm-up not started")
+        when the controller reports an error (``SER`` not 0). Asked last before each X-ray command:
+        L8121.md relates the code to no state and does not say ``XON`` is refused for it (B's
+        1-4 are relay or internal faults of the control board), so a unit may read standby and
+        emit with one standing. Nothing is reset: the notes give ``RST`` for an overload only and
+        say nothing of how a code clears."""
+        code = self.error_code()
+        if code == 0:
+            return
+        if self.dialect is DIALECT_B:
+            meaning = (
+                "a relay or internal fault of the control board, by L8121.md's dialect B notes"
+                if 1 <= code <= 4
+                else "not among L8121.md's dialect B codes (0 none, 1-4 relay or internal faults)"
+            )
+        else:
+            meaning = "L8121.md gives dialect A's error codes no meaning beyond 0, none"
+        raise SourceFault(
+            f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {meaning}); "
+            f"no X-ray command was sent and nothing was reset. L8121.md does not say how the code clears: "
+            f"see to the unit, then try again"
+        )
+
     def operate_switch(self) -> str:
         """Dialect B's operate switch (``SRL``): ``REMOTE``, ``LOCAL`` or ``OFF``."""
         return self._read("operate_switch")
@@ -2356,7 +2380,8 @@ class L8121:
             ``CUR``; B ``PHV``, ``PCU``) and read back (A ``SVI``; B ``SPV``, ``SPC``); not given,
             the lowest-power values the configuration allows (``kv_min``, ``ua_min``: 40 kV 0 µA
             by default) are set and read back the same way. A refusal or another read-back stops
-            the warm-up before any X-ray command. What was set is kept in :attr:`warmup_values`
+            the warm-up before any X-ray command, and so does a controller error code (``SER`` not
+            0, asked last, after the interlock: :class:`SourceFault`, nothing reset). What was set is kept in :attr:`warmup_values`
             (``(kv, ua, given)``; None: no warm-up was started).
 
         Returns
@@ -2370,7 +2395,8 @@ class L8121:
             Not ready, not in standby within ``timeout_s``, the sequence stopped, or X-rays came on
             as an exposure; X-rays have been switched off.
         SourceFault
-            Overload (not reset automatically), or the interlock is open.
+            Overload (not reset automatically), the interlock is open, or the controller reports
+            an error code before the start command.
         """
         timeout_s = self.config.warmup_timeout_s if timeout_s is None else float(timeout_s)
         if not (math.isfinite(timeout_s) and timeout_s > 0):  # checked before the warm-up emits
@@ -2391,6 +2417,7 @@ class L8121:
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
+            self._require_no_controller_error("warm-up not started")  # it emits (B's may run on into XON)
         bar = None
         if progress is True:
             from radiokit.progress import tqdm
@@ -2550,7 +2577,9 @@ class L8121:
         Order: validate the values (:meth:`SourceConfig.check_exposure`; nothing sent yet); require
         standby with the warm-up done (A: ``STS 2`` and ``SWE 0``; B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
         and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
-        B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; ``XON``; poll every ``poll_s`` until the measured values are within
+        B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; the
+        interlock again and the controller's error code (``SER``: anything but 0 refuses, nothing
+        reset); ``XON``; poll every ``poll_s`` until the measured values are within
         ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or interruption after
         ``XON`` switches off before the exception propagates, and so does a controller that
         answers the ``XON`` with a warm-up (``AGING``).
@@ -2569,7 +2598,8 @@ class L8121:
             Not in standby (warm-up needed, not ready), refused, or not stable within
             ``stable_timeout_s`` (X-rays switched off).
         SourceFault
-            Interlock open or overload before switching on; overload, interlock, dropped beam or a
+            Interlock open, overload or a controller error code (``SER`` not 0, named with what
+            L8121.md says it means) before switching on; overload, interlock, dropped beam or a
             warm-up instead of the exposure while waiting (X-rays switched off).
         """
         kv_i, ua_i = self.validate(kv, ua)
@@ -2583,6 +2613,7 @@ class L8121:
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+            self._require_no_controller_error("X-rays not switched on")  # last too: no fault standing
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
             if self.before_xon is not None:
                 self.before_xon(kv_i, ua_i)
@@ -2706,10 +2737,17 @@ class L8121:
         if not ramping and beam is not None:
             f = self.config.beam_drop_fraction
             set_kv, set_ua = beam
+            dropped = None
             if ua < f * set_ua:
-                return f"beam dropped: measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
-            if kv < f * set_kv:
-                return f"beam dropped: measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
+                dropped = f"measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
+            elif kv < f * set_kv:
+                dropped = f"measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
+            if dropped is not None:
+                # B reads state, voltage and current in separate exchanges: a process stopped
+                # after its STS read XON measures the beam the guardian's watchdog switched off
+                # meanwhile (its word came with this reading's replies): the cause is known
+                told = getattr(self._transport, "watchdog_off", None)
+                return f"{told}; then {dropped}" if told else f"beam dropped: {dropped}"
         return None
 
     def _evident_fault(self, state: SourceState, kv: float, ua: float) -> bool:

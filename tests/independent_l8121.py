@@ -21,7 +21,9 @@ it takes the reading that is harder on a driver, and says so (``# harder:``):
   before the session set both would emit at them;
 - B's warm-up (``AGING``) runs on into X-rays on at its end (``aging_then = "XON"``), and B's
   ``XON`` is not refused for an open interlock (the notes do not say it is);
-- an open interlock cuts the beam and aborts a warm-up (warm-up needed again).
+- an open interlock cuts the beam and aborts a warm-up (warm-up needed again);
+- a controller error (``error_code``, what ``SER`` answers) leaves ``STS`` as it was and does not
+  make the unit refuse ``XON`` or ``WUP``: the notes say neither.
 
 ``Controller.log`` holds every exchange and ``Controller.emissions`` every X-ray command the
 controller acted on, with the settings it acted at, so a test can check what was sent when.
@@ -73,6 +75,10 @@ class Controller:
     baudrate: int = 9600
     remote: str = "REMOTE"
     silent: bool = False
+    # what SER answers. L8121.md: A's "controller error code, 0 none"; B's "control-board error:
+    # 0 none, 1-4 relay or internal faults". The notes relate it to no state and name no way to
+    # clear it. harder: STS reads on as if nothing were wrong and XON is not refused for it
+    error_code: int = 0
     # command word -> the delay of its next reply only, in place of reply_s (a unit busy for a
     # moment: a reply that comes just after the driver's time-out must not be read as the next
     # command's)
@@ -236,7 +242,7 @@ class Controller:
             "SWE": f"SWE {swe}",
             "SPH": f"SPH {int(self.state == 'preheat')}",
             "SFC": "SFC 1",
-            "SER": "SER 0",
+            "SER": f"SER {self.error_code}",
             "TYP": "TYP L8121-01",
         }.get(line)
 
@@ -257,7 +263,7 @@ class Controller:
             "STX": "STX 0",
             "SOV": "SOV 0",
             "SFS": "SMALL",
-            "SER": "SER 0",
+            "SER": f"SER {self.error_code}",
             "SRL": self.remote,
             "SRB": "BUSY" if self.state == "warming" or ramping else "READY",
         }.get(line)

@@ -875,8 +875,8 @@ def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, w
         assert src.warmup_values == (kv, ua, given is not None)
     sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
     sent = before_the_start(model, wire)
-    assert sent[-1] == "SIN"  # the interlock, read again last before the start command
-    assert sent[-len(sets) - len(wire["setpoint"]) - 1 : -1] == sets + wire["setpoint"]
+    assert sent[-2:] == ["SIN", "SER"]  # the interlock and the error code, read again last before the start
+    assert sent[-len(sets) - len(wire["setpoint"]) - 2 : -2] == sets + wire["setpoint"]
     assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
 
 
@@ -895,7 +895,7 @@ def test_warm_up_sets_and_reads_back_the_focus_asked_for_before_it_emits(cold, d
         assert model._focus == 1 and src.focus == 1
     sent = before_the_start(model, wire)[n:]
     assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
-    assert sent[-1] == "SIN"
+    assert sent[-2:] == ["SIN", "SER"]
 
 
 def test_a_focus_not_read_back_before_a_warm_up_stops_it_before_it_emits(cold, dialect, wire, monkeypatch):
@@ -3469,6 +3469,42 @@ def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_be
             assert not model.xray_on
             with pytest.raises(SourceFault) as info:
                 source.check()
+        link._process.wait(timeout=20)
+    text = str(info.value)
+    assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
+
+
+def test_a_stall_between_bs_state_and_its_current_names_the_watchdog_not_a_dropped_beam():
+    """B reads a poll in separate exchanges (STS, SHV, SCU). A process stopped (SIGSTOP) right
+    after its STS read XON comes back to SHV and SCU reading 0 -- the guardian's watchdog had
+    switched off meanwhile -- and its error said `beam dropped: measured current 0 µA`, where A's
+    (one SAR) named the watchdog (review s40dial, SIGSTOP in B). The stall is this thread
+    sleeping past watchdog_s after the STS reply: to the guardian, the same silence."""
+    from acquisition.guardian import start_guardian
+
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        resolved = L8121(server.url, dialect="B", connect=False, **FAST).resolved_config()
+        link = start_guardian(server.url, resolved, watchdog_s=0.5)
+        query, stall = link.query, threading.Event()
+
+        def stalling_query(line, *args, **kwargs):
+            reply = query(line, *args, **kwargs)
+            if line == "STS" and stall.is_set():
+                stall.clear()
+                deadline = time.monotonic() + 20
+                while model.xray_on and time.monotonic() < deadline:
+                    time.sleep(0.05)
+            return reply
+
+        link.query = stalling_query
+        with L8121(link, connect=False, config=resolved) as source:
+            source.connect()
+            source.on(60, 250)
+            stall.set()
+            with pytest.raises(SourceFault) as info:
+                source.check()
+            assert not stall.is_set() and not model.xray_on
         link._process.wait(timeout=20)
     text = str(info.value)
     assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text

@@ -67,6 +67,7 @@ ON_60_250 = {
         ("CUR 250", "CUR 250"),
         ("SVI", "SVI 60 250"),  # read back before any X-ray command
         ("SIN", "SIN 0"),  # the interlock again, last before XON
+        ("SER", "SER 0"),  # and no controller error standing
         ("XON", "XON"),
         ("SAR", "SAR 3 60 250 0 0 0 0"),
         ("SIN", "SIN 0"),  # the beam is on: the interlock is watched from the first poll
@@ -83,6 +84,7 @@ ON_60_250 = {
         ("SPV", "SPV 60.0kV"),  # read back before any X-ray command
         ("SPC", "SPC 250uA"),
         ("SIN", "INTER LOCK ON"),  # the interlock again, last before XON
+        ("SER", "SER 0"),  # and no controller error standing
         ("XON", "XON"),
         ("STS", "XON"),
         ("SHV", "SHV 60.0kV"),
@@ -181,6 +183,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("CUR 0", "CUR 0"),
                 ("SVI", "SVI 40 0"),
                 ("SIN", "SIN 0"),  # the interlock again, last before the start command
+                ("SER", "SER 0"),  # and no controller error standing
                 ("WUP", "WUP"),
                 ("STS", "STS 1"),
                 ("SIN", "SIN 0"),  # the warm-up emits: the interlock is watched
@@ -205,6 +208,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("SPV", "SPV 40.0kV"),
                 ("SPC", "SPC 0uA"),
                 ("SIN", "INTER LOCK ON"),  # the interlock again, last before the start command
+                ("SER", "SER 0"),  # and no controller error standing
                 ("XON", "XON"),
                 ("STS", "AGING"),
                 ("SIN", "INTER LOCK ON"),
@@ -244,6 +248,7 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("SPV", "SPV 40.0kV"),
         ("SPC", "SPC 0uA"),
         ("SIN", "INTER LOCK ON"),
+        ("SER", "SER 0"),
         ("XON", "XON"),
         ("STS", "XON"),  # an exposure, not AGING
         ("XOF", "XOF"),
@@ -325,7 +330,7 @@ def test_on_refused_by_queries_alone(dialect, ready, message):
 def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
     pairs = (
         CONNECT["B"]
-        + ON_60_250["B"][:12]
+        + ON_60_250["B"][:13]
         + [
             ("STS", "AGING"),  # the controller started a warm-up instead
             ("XOF", "XOF"),

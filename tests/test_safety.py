@@ -683,6 +683,56 @@ def test_a_controller_reached_but_not_read_as_off_ends_on_the_warning(tmp_path, 
     assert not {"XON", "WUP"} & {c.split()[0] for c in model.commands}, model.commands
 
 
+ON_AT_60_250 = {"A": ("HIV 60", "CUR 250", "XON"), "B": ("PHV 600", "PCU 250", "XON")}
+
+
+@pytest.mark.parametrize("stuck", [False, True], ids=["switched-off", "relay-stuck"])
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_source_probe_that_finds_x_rays_on_says_so_and_leaves_the_tube_off(controller, stuck):
+    """Found (review s40dial): `source probe` of a unit left emitting printed `state XRAY_ON` and
+    ended exit 0 -- README's code for the tube confirmed off -- with no word of it. Now a loud line
+    first, then the switch-off `source status` gives a tube it finds on: `source off` in the dialect
+    and at the rate found, confirmed by STS (exit 0); a relay that acknowledges XOF and keeps
+    emitting (the stuck relay: nothing sent can switch it off) ends on the warning, exit 3."""
+    from conftest import run_cli
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    assert [model.handle(c) for c in ON_AT_60_250[model.dialect]] == list(ON_AT_60_250[model.dialect])
+    n = len(model.commands)
+    if stuck:
+        model.stuck_on()
+    res = run_cli("acquire", "source", "probe", "--port", server.url)
+    lines = res.stderr.strip().splitlines()
+    assert "X-RAYS ARE ON" in res.stderr and "state XRAY_ON" in res.stdout, (res.stdout, res.stderr)
+    sent = [c.split()[0] for c in model.commands[n:]]
+    assert "XOF" in sent and not {"XON", "WUP", "RST", "HIV", "CUR", "PHV", "PCU"} & set(sent), sent
+    if stuck:
+        assert res.returncode == 3 and lines[-1] == TUBE_WARNING and model.xray_on, res.stderr
+    else:
+        assert res.returncode == 0 and not model.xray_on, res.stderr
+        last_xof = len(sent) - 1 - sent[::-1].index("XOF")
+        assert "STS" in sent[last_xof + 1 :], sent  # confirmed by an STS after it
+        assert "x-rays off (confirmed" in (res.stdout + res.stderr).lower(), (res.stdout, res.stderr)
+
+
+@pytest.mark.parametrize("controller", ["B"], indirect=True)
+def test_source_probe_of_bs_ambiguous_sts_error_ends_on_the_warning(controller):
+    """B's STS ERROR (pre-heating, or a refused query) is no state that confirms the tube off: the
+    probe found the dialect (exit 0 before) but the README's rule reads it as not confirmed."""
+    from conftest import run_cli
+
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    model.sts_error()
+    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600")
+    assert res.returncode == 3 and res.stderr.strip().splitlines()[-1] == TUBE_WARNING, (res.stdout, res.stderr)
+    assert "dialect B" in res.stdout and "not confirmed the tube off" in res.stderr
+    assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE"}, model.commands
+
+
 def _after_xon(model, act):
     """``act()`` in a thread as soon as the model has received an ``XON``."""
 

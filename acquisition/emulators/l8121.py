@@ -18,6 +18,7 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
+:meth:`~L8121Model.controller_error` (``SER`` reports a fault that nothing sent clears),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
 control commands refused with ``ERROR``, A's always accepted ``XOF`` excepted; B reports it with
 ``SRL``) and
@@ -38,7 +39,9 @@ shell::
 
 Error codes (``SER``) are this emulator's own; the real controller's are not documented:
 0 none, 1 interlock open, 2 warm-up needed, 3 overload, 4 value out of range, 5 unknown command,
-6 wrong state, 7 operate switch not on REMOTE.
+6 wrong state, 7 operate switch not on REMOTE -- why the last command was refused (or the beam
+dropped), kept until a setting is accepted or ``RST``. A fault injected with
+:meth:`~L8121Model.controller_error` is reported before them and stays.
 
 Examples
 --------
@@ -107,6 +110,7 @@ _B_STATES = {
 _B_FOCUS = ("SMALL", "MIDDLE", "LARGE")
 # What a remote operate switch other than REMOTE refuses: everything that acts on the tube.
 _CONTROL = {"HIV", "CUR", "PHV", "PCU", "XON", "XOF", "WUP", "RST", "CFS", "CFM", "CFL"}
+_SETTINGS = {"HIV", "CUR", "PHV", "PCU", "CFS", "CFM", "CFL"}
 _AGING_STEPS = 4
 _JUNK = "#%&*?!~^@$+=<>0123456789abcdefxyz"
 
@@ -201,6 +205,7 @@ class L8121Model:
         self._interlock_open = False
         self._focus = 0
         self._error = ErrorCode.NONE
+        self._fault = 0  # a controller fault SER reports before any refusal's code (controller_error)
         self._switch = "REMOTE"
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._lower_case = False
@@ -236,7 +241,7 @@ class L8121Model:
             "SWE": lambda t: f"SWE {self._warmup:d}",
             "SPH": lambda t: f"SPH {int(self._state == SourceState.WARMING_UP)}",
             "SFC": lambda t: f"SFC {self._focus}",
-            "SER": lambda t: f"SER {self._error:d}",
+            "SER": lambda t: f"SER {self._fault or self._error:d}",
             "TYP": lambda t: f"TYP {self.model}",
         }
         return commands, {"HIV", "CUR", "CFS"}
@@ -267,7 +272,7 @@ class L8121Model:
             "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",
             "DAG": self._dag,
             "SFS": lambda t: _B_FOCUS[self._focus],
-            "SER": lambda t: f"SER {self._error:d}",
+            "SER": lambda t: f"SER {self._fault or self._error:d}",
             "SRL": lambda t: self._switch,
             "SRB": lambda t: "BUSY" if self._state == SourceState.WARMING_UP else "READY",
         }
@@ -355,6 +360,21 @@ class L8121Model:
 
         def fault(t):
             self._state, self._error = SourceState.OVERLOAD, ErrorCode.OVERLOAD
+
+        self._at(at_s, fault)
+
+    def controller_error(self, code: int = 1, at_s: float | None = None) -> None:
+        """Let ``SER`` report the controller error ``code`` from now, or from model time ``at_s``;
+        0 ends it. ``L8121.md`` gives B's codes 1-4 as relay or internal faults of the control
+        board, A's none; it relates them to no state and names no way to clear one. So the state
+        stays as it was, ``XON`` (and ``WUP``) are not refused for it, and nothing sent clears it
+        -- not ``RST`` ("reset after overload"), not a setting: only ``controller_error(0)``, a
+        service at the unit."""
+        if int(code) < 0:
+            raise ValueError(f"controller error code {code}: expected 0 (none) or more")
+
+        def fault(t):
+            self._fault = int(code)
 
         self._at(at_s, fault)
 
@@ -607,7 +627,14 @@ class L8121Model:
         # only that remote control needs REMOTE, with no exception: B refuses its XOF there
         if word in _CONTROL and self._switch != "REMOTE" and not (word == "XOF" and self.dialect == "A"):
             return self._refuse(ErrorCode.LOCAL), False
-        return action(t, *args), True
+        reply = action(t, *args)
+        if word in _SETTINGS and reply not in ("ERR", "ERROR"):
+            # a refusal's code says why the last command was refused, not that the unit is faulty:
+            # a setting taken is a new start. Kept otherwise (XOF included: a trip's message reads
+            # why the beam went), and the driver, which refuses XON on any code but 0, reads SER
+            # after setting the values it will emit at
+            self._error = ErrorCode.NONE
+        return reply, True
 
     def _refuse(self, code: ErrorCode, reply: str = "ERROR") -> str:
         self._error = code

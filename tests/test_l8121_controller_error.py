@@ -1,0 +1,117 @@
+"""No X-ray command while the controller reports an error (``SER`` not 0), in both dialects.
+
+``L8121.md``: dialect A's ``SER n`` is the "controller error code, 0 none"; dialect B's is the
+"control-board error: 0 none, 1-4 relay or internal faults". Neither dialect relates the code to
+``STS``, and neither says the controller refuses ``XON`` for it, so a unit may read standby, accept
+``XON`` and emit with a relay fault standing: the driver has to ask before each X-ray command
+(``on()``'s ``XON``, the warm-up's ``WUP``/``XON``) and refuse, the tube left off and nothing
+reset. Against radiokit's emulator (its ``controller_error`` fault) and ``independent_l8121``
+(its ``error_code``, written from the notes alone), each on a real pseudo-terminal.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from independent_l8121 import Controller
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.errors import SourceFault
+from acquisition.l8121 import L8121
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+FAST = dict(poll_s=0.05, min_interval_s=0.02)
+X_RAY_COMMANDS = ("XON", "WUP")
+# what the message must say the code means: B's notes give 1-4 a meaning, A's give none
+MEANING = {"A": "gives dialect A's error codes no meaning", "B": "relay or internal fault"}
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    return request.param
+
+
+def _refusal_names_the_fault(exc: SourceFault, dialect: str, code: int) -> None:
+    text = str(exc)
+    assert f"error code {code}" in text and MEANING[dialect] in text, text
+    assert "not switched on" in text or "not started" in text, text
+
+
+@pytest.mark.parametrize("code", [2, 4])
+def test_on_refuses_before_xon_while_the_emulator_reports_a_controller_error(dialect, code):
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    model.controller_error(code)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        with pytest.raises(SourceFault) as err:
+            src.on(60, 250)
+        _refusal_names_the_fault(err.value, dialect, code)
+        assert not model.xray_on and src.tube_confirmed_off
+    sent = model.commands
+    assert "SER" in sent and not set(sent) & {*X_RAY_COMMANDS, "RST"}, sent
+    # asked after the values were set and read back: the last word before the XON that did not go
+    assert sent.index("SER") > max(i for i, c in enumerate(sent) if c.startswith(("HIV", "PHV"))), sent
+
+
+def test_the_warm_up_is_not_started_while_the_emulator_reports_a_controller_error(dialect):
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1)
+    model.controller_error(3)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        with pytest.raises(SourceFault) as err:
+            src.warm_up(timeout_s=5, progress=False)
+        _refusal_names_the_fault(err.value, dialect, 3)
+        assert not model.xray_on
+    assert not set(model.commands) & {*X_RAY_COMMANDS, "RST"}, model.commands
+
+
+def test_once_the_fault_is_cleared_at_the_unit_the_same_driver_switches_on(dialect):
+    """The refusal is the fault's, not a latch of the driver's: cleared at the unit, on() goes on."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    model.controller_error(1)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        with pytest.raises(SourceFault):
+            src.on(60, 250)
+        model.controller_error(0)
+        reading = src.on(60, 250)
+        assert reading["current_ua"] == pytest.approx(250, abs=src.config.tolerance_ua(250))
+        assert model.xray_on
+        src.off()
+    assert "RST" not in model.commands
+
+
+def test_a_refusal_of_the_emulators_own_is_not_taken_for_a_fault(dialect):
+    """The emulator's SER also says why its last command was refused (its own codes): a refused
+    XON (the interlock was open) must not block the next on() once the interlock is closed."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    assert model.handle("XON") == "XON" and model.handle("XOF") == "XOF"
+    model.open_interlock()
+    assert model.handle("XON") == "ERROR" and model.handle("SER") != "SER 0"
+    model.close_interlock()
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        src.on(60, 250)
+        assert model.xray_on
+        src.off()
+
+
+@pytest.mark.parametrize("code", [1, 3])
+def test_on_refuses_while_the_independent_model_reports_a_controller_error(dialect, code):
+    with Controller(dialect, warmup_s=0.3, ramp_s=0.2, error_code=code) as unit:
+        unit.ready(warmed=True)
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            with pytest.raises(SourceFault) as err:
+                src.on(60, 250)
+            _refusal_names_the_fault(err.value, dialect, code)
+            assert not unit.emitting
+        assert unit.emissions == [] and not unit.lost
+        assert "RST" not in [line for _, line, _ in unit.log]
+
+
+def test_the_independent_models_warm_up_is_not_started_with_a_controller_error(dialect):
+    with Controller(dialect, warmup_s=0.3, ramp_s=0.2, error_code=2) as unit:
+        unit.ready()
+        with L8121(unit.port, dialect=dialect, poll_s=0.05) as src:
+            with pytest.raises(SourceFault) as err:
+                src.warm_up(timeout_s=5, progress=False)
+            _refusal_names_the_fault(err.value, dialect, 2)
+        assert unit.emissions == [] and not unit.emitting
