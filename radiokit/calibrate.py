@@ -852,11 +852,14 @@ def pixel_layout(meta: dict) -> dict:
     read turned (a viewer's lossless turn only tags them) or cut elsewhere from the sensor, at the
     calibration's size, met other sensor pixels' darks and flats, silently. A MATLAB array read
     transposed is not here: that restores the array MATLAB held (and shows), the sensor's grid,
-    from its column-major storage; it does not move pixels."""
-    return {
-        "orientation": int(meta.get("orientation", 1)),
-        "sensor_offset": [int(meta.get("x_offset", 0)), int(meta.get("y_offset", 0))],
-    }
+    from its column-major storage; it does not move pixels. ``sensor_offset`` only where the file
+    says it (an ITEX header): a TIFF or HDF5 file does not, and taking it for the whole sensor
+    refused ITEX sub-array darks and flats against projections exported from that sub-array
+    (review s40rr2)."""
+    layout: dict = {"orientation": int(meta.get("orientation", 1))}
+    if "x_offset" in meta or "y_offset" in meta:
+        layout["sensor_offset"] = [int(meta.get("x_offset", 0)), int(meta.get("y_offset", 0))]
+    return layout
 
 
 def _layout_text(key: str, value) -> str:
@@ -872,14 +875,17 @@ def declared_layout(layouts: dict) -> dict | None:
     sensor pixels."""
     found = {name.strip(): lay for name, lay in layouts.items() if lay is not None}
     for key in ("orientation", "sensor_offset"):
-        values = {name: lay[key] for name, lay in found.items()}
+        values = {name: lay[key] for name, lay in found.items() if key in lay}
         if len({json.dumps(v) for v in values.values()}) > 1:
             named = ", ".join(f"{name} {_layout_text(key, v)}" for name, v in values.items())
             raise ValueError(
                 f"the darks' and flats' files are read differently ({named}): their pixels would pair different "
                 "sensor pixels; give darks and flats written alike"
             )
-    return next(iter(found.values()), None)
+    if not found:
+        return None
+    # what any file declares (an ITEX file's offset beside TIFF flats, which say none)
+    return {key: lay[key] for lay in found.values() for key in lay}
 
 
 def check_layout(cal: Calibration, meta: dict, path) -> None:
@@ -893,7 +899,11 @@ def check_layout(cal: Calibration, meta: dict, path) -> None:
     have been read either way."""
     layout = pixel_layout(meta)
     for key, default in (("orientation", 1), ("sensor_offset", [0, 0])):
+        if key not in layout:  # the frames' file does not say (a TIFF's or HDF5's sub-array)
+            continue
         mine, theirs = layout[key], cal.provenance.get(key)
+        if theirs is None and "orientation" in cal.provenance:  # recorded: its files did not say (TIFF, HDF5)
+            continue
         if theirs is None and mine != default:
             raise FormatError(
                 path,

@@ -5,6 +5,7 @@ import json
 import h5py
 import numpy as np
 import pytest
+import tifffile
 from conftest import run_cli
 
 from radiokit.calibrate import Calibration, PixelFlag
@@ -601,6 +602,26 @@ def test_frames_cut_elsewhere_from_the_sensor_than_the_calibration_are_refused(t
     whole = _itex(tmp_path / "whole.img", frame)
     res = run_cli("correct", whole, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "c.h5", "-q")
     assert res.returncode == 2 and "the whole sensor" in res.stderr, res.stderr
+    # review s40rr2: a TIFF says nothing of a sub-array; taken for the whole sensor, the same
+    # sub-array's projections exported as TIFF were refused, and TIFF darks and flats against ITEX
+    # frames, and ITEX darks beside TIFF flats
+    tifffile.imwrite(tmp_path / "same.tif", frame)
+    assert (
+        run_cli(
+            "correct", tmp_path / "same.tif", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "d.h5", "-q"
+        ).returncode
+        == 0
+    )
+    tifffile.imwrite(tmp_path / "f.tif", panel.flat_frames(5, 2500.0, rng))
+    res = run_cli("calibrate", "--dark", d, "--flat", tmp_path / "f.tif", "-o", tmp_path / "mixed.h5", "-q")
+    assert res.returncode == 0, res.stderr
+    assert Calibration.load(tmp_path / "mixed.h5").provenance["sensor_offset"] == [200, 100]
+    tifffile.imwrite(tmp_path / "d.tif", panel.dark_frames(5, rng))
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "tif.h5", "-q"
+    )
+    assert res.returncode == 0 and "sensor_offset" not in Calibration.load(tmp_path / "tif.h5").provenance
+    assert run_cli("correct", moved, "--cal", tmp_path / "tif.h5", "-o", tmp_path / "e.h5", "-q").returncode == 0
 
 
 @pytest.mark.parametrize(
