@@ -285,6 +285,12 @@ class SourceConfig:
     # SWE reads 2 ("not started") when no warm-up was needed (the configuration absorbs a unit
     # that differs, L8121.md), and then STS 2 alone lets XON go
     standby_needs_warmup_done: bool = True
+    # SER is asked last before every X-ray command (L8121.md ties the code to no state, so a unit
+    # may read standby with a fault standing). The notes give no unit's list of codes, so a unit
+    # that reports a harmless condition there, or answers no SER at all, is absorbed here, as
+    # L8121.md asks of a unit that differs: codes that still allow X-rays, and false for no SER
+    allowed_error_codes: tuple[int, ...] = ()
+    error_query: bool = True
     # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
     # ``model`` from the probe's TYP when none was configured, so that a connect that finds
     # another says the unit changed, not "configure model=None" (which the user did)
@@ -298,6 +304,14 @@ class SourceConfig:
         if self.dialect not in ("A", "B", "auto"):
             raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
         self.focus_modes = _focus_modes(self.focus_modes)
+        codes = self.allowed_error_codes
+        if isinstance(codes, (str, bytes)) or not all(type(c) is int and c > 0 for c in codes):
+            raise ValueError(
+                f"L8121 configuration: allowed_error_codes {codes!r}: expected a list of error codes above 0"
+            )
+        self.allowed_error_codes = tuple(codes)
+        if not isinstance(self.error_query, bool):
+            raise ValueError(f"L8121 configuration: error_query {self.error_query!r}: expected true or false")
         self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
         if not self.probe_baudrates:
             raise ValueError("L8121 configuration: probe_baudrates is empty")
@@ -447,6 +461,7 @@ class SourceConfig:
         d["model"] = d["model"] or ""
         d["focus_modes"] = list(d["focus_modes"])
         d["probe_baudrates"] = list(d["probe_baudrates"])
+        d["allowed_error_codes"] = list(d["allowed_error_codes"])
         return {k: v for k, v in d.items() if v is not None}
 
 
@@ -2235,9 +2250,20 @@ class L8121:
         L8121.md relates the code to no state and does not say ``XON`` is refused for it (B's
         1-4 are relay or internal faults of the control board), so a unit may read standby and
         emit with one standing. Nothing is reset: the notes give ``RST`` for an overload only and
-        say nothing of how a code clears."""
-        code = self.error_code()
-        if code == 0:
+        say nothing of how a code clears. The configuration's ``allowed_error_codes`` pass, and
+        ``error_query = false`` (a unit without ``SER``) asks nothing."""
+        if not self.config.error_query:
+            return
+        try:
+            code = self.error_code()
+        except DeviceError as exc:
+            if getattr(exc, "refused", False):
+                raise DeviceError(
+                    f"{exc}: this unit does not report an error code before X-rays; if it has no SER, "
+                    "set error_query = false in its [source] configuration"
+                ) from exc
+            raise
+        if code == 0 or code in self.config.allowed_error_codes:
             return
         if self.dialect is DIALECT_B:
             meaning = (
@@ -2250,7 +2276,8 @@ class L8121:
         raise SourceFault(
             f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {meaning}); "
             f"no X-ray command was sent and nothing was reset. L8121.md does not say how the code clears: "
-            f"see to the unit, then try again"
+            f"see to the unit, then try again (a code the unit's manual calls harmless: allowed_error_codes "
+            f"in its [source] configuration)"
         )
 
     def operate_switch(self) -> str:

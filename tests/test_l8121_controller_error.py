@@ -115,3 +115,38 @@ def test_the_independent_models_warm_up_is_not_started_with_a_controller_error(d
                 src.warm_up(timeout_s=5, progress=False)
             _refusal_names_the_fault(err.value, dialect, 2)
         assert unit.emissions == [] and not unit.emitting
+
+
+def test_a_code_the_configuration_allows_and_a_unit_without_ser(dialect):
+    """Review s40rr2: the check had no configuration, so a unit whose manual calls a code harmless,
+    or one that answers no SER, could never be switched on. ``allowed_error_codes`` lets those
+    codes through (any other still refuses); a refused SER says to set ``error_query = false``,
+    and with it nothing is asked and on() goes on."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import SourceConfig
+
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    model.controller_error(5)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, allowed_error_codes=[5], **FAST) as src:
+        src.on(60, 250)
+        assert model.xray_on
+        src.off()
+        model.controller_error(2)
+        with pytest.raises(SourceFault, match="error code 2"):
+            src.on(60, 250)
+        assert not model.xray_on
+    refuse = "ERR" if dialect == "A" else "ERROR"
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    model._commands["SER"] = lambda t: refuse  # a unit without SER (no emulator knob: its front end)
+    with PtyServer(model) as server:
+        with L8121(server.url, dialect=dialect, **FAST) as src:
+            with pytest.raises(DeviceError, match="set error_query = false"):
+                src.on(60, 250)
+            assert not model.xray_on
+        with L8121(server.url, dialect=dialect, error_query=False, **FAST) as src:
+            src.on(60, 250)
+            assert model.xray_on
+            src.off()
+    with pytest.raises(ValueError, match="allowed_error_codes"):
+        SourceConfig(allowed_error_codes=[0])
+    assert SourceConfig.from_toml("[source]\nallowed_error_codes = [5, 7]").allowed_error_codes == (5, 7)
