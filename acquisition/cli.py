@@ -480,14 +480,15 @@ def _source_refusal(args) -> str | None:
             ("--ua", args.ua, ("on", "warm-up")),
             ("--timeout", args.timeout, ("warm-up",)),
             ("--reply-timeout", args.reply_timeout, ("status", "warm-up", "on", "off")),
-            ("--ready-timeout", args.ready_timeout, ("warm-up", "on")),
+            ("--ready-timeout", args.ready_timeout, ("warm-up", "on", "probe")),
         )
         if value is not None and args.action not in actions
     ]
     if unread:
         return (
-            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv, --ua and --ready-timeout are for "
-            "'on' and 'warm-up', --timeout for 'warm-up', --reply-timeout for all but 'probe'); nothing was sent"
+            f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on' and 'warm-up', "
+            "--ready-timeout for those and 'probe', --timeout for 'warm-up', --reply-timeout for all but 'probe'); "
+            "nothing was sent"
         )
     if args.action == "warm-up" and (args.kv is None) != (args.ua is None):
         return "'warm-up' takes --kv and --ua together (or neither: the lowest allowed); nothing was sent"
@@ -612,6 +613,13 @@ def _probe_found(result, args) -> int:
     from acquisition.l8121 import SourceState
 
     state = SourceState.__members__.get(dict(result.details).get("state", ""))
+    if state is not None and not state.confirms_off and not state.emitting:
+        # a unit just switched on may still be checking itself (B's STS ERROR is its pre-heating):
+        # the probe's one STS said so at power-on, and "X-RAYS MAY STILL BE ON" was a false alarm
+        # (review s40rr2). Its checks waited out with queries only, as `source on` waits for them
+        state = _settled_after_probe(result, args) or state
+        if state.confirms_off:
+            print(f"{args.port}: the controller's power-on checks are over: state {state.said}")
     if state is not None and state.confirms_off:
         return 0
     if state is not None and state.emitting:
@@ -626,6 +634,21 @@ def _probe_found(result, args) -> int:
     _say(f"{args.port}: the probe's STS read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
     return 3
+
+
+def _settled_after_probe(result, args):
+    """The state once the controller's power-on checks are over (:meth:`L8121.settled_status`, at
+    most ``--ready-timeout`` s), in the dialect and at the rate the probe found; None when it
+    cannot be read. Queries only (``control=False``)."""
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    ready = {} if args.ready_timeout is None else {"ready_timeout_s": args.ready_timeout}
+    try:
+        with L8121(args.port, baudrate=result.baudrate, dialect=result.dialect, control=False, **ready) as src:
+            return src.settled_status()
+    except DeviceError:
+        return None
 
 
 def _source_guarded(guard, args) -> int:

@@ -727,10 +727,29 @@ def test_source_probe_of_bs_ambiguous_sts_error_ends_on_the_warning(controller):
 
     model, server = controller()
     model.sts_error()
-    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600")
+    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600", "--ready-timeout", "1")
     assert res.returncode == 3 and res.stderr.strip().splitlines()[-1] == TUBE_WARNING, (res.stdout, res.stderr)
     assert "dialect B" in res.stdout and "not confirmed the tube off" in res.stderr
-    assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE"}, model.commands
+    # queries only: the probe's, then its wait for the power-on checks (the beam measured when it ends)
+    assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE", "SHV", "SCU"}, model.commands
+
+
+@pytest.mark.parametrize("controller", ["B"], indirect=True)
+def test_source_probe_at_power_on_waits_out_bs_pre_heating(controller):
+    """Review s40rr2: a B unit probed just after power-on (STS ERROR: its pre-heating) ended on
+    "X-RAYS MAY STILL BE ON", exit 3, a false alarm. The probe now waits out the power-on checks
+    with queries only, as `source on` does (--ready-timeout), and exits 0 once STS confirms off."""
+    from conftest import run_cli
+
+    model, server = controller()
+    model.sts_error()
+    threading.Timer(1.5, model.sts_error, kwargs={"on": False}).start()  # the pre-heating ends
+    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600", "--ready-timeout", "20")
+    assert res.returncode == 0, (res.stdout, res.stderr)
+    assert "power-on checks are over: state" in res.stdout and "MAY STILL BE ON" not in res.stderr, res.stderr
+    assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE", "SER", "SPV", "SPC", "SHV", "SCU"}, (
+        model.commands
+    )
 
 
 def _after_xon(model, act):
