@@ -617,7 +617,11 @@ def _probe_found(result, args) -> int:
         # a unit just switched on may still be checking itself (B's STS ERROR is its pre-heating):
         # the probe's one STS said so at power-on, and "X-RAYS MAY STILL BE ON" was a false alarm
         # (review s40rr2). Its checks waited out with queries only, as `source on` waits for them
-        state = _settled_after_probe(result, args) or state
+        found: dict = {}
+        if _guarded(_probe_waits, result, args, state, found) == 3:
+            return 3
+        # (not `or`: SourceState is an IntEnum, and WARMUP_NEEDED is 0: review s40rr3)
+        state = found["state"] if found.get("state") is not None else state
         if state.confirms_off:
             print(f"{args.port}: the controller's power-on checks are over: state {state.said}")
     if state is not None and state.confirms_off:
@@ -634,6 +638,26 @@ def _probe_found(result, args) -> int:
     _say(f"{args.port}: the probe's STS read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
     return 3
+
+
+def _probe_waits(guard, result, args, state, found) -> int:
+    """The probe's wait for the power-on checks (:func:`_settled_after_probe`, its outcome put in
+    ``found["state"]``) under the command's signal guard: a stop during it (up to --ready-timeout)
+    ended with Python's "interrupted" and no word of the tube, whose last STS had not read off
+    (review s40rr3). It ends on the warning, exit 3, as the exit rule says."""
+    from acquisition.guardian import TUBE_WARNING, StopSignal
+
+    try:
+        found["state"] = _settled_after_probe(result, args)
+    except KeyboardInterrupt as exc:
+        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+        _say(
+            f"{args.port}: stopped by {name} while waiting out the controller's power-on checks; its last STS read "
+            f"state {state.said}: the controller has not confirmed the tube off"
+        )
+        _say(TUBE_WARNING)
+        return 3
+    return 0
 
 
 def _settled_after_probe(result, args):

@@ -305,7 +305,7 @@ class SourceConfig:
             raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
         self.focus_modes = _focus_modes(self.focus_modes)
         codes = self.allowed_error_codes
-        if isinstance(codes, (str, bytes)) or not all(type(c) is int and c > 0 for c in codes):
+        if not isinstance(codes, (list, tuple)) or not all(type(c) is int and c > 0 for c in codes):
             raise ValueError(
                 f"L8121 configuration: allowed_error_codes {codes!r}: expected a list of error codes above 0"
             )
@@ -2596,7 +2596,9 @@ class L8121:
         )
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: {what}: interlock open")
-        raise DeviceError(f"{self.port}: {what} (state WARMUP_NEEDED, error code {self.error_code()})")
+        # a unit configured without SER (error_query = false) would refuse the query here
+        code = f", error code {self.error_code()}" if self.config.error_query else ""
+        raise DeviceError(f"{self.port}: {what} (state WARMUP_NEEDED{code})")
 
     def on(self, kv: float, ua: float) -> dict[str, Any]:
         """Switch X-rays on at ``kv`` kV and ``ua`` µA and wait for a stable beam.

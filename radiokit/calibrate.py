@@ -888,7 +888,7 @@ def declared_layout(layouts: dict) -> dict | None:
     return {key: lay[key] for lay in found.values() for key in lay}
 
 
-def check_layout(cal: Calibration, meta: dict, path) -> None:
+def check_layout(cal: Calibration, meta: dict, path, stated: dict | None = None) -> None:
     """Refuse (:class:`FormatError` naming ``path``) frames whose :func:`pixel_layout` differs
     from the one the calibration's darks and flats were read in: corrected, each pixel would take
     another sensor pixel's dark and flat. Refused rather than corrected in the stored grid: a
@@ -896,13 +896,25 @@ def check_layout(cal: Calibration, meta: dict, path) -> None:
     with the tag reset leaves the viewed ones alike, and a file cannot say which. A calibration
     recording none (written before radiokit recorded it, or built from plain arrays) is taken for
     frames read as stored; frames declaring otherwise are refused, as their darks and flats may
-    have been read either way."""
+    have been read either way. ``stated``: shared by the frame files of one run, which, where the
+    calibration states no sub-array, must then agree among themselves (review s40rr3: ITEX frames
+    of two sub-arrays against a calibration from TIFFs were corrected together silently)."""
     layout = pixel_layout(meta)
     for key, default in (("orientation", 1), ("sensor_offset", [0, 0])):
         if key not in layout:  # the frames' file does not say (a TIFF's or HDF5's sub-array)
             continue
         mine, theirs = layout[key], cal.provenance.get(key)
         if theirs is None and "orientation" in cal.provenance:  # recorded: its files did not say (TIFF, HDF5)
+            if stated is None:
+                continue
+            first = stated.setdefault(key, (path, mine))
+            if list(first[1]) != list(mine):
+                raise FormatError(
+                    path,
+                    f"frames read in {_layout_text(key, mine)}, those of {first[0]} in {_layout_text(key, first[1])}: "
+                    "they hold other sensor pixels, and one calibration cannot serve both; correct each with "
+                    "darks and flats of its own sub-array",
+                )
             continue
         if theirs is None and mine != default:
             raise FormatError(

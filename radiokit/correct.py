@@ -698,10 +698,11 @@ def _segments(sources, cal: Calibration, image_keys) -> list:
     from radiokit.calibrate import check_layout, exposure_factors
 
     segments = []
+    stated: dict = {}  # the first frame file's own sub-array, where the calibration states none
     for si, src in enumerate(sources):
         if not len(src):  # as `radiokit info` and `calibrate` say it
             raise FormatError(src.path, "no frames")
-        check_layout(cal, src.meta, src.path)  # first: a quarter turn is no other frame size
+        check_layout(cal, src.meta, src.path, stated)  # first: a quarter turn is no other frame size
         if src.frame_shape != cal.shape:
             raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
         _check_type_reaches_flats(src, cal)

@@ -622,6 +622,10 @@ def test_frames_cut_elsewhere_from_the_sensor_than_the_calibration_are_refused(t
     )
     assert res.returncode == 0 and "sensor_offset" not in Calibration.load(tmp_path / "tif.h5").provenance
     assert run_cli("correct", moved, "--cal", tmp_path / "tif.h5", "-o", tmp_path / "e.h5", "-q").returncode == 0
+    # review s40rr3: but frame files of two sub-arrays against it, together, hold other pixels
+    res = run_cli("correct", moved, same, "--cal", tmp_path / "tif.h5", "-o", tmp_path / "g.h5", "-q")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "same.img" in res.stderr and "x 200, y 100" in res.stderr and "x 0, y 100" in res.stderr
 
 
 @pytest.mark.parametrize(

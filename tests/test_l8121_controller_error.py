@@ -147,6 +147,7 @@ def test_a_code_the_configuration_allows_and_a_unit_without_ser(dialect):
             src.on(60, 250)
             assert model.xray_on
             src.off()
-    with pytest.raises(ValueError, match="allowed_error_codes"):
-        SourceConfig(allowed_error_codes=[0])
+    for bad in ([0], 3, "5", [True], [2.0]):
+        with pytest.raises(ValueError, match="allowed_error_codes"):
+            SourceConfig(allowed_error_codes=bad)
     assert SourceConfig.from_toml("[source]\nallowed_error_codes = [5, 7]").allowed_error_codes == (5, 7)

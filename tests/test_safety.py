@@ -734,14 +734,18 @@ def test_source_probe_of_bs_ambiguous_sts_error_ends_on_the_warning(controller):
     assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE", "SHV", "SCU"}, model.commands
 
 
+@pytest.mark.parametrize("warm_up_due", [False, True], ids=["standby", "warm-up-needed"])
 @pytest.mark.parametrize("controller", ["B"], indirect=True)
-def test_source_probe_at_power_on_waits_out_bs_pre_heating(controller):
+def test_source_probe_at_power_on_waits_out_bs_pre_heating(controller, warm_up_due):
     """Review s40rr2: a B unit probed just after power-on (STS ERROR: its pre-heating) ended on
     "X-RAYS MAY STILL BE ON", exit 3, a false alarm. The probe now waits out the power-on checks
-    with queries only, as `source on` does (--ready-timeout), and exits 0 once STS confirms off."""
+    with queries only, as `source on` does (--ready-timeout), and exits 0 once STS confirms off --
+    warm-up needed too, which is SourceState 0 (review s40rr3: read as no state, the alarm stayed)."""
     from conftest import run_cli
 
     model, server = controller()
+    if warm_up_due:
+        model.require_warm_up()
     model.sts_error()
     threading.Timer(1.5, model.sts_error, kwargs={"on": False}).start()  # the pre-heating ends
     res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600", "--ready-timeout", "20")
@@ -1530,3 +1534,23 @@ def print_matrix(request):
     capman = request.config.pluginmanager.getplugin("capturemanager")
     with capman.global_and_fixture_disabled():
         print("\n".join(lines))
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("controller", ["B"], indirect=True)
+def test_a_stop_while_the_probe_waits_out_the_power_on_checks_ends_on_the_warning(controller, sig):
+    """Review s40rr3: the probe's wait for the power-on checks (up to --ready-timeout) was outside
+    the signal guard: Ctrl-C ended on Python's "interrupted" (130) and SIGTERM on nothing at all,
+    the last STS having read ERROR, which does not confirm the tube off. Now the warning, exit 3."""
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    model.sts_error()
+    acq = Acquire("source", "probe", "--port", server.url, "--baudrate", "9600", "--ready-timeout", "30")
+    deadline = time.monotonic() + 20
+    while "dialect B" not in acq.output and time.monotonic() < deadline:  # the probe's report: now waiting
+        time.sleep(0.05)
+    time.sleep(0.5)
+    acq.signal(SIGNALS[sig])
+    assert acq.wait() == 3, acq.output
+    assert acq.last_line == TUBE_WARNING and f"stopped by {sig}" in acq.output, acq.output
