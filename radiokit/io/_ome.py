@@ -232,12 +232,25 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
     return pages
 
 
+def micromanager_metadata(tif, path=None) -> dict:
+    """``tif.micromanager_metadata`` (``{}`` where none), its index map's declared size checked
+    against the file's bytes first (:func:`_read_index_map`). Why: tifffile reads the declared
+    entries in one read, 8 GB asked of a 5 KB file declaring 4*10**8 of them: where memory is not
+    overcommitted that read fails, and the file was "cannot be read as tiff: " with nothing after."""
+    name = tif.filehandle.path
+    if name and os.path.isfile(name):
+        index, problem = _read_index_map(name)
+        if index is None and problem.startswith("declares"):
+            raise FormatError(Path(path or name), f"its Micro-Manager index map {problem}: corrupt")
+    return tif.micromanager_metadata or {}
+
+
 def _check_own_index_map(tif, path=None) -> None:
     """Refuse a file of a Micro-Manager set whose own index map is missing or empty, named (as
     :func:`_index_span` refuses one of its other files). Why: tifffile then takes it for no
     Micro-Manager file and it read as a plain TIFF of its own pages, the set's other files
     left out, silently. A file alone (no other file of its name) still reads its pages so."""
-    meta = tif.micromanager_metadata or {}
+    meta = micromanager_metadata(tif, path)
     summary, index = meta.get("Summary"), meta.get("IndexMap")
     if not isinstance(summary, dict) or "MicroManagerVersion" not in summary or (index is not None and len(index)):
         return
@@ -319,7 +332,7 @@ def mmstack_set_files(tif) -> list[str]:
 
     Why: listed from the planes tifffile's series found, a file whose index map was never
     written (an acquisition that crashed) was left out, and an output could replace it."""
-    meta = tif.micromanager_metadata or {}
+    meta = micromanager_metadata(tif)
     summary, index = meta.get("Summary"), meta.get("IndexMap")
     if not isinstance(summary, dict):
         return []
@@ -444,7 +457,7 @@ def check_mmstack_slots(tif, path=None) -> str | None:
     planes than the files' bytes / 20 are declared, never written. The slots are counted as
     tifffile does: the index maps' span, or the set's where it reads a set of files; the span of
     this file's index map where it reads this file alone."""
-    meta = tif.micromanager_metadata or {}
+    meta = micromanager_metadata(tif)
     summary, index = meta.get("Summary"), meta.get("IndexMap")
     if not isinstance(summary, dict) or "MicroManagerVersion" not in summary or "Frames" not in summary:
         return None  # no Micro-Manager series: tifffile lists nothing

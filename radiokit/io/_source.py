@@ -54,6 +54,7 @@ from radiokit.io._ome import (
     count_planes,
     describe_planes,
     external_planes,
+    micromanager_metadata,
     mmstack_split,
     not_there,
     ome_pages,
@@ -824,7 +825,7 @@ class FrameSource:
             if series.kind != "mmstack":
                 return None
             sizes = dict(zip(series.get_axes(False), series.get_shape(False)))
-            positions = len(set(tif.micromanager_metadata["IndexMap"][:, 3].tolist()))
+            positions = len(set(micromanager_metadata(tif, self.path)["IndexMap"][:, 3].tolist()))
         except Exception:  # (tifffile fails on a corrupt file in many ways) the checks that follow judge it
             return None
         channels, others = sizes.get("C", 1), sizes.get("Z", 1) * sizes.get("T", 1)
