@@ -232,7 +232,7 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
     return pages
 
 
-def micromanager_metadata(tif, path=None) -> dict:
+def micromanager_metadata(tif, path=None, strict=True) -> dict:
     """``tif.micromanager_metadata`` (``{}`` where none), its index map's declared size checked
     against the file's bytes first (:func:`_read_index_map`). Why: tifffile reads the declared
     entries in one read, 8 GB asked of a 5 KB file declaring 4*10**8 of them: where memory is not
@@ -240,9 +240,34 @@ def micromanager_metadata(tif, path=None) -> dict:
     name = tif.filehandle.path
     if name and os.path.isfile(name):
         index, problem = _read_index_map(name)
+        if index is None and problem.startswith("declares") and not strict:  # its summary alone
+            return {"Summary": _read_summary(name), "IndexMap": None}
         if index is None and problem.startswith("declares"):
-            raise FormatError(Path(path or name), f"its Micro-Manager index map {problem}: corrupt")
+            raise FormatError(
+                Path(path or name),
+                f"its Micro-Manager index map {problem}: the acquisition likely crashed before the file was closed "
+                "(Micro-Manager fills the index map then), or the file is corrupt: refused",
+            )
     return tif.micromanager_metadata or {}
+
+
+def _read_summary(name: str) -> dict | None:
+    """The Micro-Manager summary of the file ``name`` (its JSON at byte 40, as tifffile reads it),
+    without its index map; None where it has none that reads."""
+    import json
+    import struct
+
+    try:
+        with open(name, "rb") as fh:
+            head = fh.read(40)
+            order = {b"II": "<", b"MM": ">"}.get(head[:2])
+            magic, length = struct.unpack_from(order + "II", head, 32)
+            if magic != 2355492 or length > os.fstat(fh.fileno()).st_size:
+                return None
+            summary = json.loads(fh.read(length).decode("utf-8", "replace"))
+    except (OSError, ValueError, TypeError, struct.error):
+        return None
+    return summary if isinstance(summary, dict) else None
 
 
 def _check_own_index_map(tif, path=None) -> None:
@@ -332,7 +357,7 @@ def mmstack_set_files(tif) -> list[str]:
 
     Why: listed from the planes tifffile's series found, a file whose index map was never
     written (an acquisition that crashed) was left out, and an output could replace it."""
-    meta = micromanager_metadata(tif)
+    meta = micromanager_metadata(tif, strict=False)
     summary, index = meta.get("Summary"), meta.get("IndexMap")
     if not isinstance(summary, dict):
         return []
