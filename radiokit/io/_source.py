@@ -275,7 +275,7 @@ class FrameSource:
             raise
         except Exception as exc:  # tifffile and h5py fail on corrupt files in many ways (even assert)
             self.close()
-            raise FormatError(self.path, f"cannot be read as {self.format}: {exc}") from exc
+            raise FormatError(self.path, f"cannot be read as {self.format}: {_why(exc)}") from exc
         self.meta.setdefault("format", self.format)
         self.meta["path"] = str(self.path)
 
@@ -2240,3 +2240,16 @@ def _ome_physical_size(xml: str | None) -> tuple[float | None, float | None, lis
 def _nx_class(group) -> str:
     value = group.attrs.get("NX_class", "")
     return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _why(exc: BaseException) -> str:
+    """What a library's exception says, for a one-line refusal: its text, or where it has none (a
+    MemoryError, a bare assert) its kind. Why: a header declaring a block larger than memory (a
+    Micro-Manager summary's length of 4 GB) made tifffile's read fail with a MemoryError of no text,
+    and the file was "cannot be read as tiff: " with nothing after (review s40rr4)."""
+    if isinstance(exc, MemoryError):
+        return (
+            "reading it asked for more memory than there is (MemoryError): a corrupt header declaring a huge "
+            "block, or a file too large for this machine"
+        )
+    return str(exc) or type(exc).__name__
