@@ -613,6 +613,7 @@ def _probe_found(result, args) -> int:
     from acquisition.l8121 import SourceState
 
     state = SourceState.__members__.get(dict(result.details).get("state", ""))
+    read = "the probe's STS"  # which reading the lines below report
     if state is not None and not state.confirms_off and not state.emitting:
         # a unit just switched on may still be checking itself (B's STS ERROR is its pre-heating):
         # the probe's one STS said so at power-on, and "X-RAYS MAY STILL BE ON" was a false alarm
@@ -621,21 +622,24 @@ def _probe_found(result, args) -> int:
         if _guarded(_probe_waits, result, args, state, found) == 3:
             return 3
         # (not `or`: SourceState is an IntEnum, and WARMUP_NEEDED is 0: review s40rr3)
-        state = found["state"] if found.get("state") is not None else state
+        if found.get("state") is not None:
+            state, read = found["state"], "the STS after the power-on checks"
+        else:  # the wait's session could not read the controller (silent, refused): said so
+            read = "the probe's STS (the wait for the power-on checks read nothing)"
         if state.confirms_off:
             print(f"{args.port}: the controller's power-on checks are over: state {state.said}")
     if state is not None and state.confirms_off:
         return 0
     if state is not None and state.emitting:
         _say(
-            f"{args.port}: X-RAYS ARE ON (the probe's STS read state {state.name}): switching them off "
+            f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
             "(`source off`, confirmed by STS); only `radiokit acquire source on` leaves them on"
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
         return _guarded(_source_guarded, off)
     said = state.said if state is not None else "unknown"
-    _say(f"{args.port}: the probe's STS read state {said}: the controller has not confirmed the tube off")
+    _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
     return 3
 
