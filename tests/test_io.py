@@ -1503,7 +1503,7 @@ def test_experiment_append_validation(tmp_path):
         with pytest.raises(ValueError, match="uint16"):
             w.append(np.full(EXP_SHAPE, -1, np.int32), image_key=0)
         with pytest.raises(ValueError, match="uint16"):
-            w.append(np.zeros(EXP_SHAPE, np.float32), image_key=0)
+            w.append(np.full(EXP_SHAPE, 0.5, np.float32), image_key=0)
         assert w.n_frames == 0
         w.append(np.full(EXP_SHAPE, 4000, np.int64), image_key=0)
         w.set_pixel_mask(np.eye(*EXP_SHAPE, dtype=np.uint32) * 8)
@@ -2899,3 +2899,38 @@ def test_a_writer_appending_records_or_checks_the_bit_depth(tmp_path):
     with pytest.warns(BitDepthWarning, match="no bit_depth given"):
         with ExperimentWriter(odd, mode="a") as w:
             w.append(sixteen, image_key=ImageKey.FLAT)
+
+
+def test_a_with_block_that_fails_before_its_first_frame_leaves_no_file_to_block_the_rerun(tmp_path):
+    """Found (session 40's list): an averaged float dark refused at the first append left an empty
+    experiment file, and the corrected rerun was refused ("exists; raw data is never overwritten")
+    though the file held nothing. A new file that never took a frame goes with the failed block; one
+    that took a frame stays (it is the run's journal), and a file the writer did not make is kept."""
+    path = tmp_path / "exp.h5"
+    with pytest.raises(ValueError, match="uint16"):
+        with ExperimentWriter(path, shape=EXP_SHAPE) as w:
+            w.append(np.full(EXP_SHAPE, 7.25, np.float32), image_key=ImageKey.DARK)
+    assert not path.exists()
+    with pytest.raises(RuntimeError, match="later"):
+        with ExperimentWriter(path, shape=EXP_SHAPE) as w:
+            w.append(np.full(EXP_SHAPE, 7, np.uint16), image_key=ImageKey.DARK)
+            raise RuntimeError("later")
+    assert read(path).n == 1
+    with pytest.raises(RuntimeError, match="appending"):
+        with ExperimentWriter(path, mode="a") as w:
+            raise RuntimeError("appending")
+    assert read(path).n == 1
+
+
+def test_float_frames_holding_whole_counts_are_stored_and_fractional_ones_refused_naming_why(tmp_path):
+    """A float frame of whole counts (a TIFF saved as float by an image program) converts to uint16
+    without loss; an averaged one does not, and the refusal says how to store it."""
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=EXP_SHAPE) as w:
+        w.append(np.full(EXP_SHAPE, 4000.0, np.float32), image_key=ImageKey.FLAT)
+        with pytest.raises(ValueError, match=r"not whole counts.*np\.rint"):
+            w.append(np.full(EXP_SHAPE, 7.25), image_key=ImageKey.DARK)
+        with pytest.raises(ValueError, match="uint16"):
+            w.append(np.full(EXP_SHAPE, np.nan), image_key=ImageKey.DARK)
+    f = read(path)
+    assert f.n == 1 and f.data.dtype == np.uint16 and np.all(f.data == 4000)

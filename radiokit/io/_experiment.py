@@ -244,6 +244,8 @@ class ExperimentWriter:
         self._file, self._replaces = self._where(mode, overwrite, in_place)
         frame_bytes = None if shape is None else math.prod(int(s) for s in shape) * np.dtype(np.uint16).itemsize
         set_aside = in_place and mode == "w" and os.path.lexists(self._file)
+        #: a file this writer makes under a free name (neither appended to nor replacing one)
+        self._began = mode == "w" and self._replaces is None and not set_aside
         if self._replaces is not None and frame_bytes is not None:
             self._check_overwrite_room(frame_bytes)
         elif not set_aside:  # (set aside, the old file keeps its space: _set_aside checks the room)
@@ -608,9 +610,7 @@ class ExperimentWriter:
         if frame.shape != data.shape[1:]:
             raise ValueError(f"{self.path}: frame shape {frame.shape} does not match the file's {data.shape[1:]}")
         if frame.dtype != np.uint16:
-            if frame.dtype.kind not in "ui" or (frame.size and (frame.min() < 0 or frame.max() > 65535)):
-                raise ValueError(f"{self.path}: raw frames are stored as uint16; got {frame.dtype}")
-            frame = frame.astype(np.uint16)
+            frame = self._as_counts(frame)
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
         self._check_range(frame, int(image_key))
@@ -652,6 +652,25 @@ class ExperimentWriter:
                 self._kept() if self._replaces is not None else "; it stays labelled invalid",
             ) from None
         return i
+
+    def _as_counts(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` as uint16 where that loses nothing: integers in range, or floats holding whole
+        counts (a raw frame an image program saved as float); else ValueError saying why."""
+        if frame.dtype.kind not in "uif":
+            raise ValueError(f"{self.path}: raw frames are stored as uint16; got {frame.dtype}")
+        if frame.size and not (np.all(np.isfinite(frame)) and frame.min() >= 0 and frame.max() <= 65535):
+            raise ValueError(
+                f"{self.path}: raw frames are stored as uint16 (0 to 65535); got {frame.dtype} values outside "
+                "that range or not finite"
+            )
+        if frame.dtype.kind == "f" and not np.array_equal(frame, np.rint(frame)):
+            # an averaged dark or flat: rounding it here would change the data without a word
+            raise ValueError(
+                f"{self.path}: raw frames are stored as uint16; this {frame.dtype} frame holds values that "
+                "are not whole counts (an average?): append the raw frames it was made from, or round it "
+                "yourself, np.rint(frame).astype(np.uint16), knowing what that loses"
+            )
+        return frame.astype(np.uint16)
 
     def _write_failed(self, exc: BaseException, what: str, kept: str) -> OSError:
         """After a write that failed inside libhdf5: the ballast's room given back so libhdf5 can
@@ -821,7 +840,8 @@ class ExperimentWriter:
     def close(self, *, keep=True):
         """Close the file. Overwriting (not ``in_place``), the new file then replaces the old one,
         unless a frame failed or ``keep`` is False (the ``with`` block ended in an exception): the
-        old file stays and the new one is removed."""
+        old file stays and the new one is removed. A new file (no old one) that took no frame is
+        removed when ``keep`` is False: it holds nothing, and left it would block the rerun."""
         if self._h5.id.valid:
             # libhdf5 writes as it closes: the room held for it is given back first (dropped after,
             # a disk another program had filled since the last frame made the close fail half-way,
@@ -839,12 +859,23 @@ class ExperimentWriter:
                     except Exception as exc:  # a built-beside overwrite is then discarded, not renamed
                         failed = " ".join(str(exc).split())[:200]
                     self._finish(keep and not getattr(self, "_failed", None) and failed is None)
+                    if not keep and self._n == 0 and self._began:
+                        self._discard_empty()
                 finally:
                     _unlock(self._own_lock)
                     self._put_back()
             if failed is not None:
                 code = errno.ENOSPC if "No space left" in failed else errno.EIO
                 raise OSError(code, f"{self.path}: could not be closed ({failed})")
+
+    def _discard_empty(self) -> None:
+        """Remove the new file a failed ``with`` block made and never wrote a frame to: left, it
+        only blocked the rerun ("exists; raw data is never overwritten"). Still under this
+        writer's lock, and only if the name still holds the file it made."""
+        if _identity(self._file) == self._created:
+            with contextlib.suppress(OSError):
+                os.unlink(self._file)
+                _fsync(self._file.parent)
 
     def _finish(self, keep: bool) -> None:
         """Rename the new file over the one it replaces (``keep``), else remove it."""
