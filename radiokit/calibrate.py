@@ -400,6 +400,9 @@ class Calibration:
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        # the ADC is judged on the arrays as given: converted to float32 first, 8-bit frames lost
+        # their type, and their saturation was guessed 4095 (a flat clipped at 255 passed unflagged)
+        given = (np.asarray(self.dark), np.asarray(self.flat))
         self.dark = np.ascontiguousarray(self.dark, np.float32)
         self.flat = np.ascontiguousarray(self.flat, np.float32)
         self.mask = np.ascontiguousarray(self.mask, np.uint32)
@@ -409,7 +412,7 @@ class Calibration:
                 "must be the same (rows, cols) shape"
             )
         if self.thresholds.saturation is None:  # built from plain data: the ADC its averages imply
-            self.thresholds = replace(self.thresholds, saturation=adc_top(self.dark, self.flat))
+            self.thresholds = replace(self.thresholds, saturation=adc_top(*given))
         # A pixel without response cannot be corrected, whoever built the mask: always fill it.
         unusable = ~((self.flat - self.dark) > self.thresholds.eps)
         if unusable.any():

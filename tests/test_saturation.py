@@ -53,6 +53,20 @@ def test_an_8_bit_projection_counts_its_pixels_at_255():
     assert report.saturated.tolist() == [100]
 
 
+def test_a_calibration_built_from_8_bit_arrays_saturates_at_255():
+    """Calibration(dark, flat, mask) from uint8 arrays: converted to float32 before the ADC was
+    judged, it guessed 4095, and a projection's pixels at 255 went uncounted."""
+    rng = np.random.default_rng(4)
+    dark = _darks(rng, n=1, dtype=np.uint8)[0]
+    flat = _flats(rng, 150.0, 255, n=1, spread=0.05, dtype=np.uint8)[0]
+    cal = Calibration(dark, flat, np.zeros(SHAPE, np.uint32))
+    assert cal.thresholds.saturation == 255
+    frame = np.minimum(rng.poisson(120.0, SHAPE), 254).astype(np.uint8)
+    frame[:5, :8] = 255  # 40 px clipped
+    _, report = correct_frames(cal, frame, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [40]
+
+
 def test_a_10_bit_flat_clipped_at_1023_is_flagged():
     """A 10-bit camera's counts in uint16 words, most of the flat at 1023: accepted before."""
     rng = np.random.default_rng(3)
