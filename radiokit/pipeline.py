@@ -102,6 +102,8 @@ if TYPE_CHECKING:
 
 #: The domains every run computes: line integrals, and the paper's negative transmission -I/I0.
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
+#: The pixel pitch taken for a file that records none: the C7942's (said, and marked in the results)
+ASSUMED_PIXEL_SIZE_MM = 0.05
 
 
 def _ks(ks) -> tuple:
@@ -266,6 +268,7 @@ class Steps:
     timings: dict
     unknown: dict = field(default_factory=dict)
     nonfinite: dict = field(default_factory=dict)
+    pixel_size_recorded: bool = True  #: False: the file records none, the C7942's was assumed
 
 
 @dataclass(frozen=True)
@@ -417,7 +420,19 @@ def _load_steps(path, progress: bool) -> Steps:
             ratios.append(float(np.nanmean(ratios_all[idx])) if np.isfinite(ratios_all[idx]).any() else float("nan"))
         bar.close()
         _warn_saturated(path, saturated, cal.thresholds.saturation)
-        pixel_size_mm = float(meta.get("pixel_size_mm", 0.05))
+        recorded = meta.get("pixel_size_mm")
+        if recorded is None:
+            import warnings
+
+            # every length in mm rests on it (ROI sizes, the crop, the bound's plate gaps): said,
+            # and the report says it was assumed (review s41proc: reported as the file's)
+            warnings.warn(
+                f"{path}: records no pixel size (x_pixel_size): taking the C7942's {ASSUMED_PIXEL_SIZE_MM:g} mm; "
+                "every length in mm (ROI sizes, the crop) assumes it",
+                UserWarning,
+                stacklevel=2,
+            )
+        pixel_size_mm = float(ASSUMED_PIXEL_SIZE_MM if recorded is None else recorded)
     return Steps(
         np.stack(images),
         tuple(numbers),
@@ -426,6 +441,7 @@ def _load_steps(path, progress: bool) -> Steps:
         dict(calibrate_s=t_cal, correct_s=time.perf_counter() - t),
         unknown,
         nonfinite,
+        pixel_size_recorded=recorded is not None,
     )
 
 
@@ -1172,6 +1188,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         scene=truth.get("scene") if truth else None,
         simulated=truth is not None,
         pixel_size_mm=steps.pixel_size_mm,
+        pixel_size_recorded=steps.pixel_size_recorded,
         domain=cfg.domain,
         ks=cfg.ks,
         method=cfg.method,
@@ -1259,6 +1276,7 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
                 for dom, e in images.enhanced.items()
             },
             rois={key: np.asarray(roi) for key, roi in record.rois.to_json().items()},
+            pixel_size_mm=record.pixel_size_mm,
         ),
     )
     files["results_h5"] = str(h5path)
@@ -1320,7 +1338,7 @@ def _process_need(path, cfg) -> tuple[int, str] | None:
 
     try:
         with open_frames(path) as src:
-            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", 0.05))
+            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", ASSUMED_PIXEL_SIZE_MM))
             # the steps from the file's index (read with its metadata), no frame read
             keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
     except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order

@@ -938,7 +938,9 @@ def _meta_rows(results):
         long = "\n" in scene.strip() or len(scene) > 120
         rows.append(("scene", f"{len(scene.splitlines())} lines of configuration, shown below" if long else scene))
     px = results.pixel_size_mm
-    rows.append(("pixel size", f"{px:g} mm"))
+    rows.append(
+        ("pixel size", f"{px:g} mm" + ("" if results.pixel_size_recorded else " (assumed: the file records none)"))
+    )
     rows.append(("headline domain", f"{results.domain} ({_domain_unit(results.domain)})"))
     r0, r1, c0, c1 = results.rois.crop
     rows.append(("crop (full-frame px, rows \u00d7 cols, half-open)", f"[{r0}, {r1}) \u00d7 [{c0}, {c1})"))

@@ -48,9 +48,10 @@ __all__ = [
 ]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
-SCHEMA_VERSION = "1.2"
+SCHEMA_VERSION = "1.3"
 # 1.1: registration/<pair>/rois_ok (do the ROIs lie where the motion was observed?)
 # 1.2: strict JSON: non-finite numbers written null and named in "not_finite" (radiokit._json)
+# 1.3: pixel_size_recorded (False: the file recorded none, pixel_size_mm was assumed)
 
 
 def k_label(k) -> str:
@@ -221,6 +222,7 @@ class Results:
     paper: dict
     timings: dict = field(default_factory=dict)  #: seconds per stage (filled in as the run goes)
     control: Results | None = None
+    pixel_size_recorded: bool = True  #: False: the file records none; :attr:`pixel_size_mm` was assumed
 
     def pair(self, name: str) -> PairResult:
         return next(p for p in self.pairs if p.name == name)
@@ -240,6 +242,7 @@ class Results:
             "scene": self.scene,
             "simulated": self.simulated,
             "pixel_size_mm": self.pixel_size_mm,
+            "pixel_size_recorded": self.pixel_size_recorded,
             "domain": self.domain.value,
             "ks": list(self.ks),
             "method": self.method,
@@ -299,6 +302,7 @@ class Results:
             d.get("paper") or {},
             dict(d.get("timings") or {}),
             cls.from_json(d["control"], f"{where} (control)") if d.get("control") else None,
+            bool(d.get("pixel_size_recorded", True)),  # (absent from files written before it was)
         )
 
     def write_json(self, path) -> Path:
@@ -436,6 +440,7 @@ _FIELDS = {
     "scene": (str, None),
     "simulated": (bool, np.bool_),
     "pixel_size_mm": is_number,
+    "pixel_size_recorded": (bool, np.bool_, None),
     "domain": (str,),
     "ks": _list_of(is_number),
     "method": (str,),

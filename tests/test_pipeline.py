@@ -129,6 +129,17 @@ def test_results_files_and_report(processed):
 
     np.testing.assert_array_equal(read(out / "results.h5").data, res.arrays["steps"])
     assert read_results(out / "results.h5").pair == (2, 3)
+    # every array says its units (DESIGN.md; review s41proc found none), and the pixel pitch is there
+    assert read_results(out / "results.h5").pixel_size_mm == pytest.approx(r["pixel_size_mm"], rel=1e-12)
+    with h5py.File(out / "results.h5", "r") as h5:
+        units = {}
+        h5.visititems(
+            lambda name, obj: units.__setitem__(name, obj.attrs.get("units")) if isinstance(obj, h5py.Dataset) else None
+        )
+    assert units.pop("entry/registration/displacement") == units.pop("entry/registration/truth_displacement") == "pixel"
+    assert units.pop("entry/steps/step") is None  # the lab's step numbers: labels, not a quantity
+    assert units.pop("entry/steps/x_pixel_size") == units.pop("entry/steps/y_pixel_size") == "m"
+    assert set(units.values()) == {"1"}, {k: v for k, v in units.items() if v != "1"}
     # results.json reads back into the same records
     from radiokit._json import strict
     from radiokit.results import load_results

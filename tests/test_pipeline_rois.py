@@ -270,3 +270,37 @@ def test_an_inclusion_roi_drawn_around_the_inclusion_never_gets_a_background_ins
     cfg = Config(inclusion=(60, 140, 60, 140), crop_mm=None, progress=False, cross_check=None)
     with pytest.raises(ValueError, match=r"given alone: no background of its shape fits.*--background"):
         process(exp, cfg, out_dir=tmp_path / "out")
+
+
+def test_a_pixel_size_the_file_does_not_record_is_said_to_be_assumed(tmp_path):
+    """Found (review s41proc): with x_pixel_size and y_pixel_size gone, process took 0.05 mm in
+    silence and the report and results.json stated it as the file's; every mm length rests on it."""
+    import h5py
+
+    from radiokit.io import read
+    from radiokit.pipeline import Config, process
+    from radiokit.results import load_results
+
+    path = tmp_path / "exp.h5"
+    _experiment(path, 20.0)
+    with h5py.File(path, "r+") as f:
+        det = f["entry/instrument/detector"]
+        for name in ("x_pixel_size", "y_pixel_size"):
+            del det[name]
+    assert "pixel_size_mm" not in read(path).meta
+    cfg = Config(
+        crop_mm=None, progress=False, report=True, register_options={"preset": "fast"}, cross_check=None,
+        inclusion=INCLUSION, background=BACKGROUND,
+    )  # fmt: skip
+    with pytest.warns(UserWarning, match=r"exp\.h5: records no pixel size .* taking the C7942's 0\.05 mm"):
+        process(path, cfg, out_dir=tmp_path / "results")
+    back = load_results(tmp_path / "results" / "results.json")
+    assert back.pixel_size_mm == 0.05 and back.pixel_size_recorded is False
+    html = (tmp_path / "results" / "report.html").read_text()
+    assert "0.05 mm (assumed: the file records none)" in html
+    recorded = tmp_path / "rec"
+    recorded.mkdir()
+    _experiment(recorded / "exp.h5", 20.0)
+    res = process(recorded / "exp.h5", cfg, out_dir=recorded / "results")
+    assert res.record.pixel_size_recorded is True
+    assert "assumed" not in (recorded / "results" / "report.html").read_text().split("pixel size", 1)[1][:80]

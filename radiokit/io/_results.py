@@ -73,6 +73,12 @@ class ResultsRecord:
     enhanced : mapping domain -> EnhancedImages
     rois : mapping name -> array
         The regions of interest measured, in pixels of the crop.
+    pixel_size_mm : float, optional
+        The pixel pitch, written as ``x_pixel_size`` and ``y_pixel_size`` (metres) beside the
+        steps; the results' JSON says whether the experiment recorded it or it was assumed.
+
+    Every array carries its ``@units`` (DESIGN.md): ``"1"`` for line integrals, transmissions,
+    ratios, Jacobians and the confidence; ``"pixel"`` for displacements.
     """
 
     source: str
@@ -85,6 +91,11 @@ class ResultsRecord:
     registration: Mapping = field(default_factory=dict)
     enhanced: Mapping = field(default_factory=dict)
     rois: Mapping = field(default_factory=dict)
+    pixel_size_mm: float | None = None
+
+
+#: the ``@units`` of a registration array (NeXus spells a pixel count "pixel"); others are "1"
+_REGISTRATION_UNITS = {"displacement": "pixel", "truth_displacement": "pixel"}
 
 
 def write_results(path, record: ResultsRecord, *, overwrite=True, inputs=()) -> None:
@@ -104,19 +115,27 @@ def write_results(path, record: ResultsRecord, *, overwrite=True, inputs=()) -> 
         steps.attrs["signal"] = _SIGNAL
         steps.create_dataset(_SIGNAL, data=np.asarray(record.line_integral, np.float32), **_OPTS)
         steps[_SIGNAL].attrs["interpretation"] = "image"
+        steps[_SIGNAL].attrs["units"] = "1"  # a line integral, -ln(I/I0)
         steps["step"] = np.asarray(record.step, np.int64)
         steps["ratio"] = np.asarray(record.ratio, np.float64)
+        steps["ratio"].attrs["units"] = "1"
+        if record.pixel_size_mm is not None:
+            for axis in ("x_pixel_size", "y_pixel_size"):
+                steps[axis] = float(record.pixel_size_mm) * 1e-3
+                steps[axis].attrs["units"] = "m"
         steps.attrs["crop"] = np.asarray(record.crop, np.int64)
         reg = _group(h5, RESULTS_REGISTRATION, "NXcollection")
         reg.attrs["pair"] = np.asarray(record.pair, np.int64)
         for name, values in record.registration.items():
-            reg.create_dataset(name, data=np.asarray(values), **_OPTS)
+            reg.create_dataset(name, data=np.asarray(values), **_OPTS).attrs["units"] = _REGISTRATION_UNITS.get(
+                name, "1"
+            )
         for domain, images in record.enhanced.items():
             g = _group(h5, f"{RESULTS_ENHANCED}/{domain}", "NXcollection")
-            g.create_dataset("reference", data=np.asarray(images.reference), **_OPTS)
-            g.create_dataset("difference", data=np.asarray(images.difference), **_OPTS)
+            g.create_dataset("reference", data=np.asarray(images.reference), **_OPTS).attrs["units"] = "1"
+            g.create_dataset("difference", data=np.asarray(images.difference), **_OPTS).attrs["units"] = "1"
             for k, image in images.enhanced.items():
-                g.create_dataset(f"k{k}", data=np.asarray(image), **_OPTS)
+                g.create_dataset(f"k{k}", data=np.asarray(image), **_OPTS).attrs["units"] = "1"
         m = _group(h5, RESULTS_MEASUREMENTS, "NXcollection")
         for name, roi in record.rois.items():
             m.attrs[name] = np.asarray(roi)
@@ -182,7 +201,20 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
             registration={name: array(f"{RESULTS_REGISTRATION}/{name}") for name in (reg or {})},
             enhanced=enhanced,
             rois={k: np.asarray(v) for k, v in meas.attrs.items() if k != "NX_class"} if meas is not None else {},
+            pixel_size_mm=_pixel_size_mm(path, h5),
         )
+
+
+def _pixel_size_mm(path, h5) -> float | None:
+    """``x_pixel_size`` beside the steps, in mm; None where the file (written before it was) has none."""
+    name = f"{RESULTS_STEPS}/x_pixel_size"
+    if name not in h5:
+        return None
+    value = np.asarray(checked_dataset(path, h5, name, "f", (0,), False)[()], np.float64)
+    check_finite(path, name, value)
+    if not value > 0:
+        raise FormatError(path, f"/{name} is {float(value)!r}: not a pixel pitch")
+    return float(value) * 1e3
 
 
 def _pair(path, reg) -> tuple:
