@@ -71,7 +71,7 @@ from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
 from radiokit.interrupts import STOP_SIGNALS, deferred
-from radiokit.measure import PAPER, ROI
+from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
 __all__ = [
@@ -812,6 +812,11 @@ def _overlap_words(background, inclusion: str) -> str:
     )
 
 
+#: what process offers where no automatic background fits: the background alone still needs the
+#: inclusion found and its background placed, and the inclusion alone a background beside it
+_BOTH_ROIS = "give both ROIs (radiokit process --inclusion R0 R1 C0 C1 --background R0 R1 C0 C1)"
+
+
 def _background_beside(ref, inc, pixel_size_mm, named=None):
     """A background ROI of ``inc``'s shape beside the inclusion given as ``inc`` (where detection
     found none there, or none at all: it was placed beside the detected one, or the run stopped
@@ -870,9 +875,9 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         mask = truth.get("inclusion_mask") if (truth and cfg.use_truth_rois) else None
         try:
             auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
-        except ValueError:
-            if inc is None:
-                raise
+        except ValueError as exc:
+            if inc is None:  # find_rois's advice names its keywords, which process does not take (review s41proc)
+                raise ValueError(str(exc).replace(_BACKGROUND_ADVICE, _BOTH_ROIS)) from None
             auto_inc = auto_bg = None
         if bg is None and inc is not None:
             # the detected inclusion's background where the given rectangle is in that inclusion

@@ -666,6 +666,29 @@ def test_an_inclusion_given_alone_outside_the_frame_is_told_so(tmp_path):
     assert "background" not in line, line
 
 
+def test_no_background_beside_a_large_inclusion_names_what_process_offers(tmp_path):
+    """Review s41proc: a sphere of 45 px radius in a body of 107 px (0.1 mm pixels) leaves no room
+    for a background beside it; the line said "pass a smaller gap or background_size, body_mask,
+    or the ROIs", find_rois's keywords, none of which process has."""
+    n, rng = 256, np.random.default_rng(6)
+    rr, cc = np.mgrid[:n, :n].astype(float)
+    d = np.hypot(rr - 128, cc - 128)
+    L = 0.5 / (1 + np.exp((d - 107.5) / 3.0)) + 0.3 * np.sqrt(np.clip(45.0**2 - d**2, 0, None)) / 45.0
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(n, n), pixel_size_mm=0.1) as w:
+        w.append(np.full((n, n), 100, np.uint16), image_key=ImageKey.DARK)
+        w.append(np.full((n, n), 3100, np.uint16), image_key=ImageKey.FLAT)
+        for step, a in enumerate((1.0, 0.95, 0.9), start=1):
+            counts = rng.poisson(100 + 3000 * np.exp(-a * L))
+            w.append(counts.astype(np.uint16), image_key=ImageKey.PROJECTION, step=step, ratio=0.1 * step)
+    res = run_cli("process", tmp_path / "exp.h5", "-o", tmp_path / "res", "-q", "--no-report", "--cross-check", "none")
+    line = one_line_error(
+        res, "exp.h5", "background ROI fits", "leaves the body", "--inclusion R0 R1 C0 C1 --background R0 R1 C0 C1"
+    )
+    for word in ("gap", "background_size", "body_mask"):
+        assert word not in line, line
+    assert not (tmp_path / "res").exists()
+
+
 def test_k_slips_are_echoed_as_typed(tmp_path):
     """`--k 1 1` was answered "--k (1.0, 1.0): ...", a Python tuple, where `--k 0` is answered
     "--k 0: ..." as typed."""
