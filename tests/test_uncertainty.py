@@ -120,3 +120,68 @@ def test_a_significant_background_change_keeps_its_ratio():
     cr, se, reason = change_ratio_se(reg, ref, inc, bg)
     assert reason == "" and cr == pytest.approx(change_ratio(reg, ref, inc, bg), rel=1e-6)
     assert 0 < se < 0.2
+
+
+def _unchanged_background(path, noise, seed=0):
+    """An experiment (96 x 96, frames of 12-bit counts) whose background does not change between
+    steps and whose disc attenuates a little more at each step (review s41proc's B2.h5, small)."""
+    from radiokit.io import ExperimentWriter, ImageKey
+
+    rng = np.random.default_rng(seed)
+    n = 96
+    rr, cc = np.mgrid[:n, :n]
+    disc = np.sqrt(np.clip(1 - (np.hypot(rr - 48, cc - 52) / 12.0) ** 2, 0, None))
+
+    def frame(mean):
+        counts = rng.poisson(mean) if noise else np.round(mean)
+        return np.clip(counts, 0, 4095).astype(np.uint16)
+
+    with ExperimentWriter(path, shape=(n, n), pixel_size_mm=0.1) as w:
+        for _ in range(4):
+            w.append(frame(np.full((n, n), 100.0)), image_key=ImageKey.DARK)
+        for _ in range(4):
+            w.append(frame(np.full((n, n), 3100.0)), image_key=ImageKey.FLAT)
+        for step, b in enumerate((0.30, 0.32, 0.34), start=1):
+            for _ in range(4):
+                w.append(
+                    frame(100 + 3000 * np.exp(-(0.5 + b * disc))),
+                    image_key=ImageKey.PROJECTION,
+                    step=step,
+                    ratio=0.1 * step,
+                )
+
+
+@pytest.mark.parametrize("noise", [True, False], ids=["noisy", "noiseless"])
+def test_process_reports_a_change_ratio_of_an_unchanged_background_as_not_measurable(tmp_path, capsys, noise):
+    """Review s41proc: with noise the report said the inclusion "changed 126.59 times as much as the
+    background's" and exited 0; without it the whole run was refused. Now the ratio is NaN with
+    the reason, the improvement factor is reported with its standard error, and the run ends as
+    any measured one does."""
+    from radiokit.cli import main
+    from radiokit.enhance import Domain
+    from radiokit.results import load_results
+
+    path, out = tmp_path / "b2.h5", tmp_path / "out"
+    _unchanged_background(path, noise)
+    code = main(
+        ["process", str(path), "-o", str(out), "-q", "--inclusion", "44", "53", "48", "57"]
+        + ["--background", "44", "53", "20", "29", "--crop-mm", "0", "--cross-check", "none"]
+    )
+    printed = capsys.readouterr()
+    assert "undefined" not in printed.err
+    assert code in (0, 1), printed  # 1: a registration flag, as for any measured run
+    assert "change ratio 2->3 not measurable: the background changed" in printed.out
+    record = load_results(out / "results.json")
+    for pair in record.pairs:
+        for dom in (Domain.LOG, Domain.NEGATIVE):
+            assert math.isnan(pair.change_ratio[dom]), (pair.name, dom)
+            assert pair.change_ratio_reason[dom].startswith("not measurable")
+    for dom in (Domain.LOG, Domain.NEGATIVE):
+        for m in record.domains[dom].per_k:
+            assert math.isfinite(m.improvement_factor) and m.improvement_factor > 1
+            # without Poisson noise only the counts' rounding is left: ~1e-4
+            assert math.isfinite(m.improvement_factor_se) and (m.improvement_factor_se > 1e-3) == noise
+            assert f"IF {m.improvement_factor:.3f} \u00b1 " in printed.out
+    html = (out / "report.html").read_text(encoding="utf-8")
+    assert "intensity-change ratio is not measurable: the background changed" in html
+    assert "times as much" not in html
