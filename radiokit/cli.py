@@ -978,17 +978,22 @@ def _print_headline(record, files, prefix=""):
     """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
     for its control after them (``prefix`` "control "); the domains by radiokit's names
     (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0)."""
-    from radiokit.results import k_label, sig3
+    from radiokit.results import k_label, pm, sig3
 
-    ifs = ", ".join(f"k={k_label(k)}: {v:.2f}" for k, v in record.improvement_factor.items())
+    dom = record.domain
+    ifs = ", ".join(
+        f"k={k_label(x.k)}: {x.improvement_factor:.2f}{pm(x.improvement_factor_se)}" for x in record.domains[dom].per_k
+    )
     main = record.pair(record.main_pair)
+    reason = (main.change_ratio_reason or {}).get(dom)
+    cr = reason if reason else f"{main.change_ratio[dom]:.3f}{pm((main.change_ratio_se or {}).get(dom))}"
     print(
-        f"{prefix}{record.source}: improvement factor ({record.domain.value}) {ifs}; change ratio {main.name} "
-        f"{main.change_ratio[record.domain]:.3f}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
+        f"{prefix}{record.source}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
+        f"{cr}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
         parts = [
-            f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}"
+            f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}{pm(x.improvement_factor_se)}"
             + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
             + f", CNR {sig3(x.cnr)}"
             for x in m.per_k

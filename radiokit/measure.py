@@ -33,6 +33,10 @@ __all__ = [
     "improvement_factor",
     "improvement_bound",
     "change_ratio",
+    "roi_mean_se",
+    "improvement_factor_se",
+    "change_ratio_se",
+    "MIN_Z",
     "profile",
     "find_rois",
     "summary",
@@ -505,6 +509,159 @@ def change_ratio(before, after, inclusion, background) -> float:
             "the background intensity does not change between before and after: the change ratio is undefined"
         )
     return float(d_in / d_bg)
+
+
+# -- uncertainty -------------------------------------------------------------------------------
+#: A change ratio is measured only where the background's change stands this many standard
+#: errors from zero: below, the ratio's denominator is noise (a flat background read "the
+#: inclusion changed 126.59 times as much": review s41proc), and the delta method's standard
+#: error, which assumes a denominator far from zero, means nothing either.
+MIN_Z = 3.0
+
+_MAD_SIGMA = 1.482602218505602  # sigma / MAD of a normal distribution
+_CLIPPED_VAR = 0.9733369246625415  # variance of a unit normal kept within +-3
+#: lags (row, col) of one half-plane: next neighbours, where bilinear resampling correlates
+#: pixels, and the ring two pixels out, where it no longer does
+_NEAR = ((0, 1), (1, 0), (1, 1), (1, -1))
+_RING2 = ((0, 2), (1, 2), (2, 2), (2, 1), (2, 0), (2, -1), (2, -2), (1, -2))
+
+
+def _difference_var(x: np.ndarray, dr: int, dc: int) -> float:
+    """Robust variance of ``x(p + h) - x(p)``: of the differences within three standard
+    deviations of their centre (a few rounds from the median absolute deviation), so an edge
+    crossing some of them does not count, and about their centre, so the object's slope does not
+    either. First differences, not second: on a window crossing an inclusion's edge a second
+    difference spans twice the pixels, and read a step's noise 20-70 % high (first: 0-20 %)."""
+    rows, cols = x.shape
+    ar, ac = abs(dr), abs(dc)
+
+    def part(tr, tc):
+        return x[ar + tr : rows - ar + tr, ac + tc : cols - ac + tc]
+
+    e = (part(dr, dc) - part(0, 0)).ravel()
+    if e.size < 8:
+        return math.nan
+    centre = np.median(e)
+    scale = _MAD_SIGMA * np.median(np.abs(e - centre))
+    # then clipped at 3 scales, a few rounds: a median absolute deviation alone read 20-40 % high
+    # where an inclusion's edge crossed a sixth of a window's differences
+    for _ in range(5):
+        kept = e[np.abs(e - centre) <= 3 * scale]
+        if kept.size < 8 or scale == 0:
+            break
+        centre, scale = kept.mean(), kept.std() / math.sqrt(_CLIPPED_VAR)
+    return float(scale**2)
+
+
+def roi_mean_se(image, roi: ROI, *, min_side: int = 16) -> float:
+    """The standard error of ``image``'s mean over ``roi``, estimated from the image alone.
+
+    The noise is read in a window around the ROI (the ROI grown to at least ``min_side`` pixels a
+    side and two more each way, within the image): its variance ``s2`` and its correlation between
+    next neighbours ``rho(h)``, from robust variances of differences at lags ``h``
+    (``Var = 2 s2 (1 - rho(h))``; ``rho = 0`` two pixels apart gives ``s2``). Then
+    ``SE^2 = s2 f / n`` with the effective-size factor ``f = sum_h rho(h) (1 - |h_r|/H) (1 - |h_c|/W)``
+    over the ``H x W`` ROI's lags (``n / f`` independent pixels).
+
+    Why this model: radiokit's steps are frame means corrected pixel by pixel, so their noise is
+    uncorrelated between pixels; the registered step is resampled bilinearly, which mixes each
+    pixel with its next neighbours only, so correlation reaches one pixel and is nil at two. Read
+    per pixel, a resampled image looks up to four times quieter than it is over a region
+    (bilinear weights of a half-pixel shift); ``f`` puts that back. A block estimate (the scatter
+    of ROI-sized means) would need many ROI-sized blocks of background around a 3 x 3 ROI and
+    around a 40 x 40 one alike; differences need a few hundred pixels, and their centre takes out
+    the body's slope without a model of it. A structure that curves strongly within the window (a
+    small inclusion's own dome, in a step but not in a difference of steps) makes the estimate
+    larger, never smaller.
+
+    Returns ``nan`` when the window is too small to hold the differences (an image of a few
+    pixels).
+    """
+    img = _image(image)
+    roi.check(img.shape)
+    h, w = roi.shape
+    gr, gc = max(0, (min_side - h + 1) // 2) + 2, max(0, (min_side - w + 1) // 2) + 2
+    win = ROI(roi.row0 - gr, roi.row1 + gr, roi.col0 - gc, roi.col1 + gc).clip(img.shape)
+    x = np.asarray(img[win.slices], np.float64)
+    if not np.all(np.isfinite(x)):
+        x = np.where(np.isfinite(x), x, np.nanmedian(x[np.isfinite(x)]) if np.isfinite(x).any() else 0.0)
+    ring = [_difference_var(x, *lag) for lag in _RING2]
+    ring = [v for v in ring if math.isfinite(v)]
+    if not ring:
+        return math.nan
+    s2 = float(np.median(ring)) / 2.0
+    n = h * w
+    if s2 <= 0:
+        return 0.0
+    f = 1.0
+    for dr, dc in _NEAR:
+        v = _difference_var(x, dr, dc)
+        if not math.isfinite(v):
+            continue
+        rho = min(1.0, max(-1.0, 1.0 - v / (2.0 * s2)))
+        f += 2 * rho * max(0.0, 1 - abs(dr) / h) * max(0.0, 1 - abs(dc) / w)
+    # an estimate's noise must not claim more than n independent pixels' worth of quiet
+    f = min(max(f, 0.25), float(n))
+    return math.sqrt(s2 * f / n)
+
+
+def improvement_factor_se(reference, registered, k, inclusion: ROI, background: ROI) -> float:
+    """The standard error of :func:`improvement_factor` for ``enhanced = reference + k (D - mean D)``.
+
+    ``IF = 1 + k C_D / C_R`` with ``D = reference - registered`` (``C`` the contrast of an image),
+    so by the delta method ``Var IF = k^2 / C_R^2 [Var C_D - 2 q Cov(C_D, C_R) + q^2 Var C_R]``,
+    ``q = C_D / C_R``. Each variance is of a difference of two ROI means (:func:`roi_mean_se`; the
+    ROIs are disjoint and the noise correlates over a pixel, so the two means are independent);
+    ``Cov(mean D, mean R) = (Var mean R + Var mean D - Var mean registered) / 2`` over each ROI,
+    which keeps the noise the two steps share (the flat field's, where the tissue did not move).
+    ``nan`` where the reference contrast is zero.
+    """
+    ref, reg = _image(reference, "reference"), _image(registered, "registered")
+    if ref.shape != reg.shape:
+        raise ValueError(f"reference has shape {ref.shape}, registered has {reg.shape}")
+    d = np.asarray(ref, np.float64) - np.asarray(reg, np.float64)
+    c_r = contrast(ref, inclusion, background)
+    if c_r == 0:
+        return math.nan
+    c_d = contrast(d, inclusion, background)
+    var_r = var_d = cov = 0.0
+    for roi in (inclusion, background):
+        vr, vd, vw = (roi_mean_se(img, roi) ** 2 for img in (ref, d, reg))
+        var_r, var_d = var_r + vr, var_d + vd
+        c = (vr + vd - vw) / 2
+        cov += max(-math.sqrt(vr * vd), min(math.sqrt(vr * vd), c))  # a covariance matrix's bound
+    q = c_d / c_r
+    var = float(k) ** 2 / c_r**2 * (var_d - 2 * q * cov + q * q * var_r)
+    return math.sqrt(max(var, 0.0))
+
+
+def change_ratio_se(before, after, inclusion: ROI, background: ROI, *, min_z: float = MIN_Z):
+    """:func:`change_ratio` with its standard error, or why it is not measurable.
+
+    Returns ``(ratio, se, reason)``. With ``d_X`` the change of ROI ``X``'s mean
+    (``after - before``) and its standard error from ``D = after - before`` (:func:`roi_mean_se`),
+    ``se^2 = (se_i^2 + ratio^2 se_b^2) / d_b^2`` (delta method; the ROIs' noise is independent).
+    Where ``|d_b| < min_z se_b`` (or the background's change is below float32's resolution of its
+    level) the background did not measurably change: the ratio is ``nan`` and ``reason`` says so,
+    with the background's change and its standard error; ``reason`` is ``""`` otherwise.
+    """
+    b, a = _image(before, "before"), _image(after, "after")
+    if a.shape != b.shape:
+        raise ValueError(f"before has shape {b.shape}, after has {a.shape}")
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    d_in = float(_region(d, inclusion, "inclusion", "after - before").mean())
+    d_bg = float(_region(d, background, "background", "after - before").mean())
+    se_in, se_bg = roi_mean_se(d, inclusion), roi_mean_se(d, background)
+    level = max(abs(float(np.mean(a[background.slices], dtype=np.float64))), abs(float(np.mean(b[background.slices]))))
+    if not abs(d_bg) > max(min_z * se_bg, 8 * float(np.finfo(np.float32).eps) * level):
+        reason = (
+            f"not measurable: the background changed {d_bg:.3g} \u00b1 {se_bg:.2g}, "
+            f"not significantly different from 0 (|change| < {min_z:g} standard errors)"
+        )
+        return math.nan, math.nan, reason
+    ratio = d_in / d_bg
+    se = math.sqrt(se_in**2 + ratio**2 * se_bg**2) / abs(d_bg)
+    return float(ratio), float(se), ""
 
 
 def _k_key(k) -> str:

@@ -960,7 +960,7 @@ def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None
         If the reference contrast is zero in a domain (the improvement factor is undefined; see
         :func:`radiokit.measure.improvement_factor`), naming ``source`` and the domain.
     """
-    from radiokit.measure import summary
+    from radiokit.measure import improvement_factor_se, summary
 
     out = {}
     for dom, e in enhanced.items():
@@ -976,6 +976,7 @@ def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None
                 m["weber"],
                 s["improvement_factor"][key],
                 ((bounds or {}).get(dom) or {}).get(k),
+                improvement_factor_se(e.reference, e.registered, k, inclusion, background),
             )
             for (k, _), (key, m) in zip(e.images, s["enhanced"].items())
         )
@@ -988,12 +989,13 @@ def check_pairs(
     pairs, steps_c: np.ndarray, numbers, inclusion: ROI, background: ROI, truth=None, crop=None
 ) -> tuple[PairResult, ...]:
     """Per registered pair (:class:`radiokit.results.PairResult`): the intensity-change ratio in
-    each domain, the registration's quality, whether the motion was observed in the ROIs
+    each domain with its standard error (NaN, with the reason, where the background did not
+    measurably change: :func:`radiokit.measure.change_ratio_se`), the registration's quality, whether the motion was observed in the ROIs
     (:func:`rois_verdict`: a ROI mostly unobserved flags the pair), the cross-check (a
     disagreement flags the pair), and for a simulated file the end-point error against the truth
     (over the body, and over the two ROIs where the images carry the motion)."""
     from radiokit.enhance import to_domain
-    from radiokit.measure import change_ratio
+    from radiokit.measure import change_ratio_se
     from radiokit.register import roi_observed
 
     body = _body_mask(steps_c[-1])
@@ -1002,10 +1004,15 @@ def check_pairs(
     for p in pairs:
         a, b = numbers[p.moving], numbers[p.reference]
         reg = p.registration
-        ratios = {
-            dom: change_ratio(to_domain(p.warped, dom), to_domain(steps_c[p.reference], dom), inclusion, background)
+        # a background that did not measurably change leaves the ratio NaN with the reason, not a
+        # refusal of the run: the improvement factor is still well defined (review s41proc)
+        measured = {
+            dom: change_ratio_se(to_domain(p.warped, dom), to_domain(steps_c[p.reference], dom), inclusion, background)
             for dom in DOMAINS
         }
+        ratios = {dom: m[0] for dom, m in measured.items()}
+        ses = {dom: m[1] for dom, m in measured.items()}
+        reasons = {dom: m[2] for dom, m in measured.items() if m[2]}
         q = dataclasses.asdict(reg.quality)
         q.update(_preset_record(reg))
         observed = None
@@ -1030,7 +1037,7 @@ def check_pairs(
             epe = dict(zip(("epe_median", "epe_p95"), _epe(reg.displacement, tf, body)))
             # a uniform slab's interior moves unseen: there the field is the regulariser's guess
             epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
-        out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok))
+        out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok, ses, reasons or None))
     return tuple(out)
 
 

@@ -43,7 +43,7 @@ import numpy as np
 
 from radiokit._version import __version__
 from radiokit.measure import PAPER  # used where results.paper does not give them
-from radiokit.results import Images, Results, k_label, sig3
+from radiokit.results import Images, Results, k_label, pm, sig3
 
 __all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
@@ -89,6 +89,21 @@ def _sig(x, missing="\u2014"):
     """A CNR's three significant digits (:func:`radiokit.results.sig3`), or ``missing``."""
     v = _num(x)
     return missing if v is None else sig3(v)
+
+
+def _if_text(m, spec=".2f"):
+    """An improvement factor (:class:`radiokit.results.KMeasure`) with its standard error."""
+    v = _fmt(m.improvement_factor, spec)
+    return v + pm(m.improvement_factor_se) if _num(m.improvement_factor) is not None else v
+
+
+def _cr_text(pair, dom, spec=".2f"):
+    """A pair's change ratio in ``dom`` with its standard error, or "not measurable" (its
+    background did not measurably change: the reason is in the sentences and results.json)."""
+    if (pair.change_ratio_reason or {}).get(dom):
+        return "not measurable"
+    v = pair.change_ratio.get(dom)
+    return _fmt(v, spec) + (pm((pair.change_ratio_se or {}).get(dom)) if _num(v) is not None else "")
 
 
 def _main_k(ks):
@@ -554,21 +569,21 @@ def _headline_rows(results, paper):
     rows = [(f"contrast of the reference ({dom} domain)", _fmt(meas.contrast_reference, ".4g"), "", "")]
     rows += [(f"contrast enhanced, {_k_label(m.k)}", _fmt(m.contrast, ".4g"), "", "") for m in meas.per_k]
     for m in meas.per_k:
-        ctrl = _fmt(control.domains[dom].at(m.k).improvement_factor) if control else ""
+        ctrl = _if_text(control.domains[dom].at(m.k)) if control else ""
         rows.append(
             (
                 f"improvement factor, {_k_label(m.k)}",
-                _fmt(m.improvement_factor),
+                _if_text(m),
                 _fmt(_paper_if(paper, m.k), ".1f", ""),
                 ctrl,
             )
         )
     rows += _bound_cnr_rows(results)
-    ctrl = _fmt(control.pair(main.name).change_ratio.get(dom)) if control and _has_pair(control, main.name) else ""
+    ctrl = _cr_text(control.pair(main.name), dom) if control and _has_pair(control, main.name) else ""
     rows.append(
         (
             f"intensity-change ratio inclusion/background, steps {_pair_label(main.name)}",
-            _fmt(main.change_ratio[dom]),
+            _cr_text(main, dom),
             _paper_range(paper),
             ctrl,
         )
@@ -617,9 +632,9 @@ def _bound_cnr_rows(results):
             rows.append(
                 (
                     f"{dom}: improvement factor (bound), {_k_label(x.k)}",
-                    f"{_fmt(x.improvement_factor)} ({_fmt(x.bound, '.3f')})",
+                    f"{_if_text(x)} ({_fmt(x.bound, '.3f')})",
                     "",
-                    _fmt(cm.at(x.k).improvement_factor) if cm else "",
+                    _if_text(cm.at(x.k)) if cm else "",
                 )
             )
         rows.append(
@@ -644,7 +659,7 @@ def _contrast_sentences(results, paper):
         f"{_fmt(meas.contrast_reference, '.4g')} (inclusion ROI mean minus background ROI mean) in the most "
         f"compressed image (step {results.steps[-1]}), the reference."
     ]
-    parts = [f"{_fmt(m.improvement_factor)} at {_k_label(m.k)}" for m in meas.per_k]
+    parts = [f"{_if_text(m)} at {_k_label(m.k)}" for m in meas.per_k]
     paper_parts = [
         f"{_fmt(_paper_if(paper, m.k), '.1f')} at {_k_label(m.k)}"
         for m in meas.per_k
@@ -676,27 +691,49 @@ def _contrast_sentences(results, paper):
     return out
 
 
+def _change_ratio_sentence(main, dom, paper) -> str | None:
+    """What the main pair's change ratio says: not measurable (why), noise (within two standard
+    errors of 1), or below or above 1."""
+    cr = _num(main.change_ratio.get(dom))
+    se = _num((main.change_ratio_se or {}).get(dom))
+    reason = (main.change_ratio_reason or {}).get(dom)
+    if reason:
+        return (
+            f"Between steps {main.moving} and {main.reference} the intensity-change ratio is {reason}: with no "
+            "measurable change of the background there is nothing to compare the inclusion's change with "
+            "(the improvement factor above does not need it)."
+        )
+    if cr is None:
+        return None
+    s = (
+        f"Between steps {main.moving} and {main.reference}, the inclusion's intensity changed {_cr_text(main, dom)} "
+        f"times as much as the background's (\u00b1 one standard error, from the images' noise; the paper's "
+        f"earlier study: {_paper_range(paper)}); "
+    )
+    if se is not None and abs(cr - 1) < 2 * se:
+        # no intensity-domain caveat either: a ratio the noise could give says nothing to qualify
+        return s + (
+            "within two standard errors of 1: the noise alone could give it, so no sign here that the "
+            "inclusion changed less than the background (nor more)."
+        )
+    s += (
+        "below 1, the inclusion changed less than the background, as a stiffer inclusion that deforms less would"
+        if cr < 1
+        else "not below 1: no sign here that the inclusion changed less than the background"
+    )
+    if cr < 1 and dom in _TRANSMISSION:
+        s += (
+            ", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
+            "detected intensity is exponential in the line integral)"
+        )
+    return s + "."
+
+
 def _pair_sentences(results, paper):
     """What the change ratio and the registration of the main pair say."""
     dom, main = results.domain, results.pair(results.main_pair)
-    out = []
-    cr = _num(main.change_ratio.get(dom))
-    if cr is not None:
-        s = (
-            f"Between steps {main.moving} and {main.reference}, the inclusion's intensity changed {cr:.2f} times "
-            f"as much as the background's (the paper's earlier study: {_paper_range(paper)}); "
-        )
-        s += (
-            "below 1, the inclusion changed less than the background, as a stiffer inclusion that deforms less would"
-            if cr < 1
-            else "not below 1: no sign here that the inclusion changed less than the background"
-        )
-        if cr < 1 and dom in _TRANSMISSION:
-            s += (
-                ", though in the intensity domain attenuation alone can also give a ratio below 1 (the "
-                "detected intensity is exponential in the line integral)"
-            )
-        out.append(s + ".")
+    sentence = _change_ratio_sentence(main, dom, paper)
+    out = [sentence] if sentence else []
     if main.ok:
         # a trusted run can stop short of convergence (its budget ended, the residual within the
         # line): "converged" would then be false, and the note says what happened instead
@@ -783,7 +820,7 @@ def _measurement_table(results, paper):
                 _fmt(x.contrast, ".4g"),
                 _sig(x.cnr),
                 _fmt(x.weber, ".4g"),
-                _fmt(x.improvement_factor),
+                _if_text(x),
                 _fmt(_paper_if(paper, x.k), ".1f", ""),
             )
             for x in m.per_k
@@ -794,10 +831,7 @@ def _measurement_table(results, paper):
 def _change_ratio_table(results, paper):
     domains = _in_order(results.domains)
     header = ["steps (moving\u2192reference)"] + [f"{d} domain" for d in domains] + ["paper (earlier study)"]
-    rows = [
-        [_pair_label(p.name)] + [_fmt(p.change_ratio.get(d)) for d in domains] + [_paper_range(paper)]
-        for p in results.pairs
-    ]
+    rows = [[_pair_label(p.name)] + [_cr_text(p, d) for d in domains] + [_paper_range(paper)] for p in results.pairs]
     return _table(header, rows)
 
 
@@ -869,21 +903,21 @@ def _control_section(results):
                 (
                     dom,
                     f"improvement factor, {_k_label(x.k)}",
-                    _fmt(x.improvement_factor),
-                    _fmt(if_c),
+                    _if_text(x),
+                    _if_text(c.at(x.k)),
                     _share_text(stiffness_share(x.improvement_factor, if_c)),
                 )
             )
         k0 = _main_k(results.ks)
         sentences.append(_control_sentence(dom, k0, s.at(k0).improvement_factor, c.at(k0).improvement_factor))
     for p in results.pairs:
-        ctrl = control.pair(p.name).change_ratio if _has_pair(control, p.name) else {}
+        ctrl = control.pair(p.name) if _has_pair(control, p.name) else None
         rows += [
             (
                 dom,
                 f"intensity-change ratio, steps {_pair_label(p.name)}",
-                _fmt(p.change_ratio.get(dom)),
-                _fmt(ctrl.get(dom)),
+                _cr_text(p, dom),
+                _cr_text(ctrl, dom) if ctrl is not None else _fmt(None),
                 "",
             )
             for dom in domains
@@ -1006,11 +1040,15 @@ def _measurements(results, paper) -> list:
         "improvement factor: enhanced contrast over the reference's. Domains: log is \u2212ln(I/I\u2080); "
         "negative is \u2212I/I\u2080, the paper's \u201clinear\u201d images. The paper's improvement "
         "factors (about 1.4 and 2) and intensity-change ratios (0.66\u20130.84, the authors' "
-        "earlier study) are beside them.</p>",
+        "earlier study) are beside them. \u00b1: one standard error, from the noise of the images "
+        "themselves in and around the ROIs (the correlation the registration's resampling gives "
+        "neighbouring pixels included).</p>",
         _measurement_table(results, paper),
         "<p>Intensity-change ratio: the change of the inclusion ROI's mean between two steps "
         "over the change of the background ROI's (the moving step registered onto the "
-        "other); below 1 the inclusion changed less.</p>" + _change_ratio_table(results, paper),
+        "other); below 1 the inclusion changed less. Not measurable: the background's change is "
+        "within three standard errors of zero, so the ratio's denominator is noise.</p>"
+        + _change_ratio_table(results, paper),
         _control_section(results),
     ]
 

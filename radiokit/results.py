@@ -11,7 +11,10 @@ k values are floats everywhere in memory; :func:`k_label` is the only place they
 
 A zero reference contrast makes the improvement factor undefined: the pipeline refuses it with
 a ValueError naming the file and the domain (as :func:`radiokit.measure.improvement_factor`
-does), so no NaN improvement factor is ever written.
+does), so no NaN improvement factor is ever written. A change ratio whose background did not
+measurably change (:func:`radiokit.measure.change_ratio_se`) is NaN, with the reason beside it.
+Each improvement factor and change ratio carries its standard error, estimated from the images
+(``improvement_factor_se`` per domain, ``change_ratio_se`` per pair; schema 1.3; 1.4 adds ``pixel_size_recorded``).
 
 ``results.json`` is strict JSON (:mod:`radiokit._json`): a number that is not finite (a CNR is
 infinite when the background's noise is zero, as in a noiseless simulation) is written ``null``,
@@ -48,10 +51,12 @@ __all__ = [
 ]
 
 #: ``major.minor``: a reader refuses another major version; a minor one only adds keys.
-SCHEMA_VERSION = "1.3"
+SCHEMA_VERSION = "1.4"
 # 1.1: registration/<pair>/rois_ok (do the ROIs lie where the motion was observed?)
 # 1.2: strict JSON: non-finite numbers written null and named in "not_finite" (radiokit._json)
-# 1.3: pixel_size_recorded (False: the file recorded none, pixel_size_mm was assumed)
+# 1.3: standard errors: domains/<d>/improvement_factor_se, change_ratio_se, and change_ratio_reason
+#      (why a change ratio is NaN: its background did not measurably change)
+# 1.4: pixel_size_recorded (False: the file recorded none, pixel_size_mm was assumed)
 
 
 def k_label(k) -> str:
@@ -65,6 +70,14 @@ def sig3(x: float) -> str:
     return f"{float(x):#.3g}".rstrip(".")
 
 
+def pm(se) -> str:
+    """`` ± se`` to two significant digits (a standard error says no more); ``""`` for None (not
+    estimated: a results.json before schema 1.3)."""
+    if se is None:
+        return ""
+    return f" \u00b1 {float(se):#.2g}"
+
+
 @dataclass(frozen=True)
 class KMeasure:
     """The enhanced image's measurements at one k (``bound``: None where no bound holds)."""
@@ -75,6 +88,7 @@ class KMeasure:
     weber: float
     improvement_factor: float
     bound: float | None = None
+    improvement_factor_se: float | None = None  #: None: not estimated (a results.json before 1.3)
 
 
 @dataclass(frozen=True)
@@ -100,18 +114,29 @@ class DomainMeasures:
             for name in ("contrast", "cnr", "weber", "improvement_factor")
         }
         bounds = {k_label(m.k): m.bound for m in self.per_k}
+        ses = {k_label(m.k): m.improvement_factor_se for m in self.per_k}
         return {
             "contrast_reference": self.contrast_reference,
             "cnr_reference": self.cnr_reference,
             "weber_reference": self.weber_reference,
             **by_k,
             "bound": bounds if any(b is not None for b in bounds.values()) else {},
+            **({"improvement_factor_se": ses} if any(v is not None for v in ses.values()) else {}),
         }
 
     @classmethod
     def from_json(cls, domain, d: dict) -> DomainMeasures:
+        ses = d.get("improvement_factor_se") or {}
         per_k = tuple(
-            KMeasure(float(key), d["contrast"][key], d["cnr"][key], d["weber"][key], v, (d.get("bound") or {}).get(key))
+            KMeasure(
+                float(key),
+                d["contrast"][key],
+                d["cnr"][key],
+                d["weber"][key],
+                v,
+                (d.get("bound") or {}).get(key),
+                ses.get(key),
+            )
             for key, v in d["improvement_factor"].items()
         )
         return cls(Domain(domain), d["contrast_reference"], d["cnr_reference"], d["weber_reference"], per_k)
@@ -133,6 +158,9 @@ class PairResult:
     #: both ROIs mostly where the motion was observed (radiokit.pipeline.rois_verdict; False also
     #: makes ``ok`` False, with the reason); None without a confidence map or in a 1.0 file
     rois_ok: bool | None = None
+    change_ratio_se: dict | None = None  #: Domain -> standard error (NaN where the ratio is)
+    #: Domain -> why the ratio is NaN (the background did not measurably change); absent: measured
+    change_ratio_reason: dict | None = None
 
     @property
     def name(self) -> str:
@@ -159,7 +187,9 @@ class PairResult:
         return q
 
     @classmethod
-    def from_json(cls, name: str, registration: dict, change_ratio: dict) -> PairResult:
+    def from_json(
+        cls, name: str, registration: dict, change_ratio: dict, se: dict | None = None, reason: dict | None = None
+    ) -> PairResult:
         q = dict(registration)
         a, _, b = name.partition("->")
         extras = {key: q.pop(key, None) for key in ("method", "rois_observed", "cross_check", "rois_ok")}
@@ -176,6 +206,8 @@ class PairResult:
             extras["cross_check"],
             epe or None,
             extras["rois_ok"],
+            {Domain(d): v for d, v in se.items()} if se is not None else None,
+            {Domain(d): v for d, v in reason.items()} if reason else None,
         )
 
 
@@ -252,6 +284,16 @@ class Results:
             "improvement_factor": {k_label(k): v for k, v in self.improvement_factor.items()},
             "domains": {d.value: m.to_json() for d, m in self.domains.items()},
             "change_ratio": {p.name: {d.value: v for d, v in p.change_ratio.items()} for p in self.pairs},
+            "change_ratio_se": {
+                p.name: {d.value: v for d, v in p.change_ratio_se.items()}
+                for p in self.pairs
+                if p.change_ratio_se is not None
+            },
+            "change_ratio_reason": {
+                p.name: {d.value: v for d, v in p.change_ratio_reason.items()}
+                for p in self.pairs
+                if p.change_ratio_reason
+            },
             "registration": {p.name: p.registration_json() for p in self.pairs},
             "main_pair": self.main_pair,
             "profiles_row": self.profiles_row,
@@ -281,7 +323,11 @@ class Results:
         except ValueError as exc:
             raise FormatError(where, f"results.json {str(exc).removeprefix(f'{where}: ')}") from None
         _check_fields(d, where)
-        pairs = tuple(PairResult.from_json(name, q, d["change_ratio"][name]) for name, q in d["registration"].items())
+        ses, reasons = d.get("change_ratio_se") or {}, d.get("change_ratio_reason") or {}
+        pairs = tuple(
+            PairResult.from_json(name, q, d["change_ratio"][name], ses.get(name), reasons.get(name))
+            for name, q in d["registration"].items()
+        )
         r = d["rois"]
         return cls(
             d["source"],
@@ -433,6 +479,7 @@ _DOMAIN_FIELDS = {
     "cnr": _k_keyed,
     "weber": _k_keyed,
     "improvement_factor": _k_keyed,
+    "improvement_factor_se": lambda v: v is None or _k_keyed(v),  # 1.3 on
 }
 #: what :meth:`Results.from_json` reads, and what each must be (None: optional)
 _FIELDS = {
@@ -458,6 +505,12 @@ _FIELDS = {
     "control": (dict, None),
 }
 
+#: what a 1.3 file adds (absent from older ones)
+_OPTIONAL = {
+    "change_ratio_se": _dict_of(_dict_of(_maybe_number)),
+    "change_ratio_reason": _dict_of(_dict_of(lambda v: isinstance(v, str))),
+}
+
 
 def _check_fields(d: dict, where) -> None:
     """Refuse, naming the key, a field :meth:`Results.from_json` would misread (a string where a
@@ -471,6 +524,11 @@ def _check_fields(d: dict, where) -> None:
         if not ok:
             got = "missing" if key not in d else f"{type(value).__name__} {json.dumps(value)[:60]}"
             raise FormatError(where, f"results.json field {key!r} is {got}: not what radiokit writes there")
+    for key, check in _OPTIONAL.items():
+        if key in d and not check(d[key]):
+            raise FormatError(
+                where, f"results.json field {key!r} is {json.dumps(d[key])[:60]}: not what radiokit writes there"
+            )
     for name in d["registration"]:
         a, arrow, b = name.partition("->")
         if not (arrow and a.isdigit() and b.isdigit()) or name not in d["change_ratio"]:
