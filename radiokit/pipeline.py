@@ -1056,7 +1056,7 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     _check_inputs(path, cfg.control)  # before any work
-    out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
+    out_dir = Path(out_dir) if out_dir is not None else path.parent / _folder_name(path)
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
     with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
         res = _process(path, cfg, stage)
@@ -1274,15 +1274,25 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
     return files
 
 
+def _folder_name(path) -> str:
+    """The name of ``path``'s results folder: its stem (``exp`` for ``exp.h5``). A stem of dots
+    names no folder of its own (``..h5``'s is ``.``, ``...h5``'s ``..``: the output root or its
+    parent, the other files' folders nested in it): those keep their suffix, its dot as ``_``
+    (``._h5``, ``.._h5``)."""
+    path = Path(path)
+    stem = path.stem
+    return f"{stem}_{path.suffix[1:]}" if stem in ("", ".", "..") else stem
+
+
 def output_folders(paths, out_root=None) -> list[Path]:
     """One distinct results folder per input: ``out_root/STEM`` (default: beside each file, named
-    after it); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ... in the order given,
-    so no run ever merges into or replaces another's folder."""
+    after it; :func:`_folder_name`); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ...
+    in the order given, so no run ever merges into or replaces another's folder."""
     from radiokit.io._atomic import resolved
 
     outs, taken = [], set()
     for p in map(Path, paths):
-        base = (Path(out_root) / p.stem) if out_root is not None else p.with_suffix("")
+        base = (Path(out_root) if out_root is not None else p.parent) / _folder_name(p)
         out, k = base, 1
         while resolved(out) in taken:
             k += 1
