@@ -1226,8 +1226,8 @@ def _add_process(sub):
         "--crop-mm",
         type=float,
         default=30.0,
-        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0, or more than the "
-        "frame: the whole frame)",
+        help="side of the square around the inclusion kept in the outputs, mm, widened to hold both ROIs "
+        "(default 30; 0, or more than the frame: the whole frame)",
     )
     p.add_argument(
         "--inclusion",

@@ -841,7 +841,7 @@ def _inside_frame(named_rois, shape, cfg=None, pixel_size_mm=None) -> None:
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
     on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
-    a square of ``crop_mm`` around the inclusion, grown to hold the background (whole frame
+    a square of ``crop_mm`` around the inclusion, grown to hold both ROIs (whole frame
     without ``crop_mm``)."""
     from radiokit.measure import find_rois
 
@@ -878,9 +878,10 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     # clamped to the frame before int(): 1e308 mm / 0.05 mm is inf pixels (an OverflowError traceback)
     side_px = min(cfg.crop_mm / steps.pixel_size_mm, max(ref.shape))
     r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(side_px)))
-    # keep the background rectangle inside the crop
-    r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
-    c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
+    # keep both rectangles inside the crop: a crop narrower than the inclusion (--crop-mm 0.01)
+    # cut it, refused in the crop's pixels only after the registrations
+    r0, r1 = min(r0, bg.row0, inc.row0), max(r1, bg.row1, inc.row1)
+    c0, c1 = min(c0, bg.col0, inc.col0), max(c1, bg.col1, inc.col1)
     return RoiChoice(inc, bg, (r0, r1, c0, c1))
 
 

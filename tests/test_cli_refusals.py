@@ -332,6 +332,21 @@ def test_several_files_are_not_written_into_one_runs_results_folder(tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
 
 
+def test_a_crop_smaller_than_the_rois_is_widened_to_hold_the_inclusion_as_the_background(tmp_path):
+    # --crop-mm 0.01 (0.2 px) grown to the background only cut the inclusion at the crop's edge:
+    # "log domain: inclusion ROI(row0=0, ...) lies (partly) outside the 11x40 image" after the work
+    exp = synthetic(tmp_path / "exp.h5")
+    fast = [a for a in FAST if a not in ("--crop-mm", "0")]
+    res = run_cli("process", exp, "-o", tmp_path / "res", *fast, "--crop-mm", "0.01")
+    assert res.returncode == 0, res.stderr
+    rois = json.loads((tmp_path / "res" / "results.json").read_text())["rois"]
+    r0, r1, c0, c1 = rois["crop"]
+    # both ROIs as given (full-frame pixels), inside the crop and at their place in it
+    assert rois["inclusion"] == [75 - r0, 86 - r0, 75 - c0, 86 - c0]
+    assert rois["background"] == [75 - r0, 86 - r0, 40 - c0, 51 - c0]
+    assert r0 <= 75 and r1 >= 86 and c0 <= 40 and c1 >= 86
+
+
 # -- 5: a calibration that marks most of the panel ---------------------------------------------
 def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path):
     rng = np.random.default_rng(1)
