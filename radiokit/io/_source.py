@@ -1793,7 +1793,8 @@ def read(path, /, **hints) -> Frames:
         ``format`` ("raw", "tiff", "itex", "hdf5") to skip detection; ``dataset`` to read one
         dataset of an arbitrary HDF5 file; for raw files ``preset`` (one of :data:`PRESETS`),
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
-        ``byteorder`` ("<" or ">"), ``offset`` (bytes to skip) and ``n`` (frames to read);
+        ``byteorder`` ("<" or ">"; refused against a dtype naming the other), ``offset`` (bytes to
+        skip) and ``n`` (frames to read);
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
         default: they make a file read other files); ``budget`` (bytes or
