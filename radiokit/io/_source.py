@@ -1106,6 +1106,12 @@ class FrameSource:
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
+        if not hasattr(page.compression, "name"):  # tifffile keeps a code it does not know as an int
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} is compressed with compression code {int(page.compression)}, which neither "
+                "radiokit nor tifffile knows: save it uncompressed, LZW, deflate or zstd",
+            )
         if int(page.compression) not in _TIFF_CODECS:
             raise FormatError(
                 self.path,
