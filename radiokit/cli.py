@@ -497,7 +497,9 @@ def cmd_correct(args) -> int:
     )
     print(
         f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
-        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive (filled)"
+        # the count holds NaN and inf raw pixels too (PixelFlag.NONPOSITIVE): "non-positive" alone
+        # said 100 NaN pixels were opaque
+        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive or non-finite (filled)"
     )
     return 0
 
