@@ -69,7 +69,7 @@ import numpy as np
 from radiokit._json import strict as strict_json
 from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
-from radiokit.errors import FormatError
+from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
 from radiokit.measure import PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
@@ -1544,9 +1544,10 @@ def process_many(
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
     Their memory is shared likewise: a file (with ``config.control``) whose processing would need
     more than a worker's share of its host's budget (:func:`_memory_shares`) refuses the whole run
-    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
-    failed (the others go on). Output folders are :func:`output_folders`; each is written as
-    :func:`process` writes."""
+    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or
+    ``{"source": path, "error": message, "error_type": class name}`` for a file that failed (the
+    others go on; :func:`_error_result`). Output folders are :func:`output_folders`; each is
+    written as :func:`process` writes."""
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
@@ -1818,4 +1819,18 @@ def _process_one(path, cfg, out_dir, overwrite=False, shares=None):
         res = process(path, cfg, out_dir=out_dir, overwrite=overwrite)
         return dict(res.results, output=str(out_dir))
     except Exception as exc:  # one bad file must not stop the others: reported in its slot
-        return {"source": path, "error": f"{type(exc).__name__}: {exc}"}
+        return _error_result(path, exc)
+
+
+def _error_result(path, exc) -> dict:
+    """A failed file's slot in :func:`process_many`'s results: its error's words as one file's
+    :func:`process` raises them; the class named in ``error_type``, and in the words too where
+    the error is no user's (a bug's ``KeyError: 'x'`` says nothing without it)."""
+    kind = type(exc).__name__
+    text = str(exc)
+    user = isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError))
+    if not text:
+        text = kind
+    elif not user:
+        text = f"{kind}: {text}"
+    return {"source": path, "error": text, "error_type": kind}

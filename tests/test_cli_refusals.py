@@ -347,6 +347,32 @@ def test_a_crop_smaller_than_the_rois_is_widened_to_hold_the_inclusion_as_the_ba
     assert r0 <= 75 and r1 >= 86 and c0 <= 40 and c1 >= 86
 
 
+def test_process_reports_a_failed_file_of_many_as_one_files_run_does(tmp_path):
+    # the batch's line was "small.h5: error: ValueError: ...", the single run's without the class
+    good, small = synthetic(tmp_path / "good.h5"), synthetic(tmp_path / "small.h5", shape=(80, 80))
+    one = run_cli("process", small, "-o", tmp_path / "one", *FAST)
+    single = one_line_error(one, "small.h5").removeprefix("radiokit process: ")
+    many = run_cli("process", good, small, "-o", tmp_path / "many", "--workers", "1", *FAST)
+    assert many.returncode != 0
+    lines = [line for line in many.stderr.splitlines() if "small.h5" in line]
+    assert len(lines) == 1 and "Error:" not in lines[0], many.stderr
+    # the same words, the batch's line naming its file first
+    assert lines[0].removeprefix(f"{small}: error: ").removeprefix(f"{small}: ") == single.removeprefix(f"{small}: ")
+
+
+def test_a_batch_error_names_the_option_not_the_api_keyword():
+    """An output made by another program during the run (a race a test cannot stage in a Dask
+    worker): the line of process_many's result as the command line prints it."""
+    from radiokit.cli import _batch_error
+    from radiokit.io._atomic import OutputAppearedError
+    from radiokit.pipeline import _error_result
+
+    result = _error_result("a.h5", OutputAppearedError("R/a"))
+    line = _batch_error(result)
+    assert line.startswith("R/a: appeared during the run") and line.endswith("pass --overwrite to replace it"), line
+    assert "overwrite=True" not in line and "OutputAppearedError" not in line
+
+
 # -- 5: a calibration that marks most of the panel ---------------------------------------------
 def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path):
     rng = np.random.default_rng(1)
