@@ -497,7 +497,9 @@ def cmd_correct(args) -> int:
     )
     print(
         f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
-        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive (filled)"
+        # the count holds NaN and inf raw pixels too (PixelFlag.NONPOSITIVE): "non-positive" alone
+        # said 100 NaN pixels were opaque
+        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive or non-finite (filled)"
     )
     return 0
 
@@ -572,7 +574,7 @@ def _process_error(text, args) -> str:
         if text.startswith(field):
             text = option + text[len(field) :]
     for name in ("inclusion", "background"):
-        bounds = _as_typed(getattr(args, name))
+        bounds = _as_typed(getattr(args, name, None))
         if bounds is not None:
             typed = f"--{name} {' '.join(str(v) for v in bounds)}"
             text = text.replace(f"{name} ROI {bounds!r}", typed).replace(f"--{name} {bounds!r}", typed)
@@ -955,7 +957,7 @@ def _process_many(args, cfg) -> int:
     for r in results:
         if "error" in r:
             failed += 1
-            print(f"{r['source']}: error: {_process_error(r['error'], args)}", file=sys.stderr)
+            print(f"{r['source']}: error: {_batch_error(r, args)}", file=sys.stderr)
         else:
             files = {}
             if "output" in r:  # as one file's run prints them
@@ -966,6 +968,14 @@ def _process_many(args, cfg) -> int:
             _print_headline(record, files)
             failed += not _all_ok(record)  # as one file's run: a flagged pair is exit 1
     return 1 if failed else 0
+
+
+def _batch_error(result, args=None) -> str:
+    """A failed file's words in ``process_many``'s results as one file's run prints them: the
+    options' names, ``--overwrite`` for the API's ``--overwrite (overwrite=True)``."""
+    from radiokit.io import OutputExistsError
+
+    return _process_error(result["error"], args).replace(OutputExistsError.HOW, "--overwrite")
 
 
 def _all_ok(record) -> bool:
@@ -1231,8 +1241,8 @@ def _add_process(sub):
         "--crop-mm",
         type=float,
         default=30.0,
-        help="side of the square around the inclusion kept in the outputs, mm (default 30; 0, or more than the "
-        "frame: the whole frame)",
+        help="side of the square around the inclusion kept in the outputs, mm, widened to hold both ROIs "
+        "(default 30; 0, or more than the frame: the whole frame)",
     )
     p.add_argument(
         "--inclusion",

@@ -67,7 +67,7 @@ class CorrectionReport:
     def summary(self) -> str:
         return (
             f"{len(self.saturated)} frame(s): {self.defects_filled} defect pixels filled per frame, "
-            f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive (filled)"
+            f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive or non-finite (filled)"
         )
 
 

@@ -69,7 +69,7 @@ import numpy as np
 from radiokit._json import strict as strict_json
 from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
-from radiokit.errors import FormatError
+from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
 from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
@@ -862,7 +862,7 @@ def _inside_frame(named_rois, shape, cfg=None, pixel_size_mm=None) -> None:
 def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     """The inclusion and background ROIs (the configuration's, else :func:`radiokit.measure.find_rois`
     on the reference, on a simulated file's inclusion mask with ``use_truth_rois``) and the crop:
-    a square of ``crop_mm`` around the inclusion, grown to hold the background (whole frame
+    a square of ``crop_mm`` around the inclusion, grown to hold both ROIs (whole frame
     without ``crop_mm``)."""
     from radiokit.measure import find_rois
 
@@ -899,9 +899,10 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
     # clamped to the frame before int(): 1e308 mm / 0.05 mm is inf pixels (an OverflowError traceback)
     side_px = min(cfg.crop_mm / steps.pixel_size_mm, max(ref.shape))
     r0, r1, c0, c1 = _crop_box(inc, ref.shape, int(round(side_px)))
-    # keep the background rectangle inside the crop
-    r0, r1 = min(r0, bg.row0), max(r1, bg.row1)
-    c0, c1 = min(c0, bg.col0), max(c1, bg.col1)
+    # keep both rectangles inside the crop: a crop narrower than the inclusion (--crop-mm 0.01)
+    # cut it, refused in the crop's pixels only after the registrations
+    r0, r1 = min(r0, bg.row0, inc.row0), max(r1, bg.row1, inc.row1)
+    c0, c1 = min(c0, bg.col0, inc.col0), max(c1, bg.col1, inc.col1)
     return RoiChoice(inc, bg, (r0, r1, c0, c1))
 
 
@@ -1084,7 +1085,7 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     _check_inputs(path, cfg.control)  # before any work
-    out_dir = Path(out_dir) if out_dir is not None else path.with_suffix("")
+    out_dir = Path(out_dir) if out_dir is not None else path.parent / _folder_name(path)
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
     with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
         res = _process(path, cfg, stage)
@@ -1304,15 +1305,25 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
     return files
 
 
+def _folder_name(path) -> str:
+    """The name of ``path``'s results folder: its stem (``exp`` for ``exp.h5``). A stem of dots
+    names no folder of its own (``..h5``'s is ``.``, ``...h5``'s ``..``: the output root or its
+    parent, the other files' folders nested in it): those keep their suffix, its dot as ``_``
+    (``._h5``, ``.._h5``)."""
+    path = Path(path)
+    stem = path.stem
+    return f"{stem}_{path.suffix[1:]}" if stem in ("", ".", "..") else stem
+
+
 def output_folders(paths, out_root=None) -> list[Path]:
     """One distinct results folder per input: ``out_root/STEM`` (default: beside each file, named
-    after it); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ... in the order given,
-    so no run ever merges into or replaces another's folder."""
+    after it; :func:`_folder_name`); inputs sharing a folder name get ``STEM-2``, ``STEM-3``, ...
+    in the order given, so no run ever merges into or replaces another's folder."""
     from radiokit.io._atomic import resolved
 
     outs, taken = [], set()
     for p in map(Path, paths):
-        base = (Path(out_root) / p.stem) if out_root is not None else p.with_suffix("")
+        base = (Path(out_root) if out_root is not None else p.parent) / _folder_name(p)
         out, k = base, 1
         while resolved(out) in taken:
             k += 1
@@ -1563,9 +1574,10 @@ def process_many(
     the pools of correction and registration, BLAS and OpenCV do not oversubscribe the machine.
     Their memory is shared likewise: a file (with ``config.control``) whose processing would need
     more than a worker's share of its host's budget (:func:`_memory_shares`) refuses the whole run
-    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or ``{"source": path, "error": message}`` for a file that
-    failed (the others go on). Output folders are :func:`output_folders`; each is written as
-    :func:`process` writes."""
+    before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or
+    ``{"source": path, "error": message, "error_type": class name}`` for a file that failed (the
+    others go on; :func:`_error_result`). Output folders are :func:`output_folders`; each is
+    written as :func:`process` writes."""
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
@@ -1837,4 +1849,18 @@ def _process_one(path, cfg, out_dir, overwrite=False, shares=None):
         res = process(path, cfg, out_dir=out_dir, overwrite=overwrite)
         return dict(res.results, output=str(out_dir))
     except Exception as exc:  # one bad file must not stop the others: reported in its slot
-        return {"source": path, "error": f"{type(exc).__name__}: {exc}"}
+        return _error_result(path, exc)
+
+
+def _error_result(path, exc) -> dict:
+    """A failed file's slot in :func:`process_many`'s results: its error's words as one file's
+    :func:`process` raises them; the class named in ``error_type``, and in the words too where
+    the error is no user's (a bug's ``KeyError: 'x'`` says nothing without it)."""
+    kind = type(exc).__name__
+    text = str(exc)
+    user = isinstance(exc, (RadiokitError, ValueError, OSError, MemoryError))
+    if not text:
+        text = kind
+    elif not user:
+        text = f"{kind}: {text}"
+    return {"source": path, "error": text, "error_type": kind}

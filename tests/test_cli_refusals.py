@@ -332,6 +332,47 @@ def test_several_files_are_not_written_into_one_runs_results_folder(tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before
 
 
+def test_a_crop_smaller_than_the_rois_is_widened_to_hold_the_inclusion_as_the_background(tmp_path):
+    # --crop-mm 0.01 (0.2 px) grown to the background only cut the inclusion at the crop's edge:
+    # "log domain: inclusion ROI(row0=0, ...) lies (partly) outside the 11x40 image" after the work
+    exp = synthetic(tmp_path / "exp.h5")
+    fast = [a for a in FAST if a not in ("--crop-mm", "0")]
+    res = run_cli("process", exp, "-o", tmp_path / "res", *fast, "--crop-mm", "0.01")
+    assert res.returncode == 0, res.stderr
+    rois = json.loads((tmp_path / "res" / "results.json").read_text())["rois"]
+    r0, r1, c0, c1 = rois["crop"]
+    # both ROIs as given (full-frame pixels), inside the crop and at their place in it
+    assert rois["inclusion"] == [75 - r0, 86 - r0, 75 - c0, 86 - c0]
+    assert rois["background"] == [75 - r0, 86 - r0, 40 - c0, 51 - c0]
+    assert r0 <= 75 and r1 >= 86 and c0 <= 40 and c1 >= 86
+
+
+def test_process_reports_a_failed_file_of_many_as_one_files_run_does(tmp_path):
+    # the batch's line was "small.h5: error: ValueError: ...", the single run's without the class
+    good, small = synthetic(tmp_path / "good.h5"), synthetic(tmp_path / "small.h5", shape=(80, 80))
+    one = run_cli("process", small, "-o", tmp_path / "one", *FAST)
+    single = one_line_error(one, "small.h5").removeprefix("radiokit process: ")
+    many = run_cli("process", good, small, "-o", tmp_path / "many", "--workers", "1", *FAST)
+    assert many.returncode != 0
+    lines = [line for line in many.stderr.splitlines() if "small.h5" in line]
+    assert len(lines) == 1 and "Error:" not in lines[0], many.stderr
+    # the same words, the batch's line naming its file first
+    assert lines[0].removeprefix(f"{small}: error: ").removeprefix(f"{small}: ") == single.removeprefix(f"{small}: ")
+
+
+def test_a_batch_error_names_the_option_not_the_api_keyword():
+    """An output made by another program during the run (a race a test cannot stage in a Dask
+    worker): the line of process_many's result as the command line prints it."""
+    from radiokit.cli import _batch_error
+    from radiokit.io._atomic import OutputAppearedError
+    from radiokit.pipeline import _error_result
+
+    result = _error_result("a.h5", OutputAppearedError("R/a"))
+    line = _batch_error(result)
+    assert line.startswith("R/a: appeared during the run") and line.endswith("pass --overwrite to replace it"), line
+    assert "overwrite=True" not in line and "OutputAppearedError" not in line
+
+
 # -- 5: a calibration that marks most of the panel ---------------------------------------------
 def test_calibrate_refuses_darks_and_flats_that_flag_most_of_the_panel(tmp_path):
     rng = np.random.default_rng(1)

@@ -349,6 +349,31 @@ def test_process_gives_inputs_with_the_same_name_distinct_folders(tmp_path):
     assert {p: sha(p) for p in before} == before
 
 
+def test_a_file_whose_stem_is_dots_gets_a_folder_of_its_own_inside_the_output_root(tmp_path):
+    """``Path("..h5").stem`` is ".", ``Path("...h5").stem`` is "..": their folders were -o itself
+    (the other files' folders nested inside it) and -o's parent."""
+    from radiokit.pipeline import output_folders
+
+    root = tmp_path / "R"
+    names = ["..h5", "...h5", "x/..h5", "y/..h5", "exp.h5"]
+    outs = output_folders([tmp_path / n for n in names], root)
+    assert all(o.parent == root and o.name not in ("", ".", "..") for o in outs), outs
+    assert len({o.name for o in outs}) == len(outs)
+    # beside the file (no -o): a folder of the file's folder, never that folder or its parent
+    for n in names:
+        (out,) = output_folders([tmp_path / n])
+        assert out.parent == (tmp_path / n).parent and out.name not in ("", ".", "..") and out != tmp_path / n
+
+
+def test_process_of_a_file_named_dot_dot_h5_and_another_writes_two_folders_in_the_root(tmp_path):
+    dots, other = synthetic(tmp_path / "..h5"), synthetic(tmp_path / "exp2.h5", scale=1.2)
+    res = run("process", dots, other, "-o", tmp_path / "R", "--no-report", "-q", "--workers", "1", *ROI)
+    assert res.returncode == 0, res.stderr
+    sources = {d.name: json.loads((d / "results.json").read_text())["source"] for d in (tmp_path / "R").iterdir()}
+    assert sorted(sources.values()) == sorted([str(dots), str(other)]) and "exp2" in sources
+    assert not (tmp_path / "R" / "results.json").exists()
+
+
 def test_process_never_writes_over_its_input_named_results_h5(tmp_path):
     folder = tmp_path / "data"
     folder.mkdir()

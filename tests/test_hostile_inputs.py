@@ -530,6 +530,20 @@ def test_nonfinite_pixels_are_filled_and_flagged_in_the_streaming_path(tmp_path)
     assert report.nonpositive.tolist() == [1, 1, 5]
 
 
+def test_correct_says_its_filled_pixels_may_be_nan_not_only_non_positive(tmp_path):
+    # 100 NaN pixels were reported as "100 non-positive (filled)"
+    path = _experiment(tmp_path / "exp.h5")
+    f = read(path)
+    cal = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--experiment", path, "-o", cal).returncode == 0
+    proj = f.data[f.meta["image_key"] == 0][:1].astype(np.float32)
+    proj[0, 10:20, 10:20] = np.nan
+    tifffile.imwrite(tmp_path / "nan.tif", proj, photometric="minisblack")
+    res = run_cli("correct", tmp_path / "nan.tif", "--cal", cal, "-o", tmp_path / "out.h5")
+    assert res.returncode == 0, res.stderr
+    assert "100 non-positive or non-finite (filled)" in res.stdout, res.stdout
+
+
 @pytest.mark.parametrize("hole", ["10x10 block", "column gap 12 px wide", "corner 8x8"])
 def test_nonfinite_regions_wider_than_the_fill_radius_are_filled_not_taken_for_opaque(hole, tmp_path):
     """Float frames of other labs mark unknown pixels NaN: a masked region, a tiled detector's gap

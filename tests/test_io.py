@@ -890,6 +890,33 @@ def test_raw_bad_hints(tmp_path, hints, fragment):
     _raises_format(path, fragment, **hints)
 
 
+@pytest.mark.parametrize(("dtype", "byteorder"), [("<u2", ">"), ("<u2", "big"), (">f4", "<"), (">i2", "little")])
+def test_raw_refuses_a_dtype_and_a_byteorder_that_contradict(tmp_path, dtype, byteorder):
+    # `--dtype '<u2' --byteorder '>'` read big-endian without a word
+    path = tmp_path / "hints.raw"
+    np.arange(24, dtype="<u4").tofile(path)  # 96 bytes: (3, 4) frames of 2 or 4 bytes
+    _raises_format(
+        path,
+        f"dtype={dtype!r}",
+        f"byteorder={byteorder!r}",
+        "contradict",
+        shape=(3, 4),
+        dtype=dtype,
+        byteorder=byteorder,
+    )
+
+
+@pytest.mark.parametrize(
+    ("dtype", "byteorder", "stored"),
+    [(">u2", "big", ">u2"), ("u2", ">", ">u2"), ("<u2", "<", "<u2"), ("<u1", ">", "u1")],
+)
+def test_raw_takes_a_dtype_and_a_byteorder_that_agree(tmp_path, dtype, byteorder, stored):
+    path = tmp_path / "hints.raw"
+    data = np.arange(24, dtype=stored).reshape(2, 3, 4)
+    data.tofile(path)
+    np.testing.assert_array_equal(read(path, shape=(3, 4), dtype=dtype, byteorder=byteorder).data, data)
+
+
 def test_raw_n_hint_reads_leading_frames(tmp_path):
     path = tmp_path / "hints.raw"
     data = np.arange(24, dtype="<u2").reshape(2, 3, 4)

@@ -2906,3 +2906,21 @@ def test_a_micromanager_index_map_declaring_more_than_its_file_is_refused_withou
     )
     res = subprocess.run([sys.executable, "-c", code, "info", str(path)], capture_output=True, text=True, timeout=120)
     one_line_error(res, path.name, said)
+
+
+def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
+    # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
+    # no attribute 'name'"
+    import struct
+
+    path = tmp_path / "comp.tif"
+    tifffile.imwrite(path, np.zeros((64, 64), np.uint16), photometric="minisblack")
+    with tifffile.TiffFile(path) as tif:
+        at = tif.pages[0].tags["Compression"].valueoffset
+    with open(path, "r+b") as f:
+        f.seek(at)
+        f.write(struct.pack("<H", 60000))
+    with pytest.raises(FormatError) as info:
+        read(path)
+    assert str(path) in str(info.value) and "60000" in str(info.value) and "'int'" not in str(info.value)
+    one_line_error(run_cli("info", path), "comp.tif", "60000", "compression")

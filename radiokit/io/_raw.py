@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import operator
 import os
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,9 @@ DEFAULT_PRESET = "c7942"
 
 
 def _parse_dtype(path, dtype, byteorder) -> np.dtype:
+    """``dtype`` (None: 16-bit words, little-endian unless ``byteorder`` says otherwise) in ``byteorder``."""
+    if dtype is None:
+        return _parse_dtype(path, "u2", byteorder or "<")
     try:
         dt = np.dtype(dtype)
     except TypeError as exc:
@@ -57,8 +61,29 @@ def _parse_dtype(path, dtype, byteorder) -> np.dtype:
         order = {"<": "<", "little": "<", ">": ">", "big": ">", "=": "=", "native": "="}.get(byteorder)
         if order is None:
             raise FormatError(path, f"byteorder={byteorder!r}: expected '<', '>', 'little' or 'big'")
+        typed = _typed_order(dtype)
+        if typed is not None and order in "<>" and typed != order and dt.itemsize > 1:
+            # the byteorder won in silence: '<u2' read big-endian
+            raise FormatError(
+                path,
+                f"dtype={dtype!r} and byteorder={byteorder!r} contradict ({_ENDIAN[typed]}-endian against "
+                f"{_ENDIAN[order]}-endian): give the byte order once",
+            )
         dt = dt.newbyteorder(order)
     return dt
+
+
+_ENDIAN = {"<": "little", ">": "big"}
+
+
+def _typed_order(dtype) -> str | None:
+    """The byte order ``dtype`` names itself ('<' or '>'), or None where it names none ('u2', a
+    native dtype object)."""
+    if isinstance(dtype, str):
+        native = "<" if sys.byteorder == "little" else ">"
+        return {"<": "<", ">": ">", "!": ">", "=": native}.get(dtype.strip()[:1])
+    order = getattr(dtype, "byteorder", None)
+    return order if order in ("<", ">") else None
 
 
 def _frame_count(path, n) -> int:
@@ -115,7 +140,7 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
     )
 
 
-def raw_geometry(path, size: int, *, preset=None, shape=None, dtype="<u2", byteorder=None, offset=0, n=None) -> dict:
+def raw_geometry(path, size: int, *, preset=None, shape=None, dtype=None, byteorder=None, offset=0, n=None) -> dict:
     """Decide the geometry of a headerless raw file of ``size`` bytes.
 
     Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a size

@@ -1106,6 +1106,12 @@ class FrameSource:
         """Strips or tiles must cover the page, so that a corrupt width or height cannot make the
         reader allocate, and tifffile zero-fill, gigabytes for a small file."""
         rows, cols = shape
+        if not hasattr(page.compression, "name"):  # tifffile keeps a code it does not know as an int
+            raise FormatError(
+                self.path,
+                f"TIFF page {i} is compressed with compression code {int(page.compression)}, which neither "
+                "radiokit nor tifffile knows: save it uncompressed, LZW, deflate or zstd",
+            )
         if int(page.compression) not in _TIFF_CODECS:
             raise FormatError(
                 self.path,
@@ -1793,7 +1799,8 @@ def read(path, /, **hints) -> Frames:
         ``format`` ("raw", "tiff", "itex", "hdf5") to skip detection; ``dataset`` to read one
         dataset of an arbitrary HDF5 file; for raw files ``preset`` (one of :data:`PRESETS`),
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
-        ``byteorder`` ("<" or ">"), ``offset`` (bytes to skip) and ``n`` (frames to read);
+        ``byteorder`` ("<" or ">"; refused against a dtype naming the other), ``offset`` (bytes to
+        skip) and ``n`` (frames to read);
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
         default: they make a file read other files); ``budget`` (bytes or
