@@ -28,7 +28,7 @@ from acquisition.frame import ManualFrame
 from acquisition.l8121 import L8121
 from acquisition.protocols import load_protocol, run
 from acquisition.protocols.compression_series import Devices
-from radiokit.io import ImageKey
+from radiokit.io import ExperimentWriter, ImageKey
 
 SHAPE = (16, 20)
 H0 = 10.0  # mm, the phantom's initial height
@@ -109,21 +109,21 @@ class Watcher(FolderWatcher):
             yield frame
 
 
-def _lab(tmp_path, series=None, operator=None, **detector):
+def _lab(tmp_path, series=None, operator=None, warmed_up=True, shape=SHAPE, **detector):
     folder = tmp_path / "frames"
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)
     p = load_protocol(
         {
             "output": str(tmp_path / "series.h5"),
             # the driver's reply time-out at 1 s, as test_safety's: at 0.5 s the emulator (a thread
             # of this process) once answered late on a loaded machine (load ~7), read as no reply
             "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "port": "emulated"},
-            "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "timeout_s": 5.0, **detector},
+            "detector": {"kind": "folder", "folder": str(folder), "shape": list(shape), "timeout_s": 5.0, **detector},
             "frame": {"kind": "manual", "initial_height_mm": H0},
             "series": series or {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
         }
     )
-    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
+    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=warmed_up)
     server = PtyServer(model)
     server.start()
     try:
@@ -132,7 +132,7 @@ def _lab(tmp_path, series=None, operator=None, **detector):
         server.stop()
         raise
     watcher = Watcher(
-        folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01, bits=p.detector.bits
+        folder, p.detector.pattern, shape=shape, timeout_s=5.0, settle_s=0.03, poll_s=0.01, bits=p.detector.bits
     )
     operator = operator or Operator()
     frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
@@ -514,3 +514,40 @@ def test_the_dry_run_refuses_a_frame_geometry_the_run_would_refuse(tmp_path, cap
     assert main(["acquire", str(proto), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {proto}: [detector]"), err
+
+
+class _NoRoomForAFrame(ExperimentWriter):
+    """The writer on a disk with room for the file's layout and the writer's reserve but not for
+    one frame more (the reviewer's 1.3 MB tmpfs under 512 x 512 frames). The one fake here, and
+    why: a disk that small needs a tmpfs, which needs root; only the free space the writer reads
+    is faked, so its own room rule -- the one under test -- runs as on the real disk."""
+
+    def _free_bytes(self):
+        return self.reserve_bytes + (100 << 10)  # over the layout's 64 KiB, under a 256 x 256 frame
+
+
+@pytest.mark.parametrize("resume", [False, True], ids=["fresh run", "resume"])
+def test_a_disk_that_cannot_hold_the_next_frame_is_refused_before_any_x_ray_command(tmp_path, resume):
+    """Found (review s41acq): with a source needing its warm-up and a disk holding less than one
+    frame plus the writer's reserve, the run sent WUP -- the warm-up emits X-rays -- and stopped
+    only at dark 0 with "disk full"; a resume on such a disk sent XON for the flats and failed
+    the same way. Now the writer's own room rule is asked before the first X-ray command: one
+    line naming the file, and neither WUP nor XON reaches the controller."""
+    shape = (256, 256)  # a frame (128 KiB) larger than the file's layout, so the file itself opens
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=resume, shape=shape)
+    if resume:  # the darks of an interrupted run are in the file: a resume's first X-rays are the flats' XON
+        with ExperimentWriter(p.output, shape, in_place=True) as w:
+            w.record_run(p.to_toml(), {})
+            for _ in range(series["darks"]):
+                w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+    try:
+        with pytest.raises(OSError) as info:
+            run(p, devices=dev, progress=False, resume=resume, writer_factory=_NoRoomForAFrame)
+    finally:
+        dev.close()
+    msg = str(info.value.strerror)
+    assert msg.startswith(f"{p.output}: disk full") and "no X-ray command was sent" in msg, msg
+    assert "\n" not in msg
+    assert not {"WUP", "XON"} & set(dev.emulator.commands), dev.emulator.commands
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on

@@ -995,6 +995,9 @@ def _phase_warm_up(r: _Run):
     if p.source.focus is not None:  # a setting: checked before anything is opened or sent
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
+    # before the warm-up, which emits, and before a resume's first XON: a disk without room for
+    # the next frame stopped the run only at that frame, after the X-rays (review s41acq)
+    _refuse_without_room(r, "no X-ray command was sent")
     needed = _needs_warm_up(src)  # after the controller's power-on checks: a setting sent during them may be refused
     if p.source.focus is not None:  # before the warm-up, which emits (B's is an XON); set again before each XON
         src.focus = int(p.source.focus)
@@ -1012,6 +1015,19 @@ def _phase_warm_up(r: _Run):
         finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
             r.beam_on_s += time.perf_counter() - t
     r.devices.detector.arm()
+
+
+def _refuse_without_room(r: _Run, said: str) -> None:
+    """Stop before X-rays when the experiment file could not store the next frame: the writer's
+    own rule (:meth:`~radiokit.io.ExperimentWriter.check_room`, the one its append applies), one
+    line naming the file, with ``said`` (what was, or was not, sent) and what to do."""
+    try:
+        r.writer.check_room()
+    except OSError as exc:
+        what = exc.strerror or str(exc)
+        raise OSError(
+            exc.errno or errno.ENOSPC, f"{what}; {said}: free space on that disk or choose another output"
+        ) from None
 
 
 def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
@@ -1128,6 +1144,9 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
 def _beam_on(r: _Run, n: int, what: str):
     """X-rays on for ``n`` frames of ``what`` (the plan's estimate of this period is kept for
     :func:`_beam_off`)."""
+    # the disk may have filled since (the vendor software writes to it too): no XON for frames
+    # the file would refuse
+    _refuse_without_room(r, f"X-rays were not switched on for {what}")
     r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
