@@ -192,9 +192,12 @@ def test_vendor_software_saving_every_frame_to_one_name_stops_the_run_saying_so(
     msg = str(info.value)
     assert "image.tif" in msg and "new, numbered file" in msg, msg
     assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    if info.value.result.file_removed:  # no frame stored: the file held nothing and is not kept
+        assert not Path(p.output).exists()
+        return
     with h5py.File(p.output, "r") as h5:
         key = h5["entry/instrument/detector/image_key"][:]
-    assert np.all(key == ImageKey.INVALID), key
+    assert key.size and np.all(key == ImageKey.INVALID), key
 
 
 def test_a_frame_file_saved_over_after_it_was_stored_stops_the_run_and_the_frame_is_invalid(tmp_path):
@@ -551,3 +554,55 @@ def test_a_disk_that_cannot_hold_the_next_frame_is_refused_before_any_x_ray_comm
     assert "\n" not in msg
     assert not {"WUP", "XON"} & set(dev.emulator.commands), dev.emulator.commands
     assert info.value.result.tube_off is True and not dev.emulator.xray_on
+
+
+@pytest.mark.parametrize("resume", [False, True], ids=["fresh run, source to warm up", "resume after the darks"])
+def test_a_panel_that_delivers_nothing_is_found_before_any_x_ray_command(tmp_path, resume):
+    """Found (review s41acq): with the vendor software not saving (no panel), the run warmed the
+    source up -- X-rays -- and found the panel missing only when the darks timed out; a resume
+    after the darks switched X-rays on for the flats first. Now one frame, tube off, shows the
+    panel delivers before the first X-ray command (none is stored: the darks stay "just before
+    acquisition", C7942.md, not half an hour before it behind the warm-up). A fresh run's file,
+    which took no frame, is not left to block the rerun; a resumed file keeps its frames."""
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=resume, timeout_s=1.0)
+    if resume:
+        with ExperimentWriter(p.output, SHAPE, in_place=True) as w:
+            w.record_run(p.to_toml(), {})
+            for _ in range(series["darks"]):
+                w.append(np.full(SHAPE, 100, np.uint16), image_key=ImageKey.DARK)
+    try:  # no vendor thread: nothing ever reaches the folder
+        with pytest.raises(DeviceError) as info:
+            run(p, devices=dev, progress=False, resume=resume)
+    finally:
+        dev.close()
+    msg = str(info.value)
+    assert "0 of 1 frames arrived" in msg and "no X-ray command was sent" in msg, msg
+    assert not {"WUP", "XON"} & set(dev.emulator.commands), dev.emulator.commands
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    if resume:
+        with h5py.File(p.output, "r") as h5:
+            assert list(h5["entry/instrument/detector/image_key"][:]) == [ImageKey.DARK] * 2
+    else:
+        assert not Path(p.output).exists() and info.value.result.file_removed
+
+
+def test_the_panel_check_frame_is_not_stored_and_the_series_completes(tmp_path):
+    """With a working panel, the check before the warm-up costs one frame (not stored) and the
+    series is what it was: every dark with the tube off, flats and projections with it on."""
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=False)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    vendor.start()
+    try:
+        res = run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert res.tube_off is True and res.frames_total == 2 + 2 + len(STEPS)
+    assert "WUP" in dev.emulator.commands
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+        seen = h5["entry/instrument/detector/data"][:, 0, 0:2].astype(int)
+    assert list(key) == [ImageKey.DARK] * 2 + [ImageKey.FLAT] * 2 + [ImageKey.PROJECTION] * len(STEPS)
+    assert np.all(seen[:2] == 0) and np.all(seen[2:] == 1), seen

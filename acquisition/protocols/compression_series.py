@@ -4,7 +4,8 @@ The protocol is data (TOML), the devices are swappable (the lab's L8121, vendor-
 and manual frame, or the virtual bench with the L8121 emulator on a pseudo-terminal), and the
 order of work is fixed::
 
-    connect -> checks (TYP, interlock, warm-up state) -> warm up if needed
+    connect -> checks (TYP, interlock, warm-up state, room for a frame) -> warm up if needed
+    (after a frame from the panel, tube off, not stored: no X-rays before the panel delivers)
     -> darks (tube off), judged -> flats (phantom out, tube on, tube off), judged, phantom in
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
@@ -873,6 +874,7 @@ class Result:
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
     previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
+    file_removed: bool = False  # stopped before its first frame, the new file it made was removed (held none)
     #: overwrite=True stopped before its first frame, and the old file could not be put back under
     #: its name (the folder turned unwritable): where it is kept, hidden
     previous_aside: Path | None = None
@@ -934,6 +936,9 @@ class _Run:
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
     beam_planned: tuple = (0.0, 0, "")  # the plan's seconds, frames and name of that period
     overrun_told: bool = False
+    panel_seen: bool = False  # the panel delivered a frame in this run (_panel_check)
+    began_file: bool = False  # the experiment file is this run's own, made under a free name
+    discard_file: bool = False  # ... and stopped before its first frame: removed as it closes
     origins: dict = field(default_factory=dict)  # (frame file, time) -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
@@ -988,9 +993,10 @@ def _phase_connect(r: _Run):
 
 
 def _phase_warm_up(r: _Run):
-    """Open the experiment file, set the focus, then warm up if the source needs it, arm the
-    panel. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
-    full disk, a read-only folder) must not have started it."""
+    """Open the experiment file, set the focus, arm the panel, then warm up if the source needs
+    it. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
+    full disk, a read-only folder) must not have started it; nor one whose panel delivers none
+    (:func:`_panel_check`)."""
     src, p = r.source, r.p
     if p.source.focus is not None:  # a setting: checked before anything is opened or sent
         src.check_focus(int(p.source.focus))
@@ -1001,7 +1007,9 @@ def _phase_warm_up(r: _Run):
     needed = _needs_warm_up(src)  # after the controller's power-on checks: a setting sent during them may be refused
     if p.source.focus is not None:  # before the warm-up, which emits (B's is an XON); set again before each XON
         src.focus = int(p.source.focus)
+    r.devices.detector.arm()
     if needed:
+        _panel_check(r)
         t = time.perf_counter()
         try:
             # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
@@ -1014,7 +1022,25 @@ def _phase_warm_up(r: _Run):
             )
         finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
             r.beam_on_s += time.perf_counter() - t
-    r.devices.detector.arm()
+
+
+def _panel_check(r: _Run) -> None:
+    """One frame from the panel, the tube off, before this run's first X-ray command when no
+    frame has come yet (the warm-up, or a resume's first XON): a panel that delivers nothing was
+    found only when the darks timed out after the warm-up, or the flats with X-rays on (review
+    s41acq). The frame is not stored: the darks stay just before the exposures (C7942.md: the
+    dark drifts), not up to the warm-up's half hour before them."""
+    if r.panel_seen:
+        return
+    detector = r.devices.detector
+    detector.begin_batch(r.p.detector.discard_after_change)
+    try:
+        for frame in detector.acquire(1, timeout_s=r.p.detector.timeout_s):
+            log.info("panel check: a frame from %s, tube off (not stored): the panel delivers", frame.origin)
+    except DeviceError as exc:
+        exc.args = (f"{exc}; the panel is checked before X-rays: no X-ray command was sent",) + exc.args[1:]
+        raise
+    r.panel_seen = True
 
 
 def _refuse_without_room(r: _Run, said: str) -> None:
@@ -1089,6 +1115,7 @@ def _open_experiment(r: _Run):
         if isinstance(exc, OutputError):
             raise OSError(code, str(exc)) from None
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
+    r.began_file = not existed and not r.resume
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
 
@@ -1130,6 +1157,7 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
             current_ua=monitor.ua if beam else 0.0,
         )
         log.debug("frame %d written (image_key %d, step %d) from %s", index, int(image_key), step, frame.origin)
+        r.panel_seen = True
         r.origins[(frame.origin, frame.time_s)] = index  # FrameLost names a stored frame so
         if beam:
             monitor.written.append((index, frame.time_s))
@@ -1147,6 +1175,7 @@ def _beam_on(r: _Run, n: int, what: str):
     # the disk may have filled since (the vendor software writes to it too): no XON for frames
     # the file would refuse
     _refuse_without_room(r, f"X-rays were not switched on for {what}")
+    _panel_check(r)
     r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
@@ -1569,6 +1598,9 @@ def _stop(r: _Run, exc: BaseException):
         _mark_invalid(r.writer, monitor.suspect())
     if r.writer is not None:
         res.frames_total = r.writer.n_frames
+    # a file this run made that took no frame holds nothing to resume, and left it only blocked
+    # the rerun ("exists; raw data is never overwritten"): removed as the writer closes (_release)
+    r.discard_file = r.began_file and r.writer is not None and r.writer.n_frames == 0
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
     kept = r.replacing and r.previous_aside is None
@@ -1584,20 +1616,25 @@ def _stop(r: _Run, exc: BaseException):
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
-    if hasattr(exc, "add_note") and r.previous_aside is not None:
-        exc.add_note(
+    if hasattr(exc, "add_note"):
+        exc.add_note(_stop_note(r, what, tube, kept))
+
+
+def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
+    """What the operator can do next, after :func:`_stop` (for the exception's note)."""
+    if r.previous_aside is not None:
+        return (
             f"{what} in phase '{r.phase}': {tube}; no frame taken: another program made {r.out} meanwhile, and the "
             f"previous series is kept in {r.previous_aside}"
         )
-    elif hasattr(exc, "add_note") and kept:
-        exc.add_note(
-            f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
-        )
-    elif hasattr(exc, "add_note"):
-        exc.add_note(
-            f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
-            f"`radiokit acquire PROTOCOL --resume` completes the series"
-        )
+    if kept:
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
+    if r.discard_file:
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken, {r.out} not kept: the run can start again"
+    return (
+        f"{what} in phase '{r.phase}': {tube}; {r.res.frames_total} frames are saved in {r.out}; "
+        f"`radiokit acquire PROTOCOL --resume` completes the series"
+    )
 
 
 def _off_where_the_guardian_left(exc: BaseException) -> None:
@@ -1651,6 +1688,14 @@ def _release(r: _Run, notebook):
             r.writer.close()
         except Exception as exc:
             log.error("closing %s: %s", r.out, exc)
+        else:
+            if r.discard_file:
+                from radiokit.io import discard_unbegun
+
+                discard_unbegun(r.out)  # (not if another program holds it open by now)
+                r.res.file_removed = not r.out.exists()
+                if r.res.file_removed:
+                    log.info("%s: no frame taken; the file is not kept (a rerun starts the series)", r.out)
     aside = getattr(r.writer, "previous_kept_in", None)
     if aside is not None and r.previous_aside is None:
         # the put-back failed as the writer closed, after _stop's note said "unchanged"
