@@ -157,7 +157,7 @@ def _resumable(args, p, held: Path | None = None) -> tuple[int | None, dict | No
     from radiokit.io import read_progress
 
     try:
-        done = _existing(held, p)
+        done = _existing(held, p, sim=args.sim)
         if plan(p, done, warm=True).n_frames:
             return None, done
         n = read_progress(held).frames_complete

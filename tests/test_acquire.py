@@ -690,12 +690,54 @@ def test_cli_a_file_not_to_resume_from_is_refused_exit_2_in_the_run_as_in_the_dr
     else:
         with ExperimentWriter(out, shape=(4, 4)) as w:
             w.record_run(protocol(tmp_path, scene_toml, darks=DARKS + 1).to_toml(), {})
-        pattern = rf"^error: {re.escape(str(out))}: written by a different protocol"
+        pattern = rf"^error: {re.escape(str(out))}: written by a protocol that differs in \[series\] darks"
     before = out.read_bytes()
     code = _cli("acquire", str(path), "--sim", "--resume", *flags)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and re.search(pattern, err[0]), (code, err)
     assert out.read_bytes() == before and not out.with_suffix(".log").exists()  # no notebook: nothing opened
+
+
+@pytest.mark.parametrize(
+    "section, key, value, named",
+    [
+        ("detector", "bits", 14, "[detector] bits = 14 (12 in the file)"),
+        ("detector", "pixel_size_mm", 0.1, "[detector] pixel_size_mm = 0.1 (not set in the file)"),
+        ("source", "focus", 1, "[source] focus = 1 (not set in the file)"),
+        ("source", "dialect", "B", "[source] dialect = 'B' ('A' in the file)"),
+        ("sim", "seed", 7, "[sim] seed = 7 (0 in the file)"),
+    ],
+)
+def test_cli_resume_refuses_a_protocol_edited_in_a_setting_that_shapes_the_data_or_the_beam(
+    tmp_path, scene_toml, capsys, section, key, value, named
+):
+    """Found (review s41acq): `--resume` compared only the series, the frame height, kV and uA
+    with the protocol the file records: `[detector] bits = 14` and `pixel_size_mm = 0.1` were
+    accepted after a 12-bit run, and the file then recorded 14 bits for 12-bit darks and kept its
+    old pitch without a word; a new focus or dialect too. Now each such setting is compared: one
+    line naming it, both values, and how to go on, before anything is opened. A setting that
+    shapes neither (the beam monitor's period, the panel's time-out) may change."""
+    p = protocol(tmp_path, scene_toml)
+    out = Path(p.output)
+    with ExperimentWriter(out, shape=(4, 4)) as w:
+        w.record_run(p.to_toml(), {})
+    edited = protocol(tmp_path, scene_toml)
+    if section == "source" and key == "dialect":
+        edited.source.limits["dialect"] = value
+    else:
+        setattr(getattr(edited, section), key, value)
+    path = tmp_path / "protocol.toml"
+    path.write_text(edited.to_toml())
+    before = out.read_bytes()
+    code = _cli("acquire", str(path), "--sim", "--resume", "-q")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, (code, err)
+    assert err[0].startswith(f"error: {out}: written by a protocol that differs in ") and named in err[0], err
+    assert "-o" in err[0] and out.read_bytes() == before and not out.with_suffix(".log").exists()
+    harmless = protocol(tmp_path, scene_toml, timeout_s=1.0)
+    harmless.source.poll_s, harmless.detector.timeout_s = 0.2, 9.0
+    path.write_text(harmless.to_toml())
+    assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
 
 
 def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(

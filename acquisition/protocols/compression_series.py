@@ -880,10 +880,54 @@ class Result:
     previous_aside: Path | None = None
 
 
-def _existing(path: Path, protocol: Protocol) -> dict:
+#: The settings a resume must share with the run the file records: what shapes the recorded frames
+#: (the panel, its depth and pitch, the series, the frame) or the beam (exposure, focal spot, the
+#: controller's dialect), as ``(section, key)``; ``source.dialect`` lives in its limits. The
+#: virtual bench's own ("sim") count on ``--sim`` only. Links, periods and time-outs may change.
+_RESUME_SAME = (
+    ("series", "darks"),
+    ("series", "flats"),
+    ("series", "frames_per_step"),
+    ("series", "steps"),
+    ("series", "settle_s"),
+    ("frame", "kind"),
+    ("frame", "initial_height_mm"),
+    ("source", "voltage_kv"),
+    ("source", "current_ua"),
+    ("source", "focus"),
+    ("source", "dialect"),
+    ("detector", "kind"),
+    ("detector", "shape"),
+    ("detector", "preset"),
+    ("detector", "bits"),
+    ("detector", "pixel_size_mm"),
+)
+_RESUME_SAME_SIM = (("sim", "scene"), ("sim", "binning"), ("sim", "seed"))
+
+
+def _setting(p: Protocol, section: str, key: str):
+    if (section, key) == ("source", "dialect"):
+        return p.source.limits.get("dialect")
+    return getattr(getattr(p, section), key)
+
+
+def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]:
+    """The settings of :data:`_RESUME_SAME` that differ, each as "[section] key = now (file)"."""
+    said = []
+    for section, key in _RESUME_SAME + (_RESUME_SAME_SIM if sim else ()):
+        a, b = _setting(stored, section, key), _setting(now, section, key)
+        if a != b:
+            then = "not set in the file" if a is None else f"{a!r} in the file"
+            said.append(f"[{section}] {key} = {'unset' if b is None else repr(b)} ({then})")
+    return said
+
+
+def _existing(path: Path, protocol: Protocol, *, sim: bool = False) -> dict:
     """What an interrupted file already holds: {'darks': n, 'flats': n, 'steps': {i: n}}; checks
-    it was written by the same protocol. Frames labelled invalid (cut short by a full disk, or
-    taken after the beam monitor's last good reading) do not count: they are taken again."""
+    it was written by the same protocol in every setting that shapes the frames or the beam
+    (:data:`_RESUME_SAME`; ``sim``: a ``--sim`` resume, the virtual bench's too). Frames labelled
+    invalid (cut short by a full disk, or taken after the beam monitor's last good reading) do
+    not count: they are taken again."""
     from radiokit.io import ImageKey, read_progress
 
     try:
@@ -891,15 +935,14 @@ def _existing(path: Path, protocol: Protocol) -> dict:
         if progress.protocol is None:
             raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
         # the stored text is a protocol, never the name of a file to open
-        a, b = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)"), protocol
-        if (
-            a.series != b.series
-            or a.frame.initial_height_mm != b.frame.initial_height_mm
-            or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)
-        ):
+        stored = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)")
+        differ = _resume_differences(stored, protocol, sim)
+        if differ:
+            # one series, one set of settings: a resumed 12-bit series recorded 14 bits for its
+            # 12-bit darks, and a new pitch was dropped without a word (review s41acq)
             raise ProtocolError(
-                f"{path}: written by a different protocol (series, frame height or exposure "
-                f"differ); resume with the protocol stored in the file"
+                f"{path}: written by a protocol that differs in {'; '.join(differ)}; resume with the "
+                "file's settings (its /entry@protocol), or start a new file with -o"
             )
         keys, steps = progress.image_key, progress.step
     except (OSError, KeyError, TypeError, ValueError) as exc:
@@ -1488,7 +1531,7 @@ def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
     if resume and not out.exists():
         log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
         resume = False
-    done = _existing(out, p) if resume else None
+    done = _existing(out, p, sim=sim) if resume else None
     if done is not None and plan(p, done, warm=True).n_frames == 0:
         # nothing to take: no device is opened, no notebook line and no end time written (raw data
         # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
