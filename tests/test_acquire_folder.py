@@ -606,3 +606,53 @@ def test_the_panel_check_frame_is_not_stored_and_the_series_completes(tmp_path):
         seen = h5["entry/instrument/detector/data"][:, 0, 0:2].astype(int)
     assert list(key) == [ImageKey.DARK] * 2 + [ImageKey.FLAT] * 2 + [ImageKey.PROJECTION] * len(STEPS)
     assert np.all(seen[:2] == 0) and np.all(seen[2:] == 1), seen
+
+
+def test_a_resume_after_the_flats_asks_for_the_phantom_back_before_the_first_projection(tmp_path):
+    """Found (review s41acq): Ctrl-C at "Put the phantom back in the beam" (every flat taken),
+    then `--resume`: its first request was the plate gap, the phantom was never asked back in,
+    and the projections could be taken without it, labelled valid. The file holds no record of
+    the phantom's return before its first projection: a resume that finds the flats done and no
+    projection asks for it again before the first step."""
+
+    class QuitsAtThePhantom(Operator):
+        def ask(self, prompt):
+            if "Put the phantom back" in self._said:
+                raise KeyboardInterrupt  # Ctrl-C at the prompt
+            return super().ask(prompt)
+
+    class Told(Operator):
+        def say(self, text):
+            self.told = [*getattr(self, "told", []), text]
+            super().say(text)
+
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    first = QuitsAtThePhantom()
+    p, dev, operator = _lab(tmp_path, series, first)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, first)
+    vendor.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert not first.phantom_in and not dev.emulator.xray_on
+    second = Told()
+    second.phantom_in = False  # as the first run left it: out of the beam
+    p, dev, operator = _lab(tmp_path, series, second)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, second)
+    vendor.start()
+    try:
+        res = run(p, devices=dev, progress=False, resume=True)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert res.tube_off is True and res.frames_total == 2 + 2 + len(STEPS)
+    asked = [t for t in second.told if "phantom" in t or "Turn the screws" in t]
+    assert asked and asked[0].startswith("Put the phantom back in the beam"), second.told
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+        seen = h5["entry/instrument/detector/data"][:, 0, 2:4].astype(int)
+    proj = key == ImageKey.PROJECTION
+    assert proj.sum() == len(STEPS) and np.all(seen[proj] == 1), seen[proj]  # the phantom in, start and end

@@ -1275,6 +1275,11 @@ def _phase_flats(r: _Run):
         # judged with the tube off and before the phantom goes back in: a refusal stops here
         _judge(r, "flats")
         frm.sample_in()
+    elif r.resume and r.p.series.flats and not any(r.done["steps"].values()):
+        # the flats are in the file and no projection: nothing records that the phantom went
+        # back in after them (a Ctrl-C at that request), and a resume went straight to the
+        # screws, the projections then taken without it (review s41acq); asked again, tube off
+        r.devices.frame.sample_in()
 
 
 def _judge(r: _Run, what: str) -> None:
