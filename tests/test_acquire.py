@@ -26,6 +26,7 @@ import re
 import signal
 import threading
 import time
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -738,6 +739,42 @@ def test_cli_resume_refuses_a_protocol_edited_in_a_setting_that_shapes_the_data_
     harmless.source.poll_s, harmless.detector.timeout_s = 0.2, 9.0
     path.write_text(harmless.to_toml())
     assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "section, key, value, said",
+    [
+        ("", "output", 5, "output = 5: expected a file name (a string)"),
+        ("", "name", ["a"], "name = ['a']: expected a string"),
+        ("series", "steps", [0.1, "x"], "[series] steps = [0.1, 'x']: expected increasing compression ratios"),
+        ("series", "steps", 0.15, "[series] steps = 0.15: expected increasing compression ratios"),
+        ("frame", "interactive", "false", "[frame] interactive = 'false': expected true or false"),
+        ("detector", "discard_first", "false", "[detector] discard_first = 'false': expected true or false"),
+        ("detector", "folder", 5, "[detector] folder = 5: expected a string"),
+        ("sim", "scene", 5, "[sim] scene = 5: expected a string"),
+        ("source", "min_interval_s", 100, "[source] min_interval_s = 100: expected at most 1 s"),
+    ],
+)
+def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_key(
+    tmp_path, scene_toml, capsys, section, key, value, said
+):
+    """Found (review s41acq): `output = 5` ended in a traceback; `steps = [0.1, "x"]` in a line
+    naming no file; `interactive = "false"` read as true (a non-empty string), so the run asked
+    nobody; `[sim] scene = 5` passed the dry run; `min_interval_s = 100` (a command every 100 s:
+    each switch-off waits it) was taken. Each is one line at loading, before any port is opened:
+    the file, the key and what is expected; exit 2, the dry run as the run."""
+    import tomli_w
+
+    data = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
+    (data[section] if section else data)[key] = value
+    path = tmp_path / "protocol.toml"
+    path.write_text(tomli_w.dumps(data))
+    for flags in (["--dry-run"], ["-q"]):
+        code = _cli("acquire", str(path), "--sim", *flags)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, (flags, code, err)
+        assert err[0].startswith(f"error: {path}: ") and said in err[0], err
+    assert not os.path.exists(data["output"] if isinstance(data["output"], str) else tmp_path / "series.h5")
 
 
 def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(

@@ -213,6 +213,12 @@ class Protocol:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self):
+        if isinstance(self.output, os.PathLike):  # the Python API's Path: the TOML stores text
+            self.output = os.fspath(self.output)
+        if not isinstance(self.output, str) or not self.output:
+            raise ProtocolError(f"output = {self.output!r}: expected a file name (a string)")
+        if not isinstance(self.name, str):
+            raise ProtocolError(f"name = {self.name!r}: expected a string")
         for name, section in (
             ("source", self.source),
             ("detector", self.detector),
@@ -226,10 +232,7 @@ class Protocol:
             raise ProtocolError(
                 f"series: darks {s.darks} and flats {s.flats} must be >= 0, frames_per_step {s.frames_per_step} >= 1"
             )
-        steps = tuple(float(r) for r in s.steps)
-        if not steps or any(not 0 <= r < 0.9 for r in steps) or list(steps) != sorted(set(steps)):
-            raise ProtocolError(f"series.steps {list(s.steps)}: expected increasing compression ratios in [0, 0.9)")
-        s.steps = steps
+        s.steps = _checked_steps(s.steps)
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
         if self.frame.kind not in ("manual", "sim"):
@@ -277,6 +280,20 @@ class Protocol:
         return tomli_w.dumps(dataclasses.asdict(self, dict_factory=_without_none))
 
 
+def _checked_steps(steps) -> tuple:
+    """``[series] steps`` as a tuple of floats, or ProtocolError naming the key ("x" among them
+    ended in float()'s words, naming neither file nor key)."""
+    said = f"[series] steps = {steps!r}: expected increasing compression ratios in [0, 0.9)"
+    if not isinstance(steps, (list, tuple)):
+        raise ProtocolError(said)
+    if not all(is_number(r) for r in steps):
+        raise ProtocolError(f"[series] steps = {list(steps)!r}: expected increasing compression ratios in [0, 0.9)")
+    ratios = tuple(float(r) for r in steps)
+    if not ratios or any(not 0 <= r < 0.9 for r in ratios) or list(ratios) != sorted(set(ratios)):
+        raise ProtocolError(f"series.steps {list(steps)}: expected increasing compression ratios in [0, 0.9)")
+    return ratios
+
+
 def _without_none(items) -> dict:
     """A dataclass's fields as a dict, unset (``None``) ones left out: TOML has no null."""
     return {k: v for k, v in items if v is not None}
@@ -284,11 +301,18 @@ def _without_none(items) -> dict:
 
 def _check_numbers(section: str, settings) -> None:
     """Every number of a settings section: the right type, finite, and >= 0 (no setting of a
-    protocol is negative; ``inf`` would overflow a timer or a duration estimate)."""
+    protocol is negative; ``inf`` would overflow a timer or a duration estimate); every switch
+    true or false and every name a string (``interactive = "false"`` read as true)."""
     for f in dataclasses.fields(settings):
         value = getattr(settings, f.name)
         kind = str(f.type).replace(" | None", "")
-        if value is None and "None" in str(f.type) or kind not in ("float", "int"):
+        if value is None and "None" in str(f.type):
+            continue
+        if kind == "bool" and not isinstance(value, bool):
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected true or false")
+        if kind == "str" and not isinstance(value, str):
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a string")
+        if kind not in ("float", "int"):
             continue
         if not (is_integer(value) if kind == "int" else is_number(value)):
             raise ProtocolError(
@@ -374,6 +398,12 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+    if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
+        # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
+        raise ProtocolError(
+            f"[source] min_interval_s = {cfg.min_interval_s:g}: expected at most {MIN_INTERVAL_MAX_S:g} s "
+            "(the controller needs ~0.05 s between commands, and each switch-off waits this long before its XOF)"
+        )
     modes = cfg.focus_modes
     if cfg.dialect in DIALECTS:  # "auto": checked at connect, once the dialect is known (_phase_warm_up)
         modes = DIALECTS[cfg.dialect].focus_modes(cfg)
@@ -391,6 +421,9 @@ def _check_source(s: SourceSettings) -> None:
             f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * period:g} s), or 0 for none"
         )
 
+
+#: The longest command spacing a protocol may ask for (``[source] min_interval_s``).
+MIN_INTERVAL_MAX_S = 1.0
 
 _SECTIONS = {
     "source": SourceSettings,
