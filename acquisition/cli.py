@@ -157,7 +157,7 @@ def _resumable(args, p, held: Path | None = None) -> tuple[int | None, dict | No
     from radiokit.io import read_progress
 
     try:
-        done = _existing(held, p)
+        done = _existing(held, p, sim=args.sim)
         if plan(p, done, warm=True).n_frames:
             return None, done
         n = read_progress(held).frames_complete
@@ -359,6 +359,8 @@ def _series(guard, args, p) -> int:
             _say(f"\nstopped by {name} in phase {r.phase}; {_aside(r, args)}")
         elif r is not None and r.previous_kept:
             _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_removed", False):
+            _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
         else:
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
         return _finish(r, 128 + getattr(exc, "signum", 2))
@@ -370,6 +372,8 @@ def _series(guard, args, p) -> int:
             _say(f"stopped in phase {r.phase}; {_aside(r, args)}")
         elif r is not None and r.phase != "connect" and r.previous_kept:
             _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_removed", False):
+            _say(f"stopped in phase {r.phase}; {_REMOVED.format(out=r.output)}")
         elif r is not None and r.phase != "connect":
             _say(
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
@@ -391,6 +395,8 @@ def _series(guard, args, p) -> int:
 #: An --overwrite stopped before its first frame: the file it was to replace is there, as it was
 #: (a `--resume` would go on with that series, not start the new one).
 _KEPT = "no frame taken: {out} holds the previous series, unchanged"
+# the file the run made held no frame: left, it only refused the rerun ("exists")
+_REMOVED = "no frame taken: {out} was not kept; the same command starts the series again"
 
 
 def _aside(r, args) -> str:

@@ -26,6 +26,7 @@ import re
 import signal
 import threading
 import time
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -690,12 +691,90 @@ def test_cli_a_file_not_to_resume_from_is_refused_exit_2_in_the_run_as_in_the_dr
     else:
         with ExperimentWriter(out, shape=(4, 4)) as w:
             w.record_run(protocol(tmp_path, scene_toml, darks=DARKS + 1).to_toml(), {})
-        pattern = rf"^error: {re.escape(str(out))}: written by a different protocol"
+        pattern = rf"^error: {re.escape(str(out))}: written by a protocol that differs in \[series\] darks"
     before = out.read_bytes()
     code = _cli("acquire", str(path), "--sim", "--resume", *flags)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and re.search(pattern, err[0]), (code, err)
     assert out.read_bytes() == before and not out.with_suffix(".log").exists()  # no notebook: nothing opened
+
+
+@pytest.mark.parametrize(
+    "section, key, value, named",
+    [
+        ("detector", "bits", 14, "[detector] bits = 14 (12 in the file)"),
+        ("detector", "pixel_size_mm", 0.1, "[detector] pixel_size_mm = 0.1 (not set in the file)"),
+        ("source", "focus", 1, "[source] focus = 1 (not set in the file)"),
+        ("source", "dialect", "B", "[source] dialect = 'B' ('A' in the file)"),
+        ("sim", "seed", 7, "[sim] seed = 7 (0 in the file)"),
+    ],
+)
+def test_cli_resume_refuses_a_protocol_edited_in_a_setting_that_shapes_the_data_or_the_beam(
+    tmp_path, scene_toml, capsys, section, key, value, named
+):
+    """Found (review s41acq): `--resume` compared only the series, the frame height, kV and uA
+    with the protocol the file records: `[detector] bits = 14` and `pixel_size_mm = 0.1` were
+    accepted after a 12-bit run, and the file then recorded 14 bits for 12-bit darks and kept its
+    old pitch without a word; a new focus or dialect too. Now each such setting is compared: one
+    line naming it, both values, and how to go on, before anything is opened. A setting that
+    shapes neither (the beam monitor's period, the panel's time-out) may change."""
+    p = protocol(tmp_path, scene_toml)
+    out = Path(p.output)
+    with ExperimentWriter(out, shape=(4, 4)) as w:
+        w.record_run(p.to_toml(), {})
+    edited = protocol(tmp_path, scene_toml)
+    if section == "source" and key == "dialect":
+        edited.source.limits["dialect"] = value
+    else:
+        setattr(getattr(edited, section), key, value)
+    path = tmp_path / "protocol.toml"
+    path.write_text(edited.to_toml())
+    before = out.read_bytes()
+    code = _cli("acquire", str(path), "--sim", "--resume", "-q")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, (code, err)
+    assert err[0].startswith(f"error: {out}: written by a protocol that differs in ") and named in err[0], err
+    assert "-o" in err[0] and out.read_bytes() == before and not out.with_suffix(".log").exists()
+    harmless = protocol(tmp_path, scene_toml, timeout_s=1.0)
+    harmless.source.poll_s, harmless.detector.timeout_s = 0.2, 9.0
+    path.write_text(harmless.to_toml())
+    assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "section, key, value, said",
+    [
+        ("", "output", 5, "output = 5: expected a file name (a string)"),
+        ("", "name", ["a"], "name = ['a']: expected a string"),
+        ("series", "steps", [0.1, "x"], "[series] steps = [0.1, 'x']: expected increasing compression ratios"),
+        ("series", "steps", 0.15, "[series] steps = 0.15: expected increasing compression ratios"),
+        ("frame", "interactive", "false", "[frame] interactive = 'false': expected true or false"),
+        ("detector", "discard_first", "false", "[detector] discard_first = 'false': expected true or false"),
+        ("detector", "folder", 5, "[detector] folder = 5: expected a string"),
+        ("sim", "scene", 5, "[sim] scene = 5: expected a string"),
+        ("source", "min_interval_s", 100, "[source] min_interval_s = 100: expected at most 1 s"),
+    ],
+)
+def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_key(
+    tmp_path, scene_toml, capsys, section, key, value, said
+):
+    """Found (review s41acq): `output = 5` ended in a traceback; `steps = [0.1, "x"]` in a line
+    naming no file; `interactive = "false"` read as true (a non-empty string), so the run asked
+    nobody; `[sim] scene = 5` passed the dry run; `min_interval_s = 100` (a command every 100 s:
+    each switch-off waits it) was taken. Each is one line at loading, before any port is opened:
+    the file, the key and what is expected; exit 2, the dry run as the run."""
+    import tomli_w
+
+    data = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
+    (data[section] if section else data)[key] = value
+    path = tmp_path / "protocol.toml"
+    path.write_text(tomli_w.dumps(data))
+    for flags in (["--dry-run"], ["-q"]):
+        code = _cli("acquire", str(path), "--sim", *flags)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, (flags, code, err)
+        assert err[0].startswith(f"error: {path}: ") and said in err[0], err
+    assert not os.path.exists(data["output"] if isinstance(data["output"], str) else tmp_path / "series.h5")
 
 
 def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(

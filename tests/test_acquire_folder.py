@@ -28,7 +28,7 @@ from acquisition.frame import ManualFrame
 from acquisition.l8121 import L8121
 from acquisition.protocols import load_protocol, run
 from acquisition.protocols.compression_series import Devices
-from radiokit.io import ImageKey
+from radiokit.io import ExperimentWriter, ImageKey
 
 SHAPE = (16, 20)
 H0 = 10.0  # mm, the phantom's initial height
@@ -109,21 +109,21 @@ class Watcher(FolderWatcher):
             yield frame
 
 
-def _lab(tmp_path, series=None, operator=None, **detector):
+def _lab(tmp_path, series=None, operator=None, warmed_up=True, shape=SHAPE, **detector):
     folder = tmp_path / "frames"
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)
     p = load_protocol(
         {
             "output": str(tmp_path / "series.h5"),
             # the driver's reply time-out at 1 s, as test_safety's: at 0.5 s the emulator (a thread
             # of this process) once answered late on a loaded machine (load ~7), read as no reply
             "source": {"voltage_kv": 60, "current_ua": 250, "poll_s": 0.1, "timeout_s": 1.0, "port": "emulated"},
-            "detector": {"kind": "folder", "folder": str(folder), "shape": list(SHAPE), "timeout_s": 5.0, **detector},
+            "detector": {"kind": "folder", "folder": str(folder), "shape": list(shape), "timeout_s": 5.0, **detector},
             "frame": {"kind": "manual", "initial_height_mm": H0},
             "series": series or {"darks": 2, "flats": 2, "frames_per_step": 2, "steps": list(STEPS), "settle_s": 0.05},
         }
     )
-    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
+    model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=warmed_up)
     server = PtyServer(model)
     server.start()
     try:
@@ -132,7 +132,7 @@ def _lab(tmp_path, series=None, operator=None, **detector):
         server.stop()
         raise
     watcher = Watcher(
-        folder, p.detector.pattern, shape=SHAPE, timeout_s=5.0, settle_s=0.03, poll_s=0.01, bits=p.detector.bits
+        folder, p.detector.pattern, shape=shape, timeout_s=5.0, settle_s=0.03, poll_s=0.01, bits=p.detector.bits
     )
     operator = operator or Operator()
     frame = ManualFrame(H0, ask=operator.ask, say=operator.say)
@@ -192,9 +192,12 @@ def test_vendor_software_saving_every_frame_to_one_name_stops_the_run_saying_so(
     msg = str(info.value)
     assert "image.tif" in msg and "new, numbered file" in msg, msg
     assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    if info.value.result.file_removed:  # no frame stored: the file held nothing and is not kept
+        assert not Path(p.output).exists()
+        return
     with h5py.File(p.output, "r") as h5:
         key = h5["entry/instrument/detector/image_key"][:]
-    assert np.all(key == ImageKey.INVALID), key
+    assert key.size and np.all(key == ImageKey.INVALID), key
 
 
 def test_a_frame_file_saved_over_after_it_was_stored_stops_the_run_and_the_frame_is_invalid(tmp_path):
@@ -514,3 +517,142 @@ def test_the_dry_run_refuses_a_frame_geometry_the_run_would_refuse(tmp_path, cap
     assert main(["acquire", str(proto), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {proto}: [detector]"), err
+
+
+class _NoRoomForAFrame(ExperimentWriter):
+    """The writer on a disk with room for the file's layout and the writer's reserve but not for
+    one frame more (the reviewer's 1.3 MB tmpfs under 512 x 512 frames). The one fake here, and
+    why: a disk that small needs a tmpfs, which needs root; only the free space the writer reads
+    is faked, so its own room rule -- the one under test -- runs as on the real disk."""
+
+    def _free_bytes(self):
+        return self.reserve_bytes + (100 << 10)  # over the layout's 64 KiB, under a 256 x 256 frame
+
+
+@pytest.mark.parametrize("resume", [False, True], ids=["fresh run", "resume"])
+def test_a_disk_that_cannot_hold_the_next_frame_is_refused_before_any_x_ray_command(tmp_path, resume):
+    """Found (review s41acq): with a source needing its warm-up and a disk holding less than one
+    frame plus the writer's reserve, the run sent WUP -- the warm-up emits X-rays -- and stopped
+    only at dark 0 with "disk full"; a resume on such a disk sent XON for the flats and failed
+    the same way. Now the writer's own room rule is asked before the first X-ray command: one
+    line naming the file, and neither WUP nor XON reaches the controller."""
+    shape = (256, 256)  # a frame (128 KiB) larger than the file's layout, so the file itself opens
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=resume, shape=shape)
+    if resume:  # the darks of an interrupted run are in the file: a resume's first X-rays are the flats' XON
+        with ExperimentWriter(p.output, shape, in_place=True) as w:
+            w.record_run(p.to_toml(), {})
+            for _ in range(series["darks"]):
+                w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+    try:
+        with pytest.raises(OSError) as info:
+            run(p, devices=dev, progress=False, resume=resume, writer_factory=_NoRoomForAFrame)
+    finally:
+        dev.close()
+    msg = str(info.value.strerror)
+    assert msg.startswith(f"{p.output}: disk full") and "no X-ray command was sent" in msg, msg
+    assert "\n" not in msg
+    assert not {"WUP", "XON"} & set(dev.emulator.commands), dev.emulator.commands
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+
+
+@pytest.mark.parametrize("resume", [False, True], ids=["fresh run, source to warm up", "resume after the darks"])
+def test_a_panel_that_delivers_nothing_is_found_before_any_x_ray_command(tmp_path, resume):
+    """Found (review s41acq): with the vendor software not saving (no panel), the run warmed the
+    source up -- X-rays -- and found the panel missing only when the darks timed out; a resume
+    after the darks switched X-rays on for the flats first. Now one frame, tube off, shows the
+    panel delivers before the first X-ray command (none is stored: the darks stay "just before
+    acquisition", C7942.md, not half an hour before it behind the warm-up). A fresh run's file,
+    which took no frame, is not left to block the rerun; a resumed file keeps its frames."""
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=resume, timeout_s=1.0)
+    if resume:
+        with ExperimentWriter(p.output, SHAPE, in_place=True) as w:
+            w.record_run(p.to_toml(), {})
+            for _ in range(series["darks"]):
+                w.append(np.full(SHAPE, 100, np.uint16), image_key=ImageKey.DARK)
+    try:  # no vendor thread: nothing ever reaches the folder
+        with pytest.raises(DeviceError) as info:
+            run(p, devices=dev, progress=False, resume=resume)
+    finally:
+        dev.close()
+    msg = str(info.value)
+    assert "0 of 1 frames arrived" in msg and "no X-ray command was sent" in msg, msg
+    assert not {"WUP", "XON"} & set(dev.emulator.commands), dev.emulator.commands
+    assert info.value.result.tube_off is True and not dev.emulator.xray_on
+    if resume:
+        with h5py.File(p.output, "r") as h5:
+            assert list(h5["entry/instrument/detector/image_key"][:]) == [ImageKey.DARK] * 2
+    else:
+        assert not Path(p.output).exists() and info.value.result.file_removed
+
+
+def test_the_panel_check_frame_is_not_stored_and_the_series_completes(tmp_path):
+    """With a working panel, the check before the warm-up costs one frame (not stored) and the
+    series is what it was: every dark with the tube off, flats and projections with it on."""
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    p, dev, operator = _lab(tmp_path, series, warmed_up=False)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    vendor.start()
+    try:
+        res = run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert res.tube_off is True and res.frames_total == 2 + 2 + len(STEPS)
+    assert "WUP" in dev.emulator.commands
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+        seen = h5["entry/instrument/detector/data"][:, 0, 0:2].astype(int)
+    assert list(key) == [ImageKey.DARK] * 2 + [ImageKey.FLAT] * 2 + [ImageKey.PROJECTION] * len(STEPS)
+    assert np.all(seen[:2] == 0) and np.all(seen[2:] == 1), seen
+
+
+def test_a_resume_after_the_flats_asks_for_the_phantom_back_before_the_first_projection(tmp_path):
+    """Found (review s41acq): Ctrl-C at "Put the phantom back in the beam" (every flat taken),
+    then `--resume`: its first request was the plate gap, the phantom was never asked back in,
+    and the projections could be taken without it, labelled valid. The file holds no record of
+    the phantom's return before its first projection: a resume that finds the flats done and no
+    projection asks for it again before the first step."""
+
+    class QuitsAtThePhantom(Operator):
+        def ask(self, prompt):
+            if "Put the phantom back" in self._said:
+                raise KeyboardInterrupt  # Ctrl-C at the prompt
+            return super().ask(prompt)
+
+    class Told(Operator):
+        def say(self, text):
+            self.told = [*getattr(self, "told", []), text]
+            super().say(text)
+
+    series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
+    first = QuitsAtThePhantom()
+    p, dev, operator = _lab(tmp_path, series, first)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, first)
+    vendor.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run(p, devices=dev, progress=False)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert not first.phantom_in and not dev.emulator.xray_on
+    second = Told()
+    second.phantom_in = False  # as the first run left it: out of the beam
+    p, dev, operator = _lab(tmp_path, series, second)
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, second)
+    vendor.start()
+    try:
+        res = run(p, devices=dev, progress=False, resume=True)
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+    assert res.tube_off is True and res.frames_total == 2 + 2 + len(STEPS)
+    asked = [t for t in second.told if "phantom" in t or "Turn the screws" in t]
+    assert asked and asked[0].startswith("Put the phantom back in the beam"), second.told
+    with h5py.File(p.output, "r") as h5:
+        key = h5["entry/instrument/detector/image_key"][:]
+        seen = h5["entry/instrument/detector/data"][:, 0, 2:4].astype(int)
+    proj = key == ImageKey.PROJECTION
+    assert proj.sum() == len(STEPS) and np.all(seen[proj] == 1), seen[proj]  # the phantom in, start and end

@@ -4,7 +4,8 @@ The protocol is data (TOML), the devices are swappable (the lab's L8121, vendor-
 and manual frame, or the virtual bench with the L8121 emulator on a pseudo-terminal), and the
 order of work is fixed::
 
-    connect -> checks (TYP, interlock, warm-up state) -> warm up if needed
+    connect -> checks (TYP, interlock, warm-up state, room for a frame) -> warm up if needed
+    (after a frame from the panel, tube off, not stored: no X-rays before the panel delivers)
     -> darks (tube off), judged -> flats (phantom out, tube on, tube off), judged, phantom in
     -> for each step: compress (tube off), settle, tube on, acquire, tube off
     -> close
@@ -212,6 +213,12 @@ class Protocol:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self):
+        if isinstance(self.output, os.PathLike):  # the Python API's Path: the TOML stores text
+            self.output = os.fspath(self.output)
+        if not isinstance(self.output, str) or not self.output:
+            raise ProtocolError(f"output = {self.output!r}: expected a file name (a string)")
+        if not isinstance(self.name, str):
+            raise ProtocolError(f"name = {self.name!r}: expected a string")
         for name, section in (
             ("source", self.source),
             ("detector", self.detector),
@@ -225,10 +232,7 @@ class Protocol:
             raise ProtocolError(
                 f"series: darks {s.darks} and flats {s.flats} must be >= 0, frames_per_step {s.frames_per_step} >= 1"
             )
-        steps = tuple(float(r) for r in s.steps)
-        if not steps or any(not 0 <= r < 0.9 for r in steps) or list(steps) != sorted(set(steps)):
-            raise ProtocolError(f"series.steps {list(s.steps)}: expected increasing compression ratios in [0, 0.9)")
-        s.steps = steps
+        s.steps = _checked_steps(s.steps)
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
         if self.frame.kind not in ("manual", "sim"):
@@ -276,6 +280,20 @@ class Protocol:
         return tomli_w.dumps(dataclasses.asdict(self, dict_factory=_without_none))
 
 
+def _checked_steps(steps) -> tuple:
+    """``[series] steps`` as a tuple of floats, or ProtocolError naming the key ("x" among them
+    ended in float()'s words, naming neither file nor key)."""
+    said = f"[series] steps = {steps!r}: expected increasing compression ratios in [0, 0.9)"
+    if not isinstance(steps, (list, tuple)):
+        raise ProtocolError(said)
+    if not all(is_number(r) for r in steps):
+        raise ProtocolError(f"[series] steps = {list(steps)!r}: expected increasing compression ratios in [0, 0.9)")
+    ratios = tuple(float(r) for r in steps)
+    if not ratios or any(not 0 <= r < 0.9 for r in ratios) or list(ratios) != sorted(set(ratios)):
+        raise ProtocolError(f"series.steps {list(steps)}: expected increasing compression ratios in [0, 0.9)")
+    return ratios
+
+
 def _without_none(items) -> dict:
     """A dataclass's fields as a dict, unset (``None``) ones left out: TOML has no null."""
     return {k: v for k, v in items if v is not None}
@@ -283,11 +301,18 @@ def _without_none(items) -> dict:
 
 def _check_numbers(section: str, settings) -> None:
     """Every number of a settings section: the right type, finite, and >= 0 (no setting of a
-    protocol is negative; ``inf`` would overflow a timer or a duration estimate)."""
+    protocol is negative; ``inf`` would overflow a timer or a duration estimate); every switch
+    true or false and every name a string (``interactive = "false"`` read as true)."""
     for f in dataclasses.fields(settings):
         value = getattr(settings, f.name)
         kind = str(f.type).replace(" | None", "")
-        if value is None and "None" in str(f.type) or kind not in ("float", "int"):
+        if value is None and "None" in str(f.type):
+            continue
+        if kind == "bool" and not isinstance(value, bool):
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected true or false")
+        if kind == "str" and not isinstance(value, str):
+            raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a string")
+        if kind not in ("float", "int"):
             continue
         if not (is_integer(value) if kind == "int" else is_number(value)):
             raise ProtocolError(
@@ -373,6 +398,12 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+    if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
+        # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
+        raise ProtocolError(
+            f"[source] min_interval_s = {cfg.min_interval_s:g}: expected at most {MIN_INTERVAL_MAX_S:g} s "
+            "(the controller needs ~0.05 s between commands, and each switch-off waits this long before its XOF)"
+        )
     modes = cfg.focus_modes
     if cfg.dialect in DIALECTS:  # "auto": checked at connect, once the dialect is known (_phase_warm_up)
         modes = DIALECTS[cfg.dialect].focus_modes(cfg)
@@ -390,6 +421,9 @@ def _check_source(s: SourceSettings) -> None:
             f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * period:g} s), or 0 for none"
         )
 
+
+#: The longest command spacing a protocol may ask for (``[source] min_interval_s``).
+MIN_INTERVAL_MAX_S = 1.0
 
 _SECTIONS = {
     "source": SourceSettings,
@@ -873,15 +907,60 @@ class Result:
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
     previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
+    file_removed: bool = False  # stopped before its first frame, the new file it made was removed (held none)
     #: overwrite=True stopped before its first frame, and the old file could not be put back under
     #: its name (the folder turned unwritable): where it is kept, hidden
     previous_aside: Path | None = None
 
 
-def _existing(path: Path, protocol: Protocol) -> dict:
+#: The settings a resume must share with the run the file records: what shapes the recorded frames
+#: (the panel, its depth and pitch, the series, the frame) or the beam (exposure, focal spot, the
+#: controller's dialect), as ``(section, key)``; ``source.dialect`` lives in its limits. The
+#: virtual bench's own ("sim") count on ``--sim`` only. Links, periods and time-outs may change.
+_RESUME_SAME = (
+    ("series", "darks"),
+    ("series", "flats"),
+    ("series", "frames_per_step"),
+    ("series", "steps"),
+    ("series", "settle_s"),
+    ("frame", "kind"),
+    ("frame", "initial_height_mm"),
+    ("source", "voltage_kv"),
+    ("source", "current_ua"),
+    ("source", "focus"),
+    ("source", "dialect"),
+    ("detector", "kind"),
+    ("detector", "shape"),
+    ("detector", "preset"),
+    ("detector", "bits"),
+    ("detector", "pixel_size_mm"),
+)
+_RESUME_SAME_SIM = (("sim", "scene"), ("sim", "binning"), ("sim", "seed"))
+
+
+def _setting(p: Protocol, section: str, key: str):
+    if (section, key) == ("source", "dialect"):
+        return p.source.limits.get("dialect")
+    return getattr(getattr(p, section), key)
+
+
+def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]:
+    """The settings of :data:`_RESUME_SAME` that differ, each as "[section] key = now (file)"."""
+    said = []
+    for section, key in _RESUME_SAME + (_RESUME_SAME_SIM if sim else ()):
+        a, b = _setting(stored, section, key), _setting(now, section, key)
+        if a != b:
+            then = "not set in the file" if a is None else f"{a!r} in the file"
+            said.append(f"[{section}] {key} = {'unset' if b is None else repr(b)} ({then})")
+    return said
+
+
+def _existing(path: Path, protocol: Protocol, *, sim: bool = False) -> dict:
     """What an interrupted file already holds: {'darks': n, 'flats': n, 'steps': {i: n}}; checks
-    it was written by the same protocol. Frames labelled invalid (cut short by a full disk, or
-    taken after the beam monitor's last good reading) do not count: they are taken again."""
+    it was written by the same protocol in every setting that shapes the frames or the beam
+    (:data:`_RESUME_SAME`; ``sim``: a ``--sim`` resume, the virtual bench's too). Frames labelled
+    invalid (cut short by a full disk, or taken after the beam monitor's last good reading) do
+    not count: they are taken again."""
     from radiokit.io import ImageKey, read_progress
 
     try:
@@ -889,15 +968,14 @@ def _existing(path: Path, protocol: Protocol) -> dict:
         if progress.protocol is None:
             raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
         # the stored text is a protocol, never the name of a file to open
-        a, b = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)"), protocol
-        if (
-            a.series != b.series
-            or a.frame.initial_height_mm != b.frame.initial_height_mm
-            or (a.source.voltage_kv, a.source.current_ua) != (b.source.voltage_kv, b.source.current_ua)
-        ):
+        stored = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)")
+        differ = _resume_differences(stored, protocol, sim)
+        if differ:
+            # one series, one set of settings: a resumed 12-bit series recorded 14 bits for its
+            # 12-bit darks, and a new pitch was dropped without a word (review s41acq)
             raise ProtocolError(
-                f"{path}: written by a different protocol (series, frame height or exposure "
-                f"differ); resume with the protocol stored in the file"
+                f"{path}: written by a protocol that differs in {'; '.join(differ)}; resume with the "
+                "file's settings (its /entry@protocol), or start a new file with -o"
             )
         keys, steps = progress.image_key, progress.step
     except (OSError, KeyError, TypeError, ValueError) as exc:
@@ -934,6 +1012,9 @@ class _Run:
     beam_since: float | None = None  # perf_counter at XON of the beam period in progress
     beam_planned: tuple = (0.0, 0, "")  # the plan's seconds, frames and name of that period
     overrun_told: bool = False
+    panel_seen: bool = False  # the panel delivered a frame in this run (_panel_check)
+    began_file: bool = False  # the experiment file is this run's own, made under a free name
+    discard_file: bool = False  # ... and stopped before its first frame: removed as it closes
     origins: dict = field(default_factory=dict)  # (frame file, time) -> its index in the experiment file
     beam_on_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
@@ -988,17 +1069,23 @@ def _phase_connect(r: _Run):
 
 
 def _phase_warm_up(r: _Run):
-    """Open the experiment file, set the focus, then warm up if the source needs it, arm the
-    panel. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
-    full disk, a read-only folder) must not have started it."""
+    """Open the experiment file, set the focus, arm the panel, then warm up if the source needs
+    it. The file comes first: the warm-up emits X-rays, and a run that cannot store a frame (a
+    full disk, a read-only folder) must not have started it; nor one whose panel delivers none
+    (:func:`_panel_check`)."""
     src, p = r.source, r.p
     if p.source.focus is not None:  # a setting: checked before anything is opened or sent
         src.check_focus(int(p.source.focus))
     _open_experiment(r)
+    # before the warm-up, which emits, and before a resume's first XON: a disk without room for
+    # the next frame stopped the run only at that frame, after the X-rays (review s41acq)
+    _refuse_without_room(r, "no X-ray command was sent")
     needed = _needs_warm_up(src)  # after the controller's power-on checks: a setting sent during them may be refused
     if p.source.focus is not None:  # before the warm-up, which emits (B's is an XON); set again before each XON
         src.focus = int(p.source.focus)
+    r.devices.detector.arm()
     if needed:
+        _panel_check(r)
         t = time.perf_counter()
         try:
             # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
@@ -1011,7 +1098,38 @@ def _phase_warm_up(r: _Run):
             )
         finally:  # the warm-up emits: X-rays on, as the plan counts it (an interrupted one too)
             r.beam_on_s += time.perf_counter() - t
-    r.devices.detector.arm()
+
+
+def _panel_check(r: _Run) -> None:
+    """One frame from the panel, the tube off, before this run's first X-ray command when no
+    frame has come yet (the warm-up, or a resume's first XON): a panel that delivers nothing was
+    found only when the darks timed out after the warm-up, or the flats with X-rays on (review
+    s41acq). The frame is not stored: the darks stay just before the exposures (C7942.md: the
+    dark drifts), not up to the warm-up's half hour before them."""
+    if r.panel_seen:
+        return
+    detector = r.devices.detector
+    detector.begin_batch(r.p.detector.discard_after_change)
+    try:
+        for frame in detector.acquire(1, timeout_s=r.p.detector.timeout_s):
+            log.info("panel check: a frame from %s, tube off (not stored): the panel delivers", frame.origin)
+    except DeviceError as exc:
+        exc.args = (f"{exc}; the panel is checked before X-rays: no X-ray command was sent",) + exc.args[1:]
+        raise
+    r.panel_seen = True
+
+
+def _refuse_without_room(r: _Run, said: str) -> None:
+    """Stop before X-rays when the experiment file could not store the next frame: the writer's
+    own rule (:meth:`~radiokit.io.ExperimentWriter.check_room`, the one its append applies), one
+    line naming the file, with ``said`` (what was, or was not, sent) and what to do."""
+    try:
+        r.writer.check_room()
+    except OSError as exc:
+        what = exc.strerror or str(exc)
+        raise OSError(
+            exc.errno or errno.ENOSPC, f"{what}; {said}: free space on that disk or choose another output"
+        ) from None
 
 
 def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
@@ -1073,6 +1191,7 @@ def _open_experiment(r: _Run):
         if isinstance(exc, OutputError):
             raise OSError(code, str(exc)) from None
         raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
+    r.began_file = not existed and not r.resume
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
 
@@ -1114,6 +1233,7 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
             current_ua=monitor.ua if beam else 0.0,
         )
         log.debug("frame %d written (image_key %d, step %d) from %s", index, int(image_key), step, frame.origin)
+        r.panel_seen = True
         r.origins[(frame.origin, frame.time_s)] = index  # FrameLost names a stored frame so
         if beam:
             monitor.written.append((index, frame.time_s))
@@ -1128,6 +1248,10 @@ def _append_frames(r: _Run, frames, image_key, step, ratio, gap, beam):
 def _beam_on(r: _Run, n: int, what: str):
     """X-rays on for ``n`` frames of ``what`` (the plan's estimate of this period is kept for
     :func:`_beam_off`)."""
+    # the disk may have filled since (the vendor software writes to it too): no XON for frames
+    # the file would refuse
+    _refuse_without_room(r, f"X-rays were not switched on for {what}")
+    _panel_check(r)
     r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
@@ -1184,6 +1308,11 @@ def _phase_flats(r: _Run):
         # judged with the tube off and before the phantom goes back in: a refusal stops here
         _judge(r, "flats")
         frm.sample_in()
+    elif r.resume and r.p.series.flats and not any(r.done["steps"].values()):
+        # the flats are in the file and no projection: nothing records that the phantom went
+        # back in after them (a Ctrl-C at that request), and a resume went straight to the
+        # screws, the projections then taken without it (review s41acq); asked again, tube off
+        r.devices.frame.sample_in()
 
 
 def _judge(r: _Run, what: str) -> None:
@@ -1440,7 +1569,7 @@ def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
     if resume and not out.exists():
         log.warning("%s: nothing to resume (no file: the series stopped before its first frame); starting it", out)
         resume = False
-    done = _existing(out, p) if resume else None
+    done = _existing(out, p, sim=sim) if resume else None
     if done is not None and plan(p, done, warm=True).n_frames == 0:
         # nothing to take: no device is opened, no notebook line and no end time written (raw data
         # is never modified after acquisition, DESIGN.md; a resume rewrote /entry@end_time)
@@ -1550,6 +1679,9 @@ def _stop(r: _Run, exc: BaseException):
         _mark_invalid(r.writer, monitor.suspect())
     if r.writer is not None:
         res.frames_total = r.writer.n_frames
+    # a file this run made that took no frame holds nothing to resume, and left it only blocked
+    # the rerun ("exists; raw data is never overwritten"): removed as the writer closes (_release)
+    r.discard_file = r.began_file and r.writer is not None and r.writer.n_frames == 0
     res.seconds = time.perf_counter() - r.t0
     res.beam_on_s = r.beam_on_s
     kept = r.replacing and r.previous_aside is None
@@ -1565,20 +1697,25 @@ def _stop(r: _Run, exc: BaseException):
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
-    if hasattr(exc, "add_note") and r.previous_aside is not None:
-        exc.add_note(
+    if hasattr(exc, "add_note"):
+        exc.add_note(_stop_note(r, what, tube, kept))
+
+
+def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
+    """What the operator can do next, after :func:`_stop` (for the exception's note)."""
+    if r.previous_aside is not None:
+        return (
             f"{what} in phase '{r.phase}': {tube}; no frame taken: another program made {r.out} meanwhile, and the "
             f"previous series is kept in {r.previous_aside}"
         )
-    elif hasattr(exc, "add_note") and kept:
-        exc.add_note(
-            f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
-        )
-    elif hasattr(exc, "add_note"):
-        exc.add_note(
-            f"{what} in phase '{r.phase}': {tube}; {res.frames_total} frames are saved in {r.out}; "
-            f"`radiokit acquire PROTOCOL --resume` completes the series"
-        )
+    if kept:
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
+    if r.discard_file:
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken, {r.out} not kept: the run can start again"
+    return (
+        f"{what} in phase '{r.phase}': {tube}; {r.res.frames_total} frames are saved in {r.out}; "
+        f"`radiokit acquire PROTOCOL --resume` completes the series"
+    )
 
 
 def _off_where_the_guardian_left(exc: BaseException) -> None:
@@ -1632,6 +1769,14 @@ def _release(r: _Run, notebook):
             r.writer.close()
         except Exception as exc:
             log.error("closing %s: %s", r.out, exc)
+        else:
+            if r.discard_file:
+                from radiokit.io import discard_unbegun
+
+                discard_unbegun(r.out)  # (not if another program holds it open by now)
+                r.res.file_removed = not r.out.exists()
+                if r.res.file_removed:
+                    log.info("%s: no frame taken; the file is not kept (a rerun starts the series)", r.out)
     aside = getattr(r.writer, "previous_kept_in", None)
     if aside is not None and r.previous_aside is None:
         # the put-back failed as the writer closed, after _stop's note said "unchanged"

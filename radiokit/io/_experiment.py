@@ -672,6 +672,28 @@ class ExperimentWriter:
             )
         return frame.astype(np.uint16)
 
+    def check_room(self) -> None:
+        """Refuse now, as :meth:`append` would, when the disk or the file's size limit has no room
+        for the next frame and :attr:`reserve_bytes` (its ballast held first, as append holds it).
+        For a caller about to do what cannot be undone to make that frame -- an acquisition's
+        X-rays -- so the work is not started for a frame the file would refuse. Nothing is
+        written, and the file still takes frames after a refusal.
+
+        Raises
+        ------
+        OSError
+            ``ENOSPC`` or ``EFBIG`` with append's line (naming the file and the frame), or ``EIO``
+            when the file takes no more frames after a failed write."""
+        failed = getattr(self, "_failed", None)
+        if failed:
+            raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({failed})")
+        self._hold_ballast(self._frame_bytes + self.reserve_bytes)
+        try:
+            self._check_room(self._frame_bytes, self._n)
+        finally:
+            # a refusal of a frame not yet taken: unlike append's, it does not end the file's frames
+            self._failed = failed
+
     def _write_failed(self, exc: BaseException, what: str, kept: str) -> OSError:
         """After a write that failed inside libhdf5: the ballast's room given back so libhdf5 can
         write what it holds (the file is whole again), no more writes taken, and the one-line
