@@ -233,8 +233,9 @@ def check_mesh_size(scene: Scene, model: str | None = None, spec=None, grading_m
         return
     name = max(counts, key=counts.get)
     raise ValueError(
-        f"mesh {name} {getattr(spec, name):g} would make about {total:.2g} elements "
-        f"(gmsh meshes at most {MAX_ELEMENTS:,}: sim.mesh.MAX_ELEMENTS): use a larger size"
+        f"mesh {name} {getattr(spec, name):g} would make about {total:.2g} elements of the "
+        f"{scene.body.volume_mm3():.3g} mm^3 body (gmsh meshes at most {MAX_ELEMENTS:,}: sim.mesh.MAX_ELEMENTS): "
+        "use a larger size"
     )
 
 
