@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -104,9 +105,11 @@ def _run_sim(args) -> int:
     if args.overwrite and args.output.exists():
         _refuse_replacing_raw_data(args.output)
     if args.save_scene:  # checked now, written with the experiment file: no scene of a failed run
-        if args.save_scene.resolve() == args.output.resolve():
-            raise ValueError(f"--save-scene {args.save_scene}: the same file as -o")
+        # the output checks first: they refuse a link in a loop in one line, where Path.resolve()
+        # raises RuntimeError before Python 3.13 (a traceback); realpath leaves a loop unresolved
         check_output(args.save_scene, overwrite=args.overwrite, inputs=inputs)
+        if os.path.realpath(args.save_scene) == os.path.realpath(args.output):
+            raise ValueError(f"--save-scene {args.save_scene}: the same file as -o")
     rows, cols = scene.detector.shape
     n_states = len(args.ratios or scene.compression.ratios)
     # the frames (uint16), and per state a line integral and mask, per pair a truth field (float32)

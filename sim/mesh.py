@@ -25,7 +25,17 @@ import numpy as np
 
 from sim.scene import Scene
 
-__all__ = ["FEMesh", "build_mesh", "choose_model"]
+__all__ = ["FEMesh", "build_mesh", "choose_model", "estimate_elements", "check_mesh_size", "MAX_ELEMENTS"]
+
+#: The most elements (tetrahedra, or triangles for the reduced models) a scene may ask gmsh for,
+#: by :func:`estimate_elements`. gmsh cannot be stopped while it meshes: Python runs a signal's
+#: handler only when gmsh's call returns, so Ctrl-C or a ``kill`` waits for it (a 1e-6 mm contact
+#: size held gmsh at 1.3 GB for minutes, review s41cli). The bound keeps that wait short: gmsh
+#: made 199 000 tetrahedra of seed-breast in 19-42 s on a loaded 2-core machine, so about 10-20 s
+#: here. It is 20 times the largest mesh the convergence study solved (0.7 / 6 / 1 mm: 4 800
+#: tetrahedra, 24 000 unknowns, 2200 s of mechanics; README), beyond which the mechanics' direct
+#: solves would take days anyway.
+MAX_ELEMENTS = 100_000
 
 
 @dataclass
@@ -99,6 +109,134 @@ def _symmetry_planes(scene: Scene) -> tuple:
     if all(abs(i.centre_mm[2]) < 1e-9 for i in scene.inclusions):
         planes.append("z")
     return tuple(planes)
+
+
+# -- how many elements a scene asks for --------------------------------------------------------
+#: volume of a regular tetrahedron of edge h is h^3 / (6 sqrt 2); area of an equilateral triangle
+#: of side h is sqrt(3) / 4 h^2: a mesh of size h holds about measure / (c h^dim) elements
+_CELL = {3: 1 / 6, 2: math.sqrt(3) / 4}
+
+
+def _section(scene: Scene, y: np.ndarray, dim: int) -> np.ndarray:
+    """The body's cross-section at heights ``y``: its area (3D, the whole body) or its width at
+    ``x >= 0`` (the reduced models' half section)."""
+    b = scene.body
+    g = b.geometry
+    if g in ("ellipsoid", "hemi-ellipsoid"):
+        a, bb, c = b.semi_axes_mm
+        f = np.clip(1 - (y / bb) ** 2, 0, None)
+        if dim == 2:
+            return a * np.sqrt(f)
+        return math.pi * a * c * f / (2 if g == "hemi-ellipsoid" else 1)
+    if g == "box":
+        sx, _, sz = b.size_mm
+        return np.full_like(y, sx * sz if dim == 3 else sx / 2)
+    h = b.height_mm
+    if g == "cylinder":
+        r = np.full_like(y, b.diameter_mm / 2)
+    else:
+        r0, r1 = b.bottom_diameter_mm / 2, b.top_diameter_mm / 2
+        r = r0 + (r1 - r0) * (y + h / 2) / h
+    return math.pi * r * r if dim == 3 else r
+
+
+def _measure(scene: Scene, y0: float, y1: float, dim: int) -> float:
+    """The body's volume (3D) or half section's area (2D) between heights ``y0`` and ``y1``."""
+    H = scene.body.half_height_mm
+    y0, y1 = max(y0, -H), min(y1, H)
+    if y1 <= y0:
+        return 0.0
+    y = np.linspace(y0, y1, 401)
+    return float(np.trapezoid(_section(scene, y, dim), y))
+
+
+def _shell_elements(s_in, s_far, grading, boundary, radius, room, dim) -> float:
+    """Elements beyond those ``s_far`` would make in the graded layers on both sides of an
+    inclusion's surface (measure ``boundary``, ``radius`` = dim volume / boundary): the size
+    grows linearly from ``s_in`` on the surface to ``s_far`` at ``grading`` from it; outside,
+    the layers hold no more than the body's ``room``. Most lie where the size is least, so the
+    distance is sampled geometrically from a hundredth of it."""
+    d = np.concatenate([[0.0], np.geomspace(s_in / 100, max(grading, radius), 2000)])
+    size = s_in + (s_far - s_in) * np.clip(d / max(grading, 1e-300), 0, 1)
+    excess = 1 / (_CELL[dim] * size**dim) - 1 / (_CELL[dim] * s_far**dim)
+    outside = boundary * (1 + d / radius) ** (dim - 1)
+    filled = np.concatenate([[0.0], np.cumsum(np.diff(d) * (outside[1:] + outside[:-1]) / 2)])
+    outside = outside * (filled <= room)
+    inside = boundary * np.clip(1 - d / radius, 0, None) ** (dim - 1)
+    return float(np.trapezoid((outside + inside) * excess, d))
+
+
+def estimate_elements(scene: Scene, model: str | None = None, spec=None, grading_mm=None) -> dict:
+    """About how many elements gmsh makes of ``scene``, by the size each field of
+    :class:`sim.scene.MeshSpec` sets: ``{"size_far_mm": n, "size_inclusion_mm": n,
+    "size_contact_mm": n}`` (each the elements of the region that field governs, the model's
+    share of the body only: a symmetry cut's). Within a factor of 2 of gmsh's count for the
+    presets and their refinements (tests/test_sim_scene_checks.py); it costs no meshing.
+    ``spec`` and ``grading_mm`` stand for the scene's (:func:`build_mesh`'s overrides)."""
+    model = model or choose_model(scene)
+    spec, b = spec or scene.mesh, scene.body
+    dim = 3 if model == "3d" else 2
+    H = b.half_height_mm
+    planes = _symmetry_planes(scene)
+    if dim == 3:
+        share = 1 / 2 ** len(planes)
+    else:  # the half section x >= 0, halved again where y = 0 is a symmetry plane
+        share = 0.5 if scene.mesh.symmetry and "y" in planes else 1.0
+    out = {"size_far_mm": share * _measure(scene, -H, H, dim) / (_CELL[dim] * spec.size_far_mm**dim)}
+    if scene.inclusions:
+        r_inc = min((i.diameter_mm / 2 if i.shape == "sphere" else min(i.size_mm) / 2) for i in scene.inclusions)
+        n = 0.0
+        for inc in scene.inclusions:
+            if dim == 3:
+                boundary = (
+                    math.pi * inc.diameter_mm**2
+                    if inc.shape == "sphere"
+                    else 2
+                    * (
+                        inc.size_mm[0] * inc.size_mm[1]
+                        + inc.size_mm[1] * inc.size_mm[2]
+                        + inc.size_mm[0] * inc.size_mm[2]
+                    )
+                )
+                whole = 2 ** len(planes)
+            else:  # the section's outline; half of it at x >= 0 where the inclusion sits on x = 0
+                w = (
+                    inc.size_mm[0]
+                    if model == "plane-strain"
+                    else 2 * math.sqrt(inc.size_mm[0] * inc.size_mm[2] / math.pi)
+                )
+                boundary = math.pi * inc.diameter_mm if inc.shape == "sphere" else 2 * (w + inc.size_mm[1])
+                whole = (2 if abs(inc.centre_mm[0]) < 1e-9 else 1) * (2 if share < 1 else 1)
+            radius = (
+                dim * inc.volume_mm3() / boundary
+                if dim == 3
+                else (inc.diameter_mm / 2 if inc.shape == "sphere" else w * inc.size_mm[1] / (w + inc.size_mm[1]))
+            )
+            room = _measure(scene, -H, H, dim) * (1 if dim == 3 else 2) - inc.volume_mm3()
+            grading = 4 * r_inc if grading_mm is None else grading_mm
+            n += _shell_elements(spec.size_inclusion_mm, spec.size_far_mm, grading, boundary, radius, room, dim) / whole
+        out["size_inclusion_mm"] = n
+    if spec.size_contact_mm is not None:
+        band = sum(_measure(scene, y0, y1, dim) for y0, y1 in _contact_band(scene))
+        out["size_contact_mm"] = share * band / (_CELL[dim] * spec.size_contact_mm**dim)
+    return out
+
+
+def check_mesh_size(scene: Scene, model: str | None = None, spec=None, grading_mm=None) -> None:
+    """ValueError naming the mesh size that would make more than :data:`MAX_ELEMENTS` elements,
+    with the estimate (:func:`estimate_elements`), before gmsh runs: gmsh meshed a 1e-6 mm contact
+    size for minutes at 1.3 GB and could not be stopped (review s41cli)."""
+    spec = spec or scene.mesh
+    counts = estimate_elements(scene, model, spec, grading_mm)
+    total = sum(counts.values())
+    if total <= MAX_ELEMENTS:
+        return
+    name = max(counts, key=counts.get)
+    raise ValueError(
+        f"mesh {name} {getattr(spec, name):g} would make about {total:.2g} elements of the "
+        f"{scene.body.volume_mm3():.3g} mm^3 body (gmsh meshes at most {MAX_ELEMENTS:,}: sim.mesh.MAX_ELEMENTS): "
+        "use a larger size"
+    )
 
 
 def _keeping_signal_handlers(init) -> None:
@@ -258,6 +396,7 @@ def build_mesh(
     else:
         r_inc = spec.size_far_mm
     grading = grading_mm if grading_mm is not None else 4 * r_inc
+    check_mesh_size(scene, model, spec, grading)  # the sizes given here may be finer than the scene's
     if model == "3d":
         return _build_3d(scene, spec, grading)
     if model == "axisymmetric":

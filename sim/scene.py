@@ -545,6 +545,11 @@ class Scene:
         _check_tube(self.exposure, self.imaging.anode)
         try:  # the binning is the detector's, the dose the exposure's: only the scene sees both
             _check_open_beam(self.exposure.i0_counts, self.detector.binning)
+            _check_field_of_view(self)
+            _check_image_sigmas(self)
+            from sim.mesh import check_mesh_size  # late: sim.mesh imports this module
+
+            check_mesh_size(self)
         except ValueError as exc:
             raise ValueError(f"scene {self.name!r}: {exc}") from None
         return self
@@ -752,6 +757,60 @@ def _check_tube(ex: Exposure, anode: str):
             )
         if ua > L8121_UA:
             raise ValueError(f"exposure current_ua {ua:g}: the L8121-01 gives at most {L8121_UA:g} µA")
+
+
+#: The body field that sets its width along each axis, by geometry.
+_WIDTH_FIELDS = {
+    "hemi-ellipsoid": {"x": "semi_axes_mm", "y": "semi_axes_mm", "z": "semi_axes_mm"},
+    "ellipsoid": {"x": "semi_axes_mm", "y": "semi_axes_mm", "z": "semi_axes_mm"},
+    "box": {"x": "size_mm", "y": "size_mm", "z": "size_mm"},
+    "cylinder": {"x": "diameter_mm", "y": "height_mm", "z": "diameter_mm"},
+    "truncated-cone": {"x": "bottom_diameter_mm", "y": "height_mm", "z": "bottom_diameter_mm"},
+}
+
+
+def _field_of_view(scene: Scene) -> dict:
+    """The detector's field of view at the isocentre (mm) along the two axes across the beam:
+    columns follow x, rows z (beam along y) or y (beam along z) (sim.xray's detector frame)."""
+    rows, cols = scene.detector.shape
+    p, m = scene.detector.pixel_size_mm, scene.beam.magnification
+    return {"x": (cols, cols * p / m), ("z" if scene.beam.direction == "y" else "y"): (rows, rows * p / m)}
+
+
+def _check_field_of_view(scene: Scene) -> None:
+    """Refuse a body wider than the detector sees: the simulated experiment images the whole body
+    (the beam is matched, and scatter referred, to its thickness). A semi-axis of 1e9 mm reached
+    the projection and ended in numpy's "zero-size array to reduction operation" (review s41cli)."""
+    b = scene.body
+    for axis, (n, fov) in _field_of_view(scene).items():
+        width = b.half_extent_mm(axis) * (1 if b.geometry == "hemi-ellipsoid" and axis == "x" else 2)
+        if width <= fov:
+            continue
+        name = _WIDTH_FIELDS[b.geometry][axis]
+        if b.geometry == "truncated-cone" and name == "bottom_diameter_mm" and b.top_diameter_mm > b.bottom_diameter_mm:
+            name = "top_diameter_mm"
+        value = getattr(b, name)
+        shown = "[" + ", ".join(f"{v:g}" for v in value) + "]" if isinstance(value, tuple) else f"{value:g}"
+        at = "" if scene.beam.magnification == 1 else f" at magnification {scene.beam.magnification:g}"
+        raise ValueError(
+            f"body {name} {shown}: {width:g} mm along {axis}, wider than the detector's {fov:g} mm field of view "
+            f"there ({n} pixels of {scene.detector.pixel_size_mm:g} mm{at})"
+        )
+
+
+def _check_image_sigmas(scene: Scene) -> None:
+    """Refuse a scatter or blur spread wider than the image: it would spread every pixel over the
+    whole detector and more (1e9 mm allocated "array is too big" after 37-52 s of mechanics)."""
+    rows, cols = scene.detector.shape
+    p = scene.detector.pixel_size_mm
+    side = max(rows, cols) * p
+    for name in ("scatter_sigma_mm", "blur_sigma_mm"):
+        value = getattr(scene.imaging, name)
+        if value > side:
+            raise ValueError(
+                f"imaging {name} {value:g}: expected at most the image's {side:g} mm "
+                f"(its larger side: {max(rows, cols)} pixels of {p:g} mm)"
+            )
 
 
 def _strip_none(obj):

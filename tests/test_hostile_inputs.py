@@ -779,6 +779,15 @@ def test_sim_and_demo_refuse_bad_arguments_before_writing_anything(args, words, 
     assert not any(tmp_path.iterdir())
 
 
+def test_sim_run_refuses_a_save_scene_link_in_a_loop_in_one_line(tmp_path):
+    # Path.resolve() raised RuntimeError ("Symlink loop") under Python 3.11: a traceback
+    (tmp_path / "a.toml").symlink_to("b.toml")
+    (tmp_path / "b.toml").symlink_to("a.toml")
+    args = ["sim", "run", "--preset", "seed-breast", "--save-scene", "a.toml", "-o", "sim.h5", "-q"]
+    one_line_error(run_cli(*args, cwd=tmp_path), "a.toml: is a symbolic link in a loop")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.toml", "b.toml"]
+
+
 HOSTILE_TEXT = [
     "plain",
     'say "cheese"',
