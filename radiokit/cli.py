@@ -800,6 +800,7 @@ def _process_config(args, opts):
         report=not args.no_report,
         progress=_progress(args),
         regularisation_check=args.regularisation_check,
+        view=args.view,
         control=str(args.control) if args.control else None,
         cross_check=None if args.cross_check in ("none", "") else args.cross_check,
     )
@@ -1282,6 +1283,13 @@ def _add_process_options(p):
         action="store_true",
         help="register every pair again, differently regularised, and flag a trusted result the two disagree on "
         "(0.3-1 s more per pair)",
+    )
+    p.add_argument(
+        "--view",
+        choices=("through_plates", "side"),
+        help="the beam's direction, for the improvement factor's bound: through the plates (the default for "
+        "a file that records no simulated scene) or from the side (no bound holds); a --control takes the "
+        "experiment's",
     )
     p.add_argument("--scheduler", help="Dask scheduler address for many files (default: a local cluster)")
     p.add_argument(

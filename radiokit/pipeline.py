@@ -102,6 +102,8 @@ if TYPE_CHECKING:
 
 #: The domains every run computes: line integrals, and the paper's negative transmission -I/I0.
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
+#: The beam's directions :attr:`Config.view` names (sim.scene's ``[beam] direction``'s two geometries)
+VIEWS = ("through_plates", "side")
 #: The pixel pitch taken for a file that records none: the C7942's (said, and marked in the results)
 ASSUMED_PIXEL_SIZE_MM = 0.05
 
@@ -160,6 +162,10 @@ class Config:
     # every pair registered a second time, differently regularised, and a trusted result flagged where the
     # two differ (register(..., regularisation_check=True); off by default: 0.3-1 s more per pair)
     regularisation_check: bool = False
+    # the beam's direction, for the improvement factor's bound: "through_plates" or "side" (no
+    # bound holds); None: a simulated file's scene says, else through the plates. A control takes
+    # its experiment's (it is imaged as the experiment is)
+    view: str | None = None
 
     def __post_init__(self):
         self.domain = Domain.parse(self.domain, "domain")
@@ -169,6 +175,10 @@ class Config:
             )
         if self.roi_units not in ("px", "mm"):
             raise ValueError(f"roi_units={self.roi_units!r}: expected 'px' or 'mm'")
+        if self.view not in (None, *VIEWS):
+            raise ValueError(
+                f"view={self.view!r}: expected {' or '.join(map(repr, VIEWS))} (None: the file's scene says)"
+            )
         for name in ("use_truth_rois", "report", "progress", "regularisation_check"):
             value = getattr(self, name)
             if not isinstance(value, (bool, np.bool_)):  # "no" is truthy: report="no" wrote the report
@@ -710,25 +720,38 @@ def _step_gaps_mm(path, numbers):
     return out
 
 
-def _bound(path, numbers, truth, bg_log_mean, ks) -> tuple[Bound, dict]:
+def _scene_view(truth) -> str | None:
+    """The beam's direction a simulated file's scene states (``VIEWS``), or None."""
+    import tomllib
+
+    scene_text = truth.get("scene_toml") if truth else None
+    try:
+        beam = tomllib.loads(scene_text).get("beam", {}) if scene_text else None
+    except tomllib.TOMLDecodeError:
+        return None
+    if not isinstance(beam, dict):
+        return None if beam is None else "through_plates"
+    return "side" if beam.get("direction", "y") in ("z", "side") else "through_plates"
+
+
+def _bound(path, numbers, truth, bg_log_mean, ks, view=None) -> tuple[Bound, dict]:
     """The improvement factor's bound (:func:`radiokit.measure.improvement_bound`) for the main
     pair: ``mu_b`` from a simulated file's scene, else from the reference's background ROI
     (``mean L_bg / gap``: through the plates a background column spans the gap). Returns the
     :class:`Bound` and ``{Domain: {k: bound}}``, empty where the gaps are not recorded or the
-    simulated beam runs from the side (no bound holds there)."""
+    beam runs from the side (no bound holds there): as the simulated scene says, else ``view``."""
     import tomllib
 
     from radiokit.measure import improvement_bound
 
     gaps = _step_gaps_mm(path, numbers)
     dg = gaps[-2] - gaps[-1]
-    view, mu_b = None, None
+    view, mu_b = _scene_view(truth) or view, None
     scene_text = truth.get("scene_toml") if truth else None
     caveat = ""
     if scene_text:
         try:
             sc = tomllib.loads(scene_text)
-            view = "side" if sc.get("beam", {}).get("direction", "y") in ("z", "side") else "through_plates"
             mu = sc["body"]["material"]["attenuation_per_cm"]
         except (tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
             mu = None
@@ -1190,6 +1213,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         truth,
         float(np.mean(enhanced[Domain.LOG].reference[bg_c.slices], dtype=np.float64)),
         cfg.ks,
+        cfg.view,
     )
     domains = measure_domains(enhanced, inc_c, bg_c, bounds, str(path))
     checked = check_pairs(pairs, steps_c, steps.numbers, inc_c, bg_c, truth, rois.slices())
@@ -1215,7 +1239,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         bound=bound,
         paper=PAPER,
         timings=timings,
-        control=_control(cfg, rois, out_dir),
+        control=_control(dataclasses.replace(cfg, view=_scene_view(truth) or cfg.view), rois, out_dir),
     )
     files = _write(out_dir, record, images, cfg, t0)
     return Result(record, images, files)

@@ -24,6 +24,7 @@ enhanced contrast is C + k (D_i - D_b), so IF(k) - 1 is exactly proportional to 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -719,3 +720,36 @@ def test_config_refuses_a_flag_that_is_no_bool_and_a_control_that_is_no_path(giv
     for word in words:
         assert word in str(info.value), (word, str(info.value))
     assert Config(report=np.bool_(False), control=Path("c.h5")).report is False
+
+
+def test_a_control_without_a_simulation_record_takes_the_experiments_view_for_its_bound(experiment, tmp_path):
+    """Found (review s41doc): the pva-phantom demo's control (no simulation record) got the bound
+    through the plates, 1.214 / 1.427, beside an experiment seen from the side, where no bound
+    holds. The control is imaged as the experiment, so it takes the experiment's view; a file of
+    no simulation record takes ``Config(view=...)``, else the plates."""
+    import shutil
+
+    import h5py
+
+    from radiokit.io._simulation import SIMULATION
+    from radiokit.pipeline import Config, process
+
+    side, plain = tmp_path / "side.h5", tmp_path / "plain.h5"
+    shutil.copy(experiment, side)
+    shutil.copy(experiment, plain)
+    with h5py.File(side, "r+") as h5:  # the same scene seen from the side: only the stored scene's beam changes
+        scene = h5[SIMULATION].attrs["scene"]
+        assert scene.count('direction = "y"') == 1
+        h5[SIMULATION].attrs["scene"] = scene.replace('direction = "y"', 'direction = "side"')
+    with h5py.File(plain, "r+") as h5:
+        del h5[SIMULATION]
+    cfg = Config(progress=False, report=False, cross_check=None, register_options={"preset": "fast"})
+    res = process(side, dataclasses.replace(cfg, control=str(plain)), out_dir=tmp_path / "r1").record
+    assert res.bound.mu_dg is None and res.bound.basis.startswith("beam from the side")
+    assert res.control.bound.mu_dg is None and res.control.bound.basis.startswith("beam from the side")
+    alone = process(plain, cfg, out_dir=tmp_path / "r2").record
+    assert alone.bound.mu_dg is not None and "through the plates" in alone.bound.basis
+    told = process(plain, dataclasses.replace(cfg, view="side"), out_dir=tmp_path / "r3").record
+    assert told.bound.mu_dg is None and told.bound.basis.startswith("beam from the side")
+    with pytest.raises(ValueError, match="view='sideways'"):
+        Config(view="sideways")
