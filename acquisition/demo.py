@@ -267,8 +267,8 @@ def add_demo(subparsers):
         help="the whole system on the virtual bench: acquire (emulated L8121), process, report",
         description="Acquire a compression series (15, 20, 25 %) of a simulated scene through the emulated "
         "L8121 on a pseudo-terminal, then a control whose inclusion is as soft as the gel, process both "
-        "and write the report; prints the headline table. About 2-3 minutes at the defaults on two "
-        "cores; --binning 2 --coarse --fast about one.",
+        "and write the report; prints the headline table. About 3-6 minutes at the defaults on a shared "
+        "2-core machine (187-349 s measured); --binning 2 --coarse --fast about 1.5.",
     )
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
     p.add_argument("--preset", default="seed-breast", help="scene preset: seed-breast (default) or pva-phantom")

@@ -209,3 +209,35 @@ def test_the_first_hour_commands_run_as_written(tmp_path):
     assert (tmp_path / "mine" / "report.html").exists() and (tmp_path / "mine" / "results.json").exists()
     corrected = read(tmp_path / "corrected.h5").data
     assert corrected.shape == shape and np.allclose(corrected, np.log(2), atol=1e-5)
+
+
+def test_write_experiment_example_reads_folders_of_single_frame_and_multi_page_tiffs(tmp_path, monkeypatch):
+    """The vendor software saves one TIFF per frame as often as one stack: the example takes a folder
+    per kind as well, its files in name order, single-frame and multi-page mixed (a stack of 3 or 4
+    frames written with photometric='minisblack', as the README says it must be)."""
+    import tifffile
+
+    from radiokit.io import ImageKey, read
+    from radiokit.pipeline import load_steps
+
+    monkeypatch.chdir(tmp_path)
+    rng = np.random.default_rng(1)
+    rows, cols = 40, 56
+    for kind, level, n in (("darks", 100, 5), ("flats", 3000, 4)):
+        (tmp_path / kind).mkdir()
+        for i in range(n):  # one frame per file, as the vendor software saves them
+            tifffile.imwrite(f"{kind}/{kind}_{i:03d}.tif", rng.normal(level, 2, (rows, cols)).astype(np.uint16))
+    for i, name in enumerate(("step15", "step20", "step25")):  # I/I0 = 0.5, 0.4, 0.3
+        (tmp_path / name).mkdir()
+        counts = 100 + 2900 * (0.5 - 0.1 * i)
+        tifffile.imwrite(f"{name}/a.tif", np.full((4, rows, cols), counts, np.uint16), photometric="minisblack")
+        tifffile.imwrite(f"{name}/b.TIFF", np.full((rows, cols), counts, np.uint16))
+        (tmp_path / name / "notes.txt").write_text("not a frame")
+    exec(compile(_block("### Write experiments as they happen"), "README.md", "exec"), {})
+    keys = read(tmp_path / "exp.h5").meta["image_key"]
+    assert (keys == ImageKey.DARK).sum() == 5 and (keys == ImageKey.FLAT).sum() == 4
+    assert (keys == ImageKey.PROJECTION).sum() == 15
+    steps = load_steps(tmp_path / "exp.h5", False)
+    assert steps.numbers == (1, 2, 3) and steps.ratios == (0.15, 0.2, 0.25)
+    for image, t in zip(steps.images, (0.5, 0.4, 0.3)):
+        assert abs(float(np.median(image)) + np.log(t)) < 0.01
