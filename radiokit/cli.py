@@ -578,7 +578,19 @@ def _process_error(text, args) -> str:
         if bounds is not None:
             typed = f"--{name} {' '.join(str(v) for v in bounds)}"
             text = text.replace(f"{name} ROI {bounds!r}", typed).replace(f"--{name} {bounds!r}", typed)
+    for how, instead in _EXTERNAL_HOW.items():  # the readers' remedy: an option of info, calibrate, correct, register
+        text = text.replace(how, instead)
     return text.replace("roi_units='mm'", "--mm")
+
+
+#: how the readers say data outside the file may be read (radiokit.io), and what process says
+#: instead: it has no --allow-external (its inputs' links are not followed into its outputs' checks)
+_EXTERNAL_HOW = {
+    "(allow_external=True; --allow-external)": "(radiokit process reads no data outside the experiment file: "
+    "copy the linked data into it first)",
+    "is read with --allow-external (allow_external=True)": "is not read by radiokit process: copy the linked "
+    "data into the file first",
+}
 
 
 #: Config's field names as ``radiokit process`` spells them, for its one-line errors

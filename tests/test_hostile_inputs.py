@@ -2572,3 +2572,14 @@ def test_float64_counts_beyond_float32s_range_are_one_line_not_a_flood_of_warnin
     tifffile.imwrite(tif, np.full((2, 32, 40), 1e300), photometric="minisblack")
     one_line_error(run("correct", tif, "--cal", cal, "-q", "-o", tmp_path / "o.h5", env=loud), "frame 0", "float32")
     one_line_error(run("register", tif, tif, "--moving-frame", "1", "-o", tmp_path / "r.h5", env=loud), "float32")
+
+
+def test_process_refusing_a_linked_experiment_names_no_option_it_does_not_have(outside):
+    """Found (review s41doc): process's refusal of an experiment whose frames are linked from
+    another file said "(allow_external=True; --allow-external)", an option process does not take."""
+    files, _ = outside
+    path = files["linked experiment"]
+    res = run_cli("process", path, "-o", path.with_name("results"))
+    one_line_error(res, path.name, "external link")
+    assert "--allow-external" not in res.stderr and "allow_external=True" not in res.stderr
+    assert "radiokit process reads no data outside the experiment file" in res.stderr
