@@ -1573,3 +1573,48 @@ def test_cli_an_overwrite_whose_folder_turns_unwritable_names_the_previous_serie
     assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 2  # the run: restored, then refused alike
     # (the stopped run's reserve could not be removed from the immutable folder either)
     assert out.read_bytes() == before and [n for n in _beside(out) if ".previous-" in n] == [], _beside(out)
+
+
+def test_cli_resume_takes_a_file_of_the_previous_release_and_settings_written_differently(tmp_path, scene_toml, capsys):
+    """Found (review s41rr) after the resume's comparison grew: (1) the file's stored protocol was
+    validated by today's rules, so a file recorded with `min_interval_s = 1.5` (a link setting,
+    accepted then, capped at 1 s now) could never be resumed, whatever the new protocol said;
+    (2) the same setting written otherwise was refused: a dialect left to detection against
+    `'A'` or `'a'`, and the panel's pitch unset against its assumed 0.05 mm."""
+    import tomllib
+
+    import tomli_w
+
+    p = protocol(tmp_path, scene_toml, dialect="auto")
+    data = tomllib.loads(p.to_toml())
+    data["source"]["min_interval_s"] = 1.5  # what the previous release accepted and recorded
+    out = Path(p.output)
+    with ExperimentWriter(out, shape=(4, 4)) as w:
+        w.record_run(tomli_w.dumps(data), {})
+    path = tmp_path / "protocol.toml"
+    for dialect in ("A", "a", "auto"):
+        now = protocol(tmp_path, scene_toml, dialect=dialect)
+        now.detector.pixel_size_mm = 0.05
+        path.write_text(now.to_toml())
+        assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
+    now = protocol(tmp_path, scene_toml, dialect="A")
+    now.detector.bits = 14  # a setting that shapes the data is still compared
+    path.write_text(now.to_toml())
+    assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 2
+    assert "[detector] bits = 14 (12 in the file)" in capsys.readouterr().err
+
+
+def test_the_python_api_takes_paths_and_numpy_booleans_in_a_protocol(tmp_path, scene_toml):
+    """Found (review s41rr): the protocol's new type checks refused `detector.folder=Path(...)`,
+    `sim.scene=Path(...)` and `discard_first=np.bool_(True)`, which the Python API took before."""
+    import tomllib
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(scene_toml)
+    raw = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
+    raw["detector"]["folder"] = tmp_path
+    raw["detector"]["discard_first"] = np.bool_(True)
+    raw["sim"]["scene"] = scene
+    q = load_protocol(raw)
+    assert q.detector.folder == os.fspath(tmp_path) and q.detector.discard_first is True
+    assert q.sim.scene == os.fspath(scene)

@@ -308,8 +308,12 @@ def _check_numbers(section: str, settings) -> None:
         kind = str(f.type).replace(" | None", "")
         if value is None and "None" in str(f.type):
             continue
+        if kind == "bool" and isinstance(value, np.bool_):  # the Python API's numpy switch
+            setattr(settings, f.name, value := bool(value))
         if kind == "bool" and not isinstance(value, bool):
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected true or false")
+        if kind == "str" and isinstance(value, os.PathLike):  # the Python API's Path (a folder, a scene)
+            setattr(settings, f.name, value := os.fspath(value))
         if kind == "str" and not isinstance(value, str):
             raise ProtocolError(f"[{section}] {f.name} = {value!r}: expected a string")
         if kind not in ("float", "int"):
@@ -944,12 +948,53 @@ def _setting(p: Protocol, section: str, key: str):
     return getattr(getattr(p, section), key)
 
 
+def _same_setting(section: str, key: str, a, b) -> bool:
+    """Whether a file's setting ``a`` and the resume's ``b`` are the same, however written: a
+    dialect left to detection ("auto", or unset) matches the one named, in either case; an unset
+    pitch is the 0.05 mm the run assumes (:func:`_open_experiment`)."""
+    if (section, key) == ("source", "dialect"):
+        a, b = (None if v is None or str(v).lower() == "auto" else str(v).upper() for v in (a, b))
+        return a is None or b is None or a == b
+    if (section, key) == ("detector", "pixel_size_mm"):
+        a, b = (ASSUMED_PIXEL_SIZE_MM if v is None else v for v in (a, b))
+    return a == b
+
+
+#: The pitch a run records for a panel that states none (:func:`_open_experiment`)
+ASSUMED_PIXEL_SIZE_MM = 0.05
+
+
+def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
+    """The file's stored protocol as far as a resume compares it (:data:`_RESUME_SAME`), the rest
+    taken from ``now``: validated by today's rules, a setting that may change (a link's spacing,
+    a time-out) recorded under the previous release's kept the file from ever being resumed
+    (``min_interval_s = 1.5``, capped at 1 s since; review s41rr)."""
+    try:
+        stored = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ProtocolError(f"{path} (its stored protocol): not valid TOML: {exc}") from None
+    merged = tomllib.loads(now.to_toml())
+    for section, key in _RESUME_SAME + _RESUME_SAME_SIM:
+        old = stored.get(section) if isinstance(stored.get(section), dict) else {}
+        target = merged.setdefault(section, {})
+        if (section, key) == ("source", "dialect"):  # a driver limit: in [source] or its limits table
+            if key not in old and isinstance(old.get("limits"), dict):
+                old = old["limits"]
+            target.pop(key, None)
+            target = target.setdefault("limits", {})
+        if key in old:
+            target[key] = old[key]
+        else:
+            target.pop(key, None)
+    return load_protocol(merged, where=f"{path} (its stored protocol)")
+
+
 def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]:
     """The settings of :data:`_RESUME_SAME` that differ, each as "[section] key = now (file)"."""
     said = []
     for section, key in _RESUME_SAME + (_RESUME_SAME_SIM if sim else ()):
         a, b = _setting(stored, section, key), _setting(now, section, key)
-        if a != b:
+        if not _same_setting(section, key, a, b):
             then = "not set in the file" if a is None else f"{a!r} in the file"
             said.append(f"[{section}] {key} = {'unset' if b is None else repr(b)} ({then})")
     return said
@@ -968,7 +1013,7 @@ def _existing(path: Path, protocol: Protocol, *, sim: bool = False) -> dict:
         if progress.protocol is None:
             raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
         # the stored text is a protocol, never the name of a file to open
-        stored = load_protocol(progress.protocol, text=True, where=f"{path} (its stored protocol)")
+        stored = _stored_protocol(path, progress.protocol, protocol)
         differ = _resume_differences(stored, protocol, sim)
         if differ:
             # one series, one set of settings: a resumed 12-bit series recorded 14 bits for its
@@ -1162,7 +1207,7 @@ def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
     src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
-        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or 0.05),
+        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or ASSUMED_PIXEL_SIZE_MM),
         source={
             "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
             "voltage_kv": p.source.voltage_kv,
