@@ -174,6 +174,11 @@ def _not_for_a_protocol(args) -> str | None:
     (it replaces [source] dialect), never these."""
     if args.action:
         return f"{args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)"
+    if args.resume and args.overwrite:  # --overwrite was ignored without a word
+        return (
+            "--resume and --overwrite contradict each other: --resume completes the experiment file, "
+            "--overwrite replaces it with a new series; give one"
+        )
     given = [
         name
         for name, value in (

@@ -1,0 +1,164 @@
+"""What `radiokit acquire` says when a lab run ends badly (review s41acq, LOW): the command in a
+subprocess on the L8121 emulator's pseudo-terminal (through the X-ray guardian), the detector
+folder written by a thread modelling the vendor software, the manual frame non-interactive. Each
+test causes its fault for real: a SIGSTOP outlasting the detector's time-out, a controller that
+falls silent, the experiment file deleted mid-run, stdin closed at a prompt."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import tomli_w
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+SHAPE = (16, 20)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Vendor(threading.Thread):
+    """The panel's software saving a frame every ``period_s``: brighter with the tube on. ``pause``
+    holds it (a panel that stops delivering)."""
+
+    def __init__(self, folder, model, period_s=0.06):
+        super().__init__(daemon=True)
+        self.folder, self.model, self.period_s = Path(folder), model, period_s
+        self.halt, self.pause = threading.Event(), threading.Event()
+
+    def run(self):
+        k = 0
+        while not self.halt.is_set():
+            time.sleep(self.period_s)
+            if self.pause.is_set():
+                continue
+            a = np.full(SHAPE, 100 + 1000 * int(self.model.xray_on), np.uint16)
+            tifffile.imwrite(self.folder / f"frame_{k:05d}.tif", a)
+            k += 1
+
+
+class Lab:
+    """A lab run of ``radiokit acquire`` in a subprocess, and its devices."""
+
+    def __init__(self, tmp_path, detector_timeout_s=3.0, reply_timeout_s=0.5):
+        self.folder = tmp_path / "frames"
+        self.folder.mkdir()
+        self.model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
+        self.server = PtyServer(self.model)
+        self.server.start()
+        self.vendor = Vendor(self.folder, self.model)
+        self.out = tmp_path / "series.h5"
+        self.notebook = tmp_path / "series.log"
+        self.proto = tmp_path / "lab.toml"
+        source = {"port": self.server.url, "voltage_kv": 60, "current_ua": 250, "poll_s": 0.1}
+        source["timeout_s"] = reply_timeout_s
+        self.proto.write_text(
+            tomli_w.dumps(
+                {
+                    "output": str(self.out),
+                    "source": source,
+                    "detector": {
+                        "kind": "folder",
+                        "folder": str(self.folder),
+                        "shape": list(SHAPE),
+                        "settle_s": 0.03,
+                        "timeout_s": detector_timeout_s,
+                    },
+                    "frame": {"kind": "manual", "initial_height_mm": 10.0, "interactive": False},
+                    "series": {"darks": 2, "flats": 2, "frames_per_step": 10**4, "steps": [0.15], "settle_s": 0.0},
+                }
+            )
+        )
+        self.proc = None
+
+    def start(self, *options):
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        self.vendor.start()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code, "acquire", str(self.proto), "-q", *options],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
+
+    def logged(self, text) -> int:
+        return self.notebook.read_text(errors="replace").count(text) if self.notebook.exists() else 0
+
+    def wait(self, cond, what, timeout=30.0):
+        end = time.monotonic() + timeout
+        while not cond():
+            assert self.proc.poll() is None, f"the run ended before {what}"
+            assert time.monotonic() < end, f"timed out waiting for {what}"
+            time.sleep(0.02)
+
+    def in_step_1(self, frames=2):
+        self.wait(lambda: self.logged("phase step 1") and self.model.xray_on, "X-rays on in step 1")
+        self.wait(lambda: self.logged("step 1) from") >= frames, f"{frames} frames of step 1")
+
+    def end(self, timeout=60):
+        try:
+            out, _ = self.proc.communicate(timeout=timeout)
+        finally:
+            self.vendor.halt.set()
+            self.vendor.join(5)
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self.server.stop()
+        return [ln for ln in out.decode("utf-8", "replace").splitlines() if ln.strip()]
+
+
+@pytest.fixture
+def lab(tmp_path):
+    made = []
+
+    def make(**kw):
+        made.append(Lab(tmp_path, **kw))
+        return made[-1]
+
+    yield make
+    for one in made:  # a failed assertion before end()
+        one.vendor.halt.set()
+        if one.proc is not None and one.proc.poll() is None:
+            os.killpg(one.proc.pid, signal.SIGKILL)
+            one.proc.wait()
+        one.server.stop()
+
+
+@pytest.mark.parametrize("dry", [False, True])
+def test_resume_with_overwrite_is_refused_in_one_line(tmp_path, capsys, dry):
+    """--resume completes the file, --overwrite replaces it: together, --overwrite was ignored
+    without a word. Refused as contradicting options are (exit 2), before the protocol is read:
+    no file, no port touched (the protocol's port does not exist)."""
+    from radiokit.cli import main
+
+    proto = tmp_path / "lab.toml"
+    proto.write_text(
+        tomli_w.dumps(
+            {
+                "output": str(tmp_path / "series.h5"),
+                "source": {"port": str(tmp_path / "no-such-port"), "voltage_kv": 60, "current_ua": 250},
+                "detector": {"kind": "folder", "folder": str(tmp_path), "shape": list(SHAPE)},
+                "frame": {"kind": "manual", "initial_height_mm": 10.0},
+                "series": {"darks": 1, "flats": 1, "frames_per_step": 1, "steps": [0.1]},
+            }
+        )
+    )
+    before = sorted(tmp_path.iterdir())
+    code = main(["acquire", str(proto), "--resume", "--overwrite", *(["--dry-run"] if dry else [])])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("error:"), err
+    assert "--resume" in err[0] and "--overwrite" in err[0], err
+    assert sorted(tmp_path.iterdir()) == before
