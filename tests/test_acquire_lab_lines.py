@@ -6,6 +6,7 @@ falls silent, the experiment file deleted mid-run, stdin closed at a prompt."""
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import subprocess
@@ -20,6 +21,8 @@ import tifffile
 import tomli_w
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.errors import DeviceError
+from acquisition.frame import ManualFrame
 
 SHAPE = (16, 20)
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,3 +165,17 @@ def test_resume_with_overwrite_is_refused_in_one_line(tmp_path, capsys, dry):
     assert len(err) == 1 and err[0].startswith("error:"), err
     assert "--resume" in err[0] and "--overwrite" in err[0], err
     assert sorted(tmp_path.iterdir()) == before
+
+
+def test_end_of_input_at_a_prompt_does_not_suggest_recording_targets_as_measured(monkeypatch):
+    """stdin closed at the frame's prompt (input() reads EOF): the line suggested `interactive =
+    false`, which records every target gap as if it had been measured. It says where the answers
+    come from, and what that setting would record."""
+    monkeypatch.setattr(sys, "stdin", io.StringIO(""))  # a closed input, read by the real input()
+    frame = ManualFrame(10.0, say=lambda text: None)
+    with pytest.raises(DeviceError) as caught:
+        frame.move_to(8.5)
+    text = str(caught.value)
+    assert "end of input" in text and "\n" not in text
+    assert "interactive = false" not in text or "as if" in text or "not measured" in text, text
+    assert "terminal" in text, text
