@@ -139,6 +139,33 @@ def lab(tmp_path):
         one.server.stop()
 
 
+def test_a_stop_outlasting_the_detectors_time_out_is_named_as_the_stop_not_the_detector(lab):
+    """SIGSTOP with X-rays on, held past the guardian's watchdog (5 s) and so past the detector's
+    3 s, the panel delivering nothing meanwhile: on SIGCONT the folder's wait had run out at once
+    ("0 of N frames arrived ... still being written"), and the line blamed the detector although
+    the guardian had switched the beam off for the stop."""
+    run = lab(detector_timeout_s=3.0)
+    run.start()
+    run.in_step_1()
+    run.vendor.pause.set()
+    os.kill(run.proc.pid, signal.SIGSTOP)
+    try:
+        end = time.monotonic() + 20
+        while run.model.xray_on and time.monotonic() < end:
+            time.sleep(0.05)
+        assert not run.model.xray_on, "the guardian's watchdog did not switch X-rays off"
+        time.sleep(1.0)
+    finally:
+        os.kill(run.proc.pid, signal.SIGCONT)
+    lines = run.end()
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    assert run.proc.returncode == 1, lines[-6:]
+    assert len(errors) == 1, lines
+    assert "watchdog switched X-rays off" in errors[0] and "sent nothing" in errors[0], errors
+    assert "frames arrived" not in errors[0], errors
+    assert lines[-1].startswith("tube off (confirmed by STS"), lines[-6:]
+
+
 @pytest.mark.parametrize("dry", [False, True])
 def test_resume_with_overwrite_is_refused_in_one_line(tmp_path, capsys, dry):
     """--resume completes the file, --overwrite replaces it: together, --overwrite was ignored

@@ -1524,7 +1524,9 @@ def run(
                     phase(r)
             except BaseException as exc:
                 r.stopped_by = exc
-                _stop(r, exc)
+                cause = _stop(r, exc)
+                if cause is not exc:
+                    raise cause from exc
                 raise
             finally:
                 _release(r, notebook)
@@ -1655,6 +1657,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
+    exc = r.stopped_by = _watchdog_cause(r, exc)
     _stop_frame(r)
     if res.tube_off is None:
         _off_where_the_guardian_left(exc)
@@ -1699,6 +1702,24 @@ def _stop(r: _Run, exc: BaseException):
     exc.result = res
     if hasattr(exc, "add_note"):
         exc.add_note(_stop_note(r, what, tube, kept))
+    return exc
+
+
+def _watchdog_cause(r: _Run, exc: BaseException) -> BaseException:
+    """``exc``, or, when it is the detector's time-out and the guardian's watchdog switched the
+    beam off while this process was silent, a :class:`SourceFault` naming the watchdog. A stop
+    (SIGSTOP, a debugger) longer than the watchdog's 5 s and the detector's time-out woke the
+    folder's wait already past its deadline: the line said "0 of 4 frames arrived ... still
+    being written", blaming the panel, and the guardian's word came only in a log line above."""
+    src = getattr(r.devices, "source", None)
+    told = getattr(src, "watchdog_off", None)
+    if not isinstance(exc, DetectorTimeout) or not isinstance(told, str) or not told:
+        return exc
+    from acquisition.errors import SourceFault
+
+    return SourceFault(
+        f"{src.port}: {told}; the wait for the detector's frames ran out in that time too (not a panel fault)"
+    )
 
 
 def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
