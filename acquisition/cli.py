@@ -337,8 +337,11 @@ def _run_series(args, p) -> int:
     """Run the series under one signal guard, kept until the last line is printed: no signal can
     interrupt the switch-off or the report of it. Exit codes: 0 done, 1 error, 128 + signal
     number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 148 Ctrl-Z), 3 whenever the tube
-    could not be confirmed off (the last line then says to switch off at the controller)."""
-    return _guarded(_series, args, p)
+    could not be confirmed off (the last line then says to switch off at the controller). A
+    switch-off not confirmed is said once, above that line, as the source commands say it: the
+    driver's CRITICAL line, the series' repeat of it and "detached" came above the error line."""
+    with _off_failures_said_last():
+        return _guarded(_series, args, p)
 
 
 def _series(guard, args, p) -> int:
@@ -477,6 +480,9 @@ def _finish(res, code: int, err: bool = True) -> int:
     if res is None or res.tube_off is None:
         return code
     line, ok = _tube_line(res)
+    failed = _one_spaced(getattr(res, "off_failure", "") or "")
+    if not ok and failed and not any(failed in _one_spaced(said) for said in _SAID):
+        _say(f"error: {_cli_terms(failed)}")
     _say(line, err=err or not ok)
     return code if ok else 3
 

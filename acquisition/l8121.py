@@ -1905,7 +1905,9 @@ class L8121:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
-            logger.warning("%s: detached with X-rays possibly on", self.port)
+            # after a switch-off that was not confirmed, the same news as its CRITICAL line
+            marked = {OFF_FAILURE: True} if self.off_failed is not None else None
+            logger.warning("%s: detached with X-rays possibly on", self.port, extra=marked)
 
     def __enter__(self) -> L8121:
         return self

@@ -166,6 +166,25 @@ def test_a_stop_outlasting_the_detectors_time_out_is_named_as_the_stop_not_the_d
     assert lines[-1].startswith("tube off (confirmed by STS"), lines[-6:]
 
 
+def test_a_silent_controller_says_the_unconfirmed_switch_off_once(lab):
+    """The controller falls silent with X-rays on: the series path printed the driver's "could
+    not confirm X-rays off" (CRITICAL), the series' "not switching off again" repeating it, and
+    "detached with X-rays possibly on", all above the error line. Said once, right above the
+    X-RAYS warning, as the source commands say it."""
+    run = lab(detector_timeout_s=3.0)
+    run.start()
+    run.in_step_1()
+    run.model.silence(True)
+    lines = run.end()
+    text = "\n".join(lines)
+    assert run.proc.returncode == 3, lines
+    assert text.count("could not confirm X-rays off") == 1, lines
+    assert "detached" not in text, lines
+    assert "not switching off again" not in text, lines
+    assert "could not confirm X-rays off" in lines[-2], lines[-4:]
+    assert lines[-1].startswith("WARNING: X-RAYS MAY STILL BE ON"), lines[-4:]
+
+
 @pytest.mark.parametrize("dry", [False, True])
 def test_resume_with_overwrite_is_refused_in_one_line(tmp_path, capsys, dry):
     """--resume completes the file, --overwrite replaces it: together, --overwrite was ignored

@@ -847,7 +847,7 @@ class _BeamMonitor:
                     self.source.off()
                 except Exception as off_exc:
                     self.off_failed = True
-                    log.error("switching the tube off after %s failed: %s", exc, off_exc)
+                    log.error("switching the tube off after %s failed: %s", exc, off_exc, extra=_said_by_driver())
                 return
             self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
 
@@ -911,6 +911,10 @@ class Result:
     #: overwrite=True stopped before its first frame, and the old file could not be put back under
     #: its name (the folder turned unwritable): where it is kept, hidden
     previous_aside: Path | None = None
+    #: the switch-off that was not confirmed, in the driver's words ("" when none, or not known):
+    #: the command line says it once, above the X-rays warning (the log lines repeating it are
+    #: marked :data:`acquisition.l8121.OFF_FAILURE`)
+    off_failure: str = ""
 
 
 #: The settings a resume must share with the run the file records: what shapes the recorded frames
@@ -1847,9 +1851,11 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
     if monitor is not None and monitor.off_failed or getattr(dev.source, "off_failed", None) is not None:
         dev.off_failed = True
         r.res.tube_off = False
+        r.res.off_failure = str(getattr(dev.source, "off_failed", None) or "")
         log.error(
             "not switching off again: the last XOF could not be confirmed (%s)",
             getattr(dev.source, "off_failed", None) or "beam monitor",
+            extra=_said_by_driver() if r.res.off_failure else None,
         )
         return False
     try:
@@ -1857,7 +1863,8 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
     except Exception as exc:
         dev.off_failed = True
         r.res.tube_off = False
-        log.error("could not confirm the tube is off: %s", exc)
+        r.res.off_failure = str(getattr(dev.source, "off_failed", None) or exc)
+        log.error("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
         return False
     name = getattr(state, "name", str(state))
     if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
@@ -1874,6 +1881,14 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         return False
     r.res.tube_off, r.res.tube_state = True, name
     return True
+
+
+def _said_by_driver() -> dict:
+    """The ``extra`` of a log line repeating the driver's unconfirmed switch-off (its own
+    CRITICAL line said it): a terminal that says the failure once leaves these out."""
+    from acquisition.l8121 import OFF_FAILURE
+
+    return {OFF_FAILURE: True}
 
 
 def _mark_invalid(writer, indices):
