@@ -369,6 +369,8 @@ def _series(guard, args, p) -> int:
             _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
         elif r is not None and getattr(r, "file_removed", False):
             _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_lost", False):
+            _say(f"\nstopped by {name} in phase {r.phase}; {_lost(r)}")
         else:
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
         return _finish(r, 128 + getattr(exc, "signum", 2))
@@ -382,6 +384,8 @@ def _series(guard, args, p) -> int:
             _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
         elif r is not None and getattr(r, "file_removed", False):
             _say(f"stopped in phase {r.phase}; {_REMOVED.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_lost", False):
+            _say(f"stopped in phase {r.phase}; {_lost(r)}")
         elif r is not None and r.phase != "connect":
             _say(
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
@@ -405,6 +409,18 @@ def _series(guard, args, p) -> int:
 _KEPT = "no frame taken: {out} holds the previous series, unchanged"
 # the file the run made held no frame: left, it only refused the rerun ("exists")
 _REMOVED = "no frame taken: {out} was not kept; the same command starts the series again"
+
+
+# the file was removed while the run wrote it: "N frames saved in" it and --resume were offered
+_LOST = "{out} was removed during the run: its {n} frame(s) are lost; the same command starts the series again"
+
+
+def _lost(r) -> str:
+    """What is left of a run whose file was removed under it; the loss said once (the error line
+    says it when the removal is what stopped the run)."""
+    if any(f"{r.output}: removed while" in line for line in _SAID):
+        return "nothing saved; the same command starts the series again"
+    return _LOST.format(out=r.output, n=r.frames_total)
 
 
 def _aside(r, args) -> str:

@@ -185,6 +185,25 @@ def test_a_silent_controller_says_the_unconfirmed_switch_off_once(lab):
     assert lines[-1].startswith("WARNING: X-RAYS MAY STILL BE ON"), lines[-4:]
 
 
+def test_an_experiment_file_deleted_mid_run_is_said_removed_and_its_frames_lost(lab):
+    """Another program deletes the experiment file while the series writes it: the run ended on
+    "error: [Errno 2] No such file or directory: ..." and then "8 frames saved in series.h5", a
+    file that no longer existed, with `--resume` offered to complete it."""
+    run = lab()
+    run.start()
+    run.in_step_1(frames=3)
+    run.out.unlink()
+    lines = run.end()
+    assert run.proc.returncode == 1, lines
+    assert not run.out.exists()
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    assert len(errors) == 1, lines
+    assert str(run.out) in errors[0] and "removed" in errors[0] and "Errno" not in errors[0], errors
+    assert "saved in" not in "\n".join(lines) and "--resume" not in "\n".join(lines), lines
+    assert any("lost" in ln and str(run.out) in ln for ln in lines), lines
+    assert lines[-1].startswith("tube off (confirmed by STS"), lines[-4:]
+
+
 @pytest.mark.parametrize("dry", [False, True])
 def test_resume_with_overwrite_is_refused_in_one_line(tmp_path, capsys, dry):
     """--resume completes the file, --overwrite replaces it: together, --overwrite was ignored

@@ -915,6 +915,8 @@ class Result:
     #: the command line says it once, above the X-rays warning (the log lines repeating it are
     #: marked :data:`acquisition.l8121.OFF_FAILURE`)
     off_failure: str = ""
+    #: the experiment file was removed while the run wrote it: the frames it held are lost
+    file_lost: bool = False
 
 
 #: The settings a resume must share with the run the file records: what shapes the recorded frames
@@ -1661,7 +1663,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
-    exc = r.stopped_by = _watchdog_cause(r, exc)
+    exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
     _stop_frame(r)
     if res.tube_off is None:
         _off_where_the_guardian_left(exc)
@@ -1682,7 +1684,7 @@ def _stop(r: _Run, exc: BaseException):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
-    if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None:
+    if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None and not res.file_lost:
         _mark_invalid(r.writer, monitor.suspect())
     if r.writer is not None:
         res.frames_total = r.writer.n_frames
@@ -1707,6 +1709,25 @@ def _stop(r: _Run, exc: BaseException):
     if hasattr(exc, "add_note"):
         exc.add_note(_stop_note(r, what, tube, kept))
     return exc
+
+
+def _file_lost_cause(r: _Run, exc: BaseException) -> BaseException:
+    """``exc``, or, when the experiment file was removed while the run wrote it (another program,
+    a clean-up script), an error saying so: the next frame's check of the file's size ended the
+    run on "[Errno 2] No such file or directory: ...", and the command then said "8 frames saved
+    in series.h5", a file that no longer existed, and offered --resume. ``result.file_lost`` tells
+    the caller; the frames go with the file's last open handle as the writer closes."""
+    if r.writer is None or r.out.exists():
+        return exc
+    r.res.file_lost = True
+    if not isinstance(exc, FileNotFoundError):
+        return exc
+    n = r.writer.n_frames
+    return OSError(
+        errno.ENOENT,
+        f"{r.out}: removed while the series was writing it (by another program or by hand): the {n} "
+        f"frame(s) it held are lost with it",
+    )
 
 
 def _watchdog_cause(r: _Run, exc: BaseException) -> BaseException:
