@@ -174,6 +174,11 @@ def _not_for_a_protocol(args) -> str | None:
     (it replaces [source] dialect), never these."""
     if args.action:
         return f"{args.action!r} only follows 'source' (radiokit acquire source {args.action} --port URL)"
+    if args.resume and args.overwrite:  # --overwrite was ignored without a word
+        return (
+            "--resume and --overwrite contradict each other: --resume completes the experiment file, "
+            "--overwrite replaces it with a new series; give one"
+        )
     given = [
         name
         for name, value in (
@@ -332,8 +337,11 @@ def _run_series(args, p) -> int:
     """Run the series under one signal guard, kept until the last line is printed: no signal can
     interrupt the switch-off or the report of it. Exit codes: 0 done, 1 error, 128 + signal
     number when stopped by a signal (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 148 Ctrl-Z), 3 whenever the tube
-    could not be confirmed off (the last line then says to switch off at the controller)."""
-    return _guarded(_series, args, p)
+    could not be confirmed off (the last line then says to switch off at the controller). A
+    switch-off not confirmed is said once, above that line, as the source commands say it: the
+    driver's CRITICAL line, the series' repeat of it and "detached" came above the error line."""
+    with _off_failures_said_last():
+        return _guarded(_series, args, p)
 
 
 def _series(guard, args, p) -> int:
@@ -361,6 +369,8 @@ def _series(guard, args, p) -> int:
             _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
         elif r is not None and getattr(r, "file_removed", False):
             _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_lost", False):
+            _say(f"\nstopped by {name} in phase {r.phase}; {_lost(r)}")
         else:
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
         return _finish(r, 128 + getattr(exc, "signum", 2))
@@ -374,6 +384,8 @@ def _series(guard, args, p) -> int:
             _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
         elif r is not None and getattr(r, "file_removed", False):
             _say(f"stopped in phase {r.phase}; {_REMOVED.format(out=r.output)}")
+        elif r is not None and getattr(r, "file_lost", False):
+            _say(f"stopped in phase {r.phase}; {_lost(r)}")
         elif r is not None and r.phase != "connect":
             _say(
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
@@ -397,6 +409,18 @@ def _series(guard, args, p) -> int:
 _KEPT = "no frame taken: {out} holds the previous series, unchanged"
 # the file the run made held no frame: left, it only refused the rerun ("exists")
 _REMOVED = "no frame taken: {out} was not kept; the same command starts the series again"
+
+
+# the file was removed while the run wrote it: "N frames saved in" it and --resume were offered
+_LOST = "{out} was removed during the run: its {n} frame(s) are lost; the same command starts the series again"
+
+
+def _lost(r) -> str:
+    """What is left of a run whose file was removed under it; the loss said once (the error line
+    says it when the removal is what stopped the run)."""
+    if any(f"{r.output}: removed while" in line for line in _SAID):
+        return "nothing saved; the same command starts the series again"
+    return _LOST.format(out=r.output, n=r.frames_total)
 
 
 def _aside(r, args) -> str:
@@ -472,6 +496,9 @@ def _finish(res, code: int, err: bool = True) -> int:
     if res is None or res.tube_off is None:
         return code
     line, ok = _tube_line(res)
+    failed = _one_spaced(getattr(res, "off_failure", "") or "")
+    if not ok and failed and not any(failed in _one_spaced(said) for said in _SAID):
+        _say(f"error: {_cli_terms(failed)}")
     _say(line, err=err or not ok)
     return code if ok else 3
 

@@ -125,9 +125,12 @@ class ManualFrame(_Gaps):
         try:
             return str(self.ask(prompt))
         except EOFError:
+            # the hint was [frame] interactive = false, which records every target gap as if the
+            # operator had measured it: a way to lose the measurement, not to give it
             raise DeviceError(
-                "manual compression frame: no operator input (end of input); run with "
-                "interactive = false to take targets as reached"
+                "manual compression frame: no operator input (end of input: the standard input closed at the "
+                "prompt); run the command at a terminal, or feed it one line per prompt (Enter, or the measured "
+                "gap in mm); [frame] interactive = false would record each target gap as if it had been measured"
             ) from None
 
     def move_to(self, gap_mm: float) -> float:

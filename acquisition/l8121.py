@@ -1891,6 +1891,13 @@ class L8121:
         yet); while :attr:`off_failed` is set it vouches for nothing."""
         return None if self.off_failed is not None else self._off_state
 
+    @property
+    def watchdog_off(self) -> str | None:
+        """What the X-ray guardian's watchdog said when it switched off the beam of this
+        session's last XON because this process fell silent (suspended or hung); None when it
+        did not (or no guardian). Told with the first reply after this process woke."""
+        return getattr(self._transport, "watchdog_off", None)
+
     def detach(self) -> None:
         """Close the link and leave the source as it is -- X-rays on included. Only for bench work
         from the command line (``radiokit acquire source on``), where the operator switches off
@@ -1898,7 +1905,9 @@ class L8121:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
-            logger.warning("%s: detached with X-rays possibly on", self.port)
+            # after a switch-off that was not confirmed, the same news as its CRITICAL line
+            marked = {OFF_FAILURE: True} if self.off_failed is not None else None
+            logger.warning("%s: detached with X-rays possibly on", self.port, extra=marked)
 
     def __enter__(self) -> L8121:
         return self

@@ -851,7 +851,7 @@ class _BeamMonitor:
                     self.source.off()
                 except Exception as off_exc:
                     self.off_failed = True
-                    log.error("switching the tube off after %s failed: %s", exc, off_exc)
+                    log.error("switching the tube off after %s failed: %s", exc, off_exc, extra=_said_by_driver())
                 return
             self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
 
@@ -915,6 +915,12 @@ class Result:
     #: overwrite=True stopped before its first frame, and the old file could not be put back under
     #: its name (the folder turned unwritable): where it is kept, hidden
     previous_aside: Path | None = None
+    #: the switch-off that was not confirmed, in the driver's words ("" when none, or not known):
+    #: the command line says it once, above the X-rays warning (the log lines repeating it are
+    #: marked :data:`acquisition.l8121.OFF_FAILURE`)
+    off_failure: str = ""
+    #: the experiment file was removed while the run wrote it: the frames it held are lost
+    file_lost: bool = False
 
 
 #: The settings a resume must share with the run the file records: what shapes the recorded frames
@@ -1569,7 +1575,9 @@ def run(
                     phase(r)
             except BaseException as exc:
                 r.stopped_by = exc
-                _stop(r, exc)
+                cause = _stop(r, exc)
+                if cause is not exc:
+                    raise cause from exc
                 raise
             finally:
                 _release(r, notebook)
@@ -1700,6 +1708,7 @@ def _stop(r: _Run, exc: BaseException):
         elif monitor.error is None:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
+    exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
     _stop_frame(r)
     if res.tube_off is None:
         _off_where_the_guardian_left(exc)
@@ -1720,7 +1729,7 @@ def _stop(r: _Run, exc: BaseException):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
-    if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None:
+    if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None and not res.file_lost:
         _mark_invalid(r.writer, monitor.suspect())
     if r.writer is not None:
         res.frames_total = r.writer.n_frames
@@ -1744,6 +1753,43 @@ def _stop(r: _Run, exc: BaseException):
     exc.result = res
     if hasattr(exc, "add_note"):
         exc.add_note(_stop_note(r, what, tube, kept))
+    return exc
+
+
+def _file_lost_cause(r: _Run, exc: BaseException) -> BaseException:
+    """``exc``, or, when the experiment file was removed while the run wrote it (another program,
+    a clean-up script), an error saying so: the next frame's check of the file's size ended the
+    run on "[Errno 2] No such file or directory: ...", and the command then said "8 frames saved
+    in series.h5", a file that no longer existed, and offered --resume. ``result.file_lost`` tells
+    the caller; the frames go with the file's last open handle as the writer closes."""
+    if r.writer is None or r.out.exists():
+        return exc
+    r.res.file_lost = True
+    if not isinstance(exc, FileNotFoundError):
+        return exc
+    n = r.writer.n_frames
+    return OSError(
+        errno.ENOENT,
+        f"{r.out}: removed while the series was writing it (by another program or by hand): the {n} "
+        f"frame(s) it held are lost with it",
+    )
+
+
+def _watchdog_cause(r: _Run, exc: BaseException) -> BaseException:
+    """``exc``, or, when it is the detector's time-out and the guardian's watchdog switched the
+    beam off while this process was silent, a :class:`SourceFault` naming the watchdog. A stop
+    (SIGSTOP, a debugger) longer than the watchdog's 5 s and the detector's time-out woke the
+    folder's wait already past its deadline: the line said "0 of 4 frames arrived ... still
+    being written", blaming the panel, and the guardian's word came only in a log line above."""
+    src = getattr(r.devices, "source", None)
+    told = getattr(src, "watchdog_off", None)
+    if not isinstance(exc, DetectorTimeout) or not isinstance(told, str) or not told:
+        return exc
+    from acquisition.errors import SourceFault
+
+    return SourceFault(
+        f"{src.port}: {told}; the wait for the detector's frames ran out in that time too (not a panel fault)"
+    )
 
 
 def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
@@ -1871,9 +1917,11 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
     if monitor is not None and monitor.off_failed or getattr(dev.source, "off_failed", None) is not None:
         dev.off_failed = True
         r.res.tube_off = False
+        r.res.off_failure = str(getattr(dev.source, "off_failed", None) or "")
         log.error(
             "not switching off again: the last XOF could not be confirmed (%s)",
             getattr(dev.source, "off_failed", None) or "beam monitor",
+            extra=_said_by_driver() if r.res.off_failure else None,
         )
         return False
     try:
@@ -1881,7 +1929,8 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
     except Exception as exc:
         dev.off_failed = True
         r.res.tube_off = False
-        log.error("could not confirm the tube is off: %s", exc)
+        r.res.off_failure = str(getattr(dev.source, "off_failed", None) or exc)
+        log.error("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
         return False
     name = getattr(state, "name", str(state))
     if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
@@ -1898,6 +1947,14 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         return False
     r.res.tube_off, r.res.tube_state = True, name
     return True
+
+
+def _said_by_driver() -> dict:
+    """The ``extra`` of a log line repeating the driver's unconfirmed switch-off (its own
+    CRITICAL line said it): a terminal that says the failure once leaves these out."""
+    from acquisition.l8121 import OFF_FAILURE
+
+    return {OFF_FAILURE: True}
 
 
 def _mark_invalid(writer, indices):
