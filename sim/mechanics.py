@@ -57,7 +57,17 @@ from radiokit.errors import RadiokitError
 from sim.mesh import FEMesh, build_mesh, curved_skfem_mesh, p2_submesh
 from sim.scene import Scene
 
-__all__ = ["State", "ConvergenceError", "InstabilityError", "Solver", "compress", "uniaxial_block_force"]
+__all__ = [
+    "State",
+    "ConvergenceError",
+    "InstabilityError",
+    "MemoryBudgetError",
+    "Solver",
+    "compress",
+    "estimate_solve_bytes",
+    "check_solve_memory",
+    "uniaxial_block_force",
+]
 
 _EYE = np.eye(3)
 
@@ -80,6 +90,75 @@ CONTACT_GROWTH = 1.5
 #: a cylinder's side creasing at 41 % released 2.1)
 SNAP_TOL = 0.25
 TRACE = False
+
+
+#: The solve's peak memory against its mesh, fitted by benchmarks/bench_mechanics_memory.py
+#: (benchmarks/README.md, "Mechanics memory"; seed-breast in 3D, pva-phantom's section in 2D),
+#: per model dimension: ``setup`` bytes per element at the solver's set-up (the gradient operators
+#: B and Bt, and the sparsity pattern's int64 index arrays, freed once it is found), ``held``
+#: bytes per element kept beside a factorisation, 12 bytes per non-zero of the LU (SuperLU's
+#: float64 value and int32 index), and its fill nnz(L) + nnz(U) = c n^k of n = dim x P2 nodes.
+#: In 3D the fill's exponent grows with the mesh (1.61 between 5 600 and 22 000 unknowns, 1.81
+#: between 35 000 and 54 000: minimum degree tends to a band's 2, not nested dissection's 4/3),
+#: so it is the largest measured mesh's local power, through that mesh: it extrapolates high
+#: rather than low (6.4 GB for the 30 800 tetrahedra that had reached 6.4 GB, unfinished, in
+#: review s41sim). In 2D one power fits 17 000-258 000 unknowns within 1 %.
+SOLVE_MEMORY = {
+    3: {"setup": 83.5e3, "held": 60e3, "c": 0.1829, "k": 1.81},
+    2: {"setup": 21e3, "held": 13e3, "c": 18.06, "k": 1.198},
+}
+
+
+def mesh_unknowns(fem: FEMesh) -> tuple[int, int]:
+    """``(P2 nodes, unknowns)`` of ``fem``: its vertices and edges, dim unknowns each."""
+    cells = np.asarray(fem.cells)
+    k = cells.shape[0]
+    pairs = np.concatenate([np.sort(cells[[a, b]], axis=0) for a in range(k) for b in range(a + 1, k)], axis=1)
+    edges = np.unique(pairs[0].astype(np.int64) * (int(cells.max()) + 1) + pairs[1]).size
+    nodes = int(np.unique(cells).size) + edges
+    return nodes, (k - 1) * nodes
+
+
+def estimate_solve_bytes(fem: FEMesh) -> int:
+    """The peak memory of solving ``fem`` (bytes), before the solver allocates any of it:
+    within -6 % and +12 % of the peak measured on meshes of 1 100-11 500 tetrahedra and
+    4 200-64 000 triangles (:data:`SOLVE_MEMORY`). The set-up's peak or the factorisation's,
+    whichever is higher: the factorisation reuses what the set-up freed."""
+    m = SOLVE_MEMORY[fem.cells.shape[0] - 1]
+    nel = fem.cells.shape[1]
+    fill = m["c"] * float(mesh_unknowns(fem)[1]) ** m["k"]
+    return int(max(m["setup"] * nel, m["held"] * nel + 12 * fill))
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 2**30:.1f} GiB" if nbytes >= 2**30 else f"{max(nbytes / 2**20, 0.1):.1f} MiB"
+
+
+class MemoryBudgetError(RadiokitError, ValueError):
+    """The mechanics of a mesh would need more memory than radiokit's budget allows."""
+
+
+def check_solve_memory(scene: Scene, fem: FEMesh, budget=None) -> None:
+    """:class:`MemoryBudgetError` naming the mesh sizes when solving ``fem`` would need more than
+    the memory budget (``radiokit.io.memory_budget``: ``RADIOKIT_MEMORY_BUDGET``, else half the
+    available memory): a 30 000-element mesh of seed-breast took 6.4 GB within 326 s of a
+    factorisation no signal interrupts (review s41sim)."""
+    from radiokit.io import BUDGET_ENV, memory_budget
+
+    need, limit = estimate_solve_bytes(fem), memory_budget(budget)
+    if need <= limit:
+        return
+    spec = scene.mesh
+    sizes = ", ".join(
+        f"{name} {getattr(spec, name):g}"
+        for name in ("size_inclusion_mm", "size_far_mm", "size_contact_mm")
+        if getattr(spec, name) is not None
+    )
+    raise MemoryBudgetError(
+        f"mesh {sizes}: {fem.cells.shape[1]:,} elements, {mesh_unknowns(fem)[1]:,} unknowns: the mechanics would "
+        f"need about {_size(need)}, over the memory budget of {_size(limit)} "
+        f"(use larger mesh sizes, or raise {BUDGET_ENV})"
+    )
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
@@ -203,6 +282,7 @@ class Solver:
 
         self.scene = scene
         self.fem = fem if fem is not None else build_mesh(scene)
+        check_solve_memory(scene, self.fem)  # before the set-up allocates the first of it
         self.model = self.fem.model
         if scene.mesh.curved:
             mesh = curved_skfem_mesh(self.fem, scene)  # isoparametric: edge nodes on curved surfaces
@@ -739,6 +819,7 @@ class Solver:
                     # (rent or buy: never more than twice the best choice in hindsight)
                     self._lu = None
                 return x
+        self._lu = None  # one factorisation held at a time: the old one freed before the new one's fill
         self._lu = self._factorise(K)
         self._krylov_spent = 0
         self.factorisations += 1
