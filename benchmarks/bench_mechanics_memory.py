@@ -1,7 +1,7 @@
 """Peak memory of the mechanics' solve against the mesh: the measurements behind
 ``sim.mechanics.estimate_solve_bytes`` (benchmarks/README.md, "Mechanics memory").
 
-Each mesh is measured in a process of its own (``ru_maxrss`` is a process's high-water mark): the
+Each mesh is measured in a process of its own (Linux's VmHWM, the high-water mark of its resident memory, reset after loading the mesh): the
 solver is set up, the tangent at the first load step assembled and factorised once, as the first
 Newton iteration does; that is the solve's peak (later iterations reuse the storage: one
 factorisation is held at a time). Printed per mesh: elements, P2 nodes, unknowns, the tangent's
@@ -20,6 +20,7 @@ import pickle
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
 
 DEFAULT = ["1.0/8/1.4", "0.8/6/1.1", "0.7/5/1.0", "0.55/4/0.8"]
 
@@ -45,8 +46,16 @@ def mesh(sizes: str, mesh_file: str) -> None:
         pickle.dump(build_mesh(scene_for(sizes)), f)
 
 
+def _status(key: str) -> int:
+    """A size from /proc/self/status (bytes). Not ``ru_maxrss``: Linux keeps it across fork and
+    exec, so a child of a large process (a pytest worker) started from its parent's peak."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise OSError(f"/proc/self/status has no {key}")
+
+
 def measure(sizes: str, mesh_file: str) -> dict:
-    import resource
     import time
 
     import numpy as np
@@ -57,7 +66,8 @@ def measure(sizes: str, mesh_file: str) -> dict:
     scene = scene_for(sizes)
     with open(mesh_file, "rb") as f:  # meshed in another process: gmsh's own peak is not the solve's
         fem = pickle.load(f)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    base = _status("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # the high-water mark from here: the solve's
     estimate = getattr(sim.mechanics, "estimate_solve_bytes", lambda fem: 0)(fem)
     t0 = time.perf_counter()
     solver = Solver(scene, fem)
@@ -65,9 +75,9 @@ def measure(sizes: str, mesh_file: str) -> dict:
     ev = solver.evaluate(np.zeros(solver.ndof), solver.H if solver.contact is not None else None)
     K = ev["K"].tocsr()[solver.free][:, solver.free].tocsc()
     del ev
-    setup = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    setup = _status("VmHWM")
     lu = Solver._factorise(K)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = _status("VmHWM")
     return {
         "sizes": sizes,
         "elements": int(fem.cells.shape[1]),

@@ -121,7 +121,7 @@ def mesh_unknowns(fem: FEMesh) -> tuple[int, int]:
 
 def estimate_solve_bytes(fem: FEMesh) -> int:
     """The peak memory of solving ``fem`` (bytes), before the solver allocates any of it:
-    within -6 % and +12 % of the peak measured on meshes of 1 100-11 500 tetrahedra and
+    within -8 % and +12 % of the peak measured on meshes of 1 100-11 500 tetrahedra and
     4 200-64 000 triangles (:data:`SOLVE_MEMORY`). The set-up's peak or the factorisation's,
     whichever is higher: the factorisation reuses what the set-up freed."""
     m = SOLVE_MEMORY[fem.cells.shape[0] - 1]
@@ -246,6 +246,43 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
     t = brentq(lambda t: mu * (t * t - 1) + lam * math.log(s * t * t), 1.0, 1.0 / s, xtol=1e-15, rtol=1e-15)
     p_yy = mu * (s - 1 / s) + lam * math.log(s * t * t) / s
     return abs(p_yy) * area_mm2, t
+
+
+def _stoppable(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a thread of its own, the main thread waiting for it in short
+    slices, so that a stop's handler runs (and its exception leaves) at once.
+
+    For SuperLU's factorisation: C that releases the GIL and never looks at Python's signal flag,
+    so Ctrl-C or SIGTERM waited for its end, 71 s for 11 500 tetrahedra on a loaded machine
+    (benchmarks/README.md, "Mechanics memory"). A stopped factorisation cannot be cut short: it
+    runs on to its end in its thread while the command removes its outputs and says so, and the
+    process exits once it is done (Python waits for the thread). Not a daemon thread: one left
+    running in BLAS while the interpreter shut down crashed the process ("BLAS : Bad memory
+    unallocation!", SIGSEGV) instead of its exit status. Off the main thread (no signal handlers
+    run there) it is a plain call."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args, **kwargs)
+    out: dict = {}
+    done = threading.Event()
+
+    def run():
+        try:
+            out["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # handed to the caller, as a plain call would raise it
+            out["error"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="factorisation").start()
+    # waited on an event, not join(): a stop raised inside join(timeout) marks the thread as ended
+    # (CPython 3.11), so the interpreter shut down beside it, crashing in BLAS
+    while not done.wait(0.05):  # a signal's handler runs here, between slices
+        pass
+    if "error" in out:
+        raise out["error"]
+    return out["value"]
 
 
 class _Pattern:
@@ -786,7 +823,17 @@ class Solver:
         linear solves). The factorisation is renewed once GMRES has spent on it as much as it
         cost (rent or buy), counted in iterations (``LU_PRICE``) rather than measured seconds, so
         that the work, and with it the Newton path, does not depend on the machine's load.
-        ``self.factorisations`` and ``self.krylov_iterations`` count the work."""
+        ``self.factorisations`` and ``self.krylov_iterations`` count the work.
+
+        Stops: a signal's handler (the command's: SIGINT, SIGTERM, SIGHUP, SIGQUIT raise an
+        ``Interrupted``) runs at the next Python instruction, so between Newton iterations, line
+        search trials and GMRES iterations (scipy's loop is Python) a stop ends the solve at
+        once; nothing here catches it (``solve`` retries only a ``ConvergenceError``). SuperLU's
+        factorisation is C that does not look at Python's signal flag (71 s for 11 500
+        tetrahedra at load 10): it runs in a thread of its own (:func:`_stoppable`), so a stop
+        is acted on at once (the outputs removed, the message said), though the process exits
+        only when that factorisation ends. A triangular solve (GMRES's preconditioner) is
+        milliseconds."""
         K = K.tocsc()
         nrhs = float(np.linalg.norm(rhs))
         if nrhs == 0.0:
@@ -834,7 +881,9 @@ class Solver:
         preferred): half the fill and time of SuperLU's default COLAMD on these tangents; if that
         fails or is inaccurate (an indefinite tangent far from equilibrium), partial pivoting."""
         try:
-            lu = spla.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True})
+            lu = _stoppable(
+                spla.splu, K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
+            )
             probe = np.random.default_rng(0).standard_normal(K.shape[0])
             y = lu.solve(K @ probe)
             if np.all(np.isfinite(y)) and np.linalg.norm(y - probe) <= 1e-6 * np.linalg.norm(probe):
@@ -842,7 +891,7 @@ class Solver:
         except RuntimeError:
             pass
         try:
-            return spla.splu(K)
+            return _stoppable(spla.splu, K)
         except (RuntimeError, ValueError) as exc:
             raise ConvergenceError(f"linear solve failed: {exc}") from exc
 
