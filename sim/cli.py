@@ -133,20 +133,26 @@ def _run_sim(args) -> int:
         f"detector {scene.detector.shape[0]}x{scene.detector.shape[1]} ({scene.beam.kind} beam along {scene.beam.direction})"
     )
     # written under a temporary name and renamed when complete: never a half-simulated file
+    from sim.mechanics import MemoryBudgetError
+
     with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=size) as tmp:
-        res = simulate_experiment(
-            scene,
-            tmp,
-            ratios=args.ratios,
-            n_darks=args.darks,
-            n_flats=args.flats,
-            frames_per_step=args.frames,
-            seed=args.seed,
-            overwrite=True,
-            progress=not args.quiet and sys.stderr.isatty(),
-            on_state=on_state,
-            on_step=on_step,
-        )
+        try:
+            res = simulate_experiment(
+                scene,
+                tmp,
+                ratios=args.ratios,
+                n_darks=args.darks,
+                n_flats=args.flats,
+                frames_per_step=args.frames,
+                seed=args.seed,
+                overwrite=True,
+                progress=not args.quiet and sys.stderr.isatty(),
+                on_state=on_state,
+                on_step=on_step,
+            )
+        except MemoryBudgetError as exc:  # found once meshed: named with the scene it came from
+            where = args.scene if args.scene is not None else f"preset {args.preset}"
+            raise MemoryBudgetError(f"{where}: {exc}") from None
     if args.save_scene:
         with atomic_path(args.save_scene, overwrite=args.overwrite, inputs=inputs) as tmp:
             scene.save(tmp)

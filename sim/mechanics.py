@@ -57,7 +57,17 @@ from radiokit.errors import RadiokitError
 from sim.mesh import FEMesh, build_mesh, curved_skfem_mesh, p2_submesh
 from sim.scene import Scene
 
-__all__ = ["State", "ConvergenceError", "InstabilityError", "Solver", "compress", "uniaxial_block_force"]
+__all__ = [
+    "State",
+    "ConvergenceError",
+    "InstabilityError",
+    "MemoryBudgetError",
+    "Solver",
+    "compress",
+    "estimate_solve_bytes",
+    "check_solve_memory",
+    "uniaxial_block_force",
+]
 
 _EYE = np.eye(3)
 
@@ -80,6 +90,75 @@ CONTACT_GROWTH = 1.5
 #: a cylinder's side creasing at 41 % released 2.1)
 SNAP_TOL = 0.25
 TRACE = False
+
+
+#: The solve's peak memory against its mesh, fitted by benchmarks/bench_mechanics_memory.py
+#: (benchmarks/README.md, "Mechanics memory"; seed-breast in 3D, pva-phantom's section in 2D),
+#: per model dimension: ``setup`` bytes per element at the solver's set-up (the gradient operators
+#: B and Bt, and the sparsity pattern's int64 index arrays, freed once it is found), ``held``
+#: bytes per element kept beside a factorisation, 12 bytes per non-zero of the LU (SuperLU's
+#: float64 value and int32 index), and its fill nnz(L) + nnz(U) = c n^k of n = dim x P2 nodes.
+#: In 3D the fill's exponent grows with the mesh (1.61 between 5 600 and 22 000 unknowns, 1.81
+#: between 35 000 and 54 000: minimum degree tends to a band's 2, not nested dissection's 4/3),
+#: so it is the largest measured mesh's local power, through that mesh: it extrapolates high
+#: rather than low (6.4 GB for the 30 800 tetrahedra that had reached 6.4 GB, unfinished, in
+#: review s41sim). In 2D one power fits 17 000-258 000 unknowns within 1 %.
+SOLVE_MEMORY = {
+    3: {"setup": 83.5e3, "held": 60e3, "c": 0.1829, "k": 1.81},
+    2: {"setup": 21e3, "held": 13e3, "c": 18.06, "k": 1.198},
+}
+
+
+def mesh_unknowns(fem: FEMesh) -> tuple[int, int]:
+    """``(P2 nodes, unknowns)`` of ``fem``: its vertices and edges, dim unknowns each."""
+    cells = np.asarray(fem.cells)
+    k = cells.shape[0]
+    pairs = np.concatenate([np.sort(cells[[a, b]], axis=0) for a in range(k) for b in range(a + 1, k)], axis=1)
+    edges = np.unique(pairs[0].astype(np.int64) * (int(cells.max()) + 1) + pairs[1]).size
+    nodes = int(np.unique(cells).size) + edges
+    return nodes, (k - 1) * nodes
+
+
+def estimate_solve_bytes(fem: FEMesh) -> int:
+    """The peak memory of solving ``fem`` (bytes), before the solver allocates any of it:
+    within -8 % and +12 % of the peak measured on meshes of 1 100-11 500 tetrahedra and
+    4 200-64 000 triangles (:data:`SOLVE_MEMORY`). The set-up's peak or the factorisation's,
+    whichever is higher: the factorisation reuses what the set-up freed."""
+    m = SOLVE_MEMORY[fem.cells.shape[0] - 1]
+    nel = fem.cells.shape[1]
+    fill = m["c"] * float(mesh_unknowns(fem)[1]) ** m["k"]
+    return int(max(m["setup"] * nel, m["held"] * nel + 12 * fill))
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 2**30:.1f} GiB" if nbytes >= 2**30 else f"{max(nbytes / 2**20, 0.1):.1f} MiB"
+
+
+class MemoryBudgetError(RadiokitError, ValueError):
+    """The mechanics of a mesh would need more memory than radiokit's budget allows."""
+
+
+def check_solve_memory(scene: Scene, fem: FEMesh, budget=None) -> None:
+    """:class:`MemoryBudgetError` naming the mesh sizes when solving ``fem`` would need more than
+    the memory budget (``radiokit.io.memory_budget``: ``RADIOKIT_MEMORY_BUDGET``, else half the
+    available memory): a 30 000-element mesh of seed-breast took 6.4 GB within 326 s of a
+    factorisation no signal interrupts (review s41sim)."""
+    from radiokit.io import BUDGET_ENV, memory_budget
+
+    need, limit = estimate_solve_bytes(fem), memory_budget(budget)
+    if need <= limit:
+        return
+    spec = scene.mesh
+    sizes = ", ".join(
+        f"{name} {getattr(spec, name):g}"
+        for name in ("size_inclusion_mm", "size_far_mm", "size_contact_mm")
+        if getattr(spec, name) is not None
+    )
+    raise MemoryBudgetError(
+        f"mesh {sizes}: {fem.cells.shape[1]:,} elements, {mesh_unknowns(fem)[1]:,} unknowns: the mechanics would "
+        f"need about {_size(need)}, over the memory budget of {_size(limit)} "
+        f"(use larger mesh sizes, or raise {BUDGET_ENV})"
+    )
 
 
 class ConvergenceError(RadiokitError, RuntimeError):
@@ -169,6 +248,43 @@ def uniaxial_block_force(ratio, E_kpa, nu, area_mm2) -> tuple[float, float]:
     return abs(p_yy) * area_mm2, t
 
 
+def _stoppable(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a thread of its own, the main thread waiting for it in short
+    slices, so that a stop's handler runs (and its exception leaves) at once.
+
+    For SuperLU's factorisation: C that releases the GIL and never looks at Python's signal flag,
+    so Ctrl-C or SIGTERM waited for its end, 71 s for 11 500 tetrahedra on a loaded machine
+    (benchmarks/README.md, "Mechanics memory"). A stopped factorisation cannot be cut short: it
+    runs on to its end in its thread while the command removes its outputs and says so, and the
+    process exits once it is done (Python waits for the thread). Not a daemon thread: one left
+    running in BLAS while the interpreter shut down crashed the process ("BLAS : Bad memory
+    unallocation!", SIGSEGV) instead of its exit status. Off the main thread (no signal handlers
+    run there) it is a plain call."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args, **kwargs)
+    out: dict = {}
+    done = threading.Event()
+
+    def run():
+        try:
+            out["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # handed to the caller, as a plain call would raise it
+            out["error"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="factorisation").start()
+    # waited on an event, not join(): a stop raised inside join(timeout) marks the thread as ended
+    # (CPython 3.11), so the interpreter shut down beside it, crashing in BLAS
+    while not done.wait(0.05):  # a signal's handler runs here, between slices
+        pass
+    if "error" in out:
+        raise out["error"]
+    return out["value"]
+
+
 class _Pattern:
     """The sparsity of the global matrix, found once: element entries are summed into CSR storage
     with one ``bincount`` per assembly instead of a COO -> CSR conversion."""
@@ -203,6 +319,7 @@ class Solver:
 
         self.scene = scene
         self.fem = fem if fem is not None else build_mesh(scene)
+        check_solve_memory(scene, self.fem)  # before the set-up allocates the first of it
         self.model = self.fem.model
         if scene.mesh.curved:
             mesh = curved_skfem_mesh(self.fem, scene)  # isoparametric: edge nodes on curved surfaces
@@ -706,7 +823,17 @@ class Solver:
         linear solves). The factorisation is renewed once GMRES has spent on it as much as it
         cost (rent or buy), counted in iterations (``LU_PRICE``) rather than measured seconds, so
         that the work, and with it the Newton path, does not depend on the machine's load.
-        ``self.factorisations`` and ``self.krylov_iterations`` count the work."""
+        ``self.factorisations`` and ``self.krylov_iterations`` count the work.
+
+        Stops: a signal's handler (the command's: SIGINT, SIGTERM, SIGHUP, SIGQUIT raise an
+        ``Interrupted``) runs at the next Python instruction, so between Newton iterations, line
+        search trials and GMRES iterations (scipy's loop is Python) a stop ends the solve at
+        once; nothing here catches it (``solve`` retries only a ``ConvergenceError``). SuperLU's
+        factorisation is C that does not look at Python's signal flag (71 s for 11 500
+        tetrahedra at load 10): it runs in a thread of its own (:func:`_stoppable`), so a stop
+        is acted on at once (the outputs removed, the message said), though the process exits
+        only when that factorisation ends. A triangular solve (GMRES's preconditioner) is
+        milliseconds."""
         K = K.tocsc()
         nrhs = float(np.linalg.norm(rhs))
         if nrhs == 0.0:
@@ -739,6 +866,7 @@ class Solver:
                     # (rent or buy: never more than twice the best choice in hindsight)
                     self._lu = None
                 return x
+        self._lu = None  # one factorisation held at a time: the old one freed before the new one's fill
         self._lu = self._factorise(K)
         self._krylov_spent = 0
         self.factorisations += 1
@@ -753,7 +881,9 @@ class Solver:
         preferred): half the fill and time of SuperLU's default COLAMD on these tangents; if that
         fails or is inaccurate (an indefinite tangent far from equilibrium), partial pivoting."""
         try:
-            lu = spla.splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True})
+            lu = _stoppable(
+                spla.splu, K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True}
+            )
             probe = np.random.default_rng(0).standard_normal(K.shape[0])
             y = lu.solve(K @ probe)
             if np.all(np.isfinite(y)) and np.linalg.norm(y - probe) <= 1e-6 * np.linalg.norm(probe):
@@ -761,7 +891,7 @@ class Solver:
         except RuntimeError:
             pass
         try:
-            return spla.splu(K)
+            return _stoppable(spla.splu, K)
         except (RuntimeError, ValueError) as exc:
             raise ConvergenceError(f"linear solve failed: {exc}") from exc
 

@@ -62,6 +62,35 @@ def _positive(what: str, value, n: int | None = None, *, zero=False):
         raise ValueError(f"{what} {shown}: expected finite numbers {'>= 0' if zero else '> 0'}")
 
 
+#: Young's moduli a material may have, kPa: from a 10 Pa gel (the softest hydrogels that hold a
+#: shape; brain is 0.1-1 kPa, fat 0.5-3 kPa, the gels here 5-134 kPa) to 500 GPa, above tungsten's
+#: 411 GPa, the stiffest marker metal (steel 200 GPa). Past either end the number is a unit slip
+#: (1e9 kPa is diamond's TPa, 1e-9 kPa a micropascal), and the solver's stiffness contrast with
+#: the gels (the residual test scales with the background's modulus) is beyond what it resolves.
+E_RANGE_KPA = (1e-2, 5e8)
+#: Linear attenuation a material may have, per cm: lead at 20 keV, the softest line the 20-100 kVp
+#: tube gives in quantity, is about 980 /cm and tungsten 1270 /cm (NIST XCOM, 86 and 66 cm^2/g);
+#: at 1e4 /cm a millimetre passes e^-1000 of the beam, so no greater value changes an image.
+ATTENUATION_MAX_PER_CM = 1e4
+
+
+def _check_moduli(m) -> None:
+    """Refuse a Young's modulus outside :data:`E_RANGE_KPA` (given, or implied by mu and kappa)."""
+    lo, hi = E_RANGE_KPA
+    if m.E_kpa is not None:
+        if not lo <= m.E_kpa <= hi:
+            raise ValueError(
+                f"material {m.name!r}: E_kpa {m.E_kpa:g}: outside {lo:g}-{hi:g} kPa (a 10 Pa gel to tungsten)"
+            )
+        return
+    E = 9 * m.kappa_kpa * m.mu_kpa / (3 * m.kappa_kpa + m.mu_kpa)
+    if not lo <= E <= hi:
+        raise ValueError(
+            f"material {m.name!r}: mu_kpa {m.mu_kpa:g}, kappa_kpa {m.kappa_kpa:g}: Young's modulus {E:.2g} "
+            f"outside {lo:g}-{hi:g} kPa (a 10 Pa gel to tungsten)"
+        )
+
+
 #: ``neo-hookean``: FEBio's coupled form; ``neo-hookean-uncoupled``: ANSYS's (the paper's package),
 #: mu/2 (J^-2/3 I1 - 3) + kappa/2 (J - 1)^2; ``linear``: Hooke on the Green-Lagrange strain (St
 #: Venant-Kirchhoff), as a geometrically nonlinear code treats a linear material.
@@ -106,6 +135,12 @@ class Material:
             raise ValueError(f"material {self.name!r}: give E_kpa and nu, or mu_kpa and kappa_kpa, not {given}")
         if not 0 <= self.attenuation_per_cm < math.inf:
             raise ValueError(f"material {self.name!r}: attenuation must be finite and >= 0")
+        _check_moduli(self)
+        if self.attenuation_per_cm > ATTENUATION_MAX_PER_CM:
+            raise ValueError(
+                f"material {self.name!r}: attenuation_per_cm {self.attenuation_per_cm:g}: outside "
+                f"0-{ATTENUATION_MAX_PER_CM:g} per cm (lead at 20 keV is about 980)"
+            )
 
     @property
     def shear_kpa(self) -> float:
@@ -288,6 +323,12 @@ class Compression:
 VIEWS = {"through_plates": "y", "side": "z"}
 
 
+#: The farthest a cone beam's source or detector may be from the body, mm: a room's length (the
+#: lab's cabinet is under 1.5 m). At 10 m the magnification of a body 100 mm before the
+#: detector is 1.01 and the rays over the 112 mm field diverge by 0.3 degrees: a parallel beam.
+DISTANCE_MAX_MM = 1e4
+
+
 @dataclass
 class Beam:
     """``parallel`` or ``cone`` beam along ``direction``: ``"y"`` (alias ``"through_plates"``)
@@ -308,6 +349,12 @@ class Beam:
             raise ValueError(f"beam direction {self.direction!r}: expected 'y' (through_plates) or 'z' (side)")
         _positive("beam source_distance_mm", self.source_distance_mm)
         _positive("beam detector_distance_mm", self.detector_distance_mm, zero=True)
+        for name in ("source_distance_mm", "detector_distance_mm"):
+            if getattr(self, name) > DISTANCE_MAX_MM:
+                raise ValueError(
+                    f"beam {name} {getattr(self, name):g}: expected at most {DISTANCE_MAX_MM:g} mm "
+                    "(a room's length; a source farther than that is a parallel beam: kind = 'parallel')"
+                )
 
     @property
     def view(self) -> str:
@@ -351,6 +398,12 @@ class Detector:
         return 0.05 * self.binning
 
 
+#: The least open beam a pixel may collect, counts above the dark offset: one count is the 12-bit
+#: ADC's least step, half the panel's read noise (2 counts) and a sixth of its dark offset's
+#: spread over pixels (6); below it a flat cannot be told from a dark, and -ln(I / I0) is noise.
+I0_MIN_COUNTS = 1.0
+
+
 @dataclass
 class Exposure:
     """The source: ``i0_counts`` is the open beam (counts above the dark offset) one *unbinned*
@@ -371,6 +424,11 @@ class Exposure:
         _positive("exposure voltage_kv", self.voltage_kv)
         _positive("exposure current_ua", self.current_ua)
         _positive("exposure i0_counts", self.i0_counts)
+        if self.i0_counts < I0_MIN_COUNTS:
+            raise ValueError(
+                f"exposure i0_counts {self.i0_counts:g}: expected at least {I0_MIN_COUNTS:g} count per pixel "
+                "(the 12-bit ADC's least step: below it a flat is a dark)"
+            )
         _check_open_beam(self.i0_counts, 1)  # the least any binning reads out
 
 

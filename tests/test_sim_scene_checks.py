@@ -87,6 +87,14 @@ CASES = [
     ("imaging.blur_sigma_mm", 1e9, "imaging blur_sigma_mm 1e+09: expected at most the image's 112 mm"),
     # gmsh ran for minutes at 1.3 GB and did not answer Ctrl-C (review s41cli)
     ("mesh.size_inclusion_mm", 0.001, "mesh size_inclusion_mm 0.001 would make about"),
+    # physical ranges (review s41sim): each of these was taken and went on to the solver or the
+    # projection; the bounds are sim.scene's E_RANGE_KPA, ATTENUATION_MAX_PER_CM, DISTANCE_MAX_MM, I0_MIN_COUNTS
+    ("body.material.E_kpa", 1e9, "scene body.material: material 'block': E_kpa 1e+09: outside 0.01-5e+08 kPa"),
+    ("inclusions.0.material.E_kpa", 1e-9, "material 'inclusion': E_kpa 1e-09: outside 0.01-5e+08 kPa"),
+    ("body.material.attenuation_per_cm", 1e9, "attenuation_per_cm 1e+09: outside 0-10000 per cm"),
+    ("beam.source_distance_mm", 1e9, "scene beam: beam source_distance_mm 1e+09: expected at most 10000 mm"),
+    ("beam.detector_distance_mm", 1e9, "beam detector_distance_mm 1e+09: expected at most 10000 mm"),
+    ("exposure.i0_counts", 1e-9, "scene exposure: exposure i0_counts 1e-09: expected at least 1 count"),
 ]
 
 
@@ -103,6 +111,45 @@ def no_meshing(monkeypatch):
     monkeypatch.setattr(sim.mechanics.Solver, "__init__", reached)
 
 
+def test_a_cone_beams_source_is_bounded_on_loading(tmp_path, no_meshing, capsys):
+    """The cone beam is where the source distance is read (magnification): 1e9 mm was taken."""
+    from radiokit.cli import main
+
+    d = edited("beam.kind", "cone")
+    d["beam"]["source_distance_mm"] = 1e9
+    scene = tmp_path / "scene.toml"
+    scene.write_text(tomli_w.dumps(d))
+    assert main(["sim", "run", str(scene), "-o", str(tmp_path / "sim.h5"), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(scene) in err and "source_distance_mm 1e+09" in err
+
+
+@pytest.mark.parametrize(
+    "pair, words",
+    [
+        ({"mu_kpa": 1e9, "kappa_kpa": 1e10}, "mu_kpa 1e+09, kappa_kpa 1e+10: Young's modulus 2.9e+09"),
+        ({"mu_kpa": 1e-9, "kappa_kpa": 1.0}, "Young's modulus 3e-09"),
+    ],
+)
+def test_moduli_given_as_mu_and_kappa_are_bounded_as_E_is(pair, words):
+    d = base()
+    d["body"]["material"] = {"name": "block", "model": "neo-hookean", **pair}
+    with pytest.raises(ValueError, match=r"outside 0.01-5e\+08 kPa") as err:
+        Scene.from_toml(tomli_w.dumps(d))
+    assert words in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("E_kpa", 1e-2), ("E_kpa", 5e8), ("attenuation_per_cm", 0.0), ("attenuation_per_cm", 1e4)],
+)
+def test_the_ends_of_the_physical_ranges_are_valid(field, value):
+    """The ranges' ends are materials (a 10 Pa gel, tungsten; vacuum, 1e4 /cm) and pass."""
+    assert (
+        getattr(Scene.from_toml(tomli_w.dumps(edited(f"body.material.{field}", value))).body.material, field) == value
+    )
+
+
 def test_the_base_scene_is_valid():
     assert Scene.from_toml(tomli_w.dumps(base())).inclusions[0].diameter_mm == 3.0
 
@@ -114,7 +161,7 @@ def test_an_invalid_scene_value_is_named_on_loading(path, value, words):
     assert words in str(err.value) and "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("case", [0, 6, 11, 29, 42, 44, 46])
+@pytest.mark.parametrize("case", [0, 6, 11, 29, 42, 44, 46, 47, 49, 50, 52])
 def test_the_cli_refuses_an_invalid_scene_in_one_line_before_meshing(case, no_meshing, tmp_path, capsys):
     from radiokit.cli import main
 
