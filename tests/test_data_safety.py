@@ -1648,9 +1648,18 @@ def test_demo_interrupted_before_any_file_leaves_no_folder(sig, tmp_path):
 def test_demo_interrupted_mid_acquisition_says_what_it_left(tmp_path):
     """Ctrl-C once the experiment file was being written: the demo's acquisition flushes frame by
     frame (not atomic), so a partial experiment file stays in the demo's folder. The line said
-    "no partial output was left"; it names the folder and how to start again instead."""
+    "no partial output was left"; it names the folder and how to start again instead. Waited
+    for the file to hold a frame (its layout is 27 KB, with a binned frame 685 KB): a file stopped
+    before its first frame is removed (it held nothing, and blocked the next run)."""
     out = tmp_path / "demo"
-    code, err = _demo_interrupted_when(out, lambda o: (o / "experiment.h5").exists())
+
+    def a_frame_written(o):
+        try:
+            return (o / "experiment.h5").stat().st_size > 300_000
+        except FileNotFoundError:
+            return False
+
+    code, err = _demo_interrupted_when(out, a_frame_written)
     assert code == 130, err
     assert (out / "experiment.h5").exists() and (out / RESULTS_MARKER).exists()
     assert len(err.strip().splitlines()) == 1, err
