@@ -109,6 +109,18 @@ class Watcher(FolderWatcher):
             yield frame
 
 
+def _run_beside_the_vendor(p, dev, operator):
+    """The series run while the vendor's software saves frames into the panel's folder: (its
+    result, the vendor thread, stopped)."""
+    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
+    vendor.start()
+    try:
+        return run(p, devices=dev, progress=False), vendor
+    finally:
+        vendor.halt.set()
+        vendor.join(5)
+
+
 def _lab(tmp_path, series=None, operator=None, warmed_up=True, shape=SHAPE, **detector):
     folder = tmp_path / "frames"
     folder.mkdir(exist_ok=True)
@@ -147,13 +159,7 @@ def test_frames_saved_while_the_run_waited_are_never_taken_for_the_next_batch(tm
     taken with the tube off at the uncompressed gap, and so on, all labelled as asked. Now each
     batch starts after the frames the folder holds, and drops the one in flight."""
     p, dev, operator = _lab(tmp_path)
-    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
-    vendor.start()
-    try:
-        res = run(p, devices=dev, progress=False)
-    finally:
-        vendor.halt.set()
-        vendor.join(5)
+    res, vendor = _run_beside_the_vendor(p, dev, operator)
     assert vendor.error is None
     assert res.tube_off is True and res.frames_total == 2 + 2 + 2 * len(STEPS)
     with h5py.File(p.output, "r") as h5:
@@ -592,13 +598,7 @@ def test_the_panel_check_frame_is_not_stored_and_the_series_completes(tmp_path):
     series is what it was: every dark with the tube off, flats and projections with it on."""
     series = {"darks": 2, "flats": 2, "frames_per_step": 1, "steps": list(STEPS), "settle_s": 0.0}
     p, dev, operator = _lab(tmp_path, series, warmed_up=False)
-    vendor = Vendor(Path(p.detector.folder), dev.emulator, operator)
-    vendor.start()
-    try:
-        res = run(p, devices=dev, progress=False)
-    finally:
-        vendor.halt.set()
-        vendor.join(5)
+    res, vendor = _run_beside_the_vendor(p, dev, operator)
     assert res.tube_off is True and res.frames_total == 2 + 2 + len(STEPS)
     assert "WUP" in dev.emulator.commands
     with h5py.File(p.output, "r") as h5:
