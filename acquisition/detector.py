@@ -741,6 +741,9 @@ class SimDetector:
         self.shape = tuple(bench.panel.shape)
         self.pixel_size_mm = float(bench.scene.detector.pixel_size_mm)
         self._rng = np.random.default_rng(self.seed)
+        # a protocol's panel check (a frame not stored) draws from a stream of its own: the series'
+        # frames are those of a run without it, so a simulated series stays what it was
+        self._check_rng = np.random.default_rng([self.seed, 1])
         self._remaining = None  # frames left before the simulated loss (fail_after)
         self._closed = False
         self.frames_delivered = 0
@@ -771,7 +774,14 @@ class SimDetector:
         waiting out ``timeout_s``: the simulation knows the frame will not come. A
         ``frame_time_s`` longer than ``timeout_s`` times out after ``timeout_s``.
         """
-        n = _count(n)
+        return self._frames(_count(n), timeout_s, self._rng)
+
+    def check(self, *, timeout_s: float | None = None) -> Frame:
+        """One frame, as :meth:`acquire` gives it, for a check that does not store it (a
+        protocol's panel check before X-rays): its noise from a stream of its own."""
+        return next(iter(self._frames(1, timeout_s, self._check_rng)))
+
+    def _frames(self, n: int, timeout_s, rng) -> Iterator[Frame]:
         for k in range(n):
             if self._closed:
                 raise DeviceError(f"{self._name()}: closed")
@@ -788,7 +798,7 @@ class SimDetector:
             if self.frame_time_s:
                 time.sleep(self.frame_time_s)
             on, kv, ua = self._beam()
-            data = self.bench.expose(1, xray_on=on, kv=kv, ua=ua, rng=self._rng)[0]
+            data = self.bench.expose(1, xray_on=on, kv=kv, ua=ua, rng=rng)[0]
             if self._remaining is not None:
                 self._remaining -= 1
             self.frames_delivered += 1

@@ -800,3 +800,20 @@ def test_sim_detector_follows_the_beam_frame_by_frame(bench):
     dark = bench.panel.dark_level
     assert means[0] > dark + 500 and means[1] > dark + 500
     assert means[2] == pytest.approx(dark, abs=1) and means[3] == pytest.approx(dark, abs=1)
+
+
+def test_a_panel_check_frame_leaves_the_series_frames_as_they_were(bench):
+    """The protocol's panel check before X-rays (one frame, not stored) drew from the virtual
+    panel's noise stream, so every frame of a simulated series after it changed, and the demo's
+    numbers with them. It draws from a stream of its own: the series' frames are the same with or
+    without it, and the check frame is a real frame of the bench (a dark, beam off)."""
+    plain, checked = SimDetector(bench, _beam(on=False), seed=3), SimDetector(bench, _beam(on=False), seed=3)
+    plain.arm()
+    checked.arm()
+    frame = checked.check(timeout_s=1.0)
+    assert frame.data.shape == bench.panel.shape
+    assert abs(float(frame.data.mean()) - bench.panel.dark_level) < 5 * (bench.panel.dark_spread + 1)
+    a = np.stack([f.data for f in plain.acquire(2)])
+    b = np.stack([f.data for f in checked.acquire(2)])
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(frame.data, a[0])  # its own noise, not the series' first frame

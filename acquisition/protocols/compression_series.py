@@ -1161,8 +1161,14 @@ def _panel_check(r: _Run) -> None:
         return
     detector = r.devices.detector
     detector.begin_batch(r.p.detector.discard_after_change)
+    check = getattr(detector, "check", None)  # a virtual panel's keeps its series' noise as it was
     try:
-        for frame in detector.acquire(1, timeout_s=r.p.detector.timeout_s):
+        frames = (
+            [check(timeout_s=r.p.detector.timeout_s)]
+            if check
+            else detector.acquire(1, timeout_s=r.p.detector.timeout_s)
+        )
+        for frame in frames:
             log.info("panel check: a frame from %s, tube off (not stored): the panel delivers", frame.origin)
     except DeviceError as exc:
         exc.args = (f"{exc}; the panel is checked before X-rays: no X-ray command was sent",) + exc.args[1:]
