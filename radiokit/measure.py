@@ -545,19 +545,7 @@ def _difference_var(x: np.ndarray, dr: int, dc: int) -> float:
     def part(tr, tc):
         return x[ar + tr : rows - ar + tr, ac + tc : cols - ac + tc]
 
-    e = (part(dr, dc) - part(0, 0)).ravel()
-    if e.size < 8:
-        return math.nan
-    centre = np.median(e)
-    scale = _MAD_SIGMA * np.median(np.abs(e - centre))
-    # then clipped at 3 scales, a few rounds: a median absolute deviation alone read 20-40 % high
-    # where an inclusion's edge crossed a sixth of a window's differences
-    for _ in range(5):
-        kept = e[np.abs(e - centre) <= 3 * scale]
-        if kept.size < 8 or scale == 0:
-            break
-        centre, scale = kept.mean(), kept.std() / math.sqrt(_CLIPPED_VAR)
-    return float(scale**2)
+    return _robust_var(part(dr, dc) - part(0, 0))[0]
 
 
 def _one_pixel_se(x: np.ndarray, h: int, w: int) -> float:
@@ -594,6 +582,8 @@ def _robust_var(e: np.ndarray, keep: np.ndarray | None = None) -> tuple[float, n
         return math.nan, np.zeros_like(e)
     centre = np.median(ev[use])
     scale = _MAD_SIGMA * np.median(np.abs(ev[use] - centre))
+    # then clipped at 3 scales, a few rounds: a median absolute deviation alone read 20-40 % high
+    # where an inclusion's edge crossed a sixth of a window's differences
     for _ in range(5):
         kept = use & (np.abs(ev - centre) <= 3 * scale)
         if kept.sum() < 8 or scale == 0:

@@ -104,8 +104,6 @@ if TYPE_CHECKING:
 DOMAINS = (Domain.LOG, Domain.NEGATIVE)
 #: The beam's directions :attr:`Config.view` names (sim.scene's ``[beam] direction``'s two geometries)
 VIEWS = ("through_plates", "side")
-#: The pixel pitch taken for a file that records none: the C7942's (said, and marked in the results)
-ASSUMED_PIXEL_SIZE_MM = 0.05
 
 
 def _ks(ks) -> tuple:
@@ -397,7 +395,7 @@ def _load_steps(path, progress: bool) -> Steps:
     """:func:`load_steps` without its NaN warning: :func:`process` refuses such pixels inside a
     ROI (:func:`_check_unknown_in_rois`) and warns of them only once they pass."""
     from radiokit.calibrate import Calibration, exposure_factors
-    from radiokit.io import ImageKey, open_frames
+    from radiokit.io import C7942_PIXEL_SIZE_MM, ImageKey, open_frames
     from radiokit.progress import tqdm
 
     t = time.perf_counter()
@@ -437,12 +435,12 @@ def _load_steps(path, progress: bool) -> Steps:
             # every length in mm rests on it (ROI sizes, the crop, the bound's plate gaps): said,
             # and the report says it was assumed (review s41proc: reported as the file's)
             warnings.warn(
-                f"{path}: records no pixel size (x_pixel_size): taking the C7942's {ASSUMED_PIXEL_SIZE_MM:g} mm; "
+                f"{path}: records no pixel size (x_pixel_size): taking the C7942's {C7942_PIXEL_SIZE_MM:g} mm; "
                 "every length in mm (ROI sizes, the crop) assumes it",
                 UserWarning,
                 stacklevel=2,
             )
-        pixel_size_mm = float(ASSUMED_PIXEL_SIZE_MM if recorded is None else recorded)
+        pixel_size_mm = float(C7942_PIXEL_SIZE_MM if recorded is None else recorded)
     return Steps(
         np.stack(images),
         tuple(numbers),
@@ -739,14 +737,15 @@ def _bound(path, numbers, truth, bg_log_mean, ks, view=None) -> tuple[Bound, dic
     pair: ``mu_b`` from a simulated file's scene, else from the reference's background ROI
     (``mean L_bg / gap``: through the plates a background column spans the gap). Returns the
     :class:`Bound` and ``{Domain: {k: bound}}``, empty where the gaps are not recorded or the
-    beam runs from the side (no bound holds there): as the simulated scene says, else ``view``."""
+    beam runs from the side (no bound holds there): ``view``, the run's (:func:`_scene_view`, else
+    the configured one)."""
     import tomllib
 
     from radiokit.measure import improvement_bound
 
     gaps = _step_gaps_mm(path, numbers)
     dg = gaps[-2] - gaps[-1]
-    view, mu_b = _scene_view(truth) or view, None
+    mu_b = None
     scene_text = truth.get("scene_toml") if truth else None
     caveat = ""
     if scene_text:
@@ -1207,13 +1206,14 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
     main = next(p for p in pairs if (p.moving, p.reference) == (n - 2, n - 1))
     enhanced = _timed(timings, "enhance_s", enhance_pair, steps_c[-1], main.warped, cfg.ks)
     t = time.perf_counter()
+    view = _scene_view(truth) or cfg.view  # the control's too: it is imaged as the experiment is
     bound, bounds = _bound(
         path,
         list(steps.numbers),
         truth,
         float(np.mean(enhanced[Domain.LOG].reference[bg_c.slices], dtype=np.float64)),
         cfg.ks,
-        cfg.view,
+        view,
     )
     domains = measure_domains(enhanced, inc_c, bg_c, bounds, str(path))
     checked = check_pairs(pairs, steps_c, steps.numbers, inc_c, bg_c, truth, rois.slices())
@@ -1239,7 +1239,7 @@ def _process(path: Path, cfg: Config, out_dir: Path) -> Result:
         bound=bound,
         paper=PAPER,
         timings=timings,
-        control=_control(dataclasses.replace(cfg, view=_scene_view(truth) or cfg.view), rois, out_dir),
+        control=_control(dataclasses.replace(cfg, view=view), rois, out_dir),
     )
     files = _write(out_dir, record, images, cfg, t0)
     return Result(record, images, files)
@@ -1380,12 +1380,12 @@ PROCESS_BYTES_PER_STEP_PIXEL = 45
 def _process_need(path, cfg) -> tuple[int, str] | None:
     """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
     index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
-    from radiokit.io import open_frames
+    from radiokit.io import C7942_PIXEL_SIZE_MM, open_frames
     from radiokit.io._budget import _human
 
     try:
         with open_frames(path) as src:
-            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", ASSUMED_PIXEL_SIZE_MM))
+            (rows, cols), pixel_mm = src.frame_shape, float(src.meta.get("pixel_size_mm", C7942_PIXEL_SIZE_MM))
             # the steps from the file's index (read with its metadata), no frame read
             keys, steps = (np.asarray(src.meta.get(k, [])) for k in ("image_key", "step"))
     except (OSError, ValueError, TypeError):  # the file's own error is said by process, in its order

@@ -962,12 +962,10 @@ def _same_setting(section: str, key: str, a, b) -> bool:
         a, b = (None if v is None or str(v).lower() == "auto" else str(v).upper() for v in (a, b))
         return a is None or b is None or a == b
     if (section, key) == ("detector", "pixel_size_mm"):
-        a, b = (ASSUMED_PIXEL_SIZE_MM if v is None else v for v in (a, b))
+        from radiokit.io import C7942_PIXEL_SIZE_MM
+
+        a, b = (C7942_PIXEL_SIZE_MM if v is None else v for v in (a, b))
     return a == b
-
-
-#: The pitch a run records for a panel that states none (:func:`_open_experiment`)
-ASSUMED_PIXEL_SIZE_MM = 0.05
 
 
 def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
@@ -1217,9 +1215,11 @@ def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
 
 def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
+    from radiokit.io import C7942_PIXEL_SIZE_MM
+
     src, p, det = r.source, r.p, r.devices.detector
     kw = dict(
-        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or ASSUMED_PIXEL_SIZE_MM),
+        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or C7942_PIXEL_SIZE_MM),
         source={
             "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
             "voltage_kv": p.source.voltage_kv,

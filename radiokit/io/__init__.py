@@ -28,6 +28,7 @@ from radiokit.io._atomic import (
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, memory_budget, parse_size
 from radiokit.io._experiment import (
+    C7942_PIXEL_SIZE_MM,
     PIXEL_SIZE_RANGE_M,
     ExperimentProgress,
     ExperimentWriter,
@@ -60,6 +61,7 @@ __all__ = [
     "PRESETS",
     "DEFAULT_PRESET",
     "RawPreset",
+    "C7942_PIXEL_SIZE_MM",
     "ExperimentWriter",
     "ImageKey",
     "restore_previous",

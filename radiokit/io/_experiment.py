@@ -54,6 +54,7 @@ from radiokit.io._atomic import (
 from radiokit.io._frames import BitDepthWarning, bit_depth_cause
 
 __all__ = [
+    "C7942_PIXEL_SIZE_MM",
     "ExperimentWriter",
     "ImageKey",
     "ExperimentProgress",
@@ -106,6 +107,11 @@ _SERIES = (
 
 def _set_class(group, nx_class):
     group.attrs["NX_class"] = nx_class
+
+
+#: The C7942SK-02's pixel pitch: the writer's default, and what radiokit assumes for a file or a
+#: protocol that states none (said where it is assumed)
+C7942_PIXEL_SIZE_MM = 0.05
 
 
 class ExperimentWriter:
@@ -179,7 +185,7 @@ class ExperimentWriter:
         *,
         mode="w",
         overwrite=False,
-        pixel_size_mm=0.05,
+        pixel_size_mm=C7942_PIXEL_SIZE_MM,
         source=None,
         detector_name="Hamamatsu C7942SK-02",
         title="radiokit experiment",
