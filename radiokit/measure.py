@@ -1306,7 +1306,21 @@ def find_rois(
         "above": ROI(extent.row0 - g_r - h, extent.row0 - g_r, c0, c0 + w),
         "below": ROI(extent.row1 + g_r, extent.row1 + g_r + h, c0, c0 + w),
     }
-    return inclusion, _first_fitting(candidates, img.shape, body, region, others, f"{h}x{w}", f"{g_c} px", extent)
+    try:
+        background = _first_fitting(candidates, img.shape, body, region, others, f"{h}x{w}", f"{g_c} px", extent)
+    except ValueError as exc:
+        raise _NoBackgroundFits(str(exc), inclusion) from None
+    return inclusion, background
+
+
+class _NoBackgroundFits(ValueError):
+    """find_rois's refusal where the inclusion was found and only its background does not fit: the
+    inclusion rides along for a caller holding a background of its own (``radiokit process
+    --background`` alone was refused "give both ROIs" though detection had found the inclusion)."""
+
+    def __init__(self, message: str, inclusion: ROI):
+        super().__init__(message)
+        self.inclusion = inclusion
 
 
 def _touches(mask: np.ndarray, centre, radius: float) -> bool:

@@ -71,7 +71,7 @@ from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
-from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI
+from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI, _NoBackgroundFits
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
 __all__ = [
@@ -898,9 +898,12 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         try:
             auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
         except ValueError as exc:
-            if inc is None:  # find_rois's advice names its keywords, which process does not take (review s41proc)
+            if inc is None and bg is not None and isinstance(exc, _NoBackgroundFits):
+                auto_inc, auto_bg = exc.inclusion, None  # the inclusion was found; only its background was missing
+            elif inc is None:  # find_rois's advice names its keywords, which process does not take (review s41proc)
                 raise ValueError(str(exc).replace(_BACKGROUND_ADVICE, _BOTH_ROIS)) from None
-            auto_inc = auto_bg = None
+            else:
+                auto_inc = auto_bg = None
         if bg is None and inc is not None:
             # the detected inclusion's background where the given rectangle is in that inclusion
             # and clear of it (a rectangle drawn around the inclusion held it: review)

@@ -304,3 +304,26 @@ def test_a_pixel_size_the_file_does_not_record_is_said_to_be_assumed(tmp_path):
     res = process(recorded / "exp.h5", cfg, out_dir=recorded / "results")
     assert res.record.pixel_size_recorded is True
     assert "assumed" not in (recorded / "results" / "report.html").read_text().split("pixel size", 1)[1][:80]
+
+
+def test_a_background_given_alone_takes_the_detected_inclusion_where_no_automatic_background_fits():
+    """A sphere of 45 px radius in a body of 107 px (0.1 mm pixels) leaves no room for an automatic
+    background beside it; the user's ``--background`` alone was refused with "give both ROIs",
+    though detection had found the inclusion and only the background was missing."""
+    from radiokit.pipeline import Config, Steps, choose_rois
+
+    n = 256
+    rr, cc = np.mgrid[:n, :n].astype(float)
+    d = np.hypot(rr - 128, cc - 128)
+    L = 0.5 / (1 + np.exp((d - 107.5) / 3.0)) + 0.3 * np.sqrt(np.clip(45.0**2 - d**2, 0, None)) / 45.0
+    img = np.stack([a * L for a in (1.0, 0.95, 0.9)])
+    steps = Steps(img, (1, 2, 3), (0.1, 0.2, 0.3), 0.1, {})
+    given = (120, 136, 20, 36)  # in the body, left of the sphere (which spans cols 83-173)
+    choice = choose_rois(steps, Config(background=given, crop_mm=None))
+    inc = choice.inclusion
+    assert (choice.background.row0, choice.background.row1, choice.background.col0, choice.background.col1) == given
+    assert abs(inc.center[0] - 128) <= 1.5 and abs(inc.center[1] - 128) <= 1.5  # on the sphere's centre
+    assert 83 < inc.col0 and inc.col1 < 173  # inside the sphere
+    # the background given on the sphere is still refused as overlapping the detected inclusion
+    with pytest.raises(ValueError, match="overlaps"):
+        choose_rois(steps, Config(background=(120, 136, 120, 136), crop_mm=None))
