@@ -69,6 +69,12 @@ def _round_half_up(x: float) -> int:
     return int(math.floor(x + 0.5))
 
 
+def _mm_to_px(mm: float, pixel_size_mm: float) -> float:
+    """``mm / pixel_size_mm`` snapped to 1e-9 pixel: a bound typed on a half pixel stays one (0.35 /
+    0.1 is 3.4999999999999996, which rounds half up to 3 where 0.45 / 0.1 gives 4.5 and 5)."""
+    return round(mm / pixel_size_mm, 9)
+
+
 @dataclass(frozen=True)
 class ROI:
     """An axis-aligned rectangle of pixels: rows ``row0 <= r < row1``, cols ``col0 <= c < col1``.
@@ -215,13 +221,19 @@ class ROI:
         pixel_size_mm : float or (float, float)
             Pixel pitch (row, col) in mm.
         origin_rc : (float, float)
-            Pixel coordinates of the mm origin (default: the centre of pixel (0, 0)).
+            Pixel coordinates of the mm origin (default: the centre of pixel (0, 0)). ``(-0.5,
+            -0.5)`` is the frame's top-left corner, the origin of ``radiokit process --mm`` and
+            ``Config(roi_units="mm")``, which take the edges ``(row0, row1, col0, col1)`` in mm.
+
+        Bounds are rounded half up, as :meth:`from_center` rounds: a width stays the same
+        wherever the rectangle sits.
         """
         pr, pc = _pair(pixel_size_mm, "pixel_size_mm", positive=True)
         cr, cc = _pair(center_mm, "center_mm")
         sr, sc = _pair(size_mm, "size_mm", positive=True)
         orr, occ = _pair(origin_rc, "origin_rc")
-        return cls.from_center((orr + cr / pr, occ + cc / pc), (sr / pr, sc / pc))
+        px = (_mm_to_px(cr, pr), _mm_to_px(cc, pc)), (_mm_to_px(sr, pr), _mm_to_px(sc, pc))
+        return cls.from_center((orr + px[0][0], occ + px[0][1]), px[1])
 
     def to_mm(self, pixel_size_mm, origin_rc=(0.0, 0.0)) -> tuple[tuple[float, float], tuple[float, float]]:
         """``(center_mm, size_mm)`` such that ``ROI.from_mm(*roi.to_mm(p, o), p, o) == roi``."""

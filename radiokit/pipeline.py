@@ -71,7 +71,7 @@ from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
-from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI, _NoBackgroundFits
+from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI, _mm_to_px, _NoBackgroundFits, _round_half_up
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
 __all__ = [
@@ -366,18 +366,24 @@ def _roi(value, units, pixel_size_mm, name):
     what = f"{name} ROI {value!r}"
     r0, r1, c0, c1 = _roi_numbers(value, units, name)
     if units == "mm":
-        r0, r1, c0, c1 = (v / pixel_size_mm for v in (r0, r1, c0, c1))
-    else:  # a fractional pixel was rounded without a word; mm are rounded to pixels (README)
-        # a bound computed in floating point (0.1 * 300 = 30.000000000000004) is that whole
-        # number: the tolerance is far above float64's rounding and far below any real fraction
-        part = [repr(v) for v in (r0, r1, c0, c1) if abs(v - round(v)) > 1e-6 * max(1.0, abs(v))]
-        if part:
-            raise ValueError(
-                f"{what}: pixel bounds are whole numbers, not {', '.join(part)}"
-                " (for millimetres, rounded to pixels: roi_units='mm')"
-            )
+        # from the frame's corner, half up as ROI.from_mm: round() took halves to even, so a
+        # rectangle 3 pixels wide on half-pixel edges became 2 or 4 by where it sat (review s42api)
+        return _checked_roi(what, units, *(_round_half_up(_mm_to_px(v, pixel_size_mm)) for v in (r0, r1, c0, c1)))
+    # pixels: a fractional one was rounded without a word; mm are rounded to pixels (README). A
+    # bound computed in floating point (0.1 * 300 = 30.000000000000004) is that whole number: the
+    # tolerance is far above float64's rounding and far below any real fraction
+    part = [repr(v) for v in (r0, r1, c0, c1) if abs(v - round(v)) > 1e-6 * max(1.0, abs(v))]
+    if part:
+        raise ValueError(
+            f"{what}: pixel bounds are whole numbers, not {', '.join(part)}"
+            " (for millimetres, rounded to pixels: roi_units='mm')"
+        )
+    return _checked_roi(what, units, *(int(round(v)) for v in (r0, r1, c0, c1)))
+
+
+def _checked_roi(what, units, r0, r1, c0, c1) -> ROI:
     try:
-        return ROI(int(round(r0)), int(round(r1)), int(round(c0)), int(round(c1)))
+        return ROI(r0, r1, c0, c1)
     except ValueError as exc:
         raise ValueError(f"{what} ({units}): {exc}") from None
 

@@ -327,3 +327,20 @@ def test_a_background_given_alone_takes_the_detected_inclusion_where_no_automati
     # the background given on the sphere is still refused as overlapping the detected inclusion
     with pytest.raises(ValueError, match="overlaps"):
         choose_rois(steps, Config(background=(120, 136, 120, 136), crop_mm=None))
+
+
+@pytest.mark.parametrize("pixel_mm", [0.1, 0.05])
+def test_mm_rois_keep_their_width_wherever_they_sit_and_agree_with_roi_from_mm(pixel_mm):
+    """Review s42api: mm edges were rounded half to even, so a 3-pixel-wide rectangle whose edges
+    fall on half pixels became 2 or 4 pixels depending on where it sat. Half up, as
+    :meth:`ROI.from_center` rounds, keeps the width; and mm measured from the frame's corner are
+    ``ROI.from_mm`` with ``origin_rc=(-0.5, -0.5)``."""
+    from radiokit.measure import ROI
+    from radiokit.pipeline import _roi
+
+    for start in range(1, 12):  # edges on half pixels: start + 0.5 .. start + 3.5 pixels
+        lo, hi = (start + 0.5) * pixel_mm, (start + 3.5) * pixel_mm
+        roi = _roi((lo, hi, 1.0, 2.0), "mm", pixel_mm, "inclusion")
+        assert roi.shape[0] == 3, (start, roi)
+        centre, size = ((lo + hi) / 2, 1.5), (hi - lo, 1.0)
+        assert roi == ROI.from_mm(centre, size, pixel_mm, origin_rc=(-0.5, -0.5)), (start, roi)
