@@ -23,7 +23,7 @@ import numpy as np
 
 from radiokit import _json as strict_json
 from radiokit._version import __version__
-from radiokit.checks import is_number
+from radiokit.checks import is_number, refuse_masked
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -180,6 +180,7 @@ def beyond_float32(frames) -> float | None:
 
 
 def _as_stack(frames, what) -> np.ndarray:
+    refuse_masked(frames, what)  # before .data: a masked array's is its values, the mask dropped
     data = getattr(frames, "data", frames)
     data = np.asarray(data)
     if data.ndim == 2:

@@ -86,12 +86,13 @@ def refuse_masked(value, name: str, mask_keyword: str | None = None) -> None:
     >>> refuse_masked(np.ma.masked_array([1.0, 2.0], mask=[True, False]), "image", "mask")
     Traceback (most recent call last):
     ...
-    ValueError: image is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)), with mask= for the pixels to leave out
+    ValueError: image is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)), and mask= (True on the pixels to use) to leave the masked ones out
     """
     ma = sys.modules.get("numpy.ma")
     if ma is None or not isinstance(value, ma.MaskedArray):
         return
-    how = f", with {mask_keyword}= for the pixels to leave out" if mask_keyword else ""
+    # True on the pixels to use: numpy's masks are True on the pixels to leave out
+    how = f", and {mask_keyword}= (True on the pixels to use) to leave the masked ones out" if mask_keyword else ""
     raise ValueError(
         f"{name} is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)){how}"
     )

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from radiokit.checks import image_hint, is_number
+from radiokit.checks import image_hint, is_number, refuse_masked
 
 __all__ = [
     "ROI",
@@ -239,7 +239,8 @@ def _shape2(shape) -> tuple[int, int]:
 
 
 # -- validation --------------------------------------------------------------------------------
-def _image(image, name="image") -> np.ndarray:
+def _image(image, name="image", mask_keyword=None) -> np.ndarray:
+    refuse_masked(image, name, mask_keyword)
     arr = np.asarray(image)
     if arr.ndim != 2:
         raise ValueError(
@@ -258,6 +259,7 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
         region.check(image.shape, name)
         values = image[region.slices]
     else:
+        refuse_masked(region, name)
         m = np.asarray(region)
         if m.dtype != bool:
             # four numbers are how Config and --inclusion take a rectangle: show the ROI to write
@@ -1264,7 +1266,7 @@ def find_rois(
     >>> inc.contains((32, 40)), bg.col1 <= 40 - 6
     (True, True)
     """
-    img = np.asarray(_image(image), np.float64)
+    img = np.asarray(_image(image, mask_keyword="body_mask"), np.float64)
     if not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite values (NaN or inf)")
     px = None if pixel_size_mm is None else _pair(pixel_size_mm, "pixel_size_mm", positive=True)
@@ -1319,6 +1321,7 @@ def _touches(mask: np.ndarray, centre, radius: float) -> bool:
 
 
 def _bool_mask(mask, shape, name) -> np.ndarray:
+    refuse_masked(mask, name)
     arr = np.asarray(mask)
     if arr.dtype != bool or arr.shape != shape:
         raise ValueError(f"{name} must be a bool array of shape {shape}, got {arr.dtype} {arr.shape}")

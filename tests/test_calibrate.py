@@ -889,3 +889,11 @@ def test_a_circular_field_is_refused_with_advice_to_crop():
     flats = panel.expose(np.where(outside, 30.0, 0.0), 2500.0, n=10, rng=rng)
     with pytest.raises(ValueError, match=r"radius 12[6-9].*circular field.*crop.*rows 3[78]-21[78]"):
         Calibration.from_frames(darks, flats)
+
+
+def test_from_frames_refuses_masked_darks_or_flats():
+    """A masked array's ``.data`` is its values: the mask was dropped, the masked pixels averaged."""
+    darks = np.full((3, 8, 8), 100, np.uint16)
+    flats = np.ma.masked_array(np.full((3, 8, 8), 3000, np.uint16), mask=np.zeros((3, 8, 8), bool))
+    with pytest.raises(ValueError, match=r"^flats is a masked array, whose mask would be ignored"):
+        Calibration.from_frames(darks, flats)

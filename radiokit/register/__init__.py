@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from radiokit.checks import image_hint
+from radiokit.checks import image_hint, refuse_masked
 from radiokit.register._auto import AUTO_PRESETS
 from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
 from radiokit.register._confidence import roi_observed
@@ -195,14 +195,11 @@ def _load_methods():
 
 
 def _check(fixed, moving, mask):
-    for name, a in (("fixed", fixed), ("moving", moving), ("mask", mask)):
-        # np.asarray drops a masked array's mask: its masked pixels (dead ones, a NaN border
-        # filled with anything) were registered as data, and no mask limited the similarity
-        if isinstance(a, np.ma.MaskedArray):
-            raise ValueError(
-                f"{name} is a masked array, whose mask would be ignored: pass a plain array, "
-                "with mask= (bool, True where the similarity is scored) for the pixels to leave out"
-            )
+    for name, a in (("fixed", fixed), ("moving", moving)):
+        # its masked pixels (dead ones, a NaN border filled with anything) were registered as
+        # data, and no mask limited the similarity
+        refuse_masked(a, name, "mask")
+    refuse_masked(mask, "mask")
     f = np.asarray(fixed)
     m = np.asarray(moving)
     for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
