@@ -891,6 +891,45 @@ def test_a_circular_field_is_refused_with_advice_to_crop():
         Calibration.from_frames(darks, flats)
 
 
+def _small_cal(level=3000.0):
+    return Calibration(
+        np.full((8, 8), 100.0, np.float32), np.full((8, 8), level, np.float32), np.zeros((8, 8), np.uint8)
+    )
+
+
+def test_save_refuses_an_existing_file_unless_overwrite_and_replaces_it_whole(tmp_path):
+    """Saving twice replaced the first calibration silently (its group deleted in place)."""
+    path = _small_cal(3000).save(tmp_path / "cal.h5")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"cal\.h5: exists; pass --overwrite \(overwrite=True\)"):
+        _small_cal(1500).save(path)
+    assert path.read_bytes() == before
+    _small_cal(1500).save(path, overwrite=True)
+    assert Calibration.load(path).c == pytest.approx(1400)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5"]  # no temporary left beside it
+
+
+def test_save_never_writes_into_an_experiment_file(tmp_path):
+    """``cal.save("exp.h5")`` added a ``calibration`` group inside a raw experiment file."""
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=(8, 8)) as w:
+        w.append(np.full((8, 8), 100, np.uint16), image_key=ImageKey.DARK)
+    before = exp.read_bytes()
+    with pytest.raises(FileExistsError, match="exp.h5: exists"):
+        _small_cal().save(exp)
+    assert exp.read_bytes() == before
+
+
+def test_save_onto_a_file_that_is_no_hdf5_names_it(tmp_path):
+    """A text file as the target was h5py's "Unable to synchronously open file (file signature
+    not found)", naming no file."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    with pytest.raises(OSError, match=r"notes\.txt: exists"):
+        _small_cal().save(notes)
+    assert notes.read_text() == "my notes"
+
+
 def test_from_frames_refuses_masked_darks_or_flats():
     """A masked array's ``.data`` is its values: the mask was dropped, the masked pixels averaged."""
     darks = np.full((3, 8, 8), 100, np.uint16)

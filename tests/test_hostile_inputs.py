@@ -2583,3 +2583,13 @@ def test_process_refusing_a_linked_experiment_names_no_option_it_does_not_have(o
     one_line_error(res, path.name, "external link")
     assert "--allow-external" not in res.stderr and "allow_external=True" not in res.stderr
     assert "radiokit process reads no data outside the experiment file" in res.stderr
+
+
+def test_write_results_refuses_an_existing_file_unless_overwrite(tmp_path):
+    """``write_results`` replaced an existing file by default (``write_registration`` refuses)."""
+    path = tmp_path / "results.h5"
+    _results_file(path)
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="results.h5: exists; pass --overwrite"):
+        _results_file(path)
+    assert path.read_bytes() == before
