@@ -279,6 +279,17 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
     return values
 
 
+def _rectangle(roi, name: str = "roi") -> ROI:
+    """``roi`` if it is an :class:`ROI`; TypeError otherwise (a bool mask, as ``contrast`` takes,
+    was an AttributeError here): the standard errors' noise model reads a rectangle's lags."""
+    if not isinstance(roi, ROI):
+        raise TypeError(
+            f"{name} must be an ROI (a rectangle), got {type(roi).__name__}: the noise model reads its rows and "
+            "columns; for a mask, its bounding box: ROI(row0, row1, col0, col1)"
+        )
+    return roi
+
+
 def _ratio(num: float, den: float) -> float:
     """num / den as a Python float; +-inf for den == 0 (nan for 0 / 0), without warnings."""
     if den != 0:
@@ -651,7 +662,7 @@ def roi_mean_se(image, roi: ROI, *, min_side: int = 16) -> float:
     pixels).
     """
     img = _image(image)
-    roi.check(img.shape)
+    _rectangle(roi).check(img.shape)
     h, w = roi.shape
     margin = 2
     while True:
@@ -733,6 +744,8 @@ def improvement_factor_se(reference, registered, k, inclusion: ROI, background: 
     ``nan`` where the reference contrast is zero.
     """
     ref, reg = _image(reference, "reference"), _image(registered, "registered")
+    for roi, name in ((inclusion, "inclusion"), (background, "background")):
+        _rectangle(roi, name)
     if ref.shape != reg.shape:
         raise ValueError(f"reference has shape {ref.shape}, registered has {reg.shape}")
     d = np.asarray(ref, np.float64) - np.asarray(reg, np.float64)
@@ -762,6 +775,8 @@ def change_ratio_se(before, after, inclusion: ROI, background: ROI, *, min_z: fl
     with the background's change and its standard error; ``reason`` is ``""`` otherwise.
     """
     b, a = _image(before, "before"), _image(after, "after")
+    for roi, name in ((inclusion, "inclusion"), (background, "background")):
+        _rectangle(roi, name)
     if a.shape != b.shape:
         raise ValueError(f"before has shape {b.shape}, after has {a.shape}")
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)

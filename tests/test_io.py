@@ -2963,6 +2963,14 @@ def test_float_frames_holding_whole_counts_are_stored_and_fractional_ones_refuse
     assert f.n == 1 and f.data.dtype == np.uint16 and np.all(f.data == 4000)
 
 
+def test_read_given_an_array_says_a_path_is_expected():
+    """``read(ndarray)`` was pathlib's "expected str, bytes or os.PathLike object, not ndarray"."""
+    with pytest.raises(
+        TypeError, match=r"^expected a file path \(str or os.PathLike\), got ndarray: frames already in memory"
+    ):
+        read(np.zeros((4, 4)))
+
+
 @pytest.mark.parametrize("writer", ["write_tiff", "StackWriter"])
 def test_writers_refuse_an_existing_file_unless_overwrite(tmp_path, writer):
     """``write_tiff`` and ``StackWriter`` replaced an existing file by default, where

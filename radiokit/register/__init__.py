@@ -27,7 +27,16 @@ import numpy as np
 
 from radiokit.checks import image_hint, refuse_masked
 from radiokit.register._auto import AUTO_PRESETS
-from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
+from radiokit.register._common import (
+    _field,
+    _warp,
+    binned_mask,
+    jacobian_determinant,
+    monomials,
+    ncc,
+    residual_complexity,
+    warp,
+)
 from radiokit.register._confidence import roi_observed
 
 __all__ = [
@@ -557,9 +566,9 @@ def _assess(reg, f, m, mask, info, seconds):
     k = p.k
     if k > 1:
         db = _bin(reg.displacement, k) / np.float32(k)
-        w = warp(p.m, db)
+        w = _warp(p.m, _field(db))  # judged below: a non-finite field is one of its reasons
     else:
-        w = reg.warp(m)
+        w = _warp(m, _field(reg.displacement))
         db = reg.displacement
     q.rc_before = p.rc_before
     q.rc_after = residual_complexity((w - p.f) * p.unit, p.mask)
@@ -879,7 +888,7 @@ def coarse_residual_motion(fixed, moving, mask):
     level, where the checks would see the same misalignment at several times the cost; the binned
     pair and its observed part are computed once (:func:`_pair_checks`), for every field measured."""
     p = _pair_checks(fixed, moving, mask)
-    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(warp(p.m, d)), p.obs)
+    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(_warp(p.m, _field(d))), p.obs)
 
 
 def _body_scale(d, obj, obs, inner) -> float:
