@@ -488,10 +488,10 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
         (:func:`check_above_dark`: a beam-off frame, darks, a frame already corrected, an 8-bit
         display copy) or whose result is brighter than the flats (:func:`check_below_flats`:
         counts MSB-aligned, ``<< 4``, or at another exposure than the flats). Each judges about
-        128 x 128 pixels whatever the frame's size: together under a millisecond at 2240 x 2240
-        (session 42), a tenth of the correction. ``False`` for a caller
-        that checks the frames itself (``radiokit process`` judges a step's mean, after each
-        frame's exposure is rescaled) or means to correct such frames.
+        128 x 128 pixels whatever the frame's size: together under a millisecond at 2240 x 2240,
+        a tenth of the correction or less. ``False`` for a caller that checks the frames itself
+        (``radiokit process`` judges a step's mean, after each frame's exposure is rescaled) or
+        means to correct such frames.
 
     Returns
     -------
