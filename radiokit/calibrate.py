@@ -23,7 +23,7 @@ import numpy as np
 
 from radiokit import _json as strict_json
 from radiokit._version import __version__
-from radiokit.checks import is_number
+from radiokit.checks import is_number, refuse_masked
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -180,6 +180,7 @@ def beyond_float32(frames) -> float | None:
 
 
 def _as_stack(frames, what) -> np.ndarray:
+    refuse_masked(frames, what)  # before .data: a masked array's is its values, the mask dropped
     data = getattr(frames, "data", frames)
     data = np.asarray(data)
     if data.ndim == 2:
@@ -603,29 +604,47 @@ class Calibration:
         return cal
 
     # -- persistence --------------------------------------------------------------------------
-    def save(self, path, group="calibration") -> Path:
-        """Write to an HDF5 file (a new file, or a new group of an existing one), or into a
-        binary file object (``io.BytesIO``: ``radiokit calibrate`` then writes the bytes, of a
-        known size, atomically)."""
-        path = Path(path) if isinstance(path, (str, os.PathLike)) else path
-        with h5py.File(path, "a") as h5:
-            if group in h5:
-                del h5[group]
-            g = h5.create_group(group)
-            g.attrs["NX_class"] = "NXcollection"
-            for name in ("dark", "flat"):
-                g.create_dataset(name, data=getattr(self, name), compression="gzip", shuffle=True).attrs["units"] = (
-                    "counts"
-                )
-            g.create_dataset("pixel_mask", data=self.mask, compression="gzip")
-            g["defect_rows"] = self.defect_rows
-            g["defect_columns"] = self.defect_columns
-            g.attrs["c"] = self.c
-            # strict JSON (radiokit._json): a NaN current or noise is null, named in "not_finite"
-            g.attrs["thresholds"] = strict_json.dumps(asdict(self.thresholds))
-            g.attrs["provenance"] = strict_json.dumps(self.provenance)
-            g.attrs["software"] = f"radiokit {__version__}"
+    def save(self, path, group="calibration", *, overwrite=False) -> Path:
+        """Write to a new HDF5 file ``path`` (the calibration in ``group``), or into a binary file
+        object (``io.BytesIO``: ``radiokit calibrate`` then writes the bytes, of a known size,
+        atomically).
+
+        The file is built beside ``path`` and renamed into place when complete
+        (:func:`radiokit.io.atomic_h5`): an interrupted save leaves the previous file or none.
+        An existing ``path`` is replaced, whole, only with ``overwrite=True``; never written
+        into. Why: a second save replaced the first calibration silently, and ``cal.save("exp.h5")``
+        added a group inside a raw experiment file.
+
+        Raises
+        ------
+        radiokit.io.OutputError
+            ``path`` exists (without ``overwrite``; a ``FileExistsError`` too), is a folder, is
+            read-only or cannot be written, named in the message.
+        """
+        if not isinstance(path, (str, os.PathLike)):  # a file object: the caller places the bytes
+            with h5py.File(path, "w") as h5:
+                self._write(h5.create_group(group))
+            return path
+        from radiokit.io import atomic_h5
+
+        path = Path(path)
+        with atomic_h5(path, overwrite=overwrite) as h5:
+            self._write(h5.create_group(group))
         return path
+
+    def _write(self, g) -> None:
+        """The calibration's datasets and attributes into the new HDF5 group ``g``."""
+        g.attrs["NX_class"] = "NXcollection"
+        for name in ("dark", "flat"):
+            g.create_dataset(name, data=getattr(self, name), compression="gzip", shuffle=True).attrs["units"] = "counts"
+        g.create_dataset("pixel_mask", data=self.mask, compression="gzip")
+        g["defect_rows"] = self.defect_rows
+        g["defect_columns"] = self.defect_columns
+        g.attrs["c"] = self.c
+        # strict JSON (radiokit._json): a NaN current or noise is null, named in "not_finite"
+        g.attrs["thresholds"] = strict_json.dumps(asdict(self.thresholds))
+        g.attrs["provenance"] = strict_json.dumps(self.provenance)
+        g.attrs["software"] = f"radiokit {__version__}"
 
     @classmethod
     def load(cls, path, group="calibration") -> Calibration:

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import numbers
 import os
+import sys
 
-__all__ = ["image_hint", "is_integer", "is_number", "scalar"]
+__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar"]
 
 
 def is_number(value) -> bool:
@@ -71,3 +72,27 @@ def image_hint(value, shape) -> str:
     if len(shape) == 3 and shape[0] == 1:
         return ": a stack of one frame, as radiokit.io.read gives: pass .data[0]"
     return ""
+
+
+def refuse_masked(value, name: str, mask_keyword: str | None = None) -> None:
+    """Raise ValueError if ``value`` is a numpy masked array: ``np.asarray`` drops its mask, so its
+    masked pixels (dead ones, a NaN border filled with anything) were measured as data, silently
+    (``contrast`` of an image whose masked inclusion held 1e6 gave 857142). ``mask_keyword`` names
+    the function's own keyword for pixels to leave out, if it has one. numpy is not imported here:
+    without ``numpy.ma`` loaded no value can be a masked array.
+
+    >>> import numpy as np
+    >>> refuse_masked(np.zeros(2), "image")
+    >>> refuse_masked(np.ma.masked_array([1.0, 2.0], mask=[True, False]), "image", "mask")
+    Traceback (most recent call last):
+    ...
+    ValueError: image is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)), and mask= (True on the pixels to use) to leave the masked ones out
+    """
+    ma = sys.modules.get("numpy.ma")
+    if ma is None or not isinstance(value, ma.MaskedArray):
+        return
+    # True on the pixels to use: numpy's masks are True on the pixels to leave out
+    how = f", and {mask_keyword}= (True on the pixels to use) to leave the masked ones out" if mask_keyword else ""
+    raise ValueError(
+        f"{name} is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)){how}"
+    )

@@ -29,7 +29,7 @@ import enum
 
 import numpy as np
 
-from radiokit.checks import image_hint, is_number
+from radiokit.checks import image_hint, is_number, refuse_masked
 from radiokit.measure import ROI
 
 __all__ = ["Domain", "compression_contrast", "difference", "to_domain", "DOMAINS"]
@@ -55,7 +55,8 @@ class Domain(enum.StrEnum):
 DOMAINS = tuple(d.value for d in Domain)
 
 
-def _image(image, name) -> np.ndarray:
+def _image(image, name, mask_keyword=None) -> np.ndarray:
+    refuse_masked(image, name, mask_keyword)
     arr = np.asarray(image)
     if arr.ndim != 2:
         raise ValueError(
@@ -70,9 +71,9 @@ def _image(image, name) -> np.ndarray:
     return arr
 
 
-def _pair(reference, registered):
-    ref = _image(reference, "reference")
-    reg = _image(registered, "registered")
+def _pair(reference, registered, mask_keyword=None):
+    ref = _image(reference, "reference", mask_keyword)
+    reg = _image(registered, "registered", mask_keyword)
     if ref.shape != reg.shape:
         raise ValueError(
             f"reference has shape {ref.shape}, registered has {reg.shape}: "
@@ -253,7 +254,7 @@ def compression_contrast(
            [6.75, 3.75]], dtype=float32)
     """
     domain = Domain.parse(domain)
-    ref, reg = _pair(reference, registered)
+    ref, reg = _pair(reference, registered, "mask")
     if not is_number(k) or not np.isfinite(k):
         raise ValueError(f"k must be a finite real number, got {k!r}")
     _check_sign(ref, "reference", domain)
@@ -265,6 +266,7 @@ def compression_contrast(
     elif isinstance(mask, ROI):
         mean_d = d[mask.check(d.shape, "mask").slices].mean()
     else:
+        refuse_masked(mask, "mask")
         m = np.asarray(mask)
         if m.dtype != bool:
             raise ValueError(f"mask must be a boolean array or an ROI, got dtype {m.dtype}")

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from radiokit.checks import image_hint, is_number
+from radiokit.checks import image_hint, is_number, refuse_masked
 
 __all__ = [
     "ROI",
@@ -251,7 +251,8 @@ def _shape2(shape) -> tuple[int, int]:
 
 
 # -- validation --------------------------------------------------------------------------------
-def _image(image, name="image") -> np.ndarray:
+def _image(image, name="image", mask_keyword=None) -> np.ndarray:
+    refuse_masked(image, name, mask_keyword)
     arr = np.asarray(image)
     if arr.ndim != 2:
         raise ValueError(
@@ -270,6 +271,7 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
         region.check(image.shape, name)
         values = image[region.slices]
     else:
+        refuse_masked(region, name)
         m = np.asarray(region)
         if m.dtype != bool:
             # four numbers are how Config and --inclusion take a rectangle: show the ROI to write
@@ -287,6 +289,17 @@ def _region(image: np.ndarray, region, name: str, image_name: str = "image") -> 
     if not np.all(np.isfinite(values)):
         raise ValueError(f"{image_name} has non-finite values (NaN or inf) inside {name}")
     return values
+
+
+def _rectangle(roi, name: str = "roi") -> ROI:
+    """``roi`` if it is an :class:`ROI`; TypeError otherwise (a bool mask, as ``contrast`` takes,
+    was an AttributeError here): the standard errors' noise model reads a rectangle's lags."""
+    if not isinstance(roi, ROI):
+        raise TypeError(
+            f"{name} must be an ROI (a rectangle), got {type(roi).__name__}: the noise model reads its rows and "
+            "columns; for a mask, its bounding box: ROI(row0, row1, col0, col1)"
+        )
+    return roi
 
 
 def _ratio(num: float, den: float) -> float:
@@ -661,7 +674,7 @@ def roi_mean_se(image, roi: ROI, *, min_side: int = 16) -> float:
     pixels).
     """
     img = _image(image)
-    roi.check(img.shape)
+    _rectangle(roi).check(img.shape)
     h, w = roi.shape
     margin = 2
     while True:
@@ -743,6 +756,8 @@ def improvement_factor_se(reference, registered, k, inclusion: ROI, background: 
     ``nan`` where the reference contrast is zero.
     """
     ref, reg = _image(reference, "reference"), _image(registered, "registered")
+    for roi, name in ((inclusion, "inclusion"), (background, "background")):
+        _rectangle(roi, name)
     if ref.shape != reg.shape:
         raise ValueError(f"reference has shape {ref.shape}, registered has {reg.shape}")
     d = np.asarray(ref, np.float64) - np.asarray(reg, np.float64)
@@ -772,6 +787,8 @@ def change_ratio_se(before, after, inclusion: ROI, background: ROI, *, min_z: fl
     with the background's change and its standard error; ``reason`` is ``""`` otherwise.
     """
     b, a = _image(before, "before"), _image(after, "after")
+    for roi, name in ((inclusion, "inclusion"), (background, "background")):
+        _rectangle(roi, name)
     if a.shape != b.shape:
         raise ValueError(f"before has shape {b.shape}, after has {a.shape}")
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
@@ -1276,7 +1293,7 @@ def find_rois(
     >>> inc.contains((32, 40)), bg.col1 <= 40 - 6
     (True, True)
     """
-    img = np.asarray(_image(image), np.float64)
+    img = np.asarray(_image(image, mask_keyword="body_mask"), np.float64)
     if not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite values (NaN or inf)")
     px = None if pixel_size_mm is None else _pair(pixel_size_mm, "pixel_size_mm", positive=True)
@@ -1345,6 +1362,7 @@ def _touches(mask: np.ndarray, centre, radius: float) -> bool:
 
 
 def _bool_mask(mask, shape, name) -> np.ndarray:
+    refuse_masked(mask, name)
     arr = np.asarray(mask)
     if arr.dtype != bool or arr.shape != shape:
         raise ValueError(f"{name} must be a bool array of shape {shape}, got {arr.dtype} {arr.shape}")

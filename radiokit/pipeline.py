@@ -582,7 +582,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
                 where = np.full(raw.shape, -1, np.int32) if where is None else where
                 where[bad & (where < 0)] = i
         try:  # its refusal names the frame (one of only NaN was "a raw frame" of dozens)
-            image = correct_frames(cal, raw, domain=domain)
+            # checked above (no signal) and as the step's mean (brighter than the flats): a frame
+            # judged before its exposure is rescaled would be taken for one at another exposure
+            image = correct_frames(cal, raw, domain=domain, check=False)
         except ValueError as exc:
             raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
         if domain == "log":

@@ -257,7 +257,13 @@ class Results:
     pixel_size_recorded: bool = True  #: False: the file records none; :attr:`pixel_size_mm` was assumed
 
     def pair(self, name: str) -> PairResult:
-        return next(p for p in self.pairs if p.name == name)
+        """The pair ``name`` (``"moving->reference"``, as :attr:`main_pair`); KeyError naming the
+        pairs held otherwise (was a bare StopIteration)."""
+        for p in self.pairs:
+            if p.name == name:
+                return p
+        held = ", ".join(p.name for p in self.pairs) or "none"
+        raise KeyError(f"no pair {name!r} in these results; they hold {held}")
 
     @property
     def improvement_factor(self) -> dict:

@@ -335,7 +335,8 @@ def test_a_frame_above_the_inferred_adc_top_is_not_reported_saturated():
     assert cal.thresholds.saturation == 4095  # what the darks and flats imply
     bright = (100 + rng.poisson(5000, (32, 32))).astype(np.uint16)  # twice the flats' current
     bright[:2, :3] = 65535
-    _, report = correct_frames(cal, bright, domain="linear", return_report=True)
+    # brighter than the flats, refused unless the caller rescales for the current (check=False)
+    _, report = correct_frames(cal, bright, domain="linear", return_report=True, check=False)
     assert report.saturated.tolist() == [6]  # the 16-bit top only
     twelve = (100 + rng.poisson(3000, (32, 32))).astype(np.uint16)
     twelve[:3, :3] = 4095
@@ -887,4 +888,51 @@ def test_a_circular_field_is_refused_with_advice_to_crop():
     darks = panel.dark_frames(10, rng)
     flats = panel.expose(np.where(outside, 30.0, 0.0), 2500.0, n=10, rng=rng)
     with pytest.raises(ValueError, match=r"radius 12[6-9].*circular field.*crop.*rows 3[78]-21[78]"):
+        Calibration.from_frames(darks, flats)
+
+
+def _small_cal(level=3000.0):
+    return Calibration(
+        np.full((8, 8), 100.0, np.float32), np.full((8, 8), level, np.float32), np.zeros((8, 8), np.uint8)
+    )
+
+
+def test_save_refuses_an_existing_file_unless_overwrite_and_replaces_it_whole(tmp_path):
+    """Saving twice replaced the first calibration silently (its group deleted in place)."""
+    path = _small_cal(3000).save(tmp_path / "cal.h5")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"cal\.h5: exists; pass --overwrite \(overwrite=True\)"):
+        _small_cal(1500).save(path)
+    assert path.read_bytes() == before
+    _small_cal(1500).save(path, overwrite=True)
+    assert Calibration.load(path).c == pytest.approx(1400)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5"]  # no temporary left beside it
+
+
+def test_save_never_writes_into_an_experiment_file(tmp_path):
+    """``cal.save("exp.h5")`` added a ``calibration`` group inside a raw experiment file."""
+    exp = tmp_path / "exp.h5"
+    with ExperimentWriter(exp, shape=(8, 8)) as w:
+        w.append(np.full((8, 8), 100, np.uint16), image_key=ImageKey.DARK)
+    before = exp.read_bytes()
+    with pytest.raises(FileExistsError, match="exp.h5: exists"):
+        _small_cal().save(exp)
+    assert exp.read_bytes() == before
+
+
+def test_save_onto_a_file_that_is_no_hdf5_names_it(tmp_path):
+    """A text file as the target was h5py's "Unable to synchronously open file (file signature
+    not found)", naming no file."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    with pytest.raises(OSError, match=r"notes\.txt: exists"):
+        _small_cal().save(notes)
+    assert notes.read_text() == "my notes"
+
+
+def test_from_frames_refuses_masked_darks_or_flats():
+    """A masked array's ``.data`` is its values: the mask was dropped, the masked pixels averaged."""
+    darks = np.full((3, 8, 8), 100, np.uint16)
+    flats = np.ma.masked_array(np.full((3, 8, 8), 3000, np.uint16), mask=np.zeros((3, 8, 8), bool))
+    with pytest.raises(ValueError, match=r"^flats is a masked array, whose mask would be ignored"):
         Calibration.from_frames(darks, flats)

@@ -75,8 +75,8 @@ def test_raw_below_dark_is_filled_flagged_and_counted():
 
 def test_all_dark_frame_stays_finite():
     cal = _cal()
-    raw = np.zeros(cal.shape, np.uint16)
-    out, report = correct_frames(cal, raw, domain="log", return_report=True)
+    raw = np.zeros(cal.shape, np.uint16)  # no signal: refused unless check=False, the repair tested here
+    out, report = correct_frames(cal, raw, domain="log", return_report=True, check=False)
     assert np.isfinite(out).all()
     # No valid neighbour anywhere: clamped at half a count, i.e. -ln(0.5 / 1000).
     np.testing.assert_allclose(out, -np.log(0.5 / 1000.0), rtol=1e-6)
@@ -129,12 +129,12 @@ def test_defect_row_and_edge_column():
 def test_stack_equals_frames_and_out_is_used():
     rng = np.random.default_rng(0)
     cal = _cal(40, 33)
-    stack = rng.integers(0, 4096, (3, 40, 33)).astype(np.uint16)
+    stack = rng.integers(0, 4096, (3, 40, 33)).astype(np.uint16)  # twice the flats: check=False corrects them
     out = np.empty(stack.shape, np.float32)
-    got, report = correct_frames(cal, stack, domain="log", out=out, return_report=True)
+    got, report = correct_frames(cal, stack, domain="log", out=out, return_report=True, check=False)
     assert got is out
     for i in range(3):
-        np.testing.assert_array_equal(got[i], correct_frames(cal, stack[i], domain="log"))
+        np.testing.assert_array_equal(got[i], correct_frames(cal, stack[i], domain="log", check=False))
     assert np.isfinite(got).all()
     assert report.flags.shape == stack.shape
     assert report.saturated.tolist() == [int(np.count_nonzero(s >= 4095)) for s in stack]
@@ -142,9 +142,9 @@ def test_stack_equals_frames_and_out_is_used():
 
 def test_input_is_not_modified():
     cal = _cal()
-    raw = np.full(cal.shape, 50, np.uint16)
+    raw = np.full(cal.shape, 50, np.uint16)  # below the dark: every pixel clamped and filled
     before = raw.copy()
-    correct_frames(cal, raw)
+    correct_frames(cal, raw, check=False)
     np.testing.assert_array_equal(raw, before)
 
 
@@ -655,3 +655,61 @@ def test_a_calibration_recording_no_orientation_or_offset_radiokit_writes_is_ref
         h5["calibration"].attrs["provenance"] = json.dumps(prov)
     with pytest.raises(FormatError, match=f"provenance: {key} is"):
         Calibration.load(tmp_path / "cal.h5")
+
+
+# -- the API checks what the command line checks ------------------------------------------------
+def _noisy_cal(shape=(64, 64)):
+    """A calibration from noisy darks (100 +- 2 counts: its dark noise is recorded) and flats at
+    3100, so 1600 counts are a transmission of 0.5."""
+    rng = np.random.default_rng(0)
+    darks = rng.normal(100, 2, (5, *shape)).astype(np.uint16)
+    flats = rng.normal(3100, 30, (5, *shape)).astype(np.uint16)
+    return Calibration.from_frames(darks, flats), darks
+
+
+@pytest.mark.parametrize("case", ["msb_aligned", "beam_off", "already_corrected", "display_copy_8bit"])
+def test_correct_frames_refuses_the_frames_radiokit_correct_refuses(case):
+    """``correct_frames`` gave a median I/I0 of 8.5 for MSB-aligned counts (<< 4), 0.0005 for a
+    beam-off frame and 0.0002 for a frame already corrected, with no error and no warning, where
+    ``radiokit correct`` refuses each: the API runs the same checks unless told the caller did."""
+    cal, darks = _noisy_cal()
+    raw = np.full(cal.shape, 1600, np.uint16)  # (1600 - 100) / (3100 - 100) = 0.5
+    frame = {
+        "msb_aligned": (raw.astype(np.uint32) << 4).astype(np.uint16),
+        "beam_off": darks[0],
+        "already_corrected": correct_frames(cal, raw, domain="linear"),
+        "display_copy_8bit": (raw // 16).astype(np.uint8),
+    }[case]
+    for domain in ("log", "linear", "counts"):
+        with pytest.raises(ValueError, match="brighter than the flats|no signal above the dark") as info:
+            correct_frames(cal, frame, domain=domain)
+        assert "\n" not in str(info.value) and "check=False" in str(info.value)
+    # a caller that checked (or means it) still gets the arithmetic
+    out = correct_frames(cal, frame, domain="linear", check=False)
+    if case == "msb_aligned":  # (16 * 1600 - 100) / 3000
+        assert float(np.median(out)) == pytest.approx((16 * 1600 - 100) / 3000, rel=0.02)
+    else:
+        assert float(np.median(out)) < 0.01
+
+
+def test_correct_frames_names_the_refused_frame_of_a_stack_and_checks_the_good_ones_cheaply():
+    cal, darks = _noisy_cal()
+    raw = np.full(cal.shape, 1600, np.uint16)
+    stack = np.stack([raw, darks[1], raw])
+    with pytest.raises(ValueError, match=r"^frame 1 of 3: no signal above the dark"):
+        correct_frames(cal, stack, domain="linear")
+    np.testing.assert_allclose(correct_frames(cal, stack[[0, 2]], domain="linear"), 0.5, atol=0.02)
+
+
+def test_correct_frames_refuses_an_out_that_is_no_array():
+    cal = _cal()
+    with pytest.raises(TypeError, match="out must be a numpy array"):
+        correct_frames(cal, np.full(cal.shape, 600, np.uint16), out=[0])
+
+
+def test_correct_frames_refuses_a_masked_array():
+    """np.asarray drops a masked array's mask: its masked pixels were corrected as counts."""
+    cal = _cal()
+    raw = np.ma.masked_array(np.full(cal.shape, 600.0), mask=np.eye(*cal.shape, dtype=bool))
+    with pytest.raises(ValueError, match="raw is a masked array, whose mask would be ignored: pass .*filled"):
+        correct_frames(cal, raw)

@@ -607,3 +607,42 @@ def test_a_one_frame_stack_or_a_file_name_where_an_image_belongs_is_told_what_to
     for call in (lambda: compression_contrast("ref.tif", "reg.tif", 1), lambda: register("f.tif", "m.tif")):
         with pytest.raises(ValueError, match=r"file name.*radiokit\.io\.read"):
             call()
+
+
+# -- masked arrays: refused, never their mask dropped ------------------------------------------
+_MASKED = np.ma.masked_array(
+    np.where(np.pad(np.ones((6, 6), bool), ((2, 24), (2, 24))), 1e6, 1.0),
+    mask=np.pad(np.ones((6, 6), bool), ((2, 24), (2, 24))),
+)
+_INC, _BG = ROI(2, 8, 2, 9), ROI(20, 28, 20, 28)
+_PLAIN = np.ones((32, 32))
+
+
+@pytest.mark.parametrize(
+    "call, keyword",
+    [
+        (lambda: contrast(_MASKED, _INC, _BG), None),
+        (lambda: cnr(_MASKED, _INC, _BG), None),
+        (lambda: weber(_MASKED, _INC, _BG), None),
+        (lambda: improvement_factor(_MASKED, _PLAIN, _INC, _BG), None),
+        (lambda: change_ratio(_PLAIN, _MASKED, _INC, _BG), None),
+        (lambda: summary(_MASKED, {1: _PLAIN}, _INC, _BG), None),
+        (lambda: profile(_MASKED, (0, 0), (5, 5)), None),
+        (lambda: radiokit.measure.body_mask(_MASKED), None),
+        (lambda: find_rois(_MASKED), "body_mask"),
+        (lambda: compression_contrast(_MASKED, _PLAIN), "mask"),
+        (lambda: compression_contrast(_PLAIN, _MASKED), "mask"),
+        (lambda: difference(_MASKED, _PLAIN), None),
+        (lambda: to_domain(_MASKED, "linear"), None),
+        (lambda: contrast(_PLAIN, np.ma.masked_array(_INC.mask((32, 32)), mask=~_INC.mask((32, 32))), _BG), None),
+        (lambda: compression_contrast(_PLAIN, _PLAIN, mask=np.ma.masked_array(_PLAIN > 0)), None),
+    ],
+)
+def test_masked_arrays_are_refused_not_their_mask_dropped(call, keyword):
+    """``contrast(ma.masked_array(img, mask=dead), ...)`` returned 857142.0: the dead pixels'
+    values (1e6) averaged in, the mask dropped by np.asarray."""
+    with pytest.raises(ValueError, match="is a masked array, whose mask would be ignored: pass .*filled") as info:
+        call()
+    assert "\n" not in str(info.value)
+    if keyword:
+        assert f"{keyword}=" in str(info.value)

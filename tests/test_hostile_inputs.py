@@ -2583,3 +2583,21 @@ def test_process_refusing_a_linked_experiment_names_no_option_it_does_not_have(o
     one_line_error(res, path.name, "external link")
     assert "--allow-external" not in res.stderr and "allow_external=True" not in res.stderr
     assert "radiokit process reads no data outside the experiment file" in res.stderr
+
+
+def test_results_pair_that_does_not_exist_names_the_pairs_that_do():
+    """``Results.pair("9->3")`` raised a bare StopIteration (inside a generator: a RuntimeError)."""
+    record = Results.from_json(_results_json())
+    assert record.pair("3->1").moving == 3
+    with pytest.raises(KeyError, match=r"no pair '9->3' in these results; they hold 3->1"):
+        record.pair("9->3")
+
+
+def test_write_results_refuses_an_existing_file_unless_overwrite(tmp_path):
+    """``write_results`` replaced an existing file by default (``write_registration`` refuses)."""
+    path = tmp_path / "results.h5"
+    _results_file(path)
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="results.h5: exists; pass --overwrite"):
+        _results_file(path)
+    assert path.read_bytes() == before

@@ -2961,3 +2961,33 @@ def test_float_frames_holding_whole_counts_are_stored_and_fractional_ones_refuse
             w.append(np.full(EXP_SHAPE, np.nan), image_key=ImageKey.DARK)
     f = read(path)
     assert f.n == 1 and f.data.dtype == np.uint16 and np.all(f.data == 4000)
+
+
+def test_read_given_an_array_says_a_path_is_expected():
+    """``read(ndarray)`` was pathlib's "expected str, bytes or os.PathLike object, not ndarray"."""
+    with pytest.raises(
+        TypeError, match=r"^expected a file path \(str or os.PathLike\), got ndarray: frames already in memory"
+    ):
+        read(np.zeros((4, 4)))
+
+
+@pytest.mark.parametrize("writer", ["write_tiff", "StackWriter"])
+def test_writers_refuse_an_existing_file_unless_overwrite(tmp_path, writer):
+    """``write_tiff`` and ``StackWriter`` replaced an existing file by default, where
+    ``write_registration`` and ``ExperimentWriter`` refuse: nothing is replaced unasked."""
+    path = tmp_path / "s.tif"
+
+    def write(value, **kw):
+        if writer == "write_tiff":
+            write_tiff(path, np.full((3, 4), value, np.uint16), **kw)
+        else:
+            with StackWriter(path, (3, 4), np.uint16, **kw) as w:
+                w.append(np.full((3, 4), value, np.uint16))
+
+    write(1)
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"s\.tif: exists; pass --overwrite \(overwrite=True\)"):
+        write(2)
+    assert path.read_bytes() == before
+    write(2, overwrite=True)
+    assert int(read(path).data[0, 0, 0]) == 2

@@ -2967,3 +2967,20 @@ def test_a_silent_field_on_a_turned_round_body_is_not_trusted():
     assert _epe(reg.displacement, truth, body)[0] > 1.0  # failed: what the flag must say
     assert q.body_scale <= 0.3 and q.affine_bound > 0.5 and not q.ok, q
     assert "a turn or a shear of it would show nothing" in q.reason, q.reason
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_warp_refuses_a_field_that_is_not_finite(bad):
+    """A NaN field gave a NaN image, silently (OpenCV samples nothing there)."""
+    image = np.random.default_rng(0).random((20, 30)).astype(np.float32)
+    field = np.zeros((2, 20, 30), np.float32)
+    field[1, 3, 4] = bad
+    with pytest.raises(ValueError, match=r"displacement has 1 non-finite value\(s\) \(NaN or inf\)"):
+        warp(image, field)
+
+
+def test_warp_refuses_a_masked_image():
+    """np.asarray dropped the mask: the masked pixels were resampled as data."""
+    image = np.ma.masked_array(np.ones((20, 30), np.float32), mask=np.eye(20, 30, dtype=bool))
+    with pytest.raises(ValueError, match=r"^image is a masked array, whose mask would be ignored"):
+        warp(image, np.zeros((2, 20, 30), np.float32))

@@ -208,3 +208,21 @@ def test_the_standard_error_holds_under_a_scintillators_light_spread(blur, roi_r
     # the scatter of 250 seeds' means is known to ~4.5 %; the 3-SE rule needs the SE not small
     ratio = np.sqrt(np.mean(np.square(ses))) / np.std(means, ddof=1)
     assert 0.8 < ratio < 1.3, f"reported SE / observed scatter = {ratio:.3f}"
+
+
+@pytest.mark.parametrize("which", ["roi_mean_se", "improvement_factor_se", "change_ratio_se"])
+def test_a_bool_mask_where_an_roi_belongs_is_refused_in_one_line(which):
+    """A bool mask (as ``contrast`` takes) was an AttributeError ("'numpy.ndarray' object has no
+    attribute 'check'"): the noise model needs a rectangle's rows and columns."""
+    from radiokit.measure import ROI, change_ratio_se, improvement_factor_se, roi_mean_se
+
+    img = np.random.default_rng(0).random((32, 32))
+    inc, bg = ROI(2, 8, 2, 8), ROI(20, 28, 20, 28)
+    mask = inc.mask(img.shape)
+    call = {
+        "roi_mean_se": lambda: roi_mean_se(img, mask),
+        "improvement_factor_se": lambda: improvement_factor_se(img, img * 0.9, 1.0, mask, bg),
+        "change_ratio_se": lambda: change_ratio_se(img, img * 0.9 + 1, mask, bg),
+    }[which]
+    with pytest.raises(TypeError, match=r"must be an ROI \(a rectangle\), got ndarray"):
+        call()

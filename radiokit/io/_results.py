@@ -98,11 +98,12 @@ class ResultsRecord:
 _REGISTRATION_UNITS = {"displacement": "pixel", "truth_displacement": "pixel"}
 
 
-def write_results(path, record: ResultsRecord, *, overwrite=True, inputs=()) -> None:
-    """Write ``record`` to ``path`` atomically (see :func:`radiokit.io.atomic_h5`).
+def write_results(path, record: ResultsRecord, *, overwrite=False, inputs=()) -> None:
+    """Write ``record`` to ``path`` atomically (see :func:`radiokit.io.atomic_h5`); an existing
+    ``path`` is replaced only with ``overwrite=True``.
 
     ``path`` is normally inside a results folder :func:`radiokit.io.atomic_dir` is assembling,
-    hence ``overwrite=True`` by default.
+    new, so nothing needs replacing (the default was once True, unlike every other writer's).
     """
     with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
         h5.attrs["default"] = ENTRY

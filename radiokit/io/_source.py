@@ -222,6 +222,9 @@ class FrameSource:
     """
 
     def __init__(self, path, *, format=None, dataset=None, allow_external=False, budget=None, **hints):
+        if not isinstance(path, (str, os.PathLike)):  # pathlib's own words named no argument
+            already = ": frames already in memory need no reading" if hasattr(path, "shape") else ""
+            raise TypeError(f"expected a file path (str or os.PathLike), got {type(path).__name__}{already}")
         self.path = Path(path)
         self._bits_warned = False  # the bit-depth warning, once per open file, not once per frame
         self._reading_all = False  # read_all: the proportion judged over every frame, not each

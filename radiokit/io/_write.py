@@ -32,11 +32,12 @@ STACK = "entry/data"
 STACK_FRAMES = f"{STACK}/data"
 
 
-def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=True, inputs=()) -> Path:
+def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=False, inputs=()) -> Path:
     """Write a frame or a stack ``(n, rows, cols)`` as a multi-page TIFF.
 
     ``meta`` (JSON-serialisable) goes into the ImageDescription so :func:`radiokit.io.read`
-    gives it back as ``meta["description"]``.
+    gives it back as ``meta["description"]``. Written atomically; an existing ``path`` is
+    replaced only with ``overwrite=True`` (see :class:`StackWriter`).
     """
     path = Path(path)
     image = np.asarray(image)
@@ -68,12 +69,13 @@ class StackWriter:
 
     The file is written under a temporary name beside ``path`` and renamed into place by
     :meth:`close` (see :func:`radiokit.io.atomic_path`); leaving the ``with`` block on an
-    exception removes it, so ``path`` is never a partial stack. ``overwrite=False`` refuses an
-    existing ``path``; ``inputs`` are files ``path`` must not be.
+    exception removes it, so ``path`` is never a partial stack. An existing ``path`` is refused
+    unless ``overwrite=True`` (the default was True, unlike every other writer's); ``inputs`` are
+    files ``path`` must not be.
     """
 
     def __init__(
-        self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=True, n_frames=None, inputs=()
+        self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=False, n_frames=None, inputs=()
     ):
         self.path = Path(path)
         self.frame_shape = tuple(int(s) for s in frame_shape)

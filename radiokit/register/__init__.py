@@ -25,9 +25,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from radiokit.checks import image_hint
+from radiokit.checks import image_hint, refuse_masked
 from radiokit.register._auto import AUTO_PRESETS
-from radiokit.register._common import binned_mask, jacobian_determinant, monomials, ncc, residual_complexity, warp
+from radiokit.register._common import (
+    _field,
+    _warp,
+    binned_mask,
+    jacobian_determinant,
+    monomials,
+    ncc,
+    residual_complexity,
+    warp,
+)
 from radiokit.register._confidence import roi_observed
 
 __all__ = [
@@ -195,14 +204,11 @@ def _load_methods():
 
 
 def _check(fixed, moving, mask):
-    for name, a in (("fixed", fixed), ("moving", moving), ("mask", mask)):
-        # np.asarray drops a masked array's mask: its masked pixels (dead ones, a NaN border
-        # filled with anything) were registered as data, and no mask limited the similarity
-        if isinstance(a, np.ma.MaskedArray):
-            raise ValueError(
-                f"{name} is a masked array, whose mask would be ignored: pass a plain array, "
-                "with mask= (bool, True where the similarity is scored) for the pixels to leave out"
-            )
+    for name, a in (("fixed", fixed), ("moving", moving)):
+        # its masked pixels (dead ones, a NaN border filled with anything) were registered as
+        # data, and no mask limited the similarity
+        refuse_masked(a, name, "mask")
+    refuse_masked(mask, "mask")
     f = np.asarray(fixed)
     m = np.asarray(moving)
     for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
@@ -560,9 +566,9 @@ def _assess(reg, f, m, mask, info, seconds):
     k = p.k
     if k > 1:
         db = _bin(reg.displacement, k) / np.float32(k)
-        w = warp(p.m, db)
+        w = _warp(p.m, _field(db))  # judged below: a non-finite field is one of its reasons
     else:
-        w = reg.warp(m)
+        w = _warp(m, _field(reg.displacement))
         db = reg.displacement
     q.rc_before = p.rc_before
     q.rc_after = residual_complexity((w - p.f) * p.unit, p.mask)
@@ -882,7 +888,7 @@ def coarse_residual_motion(fixed, moving, mask):
     level, where the checks would see the same misalignment at several times the cost; the binned
     pair and its observed part are computed once (:func:`_pair_checks`), for every field measured."""
     p = _pair_checks(fixed, moving, mask)
-    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(warp(p.m, d)), p.obs)
+    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(_warp(p.m, _field(d))), p.obs)
 
 
 def _body_scale(d, obj, obs, inner) -> float:

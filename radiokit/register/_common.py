@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from radiokit.checks import refuse_masked
+
 
 def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     """``image(x + d(x))`` on the displacement's grid; ``order`` 1 (bilinear, OpenCV) or 3.
@@ -19,10 +21,20 @@ def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     >>> warp(ramp, pull, cval=np.nan)[0].tolist()
     [2.0, 3.0, 4.0, 5.0, nan, nan]
     """
+    refuse_masked(image, "image")
+    d = _field(displacement)
+    bad = d.size - int(np.count_nonzero(np.isfinite(d)))
+    if bad:  # no position to sample: OpenCV gave NaN there, silently
+        raise ValueError(f"displacement has {bad} non-finite value(s) (NaN or inf): no position to sample there")
+    return _warp(image, d, order, cval)
+
+
+def _warp(image, d, order=1, cval=None) -> np.ndarray:
+    """:func:`warp` of a field ``d`` as :func:`_field` gives it, NaN or inf taken: the registration's
+    own checks warp a field before they judge (and repair) a non-finite one."""
     image = np.asarray(image, np.float32)
     if image.ndim != 2:  # OpenCV took a (2, rows, cols) stack as 2 rows of many channels
         raise ValueError(f"image must be 2-D (rows, cols); got shape {image.shape}")
-    d = _field(displacement)
     return _warp_rows(image, d, 0, order, cval)
 
 
