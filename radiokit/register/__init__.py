@@ -343,7 +343,11 @@ def register(
     checked scaled by a power of two (the checks' fourth powers left float32's range);
     ``quality.noise`` stays in the image's units.
 
-    ``mask`` (bool) limits the similarity to the object. ``retry=True`` repeats a failed
+    ``mask`` (bool) limits the similarity to the object. A region exactly flat at one value in
+    both images whose edge stays put (an opaque strip on the detector, a range clipped in both:
+    ``_confidence.flat_common``) is left out of it, with 2 % of the frame around it, and is
+    unobserved in ``confidence``: it holds nothing of the object, and its fixed edge would pull
+    the field towards zero. ``retry=True`` repeats a failed
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
     registers the pair a second time, regularised differently, and flags a trusted result whose
     field differs from that one's over the object's interior (``Quality.disagreement``; it costs
