@@ -374,8 +374,11 @@ def flat_common(fixed, moving) -> np.ndarray:
     import cv2
 
     f, m = np.asarray(fixed, np.float32), np.asarray(moving, np.float32)
+    equal = f == m
+    if np.count_nonzero(equal) < FLAT_MIN_PIXELS:  # a noisy pair: 0.27 -> 0.03 s at 2240 px
+        return np.zeros(f.shape, bool)
     ff, fm = _flat(f), _flat(m)
-    common = ff & fm & (f == m)
+    common = ff & fm & equal
     if np.count_nonzero(common) < FLAT_MIN_PIXELS:
         return np.zeros(f.shape, bool)
     n, lab = cv2.connectedComponents(common.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
