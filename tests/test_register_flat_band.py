@@ -66,6 +66,8 @@ def _in_band(body):
 def test_a_flat_band_fixed_on_the_detector_is_unobserved_and_a_roi_in_it_is_flagged(banded):
     reg, _, body = banded
     assert np.mean(reg.confidence[_in_band(body)] >= 0.5) < 0.2
+    # said, too: the band's 60 rows and 7 px (2 % of 320) either side, of 320 rows
+    assert reg.options["flat_left_out"] == pytest.approx((BAND[1] - BAND[0] + 2 * 7) / N, abs=0.01)
     inclusion = (BAND[0] + 10, BAND[1] - 10, 130, 190)  # in the band, inside the body
     background = (30, 80, 130, 190)  # textured body above the band
     observed = {

@@ -347,7 +347,8 @@ def register(
     both images whose edge stays put (an opaque strip on the detector, a range clipped in both:
     ``_confidence.flat_common``) is left out of it, with 2 % of the frame around it, and is
     unobserved in ``confidence``: it holds nothing of the object, and its fixed edge would pull
-    the field towards zero. ``retry=True`` repeats a failed
+    the field towards zero (``options["flat_left_out"]``: the share of the frame left out, with
+    the caller's mask). ``retry=True`` repeats a failed
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
     registers the pair a second time, regularised differently, and flags a trusted result whose
     field differs from that one's over the object's interior (``Quality.disagreement``; it costs
@@ -409,7 +410,8 @@ def _register(f, m, method, mask, retry, options) -> Registration:
 
         return register_auto(register, f, m, method, mask, retry, options)
     t0 = time.perf_counter()
-    disp, info = METHODS[method](f, m, _data_mask(f, m, mask), **options)
+    data = _data_mask(f, m, mask)
+    disp, info = METHODS[method](f, m, data, **options)
     seconds = time.perf_counter() - t0
     kept = {k: v for k, v in options.items() if k != "start_lattices"}  # arrays, not a setting to report
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), kept)
@@ -425,6 +427,8 @@ def _register(f, m, method, mask, retry, options) -> Registration:
         reg.options["abandoned"] = info["abandoned"]
     if "thinning_refit" in info:  # refit_thinning: what the second pass divided out
         reg.options["thinning_refit"] = info["thinning_refit"]
+    if data is not mask:  # a flat region fixed on the detector: the share of the frame the similarity left out
+        reg.options["flat_left_out"] = round(1.0 - np.count_nonzero(data) / data.size, 4)
     if "noise_sigma" in info.get("options", {}):  # alpha set from the pair's noise: what it measured and used
         reg.options.update(alpha=info["options"]["alpha"], noise_sigma=info["options"]["noise_sigma"])
     _assess(reg, f, m, mask, info, seconds)
