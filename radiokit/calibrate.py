@@ -1284,6 +1284,9 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     saturated = flat >= sat
     if clipped is not None and n_flats:
         saturated |= clipped >= clipped_floor(n_flats)
+    # a pixel stuck at the top in the darks too is dead (no response), not over-exposed: "lower
+    # the flat exposure" was said of stuck pixels (review s42)
+    saturated &= response > th.eps
     n_flat_saturated = int(np.count_nonzero(saturated))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(

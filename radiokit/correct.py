@@ -321,6 +321,8 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     sat = np.concatenate([p[1] for p in parts])
     if raw2d.dtype.kind == "f" and sat.size:  # +inf passes any level: no value, counted as NaN or inf
         sat = sat[np.isfinite(raw2d.ravel()[sat])]
+    if sat.size:  # defect pixels: filled by the plan, no measurement (a stuck pixel was "saturated" in every frame)
+        sat = sat[~k.invalid.ravel()[sat]]
     flat_out = out2d.reshape(-1)
     for stage in k.stages:
         stage.apply(flat_out)

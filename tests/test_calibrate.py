@@ -364,7 +364,8 @@ def test_a_hot_pixel_above_the_adc_top_does_not_lift_the_saturation_level():
     frame[:4, :5] = 4095  # clipped where the beam is brightest
     frame[10, 10] = 65535
     _, report = correct_frames(cal, frame, domain="linear", return_report=True)
-    assert report.saturated.tolist() == [21]  # the 20 clipped and the stuck one
+    # the 20 clipped; the stuck one is masked and filled, no measurement to count (review s42)
+    assert report.saturated.tolist() == [20]
 
 
 def test_the_outlier_share_is_taken_per_stack_not_over_darks_and_flats_together():
@@ -461,7 +462,7 @@ def test_a_12_bit_panel_stored_in_the_top_bits_saturates_at_65520():
     assert cal.thresholds.saturation == 65520
     assert np.count_nonzero(cal.mask & PixelFlag.OVER_RESPONDING) == 64
     bright = (100 + rng.poisson(3000, (32, 32))).astype(np.uint16)
-    bright[:2, :3] = 4095
+    bright[20:22, 20:23] = 4095  # outside the flat's masked corner, where none count (review s42)
     _, report = correct_frames(cal, bright << 4, domain="linear", return_report=True)
     assert report.saturated.tolist() == [6]
     assert adc_top(darks, flats) == 4095 and adc_top(flats.astype(np.float32) * 16) == 65535
@@ -568,11 +569,16 @@ def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
     shape, rng = (64, 80), np.random.default_rng(13)
     path = tmp_path / "exp.h5"
     with ExperimentWriter(path, shape=shape) as w:
-        _darks_and_flats(w, shape, rng, 4)
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
+            for _ in range(4):
+                frame = level + rng.poisson(5, shape)
+                frame[50, 5:8] = 4095  # stuck pixels (review s42): masked and filled, not counted
+                w.append(frame, image_key=key)
         for step in (1, 2):
             for _ in range(2):
                 raw = 100 + rng.poisson(1500, shape)
                 raw[10:30, 20:40] = 4095
+                raw[50, 5:8] = 4095
                 w.append(raw, image_key=ImageKey.PROJECTION, step=step)
     with pytest.warns(CalibrationWarning, match=r"saturated pixels \(>= 4095\).*step 1: 400, step 2: 400"):
         load_steps(path)

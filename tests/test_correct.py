@@ -93,6 +93,23 @@ def test_saturated_pixels_flagged_and_counted():
     assert out[0, 0] == pytest.approx((4095 - 100) / 1000)
 
 
+def test_a_stuck_pixel_masked_and_filled_is_not_counted_saturated():
+    """Review s42 (t9_stuck.py): 5 pixels stuck at 4095 in the darks, flats and frames are masked
+    and filled from their neighbours in every frame, yet were counted "saturated" in every frame's
+    report too: 15 over 3 frames where no value was clipped. Only unmasked pixels count."""
+    mask = np.zeros((6, 7), np.uint32)
+    mask[2, 1:4] = PixelFlag.OVER_RESPONDING
+    cal = _cal(mask=mask)
+    raw = np.full((3, *cal.shape), 600, np.uint16)
+    raw[:, 2, 1:4] = 4095  # stuck, masked
+    raw[1, 4, 5] = 4095  # clipped, a measurement
+    out, report = correct_frames(cal, raw, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [0, 1, 0]
+    assert not (report.flags[:, 2, 1:4] & PixelFlag.SATURATED).any()
+    assert report.flags[1, 4, 5] & PixelFlag.SATURATED
+    np.testing.assert_allclose(out[:, 2, 1:4], 0.5, rtol=1e-6)  # filled from the 0.5 around
+
+
 def test_defect_column_is_mean_of_neighbours():
     mask = np.zeros((4, 9), np.uint32)
     mask[:, 4] = PixelFlag.DEAD | PixelFlag.CLUSTER
