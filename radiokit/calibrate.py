@@ -588,6 +588,11 @@ class Calibration:
             cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped)
             bar.update(rows)
         cal.provenance.update(layout or {})
+        # the files' word for their ADC (a raw preset's: the panel named), kept so that a frame
+        # passing its top is reported (radiokit.correct.declared_top): C7942.md, a value above 4095
+        # is a wrong bit or byte order or another panel
+        if bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1:
+            cal.provenance["bit_depth"] = int(bit_depth)
         return cal
 
     @classmethod

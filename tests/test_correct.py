@@ -1,6 +1,10 @@
 """Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
 
 import json
+import os
+import subprocess
+import sys
+import warnings
 
 import h5py
 import numpy as np
@@ -672,3 +676,57 @@ def test_a_calibration_recording_no_orientation_or_offset_radiokit_writes_is_ref
         h5["calibration"].attrs["provenance"] = json.dumps(prov)
     with pytest.raises(FormatError, match=f"provenance: {key} is"):
         Calibration.load(tmp_path / "cal.h5")
+
+
+def test_values_above_the_declared_adc_top_are_warned_of_with_their_count(tmp_path):
+    """Review s42: a pixel above 4095 in a frame of a panel declared 12-bit (C7942.md: such a value
+    means a wrong bit or byte order, or another panel, and is to be reported) was taken as data,
+    L = -1.90, in silence where no reader had said so (an array, a 16-bit TIFF). The calibration
+    keeps the depth its frames declared, and a correction names how many pixels passed it; a
+    depth only guessed from the frames (a 16-bit panel whose flats stayed under 4095) says nothing."""
+    from radiokit.io import BitDepthWarning
+
+    rng = np.random.default_rng(8)
+    darks = (100 + rng.poisson(4, (4, 64, 64))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 64, 64))).astype(np.uint16)
+    raw = (100 + rng.poisson(1500, (2, 64, 64))).astype(np.uint16)
+    raw[1, 5, 5], raw[1, 9, 9] = 20000, 4096
+    cal = Calibration.from_frames(darks, flats, bit_depth=12)
+    cal.save(tmp_path / "cal.h5")
+    cal = Calibration.load(tmp_path / "cal.h5")
+    with pytest.warns(BitDepthWarning, match=r"2 pixels .*above 4095.*12-bit") as caught:
+        correct_frames(cal, raw)
+    assert len(caught) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BitDepthWarning)
+        correct_frames(Calibration.from_frames(darks, flats), raw)  # 12 bits guessed: a 16-bit panel's
+        correct_frames(cal, raw[0])
+
+
+def test_a_raw_frame_above_4095_read_with_the_c7942_preset_is_counted_on_the_command_line(tmp_path):
+    """The command line of review s42's finding: darks, flats and a frame in raw files of the 12-bit
+    C7942 (``--preset c7942-4x4``, 560 x 560); one pixel of the frame at 20000 was corrected to
+    L = -1.90 and `correct` printed "0 saturated", exit 0. The preset names the ADC as an ITEX
+    header does, the calibration keeps it, and `correct` says how many pixels passed its top."""
+    rng = np.random.default_rng(9)
+    shape = (3, 560, 560)
+    paths = {name: tmp_path / f"{name}.raw" for name in ("darks", "flats", "frame")}
+    (100 + rng.poisson(4, shape)).astype("<u2").tofile(paths["darks"])
+    (100 + rng.poisson(3000, shape)).astype("<u2").tofile(paths["flats"])
+    frame = (100 + rng.poisson(1500, shape[1:])).astype("<u2")
+    frame[100, 100] = 20000
+    frame.tofile(paths["frame"])
+    preset = ("--preset", "c7942-4x4")
+    cal = tmp_path / "cal.h5"
+    assert (
+        run_cli("calibrate", "--dark", paths["darks"], "--flat", paths["flats"], *preset, "-o", cal, "-q").returncode
+        == 0
+    )
+    # a process of its own: in this one pytest records the warnings, and they never reach stderr
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    args = ["correct", paths["frame"], "--cal", cal, *preset, "-o", tmp_path / "out.h5", "-q"]
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    assert "1 pixels of 1 frame(s) read above 4095, the top of the 12-bit ADC" in res.stderr, res.stderr
