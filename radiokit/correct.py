@@ -673,6 +673,15 @@ class _BackgroundWriter:
             raise self._error
 
 
+def _mask_attrs(cal: Calibration) -> dict:
+    """The attributes of a corrected stack's ``pixel_mask`` (:func:`correct_files`)."""
+    return {
+        "description": "the calibration's defect map (PixelFlag bits): filled in every frame",
+        "defect_rows": np.asarray(cal.defect_rows, np.int64),
+        "defect_columns": np.asarray(cal.defect_columns, np.int64),
+    }
+
+
 def _correct_planned(cal, src, fi, frame, domain, factor):
     """Frame ``fi`` of ``src`` corrected into ``frame``, at the flats' tube current (``factor``),
     and its pixels above :func:`declared_top`; errors name the file and the frame (a run reads many)."""
@@ -805,7 +814,8 @@ def correct_files(
     From experiment files only frames whose ``image_key`` is in ``image_keys`` (projections by
     default) are corrected; other formats have no keys and every frame is. The HDF5 output
     records, per frame, the source file and frame index, the compression step where known, and
-    the saturated and non-positive counts. Returns a summary dict.
+    the saturated and non-positive counts, and the calibration's defect map (the pixels filled in
+    every frame) as ``/entry/instrument/detector/pixel_mask``. Returns a summary dict.
 
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
@@ -825,7 +835,15 @@ def correct_files(
         sat_total = np_total = over_total = 0
         with (
             StackWriter(
-                output, cal.shape, np.float32, meta=meta, n_frames=n_plan, overwrite=overwrite, inputs=inputs
+                output,
+                cal.shape,
+                np.float32,
+                meta=meta,
+                n_frames=n_plan,
+                overwrite=overwrite,
+                inputs=inputs,
+                pixel_mask=cal.mask,  # which pixels every frame had filled: the counts did not say where
+                pixel_mask_attrs=_mask_attrs(cal),
             ) as writer,
             tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,

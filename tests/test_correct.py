@@ -730,3 +730,26 @@ def test_a_raw_frame_above_4095_read_with_the_c7942_preset_is_counted_on_the_com
     )
     assert res.returncode == 0, res.stderr
     assert "1 pixels of 1 frame(s) read above 4095, the top of the 12-bit ADC" in res.stderr, res.stderr
+
+
+def test_correct_files_records_the_calibrations_defect_mask_beside_the_frames(tmp_path):
+    """Review s42: the output of `radiokit correct` counted filled pixels per frame but not which
+    ones; a user could not tell a filled defect line from the image. The calibration's pixel mask
+    (NeXus NXdetector/pixel_mask) and its defect lines are written into the same file, within its
+    atomic write, and the file still reads as the same stack."""
+    from radiokit.correct import correct_files
+    from radiokit.io import read, read_stack
+
+    mask = np.zeros((16, 24), np.uint32)
+    mask[:, 5] = PixelFlag.DEAD | PixelFlag.CLUSTER
+    mask[3, 9] = PixelFlag.NOISY
+    cal = _cal(16, 24, mask=mask, defect_columns=[5])
+    np.random.default_rng(1).integers(300, 1000, (3, 16, 24)).astype("<u2").tofile(tmp_path / "s.raw")
+    correct_files(tmp_path / "s.raw", cal, tmp_path / "out.h5", shape=(16, 24), progress=False)
+    with h5py.File(tmp_path / "out.h5", "r") as h5:
+        det = h5["entry/instrument/detector"]
+        np.testing.assert_array_equal(det["pixel_mask"][()], mask)
+        assert det.attrs["NX_class"] == "NXdetector"
+        assert det["pixel_mask"].attrs["defect_columns"].tolist() == [5]
+    assert read_stack(tmp_path / "out.h5").data.shape == (3, 16, 24)
+    assert read(tmp_path / "out.h5").data.shape == (3, 16, 24)
