@@ -232,12 +232,7 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, 
     if n == 1:
         mean[...] = data[0]
         return (mean, std) if return_std else mean
-    # Panel noise from a sample of rows: the pooled temporal variance, trimmed of the top 1 % of
-    # pixels (zingers, noisy pixels). A MAD would quantise on integer counts and clip real noise.
-    pick = data[:, :: max(1, rows // 64)].astype(np.float32)
-    var = pick.var(axis=0, ddof=1).ravel()
-    var = var[var <= np.quantile(var, 0.99)]
-    sigma = max(float(np.sqrt(var.mean())) if var.size else 0.0, 0.5)
+    sigma = _panel_sigma(data)
     for r0 in range(0, rows, block_rows):
         blk = data[:, r0 : r0 + block_rows].astype(np.float32)
         if n <= 32:  # sorting a few samples beats np.median's strided partitions, same value
@@ -269,6 +264,42 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, 
         if callback is not None:
             callback(blk.shape[1])
     return (mean, std) if return_std else mean
+
+
+def _panel_sigma(data) -> float:
+    """One frame's noise (counts rms) over the panel, for :func:`robust_average`'s window: the
+    pooled temporal variance of a sample of rows, trimmed of the top 1 % of pixels (zingers, noisy
+    pixels), floored at half a count. A MAD would quantise on integer counts and clip real noise."""
+    pick = data[:, :: max(1, data.shape[1] // 64)].astype(np.float32)
+    var = pick.var(axis=0, ddof=1).ravel()
+    var = var[var <= np.quantile(var, 0.99)]
+    return max(float(np.sqrt(var.mean())) if var.size else 0.0, 0.5)
+
+
+def clipped_samples(frames, saturation, *, clip_sigma=5.0, block_rows=128) -> np.ndarray:
+    """Per pixel, how many of its samples in ``frames`` read ``saturation`` or more and are kept in
+    its :func:`robust_average` (within ``clip_sigma`` panel noise sigmas of its median), as uint16.
+
+    Why: a pixel clipped in some of its frames averages low, below the top, so judging the averaged
+    flat alone (``flat >= saturation``) missed it: flats clipped in 57 % of a bright band's samples
+    had 111 of its 5120 pixels flagged, and its transmission came out 0.8 % high, unsaid (review
+    s42). A zinger's clipped sample is dropped from the average, and not counted here."""
+    data = _as_stack(frames, "clipped_samples")
+    n, rows, cols = data.shape
+    count = np.zeros((rows, cols), np.uint16)
+    if saturation is None or n == 0:
+        return count
+    sigma = _panel_sigma(data) if n > 1 else 0.0
+    for r0 in range(0, rows, block_rows):
+        blk = data[:, r0 : r0 + block_rows]
+        r, c = np.nonzero((blk >= saturation).any(axis=0))  # few: only they are sorted
+        if not r.size:
+            continue
+        samples = blk[:, r, c].astype(np.float32)
+        med = np.median(samples, axis=0)
+        kept = (samples >= saturation) & (np.abs(samples - med) <= clip_sigma * sigma)
+        count[r0 + r, c] = kept.sum(axis=0)
+    return count
 
 
 def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None) -> np.ndarray:
@@ -322,24 +353,66 @@ def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None
 MIN_LINE_PIXELS = 16
 
 
+#: How many lines on each side a line is compared with (:func:`_line_flags`): the median of the
+#: LINE_REACH lines on one side is that side's reference, so up to 3 adjacent defect lines (2 of 5
+#: on a side) are found whole; a wider band is a block of its own, as a read-out block is.
+LINE_REACH = 5
+
+#: The most defect lines a panel has: "up to 20 per panel" (C7942.md, "Corrections the manual
+#: prescribes"); a line stays a line when binned, so this holds at every binning.
+MAX_DEFECT_LINES = 20
+
+
 def _line_flags(rel, std, flagged, th: Thresholds, axis):
     """Indices of defect lines along ``axis`` (0: rows, 1: columns) and their flag bits; none
-    when a line has fewer than :data:`MIN_LINE_PIXELS` pixels."""
+    when a line has fewer than :data:`MIN_LINE_PIXELS` pixels.
+
+    A line's median relative response is judged against the median of the :data:`LINE_REACH`
+    lines on each side of it, and must differ from both. Why: a gain step between a flat panel's
+    read-out blocks (flat - dark 1.12-1.2 times higher right of a column) drags the block median
+    ``rel`` is relative to, and 8-29 healthy columns beside the step read 5 % off 1: flagged as
+    defect lines and filled in every frame (a 1-px wire of transmission 0.3 there came out 0.6).
+    A defect line differs from its neighbours on both sides; a step's line agrees with one side
+    (a centred running median does not do: a defect line beside the step is the median there).
+    Dead lines are judged absolutely too: a wide band reading nothing is its own neighbours."""
     other = 1 - axis
     if rel.shape[other] < MIN_LINE_PIXELS:
         return np.zeros(0, np.intp), np.zeros(0, np.uint32)
     med = np.median(rel, axis=other)
+    n, k = med.size, LINE_REACH
+    # mirrored at the frame's edges: a defect line at the edge is judged by the lines inside
+    padded = np.pad(med, k, mode="reflect" if n > 1 else "edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, k)
+    left, right = np.median(windows[:n], axis=1), np.median(windows[k + 1 : k + 1 + n], axis=1)
     frac = flagged.mean(axis=other)
-    bits = np.zeros(rel.shape[axis], np.uint32)
-    bits[med < 1 - th.line_deviation] |= np.uint32(PixelFlag.UNDER_RESPONDING)
+    bits = np.zeros(n, np.uint32)
+    low, high = 1 - th.line_deviation, 1 + th.line_deviation
+    bits[(med < low * left) & (med < low * right)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
     bits[med < th.dead_below] |= np.uint32(PixelFlag.DEAD)
-    bits[med > 1 + th.line_deviation] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    bits[(med > high * left) & (med > high * right)] |= np.uint32(PixelFlag.OVER_RESPONDING)
     if std is not None:
         line_std = np.nanmedian(std, axis=other)
         bits[line_std > th.line_noise_factor * np.nanmedian(std)] |= np.uint32(PixelFlag.NOISY)
     bits[frac > th.line_fraction] |= np.uint32(PixelFlag.CLUSTER)
     lines = np.flatnonzero(bits)
     return lines, bits[lines] | np.uint32(PixelFlag.CLUSTER)
+
+
+def _too_many_lines(rows_idx, cols_idx) -> str | None:
+    """What to say of more defect lines than :data:`MAX_DEFECT_LINES` (None: no more). Why: each
+    is filled in every frame, erasing what lies there, and more than a panel has means the flats
+    or the thresholds found lines that are none (a gain step found 8-29 once, unsaid)."""
+    n = rows_idx.size + cols_idx.size
+    if n <= MAX_DEFECT_LINES:
+        return None
+    found = " and ".join(
+        f"{idx.size} {name} ({_runs(idx)})" for name, idx in (("rows", rows_idx), ("columns", cols_idx)) if idx.size
+    )
+    return (
+        f"{n} defect lines found ({found}), more than the {MAX_DEFECT_LINES} the C7942's manual gives a panel "
+        "at most; each is filled in every frame, erasing what lies there: check the flats (a non-uniform "
+        "beam, a gain step between read-out blocks, module gaps) and the line thresholds"
+    )
 
 
 def _what_instead(h5) -> str:
@@ -477,8 +550,10 @@ class Calibration:
         relative response ``R / S`` classifies pixels: dead below ``dead_below`` (or ``R <= eps``),
         under-responding below ``under_below``, over-responding above ``over_above``; a pixel
         whose temporal dark noise exceeds ``noisy_factor`` times the panel median is noisy; a
-        pixel whose flat is saturated is over-responding. Rows and columns are defect lines when
-        their median relative response deviates by more than ``line_deviation``, their median
+        pixel whose flat is saturated (on average, or in :func:`clipped_floor` of the flats whose
+        samples its average kept, :func:`clipped_samples`) is over-responding. Rows and columns are
+        defect lines when their median relative response deviates by more than ``line_deviation``
+        from the lines on both sides (:data:`LINE_REACH` each), their median
         dark noise exceeds ``line_noise_factor`` times the panel's, or more than
         ``line_fraction`` of their pixels are flagged.
         """
@@ -510,15 +585,24 @@ class Calibration:
             bar.set_description("calibrate flats")
             flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
             bar.set_description("calibrate defects")
-            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given)
+            clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
+            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped)
             bar.update(rows)
         cal.provenance.update(layout or {})
+        # the files' word for their ADC (a raw preset's: the panel named), kept so that a frame
+        # passing its top is reported (radiokit.correct.declared_top): C7942.md, a value above 4095
+        # is a wrong bit or byte order or another panel
+        if bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1:
+            cal.provenance["bit_depth"] = int(bit_depth)
         return cal
 
     @classmethod
-    def _from_averages(cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given) -> Calibration:
+    def _from_averages(
+        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None
+    ) -> Calibration:
         """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
-        ``given``: ``th.saturation`` was the caller's, not guessed from the frames)."""
+        ``given``: ``th.saturation`` was the caller's, not guessed from the frames; ``clipped``:
+        each pixel's clipped flat samples kept in its average, :func:`clipped_samples`)."""
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
             # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
@@ -532,7 +616,9 @@ class Calibration:
                     f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
                     "counts): was the beam on for the flats?"
                 )
-            mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(flat, dark_std, response, th)
+            mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(
+                flat, dark_std, response, th, clipped, n_flats=flats.shape[0]
+            )
             _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
         except ValueError as exc:
             raise _blame(
@@ -541,6 +627,9 @@ class Calibration:
         bright = _bright_darks(float(np.median(dark)), _known_top(th.saturation, given, dark, flat))
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
+        many = _too_many_lines(rows_idx, cols_idx)  # after the refusals: a refused map needs no more words
+        if many:
+            warnings.warn(many, CalibrationWarning, stacklevel=3)
         good = mask == 0
         return cls(
             dark,
@@ -1203,9 +1292,11 @@ def _reference_response(response, th: Thresholds) -> np.ndarray:
     return _local_median(response, th.smooth_block, valid)
 
 
-def _defect_map(flat, dark_std, response, th):
+def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     """The pixel mask (:class:`PixelFlag` bits), the defect rows and columns, and how many pixels
-    of the flat are saturated (see :meth:`Calibration.from_frames`' notes)."""
+    of the flat are saturated (see :meth:`Calibration.from_frames`' notes): at the top in the
+    average or, ``clipped`` (:func:`clipped_samples`, of ``n_flats`` frames), in any frame whose
+    sample the average kept."""
     mask = np.zeros(flat.shape, np.uint32)
     local = _reference_response(response, th)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -1214,13 +1305,19 @@ def _defect_map(flat, dark_std, response, th):
     mask[(rel < th.dead_below) | (response <= th.eps)] = np.uint32(PixelFlag.DEAD)
     mask[rel > th.over_above] |= np.uint32(PixelFlag.OVER_RESPONDING)
     sat = np.inf if th.saturation is None else th.saturation
-    n_flat_saturated = int(np.count_nonzero(flat >= sat))
+    saturated = flat >= sat
+    if clipped is not None and n_flats:
+        saturated |= clipped >= clipped_floor(n_flats)
+    # a pixel stuck at the top in the darks too is dead (no response), not over-exposed: "lower
+    # the flat exposure" was said of stuck pixels (review s42)
+    saturated &= response > th.eps
+    n_flat_saturated = int(np.count_nonzero(saturated))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(
-            f"the averaged flat is saturated (>= {th.saturation}) in {n_flat_saturated} of "
+            f"the flats are saturated (>= {th.saturation}) in {n_flat_saturated} of "
             f"{flat.size} pixels: lower the flat exposure (current or time)"
         )
-    mask[flat >= sat] |= np.uint32(PixelFlag.OVER_RESPONDING)
+    mask[saturated] |= np.uint32(PixelFlag.OVER_RESPONDING)
     if dark_std is not None:
         ref = float(np.nanmedian(dark_std))
         if ref > 0:
@@ -1232,12 +1329,35 @@ def _defect_map(flat, dark_std, response, th):
     mask[:, cols_idx] |= cols_bits[None, :]
     if n_flat_saturated:
         warnings.warn(
-            f"{n_flat_saturated} pixels of the averaged flat are saturated (>= {th.saturation}); "
-            "they are flagged, but lower the flat exposure",
+            f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation})"
+            f"{_clipped_text(clipped, n_flats)}; they are flagged, but lower the flat exposure",
             CalibrationWarning,
             stacklevel=4,  # _defect_map, _from_averages, from_frames: the caller's line
         )
     return mask, rows_idx, cols_idx, n_flat_saturated
+
+
+def clipped_floor(n_frames: int) -> int:
+    """How many of a pixel's ``n_frames`` flat samples, clipped and kept in its average, make it
+    saturated (:func:`clipped_samples`): 2, or a tenth of the frames if that is more. Why not 1: a pixel
+    clipped in a tenth of its frames (its mean 1.3 noise sigmas under the top) averages 0.05 sigma
+    low, a few counts, under the average's own noise; and one clipped sample of ten happens by
+    chance two sigmas under the top, where the bias is nil: counting those grew a heel's clipped
+    band by a third (review s42's t5b_flatclip.py: 13.3 % of the panel against 10.4 %, where
+    5.1 % average above the top)."""
+    return max(2, -(-int(n_frames) // 10))
+
+
+def _clipped_text(clipped, n_flats) -> str:
+    """ " in 2-10 of their 10 frames (4121 samples): their averages are biased low" for the warning
+    of saturated flat pixels; "" where no frame's count is known."""
+    if clipped is None or not n_flats or not (clipped >= clipped_floor(n_flats)).any():
+        return ""
+    hit = clipped[clipped >= clipped_floor(n_flats)]
+    lo, hi = int(hit.min()), int(hit.max())
+    frames = f"{lo}-{hi}" if lo < hi else f"{hi}"
+    low = ": their averages are biased low" if lo < n_flats else ""
+    return f" in {frames} of their {n_flats} frames ({int(hit.sum(dtype=np.int64))} samples){low}"
 
 
 #: The largest share of the panel a defect map may mark defective. The C7942 has up to 20 defect
@@ -1411,7 +1531,7 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dea
         )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(
-            f"the averaged flat is saturated (>= {saturation}) in {n_saturated} of {mask.size} pixels "
+            f"the flats are saturated (>= {saturation}) in {n_saturated} of {mask.size} pixels "
             f"({100 * n_saturated / mask.size:.1f} %), over the {100 * MAX_DEFECTIVE_SHARE:g} % of the panel a defect "
             "map may mark: lower the flat exposure (tube current or time, or less binning)"
         )

@@ -15,6 +15,7 @@ import queue
 import sys
 import threading
 import time
+import warnings
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -321,6 +322,8 @@ def _correct_one(raw2d, k: CorrectionKernel, out2d, domain, scale, saturation):
     sat = np.concatenate([p[1] for p in parts])
     if raw2d.dtype.kind == "f" and sat.size:  # +inf passes any level: no value, counted as NaN or inf
         sat = sat[np.isfinite(raw2d.ravel()[sat])]
+    if sat.size:  # defect pixels: filled by the plan, no measurement (a stuck pixel was "saturated" in every frame)
+        sat = sat[~k.invalid.ravel()[sat]]
     flat_out = out2d.reshape(-1)
     for stage in k.stages:
         stage.apply(flat_out)
@@ -383,6 +386,45 @@ def _fill_nearest(out2d, idx) -> None:
         return
     rows, cols = ndimage.distance_transform_edt(mask, return_distances=False, return_indices=True)
     sub[r, c] = sub[rows[r, c], cols[r, c]]
+
+
+def declared_top(cal: Calibration) -> int | None:
+    """The top of the ADC the calibration's darks and flats declared (``provenance["bit_depth"]``,
+    recorded by :meth:`Calibration.from_frames` from the files' word), None where it was guessed."""
+    bits = cal.provenance.get("bit_depth")
+    return (1 << bits) - 1 if type(bits) is int and 1 <= bits <= 16 else None
+
+
+def above_top(cal: Calibration, raw2d, top) -> int:
+    """How many of ``raw2d``'s pixels outside the calibration's mask read above ``top`` (finite
+    ones; 0 where ``top`` is None). A stuck pixel already masked is no news."""
+    if top is None or raw2d.dtype.kind not in "uif" or not raw2d.size:
+        return 0
+    if raw2d.dtype.kind in "ui" and (np.iinfo(raw2d.dtype).max <= top or raw2d.max() <= top):
+        return 0
+    over = raw2d > top  # NaN: False; +inf is no value (counted as non-finite)
+    if raw2d.dtype.kind == "f":
+        over &= np.isfinite(raw2d)
+    return int(np.count_nonzero(over & (cal.mask == 0)))
+
+
+def warn_above_top(cal: Calibration, n_pixels: int, n_frames: int, stacklevel=3) -> None:
+    """The warning for ``n_pixels`` (in ``n_frames`` frames) above :func:`declared_top`. Why:
+    C7942.md, a value above 4095 means a wrong bit or byte order or another panel, to be said;
+    such a pixel was corrected as data (L = -1.90) in silence where no reader had warned (review s42)."""
+    if not n_pixels:
+        return
+    from radiokit.io import BitDepthWarning
+
+    top = declared_top(cal)
+    warnings.warn(
+        BitDepthWarning(
+            f"{n_pixels} pixels of {n_frames} frame(s) read above {top}, the top of the "
+            f"{cal.provenance['bit_depth']}-bit ADC the calibration's darks and flats declared: a wrong bit or "
+            "byte order, or another panel's frames (C9730DK/C9732DK are 14-bit); corrected as stored"
+        ),
+        stacklevel=stacklevel,
+    )
 
 
 def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
@@ -516,7 +558,9 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     2 px), flagged ``NONPOSITIVE`` and counted. NaN or inf raw pixels are flagged and counted
     so too; beyond 2 px of a valid pixel they take the nearest filled value (unknown, not
     opaque as a finite value at or below the dark is). Raw values at or above ``thresholds.saturation`` are
-    flagged ``SATURATED`` and counted. Filling happens in the output domain. What does not
+    flagged ``SATURATED`` and counted; raw values above the top of the ADC the calibration's frames
+    declared (:func:`declared_top`) are warned of with their count (``BitDepthWarning``), and
+    corrected as stored. Filling happens in the output domain. What does not
     depend on the frame is computed once per calibration (:class:`CorrectionKernel`).
 
     Examples
@@ -567,6 +611,7 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
     sat_counts = np.zeros(n, np.int64)
     np_counts = np.zeros(n, np.int64)
     flags = np.broadcast_to(cal.mask, stack.shape).copy() if return_report else None
+    top, n_over = declared_top(cal), 0
     for i in range(n):
         where = f"frame {i} of {n}: " if raw.ndim == 3 else ""
         checking = check
@@ -582,9 +627,11 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
             how = "; correct_frames(..., check=False) corrects it regardless" if checking else ""
             raise ValueError(f"{where}{exc}{how}") from None
         np_counts[i], sat_counts[i] = nonpos.size, sat.size
+        n_over += above_top(cal, stack[i], top)
         if return_report:
             flags[i].ravel()[nonpos] |= np.uint32(PixelFlag.NONPOSITIVE)
             flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
+    warn_above_top(cal, n_over, n)
     if not return_report:
         return out
     report = CorrectionReport(
@@ -672,10 +719,20 @@ class _BackgroundWriter:
             raise self._error
 
 
+def _mask_attrs(cal: Calibration) -> dict:
+    """The attributes of a corrected stack's ``pixel_mask`` (:func:`correct_files`)."""
+    return {
+        "description": "the calibration's defect map (PixelFlag bits): filled in every frame",
+        "defect_rows": np.asarray(cal.defect_rows, np.int64),
+        "defect_columns": np.asarray(cal.defect_columns, np.int64),
+    }
+
+
 def _correct_planned(cal, src, fi, frame, domain, factor):
-    """Frame ``fi`` of ``src`` corrected into ``frame``, at the flats' tube current (``factor``);
-    errors name the file and the frame (a run reads many)."""
+    """Frame ``fi`` of ``src`` corrected into ``frame``, at the flats' tube current (``factor``),
+    and its pixels above :func:`declared_top`; errors name the file and the frame (a run reads many)."""
     raw = src[fi]
+    over = above_top(cal, raw, declared_top(cal))
     try:
         check_above_dark(cal, raw)  # as process does: darks, a beam-off frame, frames already corrected
         nonpos, sat = _correct_checked(cal, raw, frame, domain)
@@ -684,7 +741,7 @@ def _correct_planned(cal, src, fi, frame, domain, factor):
         check_below_flats(cal, frame, domain)
     except ValueError as exc:
         raise FormatError(src.path, f"frame {fi}: {exc}") from exc
-    return nonpos, sat
+    return nonpos, sat, over
 
 
 #: a frame whose median transmission is above this is brighter than the open beam, which no
@@ -803,7 +860,8 @@ def correct_files(
     From experiment files only frames whose ``image_key`` is in ``image_keys`` (projections by
     default) are corrected; other formats have no keys and every frame is. The HDF5 output
     records, per frame, the source file and frame index, the compression step where known, and
-    the saturated and non-positive counts. Returns a summary dict.
+    the saturated and non-positive counts, and the calibration's defect map (the pixels filled in
+    every frame) as ``/entry/instrument/detector/pixel_mask``. Returns a summary dict.
 
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
@@ -820,17 +878,26 @@ def correct_files(
             raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(sources, image_keys)}")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
-        sat_total = np_total = 0
+        sat_total = np_total = over_total = 0
         with (
             StackWriter(
-                output, cal.shape, np.float32, meta=meta, n_frames=n_plan, overwrite=overwrite, inputs=inputs
+                output,
+                cal.shape,
+                np.float32,
+                meta=meta,
+                n_frames=n_plan,
+                overwrite=overwrite,
+                inputs=inputs,
+                pixel_mask=cal.mask,  # which pixels every frame had filled: the counts did not say where
+                pixel_mask_attrs=_mask_attrs(cal),
             ) as writer,
             tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,
         ):
             for si, fi, step, factor in _planned(segments):
                 frame = bg.buffer()
-                nonpos, sat = _correct_planned(cal, sources[si], fi, frame, domain, factor)
+                nonpos, sat, over = _correct_planned(cal, sources[si], fi, frame, domain, factor)
+                over_total += over
                 sat_total += sat.size
                 np_total += nonpos.size
                 bg.put(
@@ -843,6 +910,7 @@ def correct_files(
                 )
                 bar.update(1)
         elapsed = time.perf_counter() - t0
+        warn_above_top(cal, over_total, n_plan)
     finally:
         for src in sources:
             src.close()

@@ -574,7 +574,9 @@ def _step_image(cal, src, path, step, idx, factors, bar):
             raise FormatError(path, f"frame {i} (step {step}): {exc}") from None
         top = frame_saturation(cal.thresholds.saturation, raw, cal.mask) if raw.dtype.kind in "uif" else None
         if top is not None:  # +inf passes any level: no value, counted below as NaN or inf
-            n_sat += int(np.count_nonzero((raw >= top) & np.isfinite(raw) if raw.dtype.kind == "f" else raw >= top))
+            over = (raw >= top) & np.isfinite(raw) if raw.dtype.kind == "f" else raw >= top
+            # defect pixels are filled, no measurement: a stuck one was "saturated" in every frame
+            n_sat += int(np.count_nonzero(over & (cal.mask == 0)))
         if raw.dtype.kind == "f":
             bad = ~np.isfinite(raw)
             if bad.any():

@@ -1,6 +1,10 @@
 """Correction against hand-computed values, and the guarantees: finite, flagged, counted."""
 
 import json
+import os
+import subprocess
+import sys
+import warnings
 
 import h5py
 import numpy as np
@@ -91,6 +95,23 @@ def test_saturated_pixels_flagged_and_counted():
     assert report.saturated.tolist() == [3]
     assert (report.flags[0, :3] & PixelFlag.SATURATED).all()
     assert out[0, 0] == pytest.approx((4095 - 100) / 1000)
+
+
+def test_a_stuck_pixel_masked_and_filled_is_not_counted_saturated():
+    """Review s42 (t9_stuck.py): 5 pixels stuck at 4095 in the darks, flats and frames are masked
+    and filled from their neighbours in every frame, yet were counted "saturated" in every frame's
+    report too: 15 over 3 frames where no value was clipped. Only unmasked pixels count."""
+    mask = np.zeros((6, 7), np.uint32)
+    mask[2, 1:4] = PixelFlag.OVER_RESPONDING
+    cal = _cal(mask=mask)
+    raw = np.full((3, *cal.shape), 600, np.uint16)
+    raw[:, 2, 1:4] = 4095  # stuck, masked
+    raw[1, 4, 5] = 4095  # clipped, a measurement
+    out, report = correct_frames(cal, raw, domain="linear", return_report=True)
+    assert report.saturated.tolist() == [0, 1, 0]
+    assert not (report.flags[:, 2, 1:4] & PixelFlag.SATURATED).any()
+    assert report.flags[1, 4, 5] & PixelFlag.SATURATED
+    np.testing.assert_allclose(out[:, 2, 1:4], 0.5, rtol=1e-6)  # filled from the 0.5 around
 
 
 def test_defect_column_is_mean_of_neighbours():
@@ -713,3 +734,80 @@ def test_correct_frames_refuses_a_masked_array():
     raw = np.ma.masked_array(np.full(cal.shape, 600.0), mask=np.eye(*cal.shape, dtype=bool))
     with pytest.raises(ValueError, match="raw is a masked array, whose mask would be ignored: pass .*filled"):
         correct_frames(cal, raw)
+
+
+def test_values_above_the_declared_adc_top_are_warned_of_with_their_count(tmp_path):
+    """Review s42: a pixel above 4095 in a frame of a panel declared 12-bit (C7942.md: such a value
+    means a wrong bit or byte order, or another panel, and is to be reported) was taken as data,
+    L = -1.90, in silence where no reader had said so (an array, a 16-bit TIFF). The calibration
+    keeps the depth its frames declared, and a correction names how many pixels passed it; a
+    depth only guessed from the frames (a 16-bit panel whose flats stayed under 4095) says nothing."""
+    from radiokit.io import BitDepthWarning
+
+    rng = np.random.default_rng(8)
+    darks = (100 + rng.poisson(4, (4, 64, 64))).astype(np.uint16)
+    flats = (100 + rng.poisson(3000, (4, 64, 64))).astype(np.uint16)
+    raw = (100 + rng.poisson(1500, (2, 64, 64))).astype(np.uint16)
+    raw[1, 5, 5], raw[1, 9, 9] = 20000, 4096
+    cal = Calibration.from_frames(darks, flats, bit_depth=12)
+    cal.save(tmp_path / "cal.h5")
+    cal = Calibration.load(tmp_path / "cal.h5")
+    with pytest.warns(BitDepthWarning, match=r"2 pixels .*above 4095.*12-bit") as caught:
+        correct_frames(cal, raw)
+    assert len(caught) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BitDepthWarning)
+        correct_frames(Calibration.from_frames(darks, flats), raw)  # 12 bits guessed: a 16-bit panel's
+        correct_frames(cal, raw[0])
+
+
+def test_a_raw_frame_above_4095_read_with_the_c7942_preset_is_counted_on_the_command_line(tmp_path):
+    """The command line of review s42's finding: darks, flats and a frame in raw files of the 12-bit
+    C7942 (``--preset c7942-4x4``, 560 x 560); one pixel of the frame at 20000 was corrected to
+    L = -1.90 and `correct` printed "0 saturated", exit 0. The preset names the ADC as an ITEX
+    header does, the calibration keeps it, and `correct` says how many pixels passed its top."""
+    rng = np.random.default_rng(9)
+    shape = (3, 560, 560)
+    paths = {name: tmp_path / f"{name}.raw" for name in ("darks", "flats", "frame")}
+    (100 + rng.poisson(4, shape)).astype("<u2").tofile(paths["darks"])
+    (100 + rng.poisson(3000, shape)).astype("<u2").tofile(paths["flats"])
+    frame = (100 + rng.poisson(1500, shape[1:])).astype("<u2")
+    frame[100, 100] = 20000
+    frame.tofile(paths["frame"])
+    preset = ("--preset", "c7942-4x4")
+    cal = tmp_path / "cal.h5"
+    assert (
+        run_cli("calibrate", "--dark", paths["darks"], "--flat", paths["flats"], *preset, "-o", cal, "-q").returncode
+        == 0
+    )
+    # a process of its own: in this one pytest records the warnings, and they never reach stderr
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    args = ["correct", paths["frame"], "--cal", cal, *preset, "-o", tmp_path / "out.h5", "-q"]
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", *map(str, args)], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    assert "1 pixels of 1 frame(s) read above 4095, the top of the 12-bit ADC" in res.stderr, res.stderr
+
+
+def test_correct_files_records_the_calibrations_defect_mask_beside_the_frames(tmp_path):
+    """Review s42: the output of `radiokit correct` counted filled pixels per frame but not which
+    ones; a user could not tell a filled defect line from the image. The calibration's pixel mask
+    (NeXus NXdetector/pixel_mask) and its defect lines are written into the same file, within its
+    atomic write, and the file still reads as the same stack."""
+    from radiokit.correct import correct_files
+    from radiokit.io import read, read_stack
+
+    mask = np.zeros((16, 24), np.uint32)
+    mask[:, 5] = PixelFlag.DEAD | PixelFlag.CLUSTER
+    mask[3, 9] = PixelFlag.NOISY
+    cal = _cal(16, 24, mask=mask, defect_columns=[5])
+    np.random.default_rng(1).integers(300, 1000, (3, 16, 24)).astype("<u2").tofile(tmp_path / "s.raw")
+    correct_files(tmp_path / "s.raw", cal, tmp_path / "out.h5", shape=(16, 24), progress=False)
+    with h5py.File(tmp_path / "out.h5", "r") as h5:
+        det = h5["entry/instrument/detector"]
+        np.testing.assert_array_equal(det["pixel_mask"][()], mask)
+        assert det.attrs["NX_class"] == "NXdetector"
+        assert det["pixel_mask"].attrs["defect_columns"].tolist() == [5]
+    assert read_stack(tmp_path / "out.h5").data.shape == (3, 16, 24)
+    assert read(tmp_path / "out.h5").data.shape == (3, 16, 24)

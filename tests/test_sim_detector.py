@@ -217,12 +217,12 @@ def test_binning_the_same_source_past_the_adc_clips_at_4095_and_the_calibration_
     good = ~bench.panel.truth.mask(bench.panel.shape)
     darks, flats = bench.expose(3, xray_on=False), bench.expose(3)
     assert flats.max() == 4095 and np.all(flats[:, good] == 4095)
-    with pytest.raises(ValueError, match="averaged flat is saturated"):
+    with pytest.raises(ValueError, match="flats are saturated"):
         Calibration.from_frames(darks, flats)
     # just past the binned ceiling: the brightest pixels clip, the calibration flags them and warns
     bench = VirtualBench(_scene_at(1, 1.06 * ceiling / 4), binning=2, seed=1)
     bench.sample_in = False
     flats = bench.expose(3)
     assert 0 < np.mean(flats == 4095) < 0.1
-    with pytest.warns(CalibrationWarning, match="pixels of the averaged flat are saturated"):
+    with pytest.warns(CalibrationWarning, match="pixels of the flats are saturated"):
         Calibration.from_frames(darks, flats)

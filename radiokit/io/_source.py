@@ -301,6 +301,8 @@ class FrameSource:
         self.n, self.frame_shape, self.dtype = geo["n"], (geo["rows"], geo["cols"]), geo["dtype"].newbyteorder("=")
         self.bits = geo["bits"]
         self.meta.update({k: v for k, v in geo.items() if k != "dtype"}, dtype=str(geo["dtype"]))
+        if self.bits is not None:  # a preset names the panel, and its ADC, as an ITEX header does
+            self.meta["bit_depth"] = self.bits
 
     def _read_raw(self, i):
         return read_raw_frame(self._fh, self._geo, i)

@@ -59,6 +59,8 @@ class StackWriter:
     HDF5 output holds ``/entry/data/data`` (chunked one frame per chunk) and, from
     :meth:`append`'s keyword arguments, per-frame series under ``/entry/data/``; ``meta`` becomes
     attributes of ``/entry/data`` (nested dicts as JSON). Each frame is flushed as written.
+    ``pixel_mask`` (HDF5 only; a TIFF stack has no place for it) is written once as
+    ``/entry/instrument/detector/pixel_mask``, with ``pixel_mask_attrs`` as its attributes.
 
     JSON is strict (:mod:`radiokit._json`): a non-finite number is null, and a dict names it in its
     ``"not_finite"`` and reads back as the number; a list attribute cannot carry that map, so a
@@ -75,9 +77,21 @@ class StackWriter:
     """
 
     def __init__(
-        self, path, frame_shape, dtype=np.float32, *, meta=None, bigtiff=None, overwrite=False, n_frames=None, inputs=()
+        self,
+        path,
+        frame_shape,
+        dtype=np.float32,
+        *,
+        meta=None,
+        bigtiff=None,
+        overwrite=False,
+        n_frames=None,
+        inputs=(),
+        pixel_mask=None,
+        pixel_mask_attrs=None,
     ):
         self.path = Path(path)
+        self._pixel_mask = (pixel_mask, dict(pixel_mask_attrs or {}))
         self.frame_shape = tuple(int(s) for s in frame_shape)
         self.dtype = np.dtype(dtype)
         self.meta = dict(meta or {})
@@ -119,6 +133,7 @@ class StackWriter:
             for key, value in self.meta.items():
                 # strict JSON (radiokit._json): a non-finite number is null, named in "not_finite"
                 grp.attrs[key] = strict_json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+            self._write_pixel_mask(entry)
             self._alloc = int(n_frames or 0)
             dcpl = None
             if self._alloc:  # all chunks allocated now, never filled: frames can be written in place
@@ -141,6 +156,25 @@ class StackWriter:
             stack_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize * max(int(n_frames or 0), 1)
             auto = stack_bytes > 2**28 if n_frames is None else stack_bytes > 2**32 - 2**25
             self._tif = tifffile.TiffWriter(tmp, bigtiff=auto if bigtiff is None else bool(bigtiff))
+
+    def _write_pixel_mask(self, entry) -> None:
+        """``pixel_mask`` (one frame's shape) as NeXus's ``/entry/instrument/detector/pixel_mask``
+        with ``pixel_mask_attrs``, compressed (a defect map is nearly all 0). Why: a corrected
+        stack counted its filled pixels but did not say which, so a filled defect line could not
+        be told from the image (review s42). In the temporary file: atomic with the frames."""
+        mask, attrs = self._pixel_mask
+        if mask is None:
+            return
+        mask = np.asarray(mask)
+        if mask.shape != self.frame_shape:
+            raise ValueError(f"{self.path}: pixel mask shape {mask.shape} != the frames' {self.frame_shape}")
+        instrument = entry.create_group("instrument")
+        instrument.attrs["NX_class"] = "NXinstrument"
+        detector = instrument.create_group("detector")
+        detector.attrs["NX_class"] = "NXdetector"
+        ds = detector.create_dataset("pixel_mask", data=mask, compression="gzip", shuffle=True)
+        for key, value in attrs.items():
+            ds.attrs[key] = value
 
     def append(self, frame, **series):
         frame = np.asarray(frame)
