@@ -1905,9 +1905,11 @@ class L8121:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
-            # after a switch-off that was not confirmed, the same news as its CRITICAL line
-            marked = {OFF_FAILURE: True} if self.off_failed is not None else None
-            logger.warning("%s: detached with X-rays possibly on", self.port, extra=marked)
+            if self.off_failed is None:
+                logger.warning("%s: detached with X-rays possibly on", self.port)
+            else:
+                # the same news as the switch-off's CRITICAL line: the notebook's, not a second warning
+                logger.info("%s: detached with X-rays possibly on", self.port, extra={OFF_FAILURE: True})
 
     def __enter__(self) -> L8121:
         return self
@@ -2105,6 +2107,12 @@ class L8121:
         name it): a line that names the port itself names it once."""
         text = str(exc)
         return text[len(self.port) + 2 :] if text.startswith(f"{self.port}: ") else text
+
+    def tell_off_failure(self, exc) -> None:
+        """Log a switch-off that was not confirmed (``exc``, what :meth:`off` raised), as this
+        driver logs its own: for a caller that called :meth:`off` itself (the series, its beam
+        monitor), so that the Python API's log says each failure once, CRITICAL, whoever met it."""
+        self._log_off_failure(exc)
 
     def _log_off_failure(self, exc) -> None:
         """Log a switch-off that was not confirmed, loud (CRITICAL, marked :data:`OFF_FAILURE`),

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import os
 import re
 import signal
@@ -404,7 +405,9 @@ def vouched_before(model, n_log, model_t, wall_t, dialect):
 
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, dialect, sigint_default):
+def test_fault_matrix(
+    tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, dialect, sigint_default, caplog
+):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
@@ -472,6 +475,18 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
     # "tube off" is claimed only when STS confirmed it: a silent or garbling controller cannot
     # confirm anything (even though the emulator did execute the XOF)
     assert res.tube_off is (name not in ("silent controller", "garbage reply")), (name, res.tube_off)
+    if res.tube_off is False:
+        # the Python API's log says an unconfirmed switch-off once, loud, as the command line does:
+        # the driver's CRITICAL line, the series' "not switching off again" and the link's
+        # "detached with X-rays possibly on" were three warnings of one fact
+        told = [
+            rec
+            for rec in caplog.records
+            if rec.levelno >= logging.WARNING
+            and re.search(r"not confirm|not switching off again|possibly on", rec.getMessage())
+        ]
+        assert [rec.levelname for rec in told] == ["CRITICAL"], [(r.levelname, r.getMessage()) for r in told]
+        assert "switch the source off at the controller" in told[0].getMessage(), told[0].getMessage()
     # every frame completed before the fault is in the file, with its metadata
     n_before = state["before"]
     if n_before == 0 and not os.path.exists(p.output):  # stopped before the file was made

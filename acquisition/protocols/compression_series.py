@@ -851,7 +851,7 @@ class _BeamMonitor:
                     self.source.off()
                 except Exception as off_exc:
                     self.off_failed = True
-                    log.error("switching the tube off after %s failed: %s", exc, off_exc, extra=_said_by_driver())
+                    _tell_off_failure(self.source, off_exc)
                 return
             self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
 
@@ -1924,10 +1924,13 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         dev.off_failed = True
         r.res.tube_off = False
         r.res.off_failure = str(getattr(dev.source, "off_failed", None) or "")
-        log.error(
+        # the failure was logged loud where it happened (the driver's fail-safe, the beam
+        # monitor): this line is the notebook's, not a second warning of it (the Python API's
+        # log said it three times, the command line once)
+        log.info(
             "not switching off again: the last XOF could not be confirmed (%s)",
             getattr(dev.source, "off_failed", None) or "beam monitor",
-            extra=_said_by_driver() if r.res.off_failure else None,
+            extra=_said_by_driver(),
         )
         return False
     try:
@@ -1936,7 +1939,7 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         dev.off_failed = True
         r.res.tube_off = False
         r.res.off_failure = str(getattr(dev.source, "off_failed", None) or exc)
-        log.error("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
+        _tell_off_failure(dev.source, exc)
         return False
     name = getattr(state, "name", str(state))
     if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
@@ -1953,6 +1956,17 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         return False
     r.res.tube_off, r.res.tube_state = True, name
     return True
+
+
+def _tell_off_failure(source, exc) -> None:
+    """Log a switch-off of ``source`` that ``exc`` says was not confirmed, once: through the
+    driver, which says each failure once however many layers meet it (the beam monitor and the
+    run's end may both wait on one ``XOF``); a source without it (a test's) gets one CRITICAL line."""
+    tell = getattr(source, "tell_off_failure", None)
+    if tell is not None:
+        tell(exc)
+    else:
+        log.critical("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
 
 
 def _said_by_driver() -> dict:
