@@ -2837,7 +2837,12 @@ class L8121:
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
-        logger.error("%s: %s; %s", self.port, reason, note)
+        told = getattr(self._transport, "watchdog_off", None)
+        # the guardian's watchdog switched off for this process's silence and said so on the
+        # terminal as it acted; the error the caller reports says it again: an ERROR here was a
+        # third telling (the notebook keeps it). A switch-off not confirmed since stays loud
+        level = logging.INFO if told and reason.startswith(told) and state is not None else logging.ERROR
+        logger.log(level, "%s: %s; %s", self.port, reason, note)
         raise SourceFault(f"{self.port}: {reason}; {note}")
 
     def check(self) -> dict[str, Any]:

@@ -3449,13 +3449,14 @@ def test_the_guardians_serve_loop_tells_the_acquiring_process_of_its_watchdogs_r
         assert not two.xray_on  # (unit 1 took the XOF whose reply was lost: off, but unconfirmed)
 
 
-def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect):
+def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect, caplog):
     """The acquiring process stalls with the beam on; the guardian's watchdog switches off,
     confirmed. When the process reads the source again, its error said `beam dropped: state
     STANDBY instead of XRAY_ON`, a fault of the tube, where the guardian had switched it off
     (review s38b, F6). The guardian tells it with the next reply; the error names the watchdog."""
     from acquisition.guardian import start_guardian
 
+    caplog.set_level(logging.INFO, logger="acquisition.l8121")
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
@@ -3472,6 +3473,10 @@ def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_be
         link._process.wait(timeout=20)
     text = str(info.value)
     assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
+    # the guardian said it on the terminal as it acted, and the error says it: no ERROR line between
+    # them repeating it (the trip's record is the notebook's, INFO)
+    told = [r for r in caplog.records if "watchdog switched X-rays off" in r.getMessage()]
+    assert told and all(r.levelno == logging.INFO for r in told), [(r.levelname, r.getMessage()) for r in told]
 
 
 def test_a_stall_between_bs_state_and_its_current_names_the_watchdog_not_a_dropped_beam():
