@@ -358,14 +358,19 @@ def _source_limits(s: SourceSettings):
     limit beyond :data:`acquisition.l8121.RATINGS`: a protocol may only tighten them)."""
     from acquisition.l8121 import SourceConfig
 
-    known = {f.name for f in dataclasses.fields(SourceConfig)}
-    unknown = sorted(set(s.limits) - known)
+    if not isinstance(s.limits, dict):  # (the Python API's SourceSettings)
+        raise ProtocolError(f"[source] limits = {s.limits!r}: expected a table of driver settings")
+    fields = {f.name: str(f.type) for f in dataclasses.fields(SourceConfig)}
+    unknown = sorted(set(s.limits) - set(fields))
     if unknown:
-        names = sorted(known | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
+        names = sorted(set(fields) | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
         raise ProtocolError(f"unknown key(s) in [source]: {', '.join(unknown)}; expected some of {', '.join(names)}")
     for key, value in s.limits.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ProtocolError(f"[source] {key} = {value!r}: expected a finite number")
+        said = _limit_type_error(fields[key], value)
+        if said:
+            raise ProtocolError(f"[source] {key} = {value!r}: {said}")
+        if isinstance(value, np.bool_):  # the Python API's numpy switch: the driver takes bool only
+            s.limits[key] = bool(value)
     try:
         cfg = SourceConfig.from_dict(
             {
@@ -377,6 +382,30 @@ def _source_limits(s: SourceSettings):
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"[source]: {exc}") from None
     return cfg
+
+
+def _limit_type_error(kind: str, value) -> str:
+    """What is wrong with the type of a driver setting in ``[source]`` (``kind``: its
+    ``SourceConfig`` annotation), or "": said in the protocol's words, naming the key, as for its
+    own keys (the driver's check behind "[source]: L8121 configuration:" named the key last, and
+    took ``model = 5``, compared with the controller's TYP only after connecting). Ranges and
+    the ratings stay the driver's check, the one implementation of them."""
+    if value is None and kind.endswith("| None"):  # (the Python API: the dialect's, any model)
+        return ""
+    if is_number(value) and not math.isfinite(value):
+        return "expected a finite number"
+    if kind in ("float", "float | None"):
+        if not is_number(value):
+            return "expected a number"
+        if value < 0:
+            return "expected a finite number >= 0"
+    if kind == "float | str" and not (is_number(value) or isinstance(value, str)):
+        return 'expected a number, or a percentage such as "2%"'
+    if kind == "bool" and not isinstance(value, (bool, np.bool_)):
+        return "expected true or false"
+    if kind in ("str", "str | None") and not isinstance(value, str):
+        return "expected a string"
+    return ""
 
 
 def _whole(value: float) -> int:
@@ -479,7 +508,12 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             if key == "source":  # driver limits may sit in the section itself
                 limits = {k: v for k, v in value.items() if k not in names}
                 value = {k: v for k, v in value.items() if k in names}
-                value.setdefault("limits", {}).update(limits)
+                if not isinstance(value.setdefault("limits", {}), dict):  # `limits = 5`: a traceback
+                    raise ProtocolError(
+                        f"{where}: [source] limits = {value['limits']!r}: expected a table of driver "
+                        "settings ([source.limits]), or those keys in [source] itself"
+                    )
+                value["limits"] = {**value["limits"], **limits}
             unknown = set(value) - names
             if unknown:
                 raise ProtocolError(
