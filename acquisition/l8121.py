@@ -1920,7 +1920,12 @@ class L8121:
         except Exception as err:  # never mask the exception that ended the block
             if exc_type is None:
                 raise
-            logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
+            if isinstance(err, DeviceError) and self.off_failed is not None:
+                # as the driver says every unconfirmed switch-off: CRITICAL, and once (the
+                # fail-safe that met the block's silence has said these words already)
+                self._log_off_failure(err)
+            else:
+                logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
 
     def __repr__(self) -> str:
         dialect = self.dialect.name if self.dialect else "auto"

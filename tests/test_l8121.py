@@ -1327,6 +1327,29 @@ def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
     model.silence(False)  # (the fixture's close() then confirms off)
 
 
+@pytest.mark.parametrize("fault", ["poll", "caller"])
+def test_a_with_block_ended_by_a_silent_controller_logs_the_unconfirmed_off_once_critical(dialect, caplog, fault):
+    """The Python API's `with L8121(...)`: the beam on, the controller falls silent, and the block
+    ends by an exception -- the driver's poll meeting the silence, or the caller's own error. The
+    switch-off is tried and not confirmed: said once, CRITICAL. It was said twice (the fail-safe's
+    CRITICAL, then __exit__'s ERROR "while handling NoReply, switching off failed: ..." in the same
+    words), or, after the caller's own error, only as that ERROR."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        with pytest.raises(DeviceError if fault == "poll" else RuntimeError):
+            with L8121(server.url, dialect=dialect, timeout_s=0.2, off_attempts=1, **FAST) as src:
+                src.on(60, 250)
+                model.silence(execute=True)
+                if fault == "poll":
+                    src.check()
+                raise RuntimeError("the caller's own error")
+    told = [
+        r for r in caplog.records if r.levelno >= logging.WARNING and "could not confirm X-rays off" in r.getMessage()
+    ]
+    assert [r.levelname for r in told] == ["CRITICAL"], [(r.levelname, r.getMessage()) for r in told]
+    assert not model.xray_on  # (the emulator executed the XOF it did not answer)
+
+
 # The device another process or adapter may put behind the port's path: in A another model; in B
 # (no identity query, only SRL's grammar) a unit that does not speak B.
 OTHER_DEVICE = {"A": dict(dialect="A", model="L9181-02"), "B": dict(dialect="A")}
