@@ -337,6 +337,7 @@ class SourceConfig:
                 setattr(self, name, _finite(getattr(self, name), name))
         if self.voltage_scale == 0:
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
+        self._check_beam_drop()
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
             raise ValueError(
@@ -355,6 +356,15 @@ class SourceConfig:
             )
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
+
+    def _check_beam_drop(self) -> None:
+        """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
+        nothing with STS still on passed every poll); 1 or more called every beam dropped."""
+        if not 0 < self.beam_drop_fraction < 1:
+            raise ValueError(
+                f"L8121 configuration: beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
+                "above 0 and below 1 (of the set current or voltage, below which the beam counts as dropped)"
+            )
 
     def _check_timeouts(self) -> None:
         """No time-out zero (the dialect's where None), none past ``REPLY_TIMEOUT_MAX_S``."""

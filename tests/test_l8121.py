@@ -2889,6 +2889,11 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         ("timeout_s", 1e9, r"timeout_s = 1e\+09 s: at most 10 s"),
         ("timeout_s", 10.5, "timeout_s = 10.5 s: at most 10 s"),
         ("probe_timeout_s", 60, "probe_timeout_s = 60 s: at most 10 s"),
+        # 0 let a beam drop to nothing with STS still on pass every poll (L8121.md: stop the series
+        # on a dropped beam); 1 or more called every beam at its set value dropped
+        ("beam_drop_fraction", 0, "beam_drop_fraction = 0: expected a fraction above 0 and below 1"),
+        ("beam_drop_fraction", 1.0, "beam_drop_fraction = 1.0: expected a fraction above 0 and below 1"),
+        ("beam_drop_fraction", 2, "beam_drop_fraction = 2: expected a fraction above 0 and below 1"),
     ],
 )
 def test_a_count_mode_or_reply_wait_out_of_range_is_refused(tmp_path, key, value, message):
