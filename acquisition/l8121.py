@@ -2473,6 +2473,7 @@ class L8121:
             return 0.0
         seen = self._reconnects()
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first
+            self._require_remote("warm-up not started")  # B's start is XON, as on()'s
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
@@ -2726,8 +2727,13 @@ class L8121:
             raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.said})")
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+        self._require_remote("X-rays not switched on")
+
+    def _require_remote(self, what: str) -> None:
+        """B: the operate switch on REMOTE (``SRL``) before anything that leads to an ``XON``
+        (L8121.md: "remote control needs REMOTE"); connect's check may be minutes old."""
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
-            raise DeviceError(f"{self.port}: X-rays not switched on: the operate switch is {switch}, not REMOTE")
+            raise DeviceError(f"{self.port}: {what}: the operate switch is {switch}, not REMOTE")
 
     def _not_ready(self) -> str:
         """Why a controller reports NOT_READY, where it can say: a unit may report state 5 while

@@ -1764,6 +1764,19 @@ def test_b_on_refused_when_the_switch_is_local_after_connect():
     assert not [c for c in model.commands if c.split()[0] in ("PHV", "PCU", "XON")]
 
 
+def test_b_warm_up_refused_when_the_switch_is_local_after_connect():
+    """B's warm-up starts with XON (L8121.md: "remote control needs REMOTE"): on() asked SRL
+    before its XON, warm_up() did not -- it sent the presets to a controller on LOCAL and relied
+    on the unit refusing them. Refused as on() refuses, before any setting or XON."""
+    model = L8121Model(dialect="B", warmed_up=False)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        model.set_operate_switch("LOCAL")
+        with pytest.raises(DeviceError, match="warm-up not started: the operate switch is LOCAL, not REMOTE"):
+            src.warm_up()
+    assert not [c for c in model.commands if c.split()[0] in ("PHV", "PCU", "XON", "CFS", "CFM", "CFL")]
+    assert not model.xray_on
+
+
 # -- faults while on ------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "inject, reason",
