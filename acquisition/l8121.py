@@ -337,6 +337,7 @@ class SourceConfig:
                 setattr(self, name, _finite(getattr(self, name), name))
         if self.voltage_scale == 0:
             raise ValueError("L8121 configuration: voltage_scale must be > 0")
+        self._check_beam_drop()
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
             raise ValueError(
@@ -355,6 +356,15 @@ class SourceConfig:
             )
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
+
+    def _check_beam_drop(self) -> None:
+        """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
+        nothing with STS still on passed every poll); 1 or more called every beam dropped."""
+        if not 0 < self.beam_drop_fraction < 1:
+            raise ValueError(
+                f"L8121 configuration: beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
+                "above 0 and below 1 (of the set current or voltage, below which the beam counts as dropped)"
+            )
 
     def _check_timeouts(self) -> None:
         """No time-out zero (the dialect's where None), none past ``REPLY_TIMEOUT_MAX_S``."""
@@ -1905,9 +1915,11 @@ class L8121:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
-            # after a switch-off that was not confirmed, the same news as its CRITICAL line
-            marked = {OFF_FAILURE: True} if self.off_failed is not None else None
-            logger.warning("%s: detached with X-rays possibly on", self.port, extra=marked)
+            if self.off_failed is None:
+                logger.warning("%s: detached with X-rays possibly on", self.port)
+            else:
+                # the same news as the switch-off's CRITICAL line: the notebook's, not a second warning
+                logger.info("%s: detached with X-rays possibly on", self.port, extra={OFF_FAILURE: True})
 
     def __enter__(self) -> L8121:
         return self
@@ -1918,7 +1930,12 @@ class L8121:
         except Exception as err:  # never mask the exception that ended the block
             if exc_type is None:
                 raise
-            logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
+            if isinstance(err, DeviceError) and self.off_failed is not None:
+                # as the driver says every unconfirmed switch-off: CRITICAL, and once (the
+                # fail-safe that met the block's silence has said these words already)
+                self._log_off_failure(err)
+            else:
+                logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
 
     def __repr__(self) -> str:
         dialect = self.dialect.name if self.dialect else "auto"
@@ -2105,6 +2122,12 @@ class L8121:
         name it): a line that names the port itself names it once."""
         text = str(exc)
         return text[len(self.port) + 2 :] if text.startswith(f"{self.port}: ") else text
+
+    def tell_off_failure(self, exc) -> None:
+        """Log a switch-off that was not confirmed (``exc``, what :meth:`off` raised), as this
+        driver logs its own: for a caller that called :meth:`off` itself (the series, its beam
+        monitor), so that the Python API's log says each failure once, CRITICAL, whoever met it."""
+        self._log_off_failure(exc)
 
     def _log_off_failure(self, exc) -> None:
         """Log a switch-off that was not confirmed, loud (CRITICAL, marked :data:`OFF_FAILURE`),
@@ -2450,6 +2473,7 @@ class L8121:
             return 0.0
         seen = self._reconnects()
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first
+            self._require_remote("warm-up not started")  # B's start is XON, as on()'s
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
@@ -2703,8 +2727,13 @@ class L8121:
             raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.said})")
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+        self._require_remote("X-rays not switched on")
+
+    def _require_remote(self, what: str) -> None:
+        """B: the operate switch on REMOTE (``SRL``) before anything that leads to an ``XON``
+        (L8121.md: "remote control needs REMOTE"); connect's check may be minutes old."""
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
-            raise DeviceError(f"{self.port}: X-rays not switched on: the operate switch is {switch}, not REMOTE")
+            raise DeviceError(f"{self.port}: {what}: the operate switch is {switch}, not REMOTE")
 
     def _not_ready(self) -> str:
         """Why a controller reports NOT_READY, where it can say: a unit may report state 5 while
@@ -2829,7 +2858,12 @@ class L8121:
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
-        logger.error("%s: %s; %s", self.port, reason, note)
+        told = getattr(self._transport, "watchdog_off", None)
+        # the guardian's watchdog switched off for this process's silence and said so on the
+        # terminal as it acted; the error the caller reports says it again: an ERROR here was a
+        # third telling (the notebook keeps it). A switch-off not confirmed since stays loud
+        level = logging.INFO if told and reason.startswith(told) and state is not None else logging.ERROR
+        logger.log(level, "%s: %s; %s", self.port, reason, note)
         raise SourceFault(f"{self.port}: {reason}; {note}")
 
     def check(self) -> dict[str, Any]:

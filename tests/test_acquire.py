@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import os
 import re
 import signal
@@ -404,7 +405,9 @@ def vouched_before(model, n_log, model_t, wall_t, dialect):
 
 @pytest.mark.parametrize("dialect", ["A", "B"])  # the L8121's two command dialects (README)
 @pytest.mark.parametrize("name, when, inject, exc_type, pattern", FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, dialect, sigint_default):
+def test_fault_matrix(
+    tmp_path, scene_toml, bench, name, when, inject, exc_type, pattern, dialect, sigint_default, caplog
+):
     p = protocol(tmp_path, scene_toml, dialect)
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
@@ -472,6 +475,18 @@ def test_fault_matrix(tmp_path, scene_toml, bench, name, when, inject, exc_type,
     # "tube off" is claimed only when STS confirmed it: a silent or garbling controller cannot
     # confirm anything (even though the emulator did execute the XOF)
     assert res.tube_off is (name not in ("silent controller", "garbage reply")), (name, res.tube_off)
+    if res.tube_off is False:
+        # the Python API's log says an unconfirmed switch-off once, loud, as the command line does:
+        # the driver's CRITICAL line, the series' "not switching off again" and the link's
+        # "detached with X-rays possibly on" were three warnings of one fact
+        told = [
+            rec
+            for rec in caplog.records
+            if rec.levelno >= logging.WARNING
+            and re.search(r"not confirm|not switching off again|possibly on", rec.getMessage())
+        ]
+        assert [rec.levelname for rec in told] == ["CRITICAL"], [(r.levelname, r.getMessage()) for r in told]
+        assert "switch the source off at the controller" in told[0].getMessage(), told[0].getMessage()
     # every frame completed before the fault is in the file, with its metadata
     n_before = state["before"]
     if n_before == 0 and not os.path.exists(p.output):  # stopped before the file was made
@@ -775,6 +790,45 @@ def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_
         assert code == 2 and len(err) == 1, (flags, code, err)
         assert err[0].startswith(f"error: {path}: ") and said in err[0], err
     assert not os.path.exists(data["output"] if isinstance(data["output"], str) else tmp_path / "series.h5")
+
+
+@pytest.mark.parametrize(
+    "key, value, said",
+    [
+        ("kv_max", "100", "[source] kv_max = '100': expected a number"),
+        ("watts_max", True, "[source] watts_max = True: expected a number"),
+        ("ua_max", -1, "[source] ua_max = -1: expected a finite number >= 0"),
+        ("kv_max", float("nan"), "[source] kv_max = nan: expected a finite number"),
+        ("ua_tolerance", float("inf"), "[source] ua_tolerance = inf: expected a finite number"),
+        ("timeout_s", "2", "[source] timeout_s = '2': expected a number"),
+        ("error_query", "no", "[source] error_query = 'no': expected true or false"),
+        ("model", 5, "[source] model = 5: expected a string"),
+        ("model", True, "[source] model = True: expected a string"),
+        ("limits", 5, "[source] limits = 5: expected a table"),
+        ("limits", {"kv_max": "90"}, "[source] kv_max = '90': expected a number"),
+    ],
+)
+def test_cli_a_source_limit_of_the_wrong_type_is_one_line_naming_the_file_and_key(
+    tmp_path, scene_toml, capsys, key, value, said
+):
+    """``[source]`` keys that are the driver's configuration (limits, time-outs, the model), in
+    the section or its ``limits`` table: a string, a bool, a negative or NaN is one line at
+    loading naming the file and the key, as the protocol's own keys are -- not the driver's words
+    behind "[source]: L8121 configuration:", nor a traceback (``limits = 5``), nor accepted
+    (``model = 5`` reached the controller and was compared with its TYP). Before any port."""
+    import tomli_w
+
+    data = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
+    data["source"][key] = value
+    path = tmp_path / "protocol.toml"
+    path.write_text(tomli_w.dumps(data))
+    for flags in (["--dry-run"], ["-q"]):
+        code = _cli("acquire", str(path), "--sim", *flags)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, (flags, code, err)
+        assert err[0].startswith(f"error: {path}: ") and said in err[0], err
+        assert "L8121 configuration" not in err[0], err
+    assert not (tmp_path / "series.h5").exists() and not (tmp_path / "series.log").exists()
 
 
 def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_file_is_left_alone(

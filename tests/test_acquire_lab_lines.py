@@ -163,6 +163,12 @@ def test_a_stop_outlasting_the_detectors_time_out_is_named_as_the_stop_not_the_d
     assert len(errors) == 1, lines
     assert "watchdog switched X-rays off" in errors[0] and "sent nothing" in errors[0], errors
     assert "frames arrived" not in errors[0], errors
+    # the watchdog's news once from the guardian, as it acts, and once as the run's error: the beam
+    # monitor's trip repeated it in an ERROR line between them (its own XOF found the tube off)
+    ours = [ln for ln in lines if not ln.startswith("X-ray guardian:")]
+    assert [ln for ln in ours if "watchdog switched X-rays off" in ln] == errors, lines
+    assert any("sent nothing for 5 s" in ln for ln in lines if ln.startswith("X-ray guardian:")), lines
+    assert run.logged("watchdog switched X-rays off") >= 2, "the notebook keeps the monitor's trip and the error"
     assert lines[-1].startswith("tube off (confirmed by STS"), lines[-6:]
 
 

@@ -1327,6 +1327,29 @@ def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
     model.silence(False)  # (the fixture's close() then confirms off)
 
 
+@pytest.mark.parametrize("fault", ["poll", "caller"])
+def test_a_with_block_ended_by_a_silent_controller_logs_the_unconfirmed_off_once_critical(dialect, caplog, fault):
+    """The Python API's `with L8121(...)`: the beam on, the controller falls silent, and the block
+    ends by an exception -- the driver's poll meeting the silence, or the caller's own error. The
+    switch-off is tried and not confirmed: said once, CRITICAL. It was said twice (the fail-safe's
+    CRITICAL, then __exit__'s ERROR "while handling NoReply, switching off failed: ..." in the same
+    words), or, after the caller's own error, only as that ERROR."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=RAMP_S)
+    with PtyServer(model) as server:
+        with pytest.raises(DeviceError if fault == "poll" else RuntimeError):
+            with L8121(server.url, dialect=dialect, timeout_s=0.2, off_attempts=1, **FAST) as src:
+                src.on(60, 250)
+                model.silence(execute=True)
+                if fault == "poll":
+                    src.check()
+                raise RuntimeError("the caller's own error")
+    told = [
+        r for r in caplog.records if r.levelno >= logging.WARNING and "could not confirm X-rays off" in r.getMessage()
+    ]
+    assert [r.levelname for r in told] == ["CRITICAL"], [(r.levelname, r.getMessage()) for r in told]
+    assert not model.xray_on  # (the emulator executed the XOF it did not answer)
+
+
 # The device another process or adapter may put behind the port's path: in A another model; in B
 # (no identity query, only SRL's grammar) a unit that does not speak B.
 OTHER_DEVICE = {"A": dict(dialect="A", model="L9181-02"), "B": dict(dialect="A")}
@@ -1739,6 +1762,19 @@ def test_b_on_refused_when_the_switch_is_local_after_connect():
         with pytest.raises(DeviceError, match="X-rays not switched on: the operate switch is LOCAL, not REMOTE"):
             src.on(60, 250)
     assert not [c for c in model.commands if c.split()[0] in ("PHV", "PCU", "XON")]
+
+
+def test_b_warm_up_refused_when_the_switch_is_local_after_connect():
+    """B's warm-up starts with XON (L8121.md: "remote control needs REMOTE"): on() asked SRL
+    before its XON, warm_up() did not -- it sent the presets to a controller on LOCAL and relied
+    on the unit refusing them. Refused as on() refuses, before any setting or XON."""
+    model = L8121Model(dialect="B", warmed_up=False)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        model.set_operate_switch("LOCAL")
+        with pytest.raises(DeviceError, match="warm-up not started: the operate switch is LOCAL, not REMOTE"):
+            src.warm_up()
+    assert not [c for c in model.commands if c.split()[0] in ("PHV", "PCU", "XON", "CFS", "CFM", "CFL")]
+    assert not model.xray_on
 
 
 # -- faults while on ------------------------------------------------------------------------------
@@ -2866,6 +2902,11 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         ("timeout_s", 1e9, r"timeout_s = 1e\+09 s: at most 10 s"),
         ("timeout_s", 10.5, "timeout_s = 10.5 s: at most 10 s"),
         ("probe_timeout_s", 60, "probe_timeout_s = 60 s: at most 10 s"),
+        # 0 let a beam drop to nothing with STS still on pass every poll (L8121.md: stop the series
+        # on a dropped beam); 1 or more called every beam at its set value dropped
+        ("beam_drop_fraction", 0, "beam_drop_fraction = 0: expected a fraction above 0 and below 1"),
+        ("beam_drop_fraction", 1.0, "beam_drop_fraction = 1.0: expected a fraction above 0 and below 1"),
+        ("beam_drop_fraction", 2, "beam_drop_fraction = 2: expected a fraction above 0 and below 1"),
     ],
 )
 def test_a_count_mode_or_reply_wait_out_of_range_is_refused(tmp_path, key, value, message):
@@ -3449,13 +3490,14 @@ def test_the_guardians_serve_loop_tells_the_acquiring_process_of_its_watchdogs_r
         assert not two.xray_on  # (unit 1 took the XOF whose reply was lost: off, but unconfirmed)
 
 
-def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect):
+def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_beam(dialect, caplog):
     """The acquiring process stalls with the beam on; the guardian's watchdog switches off,
     confirmed. When the process reads the source again, its error said `beam dropped: state
     STANDBY instead of XRAY_ON`, a fault of the tube, where the guardian had switched it off
     (review s38b, F6). The guardian tells it with the next reply; the error names the watchdog."""
     from acquisition.guardian import start_guardian
 
+    caplog.set_level(logging.INFO, logger="acquisition.l8121")
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
@@ -3472,6 +3514,10 @@ def test_a_beam_the_guardians_watchdog_switched_off_is_named_so_not_a_dropped_be
         link._process.wait(timeout=20)
     text = str(info.value)
     assert "beam dropped" not in text and "the X-ray guardian's watchdog switched X-rays off" in text, text
+    # the guardian said it on the terminal as it acted, and the error says it: no ERROR line between
+    # them repeating it (the trip's record is the notebook's, INFO)
+    told = [r for r in caplog.records if "watchdog switched X-rays off" in r.getMessage()]
+    assert told and all(r.levelno == logging.INFO for r in told), [(r.levelname, r.getMessage()) for r in told]
 
 
 def test_a_stall_between_bs_state_and_its_current_names_the_watchdog_not_a_dropped_beam():

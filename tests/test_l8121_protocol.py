@@ -200,6 +200,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("STS", "STANDBY"),
                 ("DAG", "AGING 1 0 YET"),
                 ("SIN", "INTER LOCK ON"),
+                ("SRL", "REMOTE"),  # B's warm-up starts with XON: remote control needs REMOTE
                 # the XON emits at the presets: set and read back first (default: the lowest)
                 ("SPV", "SPV 0.0kV"),
                 ("SPC", "SPC 0uA"),
@@ -241,6 +242,7 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("STS", "STANDBY"),
         ("DAG", "AGING 1 0 YET"),
         ("SIN", "INTER LOCK ON"),
+        ("SRL", "REMOTE"),
         ("SPV", "SPV 40.0kV"),
         ("SPC", "SPC 0uA"),
         ("PHV 400", "PHV 400"),

@@ -358,14 +358,19 @@ def _source_limits(s: SourceSettings):
     limit beyond :data:`acquisition.l8121.RATINGS`: a protocol may only tighten them)."""
     from acquisition.l8121 import SourceConfig
 
-    known = {f.name for f in dataclasses.fields(SourceConfig)}
-    unknown = sorted(set(s.limits) - known)
+    if not isinstance(s.limits, dict):  # (the Python API's SourceSettings)
+        raise ProtocolError(f"[source] limits = {s.limits!r}: expected a table of driver settings")
+    fields = {f.name: str(f.type) for f in dataclasses.fields(SourceConfig)}
+    unknown = sorted(set(s.limits) - set(fields))
     if unknown:
-        names = sorted(known | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
+        names = sorted(set(fields) | {f.name for f in dataclasses.fields(SourceSettings)} - {"limits"})
         raise ProtocolError(f"unknown key(s) in [source]: {', '.join(unknown)}; expected some of {', '.join(names)}")
     for key, value in s.limits.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ProtocolError(f"[source] {key} = {value!r}: expected a finite number")
+        said = _limit_type_error(fields[key], value)
+        if said:
+            raise ProtocolError(f"[source] {key} = {value!r}: {said}")
+        if isinstance(value, np.bool_):  # the Python API's numpy switch: the driver takes bool only
+            s.limits[key] = bool(value)
     try:
         cfg = SourceConfig.from_dict(
             {
@@ -377,6 +382,30 @@ def _source_limits(s: SourceSettings):
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"[source]: {exc}") from None
     return cfg
+
+
+def _limit_type_error(kind: str, value) -> str:
+    """What is wrong with the type of a driver setting in ``[source]`` (``kind``: its
+    ``SourceConfig`` annotation), or "": said in the protocol's words, naming the key, as for its
+    own keys (the driver's check behind "[source]: L8121 configuration:" named the key last, and
+    took ``model = 5``, compared with the controller's TYP only after connecting). Ranges and
+    the ratings stay the driver's check, the one implementation of them."""
+    if value is None and kind.endswith("| None"):  # (the Python API: the dialect's, any model)
+        return ""
+    if is_number(value) and not math.isfinite(value):
+        return "expected a finite number"
+    if kind in ("float", "float | None"):
+        if not is_number(value):
+            return "expected a number"
+        if value < 0:
+            return "expected a finite number >= 0"
+    if kind == "float | str" and not (is_number(value) or isinstance(value, str)):
+        return 'expected a number, or a percentage such as "2%"'
+    if kind == "bool" and not isinstance(value, (bool, np.bool_)):
+        return "expected true or false"
+    if kind in ("str", "str | None") and not isinstance(value, str):
+        return "expected a string"
+    return ""
 
 
 def _whole(value: float) -> int:
@@ -479,7 +508,12 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             if key == "source":  # driver limits may sit in the section itself
                 limits = {k: v for k, v in value.items() if k not in names}
                 value = {k: v for k, v in value.items() if k in names}
-                value.setdefault("limits", {}).update(limits)
+                if not isinstance(value.setdefault("limits", {}), dict):  # `limits = 5`: a traceback
+                    raise ProtocolError(
+                        f"{where}: [source] limits = {value['limits']!r}: expected a table of driver "
+                        "settings ([source.limits]), or those keys in [source] itself"
+                    )
+                value["limits"] = {**value["limits"], **limits}
             unknown = set(value) - names
             if unknown:
                 raise ProtocolError(
@@ -851,7 +885,7 @@ class _BeamMonitor:
                     self.source.off()
                 except Exception as off_exc:
                     self.off_failed = True
-                    log.error("switching the tube off after %s failed: %s", exc, off_exc, extra=_said_by_driver())
+                    _tell_off_failure(self.source, off_exc)
                 return
             self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
 
@@ -1924,10 +1958,13 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         dev.off_failed = True
         r.res.tube_off = False
         r.res.off_failure = str(getattr(dev.source, "off_failed", None) or "")
-        log.error(
+        # the failure was logged loud where it happened (the driver's fail-safe, the beam
+        # monitor): this line is the notebook's, not a second warning of it (the Python API's
+        # log said it three times, the command line once)
+        log.info(
             "not switching off again: the last XOF could not be confirmed (%s)",
             getattr(dev.source, "off_failed", None) or "beam monitor",
-            extra=_said_by_driver() if r.res.off_failure else None,
+            extra=_said_by_driver(),
         )
         return False
     try:
@@ -1936,7 +1973,7 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         dev.off_failed = True
         r.res.tube_off = False
         r.res.off_failure = str(getattr(dev.source, "off_failed", None) or exc)
-        log.error("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
+        _tell_off_failure(dev.source, exc)
         return False
     name = getattr(state, "name", str(state))
     if _emitting(state):  # off() accepts any state but X-rays on; a warm-up still running emits too
@@ -1953,6 +1990,17 @@ def _switch_off_once(r: _Run, dev) -> bool | None:
         return False
     r.res.tube_off, r.res.tube_state = True, name
     return True
+
+
+def _tell_off_failure(source, exc) -> None:
+    """Log a switch-off of ``source`` that ``exc`` says was not confirmed, once: through the
+    driver, which says each failure once however many layers meet it (the beam monitor and the
+    run's end may both wait on one ``XOF``); a source without it (a test's) gets one CRITICAL line."""
+    tell = getattr(source, "tell_off_failure", None)
+    if tell is not None:
+        tell(exc)
+    else:
+        log.critical("could not confirm the tube is off: %s", exc, extra=_said_by_driver())
 
 
 def _said_by_driver() -> dict:
