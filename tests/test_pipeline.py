@@ -163,6 +163,47 @@ def test_results_files_and_report(processed):
     assert f"{r['improvement_factor']['1']:.2f}" in html
 
 
+# The tests on the module's simulated experiment stay together: xdist hands out tests, and a
+# user of `experiment` far down the file, taken by another worker, simulated it again there (20-30 s).
+def test_the_main_pair_is_cross_checked(processed):
+    res, _ = processed
+    q = res.results["registration"][res.results["main_pair"]]
+    assert q["cross_check"]["method"] == "ncc" and q["cross_check"]["agree"], q["cross_check"]
+
+
+def test_a_control_without_a_simulation_record_takes_the_experiments_view_for_its_bound(experiment, tmp_path):
+    """Found (review s41doc): the pva-phantom demo's control (no simulation record) got the bound
+    through the plates, 1.214 / 1.427, beside an experiment seen from the side, where no bound
+    holds. The control is imaged as the experiment, so it takes the experiment's view; a file of
+    no simulation record takes ``Config(view=...)``, else the plates."""
+    import shutil
+
+    import h5py
+
+    from radiokit.io._simulation import SIMULATION
+    from radiokit.pipeline import Config, process
+
+    side, plain = tmp_path / "side.h5", tmp_path / "plain.h5"
+    shutil.copy(experiment, side)
+    shutil.copy(experiment, plain)
+    with h5py.File(side, "r+") as h5:  # the same scene seen from the side: only the stored scene's beam changes
+        scene = h5[SIMULATION].attrs["scene"]
+        assert scene.count('direction = "y"') == 1
+        h5[SIMULATION].attrs["scene"] = scene.replace('direction = "y"', 'direction = "side"')
+    with h5py.File(plain, "r+") as h5:
+        del h5[SIMULATION]
+    cfg = Config(progress=False, report=False, cross_check=None, register_options={"preset": "fast"})
+    res = process(side, dataclasses.replace(cfg, control=str(plain)), out_dir=tmp_path / "r1").record
+    assert res.bound.mu_dg is None and res.bound.basis.startswith("beam from the side")
+    assert res.control.bound.mu_dg is None and res.control.bound.basis.startswith("beam from the side")
+    alone = process(plain, cfg, out_dir=tmp_path / "r2").record
+    assert alone.bound.mu_dg is not None and "through the plates" in alone.bound.basis
+    told = process(plain, dataclasses.replace(cfg, view="side"), out_dir=tmp_path / "r3").record
+    assert told.bound.mu_dg is None and told.bound.basis.startswith("beam from the side")
+    with pytest.raises(ValueError, match="view='sideways'"):
+        Config(view="sideways")
+
+
 @pytest.mark.filterwarnings("ignore::radiokit.calibrate.CalibrationWarning")  # one dark, one flat: on purpose
 def test_bad_input_is_a_clear_error(tmp_path):
     from radiokit.io import ExperimentWriter, ImageKey
@@ -259,12 +300,6 @@ def test_cross_check_flags_two_registrations_that_disagree():
     assert ok["agree"] and not bad["agree"]
     np.testing.assert_allclose(ok["median_px"], np.hypot(1.5, 1.5), rtol=1e-5)
     np.testing.assert_allclose(bad["median_px"], 14.0, rtol=1e-6)
-
-
-def test_the_main_pair_is_cross_checked(processed):
-    res, _ = processed
-    q = res.results["registration"][res.results["main_pair"]]
-    assert q["cross_check"]["method"] == "ncc" and q["cross_check"]["agree"], q["cross_check"]
 
 
 @pytest.mark.parametrize(
@@ -720,36 +755,3 @@ def test_config_refuses_a_flag_that_is_no_bool_and_a_control_that_is_no_path(giv
     for word in words:
         assert word in str(info.value), (word, str(info.value))
     assert Config(report=np.bool_(False), control=Path("c.h5")).report is False
-
-
-def test_a_control_without_a_simulation_record_takes_the_experiments_view_for_its_bound(experiment, tmp_path):
-    """Found (review s41doc): the pva-phantom demo's control (no simulation record) got the bound
-    through the plates, 1.214 / 1.427, beside an experiment seen from the side, where no bound
-    holds. The control is imaged as the experiment, so it takes the experiment's view; a file of
-    no simulation record takes ``Config(view=...)``, else the plates."""
-    import shutil
-
-    import h5py
-
-    from radiokit.io._simulation import SIMULATION
-    from radiokit.pipeline import Config, process
-
-    side, plain = tmp_path / "side.h5", tmp_path / "plain.h5"
-    shutil.copy(experiment, side)
-    shutil.copy(experiment, plain)
-    with h5py.File(side, "r+") as h5:  # the same scene seen from the side: only the stored scene's beam changes
-        scene = h5[SIMULATION].attrs["scene"]
-        assert scene.count('direction = "y"') == 1
-        h5[SIMULATION].attrs["scene"] = scene.replace('direction = "y"', 'direction = "side"')
-    with h5py.File(plain, "r+") as h5:
-        del h5[SIMULATION]
-    cfg = Config(progress=False, report=False, cross_check=None, register_options={"preset": "fast"})
-    res = process(side, dataclasses.replace(cfg, control=str(plain)), out_dir=tmp_path / "r1").record
-    assert res.bound.mu_dg is None and res.bound.basis.startswith("beam from the side")
-    assert res.control.bound.mu_dg is None and res.control.bound.basis.startswith("beam from the side")
-    alone = process(plain, cfg, out_dir=tmp_path / "r2").record
-    assert alone.bound.mu_dg is not None and "through the plates" in alone.bound.basis
-    told = process(plain, dataclasses.replace(cfg, view="side"), out_dir=tmp_path / "r3").record
-    assert told.bound.mu_dg is None and told.bound.basis.startswith("beam from the side")
-    with pytest.raises(ValueError, match="view='sideways'"):
-        Config(view="sideways")
