@@ -682,21 +682,6 @@ def _check_register_memory(args, fixed) -> None:
         )
 
 
-def _print_left_out(reg, args) -> None:
-    """What register() kept from the similarity: extreme pixels clipped, a flat region fixed on the detector."""
-    if "clipped" in reg.options:  # the field was measured on the pair with its extreme pixels clipped
-        n = reg.options["clipped"]
-        print(
-            "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
-            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
-        )
-    if "flat_left_out" in reg.options:  # an opaque strip or a range clipped in both images, fixed on the detector
-        print(
-            f"left out of the similarity and unobserved: {100 * reg.options['flat_left_out']:.1f} % of the frame, "
-            "flat at one value in both images and fixed on the detector (with 2 % of the frame around it)"
-        )
-
-
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, write_registration
     from radiokit.pipeline import _preset_record
@@ -740,7 +725,12 @@ def cmd_register(args) -> int:
     )
     if "auto" in reg.options:  # preset auto: what it returned, and why
         print(f"preset {reg.options['auto'].preset} ({reg.options['auto'].reason})")
-    _print_left_out(reg, args)
+    if "clipped" in reg.options:  # the field was measured on the pair with its extreme pixels clipped
+        n = reg.options["clipped"]
+        print(
+            "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
+            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
+        )
     if "regularisation_check" in reg.options:  # the second, differently regularised registration
         second = reg.options["regularisation_check"]
         print(

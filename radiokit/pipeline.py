@@ -1081,9 +1081,7 @@ def _preset_record(reg) -> dict:
     """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
     and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
     the flow peers, which have no presets. Any method: ``clipped_fixed``, ``clipped_moving``, the
-    extreme pixels register() clipped before registering (only when it clipped any); ``flat_left_out``,
-    the share of the frame a flat region fixed on the detector left out of the similarity (only
-    when there was one)."""
+    extreme pixels register() clipped before registering (only when it clipped any)."""
     out = {}
     from radiokit.register import BSPLINE_METHODS
 
@@ -1095,8 +1093,6 @@ def _preset_record(reg) -> dict:
     if "initial" in reg.options:
         out["initial"] = reg.options["initial"]
     out.update({f"clipped_{k}": v for k, v in reg.options.get("clipped", {}).items()})
-    if "flat_left_out" in reg.options:  # a flat band fixed on the detector, left out of the similarity
-        out["flat_left_out"] = reg.options["flat_left_out"]
     second = reg.options.get("regularisation_check")
     if second is not None:  # register(..., regularisation_check=True): the second run's preset and time
         out["regularisation_check"] = second["preset"] + ("" if second["run"] else " (not run: already flagged)")

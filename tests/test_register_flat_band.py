@@ -5,17 +5,17 @@ README.md, "A flat band fixed to the detector across a moving body").
 The band holds nothing of the object in either image, so no registration observes the motion
 there: the confidence map must say so whatever structure lies within its window's reach (before:
 84 % of a 120-row band read observed, through the band's own edges), and a ROI inside it must be
-reported unobserved, as `radiokit process` reports it. The band's edges lie at one place in both
-images, so a similarity that scores them pulls the field towards zero against the body's motion:
-before, the field in the band was worse than no registration at all.
+reported unobserved, as `radiokit process` reports it. Where an opaque band hides most of the
+body's interior, the flag says so: the field there is the regulariser's guess, pulled by the
+band's fixed edges (the body's median error 3.8 px against the identity's 3.8).
+
+The band stays in the similarity: left out of it with a margin (session 42), the field in the
+band was found, but the same rule took the edges of a textureless body clipped around, or held
+by plates, out of the data (review s42rr), which is the paper's situation.
 
 Tolerances. The body moves 3-8 px (a turn of 1.5 degrees, a shift of (3, -2) px and a 2 px
-sinusoidal warp); its texture is 15 times its noise, so outside the band the field is found to a
-few hundredths of a pixel. Inside the band the field can only be the regulariser's
-interpolation of the body's smooth motion on either side. The tests ask for the body's median
-error under the map's own line (``OBSERVED_PX``, 0.5 px; measured 0.03 px after, 0.21-0.35
-before) and the band's under half the identity's (measured 0.09-0.14 of 3.48 px after,
-3.05-4.61 before), and under a fifth of the band observed (0.03 after, 1.00 before)."""
+sinusoidal warp); its texture is 15 times its noise. Under a fifth of the band may read observed
+(measured 0.03 after, 1.00 before)."""
 
 import numpy as np
 import pytest
@@ -66,8 +66,6 @@ def _in_band(body):
 def test_a_flat_band_fixed_on_the_detector_is_unobserved_and_a_roi_in_it_is_flagged(banded):
     reg, _, body = banded
     assert np.mean(reg.confidence[_in_band(body)] >= 0.5) < 0.2
-    # said, too: the band's 60 rows and 7 px (2 % of 320) either side, of 320 rows
-    assert reg.options["flat_left_out"] == pytest.approx((BAND[1] - BAND[0] + 2 * 7) / N, abs=0.01)
     inclusion = (BAND[0] + 10, BAND[1] - 10, 130, 190)  # in the band, inside the body
     background = (30, 80, 130, 190)  # textured body above the band
     observed = {
@@ -79,13 +77,14 @@ def test_a_flat_band_fixed_on_the_detector_is_unobserved_and_a_roi_in_it_is_flag
     assert ok is False and "inclusion ROI" in why and "background" not in why, why
 
 
-def test_a_flat_band_fixed_on_the_detector_does_not_pull_the_field(banded):
-    reg, truth, body = banded
-    err = np.hypot(*(reg.displacement - truth))
-    identity = np.hypot(*truth)
-    assert np.median(err[body]) < C.OBSERVED_PX, np.median(err[body])
-    band = _in_band(body)
-    assert np.median(err[band]) < 0.5 * np.median(identity[band]), (np.median(err[band]), np.median(identity[band]))
+def test_an_opaque_band_over_most_of_the_body_is_flagged():
+    """A 200-row opaque band over a body of 270 rows: 0 % of the interior observed. Before, the
+    band's edges made 36 % of it observed here (flagged all the same), and at 512 px 49 %, with
+    ``ok`` True and the body's median error 2.2 px (benchmarks/README.md)."""
+    f, m, _, _ = _pair(1.3, band=(60, 260))
+    q = register(f, m, preset="auto").quality
+    assert q.ok is False and "observable in only" in q.reason, q.reason
+    assert q.interior_observed < 0.2, q.interior_observed
 
 
 def test_only_a_flat_region_whose_edge_stays_put_is_taken_for_a_fixed_band():

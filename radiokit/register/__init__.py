@@ -351,10 +351,10 @@ def register(
 
     ``mask`` (bool) limits the similarity to the object. A region exactly flat at one value in
     both images whose edge stays put (an opaque strip on the detector, a range clipped in both:
-    ``_confidence.flat_common``) is left out of it, with 2 % of the frame around it, and is
-    unobserved in ``confidence``: it holds nothing of the object, and its fixed edge would pull
-    the field towards zero (``options["flat_left_out"]``: the share of the frame left out, with
-    the caller's mask). ``retry=True`` repeats a failed
+    ``_confidence.flat_common``) is unobserved in ``confidence``: it holds nothing of the object.
+    It stays in the similarity (left out with a margin, it took the edges of a textureless body
+    clipped around, or held by plates, out of the data: benchmarks/README.md, "A flat band fixed
+    to the detector"). ``retry=True`` repeats a failed
     ``rc``/``ssd``/``ncc``/``mi`` registration with 10x stronger regularisation. ``regularisation_check=True``
     registers the pair a second time, regularised differently, and flags a trusted result whose
     field differs from that one's over the object's interior (``Quality.disagreement``; it costs
@@ -416,8 +416,7 @@ def _register(f, m, method, mask, retry, options) -> Registration:
 
         return register_auto(register, f, m, method, mask, retry, options)
     t0 = time.perf_counter()
-    data = _data_mask(f, m, mask)
-    disp, info = METHODS[method](f, m, data, **options)
+    disp, info = METHODS[method](f, m, mask, **options)
     seconds = time.perf_counter() - t0
     kept = {k: v for k, v in options.items() if k != "start_lattices"}  # arrays, not a setting to report
     reg = Registration(np.ascontiguousarray(disp, dtype=np.float32), method, Quality(), kept)
@@ -433,8 +432,6 @@ def _register(f, m, method, mask, retry, options) -> Registration:
         reg.options["abandoned"] = info["abandoned"]
     if "thinning_refit" in info:  # refit_thinning: what the second pass divided out
         reg.options["thinning_refit"] = info["thinning_refit"]
-    if data is not mask:  # a flat region fixed on the detector: the share of the frame the similarity left out
-        reg.options["flat_left_out"] = round(1.0 - np.count_nonzero(data) / data.size, 4)
     if "noise_sigma" in info.get("options", {}):  # alpha set from the pair's noise: what it measured and used
         reg.options.update(alpha=info["options"]["alpha"], noise_sigma=info["options"]["noise_sigma"])
     _assess(reg, f, m, mask, info, seconds)
@@ -558,8 +555,8 @@ def _noise_rc(p, d) -> float:
 
     sigma = p.consistency.sigma
     s2 = (sigma * sigma + C.model_floor(p.f) ** 2) * (1.0 + C.interpolation_variance(d, _WINDOW))
-    if p.support is not None:
-        s2 = np.where(p.support, s2, 0)
+    if p.mask is not None:
+        s2 = np.where(p.mask, s2, 0)
     c = float(np.mean(s2, dtype=np.float64)) * float(p.unit) ** 2 / 0.05
     z = ndtri((np.arange(2000) + 0.5) / 2000)
     return float(0.5 * np.mean(np.log1p(c * z * z)))
@@ -579,9 +576,9 @@ def _assess(reg, f, m, mask, info, seconds):
         w = _warp(m, _field(reg.displacement))
         db = reg.displacement
     q.rc_before = p.rc_before
-    q.rc_after = residual_complexity((w - p.f) * p.unit, p.support)
+    q.rc_after = residual_complexity((w - p.f) * p.unit, p.mask)
     q.ncc_before = p.ncc_before
-    q.ncc_after = ncc(w, p.f, p.support)
+    q.ncc_after = ncc(w, p.f, p.mask)
     det = jacobian_determinant(reg.displacement)
     if mask is not None:
         det = det[mask]
@@ -647,7 +644,6 @@ class _Memo:
     scale: float = (
         1.0  # what register() multiplied the pair by (``_rescale``): the checks report noise in the image's units
     )
-    data: np.ndarray | None = None  # _data_mask's, once computed
 
 
 _PAIRS: contextvars.ContextVar[_Memo | None] = contextvars.ContextVar("radiokit_register_pair", default=None)
@@ -659,46 +655,6 @@ def _memo_of(f, m, mask) -> _Memo | None:
     if memo is not None and all(a is b for a, b in zip(memo.pair, (f, m, mask))):
         return memo
     return None
-
-
-#: how far (a share of the frame's larger side) the data term keeps away from a flat region fixed on
-#: the detector: a pixel of the fixed image there whose object moved in from under the region
-#: has no match in the moving image, and the region's edge, at one place in both, pulls the field
-#: towards zero (a 320 px body moved 3-8 px across a 60-100-row flat band, preset auto: the body's
-#: median error 0.16-1.06 px with the band alone left out of the data term, 0.03-0.10 with this
-#: margin, 7 px; 0.21-1.11 before). 2 %: the design's motion is ~1 % of the frame, and the
-#: similarity's high-pass is 2 % of it (_bspline.PRESETS' highpass).
-_FLAT_MARGIN = 0.02
-
-
-def _data_mask(f, m, mask):
-    """The mask the method's similarity sees: ``mask`` less a region flat in both images at one
-    value and fixed on the detector, with :data:`_FLAT_MARGIN` around it
-    (``_confidence.flat_common``). ``mask`` itself (the same object) when there is none, or when
-    the rest would be under a tenth of the frame."""
-    import cv2
-
-    from radiokit.register import _confidence as C
-
-    memo = _memo_of(f, m, mask)
-    if memo is not None and memo.data is not None:
-        return mask if memo.data is _NO_FLAT else memo.data
-    flat = C.flat_common(f, m)
-    data = _NO_FLAT
-    if flat.any():
-        r = int(np.ceil(_FLAT_MARGIN * max(f.shape)))
-        near = (
-            cv2.dilate(flat.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
-        )
-        keep = ~near if mask is None else mask & ~near
-        if np.count_nonzero(keep) >= 0.1 * f.size:
-            data = keep
-    if memo is not None:
-        memo.data = data
-    return mask if data is _NO_FLAT else data
-
-
-_NO_FLAT = np.zeros(0, bool)  # _data_mask found none: the caller's mask stands
 
 
 def _pair_checks(f, m, mask) -> _PairChecks:
@@ -729,13 +685,6 @@ class _PairChecks:
         # binned pixels, 27 % in its own)
         self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k, moving=self.m)
         self.obs = (self.ob.confidence >= 0.5) & self.ob.object
-        # the residual's tests leave out what the similarity did (_data_mask: a flat region fixed on
-        # the detector, and the pixels near it whose object moved in from under it, unmatched by
-        # any field), else they read a right field as misaligned there; the object and its
-        # observed share keep the region, unobserved
-        data = _data_mask(f, m, mask)
-        self.support = self.mask if data is mask else _bin_mask(data, k)
-        self.judged = self.obs if data is mask else self.obs & self.support
 
     @functools.cached_property
     def unit(self) -> np.float32:
@@ -748,11 +697,11 @@ class _PairChecks:
 
     @functools.cached_property
     def rc_before(self) -> float:
-        return residual_complexity((self.m - self.f) * self.unit, self.support)
+        return residual_complexity((self.m - self.f) * self.unit, self.mask)
 
     @functools.cached_property
     def ncc_before(self) -> float:
-        return ncc(self.m, self.f, self.support)
+        return ncc(self.m, self.f, self.mask)
 
     @functools.cached_property
     def consistency(self):
@@ -763,7 +712,7 @@ class _PairChecks:
     @functools.cached_property
     def before(self) -> np.ndarray:
         """The moving image's excess over the noise (``consistency - 1``), unwarped."""
-        return self.consistency(self.m, support=self.support) - 1.0
+        return self.consistency(self.m, support=self.mask) - 1.0
 
     @functools.cached_property
     def motion(self):
@@ -892,8 +841,8 @@ def _observed(reg, p, w, d, scale=1.0):
     q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
     q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
     q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
-    q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, p.judged)
-    q.residual_motion = _residual_step(p, w, p.judged)
+    q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, obs)
+    q.residual_motion = _residual_step(p, w, obs)
     reasons = []
     if q.interior_observed < _MIN_OBSERVED:
         q.body_scale = k * _body_scale(d, ob.object, obs, inner)
@@ -944,7 +893,7 @@ def coarse_residual_motion(fixed, moving, mask):
     level, where the checks would see the same misalignment at several times the cost; the binned
     pair and its observed part are computed once (:func:`_pair_checks`), for every field measured."""
     p = _pair_checks(fixed, moving, mask)
-    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(_warp(p.m, _field(d))), p.judged)
+    return p.k, p.f.shape, lambda d: _residual_step(p, np.nan_to_num(_warp(p.m, _field(d))), p.obs)
 
 
 def _body_scale(d, obj, obs, inner) -> float:
@@ -1106,7 +1055,7 @@ def _misaligned(p, w, d, obs):
     if not obs.any():
         return float("nan"), float("nan"), float("nan")
     factor = 1.0 + C.interpolation_variance(d, _WINDOW)
-    after = p.consistency(w, factor, support=p.support) - 1.0
+    after = p.consistency(w, factor, support=p.mask) - 1.0
     before = p.before
     bad = (after > _EXCESS) & (after * factor > 0.25 * 2.0 * np.maximum(before, 0))
     # kept: over the windows that showed misaligned structure before (a static structure the
