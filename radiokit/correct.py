@@ -461,6 +461,11 @@ NO_SIGNAL_SIGMAS = 3.0
 # told from a dim frame.
 #: the share of a frame's pixels judged by their highest: its brightest tenth
 NO_SIGNAL_QUANTILE = 0.9
+#: a frame whose median is at the dark still holds signal where this quantile of it lies above
+#: ``OPEN_FIELD_SHARE`` of the flats' level (``Calibration.c``): an open field of a percent of
+#: the frame beside a collimator's lead
+OPEN_FIELD_QUANTILE = 0.99
+OPEN_FIELD_SHARE = 0.1
 
 
 def no_signal_level(cal: Calibration) -> float | None:
@@ -476,7 +481,9 @@ def no_signal_level(cal: Calibration) -> float | None:
 def check_above_dark(cal: Calibration, raw2d) -> None:
     """Refuse a frame that holds no signal: its 90th percentile (defects and NaN aside; about 128 x
     128 pixels sampled) no more than :func:`no_signal_level` above the dark, or its median no
-    more than ``thresholds.eps`` above it (the only test where the dark's noise is not recorded).
+    more than ``thresholds.eps`` above it (the only test where the dark's noise is not recorded)
+    unless its top percent lies above a tenth of the flats' level (an open field beside a
+    collimator, :data:`OPEN_FIELD_SHARE`).
 
     :func:`correct_frames` clamps and fills such a frame (a beam-off frame stays finite); a caller
     that takes the frame for data calls this (``radiokit correct`` and ``process`` each frame).
@@ -499,6 +506,11 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
         seen, what = float(np.quantile(signal, NO_SIGNAL_QUANTILE)), "its brightest tenth"
     else:
         level = cal.thresholds.eps
+        # a frame mostly behind a collimator or a dense object: the median at the dark, but an
+        # open field at a tenth of the flats' level or more (review s42rr: 91 % behind lead was
+        # refused); a noisy beam-off frame's top percent is a few of its noise above the dark
+        if float(np.quantile(signal, OPEN_FIELD_QUANTILE)) > OPEN_FIELD_SHARE * cal.c:
+            return
     if seen <= level:
         raise ValueError(
             f"no signal above the dark (frame {raw2d.dtype}, {float(np.nanmin(raw2d)):.4g} .. "
