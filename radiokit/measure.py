@@ -223,7 +223,10 @@ class ROI:
         origin_rc : (float, float)
             Pixel coordinates of the mm origin (default: the centre of pixel (0, 0)). ``(-0.5,
             -0.5)`` is the frame's top-left corner, the origin of ``radiokit process --mm`` and
-            ``Config(roi_units="mm")``, which take the edges ``(row0, row1, col0, col1)`` in mm.
+            ``Config(roi_units="mm")``. Those take the edges ``(row0, row1, col0, col1)`` in mm
+            and round each to the nearest pixel edge; this rounds a size and a centre, so the two
+            can differ by a pixel (a 2.34 mm side is 23 pixels here, 23 or 24 there by where it
+            sits).
 
         Bounds are rounded half up, as :meth:`from_center` rounds: a width stays the same
         wherever the rectangle sits.

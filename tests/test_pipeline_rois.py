@@ -333,8 +333,9 @@ def test_a_background_given_alone_takes_the_detected_inclusion_where_no_automati
 def test_mm_rois_keep_their_width_wherever_they_sit_and_agree_with_roi_from_mm(pixel_mm):
     """Review s42api: mm edges were rounded half to even, so a 3-pixel-wide rectangle whose edges
     fall on half pixels became 2 or 4 pixels depending on where it sat. Half up, as
-    :meth:`ROI.from_center` rounds, keeps the width; and mm measured from the frame's corner are
-    ``ROI.from_mm`` with ``origin_rc=(-0.5, -0.5)``."""
+    :meth:`ROI.from_center` rounds, keeps the width; and on such edges, a whole number of pixels
+    apart, mm measured from the frame's corner are ``ROI.from_mm`` with ``origin_rc=(-0.5, -0.5)``
+    (elsewhere the two round differently by up to a pixel, as from_mm's docstring says)."""
     from radiokit.measure import ROI
     from radiokit.pipeline import _roi
 
