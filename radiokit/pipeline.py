@@ -1326,7 +1326,9 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
                 for dom, e in images.enhanced.items()
             },
             rois={key: np.asarray(roi) for key, roi in record.rois.to_json().items()},
-            pixel_size_mm=record.pixel_size_mm,
+            # NeXus's x_pixel_size states a pitch as the data's: an assumed one stays in results.json,
+            # marked so (review s42rep: `radiokit info results.h5` printed it as the file's)
+            pixel_size_mm=record.pixel_size_mm if record.pixel_size_recorded else None,
         ),
     )
     files["results_h5"] = str(h5path)

@@ -298,11 +298,18 @@ def test_a_pixel_size_the_file_does_not_record_is_said_to_be_assumed(tmp_path):
     assert back.pixel_size_mm == 0.05 and back.pixel_size_recorded is False
     html = (tmp_path / "results" / "report.html").read_text()
     assert "0.05 mm (assumed: the file records none)" in html
+    # review s42rep: results.h5 wrote the assumed pitch as NeXus's x_pixel_size, a statement of
+    # fact to any reader (and `radiokit info` printed it as the file's); it is left out there
+    assert "pixel_size_mm" not in read(tmp_path / "results" / "results.h5").meta
+    from radiokit.io import read_results
+
+    assert read_results(tmp_path / "results" / "results.h5").pixel_size_mm is None
     recorded = tmp_path / "rec"
     recorded.mkdir()
     _experiment(recorded / "exp.h5", 20.0)
     res = process(recorded / "exp.h5", cfg, out_dir=recorded / "results")
     assert res.record.pixel_size_recorded is True
+    assert read(recorded / "results" / "results.h5").meta["pixel_size_mm"] == pytest.approx(0.05)
     assert "assumed" not in (recorded / "results" / "report.html").read_text().split("pixel size", 1)[1][:80]
 
 

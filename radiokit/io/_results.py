@@ -75,7 +75,8 @@ class ResultsRecord:
         The regions of interest measured, in pixels of the crop.
     pixel_size_mm : float, optional
         The pixel pitch, written as ``x_pixel_size`` and ``y_pixel_size`` (metres) beside the
-        steps; the results' JSON says whether the experiment recorded it or it was assumed.
+        steps. ``radiokit process`` gives it only where the experiment recorded it: a pitch it
+        assumed is in the results' JSON alone, marked ``pixel_size_recorded: false``.
 
     Every array carries its ``@units`` (DESIGN.md): ``"1"`` for line integrals, transmissions,
     ratios, Jacobians and the confidence; ``"pixel"`` for displacements.
