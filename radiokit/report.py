@@ -406,6 +406,14 @@ def _fig_profiles(images, results, fig_dir):
     return name, caption
 
 
+#: what a difference image's values are, per domain (review s42rep: its colour bars named none)
+_D_UNITS = {
+    "log": "line integral \u2212ln(I/I\u2080)",
+    "linear": "transmission I/I\u2080",
+    "negative": "\u2212I/I\u2080",
+}
+
+
 def _fig_difference(images, results, fig_dir):
     domains = _in_order(images.enhanced)
     w, h = _panel_size(images.reference.shape, 3.4)
@@ -422,6 +430,7 @@ def _fig_difference(images, results, fig_dir):
         ax.set_title(f"D = reference \u2212 registered ({dom})", fontsize=9)
         _style_image_axes(ax, ticks=False)
         cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb.set_label(f"D, {_D_UNITS.get(getattr(dom, 'value', dom), 'image units')}", fontsize=8)
         cb.ax.tick_params(labelsize=7)
     name = "difference.png"
     _save(fig, fig_dir / name)
@@ -484,7 +493,9 @@ def _panel_displacement(fig, ax, disp):
     if np.any(np.isfinite(u) & np.isfinite(v) & ((u != 0) | (v != 0))):
         ax.quiver(cc, rr, u, v, color="white", angles="xy", scale_units="xy", scale=None, width=0.004)
     ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}", fontsize=9)
-    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label("|d| (px)", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
 
 
 def _panel_det_j(fig, ax, det):
@@ -496,7 +507,9 @@ def _panel_det_j(fig, ax, det):
         ax.contour(jd, levels=[0.0], colors="black", linewidths=0.8)
     folds = int((v <= 0).sum()) if v.size else 0
     ax.set_title(f"det J (min {_fmt(v.min() if v.size else None, '.3g')}, {folds} folds)", fontsize=9)
-    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label("det J", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
 
 
 def _panel_epe(fig, ax, epe):
@@ -504,7 +517,9 @@ def _panel_epe(fig, ax, epe):
     v = _finite(e)
     im = ax.imshow(e, cmap="magma", vmin=0, vmax=_limits(e, 0, 99)[1], interpolation="nearest")
     ax.set_title(f"EPE (px): median {_fmt(np.median(v) if v.size else None, '.3f')}", fontsize=9)
-    fig.colorbar(im, ax=ax, shrink=0.8).ax.tick_params(labelsize=7)
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label("EPE (px)", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
 
 
 _REGISTRATION_CAPTIONS = {
