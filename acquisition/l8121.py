@@ -2846,7 +2846,10 @@ class L8121:
         try:
             state = self.off()
         except DeviceError as exc:
-            state, note = None, f"switching X-rays off could not be confirmed ({exc})"
+            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
+            # right above its X-RAYS warning), not only inside the fault's line
+            state, note = None, "switching X-rays off could not be confirmed"
+            self._log_off_failure(exc)
         if callable(reason):
             reason = reason(self.off_failed is None)
         if state == SourceState.OVERLOAD and not reason.startswith("overload"):
@@ -2858,12 +2861,10 @@ class L8121:
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
-        told = getattr(self._transport, "watchdog_off", None)
-        # the guardian's watchdog switched off for this process's silence and said so on the
-        # terminal as it acted; the error the caller reports says it again: an ERROR here was a
-        # third telling (the notebook keeps it). A switch-off not confirmed since stays loud
-        level = logging.INFO if told and reason.startswith(told) and state is not None else logging.ERROR
-        logger.log(level, "%s: %s; %s", self.port, reason, note)
+        # the caller reports the SourceFault (the command line's error line; the series names a
+        # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
+        # and for the guardian's watchdog a third. The notebook keeps it
+        logger.info("%s: %s; %s", self.port, reason, note)
         raise SourceFault(f"{self.port}: {reason}; {note}")
 
     def check(self) -> dict[str, Any]:

@@ -1327,6 +1327,33 @@ def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
     model.silence(False)  # (the fixture's close() then confirms off)
 
 
+def test_a_trip_is_the_callers_to_report_and_its_failed_switch_off_critical_once(warm, dialect, caplog):
+    """check() trips: its SourceFault says the fault, and the caller reports it (the command line's
+    error line); the driver's own ERROR line said it a second time. Its switch-off not confirmed
+    (a relay stuck on) was said only inside that ERROR line, not as every other unconfirmed
+    switch-off: CRITICAL, marked for the command line to say above its warning, once."""
+    from acquisition.l8121 import OFF_FAILURE
+
+    model, server = warm
+    with driver(server, dialect, off_confirm_s=0.2, off_attempts=1) as src:
+        src.on(60, 250)
+        model.open_interlock()
+        with pytest.raises(SourceFault, match="interlock open; X-rays switched off"):
+            src.check()
+        model.close_interlock()
+        src.on(60, 250)
+        model.stuck_on()
+        model.drop_beam()
+        with pytest.raises(SourceFault, match="beam dropped.*switching X-rays off could not be confirmed"):
+            src.check()
+        model.stuck_on(False)
+    loud = [(r.levelname, r.getMessage()) for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not [m for m in loud if "interlock open" in m[1] or "beam dropped" in m[1]], loud
+    told = [r for r in caplog.records if "could not confirm X-rays off" in r.getMessage()]
+    assert [r.levelname for r in told] == ["CRITICAL"] and getattr(told[0], OFF_FAILURE, False), loud
+    assert "STS still XRAY_ON after XOF" in told[0].getMessage(), told[0].getMessage()
+
+
 @pytest.mark.parametrize("fault", ["poll", "caller"])
 def test_a_with_block_ended_by_a_silent_controller_logs_the_unconfirmed_off_once_critical(dialect, caplog, fault):
     """The Python API's `with L8121(...)`: the beam on, the controller falls silent, and the block
