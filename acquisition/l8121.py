@@ -2842,13 +2842,13 @@ class L8121:
     def _trip(self, reason: str | Callable[[bool], str]):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`)."""
-        note = "X-rays switched off"
+        note, failed = "X-rays switched off", None
         try:
             state = self.off()
         except DeviceError as exc:
             # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
             # right above its X-RAYS warning), not only inside the fault's line
-            state, note = None, "switching X-rays off could not be confirmed"
+            state, note, failed = None, "switching X-rays off could not be confirmed", exc
             self._log_off_failure(exc)
         if callable(reason):
             reason = reason(self.off_failed is None)
@@ -2865,7 +2865,7 @@ class L8121:
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
         logger.info("%s: %s; %s", self.port, reason, note)
-        raise SourceFault(f"{self.port}: {reason}; {note}")
+        raise SourceFault(f"{self.port}: {reason}; {note}") from failed  # (its words: off_failed)
 
     def check(self) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.

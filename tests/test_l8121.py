@@ -2697,7 +2697,10 @@ def test_b_sts_error_during_an_exposure_says_pre_heating_or_refused(when):
             text = str(info.value)
             assert "beam dropped" not in text and "state PREHEATING" not in text, text
             assert "STS ERROR (PREHEATING, or a refused query" in text, text
-            assert "still ERROR (PREHEATING, or a refused query" in text, text  # the unconfirmed switch-off
+            # the unconfirmed switch-off: said in its own CRITICAL line (and kept in off_failed),
+            # the fault's message saying only that it was not confirmed
+            assert "switching X-rays off could not be confirmed" in text, text
+            assert "still ERROR (PREHEATING, or a refused query" in str(src.off_failed), src.off_failed
             assert src.off_failed is not None and "XOF" in model.commands and not model.xray_on
         finally:
             src.detach()
