@@ -2927,6 +2927,12 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         # inf passed ">= 0": any measured beam, even none, would count as stable
         ("kv_tolerance", float("inf"), "kv_tolerance must be a finite number >= 0, got inf"),
         ("ua_tolerance", "1.2.3%", "ua_tolerance '1.2.3%' is neither a number nor a percentage"),
+        # 1000 kV passed: any beam counted as stable. A tolerance wider than 1 - beam_drop_fraction
+        # of a setting counts a beam the monitor calls dropped as stable (kV: at kv_min, 40 kV)
+        ("kv_tolerance", 1000, r"kv_tolerance = 1000: 1000 kV at 40 kV.*at most 50%"),
+        ("kv_tolerance", 20.5, r"kv_tolerance = 20.5: 20.5 kV at 40 kV.*at most 50%"),
+        ("ua_tolerance", "60%", r"ua_tolerance = '60%': 300 µA at 500 µA.*at most 50%"),
+        ("ua_tolerance", 1000, r"ua_tolerance = 1000: 1000 µA at 500 µA.*at most 50%"),
         # a reply's wait had no upper bound outside the CLI: 1e9 in a protocol's [source] made each
         # wait of a switch-off a wait for ever (the CLI's --reply-timeout refused it)
         ("timeout_s", 1e9, r"timeout_s = 1e\+09 s: at most 10 s"),

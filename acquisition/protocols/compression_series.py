@@ -380,7 +380,7 @@ def _source_limits(s: SourceSettings):
             }
         )
     except (TypeError, ValueError, OverflowError) as exc:
-        raise ProtocolError(f"[source]: {exc}") from None
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     return cfg
 
 
@@ -431,6 +431,11 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+    try:  # the tolerances this protocol gives, at its own setting (the defaults are the driver's)
+        given = [key for key in ("kv_tolerance", "ua_tolerance") if key in s.limits]
+        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua), keys=given)
+    except ValueError as exc:
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
         # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
         raise ProtocolError(
