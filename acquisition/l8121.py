@@ -356,6 +356,11 @@ class SourceConfig:
             )
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
+        # at the lowest voltage this configuration allows (exact: a kV setting is never lower) and
+        # the highest current (the tightest bound that holds whatever current is asked; a
+        # protocol checks its own setting, _check_source); a percentage is checked exactly by both
+        ua_hi = min(self.ua_max, RATINGS.ua_max)
+        self.check_tolerances(max(self.kv_min, RATINGS.kv_min), ua_hi if ua_hi > 0 else None)
 
     def _check_beam_drop(self) -> None:
         """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
@@ -436,6 +441,27 @@ class SourceConfig:
             raise ValueError(
                 f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W"
             )
+
+    def check_tolerances(self, set_kv: float | None, set_ua: float | None, keys=("kv_tolerance", "ua_tolerance")):
+        """Refuse a tolerance (of ``keys``) wider than ``1 - beam_drop_fraction`` of its set value
+        (None: not checked). L8121.md calls the beam stable when the measured values are within
+        tolerance of the set ones; the beam monitor calls it dropped below ``beam_drop_fraction``
+        of them. A wider tolerance counts a beam the monitor calls dropped as stable (1000 kV:
+        any beam, none included)."""
+        room = 1 - self.beam_drop_fraction
+        for key, spec, set_value, unit in (
+            ("kv_tolerance", self.kv_tolerance, set_kv, "kV"),
+            ("ua_tolerance", self.ua_tolerance, set_ua, "µA"),
+        ):
+            if key not in keys or set_value is None:
+                continue
+            tol = _tolerance(spec, set_value, key)
+            if tol > room * abs(set_value):
+                raise ValueError(
+                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as stable "
+                    f"a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
+                    f"of the set value): expected at most {room:.0%} of the set value"
+                )
 
     def tolerance_kv(self, set_kv: float) -> float:
         """The kV tolerance, absolute, around ``set_kv``."""
@@ -2842,11 +2868,14 @@ class L8121:
     def _trip(self, reason: str | Callable[[bool], str]):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`)."""
-        note = "X-rays switched off"
+        note, failed = "X-rays switched off", None
         try:
             state = self.off()
         except DeviceError as exc:
-            state, note = None, f"switching X-rays off could not be confirmed ({exc})"
+            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
+            # right above its X-RAYS warning), not only inside the fault's line
+            state, note, failed = None, "switching X-rays off could not be confirmed", exc
+            self._log_off_failure(exc)
         if callable(reason):
             reason = reason(self.off_failed is None)
         if state == SourceState.OVERLOAD and not reason.startswith("overload"):
@@ -2858,13 +2887,11 @@ class L8121:
             note += f"; controller error code {code}" if code else ""
         except DeviceError:
             pass
-        told = getattr(self._transport, "watchdog_off", None)
-        # the guardian's watchdog switched off for this process's silence and said so on the
-        # terminal as it acted; the error the caller reports says it again: an ERROR here was a
-        # third telling (the notebook keeps it). A switch-off not confirmed since stays loud
-        level = logging.INFO if told and reason.startswith(told) and state is not None else logging.ERROR
-        logger.log(level, "%s: %s; %s", self.port, reason, note)
-        raise SourceFault(f"{self.port}: {reason}; {note}")
+        # the caller reports the SourceFault (the command line's error line; the series names a
+        # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
+        # and for the guardian's watchdog a third. The notebook keeps it
+        logger.info("%s: %s; %s", self.port, reason, note)
+        raise SourceFault(f"{self.port}: {reason}; {note}") from failed  # (its words: off_failed)
 
     def check(self) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.

@@ -768,6 +768,8 @@ def test_cli_resume_refuses_a_protocol_edited_in_a_setting_that_shapes_the_data_
         ("detector", "folder", 5, "[detector] folder = 5: expected a string"),
         ("sim", "scene", 5, "[sim] scene = 5: expected a string"),
         ("source", "min_interval_s", 100, "[source] min_interval_s = 100: expected at most 1 s"),
+        # within the ratings' bound (1000 is refused there), too wide at this protocol's 250 uA
+        ("source", "ua_tolerance", 200, "[source] ua_tolerance = 200: 200 µA at 250 µA"),
     ],
 )
 def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_key(

@@ -51,7 +51,7 @@ class Vendor(threading.Thread):
 class Lab:
     """A lab run of ``radiokit acquire`` in a subprocess, and its devices."""
 
-    def __init__(self, tmp_path, detector_timeout_s=3.0, reply_timeout_s=0.5):
+    def __init__(self, tmp_path, detector_timeout_s=3.0, reply_timeout_s=0.5, **source_keys):
         self.folder = tmp_path / "frames"
         self.folder.mkdir()
         self.model = L8121Model(dialect="A", warmup_s=0.3, ramp_s=0.1, warmed_up=True)
@@ -63,6 +63,7 @@ class Lab:
         self.proto = tmp_path / "lab.toml"
         source = {"port": self.server.url, "voltage_kv": 60, "current_ua": 250, "poll_s": 0.1}
         source["timeout_s"] = reply_timeout_s
+        source.update(source_keys)
         self.proto.write_text(
             tomli_w.dumps(
                 {
@@ -189,6 +190,42 @@ def test_a_silent_controller_says_the_unconfirmed_switch_off_once(lab):
     assert "not switching off again" not in text, lines
     assert "could not confirm X-rays off" in lines[-2], lines[-4:]
     assert lines[-1].startswith("WARNING: X-RAYS MAY STILL BE ON"), lines[-4:]
+
+
+# (the fault, then what the terminal must say of it once). "stuck": the beam drops and the XOF
+# that follows is acknowledged but STS still reads on (a failed relay); "door, panel": the panel
+# stops as the interlock opens, so the run ends on the detector's time-out, not on the fault
+BEAM_FAULTS = {
+    "interlock": (lambda run: run.model.open_interlock(), "interlock open"),
+    "stuck": (lambda run: (run.model.stuck_on(), run.model.drop_beam()), "beam dropped"),
+    "door, panel": (lambda run: (run.vendor.pause.set(), run.model.open_interlock()), "interlock open"),
+}
+
+
+@pytest.mark.parametrize("fault", BEAM_FAULTS)
+def test_a_beam_monitors_fault_is_said_once(lab, fault):
+    """The beam monitor trips: the terminal read the driver's ERROR line, then the run's error
+    line in the same words (review s42acq, LOW). And when the trip's own switch-off was not
+    confirmed, that was said inside those two lines only, not as the unconfirmed switch-off is
+    said everywhere else: once, right above the X-RAYS warning. A fault the run did not stop on
+    (the panel fell silent with it) is still said, once."""
+    run = lab(detector_timeout_s=1.0, off_confirm_s=0.6)
+    inject, said = BEAM_FAULTS[fault]
+    run.start()
+    run.in_step_1()
+    inject(run)
+    lines = run.end()
+    text = "\n".join(lines)
+    assert [ln for ln in lines if said in ln] == [next(ln for ln in lines if said in ln)], lines
+    assert run.logged(said) >= 1, "the notebook keeps the driver's trip"
+    if fault == "stuck":
+        assert run.proc.returncode == 3, lines
+        assert text.count("could not confirm X-rays off") == 1, lines
+        assert "could not confirm X-rays off" in lines[-2] and lines[-2].startswith("error:"), lines[-4:]
+        assert lines[-1].startswith("WARNING: X-RAYS MAY STILL BE ON"), lines[-4:]
+    else:
+        assert run.proc.returncode == 1, lines
+        assert lines[-1].startswith("tube off (confirmed by STS"), lines[-4:]
 
 
 def test_an_experiment_file_deleted_mid_run_is_said_removed_and_its_frames_lost(lab):

@@ -1327,6 +1327,33 @@ def test_a_silent_controller_is_logged_with_its_port_named_once(source, caplog):
     model.silence(False)  # (the fixture's close() then confirms off)
 
 
+def test_a_trip_is_the_callers_to_report_and_its_failed_switch_off_critical_once(warm, dialect, caplog):
+    """check() trips: its SourceFault says the fault, and the caller reports it (the command line's
+    error line); the driver's own ERROR line said it a second time. Its switch-off not confirmed
+    (a relay stuck on) was said only inside that ERROR line, not as every other unconfirmed
+    switch-off: CRITICAL, marked for the command line to say above its warning, once."""
+    from acquisition.l8121 import OFF_FAILURE
+
+    model, server = warm
+    with driver(server, dialect, off_confirm_s=0.2, off_attempts=1) as src:
+        src.on(60, 250)
+        model.open_interlock()
+        with pytest.raises(SourceFault, match="interlock open; X-rays switched off"):
+            src.check()
+        model.close_interlock()
+        src.on(60, 250)
+        model.stuck_on()
+        model.drop_beam()
+        with pytest.raises(SourceFault, match="beam dropped.*switching X-rays off could not be confirmed"):
+            src.check()
+        model.stuck_on(False)
+    loud = [(r.levelname, r.getMessage()) for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not [m for m in loud if "interlock open" in m[1] or "beam dropped" in m[1]], loud
+    told = [r for r in caplog.records if "could not confirm X-rays off" in r.getMessage()]
+    assert [r.levelname for r in told] == ["CRITICAL"] and getattr(told[0], OFF_FAILURE, False), loud
+    assert "STS still XRAY_ON after XOF" in told[0].getMessage(), told[0].getMessage()
+
+
 @pytest.mark.parametrize("fault", ["poll", "caller"])
 def test_a_with_block_ended_by_a_silent_controller_logs_the_unconfirmed_off_once_critical(dialect, caplog, fault):
     """The Python API's `with L8121(...)`: the beam on, the controller falls silent, and the block
@@ -2670,7 +2697,10 @@ def test_b_sts_error_during_an_exposure_says_pre_heating_or_refused(when):
             text = str(info.value)
             assert "beam dropped" not in text and "state PREHEATING" not in text, text
             assert "STS ERROR (PREHEATING, or a refused query" in text, text
-            assert "still ERROR (PREHEATING, or a refused query" in text, text  # the unconfirmed switch-off
+            # the unconfirmed switch-off: said in its own CRITICAL line (and kept in off_failed),
+            # the fault's message saying only that it was not confirmed
+            assert "switching X-rays off could not be confirmed" in text, text
+            assert "still ERROR (PREHEATING, or a refused query" in str(src.off_failed), src.off_failed
             assert src.off_failed is not None and "XOF" in model.commands and not model.xray_on
         finally:
             src.detach()
@@ -2897,6 +2927,12 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         # inf passed ">= 0": any measured beam, even none, would count as stable
         ("kv_tolerance", float("inf"), "kv_tolerance must be a finite number >= 0, got inf"),
         ("ua_tolerance", "1.2.3%", "ua_tolerance '1.2.3%' is neither a number nor a percentage"),
+        # 1000 kV passed: any beam counted as stable. A tolerance wider than 1 - beam_drop_fraction
+        # of a setting counts a beam the monitor calls dropped as stable (kV: at kv_min, 40 kV)
+        ("kv_tolerance", 1000, r"kv_tolerance = 1000: 1000 kV at 40 kV.*at most 50%"),
+        ("kv_tolerance", 20.5, r"kv_tolerance = 20.5: 20.5 kV at 40 kV.*at most 50%"),
+        ("ua_tolerance", "60%", r"ua_tolerance = '60%': 300 µA at 500 µA.*at most 50%"),
+        ("ua_tolerance", 1000, r"ua_tolerance = 1000: 1000 µA at 500 µA.*at most 50%"),
         # a reply's wait had no upper bound outside the CLI: 1e9 in a protocol's [source] made each
         # wait of a switch-off a wait for ever (the CLI's --reply-timeout refused it)
         ("timeout_s", 1e9, r"timeout_s = 1e\+09 s: at most 10 s"),

@@ -380,7 +380,7 @@ def _source_limits(s: SourceSettings):
             }
         )
     except (TypeError, ValueError, OverflowError) as exc:
-        raise ProtocolError(f"[source]: {exc}") from None
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     return cfg
 
 
@@ -431,6 +431,11 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+    try:  # the tolerances this protocol gives, at its own setting (the defaults are the driver's)
+        given = [key for key in ("kv_tolerance", "ua_tolerance") if key in s.limits]
+        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua), keys=given)
+    except ValueError as exc:
+        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
         # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
         raise ProtocolError(
@@ -1749,6 +1754,7 @@ def _stop(r: _Run, exc: BaseException):
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
+    _beam_fault_not_stopped_on(monitor, exc)
     _stop_frame(r)
     if res.tube_off is None:
         _off_where_the_guardian_left(exc)
@@ -1794,6 +1800,19 @@ def _stop(r: _Run, exc: BaseException):
     if hasattr(exc, "add_note"):
         exc.add_note(_stop_note(r, what, tube, kept))
     return exc
+
+
+def _beam_fault_not_stopped_on(monitor, exc: BaseException) -> None:
+    """The beam monitor's trip, said when the run stopped on something else (the panel's
+    time-out as the door opened, a Ctrl-C): the driver logs a trip for the notebook only, the
+    caller's error line being the one the operator reads, and this run's line names ``exc``."""
+    from acquisition.errors import SourceFault
+
+    fault = getattr(monitor, "error", None)
+    # (a SourceFault stopping the run is that trip, or the guardian's watchdog named for the
+    # detector's time-out, which the trip would repeat)
+    if isinstance(fault, SourceFault) and not isinstance(exc, SourceFault):
+        log.error("the beam monitor had stopped the beam: %s", fault)
 
 
 def _file_lost_cause(r: _Run, exc: BaseException) -> BaseException:
