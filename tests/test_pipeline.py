@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 
 import numpy as np
@@ -160,7 +161,10 @@ def test_results_files_and_report(processed):
     for src in srcs:
         img = mpimg.imread(out / src)
         assert img.ndim == 3 and img.shape[0] > 100 and float(img.std()) > 0
-    assert f"{r['improvement_factor']['1']:.2f}" in html
+    # to 2 places, or to its standard error's second significant digit where that lies further right
+    se = r["domains"][r["domain"]]["improvement_factor_se"]["1"]
+    places = max(2, 1 - math.floor(math.log10(se)))
+    assert f"{r['improvement_factor']['1']:.{places}f} \u00b1 " in html
 
 
 # The tests on the module's simulated experiment stay together: xdist hands out tests, and a
