@@ -780,10 +780,17 @@ def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_
     nobody; `[sim] scene = 5` passed the dry run; `min_interval_s = 100` (a command every 100 s:
     each switch-off waits it) was taken. Each is one line at loading, before any port is opened:
     the file, the key and what is expected; exit 2, the dry run as the run."""
-    import tomli_w
-
     data = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
     (data[section] if section else data)[key] = value
+    _refused_at_loading(tmp_path, capsys, data, said)
+    assert not os.path.exists(data["output"] if isinstance(data["output"], str) else tmp_path / "series.h5")
+
+
+def _refused_at_loading(tmp_path, capsys, data, said) -> None:
+    """``data`` written as a protocol is refused in one line naming the file and ``said``, exit 2,
+    by the dry run and the run alike."""
+    import tomli_w
+
     path = tmp_path / "protocol.toml"
     path.write_text(tomli_w.dumps(data))
     for flags in (["--dry-run"], ["-q"]):
@@ -791,7 +798,7 @@ def test_cli_a_protocol_value_of_the_wrong_type_is_one_line_naming_the_file_and_
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(err) == 1, (flags, code, err)
         assert err[0].startswith(f"error: {path}: ") and said in err[0], err
-    assert not os.path.exists(data["output"] if isinstance(data["output"], str) else tmp_path / "series.h5")
+        assert "L8121 configuration" not in err[0], err
 
 
 @pytest.mark.parametrize(
@@ -818,18 +825,9 @@ def test_cli_a_source_limit_of_the_wrong_type_is_one_line_naming_the_file_and_ke
     loading naming the file and the key, as the protocol's own keys are -- not the driver's words
     behind "[source]: L8121 configuration:", nor a traceback (``limits = 5``), nor accepted
     (``model = 5`` reached the controller and was compared with its TYP). Before any port."""
-    import tomli_w
-
     data = tomllib.loads(protocol(tmp_path, scene_toml).to_toml())
     data["source"][key] = value
-    path = tmp_path / "protocol.toml"
-    path.write_text(tomli_w.dumps(data))
-    for flags in (["--dry-run"], ["-q"]):
-        code = _cli("acquire", str(path), "--sim", *flags)
-        err = capsys.readouterr().err.strip().splitlines()
-        assert code == 2 and len(err) == 1, (flags, code, err)
-        assert err[0].startswith(f"error: {path}: ") and said in err[0], err
-        assert "L8121 configuration" not in err[0], err
+    _refused_at_loading(tmp_path, capsys, data, said)
     assert not (tmp_path / "series.h5").exists() and not (tmp_path / "series.log").exists()
 
 
