@@ -1113,3 +1113,19 @@ def test_columns_saturated_in_the_flats_are_saturation_not_defect_lines():
     named = re.search(r"columns (\d+)-(\d+) are filled as lines for it \(saturated lines, not defect lines\)", sat[0])
     assert heavy.size > 20 and named and int(named[2]) == cols - 1 and abs(int(named[1]) - heavy[0]) <= 1
     assert cal.defect_columns.tolist() == [60, *range(int(named[1]), cols)]
+
+
+@pytest.mark.parametrize("step", [1.15, 1.2, 0.85])
+@pytest.mark.parametrize("planted", [(121,), (118, 122), (119, 122), (118, 121, 123)])
+def test_a_defect_line_beside_a_gain_step_is_found(step, planted):
+    """Review s42rr: a column at 0.9 one column right of a 1.15 step (the step between 119 and
+    120) reads 1.035 of the lines left of the step: off the lines right of it only, as the step's
+    own columns are, and it was missed. With the step fitted to its neighbours it is off the side
+    it lies on; the step's own columns stay clean (test_a_gain_step_between_readout_blocks...).
+    The limit: 119 at 0.9 right beside a 0.85 step reads between the two sides, as the step's edge
+    would; it is not told from one."""
+    darks, flats, _ = _stepped_flats(step, seed=5)
+    cols = list(planted)
+    flats[:, :, cols] = (100 + 0.9 * (flats[:, :, cols] - 100.0)).astype(np.uint16)
+    found = [c for c in cols if not (step < 1 and c == 119)]
+    assert Calibration.from_frames(darks, flats).defect_columns.tolist() == found
