@@ -358,14 +358,79 @@ MIN_LINE_PIXELS = 16
 #: on a side) are found whole; a wider band is a block of its own, as a read-out block is.
 LINE_REACH = 5
 
+#: The widest band of adjacent lines off both sides that is a band of defect lines: the most whose
+#: edge line's reference on the band's side is still the lines beyond it (LINE_REACH // 2 + 1).
+MAX_LINE_BAND = LINE_REACH // 2 + 1
+
 #: The most defect lines a panel has: "up to 20 per panel" (C7942.md, "Corrections the manual
 #: prescribes"); a line stays a line when binned, so this holds at every binning.
 MAX_DEFECT_LINES = 20
 
 
-def _line_flags(rel, std, flagged, th: Thresholds, axis):
+def _nanmedian(a, axis):
+    """np.nanmedian without its "All-NaN slice" warning: a line or window of saturated pixels only
+    has no median, and is judged by nothing but its dark noise."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(a, axis=axis)
+
+
+def _whole_bands(off, med, left, right, limit, more=None):
+    """``off(values, references)`` (a line's median off a reference, one direction) turned into the
+    lines of bands up to ``limit`` wide: each run of lines off both sides grown by the adjacent lines
+    off both the reference beyond them and the one beyond the band's other end; a wider band is
+    dropped whole."""
+    core = off(med, left) & off(med, right)
+    if more is not None:
+        core |= more
+    out = np.zeros(med.size, bool)
+    j = 0
+    while j < med.size:
+        if not core[j]:
+            j += 1
+            continue
+        a = b = j
+        while b + 1 < med.size and core[b + 1]:
+            b += 1
+        j = b + 1
+        while a > 0 and off(med[a - 1], left[a - 1]) and off(med[a - 1], right[b]):
+            a -= 1
+        while b + 1 < med.size and off(med[b + 1], right[b + 1]) and off(med[b + 1], left[a]):
+            b += 1
+        if b - a + 1 <= limit:
+            out[a : b + 1] = True
+    return out
+
+
+def _off_fitted_step(off, med, padded, k, candidates):
+    """Of the ``candidates`` (lines off one side only), those ``off`` the level of their side of a
+    step fitted to the line and the ``k`` lines on each side (``padded``: ``med`` padded by ``k``).
+    Why: a defect line at 0.9 one line right of a 1.15 gain step reads 1.035 of the lines left of
+    the step, off the right side only, as the step's own lines are, and was missed (review s42rr).
+    The step is the split of the 2k + 1 lines into two runs with the least absolute deviation from
+    their medians: the line itself counted, so that a defect line beside the step is not taken for
+    the step's edge and a healthy line of the step called a defect. Limit: a defect line right at
+    the step reading between the two sides fits as the step's edge, and is not found."""
+    out = np.zeros(med.size, bool)
+    for j in np.flatnonzero(candidates):
+        v = padded[j : j + 2 * k + 1]
+        if np.isnan(v).any():
+            continue
+        best, split = np.inf, 0
+        for s in range(1, 2 * k + 1):
+            a, b = v[:s], v[s:]
+            cost = np.abs(a - np.median(a)).sum() + np.abs(b - np.median(b)).sum()
+            if cost < best:
+                best, split = cost, s
+        side = v[split:] if split <= k else v[:split]
+        out[j] = off(med[j], np.median(side))
+    return out
+
+
+def _line_flags(rel, std, flagged, th: Thresholds, axis, skip=None):
     """Indices of defect lines along ``axis`` (0: rows, 1: columns) and their flag bits; none
-    when a line has fewer than :data:`MIN_LINE_PIXELS` pixels.
+    when a line has fewer than :data:`MIN_LINE_PIXELS` pixels. ``skip``: pixels left out of the
+    judgement (the flats' saturated ones).
 
     A line's median relative response is judged against the median of the :data:`LINE_REACH`
     lines on each side of it, and must differ from both. Why: a gain step between a flat panel's
@@ -374,22 +439,50 @@ def _line_flags(rel, std, flagged, th: Thresholds, axis):
     defect lines and filled in every frame (a 1-px wire of transmission 0.3 there came out 0.6).
     A defect line differs from its neighbours on both sides; a step's line agrees with one side
     (a centred running median does not do: a defect line beside the step is the median there).
-    Dead lines are judged absolutely too: a wide band reading nothing is its own neighbours."""
+
+    Adjacent lines are judged as one band, flagged whole or not at all: up to
+    :data:`MAX_LINE_BAND` (3) lines off both the lines beyond each end are defect lines; a wider
+    band at its own response is a gain band, as a read-out block is, and is not flagged for its
+    response. Why: 4 lines at 0.88 gave only the middle two, 5 only the middle one (review s42rr),
+    their edges then filled from lines inside the band. Physics and the manual: the gain correction
+    ``c * Ic1 / (If - Id)`` is per pixel, so a band responding linearly at a lower gain comes out
+    right once flat-fielded, while the manual's fill (the mean of the two neighbouring lines) is
+    made for single lines and erases 4-5 lines' worth of the image (a 1-px wire across the band).
+    What the flat field cannot correct is flagged whole at any width: lines reading nothing (dead,
+    judged absolutely: a wide band reading nothing is its own neighbours), with a dark noise over
+    ``line_noise_factor`` times the panel's, or with most of their pixels flagged.
+
+    A line off one side only is a step's line or a defect line beside a step (at 0.9, the second
+    column of a 1.15 step reads 1.035 of the low side): it is judged against its side of a step
+    fitted to it and its neighbours (:func:`_off_fitted_step`). Limit: a defect line right at the
+    step, reading between the two sides, is the step's edge to the fit and is not found."""
     other = 1 - axis
     if rel.shape[other] < MIN_LINE_PIXELS:
         return np.zeros(0, np.intp), np.zeros(0, np.uint32)
-    med = np.median(rel, axis=other)
+    if skip is not None and skip.any():
+        rel = np.where(skip, np.float32(np.nan), rel)
+        med = _nanmedian(rel, other)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            frac = np.nanmean(np.where(skip, np.nan, flagged.astype(np.float32)), axis=other)
+    else:
+        med = np.median(rel, axis=other)
+        frac = flagged.mean(axis=other)
     n, k = med.size, LINE_REACH
     # mirrored at the frame's edges: a defect line at the edge is judged by the lines inside
     padded = np.pad(med, k, mode="reflect" if n > 1 else "edge")
     windows = np.lib.stride_tricks.sliding_window_view(padded, k)
-    left, right = np.median(windows[:n], axis=1), np.median(windows[k + 1 : k + 1 + n], axis=1)
-    frac = flagged.mean(axis=other)
+    left, right = _nanmedian(windows[:n], 1), _nanmedian(windows[k + 1 : k + 1 + n], 1)
     bits = np.zeros(n, np.uint32)
     low, high = 1 - th.line_deviation, 1 + th.line_deviation
-    bits[(med < low * left) & (med < low * right)] |= np.uint32(PixelFlag.UNDER_RESPONDING)
+    for off, bit in (
+        (lambda v, r: v < low * r, PixelFlag.UNDER_RESPONDING),
+        (lambda v, r: v > high * r, PixelFlag.OVER_RESPONDING),
+    ):
+        one_sided = off(med, left) != off(med, right)
+        beside_step = _off_fitted_step(off, med, padded, k, one_sided)
+        bits[_whole_bands(off, med, left, right, MAX_LINE_BAND, beside_step)] |= np.uint32(bit)
     bits[med < th.dead_below] |= np.uint32(PixelFlag.DEAD)
-    bits[(med > high * left) & (med > high * right)] |= np.uint32(PixelFlag.OVER_RESPONDING)
     if std is not None:
         line_std = np.nanmedian(std, axis=other)
         bits[line_std > th.line_noise_factor * np.nanmedian(std)] |= np.uint32(PixelFlag.NOISY)
@@ -616,7 +709,7 @@ class Calibration:
                     f"flats are not brighter than darks (median flat - dark = {np.median(response):.3g} "
                     "counts): was the beam on for the flats?"
                 )
-            mask, rows_idx, cols_idx, n_flat_saturated = _defect_map(
+            mask, rows_idx, cols_idx, n_flat_saturated, (sat_rows, sat_cols) = _defect_map(
                 flat, dark_std, response, th, clipped, n_flats=flats.shape[0]
             )
             _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
@@ -627,7 +720,9 @@ class Calibration:
         bright = _bright_darks(float(np.median(dark)), _known_top(th.saturation, given, dark, flat))
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
-        many = _too_many_lines(rows_idx, cols_idx)  # after the refusals: a refused map needs no more words
+        # after the refusals: a refused map needs no more words; the saturation's lines are said
+        # with the saturation, and are none of the manual's 20
+        many = _too_many_lines(np.setdiff1d(rows_idx, sat_rows), np.setdiff1d(cols_idx, sat_cols))
         if many:
             warnings.warn(many, CalibrationWarning, stacklevel=3)
         good = mask == 0
@@ -1293,10 +1388,11 @@ def _reference_response(response, th: Thresholds) -> np.ndarray:
 
 
 def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
-    """The pixel mask (:class:`PixelFlag` bits), the defect rows and columns, and how many pixels
-    of the flat are saturated (see :meth:`Calibration.from_frames`' notes): at the top in the
+    """The pixel mask (:class:`PixelFlag` bits), the rows and columns filled as lines, how many
+    pixels of the flat are saturated (see :meth:`Calibration.from_frames`' notes): at the top in the
     average or, ``clipped`` (:func:`clipped_samples`, of ``n_flats`` frames), in any frame whose
-    sample the average kept."""
+    sample the average kept; and (rows, columns) of those lines that are lines only by the flats'
+    saturation, no defect lines."""
     mask = np.zeros(flat.shape, np.uint32)
     local = _reference_response(response, th)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -1325,16 +1421,48 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     flagged = mask != 0
     rows_idx, rows_bits = _line_flags(rel, dark_std, flagged, th, axis=0)
     cols_idx, cols_bits = _line_flags(rel, dark_std, flagged, th, axis=1)
+    sat_lines = (np.zeros(0, np.intp), np.zeros(0, np.intp))
+    if n_flat_saturated:
+        # Lines are judged again without the flats' saturated pixels: those found only with them
+        # are the saturation's, not defect lines. Why: a heel flat clipped over its brightest 23-28
+        # columns made them "defect lines", counted against the manual's 20 with a gain step's
+        # advice (review s42rr). They are still filled as lines: a mostly clipped line's few
+        # unclipped pixels are those whose flat read low, and filled from them a 0.5 transmission
+        # came out 0.5 % high where the line beside it gives it unbiased.
+        real_rows, real_row_bits = _line_flags(rel, dark_std, flagged, th, axis=0, skip=saturated)
+        real_cols, real_col_bits = _line_flags(rel, dark_std, flagged, th, axis=1, skip=saturated)
+        sat_lines = (np.setdiff1d(rows_idx, real_rows), np.setdiff1d(cols_idx, real_cols))
+        rows_idx, rows_bits = _merge_lines(rows_idx, rows_bits, real_rows, real_row_bits)
+        cols_idx, cols_bits = _merge_lines(cols_idx, cols_bits, real_cols, real_col_bits)
     mask[rows_idx, :] |= rows_bits[:, None]
     mask[:, cols_idx] |= cols_bits[None, :]
     if n_flat_saturated:
         warnings.warn(
             f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation})"
-            f"{_clipped_text(clipped, n_flats)}; they are flagged, but lower the flat exposure",
+            f"{_clipped_text(clipped, n_flats)}{_saturated_lines_text(*sat_lines)}; "
+            "they are flagged, but lower the flat exposure",
             CalibrationWarning,
             stacklevel=4,  # _defect_map, _from_averages, from_frames: the caller's line
         )
-    return mask, rows_idx, cols_idx, n_flat_saturated
+    return mask, rows_idx, cols_idx, n_flat_saturated, sat_lines
+
+
+def _merge_lines(idx, bits, idx2, bits2):
+    """The union of two sets of lines (indices, flag bits), bits of a line in both OR-ed."""
+    lines = np.union1d(idx, idx2)
+    out = np.zeros(lines.size, np.uint32)
+    for i, b in ((idx, bits), (idx2, bits2)):
+        out[np.searchsorted(lines, i)] |= b
+    return lines, out
+
+
+def _saturated_lines_text(rows, cols) -> str:
+    """ "; columns 233-255 are filled as lines for it (saturated lines, not defect lines)"
+    for the warning of saturated flat pixels; "" where there are none."""
+    found = [f"{name} {_runs(idx)}" for name, idx in (("rows", rows), ("columns", cols)) if idx.size]
+    if not found:
+        return ""
+    return f"; {' and '.join(found)} are filled as lines for it (saturated lines, not defect lines)"
 
 
 def clipped_floor(n_frames: int) -> int:
