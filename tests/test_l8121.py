@@ -2959,6 +2959,19 @@ def test_a_count_mode_or_reply_wait_out_of_range_is_refused(tmp_path, key, value
     assert "\n" not in str(info.value)
 
 
+def test_a_lowered_current_limit_is_not_refused_for_a_tolerance_nobody_gave(tmp_path):
+    """Review s42rr2: ``ua_max = 8`` alone was refused, "ua_tolerance = 5.0: 5 µA at 8 µA counts as
+    stable ...", for the driver's default tolerance the user never wrote (the base took the file).
+    A tolerance given is still judged at the highest current allowed."""
+    from acquisition.protocols import load_protocol
+
+    assert SourceConfig(ua_max=8).ua_max == 8
+    source = {"ua_max": 8, "current_ua": 8, "voltage_kv": 40}
+    load_protocol({"output": str(tmp_path / "x.h5"), "source": source, "series": {"steps": [0.1]}})
+    with pytest.raises(ValueError, match=r"ua_tolerance = 6: 6 µA at 8 µA"):
+        SourceConfig(ua_max=8, ua_tolerance=6)
+
+
 def test_whole_numbers_of_numpy_are_taken_and_stored_as_python_ints():
     import numpy as np
 
