@@ -466,6 +466,7 @@ NO_SIGNAL_QUANTILE = 0.9
 #: the frame beside a collimator's lead
 OPEN_FIELD_QUANTILE = 0.99
 OPEN_FIELD_SHARE = 0.1
+MAX_OPEN_FIELD = 1.5  #: an open field above this share of the flats' level is no beam's
 
 
 def no_signal_level(cal: Calibration) -> float | None:
@@ -493,9 +494,11 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
     step = max(1, min(raw2d.shape) // 128)  # as brighter_than_flats: a fraction of a frame's budget
     s = (slice(None, None, step), slice(None, None, step))
     valid = cal.mask[s] == 0
+    raw = np.asarray(raw2d[s], np.float32)[valid]
     with np.errstate(over="ignore"):  # float64 past float32's range: refused as such by the correction
-        signal = (np.asarray(raw2d[s], np.float32) - cal.dark[s])[valid]
-    signal = signal[np.isfinite(signal)]  # a NaN made the median NaN, and the frame passed
+        signal = raw - cal.dark[s][valid]
+    finite = np.isfinite(signal)  # a NaN made the median NaN, and the frame passed
+    signal, raw = signal[finite], raw[finite]
     if not signal.size:
         return
     level = no_signal_level(cal)
@@ -508,8 +511,14 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
         level = cal.thresholds.eps
         # a frame mostly behind a collimator or a dense object: the median at the dark, but an
         # open field at a tenth of the flats' level or more (review s42rr: 91 % behind lead was
-        # refused); a noisy beam-off frame's top percent is a few of its noise above the dark
-        if float(np.quantile(signal, OPEN_FIELD_QUANTILE)) > OPEN_FIELD_SHARE * cal.c:
+        # refused); a noisy beam-off frame's top percent is a few of its noise above the dark.
+        # The open field is the beam's: below the ADC's top and not far above the flats (two
+        # saturated rows of a beam-off frame passed, review s42rr2)
+        sat = cal.thresholds.saturation
+        beam = (signal > OPEN_FIELD_SHARE * cal.c) & (signal <= MAX_OPEN_FIELD * cal.c)
+        if sat is not None:
+            beam &= raw < sat
+        if np.count_nonzero(beam) >= (1 - OPEN_FIELD_QUANTILE) * signal.size:
             return
     if seen <= level:
         raise ValueError(
