@@ -211,11 +211,17 @@ def _share_text(z):
     return "not measurable" if z is None else f"{100 * z:.0f} %"
 
 
-def _control_sentence(domain, k, if_stiff, if_control):
+def _if_value(v, se=None):
+    """An improvement factor to its standard error's place (:func:`radiokit.results.value_pm`),
+    the error printed where known."""
+    return _fmt(None) if _num(v) is None else value_pm(v, se)
+
+
+def _control_sentence(domain, k, if_stiff, if_control, se_stiff=None, se_control=None):
     z = stiffness_share(if_stiff, if_control)
     head = (
         f"In the {domain} domain, the control's improvement at {_k_label(k)} is "
-        f"{_fmt(if_control)} vs {_fmt(if_stiff)}: "
+        f"{_if_value(if_control, se_control)} vs {_if_value(if_stiff, se_stiff)}: "
     )
     if z is None:
         body = (
@@ -460,7 +466,7 @@ def _fig_rois(images, results, fig_dir):
             _draw_rois(ax, results.rois)
             title = f"{dom}: {label}\nC = {_fmt(contrast, '.4g')}"
             if factor is not None:
-                title += f" (\u00d7{_fmt(factor)})"
+                title += f" (\u00d7{_fmt(factor, '.3f')})"
             ax.set_title(title, fontsize=8)
             _style_image_axes(ax, ticks=False)
     name = "rois.png"
@@ -804,10 +810,11 @@ def _plain_language(results, paper):
     if results.control is not None:
         k0 = _main_k(results.ks)
         if_s = results.domains[results.domain].at(k0).improvement_factor
-        if_c = results.control.domains[results.domain].at(k0).improvement_factor
+        control = results.control.domains[results.domain].at(k0)
+        if_c = control.improvement_factor
         out.append(
             f"A control run of the same scene with the inclusion as soft as the background "
-            f"improves the contrast by {_fmt(if_c)} at {_k_label(k0)}: the share of the gain that "
+            f"improves the contrast by {_if_text(control)} at {_k_label(k0)}: the share of the gain that "
             f"needs the inclusion's stiffness is {_share_text(stiffness_share(if_s, if_c))} (details below)."
         )
     return " ".join(out)
@@ -925,7 +932,17 @@ def _control_section(results):
                 )
             )
         k0 = _main_k(results.ks)
-        sentences.append(_control_sentence(dom, k0, s.at(k0).improvement_factor, c.at(k0).improvement_factor))
+        ms, mc = s.at(k0), c.at(k0)
+        sentences.append(
+            _control_sentence(
+                dom,
+                k0,
+                ms.improvement_factor,
+                mc.improvement_factor,
+                ms.improvement_factor_se,
+                mc.improvement_factor_se,
+            )
+        )
     for p in results.pairs:
         ctrl = control.pair(p.name) if _has_pair(control, p.name) else None
         rows += [

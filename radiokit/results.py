@@ -76,7 +76,12 @@ def pm(se) -> str:
     "0.0" claimed a digit)."""
     if se is None:
         return ""
-    return " \u00b1 0" if float(se) == 0 else f" \u00b1 {float(se):#.2g}"
+    s = float(se)
+    if not math.isfinite(s):
+        return " \u00b1 n/a"  # not estimable ("± nan" read as a number)
+    if s == 0:
+        return " \u00b1 0"
+    return f" \u00b1 {s:.0f}" if s >= 10 else f" \u00b1 {s:#.2g}"  # "12." and "1.5e+02" were #.2g's
 
 
 def value_pm(value, se, decimals: int = 2) -> str:
@@ -86,11 +91,17 @@ def value_pm(value, se, decimals: int = 2) -> str:
 
     >>> value_pm(0.98493, 0.00401), value_pm(0.7671, 0.23, 3), value_pm(1.5, None)
     ('0.9849 \u00b1 0.0040', '0.767 \u00b1 0.23', '1.50')
+    >>> value_pm(1.23456789, 1e-12), value_pm(1234.5, 12), value_pm(1.1, float("nan"))
+    ('1.234568 \u00b1 1.0e-12', '1234.50 \u00b1 12', '1.10 \u00b1 n/a')
     """
     s = float(se) if se is not None else math.nan
     if math.isfinite(s) and s > 0:
-        decimals = max(decimals, 1 - math.floor(math.log10(s)))
+        # at most 6 places: an error of 1e-12 (noise-free data) asked for 13 digits, 1e-300 for 300
+        decimals = min(max(decimals, 1 - math.floor(math.log10(s))), max(decimals, _MAX_PLACES))
     return f"{float(value):.{decimals}f}{pm(se)}"
+
+
+_MAX_PLACES = 6
 
 
 @dataclass(frozen=True)
