@@ -356,11 +356,14 @@ class SourceConfig:
             )
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
-        # a tolerance given here (the defaults are not the user's: ua_max = 8 alone was refused for
-        # the default 5 uA, review s42rr2) at the lowest voltage this configuration allows (exact: a
-        # kV setting is never lower) and the highest current (the tightest bound that holds
-        # whatever current is asked; a protocol checks the ones it gives at its own setting,
-        # _check_source); a percentage is checked exactly by both
+        self._check_given_tolerances()
+
+    def _check_given_tolerances(self) -> None:
+        """A tolerance given here (the defaults are not the user's: ``ua_max = 8`` alone was refused
+        for the default 5 µA, review s42rr2) at the lowest voltage this configuration allows
+        (exact: a kV setting is never lower) and the highest current (the tightest bound that
+        holds whatever current is asked; a protocol checks the ones it gives at its own setting,
+        ``_check_source``); a percentage is checked exactly by both."""
         defaults = {f.name: f.default for f in dataclasses.fields(self)}
         given = [key for key in ("kv_tolerance", "ua_tolerance") if getattr(self, key) != defaults[key]]
         ua_hi = min(self.ua_max, RATINGS.ua_max)

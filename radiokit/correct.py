@@ -494,8 +494,8 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
     step = max(1, min(raw2d.shape) // 128)  # as brighter_than_flats: a fraction of a frame's budget
     s = (slice(None, None, step), slice(None, None, step))
     valid = cal.mask[s] == 0
-    raw = np.asarray(raw2d[s], np.float32)[valid]
     with np.errstate(over="ignore"):  # float64 past float32's range: refused as such by the correction
+        raw = np.asarray(raw2d[s], np.float32)[valid]
         signal = raw - cal.dark[s][valid]
     finite = np.isfinite(signal)  # a NaN made the median NaN, and the frame passed
     signal, raw = signal[finite], raw[finite]

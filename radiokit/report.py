@@ -217,6 +217,16 @@ def _if_value(v, se=None):
     return _fmt(None) if _num(v) is None else value_pm(v, se)
 
 
+def _factor_and_se(stiff, control) -> tuple:
+    """:func:`_control_sentence`'s numbers from two :class:`radiokit.results.KMeasure`."""
+    return (
+        stiff.improvement_factor,
+        control.improvement_factor,
+        stiff.improvement_factor_se,
+        control.improvement_factor_se,
+    )
+
+
 def _control_sentence(domain, k, if_stiff, if_control, se_stiff=None, se_control=None):
     z = stiffness_share(if_stiff, if_control)
     head = (
@@ -932,17 +942,7 @@ def _control_section(results):
                 )
             )
         k0 = _main_k(results.ks)
-        ms, mc = s.at(k0), c.at(k0)
-        sentences.append(
-            _control_sentence(
-                dom,
-                k0,
-                ms.improvement_factor,
-                mc.improvement_factor,
-                ms.improvement_factor_se,
-                mc.improvement_factor_se,
-            )
-        )
+        sentences.append(_control_sentence(dom, k0, *_factor_and_se(s.at(k0), c.at(k0))))
     for p in results.pairs:
         ctrl = control.pair(p.name) if _has_pair(control, p.name) else None
         rows += [
