@@ -747,6 +747,18 @@ def _correlation_reach(g1: float, g2: float) -> tuple[int, float]:
     return int(min(_MAX_LAG, max(2, math.ceil(4 * tau) + 1))), a
 
 
+def _se_inputs(first, second, inclusion, background) -> tuple[np.ndarray, np.ndarray]:
+    """The two ``(name, image)`` of a standard error's pair as arrays, checked: ROIs that are
+    rectangles, images of one shape."""
+    (n1, x), (n2, y) = first, second
+    x, y = _image(x, n1), _image(y, n2)
+    for roi, name in ((inclusion, "inclusion"), (background, "background")):
+        _rectangle(roi, name)
+    if x.shape != y.shape:
+        raise ValueError(f"{n1} has shape {x.shape}, {n2} has {y.shape}")
+    return x, y
+
+
 def improvement_factor_se(reference, registered, k, inclusion: ROI, background: ROI) -> float:
     """The standard error of :func:`improvement_factor` for ``enhanced = reference + k (D - mean D)``.
 
@@ -758,11 +770,7 @@ def improvement_factor_se(reference, registered, k, inclusion: ROI, background: 
     which keeps the noise the two steps share (the flat field's, where the tissue did not move).
     ``nan`` where the reference contrast is zero.
     """
-    ref, reg = _image(reference, "reference"), _image(registered, "registered")
-    for roi, name in ((inclusion, "inclusion"), (background, "background")):
-        _rectangle(roi, name)
-    if ref.shape != reg.shape:
-        raise ValueError(f"reference has shape {ref.shape}, registered has {reg.shape}")
+    ref, reg = _se_inputs(("reference", reference), ("registered", registered), inclusion, background)
     d = np.asarray(ref, np.float64) - np.asarray(reg, np.float64)
     c_r = contrast(ref, inclusion, background)
     if c_r == 0:
@@ -789,11 +797,7 @@ def change_ratio_se(before, after, inclusion: ROI, background: ROI, *, min_z: fl
     level) the background did not measurably change: the ratio is ``nan`` and ``reason`` says so,
     with the background's change and its standard error; ``reason`` is ``""`` otherwise.
     """
-    b, a = _image(before, "before"), _image(after, "after")
-    for roi, name in ((inclusion, "inclusion"), (background, "background")):
-        _rectangle(roi, name)
-    if a.shape != b.shape:
-        raise ValueError(f"before has shape {b.shape}, after has {a.shape}")
+    b, a = _se_inputs(("before", before), ("after", after), inclusion, background)
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
     d_in = float(_region(d, inclusion, "inclusion", "after - before").mean())
     d_bg = float(_region(d, background, "background", "after - before").mean())
