@@ -461,10 +461,11 @@ NO_SIGNAL_SIGMAS = 3.0
 # told from a dim frame.
 #: the share of a frame's pixels judged by their highest: its brightest tenth
 NO_SIGNAL_QUANTILE = 0.9
-#: a frame whose median is at the dark still holds signal where this quantile of it lies above
-#: ``OPEN_FIELD_SHARE`` of the flats' level (``Calibration.c``): an open field of a percent of
-#: the frame beside a collimator's lead
-OPEN_FIELD_QUANTILE = 0.99
+#: a frame whose median is at the dark still holds signal where this share of its pixels lies in
+#: the beam's range, ``OPEN_FIELD_SHARE`` to ``MAX_OPEN_FIELD`` of the flats' level
+#: (``Calibration.c``) and below the ADC's top: an open field of a percent of the frame beside a
+#: collimator's lead
+OPEN_FIELD_FRACTION = 0.01
 OPEN_FIELD_SHARE = 0.1
 MAX_OPEN_FIELD = 1.5  #: an open field above this share of the flats' level is no beam's
 
@@ -483,8 +484,8 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
     """Refuse a frame that holds no signal: its 90th percentile (defects and NaN aside; about 128 x
     128 pixels sampled) no more than :func:`no_signal_level` above the dark, or its median no
     more than ``thresholds.eps`` above it (the only test where the dark's noise is not recorded)
-    unless its top percent lies above a tenth of the flats' level (an open field beside a
-    collimator, :data:`OPEN_FIELD_SHARE`).
+    unless a percent of it lies in the beam's range (an open field beside a collimator,
+    :data:`OPEN_FIELD_FRACTION`).
 
     :func:`correct_frames` clamps and fills such a frame (a beam-off frame stays finite); a caller
     that takes the frame for data calls this (``radiokit correct`` and ``process`` each frame).
@@ -518,7 +519,7 @@ def check_above_dark(cal: Calibration, raw2d) -> None:
         beam = (signal > OPEN_FIELD_SHARE * cal.c) & (signal <= MAX_OPEN_FIELD * cal.c)
         if sat is not None:
             beam &= raw < sat
-        if np.count_nonzero(beam) >= (1 - OPEN_FIELD_QUANTILE) * signal.size:
+        if np.count_nonzero(beam) >= OPEN_FIELD_FRACTION * signal.size:
             return
     if seen <= level:
         raise ValueError(
