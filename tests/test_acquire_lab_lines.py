@@ -169,7 +169,9 @@ def test_a_stop_outlasting_the_detectors_time_out_is_named_as_the_stop_not_the_d
     ours = [ln for ln in lines if not ln.startswith("X-ray guardian:")]
     assert [ln for ln in ours if "watchdog switched X-rays off" in ln] == errors, lines
     assert any("sent nothing for 5 s" in ln for ln in lines if ln.startswith("X-ray guardian:")), lines
-    assert run.logged("watchdog switched X-rays off") >= 2, "the notebook keeps the monitor's trip and the error"
+    # the notebook keeps the run's error; the monitor's trip (INFO) is there too only when the monitor
+    # polled before the main thread met the watchdog's word, a race CI lost once (1 line, not 2)
+    assert run.logged("watchdog switched X-rays off") >= 1, "the notebook keeps the run's error"
     assert lines[-1].startswith("tube off (confirmed by STS"), lines[-6:]
 
 
