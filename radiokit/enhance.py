@@ -259,20 +259,30 @@ def compression_contrast(
         raise ValueError(f"k must be a finite real number, got {k!r}")
     _check_sign(ref, "reference", domain)
     _check_sign(reg, "registered", domain)
-    ref64 = np.asarray(ref, np.float64)
-    d = ref64 - reg
+    # D is the one float64 work image, turned in place into the enhanced image: with the float32
+    # result, 3 frames at the peak where a temporary per operation held 7 (80 MB more at 2240 px,
+    # per k and domain); the same float64 operations in the same order, so the same result
+    d = np.subtract(ref, reg, dtype=np.float64)
+    mean_d = _mean_over(d, mask)
+    d -= mean_d
+    d *= float(k)
+    d += ref
+    return d.astype(np.float32)
+
+
+def _mean_over(d: np.ndarray, mask) -> float:
+    """``mean D`` over ``mask`` (None: the whole image; an ROI; a bool image), without copying the
+    selected pixels (``d[m]`` is up to 2 more frames)."""
     if mask is None:
-        mean_d = d.mean()
-    elif isinstance(mask, ROI):
-        mean_d = d[mask.check(d.shape, "mask").slices].mean()
-    else:
-        refuse_masked(mask, "mask")
-        m = np.asarray(mask)
-        if m.dtype != bool:
-            raise ValueError(f"mask must be a boolean array or an ROI, got dtype {m.dtype}")
-        if m.shape != d.shape:
-            raise ValueError(f"mask has shape {m.shape}, reference has {d.shape}")
-        if not m.any():
-            raise ValueError("mask is empty (no True pixel): mean D is undefined")
-        mean_d = d[m].mean()
-    return (ref64 + float(k) * (d - mean_d)).astype(np.float32)
+        return float(d.mean())
+    if isinstance(mask, ROI):
+        return float(d[mask.check(d.shape, "mask").slices].mean())
+    refuse_masked(mask, "mask")
+    m = np.asarray(mask)
+    if m.dtype != bool:
+        raise ValueError(f"mask must be a boolean array or an ROI, got dtype {m.dtype}")
+    if m.shape != d.shape:
+        raise ValueError(f"mask has shape {m.shape}, reference has {d.shape}")
+    if not m.any():
+        raise ValueError("mask is empty (no True pixel): mean D is undefined")
+    return float(np.mean(d, where=m))
