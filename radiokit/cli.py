@@ -202,7 +202,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "saturation": top,
         "saturation_from": basis if top is not None else None,
         "nonfinite": nonfinite,
-        "metadata": _summary(src.meta) | _stack_domain(path, src.meta),
+        "metadata": _summary(src.meta) | _stack_domain(path, src.meta) | _assumed_pitch(path, src.meta),
     }
 
 
@@ -235,6 +235,30 @@ def _stack_domain(path, meta: dict) -> dict:
                 value = h5[STACK].attrs.get("domain")
     value = value.decode(errors="replace") if isinstance(value, bytes) else value
     return {"domain": _DOMAINS.get(value, value)} if isinstance(value, str) and value else {}
+
+
+def _assumed_pitch(path, meta: dict) -> dict:
+    """``{"pixel_size": "not recorded (assumed N µm)"}`` for a results.h5 whose run assumed its
+    pitch: the file leaves NeXus's x_pixel_size out then (it would state the pitch as the data's),
+    and its embedded results.json says ``pixel_size_recorded: false``; else nothing."""
+    from radiokit.io._results import ENTRY, RESULTS_STEPS
+
+    if meta.get("format") != "hdf5" or meta.get("dataset", "").rsplit("/", 1)[0] != f"/{RESULTS_STEPS}":
+        return {}
+    if meta.get("pixel_size_mm") is not None:
+        return {}
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        text = h5[ENTRY].attrs.get("results_json")
+    try:
+        numbers = json.loads(text.decode() if isinstance(text, bytes) else text)
+        pitch = float(numbers["pixel_size_mm"]) * 1e3
+    except (TypeError, ValueError, KeyError, AttributeError, RecursionError):  # not radiokit's JSON: say nothing
+        return {}
+    if numbers.get("pixel_size_recorded") is not False or not math.isfinite(pitch):
+        return {}
+    return {"pixel_size": f"not recorded (assumed {pitch:.6g} \u00b5m)"}
 
 
 def _escaped(value) -> str:

@@ -1126,3 +1126,36 @@ def test_a_user_without_a_home_folder_gets_no_matplotlib_lines(home, tmp_path):
     assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "matplotlib" not in res.stderr.lower() and "MPLCONFIGDIR" not in res.stderr, res.stderr
     assert list(scratch.iterdir()) == []
+
+
+@pytest.mark.parametrize("recorded", [False, True])
+def test_info_on_results_h5_says_an_assumed_pitch_was_not_recorded(tmp_path, recorded):
+    """Review s43: results.h5 of a file that records no pixel size leaves x_pixel_size out (its
+    pitch was assumed), and `info` then printed no pitch and no note; results.json's
+    pixel_size_recorded says it, and the assumed pitch is in the embedded JSON."""
+    from radiokit.io import ResultsRecord, write_results
+
+    path = tmp_path / "results.h5"
+    numbers = {"schema_version": "1.4", "pixel_size_mm": 0.05, "pixel_size_recorded": recorded}
+    write_results(
+        path,
+        ResultsRecord(
+            source="exp.h5",
+            results_json=json.dumps(numbers),
+            line_integral=np.zeros((2, 8, 8), np.float32),
+            step=np.array([1, 2]),
+            ratio=np.array([0.1, 0.2]),
+            crop=np.array([0, 8, 0, 8]),
+            pair=(1, 2),
+            pixel_size_mm=0.05 if recorded else None,
+        ),
+    )
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    pitch = [ln for ln in res.stdout.splitlines() if ln.split()[:1] in (["pixel_size"], ["pixel_size_mm"])]
+    if recorded:
+        assert [ln.split() for ln in pitch] == [["pixel_size_mm", "0.05"]], res.stdout
+    else:
+        assert [ln.split(None, 1) for ln in pitch] == [["pixel_size", "not recorded (assumed 50 \u00b5m)"]], res.stdout
+        meta = json.loads(run_cli("info", "--json", path).stdout)[0]["metadata"]
+        assert meta["pixel_size"] == "not recorded (assumed 50 \u00b5m)" and "pixel_size_mm" not in meta
