@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import operator
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -391,6 +392,17 @@ def improvement_factor(enhanced, reference, inclusion, background) -> float:
     ``enhanced = reference + k (D - mean D)`` (:func:`radiokit.enhance.compression_contrast`) it
     equals ``1 + k (mean_incl D - mean_bg D) / contrast(reference)``: the mean of D drops out.
 
+    Parameters
+    ----------
+    enhanced : (rows, cols) array
+        The enhanced image. **It comes first, before the reference**: the opposite of
+        :func:`improvement_factor_se`, which takes the pair the enhancement was made of
+        (``reference, registered``). Swapped, the images give ``1 / IF``, and nothing can tell
+        (both orders are two images of one shape): pass them by keyword, as in the example.
+    reference : (rows, cols) array
+        The reference (the most compressed step), in the same domain.
+    inclusion, background : ROI or (rows, cols) bool array
+
     Raises
     ------
     ValueError
@@ -402,6 +414,19 @@ def improvement_factor(enhanced, reference, inclusion, background) -> float:
     >>> enh = ref * 1.5
     >>> improvement_factor(enh, ref, ROI(0, 4, 0, 2), ROI(0, 4, 2, 4))
     1.5
+
+    With its standard error, every image named (the two functions take different images):
+
+    >>> from radiokit.enhance import compression_contrast
+    >>> rng = np.random.default_rng(0)
+    >>> ref = 1 + 0.2 * ROI(8, 16, 8, 16).mask((24, 24)) + 0.01 * rng.standard_normal((24, 24))
+    >>> reg = ref + 0.05 - 0.02 * ROI(8, 16, 8, 16).mask((24, 24))    # it darkened less on compression
+    >>> enh = compression_contrast(ref, reg, k=1.0)
+    >>> inc, bg = ROI(10, 14, 10, 14), ROI(10, 14, 2, 6)
+    >>> f = improvement_factor(enhanced=enh, reference=ref, inclusion=inc, background=bg)
+    >>> se = improvement_factor_se(reference=ref, registered=reg, k=1.0, inclusion=inc, background=bg)
+    >>> abs(f - 1.1) < 3 * se < 0.05                                # 1 + k C_D / C_R = 1 + 0.02 / 0.2
+    True
     """
     enh, ref = _image(enhanced, "enhanced"), _image(reference, "reference")
     if enh.shape != ref.shape:
@@ -759,8 +784,31 @@ def _se_inputs(first, second, inclusion, background) -> tuple[np.ndarray, np.nda
     return x, y
 
 
+def _warn_if_enhanced(d: np.ndarray, ref: np.ndarray, reg: np.ndarray) -> None:
+    """Warn when ``d = reference - registered`` is an enhanced image minus its reference: not zero,
+    but zero-mean to float32's rounding of the images (half an ulp a pixel at most), where a
+    compressed pair's difference is the thinning's, orders of magnitude above that."""
+    rounding = float(np.finfo(np.float32).eps) * (np.mean(np.abs(ref)) + np.mean(np.abs(reg)))
+    if abs(d.mean()) <= rounding < 1e-3 * d.std():
+        warnings.warn(
+            "improvement_factor_se: reference - registered has zero mean to rounding, as an enhanced image "
+            "minus its reference does (k (D - mean D)): it takes the pair the enhancement was made of, "
+            "improvement_factor_se(reference=..., registered=..., k=...), where improvement_factor takes "
+            "(enhanced, reference)",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def improvement_factor_se(reference, registered, k, inclusion: ROI, background: ROI) -> float:
     """The standard error of :func:`improvement_factor` for ``enhanced = reference + k (D - mean D)``.
+
+    It takes the pair the enhanced image was made of, **reference first, then registered**, and
+    ``k``; :func:`improvement_factor` takes ``(enhanced, reference)``: name the images by keyword
+    (its example has both). An enhanced image given as either image is caught where it can be: an
+    enhanced image minus its reference, ``k (D - mean D)``, has zero mean to rounding, which the
+    difference of two compression steps does not; a UserWarning says so (the number returned is
+    then not the standard error of anything measured).
 
     ``IF = 1 + k C_D / C_R`` with ``D = reference - registered`` (``C`` the contrast of an image),
     so by the delta method ``Var IF = k^2 / C_R^2 [Var C_D - 2 q Cov(C_D, C_R) + q^2 Var C_R]``,
@@ -772,6 +820,7 @@ def improvement_factor_se(reference, registered, k, inclusion: ROI, background: 
     """
     ref, reg = _se_inputs(("reference", reference), ("registered", registered), inclusion, background)
     d = np.asarray(ref, np.float64) - np.asarray(reg, np.float64)
+    _warn_if_enhanced(d, ref, reg)
     c_r = contrast(ref, inclusion, background)
     if c_r == 0:
         return math.nan

@@ -254,6 +254,38 @@ def test_sign_convention_inclusion_that_loses_less_attenuation_gets_brighter(dom
     assert f2 - 1 == pytest.approx(2 * (f1 - 1), rel=1e-4)
 
 
+def _noisy_pair(rng, n=48):
+    """A reference (a brighter square in a noisy slab) and the step before it, which every pixel
+    of darkened less on compression (mean D = -0.05), its square less still."""
+    ref = 1.0 + 0.2 * ROI(16, 32, 16, 32).mask((n, n)) + 0.01 * rng.standard_normal((n, n))
+    d = -0.05 + 0.02 * ROI(16, 32, 16, 32).mask((n, n)) + 0.01 * rng.standard_normal((n, n))
+    return ref.astype(np.float32), (ref - d).astype(np.float32)
+
+
+def test_improvement_factor_se_warns_when_handed_an_enhanced_image():
+    """Review s43: improvement_factor takes (enhanced, reference), improvement_factor_se
+    (reference, registered, k); the same order given to both returned a wrong number in silence.
+    An enhanced image minus its reference is k (D - mean D), zero-mean to rounding, which the
+    difference of a compressed pair never is: that is caught wherever the enhanced image went."""
+    import warnings
+
+    from radiokit.measure import improvement_factor_se
+
+    ref, reg = _noisy_pair(np.random.default_rng(5))
+    inc, bg = ROI(20, 28, 20, 28), ROI(20, 28, 4, 12)
+    enh = compression_contrast(ref, reg, 2.0)
+    for pair in ((enh, ref), (ref, enh)):
+        with pytest.warns(UserWarning, match=r"improvement_factor_se: reference - registered has zero mean.*enhanced"):
+            improvement_factor_se(*pair, 2.0, inc, bg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        se = improvement_factor_se(reference=ref, registered=reg, k=2.0, inclusion=inc, background=bg)
+        by_keyword = improvement_factor(reference=ref, enhanced=enh, inclusion=inc, background=bg)
+    assert by_keyword == improvement_factor(enh, ref, inc, bg)
+    # the two agree on the pair: IF = 1 + k C_D / C_R, C_D = 0.02, C_R = 0.2, within a few SEs
+    assert abs(by_keyword - 1.2) < 4 * se and 0 < se < 0.1
+
+
 # -- summary -----------------------------------------------------------------------------------
 def test_summary_keys_and_values():
     ref = _six(5.0, [[1, 2], [3, 4]])
