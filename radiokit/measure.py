@@ -46,9 +46,10 @@ __all__ = [
 ]
 
 #: The paper's numbers, what every table compares with: contrast improvement of about 1.4
-#: (k = 1) and 2 (k = 2), and the inclusion/background intensity-change ratio of the authors'
-#: earlier study, 0.66-0.84.
-PAPER = {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]}
+#: (k = 1) and 2 (k = 2), keyed by k as :func:`summary` and ``Results.improvement_factor`` are
+#: (results.json writes the keys as text, "1"), and the inclusion/background intensity-change
+#: ratio of the authors' earlier study, 0.66-0.84.
+PAPER = {"improvement_factor": {1.0: 1.4, 2.0: 2.0}, "change_ratio": [0.66, 0.84]}
 
 
 # -- the rectangle -----------------------------------------------------------------------------
@@ -863,10 +864,12 @@ def change_ratio_se(before, after, inclusion: ROI, background: ROI, *, min_z: fl
     return float(ratio), float(se), ""
 
 
-def _k_key(k) -> str:
-    if isinstance(k, str):
-        return k
-    return f"{float(k):g}"
+def _k_key(k) -> float:
+    """An enhancement factor as the number it is (``1``, ``1.0`` and ``"1"`` -> ``1.0``)."""
+    try:
+        return float(k)
+    except (TypeError, ValueError):
+        raise ValueError(f"enhanced_by_k: k = {k!r} is not a number") from None
 
 
 def summary(reference, enhanced_by_k: dict, inclusion, background) -> dict:
@@ -876,23 +879,26 @@ def summary(reference, enhanced_by_k: dict, inclusion, background) -> dict:
     ----------
     reference : (rows, cols) array
     enhanced_by_k : dict
-        ``{k: enhanced image}``; keys become strings (``1`` and ``1.0`` -> ``"1"``).
+        ``{k: enhanced image}``; keys become floats (``1``, ``1.0`` and ``"1"`` -> ``1.0``), as
+        ``radiokit.results.Results.improvement_factor``'s and :data:`PAPER`'s.
     inclusion, background : ROI or bool mask
 
     Returns
     -------
     dict
-        ``{"reference": {"contrast", "cnr", "weber"}, "enhanced": {"1": {...}, ...},
-        "improvement_factor": {"1": ..., ...}, "inclusion": ..., "background": ...}`` where the
-        regions are :meth:`ROI.to_dict` (or ``None`` for masks). JSON-ready except that a
-        noiseless background makes CNR infinite.
+        ``{"reference": {"contrast", "cnr", "weber"}, "enhanced": {1.0: {...}, ...},
+        "improvement_factor": {1.0: ..., ...}, "inclusion": ..., "background": ...}`` where the
+        regions are :meth:`ROI.to_dict` (or ``None`` for masks). For JSON, whose keys are text,
+        write k as ``radiokit.results.k_label`` does (``"1"``), as results.json does.
 
     Examples
     --------
     >>> ref = np.zeros((4, 4)); ref[:, :2] = 2.0
     >>> s = summary(ref, {1: ref * 1.4, 2: ref * 2}, ROI(0, 4, 0, 2), ROI(0, 4, 2, 4))
     >>> s["improvement_factor"]
-    {'1': 1.4, '2': 2.0}
+    {1.0: 1.4, 2.0: 2.0}
+    >>> s["improvement_factor"][1] == s["improvement_factor"][1.0] == PAPER["improvement_factor"][1]
+    True
     """
     ref = _image(reference, "reference")
 
@@ -913,10 +919,10 @@ def summary(reference, enhanced_by_k: dict, inclusion, background) -> dict:
     for k, enh in enhanced_by_k.items():
         key = _k_key(k)
         if key in out["enhanced"]:
-            raise ValueError(f"enhanced_by_k has two entries for k = {key}")
-        enh = _image(enh, f"enhanced_by_k[{key}]")
+            raise ValueError(f"enhanced_by_k has two entries for k = {key:g}")
+        enh = _image(enh, f"enhanced_by_k[{key:g}]")
         if enh.shape != ref.shape:
-            raise ValueError(f"enhanced_by_k[{key}] has shape {enh.shape}, reference has {ref.shape}")
+            raise ValueError(f"enhanced_by_k[{key:g}] has shape {enh.shape}, reference has {ref.shape}")
         out["enhanced"][key] = three(enh)
         out["improvement_factor"][key] = improvement_factor(enh, ref, inclusion, background)
     return out

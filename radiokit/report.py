@@ -592,7 +592,7 @@ def _paper_range(paper):
 
 
 def _paper_if(paper, k):
-    return (paper.get("improvement_factor") or {}).get(k_label(k))
+    return (paper.get("improvement_factor") or {}).get(float(k))
 
 
 def _headline_rows(results, paper):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,6 +43,7 @@ __all__ = [
     "KMeasure",
     "DomainMeasures",
     "PairResult",
+    "PairQuality",
     "Bound",
     "Rois",
     "Results",
@@ -168,6 +170,81 @@ class DomainMeasures:
         return cls(Domain(domain), d["contrast_reference"], d["cnr_reference"], d["weber_reference"], per_k)
 
 
+class PairQuality(Mapping):
+    """A registered pair's quality as ``results.json`` records it, read-only: the numbers of
+    :class:`radiokit.register.Quality`, the pipeline's verdict (``ok`` False, with the ``reason``,
+    also where its own checks flagged the pair) and what the run chose (``preset``, ...).
+
+    Each is a typed attribute (``quality.rc_after``), None where the file records none (an older
+    radiokit's, or a method that has none); the object is also the mapping of the keys recorded,
+    in the file's order (``quality["ok"]``, ``dict(quality)``), as when it was a dict. Only what
+    is recorded is serialised, so a file reads back and writes out byte for byte.
+    """
+
+    __slots__ = ("_items",)
+
+    # radiokit.register.Quality's fields (a test keeps the two lists together)
+    rc_before: float | None
+    rc_after: float | None
+    ncc_before: float | None
+    ncc_after: float | None
+    folds: int | None
+    min_det_j: float | None
+    iterations: int | None
+    seconds: float | None
+    converged: bool | None
+    observed_fraction: float | None
+    interior_observed: float | None
+    misaligned_fraction: float | None
+    excess_kept: float | None
+    residual_motion: float | None
+    body_scale: float | None
+    affine_bound: float | None
+    disagreement: float | None
+    noise: float | None
+    ok: bool | None
+    reason: str | None
+    note: str | None
+    # what the pipeline adds (radiokit.pipeline._preset_record)
+    preset: str | None  #: a B-spline method's preset (auto's choice)
+    preset_reason: str | None  #: why auto chose it
+    initial: str | None  #: what the field started from
+    clipped_fixed: int | None  #: extreme pixels clipped before registering
+    clipped_moving: int | None
+    regularisation_check: str | None  #: the second run's preset (register(..., regularisation_check=True))
+    regularisation_check_seconds: float | None
+
+    def __init__(self, items: Mapping | None = None):
+        object.__setattr__(self, "_items", dict(items or {}))
+
+    def __getitem__(self, key):
+        return self._items[key]
+
+    def __iter__(self):
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getattr__(self, name):
+        # only where normal lookup failed: the annotated names are no class attributes
+        if name in PairQuality.__annotations__:
+            return self._items.get(name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is read-only (a record of the run): cannot set {name!r}")
+
+    def __dir__(self):
+        return sorted(set(super().__dir__()) | set(PairQuality.__annotations__))
+
+    def __reduce__(self):
+        return PairQuality, (self._items,)
+
+    def __repr__(self) -> str:
+        return f"PairQuality({self._items!r})"
+
+
 @dataclass(frozen=True)
 class PairResult:
     """One registered pair (``moving -> reference`` step numbers): its registration's quality,
@@ -176,7 +253,8 @@ class PairResult:
     moving: int
     reference: int
     method: str
-    quality: dict  #: the registration's own numbers (radiokit.register.Quality, ok and reason included)
+    #: the registration's own numbers (:class:`PairQuality`; a dict given is taken as its keys)
+    quality: PairQuality
     change_ratio: dict  #: Domain -> ratio
     rois_observed: dict | None = None  #: "inclusion"/"background" -> fraction of the ROI observed
     cross_check: dict | None = None  #: see radiokit.pipeline.cross_check
@@ -187,6 +265,10 @@ class PairResult:
     change_ratio_se: dict | None = None  #: Domain -> standard error (NaN where the ratio is)
     #: Domain -> why the ratio is NaN (the background did not measurably change); absent: measured
     change_ratio_reason: dict | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.quality, PairQuality):  # the pipeline and older callers give a dict
+            object.__setattr__(self, "quality", PairQuality(self.quality))
 
     @property
     def name(self) -> str:
@@ -282,6 +364,13 @@ class Results:
     control: Results | None = None
     pixel_size_recorded: bool = True  #: False: the file records none; :attr:`pixel_size_mm` was assumed
 
+    def __post_init__(self):
+        # the paper's improvement factors keyed by k as numbers, as improvement_factor's (given
+        # as results.json holds them, "1", or as numbers); k_label makes them text again in to_json
+        if isinstance(self.paper, dict) and isinstance(self.paper.get("improvement_factor"), dict):
+            by_k = {float(k): v for k, v in self.paper["improvement_factor"].items()}
+            object.__setattr__(self, "paper", {**self.paper, "improvement_factor": by_k})
+
     def pair(self, name: str) -> PairResult:
         """The pair ``name`` (``"moving->reference"``, as :attr:`main_pair`); KeyError naming the
         pairs held otherwise (was a bare StopIteration)."""
@@ -329,7 +418,7 @@ class Results:
             "registration": {p.name: p.registration_json() for p in self.pairs},
             "main_pair": self.main_pair,
             "profiles_row": self.profiles_row,
-            "paper": self.paper,
+            "paper": _paper_json(self.paper),
             "timings": dict(self.timings),
             "bound": {"mu_dg": self.bound.mu_dg, "basis": self.bound.basis},
         }
@@ -387,6 +476,13 @@ class Results:
         path = Path(path)
         path.write_text(json.dumps(strict(self.to_json()), indent=1, allow_nan=False))
         return path
+
+
+def _paper_json(paper):
+    """:attr:`Results.paper` as results.json holds it: k keyed by :func:`k_label`."""
+    if isinstance(paper, dict) and isinstance(paper.get("improvement_factor"), dict):
+        return {**paper, "improvement_factor": {k_label(k): v for k, v in paper["improvement_factor"].items()}}
+    return paper
 
 
 @dataclass(frozen=True)

@@ -291,11 +291,14 @@ def test_summary_keys_and_values():
     ref = _six(5.0, [[1, 2], [3, 4]])
     enh = {1: ref * 1.5, 2.0: ref * 2}
     s = summary(ref, enh, INC, BG)
-    assert set(s["enhanced"]) == {"1", "2"} and set(s["improvement_factor"]) == {"1", "2"}
+    # k keyed by number, as Results.improvement_factor and PAPER are (review s43: they were "1")
+    assert set(s["enhanced"]) == {1.0, 2.0} and set(s["improvement_factor"]) == {1.0, 2.0}
+    assert all(type(k) is float for k in s["improvement_factor"])
     assert s["reference"]["contrast"] == pytest.approx(2.5)
-    assert s["enhanced"]["1"]["contrast"] == pytest.approx(3.75)
-    assert s["enhanced"]["2"]["cnr"] == pytest.approx(5.0 / math.sqrt(5.0))  # std doubles too
-    assert s["improvement_factor"] == pytest.approx({"1": 1.5, "2": 2.0})
+    assert s["enhanced"][1.0]["contrast"] == pytest.approx(3.75)
+    assert s["enhanced"][2]["cnr"] == pytest.approx(5.0 / math.sqrt(5.0))  # std doubles too
+    assert s["improvement_factor"] == pytest.approx({1.0: 1.5, 2.0: 2.0})
+    assert set(radiokit.measure.PAPER["improvement_factor"]) == set(s["improvement_factor"])
     assert s["inclusion"] == {"row0": 1, "row1": 3, "col0": 1, "col1": 3}
     with pytest.raises(ValueError, match="two entries for k = 1"):
         summary(ref, {1: ref, 1.0: ref, "1": ref}, INC, BG)  # noqa: F601 (the duplicate key is the point)

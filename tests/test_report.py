@@ -463,3 +463,57 @@ def test_the_report_gives_autos_reason_for_its_preset(tmp_path, bare_report):
     path, plain = bare_report
     assert not any(p.quality.get("preset") or p.quality.get("preset_reason") for p in plain.pairs)
     assert "Preset auto chose" not in _parse(path)[2]
+
+
+def test_results_json_reads_back_byte_for_byte_with_k_keyed_by_number(tmp_path):
+    """Review s43: results.json keys k by text (JSON must), and the records kept the paper's
+    improvement factors keyed "1" beside ``improvement_factor`` keyed 1.0: ``record.paper[...][1.0]``
+    was a KeyError. In memory every k is a number; the file is unchanged."""
+    import json
+
+    from radiokit.results import load_results
+
+    ks = ("1", "2")
+    record = _record(ks, {"1": 1.1, "2": 1.2}, truth=True, control=_control(ks))
+    text = record.write_json(tmp_path / "results.json").read_text()
+    back = load_results(tmp_path / "results.json")
+    assert back.write_json(tmp_path / "again.json").read_text() == text
+    assert json.loads(text)["paper"] == {"improvement_factor": {"1": 1.4, "2": 2.0}, "change_ratio": [0.66, 0.84]}
+    for rec in (record, back, back.control):
+        assert rec.paper["improvement_factor"] == {1.0: 1.4, 2.0: 2.0}
+        assert set(rec.paper["improvement_factor"]) == set(rec.improvement_factor) == {1.0, 2.0}
+    assert R.PAPER["improvement_factor"] == {1.0: 1.4, 2.0: 2.0}
+
+
+def test_a_pairs_quality_is_typed_and_still_reads_as_the_dict_it_was(tmp_path):
+    """Review s43: ``PairResult.quality`` was a plain dict where every other result is a typed
+    record. It is a read-only :class:`radiokit.results.PairQuality`: register.Quality's fields and
+    the run's choices as attributes (None where the file records none), and the mapping of the
+    recorded keys, in the file's order, that existing code reads (``quality["ok"]``)."""
+    import copy
+    import dataclasses as dc
+    import pickle
+
+    from radiokit.register import Quality
+    from radiokit.results import PairQuality, load_results
+
+    _record(("1",), {"1": 1.1}, truth=False).write_json(tmp_path / "results.json")
+    for pair in load_results(tmp_path / "results.json").pairs:
+        q = pair.quality
+        assert isinstance(q, PairQuality)
+        assert q.ok is q["ok"] is pair.ok and q.reason == q["reason"] == pair.reason
+        assert q.rc_after == q["rc_after"] == 3.25 and q.iterations == 40
+        assert q.body_scale is None and "body_scale" not in q  # not recorded: None, as in the file's null
+        assert q.get("preset") is None and q.preset is None
+        assert list(q) == list(dict(q)) and dict(q) == q and len(q) == len(dict(q))
+        assert pickle.loads(pickle.dumps(q)) == q == copy.deepcopy(q)
+        with pytest.raises(AttributeError):
+            q.ok = False
+        with pytest.raises(TypeError):
+            q["ok"] = False
+        with pytest.raises(AttributeError, match="no_such"):
+            q.no_such  # noqa: B018 (the lookup is the point)
+    # every field of register.Quality is an attribute (typed in the class), so the two cannot drift
+    assert {f.name for f in dc.fields(Quality)} <= set(PairQuality.__annotations__)
+    notes = load_results(tmp_path / "results.json").pair("1->2").quality
+    assert notes.note == "stopped at 60 iterations; not flagged for it <slow>"
