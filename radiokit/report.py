@@ -1116,20 +1116,33 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
             f"results.json), got {type(results).__name__} and {type(images).__name__}"
         )
     t0 = time.perf_counter()
-    out_dir = Path(out_dir)
-    fig_dir = out_dir / "figures"
-    fig_dir.mkdir(parents=True, exist_ok=True)
-    paper = {**PAPER, **(results.paper or {})}
-    fig_html = _figures(images, results, fig_dir)
+    fig_html = _draw(out_dir, results, images)
     timings = dict(results.timings)
     own_report_time = "report_s" not in timings
     if own_report_time:
         timings["report_s"] = time.perf_counter() - t0
         # a total measured before this report did not include it: the page's total was below
-        # the sum of its own rows (and results.json's total, which process takes after the report)
+        # the sum of its own rows
         if _num(timings.get("total_s")) is not None:
             timings["total_s"] += timings["report_s"]
-    parts = _head(dataclasses.replace(results, timings=timings), paper) + ["<h2>Images</h2>"]
+    return _write_page(out_dir, dataclasses.replace(results, timings=timings), fig_html, own_report_time)
+
+
+def _draw(out_dir, results: Results, images: Images) -> dict:
+    """The report's figures drawn into ``out_dir/figures``: :func:`_figures`' HTML by file name.
+    The first half of :func:`write_report`; :func:`radiokit.pipeline.process` times it as the
+    report's time and takes its total before writing any file, so that the page, results.json and
+    results.h5 show one total."""
+    fig_dir = Path(out_dir) / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    return _figures(images, results, fig_dir)
+
+
+def _write_page(out_dir, results: Results, fig_html: dict, own_report_time: bool = False) -> Path:
+    """``report.html`` around the figures :func:`_draw` drew; its timings are ``results.timings``
+    (``own_report_time``: the report's row is this page's own measurement, said beneath it)."""
+    paper = {**PAPER, **(results.paper or {})}
+    parts = _head(results, paper) + ["<h2>Images</h2>"]
     parts += [fig_html[n] for n in ("projections.png", "profiles.png", "difference.png", "rois.png")]
     parts += _measurements(results, paper)
     parts += [
@@ -1140,11 +1153,11 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
         "<p>RC: residual complexity of the difference image (lower is better); NCC: normalised "
         "cross-correlation (higher is better); folds: pixels with det J \u2264 0.</p>",
         "<h2>Timings</h2>",
-        _timings_table(timings) or "<p>No timings recorded.</p>",
+        _timings_table(results.timings) or "<p>No timings recorded.</p>",
     ]
     if own_report_time:
         parts.append("<p>The report's time is its own figure drawing, measured while writing this page.</p>")
     parts.append("</body></html>")
-    path = out_dir / "report.html"
+    path = Path(out_dir) / "report.html"
     path.write_text("\n".join(p for p in parts if p), encoding="utf-8")
     return path
