@@ -39,7 +39,26 @@ the data alone:
 
 ``confidence = 1 / (1 + (s / 0.5 px)^2)``, ``s`` the bound: 0.5 where the bound is 0.5 px,
 near 1 where the motion is pinned, near 0 where the image is silent (a textureless interior).
-``observed`` means confidence >= 0.5. ``register()`` computes all of it on the pair binned to
+``observed`` means confidence >= 0.5.
+
+Where the field is pinned
+-------------------------
+The window bounds a translation of the whole window, but the field is free over less: beside a
+strong edge it is pinned only near the edge. On review s42rep's slab (200 px, a disc of radius
+30 whose step is 11.5x the noise, Poisson noise, no motion) rc's median error against the
+distance from the disc's edge is 0.15 px within 3 px, 0.39 at 6-10, 0.56 at 10-15, 0.73 at
+15-20, 1.0 at 20-30 (``fast``, a 16 px lattice; ``default``'s 24 px lattice 0.06, 0.23, 0.34,
+0.46, 0.60): it passes the map's 0.5 px at 0.6-0.75 lattice spacings, while the window (cut at
+48 px) called a ROI 20-50 px from the edge 77-83 % observed. So ``Observability.pinned``, the
+map a registration carries (``Registration.confidence``, on which ``radiokit process`` judges
+its ROIs), is observed only where structure above the noise lies within ``PINNED_REACH`` (half)
+a spacing: the information is that of the window at the density found in a window of the same
+shape cut at that reach (its own noise floor), whichever is less. A uniform texture reads as in
+the full window; a flat band farther than the reach from any structure reads none
+(``benchmarks/README.md``, "Featureless ROIs beside a strong edge";
+``benchmarks/bench_roi_pinned.py``). ``confidence``, the window's map, is kept for the
+registration's flag (``quality``): its thresholds were chosen on it, and the flag asks a
+different question (is the object's interior, two windows inside its edge, observed at all). ``register()`` computes all of it on the pair binned to
 about 0.4 Mpx and converts the bound to full-resolution pixels (binning by ``k`` leaves the
 information per area nearly unchanged for structure coarser than the bin, so a bound in binned
 pixels is the full-resolution one over ``k``), then upsamples the map.
@@ -118,6 +137,9 @@ MODEL_FLOOR = 3e-4
 # the window is cut this many spacings from its centre: the part of the object the flag calls the
 # interior (radiokit.register._INTERIOR windows inside its edge) is then beyond the edge's reach
 WINDOW_REACH = 2.0
+# where the field is pinned: structure above the noise within this many spacings of a pixel (see
+# the module docstring, "Where the field is pinned")
+PINNED_REACH = 0.5
 _NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise; and _noise_lmin's
 
 
@@ -131,6 +153,10 @@ class Observability:
     bound_px: np.ndarray
     sigma: float
     object: np.ndarray
+    #: ``confidence`` where structure above the noise lies within :data:`PINNED_REACH` of the
+    #: pixel, else its confidence with the information found there (see the module docstring,
+    #: "Where the field is pinned"); the map a registration carries and the ROIs are judged on
+    pinned: np.ndarray | None = None
 
 
 def _gauss(a, s):
@@ -302,39 +328,51 @@ def _open_beam_level(fs, obj, level, line):
     return beam
 
 
-def _lmin(f, spacing, highpass, sig2, mask=None):
+def _lmin(f, spacing, highpass, sig2, mask=None, window=None):
     """The smaller eigenvalue of the window's gradient covariance of ``f`` high-passed at
     ``highpass x spacing`` and smoothed by 1 px, less the noise's own share (``sig2`` its
-    variance per pixel); with ``mask`` (bool), of the gradients inside it alone."""
+    variance per pixel); with ``mask`` (bool), of the gradients inside it alone. ``window``: the
+    window's sigma (px; None: ``spacing``)."""
+    return _lmins(f, spacing, highpass, sig2, mask, (window,))[0]
+
+
+def _lmins(f, spacing, highpass, sig2, mask=None, windows=(None,)):
+    """:func:`_lmin` for each of ``windows`` (sigmas, px; None: ``spacing``), the gradients
+    computed once."""
     hp = f - _gauss(f, highpass * spacing)
     gy, gx = np.gradient(_gauss(hp, 1.0))
     bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
+    inside = None
     if mask is not None:
         # a masked similarity sees no structure outside the mask: a flat band beside a texture
         # read 100 % observed through the windows' reach, and a field 2 px off was trusted there
         inside = np.asarray(mask, np.float32)
         gy, gx = gy * inside, gx * inside
-        bias = bias * _window(inside, spacing)
-    # the gradient's local covariance, not its mean square: a gradient that is the same across
-    # the window (a smooth body's slope) moves the window's residual by a constant, which an
-    # intensity change explains as well as motion does
-    my, mx = _window(gy, spacing), _window(gx, spacing)
-    jyy = _window(gy * gy, spacing) - my * my - bias
-    jxx = _window(gx * gx, spacing) - mx * mx - bias
-    jxy = _window(gy * gx, spacing) - my * mx
-    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
-    return np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+    out = []
+    for window in windows:
+        s = spacing if window is None else window
+        b = bias if inside is None else bias * _window(inside, s)
+        # the gradient's local covariance, not its mean square: a gradient that is the same across
+        # the window (a smooth body's slope) moves the window's residual by a constant, which an
+        # intensity change explains as well as motion does
+        my, mx = _window(gy, s), _window(gx, s)
+        jyy = _window(gy * gy, s) - my * my - b
+        jxx = _window(gx * gx, s) - mx * mx - b
+        jxy = _window(gy * gx, s) - my * mx
+        tr, det = jxx + jyy, jxx * jyy - jxy * jxy
+        out.append(np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0))
+    return out
 
 
-def _noise_lmin(spacing, highpass):
+def _noise_lmin(spacing, highpass, window=None):
     """The 99th percentile of :func:`_lmin` on unit white noise (a window's gradient covariance
     fluctuates by about ``1 / sqrt(window area)`` of the noise's share): measured once per
     window, like :func:`_deriv_noise_var`."""
-    key = ("lmin", float(spacing), float(highpass))
+    key = ("lmin", float(spacing), float(highpass)) + (() if window is None else (float(window),))
     if key not in _NOISE_DERIV:
         n = int(max(256, 16 * spacing))
         z = np.random.default_rng(0).standard_normal((n, n)).astype(np.float32)
-        lm = _lmin(z, spacing, highpass, np.ones_like(z))
+        lm = _lmin(z, spacing, highpass, np.ones_like(z), window=window)
         m = int(3 * spacing)
         _NOISE_DERIV[key] = float(np.percentile(lm[m:-m, m:-m], 99))
     return _NOISE_DERIV[key]
@@ -407,17 +445,41 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, mov
     floor2 = model_floor(f) ** 2
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
-    lmin = np.maximum(_lmin(f, spacing, highpass, sig2, mask) - _noise_lmin(spacing, highpass) * sig2, 0)
+    near = PINNED_REACH * spacing / WINDOW_REACH  # the pinned map's window (sigma, px)
+    lmin, lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near))
+    lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
-    bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
-    if moving is not None:
-        bound = np.where(flat_common(f, moving), np.float32(np.inf), bound)
-    conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
+    near = _pinned_info(lmin_near, spacing, highpass, sig2) / (2 * (sig2 + floor2))
+    flat = flat_common(f, moving) if moving is not None else None
+    conf, bound = _confidence(info, bound_scale, flat)
+    pinned, _ = _confidence(np.minimum(info, near), bound_scale, flat)
     obj = _object(f, float(np.median(sig_map)))
     if mask is not None:
         obj &= np.asarray(mask, bool)
     sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf.astype(np.float32), bound.astype(np.float32), sigma, obj)
+    return Observability(conf, bound, sigma, obj, pinned)
+
+
+def _confidence(info, bound_scale, flat=None):
+    """``(confidence, bound)`` float32 from a window's Fisher information ``info`` (per squared
+    binned px); ``flat`` (bool): where nothing is observed (:func:`flat_common`)."""
+    bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
+    if flat is not None:
+        bound = np.where(flat, np.float32(np.inf), bound)
+    conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
+    return conf.astype(np.float32), bound.astype(np.float32)
+
+
+def _pinned_info(lmin_near, spacing, highpass, sig2):
+    """The information (times ``2 sigma^2``) a window of the map's area would hold at the
+    density found within :data:`PINNED_REACH` spacings of each pixel: ``lmin_near`` the
+    :func:`_lmin` of the window's Gaussian shrunk to cut at that reach (sigma ``PINNED_REACH x
+    spacing / WINDOW_REACH``), less its own noise floor, scaled up to the map window's area. A
+    uniform texture reads as in the full window; a pixel with no structure within the reach
+    reads none, however strong an edge the full window holds."""
+    near = PINNED_REACH * spacing / WINDOW_REACH
+    lmin = np.maximum(lmin_near - _noise_lmin(spacing, highpass, window=near) * sig2, 0)
+    return _window_area(spacing) * lmin
 
 
 def interpolation_variance(displacement, spacing):
