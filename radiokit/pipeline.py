@@ -688,9 +688,7 @@ def cross_check(field, other, body, method):
 
 
 #: a ROI lies in an observed region when at least this share of it is observed (confidence
-#: >= 0.5 in the map saved with the field, the pinned one: structure above the noise within half
-#: a map spacing, not merely within the window's reach of a strong edge, review s42rep; see
-#: radiokit.register._confidence, "Where the field is pinned"): the paper's contrast is the ROI's mean, so once half or more of its pixels were
+#: >= 0.5): the paper's contrast is the ROI's mean, so once half or more of its pixels were
 #: registered by the regulariser's guess rather than by the images, so is the number; the same
 #: line ``radiokit.register`` draws for the object as a whole (observed under half: not ok)
 ROI_MIN_OBSERVED = 0.5

@@ -77,10 +77,8 @@ class Quality:
     to at most ~0.4 Mpx (by 4 at 2240 x 2240). ``folds``: pixels with det J <= 0 (full
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
     time (without this assessment). ``observed_fraction``: the share of the object (the mask, or
-    the pixels that differ from the frame's border level) where the motion is observable in
-    the flag's window map (``_confidence.observability``'s ``confidence`` >= 0.5: the map every
-    threshold here was chosen on; ``Registration.confidence``, the pinned map, is nowhere more
-    observed, see ``radiokit.register._confidence``, "Where the field is pinned");
+    the pixels that differ from the frame's border level) where the motion is observable
+    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``);
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
     of the frame, inside its edge; the whole object when it is narrower);
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
@@ -154,9 +152,7 @@ class Registration:
     method: str
     quality: Quality
     options: dict = field(default_factory=dict)
-    # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed, with structure above the noise
-    # within half a map spacing (the pinned map, _confidence.observability's ``pinned``)
-    confidence: np.ndarray | None = None
+    confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
     # B-spline methods: the lattices the field is the sum of, coarse to fine ((lattice, coefficients));
     # what rc's ``start_lattices`` takes (``auto`` runs its plain preset's finest level on them);
     # None where the field is not theirs alone (a silent preset adds the silhouette's map)
@@ -366,9 +362,8 @@ def register(
     ``options["regularisation_check"]``). ``options`` go
     to the method (see ``radiokit.register.METHODS[name].__doc__``).
 
-    The result carries ``confidence`` (where the motion is observable from these images and the
-    field pinned by structure within half a map spacing, see ``radiokit.register._confidence``,
-    "Where the field is pinned") and ``quality`` (``ok`` and a ``reason``, decided without
+    The result carries ``confidence`` (where the motion is observable from these images, see
+    ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
 
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
@@ -837,9 +832,7 @@ def _observed(reg, p, w, d, scale=1.0):
     q = reg.quality
     ob, k = p.ob, p.k
     rows, cols = reg.displacement.shape[1:]
-    # the map carried with the field is the pinned one (the ROIs are judged on it); the flag's
-    # statistics below keep the window's map its thresholds were chosen on
-    conf = ob.pinned
+    conf = ob.confidence
     if conf.shape != (rows, cols):
         conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
     reg.confidence = np.clip(conf, 0, 1).astype(np.float32)

@@ -39,7 +39,10 @@ the data alone:
 
 ``confidence = 1 / (1 + (s / 0.5 px)^2)``, ``s`` the bound: 0.5 where the bound is 0.5 px,
 near 1 where the motion is pinned, near 0 where the image is silent (a textureless interior).
-``observed`` means confidence >= 0.5.
+``observed`` means confidence >= 0.5. ``register()`` computes all of it on the pair binned to
+about 0.4 Mpx and converts the bound to full-resolution pixels (binning by ``k`` leaves the
+information per area nearly unchanged for structure coarser than the bin, so a bound in binned
+pixels is the full-resolution one over ``k``), then upsamples the map.
 
 Where the field is pinned
 -------------------------
@@ -48,20 +51,17 @@ strong edge it is pinned only near the edge. On review s42rep's slab (200 px, a 
 30 whose step is 11.5x the noise, Poisson noise, no motion) rc's median error against the
 distance from the disc's edge is 0.15 px within 3 px, 0.39 at 6-10, 0.56 at 10-15, 0.73 at
 15-20, 1.0 at 20-30 (``fast``, a 16 px lattice; ``default``'s 24 px lattice 0.06, 0.23, 0.34,
-0.46, 0.60): it passes the map's 0.5 px at 0.6-0.75 lattice spacings, while the window (cut at
-48 px) called a ROI 20-50 px from the edge 77-83 % observed. So ``Observability.pinned``, the
-map a registration carries (``Registration.confidence``, on which ``radiokit process`` judges
-its ROIs), is observed only where structure above the noise lies within ``PINNED_REACH`` (half)
-a spacing: the information is that of the window at the density found in a window of the same
-shape cut at that reach (its own noise floor), whichever is less. A uniform texture reads as in
-the full window; a flat band farther than the reach from any structure reads none
-(``benchmarks/README.md``, "Featureless ROIs beside a strong edge";
-``benchmarks/bench_roi_pinned.py``). ``confidence``, the window's map, is kept for the
-registration's flag (``quality``): its thresholds were chosen on it, and the flag asks a
-different question (is the object's interior, two windows inside its edge, observed at all). ``register()`` computes all of it on the pair binned to
-about 0.4 Mpx and converts the bound to full-resolution pixels (binning by ``k`` leaves the
-information per area nearly unchanged for structure coarser than the bin, so a bound in binned
-pixels is the full-resolution one over ``k``), then upsamples the map.
+0.46, 0.60), while the window (cut at 48 px) calls a ROI 20-50 px from the edge 77-83 %
+observed. ``observability(..., pinned=True)`` adds ``Observability.pinned``: observed only
+where structure above the noise lies within ``PINNED_REACH`` (half) a spacing (the window's
+information at the density found in a window of the same shape cut at that reach, with its own
+noise floor, whichever is less; nowhere more observed than ``confidence``). It is NOT the map a
+registration carries: on the simulated gel cube of ``tests/test_pipeline.py`` it calls the
+background ROI 0 % and the inclusion ROI 48 % observed where the field is 0.15 and 0.12 px off
+(the regulariser interpolates a smooth compression between the sphere's and the cube's edges
+correctly), so ``radiokit process`` would flag every pair of it; no reach read from the data
+tells that interpolation from the slab's drift (``benchmarks/README.md``, "Featureless ROIs
+beside a strong edge"; ``benchmarks/bench_roi_pinned.py``).
 
 Consistency (no truth)
 ----------------------
@@ -153,9 +153,9 @@ class Observability:
     bound_px: np.ndarray
     sigma: float
     object: np.ndarray
-    #: ``confidence`` where structure above the noise lies within :data:`PINNED_REACH` of the
-    #: pixel, else its confidence with the information found there (see the module docstring,
-    #: "Where the field is pinned"); the map a registration carries and the ROIs are judged on
+    #: with ``observability(..., pinned=True)``: the confidence with the information found
+    #: within :data:`PINNED_REACH` spacings of the pixel (see the module docstring, "Where the
+    #: field is pinned"; measured, not what a registration carries)
     pinned: np.ndarray | None = None
 
 
@@ -431,14 +431,17 @@ def flat_common(fixed, moving) -> np.ndarray:
     return keep[lab]
 
 
-def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None) -> Observability:
+def observability(
+    fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None, pinned=False
+) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
     (see the module docstring); ``bound_scale`` multiplies the bound (``register()`` passes the
     binning factor: the bound in full-resolution pixels). With ``moving``, the pixels where both
     images are flat at one value (:func:`flat_common`) are unobserved, whatever structure lies
     within the window's reach: that structure is the flat region's own edge, fixed on the
     detector, and it would call a band of two windows' width observed (session 41's review: 84 %
-    of a 120-row band across a moving body, whose field there was worse than none)."""
+    of a 120-row band across a moving body, whose field there was worse than none). ``pinned``:
+    also ``Observability.pinned`` (see the module docstring, "Where the field is pinned")."""
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
@@ -446,13 +449,16 @@ def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, mov
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
     near = PINNED_REACH * spacing / WINDOW_REACH  # the pinned map's window (sigma, px)
-    lmin, lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near))
+    lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,))
     lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
-    near = _pinned_info(lmin_near, spacing, highpass, sig2) / (2 * (sig2 + floor2))
     flat = flat_common(f, moving) if moving is not None else None
     conf, bound = _confidence(info, bound_scale, flat)
-    pinned, _ = _confidence(np.minimum(info, near), bound_scale, flat)
+    if pinned:
+        near = _pinned_info(lmin_near[0], spacing, highpass, sig2) / (2 * (sig2 + floor2))
+        pinned, _ = _confidence(np.minimum(info, near), bound_scale, flat)
+    else:
+        pinned = None
     obj = _object(f, float(np.median(sig_map)))
     if mask is not None:
         obj &= np.asarray(mask, bool)
