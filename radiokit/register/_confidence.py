@@ -44,6 +44,25 @@ about 0.4 Mpx and converts the bound to full-resolution pixels (binning by ``k``
 information per area nearly unchanged for structure coarser than the bin, so a bound in binned
 pixels is the full-resolution one over ``k``), then upsamples the map.
 
+Where the field is pinned
+-------------------------
+The window bounds a translation of the whole window, but the field is free over less: beside a
+strong edge it is pinned only near the edge. On review s42rep's slab (200 px, a disc of radius
+30 whose step is 11.5x the noise, Poisson noise, no motion) rc's median error against the
+distance from the disc's edge is 0.15 px within 3 px, 0.39 at 6-10, 0.56 at 10-15, 0.73 at
+15-20, 1.0 at 20-30 (``fast``, a 16 px lattice; ``default``'s 24 px lattice 0.06, 0.23, 0.34,
+0.46, 0.60), while the window (cut at 48 px) calls a ROI 20-50 px from the edge 77-83 %
+observed. ``observability(..., pinned=True)`` adds ``Observability.pinned``: observed only
+where structure above the noise lies within ``PINNED_REACH`` (half) a spacing (the window's
+information at the density found in a window of the same shape cut at that reach, with its own
+noise floor, whichever is less; nowhere more observed than ``confidence``). It is NOT the map a
+registration carries: on the simulated gel cube of ``tests/test_pipeline.py`` it calls the
+background ROI 0 % and the inclusion ROI 48 % observed where the field is 0.15 and 0.12 px off
+(the regulariser interpolates a smooth compression between the sphere's and the cube's edges
+correctly), so ``radiokit process`` would flag every pair of it; no reach read from the data
+tells that interpolation from the slab's drift (``benchmarks/README.md``, "Featureless ROIs
+beside a strong edge"; ``benchmarks/bench_roi_pinned.py``).
+
 Consistency (no truth)
 ----------------------
 After registration the residual ``warped - fixed``, high-passed like the image and less the
@@ -118,6 +137,9 @@ MODEL_FLOOR = 3e-4
 # the window is cut this many spacings from its centre: the part of the object the flag calls the
 # interior (radiokit.register._INTERIOR windows inside its edge) is then beyond the edge's reach
 WINDOW_REACH = 2.0
+# where the field is pinned: structure above the noise within this many spacings of a pixel (see
+# the module docstring, "Where the field is pinned")
+PINNED_REACH = 0.5
 _NOISE_DERIV = {}  # smoothing sigma -> variance of the derivative filter on unit white noise; and _noise_lmin's
 
 
@@ -131,6 +153,10 @@ class Observability:
     bound_px: np.ndarray
     sigma: float
     object: np.ndarray
+    #: with ``observability(..., pinned=True)``: the confidence with the information found
+    #: within :data:`PINNED_REACH` spacings of the pixel (see the module docstring, "Where the
+    #: field is pinned"; measured, not what a registration carries)
+    pinned: np.ndarray | None = None
 
 
 def _gauss(a, s):
@@ -302,39 +328,51 @@ def _open_beam_level(fs, obj, level, line):
     return beam
 
 
-def _lmin(f, spacing, highpass, sig2, mask=None):
+def _lmin(f, spacing, highpass, sig2, mask=None, window=None):
     """The smaller eigenvalue of the window's gradient covariance of ``f`` high-passed at
     ``highpass x spacing`` and smoothed by 1 px, less the noise's own share (``sig2`` its
-    variance per pixel); with ``mask`` (bool), of the gradients inside it alone."""
+    variance per pixel); with ``mask`` (bool), of the gradients inside it alone. ``window``: the
+    window's sigma (px; None: ``spacing``)."""
+    return _lmins(f, spacing, highpass, sig2, mask, (window,))[0]
+
+
+def _lmins(f, spacing, highpass, sig2, mask=None, windows=(None,)):
+    """:func:`_lmin` for each of ``windows`` (sigmas, px; None: ``spacing``), the gradients
+    computed once."""
     hp = f - _gauss(f, highpass * spacing)
     gy, gx = np.gradient(_gauss(hp, 1.0))
     bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
+    inside = None
     if mask is not None:
         # a masked similarity sees no structure outside the mask: a flat band beside a texture
         # read 100 % observed through the windows' reach, and a field 2 px off was trusted there
         inside = np.asarray(mask, np.float32)
         gy, gx = gy * inside, gx * inside
-        bias = bias * _window(inside, spacing)
-    # the gradient's local covariance, not its mean square: a gradient that is the same across
-    # the window (a smooth body's slope) moves the window's residual by a constant, which an
-    # intensity change explains as well as motion does
-    my, mx = _window(gy, spacing), _window(gx, spacing)
-    jyy = _window(gy * gy, spacing) - my * my - bias
-    jxx = _window(gx * gx, spacing) - mx * mx - bias
-    jxy = _window(gy * gx, spacing) - my * mx
-    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
-    return np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+    out = []
+    for window in windows:
+        s = spacing if window is None else window
+        b = bias if inside is None else bias * _window(inside, s)
+        # the gradient's local covariance, not its mean square: a gradient that is the same across
+        # the window (a smooth body's slope) moves the window's residual by a constant, which an
+        # intensity change explains as well as motion does
+        my, mx = _window(gy, s), _window(gx, s)
+        jyy = _window(gy * gy, s) - my * my - b
+        jxx = _window(gx * gx, s) - mx * mx - b
+        jxy = _window(gy * gx, s) - my * mx
+        tr, det = jxx + jyy, jxx * jyy - jxy * jxy
+        out.append(np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0))
+    return out
 
 
-def _noise_lmin(spacing, highpass):
+def _noise_lmin(spacing, highpass, window=None):
     """The 99th percentile of :func:`_lmin` on unit white noise (a window's gradient covariance
     fluctuates by about ``1 / sqrt(window area)`` of the noise's share): measured once per
     window, like :func:`_deriv_noise_var`."""
-    key = ("lmin", float(spacing), float(highpass))
+    key = ("lmin", float(spacing), float(highpass)) + (() if window is None else (float(window),))
     if key not in _NOISE_DERIV:
         n = int(max(256, 16 * spacing))
         z = np.random.default_rng(0).standard_normal((n, n)).astype(np.float32)
-        lm = _lmin(z, spacing, highpass, np.ones_like(z))
+        lm = _lmin(z, spacing, highpass, np.ones_like(z), window=window)
         m = int(3 * spacing)
         _NOISE_DERIV[key] = float(np.percentile(lm[m:-m, m:-m], 99))
     return _NOISE_DERIV[key]
@@ -393,31 +431,61 @@ def flat_common(fixed, moving) -> np.ndarray:
     return keep[lab]
 
 
-def observability(fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None) -> Observability:
+def observability(
+    fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None, pinned=False
+) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
     (see the module docstring); ``bound_scale`` multiplies the bound (``register()`` passes the
     binning factor: the bound in full-resolution pixels). With ``moving``, the pixels where both
     images are flat at one value (:func:`flat_common`) are unobserved, whatever structure lies
     within the window's reach: that structure is the flat region's own edge, fixed on the
     detector, and it would call a band of two windows' width observed (session 41's review: 84 %
-    of a 120-row band across a moving body, whose field there was worse than none)."""
+    of a 120-row band across a moving body, whose field there was worse than none). ``pinned``:
+    also ``Observability.pinned`` (see the module docstring, "Where the field is pinned")."""
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
     floor2 = model_floor(f) ** 2
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
-    lmin = np.maximum(_lmin(f, spacing, highpass, sig2, mask) - _noise_lmin(spacing, highpass) * sig2, 0)
+    near = PINNED_REACH * spacing / WINDOW_REACH  # the pinned map's window (sigma, px)
+    lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,))
+    lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
-    bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
-    if moving is not None:
-        bound = np.where(flat_common(f, moving), np.float32(np.inf), bound)
-    conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
+    flat = flat_common(f, moving) if moving is not None else None
+    conf, bound = _confidence(info, bound_scale, flat)
+    if pinned:
+        near = _pinned_info(lmin_near[0], spacing, highpass, sig2) / (2 * (sig2 + floor2))
+        pinned, _ = _confidence(np.minimum(info, near), bound_scale, flat)
+    else:
+        pinned = None
     obj = _object(f, float(np.median(sig_map)))
     if mask is not None:
         obj &= np.asarray(mask, bool)
     sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf.astype(np.float32), bound.astype(np.float32), sigma, obj)
+    return Observability(conf, bound, sigma, obj, pinned)
+
+
+def _confidence(info, bound_scale, flat=None):
+    """``(confidence, bound)`` float32 from a window's Fisher information ``info`` (per squared
+    binned px); ``flat`` (bool): where nothing is observed (:func:`flat_common`)."""
+    bound = bound_scale / np.sqrt(np.maximum(info, 1e-12))
+    if flat is not None:
+        bound = np.where(flat, np.float32(np.inf), bound)
+    conf = 1.0 / (1.0 + (bound / OBSERVED_PX) ** 2)
+    return conf.astype(np.float32), bound.astype(np.float32)
+
+
+def _pinned_info(lmin_near, spacing, highpass, sig2):
+    """The information (times ``2 sigma^2``) a window of the map's area would hold at the
+    density found within :data:`PINNED_REACH` spacings of each pixel: ``lmin_near`` the
+    :func:`_lmin` of the window's Gaussian shrunk to cut at that reach (sigma ``PINNED_REACH x
+    spacing / WINDOW_REACH``), less its own noise floor, scaled up to the map window's area. A
+    uniform texture reads as in the full window; a pixel with no structure within the reach
+    reads none, however strong an edge the full window holds."""
+    near = PINNED_REACH * spacing / WINDOW_REACH
+    lmin = np.maximum(lmin_near - _noise_lmin(spacing, highpass, window=near) * sig2, 0)
+    return _window_area(spacing) * lmin
 
 
 def interpolation_variance(displacement, spacing):
