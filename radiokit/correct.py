@@ -892,6 +892,9 @@ def correct_files(
     from radiokit.progress import tqdm
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
+    # the calibration's shape is the panel's: a raw size fitting several presets (one 2240 x 2240
+    # frame is four 2x2-binned ones) is read at it, where it was refused as ambiguous
+    hints = {"panel_shape": cal.shape, **hints}
     sources = [open_frames(p, **hints) for p in inputs]
     try:
         segments = _segments(sources, cal, image_keys)

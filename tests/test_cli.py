@@ -1126,3 +1126,28 @@ def test_a_user_without_a_home_folder_gets_no_matplotlib_lines(home, tmp_path):
     assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "matplotlib" not in res.stderr.lower() and "MPLCONFIGDIR" not in res.stderr, res.stderr
     assert list(scratch.iterdir()) == []
+
+
+def test_correct_reads_a_raw_size_of_several_presets_at_the_calibrations_shape(tmp_path):
+    """`radiokit correct frames.raw --cal cal.h5`: four 4x4-binned frames have the bytes of one
+    2x2-binned frame, and were refused as ambiguous though the calibration says the panel's frames
+    are 560 x 560. Read so, they are corrected; a calibration fitting neither is named in the
+    refusal."""
+    from radiokit.calibrate import Calibration
+
+    shape = (560, 560)
+    Calibration(np.full(shape, 100.0), np.full(shape, 3100.0), np.zeros(shape, np.uint32)).save(tmp_path / "cal.h5")
+    np.full((4, *shape), 100 + 1500, "<u2").tofile(tmp_path / "frames.raw")  # half the flat's signal
+    res = run_cli(
+        "correct", tmp_path / "frames.raw", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "t.h5", "--domain", "linear"
+    )
+    assert res.returncode == 0, res.stderr
+    t = read(tmp_path / "t.h5")
+    assert t.data.shape == (4, *shape)
+    np.testing.assert_allclose(t.data, 0.5, atol=1e-6)
+    Calibration(np.full((64, 64), 100.0), np.full((64, 64), 3100.0), np.zeros((64, 64), np.uint32)).save(
+        tmp_path / "c64.h5"
+    )
+    res = run_cli("correct", tmp_path / "frames.raw", "--cal", tmp_path / "c64.h5", "-o", tmp_path / "u.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "ambiguous" in res.stderr and "64x64" in res.stderr and not (tmp_path / "u.h5").exists()

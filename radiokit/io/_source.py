@@ -85,7 +85,10 @@ _EXTENSIONS = {
     ".bin": "raw",
     ".dat": "raw",
 }
-_RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
+_RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n", "panel_shape"}
+#: hints that files carrying their own geometry take (n) or let pass (panel_shape: correct compares
+#: their frames with the calibration's shape itself)
+_ANY_FORMAT_HINTS = {"n", "panel_shape"}
 #: text files a user may hand a frame reader (radiokit process writes the first two beside
 #: results.h5): named, not measured against the raw geometries as if their bytes were pixels
 _TEXT = {
@@ -242,11 +245,12 @@ class FrameSource:
         if dataset and self.format != "hdf5":  # h5py's "file signature not found" named neither
             what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(self.format, "not HDF5 (no HDF5 signature)")
             raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
-        if self.format != "raw" and hints.keys() - {"n"}:
+        if self.format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
             # Geometry hints only make sense for headerless data.
             raise FormatError(
                 self.path,
-                f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
+                f"{self.format} files carry their own geometry; hints {sorted(hints.keys() - _ANY_FORMAT_HINTS)} "
+                "apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
         self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
@@ -1805,7 +1809,9 @@ def read(path, /, **hints) -> Frames:
         dataset of an arbitrary HDF5 file; for raw files ``preset`` (one of :data:`PRESETS`),
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
         ``byteorder`` ("<" or ">"; refused against a dtype naming the other), ``offset`` (bytes to
-        skip) and ``n`` (frames to read);
+        skip) and ``n`` (frames to read); ``panel_shape`` ((rows, cols): the panel's frames as a
+        calibration gives them) settles a raw size that fits several presets, and other formats
+        let it pass;
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
         default: they make a file read other files); ``budget`` (bytes or
