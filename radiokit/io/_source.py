@@ -17,7 +17,7 @@ import numpy as np
 import tifffile
 
 from radiokit import _json as strict_json
-from radiokit.errors import FormatError
+from radiokit.errors import FormatError, InputErrors, RadiokitError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
     _LENGTH_UNITS_M,
@@ -1780,6 +1780,41 @@ def open_frames(path, /, **hints) -> FrameSource:
     (3, (4, 5), 40)
     """
     return FrameSource(path, **hints)
+
+
+def open_all(paths, /, check=None, **hints) -> list[FrameSource]:
+    """Open every file of ``paths`` (``hints`` as :func:`open_frames` takes them) and pass each
+    open source to ``check`` (a caller's judgement of one file from its header: its shape, its
+    frame count), before any frame is read. Every file that fails is named: one failure raises
+    its own error, several an :class:`radiokit.errors.InputErrors` holding each, in the order
+    given; the files opened are then closed. Why: a command of several files named only the first
+    bad one, and the user met the next one only after fixing it."""
+    sources, errors = [], []
+    try:
+        for path in paths:
+            try:
+                src = open_frames(path, **hints)
+            except (RadiokitError, ValueError, OSError) as exc:
+                errors.append(exc)
+                continue
+            sources.append(src)
+            if check is not None:
+                try:
+                    check(src)
+                except (RadiokitError, ValueError, OSError) as exc:
+                    errors.append(exc)
+    except BaseException:
+        _close_all(sources)
+        raise
+    if errors:
+        _close_all(sources)
+        raise errors[0] if len(errors) == 1 else InputErrors(errors)
+    return sources
+
+
+def _close_all(sources) -> None:
+    for src in sources:
+        src.close()
 
 
 def _bits_reversed(frame: np.ndarray) -> np.ndarray:
