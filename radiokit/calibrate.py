@@ -771,6 +771,9 @@ class Calibration:
         if many:
             warnings.warn(many, CalibrationWarning, stacklevel=3)
         good = mask == 0
+        provenance = _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated)
+        # filled as lines, but the flats' saturation's: kept apart so that every summary says so
+        provenance["saturated_lines"] = {"rows": sat_rows.tolist(), "columns": sat_cols.tolist()}
         return cls(
             dark,
             flat,
@@ -779,7 +782,7 @@ class Calibration:
             cols_idx,
             c=float(np.mean(response[good])) if good.any() else float(np.mean(response)),
             thresholds=th,
-            provenance=_provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated),
+            provenance=provenance,
         )
 
     @classmethod
@@ -1499,6 +1502,28 @@ def _merge_lines(idx, bits, idx2, bits2):
     for i, b in ((idx, bits), (idx2, bits2)):
         out[np.searchsorted(lines, i)] |= b
     return lines, out
+
+
+def line_summary(defect_rows, defect_columns, provenance: dict) -> dict:
+    """What a calibration fills as lines, in words, for ``radiokit calibrate`` and ``info``:
+    ``{"defect lines": "rows [...], columns [...]", "saturated lines": "columns [...] (flats
+    clipped, ...)"}``, each only where there are any. The lines filled only for the flats'
+    saturation (``provenance["saturated_lines"]``, :func:`_defect_map`) are named as the
+    calibration's warning names them, not as defect lines: listed among those, a heel flat's
+    clipped columns read as a panel fault, beside the manual's 20 at most."""
+    sat = provenance.get("saturated_lines") or {}
+    sat_rows, sat_cols = (np.asarray(sat.get(k, []), np.int64) for k in ("rows", "columns"))
+    rows = np.setdiff1d(np.asarray(defect_rows, np.int64), sat_rows)
+    cols = np.setdiff1d(np.asarray(defect_columns, np.int64), sat_cols)
+    out = {}
+    if rows.size or cols.size:
+        out["defect lines"] = f"rows {rows.tolist()}, columns {cols.tolist()}"
+    if sat_rows.size or sat_cols.size:
+        named = ", ".join(
+            f"{name} {idx.tolist()}" for name, idx in (("rows", sat_rows), ("columns", sat_cols)) if idx.size
+        )
+        out["saturated lines"] = f"{named} (flats clipped, not defect lines: lower the flat exposure)"
+    return out
 
 
 def _saturated_lines_text(rows, cols) -> str:

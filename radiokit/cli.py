@@ -129,6 +129,10 @@ def _summary(meta: dict) -> dict:
             out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
+    elif fmt == "calibration":  # the lines it fills, named as calibrate named them
+        from radiokit.calibrate import line_summary
+
+        out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), meta.get("provenance", {}))
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
@@ -411,7 +415,7 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout
+    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout, line_summary
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -470,8 +474,8 @@ def cmd_calibrate(args) -> int:
     noise = "not measured (one dark)" if noise is None else f"{noise:.2f} counts"
     print(f"  c = mean(flat - dark) over valid pixels = {cal.c:.1f} counts; dark noise {noise}")
     print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
-    if cal.defect_rows.size or cal.defect_columns.size:
-        print(f"  defect lines: rows {cal.defect_rows.tolist()}, columns {cal.defect_columns.tolist()}")
+    for what, text in line_summary(cal.defect_rows, cal.defect_columns, p).items():
+        print(f"  {what}: {text}")
     return 0
 
 

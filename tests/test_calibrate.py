@@ -1114,6 +1114,8 @@ def test_columns_saturated_in_the_flats_are_saturation_not_defect_lines():
     named = re.search(r"columns (\d+)-(\d+) are filled as lines for it \(saturated lines, not defect lines\)", sat[0])
     assert heavy.size > 20 and named and int(named[2]) == cols - 1 and abs(int(named[1]) - heavy[0]) <= 1
     assert cal.defect_columns.tolist() == [60, *range(int(named[1]), cols)]
+    # kept apart, so that calibrate's and info's summaries name them as this warning does
+    assert cal.provenance["saturated_lines"] == {"rows": [], "columns": list(range(int(named[1]), cols))}
 
 
 @pytest.mark.parametrize("step", [1.15, 1.2, 0.85])

@@ -1151,3 +1151,32 @@ def test_correct_reads_a_raw_size_of_several_presets_at_the_calibrations_shape(t
     res = run_cli("correct", tmp_path / "frames.raw", "--cal", tmp_path / "c64.h5", "-o", tmp_path / "u.h5")
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "ambiguous" in res.stderr and "64x64" in res.stderr and not (tmp_path / "u.h5").exists()
+
+
+def test_calibrate_and_info_name_saturated_lines_apart_from_defect_lines(tmp_path):
+    """A heel flat clipped at 4095 over its brightest columns: the calibration's warning calls them
+    "saturated lines, not defect lines ... lower the flat exposure", and the summary of calibrate
+    (of files, or of an experiment file) then listed them as "defect lines" beside a real one, as
+    a panel fault. Both commands now name them as the calibration does; info reads them from it."""
+    import tifffile
+
+    rng = np.random.default_rng(5)
+    rows, cols, n = 64, 192, 10
+    signal = np.broadcast_to(np.linspace(2000.0, 4110.0, cols), (rows, cols))
+    tifffile.imwrite(tmp_path / "d.tif", (100 + rng.poisson(4, (n, rows, cols))).astype(np.uint16))
+    flats = (100 + rng.poisson(signal, (n, rows, cols))).clip(0, 4095).astype(np.uint16)
+    flats[:, :, 30] = (100 + 0.9 * (flats[:, :, 30] - 100.0)).astype(np.uint16)  # a real defect line
+    tifffile.imwrite(tmp_path / "f.tif", flats)
+    res = run_cli("calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "  defect lines: rows [], columns [30]\n" in res.stdout, res.stdout
+    told = re.search(r"  saturated lines: columns \[([\d, ]+)\] \(flats clipped, not defect lines", res.stdout)
+    assert told, res.stdout
+    clipped = [int(c) for c in told[1].split(", ")]
+    # the columns clipped in most of their pixels (in 2 frames or more: clipped_floor), to a column
+    heavy = np.flatnonzero(((flats == 4095).sum(axis=0) >= 2).mean(axis=0) > 0.5)
+    assert clipped == list(range(clipped[0], cols)) and heavy.size > 5 and abs(clipped[0] - heavy[0]) <= 1
+    res = run_cli("info", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"defect lines\s+rows \[\], columns \[30\]\n", res.stdout), res.stdout
+    assert re.search(rf"saturated lines\s+columns {re.escape(str(clipped))} \(flats clipped", res.stdout), res.stdout

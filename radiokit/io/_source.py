@@ -1605,6 +1605,23 @@ class FrameSource:
             cols=self.frame_shape[1],
             dtype=str(self.dtype),
         )
+        self.meta.update(self._calibration_lines())
+
+    def _calibration_lines(self) -> dict:
+        """The lines a calibration file fills (``defect_rows``, ``defect_columns``) and its
+        ``provenance`` (which of them are the flats' saturation's), for ``radiokit info`` to name
+        them as calibrate did; what is missing or unreadable is left out (its frames still read:
+        ``Calibration.load`` judges the file)."""
+        out: dict = {}
+        try:
+            for name in ("defect_rows", "defect_columns"):
+                if f"{CALIBRATION}/{name}" in self._h5:
+                    out[name] = self._checked(f"{CALIBRATION}/{name}", "iu", (1,))[()]
+            prov = strict_json.loads(self._h5[CALIBRATION].attrs.get("provenance", "{}"))
+            out["provenance"] = prov if isinstance(prov, dict) else {}
+        except (FormatError, ValueError, TypeError):
+            return {}
+        return out
 
     def _read_hdf5(self, i):
         self._check_hdf5_written(i)
