@@ -3022,3 +3022,20 @@ def test_a_panel_shape_is_no_geometry_hint_for_files_that_carry_their_own(tmp_pa
     tifffile.imwrite(path, np.zeros((2, 8, 6), np.uint16))
     with open_frames(path, panel_shape=(5, 5)) as src:
         assert src.frame_shape == (8, 6)
+
+
+@pytest.mark.parametrize("peak, bits", [(16383, 14), (9000, 14), (40000, 16)])
+def test_values_past_a_presets_12_bits_are_said_to_fit_the_smallest_adc_that_holds_them(tmp_path, peak, bits):
+    """A 14-bit panel's raw file read at a C7942 preset (12-bit; no bit depth in the file): the
+    warning said "another detector (C9730DK/C9732DK are 14-bit ...; many cameras 16-bit)" and left
+    the reader to work out which. It names the smallest usual ADC depth (12, 14, 16 bits) holding
+    the values, the one calibrate and info judge saturation at."""
+    rng = np.random.default_rng(0)
+    frame = rng.integers(200, peak + 1, (560, 560)).astype("<u2")
+    frame[0, 0] = peak
+    frame.tofile(tmp_path / "f.raw")
+    with pytest.warns(BitDepthWarning) as caught:
+        read(tmp_path / "f.raw")
+    text = str(caught[0].message)
+    assert f"up to {peak} exceed the 12-bit range" in text, text
+    assert f"they fit a {bits}-bit ADC (0..{(1 << bits) - 1})" in text, text
