@@ -342,9 +342,36 @@ def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None
             med = med[idx[0], idx[1]]
     if nr == 1 and nc == 1:
         return np.full((rows, cols), med[0, 0], np.float32)
-    # Tile centres sit at block/2; resize with INTER_LINEAR maps centres to centres.
-    up = cv2.resize(med, (nc * block, nr * block), interpolation=cv2.INTER_LINEAR)
-    return up[:rows, :cols]
+    # One ghost tile around the grid, on the outer tiles' trend (_edge_trend): between the outer
+    # tile's centre and the frame's edge the model goes on with a smooth gradient, where INTER_LINEAR
+    # alone holds it flat for half a block. Tile centres sit at block/2; INTER_LINEAR maps centres
+    # to centres, so the frame starts one block into the padded grid.
+    med = _edge_trend(_edge_trend(med, 0), 1)
+    up = cv2.resize(med, ((nc + 2) * block, (nr + 2) * block), interpolation=cv2.INTER_LINEAR)
+    return up[block : block + rows, block : block + cols]
+
+
+def _edge_trend(med: np.ndarray, axis: int) -> np.ndarray:
+    """``med`` (tile medians) with one ghost tile before and after along ``axis``, each the outer
+    tile's median less the step to its neighbour, limited as a slope limiter limits it (minmod):
+    the smaller of the outer two steps when they go the same way, else none (the outer tile's own
+    median, as before). Why: a steep heel (flat - dark falling 55 % over 64 px) left the outer
+    half-block's reference flat while the flat went on falling, so the edge lines read 0.77-1 of
+    it, the edge line was a defect line and lines 4-12 from it too; a step between the outer tiles
+    (a read-out block's) is no trend, and the limiter leaves it alone. Fewer than 3 tiles: no
+    trend can be told from a step."""
+    m = np.moveaxis(med, axis, 0)
+    if m.shape[0] < 3:
+        lo, hi = m[:1], m[-1:]
+    else:
+        lo = m[:1] - _minmod(m[1:2] - m[:1], m[2:3] - m[1:2])
+        hi = m[-1:] + _minmod(m[-1:] - m[-2:-1], m[-2:-1] - m[-3:-2])
+    return np.moveaxis(np.concatenate([lo, m, hi]), 0, axis).astype(np.float32)
+
+
+def _minmod(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smaller of ``a`` and ``b`` in magnitude where they share a sign, else 0."""
+    return np.where(a * b > 0, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0)
 
 
 #: The fewest pixels a row or column must have to be judged as a line: a line's median response
@@ -427,6 +454,25 @@ def _off_fitted_step(off, med, padded, k, candidates):
     return out
 
 
+def _edge_padded(med, k):
+    """``med`` (lines' median responses) padded by ``k`` lines at each end: the trend of the ``2k``
+    lines inside each edge line carried on past it (the medians of two runs of ``k``, the edge line
+    left out), so that an edge line is judged against the lines inside it and where they lead.
+    Why: mirrored, an edge line on a steep smooth gradient (an anode heel, falling 40 % over 96 px
+    of a curved flat) stood below or above all of its mirrored neighbours alike and was a defect
+    line. Frames of fewer than ``2k + 1`` lines are mirrored (at one line, repeated)."""
+    n = med.size
+    if n < 2 * k + 1:
+        return np.pad(med, k, mode="reflect" if n > 1 else "edge")
+    steps = np.arange(k, 0, -1, dtype=np.float64)  # how far each padded line lies past the edge line
+    ends = []
+    for inner in (med[1 : 2 * k + 1], med[-2 : -2 * k - 2 : -1]):  # from the edge inwards
+        near, far = _nanmedian(inner[:k], 0), _nanmedian(inner[k:], 0)
+        slope = (far - near) / k  # per line, inwards; the near run's centre (k + 1) / 2 lines in
+        ends.append(near - slope * (steps + (k + 1) / 2))
+    return np.concatenate([ends[0], med, ends[1][::-1]]).astype(med.dtype)
+
+
 def _line_flags(rel, std, flagged, th: Thresholds, axis, skip=None):
     """Indices of defect lines along ``axis`` (0: rows, 1: columns) and their flag bits; none
     when a line has fewer than :data:`MIN_LINE_PIXELS` pixels. ``skip``: pixels left out of the
@@ -469,8 +515,7 @@ def _line_flags(rel, std, flagged, th: Thresholds, axis, skip=None):
         med = np.median(rel, axis=other)
         frac = flagged.mean(axis=other)
     n, k = med.size, LINE_REACH
-    # mirrored at the frame's edges: a defect line at the edge is judged by the lines inside
-    padded = np.pad(med, k, mode="reflect" if n > 1 else "edge")
+    padded = _edge_padded(med, k)
     windows = np.lib.stride_tricks.sliding_window_view(padded, k)
     left, right = _nanmedian(windows[:n], 1), _nanmedian(windows[k + 1 : k + 1 + n], 1)
     bits = np.zeros(n, np.uint32)
@@ -726,6 +771,9 @@ class Calibration:
         if many:
             warnings.warn(many, CalibrationWarning, stacklevel=3)
         good = mask == 0
+        provenance = _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated)
+        # filled as lines, but the flats' saturation's: kept apart so that every summary says so
+        provenance["saturated_lines"] = {"rows": sat_rows.tolist(), "columns": sat_cols.tolist()}
         return cls(
             dark,
             flat,
@@ -734,7 +782,7 @@ class Calibration:
             cols_idx,
             c=float(np.mean(response[good])) if good.any() else float(np.mean(response)),
             thresholds=th,
-            provenance=_provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated),
+            provenance=provenance,
         )
 
     @classmethod
@@ -1454,6 +1502,28 @@ def _merge_lines(idx, bits, idx2, bits2):
     for i, b in ((idx, bits), (idx2, bits2)):
         out[np.searchsorted(lines, i)] |= b
     return lines, out
+
+
+def line_summary(defect_rows, defect_columns, provenance: dict) -> dict:
+    """What a calibration fills as lines, in words, for ``radiokit calibrate`` and ``info``:
+    ``{"defect lines": "rows [...], columns [...]", "saturated lines": "columns [...] (flats
+    clipped, ...)"}``, each only where there are any. The lines filled only for the flats'
+    saturation (``provenance["saturated_lines"]``, :func:`_defect_map`) are named as the
+    calibration's warning names them, not as defect lines: listed among those, a heel flat's
+    clipped columns read as a panel fault, beside the manual's 20 at most."""
+    sat = provenance.get("saturated_lines") or {}
+    sat_rows, sat_cols = (np.asarray(sat.get(k, []), np.int64) for k in ("rows", "columns"))
+    rows = np.setdiff1d(np.asarray(defect_rows, np.int64), sat_rows)
+    cols = np.setdiff1d(np.asarray(defect_columns, np.int64), sat_cols)
+    out = {}
+    if rows.size or cols.size:
+        out["defect lines"] = f"rows {rows.tolist()}, columns {cols.tolist()}"
+    if sat_rows.size or sat_cols.size:
+        named = ", ".join(
+            f"{name} {idx.tolist()}" for name, idx in (("rows", sat_rows), ("columns", sat_cols)) if idx.size
+        )
+        out["saturated lines"] = f"{named} (flats clipped, not defect lines: lower the flat exposure)"
+    return out
 
 
 def _saturated_lines_text(rows, cols) -> str:

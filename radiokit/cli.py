@@ -129,6 +129,10 @@ def _summary(meta: dict) -> dict:
             out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
+    elif fmt == "calibration":  # the lines it fills, named as calibrate named them
+        from radiokit.calibrate import line_summary
+
+        out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), meta.get("provenance", {}))
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
@@ -361,6 +365,33 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
+def _judge_files(darks, flats, hints) -> None:
+    """Open every dark and flat file and judge it from its header (frames in it, one frame shape
+    per list), before any frame is read: every bad file named, each on its own line
+    (:func:`radiokit.io.open_all`). :func:`_stack` reads them afterwards, one at a time."""
+    from radiokit.io import FormatError, InputErrors, open_all
+
+    errors = []
+    for paths in (darks, flats):
+        first = []
+
+        def judge(src, first=first):
+            if not len(src):  # as `radiokit info` says it
+                raise FormatError(src.path, "no frames")
+            first.append((src.path, src.frame_shape))
+            if src.frame_shape != first[0][1]:  # np.stack would say only "must have the same shape"
+                raise FormatError(src.path, f"frames are {src.frame_shape}, those of {first[0][0]} {first[0][1]}")
+
+        try:
+            for src in open_all(paths, check=judge, **hints):
+                src.close()
+        except (FormatError, ValueError, OSError) as exc:
+            # one file of darks and flats both (an experiment-style file) is named once
+            errors += [e for e in getattr(exc, "errors", [exc]) if str(e) not in map(str, errors)]
+    if errors:
+        raise errors[0] if len(errors) == 1 else InputErrors(errors)
+
+
 def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
@@ -408,7 +439,7 @@ def _hdf5_name(path) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout
+    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout, line_summary
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -430,6 +461,7 @@ def cmd_calibrate(args) -> int:
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
         hints, origins, bits, layouts = _raw_hints(args), {"dark": [], "flat": []}, {}, {}
+        _judge_files(args.dark, args.flat, hints)
         darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts)
         flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts)
         layout = declared_layout(layouts)  # before averaging: darks and flats read alike
@@ -466,8 +498,8 @@ def cmd_calibrate(args) -> int:
     noise = "not measured (one dark)" if noise is None else f"{noise:.2f} counts"
     print(f"  c = mean(flat - dark) over valid pixels = {cal.c:.1f} counts; dark noise {noise}")
     print("  defects: " + ", ".join(f"{k} {v}" for k, v in p["defects"].items()))
-    if cal.defect_rows.size or cal.defect_columns.size:
-        print(f"  defect lines: rows {cal.defect_rows.tolist()}, columns {cal.defect_columns.tolist()}")
+    for what, text in line_summary(cal.defect_rows, cal.defect_columns, p).items():
+        print(f"  {what}: {text}")
     return 0
 
 
@@ -923,13 +955,18 @@ def cmd_process(args) -> int:
         raise ValueError(f"--crop-mm {args.crop_mm:g}: expected the crop's side in mm, > 0 (0: the whole frame)")
     if args.mm and not (args.inclusion or args.background):  # it was accepted and changed nothing
         raise ValueError("--mm: reads --inclusion and --background in mm; give one of them, or leave --mm out")
+    missing = []  # every one named, each on its own line (InputErrors), not the first alone
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
-            raise ValueError(f"{f}: is a folder, not an experiment file")
-        if not (Path(f).exists() or Path(f).is_symlink()):
+            missing.append(ValueError(f"{f}: is a folder, not an experiment file"))
+        elif not (Path(f).exists() or Path(f).is_symlink()):
             # said first: `process runs/*.h5 -o results` with no runs/ said "results: exists"
             where = "--control " if f == args.control else ""
-            raise ValueError(f"{where}{f}: no such experiment file")
+            missing.append(ValueError(f"{where}{f}: no such experiment file"))
+    if missing:
+        from radiokit.errors import InputErrors
+
+        raise missing[0] if len(missing) == 1 else InputErrors(missing)
     _check_process_files(args)
     if args.preset:  # it refuses only a preset given (with a peer method); it imports radiokit.register
         _check_preset(args)
@@ -1590,7 +1627,8 @@ def _main(argv) -> int:
         if _interrupted(exc) is not None:  # a C extension turned the interrupt into its own error
             print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
             return exit_status(_interrupted(exc))
-        print(_error_line(name, exc), file=sys.stderr)
+        for one in getattr(exc, "errors", None) or [exc]:  # InputErrors: each bad input on its own line
+            print(_error_line(name, one), file=sys.stderr)
         return 2
 
 

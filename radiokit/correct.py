@@ -815,31 +815,37 @@ def _planned(segments):
             yield si, fi, step, (1.0 if factors is None else float(factors[j]))
 
 
-def _segments(sources, cal: Calibration, image_keys) -> list:
-    """Per source, ``(index, frames, steps, exposure factors)`` of the frames to correct: every
-    frame of a file without image keys as a range, not a list -- a 14 kB HDF5 file declaring 10**8
-    frames made a list of 10**8 tuples (GBs) before the output's size could be refused. Keyed
-    files' records fit the memory budget."""
+def _open_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, list]:
+    """The sources of ``inputs`` opened and, per source, ``(index, frames, steps, exposure
+    factors)`` of the frames to correct: every frame of a file without image keys as a range, not
+    a list -- a 14 kB HDF5 file declaring 10**8 frames made a list of 10**8 tuples (GBs) before the
+    output's size could be refused. Keyed files' records fit the memory budget. Every file is
+    judged from its header before any frame is read, every bad one named
+    (:func:`radiokit.io.open_all`)."""
     from radiokit.calibrate import check_layout, exposure_factors
+    from radiokit.io import open_all
 
     segments = []
     stated: dict = {}  # the first frame file's own sub-array, where the calibration states none
-    for si, src in enumerate(sources):
+
+    def judge(src):
         if not len(src):  # as `radiokit info` and `calibrate` say it
             raise FormatError(src.path, "no frames")
         check_layout(cal, src.meta, src.path, stated)  # first: a quarter turn is no other frame size
         if src.frame_shape != cal.shape:
-            raise ValueError(f"{src.path}: frames are {src.frame_shape}, the calibration is {cal.shape}")
+            raise FormatError(src.path, f"frames are {src.frame_shape}, the calibration is {cal.shape}")
         _check_type_reaches_flats(src, cal)
         keys = src.meta.get("image_key")
         steps = src.meta.get("step")
+        si = len(segments)  # the source's index once every file is good (else nothing is kept)
         if keys is None:
             segments.append((si, range(len(src)), steps, None))
-            continue
+            return
         picked = np.flatnonzero(np.isin(np.asarray(keys), list(image_keys)))
         factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
         segments.append((si, picked, steps, factors))
-    return segments
+
+    return open_all(inputs, check=judge, **hints), segments
 
 
 def _check_type_reaches_flats(src, cal: Calibration) -> None:
@@ -888,13 +894,15 @@ def correct_files(
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
     """
-    from radiokit.io import StackWriter, open_frames
+    from radiokit.io import StackWriter
     from radiokit.progress import tqdm
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
-    sources = [open_frames(p, **hints) for p in inputs]
+    # the calibration's shape is the panel's: a raw size fitting several presets (one 2240 x 2240
+    # frame is four 2x2-binned ones) is read at it, where it was refused as ambiguous
+    hints = {"panel_shape": cal.shape, **hints}
+    sources, segments = _open_segments(inputs, cal, image_keys, hints)
     try:
-        segments = _segments(sources, cal, image_keys)
         n_plan = sum(len(picked) for _, picked, _, _ in segments)
         if not n_plan:
             raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(sources, image_keys)}")

@@ -1159,3 +1159,57 @@ def test_info_on_results_h5_says_an_assumed_pitch_was_not_recorded(tmp_path, rec
         assert [ln.split(None, 1) for ln in pitch] == [["pixel_size", "not recorded (assumed 50 \u00b5m)"]], res.stdout
         meta = json.loads(run_cli("info", "--json", path).stdout)[0]["metadata"]
         assert meta["pixel_size"] == "not recorded (assumed 50 \u00b5m)" and "pixel_size_mm" not in meta
+
+
+def test_correct_reads_a_raw_size_of_several_presets_at_the_calibrations_shape(tmp_path):
+    """`radiokit correct frames.raw --cal cal.h5`: four 4x4-binned frames have the bytes of one
+    2x2-binned frame, and were refused as ambiguous though the calibration says the panel's frames
+    are 560 x 560. Read so, they are corrected; a calibration fitting neither is named in the
+    refusal."""
+    from radiokit.calibrate import Calibration
+
+    shape = (560, 560)
+    Calibration(np.full(shape, 100.0), np.full(shape, 3100.0), np.zeros(shape, np.uint32)).save(tmp_path / "cal.h5")
+    np.full((4, *shape), 100 + 1500, "<u2").tofile(tmp_path / "frames.raw")  # half the flat's signal
+    res = run_cli(
+        "correct", tmp_path / "frames.raw", "--cal", tmp_path / "cal.h5", "-o", tmp_path / "t.h5", "--domain", "linear"
+    )
+    assert res.returncode == 0, res.stderr
+    t = read(tmp_path / "t.h5")
+    assert t.data.shape == (4, *shape)
+    np.testing.assert_allclose(t.data, 0.5, atol=1e-6)
+    Calibration(np.full((64, 64), 100.0), np.full((64, 64), 3100.0), np.zeros((64, 64), np.uint32)).save(
+        tmp_path / "c64.h5"
+    )
+    res = run_cli("correct", tmp_path / "frames.raw", "--cal", tmp_path / "c64.h5", "-o", tmp_path / "u.h5")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "ambiguous" in res.stderr and "64x64" in res.stderr and not (tmp_path / "u.h5").exists()
+
+
+def test_calibrate_and_info_name_saturated_lines_apart_from_defect_lines(tmp_path):
+    """A heel flat clipped at 4095 over its brightest columns: the calibration's warning calls them
+    "saturated lines, not defect lines ... lower the flat exposure", and the summary of calibrate
+    (of files, or of an experiment file) then listed them as "defect lines" beside a real one, as
+    a panel fault. Both commands now name them as the calibration does; info reads them from it."""
+    import tifffile
+
+    rng = np.random.default_rng(5)
+    rows, cols, n = 64, 192, 10
+    signal = np.broadcast_to(np.linspace(2000.0, 4110.0, cols), (rows, cols))
+    tifffile.imwrite(tmp_path / "d.tif", (100 + rng.poisson(4, (n, rows, cols))).astype(np.uint16))
+    flats = (100 + rng.poisson(signal, (n, rows, cols))).clip(0, 4095).astype(np.uint16)
+    flats[:, :, 30] = (100 + 0.9 * (flats[:, :, 30] - 100.0)).astype(np.uint16)  # a real defect line
+    tifffile.imwrite(tmp_path / "f.tif", flats)
+    res = run_cli("calibrate", "--dark", tmp_path / "d.tif", "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert "  defect lines: rows [], columns [30]\n" in res.stdout, res.stdout
+    told = re.search(r"  saturated lines: columns \[([\d, ]+)\] \(flats clipped, not defect lines", res.stdout)
+    assert told, res.stdout
+    clipped = [int(c) for c in told[1].split(", ")]
+    # the columns clipped in most of their pixels (in 2 frames or more: clipped_floor), to a column
+    heavy = np.flatnonzero(((flats == 4095).sum(axis=0) >= 2).mean(axis=0) > 0.5)
+    assert clipped == list(range(clipped[0], cols)) and heavy.size > 5 and abs(clipped[0] - heavy[0]) <= 1
+    res = run_cli("info", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"defect lines\s+rows \[\], columns \[30\]\n", res.stdout), res.stdout
+    assert re.search(rf"saturated lines\s+columns {re.escape(str(clipped))} \(flats clipped", res.stdout), res.stdout

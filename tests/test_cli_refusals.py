@@ -1111,3 +1111,48 @@ def test_a_schedulers_workers_share_their_hosts_memory_budget(tmp_path):
         res = run("20MB")
         assert res.returncode == 0, res.stderr
         assert all((tmp_path / "out" / f"exp{i}" / "results.json").exists() for i in (1, 2))
+
+
+# -- several bad inputs: each named, in one pass, before any work ------------------------------
+def _good_and_bad(tmp_path, shape=(32, 40)):
+    """A good TIFF of two frames, a TIFF holding no image, an empty file, and one of another shape."""
+    tifffile.imwrite(tmp_path / "a.tif", np.full((2, *shape), 1600, np.uint16))
+    (tmp_path / "b.tif").write_bytes(b"II*\x00garbage!")
+    (tmp_path / "c.tif").write_bytes(b"")
+    tifffile.imwrite(tmp_path / "d.tif", np.full((2, 8, 8), 1600, np.uint16))
+    return [tmp_path / n for n in ("a.tif", "b.tif", "c.tif", "d.tif")]
+
+
+def test_correct_names_every_bad_frame_file_in_one_pass(tmp_path):
+    """`radiokit correct a.tif b.tif c.tif d.tif` with three bad named only b.tif and stopped: the
+    user fixed it, ran again, and met c.tif, then d.tif. Each is opened and judged first (headers
+    only: no frame is read twice), every bad one named on its own line, nothing written."""
+    a, b, c, d = _good_and_bad(tmp_path)
+    shape = (32, 40)
+    Calibration(np.full(shape, 100.0), np.full(shape, 3100.0), np.zeros(shape, np.uint32)).save(tmp_path / "cal.h5")
+    res = run_cli("correct", a, b, c, d, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    lines = res.stderr.splitlines()
+    assert res.returncode == 2 and len(lines) == 3, res.stderr
+    for line, bad in zip(lines, (b, c, d)):
+        assert line.startswith(f"radiokit correct: {bad}: "), line
+    assert "empty" in lines[1] and "(8, 8)" in lines[2] and "(32, 40)" in lines[2]
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_calibrate_names_every_bad_dark_and_flat_file_in_one_pass(tmp_path):
+    a, b, c, d = _good_and_bad(tmp_path)
+    res = run_cli("calibrate", "--dark", a, b, "--flat", a, c, d, "-o", tmp_path / "cal.h5")
+    lines = res.stderr.splitlines()
+    assert res.returncode == 2 and len(lines) == 3, res.stderr
+    for line, bad in zip(lines, (b, c, d)):
+        assert line.startswith(f"radiokit calibrate: {bad}: "), line
+    assert not (tmp_path / "cal.h5").exists()
+
+
+def test_process_names_every_missing_experiment_file(tmp_path):
+    (tmp_path / "folder").mkdir()
+    res = run_cli("process", tmp_path / "a.h5", tmp_path / "folder", tmp_path / "c.h5", "-o", tmp_path / "res", *FAST)
+    lines = res.stderr.splitlines()
+    assert res.returncode == 2 and len(lines) == 3, res.stderr
+    assert [f"{n}:" in line for n, line in zip(("a.h5", "folder", "c.h5"), lines)] == [True] * 3, res.stderr
+    assert "folder" in lines[1] and not (tmp_path / "res").exists()

@@ -2991,3 +2991,51 @@ def test_writers_refuse_an_existing_file_unless_overwrite(tmp_path, writer):
     assert path.read_bytes() == before
     write(2, overwrite=True)
     assert int(read(path).data[0, 0, 0]) == 2
+
+
+@pytest.mark.parametrize("panel, preset, n", [((2240, 2240), "c7942", 1), ((1120, 1120), "c7942-2x2", 4)])
+def test_a_raw_size_fitting_several_presets_is_settled_by_the_panels_shape(tmp_path, panel, preset, n):
+    """One 2240 x 2240 frame's bytes are four 2x2-binned frames too, and were refused as ambiguous
+    even beside a calibration, whose shape is the panel's geometry. ``panel_shape=`` (the shape a
+    calibration gives) picks the one fitting preset of that shape; the size alone still decides
+    nothing. A sparse file: only its size is read to judge."""
+    path = tmp_path / "frame.raw"
+    with open(path, "wb") as fh:
+        fh.truncate(2240 * 2240 * 2)
+    with open_frames(path, panel_shape=panel) as src:
+        assert (src.meta["preset"], len(src), src.frame_shape) == (preset, n, panel)
+        assert src.meta["bit_depth"] == 12  # the preset's panel, as --preset gives it
+
+
+@pytest.mark.parametrize("panel", [(600, 600), (2240, 2344)])
+def test_a_panel_shape_no_fitting_preset_has_keeps_the_refusal_naming_it(tmp_path, panel):
+    path = tmp_path / "frame.raw"
+    with open(path, "wb") as fh:
+        fh.truncate(2240 * 2240 * 2)
+    _raises_format(path, "ambiguous", "1 frame of 2240x2240 (c7942)", f"{panel[0]}x{panel[1]}", panel_shape=panel)
+
+
+def test_a_panel_shape_is_no_geometry_hint_for_files_that_carry_their_own(tmp_path):
+    """A calibration is given beside TIFF frames as beside raw ones: the TIFF's own shape stands
+    (correct compares it with the calibration's), no refusal of a raw-only hint."""
+    path = tmp_path / "f.tif"
+    tifffile.imwrite(path, np.zeros((2, 8, 6), np.uint16))
+    with open_frames(path, panel_shape=(5, 5)) as src:
+        assert src.frame_shape == (8, 6)
+
+
+@pytest.mark.parametrize("peak, bits", [(16383, 14), (9000, 14), (40000, 16)])
+def test_values_past_a_presets_12_bits_are_said_to_fit_the_smallest_adc_that_holds_them(tmp_path, peak, bits):
+    """A 14-bit panel's raw file read at a C7942 preset (12-bit; no bit depth in the file): the
+    warning said "another detector (C9730DK/C9732DK are 14-bit ...; many cameras 16-bit)" and left
+    the reader to work out which. It names the smallest usual ADC depth (12, 14, 16 bits) holding
+    the values, the one calibrate and info judge saturation at."""
+    rng = np.random.default_rng(0)
+    frame = rng.integers(200, peak + 1, (560, 560)).astype("<u2")
+    frame[0, 0] = peak
+    frame.tofile(tmp_path / "f.raw")
+    with pytest.warns(BitDepthWarning) as caught:
+        read(tmp_path / "f.raw")
+    text = str(caught[0].message)
+    assert f"up to {peak} exceed the 12-bit range" in text, text
+    assert f"they fit a {bits}-bit ADC (0..{(1 << bits) - 1})" in text, text

@@ -12,7 +12,7 @@ its writer and reader: the experiment (``_experiment``: :class:`ExperimentWriter
 ['c7942', 'c7942-2344', 'c7942-2344-2x2']
 """
 
-from radiokit.errors import FormatError
+from radiokit.errors import FormatError, InputErrors
 from radiokit.io._atomic import (
     RESULTS_MARKER,
     DiskFullError,
@@ -44,7 +44,7 @@ from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
 from radiokit.io._results import EnhancedImages, ResultsRecord, read_results, write_results
 from radiokit.io._simulation import PlantedDefects, SimulationRecord, read_simulation, write_simulation
-from radiokit.io._source import FORMATS, FrameSource, iter_frames, open_frames, read, sniff
+from radiokit.io._source import FORMATS, FrameSource, iter_frames, open_all, open_frames, read, sniff
 from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = [
@@ -53,6 +53,7 @@ __all__ = [
     "data_files",
     "read",
     "open_frames",
+    "open_all",
     "iter_frames",
     "sniff",
     "Frames",
@@ -69,6 +70,7 @@ __all__ = [
     "StackWriter",
     "write_tiff",
     "FormatError",
+    "InputErrors",
     "BitDepthWarning",
     "bit_depth_cause",
     "atomic_path",

@@ -115,6 +115,15 @@ def bit_depth_cause(frame: np.ndarray, bits: int, *, swap_advice: str = RAW_SWAP
     return None
 
 
+def _fitting_adc(peak: int) -> str:
+    """ "they fit a 14-bit ADC (0..16383): " -- the smallest usual ADC depth (12, 14, 16 bits)
+    holding ``peak``, the one radiokit.calibrate.adc_top judges saturation at; "" past 16 bits.
+    Why: the warning listed 14- and 16-bit detectors and left the reader to work out which the
+    values fit, and so where calibrate and info would count them saturated."""
+    bits = next((b for b in (12, 14, 16) if peak <= (1 << b) - 1), None)
+    return f"they fit a {bits}-bit ADC (0..{(1 << bits) - 1}): " if bits else ""
+
+
 def check_bit_depth(path, frame: np.ndarray, bits: int | None, *, swap_advice: str = RAW_SWAP_ADVICE) -> bool:
     """Warn when a frame holds values the ADC cannot produce; whether it warned.
 
@@ -128,8 +137,8 @@ def check_bit_depth(path, frame: np.ndarray, bits: int | None, *, swap_advice: s
     if peak <= top:
         return False
     cause = bit_depth_cause(frame, bits, swap_advice=swap_advice) or (
-        "another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data rescaled "
-        "before saving, or a wrong geometry, offset or byte order; the values are read as stored"
+        f"{_fitting_adc(peak)}another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data "
+        "rescaled before saving, or a wrong geometry, offset or byte order; the values are read as stored"
     )
     message = BitDepthWarning(f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; {cause}.")
     message.path = str(path)  # for callers that show one warning per file (the command line)

@@ -112,8 +112,9 @@ def _packed_note(payload: int) -> str:
     return f"; it also fits {named}, which radiokit does not read: unpack the file to 16-bit words first"
 
 
-def _preset_for(path, payload: int, preset) -> RawPreset:
-    """The preset named, else the one the payload's size implies (see :func:`raw_geometry`)."""
+def _preset_for(path, payload: int, preset, panel_shape=None) -> RawPreset:
+    """The preset named, else the one the payload's size implies, else the one of those it fits
+    whose frames are ``panel_shape`` (see :func:`raw_geometry`)."""
     if preset is not None:
         if preset not in PRESETS:
             raise FormatError(path, f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
@@ -131,23 +132,34 @@ def _preset_for(path, payload: int, preset) -> RawPreset:
         )
     # One 2240 x 2240 frame has the bytes of four 2x2-binned and sixteen 4x4-binned ones: the size
     # cannot tell them apart, and the hardware notes ask for inference only where it is unambiguous.
+    # The panel's frame shape known from elsewhere (a calibration's) is such a word, where it picks one.
+    known = ""
+    if panel_shape is not None:
+        panel_shape = tuple(int(v) for v in panel_shape)
+        same = [p for p in dividing if (p.rows, p.cols) == panel_shape]
+        if len(same) == 1:
+            return same[0]
+        known = f"; the panel's frames are {panel_shape[0]}x{panel_shape[1]} (the calibration's shape), which {'several' if same else 'none'} of these {'are' if same else 'is'}"
     counts = [(payload // p.frame_bytes, p) for p in dividing]
     fits = ", ".join(f"{k} frame{'s' * (k > 1)} of {p.rows}x{p.cols} ({p.name})" for k, p in counts)
     raise FormatError(
         path,
-        f"size {payload} bytes is ambiguous, it fits {fits}; name the panel's geometry with preset= or "
+        f"size {payload} bytes is ambiguous, it fits {fits}{known}; name the panel's geometry with preset= or "
         f"shape= (on the command line e.g. --preset {dividing[0].name}, or --shape ROWS COLS)" + _packed_note(payload),
     )
 
 
-def raw_geometry(path, size: int, *, preset=None, shape=None, dtype=None, byteorder=None, offset=0, n=None) -> dict:
+def raw_geometry(
+    path, size: int, *, preset=None, shape=None, dtype=None, byteorder=None, offset=0, n=None, panel_shape=None
+) -> dict:
     """Decide the geometry of a headerless raw file of ``size`` bytes.
 
     Rules, in order: an explicit ``shape`` wins; an explicit ``preset`` is used as given; a size
-    that is a whole number of frames of exactly one preset is a stack of that preset. A size that
-    fits several (one 2240 x 2240 frame is four 2x2-binned frames and sixteen 4x4-binned ones) or
-    none raises :class:`FormatError` naming them: geometry is inferred only where the size
-    leaves no doubt.
+    that is a whole number of frames of exactly one preset is a stack of that preset; a size that
+    fits several (one 2240 x 2240 frame is four 2x2-binned frames and sixteen 4x4-binned ones) is
+    the one of them whose frames are ``panel_shape`` (rows, cols), the panel's frame shape known
+    from elsewhere (the calibration the frames are corrected with), where exactly one is. Else
+    :class:`FormatError` names them: geometry is inferred only where nothing leaves a doubt.
     """
     dt = _parse_dtype(path, dtype, byteorder)
     if offset < 0:
@@ -173,7 +185,7 @@ def raw_geometry(path, size: int, *, preset=None, shape=None, dtype=None, byteor
     else:
         if dt.itemsize != 2:
             raise FormatError(path, f"presets hold 16-bit words; dtype {dt} needs an explicit shape=")
-        p = _preset_for(path, payload, preset)
+        p = _preset_for(path, payload, preset, panel_shape)
         name, rows, cols, bits, pixel_size_mm = p.name, p.rows, p.cols, p.bits, p.pixel_size_mm
         frame_bytes = p.frame_bytes
     if n is None:

@@ -17,7 +17,7 @@ import numpy as np
 import tifffile
 
 from radiokit import _json as strict_json
-from radiokit.errors import FormatError
+from radiokit.errors import FormatError, InputErrors, RadiokitError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
     _LENGTH_UNITS_M,
@@ -85,7 +85,10 @@ _EXTENSIONS = {
     ".bin": "raw",
     ".dat": "raw",
 }
-_RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n"}
+_RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n", "panel_shape"}
+#: hints that files carrying their own geometry take (n) or let pass (panel_shape: correct compares
+#: their frames with the calibration's shape itself)
+_ANY_FORMAT_HINTS = {"n", "panel_shape"}
 #: text files a user may hand a frame reader (radiokit process writes the first two beside
 #: results.h5): named, not measured against the raw geometries as if their bytes were pixels
 _TEXT = {
@@ -242,11 +245,12 @@ class FrameSource:
         if dataset and self.format != "hdf5":  # h5py's "file signature not found" named neither
             what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(self.format, "not HDF5 (no HDF5 signature)")
             raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
-        if self.format != "raw" and hints.keys() - {"n"}:
+        if self.format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
             # Geometry hints only make sense for headerless data.
             raise FormatError(
                 self.path,
-                f"{self.format} files carry their own geometry; hints {sorted(hints)} apply to raw files only",
+                f"{self.format} files carry their own geometry; hints {sorted(hints.keys() - _ANY_FORMAT_HINTS)} "
+                "apply to raw files only",
             )
         self._fh = self._tif = self._h5 = None
         self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
@@ -1601,6 +1605,23 @@ class FrameSource:
             cols=self.frame_shape[1],
             dtype=str(self.dtype),
         )
+        self.meta.update(self._calibration_lines())
+
+    def _calibration_lines(self) -> dict:
+        """The lines a calibration file fills (``defect_rows``, ``defect_columns``) and its
+        ``provenance`` (which of them are the flats' saturation's), for ``radiokit info`` to name
+        them as calibrate did; what is missing or unreadable is left out (its frames still read:
+        ``Calibration.load`` judges the file)."""
+        out: dict = {}
+        try:
+            for name in ("defect_rows", "defect_columns"):
+                if f"{CALIBRATION}/{name}" in self._h5:
+                    out[name] = self._checked(f"{CALIBRATION}/{name}", "iu", (1,))[()]
+            prov = strict_json.loads(self._h5[CALIBRATION].attrs.get("provenance", "{}"))
+            out["provenance"] = prov if isinstance(prov, dict) else {}
+        except (FormatError, ValueError, TypeError):
+            return {}
+        return out
 
     def _read_hdf5(self, i):
         self._check_hdf5_written(i)
@@ -1778,6 +1799,41 @@ def open_frames(path, /, **hints) -> FrameSource:
     return FrameSource(path, **hints)
 
 
+def open_all(paths, /, check=None, **hints) -> list[FrameSource]:
+    """Open every file of ``paths`` (``hints`` as :func:`open_frames` takes them) and pass each
+    open source to ``check`` (a caller's judgement of one file from its header: its shape, its
+    frame count), before any frame is read. Every file that fails is named: one failure raises
+    its own error, several an :class:`radiokit.errors.InputErrors` holding each, in the order
+    given; the files opened are then closed. Why: a command of several files named only the first
+    bad one, and the user met the next one only after fixing it."""
+    sources, errors = [], []
+    try:
+        for path in paths:
+            try:
+                src = open_frames(path, **hints)
+            except (RadiokitError, ValueError, OSError) as exc:
+                errors.append(exc)
+                continue
+            sources.append(src)
+            if check is not None:
+                try:
+                    check(src)
+                except (RadiokitError, ValueError, OSError) as exc:
+                    errors.append(exc)
+    except BaseException:
+        _close_all(sources)
+        raise
+    if errors:
+        _close_all(sources)
+        raise errors[0] if len(errors) == 1 else InputErrors(errors)
+    return sources
+
+
+def _close_all(sources) -> None:
+    for src in sources:
+        src.close()
+
+
 def _bits_reversed(frame: np.ndarray) -> np.ndarray:
     """``frame`` with the bits of each of its bytes reversed (TIFF FillOrder 2 undone; per byte,
     so the same in either byte order)."""
@@ -1805,7 +1861,9 @@ def read(path, /, **hints) -> Frames:
         dataset of an arbitrary HDF5 file; for raw files ``preset`` (one of :data:`PRESETS`),
         ``shape`` ((rows, cols) or (n, rows, cols)), ``dtype`` (default ``"<u2"``),
         ``byteorder`` ("<" or ">"; refused against a dtype naming the other), ``offset`` (bytes to
-        skip) and ``n`` (frames to read);
+        skip) and ``n`` (frames to read); ``panel_shape`` ((rows, cols): the panel's frames as a
+        calibration gives them) settles a raw size that fits several presets, and other formats
+        let it pass;
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
         default: they make a file read other files); ``budget`` (bytes or
