@@ -2135,16 +2135,19 @@ class L8121:
         if not self._may_be_on:
             self._release_off(me)
             return
+        # INFO, as _trip's: ``cause`` is raised to the caller right after, and the caller's error
+        # line is the one the operator reads; an ERROR here said "no reply to SAR" twice on the
+        # terminal (s43). The notebook keeps both; an unconfirmed switch-off is logged on its own
         if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
             self._release_off(me)
-            logger.error(
+            logger.info(
                 "%s: %s; X-rays were not confirmed off before (%s)",
                 self.port,
                 self._unported(cause),
                 self._unported(self.off_failed),
             )
             return
-        logger.error("%s: %s; switching X-rays off", self.port, self._unported(cause))
+        logger.info("%s: %s; switching X-rays off", self.port, self._unported(cause))
         try:
             self.off()
         except DeviceError as exc:
