@@ -787,9 +787,13 @@ def _source_command(args, guard) -> int:
                 else:
                     src.close()
             raise
-        except BaseException:
+        except BaseException as exc:
             guard.cleanup()  # from here a signal must not cut the switch-off short
-            src.close()  # a failed command leaves the tube off, or close() raises that it may not be
+            try:
+                src.close()  # a failed command leaves the tube off, or close() raises that it may not be
+            except DeviceError as off_exc:
+                off_exc.fault = exc  # why it was switching off: the error line names it first
+                raise
             raise
         if args.action == "on" and code == 0:
             src.detach()  # bench work: on until `acquire source off`
@@ -808,10 +812,16 @@ def _one_fault(exc, src):
     """What a source command's error line says for ``exc``: ``exc``, or, when B's operate switch
     off REMOTE refused the connect and then its XOF, the switch-off's error, which names the
     switch and what to do, and says the tube is not confirmed off. The connect's said only the
-    first half, and on a line of its own: two `error:` lines for one fault."""
+    first half, and on a line of its own: two `error:` lines for one fault. A switch-off that
+    failed as the link closed after a fault (``exc.fault``) is said after that fault: the line
+    said only "could not confirm X-rays off", not why it was switching off (s43)."""
     failed = getattr(src, "off_failed", None)
     if getattr(exc, "operate_switch", None) and failed is not None and "operate switch is" in str(failed):
         return failed
+    fault = getattr(exc, "fault", None)
+    if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
+        port = f"{src.port}: " if src is not None else ""
+        return f"{fault}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
 

@@ -2801,11 +2801,16 @@ class L8121:
                     "seconds": seconds,
                 }
             if seconds > c.stable_timeout_s:
+                # switched off here, not by the caller's error path: the line then says what the
+                # switch-off found (confirmed or not) and the controller's error code, as a trip's
+                # does -- it said "X-rays switched off" before any XOF went (s43)
+                _, note, failed = self._off_for_fault()
+                note += self._error_code_note()
                 raise DeviceError(
                     f"{self.port}: beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: "
                     f"measured {m_kv:g} kV {m_ua:g} µA, set {kv} kV {ua} µA "
-                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); X-rays switched off"
-                )
+                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); {note}"
+                ) from failed
             time.sleep(c.poll_s)
 
     def _fault_reason(
@@ -2878,30 +2883,42 @@ class L8121:
     def _trip(self, reason: str | Callable[[bool], str]):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`)."""
-        note, failed = "X-rays switched off", None
-        try:
-            state = self.off()
-        except DeviceError as exc:
-            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
-            # right above its X-RAYS warning), not only inside the fault's line
-            state, note, failed = None, "switching X-rays off could not be confirmed", exc
-            self._log_off_failure(exc)
+        state, note, failed = self._off_for_fault()
         if callable(reason):
             reason = reason(self.off_failed is None)
         if state == SourceState.OVERLOAD and not reason.startswith("overload"):
             # B reads state and current in separate exchanges: an overload between them looks
             # like a dropped beam until the STS after XOF says what it was
             reason = f"overload ({reason})"
-        try:
-            code = None if self.off_failed else self.error_code()  # (not asked of a controller that failed)
-            note += f"; controller error code {code}" if code else ""
-        except DeviceError:
-            pass
+        note += self._error_code_note()
         # the caller reports the SourceFault (the command line's error line; the series names a
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
         logger.info("%s: %s; %s", self.port, reason, note)
         raise SourceFault(f"{self.port}: {reason}; {note}") from failed  # (its words: off_failed)
+
+    def _off_for_fault(self) -> tuple[SourceState | None, str, DeviceError | None]:
+        """Switch off for a fault: the state the switch-off confirmed (None: not confirmed), the
+        note for the fault's message ("X-rays switched off", or not confirmed) and the switch-off's
+        error. The controller's error code is :meth:`_error_code_note`'s, asked after (a trip asks
+        ``SIN`` in between, for its message)."""
+        try:
+            return self.off(), "X-rays switched off", None
+        except DeviceError as exc:
+            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
+            # right above its X-RAYS warning), not only inside the fault's line
+            self._log_off_failure(exc)
+            return None, "switching X-rays off could not be confirmed", exc
+
+    def _error_code_note(self) -> str:
+        """The note "; controller error code N" when ``SER`` reads a code after a fault's switch-off (often
+        why the beam is not what was set), else "" -- not asked of a controller whose switch-off
+        failed, nor said when ``SER`` cannot be read."""
+        try:
+            code = None if self.off_failed else self.error_code()
+        except DeviceError:
+            return ""
+        return f"; controller error code {code}" if code else ""
 
     def check(self) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.

@@ -957,6 +957,27 @@ def test_cli_source_on_says_a_poll_without_reply_once(capsys):
     assert err[-1].startswith("error:") and "X-rays off, confirmed by STS" in err[-1], err
 
 
+def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confirmed(capsys):
+    """Found (s43): the controller's reply path lost as the beam ramped up (it still executes
+    commands): `source on` switched off and could not confirm it. Its one error line said only
+    "could not confirm X-rays off ... the controller does not answer", not why it was switching
+    off: the poll's "no reply to SAR" was replaced by the switch-off's failure as the link closed."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        model.inject_after("XON", lambda: model.silence(True, execute=True))
+        port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
+        code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    errors = [ln for ln in err if ln.startswith("error:")]
+    assert code == 3 and err[-1] == TUBE_WARNING and len(errors) == 1, err
+    # the cause first, then what switching off ran into, in the one line
+    assert re.search(r"no reply to SAR.*could not confirm X-rays off", errors[0]), errors
+    assert sum("could not confirm X-rays off" in ln for ln in err) == 1, err
+
+
 def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):
     """Found: README says `radiokit acquire` exits 2 for an option it refuses, but an existing
     output exited 1 (and did not mention --overwrite), `source on --kv 200` exited 1 after

@@ -1222,6 +1222,26 @@ def test_on_switches_off_when_not_stable(warm, dialect):
         assert not model.xray_on and "XOF" in commands_after(model, "XON")
 
 
+def test_a_beam_not_stable_says_the_controllers_error_code_and_an_unconfirmed_switch_off(warm, dialect):
+    """Found (s43): a beam that never reached its setting ended on "beam not stable ...; X-rays
+    switched off" -- said before any XOF went, so also when the switch-off was then not confirmed
+    (a relay stuck on), and without the controller's error code, which a trip names (the code is
+    often why the beam is not what was set)."""
+    model, server = warm
+    with driver(server, dialect, stable_timeout_s=0.3, off_confirm_s=0.2, off_attempts=1) as src:
+        model.inject_after("XON", lambda: (model.controller_error(2), model.drop_beam()))
+        with pytest.raises(DeviceError, match=r"not stable within .*; X-rays switched off; controller error code 2$"):
+            src.on(60, 250)
+        assert not model.xray_on
+        model.controller_error(0)
+        model.inject_after("XON", lambda: (model.stuck_on(), model.drop_beam()))
+        with pytest.raises(DeviceError, match=r"not stable within .*; switching X-rays off could not be confirmed"):
+            src.on(60, 250)
+        assert src.off_failed is not None
+        model.stuck_on(False)
+    assert not model.xray_on
+
+
 def test_off_is_confirmed(source):
     src, model = source
     src.on(60, 250)
