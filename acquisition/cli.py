@@ -789,11 +789,7 @@ def _source_command(args, guard) -> int:
             raise
         except BaseException as exc:
             guard.cleanup()  # from here a signal must not cut the switch-off short
-            try:
-                src.close()  # a failed command leaves the tube off, or close() raises that it may not be
-            except DeviceError as off_exc:
-                off_exc.fault = exc  # why it was switching off: the error line names it first
-                raise
+            _close_after(src, exc)  # a failed command leaves the tube off, or close() raises that it may not be
             raise
         if args.action == "on" and code == 0:
             src.detach()  # bench work: on until `acquire source off`
@@ -806,6 +802,19 @@ def _source_command(args, guard) -> int:
             guard.cleanup()  # a switch-off nobody confirmed: a signal must not cut it short
             _off_anyway(src)  # its outcome the last line; not confirmed, the exit rule's warning
         return _source_error_code(exc, src, args)
+
+
+def _close_after(src, exc: BaseException) -> None:
+    """``src.close()`` after the command failed with ``exc``. The switch-off error it raises (the
+    tube not confirmed off) keeps ``exc`` as its ``fault``: why it was switching off, which the
+    error line names first (:func:`_one_fault`)."""
+    from acquisition.errors import DeviceError
+
+    try:
+        src.close()
+    except DeviceError as off_exc:
+        off_exc.fault = exc
+        raise
 
 
 def _one_fault(exc, src):
