@@ -575,12 +575,13 @@ def _source_said_last(args) -> int:
         cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
         try:
             cfg.check_exposure(args.kv, args.ua)
-            cfg.check_exposure(math.floor(args.kv + 0.5), math.floor(args.ua + 0.5))
+            whole = math.floor(args.kv + 0.5), math.floor(args.ua + 0.5)  # (finite: checked)
+            cfg.check_exposure(*whole)
+            if args.action == "on":  # on() judges the beam's stability at its setting (not a warm-up's)
+                cfg.check_tolerances(*whole)
         except ValueError as exc:
-            print(
-                f"error: --kv {args.kv:g} --ua {args.ua:g}: {str(exc).removeprefix('L8121: ')}; nothing was sent",
-                file=sys.stderr,
-            )
+            said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
+            print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
             return 2
     from acquisition.errors import PortBusy
     from acquisition.guardian import TUBE_WARNING

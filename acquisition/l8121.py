@@ -359,15 +359,17 @@ class SourceConfig:
         self._check_given_tolerances()
 
     def _check_given_tolerances(self) -> None:
-        """A tolerance given here (the defaults are not the user's: ``ua_max = 8`` alone was refused
-        for the default 5 µA, review s42rr2) at the lowest voltage this configuration allows
-        (exact: a kV setting is never lower) and the highest current (the tightest bound that
-        holds whatever current is asked; a protocol checks the ones it gives at its own setting,
-        ``_check_source``); a percentage is checked exactly by both."""
+        """A tolerance given here that no setting this configuration allows could honour: judged at
+        the one with the most room (the highest voltage and current allowed; a percentage is the
+        same at every setting). The defaults are not the user's, and are not judged here:
+        ``ua_max = 8`` alone was refused for the default 5 µA (review s42rr2). Every tolerance,
+        default or given, is judged at the setting itself as it is made (:meth:`L8121.on`,
+        :meth:`L8121.set_values`; a protocol at its own, ``_check_source``): judged here at
+        ``kv_min``, 25 kV was refused for a unit run at 60 kV (s43)."""
         defaults = {f.name: f.default for f in dataclasses.fields(self)}
         given = [key for key in ("kv_tolerance", "ua_tolerance") if getattr(self, key) != defaults[key]]
         ua_hi = min(self.ua_max, RATINGS.ua_max)
-        self.check_tolerances(max(self.kv_min, RATINGS.kv_min), ua_hi if ua_hi > 0 else None, keys=given)
+        self.check_tolerances(min(self.kv_max, RATINGS.kv_max), ua_hi if ua_hi > 0 else None, keys=given)
 
     def _check_beam_drop(self) -> None:
         """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
@@ -456,6 +458,7 @@ class SourceConfig:
         of them. A wider tolerance counts a beam the monitor calls dropped as stable (1000 kV:
         any beam, none included)."""
         room = 1 - self.beam_drop_fraction
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
         for key, spec, set_value, unit in (
             ("kv_tolerance", self.kv_tolerance, set_kv, "kV"),
             ("ua_tolerance", self.ua_tolerance, set_ua, "µA"),
@@ -464,10 +467,12 @@ class SourceConfig:
                 continue
             tol = _tolerance(spec, set_value, key)
             if tol > room * abs(set_value):
+                # a default is said as one: the user wrote none, and learns which key to write
+                default = " (the default)" if spec == defaults[key] else ""
                 raise ValueError(
-                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as stable "
-                    f"a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
-                    f"of the set value): expected at most {room:.0%} of the set value"
+                    f"L8121 configuration: {key} = {spec!r}{default}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                    f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
+                    f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
 
     def tolerance_kv(self, set_kv: float) -> float:
@@ -2380,6 +2385,16 @@ class L8121:
         self.dialect.settings["focus"].line(self, value)
 
     # ---- operations ----
+    def _validate_beam(self, kv: float, ua: float) -> tuple[int, int]:
+        """:meth:`validate`, and the tolerances (the defaults too) judged at the whole numbers that
+        will be sent, as a beam is set to be judged stable (:meth:`on`, :meth:`set_values`): a
+        tolerance wider than ``1 - beam_drop_fraction`` of the setting counts a beam the monitor
+        calls dropped as stable. ``ValueError`` before anything is sent. Not for a warm-up's
+        values: no beam is judged against them."""
+        kv_i, ua_i = self.validate(kv, ua)
+        self.config.check_tolerances(kv_i, ua_i)
+        return kv_i, ua_i
+
     def validate(self, kv: float, ua: float) -> tuple[int, int]:
         """Check a voltage and current against the configuration and the ratings; nothing is sent.
 
@@ -2403,8 +2418,10 @@ class L8121:
         values are within tolerance of the new ones, so that :meth:`check` judges the beam against
         the new setting; any failure switches off.
         """
-        kv_i, ua_i = self.validate(kv, ua)
         beam_on = self._beam is not None
+        # the tolerances only for a beam judged stable at these values (a warm-up's, and the
+        # presets before on(), are not: on() judges its own)
+        kv_i, ua_i = self._validate_beam(kv, ua) if beam_on else self.validate(kv, ua)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
             _, old_ua = self.setpoint()
@@ -2691,7 +2708,8 @@ class L8121:
         Raises
         ------
         ValueError
-            A value outside its range or the power limit (message names the limit).
+            A value outside its range or the power limit (message names the limit), or a
+            tolerance wider than ``1 - beam_drop_fraction`` of the setting (nothing sent).
         DeviceError
             Not in standby (warm-up needed, not ready), refused, or not stable within
             ``stable_timeout_s`` (X-rays switched off).
@@ -2700,7 +2718,7 @@ class L8121:
             L8121.md says it means) before switching on; overload, interlock, dropped beam or a
             warm-up instead of the exposure while waiting (X-rays switched off).
         """
-        kv_i, ua_i = self.validate(kv, ua)
+        kv_i, ua_i = self._validate_beam(kv, ua)
         self._require_ready()
         seen = self._reconnects()
         try:

@@ -431,9 +431,8 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
-    try:  # the tolerances this protocol gives, at its own setting (the defaults are the driver's)
-        given = [key for key in ("kv_tolerance", "ua_tolerance") if key in s.limits]
-        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua), keys=given)
+    try:  # the tolerances, given or the driver's defaults, at this protocol's setting (as on() judges them)
+        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
