@@ -2142,7 +2142,10 @@ class L8121:
             return
         # INFO, as _trip's: ``cause`` is raised to the caller right after, and the caller's error
         # line is the one the operator reads; an ERROR here said "no reply to SAR" twice on the
-        # terminal (s43). The notebook keeps both; an unconfirmed switch-off is logged on its own
+        # terminal (s43). The notebook keeps both; an unconfirmed switch-off is logged on its own.
+        # ``fail_safe`` marks the cause as a fault that switched off (a run names it when it
+        # stopped on something else, as it names a trip)
+        cause.fail_safe = True
         if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
             self._release_off(me)
             logger.info(

@@ -1805,18 +1805,16 @@ def _beam_fault_not_stopped_on(monitor, exc: BaseException) -> None:
     """The beam monitor's trip, said when the run stopped on something else (the panel's
     time-out as the door opened, a Ctrl-C): the driver logs a trip for the notebook only, the
     caller's error line being the one the operator reads, and this run's line names ``exc``. A
-    poll that failed (no reply, garbage) is said too: the driver's fail-safe logs it for the
-    notebook only, as a trip (s43)."""
-    from acquisition.errors import DeviceError, SourceFault
-    from acquisition.l8121 import SwitchedOff
+    poll that failed (no reply, garbage) and switched off is said too: the driver's fail-safe
+    logs it for the notebook only (``fail_safe``), as a trip (s43)."""
+    from acquisition.errors import SourceFault
 
     fault = getattr(monitor, "error", None)
     # (a SourceFault stopping the run is that trip, or the guardian's watchdog named for the
-    # detector's time-out, which the trip would repeat; SwitchedOff: another thread switched off
-    # during the poll, which then vouched for nothing and found no fault)
-    if isinstance(fault, DeviceError) and not isinstance(fault, SwitchedOff) and fault is not exc:
-        if not isinstance(exc, SourceFault):
-            log.error("the beam monitor had stopped the beam: %s", fault)
+    # detector's time-out, which the trip would repeat)
+    stopped_beam = isinstance(fault, SourceFault) or getattr(fault, "fail_safe", False)
+    if stopped_beam and fault is not exc and not isinstance(exc, SourceFault):
+        log.error("the beam monitor had stopped the beam: %s", fault)
 
 
 def _file_lost_cause(r: _Run, exc: BaseException) -> BaseException:
