@@ -575,12 +575,13 @@ def _source_said_last(args) -> int:
         cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
         try:
             cfg.check_exposure(args.kv, args.ua)
-            cfg.check_exposure(math.floor(args.kv + 0.5), math.floor(args.ua + 0.5))
+            whole = math.floor(args.kv + 0.5), math.floor(args.ua + 0.5)  # (finite: checked)
+            cfg.check_exposure(*whole)
+            if args.action == "on":  # on() judges the beam's stability at its setting (not a warm-up's)
+                cfg.check_tolerances(*whole)
         except ValueError as exc:
-            print(
-                f"error: --kv {args.kv:g} --ua {args.ua:g}: {str(exc).removeprefix('L8121: ')}; nothing was sent",
-                file=sys.stderr,
-            )
+            said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
+            print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
             return 2
     from acquisition.errors import PortBusy
     from acquisition.guardian import TUBE_WARNING
@@ -787,9 +788,9 @@ def _source_command(args, guard) -> int:
                 else:
                     src.close()
             raise
-        except BaseException:
+        except BaseException as exc:
             guard.cleanup()  # from here a signal must not cut the switch-off short
-            src.close()  # a failed command leaves the tube off, or close() raises that it may not be
+            _close_after(src, exc)  # a failed command leaves the tube off, or close() raises that it may not be
             raise
         if args.action == "on" and code == 0:
             src.detach()  # bench work: on until `acquire source off`
@@ -804,14 +805,33 @@ def _source_command(args, guard) -> int:
         return _source_error_code(exc, src, args)
 
 
+def _close_after(src, exc: BaseException) -> None:
+    """``src.close()`` after the command failed with ``exc``. The switch-off error it raises (the
+    tube not confirmed off) keeps ``exc`` as its ``fault``: why it was switching off, which the
+    error line names first (:func:`_one_fault`)."""
+    from acquisition.errors import DeviceError
+
+    try:
+        src.close()
+    except DeviceError as off_exc:
+        off_exc.fault = exc
+        raise
+
+
 def _one_fault(exc, src):
     """What a source command's error line says for ``exc``: ``exc``, or, when B's operate switch
     off REMOTE refused the connect and then its XOF, the switch-off's error, which names the
     switch and what to do, and says the tube is not confirmed off. The connect's said only the
-    first half, and on a line of its own: two `error:` lines for one fault."""
+    first half, and on a line of its own: two `error:` lines for one fault. A switch-off that
+    failed as the link closed after a fault (``exc.fault``) is said after that fault: the line
+    said only "could not confirm X-rays off", not why it was switching off (s43)."""
     failed = getattr(src, "off_failed", None)
     if getattr(exc, "operate_switch", None) and failed is not None and "operate switch is" in str(failed):
         return failed
+    fault = getattr(exc, "fault", None)
+    if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
+        port = f"{src.port}: " if src is not None else ""
+        return f"{fault}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
 

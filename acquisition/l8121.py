@@ -359,15 +359,17 @@ class SourceConfig:
         self._check_given_tolerances()
 
     def _check_given_tolerances(self) -> None:
-        """A tolerance given here (the defaults are not the user's: ``ua_max = 8`` alone was refused
-        for the default 5 µA, review s42rr2) at the lowest voltage this configuration allows
-        (exact: a kV setting is never lower) and the highest current (the tightest bound that
-        holds whatever current is asked; a protocol checks the ones it gives at its own setting,
-        ``_check_source``); a percentage is checked exactly by both."""
+        """A tolerance given here that no setting this configuration allows could honour: judged at
+        the one with the most room (the highest voltage and current allowed; a percentage is the
+        same at every setting). The defaults are not the user's, and are not judged here:
+        ``ua_max = 8`` alone was refused for the default 5 µA (review s42rr2). Every tolerance,
+        default or given, is judged at the setting itself as it is made (:meth:`L8121.on`,
+        :meth:`L8121.set_values`; a protocol at its own, ``_check_source``): judged here at
+        ``kv_min``, 25 kV was refused for a unit run at 60 kV (s43)."""
         defaults = {f.name: f.default for f in dataclasses.fields(self)}
         given = [key for key in ("kv_tolerance", "ua_tolerance") if getattr(self, key) != defaults[key]]
         ua_hi = min(self.ua_max, RATINGS.ua_max)
-        self.check_tolerances(max(self.kv_min, RATINGS.kv_min), ua_hi if ua_hi > 0 else None, keys=given)
+        self.check_tolerances(min(self.kv_max, RATINGS.kv_max), ua_hi if ua_hi > 0 else None, keys=given)
 
     def _check_beam_drop(self) -> None:
         """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
@@ -456,6 +458,7 @@ class SourceConfig:
         of them. A wider tolerance counts a beam the monitor calls dropped as stable (1000 kV:
         any beam, none included)."""
         room = 1 - self.beam_drop_fraction
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
         for key, spec, set_value, unit in (
             ("kv_tolerance", self.kv_tolerance, set_kv, "kV"),
             ("ua_tolerance", self.ua_tolerance, set_ua, "µA"),
@@ -464,10 +467,12 @@ class SourceConfig:
                 continue
             tol = _tolerance(spec, set_value, key)
             if tol > room * abs(set_value):
+                # a default is said as one: the user wrote none, and learns which key to write
+                default = " (the default)" if spec == defaults[key] else ""
                 raise ValueError(
-                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as stable "
-                    f"a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
-                    f"of the set value): expected at most {room:.0%} of the set value"
+                    f"L8121 configuration: {key} = {spec!r}{default}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                    f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
+                    f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
 
     def tolerance_kv(self, set_kv: float) -> float:
@@ -2135,16 +2140,22 @@ class L8121:
         if not self._may_be_on:
             self._release_off(me)
             return
+        # INFO, as _trip's: ``cause`` is raised to the caller right after, and the caller's error
+        # line is the one the operator reads; an ERROR here said "no reply to SAR" twice on the
+        # terminal (s43). The notebook keeps both; an unconfirmed switch-off is logged on its own.
+        # ``fail_safe`` marks the cause as a fault that switched off (a run names it when it
+        # stopped on something else, as it names a trip)
+        cause.fail_safe = True
         if self.off_failed is not None:  # one switch-off has failed already and said so: no second wait
             self._release_off(me)
-            logger.error(
+            logger.info(
                 "%s: %s; X-rays were not confirmed off before (%s)",
                 self.port,
                 self._unported(cause),
                 self._unported(self.off_failed),
             )
             return
-        logger.error("%s: %s; switching X-rays off", self.port, self._unported(cause))
+        logger.info("%s: %s; switching X-rays off", self.port, self._unported(cause))
         try:
             self.off()
         except DeviceError as exc:
@@ -2377,6 +2388,16 @@ class L8121:
         self.dialect.settings["focus"].line(self, value)
 
     # ---- operations ----
+    def _validate_beam(self, kv: float, ua: float) -> tuple[int, int]:
+        """:meth:`validate`, and the tolerances (the defaults too) judged at the whole numbers that
+        will be sent, as a beam is set to be judged stable (:meth:`on`, :meth:`set_values`): a
+        tolerance wider than ``1 - beam_drop_fraction`` of the setting counts a beam the monitor
+        calls dropped as stable. ``ValueError`` before anything is sent. Not for a warm-up's
+        values: no beam is judged against them."""
+        kv_i, ua_i = self.validate(kv, ua)
+        self.config.check_tolerances(kv_i, ua_i)
+        return kv_i, ua_i
+
     def validate(self, kv: float, ua: float) -> tuple[int, int]:
         """Check a voltage and current against the configuration and the ratings; nothing is sent.
 
@@ -2400,8 +2421,10 @@ class L8121:
         values are within tolerance of the new ones, so that :meth:`check` judges the beam against
         the new setting; any failure switches off.
         """
-        kv_i, ua_i = self.validate(kv, ua)
         beam_on = self._beam is not None
+        # the tolerances only for a beam judged stable at these values (a warm-up's, and the
+        # presets before on(), are not: on() judges its own)
+        kv_i, ua_i = self._validate_beam(kv, ua) if beam_on else self.validate(kv, ua)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
             _, old_ua = self.setpoint()
@@ -2688,7 +2711,8 @@ class L8121:
         Raises
         ------
         ValueError
-            A value outside its range or the power limit (message names the limit).
+            A value outside its range or the power limit (message names the limit), or a
+            tolerance wider than ``1 - beam_drop_fraction`` of the setting (nothing sent).
         DeviceError
             Not in standby (warm-up needed, not ready), refused, or not stable within
             ``stable_timeout_s`` (X-rays switched off).
@@ -2697,7 +2721,7 @@ class L8121:
             L8121.md says it means) before switching on; overload, interlock, dropped beam or a
             warm-up instead of the exposure while waiting (X-rays switched off).
         """
-        kv_i, ua_i = self.validate(kv, ua)
+        kv_i, ua_i = self._validate_beam(kv, ua)
         self._require_ready()
         seen = self._reconnects()
         try:
@@ -2798,11 +2822,16 @@ class L8121:
                     "seconds": seconds,
                 }
             if seconds > c.stable_timeout_s:
+                # switched off here, not by the caller's error path: the line then says what the
+                # switch-off found (confirmed or not) and the controller's error code, as a trip's
+                # does -- it said "X-rays switched off" before any XOF went (s43)
+                _, note, failed = self._off_for_fault()
+                note += self._error_code_note()
                 raise DeviceError(
                     f"{self.port}: beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: "
                     f"measured {m_kv:g} kV {m_ua:g} µA, set {kv} kV {ua} µA "
-                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); X-rays switched off"
-                )
+                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); {note}"
+                ) from failed
             time.sleep(c.poll_s)
 
     def _fault_reason(
@@ -2875,30 +2904,42 @@ class L8121:
     def _trip(self, reason: str | Callable[[bool], str]):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`)."""
-        note, failed = "X-rays switched off", None
-        try:
-            state = self.off()
-        except DeviceError as exc:
-            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
-            # right above its X-RAYS warning), not only inside the fault's line
-            state, note, failed = None, "switching X-rays off could not be confirmed", exc
-            self._log_off_failure(exc)
+        state, note, failed = self._off_for_fault()
         if callable(reason):
             reason = reason(self.off_failed is None)
         if state == SourceState.OVERLOAD and not reason.startswith("overload"):
             # B reads state and current in separate exchanges: an overload between them looks
             # like a dropped beam until the STS after XOF says what it was
             reason = f"overload ({reason})"
-        try:
-            code = None if self.off_failed else self.error_code()  # (not asked of a controller that failed)
-            note += f"; controller error code {code}" if code else ""
-        except DeviceError:
-            pass
+        note += self._error_code_note()
         # the caller reports the SourceFault (the command line's error line; the series names a
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
         logger.info("%s: %s; %s", self.port, reason, note)
         raise SourceFault(f"{self.port}: {reason}; {note}") from failed  # (its words: off_failed)
+
+    def _off_for_fault(self) -> tuple[SourceState | None, str, DeviceError | None]:
+        """Switch off for a fault: the state the switch-off confirmed (None: not confirmed), the
+        note for the fault's message ("X-rays switched off", or not confirmed) and the switch-off's
+        error. The controller's error code is :meth:`_error_code_note`'s, asked after (a trip asks
+        ``SIN`` in between, for its message)."""
+        try:
+            return self.off(), "X-rays switched off", None
+        except DeviceError as exc:
+            # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
+            # right above its X-RAYS warning), not only inside the fault's line
+            self._log_off_failure(exc)
+            return None, "switching X-rays off could not be confirmed", exc
+
+    def _error_code_note(self) -> str:
+        """The note "; controller error code N" when ``SER`` reads a code after a fault's switch-off (often
+        why the beam is not what was set), else "" -- not asked of a controller whose switch-off
+        failed, nor said when ``SER`` cannot be read."""
+        try:
+            code = None if self.off_failed else self.error_code()
+        except DeviceError:
+            return ""
+        return f"; controller error code {code}" if code else ""
 
     def check(self) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.

@@ -931,6 +931,53 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert "kV" in capsys.readouterr().err and not model.xray_on
 
 
+def test_cli_source_on_says_a_poll_without_reply_once(capsys):
+    """Found (s43): the controller let the SAR poll go unanswered while the beam ramped up; the
+    terminal read "no reply to SAR within 0.3 s" twice, the driver's fail-safe ERROR line and then
+    the command's error line in the same words. The fault is said once, on the error line."""
+    import sys
+
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmed_up=True, ramp_s=0.1)
+    root = logging.getLogger()
+    console = logging.StreamHandler(sys.stderr)  # what logging.basicConfig gives the command
+    console.setLevel(logging.WARNING)
+    root.addHandler(console)
+    try:
+        with PtyServer(model) as server:
+            model.inject_after("XON", lambda: model.hold_once("SAR"))  # its reply comes after the time-out
+            port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
+            code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+    finally:
+        root.removeHandler(console)
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 1 and not model.xray_on, err
+    assert [ln for ln in err if "no reply to SAR" in ln] == [err[-1]], err
+    assert err[-1].startswith("error:") and "X-rays off, confirmed by STS" in err[-1], err
+
+
+def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confirmed(capsys):
+    """Found (s43): the controller's reply path lost as the beam ramped up (it still executes
+    commands): `source on` switched off and could not confirm it. Its one error line said only
+    "could not confirm X-rays off ... the controller does not answer", not why it was switching
+    off: the poll's "no reply to SAR" was replaced by the switch-off's failure as the link closed."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.guardian import TUBE_WARNING
+
+    model = L8121Model(warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        model.inject_after("XON", lambda: model.silence(True, execute=True))
+        port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
+        code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    errors = [ln for ln in err if ln.startswith("error:")]
+    assert code == 3 and err[-1] == TUBE_WARNING and len(errors) == 1, err
+    # the cause first, then what switching off ran into, in the one line
+    assert re.search(r"no reply to SAR.*could not confirm X-rays off", errors[0]), errors
+    assert sum("could not confirm X-rays off" in ln for ln in err) == 1, err
+
+
 def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):
     """Found: README says `radiokit acquire` exits 2 for an option it refuses, but an existing
     output exited 1 (and did not mention --overwrite), `source on --kv 200` exited 1 after
@@ -947,6 +994,11 @@ def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, sc
                 r"^error: --kv 200 --ua 250: voltage_kv = 200 kV is outside .*40\.\.150 kV",
             ),
             (("--kv", "60", "--ua", "nan"), r"current_ua must be finite"),
+            # the default tolerance at the setting (s43): 5 uA at 8 uA counts a dropped beam as stable
+            (
+                ("--kv", "40", "--ua", "8"),
+                r"^error: --kv 40 --ua 8: ua_tolerance = 5.0 \(the default\): 5 µA at 8 µA .*, 4 µA; nothing was sent$",
+            ),
             (("--kv", "60"), r"^error: 'on' needs --kv and --ua$"),
         ):
             code = _cli("acquire", "source", "on", *port, *given)

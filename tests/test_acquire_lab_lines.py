@@ -201,6 +201,10 @@ BEAM_FAULTS = {
     "interlock": (lambda run: run.model.open_interlock(), "interlock open"),
     "stuck": (lambda run: (run.model.stuck_on(), run.model.drop_beam()), "beam dropped"),
     "door, panel": (lambda run: (run.vendor.pause.set(), run.model.open_interlock()), "interlock open"),
+    # the monitor's SAR unanswered (its reply late): the driver's fail-safe said it in an ERROR line
+    # above the run's error line in the same words (s43)
+    "late SAR": (lambda run: run.model.hold_once("SAR"), "no reply to SAR"),
+    "late SAR, panel": (lambda run: (run.vendor.pause.set(), run.model.hold_once("SAR")), "no reply to SAR"),
 }
 
 

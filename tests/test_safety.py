@@ -811,7 +811,9 @@ def test_a_switch_off_not_confirmed_is_said_once_and_last(tmp_path, controller, 
     assert res.returncode == 3, res.stderr
     assert lines[-1] == TUBE_WARNING, res.stderr
     assert res.stderr.count("could not confirm X-rays off") == 1, res.stderr
-    assert lines[-2].startswith(f"error: {port}: could not confirm X-rays off"), res.stderr
+    assert lines[-2].startswith(f"error: {port}: ") and "could not confirm X-rays off" in lines[-2], res.stderr
+    if args[0] == "on":  # why it was switching off, first (s43: the line said only that it could not)
+        assert re.match(rf"error: {re.escape(str(port))}: \S.*; switching X-rays off: could not confirm", lines[-2])
     assert f"{port}: {port}:" not in res.stderr, res.stderr  # the port named once a line
 
 

@@ -431,9 +431,8 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
-    try:  # the tolerances this protocol gives, at its own setting (the defaults are the driver's)
-        given = [key for key in ("kv_tolerance", "ua_tolerance") if key in s.limits]
-        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua), keys=given)
+    try:  # the tolerances, given or the driver's defaults, at this protocol's setting (as on() judges them)
+        cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
@@ -1805,13 +1804,16 @@ def _stop(r: _Run, exc: BaseException):
 def _beam_fault_not_stopped_on(monitor, exc: BaseException) -> None:
     """The beam monitor's trip, said when the run stopped on something else (the panel's
     time-out as the door opened, a Ctrl-C): the driver logs a trip for the notebook only, the
-    caller's error line being the one the operator reads, and this run's line names ``exc``."""
+    caller's error line being the one the operator reads, and this run's line names ``exc``. A
+    poll that failed (no reply, garbage) and switched off is said too: the driver's fail-safe
+    logs it for the notebook only (``fail_safe``), as a trip (s43)."""
     from acquisition.errors import SourceFault
 
     fault = getattr(monitor, "error", None)
     # (a SourceFault stopping the run is that trip, or the guardian's watchdog named for the
     # detector's time-out, which the trip would repeat)
-    if isinstance(fault, SourceFault) and not isinstance(exc, SourceFault):
+    stopped_beam = isinstance(fault, SourceFault) or getattr(fault, "fail_safe", False)
+    if stopped_beam and fault is not exc and not isinstance(exc, SourceFault):
         log.error("the beam monitor had stopped the beam: %s", fault)
 
 
