@@ -259,7 +259,7 @@ class SourceConfig:
     ua_min: float = 0.0
     ua_max: float = RATINGS.ua_max
     watts_max: float = RATINGS.watts_max
-    kv_tolerance: float | str = 1.0
+    kv_tolerance: float | str = 1.0  # the two as _TOLERANCE_DEFAULTS
     ua_tolerance: float | str = 5.0
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float | None = None
@@ -363,11 +363,11 @@ class SourceConfig:
         the one with the most room (the highest voltage and current allowed; a percentage is the
         same at every setting). The defaults are not the user's, and are not judged here:
         ``ua_max = 8`` alone was refused for the default 5 µA (review s42rr2). Every tolerance,
-        default or given, is judged at the setting itself as it is made (:meth:`L8121.on`,
-        :meth:`L8121.set_values`; a protocol at its own, ``_check_source``): judged here at
-        ``kv_min``, 25 kV was refused for a unit run at 60 kV (s43)."""
-        defaults = {f.name: f.default for f in dataclasses.fields(self)}
-        given = [key for key in ("kv_tolerance", "ua_tolerance") if getattr(self, key) != defaults[key]]
+        given, is judged at the setting itself as it is made (:meth:`L8121.on`,
+        :meth:`L8121.set_values`; a protocol at its own, ``_check_source``), a default narrowed
+        there where it is too wide: judged here at ``kv_min``, 25 kV was refused for a unit run at
+        60 kV (s43)."""
+        given = [key for key, default in _TOLERANCE_DEFAULTS.items() if getattr(self, key) != default]
         ua_hi = min(self.ua_max, RATINGS.ua_max)
         self.check_tolerances(min(self.kv_max, RATINGS.kv_max), ua_hi if ua_hi > 0 else None, keys=given)
 
@@ -456,32 +456,44 @@ class SourceConfig:
         (None: not checked). L8121.md calls the beam stable when the measured values are within
         tolerance of the set ones; the beam monitor calls it dropped below ``beam_drop_fraction``
         of them. A wider tolerance counts a beam the monitor calls dropped as stable (1000 kV:
-        any beam, none included)."""
+        any beam, none included). A default is never refused: :meth:`tolerance_ua` narrows it."""
         room = 1 - self.beam_drop_fraction
-        defaults = {f.name: f.default for f in dataclasses.fields(self)}
         for key, spec, set_value, unit in (
             ("kv_tolerance", self.kv_tolerance, set_kv, "kV"),
             ("ua_tolerance", self.ua_tolerance, set_ua, "µA"),
         ):
             if key not in keys or set_value is None:
                 continue
-            tol = _tolerance(spec, set_value, key)
+            tol = self._tolerance_at(key, spec, set_value)
             if tol > room * abs(set_value):
-                # a default is said as one: the user wrote none, and learns which key to write
-                default = " (the default)" if spec == defaults[key] else ""
                 raise ValueError(
-                    f"L8121 configuration: {key} = {spec!r}{default}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
                     f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
                     f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
 
+    def _tolerance_at(self, key: str, spec: float | str, set_value: float) -> float:
+        tol = _tolerance(spec, set_value, key)
+        room = (1 - self.beam_drop_fraction) * abs(set_value)
+        if spec == _TOLERANCE_DEFAULTS[key] and tol > room:
+            # the default 5 µA is wider than the monitor's drop bound under 10 µA; refusing it left
+            # `source on --ua 8` no way through (the command takes no tolerance), so a tolerance
+            # nobody wrote is narrowed to half that room: a stable beam stays apart from a dropped one
+            return room / 2
+        return tol
+
     def tolerance_kv(self, set_kv: float) -> float:
         """The kV tolerance, absolute, around ``set_kv``."""
-        return _tolerance(self.kv_tolerance, set_kv, "kv_tolerance")
+        return self._tolerance_at("kv_tolerance", self.kv_tolerance, set_kv)
 
     def tolerance_ua(self, set_ua: float) -> float:
-        """The µA tolerance, absolute, around ``set_ua``."""
-        return _tolerance(self.ua_tolerance, set_ua, "ua_tolerance")
+        """The µA tolerance, absolute, around ``set_ua``: the default 5 µA, or a quarter of the set
+        value where that is less (under 10 µA with ``beam_drop_fraction = 0.5``).
+
+        >>> SourceConfig().tolerance_ua(250), SourceConfig().tolerance_ua(8)
+        (5.0, 2.0)
+        """
+        return self._tolerance_at("ua_tolerance", self.ua_tolerance, set_ua)
 
     @classmethod
     def from_dict(cls, mapping: Mapping[str, Any]) -> SourceConfig:
@@ -547,6 +559,11 @@ def _focus_modes(modes) -> tuple:
     if not all(is_integer(m) and m >= 0 for m in modes):
         raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {modes!r}")
     return tuple(int(m) for m in modes)  # a numpy integer is not TOML's
+
+
+#: the tolerances a configuration has when none is written (:meth:`SourceConfig.tolerance_ua`
+#: narrows them at a low setting; a value equal to one is taken as not written)
+_TOLERANCE_DEFAULTS = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
 
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:

@@ -2990,19 +2990,18 @@ def test_a_lowered_current_limit_is_not_refused_for_a_tolerance_nobody_gave(tmp_
     """Review s42rr2: ``ua_max = 8`` alone was refused, "ua_tolerance = 5.0: 5 µA at 8 µA counts as
     stable ...", for the driver's default tolerance the user never wrote (the base took the file).
     A tolerance given is still judged at the highest current allowed. A protocol run at 8 µA is
-    judged at its setting, the default tolerance too (s43): 5 µA would count a beam the monitor
-    calls dropped as stable; a tolerance it gives that fits is taken."""
+    judged at its setting (s43), where the default 5 µA, which would count a beam the monitor calls
+    dropped (below half the setting) as stable, is narrowed to half that room; a tolerance it gives
+    that fits is taken as given."""
     from acquisition.protocols import load_protocol
-    from acquisition.protocols.compression_series import ProtocolError
+    from acquisition.protocols.compression_series import _source_config
 
     assert SourceConfig(ua_max=8).ua_max == 8
     source = {"ua_max": 8, "current_ua": 8, "voltage_kv": 40}
-    with pytest.raises(ProtocolError, match=r"ua_tolerance = 5.0 \(the default\): 5 µA at 8 µA.*4 µA"):
-        load_protocol({"output": str(tmp_path / "x.h5"), "source": source, "series": {"steps": [0.1]}})
-    for fits in (3, "25%"):
-        load_protocol(
-            {"output": str(tmp_path / "x.h5"), "source": {**source, "ua_tolerance": fits}, "series": {"steps": [0.1]}}
-        )
+    for fits, tol in ((None, 2.0), (3, 3.0), ("25%", 2.0)):
+        given = {} if fits is None else {"ua_tolerance": fits}
+        p = load_protocol({"output": str(tmp_path / "x.h5"), "source": {**source, **given}, "series": {"steps": [0.1]}})
+        assert SourceConfig.from_dict(_source_config(p)).tolerance_ua(8) == tol
     with pytest.raises(ValueError, match=r"ua_tolerance = 6: 6 µA at 8 µA"):
         SourceConfig(ua_max=8, ua_tolerance=6)
 
@@ -3018,8 +3017,11 @@ def test_a_tolerance_is_judged_at_the_setting_before_anything_is_sent(warm, dial
     assert SourceConfig(kv_tolerance=25).kv_tolerance == 25  # room at 60 kV; not refused for 40 kV
     with driver(server, dialect) as src:
         n = len(model.commands)
-        with pytest.raises(ValueError, match=r"ua_tolerance = 5.0 \(the default\): 5 µA at 8 µA.*at most 50% .*4 µA"):
+        src.config.ua_tolerance = 6
+        with pytest.raises(ValueError, match=r"ua_tolerance = 6: 6 µA at 8 µA.*at most 50% .*4 µA"):
             src.on(40, 8)
+        src.config.ua_tolerance = 5.0  # the default: narrowed at 8 µA, not refused
+        assert src.config.tolerance_ua(8) == 2.0 and src.config.tolerance_ua(250) == 5.0
         src.config.kv_tolerance = 25
         with pytest.raises(ValueError, match=r"kv_tolerance = 25: 25 kV at 40 kV.*at most 50% .*20 kV"):
             src.on(40, 250)
