@@ -1058,6 +1058,11 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     return _detect_blobs(img, body, pixel_size_mm)[0]
 
 
+#: LoG peaks kept a scale and sign: the inclusion is the best of the strongest three, the others are
+#: neighbours for the background ROI to keep clear of (a phantom with several inclusions or bubbles)
+_NEIGHBOUR_PEAKS = 16
+
+
 def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.ndarray, _Neighbours]:
     """The strongest compact blob inside the body, brighter or darker than its surroundings, as a
     boolean mask (its half-maximum extent), and the other blobs that stand out as it must
@@ -1086,7 +1091,6 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
     demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
-    from skimage.feature import peak_local_max
     from skimage.measure import block_reduce
 
     if img.max() < 0:  # negative intensities (-I/I0, -counts): detect on line integrals + const
@@ -1117,7 +1121,7 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     # stands out: the paper's inclusion is denser than the gel, and a darker feature of a real
     # phantom (an air bubble) may stand out more than it
     best = {1: (-np.inf, None, None, None), -1: (-np.inf, None, None, None)}
-    found = []  # every candidate: (response, centre, radius, sign, whether it stood out)
+    found = []  # every candidate: (response, centre, radius, sign, whether it stood out; None: not tested)
     signed = {1: img, -1: -img}
     for radius in radii:
         sigma = radius / np.sqrt(2)
@@ -1128,11 +1132,13 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
         resp = -((sigma / f) ** 2) * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body
         for sign, image in signed.items():
-            peaks = peak_local_max(
-                sign * resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0, num_peaks=3, exclude_border=False
-            )
-            for rr, cc in peaks:
+            # the strongest three are scored for the inclusion; the rest are neighbours only, fitted
+            # when a background ROI comes near one (three alone lost the weakest of four blobs)
+            for k, (rr, cc) in enumerate(_log_peaks(sign * resp, max(1, int(radius / f)))):
                 centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
+                if k >= 3:
+                    found.append((float(sign * resp[rr, cc]), centre, radius, sign, None))
+                    continue
                 score, fit = _blob_fit(image, body, centre, radius)
                 found.append((float(sign * resp[rr, cc]), centre, radius, sign, fit is not None))
                 if score > best[sign][0]:
@@ -1147,6 +1153,15 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
         )
     out = _half_maximum(fit, radius, img.shape)
     return out, _Neighbours(signed, body, found, out, centre, radius)
+
+
+def _log_peaks(resp: np.ndarray, min_distance: int) -> np.ndarray:
+    """The ``_NEIGHBOUR_PEAKS`` strongest local maxima of a scale's LoG response, strongest first."""
+    from skimage.feature import peak_local_max
+
+    return peak_local_max(
+        resp, min_distance=min_distance, threshold_abs=0.0, num_peaks=_NEIGHBOUR_PEAKS, exclude_border=False
+    )
 
 
 def _half_maximum(fit, radius: float, shape) -> np.ndarray:
@@ -1184,8 +1199,10 @@ class _Neighbours:
             d = np.hypot(pr - centre[0], pc - centre[1])
             if chosen[int(round(pr)), int(round(pc))] or d <= r_c:  # the chosen blob at another scale
                 continue
-            if not stood_out and (d >= self._reach + 3 * r_c or _touches(chosen, (pr, pc), 0.5 * r_c)):
-                continue  # its ring was clear of the chosen blob, or its core is on it
+            if stood_out is False and d >= self._reach + 3 * r_c:
+                continue  # its ring was clear of the chosen blob: it failed on its own
+            if not stood_out and _touches(chosen, (pr, pc), 0.5 * r_c):
+                continue  # its core is on the chosen blob
             if stood_out:
                 self._stands[len(self._cands)] = True
             self._cands.append(((pr, pc), r_c, sign))
