@@ -552,6 +552,31 @@ def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_several():
     assert np.hypot(rows - 96, cols - 82).min() > 4  # not on the weak sphere at all
 
 
+@pytest.mark.parametrize(
+    "centre, semi_axes",
+    [((120, 89), (40, 40)), ((120, 103), (6, 30))],
+    ids=["sphere-beyond-the-largest-scale", "elongated"],
+)
+def test_find_rois_keeps_the_background_off_a_big_or_elongated_neighbour(centre, semi_axes):
+    """Review s43det: a neighbour was kept clear by a disc of 1.2 of its LoG scale's radius, and
+    the scales end at 12 mm: a sphere of 20 mm radius (40 px at 0.5 mm, the largest scale 24 px)
+    or an ellipsoid 3 mm across and 30 mm long got a disc short of its rim, and the background ROI
+    sat on it: the contrast read 0.259 and 0.222 for 0.288, silently. The background must read
+    the clean body, 0.5, within the noise of its mean, off the neighbour."""
+    rr, cc = np.mgrid[:240, :240]
+    (r, c), (a, b) = centre, semi_axes
+    truth = 0.5 / (1 + np.exp((np.hypot(rr - 119.5, cc - 119.5) - 110) / 3.0))
+    truth = truth + 0.3 * np.sqrt(np.clip(1 - ((rr - 120) ** 2 + (cc - 150) ** 2) / 100, 0, None))
+    truth = truth + 0.2 * np.sqrt(np.clip(1 - ((rr - r) / a) ** 2 - ((cc - c) / b) ** 2, 0, None))
+    img = -np.log(np.random.default_rng(9).poisson(16500 * np.exp(-truth)) / 16500)
+    inc, bg = find_rois(img, pixel_size_mm=0.5)
+    assert inc.contains((120, 150))
+    n = bg.shape[0] * bg.shape[1]
+    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
+    rows, cols = np.mgrid[bg.slices]
+    assert (((rows - r) / a) ** 2 + ((cols - c) / b) ** 2).min() > 1  # not on the neighbour at all
+
+
 def test_find_rois_refuses_when_other_structures_take_every_side():
     """A denser sphere left of the inclusion, a less dense one right of it, and the body too low
     for a background above or below: no background is placed on either; the refusal says where
