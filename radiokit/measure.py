@@ -1079,13 +1079,16 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
 
-    The others are the candidates of either sign (three a scale) that pass the same test, less
+    The inclusion is the best of the three strongest candidates a scale and sign. The others are
+    the candidates of either sign (sixteen a scale: with three, a fourth blob of a neighbour's
+    scale was never seen) that pass the same test, less
     the chosen blob seen again at another scale (its centre in the chosen one's extent, or the
     chosen one's centre within its radius: at coarse scales a blob merges with its neighbours),
     each structure once, at the scale of its strongest response (the scale-normalised LoG peaks
     at about a disc's radius). A second inclusion, a cyst or an air bubble beside the inclusion
     read as background: a sphere of 0.2 under the background ROI took 28 % off the contrast,
-    silently.
+    silently. A neighbour is kept clear by 1.2 of its radii, or 1.2 times its half-maximum extent
+    (:meth:`_Neighbours._extent`: a neighbour larger than the largest scale, or elongated).
 
     Not :func:`skimage.feature.blob_log`: it filters every scale at full resolution, with no
     per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
@@ -1348,7 +1351,8 @@ def find_rois(
         Both inside the image. The background sits level with the inclusion ROI, to its left or,
         if that leaves the body or the image or lies on another compact structure detection found
         beside the inclusion (a second inclusion, a bubble: a blob that stands out as the
-        inclusion must, within 1.2 of its radii), to its right (then above, then below). With
+        inclusion must, within 1.2 of its radii or of its half-maximum extent), to its right
+        (then above, then below). With
         ``inclusion_mask`` nothing is detected, and only the mask is kept clear of.
 
     Raises
