@@ -129,8 +129,9 @@ def main(argv=None):
     if args.experiment:
         from radiokit.pipeline import _load_steps
 
-        steps, _, _, pixel_size_mm, _ = _load_steps(args.experiment, False)
-        _case(f"{args.experiment} step {len(steps)}", np.asarray(steps[-1], np.float64), float(pixel_size_mm))
+        steps = _load_steps(args.experiment, False)
+        ref = np.asarray(steps.images[-1], np.float64)  # the pipeline's reference (choose_rois)
+        _case(f"{args.experiment} step {len(steps.images)}", ref, float(steps.pixel_size_mm))
 
 
 if __name__ == "__main__":

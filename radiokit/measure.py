@@ -1113,6 +1113,11 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     return _detect_blobs(img, body, pixel_size_mm)[0]
 
 
+#: LoG peaks kept a scale and sign: the inclusion is the best of the strongest three, the others are
+#: neighbours for the background ROI to keep clear of (a phantom with several inclusions or bubbles)
+_NEIGHBOUR_PEAKS = 16
+
+
 def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.ndarray, _Neighbours]:
     """The strongest compact blob inside the body, brighter or darker than its surroundings, as a
     boolean mask (its half-maximum extent), and the other blobs that stand out as it must
@@ -1129,19 +1134,21 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     ``-I/I0`` or ``-counts``) are searched as ``-ln(-image)``, a line integral up to a constant,
     where the body's shape is smooth.
 
-    The others are the candidates of either sign (three a scale) that pass the same test, less
+    The inclusion is the best of the three strongest candidates a scale and sign. The others are
+    the candidates of either sign (sixteen a scale: with three, a fourth blob of a neighbour's
+    scale was never seen) that pass the same test, less
     the chosen blob seen again at another scale (its centre in the chosen one's extent, or the
     chosen one's centre within its radius: at coarse scales a blob merges with its neighbours),
     each structure once, at the scale of its strongest response (the scale-normalised LoG peaks
     at about a disc's radius). A second inclusion, a cyst or an air bubble beside the inclusion
     read as background: a sphere of 0.2 under the background ROI took 28 % off the contrast,
-    silently.
+    silently. A neighbour is kept clear by 1.2 of its radii, or 1.2 times its half-maximum extent
+    (:meth:`_Neighbours._extent`: a neighbour larger than the largest scale, or elongated).
 
     Not :func:`skimage.feature.blob_log`: it filters every scale at full resolution, with no
     per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
     demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
-    from skimage.feature import peak_local_max
     from skimage.measure import block_reduce
 
     if img.max() < 0:  # negative intensities (-I/I0, -counts): detect on line integrals + const
@@ -1172,7 +1179,7 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     # stands out: the paper's inclusion is denser than the gel, and a darker feature of a real
     # phantom (an air bubble) may stand out more than it
     best = {1: (-np.inf, None, None, None), -1: (-np.inf, None, None, None)}
-    found = []  # every candidate: (response, centre, radius, sign, whether it stood out)
+    found = []  # every candidate: (response, centre, radius, sign, whether it stood out; None: not tested)
     signed = {1: img, -1: -img}
     for radius in radii:
         sigma = radius / np.sqrt(2)
@@ -1183,11 +1190,13 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
         resp = -((sigma / f) ** 2) * ndi.gaussian_laplace(im, sigma / f, mode="nearest")
         resp[dp <= 3 * radius] = 0  # the blob and the ring fitted around it inside the body
         for sign, image in signed.items():
-            peaks = peak_local_max(
-                sign * resp, min_distance=max(1, int(radius / f)), threshold_abs=0.0, num_peaks=3, exclude_border=False
-            )
-            for rr, cc in peaks:
+            # the strongest three are scored for the inclusion; the rest are neighbours only, fitted
+            # when a background ROI comes near one (three alone lost the weakest of four blobs)
+            for k, (rr, cc) in enumerate(_log_peaks(sign * resp, max(1, int(radius / f)))):
                 centre = (rr * f + (f - 1) / 2, cc * f + (f - 1) / 2)
+                if k >= 3:
+                    found.append((float(sign * resp[rr, cc]), centre, radius, sign, None))
+                    continue
                 score, fit = _blob_fit(image, body, centre, radius)
                 found.append((float(sign * resp[rr, cc]), centre, radius, sign, fit is not None))
                 if score > best[sign][0]:
@@ -1204,17 +1213,37 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     return out, _Neighbours(signed, body, found, out, centre, radius)
 
 
+def _log_peaks(resp: np.ndarray, min_distance: int) -> np.ndarray:
+    """The ``_NEIGHBOUR_PEAKS`` strongest local maxima of a scale's LoG response, strongest first."""
+    from skimage.feature import peak_local_max
+
+    return peak_local_max(
+        resp, min_distance=min_distance, threshold_abs=0.0, num_peaks=_NEIGHBOUR_PEAKS, exclude_border=False
+    )
+
+
 def _half_maximum(fit, radius: float, shape) -> np.ndarray:
     """A blob's extent from its :func:`_blob_fit`: the connected region above half its height."""
-    resid, (r0, c0), dist = fit
+    region, (r0, c0) = _half_maximum_window(fit, radius)
+    out = np.zeros(shape, bool)
+    out[r0 : r0 + region.shape[0], c0 : c0 + region.shape[1]] = region
+    return out
+
+
+def _half_maximum_window(fit, radius: float, keep=None):
+    """:func:`_half_maximum` over the fit's window only, as (region, its origin); pixels outside
+    ``keep`` (the window's share of a mask) are never in it."""
+    resid, origin, dist = fit
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")
     core = dist <= max(0.5, 1.0 / radius)
     peak_idx = int(np.argmax(np.where(core, resid, -np.inf)))
     above = (resid >= resid.flat[peak_idx] / 2) & (dist <= 1.5)
+    if keep is not None:
+        above &= keep
+    if not above.flat[peak_idx]:
+        return np.zeros_like(above), origin
     labels, _ = ndi.label(above)
-    out = np.zeros(shape, bool)
-    out[r0 : r0 + resid.shape[0], c0 : c0 + resid.shape[1]] = labels == labels.flat[peak_idx]
-    return out
+    return labels == labels.flat[peak_idx], origin
 
 
 class _Neighbours:
@@ -1235,29 +1264,69 @@ class _Neighbours:
         self._cands = []  # ((row, col), radius, sign), the strongest response first
         self._stands: dict[int, bool] = {}  # by index: whether it stands out (None: not yet tested)
         self._kept: dict[int, bool] = {}
+        self._extents: dict[int, list] = {}  # by index: its half-maximum regions (_extent)
         for _, (pr, pc), r_c, sign, stood_out in sorted(found, key=lambda t: -t[0]):
             d = np.hypot(pr - centre[0], pc - centre[1])
             if chosen[int(round(pr)), int(round(pc))] or d <= r_c:  # the chosen blob at another scale
                 continue
-            if not stood_out and (d >= self._reach + 3 * r_c or _touches(chosen, (pr, pc), 0.5 * r_c)):
-                continue  # its ring was clear of the chosen blob, or its core is on it
+            if stood_out is False and d >= self._reach + 3 * r_c:
+                continue  # its ring was clear of the chosen blob: it failed on its own
+            if not stood_out and _touches(chosen, (pr, pc), 0.5 * r_c):
+                continue  # its core is on the chosen blob
             if stood_out:
                 self._stands[len(self._cands)] = True
             self._cands.append(((pr, pc), r_c, sign))
 
+    def _clear_body(self) -> np.ndarray:
+        """The body less the chosen blob (1.5 of its radii): a neighbour's surroundings without it."""
+        if self._clear is None:
+            rows, cols = self._body.shape
+            (cr, cc), reach = self._centre, self._reach
+            lo_r, hi_r = max(0, int(cr - reach)), min(rows, int(np.ceil(cr + reach)) + 1)
+            lo_c, hi_c = max(0, int(cc - reach)), min(cols, int(np.ceil(cc + reach)) + 1)
+            yy, xx = np.ogrid[lo_r:hi_r, lo_c:hi_c]
+            self._clear = self._body.copy()
+            self._clear[lo_r:hi_r, lo_c:hi_c] &= np.hypot(yy - cr, xx - cc) > reach
+        return self._clear
+
     def _stands_out(self, i: int) -> bool:
         if i not in self._stands:
-            if self._clear is None:
-                rows, cols = self._body.shape
-                (cr, cc), reach = self._centre, self._reach
-                lo_r, hi_r = max(0, int(cr - reach)), min(rows, int(np.ceil(cr + reach)) + 1)
-                lo_c, hi_c = max(0, int(cc - reach)), min(cols, int(np.ceil(cc + reach)) + 1)
-                yy, xx = np.ogrid[lo_r:hi_r, lo_c:hi_c]
-                self._clear = self._body.copy()
-                self._clear[lo_r:hi_r, lo_c:hi_c] &= np.hypot(yy - cr, xx - cc) > reach
             centre, r_c, sign = self._cands[i]
-            self._stands[i] = _blob_fit(self._signed[sign], self._clear, centre, r_c)[1] is not None
+            self._stands[i] = _blob_fit(self._signed[sign], self._clear_body(), centre, r_c)[1] is not None
         return self._stands[i]
+
+    def _extent(self, i: int) -> list:
+        """Candidate ``i``'s half-maximum regions, each (region, origin): its fit's, and while the
+        region reaches the fit's limit (1.5 radii), a fit at twice the radius's, up to four times
+        its scale. The scales end at 12 mm and follow a blob's narrow side: a sphere of 20 mm or
+        an ellipsoid 30 mm long reaches beyond its scale's disc. All are kept: a wider fit's
+        surroundings may take in the body's edge, and its region then falls short of the last."""
+        if i not in self._extents:
+            centre, r_c, sign = self._cands[i]
+            self._extents[i] = []
+            for radius in (r_c, 2 * r_c, 4 * r_c):
+                fit = _blob_fit(self._signed[sign], self._clear_body(), centre, radius)[1]
+                if fit is None:
+                    break
+                (r0, c0), shape = fit[1], fit[0].shape
+                keep = self._clear_body()[r0 : r0 + shape[0], c0 : c0 + shape[1]]
+                self._extents[i].append(_half_maximum_window(fit, radius, keep))
+                if not (self._extents[i][-1][0] & (fit[2] > 1.4)).any():
+                    break
+        return self._extents[i]
+
+    def _extent_overlaps(self, i: int, roi: ROI) -> bool:
+        """Whether ``roi`` overlaps candidate ``i``'s extent grown 1.2 times about its centre (a
+        sphere's half maximum lies at sqrt(3)/2 of its radius, an ellipsoid's likewise on each axis)."""
+        (pr, pc), _, _ = self._cands[i]
+        for region, (r0, c0) in self._extent(i):
+            rows = np.rint(pr + (np.arange(roi.row0, roi.row1) - pr) / 1.2).astype(int) - r0
+            cols = np.rint(pc + (np.arange(roi.col0, roi.col1) - pc) / 1.2).astype(int) - c0
+            rows = rows[(rows >= 0) & (rows < region.shape[0])]
+            cols = cols[(cols >= 0) & (cols < region.shape[1])]
+            if region[np.ix_(rows, cols)].any():
+                return True
+        return False
 
     def _structure(self, i: int) -> bool:
         """Whether candidate ``i`` stands out and is no structure found at a stronger scale."""
@@ -1270,12 +1339,16 @@ class _Neighbours:
         return self._kept[i]
 
     def near(self, roi: ROI) -> list:
-        """The centres of the structures whose disc of 1.2 radii ``roi`` overlaps: a sphere's edge,
-        where the LoG's radius ends, still adds to the line integral."""
+        """The centres of the structures whose disc of 1.2 radii ``roi`` overlaps (a sphere's edge,
+        where the LoG's radius ends, still adds to the line integral), or, for one known to stand
+        out, its extent (:meth:`_extent_overlaps`; at most 1.2 x 1.5 of four times its radius)."""
         out = []
         for i, ((r, c), r_c, _) in enumerate(self._cands):
             nearest = np.clip(r, roi.row0, roi.row1 - 1), np.clip(c, roi.col0, roi.col1 - 1)
-            if np.hypot(nearest[0] - r, nearest[1] - c) < 1.2 * r_c and self._structure(i):
+            d = np.hypot(nearest[0] - r, nearest[1] - c)
+            if d < 1.2 * r_c and self._structure(i):
+                out.append((r, c))
+            elif d < 7.2 * r_c and self._stands.get(i) and self._structure(i) and self._extent_overlaps(i, roi):
                 out.append((r, c))
         return out
 
@@ -1333,7 +1406,8 @@ def find_rois(
         Both inside the image. The background sits level with the inclusion ROI, to its left or,
         if that leaves the body or the image or lies on another compact structure detection found
         beside the inclusion (a second inclusion, a bubble: a blob that stands out as the
-        inclusion must, within 1.2 of its radii), to its right (then above, then below). With
+        inclusion must, within 1.2 of its radii or of its half-maximum extent), to its right
+        (then above, then below). With
         ``inclusion_mask`` nothing is detected, and only the mask is kept clear of.
 
     Raises
