@@ -170,18 +170,20 @@ class DomainMeasures:
         return cls(Domain(domain), d["contrast_reference"], d["cnr_reference"], d["weber_reference"], per_k)
 
 
-class PairQuality(Mapping):
+class PairQuality(dict):
     """A registered pair's quality as ``results.json`` records it, read-only: the numbers of
     :class:`radiokit.register.Quality`, the pipeline's verdict (``ok`` False, with the ``reason``,
     also where its own checks flagged the pair) and what the run chose (``preset``, ...).
 
     Each is a typed attribute (``quality.rc_after``), None where the file records none (an older
-    radiokit's, or a method that has none); the object is also the mapping of the keys recorded,
-    in the file's order (``quality["ok"]``, ``dict(quality)``), as when it was a dict. Only what
-    is recorded is serialised, so a file reads back and writes out byte for byte.
+    radiokit's, or a method that has none); the object is also the dict of the keys recorded, in
+    the file's order (``quality["ok"]``, ``dict(quality)``), as it was: a dict, so that code
+    written for one still works (``json.dumps(quality)``, ``quality.copy()``, ``quality | {...}``
+    raised TypeError when it was a Mapping only: review s43rr); every change to it is refused.
+    Only what is recorded is serialised, so a file reads back and writes out byte for byte.
     """
 
-    __slots__ = ("_items",)
+    __slots__ = ()
 
     # radiokit.register.Quality's fields (a test keeps the two lists together)
     rc_before: float | None
@@ -215,34 +217,32 @@ class PairQuality(Mapping):
     regularisation_check_seconds: float | None
 
     def __init__(self, items: Mapping | None = None):
-        object.__setattr__(self, "_items", dict(items or {}))
-
-    def __getitem__(self, key):
-        return self._items[key]
-
-    def __iter__(self):
-        return iter(self._items)
-
-    def __len__(self) -> int:
-        return len(self._items)
+        super().__init__(items or {})
 
     def __getattr__(self, name):
         # only where normal lookup failed: the annotated names are no class attributes
         if name in PairQuality.__annotations__:
-            return self._items.get(name)
+            return self.get(name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def __setattr__(self, name, value):
         raise AttributeError(f"{type(self).__name__} is read-only (a record of the run): cannot set {name!r}")
 
+    def _refuse(self, *args, **kwargs):
+        raise TypeError(f"{type(self).__name__} is read-only (a record of the run): change a copy, dict(quality)")
+
+    # dict's every way of changing it in place (a copy, dict(q), q.copy() or q | {...}, is a plain dict)
+    __setitem__ = __delitem__ = __ior__ = clear = pop = popitem = setdefault = update = _refuse
+
     def __dir__(self):
         return sorted(set(super().__dir__()) | set(PairQuality.__annotations__))
 
     def __reduce__(self):
-        return PairQuality, (self._items,)
+        # not dict's (it would fill the new object item by item, which is refused)
+        return PairQuality, (dict(self),)
 
     def __repr__(self) -> str:
-        return f"PairQuality({self._items!r})"
+        return f"PairQuality({dict(self)!r})"
 
 
 @dataclass(frozen=True)

@@ -517,3 +517,33 @@ def test_a_pairs_quality_is_typed_and_still_reads_as_the_dict_it_was(tmp_path):
     assert {f.name for f in dc.fields(Quality)} <= set(PairQuality.__annotations__)
     notes = load_results(tmp_path / "results.json").pair("1->2").quality
     assert notes.note == "stopped at 60 iterations; not flagged for it <slow>"
+
+
+def test_a_pairs_quality_still_serialises_and_copies_as_the_dict_it_was(tmp_path):
+    """Review s43rr: when ``PairResult.quality`` became a read-only Mapping, code written for the
+    dict it was broke: ``json.dumps(pair.quality)`` raised TypeError ("not JSON serializable"),
+    as did ``quality.copy()`` and ``quality | {...}``. It is a dict again, still read-only."""
+    import json
+
+    from radiokit._json import strict
+    from radiokit.results import load_results
+
+    _record(("1",), {"1": 1.1}, truth=False).write_json(tmp_path / "results.json")
+    q = load_results(tmp_path / "results.json").pair("1->2").quality
+    plain = dict(q)
+    assert json.loads(json.dumps(q)) == json.loads(json.dumps(plain)) == strict(q)
+    mine = q.copy()
+    mine["ok"] = False  # a copy is the caller's own, as a dict's copy was
+    assert q["ok"] is True and (q | {"ok": False})["ok"] is False and dict(q) == plain
+    for change in (
+        lambda: q.update(ok=False),
+        lambda: q.pop("ok"),
+        lambda: q.setdefault("new", 1),
+        lambda: q.clear(),
+        lambda: q.popitem(),
+        lambda: q.__delitem__("ok"),
+        lambda: q.__ior__({"ok": False}),
+    ):
+        with pytest.raises(TypeError, match="read-only"):
+            change()
+    assert dict(q) == plain
