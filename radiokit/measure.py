@@ -795,7 +795,8 @@ def _warn_if_enhanced(d: np.ndarray, ref: np.ndarray, reg: np.ndarray) -> None:
             "improvement_factor_se: reference - registered has zero mean to rounding, as an enhanced image "
             "minus its reference does (k (D - mean D)): it takes the pair the enhancement was made of, "
             "improvement_factor_se(reference=..., registered=..., k=...), where improvement_factor takes "
-            "(enhanced, reference)",
+            "(enhanced, reference); or the two images differ by nothing but noise or a shift (no change "
+            "between the steps), which the mean alone cannot tell apart",
             UserWarning,
             stacklevel=3,
         )
